@@ -1,0 +1,1 @@
+"""The simulated world: emits the real devices' bytes and register values."""

@@ -1,0 +1,5 @@
+import sys
+
+from x6wd.cli import main
+
+sys.exit(main())

@@ -1,0 +1,202 @@
+"""TOML settings validated into frozen dataclasses.
+
+Every section is a frozen dataclass; a field's ``metadata`` may carry ``min``, ``max``
+(inclusive) and ``choices``. Unknown keys, wrong types and out-of-range values raise
+:class:`ConfigError` naming the dotted key, so a bad file stops startup with a reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+from x6wd.errors import ConfigError
+
+T = TypeVar("T")
+
+
+def _rng(lo: float | None = None, hi: float | None = None, **kw: Any) -> dict[str, Any]:
+    return {"min": lo, "max": hi, **kw}
+
+
+@dataclass(frozen=True)
+class GpsConfig:
+    url: str = "serial:///dev/ttyS0?baud=9600"
+    stale_s: float = field(default=2.5, metadata=_rng(0.1, 60))
+    configure_receiver: bool = False  # send UBX CFG-RATE/CFG-MSG at start
+    rate_hz: float = field(default=1.0, metadata=_rng(0.1, 10))
+
+
+@dataclass(frozen=True)
+class CompassConfig:
+    url: str = "i2c://1/0x60"
+    rate_hz: float = field(default=20.0, metadata=_rng(1, 75))
+    stale_s: float = field(default=0.5, metadata=_rng(0.01, 10))
+    declination_deg: float = field(default=0.0, metadata=_rng(-180, 180))
+
+
+@dataclass(frozen=True)
+class MotorsConfig:
+    url: str = "log://"
+    watchdog_ms: int = field(default=500, metadata=_rng(50, 10000))
+
+
+@dataclass(frozen=True)
+class NavigationConfig:
+    delta_phi_deg: float = field(default=10.0, metadata=_rng(0.1, 90))
+    delta_x_m: float = field(default=3.0, metadata=_rng(0.01, 1000))
+    delta_y_m: float = field(default=3.0, metadata=_rng(0.01, 1000))
+    filter_n: int = field(default=20, metadata=_rng(3, 1000))
+    filter_hysteresis: bool = False
+    projection: str = field(
+        default="two_radius", metadata={"choices": ("two_radius", "local_tangent_plane")}
+    )
+    cruise_pct: float = field(default=60.0, metadata=_rng(0, 100))
+    turn_pct: float = field(default=40.0, metadata=_rng(0, 100))
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    fix_stale_s: float = field(default=2.5, metadata=_rng(0.1, 60))
+    attitude_stale_s: float = field(default=0.5, metadata=_rng(0.01, 10))
+    manual_max_s: float = field(default=5.0, metadata=_rng(0.1, 60))
+    geofence_radius_m: float = field(default=1000.0, metadata=_rng(1, 1e6))
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    enabled: bool = True
+    bind: str = "127.0.0.1"
+    port: int = field(default=7601, metadata=_rng(0, 65535))
+    token_file: str = ""  # empty: no authentication required (only on loopback binds)
+    tls_cert: str = ""
+    tls_key: str = ""
+    max_clients: int = field(default=16, metadata=_rng(1, 10000))
+    max_line_bytes: int = field(default=65536, metadata=_rng(256, 16 * 1024 * 1024))
+    rate_per_s: float = field(default=50.0, metadata=_rng(0.1, 1e6))
+    queue_len: int = field(default=256, metadata=_rng(1, 1_000_000))
+
+
+@dataclass(frozen=True)
+class GpsdConfig:
+    enabled: bool = True
+    bind: str = "127.0.0.1"
+    port: int = field(default=2947, metadata=_rng(0, 65535))
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    enabled: bool = True
+    dir: str = "/var/lib/x6wd"
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Hardware-in-the-loop: the simulated world behind the sim:// device URLs."""
+
+    scenario: str = ""
+    seed: int = field(default=1, metadata=_rng(0, 2**63 - 1))
+
+
+@dataclass(frozen=True)
+class Config:
+    gps: GpsConfig = field(default_factory=GpsConfig)
+    compass: CompassConfig = field(default_factory=CompassConfig)
+    motors: MotorsConfig = field(default_factory=MotorsConfig)
+    navigation: NavigationConfig = field(default_factory=NavigationConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    server: ServerConfig = field(default_factory=ServerConfig)
+    gpsd: GpsdConfig = field(default_factory=GpsdConfig)
+    recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+
+def _check_value(key: str, value: Any, tp: Any, meta: Any) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if len(args) != 1:
+            raise TypeError(f"unsupported config type {tp}")  # programming error
+        tp = args[0]
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    elif tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    elif tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{key}: must be finite, got {value!r}")
+    elif tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+    elif typing.get_origin(tp) in (tuple, list):
+        if not isinstance(value, list):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        (item_tp, *_rest) = typing.get_args(tp) or (Any,)
+        if item_tp is not Any and item_tp is not Ellipsis:
+            value = [_check_value(f"{key}[{i}]", v, item_tp, {}) for i, v in enumerate(value)]
+        value = tuple(value)
+    lo, hi = meta.get("min"), meta.get("max")
+    if lo is not None and value < lo:
+        raise ConfigError(f"{key}: must be >= {lo}, got {value!r}")
+    if hi is not None and value > hi:
+        raise ConfigError(f"{key}: must be <= {hi}, got {value!r}")
+    choices = meta.get("choices")
+    if choices is not None and value not in choices:
+        raise ConfigError(f"{key}: must be one of {', '.join(map(str, choices))}, got {value!r}")
+    return value
+
+
+def build(cls: type[T], data: Any, prefix: str = "") -> T:
+    """Validate a TOML table into the frozen dataclass ``cls``; errors name the dotted key."""
+    where = prefix.rstrip(".") or "top level"
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a table, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"{prefix}{unknown[0]}: unknown key (valid keys in {where}: {', '.join(fields)})"
+        )
+    kwargs: dict[str, Any] = {}
+    for name, value in data.items():
+        tp = hints[name]
+        key = f"{prefix}{name}"
+        if dataclasses.is_dataclass(tp):
+            kwargs[name] = build(tp, value, key + ".")  # type: ignore[arg-type]
+        else:
+            kwargs[name] = _check_value(key, value, tp, fields[name].metadata)
+    return cls(**kwargs)
+
+
+def loads(text: str, source: str = "<string>") -> Config:
+    """Parse and validate TOML text into a :class:`Config`."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
+    return build(Config, data)
+
+
+def load(path: str | Path) -> Config:
+    """Read and validate a TOML configuration file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read configuration: {exc.strerror or exc}") from exc
+    try:
+        return loads(text, str(p))
+    except ConfigError as exc:
+        raise ConfigError(f"{p}: {exc}") from exc

@@ -1,0 +1,1 @@
+"""Sim-to-real gap diagnosis."""

@@ -1,0 +1,160 @@
+"""Typed records that cross module boundaries: device outputs, controller outputs.
+
+Every record carries ``t_s``: the time the host received (or the simulator produced) it,
+in seconds on one monotonic clock. The controller never reads a clock; it trusts ``t_s``.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import asdict, dataclass, field
+from datetime import datetime
+from typing import Any
+
+
+@dataclass(frozen=True, slots=True)
+class GpsFix:
+    """One receiver epoch assembled from GGA + RMC (+ GSA).
+
+    ``valid`` comes from GGA quality > 0 / RMC status 'A', never from the coordinates.
+    ``mode`` follows gpsd: 0 unknown, 1 no fix, 2 2D, 3 3D.
+    """
+
+    t_s: float
+    utc: datetime | None = None
+    lat_deg: float | None = None
+    lon_deg: float | None = None
+    alt_m: float | None = None  # above mean sea level
+    quality: int = 0  # GGA fix quality 0..8
+    sats_used: int | None = None
+    hdop: float | None = None
+    speed_mps: float | None = None
+    course_deg: float | None = None  # None when the receiver leaves it empty (at rest)
+    valid: bool = False
+    mode: int = 1
+    pdop: float | None = None
+    vdop: float | None = None
+    geoid_sep_m: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class SatInfo:
+    """One satellite in view (from GSV, ``used`` from GSA)."""
+
+    prn: int
+    el_deg: float | None
+    az_deg: float | None
+    snr_dbhz: float | None
+    used: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class GpsSky:
+    """Satellites in view and dilution of precision for one epoch."""
+
+    t_s: float
+    satellites: tuple[SatInfo, ...] = ()
+    pdop: float | None = None
+    hdop: float | None = None
+    vdop: float | None = None
+    utc: datetime | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Attitude:
+    """One CMPS10 sample. ``bearing_deg`` is MAGNETIC, 0 <= b < 360, as the device reports."""
+
+    t_s: float
+    bearing_deg: float
+    pitch_deg: float
+    roll_deg: float
+    valid: bool = True
+
+
+class NavState(enum.StrEnum):
+    """Navigator state (the paper's state machine plus ARRIVED / MISSION_DONE / HOLD)."""
+
+    IDLE = "IDLE"
+    TURN_LEFT = "TURN_LEFT"
+    TURN_RIGHT = "TURN_RIGHT"
+    STRAIGHT = "STRAIGHT"
+    ARRIVED = "ARRIVED"
+    MISSION_DONE = "MISSION_DONE"
+    HOLD = "HOLD"
+
+
+class Mode(enum.StrEnum):
+    """What the operator asked for."""
+
+    IDLE = "IDLE"  # no mission running (loaded or not)
+    RUNNING = "RUNNING"
+    PAUSED = "PAUSED"
+    MANUAL = "MANUAL"  # manual drive with a dead-man duration
+    DONE = "DONE"  # mission completed
+
+
+@dataclass(frozen=True, slots=True)
+class MotorCommand:
+    """Left/right drive in percent of full power, -100..100 (positive = forward)."""
+
+    t_s: float
+    left_pct: float
+    right_pct: float
+    reason: str = ""
+
+    @property
+    def is_stop(self) -> bool:
+        return self.left_pct == 0.0 and self.right_pct == 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class StateChange:
+    """The controller's mode or navigation state changed."""
+
+    t_s: float
+    old: str
+    new: str
+    reason: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class Telemetry:
+    """Snapshot of the controller after an input; what clients and the recorder see."""
+
+    t_s: float
+    mode: Mode
+    state: NavState
+    hold_reason: str = ""
+    waypoint_index: int | None = None  # 0-based index of the current target
+    waypoint_count: int = 0
+    lat_deg: float | None = None  # raw fix
+    lon_deg: float | None = None
+    filt_lat_deg: float | None = None  # Constellation-filtered
+    filt_lon_deg: float | None = None
+    x_m: float | None = None  # projected filtered position
+    y_m: float | None = None
+    bearing_deg: float | None = None  # magnetic, as read
+    heading_deg: float | None = None  # true, (-180, 180]
+    pitch_deg: float | None = None
+    roll_deg: float | None = None
+    target_bearing_deg: float | None = None  # phi_i, (-180, 180]
+    theta_deg: float | None = None  # course deviation, (-180, 180]
+    distance_m: float | None = None  # to the current waypoint
+    fix_quality: int = 0
+    sats_used: int | None = None
+    hdop: float | None = None
+    fix_age_s: float | None = None
+    attitude_age_s: float | None = None
+    left_pct: float = 0.0
+    right_pct: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready dict (enums as strings)."""
+        d = asdict(self)
+        d["mode"] = str(self.mode)
+        d["state"] = str(self.state)
+        return d
+
+
+ControllerOutput = MotorCommand | Telemetry | StateChange
