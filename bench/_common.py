@@ -1,0 +1,46 @@
+"""Benchmark convention: each bench_*.py has run(quick=False) -> list[Row] and a __main__.
+
+A row is one measured figure with its anchor (the reference it is judged against: a target,
+or the baseline it is compared with) and the ratio value / anchor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class Row:
+    bench: str
+    metric: str
+    value: float
+    unit: str
+    anchor: float | None = None
+    anchor_label: str = ""
+    note: str = ""
+
+    @property
+    def ratio(self) -> float | None:
+        if self.anchor in (None, 0):
+            return None
+        return self.value / self.anchor  # type: ignore[operator]
+
+
+def print_table(rows: list[Row]) -> None:
+    """Print rows as an aligned text table."""
+    head = ("bench", "metric", "value", "unit", "anchor", "ratio", "note")
+    body = [
+        (
+            r.bench,
+            r.metric,
+            f"{r.value:.4g}",
+            r.unit,
+            "" if r.anchor is None else f"{r.anchor:.4g} {r.anchor_label}".strip(),
+            "" if r.ratio is None else f"{r.ratio:.3g}",
+            r.note,
+        )
+        for r in rows
+    ]
+    widths = [max(len(str(x)) for x in col) for col in zip(head, *body, strict=True)]
+    for line in (head, *body):
+        print("  ".join(str(x).ljust(w) for x, w in zip(line, widths, strict=True)).rstrip())
