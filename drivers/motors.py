@@ -1,0 +1,568 @@
+"""Motor controller link: the line protocol of docs/motors.md, both ends of it.
+
+- :class:`SerialMotorLink` drives a real board over any pyserial-like port and waits for the
+  board's acknowledgement of every command.
+- :class:`LogMotorLink` only records commands (bench runs, dry runs, tests).
+- :class:`MotorBoard` is the board's side as a sans-IO parser: bytes and the time in, reply
+  bytes out, with the watchdog. The simulator runs it behind a pseudo-terminal
+  (:func:`serve_board_fd`) so the daemon talks to it exactly as to the real board.
+
+Stopping never raises: :meth:`SerialMotorLink.stop` tries, counts and returns whether the
+board confirmed. If the link is dead, the board's watchdog stops the motors by itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import select
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+from x6wd.records import MotorCommand
+
+log = logging.getLogger(__name__)
+
+MAX_PCT = 100
+WATCHDOG_MIN_MS = 50
+WATCHDOG_MAX_MS = 60_000
+DEFAULT_WATCHDOG_MS = 500
+MAX_LINE_BYTES = 64
+SEQ_MODULO = 10_000
+
+
+class PortLike(Protocol):
+    """What the link needs from a serial port (pyserial ``Serial`` fits)."""
+
+    def read(self, size: int = 1) -> bytes: ...
+
+    def write(self, data: bytes) -> int | None: ...
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class MotorLink(Protocol):
+    """Common interface of the motor backends (what the daemon uses)."""
+
+    @property
+    def healthy(self) -> bool: ...
+
+    @property
+    def last_command(self) -> MotorCommand | None: ...
+
+    def drive(self, left_pct: float, right_pct: float, reason: str = "") -> bool: ...
+
+    def stop(self, reason: str = "") -> bool: ...
+
+    def send(self, cmd: MotorCommand) -> bool: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> MotorLink: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
+def _check_pct(name: str, value: float) -> int:
+    """Validate a drive percentage and round it to the protocol's integer percent."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name} must be a number in -100..100 percent, got {value!r}")
+    if not math.isfinite(value) or abs(value) > MAX_PCT:
+        raise ValueError(f"{name} must be within -100..100 percent, got {value!r}")
+    return round(value)
+
+
+@dataclass
+class LinkCounters:
+    """Traffic and failures of a :class:`SerialMotorLink`."""
+
+    sent: int = 0  # command lines written
+    acked: int = 0  # OK received for a command
+    rejected: int = 0  # ERR received for a command
+    timeouts: int = 0  # no answer within ack_timeout_s
+    write_errors: int = 0  # the port raised on write/read
+    stop_failures: int = 0  # stop() calls that got no OK
+    events: int = 0  # unsolicited EVT lines from the board (e.g. watchdog trips)
+
+
+# --- host side ------------------------------------------------------------------------------
+
+
+class SerialMotorLink:
+    """Drive a motor board over a serial port with the docs/motors.md protocol.
+
+    Every command carries a sequence number and waits up to ``ack_timeout_s`` (s) for its
+    ``OK``; it is retried ``retries`` times. At start the board's watchdog is set to
+    ``watchdog_ms``; the board stops by itself when no command arrives for that long, so
+    the caller must send commands (or :meth:`ping`) more often than that. I/O failures never
+    raise out of :meth:`drive`, :meth:`stop` or :meth:`close`: they are counted and make
+    :attr:`healthy` False.
+    """
+
+    def __init__(
+        self,
+        port: Any,
+        *,
+        ack_timeout_s: float = 0.1,
+        watchdog_ms: int = DEFAULT_WATCHDOG_MS,
+        retries: int = 1,
+        unhealthy_after: int = 2,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not (ack_timeout_s > 0 and math.isfinite(ack_timeout_s)):
+            raise ValueError(f"ack_timeout_s must be > 0 s, got {ack_timeout_s!r}")
+        if not WATCHDOG_MIN_MS <= watchdog_ms <= WATCHDOG_MAX_MS:
+            raise ValueError(
+                f"watchdog_ms must be {WATCHDOG_MIN_MS}..{WATCHDOG_MAX_MS}, got {watchdog_ms!r}"
+            )
+        if retries < 0 or unhealthy_after < 1:
+            raise ValueError("retries must be >= 0 and unhealthy_after >= 1")
+        self.port = port
+        self.ack_timeout_s = float(ack_timeout_s)
+        self.watchdog_ms = int(watchdog_ms)
+        self.retries = retries
+        self.unhealthy_after = unhealthy_after
+        self.counters = LinkCounters()
+        self._clock = clock
+        self._seq = 0
+        self._rx = bytearray()
+        self._failures = 0
+        self._closed = False
+        self._last: MotorCommand | None = None
+        self._lock = threading.Lock()
+        # Poll the port in short slices so a deadline is honoured whatever the port's timeout.
+        if hasattr(port, "timeout"):
+            try:
+                port.timeout = min(self.ack_timeout_s, 0.02)
+            except Exception:  # a port that refuses: we still bound waits by our deadline
+                log.debug("motor port does not accept a timeout", exc_info=True)
+        self.configured = False
+        self._configure()
+
+    def _configure(self) -> None:
+        """Set the board's watchdog; until that succeeds the link counts as unhealthy."""
+        self.configured = self._transact(f"W {self.watchdog_ms}")
+        if not self.configured:
+            self._failures = max(self._failures, self.unhealthy_after)
+
+    # --- state ------------------------------------------------------------------------------
+
+    @property
+    def healthy(self) -> bool:
+        """True while the board acknowledges commands (fewer than ``unhealthy_after``
+        consecutive failed commands) and the link is open."""
+        return not self._closed and self._failures < self.unhealthy_after
+
+    @property
+    def last_command(self) -> MotorCommand | None:
+        """The last drive/stop command sent (acknowledged or not)."""
+        return self._last
+
+    # --- commands ---------------------------------------------------------------------------
+
+    def drive(self, left_pct: float, right_pct: float, reason: str = "") -> bool:
+        """Set left/right drive in percent (-100..100, rounded to whole percent).
+
+        Returns True when the board acknowledged. Bad values raise ValueError; I/O never
+        raises.
+        """
+        left, right = _check_pct("left_pct", left_pct), _check_pct("right_pct", right_pct)
+        if self._closed:
+            return False
+        self._last = MotorCommand(self._clock(), float(left), float(right), reason)
+        return self._configured_transact(f"M {left} {right}")
+
+    def stop(self, reason: str = "") -> bool:
+        """Stop both sides. Never raises; tries ``retries + 1`` times; True if confirmed."""
+        try:
+            self._last = MotorCommand(self._clock(), 0.0, 0.0, reason or "stop")
+            ok = self._transact("S")
+        except Exception:  # stop must not raise, whatever the port does
+            log.exception("motor stop failed")
+            ok = False
+        if not ok:
+            self.counters.stop_failures += 1
+        return ok
+
+    def send(self, cmd: MotorCommand) -> bool:
+        """Send a controller :class:`MotorCommand` (a stop command uses ``S``)."""
+        if cmd.is_stop:
+            return self.stop(cmd.reason)
+        return self.drive(cmd.left_pct, cmd.right_pct, cmd.reason)
+
+    def ping(self) -> bool:
+        """Keep-alive: feeds the board's watchdog without changing the drive."""
+        return self._configured_transact("P")
+
+    def query(self) -> tuple[int, int, int] | None:
+        """The board's (left_pct, right_pct, watchdog_ms), or None without an answer."""
+        reply = self._transact_reply("Q")
+        if reply is None:
+            return None
+        try:
+            left, right, wd = (int(x) for x in reply.split()[:3])
+        except ValueError:
+            return None
+        return left, right, wd
+
+    def close(self) -> None:
+        """Stop the motors, then close the port (idempotent, never raises)."""
+        if self._closed:
+            return
+        self.stop("close")
+        self._closed = True
+        try:
+            self.port.close()
+        except Exception:
+            log.debug("closing the motor port failed", exc_info=True)
+
+    def __enter__(self) -> SerialMotorLink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- transport --------------------------------------------------------------------------
+
+    def _configured_transact(self, body: str) -> bool:
+        """``body`` after (re)sending the watchdog setting if the board lacks it: never
+        confirmed, or an ``EVT BOOT`` arrived (then also right after ``body``)."""
+        if not self.configured:
+            self._configure()
+        ok = self._transact(body)
+        if ok and not self.configured:
+            self._configure()
+        return ok
+
+    def _transact(self, body: str) -> bool:
+        return self._transact_reply(body) is not None
+
+    def _transact_reply(self, body: str) -> str | None:
+        """Send ``body`` with a fresh sequence number; the OK payload, or None on failure."""
+        if self._closed:
+            return None
+        with self._lock:
+            for _attempt in range(self.retries + 1):
+                self._seq = self._seq % (SEQ_MODULO - 1) + 1
+                seq = self._seq
+                try:
+                    self.port.write(f"{body} #{seq}\n".encode("ascii"))
+                    self.counters.sent += 1
+                    reply = self._await(seq)
+                except Exception as exc:  # SerialException is an OSError; closed ports differ
+                    self.counters.write_errors += 1
+                    log.debug("motor link I/O error: %s", exc)
+                    continue
+                if reply is None:
+                    self.counters.timeouts += 1
+                    continue
+                ok, payload = reply
+                if ok:
+                    self.counters.acked += 1
+                    self._failures = 0
+                    return payload
+                self.counters.rejected += 1
+                log.warning("motor board rejected %r: %s", body, payload)
+                break  # the board understood and refused: repeating will not help
+            self._failures += 1
+            return None
+
+    def _await(self, seq: int) -> tuple[bool, str] | None:
+        """Read lines until the reply for ``seq`` or the ack deadline."""
+        deadline = self._clock() + self.ack_timeout_s
+        while True:
+            while b"\n" in self._rx:
+                raw, _, rest = bytes(self._rx).partition(b"\n")
+                self._rx = bytearray(rest)
+                parsed = _parse_reply(raw.decode("ascii", "replace").strip())
+                if parsed is None:
+                    continue
+                kind, rseq, payload = parsed
+                if kind == "EVT":
+                    self.counters.events += 1
+                    log.info("motor board event: %s", payload)
+                    if payload.split()[:1] == ["BOOT"]:
+                        self.configured = False  # it forgot our watchdog setting
+                elif rseq == seq:
+                    return kind == "OK", payload
+                # replies to older, timed-out commands are dropped
+            if self._clock() >= deadline:
+                return None
+            waiting = getattr(self.port, "in_waiting", 0) or 0
+            chunk = self.port.read(max(1, min(int(waiting), 256)))
+            if chunk:
+                self._rx += chunk
+                if len(self._rx) > 4096:  # a babbling line: keep only the tail
+                    del self._rx[:-MAX_LINE_BYTES]
+
+
+def _parse_reply(line: str) -> tuple[str, int | None, str] | None:
+    """``OK #7 payload`` -> ("OK", 7, "payload"); EVT lines have no sequence."""
+    if not line:
+        return None
+    kind, _, rest = line.partition(" ")
+    if kind not in ("OK", "ERR", "EVT"):
+        return None
+    seq: int | None = None
+    rest = rest.strip()
+    if rest.startswith("#"):
+        token, _, rest = rest.partition(" ")
+        try:
+            seq = int(token[1:])
+        except ValueError:
+            return None
+    return kind, seq, rest.strip()
+
+
+class LogMotorLink:
+    """A motor backend that only logs and keeps the commands (``log://``).
+
+    ``commands`` holds the last ``keep`` commands; ``on_command`` (e.g. a recorder's
+    ``record_motor``) is called for each one.
+    """
+
+    def __init__(
+        self,
+        *,
+        keep: int = 10_000,
+        on_command: Callable[[MotorCommand], Any] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        logger: logging.Logger | None = None,
+    ) -> None:
+        self.commands: deque[MotorCommand] = deque(maxlen=keep)
+        self.on_command = on_command
+        self._clock = clock
+        self._log = logger or log
+        self._closed = False
+
+    @property
+    def healthy(self) -> bool:
+        """True until closed."""
+        return not self._closed
+
+    @property
+    def last_command(self) -> MotorCommand | None:
+        """The last command given, or None."""
+        return self.commands[-1] if self.commands else None
+
+    def _keep(self, cmd: MotorCommand) -> bool:
+        self.commands.append(cmd)
+        self._log.info("motors L%+.0f R%+.0f %s", cmd.left_pct, cmd.right_pct, cmd.reason)
+        if self.on_command is not None:
+            self.on_command(cmd)
+        return not self._closed
+
+    def drive(self, left_pct: float, right_pct: float, reason: str = "") -> bool:
+        """Record a drive command (validated like the serial link); True unless closed."""
+        left, right = _check_pct("left_pct", left_pct), _check_pct("right_pct", right_pct)
+        return self._keep(MotorCommand(self._clock(), float(left), float(right), reason))
+
+    def stop(self, reason: str = "") -> bool:
+        """Record a stop; never raises."""
+        try:
+            return self._keep(MotorCommand(self._clock(), 0.0, 0.0, reason or "stop"))
+        except Exception:
+            self._log.exception("recording a stop failed")
+            return False
+
+    def send(self, cmd: MotorCommand) -> bool:
+        """Record a controller command (its own ``t_s`` is kept)."""
+        if cmd.is_stop:
+            try:
+                return self._keep(cmd)
+            except Exception:
+                self._log.exception("recording a stop failed")
+                return False
+        _check_pct("left_pct", cmd.left_pct)
+        _check_pct("right_pct", cmd.right_pct)
+        return self._keep(cmd)
+
+    def close(self) -> None:
+        """Stop, then refuse further commands (idempotent)."""
+        if not self._closed:
+            self.stop("close")
+            self._closed = True
+
+    def __enter__(self) -> LogMotorLink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# --- board side -----------------------------------------------------------------------------
+
+
+class MotorBoard:
+    """The motor board's protocol engine, sans-IO (docs/motors.md).
+
+    ``feed(data, t_s)`` takes received bytes at time ``t_s`` (s, any monotonic clock) and
+    returns the reply bytes. ``tick(t_s)`` only advances time (watchdog). ``left_pct`` /
+    ``right_pct`` are the drive the board applies now.
+    """
+
+    def __init__(self, *, watchdog_ms: int = DEFAULT_WATCHDOG_MS) -> None:
+        if not WATCHDOG_MIN_MS <= watchdog_ms <= WATCHDOG_MAX_MS:
+            raise ValueError(
+                f"watchdog_ms must be {WATCHDOG_MIN_MS}..{WATCHDOG_MAX_MS}, got {watchdog_ms!r}"
+            )
+        self.watchdog_ms = int(watchdog_ms)
+        self.default_watchdog_ms = int(watchdog_ms)  # what the firmware starts with
+        self.left_pct = 0
+        self.right_pct = 0
+        self.watchdog_trips = 0
+        self.commands = 0  # valid commands executed
+        self.errors = 0  # ERR replies sent
+        self._buf = bytearray()
+        self._overflow = False
+        self._last_cmd_t_s: float | None = None
+
+    def boot(self) -> bytes:
+        """Power-up: stopped, default watchdog, input cleared; returns ``EVT BOOT``."""
+        self.left_pct = self.right_pct = 0
+        self.watchdog_ms = self.default_watchdog_ms
+        self._buf.clear()
+        self._overflow = False
+        self._last_cmd_t_s = None
+        return b"EVT BOOT\n"
+
+    @property
+    def running(self) -> bool:
+        """True while either side is driven."""
+        return self.left_pct != 0 or self.right_pct != 0
+
+    def tick(self, t_s: float) -> bytes:
+        """Advance time to ``t_s``; stop and report ``EVT WATCHDOG`` if it expired."""
+        if (
+            self.running
+            and self._last_cmd_t_s is not None
+            and t_s - self._last_cmd_t_s >= self.watchdog_ms / 1000.0 - 1e-9  # float slack
+        ):
+            self.left_pct = self.right_pct = 0
+            self.watchdog_trips += 1
+            return b"EVT WATCHDOG\n"
+        return b""
+
+    def feed(self, data: bytes, t_s: float) -> bytes:
+        """Process received bytes at ``t_s``; return the replies (possibly empty)."""
+        out = bytearray(self.tick(t_s))
+        self._buf += data
+        while True:
+            i = self._buf.find(b"\n")
+            if i < 0:
+                break
+            line = bytes(self._buf[:i])
+            del self._buf[: i + 1]
+            if self._overflow:
+                self._overflow = False
+                self.errors += 1
+                out += b"ERR overflow\n"
+                continue
+            out += self._line(line.decode("ascii", "replace").strip(), t_s)
+        if len(self._buf) > MAX_LINE_BYTES:
+            # discard the rest of this line; answer ERR at its end
+            self._buf.clear()
+            self._overflow = True
+        return bytes(out)
+
+    def _err(self, seq: str, reason: str) -> bytes:
+        self.errors += 1
+        return f"ERR{seq} {reason}\n".encode("ascii")
+
+    def _line(self, line: str, t_s: float) -> bytes:
+        if not line:
+            return b""
+        tokens = line.split()
+        seq = ""
+        if tokens[-1].startswith("#"):
+            digits = tokens.pop()[1:]
+            if not digits.isdigit() or len(digits) > 5:
+                return self._err("", "syntax")
+            seq = f" #{int(digits)}"
+            if not tokens:
+                return self._err(seq, "syntax")
+        cmd, args = tokens[0].upper(), tokens[1:]
+        try:
+            values = [int(a, 10) for a in args]
+        except ValueError:
+            return self._err(seq, "syntax")
+        payload = ""
+        if cmd == "M":
+            if len(values) != 2:
+                return self._err(seq, "syntax")
+            if any(abs(v) > MAX_PCT for v in values):
+                return self._err(seq, "range")
+            self.left_pct, self.right_pct = values
+        elif cmd == "S":
+            if values:
+                return self._err(seq, "syntax")
+            self.left_pct = self.right_pct = 0
+        elif cmd == "P":
+            if values:
+                return self._err(seq, "syntax")
+        elif cmd == "W":
+            if len(values) != 1:
+                return self._err(seq, "syntax")
+            if not WATCHDOG_MIN_MS <= values[0] <= WATCHDOG_MAX_MS:
+                return self._err(seq, "range")
+            self.watchdog_ms = values[0]
+        elif cmd == "Q":
+            if values:
+                return self._err(seq, "syntax")
+            payload = f" {self.left_pct} {self.right_pct} {self.watchdog_ms}"
+        else:
+            return self._err(seq, "unknown")
+        self.commands += 1
+        self._last_cmd_t_s = t_s
+        return f"OK{seq}{payload}\n".encode("ascii")
+
+
+def serve_board_fd(
+    fd: int,
+    board: MotorBoard,
+    stop: threading.Event,
+    *,
+    clock: Callable[[], float] = time.monotonic,
+    poll_s: float = 0.005,
+    lock: threading.Lock | None = None,
+    boot: bool = False,
+) -> None:
+    """Run ``board`` on a file descriptor (e.g. a pty master) until ``stop`` is set.
+
+    Reads what arrives, feeds it with the time from ``clock``, writes the replies back, and
+    ticks the watchdog every ``poll_s`` seconds. ``lock`` (if given) is held while the board
+    changes so another thread can read its state consistently. Returns on EOF or when the
+    far end goes away (EIO on a pty master whose slave was closed). With ``boot`` the board
+    first powers up (:meth:`MotorBoard.boot`) and announces it, as real firmware does.
+    """
+    guard = lock or threading.Lock()
+    if boot:
+        with guard:
+            hello = board.boot()
+        try:
+            os.write(fd, hello)
+        except OSError:
+            return
+    while not stop.is_set():
+        ready, _, _ = select.select([fd], [], [], poll_s)
+        data = b""
+        if ready:
+            try:
+                data = os.read(fd, 4096)
+            except OSError:
+                return
+            if not data:
+                return
+        with guard:
+            reply = board.feed(data, clock()) if data else board.tick(clock())
+        if reply:
+            try:
+                os.write(fd, reply)
+            except OSError:
+                return

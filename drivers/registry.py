@@ -1,0 +1,324 @@
+"""Device URLs -> backends. Each backend's module is imported only when its URL is used.
+
+=========  =======================================  ==========================================
+kind       URL                                      backend
+=========  =======================================  ==========================================
+gps        ``serial:///dev/ttyS0?baud=9600``        pyserial ``Serial`` (a UART or a pty)
+gps        ``tcp://host:port``                      pyserial ``socket://`` (ser2net, gpsd raw)
+gps        ``replay:///path/log.nmea?speed=1``      :class:`x6wd.recorder.ReplayPort`
+compass    ``i2c://1/0x60``                         ``smbus2.SMBus(1)`` + :class:`Cmps10`
+motors     ``serial:///dev/ttyUSB0?baud=115200``    :class:`SerialMotorLink`
+motors     ``tcp://host:port``                      :class:`SerialMotorLink` over a socket
+motors     ``log://``                               :class:`LogMotorLink`
+any        ``sim://...``                            ``sim_backend.hil.open_gps/open_compass/
+                                                    open_motors(url)``
+=========  =======================================  ==========================================
+
+``replay://`` takes a relative path as ``replay://logs/a.nmea`` and an absolute one as
+``replay:///abs/a.nmea``. Unknown schemes and options raise :class:`ConfigError` listing the
+valid ones; a device that cannot be opened raises :class:`DeviceUnavailable`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
+from urllib.parse import parse_qsl, unquote, urlsplit
+
+from x6wd.errors import ConfigError, DeviceUnavailable
+
+if TYPE_CHECKING:
+    from drivers.cmps10 import Cmps10
+    from drivers.motors import MotorLink
+
+KINDS = ("gps", "compass", "motors")
+STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+
+
+class PortLike(Protocol):
+    """pyserial-compatible byte port: ``read(n)`` honouring ``timeout``, ``in_waiting``,
+    ``write``, ``close``."""
+
+    timeout: float | None
+
+    def read(self, size: int = 1) -> bytes: ...
+
+    @property
+    def in_waiting(self) -> int: ...
+
+    def write(self, data: bytes) -> int | None: ...
+
+    def close(self) -> None: ...
+
+
+def _float_opt(lo: float, hi: float) -> Any:
+    def conv(name: str, text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise ConfigError(f"option {name}: expected a number, got {text!r}") from None
+        if not (math.isfinite(v) and lo <= v <= hi):
+            raise ConfigError(f"option {name}: must be within {lo:g}..{hi:g}, got {text!r}")
+        return v
+
+    return conv
+
+
+def _int_opt(lo: int, hi: int, choices: tuple[int, ...] = ()) -> Any:
+    def conv(name: str, text: str) -> int:
+        try:
+            v = int(text, 0)
+        except ValueError:
+            raise ConfigError(f"option {name}: expected an integer, got {text!r}") from None
+        if choices and v not in choices:
+            raise ConfigError(
+                f"option {name}: must be one of {', '.join(map(str, choices))}, got {text!r}"
+            )
+        if not lo <= v <= hi:
+            raise ConfigError(f"option {name}: must be within {lo}..{hi}, got {text!r}")
+        return v
+
+    return conv
+
+
+_BAUD = _int_opt(50, 4_000_000, STANDARD_BAUDS)
+_TIMEOUT = _float_opt(0.0, 60.0)
+
+# kind -> scheme -> option -> converter
+SCHEMES: dict[str, dict[str, dict[str, Any]]] = {
+    "gps": {
+        "serial": {"baud": _BAUD, "timeout": _TIMEOUT},
+        "tcp": {"timeout": _TIMEOUT},
+        "replay": {
+            "speed": _float_opt(0.0, 1e6),
+            "rate": _float_opt(0.01, 100.0),
+            "timeout": _TIMEOUT,
+        },
+        "sim": {},
+    },
+    "compass": {
+        "i2c": {"retries": _int_opt(0, 100), "stale_after": _int_opt(1, 10_000)},
+        "sim": {},
+    },
+    "motors": {
+        "serial": {
+            "baud": _BAUD,
+            "watchdog_ms": _int_opt(50, 60_000),
+            "ack_timeout": _float_opt(0.001, 10.0),
+            "retries": _int_opt(0, 100),
+        },
+        "tcp": {
+            "watchdog_ms": _int_opt(50, 60_000),
+            "ack_timeout": _float_opt(0.001, 10.0),
+            "retries": _int_opt(0, 100),
+        },
+        "log": {},
+        "sim": {},
+    },
+}
+
+DEFAULTS: dict[str, dict[str, dict[str, Any]]] = {
+    "gps": {
+        "serial": {"baud": 9600, "timeout": 0.1},
+        "tcp": {"timeout": 0.1},
+        "replay": {"speed": 1.0, "rate": 1.0, "timeout": 0.1},
+    },
+    "compass": {"i2c": {"retries": 3, "stale_after": 5}},
+    "motors": {
+        "serial": {"baud": 115200, "watchdog_ms": 500, "ack_timeout": 0.1, "retries": 1},
+        "tcp": {"watchdog_ms": 500, "ack_timeout": 0.1, "retries": 1},
+    },
+}
+
+
+@dataclass(frozen=True)
+class DeviceUrl:
+    """A validated device URL.
+
+    ``target`` is the device path (serial, replay), ``host:port`` (tcp), ``bus/address``
+    (i2c), or the rest of the URL (sim, kept verbatim in ``url``). ``options`` holds the
+    converted query options with their defaults filled in.
+    """
+
+    url: str
+    kind: str
+    scheme: str
+    target: str
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+def parse_url(url: str, kind: str) -> DeviceUrl:
+    """Validate ``url`` for a device ``kind`` ("gps", "compass" or "motors").
+
+    Raises :class:`ConfigError` for an unknown kind, scheme or option (listing the valid
+    ones), a bad option value or a malformed target.
+    """
+    if kind not in SCHEMES:
+        raise ConfigError(f"unknown device kind {kind!r} (valid: {', '.join(KINDS)})")
+    if not isinstance(url, str) or "://" not in url:
+        raise ConfigError(
+            f"{kind} URL {url!r}: expected scheme://..., valid schemes: "
+            f"{', '.join(s + '://' for s in SCHEMES[kind])}"
+        )
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower()
+    schemes = SCHEMES[kind]
+    if scheme not in schemes:
+        raise ConfigError(
+            f"{kind} URL {url!r}: unknown scheme {scheme!r} (valid for {kind}: "
+            f"{', '.join(s + '://' for s in schemes)})"
+        )
+    if scheme == "sim":  # the simulator validates its own URLs
+        return DeviceUrl(url, kind, scheme, url[len("sim://") :], {})
+    valid = schemes[scheme]
+    options: dict[str, Any] = dict(DEFAULTS.get(kind, {}).get(scheme, {}))
+    try:
+        pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
+    except ValueError:
+        raise ConfigError(f"{kind} URL {url!r}: malformed query {parts.query!r}") from None
+    seen: set[str] = set()
+    for name, value in pairs:
+        if name not in valid:
+            listing = ", ".join(valid) if valid else "none"
+            raise ConfigError(
+                f"{kind} URL {url!r}: unknown option {name!r} for {scheme}:// (valid: {listing})"
+            )
+        if name in seen:
+            raise ConfigError(f"{kind} URL {url!r}: option {name!r} given twice")
+        seen.add(name)
+        try:
+            options[name] = valid[name](name, value)
+        except ConfigError as exc:
+            raise ConfigError(f"{kind} URL {url!r}: {exc}") from None
+    if parts.fragment:
+        raise ConfigError(f"{kind} URL {url!r}: unexpected fragment #{parts.fragment}")
+    target = _target(url, kind, scheme, parts.netloc, unquote(parts.path))
+    return DeviceUrl(url, kind, scheme, target, options)
+
+
+def _target(url: str, kind: str, scheme: str, netloc: str, path: str) -> str:
+    where = f"{kind} URL {url!r}"
+    if scheme == "serial":
+        if netloc or not path.startswith("/") or path == "/":
+            raise ConfigError(f"{where}: expected serial:///dev/NAME (an absolute device path)")
+        return path
+    if scheme == "replay":
+        target = netloc + path
+        if not target:
+            raise ConfigError(f"{where}: expected replay://FILE (relative) or replay:///FILE")
+        return target
+    if scheme == "tcp":
+        host, sep, port = netloc.rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536 or path:
+            raise ConfigError(f"{where}: expected tcp://HOST:PORT with PORT 1..65535")
+        return netloc
+    if scheme == "i2c":
+        bus, addr = netloc, path.strip("/")
+        try:
+            bus_n, addr_n = int(bus, 10), int(addr, 0)
+        except ValueError:
+            raise ConfigError(f"{where}: expected i2c://BUS/ADDRESS, e.g. i2c://1/0x60") from None
+        if bus_n < 0 or not 0x60 <= addr_n <= 0x67:
+            raise ConfigError(
+                f"{where}: bus must be >= 0 and the address a CMPS10 7-bit address 0x60..0x67"
+            )
+        return f"{bus_n}/{addr_n:#04x}"
+    if scheme == "log":
+        if netloc or path not in ("", "/"):
+            raise ConfigError(f"{where}: log:// takes no target")
+        return ""
+    raise AssertionError(scheme)  # pragma: no cover
+
+
+def _sim_module(kind: str) -> Any:
+    try:
+        return importlib.import_module("sim_backend.hil")
+    except ModuleNotFoundError as exc:
+        if exc.name in ("sim_backend.hil", "sim_backend"):
+            raise DeviceUnavailable(
+                f"sim:// {kind} URLs need sim_backend.hil, which this build does not have yet"
+            ) from exc
+        raise
+
+
+def _serial_port(dev: DeviceUrl, timeout_s: float) -> Any:
+    import serial  # lazily: pyserial is only needed for real ports
+
+    try:
+        if dev.scheme == "tcp":
+            return serial.serial_for_url(f"socket://{dev.target}", timeout=timeout_s)
+        return serial.Serial(dev.target, baudrate=dev.options["baud"], timeout=timeout_s)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise DeviceUnavailable(f"cannot open {dev.url}: {exc}") from exc
+
+
+def open_gps_port(url: str) -> PortLike:
+    """Open the GPS byte stream named by ``url`` (serial, tcp, replay, sim)."""
+    dev = parse_url(url, "gps")
+    if dev.scheme == "sim":
+        port: PortLike = _sim_module("gps").open_gps(url)
+        return port
+    if dev.scheme == "replay":
+        from x6wd.recorder import ReplayPort
+
+        return ReplayPort(
+            dev.target,
+            dev.options["speed"],
+            rate_hz=dev.options["rate"],
+            timeout=dev.options["timeout"],
+        )
+    port = _serial_port(dev, dev.options["timeout"])
+    return port
+
+
+def open_compass(url: str) -> Cmps10:
+    """Open the CMPS10 named by ``url`` (i2c, sim) and check that it answers.
+
+    Raises :class:`DeviceUnavailable` if the bus cannot be opened or no CMPS10 answers.
+    """
+    dev = parse_url(url, "compass")
+    if dev.scheme == "sim":
+        compass: Cmps10 = _sim_module("compass").open_compass(url)
+        return compass
+    from drivers.cmps10 import Cmps10
+
+    bus_s, addr_s = dev.target.split("/")
+    try:
+        import smbus2
+
+        bus = smbus2.SMBus(int(bus_s))
+    except (OSError, ImportError) as exc:
+        raise DeviceUnavailable(f"cannot open I2C bus {bus_s} for {url}: {exc}") from exc
+    compass = Cmps10(
+        bus,
+        int(addr_s, 0),
+        retries=dev.options["retries"],
+        stale_after=dev.options["stale_after"],
+    )
+    try:
+        compass.check_version()
+    except DeviceUnavailable:
+        bus.close()
+        raise
+    return compass
+
+
+def open_motors(url: str) -> MotorLink:
+    """Open the motor link named by ``url`` (serial, tcp, log, sim)."""
+    dev = parse_url(url, "motors")
+    if dev.scheme == "sim":
+        link: MotorLink = _sim_module("motors").open_motors(url)
+        return link
+    from drivers.motors import LogMotorLink, SerialMotorLink
+
+    if dev.scheme == "log":
+        return LogMotorLink()
+    port = _serial_port(dev, min(dev.options["ack_timeout"], 0.02))
+    return SerialMotorLink(
+        port,
+        ack_timeout_s=dev.options["ack_timeout"],
+        watchdog_ms=dev.options["watchdog_ms"],
+        retries=dev.options["retries"],
+    )

@@ -1,0 +1,310 @@
+"""Motor link protocol: the sans-IO board, and the host link talking to it over a REAL pty."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import pytest
+import serial
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drivers.motors import (
+    LogMotorLink,
+    MotorBoard,
+    MotorLink,
+    SerialMotorLink,
+    serve_board_fd,
+)
+from x6wd.records import MotorCommand
+
+# --- the board alone (sans-IO) ----------------------------------------------------------------
+
+
+def test_board_drive_stop_query_with_sequence_numbers() -> None:
+    b = MotorBoard()
+    assert b.feed(b"M 60 -40 #7\n", 0.0) == b"OK #7\n"
+    assert (b.left_pct, b.right_pct) == (60, -40)
+    assert b.feed(b"q #8\r\n", 0.1) == b"OK #8 60 -40 500\n"
+    assert b.feed(b"S\n", 0.2) == b"OK\n"
+    assert (b.left_pct, b.right_pct) == (0, 0)
+    assert b.feed(b"W 250 #9\nP #10\n", 0.3) == b"OK #9\nOK #10\n"
+    assert b.watchdog_ms == 250
+    assert b.commands == 5
+
+
+@pytest.mark.parametrize(
+    ("line", "reply"),
+    [
+        (b"M 101 0 #1\n", b"ERR #1 range\n"),
+        (b"M -101 0\n", b"ERR range\n"),
+        (b"M 10 #2\n", b"ERR #2 syntax\n"),
+        (b"M 1.5 2 #3\n", b"ERR #3 syntax\n"),
+        (b"W 10 #4\n", b"ERR #4 range\n"),
+        (b"X #5\n", b"ERR #5 unknown\n"),
+        (b"S 3 #6\n", b"ERR #6 syntax\n"),
+        (b"M 1 1 #x\n", b"ERR syntax\n"),
+        (b"#5\n", b"ERR #5 syntax\n"),
+    ],
+)
+def test_board_rejects_bad_commands_and_keeps_drive(line: bytes, reply: bytes) -> None:
+    b = MotorBoard()
+    b.feed(b"M 30 30\n", 0.0)
+    assert b.feed(line, 0.1) == reply
+    assert (b.left_pct, b.right_pct) == (30, 30)
+    assert b.errors == 1
+
+
+def test_board_overflow_line_is_discarded() -> None:
+    b = MotorBoard()
+    out = b.feed(b"M " + b"1" * 200, 0.0)
+    assert out == b""
+    assert b.feed(b" 5\nM 20 20 #3\n", 0.0) == b"ERR overflow\nOK #3\n"
+    assert (b.left_pct, b.right_pct) == (20, 20)
+
+
+def test_board_watchdog_stops_after_period_without_commands() -> None:
+    b = MotorBoard(watchdog_ms=200)
+    b.feed(b"M 50 50\n", 10.0)
+    assert b.tick(10.199) == b""
+    assert b.running
+    b.feed(b"P\n", 10.15)  # a ping feeds it
+    assert b.tick(10.349) == b"" and b.running
+    assert b.tick(10.35) == b"EVT WATCHDOG\n"
+    assert not b.running and b.watchdog_trips == 1
+    assert b.tick(20.0) == b""  # reported once
+    # a late command: the watchdog fires first, then the command runs
+    b.feed(b"M 10 10\n", 20.0)
+    assert b.feed(b"M 40 40 #2\n", 21.0) == b"EVT WATCHDOG\nOK #2\n"
+    assert (b.left_pct, b.right_pct) == (40, 40)
+
+
+def test_board_boot_forgets_settings() -> None:
+    b = MotorBoard(watchdog_ms=400)
+    b.feed(b"W 2000\nM 50 50\nM 1", 0.0)
+    assert b.boot() == b"EVT BOOT\n"
+    assert (b.left_pct, b.right_pct, b.watchdog_ms) == (0, 0, 400)
+    assert b.feed(b"0 10\n", 0.1) == b"ERR unknown\n"  # the half line died with the boot
+
+
+def test_board_invalid_lines_do_not_feed_watchdog() -> None:
+    b = MotorBoard(watchdog_ms=100)
+    b.feed(b"M 50 50\n", 0.0)
+    b.feed(b"garbage\n", 0.09)
+    assert b.tick(0.1) == b"EVT WATCHDOG\n"
+
+
+STREAM = b"W 300 #1\nM 10 -10 #2\nbogus\nM 100 100\r\nQ #3\nS #4\nM 5 5 #5\n"
+
+
+@settings(max_examples=60, deadline=None)
+@given(cuts=st.lists(st.integers(0, len(STREAM)), max_size=12))
+def test_board_replies_do_not_depend_on_chunking(cuts: list[int]) -> None:
+    whole = MotorBoard()
+    expected = whole.feed(STREAM, 0.0)
+    b = MotorBoard()
+    bounds = [0, *sorted(cuts), len(STREAM)]
+    got = b"".join(b.feed(STREAM[a:c], 0.0) for a, c in itertools.pairwise(bounds))
+    assert got == expected
+    assert (b.left_pct, b.right_pct, b.watchdog_ms) == (5, 5, 300)
+
+
+# --- the host link over a real pseudo-terminal ------------------------------------------------
+
+
+@dataclass
+class PtyBoard:
+    """A MotorBoard served on a pty master; the link opens the slave with pyserial."""
+
+    master: int
+    slave: int
+    name: str
+    board: MotorBoard
+    stop: threading.Event
+    thread: threading.Thread | None = None
+    lock: threading.Lock = threading.Lock()  # noqa: RUF009
+
+    def start(self, boot: bool = False) -> None:
+        self.stop = threading.Event()
+        self.thread = threading.Thread(
+            target=serve_board_fd,
+            args=(self.master, self.board, self.stop),
+            kwargs={"lock": self.lock, "boot": boot},
+            daemon=True,
+        )
+        self.thread.start()
+
+    def halt(self) -> None:
+        self.stop.set()
+        if self.thread is not None:
+            self.thread.join(5)
+
+    def state(self) -> tuple[int, int]:
+        with self.lock:
+            return self.board.left_pct, self.board.right_pct
+
+
+@pytest.fixture
+def pty_board() -> Iterator[PtyBoard]:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    pb = PtyBoard(master, slave, os.ttyname(slave), MotorBoard(), threading.Event())
+    pb.start()
+    yield pb
+    pb.halt()
+    os.close(master)
+    os.close(slave)
+
+
+def open_link(pb: PtyBoard, **kw: float) -> SerialMotorLink:
+    port = serial.Serial(pb.name, baudrate=115200, timeout=0.02)
+    kw.setdefault("ack_timeout_s", 0.5)
+    return SerialMotorLink(port, **kw)  # type: ignore[arg-type]
+
+
+def wait_for(cond: Callable[[], bool], limit_s: float = 5.0) -> bool:
+    end = time.monotonic() + limit_s
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.005)
+    return cond()
+
+
+@pytest.mark.integration
+def test_link_drives_the_board_through_a_pty(pty_board: PtyBoard) -> None:
+    with open_link(pty_board, watchdog_ms=2000) as link:
+        assert isinstance(link, MotorLink)
+        assert link.configured and pty_board.board.watchdog_ms == 2000
+        assert link.drive(60, -40.4, reason="turn")
+        assert pty_board.state() == (60, -40)
+        assert link.last_command is not None
+        assert (link.last_command.left_pct, link.last_command.right_pct) == (60.0, -40.0)
+        assert link.query() == (60, -40, 2000)
+        assert link.ping()
+        assert link.send(MotorCommand(0.0, 0.0, 0.0, "hold"))
+        assert pty_board.state() == (0, 0)
+        assert link.healthy
+        assert link.counters.acked == link.counters.sent == 5  # W M Q P S
+
+
+@pytest.mark.integration
+def test_close_stops_the_motors_first(pty_board: PtyBoard) -> None:
+    link = open_link(pty_board, watchdog_ms=5000)
+    assert link.drive(80, 80)
+    link.close()
+    assert pty_board.state() == (0, 0)
+    assert link.last_command is not None and link.last_command.is_stop
+    assert not link.healthy
+    link.close()  # idempotent
+    assert not link.drive(10, 10)
+
+
+@pytest.mark.integration
+def test_board_watchdog_stops_a_silent_host(pty_board: PtyBoard) -> None:
+    with open_link(pty_board, watchdog_ms=50) as link:
+        assert link.drive(30, 30)
+        assert wait_for(lambda: pty_board.state() == (0, 0))
+        assert pty_board.board.watchdog_trips == 1
+        assert link.drive(20, 20)  # the EVT line in between is counted, not mistaken for OK
+        assert link.counters.events == 1
+
+
+@pytest.mark.integration
+def test_dead_board_makes_link_unhealthy_and_stop_never_raises(pty_board: PtyBoard) -> None:
+    link = open_link(pty_board, ack_timeout_s=0.2)
+    assert link.drive(10, 10) and link.healthy
+    pty_board.halt()  # the board stops answering
+    timeouts = link.counters.timeouts
+    assert not link.drive(20, 20)
+    assert not link.stop()
+    assert not link.healthy
+    assert link.counters.timeouts - timeouts == 4  # 2 commands x (1 try + 1 retry)
+    assert link.counters.stop_failures == 1
+    pty_board.start()  # it comes back
+    assert link.drive(5, 5)
+    assert link.healthy and pty_board.state() == (5, 5)
+    link.close()
+
+
+@pytest.mark.integration
+def test_stop_on_a_broken_port_returns_false(pty_board: PtyBoard) -> None:
+    link = open_link(pty_board)
+    link.port.close()  # the port vanishes under the link
+    assert link.stop() is False
+    assert not link.drive(10, 10)
+    assert link.counters.write_errors >= 2
+    link.close()  # still no exception
+
+
+@pytest.mark.integration
+def test_late_reply_to_a_timed_out_command_is_not_taken_as_ack(pty_board: PtyBoard) -> None:
+    pty_board.halt()
+    link_port = serial.Serial(pty_board.name, baudrate=115200, timeout=0.02)
+    link = SerialMotorLink(link_port, ack_timeout_s=0.05, retries=0)  # W goes unanswered
+    assert not link.configured
+    # the board answers the W late (its old sequence number) and never the ping
+    os.write(pty_board.master, b"OK #1\n")
+    assert not link.ping()  # OK #1 is stale: W #2 and P #3 get no answer
+    assert link.counters.timeouts == 3 and link.counters.acked == 0
+    assert not link.healthy
+    pty_board.start()  # the board appears: the link sets the watchdog it never confirmed
+    assert link.ping() and link.configured and link.healthy
+    assert pty_board.board.watchdog_ms == 500
+    link.port.close()
+
+
+@pytest.mark.integration
+def test_link_resets_the_watchdog_after_a_board_reboot(pty_board: PtyBoard) -> None:
+    with open_link(pty_board, watchdog_ms=3000) as link:
+        assert link.drive(40, 40) and pty_board.board.watchdog_ms == 3000
+        pty_board.halt()
+        pty_board.start(boot=True)  # brown-out: the board restarts with its defaults
+        assert wait_for(lambda: pty_board.board.watchdog_ms == 500)
+        assert link.drive(30, 30)
+        assert pty_board.board.watchdog_ms == 3000 and pty_board.state() == (30, 30)
+        assert link.configured and link.counters.events == 1
+
+
+def test_drive_rejects_bad_values() -> None:
+    link = LogMotorLink()
+    for bad in (101, -100.6, math.nan, math.inf):
+        with pytest.raises(ValueError, match="left_pct"):
+            link.drive(bad, 0)
+    with pytest.raises(ValueError, match="right_pct"):
+        link.drive(0, "50")  # type: ignore[arg-type]
+    assert link.last_command is None
+
+
+def test_log_link_keeps_commands_and_stops_on_close() -> None:
+    seen: list[MotorCommand] = []
+    t = iter([1.0, 2.0, 3.0, 4.0])
+    with LogMotorLink(on_command=seen.append, clock=lambda: next(t)) as link:
+        assert isinstance(link, MotorLink)
+        assert link.drive(50, 49.6, "cruise")
+        assert link.send(MotorCommand(1.5, -20.0, 20.0, "turn"))
+        assert link.stop("hold")
+        assert link.healthy
+    assert [(c.t_s, c.left_pct, c.right_pct) for c in seen] == [
+        (1.0, 50.0, 50.0),
+        (1.5, -20.0, 20.0),
+        (2.0, 0.0, 0.0),
+        (3.0, 0.0, 0.0),
+    ]
+    assert seen[-1].reason == "close" and not link.healthy
+    assert not link.drive(1, 1)
+    assert list(link.commands)[-1] == link.last_command
+
+
+def test_link_constructor_validates() -> None:
+    with pytest.raises(ValueError, match="watchdog_ms"):
+        SerialMotorLink(None, watchdog_ms=10)
+    with pytest.raises(ValueError, match="ack_timeout_s"):
+        SerialMotorLink(None, ack_timeout_s=0)

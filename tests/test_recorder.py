@@ -1,0 +1,372 @@
+"""Flight recorder, its reader, paced replay, ReplayPort and `x6wd replay`, on real logs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from datetime import UTC, datetime
+from pathlib import Path
+
+import pytest
+
+from drivers.gps_nmea import GpsDecoder
+from x6wd.cli import main as cli_main
+from x6wd.errors import DeviceUnavailable, ParseError
+from x6wd.recorder import (
+    RECORD_TYPES,
+    ReadStats,
+    Record,
+    Recorder,
+    ReplayPort,
+    decode_record,
+    is_recording,
+    nmea_file_chunks,
+    read_recording,
+    recording_parts,
+    replay_records,
+)
+from x6wd.records import (
+    Attitude,
+    GpsFix,
+    GpsSky,
+    Mode,
+    MotorCommand,
+    NavState,
+    SatInfo,
+    StateChange,
+    Telemetry,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "tests" / "data" / "recorder"
+LEA5H = DATA / "ublox-lea-5h.log"
+NL402U = DATA / "nl402u.log"
+
+
+class VirtualClock:
+    """Wall time that only moves when replay sleeps."""
+
+    def __init__(self) -> None:
+        self.now_s = 1000.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+    def sleep(self, dt_s: float) -> None:
+        assert dt_s >= 0
+        self.now_s += dt_s
+
+
+def fixes_of(data: bytes) -> list[GpsFix]:
+    dec = GpsDecoder(emit_sentences=False)
+    out = [r for r in dec.feed(data, 0.0) if isinstance(r, GpsFix)]
+    return out + [r for r in dec.flush() if isinstance(r, GpsFix)]
+
+
+def key(fixes: list[GpsFix]) -> list[tuple[object, ...]]:
+    return [(f.utc, f.lat_deg, f.lon_deg, f.valid, f.mode) for f in fixes]
+
+
+def record_log(path: Path, log: Path) -> int:
+    """Record every line of an NMEA log as nmea records, 0.1 s apart; return the count."""
+    n = 0
+    with Recorder(path) as rec:
+        for line in log.read_bytes().splitlines():
+            if line.startswith(b"$"):
+                rec.record_nmea(line, 50.0 + 0.1 * n)
+                n += 1
+    return n
+
+
+# --- writing and reading ----------------------------------------------------------------------
+
+
+def test_every_record_type_round_trips(tmp_path: Path) -> None:
+    utc = datetime(2026, 11, 22, 4, 43, 12, 250000, tzinfo=UTC)
+    path = tmp_path / "r.jsonl"
+    fix = GpsFix(3.0, utc=utc, lat_deg=51.9, lon_deg=4.57, valid=True, mode=3, hdop=1.2)
+    sky = GpsSky(3.5, (SatInfo(5, 40.0, 120.0, 38.0, True),), pdop=1.9)
+    tel = Telemetry(4.0, Mode.RUNNING, NavState.TURN_LEFT, theta_deg=float("nan"))
+    with Recorder(path, fsync_interval_s=0.0, utc_clock=lambda: utc) as rec:
+        rec.record_nmea("$GPGGA,1*00\r\n", 1.0)
+        rec.record_attitude(Attitude(2.0, 359.9, -3.0, 4.0))
+        rec.record_motor(MotorCommand(2.5, 60.0, -40.0, "turn"))
+        rec.record_state(StateChange(2.75, "STRAIGHT", "TURN_LEFT", "theta"))
+        rec.record_fix(fix)
+        rec.record_sky(sky)
+        rec.record_telemetry(tel)
+        rec.record_event("start", 5.0, version="0.1.0")
+        assert rec.records_written == 8
+    stats = ReadStats()
+    recs = list(read_recording(path, stats=stats))
+    assert [r.type for r in recs] == [
+        "nmea", "attitude", "motor", "state", "fix", "sky", "telemetry", "event",
+    ]  # fmt: skip
+    assert {r.type for r in recs} == RECORD_TYPES
+    assert [r.t_mono for r in recs] == [1.0, 2.0, 2.5, 2.75, 3.0, 3.5, 4.0, 5.0]
+    assert all(r.t_utc == "2026-11-22T04:43:12.250000Z" for r in recs)
+    assert recs[0].data == {"text": "$GPGGA,1*00"}
+    assert Attitude(**recs[1].data) == Attitude(2.0, 359.9, -3.0, 4.0)
+    assert MotorCommand(**recs[2].data) == MotorCommand(2.5, 60.0, -40.0, "turn")
+    assert recs[4].data["utc"] == "2026-11-22T04:43:12.250000Z"
+    assert recs[4].data["lat_deg"] == 51.9
+    assert recs[5].data["satellites"][0]["prn"] == 5
+    assert recs[6].data["state"] == "TURN_LEFT" and recs[6].data["theta_deg"] is None
+    assert recs[7].data == {"event": "start", "version": "0.1.0"}
+    assert stats.records == 8 and stats.truncated == stats.bad_lines == 0
+    typed = [decode_record(r) for r in recs]
+    assert typed[1:6] == [
+        Attitude(2.0, 359.9, -3.0, 4.0),
+        MotorCommand(2.5, 60.0, -40.0, "turn"),
+        StateChange(2.75, "STRAIGHT", "TURN_LEFT", "theta"),
+        fix,
+        sky,
+    ]
+    assert typed[0] is recs[0] and typed[7] is recs[7]
+    for line in path.read_text().splitlines():  # strict JSON: no NaN, one object per line
+        json.loads(line, parse_constant=lambda c: pytest.fail(f"non-standard JSON {c}"))
+
+
+def test_bad_calls_are_rejected(tmp_path: Path) -> None:
+    with Recorder(tmp_path / "r.jsonl") as rec:
+        with pytest.raises(ValueError, match=r"unknown record type 'gps'.*attitude"):
+            rec.record("gps", {})
+        with pytest.raises(ValueError, match="t_mono"):
+            rec.record("event", {}, float("inf"))
+        with pytest.raises(ValueError, match="payload"):
+            rec.record("event", [1, 2])
+        assert rec.records_written == 0
+    rec.record_event("late", 1.0)  # after close: dropped and counted, no exception
+    assert rec.dropped_after_close == 1
+    assert list(read_recording(rec.path)) == []
+    bad = Record(1.0, "", "attitude", {"t_s": 1.0, "heading": 3})
+    with pytest.raises(ParseError, match="attitude record"):
+        decode_record(bad)
+
+
+def test_missing_recording_is_device_unavailable(tmp_path: Path) -> None:
+    with pytest.raises(DeviceUnavailable, match="nope"):
+        list(read_recording(tmp_path / "nope.jsonl"))
+
+
+_CHILD = """
+import os, sys
+from x6wd.recorder import Recorder
+rec = Recorder(sys.argv[1])
+for i in range(int(sys.argv[2])):
+    rec.record_nmea(f"$GPTXT,{i}*00", float(i))
+print("written", flush=True)
+sys.stdin.read()  # wait to be killed, with the recorder still open
+"""
+
+
+@pytest.mark.integration
+def test_kill_9_loses_nothing_that_was_recorded(tmp_path: Path) -> None:
+    path = tmp_path / "crash.jsonl"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _CHILD, str(path), "500"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        cwd=ROOT,
+    )
+    assert proc.stdout is not None
+    assert proc.stdout.readline() == b"written\n"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    recs = list(read_recording(path))
+    assert [r.data["text"] for r in recs] == [f"$GPTXT,{i}*00" for i in range(500)]
+
+
+def test_truncated_last_line_is_counted_and_reopening_continues(tmp_path: Path) -> None:
+    path = tmp_path / "cut.jsonl"
+    with Recorder(path) as rec:
+        for i in range(10):
+            rec.record_event("tick", float(i), n=i)
+    size = path.stat().st_size
+    with open(path, "r+b") as f:  # a crash in the middle of the last write
+        f.truncate(size - 7)
+    stats = ReadStats()
+    assert [r.data["n"] for r in read_recording(path, stats=stats)] == list(range(9))
+    assert stats.truncated == 1 and stats.bad_lines == 0
+    with Recorder(path) as rec:  # the next run appends after the broken line
+        rec.record_event("tick", 10.0, n=10)
+    stats = ReadStats()
+    assert [r.data["n"] for r in read_recording(path, stats=stats)] == [*range(9), 10]
+    assert stats.truncated == 0 and stats.bad_lines == 1
+    with pytest.raises(ParseError, match=r"cut\.jsonl:10"):
+        list(read_recording(path, strict=True))
+
+
+def test_rotation_by_size_keeps_every_record_in_order(tmp_path: Path) -> None:
+    with Recorder(tmp_path / "rot.jsonl", max_bytes=600) as rec:
+        for i in range(40):
+            rec.record_event("tick", float(i), n=i)
+        paths = list(rec.paths)
+    assert len(paths) > 3 and paths[1].name == "rot.1.jsonl"
+    assert all(0 < p.stat().st_size <= 600 for p in paths)
+    assert recording_parts(tmp_path / "rot.jsonl") == paths
+    got = [r.data["n"] for p in paths for r in read_recording(p)]
+    assert got == list(range(40))
+
+
+def test_in_dir_names_files_by_utc_time(tmp_path: Path) -> None:
+    t = datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)
+    with Recorder.in_dir(tmp_path / "rec", utc_clock=lambda: t) as a:
+        a.record_event("x", 0.0)
+    with Recorder.in_dir(tmp_path / "rec", utc_clock=lambda: t) as b:
+        pass
+    assert a.path.name == "x6wd-20260102T030405Z.jsonl"
+    assert b.path.name == "x6wd-20260102T030405Z-1.jsonl"
+    assert is_recording(a.path) and not is_recording(LEA5H)
+
+
+# --- paced replay -----------------------------------------------------------------------------
+
+
+def test_replay_records_keeps_the_recorded_pace(tmp_path: Path) -> None:
+    path = tmp_path / "r.jsonl"
+    with Recorder(path) as rec:
+        for t in (100.0, 100.5, 102.0, 3.0, 3.5):  # the last two after a clock restart
+            rec.record_event("e", t)
+    for speed, expected in ((1.0, [0, 0.5, 2.0, 2.0, 2.5]), (2.0, [0, 0.25, 1.0, 1.0, 1.25])):
+        clock = VirtualClock()
+        seen = [
+            clock() - 1000.0 for _ in replay_records(path, speed, clock=clock, sleep=clock.sleep)
+        ]
+        assert seen == pytest.approx(expected)
+    clock = VirtualClock()
+    assert len(list(replay_records(path, 0, clock=clock, sleep=clock.sleep))) == 5
+    assert clock() == 1000.0
+    with pytest.raises(ValueError, match="speed"):
+        next(replay_records(path, -1))
+
+
+def test_replay_port_plays_a_plain_log_byte_for_byte() -> None:
+    port = ReplayPort(LEA5H, speed=0)
+    got = bytearray()
+    while chunk := port.read(97):
+        got += chunk
+    assert bytes(got) == LEA5H.read_bytes()
+    assert port.eof and port.in_waiting == 0
+    assert key(fixes_of(bytes(got))) == key(fixes_of(LEA5H.read_bytes()))
+
+
+def test_replay_port_paces_by_sentence_time() -> None:
+    clock = VirtualClock()
+    port = ReplayPort(NL402U, speed=4, timeout=None, clock=clock, sleep=clock.sleep)
+    first = port.read(4096)
+    assert b"$GPRMC,104706.000" in first and b"104707.000" not in first
+    second = port.read(4096)
+    assert second.startswith(b"$GPRMC,104707.000") or b"104707.000" in second[:80]
+    assert clock() - 1000.0 == pytest.approx(0.25)  # 1 s of log at 4x
+    rest = b""
+    while chunk := port.read(4096):
+        rest += chunk
+    assert first + second + rest == NL402U.read_bytes()
+    times = [t for t, _ in nmea_file_chunks(NL402U)]
+    assert clock() - 1000.0 == pytest.approx(times[-1] / 4)
+
+
+def test_replay_port_timeout_zero_never_waits() -> None:
+    clock = VirtualClock()
+    port = ReplayPort(NL402U, speed=1, timeout=0, clock=clock, sleep=clock.sleep)
+    first = port.read(100_000)
+    assert first and port.read(10) == b"" and port.in_waiting == 0
+    assert clock() == 1000.0
+    clock.now_s += 1.0
+    assert port.in_waiting > 0 and b"104707.000" in port.read(100_000)
+    port.close()
+    with pytest.raises(DeviceUnavailable, match="closed"):
+        port.read(1)
+
+
+def test_replay_port_plays_the_nmea_of_a_recording(tmp_path: Path) -> None:
+    path = tmp_path / "r.jsonl"
+    n = record_log(path, LEA5H)
+    with Recorder(path) as rec:  # other record types are not part of the byte stream
+        rec.record_attitude(Attitude(9999.0, 1.0, 0.0, 0.0))
+    clock = VirtualClock()
+    port = ReplayPort(path, speed=1, clock=clock, sleep=clock.sleep)
+    assert port.is_recording
+    lines = []
+    while line := port.readline():
+        lines.append(line)
+    assert len(lines) == n and all(x.endswith(b"\r\n") for x in lines)
+    assert clock() - 1000.0 == pytest.approx(0.1 * (n - 1))
+    expected = [x for x in LEA5H.read_bytes().splitlines() if x.startswith(b"$")]
+    assert [x.rstrip(b"\r\n") for x in lines] == expected
+
+
+def test_plain_log_time_wraps_at_midnight_and_falls_back_to_rate(tmp_path: Path) -> None:
+    wrap = tmp_path / "wrap.nmea"
+    wrap.write_bytes(
+        b"$GPGGA,235959.00,,,,,0,00,99.99,,,,,,*00\r\n$GPGSA,A,1*00\r\n"
+        b"$GPGGA,000001.00,,,,,0,00,99.99,,,,,,*00\r\n"
+    )
+    assert [t for t, _ in nmea_file_chunks(wrap)] == [0.0, 0.0, 2.0]
+    untimed = tmp_path / "untimed.nmea"
+    untimed.write_bytes(b"$GPGSA,1*00\n$GPGSV,1*00\n$GPGSA,2*00\n$GPGSV,2*00\n$GPGSA,3*00\n")
+    assert [t for t, _ in nmea_file_chunks(untimed, rate_hz=4)] == [0, 0, 0.25, 0.25, 0.5]
+    with pytest.raises(ValueError, match="rate_hz"):
+        nmea_file_chunks(untimed, rate_hz=0)
+
+
+# --- x6wd replay ------------------------------------------------------------------------------
+
+
+def test_cli_replay_of_a_log_and_of_its_recording_agree(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    expected = [f for f in fixes_of(LEA5H.read_bytes())]
+    assert cli_main(["replay", str(LEA5H), "--speed", "0", "--json"]) == 0
+    out, err = capsys.readouterr()
+    plain = [json.loads(x) for x in out.splitlines()]
+    assert len(plain) == len(expected) > 10
+    assert [(d["lat_deg"], d["lon_deg"], d["mode"]) for d in plain] == [
+        (f.lat_deg, f.lon_deg, f.mode) for f in expected
+    ]
+    assert "sentences=164" in err and "checksum_failures=0" in err
+    rec = tmp_path / "r.jsonl"
+    record_log(rec, LEA5H)
+    assert cli_main(["replay", str(rec), "--speed", "0", "--json", "--sky"]) == 0
+    out, err = capsys.readouterr()
+    objs = [json.loads(x) for x in out.splitlines()]
+    fixes = [d for d in objs if d["class"] == "fix"]
+    assert [(d["utc"], d["lat_deg"]) for d in fixes] == [(d["utc"], d["lat_deg"]) for d in plain]
+    assert any(d["class"] == "sky" for d in objs)
+    assert fixes[0]["t_s"] >= 50.0  # stamped with the recorded t_mono
+    assert "records=" in err and "truncated_lines=0" in err
+
+
+def test_cli_replay_summary_lines(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["replay", str(NL402U), "--speed", "0"]) == 0
+    out, _ = capsys.readouterr()
+    lines = out.splitlines()
+    assert lines and all(x.startswith("t=") and " lat=" in x for x in lines)
+    assert "lat=54.0934683" in lines[0] or "lat=54.0934683" in lines[1]
+
+
+def test_cli_replay_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["replay", str(tmp_path / "missing.nmea"), "--speed", "0"]) == 2
+    assert "missing.nmea" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli_main(["replay", str(LEA5H), "--speed", "-1"])
+
+
+@pytest.mark.integration
+def test_cli_replay_as_a_process() -> None:
+    exe = Path(sys.executable).parent / "x6wd"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "x6wd"]
+    proc = subprocess.run(
+        [*cmd, "replay", str(NL402U), "--speed", "0", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert len(proc.stdout.splitlines()) == len(fixes_of(NL402U.read_bytes()))
+    assert "sentences=" in proc.stderr

@@ -1,0 +1,241 @@
+"""Device URLs: validation with the valid choices listed, and real backends behind them."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import socket
+import subprocess
+import sys
+import threading
+import tty
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from drivers.cmps10 import Cmps10
+from drivers.motors import LogMotorLink, MotorBoard, SerialMotorLink, serve_board_fd
+from drivers.registry import SCHEMES, open_compass, open_gps_port, open_motors, parse_url
+from x6wd.errors import ConfigError, DeviceUnavailable
+from x6wd.recorder import ReplayPort
+
+ROOT = Path(__file__).resolve().parent.parent
+LEA5H = ROOT / "tests" / "data" / "recorder" / "ublox-lea-5h.log"
+HAVE_HIL = importlib.util.find_spec("sim_backend.hil") is not None
+
+
+@pytest.mark.parametrize(
+    ("url", "kind", "scheme", "target", "options"),
+    [
+        ("serial:///dev/ttyS0?baud=9600", "gps", "serial", "/dev/ttyS0", {"baud": 9600}),
+        ("serial:///dev/ttyAMA0", "gps", "serial", "/dev/ttyAMA0", {"baud": 9600}),
+        ("tcp://127.0.0.1:2948?timeout=0.5", "gps", "tcp", "127.0.0.1:2948", {"timeout": 0.5}),
+        ("replay://logs/a.nmea?speed=0", "gps", "replay", "logs/a.nmea", {"speed": 0.0}),
+        ("replay:///abs/a.nmea?speed=2.5", "gps", "replay", "/abs/a.nmea", {"speed": 2.5}),
+        ("i2c://1/0x60", "compass", "i2c", "1/0x60", {"retries": 3}),
+        ("i2c://0/97?stale_after=9", "compass", "i2c", "0/0x61", {"stale_after": 9}),
+        ("log://", "motors", "log", "", {}),
+        ("serial:///dev/ttyUSB0?watchdog_ms=300", "motors", "serial", "/dev/ttyUSB0", {}),
+        ("sim://gps?world=default", "gps", "sim", "gps?world=default", {}),
+    ],
+)
+def test_parse_valid_urls(
+    url: str, kind: str, scheme: str, target: str, options: dict[str, object]
+) -> None:
+    dev = parse_url(url, kind)
+    assert (dev.kind, dev.scheme, dev.target, dev.url) == (kind, scheme, target, url)
+    assert options.items() <= dev.options.items()
+
+
+@pytest.mark.parametrize("kind", list(SCHEMES))
+def test_unknown_scheme_lists_the_valid_ones(kind: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_url("usb://whatever", kind)
+    msg = str(info.value)
+    assert "unknown scheme 'usb'" in msg
+    for scheme in SCHEMES[kind]:
+        assert f"{scheme}://" in msg
+
+
+def test_unknown_option_lists_the_valid_ones() -> None:
+    with pytest.raises(ConfigError, match=r"unknown option 'baudrate'.*valid: baud, timeout"):
+        parse_url("serial:///dev/ttyS0?baudrate=9600", "gps")
+    with pytest.raises(ConfigError, match=r"valid: none"):
+        parse_url("log://?verbose=1", "motors")
+
+
+@pytest.mark.parametrize(
+    ("url", "kind", "match"),
+    [
+        ("serial:///dev/ttyS0?baud=9601", "gps", "baud: must be one of"),
+        ("serial:///dev/ttyS0?baud=fast", "gps", "baud: expected an integer"),
+        ("serial:///dev/ttyS0?baud=9600&baud=4800", "gps", "given twice"),
+        ("serial://ttyS0", "gps", "absolute device path"),
+        ("replay://a.nmea?speed=-1", "gps", "speed: must be within"),
+        ("replay://a.nmea?speed=nan", "gps", "speed: must be within"),
+        ("replay://", "gps", "replay://FILE"),
+        ("tcp://localhost", "gps", "HOST:PORT"),
+        ("tcp://localhost:0", "gps", "HOST:PORT"),
+        ("tcp://localhost:99999", "gps", "HOST:PORT"),
+        ("i2c://1/0x80", "compass", r"0x60\.\.0x67"),
+        ("i2c://1/0x1e", "compass", r"0x60\.\.0x67"),
+        ("i2c://one/0x60", "compass", "i2c://BUS/ADDRESS"),
+        ("serial:///dev/ttyUSB0?watchdog_ms=5", "motors", "watchdog_ms: must be within"),
+        ("/dev/ttyS0", "gps", "valid schemes: serial://"),
+        ("serial:///dev/ttyS0", "lidar", "unknown device kind 'lidar'"),
+        ("i2c://1/0x60", "gps", "unknown scheme 'i2c'"),
+    ],
+)
+def test_bad_urls_name_the_problem(url: str, kind: str, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        parse_url(url, kind)
+
+
+def test_importing_the_registry_loads_no_backend() -> None:
+    code = (
+        "import sys, drivers.registry\n"
+        "heavy = {'serial', 'smbus2', 'drivers.cmps10', 'drivers.motors', 'x6wd.recorder'}\n"
+        "print(sorted(heavy & set(sys.modules)))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True
+    )
+    assert out.stdout.strip() == "[]"
+
+
+# --- real backends ----------------------------------------------------------------------------
+
+
+@pytest.fixture
+def pty_pair() -> Iterator[tuple[int, str]]:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    yield master, os.ttyname(slave)
+    os.close(master)
+    os.close(slave)
+
+
+def read_exactly(port: object, n: int) -> bytes:
+    got = b""
+    for _ in range(200):
+        got += port.read(n - len(got))  # type: ignore[attr-defined]
+        if len(got) >= n:
+            break
+    return got
+
+
+@pytest.mark.integration
+def test_gps_serial_url_opens_a_real_tty(pty_pair: tuple[int, str]) -> None:
+    master, name = pty_pair
+    port = open_gps_port(f"serial://{name}?baud=9600&timeout=0.05")
+    try:
+        assert port.timeout == 0.05
+        sentence = b"$GPGGA,083723.00,5155.55442,N,00434.65873,E,1,06,2.51,-4.0,M,46.0,M,,*70\r\n"
+        os.write(master, sentence)
+        assert read_exactly(port, len(sentence)) == sentence
+    finally:
+        port.close()
+
+
+def test_gps_serial_url_to_a_missing_device() -> None:
+    with pytest.raises(DeviceUnavailable, match="ttyNOPE"):
+        open_gps_port("serial:///dev/ttyNOPE")
+
+
+@pytest.mark.integration
+def test_gps_tcp_url_reads_from_a_real_socket() -> None:
+    payload = LEA5H.read_bytes()
+    server = socket.create_server(("127.0.0.1", 0))
+    host, port_no = server.getsockname()
+
+    done = threading.Event()
+
+    def serve() -> None:
+        conn, _ = server.accept()
+        with conn:
+            conn.sendall(payload)
+            done.wait(10)  # keep the connection open until the client has read it all
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    port = open_gps_port(f"tcp://{host}:{port_no}?timeout=0.2")
+    try:
+        assert read_exactly(port, len(payload)) == payload
+    finally:
+        done.set()
+        port.close()
+        thread.join(5)
+        server.close()
+
+
+def test_gps_tcp_url_refused() -> None:
+    sock = socket.create_server(("127.0.0.1", 0))
+    port_no = sock.getsockname()[1]
+    sock.close()  # nothing listens there now
+    with pytest.raises(DeviceUnavailable, match=str(port_no)):
+        open_gps_port(f"tcp://127.0.0.1:{port_no}")
+
+
+def test_gps_replay_url(tmp_path: Path) -> None:
+    port = open_gps_port(f"replay://{LEA5H}?speed=0")
+    assert isinstance(port, ReplayPort)
+    assert read_exactly(port, 1_000_000) == LEA5H.read_bytes()
+    with pytest.raises(DeviceUnavailable, match="missing"):
+        open_gps_port(f"replay://{tmp_path}/missing.nmea")
+
+
+def test_compass_on_a_missing_i2c_bus() -> None:
+    with pytest.raises(DeviceUnavailable, match="I2C bus 97"):
+        open_compass("i2c://97/0x60")
+
+
+def test_log_motors_url() -> None:
+    link = open_motors("log://")
+    assert isinstance(link, LogMotorLink)
+    assert link.drive(10, 20)
+    link.close()
+
+
+@pytest.mark.integration
+def test_serial_motors_url_drives_a_board_on_a_pty(pty_pair: tuple[int, str]) -> None:
+    master, name = pty_pair
+    board, stop = MotorBoard(), threading.Event()
+    thread = threading.Thread(target=serve_board_fd, args=(master, board, stop), daemon=True)
+    thread.start()
+    try:
+        link = open_motors(f"serial://{name}?baud=115200&watchdog_ms=750&ack_timeout=0.5")
+        assert isinstance(link, SerialMotorLink)
+        assert link.healthy and board.watchdog_ms == 750
+        assert link.drive(-25, 25)
+        assert (board.left_pct, board.right_pct) == (-25, 25)
+        link.close()
+        assert (board.left_pct, board.right_pct) == (0, 0)
+    finally:
+        stop.set()
+        thread.join(5)
+
+
+@pytest.mark.parametrize(
+    ("opener", "kind"), [(open_gps_port, "gps"), (open_compass, "compass"), (open_motors, "motors")]
+)
+def test_sim_urls_without_the_simulator(
+    monkeypatch: pytest.MonkeyPatch, opener: object, kind: str
+) -> None:
+    # a build without sim_backend.hil: the import itself fails, as it would for real
+    monkeypatch.setitem(sys.modules, "sim_backend.hil", None)
+    with pytest.raises(DeviceUnavailable, match=r"sim_backend\.hil"):
+        opener(f"sim://{kind}")  # type: ignore[operator]
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(not HAVE_HIL, reason="sim_backend.hil not in this build")
+def test_sim_compass_url_reaches_the_simulator() -> None:
+    hil = importlib.import_module("sim_backend.hil")
+    try:
+        compass = open_compass("sim://")
+        assert isinstance(compass, Cmps10)
+        att = compass.read(0.0)
+        assert att.valid and 0.0 <= att.bearing_deg < 360.0
+    finally:
+        hil.shutdown()

@@ -1,0 +1,695 @@
+"""Flight recorder: JSON lines on disk, their reader, and replay at the recorded pace.
+
+One record per line::
+
+    {"t_mono":12.5,"t_utc":"2026-11-22T04:43:12.123456Z","type":"nmea","data":{"text":"$GPGGA,..."}}
+
+``t_mono`` is the monotonic time (s) the input had when it entered the host (the ``t_s`` of
+the records in :mod:`x6wd.records`), ``t_utc`` the wall-clock time it was written. ``type`` is
+one of :data:`RECORD_TYPES`; ``data`` holds the payload (a typed record as a dict, datetimes
+as ISO-8601 strings).
+
+Durability: each record is ONE ``write()`` system call of a complete line on an unbuffered
+file, so a crash (even ``kill -9``) loses at most the line being written; optional periodic
+``os.fsync`` bounds what a power cut can lose. The reader tolerates a truncated last line
+and counts it. Reopening a file whose last line was cut off starts a fresh line first.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import enum
+import json
+import math
+import os
+import re
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from x6wd.errors import DeviceUnavailable, ParseError
+from x6wd.records import (
+    Attitude,
+    GpsFix,
+    GpsSky,
+    MotorCommand,
+    SatInfo,
+    StateChange,
+    Telemetry,
+)
+
+RECORD_TYPES = frozenset({"nmea", "attitude", "motor", "state", "telemetry", "sky", "fix", "event"})
+
+
+@dataclass(frozen=True, slots=True)
+class Record:
+    """One recorded line: monotonic time (s), UTC wall time (ISO-8601 Z), type and payload."""
+
+    t_mono: float
+    t_utc: str
+    type: str
+    data: dict[str, Any]
+
+
+@dataclass
+class ReadStats:
+    """What :func:`read_recording` met besides good records."""
+
+    records: int = 0
+    truncated: int = 0  # an unterminated, undecodable last line (crash while writing)
+    bad_lines: int = 0  # undecodable or malformed complete lines (skipped)
+    blank_lines: int = 0
+
+
+def _utc_now() -> datetime:
+    return datetime.now(UTC)
+
+
+def _iso_z(dt: datetime) -> str:
+    if dt.tzinfo is not None:
+        dt = dt.astimezone(UTC).replace(tzinfo=None)
+    return dt.isoformat(timespec="microseconds") + "Z"
+
+
+def to_jsonable(value: Any) -> Any:
+    """Typed records to plain JSON values: dataclasses to dicts, enums to values, datetimes
+    to ISO-8601 strings (aware ones in UTC with Z), non-finite floats to None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, (str, int, bool)) or value is None:
+        return value
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, datetime):
+        return _iso_z(value) if value.tzinfo is not None else value.isoformat()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    return str(value)
+
+
+def _ends_with_newline(path: Path) -> bool:
+    with open(path, "rb") as f:
+        f.seek(-1, os.SEEK_END)
+        return f.read(1) == b"\n"
+
+
+class Recorder:
+    """Append-only JSON-lines flight recorder (a context manager; thread-safe).
+
+    ``fsync_interval_s``: call ``os.fsync`` when at least this many seconds (wall) passed
+    since the last one (None: never; the OS still gets every line at once). ``max_bytes``:
+    rotate to a new part ``<stem>.1<suffix>``, ``.2`` ... before a record would make the
+    current part larger (``paths`` lists them; :func:`recording_parts` finds them again).
+    ``clock`` gives ``t_mono`` when a call omits it; ``utc_clock`` gives ``t_utc``.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        fsync_interval_s: float | None = None,
+        max_bytes: int | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        utc_clock: Callable[[], datetime] = _utc_now,
+    ) -> None:
+        if fsync_interval_s is not None and not fsync_interval_s >= 0:
+            raise ValueError(f"fsync_interval_s must be >= 0 or None, got {fsync_interval_s}")
+        if max_bytes is not None and max_bytes < 1:
+            raise ValueError(f"max_bytes must be >= 1 or None, got {max_bytes}")
+        self.path = Path(path)
+        self.paths = [self.path]
+        self.fsync_interval_s = fsync_interval_s
+        self.max_bytes = max_bytes
+        self._clock = clock
+        self._utc_clock = utc_clock
+        self._lock = threading.Lock()
+        self.records_written = 0
+        self.bytes_written = 0
+        self.write_errors = 0
+        self.dropped_after_close = 0
+        self._file = self._open(self.path)
+        self._last_fsync = time.monotonic()
+
+    def _open(self, path: Path) -> Any:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            # Unbuffered binary: each record reaches the kernel in a single write().
+            f = open(path, "ab", buffering=0)  # noqa: SIM115
+            if f.tell() > 0 and not _ends_with_newline(path):
+                f.write(b"\n")  # a previous run died mid-line: do not glue onto it
+        except OSError as exc:
+            raise DeviceUnavailable(f"cannot open recording {path}: {exc}") from exc
+        return f
+
+    def _rotate(self) -> None:
+        """Continue in the next part, ``<stem>.<n><suffix>`` (see :func:`recording_parts`)."""
+        with contextlib.suppress(OSError):
+            os.fsync(self._file.fileno())
+        self._file.close()
+        first = self.paths[0]
+        nxt = first.with_name(f"{first.stem}.{len(self.paths)}{first.suffix}")
+        self._file = self._open(nxt)
+        self.path = nxt
+        self.paths.append(nxt)
+
+    @classmethod
+    def in_dir(
+        cls, directory: str | os.PathLike[str], prefix: str = "x6wd", **kwargs: Any
+    ) -> Recorder:
+        """A new recording ``<prefix>-YYYYmmddTHHMMSSZ.jsonl`` in ``directory``."""
+        utc_clock = kwargs.get("utc_clock", _utc_now)
+        stamp = utc_clock().astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
+        base = Path(directory) / f"{prefix}-{stamp}"
+        path = base.with_suffix(".jsonl")
+        n = 1
+        while path.exists():
+            path = Path(f"{base}-{n}.jsonl")
+            n += 1
+        return cls(path, **kwargs)
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` ran."""
+        return self._file.closed
+
+    def record(self, type: str, payload: Any, t_mono: float | None = None) -> None:
+        """Write one record of ``type`` (one of :data:`RECORD_TYPES`) with ``payload``.
+
+        ``payload`` is a dict or a dataclass (converted); ``t_mono`` (s) defaults to the
+        clock. Raises ValueError for an unknown type or a non-finite time; an I/O error on
+        write is re-raised as :class:`DeviceUnavailable` after being counted. After
+        :meth:`close`, records are dropped and counted in ``dropped_after_close``.
+        """
+        if type not in RECORD_TYPES:
+            raise ValueError(
+                f"unknown record type {type!r} (valid: {', '.join(sorted(RECORD_TYPES))})"
+            )
+        t = self._clock() if t_mono is None else float(t_mono)
+        if not math.isfinite(t):
+            raise ValueError(f"t_mono must be finite, got {t_mono!r}")
+        data = to_jsonable(payload)
+        if not isinstance(data, dict):
+            raise ValueError(f"payload must be a dict or a dataclass, got {payload!r}")
+        line = json.dumps(
+            {"t_mono": t, "t_utc": _iso_z(self._utc_clock()), "type": type, "data": data},
+            separators=(",", ":"),
+            ensure_ascii=False,
+            allow_nan=False,
+        )
+        blob = (line + "\n").encode("utf-8")
+        with self._lock:
+            if self._file.closed:  # a late record during shutdown: counted, not fatal
+                self.dropped_after_close += 1
+                return
+            try:
+                if (
+                    self.max_bytes is not None
+                    and self._file.tell() > 0
+                    and self._file.tell() + len(blob) > self.max_bytes
+                ):
+                    self._rotate()
+                self._file.write(blob)
+            except OSError as exc:
+                self.write_errors += 1
+                raise DeviceUnavailable(f"recording {self.path}: write failed: {exc}") from exc
+            self.records_written += 1
+            self.bytes_written += len(blob)
+            if self.fsync_interval_s is not None:
+                now = time.monotonic()
+                if now - self._last_fsync >= self.fsync_interval_s:
+                    os.fsync(self._file.fileno())
+                    self._last_fsync = now
+
+    def record_nmea(self, text: str | bytes, t_mono: float | None = None) -> None:
+        """One raw NMEA sentence as received (line ending stripped)."""
+        if isinstance(text, bytes):
+            text = text.decode("ascii", "replace")
+        self.record("nmea", {"text": text.rstrip("\r\n")}, t_mono)
+
+    def record_attitude(self, att: Attitude) -> None:
+        """A compass sample; ``t_mono`` is its ``t_s``."""
+        self.record("attitude", att, att.t_s)
+
+    def record_motor(self, cmd: MotorCommand) -> None:
+        """A motor command; ``t_mono`` is its ``t_s``."""
+        self.record("motor", cmd, cmd.t_s)
+
+    def record_state(self, change: StateChange) -> None:
+        """A controller mode/state change; ``t_mono`` is its ``t_s``."""
+        self.record("state", change, change.t_s)
+
+    def record_telemetry(self, tel: Telemetry) -> None:
+        """A controller telemetry snapshot; ``t_mono`` is its ``t_s``."""
+        self.record("telemetry", tel.to_dict(), tel.t_s)
+
+    def record_fix(self, fix: GpsFix) -> None:
+        """A decoded fix; ``t_mono`` is its ``t_s``."""
+        self.record("fix", fix, fix.t_s)
+
+    def record_sky(self, sky: GpsSky) -> None:
+        """A decoded sky report; ``t_mono`` is its ``t_s``."""
+        self.record("sky", sky, sky.t_s)
+
+    def record_event(self, name: str, t_mono: float | None = None, **fields: Any) -> None:
+        """A free-form event (start, stop, device lost ...) with extra fields."""
+        self.record("event", {"event": name, **fields}, t_mono)
+
+    def flush(self) -> None:
+        """Force the data to stable storage (``os.fsync``)."""
+        with self._lock:
+            if not self._file.closed:
+                os.fsync(self._file.fileno())
+
+    def close(self) -> None:
+        """fsync and close (idempotent)."""
+        with self._lock:
+            if self._file.closed:
+                return
+            with contextlib.suppress(OSError):
+                os.fsync(self._file.fileno())
+            self._file.close()
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# --- reading --------------------------------------------------------------------------------
+
+
+def _parse_line(raw: bytes) -> Record:
+    obj = json.loads(raw)
+    if not isinstance(obj, dict):
+        raise ValueError("not a JSON object")
+    t_mono, rtype, data = obj.get("t_mono"), obj.get("type"), obj.get("data")
+    if isinstance(t_mono, bool) or not isinstance(t_mono, (int, float)):
+        raise ValueError("t_mono missing or not a number")
+    if rtype not in RECORD_TYPES:
+        raise ValueError(f"unknown type {rtype!r}")
+    if not isinstance(data, dict):
+        raise ValueError("data missing or not an object")
+    t_utc = obj.get("t_utc")
+    return Record(float(t_mono), t_utc if isinstance(t_utc, str) else "", rtype, data)
+
+
+def read_recording(
+    path: str | os.PathLike[str], *, stats: ReadStats | None = None, strict: bool = False
+) -> Iterator[Record]:
+    """Yield the records of a recording in file order.
+
+    A last line without its newline that does not decode is the mark of a crash while
+    writing: it is skipped and counted in ``stats.truncated``. Other undecodable lines are
+    skipped and counted in ``stats.bad_lines``, or raise :class:`ParseError` (naming the
+    line) when ``strict``. A missing file raises :class:`DeviceUnavailable`.
+    """
+    st = stats if stats is not None else ReadStats()
+    try:
+        f = open(path, "rb")  # noqa: SIM115
+    except OSError as exc:
+        raise DeviceUnavailable(f"cannot open recording {path}: {exc}") from exc
+    with f:
+        for lineno, raw in enumerate(f, 1):
+            if not raw.strip():
+                st.blank_lines += 1
+                continue
+            try:
+                rec = _parse_line(raw)
+            except (ValueError, UnicodeDecodeError) as exc:
+                if not raw.endswith(b"\n"):
+                    st.truncated += 1
+                    continue
+                if strict:
+                    raise ParseError(f"{path}:{lineno}: not a recording line: {exc}") from exc
+                st.bad_lines += 1
+                continue
+            st.records += 1
+            yield rec
+
+
+def _utc_field(value: Any) -> datetime | None:
+    if not isinstance(value, str):
+        return None
+    try:
+        return datetime.fromisoformat(value)
+    except ValueError:
+        return None
+
+
+def decode_record(
+    rec: Record,
+) -> Attitude | MotorCommand | StateChange | GpsFix | GpsSky | Record:
+    """The typed record behind an attitude, motor, state, fix or sky record; other types
+    (nmea, telemetry, event) are returned unchanged. Raises :class:`ParseError` when the
+    payload does not fit its type."""
+    d = rec.data
+    try:
+        if rec.type == "attitude":
+            return Attitude(**d)
+        if rec.type == "motor":
+            return MotorCommand(**d)
+        if rec.type == "state":
+            return StateChange(**d)
+        if rec.type == "fix":
+            return GpsFix(**{**d, "utc": _utc_field(d.get("utc"))})
+        if rec.type == "sky":
+            sats = tuple(SatInfo(**s) for s in d.get("satellites", ()))
+            return GpsSky(**{**d, "satellites": sats, "utc": _utc_field(d.get("utc"))})
+    except TypeError as exc:
+        raise ParseError(f"{rec.type} record at t_mono={rec.t_mono}: {exc}") from exc
+    return rec
+
+
+def recording_parts(path: str | os.PathLike[str]) -> list[Path]:
+    """``path`` followed by its rotated parts ``<stem>.1<suffix>``, ``.2`` ... in order."""
+    first = Path(path)
+    parts = [first]
+    n = 1
+    while (p := first.with_name(f"{first.stem}.{n}{first.suffix}")).exists():
+        parts.append(p)
+        n += 1
+    return parts
+
+
+def is_recording(path: str | os.PathLike[str]) -> bool:
+    """True when the file's first non-blank line is a JSON object (a recording), False for
+    plain NMEA or other text."""
+    try:
+        with open(path, "rb") as f:
+            for raw in f:
+                s = raw.strip()
+                if s:
+                    return s.startswith(b"{")
+    except OSError as exc:
+        raise DeviceUnavailable(f"cannot open {path}: {exc}") from exc
+    return False
+
+
+def _check_speed(speed: float) -> float:
+    if isinstance(speed, bool) or not isinstance(speed, (int, float)):
+        raise ValueError(f"speed must be a number >= 0, got {speed!r}")
+    if not (math.isfinite(speed) and speed >= 0):
+        raise ValueError(f"speed must be finite and >= 0 (0 = as fast as possible), got {speed}")
+    return float(speed)
+
+
+class _Pacer:
+    """Releases items at ``start + (t - t0) / speed`` on the wall clock (speed 0: at once)."""
+
+    def __init__(
+        self, speed: float, clock: Callable[[], float], sleep: Callable[[float], Any]
+    ) -> None:
+        self.speed = speed
+        self.clock = clock
+        self.sleep = sleep
+        self._t0: float | None = None  # recorded time of the pace origin
+        self._wall0 = 0.0
+        self._last_t: float | None = None
+        self._offset = 0.0  # added to recorded times so backward jumps do not stall
+
+    def due(self, t: float) -> float:
+        """Wall time at which recorded time ``t`` is due."""
+        if self._last_t is not None and t + self._offset < self._last_t:
+            self._offset = self._last_t - t  # clock restarted in the recording: continue
+        t += self._offset
+        self._last_t = t
+        if self._t0 is None:
+            self._t0, self._wall0 = t, self.clock()
+        if self.speed == 0:
+            return self._wall0
+        return self._wall0 + (t - self._t0) / self.speed
+
+    def wait(self, t: float) -> None:
+        due = self.due(t)
+        while True:
+            remaining = due - self.clock()
+            if remaining <= 0:
+                return
+            self.sleep(remaining)
+
+
+def replay_records(
+    path: str | os.PathLike[str],
+    speed: float = 1.0,
+    *,
+    stats: ReadStats | None = None,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], Any] = time.sleep,
+) -> Iterator[Record]:
+    """Yield a recording's records at the recorded pace divided by ``speed``.
+
+    ``speed`` 1 is real time, 2 twice as fast, 0 as fast as possible. Pacing follows
+    ``t_mono``; a backward jump (a restarted clock) is replayed without a pause.
+    """
+    pacer = _Pacer(_check_speed(speed), clock, sleep)
+    for rec in read_recording(path, stats=stats):
+        pacer.wait(rec.t_mono)
+        yield rec
+
+
+# --- byte-stream replay (a pyserial-like port) ------------------------------------------------
+
+_TIME_FIELD = {"GGA": 1, "RMC": 1, "GLL": 5, "ZDA": 1, "GNS": 1, "GBS": 1, "GST": 1, "GRS": 1}
+_HHMMSS = re.compile(rb"^(\d{2})(\d{2})(\d{2}(?:\.\d+)?)$")
+
+
+def _sentence_utc_s(line: bytes) -> float | None:
+    """Seconds of day from a sentence's UTC time field, or None."""
+    start = line.find(b"$")
+    if start < 0 or len(line) < start + 7:
+        return None
+    body = line[start + 1 :].split(b"*", 1)[0]
+    fields = body.split(b",")
+    kind = fields[0][-3:].decode("ascii", "replace")
+    idx = _TIME_FIELD.get(kind)
+    if idx is None or idx >= len(fields):
+        return None
+    m = _HHMMSS.match(fields[idx].strip())
+    if m is None:
+        return None
+    h, mi, s = int(m[1]), int(m[2]), float(m[3])
+    if h > 23 or mi > 59 or s >= 61:
+        return None
+    return h * 3600 + mi * 60 + s
+
+
+def nmea_file_chunks(
+    path: str | os.PathLike[str], rate_hz: float = 1.0
+) -> Iterator[tuple[float, bytes]]:
+    """(time s, line bytes) of a plain NMEA log, the bytes exactly as in the file.
+
+    A line's time is the UTC time of the latest sentence carrying one, in seconds after the
+    first such time (earlier lines get 0; the day wraps at midnight). In a file without any
+    UTC time, an epoch ends whenever a sentence type repeats and epochs are ``1/rate_hz`` s
+    apart. Raises :class:`DeviceUnavailable` if the file cannot be read.
+    """
+    if not (rate_hz > 0 and math.isfinite(rate_hz)):
+        raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
+    try:
+        blob = Path(path).read_bytes()
+    except OSError as exc:
+        raise DeviceUnavailable(f"cannot open {path}: {exc}") from exc
+    return _nmea_lines_timed(blob.splitlines(keepends=True), rate_hz)
+
+
+def _nmea_lines_timed(lines: list[bytes], rate_hz: float) -> Iterator[tuple[float, bytes]]:
+    times = [_sentence_utc_s(line) for line in lines]
+    first = next((t for t in times if t is not None), None)
+    if first is not None:
+        current, day = first, 0.0
+        for line, t in zip(lines, times, strict=True):
+            if t is not None:
+                if t + day < current - 43_200:  # midnight
+                    day += 86_400
+                current = t + day
+            yield current - first, line
+        return
+    seen: set[bytes] = set()
+    epoch = 0
+    for line in lines:
+        start = line.find(b"$")
+        kind = line[start + 1 : start + 6] if start >= 0 else b""
+        if kind:
+            if kind in seen:
+                epoch += 1
+                seen.clear()
+            seen.add(kind)
+        yield epoch / rate_hz, line
+
+
+def recording_nmea_chunks(
+    path: str | os.PathLike[str], stats: ReadStats | None = None
+) -> Iterator[tuple[float, bytes]]:
+    """(t_mono s, sentence bytes + CRLF) for every nmea record of a recording."""
+    for rec in read_recording(path, stats=stats):
+        if rec.type == "nmea":
+            text = rec.data.get("text")
+            if isinstance(text, str):
+                yield rec.t_mono, text.encode("utf-8", "replace") + b"\r\n"
+
+
+def nmea_chunks(
+    path: str | os.PathLike[str], *, rate_hz: float = 1.0, stats: ReadStats | None = None
+) -> Iterator[tuple[float, bytes]]:
+    """(time s, bytes) of the NMEA in a recording or a plain log, whichever ``path`` is."""
+    if is_recording(path):
+        return recording_nmea_chunks(path, stats)
+    return nmea_file_chunks(path, rate_hz)
+
+
+def paced(
+    chunks: Iterator[tuple[float, bytes]],
+    speed: float = 1.0,
+    *,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], Any] = time.sleep,
+) -> Iterator[tuple[float, bytes]]:
+    """Yield ``chunks`` no earlier than their recorded time divided by ``speed`` (0: at once),
+    counted from the first chunk."""
+    pacer = _Pacer(_check_speed(speed), clock, sleep)
+    for t, data in chunks:
+        pacer.wait(t)
+        yield t, data
+
+
+@dataclass
+class _ReplayState:
+    buffer: bytearray = field(default_factory=bytearray)
+    pending: tuple[float, bytes] | None = None
+    eof: bool = False
+
+
+class ReplayPort:
+    """A pyserial-like, read-only port that plays a recording or a plain NMEA log.
+
+    ``read(n)`` returns what has been "received" by now: chunks become available at their
+    recorded time divided by ``speed`` (0 = everything at once). ``timeout`` works as in
+    pyserial: None blocks until at least one byte (or the end), 0 never waits, t > 0 waits
+    at most t seconds. At the end of the data ``read`` returns b"" and :attr:`eof` is True.
+    Recordings are detected from their content; of them only the nmea records are played.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        speed: float = 1.0,
+        *,
+        rate_hz: float = 1.0,
+        timeout: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], Any] = time.sleep,
+    ) -> None:
+        self.path = Path(path)
+        self.speed = _check_speed(speed)
+        self.timeout = timeout
+        self.stats = ReadStats()
+        self._clock = clock
+        self._sleep = sleep
+        self._pacer = _Pacer(self.speed, clock, sleep)
+        self.is_recording = is_recording(self.path)
+        self._chunks = nmea_chunks(self.path, rate_hz=rate_hz, stats=self.stats)
+        self._st = _ReplayState()
+        self.is_open = True
+        self.bytes_read = 0
+
+    @property
+    def eof(self) -> bool:
+        """True when every byte was read."""
+        return self._st.eof and not self._st.buffer
+
+    def _pull(self, now: float) -> float | None:
+        """Move due chunks into the buffer; the wall time of the next one, or None at end."""
+        st = self._st
+        while not st.eof:
+            if st.pending is None:
+                try:
+                    t, data = next(self._chunks)
+                except StopIteration:
+                    st.eof = True
+                    return None
+                st.pending = (self._pacer.due(t), data)
+            due, data = st.pending
+            if due > now:
+                return due
+            st.buffer += data
+            st.pending = None
+        return None
+
+    @property
+    def in_waiting(self) -> int:
+        """Bytes available now without waiting."""
+        self._pull(self._clock())
+        return len(self._st.buffer)
+
+    def read(self, size: int = 1) -> bytes:
+        """Up to ``size`` bytes, waiting as the timeout allows (see the class doc)."""
+        if not self.is_open:
+            raise DeviceUnavailable(f"replay port {self.path} is closed")
+        if size <= 0:
+            return b""
+        start = self._clock()
+        while True:
+            now = self._clock()
+            next_due = self._pull(now)
+            buf = self._st.buffer
+            if buf or next_due is None:
+                out = bytes(buf[:size])
+                del buf[:size]
+                self.bytes_read += len(out)
+                return out
+            if self.timeout is not None:
+                limit = start + self.timeout
+                if now >= limit:
+                    return b""
+                next_due = min(next_due, limit)
+            self._sleep(max(next_due - now, 0.0))
+
+    def readline(self) -> bytes:
+        """Bytes up to and including the next b"\\n" (or what the timeout/end leaves)."""
+        out = bytearray()
+        while True:
+            buf = self._st.buffer
+            i = buf.find(b"\n")
+            if i >= 0:
+                out += buf[: i + 1]
+                del buf[: i + 1]
+                self.bytes_read += i + 1
+                return bytes(out)
+            if buf:
+                out += buf
+                self.bytes_read += len(buf)
+                buf.clear()
+            chunk = self.read(1)
+            if not chunk:
+                return bytes(out)
+            out += chunk
+            if chunk == b"\n":
+                return bytes(out)
+
+    def write(self, data: bytes) -> int:
+        """Accepted and dropped (a receiver being configured over a replay ignores it)."""
+        return len(data)
+
+    def reset_input_buffer(self) -> None:
+        """Drop what is buffered now."""
+        self._st.buffer.clear()
+
+    def close(self) -> None:
+        """Close (idempotent)."""
+        self.is_open = False
+
+    def __enter__(self) -> ReplayPort:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
