@@ -154,6 +154,9 @@ def test_gps_tcp_url_reads_from_a_real_socket() -> None:
     def serve() -> None:
         conn, _ = server.accept()
         with conn:
+            # pyserial's socket:// open() discards bytes that arrived before it returned,
+            # so send only once the client says it is open.
+            conn.recv(1)
             conn.sendall(payload)
             done.wait(10)  # keep the connection open until the client has read it all
 
@@ -161,6 +164,7 @@ def test_gps_tcp_url_reads_from_a_real_socket() -> None:
     thread.start()
     port = open_gps_port(f"tcp://{host}:{port_no}?timeout=0.2")
     try:
+        port.write(b"!")
         assert read_exactly(port, len(payload)) == payload
     finally:
         done.set()
