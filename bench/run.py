@@ -1,0 +1,64 @@
+"""Run every benchmark (bench/bench_*.py) and print one table.
+
+Usage: ``python bench/run.py [--quick] [--only NAME ...]`` from the repository root (also
+``python -m bench.run``). NAME is a benchmark's file name without ``bench_`` and ``.py``.
+A benchmark that fails is reported on stderr; the others still run; the exit code is 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import traceback
+from collections.abc import Sequence
+from pathlib import Path
+
+BENCH_DIR = Path(__file__).resolve().parent
+ROOT = BENCH_DIR.parent
+if str(ROOT) not in sys.path:  # run as a script: make ``bench._common`` importable
+    sys.path.insert(0, str(ROOT))
+
+from bench._common import Row, print_table  # noqa: E402
+
+
+def available() -> list[str]:
+    """Names of the benchmarks found in bench/ (``bench_filter.py`` -> ``filter``)."""
+    return sorted(p.stem[len("bench_") :] for p in BENCH_DIR.glob("bench_*.py"))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the chosen benchmarks; return the process exit code."""
+    parser = argparse.ArgumentParser(prog="bench/run.py", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smaller inputs, quicker figures")
+    parser.add_argument(
+        "--only", action="append", metavar="NAME", help="run only this benchmark (repeatable)"
+    )
+    args = parser.parse_args(argv)
+    names = available()
+    chosen = names
+    if args.only:
+        wanted = [n.removeprefix("bench_").removesuffix(".py") for n in args.only]
+        unknown = [n for n in wanted if n not in names]
+        if unknown:
+            parser.error(f"unknown benchmark {unknown[0]!r} (available: {', '.join(names)})")
+        chosen = [n for n in names if n in wanted]
+    rows: list[Row] = []
+    failed = []
+    for name in chosen:
+        try:
+            module = importlib.import_module(f"bench.bench_{name}")
+            rows.extend(module.run(quick=args.quick))
+        except Exception:
+            failed.append(name)
+            print(f"benchmark {name} failed:", file=sys.stderr)
+            traceback.print_exc()
+    print_table(rows)
+    if failed:
+        print(f"failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,87 @@
+"""TOML configuration: every error names the key; the shipped robot config loads."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from x6wd.config import Config, ConfigError, NavigationConfig, load, loads
+
+ROBOT_TOML = Path(__file__).resolve().parent.parent / "config" / "x6wd.toml"
+
+
+def test_robot_config_loads_and_covers_every_section() -> None:
+    cfg = load(ROBOT_TOML)
+    raw = tomllib.loads(ROBOT_TOML.read_text(encoding="utf-8"))
+    sections = {f.name for f in dataclasses.fields(Config)}
+    assert set(raw) == sections
+    assert cfg.motors.url == "log://"
+    assert cfg.gps.url == "serial:///dev/ttyS0?baud=9600"
+    assert cfg.compass.url == "i2c://1/0x60"
+    # what the file says is what the program gets, key by key
+    for section, table in raw.items():
+        for key, value in table.items():
+            got = getattr(getattr(cfg, section), key)
+            assert got == (tuple(value) if isinstance(value, list) else value), f"{section}.{key}"
+
+
+def test_empty_file_gives_the_defaults() -> None:
+    assert loads("") == Config()
+
+
+def test_values_are_converted_and_validated() -> None:
+    cfg = loads("[navigation]\ndelta_x_m = 2\nprojection = 'local_tangent_plane'\n")
+    assert cfg.navigation.delta_x_m == 2.0 and isinstance(cfg.navigation.delta_x_m, float)
+    assert cfg.navigation.projection == "local_tangent_plane"
+    assert cfg.navigation.delta_y_m == NavigationConfig().delta_y_m
+
+
+@pytest.mark.parametrize(
+    ("text", "pattern"),
+    [
+        # unknown keys, top level and inside a section
+        ("[navigaton]\n", r"^navigaton: unknown key"),
+        ("[navigation]\ndelta_z_m = 1.0\n", r"^navigation\.delta_z_m: unknown key.*delta_x_m"),
+        # wrong types
+        ("[navigation]\nfilter_n = 'twenty'\n", r"^navigation\.filter_n: expected an integer"),
+        ("[navigation]\nfilter_n = 20.0\n", r"^navigation\.filter_n: expected an integer"),
+        ("[navigation]\nfilter_hysteresis = 1\n", r"^navigation\.filter_hysteresis: expected true"),
+        ("[safety]\nfix_stale_s = true\n", r"^safety\.fix_stale_s: expected a number"),
+        ("[gps]\nurl = 5\n", r"^gps\.url: expected a string"),
+        ("navigation = 3\n", r"^navigation: expected a table"),
+        ("[safety]\ngeofence_center = 'here'\n", r"^safety\.geofence_center: expected a list"),
+        ("[safety]\ngeofence_center = [51.7, 'x']\n", r"^safety\.geofence_center\[1\]: expected"),
+        # out of range
+        ("[navigation]\nfilter_n = 2\n", r"^navigation\.filter_n: must be >= 3, got 2"),
+        ("[navigation]\ncruise_pct = 100.5\n", r"^navigation\.cruise_pct: must be <= 100"),
+        ("[server]\nport = 70000\n", r"^server\.port: must be <= 65535"),
+        ("[compass]\ndeclination_deg = nan\n", r"^compass\.declination_deg: must be finite"),
+        # bad choice
+        ("[navigation]\nprojection = 'utm'\n", r"^navigation\.projection: must be one of two_rad"),
+    ],
+)
+def test_errors_name_the_key(text: str, pattern: str) -> None:
+    with pytest.raises(ConfigError, match=pattern):
+        loads(text)
+
+
+def test_bad_toml_names_the_source() -> None:
+    with pytest.raises(ConfigError, match=r"^robot\.toml: not valid TOML"):
+        loads("[navigation\n", "robot.toml")
+
+
+def test_file_errors_name_the_file_and_the_key(tmp_path: Path) -> None:
+    missing = tmp_path / "nope.toml"
+    with pytest.raises(ConfigError, match=r"nope\.toml: cannot read configuration"):
+        load(missing)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[navigation]\ndelta_phi_deg = 0.0\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"bad\.toml: navigation\.delta_phi_deg: must be >= 0\.1"):
+        load(bad)
+    broken = tmp_path / "broken.toml"
+    broken.write_text("a = = 1\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"broken\.toml.*not valid TOML"):
+        load(broken)

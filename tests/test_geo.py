@@ -1,0 +1,264 @@
+"""Plane coordinates: the paper's two-radius conversion, bearing φi, deviation Θ, local plane."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from x6wd import geo
+from x6wd.geo import (
+    GeoError,
+    LocalTangentPlane,
+    course_deviation,
+    destination_bearing,
+    latlon_to_xy,
+    make_projection,
+    xy_to_latlon,
+)
+
+# Table 2 of the paper: dispersion of latitude/longitude in degrees -> ± metres (half the
+# full extent). The degrees are printed to 1e-8, i.e. ± 0.5e-8 deg of rounding, which is up to
+# ± 0.5e-8 · π/180 · R / 2 = ± 2.78e-4 m at the half extent. The metre figures are printed to
+# 1e-8 m and were computed from the dispersions in MINUTES (0.0133' = 0.00022167° ...), the
+# unit of the NMEA data; from those they agree to the printed rounding (± 5e-9 m).
+TABLE2_LAT = [  # (deg as printed, minutes, ± m)
+    (0.00022167, 0.0133, 12.29657776),
+    (0.00019, 0.0114, 10.5399238),
+    (0.00015167, 0.0091, 8.41344794),
+    (0.00001833, 0.0011, 1.01701019),
+]
+TABLE2_LON = [
+    (0.000545, 0.0327, 30.33467063),
+    (0.000065, 0.0039, 3.6178965),
+    (0.0002, 0.012, 11.13198922),
+    (0.00001833, 0.0011, 1.02043235),
+]
+DEG_ROUNDING_TOL_M = 0.5e-8 * math.pi / 180 * geo.R1_M / 2  # 2.78e-4 m
+METRE_ROUNDING_TOL_M = 0.5e-8 + 1e-12
+
+
+@pytest.mark.parametrize(("deg", "minutes", "half_m"), TABLE2_LAT)
+def test_table2_latitude_dispersions(deg: float, minutes: float, half_m: float) -> None:
+    y0 = latlon_to_xy(51.7, 30.0)[1]
+    y_deg = latlon_to_xy(51.7 + deg, 30.0)[1]
+    y_min = latlon_to_xy(51.7 + minutes / 60, 30.0)[1]
+    # differences at 51.7 deg lose ~1e-9 m to the absolute y of 5.7e6 m
+    assert (y_deg - y0) / 2 == pytest.approx(half_m, abs=DEG_ROUNDING_TOL_M + 1e-8)
+    assert (y_min - y0) / 2 == pytest.approx(half_m, abs=METRE_ROUNDING_TOL_M + 2e-9)
+    # x does not move with latitude in the two-radius conversion
+    assert latlon_to_xy(51.7 + deg, 30.0)[0] == latlon_to_xy(51.7, 30.0)[0]
+
+
+@pytest.mark.parametrize(("deg", "minutes", "half_m"), TABLE2_LON)
+def test_table2_longitude_dispersions(deg: float, minutes: float, half_m: float) -> None:
+    # Absolute from longitude 0 so nothing cancels: x = Λ·R1 exactly, no cos Φ factor.
+    x_deg = latlon_to_xy(51.7, deg)[0]
+    x_min = latlon_to_xy(51.7, minutes / 60)[0]
+    assert x_deg / 2 == pytest.approx(half_m, abs=DEG_ROUNDING_TOL_M)
+    assert x_min / 2 == pytest.approx(half_m, abs=METRE_ROUNDING_TOL_M)
+
+
+def test_two_radius_constants_and_axes() -> None:
+    x, y = latlon_to_xy(1.0, 1.0)
+    assert x == pytest.approx(math.radians(1) * 6378160.0, rel=1e-15)
+    assert y == pytest.approx(math.radians(1) * 6356770.0, rel=1e-15)
+    # the same longitude step gives the same x at any latitude (the paper's stretch)
+    assert latlon_to_xy(0.0, 0.001)[0] == latlon_to_xy(60.0, 0.001)[0]
+    # east and north are positive, west and south negative
+    xw, ys = latlon_to_xy(-10.0, -20.0)
+    assert xw < 0 and ys < 0
+
+
+@settings(max_examples=200, deadline=None)
+@given(lat=st.floats(-90, 90), lon=st.floats(-180, 180))
+def test_two_radius_round_trip(lat: float, lon: float) -> None:
+    x, y = latlon_to_xy(lat, lon)
+    lat2, lon2 = xy_to_latlon(x, y)
+    assert lat2 == pytest.approx(lat, abs=1e-12)
+    assert lon2 == pytest.approx(lon, abs=1e-12)
+
+
+def test_arrays_are_accepted() -> None:
+    lat = np.array([51.7, 51.8, -3.0])
+    lon = np.array([30.0, -0.5, 179.9])
+    x, y = latlon_to_xy(lat, lon)
+    assert isinstance(x, np.ndarray) and isinstance(y, np.ndarray) and x.shape == (3,)
+    for i in range(3):
+        assert (x[i], y[i]) == latlon_to_xy(float(lat[i]), float(lon[i]))
+    phi = destination_bearing(0.0, 0.0, np.array([1.0, -1.0]), np.array([0.0, 0.0]))
+    assert np.allclose(phi, [math.pi / 2, -math.pi / 2])
+
+
+@pytest.mark.parametrize(
+    ("lat", "lon", "what"),
+    [(90.5, 0.0, "latitude"), (0.0, -181.0, "longitude"), (math.nan, 0.0, "finite")],
+)
+def test_bad_coordinates_are_rejected(lat: float, lon: float, what: str) -> None:
+    with pytest.raises(GeoError, match=what):
+        latlon_to_xy(lat, lon)
+
+
+# Bearings: clockwise from north, east positive, west negative, south +π (sign(0) = +1).
+@pytest.mark.parametrize(
+    ("dx", "dy", "expected"),
+    [
+        (0.0, 1.0, 0.0),
+        (1.0, 1.0, math.pi / 4),
+        (1.0, 0.0, math.pi / 2),
+        (1.0, -1.0, 3 * math.pi / 4),
+        (0.0, -1.0, math.pi),
+        (-1.0, -1.0, -3 * math.pi / 4),
+        (-1.0, 0.0, -math.pi / 2),
+        (-1.0, 1.0, -math.pi / 4),
+    ],
+)
+def test_destination_bearing_quadrants(dx: float, dy: float, expected: float) -> None:
+    xc, yc = 3339596.77, 5735937.48  # somewhere at 51.7 N, 30 E
+    phi = destination_bearing(xc, yc, xc + dx, yc + dy)
+    assert phi == pytest.approx(expected, abs=1e-9)
+
+
+def test_destination_bearing_matches_the_paper_formula() -> None:
+    rng = np.random.default_rng(5)
+    dx, dy = rng.normal(0, 50, (2, 500))
+    phi = destination_bearing(0.0, 0.0, dx, dy)
+    paper = np.where(dx >= 0, 1.0, -1.0) * np.arccos(dy / np.sqrt(dx**2 + dy**2))
+    assert np.allclose(phi, paper, rtol=0, atol=1e-12)
+    assert np.all((phi > -math.pi) & (phi <= math.pi))
+
+
+def test_destination_bearing_stays_in_half_open_range() -> None:
+    # A negative dx too small to move the arccos gives exactly -π, which must become +π.
+    assert destination_bearing(0.0, 0.0, -1e-300, -1.0) == math.pi
+
+
+def test_destination_bearing_of_coincident_points_is_an_error() -> None:
+    with pytest.raises(GeoError, match="coincide"):
+        destination_bearing(1.0, 2.0, 1.0, 2.0)
+
+
+@pytest.mark.parametrize(
+    ("phi_i", "phi_c", "expected"),
+    [
+        (0.5, 0.2, 0.3),  # destination clockwise of the heading: turn right
+        (0.2, 0.5, -0.3),
+        (3.0, -3.0, -(2 * math.pi - 6.0)),  # Θ = 6 > π -> −(2π − Θ)
+        (-3.0, 3.0, 2 * math.pi - 6.0),  # Θ = −6 <= −π -> 2π + Θ
+        (math.pi, 0.0, math.pi),  # exactly π stays π
+        (0.0, math.pi, math.pi),  # Θ = −π is not in range: 2π + Θ = π
+        (-math.pi / 2, math.pi / 2, math.pi),
+    ],
+)
+def test_course_deviation_wraps_like_the_paper(phi_i: float, phi_c: float, expected: float) -> None:
+    assert course_deviation(phi_i, phi_c) == pytest.approx(expected, abs=1e-15)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    a=st.floats(-math.pi, math.pi, exclude_min=True),
+    b=st.floats(-math.pi, math.pi, exclude_min=True),
+)
+def test_course_deviation_is_the_paper_formula_in_range(a: float, b: float) -> None:
+    theta = a - b
+    if theta > math.pi:
+        theta = -(2 * math.pi - theta)
+    if theta <= -math.pi:
+        theta = 2 * math.pi + theta
+    assert course_deviation(a, b) == theta
+    assert -math.pi < course_deviation(a, b) <= math.pi
+
+
+@settings(max_examples=200, deadline=None)
+@given(a=st.floats(-1e4, 1e4), b=st.floats(-1e4, 1e4))
+def test_course_deviation_wraps_any_finite_angle(a: float, b: float) -> None:
+    theta = course_deviation(a, b)
+    assert -math.pi < theta <= math.pi
+    # same direction as a − b: the difference is a whole number of turns
+    turns = (a - b - theta) / (2 * math.pi)
+    assert turns == pytest.approx(round(turns), abs=1e-9)
+
+
+def test_wrap_deg() -> None:
+    assert geo.wrap_deg(180.0) == 180.0
+    assert geo.wrap_deg(-180.0) == 180.0
+    assert geo.wrap_deg(190.0) == -170.0
+    assert geo.wrap_deg(-540.0) == 180.0
+    assert geo.wrap_deg(359.9) == pytest.approx(-0.1)
+
+
+def test_local_tangent_plane_scales_east_by_cos_origin_latitude() -> None:
+    ltp = LocalTangentPlane(51.7, 30.0)
+    assert ltp.to_xy(51.7, 30.0) == (0.0, 0.0)
+    x_east, y_east = ltp.to_xy(51.7, 30.001)
+    _, y_north = ltp.to_xy(51.701, 30.0)
+    assert y_east == 0.0
+    # on the equator one degree east and one degree north differ only by the ellipsoid
+    x_eq, _ = LocalTangentPlane(0.0, 30.0).to_xy(0.0, 30.001)
+    assert x_east == pytest.approx(x_eq * math.cos(math.radians(51.7)), rel=5e-3)
+    assert x_east / y_north == pytest.approx(math.cos(math.radians(51.7)), rel=5e-3)
+
+
+def test_local_tangent_plane_distance_agrees_with_the_ellipsoid() -> None:
+    # Reference: WGS-84 geodetic -> ECEF -> local ENU, an independent exact route.
+    a, e2 = 6378137.0, 6.69437999014e-3
+
+    def ecef(lat_deg: float, lon_deg: float) -> np.ndarray:
+        p, lam = math.radians(lat_deg), math.radians(lon_deg)
+        n = a / math.sqrt(1 - e2 * math.sin(p) ** 2)
+        return np.array(
+            [
+                n * math.cos(p) * math.cos(lam),
+                n * math.cos(p) * math.sin(lam),
+                n * (1 - e2) * math.sin(p),
+            ]
+        )
+
+    lat0, lon0 = 51.7, 30.0
+    p0, l0 = math.radians(lat0), math.radians(lon0)
+    east = np.array([-math.sin(l0), math.cos(l0), 0.0])
+    north = np.array([-math.sin(p0) * math.cos(l0), -math.sin(p0) * math.sin(l0), math.cos(p0)])
+    ltp = LocalTangentPlane(lat0, lon0)
+    for dlat, dlon in [(0.0, 0.0015), (0.0009, 0.0), (-0.0006, 0.001), (0.004, -0.006)]:
+        d = ecef(lat0 + dlat, lon0 + dlon) - ecef(lat0, lon0)
+        x, y = ltp.to_xy(lat0 + dlat, lon0 + dlon)
+        dist = math.hypot(float(d @ east), float(d @ north))
+        # within 1e-4 of the distance (0.2 % off with the paper radii; two-radius is 61 % long)
+        assert x == pytest.approx(float(d @ east), abs=1e-4 * dist + 1e-3)
+        assert y == pytest.approx(float(d @ north), abs=1e-4 * dist + 1e-3)
+    x2r = latlon_to_xy(lat0, lon0 + 0.0015)[0] - latlon_to_xy(lat0, lon0)[0]
+    x_ltp = ltp.to_xy(lat0, lon0 + 0.0015)[0]
+    assert x2r / x_ltp == pytest.approx(1 / math.cos(p0), rel=5e-3)  # the paper's stretch
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    lat0=st.floats(-80, 80),
+    lon0=st.floats(-180, 180),
+    dlat=st.floats(-0.05, 0.05),
+    dlon=st.floats(-0.05, 0.05),
+)
+def test_local_tangent_plane_round_trip(lat0: float, lon0: float, dlat: float, dlon: float) -> None:
+    ltp = LocalTangentPlane(lat0, lon0)
+    lat = lat0 + dlat
+    lon = float(geo.wrap_deg(lon0 + dlon))
+    x, y = ltp.to_xy(lat, lon)
+    assert math.hypot(x, y) < 20_000  # crossing ±180° stays local
+    lat2, lon2 = ltp.to_latlon(x, y)
+    assert lat2 == pytest.approx(lat, abs=1e-9)
+    assert float(geo.wrap_deg(lon2 - lon)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_make_projection_by_config_name() -> None:
+    assert make_projection("two_radius", 51.7, 30.0).to_xy(51.7, 30.0) == latlon_to_xy(51.7, 30.0)
+    p = make_projection("local_tangent_plane", 51.7, 30.0)
+    assert p.name == "local_tangent_plane"
+    assert p.to_xy(51.7, 30.0) == (0.0, 0.0)
+    assert set(geo.PROJECTIONS) == {"two_radius", "local_tangent_plane"}
+    with pytest.raises(GeoError, match="two_radius, local_tangent_plane"):
+        make_projection("mercator", 0.0, 0.0)
+    with pytest.raises(GeoError, match="pole"):
+        LocalTangentPlane(90.0, 0.0)

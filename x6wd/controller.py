@@ -1,0 +1,438 @@
+"""The sans-IO core: sensor records and operator requests in (each with its time), motor
+commands, telemetry and state changes out.
+
+It never reads a clock, sleeps or touches a socket: the caller passes ``t_s`` (seconds on one
+monotonic clock) with every input, so the same inputs always give the same outputs. The
+controller's "now" is the latest time it was given; an input stamped earlier (records from
+different devices may interleave) is accepted but does not move time backwards.
+
+Every call returns, in this order: zero or more :class:`StateChange` (mode first, then
+navigation state; ``old``/``new`` are the enum values, ``reason`` starts with ``mode:`` or
+``state:``), then the current :class:`MotorCommand` (so the daemon can feed the motor board's
+watchdog with every call, and a fix reaches the motors in the same call), then a
+:class:`Telemetry` snapshot.
+
+Pipeline: valid fixes feed one Constellation filter per axis (latitude and longitude); the
+filtered position is projected as configured; the compass's magnetic bearing is mapped to the
+paper's (−180°, 180°] and corrected by the declination; the :class:`Navigator` decides.
+
+Safety: while RUNNING, the motors stop and the state is HOLD (with ``hold_reason``) when the
+motor link is lost, the latest fix is invalid, the last valid fix is older than
+``safety.fix_stale_s``, the attitude is missing, invalid or older than
+``safety.attitude_stale_s``. Navigation resumes by itself once every input is fresh again.
+Manual drive is capped at ``safety.manual_max_s`` and expires (dead-man) into IDLE; a lost
+motor link cancels it. :meth:`Controller.stop` works from any state.
+
+Skid-steer mixing (the paper turns on the spot): STRAIGHT -> both sides ``cruise_pct``;
+TURN_RIGHT -> left ``+turn_pct``, right ``-turn_pct`` (clockwise spin in place); TURN_LEFT ->
+left ``-turn_pct``, right ``+turn_pct``; every other state -> stop. ARRIVED stops for the one
+decision in which it is reported; the next input turns towards the next waypoint.
+
+Mode rules: a mission loads in IDLE, MANUAL or DONE (not while RUNNING or PAUSED: stop first);
+start needs a mission and restarts it from its first waypoint (not while RUNNING or PAUSED);
+pause only while RUNNING; resume only while PAUSED; manual drive not while RUNNING or PAUSED
+and not with the motor link down. Rejected requests raise :class:`CommandRejected` and change
+nothing. The geofence is checked by the daemon when a mission is loaded, not here.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Sequence
+
+from x6wd import geo
+from x6wd.config import NavigationConfig, SafetyConfig
+from x6wd.constellation import Constellation
+from x6wd.errors import X6wdError
+from x6wd.navigator import NavigationError, Navigator
+from x6wd.records import (
+    Attitude,
+    ControllerOutput,
+    GpsFix,
+    GpsSky,
+    Mode,
+    MotorCommand,
+    NavState,
+    StateChange,
+    Telemetry,
+)
+
+
+class CommandRejected(X6wdError):
+    """An operator request is invalid in the current state or has bad arguments.
+
+    The controller is unchanged when this is raised.
+    """
+
+
+class InputError(X6wdError, ValueError):
+    """A record or call carried an unusable time (not a finite number of seconds)."""
+
+
+def _check_t(t_s: float, what: str) -> float:
+    try:
+        t = float(t_s)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{what}: t_s must be a number of seconds, got {t_s!r}") from exc
+    if not math.isfinite(t):
+        raise InputError(f"{what}: t_s must be finite, got {t_s!r}")
+    return t
+
+
+def _finite(v: float | None) -> bool:
+    return v is not None and math.isfinite(v)
+
+
+class Controller:
+    """Deterministic robot brain; see the module docstring for the contract."""
+
+    def __init__(
+        self, nav: NavigationConfig, safety: SafetyConfig, declination_deg: float = 0.0
+    ) -> None:
+        self._nav_cfg = nav
+        self._safety = safety
+        try:
+            self._navigator = Navigator(nav, declination_deg)
+        except NavigationError as exc:
+            raise CommandRejected(str(exc)) from exc
+        self._lat_filter = Constellation(nav.filter_n, nav.filter_hysteresis)
+        self._lon_filter = Constellation(nav.filter_n, nav.filter_hysteresis)
+        self._filt: tuple[float, float] | None = None  # filtered (lat_deg, lon_deg)
+        self._mode = Mode.IDLE
+        self._state = NavState.IDLE
+        self._hold_reason = ""
+        self._now: float | None = None
+        self._fix: GpsFix | None = None  # latest fix, valid or not
+        self._fix_ok = False  # latest fix usable (valid, coordinates present and in range)
+        self._valid_fix_t: float | None = None
+        self._att: Attitude | None = None
+        self._att_ok = False
+        self._sky: GpsSky | None = None
+        self._link_ok = True
+        self._manual: tuple[float, float, float] | None = None  # left %, right %, until t_s
+        self._has_mission = False
+        self._cmd = MotorCommand(0.0, 0.0, 0.0, "idle")
+        self._telemetry = Telemetry(t_s=0.0, mode=self._mode, state=self._state)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def mode(self) -> Mode:
+        """What the operator asked for (IDLE, RUNNING, PAUSED, MANUAL, DONE)."""
+        return self._mode
+
+    @property
+    def state(self) -> NavState:
+        """The navigation state (HOLD while a safety condition stops the motors)."""
+        return self._state
+
+    @property
+    def telemetry(self) -> Telemetry:
+        """The latest telemetry snapshot."""
+        return self._telemetry
+
+    @property
+    def command(self) -> MotorCommand:
+        """The latest motor command."""
+        return self._cmd
+
+    @property
+    def navigator(self) -> Navigator:
+        """The waypoint state machine (read it; drive it through the controller)."""
+        return self._navigator
+
+    @property
+    def waypoints(self) -> tuple[tuple[float, float], ...]:
+        """The loaded mission as (lat_deg, lon_deg); empty when none."""
+        return self._navigator.waypoints if self._has_mission else ()
+
+    # ------------------------------------------------------------------ sensor inputs
+    def on_fix(self, fix: GpsFix) -> list[ControllerOutput]:
+        """A receiver epoch at ``fix.t_s`` (s); valid fixes feed the per-axis filters."""
+        t = _check_t(fix.t_s, "fix")
+        lat, lon = fix.lat_deg, fix.lon_deg
+        ok = (
+            fix.valid
+            and lat is not None
+            and lon is not None
+            and _finite(lat)
+            and _finite(lon)
+            and abs(lat) <= 90.0
+            and abs(lon) <= 180.0
+        )
+        self._fix = fix
+        self._fix_ok = ok
+        if ok:
+            assert lat is not None and lon is not None
+            self._lat_filter.add(lat)
+            self._lon_filter.add(lon)
+            # filter() once per sample: with hysteresis it is stateful.
+            self._filt = (self._lat_filter.filter(), self._lon_filter.filter())
+            self._valid_fix_t = t if self._valid_fix_t is None else max(self._valid_fix_t, t)
+        return self._step(t, "fix")
+
+    def on_sky(self, sky: GpsSky) -> list[ControllerOutput]:
+        """Satellites in view at ``sky.t_s`` (s); stored for telemetry only."""
+        t = _check_t(sky.t_s, "sky")
+        self._sky = sky
+        return self._step(t, "sky")
+
+    def on_attitude(self, att: Attitude) -> list[ControllerOutput]:
+        """A compass sample (magnetic bearing, deg) at ``att.t_s`` (s)."""
+        t = _check_t(att.t_s, "attitude")
+        self._att = att
+        self._att_ok = bool(att.valid) and _finite(att.bearing_deg) and 0 <= att.bearing_deg < 360
+        return self._step(t, "attitude")
+
+    def tick(self, t_s: float) -> list[ControllerOutput]:
+        """Time passes without input: staleness and the manual dead-man are checked."""
+        return self._step(_check_t(t_s, "tick"), "tick")
+
+    def motor_link(self, ok: bool, t_s: float) -> list[ControllerOutput]:
+        """The motor board link went up (``ok``) or down (HOLD, stop) at ``t_s`` (s)."""
+        t = _check_t(t_s, "motor_link")
+        self._link_ok = bool(ok)
+        return self._step(t, "motor link " + ("up" if ok else "lost"))
+
+    # ------------------------------------------------------------------ operator requests
+    def load_mission(
+        self, waypoints: Sequence[tuple[float, float]], t_s: float
+    ) -> list[ControllerOutput]:
+        """Load (lat_deg, lon_deg) waypoints; not while RUNNING or PAUSED."""
+        t = _check_t(t_s, "load_mission")
+        if self._mode in (Mode.RUNNING, Mode.PAUSED):
+            raise CommandRejected(f"cannot load a mission while {self._mode}: stop first")
+        try:
+            wps = list(waypoints)
+        except TypeError as exc:
+            raise CommandRejected(f"waypoints must be a sequence of (lat, lon): {exc}") from exc
+        # Validate on a scratch navigator so a bad mission changes nothing.
+        trial = Navigator(self._nav_cfg, self._navigator.declination_deg)
+        try:
+            trial.set_waypoints(wps)
+        except NavigationError as exc:
+            raise CommandRejected(f"bad mission: {exc}") from exc
+        self._navigator = trial
+        self._has_mission = True
+        changes: list[ControllerOutput] = []
+        if self._mode == Mode.DONE:
+            self._set_mode(Mode.IDLE, "mission loaded", t, changes)
+        return self._step(t, "mission loaded", changes)
+
+    def start(self, t_s: float) -> list[ControllerOutput]:
+        """Start the loaded mission from its first waypoint."""
+        t = _check_t(t_s, "start")
+        if not self._has_mission:
+            raise CommandRejected("no mission loaded")
+        if self._mode == Mode.RUNNING:
+            raise CommandRejected("mission already running")
+        if self._mode == Mode.PAUSED:
+            raise CommandRejected("mission paused: resume it, or stop before starting again")
+        changes: list[ControllerOutput] = []
+        self._manual = None
+        self._navigator.restart()
+        self._set_mode(Mode.RUNNING, "start", t, changes)
+        return self._step(t, "start", changes)
+
+    def pause(self, t_s: float) -> list[ControllerOutput]:
+        """Pause a running mission (motors stop; the waypoint index is kept)."""
+        t = _check_t(t_s, "pause")
+        if self._mode != Mode.RUNNING:
+            raise CommandRejected(f"nothing to pause: mode is {self._mode}")
+        changes: list[ControllerOutput] = []
+        self._set_mode(Mode.PAUSED, "pause", t, changes)
+        return self._step(t, "pause", changes)
+
+    def resume(self, t_s: float) -> list[ControllerOutput]:
+        """Resume a paused mission."""
+        t = _check_t(t_s, "resume")
+        if self._mode != Mode.PAUSED:
+            raise CommandRejected(f"nothing to resume: mode is {self._mode}")
+        changes: list[ControllerOutput] = []
+        self._set_mode(Mode.RUNNING, "resume", t, changes)
+        return self._step(t, "resume", changes)
+
+    def stop(self, t_s: float) -> list[ControllerOutput]:
+        """Stop everything from any state: motors stop, mode IDLE. Never rejected."""
+        try:
+            t = _check_t(t_s, "stop")
+        except InputError:
+            # A stop must never fail: fall back to the controller's own time.
+            t = self._now if self._now is not None else 0.0
+        changes: list[ControllerOutput] = []
+        self._manual = None
+        self._set_mode(Mode.IDLE, "stop", t, changes)
+        return self._step(t, "stop", changes)
+
+    def manual_drive(
+        self, left_pct: float, right_pct: float, duration_s: float, t_s: float
+    ) -> list[ControllerOutput]:
+        """Drive left/right (%, -100..100) for ``duration_s`` (capped at manual_max_s)."""
+        t = _check_t(t_s, "manual_drive")
+        for name, v in (("left_pct", left_pct), ("right_pct", right_pct)):
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not -100 <= v <= 100:
+                raise CommandRejected(f"{name} must be a number in [-100, 100], got {v!r}")
+        if (
+            isinstance(duration_s, bool)
+            or not isinstance(duration_s, numbers.Real)
+            or not (math.isfinite(duration_s) and duration_s > 0)
+        ):
+            raise CommandRejected(f"duration_s must be a positive number, got {duration_s!r}")
+        if self._mode in (Mode.RUNNING, Mode.PAUSED):
+            raise CommandRejected(f"no manual drive while {self._mode}: stop the mission first")
+        if not self._link_ok:
+            raise CommandRejected("motor link lost: cannot drive")
+        now = t if self._now is None else max(self._now, t)
+        until = now + min(float(duration_s), self._safety.manual_max_s)
+        self._manual = (float(left_pct), float(right_pct), until)
+        changes: list[ControllerOutput] = []
+        self._set_mode(Mode.MANUAL, "manual drive", t, changes)
+        return self._step(t, "manual drive", changes)
+
+    # ------------------------------------------------------------------ internals
+    def _set_mode(self, mode: Mode, why: str, t_s: float, out: list[ControllerOutput]) -> None:
+        if mode != self._mode:
+            now = t_s if self._now is None else max(self._now, t_s)
+            out.append(StateChange(now, str(self._mode), str(mode), f"mode: {why}"))
+            self._mode = mode
+
+    def _hold_check(self, now: float) -> str:
+        """Why the robot must hold now ("" when every input is fresh)."""
+        s = self._safety
+        if not self._link_ok:
+            return "motor link lost"
+        if self._fix is None or self._valid_fix_t is None:
+            return "no fix yet"
+        if not self._fix_ok:
+            return "no valid fix"
+        if now - self._valid_fix_t > s.fix_stale_s:
+            return "fix stale"
+        if self._att is None:
+            return "no attitude yet"
+        if not self._att_ok:
+            return "attitude invalid"
+        if now - self._att.t_s > s.attitude_stale_s:
+            return "attitude stale"
+        return ""
+
+    def _mix(self, state: NavState) -> tuple[float, float]:
+        c = self._nav_cfg
+        if state == NavState.STRAIGHT:
+            return c.cruise_pct, c.cruise_pct
+        if state == NavState.TURN_RIGHT:
+            return c.turn_pct, -c.turn_pct
+        if state == NavState.TURN_LEFT:
+            return -c.turn_pct, c.turn_pct
+        return 0.0, 0.0
+
+    def _step(
+        self, t_s: float, why: str, changes: list[ControllerOutput] | None = None
+    ) -> list[ControllerOutput]:
+        out: list[ControllerOutput] = [] if changes is None else changes
+        now = t_s if self._now is None else max(self._now, t_s)
+        self._now = now
+
+        if self._mode == Mode.MANUAL and self._manual is not None:
+            if not self._link_ok:
+                self._manual = None
+                self._set_mode(Mode.IDLE, "manual drive cancelled: motor link lost", now, out)
+            elif now >= self._manual[2]:
+                self._manual = None
+                self._set_mode(Mode.IDLE, "manual drive expired", now, out)
+
+        hold = ""
+        left = right = 0.0
+        state: NavState
+        if self._mode == Mode.RUNNING:
+            hold = self._hold_check(now)
+            if hold:
+                state = NavState.HOLD
+            else:
+                assert self._filt is not None and self._att is not None
+                x, y = self._navigator.to_xy(*self._filt)
+                heading = self._navigator.heading_from_compass(self._att.bearing_deg)
+                state = self._navigator.step(x, y, heading)
+                if state == NavState.MISSION_DONE:
+                    self._set_mode(Mode.DONE, "last waypoint reached", now, out)
+                left, right = self._mix(state)
+        elif self._mode == Mode.MANUAL and self._manual is not None:
+            state = NavState.IDLE
+            left, right = self._manual[0], self._manual[1]
+        elif self._mode == Mode.DONE:
+            state = NavState.MISSION_DONE
+        else:
+            state = NavState.IDLE
+
+        if state != self._state:
+            reason = f"state: {hold}" if hold else f"state: {why}"
+            out.append(StateChange(now, str(self._state), str(state), reason))
+            self._state = state
+        self._hold_reason = hold
+
+        if hold:
+            reason = f"hold: {hold}"
+        elif self._mode == Mode.MANUAL:
+            reason = "manual"
+        elif self._mode == Mode.RUNNING:
+            reason = str(state)
+        else:
+            reason = str(self._mode).lower()
+        self._cmd = MotorCommand(now, left, right, reason)
+        self._telemetry = self._snapshot(now)
+        out.append(self._cmd)
+        out.append(self._telemetry)
+        return out
+
+    def _snapshot(self, now: float) -> Telemetry:
+        nav = self._navigator
+        fix, att = self._fix, self._att
+        x = y = target_deg = theta_deg = dist = None
+        heading_rad = None
+        if att is not None and self._att_ok:
+            heading_rad = nav.heading_from_compass(att.bearing_deg)
+        if self._has_mission and self._filt is not None:
+            x, y = nav.to_xy(*self._filt)
+            if not nav.done:
+                xi, yi = nav.target_xy()
+                dx, dy = xi - x, yi - y
+                dist = math.hypot(dx, dy)
+                if dist > 0:
+                    phi = geo.destination_bearing(x, y, xi, yi)
+                    target_deg = math.degrees(phi)
+                    if heading_rad is not None:
+                        theta_deg = math.degrees(geo.course_deviation(phi, heading_rad))
+        extra: dict[str, object] = {"filter_samples": len(self._lat_filter)}
+        if self._sky is not None:
+            extra["sats_in_view"] = len(self._sky.satellites)
+        if not self._link_ok:
+            extra["motor_link"] = "lost"
+        count = len(nav.waypoints) if self._has_mission else 0
+        return Telemetry(
+            t_s=now,
+            mode=self._mode,
+            state=self._state,
+            hold_reason=self._hold_reason,
+            waypoint_index=nav.index if self._has_mission and not nav.done else None,
+            waypoint_count=count,
+            lat_deg=fix.lat_deg if fix is not None else None,
+            lon_deg=fix.lon_deg if fix is not None else None,
+            filt_lat_deg=self._filt[0] if self._filt is not None else None,
+            filt_lon_deg=self._filt[1] if self._filt is not None else None,
+            x_m=x,
+            y_m=y,
+            bearing_deg=att.bearing_deg if att is not None else None,
+            heading_deg=math.degrees(heading_rad) if heading_rad is not None else None,
+            pitch_deg=att.pitch_deg if att is not None else None,
+            roll_deg=att.roll_deg if att is not None else None,
+            target_bearing_deg=target_deg,
+            theta_deg=theta_deg,
+            distance_m=dist,
+            fix_quality=fix.quality if fix is not None else 0,
+            sats_used=fix.sats_used if fix is not None else None,
+            hdop=fix.hdop if fix is not None else None,
+            fix_age_s=now - self._valid_fix_t if self._valid_fix_t is not None else None,
+            attitude_age_s=now - att.t_s if att is not None else None,
+            left_pct=self._cmd.left_pct,
+            right_pct=self._cmd.right_pct,
+            extra=extra,
+        )
