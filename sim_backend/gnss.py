@@ -1,0 +1,759 @@
+"""The simulated GPS receiver: the full error model at two fidelity levels.
+
+``GnssModel`` is built from explicit parts (a :class:`~sim_backend.sky.SatelliteSet`, the
+origin, the start time, an :class:`~sim_backend.atmosphere.Atmosphere`, optional walls, the
+receiver parameters and a ``numpy.random.Generator``) and turns true positions into what a
+u-blox NEO-5 would report (:class:`~sim_backend.epoch.GnssEpoch`):
+
+- ``step(t_s, lat, lon, alt, vel_enu)``: one epoch, closed loop (keeps process state).
+- ``batch(t_s[], lat[], lon[], alt[], vel_enu[])``: all epochs at once, vectorised over
+  (epochs x satellites); returns a columnar :class:`GnssBatch` (``.epoch(i)``, ``.epochs()``).
+
+Both share the same per-epoch physics; the common part is the *sky pipeline*: satellite
+positions, az/el from the true receiver position, the elevation mask, walls (line of sight,
+reflections: extra path and -3 dB per bounce), per-satellite C/N0 from the atmosphere, the
+tracking cutoff, and a channel limit (the strongest ``max_channels`` satellites are used).
+
+Fidelity ``"seed"`` (the seed papers' model): the position error is drawn WHITE per epoch,
+east/north each N(0, (HDOP*sigma_UERE)^2 / 2), up N(0, (VDOP*sigma_UERE)^2). sigma_UERE is
+either ``"modelled"`` (RMS over the used satellites of the per-satellite error budget:
+residual ionosphere and troposphere, satellite clock/ephemeris, multipath, receiver code noise,
+and the squared extra path of reflected signals) or the seed-003 form
+``sqrt(RE^2 + ASE^2 + LCE(position)^2)`` with LCE read from an :class:`LceGrid`. White draws
+are what the papers do; real errors are strongly time-correlated (lag-1 autocorrelation
+0.95-0.999 at 1 Hz in real static logs) because the dominant sources (atmosphere, orbits,
+multipath geometry) change over minutes, so the seed level is right in distribution per epoch
+but wrong in its time structure.
+
+Fidelity ``"pseudorange"``: per-satellite range errors, each a first-order Gauss-Markov process
+with an exact discretisation (meaning independent of the update rate), plus the walls'
+deterministic NLOS extra path; the position is the weighted least-squares solution (E, N, U,
+receiver clock) of those errors. The solve is linearised at the true position: for metre-level
+errors over 20,000 km ranges this equals the receiver's iterated solution to better than a
+micrometre. DOP, rising/setting and blocked satellites, satellite-set jumps and time
+correlation then come out of the physics.
+
+Conventions: ``t_s`` seconds since the scenario start; ``alt_m`` above mean sea level with a
+constant ``geoid_sep_m`` (ellipsoid = MSL + separation); ENU frames are the origin's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from typing import Any, Literal, Protocol
+
+import numpy as np
+from scipy.signal import lfilter
+
+from sim_backend.atmosphere import Atmosphere
+from sim_backend.epoch import GnssEpoch, SimSat
+from sim_backend.geodesy import (
+    ecef_to_lla,
+    enu_rotation,
+    lla_to_ecef,
+    utc_to_gps_seconds,
+)
+from sim_backend.sky import DEFAULT_MASK_DEG, SatelliteSet, batched_inverse
+from x6wd.errors import ConfigError
+
+Fidelity = Literal["seed", "pseudorange"]
+FIDELITIES: tuple[str, ...] = ("seed", "pseudorange")
+CA_CHIP_M = 293.0522  # C/A code chip length (c / 1.023 MHz)
+
+
+# ---------------------------------------------------------------- parameters
+
+
+@dataclass(frozen=True, eq=False)  # eq by identity: it holds an array
+class LceGrid:
+    """Seed-003 local characteristic error map: 1-sigma range error (m) per grid cell.
+
+    ``sigma_m[i, j]`` covers north in ``[north0_m + i*cell_m, +cell_m)`` and east in
+    ``[east0_m + j*cell_m, +cell_m)`` of the origin's ENU frame; ``outside_m`` applies
+    beyond the map.
+    """
+
+    east0_m: float
+    north0_m: float
+    cell_m: float
+    sigma_m: np.ndarray
+    outside_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        grid = np.asarray(self.sigma_m, dtype=float)
+        if grid.ndim != 2 or grid.size == 0:
+            raise ConfigError(f"lce.sigma_m must be a non-empty 2-D grid, got shape {grid.shape}")
+        if not np.all(np.isfinite(grid)) or np.any(grid < 0):
+            raise ConfigError("lce.sigma_m must be finite and >= 0 m")
+        if not self.cell_m > 0:
+            raise ConfigError(f"lce.cell_m must be > 0 m, got {self.cell_m}")
+        if not self.outside_m >= 0:
+            raise ConfigError(f"lce.outside_m must be >= 0 m, got {self.outside_m}")
+        object.__setattr__(self, "sigma_m", grid)
+
+    def at(self, east_m: np.ndarray | float, north_m: np.ndarray | float) -> np.ndarray:
+        """LCE 1-sigma (m) at local east/north positions (m), vectorised."""
+        j = np.floor((np.asarray(east_m, dtype=float) - self.east0_m) / self.cell_m)
+        i = np.floor((np.asarray(north_m, dtype=float) - self.north0_m) / self.cell_m)
+        n_i, n_j = self.sigma_m.shape
+        inside = (i >= 0) & (i < n_i) & (j >= 0) & (j < n_j)
+        ii = np.where(inside, i, 0).astype(np.int64)
+        jj = np.where(inside, j, 0).astype(np.int64)
+        return np.where(inside, self.sigma_m[ii, jj], self.outside_m)
+
+
+@dataclass(frozen=True)
+class ReceiverParams:
+    """Error budget and behaviour of the receiver. Sigmas are 1-sigma metres of range error;
+    ``tau_*_s`` are Gauss-Markov correlation times (s)."""
+
+    # Seed level
+    seed_uere: Literal["modelled", "re_ase_lce"] = "modelled"
+    re_sigma_m: float = 0.5  # seed-003 RE (receiver error: noise + receiver multipath)
+    ase_sigma_m: float | None = None  # seed-003 ASE; None: the modelled atmosphere+orbit part
+    lce: LceGrid | None = None  # seed-003 local characteristic error map
+    # Residual ionosphere after the broadcast (Klobuchar) correction, as a fraction of the
+    # modelled delay; Klobuchar removes about half of it (RMS). Split into a part common to all
+    # satellites (mostly absorbed by the clock and height) and a per-satellite part.
+    iono_residual_frac: float = 0.5
+    iono_common_share: float = 0.7  # fraction of the residual variance that is common
+    tau_iono_s: float = 1800.0
+    tropo_residual_frac: float = 0.05  # after the receiver's standard troposphere model
+    tau_tropo_s: float = 3600.0
+    sisre_sigma_m: float = 0.6  # broadcast satellite clock + ephemeris error per satellite
+    tau_sisre_s: float = 3600.0
+    multipath_sigma_m: float = 0.3  # line-of-sight multipath at zenith, x(1+3 exp(-el/15 deg))
+    tau_multipath_s: float = 15.0
+    nlos_sigma_frac: float = 0.1  # jitter of a reflected path, fraction of its extra length
+    # Code tracking (DLL) noise: sigma = chip * sqrt(Bn d / (2 C/N0) (1 + 2 / (T C/N0 (2-d))))
+    dll_bandwidth_hz: float = 0.5
+    correlator_spacing_chips: float = 0.5
+    integration_s: float = 0.02
+    smoothing_tau_s: float = 20.0  # carrier smoothing (Hatch filter); 0: raw code noise
+    max_channels: int = 12  # satellites in the solution (GSA lists 12)
+    vel_sigma_mps: float = 0.08  # Doppler velocity noise per horizontal axis
+    vel_up_sigma_mps: float = 0.15
+    course_min_speed_mps: float = 0.3  # below this the course is left empty (u-blox at rest)
+    geoid_sep_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.seed_uere not in ("modelled", "re_ase_lce"):
+            raise ConfigError(
+                f"receiver.seed_uere must be 'modelled' or 're_ase_lce', got {self.seed_uere!r}"
+            )
+        nonneg = (
+            "re_sigma_m",
+            "iono_residual_frac",
+            "tropo_residual_frac",
+            "sisre_sigma_m",
+            "multipath_sigma_m",
+            "nlos_sigma_frac",
+            "smoothing_tau_s",
+            "vel_sigma_mps",
+            "vel_up_sigma_mps",
+            "course_min_speed_mps",
+        )
+        for name in nonneg:
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"receiver.{name} must be finite and >= 0, got {v!r}")
+        for name in (
+            "tau_iono_s",
+            "tau_tropo_s",
+            "tau_sisre_s",
+            "tau_multipath_s",
+            "dll_bandwidth_hz",
+            "integration_s",
+        ):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ConfigError(f"receiver.{name} must be finite and > 0, got {v!r}")
+        if self.ase_sigma_m is not None and not self.ase_sigma_m >= 0:
+            raise ConfigError(f"receiver.ase_sigma_m must be >= 0, got {self.ase_sigma_m}")
+        if not 0.0 <= self.iono_common_share <= 1.0:
+            raise ConfigError(
+                f"receiver.iono_common_share must be in 0..1, got {self.iono_common_share}"
+            )
+        if not 0.0 < self.correlator_spacing_chips <= 1.0:
+            raise ConfigError("receiver.correlator_spacing_chips must be in (0, 1]")
+        if not 4 <= self.max_channels <= 64:
+            raise ConfigError(f"receiver.max_channels must be 4..64, got {self.max_channels}")
+
+
+# ---------------------------------------------------------------- walls interface
+
+
+class TraceLike(Protocol):
+    """Per (epoch, satellite) paths, as :class:`sim_backend.buildings.TraceResult` gives."""
+
+    los: np.ndarray  # bool, direct path clear
+    n_reflections: np.ndarray  # 0 direct, 1..16 reflections, -1 no viable path
+    extra_path_m: np.ndarray  # range error of the path taken (m)
+    loss_db: np.ndarray  # 3 dB per reflection
+
+
+class Walls(Protocol):
+    """What the model needs from :class:`sim_backend.buildings.Walls`."""
+
+    def trace(
+        self,
+        rx_enu_m: Any,
+        az_deg: Any,
+        el_deg: Any,
+        max_reflections: int = 16,
+        max_loss_db: float | None = None,
+    ) -> TraceLike:
+        """Paths from satellites at az/el (E, S) deg to receivers at ``rx_enu_m`` (E, 3) m."""
+        ...
+
+
+@dataclass(frozen=True)
+class Visibility:
+    """Per (epoch, satellite) signal path: ``reachable`` False means no path at all."""
+
+    los: np.ndarray  # bool, direct line of sight
+    reachable: np.ndarray  # bool, LOS or a reflected path exists
+    extra_path_m: np.ndarray  # >= 0; 0 for LOS
+    loss_db: np.ndarray  # >= 0; 3 dB per reflection
+
+
+def _visibility(
+    walls: Walls | None,
+    rx_enu_m: np.ndarray,
+    az_deg: np.ndarray,
+    el_deg: np.ndarray,
+    max_loss_db: float | None,
+) -> Visibility:
+    shape = az_deg.shape
+    if walls is None:
+        ones = np.ones(shape, dtype=bool)
+        zeros = np.zeros(shape)
+        return Visibility(ones, ones, zeros, zeros)
+    res = walls.trace(rx_enu_m, az_deg, el_deg, max_loss_db=max_loss_db)
+    los = np.broadcast_to(np.asarray(res.los, dtype=bool), shape)
+    reachable = los | np.broadcast_to(np.asarray(res.n_reflections) >= 0, shape)
+    extra = np.broadcast_to(np.asarray(res.extra_path_m, dtype=float), shape)
+    loss = np.broadcast_to(np.asarray(res.loss_db, dtype=float), shape)
+    return Visibility(
+        los=los,
+        reachable=reachable,
+        extra_path_m=np.where(los | ~reachable, 0.0, np.nan_to_num(extra)),
+        loss_db=np.where(los | ~reachable, 0.0, np.nan_to_num(loss, posinf=0.0)),
+    )
+
+
+# ---------------------------------------------------------------- noise processes
+
+
+def gauss_markov_unit(
+    t_s: np.ndarray,
+    tau_s: float | np.ndarray,
+    n: int,
+    rng: np.random.Generator,
+    x_prev: np.ndarray | None = None,
+    t_prev: float | None = None,
+) -> np.ndarray:
+    """Unit-variance first-order Gauss-Markov samples (E, n) at increasing times ``t_s`` (s)
+    with correlation time ``tau_s`` (s; one value or one per column), exact for any (also
+    uneven) spacing: ``x[k] = phi x[k-1] + sqrt(1 - phi^2) w``, ``phi = exp(-dt/tau)``.
+
+    Continues from ``x_prev`` (n,) at ``t_prev``; without it starts stationary at t_s[0].
+    Even spacing runs the recursion as a linear filter (scipy.signal.lfilter, in C); uneven
+    spacing uses a scaled cumulative sum in blocks of 50 tau. No per-epoch Python loop.
+    """
+    t = np.asarray(t_s, dtype=float)
+    tau = np.broadcast_to(np.asarray(tau_s, dtype=float), (n,))
+    if np.any(~(tau > 0)):
+        raise ConfigError("Gauss-Markov tau_s must be > 0")
+    n_e = t.shape[0]
+    out = np.empty((n_e, n))
+    if n_e == 0:
+        return out
+    if x_prev is None or t_prev is None:
+        x_prev, t_prev = rng.standard_normal(n), float(t[0])
+    dt = np.diff(t, prepend=t_prev)
+    if np.any(dt < 0):
+        raise ConfigError("times must be non-decreasing")
+    z = rng.standard_normal((n_e, n))
+    # q = sqrt(1 - phi^2) via expm1: accurate for steps much shorter than tau.
+    out[0] = np.asarray(x_prev, dtype=float) * np.exp(-dt[0] / tau)
+    out[0] += np.sqrt(-np.expm1(-2.0 * dt[0] / tau)) * z[0]
+    if n_e == 1:
+        return out
+    dt1 = dt[1:]
+    even = float(np.ptp(dt1)) <= 1e-9 * float(dt1.max())
+    for tau_g in np.unique(tau):
+        cols = np.nonzero(tau == tau_g)[0]
+        if even:
+            phi = float(np.exp(-dt1[0] / tau_g))
+            q = float(np.sqrt(-np.expm1(-2.0 * dt1[0] / tau_g)))
+            zi = (phi * out[0, cols])[None, :]
+            out[1:, cols] = lfilter([q], [1.0, -phi], z[1:, cols], axis=0, zi=zi)[0]
+        else:
+            out[1:, cols] = _gm_uneven(t, dt, tau_g, out[0, cols], z[1:, cols])
+    return out
+
+
+def _gm_uneven(
+    t: np.ndarray, dt: np.ndarray, tau_s: float, x0: np.ndarray, z: np.ndarray
+) -> np.ndarray:
+    """Samples 1.. of a unit Gauss-Markov process at uneven times (see gauss_markov_unit)."""
+    n_e = t.shape[0]
+    phi = np.exp(-dt / tau_s)
+    w = np.vstack((x0[None, :], z * np.sqrt(-np.expm1(-2.0 * dt[1:, None] / tau_s))))
+    x = np.empty_like(w)
+    x[0] = x0
+    span = 50.0 * tau_s
+    b = 1
+    while b < n_e:
+        # One exact step to t[b] (safe across any gap), then the block relative to t[b]:
+        # x_k = exp(-(t_k - t_b)/tau) (x_b + sum_j exp((t_j - t_b)/tau) q_j w_j).
+        x[b] = phi[b] * x[b - 1] + w[b]
+        end = max(int(np.searchsorted(t, t[b] + span, side="right")), b + 1)
+        if end > b + 1:
+            grow = np.exp((t[b + 1 : end] - t[b]) / tau_s)[:, None]
+            x[b + 1 : end] = (x[b] + np.cumsum(w[b + 1 : end] * grow, axis=0)) / grow
+        b = end
+    return x[1:]
+
+
+def code_noise_sigma_m(cn0_dbhz: np.ndarray, p: ReceiverParams) -> np.ndarray:
+    """Code tracking (DLL, early-minus-late) 1-sigma range noise (m) at C/N0 (dB-Hz), after
+    carrier smoothing with time constant ``p.smoothing_tau_s`` (variance x tau_c/tau with the
+    DLL noise correlation time tau_c = 1/(4 Bn))."""
+    cn0 = 10.0 ** (np.asarray(cn0_dbhz, dtype=float) / 10.0)
+    d = p.correlator_spacing_chips
+    var_chips = (
+        p.dll_bandwidth_hz * d / (2.0 * cn0) * (1.0 + 2.0 / (p.integration_s * cn0 * (2 - d)))
+    )
+    sigma = CA_CHIP_M * np.sqrt(var_chips)
+    if p.smoothing_tau_s > 0:
+        tau_c = 1.0 / (4.0 * p.dll_bandwidth_hz)
+        sigma = sigma * np.sqrt(min(1.0, tau_c / p.smoothing_tau_s))
+    return sigma
+
+
+def multipath_sigma_m(el_deg: np.ndarray, p: ReceiverParams) -> np.ndarray:
+    """Line-of-sight code multipath 1-sigma (m): grows toward the horizon."""
+    return p.multipath_sigma_m * (1.0 + 3.0 * np.exp(-np.asarray(el_deg) / 15.0))
+
+
+# ---------------------------------------------------------------- results
+
+
+@dataclass(frozen=True)
+class GnssBatch:
+    """Columnar receiver output for E epochs and the S satellites of the sky.
+
+    Positions are NaN where ``valid`` is False; ``course_deg`` NaN means empty (at rest);
+    ``snr_dbhz`` NaN means no signal. ``err_enu_m`` is the realised error (solution minus
+    truth, m) and ``sigma_uere_m`` the per-epoch UERE the seed level used (pseudorange level:
+    the RMS over the used satellites of the modelled per-satellite sigmas).
+    """
+
+    t_s: np.ndarray
+    start_utc: datetime
+    valid: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_m: np.ndarray
+    speed_mps: np.ndarray
+    course_deg: np.ndarray
+    hdop: np.ndarray
+    pdop: np.ndarray
+    vdop: np.ndarray
+    n_used: np.ndarray
+    prns: np.ndarray
+    az_deg: np.ndarray
+    el_deg: np.ndarray
+    snr_dbhz: np.ndarray
+    in_view: np.ndarray
+    used: np.ndarray
+    err_enu_m: np.ndarray
+    sigma_uere_m: np.ndarray
+    geoid_sep_m: float = 0.0
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def epoch(self, i: int) -> GnssEpoch:
+        """The receiver's report at epoch ``i`` as a :class:`GnssEpoch`."""
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"epoch {i} out of range 0..{len(self) - 1}")
+        i = i % len(self)
+        return self._epoch(i, self._sats(i))
+
+    def epochs(self) -> list[GnssEpoch]:
+        """All epochs as :class:`GnssEpoch` objects (satellite tuples built in one flat pass:
+        this runs per epoch of a long simulation, so it avoids per-epoch numpy calls)."""
+        ee, kk = np.nonzero(self.in_view)
+        nan_snr = np.isnan(self.snr_dbhz[ee, kk]).tolist()
+        flat = [
+            SimSat(p, e, a, None if no else s, u)
+            for p, e, a, s, no, u in zip(
+                self.prns[kk].tolist(),
+                self.el_deg[ee, kk].tolist(),
+                self.az_deg[ee, kk].tolist(),
+                self.snr_dbhz[ee, kk].tolist(),
+                nan_snr,
+                self.used[ee, kk].tolist(),
+                strict=True,
+            )
+        ]
+        bounds = np.concatenate(([0], np.cumsum(self.in_view.sum(axis=1)))).tolist()
+        return [self._epoch(i, tuple(flat[bounds[i] : bounds[i + 1]])) for i in range(len(self))]
+
+    def _sats(self, i: int) -> tuple[SimSat, ...]:
+        prns = self.prns
+        idx = np.nonzero(self.in_view[i])[0]
+        el = self.el_deg[i, idx].tolist()
+        az = self.az_deg[i, idx].tolist()
+        snr = self.snr_dbhz[i, idx].tolist()
+        used = self.used[i, idx].tolist()
+        return tuple(
+            SimSat(p, e, a, None if s != s else s, u)  # s != s: NaN, no signal
+            for p, e, a, s, u in zip(prns[idx].tolist(), el, az, snr, used, strict=True)
+        )
+
+    def _epoch(self, i: int, sats: tuple[SimSat, ...]) -> GnssEpoch:
+        valid = bool(self.valid[i])
+        course = float(self.course_deg[i])
+        t = float(self.t_s[i])
+        return GnssEpoch(
+            t_s=t,
+            utc=self.start_utc + timedelta(seconds=t),
+            valid=valid,
+            lat_deg=float(self.lat_deg[i]),
+            lon_deg=float(self.lon_deg[i]),
+            alt_m=float(self.alt_m[i]),
+            geoid_sep_m=self.geoid_sep_m,
+            speed_mps=float(self.speed_mps[i]),
+            course_deg=None if course != course else course,
+            quality=1 if valid else 0,
+            mode=3 if valid else 1,
+            hdop=float(self.hdop[i]) if valid else 99.99,
+            pdop=float(self.pdop[i]) if valid else 99.99,
+            vdop=float(self.vdop[i]) if valid else 99.99,
+            satellites=sats,
+        )
+
+
+# ---------------------------------------------------------------- the model
+
+
+class GnssModel:
+    """The simulated receiver. See the module docstring for the two fidelity levels."""
+
+    def __init__(
+        self,
+        sky: SatelliteSet,
+        origin_lat_deg: float,
+        origin_lon_deg: float,
+        origin_alt_m: float,
+        start_utc: datetime,
+        fidelity: Fidelity = "pseudorange",
+        mask_deg: float = DEFAULT_MASK_DEG,
+        atmosphere: Atmosphere | None = None,
+        walls: Walls | None = None,
+        receiver: ReceiverParams | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> None:
+        """``origin_*``: the local frame (deg, deg, m above MSL); ``start_utc`` (aware) is
+        scenario time 0; ``mask_deg`` the elevation mask; ``atmosphere`` defaults to
+        ``Atmosphere()``; ``walls`` None means open sky; ``rng`` is required."""
+        if fidelity not in FIDELITIES:
+            raise ConfigError(f"gnss fidelity must be one of {FIDELITIES}, got {fidelity!r}")
+        if not -90.0 <= origin_lat_deg <= 90.0 or not -180.0 <= origin_lon_deg <= 360.0:
+            raise ConfigError(f"origin ({origin_lat_deg}, {origin_lon_deg}) is not a lat/lon")
+        if not 0.0 <= mask_deg < 90.0:
+            raise ConfigError(f"mask_deg must be in 0..90 deg, got {mask_deg}")
+        if rng is None:
+            raise ConfigError("GnssModel needs an explicit numpy.random.Generator (rng=)")
+        if start_utc.tzinfo is None:
+            raise ConfigError("start_utc must be timezone-aware (UTC)")
+        self.sky = sky
+        self.origin = (float(origin_lat_deg), float(origin_lon_deg), float(origin_alt_m))
+        self.start_utc = start_utc.astimezone(UTC)
+        self.fidelity: Fidelity = fidelity
+        self.mask_deg = float(mask_deg)
+        self.atmosphere = atmosphere if atmosphere is not None else Atmosphere()
+        self.walls = walls
+        self.params = receiver if receiver is not None else ReceiverParams()
+        self.rng = rng
+        self._gps0_s = utc_to_gps_seconds(self.start_utc)
+        self._doy = float(self.start_utc.timetuple().tm_yday)
+        geoid = self.params.geoid_sep_m
+        self._origin_ecef = lla_to_ecef(self.origin[0], self.origin[1], self.origin[2] + geoid)
+        self._rot0 = enu_rotation(self.origin[0], self.origin[1])
+        # A reflected signal weaker than the tracking cutoff even from zenith is useless:
+        # tell the ray tracer not to search that deep.
+        # Delays and C/N0 depend (for one site and day) on elevation only: tabulate them once
+        # (0.05 deg steps; linear interpolation error < 5 mm of delay, < 0.001 dB).
+        atm, lat0, h0 = self.atmosphere, self.origin[0], self.origin[2]
+        self._el_grid = np.linspace(0.0, 90.0, 1801)
+        el_delay = np.clip(self._el_grid, 1.0, 90.0)  # delays are not defined at the horizon
+        self._iono_tab = np.asarray(atm.iono_delay_m(el_delay), dtype=float)
+        self._tropo_tab = np.asarray(atm.tropo_delay_m(el_delay, lat0, self._doy, h0), dtype=float)
+        self._snr_tab = np.asarray(atm.snr_dbhz(self._el_grid, 0.0, h0), dtype=float)
+        best_snr = float(self._snr_tab[-1])
+        self._max_loss_db = max(0.0, best_snr - self.atmosphere.snr_cutoff_dbhz)
+        # Gauss-Markov state carried between calls: (values, time).
+        self._state: tuple[np.ndarray, float] | None = None
+        self._t_last: float | None = None
+
+    # -------------------------------------------------------------- public
+
+    def step(
+        self,
+        t_s: float,
+        lat_deg: float,
+        lon_deg: float,
+        alt_m: float,
+        vel_enu_mps: Sequence[float] | np.ndarray,
+    ) -> GnssEpoch:
+        """One epoch at scenario time ``t_s`` (s, increasing between calls) for a receiver
+        truly at (deg, deg, m MSL) moving at ``vel_enu_mps`` (m/s east, north, up)."""
+        v = np.asarray(vel_enu_mps, dtype=float).reshape(1, 3)
+        res = self.batch(
+            np.array([t_s], dtype=float),
+            np.array([lat_deg]),
+            np.array([lon_deg]),
+            np.array([alt_m]),
+            v,
+        )
+        return res.epoch(0)
+
+    def batch(
+        self,
+        t_s: np.ndarray,
+        lat_deg: np.ndarray,
+        lon_deg: np.ndarray,
+        alt_m: np.ndarray,
+        vel_enu_mps: np.ndarray,
+    ) -> GnssBatch:
+        """All epochs at once (vectorised): times (E,) s increasing and continuing after any
+        earlier call, true positions (E,) deg/deg/m MSL and velocities (E, 3) m/s ENU."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        n_e = t.shape[0]
+        lat = np.broadcast_to(np.asarray(lat_deg, dtype=float), (n_e,))
+        lon = np.broadcast_to(np.asarray(lon_deg, dtype=float), (n_e,))
+        alt = np.broadcast_to(np.asarray(alt_m, dtype=float), (n_e,))
+        vel = np.asarray(vel_enu_mps, dtype=float)
+        if vel.shape == (3,):
+            vel = np.broadcast_to(vel, (n_e, 3))
+        self._check_inputs(t, lat, lon, alt, vel)
+        p = self.params
+        geo = self._geometry(t, lat, lon, alt)
+        n_s = self.sky.n_sats
+        el, az = geo["el"], geo["az"]
+        # Modelled per-satellite delays and sigmas (m).
+        el_c = np.clip(el, 1.0, 90.0)
+        iono = np.interp(el_c, self._el_grid, self._iono_tab)
+        tropo = np.interp(el_c, self._el_grid, self._tropo_tab)
+        snr = geo["snr"]
+        sig_code = code_noise_sigma_m(np.where(np.isfinite(snr), snr, 0.0), p)
+        sig_mp = multipath_sigma_m(el_c, p)
+        sig_iono = p.iono_residual_frac * iono
+        sig_tropo = p.tropo_residual_frac * tropo
+        var_model = sig_iono**2 + sig_tropo**2 + p.sisre_sigma_m**2 + sig_mp**2 + sig_code**2
+        used = geo["used"]
+        n_used = used.sum(axis=1)
+        ok = n_used >= 4
+        g = geo["g"]
+        gu = g * used[..., None]
+        q, ok = batched_inverse(np.matmul(np.swapaxes(gu, 1, 2), g), ok)
+        qd = np.diagonal(q, axis1=1, axis2=2)
+        hdop = np.sqrt(qd[:, 0] + qd[:, 1])
+        vdop = np.sqrt(qd[:, 2])
+        pdop = np.sqrt(qd[:, :3].sum(axis=1))
+
+        if self.fidelity == "seed":
+            var_sat = var_model + geo["extra"] ** 2
+            nu = np.maximum(n_used, 1)
+            uere = np.sqrt(np.where(used, var_sat, 0.0).sum(axis=1) / nu)
+            if p.seed_uere == "re_ase_lce":
+                ase2 = (
+                    np.where(used, sig_iono**2 + sig_tropo**2 + p.sisre_sigma_m**2, 0.0).sum(1) / nu
+                    if p.ase_sigma_m is None
+                    else np.full(n_e, p.ase_sigma_m**2)
+                )
+                lce = (
+                    p.lce.at(geo["rx_enu"][:, 0], geo["rx_enu"][:, 1])
+                    if p.lce is not None
+                    else np.zeros(n_e)
+                )
+                uere = np.sqrt(p.re_sigma_m**2 + ase2 + lce**2)
+            z = self.rng.standard_normal((n_e, 3))
+            err = np.stack(
+                (
+                    z[:, 0] * hdop * uere / np.sqrt(2.0),
+                    z[:, 1] * hdop * uere / np.sqrt(2.0),
+                    z[:, 2] * vdop * uere,
+                ),
+                axis=1,
+            )
+        else:
+            x = self._processes(t, n_s)
+            gm = {
+                "iono_common": x[:, :1],
+                "tropo": x[:, 1:2],
+                **{
+                    name: x[:, 2 + k * n_s : 2 + (k + 1) * n_s]
+                    for k, name in enumerate(("iono_sat", "sisre", "multipath", "code", "nlos"))
+                },
+            }
+            share = p.iono_common_share
+            eps = (
+                sig_iono
+                * (np.sqrt(share) * gm["iono_common"] + np.sqrt(1 - share) * gm["iono_sat"])
+                + sig_tropo * gm["tropo"]
+                + p.sisre_sigma_m * gm["sisre"]
+                + sig_mp * gm["multipath"]
+                + sig_code * gm["code"]
+                + geo["extra"] * (1.0 + p.nlos_sigma_frac * gm["nlos"])
+            )
+            w = np.where(used, 1.0 / var_model, 0.0)
+            gw = g * w[..., None]
+            qw, ok = batched_inverse(np.matmul(np.swapaxes(gw, 1, 2), g), ok)
+            sol = np.matmul(qw, np.matmul(np.swapaxes(gw, 1, 2), np.nan_to_num(eps)[..., None]))
+            err = sol[:, :3, 0]
+            uere = np.sqrt(np.where(used, var_model, 0.0).sum(1) / np.maximum(n_used, 1))
+
+        err = np.where(ok[:, None], err, np.nan)
+        sol_ecef = geo["rx_ecef"] + np.matmul(err[:, None, :], geo["rot"])[:, 0, :]
+        f_lat, f_lon, f_h = ecef_to_lla(sol_ecef)
+        # Velocity from Doppler: truth plus white noise; course empty at rest.
+        dv = self.rng.standard_normal((n_e, 3)) * np.array(
+            [p.vel_sigma_mps, p.vel_sigma_mps, p.vel_up_sigma_mps]
+        )
+        v_meas = vel + dv
+        speed = np.hypot(v_meas[:, 0], v_meas[:, 1])
+        course = np.degrees(np.arctan2(v_meas[:, 0], v_meas[:, 1])) % 360.0
+        course = np.where(speed >= p.course_min_speed_mps, course, np.nan)
+        nan = np.full(n_e, np.nan)
+        return GnssBatch(
+            t_s=t.copy(),
+            start_utc=self.start_utc,
+            valid=ok,
+            lat_deg=np.where(ok, f_lat, nan),
+            lon_deg=np.where(ok, f_lon, nan),
+            alt_m=np.where(ok, f_h - p.geoid_sep_m, nan),
+            speed_mps=np.where(ok, speed, 0.0),
+            course_deg=np.where(ok, course, nan),
+            hdop=np.where(ok, hdop, nan),
+            pdop=np.where(ok, pdop, nan),
+            vdop=np.where(ok, vdop, nan),
+            n_used=np.where(ok, n_used, 0),
+            prns=self.sky.prns,
+            az_deg=az,
+            el_deg=el,
+            snr_dbhz=snr,
+            in_view=geo["in_view"],
+            used=used & ok[:, None],
+            err_enu_m=err,
+            sigma_uere_m=uere,
+            geoid_sep_m=p.geoid_sep_m,
+        )
+
+    # -------------------------------------------------------------- internals
+
+    def _check_inputs(
+        self, t: np.ndarray, lat: np.ndarray, lon: np.ndarray, alt: np.ndarray, vel: np.ndarray
+    ) -> None:
+        n_e = t.shape[0]
+        if t.ndim != 1 or n_e == 0:
+            raise ConfigError(f"t_s must be a non-empty 1-D array, got shape {t.shape}")
+        if vel.shape != (n_e, 3):
+            raise ConfigError(f"vel_enu_mps must have shape ({n_e}, 3), got {vel.shape}")
+        for name, arr in (
+            ("t_s", t),
+            ("lat_deg", lat),
+            ("lon_deg", lon),
+            ("alt_m", alt),
+            ("vel_enu_mps", vel),
+        ):
+            if not np.all(np.isfinite(arr)):
+                raise ConfigError(f"{name} contains non-finite values")
+        if np.any(np.diff(t) <= 0):
+            raise ConfigError("t_s must be strictly increasing")
+        if self._t_last is not None and t[0] <= self._t_last:
+            raise ConfigError(f"t_s {t[0]} does not follow the previous epoch {self._t_last}")
+        if np.any(np.abs(lat) > 90.0):
+            raise ConfigError("lat_deg outside -90..90")
+        self._t_last = float(t[-1])
+
+    def _processes(self, t: np.ndarray, n_s: int) -> np.ndarray:
+        """All error processes as one (E, 2 + 5 S) unit Gauss-Markov array, continuing from
+        the previous call: common iono, common tropo, then per satellite iono, SISRE,
+        multipath, smoothed code noise, NLOS jitter."""
+        p = self.params
+        tau = np.concatenate(
+            (
+                [p.tau_iono_s, p.tau_tropo_s],
+                np.repeat(
+                    [
+                        p.tau_iono_s,
+                        p.tau_sisre_s,
+                        p.tau_multipath_s,
+                        max(p.smoothing_tau_s, 1e-3),  # 0: white code noise
+                        p.tau_multipath_s,
+                    ],
+                    n_s,
+                ),
+            )
+        )
+        prev = self._state
+        x = gauss_markov_unit(t, tau, tau.size, self.rng, *(prev if prev else (None, None)))
+        self._state = (x[-1].copy(), float(t[-1]))
+        return x
+
+    def _geometry(
+        self, t: np.ndarray, lat: np.ndarray, lon: np.ndarray, alt: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """The sky pipeline: az/el, visibility, SNR, in-view / usable / used masks and
+        the design matrix, all (E, S)."""
+        p = self.params
+        rx_ecef = lla_to_ecef(lat, lon, alt + p.geoid_sep_m)
+        rot = enu_rotation(lat, lon)  # (E, 3, 3) local frame at the receiver
+        st = self.sky.state(self._gps0_s + t)
+        d = st.ecef_m - rx_ecef[:, None, :]
+        enu = np.matmul(d, np.swapaxes(rot, 1, 2))
+        rng_m = np.linalg.norm(enu, axis=-1)
+        los_u = enu / rng_m[..., None]
+        az = np.degrees(np.arctan2(los_u[..., 0], los_u[..., 1])) % 360.0
+        el = np.degrees(np.arcsin(np.clip(los_u[..., 2], -1.0, 1.0)))
+        rx_enu = (rx_ecef - self._origin_ecef) @ self._rot0.T
+        above = st.available & (el > 0.0)
+        vis = _visibility(self.walls, rx_enu, az, np.where(above, el, -1.0), self._max_loss_db)
+        # C/N0 = the atmosphere's open-sky value minus the reflection losses (its formula
+        # subtracts extra losses linearly).
+        snr = np.interp(el, self._el_grid, self._snr_tab) - vis.loss_db
+        tracked = above & vis.reachable & self.atmosphere.usable(snr)
+        snr = np.where(tracked, snr, np.nan)
+        usable = tracked & (el >= self.mask_deg)
+        used = usable
+        if p.max_channels < self.sky.n_sats:
+            # Keep the strongest max_channels usable satellites per epoch.
+            key = np.where(usable, snr, -np.inf)
+            kth = -np.partition(-key, p.max_channels - 1, axis=1)[:, p.max_channels - 1]
+            used = usable & (key >= kth[:, None])
+            # Ties at the threshold could exceed the limit: cut by rank.
+            over = used.sum(1) > p.max_channels
+            if np.any(over):
+                rank = np.argsort(np.argsort(-key[over], axis=1, kind="stable"), axis=1)
+                used[over] &= rank < p.max_channels
+        g = np.concatenate((-los_u, np.ones((*el.shape, 1))), axis=-1)
+        return {
+            "az": az,
+            "el": el,
+            "snr": snr,
+            "in_view": above,
+            "used": used,
+            "g": g,
+            "extra": np.where(used, vis.extra_path_m, 0.0),
+            "rx_ecef": rx_ecef,
+            "rot": rot,
+            "rx_enu": rx_enu,
+        }

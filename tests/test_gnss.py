@@ -1,0 +1,235 @@
+"""The GNSS receiver model: seed level (white, DOP x sigma_UERE) and pseudorange level
+(Gauss-Markov range errors + walls, solved by weighted least squares)."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_backend import buildings, geodesy, gnss, sky
+from sim_backend.atmosphere import Atmosphere
+from sim_backend.epoch import GnssEpoch
+from sim_backend.gnss import GnssModel, LceGrid, ReceiverParams
+from x6wd.errors import ConfigError
+
+ALM = Path(__file__).resolve().parent / "data" / "almanac"
+START = datetime(2020, 1, 1, 6, 0, tzinfo=UTC)
+LAT, LON, ALT = 46.0, 6.0, 400.0
+
+
+@pytest.fixture(scope="module")
+def sats() -> sky.SatelliteSet:
+    return sky.SatelliteSet.from_ephemeris(sky.read_rinex_nav(ALM / "sugl0010.20n"))
+
+
+def _static(n: int, t0: float = 0.0, dt: float = 1.0) -> tuple[np.ndarray, ...]:
+    t = t0 + dt * np.arange(n, dtype=float)
+    return t, np.full(n, LAT), np.full(n, LON), np.full(n, ALT), np.zeros((n, 3))
+
+
+def _model(sats: sky.SatelliteSet, seed: int, **kw: object) -> GnssModel:
+    return GnssModel(sats, LAT, LON, ALT, START, rng=np.random.default_rng(seed), **kw)  # type: ignore[arg-type]
+
+
+def _err_enu(b: gnss.GnssBatch) -> np.ndarray:
+    """Realised error recomputed from the reported lat/lon/alt (not the model's own column)."""
+    return geodesy.lla_to_enu(b.lat_deg, b.lon_deg, b.alt_m, LAT, LON, ALT)
+
+
+# ---------------------------------------------------------------- noise process
+
+
+@pytest.mark.parametrize("rate_hz", [1.0, 4.0])
+def test_gauss_markov_keeps_sigma_and_tau_at_any_rate(rate_hz: float) -> None:
+    tau = 30.0
+    t = np.arange(0.0, 600.0, 1.0 / rate_hz)
+    x = gnss.gauss_markov_unit(t, tau, 400, np.random.default_rng(1))
+    assert np.std(x) == pytest.approx(1.0, abs=0.03)
+    lag = round(10.0 * rate_hz)  # 10 s apart whatever the rate
+    r = np.mean(x[lag:] * x[:-lag]) / np.mean(x * x)
+    assert r == pytest.approx(np.exp(-10.0 / tau), abs=0.03)
+
+
+def test_gauss_markov_continues_from_state_and_uneven_steps() -> None:
+    rng = np.random.default_rng(2)
+    t = np.cumsum(rng.uniform(0.1, 5.0, 4000))
+    x = gnss.gauss_markov_unit(t, 20.0, 200, rng, x_prev=np.full(200, 3.0), t_prev=t[0] - 1.0)
+    # Starts from the given state (decayed by one second), then stays unit-variance.
+    assert np.mean(x[0]) == pytest.approx(3.0 * np.exp(-1.0 / 20.0), abs=0.05)
+    assert np.std(x[1000:]) == pytest.approx(1.0, abs=0.03)
+    dt = np.diff(t)
+    sel = (dt > 4.0)[: len(dt)]
+    r = np.mean(x[1:][sel] * x[:-1][sel])
+    assert r == pytest.approx(np.mean(np.exp(-dt[sel] / 20.0)), abs=0.04)
+
+
+# ---------------------------------------------------------------- seed level
+
+
+def test_seed_level_error_matches_dop_times_uere(sats: sky.SatelliteSet) -> None:
+    h2, v2, s2h, s2v = [], [], [], []
+    for seed in range(40):  # many seeds, short runs at different times of day
+        m = _model(sats, seed, fidelity="seed")
+        b = m.batch(*_static(250, t0=seed * 1000.0, dt=2.0))
+        e = _err_enu(b)
+        assert b.valid.all()
+        h2.append(e[:, 0] ** 2 + e[:, 1] ** 2)
+        v2.append(e[:, 2] ** 2)
+        s2h.append((b.hdop * b.sigma_uere_m) ** 2)
+        s2v.append((b.vdop * b.sigma_uere_m) ** 2)
+    n = 40 * 250
+    # h^2 / (HDOP sigma)^2 is exponential with mean 1 (sd 1); v^2 / (VDOP sigma)^2 is
+    # chi-square(1) (sd sqrt 2). Four standard errors.
+    ratio_h = np.concatenate(h2) / np.concatenate(s2h)
+    ratio_v = np.concatenate(v2) / np.concatenate(s2v)
+    assert np.mean(ratio_h) == pytest.approx(1.0, abs=4.0 / np.sqrt(n))
+    assert np.mean(ratio_v) == pytest.approx(1.0, abs=4.0 * np.sqrt(2.0 / n))
+    # White, as in the papers: no correlation from one epoch to the next.
+    e = _err_enu(_model(sats, 99, fidelity="seed").batch(*_static(2000)))
+    assert abs(np.corrcoef(e[1:, 0], e[:-1, 0])[0, 1]) < 0.1
+
+
+def test_seed_003_form_with_lce_map(sats: sky.SatelliteSet) -> None:
+    # Two cells: west of the origin LCE 1 m, east 5 m.
+    lce = LceGrid(east0_m=-100.0, north0_m=-50.0, cell_m=100.0, sigma_m=np.array([[1.0, 5.0]]))
+    params = ReceiverParams(seed_uere="re_ase_lce", re_sigma_m=0.4, ase_sigma_m=1.2, lce=lce)
+    m = _model(sats, 7, fidelity="seed", receiver=params)
+    n = 3000
+    east = np.where(np.arange(n) % 2 == 0, -50.0, 50.0)
+    lat, lon, _ = geodesy.enu_to_lla(np.column_stack([east, np.zeros(n), np.zeros(n)]),
+                                     LAT, LON, ALT)  # fmt: skip
+    b = m.batch(np.arange(n, dtype=float), lat, lon, np.full(n, ALT), np.zeros((n, 3)))
+    west_sig = np.sqrt(0.4**2 + 1.2**2 + 1.0**2)
+    east_sig = np.sqrt(0.4**2 + 1.2**2 + 5.0**2)
+    np.testing.assert_allclose(b.sigma_uere_m[east < 0], west_sig)
+    np.testing.assert_allclose(b.sigma_uere_m[east > 0], east_sig)
+    e = b.err_enu_m
+    for side in (east < 0, east > 0):
+        r = (e[side, 0] ** 2 + e[side, 1] ** 2) / (b.hdop[side] * b.sigma_uere_m[side]) ** 2
+        assert np.mean(r) == pytest.approx(1.0, abs=4.0 / np.sqrt(side.sum()))
+    assert lce.at(1e6, 0.0) == 0.0  # outside the map
+    with pytest.raises(ConfigError):
+        LceGrid(0.0, 0.0, 0.0, np.ones((2, 2)))
+
+
+# ---------------------------------------------------------------- pseudorange level
+
+
+def test_pseudorange_fix_near_truth_and_time_correlated(sats: sky.SatelliteSet) -> None:
+    b = _model(sats, 11).batch(*_static(3600))
+    assert b.valid.all()
+    e = _err_enu(b)
+    h = np.hypot(e[:, 0], e[:, 1])
+    assert 0.2 < np.median(h) < 5.0
+    assert np.max(h) < 20.0
+    for axis in (0, 1):
+        assert np.corrcoef(e[1:, axis], e[:-1, axis])[0, 1] > 0.9
+    # Reported geometry is the one used: HDOP from the used satellites' az/el.
+    d = sky.dops(b.az_deg, b.el_deg, b.used)
+    np.testing.assert_allclose(b.hdop, d.hdop, rtol=1e-9)
+    assert np.array_equal(b.n_used, b.used.sum(axis=1))
+    assert np.all(b.n_used <= 12)
+    # Satellites rise and set over the hour: the used set changes.
+    assert (np.diff(b.used.astype(int), axis=0) != 0).any()
+
+
+def test_blocked_satellites_reduce_used_and_raise_hdop(sats: sky.SatelliteSet) -> None:
+    # A 20 m building 3 m east of the receiver hides most of the eastern sky.
+    walls = buildings.Walls(buildings.building(3.0, -40.0, 30.0, 40.0, 20.0))
+    n = 30
+    args = _static(n, dt=20.0)
+    open_b = _model(sats, 5).batch(*args)
+    city_b = _model(sats, 5, walls=walls).batch(*args)
+    assert city_b.valid.all() and open_b.valid.all()
+    assert np.all(city_b.n_used <= open_b.n_used)
+    assert city_b.n_used.mean() < open_b.n_used.mean() - 2
+    assert np.all(city_b.hdop > open_b.hdop)
+    # Blocked satellites still show in GSV (in view) but without SNR and unused.
+    no_snr = city_b.in_view & np.isnan(city_b.snr_dbhz)
+    assert no_snr.any() and not (city_b.used & no_snr).any()
+
+
+def test_no_fix_with_fewer_than_four_satellites(sats: sky.SatelliteSet) -> None:
+    b = _model(sats, 3, mask_deg=75.0).batch(*_static(200, dt=30.0))
+    few = b.used.sum(axis=1) < 4
+    assert few.any()
+    assert not b.valid[few].any() and np.all(np.isnan(b.lat_deg[few]))
+    ep = b.epoch(int(np.argmax(few)))
+    assert ep.valid is False and ep.quality == 0 and ep.mode == 1 and ep.hdop == 99.99
+
+
+def test_deterministic_from_seed(sats: sky.SatelliteSet) -> None:
+    for fid in gnss.FIDELITIES:
+        a = _model(sats, 42, fidelity=fid).batch(*_static(100))
+        b = _model(sats, 42, fidelity=fid).batch(*_static(100))
+        c = _model(sats, 43, fidelity=fid).batch(*_static(100))
+        assert np.array_equal(a.lat_deg, b.lat_deg)
+        assert np.array_equal(a.snr_dbhz, b.snr_dbhz, equal_nan=True)
+        assert a.epochs() == b.epochs()
+        assert not np.array_equal(a.lat_deg, c.lat_deg)
+
+
+def test_step_closed_loop_and_course(sats: sky.SatelliteSet) -> None:
+    m = _model(sats, 9)
+    eps: list[GnssEpoch] = []
+    for k in range(60):
+        v = (0.0, 0.0, 0.0) if k < 30 else (2.0, 2.0, 0.0)  # at rest, then north-east
+        eps.append(m.step(float(k), LAT, LON, ALT, v))
+    assert all(e.valid and e.mode == 3 for e in eps)
+    assert [e.t_s for e in eps] == list(range(60))
+    assert (eps[1].utc - eps[0].utc).total_seconds() == 1.0
+    assert all(e.course_deg is None for e in eps[:30])  # u-blox leaves course empty at rest
+    moving = [e.course_deg for e in eps[30:]]
+    assert all(c is not None and abs(c - 45.0) < 10.0 for c in moving)
+    assert np.mean([e.speed_mps for e in eps[30:]]) == pytest.approx(2.0 * np.sqrt(2), abs=0.1)
+    # Consecutive steps continue the error processes: one-second changes are far smaller
+    # than those of the seed level's fresh (white) draws.
+    white = _model(sats, 9, fidelity="seed")
+    seed_eps = [white.step(float(k), LAT, LON, ALT, (0.0, 0.0, 0.0)) for k in range(30)]
+
+    def step_rms_m(es: list[GnssEpoch]) -> float:
+        lat = np.array([e.lat_deg for e in es])
+        return float(np.sqrt(np.mean(np.diff(lat) ** 2)) * 111e3)
+
+    assert step_rms_m(eps[:30]) < 0.3 * step_rms_m(seed_eps)
+    sat_used = [s for s in eps[0].satellites if s.used]
+    assert len(sat_used) >= 4 and all(s.snr_dbhz is not None for s in sat_used)
+    with pytest.raises(ConfigError, match="previous epoch"):
+        m.step(10.0, LAT, LON, ALT, (0.0, 0.0, 0.0))
+
+
+def test_batch_epochs_match_epoch(sats: sky.SatelliteSet) -> None:
+    b = _model(sats, 1).batch(*_static(20))
+    eps = b.epochs()
+    assert eps == [b.epoch(i) for i in range(len(b))]
+    assert eps[-1] == b.epoch(-1)
+
+
+def test_bad_inputs(sats: sky.SatelliteSet) -> None:
+    with pytest.raises(ConfigError, match="fidelity"):
+        _model(sats, 1, fidelity="magic")
+    with pytest.raises(ConfigError, match="Generator"):
+        GnssModel(sats, LAT, LON, ALT, START)
+    with pytest.raises(ConfigError, match="sisre"):
+        ReceiverParams(sisre_sigma_m=-1.0)
+    m = _model(sats, 1)
+    t, lat, lon, alt, vel = _static(5)
+    with pytest.raises(ConfigError, match="increasing"):
+        m.batch(t[::-1], lat, lon, alt, vel)
+    with pytest.raises(ConfigError, match="vel_enu_mps"):
+        m.batch(t, lat, lon, alt, vel[:, :2])
+    with pytest.raises(ConfigError, match="non-finite"):
+        m.batch(t, lat * np.nan, lon, alt, vel)
+
+
+def test_worse_environment_noise_lowers_snr_and_raises_uere(sats: sky.SatelliteSet) -> None:
+    quiet = _model(sats, 4).batch(*_static(50))
+    loud = _model(sats, 4, atmosphere=Atmosphere(env_noise_db=25.0)).batch(*_static(50))
+    drop_db = 25.0 - Atmosphere().env_noise_db
+    assert np.nanmedian(loud.snr_dbhz) == pytest.approx(
+        np.nanmedian(quiet.snr_dbhz) - drop_db, abs=1.0
+    )
+    assert np.median(loud.sigma_uere_m) > np.median(quiet.sigma_uere_m)
