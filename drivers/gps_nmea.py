@@ -1,0 +1,1045 @@
+"""GPS-Bee (u-blox NEO-5) protocol: sans-IO NMEA framing, field decoding and UBX frames.
+
+Bytes in (any chunking), typed records out; no I/O here (see ``drivers.gps_io``).
+
+Layers:
+
+- ``NmeaFramer`` splits a byte stream into checksum-verified NMEA sentences and UBX frames.
+  It resynchronises on ``$`` (and on the UBX sync ``B5 62``), requires ``*HH`` (either hex
+  case), caps a sentence at 130 characters including ``$`` and the checksum (as gpsd does)
+  and decodes with replacement, so line noise and binary never raise. A sentence complete
+  up to ``*HH`` whose line ending was lost (the next ``$`` follows at once) is accepted;
+  one cut off by a new ``$`` or containing another ``*`` is a framing error.
+- ``GpsDecoder`` hands each sentence to pynmea2 (which splits fields and names them) and
+  converts the fields itself, because pynmea2's own conversions have the pitfalls listed in
+  REFERENCE.md §4 (0.0 for empty coordinates, raw strings on failure, TypeError on empty
+  dates). Every used field is format- and range-checked; a sentence with a bad field (or
+  any non-ASCII byte) is rejected whole and counted in ``invalid_fields``. ``to_pynmea2``
+  builds the same object as ``pynmea2.parse`` without re-checking the checksum.
+
+Epoch assembly (how a ``GpsFix`` is closed):
+
+- GGA and RMC carry the same UTC time in one receiver cycle. A fix is emitted as soon as
+  both of the same time are in, i.e. on the GGA for the NEO-5 order (RMC, VTG, GGA, GSA,
+  GSV, GLL): the latency from the last GGA byte to the fix is one decode.
+- A GGA whose RMC has not arrived is emitted at once, unless this stream has shown that its
+  RMC follows its GGA (or it is the stream's first GGA and no RMC was seen yet); then it is
+  held until that RMC arrives or until any sentence with a different time (a new epoch) or
+  ``flush()`` closes the epoch.
+- An RMC without a GGA of its time is emitted at once when the stream carries no GGA (none
+  in the last few epochs), else when the epoch closes, as a fix without altitude; its
+  ``t_s`` is the RMC's receive time, so a late fix shows its age.
+- A GGA without a time (no-fix form) is emitted at once as an invalid fix; so is an RMC
+  without a time when the stream carries no GGA.
+- An RMC whose GGA fix is out already is not re-emitted (one fix per UTC time).
+- ``mode`` follows gpsd: 1 unless the fix is valid; else the latest GSA mode (2/3) when the
+  stream has GSA, else 3 when GGA gives an altitude, else 2. GSA arrives after GGA, so the
+  GSA mode and PDOP/VDOP used are those of the previous cycle.
+- A ``GpsSky`` is emitted when a GSV group (per talker) completes; ``used`` flags and DOPs
+  come from the GSA sentences of the current cycle; satellites of every talker are merged.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+import struct
+from collections import deque
+from dataclasses import dataclass, fields
+from datetime import UTC, date, datetime, timedelta
+from typing import Final
+
+import pynmea2
+
+from x6wd.errors import ConfigError, ParseError
+from x6wd.records import GpsFix, GpsSky, SatInfo
+
+MAX_SENTENCE_CHARS: Final = 130  # gpsd's cap, '$' to checksum inclusive
+MAX_UBX_PAYLOAD: Final = 1024  # larger "frames" are false syncs in line noise
+KNOTS_TO_MPS: Final = 1852.0 / 3600.0
+
+UBX_SYNC: Final = b"\xb5\x62"
+UBX_CLASS_ACK: Final = 0x05
+UBX_CLASS_CFG: Final = 0x06
+UBX_ID_ACK_ACK: Final = 0x01
+UBX_ID_ACK_NAK: Final = 0x00
+UBX_ID_CFG_MSG: Final = 0x01
+UBX_ID_CFG_RATE: Final = 0x08
+UBX_CLASS_NMEA: Final = 0xF0
+# u-blox NMEA message ids (class 0xF0) for CFG-MSG.
+NMEA_MSG_IDS: Final[dict[str, int]] = {
+    "GGA": 0x00,
+    "GLL": 0x01,
+    "GSA": 0x02,
+    "GSV": 0x03,
+    "RMC": 0x04,
+    "VTG": 0x05,
+    "GRS": 0x06,
+    "GST": 0x07,
+    "ZDA": 0x08,
+}
+
+
+# ---------------------------------------------------------------------------- checksums
+
+
+_MASKS: Final = tuple((1 << (8 * i)) - 1 for i in range(MAX_SENTENCE_CHARS + 2))
+
+
+def nmea_checksum(body: bytes | str) -> int:
+    """XOR of the bytes between ``$`` and ``*`` (``body`` excludes both)."""
+    data = body.encode("ascii", "replace") if isinstance(body, str) else body
+    # Folding one big integer in halves is ~15 % faster than a per-byte reduce.
+    x = int.from_bytes(data, "little")
+    n = len(data)
+    while n > 1:
+        h = (n + 1) >> 1
+        mask = _MASKS[h] if h < len(_MASKS) else (1 << (8 * h)) - 1
+        x = (x & mask) ^ (x >> (h * 8))
+        n = h
+    return x
+
+
+def with_checksum(body: str) -> str:
+    """``"$" + body + "*HH"`` (upper-case hex), without line ending."""
+    return f"${body}*{nmea_checksum(body):02X}"
+
+
+def ubx_checksum(data: bytes) -> bytes:
+    """8-bit Fletcher checksum (CK_A, CK_B) over class, id, length and payload."""
+    a = b = 0
+    for byte in data:
+        a = (a + byte) & 0xFF
+        b = (b + a) & 0xFF
+    return bytes((a, b))
+
+
+# ---------------------------------------------------------------------------- frames
+
+
+@dataclass(frozen=True, slots=True)
+class NmeaFrame:
+    """One checksum-valid NMEA sentence, ``$`` to ``*HH`` inclusive, no line ending."""
+
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class UbxFrame:
+    """One checksum-valid UBX frame: message class, message id and payload bytes."""
+
+    msg_class: int
+    msg_id: int
+    payload: bytes
+
+    def to_bytes(self) -> bytes:
+        """The frame on the wire (sync, header, payload, checksum)."""
+        return ubx_frame(self.msg_class, self.msg_id, self.payload)
+
+
+Frame = NmeaFrame | UbxFrame
+
+
+@dataclass(slots=True)
+class FramerCounters:
+    """What the framer saw. ``sentences`` counts checksum-valid NMEA sentences."""
+
+    sentences: int = 0
+    checksum_failures: int = 0
+    framing_errors: int = 0  # too long, truncated by a new '$', no '*HH' at the line end
+    ubx_frames: int = 0
+    skipped_bytes: int = 0  # bytes outside any frame (line noise, comments), CR/LF excluded
+
+
+# One scan finds the next sentence start or UBX sync. A sentence runs from '$' up to CR, LF,
+# the next '$' or a 0xB5 (never in NMEA text; it may start an interleaved UBX frame).
+# The first alternative is the common case, a whole well-formed sentence with its ending.
+_SCAN: Final = re.compile(
+    rb"\$([^$\r\n\xb5*]{1,126})\*([0-9A-Fa-f]{2})[ \t]*(?:\r\n|\r|\n|(?=[$\xb5]))"
+    rb"|\$[^$\r\n\xb5]*|\xb5\x62"
+)
+_HEX: Final = frozenset(b"0123456789abcdefABCDEF")
+
+
+class NmeaFramer:
+    """Sans-IO framer: ``feed(bytes) -> list[Frame]``; never raises on any input."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self.counters = FramerCounters()
+
+    def reset(self) -> None:
+        """Drop any partial frame (e.g. after the port was reopened)."""
+        self._buf.clear()
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes held while waiting for the rest of a frame."""
+        return len(self._buf)
+
+    def feed(self, data: bytes) -> list[Frame]:
+        """Append ``data`` and return every frame it completes, in stream order."""
+        return [NmeaFrame(f) if type(f) is str else f for f in self.scan(data)]  # type: ignore[misc]
+
+    def scan(self, data: bytes) -> list[str | UbxFrame]:
+        """Like ``feed`` but sentences come as plain ``str`` (the decoder's fast path)."""
+        buf = self._buf
+        buf += data
+        out: list[str | UbxFrame] = []
+        c = self.counters
+        n = len(buf)
+        pos = 0
+        search = _SCAN.search
+        while True:
+            m = search(buf, pos)
+            if m is None:
+                # Keep a lone trailing 0xB5: it may be the first half of a UBX sync.
+                keep = n - 1 if n > pos and buf[n - 1] == 0xB5 else n
+                self._skip(buf, pos, keep)
+                pos = keep
+                break
+            start, end = m.span()
+            if start > pos and not (start - pos == 2 and buf[pos] == 0x0D and buf[pos + 1] == 0x0A):
+                self._skip(buf, pos, start)
+            body = m.group(1)
+            if body is not None:
+                pos = end
+                if nmea_checksum(body) != int(m.group(2), 16):
+                    c.checksum_failures += 1
+                else:
+                    c.sentences += 1
+                    out.append(buf[start : start + len(body) + 4].decode("ascii", "replace"))
+                continue
+            if buf[start] == 0xB5:
+                consumed, frame = self._ubx(buf, start, n)
+                if consumed == 0:  # incomplete: wait for more
+                    pos = start
+                    break
+                if frame is not None:
+                    out.append(frame)
+                pos = start + consumed
+                continue
+            seg = m.group()
+            ln = len(seg)
+            if end == n:  # no terminator yet
+                if ln > MAX_SENTENCE_CHARS:
+                    c.framing_errors += 1
+                    pos = n
+                else:
+                    pos = start
+                break
+            term = buf[end]
+            if term == 0x0A or term == 0x0D:
+                pos = end + 1
+                seg = seg.rstrip(b" \t")
+                ln = len(seg)
+            else:
+                pos = end
+                if ln < 4 or seg[-3] != 0x2A:
+                    # A new frame began before this one ended: collision or truncation
+                    # ("$$" is a doubled start, not a lost sentence).
+                    if ln > 1:
+                        c.framing_errors += 1
+                    else:
+                        c.skipped_bytes += 1
+                    continue
+                # Complete up to "*HH", only its line ending was lost: taken as is.
+            if (
+                ln > MAX_SENTENCE_CHARS
+                or ln < 4
+                or seg[-3] != 0x2A  # '*'
+                or seg[-2] not in _HEX
+                or seg[-1] not in _HEX
+                or seg.find(b"*", 1, ln - 3) != -1  # spliced remains of another sentence
+            ):
+                c.framing_errors += 1
+                continue
+            if nmea_checksum(seg[1:-3]) != int(seg[-2:], 16):
+                c.checksum_failures += 1
+                continue
+            c.sentences += 1
+            out.append(seg.decode("ascii", "replace"))
+        if pos:
+            del buf[:pos]
+        return out
+
+    def _skip(self, buf: bytearray, a: int, b: int) -> None:
+        if b - a == 2 and buf[a] == 0x0D and buf[a + 1] == 0x0A:
+            return
+        if b > a:
+            chunk = buf[a:b]
+            self.counters.skipped_bytes += b - a - chunk.count(b"\n") - chunk.count(b"\r")
+
+    def _ubx(self, buf: bytearray, at: int, n: int) -> tuple[int, UbxFrame | None]:
+        """(bytes consumed, frame or None); 0 consumed means wait for more data."""
+        if n - at < 6:
+            return 0, None
+        length = buf[at + 4] | (buf[at + 5] << 8)
+        if length > MAX_UBX_PAYLOAD:
+            self.counters.skipped_bytes += 1
+            return 1, None
+        total = 8 + length
+        if n - at < total:
+            return 0, None
+        body = bytes(buf[at + 2 : at + 6 + length])
+        if ubx_checksum(body) != buf[at + 6 + length : at + total]:
+            self.counters.skipped_bytes += 1
+            return 1, None  # false sync: rescan from the next byte
+        self.counters.ubx_frames += 1
+        return total, UbxFrame(body[0], body[1], body[4:])
+
+
+# ---------------------------------------------------------------------------- UBX messages
+
+
+def ubx_frame(msg_class: int, msg_id: int, payload: bytes = b"") -> bytes:
+    """A complete UBX frame: ``B5 62 class id len(LE16) payload CK_A CK_B``."""
+    if not (0 <= msg_class <= 0xFF and 0 <= msg_id <= 0xFF):
+        raise ConfigError(f"UBX class/id must be bytes, got {msg_class!r}/{msg_id!r}")
+    if len(payload) > 0xFFFF:
+        raise ConfigError(f"UBX payload too long: {len(payload)} bytes (max 65535)")
+    body = struct.pack("<BBH", msg_class, msg_id, len(payload)) + bytes(payload)
+    return UBX_SYNC + body + ubx_checksum(body)
+
+
+def cfg_rate(meas_ms: int, nav_rate: int = 1, time_ref: int = 1) -> bytes:
+    """UBX CFG-RATE: measurement period in ms (NEO-5: 250..65535, i.e. up to 4 Hz).
+
+    ``time_ref`` 0 aligns to UTC, 1 to GPS time (the receiver's default).
+    """
+    if not 250 <= meas_ms <= 0xFFFF:
+        raise ConfigError(f"CFG-RATE meas_ms must be 250..65535 ms, got {meas_ms!r}")
+    if not 1 <= nav_rate <= 0xFFFF:
+        raise ConfigError(f"CFG-RATE nav_rate must be 1..65535, got {nav_rate!r}")
+    if time_ref not in (0, 1):
+        raise ConfigError(f"CFG-RATE time_ref must be 0 (UTC) or 1 (GPS), got {time_ref!r}")
+    return ubx_frame(
+        UBX_CLASS_CFG, UBX_ID_CFG_RATE, struct.pack("<HHH", meas_ms, nav_rate, time_ref)
+    )
+
+
+def cfg_msg(message: str | tuple[int, int], rate: int | tuple[int, ...]) -> bytes:
+    """UBX CFG-MSG: output rate of a message, in navigation epochs (0 disables it).
+
+    ``message`` is an NMEA type name (``"GSV"``) or a ``(class, id)`` pair; ``rate`` an int
+    (the port this is sent on) or 6 ints (one per port: I2C, UART1, UART2, USB, SPI, res.).
+    """
+    if isinstance(message, str):
+        key = message.upper()
+        if key not in NMEA_MSG_IDS:
+            raise ConfigError(
+                f"CFG-MSG: unknown NMEA message {message!r}; valid: {', '.join(NMEA_MSG_IDS)}"
+            )
+        msg_class, msg_id = UBX_CLASS_NMEA, NMEA_MSG_IDS[key]
+    else:
+        msg_class, msg_id = message
+    rates = (rate,) if isinstance(rate, int) else tuple(rate)
+    if len(rates) not in (1, 6) or not all(isinstance(r, int) and 0 <= r <= 255 for r in rates):
+        raise ConfigError(f"CFG-MSG rate must be one or six ints in 0..255, got {rate!r}")
+    return ubx_frame(UBX_CLASS_CFG, UBX_ID_CFG_MSG, bytes((msg_class, msg_id, *rates)))
+
+
+@dataclass(frozen=True, slots=True)
+class UbxAck:
+    """ACK-ACK (``acked`` True) or ACK-NAK for the message ``(msg_class, msg_id)``."""
+
+    acked: bool
+    msg_class: int
+    msg_id: int
+
+
+def parse_ack(frame: UbxFrame) -> UbxAck | None:
+    """The ACK/NAK carried by ``frame``, or None if it is another message.
+
+    Raises ParseError for an ACK-class frame whose payload is not 2 bytes.
+    """
+    if frame.msg_class != UBX_CLASS_ACK or frame.msg_id not in (UBX_ID_ACK_ACK, UBX_ID_ACK_NAK):
+        return None
+    if len(frame.payload) != 2:
+        raise ParseError(f"UBX ACK payload must be 2 bytes, got {len(frame.payload)}")
+    return UbxAck(frame.msg_id == UBX_ID_ACK_ACK, frame.payload[0], frame.payload[1])
+
+
+# ---------------------------------------------------------------------------- field parsing
+
+
+class _Bad(Exception):
+    """A field failed format or range validation (internal; counted, never escapes)."""
+
+
+_DIGITS: Final = frozenset("0123456789")
+
+
+def _float(s: str, lo: float, hi: float) -> float | None:
+    """Empty -> None; else a finite float in [lo, hi]; plain decimal notation only."""
+    if not s:
+        return None
+    try:
+        v = float(s)
+    except ValueError:
+        raise _Bad(s) from None
+    # float() also takes "1_0", "1e3" and spaces (nan/inf fail the range test).
+    if not lo <= v <= hi or "_" in s or "e" in s or "E" in s or " " in s or not s.isascii():
+        raise _Bad(s)
+    return v
+
+
+def _int(s: str, lo: int, hi: int) -> int | None:
+    if not s:
+        return None
+    if not s.isdigit() or not s.isascii():
+        raise _Bad(s)
+    v = int(s)
+    if not lo <= v <= hi:
+        raise _Bad(s)
+    return v
+
+
+@functools.lru_cache(maxsize=64)
+def _tod_us(s: str) -> int | None:
+    """``hhmmss``, ``hhmmss.ss`` or ``hhmmss.sss`` -> microseconds of the day."""
+    if not s:
+        return None
+    head = s[:6]
+    if len(head) < 6 or not head.isdigit() or not head.isascii():
+        raise _Bad(s)
+    hh = int(head[:2])
+    mm = int(head[2:4])
+    ss = int(head[4:6])
+    frac = s[6:]
+    us = 0
+    if frac:
+        digits = frac[1:]
+        if frac[0] != "." or (digits and (not digits.isdigit() or not digits.isascii())):
+            raise _Bad(s)
+        us = int((digits + "000000")[:6]) if digits else 0
+    if hh > 23 or mm > 59 or ss > 60:
+        raise _Bad(s)
+    return ((hh * 60 + mm) * 60 + ss) * 1_000_000 + us
+
+
+@functools.lru_cache(maxsize=64)
+def _date(s: str) -> date | None:
+    """``ddmmyy`` -> date; 2-digit years pivot at 80 (1980..2079)."""
+    if not s:
+        return None
+    if len(s) != 6 or not s.isdigit() or not s.isascii():
+        raise _Bad(s)
+    yy = int(s[4:])
+    try:
+        return date(2000 + yy if yy < 80 else 1900 + yy, int(s[2:4]), int(s[:2]))
+    except ValueError:
+        raise _Bad(s) from None
+
+
+@functools.lru_cache(maxsize=64)
+def _coord(value: str, hemi: str, deg_max: int) -> float | None:
+    """``(d)ddmm.mmmm...`` + hemisphere -> signed degrees; any number of minute decimals."""
+    if not value:
+        if hemi and hemi not in "NSEW":
+            raise _Bad(hemi)
+        return None
+    whole, _dot, frac = value.partition(".")
+    if (
+        len(whole) < 3
+        or not whole.isdigit()
+        or not whole.isascii()
+        or (frac and (not frac.isdigit() or not frac.isascii()))
+    ):
+        raise _Bad(value)
+    deg = int(whole[:-2])
+    minutes = float(whole[-2:] + "." + frac) if frac else float(whole[-2:])
+    if minutes >= 60.0:
+        raise _Bad(value)
+    v = deg + minutes / 60.0
+    if v > deg_max:
+        raise _Bad(value)
+    if deg_max == 90:
+        if hemi == "S":
+            return -v
+        if hemi != "N":
+            raise _Bad(hemi)
+    else:
+        if hemi == "W":
+            return -v
+        if hemi != "E":
+            raise _Bad(hemi)
+    return v
+
+
+def _field_index(cls: type[pynmea2.NMEASentence], name: str) -> int:
+    return int(cls.name_to_idx[name])
+
+
+# Field positions come from pynmea2's own field tables, so the names stay pynmea2's.
+_GGA_TIME = _field_index(pynmea2.GGA, "timestamp")
+_GGA_LAT = _field_index(pynmea2.GGA, "lat")
+_GGA_QUAL = _field_index(pynmea2.GGA, "gps_qual")
+_GGA_SATS = _field_index(pynmea2.GGA, "num_sats")
+_GGA_HDOP = _field_index(pynmea2.GGA, "horizontal_dil")
+_GGA_ALT = _field_index(pynmea2.GGA, "altitude")
+_GGA_SEP = _field_index(pynmea2.GGA, "geo_sep")
+_RMC_TIME = _field_index(pynmea2.RMC, "timestamp")
+_RMC_STATUS = _field_index(pynmea2.RMC, "status")
+_RMC_LAT = _field_index(pynmea2.RMC, "lat")
+_RMC_SPEED = _field_index(pynmea2.RMC, "spd_over_grnd")
+_RMC_COURSE = _field_index(pynmea2.RMC, "true_course")
+_RMC_DATE = _field_index(pynmea2.RMC, "datestamp")
+_GSA_MODE = _field_index(pynmea2.GSA, "mode_fix_type")
+_GSA_SV1 = _field_index(pynmea2.GSA, "sv_id01")
+_GSA_PDOP = _field_index(pynmea2.GSA, "pdop")
+_GSV_NUM = _field_index(pynmea2.GSV, "num_messages")
+_GSV_SEQ = _field_index(pynmea2.GSV, "msg_num")
+_GSV_INVIEW = _field_index(pynmea2.GSV, "num_sv_in_view")
+_GSV_SAT1 = _field_index(pynmea2.GSV, "sv_prn_num_1")
+_GLL_TIME = _field_index(pynmea2.GLL, "timestamp")
+_ZDA_TIME = _field_index(pynmea2.ZDA, "timestamp")
+_ZDA_DAY = _field_index(pynmea2.ZDA, "day")
+
+
+_TALKER_TYPES: Final[dict[str, type[pynmea2.TalkerSentence]]] = (
+    pynmea2.TalkerSentence.sentence_types
+)
+
+
+def to_pynmea2(text: str) -> pynmea2.NMEASentence:
+    """The pynmea2 object for a checksum-verified sentence (``$`` to ``*HH``).
+
+    Equal to ``pynmea2.parse(text)``, built faster for talker sentences: the checksum is
+    not re-computed and the class is instantiated without pynmea2's per-attribute
+    ``__setattr__`` hook. Raises pynmea2's ParseError/SentenceTypeError like ``parse``.
+    """
+    if text[6:7] == "," and text[1] != "P" and text[1:6].isalnum():
+        cls = _TALKER_TYPES.get(text[3:6])
+        if cls is not None:
+            msg = object.__new__(cls)
+            msg.__dict__.update(
+                talker=text[1:3], sentence_type=text[3:6], data=text[7:-3].split(",")
+            )
+            return msg
+    return pynmea2.parse(text[:-3] if text[-3:-2] == "*" else text)
+
+
+def _get(d: list[str], i: int) -> str:
+    return d[i] if i < len(d) else ""
+
+
+@dataclass(slots=True)
+class _Gga:
+    t_s: float
+    tod_us: int | None
+    lat_deg: float | None
+    lon_deg: float | None
+    quality: int
+    sats: int | None
+    hdop: float | None
+    alt_m: float | None
+    sep_m: float | None
+
+
+@dataclass(slots=True)
+class _Rmc:
+    t_s: float
+    tod_us: int | None
+    valid: bool
+    lat_deg: float | None
+    lon_deg: float | None
+    speed_mps: float | None
+    course_deg: float | None
+    day: date | None
+
+
+def _parse_gga(d: list[str], t_s: float) -> _Gga:
+    quality = _int(d[_GGA_QUAL], 0, 8)
+    return _Gga(
+        t_s,
+        _tod_us(d[_GGA_TIME]),
+        _coord(d[_GGA_LAT], d[_GGA_LAT + 1], 90),
+        _coord(d[_GGA_LAT + 2], d[_GGA_LAT + 3], 180),
+        quality or 0,
+        _int(d[_GGA_SATS], 0, 99),
+        _float(d[_GGA_HDOP], 0.0, 99.99),
+        _float(d[_GGA_ALT], -1500.0, 1.0e6),
+        _float(d[_GGA_SEP], -200.0, 200.0),
+    )
+
+
+def _parse_rmc(d: list[str], t_s: float) -> _Rmc:
+    status = d[_RMC_STATUS]
+    if status not in ("A", "V", ""):
+        raise _Bad(status)
+    speed_kn = _float(d[_RMC_SPEED], 0.0, 4000.0)
+    course = _float(d[_RMC_COURSE], 0.0, 360.0)
+    return _Rmc(
+        t_s,
+        _tod_us(d[_RMC_TIME]),
+        status == "A",
+        _coord(d[_RMC_LAT], d[_RMC_LAT + 1], 90),
+        _coord(d[_RMC_LAT + 2], d[_RMC_LAT + 3], 180),
+        None if speed_kn is None else speed_kn * KNOTS_TO_MPS,
+        None if course is None else course % 360.0,
+        _date(d[_RMC_DATE]),
+    )
+
+
+# ---------------------------------------------------------------------------- decoder
+
+
+@dataclass(frozen=True, slots=True)
+class NmeaSentence:
+    """One checksum-valid raw sentence (``$`` to ``*HH``) and the time it was received (s)."""
+
+    t_s: float
+    text: str
+
+
+Record = GpsFix | GpsSky | NmeaSentence
+
+
+@dataclass(slots=True)
+class DecoderCounters:
+    """Decoder statistics.
+
+    Every checksum-valid sentence (``sentences``) ends in exactly one of ``decoded``,
+    ``unknown_types`` (pynmea2 has no class for it) or ``invalid_fields`` (format or range
+    failure, sentence rejected whole).
+    """
+
+    sentences: int = 0
+    decoded: int = 0
+    checksum_failures: int = 0
+    framing_errors: int = 0
+    unknown_types: int = 0
+    invalid_fields: int = 0
+    ubx_frames: int = 0
+    skipped_bytes: int = 0
+    fixes: int = 0
+    skies: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        """Plain dict, field order preserved."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+_GGA_MEMORY_EPOCHS: Final = 3
+_MIN_FIELDS: Final = 20  # RMC cycles without GGA before a stream counts as RMC-only
+
+
+class GpsDecoder:
+    """Sans-IO NMEA decoder: bytes (or framed sentences) + receive time -> records.
+
+    ``feed`` returns, in stream order, an ``NmeaSentence`` for every checksum-valid sentence
+    (when ``emit_sentences``) followed by any ``GpsFix``/``GpsSky`` it completes. UBX frames
+    are counted and kept for ``take_ubx()``. Never raises on stream content.
+    """
+
+    def __init__(self, *, emit_sentences: bool = True, ubx_queue: int = 64) -> None:
+        self.framer = NmeaFramer()
+        self.emit_sentences = emit_sentences
+        self._counters = DecoderCounters()
+        self._ubx: deque[UbxFrame] = deque(maxlen=ubx_queue)
+        self._date: date | None = None
+        self._date_tod_us: int | None = None  # time of day the date belongs to
+        self._gga: _Gga | None = None  # held, waiting for its RMC
+        self._rmc: _Rmc | None = None  # not yet emitted
+        self._last_fix_tod: int | None = None
+        self._last_fix_had_gga = False
+        self._ggas_seen = 0
+        self._rmcs_seen = 0
+        self._rmc_after_gga = False
+        self._epochs_without_gga = 0
+        self._gsa_mode: int | None = None
+        self._pdop: float | None = None
+        self._hdop_gsa: float | None = None
+        self._vdop: float | None = None
+        self._used: set[int] = set()
+        self._gsa_fresh = False  # a GSA arrived since the last time-bearing sentence
+        self._gsv_talker = ""
+        self._gsv_next = 0
+        self._gsv_sats: list[tuple[int, float | None, float | None, float | None]] = []
+        # talker -> (epoch index of its last complete GSV group, satellites)
+        self._sky: dict[
+            str, tuple[int, list[tuple[int, float | None, float | None, float | None]]]
+        ] = {}
+        self._epoch_idx = 0
+        self._tod_us: int | None = None
+        self._utc_key: tuple[int, date, int] | None = None
+        self._utc_value: datetime | None = None
+        self._sat_cache: dict[
+            tuple[int, float | None, float | None, float | None, bool], SatInfo
+        ] = {}
+
+    @property
+    def counters(self) -> DecoderCounters:
+        """Current counters (framer figures merged in)."""
+        c = self._counters
+        f = self.framer.counters
+        c.checksum_failures = f.checksum_failures
+        c.framing_errors = f.framing_errors
+        c.ubx_frames = f.ubx_frames
+        c.skipped_bytes = f.skipped_bytes
+        return c
+
+    def take_ubx(self) -> list[UbxFrame]:
+        """UBX frames received since the last call (oldest first; at most ``ubx_queue``)."""
+        out = list(self._ubx)
+        self._ubx.clear()
+        return out
+
+    def reset(self) -> None:
+        """Forget partial frames and the epoch in progress (after a reconnect)."""
+        self.framer.reset()
+        self._gga = None
+        self._rmc = None
+        self._gsv_next = 0
+        self._gsv_sats = []
+
+    def feed(self, data: bytes, t_s: float) -> list[Record]:
+        """Decode ``data`` received at ``t_s`` (s, host monotonic clock)."""
+        out: list[Record] = []
+        sentence = self._sentence
+        for frame in self.framer.scan(data):
+            if type(frame) is str:
+                sentence(frame, t_s, out)
+            else:
+                self._ubx.append(frame)  # type: ignore[arg-type]
+        return out
+
+    def feed_sentence(self, text: str, t_s: float) -> list[Record]:
+        """Decode one already-framed sentence (``$...*HH``, line ending optional).
+
+        The checksum and length are still verified and counted like framed bytes.
+        """
+        out: list[Record] = []
+        line = text.strip()
+        f = self.framer.counters
+        if (
+            len(line) > MAX_SENTENCE_CHARS
+            or len(line) < 4
+            or line[0] != "$"
+            or line[-3] != "*"
+            or "$" in line[1:]
+            or "*" in line[1:-3]
+        ):
+            f.framing_errors += 1
+            return out
+        try:
+            expected = int(line[-2:], 16)
+        except ValueError:
+            f.framing_errors += 1
+            return out
+        if nmea_checksum(line[1:-3]) != expected or not line[-2:].isalnum():
+            f.checksum_failures += 1
+            return out
+        f.sentences += 1
+        self._sentence(line, t_s, out)
+        return out
+
+    def flush(self, t_s: float | None = None) -> list[Record]:
+        """Close the epoch in progress (end of stream): emit a held GGA or pending RMC."""
+        out: list[Record] = []
+        self._close_epoch(out)
+        return out
+
+    # -- internals
+
+    def _sentence(self, text: str, t_s: float, out: list[Record]) -> None:
+        c = self._counters
+        c.sentences += 1
+        if self.emit_sentences:
+            out.append(NmeaSentence(t_s, text))
+        if not text.isascii():  # NMEA is ASCII; replaced bytes mean corruption
+            c.invalid_fields += 1
+            return
+        try:
+            msg = to_pynmea2(text)
+        except pynmea2.SentenceTypeError:
+            c.unknown_types += 1
+            return
+        except Exception:  # pynmea2's proprietary parsers raise anything
+            c.invalid_fields += 1
+            return
+        attrs = msg.__dict__
+        kind = attrs.get("sentence_type", "")
+        talker = attrs.get("talker", "")
+        d: list[str] = msg.data
+        if len(d) < _MIN_FIELDS:  # pynmea2 reads missing trailing fields as empty
+            d = d + [""] * (_MIN_FIELDS - len(d))
+        try:
+            if kind == "GSV":
+                self._on_gsv(talker, d, t_s, out)
+            elif kind == "GGA":
+                self._on_gga(_parse_gga(d, t_s), out)
+            elif kind == "RMC":
+                self._on_rmc(_parse_rmc(d, t_s), out)
+            elif kind == "GSA":
+                self._on_gsa(d)
+            elif kind == "GLL":
+                self._on_time(_tod_us(d[_GLL_TIME]), out)
+            elif kind == "ZDA":
+                self._on_zda(d, out)
+        except (_Bad, IndexError, ValueError):
+            c.invalid_fields += 1
+            return
+        c.decoded += 1
+
+    def _on_time(self, tod: int | None, out: list[Record]) -> None:
+        """A time-bearing sentence: a different time closes the epoch in progress."""
+        if tod is None:
+            return
+        if tod != self._tod_us:
+            self._close_epoch(out)
+            self._tod_us = tod
+            self._gsa_fresh = False
+            self._epoch_idx += 1
+
+    def _close_epoch(self, out: list[Record]) -> None:
+        gga = self._gga
+        rmc = self._rmc
+        self._gga = None
+        self._rmc = None
+        if gga is not None:
+            self._emit(gga, rmc if rmc is not None and rmc.tod_us == gga.tod_us else None, out)
+        elif rmc is not None and rmc.tod_us != self._last_fix_tod:
+            self._emit(None, rmc, out)
+
+    def _on_gga(self, gga: _Gga, out: list[Record]) -> None:
+        self._epochs_without_gga = 0
+        self._ggas_seen += 1
+        if gga.tod_us is None:
+            self._emit(gga, None, out)
+            return
+        self._on_time(gga.tod_us, out)
+        rmc = self._rmc
+        if rmc is not None and rmc.tod_us == gga.tod_us:
+            self._rmc = None
+            self._rmc_after_gga = False
+            self._emit(gga, rmc, out)
+        elif self._rmc_after_gga or (self._rmcs_seen == 0 and self._ggas_seen == 1):
+            # Order unknown on the first GGA of a stream: wait one sentence for its RMC.
+            self._gga = gga
+        else:
+            self._emit(gga, None, out)
+
+    def _on_rmc(self, rmc: _Rmc, out: list[Record]) -> None:
+        self._rmcs_seen += 1
+        if rmc.day is not None and rmc.tod_us is not None:
+            self._date = rmc.day
+            self._date_tod_us = rmc.tod_us
+        if rmc.tod_us is None:
+            if self._epochs_without_gga > _GGA_MEMORY_EPOCHS:
+                self._emit(None, rmc, out)
+            return
+        if rmc.tod_us != self._tod_us:
+            self._epochs_without_gga += 1
+        self._on_time(rmc.tod_us, out)
+        gga = self._gga
+        if gga is not None and gga.tod_us == rmc.tod_us:
+            self._gga = None
+            self._rmc_after_gga = True
+            self._emit(gga, rmc, out)
+        elif self._last_fix_tod == rmc.tod_us and self._last_fix_had_gga:
+            # Its GGA came first and was already emitted: hold GGAs from now on.
+            self._rmc_after_gga = True
+        elif self._epochs_without_gga > _GGA_MEMORY_EPOCHS:
+            self._emit(None, rmc, out)
+        else:
+            self._rmc = rmc
+
+    def _on_gsa(self, d: list[str]) -> None:
+        mode = _int(d[_GSA_MODE], 1, 3)
+        prns = [s for s in d[_GSA_SV1:_GSA_PDOP] if s]
+        if prns and not ("".join(prns).isdigit() and "".join(prns).isascii()):
+            raise _Bad("GSA PRN")
+        used = {int(s) for s in prns}
+        if len(used) and (min(used) < 1 or max(used) > 999):
+            raise _Bad("GSA PRN range")
+        pdop = _float(d[_GSA_PDOP], 0.0, 99.99)
+        hdop = _float(d[_GSA_PDOP + 1], 0.0, 99.99)
+        vdop = _float(d[_GSA_PDOP + 2], 0.0, 99.99)
+        if self._gsa_fresh:  # several GSAs per cycle (one per constellation)
+            self._used |= used
+        else:
+            self._used = used
+            self._gsa_fresh = True
+        self._gsa_mode = mode
+        self._pdop, self._hdop_gsa, self._vdop = pdop, hdop, vdop
+
+    def _on_gsv(self, talker: str, d: list[str], t_s: float, out: list[Record]) -> None:
+        head = d[_GSV_NUM] + d[_GSV_SEQ]
+        if len(head) != 2 or not head.isdigit() or not head.isascii():
+            raise _Bad("GSV sequence")
+        total = int(d[_GSV_NUM])
+        seq = int(d[_GSV_SEQ])
+        _int(d[_GSV_INVIEW], 0, 99)
+        if not 1 <= seq <= total:
+            raise _Bad("GSV sequence")
+        sats: list[tuple[int, float | None, float | None, float | None]] = []
+        body = d[_GSV_SAT1:]
+        # NMEA 4.1 appends a signal id: ignore a trailing partial group.
+        k = len(body) - len(body) % 4
+        for p, e, a, r in zip(body[0:k:4], body[1:k:4], body[2:k:4], body[3:k:4], strict=True):
+            if not p:
+                continue
+            # Fast path for the usual all-integer group (the sentence is ASCII, see _sentence).
+            if e and a and r and (p + e + a + r).isdigit():
+                prn, el, az, snr = int(p), float(e), float(a), float(r)
+                if prn > 999 or el > 90.0 or az > 360.0 or snr > 99.0:
+                    raise _Bad(p)
+                sats.append((prn, el, az, snr))
+            else:
+                prn_ = _int(p, 0, 999)
+                assert prn_ is not None
+                sats.append(
+                    (prn_, _float(e, -90.0, 90.0), _float(a, 0.0, 360.0), _float(r, 0.0, 99.0))
+                )
+        if seq == 1:
+            self._gsv_talker = talker
+            self._gsv_sats = sats
+        elif seq == self._gsv_next and talker == self._gsv_talker:
+            self._gsv_sats.extend(sats)
+        else:  # a lost part: drop the group
+            self._gsv_next = 0
+            return
+        self._gsv_next = seq + 1
+        if seq == total:
+            self._gsv_next = 0
+            self._sky[talker] = (self._epoch_idx, self._gsv_sats)
+            self._gsv_sats = []
+            self._emit_sky(t_s, out)
+
+    def _on_zda(self, d: list[str], out: list[Record]) -> None:
+        tod = _tod_us(d[_ZDA_TIME])
+        day = _int(d[_ZDA_DAY], 1, 31)
+        month = _int(d[_ZDA_DAY + 1], 1, 12)
+        year = _int(d[_ZDA_DAY + 2], 1980, 2200)
+        if tod is not None and day and month and year:
+            try:
+                self._date = date(year, month, day)
+            except ValueError:
+                raise _Bad("ZDA date") from None
+            self._date_tod_us = tod
+        self._on_time(tod, out)
+
+    def _utc(self, tod: int | None) -> datetime | None:
+        if tod is None or self._date is None or self._date_tod_us is None:
+            return None
+        key = (tod, self._date, self._date_tod_us)
+        if key == self._utc_key:  # fix and sky of one epoch share it
+            return self._utc_value
+        self._utc_key = key
+        self._utc_value = self._utc_compute(tod, self._date, self._date_tod_us)
+        return self._utc_value
+
+    @staticmethod
+    def _utc_compute(tod: int, day: date, date_tod_us: int) -> datetime:
+        # A time far before the date's own time of day means midnight passed since.
+        if tod < date_tod_us - 43_200_000_000:
+            day = day + timedelta(days=1)
+        elif tod > date_tod_us + 43_200_000_000:
+            day = day - timedelta(days=1)
+        sec, us = divmod(tod, 1_000_000)
+        minute, sec = divmod(sec, 60)
+        hour, minute = divmod(minute, 60)
+        if sec == 60:  # leap second: keep it representable
+            sec, us = 59, 999_999
+        return datetime(day.year, day.month, day.day, hour, minute, sec, us, tzinfo=UTC)
+
+    def _emit(self, gga: _Gga | None, rmc: _Rmc | None, out: list[Record]) -> None:
+        if gga is not None:
+            valid = gga.quality > 0 and (rmc is None or rmc.valid)
+            tod = gga.tod_us
+            t_s = gga.t_s if rmc is None else max(gga.t_s, rmc.t_s)
+            lat, lon = gga.lat_deg, gga.lon_deg
+        else:
+            assert rmc is not None
+            valid = rmc.valid
+            tod = rmc.tod_us
+            t_s = rmc.t_s
+            lat, lon = rmc.lat_deg, rmc.lon_deg
+        if lat is None or lon is None:
+            valid = False
+        if not valid:
+            mode = 1
+        elif self._gsa_mode in (2, 3):
+            mode = self._gsa_mode
+        elif gga is not None and gga.alt_m is not None:
+            mode = 3
+        else:
+            mode = 2
+        fix = GpsFix(
+            t_s=t_s,
+            utc=self._utc(tod),
+            lat_deg=lat,
+            lon_deg=lon,
+            alt_m=None if gga is None else gga.alt_m,
+            quality=0 if gga is None else gga.quality,
+            sats_used=None if gga is None else gga.sats,
+            hdop=self._hdop_gsa if gga is None else gga.hdop,
+            speed_mps=None if rmc is None else rmc.speed_mps,
+            course_deg=None if rmc is None else rmc.course_deg,
+            valid=valid,
+            mode=mode,
+            pdop=self._pdop,
+            vdop=self._vdop,
+            geoid_sep_m=None if gga is None else gga.sep_m,
+        )
+        if tod is not None:
+            self._last_fix_tod = tod
+            self._last_fix_had_gga = gga is not None
+        self._counters.fixes += 1
+        out.append(fix)
+
+    def _emit_sky(self, t_s: float, out: list[Record]) -> None:
+        used = self._used
+        cache = self._sat_cache
+        if len(cache) > 1024:  # bounded: a sky changes slowly, so hits dominate
+            cache.clear()
+        sats = []
+        # A constellation that stopped reporting drops out after one missed epoch.
+        oldest = self._epoch_idx - 1
+        for epoch_idx, group in self._sky.values():
+            if epoch_idx < oldest:
+                continue
+            for sat in group:
+                key = (*sat, sat[0] in used)
+                info = cache.get(key)
+                if info is None:
+                    info = cache[key] = SatInfo(*key)
+                sats.append(info)
+        self._counters.skies += 1
+        out.append(
+            GpsSky(
+                t_s=t_s,
+                satellites=tuple(sats),
+                pdop=self._pdop,
+                hdop=self._hdop_gsa,
+                vdop=self._vdop,
+                utc=self._utc(self._tod_us),
+            )
+        )
+
+
+__all__ = [
+    "KNOTS_TO_MPS",
+    "MAX_SENTENCE_CHARS",
+    "NMEA_MSG_IDS",
+    "DecoderCounters",
+    "Frame",
+    "FramerCounters",
+    "GpsDecoder",
+    "NmeaFrame",
+    "NmeaFramer",
+    "NmeaSentence",
+    "Record",
+    "UbxAck",
+    "UbxFrame",
+    "cfg_msg",
+    "cfg_rate",
+    "nmea_checksum",
+    "parse_ack",
+    "to_pynmea2",
+    "ubx_checksum",
+    "ubx_frame",
+    "with_checksum",
+]

@@ -1,0 +1,238 @@
+"""drivers.gps_io: the reader over a real pseudo-terminal and a real TCP socket."""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import serial
+
+from drivers.gps_io import GpsReader
+from drivers.gps_nmea import GpsDecoder, cfg_rate, ubx_frame
+from x6wd.errors import ConfigError
+from x6wd.records import GpsFix
+
+NMEA_DIR = Path(__file__).resolve().parent / "data" / "nmea"
+LOG = (NMEA_DIR / "ublox-lea-5h.log").read_bytes()
+
+
+class Pty:
+    """A pseudo-terminal whose slave is reachable through a symlink that can be repointed."""
+
+    def __init__(self, link: Path) -> None:
+        self.link = link
+        self.master = -1
+        self.slave = -1
+        self.open()
+
+    def open(self) -> None:
+        self.master, self.slave = os.openpty()
+        tmp = self.link.with_suffix(".new")
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(os.ttyname(self.slave))
+        os.replace(tmp, self.link)
+
+    def hang_up(self) -> None:
+        os.close(self.master)
+        os.close(self.slave)
+        self.master = self.slave = -1
+
+    def close(self) -> None:
+        if self.master >= 0:
+            self.hang_up()
+
+
+def _open(link: Path) -> Callable[[], serial.Serial]:
+    return lambda: serial.Serial(str(link), 9600, timeout=0)
+
+
+def _drain(reader: GpsReader, polls: int = 5) -> list:
+    out: list = []
+    for _ in range(polls):
+        out += reader.poll(0.05)
+    return out
+
+
+def test_pty_stale_unplug_reconnect_resume(tmp_path: Path) -> None:
+    link = tmp_path / "ttyGPS"
+    pty = Pty(link)
+    reader = GpsReader(_open(link), stale_s=0.3, backoff_initial_s=0.05, backoff_max_s=0.2)
+    rng = np.random.default_rng(7)
+    try:
+        assert reader.poll(0.05) == []
+        assert reader.health.connected and reader.health.state == "stale"  # nothing yet
+        half = len(LOG) // 2
+        records: list = []
+        i = 0
+        while i < half:
+            n = int(rng.integers(1, 300))
+            os.write(pty.master, LOG[i : i + n])
+            i += n
+            records += reader.poll(0.05)
+        records += _drain(reader)
+        assert reader.health.state == "ok"
+        fixes_before = [r for r in records if isinstance(r, GpsFix)]
+        assert len(fixes_before) >= 5
+
+        # Silence: the port stays open but nothing valid arrives -> stale.
+        for _ in range(100):
+            reader.poll(0.05)
+            if reader.health.state == "stale":
+                break
+        assert reader.health.state == "stale" and reader.health.connected
+
+        # Unplug: the far end goes away -> disconnected, not an exception.
+        pty.hang_up()
+        for _ in range(20):
+            reader.poll(0.05)
+            if reader.health.state == "disconnected":
+                break
+        health = reader.health
+        assert health.state == "disconnected" and not health.connected
+        assert "read failed" in health.last_error
+
+        # Plug back in (a new pty behind the same path): reopen, resume decoding.
+        pty.open()
+        records = []
+        for _ in range(100):
+            records += reader.poll(0.05)
+            if reader.health.connected:
+                break
+        assert reader.health.reconnects == 1
+        while i < len(LOG):
+            n = int(rng.integers(1, 300))
+            os.write(pty.master, LOG[i : i + n])
+            i += n
+            records += reader.poll(0.05)
+        records += _drain(reader)
+        fixes_after = [r for r in records if isinstance(r, GpsFix)]
+        assert len(fixes_after) >= 5 and all(f.valid for f in fixes_after[1:])
+        assert reader.health.state == "ok"
+        seen = {f.utc for f in fixes_before + fixes_after}
+        assert len(seen) >= len(fixes_before) + len(fixes_after) - 2  # a new epoch each
+    finally:
+        reader.close()
+        pty.close()
+
+
+def test_open_failure_backs_off_exponentially_with_cap(tmp_path: Path) -> None:
+    now = [100.0]
+    slept: list[float] = []
+
+    def sleep(dt: float) -> None:
+        slept.append(dt)
+        now[0] += dt
+
+    reader = GpsReader(
+        _open(tmp_path / "missing"),
+        backoff_initial_s=0.1,
+        backoff_max_s=0.5,
+        clock=lambda: now[0],
+        sleep=sleep,
+    )
+    gaps = []
+    for _ in range(6):
+        assert reader.poll(10.0) == []  # opening fails: still returns
+        attempt_t = now[0]  # the poll slept until the scheduled attempt, then tried once
+        gaps.append(round(reader.health.next_attempt_t_s - attempt_t, 6))  # type: ignore[operator]
+        assert reader.health.state == "disconnected"
+    assert gaps == [0.1, 0.2, 0.4, 0.5, 0.5, 0.5]
+    assert "open failed" in reader.health.last_error
+    assert reader.health.reconnects == 0
+    # A poll never waits longer than its timeout, even when the next attempt is later.
+    slept.clear()
+    reader.poll(0.01)
+    assert slept and max(slept) <= 0.01
+
+
+def test_ubx_config_sent_on_connect_and_ack_collected(tmp_path: Path) -> None:
+    link = tmp_path / "ttyGPS"
+    pty = Pty(link)
+    init = cfg_rate(1000)
+    reader = GpsReader(_open(link), init_bytes=init)
+    try:
+        reader.poll(0.05)
+        assert reader.health.connected
+        got = b""
+        for _ in range(50):
+            got += os.read(pty.master, 64)
+            if len(got) >= len(init):
+                break
+        assert got == init
+        ack = ubx_frame(0x05, 0x01, bytes((0x06, 0x08)))
+        os.write(pty.master, LOG[300:700] + ack + LOG[700:1200])
+        _drain(reader)
+        acks = reader.take_acks()
+        assert [(a.acked, a.msg_class, a.msg_id) for a in acks] == [(True, 0x06, 0x08)]
+        assert reader.take_acks() == []
+    finally:
+        reader.close()
+        pty.close()
+
+
+def test_tcp_socket_url_reconnects_after_peer_closes() -> None:
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    stop = threading.Event()
+    conns: list[socket.socket] = []
+
+    def stream(c: socket.socket, chunks: int | None) -> None:
+        # Like a receiver: bytes keep coming (pyserial drops what arrived before open()).
+        i = 0
+        while not stop.is_set() and (chunks is None or i < chunks):
+            c.sendall(LOG[(i * 200) % 9000 : (i * 200) % 9000 + 200])
+            i += 1
+            stop.wait(0.01)
+
+    def serve() -> None:
+        c, _ = server.accept()
+        conns.append(c)
+        stream(c, 30)
+        c.close()  # the first peer leaves
+        c, _ = server.accept()
+        conns.append(c)
+        stream(c, None)
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    reader = GpsReader(
+        lambda: serial.serial_for_url(f"socket://127.0.0.1:{port}", timeout=0),
+        backoff_initial_s=0.05,
+    )
+    try:
+        after: list = []
+        states = set()
+        for _ in range(400):
+            records = reader.poll(0.05)
+            states.add(reader.health.state)
+            if reader.health.reconnects == 1:
+                after += records
+                if sum(isinstance(r, GpsFix) for r in after) >= 3:
+                    break
+        assert "disconnected" in states
+        assert reader.health.reconnects == 1
+        assert sum(isinstance(r, GpsFix) for r in after) >= 3
+        assert reader.health.state == "ok"
+    finally:
+        stop.set()
+        reader.close()
+        t.join(2.0)
+        for c in conns:
+            c.close()
+        server.close()
+
+
+def test_close_is_idempotent_and_bad_settings_rejected(tmp_path: Path) -> None:
+    reader = GpsReader(_open(tmp_path / "none"), decoder=GpsDecoder())
+    reader.close()
+    reader.close()
+    assert reader.poll(0.01) == [] and reader.health.state == "disconnected"
+    with pytest.raises(ConfigError, match="stale_s"):
+        GpsReader(_open(tmp_path / "none"), stale_s=0)
+    with pytest.raises(ConfigError, match="backoff"):
+        GpsReader(_open(tmp_path / "none"), backoff_initial_s=2.0, backoff_max_s=1.0)
