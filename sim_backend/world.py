@@ -1,0 +1,617 @@
+"""Scenario files: TOML -> a validated, frozen :class:`World`.
+
+PUBLIC API
+- ``load_world(path) -> World``: read a scenario (following ``include = [...]``).
+- ``loads_world(text, base_dir=".", source="<string>") -> World``: same from text.
+- ``merge_fragment(world, path) -> World``: merge a TOML fragment (e.g. the gap tool's
+  ``effects.toml``) on top of a loaded world and validate again.
+- ``World.to_toml() -> str``: a resolved, self-contained copy (absolute almanac path, includes
+  merged, the LCE CSV inlined) that loads back to an equal world.
+- ``World.walls_model() -> buildings.Walls | None``, ``World.waypoints_latlon()``,
+  ``World.waypoints_enu_m()``, ``World.effect_objects()``, ``World.lce_array()``.
+- ``DEFAULT_ALMANAC``: the packaged YUMA almanac (USCG, GPS week 2086, 2020-01-01).
+
+Scenario layout (every key optional unless stated; errors name the dotted key)::
+
+    name = "open field"          # required
+    start_utc = "2020-01-01T12:00:00Z"   # ISO-8601 string or TOML datetime; naive = UTC
+    duration_s = 600.0
+    seed = 1
+    almanac = "almanac.txt"      # relative to the scenario file; default DEFAULT_ALMANAC
+    include = ["effects.toml"]   # merged first; this file's own keys win
+    [origin]  lat_deg, lon_deg (required), alt_m
+    [gnss]    fidelity "seed"|"pseudorange", mask_deg, rate_hz 1..4, nmea_decimals 4|5, baud,
+              seed_uere "modelled"|"re_ase_lce", re_m, ase_m, max_channels,
+              lce_cell_m, lce_east0_m, lce_north0_m, lce_outside_m,
+              lce_sigma_m = [[...], ...] (row i = north cell i) or lce_csv = "map.csv"
+    [atmosphere]  the fields of sim_backend.atmosphere.Atmosphere
+    [[walls]]     x0_m, y0_m, x1_m, y1_m, thickness_m, height_m,
+                  windows = [{u0_m, u1_m, z0_m, z1_m}, ...]
+    [[buildings]] x0_m, y0_m, x1_m, y1_m, height_m, thickness_m  (four closed walls)
+    [roof] or [[roofs]]  x0_m, y0_m, x1_m, y1_m, height_m, holes = [{x0_m, y0_m, x1_m, y1_m}]
+    [vehicle] max_speed_mps, turn_rate_dps, motor_tau_s, start_heading_deg, start_east_m,
+              start_north_m, slope_east_pct, slope_north_pct, antenna_height_m
+    [compass] a plain table handed to the compass emulation
+    [[effects]] {name = "...", params...}: sim_backend.effects layers (validated by name)
+    [mission] waypoints = [[lat, lon], ...] and/or waypoints_enu = [[east_m, north_m], ...]
+    [navigation], [safety]: x6wd.config.NavigationConfig / SafetyConfig
+
+Merging (includes and fragments): tables merge key by key, arrays of tables (walls,
+buildings, roofs, effects) are concatenated, any other value is replaced by the later file.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import dataclasses
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim_backend.atmosphere import Atmosphere
+from sim_backend.buildings import Hole, Roof, Wall, Walls, Window, building
+from x6wd.config import NavigationConfig, SafetyConfig, build
+from x6wd.errors import ConfigError
+
+DEFAULT_ALMANAC = Path(__file__).resolve().parent / "data" / "almyuma_01jan2020.txt"
+MAX_SPEED_MPS = 14.0 / 3.6
+_LIST_TABLES = ("walls", "buildings", "roofs", "effects")
+
+
+def _rng(lo: float | None = None, hi: float | None = None, **kw: Any) -> dict[str, Any]:
+    return {"min": lo, "max": hi, **kw}
+
+
+@dataclass(frozen=True)
+class Origin:
+    """Origin of the local ENU frame (WGS-84 degrees, metres above mean sea level)."""
+
+    lat_deg: float = field(default=0.0, metadata=_rng(-89.0, 89.0))
+    lon_deg: float = field(default=0.0, metadata=_rng(-180.0, 180.0))
+    alt_m: float = field(default=0.0, metadata=_rng(-500.0, 9000.0))
+
+
+@dataclass(frozen=True)
+class GnssSettings:
+    """The simulated receiver: fidelity, mask, output format and seed-003 error terms."""
+
+    fidelity: str = field(default="pseudorange", metadata={"choices": ("seed", "pseudorange")})
+    mask_deg: float = field(default=5.0, metadata=_rng(0.0, 60.0))
+    rate_hz: float = field(default=1.0, metadata=_rng(1.0, 4.0))
+    nmea_decimals: int = field(default=5, metadata={"choices": (4, 5)})
+    baud: int = field(default=9600, metadata={"choices": (4800, 9600, 19200, 38400, 57600, 115200)})
+    seed_uere: str = field(default="modelled", metadata={"choices": ("modelled", "re_ase_lce")})
+    re_m: float = field(default=0.5, metadata=_rng(0.0, 100.0))
+    ase_m: float | None = field(default=None, metadata=_rng(0.0, 100.0))
+    max_channels: int = field(default=12, metadata=_rng(4, 64))
+    lce_cell_m: float = field(default=10.0, metadata=_rng(0.01, 10000.0))
+    lce_east0_m: float = 0.0
+    lce_north0_m: float = 0.0
+    lce_outside_m: float = field(default=0.0, metadata=_rng(0.0, 1000.0))
+    lce_sigma_m: tuple[tuple[float, ...], ...] = ()
+    lce_csv: str = ""
+
+
+@dataclass(frozen=True)
+class VehicleSettings:
+    """The robot in the scenario: limits, start pose, terrain slope (percent = 100·dz/dx)."""
+
+    max_speed_mps: float = field(default=MAX_SPEED_MPS, metadata=_rng(0.01, MAX_SPEED_MPS))
+    turn_rate_dps: float = field(default=90.0, metadata=_rng(1.0, 720.0))
+    motor_tau_s: float = field(default=0.25, metadata=_rng(0.0, 10.0))
+    start_heading_deg: float = field(default=0.0, metadata=_rng(0.0, 360.0))
+    start_east_m: float = 0.0
+    start_north_m: float = 0.0
+    slope_east_pct: float = field(default=0.0, metadata=_rng(-170.0, 170.0))
+    slope_north_pct: float = field(default=0.0, metadata=_rng(-170.0, 170.0))
+    antenna_height_m: float = field(default=0.34, metadata=_rng(0.0, 100.0))
+
+
+@dataclass(frozen=True)
+class MissionSettings:
+    """Waypoints as geographic (lat, lon) degrees and/or local (east, north) metres."""
+
+    waypoints: tuple[tuple[float, ...], ...] = ()
+    waypoints_enu: tuple[tuple[float, ...], ...] = ()
+
+
+@dataclass(frozen=True)
+class _Top:
+    name: str = ""
+    start_utc: str = "2020-01-01T12:00:00Z"
+    duration_s: float = field(default=600.0, metadata=_rng(0.001, 30 * 86400.0))
+    seed: int = field(default=1, metadata=_rng(0, 2**63 - 1))
+    almanac: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class World:
+    """A validated scenario. ``raw`` is the merged TOML table it was built from (with paths
+    resolved); ``source`` the file it came from (None for text)."""
+
+    name: str
+    origin: Origin
+    start_utc: datetime
+    duration_s: float
+    seed: int
+    almanac_path: Path
+    gnss: GnssSettings
+    atmosphere: Atmosphere
+    walls: tuple[Wall, ...]
+    roofs: tuple[Roof, ...]
+    vehicle: VehicleSettings
+    compass: dict[str, Any]
+    effects: tuple[dict[str, Any], ...]
+    mission: MissionSettings
+    navigation: NavigationConfig
+    safety: SafetyConfig
+    raw: dict[str, Any] = field(repr=False)
+    source: Path | None = None
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, World):
+            return NotImplemented
+        skip = {"raw", "source"}
+        return all(
+            getattr(self, f.name) == getattr(other, f.name)
+            for f in dataclasses.fields(self)
+            if f.name not in skip
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @cached_property
+    def _walls_model(self) -> Walls | None:
+        if not self.walls and not self.roofs:
+            return None
+        return Walls(self.walls, self.roofs)
+
+    def walls_model(self) -> Walls | None:
+        """The buildings scene for ray tracing, or None when there are no walls or roofs."""
+        return self._walls_model
+
+    def waypoints_enu_m(self) -> np.ndarray:
+        """All waypoints as (N, 2) local east/north metres: geographic ones first (projected
+        on the origin's tangent plane), then ``waypoints_enu``."""
+        from sim_backend.geodesy import lla_to_enu
+
+        rows: list[np.ndarray] = []
+        if self.mission.waypoints:
+            ll = np.array(self.mission.waypoints, dtype=float)
+            enu = lla_to_enu(
+                ll[:, 0],
+                ll[:, 1],
+                np.full(len(ll), self.origin.alt_m),
+                self.origin.lat_deg,
+                self.origin.lon_deg,
+                self.origin.alt_m,
+            )
+            rows.append(np.asarray(enu, dtype=float).reshape(-1, 3)[:, :2])
+        if self.mission.waypoints_enu:
+            rows.append(np.array(self.mission.waypoints_enu, dtype=float))
+        return np.concatenate(rows) if rows else np.zeros((0, 2))
+
+    def waypoints_latlon(self) -> np.ndarray:
+        """All waypoints as (N, 2) latitude/longitude degrees (same order as
+        :meth:`waypoints_enu_m`; local ones converted from the origin's ENU frame)."""
+        from sim_backend.geodesy import enu_to_lla
+
+        rows: list[np.ndarray] = []
+        if self.mission.waypoints:
+            rows.append(np.array(self.mission.waypoints, dtype=float))
+        if self.mission.waypoints_enu:
+            en = np.array(self.mission.waypoints_enu, dtype=float)
+            enu = np.column_stack([en, np.zeros(len(en))])
+            lat, lon, _alt = enu_to_lla(
+                enu, self.origin.lat_deg, self.origin.lon_deg, self.origin.alt_m
+            )
+            rows.append(np.column_stack([np.atleast_1d(lat), np.atleast_1d(lon)]))
+        return np.concatenate(rows) if rows else np.zeros((0, 2))
+
+    def effect_objects(self) -> list[Any]:
+        """The ``[[effects]]`` tables as :mod:`sim_backend.effects` layer objects, in order."""
+        from sim_backend.effects import effect_from_params
+
+        return [effect_from_params(e) for e in self.effects]
+
+    def lce_array(self) -> np.ndarray | None:
+        """The LCE grid (rows north, columns east, 1-sigma m) or None when not configured."""
+        if not self.gnss.lce_sigma_m:
+            return None
+        return np.array(self.gnss.lce_sigma_m, dtype=float)
+
+    def to_toml(self) -> str:
+        """A resolved, self-contained TOML copy of this scenario."""
+        return dumps_toml(self.raw)
+
+
+# ------------------------------------------------------------------ loading
+
+
+def load_world(path: str | Path) -> World:
+    """Read, merge (``include``) and validate a scenario file."""
+    p = Path(path).resolve()
+    data = _read_merged(p, ())
+    try:
+        return _build_world(data, p.parent, p)
+    except ConfigError as exc:
+        raise ConfigError(f"{p}: {exc}") from exc
+
+
+def loads_world(text: str, base_dir: str | Path = ".", source: str = "<string>") -> World:
+    """Validate scenario TOML text; relative paths resolve against ``base_dir``."""
+    base = Path(base_dir).resolve()
+    data = _parse(text, source)
+    data = _expand_includes(data, base, (), source)
+    try:
+        return _build_world(data, base, None)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from exc
+
+
+def merge_fragment(world: World, path: str | Path) -> World:
+    """A new world: ``world`` with the TOML fragment at ``path`` merged on top (its arrays of
+    tables such as ``[[effects]]`` are appended, other keys replace)."""
+    p = Path(path).resolve()
+    fragment = _read_merged(p, ())
+    _resolve_paths(fragment, p.parent)
+    merged = _merge(world.raw, fragment)
+    base = world.source.parent if world.source is not None else p.parent
+    try:
+        return _build_world(merged, base, world.source)
+    except ConfigError as exc:
+        raise ConfigError(f"{p}: {exc}") from exc
+
+
+def _parse(text: str, source: str) -> dict[str, Any]:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
+
+
+def _read_merged(path: Path, stack: tuple[Path, ...]) -> dict[str, Any]:
+    if path in stack:
+        chain = " -> ".join(str(s) for s in (*stack, path))
+        raise ConfigError(f"include: circular include {chain}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read scenario: {exc.strerror or exc}") from exc
+    data = _parse(text, str(path))
+    return _expand_includes(data, path.parent, (*stack, path), str(path))
+
+
+def _expand_includes(
+    data: dict[str, Any], base: Path, stack: tuple[Path, ...], source: str
+) -> dict[str, Any]:
+    includes = data.pop("include", [])
+    if isinstance(includes, str):
+        includes = [includes]
+    if not isinstance(includes, list) or not all(isinstance(i, str) for i in includes):
+        raise ConfigError(f"{source}: include: expected a list of file names, got {includes!r}")
+    _resolve_paths(data, base)
+    merged: dict[str, Any] = {}
+    for inc in includes:
+        inc_path = (base / inc).resolve()
+        part = _read_merged(inc_path, stack)
+        _resolve_paths(part, inc_path.parent)
+        merged = _merge(merged, part)
+    return _merge(merged, data)
+
+
+def _resolve_paths(data: dict[str, Any], base: Path) -> None:
+    """Make file paths absolute against the folder of the file that named them."""
+    if isinstance(data.get("almanac"), str) and data["almanac"]:
+        data["almanac"] = str((base / data["almanac"]).resolve())
+    gnss = data.get("gnss")
+    if isinstance(gnss, dict) and isinstance(gnss.get("lce_csv"), str) and gnss["lce_csv"]:
+        gnss["lce_csv"] = str((base / gnss["lce_csv"]).resolve())
+
+
+def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(a)
+    for key, value in b.items():
+        if key in out and isinstance(out[key], dict) and isinstance(value, dict):
+            out[key] = _merge(out[key], value)
+        elif key in _LIST_TABLES and isinstance(out.get(key), list) and isinstance(value, list):
+            out[key] = out[key] + copy.deepcopy(value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _table(data: dict[str, Any], key: str) -> dict[str, Any]:
+    value = data.get(key, {})
+    if not isinstance(value, dict):
+        raise ConfigError(f"{key}: expected a table, got {value!r}")
+    return value
+
+
+def _table_list(data: dict[str, Any], key: str) -> list[dict[str, Any]]:
+    value = data.get(key, [])
+    if isinstance(value, dict):
+        value = [value]
+    if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+        raise ConfigError(f"{key}: expected an array of tables ([[{key}]]), got {value!r}")
+    return value
+
+
+def _plain(cls: type, data: Any, prefix: str, required: tuple[str, ...] = ()) -> Any:
+    """Validate a table into a dataclass of plain fields (walls, windows, roofs, holes)."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{prefix}: expected a table, got {data!r}")
+    names = [f.name for f in dataclasses.fields(cls)]
+    for key in data:
+        if key not in names:
+            raise ConfigError(f"{prefix}.{key}: unknown key (valid keys: {', '.join(names)})")
+    for key in required:
+        if key not in data:
+            raise ConfigError(f"{prefix}.{key}: required")
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        if isinstance(value, (list, dict)):
+            kwargs[key] = value
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{prefix}.{key}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{prefix}.{key}: must be finite, got {value!r}")
+        kwargs[key] = float(value)
+    try:
+        return cls(**kwargs)
+    except ConfigError as exc:
+        raise ConfigError(f"{prefix}: {exc}") from exc
+
+
+def _build_walls(data: dict[str, Any]) -> tuple[tuple[Wall, ...], tuple[Roof, ...]]:
+    walls: list[Wall] = []
+    for i, spec in enumerate(_table_list(data, "walls")):
+        spec = dict(spec)
+        raw_windows = spec.pop("windows", [])
+        if not isinstance(raw_windows, list):
+            raise ConfigError(f"walls[{i}].windows: expected an array of tables")
+        windows = tuple(
+            _plain(Window, w, f"walls[{i}].windows[{j}]", ("u0_m", "u1_m", "z0_m", "z1_m"))
+            for j, w in enumerate(raw_windows)
+        )
+        wall = _plain(Wall, spec, f"walls[{i}]", ("x0_m", "y0_m", "x1_m", "y1_m"))
+        try:
+            walls.append(dataclasses.replace(wall, windows=windows))
+        except ConfigError as exc:
+            raise ConfigError(f"walls[{i}]: {exc}") from exc
+    keys = ("x0_m", "y0_m", "x1_m", "y1_m", "height_m", "thickness_m")
+    for i, spec in enumerate(_table_list(data, "buildings")):
+        for key in spec:
+            if key not in keys:
+                raise ConfigError(
+                    f"buildings[{i}].{key}: unknown key (valid keys: {', '.join(keys)})"
+                )
+        for key in keys[:5]:
+            if key not in spec:
+                raise ConfigError(f"buildings[{i}].{key}: required")
+            if isinstance(spec[key], bool) or not isinstance(spec[key], (int, float)):
+                raise ConfigError(f"buildings[{i}].{key}: expected a number, got {spec[key]!r}")
+        try:
+            walls.extend(building(**{k: float(v) for k, v in spec.items()}))
+        except ConfigError as exc:
+            raise ConfigError(f"buildings[{i}]: {exc}") from exc
+    roof_specs = _table_list(data, "roofs")
+    if "roof" in data:
+        roof_specs = [_table(data, "roof"), *roof_specs]
+    roofs: list[Roof] = []
+    for i, spec in enumerate(roof_specs):
+        spec = dict(spec)
+        raw_holes = spec.pop("holes", [])
+        if not isinstance(raw_holes, list):
+            raise ConfigError(f"roofs[{i}].holes: expected an array of tables")
+        holes = tuple(
+            _plain(Hole, h, f"roofs[{i}].holes[{j}]", ("x0_m", "y0_m", "x1_m", "y1_m"))
+            for j, h in enumerate(raw_holes)
+        )
+        roof = _plain(Roof, spec, f"roofs[{i}]", ("x0_m", "y0_m", "x1_m", "y1_m", "height_m"))
+        roofs.append(dataclasses.replace(roof, holes=holes))
+    return tuple(walls), tuple(roofs)
+
+
+def _parse_time(value: Any) -> datetime:
+    if isinstance(value, datetime):
+        dt = value
+    elif isinstance(value, str):
+        try:
+            dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
+        except ValueError as exc:
+            raise ConfigError(f"start_utc: not an ISO-8601 time: {value!r}") from exc
+    else:
+        raise ConfigError(f"start_utc: expected an ISO-8601 time, got {value!r}")
+    return dt.replace(tzinfo=UTC) if dt.tzinfo is None else dt.astimezone(UTC)
+
+
+def _read_lce_csv(path: str) -> tuple[tuple[float, ...], ...]:
+    try:
+        with open(path, encoding="utf-8", newline="") as fh:
+            rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
+    except OSError as exc:
+        raise ConfigError(f"gnss.lce_csv: cannot read {path}: {exc.strerror or exc}") from exc
+    try:
+        grid = tuple(tuple(float(c) for c in row) for row in rows)
+    except ValueError as exc:
+        raise ConfigError(f"gnss.lce_csv: {path}: not a grid of numbers ({exc})") from exc
+    return grid
+
+
+def _check_grid(grid: tuple[tuple[float, ...], ...], key: str) -> None:
+    widths = {len(r) for r in grid}
+    if len(widths) > 1 or 0 in widths:
+        raise ConfigError(f"{key}: rows must be non-empty and of equal length")
+    for row in grid:
+        for v in row:
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ConfigError(f"{key}: values must be finite and >= 0 m, got {v!r}")
+
+
+_TOP_KEYS = {
+    "name",
+    "start_utc",
+    "duration_s",
+    "seed",
+    "almanac",
+    "origin",
+    "gnss",
+    "atmosphere",
+    "walls",
+    "buildings",
+    "roof",
+    "roofs",
+    "vehicle",
+    "compass",
+    "effects",
+    "mission",
+    "navigation",
+    "safety",
+}
+
+
+def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World:
+    unknown = sorted(set(data) - _TOP_KEYS)
+    if unknown:
+        raise ConfigError(f"{unknown[0]}: unknown key (valid keys: {', '.join(sorted(_TOP_KEYS))})")
+    data = copy.deepcopy(data)
+    start = data.get("start_utc", _Top.start_utc)
+    start_utc = _parse_time(start)
+    top_data = {k: data[k] for k in ("name", "duration_s", "seed", "almanac") if k in data}
+    top = build(_Top, top_data)
+    if not top.name:
+        raise ConfigError("name: required (a non-empty string)")
+    origin_data = _table(data, "origin")
+    for key in ("lat_deg", "lon_deg"):
+        if key not in origin_data:
+            raise ConfigError(f"origin.{key}: required")
+    origin = build(Origin, origin_data, "origin.")
+    almanac = Path(top.almanac) if top.almanac else DEFAULT_ALMANAC
+    if not almanac.is_absolute():
+        almanac = (base / almanac).resolve()
+    if not almanac.is_file():
+        raise ConfigError(f"almanac: no such file: {almanac}")
+    data["almanac"] = str(almanac)
+    gnss_data = dict(_table(data, "gnss"))
+    if gnss_data.get("lce_csv") and gnss_data.get("lce_sigma_m"):
+        raise ConfigError("gnss.lce_csv: give either lce_csv or lce_sigma_m, not both")
+    gnss = build(GnssSettings, gnss_data, "gnss.")
+    if gnss.lce_csv:
+        csv_path = Path(gnss.lce_csv)
+        if not csv_path.is_absolute():
+            csv_path = (base / csv_path).resolve()
+        grid = _read_lce_csv(str(csv_path))
+        gnss = dataclasses.replace(gnss, lce_sigma_m=grid, lce_csv="")
+        gnss_data.pop("lce_csv")
+        gnss_data["lce_sigma_m"] = [list(r) for r in grid]
+        data["gnss"] = gnss_data
+    if gnss.lce_sigma_m:
+        _check_grid(gnss.lce_sigma_m, "gnss.lce_sigma_m")
+    atmosphere = build(Atmosphere, _table(data, "atmosphere"), "atmosphere.")
+    walls, roofs = _build_walls(data)
+    vehicle = build(VehicleSettings, _table(data, "vehicle"), "vehicle.")
+    compass = dict(_table(data, "compass"))
+    effects = tuple(dict(e) for e in _table_list(data, "effects"))
+    _check_effects(effects)
+    mission = build(MissionSettings, _table(data, "mission"), "mission.")
+    for key, points, lo, hi in (
+        ("mission.waypoints", mission.waypoints, (-90.0, -180.0), (90.0, 180.0)),
+        ("mission.waypoints_enu", mission.waypoints_enu, (-1e6, -1e6), (1e6, 1e6)),
+    ):
+        for i, pt in enumerate(points):
+            if len(pt) != 2:
+                raise ConfigError(f"{key}[{i}]: expected a pair, got {list(pt)}")
+            if not all(math.isfinite(v) and lo[j] <= v <= hi[j] for j, v in enumerate(pt)):
+                raise ConfigError(f"{key}[{i}]: out of range, got {list(pt)}")
+    navigation = build(NavigationConfig, _table(data, "navigation"), "navigation.")
+    safety = build(SafetyConfig, _table(data, "safety"), "safety.")
+    return World(
+        name=top.name,
+        origin=origin,
+        start_utc=start_utc,
+        duration_s=top.duration_s,
+        seed=top.seed,
+        almanac_path=almanac,
+        gnss=gnss,
+        atmosphere=atmosphere,
+        walls=walls,
+        roofs=roofs,
+        vehicle=vehicle,
+        compass=compass,
+        effects=effects,
+        mission=mission,
+        navigation=navigation,
+        safety=safety,
+        raw=data,
+        source=source,
+    )
+
+
+def _check_effects(effects: tuple[dict[str, Any], ...]) -> None:
+    from sim_backend.effects import effect_from_params
+
+    for i, eff in enumerate(effects):
+        if "name" not in eff:
+            raise ConfigError(f"effects[{i}].name: required")
+        try:
+            effect_from_params(eff)
+        except ConfigError as exc:
+            raise ConfigError(f"effects[{i}]: {exc}") from exc
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"effects[{i}] ({eff.get('name')}): {exc}") from exc
+
+
+# ------------------------------------------------------------------ TOML writer
+
+
+def _toml_key(key: str) -> str:
+    bare = key.replace("_", "").replace("-", "").isalnum() and key.isascii()
+    return key if bare else json.dumps(key)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ConfigError(f"cannot write a non-finite number {value!r} to TOML")
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)
+    if isinstance(value, datetime):
+        return value.isoformat()
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        inner = ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items())
+        return "{" + inner + "}"
+    raise ConfigError(f"cannot write {type(value).__name__} {value!r} to TOML")
+
+
+def dumps_toml(data: dict[str, Any]) -> str:
+    """Serialise a TOML table (top-level tables as sections, arrays of tables as [[...]])."""
+    lines: list[str] = []
+    sections: list[str] = []
+    for key, value in data.items():
+        if isinstance(value, dict):
+            sections.append(f"\n[{_toml_key(key)}]")
+            sections.extend(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items())
+        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            for item in value:
+                sections.append(f"\n[[{_toml_key(key)}]]")
+                sections.extend(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in item.items())
+        else:
+            lines.append(f"{_toml_key(key)} = {_toml_value(value)}")
+    return "\n".join(lines + sections) + "\n"
