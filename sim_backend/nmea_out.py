@@ -1,0 +1,584 @@
+"""NMEA 0183 output as a u-blox NEO-5 (GPS-Bee) prints it (REFERENCE.md §4).
+
+At boot the receiver prints a ``$GPTXT`` banner; then, once per navigation epoch, the burst
+RMC, VTG, GGA, GSA, GSV (1-4 messages, 4 satellites each), GLL. NMEA 2.3: RMC, VTG and GLL
+carry a mode letter (``A`` autonomous, ``N`` not valid). Latitude/longitude as
+``ddmm.mmmmm``/``dddmm.mmmmm`` (5 decimals of minutes; 4 for the older firmware), time as
+``hhmmss.ss``. Course over ground is EMPTY when the receiver is at rest (course None). Without a
+fix the receiver prints its real no-fix forms: all fields empty until it has time from a
+satellite, then with time (and date) but status ``V`` / quality 0 / DOP 99.99.
+
+Speed is what matters here: a checksum is the XOR of the body bytes, computed by folding the
+body read as one big integer (a handful of big-int operations instead of a Python loop per
+character), and coordinates are formatted from integers.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from collections.abc import Iterable, Sequence
+from datetime import datetime, timedelta
+from typing import Protocol
+
+import numpy as np
+
+from sim_backend.epoch import GnssEpoch, SimSat
+from x6wd.errors import ConfigError
+
+KNOTS_PER_MPS = 3600.0 / 1852.0
+KMH_PER_MPS = 3.6
+MAX_GSV_SATS = 16  # 4 GSV messages x 4 satellites
+MAX_GSA_SATS = 12
+MAX_SENTENCE_CHARS = 82  # NMEA 0183: including '$' and CRLF
+
+NEO5_BANNER: tuple[str, ...] = (
+    "GPTXT,01,01,02,u-blox ag - www.u-blox.com",
+    "GPTXT,01,01,02,HW  UBX-G50xx  00040005 ",
+    "GPTXT,01,01,02,EXT CORE 6.00 (33247) May 13 2009 17:35:46",
+    "GPTXT,01,01,02,ROM BASE 4.00 (25682) Jan 14 2008 16:29:23",
+    "GPTXT,01,01,02,MOD NEO-5Q-0",
+    "GPTXT,01,01,02,ANTSUPERV=AC SD PDoS SR",
+    "GPTXT,01,01,02,ANTSTATUS=OK",
+)
+"""Body text of the boot banner (without ``$`` and checksum), u-blox 5 style."""
+
+_HEX = [f"{i:02X}".encode() for i in range(256)]
+_D2 = [f"{i:02d}" for i in range(100)]
+_D3 = [f"{i:03d}" for i in range(360)]
+_D3K = [f"{i:03d}" for i in range(1000)]
+_SNR_OR_EMPTY = [*_D2, ""]  # index 100: no SNR
+_ELAZ: list[str] = []
+
+
+def _elaz_table() -> list[str]:
+    """``"EE,AAA"`` for every whole elevation 0-90 and azimuth 0-359 (built once, lazily)."""
+    if not _ELAZ:
+        _ELAZ.extend(f"{e:02d},{a:03d}" for e in range(91) for a in range(360))
+    return _ELAZ
+
+
+_PRN = operator.attrgetter("prn")
+
+
+def checksum(body: bytes) -> int:
+    """XOR of all bytes of an NMEA body (the text between ``$`` and ``*``)."""
+    n = len(body)
+    x = int.from_bytes(body, "little")
+    # Fold halves down to one byte; each fold keeps the low half exact.
+    shift = 8
+    while shift < n * 8:
+        shift <<= 1
+    while shift > 8:
+        shift >>= 1
+        x ^= x >> shift
+    return x & 0xFF
+
+
+def sentence(body: str) -> bytes:
+    """One complete sentence ``$body*HH\\r\\n`` as ASCII bytes (``body`` excludes ``$``/``*``)."""
+    raw = body.encode("ascii")
+    return b"$" + raw + b"*" + _HEX[checksum(raw)] + b"\r\n"
+
+
+def wire_time_s(data: bytes | int, baud: int = 9600, bits_per_byte: int = 10) -> float:
+    """Seconds ``data`` (bytes, or a byte count) takes on a UART at ``baud`` bit/s.
+
+    8N1 framing costs 10 bits per byte (start + 8 data + stop).
+    """
+    if baud <= 0:
+        raise ConfigError(f"baud must be positive, got {baud}")
+    if bits_per_byte <= 0:
+        raise ConfigError(f"bits_per_byte must be positive, got {bits_per_byte}")
+    n = data if isinstance(data, int) else len(data)
+    if n < 0:
+        raise ConfigError(f"byte count must be >= 0, got {n}")
+    return n * bits_per_byte / baud
+
+
+def _coord(value_deg: float, deg_digits: int, decimals: int, scale: int) -> tuple[str, bool]:
+    """``dd(d)mm.mmmmm`` text of |value| and whether it is non-negative."""
+    total = round(abs(value_deg) * 60.0 * scale)  # in units of 10**-decimals minutes
+    per_deg = 60 * scale
+    deg, rem = divmod(total, per_deg)
+    mins, frac = divmod(rem, scale)
+    if deg_digits == 2:
+        return f"{deg:02d}{mins:02d}.{frac:0{decimals}d}", value_deg >= 0.0
+    return f"{deg:03d}{mins:02d}.{frac:0{decimals}d}", value_deg >= 0.0
+
+
+class NmeaFormatter:
+    """Formats :class:`GnssEpoch` objects into NEO-5 sentence bursts.
+
+    ``minute_decimals`` 5 (NEO-5 firmware 6) or 4 (older u-blox 5 firmware); ``time_decimals``
+    2 (``hhmmss.ss``) or 3; ``rate_hz`` the navigation rate, 1-4 Hz as the NEO-5 allows (it only
+    validates here: epoch times come from the model). The formatter remembers whether the
+    receiver has time yet: the no-fix forms carry time and date once any satellite is tracked
+    with a signal (the receiver decodes time from it) or after the first fix.
+    """
+
+    def __init__(
+        self,
+        minute_decimals: int = 5,
+        time_decimals: int = 2,
+        rate_hz: float = 1.0,
+        talker: str = "GP",
+    ) -> None:
+        if minute_decimals not in (4, 5):
+            raise ConfigError(f"minute_decimals must be 4 or 5, got {minute_decimals}")
+        if time_decimals not in (2, 3):
+            raise ConfigError(f"time_decimals must be 2 or 3, got {time_decimals}")
+        if not (isinstance(rate_hz, (int, float)) and 1.0 <= rate_hz <= 4.0):
+            raise ConfigError(f"rate_hz must be within 1..4 Hz (NEO-5), got {rate_hz!r}")
+        if len(talker) != 2 or not talker.isalpha() or not talker.isupper():
+            raise ConfigError(f"talker must be two capital letters, got {talker!r}")
+        self.minute_decimals = minute_decimals
+        self.time_decimals = time_decimals
+        self.rate_hz = float(rate_hz)
+        self.talker = talker
+        self.time_known = False
+        self._scale = 10**minute_decimals
+        self._tscale = 10**time_decimals
+
+    # --- pieces --------------------------------------------------------------------------
+
+    def banner(self) -> bytes:
+        """The ``$GPTXT`` boot banner (printed once when the receiver starts)."""
+        return b"".join(sentence(b) for b in NEO5_BANNER)
+
+    def _time(self, utc: datetime) -> tuple[str, str]:
+        """(``hhmmss.ss``, ``ddmmyy``) with rounding carried into the seconds."""
+        ts = self._tscale
+        us = ((utc.hour * 60 + utc.minute) * 60 + utc.second) * 1_000_000 + utc.microsecond
+        unit = 1_000_000 // ts
+        ticks = (us + unit // 2) // unit
+        ticks %= 86400 * ts  # a round-up at midnight wraps (date kept: receiver epoch edge)
+        sec_total, frac = divmod(ticks, ts)
+        h, rem = divmod(sec_total, 3600)
+        m, s = divmod(rem, 60)
+        hms = f"{h:02d}{m:02d}{s:02d}.{frac:0{self.time_decimals}d}"
+        return hms, f"{utc.day:02d}{utc.month:02d}{utc.year % 100:02d}"
+
+    def _gsv(self, sats: Sequence[SimSat]) -> list[str]:
+        t = self.talker
+        if not sats:
+            return [f"{t}GSV,1,1,00"]
+        n = len(sats)
+        nmsg = (n + 3) // 4
+        d2 = _D2
+        fields = []
+        # Table lookups instead of format specs: this loop runs 10-16 times per epoch.
+        for s in sats:
+            snr = s.snr_dbhz
+            el = s.el_deg
+            az = s.az_deg
+            prn = d2[s.prn] if 0 <= s.prn < 100 else str(s.prn)
+            snr_txt = "" if snr is None else d2[min(99, max(0, int(snr + 0.5)))]
+            if el is None or az is None or not (-90.0 <= el <= 90.0) or not math.isfinite(az):
+                fields.append(prn + ",,," + snr_txt)
+            else:
+                e = d2[int(el + 0.5)] if el > 0.0 else "00"
+                fields.append(
+                    prn + "," + e + "," + _D3[int(az % 360.0 + 0.5) % 360] + "," + snr_txt
+                )
+        head = t + "GSV," + str(nmsg) + ","
+        tail = "," + d2[n] + ","
+        return [head + str(i + 1) + tail + ",".join(fields[4 * i : 4 * i + 4]) for i in range(nmsg)]
+
+    def _gsv_batch(self, selected: Sequence[Sequence[SimSat]]) -> list[list[str]]:
+        """GSV bodies of many epochs; numbers rounded by numpy, text from lookup tables."""
+        flat = [s for sats in selected for s in sats]
+        if not flat:
+            return [self._gsv(sats) for sats in selected]
+        n = len(flat)
+        prn = np.fromiter((s.prn for s in flat), dtype=np.int64, count=n)
+        nan = math.nan
+        el = np.fromiter((nan if s.el_deg is None else s.el_deg for s in flat), float, n)
+        az = np.fromiter((nan if s.az_deg is None else s.az_deg for s in flat), float, n)
+        snr = np.fromiter((nan if s.snr_dbhz is None else s.snr_dbhz for s in flat), float, n)
+        if np.any((prn < 0) | (prn > 99)):
+            return [self._gsv(sats) for sats in selected]  # rare: odd PRNs take the slow path
+        fields = _sat_fields(prn, el, az, snr)
+        d2 = _D2
+        t = self.talker
+        out: list[list[str]] = []
+        i0 = 0
+        for sats in selected:
+            m = len(sats)
+            if m == 0:
+                out.append([t + "GSV,1,1,00"])
+                continue
+            f = fields[i0 : i0 + m]
+            i0 += m
+            nmsg = (m + 3) // 4
+            head = t + "GSV," + str(nmsg) + ","
+            tail = "," + d2[m] + ","
+            out.append(
+                [head + str(i + 1) + tail + ",".join(f[4 * i : 4 * i + 4]) for i in range(nmsg)]
+            )
+        return out
+
+    @staticmethod
+    def _select(sats: Sequence[SimSat]) -> list[SimSat]:
+        """At most 16 satellites (used ones first), in PRN order as u-blox prints them."""
+        if len(sats) > MAX_GSV_SATS:
+            sats = sorted(sats, key=lambda s: (not s.used, -(s.snr_dbhz or 0.0), s.prn))[
+                :MAX_GSV_SATS
+            ]
+        return sorted(sats, key=_PRN)
+
+    # --- epochs --------------------------------------------------------------------------
+
+    def epoch_bodies(self, ep: GnssEpoch) -> list[str]:
+        """Sentence bodies of one epoch burst (RMC, VTG, GGA, GSA, GSV..., GLL)."""
+        sats = self._select(ep.satellites)
+        return self._bodies(ep, sats, self._gsv(sats))
+
+    def _bodies(self, ep: GnssEpoch, sats: Sequence[SimSat], gsv: list[str]) -> list[str]:
+        if ep.valid or any(s.snr_dbhz is not None for s in sats):
+            self.time_known = True
+        if not ep.valid:
+            return self._no_fix(ep.utc, gsv)
+        # GSA lists the used satellites in the receiver's channel order (as given).
+        used = [s.prn for s in ep.satellites if s.used]
+        return self._fix_bodies(
+            ep.utc, ep.lat_deg, ep.lon_deg, ep.speed_mps, ep.course_deg,
+            ep.quality if ep.quality > 0 else 1, ep.mode if ep.mode in (2, 3) else 3,
+            used, ep.hdop, ep.pdop, ep.vdop, ep.alt_m, ep.geoid_sep_m, gsv,
+        )  # fmt: skip
+
+    def _fix_bodies(
+        self,
+        utc: datetime,
+        lat_deg: float,
+        lon_deg: float,
+        speed_mps: float,
+        course_deg: float | None,
+        quality: int,
+        fix_mode: int,
+        used: Sequence[int],
+        hdop: float,
+        pdop: float,
+        vdop: float,
+        alt_m: float,
+        geoid_sep_m: float,
+        gsv: list[str],
+    ) -> list[str]:
+        t = self.talker
+        hms, dmy = self._time(utc)
+        lat, north = _coord(lat_deg, 2, self.minute_decimals, self._scale)
+        lon, east = _coord(lon_deg, 3, self.minute_decimals, self._scale)
+        ns = "N" if north else "S"
+        ew = "E" if east else "W"
+        speed = max(0.0, speed_mps)
+        kn = f"{speed * KNOTS_PER_MPS:.3f}"
+        kmh = f"{speed * KMH_PER_MPS:.3f}"
+        course = "" if course_deg is None else f"{course_deg % 360.0:.2f}"
+        d2 = _D2
+        shown = [d2[p] if 0 <= p < 100 else str(p) for p in used[:MAX_GSA_SATS]]
+        gsa_prns = ",".join(shown + [""] * (MAX_GSA_SATS - len(shown)))
+        nused = d2[min(len(used), 99)]
+        h = _dop(hdop)
+        return [
+            f"{t}RMC,{hms},A,{lat},{ns},{lon},{ew},{kn},{course},{dmy},,,A",
+            f"{t}VTG,{course},T,,M,{kn},N,{kmh},K,A",
+            f"{t}GGA,{hms},{lat},{ns},{lon},{ew},{quality},{nused},"
+            f"{h},{alt_m:.1f},M,{geoid_sep_m:.1f},M,,",
+            f"{t}GSA,A,{fix_mode},{gsa_prns},{_dop(pdop)},{h},{_dop(vdop)}",
+            *gsv,
+            f"{t}GLL,{lat},{ns},{lon},{ew},{hms},A,A",
+        ]
+
+    def _no_fix(self, utc: datetime, gsv: list[str]) -> list[str]:
+        t = self.talker
+        if self.time_known:
+            hms, dmy = self._time(utc)
+        else:
+            hms, dmy = "", ""
+        return [
+            f"{t}RMC,{hms},V,,,,,,,{dmy},,,N",
+            f"{t}VTG,,,,,,,,,N",
+            f"{t}GGA,{hms},,,,,0,00,99.99,,,,,,",
+            f"{t}GSA,A,1,,,,,,,,,,,,,99.99,99.99,99.99",
+            *gsv,
+            f"{t}GLL,,,,,{hms},V,N",
+        ]
+
+    def format_batch(self, batch: BatchLike) -> list[bytes]:
+        """One burst per epoch of a columnar receiver result (``sim_backend.gnss.GnssBatch``),
+        identical to ``format_epochs(batch.epochs())`` without building per-satellite objects.
+
+        Satellite numbers are rounded with numpy over (epochs x satellites) at once and turned
+        into text by table lookups; an epoch with more than 16 satellites in view takes the
+        general path (the receiver's 16-satellite GSV selection).
+        """
+        n_e = len(batch.t_s)
+        if n_e == 0:
+            return []
+        prns = np.asarray(batch.prns, dtype=np.int64)
+        in_view = np.asarray(batch.in_view, dtype=bool)
+        used = np.asarray(batch.used, dtype=bool) & in_view
+        snr = np.asarray(batch.snr_dbhz, dtype=float)
+        el = np.asarray(batch.el_deg, dtype=float)
+        az = np.asarray(batch.az_deg, dtype=float)
+        if np.any((prns < 0) | (prns > 99)):
+            return self.format_epochs(batch.epochs())
+        order = np.argsort(prns, kind="stable")  # GSV prints in PRN order
+        n_view = in_view.sum(axis=1)
+        rows, cols = np.nonzero(in_view[:, order])
+        cols = order[cols]
+        fields = _sat_fields(prns[cols], el[rows, cols], az[rows, cols], snr[rows, cols])
+        has_snr = (in_view & np.isfinite(snr)).any(axis=1)
+        valid = np.asarray(batch.valid, dtype=bool)
+        starts = np.concatenate(([0], np.cumsum(n_view)[:-1])).tolist()
+        # The receiver has time from its first fix or first satellite signal on.
+        known = (np.cumsum(valid | has_snr) > 0) | self.time_known
+        hms_l, dmy_l = self._times_batch(batch.start_utc, np.asarray(batch.t_s, dtype=float))
+        lat_l, ns_l = self._coords_batch(np.asarray(batch.lat_deg, dtype=float), valid, 2)
+        lon_l, ew_l = self._coords_batch(np.asarray(batch.lon_deg, dtype=float), valid, 3)
+        spd = np.fmax(np.asarray(batch.speed_mps, dtype=float), 0.0)
+        kn_l = [f"{v:.3f}" for v in (spd * KNOTS_PER_MPS).tolist()]
+        kmh_l = [f"{v:.3f}" for v in (spd * KMH_PER_MPS).tolist()]
+        crs_l = [
+            "" if c != c else f"{c % 360.0:.2f}"
+            for c in np.asarray(batch.course_deg, dtype=float).tolist()
+        ]
+        alt_l = [f"{v:.1f}" for v in np.asarray(batch.alt_m, dtype=float).tolist()]
+        hdop_l = [_dop(v) for v in np.asarray(batch.hdop, dtype=float).tolist()]
+        pdop_l = [_dop(v) for v in np.asarray(batch.pdop, dtype=float).tolist()]
+        vdop_l = [_dop(v) for v in np.asarray(batch.vdop, dtype=float).tolist()]
+        geoid = f"{float(batch.geoid_sep_m):.1f}"
+        # GSA: used satellites per epoch in column (channel) order, at most 12 shown.
+        d2 = _D2
+        _rows, u_cols = np.nonzero(used)
+        n_used = used.sum(axis=1)
+        u_txt = [d2[p] for p in prns[u_cols].tolist()]
+        u_start = np.concatenate(([0], np.cumsum(n_used)[:-1])).tolist()
+        n_used_l = n_used.tolist()
+        blanks = [","] * (MAX_GSA_SATS + 1)
+        t = self.talker
+        per_epoch: list[list[str]] = []
+        for i in range(n_e):
+            m = int(n_view[i])
+            if m > MAX_GSV_SATS:
+                self.time_known = bool(known[i - 1]) if i else self.time_known
+                per_epoch.append(self.epoch_bodies(batch.epoch(i)))
+                continue
+            if m == 0:
+                gsv = [t + "GSV,1,1,00"]
+            else:
+                f = fields[starts[i] : starts[i] + m]
+                nmsg = (m + 3) // 4
+                head = t + "GSV," + str(nmsg) + ","
+                tail = "," + d2[m] + ","
+                gsv = [
+                    head + str(j + 1) + tail + ",".join(f[4 * j : 4 * j + 4]) for j in range(nmsg)
+                ]
+            hms = hms_l[i]
+            if not valid[i]:
+                if not known[i]:
+                    hms = dmy = ""
+                else:
+                    dmy = dmy_l[i]
+                per_epoch.append(
+                    [
+                        f"{t}RMC,{hms},V,,,,,,,{dmy},,,N",
+                        f"{t}VTG,,,,,,,,,N",
+                        f"{t}GGA,{hms},,,,,0,00,99.99,,,,,,",
+                        f"{t}GSA,A,1,,,,,,,,,,,,,99.99,99.99,99.99",
+                        *gsv,
+                        f"{t}GLL,,,,,{hms},V,N",
+                    ]
+                )
+                continue
+            nu = n_used_l[i]
+            k0 = u_start[i]
+            shown = min(nu, MAX_GSA_SATS)
+            gsa = ",".join(u_txt[k0 : k0 + shown]) + "".join(blanks[: MAX_GSA_SATS - shown])
+            if shown == 0:
+                gsa = gsa[1:]  # 12 empty fields are 11 commas
+            lat, ns, lon, ew = lat_l[i], ns_l[i], lon_l[i], ew_l[i]
+            kn, crs, h = kn_l[i], crs_l[i], hdop_l[i]
+            per_epoch.append(
+                [
+                    f"{t}RMC,{hms},A,{lat},{ns},{lon},{ew},{kn},{crs},{dmy_l[i]},,,A",
+                    f"{t}VTG,{crs},T,,M,{kn},N,{kmh_l[i]},K,A",
+                    f"{t}GGA,{hms},{lat},{ns},{lon},{ew},1,{d2[min(nu, 99)]},"
+                    f"{h},{alt_l[i]},M,{geoid},M,,",
+                    f"{t}GSA,A,3,{gsa},{pdop_l[i]},{h},{vdop_l[i]}",
+                    *gsv,
+                    f"{t}GLL,{lat},{ns},{lon},{ew},{hms},A,A",
+                ]
+            )
+        self.time_known = bool(known[-1])
+        return _assemble(per_epoch)
+
+    def _times_batch(self, start_utc: datetime, t_s: np.ndarray) -> tuple[list[str], list[str]]:
+        """(``hhmmss.ss``, ``ddmmyy``) per epoch for ``start_utc + t_s``, as :meth:`_time`."""
+        ts = self._tscale
+        day_us = 86400 * 1_000_000
+        s0 = start_utc
+        start_us = ((s0.hour * 60 + s0.minute) * 60 + s0.second) * 1_000_000 + s0.microsecond
+        total = start_us + np.rint(t_s * 1e6).astype(np.int64)
+        day, us = np.divmod(total, day_us)
+        unit = 1_000_000 // ts
+        ticks = ((us + unit // 2) // unit) % (86400 * ts)
+        sec_total, frac = np.divmod(ticks, ts)
+        hh, rem = np.divmod(sec_total, 3600)
+        mm, ss = np.divmod(rem, 60)
+        d2 = _D2
+        fr = d2 if ts == 100 else _D3K
+        hms = [
+            d2[a] + d2[b] + d2[c] + "." + fr[f]
+            for a, b, c, f in zip(hh.tolist(), mm.tolist(), ss.tolist(), frac.tolist(), strict=True)
+        ]
+        base = s0.date()
+        dates: dict[int, str] = {}
+        for d in np.unique(day).tolist():
+            dt = base + timedelta(days=d)
+            dates[d] = f"{dt.day:02d}{dt.month:02d}{dt.year % 100:02d}"
+        return hms, [dates[d] for d in day.tolist()]
+
+    def _coords_batch(
+        self, value_deg: np.ndarray, valid: np.ndarray, deg_digits: int
+    ) -> tuple[list[str], list[str]]:
+        """``dd(d)mm.mmmmm`` texts and hemisphere letters, as :func:`_coord` (NaN -> 0)."""
+        scale = self._scale
+        v = np.where(valid & np.isfinite(value_deg), value_deg, 0.0)
+        total = np.rint(np.abs(v) * 60.0 * scale).astype(np.int64)
+        deg, rem = np.divmod(total, 60 * scale)
+        mins, frac = np.divmod(rem, scale)
+        dtab = _D2 if deg_digits == 2 else _D3K
+        pat = "%0" + str(self.minute_decimals) + "d"
+        d2 = _D2
+        txt = [
+            dtab[a] + d2[b] + "." + pat % f
+            for a, b, f in zip(deg.tolist(), mins.tolist(), frac.tolist(), strict=True)
+        ]
+        pos, neg = ("N", "S") if deg_digits == 2 else ("E", "W")
+        return txt, [pos if x else neg for x in (v >= 0.0).tolist()]
+
+    def format_epoch(self, ep: GnssEpoch) -> bytes:
+        """The complete byte burst of one epoch, CRLF-terminated sentences."""
+        return b"".join(sentence(b) for b in self.epoch_bodies(ep))
+
+    def format_epochs(self, epochs: Iterable[GnssEpoch]) -> list[bytes]:
+        """One burst per epoch, identical to :meth:`format_epoch` in a loop but faster.
+
+        All checksums of the batch are computed at once with numpy (XOR reduced per
+        sentence), which is what makes an hour of 1 Hz output take a few tens of ms.
+        """
+        eps = list(epochs)
+        selected = [self._select(ep.satellites) for ep in eps]
+        gsvs = self._gsv_batch(selected)
+        return _assemble(
+            [self._bodies(ep, sats, gsv) for ep, sats, gsv in zip(eps, selected, gsvs, strict=True)]
+        )
+
+
+def _sat_fields(prn: np.ndarray, el: np.ndarray, az: np.ndarray, snr: np.ndarray) -> list[str]:
+    """GSV satellite fields ``PP,EE,AAA,SS`` for flat arrays (NaN: empty field)."""
+    pos_ok = np.isfinite(el) & np.isfinite(az) & (np.abs(el) <= 90.0)
+    el_i = np.where(pos_ok, np.clip(np.floor(el + 0.5), 0, 90), 0).astype(np.int64)
+    az_i = np.where(pos_ok, np.floor(np.mod(az, 360.0) + 0.5) % 360, 0).astype(np.int64)
+    snr_i = np.where(np.isfinite(snr), np.clip(np.floor(snr + 0.5), 0, 99), 100).astype(np.int64)
+    # One table entry per (elevation, azimuth): "EE,AAA"; index -1 means no position.
+    pos_idx = np.where(pos_ok, el_i * 360 + az_i, -1).tolist()
+    d2 = _D2
+    elaz = _elaz_table()
+    return [
+        d2[p] + ("," + elaz[k] + "," if k >= 0 else ",,,") + _SNR_OR_EMPTY[q]
+        for p, k, q in zip(prn.tolist(), pos_idx, snr_i.tolist(), strict=True)
+    ]
+
+
+def _assemble(per_epoch: Sequence[Sequence[str]]) -> list[bytes]:
+    """Complete sentences (``$``, checksum, CRLF) joined per epoch; checksums computed for
+    the whole batch at once with numpy (XOR reduced per sentence)."""
+    raw = [b.encode("ascii") for bodies in per_epoch for b in bodies]
+    if not raw:
+        return [b"" for _ in per_epoch]
+    lengths = np.fromiter(map(len, raw), dtype=np.int64, count=len(raw))
+    starts = np.zeros(len(raw), dtype=np.int64)
+    np.cumsum(lengths[:-1], out=starts[1:])
+    buf = np.frombuffer(b"".join(raw), dtype=np.uint8)
+    sums = np.bitwise_xor.reduceat(buf, starts).tolist()
+    hexes = _HEX
+    lines = [b"$" + r + b"*" + hexes[c] + b"\r\n" for r, c in zip(raw, sums, strict=True)]
+    out = []
+    i = 0
+    for bodies in per_epoch:
+        n = len(bodies)
+        out.append(b"".join(lines[i : i + n]))
+        i += n
+    return out
+
+
+class BatchLike(Protocol):
+    """The columns of ``sim_backend.gnss.GnssBatch`` that :meth:`NmeaFormatter.format_batch`
+    reads: E epochs x S satellites."""
+
+    @property
+    def t_s(self) -> np.ndarray: ...
+
+    @property
+    def start_utc(self) -> datetime: ...
+
+    @property
+    def valid(self) -> np.ndarray: ...
+
+    @property
+    def lat_deg(self) -> np.ndarray: ...
+
+    @property
+    def lon_deg(self) -> np.ndarray: ...
+
+    @property
+    def alt_m(self) -> np.ndarray: ...
+
+    @property
+    def speed_mps(self) -> np.ndarray: ...
+
+    @property
+    def course_deg(self) -> np.ndarray: ...
+
+    @property
+    def hdop(self) -> np.ndarray: ...
+
+    @property
+    def pdop(self) -> np.ndarray: ...
+
+    @property
+    def vdop(self) -> np.ndarray: ...
+
+    @property
+    def prns(self) -> np.ndarray: ...
+
+    @property
+    def az_deg(self) -> np.ndarray: ...
+
+    @property
+    def el_deg(self) -> np.ndarray: ...
+
+    @property
+    def snr_dbhz(self) -> np.ndarray: ...
+
+    @property
+    def in_view(self) -> np.ndarray: ...
+
+    @property
+    def used(self) -> np.ndarray: ...
+
+    @property
+    def geoid_sep_m(self) -> float: ...
+
+    def epoch(self, i: int) -> GnssEpoch: ...
+
+    def epochs(self) -> list[GnssEpoch]: ...
+
+
+def _dop(value: float) -> str:
+    """DOP as u-blox prints it: 2 decimals, capped at 99.99 (also for NaN/inf)."""
+    if not math.isfinite(value) or value > 99.99:
+        return "99.99"
+    return f"{max(0.0, value):.2f}"
