@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from types import ModuleType
 
 from x6wd import __version__
@@ -55,7 +55,7 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
     return parser
 
 
-def _unavailable(name: str):  # type: ignore[no-untyped-def]
+def _unavailable(name: str) -> Callable[[argparse.Namespace], int]:
     def run(_args: argparse.Namespace) -> int:
         print(f"x6wd {name}: not available in this build yet", file=sys.stderr)
         return 2
