@@ -67,6 +67,8 @@ class SafetyConfig:
     attitude_stale_s: float = field(default=0.5, metadata=_rng(0.01, 10))
     manual_max_s: float = field(default=5.0, metadata=_rng(0.1, 60))
     geofence_radius_m: float = field(default=1000.0, metadata=_rng(1, 1e6))
+    # [lat_deg, lon_deg]; empty: the geofence is centred on the first valid fix
+    geofence_center: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -81,6 +83,8 @@ class ServerConfig:
     max_line_bytes: int = field(default=65536, metadata=_rng(256, 16 * 1024 * 1024))
     rate_per_s: float = field(default=50.0, metadata=_rng(0.1, 1e6))
     queue_len: int = field(default=256, metadata=_rng(1, 1_000_000))
+    # per-client input budget: a flooding client is read no faster than this (TCP pushes back)
+    input_bytes_per_s: int = field(default=65536, metadata=_rng(1024, 1 << 30))
 
 
 @dataclass(frozen=True)
@@ -88,6 +92,8 @@ class GpsdConfig:
     enabled: bool = True
     bind: str = "127.0.0.1"
     port: int = field(default=2947, metadata=_rng(0, 65535))
+    max_clients: int = field(default=32, metadata=_rng(1, 10000))
+    queue_len: int = field(default=64, metadata=_rng(1, 1_000_000))
 
 
 @dataclass(frozen=True)
@@ -102,6 +108,19 @@ class SimConfig:
 
     scenario: str = ""
     seed: int = field(default=1, metadata=_rng(0, 2**63 - 1))
+    # hardware-in-the-loop world (sim_backend.hil): start pose and receiver behaviour
+    origin_lat_deg: float = field(default=51.7520, metadata=_rng(-85, 85))
+    origin_lon_deg: float = field(default=-1.2577, metadata=_rng(-180, 180))
+    origin_alt_m: float = field(default=60.0, metadata=_rng(-500, 9000))
+    start_heading_deg: float = field(default=0.0, metadata=_rng(0, 360))
+    gps_rate_hz: float = field(default=1.0, metadata=_rng(1, 4))
+    gps_baud: int = field(default=9600, metadata=_rng(4800, 921600))
+    gps_sigma_m: float = field(default=0.3, metadata=_rng(0, 100))
+    gps_tau_s: float = field(default=30.0, metadata=_rng(0.1, 1e5))
+    physics_hz: float = field(default=50.0, metadata=_rng(5, 1000))
+    v_max_mps: float = field(default=3.88, metadata=_rng(0.1, 3.888))
+    motor_tau_s: float = field(default=0.25, metadata=_rng(0, 10))
+    motor_watchdog_ms: int = field(default=500, metadata=_rng(50, 60000))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,215 @@
+"""`x6wd client` as a real subprocess against a real server; mission files; the watch view."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.conftest import DATA, require_program
+from tests.test_server import TOKEN, LoopThread, RecordingBackend, start_server
+from x6wd.client import CLEAR, render_watch
+from x6wd.errors import ParseError
+from x6wd.mission_files import Waypoint, load_file, parse_args, parse_csv, parse_gpx
+from x6wd.server import ControlServer
+
+
+@pytest.fixture
+def served() -> Iterator[tuple[LoopThread, ControlServer, RecordingBackend]]:
+    lt = LoopThread()
+    backend = RecordingBackend()
+    srv = start_server(lt, backend, token=TOKEN.encode())
+    yield lt, srv, backend
+    lt.run(srv.close())
+    lt.close()
+
+
+@pytest.fixture
+def token_file(tmp_path: Path) -> Path:
+    p = tmp_path / "token"
+    p.write_text(TOKEN + "\n")
+    p.chmod(0o600)
+    return p
+
+
+def client(port: int, *args: str, token: Path | None = None) -> subprocess.CompletedProcess[str]:
+    cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(port)]
+    if token is not None:
+        cmd += ["--token-file", str(token)]
+    return subprocess.run(cmd + list(args), capture_output=True, text=True, timeout=30)
+
+
+def test_status_start_stop_and_auth(served, token_file: Path) -> None:
+    _, srv, backend = served
+    r = client(srv.port, "status")
+    assert r.returncode == 0, r.stderr
+    assert '"mode": "IDLE"' in r.stdout
+    r = client(srv.port, "start")  # no token: refused with a clear message
+    assert r.returncode == 1
+    assert "start refused: unauthorized" in r.stderr
+    r = client(srv.port, "stop")  # always allowed
+    assert r.returncode == 0 and "stop: ok" in r.stdout
+    for action in ("start", "pause", "resume"):
+        r = client(srv.port, action, token=token_file)
+        assert r.returncode == 0, r.stderr
+    assert [name for name, _ in backend.calls] == ["stop", "start", "pause", "resume"]
+
+
+def test_load_from_csv_gpx_and_arguments(served, token_file: Path, tmp_path: Path) -> None:
+    _, srv, backend = served
+    gpx = tmp_path / "m.gpx"
+    gpx.write_text(
+        '<gpx version="1.1"><wpt lat="51.75" lon="-1.25"><name>a</name></wpt>'
+        '<wpt lat="51.76" lon="-1.26"/></gpx>'
+    )
+    assert client(srv.port, "load", str(gpx), token=token_file).returncode == 0
+    r = client(srv.port, "load", "--wp", "51.7,-1.2", "--wp", "51.71,-1.21", token=token_file)
+    assert r.returncode == 0, r.stderr
+    assert (
+        client(srv.port, "load", str(DATA / "client" / "mobile.csv"), token=token_file).returncode
+        == 0
+    )
+    loads = [arg for name, arg in backend.calls if name == "load_mission"]
+    assert loads[0] == [Waypoint(51.75, -1.25), Waypoint(51.76, -1.26)]
+    assert loads[1] == [Waypoint(51.7, -1.2), Waypoint(51.71, -1.21)]
+    assert len(loads[2]) == 1406 and loads[2][0] == Waypoint(39.821673201, -105.095171686)
+
+
+def test_bad_input_and_refusals_give_clear_messages(
+    served, token_file: Path, tmp_path: Path
+) -> None:
+    _, srv, _ = served
+    bad = tmp_path / "bad.csv"
+    bad.write_text("lat,lon\n51.0,-1.0\n91.5,-1.0\n")
+    r = client(srv.port, "load", str(bad), token=token_file)
+    assert r.returncode == 2 and "line 3" in r.stderr and "latitude 91.5" in r.stderr
+    r = client(srv.port, "load", str(tmp_path / "missing.gpx"), token=token_file)
+    assert r.returncode == 2 and "cannot read" in r.stderr
+    r = client(srv.port, "load", "--wp", "51.0;-1.0", token=token_file)
+    assert r.returncode == 2 and "LAT,LON" in r.stderr
+    r = client(srv.port, "drive", "150", "0", "1", token=token_file)
+    assert r.returncode == 1 and "bad_request" in r.stderr and "left" in r.stderr
+    r = client(srv.port, "drive", "20", "-20", "1.5", token=token_file)
+    assert r.returncode == 0, r.stderr
+
+
+def test_connection_refused_is_exit_3(tmp_path: Path) -> None:
+    import socket
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    r = client(port, "status")
+    assert r.returncode == 3
+    assert f"cannot connect to 127.0.0.1:{port}" in r.stderr
+
+
+TEL: dict[str, Any] = {
+    "mode": "RUNNING", "state": "TURN_LEFT", "hold_reason": "", "waypoint_index": 1,
+    "waypoint_count": 3, "lat_deg": 51.7512345, "lon_deg": -1.2567891,
+    "filt_lat_deg": 51.7512301, "filt_lon_deg": -1.2567802, "bearing_deg": 93.5,
+    "heading_deg": 95.0, "pitch_deg": -4.0, "roll_deg": 2.0, "target_bearing_deg": 40.0,
+    "theta_deg": -55.0, "distance_m": 12.34, "fix_quality": 1, "sats_used": 7, "hdop": 1.1,
+    "fix_age_s": 0.4, "attitude_age_s": 0.05, "left_pct": -40.0, "right_pct": 40.0,
+}  # fmt: skip
+
+
+def test_watch_redraws_one_screen_per_event(served, token_file: Path) -> None:
+    lt, srv, _ = served
+    stop = threading.Event()
+
+    def publish() -> None:
+        while not stop.wait(0.05):
+            lt.call(lambda: srv.publish({"event": "telemetry", "data": TEL}))
+
+    t = threading.Thread(target=publish, daemon=True)
+    t.start()
+    try:
+        r = client(srv.port, "watch", "--count", "3", token=token_file)
+    finally:
+        stop.set()
+        t.join()
+    assert r.returncode == 0, r.stderr
+    screens = r.stdout.split(CLEAR)
+    assert screens[0] == "" and len(screens) == 4
+    last = screens[-1]
+    for text in ("RUNNING / TURN_LEFT", "51.7512345", "51.7512301", "93.5 deg", "-4 deg",
+                 "2/3", "12.3 m", "quality 1", "sats 7", "motors ok"):  # fmt: skip
+        assert text in last, (text, last)
+
+
+def test_render_watch_shows_hold_reason_and_unknowns() -> None:
+    screen = render_watch({"mode": "RUNNING", "state": "HOLD", "hold_reason": "fix stale"})
+    assert "HOLD: fix stale" in screen
+    assert "position   - -" in screen
+    assert "waypoint   -" in screen
+
+
+def test_mission_file_parsers() -> None:
+    assert parse_csv("# comment\n51.0, -1.0\n\n51.1,-1.1\n") == [(51.0, -1.0), (51.1, -1.1)]
+    assert parse_csv("name,Longitude,Latitude\nA,-1.0,51.0\n") == [(51.0, -1.0)]
+    with pytest.raises(ParseError, match="header needs lat and lon"):
+        parse_csv("name,lat\nA,51\n")
+    with pytest.raises(ParseError, match="line 2: expected at least 2 columns"):
+        parse_csv("51,-1\n52\n")
+    with pytest.raises(ParseError, match="no waypoints"):
+        parse_csv("lat,lon\n")
+    trk = (
+        '<gpx xmlns="http://www.topografix.com/GPX/1/0"><trk><trkseg>'
+        '<trkpt lat="1.5" lon="2.5"/><trkpt lat="1.6" lon="2.6"/></trkseg></trk></gpx>'
+    )
+    assert parse_gpx(trk) == [(1.5, 2.5), (1.6, 2.6)]
+    with pytest.raises(ParseError, match="DTDs and entities"):
+        parse_gpx('<!DOCTYPE gpx [<!ENTITY a "b">]><gpx><wpt lat="1" lon="2"/></gpx>')
+    with pytest.raises(ParseError, match="not valid XML"):
+        parse_gpx("<gpx><wpt")
+    with pytest.raises(ParseError, match="expected <gpx>"):
+        parse_gpx("<kml/>")
+    with pytest.raises(ParseError, match="longitude 200"):
+        parse_args(["1,200"])
+    with pytest.raises(ParseError, match="must be finite"):
+        parse_args(["nan,1"])
+
+
+def test_real_csv_with_many_columns() -> None:
+    wps = load_file(DATA / "client" / "mobile.csv")
+    assert len(wps) == 1406
+    assert wps[-1].lat_deg == pytest.approx(39.8216, abs=1e-3)
+    assert all(-105.1 < w.lon_deg < -105.09 for w in wps)
+
+
+def test_tls_from_the_command_line(tmp_path: Path, token_file: Path) -> None:
+    import os
+    import ssl
+
+    openssl = require_program("openssl")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(
+        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2",
+         "-subj", "/CN=localhost", "-addext", "subjectAltName=IP:127.0.0.1",
+         "-keyout", str(key), "-out", str(cert)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    os.chmod(key, 0o600)
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.load_cert_chain(cert, key)
+    lt = LoopThread()
+    backend = RecordingBackend()
+    srv = start_server(lt, backend, token=TOKEN.encode(), ssl_context=ctx)
+    try:
+        r = client(srv.port, "--cafile", str(cert), "start", token=token_file)
+        assert r.returncode == 0, r.stderr
+        r = client(srv.port, "--tls", "start", token=token_file)  # untrusted certificate
+        assert r.returncode == 3 and "TLS handshake" in r.stderr
+        r = client(srv.port, "status")  # plain text to a TLS port
+        assert r.returncode == 3
+    finally:
+        lt.run(srv.close())
+        lt.close()
+    assert [name for name, _ in backend.calls] == ["start"]

@@ -1,0 +1,325 @@
+"""The daemon with real devices: the HIL world (pty GPS, register-map compass, simulated
+vehicle), a real motor board behind a pty, real sockets and a real sd_notify socket."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from sim_backend import hil
+from x6wd.client import RemoteClient, RequestFailed
+from x6wd.config import Config, GpsdConfig, RecorderConfig, SafetyConfig, ServerConfig, SimConfig
+from x6wd.daemon import Daemon, distance_m
+from x6wd.records import Attitude, MotorCommand
+
+ORIGIN = (51.7520, -1.2577)
+
+
+def hil_config(tmp_path: Path, **sections: Any) -> Config:
+    base = Config(
+        server=ServerConfig(port=0),
+        gpsd=GpsdConfig(port=0),
+        recorder=RecorderConfig(dir=str(tmp_path / "rec")),
+        sim=SimConfig(gps_rate_hz=4.0, gps_baud=115200, gps_sigma_m=0.0),
+        safety=SafetyConfig(geofence_radius_m=100.0),
+    )
+    cfg = dataclasses.replace(
+        base,
+        gps=dataclasses.replace(base.gps, url="sim://"),
+        compass=dataclasses.replace(base.compass, url="sim://"),
+        motors=dataclasses.replace(base.motors, url="sim://"),
+    )
+    return dataclasses.replace(cfg, **sections)
+
+
+class Running:
+    """A Daemon on its own event-loop thread."""
+
+    def __init__(self, daemon: Daemon) -> None:
+        self.daemon = daemon
+        self.ready = threading.Event()
+        self.code: int | None = None
+        self.thread = threading.Thread(target=self._main, daemon=True)
+        self.thread.start()
+        assert self.ready.wait(15), "daemon did not become ready"
+
+    def _main(self) -> None:
+        async def go() -> int:
+            self.loop = asyncio.get_running_loop()
+            return await self.daemon.run(ready=lambda _d: self.ready.set())
+
+        self.code = asyncio.run(go())
+        self.ready.set()
+
+    @property
+    def port(self) -> int:
+        assert self.daemon.server is not None
+        return self.daemon.server.port
+
+    def stop(self) -> int | None:
+        if self.thread.is_alive():
+            self.loop.call_soon_threadsafe(self.daemon.request_stop)
+            self.thread.join(15)
+        return self.code
+
+
+@pytest.fixture
+def run_daemon() -> Iterator[Callable[[Daemon], Running]]:
+    started: list[Running] = []
+
+    def start(d: Daemon) -> Running:
+        r = Running(d)
+        started.append(r)
+        return r
+
+    yield start
+    for r in started:
+        r.stop()
+    hil.shutdown()
+
+
+def wait_for(pred: Callable[[], Any], timeout_s: float = 10.0, what: str = "") -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what or pred}")
+
+
+def status(c: RemoteClient) -> dict[str, Any]:
+    return c.request("status")
+
+
+def test_dead_man_expiry_stops_the_motors(tmp_path: Path, run_daemon) -> None:
+    r = run_daemon(Daemon(hil_config(tmp_path)))
+    world = hil.world()
+    with RemoteClient("127.0.0.1", r.port) as c:
+        wait_for(
+            lambda: status(c)["telemetry"] and status(c)["telemetry"]["fix_quality"], what="fix"
+        )
+        c.request("drive", left=50, right=50, duration_s=0.6)
+        wait_for(lambda: world.vehicle.command_pct == (50.0, 50.0), 3, "drive reaches vehicle")
+        assert status(c)["mode"] == "MANUAL"
+        wait_for(lambda: status(c)["mode"] == "IDLE", 5, "dead-man expiry")
+        wait_for(lambda: world.vehicle.command_pct == (0.0, 0.0), 3, "motors stopped")
+        with pytest.raises(RequestFailed) as ei:
+            c.request("drive", left=10, right=10, duration_s=60)  # over safety.manual_max_s
+        assert ei.value.code == "bad_request"
+    assert r.stop() == 0
+
+
+def test_geofence_from_first_fix_and_from_configured_centre(tmp_path: Path, run_daemon) -> None:
+    r = run_daemon(Daemon(hil_config(tmp_path)))
+    with RemoteClient("127.0.0.1", r.port) as c:
+        wait_for(lambda: r.daemon.first_fix, what="first fix")
+        far = [ORIGIN[0] + 0.01, ORIGIN[1]]  # ~1.1 km north, limit 100 m
+        with pytest.raises(RequestFailed) as ei:
+            c.request("mission.load", waypoints=[[ORIGIN[0] + 0.0002, ORIGIN[1]], far])
+        assert ei.value.code == "geofence" and "waypoint 2" in ei.value.message
+        assert c.request("mission.load", waypoints=[[ORIGIN[0] + 0.0002, ORIGIN[1]]])["count"] == 1
+    r.stop()
+    hil.shutdown()
+    centre = SafetyConfig(geofence_radius_m=100.0, geofence_center=(ORIGIN[0] + 0.01, ORIGIN[1]))
+    r2 = run_daemon(Daemon(hil_config(tmp_path, safety=centre)))
+    with RemoteClient("127.0.0.1", r2.port) as c:
+        # the configured centre applies even before a fix
+        assert c.request("mission.load", waypoints=[far])["count"] == 1
+        with pytest.raises(RequestFailed):
+            c.request("mission.load", waypoints=[list(ORIGIN)])
+
+
+def test_lost_motor_link_holds_the_mission(tmp_path: Path, run_daemon) -> None:
+    from drivers.motors import MotorBoard, serve_board_fd
+
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    board = MotorBoard(watchdog_ms=500)
+    board_stop = threading.Event()
+    server = threading.Thread(target=serve_board_fd, args=(master, board, board_stop), daemon=True)
+    server.start()
+    cfg = hil_config(tmp_path)
+    cfg = dataclasses.replace(
+        cfg, motors=dataclasses.replace(cfg.motors, url=f"serial://{os.ttyname(slave)}")
+    )
+    try:
+        r = run_daemon(Daemon(cfg))
+        with RemoteClient("127.0.0.1", r.port) as c:
+            wait_for(lambda: r.daemon.first_fix, what="first fix")
+            c.request("mission.load", waypoints=[[ORIGIN[0] + 0.0005, ORIGIN[1]]])
+            c.request("start")
+            wait_for(lambda: board.running, 5, "board driven")
+            board_stop.set()  # the board dies: no more acknowledgements
+            server.join(5)
+            tel = wait_for(
+                lambda: (t := status(c)["telemetry"]) and t["state"] == "HOLD" and t,
+                10,
+                "HOLD on lost link",
+            )
+            assert tel["hold_reason"] == "motor link lost"
+            assert (tel["left_pct"], tel["right_pct"]) == (0.0, 0.0)
+            assert status(c)["links"]["motors"] == "lost"
+        assert r.stop() == 0
+    finally:
+        board_stop.set()
+        os.close(master)
+        os.close(slave)
+
+
+class FaultyDaemon(Daemon):
+    """Fault injection: the 10th compass sample hits a bug."""
+
+    def _on_attitude(self, att: Attitude) -> None:
+        if self.stats["attitudes"] >= 10:
+            raise RuntimeError("injected bug")
+        super()._on_attitude(att)
+
+
+def test_unexpected_exception_stops_motors_and_exits_non_zero(tmp_path: Path, run_daemon) -> None:
+    d = FaultyDaemon(hil_config(tmp_path))
+    r = run_daemon(d)
+    world = hil.world()
+    r.thread.join(15)
+    assert r.code == 1
+    assert world.vehicle.command_pct == (0.0, 0.0)
+    assert d.motors is not None and d.motors.link.last_command.is_stop
+
+
+def test_bad_geofence_centre_is_a_startup_error(tmp_path: Path) -> None:
+    cfg = hil_config(tmp_path, safety=SafetyConfig(geofence_center=(1.0,)))
+    assert asyncio.run(Daemon(cfg).run()) == 2
+    hil.shutdown()
+
+
+def test_distance() -> None:
+    # one degree of latitude is about 111.2 km on the mean sphere
+    assert distance_m(0.0, 0.0, 1.0, 0.0) == pytest.approx(111_195, rel=1e-4)
+    assert distance_m(51.0, 10.0, 51.0, 10.0) == 0.0
+
+
+# -- the real process: sd_notify, signals, recorder ------------------------------------------
+
+
+def write_config(tmp_path: Path, **server: Any) -> Path:
+    server_lines = "\n".join(f"{k} = {json.dumps(v)}" for k, v in server.items())
+    text = f"""
+[gps]
+url = "sim://"
+[compass]
+url = "sim://"
+[motors]
+url = "sim://"
+[server]
+port = 0
+{server_lines}
+[gpsd]
+port = 0
+[recorder]
+dir = "{tmp_path / "rec"}"
+[sim]
+gps_rate_hz = 4.0
+gps_baud = 115200
+"""
+    p = tmp_path / "x6wd.toml"
+    p.write_text(text)
+    return p
+
+
+def daemon_cmd(config: Path) -> list[str]:
+    return [sys.executable, "-m", "x6wd", "run", "--config", str(config)]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_process_notifies_systemd_and_exits_cleanly_on_signal(tmp_path: Path, sig: int) -> None:
+    sock_path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(sock_path))
+    sock.settimeout(15)
+    env = {**os.environ, "NOTIFY_SOCKET": str(sock_path), "WATCHDOG_USEC": "200000"}
+    proc = subprocess.Popen(
+        daemon_cmd(write_config(tmp_path)), env=env, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        msgs: list[dict[str, str]] = []
+
+        def recv() -> dict[str, str]:
+            data = sock.recv(4096).decode()
+            m = dict(line.split("=", 1) for line in data.split("\n"))
+            msgs.append(m)
+            return m
+
+        first = recv()
+        assert first["READY"] == "1" and first["MAINPID"] == str(proc.pid)
+        watchdogs = 0
+        while watchdogs < 10:  # about 1 s: a few GPS epochs reach the recorder
+            watchdogs += recv().get("WATCHDOG") == "1"
+        proc.send_signal(sig)
+        while "STOPPING" not in recv():
+            pass
+        assert proc.wait(15) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        sock.close()
+    err = proc.stderr.read() if proc.stderr else ""
+    assert "x6wd stopped" in err
+    (rec,) = (tmp_path / "rec").glob("*.jsonl")
+    types = {json.loads(line)["type"] for line in rec.read_text().splitlines()}
+    assert {"fix", "nmea", "attitude", "telemetry"} <= types
+
+
+def test_group_readable_token_file_is_a_clear_startup_error(tmp_path: Path) -> None:
+    token = tmp_path / "token"
+    token.write_text("0123456789abcdef")
+    token.chmod(0o644)
+    proc = subprocess.run(
+        daemon_cmd(write_config(tmp_path, token_file=str(token))),
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert proc.returncode == 2
+    assert "token_file" in proc.stderr and "chmod 600" in proc.stderr
+
+
+def test_motor_keepalive_stops_when_the_control_loop_goes_silent() -> None:
+    from drivers.motors import LogMotorLink
+    from x6wd.daemon import _MotorWorker
+
+    link = LogMotorLink()
+    worker = _MotorWorker(link, keepalive_s=0.02, on_health=lambda ok, t: None)
+    worker.start()
+    try:
+        worker.submit(MotorCommand(time.monotonic(), 50.0, 50.0, "drive"))
+        # fresh command: re-sent as keep-alive for a while, then silence means stop
+        wait_for(lambda: link.last_command is not None and link.last_command.is_stop, 3, "stop")
+        sent = list(link.commands)
+        assert sent[0].left_pct == 50.0 and sum(c.left_pct == 50.0 for c in sent) >= 2
+        assert sent[-1].reason == "keepalive"
+    finally:
+        worker.shutdown("test end")
+    assert link.commands[-1].is_stop
+
+
+def test_gpsd_device_path_from_url() -> None:
+    from x6wd.daemon import _device_path
+
+    assert _device_path("serial:///dev/ttyAMA0?baud=4800") == ("/dev/ttyAMA0", 4800)
+    assert _device_path("sim://") == ("sim://", 9600)

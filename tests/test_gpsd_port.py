@@ -1,0 +1,294 @@
+"""The gpsd-compatible port, checked with the real Debian clients (gpspipe, python3-gps)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from typing import Any
+
+import pytest
+
+from tests.conftest import DATA, require_program
+from x6wd.errors import ProtocolError
+from x6wd.gpsd import GpsdServer, att_obj, parse_commands, sky_obj, tpv_obj
+from x6wd.records import Attitude, GpsFix, GpsSky, SatInfo
+
+UTC0 = datetime(2026, 11, 22, 5, 0, 1, 250000, tzinfo=UTC)
+FIX = GpsFix(
+    t_s=1.0, utc=UTC0, lat_deg=51.7512345, lon_deg=-1.2567891, alt_m=64.2, quality=1,
+    sats_used=7, hdop=1.1, speed_mps=0.42, course_deg=None, valid=True, mode=3, vdop=1.8,
+    geoid_sep_m=47.0,
+)  # fmt: skip
+SKY = GpsSky(
+    t_s=1.0,
+    satellites=(SatInfo(5, 41.0, 120.0, 38.0, True), SatInfo(12, 7.0, 300.0, None, False)),
+    pdop=2.1, hdop=1.1, vdop=1.8, utc=UTC0,
+)  # fmt: skip
+ATT = Attitude(t_s=1.0, bearing_deg=359.5, pitch_deg=-3.0, roll_deg=2.0)
+GGA = "$GPGGA,050001.25,5145.07407,N,00115.40735,W,1,07,1.10,64.2,M,47.0,M,,*7A"
+
+
+class Published:
+    """A GpsdServer on its own loop thread, publishing one epoch every 50 ms until closed."""
+
+    def __init__(self, **kw: Any) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.srv = GpsdServer("127.0.0.1", 0, "/dev/ttyS0", declination_deg=1.5, **kw)
+        asyncio.run_coroutine_threadsafe(self.srv.start(), self.loop).result(5)
+        self.task = asyncio.run_coroutine_threadsafe(self._feed(), self.loop)
+
+    async def _feed(self) -> None:
+        while True:
+            self.srv.publish_nmea(GGA)
+            self.srv.publish_fix(FIX)
+            self.srv.publish_sky(SKY)
+            self.srv.publish_attitude(ATT)
+            await asyncio.sleep(0.05)
+
+    def close(self) -> None:
+        self.task.cancel()
+        asyncio.run_coroutine_threadsafe(self.srv.close(), self.loop).result(5)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+        self.loop.close()
+
+
+@pytest.fixture
+def gpsd() -> Iterator[GpsdServer]:
+    p = Published()
+    yield p.srv
+    p.close()
+
+
+def _check_line(line: str) -> dict[str, Any]:
+    assert "null" not in line, line
+    assert ", " not in line and '": ' not in line, f"not compact: {line}"
+    return json.loads(line)
+
+
+def test_gpspipe_watch_json(gpsd: GpsdServer) -> None:
+    gpspipe = require_program("gpspipe")
+    out = subprocess.run(
+        [gpspipe, "-w", "-n", "10", f"127.0.0.1:{gpsd.port}"],
+        capture_output=True, text=True, timeout=20, check=True,
+    )  # fmt: skip
+    objs = [_check_line(x) for x in out.stdout.splitlines() if x.strip()]
+    classes = [o["class"] for o in objs]
+    assert classes[:3] == ["VERSION", "DEVICES", "WATCH"]
+    assert objs[0]["proto_major"] == 3 and objs[0]["release"]
+    assert [d["path"] for d in objs[1]["devices"]] == ["/dev/ttyS0"]
+    tpv = next(o for o in objs if o["class"] == "TPV")
+    assert tpv["mode"] == 3 and tpv["time"] == "2026-11-22T05:00:01.250Z"
+    assert tpv["lat"] == pytest.approx(51.7512345) and tpv["lon"] == pytest.approx(-1.2567891)
+    assert tpv["altMSL"] == pytest.approx(64.2) and tpv["altHAE"] == pytest.approx(111.2)
+    assert "track" not in tpv  # course unknown at rest: omitted, never null
+    sky = next(o for o in objs if o["class"] == "SKY")
+    assert (sky["nSat"], sky["uSat"]) == (2, 1)
+    assert sky["satellites"][0] == {"PRN": 5, "used": True, "el": 41.0, "az": 120.0, "ss": 38.0}
+    assert "ss" not in sky["satellites"][1]
+    att = next(o for o in objs if o["class"] == "ATT")
+    assert att["heading"] == pytest.approx(1.0)  # 359.5 magnetic + 1.5 declination
+    assert att["mheading"] == pytest.approx(359.5)
+    assert (att["pitch"], att["roll"]) == (-3.0, 2.0)
+
+
+def test_gpspipe_raw_nmea(gpsd: GpsdServer) -> None:
+    gpspipe = require_program("gpspipe")
+    out = subprocess.run(
+        [gpspipe, "-r", "-n", "6", f"127.0.0.1:{gpsd.port}"],
+        capture_output=True, text=True, timeout=20, check=True,
+    )  # fmt: skip
+    assert GGA in out.stdout.splitlines()
+
+
+def test_python3_gps_module_reads_tpv_sky_att(gpsd: GpsdServer) -> None:
+    python3 = require_program("/usr/bin/python3")
+    script = r"""
+import json, sys
+import gps
+s = gps.gps(host="127.0.0.1", port=sys.argv[1], mode=gps.WATCH_ENABLE | gps.WATCH_JSON)
+seen = {}
+for _ in range(200):
+    r = s.next()
+    cls = r["class"]
+    if cls == "TPV" and "lat" in r:
+        seen["TPV"] = [r["lat"], r["lon"], r["mode"], s.fix.latitude, s.fix.mode]
+    elif cls == "SKY":
+        seen["SKY"] = [len(r["satellites"]), s.satellites_used]
+    elif cls == "ATT":
+        seen["ATT"] = [r["heading"], r["pitch"], r["roll"]]
+    elif cls == "DEVICES":
+        seen["DEVICES"] = [d["path"] for d in r["devices"]]
+    if len(seen) == 4:
+        break
+print(json.dumps(seen))
+"""
+    out = subprocess.run(
+        [python3, "-c", script, str(gpsd.port)],
+        capture_output=True, text=True, timeout=20, check=True,
+    )  # fmt: skip
+    seen = json.loads(out.stdout)
+    assert seen["DEVICES"] == ["/dev/ttyS0"]
+    lat, lon, mode, fix_lat, fix_mode = seen["TPV"]
+    assert (lat, lon, mode) == (pytest.approx(51.7512345), pytest.approx(-1.2567891), 3)
+    assert fix_lat == pytest.approx(51.7512345) and fix_mode == 3
+    assert seen["SKY"] == [2, 1]
+    assert seen["ATT"] == [pytest.approx(1.0), -3.0, 2.0]
+
+
+def test_poll_devices_version_and_errors_over_a_socket(gpsd: GpsdServer) -> None:
+    with socket.create_connection(("127.0.0.1", gpsd.port), timeout=5) as s:
+        f = s.makefile("rb")
+        first = f.readline()
+        assert first.endswith(b"\r\n") and json.loads(first)["class"] == "VERSION"
+        s.sendall(b"?POLL;?DEVICES;\n?VERSION\n?BOGUS;\nhello\n")
+        poll = json.loads(f.readline())
+        assert poll["class"] == "POLL" and poll["active"] == 1
+        assert poll["tpv"][0]["lat"] == pytest.approx(51.7512345)
+        assert json.loads(f.readline())["class"] == "DEVICES"
+        assert json.loads(f.readline())["class"] == "VERSION"
+        assert json.loads(f.readline()) == {
+            "class": "ERROR",
+            "message": "Unrecognized request 'BOGUS'",
+        }
+        assert json.loads(f.readline())["class"] == "ERROR"
+        # WATCH off: nothing streams, the connection stays usable
+        s.sendall(b'?WATCH={"enable":false};\n')
+        assert json.loads(f.readline())["class"] == "DEVICES"
+        assert json.loads(f.readline())["enable"] is False
+        s.sendall(b"?VERSION;\n")
+        assert json.loads(f.readline())["class"] == "VERSION"
+
+
+def test_stuck_gpsd_client_queue_is_bounded() -> None:
+    p = Published(queue_len=4)
+    try:
+        s = socket.create_connection(("127.0.0.1", p.srv.port), timeout=5)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.sendall(b'?WATCH={"enable":true,"json":true};\n')
+        f = s.makefile("rb")
+        assert [json.loads(f.readline())["class"] for _ in range(3)] == [
+            "VERSION",
+            "DEVICES",
+            "WATCH",
+        ]
+
+        def flood() -> int:
+            for _ in range(20000):
+                p.srv.publish_sky(SKY)
+            return max(len(c.queue) for c in p.srv._clients)
+
+        async def run() -> int:
+            return flood()
+
+        assert asyncio.run_coroutine_threadsafe(run(), p.loop).result(30) <= 4
+        assert p.srv.dropped_total > 0
+        s.close()
+    finally:
+        p.close()
+
+
+def test_encoders_never_emit_null_and_no_fix_has_no_position() -> None:
+    nofix = GpsFix(t_s=0.0, valid=False, mode=1, quality=0, hdop=99.99)
+    tpv = tpv_obj(nofix, "/dev/x")
+    assert tpv == {"class": "TPV", "device": "/dev/x", "mode": 1}
+    assert None not in tpv_obj(FIX, "d").values()
+    assert None not in sky_obj(GpsSky(t_s=0.0), "d").values()
+    assert att_obj(Attitude(0.0, 10.0, 0.0, 0.0, valid=False), "d") == {
+        "class": "ATT",
+        "device": "d",
+    }
+
+
+def test_command_parser() -> None:
+    assert parse_commands('?WATCH={"enable":true,"json":true};?POLL;\r\n') == [
+        ("WATCH", {"enable": True, "json": True}),
+        ("POLL", None),
+    ]
+    assert parse_commands('?WATCH={"nmea":true}') == [("WATCH", {"nmea": True})]
+    with pytest.raises(ProtocolError, match="Invalid JSON"):
+        parse_commands("?WATCH={bad;")
+    with pytest.raises(ProtocolError, match="must be a JSON object"):
+        parse_commands("?WATCH=[1];")
+
+
+def test_real_recording_through_decoder_and_port_matches_gpsd_itself() -> None:
+    """A real u-blox 5 log through the real decoder and this port, read by gpspipe, gives
+    the same positions and times as gpsd's own output for that log."""
+    from drivers.gps_nmea import GpsDecoder
+
+    gpspipe = require_program("gpspipe")
+    raw = (DATA / "gpsd_port" / "ublox-lea-5h.log").read_bytes()
+    dec = GpsDecoder()
+    records = dec.feed(raw, 0.0) + dec.flush(0.0)
+    fixes = [r for r in records if isinstance(r, GpsFix)]
+    skies = [r for r in records if isinstance(r, GpsSky)]
+    assert len(fixes) >= 15 and skies
+    golden = [
+        json.loads(line)
+        for line in (DATA / "gpsd_port" / "ublox-lea-5h.log.chk").read_text().splitlines()
+        if line.startswith('{"class":"TPV"')
+    ]
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, daemon=True)
+    thread.start()
+    srv = GpsdServer("127.0.0.1", 0, "/dev/ttyS0", queue_len=10_000)
+    asyncio.run_coroutine_threadsafe(srv.start(), loop).result(5)
+    n = 3 + len(fixes) + len(skies)
+    pipe = subprocess.Popen(
+        [gpspipe, "-w", "-n", str(n), f"127.0.0.1:{srv.port}"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+
+    async def watching() -> bool:
+        return any(c.watch_json for c in srv._clients)
+
+    try:
+        deadline = time.monotonic() + 10
+        while not asyncio.run_coroutine_threadsafe(watching(), loop).result(5):
+            assert time.monotonic() < deadline, "gpspipe never watched"
+            time.sleep(0.02)
+
+        async def publish() -> None:
+            for r in records:
+                if isinstance(r, GpsFix):
+                    srv.publish_fix(r)
+                elif isinstance(r, GpsSky):
+                    srv.publish_sky(r)
+
+        asyncio.run_coroutine_threadsafe(publish(), loop).result(5)
+        out, _ = pipe.communicate(timeout=20)
+    finally:
+        if pipe.poll() is None:
+            pipe.kill()
+        asyncio.run_coroutine_threadsafe(srv.close(), loop).result(5)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(5)
+        loop.close()
+    ours = [json.loads(x) for x in out.splitlines() if x.startswith('{"class":"TPV"')]
+    assert len(ours) == len(fixes)
+    by_time = {}
+    for g in golden:
+        if g.get("mode") == 3 and "altMSL" in g:
+            by_time[g["time"]] = g
+    matched = 0
+    for t in ours:
+        g = by_time.get(t.get("time"))
+        if g is None or t["mode"] != 3:
+            continue
+        matched += 1
+        assert t["lat"] == pytest.approx(g["lat"], abs=1e-8)
+        assert t["lon"] == pytest.approx(g["lon"], abs=1e-8)
+        assert t["altMSL"] == pytest.approx(g["altMSL"], abs=1e-3)
+        assert t["altHAE"] == pytest.approx(g["altHAE"], abs=1e-3)
+        if "speed" in t:  # a fix closed without its RMC has no speed: omitted, not null
+            assert t["speed"] == pytest.approx(g["speed"], abs=1e-3)
+    assert matched >= 10

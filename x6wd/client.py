@@ -1,0 +1,359 @@
+"""``x6wd client``: the operator's command line for the remote-control protocol.
+
+``x6wd client [--host H] [--port P] [--token-file F] [--tls [--cafile F]] COMMAND``
+with COMMAND one of ``status``, ``load FILE | load --wp LAT,LON ...``, ``start``, ``pause``,
+``resume``, ``stop``, ``drive LEFT RIGHT SECONDS``, ``watch``, ``log [N]``.
+
+Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import socket
+import ssl
+import sys
+import time
+from collections import deque
+from typing import Any, TextIO
+
+from x6wd.errors import ParseError, ProtocolError, X6wdError
+from x6wd.mission_files import Waypoint, load_file, parse_args
+from x6wd.server import load_token
+
+EXIT_OK = 0
+EXIT_REFUSED = 1
+EXIT_USAGE = 2
+EXIT_CONNECTION = 3
+DEFAULT_PORT = 7601
+MAX_REPLY_BYTES = 16 * 1024 * 1024
+CLEAR = "\x1b[H\x1b[2J"
+
+
+class ConnectionFailed(X6wdError):
+    """The server could not be reached, or the connection broke."""
+
+
+class RequestFailed(X6wdError):
+    """The server answered a request with an error reply."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(f"{code}: {message}")
+        self.code = code
+        self.message = message
+
+
+class RemoteClient:
+    """A blocking protocol client (one request at a time; events kept while waiting).
+
+    ``timeout_s`` bounds connecting and waiting for each reply.
+    """
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        *,
+        token: str | None = None,
+        ssl_context: ssl.SSLContext | None = None,
+        timeout_s: float = 5.0,
+    ) -> None:
+        self.host, self.port = host, port
+        self.timeout_s = timeout_s
+        self.events: deque[dict[str, Any]] = deque(maxlen=10_000)
+        self._ids = itertools.count(1)
+        self._buf = b""
+        try:
+            sock = socket.create_connection((host, port), timeout=timeout_s)
+        except OSError as exc:
+            raise ConnectionFailed(f"cannot connect to {host}:{port}: {_why(exc)}") from None
+        try:
+            if ssl_context is not None:
+                sock = ssl_context.wrap_socket(sock, server_hostname=host)
+        except (OSError, ssl.SSLError) as exc:
+            sock.close()
+            raise ConnectionFailed(f"TLS handshake with {host}:{port} failed: {exc}") from None
+        self._sock: socket.socket | None = sock
+        if token is not None:
+            self.request("auth", token=token)
+
+    def close(self) -> None:
+        """Close the connection (idempotent)."""
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    def __enter__(self) -> RemoteClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _readline(self, timeout_s: float | None) -> bytes:
+        if self._sock is None:
+            raise ConnectionFailed("connection closed")
+        while b"\n" not in self._buf:
+            self._sock.settimeout(timeout_s)
+            try:
+                chunk = self._sock.recv(65536)
+            except TimeoutError:
+                raise
+            except OSError as exc:
+                raise ConnectionFailed(
+                    f"connection to {self.host}:{self.port}: {_why(exc)}"
+                ) from None
+            if not chunk:
+                raise ConnectionFailed(f"{self.host}:{self.port} closed the connection")
+            self._buf += chunk
+            if len(self._buf) > MAX_REPLY_BYTES:
+                raise ProtocolError("server line longer than 16 MiB")
+        line, _, self._buf = self._buf.partition(b"\n")
+        return line
+
+    def read_message(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """The next line from the server as a dict (raises TimeoutError after ``timeout_s``)."""
+        line = self._readline(timeout_s)
+        try:
+            msg = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise ProtocolError(f"server sent invalid JSON: {exc}") from None
+        if not isinstance(msg, dict):
+            raise ProtocolError("server sent a non-object line")
+        return msg
+
+    def request(self, cmd: str, **args: Any) -> dict[str, Any]:
+        """Send one request and return its reply (events arriving meanwhile are kept).
+
+        Raises RequestFailed for an error reply, ConnectionFailed for a broken connection.
+        """
+        if self._sock is None:
+            raise ConnectionFailed("connection closed")
+        req_id = next(self._ids)
+        data = json.dumps({"id": req_id, "cmd": cmd, **args}, separators=(",", ":")) + "\n"
+        try:
+            self._sock.sendall(data.encode())
+        except OSError as exc:
+            raise ConnectionFailed(f"sending to {self.host}:{self.port}: {_why(exc)}") from None
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise ConnectionFailed(f"no reply to {cmd!r} within {self.timeout_s:g} s")
+            try:
+                msg = self.read_message(remaining)
+            except TimeoutError:
+                raise ConnectionFailed(f"no reply to {cmd!r} within {self.timeout_s:g} s") from None
+            if "event" in msg:
+                self.events.append(msg)
+                continue
+            if msg.get("id") != req_id:
+                if msg.get("ok") is False and msg.get("id") is None:
+                    err = msg.get("error") or {}
+                    raise RequestFailed(str(err.get("code")), str(err.get("message")))
+                continue
+            if msg.get("ok") is True:
+                return msg
+            err = msg.get("error") or {}
+            raise RequestFailed(str(err.get("code", "error")), str(err.get("message", "")))
+
+    def next_event(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """The next ``{"event": ..}`` message (kept ones first)."""
+        if self.events:
+            return self.events.popleft()
+        while True:
+            msg = self.read_message(timeout_s)
+            if "event" in msg:
+                return msg
+
+
+def _why(exc: OSError) -> str:
+    return exc.strerror or str(exc) or type(exc).__name__
+
+
+def _fmt(v: Any, spec: str, unit: str = "") -> str:
+    if v is None:
+        return "-"
+    try:
+        return f"{v:{spec}}{unit}"
+    except (TypeError, ValueError):
+        return str(v)
+
+
+def render_watch(tel: dict[str, Any], info: dict[str, Any] | None = None) -> str:
+    """One screen of the live view from a telemetry dict (``Telemetry.to_dict()`` shape)."""
+    info = info or {}
+    wp_i, wp_n = tel.get("waypoint_index"), tel.get("waypoint_count", 0)
+    wp = "-" if wp_i is None else f"{wp_i + 1}/{wp_n}"
+    hold = tel.get("hold_reason") or ""
+    links = info.get("links", {})
+    lines = [
+        "x6wd watch  (Ctrl-C to quit)",
+        "",
+        f"state      {tel.get('mode', '?')} / {tel.get('state', '?')}"
+        + (f"  HOLD: {hold}" if hold else ""),
+        f"position   {_fmt(tel.get('lat_deg'), '.7f')} {_fmt(tel.get('lon_deg'), '.7f')}",
+        f"filtered   {_fmt(tel.get('filt_lat_deg'), '.7f')} {_fmt(tel.get('filt_lon_deg'), '.7f')}",
+        f"bearing    {_fmt(tel.get('bearing_deg'), '.1f', ' deg')} magnetic, heading "
+        f"{_fmt(tel.get('heading_deg'), '.1f', ' deg')} true",
+        f"pitch/roll {_fmt(tel.get('pitch_deg'), '.0f', ' deg')} / "
+        f"{_fmt(tel.get('roll_deg'), '.0f', ' deg')}",
+        f"waypoint   {wp}  distance {_fmt(tel.get('distance_m'), '.1f', ' m')}  "
+        f"target {_fmt(tel.get('target_bearing_deg'), '.1f', ' deg')}  "
+        f"deviation {_fmt(tel.get('theta_deg'), '.1f', ' deg')}",
+        f"fix        quality {tel.get('fix_quality', 0)}  sats {_fmt(tel.get('sats_used'), 'd')}"
+        f"  hdop {_fmt(tel.get('hdop'), '.2f')}  age {_fmt(tel.get('fix_age_s'), '.1f', ' s')}",
+        f"compass    age {_fmt(tel.get('attitude_age_s'), '.2f', ' s')}",
+        f"motors     L {_fmt(tel.get('left_pct'), '+.0f', '%')}  "
+        f"R {_fmt(tel.get('right_pct'), '+.0f', '%')}",
+        "links      "
+        + ("  ".join(f"{k} {v}" for k, v in links.items() if "_" not in k) if links else "-"),
+    ]
+    if info.get("dropped"):
+        lines.append(f"dropped    {info['dropped']} telemetry events (slow link)")
+    return "\n".join(lines) + "\n"
+
+
+def _client_ssl(args: argparse.Namespace) -> ssl.SSLContext | None:
+    if not args.tls and not args.cafile:
+        return None
+    ctx = ssl.create_default_context(cafile=args.cafile or None)
+    if args.insecure:
+        ctx.check_hostname = False
+        ctx.verify_mode = ssl.CERT_NONE
+    return ctx
+
+
+def _waypoints(args: argparse.Namespace) -> list[Waypoint]:
+    if args.file and args.wp:
+        raise ParseError("give a FILE or --wp, not both")
+    if args.file:
+        return load_file(args.file)
+    if args.wp:
+        return parse_args(args.wp)
+    raise ParseError("load needs a FILE (.csv or .gpx) or --wp LAT,LON ...")
+
+
+def _print_reply(reply: dict[str, Any], out: TextIO) -> None:
+    body = {k: v for k, v in reply.items() if k not in ("id", "ok")}
+    print(json.dumps(body, indent=2, sort_keys=True), file=out)
+
+
+def _watch(client: RemoteClient, args: argparse.Namespace, out: TextIO, ansi: bool) -> None:
+    info = client.request("status")
+    client.request("watch", on=True)
+    shown = 0
+    t_last_status = time.monotonic()
+    t_last_draw = 0.0
+    while args.count is None or shown < args.count:
+        try:
+            ev = client.next_event(timeout_s=5.0)
+        except TimeoutError:
+            out.write((CLEAR if ansi else "") + "no telemetry for 5 s\n")
+            out.flush()
+            continue
+        if ev.get("event") != "telemetry":
+            continue
+        now = time.monotonic()
+        if now - t_last_status > 2.0:
+            client.request("watch", on=True)  # keep-alive; also refreshes link state below
+            info = client.request("status")
+            t_last_status = now
+        if args.count is None and now - t_last_draw < 0.1:
+            continue  # at most ~10 redraws per second
+        t_last_draw = now
+        screen = render_watch(
+            ev.get("data", {}), {**info, "dropped": info.get("client", {}).get("dropped")}
+        )
+        out.write((CLEAR if ansi else "") + screen)
+        out.flush()
+        shown += 1
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``x6wd client``."""
+    parser.add_argument("--host", default="127.0.0.1", help="robot address (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="control port (7601)")
+    parser.add_argument("--token-file", help="file holding the shared token (mode 600)")
+    parser.add_argument("--tls", action="store_true", help="connect with TLS")
+    parser.add_argument("--cafile", help="CA/certificate to trust for TLS (implies --tls)")
+    parser.add_argument(
+        "--insecure", action="store_true", help="TLS without certificate verification"
+    )
+    parser.add_argument("--timeout", type=float, default=5.0, help="reply timeout in s (5)")
+    parser.add_argument("--json", action="store_true", help="print replies as JSON")
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    sub.add_parser("status", help="show the robot's state")
+    p = sub.add_parser("load", help="load a mission from a CSV/GPX file or --wp points")
+    p.add_argument("file", nargs="?", help="mission file (.csv or .gpx)")
+    p.add_argument("--wp", action="append", metavar="LAT,LON", help="a waypoint (repeat)")
+    for name, text in (
+        ("start", "start the loaded mission"),
+        ("pause", "pause the mission (motors stop)"),
+        ("resume", "resume a paused mission"),
+        ("stop", "stop everything (always allowed)"),
+    ):
+        sub.add_parser(name, help=text)
+    p = sub.add_parser("drive", help="manual drive for a limited time (dead-man)")
+    p.add_argument("left", type=float, help="left side, -100..100 %%")
+    p.add_argument("right", type=float, help="right side, -100..100 %%")
+    p.add_argument("seconds", type=float, help="duration in s")
+    p = sub.add_parser("watch", help="live one-screen view")
+    p.add_argument("--count", type=int, help="exit after N screens")
+    p.add_argument("--no-ansi", action="store_true", help="do not clear the screen")
+    p = sub.add_parser("log", help="recent daemon log lines")
+    p.add_argument("n", type=int, nargs="?", default=50)
+
+
+def main(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    """Run one client action; messages go to stderr, results to ``out`` (stdout)."""
+    out = out or sys.stdout
+    err = sys.stderr
+    try:
+        token = load_token(args.token_file).decode() if args.token_file else None
+        waypoints = _waypoints(args) if args.action == "load" else None
+    except X6wdError as exc:
+        print(f"x6wd client: {exc}", file=err)
+        return EXIT_USAGE
+    try:
+        with RemoteClient(
+            args.host, args.port, token=token, ssl_context=_client_ssl(args), timeout_s=args.timeout
+        ) as client:
+            action: str = args.action
+            if action in ("status", "start", "pause", "resume", "stop"):
+                reply = client.request(action)
+            elif action == "load":
+                assert waypoints is not None
+                pairs = [[w.lat_deg, w.lon_deg] for w in waypoints]
+                reply = client.request("mission.load", waypoints=pairs)
+            elif action == "drive":
+                reply = client.request(
+                    "drive", left=args.left, right=args.right, duration_s=args.seconds
+                )
+            elif action == "log":
+                reply = client.request("log", n=args.n)
+                if not args.json:
+                    for line in reply.get("lines", []):
+                        print(line, file=out)
+                    return EXIT_OK
+            elif action == "watch":
+                ansi = not args.no_ansi
+                try:
+                    _watch(client, args, out, ansi)
+                except KeyboardInterrupt:
+                    return EXIT_OK
+                return EXIT_OK
+            else:  # pragma: no cover - argparse restricts the choices
+                raise ParseError(f"unknown action {action}")
+            if args.json or action == "status":
+                _print_reply(reply, out)
+            else:
+                print(f"{action}: ok", file=out)
+            return EXIT_OK
+    except RequestFailed as exc:
+        print(f"x6wd client: {args.action} refused: {exc.code}: {exc.message}", file=err)
+        return EXIT_REFUSED
+    except (ConnectionFailed, ProtocolError) as exc:
+        print(f"x6wd client: {exc}", file=err)
+        return EXIT_CONNECTION

@@ -1,0 +1,764 @@
+"""``x6wd run --config FILE``: the asyncio daemon that wires devices, controller and servers.
+
+Threads do the blocking device I/O (GPS port reads, I2C reads, motor writes, recorder
+writes); everything that touches the controller runs on the event loop, so the sans-IO
+controller needs no locks. Data flow::
+
+    gps thread ──records──┐                 ┌─> motor thread ─> motor link
+    compass thread ─att───┼─> loop: Controller ─> telemetry ─> server / gpsd port / recorder
+    control tick (20 Hz) ─┘                 └─> sd_notify (WATCHDOG / STATUS)
+
+Safety: the controller holds (motors stopped) on stale input, lost motor link and dead-man
+expiry; the daemon additionally stops the motors on any exit path. SIGTERM/SIGINT exit 0;
+an unexpected exception stops the motors and exits 1 (systemd then restarts us).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import collections
+import contextlib
+import logging
+import math
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+from urllib.parse import parse_qsl, urlsplit
+
+from x6wd import __version__
+from x6wd.config import Config
+from x6wd.config import load as load_config
+from x6wd.errors import ConfigError, DeviceUnavailable, X6wdError
+from x6wd.gpsd import GpsdServer
+from x6wd.mission_files import Waypoint
+from x6wd.notify import Notifier
+from x6wd.records import Attitude, GpsFix, GpsSky, MotorCommand, StateChange, Telemetry
+from x6wd.server import CommandError, ControlServer
+
+log = logging.getLogger("x6wd.daemon")
+
+TICK_HZ = 20.0
+"""Controller tick rate: bounds the dead-man and staleness reaction time (s = 1/TICK_HZ)."""
+GIL_SWITCH_S = 0.001
+TELEMETRY_EVENT_HZ = 10.0
+"""Most telemetry events per second to watching clients (fixes and state changes always go)."""
+TELEMETRY_RECORD_HZ = 1.0
+"""Most telemetry snapshots per second to the recorder (fixes and state changes always go)."""
+EARTH_RADIUS_M = 6_371_008.8
+EXIT_OK = 0
+EXIT_FAILURE = 1
+
+
+def distance_m(lat1_deg: float, lon1_deg: float, lat2_deg: float, lon2_deg: float) -> float:
+    """Great-circle (haversine) distance in metres on the mean Earth sphere."""
+    p1, p2 = math.radians(lat1_deg), math.radians(lat2_deg)
+    dp, dl = p2 - p1, math.radians(lon2_deg - lon1_deg)
+    a = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
+    return 2 * EARTH_RADIUS_M * math.asin(min(1.0, math.sqrt(a)))
+
+
+class LogTail(logging.Handler):
+    """Keeps the last ``n`` formatted log lines for the protocol's ``log`` command."""
+
+    def __init__(self, n: int = 1000) -> None:
+        super().__init__(logging.INFO)
+        self.lines: collections.deque[str] = collections.deque(maxlen=n)
+        self.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.lines.append(self.format(record))
+        except Exception:  # logging must never raise into the caller
+            self.handleError(record)
+
+    def tail(self, n: int) -> list[str]:
+        """The last ``n`` lines, oldest first."""
+        if n <= 0:
+            return []
+        return list(self.lines)[-n:]
+
+
+class _MotorWorker:
+    """Owns the motor link in its own thread: the newest command wins, resent as keep-alive.
+
+    ``on_health(ok, t_s)`` is called (from this thread) when the link's health changes.
+    """
+
+    def __init__(
+        self,
+        link: Any,
+        keepalive_s: float,
+        on_health: Callable[[bool, float], None],
+    ) -> None:
+        self.link = link
+        self.keepalive_s = keepalive_s
+        self._on_health = on_health
+        self._cond = threading.Condition()
+        self._pending: MotorCommand | None = None
+        self._last: MotorCommand | None = None
+        self._t_submit = time.monotonic()
+        self._stop = False
+        self._healthy = bool(link.healthy)
+        self.sent = 0
+        self.thread = threading.Thread(target=self._run, name="x6wd-motors", daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def submit(self, cmd: MotorCommand) -> None:
+        """Queue ``cmd`` (replacing an unsent one); never blocks on I/O."""
+        with self._cond:
+            self._pending = cmd
+            self._t_submit = time.monotonic()
+            self._cond.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if self._pending is None and not self._stop:
+                    self._cond.wait(self.keepalive_s)
+                cmd, self._pending = self._pending, None
+                stopping = self._stop
+            if stopping:
+                return
+            if cmd is None:
+                now = time.monotonic()
+                if (
+                    self._last is None
+                    or self._last.is_stop
+                    or now - self._t_submit > 3.0 * self.keepalive_s
+                ):
+                    # The controller submits at >= 20 Hz; silence means the control loop is
+                    # stuck, so the keep-alive must not keep the robot driving: stop.
+                    cmd = MotorCommand(now, 0.0, 0.0, "keepalive")
+                else:
+                    cmd = self._last
+            self._send(cmd)
+
+    def _send(self, cmd: MotorCommand) -> None:
+        try:
+            self.link.send(cmd)
+        except ValueError:
+            log.exception("motor command refused: %r", cmd)
+            self.link.stop("invalid command")
+        except Exception:
+            log.exception("motor link failed; stopping")
+            with contextlib.suppress(Exception):
+                self.link.stop("link error")
+        self._last = cmd
+        self.sent += 1
+        ok = bool(self.link.healthy)
+        if ok != self._healthy:
+            self._healthy = ok
+            self._on_health(ok, time.monotonic())
+
+    def shutdown(self, reason: str) -> None:
+        """Stop the thread, then stop the motors and close the link (idempotent)."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        if self.thread.is_alive():
+            self.thread.join(5.0)
+        with contextlib.suppress(Exception):
+            self.link.stop(reason)
+        with contextlib.suppress(Exception):
+            self.link.close()
+
+
+class _RecorderWorker:
+    """Writes recorder calls from a thread so disk stalls never reach the event loop."""
+
+    def __init__(self, recorder: Any) -> None:
+        self.recorder = recorder
+        self._q: queue.SimpleQueue[tuple[str, Any] | None] = queue.SimpleQueue()
+        self.errors = 0
+        self.thread = threading.Thread(target=self._run, name="x6wd-recorder", daemon=True)
+        self.thread.start()
+
+    def put(self, method: str, arg: Any) -> None:
+        self._q.put((method, arg))
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            method, arg = item
+            try:
+                getattr(self.recorder, method)(arg)
+            except Exception:
+                self.errors += 1
+                if self.errors in (1, 10, 100, 1000):
+                    log.exception("recorder write failed (%d so far)", self.errors)
+
+    def close(self) -> None:
+        """Drain, flush to disk and close (idempotent)."""
+        if self.thread.is_alive():
+            self._q.put(None)
+            self.thread.join(10.0)
+        with contextlib.suppress(Exception):
+            self.recorder.close()
+
+
+class _NetThread:
+    """The network side (control server, gpsd port) on its own event loop and thread, so a
+    flood of clients never queues in front of the control loop's callbacks."""
+
+    def __init__(self) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="x6wd-net", daemon=True)
+        self.thread.start()
+
+    async def run(self, coro: Any) -> Any:
+        """Run ``coro`` on the network loop and wait for it from the caller's loop."""
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, self.loop))
+
+    def call(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Queue ``fn(*args)`` on the network loop (never waits)."""
+        with contextlib.suppress(RuntimeError):  # closed during shutdown
+            self.loop.call_soon_threadsafe(fn, *args)
+
+    def stop(self) -> None:
+        """Cancel what is left, stop the loop and the thread (idempotent)."""
+        if not self.thread.is_alive():
+            return
+
+        async def cancel_rest() -> None:
+            me = asyncio.current_task()
+            rest = [t for t in asyncio.all_tasks() if t is not me]
+            for t in rest:
+                t.cancel()
+            await asyncio.gather(*rest, return_exceptions=True)
+
+        with contextlib.suppress(Exception):
+            asyncio.run_coroutine_threadsafe(cancel_rest(), self.loop).result(5.0)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5.0)
+        self.loop.close()
+
+
+class Daemon:
+    """The running robot: devices, controller, servers. Also the server's command backend."""
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        notifier: Notifier | None = None,
+        log_tail: LogTail | None = None,
+    ) -> None:
+        self.config = config
+        self.notifier = notifier or Notifier(None)
+        self.log_buffer = log_tail or LogTail()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop_event: asyncio.Event | None = None
+        self._fatal: BaseException | None = None
+        self._threads_stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.controller: Any = None
+        self.motors: _MotorWorker | None = None
+        self.recorder: _RecorderWorker | None = None
+        self.server: ControlServer | None = None
+        self.gpsd: GpsdServer | None = None
+        self._gps_reader: Any = None
+        self._net: _NetThread | None = None
+        self._loop_thread_id: int | None = None
+        self._compass: Any = None
+        self.last_telemetry: Telemetry | None = None
+        self.first_fix: tuple[float, float] | None = None
+        self.compass_errors = 0
+        self.t_start = time.monotonic()
+        self.stats: dict[str, int] = collections.Counter()
+        self._last_motor_rec: tuple[float, float] | None = None
+        self._t_pub = -math.inf
+        self._t_rec = -math.inf
+
+    # -- lifecycle ------------------------------------------------------------------------
+    def request_stop(self) -> None:
+        """Ask the daemon to shut down cleanly (signal handlers call this)."""
+        if self._stop_event is not None:
+            self._stop_event.set()
+
+    def _fail(self, exc: BaseException) -> None:
+        if self._fatal is None:
+            self._fatal = exc
+        self.request_stop()
+
+    def fail_from_thread(self, exc: BaseException) -> None:
+        """Report an unexpected exception from a worker thread (exits non-zero)."""
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self._fail, exc)
+
+    async def run(self, ready: Callable[[Daemon], Any] | None = None) -> int:
+        """Open everything, serve until stopped; return the process exit code.
+
+        ``ready`` (optional) is called once devices and servers are up (tests, benchmarks).
+        """
+        self._loop = asyncio.get_running_loop()
+        self._loop_thread_id = threading.get_ident()
+        self._stop_event = asyncio.Event()
+        # Several threads share the GIL; a shorter switch interval bounds how long the
+        # device and control threads wait for it behind network work.
+        sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_S))
+        code = EXIT_OK
+        try:
+            await self._open()
+            self.notifier.ready(self._status_text())
+            log.info("x6wd %s ready", __version__)
+            if ready is not None:
+                ready(self)
+            tick = asyncio.create_task(self._control_loop(), name="x6wd-control")
+            await self._stop_event.wait()
+            tick.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await tick
+            if self._fatal is not None:
+                raise self._fatal
+        except (ConfigError, DeviceUnavailable) as exc:
+            log.error("startup failed: %s", exc)
+            code = 2 if isinstance(exc, ConfigError) else EXIT_FAILURE
+        except Exception as exc:
+            log.exception("fatal error, stopping the motors: %s", exc)
+            code = EXIT_FAILURE
+        finally:
+            self.notifier.stopping("stopping")
+            await self._close()
+        return code
+
+    async def _open(self) -> None:
+        cfg = self.config
+        gc = cfg.safety.geofence_center
+        if len(gc) not in (0, 2) or (
+            len(gc) == 2 and not (-90.0 <= gc[0] <= 90.0 and -180.0 <= gc[1] <= 180.0)
+        ):
+            raise ConfigError(f"safety.geofence_center: expected [lat_deg, lon_deg], got {gc!r}")
+        from x6wd.controller import Controller  # imported late: heavy, and optional in tests
+
+        self.controller = Controller(cfg.navigation, cfg.safety, cfg.compass.declination_deg)
+        urls = (cfg.gps.url, cfg.compass.url, cfg.motors.url)
+        if any(u.startswith("sim://") for u in urls):
+            from sim_backend import hil
+
+            hil.configure(cfg.sim)
+        # Servers first: a bad token file or busy port should fail before devices move.
+        self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
+        if cfg.recorder.enabled:
+            from x6wd.recorder import Recorder
+
+            rec = await asyncio.to_thread(Recorder.in_dir, cfg.recorder.dir, fsync_interval_s=5.0)
+            self.recorder = _RecorderWorker(rec)
+            log.info("recording to %s", rec.path)
+        await self._open_devices()
+        self._net = _NetThread()
+        if self.server is not None:
+            await self._net.run(self.server.start())
+        if cfg.gpsd.enabled:
+            path, bps = _device_path(cfg.gps.url)
+            self.gpsd = GpsdServer(
+                cfg.gpsd.bind,
+                cfg.gpsd.port,
+                path,
+                bps=bps,
+                declination_deg=cfg.compass.declination_deg,
+                max_clients=cfg.gpsd.max_clients,
+                queue_len=cfg.gpsd.queue_len,
+            )
+            await self._net.run(self.gpsd.start())
+
+    async def _open_devices(self) -> None:
+        from drivers import registry
+        from drivers.gps_io import GpsReader
+
+        cfg = self.config
+        link = await asyncio.to_thread(registry.open_motors, cfg.motors.url)
+        keepalive_s = max(0.02, cfg.motors.watchdog_ms / 3000.0)
+        self.motors = _MotorWorker(link, keepalive_s, self._health_from_thread)
+        self.motors.start()
+        compass = await asyncio.to_thread(registry.open_compass, cfg.compass.url)
+        self._compass = compass
+        self._gps_reader = GpsReader(
+            lambda: registry.open_gps_port(cfg.gps.url), stale_s=cfg.gps.stale_s
+        )
+        self._spawn(self._gps_thread, "x6wd-gps")
+        self._spawn(self._compass_thread, "x6wd-compass")
+
+    def _spawn(self, target: Callable[[], None], name: str) -> None:
+        def guarded() -> None:
+            try:
+                target()
+            except BaseException as exc:  # any escape is a bug: fail loudly, motors stop
+                log.exception("thread %s died", name)
+                self.fail_from_thread(exc)
+
+        t = threading.Thread(target=guarded, name=name, daemon=True)
+        self._threads.append(t)
+        t.start()
+
+    async def _close(self) -> None:
+        # Motors first: whatever else fails below, the robot must be stopped.
+        if self.motors is not None:
+            await asyncio.to_thread(self.motors.shutdown, "daemon exit")
+        self._threads_stop.set()
+        for t in self._threads:
+            await asyncio.to_thread(t.join, 3.0)
+        if self._net is not None:
+            for server in (self.server, self.gpsd):
+                if server is not None:
+                    with contextlib.suppress(Exception):
+                        await self._net.run(server.close())
+            await asyncio.to_thread(self._net.stop)
+        for dev in (self._gps_reader, self._compass):
+            if dev is not None and hasattr(dev, "close"):
+                with contextlib.suppress(Exception):
+                    await asyncio.to_thread(dev.close)
+        if self.recorder is not None:
+            await asyncio.to_thread(self.recorder.close)
+        log.info("x6wd stopped")
+
+    # -- device threads (never touch the controller directly) ------------------------------
+    def _post(self, fn: Callable[..., Any], *args: Any) -> None:
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        with contextlib.suppress(RuntimeError):  # loop closing during shutdown
+            loop.call_soon_threadsafe(self._guarded, fn, *args)
+
+    def _guarded(self, fn: Callable[..., Any], *args: Any) -> None:
+        # asyncio would only log an exception escaping a callback; a bug must stop the robot
+        try:
+            fn(*args)
+        except Exception as exc:
+            log.exception("unexpected error in %s", getattr(fn, "__name__", fn))
+            self._fail(exc)
+
+    def _gps_thread(self) -> None:
+        reader = self._gps_reader
+        while not self._threads_stop.is_set():
+            records = reader.poll(0.2)
+            if records:
+                self._post(self._on_gps_records, records)
+
+    def _compass_thread(self) -> None:
+        from drivers.cmps10 import Cmps10
+
+        dev = self._compass
+        compass = dev if hasattr(dev, "read") and not hasattr(dev, "read_byte_data") else None
+        if compass is None:
+            compass = Cmps10(dev)
+        period_s = 1.0 / self.config.compass.rate_hz
+        t_next = time.monotonic()
+        while not self._threads_stop.is_set():
+            t_s = time.monotonic()
+            try:
+                att = compass.read(t_s)
+            except X6wdError as exc:
+                self.compass_errors += 1
+                if self.compass_errors in (1, 10, 100) or self.compass_errors % 1000 == 0:
+                    log.warning("compass read failed (%d): %s", self.compass_errors, exc)
+                att = None
+            if att is not None:
+                self._post(self._on_attitude, att)
+            t_next += period_s
+            delay = t_next - time.monotonic()
+            if delay < -period_s:  # fell behind (suspend, slow bus): do not burst
+                t_next = time.monotonic()
+                delay = 0.0
+            self._threads_stop.wait(max(0.0, delay))
+
+    def _health_from_thread(self, ok: bool, t_s: float) -> None:
+        self._post(self._on_motor_health, ok, t_s)
+
+    # -- event-loop side ---------------------------------------------------------------------
+    def _on_gps_records(self, records: list[Any]) -> None:
+        for rec in records:
+            if isinstance(rec, GpsFix):
+                self.stats["fixes"] += 1
+                if rec.valid and self.first_fix is None and rec.lat_deg is not None:
+                    self.first_fix = (rec.lat_deg, rec.lon_deg or 0.0)
+                if self.gpsd is not None:
+                    self._net_call(self.gpsd.publish_fix, rec)
+                self._record("record_fix", rec)
+                self._handle(self.controller.on_fix(rec))
+            elif isinstance(rec, GpsSky):
+                if self.gpsd is not None:
+                    self._net_call(self.gpsd.publish_sky, rec)
+                self._record("record_sky", rec)
+                on_sky = getattr(self.controller, "on_sky", None)
+                if on_sky is not None:
+                    self._handle(on_sky(rec), important=False)
+            else:
+                text = getattr(rec, "text", None) or getattr(rec, "raw", None)
+                if isinstance(text, bytes):
+                    text = text.decode("ascii", "replace")
+                if isinstance(text, str):
+                    if self.gpsd is not None:
+                        self._net_call(self.gpsd.publish_nmea, text)
+                    self._record("record_nmea", text)
+
+    def _on_attitude(self, att: Attitude) -> None:
+        self.stats["attitudes"] += 1
+        if self.gpsd is not None:
+            self._net_call(self.gpsd.publish_attitude, att)
+        self._record("record_attitude", att)
+        self._handle(self.controller.on_attitude(att), important=False)
+
+    def _on_motor_health(self, ok: bool, t_s: float) -> None:
+        log.log(logging.INFO if ok else logging.ERROR, "motor link %s", "ok" if ok else "LOST")
+        self._handle(self.controller.motor_link(ok, t_s))
+
+    def _net_call(self, fn: Callable[..., Any], *args: Any) -> None:
+        if self._net is not None:
+            self._net.call(fn, *args)
+
+    def _record(self, method: str, arg: Any) -> None:
+        if self.recorder is not None:
+            self.recorder.put(method, arg)
+
+    def _handle(self, outputs: list[Any], important: bool = True) -> None:
+        """Route controller outputs. ``important`` (a fix or an operator request) forces the
+        telemetry out; otherwise (compass samples, ticks) it is rate-limited for clients and
+        the recorder, since the controller emits a snapshot on every input."""
+        changed = any(isinstance(o, StateChange) for o in outputs)
+        for out in outputs:
+            if isinstance(out, MotorCommand):
+                if self.motors is not None:
+                    self.motors.submit(out)
+                    if important:
+                        # Hand the GIL to the motor thread now rather than after the
+                        # telemetry work below (up to a switch interval later).
+                        time.sleep(0)
+                key = (out.left_pct, out.right_pct)
+                if key != self._last_motor_rec:
+                    self._last_motor_rec = key
+                    self._record("record_motor", out)
+            elif isinstance(out, Telemetry):
+                self.last_telemetry = out
+                now = out.t_s
+                force = important or changed
+                if self.server is not None and (
+                    force or now - self._t_pub >= 1.0 / TELEMETRY_EVENT_HZ
+                ):
+                    self._t_pub = now
+                    self._net_call(
+                        self.server.publish, {"event": "telemetry", "data": out.to_dict()}
+                    )
+                if force or now - self._t_rec >= 1.0 / TELEMETRY_RECORD_HZ:
+                    self._t_rec = now
+                    self._record("record_telemetry", out)
+            elif isinstance(out, StateChange):
+                log.info("state %s -> %s %s", out.old, out.new, out.reason)
+                self._record("record_state", out)
+                if self.server is not None:
+                    self._net_call(
+                        self.server.publish,
+                        {"event": "state", "old": out.old, "new": out.new, "reason": out.reason},
+                    )
+        if changed:
+            self.notifier.status(self._status_text())
+
+    async def _control_loop(self) -> None:
+        try:
+            await self._control_steps()
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            log.exception("control loop failed")
+            self._fail(exc)
+
+    async def _control_steps(self) -> None:
+        period_s = 1.0 / TICK_HZ
+        wd_s = self.notifier.watchdog_interval_s
+        t_wd = 0.0
+        t_next = time.monotonic()
+        while True:
+            now = time.monotonic()
+            self._handle(self.controller.tick(now), important=False)
+            if wd_s is not None and now - t_wd >= wd_s and self._threads_alive():
+                # only a loop that is really turning (and whose readers live) feeds systemd
+                self.notifier.watchdog()
+                t_wd = now
+            t_next += period_s
+            delay = t_next - time.monotonic()
+            if delay < -period_s:
+                t_next = time.monotonic()
+                delay = 0.0
+            await asyncio.sleep(max(0.0, delay))
+
+    def _threads_alive(self) -> bool:
+        ok = all(t.is_alive() for t in self._threads)
+        ok = ok and (self._net is None or self._net.thread.is_alive())
+        return ok and (self.motors is None or self.motors.thread.is_alive())
+
+    def _status_text(self) -> str:
+        tel = self.last_telemetry
+        if tel is None:
+            return "ready, waiting for inputs"
+        text = f"{tel.mode} {tel.state}"
+        if tel.hold_reason:
+            text += f" ({tel.hold_reason})"
+        if tel.waypoint_index is not None:
+            text += f" wp {tel.waypoint_index + 1}/{tel.waypoint_count}"
+        return text
+
+    # -- Backend (the control server calls these on the network loop) ------------------------
+    def _on_control(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """Run ``fn`` on the control loop: directly when already there, else as an awaitable
+        for the server (the controller is only ever touched from the control loop)."""
+        loop = self._loop
+        if loop is None or threading.get_ident() == self._loop_thread_id:
+            return fn(*args)
+
+        async def call() -> Any:
+            return fn(*args)
+
+        return asyncio.wrap_future(asyncio.run_coroutine_threadsafe(call(), loop))
+
+    def status(self) -> Any:
+        """State, last telemetry and device health as a JSON-ready dict."""
+        return self._on_control(self._status)
+
+    def load_mission(self, waypoints: list[Waypoint]) -> Any:
+        """Check the geofence, then hand the waypoints to the controller."""
+        return self._on_control(self._load_mission, waypoints)
+
+    def start(self) -> Any:
+        """Start the loaded mission."""
+        return self._on_control(self._simple, "start")
+
+    def pause(self) -> Any:
+        """Pause (motors stop, mission kept)."""
+        return self._on_control(self._simple, "pause")
+
+    def resume(self) -> Any:
+        """Resume a paused mission."""
+        return self._on_control(self._simple, "resume")
+
+    def stop(self) -> Any:
+        """Stop everything; always allowed. The stop also goes to the motors at once."""
+        if self.motors is not None:  # thread-safe, and does not wait for the control loop
+            self.motors.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "operator stop"))
+        return self._on_control(self._simple, "stop")
+
+    def drive(self, left_pct: float, right_pct: float, duration_s: float) -> Any:
+        """Manual drive (percent) for ``duration_s`` seconds; the controller stops after it."""
+        return self._on_control(self._drive, left_pct, right_pct, duration_s)
+
+    def log_tail(self, n: int) -> list[str]:
+        """The last ``n`` log lines."""
+        return self.log_buffer.tail(n)
+
+    def _status(self) -> dict[str, Any]:
+        now = time.monotonic()
+        tel = self.last_telemetry
+        gps_health = getattr(self._gps_reader, "health", None)
+        link_ok = self.motors is not None and bool(self.motors.link.healthy)
+        return {
+            "version": __version__,
+            "uptime_s": round(now - self.t_start, 3),
+            "mode": str(tel.mode) if tel else "IDLE",
+            "state": str(tel.state) if tel else "IDLE",
+            "telemetry": tel.to_dict() if tel else None,
+            "links": {
+                "gps": getattr(gps_health, "state", "unknown"),
+                "gps_reconnects": getattr(gps_health, "reconnects", 0),
+                "compass": "ok" if tel and tel.attitude_age_s is not None else "unknown",
+                "compass_errors": self.compass_errors,
+                "motors": "ok" if link_ok else "lost",
+            },
+        }
+
+    def _check_geofence(self, waypoints: list[Waypoint]) -> None:
+        safety = self.config.safety
+        if len(safety.geofence_center) == 2:
+            centre = (safety.geofence_center[0], safety.geofence_center[1])
+        elif self.first_fix is not None:
+            centre = self.first_fix
+        else:
+            raise CommandError("geofence", "no fix yet: cannot check waypoints against geofence")
+        for i, wp in enumerate(waypoints):
+            d = distance_m(centre[0], centre[1], wp.lat_deg, wp.lon_deg)
+            if d > safety.geofence_radius_m:
+                raise CommandError(
+                    "geofence",
+                    f"waypoint {i + 1} ({wp.lat_deg:.7f}, {wp.lon_deg:.7f}) is {d:.0f} m from "
+                    f"the geofence centre; limit {safety.geofence_radius_m:.0f} m",
+                )
+
+    def _load_mission(self, waypoints: list[Waypoint]) -> dict[str, Any]:
+        self._check_geofence(waypoints)
+        pairs = [(w.lat_deg, w.lon_deg) for w in waypoints]
+        self._handle(self.controller.load_mission(pairs, time.monotonic()))
+        log.info("mission loaded: %d waypoints", len(pairs))
+        return {"count": len(pairs)}
+
+    def _simple(self, name: str) -> dict[str, Any]:
+        self._handle(getattr(self.controller, name)(time.monotonic()))
+        log.info("operator: %s", name)
+        tel = self.controller.telemetry
+        return {"mode": str(tel.mode), "state": str(tel.state)}
+
+    def _drive(self, left_pct: float, right_pct: float, duration_s: float) -> dict[str, Any]:
+        limit = self.config.safety.manual_max_s
+        if duration_s > limit:
+            raise CommandError("bad_request", f"duration_s {duration_s:g} > limit {limit:g} s")
+        self._handle(
+            self.controller.manual_drive(left_pct, right_pct, duration_s, time.monotonic())
+        )
+        log.info("operator: drive L%+.0f R%+.0f for %.1f s", left_pct, right_pct, duration_s)
+        return {"left": left_pct, "right": right_pct, "duration_s": duration_s}
+
+
+def _device_path(url: str) -> tuple[str, int]:
+    """Device path and baud rate for the gpsd port's DEVICES
+    (``serial:///dev/ttyS0?baud=4800`` -> ``("/dev/ttyS0", 4800)``; other URLs as given)."""
+    parts = urlsplit(url)
+    bps = 9600
+    for key, value in parse_qsl(parts.query):
+        if key == "baud" and value.isdigit():
+            bps = int(value)
+    if parts.scheme == "serial" and parts.path:
+        return parts.path, bps
+    return url, bps
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``x6wd run``."""
+    parser.add_argument("--config", required=True, help="TOML configuration file")
+    parser.add_argument(
+        "--log-level",
+        default="INFO",
+        choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+        help="logging threshold (default INFO)",
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the daemon until SIGTERM/SIGINT; exit 0 on a clean stop, non-zero on failure."""
+    tail = LogTail()
+    root = logging.getLogger()
+    root.setLevel(args.log_level)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root.addHandler(handler)
+    root.addHandler(tail)
+    try:
+        config = load_config(args.config)
+    except ConfigError as exc:
+        log.error("%s", exc)
+        return 2
+    daemon = Daemon(config, notifier=Notifier.from_env(), log_tail=tail)
+
+    async def amain() -> int:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, daemon.request_stop)
+        return await daemon.run()
+
+    return asyncio.run(amain())

@@ -1,0 +1,437 @@
+"""A read-only gpsd-compatible telemetry port (gpsd client protocol 3.14, JSON over TCP).
+
+Encoders are pure functions from x6wd records to gpsd objects; :class:`GpsdServer` is the
+asyncio endpoint. What real clients rely on (REFERENCE §5): VERSION on connect, DEVICES
+listing one device before the WATCH echo, COMPACT JSON (libgps 3.22 finds ``"class":"TPV"``
+by text match), CRLF line ends, and no ``null`` (unknown fields are omitted).
+A slow client never blocks the publisher: each client has a bounded queue and the oldest
+report is dropped (and counted) when it is full.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import json
+import logging
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any
+
+from x6wd import __version__
+from x6wd.errors import ProtocolError
+from x6wd.records import Attitude, GpsFix, GpsSky
+
+log = logging.getLogger(__name__)
+
+GPSD_RELEASE = "3.22"
+PROTO_MAJOR = 3
+PROTO_MINOR = 14
+UERE_M = 5.0
+"""User-equivalent range error used to turn DOP into the eph/epv estimates (metres, 1 sigma)."""
+MAX_COMMAND_BYTES = 4096
+MAX_PENDING_REPLIES = 256
+
+
+def dumps(obj: dict[str, Any]) -> bytes:
+    """One gpsd line: compact JSON, CRLF, with ``None`` values removed at the top level."""
+    clean = {k: v for k, v in obj.items() if v is not None}
+    return json.dumps(clean, separators=(",", ":"), allow_nan=False).encode() + b"\r\n"
+
+
+def iso_time(utc: datetime | None) -> str | None:
+    """ISO-8601 UTC with milliseconds and a ``Z``, as gpsd prints it; None if unknown."""
+    if utc is None:
+        return None
+    if utc.tzinfo is not None:
+        utc = utc.astimezone(UTC).replace(tzinfo=None)
+    return utc.strftime("%Y-%m-%dT%H:%M:%S.") + f"{utc.microsecond // 1000:03d}Z"
+
+
+def _num(v: float | None, ndigits: int) -> float | None:
+    if v is None or not math.isfinite(v):
+        return None
+    return round(float(v), ndigits)
+
+
+def version_obj() -> dict[str, Any]:
+    """The VERSION object sent on connect and answering ``?VERSION``."""
+    return {
+        "class": "VERSION",
+        "release": GPSD_RELEASE,
+        "rev": f"x6wd-{__version__}",
+        "proto_major": PROTO_MAJOR,
+        "proto_minor": PROTO_MINOR,
+    }
+
+
+def devices_obj(path: str, bps: int = 9600) -> dict[str, Any]:
+    """DEVICES with exactly one device (an empty list leaves cgps blank)."""
+    return {"class": "DEVICES", "devices": [device_obj(path, bps)]}
+
+
+def device_obj(path: str, bps: int = 9600) -> dict[str, Any]:
+    """One DEVICE object describing the GPS receiver."""
+    return {
+        "class": "DEVICE",
+        "path": path,
+        "driver": "NMEA0183",
+        "activated": iso_time(datetime.now(UTC)),
+        "flags": 1,
+        "native": 0,
+        "bps": bps,
+        "parity": "N",
+        "stopbits": 1,
+        "cycle": 1.0,
+    }
+
+
+def tpv_obj(fix: GpsFix, device: str) -> dict[str, Any]:
+    """TPV report for one fix; fields the fix does not have are omitted, never null.
+
+    eph/epx/epy/epv (metres) are DOP x :data:`UERE_M` estimates.
+    """
+    mode = fix.mode if fix.valid else 1
+    obj: dict[str, Any] = {"class": "TPV", "device": device, "mode": mode}
+    t = iso_time(fix.utc)
+    if t is not None:
+        obj["time"] = t
+    if fix.valid and mode >= 2 and fix.lat_deg is not None and fix.lon_deg is not None:
+        obj["lat"] = _num(fix.lat_deg, 9)
+        obj["lon"] = _num(fix.lon_deg, 9)
+        if mode >= 3 and fix.alt_m is not None:
+            obj["altMSL"] = _num(fix.alt_m, 3)
+            obj["alt"] = obj["altMSL"]
+            if fix.geoid_sep_m is not None:
+                obj["altHAE"] = _num(fix.alt_m + fix.geoid_sep_m, 3)
+                obj["geoidSep"] = _num(fix.geoid_sep_m, 3)
+        if fix.speed_mps is not None:
+            obj["speed"] = _num(fix.speed_mps, 3)
+        if fix.course_deg is not None:
+            obj["track"] = _num(fix.course_deg, 2)
+        if fix.hdop is not None:
+            eph = fix.hdop * UERE_M
+            obj["eph"] = _num(eph, 3)
+            obj["epx"] = obj["epy"] = _num(eph / math.sqrt(2.0), 3)
+        if fix.vdop is not None and mode >= 3:
+            obj["epv"] = _num(fix.vdop * UERE_M, 3)
+    return {k: v for k, v in obj.items() if v is not None}
+
+
+def sky_obj(sky: GpsSky, device: str) -> dict[str, Any]:
+    """SKY report: DOPs, satellite counts and the satellite list (PRN, el, az, ss, used)."""
+    sats: list[dict[str, Any]] = []
+    for s in sky.satellites:
+        d: dict[str, Any] = {"PRN": s.prn, "used": bool(s.used)}
+        if s.el_deg is not None:
+            d["el"] = _num(s.el_deg, 1)
+        if s.az_deg is not None:
+            d["az"] = _num(s.az_deg, 1)
+        if s.snr_dbhz is not None:
+            d["ss"] = _num(s.snr_dbhz, 1)
+        sats.append({k: v for k, v in d.items() if v is not None})
+    obj: dict[str, Any] = {
+        "class": "SKY",
+        "device": device,
+        "time": iso_time(sky.utc),
+        "hdop": _num(sky.hdop, 2),
+        "vdop": _num(sky.vdop, 2),
+        "pdop": _num(sky.pdop, 2),
+        "nSat": len(sats),
+        "uSat": sum(1 for s in sky.satellites if s.used),
+        "satellites": sats,
+    }
+    return {k: v for k, v in obj.items() if v is not None}
+
+
+def att_obj(att: Attitude, device: str, declination_deg: float = 0.0) -> dict[str, Any]:
+    """ATT report from the compass: ``heading`` true (declination applied), ``mheading``
+    magnetic as read, ``pitch``/``roll`` in degrees."""
+    obj: dict[str, Any] = {"class": "ATT", "device": device}
+    if att.valid:
+        obj["heading"] = _num((att.bearing_deg + declination_deg) % 360.0, 1)
+        obj["mheading"] = _num(att.bearing_deg, 1)
+        obj["pitch"] = _num(att.pitch_deg, 1)
+        obj["roll"] = _num(att.roll_deg, 1)
+    return {k: v for k, v in obj.items() if v is not None}
+
+
+def parse_commands(text: str) -> list[tuple[str, dict[str, Any] | None]]:
+    """Split client input into ``(COMMAND, argument-or-None)``; ``?WATCH={...};`` style.
+
+    The trailing ``;`` is optional. Raises ProtocolError naming the first bad command.
+    """
+    out: list[tuple[str, dict[str, Any] | None]] = []
+    decoder = json.JSONDecoder()
+    i, n = 0, len(text)
+    while i < n:
+        c = text[i]
+        if c in " \t\r\n;":
+            i += 1
+            continue
+        if c != "?":
+            raise ProtocolError(f"Unrecognized request '{text[i : i + 20].strip()}'")
+        j = i + 1
+        while j < n and text[j].isalpha():
+            j += 1
+        name = text[i + 1 : j].upper()
+        if not name:
+            raise ProtocolError("Unrecognized request '?'")
+        arg: dict[str, Any] | None = None
+        if j < n and text[j] == "=":
+            try:
+                value, end = decoder.raw_decode(text, j + 1)
+            except json.JSONDecodeError as exc:
+                raise ProtocolError(f"Invalid JSON argument to ?{name}: {exc.msg}") from None
+            if not isinstance(value, dict):
+                raise ProtocolError(f"?{name} argument must be a JSON object")
+            arg, j = value, end
+        out.append((name, arg))
+        i = j
+    return out
+
+
+@dataclass(eq=False)
+class _Client:
+    writer: asyncio.StreamWriter
+    queue: collections.deque[bytes]
+    replies: collections.deque[bytes] = field(default_factory=collections.deque)
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    watch_json: bool = False
+    watch_nmea: bool = False
+    dropped: int = 0
+    closed: bool = False
+
+    def put(self, line: bytes, maxlen: int) -> None:
+        if len(self.queue) >= maxlen:
+            self.queue.popleft()
+            self.dropped += 1
+        self.queue.append(line)
+        self.wake.set()
+
+    def reply(self, line: bytes) -> None:
+        self.replies.append(line)
+        self.wake.set()
+
+
+class GpsdServer:
+    """gpsd-compatible read-only endpoint. Call the ``publish_*`` methods from the event loop."""
+
+    def __init__(
+        self,
+        bind: str,
+        port: int,
+        device_path: str,
+        *,
+        bps: int = 9600,
+        declination_deg: float = 0.0,
+        max_clients: int = 32,
+        queue_len: int = 64,
+    ) -> None:
+        """``port`` 0 picks a free port (see :attr:`port`); ``device_path`` goes into DEVICES."""
+        self.bind = bind
+        self._port = port
+        self.device_path = device_path
+        self.bps = bps
+        self.declination_deg = declination_deg
+        self.max_clients = max_clients
+        self.queue_len = queue_len
+        self._server: asyncio.Server | None = None
+        self._clients: set[_Client] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._last_tpv: dict[str, Any] | None = None
+        self._last_sky: dict[str, Any] | None = None
+        self._last_att: dict[str, Any] | None = None
+        self.dropped_total = 0
+
+    @property
+    def port(self) -> int:
+        """The bound TCP port (the real one when configured as 0)."""
+        if self._server is not None and self._server.sockets:
+            return int(self._server.sockets[0].getsockname()[1])
+        return self._port
+
+    @property
+    def client_count(self) -> int:
+        """Connected clients."""
+        return len(self._clients)
+
+    async def start(self) -> None:
+        """Bind and listen."""
+        self._server = await asyncio.start_server(
+            self._handle, self.bind, self._port, limit=MAX_COMMAND_BYTES * 2
+        )
+        log.info("gpsd port listening on %s:%d", self.bind, self.port)
+
+    async def close(self) -> None:
+        """Stop listening and disconnect every client (idempotent)."""
+        if self._server is not None:
+            self._server.close()
+            self._server = None
+        for c in list(self._clients):
+            c.closed = True
+            c.wake.set()
+            c.writer.close()
+        for t in list(self._tasks):
+            t.cancel()
+        if self._tasks:
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    # -- publishing (sync, never blocks) ----------------------------------------------
+    def _fanout(self, line: bytes, nmea: bool) -> None:
+        for c in self._clients:
+            if (c.watch_nmea if nmea else c.watch_json) and not c.closed:
+                before = c.dropped
+                c.put(line, self.queue_len)
+                self.dropped_total += c.dropped - before
+
+    def publish_fix(self, fix: GpsFix) -> None:
+        """Send a TPV to JSON watchers and keep it for ?POLL."""
+        obj = tpv_obj(fix, self.device_path)
+        self._last_tpv = obj
+        self._fanout(dumps(obj), nmea=False)
+
+    def publish_sky(self, sky: GpsSky) -> None:
+        """Send a SKY to JSON watchers and keep it for ?POLL."""
+        obj = sky_obj(sky, self.device_path)
+        self._last_sky = obj
+        self._fanout(dumps(obj), nmea=False)
+
+    def publish_attitude(self, att: Attitude) -> None:
+        """Send an ATT (compass) to JSON watchers."""
+        obj = att_obj(att, self.device_path, self.declination_deg)
+        self._last_att = obj
+        self._fanout(dumps(obj), nmea=False)
+
+    def publish_nmea(self, sentence: str) -> None:
+        """Pass one raw NMEA sentence (without line end) to NMEA watchers."""
+        if any(c.watch_nmea for c in self._clients):
+            self._fanout(sentence.rstrip("\r\n").encode("ascii", "replace") + b"\r\n", nmea=True)
+
+    # -- connection handling ----------------------------------------------------------
+    def _poll_obj(self) -> dict[str, Any]:
+        return {
+            "class": "POLL",
+            "time": iso_time(datetime.now(UTC)),
+            "active": 1 if self._last_tpv is not None else 0,
+            "tpv": [self._last_tpv] if self._last_tpv else [],
+            "sky": [self._last_sky] if self._last_sky else [],
+        }
+
+    def _watch_obj(self, c: _Client) -> dict[str, Any]:
+        return {
+            "class": "WATCH",
+            "enable": c.watch_json or c.watch_nmea,
+            "json": c.watch_json,
+            "nmea": c.watch_nmea,
+            "raw": 1 if c.watch_nmea else 0,
+            "scaled": False,
+            "timing": False,
+            "split24": False,
+            "pps": False,
+        }
+
+    def _answer(self, c: _Client, name: str, arg: dict[str, Any] | None) -> list[bytes]:
+        if name == "VERSION":
+            return [dumps(version_obj())]
+        if name == "DEVICES":
+            return [dumps(devices_obj(self.device_path, self.bps))]
+        if name == "POLL":
+            return [dumps(self._poll_obj())]
+        if name == "WATCH":
+            a = arg or {}
+            enable = a.get("enable", True) is not False
+            if enable:
+                nmea = bool(a.get("nmea", False)) or bool(a.get("raw", 0))
+                # gpsd: json defaults on unless nmea/raw was asked for alone
+                c.watch_json = bool(a.get("json", not nmea))
+                c.watch_nmea = nmea
+            else:
+                c.watch_json = c.watch_nmea = False
+            out = [dumps(devices_obj(self.device_path, self.bps)), dumps(self._watch_obj(c))]
+            if c.watch_json:
+                # an immediate report so a fresh watcher does not wait a whole epoch
+                out.extend(dumps(o) for o in (self._last_tpv, self._last_sky) if o is not None)
+            return out
+        return [dumps({"class": "ERROR", "message": f"Unrecognized request '{name}'"})]
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._tasks.add(task)
+        c = _Client(writer, collections.deque())
+        sender: asyncio.Task[None] | None = None
+        try:
+            if len(self._clients) >= self.max_clients:
+                writer.write(dumps({"class": "ERROR", "message": "too many clients"}))
+                with contextlib.suppress(OSError):
+                    await asyncio.wait_for(writer.drain(), 1.0)
+                return
+            self._clients.add(c)
+            c.reply(dumps(version_obj()))
+            sender = asyncio.create_task(self._sender(c))
+            while not c.closed:
+                try:
+                    raw = await reader.readuntil(b"\n")
+                except asyncio.IncompleteReadError as exc:
+                    raw = exc.partial
+                    if not raw:
+                        break
+                except asyncio.LimitOverrunError:
+                    c.reply(dumps({"class": "ERROR", "message": "request too long"}))
+                    break
+                text = raw.decode("utf-8", "replace")
+                try:
+                    cmds = parse_commands(text)
+                except ProtocolError as exc:
+                    c.reply(dumps({"class": "ERROR", "message": str(exc)}))
+                    continue
+                for name, arg in cmds:
+                    for line in self._answer(c, name, arg):
+                        c.reply(line)
+                if len(c.replies) > MAX_PENDING_REPLIES:
+                    break  # asks without reading: disconnect rather than buffer forever
+        except (ConnectionError, OSError):
+            pass
+        except asyncio.CancelledError:
+            pass  # close(): a finished (not cancelled) task keeps asyncio's stream callback quiet
+        finally:
+            self._clients.discard(c)
+            c.closed = True
+            c.wake.set()
+            if sender is not None:
+                with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError):
+                    await asyncio.wait_for(sender, 1.0)
+            writer.close()
+            if task is not None:
+                self._tasks.discard(task)
+
+    async def _sender(self, c: _Client) -> None:
+        try:
+            while True:
+                while c.replies or c.queue:
+                    # replies (never dropped) go before queued reports
+                    batch = b"".join(c.replies) + b"".join(c.queue)
+                    c.replies.clear()
+                    c.queue.clear()
+                    c.writer.write(batch)
+                    await c.writer.drain()
+                if c.closed:
+                    return
+                c.wake.clear()
+                await c.wake.wait()
+        except (ConnectionError, OSError):
+            c.closed = True
+
+
+def read_objects(lines: Iterable[bytes]) -> list[dict[str, Any]]:
+    """Decode gpsd JSON lines (for clients and tests); non-JSON lines (NMEA) are skipped."""
+    out: list[dict[str, Any]] = []
+    for line in lines:
+        s = line.strip()
+        if s.startswith(b"{"):
+            out.append(json.loads(s))
+    return out
