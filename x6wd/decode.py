@@ -18,10 +18,11 @@ import json
 import os
 import sys
 from collections.abc import Iterable, Iterator
-from typing import IO, Any
+from typing import IO
 
 from drivers.gps_nmea import DecoderCounters, GpsDecoder, Record
 from x6wd.errors import DeviceUnavailable
+from x6wd.gpsd import sky_obj, tpv_obj
 from x6wd.records import GpsFix, GpsSky
 
 _CHUNK_BYTES = 1 << 20
@@ -36,62 +37,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="do not print counters on stderr")
 
 
-def _iso_z(fix_utc: Any) -> str:
-    return fix_utc.strftime("%Y-%m-%dT%H:%M:%S.") + f"{fix_utc.microsecond // 1000:03d}Z"
-
-
-def tpv(fix: GpsFix) -> dict[str, Any]:
-    """gpsd TPV object for one fix (units: deg, m, m/s); unknown fields omitted."""
-    out: dict[str, Any] = {"class": "TPV", "mode": fix.mode}
-    if fix.utc is not None:
-        out["time"] = _iso_z(fix.utc)
-    if fix.valid and fix.lat_deg is not None and fix.lon_deg is not None:
-        out["lat"] = round(fix.lat_deg, 9)
-        out["lon"] = round(fix.lon_deg, 9)
-        if fix.mode == 3 and fix.alt_m is not None:
-            out["altMSL"] = round(fix.alt_m, 4)
-            if fix.geoid_sep_m is not None:
-                out["altHAE"] = round(fix.alt_m + fix.geoid_sep_m, 4)
-                out["geoidSep"] = round(fix.geoid_sep_m, 3)
-    if fix.valid and fix.speed_mps is not None:
-        out["speed"] = round(fix.speed_mps, 3)
-    if fix.valid and fix.course_deg is not None:
-        out["track"] = round(fix.course_deg, 4)
-    return out
-
-
-def sky(report: GpsSky) -> dict[str, Any]:
-    """gpsd SKY object (DOPs, nSat, uSat, satellites with PRN/el/az/ss/used)."""
-    out: dict[str, Any] = {"class": "SKY"}
-    if report.utc is not None:
-        out["time"] = _iso_z(report.utc)
-    for key, value in (("hdop", report.hdop), ("pdop", report.pdop), ("vdop", report.vdop)):
-        if value is not None:
-            out[key] = value
-    out["nSat"] = len(report.satellites)
-    out["uSat"] = sum(1 for s in report.satellites if s.used)
-    sats = []
-    for s in report.satellites:
-        item: dict[str, Any] = {"PRN": s.prn}
-        if s.el_deg is not None:
-            item["el"] = s.el_deg
-        if s.az_deg is not None:
-            item["az"] = s.az_deg
-        if s.snr_dbhz is not None:
-            item["ss"] = s.snr_dbhz
-        item["used"] = s.used
-        sats.append(item)
-    out["satellites"] = sats
-    return out
-
-
 def report_lines(records: Iterable[Record], *, with_sky: bool = True) -> Iterator[str]:
     """Compact JSON lines (no newline) for the fixes and sky reports among ``records``."""
     for r in records:
         if isinstance(r, GpsFix):
-            yield json.dumps(tpv(r), separators=(",", ":"))
+            yield json.dumps(tpv_obj(r), separators=(",", ":"))
         elif with_sky and isinstance(r, GpsSky):
-            yield json.dumps(sky(r), separators=(",", ":"))
+            yield json.dumps(sky_obj(r), separators=(",", ":"))
 
 
 def _recording_sentences(lines: Iterable[bytes]) -> Iterator[tuple[float, str]]:

@@ -89,7 +89,7 @@ def device_obj(path: str, bps: int = 9600) -> dict[str, Any]:
     }
 
 
-def tpv_obj(fix: GpsFix, device: str) -> dict[str, Any]:
+def tpv_obj(fix: GpsFix, device: str | None = None) -> dict[str, Any]:
     """TPV report for one fix; fields the fix does not have are omitted, never null.
 
     eph/epx/epy/epv (metres) are DOP x :data:`UERE_M` estimates.
@@ -111,7 +111,7 @@ def tpv_obj(fix: GpsFix, device: str) -> dict[str, Any]:
         if fix.speed_mps is not None:
             obj["speed"] = _num(fix.speed_mps, 3)
         if fix.course_deg is not None:
-            obj["track"] = _num(fix.course_deg, 2)
+            obj["track"] = _num(fix.course_deg, 4)
         if fix.hdop is not None:
             eph = fix.hdop * UERE_M
             obj["eph"] = _num(eph, 3)
@@ -121,7 +121,7 @@ def tpv_obj(fix: GpsFix, device: str) -> dict[str, Any]:
     return {k: v for k, v in obj.items() if v is not None}
 
 
-def sky_obj(sky: GpsSky, device: str) -> dict[str, Any]:
+def sky_obj(sky: GpsSky, device: str | None = None) -> dict[str, Any]:
     """SKY report: DOPs, satellite counts and the satellite list (PRN, el, az, ss, used)."""
     sats: list[dict[str, Any]] = []
     for s in sky.satellites:
