@@ -1,0 +1,291 @@
+"""The composable error layers of sim_backend.effects: physics, exactness, parameters."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sim_backend.effects import (
+    EFFECT_NAMES,
+    EFFECTS,
+    Bias,
+    Declination,
+    GaussMarkov,
+    HardIron,
+    HeadingLag,
+    HeadingNoise,
+    HeadingSeries,
+    Jumps,
+    Latency,
+    MultipathZone,
+    Outages,
+    PositionSeries,
+    Quantization,
+    RandomWalk,
+    SoftIron,
+    Tilt,
+    effect_from_params,
+    quantization_step_m,
+    tilted_heading_deg,
+    truth_track_m,
+    wrap180,
+)
+from x6wd.errors import ConfigError
+
+
+def zeros(n: int, dt: float = 1.0, **kw: object) -> PositionSeries:
+    t = np.arange(n) * dt
+    z = np.zeros(n)
+    return PositionSeries(t, z, z, z, np.ones(n, dtype=bool), 51.7, 19.5, **kw)  # type: ignore[arg-type]
+
+
+def compass(h: np.ndarray, pitch: float = 0.0, roll: float = 0.0) -> HeadingSeries:
+    n = h.size
+    return HeadingSeries(
+        np.arange(n) * 0.1, h, np.full(n, pitch), np.full(n, roll), true_heading_deg=h
+    )
+
+
+def gm_estimates(x: np.ndarray, dt: float) -> tuple[float, float]:
+    """(sigma, tau) of an ensemble of GM rows: pooled std and tau from lag-1 correlation."""
+    sigma = float(np.sqrt(np.mean(x**2)))
+    r1 = float(np.mean(x[:, 1:] * x[:, :-1]) / np.mean(x**2))
+    return sigma, -dt / math.log(r1)
+
+
+@pytest.mark.parametrize("rate_hz", [1.0, 4.0])
+def test_gauss_markov_reproduces_sigma_and_tau_at_any_rate(rate_hz: float) -> None:
+    dt = 1.0 / rate_hz
+    sigma_m, tau_s = 0.7, 30.0
+    eff = GaussMarkov(sigma_m=sigma_m, tau_s=tau_s, axes="e")
+    rows = np.array(
+        [
+            eff.apply(zeros(int(600 * rate_hz), dt), np.random.default_rng(i)).east_m
+            for i in range(200)
+        ]
+    )
+    sigma, tau = gm_estimates(rows, dt)
+    assert sigma == pytest.approx(sigma_m, rel=0.03)
+    assert tau == pytest.approx(tau_s, rel=0.08)
+    # stationary start: the first sample already has the full variance
+    assert float(np.std(rows[:, 0])) == pytest.approx(sigma_m, rel=0.15)
+
+
+def test_gauss_markov_exact_with_irregular_steps() -> None:
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.2, 3.0, 400))
+    base = PositionSeries(t, np.zeros(400), np.zeros(400), np.zeros(400), np.ones(400, dtype=bool))
+    eff = GaussMarkov(sigma_m=1.0, tau_s=5.0, axes="n")
+    x = np.array([eff.apply(base, np.random.default_rng(i)).north_m for i in range(300)])
+    phi = np.exp(-np.diff(t) / 5.0)
+    # E[x_k x_{k+1}] = phi_k for unit variance: check the regression on the exact phi
+    c = np.mean(x[:, 1:] * x[:, :-1], axis=0)
+    assert float(np.mean(c / phi)) == pytest.approx(1.0, abs=0.05)
+    assert float(np.mean(x**2)) == pytest.approx(1.0, abs=0.06)
+
+
+def test_random_walk_variance_grows_as_q2_t() -> None:
+    eff = RandomWalk(q_m_per_sqrt_s=0.1, axes="e")
+    x = np.array([eff.apply(zeros(401, 0.5), np.random.default_rng(i)).east_m for i in range(300)])
+    assert float(np.var(x[:, -1])) == pytest.approx(0.01 * 200.0, rel=0.2)
+    assert np.all(x[:, 0] == 0.0)
+
+
+@pytest.mark.parametrize("decimals", [4, 5])
+def test_quantization_step_is_exact(decimals: int) -> None:
+    rng = np.random.default_rng(1)
+    s = GaussMarkov(3.0, 20.0).apply(zeros(500), rng)
+    q = Quantization(decimals).apply(s, rng)
+    step_e, step_n = quantization_step_m(decimals, 51.7)
+    for vals, step, orig in ((q.north_m, step_n, s.north_m), (q.east_m, step_e, s.east_m)):
+        # lattice positions relative to the origin's own rounding: integer multiples of the step
+        k = (vals - vals[0]) / step
+        assert np.max(np.abs(k - np.round(k))) < 1e-6
+        assert np.max(np.abs(vals - orig)) <= step / 2 + 1e-9
+    # the step itself: 1e-4 minute of latitude is 0.185 m (REFERENCE §6)
+    assert quantization_step_m(4, 51.7)[1] == pytest.approx(0.1855, abs=0.0005)
+
+
+def test_quantization_idempotent_and_moving() -> None:
+    rng = np.random.default_rng(2)
+    s = GaussMarkov(1.0, 20.0).apply(
+        zeros(300, speed_mps=np.full(300, 2.0), course_deg=np.full(300, 45.0)), rng
+    )
+    q = Quantization(5).apply(s, rng)
+    q2 = Quantization(5).apply(q, rng)
+    assert np.allclose(q.east_m, q2.east_m, atol=1e-9) and np.allclose(
+        q.north_m, q2.north_m, atol=1e-9
+    )
+    assert not np.allclose(q.east_m, s.east_m)
+
+
+def test_bias_and_gm_commute_and_inputs_unchanged() -> None:
+    s = zeros(200)
+    before = s.east_m.copy()
+    a = Bias(1.0, -2.0, 0.5).apply(
+        GaussMarkov(0.5, 10.0).apply(s, np.random.default_rng(5)), np.random.default_rng(9)
+    )
+    b = GaussMarkov(0.5, 10.0).apply(
+        Bias(1.0, -2.0, 0.5).apply(s, np.random.default_rng(9)), np.random.default_rng(5)
+    )
+    assert (
+        np.allclose(a.east_m, b.east_m)
+        and np.allclose(a.north_m, b.north_m)
+        and np.allclose(a.up_m, b.up_m)
+    )
+    assert np.array_equal(s.east_m, before)
+    assert float(np.mean(a.north_m)) == pytest.approx(-2.0, abs=0.5)
+
+
+def test_jumps_at_satellite_set_changes_only() -> None:
+    nsats = np.array([7] * 50 + [8] * 50 + [6] * 50)
+    s = zeros(150, nsats=nsats)
+    j = Jumps(sigma_m=2.0).apply(s, np.random.default_rng(1))
+    steps = np.flatnonzero(np.diff(j.east_m) != 0.0) + 1
+    assert set(steps) <= {50, 100} and len(steps) >= 1
+    # without nsats: Poisson changes at about rate * duration
+    k = [
+        np.count_nonzero(
+            np.diff(Jumps(1.0, rate_per_s=0.05).apply(zeros(2000), np.random.default_rng(i)).east_m)
+        )
+        for i in range(20)
+    ]
+    assert float(np.mean(k)) == pytest.approx(0.05 * 1999, rel=0.15)
+
+
+def test_outages_two_state_means() -> None:
+    eff = Outages(mean_up_s=60.0, mean_down_s=10.0)
+    up = np.concatenate(
+        [eff.states(np.arange(20000) * 0.5, np.random.default_rng(i)) for i in range(3)]
+    )
+    assert float(np.mean(up)) == pytest.approx(60 / 70, abs=0.03)
+    d = np.diff(np.concatenate(([1], up.astype(int), [1])))
+    downs = (np.flatnonzero(d == 1) - np.flatnonzero(d == -1)) * 0.5
+    assert float(np.mean(downs)) == pytest.approx(10.0, rel=0.2)
+    assert not Outages(60, 10).apply(zeros(5000), np.random.default_rng(1)).valid.all()
+
+
+def test_latency_reports_the_truth_of_delay_earlier() -> None:
+    s = zeros(100, speed_mps=np.full(100, 2.0), course_deg=np.full(100, 90.0))
+    out = Latency(delay_s=0.5).apply(s, np.random.default_rng(0))
+    assert np.allclose(out.east_m, -1.0) and np.allclose(out.north_m, 0.0)
+    assert np.array_equal(
+        Latency(0.5).apply(zeros(10), np.random.default_rng(0)).east_m, np.zeros(10)
+    )
+
+
+def test_truth_track_integrates_velocity() -> None:
+    s = zeros(11, speed_mps=np.full(11, 3.0), course_deg=np.full(11, 0.0))
+    e, n = truth_track_m(s)
+    assert np.allclose(n, 3.0 * np.arange(11)) and np.allclose(e, 0.0)
+
+
+def test_multipath_zone_only_near_the_wall() -> None:
+    # drive east along y=0 from x=0 at 1 m/s; wall along x=50..60 at y=-2
+    s = zeros(120, speed_mps=np.full(120, 1.0), course_deg=np.full(120, 90.0))
+    mz = MultipathZone(50.0, -2.0, 60.0, -2.0, distance_m=3.0, sigma_m=0.0, bias_m=1.5)
+    out = mz.apply(s, np.random.default_rng(0))
+    inside = (np.arange(120) >= 50) & (np.arange(120) <= 60)
+    assert np.allclose(out.north_m[inside], 1.5)  # pushed away from the wall (north)
+    assert np.allclose(out.north_m[~inside & (np.abs(np.arange(120) - 55) > 8)], 0.0)
+
+
+def test_hard_iron_once_per_turn_and_field_magnitude() -> None:
+    h = np.arange(0.0, 360.0, 1.0)
+    out = HardIron(bx_ut=2.0, by_ut=0.0, horizontal_field_ut=20.0).apply(
+        compass(h), np.random.default_rng(0)
+    )
+    err = np.radians(wrap180(out.heading_deg - h))
+    spec = np.abs(np.fft.rfft(err))
+    assert int(np.argmax(spec[1:])) + 1 == 1  # dominant harmonic: once per turn
+    assert float(np.max(np.abs(err))) == pytest.approx(math.asin(0.1), rel=0.02)
+    assert out.field_ut is not None and np.ptp(out.field_ut) == pytest.approx(4.0, rel=0.01)
+
+
+def test_soft_iron_twice_per_turn() -> None:
+    h = np.arange(0.0, 360.0, 1.0)
+    out = SoftIron(k=0.05, axis_deg=20.0).apply(compass(h), np.random.default_rng(0))
+    err = np.radians(wrap180(out.heading_deg - h))
+    spec = np.abs(np.fft.rfft(err))
+    assert int(np.argmax(spec[1:])) + 1 == 2
+    assert float(np.max(np.abs(err))) == pytest.approx(0.05, rel=0.1)
+
+
+def test_tilt_error_is_tilt_times_tan_inclination() -> None:
+    # nose up 2 deg heading east: the classic uncompensated error ~ pitch * tan(I) * sin(h)
+    err = wrap180(
+        tilted_heading_deg(np.array([90.0]), np.array([2.0]), np.array([0.0]), 66.0) - 90.0
+    )
+    assert abs(float(err[0])) == pytest.approx(2.0 * math.tan(math.radians(66.0)), rel=0.1)
+    h = np.arange(0.0, 360.0, 2.0)
+    out = Tilt(fraction=1.0, inclination_deg=66.0).apply(
+        compass(h, pitch=2.0), np.random.default_rng(0)
+    )
+    spec = np.abs(np.fft.rfft(np.radians(wrap180(out.heading_deg - h))))
+    assert int(np.argmax(spec[1:])) + 1 == 1
+    flat = Tilt(fraction=1.0).apply(compass(h), np.random.default_rng(0))
+    assert np.allclose(wrap180(flat.heading_deg - h), 0.0, atol=1e-9)
+
+
+def test_pitch_roll_clamped_to_85() -> None:
+    out = HeadingNoise(0.0).apply(
+        compass(np.zeros(3), pitch=89.0, roll=-120.0), np.random.default_rng(0)
+    )
+    assert np.all(out.pitch_deg == 85.0) and np.all(out.roll_deg == -85.0)
+
+
+def test_declination_and_noise_commute() -> None:
+    s = compass(np.linspace(0, 359, 50))
+    a = HeadingNoise(1.0).apply(
+        Declination(4.0).apply(s, np.random.default_rng(0)), np.random.default_rng(1)
+    )
+    b = Declination(4.0).apply(
+        HeadingNoise(1.0).apply(s, np.random.default_rng(1)), np.random.default_rng(0)
+    )
+    assert np.allclose(wrap180(a.heading_deg - b.heading_deg), 0.0, atol=1e-9)
+
+
+def test_heading_lag_exact_first_order_across_north() -> None:
+    t = np.arange(0, 3.0, 0.05)
+    h = np.where(t < 0.5, 350.0, 10.0)  # a 20 deg step across north at t = 0.5 s
+    s = HeadingSeries(t, h, np.zeros(t.size), np.zeros(t.size))
+    out = HeadingLag(tau_s=0.3).apply(s, np.random.default_rng(0))
+    k = np.flatnonzero(t >= 0.5)
+    expected = 10.0 - 20.0 * np.exp(-(t[k] - t[k[0] - 1]) / 0.3)
+    assert np.allclose(wrap180(out.heading_deg[k] - expected), 0.0, atol=1e-9)
+
+
+def test_params_round_trip_for_every_effect() -> None:
+    examples = {
+        "gauss_markov": GaussMarkov(0.5, 60.0, "enu"),
+        "random_walk": RandomWalk(0.01),
+        "bias": Bias(1.0, 2.0, 3.0),
+        "quantization": Quantization(4),
+        "jumps": Jumps(1.0, 0.02, 0.5),
+        "outages": Outages(100.0, 5.0),
+        "latency": Latency(0.3),
+        "multipath_zone": MultipathZone(0, 0, 10, 0, 5.0, 1.0, 0.5, 20.0),
+        "hard_iron": HardIron(1.0, -2.0),
+        "soft_iron": SoftIron(0.03, 10.0),
+        "tilt": Tilt(0.5, 60.0),
+        "declination": Declination(5.5),
+        "heading_lag": HeadingLag(0.21),
+    }
+    assert set(examples) == set(EFFECT_NAMES) and set(EFFECT_NAMES) <= set(EFFECTS)
+    for name, eff in examples.items():
+        table = eff.to_params()
+        assert table["name"] == name
+        assert effect_from_params(table) == eff
+
+
+def test_bad_parameters_are_named_errors() -> None:
+    with pytest.raises(ConfigError, match="tau_s"):
+        GaussMarkov(1.0, 0.0)
+    with pytest.raises(ConfigError, match="unknown parameter"):
+        effect_from_params({"name": "bias", "east": 1.0})
+    with pytest.raises(ConfigError, match="unknown name"):
+        effect_from_params({"name": "nope"})
+    with pytest.raises(ConfigError, match="axes"):
+        GaussMarkov(1.0, 1.0, axes="x")

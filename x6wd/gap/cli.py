@@ -1,0 +1,113 @@
+"""``x6wd gap --real REAL (--sim SIM ... | --scenario FILE [--seeds M])
+[--truth LAT,LON[,ALT] | --truth-track FILE] [--out DIR]``."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sim_backend.effects import PositionSeries
+from x6wd.errors import ConfigError
+from x6wd.gap.diagnose import Options, diagnose, verdict_text
+from x6wd.gap.io import (
+    Track,
+    errors_vs_mean,
+    errors_vs_point,
+    errors_vs_track,
+    parse_truth,
+    read_track,
+)
+from x6wd.gap.report import write_report
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``x6wd gap``."""
+    parser.add_argument(
+        "--real", required=True, help="real log: NMEA, x6wd recording, CSV or RTKLIB .pos"
+    )
+    base = parser.add_mutually_exclusive_group(required=True)
+    base.add_argument("--sim", action="append", default=[], help="baseline sim log (repeatable)")
+    base.add_argument("--scenario", help="scenario TOML: the baseline is run with --seeds seeds")
+    parser.add_argument(
+        "--seeds", type=int, default=20, help="baseline runs with --scenario (default 20)"
+    )
+    truth = parser.add_mutually_exclusive_group()
+    truth.add_argument("--truth", help="surveyed point LAT,LON[,ALT] (deg, deg, m)")
+    truth.add_argument("--truth-track", help="truth trajectory (any log format, e.g. RTKLIB .pos)")
+    parser.add_argument("--out", default="gap-report", help="output directory (default gap-report)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the tool's own randomness")
+    parser.add_argument(
+        "--replicates", type=int, default=20, help="block-bootstrap replicates (default 20)"
+    )
+    parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr (only drawn on a terminal unless forced)."""
+
+    def __init__(self, enabled: bool, width: int = 30) -> None:
+        self.enabled = enabled
+        self.width = width
+        self.t0 = time.monotonic()
+
+    def __call__(self, msg: str, frac: float) -> None:
+        if not self.enabled:
+            return
+        n = round(max(0.0, min(1.0, frac)) * self.width)
+        el_s = time.monotonic() - self.t0
+        line = f"\r[{'#' * n}{' ' * (self.width - n)}] {frac:4.0%} {el_s:5.1f}s {msg[:50]:<50}"
+        sys.stderr.write(line)
+        if frac >= 1.0:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+def to_errors(track: Track, args: argparse.Namespace, truth_track: Track | None) -> PositionSeries:
+    """A log's errors against the chosen truth."""
+    if args.truth:
+        lat, lon, alt = parse_truth(args.truth)
+        return errors_vs_point(track, lat, lon, alt)
+    if truth_track is not None:
+        return errors_vs_track(track, truth_track)
+    return errors_vs_mean(track)
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the diagnosis and write the report; exit code 0 (whatever the verdict)."""
+    bar = ProgressBar(enabled=not args.quiet and sys.stderr.isatty())
+    if args.seeds < 1 or args.replicates < 3:
+        raise ConfigError("--seeds must be >= 1 and --replicates >= 3")
+    bar("reading logs", 0.0)
+    truth_track = read_track(args.truth_track) if args.truth_track else None
+    real = to_errors(read_track(args.real), args, truth_track)
+    notes = []
+    if not args.truth and truth_track is None:
+        notes.append(
+            "no truth given: errors are taken against each log's own mean, so a bias is invisible"
+        )
+    if args.scenario:
+        from x6wd.gap.scenario import scenario_baseline
+
+        baseline = scenario_baseline(
+            args.scenario,
+            real,
+            args.seeds,
+            progress=lambda i: bar(f"simulating seed {i}/{args.seeds}", 0.05 * i / args.seeds),
+        )
+    else:
+        baseline = [to_errors(read_track(p), args, truth_track) for p in args.sim]
+    rng = np.random.default_rng(args.seed)
+    d = diagnose(real, baseline, rng, Options(replicates=args.replicates), progress=bar)
+    d.notes.extend(notes)
+    bar("writing report", 1.0)
+    write_report(d, Path(args.out), real_name=Path(args.real).name, figures=not args.no_figures)
+    print(f"{verdict_text(d)}; report in {args.out}/report.md")
+    if not math.isfinite(d.closure):
+        return 1
+    return 0

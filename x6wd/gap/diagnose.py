@@ -1,0 +1,389 @@
+"""The gap pipeline: where the gap lies, which effect explains it, how far it closes.
+
+1. Null: the baseline ensemble (M sim runs, or a block bootstrap of fewer) calibrates every
+   cell of the battery; cells of the real log beyond the family-wise threshold are "where".
+2. Candidates are ranked by their fingerprint on the battery, fitted on the first part of the
+   log, added to every baseline run, and scored on the held-out last part (after a guard gap)
+   by G = mean clipped z^2; closure = (G_baseline - G_effect) / (G_baseline - G_floor).
+3. Greedy add-one-in (up to three effects), then leave-one-out drops any that no longer help.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sim_backend.effects import PositionSeries, Quantization
+from x6wd.errors import ConfigError
+from x6wd.gap.fit import FITTABLE, FITTERS, Fit, fingerprint_score
+from x6wd.gap.null import NullModel, _floors, block_bootstrap, null_model
+from x6wd.gap.stats import (
+    QUANT_DECIMALS,
+    Cell,
+    Layout,
+    battery,
+    lattice_fraction,
+    layout_for,
+    window,
+)
+
+Progress = Callable[[str, float], None]
+
+EXPLAINED_CLOSURE = 0.5  # a selection closing at least half the held-out gap explains it
+ADD_MIN_GAIN = 0.1  # a first effect must close at least 10 % of the gap
+ADD_MIN_LEFT = 0.5  # G above the floor still worth explaining (null G - floor spread ~0.2)
+ADD_MIN_SHARE = 0.3  # a further effect must remove 30 % of the gap left
+
+
+@dataclass(frozen=True)
+class Options:
+    """Pipeline settings: ``replicates`` the size of a bootstrap ensemble (when fewer than
+    ``min_runs`` baseline runs are given), ``fit_fraction`` and ``guard_fraction`` of the log,
+    ``alpha`` the family-wise error rate, ``candidates`` the effects considered,
+    ``ci_resamples`` for closure intervals."""
+
+    replicates: int = 20
+    min_runs: int = 8
+    fit_fraction: float = 0.6
+    guard_fraction: float = 0.05
+    alpha: float = 0.05
+    candidates: tuple[str, ...] = FITTABLE
+    ci_resamples: int = 200
+    max_effects: int = 3
+
+    def __post_init__(self) -> None:
+        if not 0.2 <= self.fit_fraction <= 0.8:
+            raise ConfigError(f"fit_fraction={self.fit_fraction}: must be in [0.2, 0.8]")
+        if not 0.0 <= self.guard_fraction <= 0.2:
+            raise ConfigError(f"guard_fraction={self.guard_fraction}: must be in [0, 0.2]")
+        unknown = sorted(set(self.candidates) - set(FITTABLE))
+        if unknown:
+            raise ConfigError(f"candidates {unknown} cannot be fitted; fittable: {list(FITTABLE)}")
+
+
+@dataclass
+class Candidate:
+    """A fitted effect and how it scored on the held-out part."""
+
+    fit: Fit
+    score: float  # fingerprint evidence on the fit part
+    closure: float
+    closure_ci: tuple[float, float]
+    g_effect: float
+
+
+@dataclass
+class Diagnosis:
+    """Everything the report needs."""
+
+    layout: Layout
+    real: PositionSeries
+    baseline: list[PositionSeries]
+    bootstrap: bool
+    cells: tuple[Cell, ...]
+    z: np.ndarray
+    threshold: float
+    null: NullModel
+    where: list[dict[str, Any]]
+    g_baseline: float
+    g_floor: float
+    g_with: float
+    candidates: list[Candidate]
+    selected: list[Fit]
+    closure: float
+    split_s: tuple[float, float, float]
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.where)
+
+    @property
+    def explained(self) -> bool:
+        return self.significant and bool(self.selected) and self.closure >= EXPLAINED_CLOSURE
+
+
+def _lattice_decimals(series: Sequence[PositionSeries]) -> int | None:
+    """The NMEA minute lattice every series lies on (None if not quantised)."""
+    for dec in QUANT_DECIMALS:
+        if all(lattice_fraction(s, dec) >= 0.99 for s in series[:3]):
+            return dec
+    return None
+
+
+def apply_fits(
+    fits: Sequence[Fit],
+    runs: Sequence[PositionSeries],
+    rng: np.random.Generator,
+    lattice: int | None,
+) -> list[PositionSeries]:
+    """Each run with the effects added, then printed on the baseline's NMEA lattice again
+    (a receiver prints its final position; an added error does not leave the lattice)."""
+    out = []
+    eff_lattice = next((f.effect.decimals for f in fits if f.name == "quantization"), lattice)
+    for s in runs:
+        for f in fits:
+            if f.name != "quantization":
+                s = f.effect.apply(s, rng)
+        if eff_lattice is not None:
+            s = Quantization(decimals=int(eff_lattice)).apply(s, rng)
+        out.append(s)
+    return out
+
+
+def _batteries(
+    runs: Sequence[PositionSeries], layout: Layout, t0: float, t1: float
+) -> list[dict[Cell, float]]:
+    return [battery(window(s, t0, t1), layout) for s in runs]
+
+
+def _closure(gb: float, ge: float, gf: float) -> float:
+    den = gb - gf
+    if den <= 1e-9:
+        return 0.0
+    return (gb - ge) / den
+
+
+def _closure_ci(
+    real_b: dict[Cell, float], base: NullModel, eff: NullModel, rng: np.random.Generator, n: int
+) -> tuple[float, float]:
+    """5-95 % interval of the closure over resamples of the ensemble members."""
+    ref = base.sd
+    vals = []
+    for _ in range(n):
+        nb = _resample(base, rng)
+        ne = _resample(eff, rng)
+        vals.append(_closure(nb.gap(real_b, ref), ne.gap(real_b, ref), nb.floor(ref)))
+    lo, hi = np.quantile(vals, [0.05, 0.95])
+    return float(lo), float(hi)
+
+
+def _resample(model: NullModel, rng: np.random.Generator) -> NullModel:
+    idx = rng.integers(model.m, size=model.m)
+    v = model.values[idx]
+    sd = np.maximum(v.std(axis=0, ddof=1), _floors(model.cells))
+    return NullModel(model.cells, v, v.mean(axis=0), sd, model.threshold)
+
+
+def diagnose(
+    real: PositionSeries,
+    baseline: Sequence[PositionSeries],
+    rng: np.random.Generator,
+    options: Options | None = None,
+    progress: Progress | None = None,
+) -> Diagnosis:
+    """Run the whole pipeline on an error series and its baseline runs (errors, metres)."""
+    opt = options or Options()
+    say = progress or (lambda _msg, _frac: None)
+    if len(real) < 60:
+        raise ConfigError(
+            f"real log too short for a gap diagnosis: {len(real)} epochs (need >= 60)"
+        )
+    if not baseline:
+        raise ConfigError("no baseline: give --sim logs or --scenario")
+    layout = layout_for(real)
+    notes: list[str] = []
+    runs = list(baseline)
+    boot = len(runs) < opt.min_runs
+    if boot:
+        block_s = max(layout.duration_s / 4.0, 10 * layout.dt_s)
+        runs = block_bootstrap(runs, opt.replicates, rng, block_s, template=real)
+        notes.append(
+            f"baseline: {len(baseline)} sim log(s), null from a circular block bootstrap "
+            f"({opt.replicates} replicates, blocks of {block_s:.0f} s): slower drifts than a block "
+            "are under-represented, so treat long-scale cells with care"
+        )
+    lattice = _lattice_decimals(runs)
+    T = layout.duration_s
+
+    # 1. where: the whole log against the baseline null
+    say("calibrating the sim-vs-sim null", 0.05)
+    full_b = _batteries(runs, layout, 0.0, T + layout.dt_s)
+    null = null_model(full_b, opt.alpha)
+    real_full = battery(real, layout)
+    z = null.z(real_full)
+    where = [
+        {
+            "statistic": c.statistic,
+            "axis": c.axis,
+            "scale": c.scale,
+            "period": c.period,
+            "place": c.place,
+            "z": round(float(zc), 2),
+        }
+        for c, zc in sorted(zip(null.cells, z, strict=True), key=lambda p: -abs(p[1]))
+        if abs(zc) > null.threshold
+    ]
+
+    # 2. split: fit part, guard gap, held-out test part
+    t_fit = opt.fit_fraction * T
+    t_test = t_fit + opt.guard_fraction * T
+    fit_lay = Layout(
+        layout.dt_s, t_fit, layout.moving, layout.place_e_m, layout.place_n_m, layout.has_up
+    )
+    test_lay = Layout(
+        layout.dt_s, T - t_test, layout.moving, layout.place_e_m, layout.place_n_m, layout.has_up
+    )
+    real_fit = window(real, 0.0, t_fit)
+    real_test_b = battery(window(real, t_test, T + layout.dt_s), test_lay)
+    base_test = null_model(_batteries(runs, test_lay, t_test, T + layout.dt_s), opt.alpha)
+    ref_sd = base_test.sd
+    g_b = base_test.gap(real_test_b, ref_sd)
+    g_f = base_test.floor(ref_sd)
+    diag = Diagnosis(
+        layout, real, runs, boot, null.cells, z, null.threshold, null, where,
+        g_b, g_f, g_b, [], [], 0.0, (t_fit, t_test, T), notes,
+    )  # fmt: skip
+    if not where:
+        say("no significant gap", 1.0)
+        return diag
+
+    # 3. candidates: fingerprint, fit, held-out closure; greedy add-one-in
+    selected: list[Fit] = []
+    current = runs
+    g_cur = g_b
+    scored: dict[str, Candidate] = {}
+    real_fit_b = battery(real_fit, fit_lay)
+    ref_fit_sd = null_model(_batteries(runs, fit_lay, 0.0, t_fit), opt.alpha).sd
+
+    def evaluate(fits: list[Fit]) -> tuple[float, float, NullModel, list[PositionSeries]]:
+        """(selection key, held-out G, held-out null, runs) of the baseline plus ``fits``."""
+        with_runs = apply_fits(fits, runs, rng, lattice)
+        eff_null = null_model(_batteries(with_runs, test_lay, t_test, T + layout.dt_s), opt.alpha)
+        g_e = eff_null.gap(real_test_b, ref_sd)
+        fit_part = null_model(_batteries(with_runs, fit_lay, 0.0, t_fit), opt.alpha)
+        return g_e + fit_part.gap(real_fit_b, ref_fit_sd), g_e, eff_null, with_runs
+
+    for round_ in range(opt.max_effects):
+        cur_fit = [window(s, 0.0, t_fit) for s in current]
+        fit_null = null_model([battery(s, fit_lay) for s in cur_fit], opt.alpha)
+        zf = fit_null.z(battery(real_fit, fit_lay))
+        names = [n for n in opt.candidates if n not in {f.name for f in selected}]
+        ranked = sorted(names, key=lambda n: -fingerprint_score(n, fit_null.cells, zf))
+        # Choice among candidates: held-out G plus the fit part's G. The fit part sees the
+        # longer time scales a short held-out part cannot, so a look-alike (random walk for a
+        # slow Gauss-Markov drift) that only matches the short scales loses.
+        best: tuple[float, float, list[Fit]] | None = None
+        mean_cells = np.array([c.statistic == "mean" for c in fit_null.cells])
+        bias_flagged = bool(np.any(np.abs(zf[mean_cells]) > 3.0))
+        g_pair = math.inf
+        for i, name in enumerate(ranked):
+            say(
+                f"round {round_ + 1}: fitting {name}",
+                0.1 + 0.8 * (round_ + i / len(ranked)) / opt.max_effects,
+            )
+            fit = FITTERS[name](real_fit, cur_fit, fit_lay)
+            if fit is None:
+                continue
+            key, g_e, eff_null, with_runs = evaluate([*selected, fit])
+            option = [fit]
+            # A bias hides under any effect that widens the spread of means: try each
+            # candidate with a bias refitted on top, and keep the pair if it scores better.
+            if bias_flagged and name != "bias" and "bias" in names:
+                comp = FITTERS["bias"](
+                    real_fit, [window(s, 0.0, t_fit) for s in with_runs], fit_lay
+                )
+                if comp is not None:
+                    key2, g_e2, _n2, _r2 = evaluate([*selected, fit, comp])
+                    if key2 < key:
+                        key, option = key2, [fit, comp]
+                        g_pair = g_e2
+            if round_ == 0:
+                ci = _closure_ci(real_test_b, base_test, eff_null, rng, opt.ci_resamples)
+                scored[name] = Candidate(
+                    fit,
+                    fingerprint_score(name, fit_null.cells, zf),
+                    _closure(g_b, g_e, g_f),
+                    ci,
+                    g_e,
+                )
+            if best is None or key < best[0]:
+                best = (key, g_e if len(option) == 1 else g_pair, option)
+        if best is None:
+            break
+        # A further effect must remove a real part of what is LEFT of the gap (a first effect
+        # with a huge signature, e.g. a coarse lattice, leaves a second one a small share
+        # of the total but most of the remainder).
+        left = g_cur - g_f
+        if round_ > 0 and (left < ADD_MIN_LEFT or g_cur - best[1] < ADD_MIN_SHARE * left):
+            break
+        if round_ == 0 and _closure(g_b, best[1], g_f) < ADD_MIN_GAIN:
+            break
+        selected.extend(best[2])
+        g_cur = best[1]
+        current = apply_fits(selected, runs, rng, lattice)
+
+    # 4. leave-one-out: drop effects the others make redundant
+    if len(selected) > 1:
+        say("leave-one-out", 0.95)
+        for f in list(selected):
+            rest = [s for s in selected if s is not f]
+            rest_null = null_model(
+                _batteries(apply_fits(rest, runs, rng, lattice), test_lay, t_test, T + layout.dt_s),
+                opt.alpha,
+            )
+            g_rest = rest_null.gap(real_test_b, ref_sd)
+            if _closure(g_b, g_rest, g_f) >= _closure(g_b, g_cur, g_f) - ADD_MIN_GAIN / 2:
+                selected = rest
+                g_cur = g_rest
+    sel_names = [f.name for f in selected]
+    total = _closure(g_b, g_cur, g_f)
+    for f in selected:  # selected later without a first-round fit: report the set's closure
+        if f.name not in scored:
+            scored[f.name] = Candidate(f, 0.0, total, (total, total), g_cur)
+    order = sorted(scored.values(), key=lambda c: (c.fit.name not in sel_names, -c.closure))
+    for c in order:  # the selected fits replace the first-round ones (refitted on the residual)
+        if c.fit.name in sel_names:
+            c.fit = selected[sel_names.index(c.fit.name)]
+    diag.candidates = sorted(
+        order,
+        key=lambda c: (
+            c.fit.name not in sel_names,
+            sel_names.index(c.fit.name) if c.fit.name in sel_names else 0,
+            -c.closure,
+        ),
+    )
+    diag.selected = selected
+    diag.g_with = g_cur
+    diag.closure = _closure(g_b, g_cur, g_f)
+    if not math.isfinite(diag.closure):
+        diag.closure = 0.0
+    say("done", 1.0)
+    return diag
+
+
+def report_dict(d: Diagnosis) -> dict[str, Any]:
+    """The report.json content (keys fixed by the issue)."""
+    top = d.selected[0].name if d.explained else None
+    return {
+        "gap": {
+            "baseline": round(d.g_baseline, 4),
+            "floor": round(d.g_floor, 4),
+            "with_effects": round(d.g_with, 4),
+        },
+        "where": d.where,
+        "effects": [
+            {
+                "name": c.fit.name,
+                "params": c.fit.params,
+                "closure": round(c.closure, 3),
+                "closure_ci": [round(c.closure_ci[0], 3), round(c.closure_ci[1], 3)],
+            }
+            for c in d.candidates
+        ],
+        "verdict": {"effect": top, "explained": bool(d.explained) if d.significant else True},
+    }
+
+
+def verdict_text(d: Diagnosis) -> str:
+    """One line for people."""
+    if not d.significant:
+        return "no significant gap"
+    if d.explained:
+        names = " + ".join(f.name for f in d.selected)
+        return f"gap explained by {names} (held-out closure {d.closure:.2f})"
+    return "gap not explained by any known effect"
