@@ -11,12 +11,13 @@ PUBLIC API
   rectangles; it blocks rays from below that cross it outside its holes. Roofs do not reflect.
 - ``building(x0_m, y0_m, x1_m, y1_m, height_m, thickness_m=0.3) -> list[Wall]``: the four
   walls of an axis-aligned rectangular building (closed, no windows).
-- ``Walls(walls, roofs=(), max_candidates_per_ray=16)`` with
+- ``Walls(walls, roofs=(), max_directions=4096)`` with
   ``trace(rx_enu_m, az_deg, el_deg, max_reflections=16, max_loss_db=None) -> TraceResult``
   (``visibility(rx_enu_m, az_deg, el_deg)`` is the same with default limits):
   ``rx_enu_m`` is (3,) or (E, 3) (up = antenna height above ground, metres), ``az_deg`` /
-  ``el_deg`` are (E, S) or (S,) (azimuth clockwise from north). Everything is vectorised
-  over rays x walls; the Python loops run only over reflection depth.
+  ``el_deg`` are (E, S) or (S,) (azimuth clockwise from north); ``max_loss_db`` is one
+  number or an array broadcastable to (E, S) (a loss budget per ray). Everything is
+  vectorised over rays x walls; the Python loops run only over reflection depth.
 - ``TraceResult``: arrays of the broadcast shape (E, S): ``los`` (bool, direct path clear),
   ``n_reflections`` (int: 0 direct, 1..16 reflections, -1 no viable path = invisible),
   ``extra_path_m`` (range error of the path taken, 0 when direct or invisible),
@@ -25,23 +26,34 @@ PUBLIC API
 Model: a direct ray is blocked when it enters any wall box below the wall's top (unless it
 crosses the wall's centre plane inside a window) or crosses a roof outside its holes.
 Reflections use the image method on the vertical walls: a reflection mirrors the horizontal
-direction about the wall and keeps the elevation. The search is a breadth-first beam search
-over face sequences from the receiver side, shared by all satellites seen from the same
-receiver position (an epoch, or all epochs of a static receiver). Each sequence carries the
-receiver's image behind its last face and the cone of horizontal directions that pass
-through every face so far (beam tracing in plan view). Pruning: (a) a static table of faces
-that can see each other; (b) the image must be in front of the next face, and the cone
-through it must be non-empty; (c) height: the unfolded path to the next face, rising at the
-lowest pending elevation, must still be below that wall's top; (d) stop at the first depth
-that yields a viable path (the least extra path of that depth is kept); (e) ``max_loss_db``
-bounds the depth (3 dB each); (f) at most ``max_candidates_per_ray`` sequences per receiver
-position and depth, nearest image first. A satellite matches a sequence when its direction
-lies in the final cone; the path is then back-traced from the receiver and is viable when
-every reflection point lies within its wall's extent, below its top and outside its windows,
-and every segment between reflections, and the final one to the sky, is unobstructed.
-(f) makes the search incomplete in cluttered scenes (a longer path may be reported, or none);
-raise ``max_candidates_per_ray`` for completeness at the cost of time. The extra path of one
-reflection is 2·d·cos(el)·cos(alpha) (d distance to the reflecting face).
+direction about the wall and keeps the elevation. A path with reflections off the faces
+f1..fk (from the receiver side) is viable when every reflection point lies within its wall's
+extent, below its top and outside its windows, and every segment between reflections, and
+the final one to the sky, is unobstructed. The satellite gets the path of the least number of
+reflections (then the least extra path), up to ``max_reflections`` and ``max_loss_db``
+(3 dB each). The extra path of one reflection is 2·d·cos(el)·cos(alpha) (d distance to the
+reflecting face).
+
+Method (exact: it finds what a brute-force search over all wall sequences finds).
+- Line of sight: a slab test of each ray against each wall box, after exact (conservative)
+  prefilters: the ray's line must pass the box's bounding circle in plan, and (per receiver
+  position) its rise over the distance to the box must still be below the wall's top.
+- Reflections ("shooting"): for plane waves a path's reflections only mirror its horizontal
+  direction, so the receiver must look along ``G·d`` where ``d`` is the satellite's
+  horizontal direction and ``G`` the product of the mirrors of the reflecting walls. The
+  distinct products of at most k mirrors are few and depend only on the walls' orientations
+  (4 for axis-aligned buildings: d, d mirrored in x, in y, in both); they are enumerated
+  once per scene. From each such look direction the path is determined: follow the ray,
+  reflect off the first face it meets, and so on, until it escapes, is blocked, or runs out
+  of depth budget; it is viable when it escapes along ``d``. All shots of all blocked rays
+  advance together one reflection per step (breadth first), so a ray stops at the first
+  depth that gives a viable path. A ray that meets a face outside a window but crosses the
+  wall's centre plane inside it both reflects and passes (the model allows both): the shot
+  forks there.
+- ``max_directions`` bounds the enumeration for scenes with many wall orientations (the
+  count grows with the depth when orientations are not multiples of 90 deg). The search is
+  then complete only up to the deepest level whose look directions all fit
+  (``direction_depth``); deeper paths are found only along the directions enumerated.
 """
 
 from __future__ import annotations
@@ -207,6 +219,28 @@ class TraceResult:
         return self.n_reflections >= 0
 
 
+DEFAULT_MAX_DIRECTIONS = 4096
+# A shot escapes "along d" when its final horizontal direction is within this (components).
+# Mirror products accumulate ~1e-15 of rounding; distinct look directions differ by far more.
+_DIR_TOL = 1e-9
+# Prefilters must never drop a wall the exact test would hit: pad them well beyond rounding.
+_REACH_MARGIN_M = 1e-6
+
+
+@dataclass(frozen=True)
+class _Legs:
+    """Straight legs (rays from a point, rising at tan_el) tested against candidate walls.
+
+    Per leg: ``blocked`` (the leg cannot reach the sky). Per reflection option (a face the
+    leg reaches with nothing in between): ``leg``, ``wall`` and the horizontal distance
+    ``s`` to the reflection point."""
+
+    blocked: np.ndarray
+    leg: np.ndarray
+    wall: np.ndarray
+    s: np.ndarray
+
+
 class Walls:
     """A static scene of walls and roofs, traced for many rays at once."""
 
@@ -214,10 +248,10 @@ class Walls:
         self,
         walls: Iterable[Wall] = (),
         roofs: Iterable[Roof] = (),
-        max_candidates_per_ray: int = 16,
+        max_directions: int = DEFAULT_MAX_DIRECTIONS,
     ) -> None:
-        """``max_candidates_per_ray``: beam width of the reflection search, i.e. the face
-        sequences kept per receiver position and depth (nearest first)."""
+        """``max_directions``: budget of distinct look directions (mirror products) that the
+        reflection search enumerates; only scenes with many wall orientations reach it."""
         self.walls: tuple[Wall, ...] = tuple(walls)
         self.roofs: tuple[Roof, ...] = tuple(roofs)
         for i, w in enumerate(self.walls):
@@ -226,9 +260,9 @@ class Walls:
         for i, r in enumerate(self.roofs):
             if not isinstance(r, Roof):
                 raise ConfigError(f"roofs[{i}]: expected a Roof, got {r!r}")
-        if max_candidates_per_ray < 1:
-            raise ConfigError(f"max_candidates_per_ray: must be >= 1, got {max_candidates_per_ray}")
-        self.max_candidates_per_ray = int(max_candidates_per_ray)
+        if max_directions < 1:
+            raise ConfigError(f"max_directions: must be >= 1, got {max_directions}")
+        self.max_directions = int(max_directions)
         n_w = len(self.walls)
         self._p0 = np.array([[w.x0_m, w.y0_m] for w in self.walls], dtype=float).reshape(n_w, 2)
         p1 = np.array([[w.x1_m, w.y1_m] for w in self.walls], dtype=float).reshape(n_w, 2)
@@ -238,6 +272,7 @@ class Walls:
         self._half = np.array([w.thickness_m / 2.0 for w in self.walls], dtype=float)
         self._height = np.array([w.height_m for w in self.walls], dtype=float)
         k = max([len(w.windows) for w in self.walls], default=0)
+        self._has_windows = k > 0
         self._win = np.full((n_w, max(k, 1), 4), np.nan)
         for i, w in enumerate(self.walls):
             for j, win in enumerate(w.windows):
@@ -251,104 +286,213 @@ class Walls:
         for i, r in enumerate(self.roofs):
             for j, h in enumerate(r.holes):
                 self._holes[i, j] = (h.x0_m, h.y0_m, h.x1_m, h.y1_m)
-        self._compat = self._face_compat()
+        # Bounding circles of the boxes in plan, for the prefilter.
+        self._centre = self._p0 + self._t * (self._len / 2.0)[:, None]
+        self._radius = np.hypot(self._len / 2.0, self._half) + _REACH_MARGIN_M
+        # Look directions: level L holds the mirror products of word length exactly L.
+        mirrors: dict[tuple[float, ...], np.ndarray] = {}
+        for nx, ny in self._n:
+            xy = -2.0 * nx * ny
+            m = np.array([[1.0 - 2.0 * nx * nx, xy], [xy, 1.0 - 2.0 * ny * ny]])
+            mirrors.setdefault(tuple(np.round(m, 12).ravel().tolist()), m)
+        self._mirrors = np.array(list(mirrors.values())).reshape(-1, 2, 2)
+        self._dir_levels: list[np.ndarray] = [np.eye(2)[None]]
+        self._dir_seen = {_map_key(np.eye(2))}
+        self._dir_count = 1
+        self._dir_closed = len(mirrors) == 0  # no new products can appear
+        self._dir_truncated = False
+        # Enumerate the default depth now: a shared scene is then only read while tracing.
+        self._directions(16)
 
     def __len__(self) -> int:
         return len(self.walls)
 
-    # ------------------------------------------------------------ geometry
-    def _face_compat(self) -> np.ndarray:
-        """compat[a, b]: face b (index 2*wall + (side > 0)) has a point in front of face a and
-        vice versa, so a ray can travel between them (static, direction-free pruning)."""
-        n_w = len(self.walls)
-        faces = 2 * n_w
-        if n_w == 0:
-            return np.zeros((0, 0), dtype=bool)
-        side = np.tile([-1.0, 1.0], n_w)
-        wall = np.repeat(np.arange(n_w), 2)
-        normal = self._n[wall] * side[:, None]  # (F, 2)
-        offset = np.einsum("fi,fi->f", self._p0[wall], normal) + self._half[wall]
-        ends = np.stack(
-            [
-                self._p0[wall] + normal * self._half[wall][:, None],
-                self._p0[wall]
-                + self._t[wall] * self._len[wall][:, None]
-                + normal * self._half[wall][:, None],
-            ],
-            axis=1,
-        )  # (F, 2 ends, 2)
-        # front[a, b]: some end of face b lies strictly in front of face a.
-        dist = np.einsum("ai,bki->abk", normal, ends) - offset[:, None, None]
-        front = (dist > 1e-6).any(axis=2)
-        compat = front & front.T
-        compat[wall[:, None] == wall[None, :]] = False
-        assert compat.shape == (faces, faces)
-        return compat
+    # ------------------------------------------------------------ look directions
+    @property
+    def direction_depth(self) -> int | None:
+        """Deepest reflection count the look-direction set covers (None: every depth)."""
+        return len(self._dir_levels) - 1 if self._dir_truncated else None
 
-    def _segment_blocked(
+    def _directions(self, depth: int) -> tuple[np.ndarray, np.ndarray]:
+        """All distinct products of at most ``depth`` wall mirrors (G, 2, 2) and each one's
+        shortest word length (G,), breadth first; cached per scene."""
+        while len(self._dir_levels) <= depth and not (self._dir_closed or self._dir_truncated):
+            cand = np.einsum("mij,gjk->mgik", self._mirrors, self._dir_levels[-1]).reshape(-1, 2, 2)
+            new = []
+            for g in cand:
+                key = _map_key(g)
+                if key not in self._dir_seen:
+                    self._dir_seen.add(key)
+                    new.append(g)
+            if not new:
+                self._dir_closed = True  # the group is finite and complete
+                break
+            if self._dir_count + len(new) > self.max_directions:
+                self._dir_truncated = True
+                break
+            self._dir_count += len(new)
+            self._dir_levels.append(np.array(new))
+        levels = self._dir_levels[: depth + 1]
+        maps = np.concatenate(levels, axis=0)
+        word = np.repeat(np.arange(len(levels)), [lv.shape[0] for lv in levels])
+        return maps, word
+
+    # ------------------------------------------------------------ geometry
+    def _sight(self, o: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Prefilter table for rays leaving points ``o`` (M, 2) at heights ``z`` (M,):
+        ``tan_max`` (M, W), a ray rising at tan_el >= this passes over the wall, its row
+        maximum (M,), and ``o`` itself."""
+        rel_x = o[:, 0, None] - self._p0[None, :, 0]
+        rel_y = o[:, 1, None] - self._p0[None, :, 1]
+        ou = rel_x * self._t[:, 0] + rel_y * self._t[:, 1]
+        ov = rel_x * self._n[:, 0] + rel_y * self._n[:, 1]
+        du = np.maximum(np.maximum(-ou, ou - self._len), 0.0)
+        dv = np.maximum(np.abs(ov) - self._half, 0.0)
+        dist = np.sqrt(du * du + dv * dv)
+        # The ray enters the box no nearer than ``dist``, where it is already this high;
+        # inside or touching a box (dist 0) every ray is a candidate.
+        rise = self._height[None, :] - z[:, None] + _REACH_MARGIN_M
+        tan_max = np.full(dist.shape, np.inf)
+        np.divide(rise, dist, out=tan_max, where=dist > 0.0)
+        tan_max[rise <= 0.0] = -np.inf  # the receiver is above the wall's top
+        return tan_max, tan_max.max(axis=1, initial=-np.inf), o
+
+    def _candidates(
         self,
-        o: np.ndarray,
-        z0: np.ndarray,
+        sight: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+        origin: np.ndarray,
         v: np.ndarray,
         tan_el: np.ndarray,
-        s_max: np.ndarray,
-        exclude: np.ndarray,
-    ) -> np.ndarray:
-        """True where the ray o + s·v (horizontal distance s in [0, s_max), rising by tan_el)
-        enters a wall box below its top (outside windows) or crosses a roof outside holes.
-        ``exclude`` (N,) or (N, m): wall indices ignored per ray (-1 = none)."""
+        prev: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(leg, wall) pairs, sorted by leg, that the prefilter cannot rule out. With a
+        ``sight`` table, ``origin`` (N,) indexes its rows the legs start from; without,
+        ``origin`` holds the legs' start points (N, 2). Exact-conservative: a wall is dropped
+        only when the leg misses its bounding circle in plan, or (with a table) passes over
+        it."""
+        if sight is None:
+            rows = np.arange(v.shape[0])
+            start = origin
+        else:
+            _, tan_top, o = sight
+            rows = np.flatnonzero(tan_el < tan_top[origin])
+            start = o[origin[rows]]
+        vx, vy = v[rows, 0], v[rows, 1]
+        # Dense over (legs, walls), cheapest strong test first: the leg's line passes the
+        # bounding circle, |v x (c - start)| <= r, written to broadcast without temporaries
+        # of the centre offsets.
+        across = vx[:, None] * self._centre[None, :, 1] - vy[:, None] * self._centre[None, :, 0]
+        across -= (vx * start[:, 1] - vy * start[:, 0])[:, None]
+        near = np.abs(across, out=across) <= self._radius[None, :]
+        left = np.flatnonzero(prev[rows] >= 0)
+        near[left, prev[rows[left]]] = False  # a ray leaving a face cannot meet that box again
+        i, wall = np.nonzero(near)
+        # Then per pair: the circle is ahead, and the leg is still below the wall's top.
+        leg = rows[i]
+        ahead = (self._centre[wall] - start[i]) * v[leg]
+        keep = ahead[:, 0] + ahead[:, 1] >= -self._radius[wall]
+        if sight is not None:
+            tan_max = sight[0]
+            keep &= tan_el[leg] < tan_max[origin[leg], wall]
+        return leg[keep], wall[keep]
+
+    def _legs(
+        self,
+        o: np.ndarray,
+        z: np.ndarray,
+        v: np.ndarray,
+        tan_el: np.ndarray,
+        leg: np.ndarray,
+        wall: np.ndarray,
+        reflect: np.ndarray | None,
+    ) -> _Legs:
+        """Walk each leg (o, z, horizontal unit v, tan_el) against its candidate walls
+        (pairs ``leg``/``wall`` sorted by leg). ``reflect`` (N,) says which legs may still
+        reflect (None: none; line of sight only)."""
         n = o.shape[0]
-        blocked = np.zeros(n, dtype=bool)
-        if n == 0:
-            return blocked
-        if len(self.walls):
-            rel = o[:, None, :] - self._p0[None, :, :]  # (N, W, 2)
-            ou = np.einsum("nwi,wi->nw", rel, self._t)
-            ov = np.einsum("nwi,wi->nw", rel, self._n)
-            du = v @ self._t.T  # (N, W)
-            dv = v @ self._n.T
+        oo, vv = o[leg], v[leg]
+        t, nn = self._t[wall], self._n[wall]
+        rel = oo - self._p0[wall]
+        ou = rel[:, 0] * t[:, 0] + rel[:, 1] * t[:, 1]
+        ov = rel[:, 0] * nn[:, 0] + rel[:, 1] * nn[:, 1]
+        du = vv[:, 0] * t[:, 0] + vv[:, 1] * t[:, 1]
+        dv = vv[:, 0] * nn[:, 0] + vv[:, 1] * nn[:, 1]
+        half = self._half[wall]
+        height = self._height[wall]
+        z0, tz = z[leg], tan_el[leg]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lo_u, hi_u = _slab(ou, du, 0.0, self._len[wall])
+            lo_v, hi_v = _slab(ov, dv, -half, half)
+        s_in = np.maximum(np.maximum(lo_u, lo_v), 0.0)
+        hit = (s_in < np.minimum(hi_u, hi_v)) & (z0 + s_in * tz < height)
+        # Through a window: the ray crosses the centre plane inside the opening.
+        through = np.zeros(leg.size, dtype=bool)
+        s_c = np.full(leg.size, np.inf)
+        if self._has_windows and leg.size:
             with np.errstate(divide="ignore", invalid="ignore"):
-                lo_u, hi_u = _slab(ou, du, 0.0, self._len[None, :])
-                lo_v, hi_v = _slab(ov, dv, -self._half[None, :], self._half[None, :])
-            s_in = np.maximum(np.maximum(lo_u, lo_v), 0.0)
-            s_out = np.minimum(np.minimum(hi_u, hi_v), s_max[:, None])
-            z_in = z0[:, None] + s_in * tan_el[:, None]
-            hit = (s_in < s_out) & (z_in < self._height[None, :])
-            wall_idx = np.arange(len(self.walls))[None, :]
-            for col in exclude.reshape(n, -1).T:
-                hit &= wall_idx != col[:, None]
-            if hit.any() and not np.isnan(self._win).all():
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    s_c = -ov / dv
-                u_c = ou + s_c * du
-                z_c = z0[:, None] + s_c * tan_el[:, None]
-                win = self._win[None, :, :, :]
-                through = (
-                    (u_c[..., None] >= win[..., 0])
-                    & (u_c[..., None] <= win[..., 1])
-                    & (z_c[..., None] >= win[..., 2])
-                    & (z_c[..., None] <= win[..., 3])
-                ).any(axis=2)
-                hit &= ~(through & (s_c >= 0.0) & (s_c <= s_max[:, None]))
-            blocked |= hit.any(axis=1)
-        if len(self.roofs):
-            h_r = self._roof[None, :, 4]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                s_r = (h_r - z0[:, None]) / tan_el[:, None]  # (N, R)
-            reach = (z0[:, None] < h_r) & (tan_el[:, None] > 0.0) & (s_r <= s_max[:, None])
-            qx = o[:, 0, None] + s_r * v[:, 0, None]
-            qy = o[:, 1, None] + s_r * v[:, 1, None]
-            r = self._roof[None, :, :]
-            inside = (qx >= r[..., 0]) & (qx <= r[..., 2]) & (qy >= r[..., 1]) & (qy <= r[..., 3])
-            hl = self._holes[None, :, :, :]
-            in_hole = (
-                (qx[..., None] >= hl[..., 0])
-                & (qx[..., None] <= hl[..., 2])
-                & (qy[..., None] >= hl[..., 1])
-                & (qy[..., None] <= hl[..., 3])
-            ).any(axis=2)
-            blocked |= (reach & inside & ~in_hole).any(axis=1)
-        return blocked
+                s_c = -ov / dv
+            through = _in_window(self._win[wall], ou + s_c * du, z0 + s_c * tz) & (s_c >= 0.0)
+        blocked = np.bincount(leg[hit & ~through], minlength=n) > 0
+        roof_s = self._roof_block(o, z, v, tan_el)
+        blocked |= np.isfinite(roof_s)
+        empty = np.zeros(0, dtype=np.int64)
+        if reflect is None:
+            return _Legs(blocked, empty, empty, np.zeros(0))
+        # Reflection off the face on the leg's side: in front of it, heading into it, the
+        # point within the wall's extent, below its top and outside its windows.
+        side_ov = np.abs(ov)
+        dist = side_ov - half
+        dn = np.where(ov >= 0.0, dv, -dv)
+        ok = reflect[leg] & hit & (dist > 1e-6) & (dn < -_EPS)
+        c = np.flatnonzero(ok)
+        s = dist[c] / -dn[c]
+        u_hit = ou[c] + s * du[c]
+        z_hit = z0[c] + s * tz[c]
+        w_c = wall[c]
+        good = (u_hit >= 0.0) & (u_hit <= self._len[w_c]) & (z_hit < self._height[w_c])
+        if self._has_windows:
+            good &= ~_in_window(self._win[w_c], u_hit, z_hit)
+        c, s = c[good], s[good]
+        if c.size == 0:
+            return _Legs(blocked, empty, empty, np.zeros(0))
+        # Nothing between the leg's start and the face: every other candidate wall of the
+        # same leg that the ray enters before s blocks it, unless it passes its window
+        # before s; a roof crossed before s blocks it too.
+        cnt = np.bincount(leg, minlength=n)
+        start = np.concatenate(([0], np.cumsum(cnt)[:-1]))
+        lc = leg[c]
+        k = cnt[lc]
+        rep = np.repeat(np.arange(c.size), k)
+        j = start[lc][rep] + np.arange(rep.size) - np.repeat(np.cumsum(k) - k, k)
+        sr = s[rep]
+        stop = hit[j] & (wall[j] != wall[c][rep]) & (s_in[j] < sr) & ~(through[j] & (s_c[j] <= sr))
+        clear = (np.bincount(rep[stop], minlength=c.size) == 0) & (roof_s[lc] > s)
+        return _Legs(blocked, lc[clear], wall[c][clear], s[clear])
+
+    def _roof_block(
+        self, o: np.ndarray, z: np.ndarray, v: np.ndarray, tan_el: np.ndarray
+    ) -> np.ndarray:
+        """Horizontal distance (N,) at which each ray first crosses a roof outside its holes
+        from below (inf: never)."""
+        n = o.shape[0]
+        if not len(self.roofs) or n == 0:
+            return np.full(n, np.inf)
+        h_r = self._roof[None, :, 4]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_r = (h_r - z[:, None]) / tan_el[:, None]  # (N, R)
+        reach = (z[:, None] < h_r) & (tan_el[:, None] > 0.0)
+        qx = o[:, 0, None] + s_r * v[:, 0, None]
+        qy = o[:, 1, None] + s_r * v[:, 1, None]
+        r = self._roof[None, :, :]
+        inside = (qx >= r[..., 0]) & (qx <= r[..., 2]) & (qy >= r[..., 1]) & (qy <= r[..., 3])
+        hl = self._holes[None, :, :, :]
+        in_hole = (
+            (qx[..., None] >= hl[..., 0])
+            & (qx[..., None] <= hl[..., 2])
+            & (qy[..., None] >= hl[..., 1])
+            & (qy[..., None] <= hl[..., 3])
+        ).any(axis=2)
+        return np.where(reach & inside & ~in_hole, s_r, np.inf).min(axis=1)
 
     # ---------------------------------------------------------------- trace
     def trace(
@@ -357,13 +501,14 @@ class Walls:
         az_deg: Any,
         el_deg: Any,
         max_reflections: int = 16,
-        max_loss_db: float | None = None,
+        max_loss_db: Any = None,
     ) -> TraceResult:
         """Direct and reflected paths from satellites at (az_deg, el_deg) to the receiver(s).
 
         ``rx_enu_m`` (3,) or (E, 3) metres; ``az_deg``/``el_deg`` (E, S) or (S,) degrees.
-        ``max_loss_db`` stops the search at the depth whose loss (3 dB each) would exceed it.
-        Satellites at or below the horizon are invisible.
+        ``max_loss_db`` (one value, or per ray broadcastable to (E, S)) stops the search at
+        the depth whose loss (3 dB each) would exceed it. Satellites at or below the horizon
+        are invisible.
         """
         rx = np.asarray(rx_enu_m, dtype=float)
         az = np.asarray(az_deg, dtype=float)
@@ -384,33 +529,50 @@ class Walls:
         n_e = max(rx.shape[0], az.shape[0])
         az = np.broadcast_to(az, (n_e, az.shape[1]))
         el = np.broadcast_to(el, (n_e, az.shape[1]))
-        rx = np.broadcast_to(rx, (n_e, 3))
         if not (np.isfinite(az).all() and np.isfinite(el).all() and np.isfinite(rx).all()):
             raise ValueError("rx_enu_m, az_deg and el_deg must be finite")
         if max_reflections < 0:
             raise ValueError(f"max_reflections must be >= 0, got {max_reflections}")
         shape = az.shape
         n_s = shape[1]
-        az_r = np.radians(az.ravel())
+        n = az.size
         el_r = np.radians(el.ravel())
-        n = az_r.size
-        o = np.repeat(rx[:, :2], n_s, axis=0)
-        z0 = np.repeat(rx[:, 2], n_s)
+        up = el_r > 0.0
+        # Only rays above the horizon are traced: work on their compact list from here.
+        rays = np.flatnonzero(up)
+        depth = np.full(rays.size, int(max_reflections), dtype=np.int64)
+        if max_loss_db is not None:
+            loss = np.broadcast_to(np.asarray(max_loss_db, dtype=float), shape).ravel()
+            if np.isnan(loss).any():
+                raise ValueError("max_loss_db must not be NaN")
+            bound = np.floor(loss[rays] / LOSS_PER_REFLECTION_DB)
+            depth = np.clip(np.minimum(bound, max_reflections), 0, None).astype(np.int64)
+        # Receiver positions: a static receiver is one position for all epochs.
+        pos = rx if rx.shape[0] == 1 else np.broadcast_to(rx, (n_e, 3))
+        origin = rays // n_s if pos.shape[0] > 1 else np.zeros(rays.size, dtype=np.int64)
+        az_r = np.radians(az.ravel()[rays])
+        el_r = el_r[rays]
         d = np.stack([np.sin(az_r), np.cos(az_r)], axis=1)
         tan_el = np.tan(el_r)
-        up = el_r > 0.0
 
-        los = up & ~self._segment_blocked(
-            o, z0, d, tan_el, np.full(n, np.inf), np.full(n, -1, dtype=np.int64)
-        )
-        n_refl = np.where(los, 0, -1).astype(np.int64)
+        los = up.copy()
+        n_refl = np.where(up, 0, -1).astype(np.int64)
         extra = np.zeros(n)
-        depth_max = max_reflections
-        if max_loss_db is not None:
-            depth_max = min(depth_max, math.floor(max_loss_db / LOSS_PER_REFLECTION_DB))
-        pending = np.flatnonzero(up & ~los)
-        if len(self.walls) and pending.size and depth_max > 0:
-            self._search(o, z0, d, tan_el, el_r, pending, n_s, depth_max, n_refl, extra)
+        if len(self.walls) or len(self.roofs):
+            o, z = pos[origin, :2], pos[origin, 2]
+            sight = self._sight(pos[:, :2], pos[:, 2])
+            prev = np.full(rays.size, -1, dtype=np.int64)
+            leg, wall = self._candidates(sight, origin, d, tan_el, prev)
+            blocked = self._legs(o, z, d, tan_el, leg, wall, None).blocked
+            los[rays] = ~blocked
+            n_refl[rays[blocked]] = -1
+            pend = np.flatnonzero(blocked & (depth > 0))
+            if pend.size and len(self.walls):
+                n_p, x_p = self._reflections(
+                    sight, pos, origin[pend], d[pend], el_r[pend], depth[pend]
+                )
+                n_refl[rays[pend]] = n_p
+                extra[rays[pend]] = x_p
         return TraceResult(
             los=los.reshape(shape),
             n_reflections=n_refl.reshape(shape),
@@ -424,236 +586,82 @@ class Walls:
         """:meth:`trace` with the default search limits (the GNSS model's walls interface)."""
         return self.trace(rx_enu_m, az_deg, el_deg)
 
-    def _search(
+    def _reflections(
         self,
-        o: np.ndarray,
-        z0: np.ndarray,
+        sight: tuple[np.ndarray, np.ndarray, np.ndarray],
+        pos: np.ndarray,
+        origin: np.ndarray,
         d: np.ndarray,
-        tan_el: np.ndarray,
         el_r: np.ndarray,
-        pending: np.ndarray,
-        n_s: int,
-        depth_max: int,
-        n_refl: np.ndarray,
-        extra: np.ndarray,
-    ) -> None:
-        """Breadth-first search over face sequences from the receiver side, shared by all
-        satellites of an epoch; fills ``n_refl``/``extra`` in place for rays that find a path.
-
-        Each candidate carries the receiver's image point behind its last face and the cone
-        of horizontal directions (lo -> hi counter-clockwise) that can leave that image
-        through every face of the sequence so far. The cone only narrows, so sequences whose
-        cone is empty are dropped together with all their extensions."""
-        n_w = len(self.walls)
-        face_wall = np.repeat(np.arange(n_w), 2)
-        face_n = self._n[face_wall] * np.tile([-1.0, 1.0], n_w)[:, None]  # (F, 2)
-        face_q = self._p0[face_wall] + face_n * self._half[face_wall][:, None]
-        face_e1 = face_q + self._t[face_wall] * self._len[face_wall][:, None]
-        face_off = np.einsum("fi,fi->f", face_q, face_n)
-        face_height = self._height[face_wall]
-        nbr_ptr = np.concatenate([[0], np.cumsum(self._compat.sum(axis=1))])
-        nbr_idx = np.nonzero(self._compat)[1]
-        # Pending rays grouped by epoch: start offset and count per epoch.
-        # Candidates are shared by all pending rays from the same receiver position (one
-        # epoch, or every epoch of a static receiver): group the rays by position.
-        rx_pos = np.column_stack([o[pending], z0[pending]])
-        _uniq, ray_grp = np.unique(rx_pos, axis=0, return_inverse=True)
-        ray_grp = ray_grp.ravel()
-        by_grp = np.argsort(ray_grp, kind="stable")
-        pending, ray_grp = pending[by_grp], ray_grp[by_grp]
-        groups, pend_first, counts = np.unique(ray_grp, return_index=True, return_counts=True)
-        n_grp = groups.size
-        pend_start = np.zeros(n_grp, dtype=np.int64)
-        pend_count = np.zeros(n_grp, dtype=np.int64)
-        pend_start[groups] = pend_first
-        pend_count[groups] = counts
-        grp_of_ray = np.full(o.shape[0], -1, dtype=np.int64)
-        grp_of_ray[pending] = ray_grp
-        tan_min_ep = np.full(n_grp, np.inf)
-        np.minimum.at(tan_min_ep, ray_grp, tan_el[pending])
-        z_rx_ep = np.zeros(n_grp)
-        z_rx_ep[ray_grp] = z0[pending]
-        alive_ray = np.zeros(o.shape[0], dtype=bool)
-        alive_ray[pending] = True
-        # Depth-0 candidates: one per receiver position, image = receiver, cone = everything.
-        # (``ep`` below is the position group of a candidate.)
-        ep = groups.copy()
-        img = o[pending[pend_start[ep]]]
-        lo = np.zeros((ep.size, 2))
-        hi = np.zeros((ep.size, 2))
-        faces = np.zeros((ep.size, 0), dtype=np.int64)
-        for depth in range(1, depth_max + 1):
-            if ep.size == 0:
-                return
-            # Extend: the image must be in front of the new face, the face must be able to
-            # see the previous one, and the cone through the new face must be non-empty.
-            if depth == 1:
-                ci, fi = np.nonzero(np.ones((ep.size, face_n.shape[0]), dtype=bool))
-            else:
-                # Only faces that can see the previous face (static table, as CSR lists).
-                last = faces[:, -1]
-                deg = nbr_ptr[last + 1] - nbr_ptr[last]
-                ci = np.repeat(np.arange(ep.size), deg)
-                off = np.arange(ci.size) - np.repeat(np.cumsum(deg) - deg, deg)
-                fi = nbr_idx[nbr_ptr[last][ci] + off]
-            dist = np.einsum("ci,ci->c", img[ci], face_n[fi]) - face_off[fi]
-            # Height pruning: the unfolded path to the new face is at least the distance from
-            # the image to the face's plane; a ray rising at the lowest pending elevation of
-            # the group must still be below the wall's top there.
-            g = ep[ci]
-            ok = (dist > 1e-6) & (dist * tan_min_ep[g] < face_height[fi] - z_rx_ep[g])
-            ci, fi, dist = ci[ok], fi[ok], dist[ok]
-            if ci.size == 0:
-                return
-            p = img[ci]
-            # Cone edges need not be unit vectors: only signs of cross products are used.
-            a = face_q[fi] - p
-            b = face_e1[fi] - p
-            swap = _cross(a, b) < 0.0
-            a, b = np.where(swap[:, None], b, a), np.where(swap[:, None], a, b)
-            if depth > 1:
-                a, b, nonempty = _cone_intersect(lo[ci], hi[ci], a, b)
-                ci, fi, a, b, p = ci[nonempty], fi[nonempty], a[nonempty], b[nonempty], p[nonempty]
-                dist = dist[nonempty]
-            # Beam search: per epoch keep the candidates whose image is nearest to the new
-            # face (shortest unfolded paths: most likely below the wall tops, least extra path).
-            keep = _cap_index(ep[ci], self.max_candidates_per_ray, dist)
-            ci, fi, a, b, p = ci[keep], fi[keep], a[keep], b[keep], p[keep]
-            nf = face_n[fi]
-            # Mirror about the new face: image point and (orientation-reversing) cone.
-            img = p - 2.0 * (np.einsum("ci,ci->c", p, nf) - face_off[fi])[:, None] * nf
-            lo, hi = _mirror(b, nf), _mirror(a, nf)
-            ep = ep[ci]
-            faces = np.concatenate([faces[ci], fi[:, None]], axis=1)
-            # Match with the pending satellites of the candidate's epoch: d must lie in the cone.
-            cnt = pend_count[ep]
-            cand = np.repeat(np.arange(ep.size), cnt)
-            if cand.size == 0:
-                continue
-            off = np.arange(cand.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-            ray = pending[pend_start[ep[cand]] + off]
-            live = alive_ray[ray]
-            cand, ray = cand[live], ray[live]
-            dd = d[ray]
-            inside = (_cross(lo[cand], dd) >= 0.0) & (_cross(dd, hi[cand]) >= 0.0)
-            cand, ray = cand[inside], ray[inside]
-            if ray.size == 0:
-                continue
-            v_look = dd[inside]
-            seq = faces[cand]
-            for j in range(depth - 1, -1, -1):
-                nj = face_n[seq[:, j]]
-                v_look = v_look - 2.0 * np.einsum("ci,ci->c", v_look, nj)[:, None] * nj
-            ok_path, extra_m = self._validate(o, z0, tan_el, el_r, ray, seq, v_look, d)
-            if ok_path.any():
-                found_rays = ray[ok_path]
-                found_extra = extra_m[ok_path]
-                # Least extra path per ray among the viable sequences of this depth.
-                order = np.lexsort((found_extra, found_rays))
-                found_rays, found_extra = found_rays[order], found_extra[order]
-                first = np.ones(found_rays.size, dtype=bool)
-                first[1:] = found_rays[1:] != found_rays[:-1]
-                n_refl[found_rays[first]] = depth
-                extra[found_rays[first]] = found_extra[first]
-                alive_ray[found_rays] = False
-                pend_count_ep = np.bincount(
-                    grp_of_ray[pending[alive_ray[pending]]], minlength=n_grp
-                )
-                if not pend_count_ep.any():
-                    return
-                # Drop epochs whose satellites are all resolved.
-                keep = pend_count_ep[ep] > 0
-                ep, img, lo, hi, faces = ep[keep], img[keep], lo[keep], hi[keep], faces[keep]
-
-    def _validate(
-        self,
-        o_all: np.ndarray,
-        z_all: np.ndarray,
-        tan_all: np.ndarray,
-        el_all: np.ndarray,
-        ray: np.ndarray,
-        faces: np.ndarray,
-        v_look: np.ndarray,
-        d_all: np.ndarray,
+        depth: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Back-trace each candidate from the receiver; (viable, extra path m) per candidate."""
-        c = ray.size
-        alive = np.arange(c)
-        o = o_all[ray].copy()
-        z = z_all[ray].copy()
-        tan_el = tan_all[ray]
-        v = v_look.copy()
-        s_total = np.zeros(c)
-        prev = np.full(c, -1, dtype=np.int64)
-        for step in range(faces.shape[1]):
-            f = faces[alive, step]
-            k = f // 2
-            side = np.where(f % 2 == 1, 1.0, -1.0)
-            nrm = self._n[k] * side[:, None]
-            oa, za, va, ta = o[alive], z[alive], v[alive], tan_el[alive]
-            rel = oa - self._p0[k]
-            ov = np.einsum("ci,ci->c", rel, nrm)  # signed distance from the centre plane
-            dist = ov - self._half[k]
-            dn = np.einsum("ci,ci->c", va, nrm)
-            good = (dist > 1e-6) & (dn < -_EPS)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                s_hit = np.where(good, dist / -dn, 0.0)
-            u_hit = np.einsum("ci,ci->c", rel + s_hit[:, None] * va, self._t[k])
-            z_hit = za + s_hit * ta
-            good &= (u_hit >= 0.0) & (u_hit <= self._len[k]) & (z_hit < self._height[k])
-            win = self._win[k]  # (C, K, 4)
-            in_window = (
-                (u_hit[:, None] >= win[..., 0])
-                & (u_hit[:, None] <= win[..., 1])
-                & (z_hit[:, None] >= win[..., 2])
-                & (z_hit[:, None] <= win[..., 3])
-            ).any(axis=1)
-            good &= ~in_window
-            idx = np.flatnonzero(good)
-            # The target wall is excluded too: a ray meeting a box's face from the front
-            # cannot have touched that box before (and rounding must not say otherwise).
-            good[idx] = ~self._segment_blocked(
-                oa[idx],
-                za[idx],
-                va[idx],
-                ta[idx],
-                s_hit[idx],
-                np.column_stack([prev[alive][idx], k[idx]]),
-            )
-            alive, s_hit, va, nrm, k = (
-                alive[good],
-                s_hit[good],
-                va[good],
-                nrm[good],
-                k[good],
-            )
-            o[alive] = o[alive] + s_hit[:, None] * va
-            z[alive] = z[alive] + s_hit * tan_el[alive]
-            s_total[alive] += s_hit
-            v[alive] = va - 2.0 * np.einsum("ci,ci->c", va, nrm)[:, None] * nrm
-            prev[alive] = k
-            if alive.size == 0:
+        """Reflected paths of blocked rays (receiver ``pos[origin]``, horizontal direction
+        ``d``, elevation ``el_r``, depth budget ``depth``): (reflections or -1, extra path)."""
+        n_p = d.shape[0]
+        tan_el = np.tan(el_r)
+        maps, word = self._directions(int(depth.max()))
+        # One shot per ray and look direction whose shortest word fits the ray's budget.
+        ray, g = np.nonzero(word[None, :] <= depth[:, None])
+        v = np.einsum("nij,nj->ni", maps[g], d[ray])
+        o = pos[origin[ray], :2].copy()
+        z = pos[origin[ray], 2].copy()
+        prev = np.full(ray.size, -1, dtype=np.int64)
+        s_tot = np.zeros(ray.size)
+        found_n = np.full(n_p, -1, dtype=np.int64)
+        found_x = np.full(n_p, np.inf)
+        for step in range(int(depth.max()) + 1):
+            if ray.size == 0:
                 break
-        viable = np.zeros(c, dtype=bool)
-        if alive.size:
-            escape = ~self._segment_blocked(
-                o[alive],
-                z[alive],
-                v[alive],
-                tan_el[alive],
-                np.full(alive.size, np.inf),
-                prev[alive],
-            )
-            viable[alive[escape]] = True
-        # Extra path: 3-D path length minus the advance of the plane wave front along d.
-        el = el_all[ray]
-        cos_el = np.cos(el)
-        d = d_all[ray]
-        start = o_all[ray]
-        disp_h = np.einsum("ci,ci->c", o - start, d) * cos_el
-        disp_z = (z - z_all[ray]) * np.sin(el)
-        extra_m = s_total / np.maximum(cos_el, _EPS) - disp_h - disp_z
-        return viable, np.maximum(extra_m, 0.0)
+            t = tan_el[ray]
+            if step == 0:  # still at the receivers: their prefilter tables apply
+                leg, wall = self._candidates(sight, origin[ray], v, t, prev)
+            else:  # from reflection points: one origin per leg, no height table (cheaper)
+                leg, wall = self._candidates(None, o, v, t, prev)
+            legs = self._legs(o, z, v, t, leg, wall, depth[ray] > step)
+            # Escaped along the satellite's direction after ``step`` reflections: viable.
+            # (Step 0 is the direct ray, already known blocked.)
+            if step > 0:
+                esc = np.flatnonzero(~legs.blocked & (np.abs(v - d[ray]).max(axis=1) < _DIR_TOL))
+                if esc.size:
+                    r = ray[esc]
+                    cos_el, sin_el = np.cos(el_r[r]), np.sin(el_r[r])
+                    start = pos[origin[r]]
+                    # 3-D path length minus the advance of the plane wave front along d.
+                    x = (
+                        s_tot[esc] / np.maximum(cos_el, _EPS)
+                        - np.einsum("ci,ci->c", o[esc] - start[:, :2], d[r]) * cos_el
+                        - (z[esc] - start[:, 2]) * sin_el
+                    )
+                    found_n[r] = step
+                    np.minimum.at(found_x, r, np.maximum(x, 0.0))
+            # Reflect the legs that met a face, for rays still without a path.
+            keep = found_n[ray[legs.leg]] < 0
+            c, w, s = legs.leg[keep], legs.wall[keep], legs.s[keep]
+            nrm = self._n[w]
+            vc = v[c]
+            ray = ray[c]
+            o = o[c] + s[:, None] * vc
+            z = z[c] + s * tan_el[ray]
+            v = vc - 2.0 * np.einsum("ci,ci->c", vc, nrm)[:, None] * nrm
+            prev = w
+            s_tot = s_tot[c] + s
+        return found_n, np.where(found_n >= 0, found_x, 0.0)
+
+
+def _map_key(g: np.ndarray) -> tuple[int, ...]:
+    """Hashable identity of a 2x2 orthogonal map, robust to accumulated rounding."""
+    return tuple(np.round(g.ravel() * 1e10).astype(np.int64).tolist())
+
+
+def _in_window(win: np.ndarray, u: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """True where (u, z) lies in one of the windows ``win`` (N, K, 4; NaN rows: none)."""
+    inside = (
+        (u[:, None] >= win[..., 0])
+        & (u[:, None] <= win[..., 1])
+        & (z[:, None] >= win[..., 2])
+        & (z[:, None] <= win[..., 3])
+    )
+    return np.asarray(inside.any(axis=1))
 
 
 def _slab(o: np.ndarray, dvec: np.ndarray, lo: Any, hi: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -663,46 +671,3 @@ def _slab(o: np.ndarray, dvec: np.ndarray, lo: Any, hi: Any) -> tuple[np.ndarray
     s1 = (lo - o) * inv
     s2 = (hi - o) * inv
     return np.minimum(s1, s2), np.maximum(s1, s2)
-
-
-def _cap_index(group: np.ndarray, cap: int, key: np.ndarray) -> np.ndarray:
-    """Indices (ascending) keeping at most ``cap`` entries per group value: the ones with the
-    smallest ``key``."""
-    if group.size == 0 or np.bincount(group).max() <= cap:
-        return np.arange(group.size)
-    # One float sort key (group major, key minor) is much faster than a lexsort.
-    span = float(np.max(key) - np.min(key)) + 1.0
-    order = np.argsort(group * span + (key - np.min(key)), kind="stable")
-    g = group[order]
-    start = np.ones(g.size, dtype=bool)
-    start[1:] = g[1:] != g[:-1]
-    group_start = np.maximum.accumulate(np.where(start, np.arange(g.size), 0))
-    rank = np.arange(g.size) - group_start
-    keep = order[rank < cap]
-    keep.sort()
-    return keep
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-
-
-def _mirror(v: np.ndarray, n: np.ndarray) -> np.ndarray:
-    return v - 2.0 * np.einsum("ci,ci->c", v, n)[:, None] * n
-
-
-def _cone_intersect(
-    lo1: np.ndarray, hi1: np.ndarray, lo2: np.ndarray, hi2: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Intersection of counter-clockwise cones lo -> hi (each under 180 degrees):
-    (lo, hi, non-empty)."""
-
-    def within(v: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        return (_cross(lo, v) >= -1e-12) & (_cross(v, hi) >= -1e-12)
-
-    lo2_in = within(lo2, lo1, hi1)
-    lo1_in = within(lo1, lo2, hi2)
-    hi2_in = within(hi2, lo1, hi1)
-    lo = np.where(lo2_in[:, None], lo2, lo1)
-    hi = np.where(hi2_in[:, None], hi2, hi1)
-    return lo, hi, lo2_in | lo1_in

@@ -188,10 +188,26 @@ class ReceiverParams:
 class TraceLike(Protocol):
     """Per (epoch, satellite) paths, as :class:`sim_backend.buildings.TraceResult` gives."""
 
-    los: np.ndarray  # bool, direct path clear
-    n_reflections: np.ndarray  # 0 direct, 1..16 reflections, -1 no viable path
-    extra_path_m: np.ndarray  # range error of the path taken (m)
-    loss_db: np.ndarray  # 3 dB per reflection
+    # Read-only members, so that frozen dataclasses (TraceResult) match.
+    @property
+    def los(self) -> np.ndarray:
+        """bool, direct path clear"""
+        ...
+
+    @property
+    def n_reflections(self) -> np.ndarray:
+        """0 direct, 1..16 reflections, -1 no viable path"""
+        ...
+
+    @property
+    def extra_path_m(self) -> np.ndarray:
+        """range error of the path taken (m)"""
+        ...
+
+    @property
+    def loss_db(self) -> np.ndarray:
+        """3 dB per reflection"""
+        ...
 
 
 class Walls(Protocol):
@@ -203,9 +219,10 @@ class Walls(Protocol):
         az_deg: Any,
         el_deg: Any,
         max_reflections: int = 16,
-        max_loss_db: float | None = None,
+        max_loss_db: Any = None,
     ) -> TraceLike:
-        """Paths from satellites at az/el (E, S) deg to receivers at ``rx_enu_m`` (E, 3) m."""
+        """Paths from satellites at az/el (E, S) deg to receivers at ``rx_enu_m`` (E, 3) m;
+        ``max_loss_db`` one value or one per (E, S) ray bounds the reflection depth."""
         ...
 
 
@@ -224,7 +241,7 @@ def _visibility(
     rx_enu_m: np.ndarray,
     az_deg: np.ndarray,
     el_deg: np.ndarray,
-    max_loss_db: float | None,
+    max_loss_db: np.ndarray | float | None,
 ) -> Visibility:
     shape = az_deg.shape
     if walls is None:
@@ -487,8 +504,6 @@ class GnssModel:
         geoid = self.params.geoid_sep_m
         self._origin_ecef = lla_to_ecef(self.origin[0], self.origin[1], self.origin[2] + geoid)
         self._rot0 = enu_rotation(self.origin[0], self.origin[1])
-        # A reflected signal weaker than the tracking cutoff even from zenith is useless:
-        # tell the ray tracer not to search that deep.
         # Delays and C/N0 depend (for one site and day) on elevation only: tabulate them once
         # (0.05 deg steps; linear interpolation error < 5 mm of delay, < 0.001 dB).
         atm, lat0, h0 = self.atmosphere, self.origin[0], self.origin[2]
@@ -497,8 +512,6 @@ class GnssModel:
         self._iono_tab = np.asarray(atm.iono_delay_m(el_delay), dtype=float)
         self._tropo_tab = np.asarray(atm.tropo_delay_m(el_delay, lat0, self._doy, h0), dtype=float)
         self._snr_tab = np.asarray(atm.snr_dbhz(self._el_grid, 0.0, h0), dtype=float)
-        best_snr = float(self._snr_tab[-1])
-        self._max_loss_db = max(0.0, best_snr - self.atmosphere.snr_cutoff_dbhz)
         # Gauss-Markov state carried between calls: (values, time).
         self._state: tuple[np.ndarray, float] | None = None
         self._t_last: float | None = None
@@ -726,10 +739,17 @@ class GnssModel:
         el = np.degrees(np.arcsin(np.clip(los_u[..., 2], -1.0, 1.0)))
         rx_enu = (rx_ecef - self._origin_ecef) @ self._rot0.T
         above = st.available & (el > 0.0)
-        vis = _visibility(self.walls, rx_enu, az, np.where(above, el, -1.0), self._max_loss_db)
         # C/N0 = the atmosphere's open-sky value minus the reflection losses (its formula
         # subtracts extra losses linearly).
-        snr = np.interp(el, self._el_grid, self._snr_tab) - vis.loss_db
+        snr_open = np.interp(el, self._el_grid, self._snr_tab)
+        # A path is tracked only while snr_open - 3 dB x reflections stays >= the cutoff, so
+        # each ray's own margin bounds its reflection search exactly (deeper paths would be
+        # dropped below anyway), and a satellite already under the cutoff needs no tracing.
+        # The tiny pad keeps rounding from cutting a search one level short.
+        margin = snr_open - self.atmosphere.snr_cutoff_dbhz
+        trace = above & (margin >= 0.0)
+        vis = _visibility(self.walls, rx_enu, az, np.where(trace, el, -1.0), margin + 1e-9)
+        snr = snr_open - vis.loss_db
         tracked = above & vis.reachable & self.atmosphere.usable(snr)
         snr = np.where(tracked, snr, np.nan)
         usable = tracked & (el >= self.mask_deg)

@@ -280,6 +280,61 @@ def test_vectorised_equals_scalar_loop() -> None:
         np.testing.assert_allclose(one.extra_path_m[0], same.extra_path_m[i])
 
 
+def test_search_is_complete_among_many_faces() -> None:
+    # 20 tall pillars east and west of the receiver show more faces, and nearer ones, than
+    # any fixed beam width would keep; the only reflector is a far wall to the north. The
+    # satellite (south, low) is hidden by the south wall; its one-bounce path off the north
+    # wall passes between the pillars and back over the south wall.
+    pillars = [Wall(x, -2.0, x, 2.0, height_m=30.0) for x in (*range(-45, -4, 4), *range(6, 46, 4))]
+    scene = [
+        Wall(-50.0, -5.0, 50.0, -5.0, height_m=30.0),
+        Wall(-50.0, 60.0, 50.0, 60.0, height_m=30.0),
+        *pillars,
+    ]
+    assert len(pillars) == 21
+    los, n, extra = _one(Walls(scene), 180.0, 15.0)
+    assert not los and n == 1
+    assert extra == pytest.approx(2.0 * 59.85 * math.cos(math.radians(15.0)), rel=1e-9)
+    assert (n, extra) == pytest.approx(_reference(scene, RX, 180.0, 15.0, 1))
+
+
+def test_loss_budget_per_ray() -> None:
+    south = Wall(-500.0, -10.0, 500.0, -10.0, thickness_m=0.3, height_m=20.0)
+    north = Wall(-500.0, 5.0, 500.0, 5.0, thickness_m=0.3, height_m=20.0)
+    walls = Walls([south, north])
+    # The same 3-reflection satellite twice, with an 8 dB and a 9 dB budget.
+    r = walls.trace(RX, np.array([0.0, 0.0]), np.array([20.0, 20.0]), max_loss_db=[8.0, 9.0])
+    np.testing.assert_array_equal(r.n_reflections[0], [-1, 3])
+    with pytest.raises(ValueError, match="NaN"):
+        walls.trace(RX, np.array([0.0]), np.array([20.0]), max_loss_db=np.nan)
+
+
+def test_look_directions_per_scene() -> None:
+    # Axis-aligned walls: d, d mirrored in x, in y and in both; nothing else at any depth.
+    city = Walls(building(0.0, 0.0, 10.0, 10.0, 5.0) + building(20.0, 0.0, 30.0, 8.0, 5.0))
+    maps, word = city._directions(16)
+    assert maps.shape == (4, 2, 2) and word.tolist() == [0, 1, 1, 2]
+    assert city.direction_depth is None
+    # Many orientations: the budget limits the depth, and the shallow paths are still found.
+    fan = [
+        Wall(30.0 * math.cos(a), 30.0 * math.sin(a), 30.0 * math.cos(a) + 8.0 * math.sin(a),
+             30.0 * math.sin(a) - 8.0 * math.cos(a), height_m=20.0)
+        for a in np.radians([3.0, 41.0, 97.0, 151.0, 205.0, 263.0, 317.0])
+    ]  # fmt: skip
+    limited = Walls([*fan, Wall(-100.0, -5.0, 100.0, -5.0, height_m=8.0)], max_directions=60)
+    full = Walls([*fan, Wall(-100.0, -5.0, 100.0, -5.0, height_m=8.0)])
+    az, el = np.arange(150.0, 215.0, 2.0), np.full(33, 12.0)
+    a = limited.trace(RX, az, el, max_reflections=3)
+    depth = limited.direction_depth
+    assert depth is not None and 1 <= depth < 3
+    # Complete up to that depth: the same paths as the full enumeration.
+    b = full.trace(RX, az, el, max_reflections=3)
+    upto = (b.n_reflections >= 0) & (b.n_reflections <= depth)
+    assert upto.sum() >= 5
+    np.testing.assert_array_equal(a.n_reflections[upto], b.n_reflections[upto])
+    np.testing.assert_allclose(a.extra_path_m[upto], b.extra_path_m[upto], rtol=1e-9)
+
+
 def test_bad_geometry_is_rejected() -> None:
     with pytest.raises(ConfigError, match="thickness_m"):
         Wall(0, 0, 1, 0, thickness_m=0.0)

@@ -152,6 +152,39 @@ def test_blocked_satellites_reduce_used_and_raise_hdop(sats: sky.SatelliteSet) -
     assert no_snr.any() and not (city_b.used & no_snr).any()
 
 
+class _FullDepthWalls:
+    """The scene traced without the model's per-satellite loss budget (full depth)."""
+
+    def __init__(self, walls: buildings.Walls) -> None:
+        self.walls = walls
+
+    def trace(self, rx: object, az: object, el: object, max_reflections: int = 16,
+              max_loss_db: object = None) -> buildings.TraceResult:  # fmt: skip
+        return self.walls.trace(rx, az, el, max_reflections)
+
+
+def test_per_satellite_loss_budget_changes_nothing_reported(sats: sky.SatelliteSet) -> None:
+    # The model bounds each satellite's reflection search by its own C/N0 margin and skips
+    # satellites under the cutoff: paths it no longer finds could never have been tracked.
+    # A street canyon (parallel walls 14 m apart) with multi-bounce paths.
+    scene = buildings.Walls(
+        [
+            buildings.Wall(-300.0, -10.0, 300.0, -10.0, height_m=25.0),
+            buildings.Wall(-300.0, 4.0, 300.0, 4.0, height_m=25.0),
+            *buildings.building(20.0, -8.0, 40.0, 2.0, 15.0),
+        ]
+    )
+    args = _static(120, dt=30.0)
+    atm = Atmosphere(snr_cutoff_dbhz=33.0)  # a high cutoff: the budget really prunes
+    ref = _model(sats, 9, walls=_FullDepthWalls(scene), atmosphere=atm).batch(*args)
+    got = _model(sats, 9, walls=scene, atmosphere=atm).batch(*args)
+    assert ref.in_view.any() and (ref.in_view & np.isnan(ref.snr_dbhz)).any()
+    for name in ("valid", "used", "in_view", "n_used"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
+    for name in ("snr_dbhz", "lat_deg", "lon_deg", "alt_m", "hdop", "err_enu_m"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
+
+
 def test_no_fix_with_fewer_than_four_satellites(sats: sky.SatelliteSet) -> None:
     b = _model(sats, 3, mask_deg=75.0).batch(*_static(200, dt=30.0))
     few = b.used.sum(axis=1) < 4
