@@ -2,22 +2,42 @@
 
 ``drivers.registry`` resolves ``sim://`` URLs by calling :func:`open_gps`, :func:`open_compass`
 and :func:`open_motors`; all three share ONE world per process (created on first use,
-configured from ``[sim]`` by :func:`configure`):
+configured from ``[sim]`` by :func:`configure`). The world is a scenario file
+(:func:`sim_backend.world.load_world`; ``[sim] scenario``, default the packaged
+``config/scenarios/default.toml``) with a few ``[sim]`` overrides, and it is the same physics
+as fast-time simulation (``x6wd sim``), only in real time:
 
-- :func:`open_gps` -> a pyserial ``Serial`` opened on the slave side of a pseudo-terminal
-  (:class:`sim_backend.ports.PtyUart`); the world writes NEO-5 NMEA sentences into the master
-  side at the GPS rate, each sentence followed by its wire time at ``gps_baud``.
+- :func:`open_gps` -> a pyserial ``Serial`` on the slave side of a pseudo-terminal
+  (:class:`sim_backend.ports.PtyUart`). Once per receiver epoch the full GNSS model
+  (:func:`sim_backend.mission.build_gnss`: almanac sky, atmosphere, walls, the scenario's
+  fidelity level) turns the vehicle's true antenna position into a solution, the scenario's
+  ``[[effects]]`` GPS layers are added, and :class:`sim_backend.nmea_out.NmeaFormatter` prints
+  it as a NEO-5 does (``$GPTXT`` banner at start, the real no-fix forms), each sentence
+  followed by its wire time at the scenario's baud rate.
 - :func:`open_compass` -> a :class:`drivers.cmps10.Cmps10` over the CMPS10 register map of
-  :mod:`sim_backend.compass`, whose registers follow the simulated vehicle's attitude.
-- :func:`open_motors` -> a motor link (the :class:`drivers.motors.MotorLink` interface) whose
-  commands drive the :class:`sim_backend.vehicle.Vehicle`; like the real board it stops the
-  vehicle when no command arrives for ``motor_watchdog_ms``.
+  :mod:`sim_backend.compass` with the scenario's ``[compass]`` field and errors; its
+  registers follow the simulated vehicle's attitude.
+- :func:`open_motors` -> the real :class:`drivers.motors.SerialMotorLink` on a pseudo-terminal
+  whose far end is a :class:`drivers.motors.MotorBoard` (:func:`drivers.motors.serve_board_fd`):
+  the docs/motors.md line protocol crosses the pty byte for byte, the board's left/right drive
+  moves the :class:`sim_backend.vehicle.Vehicle`, and the board's watchdog stops it.
 
-The receiver model here is deliberately simple (truth + first-order Gauss-Markov error with
-``gps_sigma_m``/``gps_tau_s``, a fixed 8-satellite sky): HIL exercises the daemon's real-time
-plumbing; the full GNSS error model belongs to fast-time simulation.
-Two threads run the world: physics (vehicle + compass registers at ``physics_hz``) and the
-receiver (one NMEA burst per epoch). Randomness comes from one seeded numpy Generator.
+Scenario time: epoch ``k`` of the receiver is scenario time ``k / rate_hz`` s, so the NMEA
+UTC is the scenario's ``start_utc`` plus the world's age (the packaged almanac is for
+2020-01-01; the wall clock's date would be years outside it).
+
+``[sim]`` overrides (x6wd.config.SimConfig): ``seed``, ``origin_*``, ``start_heading_deg``,
+``start_east_m``/``start_north_m``, ``gps_rate_hz``, ``gps_baud``, ``v_max_mps``,
+``motor_tau_s`` replace the scenario's value when set to something other than the SimConfig
+default (SimConfig cannot tell "absent" from "set to the default"); ``physics_hz`` and
+``motor_watchdog_ms`` are HIL's own. ``gps_sigma_m``/``gps_tau_s`` belonged to an earlier,
+simpler receiver and are ignored with a warning: receiver errors live in the scenario
+(``[gnss]``, ``[atmosphere]``, walls, ``[[effects]]``).
+
+Threads: physics (vehicle + compass registers at ``physics_hz``), the receiver (one model
+step and one NMEA burst per epoch) and one board server per motor link. Randomness comes
+from the scenario's seed, split as ``x6wd sim`` splits it (GNSS, compass noise, I2C faults,
+effects).
 """
 
 from __future__ import annotations
@@ -25,95 +45,163 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import threading
 import time
+import tty
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
-from datetime import UTC, datetime, timedelta
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
 import numpy as np
 
-from sim_backend.compass import SimCmps10
-from sim_backend.epoch import GnssEpoch, SimSat
+from drivers.motors import MotorBoard, serve_board_fd
+from sim_backend.compass import ErrorInjector, SimCmps10
+from sim_backend.effects import metres_per_degree
+from sim_backend.epoch import GnssEpoch
 from sim_backend.geodesy import enu_to_lla
+from sim_backend.mission import CompassSetup, GpsEffectOffsets, build_gnss, gps_effect_offsets
 from sim_backend.nmea_out import NmeaFormatter, sentence, wire_time_s
 from sim_backend.ports import PtyUart
 from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
+from sim_backend.world import World, load_world
 from x6wd.config import SimConfig
 from x6wd.errors import ConfigError, DeviceUnavailable
 from x6wd.records import MotorCommand
 
 log = logging.getLogger(__name__)
 
-GEOID_SEP_M = 47.0
-SKY = (
-    SimSat(2, 62.0, 45.0, 44.0, True),
-    SimSat(5, 41.0, 120.0, 40.0, True),
-    SimSat(10, 33.0, 210.0, 38.0, True),
-    SimSat(12, 18.0, 300.0, 33.0, True),
-    SimSat(15, 55.0, 260.0, 43.0, True),
-    SimSat(21, 25.0, 80.0, 36.0, True),
-    SimSat(24, 12.0, 160.0, 30.0, True),
-    SimSat(29, 8.0, 340.0, 27.0, False),
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+DEFAULT_SCENARIO = CONFIG_DIR / "scenarios" / "default.toml"
+MOTOR_BAUD = 115200  # docs/motors.md default; a pty does not pace it anyway
+EFFECTS_BLOCK_S = 3600.0  # [[effects]] GPS layers are generated this far ahead at a time
+WIRE_LOG_LEN = 4096  # motor-board traffic kept for inspection (entries)
+
+# [sim] keys that override the scenario when set away from their SimConfig default
+_OVERRIDES = (
+    "seed",
+    "origin_lat_deg",
+    "origin_lon_deg",
+    "origin_alt_m",
+    "start_heading_deg",
+    "start_east_m",
+    "start_north_m",
+    "gps_rate_hz",
+    "gps_baud",
+    "v_max_mps",
+    "motor_tau_s",
 )
-HDOP, VDOP, PDOP = 0.95, 1.35, 1.65
+_RETIRED = ("gps_sigma_m", "gps_tau_s")
+
+
+def resolve_scenario(path: str) -> Path:
+    """The scenario file ``[sim] scenario`` names: "" -> the packaged default; a relative
+    path is looked up in the packaged ``config/`` folder (where hil.toml ships), then in the
+    current directory. ConfigError if it does not exist."""
+    if not path:
+        return DEFAULT_SCENARIO
+    p = Path(path).expanduser()
+    tried = [p] if p.is_absolute() else [CONFIG_DIR / p, Path.cwd() / p]
+    for cand in tried:
+        if cand.is_file():
+            return cand.resolve()
+    raise ConfigError(
+        f"sim.scenario: no such file {path!r} (tried {', '.join(str(c) for c in tried)})"
+    )
 
 
 @dataclass(frozen=True)
 class HilParams:
-    """The world's settings; see :class:`x6wd.config.SimConfig` for units and ranges."""
+    """The world's settings: a scenario file plus overrides (None = the scenario's value).
 
-    seed: int = 1
-    origin_lat_deg: float = 51.7520
-    origin_lon_deg: float = -1.2577
-    origin_alt_m: float = 60.0
-    start_heading_deg: float = 0.0
-    gps_rate_hz: float = 1.0
-    gps_baud: int = 9600
-    gps_sigma_m: float = 0.3
-    gps_tau_s: float = 30.0
+    Units and ranges as in :class:`x6wd.config.SimConfig`."""
+
+    scenario: str = ""
+    seed: int | None = None
+    origin_lat_deg: float | None = None
+    origin_lon_deg: float | None = None
+    origin_alt_m: float | None = None
+    start_heading_deg: float | None = None
+    start_east_m: float | None = None
+    start_north_m: float | None = None
+    gps_rate_hz: float | None = None
+    gps_baud: int | None = None
+    v_max_mps: float | None = None
+    motor_tau_s: float | None = None
     physics_hz: float = 50.0
-    v_max_mps: float = 3.88
-    motor_tau_s: float = 0.25
     motor_watchdog_ms: int = 500
-    # only from a scenario file
-    start_east_m: float = 0.0
-    start_north_m: float = 0.0
-    turn_rate_dps: float = 90.0
-    slope_east_pct: float = 0.0
-    slope_north_pct: float = 0.0
 
     @classmethod
     def from_config(cls, cfg: SimConfig) -> HilParams:
-        """From ``[sim]``. With ``sim.scenario`` set, the scenario's origin, seed, vehicle
-        (start pose, speed, turn rate, motor lag, slope) and receiver rate and baud replace
-        the ``[sim]`` values; the receiver error stays ``gps_sigma_m``/``gps_tau_s``."""
-        own = {f.name for f in fields(SimConfig)}
-        params = cls(**{f.name: getattr(cfg, f.name) for f in fields(cls) if f.name in own})
-        if not cfg.scenario:
-            return params
-        from sim_backend.world import load_world
+        """From ``[sim]`` (see the module docstring for which keys override the scenario).
 
-        w = load_world(cfg.scenario)
-        v = w.vehicle
+        Raises ConfigError when the scenario does not load or an override is invalid."""
+        default = SimConfig()
+        for name in _RETIRED:
+            if getattr(cfg, name) != getattr(default, name):
+                log.warning(
+                    "sim.%s is ignored: HIL runs the scenario's full GNSS model; set receiver "
+                    "errors in the scenario ([gnss], [atmosphere], walls, [[effects]])",
+                    name,
+                )
+        own = {f.name for f in fields(cls)}
+        over = {
+            name: getattr(cfg, name)
+            for name in _OVERRIDES
+            if name in own and getattr(cfg, name) != getattr(default, name)
+        }
+        params = cls(
+            scenario=str(resolve_scenario(cfg.scenario)),
+            physics_hz=cfg.physics_hz,
+            motor_watchdog_ms=cfg.motor_watchdog_ms,
+            **over,
+        )
+        params.load_world()  # fail at configuration time, naming the key
+        return params
+
+    def load_world(self) -> World:
+        """The scenario with the overrides applied (ConfigError naming the key if invalid)."""
+        path = resolve_scenario(self.scenario)
+        w = load_world(path)
+
+        def pick(value: Any, scenario_value: Any) -> Any:
+            return scenario_value if value is None else value
+
+        try:
+            origin = replace(
+                w.origin,
+                lat_deg=float(pick(self.origin_lat_deg, w.origin.lat_deg)),
+                lon_deg=float(pick(self.origin_lon_deg, w.origin.lon_deg)),
+                alt_m=float(pick(self.origin_alt_m, w.origin.alt_m)),
+            )
+            gnss = replace(
+                w.gnss,
+                rate_hz=float(pick(self.gps_rate_hz, w.gnss.rate_hz)),
+                baud=int(pick(self.gps_baud, w.gnss.baud)),
+            )
+            vehicle = replace(
+                w.vehicle,
+                start_heading_deg=float(pick(self.start_heading_deg, w.vehicle.start_heading_deg)),
+                start_east_m=float(pick(self.start_east_m, w.vehicle.start_east_m)),
+                start_north_m=float(pick(self.start_north_m, w.vehicle.start_north_m)),
+                max_speed_mps=float(pick(self.v_max_mps, w.vehicle.max_speed_mps)),
+                motor_tau_s=float(pick(self.motor_tau_s, w.vehicle.motor_tau_s)),
+            )
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"sim: bad override for scenario {path}: {exc}") from exc
+        if not 1.0 <= gnss.rate_hz <= 4.0:
+            raise ConfigError(f"sim.gps_rate_hz: must be within 1..4 Hz, got {gnss.rate_hz}")
+        if not 0.0 < self.physics_hz <= 1000.0:
+            raise ConfigError(f"sim.physics_hz: must be within (0, 1000], got {self.physics_hz}")
         return replace(
-            params,
-            seed=w.seed,
-            origin_lat_deg=w.origin.lat_deg,
-            origin_lon_deg=w.origin.lon_deg,
-            origin_alt_m=w.origin.alt_m,
-            start_heading_deg=v.start_heading_deg,
-            start_east_m=v.start_east_m,
-            start_north_m=v.start_north_m,
-            v_max_mps=v.max_speed_mps,
-            turn_rate_dps=v.turn_rate_dps,
-            motor_tau_s=v.motor_tau_s,
-            slope_east_pct=v.slope_east_pct,
-            slope_north_pct=v.slope_north_pct,
-            gps_rate_hz=w.gnss.rate_hz,
-            gps_baud=w.gnss.baud,
+            w,
+            seed=int(pick(self.seed, w.seed)),
+            origin=origin,
+            gnss=gnss,
+            vehicle=vehicle,
         )
 
 
@@ -144,109 +232,183 @@ class _LockedBus:
         """The world owns the device; closing the driver's handle does nothing."""
 
 
-class SimMotorLink:
-    """Motor link into the simulated vehicle (the MotorLink interface of drivers.motors)."""
+def _drives(data: bytes) -> bool:
+    """True if ``data`` holds an ``M`` or ``S`` command line (docs/motors.md)."""
+    return any(line.lstrip()[:1] in (b"M", b"m", b"S", b"s") for line in data.split(b"\n"))
 
-    def __init__(self, world: HilWorld) -> None:
-        self._world = world
-        self._closed = False
-        self._last: MotorCommand | None = None
 
-    @property
-    def healthy(self) -> bool:
-        """True while open and the world runs."""
-        return not self._closed and self._world.running
+class _Board(MotorBoard):
+    """The motor board whose drive is the vehicle's: ``on_change(board, t_s, drive)`` runs
+    (with the world's lock held) after every executed command or watchdog stop; ``wire``
+    keeps the traffic as ("rx" | "tx", t_s, bytes)."""
 
-    @property
-    def last_command(self) -> MotorCommand | None:
-        """The last command given."""
-        return self._last
+    def __init__(
+        self, watchdog_ms: int, on_change: Callable[[MotorBoard, float, bool], None]
+    ) -> None:
+        super().__init__(watchdog_ms=watchdog_ms)
+        self._on_change = on_change
+        self._feeding = False
+        self.wire: deque[tuple[str, float, bytes]] = deque(maxlen=WIRE_LOG_LEN)
 
-    def send(self, cmd: MotorCommand) -> bool:
-        """Apply a controller command (percent, -100..100); ValueError for bad values."""
-        for name, v in (("left_pct", cmd.left_pct), ("right_pct", cmd.right_pct)):
-            if not (math.isfinite(v) and -100.0 <= v <= 100.0):
-                raise ValueError(f"{name} must be within -100..100 percent, got {v!r}")
-        if self._closed:
-            return False
-        self._last = cmd
-        self._world.command(cmd.left_pct, cmd.right_pct, cmd)
-        return self._world.running
-
-    def drive(self, left_pct: float, right_pct: float, reason: str = "") -> bool:
-        """Set left/right drive in percent."""
-        return self.send(MotorCommand(time.monotonic(), float(left_pct), float(right_pct), reason))
-
-    def stop(self, reason: str = "") -> bool:
-        """Stop the vehicle; never raises."""
+    def feed(self, data: bytes, t_s: float) -> bytes:
+        self._feeding = True
         try:
-            return self.send(MotorCommand(time.monotonic(), 0.0, 0.0, reason or "stop"))
-        except Exception:
-            log.exception("simulated stop failed")
-            return False
+            out = super().feed(data, t_s)
+        finally:
+            self._feeding = False
+        self.wire.append(("rx", t_s, data))
+        if out:
+            self.wire.append(("tx", t_s, out))
+        self._on_change(self, t_s, _drives(data))
+        return out
 
-    def close(self) -> None:
-        """Stop, then refuse further commands (idempotent)."""
-        if not self._closed:
-            self.stop("close")
-            self._closed = True
+    def tick(self, t_s: float) -> bytes:
+        out = super().tick(t_s)
+        if out and not self._feeding:  # a watchdog stop between commands
+            self.wire.append(("tx", t_s, out))
+            self._on_change(self, t_s, False)
+        return out
 
-    def __enter__(self) -> SimMotorLink:
-        return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+def _with_offsets(ep: GnssEpoch, off: GpsEffectOffsets, i: int) -> GnssEpoch:
+    """Epoch ``ep`` with the ``[[effects]]`` offsets of block index ``i`` (as x6wd sim)."""
+    if not off.valid[i]:
+        return replace(
+            ep, valid=False, quality=0, mode=1, hdop=99.99, pdop=99.99, vdop=99.99,
+            satellites=tuple(replace(s, used=False) for s in ep.satellites),
+        )  # fmt: skip
+    if not ep.valid:
+        return ep
+    m_east, m_north = metres_per_degree(ep.lat_deg)
+    return replace(
+        ep,
+        lat_deg=ep.lat_deg + float(off.north_m[i]) / m_north,
+        lon_deg=ep.lon_deg + float(off.east_m[i]) / m_east,
+        alt_m=ep.alt_m + float(off.up_m[i]),
+    )
 
 
 class HilWorld:
-    """Vehicle, compass register map and receiver running in real time in two threads.
+    """Scenario world running in real time: vehicle, compass register map, GNSS receiver
+    and motor board.
 
+    ``scenario`` is the :class:`~sim_backend.world.World` in use (overrides applied),
+    ``gnss`` its :class:`~sim_backend.gnss.GnssModel`, ``board`` the motor board.
     Hooks (for benchmarks): ``on_gga(t_s)`` after each GGA, with the time its (single) write
-    call started;
-    ``on_motor(cmd, t_s)`` when a motor command reaches the vehicle (monotonic clock).
+    call started; ``on_motor(cmd, t_s)`` when an ``M``/``S`` line reaches the motor board
+    (monotonic clock; called with the world's lock held: keep it short).
     """
 
     def __init__(self, params: HilParams) -> None:
         self.params = params
-        self.rng = np.random.default_rng(params.seed)
+        sc = params.load_world()
+        self.scenario = sc
+        cset = CompassSetup.from_table(sc.compass)
+        ss = np.random.SeedSequence(sc.seed)
+        rng_gnss, rng_compass, rng_i2c, rng_fx = (np.random.default_rng(s) for s in ss.spawn(4))
+        self.gnss = build_gnss(sc, rng_gnss)
+        self.formatter = NmeaFormatter(
+            minute_decimals=sc.gnss.nmea_decimals, rate_hz=sc.gnss.rate_hz
+        )
+        self._rng_fx = rng_fx
+        self._fx: GpsEffectOffsets | None = None
+        self._fx_block = -1
+        v = sc.vehicle
+        self.vehicle = Vehicle(
+            VehicleParams(
+                v_max_mps=v.max_speed_mps,
+                max_turn_rate_dps=v.turn_rate_dps,
+                motor_tau_s=v.motor_tau_s,
+            ),
+            east_m=v.start_east_m,
+            north_m=v.start_north_m,
+            heading_deg=v.start_heading_deg,
+            terrain=Terrain(v.slope_east_pct / 100.0, v.slope_north_pct / 100.0),
+        )
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.t0 = time.monotonic()
-        self.utc0 = datetime.now(UTC)
-        self.vehicle = Vehicle(
-            VehicleParams(
-                v_max_mps=params.v_max_mps,
-                max_turn_rate_dps=params.turn_rate_dps,
-                motor_tau_s=params.motor_tau_s,
-            ),
-            east_m=params.start_east_m,
-            north_m=params.start_north_m,
-            heading_deg=params.start_heading_deg,
-            terrain=Terrain(params.slope_east_pct / 100.0, params.slope_north_pct / 100.0),
-        )
         s0 = self.vehicle.state
-        self.compass = SimCmps10(clock=self._device_time)
+        self.compass = SimCmps10(
+            field_model=cset.field_model,
+            errors=cset.errors,
+            injector=ErrorInjector(p_error=cset.p_error, rng=rng_i2c if cset.p_error else None),
+            rng=rng_compass if cset.errors.noise_ut > 0 else None,
+            clock=self._device_time,
+        )
         self.compass.set_state(0.0, s0.heading_deg, s0.pitch_deg, s0.roll_deg)
-        self.uart = PtyUart(params.gps_baud, realtime=False)
-        self.formatter = NmeaFormatter(rate_hz=params.gps_rate_hz)
-        self._err_en = np.zeros(2)
-        self._t_cmd = time.monotonic()
-        self._watchdog_tripped = True
+        self.board = _Board(params.motor_watchdog_ms, self._board_changed)
         self.on_gga: Callable[[float], Any] | None = None
         self.on_motor: Callable[[MotorCommand, float], Any] | None = None
         self.epochs = 0
-        self.commands = 0
+        self.commands = 0  # M/S lines the board executed
+        self.effects_skipped: tuple[str, ...] = ()
+        self._fds: list[int] = []
+        self.uart = PtyUart(sc.gnss.baud, realtime=False)
         self._threads = [
             threading.Thread(target=self._guard(self._physics), name="hil-physics", daemon=True),
             threading.Thread(target=self._guard(self._receiver), name="hil-gps", daemon=True),
         ]
         for t in self._threads:
             t.start()
-        log.info("HIL world: GPS on %s", self.uart.port_name)
+        decl = cset.field_model.declination_deg
+        log.info(
+            "HIL world: scenario %r (%s, seed %d), GPS %g Hz at %d baud on %s; "
+            "magnetic declination %.2f deg (set [compass] declination_deg to match)",
+            sc.name, sc.gnss.fidelity, sc.seed, sc.gnss.rate_hz, sc.gnss.baud,
+            self.uart.port_name, decl,
+        )  # fmt: skip
+
+    # --- devices ----------------------------------------------------------------------------
 
     def compass_bus(self) -> Any:
         """The register map behind the smbus2 method set, safe against the physics thread."""
         return _LockedBus(self.compass, self._lock)
+
+    def plug_motor_board(self) -> str:
+        """A new pseudo-terminal served by the world's motor board; returns the path to open
+        (raw, any baud). The board keeps its state across plugs, like real hardware."""
+        if not self.running:
+            raise DeviceUnavailable("the HIL world is closed")
+        master, slave = os.openpty()
+        try:
+            tty.setraw(master)
+            tty.setraw(slave)  # no echo, no CR/LF translation
+            name = os.ttyname(slave)
+        except BaseException:
+            os.close(master)
+            os.close(slave)
+            raise
+        # The world keeps the slave open too, so the board serves (and its watchdog ticks)
+        # until the world closes, whoever opens or closes the port.
+        self._fds += [master, slave]
+
+        def motor_board() -> None:
+            serve_board_fd(master, self.board, self._stop, lock=self._lock)
+
+        t = threading.Thread(target=self._guard(motor_board), name="hil-motors", daemon=True)
+        self._threads.append(t)
+        t.start()
+        return name
+
+    @property
+    def motor_wire(self) -> list[tuple[str, float, bytes]]:
+        """The motor board's recent traffic: ("rx" | "tx", t_s, bytes), oldest first."""
+        with self._lock:
+            return list(self.board.wire)
+
+    def _board_changed(self, board: MotorBoard, t_s: float, drive: bool) -> None:
+        # runs in a board server thread with self._lock held
+        left, right = float(board.left_pct), float(board.right_pct)
+        if (left, right) != self.vehicle.command_pct:
+            self.vehicle.command(left, right)
+        if drive:
+            self.commands += 1
+            hook = self.on_motor
+            if hook is not None:
+                hook(MotorCommand(t_s, left, right, "board"), t_s)
+
+    # --- state ------------------------------------------------------------------------------
 
     def _device_time(self) -> float:
         return time.monotonic() - self.t0
@@ -266,82 +428,75 @@ class HilWorld:
 
         return run
 
-    def command(self, left_pct: float, right_pct: float, cmd: MotorCommand) -> None:
-        """Drive the vehicle (the motor board's side)."""
-        now = time.monotonic()
-        with self._lock:
-            self.vehicle.command(left_pct, right_pct)
-            self._t_cmd = now
-            self._watchdog_tripped = False
-            self.commands += 1
-        hook = self.on_motor
-        if hook is not None:
-            hook(cmd, now)
-
     def truth(self) -> tuple[float, float, float, float]:
         """(east_m, north_m, heading_deg, speed_mps) of the vehicle now."""
         with self._lock:
             s = self.vehicle.state
         return s.east_m, s.north_m, s.heading_deg, s.speed_mps
 
+    # --- threads ----------------------------------------------------------------------------
+
     def _physics(self) -> None:
-        p = self.params
-        period_s = 1.0 / p.physics_hz
+        period_s = 1.0 / self.params.physics_hz
         t_last = time.monotonic()
         while not self._stop.wait(period_s):
             now = time.monotonic()
             with self._lock:
-                if (
-                    not self._watchdog_tripped
-                    and (now - self._t_cmd) * 1000.0 > p.motor_watchdog_ms
-                ):
-                    # the board's own watchdog: silence from the host stops the motors
-                    self.vehicle.command(0.0, 0.0)
-                    self._watchdog_tripped = True
                 s = self.vehicle.step(now - t_last)
                 self.compass.set_state(now - self.t0, s.heading_deg, s.pitch_deg, s.roll_deg)
             t_last = now
 
-    def _epoch(self, t_rel_s: float) -> GnssEpoch:
-        p = self.params
-        dt = 1.0 / p.gps_rate_hz
-        phi = math.exp(-dt / p.gps_tau_s)
-        w = self.rng.standard_normal(2)
-        self._err_en = phi * self._err_en + p.gps_sigma_m * math.sqrt(1.0 - phi * phi) * w
+    def _offsets(self, k: int) -> tuple[GpsEffectOffsets, int] | None:
+        """The ``[[effects]]`` offsets covering epoch ``k`` and its index in them."""
+        sc = self.scenario
+        if not sc.effects:
+            return None
+        n = max(1, round(EFFECTS_BLOCK_S * sc.gnss.rate_hz))
+        block = k // n
+        if block != self._fx_block or self._fx is None:
+            # Layers restart from their stationary state at each block (once an hour).
+            t = (block * n + np.arange(n)) / sc.gnss.rate_hz
+            self._fx = gps_effect_offsets(sc, t, self._rng_fx)
+            self._fx_block = block
+            if self._fx.skipped and self._fx.skipped != self.effects_skipped:
+                log.warning(
+                    "HIL: [[effects]] layers not applied in closed loop: %s",
+                    ", ".join(self._fx.skipped),
+                )
+            self.effects_skipped = self._fx.skipped
+        return self._fx, k - block * n
+
+    def _epoch(self, k: int) -> GnssEpoch:
+        """Receiver epoch ``k`` (scenario time ``k / rate_hz``) from the vehicle's truth now."""
+        sc = self.scenario
+        o = sc.origin
+        t_s = k / sc.gnss.rate_hz
         with self._lock:
             s = self.vehicle.state
-        enu = np.array([s.east_m + self._err_en[0], s.north_m + self._err_en[1], s.up_m])
-        lat, lon, alt = enu_to_lla(enu, p.origin_lat_deg, p.origin_lon_deg, p.origin_alt_m)
-        speed = abs(s.speed_mps)
-        moving = speed > 0.1
-        course = (s.heading_deg if s.speed_mps >= 0 else s.heading_deg + 180.0) % 360.0
-        return GnssEpoch(
-            t_s=t_rel_s,
-            utc=self.utc0 + timedelta(seconds=t_rel_s),
-            valid=True,
-            lat_deg=float(lat),
-            lon_deg=float(lon),
-            alt_m=float(alt),
-            geoid_sep_m=GEOID_SEP_M,
-            speed_mps=speed if moving else 0.0,
-            course_deg=course if moving else None,
-            quality=1,
-            mode=3,
-            hdop=HDOP,
-            pdop=PDOP,
-            vdop=VDOP,
-            satellites=SKY,
+        lat, lon, alt = enu_to_lla(
+            np.array([s.east_m, s.north_m, s.up_m + sc.vehicle.antenna_height_m]),
+            o.lat_deg,
+            o.lon_deg,
+            o.alt_m,
         )
+        h, p = math.radians(s.heading_deg), math.radians(s.pitch_deg)
+        hs = s.speed_mps * math.cos(p)
+        vel = (hs * math.sin(h), hs * math.cos(h), s.speed_mps * math.sin(p))
+        ep = self.gnss.step(t_s, float(lat), float(lon), float(alt), vel)
+        fx = self._offsets(k)
+        return ep if fx is None else _with_offsets(ep, *fx)
 
     def _receiver(self) -> None:
-        p = self.params
-        period_s = 1.0 / p.gps_rate_hz
+        rate_hz, baud = self.scenario.gnss.rate_hz, self.scenario.gnss.baud
+        period_s = 1.0 / rate_hz
         with contextlib.suppress(Exception):
             self.uart.write(self.formatter.banner())
+        warned = False
         k = 1
         while not self._stop.wait(max(0.0, self.t0 + k * period_s - time.monotonic())):
-            t_rel = time.monotonic() - self.t0
-            for body in self.formatter.epoch_bodies(self._epoch(t_rel)):
+            bodies = self.formatter.epoch_bodies(self._epoch(k))
+            t_burst = time.monotonic()
+            for body in bodies:
                 data = sentence(body)
                 # stamped just before the write: the reader may finish with the fix before
                 # this thread runs again, so a later stamp could come after the motor command
@@ -352,18 +507,30 @@ class HilWorld:
                     if hook is not None:
                         hook(t_write)
                 # the next sentence leaves the wire after this one
-                if self._stop.wait(wire_time_s(len(data), p.gps_baud)):
+                if self._stop.wait(wire_time_s(len(data), baud)):
                     return
             self.epochs += 1
+            if not warned and time.monotonic() - t_burst > period_s:
+                warned = True
+                log.warning(
+                    "HIL: an NMEA burst takes longer than the %g Hz epoch at %d baud; "
+                    "epochs will be skipped (raise the baud rate)",
+                    rate_hz,
+                    baud,
+                )
             k = max(k + 1, math.floor((time.monotonic() - self.t0) / period_s) + 1)
 
     def close(self) -> None:
-        """Stop the threads and unplug the pty (idempotent)."""
+        """Stop the threads and unplug the ptys (idempotent)."""
         self._stop.set()
-        for t in self._threads:
+        for t in list(self._threads):
             if t is not threading.current_thread():
                 t.join(2.0)
         self.uart.close()
+        fds, self._fds = self._fds, []
+        for fd in fds:
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
 
 _PARAMS = HilParams()
@@ -418,7 +585,7 @@ def open_gps(url: str) -> Any:
 
     w = world()
     try:
-        return serial.Serial(w.uart.port_name, baudrate=w.params.gps_baud, timeout=0.1)
+        return serial.Serial(w.uart.port_name, baudrate=w.scenario.gnss.baud, timeout=0.1)
     except (serial.SerialException, OSError) as exc:
         raise DeviceUnavailable(f"cannot open simulated GPS {w.uart.port_name}: {exc}") from exc
 
@@ -432,7 +599,18 @@ def open_compass(url: str) -> Any:
     return Cmps10(w.compass_bus())
 
 
-def open_motors(url: str) -> SimMotorLink:
-    """A motor link driving the simulated vehicle."""
+def open_motors(url: str) -> Any:
+    """The real motor driver (:class:`drivers.motors.SerialMotorLink`, watchdog
+    ``motor_watchdog_ms``) on a pseudo-terminal served by the simulated motor board."""
     _check_url(url, "motors")
-    return SimMotorLink(world())
+    import serial
+
+    from drivers.motors import SerialMotorLink
+
+    w = world()
+    path = w.plug_motor_board()
+    try:
+        port = serial.Serial(path, baudrate=MOTOR_BAUD, timeout=0.02)
+    except (serial.SerialException, OSError) as exc:
+        raise DeviceUnavailable(f"cannot open simulated motor board {path}: {exc}") from exc
+    return SerialMotorLink(port, watchdog_ms=w.params.motor_watchdog_ms)

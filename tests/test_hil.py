@@ -1,9 +1,14 @@
 """Hardware in the loop: the simulated devices, and the real daemon process driving a mission
-through them while `x6wd client` commands it and `gpspipe -w` reads its gpsd port."""
+through them while `x6wd client` commands it and `gpspipe -w` reads its gpsd port.
+
+The world is the scenario's full model: the NMEA read through the pty must carry the almanac
+sky the GNSS model computes for the scenario time, and the motor driver must talk the
+docs/motors.md protocol to the simulated board."""
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import socket
@@ -14,64 +19,150 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from drivers.gps_nmea import GpsDecoder
+from drivers.motors import SerialMotorLink
 from sim_backend import hil
+from sim_backend.geodesy import enu_to_lla
+from sim_backend.mission import build_gnss
 from tests.conftest import ROOT, require_program
+from x6wd.config import SimConfig
 from x6wd.errors import ConfigError
-from x6wd.records import GpsFix, MotorCommand
+from x6wd.records import GpsFix, GpsSky, MotorCommand
+
+DEFAULT_SCENARIO = ROOT / "config" / "scenarios" / "default.toml"
+PARAMS = hil.HilParams(gps_rate_hz=4.0, gps_baud=115200, motor_tau_s=0.0, motor_watchdog_ms=300)
 
 
 @pytest.fixture
 def world() -> Iterator[hil.HilWorld]:
-    hil.configure(hil.HilParams(gps_rate_hz=4.0, gps_baud=115200, gps_sigma_m=0.0,
-                                motor_tau_s=0.0, motor_watchdog_ms=300))  # fmt: skip
+    hil.configure(PARAMS)
     w = hil.world()
     yield w
     hil.shutdown()
     hil.configure(hil.HilParams())
 
 
+def read_records(port: object, seconds: float, n_fixes: int = 1 << 30) -> tuple[list, bytes]:
+    """Decoded records and the raw bytes read from ``port`` for ``seconds`` (or n fixes)."""
+    dec = GpsDecoder()
+    recs: list = []
+    raw = bytearray()
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        data = port.read(4096)  # type: ignore[attr-defined]
+        raw += data
+        recs += dec.feed(data, time.monotonic())
+        if sum(isinstance(r, GpsFix) for r in recs) >= n_fixes:
+            break
+    assert dec.counters.checksum_failures == 0
+    return recs, bytes(raw)
+
+
 def test_gps_port_carries_neo5_nmea_that_the_real_decoder_reads(world: hil.HilWorld) -> None:
     port = hil.open_gps("sim://")
-    dec = GpsDecoder()
-    fixes: list[GpsFix] = []
-    deadline = time.monotonic() + 5
     try:
-        while len(fixes) < 2 and time.monotonic() < deadline:
-            data = port.read(4096)
-            fixes += [r for r in dec.feed(data, time.monotonic()) if isinstance(r, GpsFix)]
+        recs, raw = read_records(port, 5.0, n_fixes=3)
     finally:
         port.close()
-    assert len(fixes) >= 2
+    fixes = [r for r in recs if isinstance(r, GpsFix)]
+    assert len(fixes) >= 3
     f = fixes[-1]
-    assert f.valid and f.quality == 1 and f.sats_used == 7
-    assert f.lat_deg == pytest.approx(51.7520, abs=1e-6)
-    assert f.lon_deg == pytest.approx(-1.2577, abs=1e-6)
-    assert dec.counters.checksum_failures == 0
+    assert f.valid and f.quality == 1 and f.mode == 3
+    # near the scenario's origin, within the full model's metre-level error
+    lat0, lon0 = 51.7520, -1.2577
+    pos = [(x.lat_deg, x.lon_deg) for x in fixes if x.lat_deg is not None and x.lon_deg]
+    err_m = [np.hypot((a - lat0) * 111_200, (b - lon0) * 68_900) for a, b in pos]
+    assert len(err_m) == len(fixes) and all(0.0 < e < 15.0 for e in err_m), err_m
+    # scenario time: the packaged almanac's day, one epoch every 0.25 s
+    assert f.utc is not None and f.utc.date().isoformat() == "2020-01-01"
+    assert (f.utc.microsecond // 10_000) % 25 == 0
+    for talker in (b"$GPRMC", b"$GPVTG", b"$GPGGA", b"$GPGSA", b"$GPGSV", b"$GPGLL"):
+        assert talker in raw
 
 
-def test_motor_commands_move_the_vehicle_and_the_board_watchdog_stops_it(
+def test_gsv_sky_and_hdop_come_from_the_almanac_model(world: hil.HilWorld) -> None:
+    port = hil.open_gps("sim://")
+    try:
+        recs, _ = read_records(port, 5.0, n_fixes=3)
+    finally:
+        port.close()
+    skies = [r for r in recs if isinstance(r, GpsSky) and r.utc is not None]
+    fixes = [r for r in recs if isinstance(r, GpsFix) and r.utc is not None]
+    assert skies and fixes
+    # an independent model of the same scenario, asked about the same scenario time
+    sc = PARAMS.load_world()
+    model = build_gnss(sc, np.random.default_rng(0))
+    o = sc.origin
+    lat, lon, alt = enu_to_lla(
+        np.array([0.0, 0.0, sc.vehicle.antenna_height_m]), o.lat_deg, o.lon_deg, o.alt_m
+    )
+    for sky in skies[-2:]:
+        assert sky.utc is not None
+        t_s = (sky.utc - sc.start_utc).total_seconds()
+        ep = model.step(t_s, float(lat), float(lon), float(alt), (0.0, 0.0, 0.0))
+        want = sorted(ep.satellites, key=lambda s: s.prn)
+        got = sorted(sky.satellites, key=lambda s: s.prn)
+        assert [s.prn for s in got] == [s.prn for s in want]
+        assert [s.el_deg for s in got] == [float(round(s.el_deg)) for s in want]
+        assert [s.az_deg for s in got] == [float(round(s.az_deg) % 360) for s in want]
+        assert [s.used for s in got] == [s.used for s in want]
+        assert sky.hdop == pytest.approx(ep.hdop, abs=0.006)
+        fix = next(f for f in fixes if f.utc == sky.utc)
+        assert fix.sats_used == sum(s.used for s in want)
+        assert fix.hdop == pytest.approx(ep.hdop, abs=0.006)
+    # not the old fixed 8-satellite sky
+    assert {s.prn for s in skies[-1].satellites} != {2, 5, 10, 12, 15, 21, 24, 29}
+
+
+def test_scenario_effects_reach_the_receiver_with_real_no_fix_forms(tmp_path: Path) -> None:
+    scenario = tmp_path / "outages.toml"
+    scenario.write_text(
+        DEFAULT_SCENARIO.read_text()
+        + '\n[[effects]]\nname = "outages"\nmean_up_s = 0.5\nmean_down_s = 2.0\n'
+    )
+    hil.configure(hil.HilParams(scenario=str(scenario), gps_rate_hz=4.0, gps_baud=115200))
+    try:
+        port = hil.open_gps("sim://")
+        try:
+            recs, raw = read_records(port, 3.0)
+        finally:
+            port.close()
+    finally:
+        hil.shutdown()
+        hil.configure(hil.HilParams())
+    fixes = [r for r in recs if isinstance(r, GpsFix)]
+    assert any(not f.valid for f in fixes)
+    # the NEO-5's no-fix forms, with time (the receiver tracks satellites) but no position
+    assert re.search(rb"\$GPGGA,\d{6}\.\d\d,,,,,0,00,99\.99,,,,,,\*", raw)
+    assert re.search(rb"\$GPRMC,\d{6}\.\d\d,V,,,,,,,010120,,,N\*", raw)
+    assert re.search(rb"\$GPGSA,A,1,,,,,,,,,,,,,99\.99,99\.99,99\.99\*", raw)
+
+
+def test_motor_driver_is_the_real_serial_link_to_a_simulated_board(
     world: hil.HilWorld,
 ) -> None:
     link = hil.open_motors("sim://")
     compass = hil.open_compass("sim://")
-    assert link.healthy
+    assert isinstance(link, SerialMotorLink) and link.healthy
+    assert link.port.name.startswith("/dev/pts/")
     # spin clockwise in place: the compass registers follow the vehicle's heading
     t_end = time.monotonic() + 0.6
     while time.monotonic() < t_end:
-        link.send(MotorCommand(time.monotonic(), 60.0, -60.0, "test"))
+        assert link.send(MotorCommand(time.monotonic(), 60.0, -60.0, "test"))  # board's OK
         time.sleep(0.05)
     _, _, heading_deg, _ = world.truth()
     assert 20.0 < heading_deg < 60.0  # 54 deg/s for 0.6 s
     att = compass.read(time.monotonic())
     assert att.valid and 5.0 < att.bearing_deg < 60.0  # lags: the CMPS10 filter
-    # no more commands: the simulated board's watchdog (300 ms) stops the vehicle
+    # no more commands: the simulated board's watchdog (300 ms, set by the driver) stops it
     time.sleep(0.5)
     assert world.vehicle.command_pct == (0.0, 0.0)
+    assert world.board.watchdog_trips == 1
     e0, n0, _, _ = world.truth()
-    link.drive(50, 50)
+    assert link.drive(50, 50)
     with pytest.raises(ValueError, match="left_pct"):
         link.send(MotorCommand(0.0, 101.0, 0.0))
     time.sleep(0.2)
@@ -79,6 +170,40 @@ def test_motor_commands_move_the_vehicle_and_the_board_watchdog_stops_it(
     assert (e1 - e0) ** 2 + (n1 - n0) ** 2 > 0.05**2  # moved forward
     link.close()
     assert not link.healthy and world.vehicle.command_pct == (0.0, 0.0)
+
+    # what crossed the pty, both ways, is the documented line protocol
+    host = [(t, d) for kind, t, d in world.motor_wire if kind == "rx"]
+    board = b"".join(d for kind, _, d in world.motor_wire if kind == "tx")
+    lines = b"".join(d for _, d in host).decode("ascii").split("\n")
+    assert lines[-1] == ""
+    cmd = re.compile(r"^(W \d+|M -?\d{1,3} -?\d{1,3}|S|P|Q) #(\d{1,4})$")
+    parsed = [cmd.match(line) for line in lines[:-1]]
+    assert all(parsed), lines
+    seqs = [int(m.group(2)) for m in parsed if m]
+    assert seqs == list(range(1, len(seqs) + 1))  # x6wd counts from 1
+    assert lines[0] == "W 300 #1" and lines[1] == "M 60 -60 #2"
+    assert "M 50 50 #" in "\n".join(lines) and lines[-2].startswith("S #")  # close() stops
+    replies = board.decode("ascii").splitlines()
+    assert replies.count("EVT WATCHDOG") == 1
+    assert [r for r in replies if r.startswith("OK")] == [f"OK #{s}" for s in seqs]
+
+
+def test_motor_board_pty_answers_the_documented_protocol(world: hil.HilWorld) -> None:
+    import serial
+
+    with serial.Serial(world.plug_motor_board(), 115200, timeout=1.0) as port:
+
+        def ask(line: bytes) -> bytes:
+            port.write(line)
+            return bytes(port.readline())
+
+        assert ask(b"M 150 0 #7\n") == b"ERR #7 range\n"
+        assert ask(b"m 10 -20\r\n") == b"OK\n"  # case-insensitive, CR ignored, no sequence
+        assert ask(b"Q #8\n") == b"OK #8 10 -20 300\n"
+        assert world.vehicle.command_pct == (10.0, -20.0)
+        assert ask(b"X #9\n") == b"ERR #9 unknown\n"
+        assert port.readline() == b"EVT WATCHDOG\n"  # 300 ms without a valid command
+        assert world.vehicle.command_pct == (0.0, 0.0)
 
 
 def test_sim_urls_take_no_options() -> None:
@@ -155,6 +280,11 @@ def test_daemon_runs_a_mission_in_real_time(tmp_path: Path) -> None:
         tpvs = [json.loads(x) for x in lines if '"class":"TPV"' in x]
         assert tpvs and all(t["mode"] == 3 for t in tpvs)
         assert max(t["lat"] for t in tpvs) > 51.75204  # the gpsd client saw it move
+        # the scenario's receiver: its clock (the almanac's day) and its almanac sky
+        assert all(t["time"].startswith("2020-01-01T12:") for t in tpvs)
+        skies = [json.loads(x) for x in lines if '"class":"SKY"' in x]
+        assert skies and all(len(s["satellites"]) >= 8 for s in skies)
+        assert {s["PRN"] for s in skies[-1]["satellites"]} != {2, 5, 10, 12, 15, 21, 24, 29}
         daemon.terminate()
         assert daemon.wait(15) == 0
     finally:
@@ -165,15 +295,30 @@ def test_daemon_runs_a_mission_in_real_time(tmp_path: Path) -> None:
     assert "MISSION_DONE" in err and "x6wd stopped" in err
 
 
-def test_params_from_a_scenario_file(tmp_path: Path) -> None:
+def test_params_from_a_scenario_file(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     from sim_backend.world import load_world
-    from x6wd.config import SimConfig
 
     path = ROOT / "config" / "scenarios" / "open_field.toml"
     w = load_world(path)
-    p = hil.HilParams.from_config(SimConfig(scenario=str(path), gps_sigma_m=0.7))
-    assert (p.origin_lat_deg, p.origin_lon_deg) == (w.origin.lat_deg, w.origin.lon_deg)
-    assert (p.gps_rate_hz, p.gps_baud, p.seed) == (w.gnss.rate_hz, w.gnss.baud, w.seed)
-    assert p.v_max_mps == w.vehicle.max_speed_mps and p.gps_sigma_m == 0.7
-    with pytest.raises(ConfigError):
+    # nothing set in [sim]: the scenario as it is (relative paths: the packaged config/)
+    p = hil.HilParams.from_config(SimConfig(scenario="scenarios/open_field.toml"))
+    assert p.scenario == str(path) and p.load_world() == w
+    # set keys override; the retired simple-receiver keys are ignored, with a warning
+    with caplog.at_level(logging.WARNING, logger="sim_backend.hil"):
+        p = hil.HilParams.from_config(
+            SimConfig(scenario=str(path), seed=9, gps_rate_hz=2.0, gps_baud=38400,
+                      start_north_m=-4.0, gps_sigma_m=0.7)
+        )  # fmt: skip
+    assert "sim.gps_sigma_m is ignored" in caplog.text
+    sc = p.load_world()
+    assert (sc.seed, sc.gnss.rate_hz, sc.gnss.baud) == (9, 2.0, 38400)
+    assert sc.vehicle.start_north_m == -4.0 and sc.vehicle.start_east_m == w.vehicle.start_east_m
+    assert (sc.origin, sc.start_utc, sc.gnss.fidelity) == (w.origin, w.start_utc, w.gnss.fidelity)
+    # the packaged default, and the HIL config's own choice
+    assert hil.HilParams.from_config(SimConfig()).scenario == str(DEFAULT_SCENARIO)
+    from x6wd.config import load
+
+    cfg = load(ROOT / "config" / "hil.toml")
+    assert hil.HilParams.from_config(cfg.sim).load_world().gnss.rate_hz == 2.0
+    with pytest.raises(ConfigError, match=r"sim\.scenario"):
         hil.HilParams.from_config(SimConfig(scenario=str(tmp_path / "missing.toml")))

@@ -121,6 +121,9 @@ class SimConfig:
     v_max_mps: float = field(default=3.88, metadata=_rng(0.1, 3.888))
     motor_tau_s: float = field(default=0.25, metadata=_rng(0, 10))
     motor_watchdog_ms: int = field(default=500, metadata=_rng(50, 60000))
+    # start position in the scenario's local frame (m); unset: the scenario's [vehicle] one
+    start_east_m: float | None = field(default=None, metadata=_rng(-1e5, 1e5))
+    start_north_m: float | None = field(default=None, metadata=_rng(-1e5, 1e5))
 
 
 @dataclass(frozen=True)
