@@ -459,7 +459,8 @@ class MotorBoard:
                 break
             line = bytes(self._buf[:i])
             del self._buf[: i + 1]
-            if self._overflow:
+            if self._overflow or len(line) > MAX_LINE_BYTES:
+                # too long, whether it arrived in one read or was cut short across several
                 self._overflow = False
                 self.errors += 1
                 out += b"ERR overflow\n"

@@ -308,3 +308,11 @@ def test_link_constructor_validates() -> None:
         SerialMotorLink(None, watchdog_ms=10)
     with pytest.raises(ValueError, match="ack_timeout_s"):
         SerialMotorLink(None, ack_timeout_s=0)
+
+
+def test_board_overflow_line_arriving_whole_is_an_overflow() -> None:
+    b = MotorBoard(watchdog_ms=500)
+    b.feed(b"W 500\n", 0.0)
+    long_line = b"M 10 10 " + b"#" * 80 + b"\n"
+    assert b.feed(long_line + b"M 20 20 #4\n", 0.0) == b"ERR overflow\nOK #4\n"
+    assert (b.left_pct, b.right_pct) == (20, 20)
