@@ -28,11 +28,9 @@ UTC is the scenario's ``start_utc`` plus the world's age (the packaged almanac i
 
 ``[sim]`` overrides (x6wd.config.SimConfig): ``seed``, ``origin_*``, ``start_heading_deg``,
 ``start_east_m``/``start_north_m``, ``gps_rate_hz``, ``gps_baud``, ``v_max_mps``,
-``motor_tau_s`` replace the scenario's value when set to something other than the SimConfig
-default (SimConfig cannot tell "absent" from "set to the default"); ``physics_hz`` and
-``motor_watchdog_ms`` are HIL's own. ``gps_sigma_m``/``gps_tau_s`` belonged to an earlier,
-simpler receiver and are ignored with a warning: receiver errors live in the scenario
-(``[gnss]``, ``[atmosphere]``, walls, ``[[effects]]``).
+``motor_tau_s`` replace the scenario's value when present; ``physics_hz`` and
+``motor_watchdog_ms`` are HIL's own. Receiver errors live in the scenario (``[gnss]``,
+``[atmosphere]``, walls, ``[[effects]]``): HIL has no second, simpler GPS model.
 
 Threads: physics (vehicle + compass registers at ``physics_hz``), the receiver (one model
 step and one NMEA burst per epoch) and one board server per motor link. Randomness comes
@@ -80,7 +78,7 @@ MOTOR_BAUD = 115200  # docs/motors.md default; a pty does not pace it anyway
 EFFECTS_BLOCK_S = 3600.0  # [[effects]] GPS layers are generated this far ahead at a time
 WIRE_LOG_LEN = 4096  # motor-board traffic kept for inspection (entries)
 
-# [sim] keys that override the scenario when set away from their SimConfig default
+# [sim] keys that override the scenario when present (None in SimConfig = absent)
 _OVERRIDES = (
     "seed",
     "origin_lat_deg",
@@ -94,7 +92,6 @@ _OVERRIDES = (
     "v_max_mps",
     "motor_tau_s",
 )
-_RETIRED = ("gps_sigma_m", "gps_tau_s")
 
 
 def resolve_scenario(path: str) -> Path:
@@ -139,19 +136,11 @@ class HilParams:
         """From ``[sim]`` (see the module docstring for which keys override the scenario).
 
         Raises ConfigError when the scenario does not load or an override is invalid."""
-        default = SimConfig()
-        for name in _RETIRED:
-            if getattr(cfg, name) != getattr(default, name):
-                log.warning(
-                    "sim.%s is ignored: HIL runs the scenario's full GNSS model; set receiver "
-                    "errors in the scenario ([gnss], [atmosphere], walls, [[effects]])",
-                    name,
-                )
         own = {f.name for f in fields(cls)}
         over = {
-            name: getattr(cfg, name)
+            name: value
             for name in _OVERRIDES
-            if name in own and getattr(cfg, name) != getattr(default, name)
+            if name in own and (value := getattr(cfg, name)) is not None
         }
         params = cls(
             scenario=str(resolve_scenario(cfg.scenario)),

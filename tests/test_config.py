@@ -85,3 +85,18 @@ def test_file_errors_name_the_file_and_the_key(tmp_path: Path) -> None:
     broken.write_text("a = = 1\n", encoding="utf-8")
     with pytest.raises(ConfigError, match=r"broken\.toml.*not valid TOML"):
         load(broken)
+
+
+def test_sim_scenario_resolves_against_the_config_folder(tmp_path: Path) -> None:
+    (tmp_path / "worlds").mkdir()
+    (tmp_path / "worlds" / "here.toml").write_text("name = 'x'\n")
+    cfg_file = tmp_path / "robot.toml"
+    cfg_file.write_text('[sim]\nscenario = "worlds/here.toml"\n')
+    cfg = load(cfg_file)
+    assert cfg.sim.scenario == str((tmp_path / "worlds" / "here.toml").resolve())
+    assert cfg.sim.seed is None and cfg.sim.gps_rate_hz is None  # absent: the scenario's own
+
+
+def test_retired_sim_keys_stop_startup_with_the_key() -> None:
+    with pytest.raises(ConfigError, match=r"sim\.gps_sigma_m: unknown key"):
+        loads("[sim]\ngps_sigma_m = 0.3\n")

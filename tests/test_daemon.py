@@ -34,7 +34,7 @@ def hil_config(tmp_path: Path, **sections: Any) -> Config:
         server=ServerConfig(port=0),
         gpsd=GpsdConfig(port=0),
         recorder=RecorderConfig(dir=str(tmp_path / "rec")),
-        sim=SimConfig(gps_rate_hz=4.0, gps_baud=115200, gps_sigma_m=0.0),
+        sim=SimConfig(gps_rate_hz=4.0, gps_baud=115200),
         safety=SafetyConfig(geofence_radius_m=100.0),
     )
     cfg = dataclasses.replace(

@@ -8,7 +8,6 @@ docs/motors.md protocol to the simulated board."""
 from __future__ import annotations
 
 import json
-import logging
 import os
 import re
 import socket
@@ -295,7 +294,7 @@ def test_daemon_runs_a_mission_in_real_time(tmp_path: Path) -> None:
     assert "MISSION_DONE" in err and "x6wd stopped" in err
 
 
-def test_params_from_a_scenario_file(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_params_from_a_scenario_file(tmp_path: Path) -> None:
     from sim_backend.world import load_world
 
     path = ROOT / "config" / "scenarios" / "open_field.toml"
@@ -303,13 +302,11 @@ def test_params_from_a_scenario_file(tmp_path: Path, caplog: pytest.LogCaptureFi
     # nothing set in [sim]: the scenario as it is (relative paths: the packaged config/)
     p = hil.HilParams.from_config(SimConfig(scenario="scenarios/open_field.toml"))
     assert p.scenario == str(path) and p.load_world() == w
-    # set keys override; the retired simple-receiver keys are ignored, with a warning
-    with caplog.at_level(logging.WARNING, logger="sim_backend.hil"):
-        p = hil.HilParams.from_config(
-            SimConfig(scenario=str(path), seed=9, gps_rate_hz=2.0, gps_baud=38400,
-                      start_north_m=-4.0, gps_sigma_m=0.7)
-        )  # fmt: skip
-    assert "sim.gps_sigma_m is ignored" in caplog.text
+    # present keys override, even when equal to what another scenario would use
+    p = hil.HilParams.from_config(
+        SimConfig(scenario=str(path), seed=9, gps_rate_hz=2.0, gps_baud=38400,
+                  start_north_m=-4.0)
+    )  # fmt: skip
     sc = p.load_world()
     assert (sc.seed, sc.gnss.rate_hz, sc.gnss.baud) == (9, 2.0, 38400)
     assert sc.vehicle.start_north_m == -4.0 and sc.vehicle.start_east_m == w.vehicle.start_east_m

@@ -106,20 +106,18 @@ class RecorderConfig:
 class SimConfig:
     """Hardware-in-the-loop: the simulated world behind the sim:// device URLs."""
 
-    scenario: str = ""
-    seed: int = field(default=1, metadata=_rng(0, 2**63 - 1))
-    # hardware-in-the-loop world (sim_backend.hil): start pose and receiver behaviour
-    origin_lat_deg: float = field(default=51.7520, metadata=_rng(-85, 85))
-    origin_lon_deg: float = field(default=-1.2577, metadata=_rng(-180, 180))
-    origin_alt_m: float = field(default=60.0, metadata=_rng(-500, 9000))
-    start_heading_deg: float = field(default=0.0, metadata=_rng(0, 360))
-    gps_rate_hz: float = field(default=1.0, metadata=_rng(1, 4))
-    gps_baud: int = field(default=9600, metadata=_rng(4800, 921600))
-    gps_sigma_m: float = field(default=0.3, metadata=_rng(0, 100))
-    gps_tau_s: float = field(default=30.0, metadata=_rng(0.1, 1e5))
+    scenario: str = ""  # relative paths: against the config file's folder
+    seed: int | None = field(default=None, metadata=_rng(0, 2**63 - 1))
+    # Overrides of the scenario's own values; absent (None) means "as the scenario says".
+    origin_lat_deg: float | None = field(default=None, metadata=_rng(-85, 85))
+    origin_lon_deg: float | None = field(default=None, metadata=_rng(-180, 180))
+    origin_alt_m: float | None = field(default=None, metadata=_rng(-500, 9000))
+    start_heading_deg: float | None = field(default=None, metadata=_rng(0, 360))
+    gps_rate_hz: float | None = field(default=None, metadata=_rng(1, 4))
+    gps_baud: int | None = field(default=None, metadata=_rng(4800, 921600))
     physics_hz: float = field(default=50.0, metadata=_rng(5, 1000))
-    v_max_mps: float = field(default=3.88, metadata=_rng(0.1, 3.888))
-    motor_tau_s: float = field(default=0.25, metadata=_rng(0, 10))
+    v_max_mps: float | None = field(default=None, metadata=_rng(0.1, 3.888))
+    motor_tau_s: float | None = field(default=None, metadata=_rng(0, 10))
     motor_watchdog_ms: int = field(default=500, metadata=_rng(50, 60000))
     # start position in the scenario's local frame (m); unset: the scenario's [vehicle] one
     start_east_m: float | None = field(default=None, metadata=_rng(-1e5, 1e5))
@@ -219,6 +217,12 @@ def load(path: str | Path) -> Config:
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read configuration: {exc.strerror or exc}") from exc
     try:
-        return loads(text, str(p))
+        cfg = loads(text, str(p))
     except ConfigError as exc:
         raise ConfigError(f"{p}: {exc}") from exc
+    # A scenario named next to the config file must not depend on the working directory.
+    scenario = Path(cfg.sim.scenario).expanduser()
+    if cfg.sim.scenario and not scenario.is_absolute() and (p.parent / scenario).is_file():
+        sim = dataclasses.replace(cfg.sim, scenario=str((p.parent / scenario).resolve()))
+        cfg = dataclasses.replace(cfg, sim=sim)
+    return cfg
