@@ -37,6 +37,14 @@ Epoch assembly (how a ``GpsFix`` is closed):
   GSA mode and PDOP/VDOP used are those of the previous cycle.
 - A ``GpsSky`` is emitted when a GSV group (per talker) completes; ``used`` flags and DOPs
   come from the GSA sentences of the current cycle; satellites of every talker are merged.
+
+Speed (bench/bench_nmea.py compares the whole path with ``pynmea2.parse`` alone):
+runs of well-formed lines are framed by one regex match and checksummed by folding each
+line as one integer; pynmea2 sentence objects are built directly; values that repeat from
+epoch to epoch (times, positions, GSA contents, GSV satellites, sentence heads) are decoded
+once and memoised, in small bounded caches keyed by the field strings, so a cached result
+is exactly what decoding the same strings again gives; records are built through their slot
+descriptors. Each shortcut is an exact replacement for the plain code it stands for.
 """
 
 from __future__ import annotations
@@ -45,9 +53,10 @@ import functools
 import re
 import struct
 from collections import deque
-from dataclasses import dataclass, fields
+from collections.abc import Callable
+from dataclasses import MISSING, dataclass, fields
 from datetime import UTC, date, datetime, timedelta
-from typing import Final
+from typing import Any, Final, TypeVar
 
 import pynmea2
 
@@ -83,21 +92,20 @@ NMEA_MSG_IDS: Final[dict[str, int]] = {
 # ---------------------------------------------------------------------------- checksums
 
 
-_MASKS: Final = tuple((1 << (8 * i)) - 1 for i in range(MAX_SENTENCE_CHARS + 2))
-
-
 def nmea_checksum(body: bytes | str) -> int:
     """XOR of the bytes between ``$`` and ``*`` (``body`` excludes both)."""
     data = body.encode("ascii", "replace") if isinstance(body, str) else body
-    # Folding one big integer in halves is ~15 % faster than a per-byte reduce.
     x = int.from_bytes(data, "little")
-    n = len(data)
-    while n > 1:
-        h = (n + 1) >> 1
-        mask = _MASKS[h] if h < len(_MASKS) else (1 << (8 * h)) - 1
-        x = (x & mask) ^ (x >> (h * 8))
-        n = h
-    return x
+    # XOR-fold the bytes as one integer: after folding by 2**k, ..., 2, 1 bytes, the low
+    # byte holds the XOR of the bytes at offsets 0 .. 2**(k+1) - 1 (each offset is a unique
+    # sum of fold widths). Some ten big-int operations instead of a Python op per byte.
+    width = 1
+    while width * 2 < len(data):
+        width *= 2
+    while width:
+        x ^= x >> (8 * width)
+        width >>= 1
+    return x & 0xFF
 
 
 def with_checksum(body: str) -> str:
@@ -160,6 +168,23 @@ _SCAN: Final = re.compile(
 )
 _HEX: Final = frozenset(b"0123456789abcdefABCDEF")
 
+# The fast path: a run of strictly well-formed lines ("$body*HH" and CR LF or LF, at most
+# 128 bytes), which is what a healthy receiver or log sends, then possibly the start of the
+# next sentence up to the end of the data. Each line is exactly what the first alternative
+# of _SCAN matches, and the tail what its second one matches (up to the end, not too long,
+# so held), so the two paths frame identically; anything else goes through _SCAN.
+_RUN: Final = re.compile(
+    rb"((?:\$[^$\r\n\xb5*]{1,124}\*[0-9A-Fa-f]{2}\r?\n)*)(\$[^$\r\n\xb5]{0,%d}\Z)?"
+    % (MAX_SENTENCE_CHARS - 1)
+)
+
+# XOR of a whole line "$body*HH" for each "HH" whose checksum matches: the stated checksum
+# (the XOR of body) ^ '$' ^ '*' ^ the two hex digits. Folding the whole line then needs no
+# slice to cut the body out.
+_LINE_XOR: Final[dict[bytes, int]] = {
+    bytes((hi, lo)): int(bytes((hi, lo)), 16) ^ 0x24 ^ 0x2A ^ hi ^ lo for hi in _HEX for lo in _HEX
+}
+
 
 class NmeaFramer:
     """Sans-IO framer: ``feed(bytes) -> list[Frame]``; never raises on any input."""
@@ -190,7 +215,19 @@ class NmeaFramer:
         n = len(buf)
         pos = 0
         search = _SCAN.search
+        run_match = _RUN.match
         while True:
+            run = run_match(buf, pos)
+            assert run is not None  # the pattern matches the empty string
+            end = run.end(1)
+            if end > pos:
+                self._run(run.group(1), out)
+                pos = end
+            if run.start(2) >= 0:  # a sentence in progress: wait for the rest
+                pos = run.start(2)
+                break
+            if pos == n:
+                break
             m = search(buf, pos)
             if m is None:
                 # Keep a lone trailing 0xB5: it may be the first half of a UBX sync.
@@ -262,6 +299,34 @@ class NmeaFramer:
         if pos:
             del buf[:pos]
         return out
+
+    def _run(self, run: bytes, out: list[str | UbxFrame]) -> None:
+        """Checksum every line of a ``_RUN`` match; append the good ones to ``out``."""
+        run = run.replace(b"\r", b"")  # CR occurs here only as part of a CR LF
+        lines = run.split(b"\n")
+        # One decode for the whole run; a replaced byte stays one character, so the str
+        # lines pair up with the byte lines.
+        texts = run.decode("ascii", "replace").split("\n")
+        texts.pop()  # the empty tail after the last line end
+        from_bytes = int.from_bytes
+        line_xor = _LINE_XOR
+        good = 0
+        for line, text in zip(lines, texts, strict=False):
+            # nmea_checksum, inlined: lines here are at most 128 bytes, so 7 folds suffice.
+            x = from_bytes(line, "little")
+            x ^= x >> 512
+            x ^= x >> 256
+            x ^= x >> 128
+            x ^= x >> 64
+            x ^= x >> 32
+            x ^= x >> 16
+            x ^= x >> 8
+            if x & 0xFF == line_xor[line[-2:]]:
+                out.append(text)
+                good += 1
+        c = self.counters
+        c.sentences += good
+        c.checksum_failures += len(texts) - good
 
     def _skip(self, buf: bytearray, a: int, b: int) -> None:
         if b - a == 2 and buf[a] == 0x0D and buf[a + 1] == 0x0A:
@@ -371,9 +436,18 @@ _DIGITS: Final = frozenset("0123456789")
 
 
 def _float(s: str, lo: float, hi: float) -> float | None:
-    """Empty -> None; else a finite float in [lo, hi]; plain decimal notation only."""
+    """Empty -> None; else a finite float in [lo, hi]; plain decimal notation only.
+
+    ``s`` is ASCII (the decoder rejects other sentences before any field is read).
+    """
     if not s:
         return None
+    if s.replace(".", "", 1).isdigit():
+        # The usual "12.34": float() cannot fail and none of the checks below can trip.
+        v = float(s)
+        if lo <= v <= hi:
+            return v
+        raise _Bad(s)
     try:
         v = float(s)
     except ValueError:
@@ -403,9 +477,8 @@ def _tod_us(s: str) -> int | None:
     head = s[:6]
     if len(head) < 6 or not head.isdigit() or not head.isascii():
         raise _Bad(s)
-    hh = int(head[:2])
-    mm = int(head[2:4])
-    ss = int(head[4:6])
+    hh, mmss = divmod(int(head), 10_000)
+    mm, ss = divmod(mmss, 100)
     frac = s[6:]
     us = 0
     if frac:
@@ -434,21 +507,21 @@ def _date(s: str) -> date | None:
 
 @functools.lru_cache(maxsize=64)
 def _coord(value: str, hemi: str, deg_max: int) -> float | None:
-    """``(d)ddmm.mmmm...`` + hemisphere -> signed degrees; any number of minute decimals."""
+    """``(d)ddmm.mmmm...`` + hemisphere -> signed degrees; any number of minute decimals.
+
+    ``value`` is ASCII (the decoder rejects other sentences before any field is read).
+    """
     if not value:
         if hemi and hemi not in "NSEW":
             raise _Bad(hemi)
         return None
-    whole, _dot, frac = value.partition(".")
-    if (
-        len(whole) < 3
-        or not whole.isdigit()
-        or not whole.isascii()
-        or (frac and (not frac.isdigit() or not frac.isascii()))
-    ):
+    dot = value.find(".")
+    n_whole = dot if dot >= 0 else len(value)
+    # Digits with at most one '.', and at least "dmm" before it. The fields are ASCII.
+    if n_whole < 3 or not value.replace(".", "", 1).isdigit():
         raise _Bad(value)
-    deg = int(whole[:-2])
-    minutes = float(whole[-2:] + "." + frac) if frac else float(whole[-2:])
+    deg = int(value[: n_whole - 2])
+    minutes = float(value[n_whole - 2 :])  # "mm.mmmm", "mm." or "mm"
     if minutes >= 60.0:
         raise _Bad(value)
     v = deg + minutes / 60.0
@@ -502,6 +575,37 @@ _TALKER_TYPES: Final[dict[str, type[pynmea2.TalkerSentence]]] = (
 )
 
 
+# What the direct construction needs per sentence head ("GPGGA,": talker, type and the
+# comma): (pynmea2 class, talker, sentence type), or None where pynmea2.parse must decide
+# (proprietary, query, unknown or odd heads). Bounded, as line noise can make any head.
+_Head = tuple[type[pynmea2.TalkerSentence], str, str] | None
+_HEADS: Final[dict[str, _Head]] = {}
+_HEADS_MAX: Final = 512
+
+
+def _head(key: str) -> _Head:
+    """The ``_HEADS`` entry for ``key`` = ``text[1:7]`` (computed and stored on a miss)."""
+    head: _Head = None
+    if key[5:6] == "," and key[0] != "P" and key[:5].isalnum():
+        cls = _TALKER_TYPES.get(key[2:5])
+        if cls is not None:
+            head = (cls, key[:2], key[2:5])
+    if len(_HEADS) >= _HEADS_MAX:
+        _HEADS.clear()
+    _HEADS[key] = head
+    return head
+
+
+def _build(head: tuple[type[pynmea2.TalkerSentence], str, str], text: str) -> pynmea2.NMEASentence:
+    # What TalkerSentence.__init__ stores, minus its per-attribute __setattr__ hook.
+    msg = object.__new__(head[0])
+    attrs = msg.__dict__
+    attrs["talker"] = head[1]
+    attrs["sentence_type"] = head[2]
+    attrs["data"] = text[7:-3].split(",")
+    return msg
+
+
 def to_pynmea2(text: str) -> pynmea2.NMEASentence:
     """The pynmea2 object for a checksum-verified sentence (``$`` to ``*HH``).
 
@@ -509,19 +613,11 @@ def to_pynmea2(text: str) -> pynmea2.NMEASentence:
     not re-computed and the class is instantiated without pynmea2's per-attribute
     ``__setattr__`` hook. Raises pynmea2's ParseError/SentenceTypeError like ``parse``.
     """
-    if text[6:7] == "," and text[1] != "P" and text[1:6].isalnum():
-        cls = _TALKER_TYPES.get(text[3:6])
-        if cls is not None:
-            msg = object.__new__(cls)
-            msg.__dict__.update(
-                talker=text[1:3], sentence_type=text[3:6], data=text[7:-3].split(",")
-            )
-            return msg
+    key = text[1:7]
+    head = _HEADS[key] if key in _HEADS else _head(key)
+    if head is not None:
+        return _build(head, text)
     return pynmea2.parse(text[:-3] if text[-3:-2] == "*" else text)
-
-
-def _get(d: list[str], i: int) -> str:
-    return d[i] if i < len(d) else ""
 
 
 @dataclass(slots=True)
@@ -582,6 +678,73 @@ def _parse_rmc(d: list[str], t_s: float) -> _Rmc:
     )
 
 
+@functools.lru_cache(maxsize=64)
+def _parse_gsa(
+    f: tuple[str, ...],
+) -> tuple[int | None, frozenset[int], float | None, float | None, float | None]:
+    """GSA fields ``mode_fix_type`` .. ``vdop`` -> fix mode, PRNs used, PDOP, HDOP, VDOP.
+
+    Memoised: a receiver repeats its GSA for as long as the constellation holds.
+    """
+    mode = _int(f[0], 1, 3)
+    prns = [s for s in f[_GSA_SV1 - _GSA_MODE : _GSA_PDOP - _GSA_MODE] if s]
+    if prns and not ("".join(prns).isdigit() and "".join(prns).isascii()):
+        raise _Bad("GSA PRN")
+    used = frozenset(int(s) for s in prns)
+    if len(used) and (min(used) < 1 or max(used) > 999):
+        raise _Bad("GSA PRN range")
+    dops = f[_GSA_PDOP - _GSA_MODE :]
+    return (
+        mode,
+        used,
+        _float(dops[0], 0.0, 99.99),
+        _float(dops[1], 0.0, 99.99),
+        _float(dops[2], 0.0, 99.99),
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _gsv_head(num: str, seq: str, in_view: str) -> tuple[int, int]:
+    """GSV message count and number (checked); the satellites-in-view count is checked only."""
+    head = num + seq
+    if len(head) != 2 or not head.isdigit() or not head.isascii():
+        raise _Bad("GSV sequence")
+    total = int(num)
+    n = int(seq)
+    _int(in_view, 0, 99)
+    if not 1 <= n <= total:
+        raise _Bad("GSV sequence")
+    return total, n
+
+
+# One GSV satellite: PRN and its SatInfo as not used / used in the fix (GSA decides which
+# at emission; both are built once, so a sky report allocates no SatInfo in steady state).
+_Sat = tuple[int, SatInfo, SatInfo]
+# (PRN, elevation, azimuth, SNR) field strings -> _Sat. Bounded: noise makes new keys.
+_SATS: Final[dict[tuple[str, ...], _Sat]] = {}
+_SATS_MAX: Final = 4096
+
+
+def _gsv_sat(group: tuple[str, ...]) -> _Sat:
+    """Decode and range-check one satellite (PRN not empty) of a GSV sentence; memoised."""
+    p, e, a, r = group
+    if e and a and r and (p + e + a + r).isdigit():
+        # Fast path for the usual all-integer group (the sentence is ASCII, see _decode).
+        prn, el, az, snr = int(p), float(e), float(a), float(r)
+        if prn > 999 or el > 90.0 or az > 360.0 or snr > 99.0:
+            raise _Bad(p)
+        sat = (prn, _new_sat(prn, el, az, snr, False), _new_sat(prn, el, az, snr, True))
+    else:
+        prn_ = _int(p, 0, 999)
+        assert prn_ is not None
+        el_, az_, snr_ = _float(e, -90.0, 90.0), _float(a, 0.0, 360.0), _float(r, 0.0, 99.0)
+        sat = (prn_, _new_sat(prn_, el_, az_, snr_, False), _new_sat(prn_, el_, az_, snr_, True))
+    if len(_SATS) >= _SATS_MAX:
+        _SATS.clear()
+    _SATS[group] = sat
+    return sat
+
+
 # ---------------------------------------------------------------------------- decoder
 
 
@@ -594,6 +757,48 @@ class NmeaSentence:
 
 
 Record = GpsFix | GpsSky | NmeaSentence
+
+_T = TypeVar("_T")
+
+
+def _slots_builder(cls: type[_T]) -> Callable[..., _T]:
+    """A constructor for the frozen slots dataclass ``cls`` that is about twice as fast.
+
+    A frozen dataclass ``__init__`` stores each field through ``object.__setattr__``, which
+    looks the slot up by name every time; this one calls each slot's descriptor directly.
+    Same parameters and defaults, same object. Classes with ``__post_init__``,
+    ``default_factory`` or ``init=False`` fields keep their own ``__init__``.
+    """
+    flds = fields(cls)  # type: ignore[arg-type]
+    if (
+        "__slots__" not in vars(cls)
+        or hasattr(cls, "__post_init__")
+        or any(f.default_factory is not MISSING or not f.init for f in flds)
+    ):
+        return cls
+    ns: dict[str, Any] = {"_new": object.__new__, "_cls": cls}
+    params = []
+    for f in flds:
+        ns[f"_set_{f.name}"] = getattr(cls, f.name).__set__
+        if f.default is MISSING:
+            params.append(f.name)
+        else:
+            ns[f"_default_{f.name}"] = f.default
+            params.append(f"{f.name}=_default_{f.name}")
+    sets = "".join(f"    _set_{f.name}(obj, {f.name})\n" for f in flds)
+    src = f"def build({', '.join(params)}):\n    obj = _new(_cls)\n{sets}    return obj\n"
+    exec(src, ns)  # as dataclasses itself builds __init__
+    build: Callable[..., _T] = ns["build"]
+    return build
+
+
+# NmeaSentence's slot setters: _decode builds one per sentence inline, as _slots_builder's
+# constructors do, without even their call.
+_SET_SENTENCE_T_S: Final = vars(NmeaSentence)["t_s"].__set__
+_SET_SENTENCE_TEXT: Final = vars(NmeaSentence)["text"].__set__
+_new_fix: Final = _slots_builder(GpsFix)
+_new_sky: Final = _slots_builder(GpsSky)
+_new_sat: Final = _slots_builder(SatInfo)
 
 
 @dataclass(slots=True)
@@ -621,8 +826,8 @@ class DecoderCounters:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-_GGA_MEMORY_EPOCHS: Final = 3
-_MIN_FIELDS: Final = 20  # RMC cycles without GGA before a stream counts as RMC-only
+_GGA_MEMORY_EPOCHS: Final = 3  # RMC cycles without GGA before a stream counts as RMC-only
+_Handler = Callable[[str, list[str], float, list[Record]], None]
 
 
 class GpsDecoder:
@@ -652,22 +857,29 @@ class GpsDecoder:
         self._pdop: float | None = None
         self._hdop_gsa: float | None = None
         self._vdop: float | None = None
-        self._used: set[int] = set()
+        self._used: frozenset[int] = frozenset()
         self._gsa_fresh = False  # a GSA arrived since the last time-bearing sentence
         self._gsv_talker = ""
         self._gsv_next = 0
-        self._gsv_sats: list[tuple[int, float | None, float | None, float | None]] = []
+        self._gsv_sats: list[_Sat] = []
         # talker -> (epoch index of its last complete GSV group, satellites)
-        self._sky: dict[
-            str, tuple[int, list[tuple[int, float | None, float | None, float | None]]]
-        ] = {}
+        self._sky: dict[str, tuple[int, list[_Sat]]] = {}
         self._epoch_idx = 0
         self._tod_us: int | None = None
         self._utc_key: tuple[int, date, int] | None = None
         self._utc_value: datetime | None = None
-        self._sat_cache: dict[
-            tuple[int, float | None, float | None, float | None, bool], SatInfo
-        ] = {}
+        # Field handlers by pynmea2 sentence type, with the number of fields each reads
+        # (shorter sentences are padded with empty fields); other known types need none.
+        self._handlers: dict[str, tuple[_Handler, int]] = {
+            # GSV: padded to four satellites and a signal id, so that a satellite cut
+            # short by the end of the sentence still counts, with empty fields.
+            "GSV": (self._gsv_fields, _GSV_SAT1 + 4 * 4 + 1),
+            "GGA": (self._gga_fields, _GGA_SEP + 1),
+            "RMC": (self._rmc_fields, _RMC_DATE + 1),
+            "GSA": (self._gsa_fields, _GSA_PDOP + 3),
+            "GLL": (self._gll_fields, _GLL_TIME + 1),
+            "ZDA": (self._zda_fields, _ZDA_DAY + 3),
+        }
 
     @property
     def counters(self) -> DecoderCounters:
@@ -697,12 +909,7 @@ class GpsDecoder:
     def feed(self, data: bytes, t_s: float) -> list[Record]:
         """Decode ``data`` received at ``t_s`` (s, host monotonic clock)."""
         out: list[Record] = []
-        sentence = self._sentence
-        for frame in self.framer.scan(data):
-            if type(frame) is str:
-                sentence(frame, t_s, out)
-            else:
-                self._ubx.append(frame)  # type: ignore[arg-type]
+        self._decode(self.framer.scan(data), t_s, out)
         return out
 
     def feed_sentence(self, text: str, t_s: float) -> list[Record]:
@@ -732,7 +939,7 @@ class GpsDecoder:
             f.checksum_failures += 1
             return out
         f.sentences += 1
-        self._sentence(line, t_s, out)
+        self._decode([line], t_s, out)
         return out
 
     def flush(self, t_s: float | None = None) -> list[Record]:
@@ -743,45 +950,89 @@ class GpsDecoder:
 
     # -- internals
 
-    def _sentence(self, text: str, t_s: float, out: list[Record]) -> None:
+    def _decode(self, frames: list[str | UbxFrame], t_s: float, out: list[Record]) -> None:
+        """Decode checksum-valid sentences, queue UBX frames; in stream order.
+
+        This is every sentence's path, so it is one loop over locals: call and attribute
+        overheads are a large part of a sentence's cost. Each sentence counts once in
+        ``sentences`` and once in ``decoded``, ``unknown_types`` or ``invalid_fields``.
+        """
         c = self._counters
-        c.sentences += 1
-        if self.emit_sentences:
-            out.append(NmeaSentence(t_s, text))
-        if not text.isascii():  # NMEA is ASCII; replaced bytes mean corruption
-            c.invalid_fields += 1
-            return
+        emit = self.emit_sentences
+        handlers = self._handlers
+        heads = _HEADS
+        new_object = object.__new__
+        set_t_s = _SET_SENTENCE_T_S
+        set_text = _SET_SENTENCE_TEXT
+        n_sentences = n_decoded = 0
         try:
-            msg = to_pynmea2(text)
-        except pynmea2.SentenceTypeError:
-            c.unknown_types += 1
-            return
-        except Exception:  # pynmea2's proprietary parsers raise anything
-            c.invalid_fields += 1
-            return
-        attrs = msg.__dict__
-        kind = attrs.get("sentence_type", "")
-        talker = attrs.get("talker", "")
-        d: list[str] = msg.data
-        if len(d) < _MIN_FIELDS:  # pynmea2 reads missing trailing fields as empty
-            d = d + [""] * (_MIN_FIELDS - len(d))
-        try:
-            if kind == "GSV":
-                self._on_gsv(talker, d, t_s, out)
-            elif kind == "GGA":
-                self._on_gga(_parse_gga(d, t_s), out)
-            elif kind == "RMC":
-                self._on_rmc(_parse_rmc(d, t_s), out)
-            elif kind == "GSA":
-                self._on_gsa(d)
-            elif kind == "GLL":
-                self._on_time(_tod_us(d[_GLL_TIME]), out)
-            elif kind == "ZDA":
-                self._on_zda(d, out)
-        except (_Bad, IndexError, ValueError):
-            c.invalid_fields += 1
-            return
-        c.decoded += 1
+            for text in frames:
+                if type(text) is not str:
+                    self._ubx.append(text)  # type: ignore[arg-type]
+                    continue
+                n_sentences += 1
+                if emit:  # NmeaSentence(t_s, text), see _SET_SENTENCE_T_S
+                    record = new_object(NmeaSentence)
+                    set_t_s(record, t_s)
+                    set_text(record, text)
+                    out.append(record)
+                if not text.isascii():  # NMEA is ASCII; replaced bytes mean corruption
+                    c.invalid_fields += 1
+                    continue
+                # to_pynmea2, inlined.
+                key = text[1:7]
+                try:
+                    head = heads[key]
+                except KeyError:
+                    head = _head(key)
+                if head is not None:
+                    msg = new_object(head[0])
+                    attrs = msg.__dict__
+                    attrs["talker"] = talker = head[1]
+                    attrs["sentence_type"] = kind = head[2]
+                    attrs["data"] = d = text[7:-3].split(",")
+                else:
+                    try:
+                        msg = pynmea2.parse(text[:-3] if text[-3:-2] == "*" else text)
+                    except pynmea2.SentenceTypeError:
+                        c.unknown_types += 1
+                        continue
+                    except Exception:  # pynmea2's proprietary parsers raise anything
+                        c.invalid_fields += 1
+                        continue
+                    attrs = msg.__dict__
+                    kind = attrs.get("sentence_type", "")
+                    talker = attrs.get("talker", "")
+                    d = msg.data
+                handler = handlers.get(kind)
+                if handler is not None:
+                    fields_needed = handler[1]
+                    if len(d) < fields_needed:  # pynmea2 reads missing fields as empty
+                        d = d + [""] * (fields_needed - len(d))
+                    try:
+                        handler[0](talker, d, t_s, out)
+                    except (_Bad, IndexError, ValueError):
+                        c.invalid_fields += 1
+                        continue
+                n_decoded += 1
+        finally:
+            c.sentences += n_sentences
+            c.decoded += n_decoded
+
+    def _gga_fields(self, talker: str, d: list[str], t_s: float, out: list[Record]) -> None:
+        self._on_gga(_parse_gga(d, t_s), out)
+
+    def _rmc_fields(self, talker: str, d: list[str], t_s: float, out: list[Record]) -> None:
+        self._on_rmc(_parse_rmc(d, t_s), out)
+
+    def _gsa_fields(self, talker: str, d: list[str], t_s: float, out: list[Record]) -> None:
+        self._on_gsa(d)
+
+    def _gll_fields(self, talker: str, d: list[str], t_s: float, out: list[Record]) -> None:
+        self._on_time(_tod_us(d[_GLL_TIME]), out)
+
+    def _zda_fields(self, talker: str, d: list[str], t_s: float, out: list[Record]) -> None:
+        self._on_zda(d, out)
 
     def _on_time(self, tod: int | None, out: list[Record]) -> None:
         """A time-bearing sentence: a different time closes the epoch in progress."""
@@ -847,16 +1098,7 @@ class GpsDecoder:
             self._rmc = rmc
 
     def _on_gsa(self, d: list[str]) -> None:
-        mode = _int(d[_GSA_MODE], 1, 3)
-        prns = [s for s in d[_GSA_SV1:_GSA_PDOP] if s]
-        if prns and not ("".join(prns).isdigit() and "".join(prns).isascii()):
-            raise _Bad("GSA PRN")
-        used = {int(s) for s in prns}
-        if len(used) and (min(used) < 1 or max(used) > 999):
-            raise _Bad("GSA PRN range")
-        pdop = _float(d[_GSA_PDOP], 0.0, 99.99)
-        hdop = _float(d[_GSA_PDOP + 1], 0.0, 99.99)
-        vdop = _float(d[_GSA_PDOP + 2], 0.0, 99.99)
+        mode, used, pdop, hdop, vdop = _parse_gsa(tuple(d[_GSA_MODE : _GSA_PDOP + 3]))
         if self._gsa_fresh:  # several GSAs per cycle (one per constellation)
             self._used |= used
         else:
@@ -865,34 +1107,21 @@ class GpsDecoder:
         self._gsa_mode = mode
         self._pdop, self._hdop_gsa, self._vdop = pdop, hdop, vdop
 
-    def _on_gsv(self, talker: str, d: list[str], t_s: float, out: list[Record]) -> None:
-        head = d[_GSV_NUM] + d[_GSV_SEQ]
-        if len(head) != 2 or not head.isdigit() or not head.isascii():
-            raise _Bad("GSV sequence")
-        total = int(d[_GSV_NUM])
-        seq = int(d[_GSV_SEQ])
-        _int(d[_GSV_INVIEW], 0, 99)
-        if not 1 <= seq <= total:
-            raise _Bad("GSV sequence")
-        sats: list[tuple[int, float | None, float | None, float | None]] = []
-        body = d[_GSV_SAT1:]
-        # NMEA 4.1 appends a signal id: ignore a trailing partial group.
-        k = len(body) - len(body) % 4
-        for p, e, a, r in zip(body[0:k:4], body[1:k:4], body[2:k:4], body[3:k:4], strict=True):
-            if not p:
-                continue
-            # Fast path for the usual all-integer group (the sentence is ASCII, see _sentence).
-            if e and a and r and (p + e + a + r).isdigit():
-                prn, el, az, snr = int(p), float(e), float(a), float(r)
-                if prn > 999 or el > 90.0 or az > 360.0 or snr > 99.0:
-                    raise _Bad(p)
-                sats.append((prn, el, az, snr))
-            else:
-                prn_ = _int(p, 0, 999)
-                assert prn_ is not None
-                sats.append(
-                    (prn_, _float(e, -90.0, 90.0), _float(a, 0.0, 360.0), _float(r, 0.0, 99.0))
-                )
+    def _gsv_fields(self, talker: str, d: list[str], t_s: float, out: list[Record]) -> None:
+        total, seq = _gsv_head(d[_GSV_NUM], d[_GSV_SEQ], d[_GSV_INVIEW])
+        sats: list[_Sat] = []
+        # Groups of four fields; NMEA 4.1 appends a signal id: zip drops a partial group.
+        fields_ = iter(d[_GSV_SAT1:])
+        known = _SATS
+        for group in zip(fields_, fields_, fields_, fields_, strict=False):
+            # A satellite's fields mostly repeat from earlier epochs (elevation and azimuth
+            # move slowly, SNR jitters over a few values): decode each group once.
+            sat = known.get(group)
+            if sat is None:
+                if not group[0]:
+                    continue
+                sat = _gsv_sat(group)
+            sats.append(sat)
         if seq == 1:
             self._gsv_talker = talker
             self._gsv_sats = sats
@@ -967,7 +1196,7 @@ class GpsDecoder:
             mode = 3
         else:
             mode = 2
-        fix = GpsFix(
+        fix = _new_fix(
             t_s=t_s,
             utc=self._utc(tod),
             lat_deg=lat,
@@ -992,24 +1221,15 @@ class GpsDecoder:
 
     def _emit_sky(self, t_s: float, out: list[Record]) -> None:
         used = self._used
-        cache = self._sat_cache
-        if len(cache) > 1024:  # bounded: a sky changes slowly, so hits dominate
-            cache.clear()
-        sats = []
+        sats: list[SatInfo] = []
         # A constellation that stopped reporting drops out after one missed epoch.
         oldest = self._epoch_idx - 1
         for epoch_idx, group in self._sky.values():
-            if epoch_idx < oldest:
-                continue
-            for sat in group:
-                key = (*sat, sat[0] in used)
-                info = cache.get(key)
-                if info is None:
-                    info = cache[key] = SatInfo(*key)
-                sats.append(info)
+            if epoch_idx >= oldest:
+                sats += [in_use if prn in used else free for prn, free, in_use in group]
         self._counters.skies += 1
         out.append(
-            GpsSky(
+            _new_sky(
                 t_s=t_s,
                 satellites=tuple(sats),
                 pdop=self._pdop,

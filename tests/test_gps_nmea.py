@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import operator
@@ -15,6 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import drivers.gps_nmea as gps_nmea
 from drivers.gps_nmea import (
     MAX_SENTENCE_CHARS,
     GpsDecoder,
@@ -125,6 +127,84 @@ def test_corpus_chunking_does_not_change_output(name: str) -> None:
         i += n
     chunked += dec.flush()
     assert chunked == whole
+
+
+def _decode_in_chunks(data: bytes, seed: int) -> tuple[list[str], dict[str, int]]:
+    dec = GpsDecoder()
+    rng = np.random.default_rng(seed)
+    out: list = []
+    i = 0
+    while i < len(data):
+        n = int(rng.integers(1, 600))
+        out += dec.feed(data[i : i + n], float(i))
+        i += n
+    out += dec.flush()
+    return [repr(r) for r in out], dec.counters.as_dict()
+
+
+def _framing_cases() -> bytes:
+    """Lines on both sides of every framing rule, between real sentences."""
+    rng = np.random.default_rng(11)
+    parts = [_line("GPTXT,01,01,02,u-blox ag")]
+    for n in (1, 2, 60, 123, 124, 125, 126):  # bodies up to the 130-char cap
+        parts.append(_line("GPZZZ," + "7" * (n - 6)) if n > 6 else _line("G" * n))
+    parts += [
+        _line("GPTXT," + "8" * 120)[:-2] + b"\n",  # a 130-char line, LF only
+        b"$GPTXT," + b"9" * 121 + b"*00\r\n",  # too long
+        _line("GPGGA,,,,,,0,00,99.99,,,,,,").replace(b"*48", b"*47"),  # bad checksum
+        b"$GPVTG,,T,,M,,N,,K,N*2c\r\n",  # lower-case hex
+        _line("GPGLL,,,,,,V,N")[:-2] + b"  \r\n",  # blanks before the line end
+        _line("GPGLL,,,,,,V,N")[:-2],  # line end lost, the next '$' follows
+        _line("GPGSA,A,1,,,,,,,,,,,,,99.99,99.99,99.99")[:-2] + b"\r",
+        b"\n$GPGS$GPGSV,1,1,01,05,,,*7D\r\n",  # a cut-off sentence, then a good one
+        bytes(rng.integers(0, 256, size=300, dtype=np.uint8)),  # line noise
+        cfg_rate(1000),
+        b"$$" + _line("GPZDA,120000.00,01,05,2026,00,00")[1:],
+    ]
+    parts.append((NMEA_DIR / "ublox-lea-5h.log").read_bytes()[:20000])
+    return b"".join(parts)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_fast_framing_path_matches_general_path(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The framer takes runs of well-formed lines through _RUN and everything else through
+    # _SCAN; both must frame, count and decode alike. A _RUN that never matches a line or
+    # a tail sends every byte through _SCAN.
+    data = _framing_cases()
+    fast = _decode_in_chunks(data, seed)
+    monkeypatch.setattr(gps_nmea, "_RUN", re.compile(rb"()((?!))?"))
+    assert _decode_in_chunks(data, seed) == fast
+    assert fast[1]["sentences"] > 100 and fast[1]["checksum_failures"] >= 1
+
+
+def test_checksum_fold_matches_bytewise_xor() -> None:
+    rng = np.random.default_rng(2)
+    for n in range(300):
+        body = rng.integers(0, 256, size=n, dtype=np.uint8).tobytes()
+        assert nmea_checksum(body) == _xor(body)
+
+
+def test_memoised_satellites_and_gsa_do_not_change_the_sky() -> None:
+    data = (NMEA_DIR / "ublox-lea-5h.log").read_bytes()
+    _, first = _decode_all(data)
+    gps_nmea._SATS.clear()
+    gps_nmea._parse_gsa.cache_clear()
+    _, again = _decode_all(data)  # everything decoded afresh
+    _, warm = _decode_all(data)  # everything from the memos
+    skies = [r for r in first if isinstance(r, GpsSky)]
+    assert skies and first == again == warm
+    assert any(s.used for sky in skies for s in sky.satellites)
+    assert any(not s.used for sky in skies for s in sky.satellites)
+
+
+def test_fast_record_builders_make_the_same_records() -> None:
+    fix = gps_nmea._new_fix(t_s=1.5, lat_deg=51.7, valid=True)
+    assert type(fix) is GpsFix and fix == GpsFix(t_s=1.5, lat_deg=51.7, valid=True)
+    assert fix.mode == 1 and fix.utc is None  # defaults
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        fix.t_s = 2.0  # type: ignore[misc]
+    sky = gps_nmea._new_sky(2.0, (), 1.0)
+    assert type(sky) is GpsSky and sky == GpsSky(2.0, (), 1.0)
 
 
 # gpsd golden output. Justified exceptions (documented, not skipped):
