@@ -1167,11 +1167,11 @@ class GpsDecoder:
             day = day + timedelta(days=1)
         elif tod > date_tod_us + 43_200_000_000:
             day = day - timedelta(days=1)
+        if tod >= 86_400_000_000:  # 23:59:60, a leap second: datetime cannot hold it
+            return datetime(day.year, day.month, day.day, 23, 59, 59, 999_999, tzinfo=UTC)
         sec, us = divmod(tod, 1_000_000)
         minute, sec = divmod(sec, 60)
         hour, minute = divmod(minute, 60)
-        if sec == 60:  # leap second: keep it representable
-            sec, us = 59, 999_999
         return datetime(day.year, day.month, day.day, hour, minute, sec, us, tzinfo=UTC)
 
     def _emit(self, gga: _Gga | None, rmc: _Rmc | None, out: list[Record]) -> None:

@@ -745,3 +745,21 @@ def test_mutated_real_sentences_never_raise(edits: list[tuple[int, int, str]]) -
     dec.flush()
     c = dec.counters
     assert c.sentences == len(edits) == c.decoded + c.unknown_types + c.invalid_fields
+
+
+def test_leap_second_time_is_kept_in_its_own_day() -> None:
+    # 2016-12-31 23:59:60 UTC was a real leap second.
+    bodies = [
+        "GPRMC,235960.00,A,5155.55442,N,00434.65873,E,0.1,,311216,,,A",
+        "GPGGA,235960.00,5155.55442,N,00434.65873,E,1,06,2.51,-4.0,M,46.0,M,,",
+        "GPRMC,000000.00,A,5155.55442,N,00434.65873,E,0.1,,010117,,,A",
+        "GPGGA,000000.00,5155.55442,N,00434.65873,E,1,06,2.51,-4.0,M,46.0,M,,",
+    ]
+    dec = GpsDecoder(emit_sentences=False)
+    data = "".join(with_checksum(b) + "\r\n" for b in bodies).encode()
+    fixes = [r for r in dec.feed(data, 0.0) + dec.flush() if isinstance(r, GpsFix)]
+    assert [f.utc for f in fixes] == [
+        datetime(2016, 12, 31, 23, 59, 59, 999_999, tzinfo=UTC),
+        datetime(2017, 1, 1, 0, 0, 0, tzinfo=UTC),
+    ]
+    assert dec.counters.invalid_fields == 0
