@@ -33,6 +33,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -178,9 +179,12 @@ def _wrap180(a: float) -> float:
     return (a + 180.0) % 360.0 - 180.0
 
 
-def _rot_body_to_ned(heading_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
-    """R such that v_ned = R @ v_body (yaw-pitch-roll, aerospace convention)."""
-    y, p, r = (math.radians(v) for v in (heading_deg, pitch_deg, roll_deg))
+_Rot = tuple[float, float, float, float, float, float, float, float, float]
+
+
+def _rot_entries(heading_deg: float, pitch_deg: float, roll_deg: float) -> _Rot:
+    """The entries of :func:`_rot_body_to_ned`, row by row, as plain floats."""
+    y, p, r = math.radians(heading_deg), math.radians(pitch_deg), math.radians(roll_deg)
     cy, sy, cp, sp, cr, sr = (
         math.cos(y),
         math.sin(y),
@@ -189,13 +193,16 @@ def _rot_body_to_ned(heading_deg: float, pitch_deg: float, roll_deg: float) -> n
         math.cos(r),
         math.sin(r),
     )
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
+    return (
+        cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
+        sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
+        -sp, cp * sr, cp * cr,
+    )  # fmt: skip
+
+
+def _rot_body_to_ned(heading_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
+    """R such that v_ned = R @ v_body (yaw-pitch-roll, aerospace convention)."""
+    return np.array(_rot_entries(heading_deg, pitch_deg, roll_deg)).reshape(3, 3)
 
 
 def _s16be(v: float) -> tuple[int, int]:
@@ -236,7 +243,10 @@ class SimCmps10:
         self._clock = clock
         self._soft = np.asarray(self.errors.soft_iron, dtype=float)
         self._hard = np.asarray(self.errors.hard_iron_ut, dtype=float)
+        # Without iron errors the soft/hard step is the identity: set_state skips it.
+        self._no_iron = bool(np.array_equal(self._soft, np.eye(3)) and not self._hard.any())
         self._field_ned = self.field_model.ned_ut()
+        self._field_ned_f = cast(tuple[float, float, float], tuple(self._field_ned.tolist()))
         self.cal_offset_ut = np.zeros(3)  # what the device subtracts (its calibration)
         self._regs = bytearray(NUM_REGISTERS)
         self._regs[0] = version
@@ -280,24 +290,50 @@ class SimCmps10:
 
         The registers then show the MAGNETIC bearing after iron errors, noise and filter lag.
         """
-        for name, v in (
-            ("t_s", t_s),
-            ("true_heading_deg", true_heading_deg),
-            ("pitch_deg", pitch_deg),
-            ("roll_deg", roll_deg),
+        # This runs at the compass rate for a whole simulated mission, so it works on plain
+        # floats where that reproduces the numpy formulation (measured_field_ut, then the
+        # tilt): ``rot.T @ field`` is summed in the order numpy's product of a transposed
+        # matrix uses (identical bits on the reference machine), and the identity steps (no
+        # iron errors, a level device) are skipped, which changes at most the sign of an
+        # exact zero, invisible in the bearing and the registers. The products numpy hands to
+        # the BLAS dot kernel (soft iron, the tilt) stay numpy, so their rounding is kept.
+        # tests/test_compass_emu.py compares the two formulations.
+        if not (
+            math.isfinite(t_s)
+            and math.isfinite(true_heading_deg)
+            and math.isfinite(pitch_deg)
+            and math.isfinite(roll_deg)
         ):
-            if not math.isfinite(v):
-                raise ValueError(f"set_state: {name} must be finite, got {v!r}")
+            for name, v in (
+                ("t_s", t_s),
+                ("true_heading_deg", true_heading_deg),
+                ("pitch_deg", pitch_deg),
+                ("roll_deg", roll_deg),
+            ):
+                if not math.isfinite(v):
+                    raise ValueError(f"set_state: {name} must be finite, got {v!r}")
         if self._t_s is not None and t_s < self._t_s:
             raise ValueError(f"set_state: time went backwards ({t_s} < {self._t_s})")
-        m = self.measured_field_ut(true_heading_deg, pitch_deg, roll_deg)
+        rot = _rot_entries(true_heading_deg, pitch_deg, roll_deg)
+        f0, f1, f2 = self._field_ned_f
+        # v_body = rot.T @ field_ned
+        mx = rot[0] * f0 + rot[3] * f1 + rot[6] * f2
+        my = rot[1] * f0 + rot[4] * f1 + rot[7] * f2
+        mz = rot[2] * f0 + rot[5] * f1 + rot[8] * f2
+        if not self._no_iron:
+            mx, my, mz = (self._soft @ np.array((mx, my, mz)) + self._hard).tolist()
         if self.errors.noise_ut > 0 and self._rng is not None:
-            m = m + self._rng.normal(0.0, self.errors.noise_ut, 3)
-        self._mag_body = m
+            nx, ny, nz = self._rng.normal(0.0, self.errors.noise_ut, 3).tolist()
+            mx, my, mz = mx + nx, my + ny, mz + nz
+        self._mag_body = np.array((mx, my, mz))
         # The device levels with its accelerometer's pitch/roll (taken as exact here).
-        rot_tilt = _rot_body_to_ned(0.0, pitch_deg, roll_deg)
-        h = rot_tilt @ (m - self.cal_offset_ut)
-        raw_bearing = math.degrees(math.atan2(-h[1], h[0])) % 360.0
+        c0, c1, c2 = self.cal_offset_ut.tolist()
+        if pitch_deg == 0 and roll_deg == 0:
+            h0, h1 = mx - c0, my - c1  # the levelling rotation is the identity
+        else:
+            rot_tilt = _rot_body_to_ned(0.0, pitch_deg, roll_deg)
+            h0, h1, _ = (rot_tilt @ np.array((mx - c0, my - c1, mz - c2))).tolist()
+        raw_bearing = math.degrees(math.atan2(-h1, h0)) % 360.0
         if self._filt_deg is None or self._t_s is None:
             self._filt_deg = raw_bearing
         else:
@@ -310,9 +346,16 @@ class SimCmps10:
         self._t_s = t_s
         self._pitch_deg = max(-MAX_TILT_DEG, min(MAX_TILT_DEG, pitch_deg))
         self._roll_deg = max(-MAX_TILT_DEG, min(MAX_TILT_DEG, roll_deg))
-        self._write_registers(true_heading_deg, pitch_deg, roll_deg)
+        # Specific force at rest: the reaction to gravity, -g along NED down, in body axes,
+        # i.e. -(rot.T @ [0, 0, -1]) g: the rotation's bottom row.
+        self._write_registers(
+            (mx, my, mz),
+            (rot[6] * ACC_COUNTS_PER_G, rot[7] * ACC_COUNTS_PER_G, rot[8] * ACC_COUNTS_PER_G),
+        )
 
-    def _write_registers(self, heading_deg: float, pitch_deg: float, roll_deg: float) -> None:
+    def _write_registers(
+        self, mag_ut: tuple[float, float, float], acc_counts: tuple[float, float, float]
+    ) -> None:
         assert self._filt_deg is not None
         tenths = round(self._filt_deg * 10.0) % 3600
         r = self._regs
@@ -320,14 +363,9 @@ class SimCmps10:
         r[2], r[3] = tenths >> 8, tenths & 0xFF
         r[4] = round(self._pitch_deg) & 0xFF
         r[5] = round(self._roll_deg) & 0xFF
-        counts = self._mag_body * MAG_COUNTS_PER_UT
         for i in range(3):
-            r[10 + 2 * i], r[11 + 2 * i] = _s16be(counts[i])
-        rot = _rot_body_to_ned(heading_deg, pitch_deg, roll_deg)
-        # Specific force at rest: the reaction to gravity, -g along NED down, in body axes.
-        acc = rot.T @ np.array([0.0, 0.0, -1.0]) * -ACC_COUNTS_PER_G
-        for i in range(3):
-            r[16 + 2 * i], r[17 + 2 * i] = _s16be(acc[i])
+            r[10 + 2 * i], r[11 + 2 * i] = _s16be(mag_ut[i] * MAG_COUNTS_PER_UT)
+            r[16 + 2 * i], r[17 + 2 * i] = _s16be(acc_counts[i])
 
     @property
     def bearing_deg(self) -> float:

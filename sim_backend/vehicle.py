@@ -22,7 +22,7 @@ speed times cos(pitch).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 from x6wd.errors import ConfigError
 
@@ -90,7 +90,7 @@ class Terrain:
         return math.degrees(pitch), math.degrees(roll)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class VehicleState:
     """Pose and motion at ``t_s``: position (m, local ENU), true heading (deg, clockwise from
     north, 0..360), ground speed (m/s), yaw rate (deg/s), effective drive (%), attitude (deg),
@@ -203,8 +203,9 @@ class Vehicle:
             left, right = cl, cr
         v_end, w_end = self._rates(left, right)
         pitch, roll = self.terrain.attitude_deg(heading)
-        self._state = replace(
-            s,
+        # Built directly (every field changes): dataclasses.replace costs more than the
+        # physics at the compass rate of a simulated mission.
+        self._state = VehicleState(
             t_s=s.t_s + dt_s,
             east_m=east,
             north_m=north,

@@ -255,3 +255,79 @@ def test_noise_is_driven_by_the_generator() -> None:
         return out
 
     assert bearings(1) == bearings(1) != bearings(2)
+
+
+# ---------------------------------------------------------------- float fast path
+# set_state works on plain floats for speed; it must reproduce the numpy formulation of the
+# physics. On the reference machine it does so bit for bit (the mission outputs did not move),
+# but numpy's small matrix products go through the platform's BLAS, whose summation order is
+# not ours to fix, so the floats are compared to 1e-12 here and the registers exactly.
+
+
+def _reference_step(
+    dev: SimCmps10, rng: np.random.Generator, state: dict[str, float | None], t_s: float,
+    heading: float, pitch: float, roll: float,
+) -> tuple[float, bytes, list[float]]:  # fmt: skip
+    """The emulator's physics written with numpy vectors, as it was before the fast path."""
+    from sim_backend.compass import MAG_COUNTS_PER_UT, _rot_body_to_ned, _s16be
+
+    rot = _rot_body_to_ned(heading, pitch, roll)
+    soft = np.asarray(dev.errors.soft_iron, dtype=float)
+    m = soft @ (rot.T @ dev.field_model.ned_ut()) + np.asarray(dev.errors.hard_iron_ut)
+    if dev.errors.noise_ut > 0:
+        m = m + rng.normal(0.0, dev.errors.noise_ut, 3)
+    h = _rot_body_to_ned(0.0, pitch, roll) @ (m - dev.cal_offset_ut)
+    raw = math.degrees(math.atan2(-h[1], h[0])) % 360.0
+    filt, t_prev = state["filt"], state["t"]
+    if filt is None or t_prev is None:
+        filt = raw
+    else:
+        tau = dev.errors.lag_tau_s
+        alpha = 1.0 if tau == 0 else 1.0 - math.exp(-(t_s - t_prev) / tau)
+        filt = (filt + alpha * _wrap(raw - filt)) % 360.0
+    state["filt"], state["t"] = filt, t_s
+    regs = bytearray(23)
+    tenths = round(filt * 10.0) % 3600
+    regs[1] = round(filt * 256.0 / 360.0) % 256
+    regs[2], regs[3] = tenths >> 8, tenths & 0xFF
+    regs[4] = round(max(-85.0, min(85.0, pitch))) & 0xFF
+    regs[5] = round(max(-85.0, min(85.0, roll))) & 0xFF
+    counts = m * MAG_COUNTS_PER_UT
+    acc = rot.T @ np.array([0.0, 0.0, -1.0]) * -1000.0
+    for i in range(3):
+        regs[10 + 2 * i], regs[11 + 2 * i] = _s16be(counts[i])
+        regs[16 + 2 * i], regs[17 + 2 * i] = _s16be(acc[i])
+    return filt, bytes(regs[1:]), m.tolist()
+
+
+@pytest.mark.parametrize(
+    ("errors", "tilt"),
+    [
+        (CompassErrors(noise_ut=0.05), False),
+        (CompassErrors(noise_ut=0.0), True),
+        (CompassErrors(noise_ut=0.2, hard_iron_ut=(3.0, -2.0, 1.0)), True),
+        (
+            CompassErrors(
+                noise_ut=0.1, soft_iron=((1.05, 0.02, 0.0), (0.02, 0.97, 0.01), (0.0, 0.01, 1.0))
+            ),
+            False,
+        ),
+    ],
+)
+def test_set_state_matches_the_numpy_formulation(errors: CompassErrors, tilt: bool) -> None:
+    dev = _device(errors=errors, rng=np.random.default_rng(3))
+    ref_rng = np.random.default_rng(3)
+    if errors.noise_ut > 0:
+        ref_rng.normal(0.0, errors.noise_ut, 3)  # the constructor's own set_state drew these
+    motion = np.random.default_rng(4)
+    state: dict[str, float | None] = {"filt": None, "t": None}
+    heading = 10.0
+    for k in range(400):
+        t = 0.05 * k
+        heading = (heading + float(motion.normal(0, 8))) % 360.0
+        pitch, roll = (float(v) for v in motion.normal(0, 5, 2)) if tilt else (0.0, 0.0)
+        dev.set_state(t, heading, pitch, roll)
+        filt, regs, mag = _reference_step(dev, ref_rng, state, t, heading, pitch, roll)
+        assert dev.bearing_deg == pytest.approx(filt, rel=1e-12, abs=1e-12)
+        assert dev.registers[1:] == regs
+        assert dev._mag_body.tolist() == pytest.approx(mag, rel=1e-12, abs=1e-12)

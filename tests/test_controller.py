@@ -385,3 +385,83 @@ def test_mission_done_then_reload_goes_idle() -> None:
     assert tel.mode == Mode.IDLE and tel.waypoint_index == 0
     split(c.start(0.4))
     assert c.state == NavState.STRAIGHT
+
+
+# ---------------------------------------------------------------- memoised geometry
+# The controller caches the projected position and the heading between calls and reuses the
+# navigator's own bearing/deviation for the telemetry; every snapshot must still be exactly
+# what a from-scratch computation gives, whatever changed in between.
+
+
+def _expected_geometry(c: Controller) -> tuple[float | None, ...]:
+    """(x, y, heading_deg, target_deg, theta_deg, distance) computed from scratch."""
+    nav = c.navigator
+    tel = c.telemetry
+    heading = None
+    if tel.bearing_deg is not None and c._att_ok:
+        heading = nav.heading_from_compass(tel.bearing_deg)
+    if tel.filt_lat_deg is None or tel.filt_lon_deg is None or not c.waypoints:
+        return (None, None, None if heading is None else math.degrees(heading), None, None, None)
+    x, y = (float(v) for v in nav.projection.to_xy(tel.filt_lat_deg, tel.filt_lon_deg))
+    target = theta = dist = None
+    if not nav.done:
+        xi, yi = nav.target_xy()
+        dist = math.hypot(xi - x, yi - y)
+        if dist > 0:
+            phi = geo.destination_bearing(x, y, xi, yi)
+            target = math.degrees(phi)
+            if heading is not None:
+                theta = math.degrees(geo.course_deviation(phi, heading))
+    return (x, y, None if heading is None else math.degrees(heading), target, theta, dist)
+
+
+def _geometry(tel: Telemetry) -> tuple[float | None, ...]:
+    return (tel.x_m, tel.y_m, tel.heading_deg, tel.target_bearing_deg, tel.theta_deg,
+            tel.distance_m)  # fmt: skip
+
+
+def test_telemetry_geometry_is_recomputed_whenever_an_input_changes() -> None:
+    rng = np.random.default_rng(11)
+    square = [at(0, 30), at(30, 30), at(30, 0)]
+    c = running(square)
+    t = 0.0
+    for k in range(600):
+        t += 0.05
+        r = rng.random()
+        if r < 0.08:
+            _, _, tel = split(c.on_fix(fix(t, *rng.normal(10.0, 12.0, 2))))
+        elif r < 0.09:
+            # Declination changes on the live navigator must reach the heading.
+            c.navigator.declination_deg = float(rng.uniform(-10, 10))
+            _, _, tel = split(c.tick(t))
+        elif r < 0.10:
+            # A new mission brings a new navigator and projection (stop first).
+            c.stop(t)
+            proj = "two_radius" if k % 2 else "local_tangent_plane"
+            c._nav_cfg = replace(NAV, projection=proj)
+            c.load_mission(list(rng.permutation(square)), t)
+            _, _, tel = split(c.start(t))
+        elif r < 0.11:
+            _, _, tel = split(c.on_attitude(att(t, 400.0)))  # invalid bearing: no heading
+        else:
+            _, _, tel = split(c.on_attitude(att(t, float(rng.uniform(0, 360)))))
+        assert _geometry(tel) == _expected_geometry(c), k
+
+
+def test_snapshot_reuses_the_navigators_decision_only_for_the_same_inputs() -> None:
+    c = running([at(0.0, 100.0), at(50.0, 100.0)])
+    c.on_fix(fix(0.0, 0.0, 0.0))
+    _, _, tel = split(c.on_attitude(att(0.05, 90.0)))
+    last = c.navigator.last
+    assert last is not None and last.theta_rad is not None and last.phi_i_rad is not None
+    assert tel.theta_deg == math.degrees(last.theta_rad)
+    assert tel.target_bearing_deg == math.degrees(last.phi_i_rad)
+    assert tel.distance_m == last.distance_m
+    # Arriving moves the target on: the snapshot must describe the NEXT waypoint.
+    c.on_fix(fix(0.1, 0.0, 100.0))
+    c.on_fix(fix(0.2, 0.0, 100.0))
+    c.on_fix(fix(0.3, 0.0, 100.0))
+    _, _, tel = split(c.on_attitude(att(0.35, 90.0)))
+    assert tel.waypoint_index == 1
+    assert tel.distance_m is not None and tel.distance_m > 40.0  # 50 m east, projected
+    assert _geometry(tel) == _expected_geometry(c)

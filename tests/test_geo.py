@@ -262,3 +262,97 @@ def test_make_projection_by_config_name() -> None:
         make_projection("mercator", 0.0, 0.0)
     with pytest.raises(GeoError, match="pole"):
         LocalTangentPlane(90.0, 0.0)
+
+
+# ---------------------------------------------------------------- scalar fast paths
+# Scalars take a math-module path; it must give exactly the bits of the array path (the
+# mission outputs and recordings depend on it), and bad scalars must raise the same errors.
+
+
+def _same(a: float, b: float) -> bool:
+    return (a == b and math.copysign(1.0, a) == math.copysign(1.0, b)) or (a != a and b != b)
+
+
+def _one(v: float) -> np.ndarray:
+    return np.array([v])
+
+
+def _first(a: object) -> float:
+    """Element 0 of an array result, as a float."""
+    return float(np.asarray(a).ravel()[0])
+
+
+_ANY = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6, max_value=1e6)
+_EDGES = [0.0, -0.0, 1e-300, -1e-300, math.pi, -math.pi, 2 * math.pi, 180.0, -180.0, 540.0]
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    xc=_ANY | st.sampled_from(_EDGES),
+    yc=_ANY | st.sampled_from(_EDGES),
+    xi=_ANY | st.sampled_from(_EDGES),
+    yi=_ANY | st.sampled_from(_EDGES),
+)
+def test_scalar_bearing_and_deviation_are_bit_identical_to_arrays(
+    xc: float, yc: float, xi: float, yi: float
+) -> None:
+    if xc == xi and yc == yi:
+        return
+    phi = destination_bearing(xc, yc, xi, yi)
+    assert type(phi) is float
+    # math.acos is the C library's; numpy may use its own SIMD arccos (AVX-512), so allow
+    # an ulp there. Everything else is plain IEEE arithmetic and must match exactly.
+    ref = _first(destination_bearing(_one(xc), _one(yc), _one(xi), _one(yi)))
+    assert _same(phi, ref) or abs(phi - ref) <= 2 * math.ulp(ref)
+    for a, b in ((phi, yc), (xc, yc), (xi, yi), (phi, math.pi)):
+        theta = course_deviation(a, b)
+        assert type(theta) is float
+        assert _same(theta, _first(course_deviation(_one(a), _one(b))))
+    w = geo.wrap_deg(xc)
+    assert _same(w, _first(geo.wrap_deg(_one(xc))))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    lat0=st.floats(-89, 89),
+    lon0=st.floats(-180, 180),
+    lat=st.floats(-90, 90),
+    lon=st.floats(-180, 180) | st.sampled_from([180.0, -180.0, 0.0, -0.0]),
+)
+def test_scalar_projections_are_bit_identical_to_arrays(
+    lat0: float, lon0: float, lat: float, lon: float
+) -> None:
+    for proj in (LocalTangentPlane(lat0, lon0), geo.TwoRadius()):
+        x, y = (float(v) for v in proj.to_xy(lat, lon))
+        xa, ya = proj.to_xy(_one(lat), _one(lon))
+        assert all(type(v) is float for v in proj.to_xy(lat, lon))
+        assert _same(x, _first(xa)) and _same(y, _first(ya))
+        la, lo = (float(v) for v in proj.to_latlon(x, y))
+        laa, loa = proj.to_latlon(_one(x), _one(y))
+        assert _same(la, _first(laa)) and _same(lo, _first(loa))
+
+
+def test_scalar_paths_accept_ints_and_numpy_floats() -> None:
+    assert latlon_to_xy(1, 2) == latlon_to_xy(1.0, 2.0)
+    assert destination_bearing(np.float64(0.0), 0, 1, np.float64(1.0)) == pytest.approx(math.pi / 4)
+    assert geo.wrap_deg(np.float64(190.0)) == -170.0
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_bad_scalars_raise_the_array_paths_errors(bad: float) -> None:
+    with pytest.raises(GeoError, match="finite"):
+        latlon_to_xy(bad, 0.0)
+    with pytest.raises(GeoError, match="finite"):
+        destination_bearing(0.0, 0.0, bad, 1.0)
+    with pytest.raises(GeoError, match="finite"):
+        course_deviation(bad, 0.0)
+    with pytest.raises(GeoError, match="finite"):
+        geo.wrap_deg(bad)
+    with pytest.raises(GeoError, match="finite"):
+        LocalTangentPlane(51.7, 30.0).to_xy(51.7, bad)
+    with pytest.raises(GeoError, match="finite"):
+        LocalTangentPlane(51.7, 30.0).to_latlon(bad, 0.0)
+    with pytest.raises(GeoError, match="latitude"):
+        xy_to_latlon(0.0, 1e8)
+    with pytest.raises(GeoError, match="latitude"):
+        LocalTangentPlane(51.7, 30.0).to_latlon(0.0, 1e8)

@@ -114,6 +114,17 @@ class Controller:
         self._has_mission = False
         self._cmd = MotorCommand(0.0, 0.0, 0.0, "idle")
         self._telemetry = Telemetry(t_s=0.0, mode=self._mode, state=self._state)
+        # Memos for the per-call geometry. A compass sample (20 Hz) changes only the heading
+        # and a fix (1 Hz) only the position, yet every call needs both, for the decision and
+        # again for the telemetry. Keys are the inputs' identities (the navigator, its
+        # projection, the attitude record, the filtered-position tuple), so a hit returns the
+        # very float the same computation gave before and the outputs stay bit-identical.
+        self._xy_key: tuple[object, object, object] | None = None
+        self._xy: tuple[float, float] = (0.0, 0.0)
+        self._heading_key: tuple[object, object, float] | None = None
+        self._heading = 0.0
+        # (navigator decision, x, y, heading) of the last Navigator.step, for the snapshot.
+        self._decided: tuple[object, float, float, float] | None = None
 
     # ------------------------------------------------------------------ properties
     @property
@@ -325,6 +336,27 @@ class Controller:
             return -c.turn_pct, c.turn_pct
         return 0.0, 0.0
 
+    def _position_xy(self, filt: tuple[float, float]) -> tuple[float, float]:
+        """The filtered position in the mission's plane (m), recomputed only when the
+        position, the navigator or its projection changed."""
+        nav = self._navigator
+        key = (filt, nav, nav.projection)
+        old = self._xy_key
+        if old is None or old[0] is not filt or old[1] is not nav or old[2] is not key[2]:
+            self._xy = nav.to_xy(*filt)
+            self._xy_key = key
+        return self._xy
+
+    def _heading_rad(self, att: Attitude) -> float:
+        """True heading (rad) from a valid attitude, recomputed only for a new sample, a new
+        navigator or a changed declination."""
+        nav = self._navigator
+        old = self._heading_key
+        if old is None or old[0] is not att or old[1] is not nav or old[2] != nav.declination_deg:
+            self._heading = nav.heading_from_compass(att.bearing_deg)
+            self._heading_key = (att, nav, nav.declination_deg)
+        return self._heading
+
     def _step(
         self, t_s: float, why: str, changes: list[ControllerOutput] | None = None
     ) -> list[ControllerOutput]:
@@ -349,9 +381,10 @@ class Controller:
                 state = NavState.HOLD
             else:
                 assert self._filt is not None and self._att is not None
-                x, y = self._navigator.to_xy(*self._filt)
-                heading = self._navigator.heading_from_compass(self._att.bearing_deg)
+                x, y = self._position_xy(self._filt)
+                heading = self._heading_rad(self._att)
                 state = self._navigator.step(x, y, heading)
+                self._decided = (self._navigator.last, x, y, heading)
                 if state == NavState.MISSION_DONE:
                     self._set_mode(Mode.DONE, "last waypoint reached", now, out)
                 left, right = self._mix(state)
@@ -384,55 +417,89 @@ class Controller:
         return out
 
     def _snapshot(self, now: float) -> Telemetry:
+        # Runs on every call (20 Hz from the compass alone): plain locals, no recomputation.
         nav = self._navigator
-        fix, att = self._fix, self._att
+        fix, att, filt = self._fix, self._att, self._filt
+        has_mission = self._has_mission
+        done = nav.done
         x = y = target_deg = theta_deg = dist = None
         heading_rad = None
         if att is not None and self._att_ok:
-            heading_rad = nav.heading_from_compass(att.bearing_deg)
-        if self._has_mission and self._filt is not None:
-            x, y = nav.to_xy(*self._filt)
-            if not nav.done:
-                xi, yi = nav.target_xy()
-                dx, dy = xi - x, yi - y
-                dist = math.hypot(dx, dy)
-                if dist > 0:
-                    phi = geo.destination_bearing(x, y, xi, yi)
-                    target_deg = math.degrees(phi)
-                    if heading_rad is not None:
-                        theta_deg = math.degrees(geo.course_deviation(phi, heading_rad))
+            heading_rad = self._heading_rad(att)
+        if has_mission and filt is not None:
+            x, y = self._position_xy(filt)
+            if not done:
+                last = nav.last
+                d = self._decided
+                if (
+                    d is not None
+                    and last is not None
+                    and d[0] is last
+                    and last.phi_i_rad is not None
+                    and last.theta_rad is not None
+                    and last.waypoint_index == nav.index
+                    and d[1] is x
+                    and d[2] is y
+                    and d[3] is heading_rad
+                ):
+                    # The navigator just decided on this very position, target and heading
+                    # with the same formulas: reuse its numbers instead of recomputing them.
+                    dist = last.distance_m
+                    target_deg = math.degrees(last.phi_i_rad)
+                    theta_deg = math.degrees(last.theta_rad)
+                else:
+                    xi, yi = nav.target_xy()
+                    dx, dy = xi - x, yi - y
+                    dist = math.hypot(dx, dy)
+                    if dist > 0:
+                        phi = geo.destination_bearing(x, y, xi, yi)
+                        target_deg = math.degrees(phi)
+                        if heading_rad is not None:
+                            theta_deg = math.degrees(geo.course_deviation(phi, heading_rad))
         extra: dict[str, object] = {"filter_samples": len(self._lat_filter)}
         if self._sky is not None:
             extra["sats_in_view"] = len(self._sky.satellites)
         if not self._link_ok:
             extra["motor_link"] = "lost"
-        count = len(nav.waypoints) if self._has_mission else 0
+        valid_fix_t = self._valid_fix_t
+        cmd = self._cmd
+        if fix is None:
+            lat = lon = sats_used = hdop = None
+            quality = 0
+        else:
+            lat, lon, quality = fix.lat_deg, fix.lon_deg, fix.quality
+            sats_used, hdop = fix.sats_used, fix.hdop
+        if att is None:
+            bearing = pitch = roll = att_age = None
+        else:
+            bearing, pitch, roll = att.bearing_deg, att.pitch_deg, att.roll_deg
+            att_age = now - att.t_s
         return Telemetry(
             t_s=now,
             mode=self._mode,
             state=self._state,
             hold_reason=self._hold_reason,
-            waypoint_index=nav.index if self._has_mission and not nav.done else None,
-            waypoint_count=count,
-            lat_deg=fix.lat_deg if fix is not None else None,
-            lon_deg=fix.lon_deg if fix is not None else None,
-            filt_lat_deg=self._filt[0] if self._filt is not None else None,
-            filt_lon_deg=self._filt[1] if self._filt is not None else None,
+            waypoint_index=nav.index if has_mission and not done else None,
+            waypoint_count=len(nav.waypoints) if has_mission else 0,
+            lat_deg=lat,
+            lon_deg=lon,
+            filt_lat_deg=filt[0] if filt is not None else None,
+            filt_lon_deg=filt[1] if filt is not None else None,
             x_m=x,
             y_m=y,
-            bearing_deg=att.bearing_deg if att is not None else None,
+            bearing_deg=bearing,
             heading_deg=math.degrees(heading_rad) if heading_rad is not None else None,
-            pitch_deg=att.pitch_deg if att is not None else None,
-            roll_deg=att.roll_deg if att is not None else None,
+            pitch_deg=pitch,
+            roll_deg=roll,
             target_bearing_deg=target_deg,
             theta_deg=theta_deg,
             distance_m=dist,
-            fix_quality=fix.quality if fix is not None else 0,
-            sats_used=fix.sats_used if fix is not None else None,
-            hdop=fix.hdop if fix is not None else None,
-            fix_age_s=now - self._valid_fix_t if self._valid_fix_t is not None else None,
-            attitude_age_s=now - att.t_s if att is not None else None,
-            left_pct=self._cmd.left_pct,
-            right_pct=self._cmd.right_pct,
+            fix_quality=quality,
+            sats_used=sats_used,
+            hdop=hdop,
+            fix_age_s=now - valid_fix_t if valid_fix_t is not None else None,
+            attitude_age_s=att_age,
+            left_pct=cmd.left_pct,
+            right_pct=cmd.right_pct,
             extra=extra,
         )

@@ -5,12 +5,22 @@ Degrees at the API for latitude/longitude, metres for x/y, radians for bearings.
 east, y north; bearings are clockwise from north in (-π, π] (negative = west).
 Every function accepts scalars or numpy arrays (broadcasting) and returns floats for
 scalar input.
+
+Scalar fast paths: the controller calls these functions with plain floats several times per
+compass sample (20 Hz on the robot, thousands of times per simulated mission), where building
+0-d arrays cost far more than the arithmetic. Each function therefore first tries a
+``math`` version for real-number scalars that does the same IEEE operations in the same
+order, so the result is bit-identical to the array path (tests/test_geo.py checks this; the
+one library call that could differ is arccos, where numpy may use its own SIMD version on
+AVX-512 machines: within an ulp there, identical where numpy uses the C library's).
+The fast path only handles valid input: anything non-finite, out of range or degenerate
+falls through to the array path, which raises the usual error with the usual message.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Protocol, overload
+from typing import Protocol, TypeGuard, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -63,6 +73,24 @@ def _is_scalar(*values: object) -> bool:
     return all(np.ndim(v) == 0 for v in values)  # type: ignore[arg-type]
 
 
+def _real(v: object) -> TypeGuard[float]:
+    """A real-number scalar the ``math`` fast paths can take (float, np.float64 or int; not
+    bool, arrays or other numpy scalars, which keep the array path's conversions)."""
+    return isinstance(v, float) or type(v) is int
+
+
+def _hypot(a: float, b: float) -> float:
+    # numpy's hypot is the C library's; math.hypot uses its own algorithm and differs in
+    # the last bit for about 0.5 % of inputs, which would change the bearings.
+    return float(np.hypot(a, b))
+
+
+def _wrap_deg_scalar(a: float) -> float:
+    # Python's float % has numpy's np.mod semantics (result takes the divisor's sign).
+    w = 180.0 - (180.0 - a) % 360.0
+    return 180.0 if w <= -180.0 else w
+
+
 @overload
 def latlon_to_xy(lat_deg: float, lon_deg: float) -> tuple[float, float]: ...
 @overload
@@ -72,6 +100,10 @@ def latlon_to_xy(lat_deg: ArrayLike, lon_deg: ArrayLike) -> tuple[ArrayLike, Arr
 
     No cos Φ factor: east distances come out stretched by 1/cos Φ, as in the paper.
     """
+    if _real(lat_deg) and _real(lon_deg):
+        la, lo = float(lat_deg), float(lon_deg)
+        if -90.0 <= la <= 90.0 and -180.0 <= lo <= 180.0:
+            return math.radians(lo) * R1_M, math.radians(la) * R2_M
     lat = _as_array("lat_deg", lat_deg)
     lon = _as_array("lon_deg", lon_deg)
     _check_latlon(lat, lon)
@@ -87,6 +119,11 @@ def xy_to_latlon(x_m: float, y_m: float) -> tuple[float, float]: ...
 def xy_to_latlon(x_m: ArrayLike, y_m: ArrayLike) -> tuple[ArrayLike, ArrayLike]: ...
 def xy_to_latlon(x_m: ArrayLike, y_m: ArrayLike) -> tuple[ArrayLike, ArrayLike]:
     """Inverse of :func:`latlon_to_xy`: metres -> (lat_deg, lon_deg)."""
+    if _real(x_m) and _real(y_m):
+        la = math.degrees(float(y_m) / R2_M)
+        lo = math.degrees(float(x_m) / R1_M)
+        if -90.0 <= la <= 90.0 and -180.0 <= lo <= 180.0:
+            return la, lo
     x = _as_array("x_m", x_m)
     y = _as_array("y_m", y_m)
     scalar = _is_scalar(x_m, y_m)
@@ -108,6 +145,16 @@ def destination_bearing(xc: ArrayLike, yc: ArrayLike, xi: ArrayLike, yi: ArrayLi
     Paper eqs. 3-4: ``sign(xi − xc) · arccos((yi − yc) / distance)`` with sign(0) = +1, so due
     south is +π. Coincident points have no bearing: :class:`GeoError`.
     """
+    if _real(xc) and _real(yc) and _real(xi) and _real(yi):
+        ddx = float(xi) - float(xc)
+        ddy = float(yi) - float(yc)
+        if math.isfinite(ddx) and math.isfinite(ddy):
+            d = _hypot(ddx, ddy)
+            if d != 0.0:
+                p = math.acos(min(max(ddy / d, -1.0), 1.0))
+                if ddx < 0.0:
+                    p = -p
+                return math.pi if p == -math.pi else p
     dx = _as_array("xi - xc", np.subtract(xi, xc))
     dy = _as_array("yi - yc", np.subtract(yi, yc))
     scalar = _is_scalar(xc, yc, xi, yi)
@@ -131,6 +178,19 @@ def course_deviation(phi_i: ArrayLike, phi_c: ArrayLike) -> ArrayLike:
     Θ > 0: the destination is clockwise of the heading (turn right). For inputs in (-π, π]
     this is exactly the paper's single correction; other finite inputs are wrapped too.
     """
+    if _real(phi_i) and _real(phi_c):
+        t = float(phi_i) - float(phi_c)
+        if math.isfinite(t):
+            # The same two corrections as below, then the general wrap if still outside.
+            if t > math.pi:
+                t = -(2.0 * math.pi - t)
+            if t <= -math.pi:
+                t = 2.0 * math.pi + t
+            if t > math.pi or t <= -math.pi:
+                t = math.pi - (math.pi - t) % (2.0 * math.pi)
+                if t <= -math.pi:
+                    t = math.pi
+            return t
     a = _as_array("phi_i", phi_i)
     b = _as_array("phi_c", phi_c)
     scalar = _is_scalar(phi_i, phi_c)
@@ -151,6 +211,10 @@ def wrap_deg(angle_deg: float) -> float: ...
 def wrap_deg(angle_deg: ArrayLike) -> ArrayLike: ...
 def wrap_deg(angle_deg: ArrayLike) -> ArrayLike:
     """Any finite angle in degrees wrapped to (-180, 180]."""
+    if _real(angle_deg):
+        f = float(angle_deg)
+        if math.isfinite(f):
+            return _wrap_deg_scalar(f)
     a = _as_array("angle_deg", angle_deg)
     w = 180.0 - np.mod(180.0 - a, 360.0)
     w = np.where(w <= -180.0, 180.0, w)
@@ -214,6 +278,11 @@ class LocalTangentPlane:
 
     def to_xy(self, lat_deg: ArrayLike, lon_deg: ArrayLike) -> tuple[ArrayLike, ArrayLike]:
         """(lat_deg, lon_deg) -> (x_m, y_m) relative to the origin."""
+        if _real(lat_deg) and _real(lon_deg):
+            la, lo = float(lat_deg), float(lon_deg)
+            if -90.0 <= la <= 90.0 and -180.0 <= lo <= 180.0:
+                dl = _wrap_deg_scalar(lo - self.origin_lon_deg)
+                return dl * self._kx_m_per_deg, (la - self.origin_lat_deg) * self._ky_m_per_deg
         lat = _as_array("lat_deg", lat_deg)
         lon = _as_array("lon_deg", lon_deg)
         _check_latlon(lat, lon)
@@ -225,6 +294,15 @@ class LocalTangentPlane:
 
     def to_latlon(self, x_m: ArrayLike, y_m: ArrayLike) -> tuple[ArrayLike, ArrayLike]:
         """(x_m, y_m) relative to the origin -> (lat_deg, lon_deg)."""
+        if _real(x_m) and _real(y_m):
+            xf, yf = float(x_m), float(y_m)
+            if math.isfinite(xf) and math.isfinite(yf):
+                la = self.origin_lat_deg + yf / self._ky_m_per_deg
+                lo = self.origin_lon_deg + xf / self._kx_m_per_deg
+                if math.isfinite(lo):
+                    lo = _wrap_deg_scalar(lo)
+                    if -90.0 <= la <= 90.0:
+                        return la, lo
         x = _as_array("x_m", x_m)
         y = _as_array("y_m", y_m)
         scalar = _is_scalar(x_m, y_m)
