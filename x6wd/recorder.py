@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import enum
+import functools
 import json
 import math
 import os
@@ -76,6 +77,16 @@ def _iso_z(dt: datetime) -> str:
     return dt.isoformat(timespec="microseconds") + "Z"
 
 
+@functools.cache
+def _field_names(cls: type) -> tuple[str, ...]:
+    # dataclasses.fields() rebuilds its tuple on every call: a hot spot at 20 Hz x records.
+    return tuple(f.name for f in dataclasses.fields(cls))
+
+
+# One encoder for every line: json.dumps() with options builds a new encoder per call.
+_ENCODE = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode
+
+
 def to_jsonable(value: Any) -> Any:
     """Typed records to plain JSON values: dataclasses to dicts, enums to values, datetimes
     to ISO-8601 strings (aware ones in UTC with Z), non-finite floats to None."""
@@ -88,7 +99,7 @@ def to_jsonable(value: Any) -> Any:
     if isinstance(value, datetime):
         return _iso_z(value) if value.tzinfo is not None else value.isoformat()
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        return {name: to_jsonable(getattr(value, name)) for name in _field_names(type(value))}
     if isinstance(value, dict):
         return {str(k): to_jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -199,11 +210,8 @@ class Recorder:
         data = to_jsonable(payload)
         if not isinstance(data, dict):
             raise ValueError(f"payload must be a dict or a dataclass, got {payload!r}")
-        line = json.dumps(
-            {"t_mono": t, "t_utc": _iso_z(self._utc_clock()), "type": type, "data": data},
-            separators=(",", ":"),
-            ensure_ascii=False,
-            allow_nan=False,
+        line = _ENCODE(
+            {"t_mono": t, "t_utc": _iso_z(self._utc_clock()), "type": type, "data": data}
         )
         blob = (line + "\n").encode("utf-8")
         with self._lock:
