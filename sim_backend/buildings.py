@@ -3,14 +3,20 @@
 PUBLIC API
 - ``Window(u0_m, u1_m, z0_m, z1_m)``: an opening through a wall; ``u`` is the distance along
   the wall's centreline from its start point (x0, y0), ``z`` the height above ground.
-- ``Wall(x0_m, y0_m, x1_m, y1_m, thickness_m=0.3, height_m=10.0, windows=())``: a vertical
-  box standing on the ground (z = 0); the centreline runs (x0, y0) -> (x1, y1) in the local
-  ENU frame (x east, y north, metres); the box extends ``thickness_m / 2`` to each side.
-- ``Hole(x0_m, y0_m, x1_m, y1_m)`` and ``Roof(x0_m, y0_m, x1_m, y1_m, height_m, holes=())``:
-  a thin horizontal slab (axis-aligned rectangle in ENU) at ``height_m`` with open
-  rectangles; it blocks rays from below that cross it outside its holes. Roofs do not reflect.
-- ``building(x0_m, y0_m, x1_m, y1_m, height_m, thickness_m=0.3) -> list[Wall]``: the four
-  walls of an axis-aligned rectangular building (closed, no windows).
+- ``Wall(x0_m, y0_m, x1_m, y1_m, thickness_m=0.3, height_m=10.0, windows=(),
+  penetration_db=None, refractive_index=1.0)``: a vertical box standing on the ground
+  (z = 0); the centreline runs (x0, y0) -> (x1, y1) in the local ENU frame (x east, y north,
+  metres); the box extends ``thickness_m / 2`` to each side.
+- ``Hole(x0_m, y0_m, x1_m, y1_m)`` and ``Roof(x0_m, y0_m, x1_m, y1_m, height_m, holes=(),
+  penetration_db=None, thickness_m=0.0, refractive_index=1.0)``: a thin horizontal slab
+  (axis-aligned rectangle in ENU) at ``height_m`` with open rectangles; it blocks rays from
+  below that cross it outside its holes. Roofs do not reflect.
+- Materials (optional, default off): ``penetration_db`` is the L1 loss of one crossing
+  (None: opaque, the seed's model); ``refractive_index`` n gives the extra delay
+  (n - 1) x the path length inside (a roof's ``thickness_m`` is used only for that).
+- ``building(x0_m, y0_m, x1_m, y1_m, height_m, thickness_m=0.3, penetration_db=None,
+  refractive_index=1.0) -> list[Wall]``: the four walls of an axis-aligned rectangular
+  building (closed, no windows, one material).
 - ``Walls(walls, roofs=(), max_directions=4096)`` with
   ``trace(rx_enu_m, az_deg, el_deg, max_reflections=16, max_loss_db=None) -> TraceResult``
   (``visibility(rx_enu_m, az_deg, el_deg)`` is the same with default limits):
@@ -21,7 +27,9 @@ PUBLIC API
 - ``TraceResult``: arrays of the broadcast shape (E, S): ``los`` (bool, direct path clear),
   ``n_reflections`` (int: 0 direct, 1..16 reflections, -1 no viable path = invisible),
   ``extra_path_m`` (range error of the path taken, 0 when direct or invisible),
-  ``loss_db`` (3 dB per reflection, ``inf`` when invisible); property ``visible``.
+  ``loss_db`` (3 dB per reflection, the summed material loss through obstructions, ``inf``
+  when invisible), ``n_penetrations`` (obstructions a through path crosses, else 0);
+  property ``visible``. ``Walls.penetrable``: some wall or roof has a material.
 
 Model: a direct ray is blocked when it enters any wall box below the wall's top (unless it
 crosses the wall's centre plane inside a window) or crosses a roof outside its holes.
@@ -33,6 +41,19 @@ the final one to the sky, is unobstructed. The satellite gets the path of the le
 reflections (then the least extra path), up to ``max_reflections`` and ``max_loss_db``
 (3 dB each). The extra path of one reflection is 2·d·cos(el)·cos(alpha) (d distance to the
 reflecting face).
+
+Penetration (only when some wall or roof has ``penetration_db``): a blocked ray may instead
+arrive straight THROUGH what blocks it. Its loss is the sum of the crossed walls' and roofs'
+losses (inf if any of them is opaque), its extra path the material delay
+sum((n - 1) x path inside) (centimetres: the slower propagation in the material; the much
+larger indoor multipath delay is the receiver model's, see ``sim_backend.gnss``). Of a
+reflected and a penetrating path the one with the stronger received power (the smaller loss)
+is taken; on equal power the penetrating one (straight, so earlier). A penetrating path is
+viable only within ``max_loss_db``. Not modelled: paths that both reflect and penetrate,
+diffraction, frequency-dependent or angle-dependent loss (one loss per crossing whatever the
+incidence), windows with glass (a window is an opening). Where two wall boxes overlap (the
+corners of ``building``) a ray through the overlap crosses both, i.e. thicker material.
+Without materials the trace takes exactly the seed model's code path (tested bit for bit).
 
 Method (exact: it finds what a brute-force search over all wall sequences finds).
 - Line of sight: a slab test of each ray against each wall box, after exact (conservative)
@@ -50,6 +71,9 @@ Method (exact: it finds what a brute-force search over all wall sequences finds)
   depth that gives a viable path. A ray that meets a face outside a window but crosses the
   wall's centre plane inside it both reflects and passes (the model allows both): the shot
   forks there.
+- Penetration reuses the line-of-sight candidate pairs (slab entry/exit per wall box) and
+  caps each ray's reflection depth at the deepest level still stronger than its
+  penetrating path, so materials also shorten the reflection search.
 - ``max_directions`` bounds the enumeration for scenes with many wall orientations (the
   count grows with the depth when orientations are not multiples of 90 deg). The search is
   then complete only up to the deepest level whose look directions all fit
@@ -75,6 +99,17 @@ def _finite(where: str, **values: float) -> None:
     for name, value in values.items():
         if not isinstance(value, (int, float)) or not math.isfinite(value):
             raise ConfigError(f"{where}.{name}: must be a finite number, got {value!r}")
+
+
+def _material(where: str, penetration_db: float | None, refractive_index: float) -> None:
+    """Validate the optional material of a wall or roof (None: opaque, the seed's model)."""
+    if penetration_db is not None:
+        _finite(where, penetration_db=penetration_db)
+        if penetration_db < 0.0:
+            raise ConfigError(f"{where}.penetration_db: must be >= 0 dB, got {penetration_db}")
+    _finite(where, refractive_index=refractive_index)
+    if refractive_index < 1.0:
+        raise ConfigError(f"{where}.refractive_index: must be >= 1, got {refractive_index}")
 
 
 @dataclass(frozen=True)
@@ -107,8 +142,11 @@ class Wall:
     thickness_m: float = 0.3
     height_m: float = 10.0
     windows: tuple[Window, ...] = field(default=())
+    penetration_db: float | None = None
+    refractive_index: float = 1.0
 
     def __post_init__(self) -> None:
+        _material("wall", self.penetration_db, self.refractive_index)
         _finite(
             "wall",
             x0_m=self.x0_m,
@@ -165,8 +203,15 @@ class Roof:
     y1_m: float
     height_m: float
     holes: tuple[Hole, ...] = field(default=())
+    penetration_db: float | None = None
+    thickness_m: float = 0.0
+    refractive_index: float = 1.0
 
     def __post_init__(self) -> None:
+        _material("roof", self.penetration_db, self.refractive_index)
+        _finite("roof", thickness_m=self.thickness_m)
+        if self.thickness_m < 0.0:
+            raise ConfigError(f"roof.thickness_m: must be >= 0, got {self.thickness_m}")
         _finite(
             "roof",
             x0_m=self.x0_m,
@@ -186,9 +231,17 @@ class Roof:
 
 
 def building(
-    x0_m: float, y0_m: float, x1_m: float, y1_m: float, height_m: float, thickness_m: float = 0.3
+    x0_m: float,
+    y0_m: float,
+    x1_m: float,
+    y1_m: float,
+    height_m: float,
+    thickness_m: float = 0.3,
+    penetration_db: float | None = None,
+    refractive_index: float = 1.0,
 ) -> list[Wall]:
-    """The four walls of a closed axis-aligned rectangular building (outer corners given)."""
+    """The four walls of a closed axis-aligned rectangular building (outer corners given),
+    all of one material (``penetration_db`` None: opaque)."""
     if not (x0_m < x1_m and y0_m < y1_m):
         raise ConfigError(
             f"building: need x0_m < x1_m and y0_m < y1_m, got {x0_m, y0_m, x1_m, y1_m}"
@@ -196,11 +249,12 @@ def building(
     h = thickness_m / 2.0
     # Centrelines inset by half the thickness so the outer faces sit on the given rectangle.
     a, b, c, d = x0_m + h, y0_m + h, x1_m - h, y1_m - h
+    mat: dict[str, Any] = {"penetration_db": penetration_db, "refractive_index": refractive_index}
     return [
-        Wall(a, b, c, b, thickness_m, height_m),
-        Wall(c, b, c, d, thickness_m, height_m),
-        Wall(c, d, a, d, thickness_m, height_m),
-        Wall(a, d, a, b, thickness_m, height_m),
+        Wall(a, b, c, b, thickness_m, height_m, **mat),
+        Wall(c, b, c, d, thickness_m, height_m, **mat),
+        Wall(c, d, a, d, thickness_m, height_m, **mat),
+        Wall(a, d, a, b, thickness_m, height_m, **mat),
     ]
 
 
@@ -212,10 +266,13 @@ class TraceResult:
     n_reflections: np.ndarray
     extra_path_m: np.ndarray
     loss_db: np.ndarray
+    # Obstructions (walls, roofs) a through-obstruction path crosses; 0 for direct and
+    # reflected paths (all 0 in a scene without materials).
+    n_penetrations: np.ndarray
 
     @property
     def visible(self) -> np.ndarray:
-        """True where a direct or reflected path exists."""
+        """True where a direct, reflected or penetrating path exists."""
         return self.n_reflections >= 0
 
 
@@ -286,6 +343,22 @@ class Walls:
         for i, r in enumerate(self.roofs):
             for j, h in enumerate(r.holes):
                 self._holes[i, j] = (h.x0_m, h.y0_m, h.x1_m, h.y1_m)
+        # Materials: loss per crossing (inf: opaque) and the (n - 1) delay factor. The
+        # penetration search runs only when some obstruction has a finite loss, so a scene
+        # without materials is traced exactly as the seed's model (same code path).
+        self._pen_w = np.array(
+            [math.inf if w.penetration_db is None else w.penetration_db for w in self.walls],
+            dtype=float,
+        ).reshape(n_w)
+        self._nm1_w = np.array([w.refractive_index - 1.0 for w in self.walls]).reshape(n_w)
+        self._pen_r = np.array(
+            [math.inf if r.penetration_db is None else r.penetration_db for r in self.roofs],
+            dtype=float,
+        ).reshape(n_r)
+        self._delay_r = np.array(
+            [(r.refractive_index - 1.0) * r.thickness_m for r in self.roofs]
+        ).reshape(n_r)
+        self.penetrable = bool(np.isfinite(self._pen_w).any() or np.isfinite(self._pen_r).any())
         # Bounding circles of the boxes in plan, for the prefilter.
         self._centre = self._p0 + self._t * (self._len / 2.0)[:, None]
         self._radius = np.hypot(self._len / 2.0, self._half) + _REACH_MARGIN_M
@@ -396,7 +469,7 @@ class Walls:
             keep &= tan_el[leg] < tan_max[origin[leg], wall]
         return leg[keep], wall[keep]
 
-    def _legs(
+    def _enter(
         self,
         o: np.ndarray,
         z: np.ndarray,
@@ -404,12 +477,12 @@ class Walls:
         tan_el: np.ndarray,
         leg: np.ndarray,
         wall: np.ndarray,
-        reflect: np.ndarray | None,
-    ) -> _Legs:
-        """Walk each leg (o, z, horizontal unit v, tan_el) against its candidate walls
-        (pairs ``leg``/``wall`` sorted by leg). ``reflect`` (N,) says which legs may still
-        reflect (None: none; line of sight only)."""
-        n = o.shape[0]
+    ) -> tuple[np.ndarray, ...]:
+        """Per (leg, wall) pair: the leg's start in the wall's frame (ou along, ov across),
+        its direction there (du, dv), the horizontal distances where it enters and leaves
+        the box in plan (s_in, s_out), whether it enters the box below its top (``hit``),
+        whether it passes a window at the centre plane (``through``) and where it crosses
+        that plane (s_c)."""
         oo, vv = o[leg], v[leg]
         t, nn = self._t[wall], self._n[wall]
         rel = oo - self._p0[wall]
@@ -424,7 +497,8 @@ class Walls:
             lo_u, hi_u = _slab(ou, du, 0.0, self._len[wall])
             lo_v, hi_v = _slab(ov, dv, -half, half)
         s_in = np.maximum(np.maximum(lo_u, lo_v), 0.0)
-        hit = (s_in < np.minimum(hi_u, hi_v)) & (z0 + s_in * tz < height)
+        s_out = np.minimum(hi_u, hi_v)
+        hit = (s_in < s_out) & (z0 + s_in * tz < height)
         # Through a window: the ray crosses the centre plane inside the opening.
         through = np.zeros(leg.size, dtype=bool)
         s_c = np.full(leg.size, np.inf)
@@ -432,6 +506,67 @@ class Walls:
             with np.errstate(divide="ignore", invalid="ignore"):
                 s_c = -ov / dv
             through = _in_window(self._win[wall], ou + s_c * du, z0 + s_c * tz) & (s_c >= 0.0)
+        return ou, ov, du, dv, s_in, s_out, hit, through, s_c
+
+    def _penetration(
+        self,
+        o: np.ndarray,
+        z: np.ndarray,
+        v: np.ndarray,
+        el_r: np.ndarray,
+        leg: np.ndarray,
+        wall: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The straight ray of each leg (N,) taken THROUGH everything that blocks it:
+        summed loss (dB; inf if an opaque obstruction is crossed), the material delay
+        sum((n - 1) x path length inside) (m) and the number of obstructions crossed.
+        ``leg``/``wall`` are the candidate pairs of the line-of-sight test."""
+        n = o.shape[0]
+        tan_el = np.tan(el_r)
+        _ou, _ov, _du, _dv, s_in, s_out, hit, through, _s_c = self._enter(
+            o, z, v, tan_el, leg, wall
+        )
+        crossed = hit & ~through
+        lc, wc = leg[crossed], wall[crossed]
+        # (float even when empty: bincount of no weights returns integers)
+        loss = np.bincount(lc, weights=self._pen_w[wc], minlength=n).astype(float)
+        count = np.bincount(lc, minlength=n)
+        # Length inside the box: from entry to where the ray leaves it in plan or rises over
+        # its top; straight, since refraction in a slab only offsets the ray sideways.
+        tz = tan_el[lc]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_top = np.where(tz > 0.0, (self._height[wc] - z[lc]) / tz, np.inf)
+        inside = np.maximum(np.minimum(s_out[crossed], s_top) - s_in[crossed], 0.0)
+        delay = np.bincount(
+            lc, weights=self._nm1_w[wc] * inside / np.maximum(np.cos(el_r[lc]), _EPS), minlength=n
+        ).astype(float)
+        if len(self.roofs):
+            _s_r, cross = self._roof_cross(o, z, v, tan_el)
+            loss += np.where(cross, self._pen_r[None, :], 0.0).sum(axis=1)
+            count += cross.sum(axis=1)
+            # A thin slab crossed at elevation el: thickness / sin(el) inside it.
+            delay += np.where(cross, self._delay_r[None, :], 0.0).sum(axis=1) / np.maximum(
+                np.sin(el_r), _EPS
+            )
+        return loss, delay, count
+
+    def _legs(
+        self,
+        o: np.ndarray,
+        z: np.ndarray,
+        v: np.ndarray,
+        tan_el: np.ndarray,
+        leg: np.ndarray,
+        wall: np.ndarray,
+        reflect: np.ndarray | None,
+    ) -> _Legs:
+        """Walk each leg (o, z, horizontal unit v, tan_el) against its candidate walls
+        (pairs ``leg``/``wall`` sorted by leg). ``reflect`` (N,) says which legs may still
+        reflect (None: none; line of sight only)."""
+        n = o.shape[0]
+        ou, ov, du, dv, s_in, _s_out, hit, through, s_c = self._enter(o, z, v, tan_el, leg, wall)
+        half = self._half[wall]
+        z0, tz = z[leg], tan_el[leg]
         blocked = np.bincount(leg[hit & ~through], minlength=n) > 0
         roof_s = self._roof_block(o, z, v, tan_el)
         blocked |= np.isfinite(roof_s)
@@ -477,6 +612,14 @@ class Walls:
         n = o.shape[0]
         if not len(self.roofs) or n == 0:
             return np.full(n, np.inf)
+        s_r, cross = self._roof_cross(o, z, v, tan_el)
+        return np.where(cross, s_r, np.inf).min(axis=1)
+
+    def _roof_cross(
+        self, o: np.ndarray, z: np.ndarray, v: np.ndarray, tan_el: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per ray and roof (N, R): horizontal distance to the roof's plane and whether the
+        ray crosses the roof there from below, outside its holes."""
         h_r = self._roof[None, :, 4]
         with np.errstate(divide="ignore", invalid="ignore"):
             s_r = (h_r - z[:, None]) / tan_el[:, None]  # (N, R)
@@ -492,7 +635,7 @@ class Walls:
             & (qy[..., None] >= hl[..., 1])
             & (qy[..., None] <= hl[..., 3])
         ).any(axis=2)
-        return np.where(reach & inside & ~in_hole, s_r, np.inf).min(axis=1)
+        return s_r, reach & inside & ~in_hole
 
     # ---------------------------------------------------------------- trace
     def trace(
@@ -558,6 +701,10 @@ class Walls:
         los = up.copy()
         n_refl = np.where(up, 0, -1).astype(np.int64)
         extra = np.zeros(n)
+        n_pen = np.zeros(n, dtype=np.int64)
+        pen_rays = np.zeros(0, dtype=np.int64)
+        pen_loss = pen_delay = np.zeros(0)
+        pen_count = np.zeros(0, dtype=np.int64)
         if len(self.walls) or len(self.roofs):
             o, z = pos[origin, :2], pos[origin, 2]
             sight = self._sight(pos[:, :2], pos[:, 2])
@@ -566,6 +713,26 @@ class Walls:
             blocked = self._legs(o, z, d, tan_el, leg, wall, None).blocked
             los[rays] = ~blocked
             n_refl[rays[blocked]] = -1
+            if self.penetrable:
+                b = np.flatnonzero(blocked)
+                # The blocked rays' straight path through the obstructions (compact indices).
+                where = np.full(rays.size, -1, dtype=np.int64)
+                where[b] = np.arange(b.size)
+                keep = blocked[leg]
+                p_loss, p_delay, p_count = self._penetration(
+                    o[b], z[b], d[b], el_r[b], where[leg[keep]], wall[keep]
+                )
+                ok = np.isfinite(p_loss)
+                if max_loss_db is not None:
+                    ok &= p_loss <= loss[rays[b]]
+                # The stronger path wins: a reflected path only when its loss (3 dB per
+                # bounce) is strictly below the penetration loss, so the reflection search
+                # needs no deeper level than that; on equal power the straight, earlier
+                # penetrating path is kept.
+                cap = np.ceil(p_loss[ok] / LOSS_PER_REFLECTION_DB) - 1.0
+                depth[b[ok]] = np.minimum(depth[b[ok]], np.clip(cap, 0, None).astype(np.int64))
+                pen_rays, pen_loss = b[ok], p_loss[ok]
+                pen_delay, pen_count = p_delay[ok], p_count[ok]
             pend = np.flatnonzero(blocked & (depth > 0))
             if pend.size and len(self.walls):
                 n_p, x_p = self._reflections(
@@ -573,13 +740,24 @@ class Walls:
                 )
                 n_refl[rays[pend]] = n_p
                 extra[rays[pend]] = x_p
+            if pen_rays.size:
+                # Penetrating where no (stronger) reflected path was found.
+                use = n_refl[rays[pen_rays]] < 0
+                r = rays[pen_rays[use]]
+                n_refl[r] = 0
+                extra[r] = pen_delay[use]
+                n_pen[r] = pen_count[use]
+                pen_loss = pen_loss[use]
+                pen_rays = r
+        loss_db = np.where(n_refl >= 0, LOSS_PER_REFLECTION_DB * np.maximum(n_refl, 0), np.inf)
+        if pen_rays.size:
+            loss_db[pen_rays] = pen_loss
         return TraceResult(
             los=los.reshape(shape),
             n_reflections=n_refl.reshape(shape),
             extra_path_m=extra.reshape(shape),
-            loss_db=np.where(
-                n_refl >= 0, LOSS_PER_REFLECTION_DB * np.maximum(n_refl, 0), np.inf
-            ).reshape(shape),
+            loss_db=loss_db.reshape(shape),
+            n_penetrations=n_pen.reshape(shape),
         )
 
     def visibility(self, rx_enu_m: Any, az_deg: Any, el_deg: Any) -> TraceResult:

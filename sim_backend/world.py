@@ -26,9 +26,14 @@ Scenario layout (every key optional unless stated; errors name the dotted key)::
               lce_sigma_m = [[...], ...] (row i = north cell i) or lce_csv = "map.csv"
     [atmosphere]  the fields of sim_backend.atmosphere.Atmosphere
     [[walls]]     x0_m, y0_m, x1_m, y1_m, thickness_m, height_m,
-                  windows = [{u0_m, u1_m, z0_m, z1_m}, ...]
-    [[buildings]] x0_m, y0_m, x1_m, y1_m, height_m, thickness_m  (four closed walls)
-    [roof] or [[roofs]]  x0_m, y0_m, x1_m, y1_m, height_m, holes = [{x0_m, y0_m, x1_m, y1_m}]
+                  windows = [{u0_m, u1_m, z0_m, z1_m}, ...], penetration_db, refractive_index
+    [[buildings]] x0_m, y0_m, x1_m, y1_m, height_m, thickness_m, penetration_db,
+                  refractive_index  (four closed walls of one material)
+    [roof] or [[roofs]]  x0_m, y0_m, x1_m, y1_m, height_m, holes = [{x0_m, y0_m, x1_m, y1_m}],
+                  penetration_db, thickness_m, refractive_index
+    Materials are optional: without ``penetration_db`` a wall or roof is opaque (the seed's
+    model); with it, a blocked ray may arrive through it with that loss (dB per crossing) and
+    a delay of (refractive_index - 1) x the path inside (see sim_backend.buildings).
     [vehicle] max_speed_mps, turn_rate_dps, motor_tau_s, start_heading_deg, start_east_m,
               start_north_m, slope_east_pct, slope_north_pct, antenna_height_m
     [compass] a plain table handed to the compass emulation
@@ -388,7 +393,16 @@ def _build_walls(data: dict[str, Any]) -> tuple[tuple[Wall, ...], tuple[Roof, ..
             walls.append(dataclasses.replace(wall, windows=windows))
         except ConfigError as exc:
             raise ConfigError(f"walls[{i}]: {exc}") from exc
-    keys = ("x0_m", "y0_m", "x1_m", "y1_m", "height_m", "thickness_m")
+    keys = (
+        "x0_m",
+        "y0_m",
+        "x1_m",
+        "y1_m",
+        "height_m",
+        "thickness_m",
+        "penetration_db",
+        "refractive_index",
+    )
     for i, spec in enumerate(_table_list(data, "buildings")):
         for key in spec:
             if key not in keys:

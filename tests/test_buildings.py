@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -350,3 +352,197 @@ def test_bad_geometry_is_rejected() -> None:
         Walls([]).trace(RX, np.zeros((2, 3)), np.zeros((2, 4)))
     with pytest.raises(ValueError, match="finite"):
         Walls([]).trace(RX, np.array([np.nan]), np.array([10.0]))
+
+
+# ------------------------------------------------------------------ penetration (materials)
+
+
+def _digest(*arrays: np.ndarray) -> str:
+    """Digest of arrays rounded to 1e-9 (robust to last-bit libm differences, strict to any
+    change of the model)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.round(np.asarray(a, dtype=float), 9).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _room_scene(**mat: Any) -> tuple[list[Wall], list[Roof]]:
+    """The building_window room (south and east windows, roof slab), a closed building to
+    the south-east and a broken roof to the north-west; ``mat`` sets every material."""
+    wall_mat = {k: v for k, v in mat.items() if k in ("penetration_db", "refractive_index")}
+    walls = [
+        Wall(
+            -4.0, -0.5, 4.0, -0.5, height_m=3.0, windows=(Window(0.5, 7.7, 0.3, 2.8),), **wall_mat
+        ),
+        Wall(4.0, -0.5, 4.0, 5.5, height_m=3.0, windows=(Window(0.2, 3.5, 0.4, 2.8),), **wall_mat),
+        Wall(4.0, 5.5, -4.0, 5.5, height_m=3.0, **wall_mat),
+        Wall(-4.0, 5.5, -4.0, -0.5, height_m=3.0, **wall_mat),
+        *building(10.0, -20.0, 30.0, -5.0, 15.0, **wall_mat),
+    ]
+    roofs = [
+        Roof(-4.2, -0.7, 4.2, 5.7, 3.0, **mat),
+        Roof(-30.0, 10.0, -10.0, 30.0, 6.0, holes=(Hole(-25.0, 15.0, -15.0, 25.0),), **mat),
+    ]
+    return walls, roofs
+
+
+def _room_rays() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(5)
+    e, s = 60, 10
+    rx = np.column_stack(
+        [rng.uniform(-3.5, 3.5, e), rng.uniform(0, 5, e), rng.uniform(0.3, 2.5, e)]
+    )
+    return rx, rng.uniform(0, 360, (e, s)), rng.uniform(2, 85, (e, s))
+
+
+def test_without_materials_the_trace_is_the_seed_model_bit_for_bit() -> None:
+    # Digest recorded with the tracer as it was before materials existed: a scene without
+    # materials takes exactly the old code path.
+    walls = Walls(*_room_scene())
+    assert not walls.penetrable
+    r = walls.trace(*_room_rays())
+    assert (r.n_penetrations == 0).all()
+    assert _digest(r.los, r.n_reflections, r.extra_path_m, r.loss_db) == "187794c864bc350d"
+    # Opaque materials given explicitly (None) are the same scene.
+    assert not Walls([Wall(0, 0, 1, 0, penetration_db=None, refractive_index=1.5)]).penetrable
+
+
+def test_glass_wall_passes_with_its_loss_and_concrete_hides() -> None:
+    glass = Walls([Wall(-100.0, -10.0, 100.0, -10.0, height_m=20.0, penetration_db=3.0)])
+    r = glass.trace(RX, np.array([180.0, 0.0]), np.array([10.0, 10.0]))
+    assert not r.los[0, 0] and r.visible[0, 0]
+    assert int(r.n_reflections[0, 0]) == 0 and int(r.n_penetrations[0, 0]) == 1
+    assert float(r.loss_db[0, 0]) == pytest.approx(3.0)
+    assert float(r.extra_path_m[0, 0]) == 0.0  # refractive index 1: no delay
+    assert r.los[0, 1] and float(r.loss_db[0, 1]) == 0.0 and int(r.n_penetrations[0, 1]) == 0
+    # Material delay: (n - 1) x the slant path inside the 0.3 m wall.
+    slow = Walls([Wall(-100.0, -10.0, 100.0, -10.0, height_m=20.0, penetration_db=3.0,
+                       refractive_index=2.5)])  # fmt: skip
+    x = float(slow.trace(RX, np.array([180.0]), np.array([10.0])).extra_path_m[0, 0])
+    assert x == pytest.approx(1.5 * 0.3 / math.cos(math.radians(10.0)), rel=1e-9)
+    # 30 dB of concrete: visible only if the loss budget allows it.
+    concrete = Walls([Wall(-100.0, -10.0, 100.0, -10.0, height_m=20.0, penetration_db=30.0)])
+    r = concrete.trace(RX, np.array([180.0]), np.array([10.0]), max_loss_db=25.0)
+    assert not r.visible[0, 0] and np.isinf(r.loss_db[0, 0])
+    # Two walls in a row add up; an opaque one (no material) stops the ray.
+    two = Walls([Wall(-100.0, -10.0, 100.0, -10.0, height_m=20.0, penetration_db=4.0),
+                 Wall(-100.0, -20.0, 100.0, -20.0, height_m=20.0, penetration_db=6.0)])  # fmt: skip
+    r = two.trace(RX, np.array([180.0]), np.array([10.0]))
+    assert float(r.loss_db[0, 0]) == pytest.approx(10.0) and int(r.n_penetrations[0, 0]) == 2
+    opaque = Walls([Wall(-100.0, -10.0, 100.0, -10.0, height_m=20.0, penetration_db=4.0),
+                    Wall(-100.0, -20.0, 100.0, -20.0, height_m=20.0)])  # fmt: skip
+    assert not opaque.trace(RX, np.array([180.0]), np.array([10.0])).visible[0, 0]
+    # A roof slab: loss and (n - 1) x thickness / sin(el).
+    roof = Walls([], [Roof(-5.0, -5.0, 5.0, 5.0, 3.0, penetration_db=20.0, thickness_m=0.2,
+                           refractive_index=2.5)])  # fmt: skip
+    r = roof.trace(RX, np.array([0.0]), np.array([60.0]))
+    assert float(r.loss_db[0, 0]) == pytest.approx(20.0)
+    assert float(r.extra_path_m[0, 0]) == pytest.approx(1.5 * 0.2 / math.sin(math.radians(60)))
+
+
+@pytest.mark.parametrize(("south_db", "kind"), [(2.0, "through"), (3.0, "through"),
+                                                (4.5, "reflected")])  # fmt: skip
+def test_stronger_of_reflected_and_penetrating_path_wins(south_db: float, kind: str) -> None:
+    # Blocked to the south by a wall of ``south_db``; one bounce (3 dB) off a north wall.
+    south = Wall(-300.0, -10.0, 300.0, -10.0, height_m=6.0, penetration_db=south_db)
+    north = Wall(-300.0, 5.0, 300.0, 5.0, height_m=15.0)
+    r = Walls([south, north]).trace(RX, np.array([180.0]), np.array([20.0]))
+    if kind == "through":  # equal power (3 dB): the straight, earlier path is kept
+        assert int(r.n_penetrations[0, 0]) == 1 and int(r.n_reflections[0, 0]) == 0
+        assert float(r.loss_db[0, 0]) == pytest.approx(south_db)
+    else:
+        assert int(r.n_penetrations[0, 0]) == 0 and int(r.n_reflections[0, 0]) == 1
+        assert float(r.loss_db[0, 0]) == pytest.approx(3.0)
+        assert float(r.extra_path_m[0, 0]) == pytest.approx(2 * 4.85 * math.cos(math.radians(20)))
+
+
+def _reference_through(
+    walls: list[Wall], roofs: list[Roof], rx: np.ndarray, az: float, el: float
+) -> tuple[float, float]:
+    """Scalar reference of the straight path through everything: summed loss (inf through
+    an opaque obstruction) and material delay, by 2 mm sampling along the ray."""
+    d = np.array([math.sin(math.radians(az)), math.cos(math.radians(az))])
+    tan_el = math.tan(math.radians(el))
+    ds = 0.002
+    # Far enough to leave the scene (45 m) or rise over its highest top (15 m).
+    s = np.arange(ds / 2, min(60.0, (15.0 - rx[2]) / tan_el + 1.0), ds)
+    pts = rx[None, :2] + s[:, None] * d[None, :]
+    z = rx[2] + s * tan_el
+    loss, delay = 0.0, 0.0
+    for w in walls:
+        a = np.array([w.x0_m, w.y0_m])
+        t = np.array([w.x1_m, w.y1_m]) - a
+        length = float(np.linalg.norm(t))
+        t /= length
+        n = np.array([-t[1], t[0]])
+        u, v = (pts - a) @ t, (pts - a) @ n
+        inside = (u >= 0) & (u <= length) & (np.abs(v) <= w.thickness_m / 2) & (z < w.height_m)
+        if not inside.any():
+            continue
+        k = int(np.argmin(np.abs(v)))  # where the ray crosses the centre plane
+        if abs(v[k]) < w.thickness_m / 2 and any(
+            win.u0_m <= u[k] <= win.u1_m and win.z0_m <= z[k] <= win.z1_m for win in w.windows
+        ):
+            continue
+        loss += math.inf if w.penetration_db is None else w.penetration_db
+        delay += (w.refractive_index - 1) * inside.sum() * ds / math.cos(math.radians(el))
+    for r in roofs:
+        if rx[2] >= r.height_m:
+            continue
+        q = rx[:2] + (r.height_m - rx[2]) / tan_el * d
+        in_roof = r.x0_m <= q[0] <= r.x1_m and r.y0_m <= q[1] <= r.y1_m
+        if in_roof and not any(
+            h.x0_m <= q[0] <= h.x1_m and h.y0_m <= q[1] <= h.y1_m for h in r.holes
+        ):
+            loss += math.inf if r.penetration_db is None else r.penetration_db
+            delay += (r.refractive_index - 1) * r.thickness_m / math.sin(math.radians(el))
+    return loss, delay
+
+
+def test_penetration_vectorised_equals_scalar() -> None:
+    walls, roofs = _room_scene(penetration_db=7.0, refractive_index=2.0, thickness_m=0.2)
+    walls[2] = Wall(4.0, 5.5, -4.0, 5.5, height_m=3.0)  # the north wall stays opaque
+    scene = Walls(walls, roofs)
+    assert scene.penetrable
+    rx, az, el = _room_rays()
+    batch = scene.trace(rx, az, el)
+    plain = Walls(*_room_scene()).trace(rx, az, el)
+    np.testing.assert_array_equal(batch.los, plain.los)  # materials change no direct ray
+    assert (batch.n_penetrations > 0).any() and (batch.n_reflections > 0).any()
+    assert (~batch.visible).any()
+    kinds = set()
+    for i in range(rx.shape[0]):
+        for j in range(az.shape[1]):
+            one = scene.trace(rx[i], az[i, j : j + 1], el[i, j : j + 1])
+            for name in ("los", "n_reflections", "n_penetrations", "loss_db"):
+                assert getattr(one, name)[0, 0] == getattr(batch, name)[i, j], name
+            assert float(one.extra_path_m[0, 0]) == pytest.approx(float(batch.extra_path_m[i, j]))
+            if batch.los[i, j]:
+                continue
+            ref_loss, ref_delay = _reference_through(walls, roofs, rx[i], az[i, j], el[i, j])
+            n_pen, n_refl = int(batch.n_penetrations[i, j]), int(batch.n_reflections[i, j])
+            if n_pen > 0:  # through: the reference's loss and delay, no stronger reflection
+                kinds.add("through")
+                assert float(batch.loss_db[i, j]) == pytest.approx(ref_loss)
+                assert float(batch.extra_path_m[i, j]) == pytest.approx(ref_delay, abs=0.01)
+                assert not 0 < 3 * int(plain.n_reflections[i, j]) < ref_loss
+            elif n_refl > 0:  # reflected: strictly stronger, the opaque scene's same path
+                kinds.add("reflected")
+                assert 3 * n_refl < ref_loss
+                assert n_refl == int(plain.n_reflections[i, j])
+                assert float(batch.extra_path_m[i, j]) == float(plain.extra_path_m[i, j])
+            else:
+                kinds.add("invisible")
+                assert math.isinf(ref_loss) and int(plain.n_reflections[i, j]) == -1
+    assert kinds == {"through", "reflected", "invisible"}
+
+
+def test_bad_materials_are_rejected() -> None:
+    with pytest.raises(ConfigError, match="penetration_db"):
+        Wall(0, 0, 1, 0, penetration_db=-1.0)
+    with pytest.raises(ConfigError, match="refractive_index"):
+        Wall(0, 0, 1, 0, refractive_index=0.5)
+    with pytest.raises(ConfigError, match="penetration_db"):
+        Roof(0, 0, 1, 1, 3.0, penetration_db=math.nan)
+    with pytest.raises(ConfigError, match="thickness_m"):
+        Roof(0, 0, 1, 1, 3.0, thickness_m=-0.1)

@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import hashlib
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -266,3 +268,142 @@ def test_worse_environment_noise_lowers_snr_and_raises_uere(sats: sky.SatelliteS
         np.nanmedian(quiet.snr_dbhz) - drop_db, abs=1.0
     )
     assert np.median(loud.sigma_uere_m) > np.median(quiet.sigma_uere_m)
+
+
+# ---------------------------------------------------------------- penetration (materials)
+
+
+def _digest(*arrays: np.ndarray) -> str:
+    """Digest of arrays rounded to 1e-9 (robust to last-bit libm differences, strict to any
+    change of the model)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.round(np.asarray(a, dtype=float), 9).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _room(**mat: Any) -> buildings.Walls:
+    """The building_window room, a building to the south-east and a broken roof to the
+    north-west, all of the material ``mat`` (none: opaque, the seed's model)."""
+    wm = {k: v for k, v in mat.items() if k in ("penetration_db", "refractive_index")}
+    W, R = buildings.Wall, buildings.Roof
+    return buildings.Walls(
+        [
+            W(
+                -4.0,
+                -0.5,
+                4.0,
+                -0.5,
+                height_m=3.0,
+                windows=(buildings.Window(0.5, 7.7, 0.3, 2.8),),
+                **wm,
+            ),
+            W(
+                4.0,
+                -0.5,
+                4.0,
+                5.5,
+                height_m=3.0,
+                windows=(buildings.Window(0.2, 3.5, 0.4, 2.8),),
+                **wm,
+            ),
+            W(4.0, 5.5, -4.0, 5.5, height_m=3.0, **wm),
+            W(-4.0, 5.5, -4.0, -0.5, height_m=3.0, **wm),
+            *buildings.building(10.0, -20.0, 30.0, -5.0, 15.0, **wm),
+        ],
+        [
+            R(-4.2, -0.7, 4.2, 5.7, 3.0, **mat),
+            R(
+                -30.0,
+                10.0,
+                -10.0,
+                30.0,
+                6.0,
+                holes=(buildings.Hole(-25.0, 15.0, -15.0, 25.0),),
+                **mat,
+            ),
+        ],
+    )
+
+
+def _walk(n: int) -> tuple[np.ndarray, ...]:
+    """Every 2 s, walking slowly east through the room 1 m above the floor."""
+    t = 2.0 * np.arange(n, dtype=float)
+    lon = LON + np.linspace(-3.0, 3.0, n) / (111320.0 * np.cos(np.radians(LAT)))
+    return t, np.full(n, LAT), lon, np.full(n, ALT + 1.0), np.zeros((n, 3))
+
+
+@pytest.mark.parametrize(
+    ("fidelity", "digest"), [("seed", "5240d43e0a404399"), ("pseudorange", "b398cc842cd14efc")]
+)
+def test_without_materials_results_are_bit_identical(
+    sats: sky.SatelliteSet, fidelity: str, digest: str
+) -> None:
+    # Digests recorded with the model as it was before materials existed (walls direct,
+    # reflected or gone): a scene without materials must not change one bit.
+    m = _model(sats, 11, fidelity=fidelity, walls=_room(), atmosphere=Atmosphere(env_noise_db=3.0))
+    b = m.batch(*_walk(400))
+    got = _digest(b.lat_deg, b.lon_deg, b.alt_m, b.snr_dbhz, b.used, b.hdop, b.sigma_uere_m)
+    assert got == digest
+
+
+def _enclosed(**mat: Any) -> buildings.Walls:
+    """A closed 10 x 10 m room, 3 m high, around the receiver, its roof between the inner
+    faces of the 0.3 m walls: every satellite crosses exactly one wall or the roof."""
+    wm = {k: v for k, v in mat.items() if k in ("penetration_db", "refractive_index")}
+    return buildings.Walls(
+        buildings.building(-5.0, -5.0, 5.0, 5.0, 3.0, **wm),
+        [buildings.Roof(-4.7, -4.7, 4.7, 4.7, 3.0, **mat)],
+    )
+
+
+def test_through_a_3_db_wall_tracked_3_db_weaker_30_db_hides(sats: sky.SatelliteSet) -> None:
+    atm = Atmosphere(env_noise_db=6.0)  # a town: open-sky C/N0 39.5-44.5 dB-Hz
+
+    def south_wall(**mat: Any) -> buildings.Walls:  # 60 m high, 10 m south, no windows
+        return buildings.Walls([buildings.Wall(-500.0, -10.0, 500.0, -10.0, height_m=60.0, **mat)])
+
+    args = _static(60, dt=30.0)
+    open_b = _model(sats, 2, atmosphere=atm).batch(*args)
+    opaque = _model(sats, 2, atmosphere=atm, walls=south_wall()).batch(*args)
+    glass = _model(sats, 2, atmosphere=atm, walls=south_wall(penetration_db=3.0)).batch(*args)
+    clear = ~np.isnan(open_b.snr_dbhz)
+    behind = clear & np.isnan(opaque.snr_dbhz)  # hidden by the opaque wall, nothing reflects
+    assert behind.sum() > 50 and (clear & ~behind).sum() > 50
+    np.testing.assert_allclose(glass.snr_dbhz[behind], open_b.snr_dbhz[behind] - 3.0, atol=1e-9)
+    np.testing.assert_array_equal(glass.snr_dbhz[~behind], open_b.snr_dbhz[~behind])
+    assert (glass.used & behind).any()  # tracked and used in the fix
+    # 30 dB of concrete: under the 15 dB-Hz cutoff, hidden as by the opaque wall (GSV lists
+    # them without SNR).
+    concrete = _model(sats, 2, atmosphere=atm, walls=south_wall(penetration_db=30.0))
+    cb = concrete.batch(*args)
+    np.testing.assert_array_equal(np.isnan(cb.snr_dbhz), np.isnan(opaque.snr_dbhz))
+    assert not (cb.used & behind).any()
+
+
+def test_indoor_delay_grows_as_c_n0_falls(sats: sky.SatelliteSet) -> None:
+    p = ReceiverParams()
+    scale = gnss.indoor_delay_scale_m(np.array([45.0, 35.0, 25.0, 15.0, -20.0]), p)
+    assert np.all(np.diff(scale) > 0) or scale[-1] == p.indoor_delay_max_m
+    assert scale[1] == pytest.approx(3.0) and scale[2] == pytest.approx(3.0 * 10**0.5)
+    assert scale[-1] == p.indoor_delay_max_m
+    # The unit process: positive, mean 1 (exponential), correlation time tau_indoor_s.
+    m = _model(sats, 4, walls=_enclosed(penetration_db=5.0))
+    t = np.arange(0.0, 2.0e5, 5.0)
+    y = m._indoor_unit_delay(t, 8)
+    assert (y > 0).all() and y.mean() == pytest.approx(1.0, abs=0.08)
+    assert y.std() == pytest.approx(1.0, abs=0.12)
+    k = int(p.tau_indoor_s / 5.0)
+    yc = y - y.mean()
+    rho = float((yc[k:] * yc[:-k]).mean() / yc.var())
+    assert rho == pytest.approx(np.exp(-1.0), abs=0.06)
+    # In the receiver: the same room with thicker walls (lower C/N0) errs far more, at both
+    # fidelity levels, and the through-wall signals bias the ranges (the error grows).
+    for fid in gnss.FIDELITIES:
+        med = {}
+        for loss in (5.0, 20.0):
+            walls = _enclosed(penetration_db=loss)
+            b = _model(sats, 6, fidelity=fid, walls=walls).batch(*_static(600, dt=10.0))
+            assert b.valid.all()
+            med[loss] = float(np.median(np.hypot(*_err_enu(b)[:2])))
+        assert med[20.0] > 2.5 * med[5.0], (fid, med)

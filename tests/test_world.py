@@ -225,6 +225,21 @@ def test_minimal_scenario_defaults() -> None:
             'name = "x"\n[origin]\nlat_deg = 1\nlon_deg = 2\n[safety]\nfix_stale_s = true\n',
             r"safety\.fix_stale_s",
         ),
+        (
+            'name = "x"\n[origin]\nlat_deg = 1\nlon_deg = 2\n[[walls]]\nx0_m = 0\ny0_m = 0\n'
+            "x1_m = 5\ny1_m = 0\npenetration_db = -3\n",
+            r"walls\[0\].*penetration_db",
+        ),
+        (
+            'name = "x"\n[origin]\nlat_deg = 1\nlon_deg = 2\n[roof]\nx0_m = 0\ny0_m = 0\n'
+            "x1_m = 5\ny1_m = 5\nheight_m = 3\nrefractive_index = 0.5\n",
+            r"roofs\[0\].*refractive_index",
+        ),
+        (
+            'name = "x"\n[origin]\nlat_deg = 1\nlon_deg = 2\n[[buildings]]\nx0_m = 0\ny0_m = 0\n'
+            "x1_m = 5\ny1_m = 5\nheight_m = 3\npenetration_db = -1\n",
+            r"buildings\[0\].*penetration_db",
+        ),
         ('name = "x"\nalmanac = "nope.txt"\n[origin]\nlat_deg = 1\nlon_deg = 2\n', "almanac"),
         ('name = "x"\n[origin\n', "not valid TOML"),
     ],
@@ -332,3 +347,35 @@ def test_merge_fragment_appends_effects(tmp_path: Path) -> None:
     bad = _write(frag_dir, "bad.toml", '[[effects]]\nname = "bias"\nnorth = 3\n')
     with pytest.raises(ConfigError, match=r"effects\[1\]"):
         merge_fragment(world, bad)
+
+
+def test_materials_load_and_the_scene_penetrates(tmp_path: Path) -> None:
+    text = (
+        'name = "room"\n[origin]\nlat_deg = 51.75\nlon_deg = -1.26\n'
+        "[[buildings]]\nx0_m = -5\ny0_m = -5\nx1_m = 5\ny1_m = 5\nheight_m = 3\n"
+        "penetration_db = 10.0\nrefractive_index = 2.1\n"
+        "[roof]\nx0_m = -4.7\ny0_m = -4.7\nx1_m = 4.7\ny1_m = 4.7\nheight_m = 3\n"
+        "penetration_db = 20.0\nthickness_m = 0.2\nrefractive_index = 2.5\n"
+    )
+    world = loads_world(text)
+    assert all(w.penetration_db == 10.0 and w.refractive_index == 2.1 for w in world.walls)
+    assert world.roofs[0].penetration_db == 20.0 and world.roofs[0].thickness_m == 0.2
+    scene = world.walls_model()
+    assert scene is not None and scene.penetrable
+    res = scene.trace(np.array([0.0, 0.0, 1.0]), np.array([180.0, 0.0]), np.array([10.0, 80.0]))
+    np.testing.assert_allclose(res.loss_db[0], [10.0, 20.0])
+    # The resolved copy keeps the materials.
+    again = loads_world(world.to_toml())
+    assert again == world
+    # Without materials a scene is opaque (the seed's model).
+    plain = loads_world(text.replace("penetration_db = 10.0\n", "").replace(
+        "penetration_db = 20.0\n", ""))  # fmt: skip
+    assert not plain.walls_model().penetrable  # type: ignore[union-attr]
+
+
+def test_shipped_building_window_has_realistic_materials() -> None:
+    world = load_world(
+        Path(__file__).resolve().parent.parent / "config/scenarios/building_window.toml"
+    )
+    assert {w.penetration_db for w in world.walls} == {10.0}  # brick
+    assert world.roofs[0].penetration_db == 20.0  # concrete slab
