@@ -28,8 +28,8 @@ Scenario-specific settings read here (``[compass]`` is a plain table; keys):
 ``hard_iron_ut`` [x, y, z], ``soft_iron`` 3x3, ``noise_ut``, ``lag_tau_s``, ``rate_hz``
 (default 20), ``p_error`` (I2C error probability per transaction).
 
-How the paper's four situations are configured (config/scenarios): see
-:data:`SCENARIO_NOTES`.
+How the paper's four situations are configured (config/scenarios) and what came out:
+docs/simulator.md, "The paper's four situations".
 """
 
 from __future__ import annotations
@@ -69,31 +69,6 @@ from x6wd.records import GpsFix, GpsSky, Mode, MotorCommand, NavState, StateChan
 R1_M = 6378160.0  # the paper's equatorial radius (x = Λ·R1)
 R2_M = 6356770.0  # the paper's polar radius (y = Φ·R2)
 DONE_TAIL_S = 2.0  # keep simulating this long after MISSION_DONE (the robot settles)
-
-SCENARIO_NOTES = """\
-The paper's four situations (config/scenarios/*.toml), all static 600 s surveys at 51.75 N on
-2020-01-01 12:00 UTC, pseudorange fidelity, 1 Hz, seed 1. Dispersion = the paper's Table 2
-quantity: half the spread of the raw readings, latitude x R2 and longitude x R1 (no cos φ, so
-longitude is stretched x1.61 as in the paper).
-
-open_field: no walls, countryside noise (1 dB). 7.6 satellites used, HDOP 1.07; raw error
-  mean 1.4 m, R95 2.0 m; dispersion ±1.2 m lat / ±1.2 m lon. Paper open ground: ±1.02 m up to
-  ±10 m -> the low end, as expected for an unobstructed sky with a modern error budget.
-beside_building: a 20 x 10 m building, 12 m high, 3 m north of the robot; the northern sky is
-  blocked or reflected (NLOS extra path, -3 dB per bounce). 5.6 used, HDOP 2.4; mean 3.3 m,
-  R95 5.4 m; dispersion ±2.6 / ±3.0 m.
-building_window: a closed 8 x 6 m room, 3 m high, solid roof; the robot 0.5 m behind a 7.2 m
-  wide south window with a second window in the east wall. Only 4.0 satellites are usable and
-  a fix exists in 36 % of the epochs; when it does: mean 1.4 m, dispersion ±2.5 / ±4.0 m.
-  Paper: ±12 / ±30 m. The gap is physical: the seed's building model passes no signal through
-  walls or roofs (a ray is either blocked or reflected off a wall), while a real receiver
-  indoors tracks attenuated, diffracted signals through them, with metres to tens of metres
-  of extra delay; that is what produces the paper's large dispersions.
-broken_roof: a 30 x 20 m hall, 8 m walls with broken window bands, an 18 x 13 m hole above the
-  robot and two smaller ones; industrial-ish noise (6 dB). 6.4 used, HDOP 1.35; mean 4.8 m,
-  R95 11.6 m; dispersion ±8.5 / ±8.5 m. Paper: ±8 / ±11 m: the same order of magnitude, from
-  reflected (NLOS) satellites.
-"""
 
 
 @dataclass(frozen=True)
