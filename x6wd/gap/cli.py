@@ -13,7 +13,8 @@ import numpy as np
 
 from sim_backend.effects import PositionSeries
 from x6wd.errors import ConfigError
-from x6wd.gap.diagnose import Options, diagnose, verdict_text
+from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
+from x6wd.gap.diagnose import Diagnosis, Options, diagnose, verdict_text
 from x6wd.gap.io import (
     Track,
     errors_vs_mean,
@@ -105,9 +106,55 @@ def main(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     d = diagnose(real, baseline, rng, Options(replicates=args.replicates), progress=bar)
     d.notes.extend(notes)
+    cd = compass_diagnosis(args, d, rng, bar)
     bar("writing report", 1.0)
-    write_report(d, Path(args.out), real_name=Path(args.real).name, figures=not args.no_figures)
-    print(f"{verdict_text(d)}; report in {args.out}/report.md")
+    write_report(
+        d, Path(args.out), real_name=Path(args.real).name, figures=not args.no_figures, compass=cd
+    )
+    extra = f"; {compass_verdict_text(cd)}" if cd is not None else ""
+    print(f"{verdict_text(d)}{extra}; report in {args.out}/report.md")
     if not math.isfinite(d.closure):
         return 1
     return 0
+
+
+def compass_diagnosis(
+    args: argparse.Namespace, d: Diagnosis, rng: np.random.Generator, bar: ProgressBar
+) -> CompassDiagnosis | None:
+    """The compass half, when the real log is a recording with attitude records and a heading
+    truth (``--truth-track`` with a heading column, ``truth.csv`` beside the recording, or the
+    GPS course over ground while moving); None otherwise. Baseline: the scenario's CMPS10
+    along the real truth (``--scenario``), or the ``--sim`` recordings that carry attitude
+    records and a heading truth of their own. Problems become notes in ``d``, never errors:
+    the GPS report stands on its own."""
+    from x6wd.gap.compass import (
+        CompassOptions,
+        diagnose_compass,
+        read_heading_series,
+        scenario_compass_baseline,
+    )
+
+    real = read_heading_series(args.real, args.truth_track)
+    if real is None:
+        return None
+    opts = CompassOptions(replicates=args.replicates)
+    if args.scenario:
+        bar("compass: simulating the CMPS10", 0.9)
+        base, fm = scenario_compass_baseline(args.scenario, real, args.seeds)
+        opts = CompassOptions(
+            replicates=args.replicates,
+            inclination_deg=fm.inclination_deg,
+            horizontal_field_ut=fm.horizontal_ut,
+        )
+    else:
+        base = [b for p in args.sim if (b := read_heading_series(p)) is not None]
+    if not base:
+        d.notes.append(
+            "compass: the real log has heading data but no baseline log does: not diagnosed"
+        )
+        return None
+    try:
+        return diagnose_compass(real, base, rng, opts, progress=bar)
+    except ConfigError as exc:
+        d.notes.append(f"compass: not diagnosed ({exc})")
+        return None

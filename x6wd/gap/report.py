@@ -11,6 +11,13 @@ from typing import Any
 import numpy as np
 
 from sim_backend.effects import truth_track_m
+from x6wd.gap.compass import (
+    CompassDiagnosis,
+    compass_report_dict,
+    compass_verdict_text,
+    heading_error_deg,
+    regression,
+)
 from x6wd.gap.diagnose import Diagnosis, report_dict, verdict_text
 from x6wd.gap.stats import acf, allan_var, octave_taus, regular
 
@@ -29,13 +36,16 @@ def _toml_value(v: Any) -> str:
     return json.dumps(str(v))
 
 
-def effects_toml(d: Diagnosis) -> str:
-    """The selected effects as ``[[effects]]`` tables (empty comment-only text when none)."""
+def effects_toml(d: Diagnosis, compass: CompassDiagnosis | None = None) -> str:
+    """The selected effects (GPS, then compass layers) as ``[[effects]]`` tables (comment-only
+    text when none)."""
     lines = [
         f"# x6wd gap: fitted effects ({verdict_text(d)})",
         '# merge into a scenario: include = ["effects.toml"]',
     ]
-    for f in d.selected:
+    if compass is not None:
+        lines.insert(1, f"# {compass_verdict_text(compass)}")
+    for f in [*d.selected, *(compass.selected if compass is not None else [])]:
         lines.append("")
         lines.append("[[effects]]")
         for k, v in f.effect.to_params().items():
@@ -43,19 +53,132 @@ def effects_toml(d: Diagnosis) -> str:
     return "\n".join(lines) + "\n"
 
 
+def merged_report(d: Diagnosis, compass: CompassDiagnosis | None) -> dict[str, Any]:
+    """report.json: the GPS half, with the compass half merged in when it ran.
+
+    ``where``: both lists, by decreasing |z|. ``effects``: the selected effects of both halves
+    first, then the others, each group by decreasing held-out closure. ``gap`` keeps the GPS
+    figures and gains ``heading`` {baseline, floor, with_effects}. ``verdict.effect``: the
+    explained selection's first effect with the larger closure of the two halves;
+    ``verdict.explained``: no significant gap is left unexplained in either half."""
+    rep = report_dict(d)
+    if compass is None:
+        return rep
+    crep = compass_report_dict(compass)
+    rep["where"] = sorted([*rep["where"], *crep["where"]], key=lambda w: -abs(w["z"]))
+    chosen = {f.name for f in d.selected} | {f.name for f in compass.selected}
+    rep["effects"] = sorted(
+        [*rep["effects"], *crep["effects"]],
+        key=lambda e: (e["name"] not in chosen, -e["closure"]),
+    )
+    rep["gap"]["heading"] = crep["gap"]
+    found = [(h.closure, h.selected[0].name) for h in (d, compass) if h.explained]
+    rep["verdict"] = {
+        "effect": max(found)[1] if found else None,
+        "explained": all(h.explained or not h.significant for h in (d, compass)),
+    }
+    return rep
+
+
 def write_report(
-    d: Diagnosis, out_dir: str | Path, real_name: str = "real", figures: bool = True
+    d: Diagnosis,
+    out_dir: str | Path,
+    real_name: str = "real",
+    figures: bool = True,
+    compass: CompassDiagnosis | None = None,
 ) -> dict[str, Any]:
-    """Write every output into ``out_dir`` (created); returns the report.json content."""
+    """Write every output into ``out_dir`` (created); returns the report.json content.
+    ``compass``: the compass half (merged into report.json, a section of report.md, its
+    layers in effects.toml and the figure compass.png)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rep = report_dict(d)
+    rep = merged_report(d, compass)
     (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
-    (out / "effects.toml").write_text(effects_toml(d))
+    (out / "effects.toml").write_text(effects_toml(d, compass))
     if figures:
         write_figures(d, out)
-    (out / "report.md").write_text(markdown(d, rep, real_name, figures))
+        if compass is not None:
+            compass_figure(compass, out)
+    text = markdown(d, report_dict(d), real_name, figures)
+    if compass is not None:
+        text += compass_markdown(compass, figures)
+    (out / "report.md").write_text(text)
     return rep
+
+
+def compass_markdown(c: CompassDiagnosis, figures: bool) -> str:
+    """The compass section of report.md."""
+    L = c.layout
+    s = [
+        "",
+        "## Compass (heading)",
+        "",
+        f"**{compass_verdict_text(c)}.**",
+        "",
+        f"- {len(c.real)} samples over {L.duration_s:.0f} s ({L.dt_s:g} s steps); baseline "
+        f"{len(c.baseline)} runs{' (block bootstrap)' if c.bootstrap else ''}; {len(c.cells)} "
+        f"statistics; threshold |z| > {c.threshold:.2f}; field magnitude "
+        f"{'used' if L.has_field else 'not available'}",
+        f"- gap G on the held-out part (t >= {c.split_s[1]:.0f} s): baseline {c.g_baseline:.2f}, "
+        f"floor {c.g_floor:.2f}, with the selected layers {c.g_with:.2f}; closure {c.closure:.2f}",
+    ]
+    s += [f"- note: {n}" for n in c.notes]
+    s += ["", "| statistic | scale | z |", "|---|---|---|"]
+    s += [f"| {w['statistic']} | {w['scale']} | {w['z']:+.1f} |" for w in c.where]
+    if not c.where:
+        s = [*s[:-2], "No heading statistic differs beyond the sim-vs-sim spread."]
+    if c.candidates:
+        s += ["", "| effect | parameters | held-out closure | 90 % interval |", "|---|---|---|---|"]
+        for k in c.candidates:
+            params = ", ".join(
+                f"{p}={v}" + (f" ± {k.fit.se[p]:.2g}" if math.isfinite(k.fit.se.get(p, math.nan))
+                              else "")
+                for p, v in k.fit.params.items()
+            )  # fmt: skip
+            s.append(
+                f"| {k.fit.name} | {params} | {k.closure:.2f} | "
+                f"[{k.closure_ci[0]:.2f}, {k.closure_ci[1]:.2f}] |"
+            )
+    if figures:
+        s += ["", "![compass.png](compass.png)"]
+    s += [
+        "",
+        "Once-per-turn harmonics: hard iron (or tilt, told apart by the tilt gain and the field",
+        "magnitude); twice per turn: soft iron; mean: declination; lag: error against turn rate.",
+    ]
+    return "\n".join(s) + "\n"
+
+
+def compass_figure(c: CompassDiagnosis, out: Path) -> None:
+    """compass.png: heading error vs true heading, real vs a sim run, with each one's fitted
+    mean + harmonics curve (the part of the error that depends on heading alone)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    grid = np.linspace(0.0, 360.0, 361)
+    g = np.radians(grid)
+    basis = np.column_stack([np.ones_like(g), np.cos(g), np.sin(g), np.cos(2 * g), np.sin(2 * g)])
+    rng = np.random.default_rng(0)
+    for s, colour, label in ((c.baseline[0], "0.6", "sim"), (c.real, "C3", "real")):
+        assert s.true_heading_deg is not None
+        err = heading_error_deg(s)
+        pick = rng.choice(err.size, size=min(err.size, 3000), replace=False)
+        ax.plot(np.asarray(s.true_heading_deg)[pick], err[pick], ".", ms=1.5, color=colour,
+                alpha=0.4)  # fmt: skip
+        coef, _ = regression(s, c.layout)
+        ax.plot(grid, basis @ coef[:5], color=colour, lw=2, label=f"{label}: fitted harmonics")
+    ax.set(
+        xlabel="true heading (deg)",
+        ylabel="heading error (deg)",
+        title="compass: heading error vs heading",
+        xlim=(0, 360),
+    )
+    ax.legend()
+    fig.savefig(out / "compass.png", dpi=90)
+    plt.close(fig)
 
 
 def markdown(d: Diagnosis, rep: dict[str, Any], real_name: str, figures: bool) -> str:

@@ -1,0 +1,905 @@
+"""The compass half of the gap tool: heading error of a real CMPS10 log against the simulator.
+
+Inputs are :class:`sim_backend.effects.HeadingSeries`: the MEASURED (magnetic) heading,
+pitch and roll of the compass, the TRUE heading, and the field magnitude when raw
+magnetometer values exist. The heading error is ``wrap180(measured - true)``.
+
+Battery (axis "heading"; one joint least-squares regression per series, because the
+compass effects overlap in heading and can only be told apart jointly)::
+
+    error = m + a1 cos h + b1 sin h + a2 cos 2h + b2 sin 2h + g * x_tilt + c * rate + noise
+
+with h the true heading, ``x_tilt`` the heading error an UNcompensated compass would make at
+this heading, pitch and roll (exact formula, :func:`sim_backend.effects.tilted_heading_deg`),
+and ``rate`` the true turn rate (deg/s). The cells are m (declination), the once-per-turn
+harmonic a1/b1 (hard iron), the twice-per-turn harmonic a2/b2 (soft iron), the tilt gain g
+(the fraction of tilt left uncompensated: what tells tilt from hard iron, REFERENCE.md §6),
+the lag -c in seconds (a first-order lag of tau makes an error of about -tau * rate), the log
+spread of the residual (noise) and, when the field magnitude is known, the once-per-turn
+harmonic of log |B| (hard iron moves it, tilt cannot).
+
+Everything else follows the GPS side (:mod:`x6wd.gap.diagnose`): each cell is scored
+against a sim-vs-sim null (baseline runs with other seeds, or a block bootstrap of fewer),
+never an iid p-value; candidates are fitted on the first part, added to every baseline run,
+and scored on the held-out last part after a guard gap by G (:meth:`NullModel.gap`);
+closure = (G_baseline - G_with) / (G_baseline - G_floor); greedy add-one-in.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim_backend.compass import CompassErrors, MagneticField, SimCmps10
+from sim_backend.effects import (
+    Declination,
+    HardIron,
+    HeadingLag,
+    HeadingSeries,
+    SoftIron,
+    Tilt,
+    tilted_heading_deg,
+    wrap180,
+    wrap360,
+)
+from x6wd.errors import ConfigError
+from x6wd.gap.diagnose import Candidate
+from x6wd.gap.fit import Fit
+from x6wd.gap.null import NullModel, null_model
+from x6wd.gap.stats import Cell
+
+Progress = Callable[[str, float], None]
+
+AXIS = "heading"
+COMPASS_CANDIDATES = ("declination", "hard_iron", "soft_iron", "tilt", "heading_lag")
+EXPLAINED_CLOSURE = 0.5  # as the GPS side: a selection closing half the held-out gap explains it
+ADD_MIN_GAIN = 0.1  # a first effect must close at least 10 % of the gap
+ADD_MIN_LEFT = 0.5  # G above the floor still worth explaining
+ADD_MIN_SHARE = 0.3  # a further effect must remove 30 % of the gap left
+SD_FLOOR = 0.01  # smallest null spread of any compass cell (deg, s, or log units)
+COG_MIN_SPEED_MPS = 1.0  # course over ground stands in for heading only above this speed
+COG_MAX_GAP_S = 1.0  # ... and only within this long of such a fix
+
+# Which cells each effect moves (statistic, scale): its fingerprint.
+FINGERPRINTS: dict[str, tuple[tuple[str, str], ...]] = {
+    "declination": (("heading_mean", "all"),),
+    "hard_iron": (
+        ("harmonic_cos", "1/turn"),
+        ("harmonic_sin", "1/turn"),
+        ("field_harmonic_cos", "1/turn"),
+        ("field_harmonic_sin", "1/turn"),
+    ),
+    "soft_iron": (("harmonic_cos", "2/turn"), ("harmonic_sin", "2/turn")),
+    "tilt": (("tilt_gain", "pitch/roll"),),
+    "heading_lag": (("lag_s", "turn rate"),),
+}
+
+
+@dataclass(frozen=True)
+class CompassLayout:
+    """Fixed from the real log so every replicate yields the same cells: sample step,
+    duration, whether the field magnitude is used, and the field the fits assume (only the
+    ratio hard iron / horizontal field and tilt * tan(inclination) are identifiable)."""
+
+    dt_s: float
+    duration_s: float
+    has_field: bool
+    inclination_deg: float = 66.0
+    horizontal_field_ut: float = 19.0
+
+
+@dataclass(frozen=True)
+class CompassOptions:
+    """As :class:`x6wd.gap.diagnose.Options`, for the compass."""
+
+    replicates: int = 20
+    min_runs: int = 8
+    fit_fraction: float = 0.6
+    guard_fraction: float = 0.05
+    alpha: float = 0.05
+    candidates: tuple[str, ...] = COMPASS_CANDIDATES
+    ci_resamples: int = 200
+    max_effects: int = 2
+    inclination_deg: float = 66.0
+    horizontal_field_ut: float = 19.0
+
+    def __post_init__(self) -> None:
+        if not 0.2 <= self.fit_fraction <= 0.8:
+            raise ConfigError(f"fit_fraction={self.fit_fraction}: must be in [0.2, 0.8]")
+        unknown = sorted(set(self.candidates) - set(COMPASS_CANDIDATES))
+        if unknown:
+            raise ConfigError(f"compass candidates {unknown}: known {list(COMPASS_CANDIDATES)}")
+
+
+@dataclass
+class CompassDiagnosis:
+    """Everything the report needs for the compass half."""
+
+    layout: CompassLayout
+    real: HeadingSeries
+    baseline: list[HeadingSeries]
+    bootstrap: bool
+    cells: tuple[Cell, ...]
+    z: np.ndarray
+    threshold: float
+    where: list[dict[str, Any]]
+    g_baseline: float
+    g_floor: float
+    g_with: float
+    candidates: list[Candidate]
+    selected: list[Fit]
+    closure: float
+    split_s: tuple[float, float, float]
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.where)
+
+    @property
+    def explained(self) -> bool:
+        return self.significant and bool(self.selected) and self.closure >= EXPLAINED_CLOSURE
+
+
+# --- series helpers ---------------------------------------------------------------------------
+
+
+def heading_error_deg(s: HeadingSeries) -> np.ndarray:
+    """Measured minus true heading, wrapped to [-180, 180)."""
+    if s.true_heading_deg is None:
+        raise ConfigError("heading series has no true heading")
+    return wrap180(np.asarray(s.heading_deg, dtype=float) - np.asarray(s.true_heading_deg))
+
+
+def turn_rate_dps(s: HeadingSeries) -> np.ndarray:
+    """True turn rate (deg/s); a bootstrap replicate carries its own in ``extra['rate_dps']``
+    (its block joins would make spurious spikes)."""
+    if "rate_dps" in s.extra:
+        return np.asarray(s.extra["rate_dps"], dtype=float)
+    assert s.true_heading_deg is not None
+    t = np.asarray(s.t_s, dtype=float)
+    if t.size < 3:
+        return np.zeros(t.size)
+    return np.gradient(np.unwrap(np.radians(s.true_heading_deg)), t) * 180.0 / math.pi
+
+
+def hwindow(s: HeadingSeries, t0_s: float, t1_s: float) -> HeadingSeries:
+    """Samples with t0_s <= t - t_start < t1_s."""
+    t = np.asarray(s.t_s, dtype=float)
+    m = (t - t[0] >= t0_s) & (t - t[0] < t1_s)
+
+    def cut(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else np.asarray(a)[m]
+
+    return HeadingSeries(
+        t_s=t[m],
+        heading_deg=np.asarray(s.heading_deg)[m],
+        pitch_deg=np.asarray(s.pitch_deg)[m],
+        roll_deg=np.asarray(s.roll_deg)[m],
+        true_heading_deg=cut(s.true_heading_deg),
+        field_ut=cut(s.field_ut),
+        extra={k: np.asarray(v)[m] for k, v in s.extra.items()},
+    )
+
+
+def layout_for(
+    real: HeadingSeries, inclination_deg: float = 66.0, horizontal_field_ut: float = 19.0
+) -> CompassLayout:
+    t = np.asarray(real.t_s, dtype=float)
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    return CompassLayout(
+        dt,
+        float(t[-1] - t[0]) if t.size else 0.0,
+        real.field_ut is not None and bool(np.all(np.isfinite(real.field_ut))),
+        inclination_deg,
+        horizontal_field_ut,
+    )
+
+
+# --- battery ----------------------------------------------------------------------------------
+
+
+Design = tuple[np.ndarray, np.ndarray]
+
+
+def design(s: HeadingSeries, layout: CompassLayout) -> Design:
+    """Regressor matrices of a series: heading error (module doc) and log field magnitude
+    (1, cos h, sin h). They depend only on the true heading, pitch, roll and turn rate, which
+    no compass layer changes, so a simulation fit computes them once per baseline run."""
+    assert s.true_heading_deg is not None
+    h = np.asarray(s.true_heading_deg, dtype=float)
+    hr = np.radians(h)
+    x_tilt = wrap180(tilted_heading_deg(h, s.pitch_deg, s.roll_deg, layout.inclination_deg) - h)
+    one, c1, s1 = np.ones(h.size), np.cos(hr), np.sin(hr)
+    X = np.column_stack([one, c1, s1, np.cos(2 * hr), np.sin(2 * hr), x_tilt, turn_rate_dps(s)])
+    return X, np.column_stack([one, c1, s1])
+
+
+def _lsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    # Normal equations: the 7x7 system is well conditioned for a log that turns through
+    # every heading, and ~50x faster than an SVD on thousands of rows.
+    try:
+        return np.asarray(np.linalg.solve(X.T @ X, X.T @ y))
+    except np.linalg.LinAlgError:
+        return np.asarray(np.linalg.lstsq(X, y, rcond=None)[0])
+
+
+def regression(
+    s: HeadingSeries, layout: CompassLayout, dsg: Design | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(coefficients, residuals) of the joint heading-error regression (module doc)."""
+    X = (dsg or design(s, layout))[0]
+    e = heading_error_deg(s)
+    coef = _lsq(X, e)
+    return coef, e - X @ coef
+
+
+def battery(
+    s: HeadingSeries, layout: CompassLayout, dsg: Design | None = None
+) -> dict[Cell, float]:
+    """The compass cells of one series (degrees, seconds, log units)."""
+    dsg = dsg or design(s, layout)
+    coef, resid = regression(s, layout, dsg)
+    out = {
+        Cell("heading_mean", AXIS, "all"): float(coef[0]),
+        Cell("harmonic_cos", AXIS, "1/turn"): float(coef[1]),
+        Cell("harmonic_sin", AXIS, "1/turn"): float(coef[2]),
+        Cell("harmonic_cos", AXIS, "2/turn"): float(coef[3]),
+        Cell("harmonic_sin", AXIS, "2/turn"): float(coef[4]),
+        Cell("tilt_gain", AXIS, "pitch/roll"): float(coef[5]),
+        Cell("lag_s", AXIS, "turn rate"): float(-coef[6]),
+        Cell("residual_log_std", AXIS, "all"): float(np.log(max(np.std(resid), 1e-6))),
+    }
+    if layout.has_field:
+        if s.field_ut is None:
+            raise ConfigError("baseline heading series lacks the field magnitude the real has")
+        fc = _lsq(dsg[1], np.log(np.maximum(s.field_ut, 1e-9)))
+        # in degree-equivalents (rad * 180/pi), so a hard iron moves its field cells and its
+        # heading cells on one scale
+        out[Cell("field_harmonic_cos", AXIS, "1/turn")] = float(math.degrees(fc[1]))
+        out[Cell("field_harmonic_sin", AXIS, "1/turn")] = float(math.degrees(fc[2]))
+    return out
+
+
+def batteries(
+    runs: Sequence[HeadingSeries], layout: CompassLayout, t0: float, t1: float
+) -> list[dict[Cell, float]]:
+    return [battery(hwindow(s, t0, t1), layout) for s in runs]
+
+
+def _null(bats: Sequence[dict[Cell, float]], alpha: float) -> NullModel:
+    return null_model(bats, alpha)
+
+
+# --- null from one or few baseline logs -------------------------------------------------------
+
+
+def block_bootstrap(
+    series: Sequence[HeadingSeries],
+    n_out: int,
+    rng: np.random.Generator,
+    block_s: float,
+    template: HeadingSeries,
+) -> list[HeadingSeries]:
+    """Replicates on ``template``'s times made of circular blocks of ``block_s`` taken jointly
+    (true heading, measured heading, pitch, roll, field, turn rate) from the given series:
+    the error stays paired with the heading and tilt it belongs to."""
+    if not series:
+        raise ConfigError("block bootstrap needs at least one baseline heading series")
+    n = len(template)
+    b = max(2, min(n, round(block_s / max(float(np.median(np.diff(template.t_s))), 1e-9))))
+    has_field = all(s.field_ut is not None for s in series)
+    out = []
+    for _ in range(n_out):
+        cols: dict[str, list[np.ndarray]] = {
+            k: [] for k in ("heading", "true", "pitch", "roll", "field", "rate")
+        }
+        pos = 0
+        while pos < n:
+            src = series[int(rng.integers(len(series)))]
+            take = min(b, n - pos)
+            idx = (int(rng.integers(len(src))) + np.arange(take)) % len(src)
+            cols["heading"].append(np.asarray(src.heading_deg)[idx])
+            cols["true"].append(np.asarray(src.true_heading_deg)[idx])
+            cols["pitch"].append(np.asarray(src.pitch_deg)[idx])
+            cols["roll"].append(np.asarray(src.roll_deg)[idx])
+            cols["rate"].append(turn_rate_dps(src)[idx])
+            if has_field:
+                cols["field"].append(np.asarray(src.field_ut)[idx])
+            pos += take
+        cat = {k: np.concatenate(v) if v else None for k, v in cols.items()}
+        out.append(
+            HeadingSeries(
+                t_s=np.asarray(template.t_s, dtype=float),
+                heading_deg=cat["heading"],  # type: ignore[arg-type]
+                pitch_deg=cat["pitch"],  # type: ignore[arg-type]
+                roll_deg=cat["roll"],  # type: ignore[arg-type]
+                true_heading_deg=cat["true"],
+                field_ut=cat["field"],
+                extra={"rate_dps": cat["rate"]},  # type: ignore[dict-item]
+            )
+        )
+    return out
+
+
+# --- fits -------------------------------------------------------------------------------------
+
+
+def _coef_diff(
+    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+) -> tuple[dict[Cell, float], dict[Cell, float]]:
+    """Real minus mean baseline, per cell, and the baseline's prediction spread."""
+    rb = battery(real, layout)
+    bb = [battery(s, layout) for s in base]
+    m = len(bb)
+    diff = {c: rb[c] - float(np.mean([b[c] for b in bb])) for c in rb}
+    se = {
+        c: max(float(np.std([b[c] for b in bb], ddof=1)), SD_FLOOR) * math.sqrt(1 + 1 / m)
+        for c in rb
+    }
+    return diff, se
+
+
+def _refine(
+    make: Callable[[np.ndarray], Any],
+    x0: np.ndarray,
+    name: str,
+    real: HeadingSeries,
+    base: Sequence[HeadingSeries],
+    layout: CompassLayout,
+) -> np.ndarray:
+    """Simulation fit: parameters whose effect, added to every baseline run, brings the mean
+    of the fingerprint cells to the real log's (in null-spread units). Starts from the linear
+    estimate; corrects its small-angle bias for strong effects."""
+    from scipy.optimize import minimize
+
+    cells = [Cell(st, AXIS, sc) for st, sc in FINGERPRINTS[name]]
+    rb = battery(real, layout)
+    cells = [c for c in cells if c in rb]
+    bb = [battery(s, layout) for s in base]
+    sd = np.array([max(float(np.std([b[c] for b in bb], ddof=1)), SD_FLOOR) for c in cells])
+    target = np.array([rb[c] for c in cells])
+    rng = np.random.default_rng(0)  # the compass layers fitted here are deterministic
+    designs = [design(s, layout) for s in base]
+
+    def loss(x: np.ndarray) -> float:
+        try:
+            eff = make(x)
+        except ConfigError:
+            return 1e12
+        vals = [battery(eff.apply(s, rng), layout, g) for s, g in zip(base, designs, strict=True)]
+        mean = np.array([np.mean([v[c] for v in vals]) for c in cells])
+        return float(np.sum(((mean - target) / sd) ** 2))
+
+    res = minimize(loss, x0, method="Nelder-Mead", options={"maxiter": 60, "xatol": 1e-3})
+    return np.asarray(res.x, dtype=float) if res.fun <= loss(x0) else x0
+
+
+def fit_declination(
+    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+) -> Fit | None:
+    """The compass reads heading - declination: declination = -(mean error difference)."""
+    d, se = _coef_diff(real, base, layout)
+    c = Cell("heading_mean", AXIS, "all")
+    return Fit(Declination(declination_deg=round(-d[c], 3)), {"declination_deg": se[c]})
+
+
+def fit_hard_iron(
+    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+) -> Fit | None:
+    """Small-angle: error = -(by cos h + bx sin h) / H rad; then a simulation fit."""
+    d, se = _coef_diff(real, base, layout)
+    H = layout.horizontal_field_ut
+    r = math.pi / 180.0
+    c1, s1 = Cell("harmonic_cos", AXIS, "1/turn"), Cell("harmonic_sin", AXIS, "1/turn")
+    x0 = np.array([-H * d[s1] * r, -H * d[c1] * r])
+
+    def make(x: np.ndarray) -> HardIron:
+        return HardIron(bx_ut=float(x[0]), by_ut=float(x[1]), horizontal_field_ut=H)
+
+    x = _refine(make, x0, "hard_iron", real, base, layout)
+    return Fit(
+        HardIron(bx_ut=round(float(x[0]), 4), by_ut=round(float(x[1]), 4), horizontal_field_ut=H),
+        {"bx_ut": H * se[s1] * r, "by_ut": H * se[c1] * r},
+    )
+
+
+def fit_soft_iron(
+    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+) -> Fit | None:
+    """Small-angle: error = -k sin(2h + 2a) rad; (k, a) and (-k, a + 90) are the same layer,
+    so k >= 0 is reported; then a simulation fit."""
+    d, se = _coef_diff(real, base, layout)
+    r = math.pi / 180.0
+    c2, s2 = Cell("harmonic_cos", AXIS, "2/turn"), Cell("harmonic_sin", AXIS, "2/turn")
+    k = math.hypot(d[c2], d[s2]) * r
+    a = 0.5 * math.degrees(math.atan2(-d[c2], -d[s2]))
+    if k < 1e-5:
+        return None
+
+    def make(x: np.ndarray) -> SoftIron:
+        return SoftIron(k=float(np.clip(x[0], -0.85, 0.85)), axis_deg=float(x[1]))
+
+    x = _refine(make, np.array([min(k, 0.85), a]), "soft_iron", real, base, layout)
+    k, a = float(np.clip(x[0], -0.85, 0.85)), float(x[1])
+    if k < 0:
+        k, a = -k, a + 90.0
+    a = (a + 90.0) % 180.0 - 90.0
+    se_k = 0.5 * (se[c2] + se[s2]) * r
+    return Fit(
+        SoftIron(k=round(k, 5), axis_deg=round(a, 2)),
+        {"k": se_k, "axis_deg": math.degrees(0.5 * se_k / max(k, 1e-9))},
+    )
+
+
+def fit_tilt(
+    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+) -> Fit | None:
+    """The tilt gain difference is the uncompensated fraction (at the layout's inclination)."""
+    d, se = _coef_diff(real, base, layout)
+    c = Cell("tilt_gain", AXIS, "pitch/roll")
+    f0 = float(np.clip(d[c], 0.0, 1.0))
+    if f0 <= 0.0:
+        return None
+    inc = layout.inclination_deg
+
+    def make(x: np.ndarray) -> Tilt:
+        return Tilt(fraction=float(np.clip(x[0], 0.0, 1.0)), inclination_deg=inc)
+
+    f = float(np.clip(_refine(make, np.array([f0]), "tilt", real, base, layout)[0], 0.0, 1.0))
+    return Fit(Tilt(fraction=round(f, 4), inclination_deg=inc), {"fraction": se[c]})
+
+
+def fit_heading_lag(
+    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+) -> Fit | None:
+    """Lags add at low frequency (group delays of cascaded first-order filters sum), so the
+    extra lag is the lag-cell difference. No simulation refinement: the lag layer is a
+    per-sample recursion, and the linear estimate is unbiased for turn rates that change
+    slowly against tau."""
+    d, se = _coef_diff(real, base, layout)
+    c = Cell("lag_s", AXIS, "turn rate")
+    lag = d[c]
+    if lag <= 1e-3:
+        return None
+    # The layer's exact discretisation y_k = y_(k-1) + (1 - phi)(x_k - y_(k-1)) lags a ramp
+    # by dt phi / (1 - phi), not tau: invert that (tau = dt / ln(1 + dt / lag)).
+    dt = layout.dt_s
+    tau = dt / math.log1p(dt / lag)
+    dtau = dt * dt / (lag * (lag + dt) * math.log1p(dt / lag) ** 2)  # d tau / d lag
+    return Fit(HeadingLag(tau_s=round(tau, 4)), {"tau_s": se[c] * dtau})
+
+
+FITTERS: dict[
+    str, Callable[[HeadingSeries, Sequence[HeadingSeries], CompassLayout], Fit | None]
+] = {
+    "declination": fit_declination,
+    "hard_iron": fit_hard_iron,
+    "soft_iron": fit_soft_iron,
+    "tilt": fit_tilt,
+    "heading_lag": fit_heading_lag,
+}
+
+
+def fingerprint_score(name: str, cells: Sequence[Cell], z: np.ndarray, thr: float = 2.0) -> float:
+    """Evidence for an effect: sum over its fingerprint cells of max(0, z^2 - thr^2)."""
+    fp = set(FINGERPRINTS[name])
+    sel = np.array([(c.statistic, c.scale) in fp for c in cells], dtype=bool)
+    return float(np.sum(np.maximum(0.0, z[sel] ** 2 - thr**2))) if np.any(sel) else 0.0
+
+
+def apply_fits(
+    fits: Sequence[Fit], runs: Sequence[HeadingSeries], rng: np.random.Generator
+) -> list[HeadingSeries]:
+    out = []
+    for s in runs:
+        for f in fits:
+            s = f.effect.apply(s, rng)
+        out.append(s)
+    return out
+
+
+# --- the pipeline -----------------------------------------------------------------------------
+
+
+def _closure(gb: float, ge: float, gf: float) -> float:
+    den = gb - gf
+    return 0.0 if den <= 1e-9 else (gb - ge) / den
+
+
+def _resample(model: NullModel, rng: np.random.Generator) -> NullModel:
+    v = model.values[rng.integers(model.m, size=model.m)]
+    sd = np.maximum(v.std(axis=0, ddof=1), SD_FLOOR)
+    return NullModel(model.cells, v, v.mean(axis=0), sd, model.threshold)
+
+
+def _closure_ci(
+    real_b: dict[Cell, float], base: NullModel, eff: NullModel, rng: np.random.Generator, n: int
+) -> tuple[float, float]:
+    """5-95 % interval of the closure over resamples of the ensemble members."""
+    vals = []
+    for _ in range(n):
+        nb, ne = _resample(base, rng), _resample(eff, rng)
+        vals.append(_closure(nb.gap(real_b, base.sd), ne.gap(real_b, base.sd), nb.floor(base.sd)))
+    lo, hi = np.quantile(vals, [0.05, 0.95])
+    return float(lo), float(hi)
+
+
+def diagnose_compass(
+    real: HeadingSeries,
+    baseline: Sequence[HeadingSeries],
+    rng: np.random.Generator,
+    options: CompassOptions | None = None,
+    progress: Progress | None = None,
+) -> CompassDiagnosis:
+    """Where the heading gap lies, which compass effect explains it, how far it closes."""
+    opt = options or CompassOptions()
+    say = progress or (lambda _m, _f: None)
+    if real.true_heading_deg is None or len(real) < 100:
+        raise ConfigError("compass diagnosis needs >= 100 samples with a true heading")
+    if not baseline:
+        raise ConfigError("compass diagnosis needs baseline heading series")
+    layout = layout_for(real, opt.inclination_deg, opt.horizontal_field_ut)
+    if layout.has_field and any(s.field_ut is None for s in baseline):
+        layout = CompassLayout(
+            layout.dt_s, layout.duration_s, False, layout.inclination_deg,
+            layout.horizontal_field_ut,
+        )  # fmt: skip
+    notes: list[str] = []
+    # Harmonics need the log to turn through the circle: say so when it did not (a square
+    # mission visits four headings), because the null then has no power, not no gap.
+    sectors = np.bincount(
+        (wrap360(np.asarray(real.true_heading_deg)) // 45.0).astype(int) % 8, minlength=8
+    )
+    if np.count_nonzero(sectors >= 0.02 * len(real)) < 6:
+        notes.append(
+            "compass: the log covers few headings (fewer than 6 of 8 45-degree sectors), so "
+            "the harmonics are poorly determined and the test has little power"
+        )
+    runs = list(baseline)
+    boot = len(runs) < opt.min_runs
+    if boot:
+        block_s = max(layout.duration_s / 4.0, 10 * layout.dt_s)
+        runs = block_bootstrap(runs, opt.replicates, rng, block_s, real)
+        notes.append(
+            f"compass baseline: {len(baseline)} log(s), null from a circular block bootstrap "
+            f"({opt.replicates} replicates, blocks of {block_s:.0f} s)"
+        )
+    T = layout.duration_s
+    end = T + layout.dt_s
+    say("compass: calibrating the null", 0.0)
+    null = _null(batteries(runs, layout, 0.0, end), opt.alpha)
+    z = null.z(battery(real, layout))
+    where = [
+        {
+            "statistic": c.statistic,
+            "axis": c.axis,
+            "scale": c.scale,
+            "period": c.period,
+            "place": c.place,
+            "z": round(float(zc), 2),
+        }
+        for c, zc in sorted(zip(null.cells, z, strict=True), key=lambda p: -abs(p[1]))
+        if abs(zc) > null.threshold
+    ]
+    t_fit = opt.fit_fraction * T
+    t_test = t_fit + opt.guard_fraction * T
+    real_fit = hwindow(real, 0.0, t_fit)
+    real_test_b = battery(hwindow(real, t_test, end), layout)
+    base_test = _null(batteries(runs, layout, t_test, end), opt.alpha)
+    ref_sd = base_test.sd
+    g_b = base_test.gap(real_test_b, ref_sd)
+    g_f = base_test.floor(ref_sd)
+    diag = CompassDiagnosis(
+        layout, real, runs, boot, null.cells, z, null.threshold, where,
+        g_b, g_f, g_b, [], [], 0.0, (t_fit, t_test, T), notes,
+    )  # fmt: skip
+    if not where:
+        say("compass: no significant gap", 1.0)
+        return diag
+
+    real_fit_b = battery(real_fit, layout)
+    ref_fit_sd = _null(batteries(runs, layout, 0.0, t_fit), opt.alpha).sd
+
+    def evaluate(fits: list[Fit]) -> tuple[float, float, NullModel]:
+        """(selection key, held-out G, held-out null) of the baseline plus ``fits``: the
+        key adds the fit part's G, as on the GPS side, so a look-alike that only matches
+        the held-out cells loses."""
+        with_runs = apply_fits(fits, runs, rng)
+        eff_null = _null(batteries(with_runs, layout, t_test, end), opt.alpha)
+        g_e = eff_null.gap(real_test_b, ref_sd)
+        fit_part = _null(batteries(with_runs, layout, 0.0, t_fit), opt.alpha)
+        return g_e + fit_part.gap(real_fit_b, ref_fit_sd), g_e, eff_null
+
+    selected: list[Fit] = []
+    current = runs
+    g_cur = g_b
+    scored: dict[str, Candidate] = {}
+    for round_ in range(opt.max_effects):
+        cur_fit = [hwindow(s, 0.0, t_fit) for s in current]
+        fit_null = _null([battery(s, layout) for s in cur_fit], opt.alpha)
+        zf = fit_null.z(battery(real_fit, layout))
+        names = [n for n in opt.candidates if n not in {f.name for f in selected}]
+        best: tuple[float, float, Fit] | None = None
+        for i, name in enumerate(names):
+            say(f"compass round {round_ + 1}: fitting {name}", (round_ + i / len(names)) / 2)
+            fit = FITTERS[name](real_fit, cur_fit, layout)
+            if fit is None:
+                continue
+            key, g_e, eff_null = evaluate([*selected, fit])
+            if round_ == 0:
+                scored[name] = Candidate(
+                    fit,
+                    fingerprint_score(name, fit_null.cells, zf),
+                    _closure(g_b, g_e, g_f),
+                    _closure_ci(real_test_b, base_test, eff_null, rng, opt.ci_resamples),
+                    g_e,
+                )
+            if best is None or key < best[0]:
+                best = (key, g_e, fit)
+        if best is None:
+            break
+        left = g_cur - g_f
+        if round_ == 0 and _closure(g_b, best[1], g_f) < ADD_MIN_GAIN:
+            break
+        if round_ > 0 and (left < ADD_MIN_LEFT or g_cur - best[1] < ADD_MIN_SHARE * left):
+            break
+        selected.append(best[2])
+        g_cur = best[1]
+        current = apply_fits(selected, runs, rng)
+    sel_names = [f.name for f in selected]
+    total = _closure(g_b, g_cur, g_f)
+    for f in selected:
+        if f.name not in scored or scored[f.name].fit is not f:
+            # refitted on the residual of earlier selections: report the set's closure
+            prev = scored.get(f.name)
+            scored[f.name] = Candidate(f, prev.score if prev else 0.0, total, (total, total), g_cur)
+    diag.candidates = sorted(
+        scored.values(),
+        key=lambda c: (
+            c.fit.name not in sel_names,
+            sel_names.index(c.fit.name) if c.fit.name in sel_names else 0,
+            -c.closure,
+        ),
+    )
+    diag.selected = selected
+    diag.g_with = g_cur
+    diag.closure = total if math.isfinite(total) else 0.0
+    say("compass: done", 1.0)
+    return diag
+
+
+def compass_report_dict(d: CompassDiagnosis) -> dict[str, Any]:
+    """The compass half in report.json's shape (keys as the GPS side's)."""
+    return {
+        "gap": {
+            "baseline": round(d.g_baseline, 4),
+            "floor": round(d.g_floor, 4),
+            "with_effects": round(d.g_with, 4),
+        },
+        "where": d.where,
+        "effects": [
+            {
+                "name": c.fit.name,
+                "params": c.fit.params,
+                "closure": round(c.closure, 3),
+                "closure_ci": [round(c.closure_ci[0], 3), round(c.closure_ci[1], 3)],
+            }
+            for c in d.candidates
+        ],
+        "verdict": {
+            "effect": d.selected[0].name if d.explained else None,
+            "explained": bool(d.explained) if d.significant else True,
+        },
+    }
+
+
+def compass_verdict_text(d: CompassDiagnosis) -> str:
+    if not d.significant:
+        return "compass: no significant gap"
+    if d.explained:
+        names = " + ".join(f.name for f in d.selected)
+        return f"compass: gap explained by {names} (held-out closure {d.closure:.2f})"
+    return "compass: gap not explained by any known compass effect"
+
+
+# --- the simulator's heading series (baseline, tests, benchmark) ------------------------------
+
+
+def drive_track(
+    duration_s: float,
+    dt_s: float,
+    rng: np.random.Generator,
+    *,
+    slope: tuple[float, float] = (0.04, -0.03),
+    bump_deg: float = 3.0,
+    bump_tau_s: float = 4.0,
+) -> HeadingSeries:
+    """A robot's true attitude: weaving circles (turn rate 4 + 30 sin(2 pi t / 97 s) deg/s,
+    so it turns both ways, passes every heading many times and its turn rate is not
+    constant, which keeps the lag apart from the mean) on a plane of gradients ``slope``
+    (dz/dE, dz/dN) with rough ground (Gauss-Markov pitch/roll bumps, ``bump_deg``,
+    ``bump_tau_s``), so pitch/roll vary independently of heading. Measured = true."""
+    from sim_backend.effects import gauss_markov_noise
+    from sim_backend.vehicle import Terrain
+
+    t = np.arange(0.0, duration_s + 0.5 * dt_s, dt_s)
+    rate = 4.0 + 30.0 * np.sin(2 * np.pi * t / 97.0) + 8.0 * np.sin(2 * np.pi * t / 23.0)
+    h = wrap360(np.concatenate(([0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * dt_s))))
+    terr = Terrain(slope[0], slope[1])
+    pr = np.array([terr.attitude_deg(float(x)) for x in h])
+    bumps = gauss_markov_noise(t, bump_deg, bump_tau_s, rng, 2)
+    return HeadingSeries(
+        t_s=t,
+        heading_deg=h.copy(),
+        pitch_deg=pr[:, 0] + bumps[0],
+        roll_deg=pr[:, 1] + bumps[1],
+        true_heading_deg=h,
+    )
+
+
+def simulate_compass(
+    truth: HeadingSeries,
+    rng: np.random.Generator,
+    field_model: MagneticField | None = None,
+    errors: CompassErrors | None = None,
+) -> HeadingSeries:
+    """The project's CMPS10 emulation (:class:`sim_backend.compass.SimCmps10`) driven along a
+    true attitude: measured magnetic bearing as the registers show it (tenths of a degree),
+    pitch/roll whole degrees, and |B| of the raw magnetometer (µT)."""
+    errs = errors or CompassErrors(noise_ut=0.3)
+    dev = SimCmps10(
+        field_model=field_model or MagneticField(),
+        errors=errs,
+        rng=rng if errs.noise_ut > 0 else None,
+    )
+    assert truth.true_heading_deg is not None
+    n = len(truth)
+    bearing, fld = np.empty(n), np.empty(n)
+    t = np.asarray(truth.t_s, dtype=float)
+    h, p, r = (np.asarray(a, dtype=float) for a in (truth.true_heading_deg, truth.pitch_deg,
+                                                     truth.roll_deg))  # fmt: skip
+    for k in range(n):
+        dev.set_state(float(t[k]), float(h[k]), float(p[k]), float(r[k]))
+        bearing[k] = dev.bearing_deg
+        fld[k] = float(np.linalg.norm(dev._mag_body))
+    return truth.with_(
+        heading_deg=np.round(bearing, 1) % 360.0,
+        pitch_deg=np.clip(np.round(p), -85, 85),
+        roll_deg=np.clip(np.round(r), -85, 85),
+        field_ut=fld,
+    )
+
+
+# --- reading logs -----------------------------------------------------------------------------
+
+
+def read_heading_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(t_s, true heading deg) from a CSV with ``t_s``/``time`` and ``heading_deg`` columns
+    (``x6wd sim``'s truth.csv); None when the file has no heading column."""
+    import csv
+
+    p = Path(path)
+    try:
+        rows = list(csv.reader(p.read_text().splitlines()))
+    except (OSError, UnicodeDecodeError):
+        return None
+    if not rows:
+        return None
+    head = [c.strip().lower() for c in rows[0]]
+    tcol = next((head.index(k) for k in ("t_s", "time", "t") if k in head), None)
+    hcol = next((head.index(k) for k in ("heading_deg", "heading") if k in head), None)
+    if tcol is None or hcol is None:
+        return None
+    a = np.array([[float(r[tcol]), float(r[hcol])] for r in rows[1:] if len(r) > hcol])
+    if a.shape[0] < 2:
+        return None
+    return a[:, 0], a[:, 1]
+
+
+def _interp_heading(t: np.ndarray, tt: np.ndarray, hh: np.ndarray) -> np.ndarray:
+    """Heading interpolated along the shorter way round (unwrap, interpolate, wrap)."""
+    return wrap360(np.interp(t, tt, np.degrees(np.unwrap(np.radians(hh)))))
+
+
+def read_heading_series(
+    recording: str | Path,
+    truth: str | Path | None = None,
+    min_speed_mps: float = COG_MIN_SPEED_MPS,
+) -> HeadingSeries | None:
+    """The compass samples of an x6wd recording with their true heading, or None when the
+    recording has no attitude records or no heading truth.
+
+    Truth: ``truth`` (a CSV with a heading column), else ``truth.csv`` beside the recording
+    (what ``x6wd sim`` writes), else the GPS course over ground of the recording's fixes while
+    moving at >= ``min_speed_mps``: only attitude samples within COG_MAX_GAP_S of such a fix
+    are kept. COG equals heading only without sideslip, so this truth is noisier (a skid-steer
+    robot slips in turns); the baseline logs are read the same way, so their null carries the
+    same noise.
+    """
+    from x6wd.recorder import is_recording, read_recording
+
+    p = Path(recording)
+    if not p.is_file() or not is_recording(p):
+        return None
+    att: list[tuple[float, float, float, float, float]] = []
+    cog: list[tuple[float, float]] = []
+    for rec in read_recording(p):
+        if rec.type == "attitude" and rec.data.get("valid", True):
+            d = rec.data
+            mag = d.get("mag_ut")
+            fld = (
+                float(np.linalg.norm(mag)) if isinstance(mag, list) and len(mag) == 3 else math.nan
+            )
+            att.append(
+                (
+                    float(d.get("t_s", rec.t_mono)),
+                    float(d["bearing_deg"]),
+                    float(d.get("pitch_deg", 0.0)),
+                    float(d.get("roll_deg", 0.0)),
+                    fld,
+                )
+            )
+        elif rec.type == "fix":
+            d = rec.data
+            sp, crs = d.get("speed_mps"), d.get("course_deg")
+            if d.get("valid") and sp is not None and crs is not None and sp >= min_speed_mps:
+                cog.append((float(d.get("t_s", rec.t_mono)), float(crs)))
+    if len(att) < 100:
+        return None
+    a = np.array(sorted(att))
+    a = a[np.concatenate(([True], np.diff(a[:, 0]) > 0))]
+    t = a[:, 0]
+    tr = read_heading_truth(truth) if truth is not None else None
+    if tr is None and (p.parent / "truth.csv").is_file():
+        tr = read_heading_truth(p.parent / "truth.csv")
+    if tr is not None:
+        tt, hh = tr
+        # different clocks (no overlap): both are taken from their own start
+        t_al = t - t[0] + tt[0] if t[-1] < tt[0] or t[0] > tt[-1] else t
+        keep = (t_al >= tt[0]) & (t_al <= tt[-1])
+        true = _interp_heading(t_al[keep], tt, hh)
+    elif len(cog) >= 10:
+        c = np.array(sorted(cog))
+        idx = np.clip(np.searchsorted(c[:, 0], t), 1, len(c) - 1)
+        near = np.minimum(np.abs(c[idx, 0] - t), np.abs(c[idx - 1, 0] - t)) <= COG_MAX_GAP_S
+        keep = near & (t >= c[0, 0]) & (t <= c[-1, 0])
+        true = _interp_heading(t[keep], c[:, 0], c[:, 1])
+    else:
+        return None
+    if np.count_nonzero(keep) < 100:
+        return None
+    a = a[keep]
+    fld = a[:, 4]
+    return HeadingSeries(
+        t_s=a[:, 0] - a[0, 0],
+        heading_deg=a[:, 1],
+        pitch_deg=a[:, 2],
+        roll_deg=a[:, 3],
+        true_heading_deg=true,
+        field_ut=fld if np.all(np.isfinite(fld)) else None,
+    )
+
+
+def scenario_compass_baseline(
+    path: str | Path, template: HeadingSeries, seeds: int, base_seed: int = 2000
+) -> tuple[list[HeadingSeries], MagneticField]:
+    """``seeds`` runs of the scenario's CMPS10 (its ``[compass]`` table: field, iron, noise,
+    lag) along the real log's true heading and its measured pitch/roll (the best estimate of
+    the true tilt a recording has), and the field model (for the fits' inclination)."""
+    from sim_backend.mission import CompassSetup
+    from sim_backend.world import load_world
+
+    world = load_world(path)
+    cset = CompassSetup.from_table(world.compass)
+    truth = template.with_(heading_deg=np.asarray(template.true_heading_deg), field_ut=None)
+    runs = [
+        simulate_compass(truth, np.random.default_rng(base_seed + i), cset.field_model, cset.errors)
+        for i in range(seeds)
+    ]
+    return runs, cset.field_model
