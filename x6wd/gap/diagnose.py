@@ -6,6 +6,10 @@
    log, added to every baseline run, and scored on the held-out last part (after a guard gap)
    by G = mean clipped z^2; closure = (G_baseline - G_effect) / (G_baseline - G_floor).
 3. Greedy add-one-in (up to three effects), then leave-one-out drops any that no longer help.
+   Within the drift family (bias, Gauss-Markov, random walk) only the member(s) the exact
+   whole-log likelihood names by BIC may be selected (see :func:`x6wd.gap.fit.drift_fit`).
+4. The reported parameters (with standard errors) are refitted on the WHOLE log; the closures
+   stay those of the fit-part fits scored on the held-out part.
 """
 
 from __future__ import annotations
@@ -19,7 +23,15 @@ import numpy as np
 
 from sim_backend.effects import PositionSeries, Quantization
 from x6wd.errors import ConfigError
-from x6wd.gap.fit import FITTABLE, FITTERS, Fit, fingerprint_score
+from x6wd.gap.fit import (
+    DRIFT_FAMILY,
+    DRIFT_MODELS,
+    FITTABLE,
+    FITTERS,
+    Fit,
+    drift_fit,
+    fingerprint_score,
+)
 from x6wd.gap.null import NullModel, _floors, block_bootstrap, null_model
 from x6wd.gap.stats import (
     QUANT_DECIMALS,
@@ -169,6 +181,25 @@ def _resample(model: NullModel, rng: np.random.Generator) -> NullModel:
     return NullModel(model.cells, v, v.mean(axis=0), sd, model.threshold)
 
 
+def _refit_whole(
+    selected: Sequence[Fit],
+    real: PositionSeries,
+    runs: Sequence[PositionSeries],
+    layout: Layout,
+    rng: np.random.Generator,
+    lattice: int | None,
+) -> list[Fit]:
+    """Each selected effect refitted on the whole log on top of the baseline runs plus the
+    other selected effects (its fit-part version kept when the refit fails)."""
+    out = []
+    for f in selected:
+        others = [g for g in selected if g is not f]
+        base = apply_fits(others, runs, rng, lattice) if others else list(runs)
+        whole = FITTERS[f.name](real, base, layout)
+        out.append(whole if whole is not None else f)
+    return out
+
+
 def diagnose(
     real: PositionSeries,
     baseline: Sequence[PositionSeries],
@@ -248,6 +279,9 @@ def diagnose(
     g_cur = g_b
     scored: dict[str, Candidate] = {}
     real_fit_b = battery(real_fit, fit_lay)
+    # a bias the whole-log likelihood names beside a drift: the short held-out part cannot
+    # see it once the drift is in (it widens the spread of means), so leave-one-out keeps it
+    named_by_likelihood: set[str] = set()
     ref_fit_sd = null_model(_batteries(runs, fit_lay, 0.0, t_fit), opt.alpha).sd
 
     def evaluate(fits: list[Fit]) -> tuple[float, float, NullModel, list[PositionSeries]]:
@@ -267,10 +301,37 @@ def diagnose(
         # Choice among candidates: held-out G plus the fit part's G. The fit part sees the
         # longer time scales a short held-out part cannot, so a look-alike (random walk for a
         # slow Gauss-Markov drift) that only matches the short scales loses.
-        best: tuple[float, float, list[Fit]] | None = None
+        best: tuple[float, float, list[Fit], bool] | None = None
         mean_cells = np.array([c.statistic == "mean" for c in fit_null.cells])
         bias_flagged = bool(np.any(np.abs(zf[mean_cells]) > 3.0))
         g_pair = math.inf
+        # The drift family (bias, Gauss-Markov, random walk) is told apart by exact likelihood
+        # on the whole log (BIC: none / bias / GM / GM + bias / RW / RW + bias on top of the
+        # current baseline's noise model): only the member(s) it names may be selected this
+        # round. The battery G alone cannot separate them: over one log a random walk looks
+        # like a bias plus a slow drift, or a Gauss-Markov drift longer than the log.
+        family = [n for n in names if n in DRIFT_FAMILY]
+        fam_best: list[str] = []
+        if family:
+            say(
+                f"round {round_ + 1}: drift family by likelihood",
+                0.1 + 0.8 * round_ / opt.max_effects,
+            )
+            fam = drift_fit(real, current, layout)
+            # In the first round "none" is not an answer: whether a gap exists is the
+            # battery's question (sim-vs-sim calibrated). Once an effect is in, "none" means
+            # the likelihood sees no drift left, and no drift is added.
+            best_model = fam.best_effect if round_ == 0 else fam.best
+            fam_best = [] if best_model == "none" else best_model.split("+")
+            ranks = sorted(DRIFT_MODELS, key=fam.bic)
+            notes.append(
+                f"round {round_ + 1}: drift family by exact likelihood on the whole log: "
+                f"{best_model} (BIC, lower is better, relative to it: "
+                + ", ".join(
+                    f"{m} {fam.bic(m) - fam.bic(best_model):+.1f}" for m in ranks if m != best_model
+                )
+                + ")"
+            )
         for i, name in enumerate(ranked):
             say(
                 f"round {round_ + 1}: fitting {name}",
@@ -281,9 +342,21 @@ def diagnose(
                 continue
             key, g_e, eff_null, with_runs = evaluate([*selected, fit])
             option = [fit]
+            forced = False  # the bias beside it is named by the likelihood
+            in_family = name in DRIFT_FAMILY
+            eligible = not in_family or bool(fam_best and fam_best[0] == name)
+            if in_family and eligible and "bias" in fam_best[1:] and "bias" in names:
+                # the likelihood names this drift WITH a bias: add the bias refitted on top
+                comp = FITTERS["bias"](
+                    real_fit, [window(s, 0.0, t_fit) for s in with_runs], fit_lay
+                )
+                if comp is not None:
+                    key, g_pair, _n2, _r2 = evaluate([*selected, fit, comp])
+                    option = [fit, comp]
+                    forced = True
             # A bias hides under any effect that widens the spread of means: try each
             # candidate with a bias refitted on top, and keep the pair if it scores better.
-            if bias_flagged and name != "bias" and "bias" in names:
+            elif eligible and name != "bias" and bias_flagged and "bias" in names:
                 comp = FITTERS["bias"](
                     real_fit, [window(s, 0.0, t_fit) for s in with_runs], fit_lay
                 )
@@ -301,8 +374,8 @@ def diagnose(
                     ci,
                     g_e,
                 )
-            if best is None or key < best[0]:
-                best = (key, g_e if len(option) == 1 else g_pair, option)
+            if eligible and (best is None or key < best[0]):
+                best = (key, g_e if len(option) == 1 else g_pair, option, forced)
         if best is None:
             break
         # A further effect must remove a real part of what is LEFT of the gap (a first effect
@@ -314,6 +387,8 @@ def diagnose(
         if round_ == 0 and _closure(g_b, best[1], g_f) < ADD_MIN_GAIN:
             break
         selected.extend(best[2])
+        if best[3]:
+            named_by_likelihood.add("bias")
         g_cur = best[1]
         current = apply_fits(selected, runs, rng, lattice)
 
@@ -321,6 +396,8 @@ def diagnose(
     if len(selected) > 1:
         say("leave-one-out", 0.95)
         for f in list(selected):
+            if f.name in named_by_likelihood:
+                continue
             rest = [s for s in selected if s is not f]
             rest_null = null_model(
                 _batteries(apply_fits(rest, runs, rng, lattice), test_lay, t_test, T + layout.dt_s),
@@ -330,6 +407,31 @@ def diagnose(
             if _closure(g_b, g_rest, g_f) >= _closure(g_b, g_cur, g_f) - ADD_MIN_GAIN / 2:
                 selected = rest
                 g_cur = g_rest
+    # 5. parameters: every reported effect is refitted on the WHOLE log (more data; exact
+    # likelihood for gauss_markov and random_walk), a selected one on top of the baseline plus
+    # the other selected effects. The closures stay those of the fit-part fits on the held-out
+    # part, so they remain honest out-of-sample figures.
+    say("refitting parameters on the whole log", 0.97)
+    closure_fits = list(selected)
+    selected = _refit_whole(selected, real, runs, layout, rng, lattice)
+    for name, c in scored.items():
+        if name not in {f.name for f in selected}:
+            whole = FITTERS[name](real, runs, layout)
+            if whole is not None:
+                c.fit = whole
+    if scored:
+        notes.append(
+            "parameters (+- standard errors) are fitted on the whole log (exact Kalman "
+            "likelihood for gauss_markov / random_walk on top of a noise model of the "
+            "baseline runs); each closure is that of the fit on the first "
+            f"{opt.fit_fraction:.0%} of the log, scored on the held-out last "
+            f"{1 - opt.fit_fraction - opt.guard_fraction:.0%} after a guard gap"
+        )
+    if closure_fits != selected:
+        diag.notes.append(
+            "fit-part parameters used for the closure: "
+            + "; ".join(f"{f.name} {f.params}" for f in closure_fits)
+        )
     sel_names = [f.name for f in selected]
     total = _closure(g_b, g_cur, g_f)
     for f in selected:  # selected later without a first-round fit: report the set's closure
