@@ -50,7 +50,7 @@ from sim_backend.effects import (
 from x6wd.errors import ConfigError
 from x6wd.gap.diagnose import Candidate
 from x6wd.gap.fit import Fit
-from x6wd.gap.null import NullModel, null_model
+from x6wd.gap.null import NullModel, closure_ci, closure_of, null_model
 from x6wd.gap.stats import Cell
 
 Progress = Callable[[str, float], None]
@@ -507,29 +507,6 @@ def apply_fits(
 # --- the pipeline -----------------------------------------------------------------------------
 
 
-def _closure(gb: float, ge: float, gf: float) -> float:
-    den = gb - gf
-    return 0.0 if den <= 1e-9 else (gb - ge) / den
-
-
-def _resample(model: NullModel, rng: np.random.Generator) -> NullModel:
-    v = model.values[rng.integers(model.m, size=model.m)]
-    sd = np.maximum(v.std(axis=0, ddof=1), SD_FLOOR)
-    return NullModel(model.cells, v, v.mean(axis=0), sd, model.threshold)
-
-
-def _closure_ci(
-    real_b: dict[Cell, float], base: NullModel, eff: NullModel, rng: np.random.Generator, n: int
-) -> tuple[float, float]:
-    """5-95 % interval of the closure over resamples of the ensemble members."""
-    vals = []
-    for _ in range(n):
-        nb, ne = _resample(base, rng), _resample(eff, rng)
-        vals.append(_closure(nb.gap(real_b, base.sd), ne.gap(real_b, base.sd), nb.floor(base.sd)))
-    lo, hi = np.quantile(vals, [0.05, 0.95])
-    return float(lo), float(hi)
-
-
 def diagnose_compass(
     real: HeadingSeries,
     baseline: Sequence[HeadingSeries],
@@ -636,8 +613,8 @@ def diagnose_compass(
                 scored[name] = Candidate(
                     fit,
                     fingerprint_score(name, fit_null.cells, zf),
-                    _closure(g_b, g_e, g_f),
-                    _closure_ci(real_test_b, base_test, eff_null, rng, opt.ci_resamples),
+                    closure_of(g_b, g_e, g_f),
+                    closure_ci(real_test_b, base_test, eff_null, rng, opt.ci_resamples),
                     g_e,
                 )
             if best is None or key < best[0]:
@@ -645,7 +622,7 @@ def diagnose_compass(
         if best is None:
             break
         left = g_cur - g_f
-        if round_ == 0 and _closure(g_b, best[1], g_f) < ADD_MIN_GAIN:
+        if round_ == 0 and closure_of(g_b, best[1], g_f) < ADD_MIN_GAIN:
             break
         if round_ > 0 and (left < ADD_MIN_LEFT or g_cur - best[1] < ADD_MIN_SHARE * left):
             break
@@ -653,7 +630,7 @@ def diagnose_compass(
         g_cur = best[1]
         current = apply_fits(selected, runs, rng)
     sel_names = [f.name for f in selected]
-    total = _closure(g_b, g_cur, g_f)
+    total = closure_of(g_b, g_cur, g_f)
     for f in selected:
         if f.name not in scored or scored[f.name].fit is not f:
             # refitted on the residual of earlier selections: report the set's closure

@@ -32,7 +32,7 @@ from x6wd.gap.fit import (
     drift_fit,
     fingerprint_score,
 )
-from x6wd.gap.null import NullModel, _floors, block_bootstrap, null_model
+from x6wd.gap.null import NullModel, block_bootstrap, closure_ci, closure_of, null_model
 from x6wd.gap.stats import (
     QUANT_DECIMALS,
     Cell,
@@ -151,34 +151,6 @@ def _batteries(
     runs: Sequence[PositionSeries], layout: Layout, t0: float, t1: float
 ) -> list[dict[Cell, float]]:
     return [battery(window(s, t0, t1), layout) for s in runs]
-
-
-def _closure(gb: float, ge: float, gf: float) -> float:
-    den = gb - gf
-    if den <= 1e-9:
-        return 0.0
-    return (gb - ge) / den
-
-
-def _closure_ci(
-    real_b: dict[Cell, float], base: NullModel, eff: NullModel, rng: np.random.Generator, n: int
-) -> tuple[float, float]:
-    """5-95 % interval of the closure over resamples of the ensemble members."""
-    ref = base.sd
-    vals = []
-    for _ in range(n):
-        nb = _resample(base, rng)
-        ne = _resample(eff, rng)
-        vals.append(_closure(nb.gap(real_b, ref), ne.gap(real_b, ref), nb.floor(ref)))
-    lo, hi = np.quantile(vals, [0.05, 0.95])
-    return float(lo), float(hi)
-
-
-def _resample(model: NullModel, rng: np.random.Generator) -> NullModel:
-    idx = rng.integers(model.m, size=model.m)
-    v = model.values[idx]
-    sd = np.maximum(v.std(axis=0, ddof=1), _floors(model.cells))
-    return NullModel(model.cells, v, v.mean(axis=0), sd, model.threshold)
 
 
 def _refit_whole(
@@ -366,11 +338,11 @@ def diagnose(
                         key, option = key2, [fit, comp]
                         g_pair = g_e2
             if round_ == 0:
-                ci = _closure_ci(real_test_b, base_test, eff_null, rng, opt.ci_resamples)
+                ci = closure_ci(real_test_b, base_test, eff_null, rng, opt.ci_resamples)
                 scored[name] = Candidate(
                     fit,
                     fingerprint_score(name, fit_null.cells, zf),
-                    _closure(g_b, g_e, g_f),
+                    closure_of(g_b, g_e, g_f),
                     ci,
                     g_e,
                 )
@@ -384,7 +356,7 @@ def diagnose(
         left = g_cur - g_f
         if round_ > 0 and (left < ADD_MIN_LEFT or g_cur - best[1] < ADD_MIN_SHARE * left):
             break
-        if round_ == 0 and _closure(g_b, best[1], g_f) < ADD_MIN_GAIN:
+        if round_ == 0 and closure_of(g_b, best[1], g_f) < ADD_MIN_GAIN:
             break
         selected.extend(best[2])
         if best[3]:
@@ -404,7 +376,7 @@ def diagnose(
                 opt.alpha,
             )
             g_rest = rest_null.gap(real_test_b, ref_sd)
-            if _closure(g_b, g_rest, g_f) >= _closure(g_b, g_cur, g_f) - ADD_MIN_GAIN / 2:
+            if closure_of(g_b, g_rest, g_f) >= closure_of(g_b, g_cur, g_f) - ADD_MIN_GAIN / 2:
                 selected = rest
                 g_cur = g_rest
     # 5. parameters: every reported effect is refitted on the WHOLE log (more data; exact
@@ -433,7 +405,7 @@ def diagnose(
             + "; ".join(f"{f.name} {f.params}" for f in closure_fits)
         )
     sel_names = [f.name for f in selected]
-    total = _closure(g_b, g_cur, g_f)
+    total = closure_of(g_b, g_cur, g_f)
     for f in selected:  # selected later without a first-round fit: report the set's closure
         if f.name not in scored:
             scored[f.name] = Candidate(f, 0.0, total, (total, total), g_cur)
@@ -451,7 +423,7 @@ def diagnose(
     )
     diag.selected = selected
     diag.g_with = g_cur
-    diag.closure = _closure(g_b, g_cur, g_f)
+    diag.closure = closure_of(g_b, g_cur, g_f)
     if not math.isfinite(diag.closure):
         diag.closure = 0.0
     say("done", 1.0)
