@@ -11,11 +11,14 @@ as fast-time simulation (``x6wd sim``), only in real time:
   (:class:`sim_backend.ports.PtyUart`). Once per receiver epoch the full GNSS model
   (:func:`sim_backend.mission.build_gnss`: almanac sky, atmosphere, walls, the scenario's
   fidelity level) turns the vehicle's true antenna position into a solution, the scenario's
-  ``[[effects]]`` GPS layers are added, and :class:`sim_backend.nmea_out.NmeaFormatter` prints
+  ``[[effects]]`` GPS layers are applied (all of them, by the same
+  :func:`sim_backend.mission.apply_gps_effects` as ``x6wd sim``; latency from the physics
+  thread's true track), and :class:`sim_backend.nmea_out.NmeaFormatter` prints
   it as a NEO-5 does (``$GPTXT`` banner at start, the real no-fix forms), each sentence
   followed by its wire time at the scenario's baud rate.
 - :func:`open_compass` -> a :class:`drivers.cmps10.Cmps10` over the CMPS10 register map of
-  :mod:`sim_backend.compass` with the scenario's ``[compass]`` field and errors; its
+  :mod:`sim_backend.compass` with the scenario's ``[compass]`` field and errors and its
+  compass ``[[effects]]`` layers (:func:`sim_backend.mission.compass_setup`); its
   registers follow the simulated vehicle's attitude.
 - :func:`open_motors` -> the real :class:`drivers.motors.SerialMotorLink` on a pseudo-terminal
   whose far end is a :class:`drivers.motors.MotorBoard` (:func:`drivers.motors.serve_board_fd`):
@@ -58,10 +61,18 @@ import numpy as np
 
 from drivers.motors import MotorBoard, serve_board_fd
 from sim_backend.compass import ErrorInjector, SimCmps10
-from sim_backend.effects import metres_per_degree
 from sim_backend.epoch import GnssEpoch
 from sim_backend.geodesy import enu_to_lla
-from sim_backend.mission import CompassSetup, GpsEffectOffsets, build_gnss, gps_effect_offsets
+from sim_backend.mission import (
+    GpsEffectOffsets,
+    TruthHistory,
+    apply_gps_effects,
+    build_gnss,
+    compass_setup,
+    effects_latency_s,
+    gps_effect_offsets,
+    vehicle_velocity,
+)
 from sim_backend.nmea_out import NmeaFormatter, sentence, wire_time_s
 from sim_backend.ports import PtyUart
 from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
@@ -259,24 +270,6 @@ class _Board(MotorBoard):
         return out
 
 
-def _with_offsets(ep: GnssEpoch, off: GpsEffectOffsets, i: int) -> GnssEpoch:
-    """Epoch ``ep`` with the ``[[effects]]`` offsets of block index ``i`` (as x6wd sim)."""
-    if not off.valid[i]:
-        return replace(
-            ep, valid=False, quality=0, mode=1, hdop=99.99, pdop=99.99, vdop=99.99,
-            satellites=tuple(replace(s, used=False) for s in ep.satellites),
-        )  # fmt: skip
-    if not ep.valid:
-        return ep
-    m_east, m_north = metres_per_degree(ep.lat_deg)
-    return replace(
-        ep,
-        lat_deg=ep.lat_deg + float(off.north_m[i]) / m_north,
-        lon_deg=ep.lon_deg + float(off.east_m[i]) / m_east,
-        alt_m=ep.alt_m + float(off.up_m[i]),
-    )
-
-
 class HilWorld:
     """Scenario world running in real time: vehicle, compass register map, GNSS receiver
     and motor board.
@@ -292,7 +285,9 @@ class HilWorld:
         self.params = params
         sc = params.load_world()
         self.scenario = sc
-        cset = CompassSetup.from_table(sc.compass)
+        # The compass [[effects]] layers become the emulation's own physics, as in x6wd sim
+        # (heading noise is scaled for the physics rate, at which the registers update).
+        cset, compass_skipped = compass_setup(sc, params.physics_hz)
         ss = np.random.SeedSequence(sc.seed)
         rng_gnss, rng_compass, rng_i2c, rng_fx = (np.random.default_rng(s) for s in ss.spawn(4))
         self.gnss = build_gnss(sc, rng_gnss)
@@ -325,13 +320,25 @@ class HilWorld:
             rng=rng_compass if cset.errors.noise_ut > 0 else None,
             clock=self._device_time,
         )
-        self.compass.set_state(0.0, s0.heading_deg, s0.pitch_deg, s0.roll_deg)
+        self._cset = cset
+        h0 = cset.device_heading_deg(s0.heading_deg, s0.pitch_deg, s0.roll_deg)
+        self.compass.set_state(0.0, h0, s0.pitch_deg, s0.roll_deg)
         self.board = _Board(params.motor_watchdog_ms, self._board_changed)
         self.on_gga: Callable[[float], Any] | None = None
         self.on_motor: Callable[[MotorCommand, float], Any] | None = None
         self.epochs = 0
         self.commands = 0  # M/S lines the board executed
-        self.effects_skipped: tuple[str, ...] = ()
+        # Layers the emulation cannot reproduce ("name: reason"); GPS layers all apply.
+        self.effects_skipped: tuple[str, ...] = compass_skipped
+        if compass_skipped:
+            log.warning("HIL: [[effects]] layers not applied: %s", "; ".join(compass_skipped))
+        # Latency needs the true track of the last delay_s: kept by the physics thread.
+        # The delay is known before the first block (it does not depend on the draws).
+        delay_s = effects_latency_s(sc)
+        self._history = TruthHistory(delay_s) if delay_s > 0 else None
+        self._latency_s = delay_s
+        if self._history is not None:
+            self._history.add(0.0, self._antenna_enu(s0), vehicle_velocity(s0))
         self._fds: list[int] = []
         self.uart = PtyUart(sc.gnss.baud, realtime=False)
         self._threads = [
@@ -432,7 +439,10 @@ class HilWorld:
             now = time.monotonic()
             with self._lock:
                 s = self.vehicle.step(now - t_last)
-                self.compass.set_state(now - self.t0, s.heading_deg, s.pitch_deg, s.roll_deg)
+                h = self._cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg)
+                self.compass.set_state(now - self.t0, h, s.pitch_deg, s.roll_deg)
+                if self._history is not None:
+                    self._history.add(now - self.t0, self._antenna_enu(s), vehicle_velocity(s))
             t_last = now
 
     def _offsets(self, k: int) -> tuple[GpsEffectOffsets, int] | None:
@@ -447,12 +457,6 @@ class HilWorld:
             t = (block * n + np.arange(n)) / sc.gnss.rate_hz
             self._fx = gps_effect_offsets(sc, t, self._rng_fx)
             self._fx_block = block
-            if self._fx.skipped and self._fx.skipped != self.effects_skipped:
-                log.warning(
-                    "HIL: [[effects]] layers not applied in closed loop: %s",
-                    ", ".join(self._fx.skipped),
-                )
-            self.effects_skipped = self._fx.skipped
         return self._fx, k - block * n
 
     def _epoch(self, k: int) -> GnssEpoch:
@@ -462,18 +466,18 @@ class HilWorld:
         t_s = k / sc.gnss.rate_hz
         with self._lock:
             s = self.vehicle.state
-        lat, lon, alt = enu_to_lla(
-            np.array([s.east_m, s.north_m, s.up_m + sc.vehicle.antenna_height_m]),
-            o.lat_deg,
-            o.lon_deg,
-            o.alt_m,
-        )
-        h, p = math.radians(s.heading_deg), math.radians(s.pitch_deg)
-        hs = s.speed_mps * math.cos(p)
-        vel = (hs * math.sin(h), hs * math.cos(h), s.speed_mps * math.sin(p))
+            pos, vel = self._antenna_enu(s), vehicle_velocity(s)
+            if self._history is not None:
+                # Latency: the receiver solves for where the antenna was delay_s ago (the
+                # history runs on the physics clock, which is the scenario clock here).
+                pos, vel = self._history.at(self._device_time() - self._latency_s)
+        lat, lon, alt = enu_to_lla(np.array(pos), o.lat_deg, o.lon_deg, o.alt_m)
         ep = self.gnss.step(t_s, float(lat), float(lon), float(alt), vel)
         fx = self._offsets(k)
-        return ep if fx is None else _with_offsets(ep, *fx)
+        return ep if fx is None else apply_gps_effects(ep, *fx, s.east_m, s.north_m)
+
+    def _antenna_enu(self, s: Any) -> tuple[float, float, float]:
+        return s.east_m, s.north_m, s.up_m + self.scenario.vehicle.antenna_height_m
 
     def _receiver(self) -> None:
         rate_hz, baud = self.scenario.gnss.rate_hz, self.scenario.gnss.baud

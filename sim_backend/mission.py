@@ -28,6 +28,12 @@ Scenario-specific settings read here (``[compass]`` is a plain table; keys):
 ``hard_iron_ut`` [x, y, z], ``soft_iron`` 3x3, ``noise_ut``, ``lag_tau_s``, ``rate_hz``
 (default 20), ``p_error`` (I2C error probability per transaction).
 
+Every ``[[effects]]`` layer (e.g. the gap tool's ``effects.toml``) acts in the closed loop:
+the GPS ones through :func:`gps_effect_offsets` / :func:`apply_gps_effects` (latency moves
+the position the receiver model solves for, the multipath zone is evaluated at the true
+position each epoch, quantisation rounds the printed minutes), the compass ones on the
+emulation's own physics (:func:`compass_setup`). HIL shares these functions.
+
 How the paper's four situations are configured (config/scenarios) and what came out:
 docs/simulator.md, "The paper's four situations".
 """
@@ -52,7 +58,25 @@ import numpy as np
 from drivers.cmps10 import Cmps10
 from drivers.gps_nmea import GpsDecoder
 from sim_backend.compass import CompassErrors, ErrorInjector, MagneticField, SimCmps10
-from sim_backend.effects import GPS_EFFECT_NAMES, PositionSeries, metres_per_degree
+from sim_backend.effects import (
+    GPS_EFFECT_NAMES,
+    PITCH_ROLL_LIMIT_DEG,
+    Declination,
+    HardIron,
+    HeadingLag,
+    HeadingNoise,
+    Latency,
+    MultipathZone,
+    PositionSeries,
+    Quantization,
+    SoftIron,
+    Tilt,
+    gauss_markov_noise,
+    metres_per_degree,
+    quantize_degrees,
+    tilted_heading_deg,
+    wrap180,
+)
 from sim_backend.epoch import GnssEpoch
 from sim_backend.geodesy import enu_to_lla, lla_to_enu
 from sim_backend.gnss import GnssModel, LceGrid, ReceiverParams
@@ -199,13 +223,38 @@ def _num(table: dict[str, Any], key: str, default: float, lo: float, hi: float) 
 
 @dataclass(frozen=True)
 class CompassSetup:
-    """The ``[compass]`` table, validated."""
+    """The ``[compass]`` table, validated (plus any ``[[effects]]`` tilt layers: see
+    :meth:`device_heading_deg`)."""
 
     field_model: MagneticField
     errors: CompassErrors
     rate_hz: float
     p_error: float
     robot_declination_deg: float
+    tilt: tuple[Tilt, ...] = ()
+
+    def device_heading_deg(self, heading_deg: float, pitch_deg: float, roll_deg: float) -> float:
+        """The heading to hand the emulation's ``set_state`` for a true attitude (deg).
+
+        The emulation levels with exact pitch/roll; a tilt layer (imperfect compensation)
+        is its heading error (``effects.Tilt``: the untilted-computed heading at the layer's
+        fraction of the tilt and its inclination, at the magnetic heading) added to the
+        attitude, so it then passes the device's iron, noise and lag like the real error.
+        Without tilt layers the heading is returned unchanged (bit for bit).
+        """
+        if not self.tilt or (pitch_deg == 0.0 and roll_deg == 0.0):
+            return heading_deg
+        h = heading_deg
+        for layer in self.tilt:
+            mag = np.array([h - self.field_model.declination_deg])
+            p = max(-PITCH_ROLL_LIMIT_DEG, min(PITCH_ROLL_LIMIT_DEG, pitch_deg))
+            r = max(-PITCH_ROLL_LIMIT_DEG, min(PITCH_ROLL_LIMIT_DEG, roll_deg))
+            tilted = tilted_heading_deg(
+                mag, np.array([layer.fraction * p]), np.array([layer.fraction * r]),
+                layer.inclination_deg,
+            )  # fmt: skip
+            h += float(wrap180(tilted - mag)[0])
+        return h % 360.0
 
     @classmethod
     def from_table(cls, table: dict[str, Any]) -> CompassSetup:
@@ -334,7 +383,7 @@ def run_mission(
         raise ConfigError(f"duration must be a positive number of seconds, got {duration_s!r}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    cset = CompassSetup.from_table(world.compass)
+    cset, compass_skipped = compass_setup(world)
     ss = np.random.SeedSequence(seed)
     rng_gnss, rng_compass, rng_i2c, rng_fx = (np.random.default_rng(s) for s in ss.spawn(4))
 
@@ -410,8 +459,9 @@ def run_mission(
         nmea_file.write(banner)
         uart.write(banner)
         decoder.feed(uart.read_all(), 0.0)
-        device.set_state(0.0, vehicle.state.heading_deg, vehicle.state.pitch_deg,
-                         vehicle.state.roll_deg)  # fmt: skip
+        s0 = vehicle.state
+        h0 = cset.device_heading_deg(s0.heading_deg, s0.pitch_deg, s0.roll_deg)
+        device.set_state(0.0, h0, s0.pitch_deg, s0.roll_deg)
         handle(ctrl.on_attitude(compass.read(0.0)), 0.0)
         if waypoints:
             handle(ctrl.load_mission(waypoints, 0.0), 0.0)
@@ -419,6 +469,7 @@ def run_mission(
         report_every = max(1, n_ticks // 50)
         t_ep = np.arange(0, n_ticks + 1, gps_every) * dt
         fx = gps_effect_offsets(world, t_ep, rng_fx)
+        history = TruthHistory(fx.latency_s) if fx.latency_s > 0 else None
         static = None
         if not waypoints:
             # Nothing will move the robot: the whole survey in one vectorised model call
@@ -467,7 +518,13 @@ def run_mission(
             trace.north.append(s.north_m)
             trace.up.append(s.up_m)
             trace.heading.append(s.heading_deg)
-            device.set_state(t, s.heading_deg, s.pitch_deg, s.roll_deg)
+            if history is not None:
+                # every physics step, so the delayed position interpolates the real path
+                history.add(t, (s.east_m, s.north_m, s.up_m + antenna_m), vehicle_velocity(s))
+            device.set_state(
+                t, cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg),
+                s.pitch_deg, s.roll_deg,
+            )  # fmt: skip
             att = compass.read(t)
             rec.record_attitude(att)
             handle(ctrl.on_attitude(att), t)
@@ -478,16 +535,20 @@ def run_mission(
                     origin.lon_deg,
                     origin.alt_m,
                 )
-                h = math.radians(s.heading_deg)
-                p = math.radians(s.pitch_deg)
-                hs = s.speed_mps * math.cos(p)
-                vel = (hs * math.sin(h), hs * math.cos(h), s.speed_mps * math.sin(p))
+                vel = vehicle_velocity(s)
                 if static is not None:
                     ep = static.epoch(k // gps_every)
+                elif history is not None:
+                    # Latency: the receiver solves for where the antenna was delay_s ago.
+                    pos_d, vel_d = history.at(t - fx.latency_s)
+                    lat_d, lon_d, alt_d = enu_to_lla(
+                        np.array(pos_d), origin.lat_deg, origin.lon_deg, origin.alt_m
+                    )
+                    ep = gnss.step(t, float(lat_d), float(lon_d), float(alt_d), vel_d)
                 else:
                     ep = gnss.step(t, float(lat), float(lon), float(alt), vel)
                 if world.effects:
-                    ep = _with_offsets(ep, fx, k // gps_every)
+                    ep = apply_gps_effects(ep, fx, k // gps_every, s.east_m, s.north_m)
                 burst = fmt.format_epoch(ep)
                 nmea_file.write(burst)
                 trace.epoch_truth[k] = (s.east_m, s.north_m, float(lat), float(lon))
@@ -512,7 +573,6 @@ def run_mission(
         nmea_file.close()
         rec.close()
 
-    skipped = fx.skipped
     truth_e = np.array(trace.east)
     truth_n = np.array(trace.north)
     _write_truth(out / "truth.csv", world, trace, antenna_m)
@@ -549,8 +609,13 @@ def run_mission(
             "nmea_bytes": uart.written,
             "decoder": decoder.counters.as_dict(),
             "fidelity": world.gnss.fidelity,
-            "effects_applied": [e["name"] for e in world.effects if e["name"] not in skipped],
-            "effects_skipped": list(skipped),
+            "effects_applied": [
+                e["name"]
+                for e in world.effects
+                if not any(x.startswith(f"{e['name']}:") for x in compass_skipped)
+            ],
+            # Only layers the emulation genuinely cannot reproduce, each with the reason.
+            "effects_skipped": list(compass_skipped),
         },
     )
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
@@ -558,55 +623,88 @@ def run_mission(
     return summary
 
 
-# Layers that need the true position or track; the closed loop cannot pre-generate them.
-_TRUTH_EFFECTS = frozenset({"latency", "multipath_zone", "quantization"})
-
-
 @dataclass(frozen=True)
 class GpsEffectOffsets:
-    """Extra receiver error from the scenario's ``[[effects]]`` layers, per GPS epoch:
-    east/north/up (m) added to the model's solution, and False where an outage removes the
-    fix. ``skipped`` names the layers not applied (see :func:`gps_effect_offsets`)."""
+    """The scenario's ``[[effects]]`` GPS layers over a run of epochs, ready for the loop.
+
+    ``east_m``/``north_m``/``up_m`` (m) are the position-independent layers (Gauss-Markov,
+    random walk, bias, jumps) summed; ``valid`` False where an outage removes the fix.
+    ``multipath`` holds each multipath zone with its pre-drawn (2, n) Gauss-Markov noise (m),
+    used only at epochs where the TRUE position is inside the zone. ``latency_s`` (s) is the
+    total receiver delay; ``decimals`` the coarsest NMEA quantisation (None = none).
+    Compass layers act through :func:`compass_setup` instead.
+    """
 
     east_m: np.ndarray
     north_m: np.ndarray
     up_m: np.ndarray
     valid: np.ndarray
-    skipped: tuple[str, ...]
+    multipath: tuple[tuple[MultipathZone, np.ndarray], ...] = ()
+    latency_s: float = 0.0
+    decimals: int | None = None
 
 
 def gps_effect_offsets(world: World, t_s: np.ndarray, rng: np.random.Generator) -> GpsEffectOffsets:
-    """Pre-generate the ``[[effects]]`` GPS layers over the epoch times ``t_s`` (s).
+    """Prepare the ``[[effects]]`` GPS layers over the epoch times ``t_s`` (s).
 
-    Layers whose law does not depend on where the robot is (Gauss-Markov, random walk, bias,
-    jumps at Poisson events, outages) act on a zero error series, in scenario order; the
-    result is added to each epoch of the closed loop. Latency, the multipath zone and
-    quantisation need the true track (or the printed position) and are skipped here and
-    named in ``skipped``; compass layers are configured through ``[compass]`` instead.
+    Layers whose law does not depend on where the robot is act on a zero error series, in
+    scenario order, with the layers' own ``apply`` (so the random draws and the exact
+    discretisations are those of :mod:`sim_backend.effects`). The layers that need the true
+    track are split into what can be drawn ahead and what is evaluated each epoch by
+    :func:`apply_gps_effects`: the multipath zone's Gauss-Markov noise is drawn here over all
+    epochs (exactly as ``MultipathZone.apply`` draws it) and gated by the true position in the
+    loop; latency moves the position handed to the receiver model (:class:`TruthHistory`);
+    quantisation rounds the reported position last, as the receiver's printing does.
     """
     n = len(t_s)
+    t = np.asarray(t_s, dtype=float)
     zeros = np.zeros(n)
     series = PositionSeries(
-        t_s=np.asarray(t_s, dtype=float), east_m=zeros, north_m=zeros.copy(),
+        t_s=t, east_m=zeros, north_m=zeros.copy(),
         up_m=zeros.copy(), valid=np.ones(n, dtype=bool),
         origin_lat_deg=world.origin.lat_deg, origin_lon_deg=world.origin.lon_deg,
     )  # fmt: skip
-    skipped: list[str] = []
+    multipath: list[tuple[MultipathZone, np.ndarray]] = []
+    latency_s = 0.0
+    decimals: int | None = None
     for eff in world.effect_objects():
-        if eff.name not in GPS_EFFECT_NAMES or eff.name in _TRUTH_EFFECTS:
-            skipped.append(eff.name)
-            continue
-        series = eff.apply(series, rng)
+        if eff.name not in GPS_EFFECT_NAMES:
+            continue  # compass layers: compass_setup
+        if isinstance(eff, MultipathZone):
+            multipath.append((eff, gauss_markov_noise(t, eff.sigma_m, eff.tau_s, rng, 2)))
+        elif isinstance(eff, Latency):
+            # Two receivers' delays in a chain add up: one delay of their sum.
+            latency_s += eff.delay_s
+        elif isinstance(eff, Quantization):
+            # Rounding twice keeps the coarser lattice (up to a rare double-rounding tie).
+            decimals = eff.decimals if decimals is None else min(decimals, eff.decimals)
+        else:
+            series = eff.apply(series, rng)
     return GpsEffectOffsets(
         np.asarray(series.east_m, dtype=float),
         np.asarray(series.north_m, dtype=float),
         np.asarray(series.up_m, dtype=float),
         np.asarray(series.valid, dtype=bool),
-        tuple(skipped),
+        tuple(multipath),
+        latency_s,
+        decimals,
     )
 
 
-def _with_offsets(ep: GnssEpoch, off: GpsEffectOffsets, i: int) -> GnssEpoch:
+def effects_latency_s(world: World) -> float:
+    """Total receiver delay (s) of the scenario's latency layers (chained delays add up)."""
+    return float(sum(e.delay_s for e in world.effect_objects() if isinstance(e, Latency)))
+
+
+def apply_gps_effects(
+    ep: GnssEpoch, off: GpsEffectOffsets, i: int, true_east_m: float, true_north_m: float
+) -> GnssEpoch:
+    """Epoch ``ep`` (index ``i`` in ``off``) with the ``[[effects]]`` GPS layers applied.
+
+    ``true_east_m``/``true_north_m`` are the antenna's TRUE position now in the scenario's
+    local frame (metres from the origin), where multipath zones are evaluated. Shared by
+    ``x6wd sim`` and HIL so both apply the layers the same way.
+    """
     if not off.valid[i]:
         return replace(
             ep, valid=False, quality=0, mode=1, hdop=99.99, pdop=99.99, vdop=99.99,
@@ -614,13 +712,150 @@ def _with_offsets(ep: GnssEpoch, off: GpsEffectOffsets, i: int) -> GnssEpoch:
         )  # fmt: skip
     if not ep.valid:
         return ep
+    de, dn = float(off.east_m[i]), float(off.north_m[i])
+    for zone, noise in off.multipath:
+        dist, ux, uy = zone.distance_to_wall_m(np.array([true_east_m]), np.array([true_north_m]))
+        if float(dist[0]) <= zone.distance_m:
+            de += zone.bias_m * float(ux[0]) + float(noise[0, i])
+            dn += zone.bias_m * float(uy[0]) + float(noise[1, i])
     m_east, m_north = metres_per_degree(ep.lat_deg)
-    return replace(
-        ep,
-        lat_deg=ep.lat_deg + off.north_m[i] / m_north,
-        lon_deg=ep.lon_deg + off.east_m[i] / m_east,
-        alt_m=ep.alt_m + off.up_m[i],
+    lat = ep.lat_deg + dn / m_north
+    lon = ep.lon_deg + de / m_east
+    if off.decimals is not None:
+        # Rounded to the layer's lattice here; the formatter prints >= 4 decimals of minutes
+        # by rounding to its own (finer or equal) lattice, on which these values already lie.
+        lat = float(quantize_degrees(np.array(lat), off.decimals))
+        lon = float(quantize_degrees(np.array(lon), off.decimals))
+    return replace(ep, lat_deg=lat, lon_deg=lon, alt_m=ep.alt_m + float(off.up_m[i]))
+
+
+class TruthHistory:
+    """A short history of the true antenna track, for the latency layer.
+
+    ``add`` takes (time s, east/north/up m, velocity east/north/up m/s) in time order;
+    ``at(t)`` interpolates linearly (as ``Latency.apply`` does on the epoch track); before
+    the first sample the vehicle is taken to move with its first velocity, as there.
+    Entries older than ``keep_s`` before the newest are dropped.
+    """
+
+    def __init__(self, keep_s: float) -> None:
+        self.keep_s = keep_s + 1.0
+        self._rows: deque[tuple[float, float, float, float, float, float, float]] = deque()
+        self._first: tuple[float, float, float, float, float, float, float] | None = None
+
+    def add(
+        self, t_s: float, pos_m: tuple[float, float, float], vel_mps: tuple[float, float, float]
+    ) -> None:
+        row = (t_s, *pos_m, *vel_mps)
+        if self._first is None:
+            self._first = row
+        self._rows.append(row)
+        while len(self._rows) > 2 and self._rows[1][0] < t_s - self.keep_s:
+            self._rows.popleft()
+
+    def at(self, t_s: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """(position m, velocity m/s) at ``t_s``."""
+        rows = self._rows
+        if not rows or self._first is None:
+            raise ValueError("TruthHistory is empty")
+        f = self._first
+        if t_s <= f[0]:
+            dt = t_s - f[0]
+            return (f[1] + dt * f[4], f[2] + dt * f[5], f[3] + dt * f[6]), (f[4], f[5], f[6])
+        if t_s <= rows[0][0]:
+            r = rows[0]  # older than kept: the oldest kept sample (keep_s covers the delay)
+            return (r[1], r[2], r[3]), (r[4], r[5], r[6])
+        for j in range(len(rows) - 1, 0, -1):
+            a, b = rows[j - 1], rows[j]
+            if a[0] <= t_s <= b[0]:
+                w = 0.0 if b[0] == a[0] else (t_s - a[0]) / (b[0] - a[0])
+                p = tuple(a[m] + w * (b[m] - a[m]) for m in range(1, 7))
+                return (p[0], p[1], p[2]), (p[3], p[4], p[5])
+        r = rows[-1]
+        return (r[1], r[2], r[3]), (r[4], r[5], r[6])
+
+
+def compass_setup(
+    world: World, sample_hz: float | None = None
+) -> tuple[CompassSetup, tuple[str, ...]]:
+    """The ``[compass]`` table with the scenario's compass ``[[effects]]`` mapped onto the
+    emulation's own physics, so the registers the real driver reads carry them.
+
+    ``sample_hz`` is the rate ``set_state`` is called at (default the table's ``rate_hz``;
+    heading noise is scaled through the device's lag filter at that rate). Returns the setup
+    and the layers not applied, as "name: reason" (none today: the list stays for layers
+    added to :mod:`sim_backend.effects` later).
+    Mapping (same meaning as :mod:`sim_backend.effects`, layers composed in scenario order
+    on the body-frame field as an affine map field -> A field + b):
+
+    - hard_iron (bx, by) is an offset in a field of ``horizontal_field_ut``; scaled to the
+      emulation's horizontal intensity so the heading error vs heading curve is the layer's;
+    - soft_iron (k, axis) is the symmetric matrix R(axis) diag(1+k, 1-k) R(axis)^T on x/y;
+    - declination adds to the field's declination (the robot keeps believing the table's);
+    - heading_lag adds its tau to the device's filter (a cascade of first-order lags has
+      the sum of their delays at low frequency);
+    - heading_noise becomes magnetometer noise whose heading effect after the device's
+      filter has the layer's standard deviation per sample;
+    - tilt (no partial-compensation model in the emulation) is applied in the heading
+      domain by :meth:`CompassSetup.device_heading_deg`, before the device's physics.
+
+    Declination rotates the Earth's field, so it acts before the iron whatever its place in
+    the list; the other layers compose in list order.
+    """
+    cset = CompassSetup.from_table(world.compass)
+    fm, errs = cset.field_model, cset.errors
+    a_mat = np.asarray(errs.soft_iron, dtype=float)
+    b_vec = np.asarray(errs.hard_iron_ut, dtype=float)
+    decl, tau, noise_deg2 = fm.declination_deg, errs.lag_tau_s, 0.0
+    skipped: list[str] = []
+    tilt: list[Tilt] = []
+    layers = [e for e in world.effect_objects() if e.name not in GPS_EFFECT_NAMES]
+    if not layers:
+        return cset, ()
+    for eff in layers:
+        if isinstance(eff, HardIron):
+            scale = fm.horizontal_ut / eff.horizontal_field_ut
+            b_vec = b_vec + np.array([eff.bx_ut * scale, eff.by_ut * scale, 0.0])
+        elif isinstance(eff, SoftIron):
+            c, s = math.cos(math.radians(eff.axis_deg)), math.sin(math.radians(eff.axis_deg))
+            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            m = rot @ np.diag([1.0 + eff.k, 1.0 - eff.k, 1.0]) @ rot.T
+            a_mat, b_vec = m @ a_mat, m @ b_vec
+        elif isinstance(eff, Declination):
+            decl += eff.declination_deg
+        elif isinstance(eff, HeadingLag):
+            tau += eff.tau_s
+        elif isinstance(eff, HeadingNoise):
+            noise_deg2 += eff.sigma_deg**2
+        elif isinstance(eff, Tilt):
+            tilt.append(eff)
+        else:
+            skipped.append(f"{eff.name}: no closed-loop model")
+    noise_ut = errs.noise_ut
+    if noise_deg2 > 0:
+        # White heading noise of variance v through y_k = y_{k-1} + g (x_k - y_{k-1}) keeps
+        # g / (2 - g) of it; per-axis field noise sigma_ut gives heading noise sigma_ut / H rad.
+        hz = cset.rate_hz if sample_hz is None else sample_hz
+        g = 1.0 if tau == 0 else -math.expm1(-1.0 / (hz * tau))
+        sigma_rad = math.radians(math.sqrt(noise_deg2)) / math.sqrt(g / (2.0 - g))
+        noise_ut = math.hypot(noise_ut, sigma_rad * fm.horizontal_ut)
+    errors = CompassErrors(
+        hard_iron_ut=cast(tuple[float, float, float], tuple(float(x) for x in b_vec)),
+        soft_iron=tuple(tuple(float(x) for x in row) for row in a_mat),
+        noise_ut=noise_ut,
+        lag_tau_s=tau,
     )
+    field_model = MagneticField(fm.horizontal_ut, fm.vertical_ut, wrap180(np.array(decl)).item())
+    setup = replace(cset, field_model=field_model, errors=errors, tilt=tuple(tilt))
+    return setup, tuple(skipped)
+
+
+def vehicle_velocity(s: Any) -> tuple[float, float, float]:
+    """East/north/up velocity (m/s) of a vehicle state (speed along the pitched heading)."""
+    h = math.radians(s.heading_deg)
+    p = math.radians(s.pitch_deg)
+    hs = s.speed_mps * math.cos(p)
+    return (hs * math.sin(h), hs * math.cos(h), s.speed_mps * math.sin(p))
 
 
 def _reached(ctrl: Controller, count: int) -> int:

@@ -140,6 +140,48 @@ def test_scenario_effects_reach_the_receiver_with_real_no_fix_forms(tmp_path: Pa
     assert re.search(rb"\$GPGSA,A,1,,,,,,,,,,,,,99\.99,99\.99,99\.99\*", raw)
 
 
+def test_every_effect_layer_applies_in_hil_as_in_x6wd_sim(tmp_path: Path) -> None:
+    from sim_backend.effects import HardIron, HeadingSeries
+
+    scenario = tmp_path / "layers.toml"
+    scenario.write_text(
+        DEFAULT_SCENARIO.read_text()
+        + '\n[[effects]]\nname = "quantization"\ndecimals = 3\n'
+        + '\n[[effects]]\nname = "latency"\ndelay_s = 0.5\n'
+        + '\n[[effects]]\nname = "multipath_zone"\nx1_m = -5.0\ny1_m = 0.0\nx2_m = 5.0\n'
+        + "y2_m = 0.0\ndistance_m = 3.0\nsigma_m = 0.2\nbias_m = 40.0\n"
+        + '\n[[effects]]\nname = "hard_iron"\nbx_ut = 5.0\nby_ut = -3.0\n'
+    )
+    hil.configure(hil.HilParams(scenario=str(scenario), gps_rate_hz=4.0, gps_baud=115200))
+    try:
+        w = hil.world()
+        assert w.effects_skipped == ()
+        port = hil.open_gps("sim://")
+        try:
+            recs, raw = read_records(port, 3.0, n_fixes=6)
+        finally:
+            port.close()
+        att = hil.open_compass("sim://").read(time.monotonic())
+    finally:
+        hil.shutdown()
+        hil.configure(hil.HilParams())
+    coords = re.findall(rb"\$GPGGA,[^,]*,(\d{4}\.\d{5}),[NS],(\d{5}\.\d{5}),[EW]", raw)
+    assert len(coords) >= 3
+    assert all(lat.endswith(b"00") and lon.endswith(b"00") for lat, lon in coords)
+    # The robot stands at the origin, on the wall's line: 40 m pushed away from it.
+    sc = hil.HilParams(scenario=str(scenario)).load_world()
+    o = sc.origin
+    fixes = [r for r in recs if isinstance(r, GpsFix) and r.valid]
+    north = [(f.lat_deg - o.lat_deg) * 111_200.0 for f in fixes if f.lat_deg is not None]
+    assert north and all(abs(n) > 30.0 for n in north)
+    # The hard-iron layer reaches the driver's bearing with the layer's heading error.
+    magnetic = (sc.vehicle.start_heading_deg - sc.compass["declination_deg"]) % 360.0
+    series = HeadingSeries(np.zeros(1), np.array([magnetic]), np.zeros(1), np.zeros(1))
+    want = HardIron(5.0, -3.0).apply(series, np.random.default_rng(0)).heading_deg[0]
+    assert abs((att.bearing_deg - want + 180.0) % 360.0 - 180.0) < 0.5
+    assert abs((att.bearing_deg - magnetic + 180.0) % 360.0 - 180.0) > 5.0
+
+
 def test_motor_driver_is_the_real_serial_link_to_a_simulated_board(
     world: hil.HilWorld,
 ) -> None:

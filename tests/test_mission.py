@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -191,8 +193,8 @@ def test_effect_layers_from_a_fragment_act_on_the_receiver(tmp_path: Path) -> No
     biased = run_mission(load_world(scen), tmp_path / "b", 2, 40.0)
     # A 30 m east bias moves every fix by 30 m (the model's own error is a few metres).
     assert biased.raw_error.mean_m > plain.raw_error.mean_m + 25
-    assert biased.extra["effects_applied"] == ["bias"]
-    assert biased.extra["effects_skipped"] == ["latency"]
+    assert biased.extra["effects_applied"] == ["bias", "latency"]
+    assert biased.extra["effects_skipped"] == []
 
 
 def test_outage_layer_removes_fixes_and_the_robot_holds(tmp_path: Path) -> None:
@@ -206,3 +208,223 @@ def test_outage_layer_removes_fixes_and_the_robot_holds(tmp_path: Path) -> None:
     recs = dec.feed((tmp_path / "o" / "gps.nmea").read_bytes(), 0.0)
     assert any(isinstance(r, GpsFix) and not r.valid for r in recs)
     assert dec.counters.invalid_fields == 0
+
+
+# --- every [[effects]] layer acts in closed loop -------------------------------------------
+
+
+def _with_effects(tmp_path: Path, name: str, effects: str) -> Path:
+    scen = tmp_path / f"{name}.toml"
+    scen.write_text((SCENARIOS / "default.toml").read_text() + "\n" + effects)
+    return scen
+
+
+def _fix_errors(out: Path, delay_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(fix times s, east/north error (n, 2) m against the truth ``delay_s`` earlier, the
+    true east/north (n, 2) m now) of the valid fixes in ``out``'s gps.nmea and truth.csv."""
+    world = load_world(SCENARIOS / "default.toml")
+    o = world.origin
+    dec = GpsDecoder(emit_sentences=False)
+    recs = dec.feed((out / "gps.nmea").read_bytes(), 0.0)
+    fixes = [r for r in recs if isinstance(r, GpsFix) and r.valid]
+    with open(out / "truth.csv") as f:
+        rows = list(csv.DictReader(f))
+    t = np.array([float(r["t_s"]) for r in rows])
+    col = {k: np.array([float(r[k]) for r in rows]) for k in ("lat", "lon")}
+    z = np.full(len(t), o.alt_m)
+    truth = np.asarray(lla_to_enu(col["lat"], col["lon"], z, o.lat_deg, o.lon_deg, o.alt_m))
+    ft = np.array([(f.utc - world.start_utc).total_seconds() for f in fixes])  # type: ignore[operator]
+    lat = np.array([f.lat_deg for f in fixes], dtype=float)
+    lon = np.array([f.lon_deg for f in fixes], dtype=float)
+    fz = np.full(len(ft), o.alt_m)
+    pos = np.asarray(lla_to_enu(lat, lon, fz, o.lat_deg, o.lon_deg, o.alt_m))
+    now = np.column_stack([np.interp(ft, t, truth[:, k]) for k in (0, 1)])
+    then = np.column_stack([np.interp(ft - delay_s, t, truth[:, k]) for k in (0, 1)])
+    return ft, pos[:, :2] - then, now
+
+
+@pytest.fixture(scope="module")
+def plain_60s(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The default mission, seed 1, 60 s, no effects: the reference for the layers below
+    (same seed -> the receiver model draws the same errors at the same epochs, whatever path
+    the controller then takes)."""
+    out = tmp_path_factory.mktemp("plain60")
+    run_mission(load_world(SCENARIOS / "default.toml"), out, seed=1, duration_s=60.0)
+    return out
+
+
+def test_default_mission_bytes_unchanged_without_effects(default_run: tuple[Path, Summary]) -> None:
+    # Recorded before the closed-loop layers were added (default scenario, seed 1).
+    import hashlib
+
+    out, _s = default_run
+    digest = hashlib.sha256((out / "gps.nmea").read_bytes()).hexdigest()
+    assert digest == "bd794f2a31b276881e85bcd1536b31810d3df07f2da0e82a80c12c34527aaa67"
+
+
+def test_latency_reports_the_truth_of_delay_s_ago(tmp_path: Path, plain_60s: Path) -> None:
+    scen = _with_effects(tmp_path, "lat", '[[effects]]\nname = "latency"\ndelay_s = 2.0\n')
+    s = run_mission(load_world(scen), tmp_path / "o", seed=1, duration_s=60.0)
+    assert s.extra["effects_applied"] == ["latency"] and s.extra["effects_skipped"] == []
+    t0, err0, _ = _fix_errors(plain_60s)
+    t1, err_then, truth_now = _fix_errors(tmp_path / "o", delay_s=2.0)
+    n = min(len(t0), len(t1))
+    assert n > 50 and np.array_equal(t0[:n], t1[:n])
+    # Against the truth of 2 s ago the error is the plain run's, to centimetres ...
+    assert np.max(np.abs(err_then[:n] - err0[:n])) < 0.05
+    # ... so against the truth now the track lags by speed * delay along the motion.
+    _t, err_now, _ = _fix_errors(tmp_path / "o")
+    shift = err_now - err_then  # truth(t - d) - truth(t)
+    motion = np.diff(truth_now, axis=0, prepend=truth_now[:1])  # about 1 s of travel
+    moving = np.hypot(*motion.T) > 0.5
+    assert moving.sum() > 20
+    along = np.sum(shift[moving] * motion[moving], axis=1) / np.hypot(*motion[moving].T)
+    speed = np.hypot(*motion[moving].T) / 1.0
+    assert np.median(along / speed) == pytest.approx(-2.0, abs=0.3)
+
+
+def test_quantization_puts_every_nmea_minute_on_the_lattice(tmp_path: Path) -> None:
+    scen = _with_effects(tmp_path, "q", '[[effects]]\nname = "quantization"\ndecimals = 3\n')
+    run_mission(load_world(scen), tmp_path / "o", seed=1, duration_s=30.0)
+    text = (tmp_path / "o" / "gps.nmea").read_text()
+    coords = re.findall(
+        r"\$GP(?:GGA|RMC|GLL),[^*]*?(\d{4}\.\d{5}),([NS]),(\d{5}\.\d{5}),([EW])", text
+    )
+    assert len(coords) > 60
+    for lat, _ns, lon, _ew in coords:
+        # printed with the receiver's 5 decimals, on the layer's 3-decimal lattice
+        assert lat.endswith("00") and lon.endswith("00"), (lat, lon)
+    plain = (SCENARIOS / "default.toml").read_text()
+    assert "decimals = 3" not in plain  # the default scenario itself prints finer minutes
+
+
+def test_multipath_zone_acts_only_near_the_wall(tmp_path: Path, plain_60s: Path) -> None:
+    # A wall north of the first leg's end (the robot drives north to (0, 25) first).
+    scen = _with_effects(
+        tmp_path, "mp",
+        '[[effects]]\nname = "multipath_zone"\nx1_m = -10.0\ny1_m = 30.0\nx2_m = 10.0\n'
+        "y2_m = 30.0\ndistance_m = 12.0\nsigma_m = 0.5\nbias_m = 6.0\ntau_s = 5.0\n",
+    )  # fmt: skip
+    run_mission(load_world(scen), tmp_path / "o", seed=1, duration_s=60.0)
+    t0, err0, _ = _fix_errors(plain_60s)
+    t1, err1, truth = _fix_errors(tmp_path / "o")
+    n = min(len(t0), len(t1))
+    extra = np.hypot(*(err1[:n] - err0[:n]).T)
+    zone = load_world(scen).effect_objects()[0]
+    near = zone.distance_to_wall_m(truth[:n, 0], truth[:n, 1])[0] <= 12.0
+    assert near.sum() >= 5 and (~near).sum() >= 5
+    assert np.max(extra[~near]) < 0.05  # away from the wall: the plain receiver's error
+    assert np.median(extra[near]) > 4.0  # near it: the 6 m push away plus noise
+
+
+def test_compass_layers_map_onto_the_emulation_with_the_layers_meaning() -> None:
+    from sim_backend.compass import SimCmps10
+    from sim_backend.effects import (
+        Declination,
+        HardIron,
+        HeadingSeries,
+        SoftIron,
+        apply_effects,
+    )
+    from sim_backend.mission import compass_setup
+
+    world = load_world(SCENARIOS / "default.toml")
+    # Declination rotates the Earth's field, so physically it comes before the iron.
+    layers = [Declination(3.0), HardIron(4.0, -2.5, 19.0), SoftIron(0.08, 30.0)]
+    world = replace(world, effects=tuple(e.to_params() for e in layers))
+    cset, skipped = compass_setup(world)
+    assert skipped == ()
+    assert cset.robot_declination_deg == -0.5  # the robot still believes the table's
+    dev = SimCmps10(
+        field_model=cset.field_model, errors=replace(cset.errors, lag_tau_s=0.0, noise_ut=0.0)
+    )
+    truth = np.arange(0.0, 360.0, 7.5)
+    got = []
+    for i, h in enumerate(truth):
+        dev.set_state(float(i), float(h), 0.0, 0.0)
+        got.append(dev.bearing_deg)
+    # The layers on a series of the same truth: the magnetic heading a perfect compass reads.
+    site = world.compass["declination_deg"]
+    series = HeadingSeries(
+        t_s=np.arange(len(truth), dtype=float), heading_deg=(truth - site) % 360.0,
+        pitch_deg=np.zeros(len(truth)), roll_deg=np.zeros(len(truth)),
+    )  # fmt: skip
+    want = apply_effects(series, layers, np.random.default_rng(0)).heading_deg
+    diff = (np.array(got) - want + 180.0) % 360.0 - 180.0
+    assert np.max(np.abs(diff)) < 1e-6
+
+
+def _bearing_vs_truth(out: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(true heading, driver's magnetic bearing) per compass sample (deg), steady samples only
+    (the heading moved < 0.5 deg over the last second, so the device's lag has settled)."""
+    with open(out / "truth.csv") as f:
+        truth = {round(float(r["t_s"]), 3): float(r["heading_deg"]) for r in csv.DictReader(f)}
+    recs = [r for r in read_recording(out / "recording.jsonl") if r.type == "attitude"]
+    t = np.array([r.data["t_s"] for r in recs])
+    bearing = np.array([r.data["bearing_deg"] for r in recs])
+    heading = np.array([truth[round(x, 3)] for x in t])
+    moved = np.abs((heading - np.roll(heading, 20) + 180.0) % 360.0 - 180.0)
+    steady = (moved < 0.5) & (np.arange(len(t)) >= 20)
+    return heading[steady], bearing[steady]
+
+
+def test_hard_iron_layer_reaches_the_drivers_bearing(tmp_path: Path) -> None:
+    from sim_backend.effects import HardIron, HeadingSeries
+
+    layer = HardIron(5.0, -3.0, 19.0)
+    scen = _with_effects(
+        tmp_path, "hi", '[[effects]]\nname = "hard_iron"\nbx_ut = 5.0\nby_ut = -3.0\n'
+    )
+    s = run_mission(load_world(scen), tmp_path / "o", seed=1, duration_s=60.0)
+    assert s.extra["effects_applied"] == ["hard_iron"] and s.extra["effects_skipped"] == []
+    heading, bearing = _bearing_vs_truth(tmp_path / "o")
+    assert len(heading) > 200
+    magnetic = (heading + 0.5) % 360.0  # the scenario's site declination is -0.5 deg
+    series = HeadingSeries(
+        t_s=np.arange(len(heading), dtype=float), heading_deg=magnetic,
+        pitch_deg=np.zeros(len(heading)), roll_deg=np.zeros(len(heading)),
+    )  # fmt: skip
+    want = layer.apply(series, np.random.default_rng(0)).heading_deg
+    err = (bearing - magnetic + 180.0) % 360.0 - 180.0
+    want_err = (want - magnetic + 180.0) % 360.0 - 180.0
+    assert np.max(np.abs(want_err)) > 5.0  # the robot faced headings where the layer bites
+    # the register carries 0.1 deg and the scenario's 0.05 uT noise
+    assert np.max(np.abs(err - want_err)) < 0.5
+
+
+def test_compass_lag_noise_and_tilt_layers(tmp_path: Path) -> None:
+    from sim_backend.compass import SimCmps10
+    from sim_backend.effects import HeadingLag, HeadingNoise, HeadingSeries, Tilt
+    from sim_backend.mission import compass_setup
+
+    base = load_world(SCENARIOS / "default.toml")
+    tables = (HeadingLag(0.3).to_params(), HeadingNoise(2.0).to_params())
+    cset, skipped = compass_setup(replace(base, effects=tables))
+    assert skipped == ()
+    assert cset.errors.lag_tau_s == pytest.approx(0.64 / 3.0 + 0.3)
+    # Heading noise: the bearing the registers carry at 20 Hz has the layer's sigma.
+    dev = SimCmps10(field_model=cset.field_model, errors=cset.errors, rng=np.random.default_rng(4))
+    b = []
+    for i in range(4000):
+        dev.set_state(i / cset.rate_hz, 90.0, 0.0, 0.0)
+        b.append(dev.bearing_deg)
+    assert float(np.std(b[100:])) == pytest.approx(2.0, rel=0.1)
+    # Tilt: the registers carry the layer's heading error at the attitude (no lag here).
+    layer = Tilt(0.5, 66.0)
+    cset, skipped = compass_setup(replace(base, effects=(layer.to_params(),)))
+    assert skipped == ()
+    dev = SimCmps10(
+        field_model=cset.field_model, errors=replace(cset.errors, lag_tau_s=0.0, noise_ut=0.0)
+    )
+    truth = np.arange(0.0, 360.0, 15.0)
+    pitch, roll = 8.0 * np.cos(np.radians(truth)), -6.0 * np.ones(len(truth))
+    got = []
+    for i, h in enumerate(truth):
+        dev.set_state(float(i), cset.device_heading_deg(h, pitch[i], roll[i]), pitch[i], roll[i])
+        got.append(dev.bearing_deg)
+    magnetic = (truth + 0.5) % 360.0  # site declination -0.5 deg
+    series = HeadingSeries(np.arange(len(truth), dtype=float), magnetic, pitch, roll)
+    want = layer.apply(series, np.random.default_rng(0)).heading_deg
+    diff = (np.array(got) - want + 180.0) % 360.0 - 180.0
+    assert np.max(np.abs(diff)) < 1e-6
+    assert np.max(np.abs((want - magnetic + 180.0) % 360.0 - 180.0)) > 3.0
