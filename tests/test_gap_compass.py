@@ -226,3 +226,26 @@ def test_cli_merges_compass_into_the_report(tmp_path: Path) -> None:
     assert (out / "compass.png").stat().st_size > 0
     toml = tomllib.loads((out / "effects.toml").read_text())
     assert [e["name"] for e in toml["effects"]] == ["hard_iron"]
+
+
+def test_scenario_baseline_carries_the_scenarios_compass_effects(
+    tmp_path: Path, truth: HeadingSeries
+) -> None:
+    from tests.conftest import ROOT
+    from x6wd.gap.compass import scenario_compass_baseline
+
+    plain = ROOT / "config" / "scenarios" / "default.toml"
+    with_iron = tmp_path / "iron.toml"
+    with_iron.write_text(
+        f'include = ["{plain}"]\n\n[[effects]]\nname = "hard_iron"\nbx_ut = 4.0\nby_ut = 0.0\n'
+    )
+    short = truth.with_(**{k: getattr(truth, k)[:600] for k in ("t_s", "heading_deg",
+                                                                 "pitch_deg", "roll_deg",
+                                                                 "true_heading_deg")})  # fmt: skip
+    (base,), _ = scenario_compass_baseline(plain, short, seeds=1)
+    (iron,), _ = scenario_compass_baseline(with_iron, short, seeds=1)
+    # 4 uT of hard iron in a 19 uT horizontal field: up to ~12 deg of error, once per turn
+    expected = HardIron(4.0, 0.0).apply(base, np.random.default_rng(0))
+    diff = np.abs(heading_error_deg(iron) - heading_error_deg(base))
+    assert diff.max() > 6.0
+    assert np.median(np.abs(((iron.heading_deg - expected.heading_deg) + 180) % 360 - 180)) < 1.5

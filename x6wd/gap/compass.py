@@ -725,10 +725,13 @@ def simulate_compass(
     rng: np.random.Generator,
     field_model: MagneticField | None = None,
     errors: CompassErrors | None = None,
+    device_heading: Callable[[float, float, float], float] | None = None,
 ) -> HeadingSeries:
     """The project's CMPS10 emulation (:class:`sim_backend.compass.SimCmps10`) driven along a
     true attitude: measured magnetic bearing as the registers show it (tenths of a degree),
-    pitch/roll whole degrees, and |B| of the raw magnetometer (µT)."""
+    pitch/roll whole degrees, and |B| of the raw magnetometer (µT). ``device_heading`` maps
+    the true (heading, pitch, roll) to the heading handed to the device (a scenario's tilt
+    layers, as ``x6wd sim`` applies them); None: the true heading."""
     errs = errors or CompassErrors(noise_ut=0.3)
     dev = SimCmps10(
         field_model=field_model or MagneticField(),
@@ -742,7 +745,8 @@ def simulate_compass(
     h, p, r = (np.asarray(a, dtype=float) for a in (truth.true_heading_deg, truth.pitch_deg,
                                                      truth.roll_deg))  # fmt: skip
     for k in range(n):
-        dev.set_state(float(t[k]), float(h[k]), float(p[k]), float(r[k]))
+        hk = float(h[k]) if device_heading is None else device_heading(h[k], p[k], r[k])
+        dev.set_state(float(t[k]), hk, float(p[k]), float(r[k]))
         bearing[k] = dev.bearing_deg
         fld[k] = float(np.linalg.norm(dev._mag_body))
     return truth.with_(
@@ -866,17 +870,24 @@ def read_heading_series(
 def scenario_compass_baseline(
     path: str | Path, template: HeadingSeries, seeds: int, base_seed: int = 2000
 ) -> tuple[list[HeadingSeries], MagneticField]:
-    """``seeds`` runs of the scenario's CMPS10 (its ``[compass]`` table: field, iron, noise,
-    lag) along the real log's true heading and its measured pitch/roll (the best estimate of
-    the true tilt a recording has), and the field model (for the fits' inclination)."""
-    from sim_backend.mission import CompassSetup
+    """``seeds`` runs of the scenario's CMPS10 (its ``[compass]`` table and its compass
+    ``[[effects]]``, mapped as ``x6wd sim`` maps them) along the real log's true heading and
+    its measured pitch/roll (the best estimate of the true tilt a recording has), and the
+    field model (for the fits' inclination)."""
+    from sim_backend.mission import compass_setup
     from sim_backend.world import load_world
 
     world = load_world(path)
-    cset = CompassSetup.from_table(world.compass)
+    cset, _ = compass_setup(world)
     truth = template.with_(heading_deg=np.asarray(template.true_heading_deg), field_ut=None)
     runs = [
-        simulate_compass(truth, np.random.default_rng(base_seed + i), cset.field_model, cset.errors)
+        simulate_compass(
+            truth,
+            np.random.default_rng(base_seed + i),
+            cset.field_model,
+            cset.errors,
+            cset.device_heading_deg if cset.tilt else None,
+        )
         for i in range(seeds)
     ]
     return runs, cset.field_model
