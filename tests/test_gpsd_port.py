@@ -184,7 +184,7 @@ def test_stuck_gpsd_client_queue_is_bounded() -> None:
         def flood() -> int:
             for _ in range(20000):
                 p.srv.publish_sky(SKY)
-            return max(len(c.queue) for c in p.srv._clients)
+            return max(len(c.events) for c in p.srv._clients)
 
         async def run() -> int:
             return flood()

@@ -11,18 +11,18 @@ report is dropped (and counted) when it is full.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import json
 import logging
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
 from x6wd import __version__
 from x6wd.errors import ProtocolError
+from x6wd.lineserver import LineClient, LineServer
 from x6wd.records import Attitude, GpsFix, GpsSky
 
 log = logging.getLogger(__name__)
@@ -194,30 +194,13 @@ def parse_commands(text: str) -> list[tuple[str, dict[str, Any] | None]]:
     return out
 
 
-@dataclass(eq=False)
-class _Client:
-    writer: asyncio.StreamWriter
-    queue: collections.deque[bytes]
-    replies: collections.deque[bytes] = field(default_factory=collections.deque)
-    wake: asyncio.Event = field(default_factory=asyncio.Event)
+@dataclass(eq=False, kw_only=True)
+class _Client(LineClient):
     watch_json: bool = False
     watch_nmea: bool = False
-    dropped: int = 0
-    closed: bool = False
-
-    def put(self, line: bytes, maxlen: int) -> None:
-        if len(self.queue) >= maxlen:
-            self.queue.popleft()
-            self.dropped += 1
-        self.queue.append(line)
-        self.wake.set()
-
-    def reply(self, line: bytes) -> None:
-        self.replies.append(line)
-        self.wake.set()
 
 
-class GpsdServer:
+class GpsdServer(LineServer[_Client]):
     """gpsd-compatible read-only endpoint. Call the ``publish_*`` methods from the event loop."""
 
     def __init__(
@@ -232,61 +215,30 @@ class GpsdServer:
         queue_len: int = 64,
     ) -> None:
         """``port`` 0 picks a free port (see :attr:`port`); ``device_path`` goes into DEVICES."""
+        super().__init__(port)
         self.bind = bind
-        self._port = port
         self.device_path = device_path
         self.bps = bps
         self.declination_deg = declination_deg
         self.max_clients = max_clients
         self.queue_len = queue_len
-        self._server: asyncio.Server | None = None
-        self._clients: set[_Client] = set()
-        self._tasks: set[asyncio.Task[None]] = set()
         self._last_tpv: dict[str, Any] | None = None
         self._last_sky: dict[str, Any] | None = None
         self._last_att: dict[str, Any] | None = None
-        self.dropped_total = 0
-
-    @property
-    def port(self) -> int:
-        """The bound TCP port (the real one when configured as 0)."""
-        if self._server is not None and self._server.sockets:
-            return int(self._server.sockets[0].getsockname()[1])
-        return self._port
-
-    @property
-    def client_count(self) -> int:
-        """Connected clients."""
-        return len(self._clients)
 
     async def start(self) -> None:
         """Bind and listen."""
         self._server = await asyncio.start_server(
-            self._handle, self.bind, self._port, limit=MAX_COMMAND_BYTES * 2
+            self._handle, self.bind, self._configured_port, limit=MAX_COMMAND_BYTES * 2
         )
         log.info("gpsd port listening on %s:%d", self.bind, self.port)
-
-    async def close(self) -> None:
-        """Stop listening and disconnect every client (idempotent)."""
-        if self._server is not None:
-            self._server.close()
-            self._server = None
-        for c in list(self._clients):
-            c.closed = True
-            c.wake.set()
-            c.writer.close()
-        for t in list(self._tasks):
-            t.cancel()
-        if self._tasks:
-            await asyncio.gather(*self._tasks, return_exceptions=True)
 
     # -- publishing (sync, never blocks) ----------------------------------------------
     def _fanout(self, line: bytes, nmea: bool) -> None:
         for c in self._clients:
-            if (c.watch_nmea if nmea else c.watch_json) and not c.closed:
-                before = c.dropped
-                c.put(line, self.queue_len)
-                self.dropped_total += c.dropped - before
+            wanted = (c.watch_nmea if nmea else c.watch_json) and not c.closed
+            if wanted and c.put(line, self.queue_len):
+                self.dropped_total += 1
 
     def publish_fix(self, fix: GpsFix) -> None:
         """Send a TPV to JSON watchers and keep it for ?POLL."""
@@ -362,7 +314,7 @@ class GpsdServer:
         task = asyncio.current_task()
         if task is not None:
             self._tasks.add(task)
-        c = _Client(writer, collections.deque())
+        c = _Client(writer=writer)
         sender: asyncio.Task[None] | None = None
         try:
             if len(self._clients) >= self.max_clients:
@@ -408,23 +360,6 @@ class GpsdServer:
             writer.close()
             if task is not None:
                 self._tasks.discard(task)
-
-    async def _sender(self, c: _Client) -> None:
-        try:
-            while True:
-                while c.replies or c.queue:
-                    # replies (never dropped) go before queued reports
-                    batch = b"".join(c.replies) + b"".join(c.queue)
-                    c.replies.clear()
-                    c.queue.clear()
-                    c.writer.write(batch)
-                    await c.writer.drain()
-                if c.closed:
-                    return
-                c.wake.clear()
-                await c.wake.wait()
-        except (ConnectionError, OSError):
-            c.closed = True
 
 
 def read_objects(lines: Iterable[bytes]) -> list[dict[str, Any]]:

@@ -14,7 +14,6 @@ publisher, which is the control loop.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import hmac
 import inspect
@@ -24,13 +23,14 @@ import logging
 import ssl
 import stat
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 from x6wd import __version__
 from x6wd.config import ServerConfig
 from x6wd.errors import ConfigError, ParseError, X6wdError
+from x6wd.lineserver import LineClient, LineServer
 from x6wd.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx
 
 log = logging.getLogger(__name__)
@@ -139,20 +139,13 @@ class _Reject(Exception):
         self.code = code
 
 
-@dataclass(eq=False)
-class _Client:
+@dataclass(eq=False, kw_only=True)
+class _Client(LineClient):
     peer: str
-    writer: asyncio.StreamWriter
     authenticated: bool
-    tokens: float
+    tokens: float  # request-rate token bucket
     t_tokens: float
     watching: bool = False
-    dropped: int = 0
-    closed: bool = False
-    events: collections.deque[bytes] = field(default_factory=collections.deque)
-    replies: collections.deque[bytes] = field(default_factory=collections.deque)
-    wake: asyncio.Event = field(default_factory=asyncio.Event)
-    drained: asyncio.Event = field(default_factory=asyncio.Event)
 
 
 async def _result(value: Any) -> Any:
@@ -172,7 +165,7 @@ def _number(args: dict[str, Any], key: str, lo: float, hi: float) -> float:
     return v
 
 
-class ControlServer:
+class ControlServer(LineServer[_Client]):
     """The remote-control endpoint. :meth:`publish` is called from the loop and never waits."""
 
     def __init__(
@@ -189,15 +182,12 @@ class ControlServer:
             raise ConfigError(
                 f"server.token_file: required when server.bind ({config.bind}) is not loopback"
             )
+        super().__init__(config.port)
         self.config = config
         self.backend = backend
         self._token = token
         self._ssl = ssl_context
         self._clock = clock
-        self._server: asyncio.Server | None = None
-        self._clients: set[_Client] = set()
-        self._tasks: set[asyncio.Task[None]] = set()
-        self.dropped_total = 0
         self.requests_total = 0
         self.errors_total = 0
         self.rejected_connections = 0
@@ -214,18 +204,6 @@ class ControlServer:
         return cls(config, backend, token=token, ssl_context=ctx)
 
     @property
-    def port(self) -> int:
-        """The bound TCP port (the real one when configured as 0)."""
-        if self._server is not None and self._server.sockets:
-            return int(self._server.sockets[0].getsockname()[1])
-        return self.config.port
-
-    @property
-    def client_count(self) -> int:
-        """Connected clients."""
-        return len(self._clients)
-
-    @property
     def auth_required(self) -> bool:
         """True when a token is configured."""
         return self._token is not None
@@ -233,7 +211,7 @@ class ControlServer:
     async def start(self) -> None:
         """Bind and listen."""
         self._server = await asyncio.start_server(
-            self._handle, self.config.bind, self.config.port, ssl=self._ssl
+            self._handle, self.config.bind, self._configured_port, ssl=self._ssl
         )
         log.info(
             "control server listening on %s:%d%s",
@@ -241,21 +219,6 @@ class ControlServer:
             self.port,
             " (TLS)" if self._ssl else "",
         )
-
-    async def close(self) -> None:
-        """Stop listening and disconnect every client (idempotent)."""
-        if self._server is not None:
-            self._server.close()
-            self._server = None
-        for c in list(self._clients):
-            c.closed = True
-            c.wake.set()
-            c.drained.set()
-            c.writer.close()
-        for t in list(self._tasks):
-            t.cancel()
-        if self._tasks:
-            await asyncio.gather(*self._tasks, return_exceptions=True)
 
     def publish(self, event: dict[str, Any]) -> None:
         """Queue an ``{"event": ..}`` line for every watching client (drop-oldest when full)."""
@@ -265,12 +228,8 @@ class ControlServer:
         line = encode(event)
         maxlen = self.config.queue_len
         for c in watchers:
-            if len(c.events) >= maxlen:
-                c.events.popleft()
-                c.dropped += 1
+            if c.put(line, maxlen):
                 self.dropped_total += 1
-            c.events.append(line)
-            c.wake.set()
 
     # -- per-connection -------------------------------------------------------------------
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -279,7 +238,13 @@ class ControlServer:
             self._tasks.add(task)
         peer = str(writer.get_extra_info("peername"))
         now = self._clock()
-        c = _Client(peer, writer, self._token is None, self._burst(), now)
+        c = _Client(
+            writer=writer,
+            peer=peer,
+            authenticated=self._token is None,
+            tokens=self._burst(),
+            t_tokens=now,
+        )
         sender: asyncio.Task[None] | None = None
         try:
             if len(self._clients) >= self.config.max_clients:
@@ -358,26 +323,7 @@ class ControlServer:
     def _reply(self, c: _Client, obj: dict[str, Any]) -> None:
         if not obj.get("ok", False):
             self.errors_total += 1
-        c.replies.append(encode(obj))
-        c.wake.set()
-
-    async def _sender(self, c: _Client) -> None:
-        try:
-            while True:
-                while c.replies or c.events:
-                    batch = b"".join(c.replies) + b"".join(c.events)
-                    c.replies.clear()
-                    c.events.clear()
-                    c.writer.write(batch)
-                    await c.writer.drain()
-                c.drained.set()
-                if c.closed:
-                    return
-                c.wake.clear()
-                await c.wake.wait()
-        except (ConnectionError, OSError, ssl.SSLError):
-            c.closed = True
-            c.drained.set()
+        c.reply(encode(obj))
 
     def _take_token(self, c: _Client) -> bool:
         now = self._clock()
