@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import ssl
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 
 @dataclass(eq=False, kw_only=True)
@@ -83,6 +84,20 @@ class LineServer(Generic[C]):
             t.cancel()
         if self._tasks:
             await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    async def _hang_up(
+        self, c: C, sender: asyncio.Task[None] | None, task: asyncio.Task[Any] | None
+    ) -> None:
+        """End a connection: let its sender flush (at most 1 s), close, forget it."""
+        self._clients.discard(c)
+        c.closed = True
+        c.wake.set()
+        if sender is not None:
+            with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError):
+                await asyncio.wait_for(sender, 1.0)
+        c.writer.close()
+        if task is not None:
+            self._tasks.discard(task)
 
     async def _sender(self, c: C) -> None:
         try:

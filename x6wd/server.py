@@ -262,15 +262,7 @@ class ControlServer(LineServer[_Client]):
         except asyncio.CancelledError:
             pass  # close(): a finished (not cancelled) task keeps asyncio's stream callback quiet
         finally:
-            self._clients.discard(c)
-            c.closed = True
-            c.wake.set()
-            if sender is not None:
-                with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError):
-                    await asyncio.wait_for(sender, 1.0)
-            writer.close()
-            if task is not None:
-                self._tasks.discard(task)
+            await self._hang_up(c, sender, task)
 
     def _burst(self) -> float:
         return max(5.0, self.config.rate_per_s)
