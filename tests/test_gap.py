@@ -288,3 +288,17 @@ def test_injected_random_walk_identified(hour_baseline: list) -> None:
     assert rep["verdict"] == {"effect": "random_walk", "explained": True}
     assert rep["effects"][0]["params"]["q_m_per_sqrt_s"] == pytest.approx(0.08, rel=0.25)
     assert any("whole log" in n for n in d.notes)
+
+
+def test_moderate_random_walk_flagged_by_likelihood_ratio_cell(hour_baseline: list) -> None:
+    # A moderate walk (0.03 m/s^0.5) hides under the baseline's 0.8 m / 120 s drift at every
+    # scale the Allan deviations reach; the whole-log likelihood-ratio cell sees it, and a
+    # null hour does not trip it.
+    from sim_backend.effects import RandomWalk
+
+    d = diagnose(hour_real(RandomWalk(0.03), seed=13), hour_baseline, np.random.default_rng(5))
+    rep = report_dict(d)
+    assert any(w["statistic"] == "random_walk_lr" for w in rep["where"])
+    assert rep["verdict"] == {"effect": "random_walk", "explained": True}
+    null = diagnose(hour_real(seed=21), hour_baseline, np.random.default_rng(5))
+    assert not any(w["statistic"] == "random_walk_lr" for w in report_dict(null)["where"])

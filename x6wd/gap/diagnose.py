@@ -31,6 +31,8 @@ from x6wd.gap.fit import (
     Fit,
     drift_fit,
     fingerprint_score,
+    noise_model,
+    random_walk_lr,
 )
 from x6wd.gap.null import NullModel, block_bootstrap, closure_ci, closure_of, null_model
 from x6wd.gap.stats import (
@@ -49,6 +51,9 @@ EXPLAINED_CLOSURE = 0.5  # a selection closing at least half the held-out gap ex
 ADD_MIN_GAIN = 0.1  # a first effect must close at least 10 % of the gap
 ADD_MIN_LEFT = 0.5  # G above the floor still worth explaining (null G - floor spread ~0.2)
 ADD_MIN_SHARE = 0.3  # a further effect must remove 30 % of the gap left
+# Whole-log cell: signed root likelihood ratio of a random walk on top of the baseline noise
+# model (see :func:`x6wd.gap.fit.random_walk_lr`).
+RW_LR_CELL = Cell("random_walk_lr", "horizontal")
 
 
 @dataclass(frozen=True)
@@ -206,8 +211,16 @@ def diagnose(
     # 1. where: the whole log against the baseline null
     say("calibrating the sim-vs-sim null", 0.05)
     full_b = _batteries(runs, layout, 0.0, T + layout.dt_s)
-    null = null_model(full_b, opt.alpha)
     real_full = battery(real, layout)
+    # The random-walk likelihood ratio is a whole-log cell only: it needs the noise model of
+    # the baseline, and the split parts are too short for a walk to show. The baseline runs
+    # are scored against a model fitted on all of them (in-sample, so their ratios are if
+    # anything smaller); its SD_FLOOR keeps the cell honest when most of them are exactly 0.
+    nm = noise_model(runs, layout)
+    for b, s in zip(full_b, runs, strict=True):
+        b[RW_LR_CELL] = random_walk_lr(s, nm)
+    real_full[RW_LR_CELL] = random_walk_lr(real, nm)
+    null = null_model(full_b, opt.alpha)
     z = null.z(real_full)
     where = [
         {
