@@ -71,11 +71,11 @@ from sim_backend.mission import (
     compass_setup,
     effects_latency_s,
     gps_effect_offsets,
+    vehicle_from_world,
     vehicle_velocity,
 )
 from sim_backend.nmea_out import NmeaFormatter, sentence, wire_time_s
 from sim_backend.ports import PtyUart
-from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
 from sim_backend.world import World, load_world
 from x6wd.config import SimConfig
 from x6wd.errors import ConfigError, DeviceUnavailable
@@ -297,18 +297,7 @@ class HilWorld:
         self._rng_fx = rng_fx
         self._fx: GpsEffectOffsets | None = None
         self._fx_block = -1
-        v = sc.vehicle
-        self.vehicle = Vehicle(
-            VehicleParams(
-                v_max_mps=v.max_speed_mps,
-                max_turn_rate_dps=v.turn_rate_dps,
-                motor_tau_s=v.motor_tau_s,
-            ),
-            east_m=v.start_east_m,
-            north_m=v.start_north_m,
-            heading_deg=v.start_heading_deg,
-            terrain=Terrain(v.slope_east_pct / 100.0, v.slope_north_pct / 100.0),
-        )
+        self.vehicle = vehicle_from_world(sc)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.t0 = time.monotonic()

@@ -322,7 +322,8 @@ def build_gnss(world: World, rng: np.random.Generator) -> GnssModel:
     )
 
 
-def _vehicle(world: World) -> Vehicle:
+def vehicle_from_world(world: World) -> Vehicle:
+    """The scenario's vehicle at its start pose (shared by fast time and HIL)."""
     v = world.vehicle
     return Vehicle(
         VehicleParams(
@@ -401,7 +402,7 @@ def run_mission(
     )
     compass = Cmps10(device, sleep=lambda _s: None, retry_delay_s=0.0)
     ctrl = Controller(world.navigation, world.safety, cset.robot_declination_deg)
-    vehicle = _vehicle(world)
+    vehicle = vehicle_from_world(world)
     origin = world.origin
     antenna_m = world.vehicle.antenna_height_m
     waypoints = [(float(a), float(b)) for a, b in world.waypoints_latlon()]
