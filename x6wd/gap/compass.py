@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +48,7 @@ from sim_backend.effects import (
     wrap360,
 )
 from x6wd.errors import ConfigError
-from x6wd.gap.diagnose import Candidate
+from x6wd.gap.diagnose import Candidate, Outcome
 from x6wd.gap.fit import Fit
 from x6wd.gap.null import NullModel, closure_ci, closure_of, null_model
 from x6wd.gap.stats import Cell
@@ -57,7 +57,6 @@ Progress = Callable[[str, float], None]
 
 AXIS = "heading"
 COMPASS_CANDIDATES = ("declination", "hard_iron", "soft_iron", "tilt", "heading_lag")
-EXPLAINED_CLOSURE = 0.5  # as the GPS side: a selection closing half the held-out gap explains it
 ADD_MIN_GAIN = 0.1  # a first effect must close at least 10 % of the gap
 ADD_MIN_LEFT = 0.5  # G above the floor still worth explaining
 ADD_MIN_SHARE = 0.3  # a further effect must remove 30 % of the gap left
@@ -116,34 +115,13 @@ class CompassOptions:
             raise ConfigError(f"compass candidates {unknown}: known {list(COMPASS_CANDIDATES)}")
 
 
-@dataclass
-class CompassDiagnosis:
+@dataclass(kw_only=True)
+class CompassDiagnosis(Outcome):
     """Everything the report needs for the compass half."""
 
     layout: CompassLayout
     real: HeadingSeries
     baseline: list[HeadingSeries]
-    bootstrap: bool
-    cells: tuple[Cell, ...]
-    z: np.ndarray
-    threshold: float
-    where: list[dict[str, Any]]
-    g_baseline: float
-    g_floor: float
-    g_with: float
-    candidates: list[Candidate]
-    selected: list[Fit]
-    closure: float
-    split_s: tuple[float, float, float]
-    notes: list[str] = field(default_factory=list)
-
-    @property
-    def significant(self) -> bool:
-        return bool(self.where)
-
-    @property
-    def explained(self) -> bool:
-        return self.significant and bool(self.selected) and self.closure >= EXPLAINED_CLOSURE
 
 
 # --- series helpers ---------------------------------------------------------------------------
@@ -573,9 +551,23 @@ def diagnose_compass(
     g_b = base_test.gap(real_test_b, ref_sd)
     g_f = base_test.floor(ref_sd)
     diag = CompassDiagnosis(
-        layout, real, runs, boot, null.cells, z, null.threshold, where,
-        g_b, g_f, g_b, [], [], 0.0, (t_fit, t_test, T), notes,
-    )  # fmt: skip
+        layout=layout,
+        real=real,
+        baseline=runs,
+        bootstrap=boot,
+        cells=null.cells,
+        z=z,
+        threshold=null.threshold,
+        where=where,
+        g_baseline=g_b,
+        g_floor=g_f,
+        g_with=g_b,
+        candidates=[],
+        selected=[],
+        closure=0.0,
+        split_s=(t_fit, t_test, T),
+        notes=notes,
+    )
     if not where:
         say("compass: no significant gap", 1.0)
         return diag

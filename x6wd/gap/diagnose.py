@@ -93,18 +93,15 @@ class Candidate:
     g_effect: float
 
 
-@dataclass
-class Diagnosis:
-    """Everything the report needs."""
+@dataclass(kw_only=True)
+class Outcome:
+    """What both halves (GPS and compass) report: null-calibrated cells, where the gap is,
+    the candidates and the selected effects with their held-out closure."""
 
-    layout: Layout
-    real: PositionSeries
-    baseline: list[PositionSeries]
     bootstrap: bool
     cells: tuple[Cell, ...]
     z: np.ndarray
     threshold: float
-    null: NullModel
     where: list[dict[str, Any]]
     g_baseline: float
     g_floor: float
@@ -122,6 +119,16 @@ class Diagnosis:
     @property
     def explained(self) -> bool:
         return self.significant and bool(self.selected) and self.closure >= EXPLAINED_CLOSURE
+
+
+@dataclass(kw_only=True)
+class Diagnosis(Outcome):
+    """Everything the report needs (GPS half)."""
+
+    layout: Layout
+    real: PositionSeries
+    baseline: list[PositionSeries]
+    null: NullModel
 
 
 def _lattice_decimals(series: Sequence[PositionSeries]) -> int | None:
@@ -251,9 +258,24 @@ def diagnose(
     g_b = base_test.gap(real_test_b, ref_sd)
     g_f = base_test.floor(ref_sd)
     diag = Diagnosis(
-        layout, real, runs, boot, null.cells, z, null.threshold, null, where,
-        g_b, g_f, g_b, [], [], 0.0, (t_fit, t_test, T), notes,
-    )  # fmt: skip
+        layout=layout,
+        real=real,
+        baseline=runs,
+        null=null,
+        bootstrap=boot,
+        cells=null.cells,
+        z=z,
+        threshold=null.threshold,
+        where=where,
+        g_baseline=g_b,
+        g_floor=g_f,
+        g_with=g_b,
+        candidates=[],
+        selected=[],
+        closure=0.0,
+        split_s=(t_fit, t_test, T),
+        notes=notes,
+    )
     if not where:
         say("no significant gap", 1.0)
         return diag
