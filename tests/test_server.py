@@ -192,6 +192,28 @@ def test_bad_requests_get_error_replies_and_the_connection_carries_on(served) ->
         raw.close()
 
 
+def test_a_garbage_flood_is_answered_in_full_but_at_the_request_rate(loop_thread) -> None:
+    import time
+
+    backend = RecordingBackend()
+    srv = start_server(loop_thread, backend, rate_per_s=200.0, input_bytes_per_s=1 << 24)
+    flood, other = Raw(srv.port), Raw(srv.port)
+    try:
+        t0 = time.monotonic()
+        flood.send(b"not json\n" * 400)
+        assert other.ask({"id": 1, "cmd": "hello"})["ok"] is True  # others are not held up
+        codes = [flood.line()["error"]["code"] for _ in range(400)]
+        elapsed = time.monotonic() - t0
+        assert codes == ["bad_json"] * 400  # every line answered, none lost
+        # 200 within the burst, the other 200 at 200/s: about a second (0.9 for timer slack)
+        assert elapsed >= 0.9
+        assert flood.ask({"id": 2, "cmd": "stop"})["ok"] is True
+    finally:
+        flood.close()
+        other.close()
+        loop_thread.run(srv.close())
+
+
 def test_oversized_line_is_rejected_once_then_service_continues(loop_thread) -> None:
     backend = RecordingBackend()
     srv = start_server(loop_thread, backend, max_line_bytes=1024, input_bytes_per_s=1 << 24)

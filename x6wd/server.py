@@ -145,6 +145,8 @@ class _Client(LineClient):
     authenticated: bool
     tokens: float  # request-rate token bucket
     t_tokens: float
+    faults: float  # error-reply token bucket (same rate and burst)
+    t_faults: float
     watching: bool = False
 
 
@@ -244,6 +246,8 @@ class ControlServer(LineServer[_Client]):
             authenticated=self._token is None,
             tokens=self._burst(),
             t_tokens=now,
+            faults=self._burst(),
+            t_faults=now,
         )
         sender: asyncio.Task[None] | None = None
         try:
@@ -300,14 +304,35 @@ class ControlServer(LineServer[_Client]):
                     discarding = False  # the rest of an oversized line
                     continue
                 if len(line) > limit:
-                    self._reply(c, error_reply(None, "line_too_long", self._too_long()))
+                    reply = error_reply(None, "line_too_long", self._too_long())
+                elif line.strip():
+                    reply = await self.dispatch(c, line)
+                else:
                     continue
-                if line.strip():
-                    self._reply(c, await self.dispatch(c, line))
+                self._reply(c, reply)
+                if not reply["ok"]:
+                    wait = self._fault_wait(c)
+                    if wait > 0.0:
+                        # a client whose requests keep failing is read at the request rate:
+                        # each line still gets its reply, only later (only it waits)
+                        await asyncio.sleep(wait)
             while len(c.replies) > MAX_PENDING_REPLIES and not c.closed:
                 # a client that asks without reading waits here, alone
                 c.drained.clear()
                 await c.drained.wait()
+
+    def _fault_wait(self, c: _Client) -> float:
+        """Charge one error reply to the client's fault bucket; seconds to wait before its
+        next line (0 within the burst). Bounds what a garbage flood costs the robot to
+        ``rate_per_s`` error replies per second per client. An empty bucket waits until it is
+        half full again: one wake-up per half burst, not a timer per line."""
+        now = self._clock()
+        rate = self.config.rate_per_s
+        c.faults = min(self._burst(), c.faults + (now - c.t_faults) * rate) - 1.0
+        c.t_faults = now
+        if c.faults >= 0.0:
+            return 0.0
+        return (self._burst() / 2.0 - c.faults) / rate
 
     def _too_long(self) -> str:
         return f"request line longer than {self.config.max_line_bytes} bytes"
