@@ -139,14 +139,28 @@ class _Reject(Exception):
         self.code = code
 
 
+@dataclass
+class _Bucket:
+    """A token bucket: ``level`` tokens refilled at ``rate`` per second up to ``burst``."""
+
+    rate: float
+    burst: float
+    level: float
+    t: float
+
+    def refill(self, now: float) -> float:
+        """Bring the level up to ``now`` (s, the server's clock) and return it."""
+        self.level = min(self.burst, self.level + (now - self.t) * self.rate)
+        self.t = now
+        return self.level
+
+
 @dataclass(eq=False, kw_only=True)
 class _Client(LineClient):
     peer: str
     authenticated: bool
-    tokens: float  # request-rate token bucket
-    t_tokens: float
-    faults: float  # error-reply token bucket (same rate and burst)
-    t_faults: float
+    tokens: _Bucket  # requests
+    faults: _Bucket  # error replies (same rate and burst)
     watching: bool = False
 
 
@@ -244,10 +258,8 @@ class ControlServer(LineServer[_Client]):
             writer=writer,
             peer=peer,
             authenticated=self._token is None,
-            tokens=self._burst(),
-            t_tokens=now,
-            faults=self._burst(),
-            t_faults=now,
+            tokens=self._bucket(now),
+            faults=self._bucket(now),
         )
         sender: asyncio.Task[None] | None = None
         try:
@@ -268,8 +280,9 @@ class ControlServer(LineServer[_Client]):
         finally:
             await self._hang_up(c, sender, task)
 
-    def _burst(self) -> float:
-        return max(5.0, self.config.rate_per_s)
+    def _bucket(self, now: float) -> _Bucket:
+        burst = max(5.0, self.config.rate_per_s)
+        return _Bucket(self.config.rate_per_s, burst, burst, now)
 
     async def _read_loop(self, reader: asyncio.StreamReader, c: _Client) -> None:
         limit = self.config.max_line_bytes
@@ -277,17 +290,16 @@ class ControlServer(LineServer[_Client]):
         discarding = False
         rate = float(self.config.input_bytes_per_s)
         burst = max(rate, 2.0 * limit)
-        budget, t_budget = burst, self._clock()
+        budget = _Bucket(rate, burst, burst, self._clock())
         while not c.closed:
             chunk = await reader.read(65536)
             if not chunk:
                 return
-            now = self._clock()
-            budget = min(burst, budget + (now - t_budget) * rate) - len(chunk)
-            t_budget = now
-            if budget < 0:
+            budget.refill(self._clock())
+            budget.level -= len(chunk)
+            if budget.level < 0:
                 # a flood: stop reading this client for a while (only it waits)
-                await asyncio.sleep(-budget / rate)
+                await asyncio.sleep(-budget.level / rate)
             buf += chunk
             while True:
                 nl = buf.find(b"\n")
@@ -326,13 +338,12 @@ class ControlServer(LineServer[_Client]):
         next line (0 within the burst). Bounds what a garbage flood costs the robot to
         ``rate_per_s`` error replies per second per client. An empty bucket waits until it is
         half full again: one wake-up per half burst, not a timer per line."""
-        now = self._clock()
-        rate = self.config.rate_per_s
-        c.faults = min(self._burst(), c.faults + (now - c.t_faults) * rate) - 1.0
-        c.t_faults = now
-        if c.faults >= 0.0:
+        b = c.faults
+        b.refill(self._clock())
+        b.level -= 1.0
+        if b.level >= 0.0:
             return 0.0
-        return (self._burst() / 2.0 - c.faults) / rate
+        return (b.burst / 2.0 - b.level) / b.rate
 
     def _too_long(self) -> str:
         return f"request line longer than {self.config.max_line_bytes} bytes"
@@ -343,11 +354,8 @@ class ControlServer(LineServer[_Client]):
         c.reply(encode(obj))
 
     def _take_token(self, c: _Client) -> bool:
-        now = self._clock()
-        c.tokens = min(self._burst(), c.tokens + (now - c.t_tokens) * self.config.rate_per_s)
-        c.t_tokens = now
-        if c.tokens >= 1.0:
-            c.tokens -= 1.0
+        if c.tokens.refill(self._clock()) >= 1.0:
+            c.tokens.level -= 1.0
             return True
         return False
 
