@@ -347,6 +347,9 @@ def quantize_degrees(deg: np.ndarray, decimals: int) -> np.ndarray:
     return np.sign(d) * minutes / 60.0
 
 
+JUMP_TRIGGERS = ("auto", "poisson", "sat_change")
+
+
 @dataclass(frozen=True)
 class Jumps(_Params):
     """Position jumps when the satellite set changes.
@@ -354,18 +357,24 @@ class Jumps(_Params):
     Each satellite set has its own solution offset, so at every change of ``nsats`` (or, when
     the series has no nsats, at Poisson events of ``rate_per_s``) a fresh offset
     N(0, sigma_m^2) per horizontal axis (N(0, up_sigma_m^2) up) replaces the previous one.
-    The first set starts with an offset from the same law (stationary).
+    The first set starts with an offset from the same law (stationary). ``trigger`` "auto"
+    is that rule; "poisson" always uses Poisson events (a receiver that re-solves for reasons
+    the satellite count does not show: multipath switching, RAIM exclusions), "sat_change"
+    always uses set changes (none without nsats).
     """
 
     name: ClassVar[str] = "jumps"
     sigma_m: float
     rate_per_s: float = 0.01
     up_sigma_m: float = 0.0
+    trigger: str = "auto"
 
     def __post_init__(self) -> None:
         _positive("sigma_m", self.sigma_m, allow_zero=True)
         _positive("rate_per_s", self.rate_per_s, allow_zero=True)
         _positive("up_sigma_m", self.up_sigma_m, allow_zero=True)
+        if self.trigger not in JUMP_TRIGGERS:
+            raise ConfigError(f"trigger={self.trigger!r}: expected one of {list(JUMP_TRIGGERS)}")
 
     def change_mask(self, series: PositionSeries, rng: np.random.Generator) -> np.ndarray:
         """Boolean per epoch: True where a new satellite set (new offset) begins."""
@@ -373,7 +382,9 @@ class Jumps(_Params):
         mask = np.zeros(n, dtype=bool)
         if n < 2:
             return mask
-        if series.nsats is not None:
+        if self.trigger == "sat_change" and series.nsats is None:
+            return mask
+        if series.nsats is not None and self.trigger != "poisson":
             ns = np.asarray(series.nsats)
             mask[1:] = ns[1:] != ns[:-1]
         else:

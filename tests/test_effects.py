@@ -153,6 +153,17 @@ def test_jumps_at_satellite_set_changes_only() -> None:
         for i in range(20)
     ]
     assert float(np.mean(k)) == pytest.approx(0.05 * 1999, rel=0.15)
+    # trigger "poisson" ignores the satellite count; "sat_change" never jumps without one
+    s2 = zeros(2000, nsats=np.full(2000, 8))
+    k = [
+        np.count_nonzero(np.diff(Jumps(1.0, 0.05, trigger="poisson").apply(s2, rng).east_m))
+        for rng in map(np.random.default_rng, range(20))
+    ]
+    assert float(np.mean(k)) == pytest.approx(0.05 * 1999, rel=0.15)
+    flat = Jumps(1.0, 0.05, trigger="sat_change").apply(zeros(500), np.random.default_rng(0))
+    assert np.count_nonzero(np.diff(flat.east_m)) == 0
+    with pytest.raises(ConfigError, match="trigger"):
+        Jumps(1.0, trigger="sometimes")
 
 
 def test_outages_two_state_means() -> None:

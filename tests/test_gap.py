@@ -302,3 +302,37 @@ def test_moderate_random_walk_flagged_by_likelihood_ratio_cell(hour_baseline: li
     assert rep["verdict"] == {"effect": "random_walk", "explained": True}
     null = diagnose(hour_real(seed=21), hour_baseline, np.random.default_rng(5))
     assert not any(w["statistic"] == "random_walk_lr" for w in report_dict(null)["where"])
+
+
+# --- jumps: a step-law mixture on top of the baseline's own steps -------------------------------
+
+
+def test_jump_fit_recovers_size_and_rate_and_stays_quiet_on_null(hour_baseline: list) -> None:
+    from sim_backend.effects import Jumps
+    from x6wd.gap.fit import fit_jumps
+
+    lay = layout_for(hour_baseline[0])
+    sig, rate = [], []
+    for seed in (31, 32, 33):
+        real = hour_real(Jumps(1.0, 0.005, trigger="poisson"), seed=seed)
+        f = fit_jumps(real, hour_baseline, lay)
+        assert f is not None and f.params["trigger"] == "poisson"
+        sig.append(f.params["sigma_m"])
+        rate.append(f.params["rate_per_s"])
+    # three hours of 18 jumps each: sigma and rate within a third of the truth on average
+    assert float(np.mean(sig)) == pytest.approx(1.0, rel=0.3)
+    assert float(np.mean(rate)) == pytest.approx(0.005, rel=0.35)
+    nulls = [fit_jumps(hour_real(seed=s), hour_baseline, lay) for s in (41, 42, 43, 44)]
+    assert sum(f is not None and f.params["rate_per_s"] > 0.001 for f in nulls) <= 1
+
+
+def test_jump_fit_survives_a_coarse_lattice() -> None:
+    # A 2-decimal lattice (18 m) makes almost every step exactly zero: no crash, no fit.
+    from x6wd.gap.fit import fit_jumps
+
+    coarse = [
+        surrogate_run(600.0, 1.0, np.random.default_rng(i), effects=[*PRE, Quantization(2)])
+        for i in range(4)
+    ]
+    real = surrogate_run(600.0, 1.0, np.random.default_rng(9), effects=[*PRE, Quantization(2)])
+    assert fit_jumps(real, coarse, layout_for(real)) is None

@@ -46,6 +46,7 @@ SD_FLOOR: dict[str, float] = {
     "log_outage_s": 0.05,
     "latency_slope": 0.01,  # s
     "log_rms_place": 0.02,
+    "log_step_std_place": 0.02,
     # Signed root likelihood ratio (x6wd.gap.fit.random_walk_lr): mostly exactly 0 without a
     # walk, so a dozen runs can show no spread at all and this floor sets the alarm level. At
     # 0.7 the family-wise threshold (z ~ 4.9 over ~75 cells) sits near a root of 3.4, whose
@@ -255,6 +256,15 @@ def battery(series: PositionSeries, layout: Layout) -> dict[Cell, float]:
     # per place (moving logs): where on the map
     if layout.moving:
         te, tn = truth_track_m(series)
+        # steps between consecutive valid epochs, attributed to the place of the later one:
+        # a local error source (a multipath zone) is fast, so it shows far more in the step
+        # size there than in the RMS, which the slow whole-log drift dominates
+        iv = np.flatnonzero(v)
+        step2 = np.zeros(v.size)
+        if iv.size > 1:
+            step2[iv[1:]] = np.diff(E[iv]) ** 2 + np.diff(N[iv]) ** 2
+        has_step = np.zeros(v.size, dtype=bool)
+        has_step[iv[1:]] = True
         for name, in_place in _places(te, tn, layout).items():
             sel = v & in_place
             rms = (
@@ -263,6 +273,10 @@ def battery(series: PositionSeries, layout: Layout) -> dict[Cell, float]:
                 else 0.0
             )
             out[Cell("log_rms_place", "horizontal", place=name)] = _log(rms)
+            ss = has_step & in_place
+            out[Cell("log_step_std_place", "horizontal", place=name)] = _log(
+                float(np.sqrt(np.mean(step2[ss]))) if np.count_nonzero(ss) >= 3 else 0.0
+            )
     return out
 
 
