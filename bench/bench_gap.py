@@ -127,6 +127,8 @@ def _runs(case: Case) -> tuple[PositionSeries, list[PositionSeries], list[Any]]:
     _kind, level, names, moving, seed, duration_s, m_runs, source = case
     tpl = surrogate_run(duration_s, 1.0, np.random.default_rng(0), moving=moving)
     effects = [effect_of(n, level or "moderate", tpl, source) for n in names]
+    # a receiver prints its final position: the NMEA lattice acts last
+    effects.sort(key=lambda e: e.name == "quantization")
     if source == "gnss":
         from x6wd.gap.scenario import scenario_baseline
 
@@ -165,7 +167,7 @@ def _case(case: Case) -> dict[str, Any]:
         "significant": d.significant, "seconds": dt, "where": d.where[:8], "notes": d.notes,
         "closure_right": right.closure if right else None, "closure_wrong": wrong,
         "params": right.fit.params if right else None, "se": right.fit.se if right else None,
-        "truth": effects[0].to_params() if effects else None,
+        "truth": next((e.to_params() for e in effects if names and e.name == names[0]), None),
         "candidates": {c.fit.name: round(c.closure, 3) for c in d.candidates},
     }  # fmt: skip
 

@@ -24,13 +24,14 @@ import numpy as np
 from sim_backend.effects import PositionSeries, Quantization
 from x6wd.errors import ConfigError
 from x6wd.gap.fit import (
+    COMPANIONS,
     DRIFT_FAMILY,
-    DRIFT_MODELS,
     FITTABLE,
     FITTERS,
     Fit,
     drift_fit,
     fingerprint_score,
+    joint_drift_fits,
     noise_model,
     random_walk_lr,
 )
@@ -175,8 +176,21 @@ def _refit_whole(
 ) -> list[Fit]:
     """Each selected effect refitted on the whole log on top of the baseline runs plus the
     other selected effects (its fit-part version kept when the refit fails)."""
+    names = [f.name for f in selected]
+    drift = next((n for n in names if n in ("gauss_markov", "random_walk")), None)
+    joint: dict[str, Fit] = {}
+    if drift is not None:
+        # the drift and the bias / latency beside it: one joint likelihood, on top of the
+        # baseline plus the selected effects outside that family
+        rest = [g for g in selected if g.name != drift and g.name not in COMPANIONS]
+        base = apply_fits(rest, runs, rng, lattice) if rest else list(runs)
+        flags = ("bias" in names, "latency" in names)
+        joint = {f.name: f for f in joint_drift_fits(real, base, layout, drift, flags)}
     out = []
     for f in selected:
+        if f.name in joint:
+            out.append(joint[f.name])
+            continue
         others = [g for g in selected if g is not f]
         base = apply_fits(others, runs, rng, lattice) if others else list(runs)
         whole = FITTERS[f.name](real, base, layout)
@@ -286,8 +300,9 @@ def diagnose(
     g_cur = g_b
     scored: dict[str, Candidate] = {}
     real_fit_b = battery(real_fit, fit_lay)
-    # a bias the whole-log likelihood names beside a drift: the short held-out part cannot
-    # see it once the drift is in (it widens the spread of means), so leave-one-out keeps it
+    # a bias or latency the whole-log likelihood names beside a drift: the short held-out part
+    # cannot see it once the drift is in (the drift widens the spread of means, or soaks up a
+    # speed-correlated error), so leave-one-out keeps it
     named_by_likelihood: set[str] = set()
     ref_fit_sd = null_model(_batteries(runs, fit_lay, 0.0, t_fit), opt.alpha).sd
 
@@ -308,7 +323,7 @@ def diagnose(
         # Choice among candidates: held-out G plus the fit part's G. The fit part sees the
         # longer time scales a short held-out part cannot, so a look-alike (random walk for a
         # slow Gauss-Markov drift) that only matches the short scales loses.
-        best: tuple[float, float, list[Fit], bool] | None = None
+        best: tuple[float, float, list[Fit], list[str]] | None = None
         mean_cells = np.array([c.statistic == "mean" for c in fit_null.cells])
         bias_flagged = bool(np.any(np.abs(zf[mean_cells]) > 3.0))
         g_pair = math.inf
@@ -330,7 +345,7 @@ def diagnose(
             # the likelihood sees no drift left, and no drift is added.
             best_model = fam.best_effect if round_ == 0 else fam.best
             fam_best = [] if best_model == "none" else best_model.split("+")
-            ranks = sorted(DRIFT_MODELS, key=fam.bic)
+            ranks = sorted(fam.models, key=fam.bic)
             notes.append(
                 f"round {round_ + 1}: drift family by exact likelihood on the whole log: "
                 f"{best_model} (BIC, lower is better, relative to it: "
@@ -349,18 +364,27 @@ def diagnose(
                 continue
             key, g_e, eff_null, with_runs = evaluate([*selected, fit])
             option = [fit]
-            forced = False  # the bias beside it is named by the likelihood
+            forced: list[str] = []  # companions named beside it by the likelihood
             in_family = name in DRIFT_FAMILY
             eligible = not in_family or bool(fam_best and fam_best[0] == name)
-            if in_family and eligible and "bias" in fam_best[1:] and "bias" in names:
-                # the likelihood names this drift WITH a bias: add the bias refitted on top
-                comp = FITTERS["bias"](
-                    real_fit, [window(s, 0.0, t_fit) for s in with_runs], fit_lay
-                )
-                if comp is not None:
-                    key, g_pair, _n2, _r2 = evaluate([*selected, fit, comp])
-                    option = [fit, comp]
-                    forced = True
+            comps = [c for c in fam_best[1:] if c in COMPANIONS and c in names and c != name]
+            if in_family and eligible and comps and name in ("gauss_markov", "random_walk"):
+                # the likelihood names this drift WITH companions: all from one joint fit
+                flags = ("bias" in comps, "latency" in comps)
+                joint = joint_drift_fits(real_fit, cur_fit, fit_lay, name, flags)
+                if len(joint) > 1:
+                    option = joint
+                    forced = [f.name for f in joint[1:]]
+                    key, g_pair, _n2, with_runs = evaluate([*selected, *option])
+            elif in_family and eligible and comps:  # bias named with a latency
+                for comp_name in comps:
+                    comp = FITTERS[comp_name](
+                        real_fit, [window(s, 0.0, t_fit) for s in with_runs], fit_lay
+                    )
+                    if comp is not None:
+                        option.append(comp)
+                        forced.append(comp_name)
+                        key, g_pair, _n2, with_runs = evaluate([*selected, *option])
             # A bias hides under any effect that widens the spread of means: try each
             # candidate with a bias refitted on top, and keep the pair if it scores better.
             elif eligible and name != "bias" and bias_flagged and "bias" in names:
@@ -394,8 +418,7 @@ def diagnose(
         if round_ == 0 and closure_of(g_b, best[1], g_f) < ADD_MIN_GAIN:
             break
         selected.extend(best[2])
-        if best[3]:
-            named_by_likelihood.add("bias")
+        named_by_likelihood.update(best[3])
         g_cur = best[1]
         current = apply_fits(selected, runs, rng, lattice)
 

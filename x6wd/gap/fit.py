@@ -35,7 +35,6 @@ from x6wd.gap.stats import (
     QUANT_DECIMALS,
     Cell,
     Layout,
-    latency_slope,
     lattice_fraction,
     regular,
 )
@@ -110,7 +109,7 @@ def fit_gauss_markov(
     if len(real) < 32:
         return None
     d = drift_fit(real, base, layout)
-    (sigma, tau), (se_s, se_t) = d.gm[d.with_bias("gauss_markov")]
+    (sigma, tau), (se_s, se_t) = d.gm[d.companions("gauss_markov")]
     if not (math.isfinite(sigma) and math.isfinite(tau)) or sigma < 1e-4:
         return None
     tau = min(tau, 10 * layout.duration_s)
@@ -118,6 +117,51 @@ def fit_gauss_markov(
         GaussMarkov(sigma_m=round(sigma, 4), tau_s=round(tau, 3), axes="en"),
         {"sigma_m": se_s, "tau_s": se_t},
     )
+
+
+def joint_drift_fits(
+    real: PositionSeries,
+    base: Sequence[PositionSeries],
+    layout: Layout,
+    drift: str,
+    flags: Flags,
+) -> list[Fit]:
+    """The drift ("gauss_markov" or "random_walk") and its GLS companions (bias, latency, as
+    ``flags`` say) from ONE exact-likelihood fit on top of the baseline noise model: the
+    parameters of each are estimated with the others in the model, so a speed-correlated or
+    constant error is not soaked up by the drift (and vice versa)."""
+    d = drift_fit(real, base, layout)
+    name = drift_model_name(drift, flags)
+    if name not in d.loglik:
+        return []
+    out: list[Fit] = []
+    if drift == "gauss_markov":
+        (sigma, tau), (se_s, se_t) = d.gm[flags]
+        out.append(
+            Fit(
+                GaussMarkov(
+                    sigma_m=round(sigma, 4), tau_s=round(min(tau, 10 * layout.duration_s), 3)
+                ),
+                {"sigma_m": se_s, "tau_s": se_t},
+            )
+        )
+    else:
+        q, se_q = d.rw[flags]
+        out.append(Fit(RandomWalk(q_m_per_sqrt_s=round(q, 6)), {"q_m_per_sqrt_s": se_q}))
+    coef, se = d.coefs.get(name, (np.zeros(0), np.zeros(0)))
+    if flags[0] and coef.size >= 2:
+        up = fit_bias(real, base, layout)  # the GLS is horizontal; up from the means
+        up_m = float(up.params.get("up_m", 0.0)) if up is not None else 0.0
+        up_se = float(up.se.get("up_m", 0.0)) if up is not None else 0.0
+        out.append(
+            Fit(
+                Bias(east_m=round(float(coef[0]), 4), north_m=round(float(coef[1]), 4), up_m=up_m),
+                {"east_m": float(se[0]), "north_m": float(se[1]), "up_m": up_se},
+            )
+        )
+    if flags[1] and coef.size >= 1 and float(coef[-1]) > 0:
+        out.append(Fit(Latency(delay_s=round(float(coef[-1]), 4)), {"delay_s": float(se[-1])}))
+    return out
 
 
 def fit_random_walk(
@@ -129,7 +173,7 @@ def fit_random_walk(
     if len(real) < 32:
         return None
     d = drift_fit(real, base, layout)
-    q, se_q = d.rw[d.with_bias("random_walk")]
+    q, se_q = d.rw[d.companions("random_walk")]
     if not math.isfinite(q) or q < 1e-6:
         return None
     return Fit(RandomWalk(q_m_per_sqrt_s=round(q, 6), axes="en"), {"q_m_per_sqrt_s": se_q})
@@ -334,16 +378,17 @@ def fit_outages(real: PositionSeries, base: Sequence[PositionSeries], layout: La
 
 
 def fit_latency(real: PositionSeries, base: Sequence[PositionSeries], layout: Layout) -> Fit | None:
-    """Latency = -(real slope - baseline slope) of along-track error on true speed."""
-    if not layout.moving:
+    """Latency by exact GLS: the delay d whose error -d x velocity, with a bias per axis,
+    best explains the log on top of the baseline noise model (Kalman innovations of the
+    data, the ones and the velocity regressor; see :class:`KalmanTerms`)."""
+    if not layout.moving or latency_regressor(real) is None:
         return None
-    r, r_se = latency_slope(real)
-    b = np.array([latency_slope(s)[0] for s in base])
-    delay = -(r - float(b.mean()))
-    if not math.isfinite(r_se) or delay <= 0:
+    kt = kalman_terms(real, noise_model(base, layout), np.zeros(1), np.ones(1))
+    coef, se = kt.coef(True, True)
+    delay, se_d = float(coef[0, -1]), float(se[0, -1])
+    if not math.isfinite(delay) or delay <= 0:
         return None
-    se = math.hypot(r_se, float(b.std(ddof=1)) / math.sqrt(len(base)))
-    return Fit(Latency(delay_s=round(delay, 4)), {"delay_s": se})
+    return Fit(Latency(delay_s=round(delay, 4)), {"delay_s": se_d})
 
 
 # --- exact state-space likelihood (Kalman filter) ----------------------------------------------
@@ -454,25 +499,68 @@ def fit_noise_model(base: Sequence[PositionSeries], layout: Layout) -> NoiseMode
 
 @dataclass(frozen=True)
 class KalmanTerms:
-    """Per (batch, axis) sums over valid epochs: log S, e^2/S, e*e1/S, e1^2/S (e the data's
-    innovations, e1 those of a column of ones) and the number of observations."""
+    """Per (batch, axis): sum of log S over the valid epochs, the Gram matrix
+    sum e_c e_d / S of the innovations of the columns [data, ones, latency regressor] (the
+    last only for moving logs) and the number of observations per axis."""
 
-    log_s: np.ndarray
-    yy: np.ndarray
-    y1: np.ndarray
-    oo: np.ndarray
+    log_s: np.ndarray  # (B, 2)
+    gram: np.ndarray  # (B, 2, C, C)
     nobs: int
 
-    def loglik(self, bias: bool) -> np.ndarray:
-        """Exact Gaussian log-likelihood per batch element: the mean fixed at the baseline's
-        (``bias`` False) or profiled per axis by GLS (``bias`` True)."""
-        q = self.yy - (self.y1**2 / np.maximum(self.oo, 1e-300) if bias else 0.0)
-        return -0.5 * np.sum(self.log_s + q + self.nobs * _LOG_2PI, axis=-1)
+    @property
+    def has_latency(self) -> bool:
+        return self.gram.shape[-1] > 2
 
-    def bias(self) -> tuple[np.ndarray, np.ndarray]:
-        """GLS bias per (batch, axis) and its standard error."""
-        oo = np.maximum(self.oo, 1e-300)
-        return self.y1 / oo, 1.0 / np.sqrt(oo)
+    def _normal_equations(self, bias: bool, latency: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(A (B, P, P), c (B, P)) of the GLS regression of the data on the chosen regressors:
+        a bias per axis (column 1 of that axis) and one latency shared by both axes (column 2
+        of each axis: the error a delay makes is -delay x velocity)."""
+        g = self.gram
+        params = ([(0, 1), (1, 1)] if bias else []) + (
+            [(None, 2)] if latency and self.has_latency else []
+        )
+        m = len(params)
+        a = np.zeros((g.shape[0], m, m))
+        c = np.zeros((g.shape[0], m))
+        for i, (ax_i, col_i) in enumerate(params):
+            axes_i = {0, 1} if ax_i is None else {ax_i}
+            c[:, i] = sum(g[:, ax, 0, col_i] for ax in axes_i)
+            for j, (ax_j, col_j) in enumerate(params):
+                common = axes_i & ({0, 1} if ax_j is None else {ax_j})
+                a[:, i, j] = sum(g[:, ax, col_i, col_j] for ax in common)
+        return a, c
+
+    def loglik(self, bias: bool, latency: bool = False) -> np.ndarray:
+        """Exact Gaussian log-likelihood per batch element: the mean fixed at the baseline's,
+        or with a bias per axis (``bias``) and/or a latency (``latency``, moving logs)
+        profiled out by GLS."""
+        q = self.gram[:, :, 0, 0].sum(axis=-1)
+        a, c = self._normal_equations(bias, latency)
+        if c.shape[1]:
+            beta = np.linalg.solve(a + 1e-12 * np.eye(c.shape[1]), c[..., None])[..., 0]
+            q = q - np.sum(c * beta, axis=-1)
+        return -0.5 * (self.log_s.sum(axis=-1) + q + 2 * self.nobs * _LOG_2PI)
+
+    def coef(self, bias: bool, latency: bool) -> tuple[np.ndarray, np.ndarray]:
+        """GLS coefficients (B, P) and their standard errors: [bias east, bias north] (m)
+        when ``bias``, then the latency (s) when ``latency``."""
+        a, c = self._normal_equations(bias, latency)
+        cov = np.linalg.inv(a + 1e-12 * np.eye(c.shape[1]))
+        return (cov @ c[..., None])[..., 0], np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+
+
+def latency_regressor(series: PositionSeries) -> np.ndarray | None:
+    """(2, n) the east/north error (m) per second of delay at the valid epochs: -velocity,
+    since a receiver that is d s late reports truth(t - d) ~ truth(t) - d v(t). None at rest."""
+    if series.speed_mps is None:
+        return None
+    v = np.asarray(series.valid, dtype=bool)
+    spd = np.nan_to_num(np.asarray(series.speed_mps, dtype=float))[v]
+    crs = series.course_deg
+    c = np.radians(np.nan_to_num(np.asarray(crs, dtype=float)))[v] if crs is not None else 0 * spd
+    if not np.any(spd > 0):
+        return None
+    return -np.stack([spd * np.sin(c), spd * np.cos(c)])
 
 
 def kalman_terms(
@@ -483,15 +571,19 @@ def kalman_terms(
 ) -> KalmanTerms:
     """Run the Kalman filter of baseline model + one effect component for a batch of effect
     parameters: ``eff_var`` (B,) the stationary variance sigma^2 of a Gauss-Markov effect or,
-    where ``eff_tau`` is inf, the random-walk rate q^2 (m^2/s); ``eff_var`` 0 = no effect."""
+    where ``eff_tau`` is inf, the random-walk rate q^2 (m^2/s); ``eff_var`` 0 = no effect.
+    The innovations are linear in the data, so the filter run on a column of ones and on the
+    latency regressor gives their innovations for GLS at no extra Riccati cost."""
     v = np.asarray(real.valid, dtype=bool)
     t = np.asarray(real.t_s, dtype=float)[v]
     east = np.asarray(real.east_m, dtype=float)[v]
     north = np.asarray(real.north_m, dtype=float)[v]
     y = np.stack([east, north]) - model.mean_m[:, None]  # (2, n)
+    lat = latency_regressor(real)
     n = t.size
     b = eff_var.size
     k = model.tau_s.shape[1] + 1
+    cols = 2 if lat is None else 3
     # Layout: state index first, the batch (B parameter sets x 2 axes, flattened, column
     # j = (batch j // 2, axis j % 2)) LAST and contiguous, so that every time step is a
     # handful of vector operations over the whole batch.
@@ -516,12 +608,14 @@ def kalman_terms(
     dts = np.diff(t)
     uniq, inv = np.unique(np.round(dts, 6), return_inverse=True)
     table = [step(float(d)) for d in uniq] if uniq.size <= 32 else None
-    x = np.zeros((k, 2, nb))  # middle axis: [data, ones]
+    x = np.zeros((k, cols, nb))  # middle axis: [data, ones(, latency)]
     p = diag * p0[None, :, :]
-    obs = np.empty((n, 2, nb))
+    obs = np.empty((n, cols, nb))
     obs[:, 0, :] = np.tile(y.T, (1, b))
     obs[:, 1, :] = 1.0
-    e_all = np.empty((n, 2, nb))
+    if lat is not None:
+        obs[:, 2, :] = np.tile(lat.T, (1, b))
+    e_all = np.empty((n, cols, nb))
     s_all = np.empty((n, nb))
     for i in range(n):
         if i > 0:
@@ -530,70 +624,81 @@ def kalman_terms(
             x = x * phi
         pk = p.sum(axis=1)  # (k, nb): P @ 1
         s = pk.sum(axis=0) + w2  # innovation variance
-        e = obs[i] - x.sum(axis=0)  # innovations of [data, ones]
+        e = obs[i] - x.sum(axis=0)  # innovations of every column
         gain = pk / s
         x += gain[:, None, :] * e[None, :, :]
         p -= gain[:, None, :] * pk[None, :, :]
         e_all[i] = e
         s_all[i] = s
-    inv_s = 1.0 / s_all
-
-    def per_axis(a: np.ndarray) -> np.ndarray:
-        return a.reshape(b, 2)
-
+    scaled = e_all / np.sqrt(s_all)[:, None, :]
+    gram = np.einsum("ncj,ndj->jcd", scaled, scaled)  # (nb, C, C)
     return KalmanTerms(
-        log_s=per_axis(np.log(s_all).sum(axis=0)),
-        yy=per_axis(np.sum(e_all[:, 0] ** 2 * inv_s, axis=0)),
-        y1=per_axis(np.sum(e_all[:, 0] * e_all[:, 1] * inv_s, axis=0)),
-        oo=per_axis(np.sum(e_all[:, 1] ** 2 * inv_s, axis=0)),
+        log_s=np.log(s_all).sum(axis=0).reshape(b, 2),
+        gram=gram.reshape(b, 2, cols, cols),
         nobs=n,
     )
 
 
 # --- the drift family: none / bias / Gauss-Markov / random walk, by exact likelihood ----------
 
-DRIFT_MODELS: dict[str, int] = {
-    # model -> number of free parameters (bias: one mean per horizontal axis)
-    "none": 0,
-    "bias": 2,
-    "gauss_markov": 2,
-    "gauss_markov+bias": 4,
-    "random_walk": 1,
-    "random_walk+bias": 3,
-}
+# Model names: a drift ("gauss_markov", "random_walk" or none) with GLS companions "+bias"
+# (one mean per horizontal axis) and "+latency" (moving logs); the drift alone reads as its
+# name, no drift and no companion as "none", companions alone as "bias", "bias+latency" ...
+DRIFT_PARAMS = {"gauss_markov": 2, "random_walk": 1, "bias": 2, "latency": 1}
 DRIFT_FAMILY = ("gauss_markov", "random_walk", "bias")
+COMPANIONS = ("bias", "latency")
+Flags = tuple[bool, bool]  # (bias, latency)
+
+
+def drift_model_name(drift: str | None, flags: Flags) -> str:
+    """The model name of a drift ("gauss_markov", "random_walk", None) with companions."""
+    parts = [drift] if drift else []
+    parts += [c for c, on in zip(COMPANIONS, flags, strict=True) if on]
+    return "+".join(parts) or "none"
+
+
+def _n_params(name: str) -> int:
+    return 0 if name == "none" else sum(DRIFT_PARAMS[p] for p in name.split("+"))
 
 
 @dataclass(frozen=True)
 class DriftFit:
     """Exact-likelihood fits of the drift family to one log on top of the baseline noise
-    model. ``loglik`` per model of :data:`DRIFT_MODELS`; ``gm``/``rw`` per bias flag:
-    (parameters, standard errors) in the effects' units; ``nobs`` the scalar observations."""
+    model. ``loglik`` per model name (see :func:`drift_model_name`); ``gm``/``rw`` per
+    companion flags (bias, latency): (parameters, standard errors) in the effects' units;
+    ``nobs`` the scalar observations."""
 
     loglik: dict[str, float]
-    gm: dict[bool, tuple[tuple[float, float], tuple[float, float]]]
-    rw: dict[bool, tuple[float, float]]
+    gm: dict[Flags, tuple[tuple[float, float], tuple[float, float]]]
+    rw: dict[Flags, tuple[float, float]]
     nobs: int
     model: NoiseModel
+    # GLS companions at each model's optimum: model name -> (values, standard errors) in the
+    # order [bias east (m), bias north (m)] then [latency (s)], as the flags say
+    coefs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    @property
+    def models(self) -> list[str]:
+        return list(self.loglik)
 
     def bic(self, name: str) -> float:
         """Bayesian information criterion (lower is better)."""
-        return -2.0 * self.loglik[name] + DRIFT_MODELS[name] * math.log(max(self.nobs, 2))
+        return -2.0 * self.loglik[name] + _n_params(name) * math.log(max(self.nobs, 2))
 
     @property
     def best(self) -> str:
         """The model with the lowest BIC."""
-        return min(DRIFT_MODELS, key=self.bic)
+        return min(self.models, key=self.bic)
 
     @property
     def best_effect(self) -> str:
         """The effect model (not "none") with the lowest BIC: which member of the family
         explains a drift, once the battery has said there is a gap to explain."""
-        return min((m for m in DRIFT_MODELS if m != "none"), key=self.bic)
+        return min((m for m in self.models if m != "none"), key=self.bic)
 
-    def with_bias(self, name: str) -> bool:
-        """Whether ``name`` (gauss_markov or random_walk) is better with a bias beside it."""
-        return self.bic(f"{name}+bias") < self.bic(name)
+    def companions(self, drift: str) -> Flags:
+        """The companion flags (bias, latency) with which ``drift`` has the lowest BIC."""
+        return min(self.gm, key=lambda f: self.bic(drift_model_name(drift, f)))
 
 
 def _quad_fit(pts: np.ndarray, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -640,9 +745,9 @@ def drift_fit(real: PositionSeries, base: Sequence[PositionSeries], layout: Layo
     exact Kalman likelihoods; standard errors from the curvature of the log-likelihood
     (a quadratic through the last zoom grid, in log-parameters). Cached per (real, base)."""
     key = (id(real), *(id(s) for s in base))
-    for k, _keep, f in _DRIFT_CACHE:
+    for k, _keep, cached in _DRIFT_CACHE:
         if k == key:
-            return f
+            return cached
     model = noise_model(base, layout)
     dt = layout.dt_s
     span = max(layout.duration_s, 10 * dt)
@@ -660,32 +765,43 @@ def drift_fit(real: PositionSeries, base: Sequence[PositionSeries], layout: Layo
     eff_var = np.concatenate([gm_var(g_s, g_t), np.exp(2 * lq), [0.0]])
     eff_tau = np.concatenate([np.exp(g_t), np.full(lq.size, np.inf), [1.0]])
     kt = kalman_terms(real, model, eff_var, eff_tau)
-    lik = {b: kt.loglik(b) for b in (False, True)}
-    loglik = {"none": float(lik[False][-1]), "bias": float(lik[True][-1])}
-    # centres (log sigma, log tau) / log q and zoom half-widths, per bias flag
-    gm_c = {b: np.array([g_s[i], g_t[i]]) for b in lik for i in [int(np.argmax(lik[b][:n_gm]))]}
-    rw_c = {b: float(lq[int(np.argmax(lik[b][n_gm:-1]))]) for b in lik}
+    flag_set: list[Flags] = [(False, False), (True, False)]
+    if kt.has_latency:
+        flag_set += [(False, True), (True, True)]
+    lik = {f: kt.loglik(*f) for f in flag_set}
+    loglik = {drift_model_name(None, f): float(lik[f][-1]) for f in flag_set}
+    coefs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for f in flag_set:
+        if any(f):
+            c, se_c = kt.coef(*f)
+            coefs[drift_model_name(None, f)] = (c[-1], se_c[-1])
+    # centres (log q, log tau) / log q and zoom half-widths, per companion flags
+    gm_c = {f: np.array([g_s[i], g_t[i]]) for f in lik for i in [int(np.argmax(lik[f][:n_gm]))]}
+    rw_c = {f: float(lq[int(np.argmax(lik[f][n_gm:-1]))]) for f in lik}
     gm_h = np.array([lq[1] - lq[0], lt[1] - lt[0]])
     rw_h = lq[1] - lq[0]
     lo_t, hi_t = math.log(0.5 * dt), math.log(10 * span)
     u = np.linspace(-1.0, 1.0, 5)
     du_s, du_t = (a.ravel() for a in np.meshgrid(u, u))
-    last: dict[str, Any] = {}
+    last: dict[tuple[str, Flags], Any] = {}
     # Zoom: a 5 x 5 (5) grid around each maximum; the grid halves only when the maximum is
     # inside it, otherwise it moves (the coarse grid may have landed off the ridge).
-    shrinks = {f"{kind}{b}": 0 for kind in ("gm", "rw") for b in (False, True)}
-    halves = {"gmFalse": gm_h, "gmTrue": gm_h.copy(), "rwFalse": rw_h, "rwTrue": rw_h}
+    tags = [(kind, f) for kind in ("gm", "rw") for f in flag_set]
+    shrinks = dict.fromkeys(tags, 0)
+    halves: dict[tuple[str, Flags], Any] = {
+        t: (gm_h.copy() if t[0] == "gm" else rw_h) for t in tags
+    }
     for _zoom in range(8):
         if min(shrinks.values()) >= 3:
             break
         batches = []
-        for b in (False, True):
-            gm_h, rw_h = halves[f"gm{b}"], halves[f"rw{b}"]
-            s_ = gm_c[b][0] + du_s * gm_h[0]
-            t_ = np.clip(gm_c[b][1] + du_t * gm_h[1], lo_t, hi_t)
-            batches.append((gm_var(s_, t_), np.exp(t_), ("gm", b, np.stack([s_, t_], 1))))
-            q_ = rw_c[b] + u * rw_h
-            batches.append((np.exp(2 * q_), np.full(u.size, np.inf), ("rw", b, q_[:, None])))
+        for f in flag_set:
+            gh, rh = halves[("gm", f)], halves[("rw", f)]
+            s_ = gm_c[f][0] + du_s * gh[0]
+            t_ = np.clip(gm_c[f][1] + du_t * gh[1], lo_t, hi_t)
+            batches.append((gm_var(s_, t_), np.exp(t_), ("gm", f, np.stack([s_, t_], 1))))
+            q_ = rw_c[f] + u * rh
+            batches.append((np.exp(2 * q_), np.full(u.size, np.inf), ("rw", f, q_[:, None])))
         kt = kalman_terms(
             real,
             model,
@@ -693,54 +809,60 @@ def drift_fit(real: PositionSeries, base: Sequence[PositionSeries], layout: Layo
             np.concatenate([x[1] for x in batches]),
         )
         off = 0
-        for ev, _et, (kind, b, pts) in batches:
-            ll = kt.loglik(b)[off : off + ev.size]
+        for ev, _et, (kind, f, pts) in batches:
+            ll = kt.loglik(*f)[off : off + ev.size]
             off += ev.size
             j = int(np.argmax(ll))
-            tag = f"{kind}{b}"
+            tag = (kind, f)
             if tag in last and shrinks[tag] >= 3:
                 continue  # this one has converged; keep its last grid
-            last[tag] = (pts, ll)
+            cf = kt.coef(*f) if any(f) else None
+            last[tag] = (
+                pts,
+                ll,
+                None if cf is None else (cf[0][off - ev.size + j], cf[1][off - ev.size + j]),
+            )
             if kind == "gm":
-                gm_c[b] = pts[j]
+                gm_c[f] = pts[j]
                 at_bound = not lo_t + 1e-9 < pts[j, 1] < hi_t - 1e-9  # tau clipped
                 inside = abs(du_s[j]) < 1 and (abs(du_t[j]) < 1 or at_bound)
             else:
-                rw_c[b] = float(pts[j, 0])
+                rw_c[f] = float(pts[j, 0])
                 inside = abs(u[j]) < 1
             if inside:
                 halves[tag] = halves[tag] / 2
                 shrinks[tag] += 1
-    gm: dict[bool, tuple[tuple[float, float], tuple[float, float]]] = {}
-    rw: dict[bool, tuple[float, float]] = {}
-    for b in (False, True):
-        for kind in ("gm", "rw"):
-            pts, ll = last[f"{kind}{b}"]
-            best_ll = float(np.max(ll))
-            q = _quad_fit(pts, ll)
-            centre = pts[int(np.argmax(ll))]
-            se = np.full(pts.shape[1], np.nan)
+    gm: dict[Flags, tuple[tuple[float, float], tuple[float, float]]] = {}
+    rw: dict[Flags, tuple[float, float]] = {}
+    for kind, f in tags:
+        pts, ll, cf = last[(kind, f)]
+        best_ll = float(np.max(ll))
+        q = _quad_fit(pts, ll)
+        centre = pts[int(np.argmax(ll))]
+        se = np.full(pts.shape[1], np.nan)
+        if q is not None:
+            vertex, cov = q
+            se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+            # the vertex of the local quadratic when it lies inside the zoom grid
+            if np.all(np.abs(vertex - pts.mean(axis=0)) <= np.ptp(pts, axis=0) / 2):
+                centre = vertex
+        name = "gauss_markov" if kind == "gm" else "random_walk"
+        loglik[drift_model_name(name, f)] = best_ll
+        if cf is not None:
+            coefs[drift_model_name(name, f)] = cf
+        if kind == "gm":
+            # log sigma = log q + (log tau - log 2) / 2
+            sig = math.exp(centre[0] + (centre[1] - math.log(2.0)) / 2)
+            tau = math.exp(centre[1])
+            se_ls = float("nan")
             if q is not None:
-                vertex, cov = q
-                se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-                # the vertex of the local quadratic when it lies inside the zoom grid
-                if np.all(np.abs(vertex - pts.mean(axis=0)) <= np.ptp(pts, axis=0) / 2):
-                    centre = vertex
-            name = "gauss_markov" if kind == "gm" else "random_walk"
-            loglik[name + ("+bias" if b else "")] = best_ll
-            if kind == "gm":
-                # log sigma = log q + (log tau - log 2) / 2
-                sig = math.exp(centre[0] + (centre[1] - math.log(2.0)) / 2)
-                tau = math.exp(centre[1])
-                se_ls = float("nan")
-                if q is not None:
-                    cov = q[1]
-                    se_ls = math.sqrt(max(cov[0, 0] + cov[1, 1] / 4 + cov[0, 1], 0.0))
-                gm[b] = ((sig, tau), (sig * se_ls, tau * float(se[1])))
-            else:
-                q_val = math.exp(centre[0])
-                rw[b] = (q_val, q_val * float(se[0]))
-    fit = DriftFit(loglik, gm, rw, 2 * kt.nobs, model)
+                cov = q[1]
+                se_ls = math.sqrt(max(cov[0, 0] + cov[1, 1] / 4 + cov[0, 1], 0.0))
+            gm[f] = ((sig, tau), (sig * se_ls, tau * float(se[1])))
+        else:
+            q_val = math.exp(centre[0])
+            rw[f] = (q_val, q_val * float(se[0]))
+    fit = DriftFit(loglik, gm, rw, 2 * kt.nobs, model, coefs)
     _DRIFT_CACHE.append((key, [real, *base], fit))
     del _DRIFT_CACHE[:-6]
     return fit
