@@ -514,18 +514,15 @@ LENGTH_STEPS_M = np.array([-4.0, -2.0, -1.0, 1.0, 2.0, 4.0])
 
 
 def _pattern_search(
-    wall: Wall,
-    cost: Callable[[Sequence[Wall]], np.ndarray],
-    scale: float,
-    passes: int,
-    names: Sequence[str] = (*WALL_PARAMS, "back"),
+    wall: Wall, cost: Callable[[Sequence[Wall]], np.ndarray], passes: int
 ) -> tuple[Wall, list[tuple[str, float]], np.ndarray]:
-    """Minimise ``cost`` over walls: each pass tries every parameter moved by a few steps
-    (times ``scale``), plus the previous pass's best step of every parameter at once, and
-    keeps the best wall, until nothing helps. Returns the wall, the single moves of the last
-    pass and their costs (first entry: the wall itself)."""
+    """Minimise ``cost`` over walls: each pass tries every parameter moved by a few steps,
+    plus the previous pass's best step of every parameter at once, and keeps the best wall,
+    until nothing helps. Returns the wall, the single moves of the last pass and their costs
+    (first entry: the wall itself)."""
+    names = (*WALL_PARAMS, "back")
     moves = [("", 0.0)] + [
-        (name, float(by) * scale)
+        (name, float(by))
         for name in names
         for by in (THETA_STEPS if name == "theta" else LENGTH_STEPS_M)
     ]
@@ -563,7 +560,9 @@ def _loglik(
 ) -> tuple[np.ndarray, ZoneTerms]:
     """Bias-profiled log-likelihood (G, P) for every zone (G masks (n,), each with its away
     vectors (2, n) for a bias along them, or None for a free in-zone bias vector) x
-    parameter pair (P,). The G zones must all have away vectors or none."""
+    parameter pair (P,). The G zones must all have away vectors or none. A bias along the
+    away vectors is held >= 0 (reflected paths are longer: the layer's bias points away
+    from the wall), so a wall on the wrong side of the bias gains nothing from it."""
     g, p = len(zones), log_sigma.size
     masks = np.stack([m for m, _a in zones])
     shared = zones[0][1] is not None
@@ -576,7 +575,10 @@ def _loglik(
         np.repeat(masks, p, axis=0),
         None if away is None else np.repeat(away, p, axis=0),
     )
-    return terms.loglik(True, shared).reshape(g, p), terms
+    ll = terms.loglik(True, shared)
+    if shared:
+        ll = np.where(terms.bias(shared=True)[0] >= 0, ll, terms.loglik(False))
+    return ll.reshape(g, p), terms
 
 
 @dataclass(frozen=True)
@@ -708,7 +710,7 @@ def _refine_wall(
         ]
         return -_loglik(real, model, zones, ls, lt)[0][:, 0] + BEHIND_COST * np.array(behind)
 
-    wall, moves, costs = _pattern_search(wall, cost, 1.0, passes)
+    wall, moves, costs = _pattern_search(wall, cost, passes)
     se: dict[str, float] = {}
     for name in WALL_PARAMS:
         sel = [0] + [i for i, m in enumerate(moves) if m[0] == name]
@@ -718,7 +720,7 @@ def _refine_wall(
     return wall, se
 
 
-BOUNDARY_SHIFTS = np.arange(-8, 9)  # epochs an entry or exit may move
+BOUNDARY_SHIFTS = np.concatenate([[-32, -24, -16, -12], np.arange(-8, 9), [12, 16, 24, 32]])
 
 
 def _refine_boundaries(
@@ -851,29 +853,32 @@ def fit_zone(
     in_zone, away = wall.zone(te, tn)
     if not np.any(in_zone[valid]) or np.mean(in_zone[valid]) > MAX_SHARE:
         return None
-    p = _fit_sigma_tau(real, model, (in_zone, away), layout, zooms=3, starts=first.starts)
+    p = _fit_sigma_tau(real, model, (in_zone, away), layout, zooms=4)  # a fresh coarse grid
     sigma, tau = (math.exp(v) for v in p.centre)
     # at the fitted sigma, tau: "no zone", the bias along the away vectors, and the in-zone
     # bias as a free vector (for its direction)
     var, taus = np.array([0.0, sigma**2]), np.array([1.0, tau])
     along = zone_terms(real, model, var, taus, in_zone, away)
     free = zone_terms(real, model, var[1:], taus[1:], in_zone)
-    gain = float(along.loglik(True, shared=True)[1] - along.loglik(False)[0])
+    bias, bias_se = (float(a[1]) for a in along.bias(shared=True))
+    bias = max(bias, 0.0)  # held >= 0 as in the search (see _loglik)
+    gain = float(along.loglik(bias > 0, shared=True)[1] - along.loglik(False)[0])
     penalty = 0.5 * ZONE_PARAMS * math.log(2 * int(np.count_nonzero(valid)))
     if gain < penalty:
         return None
-    bias, bias_se = (float(a[1]) for a in along.bias(shared=True))
     free_b, free_se = (a[0] for a in free.bias())
-    # end points: P1,2 = c n + s1,2 t, turning about the middle (dP/dtheta = -/+ L/2 n)
+    # end points: P1,2 = c n + s1,2 t, turning about the middle (dP/dtheta = -/+ L/2 n). A
+    # boundary between two fixes is known to a step of travel at best (uniform: step/sqrt 12)
+    step = float(np.median(np.hypot(np.diff(te), np.diff(tn)))) / math.sqrt(12)
     n, tg = wall.normal(), wall.tangent()
     half = (wall.s2_m - wall.s1_m) / 2
-    se = {"distance_m": geo_se["d_m"]}
+    se = {"distance_m": max(geo_se["d_m"], step)}
     for i, s_name in ((1, "s1_m"), (2, "s2_m")):
         for a, ax in enumerate("xy"):
-            se[f"{ax}{i}_m"] = math.sqrt(
-                (n[a] * geo_se["c_m"]) ** 2
-                + (tg[a] * geo_se[s_name]) ** 2
-                + (half * n[a] * geo_se["theta"]) ** 2
+            se[f"{ax}{i}_m"] = math.hypot(
+                n[a] * max(geo_se["c_m"], step),
+                tg[a] * max(geo_se[s_name], step),
+                half * n[a] * geo_se["theta"],
             )
     se |= {
         "sigma_m": sigma * math.sqrt(max(p.cov[0, 0], 0.0)),
