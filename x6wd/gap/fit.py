@@ -48,6 +48,8 @@ FINGERPRINTS: dict[str, tuple[str, ...]] = {
     "jumps": ("step_tail", "log_step_std", "tail_ratio"),
     "outages": ("availability", "log_outage_s"),
     "latency": ("latency_slope",),
+    # per-place spread and step size (moving logs): a zone makes one place noisier
+    "multipath_zone": ("log_rms_place", "log_step_std_place"),
 }
 FITTABLE = tuple(FINGERPRINTS)
 
@@ -887,6 +889,16 @@ def random_walk_lr(series: PositionSeries, model: NoiseModel) -> float:
     return math.sqrt(2.0 * max(lr, 0.0))
 
 
+def _fit_multipath_zone(
+    real: PositionSeries, base: Sequence[PositionSeries], layout: Layout
+) -> Fit | None:
+    """:func:`x6wd.gap.zone.fit_multipath_zone`, imported on first use (zone.py builds on
+    this module)."""
+    from x6wd.gap.zone import fit_multipath_zone
+
+    return fit_multipath_zone(real, base, layout)
+
+
 FITTERS: dict[str, Callable[[PositionSeries, Sequence[PositionSeries], Layout], Fit | None]] = {
     "bias": fit_bias,
     "gauss_markov": fit_gauss_markov,
@@ -895,4 +907,5 @@ FITTERS: dict[str, Callable[[PositionSeries, Sequence[PositionSeries], Layout], 
     "jumps": fit_jumps,
     "outages": fit_outages,
     "latency": fit_latency,
+    "multipath_zone": _fit_multipath_zone,
 }
