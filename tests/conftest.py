@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -26,3 +27,40 @@ def require_program(name: str) -> str:
 @pytest.fixture
 def data_dir() -> Path:
     return DATA
+
+
+def filter_case(seed: int = 0, n: int = 40, moving: bool = False) -> tuple[Any, Any]:
+    """A small irregular log (steps 0.5-2 s, a 4-epoch outage) and a two-component baseline
+    noise model: the case on which the Kalman filters are checked against dense algebra."""
+    import numpy as np
+
+    from sim_backend.effects import PositionSeries
+    from x6wd.gap.fit import NoiseModel
+
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.5, 2.0, n))
+    v = np.ones(n, dtype=bool)
+    v[10:14] = False
+    y = rng.normal(size=(2, n))
+    s = PositionSeries(
+        t_s=t, east_m=y[0], north_m=y[1], up_m=0 * t, valid=v, origin_lat_deg=50.0,
+        origin_lon_deg=10.0, speed_mps=1.0 + rng.uniform(0, 2, n) if moving else None,
+        course_deg=np.linspace(0, 300, n) if moving else None,
+    )  # fmt: skip
+    model = NoiseModel(
+        np.array([[0.5, 1.0], [0.7, 0.3]]),
+        np.array([[3.0, 20.0], [5.0, 50.0]]),
+        np.array([0.2, 0.3]),
+        np.array([0.1, -0.1]),
+    )
+    return s, model
+
+
+def dense_baseline_cov(model: Any, t_s: Any, axis: int) -> Any:
+    """Dense covariance of the baseline noise model on one axis at times ``t_s``."""
+    import numpy as np
+
+    lag = np.abs(t_s[:, None] - t_s[None, :])
+    k = model.sigma_m.shape[1]
+    cov = sum(model.sigma_m[axis, i] ** 2 * np.exp(-lag / model.tau_s[axis, i]) for i in range(k))
+    return cov + model.white_m[axis] ** 2 * np.eye(t_s.size)

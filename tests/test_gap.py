@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from sim_backend.effects import Bias, GaussMarkov, PositionSeries, Quantization, metres_per_degree
+from tests.conftest import dense_baseline_cov, filter_case
 from x6wd.cli import main as x6wd_main
 from x6wd.errors import ConfigError, ParseError
 from x6wd.gap.diagnose import Options, diagnose, report_dict
@@ -223,40 +224,23 @@ def test_kalman_likelihood_is_exact_on_irregular_steps_and_outages() -> None:
     # white noise and a GM or random-walk effect, irregular steps, an outage.
     from scipy.stats import multivariate_normal
 
-    from x6wd.gap.fit import NoiseModel, kalman_terms
+    from x6wd.gap.fit import kalman_terms
 
-    rng = np.random.default_rng(0)
-    n = 40
-    t = np.cumsum(rng.uniform(0.5, 2.0, n))
-    v = np.ones(n, dtype=bool)
-    v[10:14] = False
-    y = rng.normal(size=(2, n))
-    s = PositionSeries(
-        t_s=t, east_m=y[0], north_m=y[1], up_m=0 * t, valid=v, origin_lat_deg=50.0,
-        origin_lon_deg=10.0,
-    )  # fmt: skip
-    model = NoiseModel(
-        np.array([[0.5, 1.0], [0.7, 0.3]]),
-        np.array([[3.0, 20.0], [5.0, 50.0]]),
-        np.array([0.2, 0.3]),
-        np.array([0.1, -0.1]),
-    )
-    tv = t[v]
+    s, model = filter_case()
+    tv = s.t_s[s.valid]
     lag = np.abs(tv[:, None] - tv[None, :])
     since = tv - tv[0]
     for eff_var, eff_tau in ((0.8, 10.0), (0.01, math.inf)):
         got = kalman_terms(s, model, np.array([eff_var]), np.array([eff_tau])).loglik(False)
         want = 0.0
-        for a in range(2):
-            cov = sum(
-                model.sigma_m[a, i] ** 2 * np.exp(-lag / model.tau_s[a, i]) for i in range(2)
-            ) + model.white_m[a] ** 2 * np.eye(tv.size)
+        for a, y in enumerate((s.east_m, s.north_m)):
+            cov = dense_baseline_cov(model, tv, a)
             if math.isfinite(eff_tau):
                 cov = cov + eff_var * np.exp(-lag / eff_tau)
             else:  # a random walk from zero at the first fix
                 cov = cov + eff_var * np.minimum(since[:, None], since[None, :])
             mean = np.full(tv.size, model.mean_m[a])
-            want += multivariate_normal(mean=mean, cov=cov).logpdf(y[a][v])
+            want += multivariate_normal(mean=mean, cov=cov).logpdf(y[s.valid])
         assert float(got[0]) == pytest.approx(want, rel=1e-9)
 
 
@@ -265,39 +249,23 @@ def test_gls_bias_and_latency_match_the_dense_likelihood() -> None:
     # dense GLS one; the latency regressor is -velocity.
     from scipy.stats import multivariate_normal
 
-    from x6wd.gap.fit import NoiseModel, kalman_terms, latency_regressor
+    from x6wd.gap.fit import kalman_terms, latency_regressor
 
-    rng = np.random.default_rng(1)
-    n = 50
-    t = np.cumsum(rng.uniform(0.5, 2.0, n))
-    v = np.ones(n, dtype=bool)
-    v[20:23] = False
-    y = rng.normal(size=(2, n))
-    s = PositionSeries(
-        t_s=t, east_m=y[0], north_m=y[1], up_m=0 * t, valid=v, origin_lat_deg=50.0,
-        origin_lon_deg=10.0, speed_mps=1.0 + rng.uniform(0, 2, n),
-        course_deg=np.linspace(0, 300, n),
-    )  # fmt: skip
-    model = NoiseModel(
-        np.array([[0.5, 1.0], [0.7, 0.3]]),
-        np.array([[3.0, 20.0], [5.0, 50.0]]),
-        np.array([0.2, 0.3]),
-        np.array([0.1, -0.1]),
-    )
+    s, model = filter_case(seed=1, n=50, moving=True)
+    v = s.valid
     kt = kalman_terms(s, model, np.array([0.8]), np.array([10.0]))
-    tv = t[v]
+    tv = s.t_s[v]
     lag = np.abs(tv[:, None] - tv[None, :])
     reg = latency_regressor(s)
     assert reg is not None
     covs, xs, ys = [], [], []
-    for a in range(2):
-        cov = sum(model.sigma_m[a, i] ** 2 * np.exp(-lag / model.tau_s[a, i]) for i in range(2))
-        covs.append(cov + model.white_m[a] ** 2 * np.eye(tv.size) + 0.8 * np.exp(-lag / 10.0))
+    for a, y in enumerate((s.east_m, s.north_m)):
+        covs.append(dense_baseline_cov(model, tv, a) + 0.8 * np.exp(-lag / 10.0))
         x = np.zeros((tv.size, 3))
         x[:, a] = 1.0  # the bias of this axis
         x[:, 2] = reg[a]  # the shared latency
         xs.append(x)
-        ys.append(y[a][v] - model.mean_m[a])
+        ys.append(y[v] - model.mean_m[a])
     info = sum(x.T @ np.linalg.solve(c, x) for x, c in zip(xs, covs, strict=True))
     rhs = sum(x.T @ np.linalg.solve(c, yy) for x, c, yy in zip(xs, covs, ys, strict=True))
     beta = np.linalg.solve(info, rhs)

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from sim_backend.effects import MultipathZone, PositionSeries, Quantization, truth_track_m
-from x6wd.gap.fit import FINGERPRINTS, FITTERS, NoiseModel
+from tests.conftest import dense_baseline_cov, filter_case
+from x6wd.gap.fit import FINGERPRINTS, FITTERS
 from x6wd.gap.stats import layout_for
 from x6wd.gap.surrogate import BASELINE_EFFECTS, surrogate_run
 from x6wd.gap.zone import ZoneFit, fit_zone, zone_terms
@@ -60,27 +61,14 @@ def test_zone_likelihood_is_exact_with_a_masked_effect() -> None:
     # profiled by GLS, and its magnitude along given unit vectors.
     from scipy.stats import multivariate_normal
 
+    s, model = filter_case()
+    n, v, y = len(s), s.valid, np.stack([s.east_m, s.north_m])
     rng = np.random.default_rng(0)
-    n = 40
-    t = np.cumsum(rng.uniform(0.5, 2.0, n))
-    v = np.ones(n, dtype=bool)
-    v[10:14] = False
-    y = rng.normal(size=(2, n))
-    s = PositionSeries(
-        t_s=t, east_m=y[0], north_m=y[1], up_m=0 * t, valid=v, origin_lat_deg=50.0,
-        origin_lon_deg=10.0,
-    )  # fmt: skip
-    model = NoiseModel(
-        np.array([[0.5, 1.0], [0.7, 0.3]]),
-        np.array([[3.0, 20.0], [5.0, 50.0]]),
-        np.array([0.2, 0.3]),
-        np.array([0.1, -0.1]),
-    )
     zone = np.zeros(n, dtype=bool)
     zone[5:12] = zone[25:33] = True
     ang = rng.uniform(0, 2 * math.pi, n)
     away = np.stack([np.cos(ang), np.sin(ang)])
-    tv = t[v]
+    tv = s.t_s[v]
     lag = np.abs(tv[:, None] - tv[None, :])
     m = zone[v].astype(float)
     for eff_var, eff_tau in ((0.8, 10.0), (0.0, 1.0), (2.0, 3.0)):
@@ -88,9 +76,7 @@ def test_zone_likelihood_is_exact_with_a_masked_effect() -> None:
         shared = zone_terms(s, model, np.array([eff_var]), np.array([eff_tau]), zone, away)
         covs, resid = [], []
         for a in range(2):
-            cov = sum(
-                model.sigma_m[a, i] ** 2 * np.exp(-lag / model.tau_s[a, i]) for i in range(2)
-            ) + model.white_m[a] ** 2 * np.eye(tv.size)
+            cov = dense_baseline_cov(model, tv, a)
             covs.append(cov + eff_var * np.exp(-lag / eff_tau) * np.outer(m, m))
             resid.append(y[a][v] - model.mean_m[a])
         want = sum(
