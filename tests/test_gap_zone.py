@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -192,3 +193,30 @@ def test_registered_as_a_gap_candidate(
     got = FITTERS["multipath_zone"](real, runs, layout_for(real))
     assert got is not None and got.name == "multipath_zone"
     assert got.params == {k: v for k, v in fit.effect.to_params().items() if k != "name"}
+
+
+@pytest.mark.slow
+def test_diagnosis_names_the_zone_and_writes_it_in_the_scenario_frame(
+    runs: list[PositionSeries], tmp_path: Path
+) -> None:
+    # The whole pipeline on a log with a zone: the verdict names it, map.png draws it, and
+    # effects.toml moves the wall from the log's frame into the scenario origin's frame.
+    import tomllib
+
+    from sim_backend.effects import metres_per_degree
+    from x6wd.gap.diagnose import diagnose, report_dict
+    from x6wd.gap.report import write_report
+
+    real = log_with(zone_of(1.5, 1.0), seed=32)
+    d = diagnose(real, runs, np.random.default_rng(1))
+    rep = report_dict(d)
+    assert rep["verdict"] == {"effect": "multipath_zone", "explained": True}
+    assert any(w["place"] != "all" for w in rep["where"])  # the gap is local on the map
+    zone = d.selected[0].effect
+    origin = (real.origin_lat_deg - 0.001, real.origin_lon_deg - 0.002)  # south-west
+    write_report(d, tmp_path, figures=True, origin_deg=origin)
+    eff = tomllib.loads((tmp_path / "effects.toml").read_text())["effects"][0]
+    e_per, n_per = metres_per_degree(origin[0])
+    assert eff["x1_m"] == pytest.approx(zone.x1_m + 0.002 * e_per, abs=0.01)
+    assert eff["y2_m"] == pytest.approx(zone.y2_m + 0.001 * n_per, abs=0.01)
+    assert (tmp_path / "map.png").stat().st_size > 0

@@ -108,8 +108,19 @@ def main(args: argparse.Namespace) -> int:
     d.notes.extend(notes)
     cd = compass_diagnosis(args, d, rng, bar)
     bar("writing report", 1.0)
+    origin = None
+    if args.scenario:
+        from sim_backend.world import load_world
+
+        w = load_world(args.scenario)
+        origin = (w.origin.lat_deg, w.origin.lon_deg)
     write_report(
-        d, Path(args.out), real_name=Path(args.real).name, figures=not args.no_figures, compass=cd
+        d,
+        Path(args.out),
+        real_name=Path(args.real).name,
+        figures=not args.no_figures,
+        compass=cd,
+        origin_deg=origin,
     )
     extra = f"; {compass_verdict_text(cd)}" if cd is not None else ""
     print(f"{verdict_text(d)}{extra}; report in {args.out}/report.md")

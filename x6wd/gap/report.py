@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from sim_backend.effects import truth_track_m
+from sim_backend.effects import metres_per_degree, truth_track_m
 from x6wd.gap.compass import (
     CompassDiagnosis,
     compass_report_dict,
@@ -36,19 +36,42 @@ def _toml_value(v: Any) -> str:
     return json.dumps(str(v))
 
 
-def effects_toml(d: Diagnosis, compass: CompassDiagnosis | None = None) -> str:
+ZONE_POINTS = ("x1_m", "y1_m", "x2_m", "y2_m")
+
+
+def effects_toml(
+    d: Diagnosis,
+    compass: CompassDiagnosis | None = None,
+    origin_deg: tuple[float, float] | None = None,
+) -> str:
     """The selected effects (GPS, then compass layers) as ``[[effects]]`` tables (comment-only
-    text when none)."""
+    text when none). A multipath zone's wall is fitted in metres from the log's first true
+    position; with ``origin_deg`` (the scenario's origin, lat/lon deg) it is moved into that
+    scenario's local frame, where the simulator evaluates zones."""
     lines = [
         f"# x6wd gap: fitted effects ({verdict_text(d)})",
         '# merge into a scenario: include = ["effects.toml"]',
     ]
     if compass is not None:
         lines.insert(1, f"# {compass_verdict_text(compass)}")
+    lat0, lon0 = d.real.origin_lat_deg, d.real.origin_lon_deg
+    shift = (0.0, 0.0)
+    if origin_deg is not None:
+        e_per, n_per = metres_per_degree(origin_deg[0])
+        shift = ((lon0 - origin_deg[1]) * e_per, (lat0 - origin_deg[0]) * n_per)
     for f in [*d.selected, *(compass.selected if compass is not None else [])]:
+        params = f.effect.to_params()
         lines.append("")
+        if f.name == "multipath_zone":
+            ref = origin_deg if origin_deg is not None else (lat0, lon0)
+            lines.append(
+                f"# wall in metres east/north of {ref[0]:.7f}, {ref[1]:.7f}"
+                + (" (the scenario's origin)" if origin_deg else " (the log's first true position)")
+            )
+            for k in ZONE_POINTS:
+                params[k] = round(params[k] + shift[0 if k[0] == "x" else 1], 3)
         lines.append("[[effects]]")
-        for k, v in f.effect.to_params().items():
+        for k, v in params.items():
             lines.append(f"{k} = {_toml_value(v)}")
     return "\n".join(lines) + "\n"
 
@@ -86,15 +109,17 @@ def write_report(
     real_name: str = "real",
     figures: bool = True,
     compass: CompassDiagnosis | None = None,
+    origin_deg: tuple[float, float] | None = None,
 ) -> dict[str, Any]:
     """Write every output into ``out_dir`` (created); returns the report.json content.
     ``compass``: the compass half (merged into report.json, a section of report.md, its
-    layers in effects.toml and the figure compass.png)."""
+    layers in effects.toml and the figure compass.png); ``origin_deg``: the scenario's origin
+    (lat, lon deg), the frame of effects.toml's walls (see :func:`effects_toml`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rep = merged_report(d, compass)
     (out / "report.json").write_text(json.dumps(rep, indent=2) + "\n")
-    (out / "effects.toml").write_text(effects_toml(d, compass))
+    (out / "effects.toml").write_text(effects_toml(d, compass, origin_deg))
     if figures:
         write_figures(d, out)
         if compass is not None:
@@ -352,6 +377,15 @@ def write_figures(d: Diagnosis, out: Path) -> None:
         flagged = {w["place"] for w in d.where if w["place"] != "all"}
         ax.axvline(d.layout.place_e_m, color="0.5", lw=0.5)
         ax.axhline(d.layout.place_n_m, color="0.5", lw=0.5)
+        for f in d.selected:
+            if f.name == "multipath_zone":
+                z = f.effect
+                dist, _ux, _uy = z.distance_to_wall_m(te, tn)
+                inside = v & (dist <= z.distance_m)
+                ax.plot(te[inside], tn[inside], "o", mfc="none", mec="C3", ms=5, alpha=0.4,
+                        label="fitted multipath zone")  # fmt: skip
+                ax.plot([z.x1_m, z.x2_m], [z.y1_m, z.y2_m], "C3-", lw=3, label="fitted wall")
+                ax.legend(loc="best")
         ax.set(
             xlabel="east (m)",
             ylabel="north (m)",
