@@ -434,6 +434,20 @@ def _gm_expected_periodogram(n: int, n_freq: int, phi: float) -> np.ndarray:
     return 1.0 + 2.0 * (s0 - s1 / n).real
 
 
+def _gm_expected_dc(n: int, dt_over_tau: float) -> float:
+    """The zero-frequency term of :func:`_gm_expected_periodogram`, n Var(mean of n samples)
+    of a unit AR(1) with phi = exp(-dt/tau): 1 + 2 sum_{k=1}^{n-1} (1 - k/n) phi^k, with
+    1 - phi from expm1 so that correlation times far beyond the log stay exact."""
+    phi = math.exp(-dt_over_tau)
+    one = -math.expm1(-dt_over_tau)  # 1 - phi
+    if one < 1e-300:
+        return float(n)
+    pn1 = phi ** (n - 1)
+    s0 = phi * (1.0 - pn1) / one
+    s1 = phi * (1.0 - n * pn1 + (n - 1) * pn1 * phi) / one**2
+    return 1.0 + 2.0 * (s0 - s1 / n)
+
+
 @functools.lru_cache(maxsize=8)
 def _fourier_rotations(n: int, n_freq: int) -> tuple[np.ndarray, np.ndarray]:
     """e^(-i w) and e^(-i w (n-1)) at the Fourier frequencies w = 2 pi j / n, j = 1..n_freq."""
@@ -452,6 +466,19 @@ def fit_noise_model(base: Sequence[PositionSeries], layout: Layout) -> NoiseMode
     n = max(n, 8)
     per = np.mean([_periodograms(s, layout, n) for s in base], axis=0)  # (2, n//2)
     nf = per.shape[1]
+    # Zero frequency: n (run mean - grand mean)^2, whose debiased expectation is n Var(mean).
+    # Without it nothing bounds the slowest component (each run's own mean is removed above):
+    # on the GNSS model the fit put 10-13 m on a drift far longer than the log, where the
+    # runs' hour means actually spread by under a metre, and every bias looked like noise.
+    run_means = np.array(
+        [[float(np.mean(c[:n])) for c in regular(s, layout.dt_s)[:2]] for s in base]
+    )
+    m_runs = run_means.shape[0]
+    dc = (
+        n * np.mean((run_means - run_means.mean(axis=0)) ** 2, axis=0) * m_runs / (m_runs - 1)
+        if m_runs > 1
+        else None
+    )
     dt = layout.dt_s
     means = []
     for ax in ("east_m", "north_m"):
@@ -474,6 +501,7 @@ def fit_noise_model(base: Sequence[PositionSeries], layout: Layout) -> NoiseMode
     def nll(lp: np.ndarray) -> float:
         taus, sig, white = unpack(lp)
         shapes = [_gm_expected_periodogram(n, nf, math.exp(-dt / t_i)) for t_i in taus]
+        zero = [_gm_expected_dc(n, dt / t_i) for t_i in taus]
         out = 0.0
         for a in range(2):
             spec = np.full(nf, white[a] ** 2)
@@ -481,6 +509,9 @@ def fit_noise_model(base: Sequence[PositionSeries], layout: Layout) -> NoiseMode
                 spec = spec + sig[a, i] ** 2 * shapes[i]
             spec = np.maximum(spec, 1e-12)
             out += float(np.sum(np.log(spec) + per[a] / spec))
+            if dc is not None:
+                s0 = max(white[a] ** 2 + sum(sig[a, i] ** 2 * zero[i] for i in range(k)), 1e-12)
+                out += math.log(s0) + float(dc[a]) / s0
         return out
 
     best: tuple[float, np.ndarray] | None = None
