@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sim_backend.compass import CompassErrors
 from sim_backend.effects import (
     Declination,
     HardIron,
@@ -30,13 +31,17 @@ from sim_backend.effects import (
 )
 from x6wd.gap.compass import (
     CompassOptions,
+    baseline_along,
+    battery,
     compass_report_dict,
     diagnose_compass,
     drive_track,
     heading_error_deg,
+    layout_for,
     read_heading_series,
     simulate_compass,
 )
+from x6wd.gap.null import null_model
 
 T_S, DT_S = 600.0, 0.1
 OPT = CompassOptions(ci_resamples=40)
@@ -67,6 +72,45 @@ def test_null_pairs_give_no_significant_gap(truth: HeadingSeries, baseline: list
     for seed in (7, 8, 9):
         rep = run(real_with(truth, seed=seed), baseline, seed)
         assert rep["where"] == [] and rep["verdict"] == {"effect": None, "explained": True}
+
+
+def test_baseline_runs_along_the_real_logs_inputs() -> None:
+    # A recording has the true heading (truth.csv) and the registers' whole-degree pitch/roll,
+    # never the continuous tilt: the baseline must be driven by exactly those, so that without
+    # noise it reproduces the real log's heading error up to the bearing's 0.1-degree steps.
+    quiet = CompassErrors(noise_ut=0.0)
+    drive = drive_track(60.0, DT_S, np.random.default_rng(3))
+    real = simulate_compass(drive, np.random.default_rng(0), errors=quiet)
+    assert not np.allclose(real.pitch_deg, drive.pitch_deg)  # the registers rounded the tilt
+    (base,) = baseline_along(real, 1, errors=quiet)
+    for k in ("t_s", "true_heading_deg", "pitch_deg", "roll_deg"):
+        assert np.array_equal(getattr(base, k), getattr(real, k)), k
+    assert np.max(np.abs(heading_error_deg(base) - heading_error_deg(real))) <= 0.1 + 1e-9
+
+
+def test_short_null_pairs_are_centred_and_within_the_threshold() -> None:
+    # Null pairs built as the CLI builds them (another seed along the same drive, baseline
+    # along the real log). A systematic real-vs-baseline mismatch shows as a shifted mean z
+    # of some cell and as family-wise alarms above alpha. Bounds fixed from the null law, not
+    # from these seeds: |mean z| < 4 standard errors per cell; at most 3 alarms in 16 pairs
+    # (P(>= 4) = 0.007 at the nominal 5 %).
+    n = 16
+    zs, alarms = [], 0
+    for k in range(n):
+        drive = drive_track(60.0, DT_S, np.random.default_rng(300 + k))
+        real = simulate_compass(drive, np.random.default_rng(400 + k))
+        base = baseline_along(real, 10, base_seed=1000 + 20 * k)
+        layout = layout_for(real)
+        null = null_model([battery(s, layout) for s in base], OPT.alpha)
+        z = null.z(battery(real, layout))
+        zs.append(z)
+        alarms += bool(np.max(np.abs(z)) > null.threshold)
+    za = np.array(zs)
+    se = za.std(axis=0, ddof=1) / np.sqrt(n)
+    assert np.all(np.abs(za.mean(axis=0)) < 4 * np.maximum(se, 0.05)), dict(
+        zip([f"{c.statistic}@{c.scale}" for c in null.cells], za.mean(axis=0), strict=True)
+    )
+    assert alarms <= 3
 
 
 def test_hard_iron_identified_and_recovered(truth: HeadingSeries, baseline: list) -> None:

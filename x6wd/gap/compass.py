@@ -859,27 +859,48 @@ def read_heading_series(
     )
 
 
+def baseline_along(
+    real: HeadingSeries,
+    seeds: int,
+    base_seed: int = 2000,
+    field_model: MagneticField | None = None,
+    errors: CompassErrors | None = None,
+    device_heading: Callable[[float, float, float], float] | None = None,
+) -> list[HeadingSeries]:
+    """``seeds`` runs of the CMPS10 emulation (:func:`simulate_compass`, seeds ``base_seed``,
+    ``base_seed + 1``, ...) along what a recording tells of the robot's attitude: the real
+    log's times (s), its TRUE heading and its MEASURED pitch/roll (degrees; the whole degrees
+    of the registers are the best estimate of the true tilt a recording has). The CLI's
+    scenario baseline and the benchmark both come from here, so the benchmark's null is the
+    one the CLI builds from a real log."""
+    if real.true_heading_deg is None:
+        raise ConfigError("a compass baseline needs the real log's true heading")
+    truth = real.with_(heading_deg=np.asarray(real.true_heading_deg), field_ut=None)
+    return [
+        simulate_compass(
+            truth, np.random.default_rng(base_seed + i), field_model, errors, device_heading
+        )
+        for i in range(seeds)
+    ]
+
+
 def scenario_compass_baseline(
     path: str | Path, template: HeadingSeries, seeds: int, base_seed: int = 2000
 ) -> tuple[list[HeadingSeries], MagneticField]:
     """``seeds`` runs of the scenario's CMPS10 (its ``[compass]`` table and its compass
-    ``[[effects]]``, mapped as ``x6wd sim`` maps them) along the real log's true heading and
-    its measured pitch/roll (the best estimate of the true tilt a recording has), and the
-    field model (for the fits' inclination)."""
+    ``[[effects]]``, mapped as ``x6wd sim`` maps them) along the real log
+    (:func:`baseline_along`), and the field model (for the fits' inclination)."""
     from sim_backend.mission import compass_setup
     from sim_backend.world import load_world
 
     world = load_world(path)
     cset, _ = compass_setup(world)
-    truth = template.with_(heading_deg=np.asarray(template.true_heading_deg), field_ut=None)
-    runs = [
-        simulate_compass(
-            truth,
-            np.random.default_rng(base_seed + i),
-            cset.field_model,
-            cset.errors,
-            cset.device_heading_deg if cset.tilt else None,
-        )
-        for i in range(seeds)
-    ]
+    runs = baseline_along(
+        template,
+        seeds,
+        base_seed,
+        cset.field_model,
+        cset.errors,
+        cset.device_heading_deg if cset.tilt else None,
+    )
     return runs, cset.field_model
