@@ -381,3 +381,44 @@ def test_jump_fit_survives_a_coarse_lattice() -> None:
     ]
     real = surrogate_run(600.0, 1.0, np.random.default_rng(9), effects=[*PRE, Quantization(2)])
     assert fit_jumps(real, coarse, layout_for(real)) is None
+
+
+def test_noise_model_slow_component_is_pinned_by_the_runs_means() -> None:
+    # A drift far longer than the log (tau 3000 s over 1 h) moves each run's mean; the noise
+    # model must predict the runs' spread of hour means, not an unbounded slow component.
+    from x6wd.gap.fit import fit_noise_model
+
+    slow = (*PRE, GaussMarkov(sigma_m=0.8, tau_s=3000.0, axes="en"))
+    runs = [
+        surrogate_run(HOUR_S, 1.0, np.random.default_rng(700 + i), effects=slow) for i in range(16)
+    ]
+    m = fit_noise_model(runs, layout_for(runs[0]))
+    t = HOUR_S
+    for a, ax in enumerate(("east_m", "north_m")):
+        var_mean = sum(
+            m.sigma_m[a, i] ** 2
+            * 2
+            * m.tau_s[a, i]
+            / t
+            * (1 - m.tau_s[a, i] / t * (1 - math.exp(-t / m.tau_s[a, i])))
+            for i in range(m.sigma_m.shape[1])
+        )
+        spread = float(np.std([np.mean(getattr(s, ax)) for s in runs], ddof=1))
+        # 16 runs: the sample spread is within about +-35 % of the truth (chi, 15 dof)
+        assert 0.5 < math.sqrt(var_mean) / spread < 2.0, (ax, math.sqrt(var_mean), spread)
+
+
+@pytest.mark.slow
+def test_drift_under_a_coarse_lattice_is_fitted_through_it(hour_baseline: list) -> None:
+    # A 3-decimal lattice (1.85 m) is a fact and enters first; the drift is then fitted by
+    # simulation through the rounding (the likelihood alone reads 0.8 m / 60 s as ~20 s).
+    real = surrogate_run(
+        HOUR_S, 1.0, np.random.default_rng(17),
+        effects=[*PRE, GaussMarkov(sigma_m=0.8, tau_s=60.0), Quantization(3)],
+    )  # fmt: skip
+    d = diagnose(real, hour_baseline, np.random.default_rng(17))
+    assert [f.name for f in d.selected] == ["quantization", "gauss_markov"] and d.explained
+    gm = d.selected[1].params
+    assert gm["tau_s"] == pytest.approx(60.0, rel=0.35) and gm["sigma_m"] == pytest.approx(
+        0.8, rel=0.2
+    )
