@@ -167,7 +167,12 @@ def resample_null(model: NullModel, rng: np.random.Generator) -> NullModel:
     """The null rebuilt from its members drawn with replacement (for closure intervals)."""
     idx = rng.integers(model.m, size=model.m)
     v = model.values[idx]
-    sd = np.maximum(v.std(axis=0, ddof=1), _floors(model.cells))
+    # A resample repeats members: its spread (ddof 1) is (M-1)/M of the ensemble's in
+    # expectation, which biased closures low (clipped baseline cells do not scale with it,
+    # the effect's do): an interval that missed its own estimate.
+    sd = np.maximum(
+        v.std(axis=0, ddof=1) * math.sqrt(model.m / (model.m - 1)), _floors(model.cells)
+    )
     return NullModel(model.cells, v, v.mean(axis=0), sd, model.threshold)
 
 
