@@ -221,7 +221,12 @@ def markdown(d: Diagnosis, rep: dict[str, Any], real_name: str, figures: bool) -
         f"- fit on t < {d.split_s[0]:.0f} s, guard gap, held-out test on t >= {d.split_s[1]:.0f} s",
         f"- gap G (mean clipped z^2 on the held-out part): baseline {d.g_baseline:.2f}, floor "
         f"{d.g_floor:.2f} (sim vs sim), with the selected effects {d.g_with:.2f}; "
-        f"closure {d.closure:.2f} (90 % interval {d.closure_ci[0]:.2f} to {d.closure_ci[1]:.2f})",
+        f"closure {d.closure:.2f}"
+        + (
+            f" (90 % interval {d.closure_ci[0]:.2f} to {d.closure_ci[1]:.2f})"
+            if d.selected
+            else " (no effect selected)"
+        ),
     ]
     s += [f"- note: {n}" for n in d.notes]
     s += ["", "## Where", ""]
