@@ -42,8 +42,8 @@ from x6wd.gap.stats import (
 # Which battery statistics each effect moves: its fingerprint, used to rank candidates.
 FINGERPRINTS: dict[str, tuple[str, ...]] = {
     "bias": ("mean",),
-    "gauss_markov": ("log_std", "log_adev", "acf", "log_cep50", "log_r95"),
-    "random_walk": ("log_adev", "log_std", "acf"),
+    "gauss_markov": ("log_std", "log_adev", "log_psd", "acf", "log_cep50", "log_r95"),
+    "random_walk": ("log_adev", "log_psd", "log_std", "acf"),
     "quantization": ("lattice", "zero_step"),
     "jumps": ("step_tail", "log_step_std", "tail_ratio"),
     "outages": ("availability", "log_outage_s"),

@@ -47,6 +47,7 @@ SD_FLOOR: dict[str, float] = {
     "latency_slope": 0.01,  # s
     "log_rms_place": 0.02,
     "log_step_std_place": 0.02,
+    "log_psd": 0.02,
     # Signed root likelihood ratio (x6wd.gap.fit.random_walk_lr): mostly exactly 0 without a
     # walk, so a dozen runs can show no spread at all and this floor sets the alarm level. At
     # 0.7 the family-wise threshold (z ~ 4.9 over ~75 cells) sits near a root of 3.4, whose
@@ -125,6 +126,34 @@ def allan_var(y: np.ndarray, ms: list[int]) -> np.ndarray:
         d = avg[m:] - avg[:-m]
         out[i] = 0.5 * float(np.mean(d * d))
     return out
+
+
+def spectrum_bands(
+    east: np.ndarray, north: np.ndarray, layout: Layout
+) -> tuple[list[tuple[float, float]], list[float]]:
+    """Horizontal power spectral density (m^2/Hz, east + north periodograms, means removed)
+    averaged in bands two octaves wide, from the Nyquist frequency down to the band whose
+    lower edge is ten cycles per log (fewer cycles are too few independent estimates). The
+    bands are fixed by the layout, so every series of a pair yields the same cells."""
+    n = round(layout.duration_s / layout.dt_s) + 1
+    fs = 1.0 / layout.dt_s
+    f_min = 10.0 / max(layout.duration_s, layout.dt_s)
+    edges = []
+    hi = fs / 2
+    while hi / 4 >= f_min:
+        edges.append((hi / 4, hi))
+        hi /= 4
+    m = min(n, east.size, north.size)
+    if m < 8 or not edges:
+        return edges, [0.0] * len(edges)
+    f = np.fft.rfftfreq(m, layout.dt_s)
+    psd = np.zeros(f.size)
+    for y in (east[:m], north[:m]):
+        psd += np.abs(np.fft.rfft(y - y.mean())) ** 2 * layout.dt_s / m
+    return edges, [
+        float(np.mean(psd[(f > lo) & (f <= hi)])) if np.any((f > lo) & (f <= hi)) else 0.0
+        for lo, hi in edges
+    ]
 
 
 def acf(y: np.ndarray, lags: list[int]) -> np.ndarray:
@@ -215,6 +244,10 @@ def battery(series: PositionSeries, layout: Layout) -> dict[Cell, float]:
     ms = octave_taus(layout)
     lags_s = [1.0, 10.0, 60.0, 300.0]
     lags = [max(1, round(s / layout.dt_s)) for s in lags_s if s < layout.duration_s / 5]
+    for (lo, hi), power in zip(
+        *spectrum_bands(np.asarray(grid["east"]), np.asarray(grid["north"]), layout), strict=True
+    ):
+        out[Cell("log_psd", "horizontal", f"{lo:.3g}-{hi:.3g}Hz")] = _log(power)
     for ax, y in grid.items():
         av = allan_var(y, ms)
         for m, a in zip(ms, av, strict=True):
