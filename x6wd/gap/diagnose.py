@@ -188,14 +188,17 @@ def simulation_refit(
     layout: Layout,
     lattice: int | None,
     ref_sd: np.ndarray | None = None,
+    alt_start: Fit | None = None,
 ) -> Fit:
     """``fit`` with its :data:`SIM_REFIT` parameters moved to minimise G of ``real_b`` against
     ``runs`` plus ``others`` plus the effect, printed on the lattice (Nelder-Mead in log
-    parameters from the analytical fit, common random numbers so that G is smooth in them).
-    Rounding to a coarse lattice is not additive: an effect that moves the position makes it
-    cross lattice lines faster, which a likelihood on top of the quantised baseline's own
-    noise credits to the effect (a 0.8 m / 60 s drift under a 1.85 m lattice fitted as
-    0.74 m / 19 s). The standard errors are kept from the analytical fit."""
+    parameters from the analytical fit, or from ``alt_start`` when that scores better; common
+    random numbers so that G is smooth in them). Rounding to a coarse lattice is not
+    additive: an effect that moves the position makes it cross lattice lines faster, which a
+    likelihood on top of the quantised baseline's own noise credits to the effect (a 0.8 m /
+    60 s drift under a 1.85 m lattice fitted as 0.74 m / 19 s, or on another log as 0.16 m /
+    2.3 s, too far for a short local search). A parameter moved by simulation has no standard
+    error (NaN): the analytical one belongs to another point."""
     from scipy.optimize import minimize
 
     keys = SIM_REFIT.get(fit.name, ())
@@ -208,13 +211,23 @@ def simulation_refit(
     def make(x: np.ndarray) -> Fit:
         params = {k: v for k, v in p0.items() if k != "name"}
         params.update({k: round(float(math.exp(v)), 6) for k, v in zip(keys, x, strict=True)})
-        return Fit(cls(**params), fit.se)
+        # a likelihood's curvature says nothing about a point it did not choose
+        return Fit(cls(**params), {**fit.se, **{k: math.nan for k in keys}})
 
     def g_of(x: np.ndarray) -> float:
         rng = np.random.default_rng(20_241)  # common random numbers across evaluations
         with_runs = apply_fits([*others, make(x)], runs, rng, lattice)
         return null_model([battery(s, layout) for s in with_runs]).gap(real_b, ref_sd)
 
+    g0 = g_of(x0)
+    moved = False
+    if alt_start is not None and alt_start.name == fit.name:
+        pa = alt_start.effect.to_params()
+        if all(float(pa[k]) > 0 for k in keys):
+            xa = np.log([float(pa[k]) for k in keys])
+            ga = g_of(xa)
+            if ga < g0:
+                x0, g0, moved = xa, ga, True
     res = minimize(
         g_of,
         x0,
@@ -226,7 +239,9 @@ def simulation_refit(
             "initial_simplex": np.vstack([x0, x0 + 0.3 * np.eye(len(keys))]),
         },
     )
-    return make(res.x) if res.fun < g_of(x0) else fit
+    if res.fun < g0:
+        return make(res.x)
+    return make(x0) if moved else fit
 
 
 def _refit_whole(
@@ -260,7 +275,8 @@ def _refit_whole(
             base = apply_fits(others, runs, rng, lattice) if others else list(runs)
             whole = FITTERS[f.name](real, base, layout)
         if whole is not None and coarse and f.name in SIM_REFIT:
-            whole = simulation_refit(whole, others, real_b, runs, layout, lattice)
+            # the fit-part fit was already refined by simulation: a second start
+            whole = simulation_refit(whole, others, real_b, runs, layout, lattice, alt_start=f)
         out.append(whole if whole is not None else f)
     return out
 
