@@ -26,6 +26,14 @@ class Row:
         return self.value / self.anchor  # type: ignore[operator]
 
 
+def upper95(k: int, n: int) -> float:
+    """One-sided 95 % Clopper-Pearson upper bound of a rate seen k times in n trials (for a
+    false-alarm rate measured on a finite number of null cases)."""
+    from scipy.stats import beta
+
+    return 1.0 if k >= n else float(beta.ppf(0.95, k + 1, n - k))
+
+
 def print_table(rows: list[Row]) -> None:
     """Print rows as an aligned text table."""
     head = ("bench", "metric", "value", "unit", "anchor", "ratio", "note")

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from bench._common import Row, print_table
+from bench._common import Row, print_table, upper95
 from sim_backend.effects import (
     Bias,
     GaussMarkov,
@@ -226,13 +226,6 @@ def _param_ok(r: dict[str, Any]) -> dict[str, bool]:
     return {}
 
 
-def _upper95(k: int, n: int) -> float:
-    """One-sided 95 % Clopper-Pearson upper bound of a rate seen k times in n trials."""
-    from scipy.stats import beta
-
-    return 1.0 if k >= n else float(beta.ppf(0.95, k + 1, n - k))
-
-
 def run(
     quick: bool = False,
     source: str = "gnss",
@@ -276,7 +269,7 @@ def _summary(results: list[dict[str, Any]], quick: bool) -> list[Row]:
             "fraction",
             0.05,
             "target <=",
-            f"n={len(nulls)}, {n_fa} alarms, 95 % upper bound {_upper95(n_fa, len(nulls)):.3f}",
+            f"n={len(nulls)}, {n_fa} alarms, 95 % upper bound {upper95(n_fa, len(nulls)):.3f}",
         )
     )
     singles = [r for r in results if r["kind"] == "single"]

@@ -21,8 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from bench._common import Row, print_table
-from bench.bench_gap import _upper95
+from bench._common import Row, print_table, upper95
 from sim_backend.effects import Declination, HardIron, HeadingLag, HeadingSeries, SoftIron, Tilt
 from x6wd.gap.compass import (
     CompassOptions,
@@ -187,7 +186,7 @@ def summary(res: list[dict[str, Any]], quick: bool) -> list[Row]:
             "fraction",
             0.05,
             "target <=",
-            f"n={len(nulls)}, {n_fa} alarms, 95 % upper bound {_upper95(n_fa, len(nulls)):.3f}",
+            f"n={len(nulls)}, {n_fa} alarms, 95 % upper bound {upper95(n_fa, len(nulls)):.3f}",
         )
     ]
     if nulls:

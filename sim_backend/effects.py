@@ -138,6 +138,18 @@ def _dt_s(t_s: np.ndarray) -> np.ndarray:
     return dt
 
 
+def truth_velocity_mps(series: PositionSeries) -> tuple[np.ndarray, np.ndarray]:
+    """True east/north velocity (m/s) per epoch from speed_mps/course_deg (missing values
+    read as 0; no course reads as north). Zero everywhere when the series has no speed."""
+    n = len(series)
+    if series.speed_mps is None:
+        return np.zeros(n), np.zeros(n)
+    speed = np.nan_to_num(np.asarray(series.speed_mps, dtype=float))
+    course = series.course_deg
+    crs = np.zeros(n) if course is None else np.nan_to_num(np.asarray(course, dtype=float))
+    return speed * np.sin(np.radians(crs)), speed * np.cos(np.radians(crs))
+
+
 def truth_track_m(series: PositionSeries) -> tuple[np.ndarray, np.ndarray]:
     """True east/north (m) relative to the origin, integrated from speed_mps/course_deg.
 
@@ -147,11 +159,7 @@ def truth_track_m(series: PositionSeries) -> tuple[np.ndarray, np.ndarray]:
     n = len(series)
     if series.speed_mps is None or n == 0:
         return np.zeros(n), np.zeros(n)
-    speed = np.nan_to_num(np.asarray(series.speed_mps, dtype=float))
-    course = series.course_deg
-    crs = np.zeros(n) if course is None else np.nan_to_num(np.asarray(course, dtype=float))
-    ve = speed * np.sin(np.radians(crs))
-    vn = speed * np.cos(np.radians(crs))
+    ve, vn = truth_velocity_mps(series)
     dt = _dt_s(series.t_s)
     east = np.concatenate(([0.0], np.cumsum(0.5 * (ve[1:] + ve[:-1]) * dt)))
     north = np.concatenate(([0.0], np.cumsum(0.5 * (vn[1:] + vn[:-1]) * dt)))
@@ -471,9 +479,8 @@ class Latency(_Params):
         te, tn = truth_track_m(series)
         t = np.asarray(series.t_s, dtype=float)
         tq = t - self.delay_s
-        speed0 = float(np.nan_to_num(series.speed_mps[0]))
-        crs0 = 0.0 if series.course_deg is None else float(np.nan_to_num(series.course_deg[0]))
-        ve0, vn0 = speed0 * math.sin(math.radians(crs0)), speed0 * math.cos(math.radians(crs0))
+        ve, vn = truth_velocity_mps(series)
+        ve0, vn0 = float(ve[0]), float(vn[0])
         pe = np.interp(tq, t, te)
         pn = np.interp(tq, t, tn)
         early = tq < t[0]

@@ -16,7 +16,7 @@ from x6wd.errors import ConfigError, ParseError
 from x6wd.gap.diagnose import Options, diagnose, report_dict
 from x6wd.gap.io import errors_vs_track, parse_truth, read_track, series_to_track, write_csv
 from x6wd.gap.null import block_bootstrap, null_model
-from x6wd.gap.stats import allan_var, battery, layout_for
+from x6wd.gap.stats import Cell, allan_var, battery, layout_for
 from x6wd.gap.surrogate import BASELINE_EFFECTS, surrogate_run
 
 HERE = Path(__file__).resolve().parent
@@ -429,3 +429,79 @@ def test_drift_under_a_coarse_lattice_is_fitted_through_it(hour_baseline: list) 
     assert gm["tau_s"] == pytest.approx(60.0, rel=0.35) and gm["sigma_m"] == pytest.approx(
         0.8, rel=0.2
     )
+
+
+def _white_series(sigma_m: float, duration_s: float, seed: int) -> PositionSeries:
+    t = np.arange(0.0, duration_s + 0.5)
+    rng = np.random.default_rng(seed)
+    e, n = sigma_m * rng.standard_normal((2, t.size))
+    return PositionSeries(t, e, n, np.zeros(t.size), np.ones(t.size, dtype=bool), 51.7, 19.5)
+
+
+def test_spectrum_bands_measure_white_noise_density_and_a_drift_s_red_spectrum() -> None:
+    from x6wd.gap.stats import spectrum_bands
+
+    white = _white_series(0.5, 3600.0, 1)
+    lay = layout_for(white)
+    edges, power = spectrum_bands(white.east_m, white.north_m, lay)
+    # two-octave bands from the Nyquist frequency down to ten cycles per log
+    assert edges[0] == (0.125, 0.5) and all(lo >= 10 / 3600 for lo, _hi in edges)
+    # white noise: east + north one-sided density 2 sigma^2 dt in every band
+    assert power == pytest.approx([2 * 0.25 * 1.0] * len(edges), rel=0.25)
+    drift = GaussMarkov(sigma_m=0.5, tau_s=60.0).apply(
+        _white_series(0.0, 3600.0, 2), np.random.default_rng(2)
+    )
+    edges2, red = spectrum_bands(drift.east_m, drift.north_m, layout_for(drift))
+    assert edges2 == edges and red[-1] > 10 * red[0]  # fixed by the layout; power at low f
+
+
+def test_resampled_null_keeps_the_ensemble_spread() -> None:
+    # Closure intervals rebuild the null from members drawn with replacement; without the
+    # M/(M-1) correction its spread is (M-1)/M of the ensemble's in expectation (12 % low at
+    # M = 8), which biased every interval's closures low.
+    from x6wd.gap.null import resample_null
+
+    rng = np.random.default_rng(4)
+    values = rng.standard_normal((8, 5)) * 3.0
+    names = [Cell("mean", f"axis{i}") for i in range(5)]
+    model = null_model([dict(zip(names, row, strict=True)) for row in values])
+    var = np.mean([resample_null(model, rng).sd ** 2 for _ in range(4000)], axis=0)
+    assert var == pytest.approx(model.sd**2, rel=0.05)
+
+
+def test_simulation_refit_reaches_the_truth_from_a_second_start() -> None:
+    # Under a 1.85 m lattice the likelihood can read a 0.8 m / 60 s drift as 0.16 m / 2.3 s,
+    # too far for a short local search; a second start (the fit-part fit) that scores better
+    # is searched from instead, and a moved parameter carries no standard error.
+    from x6wd.gap.diagnose import simulation_refit
+    from x6wd.gap.fit import Fit
+
+    runs = [surrogate_run(1200.0, 1.0, np.random.default_rng(700 + i)) for i in range(6)]
+    real = surrogate_run(
+        1200.0, 1.0, np.random.default_rng(70),
+        effects=[*PRE, GaussMarkov(sigma_m=0.8, tau_s=60.0), Quantization(3)],
+    )  # fmt: skip
+    lay = layout_for(real)
+    quant = Fit(Quantization(3), {"decimals": 0.0})
+    wrong = Fit(GaussMarkov(sigma_m=0.16, tau_s=2.3), {"sigma_m": 0.01, "tau_s": 0.2})
+    good = Fit(GaussMarkov(sigma_m=0.8, tau_s=60.0), {"sigma_m": 0.1, "tau_s": 10.0})
+    real_b = battery(real, lay)
+    alone = simulation_refit(wrong, [quant], real_b, runs, lay, 3)
+    both = simulation_refit(wrong, [quant], real_b, runs, lay, 3, alt_start=good)
+    assert both.params["tau_s"] > 25.0 > alone.params["tau_s"]
+    assert math.isnan(both.se["tau_s"]) and math.isnan(both.se["sigma_m"])
+    bias = Fit(Bias(1.0, 0.0, 0.0), {"east_m": 0.1})
+    assert simulation_refit(bias, [quant], real_b, runs, lay, 3) is bias  # not refitted
+
+
+def test_blas_pinned_to_one_thread_unless_the_user_chose(monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    from x6wd.cli import BLAS_THREAD_VARS, single_thread_blas
+
+    for var in BLAS_THREAD_VARS:
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")
+    single_thread_blas()
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "2"
+    assert all(os.environ[v] == "1" for v in BLAS_THREAD_VARS if v != "OPENBLAS_NUM_THREADS")

@@ -26,6 +26,7 @@ from x6wd.errors import ConfigError
 from x6wd.gap.fit import (
     COMPANIONS,
     DRIFT_FAMILY,
+    DRIFTS,
     FITTABLE,
     FITTERS,
     Fit,
@@ -255,7 +256,7 @@ def _refit_whole(
     """Each selected effect refitted on the whole log on top of the baseline runs plus the
     other selected effects (its fit-part version kept when the refit fails)."""
     names = [f.name for f in selected]
-    drift = next((n for n in names if n in ("gauss_markov", "random_walk")), None)
+    drift = next((n for n in names if n in DRIFTS), None)
     joint: dict[str, Fit] = {}
     if drift is not None:
         # the drift and the bias / latency beside it: one joint likelihood, on top of the
@@ -388,7 +389,8 @@ def diagnose(
     # a drift widens the spread of means or soaks up a speed-correlated error), so
     # leave-one-out keeps them and drops only what the likelihood did not ask for
     named_by_likelihood: set[str] = set()
-    ref_fit_sd = null_model(_batteries(runs, fit_lay, 0.0, t_fit), opt.alpha).sd
+    runs_fit = [window(s, 0.0, t_fit) for s in runs]
+    ref_fit_sd = null_model([battery(s, fit_lay) for s in runs_fit], opt.alpha).sd
 
     def evaluate(fits: list[Fit]) -> tuple[float, float, NullModel, list[PositionSeries]]:
         """(selection key, held-out G, held-out null, runs) of the baseline plus ``fits``."""
@@ -472,14 +474,13 @@ def diagnose(
             eligible = not in_family or bool(fam_best and fam_best[0] == name)
             if coarse and eligible and name in SIM_REFIT:
                 fit = simulation_refit(
-                    fit, selected, real_fit_b, [window(s, 0.0, t_fit) for s in runs], fit_lay,
-                    lattice_now, ref_fit_sd,
-                )  # fmt: skip
+                    fit, selected, real_fit_b, runs_fit, fit_lay, lattice_now, ref_fit_sd
+                )
             key, g_e, eff_null, with_runs = evaluate([*selected, fit])
             option = [fit]
             forced: list[str] = []  # companions named beside it by the likelihood
             comps = [c for c in fam_best[1:] if c in COMPANIONS and c in names and c != name]
-            if in_family and eligible and comps and name in ("gauss_markov", "random_walk"):
+            if in_family and eligible and comps and name in DRIFTS:
                 # the likelihood names this drift WITH companions: all from one joint fit
                 flags = ("bias" in comps, "latency" in comps)
                 joint = joint_drift_fits(real_fit, cur_fit, fit_lay, name, flags)

@@ -17,7 +17,7 @@ import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from sim_backend.effects import (
     PositionSeries,
     Quantization,
     RandomWalk,
+    truth_velocity_mps,
 )
 from x6wd.gap.stats import (
     QUANT_DECIMALS,
@@ -38,6 +39,31 @@ from x6wd.gap.stats import (
     lattice_fraction,
     regular,
 )
+
+T = TypeVar("T")
+
+
+class _IdentityCache(Generic[T]):
+    """The last few results of an expensive fit, keyed on the identity of the series it was
+    given (plus ``extra``): the candidates of a round all fit against one baseline. Each entry
+    keeps its series alive, so their ids cannot be reused while it exists."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.entries: list[tuple[tuple[Any, ...], list[PositionSeries], T]] = []
+
+    def get(
+        self, series: Sequence[PositionSeries], extra: tuple[Any, ...], compute: Callable[[], T]
+    ) -> T:
+        key = (*(id(s) for s in series), *extra)
+        for k, _keep, value in self.entries:
+            if k == key:
+                return value
+        value = compute()
+        self.entries.append((key, list(series), value))
+        del self.entries[: -self.size]
+        return value
+
 
 # Which battery statistics each effect moves: its fingerprint, used to rank candidates.
 FINGERPRINTS: dict[str, tuple[str, ...]] = {
@@ -111,14 +137,24 @@ def fit_gauss_markov(
     if len(real) < 32:
         return None
     d = drift_fit(real, base, layout)
-    (sigma, tau), (se_s, se_t) = d.gm[d.companions("gauss_markov")]
+    flags = d.companions("gauss_markov")
+    sigma, tau = d.gm[flags][0]
     if not (math.isfinite(sigma) and math.isfinite(tau)) or sigma < 1e-4:
         return None
-    tau = min(tau, 10 * layout.duration_s)
-    return Fit(
-        GaussMarkov(sigma_m=round(sigma, 4), tau_s=round(tau, 3), axes="en"),
-        {"sigma_m": se_s, "tau_s": se_t},
-    )
+    return _drift_effect(d, "gauss_markov", flags, layout)
+
+
+def _drift_effect(d: DriftFit, drift: str, flags: Flags, layout: Layout) -> Fit:
+    """The horizontal drift layer of ``d``'s fit with companions ``flags``, rounded for the
+    report; a Gauss-Markov tau is capped at ten log lengths (beyond, it is a walk or bias)."""
+    if drift == "gauss_markov":
+        (sigma, tau), (se_s, se_t) = d.gm[flags]
+        return Fit(
+            GaussMarkov(sigma_m=round(sigma, 4), tau_s=round(min(tau, 10 * layout.duration_s), 3)),
+            {"sigma_m": se_s, "tau_s": se_t},
+        )
+    q, se_q = d.rw[flags]
+    return Fit(RandomWalk(q_m_per_sqrt_s=round(q, 6)), {"q_m_per_sqrt_s": se_q})
 
 
 def joint_drift_fits(
@@ -136,20 +172,7 @@ def joint_drift_fits(
     name = drift_model_name(drift, flags)
     if name not in d.loglik:
         return []
-    out: list[Fit] = []
-    if drift == "gauss_markov":
-        (sigma, tau), (se_s, se_t) = d.gm[flags]
-        out.append(
-            Fit(
-                GaussMarkov(
-                    sigma_m=round(sigma, 4), tau_s=round(min(tau, 10 * layout.duration_s), 3)
-                ),
-                {"sigma_m": se_s, "tau_s": se_t},
-            )
-        )
-    else:
-        q, se_q = d.rw[flags]
-        out.append(Fit(RandomWalk(q_m_per_sqrt_s=round(q, 6)), {"q_m_per_sqrt_s": se_q}))
+    out = [_drift_effect(d, drift, flags, layout)]
     coef, se = d.coefs.get(name, (np.zeros(0), np.zeros(0)))
     if flags[0] and coef.size >= 2:
         up = fit_bias(real, base, layout)  # the GLS is horizontal; up from the means
@@ -175,10 +198,11 @@ def fit_random_walk(
     if len(real) < 32:
         return None
     d = drift_fit(real, base, layout)
-    q, se_q = d.rw[d.companions("random_walk")]
+    flags = d.companions("random_walk")
+    q = d.rw[flags][0]
     if not math.isfinite(q) or q < 1e-6:
         return None
-    return Fit(RandomWalk(q_m_per_sqrt_s=round(q, 6), axes="en"), {"q_m_per_sqrt_s": se_q})
+    return _drift_effect(d, "random_walk", flags, layout)
 
 
 def fit_bias(real: PositionSeries, base: Sequence[PositionSeries], layout: Layout) -> Fit | None:
@@ -285,17 +309,17 @@ def scale_mixture(
 JUMP_MIN_WIDTH = 4.0  # a jump step is at least this much wider (variance) than the null's widest
 JUMP_MAX_SHARE = 0.05  # at most one step in 20 is a jump
 StepLaw = tuple[np.ndarray, np.ndarray, float]
-_STEP_LAW_CACHE: list[tuple[tuple[float, ...], list[PositionSeries], StepLaw | None]] = []
+_STEP_LAW_CACHE: _IdentityCache[StepLaw | None] = _IdentityCache(4)
 
 
 def _step_law(base: Sequence[PositionSeries], layout: Layout) -> StepLaw | None:
     """The baseline's step law for :func:`fit_jumps`: (weights, per-axis variances) of a
     two-component scale mixture on the pooled steps, and the jump share the jump fit finds in
     the runs themselves (its floor). Cached on the identity of the runs."""
-    key = (*(id(s) for s in base), round(layout.dt_s, 6))
-    for k, _keep, law in _STEP_LAW_CACHE:
-        if k == key:
-            return law
+    return _STEP_LAW_CACHE.get(base, (round(layout.dt_s, 6),), lambda: _fit_step_law(base, layout))
+
+
+def _fit_step_law(base: Sequence[PositionSeries], layout: Layout) -> StepLaw | None:
     bsteps = [np.sum(_steps(s, layout.dt_s)[0] ** 2, axis=1) for s in base]
     pooled = np.concatenate(bsteps) if bsteps else np.zeros(0)
     out: StepLaw | None = None
@@ -309,8 +333,6 @@ def _step_law(base: Sequence[PositionSeries], layout: Layout) -> StepLaw | None:
             )
         )
         out = (nw, nv, p_base)
-    _STEP_LAW_CACHE.append((key, list(base), out))
-    del _STEP_LAW_CACHE[:-4]
     return out
 
 
@@ -588,12 +610,49 @@ def latency_regressor(series: PositionSeries) -> np.ndarray | None:
     if series.speed_mps is None:
         return None
     v = np.asarray(series.valid, dtype=bool)
-    spd = np.nan_to_num(np.asarray(series.speed_mps, dtype=float))[v]
-    crs = series.course_deg
-    c = np.radians(np.nan_to_num(np.asarray(crs, dtype=float)))[v] if crs is not None else 0 * spd
-    if not np.any(spd > 0):
+    if not np.any(np.nan_to_num(np.asarray(series.speed_mps, dtype=float))[v] > 0):
         return None
-    return -np.stack([spd * np.sin(c), spd * np.cos(c)])
+    ve, vn = truth_velocity_mps(series)
+    return -np.stack([ve[v], vn[v]])
+
+
+Transition = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def component_law(
+    model: NoiseModel, eff_var: np.ndarray, eff_tau: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stationary variances (m^2; for a random walk, tau inf, its rate m^2/s) and correlation
+    times (s), each (K + 1, C), of the baseline's K Gauss-Markov components and one effect,
+    for C = 2 B filter columns (column j = batch j // 2, axis j % 2); ``eff_var`` and
+    ``eff_tau`` are given per column (C,)."""
+    reps = eff_var.size // 2
+    var = np.vstack([np.tile(model.sigma_m.T**2, (1, reps)), eff_var[None, :]])
+    tau = np.vstack([np.tile(model.tau_s.T, (1, reps)), eff_tau[None, :]])
+    return var, tau
+
+
+def transitions(var: np.ndarray, tau: np.ndarray, dts: np.ndarray) -> Callable[[int], Transition]:
+    """Step i (from valid epoch i to i + 1, ``dts`` s apart) of independent first-order
+    components (``var``/``tau`` (K, C), see :func:`component_law`): (phi (K, 1, C),
+    phi phi' (K, K, C), process noise Q (K, K, C)) for x <- phi x, P <- phi phi' P + Q.
+    Exact discretisation with the actual step (phi = exp(-dt/tau); a random walk where tau is
+    inf), so outages and irregular sampling are exact; tabulated when the log has few
+    distinct steps (a regular log has one)."""
+    rw = ~np.isfinite(tau)
+    safe_tau = np.where(rw, 1.0, tau)
+    diag = np.eye(var.shape[0])[:, :, None]
+
+    def step(dt: float) -> Transition:
+        phi = np.where(rw, 1.0, np.exp(-dt / safe_tau))
+        q = np.where(rw, var * dt, var * -np.expm1(-2.0 * dt / safe_tau))
+        return phi[:, None, :], phi[:, None, :] * phi[None, :, :], diag * q[None, :, :]
+
+    uniq, inv = np.unique(np.round(dts, 6), return_inverse=True)
+    if uniq.size <= 32:
+        table = [step(float(d)) for d in uniq]
+        return lambda i: table[inv[i]]
+    return lambda i: step(float(dts[i]))
 
 
 def kalman_terms(
@@ -621,28 +680,13 @@ def kalman_terms(
     # j = (batch j // 2, axis j % 2)) LAST and contiguous, so that every time step is a
     # handful of vector operations over the whole batch.
     nb = 2 * b
-    var = np.empty((k, nb))
-    tau = np.empty((k, nb))
-    var[:-1] = np.tile(model.sigma_m.T**2, (1, b))
-    tau[:-1] = np.tile(model.tau_s.T, (1, b))
-    var[-1] = np.repeat(eff_var, 2)
-    tau[-1] = np.repeat(eff_tau, 2)
-    rw = ~np.isfinite(tau)
+    var, tau = component_law(model, np.repeat(eff_var, 2), np.repeat(eff_tau, 2))
     w2 = np.tile(model.white_m**2, b)  # (nb,)
-    p0 = np.where(rw, 0.0, var)
-    diag = np.eye(k)[:, :, None]
-
-    def step(dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        safe_tau = np.where(rw, 1.0, tau)
-        phi = np.where(rw, 1.0, np.exp(-dt / safe_tau))
-        q = np.where(rw, var * dt, var * -np.expm1(-2.0 * dt / safe_tau))
-        return phi[:, None, :], phi[:, None, :] * phi[None, :, :], diag * q[None, :, :]
-
+    p0 = np.where(np.isfinite(tau), var, 0.0)  # a walk starts at zero
     dts = np.diff(t)
-    uniq, inv = np.unique(np.round(dts, 6), return_inverse=True)
-    table = [step(float(d)) for d in uniq] if uniq.size <= 32 else None
+    trans = transitions(var, tau, dts)
     x = np.zeros((k, cols, nb))  # middle axis: [data, ones(, latency)]
-    p = diag * p0[None, :, :]
+    p = np.eye(k)[:, :, None] * p0[None, :, :]
     obs = np.empty((n, cols, nb))
     obs[:, 0, :] = np.tile(y.T, (1, b))
     obs[:, 1, :] = 1.0
@@ -652,7 +696,7 @@ def kalman_terms(
     s_all = np.empty((n, nb))
     for i in range(n):
         if i > 0:
-            phi, pp, dq = table[inv[i - 1]] if table is not None else step(float(dts[i - 1]))
+            phi, pp, dq = trans(i - 1)
             p = p * pp + dq
             x = x * phi
         pk = p.sum(axis=1)  # (k, nb): P @ 1
@@ -678,7 +722,8 @@ def kalman_terms(
 # (one mean per horizontal axis) and "+latency" (moving logs); the drift alone reads as its
 # name, no drift and no companion as "none", companions alone as "bias", "bias+latency" ...
 DRIFT_PARAMS = {"gauss_markov": 2, "random_walk": 1, "bias": 2, "latency": 1}
-DRIFT_FAMILY = ("gauss_markov", "random_walk", "bias")
+DRIFTS = ("gauss_markov", "random_walk")  # the drift layers proper
+DRIFT_FAMILY = (*DRIFTS, "bias")
 COMPANIONS = ("bias", "latency")
 Flags = tuple[bool, bool]  # (bias, latency)
 
@@ -755,21 +800,16 @@ def _quad_fit(pts: np.ndarray, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return cov @ g, cov
 
 
-_NOISE_CACHE: list[tuple[tuple[int, ...], list[PositionSeries], NoiseModel]] = []
-_DRIFT_CACHE: list[tuple[tuple[int, ...], list[PositionSeries], DriftFit]] = []
+_NOISE_CACHE: _IdentityCache[NoiseModel] = _IdentityCache(4)
+_DRIFT_CACHE: _IdentityCache[DriftFit] = _IdentityCache(6)
 
 
 def noise_model(base: Sequence[PositionSeries], layout: Layout) -> NoiseModel:
     """:func:`fit_noise_model`, cached on the identity of the runs (the candidates of a round
     share one baseline)."""
-    key = (*(id(s) for s in base), round(layout.duration_s))
-    for k, _keep, m in _NOISE_CACHE:
-        if k == key:
-            return m
-    m = fit_noise_model(base, layout)
-    _NOISE_CACHE.append((key, list(base), m))
-    del _NOISE_CACHE[:-4]
-    return m
+    return _NOISE_CACHE.get(
+        base, (round(layout.duration_s),), lambda: fit_noise_model(base, layout)
+    )
 
 
 def drift_fit(real: PositionSeries, base: Sequence[PositionSeries], layout: Layout) -> DriftFit:
@@ -777,10 +817,10 @@ def drift_fit(real: PositionSeries, base: Sequence[PositionSeries], layout: Layo
     coarse grid over (sigma, tau) and q, then three zooms around each maximum, all in batched
     exact Kalman likelihoods; standard errors from the curvature of the log-likelihood
     (a quadratic through the last zoom grid, in log-parameters). Cached per (real, base)."""
-    key = (id(real), *(id(s) for s in base))
-    for k, _keep, cached in _DRIFT_CACHE:
-        if k == key:
-            return cached
+    return _DRIFT_CACHE.get([real, *base], (), lambda: _fit_drift(real, base, layout))
+
+
+def _fit_drift(real: PositionSeries, base: Sequence[PositionSeries], layout: Layout) -> DriftFit:
     model = noise_model(base, layout)
     dt = layout.dt_s
     span = max(layout.duration_s, 10 * dt)
@@ -895,10 +935,7 @@ def drift_fit(real: PositionSeries, base: Sequence[PositionSeries], layout: Layo
         else:
             q_val = math.exp(centre[0])
             rw[f] = (q_val, q_val * float(se[0]))
-    fit = DriftFit(loglik, gm, rw, 2 * kt.nobs, model, coefs)
-    _DRIFT_CACHE.append((key, [real, *base], fit))
-    del _DRIFT_CACHE[:-6]
-    return fit
+    return DriftFit(loglik, gm, rw, 2 * kt.nobs, model, coefs)
 
 
 # Random-walk rates (m/s^0.5) searched by :func:`random_walk_lr`: from far below anything a

@@ -47,7 +47,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from sim_backend.effects import MultipathZone, PositionSeries, truth_track_m
-from x6wd.gap.fit import Fit, NoiseModel, _quad_fit, noise_model
+from x6wd.gap.fit import Fit, NoiseModel, _quad_fit, component_law, noise_model, transitions
 from x6wd.gap.stats import Layout
 
 CELL_M = 5.0  # place bin (m): about 2-3 epochs of travel per pass at walking to cycling speed
@@ -119,23 +119,9 @@ def _filter(
     with the actual step, so outages and irregular sampling are exact."""
     c, n = y.shape
     k = model.tau_s.shape[1] + 1
-    reps = c // 2
-    var = np.empty((k, c))
-    tau = np.empty((k, c))
-    var[:-1] = np.tile(model.sigma_m.T**2, (1, reps))
-    tau[:-1] = np.tile(model.tau_s.T, (1, reps))
-    var[-1], tau[-1] = eff_var, eff_tau
-    w2 = np.tile(model.white_m**2, reps)
-    diag = np.eye(k)[:, :, None]
-
-    def step(dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        phi = np.exp(-dt / tau)
-        q = var * -np.expm1(-2.0 * dt / tau)
-        return phi[:, None, :], phi[:, None, :] * phi[None, :, :], diag * q[None, :, :]
-
-    dts = np.diff(t_s)
-    uniq, inv = np.unique(np.round(dts, 6), return_inverse=True)
-    table = [step(float(d)) for d in uniq] if uniq.size <= 32 else None
+    var, tau = component_law(model, eff_var, eff_tau)
+    w2 = np.tile(model.white_m**2, c // 2)
+    trans = transitions(var, tau, np.diff(t_s))
     m_all = np.ones((n, c)) if zone is None else np.asarray(zone, dtype=float).T
     seen = np.asarray(m_all.any(axis=1))  # most epochs are outside every zone: skip there
     obs = np.empty((n, 2, c))
@@ -145,14 +131,14 @@ def _filter(
     v_all = np.asarray(valid, dtype=float).T
     full = np.asarray(v_all.all(axis=1))
     x = np.zeros((k, 2, c))
-    p = diag * var[None, :, :]
+    p = np.eye(k)[:, :, None] * var[None, :, :]
     e_all = np.empty((n, 2, c))
     s_all = np.empty((n, c))
 
     two = k == 3  # the usual two baseline components: plain adds beat reductions here
     for i in range(n):
         if i > 0:
-            phi, pp, dq = table[inv[i - 1]] if table is not None else step(float(dts[i - 1]))
+            phi, pp, dq = trans(i - 1)
             p *= pp
             p += dq
             x *= phi
