@@ -85,6 +85,19 @@ class ServerConfig:
     queue_len: int = field(default=256, metadata=_rng(1, 1_000_000))
     # per-client input budget: a flooding client is read no faster than this (TCP pushes back)
     input_bytes_per_s: int = field(default=65536, metadata=_rng(1024, 1 << 30))
+    # Lock-out protection. Connections that have not authenticated yet (without a token: not
+    # yet sent one valid request) live in their own pool of ``max_pending``; when it is full
+    # the oldest is closed, so they never take an operator's slot among ``max_clients``.
+    max_pending: int = field(default=32, metadata=_rng(1, 10000))
+    auth_timeout_s: float = field(default=5.0, metadata=_rng(0.1, 300))
+    # a session that is not watching and sends nothing for this long is closed
+    idle_timeout_s: float = field(default=300.0, metadata=_rng(1, 86400))
+    # a client whose socket has not drained for this long (it never reads) is closed
+    slow_client_s: float = field(default=10.0, metadata=_rng(0.1, 3600))
+    # failed authentication: the connection waits this long before its next line (doubling
+    # per failure) and is closed after ``max_auth_failures``
+    auth_fail_delay_s: float = field(default=1.0, metadata=_rng(0, 60))
+    max_auth_failures: int = field(default=3, metadata=_rng(1, 100))
 
 
 @dataclass(frozen=True)
@@ -94,12 +107,22 @@ class GpsdConfig:
     port: int = field(default=2947, metadata=_rng(0, 65535))
     max_clients: int = field(default=32, metadata=_rng(1, 10000))
     queue_len: int = field(default=64, metadata=_rng(1, 1_000_000))
+    # a client that is not watching and sends no command for this long is closed
+    idle_timeout_s: float = field(default=60.0, metadata=_rng(1, 86400))
+    # a watcher whose socket has not drained for this long (it never reads) is closed
+    slow_client_s: float = field(default=10.0, metadata=_rng(0.1, 3600))
 
 
 @dataclass(frozen=True)
 class RecorderConfig:
     enabled: bool = True
     dir: str = "/var/lib/x6wd"
+    # Retention, sized for an SD card: a recording is split into parts of ``max_file_mb``;
+    # the oldest recordings in ``dir`` are deleted while all of them together exceed
+    # ``max_total_mb`` or the file system has less than ``min_free_mb`` free.
+    max_file_mb: float = field(default=64.0, metadata=_rng(0.01, 1e6))
+    max_total_mb: float = field(default=2048.0, metadata=_rng(0.1, 1e9))
+    min_free_mb: float = field(default=256.0, metadata=_rng(0, 1e9))
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,7 @@
 """One error hierarchy for the whole project; subclasses name the phase that failed."""
 
+import errno
+
 
 class X6wdError(Exception):
     """Base class of every error x6wd raises on purpose."""
@@ -27,3 +29,27 @@ class ParseError(X6wdError):
 
 class ProtocolError(X6wdError):
     """A peer broke the remote-control or gpsd protocol."""
+
+
+# Errno values that mean "try again" on a device (an I2C bus, a UART, a USB adapter being
+# re-enumerated), as one class for every driver: EIO (5, bus or line glitch), ENXIO (6, no
+# ACK at the address / device gone for a moment), EAGAIN (11), EBUSY (16, bus held by another
+# master), EINTR (4), EPROTO (71, USB protocol error), ETIMEDOUT (110) and EREMOTEIO (121,
+# I2C NACK). Anything else (ENOENT, EACCES, EBADF ...) is a real fault.
+TRANSIENT_ERRNOS: frozenset[int] = frozenset(
+    {
+        errno.EIO,
+        errno.ENXIO,
+        errno.EAGAIN,
+        errno.EBUSY,
+        errno.EINTR,
+        errno.EPROTO,
+        errno.ETIMEDOUT,
+        errno.EREMOTEIO,
+    }
+)
+
+
+def is_transient(exc: BaseException) -> bool:
+    """True when ``exc`` is an OSError whose errno is in :data:`TRANSIENT_ERRNOS`."""
+    return isinstance(exc, OSError) and exc.errno in TRANSIENT_ERRNOS
