@@ -15,14 +15,19 @@ any        ``sim://...``                            ``sim_backend.hil.open_gps/o
 =========  =======================================  ==========================================
 
 ``replay://`` takes a relative path as ``replay://logs/a.nmea`` and an absolute one as
-``replay:///abs/a.nmea``. Unknown schemes and options raise :class:`ConfigError` listing the
-valid ones; a device that cannot be opened raises :class:`DeviceUnavailable`.
+``replay:///abs/a.nmea``. Unknown schemes and options raise :class:`UrlError` (a
+:class:`ConfigError`) listing the valid ones; a device that cannot be opened raises
+:class:`DeviceUnavailable`. :func:`check_available` is the daemon's start-up check: the URL is
+valid and the local device it names (serial path, I2C bus, replay file) exists, without
+opening anything.
 """
 
 from __future__ import annotations
 
 import importlib
 import math
+import os
+import stat
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 from urllib.parse import parse_qsl, unquote, urlsplit
@@ -34,6 +39,7 @@ if TYPE_CHECKING:
     from drivers.motors import MotorLink
 
 KINDS = ("gps", "compass", "motors")
+I2C_DEV = "/dev/i2c-{bus}"  # the Linux i2c-dev node that smbus2.SMBus(bus) opens
 STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
 
 
@@ -51,6 +57,17 @@ class PortLike(Protocol):
     def write(self, data: bytes) -> int | None: ...
 
     def close(self) -> None: ...
+
+
+class UrlError(ConfigError):
+    """A device URL that cannot work. ``str()`` is ``"<kind> URL '<url>': <reason>"``;
+    ``reason`` alone lets a caller name its own config key instead of the kind."""
+
+    def __init__(self, kind: str, url: str, reason: str) -> None:
+        super().__init__(f"{kind} URL {url!r}: {reason}")
+        self.kind = kind
+        self.url = url
+        self.reason = reason
 
 
 def _float_opt(lo: float, hi: float) -> Any:
@@ -158,17 +175,20 @@ def parse_url(url: str, kind: str) -> DeviceUrl:
     if kind not in SCHEMES:
         raise ConfigError(f"unknown device kind {kind!r} (valid: {', '.join(KINDS)})")
     if not isinstance(url, str) or "://" not in url:
-        raise ConfigError(
-            f"{kind} URL {url!r}: expected scheme://..., valid schemes: "
-            f"{', '.join(s + '://' for s in SCHEMES[kind])}"
+        raise UrlError(
+            kind,
+            url,
+            f"expected scheme://..., valid schemes: {', '.join(s + '://' for s in SCHEMES[kind])}",
         )
     parts = urlsplit(url)
     scheme = parts.scheme.lower()
     schemes = SCHEMES[kind]
     if scheme not in schemes:
-        raise ConfigError(
-            f"{kind} URL {url!r}: unknown scheme {scheme!r} (valid for {kind}: "
-            f"{', '.join(s + '://' for s in schemes)})"
+        raise UrlError(
+            kind,
+            url,
+            f"unknown scheme {scheme!r} (valid for {kind}: "
+            f"{', '.join(s + '://' for s in schemes)})",
         )
     if scheme == "sim":  # the simulator validates its own URLs
         return DeviceUrl(url, kind, scheme, url[len("sim://") :], {})
@@ -177,59 +197,106 @@ def parse_url(url: str, kind: str) -> DeviceUrl:
     try:
         pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
     except ValueError:
-        raise ConfigError(f"{kind} URL {url!r}: malformed query {parts.query!r}") from None
+        raise UrlError(kind, url, f"malformed query {parts.query!r}") from None
     seen: set[str] = set()
     for name, value in pairs:
         if name not in valid:
             listing = ", ".join(valid) if valid else "none"
-            raise ConfigError(
-                f"{kind} URL {url!r}: unknown option {name!r} for {scheme}:// (valid: {listing})"
-            )
+            raise UrlError(kind, url, f"unknown option {name!r} for {scheme}:// (valid: {listing})")
         if name in seen:
-            raise ConfigError(f"{kind} URL {url!r}: option {name!r} given twice")
+            raise UrlError(kind, url, f"option {name!r} given twice")
         seen.add(name)
         try:
             options[name] = valid[name](name, value)
         except ConfigError as exc:
-            raise ConfigError(f"{kind} URL {url!r}: {exc}") from None
+            raise UrlError(kind, url, str(exc)) from None
     if parts.fragment:
-        raise ConfigError(f"{kind} URL {url!r}: unexpected fragment #{parts.fragment}")
+        raise UrlError(kind, url, f"unexpected fragment #{parts.fragment}")
     target = _target(url, kind, scheme, parts.netloc, unquote(parts.path))
     return DeviceUrl(url, kind, scheme, target, options)
 
 
 def _target(url: str, kind: str, scheme: str, netloc: str, path: str) -> str:
-    where = f"{kind} URL {url!r}"
+    def bad(reason: str) -> UrlError:
+        return UrlError(kind, url, reason)
+
     if scheme == "serial":
         if netloc or not path.startswith("/") or path == "/":
-            raise ConfigError(f"{where}: expected serial:///dev/NAME (an absolute device path)")
+            raise bad("expected serial:///dev/NAME (an absolute device path)")
         return path
     if scheme == "replay":
         target = netloc + path
         if not target:
-            raise ConfigError(f"{where}: expected replay://FILE (relative) or replay:///FILE")
+            raise bad("expected replay://FILE (relative) or replay:///FILE")
         return target
     if scheme == "tcp":
         host, sep, port = netloc.rpartition(":")
         if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536 or path:
-            raise ConfigError(f"{where}: expected tcp://HOST:PORT with PORT 1..65535")
+            raise bad("expected tcp://HOST:PORT with PORT 1..65535")
         return netloc
     if scheme == "i2c":
         bus, addr = netloc, path.strip("/")
         try:
             bus_n, addr_n = int(bus, 10), int(addr, 0)
         except ValueError:
-            raise ConfigError(f"{where}: expected i2c://BUS/ADDRESS, e.g. i2c://1/0x60") from None
+            raise bad("expected i2c://BUS/ADDRESS, e.g. i2c://1/0x60") from None
         if bus_n < 0 or not 0x60 <= addr_n <= 0x67:
-            raise ConfigError(
-                f"{where}: bus must be >= 0 and the address a CMPS10 7-bit address 0x60..0x67"
-            )
+            raise bad("bus must be >= 0 and the address a CMPS10 7-bit address 0x60..0x67")
         return f"{bus_n}/{addr_n:#04x}"
     if scheme == "log":
         if netloc or path not in ("", "/"):
-            raise ConfigError(f"{where}: log:// takes no target")
+            raise bad("log:// takes no target")
         return ""
     raise AssertionError(scheme)  # pragma: no cover
+
+
+def check_available(url: str, kind: str) -> DeviceUrl:
+    """Start-up check of a device URL for ``kind``, opening nothing: the URL is valid
+    (:func:`parse_url`; ``sim://`` also by the simulator's own rules) and the local device it
+    names is there: a serial path is an existing character device this user may read and
+    write, ``i2c://N/..`` has its ``/dev/i2c-N`` node, a replay file exists and is readable.
+    ``tcp://`` and ``log://`` have nothing local to check (a remote peer may come later).
+
+    Raises :class:`UrlError`: the daemon stops with a configuration error rather than run
+    "disconnected" with a device that cannot appear by retrying.
+    """
+    dev = parse_url(url, kind)
+    if dev.scheme == "sim":
+        try:
+            hil = _sim_module(kind)
+        except DeviceUnavailable as exc:
+            raise UrlError(kind, url, str(exc)) from None
+        problem = hil.url_problem(url)
+        if problem:
+            raise UrlError(kind, url, problem)
+    elif dev.scheme == "serial":
+        _check_node(dev, dev.target, char=True, hint="is the user in group dialout?")
+    elif dev.scheme == "i2c":
+        node = I2C_DEV.format(bus=int(dev.target.split("/")[0]))
+        _check_node(dev, node, char=True, hint="is I2C enabled and the user in group i2c?")
+    elif dev.scheme == "replay":
+        _check_node(dev, dev.target, char=False, hint="")
+    return dev
+
+
+def _check_node(dev: DeviceUrl, path: str, *, char: bool, hint: str) -> None:
+    """``path`` exists as a character device (``char``) or a regular file, and is accessible
+    (read-write for a device, read for a file); else :class:`UrlError` saying which."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise UrlError(dev.kind, dev.url, f"{path} does not exist") from None
+    except OSError as exc:
+        raise UrlError(dev.kind, dev.url, f"{path}: {exc.strerror or exc}") from None
+    if char and not stat.S_ISCHR(st.st_mode):
+        raise UrlError(dev.kind, dev.url, f"{path} is not a character device")
+    if not char and not stat.S_ISREG(st.st_mode):
+        raise UrlError(dev.kind, dev.url, f"{path} is not a regular file")
+    need = os.R_OK | os.W_OK if char else os.R_OK
+    if not os.access(path, need):
+        rights = "read and write" if char else "read"
+        extra = f" ({hint})" if hint else ""
+        raise UrlError(dev.kind, dev.url, f"{path}: this user may not {rights} it{extra}")
 
 
 def _sim_module(kind: str) -> Any:

@@ -550,14 +550,21 @@ def shutdown() -> None:
         w.close()
 
 
-def _check_url(url: str, kind: str) -> None:
+def url_problem(url: str) -> str | None:
+    """Why ``url`` is not a valid simulated-device URL, or None when it is (``sim://``;
+    the world is configured in ``[sim]``, so a URL carries no path or options)."""
     parts = urlsplit(url)
     if parts.scheme != "sim":
-        raise ConfigError(f"{kind} URL {url!r}: expected sim://")
+        return "expected sim://"
     if parts.query or parts.fragment or parts.path not in ("", "/"):
-        raise ConfigError(
-            f"{kind} URL {url!r}: sim:// takes no path or options; the world is set in [sim]"
-        )
+        return "sim:// takes no path or options; the world is set in [sim]"
+    return None
+
+
+def _check_url(url: str, kind: str) -> None:
+    problem = url_problem(url)
+    if problem:
+        raise ConfigError(f"{kind} URL {url!r}: {problem}")
 
 
 def open_gps(url: str) -> Any:

@@ -223,24 +223,49 @@ def build(cls: type[T], data: Any, prefix: str = "") -> T:
     return cls(**kwargs)
 
 
-def loads(text: str, source: str = "<string>") -> Config:
-    """Parse and validate TOML text into a :class:`Config`."""
+def _parse(text: str, source: str) -> dict[str, Any]:
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
-    return build(Config, data)
+        # one line: the message already says "(at line L, column C)"
+        raise ConfigError(f"{source}: not valid TOML: {_one_line(str(exc))}") from exc
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def loads(text: str, source: str = "<string>") -> Config:
+    """Parse and validate TOML text into a :class:`Config`.
+
+    Raises :class:`ConfigError` naming ``source`` for malformed TOML, else the dotted key.
+    """
+    return build(Config, _parse(text, source))
 
 
 def load(path: str | Path) -> Config:
-    """Read and validate a TOML configuration file."""
+    """Read and validate a TOML configuration file (UTF-8, as TOML requires).
+
+    Every problem is a one-line :class:`ConfigError` starting with the file's path: it
+    cannot be read, is not UTF-8 (with the line and byte offset), is not valid TOML (with
+    line and column), or a key is unknown, of the wrong type or out of range (the dotted key).
+    """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        blob = p.read_bytes()
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read configuration: {exc.strerror or exc}") from exc
     try:
-        cfg = loads(text, str(p))
+        text = blob.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = blob.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(
+            f"{p}: not UTF-8 text (TOML must be UTF-8): byte {blob[exc.start]:#04x} at offset "
+            f"{exc.start}, line {line}"
+        ) from None
+    data = _parse(text, str(p))
+    try:
+        cfg = build(Config, data)
     except ConfigError as exc:
         raise ConfigError(f"{p}: {exc}") from exc
     # A scenario named next to the config file must not depend on the working directory.

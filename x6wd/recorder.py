@@ -13,6 +13,17 @@ Durability: each record is ONE ``write()`` system call of a complete line on an 
 file, so a crash (even ``kill -9``) loses at most the line being written; optional periodic
 ``os.fsync`` bounds what a power cut can lose. The reader tolerates a truncated last line
 and counts it. Reopening a file whose last line was cut off starts a fresh line first.
+(``kill -9`` needs no fsync: what ``write()`` handed to the kernel survives the process; only
+a power cut or a kernel crash loses what was not yet fsync'ed.)
+
+Retention (an SD card fills up): :meth:`Recorder.in_dir` names a run
+``<prefix>-YYYYmmddTHHMMSSZ[-N].jsonl`` and, with ``max_bytes``, continues it in parts
+``<stem>.1.jsonl``, ``.2`` ... . With a :class:`Retention`, the recorder deletes the oldest
+files of that naming pattern in its directory (older runs first, then the oldest parts of its
+own run, never the part being written) while they add up to more than ``max_total_bytes`` or
+the file system has less than ``min_free_bytes`` free. It does so when asked
+(:meth:`Recorder.enforce_retention`, the daemon's recorder thread at start) and after every
+rotation, in the thread that writes. Files of any other name are never touched.
 """
 
 from __future__ import annotations
@@ -22,6 +33,7 @@ import dataclasses
 import enum
 import functools
 import json
+import logging
 import math
 import os
 import re
@@ -43,6 +55,11 @@ from x6wd.records import (
     StateChange,
     Telemetry,
 )
+
+log = logging.getLogger(__name__)
+
+MB = 1 << 20
+"""Bytes in the recorder's megabyte ([recorder] *_mb keys): MiB, as ``du -m``/``df -m`` count."""
 
 RECORD_TYPES = frozenset({"nmea", "attitude", "motor", "state", "telemetry", "sky", "fix", "event"})
 
@@ -113,6 +130,128 @@ def _ends_with_newline(path: Path) -> bool:
         return f.read(1) == b"\n"
 
 
+@dataclass(frozen=True)
+class Retention:
+    """How much the recordings of one naming ``prefix`` in a directory may take.
+
+    ``max_total_bytes``: the recordings together (None: no cap). ``min_free_bytes``: free
+    space (for unprivileged users, ``f_bavail``) the file system must keep (None: no floor).
+    """
+
+    max_total_bytes: int | None = None
+    min_free_bytes: int | None = None
+    prefix: str = "x6wd"
+
+
+@dataclass(frozen=True, order=True)
+class RecordingFile:
+    """One file of the recorder's naming pattern; sorts oldest first (run, then part)."""
+
+    run: tuple[str, int]  # (UTC stamp YYYYmmddTHHMMSSZ, same-second counter N or 0)
+    part: int  # 0 for the run's first file, n for ``<stem>.n.jsonl``
+    path: Path = field(compare=False)
+    size: int = field(compare=False)  # bytes
+
+
+@functools.cache
+def _name_pattern(prefix: str) -> re.Pattern[str]:
+    return re.compile(rf"^{re.escape(prefix)}-(\d{{8}}T\d{{6}}Z)(?:-(\d+))?(?:\.(\d+))?\.jsonl$")
+
+
+def _parse_name(name: str, prefix: str) -> tuple[tuple[str, int], int] | None:
+    m = _name_pattern(prefix).match(name)
+    if m is None:
+        return None
+    return (m[1], int(m[2] or 0)), int(m[3] or 0)
+
+
+def list_recordings(directory: str | os.PathLike[str], prefix: str = "x6wd") -> list[RecordingFile]:
+    """The regular files in ``directory`` named as :meth:`Recorder.in_dir` names runs and
+    their parts, oldest first. A missing directory has none."""
+    out: list[RecordingFile] = []
+    try:
+        entries = list(os.scandir(directory))
+    except FileNotFoundError:
+        return out
+    for entry in entries:
+        key = _parse_name(entry.name, prefix)
+        if key is None:
+            continue
+        try:
+            if not entry.is_file(follow_symlinks=False):
+                continue
+            size = entry.stat(follow_symlinks=False).st_size
+        except FileNotFoundError:  # deleted meanwhile
+            continue
+        out.append(RecordingFile(key[0], key[1], Path(entry.path), size))
+    out.sort()
+    return out
+
+
+def free_bytes(directory: str | os.PathLike[str]) -> int:
+    """Bytes an unprivileged user may still write on the file system of ``directory``."""
+    st = os.statvfs(directory)
+    return st.f_bavail * st.f_frsize
+
+
+def enforce_retention(
+    directory: str | os.PathLike[str],
+    retention: Retention,
+    *,
+    current: str | os.PathLike[str] | None = None,
+    free: Callable[[Path], int] = free_bytes,
+) -> list[Path]:
+    """Delete the oldest recordings in ``directory`` until they take at most
+    ``retention.max_total_bytes`` and the file system has ``retention.min_free_bytes`` free.
+
+    Order: every run other than ``current``'s (oldest first, each run's parts in order), then
+    the parts of ``current``'s run oldest first; ``current`` itself (the part being written)
+    is never deleted, nor any file outside the naming pattern. ``free(dir)`` gives the free
+    bytes (once; each deletion then counts as freed). Returns the deleted paths (logged).
+    """
+    d = Path(directory)
+    cur = Path(current) if current is not None else None
+    files = list_recordings(d, retention.prefix)
+    if not files:
+        return []
+    total = sum(f.size for f in files)
+    free_now = free(d) if retention.min_free_bytes is not None else 0
+    cur_key = _parse_name(cur.name, retention.prefix) if cur is not None else None
+    cur_run = cur_key[0] if cur_key is not None else None
+    # other runs first (a clock set back must not make the live run look oldest), then ours
+    victims = [f for f in files if f.run != cur_run] + [
+        f for f in files if f.run == cur_run and (cur is None or f.path != cur)
+    ]
+
+    def over() -> str:
+        if retention.max_total_bytes is not None and total > retention.max_total_bytes:
+            return f"recordings take {total} B > {retention.max_total_bytes} B"
+        if retention.min_free_bytes is not None and free_now < retention.min_free_bytes:
+            return f"{free_now} B free < {retention.min_free_bytes} B"
+        return ""
+
+    deleted: list[Path] = []
+    for f in victims:
+        why = over()
+        if not why:
+            break
+        try:
+            f.path.unlink()
+        except FileNotFoundError:
+            pass  # someone else removed it: it takes no space either way
+        except OSError as exc:
+            log.warning("retention: cannot delete %s: %s", f.path, exc.strerror or exc)
+            continue
+        else:
+            deleted.append(f.path)
+            log.info("retention: deleted %s (%d B): %s", f.path, f.size, why)
+        total -= f.size
+        free_now += f.size
+    if over():
+        log.warning("retention: %s, and only the recording being written is left", over())
+    return deleted
+
+
 class Recorder:
     """Append-only JSON-lines flight recorder (a context manager; thread-safe).
 
@@ -121,6 +260,8 @@ class Recorder:
     rotate to a new part ``<stem>.1<suffix>``, ``.2`` ... before a record would make the
     current part larger (``paths`` lists them; :func:`recording_parts` finds them again).
     ``clock`` gives ``t_mono`` when a call omits it; ``utc_clock`` gives ``t_utc``.
+    ``retention``: applied to the recording's directory after every rotation (in the
+    writing thread) and by :meth:`enforce_retention`; see the module docstring.
     """
 
     def __init__(
@@ -129,6 +270,7 @@ class Recorder:
         *,
         fsync_interval_s: float | None = None,
         max_bytes: int | None = None,
+        retention: Retention | None = None,
         clock: Callable[[], float] = time.monotonic,
         utc_clock: Callable[[], datetime] = _utc_now,
     ) -> None:
@@ -140,6 +282,8 @@ class Recorder:
         self.paths = [self.path]
         self.fsync_interval_s = fsync_interval_s
         self.max_bytes = max_bytes
+        self.retention = retention
+        self.deleted: list[Path] = []  # files retention removed, oldest first
         self._clock = clock
         self._utc_clock = utc_clock
         self._lock = threading.Lock()
@@ -171,6 +315,17 @@ class Recorder:
         self._file = self._open(nxt)
         self.path = nxt
         self.paths.append(nxt)
+
+    def enforce_retention(self) -> list[Path]:
+        """Run the retention pass now (no-op without ``retention``); the deleted paths.
+
+        Blocks on file-system calls: call it from the writing thread, never an event loop.
+        """
+        if self.retention is None:
+            return []
+        gone = enforce_retention(self.path.parent, self.retention, current=self.path)
+        self.deleted.extend(gone)
+        return gone
 
     @classmethod
     def in_dir(
@@ -214,6 +369,7 @@ class Recorder:
             {"t_mono": t, "t_utc": _iso_z(self._utc_clock()), "type": type, "data": data}
         )
         blob = (line + "\n").encode("utf-8")
+        rotated = False
         with self._lock:
             if self._file.closed:  # a late record during shutdown: counted, not fatal
                 self.dropped_after_close += 1
@@ -225,6 +381,7 @@ class Recorder:
                     and self._file.tell() + len(blob) > self.max_bytes
                 ):
                     self._rotate()
+                    rotated = True
                 self._file.write(blob)
             except OSError as exc:
                 self.write_errors += 1
@@ -236,6 +393,11 @@ class Recorder:
                 if now - self._last_fsync >= self.fsync_interval_s:
                     os.fsync(self._file.fileno())
                     self._last_fsync = now
+        if rotated:  # outside the lock: deleting files must not hold up other writers
+            try:
+                self.enforce_retention()
+            except OSError as exc:  # retention is housekeeping: recording goes on
+                log.warning("retention pass failed: %s", exc)
 
     def record_nmea(self, text: str | bytes, t_mono: float | None = None) -> None:
         """One raw NMEA sentence as received (line ending stripped)."""
@@ -379,19 +541,44 @@ def decode_record(
 
 
 def recording_parts(path: str | os.PathLike[str]) -> list[Path]:
-    """``path`` followed by its rotated parts ``<stem>.1<suffix>``, ``.2`` ... in order."""
+    """The existing files of the recording whose first part is ``path``: ``path`` itself and
+    its rotated parts ``<stem>.1<suffix>``, ``.2`` ..., in part order. Parts that retention
+    deleted are skipped (the first ones go first), so the list may not start at ``path``."""
     first = Path(path)
-    parts = [first]
-    n = 1
-    while (p := first.with_name(f"{first.stem}.{n}{first.suffix}")).exists():
-        parts.append(p)
-        n += 1
-    return parts
+    found: list[tuple[int, Path]] = [(0, first)] if first.is_file() else []
+    head, tail = f"{first.stem}.", first.suffix
+    try:
+        names = os.listdir(first.parent)
+    except FileNotFoundError:
+        names = []
+    for name in names:
+        if name.startswith(head) and name.endswith(tail):
+            n = name[len(head) : len(name) - len(tail)]
+            if n.isdigit() and n[0] != "0":
+                found.append((int(n), first.with_name(name)))
+    return [p for _, p in sorted(found)]
+
+
+def read_recording_parts(
+    path: str | os.PathLike[str], *, stats: ReadStats | None = None, strict: bool = False
+) -> Iterator[Record]:
+    """Yield the records of every remaining part of a recording (see :func:`recording_parts`)
+    in order, as :func:`read_recording` reads one file. Raises :class:`DeviceUnavailable`
+    when no part exists."""
+    parts = recording_parts(path)
+    if not parts:
+        raise DeviceUnavailable(f"cannot open recording {path}: no such file, nor parts of it")
+    for part in parts:
+        yield from read_recording(part, stats=stats, strict=strict)
 
 
 def is_recording(path: str | os.PathLike[str]) -> bool:
     """True when the file's first non-blank line is a JSON object (a recording), False for
-    plain NMEA or other text."""
+    plain NMEA or other text. A first part that retention deleted is judged by its first
+    remaining part."""
+    parts = [] if Path(path).exists() else recording_parts(path)
+    if parts:
+        path = parts[0]
     try:
         with open(path, "rb") as f:
             for raw in f:
@@ -538,8 +725,9 @@ def _nmea_lines_timed(lines: list[bytes], rate_hz: float) -> Iterator[tuple[floa
 def recording_nmea_chunks(
     path: str | os.PathLike[str], stats: ReadStats | None = None
 ) -> Iterator[tuple[float, bytes]]:
-    """(t_mono s, sentence bytes + CRLF) for every nmea record of a recording."""
-    for rec in read_recording(path, stats=stats):
+    """(t_mono s, sentence bytes + CRLF) for every nmea record of a recording (all of its
+    remaining parts, in order)."""
+    for rec in read_recording_parts(path, stats=stats):
         if rec.type == "nmea":
             text = rec.data.get("text")
             if isinstance(text, str):
