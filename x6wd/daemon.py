@@ -19,14 +19,18 @@ import argparse
 import asyncio
 import collections
 import contextlib
+import errno
 import logging
 import math
+import os
 import queue
 import signal
+import socket
 import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
@@ -52,6 +56,11 @@ TELEMETRY_RECORD_HZ = 1.0
 EARTH_RADIUS_M = 6_371_008.8
 EXIT_OK = 0
 EXIT_FAILURE = 1
+EXIT_CONFIG = 2
+"""A configuration error: restarting cannot help (the unit has RestartPreventExitStatus=2)."""
+RECORDER_FSYNC_S = 5.0
+"""fsync period of the recording (s): what a power cut can lose. A crash or ``kill -9`` loses
+no written record either way (each is one ``write()``), only what is queued for the writer."""
 
 
 def distance_m(lat1_deg: float, lon1_deg: float, lat2_deg: float, lon2_deg: float) -> float:
@@ -184,6 +193,13 @@ class _RecorderWorker:
         self._q.put((method, arg))
 
     def _run(self) -> None:
+        # The start-of-run retention pass deletes files: here, never on the event loop.
+        enforce = getattr(self.recorder, "enforce_retention", None)
+        if enforce is not None:
+            try:
+                enforce()
+            except Exception:
+                log.exception("recording retention pass failed")
         while True:
             item = self._q.get()
             if item is None:
@@ -258,6 +274,7 @@ class Daemon:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop_event: asyncio.Event | None = None
         self._fatal: BaseException | None = None
+        self._accepting = False  # operator commands that move the robot wait for "ready"
         self._threads_stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.controller: Any = None
@@ -307,9 +324,21 @@ class Daemon:
         # Several threads share the GIL; a shorter switch interval bounds how long the
         # device and control threads wait for it behind network work.
         sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_S))
+        try:
+            # nothing opened, nothing created yet: a bad setting is one line and exit 2
+            self._preflight()
+            await self._bind_servers()
+        except ConfigError as exc:
+            await self._unbind()
+            config_error(exc)
+            self.notifier.stopping(f"configuration error: {one_line(str(exc))}")
+            return EXIT_CONFIG
         code = EXIT_OK
         try:
-            await self._open()
+            await self._open_devices()
+            await self._open_recorder()  # last: a failed start leaves no empty recording
+            self._start_readers()
+            self._accepting = True
             self.notifier.ready(self._status_text())
             log.info("x6wd %s ready", __version__)
             if ready is not None:
@@ -323,7 +352,7 @@ class Daemon:
                 raise self._fatal
         except (ConfigError, DeviceUnavailable) as exc:
             log.error("startup failed: %s", exc)
-            code = 2 if isinstance(exc, ConfigError) else EXIT_FAILURE
+            code = EXIT_CONFIG if isinstance(exc, ConfigError) else EXIT_FAILURE
         except Exception as exc:
             log.exception("fatal error, stopping the motors: %s", exc)
             code = EXIT_FAILURE
@@ -332,33 +361,36 @@ class Daemon:
             await self._close()
         return code
 
-    async def _open(self) -> None:
+    def _preflight(self) -> None:
+        """Check every setting that can be checked without opening a device or creating a
+        file: device URLs and the local devices they name, the simulator's world, the server
+        token and TLS files, the recorder directory. Raises ConfigError naming the key."""
         cfg = self.config
         gc = cfg.safety.geofence_center
         if len(gc) not in (0, 2) or (
             len(gc) == 2 and not (-90.0 <= gc[0] <= 90.0 and -180.0 <= gc[1] <= 180.0)
         ):
             raise ConfigError(f"safety.geofence_center: expected [lat_deg, lon_deg], got {gc!r}")
-        from x6wd.controller import Controller  # imported late: heavy, and optional in tests
+        from drivers import registry
 
-        self.controller = Controller(cfg.navigation, cfg.safety, cfg.compass.declination_deg)
-        urls = (cfg.gps.url, cfg.compass.url, cfg.motors.url)
-        if any(u.startswith("sim://") for u in urls):
+        devices = (
+            ("gps.url", cfg.gps.url, "gps"),
+            ("compass.url", cfg.compass.url, "compass"),
+            ("motors.url", cfg.motors.url, "motors"),
+        )
+        for key, url, kind in devices:
+            try:
+                registry.check_available(url, kind)
+            except registry.UrlError as exc:
+                raise ConfigError(f"{key}: {url!r}: {exc.reason}") from None
+        if any(url.startswith("sim://") for _key, url, _kind in devices):
             from sim_backend import hil
 
             hil.configure(cfg.sim)
-        # Servers first: a bad token file or busy port should fail before devices move.
-        self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
-        if cfg.recorder.enabled:
-            from x6wd.recorder import Recorder
+        from x6wd.controller import Controller  # imported late: heavy, and optional in tests
 
-            rec = await asyncio.to_thread(Recorder.in_dir, cfg.recorder.dir, fsync_interval_s=5.0)
-            self.recorder = _RecorderWorker(rec)
-            log.info("recording to %s", rec.path)
-        await self._open_devices()
-        self._net = _NetThread()
-        if self.server is not None:
-            await self._net.run(self.server.start())
+        self.controller = Controller(cfg.navigation, cfg.safety, cfg.compass.declination_deg)
+        self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
         if cfg.gpsd.enabled:
             path, bps = _device_path(cfg.gps.url)
             self.gpsd = GpsdServer(
@@ -370,7 +402,75 @@ class Daemon:
                 max_clients=cfg.gpsd.max_clients,
                 queue_len=cfg.gpsd.queue_len,
             )
-            await self._net.run(self.gpsd.start())
+        if cfg.recorder.enabled:
+            problem = _dir_problem(Path(cfg.recorder.dir))
+            if problem:
+                raise ConfigError(f"recorder.dir: {cfg.recorder.dir!r}: {problem}")
+
+    async def _bind_servers(self) -> None:
+        """Listen on both ports before any device opens: a busy port is a ConfigError
+        naming the key. Commands that move the robot are refused until ready."""
+        cfg = self.config
+        self._net = _NetThread()
+        listeners = (
+            ("server", self.server, cfg.server.bind, cfg.server.port),
+            ("gpsd", self.gpsd, cfg.gpsd.bind, cfg.gpsd.port),
+        )
+        # Their "listening on" lines wait until both ports are ours, so that a busy second
+        # port leaves the error as the only line on stderr.
+        held: list[logging.LogRecord] = []
+
+        def hold(record: logging.LogRecord) -> bool:
+            held.append(record)
+            return False
+
+        loggers = {logging.getLogger(type(s).__module__) for _k, s, _b, _p in listeners if s}
+        for lg in loggers:
+            lg.addFilter(hold)
+        try:
+            for section, server, bind, port in listeners:
+                if server is None:
+                    continue
+                try:
+                    await self._net.run(server.start())
+                except OSError as exc:
+                    raise ConfigError(_listen_problem(section, bind, port, exc)) from None
+        finally:
+            for lg in loggers:
+                lg.removeFilter(hold)
+        for record in held:
+            logging.getLogger(record.name).handle(record)
+
+    async def _unbind(self) -> None:
+        """Undo :meth:`_bind_servers` after a start-up configuration error (idempotent)."""
+        if self._net is None:
+            return
+        for server in (self.server, self.gpsd):
+            if server is not None:
+                with contextlib.suppress(Exception):
+                    await self._net.run(server.close())
+        await asyncio.to_thread(self._net.stop)
+        self._net = None
+
+    async def _open_recorder(self) -> None:
+        """Create the recording file (rotating at ``max_file_mb``, with retention)."""
+        rc = self.config.recorder
+        if not rc.enabled:
+            return
+        from x6wd.recorder import MB, Recorder, Retention
+
+        retention = Retention(
+            max_total_bytes=int(rc.max_total_mb * MB), min_free_bytes=int(rc.min_free_mb * MB)
+        )
+        rec = await asyncio.to_thread(
+            Recorder.in_dir,
+            rc.dir,
+            fsync_interval_s=RECORDER_FSYNC_S,
+            max_bytes=max(1, int(rc.max_file_mb * MB)),
+            retention=retention,
+        )
+        self.recorder = _RecorderWorker(rec)
+        log.info("recording to %s", rec.path)
 
     async def _open_devices(self) -> None:
         from drivers import registry
@@ -386,6 +486,9 @@ class Daemon:
         self._gps_reader = GpsReader(
             lambda: registry.open_gps_port(cfg.gps.url), stale_s=cfg.gps.stale_s
         )
+
+    def _start_readers(self) -> None:
+        """Start the device threads once the recorder exists, so it sees their first data."""
         self._spawn(self._gps_thread, "x6wd-gps")
         self._spawn(self._compass_thread, "x6wd-compass")
 
@@ -611,6 +714,10 @@ class Daemon:
     def _on_control(self, fn: Callable[..., Any], *args: Any) -> Any:
         """Run ``fn`` on the control loop: directly when already there, else as an awaitable
         for the server (the controller is only ever touched from the control loop)."""
+        harmless = fn == self._status or (fn == self._simple and args[0] in ("stop", "pause"))
+        if not self._accepting and not harmless:
+            # the ports listen before the devices open: nothing may queue a move meanwhile
+            raise CommandError("rejected", "x6wd is starting: devices are not open yet")
         loop = self._loop
         if loop is None or threading.get_ident() == self._loop_thread_id:
             return fn(*args)
@@ -715,6 +822,66 @@ class Daemon:
         return {"left": left_pct, "right": right_pct, "duration_s": duration_s}
 
 
+def one_line(text: str) -> str:
+    """``text`` with every run of whitespace (newlines too) as one space."""
+    return " ".join(text.split())
+
+
+CONFIG_ERROR_ATTR = "x6wd_config_error"
+
+
+def config_error(exc: BaseException) -> None:
+    """Log a configuration error as ONE line; on stderr it reads ``x6wd: <key>: <reason>``
+    (see :class:`_StderrFormatter`), in every other log handler as an ERROR record."""
+    log.error("%s", one_line(str(exc)), extra={CONFIG_ERROR_ATTR: True})
+
+
+class _StderrFormatter(logging.Formatter):
+    """``LEVEL name: message``; a configuration error as just ``x6wd: message``."""
+
+    def __init__(self) -> None:
+        super().__init__("%(levelname)s %(name)s: %(message)s")
+
+    def format(self, record: logging.LogRecord) -> str:
+        if getattr(record, CONFIG_ERROR_ATTR, False):
+            return f"x6wd: {record.getMessage()}"
+        return super().format(record)
+
+
+def _dir_problem(directory: Path) -> str:
+    """Why recordings cannot be created in ``directory`` ("" when they can), checked without
+    creating anything: it is (or its nearest existing ancestor is) a directory this user may
+    write and enter."""
+    d = directory if directory.is_absolute() else Path.cwd() / directory
+    probe = d
+    try:
+        while not probe.exists():
+            if probe.is_symlink():
+                return f"{probe} is a dangling symbolic link"
+            probe = probe.parent
+        if not probe.is_dir():
+            return f"{probe} is not a directory"
+    except OSError as exc:
+        return f"{probe}: {exc.strerror or exc}"
+    if not os.access(probe, os.W_OK | os.X_OK):
+        verb = "write in" if probe == d else f"create {d} in"
+        return f"this user may not {verb} {probe}"
+    return ""
+
+
+def _listen_problem(section: str, bind: str, port: int, exc: OSError) -> str:
+    """The one-line error for a server that cannot listen, naming the key to change."""
+    bad_address = isinstance(exc, socket.gaierror) or exc.errno in (errno.EADDRNOTAVAIL, None)
+    key = f"{section}.bind" if bad_address else f"{section}.port"
+    if exc.errno == errno.EADDRINUSE:
+        reason = "address already in use (another x6wd or gpsd running?)"
+    elif exc.errno == errno.EACCES:
+        reason = "permission denied (ports below 1024 need privileges)"
+    else:
+        reason = one_line(exc.strerror or str(exc))
+    return f"{key}: cannot listen on {bind}:{port}: {reason}"
+
+
 def _device_path(url: str) -> tuple[str, int]:
     """Device path and baud rate for the gpsd port's DEVICES
     (``serial:///dev/ttyS0?baud=4800`` -> ``("/dev/ttyS0", 4800)``; other URLs as given)."""
@@ -745,14 +912,14 @@ def main(args: argparse.Namespace) -> int:
     root = logging.getLogger()
     root.setLevel(args.log_level)
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    handler.setFormatter(_StderrFormatter())
     root.addHandler(handler)
     root.addHandler(tail)
     try:
         config = load_config(args.config)
     except ConfigError as exc:
-        log.error("%s", exc)
-        return 2
+        config_error(exc)
+        return EXIT_CONFIG
     daemon = Daemon(config, notifier=Notifier.from_env(), log_tail=tail)
 
     async def amain() -> int:
