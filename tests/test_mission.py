@@ -8,11 +8,13 @@ import math
 import re
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from drivers.gps_nmea import GpsDecoder
+from sim_backend import mission
 from sim_backend.geodesy import lla_to_enu
 from sim_backend.mission import ErrorStats, Summary, run_mission
 from sim_backend.world import load_world
@@ -253,13 +255,132 @@ def plain_60s(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def test_default_mission_bytes_unchanged_without_effects(default_run: tuple[Path, Summary]) -> None:
-    # Recorded before the closed-loop layers were added (default scenario, seed 1).
-    import hashlib
+# Every layer at a setting that changes nothing: the effects machinery runs in full (offsets
+# drawn from the effects' own random stream, applied to every epoch, the compass mapped), so a
+# change that leaks into the receiver model or the loop shows up as a different mission.
+NEUTRAL_EFFECTS = """
+[[effects]]
+name = "gauss_markov"
+sigma_m = 0.0
+tau_s = 30.0
 
-    out, _s = default_run
-    digest = hashlib.sha256((out / "gps.nmea").read_bytes()).hexdigest()
-    assert digest == "bd794f2a31b276881e85bcd1536b31810d3df07f2da0e82a80c12c34527aaa67"
+[[effects]]
+name = "random_walk"
+q_m_per_sqrt_s = 0.0
+
+[[effects]]
+name = "bias"
+
+[[effects]]
+name = "latency"
+delay_s = 0.0
+
+[[effects]]
+name = "multipath_zone"
+x1_m = 5000.0
+y1_m = 5000.0
+x2_m = 5100.0
+y2_m = 5000.0
+distance_m = 10.0
+sigma_m = 3.0
+bias_m = 2.0
+
+[[effects]]
+name = "declination"
+declination_deg = 0.0
+
+[[effects]]
+name = "hard_iron"
+bx_ut = 0.0
+by_ut = 0.0
+
+[[effects]]
+name = "soft_iron"
+k = 0.0
+
+[[effects]]
+name = "heading_noise"
+sigma_deg = 0.0
+"""
+
+
+def _assert_same_mission(a: Path, b: Path) -> None:
+    """The two runs' decoded fixes and true tracks agree to the print resolution of the NMEA
+    and truth.csv: a rounding difference may flip a rare last digit, a real change (even a
+    centimetre's) moves most fixes."""
+    fixes = []
+    for out in (a, b):
+        dec = GpsDecoder(emit_sentences=False)
+        recs = dec.feed((out / "gps.nmea").read_bytes(), 0.0) + dec.flush()
+        fixes.append([r for r in recs if isinstance(r, GpsFix)])
+    fa, fb = fixes
+    assert len(fa) == len(fb) > 50
+
+    def key(f: GpsFix) -> tuple[Any, ...]:
+        return (f.utc, f.valid, f.sats_used)
+
+    assert [key(x) for x in fa] == [key(y) for y in fb]
+    for name, unit in (("lat_deg", 1e-5 / 60.0), ("lon_deg", 1e-5 / 60.0), ("hdop", 0.01)):
+        # unit: the last printed digit (1e-5 minute is 1.7e-7 deg, about 2 cm)
+        xa, xb = (np.array([getattr(f, name) for f in fs], dtype=float) for fs in (fa, fb))
+        diff = np.abs(np.nan_to_num(xa) - np.nan_to_num(xb))
+        assert np.all(diff <= 1.01 * unit), name
+        assert np.count_nonzero(diff > 0.01 * unit) <= max(1, len(fa) // 50), name
+    tracks = []
+    for out in (a, b):
+        with open(out / "truth.csv") as f:
+            rows = list(csv.DictReader(f))
+        tracks.append(np.array([[float(r[k]) for k in ("t_s", "lat", "lon", "heading_deg")]
+                                for r in rows]))  # fmt: skip
+    assert tracks[0].shape == tracks[1].shape
+    # t_s and heading print 3 decimals, lat/lon 9 (1e-9 deg is 0.1 mm).
+    for col, atol in enumerate((1.5e-3, 2e-9, 2e-9, 1.5e-3)):
+        np.testing.assert_allclose(tracks[0][:, col], tracks[1][:, col], rtol=0, atol=atol)
+
+
+def test_default_mission_unchanged_without_effects(
+    default_run: tuple[Path, Summary], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A mission without effects is what it was before the closed-loop layers existed. The
+    # reference is computed here, not stored: a digest of the bytes would follow numpy's and
+    # scipy's last bits from one machine to the next.
+    out, plain = default_run
+    text = (SCENARIOS / "default.toml").read_text()
+    world = load_world(SCENARIOS / "default.toml")
+    empty = tmp_path / "empty.toml"
+    empty.write_text("effects = []\n" + text)
+    assert world.effects == () and load_world(empty) == world  # empty list == absent
+    cset, skipped = mission.compass_setup(world)
+    assert cset == mission.CompassSetup.from_table(world.compass) and skipped == ()
+
+    calls: list[int] = []
+    real = mission.apply_gps_effects
+
+    def counting(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(mission, "apply_gps_effects", counting)
+    # Without effects the loop never hands an epoch to the layers; the run repeats exactly.
+    again = run_mission(world, tmp_path / "again")
+    assert calls == []
+    _assert_same_mission(out, tmp_path / "again")
+    # Neutral layers: every epoch goes through them, and the mission is the same.
+    scen = _with_effects(tmp_path, "neutral", NEUTRAL_EFFECTS)
+    neutral = run_mission(load_world(scen), tmp_path / "neutral")
+    assert len(calls) == neutral.fixes > 50
+    assert neutral.extra["effects_applied"] == [
+        "gauss_markov", "random_walk", "bias", "latency", "multipath_zone",
+        "declination", "hard_iron", "soft_iron", "heading_noise",
+    ]  # fmt: skip
+    _assert_same_mission(out, tmp_path / "neutral")
+
+    def counts(s: Summary) -> tuple[Any, ...]:
+        return (s.completed, s.waypoints_reached, s.fixes, s.fixes_valid)
+
+    for s in (again, neutral):
+        assert counts(s) == counts(plain)
+        assert s.path_length_m == pytest.approx(plain.path_length_m, abs=1e-6)
 
 
 def test_latency_reports_the_truth_of_delay_s_ago(tmp_path: Path, plain_60s: Path) -> None:
