@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from x6wd import geo
@@ -250,6 +250,49 @@ def test_local_tangent_plane_round_trip(lat0: float, lon0: float, dlat: float, d
     lat2, lon2 = ltp.to_latlon(x, y)
     assert lat2 == pytest.approx(lat, abs=1e-9)
     assert float(geo.wrap_deg(lon2 - lon)) == pytest.approx(0.0, abs=1e-9)
+
+
+_POLES = st.sampled_from([90.0, -90.0, 89.99999999999999, -89.99999999999999])
+_DATELINE = st.sampled_from([180.0, -180.0, 179.99999999999997, -179.99999999999997, 0.0, -0.0])
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    # origins up to the constructor's limit (|lat0| < 89.9), where the round trip's rounding
+    # past a pole is largest
+    lat0=st.floats(-89.899, 89.899) | st.sampled_from([89.899, -89.899, 45.0, 0.0]),
+    lon0=st.floats(-180, 180) | _DATELINE,
+    lat=st.floats(-90, 90) | _POLES,
+    lon=st.floats(-180, 180) | _DATELINE,
+)
+@example(lat0=-89.89, lon0=10.0, lat=90.0, lon=180.0)  # came back as 90.00000000000001
+@example(lat0=89.89, lon0=-170.0, lat=-90.0, lon=-180.0)
+def test_local_tangent_plane_round_trip_over_the_whole_globe(
+    lat0: float, lon0: float, lat: float, lon: float
+) -> None:
+    ltp = LocalTangentPlane(lat0, lon0)
+    for scalar in (True, False):
+        if scalar:
+            lat2, lon2 = (float(v) for v in ltp.to_latlon(*ltp.to_xy(lat, lon)))
+        else:
+            la, lo = ltp.to_latlon(*ltp.to_xy(np.array([lat, lat0]), np.array([lon, lon0])))
+            lat2, lon2 = float(np.asarray(la)[0]), float(np.asarray(lo)[0])
+        # On the globe's ranges, poles included; longitude wrapped to (-180, 180].
+        assert -90.0 <= lat2 <= 90.0 and -180.0 < lon2 <= 180.0
+        assert lat2 == pytest.approx(lat, abs=1e-9)
+        # -180 and 180 are one meridian: compare longitudes around the circle.
+        assert float(geo.wrap_deg(lon2 - lon)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_local_tangent_plane_inverse_past_a_pole_is_still_an_error() -> None:
+    ltp = LocalTangentPlane(-89.89, 10.0)
+    _x, y = ltp.to_xy(90.0, 10.0)
+    assert ltp.to_latlon(0.0, y)[0] == 90.0
+    # A metre past the pole is not rounding: both paths refuse it.
+    with pytest.raises(GeoError, match="latitude"):
+        ltp.to_latlon(0.0, y + 1.0)
+    with pytest.raises(GeoError, match="latitude"):
+        ltp.to_latlon(np.array([0.0]), np.array([y + 1.0]))
 
 
 def test_make_projection_by_config_name() -> None:

@@ -42,6 +42,10 @@ PROJECTIONS = ("two_radius", "local_tangent_plane")
 
 ArrayLike = float | npt.NDArray[np.floating]
 
+POLE_ROUNDING_DEG = 1e-9
+"""An inverse projection may land this far (deg, about 0.1 mm) past a pole through rounding
+alone; such a latitude is put back on the pole instead of failing the range check."""
+
 
 class GeoError(X6wdError, ValueError):
     """Coordinates out of range, not finite, or a bearing between coincident points."""
@@ -67,6 +71,12 @@ def _check_latlon(lat: npt.NDArray[np.float64], lon: npt.NDArray[np.float64]) ->
         raise GeoError(f"latitude must be within [-90, 90] deg, got {lat}")
     if np.any(np.abs(lon) > 180.0):
         raise GeoError(f"longitude must be within [-180, 180] deg, got {lon}")
+
+
+def _snap_poles(lat: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    # lat0 + (lat - lat0)·k / k is not exactly lat: at ±90° it can come back an ulp past the
+    # pole. Only rounding-sized overshoots are clipped; anything further still fails.
+    return np.where(np.abs(lat) <= 90.0 + POLE_ROUNDING_DEG, np.clip(lat, -90.0, 90.0), lat)
 
 
 def _is_scalar(*values: object) -> bool:
@@ -293,7 +303,12 @@ class LocalTangentPlane:
         return _out(x, scalar), _out(y, scalar)
 
     def to_latlon(self, x_m: ArrayLike, y_m: ArrayLike) -> tuple[ArrayLike, ArrayLike]:
-        """(x_m, y_m) relative to the origin -> (lat_deg, lon_deg)."""
+        """(x_m, y_m) metres relative to the origin -> (lat_deg, lon_deg) degrees.
+
+        Longitude comes back wrapped to (-180, 180] (so -180° returns as 180°, the same
+        meridian). A latitude past a pole by rounding only (``POLE_ROUNDING_DEG``) is put on
+        the pole; further past it is a :class:`GeoError`.
+        """
         if _real(x_m) and _real(y_m):
             xf, yf = float(x_m), float(y_m)
             if math.isfinite(xf) and math.isfinite(yf):
@@ -301,12 +316,12 @@ class LocalTangentPlane:
                 lo = self.origin_lon_deg + xf / self._kx_m_per_deg
                 if math.isfinite(lo):
                     lo = _wrap_deg_scalar(lo)
-                    if -90.0 <= la <= 90.0:
-                        return la, lo
+                    if abs(la) <= 90.0 + POLE_ROUNDING_DEG:
+                        return min(max(la, -90.0), 90.0), lo  # as _snap_poles
         x = _as_array("x_m", x_m)
         y = _as_array("y_m", y_m)
         scalar = _is_scalar(x_m, y_m)
-        lat = self.origin_lat_deg + y / self._ky_m_per_deg
+        lat = _snap_poles(self.origin_lat_deg + y / self._ky_m_per_deg)
         lon = np.asarray(wrap_deg(self.origin_lon_deg + x / self._kx_m_per_deg))
         _check_latlon(lat, lon)
         return _out(lat, scalar), _out(lon, scalar)
