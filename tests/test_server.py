@@ -177,16 +177,21 @@ def test_unauthenticated_only_hello_auth_status_stop(served) -> None:
 def test_bad_requests_get_error_replies_and_the_connection_carries_on(served) -> None:
     srv, _ = served
     raw = Raw(srv.port)
+
+    def bad(reason: str) -> None:
+        err = raw.line()["error"]
+        assert (err["code"], err["reason"]) == ("bad_request", reason), err
+
     try:
         raw.send(b"this is not json\n")
-        assert raw.line()["error"]["code"] == "bad_json"
+        bad("bad_json")
         raw.send(b"[1, 2]\n")
-        assert raw.line()["error"]["code"] == "bad_request"
+        bad("not_object")
         assert raw.ask({"id": 7})["error"]["code"] == "bad_request"
         r = raw.ask({"id": 8, "cmd": "fly"})
         assert r["id"] == 8 and r["error"]["code"] == "unknown_command"
         raw.send(b"\xff\xfe\n")
-        assert raw.line()["error"]["code"] == "bad_json"
+        bad("bad_utf8")
         assert raw.ask({"id": 9, "cmd": "hello"})["ok"] is True
     finally:
         raw.close()
@@ -202,7 +207,7 @@ def test_a_garbage_flood_is_answered_in_full_but_at_the_request_rate(loop_thread
         t0 = time.monotonic()
         flood.send(b"not json\n" * 400)
         assert other.ask({"id": 1, "cmd": "hello"})["ok"] is True  # others are not held up
-        codes = [flood.line()["error"]["code"] for _ in range(400)]
+        codes = [flood.line()["error"]["reason"] for _ in range(400)]
         elapsed = time.monotonic() - t0
         assert codes == ["bad_json"] * 400  # every line answered, none lost
         # 200 within the burst, the other 200 at 200/s: about a second (0.9 for timer slack)
@@ -221,7 +226,8 @@ def test_oversized_line_is_rejected_once_then_service_continues(loop_thread) -> 
     try:
         raw.send(b'{"id":1,"cmd":"hello","pad":"' + b"x" * 200_000 + b'"}\n')
         r = raw.line()
-        assert r["id"] is None and r["error"]["code"] == "line_too_long"
+        assert r["id"] is None and r["error"]["code"] == "bad_request"
+        assert r["error"]["reason"] == "line_too_long"
         assert raw.ask({"id": 2, "cmd": "hello"})["id"] == 2
     finally:
         raw.close()
@@ -248,15 +254,24 @@ def test_rate_limit_refuses_excess_but_never_stop(loop_thread) -> None:
         loop_thread.run(srv.close())
 
 
-def test_client_limit(loop_thread) -> None:
+def test_full_session_pool_makes_room_for_a_new_session(loop_thread) -> None:
+    """Never refused: the idle session gives way to the newcomer, with a closing notice."""
     backend = RecordingBackend()
     srv = start_server(loop_thread, backend, max_clients=2)
     a, b = Raw(srv.port), Raw(srv.port)
     try:
-        assert a.ask({"id": 1, "cmd": "hello"})["ok"] and b.ask({"id": 1, "cmd": "hello"})["ok"]
+        assert a.ask({"id": 1, "cmd": "hello"})["ok"]
+        assert b.ask({"id": 1, "cmd": "hello"})["ok"]
+        assert b.ask({"id": 2, "cmd": "watch"})["ok"]  # a watcher is worth more than idle a
         c = Raw(srv.port)
-        assert c.line()["error"]["code"] == "too_many_clients"
-        assert c.f.readline() == b""  # and closed
+        assert c.ask({"id": 1, "cmd": "hello"})["ok"]
+        notice = a.line()
+        assert notice["id"] is None and notice["error"]["code"] == "closed"
+        assert notice["error"]["reason"] == "sessions_full"
+        assert a.f.readline() == b""  # and closed
+        assert b.ask({"id": 3, "cmd": "hello"})["ok"]
+        stats = c.ask({"id": 2, "cmd": "status"})["server"]
+        assert stats["clients"] == 2 and stats["closed"] == {"sessions_full": 1}
         c.close()
     finally:
         a.close()

@@ -4,7 +4,8 @@
 with COMMAND one of ``status``, ``load FILE | load --wp LAT,LON ...``, ``start``, ``pause``,
 ``resume``, ``stop``, ``drive LEFT RIGHT SECONDS``, ``watch``, ``log [N]``.
 
-Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed.
+Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed
+(also when the robot closed the connection: pool full, auth deadline, too many failed tokens).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import ssl
 import sys
 import time
 from collections import deque
-from typing import Any, TextIO
+from typing import Any, NoReturn, TextIO
 
 from x6wd.errors import ParseError, ProtocolError, X6wdError
 from x6wd.mission_files import Waypoint, load_file, parse_args
@@ -37,18 +38,26 @@ class ConnectionFailed(X6wdError):
 
 
 class RequestFailed(X6wdError):
-    """The server answered a request with an error reply."""
+    """The server answered a request with an error reply; ``reason`` refines ``code`` when
+    the server gave one (e.g. ``bad_request`` / ``bad_json``), else ``""``."""
 
-    def __init__(self, code: str, message: str) -> None:
+    def __init__(self, code: str, message: str, reason: str = "") -> None:
         super().__init__(f"{code}: {message}")
         self.code = code
         self.message = message
+        self.reason = reason
+
+
+CLOSED = "closed"
+"""Error code of the server's last line before it closes a connection (id null)."""
 
 
 class RemoteClient:
     """A blocking protocol client (one request at a time; events kept while waiting).
 
-    ``timeout_s`` bounds connecting and waiting for each reply.
+    ``timeout_s`` bounds connecting and waiting for each reply. With a ``token`` it
+    authenticates first thing after connecting: the server closes connections that have not
+    authenticated within its ``auth_timeout_s``, and admits them to a session only then.
     """
 
     def __init__(
@@ -150,13 +159,25 @@ class RemoteClient:
                 continue
             if msg.get("id") != req_id:
                 if msg.get("ok") is False and msg.get("id") is None:
-                    err = msg.get("error") or {}
-                    raise RequestFailed(str(err.get("code")), str(err.get("message")))
+                    self._raise(msg)  # an unparsable line of ours, or the server closing
                 continue
             if msg.get("ok") is True:
                 return msg
-            err = msg.get("error") or {}
-            raise RequestFailed(str(err.get("code", "error")), str(err.get("message", "")))
+            self._raise(msg)
+
+    def _raise(self, msg: dict[str, Any]) -> NoReturn:
+        err = msg.get("error")
+        if not isinstance(err, dict):
+            err = {}
+        code = str(err.get("code", "error"))
+        message = str(err.get("message", ""))
+        reason = str(err.get("reason") or "")
+        if code == CLOSED and msg.get("id") is None:
+            self.close()
+            raise ConnectionFailed(
+                f"{self.host}:{self.port} closed the connection ({reason or 'closed'}): {message}"
+            )
+        raise RequestFailed(code, message, reason)
 
     def next_event(self, timeout_s: float | None = None) -> dict[str, Any]:
         """The next ``{"event": ..}`` message (kept ones first)."""
@@ -352,7 +373,8 @@ def main(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 print(f"{action}: ok", file=out)
             return EXIT_OK
     except RequestFailed as exc:
-        print(f"x6wd client: {args.action} refused: {exc.code}: {exc.message}", file=err)
+        code = f"{exc.code} ({exc.reason})" if exc.reason else exc.code
+        print(f"x6wd client: {args.action} refused: {code}: {exc.message}", file=err)
         return EXIT_REFUSED
     except (ConnectionFailed, ProtocolError) as exc:
         print(f"x6wd client: {exc}", file=err)

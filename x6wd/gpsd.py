@@ -6,23 +6,30 @@ listing one device before the WATCH echo, COMPACT JSON (libgps 3.22 finds ``"cla
 by text match), CRLF line ends, and no ``null`` (unknown fields are omitted).
 A slow client never blocks the publisher: each client has a bounded queue and the oldest
 report is dropped (and counted) when it is full.
+
+Lock-out protection (shared mechanics in :mod:`x6wd.lineserver`): there is no
+authentication, so a connection is pending until it sends one valid command (``?WATCH``,
+``?POLL``, ``?VERSION``, ``?DEVICES``); pending connections have their own pool and deadline,
+a client neither watching nor sending a command for ``idle_timeout_s`` is closed, and so is a
+watcher that never reads (``slow_client_s``). A full pool makes room instead of refusing.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import math
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
 from x6wd import __version__
+from x6wd.config import GpsdConfig
 from x6wd.errors import ProtocolError
-from x6wd.lineserver import LineClient, LineServer
+from x6wd.lineserver import LineClient, LineServer, peer_names
 from x6wd.records import Attitude, GpsFix, GpsSky
 
 log = logging.getLogger(__name__)
@@ -34,6 +41,12 @@ UERE_M = 5.0
 """User-equivalent range error used to turn DOP into the eph/epv estimates (metres, 1 sigma)."""
 MAX_COMMAND_BYTES = 4096
 MAX_PENDING_REPLIES = 256
+COMMANDS = frozenset({"WATCH", "POLL", "VERSION", "DEVICES"})
+DEFAULT_MAX_PENDING = 32
+"""Connections that have not sent a valid command yet (there is no GpsdConfig key)."""
+DEFAULT_PENDING_TIMEOUT_S = 5.0
+"""Seconds a new connection has to send its first valid command (gpsd clients send
+``?WATCH`` at once; there is no GpsdConfig key)."""
 
 
 def dumps(obj: dict[str, Any]) -> bytes:
@@ -186,6 +199,12 @@ def parse_commands(text: str) -> list[tuple[str, dict[str, Any] | None]]:
                 value, end = decoder.raw_decode(text, j + 1)
             except json.JSONDecodeError as exc:
                 raise ProtocolError(f"Invalid JSON argument to ?{name}: {exc.msg}") from None
+            except RecursionError:
+                raise ProtocolError(
+                    f"Invalid JSON argument to ?{name}: nested too deeply"
+                ) from None
+            except ValueError as exc:  # e.g. an integer past the digit limit
+                raise ProtocolError(f"Invalid JSON argument to ?{name}: {exc}") from None
             if not isinstance(value, dict):
                 raise ProtocolError(f"?{name} argument must be a JSON object")
             arg, j = value, end
@@ -203,6 +222,9 @@ class _Client(LineClient):
 class GpsdServer(LineServer[_Client]):
     """gpsd-compatible read-only endpoint. Call the ``publish_*`` methods from the event loop."""
 
+    pending_timeout_reason = "pending_timeout"
+    label = "gpsd port"
+
     def __init__(
         self,
         bind: str,
@@ -213,29 +235,64 @@ class GpsdServer(LineServer[_Client]):
         declination_deg: float = 0.0,
         max_clients: int = 32,
         queue_len: int = 64,
+        idle_timeout_s: float = 60.0,
+        slow_client_s: float = 10.0,
+        max_pending: int = DEFAULT_MAX_PENDING,
+        pending_timeout_s: float = DEFAULT_PENDING_TIMEOUT_S,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        """``port`` 0 picks a free port (see :attr:`port`); ``device_path`` goes into DEVICES."""
-        super().__init__(port)
+        """``port`` 0 picks a free port (see :attr:`port`); ``device_path`` goes into DEVICES.
+        Defaults are GpsdConfig's. ``max_clients``: sessions (clients that sent a valid
+        command); ``max_pending``: connections that have not yet; deadlines in seconds of
+        ``clock`` (monotonic; tests inject one)."""
+        super().__init__(
+            port,
+            max_clients=max_clients,
+            max_pending=max_pending,
+            pending_timeout_s=pending_timeout_s,
+            idle_timeout_s=idle_timeout_s,
+            slow_client_s=slow_client_s,
+            clock=clock,
+            logger=log,
+        )
         self.bind = bind
         self.device_path = device_path
         self.bps = bps
         self.declination_deg = declination_deg
-        self.max_clients = max_clients
         self.queue_len = queue_len
         self._last_tpv: dict[str, Any] | None = None
         self._last_sky: dict[str, Any] | None = None
         self._last_att: dict[str, Any] | None = None
 
+    @classmethod
+    def from_config(
+        cls, cfg: GpsdConfig, device_path: str, bps: int = 9600, declination_deg: float = 0.0
+    ) -> GpsdServer:
+        """Build from the ``[gpsd]`` section; ``bps`` is the GPS baud rate shown in DEVICES,
+        ``declination_deg`` turns the compass's magnetic heading into ATT's true one."""
+        return cls(
+            cfg.bind,
+            cfg.port,
+            device_path,
+            bps=bps,
+            declination_deg=declination_deg,
+            max_clients=cfg.max_clients,
+            queue_len=cfg.queue_len,
+            idle_timeout_s=cfg.idle_timeout_s,
+            slow_client_s=cfg.slow_client_s,
+        )
+
     async def start(self) -> None:
         """Bind and listen."""
-        self._server = await asyncio.start_server(
+        server = await asyncio.start_server(
             self._handle, self.bind, self._configured_port, limit=MAX_COMMAND_BYTES * 2
         )
+        self._listening(server)
         log.info("gpsd port listening on %s:%d", self.bind, self.port)
 
     # -- publishing (sync, never blocks) ----------------------------------------------
     def _fanout(self, line: bytes, nmea: bool) -> None:
-        for c in self._clients:
+        for c in self._sessions:
             wanted = (c.watch_nmea if nmea else c.watch_json) and not c.closed
             if wanted and c.put(line, self.queue_len):
                 self.dropped_total += 1
@@ -260,7 +317,7 @@ class GpsdServer(LineServer[_Client]):
 
     def publish_nmea(self, sentence: str) -> None:
         """Pass one raw NMEA sentence (without line end) to NMEA watchers."""
-        if any(c.watch_nmea for c in self._clients):
+        if any(c.watch_nmea for c in self._sessions):
             self._fanout(sentence.rstrip("\r\n").encode("ascii", "replace") + b"\r\n", nmea=True)
 
     # -- connection handling ----------------------------------------------------------
@@ -310,21 +367,22 @@ class GpsdServer(LineServer[_Client]):
             return out
         return [dumps({"class": "ERROR", "message": f"Unrecognized request '{name}'"})]
 
+    def _is_watching(self, c: _Client) -> bool:
+        return c.watch_json or c.watch_nmea
+
+    def _notice(self, reason: str, message: str) -> bytes:
+        return dumps({"class": "ERROR", "message": f"closing: {reason}: {message}"})
+
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         if task is not None:
             self._tasks.add(task)
-        c = _Client(writer=writer)
-        sender: asyncio.Task[None] | None = None
+        peer, host = peer_names(writer)
+        c = _Client(writer=writer, peer=peer, host=host, task=task)
         try:
-            if len(self._clients) >= self.max_clients:
-                writer.write(dumps({"class": "ERROR", "message": "too many clients"}))
-                with contextlib.suppress(OSError):
-                    await asyncio.wait_for(writer.drain(), 1.0)
-                return
-            self._clients.add(c)
+            self._connected(c)
             c.reply(dumps(version_obj()))
-            sender = asyncio.create_task(self._sender(c))
+            c.sender = asyncio.create_task(self._sender(c))
             while not c.closed:
                 try:
                     raw = await reader.readuntil(b"\n")
@@ -335,12 +393,18 @@ class GpsdServer(LineServer[_Client]):
                 except asyncio.LimitOverrunError:
                     c.reply(dumps({"class": "ERROR", "message": "request too long"}))
                     break
+                c.t_active_s = self._clock()
                 text = raw.decode("utf-8", "replace")
                 try:
                     cmds = parse_commands(text)
                 except ProtocolError as exc:
+                    c.suspect = not c.session
                     c.reply(dumps({"class": "ERROR", "message": str(exc)}))
                     continue
+                if any(name in COMMANDS for name, _ in cmds):
+                    self._promote(c)  # one valid command admits (before ?WATCH counts)
+                elif cmds:
+                    c.suspect = not c.session
                 for name, arg in cmds:
                     for line in self._answer(c, name, arg):
                         c.reply(line)
@@ -349,9 +413,9 @@ class GpsdServer(LineServer[_Client]):
         except (ConnectionError, OSError):
             pass
         except asyncio.CancelledError:
-            pass  # close(): a finished (not cancelled) task keeps asyncio's stream callback quiet
+            pass  # close() or eviction: a finished task keeps asyncio's stream callback quiet
         finally:
-            await self._hang_up(c, sender, task)
+            await self._hang_up(c)
 
 
 def read_objects(lines: Iterable[bytes]) -> list[dict[str, Any]]:

@@ -4,6 +4,24 @@ Each client has two outboxes: ``replies`` (answers to its own requests, never dr
 ``events`` (unsolicited reports, bounded: the oldest is dropped and counted when full), and
 one sender task that writes them. So a slow or stuck reader only ever fills its own bounded
 queue; nothing the control loop does waits for a socket.
+
+Lock-out protection. A new connection is *pending* until the protocol admits it as a
+*session* (the control port: a correct ``auth``, or without a token one valid request; the
+gpsd port: one valid command). The two live in separate pools:
+
+- pending pool (``max_pending``): full means a new connection closes the oldest pending one
+  (of the address holding the most pending connections, and among those first one that has
+  already sent something malformed). A connection is never refused, and pending peers never
+  hold a session slot, so silent sockets cannot lock an operator out.
+- session pool (``max_clients``): full means the peer being admitted closes the least
+  valuable session: the one idle longest among those not watching, else the watcher that is
+  most behind (blocked in ``drain()`` longest, then most events queued).
+
+One sweeper task per server enforces the deadlines: pending longer than
+``pending_timeout_s``, a session neither watching nor sending a line for ``idle_timeout_s``,
+and a sender blocked in ``drain()`` for ``slow_client_s`` (it never reads). Every such close
+is counted in :attr:`LineServer.closed_counts` and logged at most once per second per reason
+(then "N more").
 """
 
 from __future__ import annotations
@@ -11,9 +29,60 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import logging
 import ssl
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
+
+_log = logging.getLogger(__name__)
+
+# reasons a server closes a connection (keys of ``closed_counts``, and the notice's reason)
+PENDING_FULL = "pending_full"
+SESSIONS_FULL = "sessions_full"
+IDLE_TIMEOUT = "idle_timeout"
+SLOW_READER = "slow_reader"
+
+
+class RateLimitedLog:
+    """At most one log record per key per ``period_s``; the others are counted and reported
+    as "N more" with the next record of that key, or by :meth:`flush` once the period is over.
+    Keys are a small fixed set (kinds of event), so the table stays small."""
+
+    def __init__(
+        self,
+        logger: logging.Logger,
+        period_s: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._logger = logger
+        self._period_s = period_s
+        self._clock = clock
+        # key -> [time of the last record (s), suppressed since, level]
+        self._state: dict[str, list[Any]] = {}
+
+    def log(self, key: str, level: int, msg: str, *args: Any) -> bool:
+        """Log ``msg % args`` unless ``key`` was logged less than a period ago; True if logged."""
+        now = self._clock()
+        st = self._state.get(key)
+        if st is not None and now - st[0] < self._period_s:
+            st[1] += 1
+            return False
+        if st is not None and st[1]:
+            msg += " (and %d more %s in the last %.1f s)"
+            args = (*args, st[1], key, now - st[0])
+        self._state[key] = [now, 0, level]
+        self._logger.log(level, msg, *args)
+        return True
+
+    def flush(self) -> None:
+        """Report the suppressed counts whose period is over (a storm that has stopped)."""
+        now = self._clock()
+        for key, st in self._state.items():
+            if st[1] and now - st[0] >= self._period_s:
+                self._logger.log(st[2], "%d more %s in the last %.1f s", st[1], key, now - st[0])
+                st[0], st[1] = now, 0
 
 
 @dataclass(eq=False, kw_only=True)
@@ -21,12 +90,22 @@ class LineClient:
     """One connection's outboxes and state (subclassed per protocol)."""
 
     writer: asyncio.StreamWriter
+    peer: str = ""  # "host:port", for logs
+    host: str = ""  # the peer's address alone: pending connections are counted per address
     events: collections.deque[bytes] = field(default_factory=collections.deque)
     replies: collections.deque[bytes] = field(default_factory=collections.deque)
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     drained: asyncio.Event = field(default_factory=asyncio.Event)  # outboxes written out
     dropped: int = 0
     closed: bool = False
+    evicted: str = ""  # why the server closed it ("" while open): nothing more is written
+    session: bool = False  # admitted to the session pool (else pending)
+    suspect: bool = False  # sent something malformed while pending: evicted first
+    t_connect_s: float = 0.0  # server clock (s)
+    t_active_s: float = 0.0  # last complete line received (s, server clock)
+    drain_since_s: float | None = None  # the sender is waiting in drain() since (s)
+    task: asyncio.Task[Any] | None = None  # the connection's handler task
+    sender: asyncio.Task[None] | None = None
 
     def put(self, line: bytes, maxlen: int) -> bool:
         """Queue an event line, dropping the oldest when ``maxlen`` are waiting; True if one
@@ -48,15 +127,51 @@ class LineClient:
 C = TypeVar("C", bound=LineClient)
 
 
-class LineServer(Generic[C]):
-    """Listening socket, client set and task bookkeeping, shutdown and the sender loop."""
+def peer_names(writer: asyncio.StreamWriter) -> tuple[str, str]:
+    """``("host:port", "host")`` of a connection's peer (``"?"`` when unknown)."""
+    peer = writer.get_extra_info("peername")
+    if isinstance(peer, tuple) and len(peer) >= 2:
+        return f"{peer[0]}:{peer[1]}", str(peer[0])
+    return str(peer or "?"), str(peer or "?")
 
-    def __init__(self, configured_port: int) -> None:
+
+class LineServer(Generic[C]):
+    """Listening socket, the pending and session pools, deadlines, shutdown and the sender."""
+
+    #: the closing reason when a pending connection's deadline passes (protocol-specific name)
+    pending_timeout_reason = "pending_timeout"
+    #: how logs name this server
+    label = "line server"
+
+    def __init__(
+        self,
+        configured_port: int,
+        *,
+        max_clients: int,
+        max_pending: int,
+        pending_timeout_s: float,
+        idle_timeout_s: float,
+        slow_client_s: float,
+        clock: Callable[[], float] = time.monotonic,
+        logger: logging.Logger = _log,
+    ) -> None:
+        """Pool sizes are connection counts; deadlines are seconds of ``clock`` (monotonic)."""
         self._configured_port = configured_port
+        self.max_clients = max_clients
+        self.max_pending = max_pending
+        self.pending_timeout_s = pending_timeout_s
+        self.idle_timeout_s = idle_timeout_s
+        self.slow_client_s = slow_client_s
+        self._clock = clock
         self._server: asyncio.Server | None = None
-        self._clients: set[C] = set()
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._clients: set[C] = set()  # every open connection
+        self._pending: dict[C, None] = {}  # insertion order: oldest first
+        self._sessions: set[C] = set()
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._sweeper: asyncio.Task[None] | None = None
         self.dropped_total = 0
+        self.closed_counts: collections.Counter[str] = collections.Counter()
+        self._rlog = RateLimitedLog(logger, 1.0, clock)
 
     @property
     def port(self) -> int:
@@ -67,14 +182,40 @@ class LineServer(Generic[C]):
 
     @property
     def client_count(self) -> int:
-        """Connected clients."""
-        return len(self._clients)
+        """Sessions (admitted connections)."""
+        return len(self._sessions)
+
+    @property
+    def pending_count(self) -> int:
+        """Connections not admitted yet."""
+        return len(self._pending)
+
+    def pool_stats(self) -> dict[str, Any]:
+        """Pool sizes and counters, JSON-ready: ``clients`` (sessions), ``pending``,
+        ``dropped`` (events dropped for slow readers), ``closed`` (connections the server
+        closed, by reason)."""
+        return {
+            "clients": len(self._sessions),
+            "pending": len(self._pending),
+            "dropped": self.dropped_total,
+            "closed": dict(self.closed_counts),
+        }
+
+    def _listening(self, server: asyncio.Server) -> None:
+        """Subclasses call this once bound: starts the deadline sweeper."""
+        self._server = server
+        self._sweeper = asyncio.create_task(self._sweep_loop())
 
     async def close(self) -> None:
         """Stop listening and disconnect every client (idempotent)."""
         if self._server is not None:
             self._server.close()
             self._server = None
+        if self._sweeper is not None:
+            self._sweeper.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._sweeper
+            self._sweeper = None
         for c in list(self._clients):
             c.closed = True
             c.wake.set()
@@ -85,30 +226,178 @@ class LineServer(Generic[C]):
         if self._tasks:
             await asyncio.gather(*self._tasks, return_exceptions=True)
 
-    async def _hang_up(
-        self, c: C, sender: asyncio.Task[None] | None, task: asyncio.Task[Any] | None
-    ) -> None:
-        """End a connection: let its sender flush (at most 1 s), close, forget it."""
+    # -- pools ----------------------------------------------------------------------------
+    def _is_watching(self, c: C) -> bool:
+        """True if the client asked for a stream of events (not idle while it does)."""
+        return False
+
+    def _notice(self, reason: str, message: str) -> bytes:
+        """The protocol's last line to a connection the server closes."""
+        raise NotImplementedError
+
+    def _connected(self, c: C) -> None:
+        """Register a new connection as pending; make room in the pending pool if full."""
+        c.t_connect_s = c.t_active_s = self._clock()
+        self._clients.add(c)
+        self._pending[c] = None
+        if len(self._pending) > self.max_pending:
+            victim = self._pending_victim(exclude=c)
+            self._evict(
+                victim,
+                PENDING_FULL,
+                f"{self.max_pending} connections waiting to be admitted; a newer one needs room",
+            )
+
+    def _pending_victim(self, exclude: C) -> C:
+        # the address holding the most pending connections pays (a remote operator is not
+        # crowded out by a local swarm); within it, a peer that already sent garbage or a
+        # wrong token goes first, then the oldest (a fresh operator is the newest)
+        per_host = collections.Counter(c.host for c in self._pending if c is not exclude)
+        busiest = max(per_host.values())
+        candidates = [c for c in self._pending if c is not exclude and per_host[c.host] == busiest]
+        return next((c for c in candidates if c.suspect), candidates[0])
+
+    def _promote(self, c: C) -> None:
+        """Admit a pending connection to the session pool, closing the least valuable
+        session when the pool is full: an admitted peer always gets in."""
+        if c.session or c.evicted:
+            return
+        self._pending.pop(c, None)
+        if len(self._sessions) >= self.max_clients:
+            now = self._clock()
+            victim = min(self._sessions, key=lambda s: self._victim_key(s, now))
+            self._evict(
+                victim,
+                SESSIONS_FULL,
+                f"{self.max_clients} sessions open; made room for {c.peer}",
+            )
+        self._sessions.add(c)
+        c.session = True
+
+    def _victim_key(self, c: C, now: float) -> tuple[int, float, float]:
+        """Sort key of sessions, least valuable first: not watching before watching; among
+        those not watching the one idle longest; among watchers the one blocked in drain()
+        longest, then the one with most events queued or dropped."""
+        if not self._is_watching(c):
+            return (0, c.t_active_s, 0.0)
+        stalled_s = 0.0 if c.drain_since_s is None else now - c.drain_since_s
+        return (1, -stalled_s, -float(len(c.events) + c.dropped))
+
+    def _forget(self, c: C) -> None:
         self._clients.discard(c)
+        self._pending.pop(c, None)
+        self._sessions.discard(c)
+
+    def _count_close(self, c: C, reason: str, message: str) -> None:
+        """Count and (rate-limited) log a close the server decided."""
+        self.closed_counts[reason] += 1
+        self._rlog.log(
+            reason, logging.WARNING, "%s: closing %s (%s): %s", self.label, c.peer, reason, message
+        )
+
+    def _evict(self, c: C, reason: str, message: str) -> None:
+        """Close a connection now: a last notice if its socket takes it at once (never for a
+        peer that does not read), drop what is queued, end its handler. Never waits."""
+        if c.evicted or c.closed:
+            return
+        self._count_close(c, reason, message)
+        self._forget(c)
+        c.evicted = reason
+        c.closed = True
+        c.events.clear()
+        c.replies.clear()
+        c.wake.set()
+        c.drained.set()
+        transport = c.writer.transport
+        with contextlib.suppress(Exception):
+            if reason != SLOW_READER and transport.get_write_buffer_size() == 0:
+                transport.write(self._notice(reason, message))
+            if transport.get_write_buffer_size() == 0:
+                transport.close()
+            else:  # it does not read: do not keep the socket open for its buffer
+                transport.abort()
+        task = c.task
+        if task is not None and task is not asyncio.current_task() and not task.done():
+            task.cancel()
+
+    # -- deadlines ------------------------------------------------------------------------
+    def sweep(self) -> int:
+        """Close every connection past a deadline (pending, idle, slow reader) at the
+        server clock's now; return how many. The sweeper calls this periodically; tests with
+        an injected clock may call it directly."""
+        now = self._clock()
+        closed = 0
+        for c in list(self._clients):
+            if c.closed:
+                continue
+            if c.drain_since_s is not None and now - c.drain_since_s >= self.slow_client_s:
+                self._evict(c, SLOW_READER, f"has not read for {now - c.drain_since_s:.1f} s")
+            elif not c.session and now - c.t_connect_s >= self.pending_timeout_s:
+                self._evict(
+                    c,
+                    self.pending_timeout_reason,
+                    f"not admitted within {self.pending_timeout_s:g} s",
+                )
+            elif (
+                c.session and not self._is_watching(c) and now - c.t_active_s >= self.idle_timeout_s
+            ):
+                self._evict(c, IDLE_TIMEOUT, f"idle for {now - c.t_active_s:.1f} s")
+            else:
+                continue
+            closed += 1
+        self._rlog.flush()
+        return closed
+
+    def _sweep_period_s(self) -> float:
+        # a quarter of the shortest deadline: closes happen at most 25 % late; one timer for
+        # the whole server, not one per connection
+        shortest = min(self.pending_timeout_s, self.idle_timeout_s, self.slow_client_s)
+        return min(1.0, max(0.02, shortest / 4.0))
+
+    async def _sweep_loop(self) -> None:
+        period = self._sweep_period_s()
+        while True:
+            await asyncio.sleep(period)
+            try:
+                self.sweep()
+            except Exception:  # a bug here must not end deadline enforcement
+                _log.exception("%s: deadline sweep failed", self.label)
+
+    # -- per connection -------------------------------------------------------------------
+    async def _hang_up(self, c: C) -> None:
+        """End a connection: let its sender flush (at most 1 s) unless the server evicted
+        it, close, forget it."""
+        self._forget(c)
         c.closed = True
         c.wake.set()
+        sender = c.sender
         if sender is not None:
+            if c.evicted:
+                sender.cancel()
             with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError):
                 await asyncio.wait_for(sender, 1.0)
-        c.writer.close()
-        if task is not None:
-            self._tasks.discard(task)
+        transport = c.writer.transport
+        with contextlib.suppress(Exception):
+            if transport.get_write_buffer_size() > 0:
+                transport.abort()  # a peer that does not read: do not wait for it
+            else:
+                c.writer.close()
+        if c.task is not None:
+            self._tasks.discard(c.task)
 
     async def _sender(self, c: C) -> None:
         try:
             while True:
-                while c.replies or c.events:
+                while (c.replies or c.events) and not c.evicted:
                     # replies (never dropped) go before queued events
                     batch = b"".join(c.replies) + b"".join(c.events)
                     c.replies.clear()
                     c.events.clear()
                     c.writer.write(batch)
+                    # the sweeper closes a sender stuck here for slow_client_s
+                    c.drain_since_s = self._clock()
                     await c.writer.drain()
+                    c.drain_since_s = None
                 c.drained.set()
                 if c.closed:
                     return

@@ -9,12 +9,20 @@ and ``{"event": ...}`` lines for clients that asked to watch. The server owns th
 Isolation: every client has its own reader and writer task; telemetry goes into a bounded
 per-client queue (oldest dropped and counted), so a slow or stuck client never delays the
 publisher, which is the control loop.
+
+Lock-out protection (shared mechanics in :mod:`x6wd.lineserver`): a connection is pending
+until it authenticates (without a token: until one valid request), in a pool of its own;
+pending connections past ``auth_timeout_s``, sessions idle for ``idle_timeout_s`` and
+clients that never read are closed; a full pool makes room instead of refusing. ``stop`` is
+always obeyed: never rate-limited, allowed before ``auth``, executed ahead of a client's own
+back-off, and a storm of stops is coalesced into one backend call in flight at a time.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import collections
+import hashlib
 import hmac
 import inspect
 import ipaddress
@@ -23,6 +31,7 @@ import logging
 import ssl
 import stat
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -30,7 +39,7 @@ from typing import Any, Protocol
 from x6wd import __version__
 from x6wd.config import ServerConfig
 from x6wd.errors import ConfigError, ParseError, X6wdError
-from x6wd.lineserver import LineClient, LineServer
+from x6wd.lineserver import LineClient, LineServer, peer_names
 from x6wd.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx
 
 log = logging.getLogger(__name__)
@@ -50,8 +59,27 @@ COMMANDS = (
     "watch",
     "log",
 )
+# commands that change what the robot does: a stop issued before one of these cannot stand
+# in for a stop requested after it
+MOTION_COMMANDS = frozenset({"mission.load", "start", "pause", "resume", "drive"})
 MAX_PENDING_REPLIES = 64
 LOG_TAIL_MAX = 1000
+MAX_JSON_DEPTH = 16
+"""Deepest nesting of arrays/objects a request may have (a mission is 3 deep)."""
+AUTH_FAIL_BUDGET = 10
+"""Failed authentications an address may make before its attempts are slowed down."""
+AUTH_FAIL_REFILL_PER_S = 0.1
+"""How fast that budget comes back (failures per second)."""
+MAX_TRACKED_ADDRESSES = 1024
+STATUS_REUSE_S = 0.05
+"""A status computed this recently (s), with no command since, answers other requesters: a
+crowd polling ``status`` costs the control loop at most ~20 calls per second."""
+CLOSED = "closed"
+"""Error code of the notice sent (id null) before the server closes a connection."""
+# error codes of requests that do not count as "one valid request" (admission without token)
+_INVALID_CODES = frozenset(
+    {"bad_request", "unknown_command", "rate_limited", "unauthorized", "auth_failed"}
+)
 
 
 class CommandError(X6wdError):
@@ -128,15 +156,24 @@ def encode(obj: dict[str, Any]) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode() + b"\n"
 
 
-def error_reply(req_id: Any, code: str, message: str) -> dict[str, Any]:
-    """The error reply object."""
-    return {"id": req_id, "ok": False, "error": {"code": code, "message": message}}
+def error_reply(req_id: Any, code: str, message: str, reason: str | None = None) -> dict[str, Any]:
+    """The error reply object; ``reason`` (optional) refines ``code`` (e.g. bad_request's
+    ``bad_json``, ``line_too_long``)."""
+    err: dict[str, Any] = {"code": code, "message": message}
+    if reason is not None:
+        err["reason"] = reason
+    return {"id": req_id, "ok": False, "error": err}
 
 
 class _Reject(Exception):
-    def __init__(self, code: str, message: str) -> None:
+    def __init__(self, code: str, message: str, reason: str | None = None) -> None:
         super().__init__(message)
         self.code = code
+        self.reason = reason
+
+
+def _bad(reason: str, message: str) -> _Reject:
+    return _Reject("bad_request", message, reason)
 
 
 @dataclass
@@ -157,11 +194,29 @@ class _Bucket:
 
 @dataclass(eq=False, kw_only=True)
 class _Client(LineClient):
-    peer: str
     authenticated: bool
     tokens: _Bucket  # requests
     faults: _Bucket  # error replies (same rate and burst)
     watching: bool = False
+    auth_failures: int = 0
+    backoff_s: float = 0.0  # after a failed auth: wait this long before the next line
+    close_reason: str = ""  # close once this reply is sent (too many failed auths)
+
+
+class _Shared:
+    """One backend call shared by concurrent requesters (``stop``, ``status``)."""
+
+    def __init__(self) -> None:
+        self.future: asyncio.Future[Any] | None = None
+        self.seq = -1  # the server's command sequence number when it was issued
+        self.stops_sent = -1  # the server's count of stops sent when it was issued
+        self.t_done_s = -float("inf")  # time.monotonic() when it completed
+
+
+def _retrieve(f: asyncio.Future[Any]) -> None:
+    # a shared call nobody awaits any more must not warn "exception never retrieved"
+    if not f.cancelled():
+        f.exception()
 
 
 async def _result(value: Any) -> Any:
@@ -171,18 +226,82 @@ async def _result(value: Any) -> Any:
     return value
 
 
+def _no_constant(name: str) -> Any:
+    raise _bad("bad_number", f"{name} is not allowed (numbers must be finite)")
+
+
+def _finite_float(text: str) -> float:
+    v = float(text)
+    if v in (float("inf"), float("-inf")):
+        raise _bad("bad_number", f"number out of range: {text[:40]}")
+    return v
+
+
+def _check_tree(obj: Any, depth_check: bool, unicode_check: bool) -> None:
+    """Reject nesting deeper than MAX_JSON_DEPTH and strings that are not valid Unicode
+    (lone surrogates from ``\\ud800`` escapes: they cannot be encoded)."""
+    stack: list[tuple[Any, int]] = [(obj, 1)]
+    while stack:
+        o, depth = stack.pop()
+        if isinstance(o, (dict, list)):
+            if depth_check and depth > MAX_JSON_DEPTH:
+                raise _bad("too_deep", f"nested deeper than {MAX_JSON_DEPTH} levels")
+            items = o.items() if isinstance(o, dict) else enumerate(o)
+            for k, v in items:
+                if unicode_check and isinstance(k, str):
+                    stack.append((k, depth + 1))
+                stack.append((v, depth + 1))
+        elif unicode_check and isinstance(o, str) and not o.isascii():
+            try:
+                o.encode("utf-8")
+            except UnicodeEncodeError:
+                raise _bad(
+                    "bad_unicode", "a string holds a lone surrogate (invalid Unicode)"
+                ) from None
+
+
+def parse_request(line: bytes) -> dict[str, Any]:
+    """Decode one request line into its object: strict UTF-8, JSON without NaN/Infinity,
+    at most :data:`MAX_JSON_DEPTH` deep, no lone surrogates. Raises ``_Reject`` with code
+    ``bad_request`` and a ``reason`` (bad_utf8, bad_json, bad_number, too_deep, bad_unicode,
+    not_object)."""
+    try:
+        text = line.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise _bad("bad_utf8", f"not UTF-8: {exc.reason} at byte {exc.start}") from None
+    try:
+        req = json.loads(text, parse_constant=_no_constant, parse_float=_finite_float)
+    except RecursionError:
+        raise _bad("too_deep", f"nested deeper than {MAX_JSON_DEPTH} levels") from None
+    except ValueError as exc:  # JSONDecodeError, and ints past the digit limit
+        raise _bad("bad_json", f"not valid JSON: {exc}") from None
+    if not isinstance(req, dict):
+        raise _bad("not_object", "a request must be a JSON object")
+    depth_check = text.count("[") + text.count("{") > MAX_JSON_DEPTH
+    unicode_check = "\\u" in text  # a surrogate can only come from an escape
+    if depth_check or unicode_check:
+        _check_tree(req, depth_check, unicode_check)
+    return req
+
+
 def _number(args: dict[str, Any], key: str, lo: float, hi: float) -> float:
     v = args.get(key)
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise _Reject("bad_request", f"'{key}' must be a number")
-    v = float(v)
+        raise _bad("bad_argument", f"'{key}' must be a number")
+    try:
+        v = float(v)
+    except OverflowError:
+        raise _bad("bad_argument", f"'{key}' is out of range") from None
     if not lo <= v <= hi:  # also rejects NaN
-        raise _Reject("bad_request", f"'{key}' must be within {lo:g}..{hi:g}, got {v:g}")
+        raise _bad("bad_argument", f"'{key}' must be within {lo:g}..{hi:g}, got {v:g}")
     return v
 
 
 class ControlServer(LineServer[_Client]):
     """The remote-control endpoint. :meth:`publish` is called from the loop and never waits."""
+
+    pending_timeout_reason = "auth_timeout"
+    label = "control server"
 
     def __init__(
         self,
@@ -191,22 +310,38 @@ class ControlServer(LineServer[_Client]):
         *,
         token: bytes | None = None,
         ssl_context: ssl.SSLContext | None = None,
-        clock: Any = time.monotonic,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        """``token`` None: no authentication (refused unless bound to loopback)."""
+        """``token`` None: no authentication (refused unless bound to loopback). ``clock``:
+        monotonic seconds for rates and deadlines (tests inject one)."""
         if token is None and not is_loopback(config.bind):
             raise ConfigError(
                 f"server.token_file: required when server.bind ({config.bind}) is not loopback"
             )
-        super().__init__(config.port)
+        super().__init__(
+            config.port,
+            max_clients=config.max_clients,
+            max_pending=config.max_pending,
+            pending_timeout_s=config.auth_timeout_s,
+            idle_timeout_s=config.idle_timeout_s,
+            slow_client_s=config.slow_client_s,
+            clock=clock,
+            logger=log,
+        )
         self.config = config
         self.backend = backend
         self._token = token
+        # compared as digests: constant time, and the time does not depend on the length
+        self._token_digest = hashlib.sha256(token).digest() if token is not None else b""
         self._ssl = ssl_context
-        self._clock = clock
         self.requests_total = 0
         self.errors_total = 0
-        self.rejected_connections = 0
+        self.auth_failed_total = 0
+        self.stops = collections.Counter({"requested": 0, "sent": 0, "coalesced": 0, "early": 0})
+        self._command_seq = 0  # incremented before each motion command reaches the backend
+        self._stop_call = _Shared()
+        self._status_call = _Shared()
+        self._auth_budgets: collections.OrderedDict[str, _Bucket] = collections.OrderedDict()
 
     @classmethod
     def from_config(cls, config: ServerConfig, backend: Backend) -> ControlServer:
@@ -226,9 +361,14 @@ class ControlServer(LineServer[_Client]):
 
     async def start(self) -> None:
         """Bind and listen."""
-        self._server = await asyncio.start_server(
-            self._handle, self.config.bind, self._configured_port, ssl=self._ssl
+        extra: dict[str, Any] = {}
+        if self._ssl is not None:
+            # a peer stalling the handshake is not in any pool yet: bound it like auth
+            extra["ssl_handshake_timeout"] = self.config.auth_timeout_s
+        server = await asyncio.start_server(
+            self._handle, self.config.bind, self._configured_port, ssl=self._ssl, **extra
         )
+        self._listening(server)
         log.info(
             "control server listening on %s:%d%s",
             self.config.bind,
@@ -238,7 +378,7 @@ class ControlServer(LineServer[_Client]):
 
     def publish(self, event: dict[str, Any]) -> None:
         """Queue an ``{"event": ..}`` line for every watching client (drop-oldest when full)."""
-        watchers = [c for c in self._clients if c.watching and not c.closed]
+        watchers = [c for c in self._sessions if c.watching and not c.closed]
         if not watchers:
             return
         line = encode(event)
@@ -247,38 +387,48 @@ class ControlServer(LineServer[_Client]):
             if c.put(line, maxlen):
                 self.dropped_total += 1
 
+    def server_stats(self) -> dict[str, Any]:
+        """The ``server`` object of the ``status`` reply: pools, closes by reason, failed
+        authentications, and stops (requested, sent to the backend, coalesced)."""
+        return {
+            **self.pool_stats(),
+            "auth_failed": self.auth_failed_total,
+            "stops": dict(self.stops),
+        }
+
+    # -- pools ----------------------------------------------------------------------------
+    def _is_watching(self, c: _Client) -> bool:
+        return c.watching
+
+    def _notice(self, reason: str, message: str) -> bytes:
+        return encode(error_reply(None, CLOSED, message, reason))
+
     # -- per-connection -------------------------------------------------------------------
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         if task is not None:
             self._tasks.add(task)
-        peer = str(writer.get_extra_info("peername"))
+        peer, host = peer_names(writer)
         now = self._clock()
         c = _Client(
             writer=writer,
             peer=peer,
+            host=host,
+            task=task,
             authenticated=self._token is None,
             tokens=self._bucket(now),
             faults=self._bucket(now),
         )
-        sender: asyncio.Task[None] | None = None
         try:
-            if len(self._clients) >= self.config.max_clients:
-                self.rejected_connections += 1
-                msg = f"server full ({self.config.max_clients} clients)"
-                writer.write(encode(error_reply(None, "too_many_clients", msg)))
-                with contextlib.suppress(OSError, asyncio.TimeoutError):
-                    await asyncio.wait_for(writer.drain(), 1.0)
-                return
-            self._clients.add(c)
-            sender = asyncio.create_task(self._sender(c))
+            self._connected(c)
+            c.sender = asyncio.create_task(self._sender(c))
             await self._read_loop(reader, c)
         except (ConnectionError, OSError, ssl.SSLError):
             pass
         except asyncio.CancelledError:
-            pass  # close(): a finished (not cancelled) task keeps asyncio's stream callback quiet
+            pass  # close() or eviction: a finished task keeps asyncio's stream callback quiet
         finally:
-            await self._hang_up(c, sender, task)
+            await self._hang_up(c)
 
     def _bucket(self, now: float) -> _Bucket:
         burst = max(5.0, self.config.rate_per_s)
@@ -288,6 +438,7 @@ class ControlServer(LineServer[_Client]):
         limit = self.config.max_line_bytes
         buf = bytearray()
         discarding = False
+        scanned = 0  # bytes at the head of buf already searched for stops (see _early_stops)
         rate = float(self.config.input_bytes_per_s)
         burst = max(rate, 2.0 * limit)
         budget = _Bucket(rate, burst, burst, self._clock())
@@ -295,43 +446,84 @@ class ControlServer(LineServer[_Client]):
             chunk = await reader.read(65536)
             if not chunk:
                 return
+            buf += chunk
             budget.refill(self._clock())
             budget.level -= len(chunk)
             if budget.level < 0:
                 # a flood: stop reading this client for a while (only it waits)
+                scanned = self._early_stops(buf, scanned, discarding)
                 await asyncio.sleep(-budget.level / rate)
-            buf += chunk
-            while True:
+            while not c.closed:
                 nl = buf.find(b"\n")
                 if nl < 0:
                     if len(buf) > limit:
                         if not discarding:
-                            self._reply(c, error_reply(None, "line_too_long", self._too_long()))
+                            self._reply(c, self._too_long())
                         discarding = True
                         buf.clear()
+                        scanned = 0
                     break
                 line = bytes(buf[:nl])
                 del buf[: nl + 1]
+                scanned = max(0, scanned - (nl + 1))
+                c.t_active_s = self._clock()
                 if discarding:
                     discarding = False  # the rest of an oversized line
                     continue
                 if len(line) > limit:
-                    reply = error_reply(None, "line_too_long", self._too_long())
+                    reply = self._too_long()
                 elif line.strip():
                     reply = await self.dispatch(c, line)
                 else:
                     continue
                 self._reply(c, reply)
+                if c.close_reason:
+                    self._count_close(
+                        c, c.close_reason, f"{c.auth_failures} failed authentications"
+                    )
+                    c.reply(self._notice(c.close_reason, "too many failed authentications"))
+                    return  # the hang-up flushes the reply and the notice
+                wait = 0.0
                 if not reply["ok"]:
+                    if not c.session:
+                        c.suspect = True  # evicted first when the pending pool is full
+                    # a client whose requests keep failing is read at the request rate:
+                    # each line still gets its reply, only later (only it waits)
                     wait = self._fault_wait(c)
-                    if wait > 0.0:
-                        # a client whose requests keep failing is read at the request rate:
-                        # each line still gets its reply, only later (only it waits)
-                        await asyncio.sleep(wait)
+                wait, c.backoff_s = max(wait, c.backoff_s), 0.0
+                if wait > 0.0:
+                    scanned = self._early_stops(buf, scanned, discarding)
+                    await asyncio.sleep(wait)
             while len(c.replies) > MAX_PENDING_REPLIES and not c.closed:
                 # a client that asks without reading waits here, alone
+                scanned = self._early_stops(buf, scanned, discarding)
                 c.drained.clear()
                 await c.drained.wait()
+
+    def _early_stops(self, buf: bytearray, scanned: int, discarding: bool) -> int:
+        """Before a client waits out its own back-off, send the stops already in its input to
+        the backend at once (each is still answered in order, when its turn comes: then it
+        joins the stop in flight, or is sent again if a command came in between). Returns
+        how far ``buf`` has been searched."""
+        end = buf.rfind(b"\n") + 1
+        if end <= scanned:
+            return scanned
+        region = bytes(buf[scanned:end])
+        if b"stop" in region:
+            lines = region.split(b"\n")
+            if scanned == 0 and discarding:
+                lines = lines[1:]  # the tail of an oversized line
+            for line in lines:
+                if b"stop" not in line or len(line) > self.config.max_line_bytes:
+                    continue
+                try:
+                    req = parse_request(line)
+                except _Reject:
+                    continue
+                if req.get("cmd") == "stop":
+                    self.stops["early"] += 1
+                    self._fire_stop()
+        return end
 
     def _fault_wait(self, c: _Client) -> float:
         """Charge one error reply to the client's fault bucket; seconds to wait before its
@@ -345,13 +537,20 @@ class ControlServer(LineServer[_Client]):
             return 0.0
         return (b.burst / 2.0 - b.level) / b.rate
 
-    def _too_long(self) -> str:
-        return f"request line longer than {self.config.max_line_bytes} bytes"
+    def _too_long(self) -> dict[str, Any]:
+        msg = f"request line longer than {self.config.max_line_bytes} bytes"
+        return error_reply(None, "bad_request", msg, "line_too_long")
 
     def _reply(self, c: _Client, obj: dict[str, Any]) -> None:
         if not obj.get("ok", False):
             self.errors_total += 1
-        c.reply(encode(obj))
+        try:
+            line = encode(obj)
+        except (ValueError, TypeError) as exc:  # a backend result that is not JSON-ready
+            self._rlog.log("internal", logging.ERROR, "unencodable reply %r: %s", obj, exc)
+            self.errors_total += 1
+            line = encode(error_reply(obj.get("id"), "internal", "internal error: bad reply"))
+        c.reply(line)
 
     def _take_token(self, c: _Client) -> bool:
         if c.tokens.refill(self._clock()) >= 1.0:
@@ -364,44 +563,57 @@ class ControlServer(LineServer[_Client]):
         self.requests_total += 1
         req_id: Any = None
         try:
-            try:
-                req = json.loads(line)
-            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-                raise _Reject("bad_json", f"not valid JSON: {exc}") from None
-            if not isinstance(req, dict):
-                raise _Reject("bad_request", "a request must be a JSON object")
+            req = parse_request(line)
             req_id = req.get("id")
             if isinstance(req_id, (dict, list)):
                 req_id = None
-                raise _Reject("bad_request", "'id' must be a string, number or null")
+                raise _bad("bad_id", "'id' must be a string, number or null")
             cmd = req.get("cmd")
             if not isinstance(cmd, str):
-                raise _Reject("bad_request", "missing 'cmd' (a string)")
+                raise _bad("bad_cmd", "missing 'cmd' (a string)")
             if cmd not in COMMANDS:
                 raise _Reject(
                     "unknown_command", f"unknown command {cmd!r} (valid: {', '.join(COMMANDS)})"
                 )
-            # stop must always get through: it is the operator's emergency brake
-            if cmd != "stop" and not self._take_token(c):
+            # stop must always get through: it is the operator's emergency brake; auth has
+            # its own throttle, and a correct token is never refused for rate
+            if cmd not in ("stop", "auth") and not self._take_token(c):
                 raise _Reject("rate_limited", f"more than {self.config.rate_per_s:g} requests/s")
             if not c.authenticated and cmd not in UNAUTHENTICATED_COMMANDS:
                 raise _Reject("unauthorized", f"authenticate first to use {cmd!r}")
             result = await self._execute(c, cmd, req)
-            return {"id": req_id, "ok": True, **result}
+            reply = {"id": req_id, "ok": True, **result}
         except _Reject as exc:
-            return error_reply(req_id, exc.code, str(exc))
+            reply = error_reply(req_id, exc.code, str(exc), exc.reason)
         except CommandError as exc:
-            return error_reply(req_id, exc.code, str(exc))
+            reply = error_reply(req_id, exc.code, str(exc))
         except ParseError as exc:
-            return error_reply(req_id, "bad_request", str(exc))
+            reply = error_reply(req_id, "bad_request", str(exc), "bad_mission")
         except X6wdError as exc:
-            return error_reply(req_id, "rejected", str(exc))
+            reply = error_reply(req_id, "rejected", str(exc))
+        except (UnicodeError, OverflowError, RecursionError) as exc:
+            # malformed values that got past the checks above: the client's fault, not ours
+            reply = error_reply(req_id, "bad_request", f"bad value: {exc}"[:200], "bad_value")
         except Exception as exc:  # a bug must not take the connection (or robot) down
             log.exception("internal error handling %r", line[:200])
-            return error_reply(req_id, "internal", f"internal error: {type(exc).__name__}")
+            reply = error_reply(req_id, "internal", f"internal error: {type(exc).__name__}")
+        if self._token is None and not c.session:
+            err = reply.get("error")
+            if err is None or err["code"] not in _INVALID_CODES:
+                self._promote(c)  # without a token: one valid request admits
+        return reply
 
     async def _execute(self, c: _Client, cmd: str, req: dict[str, Any]) -> dict[str, Any]:
         b = self.backend
+        if cmd in MOTION_COMMANDS:
+            # validate first, then count: a rejected request changes nothing
+            args = self._motion_args(cmd, req)
+            self._command_seq += 1
+            if cmd == "mission.load":
+                return await _result(b.load_mission(*args))
+            if cmd == "drive":
+                return await _result(b.drive(*args))
+            return await _result(getattr(b, cmd)())
         if cmd == "hello":
             return {
                 "server": "x6wd",
@@ -412,42 +624,20 @@ class ControlServer(LineServer[_Client]):
                 "tls": self._ssl is not None,
             }
         if cmd == "auth":
-            token = req.get("token")
-            if not isinstance(token, str):
-                raise _Reject("bad_request", "'token' must be a string")
-            if self._token is None:
-                c.authenticated = True
-                return {"authenticated": True}
-            if not hmac.compare_digest(token.encode("utf-8"), self._token):
-                c.authenticated = False
-                log.warning("failed authentication from %s", c.peer)
-                raise _Reject("auth_failed", "wrong token")
-            c.authenticated = True
-            return {"authenticated": True}
+            return await self._auth(c, req)
         if cmd == "status":
-            st = dict(await _result(b.status()))
+            st = dict(await self._status())
             st["client"] = {"watching": c.watching, "dropped": c.dropped}
-            st["server"] = {"clients": len(self._clients), "dropped": self.dropped_total}
+            st["server"] = self.server_stats()
             return st
-        if cmd == "mission.load":
-            return await _result(b.load_mission(self._waypoints(req)))
-        if cmd == "start":
-            return await _result(b.start())
-        if cmd == "pause":
-            return await _result(b.pause())
-        if cmd == "resume":
-            return await _result(b.resume())
         if cmd == "stop":
-            return await _result(b.stop())
-        if cmd == "drive":
-            left = _number(req, "left", -100.0, 100.0)
-            right = _number(req, "right", -100.0, 100.0)
-            duration = _number(req, "duration_s", 0.0, 3600.0)
-            return await _result(b.drive(left, right, duration))
+            self.stops["requested"] += 1
+            self._rlog.log("stops", logging.INFO, "stop requested by %s", c.peer)
+            return dict(await asyncio.shield(self._fire_stop()))
         if cmd == "watch":
             on = req.get("on", req.get("enable", True))
             if not isinstance(on, bool):
-                raise _Reject("bad_request", "'on' must be true or false")
+                raise _bad("bad_argument", "'on' must be true or false")
             c.watching = on
             if not on:
                 c.events.clear()
@@ -455,19 +645,154 @@ class ControlServer(LineServer[_Client]):
         if cmd == "log":
             n = req.get("n", 50)
             if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= LOG_TAIL_MAX:
-                raise _Reject("bad_request", f"'n' must be an integer 0..{LOG_TAIL_MAX}")
+                raise _bad("bad_argument", f"'n' must be an integer 0..{LOG_TAIL_MAX}")
             return {"lines": await _result(b.log_tail(n))}
         raise _Reject("unknown_command", f"unknown command {cmd!r}")  # pragma: no cover
 
+    def _motion_args(self, cmd: str, req: dict[str, Any]) -> tuple[Any, ...]:
+        if cmd == "mission.load":
+            return (self._waypoints(req),)
+        if cmd == "drive":
+            return (
+                _number(req, "left", -100.0, 100.0),
+                _number(req, "right", -100.0, 100.0),
+                _number(req, "duration_s", 0.0, 3600.0),
+            )
+        return ()
+
+    # -- stop and status: shared backend calls ----------------------------------------------
+    def _fire_stop(self) -> asyncio.Future[Any]:
+        """The stop to wait for: the one in flight when no command reached the backend since
+        it was sent (its effect covers this request too), else a new one sent now. So a
+        storm of stops keeps at most one in flight, and a stop is never answered by one that
+        a later ``drive`` or ``start`` overtook."""
+        shared = self._stop_call
+        f = shared.future
+        if f is not None and not f.done() and shared.seq == self._command_seq:
+            self.stops["coalesced"] += 1
+            return f
+        self.stops["sent"] += 1
+        f = self._call_now(self.backend.stop)
+        shared.future, shared.seq = f, self._command_seq
+        return f
+
+    async def _status(self) -> Any:
+        """The backend's status, shared by concurrent requesters and reused for
+        :data:`STATUS_REUSE_S` when no command (stop included) came in since: a crowd asking
+        ``status`` cannot load the control loop, and no reply predates a command."""
+        shared = self._status_call
+        f = shared.future
+        reusable = (
+            f is not None
+            and shared.seq == self._command_seq
+            and shared.stops_sent == self.stops["sent"]
+            # real time, not the injected clock: this sheds load, it is no protocol deadline
+            and (not f.done() or time.monotonic() - shared.t_done_s < STATUS_REUSE_S)
+        )
+        if not reusable or f is None:
+            f = self._call_now(self.backend.status)
+            shared.future, shared.seq, shared.stops_sent = f, self._command_seq, self.stops["sent"]
+
+            def done(_f: asyncio.Future[Any], shared: _Shared = shared) -> None:
+                shared.t_done_s = time.monotonic()
+
+            f.add_done_callback(done)
+        return await asyncio.shield(f)
+
+    @staticmethod
+    def _call_now(fn: Callable[[], Any]) -> asyncio.Future[Any]:
+        """Call the backend now (its side effects start at once) and return its result as a
+        future several requesters can await."""
+        try:
+            value = fn()
+        except Exception as exc:
+            f: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+            f.set_exception(exc)
+        else:
+            f = asyncio.ensure_future(_result(value))
+        f.add_done_callback(_retrieve)
+        return f
+
+    # -- authentication --------------------------------------------------------------------
+    async def _auth(self, c: _Client, req: dict[str, Any]) -> dict[str, Any]:
+        token = req.get("token")
+        if not isinstance(token, str):
+            raise _bad("bad_argument", "'token' must be a string")
+        try:
+            given = token.encode("utf-8")
+        except UnicodeEncodeError:
+            raise _bad("bad_unicode", "'token' is not valid Unicode") from None
+        if self._token is None:
+            c.authenticated = True
+            self._promote(c)
+            return {"authenticated": True}
+        budget = self._auth_budget(c.host)
+        if budget.refill(self._clock()) < 1.0:
+            # this address has failed too often: every attempt from it is evaluated only
+            # after a delay. Each waits in its own task (no queue), so a guesser cannot make
+            # an operator on the same address wait longer than this.
+            await asyncio.sleep(self.config.auth_fail_delay_s)
+        ok = hmac.compare_digest(hashlib.sha256(given).digest(), self._token_digest)
+        if not ok:
+            budget.refill(self._clock())
+            budget.level = max(0.0, budget.level - 1.0)
+            c.authenticated = False
+            c.auth_failures += 1
+            self.auth_failed_total += 1
+            # doubling per failure: the next line from this connection is read only then
+            c.backoff_s = self.config.auth_fail_delay_s * 2.0 ** (c.auth_failures - 1)
+            if c.auth_failures >= self.config.max_auth_failures:
+                c.close_reason = "auth_failures"
+            self._rlog.log(
+                "failed authentications",
+                logging.WARNING,
+                "failed authentication from %s (%d on this connection)",
+                c.peer,
+                c.auth_failures,
+            )
+            raise _Reject("auth_failed", "wrong token")
+        c.authenticated = True
+        self._promote(c)
+        return {"authenticated": True}
+
+    def _auth_budget(self, host: str) -> _Bucket:
+        budgets = self._auth_budgets
+        b = budgets.get(host)
+        if b is None:
+            b = _Bucket(AUTH_FAIL_REFILL_PER_S, AUTH_FAIL_BUDGET, AUTH_FAIL_BUDGET, self._clock())
+            budgets[host] = b
+            if len(budgets) > MAX_TRACKED_ADDRESSES:
+                budgets.popitem(last=False)  # bounded memory: forget the least recent address
+        else:
+            budgets.move_to_end(host)
+        return b
+
+    # -- arguments -------------------------------------------------------------------------
     @staticmethod
     def _waypoints(req: dict[str, Any]) -> list[Waypoint]:
         given = [k for k in ("waypoints", "gpx", "csv") if k in req]
         if len(given) != 1:
-            raise _Reject("bad_request", "give exactly one of 'waypoints', 'gpx' or 'csv'")
+            raise _bad("bad_argument", "give exactly one of 'waypoints', 'gpx' or 'csv'")
         key = given[0]
         if key == "waypoints":
-            return from_pairs(req[key], "waypoints")
+            pairs = req[key]
+            if not isinstance(pairs, list):
+                raise _bad("bad_argument", "'waypoints' must be a list of [lat, lon] pairs")
+            for i, item in enumerate(pairs):
+                if isinstance(item, dict):
+                    values = [item[k] for k in ("lat", "lon") if k in item]
+                else:
+                    values = item
+                if not isinstance(values, list) or not all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in values
+                ):
+                    raise _bad(
+                        "bad_argument",
+                        f'waypoints[{i}]: expected [lat, lon] or {{"lat": .., "lon": ..}} '
+                        "with numbers (degrees)",
+                    )
+            return from_pairs(pairs, "waypoints")
         text = req[key]
         if not isinstance(text, str):
-            raise _Reject("bad_request", f"'{key}' must be the file content as a string")
+            raise _bad("bad_argument", f"'{key}' must be the file content as a string")
         return parse_gpx(text) if key == "gpx" else parse_csv(text)
