@@ -915,12 +915,14 @@ def main(args: argparse.Namespace) -> int:
     handler.setFormatter(_StderrFormatter())
     root.addHandler(handler)
     root.addHandler(tail)
+    notifier = Notifier.from_env()
     try:
         config = load_config(args.config)
     except ConfigError as exc:
         config_error(exc)
+        notifier.stopping(f"configuration error: {one_line(str(exc))}")
         return EXIT_CONFIG
-    daemon = Daemon(config, notifier=Notifier.from_env(), log_tail=tail)
+    daemon = Daemon(config, notifier=notifier, log_tail=tail)
 
     async def amain() -> int:
         loop = asyncio.get_running_loop()
