@@ -4,22 +4,30 @@ Works over any object with the smbus2 method set (``smbus2.SMBus`` on the robot,
 simulator's register map in tests). One sample is ONE block read of registers 2-5, so the
 bearing bytes and pitch/roll come from the same device update (two reads can tear).
 
-Linux reports I2C trouble as ``OSError`` with errno 5 (I/O, clock stretching), 6 (no device),
-110 (timeout) or 121 (no ACK). Those are retried; after ``stale_after`` consecutive failed
-samples the driver reports the attitude as stale (``valid=False``) until a good read: a device
-fault is data, not a crash. Any other errno is a real fault and raises :class:`DeviceIOError`.
+Linux reports I2C trouble as ``OSError``; the errnos of :data:`x6wd.errors.TRANSIENT_ERRNOS`
+(EIO, ENXIO, EAGAIN, EBUSY, EINTR, EPROTO, ETIMEDOUT, EREMOTEIO) are retried. After
+``stale_after`` consecutive failed samples, or when no good sample arrived for ``stale_s``
+seconds (by the sample times, whatever the count), the driver reports the attitude as stale
+(``valid=False``) until a good read: a device fault is data, not a crash. Any other errno is a
+real fault: the health says disconnected and :class:`DeviceIOError` is raised.
+
+Health: :attr:`Cmps10.health` (a :class:`~x6wd.records.DeviceHealth`) counts every failed
+attempt, and says connected / degraded (errors being retried, data fresh) / stale /
+disconnected; :meth:`Cmps10.take_health_events` hands its transitions to the caller's log.
 """
 
 from __future__ import annotations
 
-import errno
+import contextlib
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from x6wd.errors import DeviceIOError, DeviceUnavailable
-from x6wd.records import Attitude
+from x6wd.errors import DeviceIOError, DeviceUnavailable, is_transient
+from x6wd.health import HealthTracker
+from x6wd.records import Attitude, DeviceHealth, HealthEvent
 
 DEFAULT_ADDRESS = 0x60
 VALID_ADDRESSES = tuple(range(0x60, 0x68))
@@ -36,9 +44,6 @@ CMD_CALIBRATE_POINT = 0xF5
 FACTORY_RESTORE_SEQUENCE = (0x20, 0x2A, 0x60)
 CHANGE_ADDRESS_SEQUENCE = (0xA0, 0xAA, 0xA5)
 CALIBRATION_POINTS = ("N", "E", "S", "W")
-
-TRANSIENT_ERRNOS = frozenset({errno.EIO, errno.ENXIO, errno.ETIMEDOUT, errno.EREMOTEIO})
-"""5, 6, 110, 121: transient bus errors worth a retry."""
 
 MAX_BEARING_DEG = 359.9
 MAX_TILT_DEG = 85.0
@@ -82,8 +87,10 @@ class Cmps10:
 
     ``retries`` is the number of extra attempts per sample or command after a transient
     error; ``stale_after`` the number of consecutive failed samples before the attitude is
-    reported stale; ``sleep`` (seconds) is used for command spacing and retry back-off so
-    tests and the simulator can run without waiting.
+    reported stale; ``stale_s`` (s, or None) the longest time without a good sample before
+    it is stale anyway; ``sleep`` (seconds) is used for command spacing and retry back-off so
+    tests and the simulator can run without waiting. Health times are the ``t_s`` given to
+    :meth:`read`.
     """
 
     def __init__(
@@ -95,6 +102,7 @@ class Cmps10:
         stale_after: int = 5,
         sleep: Callable[[float], Any] = time.sleep,
         retry_delay_s: float = 0.001,
+        stale_s: float | None = None,
     ) -> None:
         if address not in VALID_ADDRESSES:
             raise ValueError(f"CMPS10 address must be 0x60..0x67 (7-bit), got {address:#x}")
@@ -113,6 +121,50 @@ class Cmps10:
         self.counters = Cmps10Counters()
         self._consecutive_failures = 0
         self._last_good: Attitude | None = None
+        self._stale_by_time = False
+        # The bus object exists, so the device counts as opened; staleness starts with the
+        # first read (the constructor knows no sample time).
+        self.health_tracker = HealthTracker("compass", t_s=0.0, stale_s=stale_s)
+        self._started = False
+
+    # --- health -----------------------------------------------------------------------------
+
+    @property
+    def stale_s(self) -> float | None:
+        """Longest time without a good sample before the attitude is stale (s), or None."""
+        return self.health_tracker.stale_s
+
+    @stale_s.setter
+    def stale_s(self, value: float | None) -> None:
+        if value is not None and not (value > 0 and math.isfinite(value)):
+            raise ValueError(f"stale_s must be > 0 s or None, got {value!r}")
+        self.health_tracker.stale_s = value
+
+    @property
+    def health(self) -> DeviceHealth:
+        """The compass's health now (immutable snapshot; any thread may read it)."""
+        return self.health_tracker.health
+
+    def take_health_events(self) -> list[HealthEvent]:
+        """Health transitions since the last call, oldest first (for the caller's log)."""
+        return self.health_tracker.take_events()
+
+    def attach_bus(self, bus: SMBusLike, t_s: float) -> None:
+        """Replace the bus after a reopen at ``t_s`` (s); counts as a reconnect. The old bus
+        is closed; counters and health carry on."""
+        old, self.bus = self.bus, bus
+        if old is not bus:
+            close = getattr(old, "close", None)
+            if close is not None:
+                with contextlib.suppress(OSError):  # the old bus is broken anyway
+                    close()
+        self._consecutive_failures = 0
+        self.health_tracker.opened(t_s)
+
+    def _start(self, t_s: float) -> None:
+        if not self._started:
+            self._started = True
+            self.health_tracker.opened(t_s)
 
     # --- transport -------------------------------------------------------------------------
 
@@ -126,7 +178,7 @@ class Cmps10:
             try:
                 return op()
             except OSError as exc:
-                if exc.errno not in TRANSIENT_ERRNOS:
+                if not is_transient(exc):
                     raise DeviceIOError(
                         f"CMPS10 at {self.address:#04x}: {what} failed: {exc}"
                     ) from exc
@@ -157,8 +209,9 @@ class Cmps10:
 
     @property
     def stale(self) -> bool:
-        """True after ``stale_after`` consecutive failed samples, until the next good one."""
-        return self._consecutive_failures >= self.stale_after
+        """True after ``stale_after`` consecutive failed samples, or once the last failed
+        sample came more than ``stale_s`` after the last good one, until the next good one."""
+        return self._consecutive_failures >= self.stale_after or self._stale_by_time
 
     @property
     def last_good(self) -> Attitude | None:
@@ -186,10 +239,12 @@ class Cmps10:
         (bearing magnetic, 0-359.9 deg; pitch/roll whole degrees). A failed sample (bus errors
         on every attempt, or values outside the datasheet ranges) returns the last good
         attitude unchanged, so its ``t_s`` keeps ageing honestly; with no good sample yet, or
-        once ``stale_after`` samples in a row failed, it returns ``valid=False`` at ``t_s``
-        (holding the last good values, or zeros). Raises :class:`DeviceIOError` for
-        non-transient errors.
+        once ``stale_after`` samples in a row failed or the last good one is more than
+        ``stale_s`` old, it returns ``valid=False`` at ``t_s`` (holding the last good values,
+        or zeros). Raises :class:`DeviceIOError` for non-transient errors (health:
+        disconnected).
         """
+        self._start(t_s)
         self.counters.samples += 1
         sample: tuple[float, int, int] | None = None
         for attempt in range(self.retries + 1):
@@ -198,23 +253,35 @@ class Cmps10:
                 if self.retry_delay_s:
                     self._sleep(self.retry_delay_s)
             try:
-                sample = self._attempt_block_read()
+                sample = self._attempt_block_read(t_s)
             except OSError:
                 continue
             if sample is not None:
                 break
             self.counters.range_errors += 1
+            self.health_tracker.error("attitude registers out of range", t_s)
         if sample is not None:
             self._consecutive_failures = 0
+            self._stale_by_time = False
             self.counters.good_samples += 1
             att = Attitude(t_s, sample[0], float(sample[1]), float(sample[2]), True)
             self._last_good = att
+            self.health_tracker.good(t_s)
             return att
         self.counters.failed_samples += 1
         was_stale = self.stale
         self._consecutive_failures += 1
+        last = self._last_good
+        stale_s = self.stale_s
+        if stale_s is not None and last is not None and t_s - last.t_s > stale_s:
+            self._stale_by_time = True
         if self.stale and not was_stale:
             self.counters.stale_events += 1
+        self.health_tracker.degrade(t_s)  # every attempt failed: this sample is lost
+        if self.stale:
+            self.health_tracker.set_stale(
+                t_s, f"{self._consecutive_failures} failed samples in a row"
+            )
         last = self._last_good
         if last is not None and not self.stale:
             return last
@@ -222,16 +289,18 @@ class Cmps10:
             return Attitude(t_s, 0.0, 0.0, 0.0, valid=False)
         return Attitude(t_s, last.bearing_deg, last.pitch_deg, last.roll_deg, valid=False)
 
-    def _attempt_block_read(self) -> tuple[float, int, int] | None:
-        """One bus transaction; transient OSErrors are counted and re-raised."""
+    def _attempt_block_read(self, t_s: float) -> tuple[float, int, int] | None:
+        """One bus transaction at sample time ``t_s`` (s); transient OSErrors are counted
+        (driver counters and health) and re-raised, others raise DeviceIOError."""
         try:
             return self._read_once()
         except OSError as exc:
-            if exc.errno not in TRANSIENT_ERRNOS:
-                raise DeviceIOError(
-                    f"CMPS10 at {self.address:#04x}: attitude read failed: {exc}"
-                ) from exc
+            if not is_transient(exc):
+                msg = f"CMPS10 at {self.address:#04x}: attitude read failed: {exc}"
+                self.health_tracker.lost(msg, t_s)
+                raise DeviceIOError(msg) from exc
             self.counters.io_errors += 1
+            self.health_tracker.error(f"attitude read failed: {exc}", t_s)
             raise
 
     def bearing_byte(self) -> int:

@@ -3,10 +3,18 @@
 ``GpsReader.poll(timeout_s)`` is the only call that touches the port. It opens the port when
 needed (with capped exponential backoff between failed attempts), waits for bytes at most
 about ``timeout_s`` seconds, hands them to the sans-IO ``GpsDecoder`` with the receive time,
-and returns the decoded records. A read error (pyserial's ``SerialException`` is an
-``OSError``; a pty whose far end closed raises EIO; a socket peer that left reads EOF)
-closes the port, marks the GPS disconnected and schedules a reopen: a device fault is data,
-never an exception to the caller.
+and returns the decoded records. A read error with a transient errno
+(:data:`x6wd.errors.TRANSIENT_ERRNOS`: EIO, EAGAIN, EBUSY, EINTR, EPROTO ... — pyserial wraps
+the OSError in a ``SerialException`` without errno; the errno is taken from the wrapped one)
+is counted and retried on the same port, ``retry_delay_s`` later within the same poll, up to
+``transient_limit`` in a row. Any other error, too many transient ones, or EOF (a socket peer
+that left) closes the port, marks the GPS disconnected and schedules a reopen: a device
+fault is data, never an exception to the caller.
+
+Health: :attr:`GpsReader.health` is a :class:`~x6wd.records.DeviceHealth` (connected,
+degraded, stale when no valid sentence arrived for ``stale_s``, disconnected, reconnecting,
+with error and reconnect counts); :meth:`GpsReader.take_health_events` hands each transition
+to the caller at once (the daemon holds the robot on it, without waiting for a fix timeout).
 
 The reader sets ``port.timeout = 0`` on every port it opens and waits with ``select()``
 itself, so a port opened blocking cannot hang it. Note that pyserial's ``socket://`` handler
@@ -21,15 +29,13 @@ import select
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Protocol
 
 from drivers.gps_nmea import GpsDecoder, Record, UbxAck, parse_ack
-from x6wd.errors import ConfigError, ParseError, X6wdError
+from x6wd.errors import ConfigError, ParseError, X6wdError, is_transient
+from x6wd.health import HealthTracker, root_oserror
+from x6wd.records import DeviceHealth, DeviceState, HealthEvent
 
-STATE_OK = "ok"
-STATE_STALE = "stale"
-STATE_DISCONNECTED = "disconnected"
 _IDLE_POLL_S = 0.01  # wait step for ports that cannot be select()ed
 
 
@@ -44,29 +50,14 @@ class PortLike(Protocol):
     def close(self) -> None: ...
 
 
-@dataclass(frozen=True, slots=True)
-class GpsHealth:
-    """Reader health at one instant (times in seconds on the reader's clock).
-
-    ``state``: 'ok' (a valid sentence within ``stale_s``), 'stale' (port open, nothing
-    valid within ``stale_s``) or 'disconnected' (port closed, reopening with backoff).
-    ``reconnects`` counts successful opens after the first one.
-    """
-
-    state: str
-    connected: bool
-    reconnects: int
-    last_data_t_s: float | None
-    last_error: str
-    next_attempt_t_s: float | None
-
-
 class GpsReader:
     """Poll-driven GPS reader: opens, decodes, reconnects with capped exponential backoff.
 
     ``open_port`` returns an open port or raises (OSError, pyserial's SerialException or an
     ``X6wdError``). ``init_bytes`` (e.g. UBX ``cfg_rate(...)``) are written after every
-    (re)connect; ACK/NAK answers are collected for ``take_acks()``.
+    (re)connect; ACK/NAK answers are collected for ``take_acks()``. ``stale_s`` (s): no
+    valid sentence for this long makes the health stale; ``transient_limit`` transient read
+    errors in a row (``retry_delay_s`` apart) drop the port.
     """
 
     def __init__(
@@ -81,6 +72,8 @@ class GpsReader:
         decoder: GpsDecoder | None = None,
         init_bytes: bytes = b"",
         read_max: int = 4096,
+        transient_limit: int = 3,
+        retry_delay_s: float = 0.01,
     ) -> None:
         if not stale_s > 0:
             raise ConfigError(f"GpsReader stale_s must be > 0 s, got {stale_s!r}")
@@ -91,6 +84,11 @@ class GpsReader:
             )
         if read_max < 1:
             raise ConfigError(f"GpsReader read_max must be >= 1 byte, got {read_max!r}")
+        if transient_limit < 1 or not retry_delay_s >= 0:
+            raise ConfigError(
+                "GpsReader needs transient_limit >= 1 and retry_delay_s >= 0 s, got "
+                f"{transient_limit!r} and {retry_delay_s!r}"
+            )
         self._open_port = open_port
         self.stale_s = stale_s
         self.backoff_initial_s = backoff_initial_s
@@ -100,13 +98,13 @@ class GpsReader:
         self.decoder = decoder if decoder is not None else GpsDecoder()
         self.init_bytes = init_bytes
         self._read_max = read_max
+        self.transient_limit = transient_limit
+        self.retry_delay_s = retry_delay_s
         self._port: PortLike | None = None
-        self._opened_once = False
-        self._reconnects = 0
         self._backoff_s = backoff_initial_s
         self._next_attempt = clock()
-        self._last_data: float | None = None
-        self._last_error = ""
+        self._tracker = HealthTracker("gps", t_s=self._next_attempt, stale_s=stale_s)
+        self._transient_run = 0  # transient read errors in a row on the open port
         self._acks: deque[UbxAck] = deque(maxlen=64)
         self._closed = False
         self._nonblocking = False
@@ -121,7 +119,13 @@ class GpsReader:
         """
         if self._closed:  # shutdown races with a polling thread: not an error
             return []
-        timeout_s = max(0.0, timeout_s)
+        try:
+            return self._poll(max(0.0, timeout_s))
+        finally:
+            # Staleness by time, once per poll: the health never waits for a caller to ask.
+            self._tracker.check(self._clock())
+
+    def _poll(self, timeout_s: float) -> list[Record]:
         start = self._clock()
         if self._port is None:
             # At most one open attempt per poll: the wait before it stays within timeout_s.
@@ -133,32 +137,32 @@ class GpsReader:
             self._try_open(now)
             if self._port is None:
                 return []
-        remaining = max(0.0, timeout_s - (self._clock() - start))
-        return self._read_once(remaining) or []
+        while True:
+            remaining = max(0.0, timeout_s - (self._clock() - start))
+            run = self._transient_run
+            records = self._read_once(remaining)
+            if records is not None:
+                return records
+            if self._port is None or self._transient_run <= run or remaining <= 0:
+                return []  # nothing arrived, or the port was dropped
+            # A transient error: retry on the same port shortly, within this poll.
+            self._sleep(min(self.retry_delay_s, remaining))
 
     @property
-    def health(self) -> GpsHealth:
-        """Current state (ok / stale / disconnected), reconnect count, last data time."""
-        now = self._clock()
-        if self._port is None:
-            state = STATE_DISCONNECTED
-        elif self._last_data is None or now - self._last_data > self.stale_s:
-            state = STATE_STALE
-        else:
-            state = STATE_OK
-        return GpsHealth(
-            state=state,
-            connected=self._port is not None,
-            reconnects=self._reconnects,
-            last_data_t_s=self._last_data,
-            last_error=self._last_error,
-            next_attempt_t_s=None if self._port is not None else self._next_attempt,
-        )
+    def health(self) -> DeviceHealth:
+        """The GPS link's health (state, error and reconnect counts, times); any thread
+        may read it. Updated by :meth:`poll`."""
+        return self._tracker.health
 
     @property
-    def state(self) -> str:
+    def state(self) -> DeviceState:
         """Shortcut for ``health.state``."""
-        return self.health.state
+        return self._tracker.health.state
+
+    def take_health_events(self) -> list[HealthEvent]:
+        """Health transitions (and repeated failed reopens) since the last call, oldest
+        first; call from the polling thread."""
+        return self._tracker.take_events()
 
     def take_acks(self) -> list[UbxAck]:
         """UBX ACK/NAK answers received since the last call, oldest first."""
@@ -170,6 +174,7 @@ class GpsReader:
         """Close the port; idempotent."""
         self._closed = True
         self._drop_port("closed")
+        self._tracker.closed(self._clock())
 
     def __enter__(self) -> GpsReader:
         return self
@@ -183,11 +188,12 @@ class GpsReader:
         try:
             port = self._open_port()
         except (OSError, X6wdError) as exc:
-            self._last_error = f"open failed: {exc}"
             self._next_attempt = now + self._backoff_s
             self._backoff_s = min(self._backoff_s * 2.0, self.backoff_max_s)
+            self._tracker.open_failed(f"open failed: {exc}", now, self._next_attempt)
             return
         self._port = port
+        self._transient_run = 0
         # Non-blocking reads: this reader waits with select() itself and must never hang in
         # read() (a pyserial port opened with timeout=None blocks until ``size`` bytes).
         try:
@@ -196,16 +202,13 @@ class GpsReader:
         except (AttributeError, ValueError, OSError):
             self._nonblocking = False
         self.decoder.reset()
-        if self._opened_once:
-            self._reconnects += 1
-        self._opened_once = True
         self._backoff_s = self.backoff_initial_s
         # Fresh connection: staleness counts from now, not from before the outage.
-        self._last_data = None
+        self._tracker.opened(now)
         if self.init_bytes:
             write = getattr(port, "write", None)
             if write is None:
-                self._last_error = "port cannot write: UBX configuration not sent"
+                self._tracker.error("port cannot write: UBX configuration not sent", now)
             else:
                 try:
                     write(self.init_bytes)
@@ -224,17 +227,25 @@ class GpsReader:
                 n = max(1, port.in_waiting)
             data = port.read(max(n, self._read_max) if self._nonblocking else n)
         except (OSError, ValueError, X6wdError) as exc:  # ValueError: fd closed under us
-            self._fail(f"read failed: {exc}")
+            text = str(exc) if str(exc).startswith("read failed") else f"read failed: {exc}"
+            if is_transient(root_oserror(exc)):
+                self._transient_run += 1
+                if self._transient_run < self.transient_limit:
+                    self._tracker.failed(text, self._clock())
+                    return None
+                text += f" ({self._transient_run} transient errors in a row)"
+            self._fail(text)
             return None
         if not data:
             return None
         t_s = self._clock()
+        self._transient_run = 0
         before = self.decoder.framer.counters
         seen = before.sentences + before.ubx_frames
         records = self.decoder.feed(data, t_s)
         after = self.decoder.framer.counters
         if after.sentences + after.ubx_frames > seen:
-            self._last_data = t_s
+            self._tracker.good(t_s)
         for frame in self.decoder.take_ubx():
             try:
                 ack = parse_ack(frame)
@@ -261,11 +272,11 @@ class GpsReader:
         return port.in_waiting > 0
 
     def _fail(self, reason: str) -> None:
-        self._last_error = reason
         self._drop_port(reason)
         now = self._clock()
         self._next_attempt = now + self._backoff_s
         self._backoff_s = min(self._backoff_s * 2.0, self.backoff_max_s)
+        self._tracker.lost(reason, now, self._next_attempt)
 
     def _drop_port(self, reason: str) -> None:
         port = self._port

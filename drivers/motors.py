@@ -9,6 +9,11 @@
 
 Stopping never raises: :meth:`SerialMotorLink.stop` tries, counts and returns whether the
 board confirmed. If the link is dead, the board's watchdog stops the motors by itself.
+
+Health: both links keep a :class:`~x6wd.records.DeviceHealth` (:attr:`health`) and queue its
+transitions for :meth:`take_health_events`. A port error with a transient errno
+(:data:`x6wd.errors.TRANSIENT_ERRNOS`) or a missing acknowledgement is retried within the
+command; any other port error is not (the port is broken): the link is lost at once.
 """
 
 from __future__ import annotations
@@ -24,7 +29,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
-from x6wd.records import MotorCommand
+from x6wd.errors import is_transient
+from x6wd.health import HealthTracker, root_oserror
+from x6wd.records import DeviceHealth, HealthEvent, MotorCommand
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +62,11 @@ class MotorLink(Protocol):
 
     @property
     def last_command(self) -> MotorCommand | None: ...
+
+    @property
+    def health(self) -> DeviceHealth: ...
+
+    def take_health_events(self) -> list[HealthEvent]: ...
 
     def drive(self, left_pct: float, right_pct: float, reason: str = "") -> bool: ...
 
@@ -102,7 +114,9 @@ class SerialMotorLink:
     ``watchdog_ms``; the board stops by itself when no command arrives for that long, so
     the caller must send commands (or :meth:`ping`) more often than that. I/O failures never
     raise out of :meth:`drive`, :meth:`stop` or :meth:`close`: they are counted and make
-    :attr:`healthy` False.
+    :attr:`healthy` False (``unhealthy_after`` failed commands in a row, or at once for a
+    non-transient port error); :attr:`health` says connected / degraded / disconnected /
+    reconnecting (commands failing while lost), with error and reconnect counts.
     """
 
     def __init__(
@@ -136,6 +150,7 @@ class SerialMotorLink:
         self._closed = False
         self._last: MotorCommand | None = None
         self._lock = threading.Lock()
+        self._tracker = HealthTracker("motors", t_s=clock())
         # Poll the port in short slices so a deadline is honoured whatever the port's timeout.
         if hasattr(port, "timeout"):
             try:
@@ -163,6 +178,15 @@ class SerialMotorLink:
     def last_command(self) -> MotorCommand | None:
         """The last drive/stop command sent (acknowledged or not)."""
         return self._last
+
+    @property
+    def health(self) -> DeviceHealth:
+        """The link's health (immutable snapshot; any thread may read it)."""
+        return self._tracker.health
+
+    def take_health_events(self) -> list[HealthEvent]:
+        """Health transitions (and repeated failures while lost) since the last call."""
+        return self._tracker.take_events()
 
     # --- commands ---------------------------------------------------------------------------
 
@@ -221,6 +245,7 @@ class SerialMotorLink:
             self.port.close()
         except Exception:
             log.debug("closing the motor port failed", exc_info=True)
+        self._tracker.closed(self._clock())
 
     def __enter__(self) -> SerialMotorLink:
         return self
@@ -247,7 +272,9 @@ class SerialMotorLink:
         """Send ``body`` with a fresh sequence number; the OK payload, or None on failure."""
         if self._closed:
             return None
+        tracker = self._tracker
         with self._lock:
+            broken = False
             for _attempt in range(self.retries + 1):
                 self._seq = self._seq % (SEQ_MODULO - 1) + 1
                 seq = self._seq
@@ -258,20 +285,48 @@ class SerialMotorLink:
                 except Exception as exc:  # SerialException is an OSError; closed ports differ
                     self.counters.write_errors += 1
                     log.debug("motor link I/O error: %s", exc)
-                    continue
+                    tracker.error(f"{body.split()[0]}: port error: {exc}", self._clock())
+                    if is_transient(root_oserror(exc)):
+                        continue
+                    broken = True  # EBADF, a closed port ...: repeating will not help
+                    break
                 if reply is None:
                     self.counters.timeouts += 1
+                    tracker.error(
+                        f"{body.split()[0]}: no acknowledgement within "
+                        f"{self.ack_timeout_s * 1000:.0f} ms",
+                        self._clock(),
+                    )
                     continue
                 ok, payload = reply
                 if ok:
                     self.counters.acked += 1
                     self._failures = 0
+                    t_s = self._clock()
+                    if not tracker.health.connected:
+                        tracker.opened(t_s)  # the board answers again: a reconnect
+                    tracker.good(t_s)
                     return payload
                 self.counters.rejected += 1
                 log.warning("motor board rejected %r: %s", body, payload)
+                tracker.error(f"{body.split()[0]}: board refused: {payload}", self._clock())
                 break  # the board understood and refused: repeating will not help
             self._failures += 1
+            if broken:
+                self._failures = max(self._failures, self.unhealthy_after)
+            self._track_failure()
             return None
+
+    def _track_failure(self) -> None:
+        """A command failed: degraded, lost once unhealthy, reconnecting while lost."""
+        tracker, t_s = self._tracker, self._clock()
+        state = tracker.health
+        if self._failures < self.unhealthy_after:
+            tracker.degrade(t_s)
+        elif state.connected:
+            tracker.lost(state.last_error, t_s)
+        else:  # already lost: this command was another attempt to reach the board
+            tracker.open_failed(state.last_error, t_s)
 
     def _await(self, seq: int) -> tuple[bool, str] | None:
         """Read lines until the reply for ``seq`` or the ack deadline."""
@@ -340,11 +395,22 @@ class LogMotorLink:
         self._clock = clock
         self._log = logger or log
         self._closed = False
+        self._tracker = HealthTracker("motors", t_s=0.0)
+        self._tracker.opened(0.0)  # nothing to lose but closing; no clock call (tests count)
 
     @property
     def healthy(self) -> bool:
         """True until closed."""
         return not self._closed
+
+    @property
+    def health(self) -> DeviceHealth:
+        """Connected until closed."""
+        return self._tracker.health
+
+    def take_health_events(self) -> list[HealthEvent]:
+        """Health transitions since the last call (only the initial connect)."""
+        return self._tracker.take_events()
 
     @property
     def last_command(self) -> MotorCommand | None:
@@ -388,6 +454,8 @@ class LogMotorLink:
         if not self._closed:
             self.stop("close")
             self._closed = True
+            # the time of the closing stop: no extra clock call (tests script the clock)
+            self._tracker.closed(self.commands[-1].t_s if self.commands else 0.0)
 
     def __enter__(self) -> LogMotorLink:
         return self

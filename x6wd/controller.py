@@ -17,11 +17,16 @@ filtered position is projected as configured; the compass's magnetic bearing is 
 paper's (−180°, 180°] and corrected by the declination; the :class:`Navigator` decides.
 
 Safety: while RUNNING, the motors stop and the state is HOLD (with ``hold_reason``) when the
-motor link is lost, the latest fix is invalid, the last valid fix is older than
-``safety.fix_stale_s``, the attitude is missing, invalid or older than
-``safety.attitude_stale_s``. Navigation resumes by itself once every input is fresh again.
+motor link is lost, a sensor's reader reports it unusable (:meth:`Controller.sensor_health`:
+"gps disconnected", "compass stale", ...; at once, not after the staleness limits), the
+latest fix is invalid, the last valid fix is older than ``safety.fix_stale_s``, the attitude
+is missing, invalid or older than ``safety.attitude_stale_s``. Navigation resumes by itself
+once every input is fresh again; after a sensor comes back, only once fresh data stamped at
+or after its return arrived (a valid fix, a valid compass sample).
 Manual drive is capped at ``safety.manual_max_s`` and expires (dead-man) into IDLE; a lost
-motor link cancels it. :meth:`Controller.stop` works from any state.
+motor link cancels it. Manual drive does NOT depend on the sensors: the operator drives by
+sight, the dead-man bounds it, and a GPS or compass fault neither refuses nor cancels it.
+:meth:`Controller.stop` works from any state.
 
 Skid-steer mixing (the paper turns on the spot): STRAIGHT -> both sides ``cruise_pct``;
 TURN_RIGHT -> left ``+turn_pct``, right ``-turn_pct`` (clockwise spin in place); TURN_LEFT ->
@@ -67,7 +72,12 @@ class CommandRejected(X6wdError):
 
 
 class InputError(X6wdError, ValueError):
-    """A record or call carried an unusable time (not a finite number of seconds)."""
+    """A record or call carried an unusable time (not a finite number of seconds) or an
+    unknown sensor name."""
+
+
+SENSORS = ("gps", "compass")
+"""The sensors :meth:`Controller.sensor_health` knows, in the order their holds are named."""
 
 
 def _check_t(t_s: float, what: str) -> float:
@@ -110,6 +120,10 @@ class Controller:
         self._att_ok = False
         self._sky: GpsSky | None = None
         self._link_ok = True
+        # Sensors a reader reported unusable: name -> its state ("disconnected", "stale"...).
+        self._sensor_down: dict[str, str] = {}
+        # Sensors back since t_s (s) whose fresh data has not arrived yet.
+        self._sensor_back: dict[str, float] = {}
         self._manual: tuple[float, float, float] | None = None  # left %, right %, until t_s
         self._has_mission = False
         self._cmd = MotorCommand(0.0, 0.0, 0.0, "idle")
@@ -180,6 +194,9 @@ class Controller:
             # filter() once per sample: with hysteresis it is stateful.
             self._filt = (self._lat_filter.filter(), self._lon_filter.filter())
             self._valid_fix_t = t if self._valid_fix_t is None else max(self._valid_fix_t, t)
+            back_t = self._sensor_back.get("gps")
+            if back_t is not None and t >= back_t:
+                del self._sensor_back["gps"]  # a fresh fix since the GPS came back
         return self._step(t, "fix")
 
     def on_sky(self, sky: GpsSky) -> list[ControllerOutput]:
@@ -193,6 +210,9 @@ class Controller:
         t = _check_t(att.t_s, "attitude")
         self._att = att
         self._att_ok = bool(att.valid) and _finite(att.bearing_deg) and 0 <= att.bearing_deg < 360
+        back_t = self._sensor_back.get("compass")
+        if back_t is not None and self._att_ok and t >= back_t:
+            del self._sensor_back["compass"]  # a fresh sample since the compass came back
         return self._step(t, "attitude")
 
     def tick(self, t_s: float) -> list[ControllerOutput]:
@@ -204,6 +224,28 @@ class Controller:
         t = _check_t(t_s, "motor_link")
         self._link_ok = bool(ok)
         return self._step(t, "motor link " + ("up" if ok else "lost"))
+
+    def sensor_health(
+        self, kind: str, ok: bool, t_s: float, state: str = ""
+    ) -> list[ControllerOutput]:
+        """A sensor's reader changed its health at ``t_s`` (s).
+
+        ``kind`` is "gps" or "compass"; ``state`` names the condition ("disconnected",
+        "reconnecting", "stale", ...). Not ``ok``: a running mission holds at once with
+        ``hold_reason`` "<kind> <state>". ``ok`` again: the hold lasts until fresh data
+        stamped at or after ``t_s`` arrived (a valid fix; a valid compass sample), so data
+        from before the outage never resumes the robot. Manual drive is not affected.
+        """
+        t = _check_t(t_s, "sensor_health")
+        if kind not in SENSORS:
+            raise InputError(f"sensor_health: kind must be one of {SENSORS}, got {kind!r}")
+        if not ok:
+            self._sensor_down[kind] = state or "unavailable"
+            self._sensor_back.pop(kind, None)
+        elif kind in self._sensor_down:
+            del self._sensor_down[kind]
+            self._sensor_back[kind] = t
+        return self._step(t, f"{kind} {state or ('ok' if ok else 'unavailable')}")
 
     # ------------------------------------------------------------------ operator requests
     def load_mission(
@@ -312,6 +354,15 @@ class Controller:
         s = self._safety
         if not self._link_ok:
             return "motor link lost"
+        down, back = self._sensor_down, self._sensor_back
+        if down or back:
+            for kind in SENSORS:
+                if kind in down:
+                    return f"{kind} {down[kind]}"
+            if "gps" in back:
+                return "gps back, waiting for a fresh fix"
+            if "compass" in back:
+                return "compass back, waiting for a fresh sample"
         if self._fix is None or self._valid_fix_t is None:
             return "no fix yet"
         if not self._fix_ok:
@@ -461,6 +512,8 @@ class Controller:
             extra["sats_in_view"] = len(self._sky.satellites)
         if not self._link_ok:
             extra["motor_link"] = "lost"
+        if self._sensor_down:
+            extra["sensors_down"] = dict(self._sensor_down)
         valid_fix_t = self._valid_fix_t
         cmd = self._cmd
         if fix is None:

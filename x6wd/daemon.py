@@ -39,9 +39,20 @@ from x6wd.config import Config
 from x6wd.config import load as load_config
 from x6wd.errors import ConfigError, DeviceUnavailable, X6wdError
 from x6wd.gpsd import GpsdServer
+from x6wd.health import TRANSITION, HealthLog, HealthTracker
 from x6wd.mission_files import Waypoint
 from x6wd.notify import Notifier
-from x6wd.records import Attitude, GpsFix, GpsSky, MotorCommand, StateChange, Telemetry
+from x6wd.records import (
+    USABLE_STATES,
+    Attitude,
+    DeviceHealth,
+    GpsFix,
+    GpsSky,
+    HealthEvent,
+    MotorCommand,
+    StateChange,
+    Telemetry,
+)
 from x6wd.server import CommandError, ControlServer
 
 log = logging.getLogger("x6wd.daemon")
@@ -52,6 +63,8 @@ GIL_SWITCH_S = 0.001
 TELEMETRY_EVENT_HZ = 10.0
 """Most telemetry events per second to watching clients (fixes and state changes always go)."""
 TELEMETRY_RECORD_HZ = 1.0
+REOPEN_BACKOFF_S = (0.1, 5.0)
+"""First and longest wait between attempts to reopen a lost compass bus (s)."""
 """Most telemetry snapshots per second to the recorder (fixes and state changes always go)."""
 EARTH_RADIUS_M = 6_371_008.8
 EXIT_OK = 0
@@ -95,7 +108,8 @@ class LogTail(logging.Handler):
 class _MotorWorker:
     """Owns the motor link in its own thread: the newest command wins, resent as keep-alive.
 
-    ``on_health(ok, t_s)`` is called (from this thread) when the link's health changes.
+    ``on_health(ok, t_s)`` is called (from this thread) when the link's health changes;
+    ``on_events(events)`` with the link's health events (transitions, failures while lost).
     """
 
     def __init__(
@@ -103,10 +117,18 @@ class _MotorWorker:
         link: Any,
         keepalive_s: float,
         on_health: Callable[[bool, float], None],
+        on_events: Callable[[list[HealthEvent]], None] | None = None,
     ) -> None:
         self.link = link
         self.keepalive_s = keepalive_s
         self._on_health = on_health
+        self._on_events = on_events
+        # A backend without its own health record gets one here, from ``healthy``.
+        self._own: HealthTracker | None = None
+        if not hasattr(link, "take_health_events"):
+            self._own = HealthTracker("motors", t_s=time.monotonic())
+            self._own.opened(time.monotonic())
+        self.link_errors = 0
         self._cond = threading.Condition()
         self._pending: MotorCommand | None = None
         self._last: MotorCommand | None = None
@@ -149,14 +171,27 @@ class _MotorWorker:
                     cmd = self._last
             self._send(cmd)
 
+    @property
+    def health(self) -> DeviceHealth:
+        """The motor link's health (the link's own record, else one kept from ``healthy``)."""
+        if self._own is not None:
+            return self._own.health
+        health: DeviceHealth = self.link.health
+        return health
+
     def _send(self, cmd: MotorCommand) -> None:
         try:
             self.link.send(cmd)
         except ValueError:
             log.exception("motor command refused: %r", cmd)
             self.link.stop("invalid command")
-        except Exception:
-            log.exception("motor link failed; stopping")
+        except Exception as exc:
+            self.link_errors += 1
+            if self.link_errors in (1, 10, 100) or self.link_errors % 1000 == 0:
+                # not per command: a broken backend would raise at the command rate
+                log.exception("motor link failed (%d so far); stopping", self.link_errors)
+            if self._own is not None:
+                self._own.error(f"send failed: {exc}", time.monotonic())
             with contextlib.suppress(Exception):
                 self.link.stop("link error")
         self._last = cmd
@@ -164,7 +199,17 @@ class _MotorWorker:
         ok = bool(self.link.healthy)
         if ok != self._healthy:
             self._healthy = ok
-            self._on_health(ok, time.monotonic())
+            t_s = time.monotonic()
+            if self._own is not None:
+                if ok:
+                    self._own.opened(t_s)
+                else:
+                    self._own.lost(self._own.health.last_error or "link unhealthy", t_s)
+            self._on_health(ok, t_s)
+        take = self._own.take_events if self._own is not None else self.link.take_health_events
+        events = take()
+        if events and self._on_events is not None:
+            self._on_events(events)
 
     def shutdown(self, reason: str) -> None:
         """Stop the thread, then stop the motors and close the link (idempotent)."""
@@ -288,7 +333,10 @@ class Daemon:
         self._compass: Any = None
         self.last_telemetry: Telemetry | None = None
         self.first_fix: tuple[float, float] | None = None
-        self.compass_errors = 0
+        self.compass_errors = 0  # read errors of a compass backend without its own health
+        self._compass_driver: Any = None  # the Cmps10 the compass thread reads
+        self._health_log = HealthLog(logging.getLogger("x6wd.health"))
+        self._dev_dicts: dict[str, tuple[DeviceHealth, dict[str, Any]]] = {}
         self.t_start = time.monotonic()
         self.stats: dict[str, int] = collections.Counter()
         self._last_motor_rec: tuple[float, float] | None = None
@@ -479,7 +527,9 @@ class Daemon:
         cfg = self.config
         link = await asyncio.to_thread(registry.open_motors, cfg.motors.url)
         keepalive_s = max(0.02, cfg.motors.watchdog_ms / 3000.0)
-        self.motors = _MotorWorker(link, keepalive_s, self._health_from_thread)
+        self.motors = _MotorWorker(
+            link, keepalive_s, self._health_from_thread, self._health_events_from_thread
+        )
         self.motors.start()
         compass = await asyncio.to_thread(registry.open_compass, cfg.compass.url)
         self._compass = compass
@@ -543,8 +593,14 @@ class Daemon:
 
     def _gps_thread(self) -> None:
         reader = self._gps_reader
+        take_events = getattr(reader, "take_health_events", None)
         while not self._threads_stop.is_set():
             records = reader.poll(0.2)
+            # Health first: an unplugged GPS must reach the controller now, not after records
+            # or the fix timeout.
+            events = take_events() if take_events is not None else None
+            if events:
+                self._post(self._on_device_events, events)
             if records:
                 self._post(self._on_gps_records, records)
 
@@ -555,17 +611,38 @@ class Daemon:
         compass = dev if hasattr(dev, "read") and not hasattr(dev, "read_byte_data") else None
         if compass is None:
             compass = Cmps10(dev)
-        period_s = 1.0 / self.config.compass.rate_hz
+        cfg = self.config.compass
+        if hasattr(compass, "stale_s"):
+            compass.stale_s = cfg.stale_s  # stale by time, not only by failed-sample count
+        self._compass_driver = compass
+        take_events = getattr(compass, "take_health_events", None)
+        backoff_s, t_reopen = REOPEN_BACKOFF_S[0], -math.inf
+        period_s = 1.0 / cfg.rate_hz
         t_next = time.monotonic()
         while not self._threads_stop.is_set():
             t_s = time.monotonic()
-            try:
-                att = compass.read(t_s)
-            except X6wdError as exc:
-                self.compass_errors += 1
-                if self.compass_errors in (1, 10, 100) or self.compass_errors % 1000 == 0:
-                    log.warning("compass read failed (%d): %s", self.compass_errors, exc)
-                att = None
+            att = None
+            health = getattr(compass, "health", None)
+            if health is not None and not health.connected:
+                # Lost on a non-transient error: reopen the bus, with capped backoff.
+                if t_s >= t_reopen:
+                    if self._reopen_compass(compass, t_s, t_s + backoff_s):
+                        backoff_s = REOPEN_BACKOFF_S[0]
+                    else:
+                        t_reopen = t_s + backoff_s
+                        backoff_s = min(2.0 * backoff_s, REOPEN_BACKOFF_S[1])
+            else:
+                try:
+                    att = compass.read(t_s)
+                except X6wdError as exc:  # non-transient: a driver with health says so
+                    self.compass_errors += 1
+                    if health is None and (
+                        self.compass_errors in (1, 10, 100) or self.compass_errors % 1000 == 0
+                    ):
+                        log.warning("compass read failed (%d): %s", self.compass_errors, exc)
+            events = take_events() if take_events is not None else None
+            if events:
+                self._post(self._on_device_events, events)
             if att is not None:
                 self._post(self._on_attitude, att)
             t_next += period_s
@@ -575,8 +652,29 @@ class Daemon:
                 delay = 0.0
             self._threads_stop.wait(max(0.0, delay))
 
+    def _reopen_compass(self, compass: Any, t_s: float, next_attempt_t_s: float) -> bool:
+        """Open the compass URL again and move its bus into ``compass`` (counters and health
+        carry on); False, recorded as a failed reopen, when nothing answers."""
+        from drivers import registry
+
+        fresh = None
+        try:
+            fresh = registry.open_compass(self.config.compass.url)
+            fresh.check_version()  # the sim:// path does not check on open
+        except (OSError, X6wdError) as exc:
+            if fresh is not None:
+                with contextlib.suppress(Exception):
+                    fresh.close()
+            compass.health_tracker.open_failed(f"reopen failed: {exc}", t_s, next_attempt_t_s)
+            return False
+        compass.attach_bus(fresh.bus, t_s)
+        return True
+
     def _health_from_thread(self, ok: bool, t_s: float) -> None:
         self._post(self._on_motor_health, ok, t_s)
+
+    def _health_events_from_thread(self, events: list[HealthEvent]) -> None:
+        self._post(self._on_device_events, events)
 
     # -- event-loop side ---------------------------------------------------------------------
     def _on_gps_records(self, records: list[Any]) -> None:
@@ -613,8 +711,18 @@ class Daemon:
         self._handle(self.controller.on_attitude(att), important=False)
 
     def _on_motor_health(self, ok: bool, t_s: float) -> None:
-        log.log(logging.INFO if ok else logging.ERROR, "motor link %s", "ok" if ok else "LOST")
+        # logged by _on_device_events (the link's health transition), not here
         self._handle(self.controller.motor_link(ok, t_s))
+
+    def _on_device_events(self, events: list[HealthEvent]) -> None:
+        """Health events from a device thread: each logged (rate-limited); a sensor's
+        transition reaches the controller at once, so an unplugged GPS holds the robot
+        within a tick of the reader noticing, not after the fix timeout."""
+        for ev in events:
+            self._health_log.event(ev)
+            if ev.kind == TRANSITION and ev.device in ("gps", "compass"):
+                ok = ev.new in USABLE_STATES
+                self._handle(self.controller.sensor_health(ev.device, ok, ev.t_s, str(ev.new)))
 
     def _net_call(self, fn: Callable[..., Any], *args: Any) -> None:
         if self._net is not None:
@@ -650,7 +758,8 @@ class Daemon:
                 ):
                     self._t_pub = now
                     self._net_call(
-                        self.server.publish, {"event": "telemetry", "data": out.to_dict()}
+                        self.server.publish,
+                        {"event": "telemetry", "data": out.to_dict(), "devices": self._devices()},
                     )
                 if force or now - self._t_rec >= 1.0 / TELEMETRY_RECORD_HZ:
                     self._t_rec = now
@@ -761,10 +870,27 @@ class Daemon:
         """The last ``n`` log lines."""
         return self.log_buffer.tail(n)
 
+    def _devices(self) -> dict[str, Any]:
+        """Each device's health as a JSON-ready dict (None before it exists)."""
+        out: dict[str, Any] = {}
+        compass = self._compass_driver or self._compass
+        for name, dev in (("gps", self._gps_reader), ("compass", compass), ("motors", self.motors)):
+            health = getattr(dev, "health", None)
+            if not isinstance(health, DeviceHealth):
+                out[name] = None
+                continue
+            cached = self._dev_dicts.get(name)
+            if cached is None or cached[0] is not health:  # snapshots are immutable: reuse
+                cached = (health, health.to_dict())
+                self._dev_dicts[name] = cached
+            out[name] = cached[1]
+        return out
+
     def _status(self) -> dict[str, Any]:
         now = time.monotonic()
         tel = self.last_telemetry
-        gps_health = getattr(self._gps_reader, "health", None)
+        devices = self._devices()
+        gps, compass = devices["gps"] or {}, devices["compass"] or {}
         link_ok = self.motors is not None and bool(self.motors.link.healthy)
         return {
             "version": __version__,
@@ -772,11 +898,13 @@ class Daemon:
             "mode": str(tel.mode) if tel else "IDLE",
             "state": str(tel.state) if tel else "IDLE",
             "telemetry": tel.to_dict() if tel else None,
+            "devices": devices,
+            # the short summary `x6wd client watch` shows (keys without "_")
             "links": {
-                "gps": getattr(gps_health, "state", "unknown"),
-                "gps_reconnects": getattr(gps_health, "reconnects", 0),
-                "compass": "ok" if tel and tel.attitude_age_s is not None else "unknown",
-                "compass_errors": self.compass_errors,
+                "gps": gps.get("state", "unknown"),
+                "gps_reconnects": gps.get("reconnects", 0),
+                "compass": compass.get("state", "unknown"),
+                "compass_errors": compass.get("errors", self.compass_errors),
                 "motors": "ok" if link_ok else "lost",
             },
         }

@@ -158,3 +158,83 @@ class Telemetry:
 
 
 ControllerOutput = MotorCommand | Telemetry | StateChange
+
+
+class DeviceState(enum.StrEnum):
+    """Health state of one device link (GPS, compass, motors).
+
+    ``connected``: open, and for a sensor good data within its ``stale_s``. ``degraded``:
+    open and the data still fresh, but I/O errors are being retried (it returns to
+    ``connected`` after ``recover_s`` without errors). ``stale``: open, but no good data for
+    longer than ``stale_s`` (sensors only). ``disconnected``: the link was lost (or never
+    opened). ``reconnecting``: at least one attempt to reopen it has failed; retrying.
+    """
+
+    CONNECTED = "connected"
+    DEGRADED = "degraded"
+    STALE = "stale"
+    DISCONNECTED = "disconnected"
+    RECONNECTING = "reconnecting"
+
+
+USABLE_STATES = frozenset({DeviceState.CONNECTED, DeviceState.DEGRADED})
+"""States in which a device's data may be used (the controller does not hold for it)."""
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceHealth:
+    """One device's health at one instant; filled by its reader (``x6wd.health``).
+
+    Times: ``*_t_s`` are seconds on the reader's monotonic clock, ``*_utc`` the same instants
+    as ISO 8601 UTC wall-clock text ("" when there is none). ``errors`` counts every failed
+    I/O attempt since start (open failures included), ``consecutive_errors`` those since the
+    last good one; ``reconnects`` counts successful reopens after the first open.
+    """
+
+    device: str
+    state: DeviceState
+    since_t_s: float  # when ``state`` began
+    since_utc: str = ""
+    errors: int = 0
+    consecutive_errors: int = 0
+    last_error: str = ""
+    last_error_t_s: float | None = None
+    last_error_utc: str = ""
+    reconnects: int = 0
+    last_data_t_s: float | None = None  # last good data (sample, sentence, acknowledgement)
+    next_attempt_t_s: float | None = None  # next reopen attempt while (re)connecting
+    stale_s: float | None = None  # the staleness limit in use (None: not checked by time)
+
+    @property
+    def ok(self) -> bool:
+        """True when the device's data may be used (connected or degraded)."""
+        return self.state in USABLE_STATES
+
+    @property
+    def connected(self) -> bool:
+        """True while the link is open (connected, degraded or stale)."""
+        return self.state not in (DeviceState.DISCONNECTED, DeviceState.RECONNECTING)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-ready dict (the state as its string)."""
+        d = asdict(self)
+        d["state"] = str(self.state)
+        return d
+
+
+@dataclass(frozen=True, slots=True)
+class HealthEvent:
+    """Something worth one log line happened to a device's health at ``t_s`` (s).
+
+    ``kind`` is ``"transition"`` (``old`` != ``new``) or ``"open_failed"`` (another failed
+    reopen while already reconnecting: ``old`` == ``new``). ``message`` is the log text;
+    ``health`` the snapshot right after the event.
+    """
+
+    t_s: float
+    device: str
+    kind: str
+    old: DeviceState
+    new: DeviceState
+    message: str
+    health: DeviceHealth
