@@ -454,6 +454,11 @@ class Daemon:
             problem = _dir_problem(Path(cfg.recorder.dir))
             if problem:
                 raise ConfigError(f"recorder.dir: {cfg.recorder.dir!r}: {problem}")
+            if cfg.recorder.max_file_mb > cfg.recorder.max_total_mb:
+                raise ConfigError(
+                    f"recorder.max_file_mb: {cfg.recorder.max_file_mb:g} is more than "
+                    f"recorder.max_total_mb ({cfg.recorder.max_total_mb:g}): one part must fit"
+                )
 
     async def _bind_servers(self) -> None:
         """Listen on both ports before any device opens: a busy port is a ConfigError

@@ -155,7 +155,9 @@ class RecordingFile:
 
 @functools.cache
 def _name_pattern(prefix: str) -> re.Pattern[str]:
-    return re.compile(rf"^{re.escape(prefix)}-(\d{{8}}T\d{{6}}Z)(?:-(\d+))?(?:\.(\d+))?\.jsonl$")
+    return re.compile(
+        rf"^{re.escape(prefix)}-(\d{{8}}T\d{{6}}Z)(?:-([1-9]\d*))?(?:\.([1-9]\d*))?\.jsonl$"
+    )
 
 
 def _parse_name(name: str, prefix: str) -> tuple[tuple[str, int], int] | None:
@@ -199,23 +201,28 @@ def enforce_retention(
     retention: Retention,
     *,
     current: str | os.PathLike[str] | None = None,
+    reserve_bytes: int = 0,
     free: Callable[[Path], int] = free_bytes,
 ) -> list[Path]:
     """Delete the oldest recordings in ``directory`` until they take at most
-    ``retention.max_total_bytes`` and the file system has ``retention.min_free_bytes`` free.
+    ``retention.max_total_bytes`` and the file system has ``retention.min_free_bytes`` free,
+    counting ``current`` (the part being written) at the ``reserve_bytes`` it may grow to,
+    so that both limits still hold when it is full.
 
     Order: every run other than ``current``'s (oldest first, each run's parts in order), then
-    the parts of ``current``'s run oldest first; ``current`` itself (the part being written)
-    is never deleted, nor any file outside the naming pattern. ``free(dir)`` gives the free
-    bytes (once; each deletion then counts as freed). Returns the deleted paths (logged).
+    the parts of ``current``'s run oldest first; ``current`` itself is never deleted, nor any
+    file outside the naming pattern. ``free(dir)`` gives the free bytes (asked once; each
+    deletion then counts as freed). Returns the deleted paths, each one logged.
     """
     d = Path(directory)
     cur = Path(current) if current is not None else None
     files = list_recordings(d, retention.prefix)
     if not files:
         return []
-    total = sum(f.size for f in files)
-    free_now = free(d) if retention.min_free_bytes is not None else 0
+    cur_size = next((f.size for f in files if cur is not None and f.path == cur), 0)
+    headroom = max(0, reserve_bytes - cur_size)  # what the current part may still grow
+    total = sum(f.size for f in files) + headroom
+    free_now = free(d) - headroom if retention.min_free_bytes is not None else 0
     cur_key = _parse_name(cur.name, retention.prefix) if cur is not None else None
     cur_run = cur_key[0] if cur_key is not None else None
     # other runs first (a clock set back must not make the live run look oldest), then ours
@@ -224,10 +231,11 @@ def enforce_retention(
     ]
 
     def over() -> str:
-        if retention.max_total_bytes is not None and total > retention.max_total_bytes:
-            return f"recordings take {total} B > {retention.max_total_bytes} B"
-        if retention.min_free_bytes is not None and free_now < retention.min_free_bytes:
-            return f"{free_now} B free < {retention.min_free_bytes} B"
+        cap, floor = retention.max_total_bytes, retention.min_free_bytes
+        if cap is not None and total > cap:
+            return f"recordings take {total} B (the current part full) > {cap} B"
+        if floor is not None and free_now < floor:
+            return f"{free_now} B free (the current part full) < {floor} B"
         return ""
 
     deleted: list[Path] = []
@@ -323,7 +331,12 @@ class Recorder:
         """
         if self.retention is None:
             return []
-        gone = enforce_retention(self.path.parent, self.retention, current=self.path)
+        gone = enforce_retention(
+            self.path.parent,
+            self.retention,
+            current=self.path,
+            reserve_bytes=self.max_bytes or 0,
+        )
         self.deleted.extend(gone)
         return gone
 
