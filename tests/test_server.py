@@ -115,7 +115,8 @@ def start_server(lt: LoopThread, backend: RecordingBackend, **kw: Any) -> Contro
 @pytest.fixture
 def served(loop_thread: LoopThread) -> Iterator[tuple[ControlServer, RecordingBackend]]:
     backend = RecordingBackend()
-    srv = start_server(loop_thread, backend, token=TOKEN.encode())
+    # a short failed-auth back-off keeps the suite fast (test_lockout checks the default's)
+    srv = start_server(loop_thread, backend, token=TOKEN.encode(), auth_fail_delay_s=0.05)
     yield srv, backend
     loop_thread.run(srv.close())
 

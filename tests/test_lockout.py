@@ -1,0 +1,858 @@
+"""Issue 12: no operator lock-out on either TCP port, malformed input, auth throttling, stop.
+
+Real sockets on 127.0.0.1 against real servers; deadlines are driven by an injected clock
+(then :meth:`LineServer.sweep` is called, as the sweeper would) or set short.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from tests.test_gpsd_port import Published
+from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
+from x6wd.client import ConnectionFailed, RemoteClient
+from x6wd.config import ServerConfig
+from x6wd.gpsd import GpsdServer
+from x6wd.server import COMMANDS, ControlServer
+
+# Written out here, not imported: adding a command to the server's unauthenticated set (or a
+# new command nobody classified) must make a test fail.
+NEEDS_AUTH = {
+    "mission.load": {"waypoints": [[51.0, -1.0]]},
+    "start": {},
+    "pause": {},
+    "resume": {},
+    "drive": {"left": 50, "right": 50, "duration_s": 1.0},
+    "watch": {"on": True},
+    "log": {"n": 3},
+}
+OPEN_TO_ALL = {"hello", "auth", "status", "stop"}
+
+
+class Clock:
+    """A settable monotonic clock (s)."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def wait_until(pred: Callable[[], Any], timeout_s: float = 5.0) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        v = pred()
+        if v:
+            return v
+        assert time.monotonic() < deadline, "condition not reached"
+        time.sleep(0.01)
+
+
+def serve(
+    lt: LoopThread,
+    backend: Any,
+    *,
+    token: bytes | None = TOKEN.encode(),
+    clock: Callable[[], float] = time.monotonic,
+    **cfg: Any,
+) -> ControlServer:
+    srv = ControlServer(ServerConfig(**{"port": 0, **cfg}), backend, token=token, clock=clock)
+    lt.run(srv.start())
+    return srv
+
+
+@pytest.fixture
+def lt() -> Iterator[LoopThread]:
+    loop_thread = LoopThread()
+    yield loop_thread
+    loop_thread.close()
+
+
+def silent(port: int, n: int, source: str = "127.0.0.1") -> list[socket.socket]:
+    return [
+        socket.create_connection(("127.0.0.1", port), timeout=5, source_address=(source, 0))
+        for _ in range(n)
+    ]
+
+
+def read_to_eof(sock: socket.socket, timeout_s: float = 5.0) -> bytes:
+    sock.settimeout(timeout_s)
+    data = b""
+    while chunk := sock.recv(65536):
+        data += chunk
+    return data
+
+
+def last_line_before_close(sock: socket.socket | Raw, timeout_s: float = 5.0) -> dict[str, Any]:
+    """Read to EOF; the last line as JSON (the server's closing notice)."""
+    # a Raw: what its buffered reader holds, then the rest
+    data = sock.f.read() if isinstance(sock, Raw) else read_to_eof(sock, timeout_s)
+    lines = [x for x in data.split(b"\n") if x.strip()]
+    assert lines, "closed without a notice"
+    return json.loads(lines[-1])
+
+
+def is_closed(sock: socket.socket) -> bool:
+    sock.settimeout(0.0)
+    try:
+        while True:
+            chunk = sock.recv(65536)
+            if not chunk:
+                return True
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True
+
+
+# -- lock-out ------------------------------------------------------------------------------
+def test_silent_sockets_cannot_lock_the_operator_out(lt: LoopThread) -> None:
+    """40 silent connections (more than the 16 sessions and the 32 pending slots): an
+    operator still connects, authenticates and stops the robot at once."""
+    backend = RecordingBackend()
+    srv = serve(lt, backend)  # default limits: 16 sessions, 32 pending
+    hogs = silent(srv.port, 40)
+    try:
+        wait_until(lambda: lt.call(lambda: srv.closed_counts["pending_full"]) == 8)
+        t0 = time.monotonic()
+        with RemoteClient("127.0.0.1", srv.port, token=TOKEN) as op:
+            assert op.request("stop")["did"] == "stop"
+            assert op.request("drive", left=10, right=10, duration_s=1.0)["did"] == "drive"
+            stats = op.request("status")["server"]
+        assert time.monotonic() - t0 < 1.0
+        assert [n for n, _ in backend.calls] == ["stop", "drive"]
+        assert stats["clients"] == 1 and stats["pending"] == 31
+        assert stats["closed"] == {"pending_full": 9}  # 8 for the hogs, 1 for the operator
+        # the oldest hogs were told why, then closed
+        notice = last_line_before_close(hogs[0])
+        assert notice["id"] is None and notice["ok"] is False
+        assert notice["error"]["code"] == "closed" and notice["error"]["reason"] == "pending_full"
+    finally:
+        for s in hogs:
+            s.close()
+        lt.run(srv.close())
+
+
+def test_a_dropped_operator_gets_back_in_when_every_session_is_taken(lt: LoopThread) -> None:
+    """16 authenticated sessions hold the pool; a reconnecting operator is admitted and the
+    least valuable session (idle longest, not watching) makes room."""
+    clock = Clock()
+    backend = RecordingBackend()
+    srv = serve(lt, backend, clock=clock)
+    holders = []
+    try:
+        for i in range(16):
+            c = RemoteClient("127.0.0.1", srv.port, token=TOKEN)
+            if i >= 8:
+                c.request("watch", on=True)
+            holders.append(c)
+            clock.now += 1.0  # holders[0] has been idle longest
+        holders[0].request("hello")  # active again: now holders[1] has been idle longest
+        with RemoteClient("127.0.0.1", srv.port, token=TOKEN) as op:
+            assert op.request("stop")["ok"]
+        notice = holders[1].read_message(5.0)
+        assert notice["error"]["code"] == "closed"
+        assert notice["error"]["reason"] == "sessions_full"
+        for c in holders[:1] + holders[2:]:
+            assert c.request("hello")["ok"]
+        assert lt.call(lambda: srv.closed_counts["sessions_full"]) == 1
+    finally:
+        for c in holders:
+            c.close()
+        lt.run(srv.close())
+
+
+def test_a_swarm_on_one_address_does_not_crowd_out_an_operator_on_another(
+    lt: LoopThread,
+) -> None:
+    """The pending pool evicts from the address holding the most pending connections."""
+    backend = RecordingBackend()
+    srv = serve(lt, backend, max_pending=8)
+    op = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
+    hogs = silent(srv.port, 30, source="127.0.0.2")
+    try:
+        wait_until(lambda: lt.call(lambda: srv.closed_counts["pending_full"]) == 23)
+        assert not is_closed(op)
+        op.setblocking(True)
+        op.settimeout(5)
+        op.sendall(json.dumps({"id": 1, "cmd": "auth", "token": TOKEN}).encode() + b"\n")
+        assert json.loads(op.makefile("rb").readline())["ok"] is True
+    finally:
+        op.close()
+        for s in hogs:
+            s.close()
+        lt.run(srv.close())
+
+
+def test_pending_peers_that_sent_garbage_are_evicted_first(lt: LoopThread) -> None:
+    backend = RecordingBackend()
+    srv = serve(lt, backend, max_pending=4)
+    quiet = silent(srv.port, 3)
+    garbage = Raw(srv.port)
+    try:
+        garbage.send(b"garbage\n")
+        assert garbage.line()["error"]["reason"] == "bad_json"
+        newcomer = silent(srv.port, 1)  # the pool is full: the garbage sender goes first
+        assert last_line_before_close(garbage)["error"]["reason"] == "pending_full"
+        assert not any(is_closed(s) for s in quiet)
+        newcomer[0].close()
+    finally:
+        garbage.close()
+        for s in quiet:
+            s.close()
+        lt.run(srv.close())
+
+
+def test_without_a_token_one_valid_request_admits(lt: LoopThread) -> None:
+    clock = Clock()
+    backend = RecordingBackend()
+    srv = serve(lt, backend, token=None, clock=clock, max_clients=2)
+    a, b = Raw(srv.port), Raw(srv.port)
+    try:
+        a.send(b"junk\n")
+        assert a.line()["error"]["code"] == "bad_request"
+        assert b.ask({"id": 1, "cmd": "status"})["ok"]
+        assert lt.call(lambda: (srv.client_count, srv.pending_count)) == (1, 1)
+        clock.now += 5.0
+        lt.call(srv.sweep)  # a never sent a valid request: its auth deadline
+        assert lt.call(lambda: dict(srv.closed_counts)) == {"auth_timeout": 1}
+        assert last_line_before_close(a)["error"]["reason"] == "auth_timeout"
+        assert b.ask({"id": 2, "cmd": "hello"})["ok"]
+    finally:
+        a.close()
+        b.close()
+        lt.run(srv.close())
+
+
+# -- deadlines -----------------------------------------------------------------------------
+def test_auth_deadline_closes_silent_and_slowloris_sockets(lt: LoopThread) -> None:
+    clock = Clock()
+    backend = RecordingBackend()
+    srv = serve(lt, backend, clock=clock)
+    socks = silent(srv.port, 3)
+    socks[1].sendall(b'{"id":1,"cmd":')  # slowloris: bytes, never a line
+    socks[2].sendall(b'{"id":1,"cmd":"status"}\n')  # allowed, but not authenticated
+    try:
+        wait_until(lambda: lt.call(lambda: srv.pending_count) == 3)
+        clock.now += 4.9
+        lt.call(srv.sweep)
+        assert lt.call(lambda: srv.pending_count) == 3
+        clock.now += 0.2  # 5.1 s after connecting
+        lt.call(srv.sweep)
+        assert lt.call(lambda: srv.pending_count) == 0
+        for s in socks:
+            notice = last_line_before_close(s)
+            assert notice["error"] == {
+                "code": "closed",
+                "reason": "auth_timeout",
+                "message": "not admitted within 5 s",
+            }
+        assert lt.call(lambda: srv.server_stats()["closed"]) == {"auth_timeout": 3}
+    finally:
+        for s in socks:
+            s.close()
+        lt.run(srv.close())
+
+
+def test_auth_deadline_in_real_time(lt: LoopThread) -> None:
+    """The sweeper runs by itself: a silent socket is closed shortly after auth_timeout_s."""
+    srv = serve(lt, RecordingBackend(), auth_timeout_s=0.2)
+    (s,) = silent(srv.port, 1)
+    try:
+        t0 = time.monotonic()
+        assert last_line_before_close(s)["error"]["reason"] == "auth_timeout"
+        assert 0.15 < time.monotonic() - t0 < 1.0
+    finally:
+        s.close()
+        lt.run(srv.close())
+
+
+def test_idle_deadline_closes_idle_sessions_but_not_watchers(lt: LoopThread) -> None:
+    clock = Clock()
+    backend = RecordingBackend()
+    srv = serve(lt, backend, clock=clock, idle_timeout_s=300.0)
+    idle = RemoteClient("127.0.0.1", srv.port, token=TOKEN)
+    busy = RemoteClient("127.0.0.1", srv.port, token=TOKEN)
+    watcher = RemoteClient("127.0.0.1", srv.port, token=TOKEN)
+    try:
+        watcher.request("watch", on=True)
+        clock.now += 200.0
+        busy.request("status")  # any line keeps a session alive
+        clock.now += 101.0
+        lt.call(srv.sweep)
+        assert idle.read_message(5.0)["error"]["reason"] == "idle_timeout"
+        with pytest.raises(ConnectionFailed):
+            idle.request("hello")
+        assert busy.request("hello")["ok"] and watcher.request("hello")["ok"]
+        assert lt.call(lambda: srv.closed_counts["idle_timeout"]) == 1
+    finally:
+        for c in (idle, busy, watcher):
+            c.close()
+        lt.run(srv.close())
+
+
+def _fill_until_blocked(lt: LoopThread, srv: Any, publish: Callable[[], None]) -> Any:
+    """Publish until one client's sender is blocked in drain(); return that client."""
+
+    def blocked() -> Any:
+        return next((c for c in srv._clients if c.drain_since_s is not None), None)
+
+    for _ in range(3000):
+        lt.call(publish)
+        c = lt.call(blocked)
+        if c is not None:
+            return c
+    raise AssertionError("the stuck reader's socket never filled")
+
+
+def _stuck_socket(port: int) -> socket.socket:
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.settimeout(5)
+    s.connect(("127.0.0.1", port))
+    return s
+
+
+def test_a_watcher_that_never_reads_is_closed_on_the_control_port(lt: LoopThread) -> None:
+    clock = Clock()
+    backend = RecordingBackend()
+    srv = serve(lt, backend, clock=clock, slow_client_s=10.0, queue_len=8)
+    stuck = _stuck_socket(srv.port)
+    try:
+        stuck.sendall(json.dumps({"id": 1, "cmd": "auth", "token": TOKEN}).encode() + b"\n")
+        stuck.sendall(b'{"id":2,"cmd":"watch","on":true}\n')
+        wait_until(lambda: lt.call(lambda: sum(c.watching for c in srv._clients)) == 1)
+        big = {"event": "telemetry", "data": {"pad": "y" * 20_000}}
+        c = _fill_until_blocked(lt, srv, lambda: srv.publish(big))
+        clock.now += 9.0
+        lt.call(srv.sweep)
+        assert not c.evicted
+        clock.now += 1.5
+        lt.call(srv.sweep)
+        assert c.evicted == "slow_reader"
+        wait_until(lambda: is_closed(stuck))
+        assert lt.call(lambda: dict(srv.closed_counts)) == {"slow_reader": 1}
+        with RemoteClient("127.0.0.1", srv.port, token=TOKEN) as reader:
+            reader.request("watch", on=True)
+            lt.call(lambda: srv.publish({"event": "telemetry", "data": {"n": 1}}))
+            assert reader.next_event(5.0)["data"] == {"n": 1}
+    finally:
+        stuck.close()
+        lt.run(srv.close())
+
+
+# -- gpsd port -----------------------------------------------------------------------------
+def _gpsd_watch(port: int) -> tuple[socket.socket, Any]:
+    s = socket.create_connection(("127.0.0.1", port), timeout=5)
+    f = s.makefile("rb")
+    s.sendall(b'?WATCH={"enable":true,"json":true};\n')
+    return s, f
+
+
+def _read_until_class(f: Any, cls: str, limit: int = 200) -> dict[str, Any]:
+    for _ in range(limit):
+        line = f.readline()
+        assert line, "closed"
+        obj = json.loads(line)
+        if obj["class"] == cls:
+            return obj
+    raise AssertionError(f"no {cls}")
+
+
+def test_gpsd_idle_sockets_and_sessions_cannot_lock_a_watcher_out() -> None:
+    """40 silent sockets and 32 sessions that sent one command and went quiet: a real watcher
+    still gets TPVs."""
+    p = Published()  # default limits: 32 sessions, 32 pending
+    srv = p.srv
+    hogs = silent(srv.port, 40)
+    quiet_sessions = silent(srv.port, 32)
+    try:
+        for s in quiet_sessions:
+            s.sendall(b"?VERSION;\n")
+        deadline = time.monotonic() + 5
+        while asyncio.run_coroutine_threadsafe(_count(srv), p.loop).result(5) != 32:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        s, f = _gpsd_watch(srv.port)
+        tpv = _read_until_class(f, "TPV")
+        assert tpv["lat"] == pytest.approx(51.7512345)
+        for _ in range(3):  # and keeps getting them
+            _read_until_class(f, "TPV")
+        stats = asyncio.run_coroutine_threadsafe(_stats(srv), p.loop).result(5)
+        assert stats["clients"] == 32 and stats["closed"]["sessions_full"] == 1
+        assert stats["closed"]["pending_full"] >= 8
+        s.close()
+    finally:
+        for h in hogs + quiet_sessions:
+            h.close()
+        p.close()
+
+
+async def _count(srv: GpsdServer) -> int:
+    return srv.client_count
+
+
+async def _stats(srv: GpsdServer) -> dict[str, Any]:
+    return srv.pool_stats()
+
+
+def test_gpsd_deadlines_pending_idle_and_never_reading_watcher() -> None:
+    clock = Clock()
+    p = Published(clock=clock, queue_len=4)
+    srv = p.srv
+
+    def on_loop(fn: Callable[[], Any]) -> Any:
+        async def run() -> Any:
+            return fn()
+
+        return asyncio.run_coroutine_threadsafe(run(), p.loop).result(30)
+
+    silent_sock = silent(srv.port, 1)[0]
+    poller = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
+    pf = poller.makefile("rb")
+    reader, rf = _gpsd_watch(srv.port)
+    stuck = _stuck_socket(srv.port)
+    try:
+        stuck.sendall(b'?WATCH={"enable":true,"json":true};\n')
+        poller.sendall(b"?POLL;\n")
+        assert json.loads(pf.readline())["class"] == "VERSION"
+        assert json.loads(pf.readline())["class"] == "POLL"
+        wait_until(lambda: on_loop(lambda: srv.client_count) == 3)
+        clock.now += 5.1  # the silent socket's first-command deadline
+        on_loop(srv.sweep)
+        assert b"closing: pending_timeout" in read_to_eof(silent_sock)
+        clock.now += 60.0  # the poller, not watching, has been idle 65 s
+        on_loop(srv.sweep)
+        assert b"closing: idle_timeout" in pf.read()
+        assert on_loop(lambda: srv.client_count) == 2  # the watchers stay
+        # the stuck watcher: publish until its socket is full, then its drain deadline
+        big_sky = p_sky(200)
+        c = _fill_until_blocked_gpsd(on_loop, srv, lambda: srv.publish_sky(big_sky))
+        clock.now += 10.5
+        on_loop(srv.sweep)
+        assert c.evicted == "slow_reader"
+        wait_until(lambda: is_closed(stuck))
+        _read_until_class(rf, "TPV", limit=100_000)  # the reading watcher carries on
+        assert on_loop(lambda: dict(srv.closed_counts)) == {
+            "pending_timeout": 1,
+            "idle_timeout": 1,
+            "slow_reader": 1,
+        }
+    finally:
+        for s in (silent_sock, poller, reader, stuck):
+            s.close()
+        p.close()
+
+
+def p_sky(n_sats: int) -> Any:
+    from x6wd.records import GpsSky, SatInfo
+
+    sats = tuple(SatInfo(i + 1, 45.0, float(i), 40.0, True) for i in range(n_sats))
+    return GpsSky(t_s=1.0, satellites=sats, pdop=2.1, hdop=1.1, vdop=1.8)
+
+
+def _fill_until_blocked_gpsd(
+    on_loop: Callable[[Callable[[], Any]], Any], srv: GpsdServer, publish: Callable[[], None]
+) -> Any:
+    def step() -> Any:
+        publish()
+        return next((c for c in srv._clients if c.drain_since_s is not None), None)
+
+    for _ in range(5000):
+        c = on_loop(step)
+        if c is not None:
+            return c
+    raise AssertionError("the stuck watcher's socket never filled")
+
+
+def test_gpsd_malformed_commands_get_errors_and_the_connection_carries_on() -> None:
+    p = Published()
+    try:
+        s = socket.create_connection(("127.0.0.1", p.srv.port), timeout=5)
+        f = s.makefile("rb")
+        assert json.loads(f.readline())["class"] == "VERSION"
+        for bad in (
+            b"?WATCH=" + b"[" * 4000 + b"\n",
+            b'?WATCH={"a":' + b"9" * 5000 + b"}\n",
+            b"\xff\xfe\x00garbage\n",
+            b"?WATCH=NaN;\n",
+        ):
+            s.sendall(bad)
+            err = json.loads(f.readline())
+            assert err["class"] == "ERROR", err
+        s.sendall(b"?VERSION;\n")
+        assert json.loads(f.readline())["class"] == "VERSION"
+        s.close()
+    finally:
+        p.close()
+
+
+# -- malformed input on the control port ---------------------------------------------------
+BAD_LINES: list[tuple[bytes, str]] = [
+    (b'{"id":1,"cmd":"auth","token":"\\ud800"}', "bad_unicode"),
+    (b'{"id":1,"cmd":"auth","token":"ok\\udfff"}', "bad_unicode"),
+    (b'{"id":1,"cmd":"hello","x":"\\ud800"}', "bad_unicode"),
+    (b'{"id":1,"cmd":"mission.load","gpx":"<gpx lat=\\"\\ud800\\"/>"}', "bad_unicode"),
+    (b'{"id":1,"cmd":"hello","x":' + b"[" * 20 + b"]" * 20 + b"}", "too_deep"),
+    (b'{"id":1,"cmd":"hello","x":' + b"[" * 60_000 + b"}", "too_deep"),
+    (b"[" * 60_000, "too_deep"),
+    (b"\xff\xfe{}", "bad_utf8"),
+    (b'{"id":1,"cmd":"hello","x":"\xc3"}', "bad_utf8"),
+    (b'{"id":NaN,"cmd":"hello"}', "bad_number"),
+    (b'{"id":1,"cmd":"drive","left":Infinity,"right":0,"duration_s":1}', "bad_number"),
+    (b'{"id":1e999,"cmd":"hello"}', "bad_number"),
+    (b'{"id":' + b"9" * 5000 + b',"cmd":"hello"}', "bad_json"),
+    (b"\xef\xbb\xbf{}", "bad_json"),
+    (b"{", "bad_json"),
+    (b"null", "not_object"),
+    (b'{"id":[1],"cmd":"hello"}', "bad_id"),
+    (b'{"id":1,"cmd":5}', "bad_cmd"),
+    (b'{"id":1}', "bad_cmd"),
+]
+BAD_ARGS: list[dict[str, Any]] = [
+    {"cmd": "auth"},
+    {"cmd": "auth", "token": 5},
+    {"cmd": "auth", "token": None},
+    {"cmd": "auth", "token": ["x"]},
+    {"cmd": "mission.load"},
+    {"cmd": "mission.load", "waypoints": "51,0"},
+    {"cmd": "mission.load", "waypoints": {"lat": 1, "lon": 2}},
+    {"cmd": "mission.load", "waypoints": [[1]]},
+    {"cmd": "mission.load", "waypoints": [["51", "-1"]]},
+    {"cmd": "mission.load", "waypoints": [[True, False]]},
+    {"cmd": "mission.load", "waypoints": [{"lat": "51", "lon": 1}]},
+    {"cmd": "mission.load", "waypoints": [None]},
+    {"cmd": "mission.load", "waypoints": [[10**400, 1]]},
+    {"cmd": "mission.load", "gpx": 5},
+    {"cmd": "mission.load", "csv": ["51,1"]},
+    {"cmd": "mission.load", "gpx": "<gpx", "csv": "1,2"},
+    {"cmd": "drive", "left": "10", "right": 0, "duration_s": 1},
+    {"cmd": "drive", "left": None, "right": 0, "duration_s": 1},
+    {"cmd": "drive", "left": 0, "right": [1], "duration_s": 1},
+    {"cmd": "drive", "left": 0, "right": 0, "duration_s": True},
+    {"cmd": "drive", "left": 0, "right": 0},
+    {"cmd": "drive", "left": 10**400, "right": 0, "duration_s": 1},
+    {"cmd": "watch", "on": "yes"},
+    {"cmd": "watch", "on": 1},
+    {"cmd": "watch", "on": None},
+    {"cmd": "log", "n": "5"},
+    {"cmd": "log", "n": 5.5},
+    {"cmd": "log", "n": True},
+    {"cmd": "log", "n": -1},
+    {"cmd": "log", "n": 10**30},
+]
+
+
+def test_malformed_lines_are_bad_request_with_a_reason(lt: LoopThread) -> None:
+    backend = RecordingBackend()
+    srv = serve(lt, backend, token=None, rate_per_s=1000.0, input_bytes_per_s=1 << 24)
+    raw = Raw(srv.port)
+    try:
+        for line, reason in BAD_LINES:
+            raw.send(line + b"\n")
+            r = raw.line()
+            assert r["ok"] is False and r["id"] in (1, None), (line[:60], r)
+            assert (r["error"]["code"], r["error"].get("reason")) == ("bad_request", reason), (
+                line[:60],
+                r,
+            )
+            assert raw.ask({"id": "ping", "cmd": "hello"})["ok"] is True  # carries on
+        assert backend.calls == []
+    finally:
+        raw.close()
+        lt.run(srv.close())
+
+
+def test_deep_nesting_past_the_recursion_limit(lt: LoopThread) -> None:
+    """100000 '[' (the issue's case) in a line the server accepts: bad_request, not internal."""
+    srv = serve(lt, RecordingBackend(), token=None, max_line_bytes=1 << 20)
+    raw = Raw(srv.port)
+    try:
+        for line in (b"[" * 100_000, b'{"cmd":"hello","x":' + b"[" * 100_000 + b"}"):
+            raw.send(line + b"\n")
+            err = raw.line()["error"]
+            assert (err["code"], err["reason"]) == ("bad_request", "too_deep")
+        assert raw.ask({"id": 2, "cmd": "hello"})["ok"]
+    finally:
+        raw.close()
+        lt.run(srv.close())
+
+
+def test_wrong_argument_types_for_every_command_are_bad_request(lt: LoopThread) -> None:
+    backend = RecordingBackend()
+    srv = serve(lt, backend, rate_per_s=1000.0)
+    raw = Raw(srv.port)
+    try:
+        assert raw.ask({"id": 0, "cmd": "auth", "token": TOKEN})["ok"]
+        for i, req in enumerate(BAD_ARGS):
+            r = raw.ask({"id": i, **req})
+            assert r["id"] == i and r["ok"] is False, (req, r)
+            assert r["error"]["code"] == "bad_request", (req, r)
+        assert raw.ask({"id": "ping", "cmd": "hello"})["ok"]
+        assert backend.calls == []  # none of them reached the robot
+    finally:
+        raw.close()
+        lt.run(srv.close())
+
+
+def test_every_command_has_an_authorisation_class() -> None:
+    assert set(COMMANDS) == set(NEEDS_AUTH) | OPEN_TO_ALL
+
+
+def test_unauthenticated_commands_are_refused_and_never_reach_the_robot(lt: LoopThread) -> None:
+    backend = RecordingBackend()
+    srv = serve(lt, backend, auth_fail_delay_s=0.01)
+    raw = Raw(srv.port)
+    try:
+        for attempt in ("none", "wrong token"):
+            if attempt == "wrong token":
+                r = raw.ask({"id": "a", "cmd": "auth", "token": "not-the-token"})
+                assert r["error"]["code"] == "auth_failed"
+            for cmd, args in NEEDS_AUTH.items():
+                r = raw.ask({"id": cmd, "cmd": cmd, **args})
+                assert r["ok"] is False and r["error"]["code"] == "unauthorized", (cmd, r)
+        lt.call(lambda: srv.publish({"event": "telemetry", "data": {}}))
+        assert backend.calls == []  # drive, mission.load, start... never reached the robot
+        assert raw.ask({"id": "s", "cmd": "status"})["ok"]
+        assert raw.ask({"id": "h", "cmd": "hello"})["authenticated"] is False
+        assert raw.ask({"id": 1, "cmd": "auth", "token": TOKEN})["ok"]
+        assert raw.ask({"id": 2, "cmd": "drive", **NEEDS_AUTH["drive"]})["ok"]
+        assert raw.ask({"id": 3, "cmd": "mission.load", **NEEDS_AUTH["mission.load"]})["ok"]
+        assert [n for n, _ in backend.calls] == ["drive", "load_mission"]
+    finally:
+        raw.close()
+        lt.run(srv.close())
+
+
+# -- failed authentication ---------------------------------------------------------------
+def _timed_ask(raw: Raw, obj: dict[str, Any]) -> tuple[dict[str, Any], float]:
+    t0 = time.monotonic()
+    r = raw.ask(obj)
+    return r, time.monotonic() - t0
+
+
+def test_failed_auth_backs_off_per_connection_then_closes(lt: LoopThread) -> None:
+    srv = serve(lt, RecordingBackend(), auth_fail_delay_s=0.2, max_auth_failures=3)
+    raw = Raw(srv.port)
+    try:
+        r, dt1 = _timed_ask(raw, {"id": 1, "cmd": "auth", "token": "guess-1"})
+        assert r["error"]["code"] == "auth_failed" and dt1 < 0.15
+        r, dt2 = _timed_ask(raw, {"id": 2, "cmd": "auth", "token": "guess-2"})
+        assert r["error"]["code"] == "auth_failed" and dt2 >= 0.18  # waited 0.2 s
+        r, dt3 = _timed_ask(raw, {"id": 3, "cmd": "auth", "token": "guess-3"})
+        assert r["error"]["code"] == "auth_failed" and dt3 >= 0.38  # doubled: 0.4 s
+        notice = last_line_before_close(raw)
+        assert notice["error"]["code"] == "closed"
+        assert notice["error"]["reason"] == "auth_failures"
+        # the correct token on a new connection: admitted at once
+        t0 = time.monotonic()
+        with RemoteClient("127.0.0.1", srv.port, token=TOKEN) as c:
+            assert time.monotonic() - t0 < 0.15
+            assert c.request("start")["ok"]
+        stats = lt.call(srv.server_stats)
+        assert stats["auth_failed"] == 3 and stats["closed"] == {"auth_failures": 1}
+    finally:
+        raw.close()
+        lt.run(srv.close())
+
+
+def test_stop_is_not_held_behind_an_auth_back_off(lt: LoopThread) -> None:
+    backend = RecordingBackend()
+    srv = serve(lt, backend, auth_fail_delay_s=0.6)
+    raw = Raw(srv.port)
+    try:
+        t0 = time.monotonic()
+        raw.send(b'{"id":1,"cmd":"auth","token":"wrong"}\n{"id":2,"cmd":"stop"}\n')
+        assert raw.line()["error"]["code"] == "auth_failed"
+        wait_until(lambda: backend.calls, timeout_s=0.3)  # the stop went out at once
+        assert backend.calls == [("stop", None)] and time.monotonic() - t0 < 0.3
+        assert raw.line() == {"id": 2, "ok": True, "did": "stop"}  # answered in turn
+        assert time.monotonic() - t0 >= 0.55  # after the back-off
+    finally:
+        raw.close()
+        lt.run(srv.close())
+
+
+def test_failed_auth_budget_per_address_delays_but_never_refuses(lt: LoopThread) -> None:
+    delay_s = 0.3
+    srv = serve(lt, RecordingBackend(), auth_fail_delay_s=delay_s, max_auth_failures=100)
+    try:
+        # 10 failures from 127.0.0.1, one per connection (no per-connection back-off)
+        for i in range(10):
+            raw = Raw(srv.port)
+            r, dt = _timed_ask(raw, {"id": i, "cmd": "auth", "token": f"guess-{i}"})
+            assert r["error"]["code"] == "auth_failed" and dt < delay_s
+            raw.close()
+        # the budget is spent: every attempt from this address now waits before evaluation,
+        # each in parallel (5 guesses take one delay, not five)
+        guessers = [Raw(srv.port) for _ in range(5)]
+        t0 = time.monotonic()
+        for i, g in enumerate(guessers):
+            g.send(json.dumps({"id": i, "cmd": "auth", "token": "nope"}).encode() + b"\n")
+        assert all(g.line()["error"]["code"] == "auth_failed" for g in guessers)
+        assert delay_s * 0.9 <= time.monotonic() - t0 < delay_s * 3
+        # a correct token is never refused: admitted after the same ~delay
+        t0 = time.monotonic()
+        with RemoteClient("127.0.0.1", srv.port, token=TOKEN) as c:
+            assert delay_s * 0.9 <= time.monotonic() - t0 < delay_s * 3
+            assert c.request("start")["ok"]
+        # another address has its own budget: admitted at once
+        sock = socket.create_connection(
+            ("127.0.0.1", srv.port), timeout=5, source_address=("127.0.0.2", 0)
+        )
+        t0 = time.monotonic()
+        sock.sendall(json.dumps({"id": 1, "cmd": "auth", "token": TOKEN}).encode() + b"\n")
+        assert json.loads(sock.makefile("rb").readline())["ok"] is True
+        assert time.monotonic() - t0 < delay_s * 0.5
+        sock.close()
+        for g in guessers:
+            g.close()
+    finally:
+        lt.run(srv.close())
+
+
+def test_a_correct_token_is_never_rate_limited(lt: LoopThread) -> None:
+    srv = serve(lt, RecordingBackend(), rate_per_s=1.0)
+    raw = Raw(srv.port)
+    try:
+        codes = [raw.ask({"id": i, "cmd": "status"}).get("error", {}).get("code") for i in range(8)]
+        assert "rate_limited" in codes
+        assert raw.ask({"id": "a", "cmd": "auth", "token": TOKEN})["ok"] is True
+    finally:
+        raw.close()
+        lt.run(srv.close())
+
+
+# -- stop ----------------------------------------------------------------------------------
+class SlowStopBackend(RecordingBackend):
+    """stop (and status) complete after ``delay_s`` on the loop, like the daemon's hop to its
+    control loop; records how many stops were in flight at once."""
+
+    def __init__(self, delay_s: float) -> None:
+        super().__init__()
+        self.delay_s = delay_s
+        self.in_flight = 0
+        self.max_in_flight = 0
+
+    def stop(self) -> Any:
+        self.calls.append(("stop", None))
+        self.in_flight += 1
+        self.max_in_flight = max(self.max_in_flight, self.in_flight)
+
+        async def done() -> dict[str, Any]:
+            await asyncio.sleep(self.delay_s)
+            self.in_flight -= 1
+            return {"mode": "IDLE", "state": "IDLE"}
+
+        return done()
+
+
+def test_stop_storm_is_coalesced_logged_rate_limited_and_still_stops(
+    lt: LoopThread, caplog: pytest.LogCaptureFixture
+) -> None:
+    backend = SlowStopBackend(0.005)
+    srv = serve(lt, backend)
+    n_peers, n_stops = 8, 150
+    caplog.set_level(logging.INFO, logger="x6wd.server")
+    replies: list[int] = [0] * n_peers
+
+    def storm(k: int) -> None:
+        raw = Raw(srv.port)
+        try:
+            for i in range(n_stops):  # a stop, its reply, the next stop: in a loop
+                r = raw.ask({"id": i, "cmd": "stop"})
+                replies[k] += r["ok"] is True and r["id"] == i
+        finally:
+            raw.close()
+
+    try:
+        t0 = time.monotonic()
+        threads = [threading.Thread(target=storm, args=(k,)) for k in range(n_peers)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(30)
+        elapsed = time.monotonic() - t0
+        assert replies == [n_stops] * n_peers  # every stop obeyed and answered
+        sent = len(backend.calls)
+        assert backend.max_in_flight == 1  # never more than one in flight
+        assert sent <= elapsed / backend.delay_s + 2  # the backend saw one stop per 5 ms
+        assert sent < n_peers * n_stops / 3
+        stats = lt.call(srv.server_stats)["stops"]
+        print(f"storm: {elapsed:.2f} s, {stats}")
+        assert stats["requested"] == n_peers * n_stops
+        assert stats["sent"] == sent and stats["sent"] + stats["coalesced"] == n_peers * n_stops
+        logged = [r for r in caplog.records if "stop requested" in r.getMessage()]
+        assert 1 <= len(logged) <= elapsed + 2  # the first per second, then "N more"
+        time.sleep(1.1)
+        lt.call(srv.sweep)  # flushes the count of the storm's tail
+        assert any("more stops" in r.getMessage() for r in caplog.records)
+    finally:
+        lt.run(srv.close())
+
+
+def test_a_stop_after_a_motion_command_is_sent_even_with_one_in_flight(lt: LoopThread) -> None:
+    """A stop in flight cannot stand in for a stop requested after a drive that may have
+    overtaken it: that one reaches the backend too."""
+    backend = SlowStopBackend(0.3)
+    srv = serve(lt, backend, token=None)
+    a, b = Raw(srv.port), Raw(srv.port)
+    try:
+        a.send(b'{"id":1,"cmd":"stop"}\n')
+        wait_until(lambda: backend.calls)
+        assert b.ask({"id": 1, "cmd": "drive", "left": 20, "right": 20, "duration_s": 1})["ok"]
+        b.send(b'{"id":2,"cmd":"stop"}\n')
+        a.send(b'{"id":2,"cmd":"stop"}\n')
+        assert a.line()["ok"] and b.line()["ok"] and a.line()["ok"]
+        assert [n for n, _ in backend.calls][:3] == ["stop", "drive", "stop"]
+    finally:
+        a.close()
+        b.close()
+        lt.run(srv.close())
+
+
+def test_stop_goes_out_ahead_of_a_garbage_back_off(lt: LoopThread) -> None:
+    """A stop queued behind a client's own garbage flood reaches the robot at once; its reply
+    still comes in order."""
+    backend = RecordingBackend()
+    srv = serve(lt, backend, rate_per_s=50.0, input_bytes_per_s=1 << 24)
+    raw = Raw(srv.port)
+    try:
+        t0 = time.monotonic()
+        raw.send(b"x\n" * 100 + b'{"id":"s","cmd":"stop"}\n')
+        wait_until(lambda: backend.calls, timeout_s=0.4)
+        assert time.monotonic() - t0 < 0.4
+        replies = [raw.line() for _ in range(101)]
+        assert time.monotonic() - t0 >= 0.7  # 50 over the burst, at 50 per second
+        assert [r["error"]["reason"] for r in replies[:100]] == ["bad_json"] * 100
+        assert replies[100] == {"id": "s", "ok": True, "did": "stop"}
+        assert [n for n, _ in backend.calls] == ["stop", "stop"]  # early, then in turn
+    finally:
+        raw.close()
+        lt.run(srv.close())
+
+
+def test_evictions_are_logged_rate_limited(
+    lt: LoopThread, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING, logger="x6wd.server")
+    srv = serve(lt, RecordingBackend(), max_pending=2)
+    socks = silent(srv.port, 30)
+    try:
+        wait_until(lambda: lt.call(lambda: srv.closed_counts["pending_full"]) == 28)
+        closing = [r for r in caplog.records if "closing" in r.getMessage()]
+        assert 1 <= len(closing) <= 3
+    finally:
+        for s in socks:
+            s.close()
+        lt.run(srv.close())
