@@ -93,9 +93,34 @@ def test_bad_input_and_refusals_give_clear_messages(
     r = client(srv.port, "load", "--wp", "51.0;-1.0", token=token_file)
     assert r.returncode == 2 and "LAT,LON" in r.stderr
     r = client(srv.port, "drive", "150", "0", "1", token=token_file)
-    assert r.returncode == 1 and "bad_request" in r.stderr and "left" in r.stderr
+    assert r.returncode == 1 and "bad_request (bad_argument)" in r.stderr and "left" in r.stderr
     r = client(srv.port, "drive", "20", "-20", "1.5", token=token_file)
     assert r.returncode == 0, r.stderr
+
+
+def test_the_servers_reason_for_closing_is_reported(tmp_path: Path) -> None:
+    """A connection that does not authenticate in time is closed with a notice; the client
+    says why (exit 3 from the command line)."""
+    import time
+
+    from x6wd.client import ConnectionFailed, RemoteClient
+
+    lt = LoopThread()
+    srv = start_server(lt, RecordingBackend(), token=TOKEN.encode(), auth_timeout_s=0.2)
+    try:
+        c = RemoteClient("127.0.0.1", srv.port)  # no token: never authenticates
+        time.sleep(0.5)
+        with pytest.raises(ConnectionFailed, match=r"closed the connection \(auth_timeout\)"):
+            c.request("status")
+        c.close()
+        wrong = tmp_path / "wrong"
+        wrong.write_text("not-the-token\n")
+        wrong.chmod(0o600)
+        r = client(srv.port, "start", token=wrong)
+        assert r.returncode == 1 and "start refused: auth_failed" in r.stderr
+    finally:
+        lt.run(srv.close())
+        lt.close()
 
 
 def test_connection_refused_is_exit_3(tmp_path: Path) -> None:
