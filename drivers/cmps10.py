@@ -149,6 +149,11 @@ class Cmps10:
         """Health transitions since the last call, oldest first (for the caller's log)."""
         return self.health_tracker.take_events()
 
+    @property
+    def needs_reopen(self) -> bool:
+        """True after a non-transient error lost the device, until :meth:`attach_bus`."""
+        return self._started and not self.health_tracker.health.connected
+
     def attach_bus(self, bus: SMBusLike, t_s: float) -> None:
         """Replace the bus after a reopen at ``t_s`` (s); counts as a reconnect. The old bus
         is closed; counters and health carry on."""
@@ -159,6 +164,7 @@ class Cmps10:
                 with contextlib.suppress(OSError):  # the old bus is broken anyway
                     close()
         self._consecutive_failures = 0
+        self._started = True
         self.health_tracker.opened(t_s)
 
     def _start(self, t_s: float) -> None:

@@ -324,9 +324,9 @@ class SerialMotorLink:
         if self._failures < self.unhealthy_after:
             tracker.degrade(t_s)
         elif state.connected:
-            tracker.lost(state.last_error, t_s)
+            tracker.lost(state.last_error, t_s, count_error=False)  # counted per attempt
         else:  # already lost: this command was another attempt to reach the board
-            tracker.open_failed(state.last_error, t_s)
+            tracker.open_failed(state.last_error, t_s, count_error=False)
 
     def _await(self, seq: int) -> tuple[bool, str] | None:
         """Read lines until the reply for ``seq`` or the ack deadline."""

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import errno
 import itertools
+import os
 from collections.abc import Callable
 
 import numpy as np
 import pytest
 
 from drivers.cmps10 import Cmps10
-from x6wd.errors import DeviceIOError, DeviceUnavailable
+from sim_backend.compass import ErrorInjector, SimCmps10
+from x6wd.errors import TRANSIENT_ERRNOS, DeviceIOError, DeviceUnavailable
 
 MIN_COMMAND_GAP_S = 0.09  # the double ignores a sequence whose bytes come faster than this
 
@@ -169,7 +171,17 @@ def test_out_of_range_values_are_failed_reads(
     assert c.counters.good_samples == 0
 
 
-@pytest.mark.parametrize("code", [errno.EIO, errno.ENXIO, errno.ETIMEDOUT, errno.EREMOTEIO])
+TRANSIENT = [errno.EIO, errno.ENXIO, errno.EAGAIN, errno.EBUSY, errno.EINTR, errno.EPROTO,
+             errno.ETIMEDOUT, errno.EREMOTEIO]  # fmt: skip
+NOT_TRANSIENT = [errno.ENOENT, errno.EACCES, errno.EBADF, errno.ENODEV]
+
+
+def test_the_transient_class_is_the_projects_one() -> None:
+    assert set(TRANSIENT) == TRANSIENT_ERRNOS
+    assert not set(NOT_TRANSIENT) & TRANSIENT_ERRNOS
+
+
+@pytest.mark.parametrize("code", TRANSIENT, ids=lambda c: errno.errorcode[c])
 def test_transient_errnos_are_retried(dev: Cmps10Double, clock: VirtualClock, code: int) -> None:
     plan = [code, code]
     dev.fail = lambda: plan.pop() if plan else None
@@ -180,12 +192,30 @@ def test_transient_errnos_are_retried(dev: Cmps10Double, clock: VirtualClock, co
     assert c.counters.io_errors == 2
     assert c.counters.retries == 2
     assert c.counters.failed_samples == 0
+    # counted in the health, but a retry saved the sample: still connected
+    h = c.health
+    assert (h.state, h.errors, h.consecutive_errors) == ("connected", 2, 0)
+    assert errno.errorcode[code] in h.last_error and h.last_error_t_s == 2.0
 
 
-def test_other_errnos_raise_device_io_error(dev: Cmps10Double, clock: VirtualClock) -> None:
-    dev.fail = lambda: errno.EACCES
+@pytest.mark.parametrize("code", NOT_TRANSIENT, ids=lambda c: errno.errorcode[c])
+def test_other_errnos_raise_device_io_error(
+    dev: Cmps10Double, clock: VirtualClock, code: int
+) -> None:
+    dev.fail = lambda: code
+    c = make(dev, clock)
     with pytest.raises(DeviceIOError, match="0x60"):
-        make(dev, clock).read(0.0)
+        c.read(3.0)
+    assert dev.injected == 1  # not retried
+    h = c.health
+    assert h.state == "disconnected" and h.errors == 1
+    assert errno.errorcode[code] in h.last_error
+    events = c.take_health_events()
+    assert [(e.old, e.new) for e in events] == [
+        ("disconnected", "connected"),  # the first read opens it
+        ("connected", "disconnected"),
+    ]
+    assert events[-1].t_s == 3.0 and events[-1].message.startswith("compass disconnected: ")
 
 
 def test_stale_after_consecutive_failures_then_recovery(
@@ -339,3 +369,124 @@ def test_constructor_validates(dev: Cmps10Double) -> None:
         Cmps10(dev, 0x20)
     with pytest.raises(ValueError, match="stale_after"):
         Cmps10(dev, stale_after=0)
+
+
+# --- health over the simulator's register map (sim_backend.compass) ---------------------------
+
+
+class StormBus:
+    """The simulated CMPS10's smbus2 methods, failing every transaction with ``code`` while a
+    storm is on (the register map itself stays untouched)."""
+
+    def __init__(self, dev: SimCmps10) -> None:
+        self.dev = dev
+        self.code: int | None = None
+        self.failed = 0
+
+    def _check(self) -> None:
+        if self.code is not None:
+            self.failed += 1
+            raise OSError(self.code, f"{os.strerror(self.code)} (storm)")
+
+    def read_byte_data(self, i2c_addr: int, register: int) -> int:
+        self._check()
+        return self.dev.read_byte_data(i2c_addr, register)
+
+    def write_byte_data(self, i2c_addr: int, register: int, value: int) -> None:
+        self._check()
+        self.dev.write_byte_data(i2c_addr, register, value)
+
+    def read_i2c_block_data(self, i2c_addr: int, register: int, length: int) -> list[int]:
+        self._check()
+        return self.dev.read_i2c_block_data(i2c_addr, register, length)
+
+
+def sim_compass(**kw: object) -> tuple[SimCmps10, StormBus, Cmps10]:
+    dev = SimCmps10(errors=None, injector=ErrorInjector())
+    dev.set_state(0.0, 123.0, 0.0, 0.0)
+    dev.set_state(5.0, 123.0, 0.0, 0.0)  # the heading filter has settled
+    bus = StormBus(dev)
+    return dev, bus, Cmps10(bus, sleep=lambda _s: None, **kw)  # type: ignore[arg-type]
+
+
+def test_errno_storm_is_counted_degrades_and_recovers() -> None:
+    _, bus, c = sim_compass(retries=2, stale_after=100, stale_s=0.5)
+    t = 0.0
+    for _ in range(5):  # 20 Hz, all good
+        t += 0.05
+        assert c.read(t).valid
+    assert c.health.state == "connected" and c.health.errors == 0
+    bus.code = errno.EREMOTEIO
+    for _ in range(4):  # 0.2 s storm: every attempt of 4 samples fails
+        t += 0.05
+        att = c.read(t)
+        assert att.valid and att.t_s == 0.25  # the last good sample, ageing honestly
+    h = c.health
+    assert h.state == "degraded"
+    assert h.errors == bus.failed == 12 and h.consecutive_errors == 12
+    assert "Remote I/O error" in h.last_error and h.last_error_t_s == pytest.approx(0.45)
+    assert h.last_error_utc.endswith("+00:00")
+    bus.code = None
+    t += 0.05
+    assert c.read(t).valid
+    assert c.health.state == "degraded" and c.health.consecutive_errors == 0  # not yet: recover_s
+    while t < 1.5:
+        t += 0.05
+        c.read(t)
+    assert c.health.state == "connected" and c.health.errors == 12
+    events = c.take_health_events()
+    assert [(e.old, e.new) for e in events] == [
+        ("disconnected", "connected"),
+        ("connected", "degraded"),
+        ("degraded", "connected"),
+    ]
+    assert "Remote I/O error" in events[1].message
+    assert events[2].message.startswith("compass recovered after 12 errors")
+
+
+def test_stale_by_time_whatever_the_failure_count() -> None:
+    # stale_after is far away: only [compass] stale_s (by the sample times) makes it stale
+    _, bus, c = sim_compass(retries=0, stale_after=10_000, stale_s=0.5)
+    assert c.read(10.0).valid
+    bus.code = errno.EIO
+    assert c.read(10.45).valid  # 0.45 s old: still usable
+    assert c.health.state == "degraded"
+    att = c.read(10.55)  # 0.55 s since the last good sample
+    assert not att.valid and att.t_s == 10.55 and att.bearing_deg == pytest.approx(123.0, abs=0.2)
+    assert c.stale and c.health.state == "stale"
+    assert c.counters.stale_events == 1
+    bus.code = None
+    back = c.read(10.6)
+    assert back.valid and not c.stale and c.health.state == "degraded"  # errors 0.05 s ago
+    msgs = [e.message for e in c.take_health_events()]
+    assert msgs[2].startswith("compass stale: ") and msgs[3].startswith("compass fresh again")
+
+
+def test_slow_sampling_is_stale_by_time_before_the_count() -> None:
+    # 2 Hz samples, stale_after 5: without stale_s the compass would look usable for 2.5 s
+    _, bus, c = sim_compass(retries=0, stale_after=5, stale_s=0.5)
+    assert c.read(0.0).valid
+    bus.code = errno.ETIMEDOUT
+    assert c.read(0.4).valid
+    assert not c.read(0.8).valid  # 2 failed samples only, but 0.8 s old
+    c.stale_s = None
+    assert c.read(1.2).valid is False  # stays stale until a good sample
+    with pytest.raises(ValueError, match="stale_s"):
+        c.stale_s = 0.0
+
+
+def test_reopened_bus_counts_a_reconnect() -> None:
+    dev, bus, c = sim_compass(stale_s=0.5)
+    assert c.read(1.0).valid
+    bus.code = errno.EACCES
+    with pytest.raises(DeviceIOError):
+        c.read(1.05)
+    assert not c.health.connected
+    c.attach_bus(StormBus(dev), 2.0)
+    assert c.read(2.05).valid
+    h = c.health
+    assert (h.state, h.reconnects, h.errors) == ("connected", 1, 1)
+    assert (
+        c.take_health_events()[-1].message
+        == "compass reconnected (reconnect 1, 0.95 s after the loss)"
+    )

@@ -80,6 +80,8 @@ def test_every_call_returns_command_and_telemetry() -> None:
         lambda: c.stop(0.8),
         lambda: c.manual_drive(10, 20, 1.0, 0.9),
         lambda: c.motor_link(True, 1.0),
+        lambda: c.sensor_health("gps", False, 1.1, "disconnected"),
+        lambda: c.sensor_health("gps", True, 1.2, "connected"),
     ]
     for call in calls:
         _, cmd, tel = split(call())
@@ -465,3 +467,101 @@ def test_snapshot_reuses_the_navigators_decision_only_for_the_same_inputs() -> N
     assert tel.waypoint_index == 1
     assert tel.distance_m is not None and tel.distance_m > 40.0  # 50 m east, projected
     assert _geometry(tel) == _expected_geometry(c)
+
+
+def driving(t_s: float = 1.0) -> Controller:
+    """A running mission with fresh inputs, driving straight at ``t_s``."""
+    c = running()
+    c.on_fix(fix(t_s))
+    c.on_attitude(att(t_s))
+    assert c.state == NavState.STRAIGHT
+    return c
+
+
+@pytest.mark.parametrize(
+    ("kind", "state"),
+    [("gps", "disconnected"), ("gps", "reconnecting"), ("gps", "stale"),
+     ("compass", "stale"), ("compass", "disconnected")],
+)  # fmt: skip
+def test_sensor_unusable_holds_at_once_naming_the_device(kind: str, state: str) -> None:
+    c = driving(1.0)
+    # everything is fresh (fix and attitude 0.05 s old): only the reader's word can hold
+    changes, cmd, tel = split(c.sensor_health(kind, False, 1.05, state))
+    assert tel.state == NavState.HOLD and cmd.is_stop
+    assert tel.hold_reason == f"{kind} {state}"
+    assert [(s.old, s.new, s.reason) for s in changes] == [
+        ("STRAIGHT", "HOLD", f"state: {kind} {state}")
+    ]
+    assert tel.extra["sensors_down"] == {kind: state}
+    assert c.mode == Mode.RUNNING
+    # fresh data while the reader says the device is down does not resume
+    c.on_fix(fix(1.1))
+    c.on_attitude(att(1.1))
+    assert c.state == NavState.HOLD and c.telemetry.hold_reason == f"{kind} {state}"
+
+
+def test_gps_back_resumes_only_on_a_fix_stamped_after_its_return() -> None:
+    c = driving(1.0)
+    c.sensor_health("gps", False, 1.2, "disconnected")
+    c.sensor_health("gps", False, 1.3, "reconnecting")
+    assert c.telemetry.hold_reason == "gps reconnecting"
+    _, cmd, tel = split(c.sensor_health("gps", True, 1.5, "connected"))
+    assert tel.state == NavState.HOLD and cmd.is_stop
+    assert tel.hold_reason == "gps back, waiting for a fresh fix"
+    assert "sensors_down" not in tel.extra
+    c.on_attitude(att(1.6))
+    c.on_fix(fix(1.45))  # decoded before the return (a queued record): not fresh
+    c.on_fix(fix(1.7, valid=False))  # after it, but no fix
+    assert c.state == NavState.HOLD and c.telemetry.hold_reason.startswith("gps back")
+    _, cmd, tel = split(c.on_fix(fix(1.8)))
+    assert tel.state == NavState.STRAIGHT and not cmd.is_stop and tel.hold_reason == ""
+
+
+def test_compass_back_resumes_only_on_a_valid_sample_after_its_return() -> None:
+    c = driving(1.0)
+    c.sensor_health("compass", False, 1.1, "stale")
+    c.sensor_health("compass", True, 1.3, "degraded")  # degraded data is usable
+    assert c.telemetry.hold_reason == "compass back, waiting for a fresh sample"
+    c.on_fix(fix(1.35))
+    c.on_attitude(att(1.0))  # the driver's held last-good sample keeps its old time
+    c.on_attitude(att(1.35, valid=False))
+    assert c.state == NavState.HOLD
+    assert split(c.on_attitude(att(1.4)))[2].state == NavState.STRAIGHT
+
+
+def test_a_usable_report_for_a_usable_sensor_changes_nothing() -> None:
+    c = driving(1.0)
+    # connected -> degraded -> connected: never down, so no wait for fresh data either
+    assert split(c.sensor_health("compass", True, 1.1, "degraded"))[2].state == NavState.STRAIGHT
+    assert split(c.sensor_health("gps", True, 1.2, "connected"))[2].state == NavState.STRAIGHT
+
+
+def test_both_sensors_down_name_the_gps_first_then_the_compass() -> None:
+    c = driving(1.0)
+    c.sensor_health("compass", False, 1.1, "stale")
+    c.sensor_health("gps", False, 1.2, "disconnected")
+    assert c.telemetry.hold_reason == "gps disconnected"
+    assert c.telemetry.extra["sensors_down"] == {"gps": "disconnected", "compass": "stale"}
+    c.sensor_health("gps", True, 1.3)
+    c.on_fix(fix(1.4))
+    assert c.telemetry.hold_reason == "compass stale"
+    c.motor_link(False, 1.5)
+    assert c.telemetry.hold_reason == "motor link lost"  # the motors come first
+
+
+def test_manual_drive_does_not_depend_on_the_sensors() -> None:
+    # Decision: the operator drives by sight; the dead-man and the motor link protect it.
+    c = Controller(NAV, SAFETY)
+    c.sensor_health("gps", False, 0.5, "disconnected")
+    _, cmd, tel = split(c.manual_drive(30, 30, 2.0, 1.0))
+    assert tel.mode == Mode.MANUAL and (cmd.left_pct, cmd.right_pct) == (30.0, 30.0)
+    _, cmd, tel = split(c.sensor_health("compass", False, 1.5, "stale"))
+    assert tel.mode == Mode.MANUAL and not cmd.is_stop and tel.hold_reason == ""
+
+
+def test_sensor_health_rejects_unknown_devices_and_bad_times() -> None:
+    c = Controller(NAV, SAFETY)
+    with pytest.raises(InputError, match="kind"):
+        c.sensor_health("motors", False, 1.0)
+    with pytest.raises(InputError, match="finite"):
+        c.sensor_health("gps", False, math.nan)

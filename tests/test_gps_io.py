@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import socket
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -86,6 +88,12 @@ def test_pty_stale_unplug_reconnect_resume(tmp_path: Path) -> None:
             if reader.health.state == "stale":
                 break
         assert reader.health.state == "stale" and reader.health.connected
+        events = reader.take_health_events()
+        assert [(e.old, e.new) for e in events] == [
+            ("disconnected", "connected"),
+            ("connected", "stale"),
+        ]
+        assert events[-1].message.startswith("gps stale: no good data for ")
 
         # Unplug: the far end goes away -> disconnected, not an exception.
         pty.hang_up()
@@ -96,6 +104,9 @@ def test_pty_stale_unplug_reconnect_resume(tmp_path: Path) -> None:
         health = reader.health
         assert health.state == "disconnected" and not health.connected
         assert "read failed" in health.last_error and health.errors >= 1
+        # known at once: the transition is queued by the poll that saw the failure
+        (lost,) = [e for e in reader.take_health_events() if e.new == "disconnected"]
+        assert "Input/output error" in lost.message and lost.health.next_attempt_t_s
 
         # Plug back in (a new pty behind the same path): reopen, resume decoding.
         pty.open()
@@ -105,6 +116,9 @@ def test_pty_stale_unplug_reconnect_resume(tmp_path: Path) -> None:
             if reader.health.connected:
                 break
         assert reader.health.reconnects == 1
+        events = reader.take_health_events()
+        assert events[-1].new == "connected"
+        assert events[-1].message.startswith("gps reconnected (reconnect 1, ")
         while i < len(LOG):
             n = int(rng.integers(1, 300))
             os.write(pty.master, LOG[i : i + n])
@@ -237,3 +251,127 @@ def test_close_is_idempotent_and_bad_settings_rejected(tmp_path: Path) -> None:
         GpsReader(_open(tmp_path / "none"), stale_s=0)
     with pytest.raises(ConfigError, match="backoff"):
         GpsReader(_open(tmp_path / "none"), backoff_initial_s=2.0, backoff_max_s=1.0)
+
+
+TRANSIENT = [errno.EIO, errno.ENXIO, errno.EAGAIN, errno.EBUSY, errno.EINTR, errno.EPROTO,
+             errno.ETIMEDOUT, errno.EREMOTEIO]  # fmt: skip
+NOT_TRANSIENT = [errno.ENOENT, errno.EACCES, errno.EBADF]
+
+
+class FlakyPort:
+    """A real pyserial port on a pty whose next ``fail`` reads raise ``OSError(code)``."""
+
+    def __init__(self, port: serial.Serial, code: int, fail: int) -> None:
+        self.port = port
+        self.code = code
+        self.fail = fail
+
+    @property
+    def timeout(self) -> Any:
+        return self.port.timeout
+
+    @timeout.setter
+    def timeout(self, value: Any) -> None:
+        self.port.timeout = value
+
+    @property
+    def in_waiting(self) -> int:
+        return int(self.port.in_waiting)
+
+    def fileno(self) -> int:
+        return int(self.port.fileno())
+
+    def read(self, size: int = 1) -> bytes:
+        if self.fail > 0:
+            self.fail -= 1
+            raise OSError(self.code, os.strerror(self.code))
+        return bytes(self.port.read(size))
+
+    def close(self) -> None:
+        self.port.close()
+
+
+def flaky_reader(link: Path, code: int, fails: list[int]) -> tuple[GpsReader, list[FlakyPort]]:
+    """A reader whose n-th open gives a port failing ``fails[n]`` reads (0 after the list)."""
+    opened: list[FlakyPort] = []
+
+    def open_port() -> FlakyPort:
+        n = fails[len(opened)] if len(opened) < len(fails) else 0
+        opened.append(FlakyPort(serial.Serial(str(link), 9600, timeout=0), code, n))
+        return opened[-1]
+
+    return GpsReader(open_port, backoff_initial_s=0.01, transient_limit=3), opened
+
+
+def _fixes(reader: GpsReader, pty: Pty, want: int = 5, polls: int = 60) -> int:
+    """Feed the log until the reader decoded ``want`` fixes (or ``polls`` polls)."""
+    n = 0
+    for k in range(polls):
+        os.write(pty.master, LOG[k * 300 : (k + 1) * 300])
+        n += sum(isinstance(r, GpsFix) for r in reader.poll(0.05))
+        if n >= want:
+            break
+    return n
+
+
+@pytest.mark.parametrize("code", TRANSIENT, ids=lambda c: errno.errorcode[c])
+def test_transient_read_errors_are_retried_on_the_same_port(tmp_path: Path, code: int) -> None:
+    link = tmp_path / "ttyGPS"
+    pty = Pty(link)
+    reader, opened = flaky_reader(link, code, [2])  # 2 < transient_limit
+    try:
+        reader.poll(0.01)  # open
+        os.write(pty.master, LOG[:3000])
+        records = reader.poll(0.5)  # both failures and the good read happen in this poll
+        assert records, "a transient error must not cost the poll its data"
+        h = reader.health
+        assert len(opened) == 1 and h.reconnects == 0 and h.connected
+        assert h.state == "degraded" and h.errors == 2 and h.consecutive_errors == 0
+        assert os.strerror(code) in h.last_error
+        assert [e.new for e in reader.take_health_events()] == ["connected", "degraded"]
+        assert _fixes(reader, pty) >= 5
+    finally:
+        reader.close()
+        pty.close()
+
+
+@pytest.mark.parametrize("code", [errno.EIO, errno.EBUSY])
+def test_transient_errors_in_a_row_drop_the_port(tmp_path: Path, code: int) -> None:
+    link = tmp_path / "ttyGPS"
+    pty = Pty(link)
+    reader, opened = flaky_reader(link, code, [3])  # = transient_limit
+    try:
+        reader.poll(0.01)
+        os.write(pty.master, LOG[:3000])
+        assert reader.poll(0.5) == []
+        h = reader.health
+        assert h.state == "disconnected" and h.errors == 3
+        assert "3 transient errors in a row" in h.last_error
+        assert _fixes(reader, pty) >= 5
+        assert len(opened) == 2 and reader.health.reconnects == 1
+        assert reader.health.state == "connected"
+    finally:
+        reader.close()
+        pty.close()
+
+
+@pytest.mark.parametrize("code", NOT_TRANSIENT, ids=lambda c: errno.errorcode[c])
+def test_a_non_transient_read_error_drops_and_reopens_at_once(tmp_path: Path, code: int) -> None:
+    link = tmp_path / "ttyGPS"
+    pty = Pty(link)
+    reader, opened = flaky_reader(link, code, [1])
+    try:
+        reader.poll(0.01)
+        os.write(pty.master, LOG[:3000])
+        assert reader.poll(0.5) == []
+        h = reader.health
+        assert h.state == "disconnected" and h.errors == 1 and os.strerror(code) in h.last_error
+        assert [e.new for e in reader.take_health_events()] == ["connected", "disconnected"]
+        assert _fixes(reader, pty) >= 5
+        assert len(opened) == 2 and reader.health.reconnects == 1
+        events = reader.take_health_events()
+        assert [e.new for e in events] == ["connected"]
+        assert events[0].message.startswith("gps reconnected (reconnect 1")
+    finally:
+        reader.close()
+        pty.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import itertools
 import math
 import os
@@ -10,6 +11,7 @@ import time
 import tty
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import pytest
 import serial
@@ -316,3 +318,119 @@ def test_board_overflow_line_arriving_whole_is_an_overflow() -> None:
     long_line = b"M 10 10 " + b"#" * 80 + b"\n"
     assert b.feed(long_line + b"M 20 20 #4\n", 0.0) == b"ERR overflow\nOK #4\n"
     assert (b.left_pct, b.right_pct) == (20, 20)
+
+
+# --- health and transient errors ----------------------------------------------------------
+
+TRANSIENT = [errno.EIO, errno.ENXIO, errno.EAGAIN, errno.EBUSY, errno.EINTR, errno.EPROTO,
+             errno.ETIMEDOUT, errno.EREMOTEIO]  # fmt: skip
+NOT_TRANSIENT = [errno.ENOENT, errno.EACCES, errno.EBADF]
+
+
+class FlakyPort:
+    """The real pyserial port to the pty board whose next ``fail`` writes raise
+    ``OSError(code)``; ``writes`` counts the attempts."""
+
+    def __init__(self, port: serial.Serial) -> None:
+        self.port = port
+        self.code = errno.EIO
+        self.fail = 0
+        self.writes = 0
+
+    @property
+    def timeout(self) -> Any:
+        return self.port.timeout
+
+    @timeout.setter
+    def timeout(self, value: Any) -> None:
+        self.port.timeout = value
+
+    @property
+    def in_waiting(self) -> int:
+        return int(self.port.in_waiting)
+
+    def read(self, size: int = 1) -> bytes:
+        return bytes(self.port.read(size))
+
+    def write(self, data: bytes) -> int | None:
+        self.writes += 1
+        if self.fail > 0:
+            self.fail -= 1
+            raise OSError(self.code, os.strerror(self.code))
+        return self.port.write(data)
+
+    def close(self) -> None:
+        self.port.close()
+
+
+def flaky_link(pb: PtyBoard) -> tuple[SerialMotorLink, FlakyPort]:
+    port = FlakyPort(serial.Serial(pb.name, baudrate=115200, timeout=0.02))
+    return SerialMotorLink(port, ack_timeout_s=0.3, retries=1), port
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("code", TRANSIENT, ids=lambda c: errno.errorcode[c])
+def test_transient_port_errors_are_retried_within_the_command(
+    pty_board: PtyBoard, code: int
+) -> None:
+    link, port = flaky_link(pty_board)
+    try:
+        assert link.health.state == "connected"  # the watchdog setting was acknowledged
+        port.code, port.fail, port.writes = code, 1, 0
+        assert link.drive(25, 25)  # the retry got through
+        assert port.writes == 2 and pty_board.state() == (25, 25)
+        h = link.health
+        assert link.healthy and h.state == "connected" and h.errors == 1
+        assert os.strerror(code) in h.last_error
+        assert link.counters.write_errors == 1
+    finally:
+        link.close()
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("code", NOT_TRANSIENT, ids=lambda c: errno.errorcode[c])
+def test_a_non_transient_port_error_loses_the_link_at_once(pty_board: PtyBoard, code: int) -> None:
+    link, port = flaky_link(pty_board)
+    try:
+        link.take_health_events()
+        port.code, port.fail, port.writes = code, 1, 0
+        assert not link.drive(25, 25)
+        assert port.writes == 1  # not retried: the port is broken
+        assert not link.healthy  # one command was enough (unhealthy_after is 2)
+        h = link.health
+        assert h.state == "disconnected" and os.strerror(code) in h.last_error
+        assert link.drive(10, 10)  # the port works again: the board answers
+        h = link.health
+        assert link.healthy and h.state == "connected" and h.reconnects == 1
+        assert [(e.old, e.new) for e in link.take_health_events()] == [
+            ("connected", "disconnected"),
+            ("disconnected", "connected"),
+        ]
+    finally:
+        link.close()
+
+
+@pytest.mark.integration
+def test_dead_board_health_goes_degraded_lost_reconnecting_and_back(pty_board: PtyBoard) -> None:
+    link = open_link(pty_board, ack_timeout_s=0.1)
+    assert link.drive(10, 10)
+    pty_board.halt()
+    assert not link.drive(20, 20)
+    assert link.healthy and link.health.state == "degraded"  # one failed command
+    assert not link.drive(20, 20)
+    assert not link.healthy and link.health.state == "disconnected"
+    assert not link.ping()
+    h = link.health
+    assert h.state == "reconnecting" and h.errors == 6  # 3 commands x (1 try + 1 retry)
+    assert "no acknowledgement within 100 ms" in h.last_error
+    pty_board.start()
+    assert link.drive(5, 5)
+    h = link.health
+    assert h.state == "connected" and h.reconnects == 1 and h.consecutive_errors == 0
+    events = link.take_health_events()
+    assert [e.new for e in events] == [
+        "connected", "degraded", "disconnected", "reconnecting", "connected"
+    ]  # fmt: skip
+    assert events[-1].message.startswith("motors reconnected (reconnect 1, ")
+    link.close()
+    assert link.health.state == "disconnected" and link.take_health_events() == []

@@ -628,7 +628,7 @@ class Daemon:
             t_s = time.monotonic()
             att = None
             health = getattr(compass, "health", None)
-            if health is not None and not health.connected:
+            if getattr(compass, "needs_reopen", False):
                 # Lost on a non-transient error: reopen the bus, with capped backoff.
                 if t_s >= t_reopen:
                     if self._reopen_compass(compass, t_s, t_s + backoff_s):

@@ -105,6 +105,7 @@ class HealthTracker:
         self._last_data_t: float | None = None
         self._next_attempt_t: float | None = None
         self._open_failures = 0  # failed reopens since the link was lost
+        self._down_t: float | None = None  # when the link was lost (for the outage length)
         self._errors_in_episode = 0  # errors since the device last left ``connected``
         self._health = self._snapshot()
 
@@ -155,15 +156,25 @@ class HealthTracker:
         self._next_attempt_t = None
         if reconnect:
             why = f"{self.device} reconnected (reconnect {self._reconnects}"
-            why += f", after {t_s - self._since_t:.1f} s)" if self._state in _BAD else ")"
+            down_t, self._down_t = self._down_t, None
+            why += f", {t_s - down_t:.2f} s after the loss)" if down_t is not None else ")"
         else:
             why = f"{self.device} connected"
         self._go(CONNECTED, t_s, why)
 
-    def open_failed(self, error: str, t_s: float, next_attempt_t_s: float | None = None) -> None:
+    def open_failed(
+        self,
+        error: str,
+        t_s: float,
+        next_attempt_t_s: float | None = None,
+        *,
+        count_error: bool = True,
+    ) -> None:
         """An attempt to (re)open the device failed at ``t_s`` (s); retried at
-        ``next_attempt_t_s`` (s) if known."""
-        self._error(error, t_s)
+        ``next_attempt_t_s`` (s) if known. ``count_error=False``: the owner already counted
+        the failure with :meth:`error`."""
+        if count_error:
+            self._error(error, t_s)
         self._open_failures += 1
         self._next_attempt_t = next_attempt_t_s
         retry = ""
@@ -181,15 +192,25 @@ class HealthTracker:
             return
         self._go(RECONNECTING, t_s, f"{self.device} reconnecting: {error}{retry}")
 
-    def lost(self, error: str, t_s: float, next_attempt_t_s: float | None = None) -> None:
+    def lost(
+        self,
+        error: str,
+        t_s: float,
+        next_attempt_t_s: float | None = None,
+        *,
+        count_error: bool = True,
+    ) -> None:
         """The open link failed (unplugged, a non-transient error, retries exhausted) at
-        ``t_s`` (s); a reopen is due at ``next_attempt_t_s`` (s) if known."""
-        self._error(error, t_s)
+        ``t_s`` (s); a reopen is due at ``next_attempt_t_s`` (s) if known.
+        ``count_error=False``: the owner already counted the failure with :meth:`error`."""
+        if count_error:
+            self._error(error, t_s)
         self._next_attempt_t = next_attempt_t_s
         self._open_failures = 0
         if self._state in (DISCONNECTED, RECONNECTING):
             self._health = self._snapshot()
             return
+        self._down_t = t_s
         self._go(DISCONNECTED, t_s, f"{self.device} disconnected: {error}")
 
     def error(self, error: str, t_s: float) -> None:

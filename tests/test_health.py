@@ -1,0 +1,523 @@
+"""Device health: the sans-IO tracker and its log, then the daemon in-process on the HIL world
+(pty GPS, register-map compass, a real motor board behind a pty) with real faults injected:
+a compass errno storm, a non-transient compass error, a GPS unplug."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import errno
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from sim_backend import hil
+from sim_backend.compass import ErrorInjector
+from x6wd.client import RemoteClient
+from x6wd.config import (
+    CompassConfig,
+    Config,
+    GpsConfig,
+    GpsdConfig,
+    RecorderConfig,
+    SafetyConfig,
+    ServerConfig,
+    SimConfig,
+)
+from x6wd.daemon import TICK_HZ, Daemon
+from x6wd.errors import DeviceIOError
+from x6wd.health import HealthLog, HealthTracker
+from x6wd.records import DeviceHealth, DeviceState, HealthEvent, StateChange
+
+# --- HealthTracker (sans-IO, injected times) --------------------------------------------------
+
+
+def wall() -> str:
+    return "2030-01-01T00:00:00.000+00:00"
+
+
+def tracker(**kw: Any) -> HealthTracker:
+    kw.setdefault("t_s", 0.0)
+    return HealthTracker("gps", wall_clock=wall, **kw)
+
+
+def moves(t: HealthTracker) -> list[tuple[str, str, str]]:
+    return [(e.kind, str(e.old), str(e.new)) for e in t.take_events()]
+
+
+def test_unplug_reconnect_cycle_counts_and_queues_each_transition_once() -> None:
+    t = tracker(stale_s=1.0)
+    assert t.health.state == "disconnected" and not t.health.connected
+    t.opened(1.0)
+    t.good(1.2)
+    t.lost("read failed: [Errno 5] Input/output error", 2.0, next_attempt_t_s=2.1)
+    h = t.health
+    assert (h.state, h.errors, h.consecutive_errors, h.next_attempt_t_s) == (
+        "disconnected", 1, 1, 2.1
+    )  # fmt: skip
+    assert (h.last_error_t_s, h.last_error_utc, h.since_t_s, h.since_utc) == (
+        2.0,
+        wall(),
+        2.0,
+        wall(),
+    )
+    for k in range(3):
+        t.open_failed("open failed: [Errno 2] No such file", 2.1 + 0.1 * k, 2.5 + k)
+    assert t.health.state == "reconnecting" and t.health.errors == 4
+    t.opened(3.0)
+    h = t.health
+    assert (h.state, h.reconnects, h.consecutive_errors, h.next_attempt_t_s) == (
+        "connected", 1, 0, None
+    )  # fmt: skip
+    events = t.take_events()
+    assert [(e.kind, e.old, e.new) for e in events] == [
+        ("transition", "disconnected", "connected"),
+        ("transition", "connected", "disconnected"),
+        ("transition", "disconnected", "reconnecting"),
+        ("open_failed", "reconnecting", "reconnecting"),
+        ("open_failed", "reconnecting", "reconnecting"),
+        ("transition", "reconnecting", "connected"),
+    ]
+    assert events[0].message == "gps connected"
+    assert events[1].message == "gps disconnected: read failed: [Errno 5] Input/output error"
+    assert events[2].message.endswith("next attempt in 0.4 s")
+    assert events[4].message.startswith("gps still reconnecting (3 failed attempts): ")
+    assert events[5].message == "gps reconnected (reconnect 1, 1.00 s after the loss)"
+    assert events[5].health is t.health and events[1].health.state == "disconnected"
+    assert t.take_events() == []
+
+
+def test_stale_by_time_counts_from_the_open_and_recovers_on_data() -> None:
+    t = tracker(stale_s=0.5)
+    t.opened(10.0)
+    t.check(10.5)
+    assert t.health.state == "connected"  # exactly the limit: not yet
+    t.check(10.51)
+    assert t.health.state == "stale" and t.health.connected and not t.health.ok
+    t.good(11.0)
+    assert t.health.state == "connected" and t.health.last_data_t_s == 11.0
+    t.check(11.4)
+    t.error("a retried glitch", 11.45)  # counted; no state change
+    assert t.health.state == "connected" and t.health.errors == 1
+    t.check(11.6)
+    assert t.health.state == "stale"
+    # a reconnect after an outage counts staleness from the open, not from the old data
+    t.lost("gone", 12.0)
+    t.opened(20.0)
+    t.check(20.3)
+    assert t.health.state == "connected"
+    assert [m[2] for m in moves(t)] == [
+        "connected", "stale", "connected", "stale", "disconnected", "connected"
+    ]  # fmt: skip
+
+
+def test_degraded_recovers_only_after_recover_s_without_errors() -> None:
+    t = tracker(recover_s=1.0)
+    t.opened(0.0)
+    for k in range(20):  # a device failing every other sample: one episode, not 20
+        t.failed(f"EIO #{k}", 0.1 * k)
+        t.good(0.1 * k + 0.05)
+    assert t.health.state == "degraded" and t.health.errors == 20
+    t.good(2.8)
+    assert t.health.state == "degraded"  # last error at 1.9 s
+    t.good(3.0)
+    assert t.health.state == "connected" and t.health.errors == 20
+    events = t.take_events()
+    assert [e.new for e in events] == ["connected", "degraded", "connected"]
+    assert events[1].message == "gps degraded: EIO #0"
+    assert events[2].message == "gps recovered after 20 errors (3.0 s degraded)"
+
+
+def test_closed_is_quiet_and_bad_limits_are_refused() -> None:
+    t = tracker()
+    t.opened(1.0)
+    t.take_events()
+    t.closed(2.0)
+    assert t.health.state == "disconnected" and t.health.errors == 0 and t.take_events() == []
+    with pytest.raises(ValueError, match="stale_s"):
+        tracker(stale_s=0.0)
+    with pytest.raises(ValueError, match="recover_s"):
+        tracker(recover_s=-1.0)
+    d = t.health.to_dict()
+    assert d["state"] == "disconnected" and isinstance(d["state"], str)
+    assert set(d) == {f.name for f in dataclasses.fields(DeviceHealth)}
+
+
+# --- HealthLog ----------------------------------------------------------------------------------
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t_s = 0.0
+
+    def __call__(self) -> float:
+        return self.t_s
+
+
+def event(kind: str, old: str, new: str, message: str, device: str = "compass") -> HealthEvent:
+    h = DeviceHealth(device, DeviceState(new), 0.0)
+    return HealthEvent(0.0, device, kind, DeviceState(old), DeviceState(new), message, h)
+
+
+def test_log_levels_and_per_device_rate_limit(caplog: pytest.LogCaptureFixture) -> None:
+    clock = Clock()
+    logger = logging.getLogger("x6wd.test_health")
+    hl = HealthLog(logger, burst=3, refill_s=5.0, repeat_s=30.0, clock=clock)
+    caplog.set_level(logging.INFO, logger=logger.name)
+    flap = [("connected", "degraded"), ("degraded", "connected")] * 4
+    written = [
+        hl.event(event("transition", a, b, f"compass {b} #{i}")) for i, (a, b) in enumerate(flap)
+    ]
+    assert written == [True, True, True, False, False, False, False, False]
+    # the GPS has its own budget
+    assert hl.event(event("transition", "connected", "disconnected", "gps gone", "gps"))
+    levels = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert levels == [
+        ("WARNING", "compass degraded #0"),
+        ("INFO", "compass connected #1"),
+        ("WARNING", "compass degraded #2"),
+        ("WARNING", "gps gone"),
+    ]
+    clock.t_s = 5.0  # one line refilled: it says how many were held back
+    assert hl.event(event("transition", "connected", "degraded", "compass degraded again"))
+    assert caplog.records[-1].getMessage() == (
+        "compass degraded again (5 earlier compass health messages suppressed)"
+    )
+
+
+def test_repeated_failed_reopens_are_logged_once_per_interval(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    clock = Clock()
+    logger = logging.getLogger("x6wd.test_health")
+    hl = HealthLog(logger, repeat_s=30.0, clock=clock)
+    caplog.set_level(logging.INFO, logger=logger.name)
+    assert hl.event(event("transition", "disconnected", "reconnecting", "gps reconnecting", "gps"))
+    logged = []
+    for k in range(1, 100):  # a reopen attempt per second for 99 s
+        clock.t_s = float(k)
+        logged.append(
+            hl.event(event("open_failed", "reconnecting", "reconnecting", f"#{k}", "gps"))
+        )
+    assert [k + 1 for k, ok in enumerate(logged) if ok] == [30, 60, 90]
+    assert all(r.levelname == "WARNING" for r in caplog.records)
+
+
+# --- the daemon in-process, on the HIL world --------------------------------------------------
+
+ORIGIN = (51.7520, -1.2577)
+
+
+def hil_config(tmp_path: Path, **sections: Any) -> Config:
+    base = Config(
+        server=ServerConfig(port=0),
+        gpsd=GpsdConfig(port=0),
+        recorder=RecorderConfig(dir=str(tmp_path / "rec")),
+        sim=SimConfig(gps_rate_hz=4.0, gps_baud=115200),
+        safety=SafetyConfig(geofence_radius_m=100.0),
+        gps=GpsConfig(url="sim://"),
+        compass=CompassConfig(url="sim://"),
+    )
+    cfg = dataclasses.replace(base, motors=dataclasses.replace(base.motors, url="sim://"))
+    return dataclasses.replace(cfg, **sections)
+
+
+class ProbeDaemon(Daemon):
+    """Records, with the monotonic time they reached the control loop, the health events
+    and the controller's state changes."""
+
+    def __init__(self, config: Config) -> None:
+        super().__init__(config)
+        self.seen_events: list[tuple[float, HealthEvent]] = []
+        self.changes: list[tuple[float, StateChange]] = []
+        self.fix_times: list[float] = []
+
+    def _on_device_events(self, events: list[HealthEvent]) -> None:
+        now = time.monotonic()
+        self.seen_events += [(now, e) for e in events]
+        super()._on_device_events(events)
+
+    def _on_gps_records(self, records: list[Any]) -> None:
+        self.fix_times += [r.t_s for r in records if type(r).__name__ == "GpsFix" and r.valid]
+        super()._on_gps_records(records)
+
+    def _handle(self, outputs: list[Any], important: bool = True) -> None:
+        now = time.monotonic()
+        self.changes += [(now, o) for o in outputs if isinstance(o, StateChange)]
+        super()._handle(outputs, important)
+
+
+class Running:
+    """A Daemon on its own event-loop thread."""
+
+    def __init__(self, daemon: Daemon) -> None:
+        self.daemon = daemon
+        self.ready = threading.Event()
+        self.code: int | None = None
+        self.thread = threading.Thread(target=self._main, daemon=True)
+        self.thread.start()
+        assert self.ready.wait(20), "daemon did not become ready"
+
+    def _main(self) -> None:
+        async def go() -> int:
+            self.loop = asyncio.get_running_loop()
+            return await self.daemon.run(ready=lambda _d: self.ready.set())
+
+        self.code = asyncio.run(go())
+        self.ready.set()
+
+    @property
+    def port(self) -> int:
+        assert self.daemon.server is not None
+        return self.daemon.server.port
+
+    def stop(self) -> int | None:
+        if self.thread.is_alive():
+            self.loop.call_soon_threadsafe(self.daemon.request_stop)
+            self.thread.join(15)
+        return self.code
+
+
+@pytest.fixture
+def run_daemon() -> Iterator[Callable[[Daemon], Running]]:
+    started: list[Running] = []
+
+    def start(d: Daemon) -> Running:
+        r = Running(d)
+        started.append(r)
+        return r
+
+    yield start
+    for r in started:
+        r.stop()
+    hil.shutdown()
+
+
+def wait_for(pred: Callable[[], Any], timeout_s: float = 10.0, what: str = "") -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what or pred}")
+
+
+@dataclasses.dataclass
+class Storm(ErrorInjector):
+    """Every transaction of the simulated CMPS10 fails with ``code`` until ``until_s``."""
+
+    code: int = errno.EIO
+    until_s: float = -math.inf
+
+    def check(self, what: str) -> None:
+        if time.monotonic() < self.until_s:
+            self.injected += 1
+            raise OSError(self.code, f"{os.strerror(self.code)} ({what}, storm)")
+
+
+def messages(caplog: pytest.LogCaptureFixture, prefix: str) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.getMessage().startswith(prefix)]
+
+
+def in_order(lines: list[str], *starts: str) -> bool:
+    """True when some lines start with ``starts`` in this order."""
+    i = 0
+    for line in lines:
+        if i < len(starts) and line.startswith(starts[i]):
+            i += 1
+    return i == len(starts)
+
+
+def start_mission(r: Running, c: RemoteClient) -> None:
+    """Load a waypoint 40 m north and wait until the robot drives (not HOLD)."""
+    wait_for(lambda: r.daemon.first_fix, what="first fix")
+    c.request("mission.load", waypoints=[[ORIGIN[0] + 0.00036, ORIGIN[1]]])
+    c.request("start")
+    wait_for(
+        lambda: c.request("status")["state"] in ("STRAIGHT", "TURN_LEFT", "TURN_RIGHT"),
+        10,
+        "driving",
+    )
+
+
+def test_compass_errno_storm_shows_in_status_and_log_then_recovers(
+    tmp_path: Path, run_daemon: Callable[[Daemon], Running], caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="x6wd")
+    r = run_daemon(Daemon(hil_config(tmp_path)))
+    world = hil.world()
+    storm = Storm()
+    world.compass.injector = storm
+    with RemoteClient("127.0.0.1", r.port) as c:
+        st = wait_for(
+            lambda: (s := c.request("status"))["devices"]["compass"]["state"] == "connected" and s,
+            what="compass connected",
+        )
+        assert st["devices"]["compass"]["errors"] == 0 and st["links"]["compass"] == "connected"
+        # 0.2 s storm: fewer failed samples than the driver's stale_after, shorter than
+        # [compass] stale_s: degraded, not stale
+        storm.code, storm.until_s = errno.EIO, time.monotonic() + 0.2
+        st = wait_for(
+            lambda: (s := c.request("status"))["devices"]["compass"]["state"] != "connected" and s,
+            5,
+            "compass degraded",
+        )
+        comp = st["devices"]["compass"]
+        assert comp["state"] in ("degraded", "stale")
+        assert comp["errors"] > 0 and comp["consecutive_errors"] >= 0
+        assert "Input/output error" in comp["last_error"] and comp["last_error_utc"]
+        assert st["links"]["compass_errors"] == comp["errors"]
+        st = wait_for(
+            lambda: (s := c.request("status"))["devices"]["compass"]["state"] == "connected" and s,
+            5,
+            "compass recovered",
+        )
+        assert st["devices"]["compass"]["errors"] >= comp["errors"]
+        assert st["devices"]["compass"]["errors"] == storm.injected
+        log = messages(caplog, "compass")
+        assert in_order(log, "compass degraded: ", "compass recovered after ")
+        assert len(log) <= 6  # transitions, never per sample or per error
+
+        # A non-transient error: the bus is lost and reopened (reconnects counted).
+        caplog.clear()
+        storm.code, storm.until_s = errno.EACCES, time.monotonic() + 0.4
+        st = wait_for(
+            lambda: (
+                (s := c.request("status"))["devices"]["compass"]["state"] == "reconnecting" and s
+            ),
+            5,
+            "compass reconnecting",
+        )
+        assert "Permission denied" in st["devices"]["compass"]["last_error"]
+        st = wait_for(
+            lambda: (s := c.request("status"))["devices"]["compass"]["state"] == "connected" and s,
+            10,
+            "compass reconnected",
+        )
+        assert st["devices"]["compass"]["reconnects"] == 1
+        assert in_order(
+            messages(caplog, "compass"),
+            "compass disconnected: ",
+            "compass reconnecting: reopen failed: ",
+            "compass reconnected (reconnect 1, ",
+        )
+        # the other devices are reported too
+        assert st["devices"]["gps"]["state"] == "connected"
+        assert st["devices"]["motors"]["state"] == "connected"
+    assert r.stop() == 0
+
+
+def test_compass_stale_holds_the_mission_and_it_resumes_on_fresh_samples(
+    tmp_path: Path, run_daemon: Callable[[Daemon], Running], caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="x6wd")
+    # the controller's own attitude limit is far away: only the compass health can hold
+    cfg = hil_config(tmp_path, safety=SafetyConfig(geofence_radius_m=100.0, attitude_stale_s=5.0))
+    cfg = dataclasses.replace(cfg, compass=dataclasses.replace(cfg.compass, stale_s=0.3))
+    d = ProbeDaemon(cfg)
+    r = run_daemon(d)
+    storm = Storm()
+    hil.world().compass.injector = storm
+    with RemoteClient("127.0.0.1", r.port) as c:
+        start_mission(r, c)
+        storm.code, storm.until_s = errno.EREMOTEIO, time.monotonic() + 0.8
+        st = wait_for(
+            lambda: (s := c.request("status"))["state"] == "HOLD" and s,
+            5,
+            "HOLD on a stale compass",
+        )
+        assert st["telemetry"]["hold_reason"] == "compass stale"
+        assert st["devices"]["compass"]["state"] == "stale"
+        wait_for(lambda: c.request("status")["state"] != "HOLD", 10, "resumed")
+    (t_stale,) = [e.t_s for _, e in d.seen_events if e.new == "stale"]
+    (t_fresh,) = [e.t_s for _, e in d.seen_events if e.old == "stale"]
+    assert t_fresh - t_stale > 0.3
+    holds = [ch for _, ch in d.changes if ch.new == "HOLD"]
+    assert holds[-1].reason == "state: compass stale"
+    assert in_order(messages(caplog, "compass"), "compass stale: ", "compass fresh again after ")
+    assert r.stop() == 0
+
+
+def test_gps_unplug_holds_within_a_tick_and_reconnects(
+    tmp_path: Path, run_daemon: Callable[[Daemon], Running], caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="x6wd")
+    # fix and GPS staleness limits far away: only the reader's word can hold within a tick
+    cfg = hil_config(tmp_path, safety=SafetyConfig(geofence_radius_m=100.0, fix_stale_s=20.0))
+    # The simulated receiver's pty behind a device path that vanishes on unplug, as udev's
+    # /dev/ttyUSB0 does (a stale /dev/pts/N could be taken by another process's pty).
+    hil.configure(cfg.sim)
+    uart = hil.world().uart
+    dev_path = tmp_path / "ttyGPS"
+    dev_path.symlink_to(uart.slave_name)
+    gps = GpsConfig(url=f"serial://{dev_path}?baud=115200", stale_s=20.0)
+    d = ProbeDaemon(dataclasses.replace(cfg, gps=gps))
+    r = run_daemon(d)
+    real_write = uart.write
+
+    def write(data: bytes) -> int:
+        try:
+            return real_write(data)
+        except DeviceIOError:  # unplugged: the receiver keeps talking into nothing
+            return len(data)
+
+    uart.write = write  # type: ignore[method-assign]
+    with RemoteClient("127.0.0.1", r.port) as c:
+        start_mission(r, c)
+        assert c.request("status")["devices"]["gps"]["reconnects"] == 0
+        dev_path.unlink()  # unplug: the device node goes, the reader sees a hang-up
+        uart.close()
+        st = wait_for(
+            lambda: (s := c.request("status"))["devices"]["gps"]["state"] == "reconnecting" and s,
+            5,
+            "gps reconnecting",
+        )
+        assert st["state"] == "HOLD" and st["telemetry"]["hold_reason"] == "gps reconnecting"
+        assert st["telemetry"]["left_pct"] == st["telemetry"]["right_pct"] == 0.0
+        assert st["links"]["gps"] == "reconnecting"
+        c.request("watch", on=True)
+        ev = wait_for(lambda: (e := c.next_event(2.0))["event"] == "telemetry" and e, 5)
+        assert ev["devices"]["gps"]["state"] == "reconnecting"  # health in telemetry events
+        assert ev["data"]["hold_reason"] == "gps reconnecting"
+        c.request("watch", on=False)
+        time.sleep(0.3)  # a few failed reopens
+        uart.reopen()  # plug back in
+        dev_path.symlink_to(uart.slave_name)
+        st = wait_for(
+            lambda: (s := c.request("status"))["devices"]["gps"]["state"] == "connected" and s,
+            10,
+            "gps reconnected",
+        )
+        assert st["devices"]["gps"]["reconnects"] == 1
+        wait_for(lambda: c.request("status")["state"] != "HOLD", 10, "resumed on fresh fixes")
+
+    # The controller held within one tick of the reader's failure, not after fix_stale_s.
+    (t_wall_lost, lost) = next((w, e) for w, e in d.seen_events if e.new == "disconnected")
+    hold_wall, hold = next((w, ch) for w, ch in d.changes if ch.new == "HOLD" and w >= lost.t_s)
+    assert hold.reason == "state: gps disconnected"
+    assert hold.t_s - lost.t_s <= 1.0 / TICK_HZ + 0.05  # on the controller's clock
+    assert hold_wall - lost.t_s < 0.5, "the hold must not wait for a fix timeout"
+    assert t_wall_lost <= hold_wall
+    # ... and resumed only on a fix received after the reconnect
+    (back,) = [
+        e for _, e in d.seen_events if e.device == "gps" and e.message.startswith("gps reconnected")
+    ]
+    resume = next(ch for _, ch in d.changes if ch.old == "HOLD" and ch.t_s >= back.t_s)
+    assert any(back.t_s <= t <= resume.t_s for t in d.fix_times)
+    states = [str(e.new) for _, e in d.seen_events if e.device == "gps" and e.kind == "transition"]
+    assert states[-3:] == ["disconnected", "reconnecting", "connected"]  # maybe degraded first
+    assert in_order(
+        messages(caplog, "gps"),
+        "gps disconnected: ",
+        "gps reconnecting: open failed: ",
+        "gps reconnected (reconnect 1, ",
+    )
+    assert r.stop() == 0
