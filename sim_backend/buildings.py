@@ -53,7 +53,8 @@ viable only within ``max_loss_db``. Not modelled: paths that both reflect and pe
 diffraction, frequency-dependent or angle-dependent loss (one loss per crossing whatever the
 incidence), windows with glass (a window is an opening). Where two wall boxes overlap (the
 corners of ``building``) a ray through the overlap crosses both, i.e. thicker material.
-Without materials the trace takes exactly the seed model's code path (tested bit for bit).
+Without materials the trace takes exactly the seed model's code path (tested against the
+same scene with opaque materials, in the same run).
 
 Method (exact: it finds what a brute-force search over all wall sequences finds).
 - Line of sight: a slab test of each ray against each wall box, after exact (conservative)

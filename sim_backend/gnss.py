@@ -559,7 +559,7 @@ class GnssModel:
         self._state: tuple[np.ndarray, float] | None = None
         # Signals can arrive through walls/roofs only when some have a material; only then
         # is the indoor delay process drawn, so a scene without materials consumes the
-        # random stream exactly as before (results bit-identical to the seed's model).
+        # random stream exactly as before (the seed's model; tested in the same run).
         self._penetrable = bool(getattr(walls, "penetrable", False))
         self._indoor_state: tuple[np.ndarray, float] | None = None
         self._t_last: float | None = None
