@@ -100,3 +100,23 @@ def test_sim_scenario_resolves_against_the_config_folder(tmp_path: Path) -> None
 def test_retired_sim_keys_stop_startup_with_the_key() -> None:
     with pytest.raises(ConfigError, match=r"sim\.gps_sigma_m: unknown key"):
         loads("[sim]\ngps_sigma_m = 0.3\n")
+
+
+def test_non_utf8_file_is_one_line_naming_the_place(tmp_path: Path) -> None:
+    latin1 = tmp_path / "latin1.toml"
+    latin1.write_bytes(b'[gps]\nurl = "sim://"\n[recorder]\ndir = "/var/r\xe9c"\n')
+    with pytest.raises(ConfigError) as info:
+        load(latin1)
+    msg = str(info.value)
+    assert "\n" not in msg and msg.startswith(f"{latin1}: not UTF-8")
+    assert "0xe9" in msg and "line 4" in msg
+
+
+def test_bad_toml_in_a_file_names_it_once_on_one_line(tmp_path: Path) -> None:
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[gps]\nurl = 'sim://'\n[compass\n", encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load(broken)
+    msg = str(info.value)
+    assert msg.startswith(f"{broken}: not valid TOML") and msg.count(str(broken)) == 1
+    assert "line 3" in msg and "\n" not in msg

@@ -25,6 +25,7 @@ from x6wd.recorder import (
     is_recording,
     nmea_file_chunks,
     read_recording,
+    read_recording_parts,
     recording_parts,
     replay_records,
 )
@@ -210,6 +211,24 @@ def test_rotation_by_size_keeps_every_record_in_order(tmp_path: Path) -> None:
     assert recording_parts(tmp_path / "rot.jsonl") == paths
     got = [r.data["n"] for p in paths for r in read_recording(p)]
     assert got == list(range(40))
+
+
+def test_parts_are_found_past_gaps_and_a_missing_first_part(tmp_path: Path) -> None:
+    with Recorder(tmp_path / "rot.jsonl", max_bytes=300) as rec:
+        for i in range(40):
+            rec.record_event("tick", float(i), n=i)
+    paths = rec.paths
+    assert len(paths) > 5
+    (tmp_path / "rot.01.jsonl").write_text("not a part: a leading zero\n")
+    (tmp_path / "rot.x.jsonl").write_text("not a part\n")
+    for gone in (paths[0], paths[1], paths[3]):  # retention, or a hand, removed some
+        gone.unlink()
+    assert recording_parts(tmp_path / "rot.jsonl") == [p for p in paths if p.exists()]
+    got = [r.data["n"] for r in read_recording_parts(tmp_path / "rot.jsonl")]
+    assert got == sorted(got) and got[-1] == 39
+    assert recording_parts(tmp_path / "nothing.jsonl") == []
+    with pytest.raises(DeviceUnavailable, match="nor parts of it"):
+        list(read_recording_parts(tmp_path / "nothing.jsonl"))
 
 
 def test_in_dir_names_files_by_utc_time(tmp_path: Path) -> None:

@@ -16,7 +16,15 @@ import pytest
 
 from drivers.cmps10 import Cmps10
 from drivers.motors import LogMotorLink, MotorBoard, SerialMotorLink, serve_board_fd
-from drivers.registry import SCHEMES, open_compass, open_gps_port, open_motors, parse_url
+from drivers.registry import (
+    SCHEMES,
+    UrlError,
+    check_available,
+    open_compass,
+    open_gps_port,
+    open_motors,
+    parse_url,
+)
 from x6wd.errors import ConfigError, DeviceUnavailable
 from x6wd.recorder import ReplayPort
 
@@ -243,3 +251,40 @@ def test_sim_compass_url_reaches_the_simulator() -> None:
         assert att.valid and 0.0 <= att.bearing_deg < 360.0
     finally:
         hil.shutdown()
+
+
+def test_url_errors_carry_the_reason_alone() -> None:
+    with pytest.raises(UrlError) as info:
+        parse_url("bogus://x", "gps")
+    err = info.value
+    assert (err.kind, err.url) == ("gps", "bogus://x")
+    assert (
+        err.reason == "unknown scheme 'bogus' (valid for gps: serial://, tcp://, replay://, sim://)"
+    )
+    assert str(err) == f"gps URL 'bogus://x': {err.reason}"
+    with pytest.raises(UrlError) as info:
+        parse_url("serial:///dev/ttyS0?baud=7", "motors")
+    assert info.value.reason.startswith("option baud: must be one of")
+
+
+def test_check_available_names_the_problem(tmp_path: Path) -> None:
+    assert check_available("log://", "motors").scheme == "log"
+    assert check_available(f"replay://{LEA5H}", "gps").target == str(LEA5H)
+    assert check_available("tcp://192.0.2.1:9", "gps").scheme == "tcp"  # not probed
+    assert check_available("serial:///dev/null", "gps").target == "/dev/null"
+    with pytest.raises(UrlError) as info:
+        check_available("serial:///dev/ttyNOPE", "motors")
+    assert info.value.reason == "/dev/ttyNOPE does not exist"
+    assert info.value.kind == "motors" and info.value.url == "serial:///dev/ttyNOPE"
+    with pytest.raises(UrlError, match="is not a regular file"):
+        check_available(f"replay://{tmp_path}", "gps")
+    with pytest.raises(UrlError, match="sim:// takes no path"):
+        check_available("sim://x/y", "compass")
+    with pytest.raises(UrlError, match="/dev/i2c-97 does not exist"):
+        check_available("i2c://97/0x60", "compass")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may read and write any device")
+def test_check_available_refuses_a_device_this_user_may_not_use(tmp_path: Path) -> None:
+    with pytest.raises(UrlError, match="may not read and write"):
+        check_available("serial:///dev/mem", "gps")

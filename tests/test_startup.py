@@ -18,7 +18,6 @@ from typing import Any
 
 import pytest
 
-from drivers import registry
 from sim_backend import hil
 from tests.conftest import ROOT
 from tests.test_daemon import hil_config
@@ -240,21 +239,6 @@ def test_moving_commands_are_refused_until_ready(tmp_path: Path) -> None:
         assert d.status()["state"] == "IDLE"
     finally:
         hil.shutdown()
-
-
-def test_check_available_names_the_problem(tmp_path: Path) -> None:
-    assert registry.check_available("log://", "motors").scheme == "log"
-    assert registry.check_available(f"replay://{LEA5H}", "gps").target == str(LEA5H)
-    assert registry.check_available("tcp://192.0.2.1:9", "gps").scheme == "tcp"  # not probed
-    assert registry.check_available("serial:///dev/null", "gps").target == "/dev/null"
-    with pytest.raises(registry.UrlError) as info:
-        registry.check_available("serial:///dev/ttyNOPE", "motors")
-    assert info.value.reason == "/dev/ttyNOPE does not exist"
-    assert info.value.kind == "motors" and info.value.url == "serial:///dev/ttyNOPE"
-    with pytest.raises(registry.UrlError, match="is not a regular file"):
-        registry.check_available(f"replay://{tmp_path}", "gps")
-    with pytest.raises(registry.UrlError, match="sim:// takes no path"):
-        registry.check_available("sim://x/y", "compass")
 
 
 def test_systemd_does_not_restart_on_a_configuration_error() -> None:
