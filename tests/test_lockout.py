@@ -26,7 +26,7 @@ from x6wd.server import COMMANDS, ControlServer
 
 # Written out here, not imported: adding a command to the server's unauthenticated set (or a
 # new command nobody classified) must make a test fail.
-NEEDS_AUTH = {
+NEEDS_AUTH: dict[str, dict[str, Any]] = {
     "mission.load": {"waypoints": [[51.0, -1.0]]},
     "start": {},
     "pause": {},
@@ -796,7 +796,10 @@ def test_stop_storm_is_coalesced_logged_rate_limited_and_still_stops(
         assert 1 <= len(logged) <= elapsed + 2  # the first per second, then "N more"
         time.sleep(1.1)
         lt.call(srv.sweep)  # flushes the count of the storm's tail
-        assert any("more stops" in r.getMessage() for r in caplog.records)
+        assert any(
+            r.getMessage().startswith("stop requests: ") and "more in the last" in r.getMessage()
+            for r in caplog.records
+        )
     finally:
         lt.run(srv.close())
 

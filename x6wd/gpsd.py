@@ -415,7 +415,7 @@ class GpsdServer(LineServer[_Client]):
         except asyncio.CancelledError:
             pass  # close() or eviction: a finished task keeps asyncio's stream callback quiet
         finally:
-            await self._hang_up(c)
+            await self._hang_up(c, reader)
 
 
 def read_objects(lines: Iterable[bytes]) -> list[dict[str, Any]]:

@@ -70,8 +70,8 @@ class RateLimitedLog:
             st[1] += 1
             return False
         if st is not None and st[1]:
-            msg += " (and %d more %s in the last %.1f s)"
-            args = (*args, st[1], key, now - st[0])
+            msg += " (and %d more in the last %.1f s)"
+            args = (*args, st[1], now - st[0])
         self._state[key] = [now, 0, level]
         self._logger.log(level, msg, *args)
         return True
@@ -81,7 +81,7 @@ class RateLimitedLog:
         now = self._clock()
         for key, st in self._state.items():
             if st[1] and now - st[0] >= self._period_s:
-                self._logger.log(st[2], "%d more %s in the last %.1f s", st[1], key, now - st[0])
+                self._logger.log(st[2], "%s: %d more in the last %.1f s", key, st[1], now - st[0])
                 st[0], st[1] = now, 0
 
 
@@ -106,6 +106,7 @@ class LineClient:
     drain_since_s: float | None = None  # the sender is waiting in drain() since (s)
     task: asyncio.Task[Any] | None = None  # the connection's handler task
     sender: asyncio.Task[None] | None = None
+    napping: bool = False  # the handler sleeps out a back-off (eviction must wake it)
 
     def put(self, line: bytes, maxlen: int) -> bool:
         """Queue an event line, dropping the oldest when ``maxlen`` are waiting; True if one
@@ -292,7 +293,13 @@ class LineServer(Generic[C]):
         """Count and (rate-limited) log a close the server decided."""
         self.closed_counts[reason] += 1
         self._rlog.log(
-            reason, logging.WARNING, "%s: closing %s (%s): %s", self.label, c.peer, reason, message
+            f"{self.label}: {reason} closes",
+            logging.WARNING,
+            "%s: closing %s (%s): %s",
+            self.label,
+            c.peer,
+            reason,
+            message,
         )
 
     def _evict(self, c: C, reason: str, message: str) -> None:
@@ -316,8 +323,11 @@ class LineServer(Generic[C]):
                 transport.close()
             else:  # it does not read: do not keep the socket open for its buffer
                 transport.abort()
+        # The aborted socket ends the handler's read and the sender's drain by itself; only a
+        # handler sleeping out a back-off is cancelled (cancelling costs reference cycles the
+        # garbage collector must find: a connect-churn storm would make it pause the process)
         task = c.task
-        if task is not None and task is not asyncio.current_task() and not task.done():
+        if c.napping and task is not None and task is not asyncio.current_task():
             task.cancel()
 
     # -- deadlines ------------------------------------------------------------------------
@@ -364,16 +374,27 @@ class LineServer(Generic[C]):
                 _log.exception("%s: deadline sweep failed", self.label)
 
     # -- per connection -------------------------------------------------------------------
-    async def _hang_up(self, c: C) -> None:
-        """End a connection: let its sender flush (at most 1 s) unless the server evicted
-        it, close, forget it."""
+    async def _nap(self, c: C, seconds: float) -> None:
+        """Sleep out a back-off; an eviction meanwhile ends it (the handler is cancelled)."""
+        c.napping = True
+        try:
+            await asyncio.sleep(seconds)
+        finally:
+            c.napping = False
+
+    async def _hang_up(self, c: C, reader: asyncio.StreamReader | None = None) -> None:
+        """End a connection: let its sender flush (at most 1 s; an evicted one stops at
+        once), close, forget it."""
+        if reader is not None and reader.exception() is not None:
+            # a socket error kept by the reader holds the frames it was raised in, which
+            # lead back to the reader: replace it by one without a traceback so reference
+            # counting frees the connection (a churn storm must not feed the collector)
+            reader.set_exception(ConnectionResetError("connection closed"))
         self._forget(c)
         c.closed = True
         c.wake.set()
         sender = c.sender
         if sender is not None:
-            if c.evicted:
-                sender.cancel()
             with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError):
                 await asyncio.wait_for(sender, 1.0)
         transport = c.writer.transport
@@ -384,6 +405,7 @@ class LineServer(Generic[C]):
                 c.writer.close()
         if c.task is not None:
             self._tasks.discard(c.task)
+        c.task = c.sender = None  # no cycle through the client: plain reference counting frees it
 
     async def _sender(self, c: C) -> None:
         try:

@@ -71,6 +71,8 @@ AUTH_FAIL_BUDGET = 10
 AUTH_FAIL_REFILL_PER_S = 0.1
 """How fast that budget comes back (failures per second)."""
 MAX_TRACKED_ADDRESSES = 1024
+MAX_AUTH_BACKOFF_S = 60.0
+"""Longest per-connection wait after failed authentications (s)."""
 STATUS_REUSE_S = 0.05
 """A status computed this recently (s), with no command since, answers other requesters: a
 crowd polling ``status`` costs the control loop at most ~20 calls per second."""
@@ -428,7 +430,7 @@ class ControlServer(LineServer[_Client]):
         except asyncio.CancelledError:
             pass  # close() or eviction: a finished task keeps asyncio's stream callback quiet
         finally:
-            await self._hang_up(c)
+            await self._hang_up(c, reader)
 
     def _bucket(self, now: float) -> _Bucket:
         burst = max(5.0, self.config.rate_per_s)
@@ -452,7 +454,7 @@ class ControlServer(LineServer[_Client]):
             if budget.level < 0:
                 # a flood: stop reading this client for a while (only it waits)
                 scanned = self._early_stops(buf, scanned, discarding)
-                await asyncio.sleep(-budget.level / rate)
+                await self._nap(c, -budget.level / rate)
             while not c.closed:
                 nl = buf.find(b"\n")
                 if nl < 0:
@@ -493,7 +495,7 @@ class ControlServer(LineServer[_Client]):
                 wait, c.backoff_s = max(wait, c.backoff_s), 0.0
                 if wait > 0.0:
                     scanned = self._early_stops(buf, scanned, discarding)
-                    await asyncio.sleep(wait)
+                    await self._nap(c, wait)
             while len(c.replies) > MAX_PENDING_REPLIES and not c.closed:
                 # a client that asks without reading waits here, alone
                 scanned = self._early_stops(buf, scanned, discarding)
@@ -632,7 +634,7 @@ class ControlServer(LineServer[_Client]):
             return st
         if cmd == "stop":
             self.stops["requested"] += 1
-            self._rlog.log("stops", logging.INFO, "stop requested by %s", c.peer)
+            self._rlog.log("stop requests", logging.INFO, "stop requested by %s", c.peer)
             return dict(await asyncio.shield(self._fire_stop()))
         if cmd == "watch":
             on = req.get("on", req.get("enable", True))
@@ -731,7 +733,7 @@ class ControlServer(LineServer[_Client]):
             # this address has failed too often: every attempt from it is evaluated only
             # after a delay. Each waits in its own task (no queue), so a guesser cannot make
             # an operator on the same address wait longer than this.
-            await asyncio.sleep(self.config.auth_fail_delay_s)
+            await self._nap(c, self.config.auth_fail_delay_s)
         ok = hmac.compare_digest(hashlib.sha256(given).digest(), self._token_digest)
         if not ok:
             budget.refill(self._clock())
@@ -740,7 +742,9 @@ class ControlServer(LineServer[_Client]):
             c.auth_failures += 1
             self.auth_failed_total += 1
             # doubling per failure: the next line from this connection is read only then
-            c.backoff_s = self.config.auth_fail_delay_s * 2.0 ** (c.auth_failures - 1)
+            c.backoff_s = min(
+                MAX_AUTH_BACKOFF_S, self.config.auth_fail_delay_s * 2.0 ** (c.auth_failures - 1)
+            )
             if c.auth_failures >= self.config.max_auth_failures:
                 c.close_reason = "auth_failures"
             self._rlog.log(
