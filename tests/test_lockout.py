@@ -351,6 +351,35 @@ def test_a_watcher_that_never_reads_is_closed_on_the_control_port(lt: LoopThread
         lt.run(srv.close())
 
 
+def test_a_watcher_whose_receive_window_stays_shut_is_closed_early(lt: LoopThread) -> None:
+    """A low-rate stream would take minutes to fill the server's buffers; the kernel's send
+    queue shows at once that the peer acknowledges nothing: closed after slow_client_s."""
+    clock = Clock()
+    srv = serve(lt, RecordingBackend(), clock=clock, slow_client_s=10.0)
+    stuck = _stuck_socket(srv.port)
+    try:
+        stuck.sendall(json.dumps({"id": 1, "cmd": "auth", "token": TOKEN}).encode() + b"\n")
+        stuck.sendall(b'{"id":2,"cmd":"watch","on":true}\n')
+        wait_until(lambda: lt.call(lambda: sum(c.watching for c in srv._clients)) == 1)
+        event = {"event": "telemetry", "data": {"pad": "y" * 10_000}}
+        for _ in range(4):  # 40 kB: more than the peer's 4 kB window, less than our buffers
+            lt.call(lambda: srv.publish(event))
+        (c,) = lt.call(lambda: list(srv._clients))
+        time.sleep(0.2)
+        assert c.drain_since_s is None  # the sender is not blocked
+        lt.call(srv.sweep)  # the first look: data waits, none acknowledged
+        clock.now += 9.0
+        lt.call(srv.sweep)
+        assert not c.evicted
+        clock.now += 1.5
+        lt.call(srv.sweep)
+        assert c.evicted == "slow_reader"
+        wait_until(lambda: is_closed(stuck))
+    finally:
+        stuck.close()
+        lt.run(srv.close())
+
+
 # -- gpsd port -----------------------------------------------------------------------------
 def _gpsd_watch(port: int) -> tuple[socket.socket, Any]:
     s = socket.create_connection(("127.0.0.1", port), timeout=5)

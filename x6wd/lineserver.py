@@ -19,9 +19,12 @@ gpsd port: one valid command). The two live in separate pools:
 
 One sweeper task per server enforces the deadlines: pending longer than
 ``pending_timeout_s``, a session neither watching nor sending a line for ``idle_timeout_s``,
-and a sender blocked in ``drain()`` for ``slow_client_s`` (it never reads). Every such close
-is counted in :attr:`LineServer.closed_counts` and logged at most once per second per reason
-(then "N more").
+and a peer that does not read: a sender blocked in ``drain()`` for ``slow_client_s``, or
+(Linux) data in the kernel's send queue that the peer has not acknowledged any of for
+``slow_client_s`` (its receive window stays shut). The second catches a never-reading
+watcher as soon as its own receive buffer is full, long before a low-rate stream fills the
+server's send buffer. Every such close is counted in :attr:`LineServer.closed_counts` and
+logged at most once per second per reason (then "N more").
 """
 
 from __future__ import annotations
@@ -29,8 +32,11 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import fcntl
 import logging
 import ssl
+import struct
+import termios
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -104,6 +110,9 @@ class LineClient:
     t_connect_s: float = 0.0  # server clock (s)
     t_active_s: float = 0.0  # last complete line received (s, server clock)
     drain_since_s: float | None = None  # the sender is waiting in drain() since (s)
+    bytes_out: int = 0  # bytes handed to the transport
+    acked_out: int = -1  # of those, acknowledged by the peer at the last sweep
+    stalled_since_s: float | None = None  # unacknowledged data without progress since (s)
     task: asyncio.Task[Any] | None = None  # the connection's handler task
     sender: asyncio.Task[None] | None = None
     napping: bool = False  # the handler sleeps out a back-off (eviction must wake it)
@@ -126,6 +135,19 @@ class LineClient:
 
 
 C = TypeVar("C", bound=LineClient)
+
+
+def unacknowledged_bytes(transport: asyncio.BaseTransport) -> int | None:
+    """Bytes in the kernel's send queue of a TCP transport that the peer has not
+    acknowledged (Linux SIOCOUTQ); None where that cannot be read."""
+    sock = transport.get_extra_info("socket")
+    if sock is None:
+        return None
+    try:
+        raw = fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, b"\0\0\0\0")  # = SIOCOUTQ
+    except (OSError, ValueError):
+        return None
+    return int(struct.unpack("i", raw)[0])
 
 
 def peer_names(writer: asyncio.StreamWriter) -> tuple[str, str]:
@@ -281,7 +303,10 @@ class LineServer(Generic[C]):
         longest, then the one with most events queued or dropped."""
         if not self._is_watching(c):
             return (0, c.t_active_s, 0.0)
-        stalled_s = 0.0 if c.drain_since_s is None else now - c.drain_since_s
+        stalled_s = max(
+            0.0 if c.drain_since_s is None else now - c.drain_since_s,
+            0.0 if c.stalled_since_s is None else now - c.stalled_since_s,
+        )
         return (1, -stalled_s, -float(len(c.events) + c.dropped))
 
     def _forget(self, c: C) -> None:
@@ -340,8 +365,11 @@ class LineServer(Generic[C]):
         for c in list(self._clients):
             if c.closed:
                 continue
-            if c.drain_since_s is not None and now - c.drain_since_s >= self.slow_client_s:
-                self._evict(c, SLOW_READER, f"has not read for {now - c.drain_since_s:.1f} s")
+            stalled_s = self._stalled_s(c, now)
+            if c.drain_since_s is not None:  # the sender waits in drain(): no room at all
+                stalled_s = max(stalled_s, now - c.drain_since_s)
+            if stalled_s >= self.slow_client_s:
+                self._evict(c, SLOW_READER, f"has not read for {stalled_s:.1f} s")
             elif not c.session and now - c.t_connect_s >= self.pending_timeout_s:
                 self._evict(
                     c,
@@ -357,6 +385,23 @@ class LineServer(Generic[C]):
             closed += 1
         self._rlog.flush()
         return closed
+
+    @staticmethod
+    def _stalled_s(c: C, now: float) -> float:
+        """Seconds the peer has acknowledged none of the data waiting for it (0 when nothing
+        waits, or when the kernel cannot tell)."""
+        transport = c.writer.transport
+        outq = unacknowledged_bytes(transport)
+        if outq is None:
+            return 0.0
+        waiting = outq + transport.get_write_buffer_size()
+        acked = c.bytes_out - waiting
+        if waiting == 0:
+            c.stalled_since_s = None
+        elif acked != c.acked_out or c.stalled_since_s is None:
+            c.stalled_since_s = now  # progress (or the first look): the stall starts now
+        c.acked_out = acked
+        return 0.0 if c.stalled_since_s is None else now - c.stalled_since_s
 
     def _sweep_period_s(self) -> float:
         # a quarter of the shortest deadline: closes happen at most 25 % late; one timer for
@@ -416,6 +461,7 @@ class LineServer(Generic[C]):
                     c.replies.clear()
                     c.events.clear()
                     c.writer.write(batch)
+                    c.bytes_out += len(batch)
                     # the sweeper closes a sender stuck here for slow_client_s
                     c.drain_since_s = self._clock()
                     await c.writer.drain()
