@@ -194,6 +194,33 @@ def test_a_swarm_on_one_address_does_not_crowd_out_an_operator_on_another(
         lt.run(srv.close())
 
 
+def test_an_auth_not_read_yet_survives_a_burst_of_connections(lt: LoopThread) -> None:
+    """The loop stalls (a collector pause, say); meanwhile the operator connects and sends
+    its auth, then 10 silent sockets connect. When the loop resumes they are all accepted at
+    once and evict before any handler reads: the operator, with input waiting, is skipped."""
+    backend = RecordingBackend()
+    srv = serve(lt, backend, max_pending=4)
+    old = silent(srv.port, 3)
+    wait_until(lambda: lt.call(lambda: srv.pending_count) == 3)
+    stall = threading.Thread(target=lambda: lt.call(lambda: time.sleep(0.5)))
+    stall.start()
+    time.sleep(0.05)
+    op = Raw(srv.port)
+    op.send(json.dumps({"id": 1, "cmd": "auth", "token": TOKEN}).encode() + b"\n")
+    op.send(b'{"id":2,"cmd":"stop"}\n')
+    burst = silent(srv.port, 10)
+    stall.join()
+    try:
+        assert op.line() == {"id": 1, "ok": True, "authenticated": True}
+        assert op.line()["ok"] and backend.calls == [("stop", None)]
+        assert lt.call(lambda: srv.closed_counts["pending_full"]) == 10
+    finally:
+        op.close()
+        for s in old + burst:
+            s.close()
+        lt.run(srv.close())
+
+
 def test_pending_peers_that_sent_garbage_are_evicted_first(lt: LoopThread) -> None:
     backend = RecordingBackend()
     srv = serve(lt, backend, max_pending=4)

@@ -29,7 +29,7 @@ from typing import Any
 from x6wd import __version__
 from x6wd.config import GpsdConfig
 from x6wd.errors import ProtocolError
-from x6wd.lineserver import LineClient, LineServer, peer_names
+from x6wd.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
 from x6wd.records import Attitude, GpsFix, GpsSky
 
 log = logging.getLogger(__name__)
@@ -285,7 +285,11 @@ class GpsdServer(LineServer[_Client]):
     async def start(self) -> None:
         """Bind and listen."""
         server = await asyncio.start_server(
-            self._handle, self.bind, self._configured_port, limit=MAX_COMMAND_BYTES * 2
+            self._handle,
+            self.bind,
+            self._configured_port,
+            limit=MAX_COMMAND_BYTES * 2,
+            backlog=LISTEN_BACKLOG,
         )
         self._listening(server)
         log.info("gpsd port listening on %s:%d", self.bind, self.port)
@@ -378,7 +382,7 @@ class GpsdServer(LineServer[_Client]):
         if task is not None:
             self._tasks.add(task)
         peer, host = peer_names(writer)
-        c = _Client(writer=writer, peer=peer, host=host, task=task)
+        c = _Client(writer=writer, peer=peer, host=host, task=task, reader=reader)
         try:
             self._connected(c)
             c.reply(dumps(version_obj()))

@@ -9,10 +9,12 @@ Lock-out protection. A new connection is *pending* until the protocol admits it 
 *session* (the control port: a correct ``auth``, or without a token one valid request; the
 gpsd port: one valid command). The two live in separate pools:
 
-- pending pool (``max_pending``): full means a new connection closes the oldest pending one
-  (of the address holding the most pending connections, and among those first one that has
-  already sent something malformed). A connection is never refused, and pending peers never
-  hold a session slot, so silent sockets cannot lock an operator out.
+- pending pool (``max_pending``): full means a new connection closes a pending one: of the
+  address holding the most pending connections, one that has already sent something
+  malformed, else the oldest with no input waiting to be read, else the oldest. A connection
+  is never refused, and pending peers never hold a session slot, so silent sockets cannot
+  lock an operator out; and an operator whose ``auth`` has arrived but not been read yet
+  (a burst of connections accepted after a pause) is not the one closed.
 - session pool (``max_clients``): full means the peer being admitted closes the least
   valuable session: the one idle longest among those not watching, else the watcher that is
   most behind (blocked in ``drain()`` longest, then most events queued).
@@ -43,6 +45,11 @@ from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 _log = logging.getLogger(__name__)
+
+LISTEN_BACKLOG = 1024
+"""Connections the kernel may hold before they are accepted: a burst after a pause (or a
+churning client) must not fill the queue, or an operator's SYN is dropped and its connect
+waits a second for the retry (Linux caps it at net.core.somaxconn)."""
 
 # reasons a server closes a connection (keys of ``closed_counts``, and the notice's reason)
 PENDING_FULL = "pending_full"
@@ -114,6 +121,7 @@ class LineClient:
     acked_out: int = -1  # of those, acknowledged by the peer at the last sweep
     stalled_since_s: float | None = None  # unacknowledged data without progress since (s)
     task: asyncio.Task[Any] | None = None  # the connection's handler task
+    reader: asyncio.StreamReader | None = None
     sender: asyncio.Task[None] | None = None
     napping: bool = False  # the handler sleeps out a back-off (eviction must wake it)
 
@@ -135,6 +143,23 @@ class LineClient:
 
 
 C = TypeVar("C", bound=LineClient)
+
+
+def unread_bytes(c: LineClient) -> int:
+    """Input that has arrived for a connection but that its handler has not consumed yet:
+    the kernel's receive queue (FIONREAD) plus the stream reader's buffer (bytes)."""
+    n = 0
+    reader = c.reader
+    if reader is not None:
+        n += len(getattr(reader, "_buffer", b""))  # CPython's StreamReader keeps it here
+    sock = c.writer.transport.get_extra_info("socket")
+    if sock is not None:
+        try:
+            raw = fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0")
+            n += int(struct.unpack("i", raw)[0])
+        except (OSError, ValueError):
+            pass
+    return n
 
 
 def unacknowledged_bytes(transport: asyncio.BaseTransport) -> int | None:
@@ -274,11 +299,17 @@ class LineServer(Generic[C]):
     def _pending_victim(self, exclude: C) -> C:
         # the address holding the most pending connections pays (a remote operator is not
         # crowded out by a local swarm); within it, a peer that already sent garbage or a
-        # wrong token goes first, then the oldest (a fresh operator is the newest)
+        # wrong token goes first, then the oldest that has no input waiting: an operator
+        # sends auth at once, and after a pause a burst of newer connections must not close
+        # it before its handler has read that line (a fresh operator is also the newest)
         per_host = collections.Counter(c.host for c in self._pending if c is not exclude)
         busiest = max(per_host.values())
         candidates = [c for c in self._pending if c is not exclude and per_host[c.host] == busiest]
-        return next((c for c in candidates if c.suspect), candidates[0])
+        suspect = next((c for c in candidates if c.suspect), None)
+        if suspect is not None:
+            return suspect
+        # oldest first, stopping at the first idle one: usually one ioctl per eviction
+        return next((c for c in candidates if unread_bytes(c) == 0), candidates[0])
 
     def _promote(self, c: C) -> None:
         """Admit a pending connection to the session pool, closing the least valuable
@@ -450,7 +481,7 @@ class LineServer(Generic[C]):
                 c.writer.close()
         if c.task is not None:
             self._tasks.discard(c.task)
-        c.task = c.sender = None  # no cycle through the client: plain reference counting frees it
+        c.task = c.sender = c.reader = None  # no cycle through the client: refcounting frees it
 
     async def _sender(self, c: C) -> None:
         try:

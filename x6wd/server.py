@@ -39,7 +39,7 @@ from typing import Any, Protocol
 from x6wd import __version__
 from x6wd.config import ServerConfig
 from x6wd.errors import ConfigError, ParseError, X6wdError
-from x6wd.lineserver import LineClient, LineServer, peer_names
+from x6wd.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
 from x6wd.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx
 
 log = logging.getLogger(__name__)
@@ -368,7 +368,12 @@ class ControlServer(LineServer[_Client]):
             # a peer stalling the handshake is not in any pool yet: bound it like auth
             extra["ssl_handshake_timeout"] = self.config.auth_timeout_s
         server = await asyncio.start_server(
-            self._handle, self.config.bind, self._configured_port, ssl=self._ssl, **extra
+            self._handle,
+            self.config.bind,
+            self._configured_port,
+            ssl=self._ssl,
+            backlog=LISTEN_BACKLOG,
+            **extra,
         )
         self._listening(server)
         log.info(
@@ -417,6 +422,7 @@ class ControlServer(LineServer[_Client]):
             peer=peer,
             host=host,
             task=task,
+            reader=reader,
             authenticated=self._token is None,
             tokens=self._bucket(now),
             faults=self._bucket(now),
