@@ -39,11 +39,11 @@ import numpy as np
 
 from bench._common import Row, print_table
 from sim_backend import hil
-from x6wd.client import ConnectionFailed, RemoteClient, RequestFailed
-from x6wd.config import Config, GpsdConfig, RecorderConfig, ServerConfig, SimConfig
-from x6wd.daemon import Daemon
-from x6wd.errors import ProtocolError
-from x6wd.records import GpsFix, MotorCommand
+from x6wd.app.client import ConnectionFailed, RemoteClient, RequestFailed
+from x6wd.app.daemon import Daemon
+from x6wd.core.config import Config, GpsdConfig, RecorderConfig, ServerConfig, SimConfig
+from x6wd.core.errors import ProtocolError
+from x6wd.core.records import GpsFix, MotorCommand
 
 TARGET_P99_MS = 5.0
 TARGET_MOTOR_GAP_MS = 250.0

@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from bench._common import Row, print_table
-from x6wd.constellation import Constellation, filter_series
+from x6wd.nav.constellation import Constellation, filter_series
 
 N = 20
 NMEA_STEP_DEG = 1e-5 / 60

@@ -4,14 +4,14 @@ Works over any object with the smbus2 method set (``smbus2.SMBus`` on the robot,
 simulator's register map in tests). One sample is ONE block read of registers 2-5, so the
 bearing bytes and pitch/roll come from the same device update (two reads can tear).
 
-Linux reports I2C trouble as ``OSError``; the errnos of :data:`x6wd.errors.TRANSIENT_ERRNOS`
+Linux reports I2C trouble as ``OSError``; the errnos of :data:`x6wd.core.errors.TRANSIENT_ERRNOS`
 (EIO, ENXIO, EAGAIN, EBUSY, EINTR, EPROTO, ETIMEDOUT, EREMOTEIO) are retried. After
 ``stale_after`` consecutive failed samples, or when no good sample arrived for ``stale_s``
 seconds (by the sample times, whatever the count), the driver reports the attitude as stale
 (``valid=False``) until a good read: a device fault is data, not a crash. Any other errno is a
 real fault: the health says disconnected and :class:`DeviceIOError` is raised.
 
-Health: :attr:`Cmps10.health` (a :class:`~x6wd.records.DeviceHealth`) counts every failed
+Health: :attr:`Cmps10.health` (a :class:`~x6wd.core.records.DeviceHealth`) counts every failed
 attempt, and says connected / degraded (errors being retried, data fresh) / stale /
 disconnected; :meth:`Cmps10.take_health_events` hands its transitions to the caller's log.
 """
@@ -25,9 +25,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from x6wd.errors import DeviceIOError, DeviceUnavailable, is_transient
-from x6wd.health import HealthTracker
-from x6wd.records import Attitude, DeviceHealth, HealthEvent
+from x6wd.core.errors import DeviceIOError, DeviceUnavailable, is_transient
+from x6wd.core.health import HealthTracker
+from x6wd.core.records import Attitude, DeviceHealth, HealthEvent
 
 DEFAULT_ADDRESS = 0x60
 VALID_ADDRESSES = tuple(range(0x60, 0x68))

@@ -4,14 +4,14 @@
 needed (with capped exponential backoff between failed attempts), waits for bytes at most
 about ``timeout_s`` seconds, hands them to the sans-IO ``GpsDecoder`` with the receive time,
 and returns the decoded records. A read error with a transient errno
-(:data:`x6wd.errors.TRANSIENT_ERRNOS`: EIO, EAGAIN, EBUSY, EINTR, EPROTO ... — pyserial wraps
+(:data:`x6wd.core.errors.TRANSIENT_ERRNOS`: EIO, EAGAIN, EBUSY, EINTR, EPROTO ... — pyserial wraps
 the OSError in a ``SerialException`` without errno; the errno is taken from the wrapped one)
 is counted and retried on the same port, ``retry_delay_s`` later within the same poll, up to
 ``transient_limit`` in a row. Any other error, too many transient ones, or EOF (a socket peer
 that left) closes the port, marks the GPS disconnected and schedules a reopen: a device
 fault is data, never an exception to the caller.
 
-Health: :attr:`GpsReader.health` is a :class:`~x6wd.records.DeviceHealth` (connected,
+Health: :attr:`GpsReader.health` is a :class:`~x6wd.core.records.DeviceHealth` (connected,
 degraded, stale when no valid sentence arrived for ``stale_s``, disconnected, reconnecting,
 with error and reconnect counts); :meth:`GpsReader.take_health_events` hands each transition
 to the caller at once (the daemon holds the robot on it, without waiting for a fix timeout).
@@ -32,9 +32,9 @@ from collections.abc import Callable
 from typing import Protocol
 
 from drivers.gps_nmea import GpsDecoder, Record, UbxAck, parse_ack
-from x6wd.errors import ConfigError, ParseError, X6wdError, is_transient
-from x6wd.health import HealthTracker, root_oserror
-from x6wd.records import DeviceHealth, DeviceState, HealthEvent
+from x6wd.core.errors import ConfigError, ParseError, X6wdError, is_transient
+from x6wd.core.health import HealthTracker, root_oserror
+from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent
 
 _IDLE_POLL_S = 0.01  # wait step for ports that cannot be select()ed
 

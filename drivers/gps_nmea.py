@@ -60,8 +60,8 @@ from typing import Any, Final, TypeVar
 
 import pynmea2
 
-from x6wd.errors import ConfigError, ParseError
-from x6wd.records import GpsFix, GpsSky, SatInfo
+from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
 MAX_SENTENCE_CHARS: Final = 130  # gpsd's cap, '$' to checksum inclusive
 MAX_UBX_PAYLOAD: Final = 1024  # larger "frames" are false syncs in line noise

@@ -10,9 +10,9 @@
 Stopping never raises: :meth:`SerialMotorLink.stop` tries, counts and returns whether the
 board confirmed. If the link is dead, the board's watchdog stops the motors by itself.
 
-Health: both links keep a :class:`~x6wd.records.DeviceHealth` (:attr:`health`) and queue its
+Health: both links keep a :class:`~x6wd.core.records.DeviceHealth` (:attr:`health`) and queue its
 transitions for :meth:`take_health_events`. A port error with a transient errno
-(:data:`x6wd.errors.TRANSIENT_ERRNOS`) or a missing acknowledgement is retried within the
+(:data:`x6wd.core.errors.TRANSIENT_ERRNOS`) or a missing acknowledgement is retried within the
 command; any other port error is not (the port is broken): the link is lost at once.
 """
 
@@ -29,9 +29,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
-from x6wd.errors import is_transient
-from x6wd.health import HealthTracker, root_oserror
-from x6wd.records import DeviceHealth, HealthEvent, MotorCommand
+from x6wd.core.errors import is_transient
+from x6wd.core.health import HealthTracker, root_oserror
+from x6wd.core.records import DeviceHealth, HealthEvent, MotorCommand
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ kind       URL                                      backend
 =========  =======================================  ==========================================
 gps        ``serial:///dev/ttyS0?baud=9600``        pyserial ``Serial`` (a UART or a pty)
 gps        ``tcp://host:port``                      pyserial ``socket://`` (ser2net, gpsd raw)
-gps        ``replay:///path/log.nmea?speed=1``      :class:`x6wd.recorder.ReplayPort`
+gps        ``replay:///path/log.nmea?speed=1``      :class:`x6wd.core.recorder.ReplayPort`
 compass    ``i2c://1/0x60``                         ``smbus2.SMBus(1)`` + :class:`Cmps10`
 motors     ``serial:///dev/ttyUSB0?baud=115200``    :class:`SerialMotorLink`
 motors     ``tcp://host:port``                      :class:`SerialMotorLink` over a socket
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 from urllib.parse import parse_qsl, unquote, urlsplit
 
-from x6wd.errors import ConfigError, DeviceUnavailable
+from x6wd.core.errors import ConfigError, DeviceUnavailable
 
 if TYPE_CHECKING:
     from drivers.cmps10 import Cmps10
@@ -328,7 +328,7 @@ def open_gps_port(url: str) -> PortLike:
         port: PortLike = _sim_module("gps").open_gps(url)
         return port
     if dev.scheme == "replay":
-        from x6wd.recorder import ReplayPort
+        from x6wd.core.recorder import ReplayPort
 
         return ReplayPort(
             dev.target,

@@ -3,7 +3,7 @@
 PUBLIC API (every method is vectorised: array arguments broadcast against each other; the
 result has the broadcast shape; scalars give 0-d arrays)
 
-- ``Atmosphere`` (frozen dataclass; validated by ``x6wd.config.build`` under ``[atmosphere]``)
+- ``Atmosphere`` (frozen dataclass; validated by ``x6wd.core.config.build`` under ``[atmosphere]``)
     - ``iono_delay_m(el_deg)``: seed formula ``0.162·(1 + 2.74e-6·(96 − e)³)·TEC`` (m).
     - ``tropo_delay_m(el_deg, lat_deg, doy, height_m)``: Saastamoinen hydrostatic zenith delay
       at the receiver height times the Niell hydrostatic mapping (Marini form, seasonal table,
@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 F_L1_GHZ = 1.57542
 EARTH_RADIUS_M = 6371.0e3

@@ -90,7 +90,7 @@ from typing import Any
 
 import numpy as np
 
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 LOSS_PER_REFLECTION_DB = 3.0
 _EPS = 1e-9

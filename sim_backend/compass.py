@@ -37,7 +37,7 @@ from typing import cast
 
 import numpy as np
 
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 VERSION = 15
 DEFAULT_ADDRESS = 0x60

@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 GPS_EFFECT_NAMES = (
     "gauss_markov",

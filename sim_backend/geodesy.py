@@ -14,7 +14,7 @@ from datetime import UTC, datetime, timedelta
 
 import numpy as np
 
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 # WGS-84 and IS-GPS-200 constants.
 A_M = 6378137.0  # semi-major axis

@@ -61,7 +61,7 @@ from sim_backend.geodesy import (
     utc_to_gps_seconds,
 )
 from sim_backend.sky import DEFAULT_MASK_DEG, SatelliteSet, batched_inverse
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 Fidelity = Literal["seed", "pseudorange"]
 FIDELITIES: tuple[str, ...] = ("seed", "pseudorange")

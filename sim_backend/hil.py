@@ -29,7 +29,7 @@ Scenario time: epoch ``k`` of the receiver is scenario time ``k / rate_hz`` s, s
 UTC is the scenario's ``start_utc`` plus the world's age (the packaged almanac is for
 2020-01-01; the wall clock's date would be years outside it).
 
-``[sim]`` overrides (x6wd.config.SimConfig): ``seed``, ``origin_*``, ``start_heading_deg``,
+``[sim]`` overrides (x6wd.core.config.SimConfig): ``seed``, ``origin_*``, ``start_heading_deg``,
 ``start_east_m``/``start_north_m``, ``gps_rate_hz``, ``gps_baud``, ``v_max_mps``,
 ``motor_tau_s`` replace the scenario's value when present; ``physics_hz`` and
 ``motor_watchdog_ms`` are HIL's own. Receiver errors live in the scenario (``[gnss]``,
@@ -77,9 +77,9 @@ from sim_backend.mission import (
 from sim_backend.nmea_out import NmeaFormatter, sentence, wire_time_s
 from sim_backend.ports import PtyUart
 from sim_backend.world import World, load_world
-from x6wd.config import SimConfig
-from x6wd.errors import ConfigError, DeviceUnavailable
-from x6wd.records import MotorCommand
+from x6wd.core.config import SimConfig
+from x6wd.core.errors import ConfigError, DeviceUnavailable
+from x6wd.core.records import MotorCommand
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +125,7 @@ def resolve_scenario(path: str) -> Path:
 class HilParams:
     """The world's settings: a scenario file plus overrides (None = the scenario's value).
 
-    Units and ranges as in :class:`x6wd.config.SimConfig`."""
+    Units and ranges as in :class:`x6wd.core.config.SimConfig`."""
 
     scenario: str = ""
     seed: int | None = None

@@ -12,7 +12,7 @@ The decoded fix is stamped with the time its burst finished on the wire at the s
 rate, so the controller sees the receiver's real latency. Nothing reads a wall clock except the
 progress display and the wall-time figure; the outputs depend only on the scenario and the seed.
 
-Outputs in ``--out DIR``: ``recording.jsonl`` (the :mod:`x6wd.recorder` format, ``t_mono`` =
+Outputs in ``--out DIR``: ``recording.jsonl`` (the :mod:`x6wd.core.recorder` format, ``t_mono`` =
 simulated seconds, ``t_utc`` = scenario UTC), ``gps.nmea`` (every byte the receiver emitted),
 ``truth.csv`` (t_s, lat, lon, alt, heading_deg at each physics step), ``summary.json`` and
 ``track.png``.
@@ -85,10 +85,10 @@ from sim_backend.ports import MemoryUart
 from sim_backend.sky import SatelliteSet, read_yuma
 from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
 from sim_backend.world import World, load_world
-from x6wd.controller import Controller
-from x6wd.errors import ConfigError
-from x6wd.recorder import Recorder
-from x6wd.records import GpsFix, GpsSky, Mode, MotorCommand, NavState, StateChange, Telemetry
+from x6wd.core.errors import ConfigError
+from x6wd.core.recorder import Recorder
+from x6wd.core.records import GpsFix, GpsSky, Mode, MotorCommand, NavState, StateChange, Telemetry
+from x6wd.nav.controller import Controller
 
 R1_M = 6378160.0  # the paper's equatorial radius (x = Λ·R1)
 R2_M = 6356770.0  # the paper's polar radius (y = Φ·R2)

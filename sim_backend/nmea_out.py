@@ -24,7 +24,7 @@ from typing import Protocol
 import numpy as np
 
 from sim_backend.epoch import GnssEpoch, SimSat
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 KNOTS_PER_MPS = 3600.0 / 1852.0
 KMH_PER_MPS = 3.6

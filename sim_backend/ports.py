@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from sim_backend.nmea_out import wire_time_s
-from x6wd.errors import ConfigError, DeviceIOError
+from x6wd.core.errors import ConfigError, DeviceIOError
 
 DEFAULT_BAUD = 9600
 PACE_CHUNK_S = 0.01  # pacing granularity in real-time mode

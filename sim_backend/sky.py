@@ -40,7 +40,7 @@ from sim_backend.geodesy import (
     utc_to_gps_seconds,
     week_tow_to_gps_seconds,
 )
-from x6wd.errors import ConfigError, ParseError
+from x6wd.core.errors import ConfigError, ParseError
 
 DEFAULT_MASK_DEG = 5.0
 DEFAULT_VALIDITY_S = 7200.0  # +-2 h around toe (the seed paper's validity, a 4 h fit interval)

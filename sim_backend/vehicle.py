@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 MAX_SPEED_MPS = 14.0 / 3.6  # the X6WD's top speed on even ground
 

@@ -39,7 +39,7 @@ Scenario layout (every key optional unless stated; errors name the dotted key)::
     [compass] a plain table handed to the compass emulation
     [[effects]] {name = "...", params...}: sim_backend.effects layers (validated by name)
     [mission] waypoints = [[lat, lon], ...] and/or waypoints_enu = [[east_m, north_m], ...]
-    [navigation], [safety]: x6wd.config.NavigationConfig / SafetyConfig
+    [navigation], [safety]: x6wd.core.config.NavigationConfig / SafetyConfig
 
 Merging (includes and fragments): tables merge key by key, arrays of tables (walls,
 buildings, roofs, effects) are concatenated, any other value is replaced by the later file.
@@ -63,8 +63,8 @@ import numpy as np
 
 from sim_backend.atmosphere import Atmosphere
 from sim_backend.buildings import Hole, Roof, Wall, Walls, Window, building
-from x6wd.config import NavigationConfig, SafetyConfig, build
-from x6wd.errors import ConfigError
+from x6wd.core.config import NavigationConfig, SafetyConfig, build
+from x6wd.core.errors import ConfigError
 
 DEFAULT_ALMANAC = Path(__file__).resolve().parent / "data" / "almyuma_01jan2020.txt"
 MAX_SPEED_MPS = 14.0 / 3.6

@@ -15,8 +15,8 @@ from sim_backend.atmosphere import (
     niell_hydrostatic_mapping,
     slant_path_m,
 )
-from x6wd.config import build
-from x6wd.errors import ConfigError
+from x6wd.core.config import build
+from x6wd.core.errors import ConfigError
 
 
 def _sky_average(values: np.ndarray, el_deg: np.ndarray) -> float:

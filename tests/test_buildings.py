@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sim_backend.buildings import Hole, Roof, TraceResult, Wall, Walls, Window, building
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 RX = np.array([0.0, 0.0, 1.0])
 

@@ -13,10 +13,10 @@ import pytest
 
 from tests.conftest import DATA, require_program
 from tests.test_server import TOKEN, LoopThread, RecordingBackend, start_server
-from x6wd.client import CLEAR, render_watch
-from x6wd.errors import ParseError
-from x6wd.mission_files import Waypoint, load_file, parse_args, parse_csv, parse_gpx
-from x6wd.server import ControlServer
+from x6wd.app.client import CLEAR, render_watch
+from x6wd.app.server import ControlServer
+from x6wd.core.errors import ParseError
+from x6wd.core.mission_files import Waypoint, load_file, parse_args, parse_csv, parse_gpx
 
 
 @pytest.fixture
@@ -103,7 +103,7 @@ def test_the_servers_reason_for_closing_is_reported(tmp_path: Path) -> None:
     says why (exit 3 from the command line)."""
     import time
 
-    from x6wd.client import ConnectionFailed, RemoteClient
+    from x6wd.app.client import ConnectionFailed, RemoteClient
 
     lt = LoopThread()
     srv = start_server(lt, RecordingBackend(), token=TOKEN.encode(), auth_timeout_s=0.2)

@@ -17,7 +17,7 @@ import pytest
 
 from drivers.cmps10 import Cmps10
 from sim_backend.compass import ErrorInjector, SimCmps10
-from x6wd.errors import TRANSIENT_ERRNOS, DeviceIOError, DeviceUnavailable
+from x6wd.core.errors import TRANSIENT_ERRNOS, DeviceIOError, DeviceUnavailable
 
 MIN_COMMAND_GAP_S = 0.09  # the double ignores a sequence whose bytes come faster than this
 

@@ -16,7 +16,7 @@ from sim_backend.compass import (
     SimClock,
     SimCmps10,
 )
-from x6wd.errors import ConfigError, DeviceIOError
+from x6wd.core.errors import ConfigError, DeviceIOError
 
 DECL = 4.0
 

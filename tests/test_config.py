@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from x6wd.config import Config, ConfigError, NavigationConfig, load, loads
+from x6wd.core.config import Config, ConfigError, NavigationConfig, load, loads
 
 ROBOT_TOML = Path(__file__).resolve().parent.parent / "config" / "x6wd.toml"
 

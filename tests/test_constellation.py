@@ -11,13 +11,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from x6wd.constellation import (
+from x6wd.core.errors import X6wdError
+from x6wd.nav.constellation import (
     Constellation,
     ConstellationError,
     EmptyFilterError,
     filter_series,
 )
-from x6wd.errors import X6wdError
 
 DATA = Path(__file__).resolve().parent / "data" / "constellation"
 NMEA_STEP_DEG = 1e-5 / 60  # one unit of the last NMEA digit (1e-5 minute)

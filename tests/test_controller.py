@@ -8,12 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from x6wd import geo
-from x6wd.config import NavigationConfig, SafetyConfig
-from x6wd.constellation import Constellation
-from x6wd.controller import CommandRejected, Controller, InputError
-from x6wd.errors import X6wdError
-from x6wd.records import (
+from x6wd.core.config import NavigationConfig, SafetyConfig
+from x6wd.core.errors import X6wdError
+from x6wd.core.records import (
     Attitude,
     ControllerOutput,
     GpsFix,
@@ -25,6 +22,9 @@ from x6wd.records import (
     StateChange,
     Telemetry,
 )
+from x6wd.nav import geo
+from x6wd.nav.constellation import Constellation
+from x6wd.nav.controller import CommandRejected, Controller, InputError
 
 NAV = NavigationConfig(cruise_pct=60.0, turn_pct=40.0, delta_phi_deg=10.0)
 SAFETY = SafetyConfig(fix_stale_s=2.5, attitude_stale_s=0.5, manual_max_s=5.0)

@@ -21,10 +21,17 @@ from typing import Any
 import pytest
 
 from sim_backend import hil
-from x6wd.client import RemoteClient, RequestFailed
-from x6wd.config import Config, GpsdConfig, RecorderConfig, SafetyConfig, ServerConfig, SimConfig
-from x6wd.daemon import Daemon, distance_m
-from x6wd.records import Attitude, MotorCommand
+from x6wd.app.client import RemoteClient, RequestFailed
+from x6wd.app.daemon import Daemon, distance_m
+from x6wd.core.config import (
+    Config,
+    GpsdConfig,
+    RecorderConfig,
+    SafetyConfig,
+    ServerConfig,
+    SimConfig,
+)
+from x6wd.core.records import Attitude, MotorCommand
 
 ORIGIN = (51.7520, -1.2577)
 
@@ -301,7 +308,7 @@ def test_group_readable_token_file_is_a_clear_startup_error(tmp_path: Path) -> N
 
 def test_motor_keepalive_stops_when_the_control_loop_goes_silent() -> None:
     from drivers.motors import LogMotorLink
-    from x6wd.daemon import _MotorWorker
+    from x6wd.app.daemon import _MotorWorker
 
     link = LogMotorLink()
     worker = _MotorWorker(link, keepalive_s=0.02, on_health=lambda ok, t: None)
@@ -319,7 +326,7 @@ def test_motor_keepalive_stops_when_the_control_loop_goes_silent() -> None:
 
 
 def test_gpsd_device_path_from_url() -> None:
-    from x6wd.daemon import _device_path
+    from x6wd.app.daemon import _device_path
 
     assert _device_path("serial:///dev/ttyAMA0?baud=4800") == ("/dev/ttyAMA0", 4800)
     assert _device_path("sim://") == ("sim://", 9600)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from x6wd import cli
+from x6wd.app import cli
 
 NMEA_DIR = Path(__file__).resolve().parent / "data" / "nmea"
 ROOT = Path(__file__).resolve().parent.parent
@@ -81,8 +81,8 @@ def test_log_to_compact_tpv_and_sky_matching_gpsd(capsys: pytest.CaptureFixture[
 def test_recording_decodes_like_the_raw_log(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    recorder = pytest.importorskip("x6wd.recorder")
-    from x6wd.records import Attitude
+    recorder = pytest.importorskip("x6wd.core.recorder")
+    from x6wd.core.records import Attitude
 
     rec_path = tmp_path / "run.jsonl"
     with recorder.Recorder(rec_path) as rec:

@@ -32,7 +32,7 @@ from sim_backend.effects import (
     truth_track_m,
     wrap180,
 )
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 
 def zeros(n: int, dt: float = 1.0, **kw: object) -> PositionSeries:

@@ -11,8 +11,8 @@ import pytest
 
 from sim_backend.effects import Bias, GaussMarkov, PositionSeries, Quantization, metres_per_degree
 from tests.conftest import dense_baseline_cov, filter_case
-from x6wd.cli import main as x6wd_main
-from x6wd.errors import ConfigError, ParseError
+from x6wd.app.cli import main as x6wd_main
+from x6wd.core.errors import ConfigError, ParseError
 from x6wd.gap.diagnose import Options, diagnose, report_dict
 from x6wd.gap.io import errors_vs_track, parse_truth, read_track, series_to_track, write_csv
 from x6wd.gap.null import block_bootstrap, null_model
@@ -497,7 +497,7 @@ def test_simulation_refit_reaches_the_truth_from_a_second_start() -> None:
 def test_blas_pinned_to_one_thread_unless_the_user_chose(monkeypatch: pytest.MonkeyPatch) -> None:
     import os
 
-    from x6wd.cli import BLAS_THREAD_VARS, single_thread_blas
+    from x6wd.app.cli import BLAS_THREAD_VARS, single_thread_blas
 
     for var in BLAS_THREAD_VARS:
         monkeypatch.delenv(var, raising=False)

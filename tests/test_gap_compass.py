@@ -183,10 +183,10 @@ def test_single_baseline_uses_block_bootstrap(truth: HeadingSeries, baseline: li
 def _write_recording(path: Path, s: HeadingSeries, with_truth: bool, gps_seed: int = 0) -> None:
     """An x6wd recording: the compass samples as attitude records and, with ``gps_seed``,
     1 Hz fixes of a static NEO-5-like receiver (the GPS half needs them)."""
+    from x6wd.core.recorder import Recorder
+    from x6wd.core.records import Attitude
     from x6wd.gap.io import series_to_track
     from x6wd.gap.surrogate import surrogate_run
-    from x6wd.recorder import Recorder
-    from x6wd.records import Attitude
 
     gps = None
     if gps_seed:
@@ -236,7 +236,7 @@ def test_recording_round_trip_with_truth_csv(tmp_path: Path, truth: HeadingSerie
 def test_cli_merges_compass_into_the_report(tmp_path: Path) -> None:
     import tomllib
 
-    from x6wd.cli import main as x6wd_main
+    from x6wd.app.cli import main as x6wd_main
     from x6wd.gap.surrogate import surrogate_run
 
     drive = drive_track(300.0, 0.1, np.random.default_rng(4))

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from x6wd import geo
-from x6wd.geo import (
+from x6wd.nav import geo
+from x6wd.nav.geo import (
     GeoError,
     LocalTangentPlane,
     course_deviation,

@@ -15,7 +15,7 @@ from sim_backend import buildings, geodesy, gnss, sky
 from sim_backend.atmosphere import Atmosphere
 from sim_backend.epoch import GnssEpoch
 from sim_backend.gnss import GnssModel, LceGrid, ReceiverParams
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 ALM = Path(__file__).resolve().parent / "data" / "almanac"
 START = datetime(2020, 1, 1, 6, 0, tzinfo=UTC)

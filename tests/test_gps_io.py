@@ -16,8 +16,8 @@ import serial
 
 from drivers.gps_io import GpsReader
 from drivers.gps_nmea import GpsDecoder, cfg_rate, ubx_frame
-from x6wd.errors import ConfigError
-from x6wd.records import GpsFix
+from x6wd.core.errors import ConfigError
+from x6wd.core.records import GpsFix
 
 NMEA_DIR = Path(__file__).resolve().parent / "data" / "nmea"
 LOG = (NMEA_DIR / "ublox-lea-5h.log").read_bytes()

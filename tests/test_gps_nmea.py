@@ -32,8 +32,8 @@ from drivers.gps_nmea import (
     ubx_frame,
     with_checksum,
 )
-from x6wd.errors import ConfigError, ParseError
-from x6wd.records import GpsFix, GpsSky
+from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.records import GpsFix, GpsSky
 
 NMEA_DIR = Path(__file__).resolve().parent / "data" / "nmea"
 LOGS = sorted(p.name for p in NMEA_DIR.glob("*.log"))

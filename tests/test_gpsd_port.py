@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 
 from tests.conftest import DATA, require_program
-from x6wd.errors import ProtocolError
-from x6wd.gpsd import GpsdServer, att_obj, parse_commands, sky_obj, tpv_obj
-from x6wd.records import Attitude, GpsFix, GpsSky, SatInfo
+from x6wd.app.gpsd import GpsdServer, att_obj, parse_commands, sky_obj, tpv_obj
+from x6wd.core.errors import ProtocolError
+from x6wd.core.records import Attitude, GpsFix, GpsSky, SatInfo
 
 UTC0 = datetime(2026, 11, 22, 5, 0, 1, 250000, tzinfo=UTC)
 FIX = GpsFix(

@@ -20,8 +20,9 @@ import pytest
 
 from sim_backend import hil
 from sim_backend.compass import ErrorInjector
-from x6wd.client import RemoteClient
-from x6wd.config import (
+from x6wd.app.client import RemoteClient
+from x6wd.app.daemon import TICK_HZ, Daemon
+from x6wd.core.config import (
     CompassConfig,
     Config,
     GpsConfig,
@@ -31,10 +32,9 @@ from x6wd.config import (
     ServerConfig,
     SimConfig,
 )
-from x6wd.daemon import TICK_HZ, Daemon
-from x6wd.errors import DeviceIOError
-from x6wd.health import HealthLog, HealthTracker
-from x6wd.records import DeviceHealth, DeviceState, HealthEvent, StateChange
+from x6wd.core.errors import DeviceIOError
+from x6wd.core.health import HealthLog, HealthTracker
+from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent, StateChange
 
 # --- HealthTracker (sans-IO, injected times) --------------------------------------------------
 

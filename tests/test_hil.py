@@ -27,9 +27,9 @@ from sim_backend import hil
 from sim_backend.geodesy import enu_to_lla
 from sim_backend.mission import build_gnss
 from tests.conftest import ROOT, require_program
-from x6wd.config import SimConfig
-from x6wd.errors import ConfigError
-from x6wd.records import GpsFix, GpsSky, MotorCommand
+from x6wd.core.config import SimConfig
+from x6wd.core.errors import ConfigError
+from x6wd.core.records import GpsFix, GpsSky, MotorCommand
 
 DEFAULT_SCENARIO = ROOT / "config" / "scenarios" / "default.toml"
 PARAMS = hil.HilParams(gps_rate_hz=4.0, gps_baud=115200, motor_tau_s=0.0, motor_watchdog_ms=300)
@@ -355,7 +355,7 @@ def test_params_from_a_scenario_file(tmp_path: Path) -> None:
     assert (sc.origin, sc.start_utc, sc.gnss.fidelity) == (w.origin, w.start_utc, w.gnss.fidelity)
     # the packaged default, and the HIL config's own choice
     assert hil.HilParams.from_config(SimConfig()).scenario == str(DEFAULT_SCENARIO)
-    from x6wd.config import load
+    from x6wd.core.config import load
 
     cfg = load(ROOT / "config" / "hil.toml")
     assert hil.HilParams.from_config(cfg.sim).load_world().gnss.rate_hz == 2.0

@@ -19,10 +19,10 @@ import pytest
 
 from tests.test_gpsd_port import Published
 from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
-from x6wd.client import ConnectionFailed, RemoteClient
-from x6wd.config import ServerConfig
-from x6wd.gpsd import GpsdServer
-from x6wd.server import COMMANDS, ControlServer
+from x6wd.app.client import ConnectionFailed, RemoteClient
+from x6wd.app.gpsd import GpsdServer
+from x6wd.app.server import COMMANDS, ControlServer
+from x6wd.core.config import ServerConfig
 
 # Written out here, not imported: adding a command to the server's unauthenticated set (or a
 # new command nobody classified) must make a test fail.
@@ -511,7 +511,7 @@ def test_gpsd_deadlines_pending_idle_and_never_reading_watcher() -> None:
 
 
 def p_sky(n_sats: int) -> Any:
-    from x6wd.records import GpsSky, SatInfo
+    from x6wd.core.records import GpsSky, SatInfo
 
     sats = tuple(SatInfo(i + 1, 45.0, float(i), 40.0, True) for i in range(n_sats))
     return GpsSky(t_s=1.0, satellites=sats, pdop=2.1, hdop=1.1, vdop=1.8)
@@ -819,7 +819,7 @@ def test_stop_storm_is_coalesced_logged_rate_limited_and_still_stops(
     backend = SlowStopBackend(0.005)
     srv = serve(lt, backend)
     n_peers, n_stops = 8, 150
-    caplog.set_level(logging.INFO, logger="x6wd.server")
+    caplog.set_level(logging.INFO, logger="x6wd.app.server")
     replies: list[int] = [0] * n_peers
 
     def storm(k: int) -> None:
@@ -904,7 +904,7 @@ def test_stop_goes_out_ahead_of_a_garbage_back_off(lt: LoopThread) -> None:
 def test_evictions_are_logged_rate_limited(
     lt: LoopThread, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="x6wd.server")
+    caplog.set_level(logging.WARNING, logger="x6wd.app.server")
     srv = serve(lt, RecordingBackend(), max_pending=2)
     socks = silent(srv.port, 30)
     try:

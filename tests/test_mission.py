@@ -18,10 +18,10 @@ from sim_backend import mission
 from sim_backend.geodesy import lla_to_enu
 from sim_backend.mission import ErrorStats, Summary, run_mission
 from sim_backend.world import load_world
-from x6wd import cli
-from x6wd.errors import ConfigError
-from x6wd.recorder import read_recording
-from x6wd.records import GpsFix
+from x6wd.app import cli
+from x6wd.core.errors import ConfigError
+from x6wd.core.recorder import read_recording
+from x6wd.core.records import GpsFix
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "config" / "scenarios"

@@ -25,7 +25,7 @@ from drivers.motors import (
     SerialMotorLink,
     serve_board_fd,
 )
-from x6wd.records import MotorCommand
+from x6wd.core.records import MotorCommand
 
 # --- the board alone (sans-IO) ----------------------------------------------------------------
 

@@ -8,15 +8,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from x6wd import geo
-from x6wd.config import NavigationConfig
-from x6wd.navigator import (
+from x6wd.core.config import NavigationConfig
+from x6wd.core.records import NavState
+from x6wd.nav import geo
+from x6wd.nav.navigator import (
     NavigationError,
     Navigator,
     cmps_to_paper_deg,
     magnetic_to_true,
 )
-from x6wd.records import NavState
 
 CFG = NavigationConfig(delta_phi_deg=10.0, delta_x_m=3.0, delta_y_m=2.0)
 ORIGIN = (51.7, 30.0)

@@ -18,8 +18,8 @@ from sim_backend.nmea_out import (
     sentence,
     wire_time_s,
 )
-from x6wd.errors import ConfigError
-from x6wd.records import GpsFix, GpsSky
+from x6wd.core.errors import ConfigError
+from x6wd.core.records import GpsFix, GpsSky
 
 DATA = Path(__file__).resolve().parent / "data" / "nmea_out"
 

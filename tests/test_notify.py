@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from x6wd.errors import ConfigError
-from x6wd.notify import Notifier
+from x6wd.app.notify import Notifier
+from x6wd.core.errors import ConfigError
 
 
 def _recv(sock: socket.socket) -> dict[str, str]:

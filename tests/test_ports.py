@@ -13,8 +13,8 @@ from drivers.gps_nmea import GpsDecoder
 from sim_backend.epoch import GnssEpoch, SimSat
 from sim_backend.nmea_out import NmeaFormatter, wire_time_s
 from sim_backend.ports import MemoryUart, PtyUart
-from x6wd.errors import ConfigError, DeviceIOError
-from x6wd.records import GpsFix
+from x6wd.core.errors import ConfigError, DeviceIOError
+from x6wd.core.records import GpsFix
 
 
 def _burst(t_s: float = 0.0) -> bytes:

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 
 from drivers.gps_nmea import GpsDecoder
-from x6wd.cli import main as cli_main
-from x6wd.errors import DeviceUnavailable, ParseError
-from x6wd.recorder import (
+from x6wd.app.cli import main as cli_main
+from x6wd.core.errors import DeviceUnavailable, ParseError
+from x6wd.core.recorder import (
     RECORD_TYPES,
     ReadStats,
     Record,
@@ -29,7 +29,7 @@ from x6wd.recorder import (
     recording_parts,
     replay_records,
 )
-from x6wd.records import (
+from x6wd.core.records import (
     Attitude,
     GpsFix,
     GpsSky,
@@ -155,7 +155,7 @@ def test_missing_recording_is_device_unavailable(tmp_path: Path) -> None:
 
 _CHILD = """
 import os, sys
-from x6wd.recorder import Recorder
+from x6wd.core.recorder import Recorder
 rec = Recorder(sys.argv[1])
 for i in range(int(sys.argv[2])):
     rec.record_nmea(f"$GPTXT,{i}*00", float(i))

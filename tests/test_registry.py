@@ -25,8 +25,8 @@ from drivers.registry import (
     open_motors,
     parse_url,
 )
-from x6wd.errors import ConfigError, DeviceUnavailable
-from x6wd.recorder import ReplayPort
+from x6wd.core.errors import ConfigError, DeviceUnavailable
+from x6wd.core.recorder import ReplayPort
 
 ROOT = Path(__file__).resolve().parent.parent
 LEA5H = ROOT / "tests" / "data" / "recorder" / "ublox-lea-5h.log"
@@ -103,7 +103,7 @@ def test_bad_urls_name_the_problem(url: str, kind: str, match: str) -> None:
 def test_importing_the_registry_loads_no_backend() -> None:
     code = (
         "import sys, drivers.registry\n"
-        "heavy = {'serial', 'smbus2', 'drivers.cmps10', 'drivers.motors', 'x6wd.recorder'}\n"
+        "heavy = {'serial', 'smbus2', 'drivers.cmps10', 'drivers.motors', 'x6wd.core.recorder'}\n"
         "print(sorted(heavy & set(sys.modules)))"
     )
     out = subprocess.run(

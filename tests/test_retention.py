@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 
 from tests.test_daemon import hil_config, run_daemon, wait_for
-from x6wd import recorder as recorder_mod
-from x6wd.config import RecorderConfig
-from x6wd.daemon import Daemon
-from x6wd.recorder import (
+from x6wd.app.daemon import Daemon
+from x6wd.core import recorder as recorder_mod
+from x6wd.core.config import RecorderConfig
+from x6wd.core.recorder import (
     MB,
     ReadStats,
     Recorder,
@@ -92,7 +92,7 @@ def test_older_runs_go_first_then_our_oldest_parts_never_the_current(
     ours = [make(tmp_path / f"x6wd-20260101T000000Z{s}.jsonl", 10 * KB) for s in ("", ".1")]
     current = make(tmp_path / "x6wd-20260101T000000Z.2.jsonl", 10 * KB)
     cap = Retention(max_total_bytes=25 * KB)
-    with caplog.at_level(logging.INFO, logger="x6wd.recorder"):
+    with caplog.at_level(logging.INFO, logger="x6wd.core.recorder"):
         gone = enforce_retention(tmp_path, cap, current=current)
     assert gone == [*old_a, old_b, later, ours[0]]
     assert [f.path for f in list_recordings(tmp_path)] == [ours[1], current]
@@ -101,7 +101,7 @@ def test_older_runs_go_first_then_our_oldest_parts_never_the_current(
     logged = [r.getMessage() for r in caplog.records]
     assert all(any(str(p) in m for m in logged) for p in gone)
     # nothing left but the part being written: it stays, even over the cap
-    with caplog.at_level(logging.WARNING, logger="x6wd.recorder"):
+    with caplog.at_level(logging.WARNING, logger="x6wd.core.recorder"):
         assert enforce_retention(tmp_path, Retention(max_total_bytes=1), current=current) == [
             ours[1]
         ]

@@ -16,11 +16,11 @@ from typing import Any
 import pytest
 
 from tests.conftest import require_program
-from x6wd.client import RemoteClient, RequestFailed
-from x6wd.config import ServerConfig
-from x6wd.errors import ConfigError
-from x6wd.mission_files import Waypoint
-from x6wd.server import CommandError, ControlServer, load_token
+from x6wd.app.client import RemoteClient, RequestFailed
+from x6wd.app.server import CommandError, ControlServer, load_token
+from x6wd.core.config import ServerConfig
+from x6wd.core.errors import ConfigError
+from x6wd.core.mission_files import Waypoint
 
 TOKEN = "s3cret-token-for-tests"
 

@@ -27,10 +27,10 @@ from drivers.motors import LogMotorLink, MotorBoard
 from tests.conftest import ROOT
 from tests.test_daemon import hil_config, run_daemon, wait_for
 from tests.test_startup import write_config
-from x6wd.client import RemoteClient
-from x6wd.daemon import Daemon
-from x6wd.recorder import ReadStats, read_recording_parts
-from x6wd.records import Attitude, MotorCommand
+from x6wd.app.client import RemoteClient
+from x6wd.app.daemon import Daemon
+from x6wd.core.recorder import ReadStats, read_recording_parts
+from x6wd.core.records import Attitude, MotorCommand
 
 __all__ = ["run_daemon"]  # the fixture, shared with test_daemon
 

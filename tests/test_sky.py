@@ -15,7 +15,7 @@ import pytest
 
 from sim_backend import geodesy, sky
 from sim_backend.sky import Ephemeris, SatelliteSet
-from x6wd.errors import ConfigError, ParseError
+from x6wd.core.errors import ConfigError, ParseError
 
 ALM = Path(__file__).resolve().parent / "data" / "almanac"
 DAY = datetime(2020, 1, 1, tzinfo=UTC)

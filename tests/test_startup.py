@@ -21,9 +21,9 @@ import pytest
 from sim_backend import hil
 from tests.conftest import ROOT
 from tests.test_daemon import hil_config
-from x6wd.config import RecorderConfig
-from x6wd.daemon import Daemon
-from x6wd.server import CommandError
+from x6wd.app.daemon import Daemon
+from x6wd.app.server import CommandError
+from x6wd.core.config import RecorderConfig
 
 LEA5H = ROOT / "tests" / "data" / "recorder" / "ublox-lea-5h.log"
 UNIT = ROOT / "systemd" / "x6wd.service"

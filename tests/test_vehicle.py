@@ -7,7 +7,7 @@ import math
 import pytest
 
 from sim_backend.vehicle import MAX_SPEED_MPS, Terrain, Vehicle, VehicleParams
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 INSTANT = VehicleParams(motor_tau_s=0.0, max_turn_rate_dps=60.0)
 

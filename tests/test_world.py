@@ -11,7 +11,7 @@ import pytest
 
 from sim_backend.buildings import Walls
 from sim_backend.world import DEFAULT_ALMANAC, load_world, loads_world, merge_fragment
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 HERE = Path(__file__).resolve().parent
 SHARED_ALMANAC = HERE.parent.parent / "shared" / "data" / "almanac" / "almyuma_01jan2020.txt"

@@ -1,5 +1,5 @@
 import sys
 
-from x6wd.cli import main
+from x6wd.app.cli import main
 
 sys.exit(main())

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_backend.effects import PositionSeries
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
 from x6wd.gap.diagnose import Diagnosis, Options, diagnose, verdict_text
 from x6wd.gap.io import (

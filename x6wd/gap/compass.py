@@ -47,7 +47,7 @@ from sim_backend.effects import (
     wrap180,
     wrap360,
 )
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 from x6wd.gap.diagnose import Candidate, Outcome
 from x6wd.gap.fit import Fit
 from x6wd.gap.null import NullModel, closure_ci, closure_of, null_model
@@ -795,7 +795,7 @@ def read_heading_series(
     robot slips in turns); the baseline logs are read the same way, so their null carries the
     same noise.
     """
-    from x6wd.recorder import is_recording, read_recording
+    from x6wd.core.recorder import is_recording, read_recording
 
     p = Path(recording)
     if not p.is_file() or not is_recording(p):

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from sim_backend.effects import PositionSeries, Quantization
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 from x6wd.gap.fit import (
     COMPANIONS,
     DRIFT_FAMILY,

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_backend.effects import PositionSeries, metres_per_degree
-from x6wd.errors import ConfigError, DeviceUnavailable, ParseError
+from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 
 
 @dataclass(frozen=True)
@@ -160,7 +160,7 @@ def _fix_row(fix: object) -> tuple[float, ...]:
 
 def _decode_nmea_lines(lines: list[tuple[float, bytes]], source: str) -> Track:
     from drivers.gps_nmea import GpsDecoder
-    from x6wd.records import GpsFix
+    from x6wd.core.records import GpsFix
 
     dec = GpsDecoder(emit_sentences=False)
     rows: list[tuple[float, ...]] = []
@@ -179,7 +179,7 @@ def _read_nmea(raw: bytes, source: str) -> Track:
 
 
 def _read_recording(p: Path) -> Track:
-    from x6wd.recorder import read_recording
+    from x6wd.core.recorder import read_recording
 
     rows: list[tuple[float, ...]] = []
     nmea: list[tuple[float, bytes]] = []

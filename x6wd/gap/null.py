@@ -18,7 +18,7 @@ import numpy as np
 from scipy import stats as sps
 
 from sim_backend.effects import PositionSeries
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 from x6wd.gap.stats import SD_FLOOR, Cell
 
 Z_CLIP = 20.0  # |z| cap inside gap measures, so one degenerate cell cannot dominate G

@@ -21,7 +21,7 @@ from sim_backend.effects import (
     metres_per_degree,
     truth_track_m,
 )
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 
 def scenario_baseline(

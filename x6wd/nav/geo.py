@@ -25,7 +25,7 @@ from typing import Protocol, TypeGuard, overload
 import numpy as np
 import numpy.typing as npt
 
-from x6wd.errors import X6wdError
+from x6wd.core.errors import X6wdError
 
 R1_M = 6378160.0
 """Equatorial radius used by the paper for x (east), metres."""

@@ -20,9 +20,9 @@ import time
 from collections import deque
 from typing import Any, NoReturn, TextIO
 
-from x6wd.errors import ParseError, ProtocolError, X6wdError
-from x6wd.mission_files import Waypoint, load_file, parse_args
-from x6wd.server import load_token
+from x6wd.app.server import load_token
+from x6wd.core.errors import ParseError, ProtocolError, X6wdError
+from x6wd.core.mission_files import Waypoint, load_file, parse_args
 
 EXIT_OK = 0
 EXIT_REFUSED = 1

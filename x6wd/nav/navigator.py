@@ -19,10 +19,10 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from x6wd import geo
-from x6wd.config import NavigationConfig
-from x6wd.errors import X6wdError
-from x6wd.records import NavState
+from x6wd.core.config import NavigationConfig
+from x6wd.core.errors import X6wdError
+from x6wd.core.records import NavState
+from x6wd.nav import geo
 
 
 class NavigationError(X6wdError, ValueError):

@@ -13,7 +13,7 @@ import os
 import socket
 from collections.abc import Mapping
 
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 
 def _address(raw: str) -> str:

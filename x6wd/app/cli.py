@@ -13,16 +13,16 @@ from collections.abc import Callable, Sequence
 from types import ModuleType
 
 from x6wd import __version__
-from x6wd.errors import X6wdError
+from x6wd.core.errors import X6wdError
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "run": ("x6wd.daemon", "run the control daemon (robot, or hardware-in-the-loop)"),
+    "run": ("x6wd.app.daemon", "run the control daemon (robot, or hardware-in-the-loop)"),
     "sim": ("sim_backend.mission", "run a whole simulated mission in fast time"),
-    "client": ("x6wd.client", "operator client: status, load, start, stop, drive, watch"),
+    "client": ("x6wd.app.client", "operator client: status, load, start, stop, drive, watch"),
     "gap": ("x6wd.gap.cli", "diagnose the gap between a real log and the simulator"),
-    "decode": ("x6wd.decode", "decode NMEA logs or recordings to gpsd-style JSON lines"),
-    "replay": ("x6wd.replay", "replay a recording or NMEA log through the decoders"),
+    "decode": ("x6wd.app.decode", "decode NMEA logs or recordings to gpsd-style JSON lines"),
+    "replay": ("x6wd.app.replay", "replay a recording or NMEA log through the decoders"),
 }
 
 

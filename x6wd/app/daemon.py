@@ -35,14 +35,15 @@ from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 from x6wd import __version__
-from x6wd.config import Config
-from x6wd.config import load as load_config
-from x6wd.errors import ConfigError, DeviceUnavailable, X6wdError
-from x6wd.gpsd import GpsdServer
-from x6wd.health import TRANSITION, HealthLog, HealthTracker
-from x6wd.mission_files import Waypoint
-from x6wd.notify import Notifier
-from x6wd.records import (
+from x6wd.app.gpsd import GpsdServer
+from x6wd.app.notify import Notifier
+from x6wd.app.server import CommandError, ControlServer
+from x6wd.core.config import Config
+from x6wd.core.config import load as load_config
+from x6wd.core.errors import ConfigError, DeviceUnavailable, X6wdError
+from x6wd.core.health import TRANSITION, HealthLog, HealthTracker
+from x6wd.core.mission_files import Waypoint
+from x6wd.core.records import (
     USABLE_STATES,
     Attitude,
     DeviceHealth,
@@ -53,9 +54,8 @@ from x6wd.records import (
     StateChange,
     Telemetry,
 )
-from x6wd.server import CommandError, ControlServer
 
-log = logging.getLogger("x6wd.daemon")
+log = logging.getLogger("x6wd.app.daemon")
 
 TICK_HZ = 20.0
 """Controller tick rate: bounds the dead-man and staleness reaction time (s = 1/TICK_HZ)."""
@@ -335,7 +335,7 @@ class Daemon:
         self.first_fix: tuple[float, float] | None = None
         self.compass_errors = 0  # read errors of a compass backend without its own health
         self._compass_driver: Any = None  # the Cmps10 the compass thread reads
-        self._health_log = HealthLog(logging.getLogger("x6wd.health"))
+        self._health_log = HealthLog(logging.getLogger("x6wd.core.health"))
         self._dev_dicts: dict[str, tuple[DeviceHealth, dict[str, Any]]] = {}
         self.t_start = time.monotonic()
         self.stats: dict[str, int] = collections.Counter()
@@ -435,7 +435,7 @@ class Daemon:
             from sim_backend import hil
 
             hil.configure(cfg.sim)
-        from x6wd.controller import Controller  # imported late: heavy, and optional in tests
+        from x6wd.nav.controller import Controller  # imported late: heavy, and optional in tests
 
         self.controller = Controller(cfg.navigation, cfg.safety, cfg.compass.declination_deg)
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
@@ -510,7 +510,7 @@ class Daemon:
         rc = self.config.recorder
         if not rc.enabled:
             return
-        from x6wd.recorder import MB, Recorder, Retention
+        from x6wd.core.recorder import MB, Recorder, Retention
 
         retention = Retention(
             max_total_bytes=int(rc.max_total_mb * MB), min_free_bytes=int(rc.min_free_mb * MB)

@@ -7,7 +7,7 @@ by text match), CRLF line ends, and no ``null`` (unknown fields are omitted).
 A slow client never blocks the publisher: each client has a bounded queue and the oldest
 report is dropped (and counted) when it is full.
 
-Lock-out protection (shared mechanics in :mod:`x6wd.lineserver`): there is no
+Lock-out protection (shared mechanics in :mod:`x6wd.app.lineserver`): there is no
 authentication, so a connection is pending until it sends one valid command (``?WATCH``,
 ``?POLL``, ``?VERSION``, ``?DEVICES``); pending connections have their own pool and deadline,
 a client neither watching nor sending a command for ``idle_timeout_s`` is closed, and so is a
@@ -27,10 +27,10 @@ from datetime import UTC, datetime
 from typing import Any
 
 from x6wd import __version__
-from x6wd.config import GpsdConfig
-from x6wd.errors import ProtocolError
-from x6wd.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
-from x6wd.records import Attitude, GpsFix, GpsSky
+from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
+from x6wd.core.config import GpsdConfig
+from x6wd.core.errors import ProtocolError
+from x6wd.core.records import Attitude, GpsFix, GpsSky
 
 log = logging.getLogger(__name__)
 

@@ -4,8 +4,8 @@
 the compass driver, the motor link) tells it what happened — opened, open failed, link lost,
 an I/O error, good data — always with the time ``t_s`` (s, the owner's monotonic clock);
 it never reads a monotonic clock itself, only the wall clock for the ISO stamps (injectable).
-It keeps an immutable :class:`~x6wd.records.DeviceHealth` snapshot (swapped whole, so any
-thread may read :attr:`HealthTracker.health`) and queues a :class:`~x6wd.records.HealthEvent`
+It keeps an immutable :class:`~x6wd.core.records.DeviceHealth` snapshot (swapped whole, so any
+thread may read :attr:`HealthTracker.health`) and queues a :class:`~x6wd.core.records.HealthEvent`
 for every state transition and every repeated failed reopen; the owner's thread drains them
 with :meth:`HealthTracker.take_events` (as the GPS reader's UBX acknowledgements are).
 
@@ -24,7 +24,7 @@ from collections import deque
 from collections.abc import Callable
 from datetime import UTC, datetime
 
-from x6wd.records import DeviceHealth, DeviceState, HealthEvent
+from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent
 
 CONNECTED = DeviceState.CONNECTED
 DEGRADED = DeviceState.DEGRADED

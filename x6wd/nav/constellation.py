@@ -30,7 +30,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from x6wd.errors import X6wdError
+from x6wd.core.errors import X6wdError
 
 DEFAULT_N = 20
 

@@ -183,7 +183,7 @@ USABLE_STATES = frozenset({DeviceState.CONNECTED, DeviceState.DEGRADED})
 
 @dataclass(frozen=True, slots=True)
 class DeviceHealth:
-    """One device's health at one instant; filled by its reader (``x6wd.health``).
+    """One device's health at one instant; filled by its reader (``x6wd.core.health``).
 
     Times: ``*_t_s`` are seconds on the reader's monotonic clock, ``*_utc`` the same instants
     as ISO 8601 UTC wall-clock text ("" when there is none). ``errors`` counts every failed

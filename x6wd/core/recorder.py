@@ -5,7 +5,7 @@ One record per line::
     {"t_mono":12.5,"t_utc":"2026-11-22T04:43:12.123456Z","type":"nmea","data":{"text":"$GPGGA,..."}}
 
 ``t_mono`` is the monotonic time (s) the input had when it entered the host (the ``t_s`` of
-the records in :mod:`x6wd.records`), ``t_utc`` the wall-clock time it was written. ``type`` is
+the records in :mod:`x6wd.core.records`), ``t_utc`` the wall-clock time it was written. ``type`` is
 one of :data:`RECORD_TYPES`; ``data`` holds the payload (a typed record as a dict, datetimes
 as ISO-8601 strings).
 
@@ -45,8 +45,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from x6wd.errors import DeviceUnavailable, ParseError
-from x6wd.records import (
+from x6wd.core.errors import DeviceUnavailable, ParseError
+from x6wd.core.records import (
     Attitude,
     GpsFix,
     GpsSky,

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-from x6wd.errors import ConfigError
+from x6wd.core.errors import ConfigError
 
 T = TypeVar("T")
 

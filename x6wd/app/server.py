@@ -10,7 +10,7 @@ Isolation: every client has its own reader and writer task; telemetry goes into 
 per-client queue (oldest dropped and counted), so a slow or stuck client never delays the
 publisher, which is the control loop.
 
-Lock-out protection (shared mechanics in :mod:`x6wd.lineserver`): a connection is pending
+Lock-out protection (shared mechanics in :mod:`x6wd.app.lineserver`): a connection is pending
 until it authenticates (without a token: until one valid request), in a pool of its own;
 pending connections past ``auth_timeout_s``, sessions idle for ``idle_timeout_s`` and
 clients that never read are closed; a full pool makes room instead of refusing. ``stop`` is
@@ -37,10 +37,10 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from x6wd import __version__
-from x6wd.config import ServerConfig
-from x6wd.errors import ConfigError, ParseError, X6wdError
-from x6wd.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
-from x6wd.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx
+from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
+from x6wd.core.config import ServerConfig
+from x6wd.core.errors import ConfigError, ParseError, X6wdError
+from x6wd.core.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx
 
 log = logging.getLogger(__name__)
 

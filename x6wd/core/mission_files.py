@@ -14,7 +14,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
-from x6wd.errors import ParseError
+from x6wd.core.errors import ParseError
 
 MAX_WAYPOINTS = 10_000
 """A mission longer than this is almost certainly the wrong file."""

@@ -46,12 +46,9 @@ import math
 import numbers
 from collections.abc import Sequence
 
-from x6wd import geo
-from x6wd.config import NavigationConfig, SafetyConfig
-from x6wd.constellation import Constellation
-from x6wd.errors import X6wdError
-from x6wd.navigator import NavigationError, Navigator
-from x6wd.records import (
+from x6wd.core.config import NavigationConfig, SafetyConfig
+from x6wd.core.errors import X6wdError
+from x6wd.core.records import (
     Attitude,
     ControllerOutput,
     GpsFix,
@@ -62,6 +59,9 @@ from x6wd.records import (
     StateChange,
     Telemetry,
 )
+from x6wd.nav import geo
+from x6wd.nav.constellation import Constellation
+from x6wd.nav.navigator import NavigationError, Navigator
 
 
 class CommandRejected(X6wdError):

@@ -4,7 +4,7 @@ Like gpsd's ``gpsdecode``: one compact JSON object per line for every fix (``TPV
 report (``SKY``), with gpsd's field names and units (lat/lon deg, altMSL/altHAE m, speed
 m/s, track deg true). Unknown fields are omitted, never null. A file whose first non-blank
 character is ``{`` is an x6wd recording (JSON lines); its ``nmea`` records are decoded
-(files through ``x6wd.recorder.read_recording``; standard input by a small line parser that
+(files through ``x6wd.core.recorder.read_recording``; standard input by a small line parser that
 also takes the flat ``{"type":"nmea","text":...}`` form); its other records are ignored.
 Anything else is read as a raw byte stream (binary and line noise tolerated). The decoder's
 counters go to standard error, one line per input.
@@ -21,9 +21,9 @@ from collections.abc import Iterable, Iterator
 from typing import IO
 
 from drivers.gps_nmea import DecoderCounters, GpsDecoder, Record
-from x6wd.errors import DeviceUnavailable
-from x6wd.gpsd import sky_obj, tpv_obj
-from x6wd.records import GpsFix, GpsSky
+from x6wd.app.gpsd import sky_obj, tpv_obj
+from x6wd.core.errors import DeviceUnavailable
+from x6wd.core.records import GpsFix, GpsSky
 
 _CHUNK_BYTES = 1 << 20
 
@@ -96,7 +96,7 @@ def decode_stream(stream: IO[bytes], out: IO[str], *, with_sky: bool = True) -> 
 
 
 def decode_path(path: str, out: IO[str], *, with_sky: bool = True) -> DecoderCounters:
-    """Decode a file; recordings go through ``x6wd.recorder.read_recording``."""
+    """Decode a file; recordings go through ``x6wd.core.recorder.read_recording``."""
     try:
         f = open(path, "rb")  # noqa: SIM115
     except OSError as exc:
@@ -111,7 +111,7 @@ def decode_path(path: str, out: IO[str], *, with_sky: bool = True) -> DecoderCou
         f.seek(0)
         if first[:1] != b"{":
             return decode_stream(f, out, with_sky=with_sky)
-    from x6wd.recorder import read_recording
+    from x6wd.core.recorder import read_recording
 
     sentences = (
         (rec.t_mono, rec.data["text"])

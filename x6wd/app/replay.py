@@ -15,8 +15,8 @@ import math
 import sys
 from typing import Any, TextIO
 
-from x6wd.recorder import ReadStats, is_recording, nmea_chunks, paced, to_jsonable
-from x6wd.records import GpsFix, GpsSky
+from x6wd.core.recorder import ReadStats, is_recording, nmea_chunks, paced, to_jsonable
+from x6wd.core.records import GpsFix, GpsSky
 
 
 def _speed(text: str) -> float:
