@@ -28,7 +28,7 @@ from scipy.stats import norm
 
 from bench._common import Row, print_table
 from sim_backend.effects import GaussMarkov
-from x6wd.gap.fit import fit_gauss_markov
+from x6wd.gap.drift import fit_gauss_markov
 from x6wd.gap.stats import layout_for
 from x6wd.gap.surrogate import BASELINE_EFFECTS, surrogate_run
 

@@ -227,7 +227,7 @@ def test_kalman_likelihood_is_exact_on_irregular_steps_and_outages() -> None:
     # white noise and a GM or random-walk effect, irregular steps, an outage.
     from scipy.stats import multivariate_normal
 
-    from x6wd.gap.fit import kalman_terms
+    from x6wd.gap.kalman import kalman_terms
 
     s, model = filter_case()
     tv = s.t_s[s.valid]
@@ -252,7 +252,7 @@ def test_gls_bias_and_latency_match_the_dense_likelihood() -> None:
     # dense GLS one; the latency regressor is -velocity.
     from scipy.stats import multivariate_normal
 
-    from x6wd.gap.fit import kalman_terms, latency_regressor
+    from x6wd.gap.kalman import kalman_terms, latency_regressor
 
     s, model = filter_case(seed=1, n=50, moving=True)
     v = s.valid
@@ -315,7 +315,7 @@ def test_drift_family_told_apart_by_likelihood(hour_baseline: list) -> None:
     # One hour at 1 Hz: a random walk, a bias, a Gauss-Markov drift and nothing are told apart
     # by BIC on top of the baseline's own noise model; parameters within the issue's targets.
     from sim_backend.effects import RandomWalk
-    from x6wd.gap.fit import drift_fit
+    from x6wd.gap.drift import drift_fit
 
     lay = layout_for(hour_baseline[0])
     rw = drift_fit(hour_real(RandomWalk(0.03)), hour_baseline, lay)
@@ -361,7 +361,7 @@ def test_moderate_random_walk_flagged_by_likelihood_ratio_cell(hour_baseline: li
 
 def test_jump_fit_recovers_size_and_rate_and_stays_quiet_on_null(hour_baseline: list) -> None:
     from sim_backend.effects import Jumps
-    from x6wd.gap.fit import fit_jumps
+    from x6wd.gap.jumps import fit_jumps
 
     lay = layout_for(hour_baseline[0])
     sig, rate = [], []
@@ -380,7 +380,7 @@ def test_jump_fit_recovers_size_and_rate_and_stays_quiet_on_null(hour_baseline: 
 
 def test_jump_fit_survives_a_coarse_lattice() -> None:
     # A 2-decimal lattice (18 m) makes almost every step exactly zero: no crash, no fit.
-    from x6wd.gap.fit import fit_jumps
+    from x6wd.gap.jumps import fit_jumps
 
     coarse = [
         surrogate_run(600.0, 1.0, np.random.default_rng(i), effects=[*PRE, Quantization(2)])
@@ -393,7 +393,7 @@ def test_jump_fit_survives_a_coarse_lattice() -> None:
 def test_noise_model_slow_component_is_pinned_by_the_runs_means() -> None:
     # A drift far longer than the log (tau 3000 s over 1 h) moves each run's mean; the noise
     # model must predict the runs' spread of hour means, not an unbounded slow component.
-    from x6wd.gap.fit import fit_noise_model
+    from x6wd.gap.noise import fit_noise_model
 
     slow = (*PRE, GaussMarkov(sigma_m=0.8, tau_s=3000.0, axes="en"))
     runs = [
@@ -474,7 +474,7 @@ def test_simulation_refit_reaches_the_truth_from_a_second_start() -> None:
     # too far for a short local search; a second start (the fit-part fit) that scores better
     # is searched from instead, and a moved parameter carries no standard error.
     from x6wd.gap.diagnose import simulation_refit
-    from x6wd.gap.fit import Fit
+    from x6wd.gap.fitted import Fit
 
     runs = [surrogate_run(1200.0, 1.0, np.random.default_rng(700 + i)) for i in range(6)]
     real = surrogate_run(

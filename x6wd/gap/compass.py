@@ -49,7 +49,7 @@ from sim_backend.effects import (
 )
 from x6wd.core.errors import ConfigError
 from x6wd.gap.diagnose import Candidate, Outcome
-from x6wd.gap.fit import Fit
+from x6wd.gap.fitted import Fit
 from x6wd.gap.null import NullModel, closure_ci, closure_of, null_model
 from x6wd.gap.stats import Cell
 

@@ -7,7 +7,7 @@
    by G = mean clipped z^2; closure = (G_baseline - G_effect) / (G_baseline - G_floor).
 3. Greedy add-one-in (up to three effects), then leave-one-out drops any that no longer help.
    Within the drift family (bias, Gauss-Markov, random walk) only the member(s) the exact
-   whole-log likelihood names by BIC may be selected (see :func:`x6wd.gap.fit.drift_fit`).
+   whole-log likelihood names by BIC may be selected (see :func:`x6wd.gap.drift.drift_fit`).
 4. The reported parameters (with standard errors) are refitted on the WHOLE log; the closures
    stay those of the fit-part fits scored on the held-out part.
 """
@@ -23,19 +23,17 @@ import numpy as np
 
 from sim_backend.effects import PositionSeries, Quantization
 from x6wd.core.errors import ConfigError
-from x6wd.gap.fit import (
+from x6wd.gap.drift import (
     COMPANIONS,
     DRIFT_FAMILY,
     DRIFTS,
-    FITTABLE,
-    FITTERS,
-    Fit,
     drift_fit,
-    fingerprint_score,
     joint_drift_fits,
-    noise_model,
     random_walk_lr,
 )
+from x6wd.gap.fit import FITTABLE, FITTERS, fingerprint_score
+from x6wd.gap.fitted import Fit
+from x6wd.gap.noise import noise_model
 from x6wd.gap.null import NullModel, block_bootstrap, closure_ci, closure_of, null_model
 from x6wd.gap.stats import (
     QUANT_DECIMALS,
@@ -55,7 +53,7 @@ ADD_MIN_LEFT = 0.5  # G above the floor still worth explaining (null G - floor s
 ADD_MIN_SHARE = 0.3  # a further effect must remove 30 % of the gap left
 FINAL_DRAWS = 4  # fresh draws of an effect ensemble, pooled, for decisions and the closure
 # Whole-log cell: signed root likelihood ratio of a random walk on top of the baseline noise
-# model (see :func:`x6wd.gap.fit.random_walk_lr`).
+# model (see :func:`x6wd.gap.drift.random_walk_lr`).
 RW_LR_CELL = Cell("random_walk_lr", "horizontal")
 
 

@@ -48,7 +48,7 @@ SD_FLOOR: dict[str, float] = {
     "log_rms_place": 0.02,
     "log_step_std_place": 0.02,
     "log_psd": 0.02,
-    # Signed root likelihood ratio (x6wd.gap.fit.random_walk_lr): mostly exactly 0 without a
+    # Signed root likelihood ratio (x6wd.gap.drift.random_walk_lr): mostly exactly 0 without a
     # walk, so a dozen runs can show no spread at all and this floor sets the alarm level. At
     # 0.7 the family-wise threshold (z ~ 4.9 over ~75 cells) sits near a root of 3.4, whose
     # tail under the asymptotic (chi-bar-square) law is ~0.03 %: this cell's share of the 5 %

@@ -26,7 +26,7 @@ around it is indistinguishable from ``gauss_markov`` + ``bias``; those fitters a
    likelihood picks one and a pattern search on it moves the wall's orientation, offset,
    ends and distance (:func:`_refine_wall`).
 5. **Parameters.** Exact likelihood (:func:`zone_terms`): the baseline noise model
-   (:func:`x6wd.gap.fit.noise_model`: Gauss-Markov components + white noise per axis) + a
+   (:func:`x6wd.gap.noise.noise_model`: Gauss-Markov components + white noise per axis) + a
    Gauss-Markov component (sigma, tau) that runs all the time but is observed only in the
    zone, as the simulator's layer generates it, + the bias along the wall's away vectors
    in the zone, profiled by GLS; a Kalman filter whose observation of the effect state is
@@ -47,7 +47,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from sim_backend.effects import MultipathZone, PositionSeries, truth_track_m
-from x6wd.gap.fit import Fit, NoiseModel, _quad_fit, component_law, noise_model, transitions
+from x6wd.gap.fitted import Fit
+from x6wd.gap.kalman import component_law, quadratic_peak, transitions
+from x6wd.gap.noise import NoiseModel, noise_model
 from x6wd.gap.stats import Layout
 
 CELL_M = 5.0  # place bin (m): about 2-3 epochs of travel per pass at walking to cycling speed
@@ -606,7 +608,7 @@ def _fit_sigma_tau(
     (or the given ``starts``: centres and half-widths, from an earlier fit), then 5 x 5 zooms
     around each of its best STARTS local maxima at once (the surface can have a second mode:
     a large, slow noise that lets every pass's level float), each halving when its maximum
-    is inside it and moving otherwise (as :func:`x6wd.gap.fit.drift_fit`); covariance from a
+    is inside it and moving otherwise (as :func:`x6wd.gap.drift.drift_fit`); covariance from a
     quadratic through the winner's last grid. A filter batch of ~100 costs little more than
     one, so the starts are zoomed together."""
     dt = layout.dt_s
@@ -661,7 +663,7 @@ def _fit_sigma_tau(
     j = int(np.argmax(win.vals))
     cov = np.full((2, 2), np.nan)
     best = win.centre
-    q = _quad_fit(win.pts, win.vals)
+    q = quadratic_peak(win.pts, win.vals)
     if q is not None:
         vertex, cov = q
         if np.all(np.abs(vertex - win.pts.mean(axis=0)) <= np.ptp(win.pts, axis=0) / 2):
