@@ -10,6 +10,15 @@ INTERFACE (fixed; implementations are filled in below it):
   and ``apply(series, rng) -> series`` returning a NEW series (inputs are never modified).
   Parameters keep their meaning at any sample rate (e.g. Gauss-Markov uses tau_s, sigma_m
   and the exact discretisation phi = exp(-dt/tau)).
+- ONE way to run a GPS layer (:class:`GpsLayer`): ``layer.start(rng)`` is the layer running
+  over a receiver's output (:class:`LayerRun`) with its own state and random stream;
+  ``run.step(batch)`` transforms the next epochs (one or many) of an error series, continuing
+  from the state, and ``run.delay_s`` is the receiver latency it adds. ``apply`` is that run
+  stepped once over a whole series; the simulator's receiver (:mod:`sim_backend.receiver`) runs
+  every GPS layer the same way, one epoch at a time in closed loop and over a whole log for the
+  gap tool's baselines.
+- A compass layer (:class:`CompassLayer`) also says how it changes the compass emulation's
+  own physics in closed loop: ``act_on(CompassPhysics) -> CompassPhysics``.
 - ``EFFECTS``: name -> effect class, so the gap tool can construct effects by name and
   write them into a simulator config fragment (``to_params()`` / ``from_params()``).
 """
@@ -17,9 +26,9 @@ INTERFACE (fixed; implementations are filled in below it):
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
@@ -49,6 +58,10 @@ class PositionSeries:
     which acts on NMEA minutes). ``speed_mps``/``course_deg`` of the TRUE motion are
     optional (latency and the gap tool's error-vs-speed use them).
     ``nsats`` optional satellites-used count (jumps at satellite-set changes).
+    ``true_east_m``/``true_north_m`` optional TRUE position (m, the origin's local frame):
+    when given, the layers that depend on where the vehicle is use it instead of integrating
+    speed/course (the simulator's receiver hands its layers one epoch at a time, with the
+    truth it knows).
     """
 
     t_s: np.ndarray
@@ -61,6 +74,8 @@ class PositionSeries:
     speed_mps: np.ndarray | None = None
     course_deg: np.ndarray | None = None
     nsats: np.ndarray | None = None
+    true_east_m: np.ndarray | None = None
+    true_north_m: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -151,11 +166,17 @@ def truth_velocity_mps(series: PositionSeries) -> tuple[np.ndarray, np.ndarray]:
 
 
 def truth_track_m(series: PositionSeries) -> tuple[np.ndarray, np.ndarray]:
-    """True east/north (m) relative to the origin, integrated from speed_mps/course_deg.
+    """True east/north (m) relative to the origin: ``true_east_m``/``true_north_m`` when the
+    series carries them, else integrated from speed_mps/course_deg.
 
-    Zero everywhere when the series carries no velocity (a static receiver at the origin).
+    Zero everywhere when the series carries neither (a static receiver at the origin).
     Trapezoidal integration of the velocity components.
     """
+    if series.true_east_m is not None and series.true_north_m is not None:
+        return (
+            np.asarray(series.true_east_m, dtype=float),
+            np.asarray(series.true_north_m, dtype=float),
+        )
     n = len(series)
     if series.speed_mps is None or n == 0:
         return np.zeros(n), np.zeros(n)
@@ -164,6 +185,43 @@ def truth_track_m(series: PositionSeries) -> tuple[np.ndarray, np.ndarray]:
     east = np.concatenate(([0.0], np.cumsum(0.5 * (ve[1:] + ve[:-1]) * dt)))
     north = np.concatenate(([0.0], np.cumsum(0.5 * (vn[1:] + vn[:-1]) * dt)))
     return east, north
+
+
+def interp_track(
+    t_s: np.ndarray, values: np.ndarray, first_rate: np.ndarray, t_query: np.ndarray
+) -> np.ndarray:
+    """A true track sampled at ``t_s`` (s, increasing), read at ``t_query`` (s).
+
+    ``values`` (n, k) are positions (m) or velocities; between samples they are interpolated
+    linearly, after the last sample held, and before the first the first sample is moved at
+    ``first_rate`` (k,) per second (the vehicle taken to move with its first velocity). The
+    law of every receiver delay: :func:`delay_errors` and the simulator's receiver."""
+    t = np.asarray(t_s, dtype=float)
+    tq = np.asarray(t_query, dtype=float)
+    v = np.asarray(values, dtype=float).reshape(t.shape[0], -1)
+    out = np.empty((tq.shape[0], v.shape[1]))
+    early = tq < t[0]
+    for j in range(v.shape[1]):
+        col = np.interp(tq, t, v[:, j])
+        col[early] = v[0, j] + (tq[early] - t[0]) * float(first_rate[j])
+        out[:, j] = col
+    return out
+
+
+def delay_errors(series: PositionSeries, delay_s: float) -> PositionSeries:
+    """The errors of a receiver that reports the truth ``delay_s`` (s) earlier: each epoch's
+    error plus truth(t - delay_s) - truth(t), with the truth of :func:`truth_track_m` read by
+    :func:`interp_track`. A series without a true track (no speed, no truth) is unchanged."""
+    n = len(series)
+    has_truth = series.true_east_m is not None and series.true_north_m is not None
+    if (series.speed_mps is None and not has_truth) or n == 0:
+        return series.with_()
+    te, tn = truth_track_m(series)
+    t = np.asarray(series.t_s, dtype=float)
+    ve, vn = truth_velocity_mps(series)
+    then = interp_track(t, np.column_stack([te, tn]), np.array([ve[0], vn[0]]), t - float(delay_s))
+    delta = np.vstack([then[:, 0] - te, then[:, 1] - tn, np.zeros(n)])
+    return _add(series, delta)
 
 
 def gauss_markov_noise(
@@ -228,6 +286,78 @@ def _add(series: PositionSeries, delta: np.ndarray) -> PositionSeries:
     )
 
 
+def _gm_continue(
+    t_s: np.ndarray,
+    x0: np.ndarray,
+    t0_s: float,
+    sigma: float,
+    tau_s: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Gauss-Markov samples at ``t_s`` continuing from the values ``x0`` (size,) at ``t0_s``
+    (s, before ``t_s[0]``): the exact discretisation of :func:`gauss_markov_noise`."""
+    t = np.asarray(t_s, dtype=float)
+    size, n = x0.shape[0], t.shape[0]
+    dt = _dt_s(np.concatenate(([t0_s], t)))
+    phi = np.exp(-dt / tau_s)
+    innov = sigma * np.sqrt(-np.expm1(-2.0 * dt / tau_s))
+    w = rng.standard_normal((size, n))
+    out = np.empty((size, n))
+    x = np.asarray(x0, dtype=float).copy()
+    for k in range(n):
+        x = phi[k] * x + innov[k] * w[:, k]
+        out[:, k] = x
+    return out
+
+
+class _GmProcess:
+    """A stationary first-order Gauss-Markov process of ``size`` axes carried across calls:
+    the first call starts from the stationary law, later ones continue from the last value."""
+
+    def __init__(self, sigma: float, tau_s: float, rng: np.random.Generator, size: int) -> None:
+        self.sigma, self.tau_s, self.rng, self.size = sigma, tau_s, rng, size
+        self._x: np.ndarray | None = None
+        self._t_s = 0.0
+
+    def draw(self, t_s: np.ndarray) -> np.ndarray:
+        """Samples (size, n) at the times ``t_s`` (s, after any earlier call's)."""
+        t = np.asarray(t_s, dtype=float)
+        if t.shape[0] == 0:
+            return np.empty((self.size, 0))
+        if self._x is None:
+            out = gauss_markov_noise(t, self.sigma, self.tau_s, self.rng, self.size)
+        else:
+            out = _gm_continue(t, self._x, self._t_s, self.sigma, self.tau_s, self.rng)
+        self._x, self._t_s = out[:, -1].copy(), float(t[-1])
+        return out
+
+
+class LayerRun(Protocol):
+    """A GPS layer running over a receiver's output (from :meth:`GpsLayer.start`).
+
+    ``step(batch)`` returns the next epochs of an error series (a :class:`PositionSeries`,
+    times after the previous batch's) with the layer acting, continuing from its state;
+    ``delay_s`` (s) is the latency it adds: the receiver solves for the truth that long before
+    each epoch (``step`` itself leaves the errors of a pure delay alone)."""
+
+    delay_s: float
+
+    def step(self, batch: PositionSeries) -> PositionSeries: ...
+
+
+class _Run:
+    """A stateless running layer: ``step`` is a pure function of the batch."""
+
+    delay_s: float = 0.0
+
+    def __init__(self, fn: Callable[[PositionSeries], PositionSeries] | None = None) -> None:
+        self._fn = fn
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        assert self._fn is not None  # subclasses with state override step
+        return self._fn(batch)
+
+
 class _Params:
     """to_params/from_params shared by all layers: the dataclass fields minus ``name``."""
 
@@ -262,11 +392,64 @@ class _Params:
             raise ConfigError(f"effect {cls.name}: {exc}") from None
 
 
+class GpsLayer(_Params):
+    """A layer on the receiver's position output.
+
+    ``stage`` orders the layers in a receiver: 0 acts on the solution, 1 on how it is
+    printed (the NMEA minutes' rounding, the last thing a receiver does): every stage-1 layer
+    runs after every stage-0 one, each stage in list order."""
+
+    kind: ClassVar[str] = "gps"
+    stage: ClassVar[int] = 0
+
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The layer running over a receiver's output, drawing from ``rng`` (its own)."""
+        raise NotImplementedError
+
+    def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
+        """The layer over a whole error series: :meth:`start` stepped once, a delay shown on
+        the errors as :func:`delay_errors` does."""
+        run = self.start(rng)
+        out = run.step(series)
+        return delay_errors(out, run.delay_s) if run.delay_s > 0 else out
+
+
+@dataclass
+class CompassPhysics:
+    """The compass emulation's own physics as the compass layers change it in closed loop.
+
+    The body-frame field is mapped field -> ``a`` field + ``b`` (3x3, and uT);
+    ``declination_deg`` rotates the Earth's field (deg); ``lag_tau_s`` is the device filter's
+    time constant (s); ``noise_deg2`` white heading noise to add (deg^2 per sample); ``tilt``
+    the layers left to the heading domain. ``horizontal_ut`` (uT) is the emulation's
+    horizontal field, to which hard-iron offsets are scaled.
+    """
+
+    horizontal_ut: float
+    a: np.ndarray
+    b: np.ndarray
+    declination_deg: float
+    lag_tau_s: float
+    noise_deg2: float = 0.0
+    tilt: tuple[Tilt, ...] = ()
+
+
+class CompassLayer(_Params):
+    """A layer on the compass heading."""
+
+    kind: ClassVar[str] = "compass"
+
+    def act_on(self, phys: CompassPhysics) -> CompassPhysics:
+        """``phys`` with this layer acting on the emulation's physics (same meaning as
+        :meth:`apply` on a heading series)."""
+        raise NotImplementedError
+
+
 # --- GPS layers -------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
-class GaussMarkov(_Params):
+class GaussMarkov(GpsLayer):
     """First-order Gauss-Markov drift, independent per axis: sigma_m (stationary std, m),
     tau_s (correlation time, s); axes 'en' (horizontal, default), 'enu', 'e', 'n' or 'u'."""
 
@@ -280,15 +463,24 @@ class GaussMarkov(_Params):
         _positive("tau_s", self.tau_s)
         _axes(self.axes)
 
-    def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
-        idx = _axes(self.axes)
-        delta = np.zeros((3, len(series)))
-        delta[list(idx)] = gauss_markov_noise(series.t_s, self.sigma_m, self.tau_s, rng, len(idx))
-        return _add(series, delta)
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The drift running on: one Gauss-Markov process per axis (stationary start)."""
+        return _GaussMarkovRun(self, rng)
+
+
+class _GaussMarkovRun(_Run):
+    def __init__(self, layer: GaussMarkov, rng: np.random.Generator) -> None:
+        self.idx = list(_axes(layer.axes))
+        self.gm = _GmProcess(layer.sigma_m, layer.tau_s, rng, len(self.idx))
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        delta = np.zeros((3, len(batch)))
+        delta[self.idx] = self.gm.draw(batch.t_s)
+        return _add(batch, delta)
 
 
 @dataclass(frozen=True)
-class RandomWalk(_Params):
+class RandomWalk(GpsLayer):
     """Random walk starting at zero: q_m_per_sqrt_s (m/sqrt(s)): increment std q*sqrt(dt)."""
 
     name: ClassVar[str] = "random_walk"
@@ -299,22 +491,36 @@ class RandomWalk(_Params):
         _positive("q_m_per_sqrt_s", self.q_m_per_sqrt_s, allow_zero=True)
         _axes(self.axes)
 
-    def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
-        idx = _axes(self.axes)
-        n = len(series)
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The walk running on from zero at the first epoch."""
+        return _RandomWalkRun(self, rng)
+
+
+class _RandomWalkRun(_Run):
+    def __init__(self, layer: RandomWalk, rng: np.random.Generator) -> None:
+        self.q, self.rng = layer.q_m_per_sqrt_s, rng
+        self.idx = list(_axes(layer.axes))
+        self._value: np.ndarray | None = None  # the walk at the last epoch (m)
+        self._t_s = 0.0
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        n, k = len(batch), len(self.idx)
         delta = np.zeros((3, n))
         if n:
-            steps = (
-                self.q_m_per_sqrt_s
-                * np.sqrt(_dt_s(series.t_s))
-                * rng.standard_normal((len(idx), n - 1))
-            )
-            delta[list(idx), 1:] = np.cumsum(steps, axis=1)
-        return _add(series, delta)
+            t = np.asarray(batch.t_s, dtype=float)
+            if self._value is None:
+                steps = self.q * np.sqrt(_dt_s(t)) * self.rng.standard_normal((k, n - 1))
+                delta[self.idx, 1:] = np.cumsum(steps, axis=1)
+            else:
+                dt = _dt_s(np.concatenate(([self._t_s], t)))
+                steps = self.q * np.sqrt(dt) * self.rng.standard_normal((k, n))
+                delta[self.idx] = self._value[:, None] + np.cumsum(steps, axis=1)
+            self._value, self._t_s = delta[self.idx, -1].copy(), float(t[-1])
+        return _add(batch, delta)
 
 
 @dataclass(frozen=True)
-class Bias(_Params):
+class Bias(GpsLayer):
     """Constant offset (m) east, north, up."""
 
     name: ClassVar[str] = "bias"
@@ -322,14 +528,18 @@ class Bias(_Params):
     north_m: float = 0.0
     up_m: float = 0.0
 
-    def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The constant offset (no state, no draws)."""
+        return _Run(self._offset)
+
+    def _offset(self, series: PositionSeries) -> PositionSeries:
         n = len(series)
         delta = np.array([[self.east_m], [self.north_m], [self.up_m]]) * np.ones((1, n))
         return _add(series, delta)
 
 
 @dataclass(frozen=True)
-class Quantization(_Params):
+class Quantization(GpsLayer):
     """NMEA rounding of latitude/longitude minutes to ``decimals`` places (4 or 5 on u-blox 5).
 
     Acts on the absolute position (origin + implied truth + error); the error becomes the
@@ -338,13 +548,18 @@ class Quantization(_Params):
     """
 
     name: ClassVar[str] = "quantization"
+    stage = 1  # the print stage (not annotated: a class constant, not a parameter)
     decimals: int = 5
 
     def __post_init__(self) -> None:
         if not isinstance(self.decimals, int) or not 0 <= self.decimals <= 9:
             raise ConfigError(f"decimals={self.decimals!r}: must be an integer 0..9")
 
-    def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The rounding (no state, no draws)."""
+        return _Run(self._round)
+
+    def _round(self, series: PositionSeries) -> PositionSeries:
         lat0, lon0 = series.origin_lat_deg, series.origin_lon_deg
         e_per_deg, n_per_deg = metres_per_degree(lat0)
         te, tn = truth_track_m(series)
@@ -369,7 +584,7 @@ JUMP_TRIGGERS = ("auto", "poisson", "sat_change")
 
 
 @dataclass(frozen=True)
-class Jumps(_Params):
+class Jumps(GpsLayer):
     """Position jumps when the satellite set changes.
 
     Each satellite set has its own solution offset, so at every change of ``nsats`` (or, when
@@ -410,19 +625,53 @@ class Jumps(_Params):
             mask[1:] = rng.random(n - 1) < p
         return mask
 
-    def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
-        n = len(series)
-        mask = self.change_mask(series, rng)
-        seg = np.cumsum(mask)
-        nseg = int(seg[-1]) + 1 if n else 0
-        offs = rng.standard_normal((3, nseg)) * np.array(
-            [[self.sigma_m], [self.sigma_m], [self.up_sigma_m]]
-        )
-        return _add(series, offs[:, seg] if n else np.zeros((3, 0)))
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The jumps running on: the current set's offset and satellite count are kept."""
+        return _JumpsRun(self, rng)
+
+
+class _JumpsRun(_Run):
+    def __init__(self, layer: Jumps, rng: np.random.Generator) -> None:
+        self.layer, self.rng = layer, rng
+        self._scale = np.array([[layer.sigma_m], [layer.sigma_m], [layer.up_sigma_m]])
+        self._offset: np.ndarray | None = None  # the current set's offset (3,), m
+        self._nsats: Any = None  # satellites used at the last epoch
+        self._t_s = 0.0
+
+    def _changes(self, batch: PositionSeries, t: np.ndarray) -> np.ndarray:
+        """New sets at each epoch of a batch after the first (epoch 0 against the last)."""
+        n, layer = len(batch), self.layer
+        mask = np.zeros(n, dtype=bool)
+        if layer.trigger == "sat_change" and batch.nsats is None:
+            return mask
+        if batch.nsats is not None and layer.trigger != "poisson":
+            ns = np.asarray(batch.nsats)
+            mask[0] = self._nsats is not None and bool(ns[0] != self._nsats)
+            mask[1:] = ns[1:] != ns[:-1]
+        else:
+            p = -np.expm1(-layer.rate_per_s * _dt_s(np.concatenate(([self._t_s], t))))
+            mask[:] = self.rng.random(n) < p
+        return mask
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        n = len(batch)
+        if n == 0:
+            return _add(batch, np.zeros((3, 0)))
+        t = np.asarray(batch.t_s, dtype=float)
+        if self._offset is None:
+            seg = np.cumsum(self.layer.change_mask(batch, self.rng))
+            offs = self.rng.standard_normal((3, int(seg[-1]) + 1)) * self._scale
+        else:
+            seg = np.cumsum(self._changes(batch, t))
+            new = self.rng.standard_normal((3, int(seg[-1]))) * self._scale
+            offs = np.concatenate((self._offset[:, None], new), axis=1)
+        self._offset, self._t_s = offs[:, -1].copy(), float(t[-1])
+        self._nsats = None if batch.nsats is None else np.asarray(batch.nsats)[-1]
+        return _add(batch, offs[:, seg])
 
 
 @dataclass(frozen=True)
-class Outages(_Params):
+class Outages(GpsLayer):
     """Fix outages: a two-state continuous-time Markov chain (mean_up_s, mean_down_s), exact
     transition probabilities over each actual step, stationary start. Down -> valid False."""
 
@@ -452,18 +701,47 @@ class Outages(_Params):
             up[k] = state
         return up
 
-    def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
-        up = self.states(series.t_s, rng)
-        return series.with_(valid=np.asarray(series.valid, dtype=bool) & up)
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The outage chain running on from its state at the last epoch."""
+        return _OutagesRun(self, rng)
+
+
+class _OutagesRun(_Run):
+    def __init__(self, layer: Outages, rng: np.random.Generator) -> None:
+        self.layer, self.rng = layer, rng
+        self._up: bool | None = None  # the chain's state at the last epoch
+        self._t_s = 0.0
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        t = np.asarray(batch.t_s, dtype=float)
+        n = t.shape[0]
+        if self._up is None or n == 0:
+            up = self.layer.states(t, self.rng)
+        else:
+            a, b = 1.0 / self.layer.mean_up_s, 1.0 / self.layer.mean_down_s
+            e = np.exp(-(a + b) * _dt_s(np.concatenate(([self._t_s], t))))
+            stay_up = (b + a * e) / (a + b)
+            stay_down = (a + b * e) / (a + b)
+            u = np.asarray(self.rng.random(n))
+            up = np.zeros(n, dtype=bool)
+            state = self._up
+            for k in range(n):
+                state = bool(u[k] < stay_up[k]) if state else bool(u[k] >= stay_down[k])
+                up[k] = state
+        if n:
+            self._up, self._t_s = bool(up[-1]), float(t[-1])
+        return batch.with_(valid=np.asarray(batch.valid, dtype=bool) & up)
 
 
 @dataclass(frozen=True)
-class Latency(_Params):
+class Latency(GpsLayer):
     """Reported position is the truth of ``delay_s`` earlier (plus the existing error).
 
-    Error added = truth(t - delay_s) - truth(t), with the truth track implied by
-    speed_mps/course_deg (before the first epoch the vehicle is taken to move with its
-    first velocity). A static series is unchanged.
+    In the simulator's receiver the delay moves what the receiver solves for (position and
+    velocity: :attr:`LayerRun.delay_s`). On an error series (:meth:`apply`) the error added is
+    truth(t - delay_s) - truth(t) (:func:`delay_errors`; the truth track explicit or implied by
+    speed_mps/course_deg, before the first epoch the vehicle taken to move with its first
+    velocity). A static series is unchanged.
     """
 
     name: ClassVar[str] = "latency"
@@ -472,26 +750,21 @@ class Latency(_Params):
     def __post_init__(self) -> None:
         _positive("delay_s", self.delay_s, allow_zero=True)
 
-    def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
-        n = len(series)
-        if series.speed_mps is None or n == 0:
-            return series.with_()
-        te, tn = truth_track_m(series)
-        t = np.asarray(series.t_s, dtype=float)
-        tq = t - self.delay_s
-        ve, vn = truth_velocity_mps(series)
-        ve0, vn0 = float(ve[0]), float(vn[0])
-        pe = np.interp(tq, t, te)
-        pn = np.interp(tq, t, tn)
-        early = tq < t[0]
-        pe[early] = (tq[early] - t[0]) * ve0
-        pn[early] = (tq[early] - t[0]) * vn0
-        delta = np.vstack([pe - te, pn - tn, np.zeros(n)])
-        return _add(series, delta)
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """A pure delay: the receiver solves for the truth ``delay_s`` earlier."""
+        return _DelayRun(self.delay_s)
+
+
+class _DelayRun(_Run):
+    def __init__(self, delay_s: float) -> None:
+        self.delay_s = float(delay_s)
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        return batch.with_()
 
 
 @dataclass(frozen=True)
-class MultipathZone(_Params):
+class MultipathZone(GpsLayer):
     """Extra error near a wall: the wall is the segment (x1_m, y1_m)-(x2_m, y2_m) in the
     local frame; within ``distance_m`` of it the horizontal error gains a bias ``bias_m``
     pointing away from the wall (reflected paths are longer) and Gauss-Markov noise of
@@ -530,15 +803,27 @@ class MultipathZone(_Params):
         uy = np.where(safe, ry / np.where(safe, dist, 1.0), ny)
         return dist, ux, uy
 
-    def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
-        te, tn = truth_track_m(series)
-        dist, ux, uy = self.distance_to_wall_m(te, tn)
-        inside = dist <= self.distance_m
-        noise = gauss_markov_noise(series.t_s, self.sigma_m, self.tau_s, rng, 2)
-        delta = np.zeros((3, len(series)))
-        delta[0] = np.where(inside, self.bias_m * ux + noise[0], 0.0)
-        delta[1] = np.where(inside, self.bias_m * uy + noise[1], 0.0)
-        return _add(series, delta)
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The zone running on: its Gauss-Markov noise is drawn at every epoch (so the random
+        stream does not depend on the path) and acts where the TRUE position is near."""
+        return _MultipathRun(self, rng)
+
+
+class _MultipathRun(_Run):
+    def __init__(self, layer: MultipathZone, rng: np.random.Generator) -> None:
+        self.layer = layer
+        self.gm = _GmProcess(layer.sigma_m, layer.tau_s, rng, 2)
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        z = self.layer
+        te, tn = truth_track_m(batch)
+        dist, ux, uy = z.distance_to_wall_m(te, tn)
+        inside = dist <= z.distance_m
+        noise = self.gm.draw(batch.t_s)
+        delta = np.zeros((3, len(batch)))
+        delta[0] = np.where(inside, z.bias_m * ux + noise[0], 0.0)
+        delta[1] = np.where(inside, z.bias_m * uy + noise[1], 0.0)
+        return _add(batch, delta)
 
 
 # --- compass layers ---------------------------------------------------------------------------
@@ -576,18 +861,23 @@ def _field_magnitude(series: HeadingSeries, horizontal_ut: float) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class Declination(_Params):
+class Declination(CompassLayer):
     """Magnetic declination (deg, east positive): the compass reads heading - declination."""
 
     name: ClassVar[str] = "declination"
     declination_deg: float
+
+    def act_on(self, phys: CompassPhysics) -> CompassPhysics:
+        """The site's field rotated: declination adds up (it acts before any iron, as the
+        Earth's field does, whatever the layer's place in the list)."""
+        return replace(phys, declination_deg=phys.declination_deg + self.declination_deg)
 
     def apply(self, series: HeadingSeries, rng: np.random.Generator) -> HeadingSeries:
         return _compass_out(series, np.asarray(series.heading_deg) - self.declination_deg)
 
 
 @dataclass(frozen=True)
-class HardIron(_Params):
+class HardIron(CompassLayer):
     """A hard-iron offset (bx_ut forward, by_ut right, microtesla) added in the body frame to
     the horizontal Earth field ``horizontal_field_ut``. The body sees the field
     (H cos h + bx, -H sin h + by) at magnetic heading h; the heading it computes is
@@ -602,6 +892,12 @@ class HardIron(_Params):
     def __post_init__(self) -> None:
         _positive("horizontal_field_ut", self.horizontal_field_ut)
 
+    def act_on(self, phys: CompassPhysics) -> CompassPhysics:
+        """The offset, scaled from ``horizontal_field_ut`` to the emulation's horizontal
+        field, so the heading error against heading is the layer's."""
+        scale = phys.horizontal_ut / self.horizontal_field_ut
+        return replace(phys, b=phys.b + np.array([self.bx_ut * scale, self.by_ut * scale, 0.0]))
+
     def apply(self, series: HeadingSeries, rng: np.random.Generator) -> HeadingSeries:
         h = np.radians(np.asarray(series.heading_deg, dtype=float))
         H = self.horizontal_field_ut
@@ -612,7 +908,7 @@ class HardIron(_Params):
 
 
 @dataclass(frozen=True)
-class SoftIron(_Params):
+class SoftIron(CompassLayer):
     """Soft iron: the horizontal field is multiplied by a symmetric matrix with principal
     gains (1 + k, 1 - k) along body axes rotated by ``axis_deg``: error twice per turn,
     amplitude about k rad."""
@@ -624,6 +920,13 @@ class SoftIron(_Params):
     def __post_init__(self) -> None:
         if not -0.9 < self.k < 0.9:
             raise ConfigError(f"soft_iron k={self.k!r}: must be in (-0.9, 0.9)")
+
+    def act_on(self, phys: CompassPhysics) -> CompassPhysics:
+        """The symmetric matrix R(axis) diag(1+k, 1-k) R(axis)^T on x/y, after the map so far."""
+        c, s = math.cos(math.radians(self.axis_deg)), math.sin(math.radians(self.axis_deg))
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        m = rot @ np.diag([1.0 + self.k, 1.0 - self.k, 1.0]) @ rot.T
+        return replace(phys, a=m @ phys.a, b=m @ phys.b)
 
     def apply(self, series: HeadingSeries, rng: np.random.Generator) -> HeadingSeries:
         h = np.radians(np.asarray(series.heading_deg, dtype=float))
@@ -665,7 +968,7 @@ def tilted_heading_deg(
 
 
 @dataclass(frozen=True)
-class Tilt(_Params):
+class Tilt(CompassLayer):
     """Imperfect tilt compensation: a fraction (0 = perfect, 1 = none) of the measured
     pitch/roll is left uncompensated; the heading error is that of an untilted-computed
     heading at inclination ``inclination_deg`` (about tilt * tan(inclination), once per turn)."""
@@ -681,6 +984,11 @@ class Tilt(_Params):
             raise ConfigError(
                 f"tilt inclination_deg={self.inclination_deg!r}: must be in [-89, 89]"
             )
+
+    def act_on(self, phys: CompassPhysics) -> CompassPhysics:
+        """No partial-compensation model in the emulation: applied in the heading domain
+        before the device's physics (``mission.CompassSetup.device_heading_deg``)."""
+        return replace(phys, tilt=(*phys.tilt, self))
 
     def apply(self, series: HeadingSeries, rng: np.random.Generator) -> HeadingSeries:
         h = np.asarray(series.heading_deg, dtype=float)
@@ -698,7 +1006,7 @@ class Tilt(_Params):
 
 
 @dataclass(frozen=True)
-class HeadingNoise(_Params):
+class HeadingNoise(CompassLayer):
     """White heading noise, sigma_deg (deg) per sample."""
 
     name: ClassVar[str] = "heading_noise"
@@ -707,13 +1015,17 @@ class HeadingNoise(_Params):
     def __post_init__(self) -> None:
         _positive("sigma_deg", self.sigma_deg, allow_zero=True)
 
+    def act_on(self, phys: CompassPhysics) -> CompassPhysics:
+        """White heading noise adds up in variance (turned into field noise by the caller)."""
+        return replace(phys, noise_deg2=phys.noise_deg2 + self.sigma_deg**2)
+
     def apply(self, series: HeadingSeries, rng: np.random.Generator) -> HeadingSeries:
         noise = self.sigma_deg * rng.standard_normal(len(series))
         return _compass_out(series, np.asarray(series.heading_deg, dtype=float) + noise)
 
 
 @dataclass(frozen=True)
-class HeadingLag(_Params):
+class HeadingLag(CompassLayer):
     """First-order lag of the heading filter, time constant tau_s (CMPS10: its filter takes
     about 640 ms to refresh fully, i.e. tau about 0.21 s). Exact for a heading held between
     samples: y_k = y_{k-1} + (1 - exp(-dt/tau)) * wrap(x_k - y_{k-1}), across north."""
@@ -723,6 +1035,11 @@ class HeadingLag(_Params):
 
     def __post_init__(self) -> None:
         _positive("tau_s", self.tau_s)
+
+    def act_on(self, phys: CompassPhysics) -> CompassPhysics:
+        """Added to the device's filter: a cascade of first-order lags has the sum of their
+        delays at low frequency."""
+        return replace(phys, lag_tau_s=phys.lag_tau_s + self.tau_s)
 
     def apply(self, series: HeadingSeries, rng: np.random.Generator) -> HeadingSeries:
         x = np.asarray(series.heading_deg, dtype=float)

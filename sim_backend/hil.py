@@ -8,14 +8,13 @@ configured from ``[sim]`` by :func:`configure`). The world is a scenario file
 as fast-time simulation (``x6wd sim``), only in real time:
 
 - :func:`open_gps` -> a pyserial ``Serial`` on the slave side of a pseudo-terminal
-  (:class:`sim_backend.ports.PtyUart`). Once per receiver epoch the full GNSS model
-  (:func:`sim_backend.mission.build_gnss`: almanac sky, atmosphere, walls, the scenario's
-  fidelity level) turns the vehicle's true antenna position into a solution, the scenario's
-  ``[[effects]]`` GPS layers are applied (all of them, by the same
-  :func:`sim_backend.mission.apply_gps_effects` as ``x6wd sim``; latency from the physics
-  thread's true track), and :class:`sim_backend.nmea_out.NmeaFormatter` prints
-  it as a NEO-5 does (``$GPTXT`` banner at start, the real no-fix forms), each sentence
-  followed by its wire time at the scenario's baud rate.
+  (:class:`sim_backend.ports.PtyUart`). Once per receiver epoch the scenario's receiver
+  (:func:`sim_backend.receiver.build_receiver`, the one ``x6wd sim`` and the gap tool build:
+  almanac sky, atmosphere, walls, LCE grid, fidelity, every ``[[effects]]`` GPS layer, the
+  NEO-5 formatter) turns the vehicle's true antenna position into a solution (a latency
+  layer reads the physics thread's true track) and prints it as a NEO-5 does (``$GPTXT``
+  banner at start, the real no-fix forms), each sentence followed by its wire time at the
+  scenario's baud rate.
 - :func:`open_compass` -> a :class:`drivers.cmps10.Cmps10` over the CMPS10 register map of
   :mod:`sim_backend.compass` with the scenario's ``[compass]`` field and errors and its
   compass ``[[effects]]`` layers (:func:`sim_backend.mission.compass_setup`); its
@@ -57,25 +56,12 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-import numpy as np
-
 from drivers.motors import MotorBoard, serve_board_fd
 from sim_backend.compass import ErrorInjector, SimCmps10
 from sim_backend.epoch import GnssEpoch
-from sim_backend.geodesy import enu_to_lla
-from sim_backend.mission import (
-    GpsEffectOffsets,
-    TruthHistory,
-    apply_gps_effects,
-    build_gnss,
-    compass_setup,
-    effects_latency_s,
-    gps_effect_offsets,
-    vehicle_from_world,
-    vehicle_velocity,
-)
-from sim_backend.nmea_out import NmeaFormatter, sentence, wire_time_s
+from sim_backend.mission import compass_setup, vehicle_from_world, vehicle_velocity
 from sim_backend.ports import PtyUart
+from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.world import World, load_world
 from x6wd.core.config import SimConfig
 from x6wd.core.errors import ConfigError, DeviceUnavailable
@@ -86,7 +72,6 @@ log = logging.getLogger(__name__)
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 DEFAULT_SCENARIO = CONFIG_DIR / "scenarios" / "default.toml"
 MOTOR_BAUD = 115200  # docs/motors.md default; a pty does not pace it anyway
-EFFECTS_BLOCK_S = 3600.0  # [[effects]] GPS layers are generated this far ahead at a time
 WIRE_LOG_LEN = 4096  # motor-board traffic kept for inspection (entries)
 
 # [sim] keys that override the scenario when present (None in SimConfig = absent)
@@ -275,7 +260,7 @@ class HilWorld:
     and motor board.
 
     ``scenario`` is the :class:`~sim_backend.world.World` in use (overrides applied),
-    ``gnss`` its :class:`~sim_backend.gnss.GnssModel`, ``board`` the motor board.
+    ``receiver`` its :class:`~sim_backend.receiver.SimReceiver`, ``board`` the motor board.
     Hooks (for benchmarks): ``on_gga(t_s)`` after each GGA, with the time its (single) write
     call started; ``on_motor(cmd, t_s)`` when an ``M``/``S`` line reaches the motor board
     (monotonic clock; called with the world's lock held: keep it short).
@@ -288,15 +273,8 @@ class HilWorld:
         # The compass [[effects]] layers become the emulation's own physics, as in x6wd sim
         # (heading noise is scaled for the physics rate, at which the registers update).
         cset, compass_skipped = compass_setup(sc, params.physics_hz)
-        ss = np.random.SeedSequence(sc.seed)
-        rng_gnss, rng_compass, rng_i2c, rng_fx = (np.random.default_rng(s) for s in ss.spawn(4))
-        self.gnss = build_gnss(sc, rng_gnss)
-        self.formatter = NmeaFormatter(
-            minute_decimals=sc.gnss.nmea_decimals, rate_hz=sc.gnss.rate_hz
-        )
-        self._rng_fx = rng_fx
-        self._fx: GpsEffectOffsets | None = None
-        self._fx_block = -1
+        rand = SimRandom.from_seed(sc.seed)
+        self.receiver = build_receiver(sc, rand)
         self.vehicle = vehicle_from_world(sc)
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -305,8 +283,8 @@ class HilWorld:
         self.compass = SimCmps10(
             field_model=cset.field_model,
             errors=cset.errors,
-            injector=ErrorInjector(p_error=cset.p_error, rng=rng_i2c if cset.p_error else None),
-            rng=rng_compass if cset.errors.noise_ut > 0 else None,
+            injector=ErrorInjector(p_error=cset.p_error, rng=rand.i2c if cset.p_error else None),
+            rng=rand.compass if cset.errors.noise_ut > 0 else None,
             clock=self._device_time,
         )
         self._cset = cset
@@ -321,13 +299,8 @@ class HilWorld:
         self.effects_skipped: tuple[str, ...] = compass_skipped
         if compass_skipped:
             log.warning("HIL: [[effects]] layers not applied: %s", "; ".join(compass_skipped))
-        # Latency needs the true track of the last delay_s: kept by the physics thread.
-        # The delay is known before the first block (it does not depend on the draws).
-        delay_s = effects_latency_s(sc)
-        self._history = TruthHistory(delay_s) if delay_s > 0 else None
-        self._latency_s = delay_s
-        if self._history is not None:
-            self._history.add(0.0, self._antenna_enu(s0), vehicle_velocity(s0))
+        # A delayed receiver needs the true track between epochs: fed by the physics thread.
+        self.receiver.observe(0.0, self._antenna_enu(s0), vehicle_velocity(s0))
         self._fds: list[int] = []
         self.uart = PtyUart(sc.gnss.baud, realtime=False)
         self._threads = [
@@ -430,66 +403,44 @@ class HilWorld:
                 s = self.vehicle.step(now - t_last)
                 h = self._cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg)
                 self.compass.set_state(now - self.t0, h, s.pitch_deg, s.roll_deg)
-                if self._history is not None:
-                    self._history.add(now - self.t0, self._antenna_enu(s), vehicle_velocity(s))
+                if self.receiver.tracks:
+                    self.receiver.observe(now - self.t0, self._antenna_enu(s), vehicle_velocity(s))
             t_last = now
-
-    def _offsets(self, k: int) -> tuple[GpsEffectOffsets, int] | None:
-        """The ``[[effects]]`` offsets covering epoch ``k`` and its index in them."""
-        sc = self.scenario
-        if not sc.effects:
-            return None
-        n = max(1, round(EFFECTS_BLOCK_S * sc.gnss.rate_hz))
-        block = k // n
-        if block != self._fx_block or self._fx is None:
-            # Layers restart from their stationary state at each block (once an hour).
-            t = (block * n + np.arange(n)) / sc.gnss.rate_hz
-            self._fx = gps_effect_offsets(sc, t, self._rng_fx)
-            self._fx_block = block
-        return self._fx, k - block * n
 
     def _epoch(self, k: int) -> GnssEpoch:
         """Receiver epoch ``k`` (scenario time ``k / rate_hz``) from the vehicle's truth now."""
-        sc = self.scenario
-        o = sc.origin
-        t_s = k / sc.gnss.rate_hz
+        t_s = k / self.scenario.gnss.rate_hz
         with self._lock:
             s = self.vehicle.state
             pos, vel = self._antenna_enu(s), vehicle_velocity(s)
-            if self._history is not None:
-                # Latency: the receiver solves for where the antenna was delay_s ago (the
-                # history runs on the physics clock, which is the scenario clock here).
-                pos, vel = self._history.at(self._device_time() - self._latency_s)
-        lat, lon, alt = enu_to_lla(np.array(pos), o.lat_deg, o.lon_deg, o.alt_m)
-        ep = self.gnss.step(t_s, float(lat), float(lon), float(alt), vel)
-        fx = self._offsets(k)
-        return ep if fx is None else apply_gps_effects(ep, *fx, s.east_m, s.north_m)
+        # A delayed receiver reads the physics thread's track, whose clock is the device's.
+        return self.receiver.epoch(t_s, pos, vel, track_t_s=self._device_time())
 
     def _antenna_enu(self, s: Any) -> tuple[float, float, float]:
         return s.east_m, s.north_m, s.up_m + self.scenario.vehicle.antenna_height_m
 
     def _receiver(self) -> None:
-        rate_hz, baud = self.scenario.gnss.rate_hz, self.scenario.gnss.baud
+        rx = self.receiver
+        rate_hz, baud = rx.rate_hz, rx.baud
         period_s = 1.0 / rate_hz
         with contextlib.suppress(Exception):
-            self.uart.write(self.formatter.banner())
+            self.uart.write(rx.banner())
         warned = False
         k = 1
         while not self._stop.wait(max(0.0, self.t0 + k * period_s - time.monotonic())):
-            bodies = self.formatter.epoch_bodies(self._epoch(k))
+            lines = rx.sentences(self._epoch(k))
             t_burst = time.monotonic()
-            for body in bodies:
-                data = sentence(body)
+            for data in lines:
                 # stamped just before the write: the reader may finish with the fix before
                 # this thread runs again, so a later stamp could come after the motor command
                 t_write = time.monotonic()
                 self.uart.write(data)
-                if body[2:5] == "GGA":
+                if data[3:6] == b"GGA":
                     hook = self.on_gga
                     if hook is not None:
                         hook(t_write)
                 # the next sentence leaves the wire after this one
-                if self._stop.wait(wire_time_s(len(data), baud)):
+                if self._stop.wait(rx.wire_time_s(len(data))):
                     return
             self.epochs += 1
             if not warned and time.monotonic() - t_burst > period_s:

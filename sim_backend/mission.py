@@ -4,9 +4,12 @@ The loop, at the compass rate (20 Hz by default) in simulated seconds::
 
     vehicle (skid steer) ──> compass register map ──> drivers.cmps10 ──> Controller.on_attitude
          │                                                                  │
-         └─> GnssModel.step (each GPS epoch) ──> NEO-5 bytes ──> MemoryUart │
+         └─> SimReceiver.epoch (each GPS epoch) ──> NEO-5 bytes ──> MemoryUart │
                  ──> drivers.gps_nmea.GpsDecoder ──> Controller.on_fix/on_sky
     Controller MotorCommand ──> vehicle
+
+The receiver is :func:`sim_backend.receiver.build_receiver`'s, the one HIL and the gap tool
+build too (model, error layers, NMEA, UART timing).
 
 The decoded fix is stamped with the time its burst finished on the wire at the scenario's baud
 rate, so the controller sees the receiver's real latency. Nothing reads a wall clock except the
@@ -29,10 +32,11 @@ Scenario-specific settings read here (``[compass]`` is a plain table; keys):
 (default 20), ``p_error`` (I2C error probability per transaction).
 
 Every ``[[effects]]`` layer (e.g. the gap tool's ``effects.toml``) acts in the closed loop:
-the GPS ones through :func:`gps_effect_offsets` / :func:`apply_gps_effects` (latency moves
-the position the receiver model solves for, the multipath zone is evaluated at the true
-position each epoch, quantisation rounds the printed minutes), the compass ones on the
-emulation's own physics (:func:`compass_setup`). HIL shares these functions.
+the GPS ones inside the receiver, each epoch, the one way layers run
+(:meth:`sim_backend.effects.GpsLayer.start`: latency moves the position the receiver model
+solves for, the multipath zone is evaluated at the true position, quantisation rounds the
+reported minutes), the compass ones on the emulation's own physics (:func:`compass_setup`,
+each layer's :meth:`~sim_backend.effects.CompassLayer.act_on`). HIL shares both.
 
 How the paper's four situations are configured (config/scenarios) and what came out:
 docs/simulator.md, "The paper's four situations".
@@ -59,30 +63,15 @@ from drivers.cmps10 import Cmps10
 from drivers.gps_nmea import GpsDecoder
 from sim_backend.compass import CompassErrors, ErrorInjector, MagneticField, SimCmps10
 from sim_backend.effects import (
-    GPS_EFFECT_NAMES,
     PITCH_ROLL_LIMIT_DEG,
-    Declination,
-    HardIron,
-    HeadingLag,
-    HeadingNoise,
-    Latency,
-    MultipathZone,
-    PositionSeries,
-    Quantization,
-    SoftIron,
+    CompassPhysics,
     Tilt,
-    gauss_markov_noise,
-    metres_per_degree,
-    quantize_degrees,
     tilted_heading_deg,
     wrap180,
 )
-from sim_backend.epoch import GnssEpoch
 from sim_backend.geodesy import enu_to_lla, lla_to_enu
-from sim_backend.gnss import GnssModel, LceGrid, ReceiverParams
-from sim_backend.nmea_out import NmeaFormatter, wire_time_s
 from sim_backend.ports import MemoryUart
-from sim_backend.sky import SatelliteSet, read_yuma
+from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
 from sim_backend.world import World, load_world
 from x6wd.core.errors import ConfigError
@@ -290,38 +279,6 @@ class CompassSetup:
         )
 
 
-def build_gnss(world: World, rng: np.random.Generator) -> GnssModel:
-    """The scenario's receiver model (real sky, atmosphere, walls) driven by ``rng``."""
-    sky = SatelliteSet.from_almanac(read_yuma(world.almanac_path, reference=world.start_utc))
-    g = world.gnss
-    lce_arr = world.lce_array()
-    lce = (
-        None
-        if lce_arr is None
-        else LceGrid(g.lce_east0_m, g.lce_north0_m, g.lce_cell_m, lce_arr, g.lce_outside_m)
-    )
-    receiver = ReceiverParams(
-        seed_uere=g.seed_uere,  # type: ignore[arg-type]
-        re_sigma_m=g.re_m,
-        ase_sigma_m=g.ase_m,
-        lce=lce,
-        max_channels=g.max_channels,
-    )
-    return GnssModel(
-        sky,
-        world.origin.lat_deg,
-        world.origin.lon_deg,
-        world.origin.alt_m,
-        world.start_utc,
-        fidelity=g.fidelity,  # type: ignore[arg-type]
-        mask_deg=g.mask_deg,
-        atmosphere=world.atmosphere,
-        walls=cast(Any, world.walls_model()),  # buildings.Walls implements gnss.Walls
-        receiver=receiver,
-        rng=rng,
-    )
-
-
 def vehicle_from_world(world: World) -> Vehicle:
     """The scenario's vehicle at its start pose (shared by fast time and HIL)."""
     v = world.vehicle
@@ -385,20 +342,16 @@ def run_mission(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cset, compass_skipped = compass_setup(world)
-    ss = np.random.SeedSequence(seed)
-    rng_gnss, rng_compass, rng_i2c, rng_fx = (np.random.default_rng(s) for s in ss.spawn(4))
-
-    gnss = build_gnss(world, rng_gnss)
-    fmt = NmeaFormatter(minute_decimals=world.gnss.nmea_decimals, rate_hz=world.gnss.rate_hz)
-    baud = world.gnss.baud
-    uart = MemoryUart(baud)
+    rand = SimRandom.from_seed(seed)
+    receiver = build_receiver(world, rand)
+    uart = MemoryUart(receiver.baud)
     decoder = GpsDecoder(emit_sentences=False)
-    injector = ErrorInjector(p_error=cset.p_error, rng=rng_i2c if cset.p_error > 0 else None)
+    injector = ErrorInjector(p_error=cset.p_error, rng=rand.i2c if cset.p_error > 0 else None)
     device = SimCmps10(
         field_model=cset.field_model,
         errors=cset.errors,
         injector=injector,
-        rng=rng_compass if cset.errors.noise_ut > 0 else None,
+        rng=rand.compass if cset.errors.noise_ut > 0 else None,
     )
     compass = Cmps10(device, sleep=lambda _s: None, retry_delay_s=0.0)
     ctrl = Controller(world.navigation, world.safety, cset.robot_declination_deg)
@@ -456,7 +409,7 @@ def run_mission(
 
     try:
         rec.record_event("sim_start", 0.0, scenario=world.name, seed=seed, duration_s=total_s)
-        banner = fmt.banner()
+        banner = receiver.banner()
         nmea_file.write(banner)
         uart.write(banner)
         decoder.feed(uart.read_all(), 0.0)
@@ -468,28 +421,15 @@ def run_mission(
             handle(ctrl.load_mission(waypoints, 0.0), 0.0)
             handle(ctrl.start(0.0), 0.0)
         report_every = max(1, n_ticks // 50)
-        t_ep = np.arange(0, n_ticks + 1, gps_every) * dt
-        fx = gps_effect_offsets(world, t_ep, rng_fx)
-        history = TruthHistory(fx.latency_s) if fx.latency_s > 0 else None
         static = None
         if not waypoints:
-            # Nothing will move the robot: the whole survey in one vectorised model call
+            # Nothing will move the robot: the whole survey in one vectorised receiver call
             # (same physics as step by step, much faster with walls).
             s0 = vehicle.state
-            lat0, lon0, alt0 = enu_to_lla(
-                np.array([s0.east_m, s0.north_m, s0.up_m + antenna_m]),
-                origin.lat_deg,
-                origin.lon_deg,
-                origin.alt_m,
-            )
+            t_ep = np.arange(0, n_ticks + 1, gps_every) * dt
             n_ep = len(t_ep)
-            static = gnss.batch(
-                t_ep,
-                np.full(n_ep, float(lat0)),
-                np.full(n_ep, float(lon0)),
-                np.full(n_ep, float(alt0)),
-                np.zeros((n_ep, 3)),
-            )
+            pos0 = np.array([s0.east_m, s0.north_m, s0.up_m + antenna_m])
+            static = receiver.batch(t_ep, np.tile(pos0, (n_ep, 1)), np.zeros((n_ep, 3)))
         # Sentences in flight on the UART: (time the last byte arrives, epoch tick, bytes).
         in_flight: deque[tuple[float, int, bytes]] = deque()
 
@@ -519,9 +459,9 @@ def run_mission(
             trace.north.append(s.north_m)
             trace.up.append(s.up_m)
             trace.heading.append(s.heading_deg)
-            if history is not None:
-                # every physics step, so the delayed position interpolates the real path
-                history.add(t, (s.east_m, s.north_m, s.up_m + antenna_m), vehicle_velocity(s))
+            if receiver.tracks:
+                # every physics step, so a delayed position interpolates the real path
+                receiver.observe(t, (s.east_m, s.north_m, s.up_m + antenna_m), vehicle_velocity(s))
             device.set_state(
                 t, cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg),
                 s.pitch_deg, s.roll_deg,
@@ -530,33 +470,19 @@ def run_mission(
             rec.record_attitude(att)
             handle(ctrl.on_attitude(att), t)
             if k % gps_every == 0:
-                lat, lon, alt = enu_to_lla(
-                    np.array([s.east_m, s.north_m, s.up_m + antenna_m]),
-                    origin.lat_deg,
-                    origin.lon_deg,
-                    origin.alt_m,
-                )
-                vel = vehicle_velocity(s)
+                antenna = (s.east_m, s.north_m, s.up_m + antenna_m)
                 if static is not None:
                     ep = static.epoch(k // gps_every)
-                elif history is not None:
-                    # Latency: the receiver solves for where the antenna was delay_s ago.
-                    pos_d, vel_d = history.at(t - fx.latency_s)
-                    lat_d, lon_d, alt_d = enu_to_lla(
-                        np.array(pos_d), origin.lat_deg, origin.lon_deg, origin.alt_m
-                    )
-                    ep = gnss.step(t, float(lat_d), float(lon_d), float(alt_d), vel_d)
                 else:
-                    ep = gnss.step(t, float(lat), float(lon), float(alt), vel)
-                if world.effects:
-                    ep = apply_gps_effects(ep, fx, k // gps_every, s.east_m, s.north_m)
-                burst = fmt.format_epoch(ep)
+                    ep = receiver.epoch(t, antenna, vehicle_velocity(s))
+                burst = receiver.nmea(ep)
                 nmea_file.write(burst)
+                lat, lon, _alt = enu_to_lla(
+                    np.array(antenna), origin.lat_deg, origin.lon_deg, origin.alt_m
+                )
                 trace.epoch_truth[k] = (s.east_m, s.north_m, float(lat), float(lon))
-                sent = 0
-                for line in burst.splitlines(keepends=True):
-                    sent += len(line)
-                    in_flight.append((t + wire_time_s(sent, baud), k, line))
+                for t_rx, line in receiver.arrivals(burst, t):
+                    in_flight.append((t_rx, k, line))
             if progress is not None and k % report_every == 0:
                 progress(t, total_s)
             if done_at is not None and t >= done_at + DONE_TAIL_S:
@@ -624,158 +550,6 @@ def run_mission(
     return summary
 
 
-@dataclass(frozen=True)
-class GpsEffectOffsets:
-    """The scenario's ``[[effects]]`` GPS layers over a run of epochs, ready for the loop.
-
-    ``east_m``/``north_m``/``up_m`` (m) are the position-independent layers (Gauss-Markov,
-    random walk, bias, jumps) summed; ``valid`` False where an outage removes the fix.
-    ``multipath`` holds each multipath zone with its pre-drawn (2, n) Gauss-Markov noise (m),
-    used only at epochs where the TRUE position is inside the zone. ``latency_s`` (s) is the
-    total receiver delay; ``decimals`` the coarsest NMEA quantisation (None = none).
-    Compass layers act through :func:`compass_setup` instead.
-    """
-
-    east_m: np.ndarray
-    north_m: np.ndarray
-    up_m: np.ndarray
-    valid: np.ndarray
-    multipath: tuple[tuple[MultipathZone, np.ndarray], ...] = ()
-    latency_s: float = 0.0
-    decimals: int | None = None
-
-
-def gps_effect_offsets(world: World, t_s: np.ndarray, rng: np.random.Generator) -> GpsEffectOffsets:
-    """Prepare the ``[[effects]]`` GPS layers over the epoch times ``t_s`` (s).
-
-    Layers whose law does not depend on where the robot is act on a zero error series, in
-    scenario order, with the layers' own ``apply`` (so the random draws and the exact
-    discretisations are those of :mod:`sim_backend.effects`). The layers that need the true
-    track are split into what can be drawn ahead and what is evaluated each epoch by
-    :func:`apply_gps_effects`: the multipath zone's Gauss-Markov noise is drawn here over all
-    epochs (exactly as ``MultipathZone.apply`` draws it) and gated by the true position in the
-    loop; latency moves the position handed to the receiver model (:class:`TruthHistory`);
-    quantisation rounds the reported position last, as the receiver's printing does.
-    """
-    n = len(t_s)
-    t = np.asarray(t_s, dtype=float)
-    zeros = np.zeros(n)
-    series = PositionSeries(
-        t_s=t, east_m=zeros, north_m=zeros.copy(),
-        up_m=zeros.copy(), valid=np.ones(n, dtype=bool),
-        origin_lat_deg=world.origin.lat_deg, origin_lon_deg=world.origin.lon_deg,
-    )  # fmt: skip
-    multipath: list[tuple[MultipathZone, np.ndarray]] = []
-    latency_s = 0.0
-    decimals: int | None = None
-    for eff in world.effect_objects():
-        if eff.name not in GPS_EFFECT_NAMES:
-            continue  # compass layers: compass_setup
-        if isinstance(eff, MultipathZone):
-            multipath.append((eff, gauss_markov_noise(t, eff.sigma_m, eff.tau_s, rng, 2)))
-        elif isinstance(eff, Latency):
-            # Two receivers' delays in a chain add up: one delay of their sum.
-            latency_s += eff.delay_s
-        elif isinstance(eff, Quantization):
-            # Rounding twice keeps the coarser lattice (up to a rare double-rounding tie).
-            decimals = eff.decimals if decimals is None else min(decimals, eff.decimals)
-        else:
-            series = eff.apply(series, rng)
-    return GpsEffectOffsets(
-        np.asarray(series.east_m, dtype=float),
-        np.asarray(series.north_m, dtype=float),
-        np.asarray(series.up_m, dtype=float),
-        np.asarray(series.valid, dtype=bool),
-        tuple(multipath),
-        latency_s,
-        decimals,
-    )
-
-
-def effects_latency_s(world: World) -> float:
-    """Total receiver delay (s) of the scenario's latency layers (chained delays add up)."""
-    return float(sum(e.delay_s for e in world.effect_objects() if isinstance(e, Latency)))
-
-
-def apply_gps_effects(
-    ep: GnssEpoch, off: GpsEffectOffsets, i: int, true_east_m: float, true_north_m: float
-) -> GnssEpoch:
-    """Epoch ``ep`` (index ``i`` in ``off``) with the ``[[effects]]`` GPS layers applied.
-
-    ``true_east_m``/``true_north_m`` are the antenna's TRUE position now in the scenario's
-    local frame (metres from the origin), where multipath zones are evaluated. Shared by
-    ``x6wd sim`` and HIL so both apply the layers the same way.
-    """
-    if not off.valid[i]:
-        return replace(
-            ep, valid=False, quality=0, mode=1, hdop=99.99, pdop=99.99, vdop=99.99,
-            satellites=tuple(replace(s, used=False) for s in ep.satellites),
-        )  # fmt: skip
-    if not ep.valid:
-        return ep
-    de, dn = float(off.east_m[i]), float(off.north_m[i])
-    for zone, noise in off.multipath:
-        dist, ux, uy = zone.distance_to_wall_m(np.array([true_east_m]), np.array([true_north_m]))
-        if float(dist[0]) <= zone.distance_m:
-            de += zone.bias_m * float(ux[0]) + float(noise[0, i])
-            dn += zone.bias_m * float(uy[0]) + float(noise[1, i])
-    m_east, m_north = metres_per_degree(ep.lat_deg)
-    lat = ep.lat_deg + dn / m_north
-    lon = ep.lon_deg + de / m_east
-    if off.decimals is not None:
-        # Rounded to the layer's lattice here; the formatter prints >= 4 decimals of minutes
-        # by rounding to its own (finer or equal) lattice, on which these values already lie.
-        lat = float(quantize_degrees(np.array(lat), off.decimals))
-        lon = float(quantize_degrees(np.array(lon), off.decimals))
-    return replace(ep, lat_deg=lat, lon_deg=lon, alt_m=ep.alt_m + float(off.up_m[i]))
-
-
-class TruthHistory:
-    """A short history of the true antenna track, for the latency layer.
-
-    ``add`` takes (time s, east/north/up m, velocity east/north/up m/s) in time order;
-    ``at(t)`` interpolates linearly (as ``Latency.apply`` does on the epoch track); before
-    the first sample the vehicle is taken to move with its first velocity, as there.
-    Entries older than ``keep_s`` before the newest are dropped.
-    """
-
-    def __init__(self, keep_s: float) -> None:
-        self.keep_s = keep_s + 1.0
-        self._rows: deque[tuple[float, float, float, float, float, float, float]] = deque()
-        self._first: tuple[float, float, float, float, float, float, float] | None = None
-
-    def add(
-        self, t_s: float, pos_m: tuple[float, float, float], vel_mps: tuple[float, float, float]
-    ) -> None:
-        row = (t_s, *pos_m, *vel_mps)
-        if self._first is None:
-            self._first = row
-        self._rows.append(row)
-        while len(self._rows) > 2 and self._rows[1][0] < t_s - self.keep_s:
-            self._rows.popleft()
-
-    def at(self, t_s: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-        """(position m, velocity m/s) at ``t_s``."""
-        rows = self._rows
-        if not rows or self._first is None:
-            raise ValueError("TruthHistory is empty")
-        f = self._first
-        if t_s <= f[0]:
-            dt = t_s - f[0]
-            return (f[1] + dt * f[4], f[2] + dt * f[5], f[3] + dt * f[6]), (f[4], f[5], f[6])
-        if t_s <= rows[0][0]:
-            r = rows[0]  # older than kept: the oldest kept sample (keep_s covers the delay)
-            return (r[1], r[2], r[3]), (r[4], r[5], r[6])
-        for j in range(len(rows) - 1, 0, -1):
-            a, b = rows[j - 1], rows[j]
-            if a[0] <= t_s <= b[0]:
-                w = 0.0 if b[0] == a[0] else (t_s - a[0]) / (b[0] - a[0])
-                p = tuple(a[m] + w * (b[m] - a[m]) for m in range(1, 7))
-                return (p[0], p[1], p[2]), (p[3], p[4], p[5])
-        r = rows[-1]
-        return (r[1], r[2], r[3]), (r[4], r[5], r[6])
-
-
 def compass_setup(
     world: World, sample_hz: float | None = None
 ) -> tuple[CompassSetup, tuple[str, ...]]:
@@ -801,37 +575,29 @@ def compass_setup(
       domain by :meth:`CompassSetup.device_heading_deg`, before the device's physics.
 
     Declination rotates the Earth's field, so it acts before the iron whatever its place in
-    the list; the other layers compose in list order.
+    the list; the other layers compose in list order. Each layer says how it acts
+    (:meth:`sim_backend.effects.CompassLayer.act_on`).
     """
     cset = CompassSetup.from_table(world.compass)
     fm, errs = cset.field_model, cset.errors
-    a_mat = np.asarray(errs.soft_iron, dtype=float)
-    b_vec = np.asarray(errs.hard_iron_ut, dtype=float)
-    decl, tau, noise_deg2 = fm.declination_deg, errs.lag_tau_s, 0.0
-    skipped: list[str] = []
-    tilt: list[Tilt] = []
-    layers = [e for e in world.effect_objects() if e.name not in GPS_EFFECT_NAMES]
+    layers = [e for e in world.effect_objects() if e.kind == "compass"]
     if not layers:
         return cset, ()
+    phys = CompassPhysics(
+        horizontal_ut=fm.horizontal_ut,
+        a=np.asarray(errs.soft_iron, dtype=float),
+        b=np.asarray(errs.hard_iron_ut, dtype=float),
+        declination_deg=fm.declination_deg,
+        lag_tau_s=errs.lag_tau_s,
+    )
+    skipped: list[str] = []
     for eff in layers:
-        if isinstance(eff, HardIron):
-            scale = fm.horizontal_ut / eff.horizontal_field_ut
-            b_vec = b_vec + np.array([eff.bx_ut * scale, eff.by_ut * scale, 0.0])
-        elif isinstance(eff, SoftIron):
-            c, s = math.cos(math.radians(eff.axis_deg)), math.sin(math.radians(eff.axis_deg))
-            rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            m = rot @ np.diag([1.0 + eff.k, 1.0 - eff.k, 1.0]) @ rot.T
-            a_mat, b_vec = m @ a_mat, m @ b_vec
-        elif isinstance(eff, Declination):
-            decl += eff.declination_deg
-        elif isinstance(eff, HeadingLag):
-            tau += eff.tau_s
-        elif isinstance(eff, HeadingNoise):
-            noise_deg2 += eff.sigma_deg**2
-        elif isinstance(eff, Tilt):
-            tilt.append(eff)
-        else:
+        try:
+            phys = eff.act_on(phys)
+        except NotImplementedError:
             skipped.append(f"{eff.name}: no closed-loop model")
+    a_mat, b_vec, decl, tau = phys.a, phys.b, phys.declination_deg, phys.lag_tau_s
+    noise_deg2 = phys.noise_deg2
     noise_ut = errs.noise_ut
     if noise_deg2 > 0:
         # White heading noise of variance v through y_k = y_{k-1} + g (x_k - y_{k-1}) keeps
@@ -847,7 +613,7 @@ def compass_setup(
         lag_tau_s=tau,
     )
     field_model = MagneticField(fm.horizontal_ut, fm.vertical_ut, wrap180(np.array(decl)).item())
-    setup = replace(cset, field_model=field_model, errors=errors, tilt=tuple(tilt))
+    setup = replace(cset, field_model=field_model, errors=errors, tilt=phys.tilt)
     return setup, tuple(skipped)
 
 

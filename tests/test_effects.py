@@ -11,6 +11,7 @@ from sim_backend.effects import (
     EFFECT_NAMES,
     EFFECTS,
     Bias,
+    CompassPhysics,
     Declination,
     GaussMarkov,
     HardIron,
@@ -26,7 +27,9 @@ from sim_backend.effects import (
     RandomWalk,
     SoftIron,
     Tilt,
+    delay_errors,
     effect_from_params,
+    interp_track,
     quantization_step_m,
     tilted_heading_deg,
     truth_track_m,
@@ -300,3 +303,150 @@ def test_bad_parameters_are_named_errors() -> None:
         effect_from_params({"name": "nope"})
     with pytest.raises(ConfigError, match="axes"):
         GaussMarkov(1.0, 1.0, axes="x")
+
+
+# --- one way to run a GPS layer: start(rng) -> step(batch) ---------------------------------
+
+
+GPS_LAYERS = [
+    GaussMarkov(1.0, 20.0, axes="enu"),
+    RandomWalk(0.1),
+    Bias(1.0, -2.0, 0.5),
+    Quantization(4),
+    Jumps(2.0, rate_per_s=0.05, up_sigma_m=1.0),
+    Outages(30.0, 5.0),
+    Latency(0.7),
+    MultipathZone(0.0, -3.0, 50.0, -3.0, distance_m=30.0, sigma_m=1.0, bias_m=2.0),
+]
+
+
+@pytest.mark.parametrize("layer", GPS_LAYERS, ids=lambda e: e.name)
+def test_apply_is_the_run_stepped_once(layer: object) -> None:
+    s = zeros(300, 0.5, speed_mps=np.full(300, 1.5), course_deg=np.full(300, 80.0),
+              nsats=np.repeat([7, 8, 6], 100))  # fmt: skip
+    got = layer.apply(s, np.random.default_rng(4))  # type: ignore[attr-defined]
+    run = layer.start(np.random.default_rng(4))  # type: ignore[attr-defined]
+    want = run.step(s)
+    if run.delay_s:  # a delay moves what the receiver solves for; on errors: delay_errors
+        assert run.delay_s == 0.7 and np.array_equal(want.east_m, s.east_m)
+        want = delay_errors(want, run.delay_s)
+    for name in ("east_m", "north_m", "up_m", "valid"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    assert layer.kind == "gps"  # type: ignore[attr-defined]
+
+
+def _stepwise(layer: object, s: PositionSeries, rng: np.random.Generator) -> PositionSeries:
+    """``layer`` run on ``s`` one epoch at a time (as the receiver runs it in closed loop)."""
+    run = layer.start(rng)  # type: ignore[attr-defined]
+    parts = [run.step(_epoch(s, i)) for i in range(len(s))]
+    return s.with_(
+        east_m=np.concatenate([p.east_m for p in parts]),
+        north_m=np.concatenate([p.north_m for p in parts]),
+        up_m=np.concatenate([p.up_m for p in parts]),
+        valid=np.concatenate([p.valid for p in parts]),
+    )
+
+
+def _epoch(s: PositionSeries, i: int) -> PositionSeries:
+    one = slice(i, i + 1)
+    te, tn = truth_track_m(s)
+    return s.with_(
+        t_s=s.t_s[one], east_m=s.east_m[one], north_m=s.north_m[one], up_m=s.up_m[one],
+        valid=s.valid[one], true_east_m=te[one], true_north_m=tn[one],
+        speed_mps=None if s.speed_mps is None else s.speed_mps[one],
+        course_deg=None if s.course_deg is None else s.course_deg[one],
+        nsats=None if s.nsats is None else s.nsats[one],
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("layer", [Bias(1.0, -2.0, 0.5), Quantization(3)], ids=lambda e: e.name)
+def test_stateless_layers_epoch_by_epoch_equal_the_batch(layer: object) -> None:
+    s = GaussMarkov(2.0, 10.0).apply(
+        zeros(200, speed_mps=np.full(200, 1.2), course_deg=np.full(200, 30.0)),
+        np.random.default_rng(1),
+    )
+    batch = layer.apply(s, np.random.default_rng(0))  # type: ignore[attr-defined]
+    steps = _stepwise(layer, s, np.random.default_rng(0))
+    np.testing.assert_allclose(steps.east_m, batch.east_m, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(steps.north_m, batch.north_m, rtol=0, atol=1e-9)
+
+
+def test_gauss_markov_run_epoch_by_epoch_keeps_sigma_and_tau() -> None:
+    dt, sigma_m, tau_s = 0.5, 0.7, 10.0
+    eff = GaussMarkov(sigma_m, tau_s, axes="e")
+    rows = np.array(
+        [_stepwise(eff, zeros(400, dt), np.random.default_rng(i)).east_m for i in range(200)]
+    )
+    sigma, tau = gm_estimates(rows, dt)
+    assert sigma == pytest.approx(sigma_m, rel=0.04)
+    assert tau == pytest.approx(tau_s, rel=0.1)
+
+
+def test_random_walk_run_continues_the_walk() -> None:
+    eff = RandomWalk(q_m_per_sqrt_s=0.1, axes="e")
+    x = np.array(
+        [_stepwise(eff, zeros(201, 0.5), np.random.default_rng(i)).east_m for i in range(300)]
+    )
+    assert np.all(x[:, 0] == 0.0)
+    assert float(np.var(x[:, -1])) == pytest.approx(0.01 * 100.0, rel=0.2)
+
+
+def test_jumps_run_changes_only_with_the_satellite_set_across_steps() -> None:
+    nsats = np.array([7] * 30 + [8] * 30 + [6] * 30)
+    j = _stepwise(Jumps(sigma_m=2.0), zeros(90, nsats=nsats), np.random.default_rng(1))
+    steps = set(np.flatnonzero(np.diff(j.east_m) != 0.0) + 1)
+    assert steps == {30, 60}
+    # Poisson events at about rate * duration when the series has no satellite count
+    k = [
+        np.count_nonzero(np.diff(_stepwise(Jumps(1.0, 0.05), zeros(400), rng).east_m))
+        for rng in map(np.random.default_rng, range(20))
+    ]
+    assert float(np.mean(k)) == pytest.approx(0.05 * 399, rel=0.2)
+
+
+def test_outages_run_keeps_the_two_state_means() -> None:
+    eff = Outages(mean_up_s=20.0, mean_down_s=5.0)
+    up = np.concatenate(
+        [_stepwise(eff, zeros(3000), np.random.default_rng(i)).valid for i in range(3)]
+    )
+    assert float(np.mean(up)) == pytest.approx(0.8, abs=0.04)
+
+
+def test_multipath_zone_run_uses_the_explicit_truth() -> None:
+    # the truth given with each epoch (no velocity to integrate): inside 50..60 m east
+    east = np.arange(120, dtype=float)
+    s = zeros(120).with_(true_east_m=east, true_north_m=np.zeros(120))
+    mz = MultipathZone(50.0, -2.0, 60.0, -2.0, distance_m=3.0, sigma_m=0.0, bias_m=1.5)
+    out = _stepwise(mz, s, np.random.default_rng(0))
+    inside = (east >= 50) & (east <= 60)
+    assert np.allclose(out.north_m[inside], 1.5)
+    assert np.allclose(out.north_m[np.abs(east - 55) > 8], 0.0)
+
+
+def test_quantization_is_the_print_stage() -> None:
+    assert Quantization(5).stage == 1
+    assert all(e.stage == 0 for e in GPS_LAYERS if e.name != "quantization")
+
+
+def test_delay_errors_with_an_explicit_truth_track() -> None:
+    # truth given explicitly (east 2 m/s): half a second late is 1 m behind
+    t = np.arange(10.0)
+    s = zeros(10, speed_mps=np.full(10, 2.0), course_deg=np.full(10, 90.0)).with_(
+        true_east_m=100.0 + 2.0 * t, true_north_m=np.zeros(10)
+    )
+    out = delay_errors(s, 0.5)
+    assert np.allclose(out.east_m, -1.0) and np.allclose(out.north_m, 0.0)
+    assert interp_track(t, np.column_stack([t]), np.array([3.0]), np.array([-1.0]))[0, 0] == -3.0
+
+
+def test_compass_layers_act_on_the_emulations_physics() -> None:
+    phys = CompassPhysics(20.0, np.eye(3), np.zeros(3), 1.0, 0.2)
+    for layer in (Declination(2.0), HardIron(1.9, 0.0, 19.0), HeadingLag(0.1),
+                  HeadingNoise(3.0), HeadingNoise(4.0), Tilt(0.5)):  # fmt: skip
+        assert layer.kind == "compass"
+        phys = layer.act_on(phys)
+    assert phys.declination_deg == 3.0 and phys.lag_tau_s == pytest.approx(0.3)
+    assert np.allclose(phys.b, [2.0, 0.0, 0.0])  # scaled to the emulation's 20 uT
+    assert phys.noise_deg2 == pytest.approx(25.0) and [t.name for t in phys.tilt] == ["tilt"]
+    k = SoftIron(0.1, 90.0).act_on(phys)
+    assert np.allclose(np.diag(k.a), [0.9, 1.1, 1.0]) and np.allclose(k.b, [1.8, 0.0, 0.0])

@@ -25,7 +25,7 @@ from drivers.gps_nmea import GpsDecoder
 from drivers.motors import SerialMotorLink
 from sim_backend import hil
 from sim_backend.geodesy import enu_to_lla
-from sim_backend.mission import build_gnss
+from sim_backend.receiver import build_gnss_model
 from tests.conftest import ROOT, require_program
 from x6wd.core.config import SimConfig
 from x6wd.core.errors import ConfigError
@@ -93,7 +93,7 @@ def test_gsv_sky_and_hdop_come_from_the_almanac_model(world: hil.HilWorld) -> No
     assert skies and fixes
     # an independent model of the same scenario, asked about the same scenario time
     sc = PARAMS.load_world()
-    model = build_gnss(sc, np.random.default_rng(0))
+    model = build_gnss_model(sc, np.random.default_rng(0))
     o = sc.origin
     lat, lon, alt = enu_to_lla(
         np.array([0.0, 0.0, sc.vehicle.antenna_height_m]), o.lat_deg, o.lon_deg, o.alt_m

@@ -17,6 +17,7 @@ from drivers.gps_nmea import GpsDecoder
 from sim_backend import mission
 from sim_backend.geodesy import lla_to_enu
 from sim_backend.mission import ErrorStats, Summary, run_mission
+from sim_backend.receiver import SimReceiver
 from sim_backend.world import load_world
 from x6wd.app import cli
 from x6wd.core.errors import ConfigError
@@ -354,13 +355,13 @@ def test_default_mission_unchanged_without_effects(
     assert cset == mission.CompassSetup.from_table(world.compass) and skipped == ()
 
     calls: list[int] = []
-    real = mission.apply_gps_effects
+    real = SimReceiver._layered
 
-    def counting(*args: Any, **kwargs: Any) -> Any:
+    def counting(self: SimReceiver, *args: Any, **kwargs: Any) -> Any:
         calls.append(1)
-        return real(*args, **kwargs)
+        return real(self, *args, **kwargs)
 
-    monkeypatch.setattr(mission, "apply_gps_effects", counting)
+    monkeypatch.setattr(SimReceiver, "_layered", counting)
     # Without effects the loop never hands an epoch to the layers; the run repeats exactly.
     again = run_mission(world, tmp_path / "again")
     assert calls == []
