@@ -31,7 +31,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
-from drivers.gps_nmea import GpsDecoder, Record, UbxAck, parse_ack
+from drivers.gps_nmea import GpsDecoder, GpsOutput, UbxAck, parse_ack
 from x6wd.core.errors import ConfigError, ParseError, X6wdError, is_transient
 from x6wd.core.health import HealthTracker, root_oserror
 from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent
@@ -111,7 +111,7 @@ class GpsReader:
 
     # -- public
 
-    def poll(self, timeout_s: float = 0.1) -> list[Record]:
+    def poll(self, timeout_s: float = 0.1) -> list[GpsOutput]:
         """Wait at most about ``timeout_s`` (s) for bytes; return the records they complete.
 
         Returns early as soon as one read produced data. Never raises on device faults;
@@ -125,7 +125,7 @@ class GpsReader:
             # Staleness by time, once per poll: the health never waits for a caller to ask.
             self._tracker.check(self._clock())
 
-    def _poll(self, timeout_s: float) -> list[Record]:
+    def _poll(self, timeout_s: float) -> list[GpsOutput]:
         start = self._clock()
         if self._port is None:
             # At most one open attempt per poll: the wait before it stays within timeout_s.
@@ -215,7 +215,7 @@ class GpsReader:
                 except OSError as exc:
                     self._fail(f"write failed: {exc}")
 
-    def _read_once(self, wait_s: float) -> list[Record] | None:
+    def _read_once(self, wait_s: float) -> list[GpsOutput] | None:
         """One wait+read; None when nothing arrived (or the port failed)."""
         port = self._port
         assert port is not None

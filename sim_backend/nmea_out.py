@@ -8,9 +8,11 @@ carry a mode letter (``A`` autonomous, ``N`` not valid). Latitude/longitude as
 fix the receiver prints its real no-fix forms: all fields empty until it has time from a
 satellite, then with time (and date) but status ``V`` / quality 0 / DOP 99.99.
 
-Speed is what matters here: a checksum is the XOR of the body bytes, computed by folding the
-body read as one big integer (a handful of big-int operations instead of a Python loop per
-character), and coordinates are formatted from integers.
+The sentence layouts (field order, unit letters) come from the NMEA table shared with the
+decoder (``drivers.nmea``, :meth:`~drivers.nmea.Sentence.template`); this module decides what
+the NEO-5 puts in the fields and with how many decimals. Speed is what matters here: sentences
+are filled in by ``%`` templates, coordinates are formatted from integers, and a batch of
+epochs is checksummed at once with numpy (:func:`drivers.nmea.checksum` for single ones).
 """
 
 from __future__ import annotations
@@ -23,14 +25,25 @@ from typing import Protocol
 
 import numpy as np
 
+from drivers.nmea import (
+    GGA,
+    GLL,
+    GSA,
+    GSV,
+    KMH_PER_MPS,
+    KNOTS_PER_MPS,
+    RMC,
+    TRAILERS,
+    VTG,
+    sentence,
+)
 from sim_backend.epoch import GnssEpoch, SimSat
 from x6wd.core.errors import ConfigError
+from x6wd.core.geodesy import wrap360
 
-KNOTS_PER_MPS = 3600.0 / 1852.0
-KMH_PER_MPS = 3.6
-MAX_GSV_SATS = 16  # 4 GSV messages x 4 satellites
-MAX_GSA_SATS = 12
-MAX_SENTENCE_CHARS = 82  # NMEA 0183: including '$' and CRLF
+MAX_GSV_SATS = 4 * GSV.groups  # the NEO-5 prints at most 4 GSV messages (16 satellites)
+MAX_GSA_SATS = GSA.field("prn").count  # 12
+_NO_DOP = "99.99"  # the receiver's DOP without a fix (and its cap)
 
 NEO5_BANNER: tuple[str, ...] = (
     "GPTXT,01,01,02,u-blox ag - www.u-blox.com",
@@ -43,7 +56,6 @@ NEO5_BANNER: tuple[str, ...] = (
 )
 """Body text of the boot banner (without ``$`` and checksum), u-blox 5 style."""
 
-_HEX = [f"{i:02X}".encode() for i in range(256)]
 _D2 = [f"{i:02d}" for i in range(100)]
 _D3 = [f"{i:03d}" for i in range(360)]
 _D3K = [f"{i:03d}" for i in range(1000)]
@@ -59,26 +71,6 @@ def _elaz_table() -> list[str]:
 
 
 _PRN = operator.attrgetter("prn")
-
-
-def checksum(body: bytes) -> int:
-    """XOR of all bytes of an NMEA body (the text between ``$`` and ``*``)."""
-    n = len(body)
-    x = int.from_bytes(body, "little")
-    # Fold halves down to one byte; each fold keeps the low half exact.
-    shift = 8
-    while shift < n * 8:
-        shift <<= 1
-    while shift > 8:
-        shift >>= 1
-        x ^= x >> shift
-    return x & 0xFF
-
-
-def sentence(body: str) -> bytes:
-    """One complete sentence ``$body*HH\\r\\n`` as ASCII bytes (``body`` excludes ``$``/``*``)."""
-    raw = body.encode("ascii")
-    return b"$" + raw + b"*" + _HEX[checksum(raw)] + b"\r\n"
 
 
 def wire_time_s(data: bytes | int, baud: int = 9600, bits_per_byte: int = 10) -> float:
@@ -112,9 +104,10 @@ class NmeaFormatter:
 
     ``minute_decimals`` 5 (NEO-5 firmware 6) or 4 (older u-blox 5 firmware); ``time_decimals``
     2 (``hhmmss.ss``) or 3; ``rate_hz`` the navigation rate, 1-4 Hz as the NEO-5 allows (it only
-    validates here: epoch times come from the model). The formatter remembers whether the
-    receiver has time yet: the no-fix forms carry time and date once any satellite is tracked
-    with a signal (the receiver decodes time from it) or after the first fix.
+    validates here: epoch times come from the model); ``talker`` is fixed at construction.
+    The formatter remembers whether the receiver has time yet: the no-fix forms carry time
+    and date once any satellite is tracked with a signal (the receiver decodes time from it)
+    or after the first fix.
     """
 
     def __init__(
@@ -135,10 +128,50 @@ class NmeaFormatter:
         self.minute_decimals = minute_decimals
         self.time_decimals = time_decimals
         self.rate_hz = float(rate_hz)
-        self.talker = talker
+        self._talker = talker
         self.time_known = False
         self._scale = 10**minute_decimals
         self._tscale = 10**time_decimals
+        t = talker
+        # The sentences with a fix; the values the NEO-5 writes in the letter fields are
+        # passed in: status and NMEA 2.3 mode "A", GSA "A"utomatic mode.
+        self._rmc = RMC.template(
+            t, "time", "status", "lat", "lat_hemi", "lon", "lon_hemi", "speed", "course",
+            "date", "mode",
+        )  # fmt: skip
+        self._vtg = VTG.template(t, "course", "speed_kn", "speed_kmh", "mode")
+        self._gga = GGA.template(
+            t, "time", "lat", "lat_hemi", "lon", "lon_hemi", "quality", "sats_used", "hdop",
+            "alt", "geoid_sep",
+        )  # fmt: skip
+        self._gsa = GSA.template(t, "op_mode", "fix_type", "prn", "pdop", "hdop", "vdop")
+        self._gll = GLL.template(t, "lat", "lat_hemi", "lon", "lon_hemi", "time", "status", "mode")
+        self._gsv_head = GSV.template(t, "messages", "message", "in_view")  # satellites appended
+        self._gsv_none = self._gsv_head % (1, 1, "00")
+        # Without a fix the receiver leaves even the unit letters empty.
+        self._rmc_v = RMC.template(t, "time", "status", "date", "mode", units=False)
+        self._vtg_v = VTG.template(t, "mode", units=False) % "N"
+        self._gga_v = GGA.template(t, "time", "quality", "sats_used", "hdop", units=False)
+        self._gsa_v = GSA.template(
+            t, "op_mode", "fix_type", "pdop", "hdop", "vdop", units=False
+        ) % ("A", 1, _NO_DOP, _NO_DOP, _NO_DOP)
+        self._gll_v = GLL.template(t, "time", "status", "mode", units=False)
+
+    @property
+    def talker(self) -> str:
+        """The two-letter talker id of every sentence (``GP``)."""
+        return self._talker
+
+    def _no_fix_bodies(self, hms: str, dmy: str, gsv: list[str]) -> list[str]:
+        """The receiver's no-fix burst (time and date empty until it has time)."""
+        return [
+            self._rmc_v % (hms, "V", dmy, "N"),
+            self._vtg_v,
+            self._gga_v % (hms, 0, "00", _NO_DOP),
+            self._gsa_v,
+            *gsv,
+            self._gll_v % (hms, "V", "N"),
+        ]
 
     # --- pieces --------------------------------------------------------------------------
 
@@ -160,9 +193,8 @@ class NmeaFormatter:
         return hms, f"{utc.day:02d}{utc.month:02d}{utc.year % 100:02d}"
 
     def _gsv(self, sats: Sequence[SimSat]) -> list[str]:
-        t = self.talker
         if not sats:
-            return [f"{t}GSV,1,1,00"]
+            return [self._gsv_none]
         n = len(sats)
         nmsg = (n + 3) // 4
         d2 = _D2
@@ -179,11 +211,14 @@ class NmeaFormatter:
             else:
                 e = d2[int(el + 0.5)] if el > 0.0 else "00"
                 fields.append(
-                    prn + "," + e + "," + _D3[int(az % 360.0 + 0.5) % 360] + "," + snr_txt
+                    prn + "," + e + "," + _D3[int(wrap360(az) + 0.5) % 360] + "," + snr_txt
                 )
-        head = t + "GSV," + str(nmsg) + ","
-        tail = "," + d2[n] + ","
-        return [head + str(i + 1) + tail + ",".join(fields[4 * i : 4 * i + 4]) for i in range(nmsg)]
+        head = self._gsv_head
+        nn = d2[n]
+        return [
+            head % (nmsg, i + 1, nn) + "," + ",".join(fields[4 * i : 4 * i + 4])
+            for i in range(nmsg)
+        ]
 
     def _gsv_batch(self, selected: Sequence[Sequence[SimSat]]) -> list[list[str]]:
         """GSV bodies of many epochs; numbers rounded by numpy, text from lookup tables."""
@@ -200,21 +235,23 @@ class NmeaFormatter:
             return [self._gsv(sats) for sats in selected]  # rare: odd PRNs take the slow path
         fields = _sat_fields(prn, el, az, snr)
         d2 = _D2
-        t = self.talker
+        head = self._gsv_head
         out: list[list[str]] = []
         i0 = 0
         for sats in selected:
             m = len(sats)
             if m == 0:
-                out.append([t + "GSV,1,1,00"])
+                out.append([self._gsv_none])
                 continue
             f = fields[i0 : i0 + m]
             i0 += m
             nmsg = (m + 3) // 4
-            head = t + "GSV," + str(nmsg) + ","
-            tail = "," + d2[m] + ","
+            nn = d2[m]
             out.append(
-                [head + str(i + 1) + tail + ",".join(f[4 * i : 4 * i + 4]) for i in range(nmsg)]
+                [
+                    head % (nmsg, i + 1, nn) + "," + ",".join(f[4 * i : 4 * i + 4])
+                    for i in range(nmsg)
+                ]
             )
         return out
 
@@ -264,7 +301,6 @@ class NmeaFormatter:
         geoid_sep_m: float,
         gsv: list[str],
     ) -> list[str]:
-        t = self.talker
         hms, dmy = self._time(utc)
         lat, north = _coord(lat_deg, 2, self.minute_decimals, self._scale)
         lon, east = _coord(lon_deg, 3, self.minute_decimals, self._scale)
@@ -273,36 +309,28 @@ class NmeaFormatter:
         speed = max(0.0, speed_mps)
         kn = f"{speed * KNOTS_PER_MPS:.3f}"
         kmh = f"{speed * KMH_PER_MPS:.3f}"
-        course = "" if course_deg is None else f"{course_deg % 360.0:.2f}"
+        course = "" if course_deg is None else f"{wrap360(course_deg):.2f}"
         d2 = _D2
         shown = [d2[p] if 0 <= p < 100 else str(p) for p in used[:MAX_GSA_SATS]]
         gsa_prns = ",".join(shown + [""] * (MAX_GSA_SATS - len(shown)))
         nused = d2[min(len(used), 99)]
         h = _dop(hdop)
+        alt, sep = f"{alt_m:.1f}", f"{geoid_sep_m:.1f}"
         return [
-            f"{t}RMC,{hms},A,{lat},{ns},{lon},{ew},{kn},{course},{dmy},,,A",
-            f"{t}VTG,{course},T,,M,{kn},N,{kmh},K,A",
-            f"{t}GGA,{hms},{lat},{ns},{lon},{ew},{quality},{nused},"
-            f"{h},{alt_m:.1f},M,{geoid_sep_m:.1f},M,,",
-            f"{t}GSA,A,{fix_mode},{gsa_prns},{_dop(pdop)},{h},{_dop(vdop)}",
+            self._rmc % (hms, "A", lat, ns, lon, ew, kn, course, dmy, "A"),
+            self._vtg % (course, kn, kmh, "A"),
+            self._gga % (hms, lat, ns, lon, ew, quality, nused, h, alt, sep),
+            self._gsa % ("A", fix_mode, gsa_prns, _dop(pdop), h, _dop(vdop)),
             *gsv,
-            f"{t}GLL,{lat},{ns},{lon},{ew},{hms},A,A",
+            self._gll % (lat, ns, lon, ew, hms, "A", "A"),
         ]
 
     def _no_fix(self, utc: datetime, gsv: list[str]) -> list[str]:
-        t = self.talker
         if self.time_known:
             hms, dmy = self._time(utc)
         else:
             hms, dmy = "", ""
-        return [
-            f"{t}RMC,{hms},V,,,,,,,{dmy},,,N",
-            f"{t}VTG,,,,,,,,,N",
-            f"{t}GGA,{hms},,,,,0,00,99.99,,,,,,",
-            f"{t}GSA,A,1,,,,,,,,,,,,,99.99,99.99,99.99",
-            *gsv,
-            f"{t}GLL,,,,,{hms},V,N",
-        ]
+        return self._no_fix_bodies(hms, dmy, gsv)
 
     def format_batch(self, batch: BatchLike) -> list[bytes]:
         """One burst per epoch of a columnar receiver result (``sim_backend.gnss.GnssBatch``),
@@ -340,7 +368,7 @@ class NmeaFormatter:
         kn_l = [f"{v:.3f}" for v in (spd * KNOTS_PER_MPS).tolist()]
         kmh_l = [f"{v:.3f}" for v in (spd * KMH_PER_MPS).tolist()]
         crs_l = [
-            "" if c != c else f"{c % 360.0:.2f}"
+            "" if c != c else f"{wrap360(c):.2f}"
             for c in np.asarray(batch.course_deg, dtype=float).tolist()
         ]
         alt_l = [f"{v:.1f}" for v in np.asarray(batch.alt_m, dtype=float).tolist()]
@@ -356,7 +384,8 @@ class NmeaFormatter:
         u_start = np.concatenate(([0], np.cumsum(n_used)[:-1])).tolist()
         n_used_l = n_used.tolist()
         blanks = [","] * (MAX_GSA_SATS + 1)
-        t = self.talker
+        gsv_head = self._gsv_head
+        rmc, vtg, gga, gsa_t, gll = self._rmc, self._vtg, self._gga, self._gsa, self._gll
         per_epoch: list[list[str]] = []
         for i in range(n_e):
             m = int(n_view[i])
@@ -365,14 +394,14 @@ class NmeaFormatter:
                 per_epoch.append(self.epoch_bodies(batch.epoch(i)))
                 continue
             if m == 0:
-                gsv = [t + "GSV,1,1,00"]
+                gsv = [self._gsv_none]
             else:
                 f = fields[starts[i] : starts[i] + m]
                 nmsg = (m + 3) // 4
-                head = t + "GSV," + str(nmsg) + ","
-                tail = "," + d2[m] + ","
+                nn = d2[m]
                 gsv = [
-                    head + str(j + 1) + tail + ",".join(f[4 * j : 4 * j + 4]) for j in range(nmsg)
+                    gsv_head % (nmsg, j + 1, nn) + "," + ",".join(f[4 * j : 4 * j + 4])
+                    for j in range(nmsg)
                 ]
             hms = hms_l[i]
             if not valid[i]:
@@ -380,16 +409,7 @@ class NmeaFormatter:
                     hms = dmy = ""
                 else:
                     dmy = dmy_l[i]
-                per_epoch.append(
-                    [
-                        f"{t}RMC,{hms},V,,,,,,,{dmy},,,N",
-                        f"{t}VTG,,,,,,,,,N",
-                        f"{t}GGA,{hms},,,,,0,00,99.99,,,,,,",
-                        f"{t}GSA,A,1,,,,,,,,,,,,,99.99,99.99,99.99",
-                        *gsv,
-                        f"{t}GLL,,,,,{hms},V,N",
-                    ]
-                )
+                per_epoch.append(self._no_fix_bodies(hms, dmy, gsv))
                 continue
             nu = n_used_l[i]
             k0 = u_start[i]
@@ -401,13 +421,12 @@ class NmeaFormatter:
             kn, crs, h = kn_l[i], crs_l[i], hdop_l[i]
             per_epoch.append(
                 [
-                    f"{t}RMC,{hms},A,{lat},{ns},{lon},{ew},{kn},{crs},{dmy_l[i]},,,A",
-                    f"{t}VTG,{crs},T,,M,{kn},N,{kmh_l[i]},K,A",
-                    f"{t}GGA,{hms},{lat},{ns},{lon},{ew},1,{d2[min(nu, 99)]},"
-                    f"{h},{alt_l[i]},M,{geoid},M,,",
-                    f"{t}GSA,A,3,{gsa},{pdop_l[i]},{h},{vdop_l[i]}",
+                    rmc % (hms, "A", lat, ns, lon, ew, kn, crs, dmy_l[i], "A"),
+                    vtg % (crs, kn, kmh_l[i], "A"),
+                    gga % (hms, lat, ns, lon, ew, 1, d2[min(nu, 99)], h, alt_l[i], geoid),
+                    gsa_t % ("A", 3, gsa, pdop_l[i], h, vdop_l[i]),
                     *gsv,
-                    f"{t}GLL,{lat},{ns},{lon},{ew},{hms},A,A",
+                    gll % (lat, ns, lon, ew, hms, "A", "A"),
                 ]
             )
         self.time_known = bool(known[-1])
@@ -480,7 +499,7 @@ def _sat_fields(prn: np.ndarray, el: np.ndarray, az: np.ndarray, snr: np.ndarray
     """GSV satellite fields ``PP,EE,AAA,SS`` for flat arrays (NaN: empty field)."""
     pos_ok = np.isfinite(el) & np.isfinite(az) & (np.abs(el) <= 90.0)
     el_i = np.where(pos_ok, np.clip(np.floor(el + 0.5), 0, 90), 0).astype(np.int64)
-    az_i = np.where(pos_ok, np.floor(np.mod(az, 360.0) + 0.5) % 360, 0).astype(np.int64)
+    az_i = np.where(pos_ok, np.floor(wrap360(az) + 0.5) % 360, 0).astype(np.int64)
     snr_i = np.where(np.isfinite(snr), np.clip(np.floor(snr + 0.5), 0, 99), 100).astype(np.int64)
     # One table entry per (elevation, azimuth): "EE,AAA"; index -1 means no position.
     pos_idx = np.where(pos_ok, el_i * 360 + az_i, -1).tolist()
@@ -502,9 +521,10 @@ def _assemble(per_epoch: Sequence[Sequence[str]]) -> list[bytes]:
     starts = np.zeros(len(raw), dtype=np.int64)
     np.cumsum(lengths[:-1], out=starts[1:])
     buf = np.frombuffer(b"".join(raw), dtype=np.uint8)
+    # drivers.nmea.checksum of every body at once: the XOR of each body's bytes.
     sums = np.bitwise_xor.reduceat(buf, starts).tolist()
-    hexes = _HEX
-    lines = [b"$" + r + b"*" + hexes[c] + b"\r\n" for r, c in zip(raw, sums, strict=True)]
+    trailers = TRAILERS
+    lines = [b"$" + r + trailers[c] for r, c in zip(raw, sums, strict=True)]
     out = []
     i = 0
     for bodies in per_epoch:
@@ -580,5 +600,5 @@ class BatchLike(Protocol):
 def _dop(value: float) -> str:
     """DOP as u-blox prints it: 2 decimals, capped at 99.99 (also for NaN/inf)."""
     if not math.isfinite(value) or value > 99.99:
-        return "99.99"
+        return _NO_DOP
     return f"{max(0.0, value):.2f}"

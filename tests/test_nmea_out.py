@@ -10,14 +10,9 @@ import numpy as np
 import pytest
 
 from drivers.gps_nmea import GpsDecoder
+from drivers.nmea import KNOTS_PER_MPS, checksum
 from sim_backend.epoch import GnssEpoch, SimSat
-from sim_backend.nmea_out import (
-    KNOTS_PER_MPS,
-    NmeaFormatter,
-    checksum,
-    sentence,
-    wire_time_s,
-)
+from sim_backend.nmea_out import NmeaFormatter, sentence, wire_time_s
 from x6wd.core.errors import ConfigError
 from x6wd.core.records import GpsFix, GpsSky
 
@@ -304,7 +299,7 @@ def test_format_batch_equals_per_epoch_formatting_on_the_real_model() -> None:
     start = datetime(2020, 1, 1, 12, tzinfo=UTC)
     sky = SatelliteSet.from_almanac(read_yuma(DEFAULT_ALMANAC, reference=start))
     model = GnssModel(
-        sky, 51.75, -1.25, 60.0, start, walls=Walls(building(-10, 3, 10, 13, 12.0)),  # type: ignore[arg-type]
+        sky, 51.75, -1.25, 60.0, start, walls=Walls(building(-10, 3, 10, 13, 12.0)),
         rng=np.random.default_rng(4),
     )  # fmt: skip
     n = 120

@@ -20,7 +20,7 @@ import sys
 from collections.abc import Iterable, Iterator
 from typing import IO
 
-from drivers.gps_nmea import DecoderCounters, GpsDecoder, Record
+from drivers.gps_nmea import DecoderCounters, GpsDecoder, GpsOutput
 from x6wd.app.gpsd import sky_obj, tpv_obj
 from x6wd.core.errors import DeviceUnavailable
 from x6wd.core.records import GpsFix, GpsSky
@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="do not print counters on stderr")
 
 
-def report_lines(records: Iterable[Record], *, with_sky: bool = True) -> Iterator[str]:
+def report_lines(records: Iterable[GpsOutput], *, with_sky: bool = True) -> Iterator[str]:
     """Compact JSON lines (no newline) for the fixes and sky reports among ``records``."""
     for r in records:
         if isinstance(r, GpsFix):
