@@ -18,15 +18,18 @@ the lag -c in seconds (a first-order lag of tau makes an error of about -tau * r
 spread of the residual (noise) and, when the field magnitude is known, the once-per-turn
 harmonic of log |B| (hard iron moves it, tilt cannot).
 
-Everything else follows the GPS side (:mod:`x6wd.gap.diagnose`): each cell is scored
-against a sim-vs-sim null (baseline runs with other seeds, or a block bootstrap of fewer),
-never an iid p-value; candidates are fitted on the first part, added to every baseline run,
-and scored on the held-out last part after a guard gap by G (:meth:`NullModel.gap`);
-closure = (G_baseline - G_with) / (G_baseline - G_floor); greedy add-one-in.
+Everything else is the pipeline the GPS side runs too (:mod:`x6wd.gap.pipeline`, with this
+module's battery, windows, block bootstrap and :data:`EFFECTS` plugged in): each cell is
+scored against a sim-vs-sim null (baseline runs with other seeds, or a block bootstrap of
+fewer), never an iid p-value; candidates are fitted on the first part, added to every
+baseline run, and scored on the held-out last part after a guard gap by G
+(:meth:`NullModel.gap`); closure = (G_baseline - G_with) / (G_baseline - G_floor); greedy
+add-one-in.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -48,35 +51,22 @@ from sim_backend.effects import (
     wrap360,
 )
 from x6wd.core.errors import ConfigError
-from x6wd.gap.diagnose import Candidate, Outcome
+from x6wd.gap import pipeline
 from x6wd.gap.fitted import Fit
-from x6wd.gap.null import NullModel, closure_ci, closure_of, null_model
+from x6wd.gap.pipeline import (
+    Battery,
+    EffectFitter,
+    Outcome,
+    Pipeline,
+    PipelineOptions,
+    Progress,
+)
 from x6wd.gap.stats import Cell
 
-Progress = Callable[[str, float], None]
-
 AXIS = "heading"
-COMPASS_CANDIDATES = ("declination", "hard_iron", "soft_iron", "tilt", "heading_lag")
-ADD_MIN_GAIN = 0.1  # a first effect must close at least 10 % of the gap
-ADD_MIN_LEFT = 0.5  # G above the floor still worth explaining
-ADD_MIN_SHARE = 0.3  # a further effect must remove 30 % of the gap left
 SD_FLOOR = 0.01  # smallest null spread of any compass cell (deg, s, or log units)
 COG_MIN_SPEED_MPS = 1.0  # course over ground stands in for heading only above this speed
 COG_MAX_GAP_S = 1.0  # ... and only within this long of such a fix
-
-# Which cells each effect moves (statistic, scale): its fingerprint.
-FINGERPRINTS: dict[str, tuple[tuple[str, str], ...]] = {
-    "declination": (("heading_mean", "all"),),
-    "hard_iron": (
-        ("harmonic_cos", "1/turn"),
-        ("harmonic_sin", "1/turn"),
-        ("field_harmonic_cos", "1/turn"),
-        ("field_harmonic_sin", "1/turn"),
-    ),
-    "soft_iron": (("harmonic_cos", "2/turn"), ("harmonic_sin", "2/turn")),
-    "tilt": (("tilt_gain", "pitch/roll"),),
-    "heading_lag": (("lag_s", "turn rate"),),
-}
 
 
 @dataclass(frozen=True)
@@ -92,36 +82,9 @@ class CompassLayout:
     horizontal_field_ut: float = 19.0
 
 
-@dataclass(frozen=True)
-class CompassOptions:
-    """As :class:`x6wd.gap.diagnose.Options`, for the compass."""
-
-    replicates: int = 20
-    min_runs: int = 8
-    fit_fraction: float = 0.6
-    guard_fraction: float = 0.05
-    alpha: float = 0.05
-    candidates: tuple[str, ...] = COMPASS_CANDIDATES
-    ci_resamples: int = 200
-    max_effects: int = 2
-    inclination_deg: float = 66.0
-    horizontal_field_ut: float = 19.0
-
-    def __post_init__(self) -> None:
-        if not 0.2 <= self.fit_fraction <= 0.8:
-            raise ConfigError(f"fit_fraction={self.fit_fraction}: must be in [0.2, 0.8]")
-        unknown = sorted(set(self.candidates) - set(COMPASS_CANDIDATES))
-        if unknown:
-            raise ConfigError(f"compass candidates {unknown}: known {list(COMPASS_CANDIDATES)}")
-
-
 @dataclass(kw_only=True)
-class CompassDiagnosis(Outcome):
+class CompassDiagnosis(Outcome[HeadingSeries, CompassLayout]):
     """Everything the report needs for the compass half."""
-
-    layout: CompassLayout
-    real: HeadingSeries
-    baseline: list[HeadingSeries]
 
 
 # --- series helpers ---------------------------------------------------------------------------
@@ -244,16 +207,6 @@ def battery(
     return out
 
 
-def batteries(
-    runs: Sequence[HeadingSeries], layout: CompassLayout, t0: float, t1: float
-) -> list[dict[Cell, float]]:
-    return [battery(hwindow(s, t0, t1), layout) for s in runs]
-
-
-def _null(bats: Sequence[dict[Cell, float]], alpha: float) -> NullModel:
-    return null_model(bats, alpha)
-
-
 # --- null from one or few baseline logs -------------------------------------------------------
 
 
@@ -336,7 +289,8 @@ def _refine(
     estimate; corrects its small-angle bias for strong effects."""
     from scipy.optimize import minimize
 
-    cells = [Cell(st, AXIS, sc) for st, sc in FINGERPRINTS[name]]
+    fingerprint = EFFECTS[name].fingerprint
+    cells = [Cell(k[0], AXIS, k[1]) for k in fingerprint if isinstance(k, tuple)]
     rb = battery(real, layout)
     cells = [c for c in cells if c in rb]
     bb = [battery(s, layout) for s in base]
@@ -453,27 +407,33 @@ def fit_heading_lag(
     return Fit(HeadingLag(tau_s=round(tau, 4)), {"tau_s": se[c] * dtau})
 
 
-FITTERS: dict[
-    str, Callable[[HeadingSeries, Sequence[HeadingSeries], CompassLayout], Fit | None]
-] = {
-    "declination": fit_declination,
-    "hard_iron": fit_hard_iron,
-    "soft_iron": fit_soft_iron,
-    "tilt": fit_tilt,
-    "heading_lag": fit_heading_lag,
+# The compass effects: fitter and fingerprint (the (statistic, scale) cells each moves: what
+# ranks candidates and what a simulation fit matches). A new effect is one row here (the
+# order is the default candidates' order).
+EFFECTS: dict[str, EffectFitter[HeadingSeries, CompassLayout]] = {
+    "declination": EffectFitter(fit_declination, (("heading_mean", "all"),)),
+    "hard_iron": EffectFitter(
+        fit_hard_iron,
+        (
+            ("harmonic_cos", "1/turn"),
+            ("harmonic_sin", "1/turn"),
+            ("field_harmonic_cos", "1/turn"),
+            ("field_harmonic_sin", "1/turn"),
+        ),
+    ),
+    "soft_iron": EffectFitter(
+        fit_soft_iron, (("harmonic_cos", "2/turn"), ("harmonic_sin", "2/turn"))
+    ),
+    "tilt": EffectFitter(fit_tilt, (("tilt_gain", "pitch/roll"),)),
+    "heading_lag": EffectFitter(fit_heading_lag, (("lag_s", "turn rate"),)),
 }
-
-
-def fingerprint_score(name: str, cells: Sequence[Cell], z: np.ndarray, thr: float = 2.0) -> float:
-    """Evidence for an effect: sum over its fingerprint cells of max(0, z^2 - thr^2)."""
-    fp = set(FINGERPRINTS[name])
-    sel = np.array([(c.statistic, c.scale) in fp for c in cells], dtype=bool)
-    return float(np.sum(np.maximum(0.0, z[sel] ** 2 - thr**2))) if np.any(sel) else 0.0
+COMPASS_CANDIDATES = tuple(EFFECTS)
 
 
 def apply_fits(
     fits: Sequence[Fit], runs: Sequence[HeadingSeries], rng: np.random.Generator
 ) -> list[HeadingSeries]:
+    """Each run with the fitted compass layers applied in order."""
     out = []
     for s in runs:
         for f in fits:
@@ -485,6 +445,88 @@ def apply_fits(
 # --- the pipeline -----------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class CompassOptions(PipelineOptions):
+    """As :class:`x6wd.gap.diagnose.Options`, for the compass: at most two layers, and the
+    field the fits assume (inclination, deg; horizontal field, µT)."""
+
+    candidates: tuple[str, ...] = COMPASS_CANDIDATES
+    max_effects: int = 2
+    inclination_deg: float = 66.0
+    horizontal_field_ut: float = 19.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        unknown = sorted(set(self.candidates) - set(COMPASS_CANDIDATES))
+        if unknown:
+            raise ConfigError(f"compass candidates {unknown}: known {list(COMPASS_CANDIDATES)}")
+
+
+class CompassPipeline(Pipeline[HeadingSeries, CompassLayout, CompassDiagnosis]):
+    """The compass half's plug-ins: its regression battery, heading windows and joint block
+    bootstrap. The compass layers are deterministic (no fresh draws) and at most two are
+    selected (no leave-one-out); a layer refitted in a later round is reported with the
+    selection's closure."""
+
+    label = "compass: "
+    refits_take_selection_closure = True
+
+    def __init__(
+        self, options: CompassOptions, rng: np.random.Generator, progress: Progress | None = None
+    ) -> None:
+        super().__init__(EFFECTS, options, rng, progress)
+        self.compass_options = options
+
+    def check(self, real: HeadingSeries, baseline: Sequence[HeadingSeries]) -> None:
+        if real.true_heading_deg is None or len(real) < 100:
+            raise ConfigError("compass diagnosis needs >= 100 samples with a true heading")
+        if not baseline:
+            raise ConfigError("compass diagnosis needs baseline heading series")
+
+    def layout_for(self, real: HeadingSeries, baseline: Sequence[HeadingSeries]) -> CompassLayout:
+        opt = self.compass_options
+        layout = layout_for(real, opt.inclination_deg, opt.horizontal_field_ut)
+        if layout.has_field and any(s.field_ut is None for s in baseline):
+            layout = dataclasses.replace(layout, has_field=False)
+        return layout
+
+    def input_notes(self, real: HeadingSeries, layout: CompassLayout) -> list[str]:
+        # Harmonics need the log to turn through the circle: say so when it did not (a square
+        # mission visits four headings), because the null then has no power, not no gap.
+        sectors = np.bincount(
+            (wrap360(np.asarray(real.true_heading_deg)) // 45.0).astype(int) % 8, minlength=8
+        )
+        if np.count_nonzero(sectors >= 0.02 * len(real)) < 6:
+            return [
+                "compass: the log covers few headings (fewer than 6 of 8 45-degree sectors), "
+                "so the harmonics are poorly determined and the test has little power"
+            ]
+        return []
+
+    def battery(self, series: HeadingSeries, layout: CompassLayout) -> Battery:
+        return battery(series, layout)
+
+    def window(self, series: HeadingSeries, t0_s: float, t1_s: float) -> HeadingSeries:
+        return hwindow(series, t0_s, t1_s)
+
+    def block_bootstrap(
+        self, runs: Sequence[HeadingSeries], n_out: int, block_s: float, template: HeadingSeries
+    ) -> list[HeadingSeries]:
+        return block_bootstrap(runs, n_out, self.rng, block_s, template)
+
+    def bootstrap_note(self, n_logs: int, block_s: float) -> str:
+        return (
+            f"compass baseline: {n_logs} log(s), null from a circular block bootstrap "
+            f"({self.options.replicates} replicates, blocks of {block_s:.0f} s)"
+        )
+
+    def apply_fits(self, fits: Sequence[Fit], runs: Sequence[HeadingSeries]) -> list[HeadingSeries]:
+        return apply_fits(fits, runs, self.rng)
+
+    def new_outcome(self, **fields: Any) -> CompassDiagnosis:
+        return CompassDiagnosis(**fields)
+
+
 def diagnose_compass(
     real: HeadingSeries,
     baseline: Sequence[HeadingSeries],
@@ -493,179 +535,12 @@ def diagnose_compass(
     progress: Progress | None = None,
 ) -> CompassDiagnosis:
     """Where the heading gap lies, which compass effect explains it, how far it closes."""
-    opt = options or CompassOptions()
-    say = progress or (lambda _m, _f: None)
-    if real.true_heading_deg is None or len(real) < 100:
-        raise ConfigError("compass diagnosis needs >= 100 samples with a true heading")
-    if not baseline:
-        raise ConfigError("compass diagnosis needs baseline heading series")
-    layout = layout_for(real, opt.inclination_deg, opt.horizontal_field_ut)
-    if layout.has_field and any(s.field_ut is None for s in baseline):
-        layout = CompassLayout(
-            layout.dt_s, layout.duration_s, False, layout.inclination_deg,
-            layout.horizontal_field_ut,
-        )  # fmt: skip
-    notes: list[str] = []
-    # Harmonics need the log to turn through the circle: say so when it did not (a square
-    # mission visits four headings), because the null then has no power, not no gap.
-    sectors = np.bincount(
-        (wrap360(np.asarray(real.true_heading_deg)) // 45.0).astype(int) % 8, minlength=8
-    )
-    if np.count_nonzero(sectors >= 0.02 * len(real)) < 6:
-        notes.append(
-            "compass: the log covers few headings (fewer than 6 of 8 45-degree sectors), so "
-            "the harmonics are poorly determined and the test has little power"
-        )
-    runs = list(baseline)
-    boot = len(runs) < opt.min_runs
-    if boot:
-        block_s = max(layout.duration_s / 4.0, 10 * layout.dt_s)
-        runs = block_bootstrap(runs, opt.replicates, rng, block_s, real)
-        notes.append(
-            f"compass baseline: {len(baseline)} log(s), null from a circular block bootstrap "
-            f"({opt.replicates} replicates, blocks of {block_s:.0f} s)"
-        )
-    T = layout.duration_s
-    end = T + layout.dt_s
-    say("compass: calibrating the null", 0.0)
-    null = _null(batteries(runs, layout, 0.0, end), opt.alpha)
-    z = null.z(battery(real, layout))
-    where = [
-        {
-            "statistic": c.statistic,
-            "axis": c.axis,
-            "scale": c.scale,
-            "period": c.period,
-            "place": c.place,
-            "z": round(float(zc), 2),
-        }
-        for c, zc in sorted(zip(null.cells, z, strict=True), key=lambda p: -abs(p[1]))
-        if abs(zc) > null.threshold
-    ]
-    t_fit = opt.fit_fraction * T
-    t_test = t_fit + opt.guard_fraction * T
-    real_fit = hwindow(real, 0.0, t_fit)
-    real_test_b = battery(hwindow(real, t_test, end), layout)
-    base_test = _null(batteries(runs, layout, t_test, end), opt.alpha)
-    ref_sd = base_test.sd
-    g_b = base_test.gap(real_test_b, ref_sd)
-    g_f = base_test.floor(ref_sd)
-    diag = CompassDiagnosis(
-        layout=layout,
-        real=real,
-        baseline=runs,
-        bootstrap=boot,
-        cells=null.cells,
-        z=z,
-        threshold=null.threshold,
-        where=where,
-        g_baseline=g_b,
-        g_floor=g_f,
-        g_with=g_b,
-        candidates=[],
-        selected=[],
-        closure=0.0,
-        split_s=(t_fit, t_test, T),
-        notes=notes,
-    )
-    if not where:
-        say("compass: no significant gap", 1.0)
-        return diag
-
-    real_fit_b = battery(real_fit, layout)
-    ref_fit_sd = _null(batteries(runs, layout, 0.0, t_fit), opt.alpha).sd
-
-    def evaluate(fits: list[Fit]) -> tuple[float, float, NullModel]:
-        """(selection key, held-out G, held-out null) of the baseline plus ``fits``: the
-        key adds the fit part's G, as on the GPS side, so a look-alike that only matches
-        the held-out cells loses."""
-        with_runs = apply_fits(fits, runs, rng)
-        eff_null = _null(batteries(with_runs, layout, t_test, end), opt.alpha)
-        g_e = eff_null.gap(real_test_b, ref_sd)
-        fit_part = _null(batteries(with_runs, layout, 0.0, t_fit), opt.alpha)
-        return g_e + fit_part.gap(real_fit_b, ref_fit_sd), g_e, eff_null
-
-    selected: list[Fit] = []
-    current = runs
-    g_cur = g_b
-    scored: dict[str, Candidate] = {}
-    for round_ in range(opt.max_effects):
-        cur_fit = [hwindow(s, 0.0, t_fit) for s in current]
-        fit_null = _null([battery(s, layout) for s in cur_fit], opt.alpha)
-        zf = fit_null.z(battery(real_fit, layout))
-        names = [n for n in opt.candidates if n not in {f.name for f in selected}]
-        best: tuple[float, float, Fit] | None = None
-        for i, name in enumerate(names):
-            say(f"compass round {round_ + 1}: fitting {name}", (round_ + i / len(names)) / 2)
-            fit = FITTERS[name](real_fit, cur_fit, layout)
-            if fit is None:
-                continue
-            key, g_e, eff_null = evaluate([*selected, fit])
-            if round_ == 0:
-                scored[name] = Candidate(
-                    fit,
-                    fingerprint_score(name, fit_null.cells, zf),
-                    closure_of(g_b, g_e, g_f),
-                    closure_ci(real_test_b, base_test, eff_null, rng, opt.ci_resamples),
-                    g_e,
-                )
-            if best is None or key < best[0]:
-                best = (key, g_e, fit)
-        if best is None:
-            break
-        left = g_cur - g_f
-        if round_ == 0 and closure_of(g_b, best[1], g_f) < ADD_MIN_GAIN:
-            break
-        if round_ > 0 and (left < ADD_MIN_LEFT or g_cur - best[1] < ADD_MIN_SHARE * left):
-            break
-        selected.append(best[2])
-        g_cur = best[1]
-        current = apply_fits(selected, runs, rng)
-    sel_names = [f.name for f in selected]
-    total = closure_of(g_b, g_cur, g_f)
-    for f in selected:
-        if f.name not in scored or scored[f.name].fit is not f:
-            # refitted on the residual of earlier selections: report the set's closure
-            prev = scored.get(f.name)
-            scored[f.name] = Candidate(f, prev.score if prev else 0.0, total, (total, total), g_cur)
-    diag.candidates = sorted(
-        scored.values(),
-        key=lambda c: (
-            c.fit.name not in sel_names,
-            sel_names.index(c.fit.name) if c.fit.name in sel_names else 0,
-            -c.closure,
-        ),
-    )
-    diag.selected = selected
-    diag.g_with = g_cur
-    diag.closure = total if math.isfinite(total) else 0.0
-    say("compass: done", 1.0)
-    return diag
+    return CompassPipeline(options or CompassOptions(), rng, progress).run(real, baseline)
 
 
 def compass_report_dict(d: CompassDiagnosis) -> dict[str, Any]:
     """The compass half in report.json's shape (keys as the GPS side's)."""
-    return {
-        "gap": {
-            "baseline": round(d.g_baseline, 4),
-            "floor": round(d.g_floor, 4),
-            "with_effects": round(d.g_with, 4),
-        },
-        "where": d.where,
-        "effects": [
-            {
-                "name": c.fit.name,
-                "params": c.fit.params,
-                "closure": round(c.closure, 3),
-                "closure_ci": [round(c.closure_ci[0], 3), round(c.closure_ci[1], 3)],
-            }
-            for c in d.candidates
-        ],
-        "verdict": {
-            "effect": d.selected[0].name if d.explained else None,
-            "explained": bool(d.explained) if d.significant else True,
-        },
-    }
+    return pipeline.report_dict(d)
 
 
 def compass_verdict_text(d: CompassDiagnosis) -> str:

@@ -1,6 +1,6 @@
-"""The GPS effects the gap pipeline can fit: which battery cells each moves (its fingerprint)
-and its fitter, registered in :data:`FITTERS`; plus the direct fits that need no likelihood
-(quantisation lattice, outage runs).
+"""The GPS effects the gap pipeline can fit, registered in :data:`EFFECTS` (fitter, the
+battery cells each moves: its fingerprint, and what a simulation refit may move); plus the
+direct fits that need no likelihood (quantisation lattice, outage runs).
 
 Fits are made against the baseline ensemble, never against a single sim: an effect adds to
 whatever the simulator already does. The fitters live by method: the drift family and its
@@ -12,7 +12,7 @@ on top of the baseline noise model (:mod:`x6wd.gap.noise`); this module sits abo
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -21,36 +21,22 @@ from x6wd.gap.drift import fit_bias, fit_gauss_markov, fit_latency, fit_random_w
 from x6wd.gap.fitted import Fit
 from x6wd.gap.jumps import fit_jumps
 from x6wd.gap.noise import NoiseModel
-from x6wd.gap.stats import QUANT_DECIMALS, Cell, Layout, lattice_fraction
+from x6wd.gap.pipeline import EffectFitter
+from x6wd.gap.stats import QUANT_DECIMALS, Layout, lattice_fraction
 from x6wd.gap.zone import fit_multipath_zone
 
 # Re-exported for callers that knew them here (tests/conftest.py builds a NoiseModel).
-__all__ = ["FINGERPRINTS", "FITTABLE", "FITTERS", "Fit", "NoiseModel", "fingerprint_score"]
-
-# Which battery statistics each effect moves: its fingerprint, used to rank candidates.
-FINGERPRINTS: dict[str, tuple[str, ...]] = {
-    "bias": ("mean",),
-    "gauss_markov": ("log_std", "log_adev", "log_psd", "acf", "log_cep50", "log_r95"),
-    "random_walk": ("log_adev", "log_psd", "log_std", "acf"),
-    "quantization": ("lattice", "zero_step"),
-    "jumps": ("step_tail", "log_step_std", "tail_ratio"),
-    "outages": ("availability", "log_outage_s"),
-    "latency": ("latency_slope",),
-    # per-place spread and step size (moving logs): a zone makes one place noisier
-    "multipath_zone": ("log_rms_place", "log_step_std_place"),
-}
-FITTABLE = tuple(FINGERPRINTS)
-
-
-def fingerprint_score(
-    name: str, cells: Sequence[Cell], z: np.ndarray, threshold: float = 2.0
-) -> float:
-    """Evidence for an effect: sum over its fingerprint cells of max(0, z^2 - threshold^2)."""
-    stats = FINGERPRINTS.get(name, ())
-    sel = np.array([c.statistic in stats for c in cells], dtype=bool)
-    if not np.any(sel):
-        return 0.0
-    return float(np.sum(np.maximum(0.0, z[sel] ** 2 - threshold**2)))
+__all__ = [
+    "EFFECTS",
+    "FINGERPRINTS",
+    "FITTABLE",
+    "FITTERS",
+    "SIM_REFIT",
+    "Fit",
+    "NoiseModel",
+    "fit_outages",
+    "fit_quantization",
+]
 
 
 def fit_quantization(
@@ -89,13 +75,33 @@ def fit_outages(real: PositionSeries, base: Sequence[PositionSeries], layout: La
     )
 
 
-FITTERS: dict[str, Callable[[PositionSeries, Sequence[PositionSeries], Layout], Fit | None]] = {
-    "bias": fit_bias,
-    "gauss_markov": fit_gauss_markov,
-    "random_walk": fit_random_walk,
-    "quantization": fit_quantization,
-    "jumps": fit_jumps,
-    "outages": fit_outages,
-    "latency": fit_latency,
-    "multipath_zone": fit_multipath_zone,
+# The GPS effects: fitter, fingerprint (the battery statistics the effect moves, which rank
+# the candidates) and the positive parameters refined by simulation under a coarse NMEA
+# lattice. A new effect is one row here (the order is the default candidates' order).
+EFFECTS: dict[str, EffectFitter[PositionSeries, Layout]] = {
+    "bias": EffectFitter(fit_bias, ("mean",)),
+    "gauss_markov": EffectFitter(
+        fit_gauss_markov,
+        ("log_std", "log_adev", "log_psd", "acf", "log_cep50", "log_r95"),
+        sim_refit=("sigma_m", "tau_s"),
+    ),
+    "random_walk": EffectFitter(
+        fit_random_walk, ("log_adev", "log_psd", "log_std", "acf"), sim_refit=("q_m_per_sqrt_s",)
+    ),
+    "quantization": EffectFitter(fit_quantization, ("lattice", "zero_step")),
+    "jumps": EffectFitter(
+        fit_jumps, ("step_tail", "log_step_std", "tail_ratio"), sim_refit=("sigma_m", "rate_per_s")
+    ),
+    "outages": EffectFitter(fit_outages, ("availability", "log_outage_s")),
+    "latency": EffectFitter(fit_latency, ("latency_slope",)),
+    # per-place spread and step size (moving logs): a zone makes one place noisier
+    "multipath_zone": EffectFitter(
+        fit_multipath_zone,
+        ("log_rms_place", "log_step_std_place"),
+        sim_refit=("sigma_m", "tau_s"),
+    ),
 }
+FITTABLE = tuple(EFFECTS)
+FITTERS = {name: e.fit for name, e in EFFECTS.items()}
+FINGERPRINTS = {name: e.fingerprint for name, e in EFFECTS.items()}
+SIM_REFIT = {name: e.sim_refit for name, e in EFFECTS.items() if e.sim_refit}

@@ -1,0 +1,612 @@
+"""The gap pipeline of every sensor: where the gap lies, which effect explains it, how far it
+closes. GPS (:mod:`x6wd.gap.diagnose`) and compass (:mod:`x6wd.gap.compass`) plug into it.
+
+1. **Null and where.** The baseline ensemble (M sim runs, or a block bootstrap of fewer)
+   calibrates every cell of the sensor's battery (:class:`x6wd.gap.null.NullModel`); the real
+   log's cells beyond the family-wise threshold are "where".
+2. **Split.** A fit part (the first ``fit_fraction`` of the log), a guard gap, and a
+   held-out test part; G of the baseline and its floor on the test part.
+3. **Candidates.** Each effect of the sensor's registry (:class:`EffectFitter`: a fitter and
+   its fingerprint cells) is fitted on the fit part against the baseline plus the effects
+   selected so far, added to every baseline run, and scored by the held-out G plus the fit
+   part's G (the fit part sees the longer time scales a short test part cannot).
+4. **Selection.** Greedy add-one-in: a first effect must close ``ADD_MIN_GAIN`` of the gap, a
+   further one remove ``ADD_MIN_SHARE`` of what is left; then, where the sensor asks for it,
+   leave-one-out drops effects the others make redundant.
+5. **Outcome.** Candidates with their held-out closure (and 5-95 % interval), the selection
+   and its closure = (G_baseline - G_with) / (G_baseline - G_floor).
+
+A sensor subclasses :class:`Pipeline` with its series type, battery, windowing, block
+bootstrap and effect registry; its selection policy (the GPS drift family by likelihood, a
+coarse lattice, companions, whole-log refits) goes in the hooks, whose defaults are the plain
+greedy selection.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Generic, Protocol, TypeVar
+
+import numpy as np
+
+from x6wd.core.errors import ConfigError
+from x6wd.gap.fitted import Fit
+from x6wd.gap.null import NullModel, closure_ci, closure_of, null_model
+from x6wd.gap.stats import Cell
+
+Progress = Callable[[str, float], None]
+Battery = dict[Cell, float]
+# A fingerprint entry: a statistic (every cell of it), or a (statistic, scale) pair.
+CellKey = str | tuple[str, str]
+
+EXPLAINED_CLOSURE = 0.5  # a selection closing at least half the held-out gap explains it
+ADD_MIN_GAIN = 0.1  # a first effect must close at least 10 % of the gap
+ADD_MIN_LEFT = 0.5  # G above the floor still worth explaining (null G - floor spread ~0.2)
+ADD_MIN_SHARE = 0.3  # a further effect must remove 30 % of the gap left
+
+
+class Timing(Protocol):
+    """What the pipeline needs of a sensor's layout: the sample step and the log's length."""
+
+    @property
+    def dt_s(self) -> float: ...
+
+    @property
+    def duration_s(self) -> float: ...
+
+
+SeriesT = TypeVar("SeriesT")
+LayoutT = TypeVar("LayoutT", bound=Timing)
+OutcomeT = TypeVar("OutcomeT", bound="Outcome[Any, Any]")
+
+
+@dataclass(frozen=True)
+class EffectFitter(Generic[SeriesT, LayoutT]):
+    """How the pipeline fits one effect: ``fit(real, baseline_runs, layout)`` gives the fitted
+    layer with standard errors, or None when the log does not support it; ``fingerprint`` the
+    battery cells the effect moves (ranks and scores candidates); ``sim_refit`` the positive
+    parameters to refine by simulation where the effect does not add to the baseline (GPS:
+    under a coarse NMEA lattice)."""
+
+    fit: Callable[[SeriesT, Sequence[SeriesT], LayoutT], Fit | None]
+    fingerprint: tuple[CellKey, ...]
+    sim_refit: tuple[str, ...] = ()
+
+
+def fingerprint_mask(fingerprint: Sequence[CellKey], cells: Sequence[Cell]) -> np.ndarray:
+    """Which ``cells`` an effect with this fingerprint moves (bool per cell)."""
+    stats = {k for k in fingerprint if isinstance(k, str)}
+    pairs = {k for k in fingerprint if isinstance(k, tuple)}
+    return np.array(
+        [c.statistic in stats or (c.statistic, c.scale) in pairs for c in cells], dtype=bool
+    )
+
+
+def fingerprint_score(
+    fingerprint: Sequence[CellKey], cells: Sequence[Cell], z: np.ndarray, threshold: float = 2.0
+) -> float:
+    """Evidence for an effect: sum over its fingerprint cells of max(0, z^2 - threshold^2),
+    ``z`` the null-calibrated z of ``cells``."""
+    sel = fingerprint_mask(fingerprint, cells)
+    if not np.any(sel):
+        return 0.0
+    return float(np.sum(np.maximum(0.0, z[sel] ** 2 - threshold**2)))
+
+
+@dataclass(frozen=True)
+class PipelineOptions:
+    """Settings of a diagnosis: ``replicates`` the size of a bootstrap ensemble (used when
+    fewer than ``min_runs`` baseline runs are given), ``fit_fraction`` and ``guard_fraction``
+    of the log, ``alpha`` the family-wise error rate, ``candidates`` the effects considered
+    (the sensor's registry by default), ``ci_resamples`` for closure intervals,
+    ``max_effects`` selected at most."""
+
+    replicates: int = 20
+    min_runs: int = 8
+    fit_fraction: float = 0.6
+    guard_fraction: float = 0.05
+    alpha: float = 0.05
+    candidates: tuple[str, ...] = ()
+    ci_resamples: int = 200
+    max_effects: int = 3
+
+    def __post_init__(self) -> None:
+        if not 0.2 <= self.fit_fraction <= 0.8:
+            raise ConfigError(f"fit_fraction={self.fit_fraction}: must be in [0.2, 0.8]")
+
+
+@dataclass
+class Candidate:
+    """A fitted effect and how it scored on the held-out part: fingerprint evidence on the
+    fit part, closure with its 5-95 % interval, and G of the baseline plus the effect."""
+
+    fit: Fit
+    score: float
+    closure: float
+    closure_ci: tuple[float, float]
+    g_effect: float
+
+
+@dataclass(kw_only=True)
+class Outcome(Generic[SeriesT, LayoutT]):
+    """What every sensor's diagnosis reports: the log, its layout and baseline runs (after any
+    bootstrap), the whole-log null with the real log's z per cell and the cells beyond the
+    threshold (``where``), G on the held-out part (baseline, sim-vs-sim floor, with the
+    selected effects), the candidates, the selection and its held-out closure, and the split
+    times (fit end, test start, log end; s)."""
+
+    layout: LayoutT
+    real: SeriesT
+    baseline: list[SeriesT]
+    null: NullModel
+    bootstrap: bool
+    cells: tuple[Cell, ...]
+    z: np.ndarray
+    threshold: float
+    where: list[dict[str, Any]]
+    g_baseline: float
+    g_floor: float
+    g_with: float
+    candidates: list[Candidate]
+    selected: list[Fit]
+    closure: float
+    split_s: tuple[float, float, float]
+    # 5-95 % interval of the selection's held-out closure over resamples of the ensembles
+    closure_ci: tuple[float, float] = (0.0, 0.0)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.where)
+
+    @property
+    def explained(self) -> bool:
+        return self.significant and bool(self.selected) and self.closure >= EXPLAINED_CLOSURE
+
+
+def report_dict(outcome: Outcome[Any, Any]) -> dict[str, Any]:
+    """One half of report.json (keys fixed by the issue; users parse them)."""
+    top = outcome.selected[0].name if outcome.explained else None
+    return {
+        "gap": {
+            "baseline": round(outcome.g_baseline, 4),
+            "floor": round(outcome.g_floor, 4),
+            "with_effects": round(outcome.g_with, 4),
+        },
+        "where": outcome.where,
+        "effects": [
+            {
+                "name": c.fit.name,
+                "params": c.fit.params,
+                "closure": round(c.closure, 3),
+                "closure_ci": [round(c.closure_ci[0], 3), round(c.closure_ci[1], 3)],
+            }
+            for c in outcome.candidates
+        ],
+        "verdict": {
+            "effect": top,
+            "explained": bool(outcome.explained) if outcome.significant else True,
+        },
+    }
+
+
+def where_cells(null: NullModel, z: np.ndarray) -> list[dict[str, Any]]:
+    """The cells beyond the null's family-wise threshold, by decreasing |z|."""
+    return [
+        {
+            "statistic": c.statistic,
+            "axis": c.axis,
+            "scale": c.scale,
+            "period": c.period,
+            "place": c.place,
+            "z": round(float(zc), 2),
+        }
+        for c, zc in sorted(zip(null.cells, z, strict=True), key=lambda p: -abs(p[1]))
+        if abs(zc) > null.threshold
+    ]
+
+
+@dataclass
+class Split(Generic[SeriesT, LayoutT]):
+    """The fit part (t < ``t_fit_s``), guard gap and held-out test part (``t_test_s`` <= t <
+    ``end_s``; s from the log's start) of one log, and the baseline scored on them:
+    ``baseline_test`` its null on the test part, ``ref_sd_test``/``ref_sd_fit`` the baseline's
+    spreads (the reference of every G), ``g_baseline``/``g_floor`` on the test part."""
+
+    t_fit_s: float
+    t_test_s: float
+    end_s: float
+    fit_layout: LayoutT
+    test_layout: LayoutT
+    real_fit: SeriesT
+    real_fit_battery: Battery
+    real_test_battery: Battery
+    baseline_fit: list[SeriesT]
+    baseline_test: NullModel
+    ref_sd_fit: np.ndarray
+    g_baseline: float
+    g_floor: float
+
+    @property
+    def ref_sd_test(self) -> np.ndarray:
+        return self.baseline_test.sd
+
+
+@dataclass
+class Round(Generic[SeriesT]):
+    """One round of add-one-in: ``selected`` so far, the candidates not yet selected
+    (``names``), the baseline runs plus the selection (whole log: ``current``; fit part:
+    ``current_fit``), their null on the fit part and the real fit part's z against it."""
+
+    index: int
+    selected: list[Fit]
+    names: list[str]
+    current: list[SeriesT]
+    current_fit: list[SeriesT]
+    fit_null: NullModel
+    z_fit: np.ndarray
+
+
+@dataclass
+class Option:
+    """What a candidate offers in a round: its own fit (scored alone in round one: held-out
+    ``g_effect`` and null), the ``fits`` that enter if it is chosen (it, perhaps with
+    companions) with their selection ``key`` and held-out ``g_fits``, the names
+    leave-one-out must keep, and whether it may be chosen at all."""
+
+    fit: Fit
+    key: float
+    g_effect: float
+    null: NullModel
+    fits: list[Fit]
+    g_fits: float
+    keep: list[str] = field(default_factory=list)
+    eligible: bool = True
+
+
+class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
+    """One diagnosis of one sensor's log against its baseline runs (see the module doc).
+
+    Subclasses give the sensor's plug-ins (abstract methods) and may override the selection
+    hooks; class attributes tune the shared steps."""
+
+    label: ClassVar[str] = ""  # prefix of progress messages, e.g. "compass: "
+    # Fresh draws of an effect's randomness pooled to decide on and score a selection (the
+    # choice is the best of several one-draw scores: a winner's curse); 0 for a sensor whose
+    # effects are deterministic, decided on their own score.
+    fresh_draws: ClassVar[int] = 0
+    leave_one_out: ClassVar[bool] = False
+    # A selected fit that is not the one scored alone in round one (refitted on the residual
+    # of earlier selections): True reports it with the selection's closure, False keeps the
+    # round-one closure of the effect alone.
+    refits_take_selection_closure: ClassVar[bool] = False
+    progress_span: ClassVar[tuple[float, float]] = (0.0, 1.0)  # start, width of the rounds
+
+    def __init__(
+        self,
+        effects: Mapping[str, EffectFitter[SeriesT, LayoutT]],
+        options: PipelineOptions,
+        rng: np.random.Generator,
+        progress: Progress | None = None,
+    ) -> None:
+        self.effects = effects
+        self.options = options
+        self.rng = rng
+        self._progress = progress or (lambda _msg, _frac: None)
+        # the diagnosis in progress (set by run)
+        self.real: SeriesT
+        self.layout: LayoutT
+        self.runs: list[SeriesT] = []
+        self.split: Split[SeriesT, LayoutT]
+
+    # --- the sensor's plug-ins -----------------------------------------------------------------
+
+    @abstractmethod
+    def check(self, real: SeriesT, baseline: Sequence[SeriesT]) -> None:
+        """Raise ConfigError when the log or the baseline cannot be diagnosed."""
+
+    @abstractmethod
+    def layout_for(self, real: SeriesT, baseline: Sequence[SeriesT]) -> LayoutT:
+        """The cell layout the real log implies (and the baseline supports)."""
+
+    @abstractmethod
+    def battery(self, series: SeriesT, layout: LayoutT) -> Battery:
+        """The sensor's battery of cells of one series."""
+
+    @abstractmethod
+    def window(self, series: SeriesT, t0_s: float, t1_s: float) -> SeriesT:
+        """The samples with t0_s <= t - t_start < t1_s."""
+
+    @abstractmethod
+    def block_bootstrap(
+        self, runs: Sequence[SeriesT], n_out: int, block_s: float, template: SeriesT
+    ) -> list[SeriesT]:
+        """``n_out`` replicates on ``template``'s times of circular ``block_s`` blocks."""
+
+    @abstractmethod
+    def bootstrap_note(self, n_logs: int, block_s: float) -> str:
+        """The report's note on a bootstrap null of ``n_logs`` baseline logs."""
+
+    @abstractmethod
+    def apply_fits(self, fits: Sequence[Fit], runs: Sequence[SeriesT]) -> list[SeriesT]:
+        """Each run with the fitted effects added."""
+
+    @abstractmethod
+    def new_outcome(self, **fields: Any) -> OutcomeT:
+        """The sensor's :class:`Outcome` subclass with these fields."""
+
+    def part_layout(self, layout: LayoutT, duration_s: float) -> LayoutT:
+        """The layout of a part of the log ``duration_s`` long (default: the whole log's)."""
+        return layout
+
+    def input_notes(self, real: SeriesT, layout: LayoutT) -> list[str]:
+        """Notes on the real log itself (e.g. too little of it to test some cells)."""
+        return []
+
+    def prepare(self, runs: Sequence[SeriesT]) -> None:
+        """Called once the baseline runs are final (after any bootstrap)."""
+
+    def add_whole_log_cells(
+        self, real: SeriesT, real_battery: Battery, run_batteries: Sequence[Battery]
+    ) -> None:
+        """Add cells that only the whole log supports to the batteries (in place)."""
+
+    # --- the selection hooks -------------------------------------------------------------------
+
+    def rank(self, names: Sequence[str], cells: Sequence[Cell], z: np.ndarray) -> list[str]:
+        """The order in which a round tries the candidates (default: as configured)."""
+        return list(names)
+
+    def plan_round(self, rnd: Round[SeriesT], outcome: OutcomeT) -> None:
+        """Before a round's candidates are fitted (e.g. what may be selected this round)."""
+
+    def consider(self, rnd: Round[SeriesT], name: str, fit: Fit) -> Option:
+        """What candidate ``name``, fitted as ``fit``, offers this round (default: itself)."""
+        key, g_effect, null, _runs = self.evaluate([*rnd.selected, fit])
+        return Option(fit, key, g_effect, null, [fit], g_effect)
+
+    def report_fits(
+        self, selected: list[Fit], scored: dict[str, Candidate], outcome: OutcomeT
+    ) -> list[Fit]:
+        """The selected effects' fits as reported (default: the fit-part fits themselves);
+        may also replace the candidates' fits and add notes."""
+        return selected
+
+    # --- the shared steps ----------------------------------------------------------------------
+
+    def say(self, msg: str, frac: float) -> None:
+        self._progress(self.label + msg, frac)
+
+    def batteries(
+        self, runs: Sequence[SeriesT], layout: LayoutT, t0_s: float, t1_s: float
+    ) -> list[Battery]:
+        """The battery of every run's window [t0_s, t1_s)."""
+        return [self.battery(self.window(s, t0_s, t1_s), layout) for s in runs]
+
+    def evaluate(self, fits: Sequence[Fit]) -> tuple[float, float, NullModel, list[SeriesT]]:
+        """(selection key, held-out G, held-out null, runs) of the baseline plus ``fits`` on
+        one draw: the key adds the fit part's G, so that a look-alike that matches only the
+        short scales of the held-out part (a random walk for a slow Gauss-Markov drift) loses."""
+        sp, alpha = self.split, self.options.alpha
+        with_runs = self.apply_fits(fits, self.runs)
+        test_null = null_model(
+            self.batteries(with_runs, sp.test_layout, sp.t_test_s, sp.end_s), alpha
+        )
+        g_test = test_null.gap(sp.real_test_battery, sp.ref_sd_test)
+        fit_null = null_model(self.batteries(with_runs, sp.fit_layout, 0.0, sp.t_fit_s), alpha)
+        key = g_test + fit_null.gap(sp.real_fit_battery, sp.ref_sd_fit)
+        return key, g_test, test_null, with_runs
+
+    def pooled_gap(self, fits: Sequence[Fit]) -> tuple[float, NullModel]:
+        """Held-out G and null of the baseline plus ``fits`` on ``fresh_draws`` fresh draws of
+        the effects, pooled (one draw when the effects are deterministic)."""
+        sp = self.split
+        pooled: list[SeriesT] = []
+        for _ in range(max(self.fresh_draws, 1)):
+            pooled += self.apply_fits(fits, self.runs)
+        test_null = null_model(
+            self.batteries(pooled, sp.test_layout, sp.t_test_s, sp.end_s), self.options.alpha
+        )
+        return test_null.gap(sp.real_test_battery, sp.ref_sd_test), test_null
+
+    def _round_progress(self, rounds: float) -> float:
+        start, width = self.progress_span
+        return start + width * rounds / self.options.max_effects
+
+    def _split(self, real: SeriesT, layout: LayoutT) -> Split[SeriesT, LayoutT]:
+        opt = self.options
+        duration_s = layout.duration_s
+        end_s = duration_s + layout.dt_s  # one step past the last sample: every sample is in
+        t_fit_s = opt.fit_fraction * duration_s
+        t_test_s = t_fit_s + opt.guard_fraction * duration_s
+        fit_layout = self.part_layout(layout, t_fit_s)
+        test_layout = self.part_layout(layout, duration_s - t_test_s)
+        real_fit = self.window(real, 0.0, t_fit_s)
+        baseline_fit = [self.window(s, 0.0, t_fit_s) for s in self.runs]
+        baseline_test = null_model(
+            self.batteries(self.runs, test_layout, t_test_s, end_s), opt.alpha
+        )
+        real_test_battery = self.battery(self.window(real, t_test_s, end_s), test_layout)
+        ref_sd = baseline_test.sd
+        fit_null = null_model([self.battery(s, fit_layout) for s in baseline_fit], opt.alpha)
+        return Split(
+            t_fit_s=t_fit_s,
+            t_test_s=t_test_s,
+            end_s=end_s,
+            fit_layout=fit_layout,
+            test_layout=test_layout,
+            real_fit=real_fit,
+            real_fit_battery=self.battery(real_fit, fit_layout),
+            real_test_battery=real_test_battery,
+            baseline_fit=baseline_fit,
+            baseline_test=baseline_test,
+            ref_sd_fit=fit_null.sd,
+            g_baseline=baseline_test.gap(real_test_battery, ref_sd),
+            g_floor=baseline_test.floor(ref_sd),
+        )
+
+    def run(self, real: SeriesT, baseline: Sequence[SeriesT]) -> OutcomeT:
+        """The whole pipeline on a real series and its baseline runs."""
+        opt = self.options
+        self.check(real, baseline)
+        layout = self.layout_for(real, baseline)
+        self.real, self.layout = real, layout
+        notes = self.input_notes(real, layout)
+        runs = list(baseline)
+        bootstrap = len(runs) < opt.min_runs
+        if bootstrap:
+            # blocks of a quarter of the log: long against the correlation times, few joins
+            block_s = max(layout.duration_s / 4.0, 10 * layout.dt_s)
+            runs = self.block_bootstrap(runs, opt.replicates, block_s, real)
+            notes.append(self.bootstrap_note(len(baseline), block_s))
+        self.runs = runs
+        self.prepare(runs)
+
+        # 1. where: the whole log against the baseline null
+        self.say("calibrating the sim-vs-sim null", 0.05)
+        end_s = layout.duration_s + layout.dt_s
+        run_batteries = self.batteries(runs, layout, 0.0, end_s)
+        real_battery = self.battery(real, layout)
+        self.add_whole_log_cells(real, real_battery, run_batteries)
+        null = null_model(run_batteries, opt.alpha)
+        z = null.z(real_battery)
+        where = where_cells(null, z)
+
+        # 2. split: fit part, guard gap, held-out test part
+        sp = self.split = self._split(real, layout)
+        outcome = self.new_outcome(
+            layout=layout,
+            real=real,
+            baseline=runs,
+            null=null,
+            bootstrap=bootstrap,
+            cells=null.cells,
+            z=z,
+            threshold=null.threshold,
+            where=where,
+            g_baseline=sp.g_baseline,
+            g_floor=sp.g_floor,
+            g_with=sp.g_baseline,
+            candidates=[],
+            selected=[],
+            closure=0.0,
+            split_s=(sp.t_fit_s, sp.t_test_s, layout.duration_s),
+            notes=notes,
+        )
+        if not where:
+            self.say("no significant gap", 1.0)
+            return outcome
+        self._select(outcome)
+        self.say("done", 1.0)
+        return outcome
+
+    def _select(self, outcome: OutcomeT) -> None:
+        """Steps 3-5: candidates, greedy add-one-in, leave-one-out, the reported outcome."""
+        opt, sp = self.options, self.split
+        g_base, g_floor = sp.g_baseline, sp.g_floor
+        selected: list[Fit] = []
+        keep: set[str] = set()  # what leave-one-out must not drop
+        current = self.runs
+        g_cur = g_base
+        scored: dict[str, Candidate] = {}
+        for index in range(opt.max_effects):
+            current_fit = [self.window(s, 0.0, sp.t_fit_s) for s in current]
+            fit_null = null_model([self.battery(s, sp.fit_layout) for s in current_fit], opt.alpha)
+            z_fit = fit_null.z(self.battery(sp.real_fit, sp.fit_layout))
+            names = [n for n in opt.candidates if n not in {f.name for f in selected}]
+            rnd = Round(index, selected, names, current, current_fit, fit_null, z_fit)
+            ranked = self.rank(names, fit_null.cells, z_fit)
+            self.plan_round(rnd, outcome)
+            best: Option | None = None
+            for i, name in enumerate(ranked):
+                self.say(
+                    f"round {index + 1}: fitting {name}",
+                    self._round_progress(index + i / len(ranked)),
+                )
+                fit = self.effects[name].fit(sp.real_fit, current_fit, sp.fit_layout)
+                if fit is None:
+                    continue
+                option = self.consider(rnd, name, fit)
+                if index == 0:
+                    ci = closure_ci(
+                        sp.real_test_battery, sp.baseline_test, option.null, self.rng,
+                        opt.ci_resamples,
+                    )  # fmt: skip
+                    scored[name] = Candidate(
+                        option.fit,
+                        fingerprint_score(self.effects[name].fingerprint, fit_null.cells, z_fit),
+                        closure_of(g_base, option.g_effect, g_floor),
+                        ci,
+                        option.g_effect,
+                    )
+                if option.eligible and (best is None or option.key < best.key):
+                    best = option
+            if best is None:
+                break
+            # The choice is the best of several one-draw scores; whether it enters is decided
+            # on fresh pooled draws where the effects are random (no winner's curse).
+            g_new = self.pooled_gap([*selected, *best.fits])[0] if self.fresh_draws else best.g_fits
+            # A further effect must remove a real part of what is LEFT of the gap (a first
+            # effect with a huge signature, e.g. a coarse lattice, leaves a second one a small
+            # share of the total but most of the remainder).
+            left = g_cur - g_floor
+            if index > 0 and (left < ADD_MIN_LEFT or g_cur - g_new < ADD_MIN_SHARE * left):
+                break
+            if index == 0 and closure_of(g_base, g_new, g_floor) < ADD_MIN_GAIN:
+                break
+            selected.extend(best.fits)
+            keep.update(best.keep)
+            g_cur = g_new
+            current = self.apply_fits(selected, self.runs)
+
+        if self.leave_one_out and len(selected) > 1:
+            self.say("leave-one-out", 0.95)
+            for f in list(selected):
+                if f.name in keep:
+                    continue
+                rest = [s for s in selected if s is not f]
+                g_rest = self.pooled_gap(rest)[0]
+                if closure_of(g_base, g_rest, g_floor) >= (
+                    closure_of(g_base, g_cur, g_floor) - ADD_MIN_GAIN / 2
+                ):
+                    selected = rest
+                    g_cur = g_rest
+
+        closure_fits = list(selected)  # the fit-part fits the closures belong to
+        reported = self.report_fits(closure_fits, scored, outcome)
+        total = closure_of(g_base, g_cur, g_floor)
+        for f in closure_fits:
+            prev = scored.get(f.name)
+            if prev is None or (self.refits_take_selection_closure and prev.fit is not f):
+                # selected without (or unlike) its round-one fit: the selection's closure
+                score = prev.score if prev else 0.0
+                scored[f.name] = Candidate(f, score, total, (total, total), g_cur)
+        names = [f.name for f in reported]
+        for c in scored.values():
+            if c.fit.name in names:
+                c.fit = reported[names.index(c.fit.name)]
+        outcome.candidates = sorted(
+            scored.values(),
+            key=lambda c: (
+                c.fit.name not in names,
+                names.index(c.fit.name) if c.fit.name in names else 0,
+                -c.closure,
+            ),
+        )
+        outcome.selected = reported
+        outcome.g_with = g_cur
+        if self.fresh_draws and closure_fits:
+            # The selection's closure is scored again on fresh draws of its effect ensemble,
+            # pooled: the G it was chosen on is the best of several noisy options (a winner's
+            # curse of a few hundredths of closure on a marginal log).
+            self.say("scoring the selection on fresh draws", 0.98)
+            outcome.g_with, final_null = self.pooled_gap(closure_fits)
+            outcome.closure_ci = closure_ci(
+                sp.real_test_battery, sp.baseline_test, final_null, self.rng, opt.ci_resamples
+            )
+        outcome.closure = closure_of(g_base, outcome.g_with, g_floor)
+        if not math.isfinite(outcome.closure):
+            outcome.closure = 0.0
