@@ -38,7 +38,6 @@ from typing import Any
 import numpy as np
 
 from bench._common import Row, print_table
-from sim_backend import hil
 from x6wd.app.client import ConnectionFailed, RemoteClient, RequestFailed
 from x6wd.app.daemon import Daemon
 from x6wd.core.config import Config, GpsdConfig, RecorderConfig, ServerConfig, SimConfig
@@ -220,8 +219,6 @@ class _Run:
     """The daemon in a thread with latency hooks on the world."""
 
     def __init__(self, cfg: Config) -> None:
-        hil.shutdown()
-        hil.configure(cfg.sim)
         self.daemon = _Probe(cfg)
         self.daemon.fix_out = []
         self.gga_t: list[float] = []
@@ -231,7 +228,7 @@ class _Run:
         self.thread.start()
         if not self.ready.wait(20):
             raise RuntimeError("daemon did not start")
-        w = hil.world()
+        w = self.daemon.devices.backend("sim")  # the world the daemon's sim:// devices share
         w.on_gga = self.gga_t.append
         w.on_motor = self._motor
         self.world = w
@@ -283,8 +280,7 @@ class _Run:
 
     def stop(self) -> None:
         self.loop.call_soon_threadsafe(self.daemon.request_stop)
-        self.thread.join(20)
-        hil.shutdown()
+        self.thread.join(20)  # the daemon closes its devices, the world with them
 
 
 class _Swarm:

@@ -10,8 +10,8 @@ compass    ``i2c://1/0x60``                         ``smbus2.SMBus(1)`` + :class
 motors     ``serial:///dev/ttyUSB0?baud=115200``    :class:`SerialMotorLink`
 motors     ``tcp://host:port``                      :class:`SerialMotorLink` over a socket
 motors     ``log://``                               :class:`LogMotorLink`
-any        ``sim://...``                            ``sim_backend.hil.open_gps/open_compass/
-                                                    open_motors(url)``
+any        ``sim://``                               the simulator's world, through the
+                                                    ``sim_backend.protocol_sim`` handler
 =========  =======================================  ==========================================
 
 ``replay://`` takes a relative path as ``replay://logs/a.nmea`` and an absolute one as
@@ -19,16 +19,30 @@ any        ``sim://...``                            ``sim_backend.hil.open_gps/o
 :class:`ConfigError`) listing the valid ones; a device that cannot be opened raises
 :class:`DeviceUnavailable`. :func:`check_available` is the daemon's start-up check: the URL is
 valid and the local device it names (serial path, I2C bus, replay file) exists, without
-opening anything.
+opening anything. This module is the only one that takes device URLs apart
+(:func:`device_path` tells the gpsd port what device a GPS URL is).
+
+Plug-in schemes (``sim://``), like pyserial's ``protocol_<scheme>`` modules: the module
+``<package>.protocol_<scheme>`` of the first of :data:`PROTOCOL_PACKAGES` that has one is
+imported by name when such a URL is used (the simulator is a higher layer than the drivers:
+a plug-in, not a dependency). It provides ``url_problem(dev)``, ``check_config(config)``,
+``open_backend(config)`` (the object its devices share, e.g. the simulated world, built from
+the configuration) and ``open_gps/open_compass/open_motors(dev, backend)``. The devices of a
+plug-in scheme are opened through a :class:`Devices` (one configuration's devices), which
+builds the backend once and closes it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import math
 import os
 import stat
+import threading
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import ModuleType
 from typing import TYPE_CHECKING, Any, Protocol
 from urllib.parse import parse_qsl, unquote, urlsplit
 
@@ -39,6 +53,8 @@ if TYPE_CHECKING:
     from drivers.motors import MotorLink
 
 KINDS = ("gps", "compass", "motors")
+PLUGIN_SCHEMES = ("sim",)  # opened by a protocol_<scheme> handler module, not here
+PROTOCOL_PACKAGES = ("sim_backend",)  # where protocol_<scheme> handler modules are looked for
 I2C_DEV = "/dev/i2c-{bus}"  # the Linux i2c-dev node that smbus2.SMBus(bus) opens
 STANDARD_BAUDS = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
 
@@ -155,8 +171,9 @@ class DeviceUrl:
     """A validated device URL.
 
     ``target`` is the device path (serial, replay), ``host:port`` (tcp), ``bus/address``
-    (i2c), or the rest of the URL (sim, kept verbatim in ``url``). ``options`` holds the
-    converted query options with their defaults filled in.
+    (i2c), or host and path (a plug-in scheme). ``options`` holds the converted query
+    options with their defaults filled in (a plug-in scheme: the raw strings, for its
+    handler to judge).
     """
 
     url: str
@@ -190,8 +207,15 @@ def parse_url(url: str, kind: str) -> DeviceUrl:
             f"unknown scheme {scheme!r} (valid for {kind}: "
             f"{', '.join(s + '://' for s in schemes)})",
         )
-    if scheme == "sim":  # the simulator validates its own URLs
-        return DeviceUrl(url, kind, scheme, url[len("sim://") :], {})
+    if parts.fragment:
+        raise UrlError(kind, url, f"unexpected fragment #{parts.fragment}")
+    if scheme in PLUGIN_SCHEMES:  # its handler judges the target and the options
+        raw: dict[str, str] = {}
+        for name, value in parse_qsl(parts.query, keep_blank_values=True):
+            if name in raw:
+                raise UrlError(kind, url, f"option {name!r} given twice")
+            raw[name] = value
+        return DeviceUrl(url, kind, scheme, parts.netloc + unquote(parts.path), raw)
     valid = schemes[scheme]
     options: dict[str, Any] = dict(DEFAULTS.get(kind, {}).get(scheme, {}))
     try:
@@ -210,8 +234,6 @@ def parse_url(url: str, kind: str) -> DeviceUrl:
             options[name] = valid[name](name, value)
         except ConfigError as exc:
             raise UrlError(kind, url, str(exc)) from None
-    if parts.fragment:
-        raise UrlError(kind, url, f"unexpected fragment #{parts.fragment}")
     target = _target(url, kind, scheme, parts.netloc, unquote(parts.path))
     return DeviceUrl(url, kind, scheme, target, options)
 
@@ -261,12 +283,12 @@ def check_available(url: str, kind: str) -> DeviceUrl:
     "disconnected" with a device that cannot appear by retrying.
     """
     dev = parse_url(url, kind)
-    if dev.scheme == "sim":
+    if dev.scheme in PLUGIN_SCHEMES:
         try:
-            hil = _sim_module(kind)
+            handler = protocol_handler(dev.scheme)
         except DeviceUnavailable as exc:
             raise UrlError(kind, url, str(exc)) from None
-        problem = hil.url_problem(url)
+        problem = handler.url_problem(dev)
         if problem:
             raise UrlError(kind, url, problem)
     elif dev.scheme == "serial":
@@ -299,15 +321,105 @@ def _check_node(dev: DeviceUrl, path: str, *, char: bool, hint: str) -> None:
         raise UrlError(dev.kind, dev.url, f"{path}: this user may not {rights} it{extra}")
 
 
-def _sim_module(kind: str) -> Any:
+def device_path(url: str) -> tuple[str, int]:
+    """What a GPS URL is for gpsd clients (the gpsd port's DEVICES): the device path and baud
+    rate (bit/s) of a ``serial://`` URL (``serial:///dev/ttyS0?baud=4800`` ->
+    ``("/dev/ttyS0", 4800)``); any other URL as given, at 9600."""
     try:
-        return importlib.import_module("sim_backend.hil")
-    except ModuleNotFoundError as exc:
-        if exc.name in ("sim_backend.hil", "sim_backend"):
-            raise DeviceUnavailable(
-                f"sim:// {kind} URLs need sim_backend.hil, which this build does not have yet"
-            ) from exc
-        raise
+        dev = parse_url(url, "gps")
+    except ConfigError:
+        return url, 9600
+    if dev.scheme == "serial":
+        return dev.target, int(dev.options["baud"])
+    return url, 9600
+
+
+def protocol_handler(scheme: str) -> ModuleType:
+    """The handler module of a plug-in scheme: ``<package>.protocol_<scheme>`` of the first of
+    :data:`PROTOCOL_PACKAGES` that has one, imported by name at run time.
+
+    Raises :class:`DeviceUnavailable` when no package has it (a build without the simulator).
+    """
+    for package in PROTOCOL_PACKAGES:
+        name = f"{package}.protocol_{scheme}"
+        try:
+            return importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name not in (name, package):
+                raise  # the handler is there but something it needs is not: a real error
+    where = " or ".join(f"{p}.protocol_{scheme}" for p in PROTOCOL_PACKAGES)
+    raise DeviceUnavailable(f"{scheme}:// URLs need {where}, which this build does not have")
+
+
+class Devices:
+    """The devices of one configuration (the daemon's): the plug-in schemes' backends.
+
+    The devices of a plug-in scheme share one backend: the simulated GPS, compass and motors
+    live in one world. :meth:`backend` has the scheme's handler build it from ``config`` (the
+    whole :class:`x6wd.core.config.Config`; None: the defaults) on first use, and builds a new
+    one if it stopped running; :meth:`close` closes what was built here. A backend given in
+    ``backends`` (scheme -> object) is the caller's: used, never built or closed here.
+    """
+
+    def __init__(self, config: Any = None, backends: Mapping[str, Any] | None = None) -> None:
+        self.config = config
+        self._given = dict(backends or {})
+        self._built: dict[str, Any] = {}
+        self._checked: set[str] = set()
+        self._closed = False
+        self._lock = threading.Lock()
+
+    def check(self, url: str, kind: str) -> DeviceUrl:
+        """:func:`check_available`, and for a plug-in scheme its part of the configuration
+        (once per scheme; :class:`ConfigError` naming the key). Builds nothing."""
+        dev = check_available(url, kind)
+        scheme = dev.scheme
+        if scheme in PLUGIN_SCHEMES and scheme not in self._given and scheme not in self._checked:
+            protocol_handler(scheme).check_config(self.config)
+            self._checked.add(scheme)
+        return dev
+
+    def backend(self, scheme: str) -> Any:
+        """The backend the devices of ``scheme`` share (built on first use)."""
+        with self._lock:
+            if scheme in self._given:
+                return self._given[scheme]
+            if self._closed:
+                raise DeviceUnavailable(f"{scheme}:// devices: the device set is closed")
+            backend = self._built.get(scheme)
+            if backend is not None and not getattr(backend, "running", True):
+                with contextlib.suppress(Exception):
+                    backend.close()
+                backend = None
+            if backend is None:
+                backend = protocol_handler(scheme).open_backend(self.config)
+                self._built[scheme] = backend
+            return backend
+
+    def close(self) -> None:
+        """Close the backends built here (idempotent); nothing opens afterwards."""
+        with self._lock:
+            built, self._built = self._built, {}
+            self._closed = True
+        for backend in built.values():
+            with contextlib.suppress(Exception):
+                backend.close()
+
+
+def _plugin(dev: DeviceUrl, devices: Devices | None) -> tuple[ModuleType, Any]:
+    """The handler of ``dev``'s plug-in scheme, having judged the URL, and the backend."""
+    handler = protocol_handler(dev.scheme)
+    problem = handler.url_problem(dev)
+    if problem:
+        raise UrlError(dev.kind, dev.url, problem)
+    if devices is None:
+        raise UrlError(
+            dev.kind,
+            dev.url,
+            f"{dev.scheme}:// devices share one backend built from the configuration: "
+            "open them through a registry.Devices",
+        )
+    return handler, devices.backend(dev.scheme)
 
 
 def _serial_port(dev: DeviceUrl, timeout_s: float) -> Any:
@@ -321,11 +433,13 @@ def _serial_port(dev: DeviceUrl, timeout_s: float) -> Any:
         raise DeviceUnavailable(f"cannot open {dev.url}: {exc}") from exc
 
 
-def open_gps_port(url: str) -> PortLike:
-    """Open the GPS byte stream named by ``url`` (serial, tcp, replay, sim)."""
+def open_gps_port(url: str, devices: Devices | None = None) -> PortLike:
+    """Open the GPS byte stream named by ``url`` (serial, tcp, replay, sim; a plug-in
+    scheme through ``devices``)."""
     dev = parse_url(url, "gps")
-    if dev.scheme == "sim":
-        port: PortLike = _sim_module("gps").open_gps(url)
+    if dev.scheme in PLUGIN_SCHEMES:
+        handler, backend = _plugin(dev, devices)
+        port: PortLike = handler.open_gps(dev, backend)
         return port
     if dev.scheme == "replay":
         from x6wd.core.recorder import ReplayPort
@@ -340,14 +454,16 @@ def open_gps_port(url: str) -> PortLike:
     return port
 
 
-def open_compass(url: str) -> Cmps10:
-    """Open the CMPS10 named by ``url`` (i2c, sim) and check that it answers.
+def open_compass(url: str, devices: Devices | None = None) -> Cmps10:
+    """Open the CMPS10 named by ``url`` (i2c, sim; a plug-in scheme through ``devices``) and
+    check that it answers (the simulated one is not checked on open).
 
     Raises :class:`DeviceUnavailable` if the bus cannot be opened or no CMPS10 answers.
     """
     dev = parse_url(url, "compass")
-    if dev.scheme == "sim":
-        compass: Cmps10 = _sim_module("compass").open_compass(url)
+    if dev.scheme in PLUGIN_SCHEMES:
+        handler, backend = _plugin(dev, devices)
+        compass: Cmps10 = handler.open_compass(dev, backend)
         return compass
     from drivers.cmps10 import Cmps10
 
@@ -372,11 +488,13 @@ def open_compass(url: str) -> Cmps10:
     return compass
 
 
-def open_motors(url: str) -> MotorLink:
-    """Open the motor link named by ``url`` (serial, tcp, log, sim)."""
+def open_motors(url: str, devices: Devices | None = None) -> MotorLink:
+    """Open the motor link named by ``url`` (serial, tcp, log, sim; a plug-in scheme through
+    ``devices``)."""
     dev = parse_url(url, "motors")
-    if dev.scheme == "sim":
-        link: MotorLink = _sim_module("motors").open_motors(url)
+    if dev.scheme in PLUGIN_SCHEMES:
+        handler, backend = _plugin(dev, devices)
+        link: MotorLink = handler.open_motors(dev, backend)
         return link
     from drivers.motors import LogMotorLink, SerialMotorLink
 

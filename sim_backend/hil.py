@@ -1,27 +1,29 @@
 """Hardware in the loop: the simulated world behind ``sim://`` device URLs, in real time.
 
-``drivers.registry`` resolves ``sim://`` URLs by calling :func:`open_gps`, :func:`open_compass`
-and :func:`open_motors`; all three share ONE world per process (created on first use,
-configured from ``[sim]`` by :func:`configure`). The world is a scenario file
-(:func:`sim_backend.world.load_world`; ``[sim] scenario``, default the packaged
-``config/scenarios/default.toml``) with a few ``[sim]`` overrides, and it is the same physics
-as fast-time simulation (``x6wd sim``), only in real time:
+A :class:`HilWorld` is built explicitly from its parameters (:class:`HilParams`, from the
+configuration's ``[sim]`` table: :meth:`HilParams.from_config`); there is no world per
+process. The ``sim://`` handler (:mod:`sim_backend.protocol_sim`) opens the devices on a
+world, and :class:`drivers.registry.Devices` builds one world per configuration on the first
+``sim://`` open and shares it between that configuration's GPS, compass and motors. The
+world is a scenario file (:func:`sim_backend.world.load_world`; ``[sim] scenario``, default
+the packaged ``config/scenarios/default.toml``) with a few ``[sim]`` overrides, and it is the
+same physics as fast-time simulation (``x6wd sim``), only in real time:
 
-- :func:`open_gps` -> a pyserial ``Serial`` on the slave side of a pseudo-terminal
-  (:class:`sim_backend.ports.PtyUart`). Once per receiver epoch the scenario's receiver
+- the GPS: a pseudo-terminal (:class:`sim_backend.ports.PtyUart`, :attr:`HilWorld.uart`).
+  Once per receiver epoch the scenario's receiver
   (:func:`sim_backend.receiver.build_receiver`, the one ``x6wd sim`` and the gap tool build:
   almanac sky, atmosphere, walls, LCE grid, fidelity, every ``[[effects]]`` GPS layer, the
   NEO-5 formatter) turns the vehicle's true antenna position into a solution (a latency
   layer reads the physics thread's true track) and prints it as a NEO-5 does (``$GPTXT``
   banner at start, the real no-fix forms), each sentence followed by its wire time at the
   scenario's baud rate.
-- :func:`open_compass` -> a :class:`drivers.cmps10.Cmps10` over the CMPS10 register map of
-  :mod:`sim_backend.compass` with the scenario's ``[compass]`` field and errors and its
-  compass ``[[effects]]`` layers (:func:`sim_backend.mission.compass_setup`); its
-  registers follow the simulated vehicle's attitude.
-- :func:`open_motors` -> the real :class:`drivers.motors.SerialMotorLink` on a pseudo-terminal
-  whose far end is a :class:`drivers.motors.MotorBoard` (:func:`drivers.motors.serve_board_fd`):
-  the docs/motors.md line protocol crosses the pty byte for byte, the board's left/right drive
+- the compass: the CMPS10 register map of :mod:`sim_backend.compass`
+  (:meth:`HilWorld.compass_bus`) with the scenario's ``[compass]`` field and errors and its
+  compass ``[[effects]]`` layers (:func:`sim_backend.mission.compass_setup`); its registers
+  follow the simulated vehicle's attitude.
+- the motors: a pseudo-terminal per link (:meth:`HilWorld.plug_motor_board`) whose far end
+  is a :class:`drivers.motors.MotorBoard` (:func:`drivers.motors.serve_board_fd`): the
+  docs/motors.md line protocol crosses the pty byte for byte, the board's left/right drive
   moves the :class:`sim_backend.vehicle.Vehicle`, and the board's watchdog stops it.
 
 Scenario time: epoch ``k`` of the receiver is scenario time ``k / rate_hz`` s, so the NMEA
@@ -54,7 +56,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
 
 from drivers.motors import MotorBoard, serve_board_fd
 from sim_backend.compass import ErrorInjector, SimCmps10
@@ -71,7 +72,6 @@ log = logging.getLogger(__name__)
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 DEFAULT_SCENARIO = CONFIG_DIR / "scenarios" / "default.toml"
-MOTOR_BAUD = 115200  # docs/motors.md default; a pty does not pace it anyway
 WIRE_LOG_LEN = 4096  # motor-board traffic kept for inspection (entries)
 
 # [sim] keys that override the scenario when present (None in SimConfig = absent)
@@ -464,93 +464,3 @@ class HilWorld:
         for fd in fds:
             with contextlib.suppress(OSError):
                 os.close(fd)
-
-
-_PARAMS = HilParams()
-_WORLD: HilWorld | None = None
-_GUARD = threading.Lock()
-
-
-def configure(cfg: SimConfig | HilParams) -> None:
-    """Set the world's parameters (before the first device opens; later calls must match).
-
-    Raises ConfigError for a scenario file that does not load."""
-    global _PARAMS
-    params = cfg if isinstance(cfg, HilParams) else HilParams.from_config(cfg)
-    with _GUARD:
-        if _WORLD is not None and _WORLD.running and params != _WORLD.params:
-            raise ConfigError("sim: the HIL world is already running with other settings")
-        _PARAMS = params
-
-
-def world() -> HilWorld:
-    """The process's world, started on first use."""
-    global _WORLD
-    with _GUARD:
-        if _WORLD is None or not _WORLD.running:
-            _WORLD = HilWorld(_PARAMS)
-        return _WORLD
-
-
-def shutdown() -> None:
-    """Stop the world (tests, benchmarks); the next open starts a fresh one."""
-    global _WORLD
-    with _GUARD:
-        w, _WORLD = _WORLD, None
-    if w is not None:
-        w.close()
-
-
-def url_problem(url: str) -> str | None:
-    """Why ``url`` is not a valid simulated-device URL, or None when it is (``sim://``;
-    the world is configured in ``[sim]``, so a URL carries no path or options)."""
-    parts = urlsplit(url)
-    if parts.scheme != "sim":
-        return "expected sim://"
-    if parts.query or parts.fragment or parts.path not in ("", "/"):
-        return "sim:// takes no path or options; the world is set in [sim]"
-    return None
-
-
-def _check_url(url: str, kind: str) -> None:
-    problem = url_problem(url)
-    if problem:
-        raise ConfigError(f"{kind} URL {url!r}: {problem}")
-
-
-def open_gps(url: str) -> Any:
-    """A pyserial port on the simulated receiver's pseudo-terminal."""
-    _check_url(url, "gps")
-    import serial
-
-    w = world()
-    try:
-        return serial.Serial(w.uart.port_name, baudrate=w.scenario.gnss.baud, timeout=0.1)
-    except (serial.SerialException, OSError) as exc:
-        raise DeviceUnavailable(f"cannot open simulated GPS {w.uart.port_name}: {exc}") from exc
-
-
-def open_compass(url: str) -> Any:
-    """A CMPS10 driver on the simulated register map."""
-    _check_url(url, "compass")
-    from drivers.cmps10 import Cmps10
-
-    w = world()
-    return Cmps10(w.compass_bus())
-
-
-def open_motors(url: str) -> Any:
-    """The real motor driver (:class:`drivers.motors.SerialMotorLink`, watchdog
-    ``motor_watchdog_ms``) on a pseudo-terminal served by the simulated motor board."""
-    _check_url(url, "motors")
-    import serial
-
-    from drivers.motors import SerialMotorLink
-
-    w = world()
-    path = w.plug_motor_board()
-    try:
-        port = serial.Serial(path, baudrate=MOTOR_BAUD, timeout=0.02)
-    except (serial.SerialException, OSError) as exc:
-        raise DeviceUnavailable(f"cannot open simulated motor board {path}: {exc}") from exc
-    return SerialMotorLink(port, watchdog_ms=w.params.motor_watchdog_ms)

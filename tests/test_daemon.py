@@ -20,7 +20,6 @@ from typing import Any
 
 import pytest
 
-from sim_backend import hil
 from x6wd.app.client import RemoteClient, RequestFailed
 from x6wd.app.daemon import Daemon, distance_m
 from x6wd.core.config import (
@@ -96,7 +95,8 @@ def run_daemon() -> Iterator[Callable[[Daemon], Running]]:
     yield start
     for r in started:
         r.stop()
-    hil.shutdown()
+        if r.daemon.devices is not None:
+            r.daemon.devices.close()  # also when the daemon did not get to close it
 
 
 def wait_for(pred: Callable[[], Any], timeout_s: float = 10.0, what: str = "") -> Any:
@@ -115,7 +115,7 @@ def status(c: RemoteClient) -> dict[str, Any]:
 
 def test_dead_man_expiry_stops_the_motors(tmp_path: Path, run_daemon) -> None:
     r = run_daemon(Daemon(hil_config(tmp_path)))
-    world = hil.world()
+    world = r.daemon.devices.backend("sim")  # the world the daemon's sim:// devices share
     with RemoteClient("127.0.0.1", r.port) as c:
         wait_for(
             lambda: status(c)["telemetry"] and status(c)["telemetry"]["fix_quality"], what="fix"
@@ -141,7 +141,6 @@ def test_geofence_from_first_fix_and_from_configured_centre(tmp_path: Path, run_
         assert ei.value.code == "geofence" and "waypoint 2" in ei.value.message
         assert c.request("mission.load", waypoints=[[ORIGIN[0] + 0.0002, ORIGIN[1]]])["count"] == 1
     r.stop()
-    hil.shutdown()
     centre = SafetyConfig(geofence_radius_m=100.0, geofence_center=(ORIGIN[0] + 0.01, ORIGIN[1]))
     r2 = run_daemon(Daemon(hil_config(tmp_path, safety=centre)))
     with RemoteClient("127.0.0.1", r2.port) as c:
@@ -201,7 +200,7 @@ class FaultyDaemon(Daemon):
 def test_unexpected_exception_stops_motors_and_exits_non_zero(tmp_path: Path, run_daemon) -> None:
     d = FaultyDaemon(hil_config(tmp_path))
     r = run_daemon(d)
-    world = hil.world()
+    world = d.devices.backend("sim")
     r.thread.join(15)
     assert r.code == 1
     assert world.vehicle.command_pct == (0.0, 0.0)
@@ -210,8 +209,9 @@ def test_unexpected_exception_stops_motors_and_exits_non_zero(tmp_path: Path, ru
 
 def test_bad_geofence_centre_is_a_startup_error(tmp_path: Path) -> None:
     cfg = hil_config(tmp_path, safety=SafetyConfig(geofence_center=(1.0,)))
-    assert asyncio.run(Daemon(cfg).run()) == 2
-    hil.shutdown()
+    d = Daemon(cfg)
+    assert asyncio.run(d.run()) == 2
+    assert d.devices is None  # stopped before any device (or the simulated world) existed
 
 
 def test_distance() -> None:
@@ -323,10 +323,3 @@ def test_motor_keepalive_stops_when_the_control_loop_goes_silent() -> None:
     finally:
         worker.shutdown("test end")
     assert link.commands[-1].is_stop
-
-
-def test_gpsd_device_path_from_url() -> None:
-    from x6wd.app.daemon import _device_path
-
-    assert _device_path("serial:///dev/ttyAMA0?baud=4800") == ("/dev/ttyAMA0", 4800)
-    assert _device_path("sim://") == ("sim://", 9600)

@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from sim_backend import hil
+from drivers import registry
 from sim_backend.compass import ErrorInjector
 from x6wd.app.client import RemoteClient
 from x6wd.app.daemon import TICK_HZ, Daemon
@@ -233,8 +233,8 @@ class ProbeDaemon(Daemon):
     """Records, with the monotonic time they reached the control loop, the health events
     and the controller's state changes."""
 
-    def __init__(self, config: Config) -> None:
-        super().__init__(config)
+    def __init__(self, config: Config, devices: Any = None) -> None:
+        super().__init__(config, devices=devices)
         self.seen_events: list[tuple[float, HealthEvent]] = []
         self.changes: list[tuple[float, StateChange]] = []
         self.fix_times: list[float] = []
@@ -297,7 +297,8 @@ def run_daemon() -> Iterator[Callable[[Daemon], Running]]:
     yield start
     for r in started:
         r.stop()
-    hil.shutdown()
+        if r.daemon.devices is not None:
+            r.daemon.devices.close()  # also when the daemon did not get to close it
 
 
 def wait_for(pred: Callable[[], Any], timeout_s: float = 10.0, what: str = "") -> Any:
@@ -353,7 +354,7 @@ def test_compass_errno_storm_shows_in_status_and_log_then_recovers(
 ) -> None:
     caplog.set_level(logging.INFO, logger="x6wd")
     r = run_daemon(Daemon(hil_config(tmp_path)))
-    world = hil.world()
+    world = r.daemon.devices.backend("sim")  # the world the daemon's sim:// devices share
     storm = Storm()
     world.compass.injector = storm
     with RemoteClient("127.0.0.1", r.port) as c:
@@ -425,7 +426,7 @@ def test_compass_stale_holds_the_mission_and_it_resumes_on_fresh_samples(
     d = ProbeDaemon(cfg)
     r = run_daemon(d)
     storm = Storm()
-    hil.world().compass.injector = storm
+    d.devices.backend("sim").compass.injector = storm
     with RemoteClient("127.0.0.1", r.port) as c:
         start_mission(r, c)
         storm.code, storm.until_s = errno.EREMOTEIO, time.monotonic() + 0.8
@@ -454,12 +455,12 @@ def test_gps_unplug_holds_within_a_tick_and_reconnects(
     cfg = hil_config(tmp_path, safety=SafetyConfig(geofence_radius_m=100.0, fix_stale_s=20.0))
     # The simulated receiver's pty behind a device path that vanishes on unplug, as udev's
     # /dev/ttyUSB0 does (a stale /dev/pts/N could be taken by another process's pty).
-    hil.configure(cfg.sim)
-    uart = hil.world().uart
+    devices = registry.Devices(cfg)  # the world, built before the daemon: its pty is needed
+    uart = devices.backend("sim").uart
     dev_path = tmp_path / "ttyGPS"
     dev_path.symlink_to(uart.slave_name)
     gps = GpsConfig(url=f"serial://{dev_path}?baud=115200", stale_s=20.0)
-    d = ProbeDaemon(dataclasses.replace(cfg, gps=gps))
+    d = ProbeDaemon(dataclasses.replace(cfg, gps=gps), devices)
     r = run_daemon(d)
     real_write = uart.write
 

@@ -7,6 +7,7 @@ docs/motors.md protocol to the simulated board."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from drivers import registry
 from drivers.gps_nmea import GpsDecoder
 from drivers.motors import SerialMotorLink
 from sim_backend import hil
@@ -37,11 +39,24 @@ PARAMS = hil.HilParams(gps_rate_hz=4.0, gps_baud=115200, motor_tau_s=0.0, motor_
 
 @pytest.fixture
 def world() -> Iterator[hil.HilWorld]:
-    hil.configure(PARAMS)
-    w = hil.world()
+    w = hil.HilWorld(PARAMS)
     yield w
-    hil.shutdown()
-    hil.configure(hil.HilParams())
+    w.close()
+
+
+@contextlib.contextmanager
+def devices_on(params: hil.HilParams) -> Iterator[registry.Devices]:
+    """The sim:// devices of a world built from ``params`` (closed on exit)."""
+    w = hil.HilWorld(params)
+    try:
+        yield registry.Devices(backends={"sim": w})
+    finally:
+        w.close()
+
+
+def opened(world: hil.HilWorld) -> registry.Devices:
+    """sim:// URLs opened on ``world`` (the caller's: the device set never closes it)."""
+    return registry.Devices(backends={"sim": world})
 
 
 def read_records(port: object, seconds: float, n_fixes: int = 1 << 30) -> tuple[list, bytes]:
@@ -61,7 +76,7 @@ def read_records(port: object, seconds: float, n_fixes: int = 1 << 30) -> tuple[
 
 
 def test_gps_port_carries_neo5_nmea_that_the_real_decoder_reads(world: hil.HilWorld) -> None:
-    port = hil.open_gps("sim://")
+    port = registry.open_gps_port("sim://", opened(world))
     try:
         recs, raw = read_records(port, 5.0, n_fixes=3)
     finally:
@@ -83,7 +98,7 @@ def test_gps_port_carries_neo5_nmea_that_the_real_decoder_reads(world: hil.HilWo
 
 
 def test_gsv_sky_and_hdop_come_from_the_almanac_model(world: hil.HilWorld) -> None:
-    port = hil.open_gps("sim://")
+    port = registry.open_gps_port("sim://", opened(world))
     try:
         recs, _ = read_records(port, 5.0, n_fixes=3)
     finally:
@@ -122,16 +137,12 @@ def test_scenario_effects_reach_the_receiver_with_real_no_fix_forms(tmp_path: Pa
         DEFAULT_SCENARIO.read_text()
         + '\n[[effects]]\nname = "outages"\nmean_up_s = 0.5\nmean_down_s = 2.0\n'
     )
-    hil.configure(hil.HilParams(scenario=str(scenario), gps_rate_hz=4.0, gps_baud=115200))
-    try:
-        port = hil.open_gps("sim://")
+    with devices_on(hil.HilParams(str(scenario), gps_rate_hz=4.0, gps_baud=115200)) as devices:
+        port = registry.open_gps_port("sim://", devices)
         try:
             recs, raw = read_records(port, 3.0)
         finally:
             port.close()
-    finally:
-        hil.shutdown()
-        hil.configure(hil.HilParams())
     fixes = [r for r in recs if isinstance(r, GpsFix)]
     assert any(not f.valid for f in fixes)
     # the NEO-5's no-fix forms, with time (the receiver tracks satellites) but no position
@@ -152,19 +163,14 @@ def test_every_effect_layer_applies_in_hil_as_in_x6wd_sim(tmp_path: Path) -> Non
         + "y2_m = 0.0\ndistance_m = 3.0\nsigma_m = 0.2\nbias_m = 40.0\n"
         + '\n[[effects]]\nname = "hard_iron"\nbx_ut = 5.0\nby_ut = -3.0\n'
     )
-    hil.configure(hil.HilParams(scenario=str(scenario), gps_rate_hz=4.0, gps_baud=115200))
-    try:
-        w = hil.world()
-        assert w.effects_skipped == ()
-        port = hil.open_gps("sim://")
+    with devices_on(hil.HilParams(str(scenario), gps_rate_hz=4.0, gps_baud=115200)) as devices:
+        assert devices.backend("sim").effects_skipped == ()
+        port = registry.open_gps_port("sim://", devices)
         try:
             recs, raw = read_records(port, 3.0, n_fixes=6)
         finally:
             port.close()
-        att = hil.open_compass("sim://").read(time.monotonic())
-    finally:
-        hil.shutdown()
-        hil.configure(hil.HilParams())
+        att = registry.open_compass("sim://", devices).read(time.monotonic())
     coords = re.findall(rb"\$GPGGA,[^,]*,(\d{4}\.\d{5}),[NS],(\d{5}\.\d{5}),[EW]", raw)
     assert len(coords) >= 3
     assert all(lat.endswith(b"00") and lon.endswith(b"00") for lat, lon in coords)
@@ -185,8 +191,9 @@ def test_every_effect_layer_applies_in_hil_as_in_x6wd_sim(tmp_path: Path) -> Non
 def test_motor_driver_is_the_real_serial_link_to_a_simulated_board(
     world: hil.HilWorld,
 ) -> None:
-    link = hil.open_motors("sim://")
-    compass = hil.open_compass("sim://")
+    devices = opened(world)
+    link = registry.open_motors("sim://", devices)
+    compass = registry.open_compass("sim://", devices)
     assert isinstance(link, SerialMotorLink) and link.healthy
     assert link.port.name.startswith("/dev/pts/")
     # spin clockwise in place: the compass registers follow the vehicle's heading
@@ -247,11 +254,30 @@ def test_motor_board_pty_answers_the_documented_protocol(world: hil.HilWorld) ->
         assert world.vehicle.command_pct == (0.0, 0.0)
 
 
-def test_sim_urls_take_no_options() -> None:
+def test_sim_urls_take_no_options(world: hil.HilWorld) -> None:
     with pytest.raises(ConfigError, match="no path or options"):
-        hil.open_gps("sim://?seed=3")
-    with pytest.raises(ConfigError, match="expected sim://"):
-        hil.open_motors("log://")
+        registry.open_gps_port("sim://?seed=3", opened(world))
+    with pytest.raises(ConfigError, match="no path or options"):
+        registry.open_motors("sim://board", opened(world))
+
+
+def test_a_world_is_built_from_the_configuration_not_kept_by_the_module(tmp_path: Path) -> None:
+    from sim_backend import protocol_sim
+    from x6wd.core.config import Config
+
+    assert not any(hasattr(hil, name) for name in ("configure", "world", "shutdown", "_WORLD"))
+    cfg = Config(sim=SimConfig(seed=9, gps_rate_hz=2.0, gps_baud=38400, physics_hz=25.0))
+    a, b = protocol_sim.open_backend(cfg), protocol_sim.open_backend(cfg.sim)
+    try:
+        assert a is not b  # two configurations, two worlds
+        for w in (a, b):
+            assert (w.scenario.seed, w.receiver.rate_hz, w.receiver.baud) == (9, 2.0, 38400)
+            assert w.params.physics_hz == 25.0
+    finally:
+        a.close()
+        b.close()
+    with pytest.raises(ConfigError, match=r"sim\.scenario"):
+        protocol_sim.check_config(SimConfig(scenario=str(tmp_path / "missing.toml")))
 
 
 def free_port() -> int:

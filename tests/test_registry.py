@@ -18,19 +18,22 @@ from drivers.cmps10 import Cmps10
 from drivers.motors import LogMotorLink, MotorBoard, SerialMotorLink, serve_board_fd
 from drivers.registry import (
     SCHEMES,
+    Devices,
     UrlError,
     check_available,
+    device_path,
     open_compass,
     open_gps_port,
     open_motors,
     parse_url,
+    protocol_handler,
 )
 from x6wd.core.errors import ConfigError, DeviceUnavailable
 from x6wd.core.recorder import ReplayPort
 
 ROOT = Path(__file__).resolve().parent.parent
 LEA5H = ROOT / "tests" / "data" / "recorder" / "ublox-lea-5h.log"
-HAVE_HIL = importlib.util.find_spec("sim_backend.hil") is not None
+HAVE_SIM = importlib.util.find_spec("sim_backend.protocol_sim") is not None
 
 
 @pytest.mark.parametrize(
@@ -45,7 +48,7 @@ HAVE_HIL = importlib.util.find_spec("sim_backend.hil") is not None
         ("i2c://0/97?stale_after=9", "compass", "i2c", "0/0x61", {"stale_after": 9}),
         ("log://", "motors", "log", "", {}),
         ("serial:///dev/ttyUSB0?watchdog_ms=300", "motors", "serial", "/dev/ttyUSB0", {}),
-        ("sim://gps?world=default", "gps", "sim", "gps?world=default", {}),
+        ("sim://gps?world=default", "gps", "sim", "gps", {"world": "default"}),
     ],
 )
 def test_parse_valid_urls(
@@ -234,23 +237,97 @@ def test_serial_motors_url_drives_a_board_on_a_pty(pty_pair: tuple[int, str]) ->
 def test_sim_urls_without_the_simulator(
     monkeypatch: pytest.MonkeyPatch, opener: object, kind: str
 ) -> None:
-    # a build without sim_backend.hil: the import itself fails, as it would for real
-    monkeypatch.setitem(sys.modules, "sim_backend.hil", None)
-    with pytest.raises(DeviceUnavailable, match=r"sim_backend\.hil"):
-        opener(f"sim://{kind}")  # type: ignore[operator]
+    # a build without the sim:// handler: the import itself fails, as it would for real
+    monkeypatch.setitem(sys.modules, "sim_backend.protocol_sim", None)
+    with pytest.raises(DeviceUnavailable, match=r"sim_backend\.protocol_sim"):
+        opener(f"sim://{kind}", Devices())  # type: ignore[operator]
+    with pytest.raises(UrlError, match=r"sim_backend\.protocol_sim"):
+        check_available("sim://", kind)
+
+
+@pytest.mark.skipif(not HAVE_SIM, reason="sim_backend.protocol_sim not in this build")
+def test_sim_handler_is_imported_by_name_at_run_time() -> None:
+    # the simulator is a higher layer: a plug-in found by name, never imported statically
+    handler = protocol_handler("sim")
+    assert handler.__name__ == "sim_backend.protocol_sim"
+    registry_src = (ROOT / "drivers" / "registry.py").read_text()
+    assert "import sim_backend" not in registry_src and "from sim_backend" not in registry_src
+    with pytest.raises(DeviceUnavailable, match="protocol_bogus"):
+        protocol_handler("bogus")
 
 
 @pytest.mark.integration
-@pytest.mark.skipif(not HAVE_HIL, reason="sim_backend.hil not in this build")
-def test_sim_compass_url_reaches_the_simulator() -> None:
-    hil = importlib.import_module("sim_backend.hil")
+@pytest.mark.skipif(not HAVE_SIM, reason="sim_backend.protocol_sim not in this build")
+def test_sim_devices_of_one_configuration_share_one_world() -> None:
+    from sim_backend.hil import HilWorld
+    from x6wd.core.config import Config, SimConfig
+
+    devices = Devices(Config(sim=SimConfig(gps_rate_hz=4.0, gps_baud=115200)))
     try:
-        compass = open_compass("sim://")
+        compass = open_compass("sim://", devices)
         assert isinstance(compass, Cmps10)
         att = compass.read(0.0)
         assert att.valid and 0.0 <= att.bearing_deg < 360.0
+        world = devices.backend("sim")
+        assert isinstance(world, HilWorld) and world.running
+        assert world.receiver.baud == 115200  # built from [sim]
+        port = open_gps_port("sim:///", devices)
+        assert port.baudrate == 115200 and port.port == world.uart.port_name
+        port.close()
+        link = open_motors("sim://", devices)
+        assert isinstance(link, SerialMotorLink) and devices.backend("sim") is world
+        link.close()
     finally:
-        hil.shutdown()
+        devices.close()
+    assert not world.running  # the device set built it, the device set closed it
+    with pytest.raises(DeviceUnavailable, match="closed"):
+        open_compass("sim://", devices)
+
+
+@pytest.mark.skipif(not HAVE_SIM, reason="sim_backend.protocol_sim not in this build")
+def test_sim_devices_need_a_device_set_and_a_plain_url() -> None:
+    with pytest.raises(UrlError, match=r"registry\.Devices"):
+        open_compass("sim://")
+    with pytest.raises(UrlError, match="takes no path or options"):
+        open_gps_port("sim://?seed=3", Devices())
+    with pytest.raises(UrlError, match="unexpected fragment"):
+        open_gps_port("sim://#x", Devices())
+    given = object()  # a caller's own backend is used as it is, and not closed
+    devices = Devices(backends={"sim": given})
+    assert devices.backend("sim") is given
+    devices.close()
+    assert devices.backend("sim") is given
+
+
+@pytest.mark.skipif(not HAVE_SIM, reason="sim_backend.protocol_sim not in this build")
+def test_device_set_checks_the_sim_settings_without_building_a_world(tmp_path: Path) -> None:
+    from x6wd.core.config import Config, SimConfig
+
+    devices = Devices(Config(sim=SimConfig(scenario=str(tmp_path / "missing.toml"))))
+    assert devices.check("log://", "motors").scheme == "log"  # no [sim] needed
+    with pytest.raises(ConfigError, match=r"sim\.scenario"):
+        devices.check("sim://", "gps")
+    assert Devices(Config()).check("sim://", "compass").scheme == "sim"
+
+
+def test_gpsd_device_path_from_url() -> None:
+    assert device_path("serial:///dev/ttyAMA0?baud=4800") == ("/dev/ttyAMA0", 4800)
+    assert device_path("serial:///dev/ttyS0") == ("/dev/ttyS0", 9600)
+    assert device_path("sim://") == ("sim://", 9600)
+    assert device_path("tcp://gps.local:2948") == ("tcp://gps.local:2948", 9600)
+    assert device_path("not a url") == ("not a url", 9600)
+
+
+def test_only_the_registry_takes_device_urls_apart() -> None:
+    offenders = []
+    for pkg in ("x6wd", "drivers", "sim_backend"):
+        for path in (ROOT / pkg).rglob("*.py"):
+            if path.name == "registry.py":
+                continue
+            text = path.read_text()
+            if any(w in text for w in ("urlsplit", "urlparse", "parse_qsl", 'startswith("sim://')):
+                offenders.append(str(path.relative_to(ROOT)))
+    assert offenders == []
 
 
 def test_url_errors_carry_the_reason_alone() -> None:

@@ -18,7 +18,6 @@ from typing import Any
 
 import pytest
 
-from sim_backend import hil
 from tests.conftest import ROOT
 from tests.test_daemon import hil_config
 from x6wd.app.daemon import Daemon
@@ -238,7 +237,8 @@ def test_moving_commands_are_refused_until_ready(tmp_path: Path) -> None:
         assert d.stop()["mode"] == "IDLE"  # stop and status always answer
         assert d.status()["state"] == "IDLE"
     finally:
-        hil.shutdown()
+        if d.devices is not None:
+            d.devices.close()  # preflight builds no world; close whatever the set holds
 
 
 def test_systemd_does_not_restart_on_a_configuration_error() -> None:

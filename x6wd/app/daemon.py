@@ -32,7 +32,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-from urllib.parse import parse_qsl, urlsplit
 
 from x6wd import __version__
 from x6wd.app.gpsd import GpsdServer
@@ -312,8 +311,13 @@ class Daemon:
         *,
         notifier: Notifier | None = None,
         log_tail: LogTail | None = None,
+        devices: Any = None,
     ) -> None:
+        """``devices``: the :class:`drivers.registry.Devices` to open the device URLs
+        through (default: one built from ``config``, whose ``[sim]`` world it owns)."""
         self.config = config
+        # the device set: the registry's plug-in backends (the simulated world) live here
+        self.devices: Any = devices
         self.notifier = notifier or Notifier(None)
         self.log_buffer = log_tail or LogTail()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -426,21 +430,19 @@ class Daemon:
             ("compass.url", cfg.compass.url, "compass"),
             ("motors.url", cfg.motors.url, "motors"),
         )
+        if self.devices is None:
+            self.devices = registry.Devices(cfg)
         for key, url, kind in devices:
             try:
-                registry.check_available(url, kind)
+                self.devices.check(url, kind)  # a sim:// URL: also the [sim] world's settings
             except registry.UrlError as exc:
                 raise ConfigError(f"{key}: {url!r}: {exc.reason}") from None
-        if any(url.startswith("sim://") for _key, url, _kind in devices):
-            from sim_backend import hil
-
-            hil.configure(cfg.sim)
         from x6wd.nav.controller import Controller  # imported late: heavy, and optional in tests
 
         self.controller = Controller(cfg.navigation, cfg.safety, cfg.compass.declination_deg)
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
         if cfg.gpsd.enabled:
-            path, bps = _device_path(cfg.gps.url)
+            path, bps = registry.device_path(cfg.gps.url)
             self.gpsd = GpsdServer(
                 cfg.gpsd.bind,
                 cfg.gpsd.port,
@@ -530,16 +532,16 @@ class Daemon:
         from drivers.gps_io import GpsReader
 
         cfg = self.config
-        link = await asyncio.to_thread(registry.open_motors, cfg.motors.url)
+        link = await asyncio.to_thread(registry.open_motors, cfg.motors.url, self.devices)
         keepalive_s = max(0.02, cfg.motors.watchdog_ms / 3000.0)
         self.motors = _MotorWorker(
             link, keepalive_s, self._health_from_thread, self._health_events_from_thread
         )
         self.motors.start()
-        compass = await asyncio.to_thread(registry.open_compass, cfg.compass.url)
+        compass = await asyncio.to_thread(registry.open_compass, cfg.compass.url, self.devices)
         self._compass = compass
         self._gps_reader = GpsReader(
-            lambda: registry.open_gps_port(cfg.gps.url), stale_s=cfg.gps.stale_s
+            lambda: registry.open_gps_port(cfg.gps.url, self.devices), stale_s=cfg.gps.stale_s
         )
 
     def _start_readers(self) -> None:
@@ -578,6 +580,8 @@ class Daemon:
                     await asyncio.to_thread(dev.close)
         if self.recorder is not None:
             await asyncio.to_thread(self.recorder.close)
+        if self.devices is not None:  # last: the simulated world outlives every device
+            await asyncio.to_thread(self.devices.close)
         log.info("x6wd stopped")
 
     # -- device threads (never touch the controller directly) ------------------------------
@@ -664,7 +668,7 @@ class Daemon:
 
         fresh = None
         try:
-            fresh = registry.open_compass(self.config.compass.url)
+            fresh = registry.open_compass(self.config.compass.url, self.devices)
             fresh.check_version()  # the sim:// path does not check on open
         except (OSError, X6wdError) as exc:
             if fresh is not None:
@@ -1013,19 +1017,6 @@ def _listen_problem(section: str, bind: str, port: int, exc: OSError) -> str:
     else:
         reason = one_line(exc.strerror or str(exc))
     return f"{key}: cannot listen on {bind}:{port}: {reason}"
-
-
-def _device_path(url: str) -> tuple[str, int]:
-    """Device path and baud rate for the gpsd port's DEVICES
-    (``serial:///dev/ttyS0?baud=4800`` -> ``("/dev/ttyS0", 4800)``; other URLs as given)."""
-    parts = urlsplit(url)
-    bps = 9600
-    for key, value in parse_qsl(parts.query):
-        if key == "baud" and value.isdigit():
-            bps = int(value)
-    if parts.scheme == "serial" and parts.path:
-        return parts.path, bps
-    return url, bps
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

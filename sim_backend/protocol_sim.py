@@ -1,0 +1,88 @@
+"""The ``sim://`` device URLs: the simulator's protocol handler for :mod:`drivers.registry`.
+
+Like pyserial's ``protocol_<scheme>`` modules: the registry imports this module by name when
+it meets a ``sim://`` URL (the simulator is a higher layer than the drivers: a plug-in, not a
+dependency of theirs). The world the devices live in is explicit, never a module's state:
+:func:`open_backend` builds a :class:`sim_backend.hil.HilWorld` from the configuration's
+``[sim]`` table, and :class:`drivers.registry.Devices` calls it on the first ``sim://`` open
+of a configuration, shares that world between its GPS, compass and motors and closes it; a
+caller may also hand its own world to ``Devices(backends={"sim": world})``.
+
+A URL is ``sim://`` (or ``sim:///``): no path and no options, the world is set in ``[sim]``.
+
+- GPS: a pyserial ``Serial`` on the world's receiver pseudo-terminal (the scenario's
+  simulated NEO-5 at its baud rate).
+- compass: a :class:`drivers.cmps10.Cmps10` on the world's CMPS10 register map.
+- motors: the real :class:`drivers.motors.SerialMotorLink` on a new pseudo-terminal served by
+  the world's motor board (watchdog ``[sim] motor_watchdog_ms``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from drivers.registry import DeviceUrl
+from sim_backend.hil import HilParams, HilWorld
+from x6wd.core.config import SimConfig
+from x6wd.core.errors import DeviceUnavailable
+
+MOTOR_BAUD = 115200  # docs/motors.md default; a pty does not pace it anyway
+
+
+def url_problem(dev: DeviceUrl) -> str | None:
+    """Why ``dev`` is not a valid simulated-device URL, or None when it is."""
+    if dev.target not in ("", "/") or dev.options:
+        return "sim:// takes no path or options; the world is set in [sim]"
+    return None
+
+
+def _params(config: Any) -> HilParams:
+    """The world's parameters from a whole configuration (its ``[sim]``), a ``[sim]`` table
+    alone, parameters as they are, or None (the defaults)."""
+    if isinstance(config, HilParams):
+        return config
+    sim = getattr(config, "sim", config)
+    return HilParams.from_config(sim if isinstance(sim, SimConfig) else SimConfig())
+
+
+def check_config(config: Any) -> None:
+    """Check the ``[sim]`` settings without building a world (ConfigError naming the key)."""
+    _params(config)
+
+
+def open_backend(config: Any) -> HilWorld:
+    """A running world built from ``config`` (see :func:`_params`); the caller closes it."""
+    return HilWorld(_params(config))
+
+
+def open_gps(dev: DeviceUrl, world: HilWorld) -> Any:
+    """A pyserial port on the world's receiver pseudo-terminal, at the scenario's baud."""
+    import serial
+
+    name, baud = world.uart.port_name, world.receiver.baud
+    try:
+        return serial.Serial(name, baudrate=baud, timeout=0.1)
+    except (serial.SerialException, OSError) as exc:
+        raise DeviceUnavailable(f"cannot open simulated GPS {name}: {exc}") from exc
+
+
+def open_compass(dev: DeviceUrl, world: HilWorld) -> Any:
+    """A CMPS10 driver on the world's register map (not checked on open)."""
+    from drivers.cmps10 import Cmps10
+
+    return Cmps10(world.compass_bus())
+
+
+def open_motors(dev: DeviceUrl, world: HilWorld) -> Any:
+    """The real motor driver (:class:`drivers.motors.SerialMotorLink`, watchdog
+    ``motor_watchdog_ms``) on a new pseudo-terminal served by the world's motor board."""
+    import serial
+
+    from drivers.motors import SerialMotorLink
+
+    path = world.plug_motor_board()
+    try:
+        port = serial.Serial(path, baudrate=MOTOR_BAUD, timeout=0.02)
+    except (serial.SerialException, OSError) as exc:
+        raise DeviceUnavailable(f"cannot open simulated motor board {path}: {exc}") from exc
+    return SerialMotorLink(port, watchdog_ms=world.params.motor_watchdog_ms)
