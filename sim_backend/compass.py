@@ -38,6 +38,7 @@ from typing import cast
 import numpy as np
 
 from x6wd.core.errors import ConfigError
+from x6wd.core.geodesy import wrap360, wrap_deg
 
 VERSION = 15
 DEFAULT_ADDRESS = 0x60
@@ -173,10 +174,6 @@ def os_strerror(code: int) -> str:
     import os
 
     return os.strerror(code)
-
-
-def _wrap180(a: float) -> float:
-    return (a + 180.0) % 360.0 - 180.0
 
 
 _Rot = tuple[float, float, float, float, float, float, float, float, float]
@@ -333,16 +330,15 @@ class SimCmps10:
         else:
             rot_tilt = _rot_body_to_ned(0.0, pitch_deg, roll_deg)
             h0, h1, _ = (rot_tilt @ np.array((mx - c0, my - c1, mz - c2))).tolist()
-        raw_bearing = math.degrees(math.atan2(-h1, h0)) % 360.0
+        raw_bearing = wrap360(math.degrees(math.atan2(-h1, h0)))
         if self._filt_deg is None or self._t_s is None:
             self._filt_deg = raw_bearing
         else:
             dt = t_s - self._t_s
             tau = self.errors.lag_tau_s
             alpha = 1.0 if tau == 0 else 1.0 - math.exp(-dt / tau)
-            self._filt_deg = (
-                self._filt_deg + alpha * _wrap180(raw_bearing - self._filt_deg)
-            ) % 360.0
+            turn = wrap_deg(raw_bearing - self._filt_deg)  # the short way round
+            self._filt_deg = wrap360(self._filt_deg + alpha * turn)
         self._t_s = t_s
         self._pitch_deg = max(-MAX_TILT_DEG, min(MAX_TILT_DEG, pitch_deg))
         self._roll_deg = max(-MAX_TILT_DEG, min(MAX_TILT_DEG, roll_deg))

@@ -33,6 +33,8 @@ from typing import Any, ClassVar, Protocol
 import numpy as np
 
 from x6wd.core.errors import ConfigError
+from x6wd.core.geodesy import WGS84_A_M, WGS84_E2, wrap360, wrap_deg
+from x6wd.core.geodesy import wrap_deg as wrap180  # the name gap and mission import
 
 GPS_EFFECT_NAMES = (
     "gauss_markov",
@@ -119,17 +121,15 @@ class HeadingSeries:
 # clamped to the CMPS10's +/-85 deg range.
 # ---------------------------------------------------------------------------------------------
 
-# WGS84: radii of curvature turn degrees into metres in the local frame.
-_WGS84_A_M = 6378137.0
-_WGS84_E2 = 6.69437999014e-3
 PITCH_ROLL_LIMIT_DEG = 85.0
 
 
 def radii_of_curvature_m(lat_deg: float) -> tuple[float, float]:
-    """Meridian (north) and prime-vertical (east) radii of curvature at ``lat_deg``, metres."""
+    """Meridian (north) and prime-vertical (east) radii of curvature at ``lat_deg``, metres
+    (WGS-84): they turn degrees into metres in the local frame."""
     s = math.sin(math.radians(lat_deg))
-    w = math.sqrt(1.0 - _WGS84_E2 * s * s)
-    return _WGS84_A_M * (1.0 - _WGS84_E2) / w**3, _WGS84_A_M / w
+    w = math.sqrt(1.0 - WGS84_E2 * s * s)
+    return WGS84_A_M * (1.0 - WGS84_E2) / w**3, WGS84_A_M / w
 
 
 def metres_per_degree(lat_deg: float) -> tuple[float, float]:
@@ -829,16 +829,6 @@ class _MultipathRun(_Run):
 # --- compass layers ---------------------------------------------------------------------------
 
 
-def wrap360(deg: np.ndarray) -> np.ndarray:
-    """Angle(s) wrapped to [0, 360)."""
-    return np.mod(np.asarray(deg, dtype=float), 360.0)
-
-
-def wrap180(deg: np.ndarray) -> np.ndarray:
-    """Angle(s) wrapped to [-180, 180)."""
-    return np.mod(np.asarray(deg, dtype=float) + 180.0, 360.0) - 180.0
-
-
 def _compass_out(
     series: HeadingSeries, heading_deg: np.ndarray, **changes: object
 ) -> HeadingSeries:
@@ -1049,7 +1039,7 @@ class HeadingLag(CompassLayer):
             gain = -np.expm1(-_dt_s(series.t_s) / self.tau_s)
             y[0] = x[0]
             for k in range(1, n):
-                y[k] = y[k - 1] + gain[k - 1] * ((x[k] - y[k - 1] + 180.0) % 360.0 - 180.0)
+                y[k] = y[k - 1] + gain[k - 1] * wrap_deg(x[k] - y[k - 1])
         return _compass_out(series, y)
 
 

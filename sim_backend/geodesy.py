@@ -15,13 +15,13 @@ from datetime import UTC, datetime, timedelta
 import numpy as np
 
 from x6wd.core.errors import ConfigError
+from x6wd.core.geodesy import WGS84_A_M as A_M
+from x6wd.core.geodesy import WGS84_B_M as B_M
+from x6wd.core.geodesy import WGS84_E2 as E2
+from x6wd.core.geodesy import WGS84_EP2 as EP2
+from x6wd.core.geodesy import WGS84_F as F
 
-# WGS-84 and IS-GPS-200 constants.
-A_M = 6378137.0  # semi-major axis
-F = 1.0 / 298.257223563  # flattening
-B_M = A_M * (1.0 - F)
-E2 = F * (2.0 - F)  # first eccentricity squared
-EP2 = E2 / (1.0 - E2)  # second eccentricity squared
+# IS-GPS-200 constants (the ellipsoid's are the core's WGS-84, imported above).
 GM_M3PS2 = 3.986005e14  # IS-GPS-200 value (not the WGS-84 EGM one) for orbit propagation
 OMEGA_E_RPS = 7.2921151467e-5  # Earth rotation rate, IS-GPS-200
 C_MPS = 299792458.0

@@ -41,6 +41,7 @@ from sim_backend.geodesy import (
     week_tow_to_gps_seconds,
 )
 from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.geodesy import wrap360
 
 DEFAULT_MASK_DEG = 5.0
 DEFAULT_VALIDITY_S = 7200.0  # +-2 h around toe (the seed paper's validity, a 4 h fit interval)
@@ -723,7 +724,7 @@ def look_angles(
     d = sat - rx[:, None, :]
     enu = np.matmul(d, np.swapaxes(rot, -1, -2))
     horiz = np.hypot(enu[..., 0], enu[..., 1])
-    az = np.degrees(np.arctan2(enu[..., 0], enu[..., 1])) % 360.0
+    az = wrap360(np.degrees(np.arctan2(enu[..., 0], enu[..., 1])))
     el = np.degrees(np.arctan2(enu[..., 2], horiz))
     return az, el, np.sqrt(horiz**2 + enu[..., 2] ** 2)
 

@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass
 
 from x6wd.core.errors import ConfigError
+from x6wd.core.geodesy import wrap360
 
 MAX_SPEED_MPS = 14.0 / 3.6  # the X6WD's top speed on even ground
 
@@ -139,7 +140,7 @@ class Vehicle:
             east_m=east_m,
             north_m=north_m,
             up_m=self.terrain.height_m(east_m, north_m),
-            heading_deg=heading_deg % 360.0,
+            heading_deg=wrap360(heading_deg),
             speed_mps=0.0,
             yaw_rate_dps=0.0,
             left_pct=0.0,
@@ -210,7 +211,7 @@ class Vehicle:
             east_m=east,
             north_m=north,
             up_m=self.terrain.height_m(east, north),
-            heading_deg=heading % 360.0,
+            heading_deg=wrap360(heading),
             speed_mps=v_end,
             yaw_rate_dps=w_end,
             left_pct=left,
@@ -236,4 +237,4 @@ def _arc(
     h1 = h0 + dh
     east += r * (math.cos(h0) - math.cos(h1))
     north += r * (math.sin(h1) - math.sin(h0))
-    return east, north, math.degrees(h1) % 360.0
+    return east, north, wrap360(math.degrees(h1))

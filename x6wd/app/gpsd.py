@@ -30,6 +30,7 @@ from x6wd import __version__
 from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
 from x6wd.core.config import GpsdConfig
 from x6wd.core.errors import ProtocolError
+from x6wd.core.geodesy import wrap360
 from x6wd.core.records import Attitude, GpsFix, GpsSky
 
 log = logging.getLogger(__name__)
@@ -165,7 +166,7 @@ def att_obj(att: Attitude, device: str, declination_deg: float = 0.0) -> dict[st
     magnetic as read, ``pitch``/``roll`` in degrees."""
     obj: dict[str, Any] = {"class": "ATT", "device": device}
     if att.valid:
-        obj["heading"] = _num((att.bearing_deg + declination_deg) % 360.0, 1)
+        obj["heading"] = _num(wrap360(att.bearing_deg + declination_deg), 1)
         obj["mheading"] = _num(att.bearing_deg, 1)
         obj["pitch"] = _num(att.pitch_deg, 1)
         obj["roll"] = _num(att.roll_deg, 1)

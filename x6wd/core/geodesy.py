@@ -13,7 +13,7 @@ callers that must reject it (``x6wd.nav.geo``) check first.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Final, overload
+from typing import TYPE_CHECKING, Any, Final, overload
 
 if TYPE_CHECKING:  # numpy is imported on first use: `x6wd decode` never needs it
     import numpy as np
@@ -40,6 +40,8 @@ _NUMBER: Final = (float, int)
 @overload
 def wrap_deg(angle_deg: float) -> float: ...
 @overload
+def wrap_deg(angle_deg: npt.NDArray[Any]) -> npt.NDArray[np.float64]: ...
+@overload
 def wrap_deg(angle_deg: Angles) -> float | npt.NDArray[np.float64]: ...
 def wrap_deg(angle_deg: Angles) -> float | npt.NDArray[np.float64]:
     """Angle(s) in degrees wrapped to (-180, 180] (so -180 comes back as +180).
@@ -60,6 +62,8 @@ def wrap_deg(angle_deg: Angles) -> float | npt.NDArray[np.float64]:
 @overload
 def wrap_rad(angle_rad: float) -> float: ...
 @overload
+def wrap_rad(angle_rad: npt.NDArray[Any]) -> npt.NDArray[np.float64]: ...
+@overload
 def wrap_rad(angle_rad: Angles) -> float | npt.NDArray[np.float64]: ...
 def wrap_rad(angle_rad: Angles) -> float | npt.NDArray[np.float64]:
     """Angle(s) in radians wrapped to (-π, π] (as :func:`wrap_deg`)."""
@@ -75,6 +79,8 @@ def wrap_rad(angle_rad: Angles) -> float | npt.NDArray[np.float64]:
 
 @overload
 def wrap360(angle_deg: float) -> float: ...
+@overload
+def wrap360(angle_deg: npt.NDArray[Any]) -> npt.NDArray[np.float64]: ...
 @overload
 def wrap360(angle_deg: Angles) -> float | npt.NDArray[np.float64]: ...
 def wrap360(angle_deg: Angles) -> float | npt.NDArray[np.float64]:

@@ -26,16 +26,13 @@ import numpy as np
 import numpy.typing as npt
 
 from x6wd.core.errors import X6wdError
+from x6wd.core.geodesy import WGS84_A_M, WGS84_E2, wrap_rad
+from x6wd.core.geodesy import wrap_deg as _wrap_deg
 
 R1_M = 6378160.0
 """Equatorial radius used by the paper for x (east), metres."""
 R2_M = 6356770.0
 """Polar radius used by the paper for y (north), metres."""
-
-WGS84_A_M = 6378137.0
-"""WGS-84 semi-major axis, metres (for the local tangent plane)."""
-WGS84_E2 = 6.69437999014e-3
-"""WGS-84 first eccentricity squared."""
 
 PROJECTIONS = ("two_radius", "local_tangent_plane")
 """Names accepted by :func:`make_projection` (and ``navigation.projection`` in the config)."""
@@ -93,12 +90,6 @@ def _hypot(a: float, b: float) -> float:
     # numpy's hypot is the C library's; math.hypot uses its own algorithm and differs in
     # the last bit for about 0.5 % of inputs, which would change the bearings.
     return float(np.hypot(a, b))
-
-
-def _wrap_deg_scalar(a: float) -> float:
-    # Python's float % has numpy's np.mod semantics (result takes the divisor's sign).
-    w = 180.0 - (180.0 - a) % 360.0
-    return 180.0 if w <= -180.0 else w
 
 
 @overload
@@ -197,9 +188,7 @@ def course_deviation(phi_i: ArrayLike, phi_c: ArrayLike) -> ArrayLike:
             if t <= -math.pi:
                 t = 2.0 * math.pi + t
             if t > math.pi or t <= -math.pi:
-                t = math.pi - (math.pi - t) % (2.0 * math.pi)
-                if t <= -math.pi:
-                    t = math.pi
+                t = wrap_rad(t)
             return t
     a = _as_array("phi_i", phi_i)
     b = _as_array("phi_c", phi_c)
@@ -209,9 +198,7 @@ def course_deviation(phi_i: ArrayLike, phi_c: ArrayLike) -> ArrayLike:
     theta = np.where(theta <= -math.pi, 2.0 * math.pi + theta, theta)
     out_of_range = (theta > math.pi) | (theta <= -math.pi)
     if np.any(out_of_range):
-        wrapped = math.pi - np.mod(math.pi - theta, 2.0 * math.pi)
-        wrapped = np.where(wrapped <= -math.pi, math.pi, wrapped)
-        theta = np.where(out_of_range, wrapped, theta)
+        theta = np.where(out_of_range, wrap_rad(theta), theta)
     return _out(theta, scalar)
 
 
@@ -220,15 +207,14 @@ def wrap_deg(angle_deg: float) -> float: ...
 @overload
 def wrap_deg(angle_deg: ArrayLike) -> ArrayLike: ...
 def wrap_deg(angle_deg: ArrayLike) -> ArrayLike:
-    """Any finite angle in degrees wrapped to (-180, 180]."""
+    """Any finite angle in degrees wrapped to (-180, 180] (:func:`x6wd.core.geodesy.wrap_deg`,
+    which this checks the input for: GeoError unless finite)."""
     if _real(angle_deg):
         f = float(angle_deg)
         if math.isfinite(f):
-            return _wrap_deg_scalar(f)
+            return _wrap_deg(f)
     a = _as_array("angle_deg", angle_deg)
-    w = 180.0 - np.mod(180.0 - a, 360.0)
-    w = np.where(w <= -180.0, 180.0, w)
-    return _out(w, _is_scalar(angle_deg))
+    return _out(_wrap_deg(a), _is_scalar(angle_deg))
 
 
 class Projection(Protocol):
@@ -291,7 +277,7 @@ class LocalTangentPlane:
         if _real(lat_deg) and _real(lon_deg):
             la, lo = float(lat_deg), float(lon_deg)
             if -90.0 <= la <= 90.0 and -180.0 <= lo <= 180.0:
-                dl = _wrap_deg_scalar(lo - self.origin_lon_deg)
+                dl = _wrap_deg(lo - self.origin_lon_deg)
                 return dl * self._kx_m_per_deg, (la - self.origin_lat_deg) * self._ky_m_per_deg
         lat = _as_array("lat_deg", lat_deg)
         lon = _as_array("lon_deg", lon_deg)
@@ -315,7 +301,7 @@ class LocalTangentPlane:
                 la = self.origin_lat_deg + yf / self._ky_m_per_deg
                 lo = self.origin_lon_deg + xf / self._kx_m_per_deg
                 if math.isfinite(lo):
-                    lo = _wrap_deg_scalar(lo)
+                    lo = _wrap_deg(lo)
                     if abs(la) <= 90.0 + POLE_ROUNDING_DEG:
                         return min(max(la, -90.0), 90.0), lo  # as _snap_poles
         x = _as_array("x_m", x_m)

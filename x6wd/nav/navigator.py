@@ -34,6 +34,8 @@ def cmps_to_paper_deg(bearing_deg: float) -> float:
     b = float(bearing_deg)
     if not (math.isfinite(b) and 0.0 <= b < 360.0):
         raise NavigationError(f"compass bearing must be in [0, 360) deg, got {bearing_deg!r}")
+    # Not x6wd.core.geodesy.wrap_deg: on [0, 360) one subtraction is exact, while the
+    # general wrap's 180 - (180 - b) rounds (0.1 would come back as 0.09999999999999432).
     return b - 360.0 if b > 180.0 else b
 
 
