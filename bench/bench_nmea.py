@@ -7,7 +7,7 @@ What each side does, on the same sentences:
 
 - decoder: the full bytes -> records path. Raw bytes go in through ``GpsDecoder.feed`` in
   fixed-size reads and it does everything: framing and resynchronisation, the checksum,
-  the pynmea2 sentence object and field split, format and range checks, epoch assembly,
+  the field split, format and range checks (the drivers.nmea table's parsers), epoch assembly,
   and every record (an ``NmeaSentence`` per sentence, ``GpsFix`` per epoch, ``GpsSky`` per
   GSV group).
 - pynmea2: ``pynmea2.parse`` on each checksum-valid sentence string (``$`` to ``*HH``, as

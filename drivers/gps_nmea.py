@@ -440,7 +440,8 @@ _RMC_COURSE, _rmc_course = _at(RMC, "course")
 _RMC_DATE, _rmc_date = _at(RMC, "date")
 _GSA_MODE, _gsa_mode = _at(GSA, "fix_type")
 _GSA_SV1 = GSA.pos("prn")
-_GSA_PRN: Final = GSA.field("prn")
+_GSA_PRN_LO = int(GSA.field("prn").lo or 0)
+_GSA_PRN_HI = int(GSA.field("prn").hi or 0)
 _GSA_PDOP, _gsa_dop = _at(GSA, "pdop")  # HDOP and VDOP follow, with the same range
 _GSV_NUM = GSV.pos("messages")
 _GSV_SEQ = GSV.pos("message")
@@ -453,7 +454,6 @@ _GSV_PRN_MAX = int(GSV.field("prn").hi or 0)
 _GSV_EL_MAX = float(GSV.field("elevation").hi or 0)
 _GSV_AZ_MAX = float(GSV.field("azimuth").hi or 0)
 _GSV_SNR_MAX = float(GSV.field("snr").hi or 0)
-_GSV_GROUP = len(GSV.group)
 _GLL_TIME, _gll_time = _at(GLL, "time")
 _ZDA_TIME, _zda_time = _at(ZDA, "time")
 _ZDA_DAY, _zda_day = _at(ZDA, "day")
@@ -463,6 +463,7 @@ assert ZDA.pos("month") == _ZDA_DAY + 1 and ZDA.pos("year") == _ZDA_DAY + 2
 assert GGA.pos("lat_hemi") == _GGA_LAT + 1 and GGA.pos("lon_hemi") == _GGA_LON + 1
 assert RMC.pos("lat_hemi") == _RMC_LAT + 1 and RMC.pos("lon_hemi") == _RMC_LON + 1
 assert GSA.pos("hdop") == _GSA_PDOP + 1 and GSA.pos("vdop") == _GSA_PDOP + 2
+assert len(GSV.group) == 4  # _gsv_fields reads a satellite as four fields
 
 # The sentence types pynmea2 knows (NMEA 0183 and common extensions): a talker sentence of
 # one of these types that this decoder does not read still counts as decoded, any other as
@@ -557,7 +558,7 @@ def _parse_gsa(
     if prns and not ("".join(prns).isdigit() and "".join(prns).isascii()):
         raise FieldError("GSA PRN")
     used = frozenset(int(s) for s in prns)
-    if len(used) and (min(used) < _GSA_PRN.lo or max(used) > _GSA_PRN.hi):  # type: ignore[operator]
+    if len(used) and (min(used) < _GSA_PRN_LO or max(used) > _GSA_PRN_HI):
         raise FieldError("GSA PRN range")
     dops = f[_GSA_PDOP - _GSA_MODE :]
     return mode, used, _gsa_dop(dops[0]), _gsa_dop(dops[1]), _gsa_dop(dops[2])

@@ -1,16 +1,17 @@
 """NMEA 0183 sentences as the u-blox NEO-5 speaks them: one table, one checksum.
 
-``SENTENCES`` lists, per sentence type, its fields in order, each with a name, its text
-format in NMEA 0183 notation, its unit, the range a reader accepts and, for unit-letter
-fields, the fixed letter (REFERENCE.md §4; NMEA 2.3, the NEO-5's version). Both sides of the
-wire use it:
+``SENTENCES`` lists, per sentence type, its fields in order, each with a name, a type (what
+a reader makes of it), its text format in NMEA 0183 notation, its unit, the range a reader
+accepts and, for unit-letter fields, the fixed letter (REFERENCE.md §4; NMEA 2.3, the NEO-5's
+version), as pynmeagps does. Both sides of the wire use it:
 
 - the decoder (``drivers.gps_nmea``) takes field positions and per-field parsers from it
   (:meth:`Sentence.pos`, :func:`field_parser`), built once at import: decoding a sentence
   is a split on commas and one call per field it reads;
 - the simulated receiver (``sim_backend.nmea_out``) takes its sentence layouts from it
-  (:meth:`Sentence.template`): the field order and the unit letters come from the table,
-  the values' precision (the receiver's own choice) from the writer.
+  (:meth:`Sentence.template`, ``%`` formats built once per formatter): the field order and
+  the unit letters come from the table, the values and their precision (the receiver's own
+  choice) from the writer.
 
 Fields NMEA 4.1 appended (RMC navigational status, GSA system id, GSV signal id) are listed
 as ``extra``: a reader tolerates them, the NEO-5 never writes them.
@@ -166,32 +167,37 @@ class Sentence:
         """Names of ``fields`` in order (without the group and the extra fields)."""
         return tuple(f.name for f in self.fields)
 
-    def template(self, talker: str, *names: str, units: bool = True) -> str:
+    def template(self, talker: str, *names: str, units: bool = True, **values: str | int) -> str:
         """A ``%``-format for this sentence's body from ``talker`` (``"GP"``).
 
         It has one ``%s`` per field in ``names`` (a ``count`` field takes one value, its
-        fields already joined with commas), in the order of ``names``; every other field
-        of ``fields`` is written as its ``fixed`` text (or empty with ``units=False``, as a
-        receiver without a fix writes them) or left empty. The group and the extra fields
-        are not part of it. Unknown names raise KeyError.
+        fields already joined with commas), in the order of ``names``; a field given in
+        ``values`` is written as that text (a writer's constant, such as the status letter
+        of a fix); every other field of ``fields`` as its ``fixed`` text (or empty with
+        ``units=False``, as a receiver without a fix writes them) or left empty. The group
+        and the extra fields are not part of it. Unknown names raise KeyError.
         """
-        order = {name: k for k, name in enumerate(names)}
-        for name in names:
+        for name in (*names, *values):
             if name not in self.names:
                 raise KeyError(f"{self.type} has no field {name!r} (fields: {self.names})")
-        if len(order) != len(names):
-            raise ValueError(f"{self.type} template names a field twice: {names}")
-        # Placeholders are written positionally, so named fields must come in table order.
+        if len(set(names) | set(values)) != len(names) + len(values):
+            raise ValueError(f"{self.type} template names a field twice: {names}, {values}")
+        # Placeholders are filled positionally, so named fields must come in table order.
         if list(names) != sorted(names, key=self.names.index):
             raise ValueError(f"{self.type} template fields out of order: {names}")
-        parts = [(talker + self.type).replace("%", "%%")]
+        parts = [talker + self.type]
         for f in self.fields:
-            if f.name in order:
+            if f.name in names:
                 parts.append("%s")
+                continue
+            if f.name in values:
+                text = str(values[f.name])
             elif f.count > 1:
-                parts.append("," * (f.count - 1))
+                text = "," * (f.count - 1)
             else:
-                parts.append(f.fixed.replace("%", "%%") if units else "")
+                text = f.fixed if units else ""
+            parts.append(text.replace("%", "%%"))
+        parts[0] = parts[0].replace("%", "%%")
         return ",".join(parts)
 
 

@@ -133,29 +133,41 @@ class NmeaFormatter:
         self._scale = 10**minute_decimals
         self._tscale = 10**time_decimals
         t = talker
-        # The sentences with a fix; the values the NEO-5 writes in the letter fields are
-        # passed in: status and NMEA 2.3 mode "A", GSA "A"utomatic mode.
+        # Sentence layouts from the shared table, with the letters the NEO-5 always writes
+        # bound in (fewer values to format: the batch path formats an hour in milliseconds).
+        # With a fix: status and NMEA 2.3 mode "A", GSA in "A"utomatic 2D/3D mode.
         self._rmc = RMC.template(
-            t, "time", "status", "lat", "lat_hemi", "lon", "lon_hemi", "speed", "course",
-            "date", "mode",
+            t, "time", "lat", "lat_hemi", "lon", "lon_hemi", "speed", "course", "date",
+            status="A", mode="A",
         )  # fmt: skip
-        self._vtg = VTG.template(t, "course", "speed_kn", "speed_kmh", "mode")
+        self._vtg = VTG.template(t, "course", "speed_kn", "speed_kmh", mode="A")
         self._gga = GGA.template(
             t, "time", "lat", "lat_hemi", "lon", "lon_hemi", "quality", "sats_used", "hdop",
             "alt", "geoid_sep",
         )  # fmt: skip
-        self._gsa = GSA.template(t, "op_mode", "fix_type", "prn", "pdop", "hdop", "vdop")
-        self._gll = GLL.template(t, "lat", "lat_hemi", "lon", "lon_hemi", "time", "status", "mode")
-        self._gsv_head = GSV.template(t, "messages", "message", "in_view")  # satellites appended
-        self._gsv_none = self._gsv_head % (1, 1, "00")
+        self._gsa = GSA.template(t, "fix_type", "prn", "pdop", "hdop", "vdop", op_mode="A")
+        self._gll = GLL.template(
+            t, "lat", "lat_hemi", "lon", "lon_hemi", "time", status="A", mode="A"
+        )
+        # GSV: "GPGSV,<messages>,<message>,<in view>," for every count of satellites shown
+        # (0-16), by message; the satellites' fields follow.
+        gsv = GSV.template(t, "messages", "message", "in_view")
+        self._gsv_none = gsv % (1, 1, "00")
+        self._gsv_heads = [
+            [gsv % ((m + 3) // 4, i + 1, _D2[m]) + "," for i in range((m + 3) // 4)]
+            for m in range(MAX_GSV_SATS + 1)
+        ]
         # Without a fix the receiver leaves even the unit letters empty.
-        self._rmc_v = RMC.template(t, "time", "status", "date", "mode", units=False)
-        self._vtg_v = VTG.template(t, "mode", units=False) % "N"
-        self._gga_v = GGA.template(t, "time", "quality", "sats_used", "hdop", units=False)
-        self._gsa_v = GSA.template(
-            t, "op_mode", "fix_type", "pdop", "hdop", "vdop", units=False
-        ) % ("A", 1, _NO_DOP, _NO_DOP, _NO_DOP)
-        self._gll_v = GLL.template(t, "time", "status", "mode", units=False)
+        self._rmc_v = RMC.template(t, "time", "date", status="V", mode="N", units=False)
+        self._vtg_v = VTG.template(t, mode="N", units=False) % ()
+        self._gga_v = GGA.template(t, "time", quality=0, sats_used="00", hdop=_NO_DOP, units=False)
+        self._gsa_v = (
+            GSA.template(
+                t, op_mode="A", fix_type=1, pdop=_NO_DOP, hdop=_NO_DOP, vdop=_NO_DOP, units=False
+            )
+            % ()
+        )
+        self._gll_v = GLL.template(t, "time", status="V", mode="N", units=False)
 
     @property
     def talker(self) -> str:
@@ -165,12 +177,12 @@ class NmeaFormatter:
     def _no_fix_bodies(self, hms: str, dmy: str, gsv: list[str]) -> list[str]:
         """The receiver's no-fix burst (time and date empty until it has time)."""
         return [
-            self._rmc_v % (hms, "V", dmy, "N"),
+            self._rmc_v % (hms, dmy),
             self._vtg_v,
-            self._gga_v % (hms, 0, "00", _NO_DOP),
+            self._gga_v % hms,
             self._gsa_v,
             *gsv,
-            self._gll_v % (hms, "V", "N"),
+            self._gll_v % hms,
         ]
 
     # --- pieces --------------------------------------------------------------------------
@@ -195,8 +207,6 @@ class NmeaFormatter:
     def _gsv(self, sats: Sequence[SimSat]) -> list[str]:
         if not sats:
             return [self._gsv_none]
-        n = len(sats)
-        nmsg = (n + 3) // 4
         d2 = _D2
         fields = []
         # Table lookups instead of format specs: this loop runs 10-16 times per epoch.
@@ -213,12 +223,8 @@ class NmeaFormatter:
                 fields.append(
                     prn + "," + e + "," + _D3[int(wrap360(az) + 0.5) % 360] + "," + snr_txt
                 )
-        head = self._gsv_head
-        nn = d2[n]
-        return [
-            head % (nmsg, i + 1, nn) + "," + ",".join(fields[4 * i : 4 * i + 4])
-            for i in range(nmsg)
-        ]
+        heads = self._gsv_heads[len(sats)]  # at most 16 satellites (see _select)
+        return [head + ",".join(fields[4 * i : 4 * i + 4]) for i, head in enumerate(heads)]
 
     def _gsv_batch(self, selected: Sequence[Sequence[SimSat]]) -> list[list[str]]:
         """GSV bodies of many epochs; numbers rounded by numpy, text from lookup tables."""
@@ -234,8 +240,7 @@ class NmeaFormatter:
         if np.any((prn < 0) | (prn > 99)):
             return [self._gsv(sats) for sats in selected]  # rare: odd PRNs take the slow path
         fields = _sat_fields(prn, el, az, snr)
-        d2 = _D2
-        head = self._gsv_head
+        gsv_heads = self._gsv_heads
         out: list[list[str]] = []
         i0 = 0
         for sats in selected:
@@ -245,13 +250,8 @@ class NmeaFormatter:
                 continue
             f = fields[i0 : i0 + m]
             i0 += m
-            nmsg = (m + 3) // 4
-            nn = d2[m]
             out.append(
-                [
-                    head % (nmsg, i + 1, nn) + "," + ",".join(f[4 * i : 4 * i + 4])
-                    for i in range(nmsg)
-                ]
+                [head + ",".join(f[4 * i : 4 * i + 4]) for i, head in enumerate(gsv_heads[m])]
             )
         return out
 
@@ -317,12 +317,12 @@ class NmeaFormatter:
         h = _dop(hdop)
         alt, sep = f"{alt_m:.1f}", f"{geoid_sep_m:.1f}"
         return [
-            self._rmc % (hms, "A", lat, ns, lon, ew, kn, course, dmy, "A"),
-            self._vtg % (course, kn, kmh, "A"),
+            self._rmc % (hms, lat, ns, lon, ew, kn, course, dmy),
+            self._vtg % (course, kn, kmh),
             self._gga % (hms, lat, ns, lon, ew, quality, nused, h, alt, sep),
-            self._gsa % ("A", fix_mode, gsa_prns, _dop(pdop), h, _dop(vdop)),
+            self._gsa % (fix_mode, gsa_prns, _dop(pdop), h, _dop(vdop)),
             *gsv,
-            self._gll % (lat, ns, lon, ew, hms, "A", "A"),
+            self._gll % (lat, ns, lon, ew, hms),
         ]
 
     def _no_fix(self, utc: datetime, gsv: list[str]) -> list[str]:
@@ -368,8 +368,8 @@ class NmeaFormatter:
         kn_l = [f"{v:.3f}" for v in (spd * KNOTS_PER_MPS).tolist()]
         kmh_l = [f"{v:.3f}" for v in (spd * KMH_PER_MPS).tolist()]
         crs_l = [
-            "" if c != c else f"{wrap360(c):.2f}"
-            for c in np.asarray(batch.course_deg, dtype=float).tolist()
+            "" if c != c else f"{c:.2f}"  # NaN: at rest
+            for c in wrap360(np.asarray(batch.course_deg, dtype=float)).tolist()
         ]
         alt_l = [f"{v:.1f}" for v in np.asarray(batch.alt_m, dtype=float).tolist()]
         hdop_l = [_dop(v) for v in np.asarray(batch.hdop, dtype=float).tolist()]
@@ -384,7 +384,7 @@ class NmeaFormatter:
         u_start = np.concatenate(([0], np.cumsum(n_used)[:-1])).tolist()
         n_used_l = n_used.tolist()
         blanks = [","] * (MAX_GSA_SATS + 1)
-        gsv_head = self._gsv_head
+        gsv_heads = self._gsv_heads
         rmc, vtg, gga, gsa_t, gll = self._rmc, self._vtg, self._gga, self._gsa, self._gll
         per_epoch: list[list[str]] = []
         for i in range(n_e):
@@ -397,12 +397,7 @@ class NmeaFormatter:
                 gsv = [self._gsv_none]
             else:
                 f = fields[starts[i] : starts[i] + m]
-                nmsg = (m + 3) // 4
-                nn = d2[m]
-                gsv = [
-                    gsv_head % (nmsg, j + 1, nn) + "," + ",".join(f[4 * j : 4 * j + 4])
-                    for j in range(nmsg)
-                ]
+                gsv = [head + ",".join(f[4 * j : 4 * j + 4]) for j, head in enumerate(gsv_heads[m])]
             hms = hms_l[i]
             if not valid[i]:
                 if not known[i]:
@@ -421,12 +416,12 @@ class NmeaFormatter:
             kn, crs, h = kn_l[i], crs_l[i], hdop_l[i]
             per_epoch.append(
                 [
-                    rmc % (hms, "A", lat, ns, lon, ew, kn, crs, dmy_l[i], "A"),
-                    vtg % (crs, kn, kmh_l[i], "A"),
+                    rmc % (hms, lat, ns, lon, ew, kn, crs, dmy_l[i]),
+                    vtg % (crs, kn, kmh_l[i]),
                     gga % (hms, lat, ns, lon, ew, 1, d2[min(nu, 99)], h, alt_l[i], geoid),
-                    gsa_t % ("A", 3, gsa, pdop_l[i], h, vdop_l[i]),
+                    gsa_t % (3, gsa, pdop_l[i], h, vdop_l[i]),
                     *gsv,
-                    gll % (lat, ns, lon, ew, hms, "A", "A"),
+                    gll % (lat, ns, lon, ew, hms),
                 ]
             )
         self.time_known = bool(known[-1])

@@ -92,6 +92,9 @@ def test_templates_write_the_receivers_no_fix_forms() -> None:
     gga = GGA.template("GP", "time", "quality", "sats_used", "hdop", units=False)
     gsa = GSA.template("GP", "op_mode", "fix_type", "pdop", "hdop", "vdop", units=False)
     assert sentence(rmc % ("", "V", "", "N")) == b"$GPRMC,,V,,,,,,,,,,N*53\r\n"
+    # The same with the writer's constants bound in.
+    bound = RMC.template("GP", "time", "date", status="V", mode="N", units=False)
+    assert bound == "GPRMC,%s,V,,,,,,,%s,,,N" and bound % ("", "") == rmc % ("", "V", "", "N")
     assert sentence(gga % ("", 0, "00", "99.99")) == b"$GPGGA,,,,,,0,00,99.99,,,,,,*48\r\n"
     assert (
         sentence(gsa % ("A", 1, "99.99", "99.99", "99.99"))
@@ -118,9 +121,14 @@ def test_template_names_are_checked() -> None:
         GGA.template("GP", "lat", "time")
     with pytest.raises(ValueError, match="twice"):
         GGA.template("GP", "time", "time")
+    with pytest.raises(ValueError, match="twice"):
+        GGA.template("GP", "time", time="123519")
+    with pytest.raises(KeyError, match="no field 'state'"):
+        RMC.template("GP", state="A")
     with pytest.raises(KeyError):  # group fields are appended by the writer
         GSV.template("GP", "prn")
-    assert "%%" in Sentence("X%Y", "odd", (Field("a", "int", "x", fixed="%"),)).template("GP")
+    odd = Sentence("X%Y", "odd", (Field("a", "int", "x", fixed="%"), Field("b", "text", "c--c")))
+    assert odd.template("GP", b="5%") % () == "GPX%Y,%,5%"
 
 
 def test_positions_count_repeated_fields_and_groups() -> None:
