@@ -60,8 +60,6 @@ from dataclasses import dataclass, fields
 from datetime import UTC, date, datetime, timedelta
 from typing import Any, Final
 
-import pynmea2
-
 from drivers.nmea import (
     GGA,
     GLL,
@@ -465,11 +463,22 @@ assert RMC.pos("lat_hemi") == _RMC_LAT + 1 and RMC.pos("lon_hemi") == _RMC_LON +
 assert GSA.pos("hdop") == _GSA_PDOP + 1 and GSA.pos("vdop") == _GSA_PDOP + 2
 assert len(GSV.group) == 4  # _gsv_fields reads a satellite as four fields
 
-# The sentence types pynmea2 knows (NMEA 0183 and common extensions): a talker sentence of
-# one of these types that this decoder does not read still counts as decoded, any other as
-# an unknown type. It must know every type of the table.
-_KNOWN_TYPES: Final = frozenset(pynmea2.TalkerSentence.sentence_types)
-assert set(SENTENCES) <= _KNOWN_TYPES
+
+def _pynmea2() -> Any:
+    """pynmea2, imported on first need: only sentences outside the table use it, so a NEO-5
+    stream never does (and `x6wd decode` starts faster)."""
+    import pynmea2
+
+    return pynmea2
+
+
+@functools.cache
+def _known_types() -> frozenset[str]:
+    """The sentence types pynmea2 knows (NMEA 0183 and common extensions): a talker sentence
+    of one of these types that this decoder does not read still counts as decoded, any other
+    as an unknown type. It knows every type of the table (tests/test_nmea_table.py)."""
+    return frozenset(_pynmea2().TalkerSentence.sentence_types)
+
 
 # Talker and sentence type per sentence head ("GPGGA," = text[1:7]), or None where
 # pynmea2.parse must decide (proprietary, query, unknown or odd heads). Bounded, as line
@@ -482,8 +491,10 @@ _HEADS_MAX: Final = 512
 def _head(key: str) -> _Head:
     """The ``_HEADS`` entry for ``key`` = ``text[1:7]`` (computed and stored on a miss)."""
     head: _Head = None
-    if key[5:6] == "," and key[0] != "P" and key[:5].isalnum() and key[2:5] in _KNOWN_TYPES:
-        head = (key[:2], key[2:5])
+    if key[5:6] == "," and key[0] != "P" and key[:5].isalnum():
+        kind = key[2:5]
+        if kind in SENTENCES or kind in _known_types():
+            head = (key[:2], kind)
     if len(_HEADS) >= _HEADS_MAX:
         _HEADS.clear()
     _HEADS[key] = head
@@ -823,6 +834,7 @@ class GpsDecoder:
                     talker, kind = head
                     d = text[7:-3].split(",")
                 else:
+                    pynmea2 = _pynmea2()
                     try:
                         msg = pynmea2.parse(text[:-3] if text[-3:-2] == "*" else text)
                     except pynmea2.SentenceTypeError:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import functools
 import operator
+import subprocess
+import sys
 from datetime import date
 from pathlib import Path
 
@@ -67,6 +69,25 @@ def test_field_positions_agree_with_pynmea2(kind: str) -> None:
     table = SENTENCES[kind]
     for ours, theirs in _PYNMEA2_NAMES[kind].items():
         assert table.pos(ours) == cls.name_to_idx[theirs], (kind, ours)
+
+
+def test_pynmea2_knows_every_type_of_the_table() -> None:
+    # The decoder asks pynmea2 only about other types; its counters rely on this.
+    assert set(SENTENCES) <= set(pynmea2.TalkerSentence.sentence_types)
+
+
+def test_decoding_a_neo5_stream_loads_neither_pynmea2_nor_numpy() -> None:
+    # Start-up time of `x6wd decode`: pynmea2 only for sentences outside the table, numpy
+    # only for the core's array wraps.
+    code = (
+        "import sys, pathlib; from x6wd.app.decode import report_lines;"
+        "from drivers.gps_nmea import GpsDecoder; d = GpsDecoder();"
+        f"out = list(report_lines(d.feed(pathlib.Path({str(NEO5_LOG)!r}).read_bytes(), 0.0)));"
+        "assert out and d.counters.unknown_types == 0;"
+        "print(sorted(m for m in ('pynmea2', 'numpy') if m in sys.modules))"
+    )
+    got = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert got.stdout.strip() == "[]"
 
 
 def test_fix_layouts_match_a_real_neo5_burst() -> None:
