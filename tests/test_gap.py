@@ -320,13 +320,13 @@ def test_drift_family_told_apart_by_likelihood(hour_baseline: list) -> None:
     lay = layout_for(hour_baseline[0])
     rw = drift_fit(hour_real(RandomWalk(0.03)), hour_baseline, lay)
     assert rw.best == "random_walk"
-    q, se_q = rw.rw[(False, False)]
+    q, se_q = rw.random_walk[(False, False)]
     assert q == pytest.approx(0.03, abs=2.5 * se_q)
     assert drift_fit(hour_real(Bias(1.5, -1.0, 0.0)), hour_baseline, lay).best == "bias"
     assert drift_fit(hour_real(), hour_baseline, lay).best == "none"
     gm = drift_fit(hour_real(GaussMarkov(sigma_m=1.5, tau_s=60.0)), hour_baseline, lay)
     assert gm.best == "gauss_markov"
-    (sigma, tau), (se_s, se_t) = gm.gm[(False, False)]
+    (sigma, tau), (se_s, se_t) = gm.gauss_markov[(False, False)]
     assert tau == pytest.approx(60.0, rel=0.25) and sigma == pytest.approx(1.5, rel=0.15)
     assert 0 < se_t < 0.5 * tau and 0 < se_s < 0.3 * sigma
 

@@ -31,9 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--real", required=True, help="real log: NMEA, x6wd recording, CSV or RTKLIB .pos"
     )
-    base = parser.add_mutually_exclusive_group(required=True)
-    base.add_argument("--sim", action="append", default=[], help="baseline sim log (repeatable)")
-    base.add_argument("--scenario", help="scenario TOML: the baseline is run with --seeds seeds")
+    baseline = parser.add_mutually_exclusive_group(required=True)
+    baseline.add_argument(
+        "--sim", action="append", default=[], help="baseline sim log (repeatable)"
+    )
+    baseline.add_argument(
+        "--scenario", help="scenario TOML: the baseline is run with --seeds seeds"
+    )
     parser.add_argument(
         "--seeds", type=int, default=20, help="baseline runs with --scenario (default 20)"
     )
@@ -60,9 +64,10 @@ class ProgressBar:
     def __call__(self, msg: str, frac: float) -> None:
         if not self.enabled:
             return
-        n = round(max(0.0, min(1.0, frac)) * self.width)
-        el_s = time.monotonic() - self.t0
-        line = f"\r[{'#' * n}{' ' * (self.width - n)}] {frac:4.0%} {el_s:5.1f}s {msg[:50]:<50}"
+        n_filled = round(max(0.0, min(1.0, frac)) * self.width)
+        elapsed_s = time.monotonic() - self.t0
+        filled = "#" * n_filled + " " * (self.width - n_filled)
+        line = f"\r[{filled}] {frac:4.0%} {elapsed_s:5.1f}s {msg[:50]:<50}"
         sys.stderr.write(line)
         if frac >= 1.0:
             sys.stderr.write("\n")
@@ -104,39 +109,39 @@ def main(args: argparse.Namespace) -> int:
     else:
         baseline = [to_errors(read_track(p), args, truth_track) for p in args.sim]
     rng = np.random.default_rng(args.seed)
-    d = diagnose(real, baseline, rng, Options(replicates=args.replicates), progress=bar)
-    d.notes.extend(notes)
-    cd = compass_diagnosis(args, d, rng, bar)
+    diagnosis = diagnose(real, baseline, rng, Options(replicates=args.replicates), progress=bar)
+    diagnosis.notes.extend(notes)
+    compass = compass_diagnosis(args, diagnosis, rng, bar)
     bar("writing report", 1.0)
     origin = None
     if args.scenario:
         from sim_backend.world import load_world
 
-        w = load_world(args.scenario)
-        origin = (w.origin.lat_deg, w.origin.lon_deg)
+        world = load_world(args.scenario)
+        origin = (world.origin.lat_deg, world.origin.lon_deg)
     write_report(
-        d,
+        diagnosis,
         Path(args.out),
         real_name=Path(args.real).name,
         figures=not args.no_figures,
-        compass=cd,
+        compass=compass,
         origin_deg=origin,
     )
-    extra = f"; {compass_verdict_text(cd)}" if cd is not None else ""
-    print(f"{verdict_text(d)}{extra}; report in {args.out}/report.md")
-    if not math.isfinite(d.closure):
+    extra = f"; {compass_verdict_text(compass)}" if compass is not None else ""
+    print(f"{verdict_text(diagnosis)}{extra}; report in {args.out}/report.md")
+    if not math.isfinite(diagnosis.closure):
         return 1
     return 0
 
 
 def compass_diagnosis(
-    args: argparse.Namespace, d: Diagnosis, rng: np.random.Generator, bar: ProgressBar
+    args: argparse.Namespace, diagnosis: Diagnosis, rng: np.random.Generator, bar: ProgressBar
 ) -> CompassDiagnosis | None:
     """The compass half, when the real log is a recording with attitude records and a heading
     truth (``--truth-track`` with a heading column, ``truth.csv`` beside the recording, or the
     GPS course over ground while moving); None otherwise. Baseline: the scenario's CMPS10
     along the real truth (``--scenario``), or the ``--sim`` recordings that carry attitude
-    records and a heading truth of their own. Problems become notes in ``d``, never errors:
+    records and a heading truth of their own. Problems become notes in ``diagnosis``, never errors:
     the GPS report stands on its own."""
     from x6wd.gap.compass import (
         CompassOptions,
@@ -151,21 +156,21 @@ def compass_diagnosis(
     opts = CompassOptions(replicates=args.replicates)
     if args.scenario:
         bar("compass: simulating the CMPS10", 0.9)
-        base, fm = scenario_compass_baseline(args.scenario, real, args.seeds)
+        baseline, field_model = scenario_compass_baseline(args.scenario, real, args.seeds)
         opts = CompassOptions(
             replicates=args.replicates,
-            inclination_deg=fm.inclination_deg,
-            horizontal_field_ut=fm.horizontal_ut,
+            inclination_deg=field_model.inclination_deg,
+            horizontal_field_ut=field_model.horizontal_ut,
         )
     else:
-        base = [b for p in args.sim if (b := read_heading_series(p)) is not None]
-    if not base:
-        d.notes.append(
+        baseline = [run for p in args.sim if (run := read_heading_series(p)) is not None]
+    if not baseline:
+        diagnosis.notes.append(
             "compass: the real log has heading data but no baseline log does: not diagnosed"
         )
         return None
     try:
-        return diagnose_compass(real, base, rng, opts, progress=bar)
+        return diagnose_compass(real, baseline, rng, opts, progress=bar)
     except ConfigError as exc:
-        d.notes.append(f"compass: not diagnosed ({exc})")
+        diagnosis.notes.append(f"compass: not diagnosed ({exc})")
         return None

@@ -90,52 +90,54 @@ class CompassDiagnosis(Outcome[HeadingSeries, CompassLayout]):
 # --- series helpers ---------------------------------------------------------------------------
 
 
-def heading_error_deg(s: HeadingSeries) -> np.ndarray:
+def heading_error_deg(series: HeadingSeries) -> np.ndarray:
     """Measured minus true heading, wrapped to [-180, 180)."""
-    if s.true_heading_deg is None:
+    if series.true_heading_deg is None:
         raise ConfigError("heading series has no true heading")
-    return wrap180(np.asarray(s.heading_deg, dtype=float) - np.asarray(s.true_heading_deg))
+    return wrap180(
+        np.asarray(series.heading_deg, dtype=float) - np.asarray(series.true_heading_deg)
+    )
 
 
-def turn_rate_dps(s: HeadingSeries) -> np.ndarray:
+def turn_rate_dps(series: HeadingSeries) -> np.ndarray:
     """True turn rate (deg/s); a bootstrap replicate carries its own in ``extra['rate_dps']``
     (its block joins would make spurious spikes)."""
-    if "rate_dps" in s.extra:
-        return np.asarray(s.extra["rate_dps"], dtype=float)
-    assert s.true_heading_deg is not None
-    t = np.asarray(s.t_s, dtype=float)
-    if t.size < 3:
-        return np.zeros(t.size)
-    return np.gradient(np.unwrap(np.radians(s.true_heading_deg)), t) * 180.0 / math.pi
+    if "rate_dps" in series.extra:
+        return np.asarray(series.extra["rate_dps"], dtype=float)
+    assert series.true_heading_deg is not None
+    t_s = np.asarray(series.t_s, dtype=float)
+    if t_s.size < 3:
+        return np.zeros(t_s.size)
+    return np.gradient(np.unwrap(np.radians(series.true_heading_deg)), t_s) * 180.0 / math.pi
 
 
-def hwindow(s: HeadingSeries, t0_s: float, t1_s: float) -> HeadingSeries:
+def hwindow(series: HeadingSeries, t0_s: float, t1_s: float) -> HeadingSeries:
     """Samples with t0_s <= t - t_start < t1_s."""
-    t = np.asarray(s.t_s, dtype=float)
-    m = (t - t[0] >= t0_s) & (t - t[0] < t1_s)
+    t_s = np.asarray(series.t_s, dtype=float)
+    inside = (t_s - t_s[0] >= t0_s) & (t_s - t_s[0] < t1_s)
 
     def cut(a: np.ndarray | None) -> np.ndarray | None:
-        return None if a is None else np.asarray(a)[m]
+        return None if a is None else np.asarray(a)[inside]
 
     return HeadingSeries(
-        t_s=t[m],
-        heading_deg=np.asarray(s.heading_deg)[m],
-        pitch_deg=np.asarray(s.pitch_deg)[m],
-        roll_deg=np.asarray(s.roll_deg)[m],
-        true_heading_deg=cut(s.true_heading_deg),
-        field_ut=cut(s.field_ut),
-        extra={k: np.asarray(v)[m] for k, v in s.extra.items()},
+        t_s=t_s[inside],
+        heading_deg=np.asarray(series.heading_deg)[inside],
+        pitch_deg=np.asarray(series.pitch_deg)[inside],
+        roll_deg=np.asarray(series.roll_deg)[inside],
+        true_heading_deg=cut(series.true_heading_deg),
+        field_ut=cut(series.field_ut),
+        extra={k: np.asarray(v)[inside] for k, v in series.extra.items()},
     )
 
 
 def layout_for(
     real: HeadingSeries, inclination_deg: float = 66.0, horizontal_field_ut: float = 19.0
 ) -> CompassLayout:
-    t = np.asarray(real.t_s, dtype=float)
-    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    t_s = np.asarray(real.t_s, dtype=float)
+    dt_s = float(np.median(np.diff(t_s))) if t_s.size > 1 else 1.0
     return CompassLayout(
-        dt,
-        float(t[-1] - t[0]) if t.size else 0.0,
+        dt_s,
+        float(t_s[-1] - t_s[0]) if t_s.size else 0.0,
         real.field_ut is not None and bool(np.all(np.isfinite(real.field_ut))),
         inclination_deg,
         horizontal_field_ut,
@@ -148,44 +150,59 @@ def layout_for(
 Design = tuple[np.ndarray, np.ndarray]
 
 
-def design(s: HeadingSeries, layout: CompassLayout) -> Design:
+def design(series: HeadingSeries, layout: CompassLayout) -> Design:
     """Regressor matrices of a series: heading error (module doc) and log field magnitude
     (1, cos h, sin h). They depend only on the true heading, pitch, roll and turn rate, which
     no compass layer changes, so a simulation fit computes them once per baseline run."""
-    assert s.true_heading_deg is not None
-    h = np.asarray(s.true_heading_deg, dtype=float)
-    hr = np.radians(h)
-    x_tilt = wrap180(tilted_heading_deg(h, s.pitch_deg, s.roll_deg, layout.inclination_deg) - h)
-    one, c1, s1 = np.ones(h.size), np.cos(hr), np.sin(hr)
-    X = np.column_stack([one, c1, s1, np.cos(2 * hr), np.sin(2 * hr), x_tilt, turn_rate_dps(s)])
-    return X, np.column_stack([one, c1, s1])
+    assert series.true_heading_deg is not None
+    heading_deg = np.asarray(series.true_heading_deg, dtype=float)
+    heading_rad = np.radians(heading_deg)
+    tilt_error_deg = wrap180(
+        tilted_heading_deg(heading_deg, series.pitch_deg, series.roll_deg, layout.inclination_deg)
+        - heading_deg
+    )
+    one, cos1, sin1 = np.ones(heading_deg.size), np.cos(heading_rad), np.sin(heading_rad)
+    heading_design = np.column_stack(
+        [
+            one,
+            cos1,
+            sin1,
+            np.cos(2 * heading_rad),
+            np.sin(2 * heading_rad),
+            tilt_error_deg,
+            turn_rate_dps(series),
+        ]
+    )
+    return heading_design, np.column_stack([one, cos1, sin1])
 
 
-def _lsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+def _lsq(design_matrix: np.ndarray, target: np.ndarray) -> np.ndarray:
     # Normal equations: the 7x7 system is well conditioned for a log that turns through
     # every heading, and ~50x faster than an SVD on thousands of rows.
     try:
-        return np.asarray(np.linalg.solve(X.T @ X, X.T @ y))
+        return np.asarray(
+            np.linalg.solve(design_matrix.T @ design_matrix, design_matrix.T @ target)
+        )
     except np.linalg.LinAlgError:
-        return np.asarray(np.linalg.lstsq(X, y, rcond=None)[0])
+        return np.asarray(np.linalg.lstsq(design_matrix, target, rcond=None)[0])
 
 
 def regression(
-    s: HeadingSeries, layout: CompassLayout, dsg: Design | None = None
+    series: HeadingSeries, layout: CompassLayout, designs: Design | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(coefficients, residuals) of the joint heading-error regression (module doc)."""
-    X = (dsg or design(s, layout))[0]
-    e = heading_error_deg(s)
-    coef = _lsq(X, e)
-    return coef, e - X @ coef
+    heading_design = (designs or design(series, layout))[0]
+    error_deg = heading_error_deg(series)
+    coef = _lsq(heading_design, error_deg)
+    return coef, error_deg - heading_design @ coef
 
 
 def battery(
-    s: HeadingSeries, layout: CompassLayout, dsg: Design | None = None
+    series: HeadingSeries, layout: CompassLayout, designs: Design | None = None
 ) -> dict[Cell, float]:
     """The compass cells of one series (degrees, seconds, log units)."""
-    dsg = dsg or design(s, layout)
-    coef, resid = regression(s, layout, dsg)
+    designs = designs or design(series, layout)
+    coef, resid_deg = regression(series, layout, designs)
     out = {
         Cell("heading_mean", AXIS, "all"): float(coef[0]),
         Cell("harmonic_cos", AXIS, "1/turn"): float(coef[1]),
@@ -194,16 +211,16 @@ def battery(
         Cell("harmonic_sin", AXIS, "2/turn"): float(coef[4]),
         Cell("tilt_gain", AXIS, "pitch/roll"): float(coef[5]),
         Cell("lag_s", AXIS, "turn rate"): float(-coef[6]),
-        Cell("residual_log_std", AXIS, "all"): float(np.log(max(np.std(resid), 1e-6))),
+        Cell("residual_log_std", AXIS, "all"): float(np.log(max(np.std(resid_deg), 1e-6))),
     }
     if layout.has_field:
-        if s.field_ut is None:
+        if series.field_ut is None:
             raise ConfigError("baseline heading series lacks the field magnitude the real has")
-        fc = _lsq(dsg[1], np.log(np.maximum(s.field_ut, 1e-9)))
+        field_coef = _lsq(designs[1], np.log(np.maximum(series.field_ut, 1e-9)))
         # in degree-equivalents (rad * 180/pi), so a hard iron moves its field cells and its
         # heading cells on one scale
-        out[Cell("field_harmonic_cos", AXIS, "1/turn")] = float(math.degrees(fc[1]))
-        out[Cell("field_harmonic_sin", AXIS, "1/turn")] = float(math.degrees(fc[2]))
+        out[Cell("field_harmonic_cos", AXIS, "1/turn")] = float(math.degrees(field_coef[1]))
+        out[Cell("field_harmonic_sin", AXIS, "1/turn")] = float(math.degrees(field_coef[2]))
     return out
 
 
@@ -222,37 +239,39 @@ def block_bootstrap(
     the error stays paired with the heading and tilt it belongs to."""
     if not series:
         raise ConfigError("block bootstrap needs at least one baseline heading series")
-    n = len(template)
-    b = max(2, min(n, round(block_s / max(float(np.median(np.diff(template.t_s))), 1e-9))))
+    n_samples = len(template)
+    block_len = max(
+        2, min(n_samples, round(block_s / max(float(np.median(np.diff(template.t_s))), 1e-9)))
+    )
     has_field = all(s.field_ut is not None for s in series)
     out = []
     for _ in range(n_out):
-        cols: dict[str, list[np.ndarray]] = {
+        pieces: dict[str, list[np.ndarray]] = {
             k: [] for k in ("heading", "true", "pitch", "roll", "field", "rate")
         }
-        pos = 0
-        while pos < n:
-            src = series[int(rng.integers(len(series)))]
-            take = min(b, n - pos)
-            idx = (int(rng.integers(len(src))) + np.arange(take)) % len(src)
-            cols["heading"].append(np.asarray(src.heading_deg)[idx])
-            cols["true"].append(np.asarray(src.true_heading_deg)[idx])
-            cols["pitch"].append(np.asarray(src.pitch_deg)[idx])
-            cols["roll"].append(np.asarray(src.roll_deg)[idx])
-            cols["rate"].append(turn_rate_dps(src)[idx])
+        filled = 0
+        while filled < n_samples:
+            source = series[int(rng.integers(len(series)))]
+            n_take = min(block_len, n_samples - filled)
+            index = (int(rng.integers(len(source))) + np.arange(n_take)) % len(source)
+            pieces["heading"].append(np.asarray(source.heading_deg)[index])
+            pieces["true"].append(np.asarray(source.true_heading_deg)[index])
+            pieces["pitch"].append(np.asarray(source.pitch_deg)[index])
+            pieces["roll"].append(np.asarray(source.roll_deg)[index])
+            pieces["rate"].append(turn_rate_dps(source)[index])
             if has_field:
-                cols["field"].append(np.asarray(src.field_ut)[idx])
-            pos += take
-        cat = {k: np.concatenate(v) if v else None for k, v in cols.items()}
+                pieces["field"].append(np.asarray(source.field_ut)[index])
+            filled += n_take
+        joined = {k: np.concatenate(v) if v else None for k, v in pieces.items()}
         out.append(
             HeadingSeries(
                 t_s=np.asarray(template.t_s, dtype=float),
-                heading_deg=cat["heading"],  # type: ignore[arg-type]
-                pitch_deg=cat["pitch"],  # type: ignore[arg-type]
-                roll_deg=cat["roll"],  # type: ignore[arg-type]
-                true_heading_deg=cat["true"],
-                field_ut=cat["field"],
-                extra={"rate_dps": cat["rate"]},  # type: ignore[dict-item]
+                heading_deg=joined["heading"],  # type: ignore[arg-type]
+                pitch_deg=joined["pitch"],  # type: ignore[arg-type]
+                roll_deg=joined["roll"],  # type: ignore[arg-type]
+                true_heading_deg=joined["true"],
+                field_ut=joined["field"],
+                extra={"rate_dps": joined["rate"]},  # type: ignore[dict-item]
             )
         )
     return out
@@ -262,26 +281,29 @@ def block_bootstrap(
 
 
 def _coef_diff(
-    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+    real: HeadingSeries, baseline: Sequence[HeadingSeries], layout: CompassLayout
 ) -> tuple[dict[Cell, float], dict[Cell, float]]:
     """Real minus mean baseline, per cell, and the baseline's prediction spread."""
-    rb = battery(real, layout)
-    bb = [battery(s, layout) for s in base]
-    m = len(bb)
-    diff = {c: rb[c] - float(np.mean([b[c] for b in bb])) for c in rb}
+    real_cells = battery(real, layout)
+    run_cells = [battery(s, layout) for s in baseline]
+    n_runs = len(run_cells)
+    diff = {
+        c: real_cells[c] - float(np.mean([cells[c] for cells in run_cells])) for c in real_cells
+    }
     se = {
-        c: max(float(np.std([b[c] for b in bb], ddof=1)), SD_FLOOR) * math.sqrt(1 + 1 / m)
-        for c in rb
+        c: max(float(np.std([cells[c] for cells in run_cells], ddof=1)), SD_FLOOR)
+        * math.sqrt(1 + 1 / n_runs)
+        for c in real_cells
     }
     return diff, se
 
 
 def _refine(
     make: Callable[[np.ndarray], Any],
-    x0: np.ndarray,
+    params0: np.ndarray,
     name: str,
     real: HeadingSeries,
-    base: Sequence[HeadingSeries],
+    baseline: Sequence[HeadingSeries],
     layout: CompassLayout,
 ) -> np.ndarray:
     """Simulation fit: parameters whose effect, added to every baseline run, brings the mean
@@ -291,120 +313,142 @@ def _refine(
 
     fingerprint = EFFECTS[name].fingerprint
     cells = [Cell(k[0], AXIS, k[1]) for k in fingerprint if isinstance(k, tuple)]
-    rb = battery(real, layout)
-    cells = [c for c in cells if c in rb]
-    bb = [battery(s, layout) for s in base]
-    sd = np.array([max(float(np.std([b[c] for b in bb], ddof=1)), SD_FLOOR) for c in cells])
-    target = np.array([rb[c] for c in cells])
+    real_cells = battery(real, layout)
+    cells = [c for c in cells if c in real_cells]
+    run_cells = [battery(s, layout) for s in baseline]
+    spread = np.array(
+        [max(float(np.std([run[c] for run in run_cells], ddof=1)), SD_FLOOR) for c in cells]
+    )
+    target = np.array([real_cells[c] for c in cells])
     rng = np.random.default_rng(0)  # the compass layers fitted here are deterministic
-    designs = [design(s, layout) for s in base]
+    designs = [design(s, layout) for s in baseline]
 
-    def loss(x: np.ndarray) -> float:
+    def loss(params: np.ndarray) -> float:
         try:
-            eff = make(x)
+            layer = make(params)
         except ConfigError:
             return 1e12
-        vals = [battery(eff.apply(s, rng), layout, g) for s, g in zip(base, designs, strict=True)]
-        mean = np.array([np.mean([v[c] for v in vals]) for c in cells])
-        return float(np.sum(((mean - target) / sd) ** 2))
+        values = [
+            battery(layer.apply(run, rng), layout, run_design)
+            for run, run_design in zip(baseline, designs, strict=True)
+        ]
+        mean = np.array([np.mean([value[c] for value in values]) for c in cells])
+        return float(np.sum(((mean - target) / spread) ** 2))
 
-    res = minimize(loss, x0, method="Nelder-Mead", options={"maxiter": 60, "xatol": 1e-3})
-    return np.asarray(res.x, dtype=float) if res.fun <= loss(x0) else x0
+    result = minimize(loss, params0, method="Nelder-Mead", options={"maxiter": 60, "xatol": 1e-3})
+    return np.asarray(result.x, dtype=float) if result.fun <= loss(params0) else params0
 
 
 def fit_declination(
-    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+    real: HeadingSeries, baseline: Sequence[HeadingSeries], layout: CompassLayout
 ) -> Fit | None:
     """The compass reads heading - declination: declination = -(mean error difference)."""
-    d, se = _coef_diff(real, base, layout)
-    c = Cell("heading_mean", AXIS, "all")
-    return Fit(Declination(declination_deg=round(-d[c], 3)), {"declination_deg": se[c]})
+    diff, se = _coef_diff(real, baseline, layout)
+    cell = Cell("heading_mean", AXIS, "all")
+    return Fit(Declination(declination_deg=round(-diff[cell], 3)), {"declination_deg": se[cell]})
 
 
 def fit_hard_iron(
-    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+    real: HeadingSeries, baseline: Sequence[HeadingSeries], layout: CompassLayout
 ) -> Fit | None:
     """Small-angle: error = -(by cos h + bx sin h) / H rad; then a simulation fit."""
-    d, se = _coef_diff(real, base, layout)
-    H = layout.horizontal_field_ut
-    r = math.pi / 180.0
-    c1, s1 = Cell("harmonic_cos", AXIS, "1/turn"), Cell("harmonic_sin", AXIS, "1/turn")
-    x0 = np.array([-H * d[s1] * r, -H * d[c1] * r])
+    diff, se = _coef_diff(real, baseline, layout)
+    horizontal_ut = layout.horizontal_field_ut
+    rad_per_deg = math.pi / 180.0
+    cos1, sin1 = Cell("harmonic_cos", AXIS, "1/turn"), Cell("harmonic_sin", AXIS, "1/turn")
+    b0_ut = np.array(
+        [-horizontal_ut * diff[sin1] * rad_per_deg, -horizontal_ut * diff[cos1] * rad_per_deg]
+    )
 
-    def make(x: np.ndarray) -> HardIron:
-        return HardIron(bx_ut=float(x[0]), by_ut=float(x[1]), horizontal_field_ut=H)
+    def make(b_ut: np.ndarray) -> HardIron:
+        return HardIron(
+            bx_ut=float(b_ut[0]), by_ut=float(b_ut[1]), horizontal_field_ut=horizontal_ut
+        )
 
-    x = _refine(make, x0, "hard_iron", real, base, layout)
+    b_ut = _refine(make, b0_ut, "hard_iron", real, baseline, layout)
     return Fit(
-        HardIron(bx_ut=round(float(x[0]), 4), by_ut=round(float(x[1]), 4), horizontal_field_ut=H),
-        {"bx_ut": H * se[s1] * r, "by_ut": H * se[c1] * r},
+        HardIron(
+            bx_ut=round(float(b_ut[0]), 4),
+            by_ut=round(float(b_ut[1]), 4),
+            horizontal_field_ut=horizontal_ut,
+        ),
+        {
+            "bx_ut": horizontal_ut * se[sin1] * rad_per_deg,
+            "by_ut": horizontal_ut * se[cos1] * rad_per_deg,
+        },
     )
 
 
 def fit_soft_iron(
-    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+    real: HeadingSeries, baseline: Sequence[HeadingSeries], layout: CompassLayout
 ) -> Fit | None:
     """Small-angle: error = -k sin(2h + 2a) rad; (k, a) and (-k, a + 90) are the same layer,
     so k >= 0 is reported; then a simulation fit."""
-    d, se = _coef_diff(real, base, layout)
-    r = math.pi / 180.0
-    c2, s2 = Cell("harmonic_cos", AXIS, "2/turn"), Cell("harmonic_sin", AXIS, "2/turn")
-    k = math.hypot(d[c2], d[s2]) * r
-    a = 0.5 * math.degrees(math.atan2(-d[c2], -d[s2]))
+    diff, se = _coef_diff(real, baseline, layout)
+    rad_per_deg = math.pi / 180.0
+    cos2, sin2 = Cell("harmonic_cos", AXIS, "2/turn"), Cell("harmonic_sin", AXIS, "2/turn")
+    k = math.hypot(diff[cos2], diff[sin2]) * rad_per_deg
+    axis_deg = 0.5 * math.degrees(math.atan2(-diff[cos2], -diff[sin2]))
     if k < 1e-5:
         return None
 
-    def make(x: np.ndarray) -> SoftIron:
-        return SoftIron(k=float(np.clip(x[0], -0.85, 0.85)), axis_deg=float(x[1]))
+    def make(params: np.ndarray) -> SoftIron:
+        return SoftIron(k=float(np.clip(params[0], -0.85, 0.85)), axis_deg=float(params[1]))
 
-    x = _refine(make, np.array([min(k, 0.85), a]), "soft_iron", real, base, layout)
-    k, a = float(np.clip(x[0], -0.85, 0.85)), float(x[1])
+    params = _refine(make, np.array([min(k, 0.85), axis_deg]), "soft_iron", real, baseline, layout)
+    k, axis_deg = float(np.clip(params[0], -0.85, 0.85)), float(params[1])
     if k < 0:
-        k, a = -k, a + 90.0
-    a = (a + 90.0) % 180.0 - 90.0
-    se_k = 0.5 * (se[c2] + se[s2]) * r
+        k, axis_deg = -k, axis_deg + 90.0
+    axis_deg = (axis_deg + 90.0) % 180.0 - 90.0
+    se_k = 0.5 * (se[cos2] + se[sin2]) * rad_per_deg
     return Fit(
-        SoftIron(k=round(k, 5), axis_deg=round(a, 2)),
+        SoftIron(k=round(k, 5), axis_deg=round(axis_deg, 2)),
         {"k": se_k, "axis_deg": math.degrees(0.5 * se_k / max(k, 1e-9))},
     )
 
 
 def fit_tilt(
-    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+    real: HeadingSeries, baseline: Sequence[HeadingSeries], layout: CompassLayout
 ) -> Fit | None:
     """The tilt gain difference is the uncompensated fraction (at the layout's inclination)."""
-    d, se = _coef_diff(real, base, layout)
-    c = Cell("tilt_gain", AXIS, "pitch/roll")
-    f0 = float(np.clip(d[c], 0.0, 1.0))
-    if f0 <= 0.0:
+    diff, se = _coef_diff(real, baseline, layout)
+    cell = Cell("tilt_gain", AXIS, "pitch/roll")
+    fraction0 = float(np.clip(diff[cell], 0.0, 1.0))
+    if fraction0 <= 0.0:
         return None
-    inc = layout.inclination_deg
+    inclination_deg = layout.inclination_deg
 
-    def make(x: np.ndarray) -> Tilt:
-        return Tilt(fraction=float(np.clip(x[0], 0.0, 1.0)), inclination_deg=inc)
+    def make(params: np.ndarray) -> Tilt:
+        return Tilt(fraction=float(np.clip(params[0], 0.0, 1.0)), inclination_deg=inclination_deg)
 
-    f = float(np.clip(_refine(make, np.array([f0]), "tilt", real, base, layout)[0], 0.0, 1.0))
-    return Fit(Tilt(fraction=round(f, 4), inclination_deg=inc), {"fraction": se[c]})
+    fraction = float(
+        np.clip(_refine(make, np.array([fraction0]), "tilt", real, baseline, layout)[0], 0.0, 1.0)
+    )
+    return Fit(
+        Tilt(fraction=round(fraction, 4), inclination_deg=inclination_deg), {"fraction": se[cell]}
+    )
 
 
 def fit_heading_lag(
-    real: HeadingSeries, base: Sequence[HeadingSeries], layout: CompassLayout
+    real: HeadingSeries, baseline: Sequence[HeadingSeries], layout: CompassLayout
 ) -> Fit | None:
     """Lags add at low frequency (group delays of cascaded first-order filters sum), so the
     extra lag is the lag-cell difference. No simulation refinement: the lag layer is a
     per-sample recursion, and the linear estimate is unbiased for turn rates that change
     slowly against tau."""
-    d, se = _coef_diff(real, base, layout)
-    c = Cell("lag_s", AXIS, "turn rate")
-    lag = d[c]
-    if lag <= 1e-3:
+    diff, se = _coef_diff(real, baseline, layout)
+    cell = Cell("lag_s", AXIS, "turn rate")
+    lag_s = diff[cell]
+    if lag_s <= 1e-3:
         return None
     # The layer's exact discretisation y_k = y_(k-1) + (1 - phi)(x_k - y_(k-1)) lags a ramp
     # by dt phi / (1 - phi), not tau: invert that (tau = dt / ln(1 + dt / lag)).
-    dt = layout.dt_s
-    tau = dt / math.log1p(dt / lag)
-    dtau = dt * dt / (lag * (lag + dt) * math.log1p(dt / lag) ** 2)  # d tau / d lag
-    return Fit(HeadingLag(tau_s=round(tau, 4)), {"tau_s": se[c] * dtau})
+    dt_s = layout.dt_s
+    tau_s = dt_s / math.log1p(dt_s / lag_s)
+    dtau_dlag = (
+        dt_s * dt_s / (lag_s * (lag_s + dt_s) * math.log1p(dt_s / lag_s) ** 2)
+    )  # d tau / d lag
+    return Fit(HeadingLag(tau_s=round(tau_s, 4)), {"tau_s": se[cell] * dtau_dlag})
 
 
 # The compass effects: fitter and fingerprint (the (statistic, scale) cells each moves: what
@@ -435,10 +479,10 @@ def apply_fits(
 ) -> list[HeadingSeries]:
     """Each run with the fitted compass layers applied in order."""
     out = []
-    for s in runs:
-        for f in fits:
-            s = f.effect.apply(s, rng)
-        out.append(s)
+    for run in runs:
+        for fit in fits:
+            run = fit.effect.apply(run, rng)
+        out.append(run)
     return out
 
 
@@ -538,17 +582,17 @@ def diagnose_compass(
     return CompassPipeline(options or CompassOptions(), rng, progress).run(real, baseline)
 
 
-def compass_report_dict(d: CompassDiagnosis) -> dict[str, Any]:
+def compass_report_dict(diagnosis: CompassDiagnosis) -> dict[str, Any]:
     """The compass half in report.json's shape (keys as the GPS side's)."""
-    return pipeline.report_dict(d)
+    return pipeline.report_dict(diagnosis)
 
 
-def compass_verdict_text(d: CompassDiagnosis) -> str:
-    if not d.significant:
+def compass_verdict_text(diagnosis: CompassDiagnosis) -> str:
+    if not diagnosis.significant:
         return "compass: no significant gap"
-    if d.explained:
-        names = " + ".join(f.name for f in d.selected)
-        return f"compass: gap explained by {names} (held-out closure {d.closure:.2f})"
+    if diagnosis.explained:
+        names = " + ".join(f.name for f in diagnosis.selected)
+        return f"compass: gap explained by {names} (held-out closure {diagnosis.closure:.2f})"
     return "compass: gap not explained by any known compass effect"
 
 
@@ -572,18 +616,20 @@ def drive_track(
     from sim_backend.effects import gauss_markov_noise
     from sim_backend.vehicle import Terrain
 
-    t = np.arange(0.0, duration_s + 0.5 * dt_s, dt_s)
-    rate = 4.0 + 30.0 * np.sin(2 * np.pi * t / 97.0) + 8.0 * np.sin(2 * np.pi * t / 23.0)
-    h = wrap360(np.concatenate(([0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * dt_s))))
-    terr = Terrain(slope[0], slope[1])
-    pr = np.array([terr.attitude_deg(float(x)) for x in h])
-    bumps = gauss_markov_noise(t, bump_deg, bump_tau_s, rng, 2)
+    t_s = np.arange(0.0, duration_s + 0.5 * dt_s, dt_s)
+    rate_dps = 4.0 + 30.0 * np.sin(2 * np.pi * t_s / 97.0) + 8.0 * np.sin(2 * np.pi * t_s / 23.0)
+    heading_deg = wrap360(
+        np.concatenate(([0.0], np.cumsum(0.5 * (rate_dps[1:] + rate_dps[:-1]) * dt_s)))
+    )
+    terrain = Terrain(slope[0], slope[1])
+    pitch_roll_deg = np.array([terrain.attitude_deg(float(heading)) for heading in heading_deg])
+    bumps = gauss_markov_noise(t_s, bump_deg, bump_tau_s, rng, 2)
     return HeadingSeries(
-        t_s=t,
-        heading_deg=h.copy(),
-        pitch_deg=pr[:, 0] + bumps[0],
-        roll_deg=pr[:, 1] + bumps[1],
-        true_heading_deg=h,
+        t_s=t_s,
+        heading_deg=heading_deg.copy(),
+        pitch_deg=pitch_roll_deg[:, 0] + bumps[0],
+        roll_deg=pitch_roll_deg[:, 1] + bumps[1],
+        true_heading_deg=heading_deg,
     )
 
 
@@ -600,27 +646,33 @@ def simulate_compass(
     the true (heading, pitch, roll) to the heading handed to the device (a scenario's tilt
     layers, as ``x6wd sim`` applies them); None: the true heading."""
     errs = errors or CompassErrors(noise_ut=0.3)
-    dev = SimCmps10(
+    device = SimCmps10(
         field_model=field_model or MagneticField(),
         errors=errs,
         rng=rng if errs.noise_ut > 0 else None,
     )
     assert truth.true_heading_deg is not None
-    n = len(truth)
-    bearing, fld = np.empty(n), np.empty(n)
-    t = np.asarray(truth.t_s, dtype=float)
-    h, p, r = (np.asarray(a, dtype=float) for a in (truth.true_heading_deg, truth.pitch_deg,
-                                                     truth.roll_deg))  # fmt: skip
-    for k in range(n):
-        hk = float(h[k]) if device_heading is None else device_heading(h[k], p[k], r[k])
-        dev.set_state(float(t[k]), hk, float(p[k]), float(r[k]))
-        bearing[k] = dev.bearing_deg
-        fld[k] = float(np.linalg.norm(dev._mag_body))
+    n_samples = len(truth)
+    bearing_deg, field_ut = np.empty(n_samples), np.empty(n_samples)
+    t_s = np.asarray(truth.t_s, dtype=float)
+    heading_deg, pitch_deg, roll_deg = (
+        np.asarray(a, dtype=float)
+        for a in (truth.true_heading_deg, truth.pitch_deg, truth.roll_deg)
+    )
+    for i in range(n_samples):
+        device_heading_deg = (
+            float(heading_deg[i])
+            if device_heading is None
+            else device_heading(heading_deg[i], pitch_deg[i], roll_deg[i])
+        )
+        device.set_state(float(t_s[i]), device_heading_deg, float(pitch_deg[i]), float(roll_deg[i]))
+        bearing_deg[i] = device.bearing_deg
+        field_ut[i] = float(np.linalg.norm(device._mag_body))
     return truth.with_(
-        heading_deg=np.round(bearing, 1) % 360.0,
-        pitch_deg=np.clip(np.round(p), -85, 85),
-        roll_deg=np.clip(np.round(r), -85, 85),
-        field_ut=fld,
+        heading_deg=np.round(bearing_deg, 1) % 360.0,
+        pitch_deg=np.clip(np.round(pitch_deg), -85, 85),
+        roll_deg=np.clip(np.round(roll_deg), -85, 85),
+        field_ut=field_ut,
     )
 
 
@@ -632,27 +684,31 @@ def read_heading_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None
     (``x6wd sim``'s truth.csv); None when the file has no heading column."""
     import csv
 
-    p = Path(path)
+    csv_path = Path(path)
     try:
-        rows = list(csv.reader(p.read_text().splitlines()))
+        rows = list(csv.reader(csv_path.read_text().splitlines()))
     except (OSError, UnicodeDecodeError):
         return None
     if not rows:
         return None
-    head = [c.strip().lower() for c in rows[0]]
-    tcol = next((head.index(k) for k in ("t_s", "time", "t") if k in head), None)
-    hcol = next((head.index(k) for k in ("heading_deg", "heading") if k in head), None)
-    if tcol is None or hcol is None:
+    header = [c.strip().lower() for c in rows[0]]
+    t_col = next((header.index(k) for k in ("t_s", "time", "t") if k in header), None)
+    heading_col = next((header.index(k) for k in ("heading_deg", "heading") if k in header), None)
+    if t_col is None or heading_col is None:
         return None
-    a = np.array([[float(r[tcol]), float(r[hcol])] for r in rows[1:] if len(r) > hcol])
-    if a.shape[0] < 2:
+    table = np.array(
+        [[float(r[t_col]), float(r[heading_col])] for r in rows[1:] if len(r) > heading_col]
+    )
+    if table.shape[0] < 2:
         return None
-    return a[:, 0], a[:, 1]
+    return table[:, 0], table[:, 1]
 
 
-def _interp_heading(t: np.ndarray, tt: np.ndarray, hh: np.ndarray) -> np.ndarray:
+def _interp_heading(
+    t_s: np.ndarray, truth_t_s: np.ndarray, truth_heading_deg: np.ndarray
+) -> np.ndarray:
     """Heading interpolated along the shorter way round (unwrap, interpolate, wrap)."""
-    return wrap360(np.interp(t, tt, np.degrees(np.unwrap(np.radians(hh)))))
+    return wrap360(np.interp(t_s, truth_t_s, np.degrees(np.unwrap(np.radians(truth_heading_deg)))))
 
 
 def read_heading_series(
@@ -672,65 +728,78 @@ def read_heading_series(
     """
     from x6wd.core.recorder import is_recording, read_recording
 
-    p = Path(recording)
-    if not p.is_file() or not is_recording(p):
+    path = Path(recording)
+    if not path.is_file() or not is_recording(path):
         return None
-    att: list[tuple[float, float, float, float, float]] = []
-    cog: list[tuple[float, float]] = []
-    for rec in read_recording(p):
+    attitude: list[tuple[float, float, float, float, float]] = []
+    course: list[tuple[float, float]] = []
+    for rec in read_recording(path):
         if rec.type == "attitude" and rec.data.get("valid", True):
-            d = rec.data
-            mag = d.get("mag_ut")
-            fld = (
-                float(np.linalg.norm(mag)) if isinstance(mag, list) and len(mag) == 3 else math.nan
+            data = rec.data
+            mag_ut = data.get("mag_ut")
+            sample_field_ut = (
+                float(np.linalg.norm(mag_ut))
+                if isinstance(mag_ut, list) and len(mag_ut) == 3
+                else math.nan
             )
-            att.append(
+            attitude.append(
                 (
-                    float(d.get("t_s", rec.t_mono)),
-                    float(d["bearing_deg"]),
-                    float(d.get("pitch_deg", 0.0)),
-                    float(d.get("roll_deg", 0.0)),
-                    fld,
+                    float(data.get("t_s", rec.t_mono)),
+                    float(data["bearing_deg"]),
+                    float(data.get("pitch_deg", 0.0)),
+                    float(data.get("roll_deg", 0.0)),
+                    sample_field_ut,
                 )
             )
         elif rec.type == "fix":
-            d = rec.data
-            sp, crs = d.get("speed_mps"), d.get("course_deg")
-            if d.get("valid") and sp is not None and crs is not None and sp >= min_speed_mps:
-                cog.append((float(d.get("t_s", rec.t_mono)), float(crs)))
-    if len(att) < 100:
+            data = rec.data
+            speed_mps, course_deg = data.get("speed_mps"), data.get("course_deg")
+            if (
+                data.get("valid")
+                and speed_mps is not None
+                and course_deg is not None
+                and speed_mps >= min_speed_mps
+            ):
+                course.append((float(data.get("t_s", rec.t_mono)), float(course_deg)))
+    if len(attitude) < 100:
         return None
-    a = np.array(sorted(att))
-    a = a[np.concatenate(([True], np.diff(a[:, 0]) > 0))]
-    t = a[:, 0]
-    tr = read_heading_truth(truth) if truth is not None else None
-    if tr is None and (p.parent / "truth.csv").is_file():
-        tr = read_heading_truth(p.parent / "truth.csv")
-    if tr is not None:
-        tt, hh = tr
+    table = np.array(sorted(attitude))
+    table = table[np.concatenate(([True], np.diff(table[:, 0]) > 0))]
+    t_s = table[:, 0]
+    truth_table = read_heading_truth(truth) if truth is not None else None
+    if truth_table is None and (path.parent / "truth.csv").is_file():
+        truth_table = read_heading_truth(path.parent / "truth.csv")
+    if truth_table is not None:
+        truth_t_s, truth_heading_deg = truth_table
         # different clocks (no overlap): both are taken from their own start
-        t_al = t - t[0] + tt[0] if t[-1] < tt[0] or t[0] > tt[-1] else t
-        keep = (t_al >= tt[0]) & (t_al <= tt[-1])
-        true = _interp_heading(t_al[keep], tt, hh)
-    elif len(cog) >= 10:
-        c = np.array(sorted(cog))
-        idx = np.clip(np.searchsorted(c[:, 0], t), 1, len(c) - 1)
-        near = np.minimum(np.abs(c[idx, 0] - t), np.abs(c[idx - 1, 0] - t)) <= COG_MAX_GAP_S
-        keep = near & (t >= c[0, 0]) & (t <= c[-1, 0])
-        true = _interp_heading(t[keep], c[:, 0], c[:, 1])
+        overlap = not (t_s[-1] < truth_t_s[0] or t_s[0] > truth_t_s[-1])
+        t_aligned_s = t_s if overlap else t_s - t_s[0] + truth_t_s[0]
+        keep = (t_aligned_s >= truth_t_s[0]) & (t_aligned_s <= truth_t_s[-1])
+        true_heading_deg = _interp_heading(t_aligned_s[keep], truth_t_s, truth_heading_deg)
+    elif len(course) >= 10:
+        course_table = np.array(sorted(course))
+        index = np.clip(np.searchsorted(course_table[:, 0], t_s), 1, len(course_table) - 1)
+        near = (
+            np.minimum(
+                np.abs(course_table[index, 0] - t_s), np.abs(course_table[index - 1, 0] - t_s)
+            )
+            <= COG_MAX_GAP_S
+        )
+        keep = near & (t_s >= course_table[0, 0]) & (t_s <= course_table[-1, 0])
+        true_heading_deg = _interp_heading(t_s[keep], course_table[:, 0], course_table[:, 1])
     else:
         return None
     if np.count_nonzero(keep) < 100:
         return None
-    a = a[keep]
-    fld = a[:, 4]
+    table = table[keep]
+    field_ut = table[:, 4]
     return HeadingSeries(
-        t_s=a[:, 0] - a[0, 0],
-        heading_deg=a[:, 1],
-        pitch_deg=a[:, 2],
-        roll_deg=a[:, 3],
-        true_heading_deg=true,
-        field_ut=fld if np.all(np.isfinite(fld)) else None,
+        t_s=table[:, 0] - table[0, 0],
+        heading_deg=table[:, 1],
+        pitch_deg=table[:, 2],
+        roll_deg=table[:, 3],
+        true_heading_deg=true_heading_deg,
+        field_ut=field_ut if np.all(np.isfinite(field_ut)) else None,
     )
 
 

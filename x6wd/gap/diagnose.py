@@ -91,9 +91,9 @@ class Diagnosis(Outcome[PositionSeries, Layout]):
 
 def _lattice_decimals(series: Sequence[PositionSeries]) -> int | None:
     """The NMEA minute lattice every series lies on (None if not quantised)."""
-    for dec in QUANT_DECIMALS:
-        if all(lattice_fraction(s, dec) >= 0.99 for s in series[:3]):
-            return dec
+    for decimals in QUANT_DECIMALS:
+        if all(lattice_fraction(s, decimals) >= 0.99 for s in series[:3]):
+            return decimals
     return None
 
 
@@ -106,14 +106,14 @@ def apply_fits(
     """Each run with the effects added, then printed on the baseline's NMEA lattice again
     (a receiver prints its final position; an added error does not leave the lattice)."""
     out = []
-    eff_lattice = next((f.effect.decimals for f in fits if f.name == "quantization"), lattice)
-    for s in runs:
-        for f in fits:
-            if f.name != "quantization":
-                s = f.effect.apply(s, rng)
-        if eff_lattice is not None:
-            s = Quantization(decimals=int(eff_lattice)).apply(s, rng)
-        out.append(s)
+    lattice_now = next((fit.effect.decimals for fit in fits if fit.name == "quantization"), lattice)
+    for run in runs:
+        for fit in fits:
+            if fit.name != "quantization":
+                run = fit.effect.apply(run, rng)
+        if lattice_now is not None:
+            run = Quantization(decimals=int(lattice_now)).apply(run, rng)
+        out.append(run)
     return out
 
 
@@ -123,7 +123,7 @@ SIM_REFIT_EVALS = 30
 def simulation_refit(
     fit: Fit,
     others: Sequence[Fit],
-    real_b: dict[Cell, float],
+    real_battery: dict[Cell, float],
     runs: Sequence[PositionSeries],
     layout: Layout,
     lattice: int | None,
@@ -142,46 +142,48 @@ def simulation_refit(
     from scipy.optimize import minimize
 
     keys = SIM_REFIT.get(fit.name, ())
-    p0 = fit.effect.to_params()
-    if not keys or any(float(p0[k]) <= 0 for k in keys):
+    params0 = fit.effect.to_params()
+    if not keys or any(float(params0[k]) <= 0 for k in keys):
         return fit
-    x0 = np.log([float(p0[k]) for k in keys])
-    cls = type(fit.effect)
+    log_x0 = np.log([float(params0[k]) for k in keys])
+    effect_type = type(fit.effect)
 
-    def make(x: np.ndarray) -> Fit:
-        params = {k: v for k, v in p0.items() if k != "name"}
-        params.update({k: round(float(math.exp(v)), 6) for k, v in zip(keys, x, strict=True)})
+    def make(log_x: np.ndarray) -> Fit:
+        params = {k: value for k, value in params0.items() if k != "name"}
+        params.update(
+            {k: round(float(math.exp(value)), 6) for k, value in zip(keys, log_x, strict=True)}
+        )
         # a likelihood's curvature says nothing about a point it did not choose
-        return Fit(cls(**params), {**fit.se, **{k: math.nan for k in keys}})
+        return Fit(effect_type(**params), {**fit.se, **{k: math.nan for k in keys}})
 
-    def g_of(x: np.ndarray) -> float:
+    def g_of(log_x: np.ndarray) -> float:
         rng = np.random.default_rng(20_241)  # common random numbers across evaluations
-        with_runs = apply_fits([*others, make(x)], runs, rng, lattice)
-        return null_model([battery(s, layout) for s in with_runs]).gap(real_b, ref_sd)
+        with_runs = apply_fits([*others, make(log_x)], runs, rng, lattice)
+        return null_model([battery(s, layout) for s in with_runs]).gap(real_battery, ref_sd)
 
-    g0 = g_of(x0)
+    g0 = g_of(log_x0)
     moved = False
     if alt_start is not None and alt_start.name == fit.name:
-        pa = alt_start.effect.to_params()
-        if all(float(pa[k]) > 0 for k in keys):
-            xa = np.log([float(pa[k]) for k in keys])
-            ga = g_of(xa)
-            if ga < g0:
-                x0, g0, moved = xa, ga, True
-    res = minimize(
+        alt_params = alt_start.effect.to_params()
+        if all(float(alt_params[k]) > 0 for k in keys):
+            log_xa = np.log([float(alt_params[k]) for k in keys])
+            g_alt = g_of(log_xa)
+            if g_alt < g0:
+                log_x0, g0, moved = log_xa, g_alt, True
+    result = minimize(
         g_of,
-        x0,
+        log_x0,
         method="Nelder-Mead",
         options={
             "maxfev": SIM_REFIT_EVALS,
             "xatol": 0.02,
             "fatol": 1e-3,
-            "initial_simplex": np.vstack([x0, x0 + 0.3 * np.eye(len(keys))]),
+            "initial_simplex": np.vstack([log_x0, log_x0 + 0.3 * np.eye(len(keys))]),
         },
     )
-    if res.fun < g0:
-        return make(res.x)
-    return make(x0) if moved else fit
+    if result.fun < g0:
+        return make(result.x)
+    return make(log_x0) if moved else fit
 
 
 def _refit_whole(
@@ -194,30 +196,32 @@ def _refit_whole(
 ) -> list[Fit]:
     """Each selected effect refitted on the whole log on top of the baseline runs plus the
     other selected effects (its fit-part version kept when the refit fails)."""
-    names = [f.name for f in selected]
+    names = [fit.name for fit in selected]
     drift = next((n for n in names if n in DRIFTS), None)
     joint: dict[str, Fit] = {}
     if drift is not None:
         # the drift and the bias / latency beside it: one joint likelihood, on top of the
         # baseline plus the selected effects outside that family
-        rest = [g for g in selected if g.name != drift and g.name not in COMPANIONS]
-        base = apply_fits(rest, runs, rng, lattice) if rest else list(runs)
+        rest = [other for other in selected if other.name != drift and other.name not in COMPANIONS]
+        runs_with = apply_fits(rest, runs, rng, lattice) if rest else list(runs)
         flags = ("bias" in names, "latency" in names)
-        joint = {f.name: f for f in joint_drift_fits(real, base, layout, drift, flags)}
+        joint = {fit.name: fit for fit in joint_drift_fits(real, runs_with, layout, drift, flags)}
     coarse = "quantization" in names
-    real_b = battery(real, layout) if coarse else {}
+    real_battery = battery(real, layout) if coarse else {}
     out = []
-    for f in selected:
-        others = [g for g in selected if g is not f]
-        if f.name in joint:
-            whole: Fit | None = joint[f.name]
+    for fit in selected:
+        others = [other for other in selected if other is not fit]
+        if fit.name in joint:
+            whole: Fit | None = joint[fit.name]
         else:
-            base = apply_fits(others, runs, rng, lattice) if others else list(runs)
-            whole = FITTERS[f.name](real, base, layout)
-        if whole is not None and coarse and f.name in SIM_REFIT:
+            runs_with = apply_fits(others, runs, rng, lattice) if others else list(runs)
+            whole = FITTERS[fit.name](real, runs_with, layout)
+        if whole is not None and coarse and fit.name in SIM_REFIT:
             # the fit-part fit was already refined by simulation: a second start
-            whole = simulation_refit(whole, others, real_b, runs, layout, lattice, alt_start=f)
-        out.append(whole if whole is not None else f)
+            whole = simulation_refit(
+                whole, others, real_battery, runs, layout, lattice, alt_start=fit
+            )
+        out.append(whole if whole is not None else fit)
     return out
 
 
@@ -315,23 +319,26 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
     def rank(self, names: Sequence[str], cells: Sequence[Cell], z: np.ndarray) -> list[str]:
         return sorted(names, key=lambda n: -fingerprint_score(EFFECTS[n].fingerprint, cells, z))
 
-    def plan_round(self, rnd: Round[PositionSeries], outcome: Diagnosis) -> None:
-        sp = self.split
-        mean_cells = np.array([c.statistic == "mean" for c in rnd.fit_null.cells])
+    def plan_round(self, this_round: Round[PositionSeries], outcome: Diagnosis) -> None:
+        split = self.split
+        mean_cells = np.array([c.statistic == "mean" for c in this_round.fit_null.cells])
         self.plan = RoundPlan(
             lattice=next(
-                (int(f.effect.decimals) for f in rnd.selected if f.name == "quantization"),
+                (int(f.effect.decimals) for f in this_round.selected if f.name == "quantization"),
                 self.lattice,
             ),
-            bias_flagged=bool(np.any(np.abs(rnd.z_fit[mean_cells]) > 3.0)),
+            bias_flagged=bool(np.any(np.abs(this_round.z_fit[mean_cells]) > 3.0)),
             # A lattice is a fact, not an estimate: every real fix lies on a coarser NMEA
             # lattice than the baseline's. It enters the model first and the rest is fitted
             # through it (a look-alike, such as white noise of the rounding error's size, must
             # not take its place and then double-count the rounding).
             lattice_fact=(
-                rnd.index == 0
-                and "quantization" in rnd.names
-                and FITTERS["quantization"](sp.real_fit, rnd.current_fit, sp.fit_layout) is not None
+                this_round.index == 0
+                and "quantization" in this_round.names
+                and FITTERS["quantization"](
+                    split.real_fit, this_round.current_fit, split.fit_layout
+                )
+                is not None
             ),
         )
         # The drift family (bias, Gauss-Markov, random walk) is told apart by exact likelihood
@@ -339,20 +346,21 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         # current baseline's noise model): only the member(s) it names may be selected this
         # round. The battery G alone cannot separate them: over one log a random walk looks
         # like a bias plus a slow drift, or a Gauss-Markov drift longer than the log.
-        if not any(n in DRIFT_FAMILY for n in rnd.names):
+        if not any(n in DRIFT_FAMILY for n in this_round.names):
             return
         self.say(
-            f"round {rnd.index + 1}: drift family by likelihood", self._round_progress(rnd.index)
+            f"round {this_round.index + 1}: drift family by likelihood",
+            self._round_progress(this_round.index),
         )
-        family = drift_fit(self.real, rnd.current, self.layout)
+        family = drift_fit(self.real, this_round.current, self.layout)
         # In the first round "none" is not an answer: whether a gap exists is the battery's
         # question (sim-vs-sim calibrated). Once an effect is in, "none" means the likelihood
         # sees no drift left, and no drift is added.
-        best_model = family.best_effect if rnd.index == 0 else family.best
+        best_model = family.best_effect if this_round.index == 0 else family.best
         self.plan.family_best = [] if best_model == "none" else best_model.split("+")
         ranks = sorted(family.models, key=family.bic)
         outcome.notes.append(
-            f"round {rnd.index + 1}: drift family by exact likelihood on the whole log: "
+            f"round {this_round.index + 1}: drift family by exact likelihood on the whole log: "
             f"{best_model} (BIC, lower is better, relative to it: "
             + ", ".join(
                 f"{m} {family.bic(m) - family.bic(best_model):+.1f}"
@@ -362,51 +370,57 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
             + ")"
         )
 
-    def consider(self, rnd: Round[PositionSeries], name: str, fit: Fit) -> Option:
-        sp, plan = self.split, self.plan
+    def consider(self, this_round: Round[PositionSeries], name: str, fit: Fit) -> Option:
+        split, plan = self.split, self.plan
         family_best = plan.family_best
         in_family = name in DRIFT_FAMILY
         eligible = not in_family or bool(family_best and family_best[0] == name)
         if plan.lattice != self.lattice and eligible and name in SIM_REFIT:
             fit = simulation_refit(
-                fit, rnd.selected, sp.real_fit_battery, sp.baseline_fit, sp.fit_layout,
-                plan.lattice, sp.ref_sd_fit,
+                fit, this_round.selected, split.real_fit_battery, split.baseline_fit,
+                split.fit_layout, plan.lattice, split.ref_sd_fit,
             )  # fmt: skip
-        key, g_effect, null, with_runs = self.evaluate([*rnd.selected, fit])
+        key, g_effect, null, with_runs = self.evaluate([*this_round.selected, fit])
         fits, g_fits = [fit], g_effect
         forced: list[str] = []  # companions named beside it by the likelihood
-        comps = [c for c in family_best[1:] if c in COMPANIONS and c in rnd.names and c != name]
-        if in_family and eligible and comps and name in DRIFTS:
+        companions = [
+            c for c in family_best[1:] if c in COMPANIONS and c in this_round.names and c != name
+        ]
+        if in_family and eligible and companions and name in DRIFTS:
             # the likelihood names this drift WITH companions: all from one joint fit
-            flags = ("bias" in comps, "latency" in comps)
-            joint = joint_drift_fits(sp.real_fit, rnd.current_fit, sp.fit_layout, name, flags)
+            flags = ("bias" in companions, "latency" in companions)
+            joint = joint_drift_fits(
+                split.real_fit, this_round.current_fit, split.fit_layout, name, flags
+            )
             if len(joint) > 1:
                 fits = joint
                 forced = [f.name for f in joint[1:]]
-                key, g_fits, _null, with_runs = self.evaluate([*rnd.selected, *fits])
-        elif in_family and eligible and comps:  # bias named with a latency
-            for comp_name in comps:
-                comp = FITTERS[comp_name](
-                    sp.real_fit, [window(s, 0.0, sp.t_fit_s) for s in with_runs], sp.fit_layout
+                key, g_fits, _null, with_runs = self.evaluate([*this_round.selected, *fits])
+        elif in_family and eligible and companions:  # bias named with a latency
+            for companion_name in companions:
+                companion = FITTERS[companion_name](
+                    split.real_fit,
+                    [window(s, 0.0, split.t_fit_s) for s in with_runs],
+                    split.fit_layout,
                 )
-                if comp is not None:
-                    fits.append(comp)
-                    forced.append(comp_name)
-                    key, g_fits, _null, with_runs = self.evaluate([*rnd.selected, *fits])
+                if companion is not None:
+                    fits.append(companion)
+                    forced.append(companion_name)
+                    key, g_fits, _null, with_runs = self.evaluate([*this_round.selected, *fits])
         # A bias hides under any effect that widens the spread of means: when the likelihood
         # names one, try each candidate with a bias refitted on top and keep the pair if it
         # scores better (not otherwise: a walk's wandering mean is no bias).
         elif (
             eligible and name != "bias" and plan.bias_flagged and "bias" in family_best
-            and "bias" in rnd.names
+            and "bias" in this_round.names
         ):  # fmt: skip
-            comp = FITTERS["bias"](
-                sp.real_fit, [window(s, 0.0, sp.t_fit_s) for s in with_runs], sp.fit_layout
+            companion = FITTERS["bias"](
+                split.real_fit, [window(s, 0.0, split.t_fit_s) for s in with_runs], split.fit_layout
             )
-            if comp is not None:
-                key2, g_pair, _null, _runs = self.evaluate([*rnd.selected, fit, comp])
+            if companion is not None:
+                key2, g_pair, _null, _runs = self.evaluate([*this_round.selected, fit, companion])
                 if key2 < key:
-                    key, fits, g_fits = key2, [fit, comp], g_pair
+                    key, fits, g_fits = key2, [fit, companion], g_pair
         if plan.lattice_fact and name != "quantization":
             eligible = False
         keep = [*forced, *([name] if in_family else [])]  # what the likelihood named
@@ -427,13 +441,13 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
                 if refit is not None:
                     c.fit = refit
         if scored:
-            opt = self.options
+            options = self.options
             outcome.notes.append(
                 "parameters (+- standard errors) are fitted on the whole log (exact Kalman "
                 "likelihood for gauss_markov / random_walk on top of a noise model of the "
                 "baseline runs); each closure is that of the fit on the first "
-                f"{opt.fit_fraction:.0%} of the log, scored on the held-out last "
-                f"{1 - opt.fit_fraction - opt.guard_fraction:.0%} after a guard gap"
+                f"{options.fit_fraction:.0%} of the log, scored on the held-out last "
+                f"{1 - options.fit_fraction - options.guard_fraction:.0%} after a guard gap"
             )
         if selected != whole:
             outcome.notes.append(
@@ -455,23 +469,23 @@ def diagnose(
     return GpsPipeline(options or Options(), rng, progress).run(real, baseline)
 
 
-def report_dict(d: Diagnosis) -> dict[str, Any]:
+def report_dict(diagnosis: Diagnosis) -> dict[str, Any]:
     """The report.json content of the GPS half (keys fixed by the issue)."""
-    return pipeline.report_dict(d)
+    return pipeline.report_dict(diagnosis)
 
 
-def verdict_text(d: Diagnosis) -> str:
+def verdict_text(diagnosis: Diagnosis) -> str:
     """One line for people."""
-    if not d.significant:
+    if not diagnosis.significant:
         return "no significant gap"
-    ci = f", 90 % interval {d.closure_ci[0]:.2f}-{d.closure_ci[1]:.2f}"
-    if d.explained:
-        names = " + ".join(f.name for f in d.selected)
-        return f"gap explained by {names} (held-out closure {d.closure:.2f}{ci})"
-    if d.selected:
-        names = " + ".join(f.name for f in d.selected)
+    interval = f", 90 % interval {diagnosis.closure_ci[0]:.2f}-{diagnosis.closure_ci[1]:.2f}"
+    if diagnosis.explained:
+        names = " + ".join(f.name for f in diagnosis.selected)
+        return f"gap explained by {names} (held-out closure {diagnosis.closure:.2f}{interval})"
+    if diagnosis.selected:
+        names = " + ".join(f.name for f in diagnosis.selected)
         return (
             f"gap not explained by any known effect (best: {names}, held-out closure "
-            f"{d.closure:.2f}{ci}; {EXPLAINED_CLOSURE:g} needed)"
+            f"{diagnosis.closure:.2f}{interval}; {EXPLAINED_CLOSURE:g} needed)"
         )
     return "gap not explained by any known effect"

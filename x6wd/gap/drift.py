@@ -13,7 +13,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -47,13 +46,13 @@ def _n_params(name: str) -> int:
 @dataclass(frozen=True)
 class DriftFit:
     """Exact-likelihood fits of the drift family to one log on top of the baseline noise
-    model. ``loglik`` per model name (see :func:`drift_model_name`); ``gm``/``rw`` per
-    companion flags (bias, latency): (parameters, standard errors) in the effects' units;
-    ``nobs`` the scalar observations."""
+    model. ``loglik`` per model name (see :func:`drift_model_name`); per companion flags
+    (bias, latency), ``gauss_markov`` ((sigma_m, tau_s), their standard errors) and
+    ``random_walk`` (q_m_per_sqrt_s, its standard error); ``nobs`` the scalar observations."""
 
     loglik: dict[str, float]
-    gm: dict[Flags, tuple[tuple[float, float], tuple[float, float]]]
-    rw: dict[Flags, tuple[float, float]]
+    gauss_markov: dict[Flags, tuple[tuple[float, float], tuple[float, float]]]
+    random_walk: dict[Flags, tuple[float, float]]
     nobs: int
     model: NoiseModel
     # GLS companions at each model's optimum: model name -> (values, standard errors) in the
@@ -81,136 +80,166 @@ class DriftFit:
 
     def companions(self, drift: str) -> Flags:
         """The companion flags (bias, latency) with which ``drift`` has the lowest BIC."""
-        return min(self.gm, key=lambda f: self.bic(drift_model_name(drift, f)))
+        return min(self.gauss_markov, key=lambda f: self.bic(drift_model_name(drift, f)))
 
 
 _DRIFT_CACHE: IdentityCache[DriftFit] = IdentityCache(6)
 
 
-def drift_fit(real: PositionSeries, base: Sequence[PositionSeries], layout: Layout) -> DriftFit:
-    """Fit the drift family to ``real`` on top of the baseline noise model of ``base``: a
-    coarse grid over (sigma, tau) and q, then three zooms around each maximum, all in batched
-    exact Kalman likelihoods; standard errors from the curvature of the log-likelihood
-    (a quadratic through the last zoom grid, in log-parameters). Cached per (real, base)."""
-    return _DRIFT_CACHE.get([real, *base], (), lambda: _fit_drift(real, base, layout))
+def drift_fit(real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout) -> DriftFit:
+    """Fit the drift family to ``real`` (errors, m) on top of the noise model of the
+    ``baseline`` runs: a coarse grid over (sigma, tau) and q, then zooms around each maximum,
+    all in batched exact Kalman likelihoods; standard errors from the curvature of the
+    log-likelihood (a quadratic through the last zoom grid, in log-parameters). Cached per
+    (real, baseline)."""
+    return _DRIFT_CACHE.get([real, *baseline], (), lambda: _fit_drift(real, baseline, layout))
 
 
-def _fit_drift(real: PositionSeries, base: Sequence[PositionSeries], layout: Layout) -> DriftFit:
-    model = noise_model(base, layout)
-    dt = layout.dt_s
-    span = max(layout.duration_s, 10 * dt)
+@dataclass
+class _Zoom:
+    """One zoom of :func:`_fit_drift` (a drift kind under companion flags): its centre and
+    half-widths in log-parameters ((log q, log tau) for "gm", (log q,) for "rw"), halvings so
+    far, and its last grid (points, log-likelihoods, GLS companions at the best point)."""
+
+    centre: np.ndarray
+    half_width: np.ndarray
+    halvings: int = 0
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    loglik: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    gls: tuple[np.ndarray, np.ndarray] | None = None
+    scored: bool = False
+
+
+def _gm_variance_m2(log_q: np.ndarray, log_tau: np.ndarray) -> np.ndarray:
+    """Stationary variance sigma^2 (m^2) of a Gauss-Markov drift of increment rate q
+    (m/sqrt(s)) and correlation time tau (s): sigma^2 = q^2 tau / 2."""
+    return np.exp(2 * log_q + log_tau) / 2
+
+
+def _fit_drift(
+    real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout
+) -> DriftFit:
+    model = noise_model(baseline, layout)
+    dt_s = layout.dt_s
+    span_s = max(layout.duration_s, 10 * dt_s)
     # A Gauss-Markov drift is searched in (log q, log tau) with q^2 = 2 sigma^2 / tau its
     # short-term increment rate: the likelihood ridge (increments pin q, the levels tau) is
     # then aligned with the grid, and q is on the random walk's scale.
-    lt = np.linspace(math.log(2 * dt), math.log(10 * span), 12)
-    lq = np.linspace(math.log(1e-4), math.log(10.0), 15)
-    g_t, g_s = (a.ravel() for a in np.meshgrid(lt, lq))
-    n_gm = g_t.size
-
-    def gm_var(lq_: np.ndarray, lt_: np.ndarray) -> np.ndarray:
-        return np.exp(2 * lq_ + lt_) / 2  # sigma^2 = q^2 tau / 2
-
-    eff_var = np.concatenate([gm_var(g_s, g_t), np.exp(2 * lq), [0.0]])
-    eff_tau = np.concatenate([np.exp(g_t), np.full(lq.size, np.inf), [1.0]])
-    kt = kalman_terms(real, model, eff_var, eff_tau)
+    log_tau_axis = np.linspace(math.log(2 * dt_s), math.log(10 * span_s), 12)
+    log_q_axis = np.linspace(math.log(1e-4), math.log(10.0), 15)
+    grid_log_tau, grid_log_q = (a.ravel() for a in np.meshgrid(log_tau_axis, log_q_axis))
+    n_gm = grid_log_tau.size
+    # one batch: the Gauss-Markov grid, the random-walk axis, and no effect (last)
+    effect_var = np.concatenate(
+        [_gm_variance_m2(grid_log_q, grid_log_tau), np.exp(2 * log_q_axis), [0.0]]
+    )
+    effect_tau_s = np.concatenate([np.exp(grid_log_tau), np.full(log_q_axis.size, np.inf), [1.0]])
+    terms = kalman_terms(real, model, effect_var, effect_tau_s)
     flag_set: list[Flags] = [(False, False), (True, False)]
-    if kt.has_latency:
+    if terms.has_latency:
         flag_set += [(False, True), (True, True)]
-    lik = {f: kt.loglik(*f) for f in flag_set}
-    loglik = {drift_model_name(None, f): float(lik[f][-1]) for f in flag_set}
+    coarse = {flags: terms.loglik(*flags) for flags in flag_set}
+    loglik = {drift_model_name(None, flags): float(coarse[flags][-1]) for flags in flag_set}
     coefs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for f in flag_set:
-        if any(f):
-            c, se_c = kt.coef(*f)
-            coefs[drift_model_name(None, f)] = (c[-1], se_c[-1])
-    # centres (log q, log tau) / log q and zoom half-widths, per companion flags
-    gm_c = {f: np.array([g_s[i], g_t[i]]) for f in lik for i in [int(np.argmax(lik[f][:n_gm]))]}
-    rw_c = {f: float(lq[int(np.argmax(lik[f][n_gm:-1]))]) for f in lik}
-    gm_h = np.array([lq[1] - lq[0], lt[1] - lt[0]])
-    rw_h = lq[1] - lq[0]
-    lo_t, hi_t = math.log(0.5 * dt), math.log(10 * span)
-    u = np.linspace(-1.0, 1.0, 5)
-    du_s, du_t = (a.ravel() for a in np.meshgrid(u, u))
-    last: dict[tuple[str, Flags], Any] = {}
-    # Zoom: a 5 x 5 (5) grid around each maximum; the grid halves only when the maximum is
-    # inside it, otherwise it moves (the coarse grid may have landed off the ridge).
-    tags = [(kind, f) for kind in ("gm", "rw") for f in flag_set]
-    shrinks = dict.fromkeys(tags, 0)
-    halves: dict[tuple[str, Flags], Any] = {
-        t: (gm_h.copy() if t[0] == "gm" else rw_h) for t in tags
-    }
-    for _zoom in range(8):
-        if min(shrinks.values()) >= 3:
+    for flags in flag_set:
+        if any(flags):
+            coef, se_coef = terms.coef(*flags)
+            coefs[drift_model_name(None, flags)] = (coef[-1], se_coef[-1])
+    # Zoom: a 5 x 5 (5) grid around each coarse maximum, per drift kind and companion flags;
+    # the grid halves only when the maximum is inside it, otherwise it moves (the coarse grid
+    # may have landed off the ridge).
+    step_log_q = log_q_axis[1] - log_q_axis[0]
+    zooms: dict[tuple[str, Flags], _Zoom] = {}
+    for flags in flag_set:
+        i = int(np.argmax(coarse[flags][:n_gm]))
+        zooms[("gm", flags)] = _Zoom(
+            np.array([grid_log_q[i], grid_log_tau[i]]),
+            np.array([step_log_q, log_tau_axis[1] - log_tau_axis[0]]),
+        )
+    for flags in flag_set:
+        i = int(np.argmax(coarse[flags][n_gm:-1]))
+        zooms[("rw", flags)] = _Zoom(np.array([log_q_axis[i]]), np.array([step_log_q]))
+    log_tau_min, log_tau_max = math.log(0.5 * dt_s), math.log(10 * span_s)
+    unit = np.linspace(-1.0, 1.0, 5)
+    unit_q, unit_tau = (a.ravel() for a in np.meshgrid(unit, unit))
+    for _round in range(8):
+        if min(z.halvings for z in zooms.values()) >= 3:
             break
         batches = []
-        for f in flag_set:
-            gh, rh = halves[("gm", f)], halves[("rw", f)]
-            s_ = gm_c[f][0] + du_s * gh[0]
-            t_ = np.clip(gm_c[f][1] + du_t * gh[1], lo_t, hi_t)
-            batches.append((gm_var(s_, t_), np.exp(t_), ("gm", f, np.stack([s_, t_], 1))))
-            q_ = rw_c[f] + u * rh
-            batches.append((np.exp(2 * q_), np.full(u.size, np.inf), ("rw", f, q_[:, None])))
-        kt = kalman_terms(
+        for flags in flag_set:
+            gm, rw = zooms[("gm", flags)], zooms[("rw", flags)]
+            log_q = gm.centre[0] + unit_q * gm.half_width[0]
+            log_tau = np.clip(gm.centre[1] + unit_tau * gm.half_width[1], log_tau_min, log_tau_max)
+            batches.append(
+                (_gm_variance_m2(log_q, log_tau), np.exp(log_tau), ("gm", flags),
+                 np.stack([log_q, log_tau], 1))
+            )  # fmt: skip
+            log_q_rw = rw.centre[0] + unit * rw.half_width[0]
+            batches.append(
+                (np.exp(2 * log_q_rw), np.full(unit.size, np.inf), ("rw", flags),
+                 log_q_rw[:, None])
+            )  # fmt: skip
+        terms = kalman_terms(
             real,
             model,
-            np.concatenate([x[0] for x in batches]),
-            np.concatenate([x[1] for x in batches]),
+            np.concatenate([b[0] for b in batches]),
+            np.concatenate([b[1] for b in batches]),
         )
-        off = 0
-        for ev, _et, (kind, f, pts) in batches:
-            ll = kt.loglik(*f)[off : off + ev.size]
-            off += ev.size
-            j = int(np.argmax(ll))
-            tag = (kind, f)
-            if tag in last and shrinks[tag] >= 3:
+        offset = 0
+        for var, _tau, key, points in batches:
+            flags = key[1]
+            grid_loglik = terms.loglik(*flags)[offset : offset + var.size]
+            offset += var.size
+            j = int(np.argmax(grid_loglik))
+            zoom = zooms[key]
+            if zoom.scored and zoom.halvings >= 3:
                 continue  # this one has converged; keep its last grid
-            cf = kt.coef(*f) if any(f) else None
-            last[tag] = (
-                pts,
-                ll,
-                None if cf is None else (cf[0][off - ev.size + j], cf[1][off - ev.size + j]),
-            )
-            if kind == "gm":
-                gm_c[f] = pts[j]
-                at_bound = not lo_t + 1e-9 < pts[j, 1] < hi_t - 1e-9  # tau clipped
-                inside = abs(du_s[j]) < 1 and (abs(du_t[j]) < 1 or at_bound)
+            gls = terms.coef(*flags) if any(flags) else None
+            zoom.points, zoom.loglik, zoom.scored = points, grid_loglik, True
+            zoom.gls = (
+                None if gls is None
+                else (gls[0][offset - var.size + j], gls[1][offset - var.size + j])
+            )  # fmt: skip
+            zoom.centre = points[j]
+            if key[0] == "gm":
+                at_bound = not log_tau_min + 1e-9 < points[j, 1] < log_tau_max - 1e-9
+                inside = abs(unit_q[j]) < 1 and (abs(unit_tau[j]) < 1 or at_bound)
             else:
-                rw_c[f] = float(pts[j, 0])
-                inside = abs(u[j]) < 1
+                inside = abs(unit[j]) < 1
             if inside:
-                halves[tag] = halves[tag] / 2
-                shrinks[tag] += 1
-    gm: dict[Flags, tuple[tuple[float, float], tuple[float, float]]] = {}
-    rw: dict[Flags, tuple[float, float]] = {}
-    for kind, f in tags:
-        pts, ll, cf = last[(kind, f)]
-        best_ll = float(np.max(ll))
-        q = quadratic_peak(pts, ll)
-        centre = pts[int(np.argmax(ll))]
-        se = np.full(pts.shape[1], np.nan)
-        if q is not None:
-            vertex, cov = q
-            se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+                zoom.half_width = zoom.half_width / 2
+                zoom.halvings += 1
+    gauss_markov: dict[Flags, tuple[tuple[float, float], tuple[float, float]]] = {}
+    random_walk: dict[Flags, tuple[float, float]] = {}
+    for (kind, flags), zoom in zooms.items():
+        peak = quadratic_peak(zoom.points, zoom.loglik)
+        centre = zoom.points[int(np.argmax(zoom.loglik))]
+        se_log = np.full(zoom.points.shape[1], np.nan)
+        if peak is not None:
+            vertex, cov = peak
+            se_log = np.sqrt(np.clip(np.diag(cov), 0.0, None))
             # the vertex of the local quadratic when it lies inside the zoom grid
-            if np.all(np.abs(vertex - pts.mean(axis=0)) <= np.ptp(pts, axis=0) / 2):
+            if np.all(np.abs(vertex - zoom.points.mean(axis=0)) <= np.ptp(zoom.points, axis=0) / 2):
                 centre = vertex
-        name = "gauss_markov" if kind == "gm" else "random_walk"
-        loglik[drift_model_name(name, f)] = best_ll
-        if cf is not None:
-            coefs[drift_model_name(name, f)] = cf
+        name = drift_model_name("gauss_markov" if kind == "gm" else "random_walk", flags)
+        loglik[name] = float(np.max(zoom.loglik))
+        if zoom.gls is not None:
+            coefs[name] = zoom.gls
         if kind == "gm":
             # log sigma = log q + (log tau - log 2) / 2
-            sig = math.exp(centre[0] + (centre[1] - math.log(2.0)) / 2)
-            tau = math.exp(centre[1])
-            se_ls = float("nan")
-            if q is not None:
-                cov = q[1]
-                se_ls = math.sqrt(max(cov[0, 0] + cov[1, 1] / 4 + cov[0, 1], 0.0))
-            gm[f] = ((sig, tau), (sig * se_ls, tau * float(se[1])))
+            sigma_m = math.exp(centre[0] + (centre[1] - math.log(2.0)) / 2)
+            tau_s = math.exp(centre[1])
+            se_log_sigma = float("nan")
+            if peak is not None:
+                cov = peak[1]
+                se_log_sigma = math.sqrt(max(cov[0, 0] + cov[1, 1] / 4 + cov[0, 1], 0.0))
+            gauss_markov[flags] = (
+                (sigma_m, tau_s), (sigma_m * se_log_sigma, tau_s * float(se_log[1]))
+            )  # fmt: skip
         else:
-            q_val = math.exp(centre[0])
-            rw[f] = (q_val, q_val * float(se[0]))
-    return DriftFit(loglik, gm, rw, 2 * kt.nobs, model, coefs)
+            q = math.exp(centre[0])
+            random_walk[flags] = (q, q * float(se_log[0]))
+    return DriftFit(loglik, gauss_markov, random_walk, 2 * terms.nobs, model, coefs)
 
 
 # Random-walk rates (m/s^0.5) searched by :func:`random_walk_lr`: from far below anything a
@@ -225,46 +254,48 @@ def random_walk_lr(series: PositionSeries, model: NoiseModel) -> float:
     variance keeps growing with time where the battery's Allan deviations stop (a tenth of
     the log); its null comes from the baseline runs like any other cell, so it needs no
     asymptotic law. The bias is profiled in both models so a plain offset does not feed it."""
-    eff_var = np.concatenate([RW_LR_Q**2, [0.0]])
-    eff_tau = np.concatenate([np.full(RW_LR_Q.size, np.inf), [1.0]])
-    ll = kalman_terms(series, model, eff_var, eff_tau).loglik(True)
-    lr = float(np.max(ll[:-1]) - ll[-1])
-    return math.sqrt(2.0 * max(lr, 0.0))
+    effect_var = np.concatenate([RW_LR_Q**2, [0.0]])
+    effect_tau_s = np.concatenate([np.full(RW_LR_Q.size, np.inf), [1.0]])
+    loglik = kalman_terms(series, model, effect_var, effect_tau_s).loglik(True)
+    log_ratio = float(np.max(loglik[:-1]) - loglik[-1])
+    return math.sqrt(2.0 * max(log_ratio, 0.0))
 
 
 def fit_gauss_markov(
-    real: PositionSeries, base: Sequence[PositionSeries], layout: Layout
+    real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout
 ) -> Fit | None:
     """Horizontal GM (sigma_m, tau_s) by exact likelihood (Kalman filter on the valid epochs,
-    phi = exp(-dt/tau) with the actual steps) on top of the baseline noise model fitted to
-    ``base``; with a bias profiled out beside it when that lowers the BIC. Standard errors from
+    phi = exp(-dt/tau) with the actual steps) on top of the noise model of the ``baseline``
+    runs; with a bias profiled out beside it when that lowers the BIC. Standard errors from
     the curvature of the log-likelihood."""
     if len(real) < 32:
         return None
-    d = drift_fit(real, base, layout)
-    flags = d.companions("gauss_markov")
-    sigma, tau = d.gm[flags][0]
-    if not (math.isfinite(sigma) and math.isfinite(tau)) or sigma < 1e-4:
+    family = drift_fit(real, baseline, layout)
+    flags = family.companions("gauss_markov")
+    sigma_m, tau_s = family.gauss_markov[flags][0]
+    if not (math.isfinite(sigma_m) and math.isfinite(tau_s)) or sigma_m < 1e-4:
         return None
-    return drift_effect(d, "gauss_markov", flags, layout)
+    return drift_effect(family, "gauss_markov", flags, layout)
 
 
-def drift_effect(d: DriftFit, drift: str, flags: Flags, layout: Layout) -> Fit:
-    """The horizontal drift layer of ``d``'s fit with companions ``flags``, rounded for the
-    report; a Gauss-Markov tau is capped at ten log lengths (beyond, it is a walk or bias)."""
+def drift_effect(family: DriftFit, drift: str, flags: Flags, layout: Layout) -> Fit:
+    """The horizontal drift layer of ``family``'s fit with companions ``flags``, rounded for
+    the report; a Gauss-Markov tau is capped at ten log lengths (beyond, it is a walk or a
+    bias)."""
     if drift == "gauss_markov":
-        (sigma, tau), (se_s, se_t) = d.gm[flags]
+        (sigma_m, tau_s), (se_sigma_m, se_tau_s) = family.gauss_markov[flags]
+        tau_s = min(tau_s, 10 * layout.duration_s)
         return Fit(
-            GaussMarkov(sigma_m=round(sigma, 4), tau_s=round(min(tau, 10 * layout.duration_s), 3)),
-            {"sigma_m": se_s, "tau_s": se_t},
+            GaussMarkov(sigma_m=round(sigma_m, 4), tau_s=round(tau_s, 3)),
+            {"sigma_m": se_sigma_m, "tau_s": se_tau_s},
         )
-    q, se_q = d.rw[flags]
+    q, se_q = family.random_walk[flags]
     return Fit(RandomWalk(q_m_per_sqrt_s=round(q, 6)), {"q_m_per_sqrt_s": se_q})
 
 
 def joint_drift_fits(
     real: PositionSeries,
-    base: Sequence[PositionSeries],
+    baseline: Sequence[PositionSeries],
     layout: Layout,
     drift: str,
     flags: Flags,
@@ -273,20 +304,21 @@ def joint_drift_fits(
     ``flags`` say) from ONE exact-likelihood fit on top of the baseline noise model: the
     parameters of each are estimated with the others in the model, so a speed-correlated or
     constant error is not soaked up by the drift (and vice versa)."""
-    d = drift_fit(real, base, layout)
+    family = drift_fit(real, baseline, layout)
     name = drift_model_name(drift, flags)
-    if name not in d.loglik:
+    if name not in family.loglik:
         return []
-    out = [drift_effect(d, drift, flags, layout)]
-    coef, se = d.coefs.get(name, (np.zeros(0), np.zeros(0)))
+    out = [drift_effect(family, drift, flags, layout)]
+    coef, se = family.coefs.get(name, (np.zeros(0), np.zeros(0)))
     if flags[0] and coef.size >= 2:
-        up = fit_bias(real, base, layout)  # the GLS is horizontal; up from the means
+        up = fit_bias(real, baseline, layout)  # the GLS is horizontal; up from the means
         up_m = float(up.params.get("up_m", 0.0)) if up is not None else 0.0
-        up_se = float(up.se.get("up_m", 0.0)) if up is not None else 0.0
+        se_up_m = float(up.se.get("up_m", 0.0)) if up is not None else 0.0
+        east_m, north_m = round(float(coef[0]), 4), round(float(coef[1]), 4)
         out.append(
             Fit(
-                Bias(east_m=round(float(coef[0]), 4), north_m=round(float(coef[1]), 4), up_m=up_m),
-                {"east_m": float(se[0]), "north_m": float(se[1]), "up_m": up_se},
+                Bias(east_m=east_m, north_m=north_m, up_m=up_m),
+                {"east_m": float(se[0]), "north_m": float(se[1]), "up_m": se_up_m},
             )
         )
     if flags[1] and coef.size >= 1 and float(coef[-1]) > 0:
@@ -295,52 +327,56 @@ def joint_drift_fits(
 
 
 def fit_random_walk(
-    real: PositionSeries, base: Sequence[PositionSeries], layout: Layout
+    real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout
 ) -> Fit | None:
     """Horizontal random walk q (m/sqrt(s)) by exact likelihood on top of the baseline noise
     model: its increments are white with variance q^2 dt over the baseline's own increments,
     and its level starts at zero and spreads as q^2 t (the filter carries both)."""
     if len(real) < 32:
         return None
-    d = drift_fit(real, base, layout)
-    flags = d.companions("random_walk")
-    q = d.rw[flags][0]
+    family = drift_fit(real, baseline, layout)
+    flags = family.companions("random_walk")
+    q = family.random_walk[flags][0]
     if not math.isfinite(q) or q < 1e-6:
         return None
-    return drift_effect(d, "random_walk", flags, layout)
+    return drift_effect(family, "random_walk", flags, layout)
 
 
-def fit_bias(real: PositionSeries, base: Sequence[PositionSeries], layout: Layout) -> Fit | None:
-    """Bias = real mean - baseline mean per axis; standard error from the baseline's spread of
-    means (the honest sampling error of a time-correlated mean)."""
+def fit_bias(
+    real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout
+) -> Fit | None:
+    """Bias (m) = real mean - baseline mean per axis; standard error from the baseline's
+    spread of means (the honest sampling error of a time-correlated mean)."""
     axes = ("east_m", "north_m", "up_m") if layout.has_up else ("east_m", "north_m")
-    vals: dict[str, float] = {}
-    se: dict[str, float] = {}
-    v = np.asarray(real.valid, dtype=bool)
-    if not np.any(v):
+    bias_m: dict[str, float] = {}
+    se_m: dict[str, float] = {}
+    valid = np.asarray(real.valid, dtype=bool)
+    if not np.any(valid):
         return None
-    for ax in axes:
-        r = float(np.mean(np.asarray(getattr(real, ax))[v]))
-        b = np.array(
+    for axis in axes:
+        real_mean_m = float(np.mean(np.asarray(getattr(real, axis))[valid]))
+        run_means_m = np.array(
             [
-                float(np.mean(np.asarray(getattr(s, ax))[np.asarray(s.valid, dtype=bool)]))
-                for s in base
+                float(np.mean(np.asarray(getattr(s, axis))[np.asarray(s.valid, dtype=bool)]))
+                for s in baseline
             ]
         )
-        vals[ax] = round(r - float(b.mean()), 4)
-        se[ax] = float(b.std(ddof=1)) * math.sqrt(1 + 1 / len(base))
-    return Fit(Bias(**vals), se)
+        bias_m[axis] = round(real_mean_m - float(run_means_m.mean()), 4)
+        se_m[axis] = float(run_means_m.std(ddof=1)) * math.sqrt(1 + 1 / len(baseline))
+    return Fit(Bias(**bias_m), se_m)
 
 
-def fit_latency(real: PositionSeries, base: Sequence[PositionSeries], layout: Layout) -> Fit | None:
-    """Latency by exact GLS: the delay d whose error -d x velocity, with a bias per axis,
-    best explains the log on top of the baseline noise model (Kalman innovations of the
-    data, the ones and the velocity regressor; see :class:`KalmanTerms`)."""
+def fit_latency(
+    real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout
+) -> Fit | None:
+    """Latency by exact GLS: the delay (s) whose error -delay x velocity, with a bias per
+    axis, best explains the log on top of the baseline noise model (Kalman innovations of the
+    data, the ones and the velocity regressor; see :class:`x6wd.gap.kalman.KalmanTerms`)."""
     if not layout.moving or latency_regressor(real) is None:
         return None
-    kt = kalman_terms(real, noise_model(base, layout), np.zeros(1), np.ones(1))
-    coef, se = kt.coef(True, True)
-    delay, se_d = float(coef[0, -1]), float(se[0, -1])
-    if not math.isfinite(delay) or delay <= 0:
+    terms = kalman_terms(real, noise_model(baseline, layout), np.zeros(1), np.ones(1))
+    coef, se = terms.coef(True, True)
+    delay_s, se_delay_s = float(coef[0, -1]), float(se[0, -1])
+    if not math.isfinite(delay_s) or delay_s <= 0:
         return None
-    return Fit(Latency(delay_s=round(delay, 4)), {"delay_s": se_d})
+    return Fit(Latency(delay_s=round(delay_s, 4)), {"delay_s": se_delay_s})

@@ -40,38 +40,45 @@ __all__ = [
 
 
 def fit_quantization(
-    real: PositionSeries, base: Sequence[PositionSeries], layout: Layout
+    real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout
 ) -> Fit | None:
     """The coarsest NMEA minute lattice all real fixes lie on (exact), when the baseline is
     not already on it."""
-    for dec in QUANT_DECIMALS:
-        if lattice_fraction(real, dec) >= 0.99:
-            if np.mean([lattice_fraction(s, dec) for s in base]) >= 0.99:
+    for decimals in QUANT_DECIMALS:
+        if lattice_fraction(real, decimals) >= 0.99:
+            if np.mean([lattice_fraction(s, decimals) for s in baseline]) >= 0.99:
                 return None
-            return Fit(Quantization(decimals=dec), {"decimals": 0.0})
+            return Fit(Quantization(decimals=decimals), {"decimals": 0.0})
     return None
 
 
-def fit_outages(real: PositionSeries, base: Sequence[PositionSeries], layout: Layout) -> Fit | None:
+def fit_outages(
+    real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout
+) -> Fit | None:
     """Two-state Markov outages by maximum likelihood from the real log's valid/invalid runs
     (mean run lengths), when the real log loses its fix more often than the baseline."""
-    v = np.asarray(real.valid, dtype=bool)
-    if v.size < 3:
+    valid = np.asarray(real.valid, dtype=bool)
+    if valid.size < 3:
         return None
-    base_avail = float(np.mean([np.mean(np.asarray(s.valid, dtype=bool)) for s in base]))
-    if np.mean(v) >= base_avail:
+    baseline_availability = float(
+        np.mean([np.mean(np.asarray(s.valid, dtype=bool)) for s in baseline])
+    )
+    if np.mean(valid) >= baseline_availability:
         return None
-    d = np.diff(np.concatenate(([1], v.astype(int), [1])))
-    n_down = int(np.count_nonzero(d == -1))
+    edges = np.diff(np.concatenate(([1], valid.astype(int), [1])))
+    n_down = int(np.count_nonzero(edges == -1))
     if n_down == 0:
         return None
-    dt = layout.dt_s
-    up_s = float(np.count_nonzero(v)) * dt
-    down_s = float(np.count_nonzero(~v)) * dt
-    mean_up, mean_down = up_s / n_down, down_s / n_down
+    dt_s = layout.dt_s
+    up_s = float(np.count_nonzero(valid)) * dt_s
+    down_s = float(np.count_nonzero(~valid)) * dt_s
+    mean_up_s, mean_down_s = up_s / n_down, down_s / n_down
     return Fit(
-        Outages(mean_up_s=round(mean_up, 3), mean_down_s=round(max(mean_down, dt), 3)),
-        {"mean_up_s": mean_up / math.sqrt(n_down), "mean_down_s": mean_down / math.sqrt(n_down)},
+        Outages(mean_up_s=round(mean_up_s, 3), mean_down_s=round(max(mean_down_s, dt_s), 3)),
+        {
+            "mean_up_s": mean_up_s / math.sqrt(n_down),
+            "mean_down_s": mean_down_s / math.sqrt(n_down),
+        },
     )
 
 

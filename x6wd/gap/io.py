@@ -49,21 +49,21 @@ def _track(rows: list[tuple[float, ...]], source: str) -> Track:
     of a time stamp dropped (first kept)."""
     if not rows:
         raise ParseError(f"{source}: no position epochs found")
-    a = np.array(rows, dtype=float)
-    order = np.argsort(a[:, 0], kind="stable")
-    a = a[order]
-    keep = np.concatenate(([True], np.diff(a[:, 0]) > 0))
-    a = a[keep]
-    valid = (a[:, 4] > 0) & np.isfinite(a[:, 1]) & np.isfinite(a[:, 2])
+    table = np.array(rows, dtype=float)
+    order = np.argsort(table[:, 0], kind="stable")
+    table = table[order]
+    keep = np.concatenate(([True], np.diff(table[:, 0]) > 0))
+    table = table[keep]
+    valid = (table[:, 4] > 0) & np.isfinite(table[:, 1]) & np.isfinite(table[:, 2])
     return Track(
-        t_s=a[:, 0],
-        lat_deg=a[:, 1],
-        lon_deg=a[:, 2],
-        alt_m=a[:, 3],
+        t_s=table[:, 0],
+        lat_deg=table[:, 1],
+        lon_deg=table[:, 2],
+        alt_m=table[:, 3],
         valid=valid,
-        nsats=a[:, 5],
-        speed_mps=a[:, 6],
-        course_deg=a[:, 7],
+        nsats=table[:, 5],
+        speed_mps=table[:, 6],
+        course_deg=table[:, 7],
         source=source,
     )
 
@@ -72,29 +72,29 @@ def fill_missing_epochs(track: Track) -> Track:
     """Insert no-fix epochs where a regularly sampled log skips epochs (RTKLIB and CSV logs
     simply omit unsolved epochs; the gap tool must see them as outages). Logs whose times are
     not regular (e.g. NMEA without dates) are returned unchanged."""
-    t = track.t_s
-    if t.size < 3:
+    t_s = track.t_s
+    if t_s.size < 3:
         return track
-    d = np.diff(t)
-    dt = float(np.min(d)) if d.size else 0.0
-    if dt <= 0 or np.mean(np.abs(d / dt - np.round(d / dt)) < 0.1) < 0.9:
+    steps_s = np.diff(t_s)
+    dt_s = float(np.min(steps_s)) if steps_s.size else 0.0
+    if dt_s <= 0 or np.mean(np.abs(steps_s / dt_s - np.round(steps_s / dt_s)) < 0.1) < 0.9:
         return track
-    k = np.round((t - t[0]) / dt).astype(int)
-    if k[-1] > 20 * t.size:  # a huge hole is not a run of missed epochs
+    slot = np.round((t_s - t_s[0]) / dt_s).astype(int)
+    if slot[-1] > 20 * t_s.size:  # a huge hole is not a run of missed epochs
         return track
-    n = int(k[-1]) + 1
-    first = np.concatenate(([True], np.diff(k) > 0))
-    k, rows = k[first], np.flatnonzero(first)
+    n_slots = int(slot[-1]) + 1
+    first = np.concatenate(([True], np.diff(slot) > 0))
+    slot, rows = slot[first], np.flatnonzero(first)
 
     def spread(a: np.ndarray, fill: float) -> np.ndarray:
-        out = np.full(n, fill, dtype=float)
-        out[k] = a[rows]
+        out = np.full(n_slots, fill, dtype=float)
+        out[slot] = a[rows]
         return out
 
-    valid = np.zeros(n, dtype=bool)
-    valid[k] = track.valid[rows]
+    valid = np.zeros(n_slots, dtype=bool)
+    valid[slot] = track.valid[rows]
     return Track(
-        t_s=t[0] + np.arange(n) * dt,
+        t_s=t_s[0] + np.arange(n_slots) * dt_s,
         lat_deg=spread(track.lat_deg, math.nan),
         lon_deg=spread(track.lon_deg, math.nan),
         alt_m=spread(track.alt_m, math.nan),
@@ -114,47 +114,48 @@ def read_track(path: str | Path) -> Track:
 
 
 def _read_any(path: str | Path) -> Track:
-    p = Path(path)
+    log_path = Path(path)
     try:
-        raw = p.read_bytes()
+        raw = log_path.read_bytes()
     except OSError as exc:
-        raise DeviceUnavailable(f"cannot read {p}: {exc}") from exc
-    head = raw.lstrip()[:1]
-    if head == b"{":
-        return _read_recording(p)
+        raise DeviceUnavailable(f"cannot read {log_path}: {exc}") from exc
+    first_byte = raw.lstrip()[:1]
+    if first_byte == b"{":
+        return _read_recording(log_path)
     text = raw.decode("utf-8", errors="replace")
-    if p.suffix.lower() == ".pos" or text.lstrip().startswith("%"):
-        return _read_pos(text, str(p))
-    if b"$GP" in raw[:4096] or b"$GN" in raw[:4096] or head == b"$":
-        return _read_nmea(raw, str(p))
-    return _read_csv(text, str(p))
+    if log_path.suffix.lower() == ".pos" or text.lstrip().startswith("%"):
+        return _read_pos(text, str(log_path))
+    if b"$GP" in raw[:4096] or b"$GN" in raw[:4096] or first_byte == b"$":
+        return _read_nmea(raw, str(log_path))
+    return _read_csv(text, str(log_path))
 
 
 def _fix_row(fix: object) -> tuple[float, ...]:
-    g = fix  # GpsFix or a dict with the same fields
-    get = g.get if isinstance(g, dict) else (lambda k, d=None: getattr(g, k, d))
+    """(t s, lat deg, lon deg, alt m, valid 0/1, satellites used (-1 unknown), speed m/s,
+    course deg) of a GpsFix or a dict with the same fields."""
+    get = fix.get if isinstance(fix, dict) else (lambda k, d=None: getattr(fix, k, d))
     utc = get("utc")
-    t = get("t_s")
+    t_s = get("t_s")
     if isinstance(utc, datetime):
-        t = utc.replace(tzinfo=UTC).timestamp() if utc.tzinfo is None else utc.timestamp()
+        t_s = utc.replace(tzinfo=UTC).timestamp() if utc.tzinfo is None else utc.timestamp()
     elif isinstance(utc, str) and utc:
         with contextlib.suppress(ValueError):
-            t = datetime.fromisoformat(utc.replace("Z", "+00:00")).timestamp()
-    lat, lon, alt = get("lat_deg"), get("lon_deg"), get("alt_m")
-    valid = bool(get("valid", False)) and lat is not None and lon is not None
-    sats = get("sats_used")
-    speed, course = get("speed_mps"), get("course_deg")
-    if t is None:
+            t_s = datetime.fromisoformat(utc.replace("Z", "+00:00")).timestamp()
+    lat_deg, lon_deg, alt_m = get("lat_deg"), get("lon_deg"), get("alt_m")
+    valid = bool(get("valid", False)) and lat_deg is not None and lon_deg is not None
+    sats_used = get("sats_used")
+    speed_mps, course_deg = get("speed_mps"), get("course_deg")
+    if t_s is None:
         raise ParseError("fix without a time")
     return (
-        float(t),
-        float(lat) if lat is not None else math.nan,
-        float(lon) if lon is not None else math.nan,
-        float(alt) if alt is not None else math.nan,
+        float(t_s),
+        float(lat_deg) if lat_deg is not None else math.nan,
+        float(lon_deg) if lon_deg is not None else math.nan,
+        float(alt_m) if alt_m is not None else math.nan,
         1.0 if valid else 0.0,
-        float(sats) if sats is not None else -1.0,
-        float(speed) if speed is not None else math.nan,
-        float(course) if course is not None else math.nan,
+        float(sats_used) if sats_used is not None else -1.0,
+        float(speed_mps) if speed_mps is not None else math.nan,
+        float(course_deg) if course_deg is not None else math.nan,
     )
 
 
@@ -162,11 +163,13 @@ def _decode_nmea_lines(lines: list[tuple[float, bytes]], source: str) -> Track:
     from drivers.gps_nmea import GpsDecoder
     from x6wd.core.records import GpsFix
 
-    dec = GpsDecoder(emit_sentences=False)
+    decoder = GpsDecoder(emit_sentences=False)
     rows: list[tuple[float, ...]] = []
     for t_s, chunk in lines:
-        rows.extend(_fix_row(r) for r in dec.feed(chunk, t_s) if isinstance(r, GpsFix))
-    rows.extend(_fix_row(r) for r in dec.flush() if isinstance(r, GpsFix))
+        rows.extend(
+            _fix_row(record) for record in decoder.feed(chunk, t_s) if isinstance(record, GpsFix)
+        )
+    rows.extend(_fix_row(record) for record in decoder.flush() if isinstance(record, GpsFix))
     return _track(rows, source)
 
 
@@ -178,12 +181,12 @@ def _read_nmea(raw: bytes, source: str) -> Track:
     )
 
 
-def _read_recording(p: Path) -> Track:
+def _read_recording(path: Path) -> Track:
     from x6wd.core.recorder import read_recording
 
     rows: list[tuple[float, ...]] = []
     nmea: list[tuple[float, bytes]] = []
-    for rec in read_recording(p):
+    for rec in read_recording(path):
         if rec.type == "fix":
             data = dict(rec.data)
             data.setdefault("t_s", rec.t_mono)
@@ -192,10 +195,10 @@ def _read_recording(p: Path) -> Track:
             text = rec.data.get("text") or rec.data.get("sentence") or rec.data.get("line") or ""
             nmea.append((rec.t_mono, str(text).encode("ascii", "replace") + b"\r\n"))
     if rows:
-        return _track(rows, str(p))
+        return _track(rows, str(path))
     if nmea:
-        return _decode_nmea_lines(nmea, str(p))
-    raise ParseError(f"{p}: recording has no fix or nmea records")
+        return _decode_nmea_lines(nmea, str(path))
+    raise ParseError(f"{path}: recording has no fix or nmea records")
 
 
 _CSV_NAMES = {
@@ -225,12 +228,14 @@ def _read_csv(text: str, source: str) -> Track:
 
     has_header = col("lat") is not None and col("lon") is not None
     if has_header:
-        ci = {k: col(k) for k in _CSV_NAMES}
+        column = {k: col(k) for k in _CSV_NAMES}
         body = table[1:]
-        if ci["t"] is None:
-            raise ParseError(f"{source}: CSV header has no time column (one of {_CSV_NAMES['t']})")
+        if column["t"] is None:
+            raise ParseError(
+                f"{source}: CSV header has no time column (one of {_CSV_NAMES['t_s']})"
+            )
     else:
-        ci = {
+        column = {
             "t": 0,
             "lat": 1,
             "lon": 2,
@@ -244,13 +249,22 @@ def _read_csv(text: str, source: str) -> Track:
         try:
 
             def get(key: str, default: float = math.nan, row: list[str] = row) -> float:
-                i = ci[key]
+                i = column[key]
                 return float(row[i]) if i is not None and i < len(row) and row[i] != "" else default
 
-            t = _parse_time(row[ci["t"]])  # type: ignore[index]
-            lat, lon = get("lat"), get("lon")
+            t_s = _parse_time(row[column["t"]])  # type: ignore[index]
+            lat_deg, lon_deg = get("lat"), get("lon")
             rows.append(
-                (t, lat, lon, get("alt"), get("valid", 1.0), get("nsats", -1.0), math.nan, math.nan)
+                (
+                    t_s,
+                    lat_deg,
+                    lon_deg,
+                    get("alt"),
+                    get("valid", 1.0),
+                    get("nsats", -1.0),
+                    math.nan,
+                    math.nan,
+                )
             )
         except (ValueError, IndexError) as exc:
             raise ParseError(f"{source}:{lineno}: bad CSV row {row!r}: {exc}") from exc
@@ -269,21 +283,41 @@ def _read_pos(text: str, source: str) -> Track:
     for lineno, line in enumerate(text.splitlines(), 1):
         if not line.strip() or line.startswith("%"):
             continue
-        f = line.split()
+        fields = line.split()
         try:
-            t = (
-                datetime.strptime(f[0] + " " + f[1], "%Y/%m/%d %H:%M:%S.%f")
+            t_s = (
+                datetime.strptime(fields[0] + " " + fields[1], "%Y/%m/%d %H:%M:%S.%f")
                 .replace(tzinfo=UTC)
                 .timestamp()
             )
-            lat, lon, h, q, ns = float(f[2]), float(f[3]), float(f[4]), int(f[5]), int(f[6])
+            lat_deg, lon_deg, height_m, quality, n_sats = (
+                float(fields[2]),
+                float(fields[3]),
+                float(fields[4]),
+                int(fields[5]),
+                int(fields[6]),
+            )
         except (ValueError, IndexError) as exc:
             raise ParseError(f"{source}:{lineno}: not an RTKLIB .pos line: {exc}") from exc
-        speed = course = math.nan
-        if len(f) >= 17:  # velocity columns vn, ve (m/s) present
-            vn, ve = float(f[15]), float(f[16])
-            speed, course = math.hypot(vn, ve), math.degrees(math.atan2(ve, vn)) % 360.0
-        rows.append((t, lat, lon, h, 1.0 if q > 0 else 0.0, float(ns), speed, course))
+        speed_mps = course_deg = math.nan
+        if len(fields) >= 17:  # velocity columns vn, ve (m/s) present
+            v_north_mps, v_east_mps = float(fields[15]), float(fields[16])
+            speed_mps, course_deg = (
+                math.hypot(v_north_mps, v_east_mps),
+                math.degrees(math.atan2(v_east_mps, v_north_mps)) % 360.0,
+            )
+        rows.append(
+            (
+                t_s,
+                lat_deg,
+                lon_deg,
+                height_m,
+                1.0 if quality > 0 else 0.0,
+                float(n_sats),
+                speed_mps,
+                course_deg,
+            )
+        )
     return _track(rows, source)
 
 
@@ -291,12 +325,12 @@ def parse_truth(text: str) -> tuple[float, float, float]:
     """``LAT,LON[,ALT]`` (degrees, metres) -> (lat, lon, alt or NaN); ConfigError if malformed."""
     parts = [p.strip() for p in text.split(",")]
     try:
-        vals = [float(p) for p in parts]
+        values = [float(p) for p in parts]
     except ValueError:
         raise ConfigError(f"--truth {text!r}: expected LAT,LON[,ALT] in degrees/metres") from None
-    if len(vals) not in (2, 3) or not (-90 <= vals[0] <= 90 and -180 <= vals[1] <= 180):
+    if len(values) not in (2, 3) or not (-90 <= values[0] <= 90 and -180 <= values[1] <= 180):
         raise ConfigError(f"--truth {text!r}: expected LAT,LON[,ALT] with |LAT|<=90, |LON|<=180")
-    return vals[0], vals[1], vals[2] if len(vals) == 3 else math.nan
+    return values[0], values[1], values[2] if len(values) == 3 else math.nan
 
 
 def errors_vs_point(
@@ -305,35 +339,35 @@ def errors_vs_point(
     """Errors (m) of a static log against a surveyed point; the frame origin is the point.
     Up error is NaN-free: zero when either altitude is unknown."""
     e_per_deg, n_per_deg = metres_per_degree(lat_deg)
-    east = (track.lon_deg - lon_deg) * e_per_deg
-    north = (track.lat_deg - lat_deg) * n_per_deg
-    up = track.alt_m - alt_m
-    return _series(track, east, north, up, lat_deg, lon_deg, None, None)
+    east_m = (track.lon_deg - lon_deg) * e_per_deg
+    north_m = (track.lat_deg - lat_deg) * n_per_deg
+    up_m = track.alt_m - alt_m
+    return _series(track, east_m, north_m, up_m, lat_deg, lon_deg, None, None)
 
 
 def _series(
     track: Track,
-    east: np.ndarray,
-    north: np.ndarray,
-    up: np.ndarray,
-    lat0: float,
-    lon0: float,
-    speed: np.ndarray | None,
-    course: np.ndarray | None,
+    east_m: np.ndarray,
+    north_m: np.ndarray,
+    up_m: np.ndarray,
+    lat0_deg: float,
+    lon0_deg: float,
+    speed_mps: np.ndarray | None,
+    course_deg: np.ndarray | None,
 ) -> PositionSeries:
-    valid = track.valid & np.isfinite(east) & np.isfinite(north)
-    up = np.where(np.isfinite(up), up, 0.0)
+    valid = track.valid & np.isfinite(east_m) & np.isfinite(north_m)
+    up_m = np.where(np.isfinite(up_m), up_m, 0.0)
     nsats = track.nsats if np.all(track.nsats >= 0) else None
     return PositionSeries(
         t_s=track.t_s - track.t_s[0],
-        east_m=np.where(valid, east, 0.0),
-        north_m=np.where(valid, north, 0.0),
-        up_m=np.where(valid, up, 0.0),
+        east_m=np.where(valid, east_m, 0.0),
+        north_m=np.where(valid, north_m, 0.0),
+        up_m=np.where(valid, up_m, 0.0),
         valid=valid,
-        origin_lat_deg=lat0,
-        origin_lon_deg=lon0,
-        speed_mps=speed,
-        course_deg=course,
+        origin_lat_deg=lat0_deg,
+        origin_lon_deg=lon0_deg,
+        speed_mps=speed_mps,
+        course_deg=course_deg,
         nsats=nsats,
     )
 
@@ -344,66 +378,82 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
     time spans do not overlap, both are taken from their own start (a simulated log).
     The series carries the truth's speed/course (from its positions) and its origin is the
     truth at the first kept epoch, so effect layers see the true motion."""
-    tv = truth.valid
-    tt, tlat, tlon, talt = truth.t_s[tv], truth.lat_deg[tv], truth.lon_deg[tv], truth.alt_m[tv]
-    if tt.size < 2:
+    truth_valid = truth.valid
+    truth_t_s, truth_lat_deg, truth_lon_deg, truth_alt_m = (
+        truth.t_s[truth_valid],
+        truth.lat_deg[truth_valid],
+        truth.lon_deg[truth_valid],
+        truth.alt_m[truth_valid],
+    )
+    if truth_t_s.size < 2:
         raise ParseError(f"{truth.source}: truth track has fewer than 2 valid epochs")
-    t = track.t_s
-    if t[-1] < tt[0] or t[0] > tt[-1]:
-        t = t - t[0] + tt[0]
-    idx = np.clip(np.searchsorted(tt, t), 1, tt.size - 1)
-    near = np.minimum(np.abs(tt[idx] - t), np.abs(tt[idx - 1] - t)) <= max_gap_s
-    inside = (t >= tt[0]) & (t <= tt[-1]) & near
+    t_s = track.t_s
+    if t_s[-1] < truth_t_s[0] or t_s[0] > truth_t_s[-1]:
+        t_s = t_s - t_s[0] + truth_t_s[0]
+    index = np.clip(np.searchsorted(truth_t_s, t_s), 1, truth_t_s.size - 1)
+    near = (
+        np.minimum(np.abs(truth_t_s[index] - t_s), np.abs(truth_t_s[index - 1] - t_s)) <= max_gap_s
+    )
+    inside = (t_s >= truth_t_s[0]) & (t_s <= truth_t_s[-1]) & near
     if not np.any(inside):
         raise ParseError(f"{track.source}: no epoch matches the truth track {truth.source} in time")
-    sel = np.flatnonzero(inside)
-    t = t[sel]
-    lat_t, lon_t, alt_t = np.interp(t, tt, tlat), np.interp(t, tt, tlon), np.interp(t, tt, talt)
-    lat0, lon0 = float(lat_t[0]), float(lon_t[0])
-    e_per_deg, n_per_deg = metres_per_degree(lat0)
+    kept = np.flatnonzero(inside)
+    t_s = t_s[kept]
+    true_lat_deg, true_lon_deg, true_alt_m = (
+        np.interp(t_s, truth_t_s, truth_lat_deg),
+        np.interp(t_s, truth_t_s, truth_lon_deg),
+        np.interp(t_s, truth_t_s, truth_alt_m),
+    )
+    lat0_deg, lon0_deg = float(true_lat_deg[0]), float(true_lon_deg[0])
+    e_per_deg, n_per_deg = metres_per_degree(lat0_deg)
     sub = Track(
-        t_s=t,
-        lat_deg=track.lat_deg[sel],
-        lon_deg=track.lon_deg[sel],
-        alt_m=track.alt_m[sel],
-        valid=track.valid[sel],
-        nsats=track.nsats[sel],
-        speed_mps=track.speed_mps[sel],
-        course_deg=track.course_deg[sel],
+        t_s=t_s,
+        lat_deg=track.lat_deg[kept],
+        lon_deg=track.lon_deg[kept],
+        alt_m=track.alt_m[kept],
+        valid=track.valid[kept],
+        nsats=track.nsats[kept],
+        speed_mps=track.speed_mps[kept],
+        course_deg=track.course_deg[kept],
         source=track.source,
     )
-    te, tn = (lon_t - lon0) * e_per_deg, (lat_t - lat0) * n_per_deg
-    east = (sub.lon_deg - lon0) * e_per_deg - te
-    north = (sub.lat_deg - lat0) * n_per_deg - tn
+    true_east_m, true_north_m = (
+        (true_lon_deg - lon0_deg) * e_per_deg,
+        (true_lat_deg - lat0_deg) * n_per_deg,
+    )
+    east_m = (sub.lon_deg - lon0_deg) * e_per_deg - true_east_m
+    north_m = (sub.lat_deg - lat0_deg) * n_per_deg - true_north_m
     # truth velocity from its own positions (central differences)
-    if t.size > 1:
-        ve, vn = np.gradient(te, t), np.gradient(tn, t)
+    if t_s.size > 1:
+        v_east_mps, v_north_mps = np.gradient(true_east_m, t_s), np.gradient(true_north_m, t_s)
     else:
-        ve, vn = np.zeros(1), np.zeros(1)
-    speed = np.hypot(ve, vn)
-    course = np.degrees(np.arctan2(ve, vn)) % 360.0
-    return _series(sub, east, north, sub.alt_m - alt_t, lat0, lon0, speed, course)
+        v_east_mps, v_north_mps = np.zeros(1), np.zeros(1)
+    speed_mps = np.hypot(v_east_mps, v_north_mps)
+    course_deg = np.degrees(np.arctan2(v_east_mps, v_north_mps)) % 360.0
+    return _series(
+        sub, east_m, north_m, sub.alt_m - true_alt_m, lat0_deg, lon0_deg, speed_mps, course_deg
+    )
 
 
 def errors_vs_mean(track: Track) -> PositionSeries:
     """Errors of a static log against its own mean position (no truth: a bias is invisible)."""
-    v = track.valid
-    if not np.any(v):
+    valid = track.valid
+    if not np.any(valid):
         raise ParseError(f"{track.source}: no valid fix")
-    alt = track.alt_m[v]
-    alt0 = float(np.nanmean(alt)) if np.any(np.isfinite(alt)) else math.nan
+    alt_m = track.alt_m[valid]
+    alt0_m = float(np.nanmean(alt_m)) if np.any(np.isfinite(alt_m)) else math.nan
     return errors_vs_point(
-        track, float(np.mean(track.lat_deg[v])), float(np.mean(track.lon_deg[v])), alt0
+        track, float(np.mean(track.lat_deg[valid])), float(np.mean(track.lon_deg[valid])), alt0_m
     )
 
 
 def write_csv(path: str | Path, track: Track) -> None:
     """Write a Track as CSV ``time,lat,lon,alt,valid,nsats`` (readable by :func:`read_track`)."""
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["time", "lat", "lon", "alt", "valid", "nsats"])
+    with open(path, "w", newline="") as file:
+        writer = csv.writer(file)
+        writer.writerow(["time", "lat", "lon", "alt", "valid", "nsats"])
         for i in range(len(track)):
-            w.writerow(
+            writer.writerow(
                 [
                     f"{track.t_s[i]:.3f}",
                     f"{track.lat_deg[i]:.10f}",
@@ -420,15 +470,17 @@ def series_to_track(series: PositionSeries, alt0_m: float = 0.0) -> Track:
     from sim_backend.effects import truth_track_m
 
     e_per_deg, n_per_deg = metres_per_degree(series.origin_lat_deg)
-    te, tn = truth_track_m(series)
-    n = len(series)
+    true_east_m, true_north_m = truth_track_m(series)
+    n_epochs = len(series)
     return Track(
         t_s=np.asarray(series.t_s, dtype=float),
-        lat_deg=series.origin_lat_deg + (tn + series.north_m) / n_per_deg,
-        lon_deg=series.origin_lon_deg + (te + series.east_m) / e_per_deg,
+        lat_deg=series.origin_lat_deg + (true_north_m + series.north_m) / n_per_deg,
+        lon_deg=series.origin_lon_deg + (true_east_m + series.east_m) / e_per_deg,
         alt_m=alt0_m + np.asarray(series.up_m, dtype=float),
         valid=np.asarray(series.valid, dtype=bool),
-        nsats=np.full(n, -1.0) if series.nsats is None else np.asarray(series.nsats, dtype=float),
-        speed_mps=np.full(n, math.nan),
-        course_deg=np.full(n, math.nan),
+        nsats=np.full(n_epochs, -1.0)
+        if series.nsats is None
+        else np.asarray(series.nsats, dtype=float),
+        speed_mps=np.full(n_epochs, math.nan),
+        course_deg=np.full(n_epochs, math.nan),
     )

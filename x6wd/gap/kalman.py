@@ -44,19 +44,20 @@ class KalmanTerms:
         """(A (B, P, P), c (B, P)) of the GLS regression of the data on the chosen regressors:
         a bias per axis (column 1 of that axis) and one latency shared by both axes (column 2
         of each axis: the error a delay makes is -delay x velocity)."""
-        g = self.gram
+        gram = self.gram
+        # each parameter: the axis it acts on (None: both) and its regressor column
         params = ([(0, 1), (1, 1)] if bias else []) + (
             [(None, 2)] if latency and self.has_latency else []
         )
-        m = len(params)
-        a = np.zeros((g.shape[0], m, m))
-        c = np.zeros((g.shape[0], m))
-        for i, (ax_i, col_i) in enumerate(params):
-            axes_i = {0, 1} if ax_i is None else {ax_i}
-            c[:, i] = sum(g[:, ax, 0, col_i] for ax in axes_i)
-            for j, (ax_j, col_j) in enumerate(params):
-                common = axes_i & ({0, 1} if ax_j is None else {ax_j})
-                a[:, i, j] = sum(g[:, ax, col_i, col_j] for ax in common)
+        n_params = len(params)
+        a = np.zeros((gram.shape[0], n_params, n_params))
+        c = np.zeros((gram.shape[0], n_params))
+        for i, (axis_i, col_i) in enumerate(params):
+            axes_i = {0, 1} if axis_i is None else {axis_i}
+            c[:, i] = sum(gram[:, ax, 0, col_i] for ax in axes_i)
+            for j, (axis_j, col_j) in enumerate(params):
+                common = axes_i & ({0, 1} if axis_j is None else {axis_j})
+                a[:, i, j] = sum(gram[:, ax, col_i, col_j] for ax in common)
         return a, c
 
     def loglik(self, bias: bool, latency: bool = False) -> np.ndarray:
@@ -83,98 +84,101 @@ def latency_regressor(series: PositionSeries) -> np.ndarray | None:
     since a receiver that is d s late reports truth(t - d) ~ truth(t) - d v(t). None at rest."""
     if series.speed_mps is None:
         return None
-    v = np.asarray(series.valid, dtype=bool)
-    if not np.any(np.nan_to_num(np.asarray(series.speed_mps, dtype=float))[v] > 0):
+    valid = np.asarray(series.valid, dtype=bool)
+    if not np.any(np.nan_to_num(np.asarray(series.speed_mps, dtype=float))[valid] > 0):
         return None
-    ve, vn = truth_velocity_mps(series)
-    return -np.stack([ve[v], vn[v]])
+    v_east_mps, v_north_mps = truth_velocity_mps(series)
+    return -np.stack([v_east_mps[valid], v_north_mps[valid]])
 
 
 Transition = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def component_law(
-    model: NoiseModel, eff_var: np.ndarray, eff_tau: np.ndarray
+    model: NoiseModel, effect_var: np.ndarray, effect_tau_s: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Stationary variances (m^2; for a random walk, tau inf, its rate m^2/s) and correlation
     times (s), each (K + 1, C), of the baseline's K Gauss-Markov components and one effect,
-    for C = 2 B filter columns (column j = batch j // 2, axis j % 2); ``eff_var`` and
-    ``eff_tau`` are given per column (C,)."""
-    reps = eff_var.size // 2
-    var = np.vstack([np.tile(model.sigma_m.T**2, (1, reps)), eff_var[None, :]])
-    tau = np.vstack([np.tile(model.tau_s.T, (1, reps)), eff_tau[None, :]])
-    return var, tau
+    for C = 2 B filter columns (column j = batch j // 2, axis j % 2); ``effect_var`` and
+    ``effect_tau_s`` are given per column (C,)."""
+    reps = effect_var.size // 2
+    var = np.vstack([np.tile(model.sigma_m.T**2, (1, reps)), effect_var[None, :]])
+    tau_s = np.vstack([np.tile(model.tau_s.T, (1, reps)), effect_tau_s[None, :]])
+    return var, tau_s
 
 
-def transitions(var: np.ndarray, tau: np.ndarray, dts: np.ndarray) -> Callable[[int], Transition]:
-    """Step i (from valid epoch i to i + 1, ``dts`` s apart) of independent first-order
-    components (``var``/``tau`` (K, C), see :func:`component_law`): (phi (K, 1, C),
-    phi phi' (K, K, C), process noise Q (K, K, C)) for x <- phi x, P <- phi phi' P + Q.
-    Exact discretisation with the actual step (phi = exp(-dt/tau); a random walk where tau is
-    inf), so outages and irregular sampling are exact; tabulated when the log has few
-    distinct steps (a regular log has one)."""
-    rw = ~np.isfinite(tau)
-    safe_tau = np.where(rw, 1.0, tau)
+def transitions(
+    var: np.ndarray, tau_s: np.ndarray, steps_s: np.ndarray
+) -> Callable[[int], Transition]:
+    """Step i (from valid epoch i to i + 1, ``steps_s[i]`` s apart) of independent
+    first-order components (``var``/``tau_s`` (K, C), see :func:`component_law`): (phi
+    (K, 1, C), phi phi' (K, K, C), process noise Q (K, K, C)) for x <- phi x,
+    P <- phi phi' P + Q. Exact discretisation with the actual step (phi = exp(-dt/tau); a
+    random walk where tau is inf), so outages and irregular sampling are exact; tabulated when
+    the log has few distinct steps (a regular log has one)."""
+    walk = ~np.isfinite(tau_s)
+    safe_tau_s = np.where(walk, 1.0, tau_s)
     diag = np.eye(var.shape[0])[:, :, None]
 
-    def step(dt: float) -> Transition:
-        phi = np.where(rw, 1.0, np.exp(-dt / safe_tau))
-        q = np.where(rw, var * dt, var * -np.expm1(-2.0 * dt / safe_tau))
+    def step(dt_s: float) -> Transition:
+        phi = np.where(walk, 1.0, np.exp(-dt_s / safe_tau_s))
+        q = np.where(walk, var * dt_s, var * -np.expm1(-2.0 * dt_s / safe_tau_s))
         return phi[:, None, :], phi[:, None, :] * phi[None, :, :], diag * q[None, :, :]
 
-    uniq, inv = np.unique(np.round(dts, 6), return_inverse=True)
-    if uniq.size <= 32:
-        table = [step(float(d)) for d in uniq]
-        return lambda i: table[inv[i]]
-    return lambda i: step(float(dts[i]))
+    distinct, index = np.unique(np.round(steps_s, 6), return_inverse=True)
+    if distinct.size <= 32:
+        table = [step(float(d)) for d in distinct]
+        return lambda i: table[index[i]]
+    return lambda i: step(float(steps_s[i]))
 
 
 def kalman_terms(
     real: PositionSeries,
     model: NoiseModel,
-    eff_var: np.ndarray,
-    eff_tau: np.ndarray,
+    effect_var: np.ndarray,
+    effect_tau_s: np.ndarray,
 ) -> KalmanTerms:
     """Run the Kalman filter of baseline model + one effect component for a batch of effect
-    parameters: ``eff_var`` (B,) the stationary variance sigma^2 of a Gauss-Markov effect or,
-    where ``eff_tau`` is inf, the random-walk rate q^2 (m^2/s); ``eff_var`` 0 = no effect.
-    The innovations are linear in the data, so the filter run on a column of ones and on the
-    latency regressor gives their innovations for GLS at no extra Riccati cost."""
-    v = np.asarray(real.valid, dtype=bool)
-    t = np.asarray(real.t_s, dtype=float)[v]
-    east = np.asarray(real.east_m, dtype=float)[v]
-    north = np.asarray(real.north_m, dtype=float)[v]
-    y = np.stack([east, north]) - model.mean_m[:, None]  # (2, n)
-    lat = latency_regressor(real)
-    n = t.size
-    b = eff_var.size
-    k = model.tau_s.shape[1] + 1
-    cols = 2 if lat is None else 3
+    parameters: ``effect_var`` (B,) the stationary variance sigma^2 (m^2) of a Gauss-Markov
+    effect of correlation time ``effect_tau_s`` (s) or, where that is inf, the random-walk
+    rate q^2 (m^2/s); ``effect_var`` 0 = no effect. The innovations are linear in the data,
+    so the filter run on a column of ones and on the latency regressor gives their
+    innovations for GLS at no extra Riccati cost."""
+    valid = np.asarray(real.valid, dtype=bool)
+    t_s = np.asarray(real.t_s, dtype=float)[valid]
+    east_m = np.asarray(real.east_m, dtype=float)[valid]
+    north_m = np.asarray(real.north_m, dtype=float)[valid]
+    error_m = np.stack([east_m, north_m]) - model.mean_m[:, None]  # (2, n)
+    latency = latency_regressor(real)
+    n_epochs = t_s.size
+    batch = effect_var.size
+    n_states = model.tau_s.shape[1] + 1
+    n_cols = 2 if latency is None else 3
     # Layout: state index first, the batch (B parameter sets x 2 axes, flattened, column
     # j = (batch j // 2, axis j % 2)) LAST and contiguous, so that every time step is a
-    # handful of vector operations over the whole batch.
-    nb = 2 * b
-    var, tau = component_law(model, np.repeat(eff_var, 2), np.repeat(eff_tau, 2))
-    w2 = np.tile(model.white_m**2, b)  # (nb,)
-    p0 = np.where(np.isfinite(tau), var, 0.0)  # a walk starts at zero
-    dts = np.diff(t)
-    trans = transitions(var, tau, dts)
-    x = np.zeros((k, cols, nb))  # middle axis: [data, ones(, latency)]
-    p = np.eye(k)[:, :, None] * p0[None, :, :]
-    obs = np.empty((n, cols, nb))
-    obs[:, 0, :] = np.tile(y.T, (1, b))
+    # handful of vector operations over the whole batch. x, P, S, e: the usual Kalman state,
+    # its covariance, the innovation variance and the innovations.
+    n_filters = 2 * batch
+    var, tau_s = component_law(model, np.repeat(effect_var, 2), np.repeat(effect_tau_s, 2))
+    white_var_m2 = np.tile(model.white_m**2, batch)  # (n_filters,)
+    p0 = np.where(np.isfinite(tau_s), var, 0.0)  # a walk starts at zero
+    trans = transitions(var, tau_s, np.diff(t_s))
+    x = np.zeros((n_states, n_cols, n_filters))  # middle axis: [data, ones(, latency)]
+    p = np.eye(n_states)[:, :, None] * p0[None, :, :]
+    obs = np.empty((n_epochs, n_cols, n_filters))
+    obs[:, 0, :] = np.tile(error_m.T, (1, batch))
     obs[:, 1, :] = 1.0
-    if lat is not None:
-        obs[:, 2, :] = np.tile(lat.T, (1, b))
-    e_all = np.empty((n, cols, nb))
-    s_all = np.empty((n, nb))
-    for i in range(n):
+    if latency is not None:
+        obs[:, 2, :] = np.tile(latency.T, (1, batch))
+    e_all = np.empty((n_epochs, n_cols, n_filters))
+    s_all = np.empty((n_epochs, n_filters))
+    for i in range(n_epochs):
         if i > 0:
-            phi, pp, dq = trans(i - 1)
-            p = p * pp + dq
+            phi, phi2, q = trans(i - 1)
+            p = p * phi2 + q
             x = x * phi
-        pk = p.sum(axis=1)  # (k, nb): P @ 1
-        s = pk.sum(axis=0) + w2  # innovation variance
+        pk = p.sum(axis=1)  # (n_states, n_filters): P @ 1
+        s = pk.sum(axis=0) + white_var_m2  # innovation variance
         e = obs[i] - x.sum(axis=0)  # innovations of every column
         gain = pk / s
         x += gain[:, None, :] * e[None, :, :]
@@ -182,30 +186,31 @@ def kalman_terms(
         e_all[i] = e
         s_all[i] = s
     scaled = e_all / np.sqrt(s_all)[:, None, :]
-    gram = np.einsum("ncj,ndj->jcd", scaled, scaled)  # (nb, C, C)
+    gram = np.einsum("ncj,ndj->jcd", scaled, scaled)  # (n_filters, C, C)
     return KalmanTerms(
-        log_s=np.log(s_all).sum(axis=0).reshape(b, 2),
-        gram=gram.reshape(b, 2, cols, cols),
-        nobs=n,
+        log_s=np.log(s_all).sum(axis=0).reshape(batch, 2),
+        gram=gram.reshape(batch, 2, n_cols, n_cols),
+        nobs=n_epochs,
     )
 
 
-def quadratic_peak(pts: np.ndarray, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """Least-squares quadratic surface through (pts (N, d), vals (N,)): its vertex and the
-    covariance -H^-1 (None when the surface is not concave)."""
-    d = pts.shape[1]
-    cols = [np.ones(len(pts))] + [pts[:, i] for i in range(d)]
+def quadratic_peak(points: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Least-squares quadratic surface through (``points`` (N, d), ``values`` (N,); e.g.
+    log-parameters and log-likelihoods): its vertex and the covariance -H^-1 (None when the
+    surface is not concave): standard errors from the curvature of a likelihood."""
+    d = points.shape[1]
+    cols = [np.ones(len(points))] + [points[:, i] for i in range(d)]
     pairs = [(i, j) for i in range(d) for j in range(i, d)]
-    cols += [pts[:, i] * pts[:, j] for i, j in pairs]
-    coef, *_ = np.linalg.lstsq(np.stack(cols, axis=1), vals, rcond=None)
-    g = coef[1 : d + 1]
-    h = np.zeros((d, d))
+    cols += [points[:, i] * points[:, j] for i, j in pairs]
+    coef, *_ = np.linalg.lstsq(np.stack(cols, axis=1), values, rcond=None)
+    grad = coef[1 : d + 1]
+    hess = np.zeros((d, d))
     for c, (i, j) in zip(coef[d + 1 :], pairs, strict=True):
         if i == j:
-            h[i, i] = 2 * c
+            hess[i, i] = 2 * c
         else:
-            h[i, j] = h[j, i] = c
-    if np.any(np.linalg.eigvalsh(h) >= 0):
+            hess[i, j] = hess[j, i] = c
+    if np.any(np.linalg.eigvalsh(hess) >= 0):
         return None
-    cov = -np.linalg.inv(h)
-    return cov @ g, cov
+    cov = -np.linalg.inv(hess)
+    return cov @ grad, cov

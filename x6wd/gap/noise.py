@@ -67,86 +67,89 @@ def _fourier_rotations(n: int, n_freq: int) -> tuple[np.ndarray, np.ndarray]:
     return np.exp(-2j * np.pi * j / n), np.exp(-2j * np.pi * ((j * (n - 1)) % n) / n)
 
 
-def fit_noise_model(base: Sequence[PositionSeries], layout: Layout) -> NoiseModel:
+def fit_noise_model(baseline: Sequence[PositionSeries], layout: Layout) -> NoiseModel:
     """Fit the baseline noise model (K Gauss-Markov components + white noise per axis) to the
-    baseline runs by debiased Whittle likelihood on their mean periodogram. With M runs of
-    thousands of samples the Whittle approximation error is negligible here; the exact
-    likelihood is kept for the single real log, where the effect is estimated."""
+    ``baseline`` runs (errors, m) by debiased Whittle likelihood on their mean periodogram.
+    With M runs of thousands of samples the Whittle approximation error is negligible here;
+    the exact likelihood is kept for the single real log, where the effect is estimated."""
     from scipy.optimize import minimize
 
-    n = min(regular(s, layout.dt_s)[0].size for s in base)
-    n = max(n, 8)
-    per = np.mean([_periodograms(s, layout, n) for s in base], axis=0)  # (2, n//2)
-    nf = per.shape[1]
+    n = max(min(regular(s, layout.dt_s)[0].size for s in baseline), 8)  # samples per run
+    periodogram = np.mean([_periodograms(s, layout, n) for s in baseline], axis=0)  # (2, n//2)
+    n_freq = periodogram.shape[1]
     # Zero frequency: n (run mean - grand mean)^2, whose debiased expectation is n Var(mean).
     # Without it nothing bounds the slowest component (each run's own mean is removed above):
     # on the GNSS model the fit put 10-13 m on a drift far longer than the log, where the
     # runs' hour means actually spread by under a metre, and every bias looked like noise.
-    run_means = np.array(
-        [[float(np.mean(c[:n])) for c in regular(s, layout.dt_s)[:2]] for s in base]
+    run_means_m = np.array(
+        [[float(np.mean(c[:n])) for c in regular(s, layout.dt_s)[:2]] for s in baseline]
     )
-    m_runs = run_means.shape[0]
-    dc = (
-        n * np.mean((run_means - run_means.mean(axis=0)) ** 2, axis=0) * m_runs / (m_runs - 1)
-        if m_runs > 1
+    n_runs = run_means_m.shape[0]
+    zero_freq_m2 = (
+        n * np.mean((run_means_m - run_means_m.mean(axis=0)) ** 2, axis=0) * n_runs / (n_runs - 1)
+        if n_runs > 1
         else None
     )
-    dt = layout.dt_s
-    means = []
-    for ax in ("east_m", "north_m"):
-        vals = [
-            np.asarray(getattr(s, ax), dtype=float)[np.asarray(s.valid, dtype=bool)] for s in base
+    dt_s = layout.dt_s
+    mean_m = []
+    for axis in ("east_m", "north_m"):
+        valid_values = [
+            np.asarray(getattr(s, axis), dtype=float)[np.asarray(s.valid, dtype=bool)]
+            for s in baseline
         ]
-        means.append(float(np.mean(np.concatenate(vals))) if vals else 0.0)
-    span = max(layout.duration_s, 4 * dt)
+        mean_m.append(float(np.mean(np.concatenate(valid_values))) if valid_values else 0.0)
+    span_s = max(layout.duration_s, 4 * dt_s)
     k = BASE_COMPONENTS
-    totals = np.maximum(per.mean(axis=1), 1e-8)  # a constant run (a coarse lattice) has none
+    # total power per axis; a constant run (a coarse lattice) has none
+    total_m2 = np.maximum(periodogram.mean(axis=1), 1e-8)
 
     # log-parameters: K correlation times shared by the two axes (the same physical
     # processes), then per axis K sigmas and the white noise
-    def unpack(lp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        lp = np.clip(lp, -25.0, 25.0)  # keeps a wild line-search step finite
-        taus = np.minimum(np.exp(lp[:k]), 100 * span)
-        sig = np.exp(lp[k:].reshape(2, k + 1))
-        return taus, sig[:, :k], sig[:, k]
+    def unpack(log_params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        log_params = np.clip(log_params, -25.0, 25.0)  # keeps a wild line-search step finite
+        tau_s = np.minimum(np.exp(log_params[:k]), 100 * span_s)
+        sigma_m = np.exp(log_params[k:].reshape(2, k + 1))
+        return tau_s, sigma_m[:, :k], sigma_m[:, k]
 
-    def nll(lp: np.ndarray) -> float:
-        taus, sig, white = unpack(lp)
-        shapes = [_gm_expected_periodogram(n, nf, math.exp(-dt / t_i)) for t_i in taus]
-        zero = [_gm_expected_dc(n, dt / t_i) for t_i in taus]
+    def neg_loglik(log_params: np.ndarray) -> float:
+        tau_s, sigma_m, white_m = unpack(log_params)
+        shapes = [_gm_expected_periodogram(n, n_freq, math.exp(-dt_s / t)) for t in tau_s]
+        zero = [_gm_expected_dc(n, dt_s / t) for t in tau_s]
         out = 0.0
         for a in range(2):
-            spec = np.full(nf, white[a] ** 2)
+            spec = np.full(n_freq, white_m[a] ** 2)
             for i in range(k):
-                spec = spec + sig[a, i] ** 2 * shapes[i]
+                spec = spec + sigma_m[a, i] ** 2 * shapes[i]
             spec = np.maximum(spec, 1e-12)
-            out += float(np.sum(np.log(spec) + per[a] / spec))
-            if dc is not None:
-                s0 = max(white[a] ** 2 + sum(sig[a, i] ** 2 * zero[i] for i in range(k)), 1e-12)
-                out += math.log(s0) + float(dc[a]) / s0
+            out += float(np.sum(np.log(spec) + periodogram[a] / spec))
+            if zero_freq_m2 is not None:
+                spec0 = white_m[a] ** 2 + sum(sigma_m[a, i] ** 2 * zero[i] for i in range(k))
+                spec0 = max(spec0, 1e-12)
+                out += math.log(spec0) + float(zero_freq_m2[a]) / spec0
         return out
 
     best: tuple[float, np.ndarray] | None = None
+    # two starts: the short and long components' times as fractions of the step and the log
     for short, long_ in ((2.0, 0.05), (5.0, 0.2)):
-        x0 = [math.log(short * dt), math.log(long_ * span)]
+        x0 = [math.log(short * dt_s), math.log(long_ * span_s)]
         for a in range(2):
-            root = math.sqrt(float(totals[a]))
-            x0 += [math.log(root * 0.2), math.log(root * 0.8), math.log(root * 0.05)]
-        res = minimize(nll, np.array(x0), method="BFGS", options={"gtol": 1e-3})
+            rms_m = math.sqrt(float(total_m2[a]))
+            x0 += [math.log(rms_m * 0.2), math.log(rms_m * 0.8), math.log(rms_m * 0.05)]
+        res = minimize(neg_loglik, np.array(x0), method="BFGS", options={"gtol": 1e-3})
         if best is None or res.fun < best[0]:
             best = (float(res.fun), np.asarray(res.x))
     assert best is not None
-    taus, sig, white = unpack(best[1])
-    tau = np.tile(taus, (2, 1))
-    white = np.maximum(white, WHITE_FLOOR_M)
-    return NoiseModel(sig, tau, white, np.array(means))
+    tau_s, sigma_m, white_m = unpack(best[1])
+    return NoiseModel(
+        sigma_m, np.tile(tau_s, (2, 1)), np.maximum(white_m, WHITE_FLOOR_M), np.array(mean_m)
+    )
 
 
 def _periodograms(series: PositionSeries, layout: Layout, n: int) -> np.ndarray:
-    """Periodograms (2, n//2) of the first n regular samples of east and north (no DC)."""
-    e, north, _u = regular(series, layout.dt_s)
+    """Periodograms (2, n//2; m^2) of the first n regular samples of east and north (no DC)."""
+    east_m, north_m, _up_m = regular(series, layout.dt_s)
     out = []
-    for y in (e[:n], north[:n]):
+    for y in (east_m[:n], north_m[:n]):
         x = y - y.mean()
         out.append((np.abs(np.fft.rfft(x)) ** 2 / n)[1 : n // 2 + 1])
     return np.array(out)
@@ -157,17 +160,17 @@ def expected_periodogram(acov: np.ndarray, n_freq: int) -> np.ndarray:
     stationary process with autocovariance ``acov`` (lags 0..n-1): the finite-length
     (debiased Whittle) form sum_k (1 - |k|/n) c(k) e^(-i w k), exact for any length."""
     n = acov.size
-    g = (1.0 - np.arange(n) / n) * acov
-    spec = 2.0 * np.fft.rfft(g).real - g[0]
+    weighted = (1.0 - np.arange(n) / n) * acov
+    spec = 2.0 * np.fft.rfft(weighted).real - weighted[0]
     return spec[1 : n_freq + 1]
 
 
 _NOISE_CACHE: IdentityCache[NoiseModel] = IdentityCache(4)
 
 
-def noise_model(base: Sequence[PositionSeries], layout: Layout) -> NoiseModel:
+def noise_model(baseline: Sequence[PositionSeries], layout: Layout) -> NoiseModel:
     """:func:`fit_noise_model`, cached on the identity of the runs (the candidates of a round
     share one baseline)."""
     return _NOISE_CACHE.get(
-        base, (round(layout.duration_s),), lambda: fit_noise_model(base, layout)
+        baseline, (round(layout.duration_s),), lambda: fit_noise_model(baseline, layout)
     )

@@ -37,30 +37,30 @@ def block_bootstrap(
     so choose blocks long against the correlation time: few joins, little spurious jumping."""
     if not series:
         raise ConfigError("block bootstrap needs at least one sim series")
-    base = template if template is not None else series[0]
-    n = len(base)
-    dt = float(np.median(np.diff(base.t_s))) if n > 1 else 1.0
-    b = max(2, min(n, round(block_s / dt)))
-    names = ("east_m", "north_m", "up_m", "valid")
+    frame = template if template is not None else series[0]
+    n_epochs = len(frame)
+    dt_s = float(np.median(np.diff(frame.t_s))) if n_epochs > 1 else 1.0
+    block_len = max(2, min(n_epochs, round(block_s / dt_s)))
+    columns = ("east_m", "north_m", "up_m", "valid")
     out: list[PositionSeries] = []
     for _ in range(n_out):
-        pieces: dict[str, list[np.ndarray]] = {k: [] for k in names}
-        pos = 0
-        while pos < n:
-            src = series[int(rng.integers(len(series)))]
-            m = len(src)
-            take = min(b, n - pos)
-            idx = (int(rng.integers(m)) + np.arange(take)) % m
-            for k in names:
-                pieces[k].append(np.asarray(getattr(src, k))[idx])
-            pos += take
-        cat = {k: np.concatenate(v) for k, v in pieces.items()}
+        pieces: dict[str, list[np.ndarray]] = {k: [] for k in columns}
+        filled = 0
+        while filled < n_epochs:
+            source = series[int(rng.integers(len(series)))]
+            n_source = len(source)
+            n_take = min(block_len, n_epochs - filled)
+            index = (int(rng.integers(n_source)) + np.arange(n_take)) % n_source
+            for k in columns:
+                pieces[k].append(np.asarray(getattr(source, k))[index])
+            filled += n_take
+        joined = {k: np.concatenate(v) for k, v in pieces.items()}
         out.append(
-            base.with_(
-                east_m=cat["east_m"],
-                north_m=cat["north_m"],
-                up_m=cat["up_m"],
-                valid=cat["valid"].astype(bool),
+            frame.with_(
+                east_m=joined["east_m"],
+                north_m=joined["north_m"],
+                up_m=joined["up_m"],
+                valid=joined["valid"].astype(bool),
                 nsats=None,
             )
         )
@@ -78,13 +78,16 @@ class NullModel:
     threshold: float
 
     @property
-    def m(self) -> int:
+    def n_runs(self) -> int:
+        """M, the replicates the null was calibrated on."""
         return int(self.values.shape[0])
 
     def z(self, battery: dict[Cell, float]) -> np.ndarray:
         """Null-calibrated z of one battery (cells missing from it score 0)."""
-        x = np.array([battery.get(c, m) for c, m in zip(self.cells, self.mean, strict=True)])
-        return (x - self.mean) / self.sd
+        values = np.array(
+            [battery.get(c, mean) for c, mean in zip(self.cells, self.mean, strict=True)]
+        )
+        return (values - self.mean) / self.sd
 
     def gap(self, battery: dict[Cell, float], ref_sd: np.ndarray | None = None) -> float:
         """G: mean over the cells of clipped z^2 + 2 log(sd / ref_sd), i.e. twice the Gaussian
@@ -93,8 +96,8 @@ class NullModel:
         with ``ref_sd`` None (the model's own spread) G is the mean z^2, about 1 + 1/M for a
         draw from the null law."""
         z = np.clip(self.z(battery), -Z_CLIP, Z_CLIP)
-        pen = 0.0 if ref_sd is None else 2.0 * np.log(self.sd / ref_sd)
-        return float(np.mean(z * z + pen))
+        penalty = 0.0 if ref_sd is None else 2.0 * np.log(self.sd / ref_sd)
+        return float(np.mean(z * z + penalty))
 
     def floor(self, ref_sd: np.ndarray | None = None) -> float:
         """G_floor: the mean leave-one-out G of the replicates themselves."""
@@ -114,22 +117,24 @@ def null_model(batteries: Sequence[dict[Cell, float]], alpha: float = 0.05) -> N
         )
     cells = tuple(batteries[0])
     values = np.array([[b.get(c, np.nan) for c in cells] for b in batteries], dtype=float)
-    col_mean = np.nanmean(values, axis=0)
-    values = np.where(np.isfinite(values), values, col_mean)
-    m, k = values.shape
+    cell_means = np.nanmean(values, axis=0)
+    values = np.where(np.isfinite(values), values, cell_means)
+    n_runs, n_cells = values.shape
     mean = values.mean(axis=0)
-    sd = np.maximum(values.std(axis=0, ddof=1), _floors(cells))
+    spread = np.maximum(values.std(axis=0, ddof=1), _floors(cells))
     # A new draw vs the mean of M: prediction spread sd*sqrt(1+1/M), Student-t with M-1 dof.
-    t_bonf = float(sps.t.ppf(1.0 - alpha / (2 * k), m - 1)) * math.sqrt(1.0 + 1.0 / m)
-    loo = loo_max_z(values, cells)
-    q = float(np.quantile(loo, 1.0 - alpha)) if loo.size else 0.0
-    return NullModel(cells, values, mean, sd, max(t_bonf, q))
+    bonferroni = float(sps.t.ppf(1.0 - alpha / (2 * n_cells), n_runs - 1)) * math.sqrt(
+        1.0 + 1.0 / n_runs
+    )
+    loo_max = loo_max_z(values, cells)
+    quantile = float(np.quantile(loo_max, 1.0 - alpha)) if loo_max.size else 0.0
+    return NullModel(cells, values, mean, spread, max(bonferroni, quantile))
 
 
 def _loo_z(values: np.ndarray, cells: Sequence[Cell], i: int) -> np.ndarray:
     rest = np.delete(values, i, axis=0)
-    sd = np.maximum(rest.std(axis=0, ddof=1), _floors(cells))
-    return (values[i] - rest.mean(axis=0)) / sd
+    spread = np.maximum(rest.std(axis=0, ddof=1), _floors(cells))
+    return (values[i] - rest.mean(axis=0)) / spread
 
 
 def loo_max_z(values: np.ndarray, cells: Sequence[Cell]) -> np.ndarray:
@@ -147,44 +152,55 @@ def loo_gaps(
     floors = _floors(cells)
     for i in range(values.shape[0]):
         z = np.clip(_loo_z(values, cells, i), -Z_CLIP, Z_CLIP)
-        pen = 0.0
+        penalty = 0.0
         if ref_sd is not None:
-            sd = np.maximum(np.delete(values, i, axis=0).std(axis=0, ddof=1), floors)
-            pen = 2.0 * np.log(sd / ref_sd)
-        out.append(float(np.mean(z * z + pen)))
+            spread = np.maximum(np.delete(values, i, axis=0).std(axis=0, ddof=1), floors)
+            penalty = 2.0 * np.log(spread / ref_sd)
+        out.append(float(np.mean(z * z + penalty)))
     return np.array(out)
 
 
 def closure_of(g_baseline: float, g_with: float, g_floor: float) -> float:
     """Closure = (G_baseline - G_with) / (G_baseline - G_floor); 0 when there is no gap."""
-    den = g_baseline - g_floor
-    if den <= 1e-9:
+    denominator = g_baseline - g_floor
+    if denominator <= 1e-9:
         return 0.0
-    return (g_baseline - g_with) / den
+    return (g_baseline - g_with) / denominator
 
 
 def resample_null(model: NullModel, rng: np.random.Generator) -> NullModel:
     """The null rebuilt from its members drawn with replacement (for closure intervals)."""
-    idx = rng.integers(model.m, size=model.m)
-    v = model.values[idx]
+    index = rng.integers(model.n_runs, size=model.n_runs)
+    values = model.values[index]
     # A resample repeats members: its spread (ddof 1) is (M-1)/M of the ensemble's in
     # expectation, which biased closures low (clipped baseline cells do not scale with it,
     # the effect's do): an interval that missed its own estimate.
-    sd = np.maximum(
-        v.std(axis=0, ddof=1) * math.sqrt(model.m / (model.m - 1)), _floors(model.cells)
+    spread = np.maximum(
+        values.std(axis=0, ddof=1) * math.sqrt(model.n_runs / (model.n_runs - 1)),
+        _floors(model.cells),
     )
-    return NullModel(model.cells, v, v.mean(axis=0), sd, model.threshold)
+    return NullModel(model.cells, values, values.mean(axis=0), spread, model.threshold)
 
 
 def closure_ci(
-    real_b: dict[Cell, float], base: NullModel, eff: NullModel, rng: np.random.Generator, n: int
+    real_battery: dict[Cell, float],
+    baseline: NullModel,
+    effect: NullModel,
+    rng: np.random.Generator,
+    resamples: int,
 ) -> tuple[float, float]:
-    """5-95 % interval of the closure over ``n`` resamples of the ensemble members."""
-    ref = base.sd
-    vals = []
-    for _ in range(n):
-        nb = resample_null(base, rng)
-        ne = resample_null(eff, rng)
-        vals.append(closure_of(nb.gap(real_b, ref), ne.gap(real_b, ref), nb.floor(ref)))
-    lo, hi = np.quantile(vals, [0.05, 0.95])
+    """5-95 % interval of the closure over ``resamples`` resamples of the ensemble members."""
+    ref_sd = baseline.sd
+    closures = []
+    for _ in range(resamples):
+        base_draw = resample_null(baseline, rng)
+        effect_draw = resample_null(effect, rng)
+        closures.append(
+            closure_of(
+                base_draw.gap(real_battery, ref_sd),
+                effect_draw.gap(real_battery, ref_sd),
+                base_draw.floor(ref_sd),
+            )
+        )
+    lo, hi = np.quantile(closures, [0.05, 0.95])
     return float(lo), float(hi)

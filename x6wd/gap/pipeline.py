@@ -360,12 +360,12 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         """The order in which a round tries the candidates (default: as configured)."""
         return list(names)
 
-    def plan_round(self, rnd: Round[SeriesT], outcome: OutcomeT) -> None:
+    def plan_round(self, this_round: Round[SeriesT], outcome: OutcomeT) -> None:
         """Before a round's candidates are fitted (e.g. what may be selected this round)."""
 
-    def consider(self, rnd: Round[SeriesT], name: str, fit: Fit) -> Option:
+    def consider(self, this_round: Round[SeriesT], name: str, fit: Fit) -> Option:
         """What candidate ``name``, fitted as ``fit``, offers this round (default: itself)."""
-        key, g_effect, null, _runs = self.evaluate([*rnd.selected, fit])
+        key, g_effect, null, _runs = self.evaluate([*this_round.selected, fit])
         return Option(fit, key, g_effect, null, [fit], g_effect)
 
     def report_fits(
@@ -390,48 +390,51 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         """(selection key, held-out G, held-out null, runs) of the baseline plus ``fits`` on
         one draw: the key adds the fit part's G, so that a look-alike that matches only the
         short scales of the held-out part (a random walk for a slow Gauss-Markov drift) loses."""
-        sp, alpha = self.split, self.options.alpha
+        split, alpha = self.split, self.options.alpha
         with_runs = self.apply_fits(fits, self.runs)
         test_null = null_model(
-            self.batteries(with_runs, sp.test_layout, sp.t_test_s, sp.end_s), alpha
+            self.batteries(with_runs, split.test_layout, split.t_test_s, split.end_s), alpha
         )
-        g_test = test_null.gap(sp.real_test_battery, sp.ref_sd_test)
-        fit_null = null_model(self.batteries(with_runs, sp.fit_layout, 0.0, sp.t_fit_s), alpha)
-        key = g_test + fit_null.gap(sp.real_fit_battery, sp.ref_sd_fit)
+        g_test = test_null.gap(split.real_test_battery, split.ref_sd_test)
+        fit_null = null_model(
+            self.batteries(with_runs, split.fit_layout, 0.0, split.t_fit_s), alpha
+        )
+        key = g_test + fit_null.gap(split.real_fit_battery, split.ref_sd_fit)
         return key, g_test, test_null, with_runs
 
     def pooled_gap(self, fits: Sequence[Fit]) -> tuple[float, NullModel]:
         """Held-out G and null of the baseline plus ``fits`` on ``fresh_draws`` fresh draws of
         the effects, pooled (one draw when the effects are deterministic)."""
-        sp = self.split
+        split = self.split
         pooled: list[SeriesT] = []
         for _ in range(max(self.fresh_draws, 1)):
             pooled += self.apply_fits(fits, self.runs)
         test_null = null_model(
-            self.batteries(pooled, sp.test_layout, sp.t_test_s, sp.end_s), self.options.alpha
+            self.batteries(pooled, split.test_layout, split.t_test_s, split.end_s),
+            self.options.alpha,
         )
-        return test_null.gap(sp.real_test_battery, sp.ref_sd_test), test_null
+        return test_null.gap(split.real_test_battery, split.ref_sd_test), test_null
 
     def _round_progress(self, rounds: float) -> float:
         start, width = self.progress_span
         return start + width * rounds / self.options.max_effects
 
     def _split(self, real: SeriesT, layout: LayoutT) -> Split[SeriesT, LayoutT]:
-        opt = self.options
+        options = self.options
         duration_s = layout.duration_s
         end_s = duration_s + layout.dt_s  # one step past the last sample: every sample is in
-        t_fit_s = opt.fit_fraction * duration_s
-        t_test_s = t_fit_s + opt.guard_fraction * duration_s
+        t_fit_s = options.fit_fraction * duration_s
+        t_test_s = t_fit_s + options.guard_fraction * duration_s
         fit_layout = self.part_layout(layout, t_fit_s)
         test_layout = self.part_layout(layout, duration_s - t_test_s)
         real_fit = self.window(real, 0.0, t_fit_s)
         baseline_fit = [self.window(s, 0.0, t_fit_s) for s in self.runs]
         baseline_test = null_model(
-            self.batteries(self.runs, test_layout, t_test_s, end_s), opt.alpha
+            self.batteries(self.runs, test_layout, t_test_s, end_s), options.alpha
         )
         real_test_battery = self.battery(self.window(real, t_test_s, end_s), test_layout)
         ref_sd = baseline_test.sd
-        fit_null = null_model([self.battery(s, fit_layout) for s in baseline_fit], opt.alpha)
+        fit_null = null_model([self.battery(s, fit_layout) for s in baseline_fit], options.alpha)
         return Split(
             t_fit_s=t_fit_s,
             t_test_s=t_test_s,
@@ -450,17 +453,17 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
 
     def run(self, real: SeriesT, baseline: Sequence[SeriesT]) -> OutcomeT:
         """The whole pipeline on a real series and its baseline runs."""
-        opt = self.options
+        options = self.options
         self.check(real, baseline)
         layout = self.layout_for(real, baseline)
         self.real, self.layout = real, layout
         notes = self.input_notes(real, layout)
         runs = list(baseline)
-        bootstrap = len(runs) < opt.min_runs
+        bootstrap = len(runs) < options.min_runs
         if bootstrap:
             # blocks of a quarter of the log: long against the correlation times, few joins
             block_s = max(layout.duration_s / 4.0, 10 * layout.dt_s)
-            runs = self.block_bootstrap(runs, opt.replicates, block_s, real)
+            runs = self.block_bootstrap(runs, options.replicates, block_s, real)
             notes.append(self.bootstrap_note(len(baseline), block_s))
         self.runs = runs
         self.prepare(runs)
@@ -471,12 +474,12 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         run_batteries = self.batteries(runs, layout, 0.0, end_s)
         real_battery = self.battery(real, layout)
         self.add_whole_log_cells(real, real_battery, run_batteries)
-        null = null_model(run_batteries, opt.alpha)
+        null = null_model(run_batteries, options.alpha)
         z = null.z(real_battery)
         where = where_cells(null, z)
 
         # 2. split: fit part, guard gap, held-out test part
-        sp = self.split = self._split(real, layout)
+        split = self.split = self._split(real, layout)
         outcome = self.new_outcome(
             layout=layout,
             real=real,
@@ -487,13 +490,13 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             z=z,
             threshold=null.threshold,
             where=where,
-            g_baseline=sp.g_baseline,
-            g_floor=sp.g_floor,
-            g_with=sp.g_baseline,
+            g_baseline=split.g_baseline,
+            g_floor=split.g_floor,
+            g_with=split.g_baseline,
             candidates=[],
             selected=[],
             closure=0.0,
-            split_s=(sp.t_fit_s, sp.t_test_s, layout.duration_s),
+            split_s=(split.t_fit_s, split.t_test_s, layout.duration_s),
             notes=notes,
         )
         if not where:
@@ -505,40 +508,52 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
 
     def _select(self, outcome: OutcomeT) -> None:
         """Steps 3-5: candidates, greedy add-one-in, leave-one-out, the reported outcome."""
-        opt, sp = self.options, self.split
-        g_base, g_floor = sp.g_baseline, sp.g_floor
+        selected, keep, g_current, scored = self._add_one_in(outcome)
+        if self.leave_one_out and len(selected) > 1:
+            selected, g_current = self._leave_one_out(selected, keep, g_current)
+        self._report(outcome, selected, scored, g_current)
+
+    def _add_one_in(
+        self, outcome: OutcomeT
+    ) -> tuple[list[Fit], set[str], float, dict[str, Candidate]]:
+        """Greedy add-one-in: (the selection, what leave-one-out must keep, its held-out G,
+        the candidates scored alone in round one)."""
+        options, split = self.options, self.split
+        g_baseline, g_floor = split.g_baseline, split.g_floor
         selected: list[Fit] = []
         keep: set[str] = set()  # what leave-one-out must not drop
         current = self.runs
-        g_cur = g_base
+        g_current = g_baseline
         scored: dict[str, Candidate] = {}
-        for index in range(opt.max_effects):
-            current_fit = [self.window(s, 0.0, sp.t_fit_s) for s in current]
-            fit_null = null_model([self.battery(s, sp.fit_layout) for s in current_fit], opt.alpha)
-            z_fit = fit_null.z(self.battery(sp.real_fit, sp.fit_layout))
-            names = [n for n in opt.candidates if n not in {f.name for f in selected}]
-            rnd = Round(index, selected, names, current, current_fit, fit_null, z_fit)
+        for index in range(options.max_effects):
+            current_fit = [self.window(s, 0.0, split.t_fit_s) for s in current]
+            fit_null = null_model(
+                [self.battery(s, split.fit_layout) for s in current_fit], options.alpha
+            )
+            z_fit = fit_null.z(self.battery(split.real_fit, split.fit_layout))
+            names = [n for n in options.candidates if n not in {f.name for f in selected}]
+            this_round = Round(index, selected, names, current, current_fit, fit_null, z_fit)
             ranked = self.rank(names, fit_null.cells, z_fit)
-            self.plan_round(rnd, outcome)
+            self.plan_round(this_round, outcome)
             best: Option | None = None
             for i, name in enumerate(ranked):
                 self.say(
                     f"round {index + 1}: fitting {name}",
                     self._round_progress(index + i / len(ranked)),
                 )
-                fit = self.effects[name].fit(sp.real_fit, current_fit, sp.fit_layout)
+                fit = self.effects[name].fit(split.real_fit, current_fit, split.fit_layout)
                 if fit is None:
                     continue
-                option = self.consider(rnd, name, fit)
+                option = self.consider(this_round, name, fit)
                 if index == 0:
                     ci = closure_ci(
-                        sp.real_test_battery, sp.baseline_test, option.null, self.rng,
-                        opt.ci_resamples,
+                        split.real_test_battery, split.baseline_test, option.null, self.rng,
+                        options.ci_resamples,
                     )  # fmt: skip
                     scored[name] = Candidate(
                         option.fit,
                         fingerprint_score(self.effects[name].fingerprint, fit_null.cells, z_fit),
-                        closure_of(g_base, option.g_effect, g_floor),
+                        closure_of(g_baseline, option.g_effect, g_floor),
                         ci,
                         option.g_effect,
                     )
@@ -552,38 +567,56 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             # A further effect must remove a real part of what is LEFT of the gap (a first
             # effect with a huge signature, e.g. a coarse lattice, leaves a second one a small
             # share of the total but most of the remainder).
-            left = g_cur - g_floor
-            if index > 0 and (left < ADD_MIN_LEFT or g_cur - g_new < ADD_MIN_SHARE * left):
+            left = g_current - g_floor
+            if index > 0 and (left < ADD_MIN_LEFT or g_current - g_new < ADD_MIN_SHARE * left):
                 break
-            if index == 0 and closure_of(g_base, g_new, g_floor) < ADD_MIN_GAIN:
+            if index == 0 and closure_of(g_baseline, g_new, g_floor) < ADD_MIN_GAIN:
                 break
             selected.extend(best.fits)
             keep.update(best.keep)
-            g_cur = g_new
+            g_current = g_new
             current = self.apply_fits(selected, self.runs)
+        return selected, keep, g_current, scored
 
-        if self.leave_one_out and len(selected) > 1:
-            self.say("leave-one-out", 0.95)
-            for f in list(selected):
-                if f.name in keep:
-                    continue
-                rest = [s for s in selected if s is not f]
-                g_rest = self.pooled_gap(rest)[0]
-                if closure_of(g_base, g_rest, g_floor) >= (
-                    closure_of(g_base, g_cur, g_floor) - ADD_MIN_GAIN / 2
-                ):
-                    selected = rest
-                    g_cur = g_rest
+    def _leave_one_out(
+        self, selected: list[Fit], keep: set[str], g_current: float
+    ) -> tuple[list[Fit], float]:
+        """Drop the selected effects (but those in ``keep``) the others make redundant: the
+        selection and its held-out G."""
+        g_baseline, g_floor = self.split.g_baseline, self.split.g_floor
+        self.say("leave-one-out", 0.95)
+        for f in list(selected):
+            if f.name in keep:
+                continue
+            rest = [s for s in selected if s is not f]
+            g_rest = self.pooled_gap(rest)[0]
+            if closure_of(g_baseline, g_rest, g_floor) >= (
+                closure_of(g_baseline, g_current, g_floor) - ADD_MIN_GAIN / 2
+            ):
+                selected = rest
+                g_current = g_rest
+        return selected, g_current
 
+    def _report(
+        self,
+        outcome: OutcomeT,
+        selected: list[Fit],
+        scored: dict[str, Candidate],
+        g_current: float,
+    ) -> None:
+        """Fill ``outcome``: the candidates (selected first), the reported fits, G with the
+        selection and its closure (re-scored on fresh draws where the effects are random)."""
+        options, split = self.options, self.split
+        g_baseline, g_floor = split.g_baseline, split.g_floor
         closure_fits = list(selected)  # the fit-part fits the closures belong to
         reported = self.report_fits(closure_fits, scored, outcome)
-        total = closure_of(g_base, g_cur, g_floor)
+        total = closure_of(g_baseline, g_current, g_floor)
         for f in closure_fits:
             prev = scored.get(f.name)
             if prev is None or (self.refits_take_selection_closure and prev.fit is not f):
                 # selected without (or unlike) its round-one fit: the selection's closure
                 score = prev.score if prev else 0.0
-                scored[f.name] = Candidate(f, score, total, (total, total), g_cur)
+                scored[f.name] = Candidate(f, score, total, (total, total), g_current)
         names = [f.name for f in reported]
         for c in scored.values():
             if c.fit.name in names:
@@ -597,7 +630,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             ),
         )
         outcome.selected = reported
-        outcome.g_with = g_cur
+        outcome.g_with = g_current
         if self.fresh_draws and closure_fits:
             # The selection's closure is scored again on fresh draws of its effect ensemble,
             # pooled: the G it was chosen on is the best of several noisy options (a winner's
@@ -605,8 +638,12 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             self.say("scoring the selection on fresh draws", 0.98)
             outcome.g_with, final_null = self.pooled_gap(closure_fits)
             outcome.closure_ci = closure_ci(
-                sp.real_test_battery, sp.baseline_test, final_null, self.rng, opt.ci_resamples
+                split.real_test_battery,
+                split.baseline_test,
+                final_null,
+                self.rng,
+                options.ci_resamples,
             )
-        outcome.closure = closure_of(g_base, outcome.g_with, g_floor)
+        outcome.closure = closure_of(g_baseline, outcome.g_with, g_floor)
         if not math.isfinite(outcome.closure):
             outcome.closure = 0.0

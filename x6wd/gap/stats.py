@@ -77,54 +77,56 @@ class Layout:
 
 def layout_for(series: PositionSeries) -> Layout:
     """The cell layout a real series implies (its step, length, motion, map split)."""
-    t = np.asarray(series.t_s, dtype=float)
-    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    t_s = np.asarray(series.t_s, dtype=float)
+    dt_s = float(np.median(np.diff(t_s))) if t_s.size > 1 else 1.0
     moving = series.speed_mps is not None and float(np.nanmax(series.speed_mps, initial=0.0)) > 0.2
-    pe = pn = 0.0
+    place_e_m = place_n_m = 0.0
     if moving:
-        te, tn = truth_track_m(series)
-        pe, pn = float(np.median(te)), float(np.median(tn))
+        true_east_m, true_north_m = truth_track_m(series)
+        place_e_m, place_n_m = float(np.median(true_east_m)), float(np.median(true_north_m))
     has_up = bool(np.any(np.asarray(series.up_m)[np.asarray(series.valid, dtype=bool)] != 0.0))
-    return Layout(dt, float(t[-1] - t[0]) if t.size else 0.0, moving, pe, pn, has_up)
+    return Layout(
+        dt_s, float(t_s[-1] - t_s[0]) if t_s.size else 0.0, moving, place_e_m, place_n_m, has_up
+    )
 
 
 def regular(series: PositionSeries, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """East/north/up on a regular grid of step ``dt_s`` over the series' span (linear
     interpolation across no-fix epochs): the form Allan deviation and autocorrelation need."""
-    v = np.asarray(series.valid, dtype=bool)
-    t = np.asarray(series.t_s, dtype=float)[v]
-    if t.size < 2:
-        z = np.zeros(max(t.size, 1))
-        return z, z, z
-    grid = np.arange(t[0], t[-1] + 0.5 * dt_s, dt_s)
-    e, n, u = (
-        np.interp(grid, t, np.asarray(a, dtype=float)[v])
+    valid = np.asarray(series.valid, dtype=bool)
+    t_s = np.asarray(series.t_s, dtype=float)[valid]
+    if t_s.size < 2:
+        zeros = np.zeros(max(t_s.size, 1))
+        return zeros, zeros, zeros
+    grid_s = np.arange(t_s[0], t_s[-1] + 0.5 * dt_s, dt_s)
+    east_m, north_m, up_m = (
+        np.interp(grid_s, t_s, np.asarray(a, dtype=float)[valid])
         for a in (series.east_m, series.north_m, series.up_m)
     )
-    return e, n, u
+    return east_m, north_m, up_m
 
 
 def octave_taus(layout: Layout) -> list[int]:
     """Averaging factors m = 1, 2, 4, ... with m*dt at most a tenth of the log (enough
     independent blocks for a stable estimate)."""
-    n = int(layout.duration_s / layout.dt_s) + 1
-    out, m = [], 1
-    while m <= max(1, n // 10):
-        out.append(m)
-        m *= 2
+    n_samples = int(layout.duration_s / layout.dt_s) + 1
+    out, factor = [], 1
+    while factor <= max(1, n_samples // 10):
+        out.append(factor)
+        factor *= 2
     return out
 
 
-def allan_var(y: np.ndarray, ms: list[int]) -> np.ndarray:
+def allan_var(y: np.ndarray, factors: list[int]) -> np.ndarray:
     """Overlapping Allan variance of y (treated as frequency data) at averaging factors ms."""
-    c = np.concatenate(([0.0], np.cumsum(y - (y.mean() if y.size else 0.0))))
-    out = np.full(len(ms), np.nan)
-    for i, m in enumerate(ms):
-        if 2 * m >= c.size:
+    cumsum = np.concatenate(([0.0], np.cumsum(y - (y.mean() if y.size else 0.0))))
+    out = np.full(len(factors), np.nan)
+    for i, factor in enumerate(factors):
+        if 2 * factor >= cumsum.size:
             break
-        avg = (c[m:] - c[:-m]) / m
-        d = avg[m:] - avg[:-m]
-        out[i] = 0.5 * float(np.mean(d * d))
+        avg = (cumsum[factor:] - cumsum[:-factor]) / factor
+        diff = avg[factor:] - avg[:-factor]
+        out[i] = 0.5 * float(np.mean(diff * diff))
     return out
 
 
@@ -135,37 +137,39 @@ def spectrum_bands(
     averaged in bands two octaves wide, from the Nyquist frequency down to the band whose
     lower edge is ten cycles per log (fewer cycles are too few independent estimates). The
     bands are fixed by the layout, so every series of a pair yields the same cells."""
-    n = round(layout.duration_s / layout.dt_s) + 1
-    fs = 1.0 / layout.dt_s
-    f_min = 10.0 / max(layout.duration_s, layout.dt_s)
+    n_samples = round(layout.duration_s / layout.dt_s) + 1
+    rate_hz = 1.0 / layout.dt_s
+    f_min_hz = 10.0 / max(layout.duration_s, layout.dt_s)
     edges = []
-    hi = fs / 2
-    while hi / 4 >= f_min:
-        edges.append((hi / 4, hi))
-        hi /= 4
-    m = min(n, east.size, north.size)
-    if m < 8 or not edges:
+    hi_hz = rate_hz / 2
+    while hi_hz / 4 >= f_min_hz:
+        edges.append((hi_hz / 4, hi_hz))
+        hi_hz /= 4
+    n_used = min(n_samples, east.size, north.size)
+    if n_used < 8 or not edges:
         return edges, [0.0] * len(edges)
-    f = np.fft.rfftfreq(m, layout.dt_s)
-    psd = np.zeros(f.size)
-    for y in (east[:m], north[:m]):
-        psd += np.abs(np.fft.rfft(y - y.mean())) ** 2 * layout.dt_s / m
+    f_hz = np.fft.rfftfreq(n_used, layout.dt_s)
+    psd_m2_per_hz = np.zeros(f_hz.size)
+    for y in (east[:n_used], north[:n_used]):
+        psd_m2_per_hz += np.abs(np.fft.rfft(y - y.mean())) ** 2 * layout.dt_s / n_used
     return edges, [
-        float(np.mean(psd[(f > lo) & (f <= hi)])) if np.any((f > lo) & (f <= hi)) else 0.0
-        for lo, hi in edges
+        float(np.mean(psd_m2_per_hz[(f_hz > lo_hz) & (f_hz <= hi_hz)]))
+        if np.any((f_hz > lo_hz) & (f_hz <= hi_hz))
+        else 0.0
+        for lo_hz, hi_hz in edges
     ]
 
 
 def acf(y: np.ndarray, lags: list[int]) -> np.ndarray:
     """Sample autocorrelation at the given lags (mean removed)."""
     x = y - y.mean()
-    var = float(np.dot(x, x))
+    energy = float(np.dot(x, x))
     out = np.zeros(len(lags))
-    if var <= 0:
+    if energy <= 0:
         return out
     for i, k in enumerate(lags):
         if 0 < k < x.size:
-            out[i] = float(np.dot(x[:-k], x[k:])) / var
+            out[i] = float(np.dot(x[:-k], x[k:])) / energy
     return out
 
 
@@ -178,146 +182,173 @@ def lattice_fraction(series: PositionSeries, decimals: int) -> float:
     10^-decimals grid (NMEA printing with that many decimals puts every fix on it)."""
     from sim_backend.effects import metres_per_degree
 
-    v = np.asarray(series.valid, dtype=bool)
-    if not np.any(v):
+    valid = np.asarray(series.valid, dtype=bool)
+    if not np.any(valid):
         return 0.0
-    e_per, n_per = metres_per_degree(series.origin_lat_deg)
-    te, tn = truth_track_m(series)
-    lat = series.origin_lat_deg + (tn[v] + np.asarray(series.north_m, dtype=float)[v]) / n_per
-    lon = series.origin_lon_deg + (te[v] + np.asarray(series.east_m, dtype=float)[v]) / e_per
-    scale = 10.0**decimals
+    m_per_deg_lon, m_per_deg_lat = metres_per_degree(series.origin_lat_deg)
+    true_east_m, true_north_m = truth_track_m(series)
+    lat_deg = (
+        series.origin_lat_deg
+        + (true_north_m[valid] + np.asarray(series.north_m, dtype=float)[valid]) / m_per_deg_lat
+    )
+    lon_deg = (
+        series.origin_lon_deg
+        + (true_east_m[valid] + np.asarray(series.east_m, dtype=float)[valid]) / m_per_deg_lon
+    )
+    per_minute = 10.0**decimals
     # An absolute tolerance of 0.5 mm: float round trips through metres stay far inside it,
     # and so does a window's re-based origin over a few hundred metres. Off-lattice data
     # passes with probability 1 mm / step per axis (about 5 % at 5 decimals, nil coarser).
-    ok = np.ones(lat.size, dtype=bool)
-    for a, m_per_deg in ((lat, n_per), (lon, e_per)):
-        u = np.abs(a) * 60.0 * scale
-        tol = LATTICE_TOL_M / (m_per_deg / 60.0 / scale)
-        ok &= np.abs(u - np.round(u)) < tol
+    ok = np.ones(lat_deg.size, dtype=bool)
+    for angle_deg, m_per_deg in ((lat_deg, m_per_deg_lat), (lon_deg, m_per_deg_lon)):
+        units = np.abs(angle_deg) * 60.0 * per_minute
+        tol_units = LATTICE_TOL_M / (m_per_deg / 60.0 / per_minute)
+        ok &= np.abs(units - np.round(units)) < tol_units
     return float(np.mean(ok))
 
 
-def _outages(valid: np.ndarray, t: np.ndarray) -> tuple[float, float]:
+def _outages(valid: np.ndarray, t_s: np.ndarray) -> tuple[float, float]:
     """(availability fraction, mean outage length s; 0 when none)."""
     if valid.size == 0:
         return 0.0, 0.0
-    avail = float(np.mean(valid))
-    d = np.diff(np.concatenate(([1], valid.astype(int), [1])))
-    starts, ends = np.flatnonzero(d == -1), np.flatnonzero(d == 1)
+    availability = float(np.mean(valid))
+    edges = np.diff(np.concatenate(([1], valid.astype(int), [1])))
+    starts, ends = np.flatnonzero(edges == -1), np.flatnonzero(edges == 1)
     if starts.size == 0:
-        return avail, 0.0
-    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-    return avail, float(np.mean(ends - starts)) * dt
+        return availability, 0.0
+    dt_s = float(np.median(np.diff(t_s))) if t_s.size > 1 else 1.0
+    return availability, float(np.mean(ends - starts)) * dt_s
 
 
 def battery(series: PositionSeries, layout: Layout) -> dict[Cell, float]:
     """Every statistic of the battery for one error series (metres, seconds)."""
     out: dict[Cell, float] = {}
-    v = np.asarray(series.valid, dtype=bool)
-    t = np.asarray(series.t_s, dtype=float)
-    E = np.asarray(series.east_m, dtype=float)
-    N = np.asarray(series.north_m, dtype=float)
-    U = np.asarray(series.up_m, dtype=float)
-    axes = {"east": E[v], "north": N[v]}
+    valid = np.asarray(series.valid, dtype=bool)
+    t_s = np.asarray(series.t_s, dtype=float)
+    east_m = np.asarray(series.east_m, dtype=float)
+    north_m = np.asarray(series.north_m, dtype=float)
+    up_m = np.asarray(series.up_m, dtype=float)
+    axes = {"east": east_m[valid], "north": north_m[valid]}
     if layout.has_up:
-        axes["up"] = U[v]
-    if not np.any(v):
-        ev = np.zeros(1)
-        axes = {k: ev for k in axes}
-    for ax, x in axes.items():
-        out[Cell("mean", ax)] = float(np.mean(x))
-        out[Cell("log_std", ax)] = _log(float(np.std(x)))
-    h = np.hypot(axes["east"] - np.mean(axes["east"]), axes["north"] - np.mean(axes["north"]))
-    habs = np.hypot(axes["east"], axes["north"])
-    cep, r95 = float(np.quantile(habs, 0.5)), float(np.quantile(habs, 0.95))
-    out[Cell("log_cep50", "horizontal")] = _log(cep)
-    out[Cell("log_r95", "horizontal")] = _log(r95)
+        axes["up"] = up_m[valid]
+    if not np.any(valid):
+        zeros = np.zeros(1)
+        axes = {name: zeros for name in axes}
+    for axis, values in axes.items():
+        out[Cell("mean", axis)] = float(np.mean(values))
+        out[Cell("log_std", axis)] = _log(float(np.std(values)))
+    spread_m = np.hypot(
+        axes["east"] - np.mean(axes["east"]), axes["north"] - np.mean(axes["north"])
+    )
+    radial_m = np.hypot(axes["east"], axes["north"])
+    cep50_m, r95_m = float(np.quantile(radial_m, 0.5)), float(np.quantile(radial_m, 0.95))
+    out[Cell("log_cep50", "horizontal")] = _log(cep50_m)
+    out[Cell("log_r95", "horizontal")] = _log(r95_m)
     out[Cell("tail_ratio", "horizontal")] = _log(
-        float(np.quantile(h, 0.99)) / max(float(np.quantile(h, 0.5)), 1e-6)
+        float(np.quantile(spread_m, 0.99)) / max(float(np.quantile(spread_m, 0.5)), 1e-6)
     )
 
     # time structure on a regular grid
-    re, rn, ru = regular(series, layout.dt_s)
-    grid = {"east": re, "north": rn}
+    grid_east_m, grid_north_m, grid_up_m = regular(series, layout.dt_s)
+    grid = {"east": grid_east_m, "north": grid_north_m}
     if layout.has_up:
-        grid["up"] = ru
-    ms = octave_taus(layout)
+        grid["up"] = grid_up_m
+    factors = octave_taus(layout)
     lags_s = [1.0, 10.0, 60.0, 300.0]
-    lags = [max(1, round(s / layout.dt_s)) for s in lags_s if s < layout.duration_s / 5]
-    for (lo, hi), power in zip(
+    lag_steps = [max(1, round(s / layout.dt_s)) for s in lags_s if s < layout.duration_s / 5]
+    for (lo_hz, hi_hz), psd_m2_per_hz in zip(
         *spectrum_bands(np.asarray(grid["east"]), np.asarray(grid["north"]), layout), strict=True
     ):
-        out[Cell("log_psd", "horizontal", f"{lo:.3g}-{hi:.3g}Hz")] = _log(power)
-    for ax, y in grid.items():
-        av = allan_var(y, ms)
-        for m, a in zip(ms, av, strict=True):
-            out[Cell("log_adev", ax, f"tau={m * layout.dt_s:g}s")] = (
-                0.5 * _log(a) if np.isfinite(a) else 0.0
+        out[Cell("log_psd", "horizontal", f"{lo_hz:.3g}-{hi_hz:.3g}Hz")] = _log(psd_m2_per_hz)
+    for axis, series_m in grid.items():
+        avar_m2 = allan_var(series_m, factors)
+        for factor, avar in zip(factors, avar_m2, strict=True):
+            out[Cell("log_adev", axis, f"tau={factor * layout.dt_s:g}s")] = (
+                0.5 * _log(avar) if np.isfinite(avar) else 0.0
             )
-        for k, r in zip(lags, acf(y, lags), strict=True):
-            out[Cell("acf", ax, f"lag={k * layout.dt_s:g}s")] = r
+        for lag, rho in zip(lag_steps, acf(series_m, lag_steps), strict=True):
+            out[Cell("acf", axis, f"lag={lag * layout.dt_s:g}s")] = rho
     # increments between consecutive valid epochs: step size, jump tails, exact repeats
-    for ax, x in (("east", axes["east"]), ("north", axes["north"])):
-        d = np.diff(x) if x.size > 1 else np.zeros(1)
-        sd = float(np.std(d))
-        out[Cell("log_step_std", ax)] = _log(sd)
-        mad = float(np.median(np.abs(d - np.median(d)))) * 1.4826
-        out[Cell("step_tail", ax)] = _log(float(np.quantile(np.abs(d), 0.999)) / max(mad, 1e-4))
-        out[Cell("zero_step", ax)] = float(np.mean(d == 0.0))
-    for dec in QUANT_DECIMALS:
-        out[Cell("lattice", "horizontal", f"1e-{dec} min")] = lattice_fraction(series, dec)
-    avail, outage = _outages(v, t)
-    out[Cell("availability", "fix")] = avail
-    out[Cell("log_outage_s", "fix")] = float(np.log1p(outage))
+    for axis, values in (("east", axes["east"]), ("north", axes["north"])):
+        steps_m = np.diff(values) if values.size > 1 else np.zeros(1)
+        step_sd_m = float(np.std(steps_m))
+        out[Cell("log_step_std", axis)] = _log(step_sd_m)
+        step_mad_m = float(np.median(np.abs(steps_m - np.median(steps_m)))) * 1.4826
+        out[Cell("step_tail", axis)] = _log(
+            float(np.quantile(np.abs(steps_m), 0.999)) / max(step_mad_m, 1e-4)
+        )
+        out[Cell("zero_step", axis)] = float(np.mean(steps_m == 0.0))
+    for decimals in QUANT_DECIMALS:
+        out[Cell("lattice", "horizontal", f"1e-{decimals} min")] = lattice_fraction(
+            series, decimals
+        )
+    availability, outage_s = _outages(valid, t_s)
+    out[Cell("availability", "fix")] = availability
+    out[Cell("log_outage_s", "fix")] = float(np.log1p(outage_s))
     if layout.moving and series.speed_mps is not None:
         out[Cell("latency_slope", "along")] = latency_slope(series)[0]
     # per period: where in time
-    edges = np.linspace(0.0, layout.duration_s, N_PERIODS + 1)
-    t0 = t - (t[0] if t.size else 0.0)
+    edges_s = np.linspace(0.0, layout.duration_s, N_PERIODS + 1)
+    t_rel_s = t_s - (t_s[0] if t_s.size else 0.0)
     for i in range(N_PERIODS):
         sel = (
-            v & (t0 >= edges[i]) & (t0 < edges[i + 1] if i < N_PERIODS - 1 else t0 <= edges[i + 1])
+            valid
+            & (t_rel_s >= edges_s[i])
+            & (t_rel_s < edges_s[i + 1] if i < N_PERIODS - 1 else t_rel_s <= edges_s[i + 1])
         )
-        label = f"t={edges[i]:.0f}-{edges[i + 1]:.0f}s"
+        label = f"t={edges_s[i]:.0f}-{edges_s[i + 1]:.0f}s"
         if np.count_nonzero(sel) < 3:
-            sel = v  # a period without fixes falls back to the whole log (availability flags it)
-        out[Cell("mean", "east", period=label)] = float(np.mean(E[sel])) if np.any(sel) else 0.0
-        out[Cell("mean", "north", period=label)] = float(np.mean(N[sel])) if np.any(sel) else 0.0
+            # a period without fixes falls back to the whole log (availability flags it)
+            sel = valid
+        out[Cell("mean", "east", period=label)] = (
+            float(np.mean(east_m[sel])) if np.any(sel) else 0.0
+        )
+        out[Cell("mean", "north", period=label)] = (
+            float(np.mean(north_m[sel])) if np.any(sel) else 0.0
+        )
         out[Cell("log_std", "horizontal", period=label)] = _log(
-            float(np.sqrt(np.var(E[sel]) + np.var(N[sel]))) if np.any(sel) else 0.0
+            float(np.sqrt(np.var(east_m[sel]) + np.var(north_m[sel]))) if np.any(sel) else 0.0
         )
     # per place (moving logs): where on the map
     if layout.moving:
-        te, tn = truth_track_m(series)
+        true_east_m, true_north_m = truth_track_m(series)
         # steps between consecutive valid epochs, attributed to the place of the later one:
         # a local error source (a multipath zone) is fast, so it shows far more in the step
         # size there than in the RMS, which the slow whole-log drift dominates
-        iv = np.flatnonzero(v)
-        step2 = np.zeros(v.size)
-        if iv.size > 1:
-            step2[iv[1:]] = np.diff(E[iv]) ** 2 + np.diff(N[iv]) ** 2
-        has_step = np.zeros(v.size, dtype=bool)
-        has_step[iv[1:]] = True
-        for name, in_place in _places(te, tn, layout).items():
-            sel = v & in_place
-            rms = (
-                float(np.sqrt(np.mean(E[sel] ** 2 + N[sel] ** 2)))
+        valid_idx = np.flatnonzero(valid)
+        step2_m2 = np.zeros(valid.size)
+        if valid_idx.size > 1:
+            step2_m2[valid_idx[1:]] = (
+                np.diff(east_m[valid_idx]) ** 2 + np.diff(north_m[valid_idx]) ** 2
+            )
+        has_step = np.zeros(valid.size, dtype=bool)
+        has_step[valid_idx[1:]] = True
+        for name, in_place in _places(true_east_m, true_north_m, layout).items():
+            sel = valid & in_place
+            rms_m = (
+                float(np.sqrt(np.mean(east_m[sel] ** 2 + north_m[sel] ** 2)))
                 if np.count_nonzero(sel) >= 3
                 else 0.0
             )
-            out[Cell("log_rms_place", "horizontal", place=name)] = _log(rms)
-            ss = has_step & in_place
+            out[Cell("log_rms_place", "horizontal", place=name)] = _log(rms_m)
+            step_sel = has_step & in_place
             out[Cell("log_step_std_place", "horizontal", place=name)] = _log(
-                float(np.sqrt(np.mean(step2[ss]))) if np.count_nonzero(ss) >= 3 else 0.0
+                float(np.sqrt(np.mean(step2_m2[step_sel])))
+                if np.count_nonzero(step_sel) >= 3
+                else 0.0
             )
     return out
 
 
-def _places(te: np.ndarray, tn: np.ndarray, layout: Layout) -> dict[str, np.ndarray]:
-    pe, pn = layout.place_e_m, layout.place_n_m
+def _places(
+    true_east_m: np.ndarray, true_north_m: np.ndarray, layout: Layout
+) -> dict[str, np.ndarray]:
+    place_e_m, place_n_m = layout.place_e_m, layout.place_n_m
     return {
-        f"{ns}{ew} of ({pe:.0f} m E, {pn:.0f} m N)": ((tn >= pn) == (ns == "N"))
-        & ((te >= pe) == (ew == "E"))
+        f"{ns}{ew} of ({place_e_m:.0f} m E, {place_n_m:.0f} m N)": (
+            (true_north_m >= place_n_m) == (ns == "N")
+        )
+        & ((true_east_m >= place_e_m) == (ew == "E"))
         for ns in "NS"
         for ew in "EW"
     }
@@ -326,31 +357,33 @@ def _places(te: np.ndarray, tn: np.ndarray, layout: Layout) -> dict[str, np.ndar
 def latency_slope(series: PositionSeries) -> tuple[float, float]:
     """Least-squares slope (s) of the along-track error on the true speed, and its standard
     error. A receiver reporting the truth of d seconds earlier has slope -d."""
-    v = np.asarray(series.valid, dtype=bool)
-    if series.speed_mps is None or np.count_nonzero(v) < 5:
+    valid = np.asarray(series.valid, dtype=bool)
+    if series.speed_mps is None or np.count_nonzero(valid) < 5:
         return 0.0, float("inf")
-    speed = np.nan_to_num(np.asarray(series.speed_mps, dtype=float))[v]
-    crs = np.radians(
+    speed_mps = np.nan_to_num(np.asarray(series.speed_mps, dtype=float))[valid]
+    course_rad = np.radians(
         np.nan_to_num(
             np.asarray(
                 series.course_deg if series.course_deg is not None else np.zeros(len(series)),
                 dtype=float,
             )
         )
-    )[v]
-    along = np.asarray(series.east_m, dtype=float)[v] * np.sin(crs) + np.asarray(
+    )[valid]
+    along_m = np.asarray(series.east_m, dtype=float)[valid] * np.sin(course_rad) + np.asarray(
         series.north_m, dtype=float
-    )[v] * np.cos(crs)
-    slope, se, resid = _ols(speed, along)
+    )[valid] * np.cos(course_rad)
+    slope, se_s, resid = _ols(speed_mps, along_m)
     if resid.size < 5:
-        return slope, se
+        return slope, se_s
     # GNSS errors are strongly autocorrelated: one Cochrane-Orcutt step (GLS with AR(1)
     # residuals) gives a far tighter and honest slope than plain least squares.
     rho = float(
         np.clip(np.dot(resid[1:], resid[:-1]) / max(float(np.dot(resid, resid)), 1e-12), 0.0, 0.999)
     )
-    slope2, se2, _ = _ols(speed[1:] - rho * speed[:-1], along[1:] - rho * along[:-1])
-    return (slope2, se2) if math.isfinite(se2) else (slope, se)
+    slope2_s, se2_s, _ = _ols(
+        speed_mps[1:] - rho * speed_mps[:-1], along_m[1:] - rho * along_m[:-1]
+    )
+    return (slope2_s, se2_s) if math.isfinite(se2_s) else (slope, se_s)
 
 
 def _ols(x: np.ndarray, y: np.ndarray) -> tuple[float, float, np.ndarray]:
@@ -367,27 +400,27 @@ def _ols(x: np.ndarray, y: np.ndarray) -> tuple[float, float, np.ndarray]:
 
 def window(series: PositionSeries, t0_s: float, t1_s: float) -> PositionSeries:
     """The part of a series with t0_s <= t - t_start < t1_s (same origin; t not reset)."""
-    t = np.asarray(series.t_s, dtype=float)
-    rel = t - t[0]
-    m = (rel >= t0_s) & (rel < t1_s)
+    t_s = np.asarray(series.t_s, dtype=float)
+    rel_s = t_s - t_s[0]
+    inside = (rel_s >= t0_s) & (rel_s < t1_s)
 
     def cut(a: np.ndarray | None) -> np.ndarray | None:
-        return None if a is None else np.asarray(a)[m]
+        return None if a is None else np.asarray(a)[inside]
 
     # The origin moves to the truth at the window start so the implied truth track matches.
-    te, tn = truth_track_m(series)
+    true_east_m, true_north_m = truth_track_m(series)
     from sim_backend.effects import metres_per_degree
 
-    e_per, n_per = metres_per_degree(series.origin_lat_deg)
-    k = int(np.argmax(m)) if np.any(m) else 0
+    m_per_deg_lon, m_per_deg_lat = metres_per_degree(series.origin_lat_deg)
+    first = int(np.argmax(inside)) if np.any(inside) else 0
     return PositionSeries(
-        t_s=t[m],
-        east_m=np.asarray(series.east_m)[m],
-        north_m=np.asarray(series.north_m)[m],
-        up_m=np.asarray(series.up_m)[m],
-        valid=np.asarray(series.valid)[m],
-        origin_lat_deg=series.origin_lat_deg + float(tn[k]) / n_per,
-        origin_lon_deg=series.origin_lon_deg + float(te[k]) / e_per,
+        t_s=t_s[inside],
+        east_m=np.asarray(series.east_m)[inside],
+        north_m=np.asarray(series.north_m)[inside],
+        up_m=np.asarray(series.up_m)[inside],
+        valid=np.asarray(series.valid)[inside],
+        origin_lat_deg=series.origin_lat_deg + float(true_north_m[first]) / m_per_deg_lat,
+        origin_lon_deg=series.origin_lon_deg + float(true_east_m[first]) / m_per_deg_lon,
         speed_mps=cut(series.speed_mps),
         course_deg=cut(series.course_deg),
         nsats=cut(series.nsats),

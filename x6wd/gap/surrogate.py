@@ -28,9 +28,9 @@ def truth_motion(t_s: np.ndarray, moving: bool) -> tuple[np.ndarray | None, np.n
     """Speed (m/s) and course (deg) of the surrogate's true motion, None when static."""
     if not moving:
         return None, None
-    speed = 1.5 + 1.0 * np.sin(2 * np.pi * t_s / 97.0)
-    course = np.mod(360.0 * t_s / 600.0, 360.0)
-    return speed, course
+    speed_mps = 1.5 + 1.0 * np.sin(2 * np.pi * t_s / 97.0)
+    course_deg = np.mod(360.0 * t_s / 600.0, 360.0)
+    return speed_mps, course_deg
 
 
 def surrogate_run(
@@ -43,18 +43,18 @@ def surrogate_run(
     effects: Sequence[object] = BASELINE_EFFECTS,
 ) -> PositionSeries:
     """One baseline error series (m) of ``duration_s`` at step ``dt_s``."""
-    t = np.arange(0.0, duration_s + 0.5 * dt_s, dt_s)
-    speed, course = truth_motion(t, moving)
-    z = np.zeros(t.size)
-    s = PositionSeries(
-        t_s=t,
-        east_m=z,
-        north_m=z,
-        up_m=z,
-        valid=np.ones(t.size, dtype=bool),
+    t_s = np.arange(0.0, duration_s + 0.5 * dt_s, dt_s)
+    speed_mps, course_deg = truth_motion(t_s, moving)
+    zeros = np.zeros(t_s.size)
+    series = PositionSeries(
+        t_s=t_s,
+        east_m=zeros,
+        north_m=zeros,
+        up_m=zeros,
+        valid=np.ones(t_s.size, dtype=bool),
         origin_lat_deg=origin[0],
         origin_lon_deg=origin[1],
-        speed_mps=speed,
-        course_deg=course,
+        speed_mps=speed_mps,
+        course_deg=course_deg,
     )
-    return apply_effects(s, list(effects), rng)
+    return apply_effects(series, list(effects), rng)
