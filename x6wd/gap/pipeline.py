@@ -214,7 +214,9 @@ class Split(Generic[SeriesT, LayoutT]):
     """The fit part (t < ``t_fit_s``), guard gap and held-out test part (``t_test_s`` <= t <
     ``end_s``; s from the log's start) of one log, and the baseline scored on them:
     ``baseline_test`` its null on the test part, ``ref_sd_test``/``ref_sd_fit`` the baseline's
-    spreads (the reference of every G), ``g_baseline``/``g_floor`` on the test part."""
+    spreads (the reference of every G), ``g_baseline``/``g_floor`` on the test part. The fit
+    part's references (the real fit part's battery, the baseline runs' fit parts and their
+    spread) are filled in only once there is a gap to explain (:meth:`Pipeline._select`)."""
 
     t_fit_s: float
     t_test_s: float
@@ -222,13 +224,13 @@ class Split(Generic[SeriesT, LayoutT]):
     fit_layout: LayoutT
     test_layout: LayoutT
     real_fit: SeriesT
-    real_fit_battery: Battery
     real_test_battery: Battery
-    baseline_fit: list[SeriesT]
     baseline_test: NullModel
-    ref_sd_fit: np.ndarray
     g_baseline: float
     g_floor: float
+    real_fit_battery: Battery = field(default_factory=dict)
+    baseline_fit: list[SeriesT] = field(default_factory=list)
+    ref_sd_fit: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def ref_sd_test(self) -> np.ndarray:
@@ -427,29 +429,33 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         t_test_s = t_fit_s + options.guard_fraction * duration_s
         fit_layout = self.part_layout(layout, t_fit_s)
         test_layout = self.part_layout(layout, duration_s - t_test_s)
-        real_fit = self.window(real, 0.0, t_fit_s)
-        baseline_fit = [self.window(s, 0.0, t_fit_s) for s in self.runs]
         baseline_test = null_model(
             self.batteries(self.runs, test_layout, t_test_s, end_s), options.alpha
         )
         real_test_battery = self.battery(self.window(real, t_test_s, end_s), test_layout)
         ref_sd = baseline_test.sd
-        fit_null = null_model([self.battery(s, fit_layout) for s in baseline_fit], options.alpha)
         return Split(
             t_fit_s=t_fit_s,
             t_test_s=t_test_s,
             end_s=end_s,
             fit_layout=fit_layout,
             test_layout=test_layout,
-            real_fit=real_fit,
-            real_fit_battery=self.battery(real_fit, fit_layout),
+            real_fit=self.window(real, 0.0, t_fit_s),
             real_test_battery=real_test_battery,
-            baseline_fit=baseline_fit,
             baseline_test=baseline_test,
-            ref_sd_fit=fit_null.sd,
             g_baseline=baseline_test.gap(real_test_battery, ref_sd),
             g_floor=baseline_test.floor(ref_sd),
         )
+
+    def _fill_fit_part(self) -> None:
+        """The fit part's references of :class:`Split` (see there)."""
+        split = self.split
+        split.baseline_fit = [self.window(s, 0.0, split.t_fit_s) for s in self.runs]
+        runs_null = null_model(
+            [self.battery(s, split.fit_layout) for s in split.baseline_fit], self.options.alpha
+        )
+        split.ref_sd_fit = runs_null.sd
+        split.real_fit_battery = self.battery(split.real_fit, split.fit_layout)
 
     def run(self, real: SeriesT, baseline: Sequence[SeriesT]) -> OutcomeT:
         """The whole pipeline on a real series and its baseline runs."""
@@ -508,6 +514,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
 
     def _select(self, outcome: OutcomeT) -> None:
         """Steps 3-5: candidates, greedy add-one-in, leave-one-out, the reported outcome."""
+        self._fill_fit_part()
         selected, keep, g_current, scored = self._add_one_in(outcome)
         if self.leave_one_out and len(selected) > 1:
             selected, g_current = self._leave_one_out(selected, keep, g_current)
