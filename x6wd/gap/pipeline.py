@@ -270,7 +270,9 @@ class Option:
 
 
 class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
-    """One diagnosis of one sensor's log against its baseline runs (see the module doc).
+    """One diagnosis of one sensor's log against its baseline runs (see the module doc):
+    ``Sensor(options, rng, progress).run(real, baseline)``, ``progress(message, fraction)``
+    called as it goes.
 
     Subclasses give the sensor's plug-ins (abstract methods) and may override the selection
     hooks; class attributes tune the shared steps."""
@@ -380,6 +382,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
     # --- the shared steps ----------------------------------------------------------------------
 
     def say(self, msg: str, frac: float) -> None:
+        """Progress: ``msg`` (prefixed by the sensor's label) at ``frac`` (0-1) of the run."""
         self._progress(self.label + msg, frac)
 
     def batteries(
