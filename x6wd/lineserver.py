@@ -36,6 +36,7 @@ import collections
 import contextlib
 import fcntl
 import logging
+import socket
 import ssl
 import struct
 import termios
@@ -175,6 +176,16 @@ def unacknowledged_bytes(transport: asyncio.BaseTransport) -> int | None:
     except (OSError, ValueError):
         return None
     return int(struct.unpack("i", raw)[0])
+
+
+def reset(transport: asyncio.WriteTransport) -> None:
+    """Close at once with a TCP reset: data still queued for a peer that does not read is
+    dropped now, instead of the kernel holding it (and the connection) while it retries."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    transport.abort()
 
 
 def peer_names(writer: asyncio.StreamWriter) -> tuple[str, str]:
@@ -377,10 +388,10 @@ class LineServer(Generic[C]):
         with contextlib.suppress(Exception):
             if reason != SLOW_READER and transport.get_write_buffer_size() == 0:
                 transport.write(self._notice(reason, message))
-            if transport.get_write_buffer_size() == 0:
+            if reason != SLOW_READER and transport.get_write_buffer_size() == 0:
                 transport.close()
             else:  # it does not read: do not keep the socket open for its buffer
-                transport.abort()
+                reset(transport)
         # The aborted socket ends the handler's read and the sender's drain by itself; only a
         # handler sleeping out a back-off is cancelled (cancelling costs reference cycles the
         # garbage collector must find: a connect-churn storm would make it pause the process)
@@ -478,7 +489,7 @@ class LineServer(Generic[C]):
         transport = c.writer.transport
         with contextlib.suppress(Exception):
             if transport.get_write_buffer_size() > 0:
-                transport.abort()  # a peer that does not read: do not wait for it
+                reset(transport)  # a peer that does not read: do not wait for it
             else:
                 c.writer.close()
         if c.task is not None:
