@@ -24,6 +24,7 @@ from x6wd.client import ConnectionFailed, RemoteClient
 from x6wd.config import ServerConfig
 from x6wd.gpsd import GpsdServer
 from x6wd.lineserver import unacknowledged_bytes
+from x6wd.records import GpsSky, SatInfo
 from x6wd.server import COMMANDS, ControlServer
 
 # Written out here, not imported: adding a command to the server's unauthenticated set (or a
@@ -500,24 +501,48 @@ def test_gpsd_deadlines_pending_idle_and_never_reading_watcher() -> None:
         wait_until(lambda: on_loop(lambda: srv.client_count) == 3)
         port = stuck.getsockname()[1]
 
-        def stuck_window_shut() -> bool:
+        def stuck_acked() -> tuple[int, int]:
+            """(bytes the stuck peer acknowledged, bytes waiting for it)"""
             (c,) = [c for c in srv._clients if c.peer.endswith(f":{port}")]
-            return bool(unacknowledged_bytes(c.writer.transport))
+            t = c.writer.transport
+            waiting = (unacknowledged_bytes(t) or 0) + t.get_write_buffer_size()
+            return c.bytes_out - waiting, waiting
 
-        wait_until(lambda: on_loop(stuck_window_shut))
-        clock.now += 5.1  # the silent socket's first-command deadline
-        on_loop(srv.sweep)
-        assert b"closing: pending_timeout" in read_to_eof(silent_sock)
-        assert on_loop(lambda: dict(srv.closed_counts)) == {"pending_timeout": 1}
-        clock.now += 60.0  # the poller, not watching, has been idle 65 s
-        on_loop(srv.sweep)
-        assert b"closing: idle_timeout" in pf.read()
-        wait_until(lambda: is_closed(stuck))  # no notice: it would not read it
+        # its kernel packs a tiny receive buffer for a while before the window really shuts:
+        # a few large reports hurry that along
+        sats = tuple(SatInfo(i + 1, 45.0, float(i), 40.0, True) for i in range(200))
+        big_sky = GpsSky(t_s=1.0, satellites=sats, pdop=2.1, hdop=1.1, vdop=1.8)
+        for _ in range(8):
+            on_loop(lambda: srv.publish_sky(big_sky))
+        seen: tuple[int, int] | None = None
+        deadline = time.monotonic() + 10
+        while True:
+            now_acked = on_loop(stuck_acked)
+            if seen is not None and now_acked[0] == seen[0] and now_acked[1] > 0:
+                break
+            assert time.monotonic() < deadline, "the stuck watcher kept reading"
+            seen = now_acked
+            time.sleep(0.2)
+        # 66 s of the server's clock in 2 s steps, 50 ms of real time apart: the reading
+        # watcher makes progress between any two looks, the stuck one never does
+        closed_at: dict[str, float] = {}
+        for _ in range(33):
+            clock.now += 2.0
+            time.sleep(0.05)
+            on_loop(srv.sweep)
+            for reason in on_loop(lambda: dict(srv.closed_counts)):
+                closed_at.setdefault(reason, clock.now - 1000.0)
         assert on_loop(lambda: dict(srv.closed_counts)) == {
             "pending_timeout": 1,
-            "idle_timeout": 1,
             "slow_reader": 1,
+            "idle_timeout": 1,
         }
+        # 5 s to send a command, 10 s without progress (from the first look), 60 s idle
+        assert closed_at["pending_timeout"] == 6.0 and closed_at["idle_timeout"] == 60.0
+        assert 10.0 <= closed_at["slow_reader"] <= 12.0
+        assert b"closing: pending_timeout" in read_to_eof(silent_sock)
+        assert b"closing: idle_timeout" in pf.read()
+        wait_until(lambda: is_closed(stuck))  # no notice: it would not read it
         n = tpvs[0]
         wait_until(lambda: tpvs[0] > n + 3)  # the reading watcher carries on
     finally:

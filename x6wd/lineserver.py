@@ -374,8 +374,8 @@ class LineServer(Generic[C]):
     def _evict(self, c: C, reason: str, message: str) -> None:
         """Close a connection now: a last notice if its socket takes it at once (never for a
         peer that does not read), drop what is queued, end its handler. Never waits."""
-        if c.evicted or c.closed:
-            return
+        if c.evicted:
+            return  # (one whose socket failed is still evicted: it leaves the pools now)
         self._count_close(c, reason, message)
         self._forget(c)
         c.evicted = reason
