@@ -113,6 +113,15 @@ def test_the_servers_reason_for_closing_is_reported(tmp_path: Path) -> None:
         with pytest.raises(ConnectionFailed, match=r"closed the connection \(auth_timeout\)"):
             c.request("status")
         c.close()
+        # a watcher that has to make room for a newly authenticated operator learns why
+        full = start_server(lt, RecordingBackend(), token=TOKEN.encode(), max_clients=1)
+        with RemoteClient("127.0.0.1", full.port, token=TOKEN) as watcher:
+            watcher.request("watch", on=True)
+            with RemoteClient("127.0.0.1", full.port, token=TOKEN) as op:
+                assert op.request("stop")["ok"]
+            with pytest.raises(ConnectionFailed, match=r"\(sessions_full\)"):
+                watcher.next_event(5.0)
+        lt.run(full.close())
         wrong = tmp_path / "wrong"
         wrong.write_text("not-the-token\n")
         wrong.chmod(0o600)

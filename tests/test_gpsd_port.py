@@ -292,3 +292,25 @@ def test_real_recording_through_decoder_and_port_matches_gpsd_itself() -> None:
         if "speed" in t:  # a fix closed without its RMC has no speed: omitted, not null
             assert t["speed"] == pytest.approx(g["speed"], abs=1e-3)
     assert matched >= 10
+
+
+def test_from_config_and_the_constructors_defaults_match_gpsdconfig() -> None:
+    import dataclasses
+    import inspect
+
+    from x6wd.core.config import GpsdConfig
+
+    cfg = GpsdConfig(port=0, max_clients=3, queue_len=9, idle_timeout_s=7.0, slow_client_s=2.0)
+    srv = GpsdServer.from_config(cfg, "/dev/ttyAMA0", bps=4800, declination_deg=1.5)
+    assert (srv.device_path, srv.bps, srv.declination_deg) == ("/dev/ttyAMA0", 4800, 1.5)
+    assert (srv.max_clients, srv.queue_len, srv.idle_timeout_s, srv.slow_client_s) == (
+        3,
+        9,
+        7.0,
+        2.0,
+    )
+    # the old constructor (as the daemon calls it) keeps GpsdConfig's defaults
+    defaults = {f.name: f.default for f in dataclasses.fields(GpsdConfig)}
+    params = inspect.signature(GpsdServer.__init__).parameters
+    for name in ("max_clients", "queue_len", "idle_timeout_s", "slow_client_s"):
+        assert params[name].default == defaults[name], name

@@ -7,6 +7,7 @@ Real sockets on 127.0.0.1 against real servers; deadlines are driven by an injec
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import socket
@@ -21,8 +22,10 @@ from tests.test_gpsd_port import Published
 from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
 from x6wd.app.client import ConnectionFailed, RemoteClient
 from x6wd.app.gpsd import GpsdServer
+from x6wd.app.lineserver import unacknowledged_bytes
 from x6wd.app.server import COMMANDS, ControlServer
 from x6wd.core.config import ServerConfig
+from x6wd.core.records import GpsSky, SatInfo
 
 # Written out here, not imported: adding a command to the server's unauthenticated set (or a
 # new command nobody classified) must make a test fail.
@@ -463,8 +466,11 @@ async def _stats(srv: GpsdServer) -> dict[str, Any]:
 
 
 def test_gpsd_deadlines_pending_idle_and_never_reading_watcher() -> None:
+    """A silent socket (first-command deadline), a poller gone quiet (idle deadline) and a
+    watcher that never reads (its window shut for slow_client_s) are closed; a watcher that
+    reads carries on."""
     clock = Clock()
-    p = Published(clock=clock, queue_len=4)
+    p = Published(clock=clock)
     srv = p.srv
 
     def on_loop(fn: Callable[[], Any]) -> Any:
@@ -477,6 +483,15 @@ def test_gpsd_deadlines_pending_idle_and_never_reading_watcher() -> None:
     poller = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
     pf = poller.makefile("rb")
     reader, rf = _gpsd_watch(srv.port)
+    tpvs = [0]
+
+    def read_all() -> None:  # a watcher that keeps reading
+        with contextlib.suppress(OSError, ValueError):
+            for line in rf:
+                tpvs[0] += line.startswith(b'{"class":"TPV"')
+
+    reading = threading.Thread(target=read_all, daemon=True)
+    reading.start()
     stuck = _stuck_socket(srv.port)
     try:
         stuck.sendall(b'?WATCH={"enable":true,"json":true};\n')
@@ -484,51 +499,56 @@ def test_gpsd_deadlines_pending_idle_and_never_reading_watcher() -> None:
         assert json.loads(pf.readline())["class"] == "VERSION"
         assert json.loads(pf.readline())["class"] == "POLL"
         wait_until(lambda: on_loop(lambda: srv.client_count) == 3)
-        clock.now += 5.1  # the silent socket's first-command deadline
-        on_loop(srv.sweep)
-        assert b"closing: pending_timeout" in read_to_eof(silent_sock)
-        clock.now += 60.0  # the poller, not watching, has been idle 65 s
-        on_loop(srv.sweep)
-        assert b"closing: idle_timeout" in pf.read()
-        assert on_loop(lambda: srv.client_count) == 2  # the watchers stay
-        # the stuck watcher: publish until its socket is full, then its drain deadline
-        big_sky = p_sky(200)
-        c = _fill_until_blocked_gpsd(on_loop, srv, lambda: srv.publish_sky(big_sky))
-        clock.now += 10.5
-        on_loop(srv.sweep)
-        assert c.evicted == "slow_reader"
-        wait_until(lambda: is_closed(stuck))
-        _read_until_class(rf, "TPV", limit=100_000)  # the reading watcher carries on
+        port = stuck.getsockname()[1]
+
+        def stuck_acked() -> tuple[int, int]:
+            """(bytes the stuck peer acknowledged, bytes waiting for it)"""
+            (c,) = [c for c in srv._clients if c.peer.endswith(f":{port}")]
+            t = c.writer.transport
+            waiting = (unacknowledged_bytes(t) or 0) + t.get_write_buffer_size()
+            return c.bytes_out - waiting, waiting
+
+        # its kernel packs a tiny receive buffer for a while before the window really shuts:
+        # a few large reports hurry that along
+        sats = tuple(SatInfo(i + 1, 45.0, float(i), 40.0, True) for i in range(200))
+        big_sky = GpsSky(t_s=1.0, satellites=sats, pdop=2.1, hdop=1.1, vdop=1.8)
+        for _ in range(8):
+            on_loop(lambda: srv.publish_sky(big_sky))
+        seen: tuple[int, int] | None = None
+        deadline = time.monotonic() + 10
+        while True:
+            now_acked = on_loop(stuck_acked)
+            if seen is not None and now_acked[0] == seen[0] and now_acked[1] > 0:
+                break
+            assert time.monotonic() < deadline, "the stuck watcher kept reading"
+            seen = now_acked
+            time.sleep(0.2)
+        # 66 s of the server's clock in 2 s steps, 50 ms of real time apart: the reading
+        # watcher makes progress between any two looks, the stuck one never does
+        closed_at: dict[str, float] = {}
+        for _ in range(33):
+            clock.now += 2.0
+            time.sleep(0.05)
+            on_loop(srv.sweep)
+            for reason in on_loop(lambda: dict(srv.closed_counts)):
+                closed_at.setdefault(reason, clock.now - 1000.0)
         assert on_loop(lambda: dict(srv.closed_counts)) == {
             "pending_timeout": 1,
-            "idle_timeout": 1,
             "slow_reader": 1,
+            "idle_timeout": 1,
         }
+        # 5 s to send a command, 10 s without progress (from the first look), 60 s idle
+        assert closed_at["pending_timeout"] == 6.0 and closed_at["idle_timeout"] == 60.0
+        assert 10.0 <= closed_at["slow_reader"] <= 12.0
+        assert b"closing: pending_timeout" in read_to_eof(silent_sock)
+        assert b"closing: idle_timeout" in pf.read()
+        wait_until(lambda: is_closed(stuck))  # no notice: it would not read it
+        n = tpvs[0]
+        wait_until(lambda: tpvs[0] > n + 3)  # the reading watcher carries on
     finally:
         for s in (silent_sock, poller, reader, stuck):
             s.close()
         p.close()
-
-
-def p_sky(n_sats: int) -> Any:
-    from x6wd.core.records import GpsSky, SatInfo
-
-    sats = tuple(SatInfo(i + 1, 45.0, float(i), 40.0, True) for i in range(n_sats))
-    return GpsSky(t_s=1.0, satellites=sats, pdop=2.1, hdop=1.1, vdop=1.8)
-
-
-def _fill_until_blocked_gpsd(
-    on_loop: Callable[[Callable[[], Any]], Any], srv: GpsdServer, publish: Callable[[], None]
-) -> Any:
-    def step() -> Any:
-        publish()
-        return next((c for c in srv._clients if c.drain_since_s is not None), None)
-
-    for _ in range(5000):
-        c = on_loop(step)
-        if c is not None:
-            return c
-    raise AssertionError("the stuck watcher's socket never filled")
 
 
 def test_gpsd_malformed_commands_get_errors_and_the_connection_carries_on() -> None:
@@ -870,13 +890,47 @@ def test_a_stop_after_a_motion_command_is_sent_even_with_one_in_flight(lt: LoopT
         a.send(b'{"id":1,"cmd":"stop"}\n')
         wait_until(lambda: backend.calls)
         assert b.ask({"id": 1, "cmd": "drive", "left": 20, "right": 20, "duration_s": 1})["ok"]
-        b.send(b'{"id":2,"cmd":"stop"}\n')
-        a.send(b'{"id":2,"cmd":"stop"}\n')
-        assert a.line()["ok"] and b.line()["ok"] and a.line()["ok"]
-        assert [n for n, _ in backend.calls][:3] == ["stop", "drive", "stop"]
+        assert b.ask({"id": 2, "cmd": "stop"})["ok"]
+        # by the time b's stop is answered, a stop sent after the drive has completed
+        assert [n for n, _ in backend.calls] == ["stop", "drive", "stop"]
+        assert a.line()["ok"]
     finally:
         a.close()
         b.close()
+        lt.run(srv.close())
+
+
+class SlowStatusBackend(RecordingBackend):
+    def __init__(self) -> None:
+        super().__init__()
+        self.status_calls = 0
+
+    def status(self) -> Any:
+        self.status_calls += 1
+
+        async def later() -> dict[str, Any]:
+            await asyncio.sleep(0.05)
+            return {"mode": "IDLE", "n": self.status_calls}
+
+        return later()
+
+
+def test_a_crowd_asking_status_shares_one_backend_call(lt: LoopThread) -> None:
+    backend = SlowStatusBackend()
+    srv = serve(lt, backend, token=None)
+    crowd = [Raw(srv.port) for _ in range(10)]
+    try:
+        for i, r in enumerate(crowd):
+            r.send(json.dumps({"id": i, "cmd": "status"}).encode() + b"\n")
+        replies = [r.line() for r in crowd]
+        assert all(x["ok"] and x["mode"] == "IDLE" for x in replies)
+        assert backend.status_calls == 1  # one in flight, ten answers
+        assert crowd[0].ask({"id": "d", "cmd": "drive", "left": 1, "right": 1, "duration_s": 1})
+        # a command came in since: the next status is computed afresh, never a stale one
+        assert crowd[1].ask({"id": "s", "cmd": "status"})["n"] == 2
+    finally:
+        for r in crowd:
+            r.close()
         lt.run(srv.close())
 
 

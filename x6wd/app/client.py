@@ -180,13 +180,16 @@ class RemoteClient:
         raise RequestFailed(code, message, reason)
 
     def next_event(self, timeout_s: float | None = None) -> dict[str, Any]:
-        """The next ``{"event": ..}`` message (kept ones first)."""
+        """The next ``{"event": ..}`` message (kept ones first); ``timeout_s`` in seconds.
+        Raises ConnectionFailed (with the server's reason) if the server closes."""
         if self.events:
             return self.events.popleft()
         while True:
             msg = self.read_message(timeout_s)
             if "event" in msg:
                 return msg
+            if msg.get("ok") is False and msg.get("id") is None:
+                self._raise(msg)  # e.g. the server closing the connection, and why
 
 
 def _why(exc: OSError) -> str:
