@@ -81,7 +81,7 @@ def test_log_to_compact_tpv_and_sky_matching_gpsd(capsys: pytest.CaptureFixture[
 def test_recording_decodes_like_the_raw_log(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    recorder = pytest.importorskip("x6wd.core.recorder")
+    from x6wd.core import recorder
     from x6wd.core.records import Attitude
 
     rec_path = tmp_path / "run.jsonl"

@@ -552,7 +552,7 @@ def test_feed_sentence_verifies_checksum() -> None:
 
 
 def test_simulator_nmea_round_trip() -> None:
-    nmea_out = pytest.importorskip("sim_backend.nmea_out")
+    from sim_backend import nmea_out
     from sim_backend.epoch import GnssEpoch, SimSat
 
     fmt = nmea_out.NmeaFormatter()

@@ -20,6 +20,7 @@ import asyncio
 import collections
 import contextlib
 import errno
+import gc
 import logging
 import math
 import os
@@ -35,6 +36,7 @@ from typing import Any
 
 from x6wd import __version__
 from x6wd.app.gpsd import GpsdServer
+from x6wd.app.lineserver import RateLimitedLog
 from x6wd.app.notify import Notifier
 from x6wd.app.server import CommandError, ControlServer
 from x6wd.core.config import Config
@@ -320,6 +322,7 @@ class Daemon:
         self.devices: Any = devices
         self.notifier = notifier or Notifier(None)
         self.log_buffer = log_tail or LogTail()
+        self._operator_log = RateLimitedLog(log, 1.0)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop_event: asyncio.Event | None = None
         self._fatal: BaseException | None = None
@@ -393,6 +396,11 @@ class Daemon:
             self._accepting = True
             self.notifier.ready(self._status_text())
             log.info("x6wd %s ready", __version__)
+            # Everything built at start-up is long-lived: move it out of the collector's
+            # generations, so a full collection (set off by client churn) walks only what
+            # came later instead of stalling the control loop for tens of milliseconds.
+            gc.collect()
+            gc.freeze()
             if ready is not None:
                 ready(self)
             tick = asyncio.create_task(self._control_loop(), name="x6wd-control")
@@ -443,14 +451,8 @@ class Daemon:
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
         if cfg.gpsd.enabled:
             path, bps = registry.device_path(cfg.gps.url)
-            self.gpsd = GpsdServer(
-                cfg.gpsd.bind,
-                cfg.gpsd.port,
-                path,
-                bps=bps,
-                declination_deg=cfg.compass.declination_deg,
-                max_clients=cfg.gpsd.max_clients,
-                queue_len=cfg.gpsd.queue_len,
+            self.gpsd = GpsdServer.from_config(
+                cfg.gpsd, path, bps=bps, declination_deg=cfg.compass.declination_deg
             )
         if cfg.recorder.enabled:
             problem = _dir_problem(Path(cfg.recorder.dir))
@@ -944,7 +946,8 @@ class Daemon:
 
     def _simple(self, name: str) -> dict[str, Any]:
         self._handle(getattr(self.controller, name)(time.monotonic()))
-        log.info("operator: %s", name)
+        # a stop storm must not flood the log (the server coalesces, but still ~100/s)
+        self._operator_log.log(name, logging.INFO, "operator: %s", name)
         tel = self.controller.telemetry
         return {"mode": str(tel.mode), "state": str(tel.state)}
 

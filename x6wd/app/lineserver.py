@@ -293,8 +293,9 @@ class LineServer(Generic[C]):
         return False
 
     def _notice(self, reason: str, message: str) -> bytes:
-        """The protocol's last line to a connection the server closes."""
-        raise NotImplementedError
+        """The protocol's last line to a connection the server closes (each protocol words
+        its own; this plain line is the fallback)."""
+        return f"closing: {reason}: {message}\r\n".encode("utf-8", "replace")
 
     def _connected(self, c: C) -> None:
         """Register a new connection as pending; make room in the pending pool if full."""
