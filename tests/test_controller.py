@@ -59,8 +59,12 @@ def split(outs: list[ControllerOutput]) -> tuple[list[StateChange], MotorCommand
     return changes, outs[-2], outs[-1]  # type: ignore[return-value]
 
 
-def running(waypoints: list[tuple[float, float]] | None = None, t_s: float = 0.0) -> Controller:
-    c = Controller(NAV, SAFETY)
+def running(
+    waypoints: list[tuple[float, float]] | None = None,
+    t_s: float = 0.0,
+    nav: NavigationConfig = NAV,
+) -> Controller:
+    c = Controller(nav, SAFETY)
     c.load_mission(waypoints or [at(0.0, 100.0)], t_s)
     c.start(t_s)
     return c
@@ -422,10 +426,11 @@ def _geometry(tel: Telemetry) -> tuple[float | None, ...]:
             tel.distance_m)  # fmt: skip
 
 
-def test_telemetry_geometry_is_recomputed_whenever_an_input_changes() -> None:
+@pytest.mark.parametrize("proj", ["two_radius", "local_tangent_plane"])
+def test_telemetry_geometry_is_recomputed_whenever_an_input_changes(proj: str) -> None:
     rng = np.random.default_rng(11)
     square = [at(0, 30), at(30, 30), at(30, 0)]
-    c = running(square)
+    c = running(square, nav=replace(NAV, projection=proj))
     t = 0.0
     for k in range(600):
         t += 0.05
@@ -437,10 +442,8 @@ def test_telemetry_geometry_is_recomputed_whenever_an_input_changes() -> None:
             c.navigator.declination_deg = float(rng.uniform(-10, 10))
             _, _, tel = split(c.tick(t))
         elif r < 0.10:
-            # A new mission brings a new navigator and projection (stop first).
+            # A new mission brings a new navigator and its projection (stop first).
             c.stop(t)
-            proj = "two_radius" if k % 2 else "local_tangent_plane"
-            c._nav_cfg = replace(NAV, projection=proj)
             c.load_mission(list(rng.permutation(square)), t)
             _, _, tel = split(c.start(t))
         elif r < 0.11:
