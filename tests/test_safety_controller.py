@@ -125,7 +125,8 @@ def test_a_session_reports_every_mode_and_state_change_with_its_time_and_reason(
     c.on_attitude(att(3.25))
     step(c.on_fix(fix(3.3)), [(3.3, "HOLD", "STRAIGHT", "state: fix")],
          MotorCommand(3.3, 60.0, 60.0, "STRAIGHT"))  # fmt: skip
-    step(c.stop(3.4), [(3.4, "RUNNING", "IDLE", "mode: stop"), (3.4, "STRAIGHT", "IDLE", "state: stop")],
+    step(c.stop(3.4), [(3.4, "RUNNING", "IDLE", "mode: stop"),
+                       (3.4, "STRAIGHT", "IDLE", "state: stop")],
          MotorCommand(3.4, 0.0, 0.0, "idle"))  # fmt: skip
     step(c.manual_drive(20, -20, 1.0, 3.5), [(3.5, "IDLE", "MANUAL", "mode: manual drive")],
          MotorCommand(3.5, 20.0, -20.0, "manual"))  # fmt: skip
@@ -337,22 +338,22 @@ def test_bad_manual_requests_say_what_is_wrong(
 
 def test_rejections_say_why() -> None:
     c = Controller(NAV, SAFETY)
-    with pytest.raises(CommandRejected, match="^no mission loaded$"):
+    with pytest.raises(CommandRejected, match=r"^no mission loaded$"):
         c.start(0.0)
     c.motor_link(False, 0.0)
-    with pytest.raises(CommandRejected, match="^motor link lost: cannot drive$"):
+    with pytest.raises(CommandRejected, match=r"^motor link lost: cannot drive$"):
         c.manual_drive(10, 10, 1.0, 0.1)
     c.motor_link(True, 0.2)
     c.load_mission([at(0.0, 10.0)], 0.3)
     c.start(0.4)
-    with pytest.raises(CommandRejected, match="^mission already running$"):
+    with pytest.raises(CommandRejected, match=r"^mission already running$"):
         c.start(0.5)
     c.pause(0.6)
     with pytest.raises(
-        CommandRejected, match="^mission paused: resume it, or stop before starting again$"
+        CommandRejected, match=r"^mission paused: resume it, or stop before starting again$"
     ):
         c.start(0.7)
-    with pytest.raises(CommandRejected, match="^declination must be in"):
+    with pytest.raises(CommandRejected, match=r"^declination must be in"):
         Controller(NAV, SAFETY, declination_deg=200.0)
 
 

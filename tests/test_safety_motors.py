@@ -6,6 +6,7 @@ surviving (docs/testing.md, "Mutation testing"). The host side talks to a real p
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import select
@@ -36,10 +37,8 @@ class Pty:
 
     def close(self) -> None:
         for fd in (self.master, self.slave):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
 
 
 @pytest.fixture

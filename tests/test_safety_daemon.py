@@ -1,0 +1,640 @@
+"""The daemon's safety duties, each on the behaviour an operator or the motors see: the motor
+worker's keep-alive and its stop when the control loop goes silent, an operator stop that
+reaches the motors while the control loop is busy, moves refused until the devices are open,
+the motors stopped before anything else at exit and on a crash in any thread, the geofence and
+the manual time limit at their limits, a lost motor link that holds and then resumes, and the
+status and events that make a hold visible. Written against the mutants `tools/mutate daemon`
+found surviving (docs/testing.md, "Mutation testing")."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import functools
+import itertools
+import logging
+import math
+import os
+import socket
+import threading
+import time
+import tty
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from drivers import registry
+from drivers.motors import LogMotorLink, MotorBoard, serve_board_fd
+from tests.test_daemon import ORIGIN, hil_config, run_daemon, wait_for
+from tests.test_shutdown import StampedLink, log_motors_config, stamped
+from x6wd import __version__
+from x6wd.app.client import RemoteClient, RequestFailed
+from x6wd.app.daemon import EARTH_RADIUS_M, Daemon, _MotorWorker, distance_m
+from x6wd.app.notify import Notifier
+from x6wd.core.config import Config, GpsConfig, MotorsConfig, SafetyConfig
+from x6wd.core.records import Attitude, DeviceHealth, HealthEvent, MotorCommand
+
+__all__ = ["run_daemon", "stamped"]  # fixtures, shared with test_daemon and test_shutdown
+
+
+# -- the motor worker ------------------------------------------------------------------------
+class Calls:
+    """Records the worker's callbacks: on_health(ok, t_s) and on_events(events)."""
+
+    def __init__(self) -> None:
+        self.health: list[tuple[Any, Any]] = []
+        self.events: list[HealthEvent] = []
+
+    def on_health(self, ok: bool, t_s: float) -> None:
+        self.health.append((ok, t_s))
+
+    def on_events(self, events: list[HealthEvent]) -> None:
+        self.events.extend(events)
+
+
+def quiet_logger() -> logging.Logger:
+    lg = logging.getLogger("tests.motors")
+    lg.setLevel(logging.WARNING)  # the keep-alive would log every command
+    return lg
+
+
+@pytest.fixture
+def quiet_log() -> LogMotorLink:
+    return LogMotorLink(logger=quiet_logger())
+
+
+def worker(link: Any, keepalive_s: float, calls: Calls | None = None) -> _MotorWorker:
+    calls = calls or Calls()
+    w = _MotorWorker(link, keepalive_s, calls.on_health, calls.on_events)
+    w.start()
+    return w
+
+
+def test_a_worker_given_nothing_to_send_stops_the_motors(quiet_log: LogMotorLink) -> None:
+    w = worker(quiet_log, 0.02)
+    try:
+        wait_for(lambda: quiet_log.last_command is not None, 3, "a keep-alive")
+        cmd = quiet_log.last_command
+        assert cmd is not None and cmd.is_stop and cmd.reason == "keepalive"
+        assert isinstance(cmd.t_s, float)
+        time.sleep(0.1)
+        assert w.thread.is_alive() and all(c.is_stop for c in quiet_log.commands)
+    finally:
+        w.shutdown("test end")
+
+
+def test_the_keepalive_resends_a_drive_for_three_periods_then_stops(
+    quiet_log: LogMotorLink,
+) -> None:
+    w = worker(quiet_log, 0.25)
+    try:
+        drive = MotorCommand(time.monotonic(), 50.0, 50.0, "manual")
+        w.submit(drive)
+        wait_for(lambda: quiet_log.last_command and quiet_log.last_command.is_stop, 3, "stop")
+        sent = list(quiet_log.commands)
+        assert sent[:3] == [drive, drive, drive]  # sent, then resent at 0.25 and 0.5 s
+        stop = sent[3]
+        assert stop.is_stop and stop.reason == "keepalive"
+        assert 0.74 < stop.t_s - drive.t_s < 0.95  # silent for more than 3 periods: 0.75 s
+    finally:
+        w.shutdown("test end")
+
+
+class SlowLink(LogMotorLink):
+    """A log link whose send of a drive blocks until ``release`` is set."""
+
+    def __init__(self) -> None:
+        super().__init__(logger=quiet_logger())
+        self.sending = threading.Event()
+        self.release = threading.Event()
+        self.arrived: list[tuple[float, MotorCommand]] = []
+
+    def send(self, cmd: MotorCommand) -> bool:
+        if not cmd.is_stop:
+            self.sending.set()
+            self.release.wait(5)
+        self.arrived.append((time.monotonic(), cmd))
+        return super().send(cmd)
+
+
+def test_a_stop_submitted_during_a_slow_send_goes_out_right_after_it() -> None:
+    link = SlowLink()
+    w = worker(link, 2.0)
+    try:
+        w.submit(MotorCommand(time.monotonic(), 30.0, 30.0, "drive"))
+        assert link.sending.wait(2)
+        w.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "operator stop"))
+        t_release = time.monotonic()
+        link.release.set()
+        wait_for(lambda: any(c.is_stop for _t, c in link.arrived), 3, "the stop")
+        t_stop, cmd = next((t, c) for t, c in link.arrived if c.is_stop)
+        assert cmd.reason == "operator stop" and t_stop - t_release < 0.5  # not a 2 s wait
+    finally:
+        link.release.set()
+        w.shutdown("test end")
+
+
+def test_a_command_the_link_refuses_stops_the_motors(quiet_log: LogMotorLink) -> None:
+    w = worker(quiet_log, 5.0)
+    try:
+        w.submit(MotorCommand(time.monotonic(), 150.0, 0.0, "bad"))  # out of range
+        wait_for(lambda: w.sent == 1, 3, "sent")
+        cmd = quiet_log.last_command
+        assert cmd is not None and cmd.is_stop and cmd.reason == "invalid command"
+    finally:
+        w.shutdown("test end")
+
+
+def test_health_changes_and_events_reach_the_callbacks_once(quiet_log: LogMotorLink) -> None:
+    calls = Calls()
+    w = worker(quiet_log, 5.0, calls)
+    try:
+        assert w.health is quiet_log.health
+        w.submit(MotorCommand(time.monotonic(), 10.0, 10.0, "a"))
+        wait_for(lambda: w.sent == 1, 3, "sent")
+        assert calls.health == []  # healthy from the start: no change to report
+        assert [(e.device, e.new) for e in calls.events] == [("motors", "connected")]
+        quiet_log.close()  # the link goes away
+        for n in (2, 3, 4):
+            w.submit(MotorCommand(time.monotonic(), 10.0, 10.0, "a"))
+            wait_for(lambda n=n: w.sent == n, 3, "sent")
+        assert len(calls.health) == 1
+        ok, t_s = calls.health[0]
+        assert ok is False and isinstance(t_s, float)
+    finally:
+        w.shutdown("test end")
+
+
+class BareLink:
+    """A motor backend with only the basic calls and no health record of its own (the
+    worker keeps one for it); failures are switched on by the test."""
+
+    def __init__(self) -> None:
+        self.healthy = True
+        self.sent: list[MotorCommand] = []
+        self.stops: list[str] = []
+        self.fail_send: Exception | None = None
+        self.fail_stop: Exception | None = None
+        self.fail_close: Exception | None = None
+        self.closed = False
+
+    def send(self, cmd: MotorCommand) -> bool:
+        if self.fail_send is not None:
+            raise self.fail_send
+        self.sent.append(cmd)
+        return True
+
+    def stop(self, reason: str = "") -> bool:
+        self.stops.append(reason)
+        if self.fail_stop is not None:
+            raise self.fail_stop
+        return True
+
+    def close(self) -> None:
+        self.closed = True
+        if self.fail_close is not None:
+            raise self.fail_close
+
+
+def test_a_link_without_health_gets_health_from_the_worker() -> None:
+    link, calls = BareLink(), Calls()
+    t0 = time.monotonic()
+    w = worker(link, 5.0, calls)
+    try:
+        h = w.health
+        assert isinstance(h, DeviceHealth)
+        assert (h.device, h.state) == ("motors", "connected") and t0 <= h.since_t_s
+        n = 0
+
+        def send() -> None:
+            nonlocal n
+            n += 1
+            w.submit(MotorCommand(time.monotonic(), 20.0, 20.0, "x"))
+            wait_for(lambda: w.sent == n, 3, "sent")
+
+        send()
+        link.healthy = False
+        send()
+        h = w.health
+        assert h.state == "disconnected" and h.since_t_s >= t0
+        assert [ok for ok, _t in calls.health] == [False]
+        link.healthy = True
+        send()
+        assert [ok for ok, _t in calls.health] == [False, True]
+        assert w.health.state == "connected" and w.health.reconnects == 1
+        assert [(e.new, e.message.split(" (")[0]) for e in calls.events] == [
+            ("connected", "motors connected"),
+            ("disconnected", "motors disconnected: link unhealthy"),
+            ("connected", "motors reconnected"),
+        ]
+        # the backend raises, and so does its stop: counted, the worker carries on
+        link.fail_send, link.fail_stop = RuntimeError("boom"), OSError("gone")
+        send()
+        send()
+        assert w.link_errors == 2 and link.stops == ["link error", "link error"]
+        h = w.health
+        assert h.last_error == "send failed: boom" and h.last_error_t_s is not None
+        link.fail_send = link.fail_stop = None
+        send()
+        assert link.sent[-1].left_pct == 20.0 and w.sent == n == 6
+    finally:
+        w.shutdown("test end")
+
+
+def test_shutdown_stops_with_its_reason_then_closes_even_if_the_stop_fails() -> None:
+    link = BareLink()
+    link.fail_stop, link.fail_close = OSError("gone"), OSError("still gone")
+    w = worker(link, 5.0)
+    w.shutdown("daemon exit")  # no exception
+    assert link.stops[-1] == "daemon exit" and link.closed
+    assert not w.thread.is_alive()
+
+
+# -- the running daemon ----------------------------------------------------------------------
+class BlockableDaemon(Daemon):
+    """Fault injection: once ``blocking`` is set, the next compass sample holds the control
+    loop (the event loop) until ``release`` is set, as a stuck computation would."""
+
+    def __init__(self, config: Config) -> None:
+        super().__init__(config)
+        self.blocking, self.blocked, self.release = (threading.Event() for _ in range(3))
+
+    def _on_attitude(self, att: Attitude) -> None:
+        if self.blocking.is_set() and not self.blocked.is_set():
+            self.blocked.set()
+            self.release.wait(10)
+        super()._on_attitude(att)
+
+
+def slow_keepalive(cfg: Config) -> Config:
+    # keep-alive every 1 s, so that its own stop (after 3 s of silence) comes late
+    return dataclasses.replace(cfg, motors=MotorsConfig(url="log://", watchdog_ms=3000))
+
+
+def test_an_operator_stop_reaches_the_motors_while_the_control_loop_is_busy(
+    tmp_path: Path, run_daemon, stamped: StampedLink
+) -> None:
+    d = BlockableDaemon(slow_keepalive(log_motors_config(tmp_path)))
+    r = run_daemon(d)
+    replies: dict[str, Any] = {}
+
+    def ask(name: str, cmd: str, **args: Any) -> threading.Thread:
+        def go() -> None:
+            with RemoteClient("127.0.0.1", r.port) as c:
+                replies[name] = c.request(cmd, **args)
+
+        t = threading.Thread(target=go, daemon=True)
+        t.start()
+        return t
+
+    with RemoteClient("127.0.0.1", r.port) as c:
+        c.request("drive", left=40, right=40, duration_s=5)
+    wait_for(lambda: stamped.driving(40.0, 40.0), 3, "motors driven")
+    d.blocking.set()
+    assert d.blocked.wait(5)  # the control loop is stuck from here on
+    drive = ask("drive", "drive", left=10, right=10, duration_s=5)
+    time.sleep(0.3)
+    assert "drive" not in replies and not stamped.driving(10.0, 10.0)  # waits for the loop
+    t0 = time.monotonic()
+    stop = ask("stop", "stop")
+    wait_for(lambda: stamped.first_stop_after(t0), 1.0, "the operator's stop")
+    first = next(c for t, c in stamped.stamped if t >= t0 and c.is_stop)
+    assert first.reason == "operator stop" and t0 <= first.t_s <= time.monotonic()
+    assert "stop" not in replies and d.blocked.is_set()  # the loop is still stuck
+    d.release.set()
+    drive.join(5)
+    stop.join(5)
+    assert replies["stop"]["mode"] == "IDLE" and replies["drive"]["left"] == 10
+    wait_for(lambda: stamped.stamped[-1][1].is_stop, 3, "stopped at the end")
+
+
+def notify_socket(tmp_path: Path) -> tuple[socket.socket, Notifier]:
+    path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(path))
+    sock.settimeout(10)
+    return sock, Notifier(str(path))
+
+
+def notices(sock: socket.socket) -> Iterator[dict[str, str]]:
+    while True:
+        data = sock.recv(4096).decode()
+        yield dict(line.split("=", 1) for line in data.split("\n"))
+
+
+def test_moves_are_refused_until_the_devices_are_open(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    opened = threading.Event()
+    link = LogMotorLink()
+
+    def open_motors(url: str, devices: Any = None) -> LogMotorLink:
+        opened.wait(10)
+        return link
+
+    monkeypatch.setattr(registry, "open_motors", open_motors)
+    sock, notifier = notify_socket(tmp_path)
+    d = Daemon(log_motors_config(tmp_path), notifier=notifier)
+    readied: list[Daemon] = []
+    result: dict[str, int] = {}
+    loop_box: dict[str, asyncio.AbstractEventLoop] = {}
+
+    async def main() -> None:
+        loop_box["loop"] = asyncio.get_running_loop()
+        result["code"] = await d.run(ready=readied.append)
+
+    t = threading.Thread(target=lambda: asyncio.run(main()), daemon=True)
+    t.start()
+    try:
+        port = wait_for(lambda: d.server is not None and d.server.port, 10, "listening")
+        with RemoteClient("127.0.0.1", port) as c:
+            for cmd, args in (("drive", {"left": 10, "right": 10, "duration_s": 1}),
+                              ("start", {}), ("resume", {}),
+                              ("mission.load", {"waypoints": [list(ORIGIN)]})):  # fmt: skip
+                with pytest.raises(RequestFailed) as ei:
+                    c.request(cmd, **args)
+                assert (ei.value.code, ei.value.message) == (
+                    "rejected", "x6wd is starting: devices are not open yet"
+                ), cmd  # fmt: skip
+            st = c.request("status")
+            assert (st["mode"], st["state"], st["telemetry"]) == ("IDLE", "IDLE", None)
+            assert st["devices"] == {"gps": None, "compass": None, "motors": None}
+            assert st["links"] == {"gps": "unknown", "gps_reconnects": 0, "compass": "unknown",
+                                   "compass_errors": 0, "motors": "lost"}  # fmt: skip
+            assert st["version"] == __version__
+            assert isinstance(st["uptime_s"], float) and 0.0 <= st["uptime_s"] < 30.0
+            assert c.request("stop")["mode"] == "IDLE"  # always obeyed
+            with pytest.raises(RequestFailed) as ei:  # allowed through, refused by the robot
+                c.request("pause")
+            assert ei.value.message == "nothing to pause: mode is IDLE"
+            opened.set()
+            msg = next(notices(sock))
+            assert msg["READY"] == "1" and msg["STATUS"] == "IDLE IDLE"  # the stop's telemetry
+            wait_for(lambda: readied, 10, "ready")
+            assert readied == [d]
+            reply = c.request("drive", left=10, right=10, duration_s=1)
+            assert {k: reply[k] for k in ("left", "right", "duration_s")} == {
+                "left": 10, "right": 10, "duration_s": 1
+            }  # fmt: skip
+        loop_box["loop"].call_soon_threadsafe(d.request_stop)
+        t.join(15)
+        assert result["code"] == 0
+        msg = next(m for m in notices(sock) if "STOPPING" in m)
+        assert msg == {"STOPPING": "1", "STATUS": "stopping"}
+    finally:
+        opened.set()
+        if t.is_alive() and "loop" in loop_box:
+            loop_box["loop"].call_soon_threadsafe(d.request_stop)
+            t.join(15)
+        sock.close()
+        if d.devices is not None:
+            d.devices.close()
+
+
+def fds_open_on(path: Path) -> list[str]:
+    """What this process holds open of ``path`` (a file, or anything in a directory)."""
+    out = []
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target == str(path) or target.startswith(f"{path}/"):
+            out.append(target)
+    return out
+
+
+def test_at_exit_the_motors_stop_first_and_nothing_is_left_open(
+    tmp_path: Path, run_daemon, stamped: StampedLink
+) -> None:
+    sock, notifier = notify_socket(tmp_path)
+    r = run_daemon(Daemon(log_motors_config(tmp_path), notifier=notifier))
+    port = r.port
+    gps_port = Path(r.daemon.devices.backend("sim").uart.port_name)
+    gps_fds = len(fds_open_on(gps_port))
+    assert gps_fds >= 1  # the daemon's GPS reader holds its device
+    watcher = RemoteClient("127.0.0.1", port)
+    watcher.request("watch", on=True)
+    with RemoteClient("127.0.0.1", port) as c:
+        c.request("drive", left=30, right=-30, duration_s=5)
+    state = wait_for(lambda: (e := watcher.next_event(2.0))["event"] == "state" and e, 5)
+    assert state == {
+        "event": "state", "old": "IDLE", "new": "MANUAL", "reason": "mode: manual drive"
+    }  # fmt: skip
+    tel = wait_for(lambda: (e := watcher.next_event(2.0))["event"] == "telemetry" and e, 5)
+    assert set(tel) == {"event", "data", "devices"} and set(tel["devices"]) == {
+        "gps", "compass", "motors"
+    }  # fmt: skip
+    assert (tel["data"]["mode"], tel["data"]["left_pct"]) == ("MANUAL", 30.0)
+    wait_for(lambda: stamped.driving(30.0, -30.0), 3, "motors driven")
+    # a change of state is also told to systemd (`systemctl status` shows it)
+    assert any(m.get("STATUS") == "MANUAL IDLE" for m in itertools.islice(notices(sock), 20))
+    r.loop.call_soon_threadsafe(r.daemon.request_stop)
+    t_eof = None
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            watcher.next_event(1.0)
+        except TimeoutError:
+            continue
+        except Exception:  # closed: ConnectionFailed (with the server's notice) or EOF
+            t_eof = time.monotonic()
+            break
+    watcher.close()
+    r.thread.join(10)
+    assert r.code == 0 and t_eof is not None
+    exits = [(t, c.reason) for t, c in stamped.stamped if c.reason in ("daemon exit", "close")]
+    assert [why for _t, why in exits] == ["daemon exit", "close"]
+    assert exits[0][0] < t_eof  # the motors stopped before the server let its clients go
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", port), timeout=2).close()
+    rec_dir = tmp_path / "rec"
+    assert fds_open_on(rec_dir) == []  # the recording is closed
+    assert len(fds_open_on(gps_port)) < gps_fds  # and the GPS device
+    sock.close()
+    (rec,) = rec_dir.glob("*.jsonl")
+    text = rec.read_text()
+    for kind in ("motor", "state", "telemetry"):
+        assert f'"type":"{kind}"' in text, kind
+
+
+class CrashingGpsDaemon(Daemon):
+    """Fault injection: once armed, the GPS thread hits a bug."""
+
+    armed = False
+    t_boom: float | None = None
+
+    def _gps_thread(self) -> None:
+        reader = self._gps_reader
+        poll = reader.poll
+
+        def armed_poll(timeout_s: float) -> Any:
+            if self.armed:
+                self.t_boom = time.monotonic()
+                raise RuntimeError("injected bug in the GPS thread")
+            return poll(timeout_s)
+
+        reader.poll = armed_poll
+        super()._gps_thread()
+
+
+def test_a_bug_in_a_device_thread_stops_the_motors_and_exits_1(
+    tmp_path: Path, run_daemon, stamped: StampedLink
+) -> None:
+    d = CrashingGpsDaemon(log_motors_config(tmp_path))
+    r = run_daemon(d)
+    with RemoteClient("127.0.0.1", r.port) as c:
+        c.request("drive", left=25, right=25, duration_s=5)
+    wait_for(lambda: stamped.driving(25.0, 25.0), 3, "motors driven")
+    d.armed = True
+    r.thread.join(10)
+    assert r.code == 1
+    assert d.t_boom is not None and stamped.first_stop_after(d.t_boom) is not None
+    assert stamped.stamped[-1][1].is_stop
+
+
+def test_the_geofence_and_the_manual_limit_hold_at_their_edges(tmp_path: Path, run_daemon) -> None:
+    centre = ORIGIN
+    edge = (ORIGIN[0] + 0.0009, ORIGIN[1])  # about 100 m north
+    radius = distance_m(*centre, *edge)
+    cfg = hil_config(tmp_path, safety=SafetyConfig(geofence_radius_m=radius,
+                                                   geofence_center=centre))  # fmt: skip
+    r = run_daemon(Daemon(cfg))
+    with RemoteClient("127.0.0.1", r.port) as c:
+        assert c.request("mission.load", waypoints=[list(edge)])["count"] == 1  # on the fence
+        beyond = [edge[0] + 1e-6, edge[1]]
+        with pytest.raises(RequestFailed) as ei:
+            c.request("mission.load", waypoints=[list(edge), beyond])
+        assert ei.value.code == "geofence" and ei.value.message.startswith("waypoint 2 (")
+        reply = c.request("drive", left=20, right=-20, duration_s=5.0)  # exactly manual_max_s
+        assert {k: reply[k] for k in ("left", "right", "duration_s")} == {
+            "left": 20, "right": -20, "duration_s": 5.0
+        }  # fmt: skip
+        with pytest.raises(RequestFailed) as ei:
+            c.request("drive", left=20, right=-20, duration_s=5.5)
+        assert (ei.value.code, ei.value.message) == ("bad_request", "duration_s 5.5 > limit 5 s")
+        st = wait_for(
+            lambda: (
+                (s := c.request("status"))["links"]["gps"] == "connected" and s["telemetry"] and s
+            ),
+            10,
+            "devices up",
+        )
+        assert st["links"] == {"gps": "connected", "gps_reconnects": 0, "compass": "connected",
+                               "compass_errors": 0, "motors": "ok"}  # fmt: skip
+        assert set(st["devices"]) == {"gps", "compass", "motors"}
+        assert st["devices"]["motors"]["state"] == "connected"
+        assert (st["mode"], st["state"]) == (st["telemetry"]["mode"], st["telemetry"]["state"])
+        assert st["mode"] == "MANUAL" and st["version"] == __version__
+
+
+def nmea(body: str) -> str:
+    checksum = functools.reduce(lambda acc, ch: acc ^ ord(ch), body, 0)
+    return f"${body}*{checksum:02X}\r\n"
+
+
+def test_without_a_fix_or_a_configured_centre_no_mission_is_loaded(
+    tmp_path: Path, run_daemon
+) -> None:
+    log = tmp_path / "nofix.nmea"
+    log.write_text("".join(nmea(f"GPRMC,1200{i:02d}.00,V,,,,,,,010124,,,N") for i in range(30)))
+    cfg = dataclasses.replace(hil_config(tmp_path), gps=GpsConfig(url=f"replay://{log}?speed=1"))
+    r = run_daemon(Daemon(cfg))
+    with RemoteClient("127.0.0.1", r.port) as c:
+        with pytest.raises(RequestFailed) as ei:
+            c.request("mission.load", waypoints=[list(ORIGIN)])
+        assert (ei.value.code, ei.value.message) == (
+            "geofence", "no fix yet: cannot check waypoints against geofence"
+        )  # fmt: skip
+
+
+def test_a_lost_motor_link_holds_and_its_return_resumes(tmp_path: Path, run_daemon) -> None:
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    board = MotorBoard(watchdog_ms=500)
+
+    def serve() -> tuple[threading.Event, threading.Thread]:
+        stop = threading.Event()
+        t = threading.Thread(target=serve_board_fd, args=(master, board, stop), daemon=True)
+        t.start()
+        return stop, t
+
+    board_stop, server = serve()
+    cfg = hil_config(tmp_path)
+    cfg = dataclasses.replace(
+        cfg, motors=dataclasses.replace(cfg.motors, url=f"serial://{os.ttyname(slave)}")
+    )
+    try:
+        r = run_daemon(Daemon(cfg))
+        with RemoteClient("127.0.0.1", r.port) as c:
+            wait_for(lambda: r.daemon.first_fix, what="first fix")
+            c.request("mission.load", waypoints=[[ORIGIN[0] + 0.0005, ORIGIN[1]]])
+            c.request("start")
+            wait_for(lambda: board.running, 5, "board driven")
+            board_stop.set()  # the board stops answering
+            server.join(5)
+            wait_for(lambda: c.request("status")["links"]["motors"] == "lost", 10, "lost")
+            assert c.request("status")["telemetry"]["hold_reason"] == "motor link lost"
+            board_stop, server = serve()  # and comes back
+            st = wait_for(
+                lambda: (
+                    (s := c.request("status"))["links"]["motors"] == "ok"
+                    and s["telemetry"]["hold_reason"] != "motor link lost"
+                    and s
+                ),
+                10,
+                "link back",
+            )
+            assert st["mode"] == "RUNNING"
+            wait_for(lambda: board.running, 5, "board driven again")
+        assert r.stop() == 0
+    finally:
+        board_stop.set()
+        os.close(master)
+        os.close(slave)
+
+
+def test_distance_along_parallels_and_to_the_antipode() -> None:
+    assert distance_m(0.0, 0.0, 0.0, 1.0) == pytest.approx(111_195.08, rel=1e-6)
+    # along the 60th parallel a degree of longitude spans half as much (cos 60 = 1/2)
+    expected = 2 * EARTH_RADIUS_M * math.asin(0.5 * math.sin(math.radians(0.5)))
+    assert distance_m(60.0, 10.0, 60.0, 11.0) == pytest.approx(expected, rel=1e-12)
+    assert distance_m(-60.0, 10.0, -60.0, 9.0) == pytest.approx(expected, rel=1e-12)
+    for lat, lon in ((0.0, 0.0), (45.0, 10.0), (-33.87, 151.21), (51.752, -1.2577)):
+        other = lon + 180.0 if lon <= 0 else lon - 180.0
+        assert distance_m(lat, lon, -lat, other) == pytest.approx(math.pi * EARTH_RADIUS_M)
+
+
+def test_a_configuration_error_is_logged_and_told_to_systemd(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    sock, notifier = notify_socket(tmp_path)
+    d = Daemon(hil_config(tmp_path, safety=SafetyConfig(geofence_center=(1.0,))), notifier=notifier)
+    try:
+        with caplog.at_level(logging.ERROR, logger="x6wd.app.daemon"):
+            assert asyncio.run(d.run()) == 2
+        why = "safety.geofence_center: expected [lat_deg, lon_deg], got (1.0,)"
+        assert [rec.getMessage() for rec in caplog.records] == [why]
+        assert next(notices(sock)) == {"STOPPING": "1", "STATUS": f"configuration error: {why}"}
+    finally:
+        sock.close()
+        if d.devices is not None:
+            d.devices.close()
+
+
+def test_a_motor_board_that_cannot_be_reached_is_exit_1(tmp_path: Path) -> None:
+    s = socket.create_server(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    cfg = dataclasses.replace(
+        hil_config(tmp_path), motors=MotorsConfig(url=f"tcp://127.0.0.1:{port}")
+    )
+    d = Daemon(cfg)
+    try:
+        assert asyncio.run(d.run()) == 1
+    finally:
+        if d.devices is not None:
+            d.devices.close()
