@@ -1,0 +1,456 @@
+"""The control server's authorisation to the letter, over real TCP sockets on 127.0.0.1: who
+may run without a token, the token file, the token actually required when configured, the
+replies to every refusal, the back-off after failed authentications and its per-address budget,
+the request and input-byte throttles, the auth deadline's sweep, and line framing that must
+never leave a client unanswered. Written against the mutants `tools/mutate server` found
+surviving (docs/testing.md, "Mutation testing")."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import x6wd.app.server as server_module
+from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
+from x6wd import __version__
+from x6wd.app.server import COMMANDS, ControlServer, load_token
+from x6wd.core.config import ServerConfig
+from x6wd.core.errors import ConfigError, X6wdError
+
+
+class Clock:
+    """A settable monotonic clock (s)."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def lt() -> Iterator[LoopThread]:
+    loop_thread = LoopThread()
+    yield loop_thread
+    loop_thread.close()
+
+
+@pytest.fixture
+def servers(lt: LoopThread) -> Iterator[Callable[..., ControlServer]]:
+    started: list[ControlServer] = []
+
+    def serve(
+        backend: Any = None,
+        *,
+        token: bytes | None = TOKEN.encode(),
+        clock: Callable[[], float] = time.monotonic,
+        **cfg: Any,
+    ) -> ControlServer:
+        srv = ControlServer(
+            ServerConfig(**{"port": 0, **cfg}), backend or RecordingBackend(), token=token,
+            clock=clock,
+        )  # fmt: skip
+        lt.run(srv.start())
+        started.append(srv)
+        return srv
+
+    yield serve
+    for srv in started:
+        lt.run(srv.close())
+
+
+def wait_until(pred: Callable[[], Any], timeout_s: float = 5.0) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        v = pred()
+        if v:
+            return v
+        assert time.monotonic() < deadline, "condition not reached"
+        time.sleep(0.01)
+
+
+def line(obj: dict[str, Any]) -> bytes:
+    return json.dumps(obj).encode() + b"\n"
+
+
+# -- who may run without a token -------------------------------------------------------------
+@pytest.mark.parametrize("bind", ["127.0.0.1", "127.5.6.7", "::1", "localhost"])
+def test_a_loopback_bind_may_run_without_a_token(bind: str) -> None:
+    srv = ControlServer(ServerConfig(bind=bind), RecordingBackend())
+    assert not srv.auth_required
+
+
+@pytest.mark.parametrize("bind", ["0.0.0.0", "192.168.1.20", "::", "robot.local", "LOCALHOST"])
+def test_any_other_bind_needs_a_token(bind: str) -> None:
+    with pytest.raises(ConfigError) as ei:
+        ControlServer(ServerConfig(bind=bind), RecordingBackend())
+    assert str(ei.value) == (
+        f"server.token_file: required when server.bind ({bind}) is not loopback"
+    )
+    assert ControlServer(ServerConfig(bind=bind), RecordingBackend(), token=b"12345678")
+
+
+def test_the_token_file_rules(tmp_path: Path) -> None:
+    p = tmp_path / "token"
+    p.write_text("12345678\n")  # exactly 8 bytes
+    p.chmod(0o600)
+    assert load_token(p) == b"12345678"
+    p.write_text("1234567\n")
+    with pytest.raises(ConfigError) as ei:
+        load_token(p)
+    assert str(ei.value) == f"server.token_file: {p}: token shorter than 8 bytes"
+    with pytest.raises(ConfigError) as ei:
+        load_token(tmp_path)
+    assert str(ei.value) == f"server.token_file: {tmp_path} is not a regular file"
+    with pytest.raises(ConfigError) as ei:
+        load_token(tmp_path / "missing")
+    assert str(ei.value) == (
+        f"server.token_file: cannot read {tmp_path / 'missing'}: No such file or directory"
+    )
+
+
+def test_a_configured_token_file_is_required_and_no_file_means_no_token(
+    tmp_path: Path, lt: LoopThread
+) -> None:
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN)
+    token_file.chmod(0o600)
+    for cfg, needs_token in ((ServerConfig(port=0, token_file=str(token_file)), True),
+                             (ServerConfig(port=0), False)):  # fmt: skip
+        backend = RecordingBackend()
+        srv = ControlServer.from_config(cfg, backend)
+        lt.run(srv.start())
+        raw = Raw(srv.port)
+        try:
+            hello = raw.ask({"id": 1, "cmd": "hello"})
+            assert (hello["auth_required"], hello["authenticated"]) == (
+                needs_token,
+                not needs_token,
+            )
+            assert hello["tls"] is False
+            r = raw.ask({"id": 2, "cmd": "drive", "left": 10, "right": 10, "duration_s": 1})
+            if needs_token:
+                assert r["error"]["code"] == "unauthorized" and backend.calls == []
+                assert raw.ask({"id": 3, "cmd": "auth", "token": TOKEN})["ok"]
+                r = raw.ask({"id": 4, "cmd": "drive", "left": 10, "right": 10, "duration_s": 1})
+            assert r["ok"] and backend.calls == [("drive", (10.0, 10.0, 1.0))]
+        finally:
+            raw.close()
+            lt.run(srv.close())
+
+
+@pytest.mark.parametrize("given", [{"tls_cert": "cert.pem"}, {"tls_key": "key.pem"}])
+def test_tls_needs_both_the_certificate_and_the_key(given: dict[str, str]) -> None:
+    with pytest.raises(ConfigError) as ei:
+        ControlServer.from_config(ServerConfig(port=0, **given), RecordingBackend())
+    assert str(ei.value) == "server.tls_cert and server.tls_key must be given together"
+
+
+def test_a_configured_port_is_the_port_it_listens_on(servers) -> None:
+    s = socket.create_server(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    assert servers(port=port).port == port
+
+
+# -- replies ---------------------------------------------------------------------------------
+def test_authentication_replies(servers) -> None:
+    srv = servers(auth_fail_delay_s=0.0)
+    raw = Raw(srv.port)
+    try:
+        assert raw.ask({"id": 1, "cmd": "auth", "token": 5}) == {
+            "id": 1, "ok": False,
+            "error": {"code": "bad_request", "message": "'token' must be a string",
+                      "reason": "bad_argument"},
+        }  # fmt: skip
+        assert raw.ask({"id": 3, "cmd": "auth", "token": "nope"}) == {
+            "id": 3, "ok": False, "error": {"code": "auth_failed", "message": "wrong token"}
+        }  # fmt: skip
+    finally:
+        raw.close()
+    open_srv = servers(token=None)
+    raw = Raw(open_srv.port)
+    try:  # without a token an auth is a formality, and changes nothing
+        assert raw.ask({"id": 1, "cmd": "auth", "token": "anything"}) == {
+            "id": 1, "ok": True, "authenticated": True
+        }  # fmt: skip
+        assert raw.ask({"id": 2, "cmd": "hello"})["authenticated"] is True
+        assert raw.ask({"id": 3, "cmd": "start"})["ok"]
+    finally:
+        raw.close()
+
+
+class ScriptedBackend(RecordingBackend):
+    """``start`` raises ``start_raises`` (when set)."""
+
+    start_raises: Exception | None = None
+
+    def start(self) -> dict[str, Any]:
+        if self.start_raises is not None:
+            raise self.start_raises
+        return super().start()
+
+
+def test_every_refusal_keeps_the_request_id_and_says_why(servers) -> None:
+    backend = ScriptedBackend()
+    srv = servers(backend, token=None, rate_per_s=1e6)
+    raw = Raw(srv.port)
+
+    def err(reply: dict[str, Any]) -> tuple[Any, ...]:
+        e = reply["error"]
+        return (reply["id"], e["code"], e["message"], e.get("reason"))
+
+    try:
+        backend.start_raises = X6wdError("nothing to start")
+        assert err(raw.ask({"id": 1, "cmd": "start"})) == (1, "rejected", "nothing to start", None)
+        backend.start_raises = server_module.CommandError("geofence", "too far")
+        assert err(raw.ask({"id": 2, "cmd": "start"})) == (2, "geofence", "too far", None)
+        backend.start_raises = RuntimeError("bug")
+        assert err(raw.ask({"id": 3, "cmd": "start"})) == (
+            3, "internal", "internal error: RuntimeError", None
+        )  # fmt: skip
+        r = err(raw.ask({"id": 4, "cmd": "mission.load", "csv": "lat,lon\n51,abc\n"}))
+        assert r[:2] == (4, "bad_request") and r[3] == "bad_mission" and "abc" in r[2]
+        r = err(raw.ask({"id": 5, "cmd": "mission.load", "waypoints": [[10**400, 0]]}))
+        assert r[:2] == (5, "bad_request") and r[3] == "bad_value"
+        assert r[2].startswith("bad value: ") and "too large" in r[2]
+        assert err(raw.ask({"id": [6], "cmd": "hello"})) == (
+            None, "bad_request", "'id' must be a string, number or null", "bad_id"
+        )  # fmt: skip
+        assert err(raw.ask({"id": 7})) == (7, "bad_request", "missing 'cmd' (a string)", "bad_cmd")
+        assert err(raw.ask({"id": 8, "cmd": "fly"})) == (
+            8, "unknown_command", f"unknown command 'fly' (valid: {', '.join(COMMANDS)})", None
+        )  # fmt: skip
+    finally:
+        raw.close()
+    guarded = servers(rate_per_s=1.0, clock=Clock())
+    raw = Raw(guarded.port)
+    try:
+        assert err(raw.ask({"id": 9, "cmd": "start"})) == (
+            9, "unauthorized", "authenticate first to use 'start'", None
+        )  # fmt: skip
+        codes = [raw.ask({"id": i, "cmd": "hello"}).get("error") for i in range(6)]
+        assert codes[-1] == {"code": "rate_limited", "message": "more than 1 requests/s"}
+    finally:
+        raw.close()
+
+
+def test_hello_status_watch_and_log_replies(servers) -> None:
+    srv = servers(token=None, rate_per_s=1e6)
+    raw = Raw(srv.port)
+    try:
+        hello = raw.ask({"id": 1, "cmd": "hello"})
+        assert hello == {"id": 1, "ok": True, "server": "x6wd", "version": __version__,
+                         "protocol": 1, "auth_required": False, "authenticated": True,
+                         "tls": False}  # fmt: skip
+        st = raw.ask({"id": 2, "cmd": "status"})
+        assert st["client"] == {"watching": False, "dropped": 0}
+        assert st["server"]["stops"] == {"requested": 0, "sent": 0, "coalesced": 0, "early": 0}
+        assert raw.ask({"id": 3, "cmd": "watch"}) == {"id": 3, "ok": True, "watching": True,
+                                                      "dropped": 0}  # fmt: skip
+        assert raw.ask({"id": 4, "cmd": "watch", "enable": False})["watching"] is False
+        assert raw.ask({"id": 5, "cmd": "watch", "on": "yes"})["error"] == {
+            "code": "bad_request", "message": "'on' must be true or false",
+            "reason": "bad_argument",
+        }  # fmt: skip
+        assert len(raw.ask({"id": 6, "cmd": "log"})["lines"]) == 50
+        assert raw.ask({"id": 7, "cmd": "log", "n": 0})["lines"] == []
+        assert len(raw.ask({"id": 8, "cmd": "log", "n": 1000})["lines"]) == 1000
+        assert raw.ask({"id": 9, "cmd": "log", "n": 1001})["error"] == {
+            "code": "bad_request", "message": "'n' must be an integer 0..1000",
+            "reason": "bad_argument",
+        }  # fmt: skip
+    finally:
+        raw.close()
+
+
+# -- failed authentications ------------------------------------------------------------------
+def test_the_back_off_doubles_per_failure_then_the_connection_is_closed(servers) -> None:
+    srv = servers(auth_fail_delay_s=0.4, max_auth_failures=3)
+    raw = Raw(srv.port)
+    try:
+        times = []
+        for i in range(3):
+            t0 = time.monotonic()
+            assert raw.ask({"id": i, "cmd": "auth", "token": f"guess-{i}"})["ok"] is False
+            times.append(time.monotonic() - t0)
+        assert times[0] < 0.3  # the first failure is answered at once
+        assert 0.35 <= times[1] < 0.7  # then 0.4 s
+        assert 0.75 <= times[2] < 1.15  # then 0.8 s
+        notice = raw.line()
+        assert notice["error"] == {"code": "closed", "reason": "auth_failures",
+                                   "message": "too many failed authentications"}  # fmt: skip
+    finally:
+        raw.close()
+
+
+def test_the_per_address_budget_counts_to_the_last_attempt_and_forgets_the_oldest(
+    servers, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(server_module, "AUTH_FAIL_BUDGET", 2)
+    monkeypatch.setattr(server_module, "MAX_TRACKED_ADDRESSES", 3)
+    delay = 0.3
+    srv = servers(clock=Clock(), auth_fail_delay_s=delay, max_auth_failures=100)
+
+    def attempt(source: str) -> float:
+        """One failed authentication from ``source`` on a new connection; its time (s)."""
+        sock = socket.create_connection(("127.0.0.1", srv.port), timeout=5,
+                                        source_address=(source, 0))  # fmt: skip
+        try:
+            t0 = time.monotonic()
+            sock.sendall(line({"id": 1, "cmd": "auth", "token": "guess"}))
+            reply = json.loads(sock.makefile("rb").readline())
+            assert reply["error"]["code"] == "auth_failed"
+            return time.monotonic() - t0
+        finally:
+            sock.close()
+
+    # the clock stands still: nothing refills the budget of 2
+    assert attempt("127.0.0.2") < delay * 0.8
+    assert attempt("127.0.0.2") < delay * 0.8  # the last one the budget pays for
+    assert attempt("127.0.0.2") >= delay * 0.9  # spent: delayed
+    assert attempt("127.0.0.3") < delay * 0.8
+    assert attempt("127.0.0.4") < delay * 0.8  # 3 addresses tracked: none forgotten yet
+    assert attempt("127.0.0.2") >= delay * 0.9
+    attempt("127.0.0.5")  # a 4th address: the least recently seen (127.0.0.3) is forgotten
+    attempt("127.0.0.5")
+    assert attempt("127.0.0.5") >= delay * 0.9  # the newcomer's own failures still count
+    assert attempt("127.0.0.2") >= delay * 0.9
+
+
+# -- stop and throttles ----------------------------------------------------------------------
+class SlowStopBackend(RecordingBackend):
+    """stop completes ``delay_s`` after it was called (as the daemon's does, on its loop)."""
+
+    def __init__(self, delay_s: float) -> None:
+        super().__init__()
+        self.delay_s = delay_s
+
+    def stop(self) -> Any:
+        self.calls.append(("stop", None))
+
+        async def done() -> dict[str, Any]:
+            await asyncio.sleep(self.delay_s)
+            return {"mode": "IDLE"}
+
+        return done()
+
+
+def test_each_stop_after_a_motion_command_is_sent_even_with_one_in_flight(servers) -> None:
+    backend = SlowStopBackend(0.3)
+    srv = servers(backend, token=None)
+    a, b = Raw(srv.port), Raw(srv.port)
+    drive = {"cmd": "drive", "left": 20, "right": 20, "duration_s": 1}
+    try:
+        assert b.ask({"id": 1, **drive})["ok"]
+        a.send(line({"id": 1, "cmd": "stop"}))
+        wait_until(lambda: len(backend.calls) == 2)
+        assert b.ask({"id": 2, **drive})["ok"]  # overtakes the stop in flight
+        assert b.ask({"id": 3, "cmd": "stop"})["ok"]
+        assert [n for n, _ in backend.calls] == ["drive", "stop", "drive", "stop"]
+        assert a.line()["ok"]
+    finally:
+        a.close()
+        b.close()
+
+
+class StampedBackend(RecordingBackend):
+    def __init__(self) -> None:
+        super().__init__()
+        self.stamps: list[tuple[float, str]] = []
+
+    def _call(self, name: str, arg: Any = None) -> dict[str, Any]:
+        self.stamps.append((time.monotonic(), name))
+        return super()._call(name, arg)
+
+
+def test_a_flood_is_read_at_the_input_rate_and_a_stop_in_it_goes_out_at_once(servers) -> None:
+    backend = StampedBackend()
+    srv = servers(backend, token=None, rate_per_s=1e6, input_bytes_per_s=100_000)
+    pad = b" " * 99 + b"\n"  # blank lines: read and counted, never answered
+    flood = (
+        pad * 1400 + line({"id": 1, "cmd": "stop"}) + pad * 200 + line({"id": 2, "cmd": "hello"})
+    )
+    raw = Raw(srv.port)
+    try:
+        t0 = time.monotonic()
+        raw.send(flood)  # 160 kB: 131 kB of burst, the rest at 100 kB/s
+        assert raw.line()["id"] == 1
+        assert raw.line()["id"] == 2
+        t_done = time.monotonic()
+        (t_stop, name), *_ = backend.stamps
+        assert name == "stop" and t_stop - t0 < 0.2  # not held behind the throttle
+        assert t_done - t0 >= 0.2  # the flood itself waited
+    finally:
+        raw.close()
+
+
+# -- framing ---------------------------------------------------------------------------------
+def test_no_line_layout_leaves_a_request_unanswered(servers) -> None:
+    srv = servers(token=None, rate_per_s=1e6, max_line_bytes=256)
+    raw = Raw(srv.port)
+    hello = {"id": 0, "cmd": "hello", "pad": ""}
+
+    def exactly(n: int, i: int) -> bytes:
+        obj = {**hello, "id": i}
+        body = json.dumps(obj).encode()
+        obj["pad"] = "x" * (n - len(body))
+        out = json.dumps(obj).encode()
+        assert len(out) == n
+        return out
+
+    try:
+        raw.send(b"   \n" + line({"id": 1, "cmd": "hello"}))  # a blank line first
+        assert raw.line()["id"] == 1
+        raw.send(b"\n" + line({"id": 2, "cmd": "hello"}))  # an empty line first
+        assert raw.line()["id"] == 2
+        raw.send(exactly(256, 3) + b"\n")  # the longest line allowed, whole
+        assert raw.line()["id"] == 3
+        raw.send(exactly(256, 4))  # and in two parts
+        time.sleep(0.1)
+        raw.send(b"\n")
+        assert raw.line()["id"] == 4
+        raw.send(b"x" * 600 + b"\n" + line({"id": 5, "cmd": "hello"}))  # too long, whole
+        assert raw.line()["error"]["reason"] == "line_too_long"
+        assert raw.line()["id"] == 5
+        raw.send(b"y" * 600)  # too long, still arriving
+        assert raw.line()["error"]["reason"] == "line_too_long"
+        raw.send(b"y" * 10 + b"\n" + line({"id": 6, "cmd": "hello"}))  # its tail, then a request
+        assert raw.line()["id"] == 6
+    finally:
+        raw.close()
+
+
+# -- the auth deadline and the pools ---------------------------------------------------------
+def test_the_sweep_closes_late_pending_connections_and_says_how_many(
+    servers, lt: LoopThread
+) -> None:
+    clock = Clock()
+    srv = servers(clock=clock)
+    socks = [socket.create_connection(("127.0.0.1", srv.port), timeout=5) for _ in range(2)]
+    try:
+        wait_until(lambda: lt.call(lambda: srv.pending_count) == 2)
+        assert lt.call(srv.sweep) == 0
+        clock.now += 5.1
+        assert lt.call(srv.sweep) == 2
+    finally:
+        for s in socks:
+            s.close()
+
+
+def test_a_client_that_hangs_up_leaves_the_pools(servers, lt: LoopThread) -> None:
+    srv = servers()
+    raw = Raw(srv.port)
+    assert raw.ask({"id": 1, "cmd": "auth", "token": TOKEN})["ok"]
+    silent = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
+    wait_until(lambda: lt.call(lambda: (srv.client_count, srv.pending_count)) == (1, 1))
+    raw.close()
+    silent.close()
+    wait_until(lambda: lt.call(lambda: (srv.client_count, srv.pending_count)) == (0, 0))
