@@ -248,10 +248,9 @@ class ProbeDaemon(Daemon):
         self.fix_times += [r.t_s for r in records if type(r).__name__ == "GpsFix" and r.valid]
         super()._on_gps_records(records)
 
-    def _handle(self, outputs: list[Any], important: bool = True) -> None:
+    def _observe(self, outputs: list[Any], important: bool) -> None:
         now = time.monotonic()
         self.changes += [(now, o) for o in outputs if isinstance(o, StateChange)]
-        super()._handle(outputs, important)
 
 
 class Running:

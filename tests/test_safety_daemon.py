@@ -31,9 +31,10 @@ from tests.test_daemon import ORIGIN, hil_config, run_daemon, wait_for
 from tests.test_shutdown import StampedLink, log_motors_config, stamped
 from x6wd import __version__
 from x6wd.app.client import RemoteClient, RequestFailed
-from x6wd.app.daemon import EARTH_RADIUS_M, Daemon, _MotorWorker, distance_m
+from x6wd.app.daemon import Daemon, _MotorWorker, distance_m
 from x6wd.app.notify import Notifier
 from x6wd.core.config import Config, GpsConfig, MotorsConfig, SafetyConfig
+from x6wd.core.geodesy import EARTH_MEAN_RADIUS_M as EARTH_RADIUS_M
 from x6wd.core.records import Attitude, DeviceHealth, HealthEvent, MotorCommand
 
 __all__ = ["run_daemon", "stamped"]  # fixtures, shared with test_daemon and test_shutdown

@@ -36,16 +36,15 @@ from typing import Any
 
 from x6wd import __version__
 from x6wd.app.gpsd import GpsdServer
-from x6wd.app.lineserver import RateLimitedLog
 from x6wd.app.notify import Notifier
-from x6wd.app.server import CommandError, ControlServer
+from x6wd.app.server import ControlServer
 from x6wd.core.config import Config
 from x6wd.core.config import load as load_config
-from x6wd.core.errors import ConfigError, DeviceUnavailable, X6wdError
-from x6wd.core.health import TRANSITION, HealthLog, HealthTracker
+from x6wd.core.errors import CommandError, ConfigError, DeviceUnavailable, X6wdError
+from x6wd.core.geodesy import great_circle_m
+from x6wd.core.health import HealthLog, HealthTracker
 from x6wd.core.mission_files import Waypoint
 from x6wd.core.records import (
-    USABLE_STATES,
     Attitude,
     DeviceHealth,
     GpsFix,
@@ -55,19 +54,15 @@ from x6wd.core.records import (
     StateChange,
     Telemetry,
 )
+from x6wd.loop.runner import Runner, every, run_realtime
 
 log = logging.getLogger("x6wd.app.daemon")
 
 TICK_HZ = 20.0
 """Controller tick rate: bounds the dead-man and staleness reaction time (s = 1/TICK_HZ)."""
 GIL_SWITCH_S = 0.001
-TELEMETRY_EVENT_HZ = 10.0
-"""Most telemetry events per second to watching clients (fixes and state changes always go)."""
-TELEMETRY_RECORD_HZ = 1.0
 REOPEN_BACKOFF_S = (0.1, 5.0)
 """First and longest wait between attempts to reopen a lost compass bus (s)."""
-"""Most telemetry snapshots per second to the recorder (fixes and state changes always go)."""
-EARTH_RADIUS_M = 6_371_008.8
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_CONFIG = 2
@@ -77,12 +72,7 @@ RECORDER_FSYNC_S = 5.0
 no written record either way (each is one ``write()``), only what is queued for the writer."""
 
 
-def distance_m(lat1_deg: float, lon1_deg: float, lat2_deg: float, lon2_deg: float) -> float:
-    """Great-circle (haversine) distance in metres on the mean Earth sphere."""
-    p1, p2 = math.radians(lat1_deg), math.radians(lat2_deg)
-    dp, dl = p2 - p1, math.radians(lon2_deg - lon1_deg)
-    a = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
-    return 2 * EARTH_RADIUS_M * math.asin(min(1.0, math.sqrt(a)))
+distance_m = great_circle_m  # the geofence's distance (m), kept under its old name
 
 
 class LogTail(logging.Handler):
@@ -322,7 +312,6 @@ class Daemon:
         self.devices: Any = devices
         self.notifier = notifier or Notifier(None)
         self.log_buffer = log_tail or LogTail()
-        self._operator_log = RateLimitedLog(log, 1.0)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop_event: asyncio.Event | None = None
         self._fatal: BaseException | None = None
@@ -330,6 +319,7 @@ class Daemon:
         self._threads_stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.controller: Any = None
+        self.runner: Runner | None = None
         self.motors: _MotorWorker | None = None
         self.recorder: _RecorderWorker | None = None
         self.server: ControlServer | None = None
@@ -338,17 +328,26 @@ class Daemon:
         self._net: _NetThread | None = None
         self._loop_thread_id: int | None = None
         self._compass: Any = None
-        self.last_telemetry: Telemetry | None = None
-        self.first_fix: tuple[float, float] | None = None
         self.compass_errors = 0  # read errors of a compass backend without its own health
         self._compass_driver: Any = None  # the Cmps10 the compass thread reads
         self._health_log = HealthLog(logging.getLogger("x6wd.core.health"))
         self._dev_dicts: dict[str, tuple[DeviceHealth, dict[str, Any]]] = {}
         self.t_start = time.monotonic()
-        self.stats: dict[str, int] = collections.Counter()
-        self._last_motor_rec: tuple[float, float] | None = None
-        self._t_pub = -math.inf
-        self._t_rec = -math.inf
+
+    @property
+    def last_telemetry(self) -> Telemetry | None:
+        """The controller's latest telemetry snapshot (None before the first input)."""
+        return self.runner.last_telemetry if self.runner is not None else None
+
+    @property
+    def first_fix(self) -> tuple[float, float] | None:
+        """(lat_deg, lon_deg) of the first valid fix (the geofence centre unless configured)."""
+        return self.runner.first_fix if self.runner is not None else None
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """Inputs seen by the control loop: ``fixes``, ``attitudes``."""
+        return self.runner.stats if self.runner is not None else {}
 
     # -- lifecycle ------------------------------------------------------------------------
     def request_stop(self) -> None:
@@ -403,11 +402,7 @@ class Daemon:
             gc.freeze()
             if ready is not None:
                 ready(self)
-            tick = asyncio.create_task(self._control_loop(), name="x6wd-control")
-            await self._stop_event.wait()
-            tick.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await tick
+            await self._control_loop()
             if self._fatal is not None:
                 raise self._fatal
         except (ConfigError, DeviceUnavailable) as exc:
@@ -448,6 +443,18 @@ class Daemon:
         from x6wd.nav.controller import Controller  # imported late: heavy, and optional in tests
 
         self.controller = Controller(cfg.navigation, cfg.safety, cfg.compass.declination_deg)
+        self.runner = Runner(
+            self.controller,
+            cfg.safety,
+            time.monotonic,
+            motors=self._submit,
+            record=self._record,
+            publish=self._publish,
+            devices=self._devices,
+            on_state=self._on_state,
+            observe=self._observe,
+            health_log=self._health_log,
+        )
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
         if cfg.gpsd.enabled:
             path, bps = registry.device_path(cfg.gps.url)
@@ -687,53 +694,36 @@ class Daemon:
     def _health_events_from_thread(self, events: list[HealthEvent]) -> None:
         self._post(self._on_device_events, events)
 
-    # -- event-loop side ---------------------------------------------------------------------
+    # -- event-loop side: the edge of the one loop (x6wd.loop.runner) ---------------------
     def _on_gps_records(self, records: list[Any]) -> None:
-        for rec in records:
-            if isinstance(rec, GpsFix):
-                self.stats["fixes"] += 1
-                if rec.valid and self.first_fix is None and rec.lat_deg is not None:
-                    self.first_fix = (rec.lat_deg, rec.lon_deg or 0.0)
-                if self.gpsd is not None:
+        assert self.runner is not None
+        self.runner.gps(records)  # the control decision first: GGA-to-motor latency
+        if self.gpsd is not None:
+            for rec in records:
+                if isinstance(rec, GpsFix):
                     self._net_call(self.gpsd.publish_fix, rec)
-                self._record("record_fix", rec)
-                self._handle(self.controller.on_fix(rec))
-            elif isinstance(rec, GpsSky):
-                if self.gpsd is not None:
+                elif isinstance(rec, GpsSky):
                     self._net_call(self.gpsd.publish_sky, rec)
-                self._record("record_sky", rec)
-                on_sky = getattr(self.controller, "on_sky", None)
-                if on_sky is not None:
-                    self._handle(on_sky(rec), important=False)
-            else:
-                text = getattr(rec, "text", None) or getattr(rec, "raw", None)
-                if isinstance(text, bytes):
-                    text = text.decode("ascii", "replace")
-                if isinstance(text, str):
-                    if self.gpsd is not None:
+                else:
+                    text = getattr(rec, "text", None) or getattr(rec, "raw", None)
+                    if isinstance(text, bytes):
+                        text = text.decode("ascii", "replace")
+                    if isinstance(text, str):
                         self._net_call(self.gpsd.publish_nmea, text)
-                    self._record("record_nmea", text)
 
     def _on_attitude(self, att: Attitude) -> None:
-        self.stats["attitudes"] += 1
+        assert self.runner is not None
+        self.runner.attitude(att)
         if self.gpsd is not None:
             self._net_call(self.gpsd.publish_attitude, att)
-        self._record("record_attitude", att)
-        self._handle(self.controller.on_attitude(att), important=False)
 
     def _on_motor_health(self, ok: bool, t_s: float) -> None:
-        # logged by _on_device_events (the link's health transition), not here
-        self._handle(self.controller.motor_link(ok, t_s))
+        assert self.runner is not None
+        self.runner.motor_link(ok, t_s)
 
     def _on_device_events(self, events: list[HealthEvent]) -> None:
-        """Health events from a device thread: each logged (rate-limited); a sensor's
-        transition reaches the controller at once, so an unplugged GPS holds the robot
-        within a tick of the reader noticing, not after the fix timeout."""
-        for ev in events:
-            self._health_log.event(ev)
-            if ev.kind == TRANSITION and ev.device in ("gps", "compass"):
-                ok = ev.new in USABLE_STATES
-                self._handle(self.controller.sensor_health(ev.device, ok, ev.t_s, str(ev.new)))
+        assert self.runner is not None
+        self.runner.device_events(events)
 
     def _net_call(self, fn: Callable[..., Any], *args: Any) -> None:
         if self._net is not None:
@@ -743,76 +733,41 @@ class Daemon:
         if self.recorder is not None:
             self.recorder.put(method, arg)
 
-    def _handle(self, outputs: list[Any], important: bool = True) -> None:
-        """Route controller outputs. ``important`` (a fix or an operator request) forces the
-        telemetry out; otherwise (compass samples, ticks) it is rate-limited for clients and
-        the recorder, since the controller emits a snapshot on every input."""
-        changed = any(isinstance(o, StateChange) for o in outputs)
-        for out in outputs:
-            if isinstance(out, MotorCommand):
-                if self.motors is not None:
-                    self.motors.submit(out)
-                    if important:
-                        # Hand the GIL to the motor thread now rather than after the
-                        # telemetry work below (up to a switch interval later).
-                        time.sleep(0)
-                key = (out.left_pct, out.right_pct)
-                if key != self._last_motor_rec:
-                    self._last_motor_rec = key
-                    self._record("record_motor", out)
-            elif isinstance(out, Telemetry):
-                self.last_telemetry = out
-                now = out.t_s
-                force = important or changed
-                if self.server is not None and (
-                    force or now - self._t_pub >= 1.0 / TELEMETRY_EVENT_HZ
-                ):
-                    self._t_pub = now
-                    self._net_call(
-                        self.server.publish,
-                        {"event": "telemetry", "data": out.to_dict(), "devices": self._devices()},
-                    )
-                if force or now - self._t_rec >= 1.0 / TELEMETRY_RECORD_HZ:
-                    self._t_rec = now
-                    self._record("record_telemetry", out)
-            elif isinstance(out, StateChange):
-                log.info("state %s -> %s %s", out.old, out.new, out.reason)
-                self._record("record_state", out)
-                if self.server is not None:
-                    self._net_call(
-                        self.server.publish,
-                        {"event": "state", "old": out.old, "new": out.new, "reason": out.reason},
-                    )
-        if changed:
-            self.notifier.status(self._status_text())
+    def _submit(self, cmd: MotorCommand) -> None:
+        if self.motors is not None:
+            self.motors.submit(cmd)
+            # Hand the GIL to the motor thread now rather than after the telemetry work
+            # that follows (up to a switch interval later).
+            time.sleep(0)
+
+    def _publish(self, event: dict[str, Any]) -> None:
+        if self.server is not None:
+            self._net_call(self.server.publish, event)
+
+    def _on_state(self, change: StateChange) -> None:
+        self.notifier.status(self._status_text())
+
+    def _observe(self, outputs: list[Any], important: bool) -> None:
+        """Every controller output list, after routing (a hook for tests and benchmarks)."""
 
     async def _control_loop(self) -> None:
+        """The one loop's real-time edge: controller ticks and the systemd watchdog as tasks
+        of one group, until a stop is asked for; a failure in either stops the daemon."""
+        assert self.runner is not None and self._stop_event is not None
+        tasks = []
+        wd_s = self.notifier.watchdog_interval_s
+        if wd_s is not None:
+            tasks.append(lambda: every(wd_s, time.monotonic, self._feed_watchdog))
         try:
-            await self._control_steps()
-        except asyncio.CancelledError:
-            raise
-        except Exception as exc:
+            await run_realtime(self.runner, self._stop_event, tick_hz=TICK_HZ, tasks=tasks)
+        except Exception as exc:  # an ExceptionGroup from the task group: a bug, so fail
             log.exception("control loop failed")
             self._fail(exc)
 
-    async def _control_steps(self) -> None:
-        period_s = 1.0 / TICK_HZ
-        wd_s = self.notifier.watchdog_interval_s
-        t_wd = 0.0
-        t_next = time.monotonic()
-        while True:
-            now = time.monotonic()
-            self._handle(self.controller.tick(now), important=False)
-            if wd_s is not None and now - t_wd >= wd_s and self._threads_alive():
-                # only a loop that is really turning (and whose readers live) feeds systemd
-                self.notifier.watchdog()
-                t_wd = now
-            t_next += period_s
-            delay = t_next - time.monotonic()
-            if delay < -period_s:
-                t_next = time.monotonic()
-                delay = 0.0
-            await asyncio.sleep(max(0.0, delay))
+    def _feed_watchdog(self, _now_s: float) -> None:
+        # only a loop that is really turning (and whose readers live) feeds systemd
+        if self._threads_alive():
+            self.notifier.watchdog()
 
     def _threads_alive(self) -> bool:
         ok = all(t.is_alive() for t in self._threads)
@@ -834,7 +789,7 @@ class Daemon:
     def _on_control(self, fn: Callable[..., Any], *args: Any) -> Any:
         """Run ``fn`` on the control loop: directly when already there, else as an awaitable
         for the server (the controller is only ever touched from the control loop)."""
-        harmless = fn == self._status or (fn == self._simple and args[0] in ("stop", "pause"))
+        harmless = fn == self._status or (fn == self._command and args[0] in ("stop", "pause"))
         if not self._accepting and not harmless:
             # the ports listen before the devices open: nothing may queue a move meanwhile
             raise CommandError("rejected", "x6wd is starting: devices are not open yet")
@@ -857,21 +812,21 @@ class Daemon:
 
     def start(self) -> Any:
         """Start the loaded mission."""
-        return self._on_control(self._simple, "start")
+        return self._on_control(self._command, "start")
 
     def pause(self) -> Any:
         """Pause (motors stop, mission kept)."""
-        return self._on_control(self._simple, "pause")
+        return self._on_control(self._command, "pause")
 
     def resume(self) -> Any:
         """Resume a paused mission."""
-        return self._on_control(self._simple, "resume")
+        return self._on_control(self._command, "resume")
 
     def stop(self) -> Any:
         """Stop everything; always allowed. The stop also goes to the motors at once."""
         if self.motors is not None:  # thread-safe, and does not wait for the control loop
             self.motors.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "operator stop"))
-        return self._on_control(self._simple, "stop")
+        return self._on_control(self._command, "stop")
 
     def drive(self, left_pct: float, right_pct: float, duration_s: float) -> Any:
         """Manual drive (percent) for ``duration_s`` seconds; the controller stops after it."""
@@ -920,46 +875,18 @@ class Daemon:
             },
         }
 
-    def _check_geofence(self, waypoints: list[Waypoint]) -> None:
-        safety = self.config.safety
-        if len(safety.geofence_center) == 2:
-            centre = (safety.geofence_center[0], safety.geofence_center[1])
-        elif self.first_fix is not None:
-            centre = self.first_fix
-        else:
-            raise CommandError("geofence", "no fix yet: cannot check waypoints against geofence")
-        for i, wp in enumerate(waypoints):
-            d = distance_m(centre[0], centre[1], wp.lat_deg, wp.lon_deg)
-            if d > safety.geofence_radius_m:
-                raise CommandError(
-                    "geofence",
-                    f"waypoint {i + 1} ({wp.lat_deg:.7f}, {wp.lon_deg:.7f}) is {d:.0f} m from "
-                    f"the geofence centre; limit {safety.geofence_radius_m:.0f} m",
-                )
-
+    # the runner's operator requests, run on the control loop by _on_control
     def _load_mission(self, waypoints: list[Waypoint]) -> dict[str, Any]:
-        self._check_geofence(waypoints)
-        pairs = [(w.lat_deg, w.lon_deg) for w in waypoints]
-        self._handle(self.controller.load_mission(pairs, time.monotonic()))
-        log.info("mission loaded: %d waypoints", len(pairs))
-        return {"count": len(pairs)}
+        assert self.runner is not None
+        return self.runner.load_mission(waypoints)
 
-    def _simple(self, name: str) -> dict[str, Any]:
-        self._handle(getattr(self.controller, name)(time.monotonic()))
-        # a stop storm must not flood the log (the server coalesces, but still ~100/s)
-        self._operator_log.log(name, logging.INFO, "operator: %s", name)
-        tel = self.controller.telemetry
-        return {"mode": str(tel.mode), "state": str(tel.state)}
+    def _command(self, name: str) -> dict[str, Any]:
+        assert self.runner is not None
+        return self.runner.command(name)
 
     def _drive(self, left_pct: float, right_pct: float, duration_s: float) -> dict[str, Any]:
-        limit = self.config.safety.manual_max_s
-        if duration_s > limit:
-            raise CommandError("bad_request", f"duration_s {duration_s:g} > limit {limit:g} s")
-        self._handle(
-            self.controller.manual_drive(left_pct, right_pct, duration_s, time.monotonic())
-        )
-        log.info("operator: drive L%+.0f R%+.0f for %.1f s", left_pct, right_pct, duration_s)
-        return {"left": left_pct, "right": right_pct, "duration_s": duration_s}
+        assert self.runner is not None
+        return self.runner.drive(left_pct, right_pct, duration_s)
 
 
 def one_line(text: str) -> str:

@@ -39,7 +39,7 @@ from typing import Any, Protocol
 from x6wd import __version__
 from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
 from x6wd.core.config import ServerConfig
-from x6wd.core.errors import ConfigError, ParseError, X6wdError
+from x6wd.core.errors import CommandError, ConfigError, ParseError, X6wdError
 from x6wd.core.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx
 
 log = logging.getLogger(__name__)
@@ -82,14 +82,6 @@ CLOSED = "closed"
 _INVALID_CODES = frozenset(
     {"bad_request", "unknown_command", "rate_limited", "unauthorized", "auth_failed"}
 )
-
-
-class CommandError(X6wdError):
-    """A request the robot refuses; ``code`` is the protocol error code."""
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
 
 
 class Backend(Protocol):

@@ -23,6 +23,15 @@ class DeviceTimeout(X6wdError):
     """A device did not answer within its deadline."""
 
 
+class CommandError(X6wdError):
+    """An operator request the robot refuses; ``code`` is the control protocol's error code
+    ("geofence", "bad_request", "rejected", ...; docs/protocol.md)."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
 class ParseError(X6wdError):
     """Bytes or text that do not form a valid message."""
 

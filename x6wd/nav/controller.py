@@ -37,7 +37,7 @@ Mode rules: a mission loads in IDLE, MANUAL or DONE (not while RUNNING or PAUSED
 start needs a mission and restarts it from its first waypoint (not while RUNNING or PAUSED);
 pause only while RUNNING; resume only while PAUSED; manual drive not while RUNNING or PAUSED
 and not with the motor link down. Rejected requests raise :class:`CommandRejected` and change
-nothing. The geofence is checked by the daemon when a mission is loaded, not here.
+nothing. The geofence is the loop's (``x6wd.loop.runner``), not the controller's.
 """
 
 from __future__ import annotations
@@ -305,8 +305,9 @@ class Controller:
         self._set_mode(Mode.RUNNING, "resume", t, changes)
         return self._step(t, "resume", changes)
 
-    def stop(self, t_s: float) -> list[ControllerOutput]:
-        """Stop everything from any state: motors stop, mode IDLE. Never rejected."""
+    def stop(self, t_s: float, why: str = "stop") -> list[ControllerOutput]:
+        """Stop everything from any state: motors stop, mode IDLE. Never rejected. ``why``
+        is the state change's reason (an operator's "stop", a "geofence breach")."""
         try:
             t = _check_t(t_s, "stop")
         except InputError:
@@ -314,8 +315,8 @@ class Controller:
             t = self._now if self._now is not None else 0.0
         changes: list[ControllerOutput] = []
         self._manual = None
-        self._set_mode(Mode.IDLE, "stop", t, changes)
-        return self._step(t, "stop", changes)
+        self._set_mode(Mode.IDLE, why, t, changes)
+        return self._step(t, why, changes)
 
     def manual_drive(
         self, left_pct: float, right_pct: float, duration_s: float, t_s: float

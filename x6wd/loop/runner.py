@@ -1,0 +1,352 @@
+"""The one control loop: device records and operator requests in, through the controller, out
+to the motors, the telemetry watchers and the recorder.
+
+Every edge drives this same object (docs/architecture.md, "The loop and its edges"):
+
+- the robot (``x6wd run``): device threads post records to the daemon's event loop, which
+  calls :meth:`Runner.gps`, :meth:`Runner.attitude`, :meth:`Runner.device_events`; a task
+  calls :meth:`Runner.tick` at the control rate; the clock is ``time.monotonic``;
+- hardware in the loop: the same daemon with ``sim://`` devices;
+- fast time (``x6wd sim``): the simulator calls the same methods with its own clock.
+
+So every safety rule lives either in the sans-IO controller or here, and a fast-time run
+exercises all of them: the geofence (waypoints checked when a mission is loaded, the position
+checked at every valid fix while a mission runs), the manual-drive limit, the hold on a
+sensor its reader reports down, the stop that reaches the motors first.
+
+The runner never reads a device, sleeps or touches a socket. Its outputs go to callables the
+edge supplies: ``motors(cmd)`` must not block (the daemon queues it for the motor thread,
+the simulator moves its vehicle), ``record(method, arg)`` calls ``Recorder.<method>(arg)``
+(the daemon on its recorder thread), ``publish(event)`` sends a JSON-ready event to watching
+clients.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import Callable, Coroutine, Iterable, Sequence
+from typing import Any
+
+from x6wd.core.config import SafetyConfig
+from x6wd.core.errors import CommandError
+from x6wd.core.geodesy import great_circle_m
+from x6wd.core.health import TRANSITION, HealthLog
+from x6wd.core.mission_files import Waypoint
+from x6wd.core.ratelog import RateLimitedLog
+from x6wd.core.records import (
+    USABLE_STATES,
+    Attitude,
+    GpsFix,
+    GpsSky,
+    HealthEvent,
+    Mode,
+    MotorCommand,
+    StateChange,
+    Telemetry,
+)
+from x6wd.nav.controller import Controller
+
+log = logging.getLogger("x6wd.loop.runner")
+
+TELEMETRY_EVENT_HZ = 10.0
+"""Most telemetry events per second to watching clients (fixes and state changes always go)."""
+TELEMETRY_RECORD_HZ = 1.0
+"""Most telemetry snapshots per second to the recorder (fixes and state changes always go)."""
+
+Clock = Callable[[], float]
+"""Seconds on one monotonic clock: ``time.monotonic`` on the robot, simulated time in fast time."""
+
+
+def _nothing(*_args: Any) -> None:
+    return None
+
+
+class Runner:
+    """Routes every input through the controller and every output to its sink.
+
+    ``controller``: the sans-IO brain. ``safety``: the geofence and manual-drive limits.
+    ``clock()``: now (s) for operator requests and ticks. ``motors(cmd)``: hand a motor
+    command over (must not block). ``record(method, arg)``: one recorder call, or None.
+    ``publish(event)``: a telemetry or state event for watching clients, or None.
+    ``devices()``: every device's health as a JSON-ready dict, sent with telemetry events.
+    ``on_state(change)``: called after each state change (the daemon tells systemd).
+    ``observe(outputs, important)``: sees every controller output list (the simulator keeps
+    its trace with it; tests watch with it).
+    """
+
+    def __init__(
+        self,
+        controller: Controller,
+        safety: SafetyConfig,
+        clock: Clock,
+        *,
+        motors: Callable[[MotorCommand], None],
+        record: Callable[[str, Any], None] | None = None,
+        publish: Callable[[dict[str, Any]], None] | None = None,
+        devices: Callable[[], dict[str, Any]] | None = None,
+        on_state: Callable[[StateChange], None] | None = None,
+        observe: Callable[[list[Any], bool], None] | None = None,
+        health_log: HealthLog | None = None,
+    ) -> None:
+        self.controller = controller
+        self.safety = safety
+        self.clock = clock
+        self._motors = motors
+        self._record = record or _nothing
+        self._publish = publish
+        self._devices = devices or dict
+        self._on_state = on_state
+        self._observe = observe
+        self._health_log = health_log or HealthLog(
+            logging.getLogger("x6wd.core.health"), clock=clock
+        )
+        self._operator_log = RateLimitedLog(log, 1.0, clock)
+        self.last_telemetry: Telemetry | None = None
+        self.first_fix: tuple[float, float] | None = None
+        """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
+        self.geofence_breaches = 0
+        self._last_pos: tuple[float, float] | None = None  # latest valid fix (lat, lon deg)
+        self._last_motor_rec: tuple[float, float] | None = None
+        self._t_pub = -math.inf
+        self._t_rec = -math.inf
+        self._t_stepped: float | None = None  # time of the controller's latest step (s)
+        self.stats: dict[str, int] = {"fixes": 0, "attitudes": 0}
+
+    # -- device inputs ------------------------------------------------------------------------
+    def gps(self, records: Iterable[Any]) -> None:
+        """Records from the GPS decoder: fixes, satellites in view, sentence text."""
+        for rec in records:
+            self.gps_record(rec)
+
+    def gps_record(self, rec: Any) -> None:
+        """One record from the GPS decoder (see :meth:`gps`)."""
+        if isinstance(rec, GpsFix):
+            self.stats["fixes"] += 1
+            self._record("record_fix", rec)
+            outputs = self.controller.on_fix(rec)
+            self._t_stepped = rec.t_s
+            self._handle(outputs, True)
+            if rec.valid and rec.lat_deg is not None and rec.lon_deg is not None:
+                self._last_pos = (rec.lat_deg, rec.lon_deg)
+                if self.first_fix is None:
+                    self.first_fix = self._last_pos
+                self._check_position(rec)
+        elif isinstance(rec, GpsSky):
+            self._record("record_sky", rec)
+            self._handle(self.controller.on_sky(rec), False)
+        else:
+            text = getattr(rec, "text", None) or getattr(rec, "raw", None)
+            if isinstance(text, bytes):
+                text = text.decode("ascii", "replace")
+            if isinstance(text, str):
+                self._record("record_nmea", text)
+
+    def attitude(self, att: Attitude) -> None:
+        """A compass sample."""
+        self.stats["attitudes"] += 1
+        self._record("record_attitude", att)
+        outputs = self.controller.on_attitude(att)
+        self._t_stepped = att.t_s
+        self._handle(outputs, False)
+
+    def device_events(self, events: Sequence[HealthEvent]) -> None:
+        """Health events from a device's reader: each logged (rate-limited per device); a
+        sensor's transition reaches the controller at once, so an unplugged GPS holds the
+        robot within this call, not after the fix timeout."""
+        for ev in events:
+            self._health_log.event(ev)
+            if ev.kind == TRANSITION and ev.device in ("gps", "compass"):
+                ok = ev.new in USABLE_STATES
+                self._handle(self.controller.sensor_health(ev.device, ok, ev.t_s, str(ev.new)))
+
+    def motor_link(self, ok: bool, t_s: float) -> None:
+        """The motor link went up or down at ``t_s`` (s); logged by its health events."""
+        self._handle(self.controller.motor_link(ok, t_s))
+
+    def tick(self, t_s: float | None = None) -> None:
+        """Time passes (default: the clock): staleness and the dead-man are checked. A tick at
+        the very time of the controller's latest step is skipped: it would decide the same."""
+        t = self.clock() if t_s is None else t_s
+        if t == self._t_stepped:
+            return
+        outputs = self.controller.tick(t)
+        self._t_stepped = t
+        self._handle(outputs, False)
+
+    # -- operator requests --------------------------------------------------------------------
+    def load_mission(self, waypoints: Sequence[Waypoint]) -> dict[str, Any]:
+        """Check every waypoint against the geofence, then hand them to the controller."""
+        self._check_geofence(waypoints)
+        pairs = [(w.lat_deg, w.lon_deg) for w in waypoints]
+        self._handle(self.controller.load_mission(pairs, self.clock()))
+        log.info("mission loaded: %d waypoints", len(pairs))
+        return {"count": len(pairs)}
+
+    def command(self, name: str) -> dict[str, Any]:
+        """``start``, ``pause``, ``resume`` or ``stop`` the mission; returns mode and state."""
+        if name not in ("start", "pause", "resume", "stop"):
+            raise CommandError("bad_request", f"unknown mission command {name!r}")
+        if name in ("start", "resume"):
+            self._check_inside(name)
+        self._handle(getattr(self.controller, name)(self.clock()))
+        # a stop storm must not flood the log (the server coalesces, but still ~100/s)
+        self._operator_log.log(name, logging.INFO, "operator: %s", name)
+        tel = self.controller.telemetry
+        return {"mode": str(tel.mode), "state": str(tel.state)}
+
+    def stop(self) -> dict[str, Any]:
+        """Stop from any state; the stop command goes to the motors first."""
+        self._motors(MotorCommand(self.clock(), 0.0, 0.0, "operator stop"))
+        return self.command("stop")
+
+    def drive(self, left_pct: float, right_pct: float, duration_s: float) -> dict[str, Any]:
+        """Manual drive (%) for ``duration_s`` (s); refused above ``safety.manual_max_s``."""
+        limit = self.safety.manual_max_s
+        if duration_s > limit:
+            raise CommandError("bad_request", f"duration_s {duration_s:g} > limit {limit:g} s")
+        self._handle(self.controller.manual_drive(left_pct, right_pct, duration_s, self.clock()))
+        log.info("operator: drive L%+.0f R%+.0f for %.1f s", left_pct, right_pct, duration_s)
+        return {"left": left_pct, "right": right_pct, "duration_s": duration_s}
+
+    # -- the geofence -------------------------------------------------------------------------
+    def geofence_centre(self) -> tuple[float, float] | None:
+        """(lat_deg, lon_deg): ``safety.geofence_center``, else the first valid fix, else None."""
+        c = self.safety.geofence_center
+        if len(c) == 2:
+            return (c[0], c[1])
+        return self.first_fix
+
+    def _check_geofence(self, waypoints: Sequence[Waypoint]) -> None:
+        centre = self.geofence_centre()
+        if centre is None:
+            raise CommandError("geofence", "no fix yet: cannot check waypoints against geofence")
+        radius_m = self.safety.geofence_radius_m
+        for i, wp in enumerate(waypoints):
+            d = great_circle_m(centre[0], centre[1], wp.lat_deg, wp.lon_deg)
+            if d > radius_m:
+                raise CommandError(
+                    "geofence",
+                    f"waypoint {i + 1} ({wp.lat_deg:.7f}, {wp.lon_deg:.7f}) is {d:.0f} m from "
+                    f"the geofence centre; limit {radius_m:.0f} m",
+                )
+
+    def _check_inside(self, what: str) -> None:
+        """Refuse ``what`` while the latest valid fix lies outside the geofence."""
+        centre, pos = self.geofence_centre(), self._last_pos
+        if centre is None or pos is None:
+            return
+        d = great_circle_m(centre[0], centre[1], pos[0], pos[1])
+        if d > self.safety.geofence_radius_m:
+            raise CommandError(
+                "geofence",
+                f"cannot {what}: the robot is {d:.0f} m from the geofence centre; limit "
+                f"{self.safety.geofence_radius_m:.0f} m (drive it back by hand)",
+            )
+
+    def _check_position(self, fix: GpsFix) -> None:
+        """A running or paused mission outside the geofence is stopped (the operator may
+        still drive back by hand: manual drive is bounded by its own dead-man)."""
+        if self.controller.mode not in (Mode.RUNNING, Mode.PAUSED):
+            return
+        centre = self.geofence_centre()
+        if centre is None:
+            return
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        d = great_circle_m(centre[0], centre[1], fix.lat_deg, fix.lon_deg)
+        radius_m = self.safety.geofence_radius_m
+        if d <= radius_m:
+            return
+        self.geofence_breaches += 1
+        self._motors(MotorCommand(fix.t_s, 0.0, 0.0, "geofence breach"))
+        log.warning(
+            "geofence breach: %.1f m from the centre, limit %.0f m: mission stopped", d, radius_m
+        )
+        self._handle(self.controller.stop(fix.t_s, why="geofence breach"))
+
+    # -- outputs ------------------------------------------------------------------------------
+    def _handle(self, outputs: list[Any], important: bool = True) -> None:
+        """Route controller outputs. ``important`` (a fix or an operator request) forces the
+        telemetry out; otherwise (compass samples, ticks) it is rate-limited for clients and
+        the recorder, since the controller emits a snapshot on every input."""
+        changes: list[StateChange] = []
+        for out in outputs:
+            if type(out) is MotorCommand:
+                self._motors(out)
+                key = (out.left_pct, out.right_pct)
+                if key != self._last_motor_rec:
+                    self._last_motor_rec = key
+                    self._record("record_motor", out)
+            elif type(out) is Telemetry:
+                self.last_telemetry = out
+                now = out.t_s
+                force = important or bool(changes)
+                if self._publish is not None and (
+                    force or now - self._t_pub >= 1.0 / TELEMETRY_EVENT_HZ
+                ):
+                    self._t_pub = now
+                    self._publish(
+                        {"event": "telemetry", "data": out.to_dict(), "devices": self._devices()}
+                    )
+                if force or now - self._t_rec >= 1.0 / TELEMETRY_RECORD_HZ:
+                    self._t_rec = now
+                    self._record("record_telemetry", out)
+            elif type(out) is StateChange:
+                changes.append(out)
+                log.info("state %s -> %s %s", out.old, out.new, out.reason)
+                self._record("record_state", out)
+                if self._publish is not None:
+                    self._publish(
+                        {"event": "state", "old": out.old, "new": out.new, "reason": out.reason}
+                    )
+        if self._on_state is not None:
+            for change in changes:  # after the routing: the telemetry is the new one
+                self._on_state(change)
+        if self._observe is not None:
+            self._observe(outputs, important)
+
+
+async def every(period_s: float, clock: Clock, step: Callable[[float], None]) -> None:
+    """Call ``step(now_s)`` every ``period_s`` (s) on the running event loop, on a fixed
+    schedule; after a stall longer than a period (suspend, a slow callback) it starts afresh
+    instead of bursting to catch up."""
+    t_next = clock()
+    while True:
+        step(clock())
+        t_next += period_s
+        delay_s = t_next - clock()
+        if delay_s < -period_s:
+            t_next = clock()
+            delay_s = 0.0
+        await asyncio.sleep(max(0.0, delay_s))
+
+
+async def run_realtime(
+    runner: Runner,
+    stop: asyncio.Event,
+    *,
+    tick_hz: float,
+    tasks: Sequence[Callable[[], Coroutine[Any, Any, None]]] = (),
+) -> None:
+    """The real-time edge of the loop: tick ``runner`` at ``tick_hz`` (Hz) and run the extra
+    ``tasks`` in one TaskGroup until ``stop`` is set. Device inputs reach the runner from the
+    edge's own threads through ``loop.call_soon_threadsafe``; an exception in any task ends
+    the group and propagates (the daemon then stops the motors and exits non-zero)."""
+
+    async def until_stop() -> None:
+        await stop.wait()
+        raise _Stopped
+
+    try:
+        async with asyncio.TaskGroup() as group:
+            group.create_task(every(1.0 / tick_hz, runner.clock, runner.tick), name="x6wd-tick")
+            for make in tasks:
+                group.create_task(make())
+            group.create_task(until_stop(), name="x6wd-stop")
+    except* _Stopped:
+        pass
+
+
+class _Stopped(Exception):
+    """Ends :func:`run_realtime`'s task group when its stop event is set."""
