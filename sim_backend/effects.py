@@ -25,6 +25,7 @@ INTERFACE (fixed; implementations are filled in below it):
 
 from __future__ import annotations
 
+import abc
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -392,7 +393,7 @@ class _Params:
             raise ConfigError(f"effect {cls.name}: {exc}") from None
 
 
-class GpsLayer(_Params):
+class GpsLayer(_Params, abc.ABC):
     """A layer on the receiver's position output.
 
     ``stage`` orders the layers in a receiver: 0 acts on the solution, 1 on how it is
@@ -402,9 +403,9 @@ class GpsLayer(_Params):
     kind: ClassVar[str] = "gps"
     stage: ClassVar[int] = 0
 
+    @abc.abstractmethod
     def start(self, rng: np.random.Generator) -> LayerRun:
         """The layer running over a receiver's output, drawing from ``rng`` (its own)."""
-        raise NotImplementedError
 
     def apply(self, series: PositionSeries, rng: np.random.Generator) -> PositionSeries:
         """The layer over a whole error series: :meth:`start` stepped once, a delay shown on
@@ -434,15 +435,15 @@ class CompassPhysics:
     tilt: tuple[Tilt, ...] = ()
 
 
-class CompassLayer(_Params):
+class CompassLayer(_Params, abc.ABC):
     """A layer on the compass heading."""
 
     kind: ClassVar[str] = "compass"
 
+    @abc.abstractmethod
     def act_on(self, phys: CompassPhysics) -> CompassPhysics:
         """``phys`` with this layer acting on the emulation's physics (same meaning as
         :meth:`apply` on a heading series)."""
-        raise NotImplementedError
 
 
 # --- GPS layers -------------------------------------------------------------------------------

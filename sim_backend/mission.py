@@ -1,12 +1,18 @@
 """``x6wd sim SCENARIO.toml``: a whole mission in simulated time, through the real decoders.
 
-The loop, at the compass rate (20 Hz by default) in simulated seconds::
+This is the fast-time edge of the one loop (:class:`x6wd.loop.runner.Runner`, the object the
+daemon drives in real time): the simulator steps its world at the compass rate (20 Hz by
+default) in simulated seconds and hands the runner what the devices would::
 
-    vehicle (skid steer) ──> compass register map ──> drivers.cmps10 ──> Controller.on_attitude
+    vehicle (skid steer) ──> compass register map ──> drivers.cmps10 ──> Runner.attitude
          │                                                                  │
          └─> SimReceiver.epoch (each GPS epoch) ──> NEO-5 bytes ──> MemoryUart │
-                 ──> drivers.gps_nmea.GpsDecoder ──> Controller.on_fix/on_sky
-    Controller MotorCommand ──> vehicle
+                 ──> drivers.gps_nmea.GpsDecoder ──> Runner.gps_record
+    Runner ──> Controller ──> MotorCommand ──> vehicle; telemetry, states ──> recorder
+
+As an operator does, the mission is loaded (through the runner's geofence check) and
+started at the first valid fix; the runner's continuous geofence, manual-drive limit and
+routing rules are the robot's own, so a fast-time run exercises them.
 
 The receiver is :func:`sim_backend.receiver.build_receiver`'s, the one HIL and the gap tool
 build too (model, error layers, NMEA, UART timing).
@@ -74,10 +80,12 @@ from sim_backend.ports import MemoryUart
 from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
 from sim_backend.world import World, load_world
-from x6wd.core.errors import ConfigError
+from x6wd.core.errors import CommandError, ConfigError
+from x6wd.core.mission_files import Waypoint
 from x6wd.core.recorder import Recorder
-from x6wd.core.records import GpsFix, GpsSky, Mode, MotorCommand, NavState, StateChange, Telemetry
-from x6wd.nav.controller import Controller
+from x6wd.core.records import GpsFix, Mode, NavState, StateChange, Telemetry
+from x6wd.loop.runner import Runner
+from x6wd.nav.controller import CommandRejected, Controller
 
 R1_M = 6378160.0  # the paper's equatorial radius (x = Λ·R1)
 R2_M = 6356770.0  # the paper's polar radius (y = Φ·R2)
@@ -358,7 +366,7 @@ def run_mission(
     vehicle = vehicle_from_world(world)
     origin = world.origin
     antenna_m = world.vehicle.antenna_height_m
-    waypoints = [(float(a), float(b)) for a, b in world.waypoints_latlon()]
+    waypoints = [Waypoint(float(a), float(b)) for a, b in world.waypoints_latlon()]
     wp_enu = world.waypoints_enu_m()
 
     dt = 1.0 / cset.rate_hz
@@ -374,7 +382,6 @@ def run_mission(
     trace = _Trace()
     holds: list[list[float]] = []  # [start, end]
     done_at: float | None = None
-    last_cmd: tuple[float, float] | None = None
 
     nmea_file = open(out / "gps.nmea", "wb")  # noqa: SIM115 - closed in finally
     (out / "recording.jsonl").unlink(missing_ok=True)
@@ -387,25 +394,47 @@ def run_mission(
         utc_clock=lambda: utc0_naive + timedelta(seconds=now[0]),
     )
 
-    def handle(outputs: list[Any], t: float) -> None:
-        nonlocal done_at, last_cmd
+    def observe(outputs: list[Any], _important: bool) -> None:
+        nonlocal done_at
         for o in outputs:
-            if isinstance(o, MotorCommand):
-                vehicle.command(o.left_pct, o.right_pct)
-                key = (o.left_pct, o.right_pct)
-                if key != last_cmd:
-                    rec.record_motor(o)
-                    last_cmd = key
-            elif isinstance(o, StateChange):
-                rec.record_state(o)
+            if type(o) is StateChange:
+                t = o.t_s
                 if o.new == NavState.HOLD and (not holds or holds[-1][1] >= 0):
                     holds.append([t, -1.0])
                 elif o.old == NavState.HOLD and holds and holds[-1][1] < 0:
                     holds[-1][1] = t
                 if o.new == Mode.DONE and done_at is None:
                     done_at = t
-            elif isinstance(o, Telemetry) and o.state == NavState.MISSION_DONE and done_at is None:
-                done_at = t
+            elif type(o) is Telemetry and o.state == NavState.MISSION_DONE and done_at is None:
+                done_at = o.t_s
+
+    def recorder_call(method: str, arg: Any) -> None:
+        getattr(rec, method)(arg)
+
+    # The one loop (x6wd.loop.runner), driven in simulated time: the geofence, the
+    # manual-drive limit and every routing rule are the robot's own.
+    runner = Runner(
+        ctrl,
+        world.safety,
+        lambda: now[0],
+        motors=lambda cmd: vehicle.command(cmd.left_pct, cmd.right_pct),
+        record=recorder_call,
+        observe=observe,
+    )
+    mission_state: dict[str, Any] = {"loaded": not waypoints, "rejected": None}
+
+    def load_at_first_fix(fix: GpsFix) -> None:
+        # As an operator does: load the mission once the robot has a fix (the geofence is
+        # centred on it unless configured) and start it.
+        if mission_state["loaded"] or not fix.valid:
+            return
+        mission_state["loaded"] = True
+        try:
+            runner.load_mission(waypoints)
+            runner.command("start")
+        except (CommandError, CommandRejected) as exc:
+            mission_state["rejected"] = f"{getattr(exc, 'code', 'rejected')}: {exc}"
+            rec.record_event("mission_rejected", fix.t_s, reason=str(exc))
 
     try:
         rec.record_event("sim_start", 0.0, scenario=world.name, seed=seed, duration_s=total_s)
@@ -416,10 +445,7 @@ def run_mission(
         s0 = vehicle.state
         h0 = cset.device_heading_deg(s0.heading_deg, s0.pitch_deg, s0.roll_deg)
         device.set_state(0.0, h0, s0.pitch_deg, s0.roll_deg)
-        handle(ctrl.on_attitude(compass.read(0.0)), 0.0)
-        if waypoints:
-            handle(ctrl.load_mission(waypoints, 0.0), 0.0)
-            handle(ctrl.start(0.0), 0.0)
+        runner.attitude(compass.read(0.0))
         report_every = max(1, n_ticks // 50)
         static = None
         if not waypoints:
@@ -440,14 +466,12 @@ def run_mission(
                 uart.write(line)
                 rec.record_nmea(line.rstrip(b"\r\n"), t_rx)
                 for r in decoder.feed(uart.read_all(), t_rx):
-                    if isinstance(r, GpsFix):
-                        rec.record_fix(r)
-                        handle(ctrl.on_fix(r), t_rx)
+                    if type(r) is GpsFix:
+                        runner.gps_record(r)
+                        load_at_first_fix(r)
                         _note_fix(trace, tick, r, ctrl.telemetry)
-                        rec.record_telemetry(ctrl.telemetry)
-                    elif isinstance(r, GpsSky):
-                        rec.record_sky(r)
-                        handle(ctrl.on_sky(r), t_rx)
+                    else:
+                        runner.gps_record(r)
 
         for k in range(n_ticks + 1):
             t = k * dt
@@ -466,9 +490,8 @@ def run_mission(
                 t, cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg),
                 s.pitch_deg, s.roll_deg,
             )  # fmt: skip
-            att = compass.read(t)
-            rec.record_attitude(att)
-            handle(ctrl.on_attitude(att), t)
+            runner.attitude(compass.read(t))
+            runner.tick(t)
             if k % gps_every == 0:
                 antenna = (s.east_m, s.north_m, s.up_m + antenna_m)
                 if static is not None:
@@ -490,7 +513,7 @@ def run_mission(
         deliver(math.inf)  # the last burst still on the wire
         t_end = max(trace.t[-1], now[0])
         now[0] = t_end
-        handle(ctrl.tick(t_end), t_end)
+        runner.tick(t_end)
         if holds and holds[-1][1] < 0:
             holds[-1][1] = t_end
         rec.record_event("sim_end", t_end, completed=ctrl.mode == Mode.DONE)
@@ -531,6 +554,8 @@ def run_mission(
         mean_sats_used=float(np.mean(trace.sats)) if trace.sats else math.nan,
         extra={
             "holds_s": [[round(a, 3), round(b, 3)] for a, b in holds],
+            "mission_rejected": mission_state["rejected"],
+            "geofence_breaches": runner.geofence_breaches,
             "i2c_errors_injected": injector.injected,
             "compass_stale_events": compass.counters.stale_events,
             "nmea_bytes": uart.written,
@@ -591,11 +616,8 @@ def compass_setup(
         lag_tau_s=errs.lag_tau_s,
     )
     skipped: list[str] = []
-    for eff in layers:
-        try:
-            phys = eff.act_on(phys)
-        except NotImplementedError:
-            skipped.append(f"{eff.name}: no closed-loop model")
+    for eff in layers:  # every compass layer has a closed-loop model (an abstract method)
+        phys = eff.act_on(phys)
     a_mat, b_vec, decl, tau = phys.a, phys.b, phys.declination_deg, phys.lag_tau_s
     noise_deg2 = phys.noise_deg2
     noise_ut = errs.noise_ut

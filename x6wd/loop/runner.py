@@ -125,14 +125,14 @@ class Runner:
         if isinstance(rec, GpsFix):
             self.stats["fixes"] += 1
             self._record("record_fix", rec)
-            outputs = self.controller.on_fix(rec)
-            self._t_stepped = rec.t_s
-            self._handle(outputs, True)
             if rec.valid and rec.lat_deg is not None and rec.lon_deg is not None:
                 self._last_pos = (rec.lat_deg, rec.lon_deg)
                 if self.first_fix is None:
                     self.first_fix = self._last_pos
-                self._check_position(rec)
+                self._check_position(rec)  # before the fix can steer: a breach stops first
+            outputs = self.controller.on_fix(rec)
+            self._t_stepped = rec.t_s
+            self._handle(outputs, True)
         elif isinstance(rec, GpsSky):
             self._record("record_sky", rec)
             self._handle(self.controller.on_sky(rec), False)
