@@ -4,8 +4,9 @@
   board's acknowledgement of every command.
 - :class:`LogMotorLink` only records commands (bench runs, dry runs, tests).
 - :class:`MotorBoard` is the board's side as a sans-IO parser: bytes and the time in, reply
-  bytes out, with the watchdog. The simulator runs it behind a pseudo-terminal
-  (:func:`serve_board_fd`) so the daemon talks to it exactly as to the real board.
+  bytes out, with the watchdog and the wheel-encoder counters. The simulator runs it behind a
+  pseudo-terminal (:func:`serve_board_fd`) so the daemon talks to it exactly as to the real
+  board.
 
 Stopping never raises: :meth:`SerialMotorLink.stop` tries, counts and returns whether the
 board confirmed. If the link is dead, the board's watchdog stops the motors by itself.
@@ -31,7 +32,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from x6wd.core.errors import is_transient
 from x6wd.core.health import HealthTracker, root_oserror
-from x6wd.core.records import DeviceHealth, HealthEvent, MotorCommand
+from x6wd.core.records import DeviceHealth, HealthEvent, MotorCommand, WheelOdometry
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +42,12 @@ WATCHDOG_MAX_MS = 60_000
 DEFAULT_WATCHDOG_MS = 500
 MAX_LINE_BYTES = 64
 SEQ_MODULO = 10_000
+# Encoders (docs/motors.md, "Wheel encoders"): the board's counters are unsigned 32-bit and
+# its latch number 16-bit; a latch number more than ENC_MAX_SEQ_STEP ahead (or not ahead)
+# of the last one means the board restarted and its counters began again at 0.
+ENC_MODULO = 1 << 32
+ENC_SEQ_MODULO = 1 << 16
+ENC_MAX_SEQ_STEP = 1000
 
 
 class PortLike(Protocol):
@@ -103,6 +110,61 @@ class LinkCounters:
     events: int = 0  # unsolicited EVT lines from the board (e.g. watchdog trips)
 
 
+def wrap_count_delta(delta: int) -> int:
+    """The signed difference of two 32-bit counter readings (counts): the shortest way
+    round the ring, valid while the true change is under 2**31 counts between readings."""
+    return (delta + ENC_MODULO // 2) % ENC_MODULO - ENC_MODULO // 2
+
+
+def parse_encoder_payload(payload: str) -> tuple[int, int, int] | None:
+    """``"<seq> <left> <right>"`` of an ``E`` reply -> (seq, left, right), None if malformed
+    or out of range (seq 0..65535, counts 0..2**32-1)."""
+    tokens = payload.split()
+    if len(tokens) != 3 or not all(t.isdigit() for t in tokens):
+        return None
+    seq, left, right = (int(t) for t in tokens)
+    if seq >= ENC_SEQ_MODULO or left >= ENC_MODULO or right >= ENC_MODULO:
+        return None
+    return seq, left, right
+
+
+class EncoderUnwrap:
+    """Board counter readings (modulo 2**32) to continuous counts since the first reading.
+
+    A reading after :meth:`rebase` (the board announced a reboot) or whose latch number is
+    not 1..ENC_MAX_SEQ_STEP ahead of the last (it restarted unannounced) is a new baseline:
+    it adds no counts (the motion between the last reading and the restart is lost).
+    ``skipped`` counts latches whose replies never arrived (nothing is lost: counts are
+    cumulative); ``restarts`` the new baselines after the first.
+    """
+
+    def __init__(self) -> None:
+        self.left = 0
+        self.right = 0
+        self.skipped = 0
+        self.restarts = 0
+        self._last: tuple[int, int, int] | None = None  # (seq, left, right) as read
+
+    def rebase(self) -> None:
+        """The next reading starts a new baseline (the board's counters began again)."""
+        if self._last is not None:
+            self.restarts += 1
+        self._last = None
+
+    def update(self, seq: int, left: int, right: int) -> tuple[int, int]:
+        """Take one reading; the continuous (left, right) counts."""
+        if self._last is not None:
+            step = (seq - self._last[0]) % ENC_SEQ_MODULO
+            if 1 <= step <= ENC_MAX_SEQ_STEP:
+                self.skipped += step - 1
+                self.left += wrap_count_delta(left - self._last[1])
+                self.right += wrap_count_delta(right - self._last[2])
+            else:
+                self.restarts += 1
+        self._last = (seq, left, right)
+        return self.left, self.right
+
+
 # --- host side ------------------------------------------------------------------------------
 
 
@@ -157,6 +219,7 @@ class SerialMotorLink:
                 port.timeout = min(self.ack_timeout_s, 0.02)
             except Exception:  # a port that refuses: we still bound waits by our deadline
                 log.debug("motor port does not accept a timeout", exc_info=True)
+        self.encoders = EncoderUnwrap()
         self.configured = False
         self._configure()
 
@@ -234,6 +297,22 @@ class SerialMotorLink:
         except ValueError:
             return None
         return left, right, wd
+
+    def read_odometry(self) -> WheelOdometry | None:
+        """Latch and read the wheel-encoder counts (``E``), unwrapped (:class:`EncoderUnwrap`)
+        and stamped with the host time of the reply; None without a valid answer. Like
+        every command it feeds the board's watchdog, so polling it is also a keep-alive."""
+        reply = self._transact_reply("E")
+        if reply is None:
+            return None
+        t_s = self._clock()
+        parsed = parse_encoder_payload(reply)
+        if parsed is None:
+            log.warning("motor board sent a malformed encoder reply: %r", reply)
+            return None
+        seq = parsed[0]
+        left, right = self.encoders.update(*parsed)
+        return WheelOdometry(t_s, left, right, seq)
 
     def close(self) -> None:
         """Stop the motors, then close the port (idempotent, never raises)."""
@@ -344,6 +423,7 @@ class SerialMotorLink:
                     log.info("motor board event: %s", payload)
                     if payload.split()[:1] == ["BOOT"]:
                         self.configured = False  # it forgot our watchdog setting
+                        self.encoders.rebase()  # and its counters start again at 0
                 elif rseq == seq:
                     return kind == "OK", payload
                 # replies to older, timed-out commands are dropped
@@ -472,7 +552,9 @@ class MotorBoard:
 
     ``feed(data, t_s)`` takes received bytes at time ``t_s`` (s, any monotonic clock) and
     returns the reply bytes. ``tick(t_s)`` only advances time (watchdog). ``left_pct`` /
-    ``right_pct`` are the drive the board applies now.
+    ``right_pct`` are the drive the board applies now. ``left_counts`` / ``right_counts``
+    are the wheel-encoder counters as the hardware keeps them (modulo 2**32), moved by
+    :meth:`add_counts`; ``E`` latches and reports them.
     """
 
     def __init__(self, *, watchdog_ms: int = DEFAULT_WATCHDOG_MS) -> None:
@@ -487,18 +569,29 @@ class MotorBoard:
         self.watchdog_trips = 0
         self.commands = 0  # valid commands executed
         self.errors = 0  # ERR replies sent
+        self.left_counts = 0
+        self.right_counts = 0
+        self.enc_seq = 0  # number of the last latch (E), modulo 2**16
         self._buf = bytearray()
         self._overflow = False
         self._last_cmd_t_s: float | None = None
 
     def boot(self) -> bytes:
-        """Power-up: stopped, default watchdog, input cleared; returns ``EVT BOOT``."""
+        """Power-up: stopped, default watchdog, input cleared, encoder counters and latch
+        number at 0; returns ``EVT BOOT``."""
         self.left_pct = self.right_pct = 0
+        self.left_counts = self.right_counts = self.enc_seq = 0
         self.watchdog_ms = self.default_watchdog_ms
         self._buf.clear()
         self._overflow = False
         self._last_cmd_t_s = None
         return b"EVT BOOT\n"
+
+    def add_counts(self, left: int, right: int) -> None:
+        """The wheels turned: add signed encoder counts per side (the hardware's quadrature
+        counters; they wrap modulo 2**32 as a 32-bit timer register does)."""
+        self.left_counts = (self.left_counts + int(left)) % ENC_MODULO
+        self.right_counts = (self.right_counts + int(right)) % ENC_MODULO
 
     @property
     def running(self) -> bool:
@@ -585,6 +678,11 @@ class MotorBoard:
             if values:
                 return self._err(seq, "syntax")
             payload = f" {self.left_pct} {self.right_pct} {self.watchdog_ms}"
+        elif cmd == "E":
+            if values:
+                return self._err(seq, "syntax")
+            self.enc_seq = (self.enc_seq + 1) % ENC_SEQ_MODULO
+            payload = f" {self.enc_seq} {self.left_counts} {self.right_counts}"
         else:
             return self._err(seq, "unknown")
         self.commands += 1

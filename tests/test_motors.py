@@ -19,11 +19,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drivers.motors import (
+    ENC_MODULO,
+    EncoderUnwrap,
     LogMotorLink,
     MotorBoard,
     MotorLink,
     SerialMotorLink,
+    parse_encoder_payload,
     serve_board_fd,
+    wrap_count_delta,
 )
 from x6wd.core.records import MotorCommand
 
@@ -434,3 +438,100 @@ def test_dead_board_health_goes_degraded_lost_reconnecting_and_back(pty_board: P
     assert events[-1].message.startswith("motors reconnected (reconnect 1, ")
     link.close()
     assert link.health.state == "disconnected" and link.take_health_events() == []
+
+
+# --- wheel encoders (docs/motors.md, "Wheel encoders") ------------------------------------------
+
+
+def test_board_latches_encoder_counts_with_a_latch_number_and_32_bit_rollover() -> None:
+    b = MotorBoard()
+    assert b.feed(b"E #4\n", 0.0) == b"OK #4 1 0 0\n"
+    b.add_counts(-6, 1532)  # backwards from 0 wraps to the top of the 32-bit ring
+    assert b.feed(b"e\n", 0.1) == b"OK 2 4294967290 1532\n"
+    b.add_counts(10, ENC_MODULO)  # a whole turn of the ring is no change
+    assert b.feed(b"E #5\n", 0.2) == b"OK #5 3 4 1532\n"
+    assert b.feed(b"E 1 #6\n", 0.3) == b"ERR #6 syntax\n"
+    b.enc_seq = 65535
+    assert b.feed(b"E\n", 0.4) == b"OK 0 4 1532\n"  # the latch number wraps too
+    b.boot()
+    assert (b.left_counts, b.right_counts, b.enc_seq) == (0, 0, 0)
+
+
+def test_e_feeds_the_watchdog() -> None:
+    b = MotorBoard(watchdog_ms=100)
+    b.feed(b"M 20 20\n", 0.0)
+    b.feed(b"E\n", 0.08)
+    assert b.tick(0.15) == b"" and b.running
+    assert b.tick(0.19) == b"EVT WATCHDOG\n"
+
+
+@pytest.mark.parametrize(
+    ("payload", "parsed"),
+    [
+        ("7 0 4294967295", (7, 0, 4294967295)),
+        ("65536 0 0", None),
+        ("1 4294967296 0", None),
+        ("1 -1 0", None),
+        ("1 2", None),
+        ("1 2 3 4", None),
+        ("1 2 3OK", None),
+    ],
+)
+def test_encoder_payload_is_checked(payload: str, parsed: tuple[int, int, int] | None) -> None:
+    assert parse_encoder_payload(payload) == parsed
+
+
+@given(st.integers(-(2**31) + 1, 2**31 - 1), st.integers(0, ENC_MODULO - 1))
+def test_wrap_count_delta_inverts_the_ring(delta: int, start: int) -> None:
+    assert wrap_count_delta((start + delta) % ENC_MODULO - start) == delta
+
+
+def test_unwrap_across_rollover_skips_and_restarts() -> None:
+    u = EncoderUnwrap()
+    assert u.update(1, ENC_MODULO - 3, 10) == (0, 0)  # the first reading is the baseline
+    assert u.update(2, 5, 2) == (8, -8)  # left rolled over forwards
+    assert u.update(5, 5, ENC_MODULO - 2) == (8, -12)  # two replies lost: counts still whole
+    assert u.skipped == 2 and u.restarts == 0
+    assert u.update(1, 100, 100) == (8, -12)  # latch number went back: restarted, new baseline
+    assert u.update(2, 130, 90) == (38, -22)
+    u.rebase()  # EVT BOOT
+    assert u.update(1, 7, 7) == (38, -22)
+    assert u.restarts == 2
+
+
+@pytest.mark.integration
+def test_link_reads_unwrapped_odometry_through_a_pty(pty_board: PtyBoard) -> None:
+    with open_link(pty_board, watchdog_ms=2000) as link:
+        with pty_board.lock:
+            pty_board.board.add_counts(ENC_MODULO - 100, 50)
+        first = link.read_odometry()
+        assert first is not None and (first.left_counts, first.right_counts) == (0, 0)
+        assert first.seq == 1
+        with pty_board.lock:
+            pty_board.board.add_counts(4300, -70)  # left passes the top of the ring
+        odo = link.read_odometry()
+        assert odo is not None
+        assert (odo.left_counts, odo.right_counts, odo.seq) == (4300, -70, 2)
+        assert odo.t_s >= first.t_s
+        # a reboot loses the board's counters; the host's continue from where they were
+        pty_board.halt()
+        pty_board.start(boot=True)
+        assert wait_for(lambda: pty_board.board.watchdog_ms == 500)
+        with pty_board.lock:
+            pty_board.board.add_counts(10, 10)
+        assert link.ping()  # reads EVT BOOT
+        after = link.read_odometry()
+        assert after is not None and (after.left_counts, after.right_counts) == (4300, -70)
+        with pty_board.lock:
+            pty_board.board.add_counts(5, 6)
+        again = link.read_odometry()
+        assert again is not None and (again.left_counts, again.right_counts) == (4305, -64)
+        assert link.encoders.restarts == 1
+
+
+@pytest.mark.integration
+def test_read_odometry_without_a_board_is_none(pty_board: PtyBoard) -> None:
+    link = open_link(pty_board, ack_timeout_s=0.05)
+    pty_board.halt()
+    assert link.read_odometry() is None
+    link.port.close()

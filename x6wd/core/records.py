@@ -108,6 +108,22 @@ class MotorCommand:
 
 
 @dataclass(frozen=True, slots=True)
+class WheelOdometry:
+    """Cumulative wheel-encoder counts per side at ``t_s`` (s, host receive time).
+
+    ``left_counts`` / ``right_counts`` are counts since the link's first sample, already
+    unwrapped from the board's 32-bit rollover (plain ints, any size, negative when driven
+    backwards more than forwards): consumers difference consecutive records, so a lost
+    record loses no distance. ``seq`` is the board's latch number (0..65535, wraps).
+    """
+
+    t_s: float
+    left_counts: int
+    right_counts: int
+    seq: int
+
+
+@dataclass(frozen=True, slots=True)
 class StateChange:
     """The controller's mode or navigation state changed."""
 
