@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -196,26 +197,39 @@ def test_motor_driver_is_the_real_serial_link_to_a_simulated_board(
     compass = registry.open_compass("sim://", devices)
     assert isinstance(link, SerialMotorLink) and link.healthy
     assert link.port.name.startswith("/dev/pts/")
-    # spin clockwise in place: the compass registers follow the vehicle's heading
-    t_end = time.monotonic() + 0.6
-    while time.monotonic() < t_end:
+    # Spin clockwise in place, feeding the board's watchdog: the compass registers follow
+    # the vehicle's heading. Real time, so the checks wait for outcomes (with deadlines for a
+    # loaded machine) rather than assert physics after fixed sleeps; the physics itself is
+    # checked in fast time (test_mission, test_vehicle).
+    _, _, h0, _ = world.truth()
+
+    def spun_deg() -> float:
+        return (world.truth()[2] - h0) % 360.0
+
+    deadline = time.monotonic() + 10.0
+    while spun_deg() < 30.0:
+        assert time.monotonic() < deadline, f"spun only {spun_deg():.1f} deg in 10 s"
         assert link.send(MotorCommand(time.monotonic(), 60.0, -60.0, "test"))  # board's OK
-        time.sleep(0.05)
-    _, _, heading_deg, _ = world.truth()
-    assert 20.0 < heading_deg < 60.0  # 54 deg/s for 0.6 s
+        time.sleep(0.02)
+    assert spun_deg() < 90.0  # still turning at ~54 deg/s, not jumping
+    # the driver reads a valid bearing that has turned clockwise too (behind the truth: the
+    # CMPS10's filter lags)
+    wait_until(lambda: compass.read(time.monotonic()).bearing_deg % 360.0 > 5.0, 5.0, "bearing")
     att = compass.read(time.monotonic())
-    assert att.valid and 5.0 < att.bearing_deg < 60.0  # lags: the CMPS10 filter
+    assert att.valid and att.bearing_deg < spun_deg() + 15.0
     # no more commands: the simulated board's watchdog (300 ms, set by the driver) stops it
-    time.sleep(0.5)
-    assert world.vehicle.command_pct == (0.0, 0.0)
+    wait_until(lambda: world.vehicle.command_pct == (0.0, 0.0), 5.0, "watchdog stop")
     assert world.board.watchdog_trips == 1
     e0, n0, _, _ = world.truth()
     assert link.drive(50, 50)
     with pytest.raises(ValueError, match="left_pct"):
         link.send(MotorCommand(0.0, 101.0, 0.0))
-    time.sleep(0.2)
-    e1, n1, _, _ = world.truth()
-    assert (e1 - e0) ** 2 + (n1 - n0) ** 2 > 0.05**2  # moved forward
+
+    def moved_m() -> float:
+        e1, n1, _, _ = world.truth()
+        return float(np.hypot(e1 - e0, n1 - n0))
+
+    wait_until(lambda: moved_m() > 0.05, 5.0, "forward motion")
     link.close()
     assert not link.healthy and world.vehicle.command_pct == (0.0, 0.0)
 
@@ -280,6 +294,14 @@ def test_a_world_is_built_from_the_configuration_not_kept_by_the_module(tmp_path
         protocol_sim.check_config(SimConfig(scenario=str(tmp_path / "missing.toml")))
 
 
+def wait_until(ok: Any, timeout_s: float, what: str) -> None:
+    """Poll ``ok()`` until true; fail naming ``what`` after ``timeout_s`` (s)."""
+    deadline = time.monotonic() + timeout_s
+    while not ok():
+        assert time.monotonic() < deadline, f"no {what} within {timeout_s:g} s"
+        time.sleep(0.01)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -341,7 +363,12 @@ def test_daemon_runs_a_mission_in_real_time(tmp_path: Path) -> None:
             time.sleep(0.2)
         tel = st["telemetry"]
         assert tel["lat_deg"] > 51.752072 - 3e-5  # within the 2 m arrival box of the target
-        time.sleep(1.0)  # let gpspipe's output catch up
+
+        def saw_it_move() -> bool:  # gpspipe's output catches up
+            return any('"class":"TPV"' in x and json.loads(x).get("lat", 0) > 51.75204
+                       for x in list(lines))  # fmt: skip
+
+        wait_until(saw_it_move, 10.0, "TPV past the start from gpspipe")
         pipe.terminate()
         pipe.wait(10)
         reader.join(10)
