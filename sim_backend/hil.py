@@ -24,7 +24,10 @@ same physics as fast-time simulation (``x6wd sim``), only in real time:
 - the motors: a pseudo-terminal per link (:meth:`HilWorld.plug_motor_board`) whose far end
   is a :class:`drivers.motors.MotorBoard` (:func:`drivers.motors.serve_board_fd`): the
   docs/motors.md line protocol crosses the pty byte for byte, the board's left/right drive
-  moves the :class:`sim_backend.vehicle.Vehicle`, and the board's watchdog stops it.
+  moves the :class:`sim_backend.vehicle.Vehicle`, and the board's watchdog stops it. The
+  board's wheel-encoder counters follow the vehicle's true motion through
+  :class:`sim_backend.odometry.EncoderSim` (default :class:`~sim_backend.odometry.EncoderParams`,
+  its own random stream of the scenario seed), stepped with the physics.
 
 Scenario time: epoch ``k`` of the receiver is scenario time ``k / rate_hz`` s, so the NMEA
 UTC is the scenario's ``start_utc`` plus the world's age (the packaged almanac is for
@@ -61,6 +64,7 @@ from drivers.motors import MotorBoard, serve_board_fd
 from sim_backend.compass import ErrorInjector, SimCmps10
 from sim_backend.epoch import GnssEpoch
 from sim_backend.mission import compass_setup, vehicle_from_world, vehicle_velocity
+from sim_backend.odometry import EncoderSim, encoder_rng
 from sim_backend.ports import PtyUart
 from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.world import World, load_world
@@ -291,6 +295,7 @@ class HilWorld:
         h0 = cset.device_heading_deg(s0.heading_deg, s0.pitch_deg, s0.roll_deg)
         self.compass.set_state(0.0, h0, s0.pitch_deg, s0.roll_deg)
         self.board = _Board(params.motor_watchdog_ms, self._board_changed)
+        self.encoders = EncoderSim(rng=encoder_rng(sc.seed), start=s0)
         self.on_gga: Callable[[float], Any] | None = None
         self.on_motor: Callable[[MotorCommand, float], Any] | None = None
         self.epochs = 0
@@ -401,6 +406,7 @@ class HilWorld:
             now = time.monotonic()
             with self._lock:
                 s = self.vehicle.step(now - t_last)
+                self.board.add_counts(*self.encoders.step(now - t_last, s))
                 h = self._cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg)
                 self.compass.set_state(now - self.t0, h, s.pitch_deg, s.roll_deg)
                 if self.receiver.tracks:

@@ -48,6 +48,20 @@ class MotorsConfig:
 
 
 @dataclass(frozen=True)
+class OdometryConfig:
+    """Wheel odometry (seed 003): the encoders' resolution, the calibrated wheel diameters
+    and effective track, and the non-systematic error per side (variance of a side's travel
+    per metre it rolls, m²/m = m). ``x6wd calibrate odometry`` writes this section."""
+
+    counts_per_rev: int = field(default=1632, metadata=_rng(1, 1_000_000))
+    left_diameter_m: float = field(default=0.120, metadata=_rng(0.01, 2.0))
+    right_diameter_m: float = field(default=0.120, metadata=_rng(0.01, 2.0))
+    track_m: float = field(default=0.245, metadata=_rng(0.05, 10.0))
+    k_left_m: float = field(default=1e-3, metadata=_rng(0.0, 0.1))
+    k_right_m: float = field(default=1e-3, metadata=_rng(0.0, 0.1))
+
+
+@dataclass(frozen=True)
 class NavigationConfig:
     delta_phi_deg: float = field(default=10.0, metadata=_rng(0.1, 90))
     delta_x_m: float = field(default=3.0, metadata=_rng(0.01, 1000))
@@ -152,6 +166,7 @@ class Config:
     gps: GpsConfig = field(default_factory=GpsConfig)
     compass: CompassConfig = field(default_factory=CompassConfig)
     motors: MotorsConfig = field(default_factory=MotorsConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
     navigation: NavigationConfig = field(default_factory=NavigationConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     server: ServerConfig = field(default_factory=ServerConfig)
