@@ -39,6 +39,7 @@ from x6wd.core.records import (
     SatInfo,
     StateChange,
     Telemetry,
+    WheelOdometry,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -100,14 +101,15 @@ def test_every_record_type_round_trips(tmp_path: Path) -> None:
         rec.record_sky(sky)
         rec.record_telemetry(tel)
         rec.record_event("start", 5.0, version="0.1.0")
-        assert rec.records_written == 8
+        rec.record_odometry(WheelOdometry(5.5, 4300, -12, 7))
+        assert rec.records_written == 9
     stats = ReadStats()
     recs = list(read_recording(path, stats=stats))
     assert [r.type for r in recs] == [
-        "nmea", "attitude", "motor", "state", "fix", "sky", "telemetry", "event",
+        "nmea", "attitude", "motor", "state", "fix", "sky", "telemetry", "event", "odometry",
     ]  # fmt: skip
     assert {r.type for r in recs} == RECORD_TYPES
-    assert [r.t_mono for r in recs] == [1.0, 2.0, 2.5, 2.75, 3.0, 3.5, 4.0, 5.0]
+    assert [r.t_mono for r in recs] == [1.0, 2.0, 2.5, 2.75, 3.0, 3.5, 4.0, 5.0, 5.5]
     assert all(r.t_utc == "2026-11-22T04:43:12.250000Z" for r in recs)
     assert recs[0].data == {"text": "$GPGGA,1*00"}
     assert Attitude(**recs[1].data) == Attitude(2.0, 359.9, -3.0, 4.0)
@@ -117,7 +119,7 @@ def test_every_record_type_round_trips(tmp_path: Path) -> None:
     assert recs[5].data["satellites"][0]["prn"] == 5
     assert recs[6].data["state"] == "TURN_LEFT" and recs[6].data["theta_deg"] is None
     assert recs[7].data == {"event": "start", "version": "0.1.0"}
-    assert stats.records == 8 and stats.truncated == stats.bad_lines == 0
+    assert stats.records == 9 and stats.truncated == stats.bad_lines == 0
     typed = [decode_record(r) for r in recs]
     assert typed[1:6] == [
         Attitude(2.0, 359.9, -3.0, 4.0),
@@ -127,6 +129,7 @@ def test_every_record_type_round_trips(tmp_path: Path) -> None:
         sky,
     ]
     assert typed[0] is recs[0] and typed[7] is recs[7]
+    assert typed[8] == WheelOdometry(5.5, 4300, -12, 7)
     for line in path.read_text().splitlines():  # strict JSON: no NaN, one object per line
         json.loads(line, parse_constant=lambda c: pytest.fail(f"non-standard JSON {c}"))
 

@@ -54,6 +54,7 @@ from x6wd.core.records import (
     SatInfo,
     StateChange,
     Telemetry,
+    WheelOdometry,
 )
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,9 @@ log = logging.getLogger(__name__)
 MB = 1 << 20
 """Bytes in the recorder's megabyte ([recorder] *_mb keys): MiB, as ``du -m``/``df -m`` count."""
 
-RECORD_TYPES = frozenset({"nmea", "attitude", "motor", "state", "telemetry", "sky", "fix", "event"})
+RECORD_TYPES = frozenset(
+    {"nmea", "attitude", "motor", "state", "telemetry", "sky", "fix", "event", "odometry"}
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -442,6 +445,10 @@ class Recorder:
         """A decoded sky report; ``t_mono`` is its ``t_s``."""
         self.record("sky", sky, sky.t_s)
 
+    def record_odometry(self, odo: WheelOdometry) -> None:
+        """Wheel-encoder counts (unwrapped, cumulative); ``t_mono`` is their ``t_s``."""
+        self.record("odometry", odo, odo.t_s)
+
     def record_event(self, name: str, t_mono: float | None = None, **fields: Any) -> None:
         """A free-form event (start, stop, device lost ...) with extra fields."""
         self.record("event", {"event": name, **fields}, t_mono)
@@ -531,8 +538,8 @@ def _utc_field(value: Any) -> datetime | None:
 
 def decode_record(
     rec: Record,
-) -> Attitude | MotorCommand | StateChange | GpsFix | GpsSky | Record:
-    """The typed record behind an attitude, motor, state, fix or sky record; other types
+) -> Attitude | MotorCommand | StateChange | GpsFix | GpsSky | WheelOdometry | Record:
+    """The typed record behind an attitude, motor, state, fix, sky or odometry record; other types
     (nmea, telemetry, event) are returned unchanged. Raises :class:`ParseError` when the
     payload does not fit its type."""
     d = rec.data
@@ -548,6 +555,8 @@ def decode_record(
         if rec.type == "sky":
             sats = tuple(SatInfo(**s) for s in d.get("satellites", ()))
             return GpsSky(**{**d, "satellites": sats, "utc": _utc_field(d.get("utc"))})
+        if rec.type == "odometry":
+            return WheelOdometry(**d)
     except TypeError as exc:
         raise ParseError(f"{rec.type} record at t_mono={rec.t_mono}: {exc}") from exc
     return rec
