@@ -1,0 +1,719 @@
+"""A sans-IO extended Kalman filter for the robot's pose: GPS, compass and wheel odometry.
+
+State (local tangent plane, east/north metres; headings are BEARINGS, clockwise from true
+north, radians)::
+
+    x = [east_m, north_m, heading_rad, speed_mps, yaw_rate_rps, bias_east_m, bias_north_m]
+
+``yaw_rate_rps`` is clockwise positive (the compass sense). The two bias states are the
+slowly varying part of the GPS error (first-order Gauss-Markov); they exist only when
+:attr:`GpsParams.correlation_s` is set, otherwise the filter is the seed paper's EKF with white
+GPS noise (the bias states are then kept at zero with zero variance).
+
+Nothing here reads a clock: every input carries its time ``t_s`` (seconds, one monotonic
+clock), and the filter predicts to each input's time before using it. Inputs stamped slightly
+earlier than the filter's time (devices interleave) are used at the filter's time when at most
+``max_late_s`` late, and refused (``reason="stale"``) otherwise; time never runs backwards.
+
+Inputs (see docs/navigation.md for the equations):
+
+- :meth:`Estimator.on_odometry` (mode ODOMETRY): wheel travel ``d_left_m``, ``d_right_m`` since
+  the previous increment. The increment drives the prediction (the paper's odometry motion
+  model): ``ds = (dl + dr)/2``, ``dψ = (dl − dr)/track_m`` (left ahead turns clockwise), the pose
+  moves along the mid-step heading, and the wheel-travel covariance
+  ``diag(k_left·|dl|, k_right·|dr|)`` (seed 003) plus a skid-slip term ``k_slip·|dψ|`` is
+  propagated through the Jacobian into the process noise. Speed and yaw rate are set from the
+  increment's rates; between increments the pose is extrapolated with them.
+- :meth:`Estimator.on_command` (mode GPS_COMPASS, optional): the commanded motor percentages.
+  Speed and yaw rate then relax towards the commanded values with the motors' time constant;
+  the model error is a Gauss-Markov process of ``sigma_speed_mps``/``sigma_yaw_rate_dps``.
+  Without commands, speed and yaw rate are random walks (a constant-velocity model).
+- :meth:`Estimator.on_compass`: the CMPS10's magnetic bearing; the declination is added. The
+  CMPS10 low-passes its heading (about 640 ms to refresh fully, i.e. a first-order filter of
+  time constant ~0.21 s). A first-order filter of a heading turning at a constant rate ω lags
+  it by exactly ``τ·ω``, so the measurement model is the delayed heading
+  ``h(x) = ψ − τ·ω`` (Jacobian ``[0, 0, 1, 0, −τ, 0, 0]``), and the noise is inflated by
+  ``(lag_uncertainty·τ·ω)²`` for the part of the lag the model misses (changing turn rates, the
+  datasheet's "about"). This keeps the compass usable, unbiased, while turning, where a plain
+  noise inflation would throw its information away exactly when the heading changes fastest.
+- :meth:`Estimator.on_gps`: a fix projected to east/north metres (the caller projects, e.g.
+  with :class:`x6wd.nav.geo.LocalTangentPlane`) and its HDOP. The fix's total error
+  (seed 003, eq. 12) is ``σ = DOP·sqrt(RE² + ASE² + LCE(position)²)``. With
+  ``correlation_s`` set, the receiver noise ``DOP·RE`` is the white measurement noise and the
+  atmospheric/satellite and local (multipath) parts ``DOP·sqrt(ASE² + LCE²)`` are the
+  stationary standard deviation of the Gauss-Markov bias states, so the total stays the
+  paper's σ while successive fixes are correlated as a real receiver's are; without it the
+  whole σ² is white measurement noise (the paper). ``LCE`` is looked up at the filter's
+  predicted position (not at the fix, so an outlier does not set its own noise).
+
+Gating: every update computes the normalised innovation squared ``d² = yᵀ S⁻¹ y`` and is
+refused when ``d²`` exceeds the chi-square threshold (``gps_chi2`` with 2 degrees of freedom,
+``compass_chi2`` with 1). Refusals are counted (:class:`EstimatorStats`). Recovery: the
+innovations of consecutive refused fixes are kept; once ``recover_after`` of them in a row are
+consistent with each other (each one's distance from their mean, in its own innovation
+covariance, is inside the gate) the filter accepts the step: the position (or the heading) is
+re-initialised from the latest measurement with the measurement's covariance and the
+``*_resets`` counter goes up. A short NLOS jump (fewer fixes than ``recover_after``) or
+scattered outliers are thus never accepted, while a real, persistent step (the robot was moved,
+the odometry slipped during a long GPS outage) is accepted after ``recover_after`` fixes. Long
+outages also open the gate by themselves, as the predicted covariance grows.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from x6wd.core.errors import X6wdError
+
+E, N, PSI, V, W, BE, BN = range(7)
+NX = 7
+_TWO_PI = 2.0 * math.pi
+
+CMPS10_LAG_S = 0.640 / 3.0
+"""The CMPS10 heading filter as a first-order lag: ~640 ms to refresh fully ≈ 3 time
+constants, seconds (the simulator's compass uses the same figure)."""
+
+CHI2_2DOF_999 = -2.0 * math.log(1e-3)
+"""Chi-square quantile for 2 degrees of freedom at 99.9 % (13.82): ``−2·ln(1 − p)`` exactly."""
+CHI2_1DOF_999 = 10.827566170662733
+"""Chi-square quantile for 1 degree of freedom at 99.9 % (10.83)."""
+
+
+class EstimatorError(X6wdError, ValueError):
+    """A bad parameter, or an input the configured mode does not take."""
+
+
+def _wrap(a: float) -> float:
+    """Angle (rad) wrapped to [−π, π)."""
+    return (a + math.pi) % _TWO_PI - math.pi
+
+
+def _pos(name: str, v: float, zero_ok: bool = False) -> None:
+    ok = math.isfinite(v) and (v >= 0 if zero_ok else v > 0)
+    if not ok:
+        raise EstimatorError(
+            f"{name} must be a finite number {'>=' if zero_ok else '>'} 0, got {v!r}"
+        )
+
+
+class Mode(enum.StrEnum):
+    """What drives the prediction."""
+
+    ODOMETRY = "odometry"
+    """Wheel-encoder increments (:meth:`Estimator.on_odometry`) drive the pose."""
+    GPS_COMPASS = "gps_compass"
+    """No encoders: a speed/yaw-rate model, driven by commanded motor percentages when given
+    (:meth:`Estimator.on_command`), by process noise alone otherwise."""
+
+
+@dataclass(frozen=True)
+class OdometryParams:
+    """Calibrated odometry (seed 003, section 2.3).
+
+    ``track_m``: the EFFECTIVE track width from a circle-track calibration (metres; on a skid
+    steer often 1.2-2× the geometric one); ``k_left_m``, ``k_right_m``: variance of a wheel's
+    travel per metre it travelled (m²/m, so metres); ``k_slip_rad``: extra heading variance per
+    radian turned (rad²/rad), the skid-steer slip the encoders do not see.
+    """
+
+    track_m: float
+    k_left_m: float = 2e-4
+    k_right_m: float = 2e-4
+    k_slip_rad: float = 2e-3
+
+    def __post_init__(self) -> None:
+        _pos("track_m", self.track_m)
+        _pos("k_left_m", self.k_left_m, zero_ok=True)
+        _pos("k_right_m", self.k_right_m, zero_ok=True)
+        _pos("k_slip_rad", self.k_slip_rad, zero_ok=True)
+
+
+@dataclass(frozen=True)
+class CommandParams:
+    """Commanded drive -> motion, for the GPS_COMPASS mode (as ``sim_backend.vehicle``).
+
+    ``speed_mps_per_pct``: ground speed per percent of mean drive (m/s/%);
+    ``yaw_rate_dps_per_pct``: clockwise yaw rate per percent of ``(left − right)/2`` (deg/s/%);
+    ``tau_s``: the motors' first-order response (s); ``sigma_speed_mps``,
+    ``sigma_yaw_rate_dps``: how far the real motion strays from the commanded one (slip,
+    battery, slope), a Gauss-Markov error with correlation time ``error_tau_s`` (s).
+    """
+
+    speed_mps_per_pct: float
+    yaw_rate_dps_per_pct: float
+    tau_s: float = 0.25
+    sigma_speed_mps: float = 0.15
+    sigma_yaw_rate_dps: float = 10.0
+    error_tau_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        _pos("speed_mps_per_pct", self.speed_mps_per_pct)
+        _pos("yaw_rate_dps_per_pct", self.yaw_rate_dps_per_pct)
+        _pos("tau_s", self.tau_s, zero_ok=True)
+        _pos("sigma_speed_mps", self.sigma_speed_mps)
+        _pos("sigma_yaw_rate_dps", self.sigma_yaw_rate_dps)
+        _pos("error_tau_s", self.error_tau_s)
+
+
+@dataclass(frozen=True)
+class CompassParams:
+    """The compass: ``sigma_deg`` white noise of one sample (deg); ``lag_s`` the first-order
+    lag of its heading filter (s; :data:`CMPS10_LAG_S`, 0 = none); ``lag_uncertainty`` the
+    fraction of the lag term ``lag_s·ω`` added as noise; ``declination_deg`` added to the
+    magnetic bearing (deg, east positive; see :mod:`x6wd.nav.declination`)."""
+
+    sigma_deg: float = 2.0
+    lag_s: float = CMPS10_LAG_S
+    lag_uncertainty: float = 0.5
+    declination_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        _pos("sigma_deg", self.sigma_deg)
+        _pos("lag_s", self.lag_s, zero_ok=True)
+        _pos("lag_uncertainty", self.lag_uncertainty, zero_ok=True)
+        if not math.isfinite(self.declination_deg):
+            raise EstimatorError(f"declination_deg must be finite, got {self.declination_deg!r}")
+
+
+@dataclass(frozen=True)
+class GpsParams:
+    """The GPS error model of seed 003: ``σ = DOP·sqrt(RE² + ASE² + LCE(position)²)``.
+
+    ``re_m`` receiver error and ``ase_m`` atmospheric and satellite error (metres, at DOP 1);
+    ``lce_m`` the local characteristic error map, ``(east_m, north_m) -> metres`` (``None``:
+    0 everywhere); ``correlation_s`` the correlation time of the ASE + LCE part (s; ``None``:
+    all white, as in the paper; see the module docstring).
+    """
+
+    re_m: float = 1.0
+    ase_m: float = 1.5
+    lce_m: Callable[[float, float], float] | None = None
+    correlation_s: float | None = 120.0
+
+    def __post_init__(self) -> None:
+        _pos("re_m", self.re_m)
+        _pos("ase_m", self.ase_m, zero_ok=True)
+        if self.correlation_s is not None:
+            _pos("correlation_s", self.correlation_s)
+
+
+@dataclass(frozen=True)
+class GatingParams:
+    """Innovation gates (squared Mahalanobis distances) and the recovery rule (see the module
+    docstring): ``recover_after`` consecutive, mutually consistent refused fixes (compass
+    samples: ``compass_recover_after``) are accepted as a real step."""
+
+    gps_chi2: float = CHI2_2DOF_999
+    compass_chi2: float = CHI2_1DOF_999
+    recover_after: int = 8
+    compass_recover_after: int = 20
+
+    def __post_init__(self) -> None:
+        _pos("gps_chi2", self.gps_chi2)
+        _pos("compass_chi2", self.compass_chi2)
+        if self.recover_after < 2 or self.compass_recover_after < 2:
+            raise EstimatorError("recover_after and compass_recover_after must be >= 2")
+
+
+@dataclass(frozen=True)
+class MotionParams:
+    """Process noise of the time prediction: ``accel_sigma_mps2`` (m/s², white acceleration)
+    and ``yaw_accel_sigma_dps2`` (deg/s², white yaw acceleration); ``max_step_s`` the longest
+    integration sub-step (s); ``max_late_s`` how late an input may be and still be used (s)."""
+
+    accel_sigma_mps2: float = 0.5
+    yaw_accel_sigma_dps2: float = 30.0
+    max_step_s: float = 0.1
+    max_late_s: float = 0.3
+
+    def __post_init__(self) -> None:
+        _pos("accel_sigma_mps2", self.accel_sigma_mps2)
+        _pos("yaw_accel_sigma_dps2", self.yaw_accel_sigma_dps2)
+        _pos("max_step_s", self.max_step_s)
+        _pos("max_late_s", self.max_late_s, zero_ok=True)
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Everything the filter needs. ``odometry`` is required in mode ODOMETRY; ``command`` is
+    optional in mode GPS_COMPASS (without it speed is a random walk)."""
+
+    mode: Mode = Mode.ODOMETRY
+    odometry: OdometryParams | None = None
+    command: CommandParams | None = None
+    compass: CompassParams = field(default_factory=CompassParams)
+    gps: GpsParams = field(default_factory=GpsParams)
+    gating: GatingParams = field(default_factory=GatingParams)
+    motion: MotionParams = field(default_factory=MotionParams)
+
+    def __post_init__(self) -> None:
+        if self.mode == Mode.ODOMETRY and self.odometry is None:
+            raise EstimatorError("mode odometry needs OdometryParams")
+
+
+@dataclass(frozen=True, slots=True)
+class Update:
+    """What one measurement did: ``accepted``; ``nis`` its normalised innovation squared
+    (NaN when none was computed); ``reason``: "ok", "gated", "reset", "init", "stale"."""
+
+    accepted: bool
+    nis: float
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Estimate:
+    """The filter's state at ``t_s`` (s): position (m), true bearing ``heading_deg`` in
+    [0, 360), ``speed_mps``, clockwise ``yaw_rate_dps``, and one-sigma uncertainties."""
+
+    t_s: float
+    east_m: float
+    north_m: float
+    heading_deg: float
+    speed_mps: float
+    yaw_rate_dps: float
+    sigma_east_m: float
+    sigma_north_m: float
+    sigma_heading_deg: float
+
+
+@dataclass
+class EstimatorStats:
+    """Counters: accepted and refused (gated) measurements, resets by the recovery rule (the
+    measurement that triggers a reset is counted there, not as refused), inputs dropped as too
+    late, and the current run of consecutive refused GPS fixes."""
+
+    gps_accepted: int = 0
+    gps_rejected: int = 0
+    gps_resets: int = 0
+    gps_consecutive_rejected: int = 0
+    compass_accepted: int = 0
+    compass_rejected: int = 0
+    compass_resets: int = 0
+    stale_dropped: int = 0
+
+
+class Estimator:
+    """The EKF; see the module docstring. Feed it inputs in time order (roughly)."""
+
+    def __init__(self, config: EstimatorConfig) -> None:
+        self.cfg = config
+        self.stats = EstimatorStats()
+        self._x = np.zeros(NX)
+        self._p = np.zeros((NX, NX))
+        self._t: float | None = None  # time of the state (s)
+        self._ready = False
+        self._pending_fix: tuple[float, float, float, float] | None = None  # t, e, n, var
+        self._pending_heading: tuple[float, float] | None = None  # t, psi
+        self._t_odo: float | None = None  # end time of the last odometry increment
+        self._cmd: tuple[float, float] | None = None  # commanded (speed m/s, yaw rate rad/s)
+        self._bias_var_m2 = 0.0  # stationary variance of the GPS bias states, m²
+        self._declination_rad = math.radians(config.compass.declination_deg)
+        self._gps_refused: deque[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = deque(
+            maxlen=config.gating.recover_after
+        )
+        self._compass_refused: deque[tuple[float, float]] = deque(
+            maxlen=config.gating.compass_recover_after
+        )
+        m = config.motion
+        self._q_v = m.accel_sigma_mps2**2  # (m/s)² per s
+        self._q_w = math.radians(m.yaw_accel_sigma_dps2) ** 2  # (rad/s)² per s
+
+    # ------------------------------------------------------------------ read-outs
+    @property
+    def ready(self) -> bool:
+        """True once a GPS fix and a compass sample have initialised the state."""
+        return self._ready
+
+    @property
+    def t_s(self) -> float | None:
+        """Time of the current state (s), ``None`` before any input."""
+        return self._t
+
+    @property
+    def declination_deg(self) -> float:
+        """The declination added to compass bearings (deg, east positive)."""
+        return math.degrees(self._declination_rad)
+
+    def set_declination_deg(self, declination_deg: float) -> None:
+        """Change the declination (deg, east positive), e.g. from WMM once a fix is known."""
+        if not math.isfinite(declination_deg):
+            raise EstimatorError(f"declination_deg must be finite, got {declination_deg!r}")
+        self._declination_rad = math.radians(declination_deg)
+
+    @property
+    def state(self) -> npt.NDArray[np.float64]:
+        """A copy of the state vector (see the module docstring for units)."""
+        return self._x.copy()
+
+    @property
+    def covariance(self) -> npt.NDArray[np.float64]:
+        """A copy of the state covariance (units squared, as the state)."""
+        return self._p.copy()
+
+    def estimate(self) -> Estimate | None:
+        """The current state as an :class:`Estimate`, ``None`` until :attr:`ready`."""
+        if not self._ready or self._t is None:
+            return None
+        x, p = self._x, self._p
+        return Estimate(
+            t_s=self._t,
+            east_m=float(x[E]),
+            north_m=float(x[N]),
+            heading_deg=math.degrees(x[PSI]) % 360.0,
+            speed_mps=float(x[V]),
+            yaw_rate_dps=math.degrees(x[W]),
+            sigma_east_m=math.sqrt(max(p[E, E], 0.0)),
+            sigma_north_m=math.sqrt(max(p[N, N], 0.0)),
+            sigma_heading_deg=math.degrees(math.sqrt(max(p[PSI, PSI], 0.0))),
+        )
+
+    # ------------------------------------------------------------------ time
+    def _time(self, t_s: float, what: str) -> float | None:
+        """The time to process an input at: ``t_s``, or the state's time when the input is a
+        little late; ``None`` when it is too late (counted)."""
+        t = float(t_s)
+        if not math.isfinite(t):
+            raise EstimatorError(f"{what}: t_s must be finite, got {t_s!r}")
+        if self._t is None or t >= self._t:
+            return t
+        if self._t - t <= self.cfg.motion.max_late_s:
+            return self._t
+        self.stats.stale_dropped += 1
+        return None
+
+    def predict(self, t_s: float) -> Estimate | None:
+        """Advance the state to ``t_s`` (s) without a measurement and return the estimate
+        (``None`` until :attr:`ready`). Earlier times leave the state where it is."""
+        t = float(t_s)
+        if not math.isfinite(t):
+            raise EstimatorError(f"predict: t_s must be finite, got {t_s!r}")
+        self._predict_to(t)
+        return self.estimate()
+
+    def _predict_to(self, t: float) -> None:
+        if self._t is None:
+            self._t = t
+            return
+        dt = t - self._t
+        if dt <= 0:
+            return
+        if self._ready:
+            steps = max(1, math.ceil(dt / self.cfg.motion.max_step_s))
+            h = dt / steps
+            for _ in range(steps):
+                self._step(h)
+        self._t = t
+
+    def _step(self, h: float) -> None:
+        """One time-only prediction step of ``h`` seconds (constant speed and yaw rate, or
+        relaxing towards the commanded ones)."""
+        x, cfg = self._x, self.cfg
+        psi, v, w = x[PSI], x[V], x[W]
+        pm = psi + 0.5 * w * h
+        s, c = math.sin(pm), math.cos(pm)
+        f = np.eye(NX)
+        q = np.zeros(NX)
+        x[E] += v * h * s
+        x[N] += v * h * c
+        x[PSI] = _wrap(psi + w * h)
+        f[E, PSI] = v * h * c
+        f[E, V] = h * s
+        f[E, W] = 0.5 * v * h * h * c
+        f[N, PSI] = -v * h * s
+        f[N, V] = h * c
+        f[N, W] = -0.5 * v * h * h * s
+        f[PSI, W] = h
+        q[V] = self._q_v * h
+        q[W] = self._q_w * h
+        q[E] = q[N] = self._q_v * h**3 / 3.0
+        cmd = cfg.command
+        if cfg.mode == Mode.GPS_COMPASS and cmd is not None and self._cmd is not None:
+            # speed and yaw rate relax to the command; their error is Gauss-Markov
+            a = math.exp(-h / cmd.tau_s) if cmd.tau_s > 0 else 0.0
+            v_c, w_c = self._cmd
+            x[V] = v_c + (v - v_c) * a
+            x[W] = w_c + (w - w_c) * a
+            f[V, V] = a
+            f[W, W] = a
+            g = math.exp(-2.0 * h / cmd.error_tau_s)
+            q[V] += cmd.sigma_speed_mps**2 * (1.0 - g)
+            q[W] += math.radians(cmd.sigma_yaw_rate_dps) ** 2 * (1.0 - g)
+        tau_b = cfg.gps.correlation_s
+        if tau_b is not None:
+            phi = math.exp(-h / tau_b)
+            x[BE] *= phi
+            x[BN] *= phi
+            f[BE, BE] = f[BN, BN] = phi
+            q[BE] = q[BN] = self._bias_var_m2 * (1.0 - phi * phi)
+        self._p = f @ self._p @ f.T + np.diag(q)
+
+    # ------------------------------------------------------------------ inputs
+    def on_odometry(self, t_s: float, d_left_m: float, d_right_m: float) -> None:
+        """Wheel travel (m, forward positive) on each side since the previous increment, which
+        ended at ``t_s`` (s). Mode ODOMETRY only."""
+        odo = self.cfg.odometry
+        if self.cfg.mode != Mode.ODOMETRY or odo is None:
+            raise EstimatorError("on_odometry needs mode odometry")
+        dl, dr = float(d_left_m), float(d_right_m)
+        if not (math.isfinite(dl) and math.isfinite(dr)):
+            raise EstimatorError(
+                f"odometry increments must be finite, got {d_left_m!r}, {d_right_m!r}"
+            )
+        t1 = float(t_s)
+        if not math.isfinite(t1):
+            raise EstimatorError(f"odometry: t_s must be finite, got {t_s!r}")
+        t0 = self._t_odo
+        self._t_odo = t1 if t0 is None else max(t0, t1)
+        if t0 is None or t1 <= t0:
+            t0 = self._t if self._t is not None and self._t < t1 else t1
+        span = t1 - t0
+        if self._t is None:
+            self._t = t1
+        if not self._ready:
+            self._t = max(self._t, t1)
+            return
+        # The part of the increment after the state's time has not been used yet; the part
+        # before it was extrapolated with the previous speed and yaw rate.
+        start = max(t0, self._t)
+        frac = 1.0 if span <= 0 else min(max((t1 - start) / span, 0.0), 1.0)
+        if t1 > self._t:
+            self._predict_to(start)  # no-op unless the state lags the increment's start
+        if t1 > start:
+            self._propagate_bias(t1 - start)
+        a, b = frac * dl, frac * dr  # wheel travel applied now, m
+        ds = 0.5 * (a + b)
+        dpsi = (a - b) / odo.track_m
+        x = self._x
+        pm = x[PSI] + 0.5 * dpsi
+        s, c = math.sin(pm), math.cos(pm)
+        f = np.eye(NX)
+        f[E, PSI] = ds * c
+        f[N, PSI] = -ds * s
+        x[E] += ds * s
+        x[N] += ds * c
+        x[PSI] = _wrap(x[PSI] + dpsi)
+        # Jacobian of the pose wrt the wheel travels (a, b) and their covariance (seed 003)
+        k = 0.5 / odo.track_m
+        j = np.zeros((NX, 2))
+        j[E, 0] = 0.5 * s + ds * c * k
+        j[E, 1] = 0.5 * s - ds * c * k
+        j[N, 0] = 0.5 * c - ds * s * k
+        j[N, 1] = 0.5 * c + ds * s * k
+        j[PSI, 0] = 1.0 / odo.track_m
+        j[PSI, 1] = -1.0 / odo.track_m
+        su = np.diag([odo.k_left_m * abs(a), odo.k_right_m * abs(b)])
+        p = f @ self._p @ f.T + j @ su @ j.T
+        p[PSI, PSI] += odo.k_slip_rad * abs(dpsi)
+        # speed and yaw rate from the whole increment's rates
+        if span > 0:
+            x[V] = 0.5 * (dl + dr) / span
+            x[W] = (dl - dr) / odo.track_m / span
+            var_v = 0.25 * (odo.k_left_m * abs(dl) + odo.k_right_m * abs(dr)) / span**2
+            var_w = (odo.k_left_m * abs(dl) + odo.k_right_m * abs(dr)) / (odo.track_m * span) ** 2
+            var_w += odo.k_slip_rad * abs(dl - dr) / odo.track_m / span**2
+            p[V, :] = p[:, V] = 0.0
+            p[W, :] = p[:, W] = 0.0
+            p[V, V] = var_v + self._q_v * span
+            p[W, W] = var_w + self._q_w * span
+        self._p = 0.5 * (p + p.T)
+        self._t = max(self._t, t1)
+
+    def on_command(self, t_s: float, left_pct: float, right_pct: float) -> None:
+        """The drive commanded at ``t_s`` (s), percent per side (mode GPS_COMPASS with
+        :class:`CommandParams`; ignored otherwise)."""
+        cmd = self.cfg.command
+        if self.cfg.mode != Mode.GPS_COMPASS or cmd is None:
+            return
+        t = self._time(t_s, "command")
+        if t is None:
+            return
+        self._predict_to(t)
+        lp, rp = float(left_pct), float(right_pct)
+        if not (math.isfinite(lp) and math.isfinite(rp)):
+            raise EstimatorError(f"command must be finite, got {left_pct!r}, {right_pct!r}")
+        self._cmd = (
+            0.5 * (lp + rp) * cmd.speed_mps_per_pct,
+            math.radians(0.5 * (lp - rp) * cmd.yaw_rate_dps_per_pct),
+        )
+
+    def on_compass(self, t_s: float, magnetic_bearing_deg: float) -> Update:
+        """A compass sample: the MAGNETIC bearing (deg) read at ``t_s`` (s)."""
+        t = self._time(t_s, "compass")
+        if t is None:
+            return Update(False, math.nan, "stale")
+        b = float(magnetic_bearing_deg)
+        if not math.isfinite(b):
+            raise EstimatorError(f"bearing must be finite, got {magnetic_bearing_deg!r}")
+        z = _wrap(math.radians(b) + self._declination_rad)
+        self._predict_to(t)
+        cp = self.cfg.compass
+        if not self._ready:
+            self._pending_heading = (t, z)
+            self._try_init()
+            return Update(True, math.nan, "init")
+        x = self._x
+        lag = cp.lag_s
+        r = math.radians(cp.sigma_deg) ** 2 + (cp.lag_uncertainty * lag * x[W]) ** 2
+        h = np.zeros(NX)
+        h[PSI] = 1.0
+        h[W] = -lag
+        y = _wrap(z - (x[PSI] - lag * x[W]))
+        ph = self._p @ h
+        s = float(h @ ph) + r
+        nis = y * y / s
+        if nis > self.cfg.gating.compass_chi2:
+            self._compass_refused.append((y, s))
+            if self._compass_consistent():
+                self._compass_refused.clear()
+                self.stats.compass_resets += 1
+                x[PSI] = _wrap(z + lag * x[W])
+                self._p[PSI, :] = self._p[:, PSI] = 0.0
+                self._p[PSI, PSI] = r + lag * lag * self._p[W, W]
+                return Update(True, nis, "reset")
+            self.stats.compass_rejected += 1
+            return Update(False, nis, "gated")
+        self._compass_refused.clear()
+        kg = ph / s
+        x += kg * y
+        x[PSI] = _wrap(x[PSI])
+        self._joseph(kg[:, None], h[None, :], np.array([[r]]))
+        self.stats.compass_accepted += 1
+        return Update(True, nis, "ok")
+
+    def _compass_consistent(self) -> bool:
+        n = self.cfg.gating.compass_recover_after
+        if len(self._compass_refused) < n:
+            return False
+        ys = [y for y, _ in self._compass_refused]
+        ref = ys[-1]
+        d = [_wrap(y - ref) for y in ys]
+        mean = ref + sum(d) / len(d)
+        gate = self.cfg.gating.compass_chi2
+        return all(_wrap(y - mean) ** 2 / s <= gate for y, s in self._compass_refused)
+
+    def on_gps(self, t_s: float, east_m: float, north_m: float, dop: float) -> Update:
+        """A GPS fix at ``t_s`` (s), projected to the local plane (east, north metres), with
+        its horizontal dilution of precision ``dop`` (HDOP, dimensionless)."""
+        t = self._time(t_s, "gps")
+        if t is None:
+            return Update(False, math.nan, "stale")
+        ze, zn, dp = float(east_m), float(north_m), float(dop)
+        if not (math.isfinite(ze) and math.isfinite(zn)):
+            raise EstimatorError(f"fix must be finite, got {east_m!r}, {north_m!r}")
+        if not (math.isfinite(dp) and dp > 0):
+            raise EstimatorError(f"dop must be a finite number > 0, got {dop!r}")
+        self._predict_to(t)
+        g = self.cfg.gps
+        at = (self._x[E], self._x[N]) if self._ready else (ze, zn)
+        lce = float(g.lce_m(float(at[0]), float(at[1]))) if g.lce_m is not None else 0.0
+        if not (math.isfinite(lce) and lce >= 0):
+            raise EstimatorError(f"LCE lookup must give a finite number >= 0 m, got {lce!r}")
+        correlated = g.correlation_s is not None
+        slow_var = dp * dp * (g.ase_m**2 + lce * lce)  # m², the ASE + LCE part
+        white_var = dp * dp * g.re_m**2 if correlated else dp * dp * g.re_m**2 + slow_var
+        if correlated:
+            self._bias_var_m2 = slow_var
+        if not self._ready:
+            self._pending_fix = (t, ze, zn, white_var)
+            self._try_init()
+            return Update(True, math.nan, "init")
+        x = self._x
+        hm = np.zeros((2, NX))
+        hm[0, E] = hm[1, N] = 1.0
+        if correlated:
+            hm[0, BE] = hm[1, BN] = 1.0
+        rm = np.eye(2) * white_var
+        z = np.array([ze, zn])
+        y = z - hm @ x
+        pht = self._p @ hm.T
+        s = hm @ pht + rm
+        s_inv = np.linalg.inv(s)
+        nis = float(y @ s_inv @ y)
+        if nis > self.cfg.gating.gps_chi2:
+            self._gps_refused.append((y, s))
+            if self._gps_consistent():
+                self._gps_refused.clear()
+                self.stats.gps_resets += 1
+                self.stats.gps_consecutive_rejected = 0
+                self._reset_position(ze, zn, white_var)
+                return Update(True, nis, "reset")
+            self.stats.gps_rejected += 1
+            self.stats.gps_consecutive_rejected += 1
+            return Update(False, nis, "gated")
+        self._gps_refused.clear()
+        self.stats.gps_consecutive_rejected = 0
+        kg = pht @ s_inv
+        x += kg @ y
+        x[PSI] = _wrap(x[PSI])
+        self._joseph(kg, hm, rm)
+        self.stats.gps_accepted += 1
+        return Update(True, nis, "ok")
+
+    def _gps_consistent(self) -> bool:
+        if len(self._gps_refused) < self.cfg.gating.recover_after:
+            return False
+        ys = np.array([y for y, _ in self._gps_refused])
+        mean = ys.mean(axis=0)
+        gate = self.cfg.gating.gps_chi2
+        return all(
+            float((y - mean) @ np.linalg.solve(s, y - mean)) <= gate for y, s in self._gps_refused
+        )
+
+    # ------------------------------------------------------------------ helpers
+    def _propagate_bias(self, h: float) -> None:
+        """The GPS bias states' Gauss-Markov step over ``h`` seconds (the rest of the state
+        is moved by the odometry increment)."""
+        tau_b = self.cfg.gps.correlation_s
+        if tau_b is None:
+            return
+        phi = math.exp(-h / tau_b)
+        x, p = self._x, self._p
+        for i in (BE, BN):
+            x[i] *= phi
+            p[i, :] *= phi
+            p[:, i] *= phi
+            p[i, i] += self._bias_var_m2 * (1.0 - phi * phi)
+
+    def _joseph(
+        self, k: npt.NDArray[np.float64], h: npt.NDArray[np.float64], r: npt.NDArray[np.float64]
+    ) -> None:
+        ikh = np.eye(NX) - k @ h
+        p = ikh @ self._p @ ikh.T + k @ r @ k.T
+        self._p = 0.5 * (p + p.T)
+
+    def _reset_position(self, ze: float, zn: float, white_var: float) -> None:
+        """Put the position on a fix: bias 0 with its stationary variance, position = fix
+        with the fix's total variance (correlated with the bias as z = p + b + noise)."""
+        x, p = self._x, self._p
+        for i in (E, N, BE, BN):
+            p[i, :] = p[:, i] = 0.0
+        x[E], x[N] = ze, zn
+        x[BE] = x[BN] = 0.0
+        bv = self._bias_var_m2 if self.cfg.gps.correlation_s is not None else 0.0
+        for pi, bi in ((E, BE), (N, BN)):
+            p[pi, pi] = white_var + bv
+            p[bi, bi] = bv
+            p[pi, bi] = p[bi, pi] = -bv
+
+    def _try_init(self) -> None:
+        if self._pending_fix is None or self._pending_heading is None:
+            return
+        _, ze, zn, white_var = self._pending_fix
+        _, psi = self._pending_heading
+        self._x[:] = 0.0
+        self._p[:] = 0.0
+        self._reset_position(ze, zn, white_var)
+        self._x[PSI] = psi
+        self._p[PSI, PSI] = math.radians(self.cfg.compass.sigma_deg) ** 2
+        self._p[V, V] = 1.0  # (m/s)²: unknown speed at start, up to the 1.1 m/s top speed
+        self._p[W, W] = math.radians(30.0) ** 2
+        self._ready = True
+        self._pending_fix = self._pending_heading = None
