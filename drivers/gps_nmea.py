@@ -597,6 +597,13 @@ _SATS: Final[dict[tuple[str, ...], _Sat]] = {}
 _SATS_MAX: Final = 4096
 
 
+def clear_memos() -> None:
+    """Forget the decoder's memos (satellites, GSA fields): the next sentences are decoded
+    afresh. They never change a result; this is for tests and memory accounting."""
+    _SATS.clear()
+    _parse_gsa.cache_clear()
+
+
 def _gsv_sat(group: tuple[str, ...]) -> _Sat:
     """Decode and range-check one satellite (PRN not empty) of a GSV sentence; memoised."""
     p, e, a, r = group

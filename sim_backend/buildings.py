@@ -376,7 +376,7 @@ class Walls:
         self._dir_closed = len(mirrors) == 0  # no new products can appear
         self._dir_truncated = False
         # Enumerate the default depth now: a shared scene is then only read while tracing.
-        self._directions(16)
+        self.directions(16)
 
     def __len__(self) -> int:
         return len(self.walls)
@@ -387,7 +387,7 @@ class Walls:
         """Deepest reflection count the look-direction set covers (None: every depth)."""
         return len(self._dir_levels) - 1 if self._dir_truncated else None
 
-    def _directions(self, depth: int) -> tuple[np.ndarray, np.ndarray]:
+    def directions(self, depth: int) -> tuple[np.ndarray, np.ndarray]:
         """All distinct products of at most ``depth`` wall mirrors (G, 2, 2) and each one's
         shortest word length (G,), breadth first; cached per scene."""
         while len(self._dir_levels) <= depth and not (self._dir_closed or self._dir_truncated):
@@ -778,7 +778,7 @@ class Walls:
         ``d``, elevation ``el_r``, depth budget ``depth``): (reflections or -1, extra path)."""
         n_p = d.shape[0]
         tan_el = np.tan(el_r)
-        maps, word = self._directions(int(depth.max()))
+        maps, word = self.directions(int(depth.max()))
         # One shot per ray and look direction whose shortest word fits the ray's budget.
         ray, g = np.nonzero(word[None, :] <= depth[:, None])
         v = np.einsum("nij,nj->ni", maps[g], d[ray])

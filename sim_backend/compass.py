@@ -279,6 +279,12 @@ class SimCmps10:
         rot = _rot_body_to_ned(true_heading_deg, pitch_deg, roll_deg)
         return self._soft @ (rot.T @ self._field_ned) + self._hard
 
+    @property
+    def mag_body_ut(self) -> tuple[float, float, float]:
+        """The body-frame field the device measures now (x, y, z in µT, errors included)."""
+        x, y, z = (float(v) for v in self._mag_body)
+        return (x, y, z)
+
     def set_state(
         self, t_s: float, true_heading_deg: float, pitch_deg: float, roll_deg: float
     ) -> None:

@@ -681,7 +681,7 @@ class GnssModel:
                 + geo["extra"] * (1.0 + p.nlos_sigma_frac * gm["nlos"])
             )
             if self._penetrable:
-                eps = eps + indoor_mean * self._indoor_unit_delay(t, n_s)
+                eps = eps + indoor_mean * self.indoor_unit_delay(t, n_s)
             w = np.where(used, 1.0 / var_model, 0.0)
             gw = g * w[..., None]
             qw, ok = batched_inverse(np.matmul(np.swapaxes(gw, 1, 2), g), ok)
@@ -777,7 +777,7 @@ class GnssModel:
         self._state = (x[-1].copy(), float(t[-1]))
         return x
 
-    def _indoor_unit_delay(self, t: np.ndarray, n_s: int) -> np.ndarray:
+    def indoor_unit_delay(self, t: np.ndarray, n_s: int) -> np.ndarray:
         """Unit-mean, positive, time-correlated delay factors (E, S): (x1^2 + x2^2) / 2 of two
         unit Gauss-Markov processes is exponentially distributed with mean 1 (the
         exponential excess-delay law of indoor and land-mobile channel models) and its

@@ -313,7 +313,7 @@ def test_loss_budget_per_ray() -> None:
 def test_look_directions_per_scene() -> None:
     # Axis-aligned walls: d, d mirrored in x, in y and in both; nothing else at any depth.
     city = Walls(building(0.0, 0.0, 10.0, 10.0, 5.0) + building(20.0, 0.0, 30.0, 8.0, 5.0))
-    maps, word = city._directions(16)
+    maps, word = city.directions(16)
     assert maps.shape == (4, 2, 2) and word.tolist() == [0, 1, 1, 2]
     assert city.direction_depth is None
     # Many orientations: the budget limits the depth, and the shallow paths are still found.

@@ -330,4 +330,4 @@ def test_set_state_matches_the_numpy_formulation(errors: CompassErrors, tilt: bo
         filt, regs, mag = _reference_step(dev, ref_rng, state, t, heading, pitch, roll)
         assert dev.bearing_deg == pytest.approx(filt, rel=1e-12, abs=1e-12)
         assert dev.registers[1:] == regs
-        assert dev._mag_body.tolist() == pytest.approx(mag, rel=1e-12, abs=1e-12)
+        assert list(dev.mag_body_ut) == pytest.approx(mag, rel=1e-12, abs=1e-12)

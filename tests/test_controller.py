@@ -404,7 +404,7 @@ def _expected_geometry(c: Controller) -> tuple[float | None, ...]:
     nav = c.navigator
     tel = c.telemetry
     heading = None
-    if tel.bearing_deg is not None and c._att_ok:
+    if tel.bearing_deg is not None and c.attitude_ok:
         heading = nav.heading_from_compass(tel.bearing_deg)
     if tel.filt_lat_deg is None or tel.filt_lon_deg is None or not c.waypoints:
         return (None, None, None if heading is None else math.degrees(heading), None, None, None)

@@ -429,7 +429,7 @@ def test_indoor_delay_grows_as_c_n0_falls(sats: sky.SatelliteSet) -> None:
     # The unit process: positive, mean 1 (exponential), correlation time tau_indoor_s.
     m = _model(sats, 4, walls=_enclosed(penetration_db=5.0))
     t = np.arange(0.0, 2.0e5, 5.0)
-    y = m._indoor_unit_delay(t, 8)
+    y = m.indoor_unit_delay(t, 8)
     assert (y > 0).all() and y.mean() == pytest.approx(1.0, abs=0.08)
     assert y.std() == pytest.approx(1.0, abs=0.12)
     k = int(p.tau_indoor_s / 5.0)

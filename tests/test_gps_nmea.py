@@ -185,8 +185,7 @@ def test_checksum_fold_matches_bytewise_xor() -> None:
 def test_memoised_satellites_and_gsa_do_not_change_the_sky() -> None:
     data = (NMEA_DIR / "ublox-lea-5h.log").read_bytes()
     _, first = _decode_all(data)
-    gps_nmea._SATS.clear()
-    gps_nmea._parse_gsa.cache_clear()
+    gps_nmea.clear_memos()
     _, again = _decode_all(data)  # everything decoded afresh
     _, warm = _decode_all(data)  # everything from the memos
     skies = [r for r in first if isinstance(r, GpsSky)]

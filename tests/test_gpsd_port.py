@@ -184,7 +184,7 @@ def test_stuck_gpsd_client_queue_is_bounded() -> None:
         def flood() -> int:
             for _ in range(20000):
                 p.srv.publish_sky(SKY)
-            return max(len(c.events) for c in p.srv._clients)
+            return max(len(c.events) for c in p.srv.connections)
 
         async def run() -> int:
             return flood()
@@ -249,7 +249,7 @@ def test_real_recording_through_decoder_and_port_matches_gpsd_itself() -> None:
     )  # fmt: skip
 
     async def watching() -> bool:
-        return any(c.watch_json for c in srv._clients)
+        return any(c.watch_json for c in srv.connections)
 
     try:
         deadline = time.monotonic() + 10

@@ -335,7 +335,7 @@ def _fill_until_blocked(lt: LoopThread, srv: Any, publish: Callable[[], None]) -
     """Publish until one client's sender is blocked in drain(); return that client."""
 
     def blocked() -> Any:
-        return next((c for c in srv._clients if c.drain_since_s is not None), None)
+        return next((c for c in srv.connections if c.drain_since_s is not None), None)
 
     for _ in range(3000):
         lt.call(publish)
@@ -361,7 +361,7 @@ def test_a_watcher_that_never_reads_is_closed_on_the_control_port(lt: LoopThread
     try:
         stuck.sendall(json.dumps({"id": 1, "cmd": "auth", "token": TOKEN}).encode() + b"\n")
         stuck.sendall(b'{"id":2,"cmd":"watch","on":true}\n')
-        wait_until(lambda: lt.call(lambda: sum(c.watching for c in srv._clients)) == 1)
+        wait_until(lambda: lt.call(lambda: sum(c.watching for c in srv.connections)) == 1)
         big = {"event": "telemetry", "data": {"pad": "y" * 20_000}}
         c = _fill_until_blocked(lt, srv, lambda: srv.publish(big))
         clock.now += 9.0
@@ -390,11 +390,11 @@ def test_a_watcher_whose_receive_window_stays_shut_is_closed_early(lt: LoopThrea
     try:
         stuck.sendall(json.dumps({"id": 1, "cmd": "auth", "token": TOKEN}).encode() + b"\n")
         stuck.sendall(b'{"id":2,"cmd":"watch","on":true}\n')
-        wait_until(lambda: lt.call(lambda: sum(c.watching for c in srv._clients)) == 1)
+        wait_until(lambda: lt.call(lambda: sum(c.watching for c in srv.connections)) == 1)
         event = {"event": "telemetry", "data": {"pad": "y" * 10_000}}
         for _ in range(4):  # 40 kB: more than the peer's 4 kB window, less than our buffers
             lt.call(lambda: srv.publish(event))
-        (c,) = lt.call(lambda: list(srv._clients))
+        (c,) = lt.call(lambda: list(srv.connections))
         time.sleep(0.2)
         assert c.drain_since_s is None  # the sender is not blocked
         lt.call(srv.sweep)  # the first look: data waits, none acknowledged
@@ -503,7 +503,7 @@ def test_gpsd_deadlines_pending_idle_and_never_reading_watcher() -> None:
 
         def stuck_acked() -> tuple[int, int]:
             """(bytes the stuck peer acknowledged, bytes waiting for it)"""
-            (c,) = [c for c in srv._clients if c.peer.endswith(f":{port}")]
+            (c,) = [c for c in srv.connections if c.peer.endswith(f":{port}")]
             t = c.writer.transport
             waiting = (unacknowledged_bytes(t) or 0) + t.get_write_buffer_size()
             return c.bytes_out - waiting, waiting

@@ -359,7 +359,7 @@ def test_watch_delivers_events_and_stuck_client_drops_oldest(loop_thread) -> Non
                 srv.publish(big)
 
         loop_thread.call(burst)
-        queued = loop_thread.call(lambda: max(len(cl.events) for cl in srv._clients))
+        queued = loop_thread.call(lambda: max(len(cl.events) for cl in srv.connections))
         assert queued <= 8
         assert srv.dropped_total > 0
         status = c.request("status")

@@ -197,6 +197,11 @@ class LineServer(Generic[C]):
         self._rlog = RateLimitedLog(logger, 1.0, clock)
 
     @property
+    def connections(self) -> tuple[C, ...]:
+        """Every open connection, pending or session (a snapshot; for status and tests)."""
+        return tuple(self._clients)
+
+    @property
     def port(self) -> int:
         """The bound TCP port (the real one when configured as 0)."""
         if self._server is not None and self._server.sockets:

@@ -152,6 +152,11 @@ class Controller:
         return self._state
 
     @property
+    def attitude_ok(self) -> bool:
+        """The latest compass sample is usable (valid, a bearing in [0, 360))."""
+        return self._att_ok
+
+    @property
     def telemetry(self) -> Telemetry:
         """The latest telemetry snapshot."""
         return self._telemetry
