@@ -12,7 +12,8 @@ side's wheels rolled to make that motion, and what the encoders count for it:
   sideways in a turn (REFERENCE.md §7: often 1.2-2x); left = common + Δψ·B/2 (clockwise
   turn: the left side is outside);
 - non-systematic error per side (seed 003): zero-mean Gaussian with variance
-  ``k · |wheel travel|``, so it grows with distance and not with the step rate;
+  ``k · |wheel travel|``, so it grows with distance and not with the step rate (clipped to
+  the step's own travel, which only matters for steps shorter than k);
 - systematic error: counts are wheel travel over the ACTUAL circumference
   (``π · left_diameter_m``), while odometry assumes the nominal one.
 
@@ -137,7 +138,12 @@ class EncoderSim:
         if self._rng is not None:
             for i, k in enumerate((p.k_left_m, p.k_right_m)):
                 if k > 0 and travel[i] != 0:
-                    travel[i] += float(self._rng.normal(0.0, math.sqrt(k * abs(travel[i]))))
+                    # clipped so that a wheel never rolls against its motion: √(k·|s|) grows
+                    # past |s| itself in a motor's creeping tail (|s| < k), where the counts
+                    # would otherwise jitter; at walking pace (|s| ≫ k) it never binds
+                    mag = abs(travel[i])
+                    err = float(self._rng.normal(0.0, math.sqrt(k * mag)))
+                    travel[i] += max(-mag, min(mag, err))
         out = [0, 0]
         for i, side in enumerate(("left", "right")):
             self.wheel_travel_m[i] += travel[i]

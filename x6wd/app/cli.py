@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "sim": ("sim_backend.mission", "run a whole simulated mission in fast time"),
     "client": ("x6wd.app.client", "operator client: status, load, start, stop, drive, watch"),
     "gap": ("x6wd.gap.cli", "diagnose the gap between a real log and the simulator"),
+    "calibrate": ("x6wd.calibrate.cli", "estimate configuration sections from calibration runs"),
     "decode": ("x6wd.app.decode", "decode NMEA logs or recordings to gpsd-style JSON lines"),
     "replay": ("x6wd.app.replay", "replay a recording or NMEA log through the decoders"),
 }

@@ -1,0 +1,190 @@
+"""x6wd calibrate odometry on simulated runs with known truth: the simulated vehicle and its
+encoders (sim_backend.odometry) drive a straight and a circular track; the reference fixes are
+the true positions plus 2 cm of noise (an RTK receiver); the estimates must land within their
+standard errors of the truth, and those standard errors must be honest over many seeds."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_backend.odometry import EncoderParams, EncoderSim
+from sim_backend.vehicle import Vehicle, VehicleParams
+from x6wd.app import cli
+from x6wd.calibrate.odometry import (
+    OdometryCalibration,
+    Track,
+    calibrate,
+    find_passes,
+    fit_circle,
+)
+from x6wd.core import config
+from x6wd.core.errors import ConfigError
+from x6wd.core.recorder import Recorder
+from x6wd.core.records import GpsFix, WheelOdometry
+from x6wd.nav.geo import LocalTangentPlane
+
+ORIGIN = (51.7, 5.0)
+TRUE = EncoderParams(
+    left_diameter_m=0.1212,  # +1 % of the nominal 120 mm
+    right_diameter_m=0.1188,  # -1 %
+    effective_track_m=0.37,  # 1.5x the geometric 0.245 m
+    k_left_m=2e-4,
+    k_right_m=3e-4,
+)
+REF_SIGMA_M = 0.02
+DT_S = 0.025  # physics step; odometry every 2 steps (20 Hz), a fix every 8 (5 Hz)
+STOP = (0.0, 0.0, 4.0)  # the motors' exponential stop creeps for ~2 s
+STRAIGHT = [STOP] + [(50.0, 50.0, 10.0), STOP, (-50.0, -50.0, 10.0), STOP] * 6  # 12 x 19 m
+CIRCLE = [STOP] + [(60.0, 10.0, 32.0), STOP] * 4  # 4 x 2 laps of radius ~3.5 m, clockwise
+
+
+def simulate(
+    script: Sequence[tuple[float, float, float]], seed: int, params: EncoderParams = TRUE
+) -> tuple[list[WheelOdometry], list[GpsFix]]:
+    """Drive (left %, right %, seconds) legs; the odometry records and reference fixes."""
+    rng = np.random.default_rng(seed)
+    v = Vehicle(VehicleParams(), heading_deg=float(rng.uniform(0, 360)))
+    enc = EncoderSim(params, rng=rng, start=v.state)
+    plane = LocalTangentPlane(*ORIGIN)
+    odo: list[WheelOdometry] = []
+    fixes: list[GpsFix] = []
+    k = 0
+    for left, right, secs in script:
+        v.command(left, right)
+        for _ in range(round(secs / DT_S)):
+            s = v.step(DT_S)
+            enc.step(DT_S, s)
+            k += 1
+            if k % 2 == 0:
+                odo.append(WheelOdometry(s.t_s, *enc.counts, seq=(k // 2) % 65536))
+            if k % 8 == 0:
+                e, n = s.east_m + rng.normal(0, REF_SIGMA_M), s.north_m + rng.normal(0, REF_SIGMA_M)
+                lat, lon = plane.to_latlon(e, n)
+                fixes.append(
+                    GpsFix(
+                        s.t_s, lat_deg=float(lat), lon_deg=float(lon), quality=4, valid=True, mode=3
+                    )
+                )
+    return odo, fixes
+
+
+def run(seed: int) -> OdometryCalibration:
+    s_odo, s_fix = simulate(STRAIGHT, seed)
+    c_odo, c_fix = simulate(CIRCLE, seed + 10_000)
+    return calibrate(
+        Track.from_records(s_odo, s_fix, ORIGIN),
+        Track.from_records(c_odo, c_fix, ORIGIN),
+        counts_per_rev=TRUE.counts_per_rev,
+        ref_sigma_m=REF_SIGMA_M,
+    )
+
+
+def z_scores(cal: OdometryCalibration) -> dict[str, float]:
+    truth = {
+        "left_diameter_m": TRUE.left_diameter_m,
+        "right_diameter_m": TRUE.right_diameter_m,
+        "track_m": TRUE.effective_track_m,
+        "k_left_m": TRUE.k_left_m,
+        "k_right_m": TRUE.k_right_m,
+    }
+    return {k: (getattr(cal, k).value - t) / getattr(cal, k).se for k, t in truth.items()}
+
+
+def write(path: Path, odo: list[WheelOdometry], fixes: list[GpsFix]) -> Path:
+    records: list[WheelOdometry | GpsFix] = [*odo, *fixes]
+    with Recorder(path) as rec:
+        for r in sorted(records, key=lambda r: r.t_s):
+            if isinstance(r, WheelOdometry):
+                rec.record_odometry(r)
+            else:
+                rec.record_fix(r)
+    return path
+
+
+def test_cli_writes_a_fragment_whose_estimates_hold_the_truth(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    straight = write(tmp_path / "straight.jsonl", *simulate(STRAIGHT, 1))
+    circle = write(tmp_path / "circle.jsonl", *simulate(CIRCLE, 2))
+    out = tmp_path / "odometry.toml"
+    argv = ["calibrate", "odometry", "--straight", str(straight), "--circle", str(circle)]
+    assert cli.main([*argv, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed == out.read_text()
+    assert "# straight: 12 passes" in printed and "circle: 4 passes" in printed
+    got = config.loads(out.read_text()).odometry  # the daemon loads it as it is
+    assert got.counts_per_rev == TRUE.counts_per_rev
+    # within 3 standard errors (the SEs are in the fragment's comments)
+    cal = run_from_files(straight, circle)
+    for key, z in z_scores(cal).items():
+        assert abs(z) < 3.0, (key, z, cal)
+    assert got.left_diameter_m == pytest.approx(cal.left_diameter_m.value, abs=1e-6)
+    # the systematic errors are resolved: each wheel's 1 % and the 1.5x track
+    assert cal.left_diameter_m.se < 0.0003 and cal.right_diameter_m.se < 0.0003
+    assert cal.left_diameter_m.value - cal.right_diameter_m.value > 10 * math.hypot(
+        cal.left_diameter_m.se, cal.right_diameter_m.se
+    )
+    assert cal.track_m.se < 0.02 and abs(cal.track_m.value - 0.245) > 5 * cal.track_m.se
+
+
+def run_from_files(straight: Path, circle: Path) -> OdometryCalibration:
+    from x6wd.calibrate.odometry import load_track
+
+    return calibrate(
+        load_track(straight), load_track(circle), counts_per_rev=TRUE.counts_per_rev,
+        ref_sigma_m=REF_SIGMA_M,
+    )  # fmt: skip
+
+
+def test_standard_errors_are_honest_over_seeds() -> None:
+    """Over independent runs the errors divided by their standard errors have a mean square
+    near 1 (chi-square with 8 degrees of freedom over 8: 99 % within 0.17..2.5)."""
+    zs = [z_scores(run(seed)) for seed in range(100, 108)]
+    for key in ("left_diameter_m", "right_diameter_m", "track_m"):
+        msq = float(np.mean([z[key] ** 2 for z in zs]))
+        assert 0.17 < msq < 2.5, (key, msq, [round(z[key], 2) for z in zs])
+    for key in ("k_left_m", "k_right_m"):  # cruder: a variance from a dozen passes
+        assert all(abs(z[key]) < 4.0 for z in zs), (key, [round(z[key], 2) for z in zs])
+
+
+def test_passes_are_the_motion_between_stops() -> None:
+    odo, fixes = simulate(STRAIGHT[:5], 3)
+    passes, dropped = find_passes(Track.from_records(odo, fixes, ORIGIN))
+    assert len(passes) == 2 and dropped == 0
+    fwd, back = passes
+    assert fwd.d_left_counts > 0 and back.d_left_counts < 0
+    assert math.dist(fwd.start_m, back.end_m) < 0.05  # back where it started
+    assert fwd.n_start >= 5 and fwd.n_end >= 2  # stationary fixes averaged
+
+
+def test_fit_circle_recovers_a_noisy_circle() -> None:
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 2 * math.pi, 200)
+    xy = np.column_stack([3 + 4 * np.cos(a), -2 + 4 * np.sin(a)]) + rng.normal(0, 0.01, (200, 2))
+    xc, yc, r = fit_circle(xy)
+    assert (xc, yc, r) == pytest.approx((3, -2, 4), abs=0.005)
+
+
+def test_too_few_passes_are_refused_with_the_reason() -> None:
+    odo, fixes = simulate(STRAIGHT[:3], 4)  # one pass
+    c_odo, c_fix = simulate(CIRCLE[:3], 5)
+    with pytest.raises(ConfigError, match="straight track: 1 usable passes"):
+        calibrate(
+            Track.from_records(odo, fixes, ORIGIN),
+            Track.from_records(c_odo, c_fix, ORIGIN),
+            counts_per_rev=TRUE.counts_per_rev,
+        )
+
+
+def test_cli_reports_a_recording_without_reference(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    odo, _ = simulate(STRAIGHT[:3], 6)
+    rec = write(tmp_path / "r.jsonl", odo, [])
+    assert cli.main(["calibrate", "odometry", "--straight", str(rec), "--circle", str(rec)]) == 2
+    assert "no reference" in capsys.readouterr().err

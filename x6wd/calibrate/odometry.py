@@ -1,0 +1,407 @@
+"""Odometry calibration from a straight-track and a circular-track recording (seed 003, 2.3).
+
+Inputs are flight recordings (:mod:`x6wd.core.recorder`) holding ``odometry`` records (the
+motor board's unwrapped encoder counts) and ``fix`` records that are the REFERENCE: a
+receiver good to centimetres (RTK) or the simulator's truth written as fixes. Their error is
+taken as independent between fixes with standard deviation ``ref_sigma_m`` per axis (a
+NEO-5 at metres is too coarse and, worse, correlated in time; see the report's SEs).
+
+Both recordings are cut into PASSES: motion between stops of at least ``stop_s`` (no count
+changes). A pass's start and end points are the mean of the reference fixes during the stops
+around it (the robot stands still, so averaging is free), its counts the exact difference
+over the pass. The protocol the operator drives (docs in :func:`calibrate`):
+
+- straight track: several passes along a straight line (forwards, or forwards and back);
+  passes shorter than ``min_pass_m`` (pivots to turn round, nudges) are ignored;
+- circle: constant drive for one or more whole laps per pass, several passes.
+
+Estimation, with metres per count ``α = π·D / counts_per_rev``:
+
+1. Diameters (straight). Both sides roll the pass length L_i, so
+   ``α̂_l = Σ L_i / Σ c_l,i`` (the paper's ``D = L·CPR / (π·c)`` pooled over passes; the
+   ratio estimator is best when the variance grows with L). Likewise right.
+2. Effective track (circle). With the calibrated α̂: ``s_l − s_r = B·Δψ`` (clockwise), the
+   true heading change Δψ from the reference: a circle fitted to the pass's fixes and the
+   unwrapped angle swept about its centre. ``B̂ = Σ (s_l − s_r) / Σ Δψ`` — the paper's
+   ``B_new = B_old · Δψ_odometry / Δψ_true``, pooled.
+3. Non-systematic k_l, k_r (seed 003: Var(side travel) = k·|travel|), from the pass-to-pass
+   scatter of the residuals of each track. Both sides are compared with the same reference,
+   so its error cancels in ``E[r_l² − r_l·r_r] = k_l·|s_l|`` (and symmetrically for the
+   right); the sums are corrected for the degrees of freedom the fits used. As the paper
+   does, the larger of the straight and circle values is kept per side.
+
+Standard errors: α̂ from the residual scatter (it includes the reference error); B̂ from the
+residual scatter of ``s_l − s_r − B̂·Δψ`` (or, with fewer than 3 circle passes, from the
+straight's k and the reference angle error) plus the diameters' errors carried through; k
+from the spread of the per-pass terms (with n passes it is roughly k·sqrt(2/n): many passes
+are needed for a k good to 20 %).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from x6wd.core.config import OdometryConfig, build
+from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.recorder import decode_record, read_recording_parts
+from x6wd.core.records import GpsFix, WheelOdometry
+from x6wd.nav.geo import LocalTangentPlane
+
+Array = npt.NDArray[np.float64]
+MIN_PASSES = 3  # repetitions needed for the scatter-based k and standard errors
+
+
+@dataclass(frozen=True)
+class Track:
+    """One recording reduced to what calibration uses: encoder counts (cumulative) at their
+    times (s) and reference positions (m, east/north of ``origin``) at theirs."""
+
+    t_odo_s: Array
+    left_counts: npt.NDArray[np.int64]
+    right_counts: npt.NDArray[np.int64]
+    t_ref_s: Array
+    east_m: Array
+    north_m: Array
+    origin: tuple[float, float] = (0.0, 0.0)  # (lat_deg, lon_deg) of the plane
+
+    @classmethod
+    def from_records(
+        cls, odometry: list[WheelOdometry], fixes: list[GpsFix], origin: tuple[float, float] | None
+    ) -> Track:
+        """From decoded records; fixes that are not valid or lack a position are dropped;
+        the plane's origin is ``origin`` or the first usable fix."""
+        good = [f for f in fixes if f.valid and f.lat_deg is not None and f.lon_deg is not None]
+        if len(odometry) < 2:
+            raise ParseError("no odometry: the recording holds fewer than 2 odometry records")
+        if len(good) < 2:
+            raise ParseError("no reference: the recording holds fewer than 2 valid fixes")
+        odometry = sorted(odometry, key=lambda o: o.t_s)
+        good = sorted(good, key=lambda f: f.t_s)
+        lat0, lon0 = origin or (float(good[0].lat_deg), float(good[0].lon_deg))  # type: ignore[arg-type]
+        plane = LocalTangentPlane(lat0, lon0)
+        x, y = plane.to_xy(
+            np.array([f.lat_deg for f in good], float), np.array([f.lon_deg for f in good], float)
+        )
+        return cls(
+            t_odo_s=np.array([o.t_s for o in odometry], float),
+            left_counts=np.array([o.left_counts for o in odometry], np.int64),
+            right_counts=np.array([o.right_counts for o in odometry], np.int64),
+            t_ref_s=np.array([f.t_s for f in good], float),
+            east_m=np.asarray(x, float),
+            north_m=np.asarray(y, float),
+            origin=(lat0, lon0),
+        )
+
+
+def load_track(path: str | Path, origin: tuple[float, float] | None = None) -> Track:
+    """The odometry and fix records of a recording (all its parts)."""
+    odo: list[WheelOdometry] = []
+    fixes: list[GpsFix] = []
+    for rec in read_recording_parts(path):
+        if rec.type in ("odometry", "fix"):
+            typed = decode_record(rec)
+            if isinstance(typed, WheelOdometry):
+                odo.append(typed)
+            elif isinstance(typed, GpsFix):
+                fixes.append(typed)
+    try:
+        return Track.from_records(odo, fixes, origin)
+    except ParseError as exc:
+        raise ParseError(f"{path}: {exc}") from exc
+
+
+@dataclass(frozen=True)
+class Pass:
+    """Motion between two stops: count differences, the start and end points (mean of the
+    reference fixes during the stops, and how many), and the fixes while moving."""
+
+    t0_s: float
+    t1_s: float
+    d_left_counts: int
+    d_right_counts: int
+    start_m: tuple[float, float]
+    end_m: tuple[float, float]
+    n_start: int
+    n_end: int
+    path_m: Array  # (n, 2) reference positions while moving, in time order
+
+
+def find_passes(track: Track, *, stop_s: float = 1.0) -> tuple[list[Pass], int]:
+    """The passes of a track and how many were dropped for want of reference fixes in the
+    stops around them. A stop is ``stop_s`` or more without count changes; fixes within
+    ``stop_s / 2`` of the motion are not used as stationary (GPS latency)."""
+    t, lc, rc = track.t_odo_s, track.left_counts, track.right_counts
+    moving = np.flatnonzero(np.abs(np.diff(lc)) + np.abs(np.diff(rc)) > 1) + 1
+    if moving.size == 0:
+        return [], 0
+    groups: list[tuple[int, int]] = []  # (index of the last still sample, last moving one)
+    first = prev = int(moving[0])
+    for i in moving[1:]:
+        if t[i] - t[prev] >= stop_s:
+            groups.append((first - 1, prev))
+            first = int(i)
+        prev = int(i)
+    groups.append((first - 1, prev))
+    guard_s = 0.5 * stop_s
+    tr = track.t_ref_s
+    xy = np.column_stack([track.east_m, track.north_m])
+    passes, dropped = [], 0
+    for k, (i0, i1) in enumerate(groups):
+        t0, t1 = float(t[i0]), float(t[i1])
+        before = t[groups[k - 1][1]] + guard_s if k else -math.inf
+        after = t[groups[k + 1][0]] if k + 1 < len(groups) else math.inf
+        start = (tr > before) & (tr <= t0)
+        end = (tr >= t1 + guard_s) & (tr <= after)
+        if not start.any() or not end.any():
+            dropped += 1
+            continue
+        inside = (tr > t0) & (tr < t1)
+        passes.append(
+            Pass(
+                t0, t1,
+                int(lc[i1] - lc[i0]), int(rc[i1] - rc[i0]),
+                _point(xy[start]), _point(xy[end]),
+                int(start.sum()), int(end.sum()),
+                xy[inside],
+            )
+        )  # fmt: skip
+    return passes, dropped
+
+
+def _point(xy: Array) -> tuple[float, float]:
+    m = xy.mean(axis=0)
+    return float(m[0]), float(m[1])
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A value and its standard error (same unit)."""
+
+    value: float
+    se: float
+
+
+def fit_circle(xy: Array) -> tuple[float, float, float]:
+    """Least-squares (algebraic, Kåsa) circle through points: (east_m, north_m, radius_m)."""
+    x, y = xy[:, 0], xy[:, 1]
+    a = np.column_stack([x, y, np.ones_like(x)])
+    (p, q, r), *_ = np.linalg.lstsq(a, -(x * x + y * y), rcond=None)
+    xc, yc = -p / 2, -q / 2
+    return float(xc), float(yc), float(math.sqrt(max(xc * xc + yc * yc - r, 0.0)))
+
+
+def _k_terms(u: Array, scale: float) -> Estimate:
+    """k from per-pass terms u (sum / scale), SE from their spread; clamped at 0."""
+    n = u.size
+    se = math.sqrt(n * float(np.var(u, ddof=1))) / scale if n > 1 else math.inf
+    return Estimate(max(float(u.sum()) / scale, 0.0), se)
+
+
+@dataclass(frozen=True)
+class StraightResult:
+    """Metres per count per side (α) with their covariance, the pass count and length, and
+    the straight track's k's."""
+
+    alpha_left: float
+    alpha_right: float
+    cov_alpha: Array  # 2x2, (m/count)²
+    passes: int
+    mean_length_m: float
+    k_left_m: Estimate
+    k_right_m: Estimate
+
+
+def straight_fit(passes: list[Pass], *, min_pass_m: float = 2.0) -> StraightResult:
+    """Wheel scale factors from straight passes (see the module docstring, step 1 and 3)."""
+    rows = []
+    for p in passes:
+        length = math.dist(p.start_m, p.end_m)
+        if length < min_pass_m:
+            continue
+        sign = 1.0 if p.d_left_counts + p.d_right_counts >= 0 else -1.0
+        rows.append((sign * length, p.d_left_counts, p.d_right_counts))
+    if len(rows) < MIN_PASSES:
+        raise ConfigError(
+            f"straight track: {len(rows)} usable passes (>= {min_pass_m} m between stops); "
+            f"need at least {MIN_PASSES}"
+        )
+    lengths, cl, cr = (np.array(c, float) for c in zip(*rows, strict=True))
+    sg = np.sign(lengths)
+    alpha_l = float((sg * lengths).sum() / (sg * cl).sum())
+    alpha_r = float((sg * lengths).sum() / (sg * cr).sum())
+    r_l, r_r = alpha_l * cl - lengths, alpha_r * cr - lengths
+    total = float(np.abs(lengths).sum())
+    dof = total - float((lengths * lengths).sum()) / total  # E Σr² = k·dof for the ratio fit
+    # Σ Var_i from the residuals (reference error included), per side and shared
+    s_ll, s_rr, s_lr = (float(v) * total / dof for v in (r_l @ r_l, r_r @ r_r, r_l @ r_r))
+    den_l, den_r = float((sg * cl).sum()), float((sg * cr).sum())
+    cov = np.array(
+        [[s_ll / den_l**2, s_lr / (den_l * den_r)], [s_lr / (den_l * den_r), s_rr / den_r**2]]
+    )
+    return StraightResult(
+        alpha_l,
+        alpha_r,
+        cov,
+        len(rows),
+        total / len(rows),
+        _k_terms(r_l * r_l - r_l * r_r, dof),
+        _k_terms(r_r * r_r - r_l * r_r, dof),
+    )
+
+
+@dataclass(frozen=True)
+class CircleResult:
+    """Effective track, the circle's k's, and what the passes were."""
+
+    track_m: Estimate
+    k_left_m: Estimate
+    k_right_m: Estimate
+    passes: int
+    turn_deg: float  # total |heading change|
+    radius_m: float  # mean fitted radius
+
+
+def circle_fit(passes: list[Pass], straight: StraightResult, *, ref_sigma_m: float) -> CircleResult:
+    """Effective track from circle passes and the calibrated wheels (steps 2 and 3)."""
+    rows = []
+    for p in passes:
+        if len(p.path_m) < 3:
+            continue
+        pts = np.vstack([p.start_m, p.path_m, p.end_m])
+        xc, yc, radius = fit_circle(pts)
+        theta = np.unwrap(np.arctan2(pts[:, 1] - yc, pts[:, 0] - xc))
+        swept = float(theta[-1] - theta[0])  # counter-clockwise about the centre
+        if abs(swept) < math.pi:
+            continue  # not even half a lap: no circle to speak of
+        direction = 1.0 if p.d_left_counts + p.d_right_counts >= 0 else -1.0
+        v_theta = ref_sigma_m**2 * (1 / p.n_start + 1 / p.n_end) / radius**2
+        rows.append((-swept, direction * radius * abs(swept), p.d_left_counts, p.d_right_counts,
+                     v_theta, radius))  # fmt: skip
+    if not rows:
+        raise ConfigError("circle track: no pass of at least half a lap between stops")
+    dpsi, s_true, cl, cr, var_theta, radii = (np.array(c, float) for c in zip(*rows, strict=True))
+    n = len(rows)
+    s_l, s_r = straight.alpha_left * cl, straight.alpha_right * cr
+    sg = np.sign(dpsi)
+    turned = float(np.abs(dpsi).sum())
+    b = float((sg * (s_l - s_r)).sum()) / turned
+    d = (s_l - s_r) - b * dpsi  # the difference's residual, m
+    a = 0.5 * (s_l + s_r) - s_true  # the common residual, m
+    if n >= MIN_PASSES:
+        var_diff = float(d @ d) * n / (n - 1)
+    else:  # too few passes for a scatter: the straight's noise model and the reference
+        var_diff = float(
+            (straight.k_left_m.value * np.abs(s_l) + straight.k_right_m.value * np.abs(s_r)).sum()
+            + b * b * var_theta.sum()
+        )
+    # the wheels' own error, the same in every pass
+    g = np.array([(sg * cl).sum(), -(sg * cr).sum()])
+    var_wheels = float(g @ straight.cov_alpha @ g)
+    track = Estimate(b, math.sqrt(var_diff + var_wheels) / turned)
+    f = n / (n - 1) if n > 1 else 1.0  # B̂ used one degree of freedom of d
+    k_l = _k_terms(a * d + 0.5 * f * d * d, float(np.abs(s_l).sum()))
+    k_r = _k_terms(-a * d + 0.5 * f * d * d, float(np.abs(s_r).sum()))
+    return CircleResult(track, k_l, k_r, n, math.degrees(turned), float(radii.mean()))
+
+
+@dataclass(frozen=True)
+class OdometryCalibration:
+    """The estimates with their standard errors, and the tracks they came from."""
+
+    counts_per_rev: int
+    left_diameter_m: Estimate
+    right_diameter_m: Estimate
+    track_m: Estimate
+    k_left_m: Estimate
+    k_right_m: Estimate
+    straight: StraightResult
+    circle: CircleResult
+    ref_sigma_m: float
+    dropped_passes: int
+
+    def config(self) -> OdometryConfig:
+        """The ``[odometry]`` section (range-checked: ConfigError if an estimate is absurd)."""
+        return build(OdometryConfig, self.table(), "odometry.")
+
+    def table(self) -> dict[str, float | int]:
+        """The section's keys and values."""
+        return {
+            "counts_per_rev": self.counts_per_rev,
+            "left_diameter_m": self.left_diameter_m.value,
+            "right_diameter_m": self.right_diameter_m.value,
+            "track_m": self.track_m.value,
+            "k_left_m": self.k_left_m.value,
+            "k_right_m": self.k_right_m.value,
+        }
+
+    def toml(self, header: str = "") -> str:
+        """A TOML fragment with the ``[odometry]`` section, each estimate's standard error
+        as a comment."""
+        self.config()  # refuse to write what the daemon would refuse to load
+        st, ci = self.straight, self.circle
+        lines = [f"# {line}" for line in header.splitlines()]
+        lines += [
+            f"# straight: {st.passes} passes of {st.mean_length_m:.2f} m; circle: {ci.passes} "
+            f"passes, {ci.turn_deg:.0f} deg in all, radius {ci.radius_m:.2f} m; reference "
+            f"sigma {self.ref_sigma_m:g} m per fix",
+            "# value  # ± standard error",
+            "[odometry]",
+            f"counts_per_rev = {self.counts_per_rev}",
+        ]
+        for key in ("left_diameter_m", "right_diameter_m", "track_m"):
+            e: Estimate = getattr(self, key)
+            lines.append(f"{key} = {e.value:.6f}  # ± {e.se:.6f}")
+        for key, s, c in (
+            ("k_left_m", st.k_left_m, ci.k_left_m),
+            ("k_right_m", st.k_right_m, ci.k_right_m),
+        ):
+            e = getattr(self, key)
+            lines.append(
+                f"{key} = {e.value:.3e}  # ± {e.se:.1e}; straight {s.value:.2e} ± {s.se:.1e}, "
+                f"circle {c.value:.2e} ± {c.se:.1e} (the larger is kept)"
+            )
+        return "\n".join(lines) + "\n"
+
+
+def calibrate(
+    straight: Track,
+    circle: Track,
+    *,
+    counts_per_rev: int,
+    ref_sigma_m: float = 0.02,
+    stop_s: float = 1.0,
+    min_pass_m: float = 2.0,
+) -> OdometryCalibration:
+    """Wheel diameters, effective track and k_l, k_r from the two tracks.
+
+    Driving protocol: stand still for 2 s or more (several reference fixes) before and after
+    every pass. Straight: at least 3 passes of 10 m or more (longer and more passes shrink
+    every standard error). Circle: constant drive (e.g. ``drive 60 10``) for whole laps, at
+    least 3 passes; the fix rate must give well under half a lap between fixes.
+    """
+    if not (ref_sigma_m > 0 and math.isfinite(ref_sigma_m)):
+        raise ConfigError(f"ref_sigma_m must be > 0, got {ref_sigma_m!r}")
+    s_passes, s_dropped = find_passes(straight, stop_s=stop_s)
+    c_passes, c_dropped = find_passes(circle, stop_s=stop_s)
+    st = straight_fit(s_passes, min_pass_m=min_pass_m)
+    ci = circle_fit(c_passes, st, ref_sigma_m=ref_sigma_m)
+    to_d = counts_per_rev / math.pi  # diameter per (metres per count)
+    pick_l = max((st.k_left_m, ci.k_left_m), key=lambda e: e.value)
+    pick_r = max((st.k_right_m, ci.k_right_m), key=lambda e: e.value)
+    return OdometryCalibration(
+        counts_per_rev=counts_per_rev,
+        left_diameter_m=Estimate(st.alpha_left * to_d, math.sqrt(st.cov_alpha[0, 0]) * to_d),
+        right_diameter_m=Estimate(st.alpha_right * to_d, math.sqrt(st.cov_alpha[1, 1]) * to_d),
+        track_m=ci.track_m,
+        k_left_m=pick_l,
+        k_right_m=pick_r,
+        straight=st,
+        circle=ci,
+        ref_sigma_m=ref_sigma_m,
+        dropped_passes=s_dropped + c_dropped,
+    )
