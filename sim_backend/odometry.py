@@ -24,8 +24,10 @@ Defaults (documented guesses: the papers name neither wheels nor encoders): 120 
 wheel turn, 4329 counts per metre; geometric track 0.245 m (the 305 mm wide body less a
 60 mm tyre); effective track 0.37 m (1.5x); tyres 1 % apart (left +1 %, right -1 %).
 
-Fast time: call :meth:`EncoderSim.step` after each physics step and add the counts to the
-board (:meth:`drivers.motors.MotorBoard.add_counts`) or keep :attr:`EncoderSim.counts`.
+Fast time: call :meth:`EncoderSim.step` after each physics step and either add the counts
+to a board (:meth:`drivers.motors.MotorBoard.add_counts`, as HIL does) or take
+:meth:`EncoderSim.reading` at the host's poll rate (20 Hz): the record
+:meth:`drivers.motors.SerialMotorLink.read_odometry` would return.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ import numpy as np
 from sim_backend.vehicle import VehicleState
 from x6wd.core.errors import ConfigError
 from x6wd.core.geodesy import wrap_deg
+from x6wd.core.records import WheelOdometry
 
 ENCODER_STREAM = 4  # SeedSequence child of the scenario seed (SimRandom uses children 0..3)
 
@@ -110,12 +113,19 @@ class EncoderSim:
         self._prev = start
         self._real = [0.0, 0.0]  # counts as reals (left, right)
         self._whole = [0, 0]
+        self._latches = 0
         self.wheel_travel_m = [0.0, 0.0]  # true signed travel per side, noise included
 
     @property
     def counts(self) -> tuple[int, int]:
         """(left, right) whole counts since the start, signed (no rollover here)."""
         return self._whole[0], self._whole[1]
+
+    def reading(self, t_s: float) -> WheelOdometry:
+        """The counts now as the host link reports them (continuous since the start, the
+        latch number counting 1, 2, ... and wrapping at 2**16), stamped ``t_s`` (s)."""
+        self._latches += 1
+        return WheelOdometry(t_s, self._whole[0], self._whole[1], self._latches % 65536)
 
     def step(self, dt_s: float, state: VehicleState) -> tuple[int, int]:
         """Move the wheels from the previous state to ``state`` (``dt_s`` s later); the whole

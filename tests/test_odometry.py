@@ -131,6 +131,25 @@ def _moved(s: VehicleState, dist_m: float, heading_deg: float = 0.0) -> VehicleS
     )  # fmt: skip
 
 
+def test_reading_is_what_the_link_reports() -> None:
+    enc = EncoderSim()
+    drive([(50, 50, 1.0)], enc)
+    first, second = enc.reading(1.0), enc.reading(1.05)
+    assert (first.left_counts, first.right_counts) == enc.counts
+    assert (first.seq, second.seq, second.t_s) == (1, 2, 1.05)
+
+
+def test_odometry_section_is_range_checked() -> None:
+    from x6wd.core import config
+
+    cfg = config.loads("[odometry]\ntrack_m = 0.4\nk_left_m = 0.0\n").odometry
+    assert (cfg.track_m, cfg.k_left_m, cfg.counts_per_rev) == (0.4, 0.0, 1632)
+    with pytest.raises(ConfigError, match=r"odometry\.track_m: must be >= 0\.05"):
+        config.loads("[odometry]\ntrack_m = 0.0\n")
+    with pytest.raises(ConfigError, match=r"odometry\.counts_per_rev: expected an integer"):
+        config.loads("[odometry]\ncounts_per_rev = 1632.5\n")
+
+
 def test_encoder_params_are_checked() -> None:
     with pytest.raises(ConfigError, match="effective_track_m"):
         EncoderParams(effective_track_m=0.2)  # narrower than the wheels: impossible
