@@ -17,14 +17,21 @@ with error and reconnect counts); :meth:`GpsReader.take_health_events` hands eac
 to the caller at once (the daemon holds the robot on it, without waiting for a fix timeout).
 
 The reader sets ``port.timeout = 0`` on every port it opens and waits with ``select()``
-itself, so a port opened blocking cannot hang it. Note that pyserial's ``socket://`` handler
-discards whatever arrived before ``open()`` returned; a streaming receiver loses nothing
-but part of one sentence.
+itself, so a port opened blocking cannot hang it. On a plain pyserial POSIX port (a UART, or
+the simulator's pseudo-terminal) it then reads the descriptor itself: one ``select()`` and
+one ``read()`` per burst of bytes, instead of pyserial's ``in_waiting`` ioctl and its own
+``select()`` + ``read()`` + ``select()`` — each system call lets another Python thread take
+the GIL, and the GPS thread then waits for it back before the fix can be decided.
+
+Note that pyserial's ``socket://`` handler discards whatever arrived before ``open()``
+returned; a streaming receiver loses nothing but part of one sentence.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import os
 import select
 import time
 from collections import deque
@@ -37,6 +44,22 @@ from x6wd.core.health import HealthTracker, root_oserror
 from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent
 
 _IDLE_POLL_S = 0.01  # wait step for ports that cannot be select()ed
+_NO_DATA_ERRNOS = frozenset({errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR, errno.EINPROGRESS,
+                             errno.EALREADY})  # fmt: skip
+"""Read errors that only mean "nothing to read yet" (pyserial's read ignores them too)."""
+
+
+def _direct_fd(port: object) -> int | None:
+    """The descriptor to read directly: only for pyserial's own POSIX ``Serial`` class (not
+    a subclass, a wrapper or another URL handler, whose ``read`` may do more), open."""
+    try:
+        from serial import serialposix
+    except ImportError:  # not POSIX, or no pyserial
+        return None
+    if type(port) is not serialposix.Serial or not getattr(port, "is_open", False):
+        return None
+    fd = getattr(port, "fd", None)
+    return fd if isinstance(fd, int) and fd >= 0 else None
 
 
 class PortLike(Protocol):
@@ -108,6 +131,7 @@ class GpsReader:
         self._acks: deque[UbxAck] = deque(maxlen=64)
         self._closed = False
         self._nonblocking = False
+        self._fd: int | None = None  # read directly (see _direct_fd), else through the port
 
     # -- public
 
@@ -201,6 +225,7 @@ class GpsReader:
             self._nonblocking = True
         except (AttributeError, ValueError, OSError):
             self._nonblocking = False
+        self._fd = _direct_fd(port) if self._nonblocking else None
         self.decoder.reset()
         self._backoff_s = self.backoff_initial_s
         # Fresh connection: staleness counts from now, not from before the outage.
@@ -219,13 +244,31 @@ class GpsReader:
         """One wait+read; None when nothing arrived (or the port failed)."""
         port = self._port
         assert port is not None
+        fd = self._fd
         try:
-            n = port.in_waiting
-            if n <= 0:
-                if not self._wait_readable(port, wait_s):
+            if fd is not None:  # one select() and one read(): see the module's docstring
+                ready, _, _ = select.select([fd], [], [], wait_s)
+                if not ready:
                     return None
-                n = max(1, port.in_waiting)
-            data = port.read(max(n, self._read_max) if self._nonblocking else n)
+                try:
+                    data = os.read(fd, self._read_max)
+                except OSError as exc:
+                    if exc.errno in _NO_DATA_ERRNOS:
+                        return None
+                    raise
+                if not data:  # a pty or USB adapter that went away
+                    _ = port.in_waiting  # its errno (EIO ...), as pyserial's path reports it
+                    raise OSError(
+                        "read failed: device reports readiness to read but returned no data "
+                        "(device disconnected or multiple access on port?)"
+                    )
+            else:
+                n = port.in_waiting
+                if n <= 0:
+                    if not self._wait_readable(port, wait_s):
+                        return None
+                    n = max(1, port.in_waiting)
+                data = port.read(max(n, self._read_max) if self._nonblocking else n)
         except (OSError, ValueError, X6wdError) as exc:  # ValueError: fd closed under us
             text = str(exc) if str(exc).startswith("read failed") else f"read failed: {exc}"
             if is_transient(root_oserror(exc)):
@@ -281,6 +324,7 @@ class GpsReader:
     def _drop_port(self, reason: str) -> None:
         port = self._port
         self._port = None
+        self._fd = None
         if port is not None:
             with contextlib.suppress(Exception):
                 port.close()
