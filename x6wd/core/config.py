@@ -73,6 +73,29 @@ class NavigationConfig:
     )
     cruise_pct: float = field(default=60.0, metadata=_rng(0, 100))
     turn_pct: float = field(default=40.0, metadata=_rng(0, 100))
+    # Steering (x6wd.nav.steering, docs/navigation.md "Steering and arrival"): "paper" is the
+    # paper's bang-bang spin-or-straight with eq. 7 in the projection's metres, unchanged;
+    # "pivot_arc" pivots only beyond pivot_angle_deg (until under pivot_resume_deg) and
+    # otherwise follows the segment by pure pursuit, arriving by eq. 7 in true metres or by
+    # passing the waypoint's perpendicular line. The keys below matter to pivot_arc only.
+    steering: str = field(default="paper", metadata={"choices": ("paper", "pivot_arc")})
+    pivot_angle_deg: float = field(default=60.0, metadata=_rng(1, 180))
+    pivot_resume_deg: float = field(default=10.0, metadata=_rng(0, 180))
+    lookahead_m: float = field(default=8.0, metadata=_rng(0.5, 100))
+    approach_m: float = field(default=4.0, metadata=_rng(0, 100))
+    min_speed_pct: float = field(default=15.0, metadata=_rng(0, 100))
+    # Effective track for percent commands (m): curvature k -> left = s(1 + k·T/2),
+    # right = s(1 - k·T/2). T = 2·v_full / w_full: v_full the speed (m/s) at +100/+100 %, w_full
+    # the pivot rate (rad/s) at +100/-100 %. The default is the simulator's vehicle
+    # (14 km/h, 90 deg/s: 4.95 m); calibrate it on the robot.
+    steer_track_m: float = field(default=4.95, metadata=_rng(0.05, 100))
+
+    def __post_init__(self) -> None:
+        if self.pivot_resume_deg >= self.pivot_angle_deg:
+            raise ConfigError(
+                f"navigation.pivot_resume_deg: must be < pivot_angle_deg "
+                f"({self.pivot_angle_deg}), got {self.pivot_resume_deg}"
+            )
 
 
 @dataclass(frozen=True)

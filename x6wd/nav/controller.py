@@ -28,7 +28,10 @@ motor link cancels it. Manual drive does NOT depend on the sensors: the operator
 sight, the dead-man bounds it, and a GPS or compass fault neither refuses nor cancels it.
 :meth:`Controller.stop` works from any state.
 
-Skid-steer mixing (the paper turns on the spot): STRAIGHT -> both sides ``cruise_pct``;
+Skid-steer mixing (the paper turns on the spot): STRAIGHT -> both sides ``cruise_pct``
+(with ``steering = "pivot_arc"``: the navigator's arc, :func:`x6wd.nav.steering.skid_mix` of
+its curvature at its approach speed over ``steer_track_m``; its steering numbers are in the
+telemetry's ``extra``: ``steer_alpha_deg``, ``curvature_per_m``, ``speed_pct``, ``pivoting``);
 TURN_RIGHT -> left ``+turn_pct``, right ``-turn_pct`` (clockwise spin in place); TURN_LEFT ->
 left ``-turn_pct``, right ``+turn_pct``; every other state -> stop. ARRIVED stops for the one
 decision in which it is reported; the next input turns towards the next waypoint.
@@ -59,7 +62,7 @@ from x6wd.core.records import (
     StateChange,
     Telemetry,
 )
-from x6wd.nav import geo
+from x6wd.nav import geo, steering
 from x6wd.nav.constellation import Constellation
 from x6wd.nav.navigator import NavigationError, Navigator
 
@@ -384,8 +387,14 @@ class Controller:
         return ""
 
     def _mix(self, state: NavState) -> tuple[float, float]:
+        """Left/right percentages for the navigator's decision just made."""
         c = self._nav_cfg
         if state == NavState.STRAIGHT:
+            last = self._navigator.last
+            if last is not None and last.curvature_per_m is not None:
+                # pivot_arc: drive the arc at the approach speed.
+                speed = c.cruise_pct if last.speed_pct is None else last.speed_pct
+                return steering.skid_mix(last.curvature_per_m, speed, c.steer_track_m)
             return c.cruise_pct, c.cruise_pct
         if state == NavState.TURN_RIGHT:
             return c.turn_pct, -c.turn_pct
@@ -520,6 +529,17 @@ class Controller:
             extra["motor_link"] = "lost"
         if self._sensor_down:
             extra["sensors_down"] = dict(self._sensor_down)
+        if self._nav_cfg.steering == "pivot_arc" and has_mission:
+            last = nav.last
+            if last is not None:
+                # The steering command behind left_pct/right_pct (no Telemetry field for it).
+                a = last.steer_alpha_rad
+                extra["steer_alpha_deg"] = math.degrees(a) if a is not None else None
+                extra["curvature_per_m"] = last.curvature_per_m
+                extra["speed_pct"] = last.speed_pct
+                extra["pivoting"] = nav.pivoting
+                if last.arrived_by:
+                    extra["arrived_by"] = last.arrived_by
         valid_fix_t = self._valid_fix_t
         cmd = self._cmd
         if fix is None:
