@@ -1,4 +1,6 @@
-"""``x6wd calibrate odometry --straight REC --circle REC [--out FRAGMENT.toml]``."""
+"""``x6wd calibrate odometry --straight REC --circle REC [--out FRAGMENT.toml]`` and
+``x6wd calibrate gnss [--static REC --ref-lat DEG --ref-lon DEG] [--drive REC --reference REF
+...] [--out FRAGMENT.toml] [--plot MAP.png] [--map-csv MAP.csv]``."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
+from x6wd.calibrate import gnss
 from x6wd.calibrate.odometry import calibrate, load_track
 from x6wd.core import config as config_mod
 from x6wd.core.errors import ConfigError
@@ -40,10 +43,126 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     odo.add_argument(
         "--min-pass-m", type=float, default=2.0, help="shorter straight passes are ignored, m"
     )
+    _add_gnss(sub)
+
+
+def _add_gnss(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    g = sub.add_parser(
+        "gnss",
+        help="seed-003 GPS error terms RE, ASE and the LCE map from reference runs",
+        description="Estimate the [gnss_noise] section (docs/gnss_calibration.md): RE and ASE "
+        "from a static recording at a known position (the white and the slow part of the "
+        "error), the LCE map from drives with a reference trajectory. Recordings: x6wd "
+        "recordings (fix records), RTKLIB .pos files or CSV (t_s, lat, lon[, hdop]).",
+    )
+    g.add_argument("--static", help="static open-sky recording at a known position")
+    g.add_argument("--ref-lat", type=float, help="the static position's latitude, deg")
+    g.add_argument("--ref-lon", type=float, help="the static position's longitude, deg")
+    g.add_argument(
+        "--drive", action="append", default=[], help="a drive's recording (repeat per drive)"
+    )
+    g.add_argument(
+        "--reference",
+        action="append",
+        default=[],
+        help="the reference trajectory of the drive before it (.pos, truth CSV or recording)",
+    )
+    g.add_argument("--re-m", type=float, help="RE, m per axis at HDOP 1 (instead of --static)")
+    g.add_argument("--ase-m", type=float, help="ASE, m per axis at HDOP 1 (instead of --static)")
+    g.add_argument(
+        "--correlation-s", type=float, help="the slow part's correlation time, s (with --re-m)"
+    )
+    g.add_argument("--config", help="take RE, ASE and correlation_s from this configuration")
+    g.add_argument("--cell-m", type=float, default=10.0, help="LCE map cell size, m (10)")
+    g.add_argument("--min-fixes", type=int, default=10, help="fixes a mapped cell needs (10)")
+    g.add_argument(
+        "--min-visits", type=int, default=2, help="separate passes a mapped cell needs (2)"
+    )
+    g.add_argument(
+        "--visit-gap-s", type=float, default=30.0, help="a new pass after this long away, s"
+    )
+    g.add_argument(
+        "--origin", help="LAT,LON of the map's plane (default: the first reference point)"
+    )
+    g.add_argument(
+        "--max-gap-s", type=float, default=1.5, help="longest reference gap to interpolate, s"
+    )
+    g.add_argument("--out", help="write the TOML fragment here (default: only print it)")
+    g.add_argument("--plot", help="write a PNG of the LCE map and the drive track here")
+    g.add_argument("--map-csv", help="write every visited cell (counts, SE, marks) here")
+
+
+def _latlon(text: str) -> tuple[float, float]:
+    try:
+        lat, lon = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--origin {text!r}: expected LAT,LON in degrees") from None
+    return lat, lon
+
+
+def main_gnss(args: argparse.Namespace) -> int:
+    """``x6wd calibrate gnss``: 0 on success."""
+    if not args.static and not args.drive:
+        raise ConfigError("calibrate gnss: give --static, --drive, or both")
+    if len(args.drive) != len(args.reference):
+        raise ConfigError(
+            f"calibrate gnss: {len(args.drive)} --drive but {len(args.reference)} --reference; "
+            "give one reference per drive"
+        )
+    header = [f"x6wd calibrate gnss, {datetime.now(UTC).strftime('%Y-%m-%dT%H:%M:%SZ')}"]
+    static = None
+    if args.static:
+        if args.ref_lat is None or args.ref_lon is None:
+            raise ConfigError("calibrate gnss: --static needs --ref-lat and --ref-lon")
+        static = gnss.static_noise(gnss.load_fixes(args.static), args.ref_lat, args.ref_lon)
+        re_m, ase_m, tau = static.re_m, static.ase_m, static.correlation_s
+        header.append(f"static: {args.static} at {args.ref_lat}, {args.ref_lon}")
+    else:
+        base = (config_mod.load(args.config) if args.config else config_mod.Config()).gnss_noise
+        re_m = gnss.Estimate(args.re_m if args.re_m is not None else base.re_m, 0.0)
+        ase_m = gnss.Estimate(args.ase_m if args.ase_m is not None else base.ase_m, 0.0)
+        tau = args.correlation_s if args.correlation_s is not None else base.correlation_s
+        if args.re_m is None and args.config is None:
+            print(
+                "x6wd calibrate: no --static, --re-m or --config: RE and ASE are the defaults "
+                f"({re_m.value} m, {ase_m.value} m)",
+                file=sys.stderr,
+            )
+    lce = None
+    if args.drive:
+        lce = gnss.drives_lce_map(
+            [
+                (gnss.load_fixes(d), gnss.load_fixes(r))
+                for d, r in zip(args.drive, args.reference, strict=True)
+            ],
+            re_m=re_m.value,
+            ase_m=ase_m.value,
+            origin=_latlon(args.origin) if args.origin else None,
+            max_gap_s=args.max_gap_s,
+            cell_m=args.cell_m,
+            min_fixes=args.min_fixes,
+            min_visits=args.min_visits,
+            visit_gap_s=args.visit_gap_s,
+        )
+        header += [f"drive: {s}" for s in lce.sources]
+    result = gnss.GnssCalibration(re_m, ase_m, tau, static, lce)
+    text = result.toml("\n".join(header))
+    sys.stdout.write(text)
+    if args.out:
+        Path(args.out).write_text(text, encoding="utf-8")
+    if lce is not None and args.map_csv:
+        gnss.write_map_csv(lce, args.map_csv)
+    if lce is not None and args.plot:
+        gnss.plot_lce_map(lce, args.plot, title=", ".join(Path(d).name for d in args.drive))
+    elif args.plot:
+        print("x6wd calibrate: --plot needs --drive (no map to draw)", file=sys.stderr)
+    return 0
 
 
 def main(args: argparse.Namespace) -> int:
     """Run the chosen calibration; 0 on success (errors are X6wdError, exit code 2)."""
+    if args.what == "gnss":
+        return main_gnss(args)
     cpr = args.counts_per_rev
     if cpr is None:
         cfg = config_mod.load(args.config) if args.config else config_mod.Config()

@@ -8,6 +8,7 @@ Every section is a frozen dataclass; a field's ``metadata`` may carry ``min``, `
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import tomllib
 import types
@@ -59,6 +60,55 @@ class OdometryConfig:
     track_m: float = field(default=0.245, metadata=_rng(0.05, 10.0))
     k_left_m: float = field(default=1e-3, metadata=_rng(0.0, 0.1))
     k_right_m: float = field(default=1e-3, metadata=_rng(0.0, 0.1))
+
+
+@dataclass(frozen=True)
+class GnssNoiseConfig:
+    """The GPS error model of seed 003 (eq. 12): a fix's standard deviation PER HORIZONTAL
+    AXIS is ``HDOP·sqrt(re_m² + ase_m² + LCE(position)²)`` (m). ``re_m`` the receiver error
+    (the white part), ``ase_m`` the atmospheric and satellite error (the slow part, a
+    Gauss-Markov process of ``correlation_s``; 0: white, as in the paper); the LCE map in the
+    local tangent plane at ``lce_origin_*``: ``lce_cells`` rows ``[east index, north index,
+    LCE m]`` for the cell ``floor(east / lce_cell_m), floor(north / lce_cell_m)``, and
+    ``lce_default_m`` everywhere else. ``x6wd calibrate gnss`` writes this section;
+    :meth:`lce_m_at` is the lookup :class:`x6wd.nav.estimator.GpsParams` takes as ``lce_m``."""
+
+    re_m: float = field(default=1.0, metadata=_rng(0.0, 100.0))
+    ase_m: float = field(default=1.5, metadata=_rng(0.0, 100.0))
+    correlation_s: float = field(default=120.0, metadata=_rng(0.0, 86400.0))
+    lce_origin_lat_deg: float = field(default=0.0, metadata=_rng(-85.0, 85.0))
+    lce_origin_lon_deg: float = field(default=0.0, metadata=_rng(-180.0, 180.0))
+    lce_cell_m: float = field(default=10.0, metadata=_rng(0.1, 10000.0))
+    lce_default_m: float = field(default=0.0, metadata=_rng(0.0, 1000.0))
+    lce_cells: tuple[tuple[float, ...], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.re_m <= 0.0:
+            raise ConfigError(f"gnss_noise.re_m: must be > 0 (white noise), got {self.re_m}")
+        seen: set[tuple[int, int]] = set()
+        for k, cell in enumerate(self.lce_cells):
+            key = f"gnss_noise.lce_cells[{k}]"
+            if len(cell) != 3:
+                raise ConfigError(f"{key}: expected [east index, north index, LCE m], got {cell}")
+            ie, jn, lce = cell
+            if ie != int(ie) or jn != int(jn) or max(abs(ie), abs(jn)) > 1_000_000:
+                raise ConfigError(f"{key}: cell indices must be integers, got {ie}, {jn}")
+            if not 0.0 <= lce <= 1000.0:
+                raise ConfigError(f"{key}: LCE must be in 0..1000 m, got {lce}")
+            if (int(ie), int(jn)) in seen:
+                raise ConfigError(f"{key}: cell [{int(ie)}, {int(jn)}] given twice")
+            seen.add((int(ie), int(jn)))
+
+    @functools.cached_property
+    def _lce_lookup(self) -> dict[tuple[int, int], float]:
+        return {(int(c[0]), int(c[1])): float(c[2]) for c in self.lce_cells}
+
+    def lce_m_at(self, east_m: float, north_m: float) -> float:
+        """LCE (m) at a point of the map's plane (east/north m of ``lce_origin_*``)."""
+        if not self.lce_cells or not (math.isfinite(east_m) and math.isfinite(north_m)):
+            return self.lce_default_m
+        key = (math.floor(east_m / self.lce_cell_m), math.floor(north_m / self.lce_cell_m))
+        return self._lce_lookup.get(key, self.lce_default_m)
 
 
 @dataclass(frozen=True)
@@ -190,6 +240,7 @@ class Config:
     compass: CompassConfig = field(default_factory=CompassConfig)
     motors: MotorsConfig = field(default_factory=MotorsConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    gnss_noise: GnssNoiseConfig = field(default_factory=GnssNoiseConfig)
     navigation: NavigationConfig = field(default_factory=NavigationConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     server: ServerConfig = field(default_factory=ServerConfig)

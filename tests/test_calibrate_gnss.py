@@ -1,0 +1,381 @@
+"""x6wd calibrate gnss: RE, ASE (static) and the LCE map (drives) of seed 003.
+
+Known truth, two ways:
+
+- synthetic fix series built here with exactly the estimator's model (RE white, ASE a
+  Gauss-Markov process, both scaled by a varying HDOP, 5 % of epochs missing): the estimates
+  must land within their standard errors, and the SEs must match the scatter over seeds;
+- the simulator (sim_backend, seed fidelity): its seed-003 form draws each axis WHITE with
+  ``HDOP·sqrt(re_m² + ase_m² + LCE²)/√2``, so RE and ASE cannot be told apart by time scale
+  there. Static: the simulator's white draw is RE (re_m/√2 per axis) and a ``gauss_markov``
+  layer (sigma_m, tau_s; not scaled by HDOP) is the slow ASE: known ASE = sigma_m·sqrt(mean
+  (1/HDOP²)) over the run's epochs. Drives: the scenario's LCE grid / √2 is the known LCE per
+  cell, its re_m and ase_m (/√2) the subtracted RE and ASE.
+
+And the real urban drive (tests/data/urban, taroz/MatRTKLIB, MIT): a map with sane values.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_backend.geodesy import enu_to_lla
+from sim_backend.receiver import build_receiver
+from sim_backend.world import World, loads_world
+from x6wd.app import cli
+from x6wd.calibrate import gnss
+from x6wd.calibrate.rtklib import parse_pos, read_pos
+from x6wd.core import config
+from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.recorder import Recorder
+from x6wd.core.records import GpsFix
+from x6wd.nav.geo import LocalTangentPlane
+
+ROOT = Path(__file__).resolve().parent.parent
+URBAN = ROOT / "tests" / "data" / "urban"
+ORIGIN = (51.7, 5.0)
+SQRT2 = math.sqrt(2.0)
+
+WORLD = """
+name = "gnss calibration"
+start_utc = "2020-01-01T12:00:00Z"
+[origin]
+lat_deg = 51.7
+lon_deg = 5.0
+alt_m = 10.0
+[gnss]
+fidelity = "seed"
+seed_uere = "re_ase_lce"
+rate_hz = 1.0
+re_m = {re}
+ase_m = {ase}
+lce_cell_m = 10.0
+lce_sigma_m = {grid}
+{effects}
+"""
+# row i = north cell i, column j = east cell j (sim_backend.gnss.LceGrid), metres of range error
+GRID = [
+    [0.0, 1.0, 2.0, 3.0, 4.0, 5.0],
+    [6.0, 0.0, 0.0, 0.0, 0.0, 2.0],
+    [1.5, 0.0, 0.0, 0.0, 0.0, 8.0],
+    [3.0, 2.5, 4.5, 1.0, 0.5, 0.0],
+]
+GM = '[[effects]]\nname = "gauss_markov"\nsigma_m = 1.2\ntau_s = 60.0'
+
+
+def world(re: float, ase: float, effects: str = "", grid: list[list[float]] = GRID) -> World:
+    return loads_world(WORLD.format(re=re, ase=ase, grid=grid, effects=effects))
+
+
+def synthetic_static(
+    seed: int, re_m: float = 0.5, ase_m: float = 1.5, tau_s: float = 60.0, n: int = 7200
+) -> gnss.FixSeries:
+    """Fixes at 1 Hz around ORIGIN: (white RE + Gauss-Markov ASE) per axis times HDOP."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n, dtype=float)
+    hdop = 1.0 + 0.3 * np.sin(2 * np.pi * t / 3000.0) + 0.05 * rng.standard_normal(n)
+    rho = math.exp(-1.0 / tau_s)
+    drive = rng.standard_normal((n, 2)) * ase_m * math.sqrt(1 - rho * rho)
+    drive[0] = rng.standard_normal(2) * ase_m
+    slow = np.zeros((n, 2))
+    slow[0] = drive[0]
+    for i in range(1, n):
+        slow[i] = rho * slow[i - 1] + drive[i]
+    err = (slow + re_m * rng.standard_normal((n, 2))) * hdop[:, None]
+    lat, lon = LocalTangentPlane(*ORIGIN).to_latlon(err[:, 0], err[:, 1])
+    keep = rng.random(n) > 0.05
+    return gnss.FixSeries(
+        t[keep], np.full(int(keep.sum()), np.nan), np.asarray(lat)[keep],
+        np.asarray(lon)[keep], hdop[keep], True,
+    )  # fmt: skip
+
+
+def loop_track(laps: int) -> tuple[np.ndarray, np.ndarray]:
+    """1 Hz along a 50 x 30 m rectangle at 1 m/s (160 s a lap), off the cell borders."""
+
+    def at(s: float) -> tuple[float, float, float]:
+        s %= 160.0
+        if s < 50:
+            return 5.5 + s, 5.5, 0.0
+        if s < 80:
+            return 55.5, 5.5 + (s - 50), 0.0
+        if s < 130:
+            return 55.5 - (s - 80), 35.5, 0.0
+        return 5.5, 35.5 - (s - 130), 0.0
+
+    t = np.arange(160 * laps, dtype=float)
+    return t, np.array([at(x) for x in t])
+
+
+def sim_fixes(w: World, seed: int, t: np.ndarray, pos: np.ndarray) -> list[GpsFix]:
+    b = build_receiver(w, seed).batch(t, pos, np.gradient(pos, axis=0))
+    return [
+        GpsFix(float(t[i]), lat_deg=float(b.lat_deg[i]), lon_deg=float(b.lon_deg[i]),
+               hdop=float(b.hdop[i]), quality=1, valid=True, mode=3)
+        for i in np.flatnonzero(b.valid)
+    ]  # fmt: skip
+
+
+def truth_series(w: World, t: np.ndarray, pos: np.ndarray) -> gnss.FixSeries:
+    o = w.origin
+    lat, lon, _ = enu_to_lla(pos, o.lat_deg, o.lon_deg, o.alt_m)
+    n = t.shape[0]
+    return gnss.FixSeries(
+        t, np.full(n, np.nan), np.asarray(lat, float), np.asarray(lon, float), np.ones(n), True
+    )
+
+
+def write_recording(path: Path, fixes: list[GpsFix]) -> Path:
+    with Recorder(path) as rec:
+        for f in fixes:
+            rec.record_fix(f)
+    return path
+
+
+def write_truth_csv(path: Path, ref: gnss.FixSeries) -> Path:
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t_s", "lat", "lon", "alt", "heading_deg"])
+        for t, la, lo in zip(ref.t_s, ref.lat_deg, ref.lon_deg, strict=True):
+            w.writerow([f"{t:.3f}", f"{la:.9f}", f"{lo:.9f}", "10.0", "0.0"])
+    return path
+
+
+# ------------------------------------------------------------------------------ static
+
+
+def test_static_recovers_re_and_ase_of_the_estimators_model_within_their_ses() -> None:
+    r = gnss.static_noise(synthetic_static(1), *ORIGIN)
+    assert abs(r.re_m.value - 0.5) < 3 * r.re_m.se and r.re_m.se < 0.02
+    assert abs(r.ase_m.value - 1.5) < 3 * r.ase_m.se and r.ase_m.se < 0.15
+    assert 30.0 < r.correlation_s < 120.0  # true 60 s; rough by design
+    assert r.hdop_known and r.fixes > 6700
+
+
+def test_static_standard_errors_are_honest_over_seeds() -> None:
+    runs = [gnss.static_noise(synthetic_static(s), *ORIGIN) for s in range(24)]
+    for key, truth in (("re_m", 0.5), ("ase_m", 1.5)):
+        est = np.array([getattr(r, key).value for r in runs])
+        se = np.array([getattr(r, key).se for r in runs])
+        assert abs(est.mean() - truth) < 3 * est.std() / math.sqrt(len(runs)), key  # unbiased
+        assert 0.6 < se.mean() / est.std() < 1.6, (key, se.mean(), est.std())
+
+
+def test_static_white_error_is_all_re_and_a_constant_offset_is_ase() -> None:
+    white = synthetic_static(3, re_m=1.0, ase_m=1e-6)
+    r = gnss.static_noise(white, *ORIGIN)
+    assert r.re_m.value == pytest.approx(1.0, abs=3 * r.re_m.se)
+    assert r.ase_m.value < 0.2
+    # the same white noise 2 m east of the reference: the offset is slow error (ASE)
+    shifted = LocalTangentPlane(*ORIGIN)
+    x, y = shifted.to_xy(white.lat_deg, white.lon_deg)
+    lat, lon = shifted.to_latlon(np.asarray(x) + 2.0 * white.hdop, np.asarray(y))
+    r2 = gnss.static_noise(
+        gnss.FixSeries(white.t_s, white.t_gpst_s, np.asarray(lat), np.asarray(lon), white.hdop,
+                       True),
+        *ORIGIN,
+    )  # fmt: skip
+    assert r2.re_m.value == pytest.approx(r.re_m.value, abs=0.02)
+    assert r2.ase_m.value == pytest.approx(math.sqrt(2.0), abs=0.1)  # 2 m on one axis of two
+    assert r2.bias_east_m > 1.9
+
+
+def test_static_on_the_simulator_recovers_its_white_and_gauss_markov_parts() -> None:
+    w = world(re=0.8, ase=0.0, effects=GM, grid=[[0.0]])
+    n = 7200
+    t, pos = np.arange(n, dtype=float), np.zeros((n, 3))
+    fixes = sim_fixes(w, 5, t, pos)
+    series = gnss.FixSeries.from_fixes(fixes)
+    r = gnss.static_noise(series, w.origin.lat_deg, w.origin.lon_deg)
+    known_re = 0.8 / SQRT2  # the seed form's white draw per axis at HDOP 1
+    known_ase = 1.2 * math.sqrt(float(np.mean(1.0 / series.hdop**2)))  # GM not scaled by HDOP
+    assert abs(r.re_m.value - known_re) < 3 * r.re_m.se, (r.re_m, known_re)
+    assert abs(r.ase_m.value - known_ase) < 3 * r.ase_m.se, (r.ase_m, known_ase)
+    assert 30.0 < r.correlation_s < 150.0  # the layer's tau_s = 60
+
+
+def test_static_refuses_too_little_data() -> None:
+    with pytest.raises(ConfigError, match="need at least 100"):
+        gnss.static_noise(synthetic_static(1, n=80), *ORIGIN)
+    every_10_s = synthetic_static(1, n=3000)
+    sparse = gnss.FixSeries(
+        every_10_s.t_s[::10], every_10_s.t_gpst_s[::10], every_10_s.lat_deg[::10],
+        every_10_s.lon_deg[::10], every_10_s.hdop[::10], True,
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match="pairs"):
+        gnss.static_noise(sparse, *ORIGIN, epoch_s=1.0)
+
+
+# ------------------------------------------------------------------------------ LCE map
+
+
+def test_lce_map_recovers_the_simulators_grid_within_its_ses() -> None:
+    w = world(re=0.6, ase=0.9)
+    t, pos = loop_track(laps=12)
+    fixes = gnss.FixSeries.from_fixes(sim_fixes(w, 1, t, pos))
+    lm = gnss.drives_lce_map(
+        [(fixes, truth_series(w, t, pos))], re_m=0.6 / SQRT2, ase_m=0.9 / SQRT2, origin=ORIGIN
+    )
+    grid = np.array(GRID) / SQRT2
+    mapped = lm.mapped()
+    assert len(mapped) == 16 and all(c.visits in (12, 13) for c in mapped)  # start cell: 13
+    z = []
+    for c in mapped:
+        truth = grid[c.north_index, c.east_index]
+        assert abs(c.lce_m - truth) < 4 * c.se_m, (c, truth)
+        if truth > 0:
+            z.append((c.lce_m - truth) / c.se_m)
+    assert 0.3 < float(np.mean(np.square(z))) < 2.5  # SEs of the right size
+    # a cell of LCE 8/√2 = 5.66 m is told from one of 0
+    big = next(c for c in mapped if (c.east_index, c.north_index) == (5, 2))
+    assert big.lce_m > 4.5 and big.se_m < 0.5
+
+
+def test_lce_cells_need_enough_fixes_and_visits() -> None:
+    w = world(re=0.6, ase=0.9)
+    t, pos = loop_track(laps=1)
+    lm = gnss.drives_lce_map(
+        [(gnss.FixSeries.from_fixes(sim_fixes(w, 2, t, pos)), truth_series(w, t, pos))],
+        re_m=0.4, ase_m=0.6, origin=ORIGIN,
+    )  # fmt: skip
+    assert lm.cells and not lm.mapped()  # one lap: one visit per cell (the start cell two)
+    others = [c for c in lm.cells if (c.east_index, c.north_index) != (0, 0)]
+    assert all(c.visits == 1 and c.se_over == "fixes" for c in others)
+    text = gnss.GnssCalibration(
+        gnss.Estimate(0.4, 0.0), gnss.Estimate(0.6, 0.0), 120.0, None, lm
+    ).toml()
+    assert "lce_cells = [\n]" in text and "too little data" in text
+    got = config.loads(text).gnss_noise
+    assert got.lce_m_at(10.0, 5.0) == got.lce_default_m
+    assert got.lce_default_m == pytest.approx(lm.default.value, abs=1e-3)
+
+
+def test_cli_static_and_drive_write_a_fragment_the_daemon_loads(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    static_w = world(re=0.8, ase=0.0, effects=GM, grid=[[0.0]])
+    n = 3600
+    static = write_recording(
+        tmp_path / "static.jsonl",
+        sim_fixes(static_w, 3, np.arange(n, dtype=float), np.zeros((n, 3))),
+    )
+    w = world(re=0.8, ase=0.0)
+    t, pos = loop_track(laps=6)
+    drive = write_recording(tmp_path / "drive.jsonl", sim_fixes(w, 4, t, pos))
+    truth = write_truth_csv(tmp_path / "truth.csv", truth_series(w, t, pos))
+    out, png, table = tmp_path / "gnss.toml", tmp_path / "map.png", tmp_path / "map.csv"
+    argv = [
+        "calibrate", "gnss", "--static", str(static), "--ref-lat", "51.7", "--ref-lon", "5.0",
+        "--drive", str(drive), "--reference", str(truth), "--origin", "51.7,5.0",
+        "--min-fixes", "20", "--out", str(out), "--plot", str(png), "--map-csv", str(table),
+    ]  # fmt: skip
+    assert cli.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert printed == out.read_text()
+    got = config.loads(printed).gnss_noise  # the daemon loads it as it is
+    assert got.re_m == pytest.approx(0.8 / SQRT2, abs=0.03)
+    assert 0.8 < got.ase_m < 1.6 and got.correlation_s > 10
+    assert (got.lce_origin_lat_deg, got.lce_origin_lon_deg, got.lce_cell_m) == (51.7, 5.0, 10.0)
+    assert len(got.lce_cells) == 16
+    # the lookup the estimator would take: cell (5, 2) is LCE 8/√2, (1, 0) 1/√2
+    assert got.lce_m_at(55.5, 25.0) == pytest.approx(8 / SQRT2, rel=0.25)
+    assert got.lce_m_at(15.0, 5.0) < 1.5
+    assert got.lce_m_at(-500.0, 0.0) == got.lce_default_m
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = list(csv.DictReader(table.open()))
+    assert len(rows) >= 16 and {"lce_m", "se_m", "fixes", "visits", "enough"} <= set(rows[0])
+
+
+def test_cli_refuses_a_drive_without_its_reference(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rec = write_recording(tmp_path / "d.jsonl", [GpsFix(1.0, lat_deg=51.7, lon_deg=5.0,
+                                                        valid=True)])  # fmt: skip
+    assert cli.main(["calibrate", "gnss", "--drive", str(rec)]) == 2
+    assert "one reference per drive" in capsys.readouterr().err
+    assert cli.main(["calibrate", "gnss", "--static", str(rec)]) == 2
+    assert "--ref-lat" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ config
+
+
+def test_gnss_noise_section_is_range_checked() -> None:
+    ok = config.loads("[gnss_noise]\nre_m = 0.4\nlce_cells = [[0, -1, 2.5], [3, 4, 0]]\n")
+    assert ok.gnss_noise.lce_m_at(5.0, -5.0) == 2.5
+    assert ok.gnss_noise.lce_m_at(35.0, 45.0) == 0.0
+    assert config.Config().gnss_noise.re_m == 1.0  # the estimator's default
+    for bad, why in (
+        ("re_m = 0", "must be > 0"),
+        ("ase_m = -1", ">= 0"),
+        ("lce_cell_m = 0", ">= 0.1"),
+        ("lce_cells = [[0, 0]]", "expected \\[east index"),
+        ("lce_cells = [[0.5, 0, 1]]", "integers"),
+        ("lce_cells = [[0, 0, -1]]", "0..1000"),
+        ("lce_cells = [[0, 0, 1], [0, 0, 2]]", "twice"),
+        ("correlation_s = -5", ">= 0"),
+        ("lce_origin_lat_deg = 91", "<= 85"),
+    ):
+        with pytest.raises(ConfigError, match=why):
+            config.loads(f"[gnss_noise]\n{bad}\n")
+
+
+def test_the_commented_example_in_the_robot_config_loads() -> None:
+    text = (ROOT / "config" / "x6wd.toml").read_text()
+    block = text[text.index("[gnss_noise]") :].split("\n\n")[0]
+    example = [
+        line.removeprefix("# ").split("  #")[0]
+        for line in block.splitlines()
+        if line.startswith(("# lce_", "#   [", "# ]"))
+    ]
+    assert len(example) == 9
+    got = config.loads("[gnss_noise]\n" + "\n".join(example)).gnss_noise
+    assert got.lce_m_at(15.0, 15.0) == 6.8 and got.lce_m_at(-1.0, 0.0) == got.lce_default_m
+
+
+# ------------------------------------------------------------------------------ real data
+
+
+def test_rtklib_reader_reads_the_urban_files_and_refuses_other_formats() -> None:
+    rover, ref = read_pos(URBAN / "rover_1Hz_spp.pos"), read_pos(URBAN / "reference_1Hz.pos")
+    assert (len(rover), len(ref)) == (550, 1231)
+    assert set(rover.quality.tolist()) == {5} and set(ref.quality.tolist()) == {1}
+    assert rover.sdn_m[0] == pytest.approx(3.4239) and rover.n_sats[0] == 20
+    assert ref.t_gpst_s[-1] - ref.t_gpst_s[0] == pytest.approx(1230.0)
+    with pytest.raises(ParseError, match=r"x\.pos:2: not an RTKLIB"):
+        parse_pos("% header\n2023/07/11 06:04:30.000 1 2\n", "x.pos")
+    with pytest.raises(ParseError, match="no solution lines"):
+        parse_pos("% only a header\n")
+
+
+def test_urban_drive_gives_a_sane_lce_map(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One real drive (550 single-point fixes against RTK): README figures median 2.9 m,
+    95 % 27 m horizontal. RE and ASE of that receiver are unknown, so they are set
+    negligible (0.1 m) and the LCE holds the whole error; one pass, so min_visits 1."""
+    out, png = tmp_path / "urban.toml", tmp_path / "urban.png"
+    argv = [
+        "calibrate", "gnss", "--drive", str(URBAN / "rover_1Hz_spp.pos"),
+        "--reference", str(URBAN / "reference_1Hz.pos"), "--re-m", "0.1", "--ase-m", "0.1",
+        "--cell-m", "50", "--min-fixes", "5", "--min-visits", "1",
+        "--out", str(out), "--plot", str(png),
+    ]  # fmt: skip
+    assert cli.main(argv) == 0
+    capsys.readouterr()
+    got = config.loads(out.read_text()).gnss_noise
+    assert 10 <= len(got.lce_cells) <= 40
+    lce = np.array([c[2] for c in got.lce_cells])
+    assert 1.5 < float(np.median(lce)) < 4.5  # per axis; 2.9 m horizontal median ~ 2.5 m
+    assert 8.0 < float(np.percentile(lce, 95)) < 40.0
+    assert 5.0 < got.lce_default_m < 15.0  # all fixes pooled: RMS, pulled up by the tail
+    assert "550 fixes matched (0 without reference)" in out.read_text()
+    assert png.stat().st_size > 10_000
+    header = tomllib.loads(out.read_text())["gnss_noise"]
+    assert header["lce_cell_m"] == 50.0

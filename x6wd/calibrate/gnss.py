@@ -1,0 +1,728 @@
+"""GNSS error calibration (seed 003, section 3): RE, ASE and the LCE map from reference runs.
+
+The seed paper writes the GPS fix's uncertainty as ``σ = DOP·sqrt(RE² + ASE² + LCE(position)²)``
+(eq. 12) and measures its three terms in three experiments: RE (receiver error) with the
+receiver standing in the open with ASE removed (RTK), ASE (atmosphere, satellite clock and
+orbit) standing in the open without RTK, and LCE (local characteristic error: multipath,
+foliage) per area of a map by repeated driving with the first two subtracted.
+
+Units and convention, the same as :class:`x6wd.nav.estimator.GpsParams`, which uses the
+result: every term is a standard deviation PER HORIZONTAL AXIS (east, north) in metres at
+HDOP 1; a fix with HDOP ``h`` has per-axis variance ``h²·(RE² + ASE² + LCE²)``. (The
+simulator's seed-003 form draws each axis with ``h·UERE/√2``: its ``re_m``, ``ase_m`` and
+LCE grid are √2 times these.) Fixes without an HDOP (RTKLIB files) are taken at HDOP 1.
+
+**Static recording, known position: RE and ASE** (:func:`static_noise`). With one receiver
+and no RTK, RE and ASE are told apart by their time scales, as the estimator models them:
+RE is the WHITE part of the error (receiver noise decorrelates from one epoch to the next),
+ASE the SLOW part (a first-order Gauss-Markov process, correlation time τ of minutes; a
+constant offset counts as slow). With ``z = error / HDOP`` per axis, epoch spacing ``Δt``,
+``ρ = exp(−Δt/τ)`` and both axes pooled:
+
+- the mean square about the known position, ``M = mean(z²) → RE² + ASE²`` (the reference is
+  known, so a bias is kept in it, not removed with a sample mean);
+- the variogram at lags of one and two epochs, ``γ(k) = ½·mean((z(t+kΔt) − z(t))²) →
+  RE² + ASE²·(1 − ρ^k)``. RE² is the variogram's nugget, its value extrapolated to lag 0⁺;
+  from lags 1 and 2, ``RE² = 2γ(1) − γ(2) + ASE²·(1 − ρ)²`` (the last term is the exponential's
+  curvature, a few per mille of ASE² for τ ≥ 20 Δt);
+- ``ASE² = M − RE²`` and ``τ = −Δt / ln ρ`` with ``ρ = 1 − (γ(1) − RE²)/ASE²``; the three
+  equations are solved by fixed-point iteration (they converge in a few steps).
+
+Pairs for the variogram are only epochs exactly k·Δt apart, so gaps cost pairs, not bias.
+Standard errors: RE² by a delete-one-block jackknife over 20 contiguous blocks (the variogram
+at lag 1 and 2 is local in time); M from the Gauss-Markov model itself,
+``Var(M) = [ASE⁴·(1 + ρ²)/(1 − ρ²) + 2·RE²·ASE² + RE⁴] / n`` with n fixes (per axis, then the two
+axes averaged), the factor (1 + ρ²)/(1 − ρ²) capped at n (a record shorter than τ is one
+sample of the slow error). ASE² carries both. An estimate that comes out negative is set to 0.
+τ is given without a standard error: it is rough unless the record lasts many τ.
+
+**Drives with a reference trajectory: the LCE map** (:func:`lce_map`). Each fix is matched
+with the reference at its time (linear interpolation between reference epochs no more than
+``max_gap_s`` apart; an x6wd recording matches a GPST ``.pos`` reference through its UTC
+stamp plus the GPS-UTC leap seconds), its error ``z² = (e_E² + e_N²) / (2·HDOP²)`` and its
+cell from the REFERENCE position: cells of ``cell_m`` in the local tangent plane at
+``origin``, indexed ``(floor(east/cell), floor(north/cell))``. Per cell::
+
+    LCE² = mean(z²) − RE² − ASE²        (0 when negative)
+
+with the count of fixes, the count of VISITS (fixes in the cell less than ``visit_gap_s``
+apart belong to one pass; passes are the independent repetitions of the paper's "repeated
+driving") and a standard error. The SE of mean(z²) is cluster-robust over visits (fixes within
+one pass are correlated); with a single visit it is the naive one over fixes, which is too
+small when the errors are correlated: such cells are marked by ``min_visits`` (default 2).
+``SE(LCE) = sqrt(LCE² + SE(LCE²)) − LCE`` (the delta method's ``SE(LCE²)/(2·LCE)`` for a clear
+LCE, ``sqrt(SE(LCE²))`` at 0). Cells with fewer than ``min_fixes`` fixes or ``min_visits``
+visits are marked (kept in the table, left out of the configuration). ``lce_default_m``, for
+marked and unvisited cells, is the same estimate pooled over every matched fix.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from x6wd.calibrate.rtklib import looks_like_pos, read_pos
+from x6wd.core.config import GnssNoiseConfig, build
+from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.recorder import decode_record, read_recording_parts
+from x6wd.core.records import GpsFix
+from x6wd.nav.geo import LocalTangentPlane
+
+Array = npt.NDArray[np.float64]
+
+GPS_UTC_LEAP_S = 18.0
+"""GPS time minus UTC since 2017-01-01 (s): turns an x6wd fix's UTC into GPST for a ``.pos``
+reference. Recordings from before 2017 would need the older value."""
+
+JACKKNIFE_BLOCKS = 20
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A value and its standard error (same unit)."""
+
+    value: float
+    se: float
+
+
+# ------------------------------------------------------------------------------ inputs
+
+
+@dataclass(frozen=True)
+class FixSeries:
+    """Positions with their times: ``t_s`` on the source's own clock (s), ``t_gpst_s`` GPST
+    (s, as :mod:`x6wd.calibrate.rtklib` counts it; NaN where unknown), latitude/longitude
+    (deg) and HDOP (dimensionless; 1 where the source has none, see ``hdop_known``)."""
+
+    t_s: Array
+    t_gpst_s: Array
+    lat_deg: Array
+    lon_deg: Array
+    hdop: Array
+    hdop_known: bool
+    source: str = ""
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    @classmethod
+    def from_fixes(cls, fixes: Sequence[GpsFix], source: str = "") -> FixSeries:
+        """Valid fixes with a position, sorted by time; a missing HDOP reads as 1."""
+        good = sorted(
+            (f for f in fixes if f.valid and f.lat_deg is not None and f.lon_deg is not None),
+            key=lambda f: f.t_s,
+        )
+        if not good:
+            raise ParseError(f"{source or 'fixes'}: no valid fix with a position")
+        hd = [f.hdop for f in good]
+        return cls(
+            t_s=np.array([f.t_s for f in good], float),
+            t_gpst_s=np.array(
+                [
+                    f.utc.timestamp() + GPS_UTC_LEAP_S if f.utc is not None else math.nan
+                    for f in good
+                ]
+            ),
+            lat_deg=np.array([f.lat_deg for f in good], float),
+            lon_deg=np.array([f.lon_deg for f in good], float),
+            hdop=np.array([h if h is not None and h > 0 else 1.0 for h in hd], float),
+            hdop_known=all(h is not None and h > 0 for h in hd),
+            source=source,
+        )
+
+
+def load_fixes(path: str | Path) -> FixSeries:
+    """Fixes from an RTKLIB ``.pos`` file (every solved epoch, HDOP 1), an x6wd recording
+    (its valid ``fix`` records, all parts) or a CSV with ``t_s``, ``lat``, ``lon`` columns
+    (``x6wd sim``'s ``truth.csv``; optional ``hdop``)."""
+    p = Path(path)
+    if looks_like_pos(p):
+        sol = read_pos(p)
+        order = np.argsort(sol.t_gpst_s, kind="stable")
+        return FixSeries(
+            t_s=sol.t_gpst_s[order],
+            t_gpst_s=sol.t_gpst_s[order],
+            lat_deg=sol.lat_deg[order],
+            lon_deg=sol.lon_deg[order],
+            hdop=np.ones(len(sol)),
+            hdop_known=False,
+            source=str(p),
+        )
+    if p.suffix.lower() == ".csv":
+        return _load_csv(p)
+    fixes: list[GpsFix] = []
+    for rec in read_recording_parts(p):
+        if rec.type == "fix":
+            typed = decode_record(rec)
+            if isinstance(typed, GpsFix):
+                fixes.append(typed)
+    return FixSeries.from_fixes(fixes, str(p))
+
+
+def _load_csv(p: Path) -> FixSeries:
+    try:
+        with open(p, newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+    except OSError as exc:
+        raise ParseError(f"cannot read {p}: {exc.strerror or exc}") from exc
+    if not rows or not {"t_s", "lat", "lon"} <= set(rows[0]):
+        raise ParseError(f"{p}: a CSV reference needs the columns t_s, lat, lon")
+    try:
+        t = np.array([float(r["t_s"]) for r in rows])
+        lat = np.array([float(r["lat"]) for r in rows])
+        lon = np.array([float(r["lon"]) for r in rows])
+        hdop = np.array([float(r.get("hdop") or 1.0) for r in rows])
+    except ValueError as exc:
+        raise ParseError(f"{p}: not a number: {exc}") from exc
+    order = np.argsort(t, kind="stable")
+    return FixSeries(
+        t[order], np.full(t.shape, math.nan), lat[order], lon[order], hdop[order],
+        "hdop" in rows[0], str(p),
+    )  # fmt: skip
+
+
+# ------------------------------------------------------------------------------ RE and ASE
+
+
+@dataclass(frozen=True)
+class StaticResult:
+    """RE and ASE (m per axis at HDOP 1) with their standard errors, the correlation time of
+    the slow part (s, rough), and what they came from."""
+
+    re_m: Estimate
+    ase_m: Estimate
+    correlation_s: float
+    mean_square_m2: float  # M, per axis at HDOP 1
+    gamma1_m2: float
+    gamma2_m2: float
+    bias_east_m: float  # mean error, m (at the recording's HDOPs)
+    bias_north_m: float
+    fixes: int
+    duration_s: float
+    epoch_s: float
+    hdop_known: bool
+    mean_hdop: float
+
+
+def _variogram_sums(z: Array, idx: npt.NDArray[np.int64], lag: int) -> tuple[Array, Array]:
+    """Per-pair squared differences (both axes summed) at ``lag`` epochs and the pair's
+    first index. ``idx`` the epoch numbers of the fixes (increasing integers)."""
+    pos = np.searchsorted(idx, idx + lag)
+    ok = pos < idx.shape[0]
+    ok[ok] = idx[pos[ok]] == idx[ok] + lag
+    i = np.flatnonzero(ok)
+    d = z[pos[ok]] - z[i]
+    return (d * d).sum(axis=1), i.astype(float)
+
+
+def _solve_re_ase(m: float, g1: float, g2: float) -> tuple[float, float, float]:
+    """RE², ASE² and ρ from M, γ(1), γ(2) (module docstring); negatives clamped to 0."""
+    re2 = max(2.0 * g1 - g2, 0.0)
+    ase2 = max(m - re2, 0.0)
+    rho = 0.0
+    for _ in range(50):
+        rho = 1.0 - (g1 - re2) / ase2 if ase2 > 0 else 0.0
+        rho = min(max(rho, 0.0), 1.0)
+        new = min(max(2.0 * g1 - g2 + ase2 * (1.0 - rho) ** 2, 0.0), m)
+        if abs(new - re2) < 1e-12 * max(m, 1e-12):
+            re2 = new
+            break
+        re2 = new
+        ase2 = max(m - re2, 0.0)
+    return re2, max(m - re2, 0.0), rho
+
+
+def static_noise(
+    fixes: FixSeries, ref_lat_deg: float, ref_lon_deg: float, *, epoch_s: float | None = None
+) -> StaticResult:
+    """RE and ASE from a static recording at a known position (module docstring).
+
+    ``epoch_s``: the receiver's epoch spacing (s); default the median spacing of the fixes.
+    Needs at least 100 fixes and 50 pairs at lags 1 and 2."""
+    n = len(fixes)
+    if n < 100:
+        raise ConfigError(f"static: {n} fixes; need at least 100 (an hour at 1 Hz is better)")
+    plane = LocalTangentPlane(ref_lat_deg, ref_lon_deg)
+    x, y = plane.to_xy(fixes.lat_deg, fixes.lon_deg)
+    err = np.column_stack([np.asarray(x, float), np.asarray(y, float)])
+    z = err / fixes.hdop[:, None]
+    t = fixes.t_s - fixes.t_s[0]
+    dt = float(np.median(np.diff(t))) if epoch_s is None else float(epoch_s)
+    if not (dt > 0 and math.isfinite(dt)):
+        raise ConfigError(f"static: epoch spacing must be > 0 s, got {dt!r}")
+    idx = np.round(t / dt).astype(np.int64)
+    keep = np.concatenate(([True], np.diff(idx) > 0))  # one fix per epoch
+    z, idx, t = z[keep], idx[keep], t[keep]
+    n = z.shape[0]
+    d1, i1 = _variogram_sums(z, idx, 1)
+    d2, i2 = _variogram_sums(z, idx, 2)
+    if d1.size < 50 or d2.size < 50:
+        raise ConfigError(
+            f"static: {d1.size} pairs one epoch apart and {d2.size} two apart; need 50 each "
+            f"(epoch {dt:g} s: are the fixes that far apart?)"
+        )
+    zz = (z * z).sum(axis=1)
+    m = float(zz.mean()) / 2.0
+    g1, g2 = float(d1.mean()) / 4.0, float(d2.mean()) / 4.0  # ½·mean over pairs and axes
+    re2, ase2, rho = _solve_re_ase(m, g1, g2)
+
+    # RE²: delete-one-block jackknife (the estimate depends on M only through the small
+    # curvature term, which the jackknife carries too)
+    edges = np.linspace(0, n, JACKKNIFE_BLOCKS + 1).astype(int)
+    reps = []
+    for b in range(JACKKNIFE_BLOCKS):
+        lo, hi = edges[b], edges[b + 1]
+        k1 = (i1 < lo) | (i1 >= hi)
+        k2 = (i2 < lo) | (i2 >= hi)
+        kz = np.ones(n, bool)
+        kz[lo:hi] = False
+        if k1.sum() < 10 or k2.sum() < 10:
+            continue
+        r2, _, _ = _solve_re_ase(
+            float(zz[kz].mean()) / 2.0, float(d1[k1].mean()) / 4.0, float(d2[k2].mean()) / 4.0
+        )
+        reps.append(r2)
+    nb = len(reps)
+    var_re2 = (nb - 1) / nb * float(np.sum((np.array(reps) - np.mean(reps)) ** 2)) if nb > 1 else 0
+    # M: the Gauss-Markov law (per axis, then the mean of two independent axes)
+    factor = min((1.0 + rho * rho) / (1.0 - rho * rho), float(n)) if rho < 1.0 else float(n)
+    var_m = (ase2 * ase2 * factor + 2.0 * re2 * ase2 + re2 * re2) / n
+    var_ase2 = var_m + var_re2
+    tau = -dt / math.log(rho) if 0.0 < rho < 1.0 else (math.inf if rho >= 1.0 else 0.0)
+    return StaticResult(
+        re_m=_root(re2, var_re2),
+        ase_m=_root(ase2, var_ase2),
+        correlation_s=tau,
+        mean_square_m2=m,
+        gamma1_m2=g1,
+        gamma2_m2=g2,
+        bias_east_m=float(err[keep, 0].mean()),
+        bias_north_m=float(err[keep, 1].mean()),
+        fixes=n,
+        duration_s=float(t[-1] - t[0]),
+        epoch_s=dt,
+        hdop_known=fixes.hdop_known,
+        mean_hdop=float(fixes.hdop.mean()),
+    )
+
+
+def _root(v2: float, var_v2: float) -> Estimate:
+    """sqrt of a variance estimate with its SE: ``sqrt(v² + SE(v²)) − v`` (module docstring)."""
+    v = math.sqrt(max(v2, 0.0))
+    s2 = math.sqrt(max(var_v2, 0.0))
+    return Estimate(v, math.sqrt(v * v + s2) - v)
+
+
+# ------------------------------------------------------------------------------ LCE map
+
+
+@dataclass(frozen=True)
+class Matched:
+    """Fixes matched with the reference: time (s, the fix's clock), reference east/north
+    (m, in the map's plane), error east/north (m), HDOP, and which drive they came from."""
+
+    t_s: Array
+    ref_east_m: Array
+    ref_north_m: Array
+    err_east_m: Array
+    err_north_m: Array
+    hdop: Array
+    drive: npt.NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+
+def match_reference(
+    fixes: FixSeries, reference: FixSeries, plane: LocalTangentPlane, *, max_gap_s: float = 1.5
+) -> tuple[Matched, int]:
+    """Each fix against the reference at its time; (matched fixes, how many had no reference).
+
+    Clock: GPST when both have it, else each source's own ``t_s`` (the same clock, e.g. a
+    simulated run and its ``truth.csv``). The reference is interpolated linearly between its
+    two epochs around the fix when they are at most ``max_gap_s`` apart (an exact time match
+    needs no neighbour)."""
+    use_gpst = bool(np.isfinite(fixes.t_gpst_s).all() and np.isfinite(reference.t_gpst_s).all())
+    tf = fixes.t_gpst_s if use_gpst else fixes.t_s
+    tr = reference.t_gpst_s if use_gpst else reference.t_s
+    rx, ry = (np.asarray(v, float) for v in plane.to_xy(reference.lat_deg, reference.lon_deg))
+    fx, fy = (np.asarray(v, float) for v in plane.to_xy(fixes.lat_deg, fixes.lon_deg))
+    j = np.searchsorted(tr, tf)  # tr[j-1] < tf <= tr[j]
+    jr = np.clip(j, 0, tr.size - 1)
+    jl = np.clip(j - 1, 0, tr.size - 1)
+    exact = np.abs(tr[jr] - tf) <= 1e-3
+    inside = (j > 0) & (j < tr.size)
+    span = tr[jr] - tr[jl]
+    ok = exact | (inside & (span <= max_gap_s) & (span > 0))
+    w = np.where(exact | (span <= 0), 1.0, (tf - tr[jl]) / np.where(span > 0, span, 1.0))
+    ex = np.where(exact, rx[jr], rx[jl] + w * (rx[jr] - rx[jl]))
+    ey = np.where(exact, ry[jr], ry[jl] + w * (ry[jr] - ry[jl]))
+    m = Matched(
+        t_s=tf[ok],
+        ref_east_m=ex[ok],
+        ref_north_m=ey[ok],
+        err_east_m=(fx - ex)[ok],
+        err_north_m=(fy - ey)[ok],
+        hdop=fixes.hdop[ok],
+        drive=np.zeros(int(ok.sum()), np.int64),
+    )
+    return m, int((~ok).sum())
+
+
+def concat(parts: Sequence[Matched]) -> Matched:
+    """Matched fixes of several drives, each drive numbered (visits never span drives)."""
+
+    def cat(name: str) -> Array:
+        return np.concatenate([getattr(p, name) for p in parts])
+
+    return Matched(
+        t_s=cat("t_s"),
+        ref_east_m=cat("ref_east_m"),
+        ref_north_m=cat("ref_north_m"),
+        err_east_m=cat("err_east_m"),
+        err_north_m=cat("err_north_m"),
+        hdop=cat("hdop"),
+        drive=np.concatenate([np.full(len(p), k, np.int64) for k, p in enumerate(parts)]),
+    )
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One map cell: indices (east, north), LCE (m) ± SE, fixes and visits, the RMS error per
+    axis at HDOP 1 (m), whether it has enough data, and how its SE was formed."""
+
+    east_index: int
+    north_index: int
+    lce_m: float
+    se_m: float
+    fixes: int
+    visits: int
+    rms_m: float
+    enough: bool
+    se_over: str  # "visits" (cluster-robust) or "fixes" (one visit: assumes independence)
+
+
+@dataclass(frozen=True)
+class LceMap:
+    """The LCE map: plane origin (deg), cell size (m), RE/ASE used (m), the cells with any
+    fix, the pooled LCE for cells without a value, the rules and the matched fixes."""
+
+    origin_lat_deg: float
+    origin_lon_deg: float
+    cell_m: float
+    re_m: float
+    ase_m: float
+    cells: tuple[Cell, ...]
+    default: Estimate
+    min_fixes: int
+    min_visits: int
+    matched: Matched
+    unmatched: int
+    hdop_known: bool = True
+    sources: tuple[str, ...] = field(default=())
+    tracks: tuple[Array, ...] = field(default=())  # (n, 2) reference east/north per drive, m
+
+    def mapped(self) -> list[Cell]:
+        """The cells with enough data (the ones written to the configuration)."""
+        return [c for c in self.cells if c.enough]
+
+    def summary(self) -> dict[str, float]:
+        """Cells (all, mapped), fixes, and the median, 95th percentile and max LCE (m) over
+        the mapped cells."""
+        v = np.array([c.lce_m for c in self.mapped()])
+        q = (lambda p: float(np.percentile(v, p))) if v.size else (lambda p: math.nan)
+        return {
+            "cells": float(len(self.cells)),
+            "mapped": float(v.size),
+            "fixes": float(len(self.matched)),
+            "median_lce_m": q(50),
+            "p95_lce_m": q(95),
+            "max_lce_m": float(v.max()) if v.size else math.nan,
+            "default_lce_m": self.default.value,
+        }
+
+
+def _mean_se(z2: Array, groups: npt.NDArray[np.int64]) -> tuple[float, float, int, str]:
+    """Mean of z² with its SE: cluster-robust over groups when there are 2 or more, else
+    the naive SE over the values; (mean, SE, groups, kind)."""
+    n = z2.size
+    mean = float(z2.mean())
+    ug, inv = np.unique(groups, return_inverse=True)
+    g = ug.size
+    if g >= 2:
+        s = np.bincount(inv, weights=z2 - mean)
+        return mean, math.sqrt(g / (g - 1) * float(s @ s)) / n, g, "visits"
+    se = math.sqrt(float(np.var(z2, ddof=1)) / n) if n > 1 else math.inf
+    return mean, se, g, "fixes"
+
+
+def lce_map(
+    matched: Matched,
+    *,
+    re_m: float,
+    ase_m: float,
+    origin: tuple[float, float],
+    cell_m: float = 10.0,
+    min_fixes: int = 10,
+    min_visits: int = 2,
+    visit_gap_s: float = 30.0,
+    unmatched: int = 0,
+    hdop_known: bool = True,
+    sources: tuple[str, ...] = (),
+) -> LceMap:
+    """The LCE map from matched fixes (module docstring). ``re_m``, ``ase_m``: the static
+    calibration's (m per axis at HDOP 1); ``origin`` (lat, lon deg) the plane of ``matched``."""
+    if not (cell_m > 0 and math.isfinite(cell_m)):
+        raise ConfigError(f"cell_m must be > 0 m, got {cell_m!r}")
+    if len(matched) == 0:
+        raise ConfigError("drive: no fix could be matched with the reference (times, clocks?)")
+    base = re_m * re_m + ase_m * ase_m
+    z2 = (matched.err_east_m**2 + matched.err_north_m**2) / (2.0 * matched.hdop**2)
+    ie = np.floor(matched.ref_east_m / cell_m).astype(np.int64)
+    jn = np.floor(matched.ref_north_m / cell_m).astype(np.int64)
+    order = np.lexsort((matched.t_s, matched.drive, jn, ie))
+    ie, jn, z2s = ie[order], jn[order], z2[order]
+    ts, dr = matched.t_s[order], matched.drive[order]
+    key_change = np.concatenate(([True], (np.diff(ie) != 0) | (np.diff(jn) != 0)))
+    starts = np.flatnonzero(key_change)
+    ends = np.concatenate((starts[1:], [ie.size]))
+    cells = []
+    for a, b in zip(starts, ends, strict=True):
+        new_visit = np.concatenate(
+            ([True], (np.diff(ts[a:b]) > visit_gap_s) | (np.diff(dr[a:b]) != 0))
+        )
+        visit = np.cumsum(new_visit)
+        mean, se, visits, kind = _mean_se(z2s[a:b], visit)
+        lce = _root(mean - base, se * se)
+        n = int(b - a)
+        cells.append(
+            Cell(int(ie[a]), int(jn[a]), lce.value, lce.se, n, visits, math.sqrt(mean),
+                 n >= min_fixes and visits >= min_visits, kind)
+        )  # fmt: skip
+    # pooled over everything: visits = (drive, cell, pass) clusters
+    cluster = np.zeros(ie.size, np.int64)
+    for k, (a, b) in enumerate(zip(starts, ends, strict=True)):
+        gaps = np.concatenate(([True], (np.diff(ts[a:b]) > visit_gap_s) | (np.diff(dr[a:b]) != 0)))
+        cluster[a:b] = k * (b - a + 1) + np.cumsum(gaps)
+    mean_all, se_all, _, _ = _mean_se(z2s, cluster)
+    return LceMap(
+        origin_lat_deg=origin[0],
+        origin_lon_deg=origin[1],
+        cell_m=float(cell_m),
+        re_m=re_m,
+        ase_m=ase_m,
+        cells=tuple(cells),
+        default=_root(mean_all - base, se_all * se_all),
+        min_fixes=min_fixes,
+        min_visits=min_visits,
+        matched=matched,
+        unmatched=unmatched,
+        hdop_known=hdop_known,
+        sources=sources,
+    )
+
+
+def drives_lce_map(
+    drives: Sequence[tuple[FixSeries, FixSeries]],
+    *,
+    re_m: float,
+    ase_m: float,
+    origin: tuple[float, float] | None = None,
+    max_gap_s: float = 1.5,
+    **kwargs: float,
+) -> LceMap:
+    """:func:`lce_map` over (fixes, reference) pairs; ``origin`` defaults to the first
+    reference point (rounded to 1e-4 deg, so repeated calibrations share a grid)."""
+    if not drives:
+        raise ConfigError("drive: no recordings")
+    if origin is None:
+        ref0 = drives[0][1]
+        origin = (round(float(ref0.lat_deg[0]), 4), round(float(ref0.lon_deg[0]), 4))
+    plane = LocalTangentPlane(*origin)
+    parts, missed, tracks = [], 0, []
+    for fixes, ref in drives:
+        m, miss = match_reference(fixes, ref, plane, max_gap_s=max_gap_s)
+        parts.append(m)
+        missed += miss
+        x, y = plane.to_xy(ref.lat_deg, ref.lon_deg)
+        tracks.append(np.column_stack([np.asarray(x, float), np.asarray(y, float)]))
+    lm = lce_map(
+        concat(parts),
+        re_m=re_m,
+        ase_m=ase_m,
+        origin=origin,
+        unmatched=missed,
+        hdop_known=all(f.hdop_known for f, _ in drives),
+        sources=tuple(f"{f.source} vs {r.source}" for f, r in drives),
+        **kwargs,  # type: ignore[arg-type]
+    )
+    return replace(lm, tracks=tuple(tracks))
+
+
+# ------------------------------------------------------------------------------ outputs
+
+
+@dataclass(frozen=True)
+class GnssCalibration:
+    """What one ``x6wd calibrate gnss`` run found: the static result (or given RE/ASE), the
+    correlation time, and the LCE map (or none)."""
+
+    re_m: Estimate
+    ase_m: Estimate
+    correlation_s: float
+    static: StaticResult | None
+    lce: LceMap | None
+
+    def table(self) -> dict[str, object]:
+        """The ``[gnss_noise]`` keys and values."""
+        tau = self.correlation_s
+        t: dict[str, object] = {
+            "re_m": round(self.re_m.value, 4),
+            "ase_m": round(self.ase_m.value, 4),
+            "correlation_s": round(min(tau, 86400.0), 1) if math.isfinite(tau) else 86400.0,
+        }
+        if self.lce is not None:
+            lm = self.lce
+            t |= {
+                "lce_origin_lat_deg": lm.origin_lat_deg,
+                "lce_origin_lon_deg": lm.origin_lon_deg,
+                "lce_cell_m": lm.cell_m,
+                "lce_default_m": round(lm.default.value, 3),
+                "lce_cells": [
+                    [c.east_index, c.north_index, round(c.lce_m, 3)] for c in lm.mapped()
+                ],
+            }
+        return t
+
+    def config(self) -> GnssNoiseConfig:
+        """The ``[gnss_noise]`` section (range-checked: ConfigError if an estimate is absurd)."""
+        return build(GnssNoiseConfig, self.table(), "gnss_noise.")
+
+    def toml(self, header: str = "") -> str:
+        """A TOML fragment with the ``[gnss_noise]`` section; standard errors, counts and the
+        marked cells in comments."""
+        self.config()  # refuse to write what the daemon would refuse to load
+        t = self.table()
+        lines = [f"# {line}" for line in header.splitlines()]
+        st = self.static
+        if st is not None:
+            lines += [
+                f"# static: {st.fixes} fixes over {st.duration_s:.0f} s, epoch {st.epoch_s:g} s, "
+                f"mean HDOP {st.mean_hdop:.2f}{'' if st.hdop_known else ' (no HDOP: taken as 1)'}",
+                f"# mean error east {st.bias_east_m:+.3f} m, north {st.bias_north_m:+.3f} m; "
+                f"per axis at HDOP 1: mean square {st.mean_square_m2:.4f} m², variogram "
+                f"lag 1 {st.gamma1_m2:.4f} m², lag 2 {st.gamma2_m2:.4f} m²",
+            ]
+            src = "static recording"
+        else:
+            src = "given, not estimated here"
+        lines += [
+            "# seed 003: sigma per axis = HDOP * sqrt(re_m^2 + ase_m^2 + LCE^2)",
+            "[gnss_noise]",
+            f"re_m = {t['re_m']}  # ± {self.re_m.se:.4f} ({src}: the white part)",
+            f"ase_m = {t['ase_m']}  # ± {self.ase_m.se:.4f} ({src}: the slow part)",
+            f"correlation_s = {t['correlation_s']}  # of the slow part; rough",
+        ]
+        lm = self.lce
+        if lm is not None:
+            s = lm.summary()
+            lines += [
+                f"# LCE map: {len(lm.matched)} fixes matched ({lm.unmatched} without reference)"
+                f", {int(s['cells'])} cells visited, {int(s['mapped'])} with >= {lm.min_fixes} "
+                f"fixes and >= {lm.min_visits} visits; median LCE {s['median_lce_m']:.2f} m, "
+                f"95 % {s['p95_lce_m']:.2f} m"
+                + ("" if lm.hdop_known else "; no HDOP in the drive: taken as 1"),
+                f"lce_origin_lat_deg = {t['lce_origin_lat_deg']}",
+                f"lce_origin_lon_deg = {t['lce_origin_lon_deg']}",
+                f"lce_cell_m = {t['lce_cell_m']}",
+                f"lce_default_m = {t['lce_default_m']}  # ± {lm.default.se:.3f}: pooled over "
+                "every fix; for cells without a value",
+                "# [east index, north index, LCE m]: cell = floor(east / lce_cell_m), "
+                "floor(north / lce_cell_m)",
+                "lce_cells = [",
+            ]
+            lines += [
+                f"  [{c.east_index}, {c.north_index}, {round(c.lce_m, 3)}],  # ± {c.se_m:.3f}, "
+                f"{c.fixes} fixes, {c.visits} visits"
+                + ("" if c.se_over == "visits" else " (SE over fixes: too small if correlated)")
+                for c in lm.mapped()
+            ]
+            lines.append("]")
+            marked = [c for c in lm.cells if not c.enough]
+            if marked:
+                lines.append(
+                    f"# {len(marked)} cells with too little data (left to lce_default_m): "
+                    + ", ".join(f"[{c.east_index}, {c.north_index}]" for c in marked[:40])
+                    + (" ..." if len(marked) > 40 else "")
+                )
+        return "\n".join(lines) + "\n"
+
+
+def write_map_csv(lm: LceMap, path: str | Path) -> None:
+    """Every visited cell: indices, centre (m), LCE ± SE, counts, RMS, marked or not."""
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(["east_index", "north_index", "east_m", "north_m", "lce_m", "se_m",
+                    "fixes", "visits", "rms_m", "enough", "se_over"])  # fmt: skip
+        for c in lm.cells:
+            w.writerow([
+                c.east_index, c.north_index, f"{(c.east_index + 0.5) * lm.cell_m:.2f}",
+                f"{(c.north_index + 0.5) * lm.cell_m:.2f}", f"{c.lce_m:.4f}", f"{c.se_m:.4f}",
+                c.fixes, c.visits, f"{c.rms_m:.4f}", int(c.enough), c.se_over,
+            ])  # fmt: skip
+
+
+def plot_lce_map(lm: LceMap, path: str | Path, title: str = "") -> None:
+    """PNG of the map: mapped cells coloured by LCE (m), marked cells hatched grey, the
+    reference track of the drives on top (Agg, no display)."""
+    import matplotlib
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    pts = np.vstack([*lm.tracks, np.column_stack([lm.matched.ref_east_m, lm.matched.ref_north_m])])
+    span = np.ptp(pts, axis=0) + 2 * lm.cell_m
+    aspect = float(np.clip(span[1] / max(span[0], 1e-9), 0.5, 2.5))
+    fig = Figure(figsize=(5.5 + 3.5 / aspect, 3.5 + 3.5 * aspect), dpi=100)
+    ax = fig.subplots()
+    mapped = lm.mapped()
+    vmax = max([c.lce_m for c in mapped], default=1.0)
+    vmax = float(np.percentile([c.lce_m for c in mapped], 95)) if len(mapped) > 5 else vmax
+    norm = Normalize(0.0, max(vmax, 1e-3))
+    cm = matplotlib.colormaps["viridis"]
+    s = lm.cell_m
+    for c in lm.cells:
+        x0, y0 = c.east_index * s, c.north_index * s
+        if c.enough:
+            ax.add_patch(Rectangle((x0, y0), s, s, facecolor=cm(norm(c.lce_m)), edgecolor="none"))
+        else:
+            ax.add_patch(Rectangle((x0, y0), s, s, facecolor="0.85", edgecolor="0.6",
+                                   hatch="//", linewidth=0.3))  # fmt: skip
+    for k, tr in enumerate(lm.tracks):
+        ax.plot(tr[:, 0], tr[:, 1], "-", color="crimson", lw=0.6,
+                label="reference track" if k == 0 else None)  # fmt: skip
+    m = lm.matched
+    ax.plot(m.ref_east_m, m.ref_north_m, ".", color="black", ms=1.5,
+            label="fixes (at their reference position)")  # fmt: skip
+    fig.colorbar(ScalarMappable(norm=norm, cmap=cm), ax=ax, label="LCE (m, per axis at HDOP 1)",
+                 extend="max")  # fmt: skip
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    ax.set_xlabel(f"east (m) of {lm.origin_lat_deg:.5f}, {lm.origin_lon_deg:.5f}")
+    ax.set_ylabel("north (m)")
+    summ = lm.summary()
+    ax.set_title(
+        (title + "\n" if title else "")
+        + f"LCE map, {lm.cell_m:g} m cells: {int(summ['mapped'])} mapped (hatched: too little "
+        f"data), median {summ['median_lce_m']:.2f} m, 95 % {summ['p95_lce_m']:.2f} m",
+        fontsize=9,
+    )
+    ax.legend(loc="best", fontsize=8)
+    fig.savefig(path)
