@@ -33,7 +33,13 @@ from x6wd.nav.navigator import NavigationError, Navigator
 
 SCENARIO = ROOT / "config" / "scenarios" / "default.toml"
 ARC = NavigationConfig(
-    steering="pivot_arc", delta_phi_deg=10.0, delta_x_m=3.0, delta_y_m=3.0, cruise_pct=60.0
+    steering="pivot_arc",
+    delta_phi_deg=10.0,
+    delta_x_m=3.0,
+    delta_y_m=3.0,
+    cruise_pct=60.0,
+    lookahead_m=8.0,
+    approach_m=4.0,
 )
 PAPER_2R = NavigationConfig(delta_phi_deg=10.0, delta_x_m=3.0, delta_y_m=3.0)
 D = math.radians
@@ -320,10 +326,13 @@ def zigzag_enu() -> list[tuple[float, float]]:
     return pts[1:]
 
 
-def mission_world(steering_mode: str, waypoints_enu: list[tuple[float, float]] | None) -> World:
-    """default.toml with ``steering`` set (and other waypoints, if given)."""
+def mission_world(
+    steering_mode: str, waypoints_enu: list[tuple[float, float]] | None, **nav: float
+) -> World:
+    """default.toml with ``steering`` set (other waypoints and [navigation] values, if
+    given)."""
     w = load_world(SCENARIO)
-    w = replace(w, navigation=replace(w.navigation, steering=steering_mode))
+    w = replace(w, navigation=replace(w.navigation, steering=steering_mode, **nav))
     if waypoints_enu is not None:
         w = replace(w, mission=replace(w.mission, waypoints_enu=tuple(waypoints_enu)))
     return w
@@ -361,15 +370,29 @@ def measure(world: World, seed: int, out: Path) -> Figures:
     return Figures(s.completed, s.path_length_m / s.straight_length_m, s.sim_time_s, tuple(errs))
 
 
+# (name, waypoints (None: the scenario's), [navigation] overrides): the scenario drives at
+# 30 % (1.2 m/s); "zigzag-60" at the robot configuration's 60 % cruise and 40 % pivots.
+MISSIONS: tuple[tuple[str, list[tuple[float, float]] | None, dict[str, float]], ...] = (
+    ("default", None, {}),
+    ("zigzag", zigzag_enu(), {}),
+    ("zigzag-60", zigzag_enu(), {"cruise_pct": 60.0, "turn_pct": 40.0}),
+)
+
+
+# True distance to the waypoint when arrival is decided: the windows' corner is 4.2 m away,
+# and the Constellation filter (N = 5 at 1 Hz) lags the robot, more at 60 % cruise.
+ARRIVAL_LIMIT_M = {"default": 5.0, "zigzag": 5.0, "zigzag-60": 7.5}
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, str, int], Figures]:
     base = tmp_path_factory.mktemp("steering")
     out: dict[tuple[str, str, int], Figures] = {}
-    for mission, wps in (("default", None), ("zigzag", zigzag_enu())):
+    for mission, wps, nav in MISSIONS:
         for mode in ("paper", "pivot_arc"):
             for seed in SEEDS:
                 out[mission, mode, seed] = measure(
-                    mission_world(mode, wps), seed, base / f"{mission}-{mode}-{seed}"
+                    mission_world(mode, wps, **nav), seed, base / f"{mission}-{mode}-{seed}"
                 )
     return out
 
@@ -382,7 +405,7 @@ def test_zigzag_is_long_and_turns_up_to_150_degrees() -> None:
     assert length >= 300.0 and max(turns) == pytest.approx(150.0)
 
 
-@pytest.mark.parametrize("mission", ["default", "zigzag"])
+@pytest.mark.parametrize("mission", [m[0] for m in MISSIONS])
 def test_pivot_arc_completes_with_a_short_path(
     runs: dict[tuple[str, str, int], Figures], mission: str
 ) -> None:
@@ -390,7 +413,7 @@ def test_pivot_arc_completes_with_a_short_path(
         f = runs[mission, "pivot_arc", seed]
         assert f.completed, (mission, seed)
         assert f.path_ratio <= 1.10, (mission, seed, f)
-        assert max(f.arrival_err_m) < 5.0, (mission, seed, f)
+        assert max(f.arrival_err_m) < ARRIVAL_LIMIT_M[mission], (mission, seed, f)
         # the paper's mode on the same seeds, for the comparison
         assert runs[mission, "paper", seed].completed, (mission, seed)
 
@@ -398,14 +421,14 @@ def test_pivot_arc_completes_with_a_short_path(
 def test_figures_table(runs: dict[tuple[str, str, int], Figures]) -> None:
     """Prints the table docs/navigation.md quotes (run with -s to see it)."""
     print()
-    for mission in ("default", "zigzag"):
+    for mission, *_ in MISSIONS:
         for mode in ("paper", "pivot_arc"):
             fs = [runs[mission, mode, s] for s in SEEDS]
             errs = [e for f in fs for e in f.arrival_err_m]
             print(
-                f"{mission:8s} {mode:9s} completed {sum(f.completed for f in fs)}/{len(fs)}"
+                f"{mission:9s} {mode:9s} completed {sum(f.completed for f in fs)}/{len(fs)}"
                 f"  path ratio {' '.join(f'{f.path_ratio:.3f}' for f in fs)}"
                 f"  time {' '.join(f'{f.time_s:.0f}' for f in fs)} s"
                 f"  arrival error mean {np.mean(errs):.2f} max {np.max(errs):.2f} m"
             )
-    assert len(runs) == 2 * 2 * len(SEEDS)
+    assert len(runs) == len(MISSIONS) * 2 * len(SEEDS)

@@ -131,8 +131,8 @@ class NavigationConfig:
     steering: str = field(default="paper", metadata={"choices": ("paper", "pivot_arc")})
     pivot_angle_deg: float = field(default=60.0, metadata=_rng(1, 180))
     pivot_resume_deg: float = field(default=10.0, metadata=_rng(0, 180))
-    lookahead_m: float = field(default=8.0, metadata=_rng(0.5, 100))
-    approach_m: float = field(default=4.0, metadata=_rng(0, 100))
+    lookahead_m: float = field(default=15.0, metadata=_rng(0.5, 100))
+    approach_m: float = field(default=10.0, metadata=_rng(0, 100))
     min_speed_pct: float = field(default=15.0, metadata=_rng(0, 100))
     # Effective track for percent commands (m): curvature k -> left = s(1 + k·T/2),
     # right = s(1 - k·T/2). T = 2·v_full / w_full: v_full the speed (m/s) at +100/+100 %, w_full
