@@ -7,13 +7,16 @@ so these tests need no sleeps: time is whatever the test says it is.
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
+import selectors
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from drivers.gps_nmea import NmeaSentence
 from sim_backend.mission import run_mission
 from sim_backend.world import load_world
 from x6wd.core.config import NavigationConfig, SafetyConfig
@@ -24,13 +27,14 @@ from x6wd.core.mission_files import Waypoint
 from x6wd.core.records import (
     Attitude,
     GpsFix,
+    GpsSky,
     Mode,
     MotorCommand,
     NavState,
     StateChange,
     Telemetry,
 )
-from x6wd.loop.runner import TELEMETRY_RECORD_HZ, Runner, run_realtime
+from x6wd.loop.runner import TELEMETRY_RECORD_HZ, Runner, every, run_realtime
 from x6wd.nav.controller import Controller
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -48,6 +52,7 @@ class Loop:
         self.records: list[tuple[str, Any]] = []
         self.events: list[dict[str, Any]] = []
         self.states: list[StateChange] = []
+        self.observed: list[tuple[list[Any], bool]] = []
         self.safety = safety or SafetyConfig(geofence_radius_m=100.0)
         nav = NavigationConfig(filter_n=3, projection="local_tangent_plane")
         self.runner = Runner(
@@ -58,6 +63,7 @@ class Loop:
             record=lambda m, a: self.records.append((m, a)),
             publish=self.events.append,
             on_state=self.states.append,
+            observe=lambda outputs, important: self.observed.append((outputs, important)),
             health_log=HealthLog(_quiet(), clock=lambda: self.now),
         )
 
@@ -79,6 +85,11 @@ class Loop:
 
     def kinds(self) -> list[str]:
         return [m for m, _a in self.records]
+
+    def counts(self) -> tuple[int, int]:
+        """(telemetry events published, telemetry snapshots recorded) so far."""
+        events = sum(e["event"] == "telemetry" for e in self.events)
+        return events, self.kinds().count("record_telemetry")
 
 
 def _quiet() -> Any:
@@ -237,18 +248,306 @@ def test_a_tick_at_the_time_of_the_last_step_is_skipped() -> None:
     assert len(lp.motors) == n + 1
 
 
-def test_run_realtime_ticks_until_stopped_and_a_failing_task_propagates() -> None:
+# -- written from the runner's mutation survivors (docs/testing.md, "Mutation testing") ----
+def test_an_invalid_fix_that_carries_coordinates_is_neither_centre_nor_position() -> None:
     lp = Loop()
+    lp.fix(0.0, valid=False)  # the receiver's last position, flagged invalid
+    assert lp.runner.geofence_centre() is None
+    lp.fix()
+    lp.compass()
+    lp.runner.load_mission([north(50)])
+    lp.runner.command("start")
+    lp.now = 0.5
+    lp.compass()
+    lp.fix(150.0, valid=False)  # would be outside, but it is not a position
+    assert lp.runner.geofence_breaches == 0 and lp.runner.controller.mode == Mode.RUNNING
+    lp.runner.command("stop")
+    lp.runner.command("start")  # the latest valid position is home: start is allowed
+    assert lp.runner.controller.mode == Mode.RUNNING
 
-    async def go() -> int:
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
+
+def test_a_geofence_breach_stops_at_the_fix_time_and_every_breach_counts() -> None:
+    lp = Loop()
+    lp.fix()
+    lp.compass()
+    lp.runner.load_mission([north(90)])
+    lp.runner.command("start")
+    lp.now = 1.0
+    lp.compass()
+    lp.now = 1.5  # the fix comes after the controller's latest input (the compass at 1.0)
+    n = len(lp.motors)
+    lp.fix(101.0)
+    assert lp.motors[n] == MotorCommand(1.5, 0.0, 0.0, "geofence breach")
+    (change,) = [s for s in lp.states if s.reason == "mode: geofence breach"]
+    assert change.t_s == 1.5 and change.new == "IDLE"
+    assert lp.runner.geofence_breaches == 1
+    with pytest.raises(CommandError) as exc:
+        lp.runner.command("start")
+    assert exc.value.code == "geofence" and "101 m from the geofence centre" in str(exc.value)
+    # driven back inside by hand: start again, and leave again
+    lp.now = 2.0
+    lp.compass()
+    lp.fix(50.0)
+    lp.runner.command("start")
+    lp.now = 3.0
+    lp.compass()
+    lp.fix(120.0)
+    assert lp.runner.geofence_breaches == 2 and lp.runner.controller.mode == Mode.IDLE
+
+
+def test_the_geofence_edge_is_inclusive_for_running_and_for_start() -> None:
+    edge_m = great_circle_m(*HOME, HOME[0] + 60.0 / M_PER_DEG_LAT, HOME[1])
+    lp = Loop(SafetyConfig(geofence_radius_m=edge_m))  # the fix below is exactly on the edge
+    lp.fix()
+    lp.compass()
+    lp.runner.load_mission([north(-50)])
+    lp.runner.command("start")
+    lp.now = 0.2
+    lp.compass()
+    lp.fix(60.0)
+    assert lp.runner.geofence_breaches == 0 and lp.runner.controller.mode == Mode.RUNNING
+    lp.runner.command("stop")
+    lp.runner.command("start")
+    assert lp.runner.controller.mode == Mode.RUNNING
+
+
+def test_with_a_configured_centre_a_mission_may_start_before_the_first_fix() -> None:
+    lp = Loop(SafetyConfig(geofence_radius_m=100.0, geofence_center=HOME))
+    lp.compass()
+    lp.runner.load_mission([north(10)])
+    assert lp.runner.command("start") == {"mode": "RUNNING", "state": "HOLD"}  # no fix yet
+
+
+def test_mission_commands_and_their_replies() -> None:
+    lp = Loop()
+    lp.fix()
+    lp.compass()
+    lp.runner.load_mission([north(50)])
+    with pytest.raises(CommandError) as exc:
+        lp.runner.command("jump")
+    assert exc.value.code == "bad_request" and str(exc.value) == "unknown mission command 'jump'"
+    state = lp.runner.command("start")["state"]
+    assert state == str(lp.runner.controller.state) and state not in ("IDLE", "HOLD")
+    assert lp.runner.command("pause") == {"mode": "PAUSED", "state": "IDLE"}
+    lp.now = 0.1
+    reply = lp.runner.command("resume")
+    assert reply == {"mode": "RUNNING", "state": str(lp.runner.controller.state)}
+    assert lp.runner.controller.mode == Mode.RUNNING
+
+
+def test_the_operator_stop_is_stamped_with_the_clock() -> None:
+    lp = Loop()
+    lp.now = 7.25
+    lp.runner.stop()
+    assert lp.motors[0] == MotorCommand(7.25, 0.0, 0.0, "operator stop")
+
+
+def test_operator_commands_are_logged_once_per_second_per_command(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    lp = Loop()
+    lp.fix()
+    lp.compass()
+    lp.runner.load_mission([north(50)])
+    with caplog.at_level(logging.INFO, logger="x6wd.loop.runner"):
+        for t, name in ((0.0, "stop"), (0.5, "stop"), (0.6, "start"), (0.7, "stop"), (1.0, "stop")):
+            lp.now = t
+            lp.runner.command(name)
+    said = [r.getMessage() for r in caplog.records if r.name == "x6wd.loop.runner"]
+    said = [m for m in said if m.startswith("operator")]
+    assert said == [
+        "operator: stop",
+        "operator: start",
+        "operator: stop (and 2 more in the last 1.0 s)",
+    ]
+
+
+def test_a_runner_without_a_health_log_logs_device_events_on_its_own_clock(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    now = [0.0]
+    safety = SafetyConfig()
+    nav = NavigationConfig(filter_n=3, projection="local_tangent_plane")
+    runner = Runner(Controller(nav, safety), safety, lambda: now[0], motors=lambda _c: None)
+    tracker = HealthTracker("motors", t_s=0.0)
+    with caplog.at_level(logging.INFO, logger="x6wd.core.health"):
+        for _ in range(6):  # 12 transitions at once: a burst of 10 lines, 2 held back
+            tracker.opened(0.0)
+            tracker.lost("unplugged", 0.0)
+        runner.device_events(tracker.take_events())
+        now[0] = 5.0  # one token back after refill_s on the runner's clock
+        tracker.opened(5.0)
+        runner.device_events(tracker.take_events())
+    lines = [r.getMessage() for r in caplog.records if r.name == "x6wd.core.health"]
+    assert len(lines) == 11
+    assert lines[-1].endswith("(2 earlier motors health messages suppressed)")
+
+
+def test_a_compass_reported_down_holds_at_once_with_its_reason() -> None:
+    lp = Loop()
+    lp.fix()
+    lp.compass()
+    lp.runner.load_mission([north(50)])
+    lp.runner.command("start")
+    assert lp.runner.controller.state != NavState.HOLD
+    lp.now = 0.1
+    tracker = HealthTracker("compass", t_s=0.0)
+    tracker.opened(0.0)
+    tracker.lost("unplugged", 0.1)
+    lp.runner.device_events(tracker.take_events())
+    assert lp.runner.controller.state == NavState.HOLD and lp.motors[-1].is_stop
+    assert lp.runner.last_telemetry is not None
+    assert lp.runner.last_telemetry.hold_reason == "compass disconnected"
+
+
+def test_telemetry_is_rate_limited_but_forced_by_fixes_requests_and_changes() -> None:
+    lp = Loop(SafetyConfig(manual_max_s=5.0))
+    steps: list[tuple[float, Any]] = [
+        (0.0, lp.compass),  # the first snapshot always goes out, to both
+        (0.05, lp.compass),  # 50 ms later: neither
+        (0.1, lp.compass),  # exactly 1 / TELEMETRY_EVENT_HZ later: an event
+        (0.15, lambda: lp.runner.gps_record(GpsSky(lp.now))),  # not forced
+        (0.175, lp.runner.tick),  # not forced
+        (0.2, lp.fix),  # forced
+        (0.25, lambda: lp.runner.command("stop")),  # an operator request: forced
+        (0.3, lambda: lp.runner.drive(10.0, 10.0, 0.5)),  # forced
+        (0.75, lp.compass),  # an event (the recorder's second is not over)
+        (0.8, lp.runner.tick),  # the dead-man ends the drive: a change forces it out
+        (0.85, lp.compass),  # neither
+        (2.0, lp.compass),  # both
+        (2.5, lp.compass),  # an event only
+        (3.0, lp.compass),  # exactly 1 / TELEMETRY_RECORD_HZ after 2.0: both
+    ]
+    seen = []
+    for t, step in steps:
+        lp.now = t
+        before = lp.counts()
+        step()
+        after = lp.counts()
+        seen.append((after[0] - before[0], after[1] - before[1]))
+    assert seen == [
+        (1, 1), (0, 0), (1, 0), (0, 0), (0, 0), (1, 1), (1, 1),
+        (1, 1), (1, 0), (1, 1), (0, 0), (1, 1), (1, 0), (1, 1),
+    ]  # fmt: skip
+    assert lp.states[-1].reason == "mode: manual drive expired" and lp.states[-1].t_s == 0.8
+
+
+def test_observe_sees_every_output_list_and_whether_it_was_forced() -> None:
+    lp = Loop()
+    tracker = HealthTracker("gps", t_s=0.0)
+    tracker.opened(0.0)
+    inputs: list[tuple[str, Any]] = [
+        ("fix", lp.fix),
+        ("sky", lambda: lp.runner.gps_record(GpsSky(lp.now))),
+        ("compass", lp.compass),
+        ("tick", lp.runner.tick),
+        ("health", lambda: lp.runner.device_events(tracker.take_events())),
+        ("command", lambda: lp.runner.command("stop")),
+    ]
+    flags = []
+    for k, (name, step) in enumerate(inputs):
+        lp.now = 0.01 * (k + 1)
+        n = len(lp.observed)
+        step()
+        ((outputs, important),) = lp.observed[n:]
+        assert any(type(o) is Telemetry for o in outputs)
+        flags.append((name, important))
+    assert flags == [
+        ("fix", True), ("sky", False), ("compass", False), ("tick", False),
+        ("health", True), ("command", True),
+    ]  # fmt: skip
+
+
+def test_inputs_are_counted_and_sentences_recorded() -> None:
+    lp = Loop()
+    sentence = NmeaSentence(0.0, "$GPTXT,01,01,02,hello*00")
+    lp.runner.gps([sentence, object()])
+    assert lp.records == [("record_nmea", "$GPTXT,01,01,02,hello*00")] and not lp.motors
+    lp.fix()
+    lp.fix(valid=False)
+    lp.runner.gps_record(GpsSky(0.0))
+    for _ in range(3):
+        lp.compass()
+    assert lp.runner.stats == {"fixes": 2, "attitudes": 3}
+
+
+def test_a_tick_at_the_time_of_a_fix_or_of_the_last_tick_is_skipped() -> None:
+    lp = Loop()
+    lp.now = 1.0
+    lp.fix()
+    n = len(lp.motors)
+    lp.runner.tick(1.0)
+    assert len(lp.motors) == n
+    lp.runner.tick(1.05)
+    lp.runner.tick(1.05)
+    assert len(lp.motors) == n + 1
+
+
+class _Done(Exception):
+    pass
+
+
+def test_every_keeps_a_fixed_schedule_and_starts_afresh_after_a_stall(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    clock = [10.0]
+    costs = [0.0, 0.125, 0.5, 0.0, 0.75, 0.0]  # how long each step takes (s)
+    steps: list[float] = []
+    sleeps: list[float] = []
+
+    def step(now_s: float) -> None:
+        steps.append(now_s)
+        if not costs:
+            raise _Done
+        clock[0] += costs.pop(0)
+
+    async def sleep(delay_s: float) -> None:  # simulated time: a sleep moves the clock
+        sleeps.append(delay_s)
+        clock[0] += delay_s
+
+    monkeypatch.setattr(asyncio, "sleep", sleep)
+    coro = every(0.25, lambda: clock[0], step)
+    with pytest.raises(_Done):
+        coro.send(None)
+    # a stall of exactly one period is caught up (one step at once); a longer one starts
+    # afresh from the time it ended, without a burst
+    assert steps == [10.0, 10.25, 10.5, 11.0, 11.0, 11.75, 12.0]
+    assert sleeps == [0.25, 0.125, 0.0, 0.0, 0.0, 0.25]
+
+
+class _VirtualTimeLoop(asyncio.SelectorEventLoop):
+    """An event loop on simulated time: when it would wait for its next timer, its clock
+    jumps there instead (no sleeps; I/O is still polled)."""
+
+    def __init__(self) -> None:
+        outer = self
+
+        class Selector(selectors.DefaultSelector):
+            def select(self, timeout: float | None = None) -> Any:
+                if timeout is not None and timeout > 0:
+                    outer.now += timeout
+                    timeout = 0
+                return super().select(timeout)
+
+        self.now = 0.0
+        super().__init__(Selector())
+
+    def time(self) -> float:
+        return self.now
+
+
+def test_run_realtime_ticks_at_its_rate_until_stopped_and_a_failing_task_propagates() -> None:
+    lp = Loop()
+    loop = _VirtualTimeLoop()
+    try:
         lp.runner.clock = loop.time
-        loop.call_later(0.25, stop.set)
-        await run_realtime(lp.runner, stop, tick_hz=40.0)
-        return len(lp.motors)
-
-    assert asyncio.run(go()) >= 3
+        stop = asyncio.Event()
+        loop.call_at(1.0, stop.set)
+        loop.run_until_complete(run_realtime(lp.runner, stop, tick_hz=40.0))
+        assert 40 <= len(lp.motors) <= 41  # 40 Hz for one second of the loop's time
+        assert [m.t_s for m in lp.motors[:40]] == pytest.approx([k / 40 for k in range(40)])
+    finally:
+        loop.close()
 
     async def failing() -> None:
         raise RuntimeError("injected")

@@ -29,6 +29,7 @@ import math
 from collections.abc import Callable, Coroutine, Iterable, Sequence
 from typing import Any
 
+from drivers.gps_nmea import NmeaSentence
 from x6wd.core.config import SafetyConfig
 from x6wd.core.errors import CommandError
 from x6wd.core.geodesy import great_circle_m
@@ -116,7 +117,8 @@ class Runner:
 
     # -- device inputs ------------------------------------------------------------------------
     def gps(self, records: Iterable[Any]) -> None:
-        """Records from the GPS decoder: fixes, satellites in view, sentence text."""
+        """Records from the GPS decoder (``drivers.gps_nmea.GpsOutput``): fixes, satellites in
+        view, the raw sentences (recorded); anything else is ignored."""
         for rec in records:
             self.gps_record(rec)
 
@@ -136,12 +138,8 @@ class Runner:
         elif isinstance(rec, GpsSky):
             self._record("record_sky", rec)
             self._handle(self.controller.on_sky(rec), False)
-        else:
-            text = getattr(rec, "text", None) or getattr(rec, "raw", None)
-            if isinstance(text, bytes):
-                text = text.decode("ascii", "replace")
-            if isinstance(text, str):
-                self._record("record_nmea", text)
+        elif isinstance(rec, NmeaSentence):
+            self._record("record_nmea", rec.text)
 
     def attitude(self, att: Attitude) -> None:
         """A compass sample."""
