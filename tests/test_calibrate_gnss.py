@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import math
 import tomllib
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -379,3 +380,26 @@ def test_urban_drive_gives_a_sane_lce_map(
     assert png.stat().st_size > 10_000
     header = tomllib.loads(out.read_text())["gnss_noise"]
     assert header["lce_cell_m"] == 50.0
+
+
+def test_an_x6wd_recording_matches_a_pos_reference_through_its_utc_stamp() -> None:
+    """A recording's fixes carry a monotonic t_s and the receiver's UTC; a .pos file GPST:
+    UTC + 18 s puts them on one clock."""
+    rover, ref = (gnss.load_fixes(URBAN / f) for f in ("rover_1Hz_spp.pos", "reference_1Hz.pos"))
+    fixes = [
+        GpsFix(
+            1000.0 + i,  # the daemon's monotonic clock: unrelated to GPST
+            utc=datetime.fromtimestamp(t - gnss.GPS_UTC_LEAP_S, UTC),
+            lat_deg=float(la), lon_deg=float(lo), valid=True,
+        )
+        for i, (t, la, lo) in enumerate(
+            zip(rover.t_gpst_s, rover.lat_deg, rover.lon_deg, strict=True)
+        )
+    ]  # fmt: skip
+    fixes.append(GpsFix(5000.0, lat_deg=35.0, lon_deg=136.0, valid=True))  # no UTC: unmatched
+    plane = LocalTangentPlane(35.1654, 136.8814)
+    got, missed = gnss.match_reference(gnss.FixSeries.from_fixes(fixes), ref, plane)
+    want, _ = gnss.match_reference(rover, ref, plane)
+    assert (len(got), missed) == (550, 1)
+    assert np.allclose(got.err_east_m, want.err_east_m, atol=1e-6)
+    assert np.allclose(got.err_north_m, want.err_north_m, atol=1e-6)

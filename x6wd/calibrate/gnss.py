@@ -344,11 +344,12 @@ def match_reference(
 ) -> tuple[Matched, int]:
     """Each fix against the reference at its time; (matched fixes, how many had no reference).
 
-    Clock: GPST when both have it, else each source's own ``t_s`` (the same clock, e.g. a
-    simulated run and its ``truth.csv``). The reference is interpolated linearly between its
+    Clock: GPST when the reference has it and the fixes do (fixes without a UTC stamp then go
+    unmatched), else each source's own ``t_s`` (the same clock, e.g. a simulated run and its
+    ``truth.csv``). The reference is interpolated linearly between its
     two epochs around the fix when they are at most ``max_gap_s`` apart (an exact time match
     needs no neighbour)."""
-    use_gpst = bool(np.isfinite(fixes.t_gpst_s).all() and np.isfinite(reference.t_gpst_s).all())
+    use_gpst = bool(np.isfinite(reference.t_gpst_s).all() and np.isfinite(fixes.t_gpst_s).any())
     tf = fixes.t_gpst_s if use_gpst else fixes.t_s
     tr = reference.t_gpst_s if use_gpst else reference.t_s
     rx, ry = (np.asarray(v, float) for v in plane.to_xy(reference.lat_deg, reference.lon_deg))
@@ -359,7 +360,7 @@ def match_reference(
     exact = np.abs(tr[jr] - tf) <= 1e-3
     inside = (j > 0) & (j < tr.size)
     span = tr[jr] - tr[jl]
-    ok = exact | (inside & (span <= max_gap_s) & (span > 0))
+    ok = (exact | (inside & (span <= max_gap_s) & (span > 0))) & np.isfinite(tf)
     w = np.where(exact | (span <= 0), 1.0, (tf - tr[jl]) / np.where(span > 0, span, 1.0))
     ex = np.where(exact, rx[jr], rx[jl] + w * (rx[jr] - rx[jl]))
     ey = np.where(exact, ry[jr], ry[jl] + w * (ry[jr] - ry[jl]))
@@ -535,10 +536,15 @@ def drives_lce_map(
     ase_m: float,
     origin: tuple[float, float] | None = None,
     max_gap_s: float = 1.5,
-    **kwargs: float,
+    cell_m: float = 10.0,
+    min_fixes: int = 10,
+    min_visits: int = 2,
+    visit_gap_s: float = 30.0,
 ) -> LceMap:
-    """:func:`lce_map` over (fixes, reference) pairs; ``origin`` defaults to the first
-    reference point (rounded to 1e-4 deg, so repeated calibrations share a grid)."""
+    """:func:`lce_map` over (fixes, reference) pairs, matched by :func:`match_reference`
+    (``max_gap_s``, s); ``origin`` (lat, lon deg) defaults to the first reference point
+    (rounded to 1e-4 deg, so repeated calibrations share a grid); ``cell_m`` (m),
+    ``min_fixes``, ``min_visits`` and ``visit_gap_s`` (s) as in :func:`lce_map`."""
     if not drives:
         raise ConfigError("drive: no recordings")
     if origin is None:
@@ -560,7 +566,10 @@ def drives_lce_map(
         unmatched=missed,
         hdop_known=all(f.hdop_known for f, _ in drives),
         sources=tuple(f"{f.source} vs {r.source}" for f, r in drives),
-        **kwargs,  # type: ignore[arg-type]
+        cell_m=cell_m,
+        min_fixes=min_fixes,
+        min_visits=min_visits,
+        visit_gap_s=visit_gap_s,
     )
     return replace(lm, tracks=tuple(tracks))
 
