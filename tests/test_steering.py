@@ -10,6 +10,7 @@ import json
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -327,7 +328,7 @@ def zigzag_enu() -> list[tuple[float, float]]:
 
 
 def mission_world(
-    steering_mode: str, waypoints_enu: list[tuple[float, float]] | None, **nav: float
+    steering_mode: str, waypoints_enu: list[tuple[float, float]] | None, **nav: Any
 ) -> World:
     """default.toml with ``steering`` set (other waypoints and [navigation] values, if
     given)."""
