@@ -586,3 +586,41 @@ def test_fast_time_mission_is_stopped_when_it_leaves_the_geofence(tmp_path: Path
     if s.extra["geofence_breaches"] == 0:
         pytest.fail(f"the robot never left the 19 m fence: {s.text()}")
     assert not s.completed
+
+
+def test_a_fix_with_non_finite_or_out_of_range_coordinates_never_centres_the_fence() -> None:
+    lp = Loop()
+    for lat, lon in ((math.nan, HOME[1]), (HOME[0], math.inf), (91.0, 0.0), (0.0, 181.0)):
+        lp.runner.gps_record(GpsFix(t_s=0.0, lat_deg=lat, lon_deg=lon, quality=1, valid=True))
+    assert lp.runner.first_fix is None and lp.runner.geofence_centre() is None
+
+
+def test_the_geofence_fails_closed_on_a_nan_distance() -> None:
+    nan_centre = (math.nan, HOME[1])
+    lp = Loop(SafetyConfig(geofence_radius_m=100.0, geofence_center=nan_centre))
+    with pytest.raises(CommandError) as exc:
+        lp.runner.load_mission([north(10)])
+    assert exc.value.code == "geofence"
+
+
+def test_a_breach_stops_the_mission_even_when_the_motor_sink_fails() -> None:
+    safety = SafetyConfig(geofence_radius_m=100.0, geofence_center=HOME)
+    sent: list[MotorCommand] = []
+
+    def sink(cmd: MotorCommand) -> None:
+        if cmd.reason == "geofence breach":
+            raise OSError("motor link gone")
+        sent.append(cmd)
+
+    nav = NavigationConfig(filter_n=3, projection="local_tangent_plane")
+    runner = Runner(Controller(nav, safety), safety, lambda: 0.0, motors=sink,
+                    health_log=HealthLog(_quiet()))  # fmt: skip
+    runner.attitude(Attitude(0.0, 0.0, 0.0, 0.0))
+    runner.load_mission([north(90)])
+    runner.command("start")
+    outside = GpsFix(t_s=0.5, lat_deg=HOME[0] + 150 / M_PER_DEG_LAT, lon_deg=HOME[1],
+                     quality=1, valid=True)  # fmt: skip
+    with pytest.raises(OSError, match="motor link gone"):
+        runner.gps_record(outside)
+    assert runner.controller.mode == Mode.IDLE and runner.geofence_breaches == 1
+    assert sent[-1].is_stop

@@ -60,6 +60,21 @@ Clock = Callable[[], float]
 """Seconds on one monotonic clock: ``time.monotonic`` on the robot, simulated time in fast time."""
 
 
+def _usable(fix: GpsFix) -> bool:
+    """A fix whose position may centre or test the geofence: the controller's own rule
+    (valid, coordinates present, finite and in range)."""
+    lat, lon = fix.lat_deg, fix.lon_deg
+    return (
+        fix.valid
+        and lat is not None
+        and lon is not None
+        and math.isfinite(lat)
+        and math.isfinite(lon)
+        and abs(lat) <= 90.0
+        and abs(lon) <= 180.0
+    )
+
+
 def _nothing(*_args: Any) -> None:
     return None
 
@@ -127,7 +142,8 @@ class Runner:
         if isinstance(rec, GpsFix):
             self.stats["fixes"] += 1
             self._record("record_fix", rec)
-            if rec.valid and rec.lat_deg is not None and rec.lon_deg is not None:
+            if _usable(rec):
+                assert rec.lat_deg is not None and rec.lon_deg is not None
                 self._last_pos = (rec.lat_deg, rec.lon_deg)
                 if self.first_fix is None:
                     self.first_fix = self._last_pos
@@ -223,7 +239,7 @@ class Runner:
         radius_m = self.safety.geofence_radius_m
         for i, wp in enumerate(waypoints):
             d = great_circle_m(centre[0], centre[1], wp.lat_deg, wp.lon_deg)
-            if d > radius_m:
+            if not d <= radius_m:  # fails closed: NaN is outside
                 raise CommandError(
                     "geofence",
                     f"waypoint {i + 1} ({wp.lat_deg:.7f}, {wp.lon_deg:.7f}) is {d:.0f} m from "
@@ -236,7 +252,7 @@ class Runner:
         if centre is None or pos is None:
             return
         d = great_circle_m(centre[0], centre[1], pos[0], pos[1])
-        if d > self.safety.geofence_radius_m:
+        if not d <= self.safety.geofence_radius_m:  # fails closed: NaN is outside
             raise CommandError(
                 "geofence",
                 f"cannot {what}: the robot is {d:.0f} m from the geofence centre; limit "
@@ -257,11 +273,15 @@ class Runner:
         if d <= radius_m:
             return
         self.geofence_breaches += 1
-        self._motors(MotorCommand(fix.t_s, 0.0, 0.0, "geofence breach"))
-        log.warning(
-            "geofence breach: %.1f m from the centre, limit %.0f m: mission stopped", d, radius_m
-        )
-        self._handle(self.controller.stop(fix.t_s, why="geofence breach"))
+        try:
+            self._motors(MotorCommand(fix.t_s, 0.0, 0.0, "geofence breach"))
+        finally:  # a failing motor sink must not leave the mission running
+            log.warning(
+                "geofence breach: %.1f m from the centre, limit %.0f m: mission stopped",
+                d,
+                radius_m,
+            )
+            self._handle(self.controller.stop(fix.t_s, why="geofence breach"))
 
     # -- outputs ------------------------------------------------------------------------------
     def _handle(self, outputs: list[Any], important: bool = True) -> None:
