@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import gc
 import json
 import os
 import signal
@@ -323,3 +324,128 @@ def test_motor_keepalive_stops_when_the_control_loop_goes_silent() -> None:
     finally:
         worker.shutdown("test end")
     assert link.commands[-1].is_stop
+
+
+class ThreadWatch(Daemon):
+    """Notes which thread runs each controller input and whether it holds the control lock,
+    and which thread sends each motor command."""
+
+    def __init__(self, config: Config) -> None:
+        super().__init__(config)
+        self.calls: list[tuple[str, str, bool]] = []  # (input, thread, lock held)
+        self.sends: list[tuple[str, MotorCommand]] = []
+
+    def _held(self) -> bool:
+        # an RLock held by the calling thread can be taken again without blocking; one held
+        # elsewhere cannot: so this tells "mine" from "free" only with _is_owned
+        return bool(self._control_lock._is_owned())  # type: ignore[attr-defined]
+
+    def _on_gps_records(self, records: list[Any]) -> None:
+        self.calls.append(("gps", threading.current_thread().name, self._held()))
+        super()._on_gps_records(records)
+
+    def _on_attitude(self, att: Attitude) -> None:
+        self.calls.append(("attitude", threading.current_thread().name, self._held()))
+        super()._on_attitude(att)
+
+
+def test_fixes_are_decided_and_sent_on_the_gps_thread_under_the_control_lock(
+    tmp_path: Path, run_daemon
+) -> None:
+    d = ThreadWatch(hil_config(tmp_path))
+    r = run_daemon(d)
+    assert d.motors is not None
+    send = d.motors._send
+
+    def watched(cmd: MotorCommand) -> None:
+        d.sends.append((threading.current_thread().name, cmd))
+        send(cmd)
+
+    d.motors._send = watched  # type: ignore[method-assign]
+    wait_for(lambda: sum(k == "gps" for k, _t, _h in d.calls) >= 4, 20, "four GPS inputs")
+    wait_for(lambda: any(t == "x6wd-gps" for t, _c in d.sends), 5, "a send on the GPS thread")
+    calls = list(d.calls)
+    assert {t for k, t, _h in calls if k == "gps"} == {"x6wd-gps"}
+    assert {t for k, t, _h in calls if k == "attitude"} - {"x6wd-gps"}  # on the event loop
+    assert all(held for _k, _t, held in calls)  # every controller input under the lock
+    assert d.motors.direct_sent >= 1
+    assert d.gc_pacer is not None and d.gc_pacer.collections >= 1
+    if sys.platform == "linux":  # the network thread yields the processor to the others
+        assert d._net is not None and d._net.thread.native_id is not None
+        net_nice = os.getpriority(os.PRIO_PROCESS, d._net.thread.native_id)
+        assert net_nice > os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) or (
+            net_nice == 19
+        )
+    assert not gc.isenabled()  # paced while running
+    assert r.stop() == 0
+    assert gc.isenabled()  # given back at exit
+
+
+class BlockingLink:
+    """A motor link whose sends of a drive wait for ``release``; stops go through."""
+
+    def __init__(self) -> None:
+        self.healthy = True
+        self.sent: list[tuple[str, MotorCommand]] = []
+        self.sending = threading.Event()
+        self.release = threading.Event()
+        self.stops: list[str] = []
+
+    def send(self, cmd: MotorCommand) -> bool:
+        if not cmd.is_stop and cmd.reason == "slow":
+            self.sending.set()
+            self.release.wait(5)
+        self.sent.append((threading.current_thread().name, cmd))
+        return True
+
+    def stop(self, reason: str = "") -> bool:
+        self.stops.append(reason)
+        return True
+
+    def close(self) -> None:
+        pass
+
+
+def test_send_now_sends_in_the_callers_thread_when_idle_else_queues() -> None:
+    from x6wd.app.daemon import _MotorWorker
+
+    link = BlockingLink()
+    w = _MotorWorker(link, keepalive_s=5.0, on_health=lambda ok, t: None)
+    w.start()
+    try:
+        me = threading.current_thread().name
+        assert w.send_now(MotorCommand(time.monotonic(), 10.0, 10.0, "fix")) is True
+        assert link.sent[-1][0] == me and w.direct_sent == 1 and w.idle
+        w.submit(MotorCommand(time.monotonic(), 20.0, 20.0, "slow"))  # the worker is busy
+        assert link.sending.wait(2)
+        assert w.send_now(MotorCommand(time.monotonic(), 30.0, 30.0, "fix")) is False  # queued
+        link.release.set()
+        wait_for(lambda: link.sent[-1][1].left_pct == 30.0, 3, "the queued command")
+        assert link.sent[-1][0] == "x6wd-motors"
+        w.shutdown("test end")
+        assert w.send_now(MotorCommand(time.monotonic(), 40.0, 40.0, "fix")) is False
+        assert all(c.left_pct != 40.0 for _t, c in link.sent)  # nothing after shutdown
+        assert link.stops == ["test end"]
+    finally:
+        link.release.set()
+        w.shutdown("test end")
+
+
+def test_a_repeated_command_is_not_resent_within_the_repeat_time() -> None:
+    from x6wd.app.daemon import _MotorWorker
+
+    link = BlockingLink()
+    w = _MotorWorker(link, keepalive_s=5.0, on_health=lambda ok, t: None)
+    w.start()
+    try:
+        w.submit(MotorCommand(time.monotonic(), 10.0, 10.0, "tick"), repeat_after_s=10.0)
+        wait_for(lambda: w.sent == 1, 3, "first send")
+        for _ in range(5):
+            w.submit(MotorCommand(time.monotonic(), 10.0, 10.0, "tick"), repeat_after_s=10.0)
+        assert w.repeats_skipped == 5 and w.sent == 1
+        w.submit(MotorCommand(time.monotonic(), 10.0, 10.0, "other"), repeat_after_s=10.0)
+        wait_for(lambda: w.sent == 2, 3, "a different command goes at once")
+        w.submit(MotorCommand(time.monotonic(), 10.0, 10.0, "other"))  # no repeat time: sent
+        wait_for(lambda: w.sent == 3, 3, "sent without a repeat time")
+    finally:
+        w.shutdown("test end")
