@@ -624,3 +624,14 @@ def test_a_breach_stops_the_mission_even_when_the_motor_sink_fails() -> None:
         runner.gps_record(outside)
     assert runner.controller.mode == Mode.IDLE and runner.geofence_breaches == 1
     assert sent[-1].is_stop
+
+
+@pytest.mark.parametrize(
+    "lat_deg, lon_deg", [(90.0, 0.0), (-90.0, 0.0), (0.0, 180.0), (0.0, -180.0)]
+)
+def test_a_fix_on_the_edge_of_the_coordinate_range_is_usable(
+    lat_deg: float, lon_deg: float
+) -> None:
+    lp = Loop()
+    lp.runner.gps_record(GpsFix(t_s=0.0, lat_deg=lat_deg, lon_deg=lon_deg, quality=1, valid=True))
+    assert lp.runner.first_fix == (lat_deg, lon_deg)
