@@ -398,3 +398,205 @@ def test_telemetry_reports_the_latest_inputs_as_given() -> None:
     c.load_mission([(lat, lon)], 1.7)  # standing on it: distance 0, no bearing to it
     tel = c.telemetry
     assert tel.distance_m == 0.0 and tel.target_bearing_deg is None and tel.theta_deg is None
+
+
+# -- pivot_arc: what the wheels do and what the operator sees ---------------------------------
+# Written against the `_mix` and `_snapshot` survivors of the steering mode: the numbers below
+# are the docs/navigation.md formulas worked by hand (pure pursuit κ = 2·sin α / d towards the
+# lookahead point, the approach speed, left = s·(1 + κT/2), right = s·(1 − κT/2), both scaled
+# down together when a side would pass 100 %), not a call of the code under test.
+ARC = replace(
+    NAV,
+    steering="pivot_arc",
+    cruise_pct=60.0,
+    turn_pct=40.0,
+    delta_x_m=1.0,
+    delta_y_m=1.0,
+    lookahead_m=8.0,
+    approach_m=10.0,
+    min_speed_pct=15.0,
+    steer_track_m=2.0,
+)
+STEER_KEYS = {"steer_alpha_deg", "curvature_per_m", "speed_pct", "pivoting"}
+
+
+def arc_decision(
+    nav: Any = ARC,
+    *,
+    north_m: float = 0.0,
+    bearing_deg: float = 0.0,
+    east_m: float = 0.0,
+    waypoints: list[tuple[float, float]] | None = None,
+) -> tuple[Controller, MotorCommand, Telemetry]:
+    """A pivot_arc mission towards 100 m north; the first decision (which starts the leg, so
+    the robot is on the leg's line) at (east_m, north_m) with the compass at bearing_deg."""
+    c = Controller(nav, SAFETY)
+    c.load_mission(waypoints or [at(0.0, 100.0)], 0.0)
+    c.start(0.0)
+    c.on_fix(fix(1.0, east_m, north_m))
+    _, cmd, tel = split(c.on_attitude(att(1.0, bearing_deg)))
+    return c, cmd, tel
+
+
+def mixed(speed: float, curvature: float, track_m: float) -> tuple[float, float]:
+    k = curvature * track_m / 2.0
+    left, right = speed * (1.0 + k), speed * (1.0 - k)
+    peak = max(abs(left), abs(right))
+    return (left, right) if peak <= 100.0 else (100.0 * left / peak, 100.0 * right / peak)
+
+
+@pytest.mark.parametrize(("bearing", "alpha_deg"), [(340.0, 20.0), (20.0, -20.0), (0.0, 0.0)])
+def test_arc_percentages_at_cruise_with_their_sign_per_side(
+    bearing: float, alpha_deg: float
+) -> None:
+    # 100 m from the waypoint: cruise speed; the lookahead point 8 m ahead on the line
+    _, cmd, tel = arc_decision(bearing_deg=bearing)
+    k = 2.0 * math.sin(math.radians(alpha_deg)) / 8.0
+    assert tel.state == NavState.STRAIGHT and cmd.reason == "STRAIGHT"
+    assert (cmd.left_pct, cmd.right_pct) == pytest.approx((60.0 * (1 + k), 60.0 * (1 - k)))
+    if alpha_deg > 0:  # waypoint to the right: the left side drives faster
+        assert cmd.left_pct == pytest.approx(65.130302, abs=1e-5)
+        assert cmd.right_pct == pytest.approx(54.869698, abs=1e-5)
+    elif alpha_deg < 0:
+        assert cmd.left_pct == pytest.approx(54.869698, abs=1e-5)
+        assert cmd.right_pct == pytest.approx(65.130302, abs=1e-5)
+    else:
+        assert (cmd.left_pct, cmd.right_pct) == pytest.approx((60.0, 60.0))
+    assert (tel.left_pct, tel.right_pct) == (cmd.left_pct, cmd.right_pct)
+    assert set(tel.extra) == {"filter_samples", *STEER_KEYS}
+    assert tel.extra["steer_alpha_deg"] == pytest.approx(alpha_deg, abs=1e-9)
+    assert tel.extra["curvature_per_m"] == pytest.approx(k, abs=1e-12)
+    assert tel.extra["speed_pct"] == 60.0 and tel.extra["pivoting"] is False
+
+
+@pytest.mark.parametrize("track_m", [0.5, 2.0, 4.95])
+def test_arc_percentages_use_steer_track_m(track_m: float) -> None:
+    _, cmd, _ = arc_decision(replace(ARC, steer_track_m=track_m), bearing_deg=340.0)
+    k = 2.0 * math.sin(math.radians(20.0)) / 8.0
+    assert (cmd.left_pct, cmd.right_pct) == pytest.approx(mixed(60.0, k, track_m))
+    assert cmd.left_pct - cmd.right_pct == pytest.approx(60.0 * k * track_m)
+
+
+def test_arc_on_the_approach_drives_at_the_approach_speed() -> None:
+    # 5 m before the waypoint (approach_m 10): 60 % × 5/10 = 30 %; the target is the
+    # waypoint itself, 5 m away
+    _, cmd, tel = arc_decision(north_m=95.0, bearing_deg=340.0)
+    k = 2.0 * math.sin(math.radians(20.0)) / 5.0
+    assert tel.state == NavState.STRAIGHT
+    assert (cmd.left_pct, cmd.right_pct) == pytest.approx((30.0 * (1 + k), 30.0 * (1 - k)))
+    assert cmd.left_pct == pytest.approx(34.104242, abs=1e-5)
+    assert tel.extra["speed_pct"] == pytest.approx(30.0)
+    assert tel.extra["curvature_per_m"] == pytest.approx(k)
+    # never under min_speed_pct: 1.5 m before it, 15 % (not 9 %)
+    _, cmd, tel = arc_decision(north_m=98.5, bearing_deg=0.0)
+    assert (cmd.left_pct, cmd.right_pct) == pytest.approx((15.0, 15.0))
+    assert tel.extra["speed_pct"] == 15.0
+
+
+@pytest.mark.parametrize(("cruise", "bearing"), [(100.0, 320.0), (100.0, 40.0), (80.0, 310.0)])
+def test_arc_saturates_at_100_keeping_the_arc(cruise: float, bearing: float) -> None:
+    # a short lookahead and a wide track: the inner side reverses
+    nav = replace(ARC, cruise_pct=cruise, lookahead_m=2.0, steer_track_m=4.95)
+    _, cmd, tel = arc_decision(nav, bearing_deg=bearing)
+    alpha = -cmd_heading_deg(bearing)
+    k = 2.0 * math.sin(math.radians(alpha)) / 2.0
+    assert tel.state == NavState.STRAIGHT and tel.extra["pivoting"] is False
+    left, right = mixed(cruise, k, 4.95)
+    assert (cmd.left_pct, cmd.right_pct) == pytest.approx((left, right))
+    assert max(abs(cmd.left_pct), abs(cmd.right_pct)) == pytest.approx(100.0)
+    outer, inner = (cmd.left_pct, cmd.right_pct) if alpha > 0 else (cmd.right_pct, cmd.left_pct)
+    assert outer == pytest.approx(100.0) and -100.0 < inner < 0.0  # the inner side backs
+    assert inner / outer == pytest.approx((1 - abs(k) * 2.475) / (1 + abs(k) * 2.475))
+
+
+def cmd_heading_deg(bearing: float) -> float:
+    """The compass bearing as the controller's true heading (declination 0), (-180, 180]."""
+    return bearing - 360.0 if bearing > 180.0 else bearing
+
+
+@pytest.mark.parametrize(("bearing", "state", "left"), [
+    (270.0, NavState.TURN_RIGHT, 40.0), (90.0, NavState.TURN_LEFT, -40.0),
+    (299.0, NavState.TURN_RIGHT, 40.0), (61.0, NavState.TURN_LEFT, -40.0),
+])  # fmt: skip
+def test_beyond_the_pivot_angle_it_turns_on_the_spot(
+    bearing: float, state: NavState, left: float
+) -> None:
+    _, cmd, tel = arc_decision(bearing_deg=bearing)
+    assert tel.state == state and (cmd.left_pct, cmd.right_pct) == (left, -left)
+    assert set(tel.extra) == {"filter_samples", *STEER_KEYS}
+    assert tel.extra["pivoting"] is True
+    assert tel.extra["curvature_per_m"] is None and tel.extra["speed_pct"] is None
+    assert tel.extra["steer_alpha_deg"] == pytest.approx(-cmd_heading_deg(bearing))
+
+
+def test_arc_pivot_hysteresis_reaches_the_wheels() -> None:
+    c, cmd, _ = arc_decision(bearing_deg=270.0)  # 90° off: pivot
+    assert (cmd.left_pct, cmd.right_pct) == (40.0, -40.0)
+    _, cmd, tel = split(c.on_attitude(att(1.1, 340.0)))  # 20° off: still pivoting (> 10°)
+    assert (cmd.left_pct, cmd.right_pct) == (40.0, -40.0) and tel.extra["pivoting"] is True
+    _, cmd, tel = split(c.on_attitude(att(1.2, 355.0)))  # 5° off: drive the arc again
+    k = 2.0 * math.sin(math.radians(5.0)) / 8.0
+    assert (cmd.left_pct, cmd.right_pct) == pytest.approx((60.0 * (1 + k), 60.0 * (1 - k)))
+    assert tel.extra["pivoting"] is False
+
+
+def test_arc_stops_in_hold_pause_arrival_and_done() -> None:
+    c, cmd, _ = arc_decision(bearing_deg=340.0)
+    assert cmd.left_pct > 0 and cmd.right_pct > 0
+    _, cmd, tel = split(c.tick(1.6))  # the compass is 0.6 s old: hold
+    assert tel.state == NavState.HOLD and cmd == MotorCommand(1.6, 0.0, 0.0, "hold: attitude stale")
+    c.on_attitude(att(1.7, 340.0))
+    assert c.command.left_pct > 0
+    _, cmd, _ = split(c.pause(1.8))
+    assert cmd == MotorCommand(1.8, 0.0, 0.0, "paused")
+    # arriving in the windows of the last waypoint: stopped, mission done
+    c2, cmd, tel = arc_decision(north_m=99.5, bearing_deg=340.0)
+    assert tel.state == NavState.MISSION_DONE and c2.mode == Mode.DONE
+    assert cmd == MotorCommand(1.0, 0.0, 0.0, "done")
+    _, cmd, _ = split(c2.on_attitude(att(1.1, 340.0)))
+    assert cmd == MotorCommand(1.1, 0.0, 0.0, "done")
+
+
+def test_arc_telemetry_names_how_a_waypoint_was_reached() -> None:
+    # in the windows (1 m): "windows"; the arrival decision has no steering numbers
+    c, _, tel = arc_decision(north_m=99.5, bearing_deg=340.0)
+    assert tel.extra == {
+        "filter_samples": 1, "steer_alpha_deg": None, "curvature_per_m": None,
+        "speed_pct": None, "pivoting": False, "arrived_by": "windows",
+    }  # fmt: skip
+    # past the waypoint's line, 5 m beside it: "passed", ARRIVED stops for that decision
+    c = Controller(replace(ARC, filter_n=3), SAFETY)
+    c.load_mission([at(0.0, 100.0), at(0.0, 200.0)], 0.0)
+    c.start(0.0)
+    c.on_fix(fix(1.0, 0.0, 50.0))
+    _, cmd, tel = split(c.on_attitude(att(1.0, 0.0)))  # starts the leg at (0, 50)
+    assert "arrived_by" not in tel.extra and cmd.left_pct == pytest.approx(60.0)
+    for t in (1.8, 1.9, 2.0):  # the filter's three samples all there
+        c.on_fix(fix(t, 5.0, 100.5))
+    _, cmd, tel = split(c.on_attitude(att(2.0, 0.0)))
+    assert tel.state == NavState.ARRIVED and (cmd.left_pct, cmd.right_pct) == (0.0, 0.0)
+    assert tel.extra["arrived_by"] == "passed" and tel.extra["steer_alpha_deg"] is None
+    assert tel.waypoint_index == 1
+    # the next decision drives towards the second waypoint: no arrival any more
+    _, cmd, tel = split(c.on_attitude(att(2.1, 0.0)))
+    assert tel.state == NavState.STRAIGHT and "arrived_by" not in tel.extra
+    assert cmd.left_pct < cmd.right_pct  # the next leg's line is to the west: arc left
+
+
+def test_steering_numbers_only_in_pivot_arc_and_after_a_decision() -> None:
+    # pivot_arc, mission loaded and started, no decision yet: no steering keys
+    c = Controller(ARC, SAFETY)
+    _, _, tel = split(c.load_mission([at(0.0, 100.0)], 0.0))
+    assert set(tel.extra) == {"filter_samples"}
+    _, _, tel = split(c.start(0.0))
+    assert set(tel.extra) == {"filter_samples"}
+    _, _, tel = split(c.on_fix(fix(1.0)))  # holding: no attitude yet
+    assert set(tel.extra) == {"filter_samples"}
+    # pivot_arc without a mission: none either
+    _, _, tel = split(Controller(ARC, SAFETY).on_attitude(att(1.0, 340.0)))
+    assert set(tel.extra) == {"filter_samples"}
+    # paper steering, running: the paper's mixing and no steering keys
+    c = driving(1.0)
+    _, cmd, tel = split(c.on_attitude(att(1.1, 5.0)))
+    assert tel.state == NavState.STRAIGHT and (cmd.left_pct, cmd.right_pct) == (60.0, 60.0)
+    assert set(tel.extra) == {"filter_samples"}

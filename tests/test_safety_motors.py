@@ -19,7 +19,16 @@ from typing import Any
 import pytest
 import serial
 
-from drivers.motors import LogMotorLink, MotorBoard, SerialMotorLink, serve_board_fd
+from drivers.motors import (
+    ENC_MODULO,
+    EncoderUnwrap,
+    LogMotorLink,
+    MotorBoard,
+    SerialMotorLink,
+    parse_encoder_payload,
+    serve_board_fd,
+    wrap_count_delta,
+)
 from tests.test_motors import FlakyPort, PtyBoard, open_link, pty_board
 from x6wd.core.records import MotorCommand
 
@@ -186,6 +195,59 @@ def test_an_overflow_keeps_the_replies_around_it() -> None:
     b.feed(b"M 30 30\n", 0.0)
     out = b.feed(b"P #1\n" + b"x" * 70 + b"\nP #2\n", 1.0)
     assert out == b"EVT WATCHDOG\nOK #1\nERR overflow\nOK #2\n"
+
+
+# -- wheel encoders (docs/motors.md, "Wheel encoders") ----------------------------------------
+@pytest.mark.parametrize("delta", [0, 1, -1, 4300, -4300, 2**31 - 1, -(2**31)])
+def test_count_differences_are_exact_integers(delta: int) -> None:
+    # the counts are integers all the way: a float would round beyond 2**53 counts and
+    # show as "8.0" in a record
+    for start in (0, 5, ENC_MODULO - 3):
+        got = wrap_count_delta((start + delta) % ENC_MODULO - start)
+        assert got == delta and type(got) is int
+    u = EncoderUnwrap()
+    u.update(1, ENC_MODULO - 3, 10)
+    left, right = u.update(2, 5, 2)
+    assert (left, right) == (8, -8) and type(left) is int and type(right) is int
+
+
+@pytest.mark.parametrize(
+    ("payload", "parsed"),
+    [("65535 4294967295 4294967295", (65535, ENC_MODULO - 1, ENC_MODULO - 1)),
+     ("0 0 0", (0, 0, 0)),
+     ("1 0 4294967296", None), ("1 4294967296 0", None), ("65536 0 0", None)],
+)  # fmt: skip
+def test_encoder_replies_at_the_limits_of_their_ranges(
+    payload: str, parsed: tuple[int, int, int] | None
+) -> None:
+    assert parse_encoder_payload(payload) == parsed
+
+
+def test_a_latch_number_up_to_1000_ahead_continues_and_beyond_restarts() -> None:
+    u = EncoderUnwrap()
+    u.update(10, 0, 0)
+    assert u.update(1010, 100, 50) == (100, 50)  # 999 replies lost: the counts still add
+    assert (u.skipped, u.restarts) == (999, 0)
+    assert u.update(2011, 500, 500) == (100, 50)  # 1001 ahead: a restart, a new baseline
+    assert (u.skipped, u.restarts) == (999, 1)
+    # across the 16-bit wrap: 65000 -> 464 is 1000 ahead
+    u = EncoderUnwrap()
+    u.update(65000, 7, 7)
+    assert u.update(464, 17, 2) == (10, -5) and (u.skipped, u.restarts) == (999, 0)
+
+
+def test_lost_latches_and_restarts_are_counted_all_along() -> None:
+    u = EncoderUnwrap()
+    u.update(1, 0, 0)
+    u.update(3, 10, 10)  # one lost
+    u.update(6, 20, 20)  # two more
+    assert u.skipped == 3 and u.update(7, 30, 30) == (30, 30) and u.skipped == 3
+    u.update(7, 99, 99)  # the same latch number again: restarted
+    u.update(1, 5, 5)  # and back to 1: restarted again
+    u.update(0, 6, 6)  # and again (a step of 65535)
+    assert u.restarts == 3 and u.update(1, 8, 9) == (32, 33)
+    u.rebase()  # EVT BOOT: one more
+    assert u.restarts == 4 and u.update(1, 0, 0) == (32, 33)
 
 
 # -- the board on a pty (serve_board_fd) -----------------------------------------------------
