@@ -12,6 +12,7 @@ import asyncio
 import dataclasses
 import functools
 import itertools
+import json
 import logging
 import math
 import os
@@ -639,3 +640,53 @@ def test_a_motor_board_that_cannot_be_reached_is_exit_1(tmp_path: Path) -> None:
     finally:
         if d.devices is not None:
             d.devices.close()
+
+
+def _gpsd_lines(port: int, watch: str, want: Any, timeout_s: float = 20.0) -> list[str]:
+    """Lines from the daemon's gpsd port after ``watch``, until ``want(lines)``."""
+    lines: list[str] = []
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout_s) as s:
+        s.sendall(watch.encode() + b"\n")
+        buf = b""
+        deadline = time.monotonic() + timeout_s
+        while not want(lines):
+            assert time.monotonic() < deadline, (
+                f"gpsd port: not seen in {timeout_s} s: {lines[-5:]}"
+            )
+            chunk = s.recv(65536)
+            assert chunk, "gpsd port closed"
+            buf += chunk
+            *done, buf = buf.split(b"\n")
+            lines += [d.decode().rstrip("\r") for d in done]
+    return lines
+
+
+def test_the_gpsd_port_relays_the_running_daemons_fixes_sky_attitude_and_sentences(
+    tmp_path: Path, run_daemon
+) -> None:
+    d = Daemon(hil_config(tmp_path))
+    run_daemon(d)
+    assert d.gpsd is not None
+    port = d.gpsd.port
+
+    def classes(lines: list[str]) -> set[str]:
+        return {json.loads(x)["class"] for x in lines if x.startswith("{")}
+
+    both = _gpsd_lines(
+        port,
+        '?WATCH={"enable":true,"json":true,"nmea":true};',
+        lambda ls: {"TPV", "SKY", "ATT"} <= classes(ls) and any(x.startswith("$GPGGA") for x in ls),
+    )
+    tpv = next(json.loads(x) for x in both if x.startswith('{"class":"TPV"'))
+    assert tpv["mode"] >= 2 and abs(tpv["lat"] - ORIGIN[0]) < 1e-3
+    gga = next(x for x in both if x.startswith("$GPGGA"))
+    body, star, checksum = gga[1:].partition("*")
+    assert star and int(checksum, 16) == functools.reduce(lambda a, c: a ^ ord(c), body, 0)
+    # JSON only: no sentences; sentences only: no JSON objects after the WATCH reply
+    json_only = _gpsd_lines(port, '?WATCH={"enable":true,"json":true};',
+                            lambda ls: {"TPV", "SKY", "ATT"} <= classes(ls))  # fmt: skip
+    assert not any(x.startswith("$") for x in json_only)
+    nmea_only = _gpsd_lines(port, '?WATCH={"enable":true,"nmea":true};',
+                            lambda ls: sum(x.startswith("$GPGGA") for x in ls) >= 2)  # fmt: skip
+    after_watch = nmea_only[next(i for i, x in enumerate(nmea_only) if '"WATCH"' in x) + 1 :]
+    assert after_watch and not any(x.startswith("{") for x in after_watch)

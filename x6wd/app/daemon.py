@@ -39,6 +39,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, cast
 
+from drivers.gps_nmea import NmeaSentence
 from x6wd import __version__
 from x6wd.app.gpsd import GpsdServer
 from x6wd.app.notify import Notifier
@@ -925,12 +926,8 @@ class Daemon:
                     self._net_call(self.gpsd.publish_fix, rec)
                 elif isinstance(rec, GpsSky):
                     self._net_call(self.gpsd.publish_sky, rec)
-                else:
-                    text = getattr(rec, "text", None) or getattr(rec, "raw", None)
-                    if isinstance(text, bytes):
-                        text = text.decode("ascii", "replace")
-                    if isinstance(text, str):
-                        self._net_call(self.gpsd.publish_nmea, text)
+                elif isinstance(rec, NmeaSentence):
+                    self._net_call(self.gpsd.publish_nmea, rec.text)
 
     def _on_attitude(self, att: Attitude) -> None:
         assert self.runner is not None
