@@ -35,6 +35,7 @@ from x6wd.app.client import RemoteClient, RequestFailed
 from x6wd.app.daemon import Daemon, _MotorWorker, distance_m
 from x6wd.app.notify import Notifier
 from x6wd.core.config import Config, GpsConfig, MotorsConfig, SafetyConfig
+from x6wd.core.errors import DeviceUnavailable
 from x6wd.core.geodesy import EARTH_MEAN_RADIUS_M as EARTH_RADIUS_M
 from x6wd.core.records import Attitude, DeviceHealth, HealthEvent, MotorCommand
 
@@ -414,7 +415,8 @@ def test_at_exit_the_motors_stop_first_and_nothing_is_left_open(
     sock, notifier = notify_socket(tmp_path)
     r = run_daemon(Daemon(log_motors_config(tmp_path), notifier=notifier))
     port = r.port
-    gps_port = Path(r.daemon.devices.backend("sim").uart.port_name)
+    world = r.daemon.devices.backend("sim")
+    gps_port = Path(world.uart.port_name)
     gps_fds = len(fds_open_on(gps_port))
     assert gps_fds >= 1  # the daemon's GPS reader holds its device
     watcher = RemoteClient("127.0.0.1", port)
@@ -433,6 +435,7 @@ def test_at_exit_the_motors_stop_first_and_nothing_is_left_open(
     wait_for(lambda: stamped.driving(30.0, -30.0), 3, "motors driven")
     # a change of state is also told to systemd (`systemctl status` shows it)
     assert any(m.get("STATUS") == "MANUAL IDLE" for m in itertools.islice(notices(sock), 20))
+    wait_for(lambda: r.daemon.first_fix, 20, "a first fix (recorded by the GPS thread)")
     r.loop.call_soon_threadsafe(r.daemon.request_stop)
     t_eof = None
     deadline = time.monotonic() + 10
@@ -454,11 +457,15 @@ def test_at_exit_the_motors_stop_first_and_nothing_is_left_open(
         socket.create_connection(("127.0.0.1", port), timeout=2).close()
     rec_dir = tmp_path / "rec"
     assert fds_open_on(rec_dir) == []  # the recording is closed
-    assert len(fds_open_on(gps_port)) < gps_fds  # and the GPS device
+    assert fds_open_on(gps_port) == []  # and the GPS device, by the reader and the world
+    assert not world.running  # the simulated world is closed, last
+    with pytest.raises(DeviceUnavailable, match="closed"):
+        r.daemon.devices.backend("sim")
     sock.close()
     (rec,) = rec_dir.glob("*.jsonl")
     text = rec.read_text()
-    for kind in ("motor", "state", "telemetry"):
+    # fixes, sentences and sky reports are recorded by the GPS thread's own decisions
+    for kind in ("motor", "state", "telemetry", "fix", "nmea", "sky", "attitude"):
         assert f'"type":"{kind}"' in text, kind
 
 
@@ -480,6 +487,38 @@ class CrashingGpsDaemon(Daemon):
 
         reader.poll = armed_poll
         super()._gps_thread()
+
+
+class CrashingDecisionDaemon(Daemon):
+    """Fault injection: once armed, deciding on a GPS record hits a bug (in the GPS thread,
+    under the control lock)."""
+
+    armed = False
+    t_boom: float | None = None
+
+    def _on_gps_records(self, records: list[Any]) -> None:
+        if self.armed and self.t_boom is None:
+            self.t_boom = time.monotonic()
+            raise RuntimeError("injected bug in a decision")
+        super()._on_gps_records(records)
+
+
+def test_a_bug_while_deciding_on_a_fix_stops_the_motors_and_exits_1(
+    tmp_path: Path, run_daemon, stamped: StampedLink, caplog: pytest.LogCaptureFixture
+) -> None:
+    d = CrashingDecisionDaemon(log_motors_config(tmp_path))
+    r = run_daemon(d)
+    with RemoteClient("127.0.0.1", r.port) as c:
+        c.request("drive", left=25, right=25, duration_s=5)
+    wait_for(lambda: stamped.driving(25.0, 25.0), 3, "motors driven")
+    d.armed = True
+    r.thread.join(10)
+    assert r.code == 1
+    assert d.t_boom is not None and stamped.first_stop_after(d.t_boom) is not None
+    assert stamped.stamped[-1][1].is_stop
+    assert any("injected bug in a decision" in rec.getMessage() or (
+        rec.exc_info and "injected bug in a decision" in str(rec.exc_info[1]))
+        for rec in caplog.records)  # fmt: skip
 
 
 def test_a_bug_in_a_device_thread_stops_the_motors_and_exits_1(
