@@ -255,6 +255,123 @@ def test_shutdown_stops_with_its_reason_then_closes_even_if_the_stop_fails() -> 
     assert not w.thread.is_alive()
 
 
+class OverlapLink(BareLink):
+    """A bare link whose sends take ``send_s`` and that notes sends running at once; its
+    replies are ``reply`` (False: not acknowledged); stops are timed."""
+
+    def __init__(self, send_s: float = 0.0) -> None:
+        super().__init__()
+        self.send_s = send_s
+        self.reply = True
+        self.active = 0
+        self.most_active = 0
+        self.sent_at: list[tuple[float, float, MotorCommand]] = []  # (start, end, command)
+        self.stop_t: list[float] = []
+        self._lk = threading.Lock()
+
+    def send(self, cmd: MotorCommand) -> bool:
+        with self._lk:
+            self.active += 1
+            self.most_active = max(self.most_active, self.active)
+        t0 = time.monotonic()
+        try:
+            time.sleep(self.send_s)
+            if self.fail_send is not None:
+                raise self.fail_send
+            self.sent.append(cmd)
+            return self.reply
+        finally:
+            self.sent_at.append((t0, time.monotonic(), cmd))
+            with self._lk:
+                self.active -= 1
+
+    def stop(self, reason: str = "") -> bool:
+        self.stop_t.append(time.monotonic())
+        return super().stop(reason)
+
+
+def drive(left: float = 30.0, reason: str = "drive") -> MotorCommand:
+    return MotorCommand(time.monotonic(), left, left, reason)
+
+
+def test_identical_commands_are_all_sent_unless_a_repeat_interval_is_asked_for() -> None:
+    link = OverlapLink()
+    w = worker(link, 5.0)
+    try:
+        w.submit(drive())
+        wait_for(lambda: w.sent == 1, 3, "the first send")
+        w.submit(drive())  # no repeat interval: sent again
+        wait_for(lambda: w.sent == 2, 3, "the repeat")
+        w.submit(drive(), repeat_after_s=0.5)  # within 0.5 s of the last send: skipped
+        assert w.repeats_skipped == 1
+        w.submit(drive(left=40.0), repeat_after_s=0.5)  # a different command: sent
+        wait_for(lambda: w.sent == 3, 3, "the new command")
+        assert [c.left_pct for c in link.sent] == [30.0, 30.0, 40.0]
+    finally:
+        w.shutdown("test end")
+
+
+def test_send_now_writes_from_the_caller_only_to_an_idle_link_that_acknowledged() -> None:
+    link = OverlapLink()
+    w = worker(link, 5.0)
+    try:
+        assert w.send_now(drive()) and w.direct_sent == 1
+        link.reply = False  # not acknowledged (the link still says healthy)
+        assert w.send_now(drive(left=35.0)) and link.healthy
+        # the last send went unacknowledged: the next goes through the motor thread
+        assert not w.send_now(drive(left=40.0)) and w.direct_sent == 2
+        wait_for(lambda: link.sent[-1].left_pct == 40.0, 3, "queued send")
+        link.reply = True
+        link.fail_send = OSError("line noise")  # a send that raises is not acknowledged either
+        w.submit(drive(left=45.0))
+        wait_for(lambda: w.link_errors == 1, 3, "the failed send")
+        link.fail_send = None
+        assert not w.send_now(drive(left=50.0))
+    finally:
+        w.shutdown("test end")
+
+
+def test_send_now_and_the_motor_thread_never_send_at_once() -> None:
+    link = OverlapLink(send_s=0.2)
+    w = worker(link, 5.0)
+    try:
+        t = threading.Thread(target=w.send_now, args=(drive(),))
+        t.start()
+        wait_for(lambda: link.active == 1, 2, "send_now sending")
+        w.submit(drive(left=60.0))  # the motor thread must wait for the send in progress
+        t.join(3)
+        wait_for(lambda: len(link.sent_at) == 2, 3, "both sends")
+        assert link.most_active == 1
+        (_a0, a1, first), (b0, _b1, second) = link.sent_at
+        assert first.left_pct == 30.0 and second.left_pct == 60.0 and b0 >= a1
+    finally:
+        w.shutdown("test end")
+
+
+def test_shutdown_waits_for_a_send_now_in_progress_then_stops() -> None:
+    link = OverlapLink(send_s=0.3)
+    w = worker(link, 5.0)
+    t = threading.Thread(target=w.send_now, args=(drive(),))
+    t.start()
+    wait_for(lambda: link.active == 1, 2, "send_now sending")
+    w.shutdown("daemon exit")
+    t.join(3)
+    (_s0, s1, cmd) = link.sent_at[0]
+    assert not cmd.is_stop and link.stops == ["daemon exit"]
+    assert link.stop_t[0] >= s1  # the stop is the last thing the link got
+    assert not w.send_now(drive()) and len(link.sent) == 1  # nothing after shutdown
+
+
+def test_shutdown_stops_the_motors_even_when_a_send_now_never_returns() -> None:
+    link = OverlapLink(send_s=7.0)
+    w = worker(link, 5.0)
+    threading.Thread(target=w.send_now, args=(drive(),), daemon=True).start()
+    wait_for(lambda: link.active == 1, 2, "send_now sending")
+    t0 = time.monotonic()
+    w.shutdown("daemon exit")
+    assert link.stops == ["daemon exit"] and 4.5 < time.monotonic() - t0 < 6.5
+
+
 # -- the running daemon ----------------------------------------------------------------------
 class BlockableDaemon(Daemon):
     """Fault injection: once ``blocking`` is set, the next compass sample holds the control
@@ -729,3 +846,87 @@ def test_the_gpsd_port_relays_the_running_daemons_fixes_sky_attitude_and_sentenc
                             lambda ls: sum(x.startswith("$GPGGA") for x in ls) >= 2)  # fmt: skip
     after_watch = nmea_only[next(i for i, x in enumerate(nmea_only) if '"WATCH"' in x) + 1 :]
     assert after_watch and not any(x.startswith("{") for x in after_watch)
+
+
+def test_the_systemd_watchdog_is_fed_while_the_loop_turns(tmp_path: Path, run_daemon) -> None:
+    sock, _ = notify_socket(tmp_path)
+    notifier = Notifier(str(tmp_path / "notify.sock"), watchdog_usec=200_000)  # ping every 0.1 s
+    r = run_daemon(Daemon(log_motors_config(tmp_path), notifier=notifier))
+    t0 = time.monotonic()
+    pings = 0
+    for msg in notices(sock):
+        pings += msg.get("WATCHDOG") == "1"
+        if pings >= 5:
+            break
+    assert time.monotonic() - t0 < 3.0  # ~0.1 s apart, not at the tick rate nor never
+    r.loop.call_soon_threadsafe(r.daemon.request_stop)
+    r.thread.join(10)
+    assert r.code == 0
+    sock.close()
+
+
+class FailingWatchdogDaemon(Daemon):
+    """Fault injection: once armed, feeding the systemd watchdog (a task of the control
+    loop's task group) hits a bug."""
+
+    armed = False
+
+    def _feed_watchdog(self, now_s: float) -> None:
+        if self.armed:
+            raise RuntimeError("injected bug in a control-loop task")
+        super()._feed_watchdog(now_s)
+
+
+def test_a_bug_in_a_control_loop_task_stops_the_motors_and_exits_1(
+    tmp_path: Path, run_daemon, stamped: StampedLink
+) -> None:
+    sock, _ = notify_socket(tmp_path)
+    notifier = Notifier(str(tmp_path / "notify.sock"), watchdog_usec=200_000)
+    d = FailingWatchdogDaemon(log_motors_config(tmp_path), notifier=notifier)
+    r = run_daemon(d)
+    with RemoteClient("127.0.0.1", r.port) as c:
+        c.request("drive", left=25, right=25, duration_s=5)
+    wait_for(lambda: stamped.driving(25.0, 25.0), 3, "motors driven")
+    t_armed = time.monotonic()
+    d.armed = True
+    r.thread.join(10)
+    assert r.code == 1
+    assert stamped.first_stop_after(t_armed) is not None and stamped.stamped[-1][1].is_stop
+    sock.close()
+
+
+def test_with_no_fix_coming_the_loop_collects_the_garbage(tmp_path: Path, run_daemon) -> None:
+    master, slave = os.openpty()  # a GPS port on which nothing ever arrives
+    try:
+        cfg = log_motors_config(tmp_path)
+        cfg = dataclasses.replace(cfg, gps=GpsConfig(url=f"serial://{os.ttyname(slave)}"))
+        d = Daemon(cfg)
+        r = run_daemon(d)
+        pacer = d.gc_pacer
+        assert pacer is not None
+        n0 = pacer.collections
+        wait_for(lambda: pacer.collections > n0, 8, "a collection without fixes")
+        assert d.first_fix is None
+        r.loop.call_soon_threadsafe(d.request_stop)
+        r.thread.join(10)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_an_in_process_mission_drives_to_its_waypoint(tmp_path: Path, run_daemon) -> None:
+    d = Daemon(hil_config(tmp_path))
+    r = run_daemon(d)
+    world = d.devices.backend("sim")
+    wait_for(lambda: d.first_fix, 20, "first fix")
+    with RemoteClient("127.0.0.1", r.port) as c:
+        c.request("mission.load", waypoints=[[ORIGIN[0] + 8.0 / 111_200.0, ORIGIN[1]]])
+        c.request("start")
+        st = wait_for(
+            lambda: (s := c.request("status"))["mode"] == "DONE" and s, 40, "mission done"
+        )
+    assert st["state"] == "MISSION_DONE"
+    _e, north_m, _h, _v = world.truth()
+    assert 4.0 < north_m < 12.0  # drove to the waypoint 8 m north (arrival window, GPS error)
+    assert d.motors is not None and d.motors.direct_sent > 0  # fixes' commands sent directly
+    assert d.motors.link_errors == 0
