@@ -83,6 +83,13 @@ class Loop:
     def compass(self, bearing_deg: float = 0.0) -> None:
         self.runner.attitude(Attitude(self.now, bearing_deg, 0.0, 0.0))
 
+    def start_mission(self, *waypoints: Waypoint) -> None:
+        """A fix at home, a compass sample, then load ``waypoints`` and start."""
+        self.fix()
+        self.compass(0.0)
+        self.runner.load_mission(list(waypoints))
+        self.runner.command("start")
+
     def kinds(self) -> list[str]:
         return [m for m, _a in self.records]
 
@@ -127,10 +134,7 @@ def test_a_configured_centre_wins_over_the_first_fix() -> None:
 
 def test_a_running_mission_outside_the_geofence_is_stopped_motors_first() -> None:
     lp = Loop()
-    lp.fix()
-    lp.compass(0.0)
-    lp.runner.load_mission([north(90)])
-    lp.runner.command("start")
+    lp.start_mission(north(90))
     lp.now = 1.0
     lp.compass(0.0)
     lp.fix(50.0)
@@ -155,10 +159,7 @@ def test_a_running_mission_outside_the_geofence_is_stopped_motors_first() -> Non
 
 def test_the_geofence_edge_is_inclusive() -> None:
     lp = Loop()
-    lp.fix()
-    lp.compass(0.0)
-    lp.runner.load_mission([north(90)])
-    lp.runner.command("start")
+    lp.start_mission(north(90))
     lp.now = 1.0
     d_m = great_circle_m(*HOME, HOME[0] + 100.0 / M_PER_DEG_LAT, HOME[1])
     lp.fix(100.0 * 100.0 / d_m - 1e-6)  # just inside 100 m

@@ -620,10 +620,9 @@ class CrashingDecisionDaemon(Daemon):
         super()._on_gps_records(records)
 
 
-def test_a_bug_while_deciding_on_a_fix_stops_the_motors_and_exits_1(
-    tmp_path: Path, run_daemon, stamped: StampedLink, caplog: pytest.LogCaptureFixture
-) -> None:
-    d = CrashingDecisionDaemon(log_motors_config(tmp_path))
+def drive_then_arm_a_bug(d: Any, run_daemon: Any, stamped: StampedLink) -> None:
+    """Drive the running daemon ``d``, arm its injected bug, and check it exits 1 with the
+    motors stopped after the bug."""
     r = run_daemon(d)
     with RemoteClient("127.0.0.1", r.port) as c:
         c.request("drive", left=25, right=25, duration_s=5)
@@ -633,6 +632,12 @@ def test_a_bug_while_deciding_on_a_fix_stops_the_motors_and_exits_1(
     assert r.code == 1
     assert d.t_boom is not None and stamped.first_stop_after(d.t_boom) is not None
     assert stamped.stamped[-1][1].is_stop
+
+
+def test_a_bug_while_deciding_on_a_fix_stops_the_motors_and_exits_1(
+    tmp_path: Path, run_daemon, stamped: StampedLink, caplog: pytest.LogCaptureFixture
+) -> None:
+    drive_then_arm_a_bug(CrashingDecisionDaemon(log_motors_config(tmp_path)), run_daemon, stamped)
     assert any("injected bug in a decision" in rec.getMessage() or (
         rec.exc_info and "injected bug in a decision" in str(rec.exc_info[1]))
         for rec in caplog.records)  # fmt: skip
@@ -641,16 +646,7 @@ def test_a_bug_while_deciding_on_a_fix_stops_the_motors_and_exits_1(
 def test_a_bug_in_a_device_thread_stops_the_motors_and_exits_1(
     tmp_path: Path, run_daemon, stamped: StampedLink
 ) -> None:
-    d = CrashingGpsDaemon(log_motors_config(tmp_path))
-    r = run_daemon(d)
-    with RemoteClient("127.0.0.1", r.port) as c:
-        c.request("drive", left=25, right=25, duration_s=5)
-    wait_for(lambda: stamped.driving(25.0, 25.0), 3, "motors driven")
-    d.armed = True
-    r.thread.join(10)
-    assert r.code == 1
-    assert d.t_boom is not None and stamped.first_stop_after(d.t_boom) is not None
-    assert stamped.stamped[-1][1].is_stop
+    drive_then_arm_a_bug(CrashingGpsDaemon(log_motors_config(tmp_path)), run_daemon, stamped)
 
 
 def test_the_geofence_and_the_manual_limit_hold_at_their_edges(tmp_path: Path, run_daemon) -> None:
