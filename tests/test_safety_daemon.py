@@ -294,6 +294,19 @@ def drive(left: float = 30.0, reason: str = "drive") -> MotorCommand:
     return MotorCommand(time.monotonic(), left, left, reason)
 
 
+def test_after_a_send_now_the_keepalive_resends_it_then_stops() -> None:
+    link = OverlapLink()
+    w = worker(link, 0.05)
+    try:
+        assert w.send_now(drive())
+        wait_for(lambda: any(c.is_stop for c in link.sent), 3, "the keep-alive's stop")
+        resent = [c for c in link.sent if not c.is_stop]
+        assert len(resent) >= 2 and link.sent[-1].reason == "keepalive"
+        assert w.thread.is_alive()
+    finally:
+        w.shutdown("test end")
+
+
 def test_identical_commands_are_all_sent_unless_a_repeat_interval_is_asked_for() -> None:
     link = OverlapLink()
     w = worker(link, 5.0)
@@ -903,8 +916,12 @@ def test_with_no_fix_coming_the_loop_collects_the_garbage(tmp_path: Path, run_da
         n0 = pacer.collections
         wait_for(lambda: pacer.collections > n0, 8, "a collection without fixes")
         assert d.first_fix is None
+        slave_path = Path(os.ttyname(slave))
+        assert len(fds_open_on(slave_path)) == 2  # this test's and the daemon's GPS reader
         r.loop.call_soon_threadsafe(d.request_stop)
         r.thread.join(10)
+        assert r.code == 0
+        assert len(fds_open_on(slave_path)) == 1  # at exit the daemon closed its serial port
     finally:
         os.close(master)
         os.close(slave)
