@@ -192,10 +192,7 @@ def test_the_dead_man_and_staleness_act_on_ticks_of_the_injected_clock() -> None
     assert lp.runner.controller.mode == Mode.IDLE and lp.motors[-1].is_stop
     # a running mission holds once the fix is older than fix_stale_s
     lp2 = Loop()
-    lp2.fix()
-    lp2.compass()
-    lp2.runner.load_mission([north(50)])
-    lp2.runner.command("start")
+    lp2.start_mission(north(50))
     stale_s = lp2.safety.fix_stale_s
     t = 0.0
     while t < stale_s + 0.2:
@@ -210,10 +207,7 @@ def test_the_dead_man_and_staleness_act_on_ticks_of_the_injected_clock() -> None
 
 def test_a_sensor_reported_down_holds_at_once() -> None:
     lp = Loop()
-    lp.fix()
-    lp.compass()
-    lp.runner.load_mission([north(50)])
-    lp.runner.command("start")
+    lp.start_mission(north(50))
     lp.now = 0.1
     tracker = HealthTracker("gps", t_s=0.0)
     tracker.opened(0.0)
@@ -254,10 +248,7 @@ def test_an_invalid_fix_that_carries_coordinates_is_neither_centre_nor_position(
     lp = Loop()
     lp.fix(0.0, valid=False)  # the receiver's last position, flagged invalid
     assert lp.runner.geofence_centre() is None
-    lp.fix()
-    lp.compass()
-    lp.runner.load_mission([north(50)])
-    lp.runner.command("start")
+    lp.start_mission(north(50))
     lp.now = 0.5
     lp.compass()
     lp.fix(150.0, valid=False)  # would be outside, but it is not a position
@@ -269,10 +260,7 @@ def test_an_invalid_fix_that_carries_coordinates_is_neither_centre_nor_position(
 
 def test_a_geofence_breach_stops_at_the_fix_time_and_every_breach_counts() -> None:
     lp = Loop()
-    lp.fix()
-    lp.compass()
-    lp.runner.load_mission([north(90)])
-    lp.runner.command("start")
+    lp.start_mission(north(90))
     lp.now = 1.0
     lp.compass()
     lp.now = 1.5  # the fix comes after the controller's latest input (the compass at 1.0)
@@ -299,10 +287,7 @@ def test_a_geofence_breach_stops_at_the_fix_time_and_every_breach_counts() -> No
 def test_the_geofence_edge_is_inclusive_for_running_and_for_start() -> None:
     edge_m = great_circle_m(*HOME, HOME[0] + 60.0 / M_PER_DEG_LAT, HOME[1])
     lp = Loop(SafetyConfig(geofence_radius_m=edge_m))  # the fix below is exactly on the edge
-    lp.fix()
-    lp.compass()
-    lp.runner.load_mission([north(-50)])
-    lp.runner.command("start")
+    lp.start_mission(north(-50))
     lp.now = 0.2
     lp.compass()
     lp.fix(60.0)
@@ -386,10 +371,7 @@ def test_a_runner_without_a_health_log_logs_device_events_on_its_own_clock(
 
 def test_a_compass_reported_down_holds_at_once_with_its_reason() -> None:
     lp = Loop()
-    lp.fix()
-    lp.compass()
-    lp.runner.load_mission([north(50)])
-    lp.runner.command("start")
+    lp.start_mission(north(50))
     assert lp.runner.controller.state != NavState.HOLD
     lp.now = 0.1
     tracker = HealthTracker("compass", t_s=0.0)
