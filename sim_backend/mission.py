@@ -76,16 +76,17 @@ from sim_backend.effects import (
     wrap180,
 )
 from sim_backend.geodesy import enu_to_lla, lla_to_enu
+from sim_backend.odometry import EncoderSim, encoder_rng
 from sim_backend.ports import MemoryUart
 from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
-from sim_backend.world import World, load_world
+from sim_backend.world import World, load_world, with_robot_config
 from x6wd.core.errors import CommandError, ConfigError
 from x6wd.core.mission_files import Waypoint
 from x6wd.core.recorder import Recorder
 from x6wd.core.records import GpsFix, Mode, NavState, StateChange, Telemetry
 from x6wd.loop.runner import Runner
-from x6wd.nav.controller import CommandRejected, Controller
+from x6wd.nav.controller import CommandRejected, Controller, has_usable_position
 
 R1_M = 6378160.0  # the paper's equatorial radius (x = Λ·R1)
 R2_M = 6356770.0  # the paper's polar radius (y = Φ·R2)
@@ -362,8 +363,17 @@ def run_mission(
         rng=rand.compass if cset.errors.noise_ut > 0 else None,
     )
     compass = Cmps10(device, sleep=lambda _s: None, retry_delay_s=0.0)
-    ctrl = Controller(world.navigation, world.safety, cset.robot_declination_deg)
+    ctrl = Controller(
+        world.navigation,
+        world.safety,
+        cset.robot_declination_deg,
+        odometry=world.odometry,
+        gnss_noise=world.gnss_noise,
+        failsafe=world.failsafe,
+    )
     vehicle = vehicle_from_world(world)
+    # The motor board's encoders, read at the compass rate as the daemon polls them.
+    encoders = EncoderSim(world.encoders, rng=encoder_rng(seed), start=vehicle.state)
     origin = world.origin
     antenna_m = world.vehicle.antenna_height_m
     waypoints = [Waypoint(float(a), float(b)) for a, b in world.waypoints_latlon()]
@@ -394,9 +404,39 @@ def run_mission(
         utc_clock=lambda: utc0_naive + timedelta(seconds=now[0]),
     )
 
+    arrivals: list[dict[str, Any]] = []
+    last_fix: list[tuple[GpsFix, int] | None] = [None]  # latest usable fix, its epoch tick
+
+    def note_arrival(t_s: float) -> None:
+        # the true position against the waypoint just reached, and the GPS's own error at that
+        # moment (the latest fix against the truth at its epoch)
+        idx = len(arrivals)
+        if idx >= len(wp_enu):
+            return
+        s = vehicle.state
+        wp_e, wp_n = float(wp_enu[idx][0]), float(wp_enu[idx][1])
+        row: dict[str, Any] = {
+            "index": idx,
+            "t_s": round(t_s, 3),
+            "true_error_m": math.hypot(s.east_m - wp_e, s.north_m - wp_n),
+        }
+        latest = last_fix[0]
+        if latest is not None:
+            fx, tick = latest
+            assert fx.lat_deg is not None and fx.lon_deg is not None
+            te, tn = trace.epoch_truth[tick][:2]
+            fe, fn, _ = lla_to_enu(
+                fx.lat_deg, fx.lon_deg, origin.alt_m, origin.lat_deg, origin.lon_deg, origin.alt_m
+            )
+            row["gps_error_m"] = math.hypot(float(fe) - te, float(fn) - tn)
+        arrivals.append(row)
+
     def observe(outputs: list[Any], _important: bool) -> None:
         nonlocal done_at
         for o in outputs:
+            if type(o) is Telemetry and not ctrl.returning and ctrl.mode != Mode.IDLE:
+                while len(arrivals) < min(ctrl.navigator.index, len(wp_enu)):
+                    note_arrival(o.t_s)
             if type(o) is StateChange:
                 t = o.t_s
                 if o.new == NavState.HOLD and (not holds or holds[-1][1] >= 0):
@@ -467,6 +507,8 @@ def run_mission(
                 rec.record_nmea(line.rstrip(b"\r\n"), t_rx)
                 for r in decoder.feed(uart.read_all(), t_rx):
                     if type(r) is GpsFix:
+                        if has_usable_position(r):
+                            last_fix[0] = (r, tick)
                         runner.gps_record(r)
                         load_at_first_fix(r)
                         _note_fix(trace, tick, r, ctrl.telemetry)
@@ -491,6 +533,9 @@ def run_mission(
                 s.pitch_deg, s.roll_deg,
             )  # fmt: skip
             runner.attitude(compass.read(t))
+            if k:
+                encoders.step(dt, s)
+                runner.odometry(encoders.reading(t))
             runner.tick(t)
             if k % gps_every == 0:
                 antenna = (s.east_m, s.north_m, s.up_m + antenna_m)
@@ -555,6 +600,8 @@ def run_mission(
         extra={
             "holds_s": [[round(a, 3), round(b, 3)] for a, b in holds],
             "mission_rejected": mission_state["rejected"],
+            "arrivals": arrivals,
+            "position_source": world.navigation.position_source,
             "geofence_breaches": runner.geofence_breaches,
             "i2c_errors_injected": injector.injected,
             "compass_stale_events": compass.counters.stale_events,
@@ -800,12 +847,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration", type=float, default=None, help="override the duration (simulated s)"
     )
+    parser.add_argument(
+        "--config",
+        default=None,
+        help="robot configuration (e.g. config/x6wd.toml) whose [navigation], [safety], "
+        "[failsafe], [odometry] and [gnss_noise] the robot uses, under the scenario's own "
+        "keys; default: the built-in defaults, which are config/x6wd.toml's",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def main(args: argparse.Namespace) -> int:
     """Run the subcommand; 0 when the mission completed (or a static survey ran), 1 if not."""
     world = load_world(args.scenario)
+    if args.config:
+        world = with_robot_config(world, args.config)
     progress = None if args.quiet else _progress_bar(sys.stderr)
     summary = run_mission(world, args.out, args.seed, args.duration, progress)
     print(summary.text())

@@ -39,7 +39,11 @@ Scenario layout (every key optional unless stated; errors name the dotted key)::
     [compass] a plain table handed to the compass emulation
     [[effects]] {name = "...", params...}: sim_backend.effects layers (validated by name)
     [mission] waypoints = [[lat, lon], ...] and/or waypoints_enu = [[east_m, north_m], ...]
-    [navigation], [safety]: x6wd.core.config.NavigationConfig / SafetyConfig
+    [navigation], [safety], [failsafe], [odometry], [gnss_noise]: the robot's configuration
+              (x6wd.core.config), each key defaulting to the robot's default, so a scenario
+              overrides only what it means to; :func:`with_robot_config` lays a robot
+              config file underneath instead
+    [encoders] the simulated wheel encoders' truth (sim_backend.odometry.EncoderParams)
 
 Merging (includes and fragments): tables merge key by key, arrays of tables (walls,
 buildings, roofs, effects) are concatenated, any other value is replaced by the later file.
@@ -63,7 +67,15 @@ import numpy as np
 
 from sim_backend.atmosphere import Atmosphere
 from sim_backend.buildings import Hole, Roof, Wall, Walls, Window, building
-from x6wd.core.config import NavigationConfig, SafetyConfig, build
+from sim_backend.odometry import EncoderParams
+from x6wd.core.config import (
+    FailsafeConfig,
+    GnssNoiseConfig,
+    NavigationConfig,
+    OdometryConfig,
+    SafetyConfig,
+    build,
+)
 from x6wd.core.errors import ConfigError
 
 DEFAULT_ALMANAC = Path(__file__).resolve().parent / "data" / "almyuma_01jan2020.txt"
@@ -159,6 +171,10 @@ class World:
     navigation: NavigationConfig
     safety: SafetyConfig
     raw: dict[str, Any] = field(repr=False)
+    failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    gnss_noise: GnssNoiseConfig = field(default_factory=GnssNoiseConfig)
+    encoders: EncoderParams = field(default_factory=EncoderParams)
     source: Path | None = None
 
     def __eq__(self, other: object) -> bool:
@@ -491,7 +507,14 @@ _TOP_KEYS = {
     "mission",
     "navigation",
     "safety",
+    "failsafe",
+    "odometry",
+    "gnss_noise",
+    "encoders",
 }
+
+ROBOT_SECTIONS = ("navigation", "safety", "failsafe", "odometry", "gnss_noise")
+"""The robot configuration's sections a scenario may carry (and a robot config provides)."""
 
 
 def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World:
@@ -549,6 +572,10 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
                 raise ConfigError(f"{key}[{i}]: out of range, got {list(pt)}")
     navigation = build(NavigationConfig, _table(data, "navigation"), "navigation.")
     safety = build(SafetyConfig, _table(data, "safety"), "safety.")
+    failsafe = build(FailsafeConfig, _table(data, "failsafe"), "failsafe.")
+    odometry = build(OdometryConfig, _table(data, "odometry"), "odometry.")
+    gnss_noise = build(GnssNoiseConfig, _table(data, "gnss_noise"), "gnss_noise.")
+    encoders = build(EncoderParams, _table(data, "encoders"), "encoders.")
     return World(
         name=top.name,
         origin=origin,
@@ -566,9 +593,33 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
         mission=mission,
         navigation=navigation,
         safety=safety,
+        failsafe=failsafe,
+        odometry=odometry,
+        gnss_noise=gnss_noise,
+        encoders=encoders,
         raw=data,
         source=source,
     )
+
+
+def with_robot_config(world: World, robot_config: str | Path) -> World:
+    """``world`` driven by the robot configuration file ``robot_config`` (e.g.
+    config/x6wd.toml): its [navigation], [safety], [failsafe], [odometry] and [gnss_noise]
+    keys, under the scenario's own keys of those sections (a scenario overrides on purpose).
+    A bad robot config raises :class:`ConfigError` naming the file and key."""
+    from x6wd.core.config import load
+
+    p = Path(robot_config)
+    load(p)  # validates the whole file, with its error messages
+    robot = tomllib.loads(p.read_text(encoding="utf-8"))
+    data = copy.deepcopy(world.raw)
+    for sec in ROBOT_SECTIONS:
+        merged = dict(robot.get(sec, {}))
+        merged.update(data.get(sec, {}))
+        if merged:
+            data[sec] = merged
+    base = world.source.parent if world.source is not None else Path(".")
+    return _build_world(data, base, world.source)
 
 
 def _check_effects(effects: tuple[dict[str, Any], ...]) -> None:

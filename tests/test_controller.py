@@ -26,7 +26,7 @@ from x6wd.nav import geo
 from x6wd.nav.constellation import Constellation
 from x6wd.nav.controller import CommandRejected, Controller, InputError
 
-NAV = NavigationConfig(cruise_pct=60.0, turn_pct=40.0, delta_phi_deg=10.0)
+NAV = NavigationConfig.paper(cruise_pct=60.0, turn_pct=40.0, delta_phi_deg=10.0)
 SAFETY = SafetyConfig(fix_stale_s=2.5, attitude_stale_s=0.5, manual_max_s=5.0)
 ORIGIN = (51.7, 30.0)
 LTP = geo.LocalTangentPlane(*ORIGIN)

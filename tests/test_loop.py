@@ -54,7 +54,7 @@ class Loop:
         self.states: list[StateChange] = []
         self.observed: list[tuple[list[Any], bool]] = []
         self.safety = safety or SafetyConfig(geofence_radius_m=100.0)
-        nav = NavigationConfig(filter_n=3, projection="local_tangent_plane")
+        nav = NavigationConfig.paper(filter_n=3, projection="local_tangent_plane")
         self.runner = Runner(
             Controller(nav, self.safety),
             self.safety,
@@ -144,12 +144,15 @@ def test_a_running_mission_outside_the_geofence_is_stopped_motors_first() -> Non
     n_before = len(lp.motors)
     lp.fix(101.0)  # 101 m from home: outside
     assert lp.runner.geofence_breaches == 1
-    assert lp.runner.controller.mode == Mode.IDLE
+    assert lp.runner.controller.mode == Mode.PAUSED  # failsafe.geofence_action "hold"
     first_after = lp.motors[n_before]
     assert first_after.is_stop and first_after.reason == "geofence breach"
     assert all(m.is_stop for m in lp.motors[n_before:])
-    assert any(s.reason == "mode: geofence breach" for s in lp.states)
-    # starting again out there is refused; manual drive (the way back) is allowed
+    assert any(s.reason == "mode: failsafe: geofence breach" for s in lp.states)
+    # resuming or starting again out there is refused; manual drive (the way back) is allowed
+    with pytest.raises(CommandError, match=r"cannot resume.*drive it back by hand"):
+        lp.runner.command("resume")
+    lp.runner.command("stop")
     lp.runner.load_mission([north(10)])
     with pytest.raises(CommandError, match=r"cannot start.*drive it back by hand"):
         lp.runner.command("start")
@@ -267,21 +270,23 @@ def test_a_geofence_breach_stops_at_the_fix_time_and_every_breach_counts() -> No
     n = len(lp.motors)
     lp.fix(101.0)
     assert lp.motors[n] == MotorCommand(1.5, 0.0, 0.0, "geofence breach")
-    (change,) = [s for s in lp.states if s.reason == "mode: geofence breach"]
-    assert change.t_s == 1.5 and change.new == "IDLE"
+    (change,) = [s for s in lp.states if s.reason == "mode: failsafe: geofence breach"]
+    assert change.t_s == 1.5 and change.new == "PAUSED"
+    assert lp.runner.geofence_breaches == 1
+    lp.fix(102.0)  # still outside, but paused: nothing more to do
     assert lp.runner.geofence_breaches == 1
     with pytest.raises(CommandError) as exc:
-        lp.runner.command("start")
-    assert exc.value.code == "geofence" and "101 m from the geofence centre" in str(exc.value)
-    # driven back inside by hand: start again, and leave again
+        lp.runner.command("resume")
+    assert exc.value.code == "geofence" and "102 m from the geofence centre" in str(exc.value)
+    # driven back inside by hand: resume, and leave again
     lp.now = 2.0
     lp.compass()
     lp.fix(50.0)
-    lp.runner.command("start")
+    lp.runner.command("resume")
     lp.now = 3.0
     lp.compass()
     lp.fix(120.0)
-    assert lp.runner.geofence_breaches == 2 and lp.runner.controller.mode == Mode.IDLE
+    assert lp.runner.geofence_breaches == 2 and lp.runner.controller.mode == Mode.PAUSED
 
 
 def test_the_geofence_edge_is_inclusive_for_running_and_for_start() -> None:
@@ -353,7 +358,7 @@ def test_a_runner_without_a_health_log_logs_device_events_on_its_own_clock(
 ) -> None:
     now = [0.0]
     safety = SafetyConfig()
-    nav = NavigationConfig(filter_n=3, projection="local_tangent_plane")
+    nav = NavigationConfig.paper(filter_n=3, projection="local_tangent_plane")
     runner = Runner(Controller(nav, safety), safety, lambda: now[0], motors=lambda _c: None)
     tracker = HealthTracker("motors", t_s=0.0)
     with caplog.at_level(logging.INFO, logger="x6wd.core.health"):
@@ -451,7 +456,7 @@ def test_inputs_are_counted_and_sentences_recorded() -> None:
     lp.runner.gps_record(GpsSky(0.0))
     for _ in range(3):
         lp.compass()
-    assert lp.runner.stats == {"fixes": 2, "attitudes": 3}
+    assert lp.runner.stats == {"fixes": 2, "attitudes": 3, "odometry": 0}
 
 
 def test_a_tick_at_the_time_of_a_fix_or_of_the_last_tick_is_skipped() -> None:
@@ -564,7 +569,12 @@ def test_fast_time_mission_is_stopped_when_it_leaves_the_geofence(tmp_path: Path
     m_per_deg_lon = M_PER_DEG_LAT * math.cos(math.radians(o.lat_deg))
     centre = (o.lat_deg + 12.5 / M_PER_DEG_LAT, o.lon_deg + 12.5 / m_per_deg_lon)
     fence = replace(world.safety, geofence_radius_m=19.0, geofence_center=centre)
-    s = run_mission(replace(world, safety=fence), tmp_path / "breach")
+    # the paper's steering, slow, with its 3 m windows (as this scenario once shipped)
+    nav = NavigationConfig.paper(
+        filter_n=5, projection="local_tangent_plane", cruise_pct=30.0, turn_pct=30.0,
+        delta_phi_deg=12.0,
+    )  # fmt: skip
+    s = run_mission(replace(world, safety=fence, navigation=nav), tmp_path / "breach")
     assert s.extra["mission_rejected"] is None
     if s.extra["geofence_breaches"] == 0:
         pytest.fail(f"the robot never left the 19 m fence: {s.text()}")
@@ -595,7 +605,7 @@ def test_a_breach_stops_the_mission_even_when_the_motor_sink_fails() -> None:
             raise OSError("motor link gone")
         sent.append(cmd)
 
-    nav = NavigationConfig(filter_n=3, projection="local_tangent_plane")
+    nav = NavigationConfig.paper(filter_n=3, projection="local_tangent_plane")
     runner = Runner(Controller(nav, safety), safety, lambda: 0.0, motors=sink,
                     health_log=HealthLog(_quiet()))  # fmt: skip
     runner.attitude(Attitude(0.0, 0.0, 0.0, 0.0))
@@ -605,7 +615,7 @@ def test_a_breach_stops_the_mission_even_when_the_motor_sink_fails() -> None:
                      quality=1, valid=True)  # fmt: skip
     with pytest.raises(OSError, match="motor link gone"):
         runner.gps_record(outside)
-    assert runner.controller.mode == Mode.IDLE and runner.geofence_breaches == 1
+    assert runner.controller.mode == Mode.PAUSED and runner.geofence_breaches == 1
     assert sent[-1].is_stop
 
 

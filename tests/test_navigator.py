@@ -18,7 +18,7 @@ from x6wd.nav.navigator import (
     magnetic_to_true,
 )
 
-CFG = NavigationConfig(delta_phi_deg=10.0, delta_x_m=3.0, delta_y_m=2.0)
+CFG = NavigationConfig.paper(delta_phi_deg=10.0, delta_x_m=3.0, delta_y_m=2.0)
 ORIGIN = (51.7, 30.0)
 
 
@@ -119,7 +119,7 @@ def test_mission_sequence_ends_in_mission_done() -> None:
 
 
 def test_local_tangent_plane_projection_by_config() -> None:
-    cfg = NavigationConfig(projection="local_tangent_plane", delta_x_m=3.0, delta_y_m=3.0)
+    cfg = NavigationConfig.paper(projection="local_tangent_plane", delta_x_m=3.0, delta_y_m=3.0)
     nav = nav_with([ORIGIN, (51.7, 30.001)], cfg)
     assert nav.projection.name == "local_tangent_plane"
     assert nav.to_xy(*ORIGIN) == (0.0, 0.0)

@@ -33,7 +33,7 @@ from x6wd.nav.controller import Controller
 from x6wd.nav.navigator import NavigationError, Navigator
 
 SCENARIO = ROOT / "config" / "scenarios" / "default.toml"
-ARC = NavigationConfig(
+ARC = NavigationConfig.paper(
     steering="pivot_arc",
     delta_phi_deg=10.0,
     delta_x_m=3.0,
@@ -42,7 +42,7 @@ ARC = NavigationConfig(
     lookahead_m=8.0,
     approach_m=4.0,
 )
-PAPER_2R = NavigationConfig(delta_phi_deg=10.0, delta_x_m=3.0, delta_y_m=3.0)
+PAPER_2R = NavigationConfig.paper(delta_phi_deg=10.0, delta_x_m=3.0, delta_y_m=3.0)
 D = math.radians
 
 
@@ -51,7 +51,8 @@ D = math.radians
 
 def test_config_keys_defaults_and_checks() -> None:
     c = NavigationConfig()
-    assert c.steering == "paper"  # the default stays the paper's until the benchmark
+    assert c.steering == "pivot_arc"  # the robot's default; NavigationConfig.paper() has "paper"
+    assert NavigationConfig.paper().steering == "paper"
     assert (c.pivot_angle_deg, c.pivot_resume_deg) == (60.0, 10.0)
     assert loads("[navigation]\nsteering = 'pivot_arc'\n").navigation.steering == "pivot_arc"
     with pytest.raises(ConfigError, match=r"^navigation\.steering: must be one of paper"):

@@ -632,7 +632,15 @@ class Daemon:
                 raise ConfigError(f"{key}: {url!r}: {exc.reason}") from None
         from x6wd.nav.controller import Controller  # imported late: heavy, and optional in tests
 
-        self.controller = Controller(cfg.navigation, cfg.safety, cfg.compass.declination_deg)
+        decl = cfg.compass.declination_deg
+        self.controller = Controller(
+            cfg.navigation,
+            cfg.safety,
+            0.0 if decl is None else decl,
+            odometry=cfg.odometry,
+            gnss_noise=cfg.gnss_noise,
+            failsafe=cfg.failsafe,
+        )
         self.runner = Runner(
             self.controller,
             cfg.safety,
@@ -644,12 +652,13 @@ class Daemon:
             on_state=self._on_state,
             observe=self._observe,
             health_log=self._health_log,
+            wmm_declination=decl is None,
         )
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
         if cfg.gpsd.enabled:
             path, bps = registry.device_path(cfg.gps.url)
             self.gpsd = GpsdServer.from_config(
-                cfg.gpsd, path, bps=bps, declination_deg=cfg.compass.declination_deg
+                cfg.gpsd, path, bps=bps, declination_deg=0.0 if decl is None else decl
             )
         if cfg.recorder.enabled:
             problem = _dir_problem(Path(cfg.recorder.dir))

@@ -39,7 +39,9 @@ class CompassConfig:
     url: str = "i2c://1/0x60"
     rate_hz: float = field(default=20.0, metadata=_rng(1, 75))
     stale_s: float = field(default=0.5, metadata=_rng(0.01, 10))
-    declination_deg: float = field(default=0.0, metadata=_rng(-180, 180))
+    # East positive (true = magnetic + declination). None (the key absent): the World
+    # Magnetic Model's value at the first dated fix (x6wd.nav.declination).
+    declination_deg: float | None = field(default=None, metadata=_rng(-180, 180))
 
 
 @dataclass(frozen=True)
@@ -60,6 +62,8 @@ class OdometryConfig:
     track_m: float = field(default=0.245, metadata=_rng(0.05, 10.0))
     k_left_m: float = field(default=1e-3, metadata=_rng(0.0, 0.1))
     k_right_m: float = field(default=1e-3, metadata=_rng(0.0, 0.1))
+    # heading variance per radian turned (rad²/rad): the skid-steer slip the encoders miss
+    k_slip_rad: float = field(default=0.02, metadata=_rng(0.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -114,12 +118,20 @@ class GnssNoiseConfig:
 @dataclass(frozen=True)
 class NavigationConfig:
     delta_phi_deg: float = field(default=10.0, metadata=_rng(0.1, 90))
-    delta_x_m: float = field(default=3.0, metadata=_rng(0.01, 1000))
-    delta_y_m: float = field(default=3.0, metadata=_rng(0.01, 1000))
+    # Arrival windows (eq. 7). pivot_arc also arrives on passing the waypoint's line, so a
+    # tight window costs no circling; with "paper" steering use ~3 m (the GPS's accuracy).
+    delta_x_m: float = field(default=1.0, metadata=_rng(0.01, 1000))
+    delta_y_m: float = field(default=1.0, metadata=_rng(0.01, 1000))
+    # "ekf": the estimator (x6wd.nav.position); "constellation": the paper's filter over
+    # filter_n fixes; "raw": the latest fix.
+    position_source: str = field(
+        default="ekf", metadata={"choices": ("ekf", "constellation", "raw")}
+    )
     filter_n: int = field(default=20, metadata=_rng(3, 1000))
     filter_hysteresis: bool = False
     projection: str = field(
-        default="two_radius", metadata={"choices": ("two_radius", "local_tangent_plane")}
+        default="local_tangent_plane",
+        metadata={"choices": ("two_radius", "local_tangent_plane")},
     )
     cruise_pct: float = field(default=60.0, metadata=_rng(0, 100))
     turn_pct: float = field(default=40.0, metadata=_rng(0, 100))
@@ -128,7 +140,7 @@ class NavigationConfig:
     # "pivot_arc" pivots only beyond pivot_angle_deg (until under pivot_resume_deg) and
     # otherwise follows the segment by pure pursuit, arriving by eq. 7 in true metres or by
     # passing the waypoint's perpendicular line. The keys below matter to pivot_arc only.
-    steering: str = field(default="paper", metadata={"choices": ("paper", "pivot_arc")})
+    steering: str = field(default="pivot_arc", metadata={"choices": ("paper", "pivot_arc")})
     pivot_angle_deg: float = field(default=60.0, metadata=_rng(1, 180))
     pivot_resume_deg: float = field(default=10.0, metadata=_rng(0, 180))
     lookahead_m: float = field(default=15.0, metadata=_rng(0.5, 100))
@@ -139,6 +151,25 @@ class NavigationConfig:
     # the pivot rate (rad/s) at +100/-100 %. The default is the simulator's vehicle
     # (14 km/h, 90 deg/s: 4.95 m); calibrate it on the robot.
     steer_track_m: float = field(default=4.95, metadata=_rng(0.05, 100))
+    # ground speed at +100/+100 % (m/s); with steer_track_m it predicts the motion from the
+    # commands when no encoder counts arrive (the simulator's robot: 14 km/h)
+    full_speed_mps: float = field(default=3.888, metadata=_rng(0.05, 20))
+
+    @classmethod
+    def paper(cls, **overrides: Any) -> NavigationConfig:
+        """The paper's navigation as published: the Constellation filter (N = 20), the
+        two-radius projection, bang-bang steering and 3 m arrival windows; ``overrides``
+        change single keys. (The defaults are the robot's: EKF, pivot_arc, true metres.)"""
+        keys: dict[str, Any] = {
+            "position_source": "constellation",
+            "filter_n": 20,
+            "projection": "two_radius",
+            "steering": "paper",
+            "delta_x_m": 3.0,
+            "delta_y_m": 3.0,
+        }
+        keys.update(overrides)
+        return cls(**keys)
 
     def __post_init__(self) -> None:
         if self.pivot_resume_deg >= self.pivot_angle_deg:
@@ -156,6 +187,34 @@ class SafetyConfig:
     geofence_radius_m: float = field(default=1000.0, metadata=_rng(1, 1e6))
     # [lat_deg, lon_deg]; empty: the geofence is centred on the first valid fix
     geofence_center: tuple[float, ...] = ()
+
+
+FAILSAFE_ACTIONS = ("hold", "return")
+
+
+@dataclass(frozen=True)
+class FailsafeConfig:
+    """What a running mission does when something goes wrong (docs/navigation.md,
+    "Failsafes"). Every action stops the motors first. "hold": the mission pauses (the
+    operator resumes, returns or stops it); "return": the robot drives back to where the
+    mission started (its launch point) and the mission ends there.
+
+    Conditions: the robot left the geofence (``geofence_action``); no operator request for
+    ``operator_timeout_s`` after an operator started the mission over the network (0: off,
+    as for a robot sent on its way and left alone); stuck: driving forward at
+    ``stuck_min_pct`` or more for ``stuck_s`` while neither the wheels nor the GPS moved
+    ``stuck_min_m``; a sensor stale or down for ``sensor_timeout_s`` (the robot already
+    holds from the first moment; the action is what follows)."""
+
+    geofence_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
+    operator_timeout_s: float = field(default=0.0, metadata=_rng(0, 3600))
+    operator_action: str = field(default="return", metadata={"choices": FAILSAFE_ACTIONS})
+    stuck_s: float = field(default=10.0, metadata=_rng(0, 600))  # 0: off
+    stuck_min_m: float = field(default=2.0, metadata=_rng(0.1, 100))
+    stuck_min_pct: float = field(default=10.0, metadata=_rng(1, 100))
+    stuck_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
+    sensor_timeout_s: float = field(default=30.0, metadata=_rng(0, 3600))  # 0: off
+    sensor_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
 
 
 @dataclass(frozen=True)
@@ -243,6 +302,7 @@ class Config:
     gnss_noise: GnssNoiseConfig = field(default_factory=GnssNoiseConfig)
     navigation: NavigationConfig = field(default_factory=NavigationConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
     server: ServerConfig = field(default_factory=ServerConfig)
     gpsd: GpsdConfig = field(default_factory=GpsdConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)

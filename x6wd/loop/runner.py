@@ -11,8 +11,9 @@ Every edge drives this same object (docs/architecture.md, "The loop and its edge
 
 So every safety rule lives either in the sans-IO controller or here, and a fast-time run
 exercises all of them: the geofence (waypoints checked when a mission is loaded, the position
-checked at every valid fix while a mission runs), the manual-drive limit, the hold on a
-sensor its reader reports down, the stop that reaches the motors first.
+checked at every valid fix while a mission runs; a breach gets ``failsafe.geofence_action``),
+the manual-drive limit, the hold on a sensor its reader reports down, the stop that reaches
+the motors first.
 
 The runner never reads a device, sleeps or touches a socket. Its outputs go to callables the
 edge supplies: ``motors(cmd)`` must not block (the daemon queues it for the motor thread,
@@ -46,8 +47,10 @@ from x6wd.core.records import (
     MotorCommand,
     StateChange,
     Telemetry,
+    WheelOdometry,
 )
-from x6wd.nav.controller import Controller
+from x6wd.nav.controller import Controller, has_usable_position
+from x6wd.nav.declination import DeclinationError, declination_deg
 
 log = logging.getLogger("x6wd.loop.runner")
 
@@ -58,21 +61,6 @@ TELEMETRY_RECORD_HZ = 1.0
 
 Clock = Callable[[], float]
 """Seconds on one monotonic clock: ``time.monotonic`` on the robot, simulated time in fast time."""
-
-
-def _usable(fix: GpsFix) -> bool:
-    """A fix whose position may centre or test the geofence: the controller's own rule
-    (valid, coordinates present, finite and in range)."""
-    lat, lon = fix.lat_deg, fix.lon_deg
-    return (
-        fix.valid
-        and lat is not None
-        and lon is not None
-        and math.isfinite(lat)
-        and math.isfinite(lon)
-        and abs(lat) <= 90.0
-        and abs(lon) <= 180.0
-    )
 
 
 def _nothing(*_args: Any) -> None:
@@ -89,7 +77,8 @@ class Runner:
     ``devices()``: every device's health as a JSON-ready dict, sent with telemetry events.
     ``on_state(change)``: called after each state change (the daemon tells systemd).
     ``observe(outputs, important)``: sees every controller output list (the simulator keeps
-    its trace with it; tests watch with it).
+    its trace with it; tests watch with it). ``wmm_declination``: the configuration gives no
+    declination, so the World Magnetic Model's value for the first dated fix is used.
     """
 
     def __init__(
@@ -105,6 +94,7 @@ class Runner:
         on_state: Callable[[StateChange], None] | None = None,
         observe: Callable[[list[Any], bool], None] | None = None,
         health_log: HealthLog | None = None,
+        wmm_declination: bool = False,
     ) -> None:
         self.controller = controller
         self.safety = safety
@@ -128,7 +118,10 @@ class Runner:
         self._t_pub = -math.inf
         self._t_rec = -math.inf
         self._t_stepped: float | None = None  # time of the controller's latest step (s)
-        self.stats: dict[str, int] = {"fixes": 0, "attitudes": 0}
+        self.stats: dict[str, int] = {"fixes": 0, "attitudes": 0, "odometry": 0}
+        self._wmm_pending = wmm_declination
+        self.declination: dict[str, Any] = {"source": "wmm" if wmm_declination else "config"}
+        """Where the declination came from; with WMM also its value or why there is none."""
 
     # -- device inputs ------------------------------------------------------------------------
     def gps(self, records: Iterable[Any]) -> None:
@@ -142,11 +135,13 @@ class Runner:
         if isinstance(rec, GpsFix):
             self.stats["fixes"] += 1
             self._record("record_fix", rec)
-            if _usable(rec):
+            if has_usable_position(rec):
                 assert rec.lat_deg is not None and rec.lon_deg is not None
                 self._last_pos = (rec.lat_deg, rec.lon_deg)
                 if self.first_fix is None:
                     self.first_fix = self._last_pos
+                if self._wmm_pending and rec.utc is not None:
+                    self._set_wmm_declination(rec)
                 self._check_position(rec)  # before the fix can steer: a breach stops first
             outputs = self.controller.on_fix(rec)
             self._t_stepped = rec.t_s
@@ -156,6 +151,44 @@ class Runner:
             self._handle(self.controller.on_sky(rec), False)
         elif isinstance(rec, NmeaSentence):
             self._record("record_nmea", rec.text)
+
+    def _set_wmm_declination(self, fix: GpsFix) -> None:
+        """The World Magnetic Model's declination at the first dated fix (once)."""
+        self._wmm_pending = False
+        assert fix.lat_deg is not None and fix.lon_deg is not None and fix.utc is not None
+        alt_m = (fix.alt_m or 0.0) + (fix.geoid_sep_m or 0.0)
+        try:
+            d = declination_deg(fix.lat_deg, fix.lon_deg, alt_m, fix.utc)
+        except DeclinationError as exc:
+            # the robot still navigates by the compass, but its heading is off by the
+            # unknown declination: say so in the log and in status
+            self.declination["error"] = str(exc)
+            log.warning(
+                "no declination from the World Magnetic Model (%s): using 0; set "
+                "compass.declination_deg",
+                exc,
+            )
+            return
+        self.declination["deg"] = round(d, 3)
+        log.info(
+            "declination %.2f deg from the World Magnetic Model at %.5f, %.5f",
+            d,
+            fix.lat_deg,
+            fix.lon_deg,
+        )
+        self._handle(self.controller.set_declination(d, fix.t_s), False)
+
+    def odometry(self, rec: WheelOdometry) -> None:
+        """Wheel-encoder counts from the motor board (recorded)."""
+        self.stats["odometry"] += 1
+        self._record("record_odometry", rec)
+        outputs = self.controller.on_odometry(rec)
+        self._t_stepped = rec.t_s
+        self._handle(outputs, False)
+
+    def operator_seen(self) -> None:
+        """An operator's request came over the network (the operator-link failsafe)."""
+        self.controller.operator_seen(self.clock())
 
     def attitude(self, att: Attitude) -> None:
         """A compass sample."""
@@ -199,12 +232,14 @@ class Runner:
         return {"count": len(pairs)}
 
     def command(self, name: str) -> dict[str, Any]:
-        """``start``, ``pause``, ``resume`` or ``stop`` the mission; returns mode and state."""
-        if name not in ("start", "pause", "resume", "stop"):
+        """``start``, ``pause``, ``resume``, ``return`` (to the launch point) or ``stop`` the
+        mission; returns mode and state."""
+        if name not in ("start", "pause", "resume", "return", "stop"):
             raise CommandError("bad_request", f"unknown mission command {name!r}")
         if name in ("start", "resume"):
             self._check_inside(name)
-        self._handle(getattr(self.controller, name)(self.clock()))
+        method = self.controller.return_home if name == "return" else getattr(self.controller, name)
+        self._handle(method(self.clock()))
         # a stop storm must not flood the log (the server coalesces, but still ~100/s)
         self._operator_log.log(name, logging.INFO, "operator: %s", name)
         tel = self.controller.telemetry
@@ -260,9 +295,10 @@ class Runner:
             )
 
     def _check_position(self, fix: GpsFix) -> None:
-        """A running or paused mission outside the geofence is stopped (the operator may
-        still drive back by hand: manual drive is bounded by its own dead-man)."""
-        if self.controller.mode not in (Mode.RUNNING, Mode.PAUSED):
+        """A running mission outside the geofence gets ``failsafe.geofence_action``: the
+        motors stop first, then the mission pauses or returns to launch (the operator may
+        also drive back by hand: manual drive is bounded by its own dead-man)."""
+        if self.controller.mode != Mode.RUNNING:
             return
         centre = self.geofence_centre()
         if centre is None:
@@ -272,16 +308,19 @@ class Runner:
         radius_m = self.safety.geofence_radius_m
         if d <= radius_m:
             return
+        if self.controller.returning and self.controller.mode == Mode.RUNNING:
+            return  # a return to launch leads back inside: let it
         self.geofence_breaches += 1
         try:
             self._motors(MotorCommand(fix.t_s, 0.0, 0.0, "geofence breach"))
         finally:  # a failing motor sink must not leave the mission running
             log.warning(
-                "geofence breach: %.1f m from the centre, limit %.0f m: mission stopped",
+                "geofence breach: %.1f m from the centre, limit %.0f m: failsafe %s",
                 d,
                 radius_m,
+                self.controller.failsafe_config.geofence_action,
             )
-            self._handle(self.controller.stop(fix.t_s, why="geofence breach"))
+            self._handle(self.controller.geofence_breach(fix.t_s))
 
     # -- outputs ------------------------------------------------------------------------------
     def _handle(self, outputs: list[Any], important: bool = True) -> None:

@@ -49,8 +49,15 @@ import math
 import numbers
 from collections.abc import Sequence
 
-from x6wd.core.config import NavigationConfig, SafetyConfig
+from x6wd.core.config import (
+    FailsafeConfig,
+    GnssNoiseConfig,
+    NavigationConfig,
+    OdometryConfig,
+    SafetyConfig,
+)
 from x6wd.core.errors import X6wdError
+from x6wd.core.geodesy import great_circle_m
 from x6wd.core.records import (
     Attitude,
     ControllerOutput,
@@ -61,10 +68,12 @@ from x6wd.core.records import (
     NavState,
     StateChange,
     Telemetry,
+    WheelOdometry,
 )
 from x6wd.nav import geo, steering
-from x6wd.nav.constellation import Constellation
 from x6wd.nav.navigator import NavigationError, Navigator
+from x6wd.nav.odometry import wheel_travel_m
+from x6wd.nav.position import PositionSource, make_source
 
 
 class CommandRejected(X6wdError):
@@ -97,21 +106,57 @@ def _finite(v: float | None) -> bool:
     return v is not None and math.isfinite(v)
 
 
+def has_usable_position(fix: GpsFix) -> bool:
+    """The fix may steer the robot, centre or test the geofence: valid, with coordinates
+    present, finite and in range (the one rule the controller and the loop share)."""
+    lat, lon = fix.lat_deg, fix.lon_deg
+    return (
+        fix.valid
+        and lat is not None
+        and lon is not None
+        and _finite(lat)
+        and _finite(lon)
+        and abs(lat) <= 90.0
+        and abs(lon) <= 180.0
+    )
+
+
 class Controller:
     """Deterministic robot brain; see the module docstring for the contract."""
 
     def __init__(
-        self, nav: NavigationConfig, safety: SafetyConfig, declination_deg: float = 0.0
+        self,
+        nav: NavigationConfig,
+        safety: SafetyConfig,
+        declination_deg: float = 0.0,
+        *,
+        odometry: OdometryConfig | None = None,
+        gnss_noise: GnssNoiseConfig | None = None,
+        failsafe: FailsafeConfig | None = None,
     ) -> None:
         self._nav_cfg = nav
         self._safety = safety
+        self._failsafe = failsafe or FailsafeConfig()
         try:
             self._navigator = Navigator(nav, declination_deg)
         except NavigationError as exc:
             raise CommandRejected(str(exc)) from exc
-        self._lat_filter = Constellation(nav.filter_n, nav.filter_hysteresis)
-        self._lon_filter = Constellation(nav.filter_n, nav.filter_hysteresis)
-        self._filt: tuple[float, float] | None = None  # filtered (lat_deg, lon_deg)
+        self._odo_cfg = odometry or OdometryConfig()
+        self._source: PositionSource = make_source(
+            nav, self._odo_cfg, gnss_noise or GnssNoiseConfig(), declination_deg
+        )
+        self._filt: tuple[float, float] | None = None  # the source's (lat_deg, lon_deg)
+        self._src_heading_deg: float | None = None  # the source's true heading, if it has one
+        self._mission_nav: Navigator | None = None  # the operator's mission while returning
+        self._returning = ""  # why the robot returns to launch ("" when it does not)
+        self._launch: tuple[float, float] | None = None  # (lat_deg, lon_deg) at mission start
+        self._failsafe_why = ""  # the last failsafe that acted (telemetry)
+        self._operator_t: float | None = None  # latest operator request (s), when watched
+        self._hold_since: float | None = None  # a sensor hold began (s)
+        self._stuck_since: float | None = None  # driving forward without moving since (s)
+        self._stuck_ref: tuple[float, float, float] | None = None  # (x, y, wheel m) then
+        self._wheel_m = 0.0  # |wheel travel| summed over both sides / 2 (m)
+        self._odo_prev: WheelOdometry | None = None
         self._mode = Mode.IDLE
         self._state = NavState.IDLE
         self._hold_reason = ""
@@ -183,24 +228,11 @@ class Controller:
     def on_fix(self, fix: GpsFix) -> list[ControllerOutput]:
         """A receiver epoch at ``fix.t_s`` (s); valid fixes feed the per-axis filters."""
         t = _check_t(fix.t_s, "fix")
-        lat, lon = fix.lat_deg, fix.lon_deg
-        ok = (
-            fix.valid
-            and lat is not None
-            and lon is not None
-            and _finite(lat)
-            and _finite(lon)
-            and abs(lat) <= 90.0
-            and abs(lon) <= 180.0
-        )
+        ok = has_usable_position(fix)
         self._fix = fix
         self._fix_ok = ok
         if ok:
-            assert lat is not None and lon is not None
-            self._lat_filter.add(lat)
-            self._lon_filter.add(lon)
-            # filter() once per sample: with hysteresis it is stateful.
-            self._filt = (self._lat_filter.filter(), self._lon_filter.filter())
+            self._source.on_fix(fix)
             self._valid_fix_t = t if self._valid_fix_t is None else max(self._valid_fix_t, t)
             back_t = self._sensor_back.get("gps")
             if back_t is not None and t >= back_t:
@@ -218,10 +250,47 @@ class Controller:
         t = _check_t(att.t_s, "attitude")
         self._att = att
         self._att_ok = bool(att.valid) and _finite(att.bearing_deg) and 0 <= att.bearing_deg < 360
+        if self._att_ok:
+            self._source.on_compass(t, att.bearing_deg)
         back_t = self._sensor_back.get("compass")
         if back_t is not None and self._att_ok and t >= back_t:
             del self._sensor_back["compass"]  # a fresh sample since the compass came back
         return self._step(t, "attitude")
+
+    def on_odometry(self, rec: WheelOdometry) -> list[ControllerOutput]:
+        """Cumulative wheel-encoder counts at ``rec.t_s`` (s): the EKF's motion, and the
+        wheels' travel for the stuck failsafe."""
+        t = _check_t(rec.t_s, "odometry")
+        prev, self._odo_prev = self._odo_prev, rec
+        if prev is not None:
+            dl, dr = wheel_travel_m(
+                self._odo_cfg,
+                rec.left_counts - prev.left_counts,
+                rec.right_counts - prev.right_counts,
+            )
+            self._wheel_m += 0.5 * (abs(dl) + abs(dr))
+        self._source.on_odometry(rec)
+        return self._step(t, "odometry")
+
+    def set_declination(self, declination_deg: float, t_s: float) -> list[ControllerOutput]:
+        """Use ``declination_deg`` (deg, east positive) from now on, e.g. the World Magnetic
+        Model's value once a dated fix says where and when the robot is."""
+        t = _check_t(t_s, "set_declination")
+        d = float(declination_deg)
+        if not (math.isfinite(d) and abs(d) <= 180.0):
+            raise InputError(f"declination must be in [-180, 180] deg, got {declination_deg!r}")
+        for nav in (self._navigator, self._mission_nav):
+            if nav is not None:
+                nav.declination_deg = d
+        self._source.set_declination_deg(d)
+        return self._step(t, "declination")
+
+    def operator_seen(self, t_s: float) -> None:
+        """An operator's request arrived over the network at ``t_s`` (s): the operator-link
+        failsafe (``failsafe.operator_timeout_s``) watches the time since the latest one while
+        a mission started over the network runs."""
+        t = _check_t(t_s, "operator_seen")
+        self._operator_t = t if self._operator_t is None else max(self._operator_t, t)
 
     def tick(self, t_s: float) -> list[ControllerOutput]:
         """Time passes without input: staleness and the manual dead-man are checked."""
@@ -274,6 +343,8 @@ class Controller:
         except NavigationError as exc:
             raise CommandRejected(f"bad mission: {exc}") from exc
         self._navigator = trial
+        self._mission_nav = None
+        self._returning = ""
         self._has_mission = True
         changes: list[ControllerOutput] = []
         if self._mode == Mode.DONE:
@@ -291,9 +362,49 @@ class Controller:
             raise CommandRejected("mission paused: resume it, or stop before starting again")
         changes: list[ControllerOutput] = []
         self._manual = None
+        if self._mission_nav is not None:  # after a return to launch: the operator's mission
+            self._navigator, self._mission_nav = self._mission_nav, None
+        self._returning = self._failsafe_why = ""
         self._navigator.restart()
+        self._source.reset()
+        self._stuck_since = self._stuck_ref = None
+        self._hold_since = None
+        now = t if self._now is None else max(self._now, t)
+        pos = self._source.position(now)
+        if pos is None and self._fix_ok and self._fix is not None:
+            pos = (self._fix.lat_deg, self._fix.lon_deg)  # type: ignore[assignment]
+        self._launch = pos
         self._set_mode(Mode.RUNNING, "start", t, changes)
         return self._step(t, "start", changes)
+
+    def return_home(self, t_s: float, why: str = "return") -> list[ControllerOutput]:
+        """Drive back to the launch point (where the last mission started) and end there.
+
+        From RUNNING, PAUSED, IDLE or DONE after a mission started; rejected without a launch
+        point, in MANUAL, or while already returning. The operator's mission is kept: a later
+        ``start`` runs it again from its first waypoint."""
+        t = _check_t(t_s, "return")
+        if self._launch is None:
+            raise CommandRejected("no launch point: no mission has started with a position")
+        if self._mode == Mode.MANUAL:
+            raise CommandRejected("manual drive in progress: stop first")
+        if self._returning and self._mode == Mode.RUNNING:
+            raise CommandRejected("already returning to launch")
+        changes: list[ControllerOutput] = []
+        self._start_return(why, t, changes)
+        return self._step(t, why, changes)
+
+    def _start_return(self, why: str, t_s: float, out: list[ControllerOutput]) -> None:
+        assert self._launch is not None
+        home = Navigator(self._nav_cfg, self._navigator.declination_deg)
+        home.set_waypoints([self._launch])
+        if self._mission_nav is None:
+            self._mission_nav = self._navigator
+        self._navigator = home
+        self._returning = why
+        self._stuck_since = self._stuck_ref = None
+        self._hold_since = None
+        self._set_mode(Mode.RUNNING, f"{why}: return to launch", t_s, out)
 
     def pause(self, t_s: float) -> list[ControllerOutput]:
         """Pause a running mission (motors stop; the waypoint index is kept)."""
@@ -323,8 +434,36 @@ class Controller:
             t = self._now if self._now is not None else 0.0
         changes: list[ControllerOutput] = []
         self._manual = None
+        self._returning = ""
         self._set_mode(Mode.IDLE, why, t, changes)
         return self._step(t, why, changes)
+
+    def geofence_breach(self, t_s: float) -> list[ControllerOutput]:
+        """The loop found the robot outside the geofence at ``t_s`` (s): a running or paused
+        mission gets ``failsafe.geofence_action`` (hold: paused; return: back to launch). A
+        return to launch already under way goes on (it leads back inside)."""
+        t = _check_t(t_s, "geofence_breach")
+        changes: list[ControllerOutput] = []
+        if self._mode in (Mode.RUNNING, Mode.PAUSED) and not (
+            self._returning and self._mode == Mode.RUNNING
+        ):
+            self._apply_failsafe("geofence breach", self._failsafe.geofence_action, t, changes)
+        return self._step(t, "geofence breach", changes)
+
+    @property
+    def failsafe_config(self) -> FailsafeConfig:
+        """The failsafe actions in force."""
+        return self._failsafe
+
+    @property
+    def returning(self) -> str:
+        """Why the robot is returning to launch ("" when it is not)."""
+        return self._returning if self._mode in (Mode.RUNNING, Mode.PAUSED) else ""
+
+    @property
+    def launch_point(self) -> tuple[float, float] | None:
+        """(lat_deg, lon_deg) where the last mission started (the return target), or None."""
+        return self._launch
 
     def manual_drive(
         self, left_pct: float, right_pct: float, duration_s: float, t_s: float
@@ -350,6 +489,64 @@ class Controller:
         changes: list[ControllerOutput] = []
         self._set_mode(Mode.MANUAL, "manual drive", t, changes)
         return self._step(t, "manual drive", changes)
+
+    # ------------------------------------------------------------------ failsafes
+    def _apply_failsafe(
+        self, why: str, action: str, t_s: float, out: list[ControllerOutput]
+    ) -> None:
+        """Act on a failsafe: "return" drives to the launch point (when there is one and the
+        robot is not returning already), anything else pauses the mission."""
+        self._failsafe_why = why
+        if action == "return" and self._launch is not None and not self._returning:
+            self._start_return(f"failsafe: {why}", t_s, out)
+        else:
+            self._set_mode(Mode.PAUSED, f"failsafe: {why}", t_s, out)
+
+    def _failsafe_check(self, now: float, hold: str) -> tuple[str, str] | None:
+        """(condition, action) of a failsafe due now while RUNNING, else None."""
+        fs = self._failsafe
+        if hold and hold != "motor link lost":
+            if self._hold_since is None:
+                self._hold_since = now
+            elif fs.sensor_timeout_s > 0 and now - self._hold_since >= fs.sensor_timeout_s:
+                self._hold_since = None
+                return f"{hold} for {fs.sensor_timeout_s:g} s", fs.sensor_action
+        else:
+            self._hold_since = None
+        op_t = self._operator_t
+        if fs.operator_timeout_s > 0 and op_t is not None and now - op_t > fs.operator_timeout_s:
+            self._operator_t = None  # re-armed by the operator's next request
+            return "operator link lost", fs.operator_action
+        if fs.stuck_s > 0 and not hold:
+            return self._stuck_check(now)
+        return None
+
+    def _stuck_check(self, now: float) -> tuple[str, str] | None:
+        """Driving forward (the previous command) for ``stuck_s`` while the wheels or the
+        fixes moved less than ``stuck_min_m``."""
+        fs, cmd, fix = self._failsafe, self._cmd, self._fix
+        forward = 0.5 * (cmd.left_pct + cmd.right_pct) >= fs.stuck_min_pct
+        if not forward or fix is None or not self._fix_ok:
+            self._stuck_since = self._stuck_ref = None
+            return None
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        if self._stuck_since is None or self._stuck_ref is None:
+            self._stuck_since = now
+            self._stuck_ref = (fix.lat_deg, fix.lon_deg, self._wheel_m)
+            return None
+        if now - self._stuck_since < fs.stuck_s:
+            return None
+        lat0, lon0, wheel0 = self._stuck_ref
+        self._stuck_since, self._stuck_ref = now, (fix.lat_deg, fix.lon_deg, self._wheel_m)
+        moved_gps_m = great_circle_m(lat0, lon0, fix.lat_deg, fix.lon_deg)
+        # wheels: only when encoder counts come at all
+        moved_wheel_m = self._wheel_m - wheel0 if self._odo_prev is not None else math.inf
+        if moved_gps_m < fs.stuck_min_m or moved_wheel_m < fs.stuck_min_m:
+            what = "the wheels" if moved_wheel_m < fs.stuck_min_m else "the GPS"
+            return f"stuck ({what} moved under {fs.stuck_min_m:g} m in {fs.stuck_s:g} s)", (
+                fs.stuck_action
+            )
+        return None
 
     # ------------------------------------------------------------------ internals
     def _set_mode(self, mode: Mode, why: str, t_s: float, out: list[ControllerOutput]) -> None:
@@ -384,6 +581,8 @@ class Controller:
             return "attitude invalid"
         if now - self._att.t_s > s.attitude_stale_s:
             return "attitude stale"
+        if self._filt is None or self._current_heading_rad() is None:
+            return "position estimate not ready"
         return ""
 
     def _mix(self, state: NavState) -> tuple[float, float]:
@@ -413,6 +612,17 @@ class Controller:
             self._xy_key = key
         return self._xy
 
+    def _current_heading_rad(self) -> float | None:
+        """True heading (rad, (−π, π]): the position source's when it has one (the EKF),
+        else the compass's; None without either."""
+        h = self._src_heading_deg
+        if h is not None:
+            return math.radians(h - 360.0 if h > 180.0 else h)
+        att = self._att
+        if att is not None and self._att_ok:
+            return self._heading_rad(att)
+        return None
+
     def _heading_rad(self, att: Attitude) -> float:
         """True heading (rad) from a valid attitude, recomputed only for a new sample, a new
         navigator or a changed declination."""
@@ -438,21 +648,33 @@ class Controller:
                 self._manual = None
                 self._set_mode(Mode.IDLE, "manual drive expired", now, out)
 
+        src = self._source
+        self._filt = src.position(now)
+        self._src_heading_deg = src.heading_deg(now)
         hold = ""
         left = right = 0.0
         state: NavState
         if self._mode == Mode.RUNNING:
             hold = self._hold_check(now)
+            fired = self._failsafe_check(now, hold)
+            if fired is not None:
+                self._apply_failsafe(fired[0], fired[1], now, out)
+        if self._mode == Mode.RUNNING:
             if hold:
                 state = NavState.HOLD
             else:
                 assert self._filt is not None and self._att is not None
                 x, y = self._position_xy(self._filt)
-                heading = self._heading_rad(self._att)
+                heading = self._current_heading_rad()
+                assert heading is not None
                 state = self._navigator.step(x, y, heading)
                 self._decided = (self._navigator.last, x, y, heading)
                 if state == NavState.MISSION_DONE:
-                    self._set_mode(Mode.DONE, "last waypoint reached", now, out)
+                    done = (
+                        "back at the launch point" if self._returning else "last waypoint reached"
+                    )
+                    self._returning = ""
+                    self._set_mode(Mode.DONE, done, now, out)
                 left, right = self._mix(state)
         elif self._mode == Mode.MANUAL and self._manual is not None:
             state = NavState.IDLE
@@ -476,7 +698,10 @@ class Controller:
             reason = str(state)
         else:
             reason = str(self._mode).lower()
+        prev = self._cmd
         self._cmd = MotorCommand(now, left, right, reason)
+        if prev.left_pct != left or prev.right_pct != right:
+            src.on_command(now, left, right)
         self._telemetry = self._snapshot(now)
         out.append(self._cmd)
         out.append(self._telemetry)
@@ -489,9 +714,7 @@ class Controller:
         has_mission = self._has_mission
         done = nav.done
         x = y = target_deg = theta_deg = dist = None
-        heading_rad = None
-        if att is not None and self._att_ok:
-            heading_rad = self._heading_rad(att)
+        heading_rad = self._current_heading_rad()
         if has_mission and filt is not None:
             x, y = self._position_xy(filt)
             if not done:
@@ -522,7 +745,11 @@ class Controller:
                         target_deg = math.degrees(phi)
                         if heading_rad is not None:
                             theta_deg = math.degrees(geo.course_deviation(phi, heading_rad))
-        extra: dict[str, object] = {"filter_samples": len(self._lat_filter)}
+        extra: dict[str, object] = self._source.extra()
+        if self.returning:
+            extra["returning"] = self._returning
+        if self._failsafe_why:
+            extra["failsafe"] = self._failsafe_why
         if self._sky is not None:
             extra["sats_in_view"] = len(self._sky.satellites)
         if not self._link_ok:

@@ -226,14 +226,18 @@ class GatingParams:
 class MotionParams:
     """Process noise of the time prediction: ``accel_sigma_mps2`` (m/s², white acceleration)
     and ``yaw_accel_sigma_dps2`` (deg/s², white yaw acceleration); ``max_step_s`` the longest
-    integration sub-step (s); ``max_late_s`` how late an input may be and still be used (s)."""
+    integration sub-step (s); ``max_late_s`` how late an input may be and still be used (s);
+    ``odometry_timeout_s``: in mode ODOMETRY, the commanded drive (if given) predicts once no
+    increment came for this long (s)."""
 
     accel_sigma_mps2: float = 0.5
     yaw_accel_sigma_dps2: float = 30.0
     max_step_s: float = 0.1
     max_late_s: float = 0.3
+    odometry_timeout_s: float = 0.5
 
     def __post_init__(self) -> None:
+        _pos("odometry_timeout_s", self.odometry_timeout_s)
         _pos("accel_sigma_mps2", self.accel_sigma_mps2)
         _pos("yaw_accel_sigma_dps2", self.yaw_accel_sigma_dps2)
         _pos("max_step_s", self.max_step_s)
@@ -314,6 +318,7 @@ class Estimator:
         self._pending_heading: tuple[float, float] | None = None  # t, psi
         self._t_odo: float | None = None  # end time of the last odometry increment
         self._cmd: tuple[float, float] | None = None  # commanded (speed m/s, yaw rate rad/s)
+        self._odo_fresh = False  # odometry increments arrived within odometry_timeout_s
         self._bias_var_m2 = 0.0  # stationary variance of the GPS bias states, m²
         self._declination_rad = math.radians(config.compass.declination_deg)
         self._gps_refused: deque[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = deque(
@@ -406,6 +411,14 @@ class Estimator:
         if dt <= 0:
             return
         if self._ready:
+            # Odometry drives the pose while its increments flow; when they stop (no
+            # encoders, a silent board) the commanded drive takes over, if given.
+            t_odo = self._t_odo
+            self._odo_fresh = (
+                self.cfg.mode == Mode.ODOMETRY
+                and t_odo is not None
+                and self._t - t_odo <= self.cfg.motion.odometry_timeout_s
+            )
             steps = max(1, math.ceil(dt / self.cfg.motion.max_step_s))
             h = dt / steps
             for _ in range(steps):
@@ -435,7 +448,7 @@ class Estimator:
         q[W] = self._q_w * h
         q[E] = q[N] = self._q_v * h**3 / 3.0
         cmd = cfg.command
-        if cfg.mode == Mode.GPS_COMPASS and cmd is not None and self._cmd is not None:
+        if cmd is not None and self._cmd is not None and not self._odo_fresh:
             # speed and yaw rate relax to the command; their error is Gauss-Markov
             a = math.exp(-h / cmd.tau_s) if cmd.tau_s > 0 else 0.0
             v_c, w_c = self._cmd
@@ -527,10 +540,11 @@ class Estimator:
         self._t = max(self._t, t1)
 
     def on_command(self, t_s: float, left_pct: float, right_pct: float) -> None:
-        """The drive commanded at ``t_s`` (s), percent per side (mode GPS_COMPASS with
-        :class:`CommandParams`; ignored otherwise)."""
+        """The drive commanded at ``t_s`` (s), percent per side (with :class:`CommandParams`;
+        ignored otherwise). In mode ODOMETRY it drives the prediction only while no odometry
+        increment came for ``motion.odometry_timeout_s``."""
         cmd = self.cfg.command
-        if self.cfg.mode != Mode.GPS_COMPASS or cmd is None:
+        if cmd is None:
             return
         t = self._time(t_s, "command")
         if t is None:

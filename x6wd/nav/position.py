@@ -1,0 +1,295 @@
+"""Where the robot is: the position (and, for the EKF, the heading) the navigator steers by.
+
+``[navigation] position_source`` picks one of three, all sans-IO (times come with the inputs):
+
+- ``"ekf"`` (the default): :class:`EkfSource`, the :mod:`x6wd.nav.estimator` EKF fusing the
+  fixes (noise ``HDOP·sqrt(RE² + ASE² + LCE²)`` from ``[gnss_noise]``), the compass (its lag
+  and the declination) and the wheel odometry (``[odometry]``); while no encoder counts arrive
+  it predicts from the commanded drive. It gives the heading too, so the compass's 640 ms lag
+  no longer makes the robot overshoot its turns.
+- ``"constellation"``: :class:`ConstellationSource`, the paper's filter per axis over the last
+  ``filter_n`` fixes, reset at each mission start. On a moving robot it returns a position up
+  to ``filter_n`` fixes old (docs/navigation.md, "The paper's filter on a moving robot").
+- ``"raw"``: :class:`RawSource`, the latest valid fix.
+
+The constellation and raw sources leave the heading to the compass (``heading_deg`` returns
+None). Every source answers ``position(t_s)`` with (lat_deg, lon_deg) or None before it has one.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol
+
+from x6wd.core.config import GnssNoiseConfig, NavigationConfig, OdometryConfig
+from x6wd.core.records import GpsFix, WheelOdometry
+from x6wd.nav import estimator as ekf
+from x6wd.nav.constellation import Constellation
+from x6wd.nav.geo import LocalTangentPlane
+from x6wd.nav.odometry import wheel_travel_m
+
+DEFAULT_HDOP = 2.0
+"""HDOP assumed for a fix that carries none (a GGA with an empty field)."""
+MAX_INCREMENT_M = 5.0
+"""A wheel travelling further than this between two encoder readings (m; 50 ms apart at
+20 Hz) is a board reset or a corrupt reading: the increment is dropped and counted."""
+
+
+class PositionSource(Protocol):
+    """What the controller asks of a position source (see the module docstring)."""
+
+    def on_fix(self, fix: GpsFix) -> None:
+        """A usable fix (valid, coordinates present and in range)."""
+
+    def on_compass(self, t_s: float, bearing_mag_deg: float) -> None:
+        """A usable compass sample: magnetic bearing (deg) at ``t_s`` (s)."""
+
+    def on_odometry(self, rec: WheelOdometry) -> None:
+        """Cumulative encoder counts at ``rec.t_s`` (s)."""
+
+    def on_command(self, t_s: float, left_pct: float, right_pct: float) -> None:
+        """The drive (%) commanded from ``t_s`` (s)."""
+
+    def set_declination_deg(self, declination_deg: float) -> None:
+        """The declination (deg, east positive) changed."""
+
+    def reset(self) -> None:
+        """A mission starts."""
+
+    def position(self, t_s: float) -> tuple[float, float] | None:
+        """(lat_deg, lon_deg) at ``t_s`` (s), or None before the first fix."""
+
+    def heading_deg(self, t_s: float) -> float | None:
+        """True heading (deg, clockwise from north, [0, 360)) or None: use the compass."""
+
+    def extra(self) -> dict[str, Any]:
+        """Figures for the telemetry's ``extra``."""
+
+
+class RawSource:
+    """The latest valid fix, as it came."""
+
+    def __init__(self) -> None:
+        self._pos: tuple[float, float] | None = None
+
+    def on_fix(self, fix: GpsFix) -> None:
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        self._pos = (fix.lat_deg, fix.lon_deg)
+
+    def on_compass(self, t_s: float, bearing_mag_deg: float) -> None:
+        return None
+
+    def on_odometry(self, rec: WheelOdometry) -> None:
+        return None
+
+    def on_command(self, t_s: float, left_pct: float, right_pct: float) -> None:
+        return None
+
+    def set_declination_deg(self, declination_deg: float) -> None:
+        return None
+
+    def reset(self) -> None:
+        return None
+
+    def position(self, t_s: float) -> tuple[float, float] | None:
+        return self._pos
+
+    def heading_deg(self, t_s: float) -> float | None:
+        return None
+
+    def extra(self) -> dict[str, Any]:
+        return {}
+
+
+class ConstellationSource(RawSource):
+    """The paper's Constellation filter on latitude and longitude separately."""
+
+    def __init__(self, n: int, hysteresis: bool) -> None:
+        super().__init__()
+        self._n, self._hysteresis = n, hysteresis
+        self._latest: tuple[float, float] | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        # At a mission start: the window must not hold fixes from where the robot stood
+        # before it was carried or driven to the start; it restarts from the latest fix.
+        self._lat = Constellation(self._n, self._hysteresis)
+        self._lon = Constellation(self._n, self._hysteresis)
+        latest, self._pos = self._latest, None
+        if latest is not None:
+            self._add(*latest)
+
+    def _add(self, lat_deg: float, lon_deg: float) -> None:
+        self._latest = (lat_deg, lon_deg)
+        self._lat.add(lat_deg)
+        self._lon.add(lon_deg)
+        # filter() once per sample: with hysteresis it is stateful.
+        self._pos = (self._lat.filter(), self._lon.filter())
+
+    def on_fix(self, fix: GpsFix) -> None:
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        self._add(fix.lat_deg, fix.lon_deg)
+
+    def extra(self) -> dict[str, Any]:
+        return {"filter_samples": len(self._lat)}
+
+
+def estimator_config(
+    nav: NavigationConfig,
+    odometry: OdometryConfig,
+    gnss: GnssNoiseConfig,
+    declination_deg: float,
+    lce_m: Any = None,
+) -> ekf.EstimatorConfig:
+    """The EKF's parameters from the robot's configuration (``lce_m``: the LCE lookup in the
+    filter's own plane, east/north m -> m, or None)."""
+    full_mps = nav.full_speed_mps
+    return ekf.EstimatorConfig(
+        mode=ekf.Mode.ODOMETRY,
+        odometry=ekf.OdometryParams(
+            track_m=odometry.track_m,
+            k_left_m=odometry.k_left_m,
+            k_right_m=odometry.k_right_m,
+            k_slip_rad=odometry.k_slip_rad,
+        ),
+        command=ekf.CommandParams(
+            speed_mps_per_pct=full_mps / 100.0,
+            # T = 2·v_full / w_full (steer_track_m), so w_full = 2·v_full / T
+            yaw_rate_dps_per_pct=math.degrees(2.0 * full_mps / nav.steer_track_m) / 100.0,
+        ),
+        compass=ekf.CompassParams(declination_deg=declination_deg),
+        gps=ekf.GpsParams(
+            re_m=gnss.re_m,
+            ase_m=gnss.ase_m,
+            lce_m=lce_m,
+            correlation_s=gnss.correlation_s if gnss.correlation_s > 0 else None,
+        ),
+    )
+
+
+class EkfSource:
+    """The EKF in a local tangent plane at the first usable fix."""
+
+    def __init__(
+        self,
+        nav: NavigationConfig,
+        odometry: OdometryConfig,
+        gnss: GnssNoiseConfig,
+        declination_deg: float,
+    ) -> None:
+        self._nav, self._odo_cfg, self._gnss = nav, odometry, gnss
+        self._decl = declination_deg
+        self._plane: LocalTangentPlane | None = None
+        self._ekf: ekf.Estimator | None = None
+        self._counts: tuple[int, int] | None = None
+        self._odo_t: float | None = None
+        self.odometry_dropped = 0
+
+    def _lce(self) -> Any:
+        g = self._gnss
+        if not g.lce_cells and g.lce_default_m == 0.0:
+            return None
+        plane = self._plane
+        assert plane is not None
+        if not g.lce_cells:
+            return lambda _e, _n: g.lce_default_m
+        # the map has its own plane: filter plane -> lat/lon -> map plane
+        mp = LocalTangentPlane(g.lce_origin_lat_deg, g.lce_origin_lon_deg)
+
+        def lce(e_m: float, n_m: float) -> float:
+            lat, lon = plane.to_latlon(e_m, n_m)
+            me, mn = mp.to_xy(lat, lon)
+            return g.lce_m_at(float(me), float(mn))
+
+        return lce
+
+    def on_fix(self, fix: GpsFix) -> None:
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        if self._ekf is None:
+            self._plane = LocalTangentPlane(fix.lat_deg, fix.lon_deg)
+            self._ekf = ekf.Estimator(
+                estimator_config(self._nav, self._odo_cfg, self._gnss, self._decl, self._lce())
+            )
+        assert self._plane is not None
+        e, n = self._plane.to_xy(fix.lat_deg, fix.lon_deg)
+        hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else DEFAULT_HDOP
+        self._ekf.on_gps(fix.t_s, float(e), float(n), hdop)
+
+    def on_compass(self, t_s: float, bearing_mag_deg: float) -> None:
+        if self._ekf is None:
+            # the filter starts at the first fix; the heading it needs comes next sample
+            return
+        self._ekf.on_compass(t_s, bearing_mag_deg)
+
+    def on_odometry(self, rec: WheelOdometry) -> None:
+        prev, self._counts = self._counts, (rec.left_counts, rec.right_counts)
+        prev_t, self._odo_t = self._odo_t, rec.t_s
+        if prev is None or prev_t is None or self._ekf is None:
+            return
+        dl, dr = wheel_travel_m(
+            self._odo_cfg, rec.left_counts - prev[0], rec.right_counts - prev[1]
+        )
+        if not (abs(dl) <= MAX_INCREMENT_M and abs(dr) <= MAX_INCREMENT_M):
+            self.odometry_dropped += 1
+            return
+        self._ekf.on_odometry(rec.t_s, dl, dr)
+
+    def on_command(self, t_s: float, left_pct: float, right_pct: float) -> None:
+        if self._ekf is not None:
+            self._ekf.on_command(t_s, left_pct, right_pct)
+
+    def set_declination_deg(self, declination_deg: float) -> None:
+        self._decl = declination_deg
+        if self._ekf is not None:
+            self._ekf.set_declination_deg(declination_deg)
+
+    def reset(self) -> None:
+        # The EKF keeps its state across missions: its gate and recovery rule handle a robot
+        # carried elsewhere, and a standing robot's converged heading and bias are worth keeping.
+        return None
+
+    def _estimate(self, t_s: float) -> ekf.Estimate | None:
+        if self._ekf is None:
+            return None
+        return self._ekf.predict(t_s)
+
+    def position(self, t_s: float) -> tuple[float, float] | None:
+        est = self._estimate(t_s)
+        if est is None or self._plane is None:
+            return None
+        lat, lon = self._plane.to_latlon(est.east_m, est.north_m)
+        return float(lat), float(lon)
+
+    def heading_deg(self, t_s: float) -> float | None:
+        est = self._estimate(t_s)
+        return None if est is None else est.heading_deg
+
+    def extra(self) -> dict[str, Any]:
+        if self._ekf is None:
+            return {"ekf": "waiting for a fix"}
+        est, st = self._ekf.estimate(), self._ekf.stats
+        out: dict[str, Any] = {
+            "ekf_gps_rejected": st.gps_rejected,
+            "ekf_gps_resets": st.gps_resets,
+            "ekf_compass_rejected": st.compass_rejected,
+        }
+        if est is not None:
+            out["ekf_sigma_m"] = math.hypot(est.sigma_east_m, est.sigma_north_m)
+            out["ekf_speed_mps"] = est.speed_mps
+        if self.odometry_dropped:
+            out["odometry_dropped"] = self.odometry_dropped
+        return out
+
+
+def make_source(
+    nav: NavigationConfig,
+    odometry: OdometryConfig,
+    gnss: GnssNoiseConfig,
+    declination_deg: float,
+) -> PositionSource:
+    """The source ``nav.position_source`` names."""
+    if nav.position_source == "raw":
+        return RawSource()
+    if nav.position_source == "constellation":
+        return ConstellationSource(nav.filter_n, nav.filter_hysteresis)
+    return EkfSource(nav, odometry, gnss, declination_deg)
