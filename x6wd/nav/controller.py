@@ -404,6 +404,12 @@ class Controller:
         self._returning = why
         self._stuck_since = self._stuck_ref = None
         self._hold_since = None
+        if self._mode == Mode.RUNNING:
+            # still RUNNING, towards another target: a mode change with old == new says so
+            now = t_s if self._now is None else max(self._now, t_s)
+            out.append(
+                StateChange(now, str(self._mode), str(self._mode), f"mode: {why}: return to launch")
+            )
         self._set_mode(Mode.RUNNING, f"{why}: return to launch", t_s, out)
 
     def pause(self, t_s: float) -> list[ControllerOutput]:

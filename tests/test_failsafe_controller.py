@@ -1,0 +1,296 @@
+"""The controller's failsafes, return to launch and position sources, sans-IO (docs/navigation.md,
+"Failsafes"). Fast-time and HIL runs of the same rules: tests/test_failsafe_sim.py and
+tests/test_hil_failsafe.py."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+
+from tests.test_controller import LTP, NAV, SAFETY, at, att, fix, split
+from x6wd.core.config import FailsafeConfig, NavigationConfig
+from x6wd.core.records import GpsFix, Mode, NavState, WheelOdometry
+from x6wd.nav.controller import CommandRejected, Controller, has_usable_position
+
+FS = FailsafeConfig(stuck_s=10.0, stuck_min_m=2.0, sensor_timeout_s=30.0)
+COUNTS_PER_M = 1632 / (math.pi * 0.120)  # the default [odometry] wheel
+
+
+def started(fs: FailsafeConfig = FS, nav: NavigationConfig = NAV) -> Controller:
+    """A mission 100 m north started at the origin with a fix and a compass sample."""
+    c = Controller(nav, SAFETY, failsafe=fs)
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(0.0, 100.0)], 0.0)
+    c.start(0.0)
+    assert c.launch_point == pytest.approx(at(0.0, 0.0))
+    return c
+
+
+def feed(c: Controller, t_s: float, y_m: float, counts: int | None = None) -> None:
+    """A fix at (0, y_m), a compass sample pointing north and, if given, encoder counts."""
+    c.on_attitude(att(t_s))  # first: at 1 Hz the fix would otherwise find it stale
+    c.on_fix(fix(t_s, 0.0, y_m))
+    if counts is not None:
+        c.on_odometry(WheelOdometry(t_s, counts, counts, 0))
+
+
+# ------------------------------------------------------------------ return to launch
+
+
+def test_return_needs_a_launch_point_and_is_refused_in_manual_drive() -> None:
+    c = Controller(NAV, SAFETY)
+    c.load_mission([at(0.0, 50.0)], 0.0)
+    with pytest.raises(CommandRejected, match="no launch point"):
+        c.return_home(0.0)
+    c = started()
+    c.stop(1.0)
+    c.manual_drive(20, 20, 1.0, 1.0)
+    with pytest.raises(CommandRejected, match="manual"):
+        c.return_home(1.1)
+
+
+def test_return_drives_to_the_launch_point_ends_there_and_keeps_the_mission() -> None:
+    c = started()
+    for k in range(1, 11):
+        feed(c, float(k), 2.0 * k)  # 20 m north
+    changes, _cmd, tel = split(c.return_home(10.5))
+    assert c.mode == Mode.RUNNING and c.returning == "return"
+    assert [s.reason for s in changes if s.reason.startswith("mode:")] == [
+        "mode: return: return to launch"
+    ]
+    assert tel.extra["returning"] == "return" and tel.waypoint_count == 1
+    with pytest.raises(CommandRejected, match="already returning"):
+        c.return_home(10.6)
+    # the robot turns south and comes back
+    for k in range(11, 30):
+        y = max(0.0, 20.0 - 2.0 * (k - 10))
+        c.on_fix(fix(float(k), 0.0, y))
+        changes, _cmd, tel = split(c.on_attitude(att(float(k), 180.0)))
+        if c.mode == Mode.DONE:
+            break
+    assert c.mode == Mode.DONE and c.returning == ""
+    assert any(s.reason == "mode: back at the launch point" for s in changes)
+    # the operator's mission is still there: start runs it again from its first waypoint
+    c.start(40.0)
+    assert c.telemetry.waypoint_count == 1 and c.waypoints == (at(0.0, 100.0),)
+    assert "returning" not in c.telemetry.extra
+
+
+def test_a_paused_mission_may_return_and_stop_cancels_the_return() -> None:
+    c = started()
+    feed(c, 1.0, 10.0)
+    c.pause(1.5)
+    c.return_home(2.0)
+    assert c.mode == Mode.RUNNING and c.returning == "return"
+    c.stop(3.0)
+    assert c.mode == Mode.IDLE and c.returning == ""
+
+
+# ------------------------------------------------------------------ geofence (from the loop)
+
+
+def test_geofence_breach_holds_or_returns_as_configured() -> None:
+    c = started(replace(FS, geofence_action="hold"))
+    feed(c, 1.0, 2.0)
+    changes, cmd, _tel = split(c.geofence_breach(1.0))
+    assert c.mode == Mode.PAUSED and cmd.is_stop
+    assert changes[0].reason == "mode: failsafe: geofence breach"
+    assert c.telemetry.extra["failsafe"] == "geofence breach"
+
+    c = started(replace(FS, geofence_action="return"))
+    feed(c, 1.0, 10.0)
+    c.geofence_breach(1.0)
+    assert c.mode == Mode.RUNNING and c.returning == "failsafe: geofence breach"
+    # the return leads back inside: another breach report does not stop it
+    c.geofence_breach(2.0)
+    assert c.mode == Mode.RUNNING and c.returning
+
+
+def test_geofence_breach_outside_a_mission_does_nothing() -> None:
+    c = Controller(NAV, SAFETY, failsafe=replace(FS, geofence_action="return"))
+    c.on_fix(fix(0.0))
+    c.geofence_breach(0.5)
+    assert c.mode == Mode.IDLE and "failsafe" not in c.telemetry.extra
+
+
+# ------------------------------------------------------------------ operator link
+
+
+def test_operator_link_lost_fires_only_once_armed() -> None:
+    fs = replace(FS, operator_timeout_s=5.0, operator_action="hold", stuck_s=0.0)
+    c = started(fs)
+    for k in range(1, 12):  # never armed: no operator request ever came over the network
+        feed(c, float(k), 0.5 * k)
+    assert c.mode == Mode.RUNNING
+    c.operator_seen(11.0)
+    for k in range(12, 17):
+        feed(c, float(k), 0.5 * k)
+    assert c.mode == Mode.RUNNING  # 5 s since the operator: not yet past the limit
+    feed(c, 16.5, 8.25)
+    assert c.mode == Mode.PAUSED
+    assert c.telemetry.extra["failsafe"] == "operator link lost"
+    c.operator_seen(17.0)
+    c.resume(17.0)
+    feed(c, 18.0, 9.0)
+    assert c.mode == Mode.RUNNING  # re-armed by the operator's request, fresh
+
+
+def test_operator_link_lost_returns_when_configured() -> None:
+    c = started(replace(FS, operator_timeout_s=2.0, operator_action="return", stuck_s=0.0))
+    c.operator_seen(0.0)
+    feed(c, 1.0, 10.0)
+    feed(c, 2.5, 20.0)
+    assert c.returning == "failsafe: operator link lost"
+
+
+# ------------------------------------------------------------------ stuck
+
+
+def test_stuck_with_the_wheels_blocked_pauses() -> None:
+    c = started()
+    for k in range(1, 16):  # wheels still, fixes still, driving forward
+        feed(c, float(k), 0.0, counts=0)
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    assert c.telemetry.extra["failsafe"].startswith("stuck (the wheels moved under 2 m")
+
+
+def test_stuck_with_the_wheels_slipping_pauses_naming_the_gps() -> None:
+    c = started()
+    for k in range(1, 16):  # the wheels turn 2.3 m/s, the fixes do not move
+        feed(c, float(k), 0.0, counts=round(2.3 * k * COUNTS_PER_M))
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED
+    assert c.telemetry.extra["failsafe"].startswith("stuck (the GPS moved under 2 m")
+
+
+def test_a_moving_robot_or_a_pivot_is_never_stuck() -> None:
+    c = started()
+    for k in range(1, 40):
+        feed(c, float(k), 2.0 * k, counts=round(2.0 * k * COUNTS_PER_M))
+    assert c.mode in (Mode.RUNNING, Mode.DONE) and "failsafe" not in c.telemetry.extra
+    # turning on the spot (the target is east, the robot faces north) for 20 s: not forward
+    c = Controller(NAV, SAFETY, failsafe=FS)
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(100.0, 0.0)], 0.0)
+    c.start(0.0)
+    for k in range(1, 21):
+        c.on_fix(fix(float(k)))
+        c.on_attitude(att(float(k), 0.0))
+        assert c.state == NavState.TURN_RIGHT
+    assert c.mode == Mode.RUNNING
+
+
+def test_stuck_detection_is_off_at_zero() -> None:
+    c = started(replace(FS, stuck_s=0.0))
+    for k in range(1, 30):
+        feed(c, float(k), 0.0, counts=0)
+    assert c.mode == Mode.RUNNING
+
+
+def test_stuck_action_return() -> None:
+    c = started(replace(FS, stuck_action="return"))
+    feed(c, 1.0, 10.0, counts=round(10 * COUNTS_PER_M))
+    for k in range(2, 16):
+        feed(c, float(k), 10.0, counts=round(10 * COUNTS_PER_M))  # stuck 10 m out
+        if c.returning:
+            break
+    assert c.returning.startswith("failsafe: stuck")
+
+
+# ------------------------------------------------------------------ sensors
+
+
+def test_a_sensor_down_longer_than_the_timeout_pauses_a_short_one_resumes() -> None:
+    c = started(replace(FS, sensor_timeout_s=5.0, stuck_s=0.0))
+    feed(c, 1.0, 1.0)
+    c.sensor_health("gps", False, 1.0, "disconnected")
+    for t in (2.0, 4.0):
+        c.tick(t)
+    assert c.state == NavState.HOLD and c.mode == Mode.RUNNING
+    c.sensor_health("gps", True, 4.5, "connected")
+    feed(c, 4.6, 2.0)
+    assert c.state == NavState.STRAIGHT  # a short outage: resumed by itself
+    c.sensor_health("compass", False, 5.0, "stale")
+    for t in (6.0, 8.0, 10.0, 10.5):
+        c.tick(t)
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    assert c.telemetry.extra["failsafe"] == "compass stale for 5 s"
+
+
+def test_a_sensor_timeout_with_return_still_holds_while_blind() -> None:
+    c = started(replace(FS, sensor_timeout_s=2.0, sensor_action="return", stuck_s=0.0))
+    feed(c, 1.0, 1.0)
+    c.sensor_health("gps", False, 1.0, "disconnected")
+    c.tick(3.5)
+    assert c.returning.startswith("failsafe: gps disconnected")
+    assert c.state == NavState.HOLD and c.command.is_stop  # no navigating without the GPS
+    for t in (4.0, 5.0, 6.0):
+        c.tick(t)  # still blind after another timeout: the return gives way to a pause
+    assert c.mode == Mode.PAUSED
+
+
+# ------------------------------------------------------------------ position sources
+
+
+def test_has_usable_position() -> None:
+    assert has_usable_position(fix(0.0))
+    assert not has_usable_position(fix(0.0, valid=False))
+    for lat, lon in ((math.nan, 0.0), (0.0, math.inf), (91.0, 0.0), (0.0, 181.0), (None, 0.0)):
+        assert not has_usable_position(GpsFix(0.0, lat_deg=lat, lon_deg=lon, valid=True))
+
+
+def test_the_constellation_restarts_from_the_latest_fix_at_mission_start() -> None:
+    c = Controller(NAV, SAFETY)
+    for k in range(10):
+        c.on_fix(fix(float(k), 0.0, 0.1 * k))
+    c.on_attitude(att(9.0))
+    assert c.telemetry.extra["filter_samples"] == 10
+    c.load_mission([at(0.0, 50.0)], 9.0)
+    c.start(9.0)
+    assert c.telemetry.extra["filter_samples"] == 1
+    assert c.telemetry.filt_lat_deg == pytest.approx(at(0.0, 0.9)[0])
+
+
+def test_the_ekf_follows_a_straight_drive_and_steers_by_its_heading() -> None:
+    nav = NavigationConfig()  # the robot's: ekf, pivot_arc
+    assert nav.position_source == "ekf"
+    c = Controller(nav, SAFETY, 3.0)
+    c.on_fix(fix(0.0))
+    for k in range(1, 21):
+        t = 0.05 * k
+        c.on_attitude(att(t, 357.0))  # 357 magnetic + 3 declination = north
+    c.load_mission([at(0.0, 100.0)], 1.0)
+    c.start(1.0)
+    for k in range(1, 31):
+        t = 1.0 + k
+        c.on_odometry(WheelOdometry(t, round(k * COUNTS_PER_M), round(k * COUNTS_PER_M), k))
+        c.on_fix(fix(t, 0.0, float(k)))
+        c.on_attitude(att(t, 357.0))
+    tel = c.telemetry
+    est = ltp_xy(tel.filt_lat_deg, tel.filt_lon_deg)
+    assert est[1] == pytest.approx(30.0, abs=1.0) and abs(est[0]) < 1.0
+    assert tel.heading_deg == pytest.approx(0.0, abs=1.0)
+    assert tel.extra["ekf_sigma_m"] < 3.0 and tel.extra["ekf_gps_rejected"] == 0
+    assert tel.state == NavState.STRAIGHT
+
+
+def test_set_declination_turns_the_heading() -> None:
+    c = Controller(NAV, SAFETY, 0.0)
+    c.on_attitude(att(0.0, 10.0))
+    assert c.telemetry.heading_deg == pytest.approx(10.0)
+    c.set_declination(-4.0, 0.1)
+    assert c.telemetry.heading_deg == pytest.approx(6.0)
+
+
+def ltp_xy(lat: float | None, lon: float | None) -> tuple[float, float]:
+
+    assert lat is not None and lon is not None
+    x, y = LTP.to_xy(lat, lon)
+    return float(x), float(y)

@@ -1,0 +1,69 @@
+"""The robot's own configuration is the one that works (issue 14, item 6).
+
+`config/x6wd.toml` must equal the built-in defaults (so a scenario without [navigation] runs
+the robot's navigation), no shipped scenario may override the robot's sections without being
+listed here with its reason, and the real `x6wd sim` command with `--config config/x6wd.toml`
+finishes the default mission.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from sim_backend.mission import run_mission
+from sim_backend.world import ROBOT_SECTIONS, load_world, with_robot_config
+from x6wd.core.config import Config, load
+
+ROOT = Path(__file__).resolve().parents[1]
+ROBOT = ROOT / "config" / "x6wd.toml"
+SCENARIOS = sorted((ROOT / "config" / "scenarios").glob("*.toml"))
+
+OVERRIDES_ON_PURPOSE: dict[str, set[str]] = {}
+"""Scenario file name -> the robot sections it overrides, each on purpose (none today)."""
+
+
+def test_the_shipped_robot_config_is_the_defaults() -> None:
+    assert load(ROBOT) == Config()
+
+
+@pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: p.name)
+def test_scenarios_run_the_robots_sections_unless_listed(path: Path) -> None:
+    data = tomllib.loads(path.read_text(encoding="utf-8"))
+    overridden = {sec for sec in ROBOT_SECTIONS if sec in data}
+    assert overridden == OVERRIDES_ON_PURPOSE.get(path.name, set()), (
+        f"{path.name} overrides {sorted(overridden)} of the robot's configuration: remove them "
+        "or list them in OVERRIDES_ON_PURPOSE with the reason"
+    )
+
+
+def test_x6wd_sim_with_the_robots_config_finishes_the_default_mission(tmp_path: Path) -> None:
+    out = tmp_path / "sim"
+    cmd = [sys.executable, "-m", "x6wd", "sim", str(ROOT / "config/scenarios/default.toml"),
+           "--config", str(ROBOT), "--out", str(out), "--quiet"]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and summary["waypoints_reached"] == 4
+    assert summary["extra"]["position_source"] == "ekf"
+    # navigation adds little to the GPS's own error at the arrivals; paths are not detours
+    arrivals = summary["extra"]["arrivals"]
+    assert len(arrivals) == 4
+    assert max(a["true_error_m"] for a in arrivals) < 5.0
+    assert summary["path_length_m"] <= 1.10 * summary["straight_length_m"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [2, 3, 4])
+def test_more_seeds_of_the_default_mission_with_the_robots_config(
+    tmp_path: Path, seed: int
+) -> None:
+    world = with_robot_config(load_world(ROOT / "config/scenarios/default.toml"), ROBOT)
+    s = run_mission(world, tmp_path, seed=seed)
+    assert s.completed, s.text()
+    assert s.path_length_m <= 1.10 * s.straight_length_m
