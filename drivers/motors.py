@@ -220,6 +220,8 @@ class SerialMotorLink:
             except Exception:  # a port that refuses: we still bound waits by our deadline
                 log.debug("motor port does not accept a timeout", exc_info=True)
         self.encoders = EncoderUnwrap()
+        self.odometry_supported: bool | None = None
+        self._refusal: str | None = None  # the payload of an ERR accepted by refusal_ok
         self.configured = False
         self._configure()
 
@@ -301,15 +303,23 @@ class SerialMotorLink:
     def read_odometry(self) -> WheelOdometry | None:
         """Latch and read the wheel-encoder counts (``E``), unwrapped (:class:`EncoderUnwrap`)
         and stamped with the host time of the reply; None without a valid answer. Like
-        every command it feeds the board's watchdog, so polling it is also a keep-alive."""
-        reply = self._transact_reply("E")
+        every command it feeds the board's watchdog, so polling it is also a keep-alive.
+
+        A board that refuses ``E`` (``ERR``: a firmware without encoders) answered, so the
+        refusal does not count against the link's health; :attr:`odometry_supported` is
+        then False (True after a valid reading, None before either)."""
+        self._refusal = None
+        reply = self._transact_reply("E", refusal_ok=True)
         if reply is None:
+            if self._refusal is not None:
+                self.odometry_supported = False
             return None
         t_s = self._clock()
         parsed = parse_encoder_payload(reply)
         if parsed is None:
             log.warning("motor board sent a malformed encoder reply: %r", reply)
             return None
+        self.odometry_supported = True
         seq = parsed[0]
         left, right = self.encoders.update(*parsed)
         return WheelOdometry(t_s, left, right, seq)
@@ -347,8 +357,10 @@ class SerialMotorLink:
     def _transact(self, body: str) -> bool:
         return self._transact_reply(body) is not None
 
-    def _transact_reply(self, body: str) -> str | None:
-        """Send ``body`` with a fresh sequence number; the OK payload, or None on failure."""
+    def _transact_reply(self, body: str, refusal_ok: bool = False) -> str | None:
+        """Send ``body`` with a fresh sequence number; the OK payload, or None on failure.
+        ``refusal_ok``: an ``ERR`` reply is an answer (kept in ``_refusal``), not a failure
+        of the link."""
         if self._closed:
             return None
         tracker = self._tracker
@@ -378,14 +390,18 @@ class SerialMotorLink:
                     )
                     continue
                 ok, payload = reply
-                if ok:
-                    self.counters.acked += 1
+                if ok or refusal_ok:
+                    if ok:
+                        self.counters.acked += 1
+                    else:  # refused, but the board answered: the link is good
+                        self.counters.rejected += 1
+                        self._refusal = payload
                     self._failures = 0
                     t_s = self._clock()
                     if not tracker.health.connected:
                         tracker.opened(t_s)  # the board answers again: a reconnect
                     tracker.good(t_s)
-                    return payload
+                    return payload if ok else None
                 self.counters.rejected += 1
                 log.warning("motor board rejected %r: %s", body, payload)
                 tracker.error(f"{body.split()[0]}: board refused: {payload}", self._clock())

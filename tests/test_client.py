@@ -54,10 +54,11 @@ def test_status_start_stop_and_auth(served, token_file: Path) -> None:
     assert "start refused: unauthorized" in r.stderr
     r = client(srv.port, "stop")  # always allowed
     assert r.returncode == 0 and "stop: ok" in r.stdout
-    for action in ("start", "pause", "resume"):
+    for action in ("start", "pause", "resume", "return"):
         r = client(srv.port, action, token=token_file)
         assert r.returncode == 0, r.stderr
-    assert [name for name, _ in backend.calls] == ["stop", "start", "pause", "resume"]
+        assert f"{action}: ok" in r.stdout
+    assert [name for name, _ in backend.calls] == ["stop", "start", "pause", "resume", "return"]
 
 
 def test_load_from_csv_gpx_and_arguments(served, token_file: Path, tmp_path: Path) -> None:

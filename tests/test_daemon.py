@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import gc
+import itertools
 import json
 import os
 import signal
@@ -449,3 +450,116 @@ def test_a_repeated_command_is_not_resent_within_the_repeat_time() -> None:
         wait_for(lambda: w.sent == 3, 3, "sent without a repeat time")
     finally:
         w.shutdown("test end")
+
+
+class EncoderLink(BlockingLink):
+    """A motor link with wheel encoders: ``read_odometry`` answers (or not, as told);
+    ``overlaps`` counts sends and reads that began while another was in progress."""
+
+    def __init__(self, answers: bool = True, supported: bool | None = None) -> None:
+        super().__init__()
+        self.answers = answers
+        self.odometry_supported = supported
+        self.reads: list[float] = []
+        self.busy = threading.Lock()
+        self.overlaps = 0
+
+    def _enter(self) -> None:
+        if not self.busy.acquire(blocking=False):
+            self.overlaps += 1
+            self.busy.acquire()
+        time.sleep(0.002)  # a line's round trip: long enough for an overlap to show
+
+    def send(self, cmd: MotorCommand) -> bool:
+        self._enter()
+        try:
+            return super().send(cmd)
+        finally:
+            self.busy.release()
+
+    def read_odometry(self) -> Any:
+        from x6wd.core.records import WheelOdometry
+
+        self._enter()
+        try:
+            self.reads.append(time.monotonic())
+            if not self.answers:
+                return None
+            n = len(self.reads)
+            return WheelOdometry(time.monotonic(), 10 * n, 11 * n, n)
+        finally:
+            self.busy.release()
+
+
+def test_the_motor_thread_polls_the_encoders_at_the_rate_between_sends() -> None:
+    from x6wd.app.daemon import _MotorWorker
+
+    link = EncoderLink()
+    got: list[Any] = []
+    w = _MotorWorker(
+        link, keepalive_s=0.1, on_health=lambda ok, t: None, on_odometry=got.append,
+        odometry_s=0.05,
+    )  # fmt: skip
+    w.start()
+    try:
+        t0 = time.monotonic()
+        for k in range(40):  # commands from another thread meanwhile
+            if not w.send_now(MotorCommand(time.monotonic(), 10.0, 10.0, f"fix {k}")):
+                w.submit(MotorCommand(time.monotonic(), 10.0, 10.0, f"tick {k}"))
+            time.sleep(0.025)
+        dt = time.monotonic() - t0
+        assert w.odometry_state == "polling" and w.odometry_failures == 0
+        assert 0.5 * dt / 0.05 <= len(got) <= dt / 0.05 + 2, (len(got), dt)
+        assert [r.seq for r in got] == list(range(1, len(got) + 1))
+        assert w.odometry_readings == len(got)
+        assert link.overlaps == 0  # never two on the link at once
+        gaps = [b - a for a, b in itertools.pairwise(link.reads)]
+        assert min(gaps) > 0.02  # a fixed schedule: no bursts
+    finally:
+        w.shutdown("test end")
+
+
+@pytest.mark.parametrize(
+    ("link", "reason"),
+    [
+        (BlockingLink(), "the motor backend has no wheel encoders"),
+        (EncoderLink(answers=False, supported=False), "the motor board refuses"),
+        (EncoderLink(answers=False), "the motor board did not answer"),
+    ],
+)
+def test_a_board_without_encoders_is_asked_once_and_logged_once(
+    link: Any, reason: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    from x6wd.app.daemon import _MotorWorker
+
+    got: list[Any] = []
+    w = _MotorWorker(
+        link, keepalive_s=0.05, on_health=lambda ok, t: None, on_odometry=got.append,
+        odometry_s=0.02,
+    )  # fmt: skip
+    w.start()
+    try:
+        wait_for(lambda: w.odometry_state == "unavailable", 3, "unavailable")
+        time.sleep(0.3)  # the keep-alive goes on, the encoders are not asked again
+        assert getattr(link, "reads", []) == [] or len(link.reads) == 1
+        assert w.odometry_reason.startswith(reason) and got == []
+        assert len(link.sent) >= 3  # the motors are not affected
+        logged = [r for r in caplog.records if "wheel odometry unavailable" in r.getMessage()]
+        assert len(logged) == 1 and reason in logged[0].getMessage()
+    finally:
+        w.shutdown("test end")
+
+
+def test_status_shows_the_odometry_and_the_declination(tmp_path: Path, run_daemon) -> None:
+    cfg = hil_config(tmp_path)
+    r = run_daemon(Daemon(dataclasses.replace(cfg, motors=dataclasses.replace(
+        cfg.motors, url="log://"))))  # fmt: skip
+    with RemoteClient("127.0.0.1", r.port) as c:
+        st = wait_for(lambda: (s := status(c))["telemetry"] and s, 10, "telemetry")
+        assert st["links"]["odometry"] == "unavailable"
+        assert st["devices"]["odometry"] == {
+            "state": "unavailable", "readings": 0, "failures": 0,
+            "reason": "the motor backend has no wheel encoders",
+        }  # fmt: skip
+        assert st["declination"]["source"] == "wmm"  # [compass] declination_deg absent
+    assert r.stop() == 0

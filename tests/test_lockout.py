@@ -34,6 +34,7 @@ NEEDS_AUTH: dict[str, dict[str, Any]] = {
     "start": {},
     "pause": {},
     "resume": {},
+    "return": {},
     "drive": {"left": 50, "right": 50, "duration_s": 1.0},
     "watch": {"on": True},
     "log": {"n": 3},

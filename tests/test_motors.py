@@ -535,3 +535,37 @@ def test_read_odometry_without_a_board_is_none(pty_board: PtyBoard) -> None:
     pty_board.halt()
     assert link.read_odometry() is None
     link.port.close()
+
+
+class NoEncoderBoard(MotorBoard):
+    """An older firmware: no ``E`` command (``ERR unknown``), everything else as documented."""
+
+    def _line(self, line: str, t_s: float) -> bytes:
+        tokens = line.split()
+        if tokens and tokens[0].upper() == "E":
+            seq = f" {tokens[-1]}" if tokens[-1].startswith("#") else ""
+            return self._err(seq, "unknown")
+        return super()._line(line, t_s)
+
+
+@pytest.mark.integration
+def test_a_board_that_refuses_e_answered_so_the_link_stays_healthy(pty_board: PtyBoard) -> None:
+    pty_board.halt()
+    pty_board.board = NoEncoderBoard()
+    pty_board.start()
+    with open_link(pty_board, watchdog_ms=2000) as link:
+        assert link.odometry_supported is None
+        link.take_health_events()  # the start's
+        for _ in range(3):  # more than unhealthy_after (2) refusals in a row
+            assert link.read_odometry() is None
+        assert link.odometry_supported is False
+        assert link.healthy and link.health.state == "connected"
+        assert link.health.errors == 0 and link.take_health_events() == []
+        assert link.counters.rejected == 3 and link.counters.timeouts == 0
+        assert link.drive(20, 20) and pty_board.state() == (20, 20)
+    # a board with encoders says so
+    pty_board.halt()
+    pty_board.board = MotorBoard()
+    pty_board.start()
+    with open_link(pty_board, watchdog_ms=2000) as link:
+        assert link.read_odometry() is not None and link.odometry_supported is True

@@ -493,9 +493,12 @@ def test_moves_are_refused_until_the_devices_are_open(
                 ), cmd  # fmt: skip
             st = c.request("status")
             assert (st["mode"], st["state"], st["telemetry"]) == ("IDLE", "IDLE", None)
-            assert st["devices"] == {"gps": None, "compass": None, "motors": None}
+            assert st["devices"] == {
+                "gps": None, "compass": None, "motors": None, "odometry": None
+            }  # fmt: skip
             assert st["links"] == {"gps": "unknown", "gps_reconnects": 0, "compass": "unknown",
-                                   "compass_errors": 0, "motors": "lost"}  # fmt: skip
+                                   "compass_errors": 0, "motors": "lost",
+                                   "odometry": "unknown"}  # fmt: skip
             assert st["version"] == __version__
             assert isinstance(st["uptime_s"], float) and 0.0 <= st["uptime_s"] < 30.0
             assert c.request("stop")["mode"] == "IDLE"  # always obeyed
@@ -559,13 +562,19 @@ def test_at_exit_the_motors_stop_first_and_nothing_is_left_open(
     }  # fmt: skip
     tel = wait_for(lambda: (e := watcher.next_event(2.0))["event"] == "telemetry" and e, 5)
     assert set(tel) == {"event", "data", "devices"} and set(tel["devices"]) == {
-        "gps", "compass", "motors"
+        "gps", "compass", "motors", "odometry"
     }  # fmt: skip
     assert (tel["data"]["mode"], tel["data"]["left_pct"]) == ("MANUAL", 30.0)
     wait_for(lambda: stamped.driving(30.0, -30.0), 3, "motors driven")
     # a change of state is also told to systemd (`systemctl status` shows it)
     assert any(m.get("STATUS") == "MANUAL IDLE" for m in itertools.islice(notices(sock), 20))
-    wait_for(lambda: r.daemon.first_fix, 20, "a first fix (recorded by the GPS thread)")
+    # a first fix, and the next epoch's: the first epoch's sky report (its GSV sentences come
+    # after the fix) is then decoded and recorded too
+    wait_for(
+        lambda: r.daemon.first_fix and r.daemon.stats["fixes"] >= 2,
+        20,
+        "fixes (recorded by the GPS thread)",
+    )
     r.loop.call_soon_threadsafe(r.daemon.request_stop)
     t_eof = None
     deadline = time.monotonic() + 10
@@ -689,9 +698,12 @@ def test_the_geofence_and_the_manual_limit_hold_at_their_edges(tmp_path: Path, r
             10,
             "devices up",
         )
+        odometry = st["links"].pop("odometry")  # readings so far: the sim:// board has encoders
+        assert isinstance(odometry, int) and odometry >= 0
         assert st["links"] == {"gps": "connected", "gps_reconnects": 0, "compass": "connected",
                                "compass_errors": 0, "motors": "ok"}  # fmt: skip
-        assert set(st["devices"]) == {"gps", "compass", "motors"}
+        assert set(st["devices"]) == {"gps", "compass", "motors", "odometry"}
+        assert st["devices"]["odometry"]["state"] == "polling"
         assert st["devices"]["motors"]["state"] == "connected"
         assert (st["mode"], st["state"]) == (st["telemetry"]["mode"], st["telemetry"]["state"])
         assert st["mode"] == "MANUAL" and st["version"] == __version__

@@ -31,6 +31,7 @@ class RecordingBackend:
     def __init__(self) -> None:
         self.calls: list[tuple[str, Any]] = []
         self.fail_next: Exception | None = None
+        self.seen = 0
 
     def _call(self, name: str, arg: Any = None) -> dict[str, Any]:
         self.calls.append((name, arg))
@@ -54,6 +55,12 @@ class RecordingBackend:
 
     def resume(self) -> dict[str, Any]:
         return self._call("resume")
+
+    def return_home(self) -> dict[str, Any]:
+        return self._call("return")
+
+    def operator_seen(self) -> None:
+        self.seen += 1  # not a call: every request of an operator makes one
 
     def stop(self) -> dict[str, Any]:
         return self._call("stop")
@@ -157,7 +164,7 @@ def test_unauthenticated_only_hello_auth_status_stop(served) -> None:
     srv, backend = served
     raw = Raw(srv.port)
     try:
-        for cmd in ("start", "pause", "resume", "watch", "log"):
+        for cmd in ("start", "pause", "resume", "return", "watch", "log"):
             r = raw.ask({"id": cmd, "cmd": cmd})
             assert r == {
                 "id": cmd,
@@ -171,6 +178,28 @@ def test_unauthenticated_only_hello_auth_status_stop(served) -> None:
         assert raw.ask({"id": 4, "cmd": "start"})["error"]["code"] == "unauthorized"
         assert raw.ask({"id": 5, "cmd": "auth", "token": TOKEN})["ok"] is True
         assert raw.ask({"id": 6, "cmd": "start"}) == {"id": 6, "ok": True, "did": "start"}
+    finally:
+        raw.close()
+
+
+def test_return_and_every_operator_request_is_seen(served) -> None:
+    srv, backend = served
+    raw = Raw(srv.port)
+    try:
+        assert raw.ask({"id": 1, "cmd": "status"})["ok"] is True
+        assert raw.ask({"id": 2, "cmd": "stop"})["ok"] is True
+        assert raw.ask({"id": 3, "cmd": "return"})["error"]["code"] == "unauthorized"
+        assert raw.ask({"id": 4, "cmd": "auth", "token": "wrong"})["error"]["code"] == "auth_failed"
+        assert backend.seen == 0  # nobody allowed to command has spoken yet
+        assert raw.ask({"id": 5, "cmd": "auth", "token": TOKEN})["ok"] is True
+        assert backend.seen == 1
+        assert raw.ask({"id": 6, "cmd": "status"})["ok"] is True  # status counts too
+        assert backend.seen == 2
+        assert raw.ask({"id": 7, "cmd": "return"}) == {"id": 7, "ok": True, "did": "return"}
+        assert raw.ask({"id": 8, "cmd": "stop"})["ok"] is True
+        assert backend.seen == 4
+        # return is a motion command: the stop after it reached the backend again
+        assert backend.calls == [("stop", None), ("return", None), ("stop", None)]
     finally:
         raw.close()
 

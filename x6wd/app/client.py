@@ -2,7 +2,7 @@
 
 ``x6wd client [--host H] [--port P] [--token-file F] [--tls [--cafile F]] COMMAND``
 with COMMAND one of ``status``, ``load FILE | load --wp LAT,LON ...``, ``start``, ``pause``,
-``resume``, ``stop``, ``drive LEFT RIGHT SECONDS``, ``watch``, ``log [N]``.
+``resume``, ``return``, ``stop``, ``drive LEFT RIGHT SECONDS``, ``watch``, ``log [N]``.
 
 Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed
 (also when the robot closed the connection: pool full, auth deadline, too many failed tokens).
@@ -316,6 +316,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         ("start", "start the loaded mission"),
         ("pause", "pause the mission (motors stop)"),
         ("resume", "resume a paused mission"),
+        ("return", "drive back to the launch point (where the mission started) and end there"),
         ("stop", "stop everything (always allowed)"),
     ):
         sub.add_parser(name, help=text)
@@ -345,7 +346,7 @@ def main(args: argparse.Namespace, out: TextIO | None = None) -> int:
             args.host, args.port, token=token, ssl_context=_client_ssl(args), timeout_s=args.timeout
         ) as client:
             action: str = args.action
-            if action in ("status", "start", "pause", "resume", "stop"):
+            if action in ("status", "start", "pause", "resume", "return", "stop"):
                 reply = client.request(action)
             elif action == "load":
                 assert waypoints is not None

@@ -6,10 +6,12 @@ control lock): the GPS thread decides on a fix itself, right after decoding it, 
 the resulting motor command to the link itself when the link is idle (no hop to the event
 loop, none to the motor thread: GGA-to-motor latency); everything else that touches the
 controller (compass samples, ticks, health changes, operator requests) runs on the event
-loop. Data flow::
+loop. The motor thread, which owns the link, also polls the wheel encoders (20 Hz) between
+commands. Data flow::
 
     gps thread ──fix──> Controller (control lock) ──> motor link (or the motor thread if busy)
     compass thread ─att───┐                 ┌─> motor thread ─> motor link
+    motor thread ─odometry┤                 │
     control tick (20 Hz) ─┼─> loop: Controller ─> telemetry ─> server / gpsd port / recorder
     health, operator ─────┘                 └─> sd_notify (WATCHDOG / STATUS)
 
@@ -59,6 +61,7 @@ from x6wd.core.records import (
     MotorCommand,
     StateChange,
     Telemetry,
+    WheelOdometry,
 )
 from x6wd.loop.runner import Runner, every, run_realtime
 
@@ -72,6 +75,11 @@ NET_NICE = 10
 MOTOR_REPEAT_S = 1.0 / TICK_HZ
 """The same motor command from the event loop (compass samples, ticks) is sent at most this
 often (s); the keep-alive repeats it in between when needed, a fix's command always goes."""
+ODOMETRY_HZ = 20.0
+"""Wheel-encoder poll rate (docs/motors.md, "Wheel encoders"): the motor thread sends ``E``."""
+OPERATOR_SEEN_S = 0.25
+"""An operator's requests reach the controller's operator-link failsafe at most this often
+(s): a client polling ``status`` in a loop must not load the control loop."""
 REOPEN_BACKOFF_S = (0.1, 5.0)
 """First and longest wait between attempts to reopen a lost compass bus (s)."""
 EXIT_OK = 0
@@ -116,6 +124,11 @@ class _MotorWorker:
 
     ``on_health(ok, t_s)`` is called (from this thread) when the link's health changes;
     ``on_events(events)`` with the link's health events (transitions, failures while lost).
+    ``on_odometry(rec)``: the thread also polls the board's wheel encoders
+    (``link.read_odometry``) every ``odometry_s`` while the link is healthy and nothing is
+    queued, and hands each reading over. A backend without encoders, a board that refuses
+    ``E`` or does not answer the first one, turns the polling off for good
+    (:attr:`odometry_state` "unavailable", logged once).
     """
 
     def __init__(
@@ -124,6 +137,8 @@ class _MotorWorker:
         keepalive_s: float,
         on_health: Callable[[bool, float], None],
         on_events: Callable[[list[HealthEvent]], None] | None = None,
+        on_odometry: Callable[[WheelOdometry], None] | None = None,
+        odometry_s: float = 1.0 / ODOMETRY_HZ,
     ) -> None:
         self.link = link
         self.keepalive_s = keepalive_s
@@ -147,6 +162,18 @@ class _MotorWorker:
         self.direct_sent = 0  # commands sent by send_now in its caller's thread
         self.repeats_skipped = 0  # commands submit() did not send again (repeat_after_s)
         self.sent = 0
+        self._on_odometry = on_odometry
+        self.odometry_s = odometry_s
+        self.odometry_readings = 0
+        self.odometry_failures = 0
+        self.odometry_state = "off"  # "polling", "unavailable" or "off" (nobody takes them)
+        self.odometry_reason = ""
+        if on_odometry is not None:
+            if callable(getattr(link, "read_odometry", None)):
+                self.odometry_state = "polling"
+            else:
+                self._odometry_unavailable("the motor backend has no wheel encoders")
+        self._t_odo = time.monotonic()  # when the next encoder poll is due
         self.thread = threading.Thread(target=self._run, name="x6wd-motors", daemon=True)
 
     def start(self) -> None:
@@ -215,6 +242,7 @@ class _MotorWorker:
 
     def _run(self) -> None:
         while True:
+            poll = False
             with self._cond:
                 while not self._stop:
                     if self._busy:  # a send_now in another thread: wait for its end
@@ -222,14 +250,32 @@ class _MotorWorker:
                         continue
                     if self._pending is not None:
                         break
-                    left_s = self._t_sent + self.keepalive_s - time.monotonic()
+                    now = time.monotonic()
+                    left_s = self._t_sent + self.keepalive_s - now
                     if left_s <= 0:
                         break
+                    if self.odometry_state == "polling" and self._healthy:
+                        odo_s = self._t_odo - now
+                        if odo_s <= 0:
+                            poll = True
+                            break
+                        left_s = min(left_s, odo_s)
                     self._cond.wait(left_s)
                 if self._stop:
                     return
-                cmd, self._pending = self._pending, None
+                if poll:
+                    cmd = None
+                else:
+                    cmd, self._pending = self._pending, None
                 self._busy = True
+            if poll:  # the link is ours: one E and its reply, like any send
+                try:
+                    self._poll_odometry()
+                finally:
+                    with self._cond:
+                        self._busy = False
+                        self._cond.notify_all()
+                continue
             try:
                 if cmd is None:
                     now = time.monotonic()
@@ -257,6 +303,34 @@ class _MotorWorker:
         health: DeviceHealth = self.link.health
         return health
 
+    def _odometry_unavailable(self, reason: str) -> None:
+        self.odometry_state = "unavailable"
+        self.odometry_reason = reason
+        log.warning("wheel odometry unavailable: %s; not polling the encoders", reason)
+
+    def _poll_odometry(self) -> None:
+        """Read the encoders once (this thread owns the link: ``_busy`` is set)."""
+        now = time.monotonic()
+        # a fixed schedule, but no burst to catch up after a stall
+        self._t_odo = max(self._t_odo + self.odometry_s, now)
+        rec: WheelOdometry | None = None
+        try:
+            rec = self.link.read_odometry()
+        except Exception as exc:  # a broken backend: no odometry, the motors carry on
+            log.debug("reading the wheel encoders failed: %s", exc)
+            rec = None
+        if rec is not None:
+            self.odometry_readings += 1
+            assert self._on_odometry is not None
+            self._on_odometry(rec)
+        else:
+            self.odometry_failures += 1
+            if getattr(self.link, "odometry_supported", None) is False:
+                self._odometry_unavailable("the motor board refuses the encoder request (E)")
+            elif self.odometry_readings == 0:
+                self._odometry_unavailable("the motor board did not answer the encoder request")
+        self._after_io()
+
     def _send(self, cmd: MotorCommand) -> None:
         """One send, with its health bookkeeping; only ever one at a time (``_busy``)."""
         acked = False
@@ -278,6 +352,10 @@ class _MotorWorker:
         self.sent += 1
         self._acked = acked
         self._t_sent = time.monotonic()
+        self._after_io()
+
+    def _after_io(self) -> None:
+        """The link's health after a send or an encoder poll: changes and events reported."""
         ok = bool(self.link.healthy)
         if ok != self._healthy:
             self._healthy = ok
@@ -516,6 +594,8 @@ class Daemon:
         self._compass_driver: Any = None  # the Cmps10 the compass thread reads
         self._health_log = HealthLog(logging.getLogger("x6wd.core.health"))
         self._dev_dicts: dict[str, tuple[DeviceHealth, dict[str, Any]]] = {}
+        self._gpsd_wmm = False  # the gpsd port still waits for the WMM declination
+        self._t_operator = -math.inf  # latest operator request handed to the controller (s)
         self.t_start = time.monotonic()
 
     @property
@@ -530,7 +610,7 @@ class Daemon:
 
     @property
     def stats(self) -> dict[str, int]:
-        """Inputs seen by the control loop: ``fixes``, ``attitudes``."""
+        """Inputs seen by the control loop: ``fixes``, ``attitudes``, ``odometry``."""
         return self.runner.stats if self.runner is not None else {}
 
     # -- lifecycle ------------------------------------------------------------------------
@@ -657,9 +737,12 @@ class Daemon:
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
         if cfg.gpsd.enabled:
             path, bps = registry.device_path(cfg.gps.url)
+            # without a configured declination the ATT heading is the magnetic one until the
+            # runner has the World Magnetic Model's value (_on_gps_records passes it on)
             self.gpsd = GpsdServer.from_config(
                 cfg.gpsd, path, bps=bps, declination_deg=0.0 if decl is None else decl
             )
+            self._gpsd_wmm = decl is None
         if cfg.recorder.enabled:
             problem = _dir_problem(Path(cfg.recorder.dir))
             if problem:
@@ -743,7 +826,12 @@ class Daemon:
         link = await asyncio.to_thread(registry.open_motors, cfg.motors.url, self.devices)
         keepalive_s = max(0.02, cfg.motors.watchdog_ms / 3000.0)
         self.motors = _MotorWorker(
-            link, keepalive_s, self._health_from_thread, self._health_events_from_thread
+            link,
+            keepalive_s,
+            self._health_from_thread,
+            self._health_events_from_thread,
+            on_odometry=self._odometry_from_thread,
+            odometry_s=1.0 / ODOMETRY_HZ,
         )
         self.motors.start()
         compass = await asyncio.to_thread(registry.open_compass, cfg.compass.url, self.devices)
@@ -925,10 +1013,15 @@ class Daemon:
     def _health_events_from_thread(self, events: list[HealthEvent]) -> None:
         self._post(self._on_device_events, events)
 
+    def _odometry_from_thread(self, rec: WheelOdometry) -> None:
+        self._post(self._on_odometry, rec)
+
     # -- event-loop side: the edge of the one loop (x6wd.loop.runner) ---------------------
     def _on_gps_records(self, records: list[Any]) -> None:
         assert self.runner is not None
         self.runner.gps(records)  # the control decision first: GGA-to-motor latency
+        if self._gpsd_wmm:
+            self._gpsd_declination()
         if self.gpsd is not None:
             for rec in records:
                 if isinstance(rec, GpsFix):
@@ -938,11 +1031,30 @@ class Daemon:
                 elif isinstance(rec, NmeaSentence):
                     self._net_call(self.gpsd.publish_nmea, rec.text)
 
+    def _gpsd_declination(self) -> None:
+        """Hand the World Magnetic Model's declination to the gpsd port once the runner has
+        it (its ATT heading is then true, as the controller's)."""
+        assert self.runner is not None and self.gpsd is not None
+        found = self.runner.declination
+        if "deg" in found:
+            self._gpsd_wmm = False
+            self._net_call(self.gpsd.set_declination, float(found["deg"]))
+        elif "error" in found:
+            self._gpsd_wmm = False  # no model value: ATT stays magnetic (status says why)
+
     def _on_attitude(self, att: Attitude) -> None:
         assert self.runner is not None
         self.runner.attitude(att)
         if self.gpsd is not None:
             self._net_call(self.gpsd.publish_attitude, att)
+
+    def _on_odometry(self, rec: WheelOdometry) -> None:
+        assert self.runner is not None
+        self.runner.odometry(rec)
+
+    def _operator_seen(self) -> None:
+        if self.runner is not None:
+            self.runner.operator_seen()
 
     def _on_motor_health(self, ok: bool, t_s: float) -> None:
         assert self.runner is not None
@@ -1068,6 +1180,19 @@ class Daemon:
         """Resume a paused mission."""
         return self._on_control(self._command, "resume")
 
+    def return_home(self) -> Any:
+        """Drive back to the launch point (where the mission started) and end there."""
+        return self._on_control(self._command, "return")
+
+    def operator_seen(self) -> None:
+        """An operator's request came in (the operator-link failsafe); never waits. Handed to
+        the control loop at most every ``OPERATOR_SEEN_S``, in order with the requests."""
+        now = time.monotonic()
+        if now - self._t_operator < OPERATOR_SEEN_S:
+            return
+        self._t_operator = now
+        self._post(self._operator_seen)
+
     def stop(self) -> Any:
         """Stop everything; always allowed. The stop also goes to the motors at once."""
         if self.motors is not None:  # thread-safe, and does not wait for the control loop
@@ -1096,6 +1221,21 @@ class Daemon:
                 cached = (health, health.to_dict())
                 self._dev_dicts[name] = cached
             out[name] = cached[1]
+        out["odometry"] = self._odometry_status()
+        return out
+
+    def _odometry_status(self) -> dict[str, Any] | None:
+        """The wheel encoders' polling: state, readings, failures (None before the motors)."""
+        m = self.motors
+        if m is None:
+            return None
+        out: dict[str, Any] = {
+            "state": m.odometry_state,
+            "readings": m.odometry_readings,
+            "failures": m.odometry_failures,
+        }
+        if m.odometry_reason:
+            out["reason"] = m.odometry_reason
         return out
 
     def _status(self) -> dict[str, Any]:
@@ -1104,6 +1244,10 @@ class Daemon:
         devices = self._devices()
         gps, compass = devices["gps"] or {}, devices["compass"] or {}
         link_ok = self.motors is not None and bool(self.motors.link.healthy)
+        odo = devices["odometry"]
+        odometry: int | str = "unknown"
+        if odo is not None:
+            odometry = odo["readings"] if odo["state"] == "polling" else odo["state"]
         return {
             "version": __version__,
             "uptime_s": round(now - self.t_start, 3),
@@ -1118,7 +1262,10 @@ class Daemon:
                 "compass": compass.get("state", "unknown"),
                 "compass_errors": compass.get("errors", self.compass_errors),
                 "motors": "ok" if link_ok else "lost",
+                "odometry": odometry,  # readings so far, or "unavailable"
             },
+            # where the compass declination comes from: config, or the WMM with its value
+            "declination": dict(self.runner.declination) if self.runner is not None else {},
         }
 
     # the runner's operator requests, run on the control loop by _on_control

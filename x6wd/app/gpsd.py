@@ -314,6 +314,11 @@ class GpsdServer(LineServer[_Client]):
         self._last_sky = obj
         self._fanout(dumps(obj), nmea=False)
 
+    def set_declination(self, declination_deg: float) -> None:
+        """Use ``declination_deg`` (deg, east positive) for ATT's true heading from now on
+        (the daemon passes the World Magnetic Model's value once the first dated fix came)."""
+        self.declination_deg = float(declination_deg)
+
     def publish_attitude(self, att: Attitude) -> None:
         """Send an ATT (compass) to JSON watchers."""
         obj = att_obj(att, self.device_path, self.declination_deg)

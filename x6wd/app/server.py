@@ -54,6 +54,7 @@ COMMANDS = (
     "start",
     "pause",
     "resume",
+    "return",
     "stop",
     "drive",
     "watch",
@@ -61,7 +62,7 @@ COMMANDS = (
 )
 # commands that change what the robot does: a stop issued before one of these cannot stand
 # in for a stop requested after it
-MOTION_COMMANDS = frozenset({"mission.load", "start", "pause", "resume", "drive"})
+MOTION_COMMANDS = frozenset({"mission.load", "start", "pause", "resume", "return", "drive"})
 MAX_PENDING_REPLIES = 64
 LOG_TAIL_MAX = 1000
 MAX_JSON_DEPTH = 16
@@ -89,6 +90,8 @@ class Backend(Protocol):
     not block; each returns its result (a JSON-ready dict merged into the reply; a list of
     lines for ``log_tail``) or an awaitable of it (the daemon runs commands on its control
     loop). Raise :class:`CommandError` (or any X6wdError, reported as ``rejected``) to refuse.
+    ``return_home`` answers the ``return`` command. ``operator_seen`` is called (and must
+    not wait) for every request of a client allowed to command: the operator-link failsafe.
     """
 
     def status(self) -> Any: ...
@@ -96,9 +99,11 @@ class Backend(Protocol):
     def start(self) -> Any: ...
     def pause(self) -> Any: ...
     def resume(self) -> Any: ...
+    def return_home(self) -> Any: ...
     def stop(self) -> Any: ...
     def drive(self, left_pct: float, right_pct: float, duration_s: float) -> Any: ...
     def log_tail(self, n: int) -> Any: ...
+    def operator_seen(self) -> None: ...
 
 
 def load_token(path: str | Path) -> bytes:
@@ -581,7 +586,11 @@ class ControlServer(LineServer[_Client]):
                 raise _Reject("rate_limited", f"more than {self.config.rate_per_s:g} requests/s")
             if not c.authenticated and cmd not in UNAUTHENTICATED_COMMANDS:
                 raise _Reject("unauthorized", f"authenticate first to use {cmd!r}")
+            if c.authenticated:  # an operator is there (the operator-link failsafe)
+                self.backend.operator_seen()
             result = await self._execute(c, cmd, req)
+            if cmd == "auth" and c.authenticated:
+                self.backend.operator_seen()
             reply = {"id": req_id, "ok": True, **result}
         except _Reject as exc:
             reply = error_reply(req_id, exc.code, str(exc), exc.reason)
@@ -613,6 +622,8 @@ class ControlServer(LineServer[_Client]):
                 return await _result(b.load_mission(*args))
             if cmd == "drive":
                 return await _result(b.drive(*args))
+            if cmd == "return":  # a Python keyword: the backend's method is return_home
+                return await _result(b.return_home())
             return await _result(getattr(b, cmd)())
         if cmd == "hello":
             return {
