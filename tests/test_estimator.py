@@ -423,7 +423,12 @@ def test_white_gps_noise_mode_is_the_papers_filter():
         )
         for t, _, _, d in sens.gps
     ]
-    cfg = _config(gps=GpsParams(re_m=GPS_RE_M, ase_m=GPS_ASE_M, correlation_s=None))
+    # the paper's filter has no online odometry calibration either (on a circle, turn scale
+    # and drift per metre cannot be told apart: both are a constant turn rate)
+    odo = OdometryParams(track_m=TRACK_M, k_left_m=K_WHEEL_M, k_right_m=K_WHEEL_M,
+                         sigma_turn_scale=0.0, sigma_drift_rad_per_m=0.0,
+                         turn_scale_walk_per_s=0.0, drift_walk_rad_per_m_per_s=0.0)  # fmt: skip
+    cfg = _config(gps=GpsParams(re_m=GPS_RE_M, ase_m=GPS_ASE_M, correlation_s=None), odometry=odo)
     run = _run(tr, sens, cfg)
     keep = run.t >= WARMUP_S
     assert run.est.state[5] == 0.0 and run.est.covariance[5, 5] == 0.0

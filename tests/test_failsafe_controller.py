@@ -268,11 +268,13 @@ def test_the_ekf_follows_a_straight_drive_and_steers_by_its_heading() -> None:
         c.on_attitude(att(t, 357.0))  # 357 magnetic + 3 declination = north
     c.load_mission([at(0.0, 100.0)], 1.0)
     c.start(1.0)
-    for k in range(1, 31):
-        t = 1.0 + k
-        c.on_odometry(WheelOdometry(t, round(k * COUNTS_PER_M), round(k * COUNTS_PER_M), k))
-        c.on_fix(fix(t, 0.0, float(k)))
+    for k in range(1, 301):  # 1 m/s north for 30 s: encoders and compass at 10 Hz, fixes 1 Hz
+        t = 1.0 + 0.1 * k
+        counts = round(0.1 * k * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
         c.on_attitude(att(t, 357.0))
+        if k % 10 == 0:
+            c.on_fix(fix(t, 0.0, 0.1 * k))
     tel = c.telemetry
     est = ltp_xy(tel.filt_lat_deg, tel.filt_lon_deg)
     assert est[1] == pytest.approx(30.0, abs=1.0) and abs(est[0]) < 1.0

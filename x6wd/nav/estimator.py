@@ -3,12 +3,22 @@
 State (local tangent plane, east/north metres; headings are BEARINGS, clockwise from true
 north, radians)::
 
-    x = [east_m, north_m, heading_rad, speed_mps, yaw_rate_rps, bias_east_m, bias_north_m]
+    x = [east_m, north_m, heading_rad, speed_mps, yaw_rate_rps, bias_east_m, bias_north_m,
+         turn_scale, drift_rad_per_m]
 
 ``yaw_rate_rps`` is clockwise positive (the compass sense). The two bias states are the
 slowly varying part of the GPS error (first-order Gauss-Markov); they exist only when
 :attr:`GpsParams.correlation_s` is set, otherwise the filter is the seed paper's EKF with white
 GPS noise (the bias states are then kept at zero with zero variance).
+
+The last two states calibrate the odometry while the robot drives, so an uncalibrated robot
+(the shipped config's nominal wheels and geometric track) still navigates: the heading change
+of an increment is ``turn_scale·(dl − dr)/track_m + drift_rad_per_m·ds``. ``turn_scale`` takes
+up a wrong effective track (a skid steer turns less than its wheels say: 0.5-0.8), the
+compass observing it in turns; ``drift_rad_per_m`` takes up unequal wheel diameters (1 %
+apart on a 0.245 m track is 0.04 rad per metre driven), the compass observing it on straights.
+Both start at the calibration's values (1, 0) with :class:`OdometryParams`'s uncertainty and
+wander slowly (surface, load). In mode GPS_COMPASS they stay where they are.
 
 Nothing here reads a clock: every input carries its time ``t_s`` (seconds, one monotonic
 clock), and the filter predicts to each input's time before using it. Inputs stamped slightly
@@ -72,8 +82,8 @@ import numpy.typing as npt
 
 from x6wd.core.errors import X6wdError
 
-E, N, PSI, V, W, BE, BN = range(7)
-NX = 7
+E, N, PSI, V, W, BE, BN, KT, BA = range(9)
+NX = 9
 _TWO_PI = 2.0 * math.pi
 
 CMPS10_LAG_S = 0.640 / 3.0
@@ -121,14 +131,25 @@ class OdometryParams:
     steer often 1.2-2× the geometric one); ``k_left_m``, ``k_right_m``: variance of a wheel's
     travel per metre it travelled (m²/m, so metres); ``k_slip_rad``: extra heading variance per
     radian turned (rad²/rad), the skid-steer slip the encoders do not see.
+    ``sigma_turn_scale``, ``sigma_drift_rad_per_m``: the initial uncertainty of the two
+    online calibration states (see the module docstring; 0 freezes them at 1 and 0), and
+    their random walks per second (``*_walk_*``, one sigma after 1 s).
     """
 
     track_m: float
     k_left_m: float = 2e-4
     k_right_m: float = 2e-4
     k_slip_rad: float = 2e-3
+    sigma_turn_scale: float = 0.3
+    sigma_drift_rad_per_m: float = 0.1
+    turn_scale_walk_per_s: float = 1e-3
+    drift_walk_rad_per_m_per_s: float = 1e-5
 
     def __post_init__(self) -> None:
+        _pos("sigma_turn_scale", self.sigma_turn_scale, zero_ok=True)
+        _pos("sigma_drift_rad_per_m", self.sigma_drift_rad_per_m, zero_ok=True)
+        _pos("turn_scale_walk_per_s", self.turn_scale_walk_per_s, zero_ok=True)
+        _pos("drift_walk_rad_per_m_per_s", self.drift_walk_rad_per_m_per_s, zero_ok=True)
         _pos("track_m", self.track_m)
         _pos("k_left_m", self.k_left_m, zero_ok=True)
         _pos("k_right_m", self.k_right_m, zero_ok=True)
@@ -275,7 +296,8 @@ class Update:
 @dataclass(frozen=True, slots=True)
 class Estimate:
     """The filter's state at ``t_s`` (s): position (m), true bearing ``heading_deg`` in
-    [0, 360), ``speed_mps``, clockwise ``yaw_rate_dps``, and one-sigma uncertainties."""
+    [0, 360), ``speed_mps``, clockwise ``yaw_rate_dps``, one-sigma uncertainties, and the
+    odometry's online calibration (``turn_scale``, ``drift_deg_per_m``)."""
 
     t_s: float
     east_m: float
@@ -286,6 +308,8 @@ class Estimate:
     sigma_east_m: float
     sigma_north_m: float
     sigma_heading_deg: float
+    turn_scale: float = 1.0
+    drift_deg_per_m: float = 0.0
 
 
 @dataclass
@@ -378,6 +402,8 @@ class Estimator:
             sigma_east_m=math.sqrt(max(p[E, E], 0.0)),
             sigma_north_m=math.sqrt(max(p[N, N], 0.0)),
             sigma_heading_deg=math.degrees(math.sqrt(max(p[PSI, PSI], 0.0))),
+            turn_scale=float(x[KT]),
+            drift_deg_per_m=math.degrees(x[BA]),
         )
 
     # ------------------------------------------------------------------ time
@@ -446,6 +472,10 @@ class Estimator:
         f[PSI, W] = h
         q[V] = self._q_v * h
         q[W] = self._q_w * h
+        odo = cfg.odometry
+        if odo is not None and cfg.mode == Mode.ODOMETRY:
+            q[KT] = odo.turn_scale_walk_per_s**2 * h
+            q[BA] = odo.drift_walk_rad_per_m_per_s**2 * h
         q[E] = q[N] = self._q_v * h**3 / 3.0
         cmd = cfg.command
         if cmd is not None and self._cmd is not None and not self._odo_fresh:
@@ -493,48 +523,64 @@ class Estimator:
         if not self._ready:
             self._t = max(self._t, t1)
             return
-        # The part of the increment after the state's time has not been used yet; the part
-        # before it was extrapolated with the previous speed and yaw rate.
-        start = max(t0, self._t)
-        frac = 1.0 if span <= 0 else min(max((t1 - start) / span, 0.0), 1.0)
-        if t1 > self._t:
-            self._predict_to(start)  # no-op unless the state lags the increment's start
-        if t1 > start:
-            self._propagate_bias(t1 - start)
-        a, b = frac * dl, frac * dr  # wheel travel applied now, m
-        ds = 0.5 * (a + b)
-        dpsi = (a - b) / odo.track_m
+        # Between increments the state was (and up to t1 now is) extrapolated with the speed
+        # and yaw rate of the previous increment. The increment replaces that guess over its
+        # span by what the wheels measured: the correction is the measured motion minus
+        # V·span and W·span. (Applying only the part after the state's time, as a first
+        # version did, lets the yaw rate lag one increment behind the wheels: the compass then
+        # only ever sees the turns stop late, never start late, and biases turn_scale to 0.)
+        self._predict_to(t1)
+        if span > self.cfg.motion.odometry_timeout_s:
+            # after a silence the commanded drive predicted the motion: the wheels' total
+            # cannot be split against it, so only their latest rates are taken
+            dl_rate, dr_rate = dl, dr
+            dl = dr = 0.0
+        else:
+            dl_rate, dr_rate = dl, dr
         x = self._x
-        pm = x[PSI] + 0.5 * dpsi
+        kt, ba = x[KT], x[BA]
+        ds = 0.5 * (dl + dr)
+        diff = (dl - dr) / odo.track_m  # the wheels' heading change, rad
+        dpsi = kt * diff + ba * ds
+        ds_corr = ds - x[V] * span
+        x[PSI] = _wrap(x[PSI] + dpsi - x[W] * span)
+        pm = x[PSI] - 0.5 * dpsi  # mid-increment heading, for the along-track correction
         s, c = math.sin(pm), math.cos(pm)
+        x[E] += ds_corr * s
+        x[N] += ds_corr * c
         f = np.eye(NX)
-        f[E, PSI] = ds * c
-        f[N, PSI] = -ds * s
-        x[E] += ds * s
-        x[N] += ds * c
-        x[PSI] = _wrap(x[PSI] + dpsi)
+        f[PSI, W] = -span
+        f[PSI, KT] = diff
+        f[PSI, BA] = ds
+        f[E, V] = -span * s
+        f[N, V] = -span * c
+        f[E, PSI] = ds_corr * c
+        f[N, PSI] = -ds_corr * s
         # Jacobian of the pose wrt the wheel travels (a, b) and their covariance (seed 003)
-        k = 0.5 / odo.track_m
+        g_a = kt / odo.track_m + 0.5 * ba  # d dpsi / d a
+        g_b = -kt / odo.track_m + 0.5 * ba
         j = np.zeros((NX, 2))
-        j[E, 0] = 0.5 * s + ds * c * k
-        j[E, 1] = 0.5 * s - ds * c * k
-        j[N, 0] = 0.5 * c - ds * s * k
-        j[N, 1] = 0.5 * c + ds * s * k
-        j[PSI, 0] = 1.0 / odo.track_m
-        j[PSI, 1] = -1.0 / odo.track_m
-        su = np.diag([odo.k_left_m * abs(a), odo.k_right_m * abs(b)])
+        j[E, 0] = j[E, 1] = 0.5 * s
+        j[N, 0] = j[N, 1] = 0.5 * c
+        j[PSI, 0] = g_a
+        j[PSI, 1] = g_b
+        su = np.diag([odo.k_left_m * abs(dl), odo.k_right_m * abs(dr)])
         p = f @ self._p @ f.T + j @ su @ j.T
         p[PSI, PSI] += odo.k_slip_rad * abs(dpsi)
         # speed and yaw rate from the whole increment's rates
+        dl, dr = dl_rate, dr_rate
         if span > 0:
             x[V] = 0.5 * (dl + dr) / span
-            x[W] = (dl - dr) / odo.track_m / span
+            x[W] = (kt * (dl - dr) / odo.track_m + ba * 0.5 * (dl + dr)) / span
             var_v = 0.25 * (odo.k_left_m * abs(dl) + odo.k_right_m * abs(dr)) / span**2
             var_w = (odo.k_left_m * abs(dl) + odo.k_right_m * abs(dr)) / (odo.track_m * span) ** 2
             var_w += odo.k_slip_rad * abs(dl - dr) / odo.track_m / span**2
             p[V, :] = p[:, V] = 0.0
-            p[W, :] = p[:, W] = 0.0
             p[V, V] = var_v + self._q_v * span
+            # W only extrapolates until the next increment replaces the guess: it carries no
+            # correlation with the calibration states, which learn from the measured
+            # increments alone (through f[PSI, KT], f[PSI, BA] above)
+            p[W, :] = p[:, W] = 0.0
             p[W, W] = var_w + self._q_w * span
         self._p = 0.5 * (p + p.T)
         self._t = max(self._t, t1)
@@ -729,5 +775,10 @@ class Estimator:
         self._p[PSI, PSI] = math.radians(self.cfg.compass.sigma_deg) ** 2
         self._p[V, V] = 1.0  # (m/s)²: unknown speed at start, up to the 1.1 m/s top speed
         self._p[W, W] = math.radians(30.0) ** 2
+        self._x[KT] = 1.0  # the odometry calibration as configured ...
+        odo = self.cfg.odometry
+        if odo is not None and self.cfg.mode == Mode.ODOMETRY:  # ... and how far to trust it
+            self._p[KT, KT] = odo.sigma_turn_scale**2
+            self._p[BA, BA] = odo.sigma_drift_rad_per_m**2
         self._ready = True
         self._pending_fix = self._pending_heading = None

@@ -276,6 +276,8 @@ class EkfSource:
         if est is not None:
             out["ekf_sigma_m"] = math.hypot(est.sigma_east_m, est.sigma_north_m)
             out["ekf_speed_mps"] = est.speed_mps
+            out["odometry_turn_scale"] = est.turn_scale
+            out["odometry_drift_deg_per_m"] = est.drift_deg_per_m
         if self.odometry_dropped:
             out["odometry_dropped"] = self.odometry_dropped
         return out
