@@ -11,6 +11,7 @@ import logging
 import math
 import selectors
 from dataclasses import replace
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ import pytest
 from drivers.gps_nmea import NmeaSentence
 from sim_backend.mission import run_mission
 from sim_backend.world import load_world
-from x6wd.core.config import NavigationConfig, SafetyConfig
+from x6wd.core.config import FailsafeConfig, NavigationConfig, SafetyConfig
 from x6wd.core.errors import CommandError
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.health import HealthLog, HealthTracker
@@ -33,6 +34,7 @@ from x6wd.core.records import (
     NavState,
     StateChange,
     Telemetry,
+    WheelOdometry,
 )
 from x6wd.loop.runner import TELEMETRY_RECORD_HZ, Runner, every, run_realtime
 from x6wd.nav.controller import Controller
@@ -628,3 +630,88 @@ def test_a_fix_on_the_edge_of_the_coordinate_range_is_usable(
     lp = Loop()
     lp.runner.gps_record(GpsFix(t_s=0.0, lat_deg=lat_deg, lon_deg=lon_deg, quality=1, valid=True))
     assert lp.runner.first_fix == (lat_deg, lon_deg)
+
+
+# ------------------------------------------------------------------ declination, odometry, return
+
+
+def _wmm_runner(utc: datetime | None, declination_cfg: bool = False) -> tuple[Runner, Controller]:
+    safety = SafetyConfig()
+    ctrl = Controller(NavigationConfig.paper(), safety, 0.0)
+    runner = Runner(
+        ctrl,
+        safety,
+        lambda: 0.0,
+        motors=lambda _c: None,
+        health_log=HealthLog(_quiet()),
+        wmm_declination=not declination_cfg,
+    )
+    runner.attitude(Attitude(0.0, 10.0, 0.0, 0.0))
+    fix = GpsFix(t_s=0.1, utc=utc, lat_deg=HOME[0], lon_deg=HOME[1], alt_m=60.0,
+                 geoid_sep_m=47.0, quality=1, valid=True)  # fmt: skip
+    runner.gps_record(fix)
+    return runner, ctrl
+
+
+def test_the_declination_comes_from_the_wmm_at_the_first_dated_fix() -> None:
+    from x6wd.nav.declination import declination_deg
+
+    when = datetime(2026, 11, 25, 12, 0, tzinfo=UTC)
+    runner, ctrl = _wmm_runner(when)
+    want = declination_deg(HOME[0], HOME[1], 107.0, when)
+    assert runner.declination == {"source": "wmm", "deg": round(want, 3)}
+    assert ctrl.telemetry.heading_deg == pytest.approx(10.0 + want)
+    # once: a later fix elsewhere does not change it
+    runner.gps_record(GpsFix(t_s=0.2, utc=when, lat_deg=0.0, lon_deg=0.0, quality=1, valid=True))
+    assert ctrl.telemetry.heading_deg == pytest.approx(10.0 + want)
+
+
+def test_no_wmm_outside_its_dates_or_with_a_configured_declination() -> None:
+    runner, ctrl = _wmm_runner(datetime(2020, 1, 1, tzinfo=UTC))
+    assert runner.declination["source"] == "wmm" and "outside" in runner.declination["error"]
+    assert ctrl.telemetry.heading_deg == pytest.approx(10.0)  # 0 kept, and said so
+    runner, ctrl = _wmm_runner(datetime(2026, 11, 25, tzinfo=UTC), declination_cfg=True)
+    assert runner.declination == {"source": "config"}
+    assert ctrl.telemetry.heading_deg == pytest.approx(10.0)
+    runner, ctrl = _wmm_runner(None)  # an undated fix waits for a dated one
+    assert "deg" not in runner.declination and "error" not in runner.declination
+
+
+def test_odometry_is_recorded_counted_and_reaches_the_controller() -> None:
+    lp = Loop()
+    lp.runner.odometry(WheelOdometry(0.0, 0, 0, 1))
+    lp.runner.odometry(WheelOdometry(0.05, 100, 100, 2))
+    assert lp.runner.stats["odometry"] == 2
+    assert [a for m, a in lp.records if m == "record_odometry"] == [
+        WheelOdometry(0.0, 0, 0, 1), WheelOdometry(0.05, 100, 100, 2)
+    ]  # fmt: skip
+    assert lp.observed[-1][1] is False  # like a compass sample: telemetry rate-limited
+
+
+def test_return_goes_through_the_runner_and_names_itself() -> None:
+    lp = Loop()
+    lp.start_mission(north(90))
+    lp.now = 1.0
+    lp.compass()
+    lp.fix(20.0)
+    reply = lp.runner.command("return")
+    assert reply == {"mode": "RUNNING", "state": lp.runner.controller.state.value}
+    assert lp.runner.controller.returning == "return"
+    assert any(s.reason == "mode: return: return to launch" for s in lp.states)
+
+
+def test_operator_seen_reaches_the_controllers_failsafe() -> None:
+    safety = SafetyConfig(geofence_radius_m=100.0)
+    fs = FailsafeConfig(operator_timeout_s=2.0, operator_action="hold", stuck_s=0.0)
+    now = [0.0]
+    ctrl = Controller(NavigationConfig.paper(), safety, failsafe=fs)
+    runner = Runner(ctrl, safety, lambda: now[0], motors=lambda _c: None,
+                    health_log=HealthLog(_quiet()))  # fmt: skip
+    runner.attitude(Attitude(0.0, 0.0, 0.0, 0.0))
+    runner.gps_record(GpsFix(t_s=0.0, lat_deg=HOME[0], lon_deg=HOME[1], quality=1, valid=True))
+    runner.load_mission([north(50)])
+    runner.operator_seen()
+    runner.command("start")
+    now[0] = 2.5
+    runner.attitude(Attitude(2.5, 0.0, 0.0, 0.0))
+    assert ctrl.mode == Mode.PAUSED and ctrl.telemetry.extra["failsafe"] == "operator link lost"
