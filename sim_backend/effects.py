@@ -735,6 +735,32 @@ class _OutagesRun(_Run):
 
 
 @dataclass(frozen=True)
+class Outage(GpsLayer):
+    """One scripted fix outage: no fix (valid False) from ``start_s`` for ``duration_s``
+    (seconds on the series' clock: simulated seconds since the scenario's start in ``x6wd
+    sim`` and hardware in the loop), e.g. to test the robot's reaction to losing the GPS at a
+    known time. A test fault, not a fitted effect: the gap tool does not look for it (it is
+    not in ``GPS_EFFECT_NAMES``; ``outages`` is the random one)."""
+
+    name: ClassVar[str] = "outage"
+    start_s: float
+    duration_s: float
+
+    def __post_init__(self) -> None:
+        _positive("start_s", self.start_s, allow_zero=True)
+        _positive("duration_s", self.duration_s)
+
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The outage window (no state, no draws)."""
+        return _Run(self._cut)
+
+    def _cut(self, series: PositionSeries) -> PositionSeries:
+        t = np.asarray(series.t_s, dtype=float)
+        down = (t >= self.start_s) & (t < self.start_s + self.duration_s)
+        return series.with_(valid=np.asarray(series.valid, dtype=bool) & ~down)
+
+
+@dataclass(frozen=True)
 class Latency(GpsLayer):
     """Reported position is the truth of ``delay_s`` earlier (plus the existing error).
 
@@ -1045,7 +1071,15 @@ class HeadingLag(CompassLayer):
 
 
 GpsEffect = (
-    GaussMarkov | RandomWalk | Bias | Quantization | Jumps | Outages | Latency | MultipathZone
+    GaussMarkov
+    | RandomWalk
+    | Bias
+    | Quantization
+    | Jumps
+    | Outages
+    | Outage
+    | Latency
+    | MultipathZone
 )
 CompassEffect = Declination | HardIron | SoftIron | Tilt | HeadingNoise | HeadingLag
 Effect = GpsEffect | CompassEffect
@@ -1059,6 +1093,7 @@ EFFECTS: dict[str, type[Any]] = {
         Quantization,
         Jumps,
         Outages,
+        Outage,
         Latency,
         MultipathZone,
         HardIron,
@@ -1083,7 +1118,7 @@ def apply_effects(series: Any, effects: Any, rng: np.random.Generator) -> Any:
     """Apply a sequence of effects in order; GPS effects to a PositionSeries, compass ones to
     a HeadingSeries (an effect of the other kind is a ConfigError)."""
     for eff in effects:
-        gps = eff.name in GPS_EFFECT_NAMES
+        gps = eff.kind == "gps"
         if gps != isinstance(series, PositionSeries):
             raise ConfigError(f"effect {eff.name} cannot act on a {type(series).__name__}")
         series = eff.apply(series, rng)

@@ -296,6 +296,9 @@ def vehicle_from_world(world: World) -> Vehicle:
             v_max_mps=v.max_speed_mps,
             max_turn_rate_dps=v.turn_rate_dps,
             motor_tau_s=v.motor_tau_s,
+            stuck_from_s=v.stuck_from_s,
+            stuck_until_s=v.stuck_until_s,
+            stuck_mode=v.stuck_mode,
         ),
         east_m=v.start_east_m,
         north_m=v.start_north_m,
@@ -333,6 +336,7 @@ def run_mission(
     seed: int | None = None,
     duration_s: float | None = None,
     progress: Callable[[float, float], None] | None = None,
+    operator: Callable[[float, Runner], None] | None = None,
 ) -> Summary:
     """Run ``world``'s mission in simulated time and write the output files into ``out_dir``.
 
@@ -340,6 +344,15 @@ def run_mission(
     ends ``DONE_TAIL_S`` after the mission completes, or at the duration. ``progress(t_s,
     total_s)`` is called now and then. Same scenario + seed -> identical files (except
     ``summary.json``'s wall-time figure).
+
+    ``operator(t_s, runner)`` scripts an operator: it is called once per simulation tick
+    (the compass rate), right after the runner's tick at simulated time ``t_s`` (s), with the
+    run's :class:`~x6wd.loop.runner.Runner`, whose clock then reads ``t_s``. It may make any
+    operator request there (``runner.command("return")``, ``"pause"``, ``"resume"``,
+    ``runner.operator_seen()``, ``runner.stop()``, ...) exactly as the daemon's control
+    port would; what they cause is recorded like everything else. A rejected request raises
+    from the hook (``CommandError``, ``CommandRejected``) and ends the run: catch it there to
+    go on. None (default): no operator after the automatic load and start at the first fix.
     """
     wall0 = time.perf_counter()
     seed = world.seed if seed is None else int(seed)
@@ -537,6 +550,8 @@ def run_mission(
                 encoders.step(dt, s)
                 runner.odometry(encoders.reading(t))
             runner.tick(t)
+            if operator is not None:
+                operator(t, runner)
             if k % gps_every == 0:
                 antenna = (s.east_m, s.north_m, s.up_m + antenna_m)
                 if static is not None:

@@ -16,6 +16,9 @@ side's wheels rolled to make that motion, and what the encoders count for it:
   the step's own travel, which only matters for steps shorter than k);
 - systematic error: counts are wheel travel over the ACTUAL circumference
   (``π · left_diameter_m``), while odometry assumes the nominal one.
+- a vehicle stuck and slipping (:mod:`sim_backend.vehicle`'s injected fault) moves its
+  wheels but not its body: the state's ``slip_m`` / ``slip_cw_deg`` carry the travel and
+  turn the wheels made without the body, and they are counted like the body's.
 
 Counts accumulate as reals and are emitted as whole counts (quantisation as in hardware).
 
@@ -143,6 +146,10 @@ class EncoderSim:
         dpsi_cw_rad = math.radians(wrap_deg(state.heading_deg - prev.heading_deg))
         pitch_rad = math.radians(0.5 * (prev.pitch_deg + state.pitch_deg))
         common_m = s_m + p.slope_slip * math.sin(pitch_rad) * abs(s_m)
+        if state.slip_m != prev.slip_m or state.slip_cw_deg != prev.slip_cw_deg:
+            # stuck and slipping: the wheels turned where the body did not
+            common_m += state.slip_m - prev.slip_m
+            dpsi_cw_rad += math.radians(state.slip_cw_deg - prev.slip_cw_deg)
         half_turn_m = 0.5 * dpsi_cw_rad * p.effective_track_m
         travel = [common_m + half_turn_m, common_m - half_turn_m]
         if self._rng is not None:

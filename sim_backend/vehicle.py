@@ -17,6 +17,15 @@ deterministic (no randomness here).
 Terrain is a plane with gradients ``dz/dE`` and ``dz/dN``; the vehicle follows it, its pitch
 and roll follow from its heading and the gradient, and the horizontal speed is the ground
 speed times cos(pitch).
+
+Fault injection (to exercise the robot's "stuck" failsafe): from ``stuck_from_s`` until
+``stuck_until_s`` (vehicle time, s; None = never / for good) the vehicle is stuck.
+``stuck_mode = "blocked"``: neither the body nor the wheels move (the motors stall, the drive
+is 0 and the encoders count nothing). ``"slipping"``: the wheels turn as commanded (motor
+response as usual) but the body stays where it is, as in mud; the wheel travel the ground did
+not take is kept in the state (``slip_m``, ``slip_cw_deg``) so the encoders still count it
+(:class:`sim_backend.odometry.EncoderSim`). A step that crosses either time is split there.
+Without a fault the state and every number are those of the plain model.
 """
 
 from __future__ import annotations
@@ -28,17 +37,22 @@ from x6wd.core.errors import ConfigError
 from x6wd.core.geodesy import wrap360
 
 MAX_SPEED_MPS = 14.0 / 3.6  # the X6WD's top speed on even ground
+STUCK_MODES = ("blocked", "slipping")
 
 
 @dataclass(frozen=True)
 class VehicleParams:
     """Limits and response: ``v_max_mps`` (≤ 14 km/h), ``max_turn_rate_dps`` (pivot turn at
-    full opposite drive), ``motor_tau_s`` (first-order motor response; 0 = instant)."""
+    full opposite drive), ``motor_tau_s`` (first-order motor response; 0 = instant); the
+    injected fault ``stuck_from_s`` / ``stuck_until_s`` / ``stuck_mode`` (module docstring)."""
 
     v_max_mps: float = MAX_SPEED_MPS
     max_turn_rate_dps: float = 90.0
     motor_tau_s: float = 0.25
     max_substep_s: float = 0.05
+    stuck_from_s: float | None = None
+    stuck_until_s: float | None = None
+    stuck_mode: str = "blocked"
 
     def __post_init__(self) -> None:
         if not (0 < self.v_max_mps <= MAX_SPEED_MPS + 1e-9):
@@ -56,6 +70,28 @@ class VehicleParams:
             raise ConfigError(
                 f"vehicle.max_substep_s must be within (0, 1], got {self.max_substep_s}"
             )
+        check_stuck(self.stuck_from_s, self.stuck_until_s, self.stuck_mode)
+
+    def stuck_at(self, t_s: float) -> bool:
+        """The injected fault holds the vehicle at time ``t_s`` (s)."""
+        a, b = self.stuck_from_s, self.stuck_until_s
+        return a is not None and t_s >= a and (b is None or t_s < b)
+
+
+def check_stuck(from_s: float | None, until_s: float | None, mode: str) -> None:
+    """Validate the stuck fault's settings (:class:`ConfigError` naming the vehicle key)."""
+    for name, v in (("stuck_from_s", from_s), ("stuck_until_s", until_s)):
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            raise ConfigError(f"vehicle.{name} must be a finite number >= 0, got {v!r}")
+    if until_s is not None and (from_s is None or until_s <= from_s):
+        raise ConfigError(
+            f"vehicle.stuck_until_s ({until_s}) needs stuck_from_s and must be after it "
+            f"(stuck_from_s = {from_s})"
+        )
+    if mode not in STUCK_MODES:
+        raise ConfigError(
+            f"vehicle.stuck_mode must be one of {', '.join(STUCK_MODES)}, got {mode!r}"
+        )
 
 
 @dataclass(frozen=True)
@@ -95,7 +131,9 @@ class Terrain:
 class VehicleState:
     """Pose and motion at ``t_s``: position (m, local ENU), true heading (deg, clockwise from
     north, 0..360), ground speed (m/s), yaw rate (deg/s), effective drive (%), attitude (deg),
-    and the distance driven so far (m)."""
+    and the distance driven so far (m). ``slip_m`` / ``slip_cw_deg``: the wheels' travel
+    (signed, forward positive) and clockwise turn the body did not make while stuck in
+    "slipping" mode, summed since the start (0 without that fault)."""
 
     t_s: float
     east_m: float
@@ -109,6 +147,8 @@ class VehicleState:
     pitch_deg: float
     roll_deg: float
     odometer_m: float
+    slip_m: float = 0.0
+    slip_cw_deg: float = 0.0
 
 
 def _check_pct(name: str, v: float) -> float:
@@ -174,6 +214,18 @@ class Vehicle:
         """Advance by ``dt_s`` seconds (≥ 0) and return the new state."""
         if not (dt_s >= 0 and math.isfinite(dt_s)):
             raise ValueError(f"dt_s must be a finite number >= 0, got {dt_s!r}")
+        p = self.params
+        if p.stuck_from_s is not None:
+            t0 = self._state.t_s
+            for edge in (p.stuck_from_s, p.stuck_until_s):
+                if edge is not None and t0 < edge < t0 + dt_s:
+                    self.step(edge - t0)  # the fault starts or ends inside this step
+                    return self.step(t0 + dt_s - edge)
+            if p.stuck_at(t0):
+                return self._step_stuck(dt_s)
+        return self._step_free(dt_s)
+
+    def _step_free(self, dt_s: float) -> VehicleState:
         s = self._state
         p = self.params
         left, right = s.left_pct, s.right_pct
@@ -219,6 +271,51 @@ class Vehicle:
             pitch_deg=pitch,
             roll_deg=roll,
             odometer_m=odo,
+            slip_m=s.slip_m,
+            slip_cw_deg=s.slip_cw_deg,
+        )
+        return self._state
+
+    def _step_stuck(self, dt_s: float) -> VehicleState:
+        """A step with the body held in place: "blocked" stalls the wheels too (drive 0),
+        "slipping" turns them as the motors respond and sums their travel in ``slip_*``."""
+        s = self._state
+        p = self.params
+        slip_m, slip_cw = s.slip_m, s.slip_cw_deg
+        if p.stuck_mode == "blocked":
+            left = right = 0.0
+        else:
+            left, right = s.left_pct, s.right_pct
+            cl, cr = self._cmd_left, self._cmd_right
+            if p.motor_tau_s == 0:
+                mean_l = new_l = cl
+                mean_r = new_r = cr
+            else:  # the exact mean of the exponential response over the step
+                decay = math.exp(-dt_s / p.motor_tau_s)
+                frac = (1.0 - decay) * p.motor_tau_s / dt_s if dt_s > 0 else 1.0
+                new_l, new_r = cl + (left - cl) * decay, cr + (right - cr) * decay
+                mean_l, mean_r = cl + (left - cl) * frac, cr + (right - cr) * frac
+            v, w_dps = self._rates(mean_l, mean_r)
+            slip_m += v * dt_s
+            slip_cw += w_dps * dt_s
+            left, right = new_l, new_r
+            if abs(left - cl) < 1e-6 and abs(right - cr) < 1e-6:
+                left, right = cl, cr
+        self._state = VehicleState(
+            t_s=s.t_s + dt_s,
+            east_m=s.east_m,
+            north_m=s.north_m,
+            up_m=s.up_m,
+            heading_deg=s.heading_deg,
+            speed_mps=0.0,
+            yaw_rate_dps=0.0,
+            left_pct=left,
+            right_pct=right,
+            pitch_deg=s.pitch_deg,
+            roll_deg=s.roll_deg,
+            odometer_m=s.odometer_m,
+            slip_m=slip_m,
+            slip_cw_deg=slip_cw,
         )
         return self._state
 

@@ -35,7 +35,8 @@ Scenario layout (every key optional unless stated; errors name the dotted key)::
     model); with it, a blocked ray may arrive through it with that loss (dB per crossing) and
     a delay of (refractive_index - 1) x the path inside (see sim_backend.buildings).
     [vehicle] max_speed_mps, turn_rate_dps, motor_tau_s, start_heading_deg, start_east_m,
-              start_north_m, slope_east_pct, slope_north_pct, antenna_height_m
+              start_north_m, slope_east_pct, slope_north_pct, antenna_height_m,
+              stuck_from_s, stuck_until_s, stuck_mode "blocked"|"slipping" (a fault)
     [compass] a plain table handed to the compass emulation
     [[effects]] {name = "...", params...}: sim_backend.effects layers (validated by name)
     [mission] waypoints = [[lat, lon], ...] and/or waypoints_enu = [[east_m, north_m], ...]
@@ -68,6 +69,7 @@ import numpy as np
 from sim_backend.atmosphere import Atmosphere
 from sim_backend.buildings import Hole, Roof, Wall, Walls, Window, building
 from sim_backend.odometry import EncoderParams
+from sim_backend.vehicle import STUCK_MODES, check_stuck
 from x6wd.core.config import (
     FailsafeConfig,
     GnssNoiseConfig,
@@ -119,7 +121,10 @@ class GnssSettings:
 
 @dataclass(frozen=True)
 class VehicleSettings:
-    """The robot in the scenario: limits, start pose, terrain slope (percent = 100·dz/dx)."""
+    """The robot in the scenario: limits, start pose, terrain slope (percent = 100·dz/dx),
+    and an injected fault: stuck from ``stuck_from_s`` (simulated s; None: never) until
+    ``stuck_until_s`` (None: for good), ``stuck_mode`` "blocked" (neither body nor wheels
+    move) or "slipping" (the wheels turn and the encoders count, the body stays)."""
 
     max_speed_mps: float = field(default=MAX_SPEED_MPS, metadata=_rng(0.01, MAX_SPEED_MPS))
     turn_rate_dps: float = field(default=90.0, metadata=_rng(1.0, 720.0))
@@ -130,6 +135,12 @@ class VehicleSettings:
     slope_east_pct: float = field(default=0.0, metadata=_rng(-170.0, 170.0))
     slope_north_pct: float = field(default=0.0, metadata=_rng(-170.0, 170.0))
     antenna_height_m: float = field(default=0.34, metadata=_rng(0.0, 100.0))
+    stuck_from_s: float | None = field(default=None, metadata=_rng(0.0, 30 * 86400.0))
+    stuck_until_s: float | None = field(default=None, metadata=_rng(0.0, 30 * 86400.0))
+    stuck_mode: str = field(default="blocked", metadata={"choices": STUCK_MODES})
+
+    def __post_init__(self) -> None:
+        check_stuck(self.stuck_from_s, self.stuck_until_s, self.stuck_mode)
 
 
 @dataclass(frozen=True)
