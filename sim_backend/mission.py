@@ -444,10 +444,14 @@ def run_mission(
             row["gps_error_m"] = math.hypot(float(fe) - te, float(fn) - tn)
         arrivals.append(row)
 
+    returned: list[float] = []  # when a return to launch began (the mission is then over)
+
     def observe(outputs: list[Any], _important: bool) -> None:
         nonlocal done_at
         for o in outputs:
-            if type(o) is Telemetry and not ctrl.returning and ctrl.mode != Mode.IDLE:
+            if type(o) is StateChange and o.reason.endswith("return to launch"):
+                returned.append(o.t_s)
+            if type(o) is Telemetry and not returned and ctrl.mode != Mode.IDLE:
                 while len(arrivals) < min(ctrl.navigator.index, len(wp_enu)):
                     note_arrival(o.t_s)
             if type(o) is StateChange:
@@ -576,7 +580,7 @@ def run_mission(
         runner.tick(t_end)
         if holds and holds[-1][1] < 0:
             holds[-1][1] = t_end
-        rec.record_event("sim_end", t_end, completed=ctrl.mode == Mode.DONE)
+        rec.record_event("sim_end", t_end, completed=ctrl.mode == Mode.DONE and not returned)
         if progress is not None:
             progress(t_end, t_end)  # finished (early when the mission is done)
     finally:
@@ -591,12 +595,13 @@ def run_mission(
     pts = np.vstack([[world.vehicle.start_east_m, world.vehicle.start_north_m], wp_enu])
     straight = float(np.sum(np.hypot(np.diff(pts[:, 0]), np.diff(pts[:, 1]))))
     disp_lat, disp_lon = _dispersion(trace)
-    completed = ctrl.mode == Mode.DONE
+    # a mission that returned to launch is not completed, whatever the controller's DONE
+    completed = ctrl.mode == Mode.DONE and not returned
     summary = Summary(
         scenario=world.name,
         seed=seed,
         completed=completed,
-        waypoints_reached=_reached(ctrl, len(waypoints)),
+        waypoints_reached=len(arrivals) if returned else _reached(ctrl, len(waypoints)),
         waypoint_count=len(waypoints),
         sim_time_s=float(trace.t[-1]),
         wall_time_s=time.perf_counter() - wall0,
@@ -615,7 +620,8 @@ def run_mission(
         extra={
             "holds_s": [[round(a, 3), round(b, 3)] for a, b in holds],
             "mission_rejected": mission_state["rejected"],
-            "arrivals": arrivals,
+            "arrivals": _with_slow_error(arrivals, world, trace, dt),
+            "returned_at_s": returned[0] if returned else None,
             "position_source": world.navigation.position_source,
             "geofence_breaches": runner.geofence_breaches,
             "i2c_errors_injected": injector.injected,
@@ -761,6 +767,34 @@ def _errors(world: World, trace: _Trace) -> tuple[np.ndarray, np.ndarray, np.nda
     raw_err = np.hypot(raw_enu[:, 0] - truth[:, 0], raw_enu[:, 1] - truth[:, 1])
     filt_err = np.hypot(filt_enu[:, 0] - truth[:, 0], filt_enu[:, 1] - truth[:, 1])
     return raw_err, filt_err, raw_enu[:, :2], filt_enu[:, :2]
+
+
+SLOW_ERROR_WINDOW_S = 5.0
+"""Half-width of the window (s) whose mean fix error is the GPS's slow error at an arrival."""
+
+
+def _with_slow_error(
+    arrivals: list[dict[str, Any]], world: World, trace: _Trace, dt_s: float
+) -> list[dict[str, Any]]:
+    """Each arrival with ``gps_slow_error_m``: the length of the mean fix-error vector (fix
+    minus truth at its epoch, m) over the fixes within ±``SLOW_ERROR_WINDOW_S`` of the
+    arrival. The white part of the error averages out, the slow part (what no navigation can
+    see without a reference) remains: the floor of the true arrival error."""
+    if not arrivals or not trace.fix_rows:
+        return arrivals
+    o = world.origin
+    rows = trace.fix_rows
+    t_ep = np.array([r[0] * dt_s for r in rows])
+    truth = np.array([trace.epoch_truth[r[0]][:2] for r in rows])
+    raw = np.array([[r[1], r[2]] for r in rows])
+    z = np.full(len(rows), o.alt_m)
+    enu = np.asarray(lla_to_enu(raw[:, 0], raw[:, 1], z, o.lat_deg, o.lon_deg, o.alt_m))
+    err = enu[:, :2] - truth
+    for a in arrivals:
+        near = np.abs(t_ep - a["t_s"]) <= SLOW_ERROR_WINDOW_S
+        if near.any():
+            a["gps_slow_error_m"] = float(np.hypot(*err[near].mean(axis=0)))
+    return arrivals
 
 
 def _dispersion(trace: _Trace) -> tuple[float, float]:

@@ -88,6 +88,13 @@ class InputError(X6wdError, ValueError):
     unknown sensor name."""
 
 
+ARRIVAL_GPS_SIGMAS = 3.0
+"""An EKF arrival needs the latest fix within this many of its standard deviations..."""
+ARRIVAL_GPS_MIN_M = 5.0
+"""... and never less than this (m) of the waypoint."""
+STUCK_TURN_DEG = 30.0
+"""Heading change (deg) that counts as motion for the stuck failsafe while pivoting."""
+
 SENSORS = ("gps", "compass")
 """The sensors :meth:`Controller.sensor_health` knows, in the order their holds are named."""
 
@@ -142,8 +149,9 @@ class Controller:
         except NavigationError as exc:
             raise CommandRejected(str(exc)) from exc
         self._odo_cfg = odometry or OdometryConfig()
+        self._gnss_cfg = gnss_noise or GnssNoiseConfig()
         self._source: PositionSource = make_source(
-            nav, self._odo_cfg, gnss_noise or GnssNoiseConfig(), declination_deg
+            nav, self._odo_cfg, self._gnss_cfg, declination_deg
         )
         self._filt: tuple[float, float] | None = None  # the source's (lat_deg, lon_deg)
         self._src_heading_deg: float | None = None  # the source's true heading, if it has one
@@ -153,8 +161,10 @@ class Controller:
         self._failsafe_why = ""  # the last failsafe that acted (telemetry)
         self._operator_t: float | None = None  # latest operator request (s), when watched
         self._hold_since: float | None = None  # a sensor hold began (s)
-        self._stuck_since: float | None = None  # driving forward without moving since (s)
-        self._stuck_ref: tuple[float, float, float] | None = None  # (x, y, wheel m) then
+        # the stuck failsafe's last progress: (wheel m, t_s) and (lat, lon, bearing, t_s)
+        self._stuck_wheels: tuple[float, float] | None = None
+        self._stuck_body: tuple[float, float, float, float] | None = None
+        self._stuck_forward = False
         self._wheel_m = 0.0  # |wheel travel| summed over both sides / 2 (m)
         self._odo_prev: WheelOdometry | None = None
         self._mode = Mode.IDLE
@@ -367,7 +377,7 @@ class Controller:
         self._returning = self._failsafe_why = ""
         self._navigator.restart()
         self._source.reset()
-        self._stuck_since = self._stuck_ref = None
+        self._stuck_wheels = self._stuck_body = None
         self._hold_since = None
         now = t if self._now is None else max(self._now, t)
         pos = self._source.position(now)
@@ -402,7 +412,7 @@ class Controller:
             self._mission_nav = self._navigator
         self._navigator = home
         self._returning = why
-        self._stuck_since = self._stuck_ref = None
+        self._stuck_wheels = self._stuck_body = None
         self._hold_since = None
         if self._mode == Mode.RUNNING:
             # still RUNNING, towards another target: a mode change with old == new says so
@@ -498,11 +508,20 @@ class Controller:
 
     # ------------------------------------------------------------------ failsafes
     def _apply_failsafe(
-        self, why: str, action: str, t_s: float, out: list[ControllerOutput]
+        self,
+        why: str,
+        action: str,
+        t_s: float,
+        out: list[ControllerOutput],
+        keeps_driving: bool = False,
     ) -> None:
         """Act on a failsafe: "return" drives to the launch point (when there is one and the
-        robot is not returning already), anything else pauses the mission."""
+        robot is not returning already), anything else pauses the mission. A condition that
+        does not stop the robot driving (``keeps_driving``: the operator link) leaves a return
+        under way alone; one that does (stuck, blind) pauses it."""
         self._failsafe_why = why
+        if action == "return" and self._returning and self._mode == Mode.RUNNING and keeps_driving:
+            return  # already doing what this failsafe asks, and nothing stops it
         if action == "return" and self._launch is not None and not self._returning:
             self._start_return(f"failsafe: {why}", t_s, out)
         else:
@@ -528,31 +547,49 @@ class Controller:
         return None
 
     def _stuck_check(self, now: float) -> tuple[str, str] | None:
-        """Driving forward (the previous command) for ``stuck_s`` while the wheels or the
-        fixes moved less than ``stuck_min_m``."""
-        fs, cmd, fix = self._failsafe, self._cmd, self._fix
-        forward = 0.5 * (cmd.left_pct + cmd.right_pct) >= fs.stuck_min_pct
-        if not forward or fix is None or not self._fix_ok:
-            self._stuck_since = self._stuck_ref = None
+        """Driving (the previous command: forward, or a pivot) at ``stuck_min_pct`` or more
+        for ``stuck_s`` without progress of the wheels (encoder travel of a tenth of
+        ``stuck_min_m``; never missing without encoders) or of the body (the fixes
+        ``stuck_min_m`` away, or the compass ``STUCK_TURN_DEG`` round). Each kind of progress
+        restarts its own clock, so a stuck robot is caught ``stuck_s`` after it stopped, and
+        the reason names what stopped: the wheels (blocked), else the GPS or the compass
+        (the wheels turn, the robot does not: slipping)."""
+        fs, cmd, fix, att = self._failsafe, self._cmd, self._fix, self._att
+        forward = 0.5 * (cmd.left_pct + cmd.right_pct)
+        turning = 0.5 * abs(cmd.left_pct - cmd.right_pct)
+        driving = max(abs(forward), turning) >= fs.stuck_min_pct
+        if not driving or fix is None or not self._fix_ok or att is None or not self._att_ok:
+            self._stuck_wheels = self._stuck_body = None
             return None
         assert fix.lat_deg is not None and fix.lon_deg is not None
-        if self._stuck_since is None or self._stuck_ref is None:
-            self._stuck_since = now
-            self._stuck_ref = (fix.lat_deg, fix.lon_deg, self._wheel_m)
+        wheels, body = self._stuck_wheels, self._stuck_body
+        if (
+            wheels is None
+            or self._odo_prev is None
+            or self._wheel_m - wheels[0] >= (0.1 * fs.stuck_min_m)
+        ):
+            wheels = self._stuck_wheels = (self._wheel_m, now)
+        if (
+            body is None
+            or great_circle_m(body[0], body[1], fix.lat_deg, fix.lon_deg) >= fs.stuck_min_m
+            or abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG
+        ):
+            body = self._stuck_body = (fix.lat_deg, fix.lon_deg, att.bearing_deg, now)
+            self._stuck_forward = False
+        # did it try to drive forward since the body last moved (else it only pivoted)?
+        self._stuck_forward = self._stuck_forward or abs(forward) >= fs.stuck_min_pct
+        still_wheels_s, still_body_s = now - wheels[1], now - body[3]
+        if max(still_wheels_s, still_body_s) < fs.stuck_s:
             return None
-        if now - self._stuck_since < fs.stuck_s:
-            return None
-        lat0, lon0, wheel0 = self._stuck_ref
-        self._stuck_since, self._stuck_ref = now, (fix.lat_deg, fix.lon_deg, self._wheel_m)
-        moved_gps_m = great_circle_m(lat0, lon0, fix.lat_deg, fix.lon_deg)
-        # wheels: only when encoder counts come at all
-        moved_wheel_m = self._wheel_m - wheel0 if self._odo_prev is not None else math.inf
-        if moved_gps_m < fs.stuck_min_m or moved_wheel_m < fs.stuck_min_m:
-            what = "the wheels" if moved_wheel_m < fs.stuck_min_m else "the GPS"
-            return f"stuck ({what} moved under {fs.stuck_min_m:g} m in {fs.stuck_s:g} s)", (
-                fs.stuck_action
-            )
-        return None
+        self._stuck_wheels = self._stuck_body = None
+        if still_wheels_s >= 0.5 * fs.stuck_s:
+            what = "the wheels"
+        else:
+            what = "the GPS" if self._stuck_forward else "the compass"
+        return (
+            f"stuck ({what}: no motion in {fs.stuck_s:g} s of driving)",
+            fs.stuck_action,
+        )
 
     # ------------------------------------------------------------------ internals
     def _set_mode(self, mode: Mode, why: str, t_s: float, out: list[ControllerOutput]) -> None:
@@ -618,6 +655,26 @@ class Controller:
             self._xy_key = key
         return self._xy
 
+    def _gps_agrees(self, now: float) -> bool:
+        """May the navigator declare an arrival now? Always with the GPS itself as the
+        position; with the EKF only while the latest fix lies within ``ARRIVAL_GPS_SIGMAS``
+        of its own noise (at least ``ARRIVAL_GPS_MIN_M``, plus the distance driven since) of
+        the target: wheels spinning on the spot must not carry the estimate to a waypoint
+        the robot never reached (the stuck failsafe then acts)."""
+        nav, fix = self._navigator, self._fix
+        if self._nav_cfg.position_source != "ekf" or nav.done:
+            return True
+        if fix is None or not self._fix_ok or self._valid_fix_t is None:
+            return False
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        g = self._gnss_cfg
+        hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else 2.0
+        sigma_m = hdop * math.sqrt(g.re_m**2 + g.ase_m**2 + g.lce_default_m**2)
+        driven_m = self._nav_cfg.full_speed_mps * max(0.0, now - self._valid_fix_t)
+        limit_m = max(ARRIVAL_GPS_MIN_M, ARRIVAL_GPS_SIGMAS * sigma_m) + driven_m
+        lat, lon = nav.waypoints[nav.index]
+        return great_circle_m(fix.lat_deg, fix.lon_deg, lat, lon) <= limit_m
+
     def _current_heading_rad(self) -> float | None:
         """True heading (rad, (−π, π]): the position source's when it has one (the EKF),
         else the compass's; None without either."""
@@ -664,7 +721,9 @@ class Controller:
             hold = self._hold_check(now)
             fired = self._failsafe_check(now, hold)
             if fired is not None:
-                self._apply_failsafe(fired[0], fired[1], now, out)
+                why, action = fired
+                keeps = why == "operator link lost"
+                self._apply_failsafe(why, action, now, out, keeps_driving=keeps)
         if self._mode == Mode.RUNNING:
             if hold:
                 state = NavState.HOLD
@@ -673,7 +732,7 @@ class Controller:
                 x, y = self._position_xy(self._filt)
                 heading = self._current_heading_rad()
                 assert heading is not None
-                state = self._navigator.step(x, y, heading)
+                state = self._navigator.step(x, y, heading, self._gps_agrees(now))
                 self._decided = (self._navigator.last, x, y, heading)
                 if state == NavState.MISSION_DONE:
                     done = (

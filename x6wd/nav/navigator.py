@@ -229,11 +229,15 @@ class Navigator:
         return math.radians(true_deg)
 
     # -------------------------------------------------------------- decision
-    def step(self, x_m: float, y_m: float, heading_true_rad: float) -> NavState:
+    def step(
+        self, x_m: float, y_m: float, heading_true_rad: float, may_arrive: bool = True
+    ) -> NavState:
         """One decision for position (x_m, y_m) and true heading φc (rad, (−π, π]).
 
         Returns ARRIVED (and advances) or MISSION_DONE on arrival, else TURN_LEFT,
         TURN_RIGHT or STRAIGHT. After the last waypoint it keeps returning MISSION_DONE.
+        ``may_arrive`` False: no arrival now, whatever the position says (the caller's
+        independent check disagrees: the controller's GPS check of an EKF position).
         """
         if not (math.isfinite(x_m) and math.isfinite(y_m)):
             raise NavigationError(f"position must be finite, got ({x_m!r}, {y_m!r})")
@@ -244,13 +248,13 @@ class Navigator:
         if self.done:
             return NavState.MISSION_DONE
         if self.config.steering == "pivot_arc":
-            return self._step_pivot_arc(x_m, y_m, heading_true_rad)
+            return self._step_pivot_arc(x_m, y_m, heading_true_rad, may_arrive)
         i = self._index
         xi, yi = self._xy[i]
         dx, dy = xi - x_m, yi - y_m
         dist = math.hypot(dx, dy)
         cfg = self.config
-        if abs(dx) <= cfg.delta_x_m and abs(dy) <= cfg.delta_y_m:
+        if may_arrive and abs(dx) <= cfg.delta_x_m and abs(dy) <= cfg.delta_y_m:
             self._index += 1
             state = NavState.MISSION_DONE if self.done else NavState.ARRIVED
             self.last = NavDecision(state, i, dx, dy, dist, None, heading_true_rad, None)
@@ -281,7 +285,9 @@ class Navigator:
         e, n = ltp.to_xy(float(lat), float(lon))
         return float(e), float(n)
 
-    def _step_pivot_arc(self, x_m: float, y_m: float, heading_rad: float) -> NavState:
+    def _step_pivot_arc(
+        self, x_m: float, y_m: float, heading_rad: float, may_arrive: bool = True
+    ) -> NavState:
         cfg = self.config
         i = self._index
         xi, yi = self._xy[i]
@@ -296,7 +302,9 @@ class Navigator:
         windows = steering.in_windows(de, dn, cfg.delta_x_m, cfg.delta_y_m)
         bearing_err = None if final is None else float(geo.course_deviation(final, heading_rad))
         arrived_by = ""
-        if windows and (bearing_err is None or abs(bearing_err) <= self._delta_phi_rad):
+        if not may_arrive:
+            pass
+        elif windows and (bearing_err is None or abs(bearing_err) <= self._delta_phi_rad):
             arrived_by = "windows"
         elif steering.passed_line(start, end, p):
             arrived_by = "passed"
