@@ -39,25 +39,30 @@ Epoch assembly (how a ``GpsFix`` is closed):
 - A ``GpsSky`` is emitted when a GSV group (per talker) completes; ``used`` flags and DOPs
   come from the GSA sentences of the current cycle; satellites of every talker are merged.
 
-Speed (bench/bench_nmea.py compares the whole path with ``pynmea2.parse`` alone):
-runs of well-formed lines are framed by one regex match and checksummed by folding each
-line as one integer; the field parsers are built once per field from the table; values
-that repeat from epoch to epoch (times, positions, GSA contents, GSV satellites, sentence
-heads) are decoded once and memoised, in small bounded caches keyed by the field strings,
-so a cached result is exactly what decoding the same strings again gives; records are
-built through their slot descriptors. Each shortcut is an exact replacement for the plain
+Speed (bench/bench_nmea.py compares the whole path with ``pynmea2.parse`` alone,
+bench/bench_decode.py ``x6wd decode`` with gpsd's ``gpsdecode``): runs of well-formed lines
+are framed by one regex match and checksummed together, up to 256 lines folded as one
+integer (a short run line by line); the field parsers are built once per field from the
+table; values that repeat from epoch to epoch (times, positions shared by GGA and RMC,
+numeric and letter fields, GSA contents, GSV satellites, sentence heads and their
+handlers) are decoded once and memoised, in small bounded caches keyed by the field
+strings, so a cached result is exactly what decoding the same strings again gives; an
+epoch's UTC is its day's midnight plus the time of day; records are built through their
+slot descriptors, one call per field. Each shortcut is an exact replacement for the plain
 code it stands for.
 """
 
 from __future__ import annotations
 
 import functools
+import operator
 import re
 import struct
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from datetime import UTC, date, datetime, timedelta
+from itertools import repeat
 from typing import Any, Final
 
 from drivers.nmea import (
@@ -180,6 +185,33 @@ _LINE_XOR: Final[dict[bytes, int]] = {
 }
 
 
+# Runs of many lines are checksummed in batches (_line_sums): every line of a _RUN match is at
+# most 128 bytes ("$", 124, "*HH"), so each gets a 128-byte slot of one big integer.
+_SLOT: Final = 128
+_BATCH_LINES: Final = 256
+_BATCH_MIN: Final = 16  # fewer lines: one checksum() each
+_LAST2: Final = operator.itemgetter(slice(-2, None))
+
+
+def _line_sums(lines: list[bytes]) -> bytes:
+    """``checksum(line)`` of every line (each at most 128 bytes), computed all at once.
+
+    Each line is padded with zeros to 128 bytes (zeros change no XOR), the lot is read as one
+    little-endian integer and folded like ``checksum`` folds one line: by 64, 32, ..., 1 bytes.
+    The first byte of each 128-byte slot then holds the XOR of that slot, i.e. of its line.
+    """
+    block = b"".join(map(bytes.ljust, lines, repeat(_SLOT), repeat(b"\0")))
+    x = int.from_bytes(block, "little")
+    x ^= x >> 512
+    x ^= x >> 256
+    x ^= x >> 128
+    x ^= x >> 64
+    x ^= x >> 32
+    x ^= x >> 16
+    x ^= x >> 8
+    return x.to_bytes(len(block), "little")[::_SLOT]
+
+
 class NmeaFramer:
     """Sans-IO framer: ``feed(bytes) -> list[Frame]``; never raises on any input."""
 
@@ -298,16 +330,35 @@ class NmeaFramer:
         """Checksum every line of a ``_RUN`` match; append the good ones to ``out``."""
         run = run.replace(b"\r", b"")  # CR occurs here only as part of a CR LF
         lines = run.split(b"\n")
+        lines.pop()  # the empty tail after the last line end
         # One decode for the whole run; a replaced byte stays one character, so the str
         # lines pair up with the byte lines.
         texts = run.decode("ascii", "replace").split("\n")
-        texts.pop()  # the empty tail after the last line end
+        texts.pop()
         line_xor = _LINE_XOR
         good = 0
-        for line, text in zip(lines, texts, strict=False):
-            if checksum(line) == line_xor[line[-2:]]:
-                out.append(text)
-                good += 1
+        if len(lines) < _BATCH_MIN:
+            for line, text in zip(lines, texts, strict=True):
+                if checksum(line) == line_xor[line[-2:]]:
+                    out.append(text)
+                    good += 1
+        else:
+            expected = line_xor.__getitem__
+            for i in range(0, len(lines), _BATCH_LINES):
+                batch = lines[i : i + _BATCH_LINES]
+                sums = _line_sums(batch)
+                if sums == bytes(map(expected, map(_LAST2, batch))):  # all good
+                    kept = texts[i : i + _BATCH_LINES]
+                else:
+                    kept = [
+                        text
+                        for text, line, s in zip(
+                            texts[i : i + _BATCH_LINES], batch, sums, strict=True
+                        )
+                        if s == expected(line[-2:])
+                    ]
+                out += kept
+                good += len(kept)
         c = self.counters
         c.sentences += good
         c.checksum_failures += len(texts) - good
@@ -526,36 +577,6 @@ class _Rmc:
     day: date | None
 
 
-def _parse_gga(d: list[str], t_s: float) -> _Gga:
-    return _Gga(
-        t_s,
-        _gga_time(d[_GGA_TIME]),
-        _gga_lat(d[_GGA_LAT], d[_GGA_LAT + 1]),
-        _gga_lon(d[_GGA_LON], d[_GGA_LON + 1]),
-        _gga_quality(d[_GGA_QUAL]) or 0,
-        _gga_sats(d[_GGA_SATS]),
-        _gga_hdop(d[_GGA_HDOP]),
-        _gga_alt(d[_GGA_ALT]),
-        _gga_sep(d[_GGA_SEP]),
-    )
-
-
-def _parse_rmc(d: list[str], t_s: float) -> _Rmc:
-    status = _rmc_status(d[_RMC_STATUS])
-    speed_kn = _rmc_speed(d[_RMC_SPEED])
-    course = _rmc_course(d[_RMC_COURSE])
-    return _Rmc(
-        t_s,
-        _rmc_time(d[_RMC_TIME]),
-        status == "A",
-        _rmc_lat(d[_RMC_LAT], d[_RMC_LAT + 1]),
-        _rmc_lon(d[_RMC_LON], d[_RMC_LON + 1]),
-        None if speed_kn is None else speed_kn * MPS_PER_KNOT,
-        None if course is None else wrap360(course),
-        _rmc_date(d[_RMC_DATE]),
-    )
-
-
 @functools.lru_cache(maxsize=64)
 def _parse_gsa(
     f: tuple[str, ...],
@@ -681,6 +702,7 @@ class DecoderCounters:
 
 _GGA_MEMORY_EPOCHS: Final = 3  # RMC cycles without GGA before a stream counts as RMC-only
 _Handler = Callable[[str, list[str], float, list[GpsOutput]], None]
+_Route = tuple[str, _Handler | None, int]
 
 
 class GpsDecoder:
@@ -721,6 +743,8 @@ class GpsDecoder:
         self._tod_us: int | None = None
         self._utc_key: tuple[int, date, int] | None = None
         self._utc_value: datetime | None = None
+        self._midnight_day: date | None = None
+        self._midnight = datetime(1970, 1, 1, tzinfo=UTC)
         # Field handlers by sentence type, with the number of fields each reads (shorter
         # sentences are padded with empty fields); other known types need none.
         self._handlers: dict[str, tuple[_Handler, int]] = {
@@ -733,6 +757,9 @@ class GpsDecoder:
             "GLL": (self._gll_fields, _GLL_TIME + 1),
             "ZDA": (self._zda_fields, _ZDA_DAY + 3),
         }
+        # Sentence head (text[1:7], "GPGGA,") -> (talker, handler or None, fields it reads),
+        # or None where pynmea2.parse must decide: _HEADS joined with _handlers, per decoder.
+        self._routes: dict[str, _Route | None] = {}
 
     @property
     def counters(self) -> DecoderCounters:
@@ -812,8 +839,7 @@ class GpsDecoder:
         """
         c = self._counters
         emit = self.emit_sentences
-        handlers = self._handlers
-        heads = _HEADS
+        routes = self._routes
         new_object = object.__new__
         set_t_s = _SET_SENTENCE_T_S
         set_text = _SET_SENTENCE_TEXT
@@ -834,11 +860,14 @@ class GpsDecoder:
                     continue
                 key = text[1:7]
                 try:
-                    head = heads[key]
+                    route = routes[key]
                 except KeyError:
-                    head = _head(key)
-                if head is not None:
-                    talker, kind = head
+                    route = self._route(key)
+                if route is not None:
+                    talker, handler, fields_needed = route
+                    if handler is None:  # a known type whose fields are not read
+                        n_decoded += 1
+                        continue
                     d = text[7:-3].split(",")
                 else:
                     pynmea2 = _pynmea2()
@@ -851,29 +880,70 @@ class GpsDecoder:
                         c.invalid_fields += 1
                         continue
                     attrs = msg.__dict__
-                    kind = attrs.get("sentence_type", "")
                     talker = attrs.get("talker", "")
                     d = msg.data
-                handler = handlers.get(kind)
-                if handler is not None:
-                    fields_needed = handler[1]
-                    if len(d) < fields_needed:  # pynmea2 reads missing fields as empty
-                        d = d + [""] * (fields_needed - len(d))
-                    try:
-                        handler[0](talker, d, t_s, out)
-                    except (IndexError, ValueError):  # FieldError is a ValueError
-                        c.invalid_fields += 1
+                    entry = self._handlers.get(attrs.get("sentence_type", ""))
+                    if entry is None:
+                        n_decoded += 1
                         continue
+                    handler, fields_needed = entry
+                if len(d) < fields_needed:  # pynmea2 reads missing fields as empty
+                    d += [""] * (fields_needed - len(d))
+                try:
+                    handler(talker, d, t_s, out)
+                except (IndexError, ValueError):  # FieldError is a ValueError
+                    c.invalid_fields += 1
+                    continue
                 n_decoded += 1
         finally:
             c.sentences += n_sentences
             c.decoded += n_decoded
 
+    def _route(self, key: str) -> _Route | None:
+        """The ``_routes`` entry for sentence head ``key`` (computed and stored on a miss)."""
+        try:
+            head = _HEADS[key]
+        except KeyError:
+            head = _head(key)
+        route: _Route | None = None
+        if head is not None:
+            talker, kind = head
+            handler, fields_needed = self._handlers.get(kind, (None, 0))
+            route = (talker, handler, fields_needed)
+        if len(self._routes) >= _HEADS_MAX:
+            self._routes.clear()
+        self._routes[key] = route
+        return route
+
     def _gga_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
-        self._on_gga(_parse_gga(d, t_s), out)
+        gga = _Gga(
+            t_s,
+            _gga_time(d[_GGA_TIME]),
+            _gga_lat(d[_GGA_LAT], d[_GGA_LAT + 1]),
+            _gga_lon(d[_GGA_LON], d[_GGA_LON + 1]),
+            _gga_quality(d[_GGA_QUAL]) or 0,
+            _gga_sats(d[_GGA_SATS]),
+            _gga_hdop(d[_GGA_HDOP]),
+            _gga_alt(d[_GGA_ALT]),
+            _gga_sep(d[_GGA_SEP]),
+        )
+        self._on_gga(gga, out)
 
     def _rmc_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
-        self._on_rmc(_parse_rmc(d, t_s), out)
+        status = _rmc_status(d[_RMC_STATUS])
+        speed_kn = _rmc_speed(d[_RMC_SPEED])
+        course = _rmc_course(d[_RMC_COURSE])
+        rmc = _Rmc(
+            t_s,
+            _rmc_time(d[_RMC_TIME]),
+            status == "A",
+            _rmc_lat(d[_RMC_LAT], d[_RMC_LAT + 1]),
+            _rmc_lon(d[_RMC_LON], d[_RMC_LON + 1]),
+            None if speed_kn is None else speed_kn * MPS_PER_KNOT,
+            None if course is None else wrap360(course),
+            _rmc_date(d[_RMC_DATE]),
+        )
+        self._on_rmc(rmc, out)
 
     def _gsa_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         self._on_gsa(d)
@@ -1010,8 +1080,7 @@ class GpsDecoder:
         self._utc_value = self._utc_compute(tod, self._date, self._date_tod_us)
         return self._utc_value
 
-    @staticmethod
-    def _utc_compute(tod: int, day: date, date_tod_us: int) -> datetime:
+    def _utc_compute(self, tod: int, day: date, date_tod_us: int) -> datetime:
         # A time far before the date's own time of day means midnight passed since.
         if tod < date_tod_us - 43_200_000_000:
             day = day + timedelta(days=1)
@@ -1019,10 +1088,12 @@ class GpsDecoder:
             day = day - timedelta(days=1)
         if tod >= 86_400_000_000:  # 23:59:60, a leap second: datetime cannot hold it
             return datetime(day.year, day.month, day.day, 23, 59, 59, 999_999, tzinfo=UTC)
-        sec, us = divmod(tod, 1_000_000)
-        minute, sec = divmod(sec, 60)
-        hour, minute = divmod(minute, 60)
-        return datetime(day.year, day.month, day.day, hour, minute, sec, us, tzinfo=UTC)
+        # The day's midnight plus the time of day (0 <= tod < 24 h: the same day, exactly
+        # the datetime of its hours, minutes, seconds and microseconds), kept for the day.
+        if day != self._midnight_day:
+            self._midnight_day = day
+            self._midnight = datetime(day.year, day.month, day.day, tzinfo=UTC)
+        return self._midnight + timedelta(microseconds=tod)
 
     def _emit(self, gga: _Gga | None, rmc: _Rmc | None, out: list[GpsOutput]) -> None:
         if gga is not None:
@@ -1046,26 +1117,38 @@ class GpsDecoder:
             mode = 3
         else:
             mode = 2
+        # One call per field, in _FIX_FIELDS order (unrolled: a loop over the setters costs
+        # more than the setters themselves).
+        (set_t_s, set_utc, set_lat, set_lon, set_alt, set_quality, set_sats, set_hdop,
+         set_speed, set_course, set_valid, set_mode, set_pdop, set_vdop, set_sep,
+         ) = _FIX_SETTERS  # fmt: skip
         fix = object.__new__(GpsFix)
-        values = (  # in _FIX_FIELDS order
-            t_s,
-            self._utc(tod),
-            lat,
-            lon,
-            None if gga is None else gga.alt_m,
-            0 if gga is None else gga.quality,
-            None if gga is None else gga.sats,
-            self._hdop_gsa if gga is None else gga.hdop,
-            None if rmc is None else rmc.speed_mps,
-            None if rmc is None else rmc.course_deg,
-            valid,
-            mode,
-            self._pdop,
-            self._vdop,
-            None if gga is None else gga.sep_m,
-        )
-        for set_field, value in zip(_FIX_SETTERS, values, strict=True):
-            set_field(fix, value)
+        set_t_s(fix, t_s)
+        set_utc(fix, self._utc(tod))
+        set_lat(fix, lat)
+        set_lon(fix, lon)
+        if gga is None:
+            set_alt(fix, None)
+            set_quality(fix, 0)
+            set_sats(fix, None)
+            set_hdop(fix, self._hdop_gsa)
+            set_sep(fix, None)
+        else:
+            set_alt(fix, gga.alt_m)
+            set_quality(fix, gga.quality)
+            set_sats(fix, gga.sats)
+            set_hdop(fix, gga.hdop)
+            set_sep(fix, gga.sep_m)
+        if rmc is None:
+            set_speed(fix, None)
+            set_course(fix, None)
+        else:
+            set_speed(fix, rmc.speed_mps)
+            set_course(fix, rmc.course_deg)
+        set_valid(fix, valid)
+        set_mode(fix, mode)
+        set_pdop(fix, self._pdop)
+        set_vdop(fix, self._vdop)
         if tod is not None:
             self._last_fix_tod = tod
             self._last_fix_had_gga = gga is not None
@@ -1081,10 +1164,14 @@ class GpsDecoder:
             if epoch_idx >= oldest:
                 sats += [in_use if prn in used else free for prn, free, in_use in group]
         self._counters.skies += 1
+        set_t_s, set_sats, set_pdop, set_hdop, set_vdop, set_utc = _SKY_SETTERS  # _SKY_FIELDS
         sky = object.__new__(GpsSky)
-        values = (t_s, tuple(sats), self._pdop, self._hdop_gsa, self._vdop, self._utc(self._tod_us))
-        for set_field, value in zip(_SKY_SETTERS, values, strict=True):  # _SKY_FIELDS order
-            set_field(sky, value)
+        set_t_s(sky, t_s)
+        set_sats(sky, tuple(sats))
+        set_pdop(sky, self._pdop)
+        set_hdop(sky, self._hdop_gsa)
+        set_vdop(sky, self._vdop)
+        set_utc(sky, self._utc(self._tod_us))
         out.append(sky)
 
 

@@ -441,8 +441,9 @@ def parse_date(s: str) -> date | None:
         raise FieldError(s) from None
 
 
+@functools.cache  # one parser, and so one cache, per axis: GGA and RMC share it
 def _coord_parser(deg_max: int, positive: str, negative: str) -> Callable[[str, str], float | None]:
-    # One cache per axis: a receiver at rest repeats its coordinates in RMC, GGA and GLL.
+    # One cache per axis: a receiver repeats its coordinates in RMC and GGA of one epoch.
     @functools.lru_cache(maxsize=64)
     def parse(value: str, hemi: str) -> float | None:
         """``(d)ddmm.mmmm...`` + hemisphere letter -> signed degrees (any minute decimals).
@@ -503,13 +504,16 @@ def field_parser(f: Field) -> Callable[..., Any]:
     if kind == "lon":
         return _coord_parser(180, "E", "W")
     if kind == "letter" and f.letters:
-        return _letter_parser(f.letters)
+        return functools.lru_cache(maxsize=16)(_letter_parser(f.letters))
     if f.lo is None or f.hi is None:
         raise ValueError(f"field {f.name!r} ({kind}) has no range to check")
+    # Memoised like times and coordinates: most numeric fields repeat from epoch to epoch
+    # (fix quality, satellites used, DOPs, altitude, geoid separation), and a hit costs less
+    # than a call of the parser. A result depends on the text only.
     if kind == "float":
-        return _float_parser(float(f.lo), float(f.hi))
+        return functools.lru_cache(maxsize=64)(_float_parser(float(f.lo), float(f.hi)))
     if kind == "int":
-        return _int_parser(int(f.lo), int(f.hi))
+        return functools.lru_cache(maxsize=64)(_int_parser(int(f.lo), int(f.hi)))
     raise ValueError(f"field {f.name!r}: no parser for type {kind!r}")
 
 

@@ -5,11 +5,18 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from datetime import UTC, timedelta, timezone
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from x6wd.app import cli
+from drivers.gps_nmea import GpsDecoder
+from x6wd.app import cli, decode
+from x6wd.app.decode import ReportEncoder, report_lines
+from x6wd.app.gpsd import sky_obj, tpv_obj
+from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
 NMEA_DIR = Path(__file__).resolve().parent / "data" / "nmea"
 ROOT = Path(__file__).resolve().parent.parent
@@ -120,3 +127,90 @@ def test_missing_file_reported_and_others_decoded(capsys: pytest.CaptureFixture[
     assert code == 1
     assert "cannot open /nonexistent/x.log" in err
     assert lines and all(json.loads(x)["class"] == "TPV" for x in lines)
+
+
+# --------------------------------------------------------------- the direct encoder
+# `x6wd decode` writes its lines with ReportEncoder instead of json.dumps(tpv_obj/sky_obj);
+# the text must be the same, character for character, as the plain path computed here.
+
+
+def _plain(r: GpsFix | GpsSky) -> str:
+    obj = tpv_obj(r) if isinstance(r, GpsFix) else sky_obj(r)
+    return json.dumps(obj, separators=(",", ":"))
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in NMEA_DIR.glob("*.log")))
+def test_encoder_writes_what_tpv_obj_and_sky_obj_give(name: str) -> None:
+    dec = GpsDecoder(emit_sentences=False)
+    data = (NMEA_DIR / name).read_bytes()
+    records = [r for r in dec.feed(data, 0.0) + dec.flush() if isinstance(r, GpsFix | GpsSky)]
+    records += records  # the second time every memo is warm
+    assert list(report_lines(records)) == [_plain(r) for r in records]
+
+
+_floats = st.one_of(
+    st.none(),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0.0, -0.0, 0.5, 1.25, 2.675, 1e-12, 99.99, 35.2, -1e300]),
+)
+_utcs = st.one_of(
+    st.none(),
+    st.datetimes(timezones=st.sampled_from([None, UTC, timezone(timedelta(hours=-5))])),
+)
+_fixes = st.builds(
+    GpsFix,
+    t_s=st.just(0.0),
+    utc=_utcs,
+    lat_deg=_floats,
+    lon_deg=_floats,
+    alt_m=_floats,
+    quality=st.integers(0, 8),
+    sats_used=st.none() | st.integers(0, 99),
+    hdop=_floats,
+    speed_mps=_floats,
+    course_deg=_floats,
+    valid=st.booleans(),
+    mode=st.integers(0, 3),
+    pdop=_floats,
+    vdop=_floats,
+    geoid_sep_m=_floats,
+)
+_sats = st.builds(
+    SatInfo,
+    prn=st.integers(0, 999),
+    el_deg=_floats,
+    az_deg=_floats,
+    snr_dbhz=_floats,
+    used=st.booleans(),
+)
+_skies = st.builds(
+    GpsSky,
+    t_s=st.just(0.0),
+    satellites=st.lists(_sats, max_size=14).map(tuple),
+    pdop=_floats,
+    hdop=_floats,
+    vdop=_floats,
+    utc=_utcs,
+)
+_SHARED = ReportEncoder()  # memos carried from example to example: 0.0 after -0.0 etc.
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(st.one_of(_fixes, _skies), min_size=1, max_size=6))
+def test_encoder_matches_the_plain_path_on_any_record(records: list[GpsFix | GpsSky]) -> None:
+    records += records
+    for r in records:
+        line = _SHARED.tpv(r) if isinstance(r, GpsFix) else _SHARED.sky(r)
+        assert line == _plain(r)
+
+
+def test_encoder_memos_stay_bounded() -> None:
+    enc = ReportEncoder()
+    for k in range(3 * decode.MEMO_MAX):
+        sat = SatInfo(k % 200, float(k % 90), float(k % 360), 30.0 + k % 20, k % 2 == 0)
+        sky = GpsSky(0.0, (sat,), 1.0 + k, 2.0, 3.0)
+        assert enc.sky(sky) == _plain(sky)
+        fix = GpsFix(0.0, None, 1.0, 2.0, 10.0 + k, 1, 8, 1.0 + k, 0.1 * k, 1.0, True, 3, 2.0, 3.0)
+        assert enc.tpv(fix) == _plain(fix)
+        assert enc.largest_memo <= decode.MEMO_MAX
+    assert enc.largest_memo > decode.MEMO_MAX // 2

@@ -182,6 +182,38 @@ def test_checksum_fold_matches_bytewise_xor() -> None:
         assert checksum(body) == _xor(body)
 
 
+def test_batched_line_checksums_match_one_at_a_time() -> None:
+    # Runs of many well-formed lines are checksummed in batches (one big integer per batch,
+    # each line in a 128-byte slot); bad checksums anywhere in a batch, every body length
+    # from 1 to 124 characters, CR LF or LF, either hex case.
+    rng = np.random.default_rng(7)
+    alphabet = np.array(list("ABCDEFGHIJKLMNOPQRSTUVWXYZabcz0123456789,.- "))
+    lines: list[bytes] = []
+    good: list[str] = []
+    for k in range(1500):
+        body = "".join(rng.choice(alphabet, size=1 + k % 124))
+        line = _line(body)
+        if k % 2:
+            line = line[:-2] + b"\n"
+        star = line.index(b"*")
+        if k % 5 == 0:  # lower-case hex
+            line = line[: star + 1] + line[star + 1 : star + 3].lower() + line[star + 3 :]
+        if rng.random() < 0.05:  # a wrong checksum
+            wrong = int(line[star + 1 : star + 3], 16) ^ int(rng.integers(1, 256))
+            line = line[: star + 1] + b"%02X\r\n" % wrong
+        if _xor(line[1:star]) == int(line[star + 1 :].strip(), 16):
+            good.append(line.rstrip(b"\r\n").decode())
+        lines.append(line)
+    data = b"".join(lines)
+    framer = NmeaFramer()
+    whole = [f.text for f in framer.feed(data) if isinstance(f, NmeaFrame)]
+    assert whole == good and 0 < len(good) < len(lines)
+    assert framer.counters.checksum_failures == len(lines) - len(good)
+    one_by_one = NmeaFramer()
+    singly = [f.text for ln in lines for f in one_by_one.feed(ln) if isinstance(f, NmeaFrame)]
+    assert singly == whole and one_by_one.counters == framer.counters
+
+
 def test_memoised_satellites_and_gsa_do_not_change_the_sky() -> None:
     data = (NMEA_DIR / "ublox-lea-5h.log").read_bytes()
     _, first = _decode_all(data)

@@ -8,6 +8,10 @@ character is ``{`` is an x6wd recording (JSON lines); its ``nmea`` records are d
 also takes the flat ``{"type":"nmea","text":...}`` form); its other records are ignored.
 Anything else is read as a raw byte stream (binary and line noise tolerated). The decoder's
 counters go to standard error, one line per input.
+
+The lines are the text of ``json.dumps(tpv_obj(fix))`` / ``json.dumps(sky_obj(sky))``
+(``x6wd.app.gpsd``, compact separators), written by :class:`ReportEncoder` without building
+the dicts; bench/bench_decode.py compares the rate with gpsd's ``gpsdecode``.
 """
 
 from __future__ import annotations
@@ -15,17 +19,229 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import sys
-from collections.abc import Iterable, Iterator
-from typing import IO
+from collections.abc import Callable, Iterable, Iterator
+from datetime import UTC, datetime
+from typing import IO, Any, cast
 
 from drivers.gps_nmea import DecoderCounters, GpsDecoder, GpsOutput
-from x6wd.app.gpsd import sky_obj, tpv_obj
+from x6wd.app.gpsd import UERE_M, iso_time
 from x6wd.core.errors import DeviceUnavailable
-from x6wd.core.records import GpsFix, GpsSky
+from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
 _CHUNK_BYTES = 1 << 20
+MEMO_MAX = 4096
+"""Entries per memo of :class:`ReportEncoder` (a memo is cleared when full)."""
+_SQRT2 = math.sqrt(2.0)
+_dumps_compact = json.JSONEncoder(separators=(",", ":")).encode
+_float_json = float.__repr__  # how json.dumps writes a finite float
+
+
+class ReportEncoder:
+    """TPV and SKY lines, the same text as ``json.dumps(tpv_obj(r))`` and
+    ``json.dumps(sky_obj(r))`` with compact separators (``x6wd.app.gpsd``), built directly.
+
+    Building those dicts and encoding them cost more than decoding the NMEA: every number
+    goes through ``round`` and ``json`` although most repeat from epoch to epoch (DOPs,
+    altitude, a satellite's elevation, azimuth and SNR). Here the text of a number, or of a
+    group of numbers (the DOPs of a sky report, a fix's altitudes, its error estimates), is
+    memoised by value, a satellite's ``{...}`` by the ``SatInfo`` object (the decoder reuses
+    one per satellite state, see ``drivers.gps_nmea``), and an epoch's time by its datetime.
+    Each memo holds exactly the text the plain path writes for its key (for the floats and
+    small ints records hold: equal keys give equal text). Keys containing a zero are never
+    memoised: ``0.0 == -0.0`` but they print differently. The memos are bounded (cleared
+    when full). ``tests/test_decode.py`` checks the lines against
+    ``tpv_obj``/``sky_obj`` + ``json.dumps`` on every corpus log and on random records.
+    """
+
+    def __init__(self) -> None:
+        # ndigits -> {value: JSON text of round(float(value), ndigits), None if omitted}
+        self._nums: dict[int, dict[float, str | None]] = {3: {}, 4: {}}
+        self._groups: dict[tuple[Any, ...], str] = {}  # DOPs, altitudes, error estimates
+        # id(SatInfo) -> its JSON object. _sat_keep holds every SatInfo memoised, so none of
+        # them dies and no other object can take its id meanwhile.
+        self._sat_text: dict[int, str] = {}
+        self._sat_keep: list[SatInfo] = []
+        self._utc: datetime | None = None
+        self._utc_text = ""
+
+    @property
+    def largest_memo(self) -> int:
+        """Entries in the largest memo (at most :data:`MEMO_MAX`)."""
+        return max(len(self._sat_text), len(self._groups), *map(len, self._nums.values()))
+
+    def _num(self, v: Any, ndigits: int) -> str | None:
+        """JSON text of ``gpsd._num(v, ndigits)``, None where that is None (omitted)."""
+        memo = self._nums[ndigits]
+        try:
+            text = memo[v]
+        except KeyError:
+            pass
+        except TypeError:  # unhashable: not a number gpsd._num would take either
+            return _num_text(v, ndigits)
+        else:
+            if v:  # 0.0 and -0.0 are one key but two texts: never memoised
+                return text
+        text = _num_text(v, ndigits)
+        if v:
+            if len(memo) >= MEMO_MAX:
+                memo.clear()
+            memo[v] = text
+        return text
+
+    def _group(self, key: tuple[Any, ...], build: Callable[..., str]) -> str:
+        """``build(*key)``, memoised unless ``key`` holds a zero."""
+        try:
+            text = self._groups[key]
+        except KeyError:
+            pass
+        except TypeError:
+            return build(*key)
+        else:
+            return text
+        text = build(*key)
+        if 0 not in key:
+            if len(self._groups) >= MEMO_MAX:
+                self._groups.clear()
+            self._groups[key] = text
+        return text
+
+    def _time(self, utc: datetime | None) -> str:
+        """``,"time":"..."`` (``iso_time``), or empty without a time; fix and sky of one
+        epoch share the datetime."""
+        if utc is None:
+            return ""
+        if utc is not self._utc:
+            self._utc_text = ',"time":"' + _iso_time(utc) + '"'
+            self._utc = utc
+        return self._utc_text
+
+    def tpv(self, fix: GpsFix) -> str:
+        """The TPV line (no newline) of ``fix``."""
+        mode = fix.mode if fix.valid else 1
+        mode_text = str(mode) if type(mode) is int else _dumps_compact(mode)
+        head = '{"class":"TPV","mode":' + mode_text + self._time(fix.utc)
+        lat, lon = fix.lat_deg, fix.lon_deg
+        if not (fix.valid and mode >= 2 and lat is not None and lon is not None):
+            return head + "}"
+        parts = [head]
+        text = _num_text(lat, 9)  # positions rarely repeat: not memoised
+        if text is not None:
+            parts += (',"lat":', text)
+        text = _num_text(lon, 9)
+        if text is not None:
+            parts += (',"lon":', text)
+        alt = fix.alt_m
+        if mode >= 3 and alt is not None:
+            parts.append(self._group((alt, fix.geoid_sep_m), _altitudes))
+        if fix.speed_mps is not None:
+            text = self._num(fix.speed_mps, 3)
+            if text is not None:
+                parts += (',"speed":', text)
+        if fix.course_deg is not None:
+            text = self._num(fix.course_deg, 4)
+            if text is not None:
+                parts += (',"track":', text)
+        parts.append(self._group((fix.hdop, fix.vdop if mode >= 3 else None), _errors))
+        parts.append("}")
+        return "".join(parts)
+
+    def sky(self, sky: GpsSky) -> str:
+        """The SKY line (no newline) of ``sky``."""
+        sats = sky.satellites
+        found = list(map(self._sat_text.get, map(id, sats)))
+        texts = self._add_sats(sats) if None in found else cast("list[str]", found)
+        listed = ",".join(texts)
+        # A satellite's text has "used":true exactly when sky_obj counts it in uSat (no
+        # string in it can hold that text: JSON escapes the quotes).
+        n_used = listed.count('"used":true')
+        dops = self._group((sky.hdop, sky.vdop, sky.pdop), _dops)
+        return (
+            f'{{"class":"SKY"{self._time(sky.utc)}{dops},"nSat":{len(texts)},"uSat":{n_used},'
+            f'"satellites":[{listed}]}}'
+        )
+
+    def _add_sats(self, sats: tuple[SatInfo, ...]) -> list[str]:
+        """Memoise the satellites of ``sats`` not memoised yet; their texts in order."""
+        if len(self._sat_keep) + len(sats) > MEMO_MAX:
+            self._sat_text.clear()
+            self._sat_keep.clear()
+        texts = []
+        for s in sats:
+            text = self._sat_text.get(id(s))
+            if text is None:
+                text = _sat_text(s)
+                self._sat_text[id(s)] = text
+                self._sat_keep.append(s)
+            texts.append(text)
+        return texts
+
+
+def _iso_time(utc: datetime) -> str:
+    """``gpsd.iso_time(utc)``: through ``isoformat`` (C) for a UTC or naive datetime of a
+    four-digit year (``strftime``'s ``%Y`` does not pad smaller years), else ``iso_time``.
+    ``isoformat`` cuts the microseconds to milliseconds as ``iso_time`` does. The text has
+    no character JSON escapes."""
+    tz = utc.tzinfo
+    if type(utc) is datetime and (tz is UTC or tz is None) and utc.year >= 1000:
+        text = utc.isoformat(timespec="milliseconds")
+        return (text if tz is None else text[:-6]) + "Z"
+    return str(iso_time(utc))
+
+
+def _members(*pairs: tuple[str, str | None]) -> str:
+    """``,"key":text`` for each pair whose text is not None (omitted fields)."""
+    return "".join(f',"{key}":{text}' for key, text in pairs if text is not None)
+
+
+def _altitudes(alt: Any, sep: Any) -> str:
+    """altMSL, alt, altHAE and geoidSep of ``tpv_obj`` for altitude ``alt`` (not None)."""
+    text = _num_text(alt, 3)
+    pairs = [("altMSL", text), ("alt", text)]
+    if sep is not None:
+        pairs += (("altHAE", _num_text(alt + sep, 3)), ("geoidSep", _num_text(sep, 3)))
+    return _members(*pairs)
+
+
+def _errors(hdop: Any, vdop: Any) -> str:
+    """eph, epx, epy (from ``hdop``) and epv (from ``vdop``, None below mode 3) of
+    ``tpv_obj``."""
+    pairs: list[tuple[str, str | None]] = []
+    if hdop is not None:
+        eph = hdop * UERE_M
+        exy = _num_text(eph / _SQRT2, 3)
+        pairs += (("eph", _num_text(eph, 3)), ("epx", exy), ("epy", exy))
+    if vdop is not None:
+        pairs.append(("epv", _num_text(vdop * UERE_M, 3)))
+    return _members(*pairs)
+
+
+def _dops(hdop: Any, vdop: Any, pdop: Any) -> str:
+    """hdop, vdop and pdop of ``sky_obj``."""
+    return _members(
+        *(
+            (k, None if v is None else _num_text(v, 2))
+            for k, v in zip(("hdop", "vdop", "pdop"), (hdop, vdop, pdop), strict=True)
+        )
+    )
+
+
+def _num_text(v: Any, ndigits: int) -> str | None:
+    """JSON text of gpsd's ``_num(v, ndigits)`` (None if not finite: omitted)."""
+    if v is None or not math.isfinite(v):
+        return None
+    return _float_json(round(float(v), ndigits))
+
+
+def _sat_text(s: SatInfo) -> str:
+    """One satellite of ``sky_obj`` as compact JSON."""
+    d: dict[str, Any] = {"PRN": s.prn, "used": bool(s.used)}
+    for key, v in (("el", s.el_deg), ("az", s.az_deg), ("ss", s.snr_dbhz)):
+        if v is not None and math.isfinite(v):
+            d[key] = round(float(v), 1)
+    return _dumps_compact(d)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,11 +255,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def report_lines(records: Iterable[GpsOutput], *, with_sky: bool = True) -> Iterator[str]:
     """Compact JSON lines (no newline) for the fixes and sky reports among ``records``."""
+    encoder = ReportEncoder()
     for r in records:
         if isinstance(r, GpsFix):
-            yield json.dumps(tpv_obj(r), separators=(",", ":"))
+            yield encoder.tpv(r)
         elif with_sky and isinstance(r, GpsSky):
-            yield json.dumps(sky_obj(r), separators=(",", ":"))
+            yield encoder.sky(r)
+
+
+def _write_reports(
+    records: list[GpsOutput], encoder: ReportEncoder, out: IO[str], with_sky: bool
+) -> None:
+    """Write the lines of ``records`` to ``out`` in one call."""
+    lines = []
+    tpv, sky = encoder.tpv, encoder.sky
+    for r in records:
+        kind = type(r)
+        if kind is GpsFix:
+            lines.append(tpv(r))  # type: ignore[arg-type]
+        elif kind is GpsSky:
+            if with_sky:
+                lines.append(sky(r))  # type: ignore[arg-type]
+        elif isinstance(r, GpsFix):
+            lines.append(tpv(r))
+        elif with_sky and isinstance(r, GpsSky):
+            lines.append(sky(r))
+    if lines:
+        lines.append("")
+        out.write("\n".join(lines))
 
 
 def _recording_sentences(lines: Iterable[bytes]) -> Iterator[tuple[float, str]]:
@@ -70,11 +309,16 @@ def _decode_sentences(
     sentences: Iterable[tuple[float, str]], out: IO[str], with_sky: bool
 ) -> DecoderCounters:
     decoder = GpsDecoder(emit_sentences=False)
+    encoder = ReportEncoder()
+    feed = decoder.feed_sentence
+    records: list[GpsOutput] = []
     for t_s, text in sentences:
-        for line in report_lines(decoder.feed_sentence(text, t_s), with_sky=with_sky):
-            out.write(line + "\n")
-    for line in report_lines(decoder.flush(), with_sky=with_sky):
-        out.write(line + "\n")
+        records += feed(text, t_s)
+        if len(records) >= 1024:
+            _write_reports(records, encoder, out, with_sky)
+            records = []
+    records += decoder.flush()
+    _write_reports(records, encoder, out, with_sky)
     return decoder.counters
 
 
@@ -85,13 +329,12 @@ def decode_stream(stream: IO[bytes], out: IO[str], *, with_sky: bool = True) -> 
         lines = (head + stream.read()).splitlines()
         return _decode_sentences(_recording_sentences(lines), out, with_sky)
     decoder = GpsDecoder(emit_sentences=False)
+    encoder = ReportEncoder()
     chunk = head
     while chunk:
-        for line in report_lines(decoder.feed(chunk, 0.0), with_sky=with_sky):
-            out.write(line + "\n")
+        _write_reports(decoder.feed(chunk, 0.0), encoder, out, with_sky)
         chunk = stream.read(_CHUNK_BYTES)
-    for line in report_lines(decoder.flush(), with_sky=with_sky):
-        out.write(line + "\n")
+    _write_reports(decoder.flush(), encoder, out, with_sky)
     return decoder.counters
 
 
