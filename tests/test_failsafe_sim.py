@@ -500,12 +500,15 @@ def test_stuck_is_detected_within_stuck_s_whatever_the_phase(tmp_path: Path) -> 
 # ------------------------------------------------------------------- sensor stale
 
 
-def _outage_world(duration_s: float, outage_s: float) -> World:
+def _outage_world(duration_s: float, outage_s: float, outage_max_m: float = 0.0) -> World:
+    """A GPS outage from OUTAGE_FROM_S; ``outage_max_m``: [safety] gps_outage_max_m (0: hold
+    at once, as the paper's robot; the robot's default lets the EKF drive on 20 m)."""
     return _world(
         duration_s,
         extra=f'[[effects]]\nname = "outage"\nstart_s = {OUTAGE_FROM_S}\n'
         f"duration_s = {outage_s}\n"
-        f"[failsafe]\nsensor_timeout_s = {SENSOR_TIMEOUT_S}\n",
+        f"[failsafe]\nsensor_timeout_s = {SENSOR_TIMEOUT_S}\n"
+        f"[safety]\ngps_outage_max_m = {outage_max_m}\n",
     )
 
 
@@ -550,3 +553,24 @@ def test_operator_link_lost_returns_to_launch(tmp_path: Path) -> None:
     done = run.first("DONE")
     assert done["reason"] == "mode: back at the launch point"
     assert run.final_from_start_m() < 3.0
+
+
+def test_the_ekf_drives_through_a_short_gps_outage(tmp_path: Path) -> None:
+    """The robot's default (gps_outage_max_m = 20): wheels and compass carry it on."""
+    run = _mission(tmp_path, _outage_world(120.0, 3.0, outage_max_m=20.0))
+    assert not any(s["new"] == "HOLD" and "fix" in s["reason"] for s in run.states)
+    assert run.moved_after(OUTAGE_FROM_S + 2.5) > 1.0  # moving while the GPS is out
+    assert run.summary.completed and len(run.summary.extra["arrivals"]) == 4
+
+
+def test_a_long_gps_outage_holds_after_the_dead_reckoning_distance(tmp_path: Path) -> None:
+    run = _mission(tmp_path, _outage_world(60.0, 40.0, outage_max_m=10.0))
+    hold = run.first("HOLD", "no valid fix")
+    # about 10 m of wheel travel (it slows down approaching a waypoint), then the hold
+    assert OUTAGE_FROM_S + 3.0 <= hold["t_s"] <= OUTAGE_FROM_S + 20.0
+    k = (run.t >= OUTAGE_FROM_S) & (run.t <= hold["t_s"] + 1.5)
+    driven_m = float(np.sum(np.hypot(np.diff(run.east[k]), np.diff(run.north[k]))))
+    assert 8.0 <= driven_m <= 12.0, driven_m
+    assert run.moved_after(hold["t_s"] + 1.5) < 0.05
+    paused = run.first("PAUSED", "failsafe: no valid fix")
+    assert paused["t_s"] == pytest.approx(hold["t_s"] + SENSOR_TIMEOUT_S, abs=0.1)

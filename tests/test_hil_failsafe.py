@@ -167,12 +167,6 @@ def test_operator_link_lost_returns_to_launch(
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="controller bug: the operator-link failsafe fires during a return to launch and, "
-    "its action 'return' being under way already, pauses the robot in the field "
-    "(x6wd/nav/controller.py _apply_failsafe / _failsafe_check)",
-)
 def test_an_operator_who_sends_return_and_goes_away_gets_the_robot_home(
     tmp_path: Path, run_daemon, log_tail: LogTail
 ) -> None:
@@ -293,9 +287,9 @@ def test_wheel_odometry_flows_into_the_ekf_and_the_wmm_declination_reaches_gpsd(
         odo = st["devices"]["odometry"]
         assert odo["state"] == "polling" and odo["failures"] == 0
         t0 = time.monotonic()
-        c.request("drive", left=40, right=40, duration_s=2.0)
-        wait_for(lambda: world.truth()[3] > 0.3, 5, "moving")
-        time.sleep(1.0)
+        c.request("drive", left=40, right=40, duration_s=4.0)
+        wait_for(lambda: world.truth()[3] > 0.3, 3, "moving")
+        time.sleep(0.5)  # still driving (4 s) when status is asked, even on a loaded machine
         st = c.request("status")
         n1, dt = st["links"]["odometry"], time.monotonic() - t0
         assert 10.0 * dt < n1 - n0 < 30.0 * dt, (n1 - n0, dt)  # polled at 20 Hz
@@ -365,7 +359,7 @@ def test_a_stuck_robot_pauses(tmp_path: Path, run_daemon, log_tail: LogTail) -> 
         assert 2.5 < time.monotonic() - t0 < 12.0
         assert st["mode"] == "PAUSED", st
         why = st["telemetry"]["extra"]["failsafe"]
-        assert why.startswith("stuck (the wheels moved under 2 m in 3 s"), why
+        assert why == "stuck (the wheels: no motion in 3 s of driving)", why
         wait_for(lambda: world.vehicle.command_pct == (0.0, 0.0), 3, "motors stopped")
         assert any("failsafe: stuck" in x for x in log_tail.tail(300))
         c.request("stop")

@@ -184,6 +184,9 @@ class SafetyConfig:
     fix_stale_s: float = field(default=2.5, metadata=_rng(0.1, 60))
     attitude_stale_s: float = field(default=0.5, metadata=_rng(0.01, 10))
     manual_max_s: float = field(default=5.0, metadata=_rng(0.1, 60))
+    # with the EKF and the wheel encoders reporting, drive on without a valid fix for this
+    # much wheel travel (m) since the last one (0: hold at once, as the paper's robot)
+    gps_outage_max_m: float = field(default=20.0, metadata=_rng(0, 1000))
     geofence_radius_m: float = field(default=1000.0, metadata=_rng(1, 1e6))
     # [lat_deg, lon_deg]; empty: the geofence is centred on the first valid fix
     geofence_center: tuple[float, ...] = ()

@@ -19,10 +19,12 @@ paper's (−180°, 180°] and corrected by the declination; the :class:`Navigato
 Safety: while RUNNING, the motors stop and the state is HOLD (with ``hold_reason``) when the
 motor link is lost, a sensor's reader reports it unusable (:meth:`Controller.sensor_health`:
 "gps disconnected", "compass stale", ...; at once, not after the staleness limits), the
-latest fix is invalid, the last valid fix is older than ``safety.fix_stale_s``, the attitude
-is missing, invalid or older than ``safety.attitude_stale_s``. Navigation resumes by itself
-once every input is fresh again; after a sensor comes back, only once fresh data stamped at
-or after its return arrived (a valid fix, a valid compass sample).
+latest fix is invalid or the last valid fix is older than ``safety.fix_stale_s`` (except
+that the EKF, with the wheel encoders reporting, drives on through such a gap for
+``safety.gps_outage_max_m`` of wheel travel: beside a building the fix comes back a few metres
+on), the attitude is missing, invalid or older than ``safety.attitude_stale_s``. Navigation
+resumes by itself once every input is fresh again; after a sensor comes back, only once
+fresh data stamped at or after its return arrived (a valid fix, a valid compass sample).
 Manual drive is capped at ``safety.manual_max_s`` and expires (dead-man) into IDLE; a lost
 motor link cancels it. Manual drive does NOT depend on the sensors: the operator drives by
 sight, the dead-man bounds it, and a GPS or compass fault neither refuses nor cancels it.
@@ -92,6 +94,10 @@ ARRIVAL_GPS_SIGMAS = 3.0
 """An EKF arrival needs the latest fix within this many of its standard deviations..."""
 ARRIVAL_GPS_MIN_M = 5.0
 """... and never less than this (m) of the waypoint."""
+DEAD_RECKONING_MAX_SIGMA_M = 5.0
+"""Largest EKF position uncertainty (m, both axes together) to drive on without a fix."""
+ODOMETRY_FRESH_S = 0.5
+"""Encoder counts older than this (s) do not count as reporting."""
 STUCK_TURN_DEG = 30.0
 """Heading change (deg) that counts as motion for the stuck failsafe while pivoting."""
 
@@ -166,6 +172,7 @@ class Controller:
         self._stuck_body: tuple[float, float, float, float] | None = None
         self._stuck_forward = False
         self._wheel_m = 0.0  # |wheel travel| summed over both sides / 2 (m)
+        self._wheel_at_fix = 0.0  # _wheel_m at the latest valid fix
         self._odo_prev: WheelOdometry | None = None
         self._mode = Mode.IDLE
         self._state = NavState.IDLE
@@ -243,6 +250,7 @@ class Controller:
         self._fix_ok = ok
         if ok:
             self._source.on_fix(fix)
+            self._wheel_at_fix = self._wheel_m
             self._valid_fix_t = t if self._valid_fix_t is None else max(self._valid_fix_t, t)
             back_t = self._sensor_back.get("gps")
             if back_t is not None and t >= back_t:
@@ -614,10 +622,13 @@ class Controller:
                 return "compass back, waiting for a fresh sample"
         if self._fix is None or self._valid_fix_t is None:
             return "no fix yet"
+        gps_gap = ""
         if not self._fix_ok:
-            return "no valid fix"
-        if now - self._valid_fix_t > s.fix_stale_s:
-            return "fix stale"
+            gps_gap = "no valid fix"
+        elif now - self._valid_fix_t > s.fix_stale_s:
+            gps_gap = "fix stale"
+        if gps_gap and not self._dead_reckoning_ok(now):
+            return gps_gap
         if self._att is None:
             return "no attitude yet"
         if not self._att_ok:
@@ -655,6 +666,20 @@ class Controller:
             self._xy_key = key
         return self._xy
 
+    def _dead_reckoning_ok(self, now: float) -> bool:
+        """May the robot drive on without a valid fix? Only on the EKF while the wheel
+        encoders report (fresh), for at most ``safety.gps_outage_max_m`` of wheel travel since
+        the last valid fix and while the estimate's uncertainty stays under
+        ``DEAD_RECKONING_MAX_SIGMA_M``: beside a building the fix comes back a few metres on."""
+        limit_m = self._safety.gps_outage_max_m
+        odo = self._odo_prev
+        if limit_m <= 0 or self._nav_cfg.position_source != "ekf" or odo is None:
+            return False
+        if now - odo.t_s > ODOMETRY_FRESH_S or self._wheel_m - self._wheel_at_fix > limit_m:
+            return False
+        sigma_m = self._source.extra().get("ekf_sigma_m")
+        return isinstance(sigma_m, float) and sigma_m <= DEAD_RECKONING_MAX_SIGMA_M
+
     def _gps_agrees(self, now: float) -> bool:
         """May the navigator declare an arrival now? Always with the GPS itself as the
         position; with the EKF only while the latest fix lies within ``ARRIVAL_GPS_SIGMAS``
@@ -665,7 +690,7 @@ class Controller:
         if self._nav_cfg.position_source != "ekf" or nav.done:
             return True
         if fix is None or not self._fix_ok or self._valid_fix_t is None:
-            return False
+            return self._dead_reckoning_ok(now)  # driving on without a fix: trust the EKF
         assert fix.lat_deg is not None and fix.lon_deg is not None
         g = self._gnss_cfg
         hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else 2.0
