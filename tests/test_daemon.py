@@ -563,3 +563,24 @@ def test_status_shows_the_odometry_and_the_declination(tmp_path: Path, run_daemo
         }  # fmt: skip
         assert st["declination"]["source"] == "wmm"  # [compass] declination_deg absent
     assert r.stop() == 0
+
+
+def test_the_encoders_are_not_polled_while_the_link_is_lost() -> None:
+    from x6wd.app.daemon import _MotorWorker
+
+    link = EncoderLink()
+    link.healthy = False
+    got: list[Any] = []
+    w = _MotorWorker(
+        link, keepalive_s=0.05, on_health=lambda ok, t: None, on_odometry=got.append,
+        odometry_s=0.02,
+    )  # fmt: skip
+    w.start()
+    try:
+        wait_for(lambda: len(link.sent) >= 4, 3, "keep-alives to the lost link")
+        assert link.reads == [] and w.odometry_state == "polling"  # not given up either
+        link.healthy = True  # the board answers again: seen at the next send
+        wait_for(lambda: len(got) >= 3, 3, "polling again")
+        assert w.odometry_failures == 0
+    finally:
+        w.shutdown("test end")

@@ -534,6 +534,7 @@ def test_read_odometry_without_a_board_is_none(pty_board: PtyBoard) -> None:
     link = open_link(pty_board, ack_timeout_s=0.05)
     pty_board.halt()
     assert link.read_odometry() is None
+    assert link.odometry_supported is None  # no answer is no refusal: support still unknown
     link.port.close()
 
 
