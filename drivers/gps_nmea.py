@@ -177,6 +177,9 @@ _RUN: Final = re.compile(
     % (MAX_SENTENCE_CHARS - 1)
 )
 
+# One such line alone (the whole of a read).
+_LINE: Final = re.compile(rb"\$[^$\r\n\xb5*]{1,124}\*[0-9A-Fa-f]{2}\r?\n")
+
 # XOR of a whole line "$body*HH" for each "HH" whose checksum matches: the stated checksum
 # (the XOR of body) ^ '$' ^ '*' ^ the two hex digits. Folding the whole line then needs no
 # slice to cut the body out.
@@ -235,6 +238,16 @@ class NmeaFramer:
     def scan(self, data: bytes) -> list[str | UbxFrame]:
         """Like ``feed`` but sentences come as plain ``str`` (the decoder's fast path)."""
         buf = self._buf
+        if not buf and _LINE.fullmatch(data) is not None:
+            # Exactly one well-formed line and nothing held (a simulated or line-buffered
+            # receiver, one sentence per read): what the _RUN path makes of it, without
+            # the buffer.
+            line = data.rstrip(b"\r\n")
+            if checksum(line) == _LINE_XOR[line[-2:]]:
+                self.counters.sentences += 1
+                return [line.decode("ascii", "replace")]
+            self.counters.checksum_failures += 1
+            return []
         buf += data
         out: list[str | UbxFrame] = []
         c = self.counters
@@ -949,7 +962,9 @@ class GpsDecoder:
         self._on_gsa(d)
 
     def _gll_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
-        self._on_time(_gll_time(d[_GLL_TIME]), out)
+        tod = _gll_time(d[_GLL_TIME])
+        if tod != self._tod_us:  # (_on_time's test, inlined: GLL repeats its epoch's time)
+            self._on_time(tod, out)
 
     def _zda_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         self._on_zda(d, out)
@@ -980,7 +995,8 @@ class GpsDecoder:
         if gga.tod_us is None:
             self._emit(gga, None, out)
             return
-        self._on_time(gga.tod_us, out)
+        if gga.tod_us != self._tod_us:
+            self._on_time(gga.tod_us, out)
         rmc = self._rmc
         if rmc is not None and rmc.tod_us == gga.tod_us:
             self._rmc = None

@@ -127,6 +127,21 @@ def test_corpus_chunking_does_not_change_output(name: str) -> None:
     assert chunked == whole
 
 
+@pytest.mark.parametrize("name", LOGS)
+def test_line_by_line_feeding_does_not_change_output(name: str) -> None:
+    # One line per feed() (the simulator's receiver, a line-buffered port) takes the
+    # framer's single-line shortcut whenever nothing is held.
+    data = (NMEA_DIR / name).read_bytes()
+    whole_dec, whole = _decode_all(data)
+    dec = GpsDecoder()
+    lines: list = []
+    for line in data.splitlines(keepends=True):
+        lines += dec.feed(line, 0.0)
+    lines += dec.flush()
+    assert lines == whole
+    assert dec.counters == whole_dec.counters
+
+
 def _decode_in_chunks(data: bytes, seed: int) -> tuple[list[str], dict[str, int]]:
     dec = GpsDecoder()
     rng = np.random.default_rng(seed)

@@ -45,10 +45,11 @@ class ReportEncoder:
 
     Building those dicts and encoding them cost more than decoding the NMEA: every number
     goes through ``round`` and ``json`` although most repeat from epoch to epoch (DOPs,
-    altitude, a satellite's elevation, azimuth and SNR). Here the text of a number, or of a
-    group of numbers (the DOPs of a sky report, a fix's altitudes, its error estimates), is
-    memoised by value, a satellite's ``{...}`` by the ``SatInfo`` object (the decoder reuses
-    one per satellite state, see ``drivers.gps_nmea``), and an epoch's time by its datetime.
+    altitude, a satellite's elevation, azimuth and SNR). Here the text of a group of numbers
+    (the DOPs of a sky report, a fix's altitudes, its error estimates) is memoised by value,
+    a satellite's ``{...}`` by the ``SatInfo`` object (the decoder reuses one per satellite
+    state, see ``drivers.gps_nmea``), and an epoch's time by its datetime; position, speed
+    and track, which change from fix to fix, are rounded each time.
     Each memo holds exactly the text the plain path writes for its key (for the floats and
     small ints records hold: equal keys give equal text). Keys containing a zero are never
     memoised: ``0.0 == -0.0`` but they print differently. The memos are bounded (cleared
@@ -57,8 +58,6 @@ class ReportEncoder:
     """
 
     def __init__(self) -> None:
-        # ndigits -> {value: JSON text of round(float(value), ndigits), None if omitted}
-        self._nums: dict[int, dict[float, str | None]] = {3: {}, 4: {}}
         self._groups: dict[tuple[Any, ...], str] = {}  # DOPs, altitudes, error estimates
         # id(SatInfo) -> its JSON object. _sat_keep holds every SatInfo memoised, so none of
         # them dies and no other object can take its id meanwhile.
@@ -70,26 +69,7 @@ class ReportEncoder:
     @property
     def largest_memo(self) -> int:
         """Entries in the largest memo (at most :data:`MEMO_MAX`)."""
-        return max(len(self._sat_text), len(self._groups), *map(len, self._nums.values()))
-
-    def _num(self, v: Any, ndigits: int) -> str | None:
-        """JSON text of ``gpsd._num(v, ndigits)``, None where that is None (omitted)."""
-        memo = self._nums[ndigits]
-        try:
-            text = memo[v]
-        except KeyError:
-            pass
-        except TypeError:  # unhashable: not a number gpsd._num would take either
-            return _num_text(v, ndigits)
-        else:
-            if v:  # 0.0 and -0.0 are one key but two texts: never memoised
-                return text
-        text = _num_text(v, ndigits)
-        if v:
-            if len(memo) >= MEMO_MAX:
-                memo.clear()
-            memo[v] = text
-        return text
+        return max(len(self._sat_text), len(self._groups))
 
     def _group(self, key: tuple[Any, ...], build: Callable[..., str]) -> str:
         """``build(*key)``, memoised unless ``key`` holds a zero."""
@@ -136,12 +116,12 @@ class ReportEncoder:
         alt = fix.alt_m
         if mode >= 3 and alt is not None:
             parts.append(self._group((alt, fix.geoid_sep_m), _altitudes))
-        if fix.speed_mps is not None:
-            text = self._num(fix.speed_mps, 3)
+        if fix.speed_mps is not None:  # speed and track jitter: not memoised either
+            text = _num_text(fix.speed_mps, 3)
             if text is not None:
                 parts += (',"speed":', text)
         if fix.course_deg is not None:
-            text = self._num(fix.course_deg, 4)
+            text = _num_text(fix.course_deg, 4)
             if text is not None:
                 parts += (',"track":', text)
         parts.append(self._group((fix.hdop, fix.vdop if mode >= 3 else None), _errors))
