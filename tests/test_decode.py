@@ -214,3 +214,20 @@ def test_encoder_memos_stay_bounded() -> None:
         assert enc.tpv(fix) == _plain(fix)
         assert enc.largest_memo <= decode.MEMO_MAX
     assert enc.largest_memo > decode.MEMO_MAX // 2
+
+
+def test_decode_starts_without_the_gpsd_server_module() -> None:
+    # Start-up time: x6wd.app.gpsd brings asyncio and the configuration; the encoder has
+    # its UERE from there, checked here.
+    from x6wd.app import gpsd
+
+    assert decode.UERE_M == gpsd.UERE_M
+    code = (
+        "import sys; from x6wd.app import cli;"
+        f"cli.main(['decode', '--quiet', {str(LEA5H)!r}]);"
+        "loaded = [m for m in ('asyncio', 'x6wd.app.gpsd') if m in sys.modules];"
+        "print(loaded, file=sys.stderr)"
+    )
+    got = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert got.stdout.count('"class":"TPV"') > 10
+    assert got.stderr.strip() == "[]"

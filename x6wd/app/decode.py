@@ -27,11 +27,14 @@ from datetime import UTC, datetime
 from typing import IO, Any, cast
 
 from drivers.gps_nmea import DecoderCounters, GpsDecoder, GpsOutput
-from x6wd.app.gpsd import UERE_M, iso_time
 from x6wd.core.errors import DeviceUnavailable
 from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
 _CHUNK_BYTES = 1 << 20
+UERE_M = 5.0
+"""``x6wd.app.gpsd.UERE_M`` (the TPV's eph/epx/epy/epv are DOP x UERE): that module, with
+its asyncio server, is imported only for a datetime ``isoformat`` cannot print, so that the
+command starts faster (tests/test_decode.py checks that the two agree)."""
 MEMO_MAX = 4096
 """Entries per memo of :class:`ReportEncoder` (a memo is cleared when full)."""
 _SQRT2 = math.sqrt(2.0)
@@ -168,6 +171,8 @@ def _iso_time(utc: datetime) -> str:
     if type(utc) is datetime and (tz is UTC or tz is None) and utc.year >= 1000:
         text = utc.isoformat(timespec="milliseconds")
         return (text if tz is None else text[:-6]) + "Z"
+    from x6wd.app.gpsd import iso_time
+
     return str(iso_time(utc))
 
 
