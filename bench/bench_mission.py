@@ -26,7 +26,8 @@ Figures per scenario x method (anchors = the targets of issue 14, item 7):
   median and max (target <= 1.10 on open ground; no target beside the building);
 - time to finish: simulated seconds (median over completed runs); its anchor is the straight
   polyline at the method's cruise speed (``max_speed_mps`` x ``cruise_pct``);
-- wall time: the runs' summed wall seconds (they run in a process pool of ``--jobs``).
+- wall time: the runs' summed wall seconds (they run on ``--jobs`` workers of x6wd's one
+  executor, ``sim_backend.executor``: a Dask LocalCluster, or this process with ``--jobs 1``).
 
 A run that raises is a failed run with its error (counted as not completed; the error is in
 the completion row's note and on stderr), never a crash of the benchmark.
@@ -52,7 +53,6 @@ import tempfile
 import time
 import traceback
 from collections.abc import Sequence
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -227,23 +227,28 @@ def run_all(
     seeds: Sequence[int],
     jobs: int | None = None,
 ) -> list[RunResult]:
-    """Every scenario x method x seed, ``jobs`` processes at a time (default os.cpu_count();
-    1 runs in this process). A worker that dies is recorded as that run's error."""
+    """Every scenario x method x seed through x6wd's one executor
+    (:class:`sim_backend.executor.Executor`, the one ``x6wd sweep`` uses): a Dask LocalCluster
+    of ``jobs`` worker processes (default os.cpu_count()); ``jobs`` 1, or no Dask installed,
+    runs in this process. A task the cluster could not finish is recorded as that run's
+    error."""
+    from sim_backend.executor import Executor, dask_available
+
     tasks = [(str(p), m, s) for p in paths for m in methods for s in seeds]
     jobs = max(1, jobs or os.cpu_count() or 1)
-    if jobs == 1:
-        return [run_one(*t) for t in tasks]
+    inline = jobs == 1 or not dask_available()
+    if jobs > 1 and inline:
+        print("bench_mission: no Dask (pip install 'x6wd[sweep]'): running in this process",
+              file=sys.stderr)  # fmt: skip
     results: list[RunResult] = []
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures: dict[Future[RunResult], tuple[str, str, int]] = {
-            pool.submit(run_one, *t): t for t in tasks
-        }
-        for fut in as_completed(futures):
-            p, m, s = futures[fut]
-            try:
-                results.append(fut.result())
-            except Exception as exc:  # the worker process itself failed
-                results.append(RunResult(Path(p).stem, m, s, error=f"{type(exc).__name__}: {exc}"))
+    with Executor(workers=None if inline else jobs, inline=inline) as ex:
+        names = [f"{Path(p).stem}-{m}-{s}" for p, m, s in tasks]
+        for out in ex.map_unordered(run_one, tasks, names=names):
+            p, m, s = tasks[out.index]
+            if out.ok:
+                results.append(out.value)
+            else:  # the worker itself failed (run_one never raises)
+                results.append(RunResult(Path(p).stem, m, s, error=out.error))
     order = {t: i for i, t in enumerate((Path(p).stem, m, s) for p, m, s in tasks)}
     results.sort(key=lambda r: order.get((r.scenario, r.method, r.seed), len(order)))
     return results
@@ -449,7 +454,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    # Through the package module, so the pool's workers unpickle bench.bench_mission.run_one.
+    # Through the package module, so the workers unpickle bench.bench_mission.run_one.
     from bench.bench_mission import main as _main
 
     sys.exit(_main())

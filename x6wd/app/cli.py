@@ -20,6 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("x6wd.app.daemon", "run the control daemon (robot, or hardware-in-the-loop)"),
     "sim": ("sim_backend.mission", "run a whole simulated mission in fast time"),
     "client": ("x6wd.app.client", "operator client: status, load, start, stop, drive, watch"),
+    "sweep": ("x6wd.app.sweep", "run a grid of scenarios x parameters x seeds on Dask"),
     "gap": ("x6wd.gap.cli", "diagnose the gap between a real log and the simulator"),
     "calibrate": ("x6wd.calibrate.cli", "estimate configuration sections from calibration runs"),
     "decode": ("x6wd.app.decode", "decode NMEA logs or recordings to gpsd-style JSON lines"),

@@ -1,5 +1,5 @@
-"""``x6wd gap --real REAL (--sim SIM ... | --scenario FILE [--seeds M])
-[--truth LAT,LON[,ALT] | --truth-track FILE] [--out DIR]``."""
+"""``x6wd gap --real REAL (--sim SIM ... | --scenario FILE [--seeds M]
+[--workers N | --scheduler ADDRESS]) [--truth LAT,LON[,ALT] | --truth-track FILE] [--out DIR]``."""
 
 from __future__ import annotations
 
@@ -40,6 +40,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--seeds", type=int, default=20, help="baseline runs with --scenario (default 20)"
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="run the --scenario seeds on a Dask LocalCluster of N workers (the executor of"
+        " x6wd sweep; default: one after another in this process)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="run the --scenario seeds on a running Dask scheduler (tcp://host:8786)",
     )
     truth = parser.add_mutually_exclusive_group()
     truth.add_argument("--truth", help="surveyed point LAT,LON[,ALT] (deg, deg, m)")
@@ -98,14 +112,18 @@ def main(args: argparse.Namespace) -> int:
             "no truth given: errors are taken against each log's own mean, so a bias is invisible"
         )
     if args.scenario:
+        from sim_backend.executor import Executor
         from x6wd.gap.scenario import scenario_baseline
 
-        baseline = scenario_baseline(
-            args.scenario,
-            real,
-            args.seeds,
-            progress=lambda i: bar(f"simulating seed {i}/{args.seeds}", 0.05 * i / args.seeds),
-        )
+        cluster = args.workers is not None or args.scheduler is not None
+        with Executor(args.scheduler, args.workers, inline=not cluster) as executor:
+            baseline = scenario_baseline(
+                args.scenario,
+                real,
+                args.seeds,
+                progress=lambda i: bar(f"simulating seed {i}/{args.seeds}", 0.05 * i / args.seeds),
+                executor=executor,
+            )
     else:
         baseline = [to_errors(read_track(p), args, truth_track) for p in args.sim]
     rng = np.random.default_rng(args.seed)

@@ -1,0 +1,288 @@
+"""The one executor for many simulations: Dask's distributed scheduler, or this process.
+
+Everything in x6wd that runs a batch of independent simulations goes through
+:class:`Executor`: ``x6wd sweep`` (:mod:`sim_backend.sweep`), the mission benchmark
+(``bench/bench_mission.py``) and the gap tool's baseline seeds (``x6wd gap --seeds M``). It
+has three backends, chosen when it is made:
+
+- ``Executor(workers=N)``: a Dask ``LocalCluster`` of N worker processes on this machine
+  (one thread each: a mission is pure Python and holds the GIL), started on ``__enter__`` and
+  shut down on ``__exit__``; N defaults to ``os.cpu_count()``;
+- ``Executor(scheduler="tcp://host:8786")``: an existing Dask cluster (``dask scheduler`` and
+  any number of ``dask worker`` processes on any machines that have x6wd installed);
+  ``workers=N`` then waits until N workers have joined;
+- ``Executor(inline=True)``: in this process, one task after another, without Dask (the
+  default of the gap tool, a benchmark's ``--jobs 1``, and machines without the ``sweep``
+  extra).
+
+:meth:`Executor.map_unordered` submits ``fn(*args)`` for every argument tuple and yields an
+:class:`Outcome` per task as it finishes (in completion order). A task whose ``fn`` raises is
+an outcome with ``error`` (kind ``"task"``); a task the cluster could not finish (its worker
+died more often than Dask's ``distributed.scheduler.allowed-failures``, or the cluster went
+away) is an outcome with kind ``"executor"``. A worker that dies once costs nothing but time:
+the scheduler runs its tasks again on the workers that are left.
+
+Dask is imported only here and only when a cluster backend is entered, so the daemon and
+``x6wd sim`` never import it, and the package works without the optional ``sweep`` extra.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import time
+import traceback
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any, TextIO
+
+from x6wd.core.errors import ConfigError
+
+INSTALL_HINT = "pip install 'x6wd[sweep]' (dask[distributed])"
+
+
+@dataclass
+class Outcome:
+    """What became of one task: ``index`` into the submitted list, its ``value``, or its
+    ``error`` (one line: type, message and where) with ``kind`` "task" (the function
+    raised) or "executor" (the cluster could not run it)."""
+
+    index: int
+    value: Any = None
+    error: str | None = None
+    kind: str = "ok"
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+def describe_exception(exc: BaseException, tb: Any = None) -> str:
+    """``Type: message at file.py:line`` (the innermost frame)."""
+    frames = traceback.extract_tb(tb if tb is not None else exc.__traceback__)[-1:]
+    where = f" at {Path(frames[0].filename).name}:{frames[0].lineno}" if frames else ""
+    msg = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {msg[0] if msg else ''}{where}"
+
+
+def dask_available() -> bool:
+    """True when ``distributed`` can be imported (the ``sweep`` extra is installed)."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+class Executor:
+    """Runs independent tasks on a Dask cluster (local or remote) or in this process; use it
+    as a context manager. See the module docstring."""
+
+    def __init__(
+        self,
+        scheduler: str | None = None,
+        workers: int | None = None,
+        *,
+        inline: bool = False,
+        connect_timeout_s: float = 30.0,
+    ) -> None:
+        if workers is not None and workers < 1:
+            raise ConfigError(f"workers: must be >= 1, got {workers}")
+        if inline and scheduler:
+            raise ConfigError("an in-process executor has no scheduler")
+        self.scheduler = scheduler
+        self.workers = workers
+        self.inline = inline
+        self.connect_timeout_s = connect_timeout_s
+        self._cluster: Any = None
+        self._client: Any = None
+
+    # -- life cycle ------------------------------------------------------------------------
+    def __enter__(self) -> Executor:
+        if self.inline:
+            return self
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError as exc:
+            raise ConfigError(f"a Dask cluster needs {INSTALL_HINT}: {exc}") from exc
+        try:
+            if self.scheduler:
+                self._client = Client(self.scheduler, timeout=self.connect_timeout_s)
+                if self.workers:
+                    self._client.wait_for_workers(self.workers, timeout=self.connect_timeout_s)
+            else:
+                n = self.workers or os.cpu_count() or 1
+                self._cluster = LocalCluster(
+                    n_workers=n,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    silence_logs=logging.ERROR,
+                )
+                self._client = Client(self._cluster)
+        except (OSError, TimeoutError) as exc:
+            self.close()
+            where = self.scheduler or "a LocalCluster"
+            raise ConfigError(f"cannot reach {where}: {exc}") from exc
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Disconnect; a LocalCluster this executor started is shut down."""
+        client, cluster = self._client, self._cluster
+        self._client = self._cluster = None
+        # Interrupted or not, the cluster's own shutdown messages are noise here.
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        try:
+            if client is not None:
+                client.close()
+        finally:
+            if cluster is not None:
+                cluster.close()
+
+    # -- facts -----------------------------------------------------------------------------
+    @property
+    def description(self) -> str:
+        """What runs the tasks, for reports: "in this process", "LocalCluster, 2 workers",
+        "scheduler tcp://..., 3 workers"."""
+        if self.inline:
+            return "in this process"
+        n = self.worker_count()
+        if self.scheduler:
+            return f"scheduler {self.scheduler}, {n} workers"
+        return f"LocalCluster, {n} workers"
+
+    def worker_count(self) -> int:
+        """Workers connected now (1 in this process)."""
+        if self.inline or self._client is None:
+            return 1
+        info = self._client.scheduler_info()
+        return len(info.get("workers", {}))
+
+    # -- running ---------------------------------------------------------------------------
+    def map_unordered(
+        self,
+        fn: Callable[..., Any],
+        args_list: Sequence[tuple[Any, ...]],
+        names: Sequence[str] | None = None,
+        reraise: bool = False,
+    ) -> Iterator[Outcome]:
+        """``fn(*args)`` for each tuple of ``args_list``; yields an :class:`Outcome` per task
+        as it finishes. ``names`` (one per task) label the tasks on the cluster's dashboard.
+        ``reraise``: a task whose ``fn`` raised raises its exception here instead of
+        yielding an error outcome. Stopping the iteration early (or an exception, Ctrl-C)
+        cancels the tasks not yet finished."""
+        if self.inline:
+            yield from self._inline(fn, args_list, reraise)
+            return
+        if self._client is None:
+            raise RuntimeError("Executor used outside its 'with' block")
+        from distributed import as_completed
+
+        tag = uuid.uuid4().hex[:8]
+        label = getattr(fn, "__name__", "task")
+        futures = []
+        for i, args in enumerate(args_list):
+            name = names[i] if names is not None else str(i)
+            key = f"x6wd-{label}-{name}-{tag}"
+            futures.append(self._client.submit(fn, *args, key=key, pure=False))
+        index = {f.key: i for i, f in enumerate(futures)}
+        pending = set(index)
+        try:
+            for fut in as_completed(futures):
+                i = index[fut.key]
+                pending.discard(fut.key)
+                outcome = self._outcome(i, fut)
+                if reraise and outcome.kind == "task":
+                    fut.result()  # raises the task's own exception
+                yield outcome
+                fut.release()
+        finally:
+            if pending:
+                self._client.cancel([f for f in futures if f.key in pending])
+
+    @staticmethod
+    def _outcome(i: int, fut: Any) -> Outcome:
+        if fut.status == "finished":
+            try:
+                return Outcome(i, value=fut.result())
+            except Exception as exc:  # lost between "finished" and the transfer
+                return Outcome(i, error=describe_exception(exc), kind="executor")
+        if fut.status == "error":
+            from distributed import KilledWorker
+
+            err = fut.exception()
+            if isinstance(err, KilledWorker):
+                return Outcome(i, error=f"KilledWorker: {err}", kind="executor")
+            return Outcome(i, error=describe_exception(err, fut.traceback()), kind="task")
+        return Outcome(i, error=f"task {fut.status} by the cluster", kind="executor")
+
+    @staticmethod
+    def _inline(
+        fn: Callable[..., Any], args_list: Sequence[tuple[Any, ...]], reraise: bool
+    ) -> Iterator[Outcome]:
+        for i, args in enumerate(args_list):
+            try:
+                value = fn(*args)
+            except Exception as exc:
+                if reraise:
+                    raise
+                yield Outcome(i, error=describe_exception(exc), kind="task")
+            else:
+                yield Outcome(i, value=value)
+
+
+class TextProgress:
+    """A plain-text progress bar on ``stream`` (stderr): redrawn in place on a terminal,
+    otherwise a line at most every ``every_s`` seconds and at the end."""
+
+    def __init__(
+        self,
+        total: int,
+        label: str = "runs",
+        stream: TextIO | None = None,
+        every_s: float = 10.0,
+        width: int = 30,
+    ) -> None:
+        self.total = total
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.every_s = every_s
+        self.width = width
+        self.t0 = time.monotonic()
+        self._last = -math.inf
+
+    def __call__(self, done: int, failed: int = 0) -> None:
+        now = time.monotonic()
+        final = done >= self.total
+        if not self.tty and not final and now - self._last < self.every_s:
+            return
+        self._last = now
+        frac = done / self.total if self.total else 1.0
+        filled = round(frac * self.width)
+        elapsed = now - self.t0
+        rate = done / elapsed * 60.0 if elapsed > 0 and done else 0.0
+        eta = (self.total - done) / (rate / 60.0) if rate > 0 else float("nan")
+        eta_text = f", ETA {eta:.0f} s" if rate > 0 and not final else ""
+        line = (
+            f"[{'#' * filled}{'.' * (self.width - filled)}] {done}/{self.total} {self.label}"
+            f", {failed} failed, {elapsed:.0f} s, {rate:.1f}/min{eta_text}"
+        )
+        if self.tty:
+            self.stream.write("\r" + line.ljust(100) + ("\n" if final else ""))
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()

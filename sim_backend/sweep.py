@@ -1,0 +1,540 @@
+"""``x6wd sweep SWEEP.toml``: a grid of scenarios x parameters x seeds, run on Dask.
+
+A sweep file (``config/sweeps/position_source.toml`` is the example)::
+
+    name = "position source"       # optional (default: the file's stem)
+    seed = 2026                    # the sweep's seed (default 0)
+    seeds = 5                      # missions per cell (replicates), each with its own seed
+    scenarios = ["../scenarios/default.toml", "../scenarios/zigzag.toml"]  # relative to this file
+    robot_config = "../x6wd.toml"  # optional: laid under every scenario (with_robot_config)
+
+    [set]                          # optional: the same value in every run
+    duration_s = 300.0
+
+    [grid]                         # every combination of these values
+    navigation.position_source = ["ekf", "raw"]
+    gnss.rate_hz = [1.0, 2.0]
+
+Keys of ``[set]`` and ``[grid]`` are dotted paths into the scenario's TOML table (any scenario
+key: ``duration_s``, ``gnss.rate_hz``, ``vehicle.max_speed_mps``, ``compass.noise_ut``, or a
+robot configuration key: ``navigation.position_source``, ``failsafe.stuck_s``, ...). They are
+applied to each scenario's merged table (after its includes and the robot config) *before* the
+scenario is validated, so every cell is checked when the sweep starts and a bad key or value
+stops it with the scenario's own error message naming the key (``x6wd sweep`` exits 2).
+
+Words: a *cell* is one scenario x one combination of the grid's values; a *run* is one mission
+of a cell with one seed. Each run's seed is derived (SHA-256) from the sweep's seed, the
+scenario's name, the run's parameters ([set] and [grid] values) and its replicate number, never
+from its position in the grid: adding a value, a scenario or more seeds leaves the other runs'
+seeds, and so their results, unchanged.
+
+The output directory holds ``runs/RUN_ID.json`` (one per finished run, written atomically by
+the client as results arrive), ``cells/CELL_ID.toml`` (each cell's resolved scenario: ``x6wd sim
+cells/CELL_ID.toml --seed SEED`` replays a run), ``sweep.json`` (the plan), and at the end the
+table and summary of :mod:`sim_backend.sweep_report`. Running the same sweep into the same
+directory again (after a crash, Ctrl-C or a change of the grid) skips every run whose file is
+there with the same seed and configuration: only the missing runs are simulated. A run whose
+mission raised is recorded with its error (kept on resume unless ``retry_failed``); a run the
+cluster lost (:class:`~sim_backend.executor.Outcome` kind "executor") is run again on resume.
+
+The runs are executed by :class:`sim_backend.executor.Executor` (a Dask LocalCluster, an
+existing scheduler, or this process). A task carries the resolved scenario as TOML text
+(without the packaged almanac's local path), so workers need x6wd installed but not the
+scenario files.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import itertools
+import json
+import os
+import socket
+import tempfile
+import time
+import tomllib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from sim_backend.executor import Executor, Outcome, describe_exception
+from sim_backend.mission import compass_setup, run_mission
+from sim_backend.world import (
+    DEFAULT_ALMANAC,
+    World,
+    dumps_toml,
+    load_world,
+    loads_world,
+    with_robot_config,
+)
+from x6wd.core.errors import ConfigError
+
+SWEEP_KEYS = ("name", "seed", "seeds", "scenarios", "robot_config", "set", "grid")
+SEED_BITS = 48  # run seeds are 0 .. 2**48 - 1 (a collision in 10,000 runs: ~2e-7)
+
+
+# ---------------------------------------------------------------------------- the file
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """A validated sweep file. ``fixed`` ([set]) and ``grid`` ([grid]) map dotted scenario
+    keys to a value and to a list of values (file order)."""
+
+    name: str
+    seed: int
+    seeds: int
+    scenarios: tuple[Path, ...]
+    robot_config: Path | None = None
+    fixed: dict[str, Any] = field(default_factory=dict)
+    grid: dict[str, list[Any]] = field(default_factory=dict)
+    source: Path | None = None
+
+
+def load_sweep(path: str | Path) -> SweepSpec:
+    """Read and check a sweep file (paths in it are relative to it)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read sweep file: {exc.strerror or exc}") from exc
+    return loads_sweep(text, p.resolve().parent, source=p, default_name=p.stem)
+
+
+def loads_sweep(
+    text: str,
+    base_dir: str | Path = ".",
+    source: str | Path = "<string>",
+    default_name: str = "sweep",
+) -> SweepSpec:
+    """A sweep from TOML text; relative paths resolve against ``base_dir``."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
+    try:
+        return _spec(
+            data, Path(base_dir), Path(source) if source != "<string>" else None, default_name
+        )
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from exc
+
+
+def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: str) -> SweepSpec:
+    unknown = sorted(set(data) - set(SWEEP_KEYS))
+    if unknown:
+        raise ConfigError(f"{unknown[0]}: unknown key (valid keys: {', '.join(SWEEP_KEYS)})")
+    name = data.get("name", default_name)
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"name: expected a non-empty string, got {name!r}")
+    seed = data.get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise ConfigError(f"seed: expected an integer >= 0, got {seed!r}")
+    seeds = data.get("seeds", 1)
+    if not isinstance(seeds, int) or isinstance(seeds, bool) or not 1 <= seeds <= 1_000_000:
+        raise ConfigError(f"seeds: expected an integer 1..1000000 (runs per cell), got {seeds!r}")
+    scen = data.get("scenarios")
+    if isinstance(scen, str):
+        scen = [scen]
+    if not isinstance(scen, list) or not scen or not all(isinstance(s, str) for s in scen):
+        raise ConfigError(f"scenarios: expected a non-empty list of scenario files, got {scen!r}")
+    paths = tuple((base / s).resolve() for s in scen)
+    stems: dict[str, Path] = {}
+    for p in paths:
+        if p.stem in stems:
+            raise ConfigError(f"scenarios: two scenarios named {p.stem!r} ({stems[p.stem]}, {p})")
+        stems[p.stem] = p
+    robot = data.get("robot_config")
+    if robot is not None and (not isinstance(robot, str) or not robot):
+        raise ConfigError(f"robot_config: expected a file name, got {robot!r}")
+    fixed = _dotted(data.get("set", {}), "set")
+    grid_raw = _dotted(data.get("grid", {}), "grid")
+    grid: dict[str, list[Any]] = {}
+    for key, values in grid_raw.items():
+        if not isinstance(values, list) or not values:
+            raise ConfigError(f"grid.{key}: expected a non-empty list of values, got {values!r}")
+        if key in fixed:
+            raise ConfigError(f"grid.{key}: also in [set]; give it in one of them")
+        grid[key] = values
+    return SweepSpec(
+        name=name,
+        seed=seed,
+        seeds=seeds,
+        scenarios=paths,
+        robot_config=(base / robot).resolve() if robot else None,
+        fixed=fixed,
+        grid=grid,
+        source=source.resolve() if source is not None else None,
+    )
+
+
+def _dotted(table: Any, where: str, prefix: str = "") -> dict[str, Any]:
+    """Nested tables flattened to dotted keys ({"gnss": {"rate_hz": 1}} -> {"gnss.rate_hz": 1};
+    a quoted key "gnss.rate_hz" is the same)."""
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where}: expected a table, got {table!r}")
+    out: dict[str, Any] = {}
+    for key, value in table.items():
+        full = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_dotted(value, where, f"{full}."))
+        else:
+            out[full] = value
+    return out
+
+
+def set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
+    """``data[a][b][c] = value`` for ``key`` "a.b.c", creating missing tables; a path through
+    a value that is not a table is a :class:`ConfigError` naming the key."""
+    parts = key.split(".")
+    if not all(parts):
+        raise ConfigError(f"{key}: not a dotted key")
+    node = data
+    for i, part in enumerate(parts[:-1]):
+        nxt = node.setdefault(part, {})
+        if not isinstance(nxt, dict):
+            raise ConfigError(f"{key}: {'.'.join(parts[: i + 1])} is not a table")
+        node = nxt
+    node[parts[-1]] = copy.deepcopy(value)
+
+
+# ---------------------------------------------------------------------------- the plan
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One scenario x one combination of the grid's values. ``params`` are the grid's values,
+    ``overrides`` those and [set]; ``world_toml`` the resolved scenario with them applied."""
+
+    cell_id: str
+    scenario: str
+    scenario_path: Path
+    params: dict[str, Any]
+    overrides: dict[str, Any]
+    world_toml: str
+    digest: str
+
+
+@dataclass(frozen=True)
+class Run:
+    """One mission of a cell: replicate ``replicate`` (0-based) with its derived ``seed``."""
+
+    run_id: str
+    cell: Cell
+    replicate: int
+    seed: int
+
+
+def _canonical(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
+
+
+def run_seed(sweep_seed: int, scenario: str, overrides: dict[str, Any], replicate: int) -> int:
+    """The seed of a run: SHA-256 of the sweep's seed, the scenario's name, the run's
+    parameters (order-free) and its replicate number, as a 48-bit integer."""
+    blob = _canonical([sweep_seed, scenario, sorted(overrides.items()), replicate])
+    digest = hashlib.sha256(blob.encode("utf-8")).digest()
+    return int.from_bytes(digest[: SEED_BITS // 8], "big")
+
+
+def cell_id(scenario: str, overrides: dict[str, Any]) -> str:
+    """A short stable name of a cell: the scenario and a hash of its parameters."""
+    h = hashlib.sha256(_canonical([scenario, sorted(overrides.items())]).encode("utf-8"))
+    return f"{scenario}-{h.hexdigest()[:8]}"
+
+
+def base_table(path: Path, robot_config: Path | None) -> tuple[dict[str, Any], Path]:
+    """A scenario's merged TOML table (includes expanded, paths absolute, the robot config
+    laid underneath) and its folder."""
+    world = load_world(path)
+    if robot_config is not None:
+        try:
+            world = with_robot_config(world, robot_config)
+        except ConfigError as exc:
+            raise ConfigError(f"robot_config {robot_config}: {exc}") from exc
+    return copy.deepcopy(world.raw), path.parent
+
+
+def cell_world(
+    table: dict[str, Any], base_dir: Path, overrides: dict[str, Any], source: str
+) -> tuple[World, str]:
+    """The validated world of ``table`` with ``overrides`` (dotted keys) applied, and its
+    portable TOML (the packaged almanac left to each worker's own install)."""
+    data = copy.deepcopy(table)
+    for key, value in overrides.items():
+        set_dotted(data, key, value)
+    if data.get("almanac") == str(DEFAULT_ALMANAC):
+        del data["almanac"]
+    text = dumps_toml(data)
+    world = loads_world(text, base_dir, source=source)
+    compass_setup(world)  # the [compass] table is checked when a mission starts: check it now
+    return world, text
+
+
+def plan(spec: SweepSpec) -> list[Run]:
+    """Every run of the sweep (scenario, then grid combination, then replicate), each cell
+    validated; a bad key or value raises :class:`ConfigError` naming the scenario, the cell's
+    parameters and the key."""
+    keys = list(spec.grid)
+    combos = list(itertools.product(*(spec.grid[k] for k in keys)))
+    runs: list[Run] = []
+    for path in spec.scenarios:
+        table, base = base_table(path, spec.robot_config)
+        for combo in combos:
+            params = dict(zip(keys, combo, strict=True))
+            overrides = {**spec.fixed, **params}
+            where = ", ".join(f"{k}={v!r}" for k, v in overrides.items()) or "no overrides"
+            try:
+                _world, text = cell_world(table, base, overrides, f"{path.stem} ({where})")
+            except ConfigError as exc:
+                raise ConfigError(f"scenario {path}: {exc}") from exc
+            cid = cell_id(path.stem, overrides)
+            digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+            cell = Cell(cid, path.stem, path, params, overrides, text, digest)
+            for r in range(spec.seeds):
+                seed = run_seed(spec.seed, path.stem, overrides, r)
+                runs.append(Run(f"{cid}-{r:03d}", cell, r, seed))
+    return runs
+
+
+# ---------------------------------------------------------------------------- one run
+
+
+def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
+    """One mission (on a worker): the scenario TOML with ``seed``, in a temporary directory.
+    Never raises for a failed mission: the record's ``status`` is "error" with ``error``."""
+    t0 = time.perf_counter()
+    rec: dict[str, Any] = {
+        "run_id": run_id,
+        "status": "ok",
+        "error": None,
+        "worker": f"{socket.gethostname()}:{os.getpid()}",
+    }
+    try:
+        world = loads_world(world_toml, source=run_id)
+        with tempfile.TemporaryDirectory(prefix="x6wd_sweep_") as out:
+            s = run_mission(world, out, seed=int(seed))
+        rec.update(
+            completed=bool(s.completed),
+            waypoints_reached=int(s.waypoints_reached),
+            waypoint_count=int(s.waypoint_count),
+            path_length_m=s.path_length_m,
+            straight_length_m=s.straight_length_m,
+            sim_time_s=s.sim_time_s,
+            wall_time_s=s.wall_time_s,
+            arrivals=[dict(a) for a in s.extra.get("arrivals") or []],
+            position_source=s.extra.get("position_source"),
+        )
+    except Exception as exc:  # a failed run is a result, not the end of the sweep
+        rec.update(status="error", error=describe_exception(exc), completed=False)
+    rec["task_s"] = time.perf_counter() - t0
+    return rec
+
+
+# ---------------------------------------------------------------------------- the store
+
+
+class RunStore:
+    """``OUT/runs/RUN_ID.json``, one per finished run, each written atomically (a temporary
+    file in the same folder, then ``os.replace``): a crash leaves a run either whole or
+    absent."""
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.dir = Path(out_dir) / "runs"
+        self.dir.mkdir(parents=True, exist_ok=True)
+
+    def path(self, run_id: str) -> Path:
+        return self.dir / f"{run_id}.json"
+
+    def load(self, run_id: str) -> dict[str, Any] | None:
+        try:
+            data = json.loads(self.path(run_id).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        return data if isinstance(data, dict) else None
+
+    def write(self, record: dict[str, Any]) -> None:
+        write_atomic(self.path(record["run_id"]), json.dumps(_json_safe(record), indent=1))
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` so that a reader never sees half of it."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _json_safe(v: Any) -> Any:
+    if isinstance(v, float):
+        return v if v == v and v not in (float("inf"), float("-inf")) else None
+    if isinstance(v, dict):
+        return {str(k): _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    return v
+
+
+def is_done(record: dict[str, Any] | None, run: Run, retry_failed: bool = False) -> bool:
+    """Whether a stored record stands for ``run`` (same seed and configuration) and needs no
+    new attempt: a success, or a mission that raised (unless ``retry_failed``); a run the
+    cluster lost is always tried again."""
+    if record is None or record.get("seed") != run.seed or record.get("digest") != run.cell.digest:
+        return False
+    status = record.get("status")
+    return status == "ok" or (status == "error" and not retry_failed)
+
+
+# ---------------------------------------------------------------------------- the sweep
+
+
+@dataclass
+class SweepResult:
+    """The records of every planned run (plan order), what this call ran and skipped, its
+    wall time (s) and the executor's description."""
+
+    spec: SweepSpec
+    runs: list[Run]
+    records: list[dict[str, Any]]
+    ran: int
+    skipped: int
+    wall_s: float
+    executor: str
+
+    @property
+    def failed(self) -> list[dict[str, Any]]:
+        return [r for r in self.records if r.get("status") != "ok"]
+
+    @property
+    def missions_per_min(self) -> float:
+        """Missions finished by this call per wall minute (NaN when none ran)."""
+        return self.ran / self.wall_s * 60.0 if self.ran and self.wall_s > 0 else float("nan")
+
+
+def _record(run: Run, result: dict[str, Any] | None, outcome: Outcome | None) -> dict[str, Any]:
+    rec: dict[str, Any] = {
+        "run_id": run.run_id,
+        "cell_id": run.cell.cell_id,
+        "scenario": run.cell.scenario,
+        "params": run.cell.params,
+        "overrides": run.cell.overrides,
+        "replicate": run.replicate,
+        "seed": run.seed,
+        "digest": run.cell.digest,
+    }
+    if result is not None:
+        rec.update({k: v for k, v in result.items() if k != "run_id"})
+    if outcome is not None and not outcome.ok:
+        kind = outcome.kind
+        rec.update(status="lost" if kind == "executor" else "error", error=outcome.error)
+        rec.setdefault("completed", False)
+    rec["finished_utc"] = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return rec
+
+
+def write_plan(spec: SweepSpec, runs: Sequence[Run], out_dir: Path) -> None:
+    """``sweep.json`` (the spec and every run) and ``cells/CELL_ID.toml``."""
+    cells_dir = out_dir / "cells"
+    cells_dir.mkdir(parents=True, exist_ok=True)
+    seen: dict[str, Cell] = {}
+    for run in runs:
+        seen.setdefault(run.cell.cell_id, run.cell)
+    for cid, cell in seen.items():
+        head = (
+            f"# sweep {spec.name!r}, cell {cid}: {cell.scenario_path}"
+            f" with {_canonical(cell.overrides)}\n"
+            f"# replay a run: x6wd sim {cells_dir / (cid + '.toml')} --seed SEED\n"
+        )
+        path = cells_dir / f"{cid}.toml"
+        text = head + cell.world_toml
+        if not path.exists() or path.read_text(encoding="utf-8") != text:
+            write_atomic(path, text)
+    plan_data = {
+        "name": spec.name,
+        "source": str(spec.source) if spec.source else None,
+        "seed": spec.seed,
+        "seeds": spec.seeds,
+        "scenarios": [str(p) for p in spec.scenarios],
+        "robot_config": str(spec.robot_config) if spec.robot_config else None,
+        "set": spec.fixed,
+        "grid": spec.grid,
+        "runs": [
+            {
+                "run_id": r.run_id,
+                "cell_id": r.cell.cell_id,
+                "replicate": r.replicate,
+                "seed": r.seed,
+            }
+            for r in runs
+        ],
+    }
+    write_atomic(out_dir / "sweep.json", json.dumps(_json_safe(plan_data), indent=1))
+
+
+def split_done(
+    runs: Sequence[Run], store: RunStore, retry_failed: bool = False
+) -> tuple[dict[str, dict[str, Any]], list[Run]]:
+    """The stored records of the runs that are done (by run id) and the runs still to do."""
+    records: dict[str, dict[str, Any]] = {}
+    todo: list[Run] = []
+    for run in runs:
+        rec = store.load(run.run_id)
+        if rec is not None and is_done(rec, run, retry_failed):
+            records[run.run_id] = rec
+        else:
+            todo.append(run)
+    return records, todo
+
+
+def run_sweep(
+    spec: SweepSpec,
+    out_dir: str | Path,
+    executor: Executor,
+    progress: Callable[[int, int], None] | None = None,
+    retry_failed: bool = False,
+    runs: Sequence[Run] | None = None,
+) -> SweepResult:
+    """Plan (unless ``runs`` is given), skip the runs already in ``out_dir``, run the rest on
+    ``executor`` (entered by the caller), store each as it finishes, and return every planned
+    run's record. ``progress(done, failed)`` counts over all planned runs. The report
+    (:func:`sim_backend.sweep_report.write_report`) is the caller's next step."""
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    runs = list(runs) if runs is not None else plan(spec)
+    out.mkdir(parents=True, exist_ok=True)
+    write_plan(spec, runs, out)
+    store = RunStore(out)
+    records, todo = split_done(runs, store, retry_failed)
+    skipped = len(records)
+
+    def failed_count() -> int:
+        return sum(1 for r in records.values() if r.get("status") != "ok")
+
+    if progress:
+        progress(len(records), failed_count())
+    args = [(r.run_id, r.cell.world_toml, r.seed) for r in todo]
+    for outcome in executor.map_unordered(run_task, args, names=[r.run_id for r in todo]):
+        run = todo[outcome.index]
+        rec = _record(run, outcome.value if outcome.ok else None, outcome)
+        store.write(rec)
+        records[run.run_id] = rec
+        if progress:
+            progress(len(records), failed_count())
+    return SweepResult(
+        spec=spec,
+        runs=runs,
+        records=[records[r.run_id] for r in runs],
+        ran=len(todo),
+        skipped=skipped,
+        wall_s=time.perf_counter() - t0,
+        executor=executor.description,
+    )

@@ -1,0 +1,382 @@
+"""The results of a sweep (:mod:`sim_backend.sweep`): a table, figures and a markdown summary.
+
+Written into the sweep's output directory from the run records (``runs/*.json``):
+
+- ``results.csv`` — one row per run: its cell, scenario, parameters (one column per grid or
+  [set] key), replicate, seed, status and error, and the mission's summary figures
+  (completed, waypoints, path and straight lengths (m), their ratio, simulated and wall
+  seconds, the number of arrivals and their median true and GPS slow errors (m));
+  ``results.parquet`` the same when pyarrow is installed (it is not a dependency);
+- ``arrivals.csv`` — one row per waypoint arrival: the true horizontal error from the antenna to
+  the waypoint when the arrival was decided (m) and the GPS's slow error at that moment (m);
+- ``completion.png`` (completed runs per cell, %), ``arrival_cdf.png`` (the empirical CDF of
+  the true arrival error per cell, the GPS slow error dashed), ``path_ratio.png`` (true path /
+  straight polyline per completed run, per cell);
+- ``summary.md`` — the sweep, the executor and its throughput, a table per cell and the failed
+  runs with their errors.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+RUN_COLUMNS = (
+    "run_id",
+    "cell_id",
+    "scenario",
+    "replicate",
+    "seed",
+    "status",
+    "error",
+    "completed",
+    "waypoints_reached",
+    "waypoint_count",
+    "path_length_m",
+    "straight_length_m",
+    "path_ratio",
+    "sim_time_s",
+    "wall_time_s",
+    "arrivals",
+    "arrival_true_median_m",
+    "arrival_gps_slow_median_m",
+    "position_source",
+    "worker",
+)
+ARRIVAL_COLUMNS = ("index", "t_s", "true_error_m", "gps_error_m", "gps_slow_error_m")
+
+
+def _num(v: Any) -> float:
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+        return float(v)
+    return math.nan
+
+
+def path_ratio(rec: dict[str, Any]) -> float:
+    """True path length / straight polyline of a run (NaN without lengths)."""
+    path, straight = _num(rec.get("path_length_m")), _num(rec.get("straight_length_m"))
+    return path / straight if straight > 0 else math.nan
+
+
+def _median(values: Sequence[float]) -> float:
+    v = [x for x in values if math.isfinite(x)]
+    return float(np.median(v)) if v else math.nan
+
+
+def _pct(values: Sequence[float], q: float) -> float:
+    v = [x for x in values if math.isfinite(x)]
+    return float(np.percentile(v, q)) if v else math.nan
+
+
+def _cell_text(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float) and not math.isfinite(value):
+        return ""
+    if isinstance(value, (list, dict)):
+        return json.dumps(value)
+    return str(value)
+
+
+def param_keys(records: Sequence[dict[str, Any]]) -> list[str]:
+    """Every override key of the records, in first-seen order."""
+    keys: dict[str, None] = {}
+    for r in records:
+        for k in r.get("overrides") or {}:
+            keys.setdefault(k, None)
+    return list(keys)
+
+
+def run_rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows of ``results.csv`` (values as Python scalars; NaN where unknown)."""
+    keys = param_keys(records)
+    rows = []
+    for r in records:
+        arr = r.get("arrivals") or []
+        row: dict[str, Any] = {c: r.get(c) for c in RUN_COLUMNS}
+        for k in keys:
+            row[k] = (r.get("overrides") or {}).get(k)
+        row["path_ratio"] = path_ratio(r)
+        row["arrivals"] = len(arr)
+        row["arrival_true_median_m"] = _median([_num(a.get("true_error_m")) for a in arr])
+        row["arrival_gps_slow_median_m"] = _median([_num(a.get("gps_slow_error_m")) for a in arr])
+        rows.append(row)
+    return rows
+
+
+def _write_csv(path: Path, rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(columns)
+    for row in rows:
+        w.writerow([_cell_text(row.get(c)) for c in columns])
+    path.write_text(buf.getvalue(), encoding="utf-8")
+
+
+def _write_parquet(path: Path, rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> bool:
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError:
+        return False
+
+    def value(v: Any) -> Any:
+        return json.dumps(v) if isinstance(v, (list, dict)) else v
+
+    table = pa.table({c: [value(r.get(c)) for r in rows] for c in columns})
+    pq.write_table(table, path)
+    return True
+
+
+# ---------------------------------------------------------------------------- per cell
+
+
+@dataclass
+class CellStats:
+    """The figures of one cell over its runs (m, s; ratios dimensionless)."""
+
+    cell_id: str
+    scenario: str
+    params: dict[str, Any]
+    runs: int = 0
+    ok: int = 0
+    failed: int = 0
+    completed: int = 0
+    arrival_true_m: list[float] = field(default_factory=list)
+    arrival_gps_m: list[float] = field(default_factory=list)
+    path_ratios: list[float] = field(default_factory=list)
+    sim_times_s: list[float] = field(default_factory=list)
+    wall_times_s: list[float] = field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        """ "scenario key=value ..." with the last part of each dotted key."""
+        parts = [f"{k.rsplit('.', 1)[-1]}={_cell_text(v)}" for k, v in self.params.items()]
+        return " ".join([self.scenario, *parts])
+
+    @property
+    def completion_pct(self) -> float:
+        return 100.0 * self.completed / self.runs if self.runs else math.nan
+
+
+def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
+    """Group the runs by cell (first-seen order) and collect the figures."""
+    cells: dict[str, CellStats] = {}
+    for r in records:
+        cid = r["cell_id"]
+        c = cells.get(cid)
+        if c is None:
+            c = cells[cid] = CellStats(cid, r.get("scenario", ""), dict(r.get("params") or {}))
+        c.runs += 1
+        if r.get("status") != "ok":
+            c.failed += 1
+            continue
+        c.ok += 1
+        c.wall_times_s.append(_num(r.get("wall_time_s")))
+        for a in r.get("arrivals") or []:
+            t, g = _num(a.get("true_error_m")), _num(a.get("gps_slow_error_m"))
+            if math.isfinite(t):
+                c.arrival_true_m.append(t)
+            if math.isfinite(g):
+                c.arrival_gps_m.append(g)
+        if r.get("completed"):
+            c.completed += 1
+            c.path_ratios.append(path_ratio(r))
+            c.sim_times_s.append(_num(r.get("sim_time_s")))
+    return list(cells.values())
+
+
+# ---------------------------------------------------------------------------- figures
+
+
+def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+    labels = [c.label for c in cells]
+    height = max(2.5, 0.35 * len(cells) + 1.2)
+
+    fig, ax = plt.subplots(figsize=(8, height))
+    y = np.arange(len(cells))
+    ax.barh(y, [c.completion_pct for c in cells], color="tab:green")
+    ax.set_yticks(y, labels, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlim(0, 105)
+    ax.set_xlabel("missions completed (%)")
+    ax.set_title("Completion rate per cell")
+    for yi, c in zip(y, cells, strict=True):
+        ax.text(
+            min(c.completion_pct, 100) + 1 if c.runs else 1,
+            float(yi),
+            f"{c.completed}/{c.runs}",
+            va="center",
+            fontsize=7,
+        )
+    fig.tight_layout()
+    fig.savefig(out / "completion.png", dpi=100)
+    plt.close(fig)
+    names.append("completion.png")
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    colours = plt.get_cmap("tab10")
+    for i, c in enumerate(cells):
+        if not c.arrival_true_m:
+            continue
+        col = colours(i % 10)
+        v = np.sort(c.arrival_true_m)
+        ax.step(v, np.arange(1, v.size + 1) / v.size, where="post", color=col, label=c.label)
+        if c.arrival_gps_m:
+            g = np.sort(c.arrival_gps_m)
+            ax.step(g, np.arange(1, g.size + 1) / g.size, where="post", color=col, ls="--", lw=0.8)
+    ax.set_xlabel("true arrival error (m); dashed: GPS slow error at the same moments")
+    ax.set_ylabel("fraction of arrivals")
+    ax.set_title("Arrival error CDF per cell")
+    ax.set_ylim(0, 1.01)
+    ax.grid(alpha=0.3)
+    if any(c.arrival_true_m for c in cells):
+        ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(out / "arrival_cdf.png", dpi=100)
+    plt.close(fig)
+    names.append("arrival_cdf.png")
+
+    fig, ax = plt.subplots(figsize=(8, height))
+    data = [[x for x in c.path_ratios if math.isfinite(x)] for c in cells]
+    for yi, d in zip(y, data, strict=True):
+        if d:  # the runs, their interquartile range and median
+            q1, q2, q3 = np.percentile(d, [25, 50, 75])
+            ax.hlines(yi, q1, q3, color="tab:blue", lw=6, alpha=0.3)
+            ax.plot([q2], [yi], "|", ms=14, mew=2, color="tab:blue")
+            ax.plot(d, np.full(len(d), yi), "o", ms=3, alpha=0.6, color="tab:blue")
+    ax.set_yticks(y, labels, fontsize=8)
+    ax.invert_yaxis()
+    ax.axvline(1.0, color="grey", lw=0.8)
+    ax.set_xlabel("true path length / straight polyline (completed runs)")
+    ax.set_title("Path ratio per cell")
+    fig.tight_layout()
+    fig.savefig(out / "path_ratio.png", dpi=100)
+    plt.close(fig)
+    names.append("path_ratio.png")
+    return names
+
+
+# ---------------------------------------------------------------------------- markdown
+
+
+def _f(v: float, fmt: str = ".2f") -> str:
+    return format(v, fmt) if math.isfinite(v) else "-"
+
+
+def markdown(
+    result_info: dict[str, Any], cells: Sequence[CellStats], records: Sequence[dict[str, Any]]
+) -> str:
+    """The summary: the sweep, a row per cell, the failed runs."""
+    i = result_info
+    lines = [f"# Sweep {i['name']!r}", ""]
+    lines += [
+        f"- sweep file: `{i.get('source') or '-'}`; sweep seed {i['seed']}, {i['seeds']} seeds"
+        " per cell",
+        f"- scenarios: {', '.join(f'`{s}`' for s in i['scenarios'])}",
+        f"- [set]: `{json.dumps(i['set'])}`; [grid]: `{json.dumps(i['grid'])}`",
+        f"- {len(records)} runs in {len(cells)} cells: {i['ran']} run now, {i['skipped']}"
+        f" found done; {sum(c.failed for c in cells)} failed",
+        f"- executor: {i['executor']}; {_f(i['wall_s'], '.1f')} s wall,"
+        f" {_f(i['missions_per_min'], '.1f')} missions/min",
+        "",
+        "Arrival errors are true horizontal distances (m) from the antenna to the waypoint when"
+        " the arrival was decided; *GPS slow* is the GPS's own slow error at those moments"
+        " (what no navigation can see); the path ratio is the true path over the straight"
+        " polyline, over completed runs.",
+        "",
+        "| cell | runs | completed | failed | arrival error median / p95 | GPS slow median"
+        " | path ratio median (max) | sim time median | wall per run |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in cells:
+        ratios = [x for x in c.path_ratios if math.isfinite(x)]
+        lines.append(
+            f"| `{c.cell_id}` {c.label} | {c.runs} | {c.completed} ({_f(c.completion_pct, '.0f')}"
+            f" %) | {c.failed} | {_f(_median(c.arrival_true_m))} /"
+            f" {_f(_pct(c.arrival_true_m, 95))} m | {_f(_median(c.arrival_gps_m))} m"
+            f" | {_f(_median(ratios), '.3f')} ({_f(max(ratios) if ratios else math.nan, '.3f')})"
+            f" | {_f(_median(c.sim_times_s), '.1f')} s | {_f(_median(c.wall_times_s))} s |"
+        )
+    lines += [
+        "",
+        "![completion](completion.png)",
+        "",
+        "![arrival error CDF](arrival_cdf.png)",
+        "",
+        "![path ratio](path_ratio.png)",
+        "",
+    ]
+    failed = [r for r in records if r.get("status") != "ok"]
+    if failed:
+        lines += [f"## Failed runs ({len(failed)})", ""]
+        for r in failed[:50]:
+            lines.append(
+                f"- `{r['run_id']}` seed {r.get('seed')} ({r.get('status')}): {r.get('error')}"
+            )
+        if len(failed) > 50:
+            lines.append(f"- ... and {len(failed) - 50} more (results.csv)")
+        lines.append("")
+    lines += [
+        "Replay a run: `x6wd sim cells/CELL_ID.toml --seed SEED` (the cell's resolved scenario;"
+        " seeds in results.csv).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def write_report(
+    result_info: dict[str, Any],
+    records: Sequence[dict[str, Any]],
+    out_dir: str | Path,
+    figures: bool = True,
+) -> list[str]:
+    """Write the table(s), figures and ``summary.md``; returns the file names written.
+    ``result_info``: name, source, seed, seeds, scenarios, set, grid, ran, skipped, executor,
+    wall_s, missions_per_min."""
+    out = Path(out_dir)
+    rows = run_rows(records)
+    keys = param_keys(records)
+    columns = [*RUN_COLUMNS[:3], *keys, *RUN_COLUMNS[3:]]
+    _write_csv(out / "results.csv", rows, columns)
+    written = ["results.csv"]
+    if _write_parquet(out / "results.parquet", rows, columns):
+        written.append("results.parquet")
+    arows = []
+    for r in records:
+        for a in r.get("arrivals") or []:
+            row = {
+                "run_id": r["run_id"],
+                "cell_id": r["cell_id"],
+                "scenario": r.get("scenario"),
+                "seed": r.get("seed"),
+                **(r.get("overrides") or {}),
+            }
+            row.update({k: a.get(k) for k in ARRIVAL_COLUMNS})
+            arows.append(row)
+    _write_csv(
+        out / "arrivals.csv",
+        arows,
+        ["run_id", "cell_id", "scenario", *keys, "seed", *ARRIVAL_COLUMNS],
+    )
+    written.append("arrivals.csv")
+    cells = cell_stats(records)
+    if figures:
+        written += _plots(cells, out)
+    (out / "summary.md").write_text(markdown(result_info, cells, records), encoding="utf-8")
+    written.append("summary.md")
+    return written

@@ -1,0 +1,550 @@
+"""x6wd sweep (issue 16, items 2-3): the grid, per-run seeds, resuming, failed runs, and a real
+Dask cluster on 127.0.0.1 (a ``dask scheduler`` and two ``dask worker`` processes, as a user
+starts them) that loses a worker in the middle of a sweep.
+
+Missions are kept short (``duration_s`` 15-40 s simulated, under a second each) so the file
+runs in well under a minute on two cores. Every process a test starts is in its own session
+and is killed (the whole group) by the fixture's finaliser, whatever the test's outcome.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.conftest import ROOT
+
+DEFAULT = ROOT / "config" / "scenarios" / "default.toml"
+ZIGZAG = ROOT / "config" / "scenarios" / "zigzag.toml"
+DASK = Path(sys.executable).parent / "dask"
+X6WD = [sys.executable, "-m", "x6wd"]
+
+pytest.importorskip("distributed", reason="the sweep extra (dask[distributed]) is not installed")
+
+
+# ---------------------------------------------------------------------------- a real cluster
+
+
+class Cluster:
+    """A ``dask scheduler`` and ``dask worker`` processes on 127.0.0.1 (free ports: the
+    scheduler picks its own and writes it to a scheduler file), each in its own session so a
+    worker can be killed with everything it started (nanny and worker process)."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.workers: list[subprocess.Popen[bytes]] = []
+        self.address = ""
+
+    def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
+        log = open(self.tmp / f"{name}.log", "wb")  # noqa: SIM115 - owned by the process
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+        p = subprocess.Popen(
+            argv, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, start_new_session=True, env=env
+        )
+        log.close()
+        self.procs.append(p)
+        return p
+
+    def start(self, n_workers: int) -> None:
+        sched_file = self.tmp / "scheduler.json"
+        self._spawn(
+            "scheduler",
+            [
+                str(DASK),
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(sched_file),
+            ],
+        )
+        deadline = time.monotonic() + 60
+        while not sched_file.exists() or not sched_file.read_text().strip():
+            assert time.monotonic() < deadline, self.logs()
+            assert self.procs[0].poll() is None, self.logs()
+            time.sleep(0.1)
+        time.sleep(0.1)
+        self.address = json.loads(sched_file.read_text())["address"]
+        for i in range(n_workers):
+            self.add_worker(f"w{i}")
+        self.wait_for_workers(n_workers)
+
+    def add_worker(self, name: str) -> None:
+        self.workers.append(
+            self._spawn(
+                name,
+                [
+                    str(DASK),
+                    "worker",
+                    self.address,
+                    "--host",
+                    "127.0.0.1",
+                    "--nthreads",
+                    "1",
+                    "--nworkers",
+                    "1",
+                    "--name",
+                    name,
+                    "--no-dashboard",
+                    "--memory-limit",
+                    "0",
+                    "--death-timeout",
+                    "60",
+                    "--local-directory",
+                    str(self.tmp / name),
+                ],
+            )
+        )
+
+    def worker_count(self) -> int:
+        from distributed import Client
+
+        with Client(self.address, timeout=30) as client:
+            return len(client.scheduler_info()["workers"])
+
+    def wait_for_workers(self, n: int) -> None:
+        from distributed import Client
+
+        with Client(self.address, timeout=30) as client:
+            client.wait_for_workers(n, timeout=60)
+
+    def kill(self, p: subprocess.Popen[bytes]) -> None:
+        """SIGKILL to the process's whole group (a machine that dies: no goodbye)."""
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGKILL)
+        p.wait(timeout=30)
+
+    def stop(self) -> None:
+        for p in reversed(self.procs):
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    continue
+        deadline = time.monotonic() + 10
+        for p in self.procs:
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.kill(p)
+        for p in self.procs:  # anything the group left behind
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(p.pid, signal.SIGKILL)
+
+    def logs(self) -> str:
+        return "\n".join(
+            f"--- {p.name}\n{p.read_text(errors='replace')[-2000:]}"
+            for p in sorted(self.tmp.glob("*.log"))
+        )
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
+    """One scheduler and two workers shared by the module's tests that do not kill any."""
+    c = Cluster(tmp_path_factory.mktemp("dask"))
+    try:
+        c.start(2)
+        yield c
+    finally:
+        c.stop()
+
+
+@pytest.fixture
+def own_cluster(tmp_path: Path) -> Iterator[Cluster]:
+    c = Cluster(tmp_path / "dask")
+    c.tmp.mkdir()
+    try:
+        c.start(2)
+        yield c
+    finally:
+        c.stop()
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def sweep_file(tmp: Path, body: str, scenarios: tuple[Path, ...] = (DEFAULT,)) -> Path:
+    scen = ", ".join(json.dumps(str(s)) for s in scenarios)
+    p = tmp / "sweep.toml"
+    p.write_text(f'name = "test"\nseed = 7\nscenarios = [{scen}]\n{body}')
+    return p
+
+
+def run_cli(*args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*X6WD, "sweep", *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def results(out: Path) -> list[dict[str, str]]:
+    with open(out / "results.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def run_files(out: Path) -> dict[str, Path]:
+    return {p.stem: p for p in (out / "runs").glob("*.json")}
+
+
+def planned_ids(out: Path) -> list[str]:
+    return [r["run_id"] for r in json.loads((out / "sweep.json").read_text())["runs"]]
+
+
+# ---------------------------------------------------------------------------- fast: no cluster
+
+
+def test_run_seeds_come_from_the_parameters_not_the_order(tmp_path: Path) -> None:
+    from sim_backend.sweep import loads_sweep, plan
+
+    def seeds(text: str) -> dict[tuple[str, str, int], int]:
+        spec = loads_sweep(text, ROOT)
+        return {
+            (r.cell.scenario, json.dumps(r.cell.overrides, sort_keys=True), r.replicate): r.seed
+            for r in plan(spec)
+        }
+
+    base = seeds(
+        f'seed = 3\nseeds = 2\nscenarios = ["{DEFAULT}", "{ZIGZAG}"]\n[set]\nduration_s = 30.0\n'
+        '[grid]\nnavigation.position_source = ["ekf", "raw"]\n'
+    )
+    assert len(base) == 8 and len(set(base.values())) == 8
+    assert all(0 <= s < 2**48 for s in base.values())
+    # other order of scenarios and values, one more value, more seeds, quoted dotted keys:
+    # every run of the first plan keeps its seed
+    wider = seeds(
+        f'seed = 3\nseeds = 3\nscenarios = ["{ZIGZAG}", "{DEFAULT}"]\n[set]\nduration_s = 30.0\n'
+        '[grid]\n"navigation.position_source" = ["constellation", "raw", "ekf"]\n'
+    )
+    assert len(wider) == 18
+    assert {k: wider[k] for k in base} == base
+    # another sweep seed: every run's seed changes
+    other = seeds(
+        f'seed = 4\nseeds = 2\nscenarios = ["{DEFAULT}", "{ZIGZAG}"]\n[set]\nduration_s = 30.0\n'
+        '[grid]\nnavigation.position_source = ["ekf", "raw"]\n'
+    )
+    assert other.keys() == base.keys() and not set(other.values()) & set(base.values())
+
+
+def test_a_run_is_the_same_mission_wherever_it_runs() -> None:
+    from sim_backend.sweep import loads_sweep, plan, run_task
+
+    spec = loads_sweep(f'seeds = 1\nscenarios = ["{DEFAULT}"]\n[set]\nduration_s = 20.0\n', ROOT)
+    (run,) = plan(spec)
+    a = run_task(run.run_id, run.cell.world_toml, run.seed)
+    b = run_task(run.run_id, run.cell.world_toml, run.seed)
+    drop = {"wall_time_s", "task_s"}
+    assert a["status"] == "ok" and a["arrivals"]
+    assert {k: v for k, v in a.items() if k not in drop} == {
+        k: v for k, v in b.items() if k not in drop
+    }
+
+
+@pytest.mark.parametrize(
+    ("grid", "named"),
+    [
+        ("navigation.bogus = [1]", "navigation.bogus: unknown key"),
+        ('gnss.rate_hz = [1.0, "fast"]', "gnss.rate_hz"),
+        ("compass.bogus = [1]", "compass.bogus"),
+        ("name.sub = [1]", "name.sub: name is not a table"),
+        ("failsafe.stuck_s = []", "grid.failsafe.stuck_s: expected a non-empty list"),
+    ],
+)
+def test_a_bad_key_or_value_stops_the_sweep_naming_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], grid: str, named: str
+) -> None:
+    from x6wd.app.cli import main
+
+    f = sweep_file(tmp_path, f"seeds = 1\n[grid]\n{grid}\n")
+    assert main(["sweep", str(f), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert named in err, err
+    assert not (tmp_path / "out" / "runs").exists()  # stopped before anything ran
+
+
+def test_the_daemon_and_x6wd_sim_never_import_dask() -> None:
+    code = (
+        "import sys, x6wd.app.daemon, x6wd.app.cli, sim_backend.mission, sim_backend.sweep, "
+        "sim_backend.executor, x6wd.app.sweep, x6wd.gap.cli\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed'))\n"
+        "assert not bad, bad"
+    )
+    subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=120)
+
+
+# ---------------------------------------------------------------------------- on the cluster
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_a_sweep_through_the_scheduler_loses_nothing_when_a_worker_is_killed(
+    tmp_path: Path, own_cluster: Cluster
+) -> None:
+    f = sweep_file(
+        tmp_path,
+        "seeds = 5\n[set]\nduration_s = 40.0\n"
+        '[grid]\nnavigation.position_source = ["ekf", "raw"]\n',
+    )
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [*X6WD, "sweep", str(f), "--scheduler", own_cluster.address, "--out", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while len(run_files(out)) < 2 if (out / "runs").exists() else True:
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        done_at_kill = len(run_files(out))
+        own_cluster.kill(own_cluster.workers[1])
+        stdout, stderr = proc.communicate(timeout=180)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, (stdout, stderr, own_cluster.logs())
+    assert done_at_kill < 10  # the worker died in the middle of the sweep
+    assert own_cluster.worker_count() == 1
+    rows = results(out)
+    ids = [r["run_id"] for r in rows]
+    assert sorted(ids) == sorted(planned_ids(out)) and len(set(ids)) == 10  # each exactly once
+    assert all(r["status"] == "ok" and r["error"] == "" for r in rows)
+    assert set(run_files(out)) == set(ids)
+    workers = {json.loads(p.read_text())["worker"] for p in run_files(out).values()}
+    assert len(workers) == 2  # both workers ran missions before one died
+    assert "10 run now, 0 found done), 0 failed" in stdout
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_a_sweep_resumes_with_only_the_missing_runs(tmp_path: Path, cluster: Cluster) -> None:
+    f = sweep_file(
+        tmp_path,
+        "seeds = 3\n[set]\nduration_s = 15.0\n"
+        '[grid]\nnavigation.position_source = ["ekf", "raw"]\n',
+    )
+    out = tmp_path / "out"
+    first = run_cli(str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet")
+    assert first.returncode == 0, (first.stdout, first.stderr, cluster.logs())
+    assert "6 run now, 0 found done" in first.stdout
+    files = run_files(out)
+    assert len(files) == 6
+    before = {k: (p.stat().st_mtime_ns, p.read_bytes()) for k, p in files.items()}
+    gone = sorted(files)[1:3]
+    for k in gone:
+        files[k].unlink()
+    second = run_cli(str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet")
+    assert second.returncode == 0, second.stderr
+    assert "2 run now, 4 found done" in second.stdout
+    after = run_files(out)
+    assert set(after) == set(before)
+    for k, p in after.items():
+        same = (p.stat().st_mtime_ns, p.read_bytes()) == before[k]
+        assert same == (k not in gone), k  # untouched unless it was missing
+        rec = json.loads(p.read_text())
+        if k in gone:  # the same mission again: same seed, same figures
+            old = json.loads(before[k][1])
+            assert rec["seed"] == old["seed"] and rec["path_length_m"] == old["path_length_m"]
+    rows = results(out)
+    assert sorted(r["run_id"] for r in rows) == sorted(before)
+    for name in ("arrivals.csv", "completion.png", "arrival_cdf.png", "path_ratio.png"):
+        assert (out / name).stat().st_size > 0, name
+    summary = (out / "summary.md").read_text()
+    assert "position_source=ekf" in summary and "position_source=raw" in summary
+    # the parameter is a column of the table; the arrivals are counted (15 s: the first
+    # waypoint or none)
+    assert {r["navigation.position_source"] for r in rows} == {"ekf", "raw"}
+    assert all(int(r["arrivals"]) in (0, 1) for r in rows)
+    # a cell's replay file is the mission: the sweep's figures from x6wd sim
+    rec = json.loads(next(iter(after.values())).read_text())
+    replay = subprocess.run(
+        [
+            *X6WD,
+            "sim",
+            str(out / "cells" / f"{rec['cell_id']}.toml"),
+            "--seed",
+            str(rec["seed"]),
+            "--out",
+            str(tmp_path / "replay"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert replay.returncode in (0, 1), replay.stderr  # 1: not completed in 15 s
+    summ = json.loads((tmp_path / "replay" / "summary.json").read_text())
+    assert summ["path_length_m"] == pytest.approx(rec["path_length_m"], abs=1e-9)
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_an_interrupted_sweep_finishes_on_the_next_call(tmp_path: Path, cluster: Cluster) -> None:
+    f = sweep_file(tmp_path, "seeds = 8\n[set]\nduration_s = 30.0\n")
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [*X6WD, "sweep", str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while len(run_files(out)) < 2 if (out / "runs").exists() else True:
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)  # Ctrl-C
+        _stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, stderr
+    kept = run_files(out)
+    assert 2 <= len(kept) < 8
+    for p in kept.values():  # whole files only
+        assert json.loads(p.read_text())["status"] == "ok"
+    assert not list((out / "runs").glob(".*"))  # no temporary file left
+    again = run_cli(str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet")
+    assert again.returncode == 0, again.stderr
+    assert f"{8 - len(kept)} run now, {len(kept)} found done" in again.stdout
+    assert sorted(r["run_id"] for r in results(out)) == sorted(planned_ids(out))
+
+
+@pytest.mark.integration
+def test_a_failed_run_is_recorded_with_its_error_and_the_sweep_goes_on(
+    tmp_path: Path, cluster: Cluster
+) -> None:
+    # 3 GPS epochs a second pass validation, but the 20 Hz compass loop needs a whole
+    # multiple: those runs raise when the mission starts
+    f = sweep_file(
+        tmp_path, "seeds = 2\n[set]\nduration_s = 10.0\n[grid]\ngnss.rate_hz = [1.0, 3.0]\n"
+    )
+    out = tmp_path / "out"
+    r = run_cli(str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet")
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    rows = {row["run_id"]: row for row in results(out)}
+    assert len(rows) == 4
+    bad = [row for row in rows.values() if row["gnss.rate_hz"] == "3.0"]
+    good = [row for row in rows.values() if row["gnss.rate_hz"] == "1.0"]
+    assert all(row["status"] == "ok" and row["sim_time_s"] for row in good)
+    assert all(
+        row["status"] == "error"
+        and "ConfigError" in row["error"]
+        and "whole multiple" in row["error"]
+        for row in bad
+    )
+    assert "Failed runs (2)" in (out / "summary.md").read_text()
+    assert "run failed:" in r.stderr
+    # a failed mission is a result: not run again, unless asked
+    again = run_cli(str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet")
+    assert "0 run now, 4 found done), 2 failed" in again.stdout
+    retry = run_cli(
+        str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet", "--retry-failed"
+    )
+    assert "2 run now, 2 found done), 2 failed" in retry.stdout
+
+
+@pytest.mark.integration
+def test_gap_baseline_seeds_through_the_cluster_equal_the_in_process_ones(
+    cluster: Cluster,
+) -> None:
+    import numpy as np
+
+    from sim_backend.effects import PositionSeries
+    from sim_backend.executor import Executor
+    from sim_backend.world import load_world
+    from x6wd.gap.scenario import scenario_baseline
+
+    o = load_world(DEFAULT).origin
+    t = np.arange(0.0, 60.0)
+    z = np.zeros(t.size)
+    template = PositionSeries(t, z, z, z, np.ones(t.size, dtype=bool), o.lat_deg, o.lon_deg)
+    here = scenario_baseline(DEFAULT, template, 3)
+    with Executor(scheduler=cluster.address) as ex:
+        there = scenario_baseline(DEFAULT, template, 3, executor=ex)
+    assert len(there) == 3
+    for a, b in zip(here, there, strict=True):
+        np.testing.assert_array_equal(a.east_m, b.east_m)
+        np.testing.assert_array_equal(a.north_m, b.north_m)
+    assert not np.array_equal(here[0].east_m, here[1].east_m)
+
+
+def test_results_table_and_report_from_records(tmp_path: Path) -> None:
+    from sim_backend.sweep_report import cell_stats, write_report
+
+    def rec(i: int, status: str = "ok", **kw: Any) -> dict[str, Any]:
+        base = {
+            "run_id": f"c{i % 2}-{i:03d}",
+            "cell_id": f"c{i % 2}",
+            "scenario": "s",
+            "params": {"a.b": i % 2},
+            "overrides": {"a.b": i % 2, "duration_s": 5.0},
+            "seed": i,
+            "status": status,
+            "completed": True,
+            "path_length_m": 11.0,
+            "straight_length_m": 10.0,
+            "sim_time_s": 5.0,
+            "wall_time_s": 0.1,
+            "arrivals": [{"true_error_m": 1.0 + i, "gps_slow_error_m": 1.5}],
+        }
+        base.update(kw)
+        return base
+
+    records = [
+        rec(0),
+        rec(1),
+        rec(2),
+        rec(3, "error", error="ValueError: x at y.py:1", completed=False, arrivals=[]),
+    ]
+    info = {
+        "name": "t",
+        "seed": 0,
+        "seeds": 2,
+        "scenarios": ["s.toml"],
+        "set": {},
+        "grid": {},
+        "ran": 4,
+        "skipped": 0,
+        "executor": "in this process",
+        "wall_s": 1.0,
+        "missions_per_min": 240.0,
+    }
+    written = write_report(info, records, tmp_path)
+    assert {"results.csv", "arrivals.csv", "summary.md", "completion.png"} <= set(written)
+    rows = results(tmp_path)
+    assert [r["a.b"] for r in rows] == ["0", "1", "0", "1"]
+    assert rows[0]["path_ratio"] == "1.1" and rows[3]["error"] == "ValueError: x at y.py:1"
+    cells = cell_stats(records)
+    assert [(c.cell_id, c.runs, c.completed, c.failed) for c in cells] == [
+        ("c0", 2, 2, 0),
+        ("c1", 2, 1, 1),
+    ]
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        assert "results.parquet" not in written
+    else:
+        assert "results.parquet" in written

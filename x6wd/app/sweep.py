@@ -1,0 +1,97 @@
+"""``x6wd sweep SWEEP.toml [--scheduler ADDRESS] [--workers N] [--out DIR]``.
+
+A grid of scenarios x parameters x seeds (:mod:`sim_backend.sweep`: the file format, the
+seeds, resuming), run on Dask's distributed scheduler through the one executor
+(:class:`sim_backend.executor.Executor`): a LocalCluster of ``--workers`` processes on this
+machine by default, or ``--scheduler tcp://HOST:PORT`` for a running cluster. Writes
+``OUT/runs/*.json`` as runs finish and at the end ``results.csv`` (and ``results.parquet`` with
+pyarrow), ``arrivals.csv``, three figures and ``summary.md`` (:mod:`sim_backend.sweep_report`).
+Usage and costs: docs/sweeps.md.
+
+Exit codes: 0 every run succeeded; 1 some run failed (recorded with its error); 2 a bad sweep
+file, scenario key or value, or no Dask; 130 interrupted (finished runs are kept: run the same
+command again to finish).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from sim_backend.executor import Executor, TextProgress
+from sim_backend.sweep import RunStore, load_sweep, plan, run_sweep, split_done
+from sim_backend.sweep_report import write_report
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("sweep", help="sweep file (TOML), e.g. config/sweeps/position_source.toml")
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help="a running Dask scheduler (tcp://host:8786); default: a LocalCluster here",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="LocalCluster worker processes (default: CPU count); with --scheduler, wait until"
+        " N workers have joined",
+    )
+    parser.add_argument(
+        "--out", default=None, help="output directory (default out/sweeps/SWEEP_FILE_STEM)"
+    )
+    parser.add_argument(
+        "--retry-failed",
+        action="store_true",
+        help="run again the runs whose mission raised (kept as failed otherwise)",
+    )
+    parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Plan (validating every cell), run what is missing, write the report."""
+    spec = load_sweep(args.sweep)
+    runs = plan(spec)  # a bad key or value stops here, before any cluster starts
+    out = Path(args.out) if args.out else Path("out") / "sweeps" / Path(args.sweep).stem
+    progress = None if args.quiet else TextProgress(len(runs), "runs")
+    _done, todo = split_done(runs, RunStore(out), args.retry_failed)
+    # Nothing left to run (a finished sweep run again): no cluster to start, only the report.
+    if todo:
+        executor = Executor(scheduler=args.scheduler, workers=args.workers)
+    else:
+        executor = Executor(inline=True)
+    with executor:
+        result = run_sweep(
+            spec, out, executor, progress=progress, retry_failed=args.retry_failed, runs=runs
+        )
+    info = {
+        "name": spec.name,
+        "source": str(spec.source) if spec.source else None,
+        "seed": spec.seed,
+        "seeds": spec.seeds,
+        "scenarios": [str(p) for p in spec.scenarios],
+        "set": spec.fixed,
+        "grid": spec.grid,
+        "ran": result.ran,
+        "skipped": result.skipped,
+        "executor": result.executor,
+        "wall_s": result.wall_s,
+        "missions_per_min": result.missions_per_min,
+    }
+    write_report(info, result.records, out, figures=not args.no_figures)
+    failed = result.failed
+    rate = f"{result.missions_per_min:.1f} missions/min" if result.ran else "nothing to run"
+    print(
+        f"sweep {spec.name!r}: {len(result.records)} runs ({result.ran} run now, {result.skipped}"
+        f" found done), {len(failed)} failed; {rate} on {result.executor};"
+        f" summary in {out / 'summary.md'}"
+    )
+    for rec in failed[:10]:
+        print(
+            f"run failed: {rec['run_id']} seed {rec['seed']}: {rec.get('error')}", file=sys.stderr
+        )
+    return 1 if failed else 0
