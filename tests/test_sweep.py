@@ -200,6 +200,19 @@ def run_files(out: Path) -> dict[str, Path]:
     return {p.stem: p for p in (out / "runs").glob("*.json")}
 
 
+def workers_seen(out: Path) -> set[str]:
+    return set(run_workers(out).values())
+
+
+def run_workers(out: Path) -> dict[str, str]:
+    """Run id -> the worker (host:pid) that ran it, for the runs finished so far."""
+    found = {}
+    for run_id, p in run_files(out).items():
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            found[run_id] = json.loads(p.read_text())["worker"]
+    return found
+
+
 def planned_ids(out: Path) -> list[str]:
     return [r["run_id"] for r in json.loads((out / "sweep.json").read_text())["runs"]]
 
@@ -309,11 +322,11 @@ def test_a_sweep_through_the_scheduler_loses_nothing_when_a_worker_is_killed(
     )
     try:
         deadline = time.monotonic() + 120
-        while len(run_files(out)) < 2 if (out / "runs").exists() else True:
+        while len(workers_seen(out)) < 2:  # both workers have finished a mission
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline
             time.sleep(0.05)
-        done_at_kill = len(run_files(out))
+        before_kill = set(run_files(out))
         own_cluster.kill(own_cluster.workers[1])
         stdout, stderr = proc.communicate(timeout=180)
     finally:
@@ -321,15 +334,16 @@ def test_a_sweep_through_the_scheduler_loses_nothing_when_a_worker_is_killed(
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     assert proc.returncode == 0, (stdout, stderr, own_cluster.logs())
-    assert done_at_kill < 10  # the worker died in the middle of the sweep
+    assert len(before_kill) < 10  # the worker died in the middle of the sweep
     assert own_cluster.worker_count() == 1
     rows = results(out)
     ids = [r["run_id"] for r in rows]
     assert sorted(ids) == sorted(planned_ids(out)) and len(set(ids)) == 10  # each exactly once
     assert all(r["status"] == "ok" and r["error"] == "" for r in rows)
     assert set(run_files(out)) == set(ids)
-    workers = {json.loads(p.read_text())["worker"] for p in run_files(out).values()}
-    assert len(workers) == 2  # both workers ran missions before one died
+    # the survivor ran the rest (give or take a result already on its way at the kill)
+    after = [w for k, w in run_workers(out).items() if k not in before_kill]
+    assert after and max(after.count(w) for w in after) >= len(after) - 1
     assert "10 run now, 0 found done), 0 failed" in stdout
 
 
