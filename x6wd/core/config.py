@@ -120,8 +120,8 @@ class NavigationConfig:
     delta_phi_deg: float = field(default=10.0, metadata=_rng(0.1, 90))
     # Arrival windows (eq. 7). pivot_arc also arrives on passing the waypoint's line, so a
     # tight window costs no circling; with "paper" steering use ~3 m (the GPS's accuracy).
-    delta_x_m: float = field(default=0.5, metadata=_rng(0.01, 1000))
-    delta_y_m: float = field(default=0.5, metadata=_rng(0.01, 1000))
+    delta_x_m: float = field(default=0.25, metadata=_rng(0.01, 1000))
+    delta_y_m: float = field(default=0.25, metadata=_rng(0.01, 1000))
     # "ekf": the estimator (x6wd.nav.position); "constellation": the paper's filter over
     # filter_n fixes; "raw": the latest fix.
     position_source: str = field(
