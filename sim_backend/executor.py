@@ -28,10 +28,13 @@ Dask is imported only here and only when a cluster backend is entered, so the da
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
+import signal
 import sys
+import threading
 import time
 import traceback
 import uuid
@@ -79,6 +82,22 @@ def dask_available() -> bool:
     return True
 
 
+@contextlib.contextmanager
+def _workers_ignore_sigint() -> Iterator[None]:
+    """SIGINT ignored while a LocalCluster starts its worker processes, which inherit that:
+    a Ctrl-C at the terminal reaches the whole process group, and only this process should
+    act on it (it stops the cluster); otherwise every worker prints a KeyboardInterrupt
+    traceback on its way down."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 class Executor:
     """Runs independent tasks on a Dask cluster (local or remote) or in this process; use it
     as a context manager. See the module docstring."""
@@ -117,13 +136,14 @@ class Executor:
                     self._client.wait_for_workers(self.workers, timeout=self.connect_timeout_s)
             else:
                 n = self.workers or os.cpu_count() or 1
-                self._cluster = LocalCluster(
-                    n_workers=n,
-                    threads_per_worker=1,
-                    processes=True,
-                    dashboard_address=None,
-                    silence_logs=logging.ERROR,
-                )
+                with _workers_ignore_sigint():
+                    self._cluster = LocalCluster(
+                        n_workers=n,
+                        threads_per_worker=1,
+                        processes=True,
+                        dashboard_address=None,
+                        silence_logs=logging.ERROR,
+                    )
                 self._client = Client(self._cluster)
         except (OSError, TimeoutError) as exc:
             self.close()

@@ -435,6 +435,7 @@ def test_an_interrupted_sweep_finishes_on_the_next_call(tmp_path: Path, cluster:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     assert proc.returncode == 130, stderr
+    assert "the same command finishes the rest" in stderr
     kept = run_files(out)
     assert 2 <= len(kept) < 8
     for p in kept.values():  # whole files only

@@ -64,10 +64,19 @@ def main(args: argparse.Namespace) -> int:
         executor = Executor(scheduler=args.scheduler, workers=args.workers)
     else:
         executor = Executor(inline=True)
-    with executor:
-        result = run_sweep(
-            spec, out, executor, progress=progress, retry_failed=args.retry_failed, runs=runs
+    try:
+        with executor:
+            result = run_sweep(
+                spec, out, executor, progress=progress, retry_failed=args.retry_failed, runs=runs
+            )
+    except KeyboardInterrupt:
+        kept = len(split_done(runs, RunStore(out), args.retry_failed)[0])
+        print(
+            f"\nsweep interrupted: {kept}/{len(runs)} runs are done in {out / 'runs'};"
+            " the same command finishes the rest",
+            file=sys.stderr,
         )
+        raise
     info = {
         "name": spec.name,
         "source": str(spec.source) if spec.source else None,
