@@ -463,6 +463,9 @@ class EncoderLink(BlockingLink):
         self.reads: list[float] = []
         self.busy = threading.Lock()
         self.overlaps = 0
+        self.reading = threading.Event()  # a read has begun
+        self.release_read = threading.Event()  # reads return (cleared: they wait for it)
+        self.release_read.set()
 
     def _enter(self) -> None:
         if not self.busy.acquire(blocking=False):
@@ -482,6 +485,8 @@ class EncoderLink(BlockingLink):
 
         self._enter()
         try:
+            self.reading.set()
+            self.release_read.wait(5)
             self.reads.append(time.monotonic())
             if not self.answers:
                 return None
@@ -583,4 +588,27 @@ def test_the_encoders_are_not_polled_while_the_link_is_lost() -> None:
         wait_for(lambda: len(got) >= 3, 3, "polling again")
         assert w.odometry_failures == 0
     finally:
+        w.shutdown("test end")
+
+
+def test_an_encoder_poll_leaves_the_link_idle_for_the_gc_but_a_command_waits_for_it() -> None:
+    from x6wd.app.daemon import _MotorWorker
+
+    link = EncoderLink()
+    link.release_read.clear()
+    w = _MotorWorker(
+        link, keepalive_s=5.0, on_health=lambda ok, t: None, on_odometry=lambda rec: None,
+        odometry_s=0.02,
+    )  # fmt: skip
+    w.start()
+    try:
+        assert link.reading.wait(3)
+        assert w.idle  # no command sent or queued: the GPS thread may collect garbage
+        assert w.send_now(MotorCommand(time.monotonic(), 10.0, 10.0, "fix")) is False
+        assert not w.idle  # queued behind the poll
+        link.release_read.set()
+        wait_for(lambda: any(c.reason == "fix" for _t, c in link.sent), 3, "the queued fix")
+        assert link.sent[-1][0] == "x6wd-motors" and link.overlaps == 0
+    finally:
+        link.release_read.set()
         w.shutdown("test end")

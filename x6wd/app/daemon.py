@@ -156,6 +156,7 @@ class _MotorWorker:
         self._t_submit = time.monotonic()
         self._t_sent = self._t_submit  # end of the latest send (s): the keep-alive counts from it
         self._busy = False  # a send is in progress (this thread or a send_now caller)
+        self._polling = False  # the send in progress is an encoder poll (this thread)
         self._acked = True  # the latest send went through (send_now may then send directly)
         self._stop = False
         self._healthy = bool(link.healthy)
@@ -181,9 +182,10 @@ class _MotorWorker:
 
     @property
     def idle(self) -> bool:
-        """Nothing being sent, nothing queued."""
+        """No command being sent, nothing queued (an encoder poll in progress is idle: no
+        command waits for it, and it is not urgent)."""
         with self._cond:
-            return not self._busy and self._pending is None
+            return not (self._busy and not self._polling) and self._pending is None
 
     def submit(self, cmd: MotorCommand, repeat_after_s: float = 0.0) -> None:
         """Queue ``cmd`` (replacing an unsent one); never blocks on I/O.
@@ -268,12 +270,13 @@ class _MotorWorker:
                 else:
                     cmd, self._pending = self._pending, None
                 self._busy = True
+                self._polling = poll
             if poll:  # the link is ours: one E and its reply, like any send
                 try:
                     self._poll_odometry()
                 finally:
                     with self._cond:
-                        self._busy = False
+                        self._busy = self._polling = False
                         self._cond.notify_all()
                 continue
             try:
