@@ -525,18 +525,19 @@ def test_the_motor_thread_polls_the_encoders_at_the_rate_between_sends() -> None
 
 
 @pytest.mark.parametrize(
-    ("link", "reason"),
+    ("make_link", "reason"),
     [
-        (BlockingLink(), "the motor backend has no wheel encoders"),
-        (EncoderLink(answers=False, supported=False), "the motor board refuses"),
-        (EncoderLink(answers=False), "the motor board did not answer"),
+        (BlockingLink, "the motor backend has no wheel encoders"),
+        (lambda: EncoderLink(answers=False, supported=False), "the motor board refuses"),
+        (lambda: EncoderLink(answers=False), "the motor board did not answer"),
     ],
 )
 def test_a_board_without_encoders_is_asked_once_and_logged_once(
-    link: Any, reason: str, caplog: pytest.LogCaptureFixture
+    make_link: Callable[[], Any], reason: str, caplog: pytest.LogCaptureFixture
 ) -> None:
     from x6wd.app.daemon import _MotorWorker
 
+    link = make_link()
     got: list[Any] = []
     w = _MotorWorker(
         link, keepalive_s=0.05, on_health=lambda ok, t: None, on_odometry=got.append,
