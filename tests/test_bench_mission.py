@@ -27,7 +27,7 @@ def test_one_run_of_the_default_scenario_has_the_result_structure() -> None:
     assert math.isfinite(r.path_ratio)
     assert isinstance(r.arrivals, list) and len(r.arrivals) == r.waypoints_reached
     for a in r.arrivals:
-        assert {"index", "t_s", "true_error_m", "gps_error_m"} <= set(a)
+        assert {"index", "t_s", "true_error_m", "gps_error_m", "gps_slow_error_m"} <= set(a)
     cells = bm.summarise([r])
     assert len(cells) == 1 and cells[0].runs == 1
     rows = bm.rows(cells)
@@ -48,7 +48,7 @@ def test_a_run_that_raises_is_a_failure_with_its_error(monkeypatch: pytest.Monke
 def test_figures_pool_the_arrivals_and_take_path_ratios_of_completed_runs() -> None:
     def run(seed: int, done: bool, true_m: list[float], gps_m: list[float]) -> bm.RunResult:
         arrivals = [
-            {"index": i, "t_s": 10.0 * i, "true_error_m": t, "gps_error_m": g}
+            {"index": i, "t_s": 10.0 * i, "true_error_m": t, "gps_slow_error_m": g}
             for i, (t, g) in enumerate(zip(true_m, gps_m, strict=True))
         ]
         return bm.RunResult(

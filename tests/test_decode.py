@@ -231,3 +231,13 @@ def test_decode_starts_without_the_gpsd_server_module() -> None:
     got = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert got.stdout.count('"class":"TPV"') > 10
     assert got.stderr.strip() == "[]"
+
+
+def test_equal_values_in_different_groups_keep_their_own_text() -> None:
+    """Altitudes, error estimates and DOPs share one memo: its key must tell them apart (an
+    altitude of 99.99 once came back as the error estimates of an HDOP of 99.99)."""
+    enc = ReportEncoder()
+    first = GpsFix(0.0, None, 0.0, 0.0, 99.99, 1, 8, None, None, None, True, 3, None, None)
+    second = GpsFix(0.0, None, 0.0, 0.0, None, 1, 8, 99.99, None, None, True, 3, None, None)
+    for fix in (first, second, first, second):
+        assert enc.tpv(fix) == _plain(fix)

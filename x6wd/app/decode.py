@@ -61,7 +61,8 @@ class ReportEncoder:
     """
 
     def __init__(self) -> None:
-        self._groups: dict[tuple[Any, ...], str] = {}  # DOPs, altitudes, error estimates
+        # (builder, values) -> text: DOPs, altitudes, error estimates
+        self._groups: dict[tuple[Callable[..., str], tuple[Any, ...]], str] = {}
         # id(SatInfo) -> its JSON object. _sat_keep holds every SatInfo memoised, so none of
         # them dies and no other object can take its id meanwhile.
         self._sat_text: dict[int, str] = {}
@@ -75,9 +76,11 @@ class ReportEncoder:
         return max(len(self._sat_text), len(self._groups))
 
     def _group(self, key: tuple[Any, ...], build: Callable[..., str]) -> str:
-        """``build(*key)``, memoised unless ``key`` holds a zero."""
+        """``build(*key)``, memoised unless ``key`` holds a zero. The memo's key carries
+        ``build``: altitudes, DOPs and error estimates of equal values are different texts."""
+        memo_key = (build, key)
         try:
-            text = self._groups[key]
+            text = self._groups[memo_key]
         except KeyError:
             pass
         except TypeError:
@@ -88,7 +91,7 @@ class ReportEncoder:
         if 0 not in key:
             if len(self._groups) >= MEMO_MAX:
                 self._groups.clear()
-            self._groups[key] = text
+            self._groups[memo_key] = text
         return text
 
     def _time(self, utc: datetime | None) -> str:
