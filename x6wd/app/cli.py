@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("x6wd.calibrate.cli", "estimate configuration sections from calibration runs"),
     "decode": ("x6wd.app.decode", "decode NMEA logs or recordings to gpsd-style JSON lines"),
     "replay": ("x6wd.app.replay", "replay a recording or NMEA log through the decoders"),
+    "mission": ("x6wd.app.mission", "show or convert mission files (.waypoints, .gpx, .csv, .kml)"),
 }
 
 

@@ -1,8 +1,9 @@
 """``x6wd client``: the operator's command line for the remote-control protocol.
 
 ``x6wd client [--host H] [--port P] [--token-file F] [--tls [--cafile F]] COMMAND``
-with COMMAND one of ``status``, ``load FILE | load --wp LAT,LON ...``, ``start``, ``pause``,
-``resume``, ``return``, ``stop``, ``drive LEFT RIGHT SECONDS``, ``watch``, ``log [N]``.
+with COMMAND one of ``status``, ``load FILE | load --wp LAT,LON ...`` (FILE: ``.waypoints``,
+``.gpx``, ``.csv`` or ``.kml``), ``start``, ``pause``, ``resume``, ``return``, ``stop``,
+``drive LEFT RIGHT SECONDS``, ``watch``, ``log [N]``.
 
 Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed
 (also when the robot closed the connection: pool full, auth deadline, too many failed tokens).
@@ -22,7 +23,7 @@ from typing import Any, NoReturn, TextIO
 
 from x6wd.app.server import load_token
 from x6wd.core.errors import ParseError, ProtocolError, X6wdError
-from x6wd.core.mission_files import Waypoint, load_file, parse_args
+from x6wd.core.mission_files import PARSERS, Waypoint, load_file, parse_args
 
 EXIT_OK = 0
 EXIT_REFUSED = 1
@@ -31,6 +32,7 @@ EXIT_CONNECTION = 3
 DEFAULT_PORT = 7601
 MAX_REPLY_BYTES = 16 * 1024 * 1024
 CLEAR = "\x1b[H\x1b[2J"
+MISSION_EXTENSIONS = ", ".join(f".{k}" for k in PARSERS)
 
 
 class ConnectionFailed(X6wdError):
@@ -253,10 +255,10 @@ def _waypoints(args: argparse.Namespace) -> list[Waypoint]:
     if args.file and args.wp:
         raise ParseError("give a FILE or --wp, not both")
     if args.file:
-        return load_file(args.file)
+        return load_file(args.file, args.format)
     if args.wp:
         return parse_args(args.wp)
-    raise ParseError("load needs a FILE (.csv or .gpx) or --wp LAT,LON ...")
+    raise ParseError(f"load needs a FILE ({MISSION_EXTENSIONS}) or --wp LAT,LON ...")
 
 
 def _print_reply(reply: dict[str, Any], out: TextIO) -> None:
@@ -309,9 +311,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print replies as JSON")
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     sub.add_parser("status", help="show the robot's state")
-    p = sub.add_parser("load", help="load a mission from a CSV/GPX file or --wp points")
-    p.add_argument("file", nargs="?", help="mission file (.csv or .gpx)")
+    p = sub.add_parser(
+        "load", help=f"load a mission from a file ({MISSION_EXTENSIONS}) or --wp points"
+    )
+    p.add_argument("file", nargs="?", help=f"mission file ({MISSION_EXTENSIONS})")
     p.add_argument("--wp", action="append", metavar="LAT,LON", help="a waypoint (repeat)")
+    p.add_argument(
+        "--format", choices=sorted(PARSERS), help="the file's format (default: its extension)"
+    )
     for name, text in (
         ("start", "start the loaded mission"),
         ("pause", "pause the mission (motors stop)"),

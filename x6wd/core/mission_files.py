@@ -1,7 +1,17 @@
-"""Waypoint lists from CSV, GPX or command-line arguments, with errors that say where.
+"""Mission files in and out, with errors that say where.
 
-A waypoint is (latitude, longitude) in decimal degrees, WGS-84. Parsers are pure functions
-over text; :func:`load_file` picks one by suffix (or by content when the suffix is unknown).
+A waypoint is (latitude, longitude) in decimal degrees, WGS-84 (altitudes in the files are
+ignored: the robot drives on the ground). Parsers and writers are pure functions over text;
+:func:`load_file` and :func:`save_file` pick the format by the file's extension:
+
+- ``.waypoints``: QGroundControl / Mission Planner plain text, ``QGC WPL 110`` (read, write);
+- ``.gpx``: GPX 1.0/1.1, the first route, else the waypoints, else the first track (read;
+  written as one route);
+- ``.csv``: ``lat,lon`` rows, or a header naming the columns (read, write);
+- ``.kml``: KML 2.2 (Google Earth), the first ``LineString``, else every ``Point`` (read).
+
+Also the command-line form ``LAT,LON`` (:func:`parse_args`) and the protocol's JSON pairs
+(:func:`from_pairs`).
 """
 
 from __future__ import annotations
@@ -9,8 +19,10 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 import xml.etree.ElementTree as ET
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from decimal import Decimal
 from pathlib import Path
 from typing import NamedTuple
 
@@ -172,21 +184,296 @@ def parse_gpx(text: str, source: str = "GPX") -> list[Waypoint]:
     return _check_count(out, source)
 
 
+def _no_dtd(text: str, source: str, kind: str) -> None:
+    """Refuse DTDs and entities: the content may come from the network (billion laughs)."""
+    head = text[:4096].upper()
+    if "<!DOCTYPE" in head or "<!ENTITY" in text.upper():
+        raise ParseError(f"{source}: DTDs and entities are not allowed in {kind}")
+
+
+# -- QGC WPL 110 (QGroundControl, Mission Planner, ArduPilot) ---------------------------------
+# One mission item per line, 12 tab-separated columns: index, current (0/1), frame, command,
+# param1..param4, param5 = latitude, param6 = longitude, param7 = altitude, autocontinue.
+# In version 110 the first item is the home position (QGroundControl's planned home,
+# ArduPilot's index 0), not a place to drive to.
+
+WPL_HEADER = "QGC WPL 110"
+MAV_CMD_NAV_WAYPOINT = 16
+_WPL_COLUMNS = 12
+# MAV_FRAME values whose param5/param6 are latitude/longitude in degrees (in the text file
+# the *_INT frames are written as degrees too)
+_GLOBAL_FRAMES = {
+    0: "GLOBAL",
+    3: "GLOBAL_RELATIVE_ALT",
+    5: "GLOBAL_INT",
+    6: "GLOBAL_RELATIVE_ALT_INT",
+    10: "GLOBAL_TERRAIN_ALT",
+    11: "GLOBAL_TERRAIN_ALT_INT",
+}
+# names of common MAV_CMDs, for the error message of an unsupported one
+_MAV_CMD_NAMES = {
+    16: "NAV_WAYPOINT",
+    17: "NAV_LOITER_UNLIM",
+    18: "NAV_LOITER_TURNS",
+    19: "NAV_LOITER_TIME",
+    20: "NAV_RETURN_TO_LAUNCH",
+    21: "NAV_LAND",
+    22: "NAV_TAKEOFF",
+    82: "NAV_SPLINE_WAYPOINT",
+    93: "NAV_DELAY",
+    112: "CONDITION_DELAY",
+    114: "CONDITION_DISTANCE",
+    115: "CONDITION_YAW",
+    177: "DO_JUMP",
+    178: "DO_CHANGE_SPEED",
+    179: "DO_SET_HOME",
+    181: "DO_SET_RELAY",
+    183: "DO_SET_SERVO",
+    189: "DO_LAND_START",
+    201: "DO_SET_ROI",
+    203: "DO_DIGICAM_CONTROL",
+    206: "DO_SET_CAM_TRIGG_DIST",
+}
+
+
+def parse_wpl(text: str, source: str = "QGC WPL") -> list[Waypoint]:
+    """Waypoints from a QGC WPL 110 (``.waypoints``) mission: the NAV_WAYPOINT (16) items
+    after the first line (home, skipped as QGroundControl and ArduPilot do).
+
+    Every other command is refused with its line: x6wd drives to waypoints and nothing else,
+    so a mission that loiters, jumps or changes speed would silently mean something else.
+    ``QGC WPL 120`` (QGroundControl's older files, no home line) is read too.
+    """
+    lines = text.splitlines()
+    first = next((n for n, line in enumerate(lines, start=1) if line.strip()), None)
+    if first is None:
+        raise ParseError(f"{source}: empty file, expected the header {WPL_HEADER!r}")
+    header = " ".join(lines[first - 1].split())
+    if header not in ("QGC WPL 110", "QGC WPL 120"):
+        raise ParseError(
+            f"{source} line {first}: expected the header {WPL_HEADER!r}, got {header[:40]!r}"
+        )
+    has_home = header == "QGC WPL 110"
+    out: list[Waypoint] = []
+    home_seen = False
+    for n, line in enumerate(lines[first:], start=first + 1):
+        if not line.strip():
+            continue
+        where = f"{source} line {n}"
+        cols = line.rstrip("\r\n").split("\t") if "\t" in line else line.split()
+        cols = [c.strip() for c in cols]
+        if len(cols) != _WPL_COLUMNS:
+            raise ParseError(
+                f"{where}: expected {_WPL_COLUMNS} tab-separated columns (index, current, frame, "
+                f"command, param1-4, latitude, longitude, altitude, autocontinue), "
+                f"got {len(cols)}"
+            )
+        ints: list[int] = []
+        for name, raw in zip(("index", "current", "frame", "command"), cols[:4], strict=True):
+            try:
+                ints.append(int(raw))
+            except ValueError:
+                raise ParseError(f"{where}: {name} is not an integer: {raw!r}") from None
+        _index, _current, frame, command = ints
+        for i, raw in enumerate(cols[4:8] + cols[10:11], start=1):
+            try:
+                float(raw)
+            except ValueError:
+                name = f"param{i}" if i <= 4 else "altitude"
+                raise ParseError(f"{where}: {name} is not a number: {raw!r}") from None
+        if has_home and not home_seen:
+            home_seen = True  # the home position: where the vehicle was, not a waypoint
+            continue
+        if command != MAV_CMD_NAV_WAYPOINT:
+            name = _MAV_CMD_NAMES.get(command, "unknown")
+            raise ParseError(
+                f"{where}: command {command} ({name}) is not supported: x6wd missions are "
+                f"NAV_WAYPOINT ({MAV_CMD_NAV_WAYPOINT}) items only"
+            )
+        if frame not in _GLOBAL_FRAMES:
+            raise ParseError(
+                f"{where}: frame {frame} is not a global latitude/longitude frame "
+                f"(valid: {', '.join(f'{k} {v}' for k, v in _GLOBAL_FRAMES.items())})"
+            )
+        out.append(make_waypoint(cols[8], cols[9], where))
+        if len(out) > MAX_WAYPOINTS:
+            break
+    return _check_count(out, source)
+
+
+def _num(v: float) -> str:
+    """A coordinate as the shortest decimal that reads back to the same float, in fixed
+    notation (``0.00001``, not ``1e-05``: some readers of these formats take no exponent)."""
+    s = format(Decimal(repr(float(v))), "f")
+    return "0" if float(s) == 0.0 else s
+
+
+def format_wpl(waypoints: Sequence[Waypoint], home: Waypoint | None = None) -> str:
+    """A QGC WPL 110 mission: line 0 the home (``home``, else the first waypoint), then one
+    NAV_WAYPOINT per waypoint in frame GLOBAL_RELATIVE_ALT (3) at altitude 0, as
+    QGroundControl writes them (it replaces the home line with the vehicle's on upload)."""
+    wps = _check_count(list(waypoints), "mission")
+    h = home if home is not None else wps[0]
+    rows = [
+        WPL_HEADER,
+        "\t".join(["0", "1", "0", "16", "0", "0", "0", "0", _num(h[0]), _num(h[1]), "0", "1"]),
+    ]
+    for i, w in enumerate(wps, start=1):
+        rows.append(
+            "\t".join(
+                [str(i), "0", "3", "16", "0", "0", "0", "0", _num(w[0]), _num(w[1]), "0", "1"]
+            )
+        )
+    return "\n".join(rows) + "\n"
+
+
+def format_gpx(waypoints: Sequence[Waypoint], name: str = "x6wd mission") -> str:
+    """A GPX 1.1 document with the waypoints as one route (``<rte>``/``<rtept>``)."""
+    wps = _check_count(list(waypoints), "mission")
+    gpx_ns = "http://www.topografix.com/GPX/1/1"
+    root = ET.Element("gpx", {"xmlns": gpx_ns, "version": "1.1", "creator": "x6wd"})
+    rte = ET.SubElement(root, "rte")
+    ET.SubElement(rte, "name").text = name
+    for i, w in enumerate(wps, start=1):
+        pt = ET.SubElement(rte, "rtept", {"lat": _num(w[0]), "lon": _num(w[1])})
+        ET.SubElement(pt, "name").text = f"WP{i}"
+    ET.indent(root)
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, "unicode") + "\n"
+
+
+def format_csv(waypoints: Sequence[Waypoint]) -> str:
+    """CSV with a ``lat,lon`` header and one waypoint per row."""
+    wps = _check_count(list(waypoints), "mission")
+    return "lat,lon\n" + "".join(f"{_num(w[0])},{_num(w[1])}\n" for w in wps)
+
+
+# -- KML (Google Earth, Google My Maps, most GIS tools) ----------------------------------------
+
+
+def parse_kml(text: str, source: str = "KML") -> list[Waypoint]:
+    """Waypoints from KML: the first ``<Placemark>``'s ``<LineString>`` if there is one (a drawn
+    path is the route, as a GPX route wins over its waypoints), else the ``<Point>`` of every
+    ``<Placemark>`` in document order. KML writes ``lon,lat[,alt]``; the altitude is ignored.
+    """
+    _no_dtd(text, source, "KML")
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise ParseError(f"{source}: not valid XML: {exc}") from None
+    if _local(root.tag) != "kml":
+        raise ParseError(f"{source}: root element is <{_local(root.tag)}>, expected <kml>")
+    placemarks = [e for e in root.iter() if _local(e.tag) == "Placemark"]
+
+    def label(i: int, pm: ET.Element) -> str:
+        name = next((c.text for c in pm if _local(c.tag) == "name" and c.text), None)
+        return f"{source} <Placemark> #{i + 1}" + (f" {name.strip()!r}" if name else "")
+
+    def coords(pm_label: str, geom: ET.Element) -> list[Waypoint]:
+        kind = _local(geom.tag)
+        el = next((c for c in geom.iter() if _local(c.tag) == "coordinates"), None)
+        if el is None or not (el.text or "").strip():
+            raise ParseError(f"{pm_label} <{kind}>: no <coordinates>")
+        out: list[Waypoint] = []
+        for k, tup in enumerate((el.text or "").split(), start=1):
+            where = f"{pm_label} <{kind}> coordinate {k}"
+            parts = tup.split(",")
+            if len(parts) not in (2, 3):
+                raise ParseError(f"{where}: expected lon,lat[,alt], got {tup[:60]!r}")
+            out.append(make_waypoint(parts[1], parts[0], where))
+            if len(out) > MAX_WAYPOINTS:
+                break
+        return out
+
+    for i, pm in enumerate(placemarks):
+        line = next((g for g in pm.iter() if _local(g.tag) == "LineString"), None)
+        if line is not None:
+            return _check_count(coords(label(i, pm), line), source)
+    out: list[Waypoint] = []
+    for i, pm in enumerate(placemarks):
+        for point in (g for g in pm.iter() if _local(g.tag) == "Point"):
+            pts = coords(label(i, pm), point)
+            if len(pts) != 1:
+                raise ParseError(f"{label(i, pm)} <Point>: {len(pts)} coordinates, expected one")
+            out.extend(pts)
+        if len(out) > MAX_WAYPOINTS:
+            break
+    if not out:
+        raise ParseError(f"{source}: no <Placemark> with a <Point> or <LineString>")
+    return _check_count(out, source)
+
+
+# -- choosing by extension -------------------------------------------------------------------
+
+PARSERS: dict[str, Callable[[str, str], list[Waypoint]]] = {
+    "waypoints": parse_wpl,
+    "gpx": parse_gpx,
+    "csv": parse_csv,
+    "kml": parse_kml,
+}
+"""format name (= file extension) -> parser"""
+WRITERS: dict[str, Callable[[Sequence[Waypoint]], str]] = {
+    "waypoints": format_wpl,
+    "gpx": format_gpx,
+    "csv": format_csv,
+}
+"""format name (= file extension) -> writer"""
+_HINTS = {
+    "plan": "QGroundControl's .plan (JSON) is not read: save the mission as .waypoints "
+    "(File > Save As, QGC WPL 110)",
+    "kmz": "unzip it (its doc.kml) and load the .kml",
+    "txt": "if it is a Mission Planner file (first line 'QGC WPL 110'), rename it to .waypoints",
+}
+
+
+def format_of(path: str | Path, fmt: str | None = None, *, writing: bool = False) -> str:
+    """The format of ``path``: ``fmt`` if given, else its extension; a clear error otherwise."""
+    table = WRITERS if writing else PARSERS
+    what = "written" if writing else "read"
+    name = (fmt or Path(path).suffix).lower().lstrip(".")
+    if name in table:
+        return name
+    valid = ", ".join(f".{k}" for k in table)
+    if not name:
+        problem = "has no extension"
+    elif writing and name in PARSERS:
+        problem = f"is {name.upper()}, which x6wd reads but does not write"
+    else:
+        problem = f"has an unknown mission format {name!r}"
+    hint = f" ({_HINTS[name]})" if name in _HINTS and not writing else ""
+    raise ParseError(f"{path}: {problem}{hint}; missions are {what} as {valid}")
+
+
 def parse_content(text: str, fmt: str | None = None, source: str = "mission") -> list[Waypoint]:
-    """Parse mission text as ``fmt`` ("csv" or "gpx"); None guesses from the content."""
+    """Parse mission text as ``fmt`` (``waypoints``, ``gpx``, ``csv``, ``kml``); None guesses
+    from the content (a ``QGC WPL`` header, ``<kml``, other XML as GPX, else CSV)."""
     if fmt is None:
-        fmt = "gpx" if text.lstrip().startswith("<") else "csv"
-    fmt = fmt.lower()
-    if fmt == "gpx":
-        return parse_gpx(text, source)
-    if fmt == "csv":
-        return parse_csv(text, source)
-    raise ParseError(f"{source}: unknown mission format {fmt!r} (valid: csv, gpx)")
+        head = text.lstrip()[:4096]
+        if head.startswith("QGC WPL"):
+            fmt = "waypoints"
+        elif head.startswith("<"):
+            fmt = "kml" if re.search(r"<(\w+:)?kml[\s>]", head) else "gpx"
+        else:
+            fmt = "csv"
+    parser = PARSERS.get(fmt.lower().lstrip("."))
+    if parser is None:
+        raise ParseError(f"{source}: unknown mission format {fmt!r} (valid: {', '.join(PARSERS)})")
+    return parser(text, source)
 
 
-def load_file(path: str | Path, max_bytes: int = 8 * 1024 * 1024) -> list[Waypoint]:
-    """Read a ``.csv`` or ``.gpx`` mission file (other suffixes: guessed from the content)."""
+def format_content(waypoints: Sequence[Waypoint], fmt: str) -> str:
+    """Mission text in ``fmt`` (``waypoints``, ``gpx`` or ``csv``)."""
+    writer = WRITERS.get(fmt.lower().lstrip("."))
+    if writer is None:
+        raise ParseError(f"cannot write mission format {fmt!r} (valid: {', '.join(WRITERS)})")
+    return writer(waypoints)
+
+
+def load_file(
+    path: str | Path, fmt: str | None = None, max_bytes: int = 8 * 1024 * 1024
+) -> list[Waypoint]:
+    """Read a mission file; its format from ``fmt`` or else its extension (:data:`PARSERS`)."""
     p = Path(path)
+    kind = format_of(p, fmt)
     try:
         if p.stat().st_size > max_bytes:
             raise ParseError(f"{p}: larger than {max_bytes} bytes")
@@ -195,5 +482,18 @@ def load_file(path: str | Path, max_bytes: int = 8 * 1024 * 1024) -> list[Waypoi
         raise ParseError(f"{p}: cannot read: {exc.strerror or exc}") from None
     except UnicodeDecodeError as exc:
         raise ParseError(f"{p}: not UTF-8 text: {exc}") from None
-    suffix = p.suffix.lower().lstrip(".")
-    return parse_content(text, suffix if suffix in ("csv", "gpx") else None, str(p))
+    return parse_content(text, kind, str(p))
+
+
+def save_file(path: str | Path, waypoints: Sequence[Waypoint], fmt: str | None = None) -> str:
+    """Write a mission file in ``fmt`` or the format of its extension (:data:`WRITERS`);
+    returns the format written."""
+    p = Path(path)
+    kind = format_of(p, fmt, writing=True)
+    text = format_content(waypoints, kind)
+    try:
+        with open(p, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+    except OSError as exc:
+        raise ParseError(f"{p}: cannot write: {exc.strerror or exc}") from None
+    return kind
