@@ -28,14 +28,46 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "mission": ("x6wd.app.mission", "show or convert mission files (.waypoints, .gpx, .csv, .kml)"),
 }
 
+# The robot's install has only what the daemon imports (pyproject.toml's dependencies); the
+# other tools' packages come with extras. A tool that misses one says which extra to install.
+# command -> the extra that has its packages (`x6wd run`: only a configuration with sim://
+# devices, hardware in the loop, needs the simulator's)
+COMMAND_EXTRAS = {"run": "sim", "sim": "sim", "sweep": "sweep", "gap": "gap", "calibrate": "plot"}
+# top-level modules of packages that only extras install -> the extra that has them all
+OPTIONAL_MODULES = {
+    "scipy": "sim",
+    "matplotlib": "plot",
+    "dask": "sweep",
+    "distributed": "sweep",
+}
 
-def _load(name: str) -> ModuleType | None:
+
+def missing_extra(command: str, exc: ModuleNotFoundError) -> str | None:
+    """The message for a package of an extra that is not installed, or None when ``exc`` is
+    about something else."""
+    top = (exc.name or "").split(".")[0]
+    if top not in OPTIONAL_MODULES:
+        return None
+    extra = COMMAND_EXTRAS.get(command, OPTIONAL_MODULES[top])
+    what = " hardware in the loop (sim:// devices)" if command == "run" else ""
+    return (
+        f"x6wd {command}:{what} needs {top}, which is not installed (the robot's install "
+        f"leaves it out): pip install 'x6wd[{extra}]' (from a checkout: "
+        f"pip install -e '.[{extra}]')"
+    )
+
+
+def _load(name: str) -> ModuleType | str:
+    """The subcommand's module, or why it cannot run (a message for stderr)."""
     module_name = COMMANDS[name][0]
     try:
         return importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
+        message = missing_extra(name, exc)
+        if message is not None:
+            return message
         if exc.name and module_name.startswith(exc.name):
-            return None
+            return f"x6wd {name}: not available in this build yet"
         raise
 
 
@@ -50,18 +82,18 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
         if name != chosen:
             continue
         module = _load(name)
-        if module is None:
-            p.set_defaults(_main=_unavailable(name))
-            p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        if isinstance(module, str):
+            p.description = f"{help_text} (not installed here: {module.split(': ', 1)[1]})"
+            p.set_defaults(_main=_fail(module), _any_arguments=True)
         else:
             module.add_arguments(p)
             p.set_defaults(_main=module.main)
     return parser
 
 
-def _unavailable(name: str) -> Callable[[argparse.Namespace], int]:
+def _fail(message: str) -> Callable[[argparse.Namespace], int]:
     def run(_args: argparse.Namespace) -> int:
-        print(f"x6wd {name}: not available in this build yet", file=sys.stderr)
+        print(message, file=sys.stderr)
         return 2
 
     return run
@@ -84,11 +116,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     single_thread_blas()
     args_list = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(args_list)
-    args = parser.parse_args(args_list)
+    args, unknown = parser.parse_known_args(args_list)
+    if unknown and not getattr(args, "_any_arguments", False):
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         return int(args._main(args) or 0)
     except X6wdError as exc:
         print(f"x6wd {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:  # a package of an extra, imported on first use
+        message = missing_extra(args.command, exc)
+        if message is None:
+            raise
+        print(message, file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
