@@ -292,7 +292,8 @@ def test_wheel_odometry_flows_into_the_ekf_and_the_wmm_declination_reaches_gpsd(
         time.sleep(0.5)  # still driving (4 s) when status is asked, even on a loaded machine
         st = c.request("status")
         n1, dt = st["links"]["odometry"], time.monotonic() - t0
-        assert 10.0 * dt < n1 - n0 < 30.0 * dt, (n1 - n0, dt)  # polled at 20 Hz
+        # polled at 20 Hz; a loaded 2-core machine runs the motor thread late, never 4x late
+        assert 5.0 * dt < n1 - n0 < 30.0 * dt, (n1 - n0, dt)
         assert d.stats["odometry"] >= n1 - 5  # each reading reached the runner
         extra = st["telemetry"]["extra"]
         assert extra["ekf_sigma_m"] > 0 and extra["ekf_speed_mps"] > 0.3, extra
