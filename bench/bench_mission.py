@@ -10,7 +10,7 @@ where the scenario has none) made with ``dataclasses.replace``:
 - ``paper``: position_source = "constellation", filter_n = 20 (the paper's filter, the other
   navigation keys as shipped);
 - ``paper-full``: the paper's whole navigation: Constellation N = 20, steering "paper",
-  projection "two_radius".
+  projection "two_radius", 3 m arrival windows (as ``NavigationConfig.paper()``).
 
 Figures per scenario x method (anchors = the targets of issue 14, item 7):
 
@@ -69,11 +69,15 @@ METHODS: dict[str, dict[str, Any]] = {
     "estimator": {"position_source": "ekf"},
     "raw": {"position_source": "raw"},
     "paper": {"position_source": "constellation", "filter_n": 20},
+    # the paper's whole navigation (NavigationConfig.paper(): its 3 m windows too, which its
+    # bang-bang steering needs), at the robot's cruise and turn percentages
     "paper-full": {
         "position_source": "constellation",
         "filter_n": 20,
         "steering": "paper",
         "projection": "two_radius",
+        "delta_x_m": 3.0,
+        "delta_y_m": 3.0,
     },
 }
 QUICK_SCENARIOS = ("default", "building_route")
