@@ -365,3 +365,39 @@ def test_a_stuck_robot_pauses(tmp_path: Path, run_daemon, log_tail: LogTail) -> 
         assert any("failsafe: stuck" in x for x in log_tail.tail(300))
         c.request("stop")
     assert r.stop() == 0
+
+
+@pytest.mark.slow
+def test_a_gps_without_fix_holds_then_pauses(tmp_path: Path, run_daemon, log_tail: LogTail) -> None:
+    """The receiver keeps talking but loses its fix (the simulator's ``outage`` layer): the
+    robot holds at once (gps_outage_max_m = 0: no dead reckoning), then after
+    sensor_timeout_s the sensor failsafe pauses the mission."""
+    scenario = tmp_path / "outage.toml"
+    scenario.write_text(
+        (ROOT / "config" / "scenarios" / "default.toml").read_text()
+        + '\n[[effects]]\nname = "outage"\nstart_s = 15.0\nduration_s = 600.0\n'
+    )
+    cfg = hil_config(tmp_path, safety=SafetyConfig(geofence_radius_m=200.0, gps_outage_max_m=0.0))
+    cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, scenario=str(scenario)))
+    cfg = with_failsafe(cfg, sensor_timeout_s=3.0, sensor_action="hold", stuck_s=0.0)
+    r = run_daemon(Daemon(cfg, log_tail=log_tail))
+    d = r.daemon
+    world = d.devices.backend("sim")
+    with RemoteClient("127.0.0.1", r.port) as c:
+        ready_for_a_mission(c, d)
+        c.request("mission.load", waypoints=[north_of_origin(100.0)])
+        c.request("start")
+        held = wait_for(
+            lambda: (t := telemetry(c)).get("hold_reason") == "no valid fix" and t, 30, "hold"
+        )
+        assert held["mode"] == "RUNNING" and held["left_pct"] == held["right_pct"] == 0.0
+        t_hold = time.monotonic()
+        st = wait_for(
+            lambda: (s := c.request("status"))["mode"] == "PAUSED" and s, 10, "the failsafe"
+        )
+        assert 2.0 < time.monotonic() - t_hold < 8.0
+        assert st["telemetry"]["extra"]["failsafe"] == "no valid fix for 3 s"
+        wait_for(lambda: world.vehicle.command_pct == (0.0, 0.0), 3, "motors stopped")
+        assert any("failsafe: no valid fix" in x for x in log_tail.tail(300))
+        c.request("stop")
+    assert r.stop() == 0
