@@ -29,9 +29,15 @@ same physics as fast-time simulation (``x6wd sim``), only in real time:
   :class:`sim_backend.odometry.EncoderSim` (default :class:`~sim_backend.odometry.EncoderParams`,
   its own random stream of the scenario seed), stepped with the physics.
 
-Scenario time: epoch ``k`` of the receiver is scenario time ``k / rate_hz`` s, so the NMEA
-UTC is the scenario's ``start_utc`` plus the world's age (the packaged almanac is for
-2020-01-01; the wall clock's date would be years outside it).
+Time: the receiver's clock, what its NMEA says, is the host's UTC, as a real receiver's is
+true UTC; its epochs fall on the host clock's whole ``1 / rate_hz`` s (:attr:`HilWorld.utc0`
+plus ``k / rate_hz``) and each leaves at that instant. So the daemon's fixes carry today's
+date, and a gpsd client that compares a fix's time with its own clock (cgps's "time
+offset") sees the real latency, not the years back to the almanac's day. The world's own
+clock is the device time (seconds since the world started, as the vehicle and the scenario's
+timed effects count them): epoch ``k`` is at :meth:`HilWorld.epoch_t_s`, and the sky
+(almanac, atmosphere) is the scenario's at ``start_utc`` plus that (the packaged almanac is
+for 2020-01-01; the wall clock's date would be years outside it).
 
 ``[sim]`` overrides (x6wd.core.config.SimConfig): ``seed``, ``origin_*``, ``start_heading_deg``,
 ``start_east_m``/``start_north_m``, ``gps_rate_hz``, ``gps_baud``, ``v_max_mps``,
@@ -57,6 +63,7 @@ import tty
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -282,7 +289,13 @@ class HilWorld:
         self.vehicle = vehicle_from_world(sc)
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self.t0 = time.monotonic()
+        wall, self.t0 = time.time(), time.monotonic()
+        # The receiver's clock is the host's UTC and its epochs fall on the host clock's
+        # whole 1/rate_hz s, as a NEO-5's fall on GPS time's: epoch k is due at device time
+        # epoch_phase_s + k / rate_hz (also its scenario time), at UTC utc0 + k / rate_hz.
+        n0 = math.ceil(wall * sc.gnss.rate_hz)
+        self.utc0 = datetime.fromtimestamp(n0 / sc.gnss.rate_hz, UTC)
+        self.epoch_phase_s = n0 / sc.gnss.rate_hz - wall
         s0 = self.vehicle.state
         self.compass = SimCmps10(
             field_model=cset.field_model,
@@ -413,14 +426,27 @@ class HilWorld:
                     self.receiver.observe(now - self.t0, self._antenna_enu(s), vehicle_velocity(s))
             t_last = now
 
+    def epoch_t_s(self, k: int) -> float:
+        """Device and scenario time (s) of receiver epoch ``k``."""
+        return self.epoch_phase_s + k / self.scenario.gnss.rate_hz
+
+    def scenario_t_s(self, utc: datetime) -> float:
+        """The scenario time (s) of the epoch the receiver stamped ``utc``."""
+        return self.epoch_phase_s + (utc - self.utc0).total_seconds()
+
     def _epoch(self, k: int) -> GnssEpoch:
-        """Receiver epoch ``k`` (scenario time ``k / rate_hz``) from the vehicle's truth now."""
-        t_s = k / self.scenario.gnss.rate_hz
+        """Receiver epoch ``k`` (at :meth:`epoch_t_s`) from the vehicle's truth now."""
+        t_s = self.epoch_t_s(k)
         with self._lock:
             s = self.vehicle.state
             pos, vel = self._antenna_enu(s), vehicle_velocity(s)
         # A delayed receiver reads the physics thread's track, whose clock is the device's.
-        return self.receiver.epoch(t_s, pos, vel, track_t_s=self._device_time())
+        ep = self.receiver.epoch(t_s, pos, vel, track_t_s=self._device_time())
+        return replace(ep, utc=self.epoch_utc(k))
+
+    def epoch_utc(self, k: int) -> datetime:
+        """The receiver's UTC of epoch ``k`` (the host's clock when it is due)."""
+        return self.utc0 + timedelta(seconds=k / self.scenario.gnss.rate_hz)
 
     def _antenna_enu(self, s: Any) -> tuple[float, float, float]:
         return s.east_m, s.north_m, s.up_m + self.scenario.vehicle.antenna_height_m
@@ -433,7 +459,7 @@ class HilWorld:
             self.uart.write(rx.banner())
         warned = False
         k = 1
-        while not self._stop.wait(max(0.0, self.t0 + k * period_s - time.monotonic())):
+        while not self._stop.wait(max(0.0, self.t0 + self.epoch_t_s(k) - time.monotonic())):
             lines = rx.sentences(self._epoch(k))
             t_burst = time.monotonic()
             for data in lines:
@@ -457,7 +483,8 @@ class HilWorld:
                     rate_hz,
                     baud,
                 )
-            k = max(k + 1, math.floor((time.monotonic() - self.t0) / period_s) + 1)
+            late_s = time.monotonic() - self.t0 - self.epoch_phase_s
+            k = max(k + 1, math.floor(late_s / period_s) + 1)
 
     def close(self) -> None:
         """Stop the threads and unplug the ptys (idempotent)."""

@@ -613,3 +613,45 @@ def test_an_encoder_poll_leaves_the_link_idle_for_the_gc_but_a_command_waits_for
     finally:
         link.release_read.set()
         w.shutdown("test end")
+
+
+def test_gpsd_device_is_the_gps_as_configured_or_opened() -> None:
+    from x6wd.app.daemon import _gps_device
+
+    # the robot: [gps] url's device and baud, and [gps] rate_hz
+    assert _gps_device("serial:///dev/ttyAMA0?baud=38400", 4.0) == ("/dev/ttyAMA0", 38400, 0.25)
+    assert _gps_device("serial:///dev/ttyS0", 1.0) == ("/dev/ttyS0", 9600, 1.0)
+    # not serial lines: no baud rate; a replay runs at its URL's rate
+    assert _gps_device("tcp://gw:5000", 2.0) == ("tcp://gw:5000", None, 0.5)
+    assert _gps_device("replay:///tmp/a.nmea?rate=5", 1.0) == ("/tmp/a.nmea", None, 0.2)
+    # a simulated receiver: its world's pty, baud rate and rate, not [gps]'s
+    world = type("W", (), {})()
+    world.uart = type("U", (), {"port_name": "/dev/pts/9"})()
+    world.receiver = type("R", (), {"baud": 38400, "rate_hz": 2.0})()
+    assert _gps_device("sim://", 1.0, world) == ("/dev/pts/9", 38400, 0.5)
+
+
+def test_gpsd_device_and_times_of_the_simulated_receiver(tmp_path: Path, run_daemon) -> None:
+    r = run_daemon(Daemon(hil_config(tmp_path)))
+    d = r.daemon
+    world = d.devices.backend("sim")
+    assert d.gpsd is not None
+    with RemoteClient("127.0.0.1", r.port) as c:
+        wait_for(lambda: status(c)["telemetry"], 10, "telemetry")
+    with socket.create_connection(("127.0.0.1", d.gpsd.port), timeout=5) as s:
+        f = s.makefile("rb")
+        f.readline()
+        s.sendall(b'?WATCH={"enable":true,"json":true};\n')
+        dev = json.loads(f.readline())["devices"][0]
+        # hil_config's [sim] gps_baud 115200 and gps_rate_hz 4, on the world's pty
+        assert (dev["path"], dev["bps"], dev["cycle"]) == (world.uart.port_name, 115200, 0.25)
+        tpv: dict[str, Any] = {}
+        while "lat" not in tpv:
+            obj = json.loads(f.readline())
+            tpv = obj if obj["class"] == "TPV" else tpv
+            t_read = time.time()
+    # the receiver's UTC is the host's clock (cgps's "time offset" = the latency)
+    from datetime import datetime
+
+    assert 0.0 <= t_read - datetime.fromisoformat(tpv["time"]).timestamp() < 2.0, tpv
+    assert r.stop() == 0

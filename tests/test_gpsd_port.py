@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import DATA, require_program
-from x6wd.app.gpsd import GpsdServer, att_obj, parse_commands, sky_obj, tpv_obj
+from x6wd.app.gpsd import GpsdServer, att_obj, iso_time, parse_commands, sky_obj, tpv_obj
 from x6wd.core.errors import ProtocolError
 from x6wd.core.records import Attitude, GpsFix, GpsSky, SatInfo
 
@@ -314,3 +314,40 @@ def test_from_config_and_the_constructors_defaults_match_gpsdconfig() -> None:
     params = inspect.signature(GpsdServer.__init__).parameters
     for name in ("max_clients", "queue_len", "idle_timeout_s", "slow_client_s"):
         assert params[name].default == defaults[name], name
+
+
+def test_device_reports_the_serial_settings_and_cycle_of_the_gps_as_opened() -> None:
+    gpspipe = require_program("gpspipe")
+    p = Published(bps=4800, cycle_s=0.25)
+    try:
+        out = subprocess.run(
+            [gpspipe, "-w", "-n", "3", f"127.0.0.1:{p.srv.port}"],
+            capture_output=True, text=True, timeout=20, check=True,
+        )  # fmt: skip
+        dev = json.loads(out.stdout.splitlines()[1])["devices"][0]
+        assert (dev["path"], dev["bps"], dev["parity"], dev["stopbits"]) == (
+            "/dev/ttyS0", 4800, "N", 1,
+        )  # fmt: skip
+        assert dev["cycle"] == 0.25
+        # the daemon says what it opened (a simulated receiver's pty, at its baud and rate)
+        p.loop.call_soon_threadsafe(p.srv.set_device, "/dev/pts/7", 38400, 0.5)
+        time.sleep(0.1)
+        with socket.create_connection(("127.0.0.1", p.srv.port), timeout=5) as s:
+            f = s.makefile("rb")
+            f.readline()
+            s.sendall(b"?DEVICES;\n")
+            dev = json.loads(f.readline())["devices"][0]
+        assert (dev["path"], dev["bps"], dev["cycle"]) == ("/dev/pts/7", 38400, 0.5)
+        assert p.srv.activated is not None and dev["activated"] == iso_time(p.srv.activated)
+        # not a serial line (tcp://, replay://): no serial settings, as gpsd omits them
+        p.loop.call_soon_threadsafe(p.srv.set_device, "tcp://gw:5000", None, 1.0)
+        time.sleep(0.1)
+        with socket.create_connection(("127.0.0.1", p.srv.port), timeout=5) as s:
+            f = s.makefile("rb")
+            f.readline()
+            s.sendall(b"?DEVICES;\n")
+            dev = json.loads(f.readline())["devices"][0]
+        assert dev["path"] == "tcp://gw:5000" and dev["cycle"] == 1.0
+        assert not {"bps", "parity", "stopbits"} & set(dev)
+    finally:
+        p.close()

@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -91,8 +92,9 @@ def test_gps_port_carries_neo5_nmea_that_the_real_decoder_reads(world: hil.HilWo
     pos = [(x.lat_deg, x.lon_deg) for x in fixes if x.lat_deg is not None and x.lon_deg]
     err_m = [np.hypot((a - lat0) * 111_200, (b - lon0) * 68_900) for a, b in pos]
     assert len(err_m) == len(fixes) and all(0.0 < e < 15.0 for e in err_m), err_m
-    # scenario time: the packaged almanac's day, one epoch every 0.25 s
-    assert f.utc is not None and f.utc.date().isoformat() == "2020-01-01"
+    # the receiver's clock is the host's UTC (the sky stays the almanac's day), an epoch on
+    # every whole 0.25 s of it, read just after it was due
+    assert f.utc is not None and 0.0 <= time.time() - f.utc.timestamp() < 2.0, f.utc
     assert (f.utc.microsecond // 10_000) % 25 == 0
     for talker in (b"$GPRMC", b"$GPVTG", b"$GPGGA", b"$GPGSA", b"$GPGSV", b"$GPGLL"):
         assert talker in raw
@@ -116,7 +118,7 @@ def test_gsv_sky_and_hdop_come_from_the_almanac_model(world: hil.HilWorld) -> No
     )
     for sky in skies[-2:]:
         assert sky.utc is not None
-        t_s = (sky.utc - sc.start_utc).total_seconds()
+        t_s = world.scenario_t_s(sky.utc)  # the almanac's day: start_utc + t_s
         ep = model.step(t_s, float(lat), float(lon), float(alt), (0.0, 0.0, 0.0))
         want = sorted(ep.satellites, key=lambda s: s.prn)
         got = sorted(sky.satellites, key=lambda s: s.prn)
@@ -148,7 +150,7 @@ def test_scenario_effects_reach_the_receiver_with_real_no_fix_forms(tmp_path: Pa
     assert any(not f.valid for f in fixes)
     # the NEO-5's no-fix forms, with time (the receiver tracks satellites) but no position
     assert re.search(rb"\$GPGGA,\d{6}\.\d\d,,,,,0,00,99\.99,,,,,,\*", raw)
-    assert re.search(rb"\$GPRMC,\d{6}\.\d\d,V,,,,,,,010120,,,N\*", raw)
+    assert re.search(rb"\$GPRMC,\d{6}\.\d\d,V,,,,,,,\d{6},,,N\*", raw)  # today's date
     assert re.search(rb"\$GPGSA,A,1,,,,,,,,,,,,,99\.99,99\.99,99\.99\*", raw)
 
 
@@ -336,7 +338,7 @@ def test_daemon_runs_a_mission_in_real_time(tmp_path: Path) -> None:
         # until it serves and has a fix (the geofence needs one); generous for a loaded machine
         deadline = time.monotonic() + 60
         while True:
-            r = client("status")
+            r = client("status", "--json")
             tel = json.loads(r.stdout)["telemetry"] if r.returncode == 0 else None
             if tel and tel["fix_quality"] > 0:
                 break
@@ -346,7 +348,14 @@ def test_daemon_runs_a_mission_in_real_time(tmp_path: Path) -> None:
             [gpspipe, "-w", f"127.0.0.1:{gpsd}"], stdout=subprocess.PIPE, text=True
         )
         lines: list[str] = []
-        reader = threading.Thread(target=lambda: lines.extend(pipe.stdout or ()), daemon=True)
+        read_at: list[float] = []  # the host's UTC clock when each line came
+
+        def read() -> None:
+            for x in pipe.stdout or ():
+                read_at.append(time.time())
+                lines.append(x)
+
+        reader = threading.Thread(target=read, daemon=True)
         reader.start()
         # 8 m north of the start (the vehicle starts facing north)
         r = client("load", "--wp", "51.752072,-1.2577")
@@ -355,7 +364,7 @@ def test_daemon_runs_a_mission_in_real_time(tmp_path: Path) -> None:
         assert r.returncode == 0, r.stderr
         deadline = time.monotonic() + 25
         while True:
-            st = json.loads(client("status").stdout)
+            st = json.loads(client("status", "--json").stdout)
             if (st["mode"], st["state"]) == ("DONE", "MISSION_DONE"):
                 break
             assert st["state"] != "HOLD", st
@@ -375,8 +384,23 @@ def test_daemon_runs_a_mission_in_real_time(tmp_path: Path) -> None:
         tpvs = [json.loads(x) for x in lines if '"class":"TPV"' in x]
         assert tpvs and all(t["mode"] == 3 for t in tpvs)
         assert max(t["lat"] for t in tpvs) > 51.75204  # the gpsd client saw it move
-        # the scenario's receiver: its clock (the almanac's day) and its almanac sky
-        assert all(t["time"].startswith("2020-01-01T12:") for t in tpvs)
+        # DEVICE: the simulated receiver's pty as opened, at hil.toml's [sim] 38400 baud, 2 Hz
+        devices = [json.loads(x)["devices"] for x in lines if '"class":"DEVICES"' in x]
+        assert len(devices) == 1 and len(devices[0]) == 1, devices
+        dev = devices[0][0]
+        assert dev["path"].startswith("/dev/") and (dev["bps"], dev["cycle"]) == (38400, 0.5)
+        # the receiver's clock is the host's UTC, on its whole half seconds: cgps's "time
+        # offset" (its clock minus TPV time) is the latency, not years back to the almanac's
+        # day (gpspipe's output is read late on a loaded machine, never early)
+        offsets = [
+            t_read - datetime.fromisoformat(json.loads(x)["time"]).timestamp()
+            for t_read, x in zip(read_at, lines, strict=True)
+            if '"class":"TPV"' in x
+        ]
+        assert offsets and all(-0.05 < dt < 5.0 for dt in offsets), offsets
+        assert sorted(offsets)[len(offsets) // 2] < 1.0, offsets
+        assert all(t["time"][-5:] in (".000Z", ".500Z") for t in tpvs)
+        # ... and its sky the almanac's
         skies = [json.loads(x) for x in lines if '"class":"SKY"' in x]
         assert skies and all(len(s["satellites"]) >= 8 for s in skies)
         assert {s["PRN"] for s in skies[-1]["satellites"]} != {2, 5, 10, 12, 15, 21, 24, 29}

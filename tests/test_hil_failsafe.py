@@ -265,8 +265,8 @@ def watch_att(port: int, n: int = 3, timeout_s: float = 10.0) -> list[dict[str, 
 def test_wheel_odometry_flows_into_the_ekf_and_the_wmm_declination_reaches_gpsd(
     tmp_path: Path, run_daemon, log_tail: LogTail, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # The scenario's day (2020, the packaged almanac's) predates the WMM2025 model the
-    # runner carries: stand in for the model with a fixed value to follow it to gpsd.
+    # Stand in for the WMM2025 model the runner carries with a fixed value (the receiver's
+    # date is the host's, the site the scenario's) to follow it to gpsd.
     import x6wd.loop.runner as runner_mod
 
     asked: list[tuple[float, float]] = []

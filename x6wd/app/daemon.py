@@ -739,11 +739,15 @@ class Daemon:
         )
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
         if cfg.gpsd.enabled:
-            path, bps = registry.device_path(cfg.gps.url)
+            path, bps, cycle_s = _gps_device(cfg.gps.url, cfg.gps.rate_hz)
             # without a configured declination the ATT heading is the magnetic one until the
             # runner has the World Magnetic Model's value (_on_gps_records passes it on)
             self.gpsd = GpsdServer.from_config(
-                cfg.gpsd, path, bps=bps, declination_deg=0.0 if decl is None else decl
+                cfg.gpsd,
+                path,
+                bps=bps,
+                declination_deg=0.0 if decl is None else decl,
+                cycle_s=cycle_s,
             )
             self._gpsd_wmm = decl is None
         if cfg.recorder.enabled:
@@ -839,9 +843,21 @@ class Daemon:
         self.motors.start()
         compass = await asyncio.to_thread(registry.open_compass, cfg.compass.url, self.devices)
         self._compass = compass
-        self._gps_reader = GpsReader(
-            lambda: registry.open_gps_port(cfg.gps.url, self.devices), stale_s=cfg.gps.stale_s
-        )
+        self._gps_reader = GpsReader(self._open_gps_port, stale_s=cfg.gps.stale_s)
+
+    def _open_gps_port(self) -> Any:
+        """Open the GPS (the reader's opener, also on reopen) and tell the gpsd port's DEVICE
+        what was opened: a simulated receiver's pty, baud rate and cycle are the world's."""
+        from drivers import registry
+
+        cfg = self.config.gps
+        port = registry.open_gps_port(cfg.url, self.devices)
+        if self.gpsd is not None:
+            world = None
+            if registry.parse_url(cfg.url, "gps").scheme == "sim":
+                world = self.devices.backend("sim")
+            self._net_call(self.gpsd.set_device, *_gps_device(cfg.url, cfg.rate_hz, world))
+        return port
 
     def _start_readers(self) -> None:
         """Start the device threads once the recorder exists, so it sees their first data."""
@@ -1356,11 +1372,40 @@ def _dir_problem(directory: Path) -> str:
     return ""
 
 
+def _gps_device(url: str, rate_hz: float, world: Any = None) -> tuple[str, int | None, float]:
+    """What the gpsd port's DEVICE says about the GPS: its path, the line's baud rate (None:
+    not a serial line) and its cycle (s between fixes). A ``serial://`` URL: its device and
+    ``baud``, and ``[gps] rate_hz``; ``sim://`` with its ``world``: the simulated receiver's
+    pty, baud rate and rate (``[sim] gps_baud``, ``gps_rate_hz``); ``replay://``: the file
+    at the URL's ``rate``; anything else (``tcp://``): the URL, no baud rate."""
+    from drivers import registry
+
+    try:
+        dev = registry.parse_url(url, "gps")
+    except ConfigError:
+        return url, None, 1.0 / rate_hz
+    if dev.scheme == "serial":
+        path, bps = registry.device_path(url)
+        return path, bps, 1.0 / rate_hz
+    if dev.scheme == "sim" and world is not None:
+        rx = world.receiver
+        return str(world.uart.port_name), int(rx.baud), 1.0 / float(rx.rate_hz)
+    if dev.scheme == "replay":
+        return dev.target, None, 1.0 / float(dev.options["rate"])
+    return url, None, 1.0 / rate_hz
+
+
 def _listen_problem(section: str, bind: str, port: int, exc: OSError) -> str:
     """The one-line error for a server that cannot listen, naming the key to change."""
     bad_address = isinstance(exc, socket.gaierror) or exc.errno in (errno.EADDRNOTAVAIL, None)
     key = f"{section}.bind" if bad_address else f"{section}.port"
-    if exc.errno == errno.EADDRINUSE:
+    if exc.errno == errno.EADDRINUSE and section == "gpsd":
+        # 2947 is gpsd's own port, which a system gpsd (gpsd.socket) may hold
+        reason = (
+            "address already in use (another x6wd, or a system gpsd: stop it with "
+            "'systemctl stop gpsd.socket gpsd', or set gpsd.port to a free port)"
+        )
+    elif exc.errno == errno.EADDRINUSE:
         reason = "address already in use (another x6wd or gpsd running?)"
     elif exc.errno == errno.EACCES:
         reason = "permission denied (ports below 1024 need privileges)"

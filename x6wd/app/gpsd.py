@@ -82,25 +82,31 @@ def version_obj() -> dict[str, Any]:
     }
 
 
-def devices_obj(path: str, bps: int = 9600) -> dict[str, Any]:
+def devices_obj(
+    path: str, bps: int | None = 9600, cycle_s: float = 1.0, activated: datetime | None = None
+) -> dict[str, Any]:
     """DEVICES with exactly one device (an empty list leaves cgps blank)."""
-    return {"class": "DEVICES", "devices": [device_obj(path, bps)]}
+    return {"class": "DEVICES", "devices": [device_obj(path, bps, cycle_s, activated)]}
 
 
-def device_obj(path: str, bps: int = 9600) -> dict[str, Any]:
-    """One DEVICE object describing the GPS receiver."""
-    return {
+def device_obj(
+    path: str, bps: int | None = 9600, cycle_s: float = 1.0, activated: datetime | None = None
+) -> dict[str, Any]:
+    """One DEVICE object describing the GPS receiver: its serial settings (``bps`` None: not
+    a serial line, e.g. a TCP or replay source, so no bps/parity/stopbits, as gpsd omits
+    them), its cycle (s between fixes) and when it was opened (``activated``; None: now)."""
+    obj: dict[str, Any] = {
         "class": "DEVICE",
         "path": path,
         "driver": "NMEA0183",
-        "activated": iso_time(datetime.now(UTC)),
+        "activated": iso_time(activated or datetime.now(UTC)),
         "flags": 1,
         "native": 0,
-        "bps": bps,
-        "parity": "N",
-        "stopbits": 1,
-        "cycle": 1.0,
     }
+    if bps is not None:
+        obj.update(bps=int(bps), parity="N", stopbits=1)
+    obj["cycle"] = _num(cycle_s, 3)
+    return {k: v for k, v in obj.items() if v is not None}
 
 
 def tpv_obj(fix: GpsFix, device: str | None = None) -> dict[str, Any]:
@@ -232,7 +238,8 @@ class GpsdServer(LineServer[_Client]):
         port: int,
         device_path: str,
         *,
-        bps: int = 9600,
+        bps: int | None = 9600,
+        cycle_s: float = 1.0,
         declination_deg: float = 0.0,
         max_clients: int = 32,
         queue_len: int = 64,
@@ -242,10 +249,12 @@ class GpsdServer(LineServer[_Client]):
         pending_timeout_s: float = DEFAULT_PENDING_TIMEOUT_S,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        """``port`` 0 picks a free port (see :attr:`port`); ``device_path`` goes into DEVICES.
-        Defaults are GpsdConfig's. ``max_clients``: sessions (clients that sent a valid
-        command); ``max_pending``: connections that have not yet; deadlines in seconds of
-        ``clock`` (monotonic; tests inject one)."""
+        """``port`` 0 picks a free port (see :attr:`port`); ``device_path``, ``bps`` (the GPS
+        line's baud rate; None: not a serial line) and ``cycle_s`` (s between fixes) go into
+        DEVICE until :meth:`set_device` says what was opened. Defaults are GpsdConfig's.
+        ``max_clients``: sessions (clients that sent a valid command); ``max_pending``:
+        connections that have not yet; deadlines in seconds of ``clock`` (monotonic; tests
+        inject one)."""
         super().__init__(
             port,
             max_clients=max_clients,
@@ -259,6 +268,8 @@ class GpsdServer(LineServer[_Client]):
         self.bind = bind
         self.device_path = device_path
         self.bps = bps
+        self.cycle_s = cycle_s
+        self.activated: datetime | None = None
         self.declination_deg = declination_deg
         self.queue_len = queue_len
         self._last_tpv: dict[str, Any] | None = None
@@ -267,15 +278,22 @@ class GpsdServer(LineServer[_Client]):
 
     @classmethod
     def from_config(
-        cls, cfg: GpsdConfig, device_path: str, bps: int = 9600, declination_deg: float = 0.0
+        cls,
+        cfg: GpsdConfig,
+        device_path: str,
+        bps: int | None = 9600,
+        declination_deg: float = 0.0,
+        cycle_s: float = 1.0,
     ) -> GpsdServer:
-        """Build from the ``[gpsd]`` section; ``bps`` is the GPS baud rate shown in DEVICES,
-        ``declination_deg`` turns the compass's magnetic heading into ATT's true one."""
+        """Build from the ``[gpsd]`` section; ``bps`` (GPS baud rate) and ``cycle_s`` (s
+        between fixes) are shown in DEVICE, ``declination_deg`` turns the compass's magnetic
+        heading into ATT's true one."""
         return cls(
             cfg.bind,
             cfg.port,
             device_path,
             bps=bps,
+            cycle_s=cycle_s,
             declination_deg=declination_deg,
             max_clients=cfg.max_clients,
             queue_len=cfg.queue_len,
@@ -313,6 +331,15 @@ class GpsdServer(LineServer[_Client]):
         obj = sky_obj(sky, self.device_path)
         self._last_sky = obj
         self._fanout(dumps(obj), nmea=False)
+
+    def set_device(self, path: str, bps: int | None, cycle_s: float) -> None:
+        """The GPS as opened: its path, baud rate (None: not a serial line) and cycle (s
+        between fixes); DEVICE shows them, activated now, from the next report on."""
+        self.device_path, self.bps, self.cycle_s = path, bps, float(cycle_s)
+        self.activated = datetime.now(UTC)
+
+    def _devices(self) -> bytes:
+        return dumps(devices_obj(self.device_path, self.bps, self.cycle_s, self.activated))
 
     def set_declination(self, declination_deg: float) -> None:
         """Use ``declination_deg`` (deg, east positive) for ATT's true heading from now on
@@ -357,7 +384,7 @@ class GpsdServer(LineServer[_Client]):
         if name == "VERSION":
             return [dumps(version_obj())]
         if name == "DEVICES":
-            return [dumps(devices_obj(self.device_path, self.bps))]
+            return [self._devices()]
         if name == "POLL":
             return [dumps(self._poll_obj())]
         if name == "WATCH":
@@ -370,7 +397,7 @@ class GpsdServer(LineServer[_Client]):
                 c.watch_nmea = nmea
             else:
                 c.watch_json = c.watch_nmea = False
-            out = [dumps(devices_obj(self.device_path, self.bps)), dumps(self._watch_obj(c))]
+            out = [self._devices(), dumps(self._watch_obj(c))]
             if c.watch_json:
                 # an immediate report so a fresh watcher does not wait a whole epoch
                 out.extend(dumps(o) for o in (self._last_tpv, self._last_sky) if o is not None)
