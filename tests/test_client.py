@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import threading
@@ -13,7 +14,7 @@ import pytest
 
 from tests.conftest import DATA, require_program
 from tests.test_server import TOKEN, LoopThread, RecordingBackend, start_server
-from x6wd.app.client import CLEAR, render_watch
+from x6wd.app.client import CLEAR, render_status, render_watch
 from x6wd.app.server import ControlServer
 from x6wd.core.errors import ParseError
 from x6wd.core.mission_files import Waypoint, load_file, parse_args, parse_csv, parse_gpx
@@ -46,9 +47,13 @@ def client(port: int, *args: str, token: Path | None = None) -> subprocess.Compl
 
 def test_status_start_stop_and_auth(served, token_file: Path) -> None:
     _, srv, backend = served
-    r = client(srv.port, "status")
+    r = client(srv.port, "status")  # for a person by default
     assert r.returncode == 0, r.stderr
-    assert '"mode": "IDLE"' in r.stdout
+    assert "state      IDLE / IDLE" in r.stdout and "{" not in r.stdout, r.stdout
+    for args in (("--json", "status"), ("status", "--json")):  # for programs
+        r = client(srv.port, *args)
+        assert r.returncode == 0, r.stderr
+        assert json.loads(r.stdout)["mode"] == "IDLE"
     r = client(srv.port, "start")  # no token: refused with a clear message
     assert r.returncode == 1
     assert "start refused: unauthorized" in r.stderr
@@ -174,9 +179,64 @@ def test_watch_redraws_one_screen_per_event(served, token_file: Path) -> None:
     screens = r.stdout.split(CLEAR)
     assert screens[0] == "" and len(screens) == 4
     last = screens[-1]
-    for text in ("RUNNING / TURN_LEFT", "51.7512345", "51.7512301", "93.5 deg", "-4 deg",
+    for text in ("RUNNING / TURN_LEFT", "51.7512345", "51.7512301", "95.0 deg true", "-4 deg",
                  "2/3", "12.3 m", "quality 1", "sats 7", "motors ok"):  # fmt: skip
         assert text in last, (text, last)
+
+
+def test_every_view_shows_one_heading_true_in_degrees_0_to_360() -> None:
+    # the controller's heading can come as -2.4 (true); the compass read 358.1 magnetic
+    tel = {**TEL, "bearing_deg": 358.1, "heading_deg": -2.4, "target_bearing_deg": -0.04}
+    for screen in (render_watch(tel), render_status({"telemetry": tel, "mode": "RUNNING"})):
+        assert "heading    357.6 deg true" in screen, screen
+        assert "bearing 0.0 deg true" in screen, screen  # to the waypoint
+        assert "magnetic" not in screen and "358.1" not in screen and "-2.4" not in screen
+
+
+def test_status_for_a_person_names_what_is_wrong() -> None:
+    st = {
+        "version": "0.1.0", "uptime_s": 3725.0, "mode": "IDLE", "state": "IDLE",
+        "telemetry": None, "links": {"gps": "disconnected", "gps_reconnects": 3, "motors": "ok"},
+        "devices": {"gps": {"state": "disconnected", "last_error": "read failed: EIO"},
+                    "motors": {"state": "connected", "last_error": ""}},
+        "declination": {"source": "wmm", "deg": -0.42},
+        "server": {"clients": 2, "pending": 0, "dropped": 5},
+    }  # fmt: skip
+    text = render_status(st)
+    assert text.startswith("x6wd 0.1.0  up 1h02m05s\n")
+    for part in ("IDLE / IDLE  (no telemetry yet)", "declination -0.42 deg (wmm)",
+                 "links      gps disconnected  motors ok", "gps      disconnected: read failed",
+                 "server     2 clients, 0 pending, 5 events dropped"):  # fmt: skip
+        assert part in text, (part, text)
+    assert "motors   connected" not in text  # only the devices with a problem
+
+
+def test_a_closed_pipe_ends_the_client_quietly(served, token_file: Path) -> None:
+    lt, srv, _ = served
+    stop = threading.Event()
+
+    def publish() -> None:
+        while not stop.wait(0.02):
+            lt.call(lambda: srv.publish({"event": "telemetry", "data": TEL}))
+
+    t = threading.Thread(target=publish, daemon=True)
+    t.start()
+    cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(srv.port),
+           "--token-file", str(token_file), "watch", "--no-ansi"]  # fmt: skip
+    try:
+        # `x6wd client watch | head -2`: the reader goes away after two lines
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout.readline().startswith(b"x6wd watch")
+        proc.stdout.readline()
+        proc.stdout.close()
+        assert proc.wait(20) == 0
+        err = proc.stderr.read().decode()
+        proc.stderr.close()
+    finally:
+        stop.set()
+        t.join()
+    assert err == "", err  # no BrokenPipeError traceback, no message
 
 
 def test_render_watch_shows_hold_reason_and_unknowns() -> None:

@@ -5,8 +5,13 @@ with COMMAND one of ``status``, ``load FILE | load --wp LAT,LON ...`` (FILE: ``.
 ``.gpx``, ``.csv`` or ``.kml``), ``start``, ``pause``, ``resume``, ``return``, ``stop``,
 ``drive LEFT RIGHT SECONDS``, ``watch``, ``log [N]``.
 
+``status`` prints a summary for a person, ``--json`` (before or after the action) the reply
+as JSON, for programs. Every heading shown is true, in degrees, 0 <= h < 360 (docs/protocol.md,
+"Headings").
+
 Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed
 (also when the robot closed the connection: pool full, auth deadline, too many failed tokens).
+A reader of the output that goes away (``x6wd client watch | head``) ends it quietly, 0.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
+import os
 import socket
 import ssl
 import sys
@@ -207,37 +214,102 @@ def _fmt(v: Any, spec: str, unit: str = "") -> str:
         return str(v)
 
 
-def render_watch(tel: dict[str, Any], info: dict[str, Any] | None = None) -> str:
-    """One screen of the live view from a telemetry dict (``Telemetry.to_dict()`` shape)."""
-    info = info or {}
+def fmt_heading(v: Any) -> str:
+    """A heading or bearing as every view shows it: true (from geographic north), degrees
+    clockwise, 0 <= h < 360, one decimal ("-" when unknown)."""
+    if not isinstance(v, (int, float)) or not math.isfinite(v):
+        return "-"
+    return f"{round(float(v), 1) % 360.0:.1f} deg true"
+
+
+def _telemetry_lines(tel: dict[str, Any]) -> list[str]:
+    """The lines of a telemetry snapshot that the watch and status views share."""
     wp_i, wp_n = tel.get("waypoint_index"), tel.get("waypoint_count", 0)
     wp = "-" if wp_i is None else f"{wp_i + 1}/{wp_n}"
     hold = tel.get("hold_reason") or ""
-    links = info.get("links", {})
-    lines = [
-        "x6wd watch  (Ctrl-C to quit)",
-        "",
+    return [
         f"state      {tel.get('mode', '?')} / {tel.get('state', '?')}"
         + (f"  HOLD: {hold}" if hold else ""),
         f"position   {_fmt(tel.get('lat_deg'), '.7f')} {_fmt(tel.get('lon_deg'), '.7f')}",
         f"filtered   {_fmt(tel.get('filt_lat_deg'), '.7f')} {_fmt(tel.get('filt_lon_deg'), '.7f')}",
-        f"bearing    {_fmt(tel.get('bearing_deg'), '.1f', ' deg')} magnetic, heading "
-        f"{_fmt(tel.get('heading_deg'), '.1f', ' deg')} true",
+        f"heading    {fmt_heading(tel.get('heading_deg'))}",
         f"pitch/roll {_fmt(tel.get('pitch_deg'), '.0f', ' deg')} / "
         f"{_fmt(tel.get('roll_deg'), '.0f', ' deg')}",
         f"waypoint   {wp}  distance {_fmt(tel.get('distance_m'), '.1f', ' m')}  "
-        f"target {_fmt(tel.get('target_bearing_deg'), '.1f', ' deg')}  "
+        f"bearing {fmt_heading(tel.get('target_bearing_deg'))}  "
         f"deviation {_fmt(tel.get('theta_deg'), '.1f', ' deg')}",
         f"fix        quality {tel.get('fix_quality', 0)}  sats {_fmt(tel.get('sats_used'), 'd')}"
         f"  hdop {_fmt(tel.get('hdop'), '.2f')}  age {_fmt(tel.get('fix_age_s'), '.1f', ' s')}",
         f"compass    age {_fmt(tel.get('attitude_age_s'), '.2f', ' s')}",
         f"motors     L {_fmt(tel.get('left_pct'), '+.0f', '%')}  "
         f"R {_fmt(tel.get('right_pct'), '+.0f', '%')}",
-        "links      "
-        + ("  ".join(f"{k} {v}" for k, v in links.items() if "_" not in k) if links else "-"),
+    ]
+
+
+def _links_line(links: dict[str, Any]) -> str:
+    return "links      " + (
+        "  ".join(f"{k} {v}" for k, v in links.items() if "_" not in k) if links else "-"
+    )
+
+
+def render_watch(tel: dict[str, Any], info: dict[str, Any] | None = None) -> str:
+    """One screen of the live view from a telemetry dict (``Telemetry.to_dict()`` shape)."""
+    info = info or {}
+    lines = [
+        "x6wd watch  (Ctrl-C to quit)",
+        "",
+        *_telemetry_lines(tel),
+        _links_line(info.get("links", {})),
     ]
     if info.get("dropped"):
         lines.append(f"dropped    {info['dropped']} telemetry events (slow link)")
+    return "\n".join(lines) + "\n"
+
+
+def _duration(s: Any) -> str:
+    if not isinstance(s, (int, float)) or not math.isfinite(s):
+        return "-"
+    m, sec = divmod(int(s), 60)
+    h, m = divmod(m, 60)
+    return f"{h}h{m:02d}m{sec:02d}s" if h else f"{m}m{sec:02d}s" if m else f"{s:.1f} s"
+
+
+def render_status(st: dict[str, Any]) -> str:
+    """The ``status`` reply for a person (``--json`` prints the reply itself)."""
+    head = f"x6wd {st.get('version', '?')}  up {_duration(st.get('uptime_s'))}"
+    lines = [head]
+    tel = st.get("telemetry")
+    if isinstance(tel, dict):
+        lines += _telemetry_lines(tel)
+    else:
+        lines.append(
+            f"state      {st.get('mode', '?')} / {st.get('state', '?')}  (no telemetry yet)"
+        )
+    decl = st.get("declination")
+    if isinstance(decl, dict) and decl:
+        if "deg" in decl:
+            text = f"{_fmt(decl['deg'], '+.2f', ' deg')} ({decl.get('source', '?')})"
+        elif "error" in decl:
+            text = f"unknown ({decl.get('source', '?')}: {decl['error']}), heading is magnetic"
+        else:
+            text = str(decl.get("source", "-"))
+        lines.append(f"declination {text}")
+    lines.append(_links_line(st.get("links", {})))
+    devices = st.get("devices")
+    if isinstance(devices, dict):
+        for name, dev in devices.items():
+            if not isinstance(dev, dict):
+                continue
+            problem = dev.get("last_error") or dev.get("reason") or ""
+            state = dev.get("state", "?")
+            if problem and state not in ("connected", "polling"):
+                lines.append(f"  {name:<9}{state}: {problem}")
+    server = st.get("server")
+    if isinstance(server, dict):
+        lines.append(
+            f"server     {server.get('clients', 0)} clients, {server.get('pending', 0)} pending,"
+            f" {server.get('dropped', 0)} events dropped"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -308,7 +380,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--insecure", action="store_true", help="TLS without certificate verification"
     )
     parser.add_argument("--timeout", type=float, default=5.0, help="reply timeout in s (5)")
-    parser.add_argument("--json", action="store_true", help="print replies as JSON")
+    parser.add_argument("--json", action="store_true", help="print replies as JSON (for programs)")
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     sub.add_parser("status", help="show the robot's state")
     p = sub.add_parser(
@@ -336,11 +408,45 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--no-ansi", action="store_true", help="do not clear the screen")
     p = sub.add_parser("log", help="recent daemon log lines")
     p.add_argument("n", type=int, nargs="?", default=50)
+    for p in sub.choices.values():  # also after the action: `x6wd client status --json`
+        p.add_argument(
+            "--json",
+            action="store_true",
+            default=argparse.SUPPRESS,
+            help="print the reply as JSON (for programs)",
+        )
 
 
 def main(args: argparse.Namespace, out: TextIO | None = None) -> int:
-    """Run one client action; messages go to stderr, results to ``out`` (stdout)."""
+    """Run one client action; messages go to stderr, results to ``out`` (stdout).
+
+    When the reader of ``out`` goes away (``x6wd client watch | head``) it stops quietly, as
+    Unix filters do, with exit code 0: no traceback, no message."""
     out = out or sys.stdout
+    try:
+        code = _run(args, out)
+        out.flush()
+        return code
+    except BrokenPipeError:
+        _drop_output(out)
+        return EXIT_OK
+
+
+def _drop_output(out: TextIO) -> None:
+    """After a broken pipe on ``out``: point its file descriptor at /dev/null, so what is
+    still buffered (flushed again at exit) goes nowhere instead of raising once more."""
+    try:
+        fd = out.fileno()
+    except (OSError, ValueError, AttributeError):
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, fd)
+    finally:
+        os.close(null)
+
+
+def _run(args: argparse.Namespace, out: TextIO) -> int:
     err = sys.stderr
     try:
         token = load_token(args.token_file).decode() if args.token_file else None
@@ -378,8 +484,10 @@ def main(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 return EXIT_OK
             else:  # pragma: no cover - argparse restricts the choices
                 raise ParseError(f"unknown action {action}")
-            if args.json or action == "status":
+            if args.json:
                 _print_reply(reply, out)
+            elif action == "status":
+                out.write(render_status(reply))
             else:
                 print(f"{action}: ok", file=out)
             return EXIT_OK
