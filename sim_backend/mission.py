@@ -580,6 +580,9 @@ def run_mission(
         runner.tick(t_end)
         if holds and holds[-1][1] < 0:
             holds[-1][1] = t_end
+        # a hold of no duration stopped nothing: the first decision's wait for the EKF's
+        # first estimate, the closing tick's look at a compass sample not yet read
+        holds[:] = [h for h in holds if h[1] > h[0]]
         rec.record_event("sim_end", t_end, completed=ctrl.mode == Mode.DONE and not returned)
         if progress is not None:
             progress(t_end, t_end)  # finished (early when the mission is done)
