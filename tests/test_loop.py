@@ -715,3 +715,54 @@ def test_operator_seen_reaches_the_controllers_failsafe() -> None:
     now[0] = 2.5
     runner.attitude(Attitude(2.5, 0.0, 0.0, 0.0))
     assert ctrl.mode == Mode.PAUSED and ctrl.telemetry.extra["failsafe"] == "operator link lost"
+
+
+def test_without_wmm_declination_a_dated_fix_leaves_the_declination_alone() -> None:
+    """The Runner's default is the configured declination: WMM only when asked."""
+    safety = SafetyConfig()
+    ctrl = Controller(NavigationConfig.paper(), safety, 0.0)
+    runner = Runner(ctrl, safety, lambda: 0.0, motors=lambda _c: None,
+                    health_log=HealthLog(_quiet()))  # fmt: skip
+    runner.attitude(Attitude(0.0, 10.0, 0.0, 0.0))
+    when = datetime(2026, 11, 25, 12, 0, tzinfo=UTC)
+    runner.gps_record(GpsFix(t_s=0.1, utc=when, lat_deg=HOME[0], lon_deg=HOME[1], quality=1,
+                             valid=True))  # fmt: skip
+    assert runner.declination == {"source": "config"}
+    assert ctrl.telemetry.heading_deg == pytest.approx(10.0)
+
+
+def test_a_return_under_way_outside_the_fence_is_neither_stopped_nor_counted() -> None:
+    safety = SafetyConfig(geofence_radius_m=100.0)
+    ctrl = Controller(NavigationConfig.paper(), safety,
+                      failsafe=FailsafeConfig(geofence_action="return", stuck_s=0.0))  # fmt: skip
+    motors: list[MotorCommand] = []
+    now = [0.0]
+    runner = Runner(ctrl, safety, lambda: now[0], motors=motors.append,
+                    health_log=HealthLog(_quiet()))  # fmt: skip
+
+    def at(t: float, north_m: float) -> None:
+        now[0] = t
+        runner.attitude(Attitude(t, 0.0, 0.0, 0.0))
+        lat = HOME[0] + north_m / M_PER_DEG_LAT
+        runner.gps_record(GpsFix(t_s=t, lat_deg=lat, lon_deg=HOME[1], quality=1, valid=True))
+
+    at(0.0, 0.0)
+    runner.load_mission([north(90)])
+    runner.command("start")
+    at(1.0, 50.0)
+    at(2.0, 101.0)  # outside: the failsafe's return to launch
+    assert runner.geofence_breaches == 1 and ctrl.returning == "failsafe: geofence breach"
+    n = len(motors)
+    at(3.0, 102.0)  # still outside, on the way back: no second breach, no stop
+    assert runner.geofence_breaches == 1 and ctrl.mode == Mode.RUNNING
+    assert not [m for m in motors[n:] if m.reason == "geofence breach"]
+
+
+def test_a_tick_at_the_time_of_an_odometry_reading_is_skipped() -> None:
+    lp = Loop()
+    lp.now = 1.0
+    lp.fix()
+    lp.runner.odometry(WheelOdometry(1.5, 0, 0, 1))
+    n = len(lp.observed)
+    lp.runner.tick(1.5)
+    assert len(lp.observed) == n
