@@ -75,7 +75,7 @@ from x6wd.core.records import (
 from x6wd.nav import geo, steering
 from x6wd.nav.navigator import NavigationError, Navigator
 from x6wd.nav.odometry import wheel_travel_m
-from x6wd.nav.position import PositionSource, make_source
+from x6wd.nav.position import DEFAULT_HDOP, PositionSource, make_source
 
 
 class CommandRejected(X6wdError):
@@ -693,7 +693,7 @@ class Controller:
             return self._dead_reckoning_ok(now)  # driving on without a fix: trust the EKF
         assert fix.lat_deg is not None and fix.lon_deg is not None
         g = self._gnss_cfg
-        hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else 2.0
+        hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else DEFAULT_HDOP
         sigma_m = hdop * math.sqrt(g.re_m**2 + g.ase_m**2 + g.lce_default_m**2)
         driven_m = self._nav_cfg.full_speed_mps * max(0.0, now - self._valid_fix_t)
         limit_m = max(ARRIVAL_GPS_MIN_M, ARRIVAL_GPS_SIGMAS * sigma_m) + driven_m
