@@ -78,6 +78,7 @@ from drivers.nmea import (
     Sentence,
     checksum,
     field_parser,
+    fold_xor_128,
 )
 from x6wd.core.errors import ConfigError, ParseError
 from x6wd.core.geodesy import wrap360
@@ -204,14 +205,7 @@ def _line_sums(lines: list[bytes]) -> bytes:
     The first byte of each 128-byte slot then holds the XOR of that slot, i.e. of its line.
     """
     block = b"".join(map(bytes.ljust, lines, repeat(_SLOT), repeat(b"\0")))
-    x = int.from_bytes(block, "little")
-    x ^= x >> 512
-    x ^= x >> 256
-    x ^= x >> 128
-    x ^= x >> 64
-    x ^= x >> 32
-    x ^= x >> 16
-    x ^= x >> 8
+    x = fold_xor_128(int.from_bytes(block, "little"))
     return x.to_bytes(len(block), "little")[::_SLOT]
 
 

@@ -41,6 +41,19 @@ STANDARD_MAX_CHARS: Final = 82
 # ---------------------------------------------------------------------------- checksum
 
 
+def fold_xor_128(x: int) -> int:
+    """``x`` (bytes as a little-endian integer) XOR-folded by 64, 32, ..., 1 bytes: the low
+    byte of every 128-byte slot then holds the XOR of that slot's bytes."""
+    x ^= x >> 512
+    x ^= x >> 256
+    x ^= x >> 128
+    x ^= x >> 64
+    x ^= x >> 32
+    x ^= x >> 16
+    x ^= x >> 8
+    return x
+
+
 def checksum(data: bytes) -> int:
     """XOR of all bytes of ``data``: the checksum of a body (the bytes between ``$`` and ``*``).
 
@@ -51,14 +64,7 @@ def checksum(data: bytes) -> int:
     # holds the XOR of the bytes at offsets 0..127 (each offset is a unique sum of fold
     # widths). Seven big-int operations instead of a Python operation per byte.
     if len(data) <= 128:  # every sentence (gpsd's cap is 130 characters with '$' and '*HH')
-        x ^= x >> 512
-        x ^= x >> 256
-        x ^= x >> 128
-        x ^= x >> 64
-        x ^= x >> 32
-        x ^= x >> 16
-        x ^= x >> 8
-        return x & 0xFF
+        return fold_xor_128(x) & 0xFF
     width = 64
     while width * 2 < len(data):
         width *= 2
