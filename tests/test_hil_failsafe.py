@@ -69,6 +69,15 @@ def ready_for_a_mission(c: RemoteClient, d: Daemon) -> None:
     )
 
 
+def start_north(c: RemoteClient, d: Daemon, world: Any, north_m: float) -> tuple[float, float, Any]:
+    """Once the daemon is ready, a mission to ``north_m`` north of the origin, started: the
+    true start position (east m, north m) and the start request's reply."""
+    ready_for_a_mission(c, d)
+    e0, n0, _h, _v = world.truth()
+    c.request("mission.load", waypoints=[north_of_origin(north_m)])
+    return e0, n0, c.request("start")
+
+
 def from_start_m(world: Any, start: tuple[float, float]) -> float:
     e, n, _h, _v = world.truth()
     return math.hypot(e - start[0], n - start[1])
@@ -97,10 +106,8 @@ def test_return_over_the_control_port_drives_back_to_launch(
     d = r.daemon
     world = d.devices.backend("sim")
     with RemoteClient("127.0.0.1", r.port) as c:
-        ready_for_a_mission(c, d)
-        e0, n0, _h, _v = world.truth()
-        c.request("mission.load", waypoints=[north_of_origin(40.0)])
-        assert c.request("start")["mode"] == "RUNNING"
+        e0, n0, started = start_north(c, d, world, 40.0)
+        assert started["mode"] == "RUNNING"
         wait_for(lambda: from_start_m(world, (e0, n0)) > 6.0, 15, "6 m driven")
         code, out = cli(r.port, "return")  # the operator's command line
         assert (code, out) == (0, "return: ok\n")
@@ -129,10 +136,7 @@ def test_operator_link_lost_returns_to_launch(
     d = r.daemon
     world = d.devices.backend("sim")
     with RemoteClient("127.0.0.1", r.port) as c:
-        ready_for_a_mission(c, d)
-        e0, n0, _h, _v = world.truth()
-        c.request("mission.load", waypoints=[north_of_origin(60.0)])
-        c.request("start")
+        e0, n0, _started = start_north(c, d, world, 60.0)
         # an operator who keeps asking for status (and nothing else) keeps the link alive
         t_end = time.monotonic() + 4.5
         while time.monotonic() < t_end:
@@ -175,10 +179,7 @@ def test_an_operator_who_sends_return_and_goes_away_gets_the_robot_home(
     d = r.daemon
     world = d.devices.backend("sim")
     with RemoteClient("127.0.0.1", r.port) as c:
-        ready_for_a_mission(c, d)
-        e0, n0, _h, _v = world.truth()
-        c.request("mission.load", waypoints=[north_of_origin(40.0)])
-        c.request("start")
+        e0, n0, _started = start_north(c, d, world, 40.0)
         wait_for(lambda: from_start_m(world, (e0, n0)) > 4.0, 15, "4 m driven")
         c.request("return")
     # the operator's last word was "come home", then the link is gone
@@ -216,9 +217,7 @@ def test_geofence_breach_holds_with_the_motors_stopped(
     d = r.daemon
     world = d.devices.backend("sim")
     with RemoteClient("127.0.0.1", r.port) as c:
-        ready_for_a_mission(c, d)
-        c.request("mission.load", waypoints=[north_of_origin(16.0)])  # inside the fence
-        c.request("start")
+        start_north(c, d, world, 16.0)  # inside the fence
         # 8 m north the fixes jump 30 m south, 22 m from the fence's centre: outside
         st = wait_for(
             lambda: (s := c.request("status"))["mode"] != "RUNNING" and s, 20, "the breach"
@@ -349,9 +348,7 @@ def test_a_stuck_robot_pauses(tmp_path: Path, run_daemon, log_tail: LogTail) -> 
     d = r.daemon
     world = d.devices.backend("sim")
     with RemoteClient("127.0.0.1", r.port) as c:
-        ready_for_a_mission(c, d)
-        c.request("mission.load", waypoints=[north_of_origin(30.0)])
-        c.request("start")
+        start_north(c, d, world, 30.0)
         wait_for(lambda: world.vehicle.command_pct[0] > 10.0, 5, "driving forward")
         t0 = time.monotonic()
         st = wait_for(
@@ -384,9 +381,7 @@ def test_a_gps_without_fix_holds_then_pauses(tmp_path: Path, run_daemon, log_tai
     d = r.daemon
     world = d.devices.backend("sim")
     with RemoteClient("127.0.0.1", r.port) as c:
-        ready_for_a_mission(c, d)
-        c.request("mission.load", waypoints=[north_of_origin(100.0)])
-        c.request("start")
+        start_north(c, d, world, 100.0)
         held = wait_for(
             lambda: (t := telemetry(c)).get("hold_reason") == "no valid fix" and t, 30, "hold"
         )
