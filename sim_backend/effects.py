@@ -46,6 +46,10 @@ GPS_EFFECT_NAMES = (
     "outages",
     "latency",
     "multipath_zone",
+    "nav_filter",
+    "noise_scale",
+    "static_hold",
+    "correction",
 )
 COMPASS_EFFECT_NAMES = ("hard_iron", "soft_iron", "tilt", "declination", "heading_lag")
 EFFECT_NAMES = GPS_EFFECT_NAMES + COMPASS_EFFECT_NAMES
@@ -853,6 +857,230 @@ class _MultipathRun(_Run):
         return _add(batch, delta)
 
 
+# --- receiver-side layers: what a receiver does to its own solution -------------------------
+#
+# These act in either direction against the model: a real receiver's navigation filter,
+# static hold and SBAS / differential corrections make it SMOOTHER or BETTER than a raw
+# single-epoch solution, and a noise or slow-error factor above 1 makes it worse. They are
+# deterministic transforms of the error (no random draws), each running over the valid
+# epochs only (a receiver without a fix keeps its filter state; the next fix continues
+# from it with the actual time step).
+
+
+class _LowPass:
+    """First-order low-pass (time constant ``tau_s``) of ``k`` axes over the valid epochs,
+    carried across batches: y_k = y_{k-1} + (1 - exp(-dt/tau)) (x_k - y_{k-1}), exact for an
+    input held between samples; the first valid sample starts it (no start-up transient)."""
+
+    def __init__(self, tau_s: float, k: int) -> None:
+        self.tau_s, self.k = float(tau_s), k
+        self._y: np.ndarray | None = None  # (k,) the output at the last valid epoch
+        self._t_s = 0.0
+
+    def run(self, t_s: np.ndarray, x: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """Outputs (k, n) for inputs ``x`` (k, n) at ``t_s``; invalid epochs pass ``x``."""
+        out = np.array(x, dtype=float, copy=True)
+        idx = np.flatnonzero(valid)
+        if idx.size == 0:
+            return out
+        xv = out[:, idx]
+        tv = np.asarray(t_s, dtype=float)[idx]
+        if self._y is None:
+            y0, t_prev, first = xv[:, 0], tv[0], 1
+            yv = np.empty_like(xv)
+            yv[:, 0] = y0
+        else:
+            y0, t_prev, first = self._y, self._t_s, 0
+            yv = np.empty_like(xv)
+        dt = np.diff(np.concatenate(([t_prev], tv[first:]))) if tv.size > first else np.zeros(0)
+        if dt.size and np.any(dt <= 0):
+            raise ValueError("t_s must be strictly increasing")
+        gain = -np.expm1(-dt / self.tau_s)
+        if dt.size and np.all(dt == dt[0]):
+            # one step everywhere: a first-order IIR filter, run in C by lfilter
+            from scipy.signal import lfilter
+
+            g = gain[0]
+            yv[:, first:] = lfilter(
+                [g], [1.0, -(1.0 - g)], xv[:, first:], axis=1, zi=((1.0 - g) * y0)[:, None]
+            )[0]
+        else:
+            y = np.array(y0, dtype=float)
+            for j, g in enumerate(gain):
+                y = y + g * (xv[:, first + j] - y)
+                yv[:, first + j] = y
+        out[:, idx] = yv
+        self._y, self._t_s = yv[:, -1].copy(), float(tv[-1])
+        return out
+
+
+def _axis_rows(series: PositionSeries, idx: list[int]) -> np.ndarray:
+    rows = (series.east_m, series.north_m, series.up_m)
+    return np.vstack([np.asarray(rows[i], dtype=float) for i in idx])
+
+
+def _with_rows(series: PositionSeries, idx: list[int], rows: np.ndarray) -> PositionSeries:
+    names = ("east_m", "north_m", "up_m")
+    return series.with_(**{names[i]: rows[j] for j, i in enumerate(idx)})
+
+
+@dataclass(frozen=True)
+class NavFilter(GpsLayer):
+    """The receiver's navigation filter smoothing its solution: the error passes ``order``
+    cascaded first-order low-passes of time constant ``tau_s`` (s) each, on ``axes``.
+
+    A Kalman navigation filter predicts with the Doppler velocity, so the motion itself is
+    not lagged: only the error is smoothed (this layer acts on the error series). Order 1
+    turns white code noise into a Gauss-Markov error (Allan deviation rising as tau^0.5 below
+    ``tau_s``); order 2 makes it smooth (rising as tau^1), as a constant-velocity filter does.
+    Makes the receiver quieter than the model at scales shorter than ``tau_s``; never louder.
+    """
+
+    name: ClassVar[str] = "nav_filter"
+    tau_s: float
+    order: int = 1
+    axes: str = "en"
+
+    def __post_init__(self) -> None:
+        _positive("tau_s", self.tau_s)
+        if self.order not in (1, 2):
+            raise ConfigError(f"nav_filter order={self.order!r}: must be 1 or 2")
+        _axes(self.axes)
+
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The filter running on from its state (no draws)."""
+        return _NavFilterRun(self)
+
+
+class _NavFilterRun(_Run):
+    def __init__(self, layer: NavFilter) -> None:
+        self.idx = list(_axes(layer.axes))
+        self.stages = [_LowPass(layer.tau_s, len(self.idx)) for _ in range(layer.order)]
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        valid = np.asarray(batch.valid, dtype=bool)
+        x = _axis_rows(batch, self.idx)
+        for stage in self.stages:
+            x = stage.run(batch.t_s, x, valid)
+        return _with_rows(batch, self.idx, x)
+
+
+class _SplitScaleRun(_Run):
+    """y = slow * lp(x) + fast * (x - lp(x)), lp a first-order low-pass of ``tau_s``."""
+
+    def __init__(self, tau_s: float, slow: float, fast: float, axes: str) -> None:
+        self.idx = list(_axes(axes))
+        self.lp = _LowPass(tau_s, len(self.idx))
+        self.slow, self.fast = float(slow), float(fast)
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        valid = np.asarray(batch.valid, dtype=bool)
+        x = _axis_rows(batch, self.idx)
+        low = self.lp.run(batch.t_s, x, valid)
+        y = np.where(valid, self.slow * low + self.fast * (x - low), x)
+        return _with_rows(batch, self.idx, y)
+
+
+@dataclass(frozen=True)
+class NoiseScale(GpsLayer):
+    """Short-term noise ``factor`` times the model's (dimensionless; < 1 a quieter receiver,
+    > 1 a noisier one): the part of the error faster than ``split_tau_s`` (s; a first-order
+    high-pass of the error) is multiplied by ``factor``, the slower part kept."""
+
+    name: ClassVar[str] = "noise_scale"
+    factor: float
+    split_tau_s: float = 10.0
+    axes: str = "en"
+
+    def __post_init__(self) -> None:
+        _positive("factor", self.factor, allow_zero=True)
+        _positive("split_tau_s", self.split_tau_s)
+        _axes(self.axes)
+
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The split filter running on (no draws)."""
+        return _SplitScaleRun(self.split_tau_s, 1.0, self.factor, self.axes)
+
+
+@dataclass(frozen=True)
+class Correction(GpsLayer):
+    """SBAS or differential correction: the slow error (the part slower than ``tau_s``, s: a
+    first-order low-pass of the error, which holds the ionosphere, orbit and clock terms a
+    correction removes) multiplied by ``factor`` (dimensionless; < 1 corrected, e.g. 0.5 for
+    SBAS halving it; > 1 a receiver whose slow error is larger than the model's). The fast
+    part is kept."""
+
+    name: ClassVar[str] = "correction"
+    factor: float
+    tau_s: float = 60.0
+    axes: str = "en"
+
+    def __post_init__(self) -> None:
+        _positive("factor", self.factor, allow_zero=True)
+        _positive("tau_s", self.tau_s)
+        _axes(self.axes)
+
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The split filter running on (no draws)."""
+        return _SplitScaleRun(self.tau_s, self.factor, 1.0, self.axes)
+
+
+@dataclass(frozen=True)
+class StaticHold(GpsLayer):
+    """Static hold: while the true speed is below ``speed_threshold_mps`` (m/s) the reported
+    position is frozen; it is let go (and held again at the new solution) when the solution
+    has moved more than ``exit_distance_m`` (m, horizontal) from it, or at once when the speed
+    reaches the threshold. All three axes are held together. A static receiver's log becomes
+    runs of identical fixes with steps of about ``exit_distance_m``."""
+
+    name: ClassVar[str] = "static_hold"
+    exit_distance_m: float
+    speed_threshold_mps: float = 0.5
+
+    def __post_init__(self) -> None:
+        _positive("exit_distance_m", self.exit_distance_m)
+        _positive("speed_threshold_mps", self.speed_threshold_mps, allow_zero=True)
+
+    def start(self, rng: np.random.Generator) -> LayerRun:
+        """The hold running on from the position held at the last epoch (no draws)."""
+        return _StaticHoldRun(self)
+
+
+class _StaticHoldRun(_Run):
+    def __init__(self, layer: StaticHold) -> None:
+        self.layer = layer
+        self._held: np.ndarray | None = None  # held absolute position (3,), m
+
+    def step(self, batch: PositionSeries) -> PositionSeries:
+        n = len(batch)
+        te, tn = truth_track_m(batch)
+        truth = np.vstack([te, tn, np.zeros(n)])
+        err = _axis_rows(batch, [0, 1, 2])
+        pos = truth + err
+        speed = (
+            np.zeros(n)
+            if batch.speed_mps is None
+            else np.nan_to_num(np.asarray(batch.speed_mps, dtype=float))
+        )
+        valid = np.asarray(batch.valid, dtype=bool)
+        out = pos.copy()
+        held = self._held
+        exit2 = self.layer.exit_distance_m**2
+        thr = self.layer.speed_threshold_mps
+        for k in range(n):
+            if not valid[k]:
+                continue
+            if speed[k] >= thr:
+                held = None
+                continue
+            p = pos[:, k]
+            if held is None or (p[0] - held[0]) ** 2 + (p[1] - held[1]) ** 2 > exit2:
+                held = p.copy()
+            out[:, k] = held
+        self._held = held
+        return _with_rows(batch, [0, 1, 2], out - truth)
+
+
 # --- compass layers ---------------------------------------------------------------------------
 
 
@@ -1080,6 +1308,10 @@ GpsEffect = (
     | Outage
     | Latency
     | MultipathZone
+    | NavFilter
+    | NoiseScale
+    | StaticHold
+    | Correction
 )
 CompassEffect = Declination | HardIron | SoftIron | Tilt | HeadingNoise | HeadingLag
 Effect = GpsEffect | CompassEffect
@@ -1096,6 +1328,10 @@ EFFECTS: dict[str, type[Any]] = {
         Outage,
         Latency,
         MultipathZone,
+        NavFilter,
+        NoiseScale,
+        StaticHold,
+        Correction,
         HardIron,
         SoftIron,
         Tilt,

@@ -12,6 +12,7 @@ from sim_backend.effects import (
     EFFECTS,
     Bias,
     CompassPhysics,
+    Correction,
     Declination,
     GaussMarkov,
     HardIron,
@@ -21,11 +22,14 @@ from sim_backend.effects import (
     Jumps,
     Latency,
     MultipathZone,
+    NavFilter,
+    NoiseScale,
     Outages,
     PositionSeries,
     Quantization,
     RandomWalk,
     SoftIron,
+    StaticHold,
     Tilt,
     delay_errors,
     effect_from_params,
@@ -281,6 +285,10 @@ def test_params_round_trip_for_every_effect() -> None:
         "outages": Outages(100.0, 5.0),
         "latency": Latency(0.3),
         "multipath_zone": MultipathZone(0, 0, 10, 0, 5.0, 1.0, 0.5, 20.0),
+        "nav_filter": NavFilter(20.0, 2, "enu"),
+        "noise_scale": NoiseScale(0.3, 8.0),
+        "static_hold": StaticHold(0.4, 0.2),
+        "correction": Correction(0.5, 120.0),
         "hard_iron": HardIron(1.0, -2.0),
         "soft_iron": SoftIron(0.03, 10.0),
         "tilt": Tilt(0.5, 60.0),
@@ -317,6 +325,10 @@ GPS_LAYERS = [
     Outages(30.0, 5.0),
     Latency(0.7),
     MultipathZone(0.0, -3.0, 50.0, -3.0, distance_m=30.0, sigma_m=1.0, bias_m=2.0),
+    NavFilter(5.0, order=2),
+    NoiseScale(2.0, split_tau_s=4.0),
+    Correction(0.4, tau_s=30.0),
+    StaticHold(0.3, speed_threshold_mps=2.0),
 ]
 
 
@@ -359,7 +371,18 @@ def _epoch(s: PositionSeries, i: int) -> PositionSeries:
     )  # fmt: skip
 
 
-@pytest.mark.parametrize("layer", [Bias(1.0, -2.0, 0.5), Quantization(3)], ids=lambda e: e.name)
+@pytest.mark.parametrize(
+    "layer",
+    [
+        Bias(1.0, -2.0, 0.5),
+        Quantization(3),
+        NavFilter(4.0, order=2, axes="enu"),
+        NoiseScale(0.2, 6.0),
+        Correction(3.0, 20.0),
+        StaticHold(0.5, speed_threshold_mps=1.3),
+    ],
+    ids=lambda e: e.name,
+)
 def test_stateless_layers_epoch_by_epoch_equal_the_batch(layer: object) -> None:
     s = GaussMarkov(2.0, 10.0).apply(
         zeros(200, speed_mps=np.full(200, 1.2), course_deg=np.full(200, 30.0)),
@@ -450,3 +473,102 @@ def test_compass_layers_act_on_the_emulations_physics() -> None:
     assert phys.noise_deg2 == pytest.approx(25.0) and [t.name for t in phys.tilt] == ["tilt"]
     k = SoftIron(0.1, 90.0).act_on(phys)
     assert np.allclose(np.diag(k.a), [0.9, 1.1, 1.0]) and np.allclose(k.b, [1.8, 0.0, 0.0])
+
+
+# --- receiver-side layers: either direction against the model -------------------------------
+
+
+def _white(n: int, sigma_m: float, seed: int, dt: float = 1.0, **kw: object) -> PositionSeries:
+    rng = np.random.default_rng(seed)
+    s = zeros(n, dt, **kw)
+    return s.with_(
+        east_m=sigma_m * rng.standard_normal(n),
+        north_m=sigma_m * rng.standard_normal(n),
+        up_m=sigma_m * rng.standard_normal(n),
+    )
+
+
+@pytest.mark.parametrize("dt", [0.2, 1.0])
+def test_nav_filter_first_order_is_a_gauss_markov_of_the_white_noise(dt: float) -> None:
+    # white noise of variance s^2 through y += g (x - y), g = 1 - exp(-dt/tau): a first-order
+    # process of variance s^2 g / (2 - g) and lag-1 correlation 1 - g, at any rate
+    tau_s, sigma_m = 6.0, 1.0
+    out = NavFilter(tau_s).apply(_white(40_000, sigma_m, 3, dt), np.random.default_rng(0))
+    g = -math.expm1(-dt / tau_s)
+    x = out.east_m[100:]
+    assert np.var(x) == pytest.approx(sigma_m**2 * g / (2 - g), rel=0.06)
+    r1 = np.mean(x[1:] * x[:-1]) / np.mean(x * x)
+    assert r1 == pytest.approx(1 - g, abs=0.01)
+    assert np.array_equal(out.up_m, _white(40_000, sigma_m, 3, dt).up_m)  # axes "en"
+
+
+def test_nav_filter_second_order_is_smoother_and_skips_outages() -> None:
+    s = _white(4000, 1.0, 5)
+    one = NavFilter(10.0).apply(s, np.random.default_rng(0))
+    two = NavFilter(10.0, order=2).apply(s, np.random.default_rng(0))
+    assert np.std(np.diff(two.east_m)) < 0.5 * np.std(np.diff(one.east_m))
+    # no fix: the value there is passed through and the filter holds its state across it
+    valid = np.ones(len(s), dtype=bool)
+    valid[1000:1010] = False
+    gap = NavFilter(10.0).apply(s.with_(valid=valid), np.random.default_rng(0))
+    assert np.array_equal(gap.east_m[1000:1010], s.east_m[1000:1010])
+    g = -math.expm1(-11.0 / 10.0)  # 11 s since the last fix
+    want = gap.east_m[999] + g * (s.east_m[1010] - gap.east_m[999])
+    assert gap.east_m[1010] == pytest.approx(want, abs=1e-12)
+
+
+@pytest.mark.parametrize("factor", [0.25, 3.0])
+def test_noise_scale_scales_the_fast_part_both_ways(factor: float) -> None:
+    # a slow drift (tau 300 s) plus white noise: the steps scale by the factor (up to the
+    # first-order split's leak: the low-passed white noise keeps some steps of its own),
+    # the slow part (the spread of 60 s means) is kept
+    base = GaussMarkov(3.0, 300.0).apply(_white(20_000, 0.5, 6), np.random.default_rng(7))
+    out = NoiseScale(factor, split_tau_s=20.0).apply(base, np.random.default_rng(0))
+    step_ratio = np.std(np.diff(out.east_m)) / np.std(np.diff(base.east_m))
+    assert step_ratio == pytest.approx(factor, rel=0.12)
+    means = [s.east_m[: 60 * 333].reshape(333, 60).mean(axis=1) for s in (base, out)]
+    assert np.std(means[1]) == pytest.approx(np.std(means[0]), rel=0.12)
+
+
+@pytest.mark.parametrize("factor", [0.3, 2.0])
+def test_correction_scales_the_slow_part_both_ways(factor: float) -> None:
+    base = GaussMarkov(3.0, 600.0).apply(_white(20_000, 0.5, 8), np.random.default_rng(9))
+    out = Correction(factor, tau_s=10.0).apply(base, np.random.default_rng(0))
+    means = [s.east_m[: 120 * 166].reshape(166, 120).mean(axis=1) for s in (base, out)]
+    assert np.std(means[1]) / np.std(means[0]) == pytest.approx(factor, rel=0.1)
+    # the fast part (steps) is that of the model
+    assert np.std(np.diff(out.east_m)) == pytest.approx(np.std(np.diff(base.east_m)), rel=0.1)
+
+
+def test_static_hold_freezes_until_the_exit_distance_and_releases_when_moving() -> None:
+    base = RandomWalk(0.05).apply(_white(3000, 0.02, 10), np.random.default_rng(11))
+    out = StaticHold(0.3).apply(base, np.random.default_rng(0))
+    steps = np.hypot(np.diff(out.east_m), np.diff(out.north_m))
+    assert np.mean(steps == 0.0) > 0.9  # held most of the time
+    # each release moves to the current solution, at least exit_distance_m from the hold
+    moved = np.flatnonzero(steps > 0) + 1
+    assert moved.size > 5
+    assert np.allclose(out.east_m[moved], base.east_m[moved])
+    assert np.all(steps[moved - 1] > 0.3 - 1e-9)
+    # a held fix never lies farther than exit_distance_m from the solution
+    assert np.all(np.hypot(out.east_m - base.east_m, out.north_m - base.north_m) <= 0.3 + 1e-9)
+    # moving above the threshold: no hold at all
+    fast = base.with_(speed_mps=np.full(3000, 1.0), course_deg=np.zeros(3000))
+    free = StaticHold(0.3, speed_threshold_mps=0.5).apply(fast, np.random.default_rng(0))
+    assert np.array_equal(free.east_m, fast.east_m)
+
+
+@pytest.mark.parametrize(
+    ("table", "key"),
+    [
+        ({"name": "nav_filter", "tau_s": 0.0}, "tau_s"),
+        ({"name": "nav_filter", "tau_s": 1.0, "order": 3}, "order"),
+        ({"name": "noise_scale", "factor": -1.0}, "factor"),
+        ({"name": "correction", "factor": 0.5, "tau_s": 0.0}, "tau_s"),
+        ({"name": "static_hold", "exit_distance_m": 0.0}, "exit_distance_m"),
+        ({"name": "static_hold", "exit_distance_m": 1.0, "speed_threshold_mps": -1}, "speed"),
+    ],
+)
+def test_receiver_layers_name_a_bad_parameter(table: dict[str, object], key: str) -> None:
+    with pytest.raises(ConfigError, match=key):
+        effect_from_params(table)
