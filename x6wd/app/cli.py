@@ -26,13 +26,21 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "decode": ("x6wd.app.decode", "decode NMEA logs or recordings to gpsd-style JSON lines"),
     "replay": ("x6wd.app.replay", "replay a recording or NMEA log through the decoders"),
     "mission": ("x6wd.app.mission", "show or convert mission files (.waypoints, .gpx, .csv, .kml)"),
+    "plot": ("x6wd.app.logview", "draw a recording or NMEA log over time (PNG, HTML page)"),
 }
 
 # The robot's install has only what the daemon imports (pyproject.toml's dependencies); the
 # other tools' packages come with extras. A tool that misses one says which extra to install.
 # command -> the extra that has its packages (`x6wd run`: only a configuration with sim://
 # devices, hardware in the loop, needs the simulator's)
-COMMAND_EXTRAS = {"run": "sim", "sim": "sim", "sweep": "sweep", "gap": "gap", "calibrate": "plot"}
+COMMAND_EXTRAS = {
+    "run": "sim",
+    "sim": "sim",
+    "sweep": "sweep",
+    "gap": "gap",
+    "calibrate": "plot",
+    "plot": "plot",
+}
 # top-level modules of packages that only extras install -> the extra that has them all
 OPTIONAL_MODULES = {
     "scipy": "sim",

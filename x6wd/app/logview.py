@@ -1,0 +1,1015 @@
+"""`x6wd plot RECORDING`: a flight recording (or a plain NMEA log) as pictures.
+
+Eight panels over one time axis (seconds since the recording's first record): the track on a
+local east/north map in metres, the position error when a true track is known, HDOP,
+satellites, heading, navigation states, holds and device faults. Two outputs:
+
+- :func:`render_html` — one self-contained HTML page: inline SVG drawn here, the data
+  embedded as JSON, no script or style from anywhere else and no matplotlib, so the daemon's
+  web console can serve it on the robot's core install;
+- :func:`render_png` — the same panels with matplotlib (the ``plot`` extra).
+
+What a recording holds decides what can be drawn; every panel that cannot be says why in
+its place (an NMEA log has no navigation states; only a simulated run has a true track).
+The true track is the simulator's ``truth.csv`` next to the recording (``--truth`` for
+another). Device faults are the recorder's ``device`` events (health transitions) and, in
+older recordings without them, the holds that name a device.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import html
+import json
+import math
+import sys
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from x6wd import __version__
+from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
+from x6wd.core.geodesy import wrap360
+from x6wd.core.recorder import ReadStats, is_recording, nmea_file_chunks, read_recording_parts
+from x6wd.core.records import GpsFix, GpsSky, Mode, NavState
+from x6wd.nav.geo import LocalTangentPlane
+
+PANELS = ("track", "error", "hdop", "satellites", "heading", "states", "holds", "faults")
+"""Panel ids, in page order (the HTML sections are ``panel-<id>``)."""
+
+MAX_POINTS = 2000
+"""Points per drawn series in the HTML page: longer series are thinned by a stride (a day's
+20 Hz compass would otherwise make a page of tens of megabytes). Intervals are never thinned."""
+
+DEVICES = ("gps", "compass", "motors")
+"""Lanes of the device-fault panel."""
+
+_MODES = frozenset(str(m) for m in Mode)
+_NAV_STATES = frozenset(str(s) for s in NavState)
+
+
+@dataclass
+class Series:
+    """One time series: times (s since the log's start) and values (NaN = no value)."""
+
+    label: str
+    t_s: np.ndarray
+    v: np.ndarray
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain lists for the page's embedded data (NaN as null)."""
+        return {"label": self.label, "t_s": _floats(self.t_s, 3), "v": _floats(self.v, 4)}
+
+
+@dataclass
+class Interval:
+    """A span of time (s since the log's start) in one lane with a label."""
+
+    lane: str
+    t0_s: float
+    t1_s: float
+    label: str
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain dict for the page's embedded data."""
+        return {
+            "lane": self.lane,
+            "t0_s": round(self.t0_s, 3),
+            "t1_s": round(self.t1_s, 3),
+            "label": self.label,
+        }
+
+
+@dataclass
+class LogView:
+    """Everything the panels draw, taken from one recording or NMEA log."""
+
+    path: Path
+    kind: str  # "recording" or "NMEA log"
+    duration_s: float = 0.0
+    start_utc: str = ""
+    origin_deg: tuple[float, float] | None = None  # (lat, lon) of the map's (0, 0)
+    # track: label -> (east m, north m)
+    track: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    error: list[Series] = field(default_factory=list)  # horizontal error, m
+    hdop: list[Series] = field(default_factory=list)
+    satellites: list[Series] = field(default_factory=list)
+    heading: list[Series] = field(default_factory=list)  # degrees 0-360
+    states: list[Interval] = field(default_factory=list)  # lanes "mode", "navigation"
+    holds: list[Interval] = field(default_factory=list)  # lane "hold", label = reason
+    faults: list[Interval] = field(default_factory=list)  # lanes: DEVICES
+    missing: dict[str, str] = field(default_factory=dict)  # panel id -> why it is empty
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The data behind every panel, as embedded in the HTML page (full resolution)."""
+        return {
+            "file": self.path.name,
+            "kind": self.kind,
+            "duration_s": round(self.duration_s, 3),
+            "start_utc": self.start_utc,
+            "origin_deg": list(self.origin_deg) if self.origin_deg else None,
+            "track": {
+                k: {"east_m": _floats(e, 3), "north_m": _floats(n, 3)}
+                for k, (e, n) in self.track.items()
+            },
+            "error": [s.to_json() for s in self.error],
+            "hdop": [s.to_json() for s in self.hdop],
+            "satellites": [s.to_json() for s in self.satellites],
+            "heading": [s.to_json() for s in self.heading],
+            "states": [i.to_json() for i in self.states],
+            "holds": [i.to_json() for i in self.holds],
+            "faults": [i.to_json() for i in self.faults],
+            "missing": self.missing,
+            "counts": self.counts,
+        }
+
+
+def _floats(a: np.ndarray, ndigits: int) -> list[float | None]:
+    return [round(float(x), ndigits) if math.isfinite(x) else None for x in a.tolist()]
+
+
+def _arr(values: Iterable[float | None]) -> np.ndarray:
+    return np.array([math.nan if v is None else float(v) for v in values], dtype=float)
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+@dataclass
+class _Raw:
+    """Records gathered from a log before they become panels (times in the log's own s)."""
+
+    fixes: list[GpsFix] = field(default_factory=list)
+    skies: list[GpsSky] = field(default_factory=list)
+    tel: list[dict[str, Any]] = field(default_factory=list)  # telemetry data dicts
+    att: list[tuple[float, float]] = field(default_factory=list)  # (t, magnetic bearing deg)
+    states: list[tuple[float, str, str, str]] = field(default_factory=list)  # t, old, new, why
+    device_events: list[tuple[float, str, str, str]] = field(default_factory=list)
+    hold_marks: list[tuple[float, str]] = field(default_factory=list)  # t, reason ("": none)
+    t_first: float | None = None
+    t_last: float = 0.0
+    utc0: datetime | None = None  # wall-clock time of the log's time 0
+
+
+def _parse_utc(text: Any) -> datetime | None:
+    if not isinstance(text, str) or not text:
+        return None
+    try:
+        return datetime.fromisoformat(text)
+    except ValueError:
+        return None
+
+
+def _gps_from_decoder(chunks: Iterable[tuple[float, bytes]], raw: _Raw) -> None:
+    from drivers.gps_nmea import GpsDecoder
+
+    decoder = GpsDecoder(emit_sentences=False)
+    t_last = 0.0
+    for t_s, data in chunks:
+        t_last = t_s
+        raw.t_first = t_s if raw.t_first is None else raw.t_first
+        for rec in decoder.feed(data, t_s):
+            if isinstance(rec, GpsFix):
+                raw.fixes.append(rec)
+            elif isinstance(rec, GpsSky):
+                raw.skies.append(rec)
+    for rec in decoder.flush(t_last):
+        if isinstance(rec, GpsFix):
+            raw.fixes.append(rec)
+    raw.t_last = max(raw.t_last, t_last)
+
+
+def _read_recording(path: Path, raw: _Raw) -> ReadStats:
+    from x6wd.core.recorder import decode_record
+
+    stats = ReadStats()
+    nmea: list[tuple[float, bytes]] = []
+    for rec in read_recording_parts(path, stats=stats):
+        t = rec.t_mono
+        if raw.t_first is None:
+            raw.t_first = t
+            utc = _parse_utc(rec.t_utc)
+            if utc is not None:
+                raw.utc0 = utc - timedelta(seconds=t)
+        raw.t_last = max(raw.t_last, t)
+        kind, d = rec.type, rec.data
+        if kind == "motor":
+            reason = d.get("reason")
+            if isinstance(reason, str):
+                raw.hold_marks.append((t, reason[6:] if reason.startswith("hold: ") else ""))
+        elif kind == "attitude":
+            b = d.get("bearing_deg")
+            if isinstance(b, (int, float)) and d.get("valid", True):
+                raw.att.append((t, float(b)))
+        elif kind == "telemetry":
+            raw.tel.append({**d, "t_s": d.get("t_s", t)})
+            raw.hold_marks.append((t, str(d.get("hold_reason") or "")))
+        elif kind == "state":
+            old, new, why = str(d.get("old", "")), str(d.get("new", "")), str(d.get("reason", ""))
+            raw.states.append((t, old, new, why))
+            if new == NavState.HOLD:
+                raw.hold_marks.append((t, why.removeprefix("state: ") or "hold"))
+            elif new in _NAV_STATES and not why.startswith("mode:"):
+                raw.hold_marks.append((t, ""))
+        elif kind in ("fix", "sky"):
+            try:
+                typed = decode_record(rec)
+            except ParseError:
+                continue
+            (raw.fixes if kind == "fix" else raw.skies).append(typed)  # type: ignore[arg-type]
+        elif kind == "nmea":
+            text = d.get("text")
+            if isinstance(text, str):
+                nmea.append((t, text.encode("utf-8", "replace") + b"\r\n"))
+        elif kind == "event" and d.get("event") == "device":
+            raw.device_events.append(
+                (t, str(d.get("device", "")), str(d.get("new", "")), str(d.get("message", "")))
+            )
+    if not raw.fixes and nmea:
+        # a recording of the sentences only: decode them as the daemon would have
+        _gps_from_decoder(nmea, raw)
+    return stats
+
+
+def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t s, lat deg, lon deg) of a true track CSV with columns t_s, lat, lon."""
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    except OSError as exc:
+        raise DeviceUnavailable(f"cannot open true track {path}: {exc}") from exc
+    try:
+        t = np.array([float(r["t_s"]) for r in rows])
+        lat = np.array([float(r["lat"]) for r in rows])
+        lon = np.array([float(r["lon"]) for r in rows])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ParseError(
+            f"{path}: a true track needs numeric columns t_s, lat, lon ({exc})"
+        ) from exc
+    if len(t) < 2 or np.any(np.diff(t) < 0):
+        raise ParseError(f"{path}: a true track needs at least two rows in time order")
+    return t, lat, lon
+
+
+def default_truth(recording: Path) -> Path | None:
+    """The simulator's true track next to a recording (``truth.csv``), or None."""
+    p = recording.with_name("truth.csv")
+    return p if p.is_file() else None
+
+
+def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogView:
+    """Read a recording (.jsonl, all its rotated parts) or a plain NMEA log into the panels'
+    data. ``truth``: a true track CSV (t_s, lat, lon; default: ``truth.csv`` next to a
+    recording). ``rate_hz``: epochs per second for NMEA logs without sentence times."""
+    path = Path(path)
+    raw = _Raw()
+    view = LogView(path=path, kind="recording" if is_recording(path) else "NMEA log")
+    if view.kind == "recording":
+        stats = _read_recording(path, raw)
+        view.counts = {
+            "records": stats.records,
+            "bad_lines": stats.bad_lines,
+            "truncated_lines": stats.truncated,
+        }
+        if truth is None:
+            truth = default_truth(path)
+    else:
+        _gps_from_decoder(nmea_file_chunks(path, rate_hz), raw)
+        if raw.fixes and raw.fixes[0].utc is not None:
+            first = next((f.utc for f in raw.fixes if f.utc is not None), None)
+            if first is not None:
+                raw.utc0 = first - timedelta(seconds=raw.fixes[0].t_s)
+    if not raw.fixes and not raw.tel:
+        raise ParseError(f"{path}: no GPS fixes and no telemetry: nothing to plot")
+    t0 = raw.t_first or 0.0
+    view.duration_s = raw.t_last - t0
+    if raw.utc0 is not None:
+        view.start_utc = (raw.utc0 + timedelta(seconds=t0)).isoformat()
+    view.counts.update(
+        fixes=len(raw.fixes),
+        valid_fixes=sum(1 for f in raw.fixes if f.valid and f.lat_deg is not None),
+        sky_reports=len(raw.skies),
+        telemetry=len(raw.tel),
+        state_changes=len(raw.states),
+    )
+    _track_and_error(view, raw, t0, truth)
+    _gps_quality(view, raw, t0)
+    _headings(view, raw, t0)
+    _timelines(view, raw, t0)
+    return view
+
+
+def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) -> None:
+    good = [f for f in raw.fixes if f.valid and f.lat_deg is not None and f.lon_deg is not None]
+    est = [
+        d
+        for d in raw.tel
+        if isinstance(d.get("filt_lat_deg"), (int, float))
+        and isinstance(d.get("filt_lon_deg"), (int, float))
+    ]
+    tt = _read_truth(truth) if truth is not None else None
+    if good:
+        origin = (good[0].lat_deg, good[0].lon_deg)
+    elif tt is not None:
+        origin = (float(tt[1][0]), float(tt[2][0]))
+    elif est:
+        origin = (float(est[0]["filt_lat_deg"]), float(est[0]["filt_lon_deg"]))
+    else:
+        view.missing["track"] = "no valid fix and no position estimate in the log"
+        view.missing["error"] = view.missing["track"]
+        return
+    assert origin[0] is not None and origin[1] is not None
+    view.origin_deg = (float(origin[0]), float(origin[1]))
+    plane = LocalTangentPlane(*view.origin_deg)
+
+    def xy(lat: np.ndarray, lon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x, y = plane.to_xy(lat, lon)
+        return np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+
+    if tt is not None:
+        view.track["true track"] = xy(tt[1], tt[2])
+    fx_e = fx_n = np.zeros(0)
+    if good:
+        fx_e, fx_n = xy(_arr(f.lat_deg for f in good), _arr(f.lon_deg for f in good))
+        view.track["GPS fixes"] = (fx_e, fx_n)
+    if est:
+        es_e, es_n = xy(_arr(d["filt_lat_deg"] for d in est), _arr(d["filt_lon_deg"] for d in est))
+        view.track["position estimate"] = (es_e, es_n)
+    if tt is None:
+        view.missing["error"] = (
+            "no true track: only a simulated run has one (truth.csv next to the recording, "
+            "or --truth FILE)"
+        )
+        return
+    tr_t, (tr_e, tr_n) = tt[0], view.track["true track"]
+    if good:
+        # a fix is the receiver's position at its epoch (its UTC), not at its arrival
+        ep = _arr(
+            (f.utc - raw.utc0).total_seconds()
+            if f.utc is not None and raw.utc0 is not None
+            else f.t_s
+            for f in good
+        )
+        err = np.hypot(fx_e - np.interp(ep, tr_t, tr_e), fx_n - np.interp(ep, tr_t, tr_n))
+        view.error.append(Series("GPS fix", _arr(f.t_s for f in good) - t0, err))
+    if est:
+        te = _arr(d["t_s"] for d in est)
+        err = np.hypot(es_e - np.interp(te, tr_t, tr_e), es_n - np.interp(te, tr_t, tr_n))
+        view.error.append(Series("position estimate", te - t0, err))
+
+
+def _gps_quality(view: LogView, raw: _Raw, t0: float) -> None:
+    fixes = raw.fixes
+    if fixes:
+        t = _arr(f.t_s for f in fixes) - t0
+        view.hdop.append(Series("HDOP (fix)", t, _arr(f.hdop for f in fixes)))
+        view.satellites.append(Series("used (fix)", t, _arr(f.sats_used for f in fixes)))
+    if raw.skies:
+        t = _arr(s.t_s for s in raw.skies) - t0
+        view.satellites.append(
+            Series(
+                "in view", t, _arr(len(s.satellites) if s.satellites else None for s in raw.skies)
+            )
+        )
+        if not fixes:
+            view.hdop.append(Series("HDOP (sky)", t, _arr(s.hdop for s in raw.skies)))
+    if not view.hdop or all(np.all(np.isnan(s.v)) for s in view.hdop):
+        view.missing["hdop"] = "the receiver reported no HDOP (no GGA or GSA sentences)"
+    if not view.satellites or all(np.all(np.isnan(s.v)) for s in view.satellites):
+        view.missing["satellites"] = "the receiver reported no satellite counts (no GGA or GSV)"
+
+
+def _headings(view: LogView, raw: _Raw, t0: float) -> None:
+    tel = [d for d in raw.tel if isinstance(d.get("heading_deg"), (int, float))]
+    if tel:
+        view.heading.append(
+            Series(
+                "heading (true, navigation)",
+                _arr(d["t_s"] for d in tel) - t0,
+                np.asarray(wrap360(_arr(d["heading_deg"] for d in tel))),
+            )
+        )
+    if raw.att:
+        a = np.array(raw.att)
+        view.heading.append(Series("compass (magnetic)", a[:, 0] - t0, a[:, 1]))
+    moving = [f for f in raw.fixes if f.valid and f.course_deg is not None]
+    if moving:
+        view.heading.append(
+            Series(
+                "GPS course (true)",
+                _arr(f.t_s for f in moving) - t0,
+                _arr(f.course_deg for f in moving),
+            )
+        )
+    if not view.heading:
+        view.missing["heading"] = "no heading: no telemetry, compass samples or GPS course"
+
+
+def _lane_intervals(
+    changes: Sequence[tuple[float, str, str]], lane: str, t_end: float
+) -> list[Interval]:
+    """Intervals of a lane from its changes (t, old, new): the first ``old`` from time 0."""
+    out: list[Interval] = []
+    if not changes:
+        return out
+    cur_t, cur = 0.0, changes[0][1]
+    for t, _old, new in changes:
+        if new == cur:
+            continue
+        if t > cur_t or out == []:
+            out.append(Interval(lane, cur_t, t, cur))
+        cur_t, cur = t, new
+    out.append(Interval(lane, cur_t, t_end, cur))
+    return [i for i in out if i.t1_s > i.t0_s or i is out[-1]]
+
+
+def _device_of(reason: str) -> str | None:
+    """The device a hold reason names (the controller's words: "gps stale", "compass
+    disconnected", "motor link lost", "gps back, waiting ..."), or None."""
+    if reason.startswith("motor link"):
+        return "motors"
+    for dev in ("gps", "compass"):
+        if reason.startswith(dev + " "):
+            return dev
+    return None
+
+
+def _timelines(view: LogView, raw: _Raw, t0: float) -> None:
+    t_end = raw.t_last - t0
+    if view.kind != "recording":
+        why = "an NMEA log holds only the receiver's output"
+        for p in ("states", "holds", "faults"):
+            view.missing[p] = why
+        return
+    mode_ch, nav_ch = [], []
+    for t, old, new, why in raw.states:
+        if why.startswith("mode:") or (
+            not why.startswith("state:") and new in _MODES - _NAV_STATES
+        ):
+            mode_ch.append((t - t0, old, new))
+        elif new in _NAV_STATES or why.startswith("state:"):
+            nav_ch.append((t - t0, old, new))
+    view.states = _lane_intervals(mode_ch, "mode", t_end) + _lane_intervals(
+        nav_ch, "navigation", t_end
+    )
+    if not view.states:
+        view.missing["states"] = "no state changes recorded"
+
+    # Holds: a change into HOLD names its reason ("state: <why>"); the reason may change
+    # during a hold, which telemetry (hold_reason, about 1 Hz) and the motor commands that
+    # changed ("hold: <why>") show. In file order (the controller's), each mark says
+    # "holding for <why>" or "not holding".
+    marks = raw.hold_marks
+    cur: tuple[float, str] | None = None
+    for t, reason in [(t - t0, r) for t, r in marks] + [(t_end, "")]:
+        if cur is not None and reason != cur[1]:
+            if t > cur[0]:
+                view.holds.append(Interval("hold", cur[0], t, cur[1]))
+            cur = None
+        if cur is None and reason:
+            cur = (t, reason)
+    if not view.holds:
+        view.missing["holds"] = "no holds"
+
+    if raw.device_events:
+        open_at: dict[str, tuple[float, str, str]] = {}
+        for t, dev, new, msg in raw.device_events:
+            lane = "motors" if dev.startswith("motor") else dev
+            ok = new in ("connected", "degraded") and new != "degraded"
+            if lane in open_at and (ok or open_at[lane][1] != new):
+                s = open_at.pop(lane)
+                view.faults.append(Interval(lane, s[0], t - t0, f"{s[1]}: {s[2]}"))
+            if not ok and lane not in open_at:
+                open_at[lane] = (t - t0, new, msg)
+        for lane, s in open_at.items():
+            view.faults.append(Interval(lane, s[0], t_end, f"{s[1]}: {s[2]}"))
+    else:
+        for h in view.holds:
+            dev = _device_of(h.label)
+            if dev is not None:
+                view.faults.append(Interval(dev, h.t0_s, h.t1_s, h.label))
+    if not view.faults:
+        view.missing["faults"] = "no device faults"
+
+
+# ---------------------------------------------------------------------------- SVG / HTML
+
+_W, _H, _ML, _MR, _MT, _MB = 900, 190, 56, 16, 24, 28
+_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2")
+_STATE_COLORS = {
+    "IDLE": "#c7c7c7",
+    "RUNNING": "#98df8a",
+    "PAUSED": "#ffbb78",
+    "MANUAL": "#aec7e8",
+    "DONE": "#dbdb8d",
+    "STRAIGHT": "#98df8a",
+    "TURN_LEFT": "#aec7e8",
+    "TURN_RIGHT": "#c5b0d5",
+    "ARRIVED": "#17becf",
+    "MISSION_DONE": "#dbdb8d",
+    "HOLD": "#ff9896",
+}
+
+
+def nice_ticks(lo: float, hi: float, n: int = 6) -> list[float]:
+    """About ``n`` round tick values (1, 2, 5 x 10^k steps) covering [lo, hi]."""
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+        return [lo] if math.isfinite(lo) else []
+    raw_step = (hi - lo) / max(n - 1, 1)
+    mag = 10 ** math.floor(math.log10(raw_step))
+    step = next(m * mag for m in (1, 2, 5, 10) if m * mag >= raw_step)
+    first = math.ceil(lo / step - 1e-9) * step
+    out = []
+    x = first
+    while x <= hi + step * 1e-9:
+        out.append(round(x, 10))
+        x += step
+    return out
+
+
+def _fmt(v: float) -> str:
+    return f"{v:g}" if abs(v) < 1e6 else f"{v:.3g}"
+
+
+def _esc(s: str) -> str:
+    return html.escape(s, quote=True)
+
+
+def _thin(t: np.ndarray, v: np.ndarray, limit: int = MAX_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    if len(t) <= limit:
+        return t, v
+    stride = math.ceil(len(t) / limit)
+    idx = np.r_[np.arange(0, len(t), stride), len(t) - 1]
+    return t[idx], v[idx]
+
+
+def _polylines(xs: np.ndarray, ys: np.ndarray, color: str, extra: str = "") -> str:
+    """Polylines through the finite points (a NaN breaks the line)."""
+    out, pts = [], []
+    for x, y in zip(xs.tolist(), ys.tolist(), strict=True):
+        if math.isfinite(x) and math.isfinite(y):
+            pts.append(f"{x:.1f},{y:.1f}")
+        elif pts:
+            out.append(pts)
+            pts = []
+    if pts:
+        out.append(pts)
+    return "".join(
+        f'<polyline fill="none" stroke="{color}" stroke-width="1.4" {extra}points="{" ".join(p)}"/>'
+        if len(p) > 1
+        else f'<circle cx="{p[0].split(",")[0]}" cy="{p[0].split(",")[1]}" r="2" fill="{color}"/>'
+        for p in out
+    )
+
+
+def _legend(items: Sequence[tuple[str, str]], x: float, y: float) -> str:
+    """One row of legend entries from ``x`` along the top margin at ``y``."""
+    parts = []
+    for label, color in items:
+        parts.append(
+            f'<rect x="{x:.0f}" y="{y - 5}" width="14" height="3" fill="{color}"/>'
+            f'<text x="{x + 18:.0f}" y="{y}" font-size="11">{_esc(label)}</text>'
+        )
+        x += 30 + 6.2 * len(label)
+    return "".join(parts)
+
+
+def _svg_open(pid: str, w: int, h: int, axes: dict[str, float]) -> str:
+    data = "".join(f' data-{k}="{v:.6g}"' for k, v in axes.items())
+    return (
+        f'<svg id="svg-{pid}" xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" '
+        f'viewBox="0 0 {w} {h}" font-family="sans-serif"{data} '
+        f'data-plot-left="{_ML}" data-plot-right="{w - _MR}" data-plot-top="{_MT}" '
+        f'data-plot-bottom="{h - _MB}">'
+    )
+
+
+def _axes(
+    w: int, h: int, x0: float, x1: float, y0: float, y1: float, xlabel: str, ylabel: str
+) -> str:
+    """Frame, grid, ticks and labels of a plot area mapping [x0, x1] x [y0, y1]."""
+    pw, ph = w - _ML - _MR, h - _MT - _MB
+    parts = [f'<rect x="{_ML}" y="{_MT}" width="{pw}" height="{ph}" fill="#fff" stroke="#888"/>']
+    for tx in nice_ticks(x0, x1, 10):
+        px = _ML + (tx - x0) / (x1 - x0) * pw
+        parts.append(
+            f'<line x1="{px:.1f}" y1="{_MT}" x2="{px:.1f}" y2="{h - _MB}" stroke="#eee"/>'
+            f'<text x="{px:.1f}" y="{h - _MB + 13}" font-size="10" text-anchor="middle">'
+            f"{_fmt(tx)}</text>"
+        )
+    for ty in nice_ticks(y0, y1, 5):
+        py = h - _MB - (ty - y0) / (y1 - y0) * ph
+        parts.append(
+            f'<line x1="{_ML}" y1="{py:.1f}" x2="{w - _MR}" y2="{py:.1f}" stroke="#eee"/>'
+            f'<text x="{_ML - 4}" y="{py + 3:.1f}" font-size="10" text-anchor="end">'
+            f"{_fmt(ty)}</text>"
+        )
+    parts.append(
+        f'<text x="{_ML + pw / 2}" y="{h - 2}" font-size="11" text-anchor="middle">'
+        f"{_esc(xlabel)}</text>"
+        f'<text x="12" y="{_MT + ph / 2}" font-size="11" text-anchor="middle" '
+        f'transform="rotate(-90 12 {_MT + ph / 2})">{_esc(ylabel)}</text>'
+    )
+    return "".join(parts)
+
+
+def _range(
+    values: Iterable[np.ndarray], pad: float = 0.05, floor: float | None = None
+) -> tuple[float, float]:
+    finite = [a[np.isfinite(a)] for a in values]
+    finite = [a for a in finite if a.size]
+    if not finite:
+        return 0.0, 1.0
+    lo = float(min(a.min() for a in finite))
+    hi = float(max(a.max() for a in finite))
+    if floor is not None:
+        lo = min(lo, floor)
+    span = hi - lo or max(abs(hi), 1.0)
+    lo2 = lo - pad * span if floor is None or lo - pad * span >= floor or lo > floor else floor
+    return lo2, hi + pad * span
+
+
+def _svg_series(
+    pid: str,
+    series: Sequence[Series],
+    t_range: tuple[float, float],
+    ylabel: str,
+    y_range: tuple[float, float] | None = None,
+    floor: float | None = None,
+    wrap: bool = False,
+) -> str:
+    x0, x1 = t_range
+    y0, y1 = y_range or _range((s.v for s in series), floor=floor)
+    w, h = _W, _H
+    pw, ph = w - _ML - _MR, h - _MT - _MB
+    parts = [_svg_open(pid, w, h, {"x0": x0, "x1": x1, "y0": y0, "y1": y1})]
+    parts.append(_axes(w, h, x0, x1, y0, y1, "time (s)", ylabel))
+    legend = []
+    for i, s in enumerate(series):
+        color = _COLORS[i % len(_COLORS)]
+        t, v = _thin(s.t_s, s.v)
+        if wrap:  # 359 -> 1 degree is a small turn, not a line across the panel
+            cut = np.flatnonzero(np.abs(np.diff(v)) > 180.0) + 1
+            t, v = np.insert(t, cut, np.nan), np.insert(v, cut, np.nan)
+        px = _ML + (t - x0) / (x1 - x0) * pw
+        py = h - _MB - (v - y0) / (y1 - y0) * ph
+        parts.append(f'<g class="series" data-label="{_esc(s.label)}">')
+        parts.append(_polylines(px, py, color))
+        parts.append("</g>")
+        legend.append((s.label, color))
+    parts.append(_legend(legend, _ML + 150, _MT - 8))
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _svg_track(view: LogView) -> str:
+    vals_e = [e for e, _ in view.track.values()]
+    vals_n = [n for _, n in view.track.values()]
+    e0, e1 = _range(vals_e)
+    n0, n1 = _range(vals_n)
+    # equal scale on both axes: metres look like metres
+    w = _W
+    pw = w - _ML - _MR
+    span = max(e1 - e0, (n1 - n0) * pw / 420.0)
+    ce, cn = (e0 + e1) / 2, (n0 + n1) / 2
+    e0, e1 = ce - span / 2, ce + span / 2
+    ph = max(120.0, min(600.0, pw * (n1 - n0) / span))
+    n0, n1 = cn - ph / pw * span / 2, cn + ph / pw * span / 2
+    h = int(ph + _MT + _MB)
+    parts = [_svg_open("track", w, h, {"x0": e0, "x1": e1, "y0": n0, "y1": n1})]
+    parts.append(_axes(w, h, e0, e1, n0, n1, "east (m)", "north (m)"))
+    styles = {"true track": "#2ca02c", "GPS fixes": "#d62728", "position estimate": "#1f77b4"}
+    legend = []
+    for label, (e, n) in view.track.items():
+        color = styles.get(label, "#555")
+        te, tn = _thin(e, n)
+        px = _ML + (te - e0) / (e1 - e0) * pw
+        py = h - _MB - (tn - n0) / (n1 - n0) * ph
+        parts.append(f'<g class="series" data-label="{_esc(label)}">')
+        if label == "GPS fixes":
+            parts.append(
+                "".join(
+                    f'<circle cx="{x:.1f}" cy="{y:.1f}" r="1.8" fill="{color}"/>'
+                    for x, y in zip(px.tolist(), py.tolist(), strict=True)
+                    if math.isfinite(x) and math.isfinite(y)
+                )
+            )
+        else:
+            parts.append(_polylines(px, py, color))
+        parts.append("</g>")
+        legend.append((label, color))
+    parts.append(_legend(legend, _ML + 150, _MT - 8))
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _svg_lanes(
+    pid: str, intervals: Sequence[Interval], lanes: Sequence[str], t_range: tuple[float, float]
+) -> str:
+    x0, x1 = t_range
+    lane_h = 22
+    h = _MT + _MB + lane_h * len(lanes)
+    w = _W
+    pw = w - _ML - _MR
+    parts = [_svg_open(pid, w, h, {"x0": x0, "x1": x1})]
+    parts.append(
+        f'<rect x="{_ML}" y="{_MT}" width="{pw}" height="{h - _MT - _MB}" '
+        'fill="#fff" stroke="#888"/>'
+    )
+    for tx in nice_ticks(x0, x1, 10):
+        px = _ML + (tx - x0) / (x1 - x0) * pw
+        parts.append(
+            f'<line x1="{px:.1f}" y1="{_MT}" x2="{px:.1f}" y2="{h - _MB}" stroke="#eee"/>'
+            f'<text x="{px:.1f}" y="{h - _MB + 13}" font-size="10" text-anchor="middle">'
+            f"{_fmt(tx)}</text>"
+        )
+    parts.append(
+        f'<text x="{_ML + pw / 2}" y="{h - 2}" font-size="11" text-anchor="middle">time (s)</text>'
+    )
+    palette: dict[str, str] = {}
+    for k, lane in enumerate(lanes):
+        y = _MT + k * lane_h
+        parts.append(
+            f'<text x="{_ML - 4}" y="{y + lane_h / 2 + 4}" font-size="10" text-anchor="end">'
+            f"{_esc(lane)}</text>"
+        )
+        for iv in (i for i in intervals if i.lane == lane):
+            color = _STATE_COLORS.get(iv.label)
+            if color is None:
+                color = palette.setdefault(iv.label, _COLORS[len(palette) % len(_COLORS)])
+            a = _ML + (iv.t0_s - x0) / (x1 - x0) * pw
+            b = _ML + (iv.t1_s - x0) / (x1 - x0) * pw
+            width = max(b - a, 1.5)
+            tip = f"{iv.label}: {iv.t0_s:.2f}-{iv.t1_s:.2f} s"
+            parts.append(
+                f'<rect class="interval" x="{a:.1f}" y="{y + 2}" width="{width:.1f}" '
+                f'height="{lane_h - 4}" fill="{color}" fill-opacity="0.85" '
+                f'data-label="{_esc(iv.label)}"><title>{_esc(tip)}</title></rect>'
+            )
+            if width > 7 * len(iv.label):
+                parts.append(
+                    f'<text x="{a + 3:.1f}" y="{y + lane_h / 2 + 4}" font-size="10">'
+                    f"{_esc(iv.label)}</text>"
+                )
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+_TITLES = {
+    "track": "Track (local east/north from the first fix)",
+    "error": "Horizontal position error against the true track (m)",
+    "hdop": "HDOP",
+    "satellites": "Satellites",
+    "heading": "Heading (degrees, 0-360)",
+    "states": "Mode and navigation state",
+    "holds": "Holds (the controller's reason)",
+    "faults": "Device faults",
+}
+
+_CSS = (
+    "body{font-family:sans-serif;margin:16px;color:#222;max-width:940px}"
+    "h1{font-size:20px}h2{font-size:15px;margin:18px 0 4px}"
+    "p.missing{color:#888;font-style:italic;margin:4px 0}"
+    "table{border-collapse:collapse;font-size:13px}td{padding:1px 10px 1px 0}"
+    "svg{display:block;max-width:100%;height:auto}"
+)
+
+
+def panel_svgs(view: LogView) -> dict[str, str]:
+    """Each panel's SVG (or "" when the log has nothing for it; ``view.missing`` says why)."""
+    t_range = (0.0, max(view.duration_s, 1e-3))
+    out: dict[str, str] = {}
+    out["track"] = _svg_track(view) if view.track else ""
+    out["error"] = (
+        _svg_series("error", view.error, t_range, "error (m)", floor=0.0) if view.error else ""
+    )
+    out["hdop"] = (
+        "" if "hdop" in view.missing else _svg_series("hdop", view.hdop, t_range, "HDOP", floor=0.0)
+    )
+    out["satellites"] = (
+        ""
+        if "satellites" in view.missing
+        else _svg_series("satellites", view.satellites, t_range, "satellites", floor=0.0)
+    )
+    out["heading"] = (
+        _svg_series("heading", view.heading, t_range, "degrees", y_range=(0.0, 360.0), wrap=True)
+        if view.heading
+        else ""
+    )
+    out["states"] = (
+        _svg_lanes("states", view.states, ("mode", "navigation"), t_range) if view.states else ""
+    )
+    out["holds"] = _svg_lanes("holds", view.holds, ("hold",), t_range) if view.holds else ""
+    out["faults"] = _svg_lanes("faults", view.faults, DEVICES, t_range) if view.faults else ""
+    return out
+
+
+def html_page(view: LogView) -> str:
+    """The self-contained page of a loaded log (see :func:`render_html`)."""
+    svgs = panel_svgs(view)
+    facts = [
+        ("file", str(view.path)),
+        ("kind", view.kind),
+        ("duration", f"{view.duration_s:.1f} s"),
+        ("start (UTC)", view.start_utc or "unknown"),
+    ] + [(k.replace("_", " "), str(v)) for k, v in view.counts.items()]
+    rows = "".join(f"<tr><td>{_esc(k)}</td><td>{_esc(v)}</td></tr>" for k, v in facts)
+    sections = []
+    for pid in PANELS:
+        why = view.missing.get(pid, "nothing in the log")
+        body = svgs[pid] or f'<p class="missing">Not shown: {_esc(why)}.</p>'
+
+        sections.append(f'<section id="panel-{pid}"><h2>{_esc(_TITLES[pid])}</h2>{body}</section>')
+    # </script> inside the data must not end the element: escape every "<"
+    data = json.dumps(view.to_json(), separators=(",", ":"), allow_nan=False).replace(
+        "<", "\\u003c"
+    )
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        f"<title>x6wd log: {_esc(view.path.name)}</title><style>{_CSS}</style></head><body>"
+        f"<h1>x6wd log: {_esc(view.path.name)}</h1><table>{rows}</table>"
+        + "".join(sections)
+        + f'<script type="application/json" id="x6wd-logview-data">{data}</script>'
+        f'<p style="color:#888;font-size:11px">x6wd {__version__} logview</p>'
+        "</body></html>\n"
+    )
+
+
+def render_html(recording_path: Path, truth: Path | None = None) -> str:
+    """One self-contained HTML page (inline SVG, data embedded as JSON, nothing fetched)
+    of a recording or NMEA log: what the web console serves. ``truth``: a true track CSV
+    (default: ``truth.csv`` next to the recording). Raises :class:`DeviceUnavailable` for a
+    file that cannot be read and :class:`ParseError` for one with nothing to plot."""
+    return html_page(load(Path(recording_path), truth=truth))
+
+
+# ---------------------------------------------------------------------------- PNG
+
+
+def render_png(view: LogView, out_png: Path) -> None:
+    """The panels as one PNG with matplotlib (the ``plot`` extra)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = ["error", "hdop", "satellites", "heading", "timeline"]
+    fig = plt.figure(figsize=(11, 16), dpi=100)
+    gs = fig.add_gridspec(len(rows) + 1, 1, height_ratios=[3.2] + [1] * (len(rows) - 1) + [1.4])
+    ax_map = fig.add_subplot(gs[0])
+    styles = {
+        "true track": ("#2ca02c", "-"),
+        "GPS fixes": ("#d62728", "."),
+        "position estimate": ("#1f77b4", "-"),
+    }
+    for label, (e, n) in view.track.items():
+        color, ls = styles.get(label, ("#555", "-"))
+        if ls == ".":
+            ax_map.plot(e, n, ".", ms=3, color=color, label=label)
+        else:
+            ax_map.plot(e, n, ls, lw=1.2, color=color, label=label)
+    ax_map.set_aspect("equal", adjustable="datalim")
+    ax_map.set_xlabel("east (m)")
+    ax_map.set_ylabel("north (m)")
+    ax_map.set_title(f"{view.path.name}: {_TITLES['track']}", fontsize=10)
+    if view.track:
+        ax_map.legend(fontsize=8, loc="best")
+    else:
+        _missing(ax_map, view.missing.get("track", ""))
+    ax_map.grid(alpha=0.3)
+    t_max = max(view.duration_s, 1e-3)
+    first = None
+    for k, (pid, series, ylabel) in enumerate(
+        (
+            ("error", view.error, "error (m)"),
+            ("hdop", view.hdop, "HDOP"),
+            ("satellites", view.satellites, "satellites"),
+            ("heading", view.heading, "degrees"),
+        )
+    ):
+        ax = fig.add_subplot(gs[k + 1], sharex=first)
+        first = first or ax
+        ax.set_title(_TITLES[pid], fontsize=10, loc="left")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        drew = False
+        for i, s in enumerate(series):
+            if np.any(np.isfinite(s.v)):
+                style = "." if pid == "heading" else "-"
+                ax.plot(
+                    s.t_s, s.v, style, ms=2, lw=1.1, color=_COLORS[i % len(_COLORS)], label=s.label
+                )
+                drew = True
+        if drew:
+            ax.legend(fontsize=8, loc="upper right")
+            if pid == "heading":
+                ax.set_ylim(0, 360)
+                ax.set_yticks([0, 90, 180, 270, 360])
+        else:
+            _missing(ax, view.missing.get(pid, "nothing in the log"))
+        ax.set_xlim(0, t_max)
+    ax = fig.add_subplot(gs[len(rows)], sharex=first)
+    lanes = [("mode", view.states), ("navigation", view.states), ("hold", view.holds)] + [
+        (d, view.faults) for d in DEVICES
+    ]
+    palette: dict[str, str] = {}
+    for k, (lane, ivs) in enumerate(lanes):
+        y = len(lanes) - 1 - k
+        for iv in (i for i in ivs if i.lane == lane):
+            color = _STATE_COLORS.get(iv.label) or palette.setdefault(
+                iv.label, _COLORS[len(palette) % len(_COLORS)]
+            )
+            ax.broken_barh(
+                [(iv.t0_s, max(iv.t1_s - iv.t0_s, t_max / 800))], (y + 0.1, 0.8), color=color
+            )
+            if (iv.t1_s - iv.t0_s) > t_max * len(iv.label) / 150:
+                ax.text(iv.t0_s, y + 0.5, " " + iv.label, va="center", fontsize=7, clip_on=True)
+    ax.set_yticks([len(lanes) - 1 - k + 0.5 for k in range(len(lanes))])
+    ax.set_yticklabels(
+        [lane if lane in ("mode", "navigation", "hold") else f"{lane} fault" for lane, _ in lanes],
+        fontsize=8,
+    )
+    ax.set_ylim(0, len(lanes))
+    ax.set_xlim(0, t_max)
+    ax.set_xlabel("time since the start of the log (s)")
+    ax.set_title("Mode, navigation state, holds and device faults", fontsize=10, loc="left")
+    if not (view.states or view.holds or view.faults):
+        _missing(ax, view.missing.get("states", "nothing in the log"))
+    fig.tight_layout()
+    fig.savefig(out_png)
+    plt.close(fig)
+
+
+def _missing(ax: Any, why: str) -> None:
+    ax.text(
+        0.5,
+        0.5,
+        f"not shown: {why}",
+        transform=ax.transAxes,
+        ha="center",
+        va="center",
+        color="#888",
+        fontsize=9,
+        style="italic",
+    )
+
+
+# ---------------------------------------------------------------------------- command line
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``x6wd plot``."""
+    parser.add_argument("file", metavar="RECORDING", help="a flight recording (.jsonl) or NMEA log")
+    parser.add_argument(
+        "--out",
+        default=".",
+        help="directory for <name>.png and <name>.html (default: the current directory)",
+    )
+    parser.add_argument(
+        "--format",
+        choices=("both", "png", "html"),
+        default="both",
+        help="what to write (html needs no plot extra; default both)",
+    )
+    parser.add_argument(
+        "--truth", help="a true track CSV t_s,lat,lon (default: truth.csv next to the recording)"
+    )
+    parser.add_argument(
+        "--rate",
+        type=float,
+        default=1.0,
+        help="epochs per second for NMEA logs without sentence times (default 1)",
+    )
+
+
+def main(args: argparse.Namespace) -> int:
+    """Entry point of ``x6wd plot``; 0 on success (errors raise X6wdError -> exit 2)."""
+    if args.format != "html":
+        import matplotlib  # noqa: F401  (missing: the plot extra's message, exit 2)
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise ConfigError(f"--rate must be > 0, got {args.rate}")
+    src = Path(args.file)
+    view = load(src, truth=Path(args.truth) if args.truth else None, rate_hz=args.rate)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = src.stem
+    written = []
+    if args.format in ("both", "html"):
+        p = out / f"{stem}.html"
+        p.write_text(html_page(view), encoding="utf-8")
+        written.append(p)
+    if args.format in ("both", "png"):
+        p = out / f"{stem}.png"
+        render_png(view, p)
+        written.append(p)
+    for p in written:
+        print(p)
+    for pid, why in view.missing.items():
+        print(f"x6wd plot: {pid}: not shown: {why}", file=sys.stderr)
+    return 0
