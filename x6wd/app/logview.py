@@ -422,11 +422,12 @@ def _lane_intervals(
     for t, _old, new in changes:
         if new == cur:
             continue
-        if t > cur_t or out == []:
+        # a state of no duration stays (ARRIVED lasts one step): drawn as a thin mark
+        if t > cur_t or cur_t > 0.0:
             out.append(Interval(lane, cur_t, t, cur))
         cur_t, cur = t, new
     out.append(Interval(lane, cur_t, t_end, cur))
-    return [i for i in out if i.t1_s > i.t0_s or i is out[-1]]
+    return out
 
 
 def _device_of(reason: str) -> str | None:
@@ -465,7 +466,7 @@ def _timelines(view: LogView, raw: _Raw, t0: float) -> None:
     # during a hold, which telemetry (hold_reason, about 1 Hz) and the motor commands that
     # changed ("hold: <why>") show. In file order (the controller's), each mark says
     # "holding for <why>" or "not holding".
-    marks = raw.hold_marks
+    marks = sorted(raw.hold_marks, key=lambda m: m[0])  # stable: file order within a time
     cur: tuple[float, str] | None = None
     for t, reason in [(t - t0, r) for t, r in marks] + [(t_end, "")]:
         if cur is not None and reason != cur[1]:
@@ -583,7 +584,7 @@ def _legend(items: Sequence[tuple[str, str]], x: float, y: float) -> str:
 def _svg_open(pid: str, w: int, h: int, axes: dict[str, float]) -> str:
     data = "".join(f' data-{k}="{v:.6g}"' for k, v in axes.items())
     return (
-        f'<svg id="svg-{pid}" xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" '
+        f'<svg id="svg-{pid}" width="{w}" height="{h}" '
         f'viewBox="0 0 {w} {h}" font-family="sans-serif"{data} '
         f'data-plot-left="{_ML}" data-plot-right="{w - _MR}" data-plot-top="{_MT}" '
         f'data-plot-bottom="{h - _MB}">'

@@ -1,0 +1,243 @@
+"""`x6wd plot` (x6wd.app.logview): the HTML page and PNG of a simulated run and a real NMEA log.
+
+The values drawn are checked against the recording read independently (the recorder's own
+reader) and against the simulator's summary of the same run (its raw-fix error statistics).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from sim_backend.mission import run_mission
+from sim_backend.world import load_world
+from x6wd.app import logview
+from x6wd.app.cli import main as cli_main
+from x6wd.app.decode import decode_path
+from x6wd.core.recorder import Recorder, read_recording
+from x6wd.core.records import Mode, NavState, StateChange, Telemetry
+
+ROOT = Path(__file__).resolve().parent.parent
+NMEA_LOG = ROOT / "tests" / "data" / "nmea" / "ublox-lea-5h.log"
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The shipped default scenario, 45 s simulated: recording.jsonl, truth.csv, summary."""
+    out = tmp_path_factory.mktemp("logview_sim")
+    run_mission(load_world(ROOT / "config" / "scenarios" / "default.toml"), out, duration_s=45.0)
+    return out
+
+
+def page_data(page: str) -> dict[str, Any]:
+    m = re.search(r'<script type="application/json" id="x6wd-logview-data">(.*?)</script>', page)
+    assert m is not None
+    data: dict[str, Any] = json.loads(m.group(1))
+    return data
+
+
+def drawn_points(page: str, panel: str, label: str) -> np.ndarray:
+    """The (x, y) data values of a series as drawn: its SVG points mapped back through the
+    panel's axes (data-x0/x1/y0/y1 and the plot area's pixel edges)."""
+    svg = re.search(rf'<svg id="svg-{panel}"([^>]*)>(.*?)</svg>', page, re.S)
+    assert svg is not None, panel
+    attrs = dict(re.findall(r'data-([\w-]+)="([^"]*)"', svg.group(1)))
+    a = {k: float(v) for k, v in attrs.items()}
+    group = re.search(rf'<g class="series" data-label="{re.escape(label)}">(.*?)</g>', svg.group(2))
+    assert group is not None, label
+    pts = [
+        tuple(map(float, p.split(",")))
+        for line in re.findall(r'points="([^"]*)"', group.group(1))
+        for p in line.split()
+    ]
+    px = np.array(pts)
+    x = a["x0"] + (px[:, 0] - a["plot-left"]) / (a["plot-right"] - a["plot-left"]) * (
+        a["x1"] - a["x0"]
+    )
+    y = a["y0"] + (a["plot-bottom"] - px[:, 1]) / (a["plot-bottom"] - a["plot-top"]) * (
+        a["y1"] - a["y0"]
+    )
+    return np.column_stack([x, y])
+
+
+def test_html_is_self_contained_with_every_panel(sim_run: Path) -> None:
+    page = logview.render_html(sim_run / "recording.jsonl")
+    assert page.startswith("<!DOCTYPE html>")
+    # nothing fetched: no address at all, no external script, style, image or frame
+    assert "http://" not in page and "https://" not in page
+    assert not re.search(r"<(script|img|iframe|link)[^>]*\b(src|href)=", page)
+    for pid in logview.PANELS:
+        section = re.search(rf'<section id="panel-{pid}">(.*?)</section>', page, re.S)
+        assert section is not None, pid
+    data = page_data(page)
+    # a simulated mission has everything but device faults
+    assert set(data["missing"]) == {"faults"}, data["missing"]
+    for pid in ("track", "error", "hdop", "satellites", "heading", "states", "holds"):
+        assert f'<svg id="svg-{pid}"' in page, pid
+
+
+def test_series_match_the_recording(sim_run: Path) -> None:
+    rec = sim_run / "recording.jsonl"
+    page = logview.render_html(rec)
+    data = page_data(page)
+    records = list(read_recording(rec))
+    t0 = records[0].t_mono
+    fixes = [r.data for r in records if r.type == "fix"]
+    hdop = next(s for s in data["hdop"] if s["label"] == "HDOP (fix)")
+    assert len(hdop["v"]) == len(fixes)
+    assert np.allclose(hdop["v"], [f["hdop"] for f in fixes], atol=1e-4)
+    assert np.allclose(hdop["t_s"], [f["t_s"] - t0 for f in fixes], atol=1e-3)
+    used = next(s for s in data["satellites"] if s["label"] == "used (fix)")
+    assert used["v"] == [f["sats_used"] for f in fixes]
+    seen = next(s for s in data["satellites"] if s["label"] == "in view")
+    skies = [r.data for r in records if r.type == "sky"]
+    assert seen["v"] == [len(s["satellites"]) for s in skies]
+
+    # the fix error against truth.csv is the simulator's own figure for the same run
+    summary = json.loads((sim_run / "summary.json").read_text())
+    err = np.array(next(s for s in data["error"] if s["label"] == "GPS fix")["v"])
+    raw = summary["raw_error"]
+    assert len(err) == raw["n"]
+    assert err.mean() == pytest.approx(raw["mean_m"], abs=0.01)
+    assert float(np.sqrt(np.mean(err**2))) == pytest.approx(raw["rms_m"], abs=0.01)
+    assert err.max() == pytest.approx(raw["max_m"], abs=0.01)
+
+    # holds and states: the summary's hold periods and the recording's state changes
+    holds = [(h["t0_s"] + t0, h["t1_s"] + t0) for h in data["holds"]]
+    assert np.allclose(holds, summary["extra"]["holds_s"], atol=2e-3)
+    nav = [i for i in data["states"] if i["lane"] == "navigation"]
+    changes = [r.data for r in records if r.type == "state" and r.data["new"] in set(NavState)]
+    changes = [c for c in changes if not c["reason"].startswith("mode:")]
+    assert [i["label"] for i in nav[1:]] == [c["new"] for c in changes]
+    assert np.allclose([i["t0_s"] for i in nav[1:]], [c["t_s"] - t0 for c in changes], atol=1e-3)
+
+    # what is drawn is what is in the data: the error curve, mapped back from the SVG
+    drawn = drawn_points(page, "error", "GPS fix")
+    t_err = np.array(next(s for s in data["error"] if s["label"] == "GPS fix")["t_s"])
+    assert len(drawn) == len(err)
+    assert np.allclose(drawn[:, 0], t_err, atol=0.1)  # 0.1 px rounding of ~860 px for 45 s
+    assert np.allclose(drawn[:, 1], err, atol=0.03)
+
+
+def test_png_of_a_simulated_run(sim_run: Path, tmp_path: Path) -> None:
+    rc = cli_main(["plot", str(sim_run / "recording.jsonl"), "--out", str(tmp_path / "plot")])
+    assert rc == 0
+    png = tmp_path / "plot" / "recording.png"
+    blob = png.read_bytes()
+    assert blob[:8] == b"\x89PNG\r\n\x1a\n"
+    width, height = struct.unpack(">II", blob[16:24])
+    assert (width, height) == (1100, 1600)
+    assert len(blob) > 50_000  # eight panels of lines, not an empty canvas
+    assert (tmp_path / "plot" / "recording.html").stat().st_size > 10_000
+
+
+def test_a_real_nmea_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rc = cli_main(["plot", str(NMEA_LOG), "--out", str(tmp_path)])
+    assert rc == 0
+    err = capsys.readouterr().err
+    # what an NMEA log cannot show is said, once per panel
+    assert "states: not shown: an NMEA log holds only the receiver's output" in err
+    assert "error: not shown: no true track" in err
+    page = (tmp_path / "ublox-lea-5h.html").read_text()
+    data = page_data(page)
+    assert data["kind"] == "NMEA log"
+    counts = decode_path(str(NMEA_LOG), open("/dev/null", "w"))  # noqa: SIM115
+    assert data["counts"]["fixes"] == counts.fixes
+    assert data["track"]["GPS fixes"]["east_m"]
+    for pid in ("states", "holds", "faults", "error"):
+        assert f'<svg id="svg-{pid}"' not in page
+        assert re.search(rf'<section id="panel-{pid}"><h2>[^<]*</h2><p class="missing">', page)
+    assert (tmp_path / "ublox-lea-5h.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def _recorded(path: Path, hold_reason: str) -> None:
+    """A short recording written by the real recorder: a mission that starts, holds for a
+    lost GPS and resumes."""
+    with Recorder(path) as rec:
+        rec.record_state(StateChange(1.0, "IDLE", "RUNNING", "mode: start"))
+        rec.record_state(StateChange(1.0, "IDLE", "STRAIGHT", "state: start"))
+        for t in (1.0, 2.0, 3.0, 4.0, 5.0, 6.0):
+            hold = hold_reason if 3.0 <= t < 5.0 else ""
+            if t == 3.0:
+                rec.record_state(StateChange(t, "STRAIGHT", "HOLD", f"state: {hold_reason}"))
+            if t == 5.0:
+                rec.record_state(StateChange(t, "HOLD", "STRAIGHT", "state: gps ok"))
+            tel = Telemetry(
+                t, Mode.RUNNING, NavState.HOLD if hold else NavState.STRAIGHT, hold,
+                filt_lat_deg=51.0 + t * 1e-5, filt_lon_deg=-1.0, heading_deg=-90.0,
+            )  # fmt: skip
+            rec.record_telemetry(tel)
+
+
+def test_holds_and_device_faults(tmp_path: Path) -> None:
+    path = tmp_path / "r.jsonl"
+    _recorded(path, "gps disconnected")
+    data = page_data(logview.render_html(path))
+    assert [(h["t0_s"], h["t1_s"], h["label"]) for h in data["holds"]] == [
+        (2.0, 4.0, "gps disconnected")
+    ]
+    assert [(f["lane"], f["t0_s"], f["t1_s"]) for f in data["faults"]] == [("gps", 2.0, 4.0)]
+    heading = next(s for s in data["heading"] if s["label"].startswith("heading"))
+    assert heading["v"] == [270.0] * 6  # true degrees 0-360, as every heading shown
+
+
+def test_text_from_a_recording_is_escaped(tmp_path: Path) -> None:
+    # A recording is data: a reason with markup must not become markup on the console's page.
+    # (Checked to fail with logview._esc returning its input unchanged.)
+    path = tmp_path / "r.jsonl"
+    _recorded(path, "<script>alert(1)</script>")
+    page = logview.render_html(path)
+    assert "<script>alert" not in page
+    assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page
+    assert page.count("<script") == 1  # the data block only
+    assert page_data(page)["holds"][0]["label"] == "<script>alert(1)</script>"
+
+
+def test_bad_input_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["plot", str(tmp_path / "none.jsonl"), "--out", str(tmp_path)]) == 2
+    assert "none.jsonl" in capsys.readouterr().err
+    empty = tmp_path / "empty.jsonl"
+    with Recorder(empty) as rec:
+        rec.record_event("start", 0.0)
+    assert cli_main(["plot", str(empty), "--out", str(tmp_path)]) == 2
+    assert "nothing to plot" in capsys.readouterr().err
+    rec_path = tmp_path / "r.jsonl"
+    _recorded(rec_path, "gps stale")
+    bad_truth = tmp_path / "truth.csv"
+    bad_truth.write_text("time,x\n1,2\n")
+    assert cli_main(["plot", str(rec_path), "--out", str(tmp_path)]) == 2
+    assert "truth.csv: a true track needs numeric columns t_s, lat, lon" in capsys.readouterr().err
+
+
+@pytest.mark.integration
+def test_without_the_plot_extra(tmp_path: Path) -> None:
+    script = (
+        "import sys\n"
+        "sys.modules['matplotlib'] = None\n"
+        "from x6wd.app.cli import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-c", script, "plot", str(NMEA_LOG), "--out", str(tmp_path), *args],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+
+    proc = run()
+    assert proc.returncode == 2, proc.stderr
+    assert "pip install 'x6wd[plot]'" in proc.stderr and "Traceback" not in proc.stderr
+    assert not list(tmp_path.iterdir())  # nothing half-written
+    proc = run("--format", "html")  # the page needs no extra (the robot's console)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "ublox-lea-5h.html").is_file()
