@@ -60,12 +60,14 @@ from sim_backend.geodesy import (
     lla_to_ecef,
     utc_to_gps_seconds,
 )
+from sim_backend.geoid import geoid_separation_m
 from sim_backend.sky import DEFAULT_MASK_DEG, SatelliteSet, batched_inverse
 from x6wd.core.errors import ConfigError
 
 Fidelity = Literal["seed", "pseudorange"]
 FIDELITIES: tuple[str, ...] = ("seed", "pseudorange")
 CA_CHIP_M = 293.0522  # C/A code chip length (c / 1.023 MHz)
+FADE_UP_DB = 5.0  # fading above the mean C/N0 allowed for when bounding a reflection search
 
 
 # ---------------------------------------------------------------- parameters
@@ -127,9 +129,13 @@ class ReceiverParams:
     tau_iono_s: float = 1800.0
     tropo_residual_frac: float = 0.05  # after the receiver's standard troposphere model
     tau_tropo_s: float = 3600.0
-    sisre_sigma_m: float = 0.6  # broadcast satellite clock + ephemeris error per satellite
+    # Broadcast satellite clock + ephemeris error per satellite (u-blox 5 era, 2008: about
+    # 1-1.5 m RMS); with multipath below it sets the NEO-5's open-sky CEP50 (2.5 m datasheet).
+    sisre_sigma_m: float = 1.5
     tau_sisre_s: float = 3600.0
-    multipath_sigma_m: float = 0.3  # line-of-sight multipath at zenith, x(1+3 exp(-el/15 deg))
+    # Line-of-sight code multipath at zenith, x(1+3 exp(-el/15 deg)): a small patch antenna
+    # low above the ground, no choke ring.
+    multipath_sigma_m: float = 1.3
     tau_multipath_s: float = 15.0
     nlos_sigma_frac: float = 0.1  # jitter of a reflected path, fraction of its extra length
     # Indoor (through-obstruction) NLOS/multipath delay, used only for signals that arrive
@@ -150,7 +156,27 @@ class ReceiverParams:
     vel_sigma_mps: float = 0.08  # Doppler velocity noise per horizontal axis
     vel_up_sigma_mps: float = 0.15
     course_min_speed_mps: float = 0.3  # below this the course is left empty (u-blox at rest)
-    geoid_sep_m: float = 0.0
+    # Geoid separation (m, MSL above the ellipsoid) printed in GGA; None: the geoid model
+    # (sim_backend.geoid) at the origin, as a receiver's built-in model gives.
+    geoid_sep_m: float | None = None
+    # Signal: C/N0 = the atmosphere's received power (isotropic antenna) - N0 + the antenna's
+    # gain pattern - implementation loss + multipath fading. Patch antenna pattern (dBic):
+    # G(el) = zenith - (zenith - horizon) (1 - sin el)^shape.
+    antenna_zenith_dbic: float = -2.0
+    antenna_horizon_dbic: float = -20.0
+    antenna_shape: float = 1.5
+    # Front end and correlation losses (quantisation, filtering, a passive patch's feed):
+    # with the antenna pattern, calibrated so that the C/N0 medians match real u-blox 5 GSV.
+    implementation_loss_db: float = 7.0
+    # Multipath fading: Rician with K factor (dB) rising linearly in sin(el) from the horizon
+    # value to the zenith value; the diffuse part is complex Gauss-Markov (tau_fade_s), so
+    # the fade in dB is time-correlated. Mean power is kept (the fade averages 0 dB in power).
+    fade_k_zenith_db: float = 12.0
+    fade_k_horizon_db: float = 0.0
+    tau_fade_s: float = 10.0
+    # Tracking: a satellite is acquired when its C/N0 reaches the atmosphere's cutoff (the
+    # tracking threshold) + acquire_margin_db and kept until it falls below the cutoff.
+    acquire_margin_db: float = 6.0
 
     def __post_init__(self) -> None:
         if self.seed_uere not in ("modelled", "re_ase_lce"):
@@ -171,6 +197,9 @@ class ReceiverParams:
             "vel_sigma_mps",
             "vel_up_sigma_mps",
             "course_min_speed_mps",
+            "implementation_loss_db",
+            "acquire_margin_db",
+            "antenna_shape",
         )
         for name in nonneg:
             v = getattr(self, name)
@@ -182,6 +211,7 @@ class ReceiverParams:
             "tau_sisre_s",
             "tau_multipath_s",
             "tau_indoor_s",
+            "tau_fade_s",
             "dll_bandwidth_hz",
             "integration_s",
         ):
@@ -196,6 +226,16 @@ class ReceiverParams:
             )
         if not 0.0 < self.correlator_spacing_chips <= 1.0:
             raise ConfigError("receiver.correlator_spacing_chips must be in (0, 1]")
+        for name in (
+            "antenna_zenith_dbic",
+            "antenna_horizon_dbic",
+            "fade_k_zenith_db",
+            "fade_k_horizon_db",
+        ):
+            if not np.isfinite(getattr(self, name)):
+                raise ConfigError(f"receiver.{name} must be finite, got {getattr(self, name)!r}")
+        if self.geoid_sep_m is not None and not abs(self.geoid_sep_m) <= 200.0:
+            raise ConfigError(f"receiver.geoid_sep_m must be in -200..200, got {self.geoid_sep_m}")
         if not 4 <= self.max_channels <= 64:
             raise ConfigError(f"receiver.max_channels must be 4..64, got {self.max_channels}")
 
@@ -400,6 +440,46 @@ def multipath_sigma_m(el_deg: np.ndarray, p: ReceiverParams) -> np.ndarray:
     return p.multipath_sigma_m * (1.0 + 3.0 * np.exp(-np.asarray(el_deg) / 15.0))
 
 
+def antenna_gain_dbic(el_deg: np.ndarray | float, p: ReceiverParams) -> np.ndarray:
+    """The patch antenna's gain (dBic) toward elevation ``el_deg`` (deg): the zenith value
+    falling as (1 - sin el)^shape to the horizon value (a patch's broad main lobe and its
+    steep roll-off near the horizon); below the horizon it stays at the horizon value."""
+    s = np.sin(np.radians(np.clip(np.asarray(el_deg, dtype=float), 0.0, 90.0)))
+    drop = p.antenna_zenith_dbic - p.antenna_horizon_dbic
+    return np.asarray(p.antenna_zenith_dbic - drop * (1.0 - s) ** p.antenna_shape)
+
+
+def fade_k_db(el_deg: np.ndarray | float, p: ReceiverParams) -> np.ndarray:
+    """Rician K factor (dB, direct over diffuse power) at elevation ``el_deg`` (deg): low
+    satellites see more reflected power from the ground and nearby objects."""
+    s = np.sin(np.radians(np.clip(np.asarray(el_deg, dtype=float), 0.0, 90.0)))
+    return np.asarray(p.fade_k_horizon_db + (p.fade_k_zenith_db - p.fade_k_horizon_db) * s)
+
+
+def rician_fade_db(x_i: np.ndarray, x_q: np.ndarray, k_db: np.ndarray) -> np.ndarray:
+    """Fade (dB) of a Rician channel from unit-variance in-phase/quadrature samples of the
+    diffuse part: power |1 + (x_i + j x_q) / sqrt(2 K)|^2 normalised by its mean 1 + 1/K,
+    so the mean received power is unchanged and a lower K fades deeper and more often."""
+    inv_k = 10.0 ** (-np.asarray(k_db, dtype=float) / 10.0)
+    a = np.sqrt(inv_k / 2.0)
+    power = (1.0 + a * x_i) ** 2 + (a * x_q) ** 2
+    return 10.0 * np.log10(np.maximum(power, 1e-6) / (1.0 + inv_k))
+
+
+def track_hysteresis(
+    acquire: np.ndarray, lose: np.ndarray, prev: np.ndarray | None = None
+) -> np.ndarray:
+    """Tracking state (E, S) from per-epoch events, vectorised over epochs: a satellite is
+    tracked from an epoch where ``acquire`` holds until one where ``lose`` holds (the two
+    never hold together); before any event it keeps ``prev`` (S,) (default untracked)."""
+    n_e, n_s = acquire.shape
+    idx = np.arange(n_e)[:, None]
+    last_acq = np.maximum.accumulate(np.where(acquire, idx, -1), axis=0)
+    last_lose = np.maximum.accumulate(np.where(lose, idx, -1), axis=0)
+    before = np.zeros(n_s, dtype=bool) if prev is None else np.asarray(prev, dtype=bool)
+    return np.where(last_acq == last_lose, before[None, :], last_acq > last_lose)
+
+
 # ---------------------------------------------------------------- results
 
 
@@ -545,6 +625,9 @@ class GnssModel:
         self._gps0_s = utc_to_gps_seconds(self.start_utc)
         self._doy = float(self.start_utc.timetuple().tm_yday)
         geoid = self.params.geoid_sep_m
+        if geoid is None:
+            geoid = float(geoid_separation_m(self.origin[0], self.origin[1]))
+        self.geoid_sep_m = float(geoid)  # constant: it changes by cm over a robot's range
         self._origin_ecef = lla_to_ecef(self.origin[0], self.origin[1], self.origin[2] + geoid)
         self._rot0 = enu_rotation(self.origin[0], self.origin[1])
         # Delays and C/N0 depend (for one site and day) on elevation only: tabulate them once
@@ -554,7 +637,14 @@ class GnssModel:
         el_delay = np.clip(self._el_grid, 1.0, 90.0)  # delays are not defined at the horizon
         self._iono_tab = np.asarray(atm.iono_delay_m(el_delay), dtype=float)
         self._tropo_tab = np.asarray(atm.tropo_delay_m(el_delay, lat0, self._doy, h0), dtype=float)
-        self._snr_tab = np.asarray(atm.snr_dbhz(self._el_grid, 0.0, h0), dtype=float)
+        p = self.params
+        self._snr_tab = np.asarray(
+            atm.snr_dbhz(self._el_grid, 0.0, h0)
+            + antenna_gain_dbic(self._el_grid, p)
+            - p.implementation_loss_db,
+            dtype=float,
+        )
+        self._k_tab = fade_k_db(self._el_grid, p)
         # Gauss-Markov state carried between calls: (values, time).
         self._state: tuple[np.ndarray, float] | None = None
         # Signals can arrive through walls/roofs only when some have a material; only then
@@ -562,6 +652,9 @@ class GnssModel:
         # random stream exactly as before (the seed's model; tested in the same run).
         self._penetrable = bool(getattr(walls, "penetrable", False))
         self._indoor_state: tuple[np.ndarray, float] | None = None
+        # Fading (I/Q Gauss-Markov) state and which satellites are tracked, between calls.
+        self._fade_state: tuple[np.ndarray, float] | None = None
+        self._tracked: np.ndarray | None = None
         self._t_last: float | None = None
 
     # -------------------------------------------------------------- public
@@ -707,7 +800,7 @@ class GnssModel:
             valid=ok,
             lat_deg=np.where(ok, f_lat, nan),
             lon_deg=np.where(ok, f_lon, nan),
-            alt_m=np.where(ok, f_h - p.geoid_sep_m, nan),
+            alt_m=np.where(ok, f_h - self.geoid_sep_m, nan),
             speed_mps=np.where(ok, speed, 0.0),
             course_deg=np.where(ok, course, nan),
             hdop=np.where(ok, hdop, nan),
@@ -722,7 +815,7 @@ class GnssModel:
             used=used & ok[:, None],
             err_enu_m=err,
             sigma_uere_m=uere,
-            geoid_sep_m=p.geoid_sep_m,
+            geoid_sep_m=self.geoid_sep_m,
         )
 
     # -------------------------------------------------------------- internals
@@ -789,13 +882,26 @@ class GnssModel:
         self._indoor_state = (x[-1].copy(), float(t[-1]))
         return 0.5 * (x[:, :n_s] ** 2 + x[:, n_s:] ** 2)
 
+    def _fading(self, t: np.ndarray, el: np.ndarray) -> np.ndarray:
+        """Multipath fade (dB) per (epoch, satellite): Rician with the elevation's K factor,
+        its diffuse I/Q parts unit Gauss-Markov processes (tau_fade_s) continuing from the
+        previous call."""
+        n_s = el.shape[1]
+        prev = self._fade_state
+        x = gauss_markov_unit(
+            t, self.params.tau_fade_s, 2 * n_s, self.rng, *(prev if prev else (None, None))
+        )
+        self._fade_state = (x[-1].copy(), float(t[-1]))
+        k_db = np.interp(el, self._el_grid, self._k_tab)
+        return rician_fade_db(x[:, :n_s], x[:, n_s:], k_db)
+
     def _geometry(
         self, t: np.ndarray, lat: np.ndarray, lon: np.ndarray, alt: np.ndarray
     ) -> dict[str, np.ndarray]:
         """The sky pipeline: az/el, visibility, SNR, in-view / usable / used masks and
         the design matrix, all (E, S)."""
         p = self.params
-        rx_ecef = lla_to_ecef(lat, lon, alt + p.geoid_sep_m)
+        rx_ecef = lla_to_ecef(lat, lon, alt + self.geoid_sep_m)
         rot = enu_rotation(lat, lon)  # (E, 3, 3) local frame at the receiver
         st = self.sky.state(self._gps0_s + t)
         d = st.ecef_m - rx_ecef[:, None, :]
@@ -806,18 +912,24 @@ class GnssModel:
         el = np.degrees(np.arcsin(np.clip(los_u[..., 2], -1.0, 1.0)))
         rx_enu = (rx_ecef - self._origin_ecef) @ self._rot0.T
         above = st.available & (el > 0.0)
-        # C/N0 = the atmosphere's open-sky value minus the reflection losses (its formula
-        # subtracts extra losses linearly).
+        # Mean open-sky C/N0: the atmosphere's value + antenna pattern - implementation loss.
         snr_open = np.interp(el, self._el_grid, self._snr_tab)
-        # A path is tracked only while snr_open - 3 dB x reflections stays >= the cutoff, so
-        # each ray's own margin bounds its reflection search exactly (deeper paths would be
-        # dropped below anyway), and a satellite already under the cutoff needs no tracing.
-        # The tiny pad keeps rounding from cutting a search one level short.
-        margin = snr_open - self.atmosphere.snr_cutoff_dbhz
+        # A path is tracked only while its C/N0 (reflection losses subtracted, 3 dB each)
+        # stays >= the cutoff, so each ray's margin bounds its reflection search (deeper
+        # paths would be dropped anyway) and a satellite already under it needs no tracing.
+        # The margin allows FADE_UP_DB of fading above the mean (a Rician fade seldom
+        # lifts a signal more); the tiny pad keeps rounding from cutting a search short.
+        cutoff = self.atmosphere.snr_cutoff_dbhz
+        margin = snr_open + FADE_UP_DB - cutoff
         trace = above & (margin >= 0.0)
         vis = _visibility(self.walls, rx_enu, az, np.where(trace, el, -1.0), margin + 1e-9)
-        snr = snr_open - vis.loss_db
-        tracked = above & vis.reachable & self.atmosphere.usable(snr)
+        snr = snr_open - vis.loss_db + self._fading(t, el)
+        # Tracking with hysteresis: acquired at cutoff + acquire_margin_db, lost below cutoff.
+        cand = above & vis.reachable
+        tracked = track_hysteresis(
+            cand & (snr >= cutoff + p.acquire_margin_db), ~cand | (snr < cutoff), self._tracked
+        )
+        self._tracked = tracked[-1].copy()
         snr = np.where(tracked, snr, np.nan)
         usable = tracked & (el >= self.mask_deg)
         used = usable

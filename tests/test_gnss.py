@@ -260,14 +260,19 @@ def test_bad_inputs(sats: sky.SatelliteSet) -> None:
         m.batch(t, lat * np.nan, lon, alt, vel)
 
 
-def test_worse_environment_noise_lowers_snr_and_raises_uere(sats: sky.SatelliteSet) -> None:
+def test_more_environment_noise_lowers_snr_and_drops_weak_sats(sats: sky.SatelliteSet) -> None:
     quiet = _model(sats, 4).batch(*_static(50))
-    loud = _model(sats, 4, atmosphere=Atmosphere(env_noise_db=25.0)).batch(*_static(50))
-    drop_db = 25.0 - Atmosphere().env_noise_db
-    assert np.nanmedian(loud.snr_dbhz) == pytest.approx(
-        np.nanmedian(quiet.snr_dbhz) - drop_db, abs=1.0
+    loud = _model(sats, 4, atmosphere=Atmosphere(env_noise_db=10.0)).batch(*_static(50))
+    drop_db = 10.0 - Atmosphere().env_noise_db
+    both = np.isfinite(loud.snr_dbhz) & np.isfinite(quiet.snr_dbhz)  # same fading draws
+    assert np.median(loud.snr_dbhz[both]) == pytest.approx(
+        np.median(quiet.snr_dbhz[both]) - drop_db, abs=0.01
     )
-    assert np.median(loud.sigma_uere_m) > np.median(quiet.sigma_uere_m)
+    # Weaker signals: larger code noise per satellite, and the weakest drop out.
+    sig = gnss.code_noise_sigma_m
+    p = ReceiverParams()
+    assert (sig(loud.snr_dbhz[both], p) > sig(quiet.snr_dbhz[both], p)).all()
+    assert loud.n_used.mean() < quiet.n_used.mean()
 
 
 # ---------------------------------------------------------------- penetration (materials)
@@ -397,7 +402,7 @@ def _enclosed(**mat: Any) -> buildings.Walls:
 
 
 def test_through_a_3_db_wall_tracked_3_db_weaker_30_db_hides(sats: sky.SatelliteSet) -> None:
-    atm = Atmosphere(env_noise_db=6.0)  # a town: open-sky C/N0 39.5-44.5 dB-Hz
+    atm = Atmosphere(env_noise_db=3.0)  # open-sky C/N0 about 20-36 dB-Hz before fading
 
     def south_wall(**mat: Any) -> buildings.Walls:  # 60 m high, 10 m south, no windows
         return buildings.Walls([buildings.Wall(-500.0, -10.0, 500.0, -10.0, height_m=60.0, **mat)])
@@ -409,7 +414,10 @@ def test_through_a_3_db_wall_tracked_3_db_weaker_30_db_hides(sats: sky.Satellite
     clear = ~np.isnan(open_b.snr_dbhz)
     behind = clear & np.isnan(opaque.snr_dbhz)  # hidden by the opaque wall, nothing reflects
     assert behind.sum() > 50 and (clear & ~behind).sum() > 50
-    np.testing.assert_allclose(glass.snr_dbhz[behind], open_b.snr_dbhz[behind] - 3.0, atol=1e-9)
+    # 3 dB weaker (same fading draws); a few near the cutoff are lost to the hysteresis.
+    kept = behind & ~np.isnan(glass.snr_dbhz)
+    assert kept.sum() >= 0.8 * behind.sum()
+    np.testing.assert_allclose(glass.snr_dbhz[kept], open_b.snr_dbhz[kept] - 3.0, atol=1e-9)
     np.testing.assert_array_equal(glass.snr_dbhz[~behind], open_b.snr_dbhz[~behind])
     assert (glass.used & behind).any()  # tracked and used in the fix
     # 30 dB of concrete: under the 15 dB-Hz cutoff, hidden as by the opaque wall (GSV lists
@@ -440,9 +448,9 @@ def test_indoor_delay_grows_as_c_n0_falls(sats: sky.SatelliteSet) -> None:
     # fidelity levels, and the through-wall signals bias the ranges (the error grows).
     for fid in gnss.FIDELITIES:
         med = {}
-        for loss in (5.0, 20.0):
+        for loss in (1.0, 12.0):
             walls = _enclosed(penetration_db=loss)
             b = _model(sats, 6, fidelity=fid, walls=walls).batch(*_static(600, dt=10.0))
-            assert b.valid.all()
-            med[loss] = float(np.median(np.hypot(*_err_enu(b)[:2])))
-        assert med[20.0] > 2.5 * med[5.0], (fid, med)
+            assert b.valid.mean() > 0.9  # weak signals: a short outage now and then
+            med[loss] = float(np.nanmedian(np.hypot(*_err_enu(b)[:2])))
+        assert med[12.0] > 2.5 * med[1.0], (fid, med)
