@@ -91,6 +91,14 @@ from x6wd.nav.controller import CommandRejected, Controller, has_usable_position
 R1_M = 6378160.0  # the paper's equatorial radius (x = Λ·R1)
 R2_M = 6356770.0  # the paper's polar radius (y = Φ·R2)
 DONE_TAIL_S = 2.0  # keep simulating this long after MISSION_DONE (the robot settles)
+STATIC_CHUNK_EPOCHS = 3600
+"""A static survey's receiver runs this many epochs per vectorised call (1 h at 1 Hz), so a
+long survey's memory stays bounded (10 h with walls in one call took over 1 GB). A survey of
+at most this many epochs is one call, as it always was; a longer one draws its random
+numbers chunk by chunk, so it differs from the single call by the draw order only."""
+RECORDER_BUFFER_BYTES = 1 << 20
+"""The recording is written through a buffer this big: fast time needs no crash durability,
+and one ``write()`` per record was a visible share of a run."""
 
 
 @dataclass(frozen=True)
@@ -415,6 +423,7 @@ def run_mission(
         out / "recording.jsonl",
         clock=lambda: now[0],
         utc_clock=lambda: utc0_naive + timedelta(seconds=now[0]),
+        buffer_bytes=RECORDER_BUFFER_BYTES,
     )
 
     arrivals: list[dict[str, Any]] = []
@@ -465,8 +474,13 @@ def run_mission(
             elif type(o) is Telemetry and o.state == NavState.MISSION_DONE and done_at is None:
                 done_at = o.t_s
 
+    rec_methods: dict[str, Callable[[Any], None]] = {}
+
     def recorder_call(method: str, arg: Any) -> None:
-        getattr(rec, method)(arg)
+        fn = rec_methods.get(method)
+        if fn is None:
+            fn = rec_methods[method] = getattr(rec, method)
+        fn(arg)
 
     # The one loop (x6wd.loop.runner), driven in simulated time: the geofence, the
     # manual-drive limit and every routing rule are the robot's own.
@@ -504,15 +518,17 @@ def run_mission(
         device.set_state(0.0, h0, s0.pitch_deg, s0.roll_deg)
         runner.attitude(compass.read(0.0))
         report_every = max(1, n_ticks // 50)
-        static = None
+        static_bursts: Callable[[int], bytes] | None = None
         if not waypoints:
-            # Nothing will move the robot: the whole survey in one vectorised receiver call
-            # (same physics as step by step, much faster with walls).
+            # Nothing will move the robot: the survey's epochs in vectorised receiver calls
+            # (same physics as step by step, much faster with walls), their NMEA text
+            # formatted per call too, STATIC_CHUNK_EPOCHS at a time.
             s0 = vehicle.state
-            t_ep = np.arange(0, n_ticks + 1, gps_every) * dt
-            n_ep = len(t_ep)
             pos0 = np.array([s0.east_m, s0.north_m, s0.up_m + antenna_m])
-            static = receiver.batch(t_ep, np.tile(pos0, (n_ep, 1)), np.zeros((n_ep, 3)))
+            static_bursts = _static_bursts(
+                receiver, np.arange(0, n_ticks + 1, gps_every) * dt, pos0
+            )
+        truth_lla: dict[tuple[float, float, float], tuple[float, float]] = {}
         # Sentences in flight on the UART: (time the last byte arrives, epoch tick, bytes).
         in_flight: deque[tuple[float, int, bytes]] = deque()
 
@@ -558,16 +574,20 @@ def run_mission(
                 operator(t, runner)
             if k % gps_every == 0:
                 antenna = (s.east_m, s.north_m, s.up_m + antenna_m)
-                if static is not None:
-                    ep = static.epoch(k // gps_every)
+                if static_bursts is not None:
+                    burst = static_bursts(k // gps_every)
                 else:
-                    ep = receiver.epoch(t, antenna, vehicle_velocity(s))
-                burst = receiver.nmea(ep)
+                    burst = receiver.nmea(receiver.epoch(t, antenna, vehicle_velocity(s)))
                 nmea_file.write(burst)
-                lat, lon, _alt = enu_to_lla(
-                    np.array(antenna), origin.lat_deg, origin.lon_deg, origin.alt_m
-                )
-                trace.epoch_truth[k] = (s.east_m, s.north_m, float(lat), float(lon))
+                ll = truth_lla.get(antenna)
+                if ll is None:  # a robot standing still asks for the same point each epoch
+                    lat, lon, _alt = enu_to_lla(
+                        np.array(antenna), origin.lat_deg, origin.lon_deg, origin.alt_m
+                    )
+                    if len(truth_lla) > 1000:
+                        truth_lla.clear()
+                    ll = truth_lla[antenna] = (float(lat), float(lon))
+                trace.epoch_truth[k] = (s.east_m, s.north_m, *ll)
                 for t_rx, line in receiver.arrivals(burst, t):
                     in_flight.append((t_rx, k, line))
             if progress is not None and k % report_every == 0:
@@ -644,6 +664,27 @@ def run_mission(
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     _plot(out / "track.png", world, truth_e, truth_n, fix_enu, filt_enu, wp_enu, summary)
     return summary
+
+
+def _static_bursts(receiver: Any, t_s: np.ndarray, pos_enu_m: np.ndarray) -> Callable[[int], bytes]:
+    """NMEA burst of epoch ``i`` (bytes) of a receiver standing at ``pos_enu_m`` (m, ENU) at
+    times ``t_s`` (s): the receiver's epochs and their text are computed
+    ``STATIC_CHUNK_EPOCHS`` at a time, when the first epoch of a chunk is asked for (epochs
+    must be asked in order)."""
+    chunk: dict[str, Any] = {"start": -1, "bursts": []}
+
+    def burst(i: int) -> bytes:
+        start = i - i % STATIC_CHUNK_EPOCHS
+        if start != chunk["start"]:
+            sl = slice(start, start + STATIC_CHUNK_EPOCHS)
+            t = t_s[sl]
+            n = t.shape[0]
+            b = receiver.batch(t, np.tile(pos_enu_m, (n, 1)), np.zeros((n, 3)))
+            chunk["start"], chunk["bursts"] = start, receiver.formatter.format_batch(b)
+        bursts: list[bytes] = chunk["bursts"]
+        return bursts[i - start]
+
+    return burst
 
 
 def compass_setup(

@@ -204,6 +204,47 @@ def test_truncated_last_line_is_counted_and_reopening_continues(tmp_path: Path) 
         list(read_recording(path, strict=True))
 
 
+def _write_each_type(rec: Recorder, utc: datetime) -> None:
+    extra = {"ekf": {"sigma_m": float("inf"), "pair": (1, 2.5)}, "mode": Mode.MANUAL}
+    for k in range(3):
+        t = float(k)
+        rec.record_nmea(b"$GPGGA,1*00\r\n", t)
+        rec.record_attitude(Attitude(t, 359.9, -3.0, 4.0, valid=bool(k)))
+        rec.record_motor(MotorCommand(t, 60.0, -40.0, "turn"))
+        rec.record_state(StateChange(t, "STRAIGHT", "TURN_LEFT", 'theta "q"'))
+        rec.record_fix(GpsFix(t, utc=utc, lat_deg=51.9, hdop=float("nan"), valid=True))
+        rec.record_sky(GpsSky(t, (SatInfo(5, 40.0, None, 38.0, True),), utc=utc))
+        rec.record_telemetry(Telemetry(t, Mode.RUNNING, NavState.HOLD, extra=dict(extra)))
+        rec.record_odometry(WheelOdometry(t, 4300, -12, k))
+        rec.record_event("e", t, n=k, when=utc)
+
+
+def test_buffered_recorder_writes_the_same_bytes(tmp_path: Path) -> None:
+    """The simulator's buffered recorder (``buffer_bytes``) writes exactly the unbuffered
+    one's lines, also across rotation and fsync, and has them all on disk once closed; the
+    telemetry line is the one its ``to_dict()`` gives."""
+    utc = datetime(2026, 11, 22, 4, 43, 12, 250000, tzinfo=UTC)
+    with Recorder(tmp_path / "plain.jsonl", utc_clock=lambda: utc, max_bytes=2000) as rec:
+        _write_each_type(rec, utc)
+        plain = list(rec.paths)
+    with Recorder(
+        tmp_path / "buf.jsonl", utc_clock=lambda: utc, max_bytes=2000, buffer_bytes=1 << 16,
+        fsync_interval_s=0.0,
+    ) as rec:  # fmt: skip
+        _write_each_type(rec, utc)
+        buffered = list(rec.paths)
+    assert len(plain) == len(buffered) > 2
+    assert [p.read_bytes() for p in plain] == [p.read_bytes() for p in buffered]
+    tel = Telemetry(1.0, Mode.RUNNING, NavState.HOLD, extra={"x": (1, float("nan"))})
+    with Recorder(tmp_path / "t.jsonl", utc_clock=lambda: utc) as rec:
+        rec.record_telemetry(tel)
+        rec.record("telemetry", tel.to_dict(), 1.0)
+    a, b = (tmp_path / "t.jsonl").read_text().splitlines()
+    assert a == b
+    with pytest.raises(ValueError, match="buffer_bytes"):
+        Recorder(tmp_path / "bad.jsonl", buffer_bytes=-1)
+
+
 def test_rotation_by_size_keeps_every_record_in_order(tmp_path: Path) -> None:
     with Recorder(tmp_path / "rot.jsonl", max_bytes=600) as rec:
         for i in range(40):

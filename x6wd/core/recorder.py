@@ -110,21 +110,40 @@ _ENCODE = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False, allow_nan=
 def to_jsonable(value: Any) -> Any:
     """Typed records to plain JSON values: dataclasses to dicts, enums to values, datetimes
     to ISO-8601 strings (aware ones in UTC with Z), non-finite floats to None."""
+    # Exact-type checks first: the recorder converts every field of every record (tens of
+    # thousands a simulated hour), and most are plain floats, ints, strings or None.
+    t = type(value)
+    if t is float:
+        return value if math.isfinite(value) else None
+    if t is str or t is int or t is bool or value is None:
+        return value
+    if t is dict:
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    names = _dataclass_names(t)
+    if names is not None:
+        return {name: to_jsonable(getattr(value, name)) for name in names}
     if isinstance(value, float):
         return value if math.isfinite(value) else None
-    if isinstance(value, (str, int, bool)) or value is None:
-        return value
     if isinstance(value, enum.Enum):
         return value.value
+    if isinstance(value, (str, int, bool)):
+        return value
     if isinstance(value, datetime):
         return _iso_z(value) if value.tzinfo is not None else value.isoformat()
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {name: to_jsonable(getattr(value, name)) for name in _field_names(type(value))}
     if isinstance(value, dict):
         return {str(k): to_jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [to_jsonable(v) for v in value]
     return str(value)
+
+
+@functools.cache
+def _dataclass_names(cls: type) -> tuple[str, ...] | None:
+    """Field names of a dataclass type (cached: ``fields()`` rebuilds its tuple per call);
+    None for any other type."""
+    if dataclasses.is_dataclass(cls):
+        return _field_names(cls)
+    return None
 
 
 def _ends_with_newline(path: Path) -> bool:
@@ -273,6 +292,9 @@ class Recorder:
     ``clock`` gives ``t_mono`` when a call omits it; ``utc_clock`` gives ``t_utc``.
     ``retention``: applied to the recording's directory after every rotation (in the
     writing thread) and by :meth:`enforce_retention`; see the module docstring.
+    ``buffer_bytes``: 0 (default) writes each record at once; more collects records in a
+    buffer of that size first (the simulator's fast time, which needs no crash durability:
+    a crash then loses up to that much).
     """
 
     def __init__(
@@ -284,11 +306,15 @@ class Recorder:
         retention: Retention | None = None,
         clock: Callable[[], float] = time.monotonic,
         utc_clock: Callable[[], datetime] = _utc_now,
+        buffer_bytes: int = 0,
     ) -> None:
         if fsync_interval_s is not None and not fsync_interval_s >= 0:
             raise ValueError(f"fsync_interval_s must be >= 0 or None, got {fsync_interval_s}")
         if max_bytes is not None and max_bytes < 1:
             raise ValueError(f"max_bytes must be >= 1 or None, got {max_bytes}")
+        if buffer_bytes < 0:
+            raise ValueError(f"buffer_bytes must be >= 0, got {buffer_bytes}")
+        self.buffer_bytes = buffer_bytes
         self.path = Path(path)
         self.paths = [self.path]
         self.fsync_interval_s = fsync_interval_s
@@ -308,18 +334,24 @@ class Recorder:
     def _open(self, path: Path) -> Any:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            # Unbuffered binary: each record reaches the kernel in a single write().
-            f = open(path, "ab", buffering=0)  # noqa: SIM115
+            # Unbuffered binary (by default): each record reaches the kernel in one write().
+            size = self.buffer_bytes and max(2, self.buffer_bytes)  # 1 would mean lines
+            f = open(path, "ab", buffering=size)  # noqa: SIM115
             if f.tell() > 0 and not _ends_with_newline(path):
                 f.write(b"\n")  # a previous run died mid-line: do not glue onto it
         except OSError as exc:
             raise DeviceUnavailable(f"cannot open recording {path}: {exc}") from exc
         return f
 
+    def _sync(self) -> None:
+        """Hand any buffered records to the kernel, then ``os.fsync``."""
+        self._file.flush()
+        os.fsync(self._file.fileno())
+
     def _rotate(self) -> None:
         """Continue in the next part, ``<stem>.<n><suffix>`` (see :func:`recording_parts`)."""
         with contextlib.suppress(OSError):
-            os.fsync(self._file.fileno())
+            self._sync()
         self._file.close()
         first = self.paths[0]
         nxt = first.with_name(f"{first.stem}.{len(self.paths)}{first.suffix}")
@@ -407,7 +439,7 @@ class Recorder:
             if self.fsync_interval_s is not None:
                 now = time.monotonic()
                 if now - self._last_fsync >= self.fsync_interval_s:
-                    os.fsync(self._file.fileno())
+                    self._sync()
                     self._last_fsync = now
         if rotated:  # outside the lock: deleting files must not hold up other writers
             try:
@@ -435,7 +467,9 @@ class Recorder:
 
     def record_telemetry(self, tel: Telemetry) -> None:
         """A controller telemetry snapshot; ``t_mono`` is its ``t_s``."""
-        self.record("telemetry", tel.to_dict(), tel.t_s)
+        # The dataclass itself, not ``tel.to_dict()``: same JSON (enums by value), without
+        # ``asdict``'s deep copy.
+        self.record("telemetry", tel, tel.t_s)
 
     def record_fix(self, fix: GpsFix) -> None:
         """A decoded fix; ``t_mono`` is its ``t_s``."""
@@ -457,7 +491,7 @@ class Recorder:
         """Force the data to stable storage (``os.fsync``)."""
         with self._lock:
             if not self._file.closed:
-                os.fsync(self._file.fileno())
+                self._sync()
 
     def close(self) -> None:
         """fsync and close (idempotent)."""
@@ -465,7 +499,7 @@ class Recorder:
             if self._file.closed:
                 return
             with contextlib.suppress(OSError):
-                os.fsync(self._file.fileno())
+                self._sync()
             self._file.close()
 
     def __enter__(self) -> Recorder:
