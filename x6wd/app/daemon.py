@@ -43,9 +43,10 @@ from typing import Any, cast
 
 from drivers.gps_nmea import NmeaSentence
 from x6wd import __version__
+from x6wd.app.console import ConsoleServer
 from x6wd.app.gpsd import GpsdServer
 from x6wd.app.notify import Notifier
-from x6wd.app.server import ControlServer
+from x6wd.app.server import ControlServer, server_ssl_context
 from x6wd.core.config import Config
 from x6wd.core.config import load as load_config
 from x6wd.core.errors import CommandError, ConfigError, DeviceUnavailable, X6wdError
@@ -578,6 +579,10 @@ class Daemon:
         self.recorder: _RecorderWorker | None = None
         self.server: ControlServer | None = None
         self.gpsd: GpsdServer | None = None
+        self.console: ConsoleServer | None = None
+        # the loaded mission as the console's map shows it: ((lat_deg, lon_deg), ...)
+        self._mission: tuple[tuple[float, float], ...] = ()
+        self._mission_rev = 0
         self._gps_reader: Any = None
         self._net: _NetThread | None = None
         self._loop_thread_id: int | None = None
@@ -738,6 +743,7 @@ class Daemon:
             wmm_declination=decl is None,
         )
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
+        self.console = self._make_console()
         if cfg.gpsd.enabled:
             path, bps, cycle_s = _gps_device(cfg.gps.url, cfg.gps.rate_hz)
             # without a configured declination the ATT heading is the magnetic one until the
@@ -768,6 +774,7 @@ class Daemon:
         listeners = (
             ("server", self.server, cfg.server.bind, cfg.server.port),
             ("gpsd", self.gpsd, cfg.gpsd.bind, cfg.gpsd.port),
+            ("console", self.console, cfg.console.bind, cfg.console.port),
         )
         # Their "listening on" lines wait until both ports are ours, so that a busy second
         # port leaves the error as the only line on stderr.
@@ -798,7 +805,7 @@ class Daemon:
         """Undo :meth:`_bind_servers` after a start-up configuration error (idempotent)."""
         if self._net is None:
             return
-        for server in (self.server, self.gpsd):
+        for server in (self.console, self.server, self.gpsd):
             if server is not None:
                 with contextlib.suppress(Exception):
                     await self._net.run(server.close())
@@ -884,7 +891,7 @@ class Daemon:
         for t in self._threads:
             await asyncio.to_thread(t.join, 3.0)
         if self._net is not None:
-            for server in (self.server, self.gpsd):
+            for server in (self.console, self.server, self.gpsd):
                 if server is not None:
                     with contextlib.suppress(Exception):
                         await self._net.run(server.close())
@@ -1041,6 +1048,10 @@ class Daemon:
         self.runner.gps(records)  # the control decision first: GGA-to-motor latency
         if self._gpsd_wmm:
             self._gpsd_declination()
+        if self.console is not None:
+            for rec in records:
+                if isinstance(rec, GpsSky):
+                    self._net_call(self.console.publish_sky, rec)
         if self.gpsd is not None:
             for rec in records:
                 if isinstance(rec, GpsFix):
@@ -1112,6 +1123,8 @@ class Daemon:
     def _publish(self, event: dict[str, Any]) -> None:
         if self.server is not None:
             self._net_call(self.server.publish, event)
+        if self.console is not None:
+            self._net_call(self.console.publish, event)
 
     def _on_state(self, change: StateChange) -> None:
         self.notifier.status(self._status_text())
@@ -1290,7 +1303,49 @@ class Daemon:
     # the runner's operator requests, run on the control loop by _on_control
     def _load_mission(self, waypoints: list[Waypoint]) -> dict[str, Any]:
         assert self.runner is not None
-        return self.runner.load_mission(waypoints)
+        result = self.runner.load_mission(waypoints)
+        self._mission = tuple((w.lat_deg, w.lon_deg) for w in waypoints)
+        self._mission_rev += 1
+        return result
+
+    # -- the web console ----------------------------------------------------------------------
+    def _make_console(self) -> ConsoleServer | None:
+        """The console of ``[console]`` (None when off), sharing the control server's token,
+        TLS and commands. Raises ConfigError naming the key."""
+        cfg = self.config
+        if not cfg.console.enabled:
+            return None
+        if self.server is None:
+            raise ConfigError(
+                "console.enabled: the console needs the control server (server.enabled = "
+                "true): it uses its token, TLS and commands"
+            )
+        if cfg.console.deadman_s > cfg.safety.manual_max_s:
+            raise ConfigError(
+                f"console.deadman_s: {cfg.console.deadman_s:g} s is longer than "
+                f"safety.manual_max_s ({cfg.safety.manual_max_s:g} s)"
+            )
+        ctx = None
+        if cfg.server.tls_cert and cfg.server.tls_key:
+            ctx = server_ssl_context(cfg.server.tls_cert, cfg.server.tls_key)
+        return ConsoleServer(cfg.console, self.server, self._map_view, ssl_context=ctx)
+
+    def _map_view(self) -> dict[str, Any]:
+        """What the console's map draws besides the robot: the loaded mission, the launch
+        point (home: where the mission started, where ``return`` drives) and the geofence.
+        Called on the network thread: reads only immutable snapshots."""
+        runner, ctl = self.runner, self.controller
+        centre = runner.geofence_centre() if runner is not None else None
+        launch = getattr(ctl, "launch_point", None)
+        return {
+            "revision": self._mission_rev,
+            "waypoints": [list(p) for p in self._mission],
+            "launch": list(launch) if launch is not None else None,
+            "geofence": {
+                "center": list(centre) if centre is not None else None,
+                "radius_m": self.config.safety.geofence_radius_m,
+            },
+        }
 
     def _command(self, name: str) -> dict[str, Any]:
         assert self.runner is not None

@@ -40,7 +40,7 @@ from x6wd import __version__
 from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
 from x6wd.core.config import ServerConfig
 from x6wd.core.errors import CommandError, ConfigError, ParseError, X6wdError
-from x6wd.core.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx
+from x6wd.core.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx, parse_kml, parse_wpl
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +63,10 @@ COMMANDS = (
 # commands that change what the robot does: a stop issued before one of these cannot stand
 # in for a stop requested after it
 MOTION_COMMANDS = frozenset({"mission.load", "start", "pause", "resume", "return", "drive"})
+ACTING_COMMANDS = MOTION_COMMANDS | {"stop"}
+"""What a watch-only client (the web console with ``console.watch_only``) is refused."""
+MISSION_KEYS = ("waypoints", "gpx", "csv", "wpl", "kml")
+"""``mission.load``'s arguments: a list of pairs, or a file's content in one of four formats."""
 MAX_PENDING_REPLIES = 64
 LOG_TAIL_MAX = 1000
 MAX_JSON_DEPTH = 16
@@ -200,6 +204,8 @@ class _Client(LineClient):
     auth_failures: int = 0
     backoff_s: float = 0.0  # after a failed auth: wait this long before the next line
     close_reason: str = ""  # close once this reply is sent (too many failed auths)
+    watch_only: bool = False  # refused every command in ACTING_COMMANDS
+    drive_limit_s: float | None = None  # a drive's duration_s is cut to this (the dead-man)
 
 
 class _Shared:
@@ -586,10 +592,12 @@ class ControlServer(LineServer[_Client]):
                 raise _Reject("rate_limited", f"more than {self.config.rate_per_s:g} requests/s")
             if not c.authenticated and cmd not in UNAUTHENTICATED_COMMANDS:
                 raise _Reject("unauthorized", f"authenticate first to use {cmd!r}")
-            if c.authenticated:  # an operator is there (the operator-link failsafe)
-                self.backend.operator_seen()
+            if c.watch_only and cmd in ACTING_COMMANDS:
+                raise _Reject("watch_only", f"this connection only watches: {cmd!r} refused")
+            if c.authenticated and not c.watch_only:  # an operator is there (the
+                self.backend.operator_seen()  # operator-link failsafe; not a spectator)
             result = await self._execute(c, cmd, req)
-            if cmd == "auth" and c.authenticated:
+            if cmd == "auth" and c.authenticated and not c.watch_only:
                 self.backend.operator_seen()
             reply = {"id": req_id, "ok": True, **result}
         except _Reject as exc:
@@ -616,7 +624,7 @@ class ControlServer(LineServer[_Client]):
         b = self.backend
         if cmd in MOTION_COMMANDS:
             # validate first, then count: a rejected request changes nothing
-            args = self._motion_args(cmd, req)
+            args = self._motion_args(c, cmd, req)
             self._command_seq += 1
             if cmd == "mission.load":
                 return await _result(b.load_mission(*args))
@@ -660,16 +668,62 @@ class ControlServer(LineServer[_Client]):
             return {"lines": await _result(b.log_tail(n))}
         raise _Reject("unknown_command", f"unknown command {cmd!r}")  # pragma: no cover
 
-    def _motion_args(self, cmd: str, req: dict[str, Any]) -> tuple[Any, ...]:
+    def _motion_args(self, c: _Client, cmd: str, req: dict[str, Any]) -> tuple[Any, ...]:
         if cmd == "mission.load":
             return (self._waypoints(req),)
         if cmd == "drive":
+            duration_s = _number(req, "duration_s", 0.0, 3600.0)
+            if c.drive_limit_s is not None:
+                duration_s = min(duration_s, c.drive_limit_s)
             return (
                 _number(req, "left", -100.0, 100.0),
                 _number(req, "right", -100.0, 100.0),
-                _number(req, "duration_s", 0.0, 3600.0),
+                duration_s,
             )
         return ()
+
+    # -- other transports (the web console's WebSocket) ---------------------------------------
+    def detached_client(
+        self,
+        peer: str,
+        host: str,
+        *,
+        watch_only: bool = False,
+        drive_limit_s: float | None = None,
+    ) -> _Client:
+        """A client of another transport: the same token, throttles and commands as a TCP
+        connection, outside the TCP pools (its transport keeps its own). ``watch_only``:
+        every command that acts is refused; ``drive_limit_s``: drives last at most this (s)."""
+        now = self._clock()
+        return _Client(
+            writer=None,  # type: ignore[arg-type]  # never written: the transport replies
+            peer=peer,
+            host=host,
+            authenticated=self._token is None,
+            tokens=self._bucket(now),
+            faults=self._bucket(now),
+            session=True,  # never promoted into (nor evicted from) the TCP session pool
+            watch_only=watch_only,
+            drive_limit_s=drive_limit_s,
+        )
+
+    async def request(self, c: _Client, line: bytes) -> tuple[dict[str, Any], float]:
+        """One request line of a detached client: its reply, and how long (s) the transport
+        must wait before it reads that client's next request (the back-off after a wrong
+        token, the throttle of failing requests), as the TCP read loop does. After the reply,
+        ``c.close_reason`` non-empty means: close the connection (too many wrong tokens)."""
+        reply = await self.dispatch(c, line)
+        wait = 0.0 if reply["ok"] else self._fault_wait(c)
+        wait, c.backoff_s = max(wait, c.backoff_s), 0.0
+        if c.close_reason:
+            self._count_close(c, c.close_reason, f"{c.auth_failures} failed authentications")
+        return reply, wait
+
+    def early_stop(self) -> None:
+        """A ``stop`` seen in a detached client's input while it waits out a back-off: sent
+        to the backend now (its reply still comes in its turn), as on the TCP port."""
+        self.stops["early"] += 1
+        self._fire_stop()
 
     # -- stop and status: shared backend calls ----------------------------------------------
     def _fire_stop(self) -> asyncio.Future[Any]:
@@ -783,9 +837,11 @@ class ControlServer(LineServer[_Client]):
     # -- arguments -------------------------------------------------------------------------
     @staticmethod
     def _waypoints(req: dict[str, Any]) -> list[Waypoint]:
-        given = [k for k in ("waypoints", "gpx", "csv") if k in req]
+        given = [k for k in MISSION_KEYS if k in req]
         if len(given) != 1:
-            raise _bad("bad_argument", "give exactly one of 'waypoints', 'gpx' or 'csv'")
+            raise _bad(
+                "bad_argument", "give exactly one of 'waypoints', 'gpx', 'csv', 'wpl' or 'kml'"
+            )
         key = given[0]
         if key == "waypoints":
             pairs = req[key]
@@ -808,4 +864,5 @@ class ControlServer(LineServer[_Client]):
         text = req[key]
         if not isinstance(text, str):
             raise _bad("bad_argument", f"'{key}' must be the file content as a string")
-        return parse_gpx(text) if key == "gpx" else parse_csv(text)
+        parse = {"gpx": parse_gpx, "csv": parse_csv, "wpl": parse_wpl, "kml": parse_kml}[key]
+        return parse(text)

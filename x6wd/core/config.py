@@ -250,6 +250,25 @@ class ServerConfig:
 
 
 @dataclass(frozen=True)
+class ConsoleConfig:
+    """The operator's web console (x6wd.app.console): the control server's token, TLS and
+    commands over a WebSocket, and the page that uses them."""
+
+    enabled: bool = False  # opt-in: one more listening port that can drive the robot
+    bind: str = "127.0.0.1"
+    port: int = field(default=7602, metadata=_rng(0, 65535))
+    watch_only: bool = False  # every command that acts (stop included) refused by the server
+    # map tiles under the local frame: an XYZ URL with {z} {x} {y}; empty: no tiles (offline)
+    tile_url: str = ""
+    # manual drive from the page: each drive command lasts this long and the page repeats it
+    # while the operator holds a key; a closed page or link stops the motors (the dead-man)
+    deadman_s: float = field(default=0.5, metadata=_rng(0.1, 60))
+    max_clients: int = field(default=8, metadata=_rng(1, 1000))
+    max_message_bytes: int = field(default=1 << 20, metadata=_rng(1024, 64 << 20))
+    queue_len: int = field(default=64, metadata=_rng(1, 100_000))  # events per page
+
+
+@dataclass(frozen=True)
 class GpsdConfig:
     enabled: bool = True
     bind: str = "127.0.0.1"
@@ -307,6 +326,7 @@ class Config:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
     server: ServerConfig = field(default_factory=ServerConfig)
+    console: ConsoleConfig = field(default_factory=ConsoleConfig)
     gpsd: GpsdConfig = field(default_factory=GpsdConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     sim: SimConfig = field(default_factory=SimConfig)

@@ -1,0 +1,710 @@
+"""The web console end to end: the real daemon with ``sim://`` devices (as in
+tests/test_daemon.py), its console over real HTTP/WebSocket on 127.0.0.1, Debian's headless
+chromium driven through Debian's chromedriver (Selenium), and programs speaking the
+WebSocket directly (aiohttp's client) where a browser would hide what the server does.
+
+Screenshots: every browser test saves its PNGs in its tmp_path; with
+``X6WD_CONSOLE_SHOTS=docs/console`` they are also copied there (docs/console.md shows them).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import math
+import os
+import shutil
+import signal
+import ssl
+import struct
+import subprocess
+import threading
+import time
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+from aiohttp import web
+from selenium import webdriver
+from selenium.webdriver.chrome.service import Service
+from selenium.webdriver.common.action_chains import ActionChains
+from selenium.webdriver.common.by import By
+
+from tests.conftest import ROOT, require_program
+from tests.test_daemon import Running, hil_config, wait_for
+from tests.test_startup import assert_config_error, run_x6wd, write_config
+from x6wd.app.client import RemoteClient, RequestFailed
+from x6wd.app.daemon import Daemon
+from x6wd.core.config import Config, ConsoleConfig, SafetyConfig, SimConfig
+from x6wd.core.geodesy import great_circle_m
+from x6wd.core.mission_files import format_csv, format_gpx, format_wpl, parse_gpx
+
+pytestmark = pytest.mark.integration
+
+TOKEN = "console-token-7b1e2f"
+ORIGIN = (51.7520, -1.2577)  # the default scenario's origin (the robot starts there)
+M_PER_DEG_LAT = 111_250.0
+SHOTS = os.environ.get("X6WD_CONSOLE_SHOTS", "")
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--ignore-certificate-errors",  # the TLS test's certificate is self-signed
+)
+
+
+def north(metres: float, east_m: float = 0.0) -> list[float]:
+    """[lat, lon] ``metres`` north (and ``east_m`` east) of the scenario's origin."""
+    return [
+        ORIGIN[0] + metres / M_PER_DEG_LAT,
+        ORIGIN[1] + east_m / (M_PER_DEG_LAT * math.cos(math.radians(ORIGIN[0]))),
+    ]
+
+
+def console_config(
+    tmp_path: Path, *, token: bool = False, tls: bool = False, **console: Any
+) -> Config:
+    """The HIL daemon's configuration with the console on a free port."""
+    cfg = hil_config(
+        tmp_path,
+        console=ConsoleConfig(enabled=True, port=0, **console),
+        # the robot starts facing 350 deg true: the raw telemetry's heading is -10
+        sim=SimConfig(gps_rate_hz=4.0, gps_baud=115200, start_heading_deg=350.0),
+    )
+    server = cfg.server
+    if token:
+        path = tmp_path / "token"
+        path.write_text(TOKEN)
+        path.chmod(0o600)
+        server = dataclasses.replace(server, token_file=str(path))
+    if tls:
+        cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+        subprocess.run(
+            [require_program("openssl"), "req", "-x509", "-newkey", "rsa:2048", "-nodes",
+             "-days", "2", "-subj", "/CN=localhost",
+             "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1",
+             "-keyout", str(key), "-out", str(cert)],
+            check=True, capture_output=True,
+        )  # fmt: skip
+        key.chmod(0o600)
+        server = dataclasses.replace(server, tls_cert=str(cert), tls_key=str(key))
+    return dataclasses.replace(cfg, server=server)
+
+
+@contextlib.contextmanager
+def daemon_with(cfg: Config) -> Iterator[Running]:
+    r = Running(Daemon(cfg))
+    try:
+        yield r
+    finally:
+        r.stop()
+        if r.daemon.devices is not None:
+            r.daemon.devices.close()
+
+
+def has_fix(r: Running) -> bool:
+    tel = r.daemon.last_telemetry
+    return r.daemon.first_fix is not None and tel is not None and tel.fix_quality > 0
+
+
+def vehicle_pct(r: Running) -> tuple[float, float]:
+    return r.daemon.devices.backend("sim").vehicle.command_pct
+
+
+# -- a program on the WebSocket --------------------------------------------------------------------
+class Ws:
+    """One WebSocket to the console: requests by id, events kept in arrival order."""
+
+    def __init__(self, ws: aiohttp.ClientWebSocketResponse) -> None:
+        self.ws = ws
+        self.events: list[dict[str, Any]] = []
+        self.n = 0
+
+    async def request(self, cmd: str, **args: Any) -> dict[str, Any]:
+        self.n += 1
+        await self.ws.send_json({"id": self.n, "cmd": cmd, **args})
+        while True:
+            msg = await asyncio.wait_for(self.ws.receive_json(), 15)
+            if msg.get("id") == self.n:
+                return msg
+            self.events.append(msg)
+
+    async def collect(self, seconds: float) -> list[dict[str, Any]]:
+        """Events that arrive within ``seconds``."""
+        end = time.monotonic() + seconds
+        with contextlib.suppress(TimeoutError):
+            while (left := end - time.monotonic()) > 0:
+                self.events.append(await asyncio.wait_for(self.ws.receive_json(), left))
+        return self.events
+
+
+@contextlib.asynccontextmanager
+async def ws_to(r: Running, ssl_ctx: ssl.SSLContext | None = None, **headers: str):
+    console = r.daemon.console
+    assert console is not None
+    url = console.url.replace("http", "ws", 1) + "ws"
+    async with (
+        aiohttp.ClientSession() as session,
+        session.ws_connect(url, headers=headers, ssl=ssl_ctx or False) as ws,
+    ):
+        w = Ws(ws)
+        w.events.append(await asyncio.wait_for(ws.receive_json(), 10))  # the welcome
+        yield w
+
+
+# -- the browser -----------------------------------------------------------------------------------
+def chromium(tmp_path: Path, width: int = 1400, height: int = 1000) -> webdriver.Chrome:
+    """Debian's chromium through Debian's chromedriver (fails in CI when missing)."""
+    binary, driver = require_program("chromium"), require_program("chromedriver")
+    options = webdriver.ChromeOptions()
+    options.binary_location = binary
+    for flag in CHROMIUM_FLAGS:
+        options.add_argument(flag)
+    options.add_argument(f"--window-size={width},{height}")
+    profile = tmp_path / f"chromium-{time.monotonic_ns()}"
+    options.add_argument(f"--user-data-dir={profile}")
+    return webdriver.Chrome(service=Service(driver), options=options)
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriver.Chrome]:
+    d = chromium(tmp_path_factory.mktemp("browser"))
+    try:
+        yield d
+    finally:
+        d.quit()
+
+
+def js(d: webdriver.Chrome, script: str, *args: Any) -> Any:
+    return d.execute_script(script, *args)
+
+
+def text(d: webdriver.Chrome, element_id: str) -> str:
+    return d.find_element(By.ID, element_id).text
+
+
+def shot(d: webdriver.Chrome, tmp_path: Path, name: str) -> Path:
+    path = tmp_path / name
+    assert d.save_screenshot(str(path))
+    data = path.read_bytes()
+    assert data.startswith(b"\x89PNG\r\n\x1a\n") and len(data) > 20_000, len(data)
+    if SHOTS:
+        dest = ROOT / SHOTS if not Path(SHOTS).is_absolute() else Path(SHOTS)
+        dest.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, dest / name)
+    return path
+
+
+def open_page(d: webdriver.Chrome, r: Running, suffix: str = "") -> None:
+    console = r.daemon.console
+    assert console is not None
+    d.get("about:blank")  # a new document even when only the #fragment differs
+    d.get(console.url + suffix)
+
+
+def page_ready(d: webdriver.Chrome) -> None:
+    """Until the page is authenticated, has telemetry and the map's frame."""
+    wait_for(
+        lambda: js(d, "return x6wd.authed && x6wd.tel !== null && x6wd.originFromFence === true"),
+        20,
+        "the page connected, with telemetry and the geofence",
+    )
+
+
+def canvas_click(d: webdriver.Chrome, x: float, y: float, button: str = "left") -> None:
+    """A real click at canvas pixel (x, y)."""
+    canvas = d.find_element(By.ID, "map")
+    w, h = js(d, "const c = x6wd.canvas; return [c.clientWidth, c.clientHeight]")
+    chain = ActionChains(d).move_to_element_with_offset(canvas, int(x - w / 2), int(y - h / 2))
+    (chain.context_click() if button == "right" else chain.click()).perform()
+
+
+# -- configuration ---------------------------------------------------------------------------------
+@pytest.fixture
+def listening() -> Iterator[int]:
+    import socket
+
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen()
+    try:
+        yield sock.getsockname()[1]
+    finally:
+        sock.close()
+
+
+def test_an_unknown_console_key_is_exit_2_naming_it(tmp_path: Path) -> None:
+    config = write_config(tmp_path, console={"enabled": True, "bogus": 1})
+    assert_config_error(run_x6wd(config), str(config), "console.bogus: unknown key")
+
+
+@pytest.mark.parametrize(
+    ("changes", "key", "reason"),
+    [
+        ({"deadman_s": 9.0}, "console.deadman_s", "longer than safety.manual_max_s (5 s)"),
+        ({"server_enabled": False}, "console.enabled", "needs the control server"),
+        ({"bind": "0.0.0.0"}, "console.bind", "server.token_file"),
+    ],
+)
+def test_a_console_setting_at_odds_with_the_rest_is_exit_2_naming_the_key(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, changes: dict[str, Any], key: str, reason: str
+) -> None:
+    server_enabled = changes.pop("server_enabled", True)
+    cfg = console_config(tmp_path, **changes)
+    cfg = dataclasses.replace(cfg, server=dataclasses.replace(cfg.server, enabled=server_enabled))
+    d = Daemon(cfg)
+    try:
+        assert asyncio.run(d.run()) == 2
+    finally:
+        if d.devices is not None:
+            d.devices.close()
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert len(errors) == 1 and errors[0].startswith(key) and reason in errors[0], errors
+    assert not (tmp_path / "rec").exists()
+
+
+def test_busy_console_port_is_exit_2(tmp_path: Path, listening: int) -> None:
+    proc = run_x6wd(write_config(tmp_path, console={"enabled": True, "port": listening}))
+    assert_config_error(proc, "console.port", f"127.0.0.1:{listening}", "address already in use")
+
+
+# -- the token, TLS and origin ---------------------------------------------------------------------
+def test_without_the_token_the_console_accepts_no_command_and_shows_nothing(
+    tmp_path: Path, browser: webdriver.Chrome
+) -> None:
+    with daemon_with(console_config(tmp_path, token=True, tls=True)) as r:
+        assert r.daemon.console is not None and r.daemon.console.url.startswith("https://")
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        ca = ssl.create_default_context(cafile=str(tmp_path / "cert.pem"))
+
+        async def program() -> None:
+            async with ws_to(r, ca) as w:
+                welcome = w.events.pop()
+                assert welcome["auth_required"] is True and welcome["tls"] is True
+                for cmd, args in (
+                    ("start", {}),
+                    ("drive", {"left": 50, "right": 50, "duration_s": 0.5}),
+                    ("mission.load", {"waypoints": [north(5)]}),
+                    ("mission.parse", {"content": "51.7,-1.2\n"}),
+                    ("log", {}),
+                ):
+                    reply = await w.request(cmd, **args)
+                    assert reply["error"]["code"] == "unauthorized", (cmd, reply)
+                # no telemetry, sky or map for a page that has not authenticated
+                assert await w.collect(1.0) == []
+                reply = await w.request("auth", token="wrong-token-123")
+                assert reply["error"]["code"] == "auth_failed"
+                await asyncio.sleep(1.1)  # the back-off after a wrong token
+                assert (await w.request("auth", token=TOKEN))["ok"]
+                kinds = {e.get("event") for e in await w.collect(1.5)}
+                assert {"telemetry", "sky", "map"} <= kinds, kinds
+
+        asyncio.run(program())
+        assert vehicle_pct(r) == (0.0, 0.0)
+        # a plain (not TLS) connection gets nothing
+        with pytest.raises((aiohttp.ClientError, ConnectionError)):
+            asyncio.run(
+                _plain_get(r.daemon.console.url.replace("https://", "http://"))  # type: ignore[union-attr]
+            )
+        # the page: it asks for the token, refuses a wrong one, connects with the right one
+        open_page(browser, r)
+        wait_for(lambda: browser.find_element(By.ID, "login").is_displayed(), 10, "login form")
+        assert js(browser, "return x6wd.tel") is None  # nothing shown before the token
+        browser.find_element(By.ID, "token-input").send_keys("not-the-token")
+        browser.find_element(By.CSS_SELECTOR, "#token-form button").click()
+        wait_for(lambda: "wrong token" in text(browser, "login-error"), 10, "refusal shown")
+        shot(browser, tmp_path, "login.png")
+        time.sleep(1.1)
+        field = browser.find_element(By.ID, "token-input")
+        field.clear()
+        field.send_keys(TOKEN)
+        browser.find_element(By.CSS_SELECTOR, "#token-form button").click()
+        page_ready(browser)
+        assert text(browser, "conn") == "connected (TLS)"
+        # the token in the address is taken out of it (and works)
+        js(browser, "sessionStorage.clear()")
+        open_page(browser, r, f"#token={TOKEN}")
+        page_ready(browser)
+        assert "token" not in browser.current_url
+        assert r.daemon.server is not None and r.daemon.server.auth_failed_total == 2
+
+
+async def _plain_get(url: str) -> None:
+    async with aiohttp.ClientSession() as s, s.get(url) as resp:
+        await resp.read()
+
+
+def test_a_websocket_from_another_site_is_refused(tmp_path: Path) -> None:
+    with daemon_with(console_config(tmp_path)) as r:
+        console = r.daemon.console
+        assert console is not None
+        host = f"127.0.0.1:{console.port}"
+
+        async def program() -> None:
+            # a page of another site open in the operator's browser: refused (no token here)
+            with pytest.raises(aiohttp.WSServerHandshakeError) as ei:
+                async with ws_to(r, Origin="http://attacker.example"):
+                    pass
+            assert ei.value.status == 403
+            with pytest.raises(aiohttp.WSServerHandshakeError):
+                async with ws_to(r, Origin=f"http://127.0.0.1:{console.port + 1}"):
+                    pass
+            async with ws_to(r, Origin=f"http://{host}") as w:  # the console's own page
+                assert (await w.request("hello"))["ok"]
+
+        asyncio.run(program())
+
+
+# -- watch-only and the map's tiles ----------------------------------------------------------------
+def _png(width: int, height: int, rgb: tuple[int, int, int], grid: int = 32) -> bytes:
+    """A small PNG (a coloured tile with a grid), written by hand: nothing to install."""
+    rows = []
+    for y in range(height):
+        row = bytearray([0])
+        for x in range(width):
+            edge = x % grid == 0 or y % grid == 0
+            row += bytes((90, 90, 90) if edge else rgb)
+        rows.append(bytes(row))
+    raw = zlib.compress(b"".join(rows))
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", raw) + chunk(b"IEND", b"")
+
+
+class TileServer:
+    """XYZ tiles on 127.0.0.1 (the test's stand-in for a tile service); counts requests."""
+
+    def __init__(self) -> None:
+        self.requests: list[tuple[int, int, int]] = []
+        self.tile = _png(256, 256, (205, 228, 196))
+        self.ready = threading.Event()
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.port = asyncio.run_coroutine_threadsafe(self._start(), self.loop).result(10)
+
+    async def _start(self) -> int:
+        app = web.Application()
+        app.router.add_get("/{z}/{x}/{y}.png", self._get)
+        self.runner = web.AppRunner(app, access_log=None)
+        await self.runner.setup()
+        site = web.TCPSite(self.runner, "127.0.0.1", 0)
+        await site.start()
+        return int(self.runner.addresses[0][1])
+
+    async def _get(self, request: web.Request) -> web.Response:
+        m = request.match_info
+        self.requests.append((int(m["z"]), int(m["x"]), int(m["y"])))
+        return web.Response(body=self.tile, content_type="image/png")
+
+    def close(self) -> None:
+        asyncio.run_coroutine_threadsafe(self.runner.cleanup(), self.loop).result(10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+
+
+def test_watch_only_refuses_every_command_in_the_daemon_and_tiles_come_when_configured(
+    tmp_path: Path, browser: webdriver.Chrome
+) -> None:
+    tiles = TileServer()
+    url = f"http://127.0.0.1:{tiles.port}/{{z}}/{{x}}/{{y}}.png"
+    try:
+        with daemon_with(console_config(tmp_path, watch_only=True, tile_url=url)) as r:
+            wait_for(lambda: has_fix(r), 30, "a fix")
+
+            async def program() -> None:
+                async with ws_to(r) as w:
+                    assert w.events.pop()["watch_only"] is True
+                    for cmd, args in (
+                        ("mission.load", {"waypoints": [north(5)]}),
+                        ("start", {}),
+                        ("pause", {}),
+                        ("resume", {}),
+                        ("return", {}),
+                        ("drive", {"left": 60, "right": 60, "duration_s": 0.5}),
+                        ("stop", {}),
+                    ):
+                        reply = await w.request(cmd, **args)
+                        assert reply["error"]["code"] == "watch_only", (cmd, reply)
+                    assert (await w.request("status"))["ok"]  # watching is allowed
+                    kinds = {e.get("event") for e in await w.collect(1.0)}
+                    assert "telemetry" in kinds
+
+            asyncio.run(program())
+            assert vehicle_pct(r) == (0.0, 0.0)
+            assert r.daemon.server is not None
+            assert r.daemon.server.stops["requested"] == 0  # the stop never reached the robot
+            with RemoteClient("127.0.0.1", r.port) as c:  # the control port is not watch-only
+                assert c.request("status")["mode"] == "IDLE"
+            open_page(browser, r)
+            page_ready(browser)
+            for element_id in ("btn-start", "btn-stop", "drive-fwd", "btn-send"):
+                assert not browser.find_element(By.ID, element_id).is_displayed(), element_id
+            assert browser.find_element(By.ID, "watch-only").is_displayed()
+            wait_for(lambda: len(tiles.requests) >= 4, 10, "tiles requested")
+            zooms = {z for z, _x, _y in tiles.requests}
+            # ~4 px per metre at 52 deg north: zoom 18 or 19 (0.4 m / 0.2 m per pixel)
+            assert zooms <= {18, 19}, zooms
+            time.sleep(1.0)  # the tiles drawn
+            shot(browser, tmp_path, "watch-only-tiles.png")
+    finally:
+        tiles.close()
+
+
+# -- the running robot on the page -----------------------------------------------------------------
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
+    """One HIL daemon with the console (no token: loopback) for the page's tests below."""
+    with daemon_with(console_config(tmp_path_factory.mktemp("robot"))) as r:
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        wait_for(lambda: "ekf_sigma_m" in r.daemon.last_telemetry.extra, 30, "an EKF position")  # type: ignore[union-attr]
+        yield r
+
+
+def test_the_page_shows_live_telemetry_sky_and_devices(
+    tmp_path: Path, robot: Running, browser: webdriver.Chrome
+) -> None:
+    open_page(browser, robot)
+    page_ready(browser)
+    wait_for(lambda: len(browser.find_elements(By.CSS_SELECTOR, "#sky tbody tr")) >= 4, 10, "sky")
+    rows = js(  # in one go: the table is redrawn at every sky event
+        browser,
+        "return [...document.querySelectorAll('#sky tbody tr')]"
+        ".map((tr) => [...tr.cells].map((td) => td.textContent))",
+    )
+    cn0 = [float(row[3]) for row in rows if row[3] != "—"]
+    assert len(cn0) >= 4 and all(20.0 <= v <= 60.0 for v in cn0), rows
+    assert sum(row[4] == "yes" for row in rows) >= 4
+    wait_for(lambda: "connected" in text(browser, "devices"), 10, "device health")
+    devices = text(browser, "devices")
+    for name in ("gps", "compass", "motors", "odometry", "motor link"):
+        assert name in devices, devices
+    # one heading convention: true, 0..360 (the raw telemetry has -10 here)
+    tel = js(browser, "return x6wd.tel")
+    raw = tel["heading_deg"]
+    assert -20.0 < raw < 0.0, raw
+    shown = float(text(browser, "tel-heading").split("°")[0])
+    assert 0.0 <= shown < 360.0
+    # the page's value is one telemetry event older or newer than ours: same to ~1 deg
+    assert abs(shown - (raw % 360.0)) < 1.0, (shown, raw)
+    lat, lon = (float(v) for v in text(browser, "tel-pos").split(","))
+    assert great_circle_m(lat, lon, *ORIGIN) < 15.0
+    assert text(browser, "mode") in ("IDLE", "DONE")
+    shot(browser, tmp_path, "telemetry.png")
+
+
+def test_mission_editing_on_the_map_and_from_files(
+    tmp_path: Path, robot: Running, browser: webdriver.Chrome
+) -> None:
+    open_page(browser, robot)
+    page_ready(browser)
+    browser.find_element(By.ID, "follow").click()  # the view stays where it is
+    browser.find_element(By.ID, "btn-clear").click()
+    browser.find_element(By.ID, "btn-add").click()
+    w, h = js(
+        browser, "const c = document.getElementById('map'); return [c.clientWidth, c.clientHeight]"
+    )
+    px_per_m = js(browser, "return x6wd.view.pxPerM")
+    cx, cy = w / 2, h / 2
+    clicks = [(cx, cy - 40), (cx + 60, cy - 100), (cx + 120, cy - 40)]
+    for x, y in clicks:
+        canvas_click(browser, x, y)
+    draft = js(browser, "return x6wd.draft")
+    assert len(draft) == 3, draft
+    # the map's metres are the earth's: 60 px east and 60 px north at the page's scale
+    leg_m = great_circle_m(*draft[0], *draft[1])
+    assert abs(leg_m - math.hypot(60, 60) / px_per_m) < 0.02 * leg_m + 0.1, leg_m
+    north_m = great_circle_m(draft[0][0], draft[0][1], draft[1][0], draft[0][1])
+    assert abs(north_m - 60 / px_per_m) < 0.3, north_m
+    # drag waypoint 2 by 40 px to the east
+    browser.find_element(By.ID, "btn-add").click()  # adding off: a click would add
+    canvas = browser.find_element(By.ID, "map")
+    x, y = clicks[1]
+    (
+        ActionChains(browser)
+        .move_to_element_with_offset(canvas, int(x - w / 2), int(y - h / 2))
+        .click_and_hold()
+        .move_by_offset(20, 0)
+        .move_by_offset(20, 0)
+        .release()
+        .perform()
+    )
+    moved = js(browser, "return x6wd.draft")
+    assert len(moved) == 3
+    assert abs(great_circle_m(*draft[1], *moved[1]) - 40 / px_per_m) < 0.3
+    assert moved[0] == draft[0] and moved[2] == draft[2]
+    # right-click deletes waypoint 3
+    canvas_click(browser, *clicks[2], button="right")
+    edited = js(browser, "return x6wd.draft")
+    assert edited == moved[:2]
+    assert "not sent" in text(browser, "mission-state")
+    shot(browser, tmp_path, "mission-edit.png")
+    browser.find_element(By.ID, "btn-send").click()
+    wait_for(lambda: len(robot.daemon._mission) == 2, 10, "the mission on the robot")
+    for got, want in zip(robot.daemon._mission, edited, strict=True):
+        assert got == pytest.approx(tuple(want), abs=1e-9)
+    wait_for(lambda: "on the robot" in text(browser, "mission-state"), 10, "sent")
+    # files: GPX, CSV, QGC WPL and KML, read by the daemon's own readers
+    wps = parse_gpx(format_gpx([tuple(north(4)), tuple(north(8, 3)), tuple(north(12))]))  # type: ignore[list-item]
+    kml = (
+        '<?xml version="1.0"?><kml xmlns="http://www.opengis.net/kml/2.2"><Document><Placemark>'
+        "<LineString><coordinates>"
+        + " ".join(f"{w.lon_deg},{w.lat_deg},0" for w in wps)
+        + "</coordinates></LineString></Placemark></Document></kml>"
+    )
+    files = {
+        "m.gpx": format_gpx(wps),
+        "m.csv": format_csv(wps),
+        "m.waypoints": format_wpl(wps),
+        "m.kml": kml,
+    }
+    for name, content in files.items():
+        path = tmp_path / name
+        path.write_text(content)
+        browser.find_element(By.ID, "btn-clear").click()
+        browser.find_element(By.ID, "mission-file").send_keys(str(path))
+        wait_for(lambda: len(js(browser, "return x6wd.draft")) == 3, 10, f"{name} loaded")
+        got = js(browser, "return x6wd.draft")
+        for g, want in zip(got, wps, strict=True):
+            assert g == pytest.approx([want.lat_deg, want.lon_deg], abs=1e-7), name
+    # a file that is no mission: the daemon's reader says why, the draft stays
+    bad = tmp_path / "bad.gpx"
+    bad.write_text("<gpx><rte><rtept lat='95' lon='0'/></rte></gpx>")
+    browser.find_element(By.ID, "mission-file").send_keys(str(bad))
+    wait_for(lambda: "bad.gpx:" in text(browser, "msg"), 10, "the error shown")
+    assert len(js(browser, "return x6wd.draft")) == 3
+    browser.find_element(By.ID, "btn-revert").click()
+    assert js(browser, "return x6wd.draft") == [list(p) for p in robot.daemon._mission]
+
+
+def test_mission_load_takes_qgc_wpl_and_kml_on_the_control_port(robot: Running) -> None:
+    wps = parse_gpx(format_gpx([tuple(north(3)), tuple(north(6, 2))]))  # type: ignore[list-item]
+    kml = (
+        '<kml xmlns="http://www.opengis.net/kml/2.2"><Placemark><LineString><coordinates>'
+        + " ".join(f"{w.lon_deg},{w.lat_deg}" for w in wps)
+        + "</coordinates></LineString></Placemark></kml>"
+    )
+    with RemoteClient("127.0.0.1", robot.port) as c:
+        assert c.request("mission.load", wpl=format_wpl(wps))["count"] == 2
+        assert robot.daemon._mission == tuple((w.lat_deg, w.lon_deg) for w in wps)
+        assert c.request("mission.load", kml=kml)["count"] == 2
+        with pytest.raises(RequestFailed) as ei:
+            c.request("mission.load", wpl="QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t95\t0\t0\t1\n")
+        assert ei.value.code == "bad_request"
+        with pytest.raises(RequestFailed) as ei:
+            c.request("mission.load", wpl=format_wpl(wps), kml=kml)
+        assert "exactly one of" in str(ei.value)
+
+
+def test_a_drive_from_the_console_lasts_at_most_deadman_s(robot: Running) -> None:
+    async def program() -> None:
+        async with ws_to(robot) as w:
+            reply = await w.request("drive", left=10, right=10, duration_s=4.0)
+            assert reply["ok"] and reply["duration_s"] == 0.5, reply
+            assert (await w.request("stop"))["ok"]
+
+    asyncio.run(program())
+    wait_for(lambda: vehicle_pct(robot) == (0.0, 0.0), 3, "stopped")
+
+
+@pytest.mark.slow
+def test_a_whole_hil_mission_driven_from_the_page(
+    tmp_path: Path, robot: Running, browser: webdriver.Chrome
+) -> None:
+    open_page(browser, robot)
+    page_ready(browser)
+    gpx = tmp_path / "two.gpx"
+    tel = robot.daemon.last_telemetry
+    assert tel is not None and tel.lat_deg is not None
+    here_n = (tel.lat_deg - ORIGIN[0]) * M_PER_DEG_LAT
+    gpx.write_text(format_gpx([tuple(north(here_n + 8, 2)), tuple(north(here_n + 16))]))  # type: ignore[list-item]
+    browser.find_element(By.ID, "mission-file").send_keys(str(gpx))
+    wait_for(lambda: len(js(browser, "return x6wd.draft")) == 2, 10, "file read")
+    browser.find_element(By.ID, "btn-send").click()
+    wait_for(lambda: "2 waypoints on the robot" in text(browser, "mission-state"), 10, "sent")
+    browser.find_element(By.ID, "btn-start").click()
+    wait_for(lambda: text(browser, "mode") == "RUNNING", 10, "running")
+    wait_for(lambda: js(browser, "return x6wd.track.length") > 20, 20, "a track")
+    shot(browser, tmp_path, "mission-running.png")
+    wait_for(lambda: text(browser, "state") == "MISSION_DONE", 60, "the mission done")
+    assert text(browser, "mode") == "DONE"
+    with RemoteClient("127.0.0.1", robot.port) as c:
+        st = c.request("status")
+    assert st["mode"] == "DONE" and st["state"] == "MISSION_DONE"
+    e, n, _h, _v = robot.daemon.devices.backend("sim").truth()
+    assert abs(n - (here_n + 16)) < 4.0, (e, n)  # the last waypoint, within the GPS's metres
+    browser.find_element(By.ID, "btn-fit").click()
+    time.sleep(0.3)
+    shot(browser, tmp_path, "mission-done.png")
+
+
+# -- the dead-man ----------------------------------------------------------------------------------
+def _chromium_pid(d: webdriver.Chrome) -> int:
+    """The browser process chromedriver started (a child of it)."""
+    driver_pid = d.service.process.pid
+    children = [  # each thread's own children: chromedriver starts it from another thread
+        pid
+        for task in Path(f"/proc/{driver_pid}/task").iterdir()
+        for pid in (task / "children").read_text().split()
+    ]
+    for pid in children:
+        if "chrom" in Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace"):
+            return int(pid)
+    raise AssertionError(f"no browser among chromedriver's children {children}")
+
+
+def _hold_forward(d: webdriver.Chrome, r: Running) -> None:
+    open_page(d, r)
+    page_ready(d)
+    ActionChains(d).click_and_hold(d.find_element(By.ID, "drive-fwd")).perform()
+    wait_for(lambda: vehicle_pct(r)[0] > 0.0, 5, "the robot driving")
+
+
+def test_dead_man_a_page_hidden_or_a_browser_gone_stops_the_motors(tmp_path: Path) -> None:
+    # each drive lasts 3 s here: a stop well within that is the dead-man's doing, not the
+    # drive running out
+    cfg = console_config(tmp_path, deadman_s=3.0)
+    cfg = dataclasses.replace(cfg, safety=SafetyConfig(geofence_radius_m=100.0, manual_max_s=5.0))
+    with daemon_with(cfg) as r:
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        d = chromium(tmp_path)
+        try:
+            _hold_forward(d, r)
+            time.sleep(1.5)  # held: the page repeats its drive, the robot keeps going
+            assert vehicle_pct(r)[0] > 0.0
+            # the page is hidden (another tab, the screen locked): motors stop at once
+            t0 = time.monotonic()
+            js(
+                d,
+                "Object.defineProperty(document, 'hidden', {value: true, configurable: true});"
+                "document.dispatchEvent(new Event('visibilitychange'))",
+            )
+            wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), 2.0, "stop on a hidden page")
+            assert time.monotonic() - t0 < 1.5
+            ActionChains(d).release().perform()
+            # driving again, then the browser dies (no page code runs): the daemon stops
+            js(d, "delete document.hidden")
+            _hold_forward(d, r)
+            pid = _chromium_pid(d)
+            t0 = time.monotonic()
+            os.kill(pid, signal.SIGKILL)
+            wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), 2.0, "stop on a browser gone")
+            assert time.monotonic() - t0 < 1.5
+            assert r.daemon.console is not None and r.daemon.console.deadman_stops == 1
+        finally:
+            with contextlib.suppress(Exception):
+                d.quit()

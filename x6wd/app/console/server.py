@@ -1,0 +1,392 @@
+"""The operator's web console: one page (static HTML/JS/CSS, no build, no CDN) and a
+WebSocket that carries the control protocol (docs/protocol.md) plus live events.
+
+Every request from the page goes through :meth:`ControlServer.request`, so the console has
+exactly the control port's token, throttles and commands (one dispatcher); the page's own
+connection is a *detached* client of that server. What the console adds:
+
+- events pushed to authenticated pages: ``telemetry`` and ``state`` (as ``watch`` sends
+  them), ``sky`` (satellites with their C/N0), ``map`` (mission, launch point, geofence);
+- ``mission.parse``: a mission file's content (GPX, CSV, QGC WPL, KML) read into waypoints
+  for the page's editor, without touching the robot;
+- the dead-man for manual drive: a page's drive lasts at most ``console.deadman_s`` (the
+  page repeats it while a key is held), and a page that goes away while its drive runs gets
+  its motors stopped at once;
+- ``console.watch_only``: every command that acts (``stop`` too) is refused by the server;
+- cross-origin WebSockets are refused: another site open in the operator's browser must not
+  be able to reach the robot through it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import ssl
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+from aiohttp import WSMsgType, web
+
+from x6wd import __version__
+from x6wd.app.server import (
+    MOTION_COMMANDS,
+    ControlServer,
+    encode,
+    error_reply,
+    is_loopback,
+    parse_request,
+)
+from x6wd.core.config import ConsoleConfig
+from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.mission_files import PARSERS, parse_content
+from x6wd.core.records import GpsSky
+
+log = logging.getLogger(__name__)
+
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+HEARTBEAT_S = 5.0
+"""WebSocket ping period (s): a link that died without a FIN is found within ~2 periods (the
+motors have long stopped by then: a drive lasts ``deadman_s``)."""
+SEND_TIMEOUT_S = 10.0
+"""A page that takes no data for this long (s) is closed (its events are dropped before)."""
+MAP_CHECK_S = 0.5
+"""How often (s) the mission, launch point and geofence are compared with what pages have."""
+STOP_LINE = b'{"id":null,"cmd":"stop"}'
+
+
+@dataclass(eq=False)
+class _Page:
+    """One open page: its WebSocket, its control-protocol client, its outboxes."""
+
+    ws: web.WebSocketResponse
+    client: Any  # the ControlServer's detached client
+    peer: str
+    replies: collections.deque[str] = field(default_factory=collections.deque)
+    events: collections.deque[str] = field(default_factory=collections.deque)
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    dropped: int = 0
+    drive_until_s: float = 0.0  # monotonic time its latest drive ends (0: not driving)
+    map_sent: Any = None
+
+
+def _origin_ok(request: web.Request) -> bool:
+    """A WebSocket from the console's own page (or from a program that sends no Origin)."""
+    origin = request.headers.get("Origin")
+    if origin is None:
+        return True
+    parts = urlsplit(origin)
+    return parts.scheme in ("http", "https") and parts.netloc.lower() == request.host.lower()
+
+
+def sky_event(sky: GpsSky) -> dict[str, Any]:
+    """The ``sky`` event: satellites in view (PRN, elevation, azimuth, C/N0 dB-Hz, used)."""
+    return {
+        "event": "sky",
+        "hdop": sky.hdop,
+        "pdop": sky.pdop,
+        "satellites": [
+            {
+                "prn": s.prn,
+                "el_deg": s.el_deg,
+                "az_deg": s.az_deg,
+                "cn0_dbhz": s.snr_dbhz,
+                "used": s.used,
+            }
+            for s in sky.satellites
+        ],
+    }
+
+
+class ConsoleServer:
+    """HTTP + WebSocket server on the daemon's network loop. :meth:`publish` and
+    :meth:`publish_sky` are called on that loop and never wait."""
+
+    def __init__(
+        self,
+        config: ConsoleConfig,
+        control: ControlServer,
+        map_view: Callable[[], dict[str, Any]],
+        *,
+        ssl_context: ssl.SSLContext | None = None,
+    ) -> None:
+        """``map_view()``: the mission, launch point and geofence as a JSON-ready dict (read
+        from the network thread: it must only read immutable snapshots)."""
+        if not control.auth_required and not is_loopback(config.bind):
+            raise ConfigError(
+                f"console.bind: {config.bind} is not loopback: the console needs the control "
+                "server's token (server.token_file)"
+            )
+        self.config = config
+        self.control = control
+        self._map_view = map_view
+        self._ssl = ssl_context
+        self._pages: set[_Page] = set()
+        self._runner: web.AppRunner | None = None
+        self._ticker: asyncio.Task[None] | None = None
+        self.port = 0
+        self.dropped_total = 0
+        self.deadman_stops = 0
+
+    @property
+    def url(self) -> str:
+        """Where the page is (the bind address and the bound port)."""
+        scheme = "https" if self._ssl is not None else "http"
+        host = self.config.bind if ":" not in self.config.bind else f"[{self.config.bind}]"
+        return f"{scheme}://{host}:{self.port}/"
+
+    # -- lifecycle ----------------------------------------------------------------------------
+    async def start(self) -> None:
+        """Bind and listen (OSError when the address cannot be had)."""
+        app = web.Application(client_max_size=self.config.max_message_bytes)
+        app.router.add_get("/", self._index)
+        app.router.add_get("/ws", self._websocket)
+        app.router.add_static("/static/", STATIC_DIR, follow_symlinks=False)
+        app.on_response_prepare.append(self._headers)
+        runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=1.0)
+        await runner.setup()
+        site = web.TCPSite(
+            runner,
+            self.config.bind,
+            self.config.port,
+            ssl_context=self._ssl,
+        )
+        try:
+            await site.start()
+        except BaseException:
+            await runner.cleanup()
+            raise
+        self._runner = runner
+        self.port = int(runner.addresses[0][1])
+        self._ticker = asyncio.create_task(self._tick_loop())
+        log.info(
+            "web console on %s%s",
+            self.url,
+            " (watch only)" if self.config.watch_only else "",
+        )
+
+    async def close(self) -> None:
+        """Close every page and stop listening (idempotent)."""
+        if self._ticker is not None:
+            self._ticker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._ticker
+            self._ticker = None
+        for page in list(self._pages):
+            with contextlib.suppress(Exception):
+                await page.ws.close(code=1001, message=b"x6wd stopping")
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    # -- events (from the daemon, on this loop) --------------------------------------------------
+    def publish(self, event: dict[str, Any]) -> None:
+        """A control-server event (``telemetry``, ``state``) for every authenticated page."""
+        self._broadcast(event)
+
+    def publish_sky(self, sky: GpsSky) -> None:
+        """Satellites in view, for the page's sky table."""
+        self._broadcast(sky_event(sky))
+
+    def _broadcast(self, event: dict[str, Any]) -> None:
+        pages = [p for p in self._pages if p.client.authenticated]
+        if not pages:
+            return
+        text = encode(event).decode()
+        for p in pages:
+            self._event(p, text)
+
+    def _event(self, page: _Page, text: str) -> None:
+        if len(page.events) >= self.config.queue_len:
+            page.events.popleft()  # a page that cannot keep up sees the newest
+            page.dropped += 1
+            self.dropped_total += 1
+        page.events.append(text)
+        page.wake.set()
+
+    def _reply(self, page: _Page, obj: dict[str, Any]) -> None:
+        page.replies.append(encode(obj).decode())
+        page.wake.set()
+
+    def _send_map(self, page: _Page, view: dict[str, Any]) -> None:
+        page.map_sent = view
+        self._event(page, encode({"event": "map", **view}).decode())
+
+    async def _tick_loop(self) -> None:
+        """Pages get the map (mission, launch, geofence) whenever it changes."""
+        while True:
+            await asyncio.sleep(MAP_CHECK_S)
+            pages = [p for p in self._pages if p.client.authenticated]
+            if not pages:
+                continue
+            try:
+                view = self._map_view()
+            except Exception:
+                log.exception("console: map view failed")
+                continue
+            for p in pages:
+                if p.map_sent != view:
+                    self._send_map(p, view)
+
+    # -- HTTP ---------------------------------------------------------------------------------
+    async def _headers(self, request: web.Request, response: web.StreamResponse) -> None:
+        tiles = ""
+        if self.config.tile_url:
+            parts = urlsplit(self.config.tile_url)
+            tiles = f" {parts.scheme}://{parts.netloc}"
+        host = request.host
+        response.headers["Content-Security-Policy"] = (
+            "default-src 'self'; script-src 'self'; style-src 'self'; "
+            f"img-src 'self' data:{tiles}; connect-src 'self' ws://{host} wss://{host}; "
+            "frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
+        )
+        response.headers["X-Content-Type-Options"] = "nosniff"
+        response.headers["Referrer-Policy"] = "no-referrer"
+        response.headers["Cache-Control"] = "no-cache"
+
+    async def _index(self, request: web.Request) -> web.FileResponse:
+        return web.FileResponse(STATIC_DIR / "index.html")
+
+    # -- the WebSocket ------------------------------------------------------------------------
+    async def _websocket(self, request: web.Request) -> web.StreamResponse:
+        if not _origin_ok(request):
+            log.warning(
+                "console: refused a WebSocket from origin %r", request.headers.get("Origin")
+            )
+            return web.Response(status=403, text="cross-origin WebSocket refused\n")
+        if len(self._pages) >= self.config.max_clients:
+            return web.Response(
+                status=503, text=f"{self.config.max_clients} pages open (console.max_clients)\n"
+            )
+        ws = web.WebSocketResponse(
+            heartbeat=HEARTBEAT_S, max_msg_size=self.config.max_message_bytes
+        )
+        await ws.prepare(request)
+        peername = request.transport.get_extra_info("peername") if request.transport else None
+        host = str(peername[0]) if isinstance(peername, tuple) else "?"
+        peer = f"{host}:{peername[1]}" if isinstance(peername, tuple) else "?"
+        client = self.control.detached_client(
+            peer,
+            host,
+            watch_only=self.config.watch_only,
+            drive_limit_s=self.config.deadman_s,
+        )
+        page = _Page(ws=ws, client=client, peer=peer)
+        self._pages.add(page)
+        sender = asyncio.create_task(self._sender(page))
+        self._reply(page, self._welcome())
+        if client.authenticated:
+            self._send_map(page, self._map_view())
+        try:
+            await self._read_loop(page)
+        finally:
+            self._pages.discard(page)
+            await self._hang_up(page)
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sender
+            with contextlib.suppress(Exception):
+                await ws.close()
+        return ws
+
+    def _welcome(self) -> dict[str, Any]:
+        return {
+            "event": "console",
+            "version": __version__,
+            "auth_required": self.control.auth_required,
+            "watch_only": self.config.watch_only,
+            "tile_url": self.config.tile_url,
+            "deadman_s": self.config.deadman_s,
+            "tls": self._ssl is not None,
+        }
+
+    async def _read_loop(self, page: _Page) -> None:
+        ws, c = page.ws, page.client
+        async for msg in ws:
+            if msg.type == WSMsgType.BINARY:
+                line = bytes(msg.data)
+            elif msg.type == WSMsgType.TEXT:
+                line = str(msg.data).encode("utf-8", "surrogatepass")
+            else:
+                break  # an error or a close
+            was_authenticated = c.authenticated
+            reply, wait_s = await self._request(page, line)
+            self._reply(page, reply)
+            if c.authenticated and not was_authenticated:
+                self._send_map(page, self._map_view())
+            if c.close_reason:
+                notice = error_reply(None, "closed", "too many failed authentications")
+                notice["error"]["reason"] = c.close_reason
+                self._reply(page, notice)
+                await asyncio.sleep(0.1)  # let the sender write the reply and the notice
+                return
+            if wait_s > 0.0:
+                await asyncio.sleep(wait_s)  # only this page waits (aiohttp queues its input)
+
+    async def _request(self, page: _Page, line: bytes) -> tuple[dict[str, Any], float]:
+        """One message: ``mission.parse`` here, everything else through the control server's
+        dispatcher. Tracks the page's own drive for the dead-man."""
+        c = page.client
+        cmd = None
+        with contextlib.suppress(Exception):  # the dispatcher reports a bad line itself
+            req = parse_request(line)
+            cmd = req.get("cmd")
+        if cmd == "mission.parse":
+            return self._parse_mission(c, req), 0.0
+        reply, wait_s = await self.control.request(c, line)
+        if reply.get("ok") and isinstance(cmd, str):
+            if cmd == "drive":
+                page.drive_until_s = time.monotonic() + float(reply["duration_s"])
+            elif cmd in MOTION_COMMANDS or cmd == "stop":
+                page.drive_until_s = 0.0  # a later command replaced the page's drive
+        return reply, wait_s
+
+    def _parse_mission(self, c: Any, req: dict[str, Any]) -> dict[str, Any]:
+        """``{"cmd": "mission.parse", "content": TEXT, "format": "gpx"|...|null}`` ->
+        ``waypoints`` ([[lat, lon], ...], degrees). Reads a file for the editor only."""
+        rid = req.get("id")
+        if isinstance(rid, (dict, list)):
+            rid = None
+        if not c.authenticated:
+            return error_reply(rid, "unauthorized", "authenticate first to use 'mission.parse'")
+        text, fmt = req.get("content"), req.get("format")
+        if not isinstance(text, str) or not (fmt is None or isinstance(fmt, str)):
+            return error_reply(
+                rid,
+                "bad_request",
+                "'content' must be the file's text, 'format' one of "
+                f"{', '.join(PARSERS)} or null (guessed from the content)",
+                "bad_argument",
+            )
+        try:
+            wps = parse_content(text, fmt or None, str(req.get("name") or "mission"))
+        except ParseError as exc:
+            return error_reply(rid, "bad_request", str(exc), "bad_mission")
+        return {"id": rid, "ok": True, "waypoints": [[w.lat_deg, w.lon_deg] for w in wps]}
+
+    async def _hang_up(self, page: _Page) -> None:
+        """The dead-man: a page that goes away while its drive runs stops the motors now."""
+        if page.drive_until_s > time.monotonic():
+            self.deadman_stops += 1
+            log.warning("console: %s went away while driving: motors stopped", page.peer)
+            with contextlib.suppress(Exception):
+                await self.control.request(page.client, STOP_LINE)
+
+    async def _sender(self, page: _Page) -> None:
+        ws = page.ws
+        try:
+            while not ws.closed:
+                await page.wake.wait()
+                page.wake.clear()
+                while page.replies or page.events:
+                    text = page.replies.popleft() if page.replies else page.events.popleft()
+                    await asyncio.wait_for(ws.send_str(text), SEND_TIMEOUT_S)
+        except (TimeoutError, ConnectionError, RuntimeError):
+            log.info("console: closing %s: it does not take its data", page.peer)
+            with contextlib.suppress(Exception):
+                await ws.close(code=1008, message=b"too slow")

@@ -1,0 +1,568 @@
+// x6wd operator console (docs/console.md). Plain JS, no build step, nothing from elsewhere:
+// it works offline. One WebSocket to the daemon carries the control protocol
+// (docs/protocol.md) and the live events.
+"use strict";
+
+(function () {
+  const R_EARTH_M = 6371008.8; // mean radius: the map's equirectangular local frame
+  const $ = (id) => document.getElementById(id);
+  const S = {
+    ws: null, nextId: 1, pending: new Map(), info: null, authed: false,
+    tel: null, devices: null, links: null, sky: null,
+    origin: null, // [lat, lon] of the map's local frame: the geofence centre, else the first fix
+    map: { revision: -1, waypoints: [], launch: null, geofence: null },
+    draft: [], dirty: false, adding: false,
+    track: [], view: { e: 0, n: 0, pxPerM: 4 }, followed: false,
+    drive: null, driveTimer: null, tiles: new Map(),
+  };
+  window.x6wd = S; // for a person at the browser's console, and for the tests
+
+  // -- geometry: local east/north metres around S.origin ------------------------------------
+  function toLocal(lat, lon) {
+    const [lat0, lon0] = S.origin;
+    const k = Math.PI / 180 * R_EARTH_M;
+    return [(lon - lon0) * k * Math.cos(lat0 * Math.PI / 180), (lat - lat0) * k];
+  }
+  function toLatLon(e, n) {
+    const [lat0, lon0] = S.origin;
+    const k = Math.PI / 180 * R_EARTH_M;
+    return [lat0 + n / k, lon0 + e / (k * Math.cos(lat0 * Math.PI / 180))];
+  }
+  const canvas = $("map");
+  const ctx = canvas.getContext("2d");
+  S.canvas = canvas;
+  function toScreen(e, n) {
+    const v = S.view;
+    return [canvas.clientWidth / 2 + (e - v.e) * v.pxPerM, canvas.clientHeight / 2 - (n - v.n) * v.pxPerM];
+  }
+  function fromScreen(x, y) {
+    const v = S.view;
+    return [v.e + (x - canvas.clientWidth / 2) / v.pxPerM, v.n - (y - canvas.clientHeight / 2) / v.pxPerM];
+  }
+  S.toScreen = (lat, lon) => toScreen(...toLocal(lat, lon)); // canvas pixels of a position
+  const wrap360 = (deg) => ((deg % 360) + 360) % 360; // the one heading convention
+  const fmt = (v, d) => (v === null || v === undefined ? "—" : Number(v).toFixed(d));
+
+  // -- messages ----------------------------------------------------------------------------
+  function say(text, isError) {
+    const m = $("msg");
+    m.textContent = text;
+    m.className = isError ? "err" : "";
+  }
+  function request(cmd, args) {
+    return new Promise((resolve) => {
+      if (!S.ws || S.ws.readyState !== WebSocket.OPEN) {
+        resolve({ ok: false, error: { code: "closed", message: "not connected" } });
+        return;
+      }
+      const id = S.nextId++;
+      S.pending.set(id, resolve);
+      S.ws.send(JSON.stringify(Object.assign({ id: id, cmd: cmd }, args || {})));
+    });
+  }
+  async function command(cmd, args) {
+    const r = await request(cmd, args);
+    if (r.ok) say(cmd + ": ok" + (r.state ? " (" + r.mode + " " + r.state + ")" : ""));
+    else say(cmd + ": " + r.error.message, true);
+    return r;
+  }
+
+  // -- the connection ------------------------------------------------------------------------
+  function connect() {
+    const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
+    S.ws = ws;
+    ws.onmessage = (ev) => onMessage(JSON.parse(ev.data));
+    ws.onclose = () => {
+      endDrive(false);
+      S.authed = false;
+      for (const resolve of S.pending.values()) resolve({ ok: false, error: { code: "closed", message: "connection lost" } });
+      S.pending.clear();
+      setConn("disconnected", "bad");
+      setTimeout(connect, 1000);
+    };
+  }
+  function setConn(text, cls) {
+    const c = $("conn");
+    c.textContent = text;
+    c.className = "pill " + cls;
+  }
+  function onMessage(m) {
+    if (m.id !== undefined && m.id !== null && S.pending.has(m.id)) {
+      const resolve = S.pending.get(m.id);
+      S.pending.delete(m.id);
+      resolve(m);
+      return;
+    }
+    if (m.event === "console") return onWelcome(m);
+    if (m.event === "telemetry") return onTelemetry(m.data, m.devices);
+    if (m.event === "state") return say("state " + m.old + " → " + m.new + " (" + m.reason + ")");
+    if (m.event === "sky") { S.sky = m; return renderSky(); }
+    if (m.event === "map") return onMap(m);
+    if (m.ok === false && m.error) say(m.error.message, true); // e.g. the closing notice
+  }
+  function onWelcome(m) {
+    S.info = m;
+    document.body.classList.toggle("watch-only", m.watch_only);
+    $("watch-only").hidden = !m.watch_only;
+    $("deadman-note").textContent = "Dead-man: each drive lasts " + m.deadman_s + " s and is repeated while you hold; " +
+      "letting go, hiding or closing this page, or losing the link stops the motors.";
+    if (!m.auth_required) return authenticated();
+    const token = sessionStorage.getItem("x6wd-token");
+    if (token) auth(token); else showLogin("");
+  }
+  async function auth(token) {
+    const r = await request("auth", { token: token });
+    if (r.ok) {
+      sessionStorage.setItem("x6wd-token", token);
+      $("login").hidden = true;
+      authenticated();
+    } else {
+      sessionStorage.removeItem("x6wd-token");
+      showLogin(r.error.message);
+    }
+  }
+  function showLogin(error) {
+    setConn("token needed", "warn");
+    $("login").hidden = false;
+    $("login-error").textContent = error;
+    $("token-input").focus();
+  }
+  function authenticated() {
+    S.authed = true;
+    setConn("connected" + (S.info.tls ? " (TLS)" : ""), "ok");
+    poll();
+  }
+  // status once a second: links and devices, and (for a page that may command) the
+  // operator-link failsafe's sign of life
+  async function poll() {
+    if (!S.authed) return;
+    const r = await request("status");
+    if (r.ok) {
+      S.links = r.links;
+      if (r.devices) S.devices = r.devices;
+      if (!S.tel && r.telemetry) onTelemetry(r.telemetry, r.devices);
+      renderDevices();
+    }
+    setTimeout(poll, 1000);
+  }
+
+  // -- telemetry --------------------------------------------------------------------------------
+  const FIX = { 0: "no fix", 1: "GPS", 2: "DGPS", 4: "RTK fixed", 5: "RTK float", 6: "dead reckoning" };
+  function onTelemetry(t, devices) {
+    S.tel = t;
+    if (devices) S.devices = devices;
+    const lat = t.filt_lat_deg !== null ? t.filt_lat_deg : t.lat_deg;
+    const lon = t.filt_lon_deg !== null ? t.filt_lon_deg : t.lon_deg;
+    if (lat !== null && lon !== null) {
+      if (!S.origin) S.origin = [lat, lon];
+      const p = toLocal(lat, lon);
+      const last = S.track[S.track.length - 1];
+      if (!last || Math.hypot(p[0] - last[0], p[1] - last[1]) > 0.05) {
+        S.track.push(p);
+        if (S.track.length > 20000) S.track.splice(0, 5000);
+      }
+      if ($("follow").checked) { S.view.e = p[0]; S.view.n = p[1]; }
+      $("tel-pos").textContent = fmt(lat, 7) + ", " + fmt(lon, 7);
+      $("tel-local").textContent = "E " + fmt(p[0], 1) + " m  N " + fmt(p[1], 1) + " m";
+    }
+    $("mode").textContent = t.mode;
+    $("state").textContent = t.state;
+    $("mode").className = "pill " + (t.mode === "RUNNING" || t.mode === "MANUAL" ? "ok" : t.mode === "DONE" ? "info" : "");
+    $("hold").hidden = !t.hold_reason;
+    $("hold").textContent = t.hold_reason || "";
+    $("tel-fix").textContent = (FIX[t.fix_quality] || "quality " + t.fix_quality) + "  HDOP " + fmt(t.hdop, 1) + "  age " + fmt(t.fix_age_s, 1) + " s";
+    $("tel-sats").textContent = t.sats_used === null ? "—" : t.sats_used + " used";
+    $("tel-heading").textContent = t.heading_deg === null ? "—" : fmt(wrap360(t.heading_deg), 1) + "° true";
+    $("tel-attitude").textContent = fmt(t.pitch_deg, 1) + "° / " + fmt(t.roll_deg, 1) + "°";
+    let wp = "—";
+    if (t.waypoint_index !== null && t.waypoint_count) {
+      wp = (t.waypoint_index + 1) + " / " + t.waypoint_count + "  " + fmt(t.distance_m, 1) + " m";
+      if (t.target_bearing_deg !== null) wp += "  bearing " + fmt(wrap360(t.target_bearing_deg), 0) + "°";
+    }
+    $("tel-wp").textContent = wp;
+    $("tel-motors").textContent = "L " + fmt(t.left_pct, 0) + " %  R " + fmt(t.right_pct, 0) + " %";
+    renderDevices();
+  }
+  function renderSky() {
+    const sats = (S.sky.satellites || []).slice().sort((a, b) => (b.cn0_dbhz || 0) - (a.cn0_dbhz || 0));
+    const body = $("sky").tBodies[0];
+    body.textContent = "";
+    for (const s of sats) {
+      const tr = body.insertRow();
+      const cn0 = s.cn0_dbhz;
+      tr.insertCell().textContent = s.prn;
+      tr.insertCell().textContent = fmt(s.el_deg, 0);
+      tr.insertCell().textContent = fmt(s.az_deg, 0);
+      const td = tr.insertCell();
+      const bar = document.createElement("span");
+      bar.className = "bar" + (s.used ? "" : " unused");
+      bar.style.width = Math.max(0, Math.min(60, (cn0 || 0) - 10)) * 2 + "px";
+      td.append(bar, cn0 === null ? "—" : String(Math.round(cn0)));
+      tr.insertCell().textContent = s.used ? "yes" : "";
+    }
+    $("sky-summary").textContent = sats.length + " in view, " + sats.filter((s) => s.used).length + " used";
+  }
+  function renderDevices() {
+    const d = S.devices;
+    if (!d) return;
+    const body = $("devices").tBodies[0];
+    body.textContent = "";
+    for (const name of Object.keys(d)) {
+      const h = d[name];
+      const tr = body.insertRow();
+      tr.insertCell().textContent = name;
+      const st = tr.insertCell();
+      if (!h) { st.textContent = "—"; continue; }
+      const state = h.state || "?";
+      st.textContent = state;
+      st.className = "st-" + state;
+      tr.insertCell().textContent = h.errors !== undefined ? h.errors : h.failures !== undefined ? h.failures : "";
+      tr.insertCell().textContent = h.last_error || h.reason || (h.readings !== undefined ? h.readings + " readings" : "");
+    }
+    if (S.links) {
+      const tr = body.insertRow();
+      tr.insertCell().textContent = "motor link";
+      const st = tr.insertCell();
+      st.textContent = S.links.motors;
+      st.className = "st-" + S.links.motors;
+    }
+  }
+
+  // -- the mission and its editor --------------------------------------------------------------
+  function onMap(m) {
+    const changed = m.revision !== S.map.revision;
+    S.map = m;
+    if (m.geofence && m.geofence.center && !S.originFromFence) {
+      S.origin = m.geofence.center; // the frame stays put from here on
+      S.originFromFence = true;
+      S.track = [];
+    }
+    if (changed && !S.dirty) S.draft = m.waypoints.map((p) => p.slice());
+    renderMission();
+  }
+  function setDraft(points) {
+    S.draft = points;
+    S.dirty = true;
+    renderMission();
+  }
+  function renderMission() {
+    const ol = $("wp-list");
+    ol.textContent = "";
+    S.draft.forEach((p, i) => {
+      const li = document.createElement("li");
+      li.textContent = fmt(p[0], 7) + ", " + fmt(p[1], 7);
+      if (S.info && !S.info.watch_only) {
+        const del = document.createElement("button");
+        del.textContent = "×";
+        del.title = "delete waypoint " + (i + 1);
+        del.onclick = () => setDraft(S.draft.filter((_, j) => j !== i));
+        li.append(del);
+      }
+      ol.append(li);
+    });
+    $("mission-state").textContent = S.dirty
+      ? S.draft.length + " waypoints, edited: not sent"
+      : S.map.waypoints.length ? S.map.waypoints.length + " waypoints on the robot" : "none loaded";
+  }
+  async function sendMission() {
+    if (!S.draft.length) return say("the mission has no waypoints", true);
+    const r = await command("mission.load", { waypoints: S.draft });
+    if (r.ok) { S.dirty = false; renderMission(); }
+  }
+  const FORMATS = { gpx: "gpx", csv: "csv", kml: "kml", waypoints: "waypoints" };
+  function loadFile(file) {
+    const reader = new FileReader();
+    reader.onload = async () => {
+      const ext = file.name.split(".").pop().toLowerCase();
+      const r = await request("mission.parse", { content: reader.result, format: FORMATS[ext] || null, name: file.name });
+      if (r.ok) {
+        setDraft(r.waypoints);
+        say(file.name + ": " + r.waypoints.length + " waypoints (not sent yet)");
+        fit();
+      } else say(file.name + ": " + r.error.message, true);
+    };
+    reader.readAsText(file);
+  }
+
+  // -- manual drive and its dead-man ------------------------------------------------------------
+  const DIRECTIONS = { fwd: [1, 1], back: [-1, -1], left: [-0.7, 0.7], right: [0.7, -0.7] };
+  function startDrive(dir) {
+    if (!S.info || S.info.watch_only) return;
+    if (S.drive === dir) return;
+    endDrive(false);
+    S.drive = dir;
+    $("drive-" + dir).classList.add("active");
+    const send = () => {
+      const speed = Number($("speed").value);
+      const [l, r] = DIRECTIONS[dir];
+      request("drive", { left: l * speed, right: r * speed, duration_s: S.info.deadman_s }).then((r) => {
+        if (!r.ok) { say("drive: " + r.error.message, true); endDrive(false); }
+      });
+    };
+    send();
+    // three sends per dead-man period: one lost or late message does not stop the robot
+    S.driveTimer = setInterval(send, Math.max(50, S.info.deadman_s * 1000 / 3));
+  }
+  function endDrive(sendStop) {
+    if (S.driveTimer !== null) clearInterval(S.driveTimer);
+    S.driveTimer = null;
+    if (S.drive === null) return;
+    $("drive-" + S.drive).classList.remove("active");
+    S.drive = null;
+    if (sendStop) request("stop");
+  }
+  for (const dir of Object.keys(DIRECTIONS)) {
+    const b = $("drive-" + dir);
+    b.addEventListener("pointerdown", (ev) => { b.setPointerCapture(ev.pointerId); startDrive(dir); });
+    for (const end of ["pointerup", "pointercancel", "lostpointercapture"]) b.addEventListener(end, () => endDrive(true));
+  }
+  const KEYS = { ArrowUp: "fwd", w: "fwd", ArrowDown: "back", s: "back", ArrowLeft: "left", a: "left", ArrowRight: "right", d: "right" };
+  document.addEventListener("keydown", (ev) => {
+    if (ev.target.tagName === "INPUT" || ev.repeat) return;
+    if (ev.key === " ") { ev.preventDefault(); endDrive(false); command("stop"); return; }
+    const dir = KEYS[ev.key];
+    if (dir) { ev.preventDefault(); startDrive(dir); }
+  });
+  document.addEventListener("keyup", (ev) => { if (KEYS[ev.key] === S.drive) endDrive(true); });
+  // the page going away, hidden or out of focus ends the drive at once
+  document.addEventListener("visibilitychange", () => { if (document.hidden) endDrive(true); });
+  window.addEventListener("pagehide", () => endDrive(true));
+  window.addEventListener("blur", () => endDrive(true));
+
+  // -- the map --------------------------------------------------------------------------------------
+  function niceStep(m) {
+    const p = Math.pow(10, Math.floor(Math.log10(m)));
+    for (const k of [1, 2, 5, 10]) if (k * p >= m) return k * p;
+    return 10 * p;
+  }
+  function drawTiles(w, h) {
+    const url = S.info && S.info.tile_url;
+    if (!url || !S.origin) return;
+    const lat0 = S.origin[0];
+    const mpp = 1 / S.view.pxPerM;
+    const z = Math.max(0, Math.min(19, Math.round(Math.log2(156543.03 * Math.cos(lat0 * Math.PI / 180) / mpp))));
+    const n = Math.pow(2, z);
+    const tileOf = (lat, lon) => {
+      const r = lat * Math.PI / 180;
+      return [(lon + 180) / 360 * n, (1 - Math.log(Math.tan(r) + 1 / Math.cos(r)) / Math.PI) / 2 * n];
+    };
+    const latOf = (y) => Math.atan(Math.sinh(Math.PI * (1 - 2 * y / n))) * 180 / Math.PI;
+    const [e0, n0] = fromScreen(0, h);
+    const [e1, n1] = fromScreen(w, 0);
+    const [la0, lo0] = toLatLon(e0, n0);
+    const [la1, lo1] = toLatLon(e1, n1);
+    const [x0, y1] = tileOf(la0, lo0);
+    const [x1, y0] = tileOf(la1, lo1);
+    for (let x = Math.floor(x0); x <= Math.floor(x1); x++) {
+      for (let y = Math.floor(y0); y <= Math.floor(y1); y++) {
+        if (y < 0 || y >= n) continue;
+        const src = url.replace("{z}", z).replace("{x}", ((x % n) + n) % n).replace("{y}", y);
+        let img = S.tiles.get(src);
+        if (!img) {
+          img = new Image();
+          img.onload = draw;
+          img.src = src;
+          S.tiles.set(src, img);
+          if (S.tiles.size > 400) S.tiles.delete(S.tiles.keys().next().value);
+        }
+        if (!img.complete || !img.naturalWidth) continue;
+        const [ax, ay] = toScreen(...toLocal(latOf(y), x / n * 360 - 180));
+        const [bx, by] = toScreen(...toLocal(latOf(y + 1), (x + 1) / n * 360 - 180));
+        ctx.drawImage(img, ax, ay, bx - ax, by - ay);
+      }
+    }
+  }
+  function draw() {
+    const w = canvas.clientWidth, h = canvas.clientHeight;
+    const dpr = window.devicePixelRatio || 1;
+    if (canvas.width !== Math.round(w * dpr) || canvas.height !== Math.round(h * dpr)) {
+      canvas.width = Math.round(w * dpr);
+      canvas.height = Math.round(h * dpr);
+    }
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    ctx.clearRect(0, 0, w, h);
+    if (!S.origin) {
+      ctx.fillStyle = "#777";
+      ctx.fillText("waiting for the first fix…", 20, 60);
+      return;
+    }
+    drawTiles(w, h);
+    // grid, every "nice" number of metres ~80 px apart, and the scale
+    const step = niceStep(80 / S.view.pxPerM);
+    const [ea, na] = fromScreen(0, h);
+    const [eb, nb] = fromScreen(w, 0);
+    ctx.strokeStyle = "rgba(0,0,0,0.08)";
+    ctx.lineWidth = 1;
+    ctx.beginPath();
+    for (let e = Math.ceil(ea / step) * step; e <= eb; e += step) { const x = toScreen(e, 0)[0]; ctx.moveTo(x, 0); ctx.lineTo(x, h); }
+    for (let n = Math.ceil(na / step) * step; n <= nb; n += step) { const y = toScreen(0, n)[1]; ctx.moveTo(0, y); ctx.lineTo(w, y); }
+    ctx.stroke();
+    $("map-scale").textContent = "grid " + step + " m · N up";
+    const fence = S.map.geofence;
+    if (fence && fence.center) {
+      const [cx, cy] = toScreen(...toLocal(fence.center[0], fence.center[1]));
+      ctx.strokeStyle = "#c62828";
+      ctx.setLineDash([8, 6]);
+      ctx.lineWidth = 2;
+      ctx.beginPath();
+      ctx.arc(cx, cy, fence.radius_m * S.view.pxPerM, 0, 2 * Math.PI);
+      ctx.stroke();
+      ctx.setLineDash([]);
+    }
+    // the robot's mission (orange) and, when edited, the draft (blue)
+    polyline(S.map.waypoints, S.dirty ? "rgba(230,81,0,0.35)" : "#e65100", 2);
+    if (S.dirty) polyline(S.draft, "#1565c0", 2, [6, 4]);
+    const pts = S.dirty ? S.draft : S.map.waypoints;
+    const target = S.tel && !S.dirty ? S.tel.waypoint_index : null;
+    pts.forEach((p, i) => {
+      const [x, y] = toScreen(...toLocal(p[0], p[1]));
+      ctx.fillStyle = i === target ? "#ffd600" : S.dirty ? "#1565c0" : "#e65100";
+      ctx.beginPath();
+      ctx.arc(x, y, 8, 0, 2 * Math.PI);
+      ctx.fill();
+      ctx.fillStyle = i === target ? "#000" : "#fff";
+      ctx.font = "bold 10px sans-serif";
+      ctx.textAlign = "center";
+      ctx.textBaseline = "middle";
+      ctx.fillText(String(i + 1), x, y);
+    });
+    if (S.map.launch) {
+      const [x, y] = toScreen(...toLocal(S.map.launch[0], S.map.launch[1]));
+      ctx.fillStyle = "#6a1b9a";
+      ctx.fillRect(x - 8, y - 8, 16, 16);
+      ctx.fillStyle = "#fff";
+      ctx.fillText("H", x, y);
+    }
+    // the track, the raw fix and the robot (heading true)
+    ctx.strokeStyle = "#2e7d32";
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    S.track.forEach((p, i) => { const [x, y] = toScreen(p[0], p[1]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
+    ctx.stroke();
+    const t = S.tel;
+    if (t && t.lat_deg !== null) {
+      const [x, y] = toScreen(...toLocal(t.lat_deg, t.lon_deg));
+      ctx.fillStyle = "rgba(0,0,0,0.35)";
+      ctx.beginPath();
+      ctx.arc(x, y, 3, 0, 2 * Math.PI);
+      ctx.fill();
+    }
+    if (S.track.length) {
+      const p = S.track[S.track.length - 1];
+      const [x, y] = toScreen(p[0], p[1]);
+      ctx.save();
+      ctx.translate(x, y);
+      ctx.rotate(((t && t.heading_deg) || 0) * Math.PI / 180);
+      ctx.fillStyle = "#1b5e20";
+      ctx.strokeStyle = "#fff";
+      ctx.beginPath();
+      ctx.moveTo(0, -14); ctx.lineTo(9, 10); ctx.lineTo(0, 5); ctx.lineTo(-9, 10); ctx.closePath();
+      ctx.fill();
+      ctx.stroke();
+      ctx.restore();
+    }
+  }
+  function polyline(points, color, width, dash) {
+    if (points.length < 1) return;
+    ctx.strokeStyle = color;
+    ctx.lineWidth = width;
+    ctx.setLineDash(dash || []);
+    ctx.beginPath();
+    points.forEach((p, i) => { const [x, y] = toScreen(...toLocal(p[0], p[1])); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
+    ctx.stroke();
+    ctx.setLineDash([]);
+  }
+  function fit() {
+    const pts = (S.dirty ? S.draft : S.map.waypoints).map((p) => toLocal(p[0], p[1]));
+    if (S.track.length) pts.push(S.track[S.track.length - 1]);
+    if (!S.origin || !pts.length) return;
+    const es = pts.map((p) => p[0]), ns = pts.map((p) => p[1]);
+    const [emin, emax, nmin, nmax] = [Math.min(...es), Math.max(...es), Math.min(...ns), Math.max(...ns)];
+    S.view.e = (emin + emax) / 2;
+    S.view.n = (nmin + nmax) / 2;
+    const span = Math.max(emax - emin, nmax - nmin, 10) * 1.3;
+    S.view.pxPerM = Math.min(canvas.clientWidth, canvas.clientHeight) / span;
+    $("follow").checked = false;
+  }
+  // pointer: drag a draft waypoint, pan, click to add; right-click deletes; wheel zooms
+  function hit(x, y) {
+    const pts = S.dirty ? S.draft : S.map.waypoints;
+    for (let i = pts.length - 1; i >= 0; i--) {
+      const [px, py] = toScreen(...toLocal(pts[i][0], pts[i][1]));
+      if (Math.hypot(px - x, py - y) <= 10) return i;
+    }
+    return -1;
+  }
+  let drag = null;
+  const editable = () => S.origin && S.info && !S.info.watch_only;
+  canvas.addEventListener("pointerdown", (ev) => {
+    if (ev.button !== 0) return;
+    canvas.setPointerCapture(ev.pointerId);
+    const i = editable() ? hit(ev.offsetX, ev.offsetY) : -1;
+    drag = { i: i, x: ev.offsetX, y: ev.offsetY, moved: false, e: S.view.e, n: S.view.n };
+  });
+  canvas.addEventListener("pointermove", (ev) => {
+    if (!drag) return;
+    if (Math.hypot(ev.offsetX - drag.x, ev.offsetY - drag.y) > 3) drag.moved = true;
+    if (!drag.moved) return;
+    if (drag.i >= 0) {
+      if (!S.dirty) { S.draft = S.map.waypoints.map((p) => p.slice()); S.dirty = true; }
+      S.draft[drag.i] = toLatLon(...fromScreen(ev.offsetX, ev.offsetY));
+      renderMission();
+    } else {
+      $("follow").checked = false;
+      S.view.e = drag.e - (ev.offsetX - drag.x) / S.view.pxPerM;
+      S.view.n = drag.n + (ev.offsetY - drag.y) / S.view.pxPerM;
+    }
+  });
+  canvas.addEventListener("pointerup", (ev) => {
+    if (drag && !drag.moved && drag.i < 0 && S.adding && editable()) {
+      const base = S.dirty ? S.draft : S.map.waypoints.map((p) => p.slice());
+      setDraft(base.concat([toLatLon(...fromScreen(ev.offsetX, ev.offsetY))]));
+    }
+    drag = null;
+  });
+  canvas.addEventListener("contextmenu", (ev) => {
+    ev.preventDefault();
+    const i = editable() ? hit(ev.offsetX, ev.offsetY) : -1;
+    if (i >= 0) {
+      const base = S.dirty ? S.draft : S.map.waypoints;
+      setDraft(base.filter((_, j) => j !== i));
+    }
+  });
+  canvas.addEventListener("wheel", (ev) => {
+    ev.preventDefault();
+    const before = fromScreen(ev.offsetX, ev.offsetY);
+    S.view.pxPerM = Math.max(0.01, Math.min(200, S.view.pxPerM * Math.pow(1.0015, -ev.deltaY)));
+    const after = fromScreen(ev.offsetX, ev.offsetY);
+    S.view.e += before[0] - after[0];
+    S.view.n += before[1] - after[1];
+  }, { passive: false });
+
+  // -- buttons ------------------------------------------------------------------------------------------
+  for (const cmd of ["start", "pause", "resume", "return", "stop"]) {
+    $("btn-" + cmd).addEventListener("click", () => command(cmd));
+  }
+  $("btn-add").addEventListener("click", () => {
+    S.adding = !S.adding;
+    $("btn-add").setAttribute("aria-pressed", String(S.adding));
+  });
+  $("btn-fit").addEventListener("click", fit);
+  $("btn-send").addEventListener("click", sendMission);
+  $("btn-revert").addEventListener("click", () => { S.dirty = false; S.draft = S.map.waypoints.map((p) => p.slice()); renderMission(); });
+  $("btn-clear").addEventListener("click", () => setDraft([]));
+  $("mission-file").addEventListener("change", (ev) => { if (ev.target.files[0]) loadFile(ev.target.files[0]); ev.target.value = ""; });
+  $("speed").addEventListener("input", () => { $("speed-out").textContent = $("speed").value; });
+  $("token-form").addEventListener("submit", (ev) => { ev.preventDefault(); auth($("token-input").value); });
+
+  // a token in the address (#token=...) is taken and removed from it: never sent to the server
+  // in a URL, nor left in the history
+  const m = /[#&]token=([^&]+)/.exec(location.hash);
+  if (m) {
+    sessionStorage.setItem("x6wd-token", decodeURIComponent(m[1]));
+    history.replaceState(null, "", location.pathname);
+  }
+  function frame() { draw(); requestAnimationFrame(frame); }
+  connect();
+  requestAnimationFrame(frame);
+})();
