@@ -785,6 +785,14 @@ class GpsDecoder:
         self._ubx.clear()
         return out
 
+    def assume_date(self, day: date, tod_us: int) -> None:
+        """Date epochs with ``day`` (whose UTC time of day is ``tod_us``, microseconds) until
+        a sentence brings a date. For a log reader that has found the log's first date
+        further on: epochs before it are then dated from it, within 12 h either side (the
+        rule by which a date is carried over midnight), instead of having no UTC."""
+        self._date = day
+        self._date_tod_us = tod_us
+
     def reset(self) -> None:
         """Forget partial frames and the epoch in progress (after a reconnect)."""
         self.framer.reset()

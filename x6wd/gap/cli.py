@@ -105,8 +105,9 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError("--seeds must be >= 1 and --replicates >= 3")
     bar("reading logs", 0.0)
     truth_track = read_track(args.truth_track) if args.truth_track else None
-    real = to_errors(read_track(args.real), args, truth_track)
-    notes = []
+    real_track = read_track(args.real)
+    real = to_errors(real_track, args, truth_track)
+    notes = [f"reading the real log: {note}" for note in real_track.notes]
     if not args.truth and truth_track is None:
         notes.append(
             "no truth given: errors are taken against each log's own mean, so a bias is invisible"

@@ -3,32 +3,59 @@ errors against a truth (a fixed point, a truth track, or the log's own mean as a
 
 Formats, chosen by content then suffix:
 - x6wd recordings (JSON lines): ``fix`` records, else their ``nmea`` lines decoded;
-- plain NMEA logs from any receiver (decoded by :class:`drivers.gps_nmea.GpsDecoder`);
+- plain NMEA logs from any receiver (decoded by :class:`drivers.gps_nmea.GpsDecoder`), binary
+  protocols interleaved or not;
 - CSV with a header naming time, lat, lon[, alt] (case-insensitive; ``latitude``, ``msl`` ...
   accepted) or headerless ``time,lat,lon[,alt]``;
 - RTKLIB ``.pos`` solutions (GPST date/time, lat, lon, height, Q, ns).
+
+Robust input (the tool's arrays are sized from the time axis, so a bad axis is a memory
+bomb): a log is read in chunks, never whole, and a line longer than :data:`MAX_LINE_BYTES`
+is an error. One log has one time axis: for NMEA it comes from dated sentences only (RMC
+with a date, ZDA); epochs before the first date are dated from it, epochs without any time
+are dropped and counted, and a log without a date is an error naming what is missing. A
+recording without UTC uses its receive clock for every epoch, never a mix of the two. Times
+are then sorted (out-of-order and duplicate epochs dropped and counted) and the axis is
+bounded: the regular grid the tool builds over a log holds at most :data:`GRID_FACTOR`
+slots per epoch read; a log whose holes exceed that is cut at its largest hole, the part
+with more epochs kept (said in ``Track.notes``), until it fits.
 """
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import math
+import re
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from sim_backend.effects import PositionSeries, metres_per_degree
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 
+MAX_LINE_BYTES = 1 << 16
+"""Longest line of a text log (CSV, .pos) read (bytes); longer is not such a log."""
+GRID_FACTOR = 10
+"""Most slots of the log's regular time grid (span / median step + 1) per epoch read."""
+_CHUNK_BYTES = 1 << 20
+_SNIFF_BYTES = 1 << 16
+_MAX_CUTS = 64  # a time axis needing more cuts than this is rejected, not searched
+# A line starting like an NMEA sentence ("$GPGGA,", "!AIVDM,", "$PUBX,"): what makes a file
+# an NMEA log, wherever in the first 64 KiB it starts.
+_NMEA_HEAD = re.compile(rb"(?:^|[\r\n])[$!][A-Z][A-Z0-9]{1,5},")
+_TEXT_BYTES = frozenset(b"\t\n\r\f") | frozenset(range(0x20, 0x7F)) | frozenset(range(0x80, 0x100))
+
 
 @dataclass(frozen=True)
 class Track:
     """Reported positions of one log. ``t_s`` seconds (UTC/GPST epoch seconds when the log
-    has dates, else the log's own clock); ``alt_m`` NaN where unknown; ``valid`` False on
-    no-fix epochs; ``nsats`` satellites used (-1 unknown); speed/course NaN where unknown."""
+    has dates, else the log's own clock), strictly increasing; ``alt_m`` NaN where unknown;
+    ``valid`` False on no-fix epochs; ``nsats`` satellites used (-1 unknown); speed/course
+    NaN where unknown; ``notes`` what reading dropped or cut, for the report."""
 
     t_s: np.ndarray
     lat_deg: np.ndarray
@@ -39,21 +66,43 @@ class Track:
     speed_mps: np.ndarray
     course_deg: np.ndarray
     source: str = ""
+    notes: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
 
 
-def _track(rows: list[tuple[float, ...]], source: str) -> Track:
-    """Rows (t, lat, lon, alt, valid, nsats, speed, course) -> Track sorted by time, duplicates
-    of a time stamp dropped (first kept)."""
+def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()) -> Track:
+    """Rows (t, lat, lon, alt, valid, nsats, speed, course) in log order -> Track sorted by
+    time, duplicates of a time stamp dropped (first kept), the span bounded (module doc)."""
+    notes = list(notes)
     if not rows:
         raise ParseError(f"{source}: no position epochs found")
     table = np.array(rows, dtype=float)
-    order = np.argsort(table[:, 0], kind="stable")
+    finite = np.isfinite(table[:, 0])
+    if not np.all(finite):
+        notes.append(f"{int(np.count_nonzero(~finite))} epochs without a usable time dropped")
+        table = table[finite]
+        if not table.size:
+            raise ParseError(f"{source}: no epoch has a usable time")
+    t_s = table[:, 0]
+    back = int(np.count_nonzero(t_s[1:] < np.maximum.accumulate(t_s)[:-1]))
+    order = np.argsort(t_s, kind="stable")
     table = table[order]
     keep = np.concatenate(([True], np.diff(table[:, 0]) > 0))
-    table = table[keep]
+    if not np.all(keep):
+        notes.append(f"{int(np.count_nonzero(~keep))} epochs repeating a time stamp dropped")
+        table = table[keep]
+    if back:
+        notes.append(f"{back} epochs went back in time in the log (sorted by time)")
+    lo, hi, cuts = _bounded_span(table[:, 0], source)
+    if cuts:
+        notes.append(
+            f"time axis cut at {cuts} hole(s) (a regular grid over it would hold more than"
+            f" {GRID_FACTOR} slots per epoch): {hi - lo} of {len(table)} epochs kept,"
+            f" {_utc_text(table[lo, 0])} to {_utc_text(table[hi - 1, 0])}"
+        )
+        table = table[lo:hi]
     valid = (table[:, 4] > 0) & np.isfinite(table[:, 1]) & np.isfinite(table[:, 2])
     return Track(
         t_s=table[:, 0],
@@ -65,7 +114,44 @@ def _track(rows: list[tuple[float, ...]], source: str) -> Track:
         speed_mps=table[:, 6],
         course_deg=table[:, 7],
         source=source,
+        notes=tuple(notes),
     )
+
+
+def grid_slots(t_s: np.ndarray) -> float:
+    """Slots of a regular grid over ``t_s`` (sorted, s) at its median step: what the gap
+    tool allocates per array for this time axis."""
+    if t_s.size < 2:
+        return float(t_s.size)
+    return float((t_s[-1] - t_s[0]) / np.median(np.diff(t_s))) + 1.0
+
+
+def _bounded_span(t_s: np.ndarray, source: str) -> tuple[int, int, int]:
+    """(first, end, cuts): the part ``t_s[first:end]`` (sorted, strictly increasing) whose
+    grid holds at most GRID_FACTOR slots per epoch, cutting at the largest hole each time
+    and keeping the side with more epochs. ParseError if no such part is found quickly."""
+    lo, hi = 0, t_s.size
+    for cuts in range(_MAX_CUTS + 1):
+        part = t_s[lo:hi]
+        if grid_slots(part) <= GRID_FACTOR * part.size:
+            return lo, hi, cuts
+        k = int(np.argmax(np.diff(part)))  # the hole is between part[k] and part[k + 1]
+        if k + 1 >= part.size - k - 1:
+            hi = lo + k + 1
+        else:
+            lo = lo + k + 1
+    raise ParseError(
+        f"{source}: time axis too irregular: {t_s.size} epochs over"
+        f" {t_s[-1] - t_s[0]:.6g} s, and {_MAX_CUTS} cuts at its largest holes leave no part"
+        f" whose grid holds at most {GRID_FACTOR} slots per epoch"
+    )
+
+
+def _utc_text(t_s: float) -> str:
+    """An epoch time as UTC ISO text when it looks like one (after 1980), else seconds."""
+    if t_s >= 315_964_800.0 and t_s < 4e9:
+        return datetime.fromtimestamp(t_s, UTC).isoformat(timespec="seconds")
+    return f"{t_s:.3f} s"
 
 
 def fill_missing_epochs(track: Track) -> Track:
@@ -80,7 +166,7 @@ def fill_missing_epochs(track: Track) -> Track:
     if dt_s <= 0 or np.mean(np.abs(steps_s / dt_s - np.round(steps_s / dt_s)) < 0.1) < 0.9:
         return track
     slot = np.round((t_s - t_s[0]) / dt_s).astype(int)
-    if slot[-1] > 20 * t_s.size:  # a huge hole is not a run of missed epochs
+    if slot[-1] > GRID_FACTOR * t_s.size:  # a huge hole is not a run of missed epochs
         return track
     n_slots = int(slot[-1]) + 1
     first = np.concatenate(([True], np.diff(slot) > 0))
@@ -103,50 +189,97 @@ def fill_missing_epochs(track: Track) -> Track:
         speed_mps=spread(track.speed_mps, math.nan),
         course_deg=spread(track.course_deg, math.nan),
         source=track.source,
+        notes=track.notes,
     )
 
 
 def read_track(path: str | Path) -> Track:
     """Read any supported log (see module doc) and mark skipped epochs of a regularly
-    sampled log as no-fix. Raises DeviceUnavailable for a missing file, ParseError when
-    nothing usable is in it."""
+    sampled log as no-fix. Raises DeviceUnavailable for a missing file, ParseError (naming
+    the file and the problem) when nothing usable is in it."""
     return fill_missing_epochs(_read_any(path))
 
 
 def _read_any(path: str | Path) -> Track:
     log_path = Path(path)
+    source = str(log_path)
     try:
-        raw = log_path.read_bytes()
+        with open(log_path, "rb") as f:
+            head = f.read(_SNIFF_BYTES)
     except OSError as exc:
         raise DeviceUnavailable(f"cannot read {log_path}: {exc}") from exc
-    first_byte = raw.lstrip()[:1]
-    if first_byte == b"{":
+    start = head.lstrip()[:1]
+    if not start:
+        raise ParseError(f"{source}: empty file" if not head else f"{source}: only blank lines")
+    if start == b"{":
         return _read_recording(log_path)
-    text = raw.decode("utf-8", errors="replace")
-    if log_path.suffix.lower() == ".pos" or text.lstrip().startswith("%"):
-        return _read_pos(text, str(log_path))
-    if b"$GP" in raw[:4096] or b"$GN" in raw[:4096] or first_byte == b"$":
-        return _read_nmea(raw, str(log_path))
-    return _read_csv(text, str(log_path))
+    if log_path.suffix.lower() == ".pos" or start == b"%":
+        return _read_pos(log_path)
+    if start == b"$" or _NMEA_HEAD.search(head) or not _looks_like_text(head):
+        # Binary (UBX, RTCM...) goes to the NMEA framer too: it skips what is not NMEA and
+        # its counters say what was there when no position is found.
+        return _read_nmea(log_path)
+    return _read_csv(log_path)
 
 
-def _fix_row(fix: object) -> tuple[float, ...]:
-    """(t s, lat deg, lon deg, alt m, valid 0/1, satellites used (-1 unknown), speed m/s,
-    course deg) of a GpsFix or a dict with the same fields."""
-    get = fix.get if isinstance(fix, dict) else (lambda k, d=None: getattr(fix, k, d))
-    utc = get("utc")
-    t_s = get("t_s")
+def _looks_like_text(head: bytes) -> bool:
+    """No NUL and at most 1 % other control bytes (binary protocols are full of them)."""
+    control = len(head.translate(None, bytes(_TEXT_BYTES)))
+    return b"\0" not in head and control <= 0.01 * len(head)
+
+
+def _chunks(path: Path) -> Iterator[bytes]:
+    """The file's bytes in chunks of _CHUNK_BYTES (a log is never held whole)."""
+    with open(path, "rb") as f:
+        while chunk := f.read(_CHUNK_BYTES):
+            yield chunk
+
+
+def _text_lines(path: Path) -> Iterator[tuple[int, str]]:
+    """(line number from 1, text without its line ending) of a text log, UTF-8 with
+    replacement; ParseError at a line longer than MAX_LINE_BYTES."""
+    rest = b""
+    lineno = 0
+    for chunk in _chunks(path):
+        lines = (rest + chunk).split(b"\n")
+        rest = lines.pop()
+        for line in lines:
+            lineno += 1
+            yield lineno, _line_text(line, path, lineno)
+        if len(rest) > MAX_LINE_BYTES:
+            _line_text(rest, path, lineno + 1)
+    if rest:
+        yield lineno + 1, _line_text(rest, path, lineno + 1)
+
+
+def _line_text(line: bytes, path: Path, lineno: int) -> str:
+    if len(line) > MAX_LINE_BYTES:
+        raise ParseError(
+            f"{path}:{lineno}: line longer than {MAX_LINE_BYTES} bytes: not a CSV or .pos log"
+        )
+    return line.decode("utf-8", "replace").rstrip("\r")
+
+
+def _utc_s(utc: object) -> float | None:
+    """Epoch seconds of a datetime or ISO text (naive means UTC), None if absent or bad."""
+    if isinstance(utc, str) and utc:
+        try:
+            utc = datetime.fromisoformat(utc.replace("Z", "+00:00"))
+        except ValueError:
+            return None
     if isinstance(utc, datetime):
-        t_s = utc.replace(tzinfo=UTC).timestamp() if utc.tzinfo is None else utc.timestamp()
-    elif isinstance(utc, str) and utc:
-        with contextlib.suppress(ValueError):
-            t_s = datetime.fromisoformat(utc.replace("Z", "+00:00")).timestamp()
+        return (utc if utc.tzinfo is not None else utc.replace(tzinfo=UTC)).timestamp()
+    return None
+
+
+def _fix_row(fix: object, t_s: float) -> tuple[float, ...]:
+    """(t s, lat deg, lon deg, alt m, valid 0/1, satellites used (-1 unknown), speed m/s,
+    course deg) of a GpsFix or a dict with the same fields, at time ``t_s``."""
+    get = fix.get if isinstance(fix, dict) else (lambda k, d=None: getattr(fix, k, d))
     lat_deg, lon_deg, alt_m = get("lat_deg"), get("lon_deg"), get("alt_m")
     valid = bool(get("valid", False)) and lat_deg is not None and lon_deg is not None
     sats_used = get("sats_used")
     speed_mps, course_deg = get("speed_mps"), get("course_deg")
-    if t_s is None:
-        raise ParseError("fix without a time")
     return (
         float(t_s),
         float(lat_deg) if lat_deg is not None else math.nan,
@@ -159,45 +292,108 @@ def _fix_row(fix: object) -> tuple[float, ...]:
     )
 
 
-def _decode_nmea_lines(lines: list[tuple[float, bytes]], source: str) -> Track:
-    from drivers.gps_nmea import GpsDecoder
+def _decoded_fixes(decoder: Any, feed: Iterable[tuple[float, bytes]]) -> Iterator[Any]:
+    """The GpsFix records ``decoder`` makes of ``feed`` ((receive time s, bytes) pairs)."""
     from x6wd.core.records import GpsFix
 
-    decoder = GpsDecoder(emit_sentences=False)
-    rows: list[tuple[float, ...]] = []
-    for t_s, chunk in lines:
-        rows.extend(
-            _fix_row(record) for record in decoder.feed(chunk, t_s) if isinstance(record, GpsFix)
+    for t_s, data in feed:
+        yield from (r for r in decoder.feed(data, t_s) if type(r) is GpsFix)
+    yield from (r for r in decoder.flush() if type(r) is GpsFix)
+
+
+def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[str] = ()) -> Track:
+    """Decode the NMEA of ``feed()`` (an iterable of (receive time s, bytes), read twice).
+
+    The time axis is UTC from dated sentences: a first pass finds the first dated epoch,
+    and the second pass dates the epochs before it from it (GpsDecoder.assume_date).
+    Epochs without a time are dropped and counted. Without any date, the receive times
+    are used when they are a clock (``receive_clock``, a recording), else ParseError.
+    """
+    from drivers.gps_nmea import GpsDecoder
+
+    probe = GpsDecoder(emit_sentences=False)
+    first: datetime | None = None
+    n_fixes = 0
+    for fix in _decoded_fixes(probe, feed()):
+        n_fixes += 1
+        if fix.utc is not None:
+            first = fix.utc
+            break
+    if first is None and not receive_clock:
+        counts = probe.counters
+        if n_fixes == 0:
+            raise ParseError(
+                f"{source}: no NMEA position sentence (GGA, RMC or GLL) decoded"
+                f" ({counts.sentences} NMEA sentences, {counts.ubx_frames} UBX frames,"
+                f" {counts.skipped_bytes} other bytes): the gap tool reads NMEA, x6wd"
+                " recordings, CSV and RTKLIB .pos"
+            )
+        raise ParseError(
+            f"{source}: no dated sentence: {n_fixes} position epochs but no RMC with a date"
+            " and no ZDA, so no UTC time axis (the gap tool does not guess a date)"
         )
-    rows.extend(_fix_row(record) for record in decoder.flush() if isinstance(record, GpsFix))
-    return _track(rows, source)
+    decoder = GpsDecoder(emit_sentences=False)
+    if first is not None:
+        tod_us = (first.hour * 3600 + first.minute * 60 + first.second) * 1_000_000
+        decoder.assume_date(first.date(), tod_us + first.microsecond)
+    rows: list[tuple[float, ...]] = []
+    timeless = 0
+    for fix in _decoded_fixes(decoder, feed()):
+        t_s = fix.t_s if first is None else _utc_s(fix.utc)
+        if t_s is None:
+            timeless += 1
+        else:
+            rows.append(_fix_row(fix, t_s))
+    notes = list(notes)
+    if timeless:
+        notes.append(
+            f"{timeless} epochs without a time (e.g. no-fix GGA with empty fields) dropped"
+        )
+    if first is None:
+        notes.append("no dated NMEA sentence: the recording's receive clock is the time axis")
+    return _track(rows, source, notes)
 
 
-def _read_nmea(raw: bytes, source: str) -> Track:
-    # A plain log has no receive times; the decoder's UTC (when present) supplies them, and
-    # the byte position keeps stream order otherwise.
-    return _decode_nmea_lines(
-        [(float(i), line + b"\n") for i, line in enumerate(raw.splitlines())], source
+def _read_nmea(path: Path) -> Track:
+    return _nmea_track(
+        lambda: ((0.0, chunk) for chunk in _chunks(path)), str(path), receive_clock=False
     )
 
 
 def _read_recording(path: Path) -> Track:
+    """``fix`` records (their UTC when any has one, else their receive time ``t_mono`` for
+    all), else the ``nmea`` records decoded (see _nmea_track)."""
     from x6wd.core.recorder import read_recording
 
     rows: list[tuple[float, ...]] = []
-    nmea: list[tuple[float, bytes]] = []
+    utc_s: list[float] = []
+    has_nmea = False
     for rec in read_recording(path):
         if rec.type == "fix":
-            data = dict(rec.data)
-            data.setdefault("t_s", rec.t_mono)
-            rows.append(_fix_row(data))
+            t_s = rec.data.get("t_s", rec.t_mono)
+            rows.append(_fix_row(rec.data, t_s if isinstance(t_s, (int, float)) else math.nan))
+            utc = _utc_s(rec.data.get("utc"))
+            utc_s.append(math.nan if utc is None else utc)
         elif rec.type == "nmea":
-            text = rec.data.get("text") or rec.data.get("sentence") or rec.data.get("line") or ""
-            nmea.append((rec.t_mono, str(text).encode("ascii", "replace") + b"\r\n"))
+            has_nmea = True
     if rows:
-        return _track(rows, str(path))
-    if nmea:
-        return _decode_nmea_lines(nmea, str(path))
+        dated = np.isfinite(utc_s)
+        if not np.any(dated):
+            return _track(rows, str(path), ["no fix has a UTC time: receive times used"])
+        kept = [(t, *row[1:]) for t, row, ok in zip(utc_s, rows, dated, strict=True) if ok]
+        notes = [f"{len(rows) - len(kept)} fixes without a UTC time dropped"] * (
+            len(kept) < len(rows)
+        )
+        return _track(kept, str(path), notes)
+    if has_nmea:
+
+        def feed() -> Iterator[tuple[float, bytes]]:
+            for rec in read_recording(path):
+                if rec.type == "nmea":
+                    text = rec.data.get("text") or rec.data.get("sentence") or rec.data.get("line")
+                    yield rec.t_mono, str(text or "").encode("ascii", "replace") + b"\r\n"
+
+        return _nmea_track(feed, str(path), receive_clock=True)
     raise ParseError(f"{path}: recording has no fix or nmea records")
 
 
@@ -211,76 +407,108 @@ _CSV_NAMES = {
 }
 
 
-def _read_csv(text: str, source: str) -> Track:
-    reader = csv.reader(
-        line for line in text.splitlines() if line.strip() and not line.startswith("#")
+def _read_csv(path: Path) -> Track:
+    source = str(path)
+    numbered = (
+        (lineno, line)
+        for lineno, line in _text_lines(path)
+        if line.strip() and not line.startswith("#")
     )
-    table = [[c.strip().strip('"') for c in row] for row in reader]
-    if not table:
-        raise ParseError(f"{source}: empty CSV")
-    header = [c.lower() for c in table[0]]
+    linenos: list[int] = []
 
-    def col(key: str) -> int | None:
-        for name in _CSV_NAMES[key]:
-            if name in header:
-                return header.index(name)
-        return None
+    def lines() -> Iterator[str]:
+        for lineno, line in numbered:
+            linenos.append(lineno)
+            yield line
 
-    has_header = col("lat") is not None and col("lon") is not None
-    if has_header:
-        column = {k: col(k) for k in _CSV_NAMES}
-        body = table[1:]
-        if column["t"] is None:
-            raise ParseError(
-                f"{source}: CSV header has no time column (one of {_CSV_NAMES['t_s']})"
-            )
-    else:
-        column = {
-            "t": 0,
-            "lat": 1,
-            "lon": 2,
-            "alt": 3 if len(table[0]) > 3 else None,
-            "valid": None,
-            "nsats": None,
-        }
-        body = table
-    rows: list[tuple[float, ...]] = []
-    for lineno, row in enumerate(body, 2 if has_header else 1):
-        try:
+    reader = csv.reader(lines())
+    try:
+        first = next(reader, None)
+        if first is None:
+            raise ParseError(f"{source}: empty CSV")
+        header = [c.strip().strip('"').lower() for c in first]
 
-            def get(key: str, default: float = math.nan, row: list[str] = row) -> float:
-                i = column[key]
-                return float(row[i]) if i is not None and i < len(row) and row[i] != "" else default
+        def col(key: str) -> int | None:
+            for name in _CSV_NAMES[key]:
+                if name in header:
+                    return header.index(name)
+            return None
 
-            t_s = _parse_time(row[column["t"]])  # type: ignore[index]
-            lat_deg, lon_deg = get("lat"), get("lon")
-            rows.append(
-                (
-                    t_s,
-                    lat_deg,
-                    lon_deg,
-                    get("alt"),
-                    get("valid", 1.0),
-                    get("nsats", -1.0),
-                    math.nan,
-                    math.nan,
+        has_header = col("lat") is not None and col("lon") is not None
+        if has_header:
+            column = {k: col(k) for k in _CSV_NAMES}
+            if column["t"] is None:
+                raise ParseError(
+                    f"{source}: CSV header has no time column (one of {', '.join(_CSV_NAMES['t'])})"
                 )
-            )
-        except (ValueError, IndexError) as exc:
-            raise ParseError(f"{source}:{lineno}: bad CSV row {row!r}: {exc}") from exc
+            body: Iterable[list[str]] = reader
+        else:
+            column = {
+                "t": 0,
+                "lat": 1,
+                "lon": 2,
+                "alt": 3 if len(first) > 3 else None,
+                "valid": None,
+                "nsats": None,
+            }
+            body = _chain_row(first, reader)
+        rows = [_csv_row(row, column, source, linenos) for row in body]
+    except csv.Error as exc:
+        raise ParseError(f"{source}:{linenos[-1] if linenos else 1}: not CSV: {exc}") from exc
     return _track(rows, source)
+
+
+def _chain_row(first: list[str], rest: Iterable[list[str]]) -> Iterator[list[str]]:
+    yield first
+    yield from rest
+
+
+def _csv_row(
+    raw: list[str], column: dict[str, int | None], source: str, linenos: list[int]
+) -> tuple[float, ...]:
+    row = [c.strip().strip('"') for c in raw]
+
+    def get(key: str, default: float = math.nan) -> float:
+        i = column[key]
+        return float(row[i]) if i is not None and i < len(row) and row[i] != "" else default
+
+    try:
+        return (
+            _parse_time(row[column["t"]]),  # type: ignore[index]
+            get("lat"),
+            get("lon"),
+            get("alt"),
+            get("valid", 1.0),
+            get("nsats", -1.0),
+            math.nan,
+            math.nan,
+        )
+    except (ValueError, IndexError) as exc:
+        shown = repr(row)
+        shown = shown if len(shown) <= 80 else shown[:77] + "..."
+        where = f"{source}:{linenos[-1]}"
+        if column["t"] == 0 and column["valid"] is None:  # no header: maybe no CSV at all
+            raise ParseError(
+                f"{where}: not a log the gap tool reads (NMEA, x6wd recording, CSV with a"
+                f" time,lat,lon header or rows, RTKLIB .pos): row {shown}: {str(exc)[:80]}"
+            ) from exc
+        raise ParseError(f"{where}: bad CSV row {shown}: {str(exc)[:80]}") from exc
 
 
 def _parse_time(s: str) -> float:
     try:
         return float(s)
     except ValueError:
-        return datetime.fromisoformat(s.replace("Z", "+00:00")).timestamp()
+        t_s = _utc_s(s)
+        if t_s is None:
+            raise ValueError(f"time {s[:40]!r} is neither seconds nor ISO 8601") from None
+        return t_s
 
 
-def _read_pos(text: str, source: str) -> Track:
+def _read_pos(path: Path) -> Track:
+    source = str(path)
     rows: list[tuple[float, ...]] = []
-    for lineno, line in enumerate(text.splitlines(), 1):
+    for lineno, line in _text_lines(path):
         if not line.strip() or line.startswith("%"):
             continue
         fields = line.split()
@@ -298,7 +526,9 @@ def _read_pos(text: str, source: str) -> Track:
                 int(fields[6]),
             )
         except (ValueError, IndexError) as exc:
-            raise ParseError(f"{source}:{lineno}: not an RTKLIB .pos line: {exc}") from exc
+            raise ParseError(
+                f"{source}:{lineno}: not an RTKLIB .pos line: {str(exc)[:80]}"
+            ) from exc
         speed_mps = course_deg = math.nan
         if len(fields) >= 17:  # velocity columns vn, ve (m/s) present
             v_north_mps, v_east_mps = float(fields[15]), float(fields[16])
