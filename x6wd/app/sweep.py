@@ -16,12 +16,14 @@ command again to finish).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
 from sim_backend.executor import Executor, TextProgress
 from sim_backend.sweep import RunStore, load_sweep, plan, run_sweep, split_done
 from sim_backend.sweep_report import write_report
+from x6wd.core.errors import ConfigError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -48,6 +50,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="run again the runs whose mission raised (kept as failed otherwise)",
     )
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        default=None,
+        metavar="N",
+        help="missions per cell instead of the file's seeds (the first N of them: a quick"
+        " look with 1; the same command without it adds the rest)",
+    )
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -55,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     """Plan (validating every cell), run what is missing, write the report."""
     spec = load_sweep(args.sweep)
+    if args.seeds is not None:
+        if args.seeds < 1:
+            raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
+        spec = dataclasses.replace(spec, seeds=args.seeds)
     runs = plan(spec)  # a bad key or value stops here, before any cluster starts
     out = Path(args.out) if args.out else Path("out") / "sweeps" / Path(args.sweep).stem
     progress = None if args.quiet else TextProgress(len(runs), "runs")
