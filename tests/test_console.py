@@ -162,7 +162,7 @@ async def ws_to(r: Running, ssl_ctx: ssl.SSLContext | None = None, **headers: st
 
 
 # -- the browser -----------------------------------------------------------------------------------
-def chromium(tmp_path: Path, width: int = 1400, height: int = 1000) -> webdriver.Chrome:
+def chromium(tmp_path: Path, width: int = 1400, height: int = 1150) -> webdriver.Chrome:
     """Debian's chromium through Debian's chromedriver (fails in CI when missing)."""
     binary, driver = require_program("chromium"), require_program("chromedriver")
     options = webdriver.ChromeOptions()
@@ -390,7 +390,8 @@ class TileServer:
 
     def __init__(self) -> None:
         self.requests: list[tuple[int, int, int]] = []
-        self.tile = _png(256, 256, (205, 228, 196))
+        # a checkerboard of tiles, each with a frame: the tiles' places show in a screenshot
+        self.tiles = (_png(256, 256, (214, 232, 206), 256), _png(256, 256, (232, 226, 206), 256))
         self.ready = threading.Event()
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
@@ -408,8 +409,9 @@ class TileServer:
 
     async def _get(self, request: web.Request) -> web.Response:
         m = request.match_info
-        self.requests.append((int(m["z"]), int(m["x"]), int(m["y"])))
-        return web.Response(body=self.tile, content_type="image/png")
+        z, x, y = int(m["z"]), int(m["x"]), int(m["y"])
+        self.requests.append((z, x, y))
+        return web.Response(body=self.tiles[(x + y) % 2], content_type="image/png")
 
     def close(self) -> None:
         asyncio.run_coroutine_threadsafe(self.runner.cleanup(), self.loop).result(10)
@@ -452,7 +454,7 @@ def test_watch_only_refuses_every_command_in_the_daemon_and_tiles_come_when_conf
                 assert c.request("status")["mode"] == "IDLE"
             open_page(browser, r)
             page_ready(browser)
-            for element_id in ("btn-start", "btn-stop", "drive-fwd", "btn-send"):
+            for element_id in ("btn-start", "btn-stop", "drive-fwd", "btn-send", "btn-add"):
                 assert not browser.find_element(By.ID, element_id).is_displayed(), element_id
             assert browser.find_element(By.ID, "watch-only").is_displayed()
             wait_for(lambda: len(tiles.requests) >= 4, 10, "tiles requested")

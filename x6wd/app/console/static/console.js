@@ -409,6 +409,12 @@
       ctx.stroke();
       ctx.setLineDash([]);
     }
+    // the track under the markers
+    ctx.strokeStyle = "#2e7d32";
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    S.track.forEach((p, i) => { const [x, y] = toScreen(p[0], p[1]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
+    ctx.stroke();
     // the robot's mission (orange) and, when edited, the draft (blue)
     polyline(S.map.waypoints, S.dirty ? "rgba(230,81,0,0.35)" : "#e65100", 2);
     if (S.dirty) polyline(S.draft, "#1565c0", 2, [6, 4]);
@@ -431,14 +437,12 @@
       ctx.fillStyle = "#6a1b9a";
       ctx.fillRect(x - 8, y - 8, 16, 16);
       ctx.fillStyle = "#fff";
+      ctx.font = "bold 11px sans-serif";
+      ctx.textAlign = "center";
+      ctx.textBaseline = "middle";
       ctx.fillText("H", x, y);
     }
-    // the track, the raw fix and the robot (heading true)
-    ctx.strokeStyle = "#2e7d32";
-    ctx.lineWidth = 2;
-    ctx.beginPath();
-    S.track.forEach((p, i) => { const [x, y] = toScreen(p[0], p[1]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
-    ctx.stroke();
+    // the raw fix and the robot (heading true)
     const t = S.tel;
     if (t && t.lat_deg !== null) {
       const [x, y] = toScreen(...toLocal(t.lat_deg, t.lon_deg));
@@ -474,7 +478,8 @@
   }
   function fit() {
     const pts = (S.dirty ? S.draft : S.map.waypoints).map((p) => toLocal(p[0], p[1]));
-    if (S.track.length) pts.push(S.track[S.track.length - 1]);
+    if (S.map.launch) pts.push(toLocal(S.map.launch[0], S.map.launch[1]));
+    for (const p of S.track) pts.push(p);
     if (!S.origin || !pts.length) return;
     const es = pts.map((p) => p[0]), ns = pts.map((p) => p[1]);
     const [emin, emax, nmin, nmax] = [Math.min(...es), Math.max(...es), Math.min(...ns), Math.max(...ns)];
