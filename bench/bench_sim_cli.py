@@ -1,0 +1,184 @@
+"""The simulator on the CLI's path (issue 16, item 1): ``x6wd sim`` as a user runs it.
+
+Each case is one ``python -m x6wd sim SCENARIO --duration D --out TMP --quiet`` process
+(interpreter start, imports, the whole loop through the real decoders, compass driver,
+runner and controller, the recording, the NMEA and truth files, the summary and the plot),
+timed by its own CPU time (user + system, from ``wait4``, so other load on the machine does
+not count) and its peak resident memory (``ru_maxrss``). Speed = simulated s / CPU s.
+
+Cases and targets:
+
+- ``config/scenarios/open_field.toml`` with its defaults (a static survey, 5 Hz compass),
+  10 h: >= 10,000x real time; peak memory <= 300 MB;
+- the same with ten buildings (bench_sim's ring: 12 x 8 m, 10 m high, 90 m out), 10 h:
+  >= 5,000x; peak memory <= 300 MB;
+- a closed-loop 1 h mission: ``default.toml`` (20 Hz compass, the shipped navigation) with
+  a route long enough to drive for the whole hour (laps of its 25 m square): >= 3,000x.
+
+Anchors measured in the same run: ``GnssModel.batch`` alone on the open-field case's epochs
+(the batched physics, in this process), and the robot's own loop alone (a ``Runner`` with
+the shipped controller fed the open-field run's recorded compass, odometry and GPS records,
+nothing recorded): what no simulator change can go below.
+``--quick``: 1 h open field (with and without buildings) and a 10 min mission.
+Run: ``python -m bench.bench_sim_cli [--quick]``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench._common import Row, print_table
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENARIOS = ROOT / "config" / "scenarios"
+MB = 1e6
+
+
+def _buildings_toml(n: int = 10) -> str:
+    """``n`` closed 12 x 8 m buildings, 10 m high, on a ring 90 m out (bench_sim's scene)."""
+    out = []
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        cx, cy = 90 * math.cos(a), 90 * math.sin(a)
+        out.append(
+            f"[[buildings]]\nx0_m = {cx - 6:.3f}\ny0_m = {cy - 4:.3f}\n"
+            f"x1_m = {cx + 6:.3f}\ny1_m = {cy + 4:.3f}\nheight_m = 10.0\n"
+        )
+    return "\n".join(out)
+
+
+def _mission_toml(laps: int = 120) -> str:
+    """default.toml's 25 m square, driven ``laps`` times (more than an hour of driving)."""
+    square = [(0.0, 25.0), (25.0, 25.0), (25.0, 0.0), (0.0, 0.0)]
+    pts = ", ".join(f"[{e}, {n}]" for _ in range(laps) for e, n in square)
+    return f"[mission]\nwaypoints_enu = [{pts}]\n"
+
+
+def _scenario(tmp: Path, name: str, base: str, extra: str) -> Path:
+    path = tmp / f"{name}.toml"
+    path.write_text(f'include = ["{SCENARIOS / base}"]\nname = "{name}"\n{extra}')
+    return path
+
+
+def _run_cli(scenario: Path, duration_s: float, out: Path) -> dict[str, float]:
+    """One ``x6wd sim`` process: its CPU s, peak RSS (bytes), simulated s, run_mission's
+    own wall s."""
+    cmd = [sys.executable, "-m", "x6wd", "sim", str(scenario), "--duration", str(duration_s)]
+    cmd += ["--out", str(out), "--quiet"]
+    a = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL)
+    _pid, status, ru = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - a
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode not in (0, 1):  # 1: a mission not completed within the duration
+        raise RuntimeError(f"{' '.join(cmd)} exited {proc.returncode}")
+    summary = json.loads((out / "summary.json").read_text())
+    return {
+        "cpu_s": ru.ru_utime + ru.ru_stime,
+        "rss_b": ru.ru_maxrss * 1024.0,  # Linux: KiB
+        "sim_s": float(summary["sim_time_s"]),
+        "loop_wall_s": float(summary["wall_time_s"]),
+        "wall_s": wall,
+    }
+
+
+def _physics_anchor(duration_s: float) -> float:
+    """CPU s of ``GnssModel.batch`` alone over the open-field case's epochs (one call)."""
+    from sim_backend.receiver import SimRandom, build_gnss_model
+    from sim_backend.world import load_world
+
+    world = load_world(SCENARIOS / "open_field.toml")
+    model = build_gnss_model(world, SimRandom.from_seed(world.seed).gnss)
+    t = np.arange(0.0, duration_s + 1e-9, 1.0 / world.gnss.rate_hz)
+    o = world.origin
+    n = t.shape[0]
+    alt = np.full(n, o.alt_m + world.vehicle.antenna_height_m)
+    a = time.process_time()
+    model.batch(t, np.full(n, o.lat_deg), np.full(n, o.lon_deg), alt, np.zeros((n, 3)))
+    return time.process_time() - a
+
+
+def _robot_loop_anchor(recording: Path) -> tuple[float, float]:
+    """CPU s and simulated s of the robot's own loop fed a run's recorded device inputs."""
+    from sim_backend.world import load_world
+    from x6wd.core.recorder import decode_record, read_recording
+    from x6wd.core.records import Attitude, GpsFix, GpsSky, WheelOdometry
+    from x6wd.loop.runner import Runner
+    from x6wd.nav.controller import Controller
+
+    world = load_world(SCENARIOS / "open_field.toml")
+    typed = [decode_record(r) for r in read_recording(recording)]
+    inputs = [x for x in typed if type(x) in (Attitude, GpsFix, GpsSky, WheelOdometry)]
+    ctrl = Controller(
+        world.navigation, world.safety, float(world.compass.get("declination_deg", 0.0)),
+        odometry=world.odometry,
+        gnss_noise=world.gnss_noise, failsafe=world.failsafe,
+    )  # fmt: skip
+    now = [0.0]
+    runner = Runner(ctrl, world.safety, lambda: now[0], motors=lambda _c: None)
+    calls: dict[type, Callable[[Any], None]] = {
+        Attitude: runner.attitude,
+        WheelOdometry: runner.odometry,
+        GpsFix: runner.gps_record,
+        GpsSky: runner.gps_record,
+    }
+    a = time.process_time()
+    for x in inputs:
+        now[0] = x.t_s  # type: ignore[union-attr]
+        calls[type(x)](x)
+    return time.process_time() - a, now[0]
+
+
+def run(quick: bool = False) -> list[Row]:
+    """All figures; ``quick`` runs 1 h surveys and a 10 min mission instead of 10 h and 1 h."""
+    survey_s = 3600.0 if quick else 36000.0
+    mission_s = 600.0 if quick else 3600.0
+    rows: list[Row] = []
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        open_field = SCENARIOS / "open_field.toml"
+        walled = _scenario(tmp, "open-field-10-buildings", "open_field.toml", _buildings_toml())
+        mission = _scenario(tmp, "mission-1h", "default.toml", _mission_toml())
+        physics_s = _physics_anchor(survey_s)
+        physics_x = survey_s / physics_s
+        hours = f"{survey_s / 3600:.0f} h"
+        of = _run_cli(open_field, survey_s, tmp / "of")
+        loop_cpu_s, loop_sim_s = _robot_loop_anchor(tmp / "of" / "recording.jsonl")
+        wb = _run_cli(walled, survey_s, tmp / "wb")
+        ms = _run_cli(mission, mission_s, tmp / "ms")
+    rows.append(Row("sim_cli", f"anchor: GnssModel.batch alone, {hours} open field",
+                    physics_x, "x real time", None, "",
+                    f"{physics_s:.2f} s CPU, one call"))  # fmt: skip
+    rows.append(Row("sim_cli", "anchor: robot's loop alone on the survey's inputs",
+                    loop_sim_s / loop_cpu_s, "x real time", None, "",
+                    f"{loop_cpu_s:.1f} s CPU: runner, controller, EKF"))  # fmt: skip
+    for label, res, target in (
+        (f"open_field.toml, {hours} (CLI, CPU)", of, 10_000.0),
+        (f"open field + 10 buildings, {hours} (CLI, CPU)", wb, 5_000.0),
+        (f"closed-loop mission 20 Hz compass, {mission_s / 3600:g} h (CLI, CPU)", ms, 3_000.0),
+    ):
+        speed = res["sim_s"] / res["cpu_s"]
+        rows.append(Row("sim_cli", label, speed, "x real time", target, "x target",
+                        f"{res['cpu_s']:.1f} s CPU ({res['wall_s']:.1f} s wall, loop "
+                        f"{res['loop_wall_s']:.1f} s); {speed / physics_x:.3f} of the "
+                        f"physics anchor"))  # fmt: skip
+    for label, res in ((f"open field, {hours}", of), (f"10 buildings, {hours}", wb),
+                       (f"mission, {mission_s / 3600:g} h", ms)):  # fmt: skip
+        rows.append(Row("sim_cli", f"peak memory: {label}", res["rss_b"] / MB, "MB", 300.0,
+                        "MB limit", "max resident set of the process"))  # fmt: skip
+    return rows
+
+
+if __name__ == "__main__":
+    print_table(run(quick="--quick" in sys.argv))
