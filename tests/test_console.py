@@ -296,6 +296,7 @@ def test_without_the_token_the_console_accepts_no_command_and_shows_nothing(
                     ("mission.load", {"waypoints": [north(5)]}),
                     ("mission.parse", {"content": "51.7,-1.2\n"}),
                     ("log", {}),
+                    ("status", {}),  # open on the control port, not here: it has telemetry
                 ):
                     reply = await w.request(cmd, **args)
                     assert reply["error"]["code"] == "unauthorized", (cmd, reply)

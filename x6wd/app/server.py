@@ -65,6 +65,8 @@ COMMANDS = (
 MOTION_COMMANDS = frozenset({"mission.load", "start", "pause", "resume", "return", "drive"})
 ACTING_COMMANDS = MOTION_COMMANDS | {"stop"}
 """What a watch-only client (the web console with ``console.watch_only``) is refused."""
+DETACHED_OPEN_COMMANDS = frozenset({"hello", "auth", "stop"})
+"""What a detached client (the web console) may send before ``auth``: the brake, no status."""
 MISSION_KEYS = ("waypoints", "gpx", "csv", "wpl", "kml")
 """``mission.load``'s arguments: a list of pairs, or a file's content in one of four formats."""
 MAX_PENDING_REPLIES = 64
@@ -205,6 +207,7 @@ class _Client(LineClient):
     backoff_s: float = 0.0  # after a failed auth: wait this long before the next line
     close_reason: str = ""  # close once this reply is sent (too many failed auths)
     watch_only: bool = False  # refused every command in ACTING_COMMANDS
+    open_commands: frozenset[str] = UNAUTHENTICATED_COMMANDS  # allowed before ``auth``
     drive_limit_s: float | None = None  # a drive's duration_s is cut to this (the dead-man)
 
 
@@ -590,7 +593,7 @@ class ControlServer(LineServer[_Client]):
             # its own throttle, and a correct token is never refused for rate
             if cmd not in ("stop", "auth") and not self._take_token(c):
                 raise _Reject("rate_limited", f"more than {self.config.rate_per_s:g} requests/s")
-            if not c.authenticated and cmd not in UNAUTHENTICATED_COMMANDS:
+            if not c.authenticated and cmd not in c.open_commands:
                 raise _Reject("unauthorized", f"authenticate first to use {cmd!r}")
             if c.watch_only and cmd in ACTING_COMMANDS:
                 raise _Reject("watch_only", f"this connection only watches: {cmd!r} refused")
@@ -692,8 +695,10 @@ class ControlServer(LineServer[_Client]):
         drive_limit_s: float | None = None,
     ) -> _Client:
         """A client of another transport: the same token, throttles and commands as a TCP
-        connection, outside the TCP pools (its transport keeps its own). ``watch_only``:
-        every command that acts is refused; ``drive_limit_s``: drives last at most this (s)."""
+        connection, outside the TCP pools (its transport keeps its own), except that before
+        ``auth`` only ``hello``, ``auth`` and ``stop`` are open (no ``status``: a page shows
+        nothing of the robot without the token). ``watch_only``: every command that acts is
+        refused; ``drive_limit_s``: drives last at most this (s)."""
         now = self._clock()
         return _Client(
             writer=None,  # type: ignore[arg-type]  # never written: the transport replies
@@ -704,6 +709,7 @@ class ControlServer(LineServer[_Client]):
             faults=self._bucket(now),
             session=True,  # never promoted into (nor evicted from) the TCP session pool
             watch_only=watch_only,
+            open_commands=DETACHED_OPEN_COMMANDS,
             drive_limit_s=drive_limit_s,
         )
 
@@ -718,12 +724,6 @@ class ControlServer(LineServer[_Client]):
         if c.close_reason:
             self._count_close(c, c.close_reason, f"{c.auth_failures} failed authentications")
         return reply, wait
-
-    def early_stop(self) -> None:
-        """A ``stop`` seen in a detached client's input while it waits out a back-off: sent
-        to the backend now (its reply still comes in its turn), as on the TCP port."""
-        self.stops["early"] += 1
-        self._fire_stop()
 
     # -- stop and status: shared backend calls ----------------------------------------------
     def _fire_stop(self) -> asyncio.Future[Any]:
