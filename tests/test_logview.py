@@ -22,8 +22,12 @@ from sim_backend.world import load_world
 from x6wd.app import logview
 from x6wd.app.cli import main as cli_main
 from x6wd.app.decode import decode_path
+from x6wd.core.config import NavigationConfig, SafetyConfig
+from x6wd.core.health import HealthTracker
 from x6wd.core.recorder import Recorder, read_recording
 from x6wd.core.records import Mode, NavState, StateChange, Telemetry
+from x6wd.loop.runner import Runner
+from x6wd.nav.controller import Controller
 
 ROOT = Path(__file__).resolve().parent.parent
 NMEA_LOG = ROOT / "tests" / "data" / "nmea" / "ublox-lea-5h.log"
@@ -187,6 +191,41 @@ def test_holds_and_device_faults(tmp_path: Path) -> None:
     assert [(f["lane"], f["t0_s"], f["t1_s"]) for f in data["faults"]] == [("gps", 2.0, 4.0)]
     heading = next(s for s in data["heading"] if s["label"].startswith("heading"))
     assert heading["v"] == [270.0] * 6  # true degrees 0-360, as every heading shown
+
+
+def test_device_faults_recorded_by_the_loop(tmp_path: Path) -> None:
+    # The loop records every health event it is handed (x6wd.loop.runner -> Recorder); the
+    # page draws a device's time away from "connected", whatever the robot was doing.
+    path = tmp_path / "r.jsonl"
+    safety = SafetyConfig()
+    nav = NavigationConfig.paper(filter_n=3, projection="local_tangent_plane")
+    gps = HealthTracker("gps", t_s=0.0)
+    compass = HealthTracker("compass", t_s=0.0)
+    with Recorder(path) as rec:
+        runner = Runner(
+            Controller(nav, safety), safety, lambda: 0.0, motors=lambda _c: None,
+            record=lambda method, arg: getattr(rec, method)(arg),
+        )  # fmt: skip
+        rec.record_telemetry(Telemetry(0.0, Mode.IDLE, NavState.IDLE, filt_lat_deg=51.0,
+                                       filt_lon_deg=-1.0))  # fmt: skip
+        gps.opened(0.5)
+        compass.opened(0.5)
+        gps.lost("unplugged", 2.0)
+        gps.open_failed("no such device", 3.0)
+        gps.open_failed("no such device", 4.0)
+        gps.opened(6.0)
+        compass.failed("I2C NACK", 7.0)
+        runner.device_events([*gps.take_events(), *compass.take_events()])
+        rec.record_telemetry(Telemetry(9.0, Mode.IDLE, NavState.IDLE))
+    page = logview.render_html(path)
+    faults = [(f["lane"], f["t0_s"], f["t1_s"], f["label"]) for f in page_data(page)["faults"]]
+    assert faults == [
+        ("gps", 2.0, 3.0, "disconnected"),
+        ("gps", 3.0, 6.0, "reconnecting"),
+        ("compass", 7.0, 9.0, "degraded"),
+    ]
+    assert "gps disconnected: unplugged" in page  # the first message, on hover
+    assert '<svg id="svg-faults"' in page
 
 
 def test_text_from_a_recording_is_escaped(tmp_path: Path) -> None:

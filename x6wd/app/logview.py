@@ -74,6 +74,7 @@ class Interval:
     t0_s: float
     t1_s: float
     label: str
+    detail: str = ""  # shown on hover (a device fault's first message)
 
     def to_json(self) -> dict[str, Any]:
         """Plain dict for the page's embedded data."""
@@ -82,6 +83,7 @@ class Interval:
             "t0_s": round(self.t0_s, 3),
             "t1_s": round(self.t1_s, 3),
             "label": self.label,
+            "detail": self.detail,
         }
 
 
@@ -479,18 +481,18 @@ def _timelines(view: LogView, raw: _Raw, t0: float) -> None:
         view.missing["holds"] = "no holds"
 
     if raw.device_events:
-        open_at: dict[str, tuple[float, str, str]] = {}
+        # a device is at fault from a change to any state but "connected" until the next
+        # change (degraded, stale, disconnected, reconnecting: each its own interval)
+        down: dict[str, tuple[float, str, str]] = {}  # device -> (since s, state, message)
         for t, dev, new, msg in raw.device_events:
-            lane = "motors" if dev.startswith("motor") else dev
-            ok = new in ("connected", "degraded") and new != "degraded"
-            if lane in open_at and (ok or open_at[lane][1] != new):
-                s = open_at.pop(lane)
-                view.faults.append(Interval(lane, s[0], t - t0, f"{s[1]}: {s[2]}"))
-            if not ok and lane not in open_at:
-                open_at[lane] = (t - t0, new, msg)
-        for lane, s in open_at.items():
-            view.faults.append(Interval(lane, s[0], t_end, f"{s[1]}: {s[2]}"))
-    else:
+            if dev in down and down[dev][1] != new:
+                since, state, first = down.pop(dev)
+                view.faults.append(Interval(dev, since, t - t0, state, first))
+            if new != "connected" and dev not in down:
+                down[dev] = (t - t0, new, msg)
+        for dev, (since, state, first) in down.items():
+            view.faults.append(Interval(dev, since, t_end, state, first))
+    else:  # a recording from before device events: the holds that name a device
         for h in view.holds:
             dev = _device_of(h.label)
             if dev is not None:
@@ -747,7 +749,9 @@ def _svg_lanes(
             a = _ML + (iv.t0_s - x0) / (x1 - x0) * pw
             b = _ML + (iv.t1_s - x0) / (x1 - x0) * pw
             width = max(b - a, 1.5)
-            tip = f"{iv.label}: {iv.t0_s:.2f}-{iv.t1_s:.2f} s"
+            tip = f"{iv.label}: {iv.t0_s:.2f}-{iv.t1_s:.2f} s" + (
+                f" ({iv.detail})" if iv.detail else ""
+            )
             parts.append(
                 f'<rect class="interval" x="{a:.1f}" y="{y + 2}" width="{width:.1f}" '
                 f'height="{lane_h - 4}" fill="{color}" fill-opacity="0.85" '
@@ -782,6 +786,11 @@ _CSS = (
 )
 
 
+def fault_lanes(view: LogView) -> list[str]:
+    """The device-fault panel's lanes: :data:`DEVICES`, then any other device named."""
+    return list(dict.fromkeys([*DEVICES, *(i.lane for i in view.faults)]))
+
+
 def panel_svgs(view: LogView) -> dict[str, str]:
     """Each panel's SVG (or "" when the log has nothing for it; ``view.missing`` says why)."""
     t_range = (0.0, max(view.duration_s, 1e-3))
@@ -807,7 +816,9 @@ def panel_svgs(view: LogView) -> dict[str, str]:
         _svg_lanes("states", view.states, ("mode", "navigation"), t_range) if view.states else ""
     )
     out["holds"] = _svg_lanes("holds", view.holds, ("hold",), t_range) if view.holds else ""
-    out["faults"] = _svg_lanes("faults", view.faults, DEVICES, t_range) if view.faults else ""
+    out["faults"] = (
+        _svg_lanes("faults", view.faults, fault_lanes(view), t_range) if view.faults else ""
+    )
     return out
 
 
@@ -917,7 +928,7 @@ def render_png(view: LogView, out_png: Path) -> None:
         ax.set_xlim(0, t_max)
     ax = fig.add_subplot(gs[len(rows)], sharex=first)
     lanes = [("mode", view.states), ("navigation", view.states), ("hold", view.holds)] + [
-        (d, view.faults) for d in DEVICES
+        (d, view.faults) for d in fault_lanes(view)
     ]
     palette: dict[str, str] = {}
     for k, (lane, ivs) in enumerate(lanes):

@@ -50,6 +50,7 @@ from x6wd.core.records import (
     Attitude,
     GpsFix,
     GpsSky,
+    HealthEvent,
     MotorCommand,
     SatInfo,
     StateChange,
@@ -537,6 +538,14 @@ class Recorder:
     def record_event(self, name: str, t_mono: float | None = None, **fields: Any) -> None:
         """A free-form event (start, stop, device lost ...) with extra fields."""
         self.record("event", {"event": name, **fields}, t_mono)
+
+    def record_health(self, ev: HealthEvent) -> None:
+        """A device's health event as a ``device`` event (device, kind, old and new state,
+        message): the device faults of ``x6wd plot``. ``t_mono`` is its ``t_s``."""
+        self.record_event(
+            "device", ev.t_s, device=ev.device, kind=ev.kind, old=str(ev.old), new=str(ev.new),
+            message=ev.message,
+        )  # fmt: skip
 
     def flush(self) -> None:
         """Force the data to stable storage (``os.fsync``)."""

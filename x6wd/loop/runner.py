@@ -199,11 +199,13 @@ class Runner:
         self._handle(outputs, False)
 
     def device_events(self, events: Sequence[HealthEvent]) -> None:
-        """Health events from a device's reader: each logged (rate-limited per device); a
-        sensor's transition reaches the controller at once, so an unplugged GPS holds the
-        robot within this call, not after the fix timeout."""
+        """Health events from a device's reader: each logged (rate-limited per device) and
+        recorded (``x6wd plot`` draws them); a sensor's transition reaches the controller at
+        once, so an unplugged GPS holds the robot within this call, not after the fix
+        timeout."""
         for ev in events:
             self._health_log.event(ev)
+            self._record("record_health", ev)
             if ev.kind == TRANSITION and ev.device in ("gps", "compass"):
                 ok = ev.new in USABLE_STATES
                 self._handle(self.controller.sensor_health(ev.device, ok, ev.t_s, str(ev.new)))
