@@ -42,6 +42,7 @@ from x6wd.app.daemon import Daemon
 from x6wd.core.config import Config, ConsoleConfig, SafetyConfig, SimConfig
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.mission_files import format_csv, format_gpx, format_wpl, parse_gpx
+from x6wd.core.records import Mode, NavState, Telemetry
 
 pytestmark = pytest.mark.integration
 
@@ -478,6 +479,20 @@ def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
         yield r
 
 
+@pytest.mark.parametrize(
+    ("controller_deg", "shown_deg"),
+    [(-2.4, 357.6), (-1e-17, 0.0), (0.0, 0.0), (180.0, 180.0), (-179.9, 180.1), (359.99, 359.99)],
+)
+def test_telemetry_json_has_one_heading_convention(controller_deg: float, shown_deg: float) -> None:
+    tel = Telemetry(0.0, Mode.IDLE, NavState.IDLE, heading_deg=controller_deg,
+                    target_bearing_deg=controller_deg, theta_deg=-5.0)  # fmt: skip
+    d = tel.to_dict()
+    for key in ("heading_deg", "target_bearing_deg"):
+        assert 0.0 <= d[key] < 360.0 and d[key] == pytest.approx(shown_deg), key
+    assert d["theta_deg"] == -5.0  # a deviation keeps its sign
+    assert Telemetry(0.0, Mode.IDLE, NavState.IDLE).to_dict()["heading_deg"] is None
+
+
 def test_the_page_shows_live_telemetry_sky_and_devices(
     tmp_path: Path, robot: Running, browser: webdriver.Chrome
 ) -> None:
@@ -496,14 +511,16 @@ def test_the_page_shows_live_telemetry_sky_and_devices(
     devices = text(browser, "devices")
     for name in ("gps", "compass", "motors", "odometry", "motor link"):
         assert name in devices, devices
-    # one heading convention: true, 0..360 (the raw telemetry has -10 here)
-    tel = js(browser, "return x6wd.tel")
-    raw = tel["heading_deg"]
-    assert -20.0 < raw < 0.0, raw
+    # one heading convention: true, 0..360 (the controller's own value is -10 here)
+    ctl = robot.daemon.last_telemetry
+    assert ctl is not None and ctl.heading_deg is not None and -20.0 < ctl.heading_deg < 0.0
+    with RemoteClient("127.0.0.1", robot.port) as c:
+        sent = c.request("status")["telemetry"]["heading_deg"]
+    assert 340.0 < sent < 360.0, sent
     shown = float(text(browser, "tel-heading").split("°")[0])
-    assert 0.0 <= shown < 360.0
+    assert 340.0 < shown < 360.0, shown
     # the page's value is one telemetry event older or newer than ours: same to ~1 deg
-    assert abs(shown - (raw % 360.0)) < 1.0, (shown, raw)
+    assert abs(shown - sent) < 1.0, (shown, sent)
     lat, lon = (float(v) for v in text(browser, "tel-pos").split(","))
     assert great_circle_m(lat, lon, *ORIGIN) < 15.0
     assert text(browser, "mode") in ("IDLE", "DONE")

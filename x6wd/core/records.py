@@ -166,10 +166,16 @@ class Telemetry:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-ready dict (enums as strings)."""
+        """Plain JSON-ready dict (enums as strings) as clients see it: the heading and the
+        target bearing in x6wd's one convention, true degrees 0 <= h < 360 (docs/protocol.md,
+        "Headings"); the controller works in (-180, 180]."""
         d = asdict(self)
         d["mode"] = str(self.mode)
         d["state"] = str(self.state)
+        for key in ("heading_deg", "target_bearing_deg"):
+            if d[key] is not None:
+                h = d[key] % 360.0
+                d[key] = 0.0 if h >= 360.0 else h  # -1e-17 % 360 rounds to 360.0
         return d
 
 
