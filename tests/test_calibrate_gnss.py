@@ -187,6 +187,22 @@ def test_static_white_error_is_all_re_and_a_constant_offset_is_ase() -> None:
     assert r2.bias_east_m > 1.9
 
 
+@pytest.mark.parametrize("seed", [0, 4])
+def test_a_static_run_without_white_noise_still_writes_a_fragment_the_daemon_loads(
+    seed: int,
+) -> None:
+    # A receiver that smooths its fixes has no white part: RE comes out as 0, which the
+    # daemon refuses (re_m > 0). The fragment carries its one-SE upper bound and says so.
+    r = gnss.static_noise(synthetic_static(seed, re_m=0.0, ase_m=1.5, n=3600), *ORIGIN)
+    assert r.re_m.value == 0.0
+    cal = gnss.GnssCalibration(r.re_m, r.ase_m, r.correlation_s, r, None)
+    text = cal.toml()
+    got = config.loads(text).gnss_noise
+    assert 0.0 < got.re_m <= max(r.re_m.se, 0.0001) + 1e-4
+    assert "not resolved: its upper bound" in text
+    assert got.ase_m == pytest.approx(1.5, rel=0.2)
+
+
 def test_static_on_the_simulator_recovers_its_white_and_gauss_markov_parts() -> None:
     w = world(re=0.8, ase=0.0, effects=GM, grid=[[0.0]])
     n = 7200

@@ -588,11 +588,25 @@ class GnssCalibration:
     static: StaticResult | None
     lce: LceMap | None
 
+    @property
+    def re_resolved(self) -> bool:
+        """False when the white part came out as nothing (a receiver that smooths its
+        fixes, or one too quiet for the variogram to see)."""
+        return round(self.re_m.value, 4) > 0.0
+
+    @property
+    def re_m_written(self) -> float:
+        """``re_m`` as written (m): the estimate, or when it is not resolved its one-SE upper
+        bound (at least 0.1 mm): the daemon needs white noise > 0."""
+        if self.re_resolved:
+            return round(self.re_m.value, 4)
+        return max(round(self.re_m.value + self.re_m.se, 4), 0.0001)
+
     def table(self) -> dict[str, object]:
         """The ``[gnss_noise]`` keys and values."""
         tau = self.correlation_s
         t: dict[str, object] = {
-            "re_m": round(self.re_m.value, 4),
+            "re_m": self.re_m_written,
             "ase_m": round(self.ase_m.value, 4),
             "correlation_s": round(min(tau, 86400.0), 1) if math.isfinite(tau) else 86400.0,
         }
@@ -634,7 +648,8 @@ class GnssCalibration:
         lines += [
             "# seed 003: sigma per axis = HDOP * sqrt(re_m^2 + ase_m^2 + LCE^2)",
             "[gnss_noise]",
-            f"re_m = {t['re_m']}  # ± {self.re_m.se:.4f} ({src}: the white part)",
+            f"re_m = {t['re_m']}  # ± {self.re_m.se:.4f} ({src}: the white part"
+            + (")" if self.re_resolved else "; not resolved: its upper bound)"),
             f"ase_m = {t['ase_m']}  # ± {self.ase_m.se:.4f} ({src}: the slow part)",
             f"correlation_s = {t['correlation_s']}  # of the slow part; rough",
         ]
