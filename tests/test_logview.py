@@ -256,6 +256,18 @@ def test_bad_input_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixt
     assert "truth.csv: a true track needs numeric columns t_s, lat, lon" in capsys.readouterr().err
 
 
+def test_a_folder_means_its_newest_recording(tmp_path: Path) -> None:
+    runs = tmp_path / "recordings"
+    runs.mkdir()
+    for stamp in ("20260102T000000Z", "20260101T235959Z"):
+        _recorded(runs / f"x6wd-{stamp}.jsonl", "gps stale")
+    (runs / "notes.jsonl").write_text("{}\n")  # not the recorder's name: not a run
+    out = tmp_path / "plots"
+    assert cli_main(["plot", str(runs), "--out", str(out), "--format", "html"]) == 0
+    assert [p.name for p in out.iterdir()] == ["x6wd-20260102T000000Z.html"]
+    assert cli_main(["plot", str(out), "--out", str(out)]) == 2  # no recordings there
+
+
 @pytest.mark.integration
 def test_without_the_plot_extra(tmp_path: Path) -> None:
     script = (

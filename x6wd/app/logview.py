@@ -35,7 +35,13 @@ import numpy as np
 from x6wd import __version__
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.geodesy import wrap360
-from x6wd.core.recorder import ReadStats, is_recording, nmea_file_chunks, read_recording_parts
+from x6wd.core.recorder import (
+    ReadStats,
+    is_recording,
+    list_recordings,
+    nmea_file_chunks,
+    read_recording_parts,
+)
 from x6wd.core.records import GpsFix, GpsSky, Mode, NavState
 from x6wd.nav.geo import LocalTangentPlane
 
@@ -975,9 +981,24 @@ def _missing(ax: Any, why: str) -> None:
 # ---------------------------------------------------------------------------- command line
 
 
+def newest_recording(directory: Path) -> Path:
+    """The first remaining part of the newest run the daemon recorded in ``directory``
+    (named ``x6wd-<UTC>.jsonl`` by the recorder); :class:`DeviceUnavailable` if none."""
+    files = list_recordings(directory)
+    if not files:
+        raise DeviceUnavailable(f"{directory}: no recordings (x6wd-<UTC time>.jsonl) in it")
+    newest = files[-1].run
+    return next(f.path for f in files if f.run == newest)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``x6wd plot``."""
-    parser.add_argument("file", metavar="RECORDING", help="a flight recording (.jsonl) or NMEA log")
+    parser.add_argument(
+        "file",
+        metavar="RECORDING",
+        help="a flight recording (.jsonl, with its parts) or NMEA log; a folder: its newest"
+        " recording (the daemon's [recorder] dir)",
+    )
     parser.add_argument(
         "--out",
         default=".",
@@ -1006,7 +1027,7 @@ def main(args: argparse.Namespace) -> int:
         import matplotlib  # noqa: F401  (missing: the plot extra's message, exit 2)
     if not (math.isfinite(args.rate) and args.rate > 0):
         raise ConfigError(f"--rate must be > 0, got {args.rate}")
-    src = Path(args.file)
+    src = newest_recording(Path(args.file)) if Path(args.file).is_dir() else Path(args.file)
     view = load(src, truth=Path(args.truth) if args.truth else None, rate_hz=args.rate)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
