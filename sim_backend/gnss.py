@@ -131,12 +131,14 @@ class ReceiverParams:
     tau_tropo_s: float = 3600.0
     # Broadcast satellite clock + ephemeris error per satellite (u-blox 5 era, 2008: about
     # 1-1.5 m RMS); with multipath below it sets the NEO-5's open-sky CEP50 (2.5 m datasheet).
-    sisre_sigma_m: float = 1.5
+    sisre_sigma_m: float = 1.7
     tau_sisre_s: float = 3600.0
     # Line-of-sight code multipath at zenith, x(1+3 exp(-el/15 deg)): a small patch antenna
-    # low above the ground, no choke ring.
+    # low above the ground, no choke ring. Its correlation time is that of a static antenna
+    # (ground and nearby reflectors change their phase over minutes as the satellite moves):
+    # real static u-blox logs step 2-18 cm per second (tests/test_gnss.py).
     multipath_sigma_m: float = 1.3
-    tau_multipath_s: float = 15.0
+    tau_multipath_s: float = 300.0
     nlos_sigma_frac: float = 0.1  # jitter of a reflected path, fraction of its extra length
     # Indoor (through-obstruction) NLOS/multipath delay, used only for signals that arrive
     # through walls or roofs (buildings with materials): a positive, exponentially distributed,
@@ -151,7 +153,7 @@ class ReceiverParams:
     dll_bandwidth_hz: float = 0.5
     correlator_spacing_chips: float = 0.5
     integration_s: float = 0.02
-    smoothing_tau_s: float = 20.0  # carrier smoothing (Hatch filter); 0: raw code noise
+    smoothing_tau_s: float = 100.0  # carrier smoothing (Hatch filter); 0: raw code noise
     max_channels: int = 12  # satellites in the solution (GSA lists 12)
     vel_sigma_mps: float = 0.08  # Doppler velocity noise per horizontal axis
     vel_up_sigma_mps: float = 0.15
@@ -173,7 +175,7 @@ class ReceiverParams:
     # the fade in dB is time-correlated. Mean power is kept (the fade averages 0 dB in power).
     fade_k_zenith_db: float = 12.0
     fade_k_horizon_db: float = 0.0
-    tau_fade_s: float = 10.0
+    tau_fade_s: float = 30.0
     # Tracking: a satellite is acquired when its C/N0 reaches the atmosphere's cutoff (the
     # tracking threshold) + acquire_margin_db and kept until it falls below the cutoff.
     acquire_margin_db: float = 6.0

@@ -15,8 +15,11 @@ same physics as fast-time simulation (``x6wd sim``), only in real time:
   almanac sky, atmosphere, walls, LCE grid, fidelity, every ``[[effects]]`` GPS layer, the
   NEO-5 formatter) turns the vehicle's true antenna position into a solution (a latency
   layer reads the physics thread's true track) and prints it as a NEO-5 does (``$GPTXT``
-  banner at start, the real no-fix forms), each sentence followed by its wire time at the
-  scenario's baud rate.
+  banner at start, the real no-fix forms). The sentences go through the receiver's UART
+  (:class:`sim_backend.receiver.UartTx`: a bounded transmit buffer drained at the scenario's
+  baud rate, dropping whole sentences when full, the same arithmetic ``x6wd sim`` runs) and
+  each is written to the pty paced at the baud rate from the moment its first byte would
+  leave, so the bytes arrive as on the real line.
 - the compass: the CMPS10 register map of :mod:`sim_backend.compass`
   (:meth:`HilWorld.compass_bus`) with the scenario's ``[compass]`` field and errors and its
   compass ``[[effects]]`` layers (:func:`sim_backend.mission.compass_setup`); its registers
@@ -76,7 +79,7 @@ from sim_backend.ports import PtyUart
 from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.world import World, load_world
 from x6wd.core.config import SimConfig
-from x6wd.core.errors import ConfigError, DeviceUnavailable
+from x6wd.core.errors import ConfigError, DeviceIOError, DeviceUnavailable
 from x6wd.core.records import MotorCommand
 
 log = logging.getLogger(__name__)
@@ -312,6 +315,9 @@ class HilWorld:
         self.on_gga: Callable[[float], Any] | None = None
         self.on_motor: Callable[[MotorCommand, float], Any] | None = None
         self.epochs = 0
+        # The sentences the receiver's UART accepted, with the device time (s) their last
+        # byte is due on the line, oldest first (recent ones only).
+        self.gps_wire: deque[tuple[float, bytes]] = deque(maxlen=4096)
         self.commands = 0  # M/S lines the board executed
         # Layers the emulation cannot reproduce ("name: reason"); GPS layers all apply.
         self.effects_skipped: tuple[str, ...] = compass_skipped
@@ -320,7 +326,7 @@ class HilWorld:
         # A delayed receiver needs the true track between epochs: fed by the physics thread.
         self.receiver.observe(0.0, self._antenna_enu(s0), vehicle_velocity(s0))
         self._fds: list[int] = []
-        self.uart = PtyUart(sc.gnss.baud, realtime=False)
+        self.uart = PtyUart(sc.gnss.baud, realtime=True)  # paced at the baud rate
         self._threads = [
             threading.Thread(target=self._guard(self._physics), name="hil-physics", daemon=True),
             threading.Thread(target=self._guard(self._receiver), name="hil-gps", daemon=True),
@@ -452,37 +458,49 @@ class HilWorld:
         return s.east_m, s.north_m, s.up_m + self.scenario.vehicle.antenna_height_m
 
     def _receiver(self) -> None:
+        """Epochs on their schedule; their sentences through the receiver's UART model, each
+        written paced from the time its first byte leaves (device time)."""
         rx = self.receiver
-        rate_hz, baud = rx.rate_hz, rx.baud
-        period_s = 1.0 / rate_hz
-        with contextlib.suppress(Exception):
-            self.uart.write(rx.banner())
+        period_s = 1.0 / rx.rate_hz
+        pending: deque[tuple[float, bytes]] = deque()
+
+        def queue(burst: bytes, t_s: float) -> None:
+            for t_end, line in rx.arrivals(burst, t_s):
+                pending.append((t_end - rx.wire_time_s(len(line)), line))
+                self.gps_wire.append((t_end, line))
+
+        queue(rx.banner(), 0.0)
         warned = False
         k = 1
-        while not self._stop.wait(max(0.0, self.t0 + self.epoch_t_s(k) - time.monotonic())):
-            lines = rx.sentences(self._epoch(k))
-            t_burst = time.monotonic()
-            for data in lines:
-                # stamped just before the write: the reader may finish with the fix before
-                # this thread runs again, so a later stamp could come after the motor command
-                t_write = time.monotonic()
-                self.uart.write(data)
-                if data[3:6] == b"GGA":
-                    hook = self.on_gga
-                    if hook is not None:
-                        hook(t_write)
-                # the next sentence leaves the wire after this one
-                if self._stop.wait(rx.wire_time_s(len(data))):
+        while self.running:
+            t_epoch = self.epoch_t_s(k)
+            if pending and pending[0][0] < t_epoch:
+                t_start, data = pending.popleft()
+                if self._stop.wait(max(0.0, self.t0 + t_start - time.monotonic())):
                     return
+                t_write = time.monotonic()
+                with contextlib.suppress(DeviceIOError):  # unplugged: the bytes are lost
+                    self.uart.write(data)  # returns once the last byte has left
+                hook = self.on_gga
+                if data[3:6] == b"GGA" and hook is not None:
+                    # stamped as the sentence starts: the reader may finish with the fix
+                    # before this thread runs again
+                    hook(t_write)
+                continue
+            if self._stop.wait(max(0.0, self.t0 + t_epoch - time.monotonic())):
+                return
+            dropped = rx.uart.dropped
+            queue(b"".join(rx.sentences(self._epoch(k))), t_epoch)
             self.epochs += 1
-            if not warned and time.monotonic() - t_burst > period_s:
+            if not warned and rx.uart.dropped > dropped:
                 warned = True
                 log.warning(
-                    "HIL: an NMEA burst takes longer than the %g Hz epoch at %d baud; "
-                    "epochs will be skipped (raise the baud rate)",
-                    rate_hz,
-                    baud,
+                    "HIL: the NMEA output exceeds what %d baud carries at %g Hz; the receiver "
+                    "drops whole sentences (raise the baud rate)",
+                    rx.baud,
+                    rx.rate_hz,
                 )
+            # A thread held up (a loaded host) skips epochs rather than running late.
             late_s = time.monotonic() - self.t0 - self.epoch_phase_s
             k = max(k + 1, math.floor(late_s / period_s) + 1)
 

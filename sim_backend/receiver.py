@@ -9,8 +9,10 @@
   layers run (:meth:`sim_backend.effects.GpsLayer.start`: own state, own random stream
   spawned from the effects stream; a latency layer delays what the model solves for), in
   list order by stage (the minutes' rounding after the rest, as a receiver prints last);
-- the NEO-5 NMEA formatter (the scenario's minute decimals and rate) and the UART timing at
-  its baud rate (8N1: each sentence arrives when its last byte has crossed the wire).
+- the NEO-5 NMEA formatter (the scenario's minute decimals and rate) and the UART at its baud
+  rate (:class:`UartTx`, 8N1: each sentence arrives when its last byte has crossed the wire;
+  a bounded transmit buffer queues what the line cannot carry at once and drops whole
+  sentences when it is full).
 
 Every user of the simulated receiver builds it here: ``x6wd sim``
 (:mod:`sim_backend.mission`, closed loop in fast time), HIL (:mod:`sim_backend.hil`, closed
@@ -52,6 +54,7 @@ from sim_backend.gnss import GnssBatch, GnssModel, LceGrid, ReceiverParams
 from sim_backend.nmea_out import NmeaFormatter, sentence, wire_time_s
 from sim_backend.sky import SatelliteSet
 from sim_backend.world import World
+from x6wd.core.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -122,6 +125,50 @@ class TruthHistory:
         return (r[1], r[2], r[3]), (r[4], r[5], r[6])
 
 
+UART_TX_BUFFER_BYTES = 1024  # the receiver's transmit buffer per port (assumed: not published)
+
+
+class UartTx:
+    """The receiver's UART transmitter: a bounded buffer drained at the line's rate.
+
+    A u-blox receiver writes each epoch's messages into a per-port transmit buffer that
+    the UART empties at ``baud`` / 10 bytes per second (8N1). When the enabled messages
+    need more than the line carries (e.g. 4 Hz at 9600 baud), the backlog grows until the
+    buffer is full; from then on a message that does not fit is discarded WHOLE, never
+    torn, and is not sent later (u-blox: "discarded messages won't be transmitted").
+    Pure arithmetic on the scenario clock, so fast time (``x6wd sim``) and HIL drop the
+    same sentences for the same epochs; :attr:`dropped` counts them.
+    """
+
+    def __init__(self, baud: int, buffer_bytes: int = UART_TX_BUFFER_BYTES) -> None:
+        """``baud`` (bit/s, 8N1) and the buffer's size (bytes)."""
+        wire_time_s(0, baud)  # validates the baud rate
+        if buffer_bytes <= 0:
+            raise ConfigError(f"UART buffer_bytes must be positive, got {buffer_bytes}")
+        self.baud = int(baud)
+        self.buffer_bytes = int(buffer_bytes)
+        self.free_at_s = -math.inf  # when the last queued byte has left the wire
+        self.dropped = 0
+        self.sent = 0
+
+    def queued_bytes(self, t_s: float) -> float:
+        """Bytes still waiting in the buffer at ``t_s`` (s)."""
+        return max(0.0, self.free_at_s - t_s) * self.baud / 10.0
+
+    def send(self, lines: Sequence[bytes], t_s: float) -> list[tuple[float, bytes]]:
+        """Queue ``lines`` (whole sentences, in order) at ``t_s`` (s, non-decreasing between
+        calls); returns those accepted with the time (s) each one's last byte arrives."""
+        out = []
+        for line in lines:
+            if self.queued_bytes(t_s) + len(line) > self.buffer_bytes:
+                self.dropped += 1
+                continue
+            self.free_at_s = max(self.free_at_s, t_s) + wire_time_s(len(line), self.baud)
+            self.sent += 1
+            out.append((self.free_at_s, line))
+        return out
+
+
 class SimReceiver:
     """The scenario's simulated NEO-5: model, error layers, NMEA and UART timing.
 
@@ -146,7 +193,7 @@ class SimReceiver:
         self.layers = tuple(layers)
         self.formatter = formatter
         self.baud = int(baud)
-        wire_time_s(0, self.baud)  # validates the baud rate
+        self.uart = UartTx(self.baud)  # validates the baud rate
         # Chained receiver delays add up: one delay of their sum.
         self.delay_s = float(sum(run.delay_s for run in self.layers))
         self._history = TruthHistory(self.delay_s) if self.delay_s > 0 else None
@@ -286,14 +333,10 @@ class SimReceiver:
         return wire_time_s(n_bytes, self.baud)
 
     def arrivals(self, burst: bytes, t_s: float) -> list[tuple[float, bytes]]:
-        """Each sentence of ``burst`` with the time (s) its last byte arrives, when the
-        burst starts leaving at ``t_s`` and the sentences follow back to back."""
-        out = []
-        sent = 0
-        for line in burst.splitlines(keepends=True):
-            sent += len(line)
-            out.append((t_s + wire_time_s(sent, self.baud), line))
-        return out
+        """The sentences of ``burst``, handed to the UART at ``t_s`` (s), that the line
+        carries, each with the time (s) its last byte arrives (:meth:`UartTx.send`): they
+        queue behind bytes still waiting and are dropped whole when the buffer is full."""
+        return self.uart.send(burst.splitlines(keepends=True), t_s)
 
     # --- the layers ------------------------------------------------------------------------
 

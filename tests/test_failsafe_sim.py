@@ -449,21 +449,21 @@ def test_stuck_with_return_acts_then_still_stuck_is_paused(
 
 
 def test_slipping_robot_does_not_complete_its_mission_on_its_wheels(tmp_path: Path) -> None:
-    """Slipping on its last leg, 9-10 m before the last waypoint: the stuck failsafe must
+    """Slipping on its last leg, about 8 m before the last waypoint: the stuck failsafe must
     pause it; the mission must not end "last waypoint reached" with the robot stuck (the
     EKF's estimate follows the spinning wheels; the controller's GPS check of an EKF
     arrival refuses it)."""
     world = _world(
         60.0,
-        vehicle='stuck_from_s = 28.0\nstuck_mode = "slipping"',
+        vehicle='stuck_from_s = 23.0\nstuck_mode = "slipping"',
         waypoints="[[0.0, 30.0], [0.0, 8.0]]",
     )
     run = _mission(tmp_path, world)
-    _require(not _pivoting(run, 28.0), "not driving forward when the fault begins")
-    east, north = run.at(28.0)
+    _require(not _pivoting(run, 23.0), "not driving forward when the fault begins")
+    east, north = run.at(23.0)
     _require(math.hypot(east, north - 8.0) > 5.0, "stuck too near the last waypoint")
     assert not any(new == "DONE" for _t, new, _r in run.mode_changes()), run.mode_changes()
-    assert run.first("PAUSED", "failsafe: stuck (the GPS")["t_s"] <= 28.0 + 2 * STUCK_S + 1.0
+    assert run.first("PAUSED", "failsafe: stuck (the GPS")["t_s"] <= 23.0 + 2 * STUCK_S + 1.0
 
 
 def test_stuck_with_return_while_pivoting_is_paused(tmp_path: Path) -> None:

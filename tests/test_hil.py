@@ -125,13 +125,70 @@ def test_gsv_sky_and_hdop_come_from_the_almanac_model(world: hil.HilWorld) -> No
         assert [s.prn for s in got] == [s.prn for s in want]
         assert [s.el_deg for s in got] == [float(round(s.el_deg)) for s in want]
         assert [s.az_deg for s in got] == [float(round(s.az_deg) % 360) for s in want]
-        assert [s.used for s in got] == [s.used for s in want]
-        assert sky.hdop == pytest.approx(ep.hdop, abs=0.006)
+        # Which satellites are tracked and used depends on the fading draws and the tracking
+        # history (not this model's): the HDOP must be the geometry of the ones used.
+        used = [s for s in want if s.prn in {g.prn for g in got if g.used}]
+        assert len(used) >= 4
+        el, az = (np.radians([getattr(s, k) for s in used]) for k in ("el_deg", "az_deg"))
+        g = np.column_stack([np.cos(el) * np.sin(az), np.cos(el) * np.cos(az), np.sin(el)])
+        q = np.linalg.inv(
+            np.column_stack([g, np.ones(len(used))]).T @ np.column_stack([g, np.ones(len(used))])
+        )
+        assert sky.hdop == pytest.approx(float(np.sqrt(q[0, 0] + q[1, 1])), abs=0.006)
         fix = next(f for f in fixes if f.utc == sky.utc)
-        assert fix.sats_used == sum(s.used for s in want)
-        assert fix.hdop == pytest.approx(ep.hdop, abs=0.006)
+        assert fix.sats_used == len(used)
+        assert fix.hdop == pytest.approx(sky.hdop, abs=0.006)
     # not the old fixed 8-satellite sky
     assert {s.prn for s in skies[-1].satellites} != {2, 5, 10, 12, 15, 21, 24, 29}
+
+
+def _wire_sentences(raw: bytes) -> list[bytes]:
+    """The complete CRLF-terminated lines of ``raw`` (a partial last line left out)."""
+    return [line + b"\r\n" for line in raw.split(b"\r\n")[:-1]]
+
+
+@pytest.mark.parametrize("baud", [9600, 38400])
+def test_gps_line_paces_bytes_and_drops_whole_sentences_when_full(baud: int) -> None:
+    """4 Hz of NEO-5 output needs about 2,000 bytes/s; 9600 baud carries 960: the receiver's
+    transmit buffer fills and whole sentences are dropped (never torn), and the bytes arrive
+    no faster than the line carries them. At 38400 baud everything gets through."""
+    w = hil.HilWorld(hil.HilParams(gps_rate_hz=4.0, gps_baud=baud, motor_watchdog_ms=300))
+    port = registry.open_gps_port("sim://", opened(w))
+    reads: list[tuple[float, int]] = []
+    raw = bytearray()
+    try:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            data = port.read(4096)  # every few ms, also when nothing came
+            reads.append((time.monotonic(), len(data)))
+            raw += data
+            time.sleep(0.003)
+    finally:
+        port.close()
+        w.close()
+    got = _wire_sentences(bytes(raw))
+    assert len(got) > 40
+    dec = GpsDecoder()
+    dec.feed(b"".join(got), 0.0)
+    assert dec.counters.checksum_failures == 0  # no torn sentence
+    # What crossed the pty is exactly a run of what the receiver's UART model accepted.
+    accepted = [line for _t, line in w.gps_wire]
+    i = accepted.index(got[1])
+    assert got[1:] == accepted[i : i + len(got) - 1]
+    # Paced: between two reads no more bytes came than the line carries in that time (plus
+    # 30 ms of pacing chunks and scheduling); a burst written at once would break this.
+    t = np.array([r[0] for r in reads])
+    n = np.array([r[1] for r in reads])
+    assert (n[1:] <= np.diff(t) * baud / 10.0 + 0.03 * baud / 10.0 + 10).all()
+    sent, span_s = n[1:].sum(), t[-1] - t[0]
+    kinds = [line[3:6] for line in got]
+    if baud == 9600:
+        assert w.receiver.uart.dropped > 20
+        assert sent / span_s > 0.8 * baud / 10.0  # the line is kept full
+        assert kinds.count(b"GSV") < kinds.count(b"RMC")  # the later, longer ones go
+    else:
+        assert w.receiver.uart.dropped == 0
+        assert kinds.count(b"GGA") >= 15 and abs(kinds.count(b"GGA") - kinds.count(b"GLL")) <= 1
 
 
 def test_scenario_effects_reach_the_receiver_with_real_no_fix_forms(tmp_path: Path) -> None:

@@ -486,8 +486,11 @@ def _bearing_vs_truth(out: Path) -> tuple[np.ndarray, np.ndarray]:
     t = np.array([r.data["t_s"] for r in recs])
     bearing = np.array([r.data["bearing_deg"] for r in recs])
     heading = np.array([truth[round(x, 3)] for x in t])
-    moved = np.abs((heading - np.roll(heading, 20) + 180.0) % 360.0 - 180.0)
-    steady = (moved < 0.5) & (np.arange(len(t)) >= 20)
+    # every sample of the last second within 0.5 deg of this one (a bang-bang swing that
+    # returns to where it was a second ago is not steady)
+    win = np.lib.stride_tricks.sliding_window_view(heading, 21)
+    moved = np.abs((win - win[:, -1:] + 180.0) % 360.0 - 180.0).max(axis=1)
+    steady = np.concatenate((np.zeros(20, dtype=bool), moved < 0.5))
     return heading[steady], bearing[steady]
 
 

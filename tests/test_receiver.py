@@ -20,7 +20,7 @@ from sim_backend.effects import (
 )
 from sim_backend.gnss import GnssModel, LceGrid
 from sim_backend.mission import run_mission
-from sim_backend.receiver import SimRandom, build_gnss_model, build_receiver
+from sim_backend.receiver import SimRandom, UartTx, build_gnss_model, build_receiver
 from sim_backend.sky import SatelliteSet, read_yuma
 from sim_backend.world import World, load_world, loads_world
 from x6wd.core.records import GpsFix
@@ -202,6 +202,45 @@ def test_bytes_and_their_timing_on_the_uart() -> None:
     n = np.cumsum([len(x) for x in lines])
     assert [t for t, _ in arr] == pytest.approx(10.0 + n * 10.0 / world.gnss.baud, abs=1e-12)
     assert rx.wire_time_s(96) == pytest.approx(96 * 10.0 / world.gnss.baud)
+
+
+@pytest.mark.parametrize(("rate_hz", "baud"), [(4.0, 9600), (4.0, 38400), (1.0, 9600)])
+def test_uart_queues_then_drops_whole_sentences_as_a_real_line(rate_hz: float, baud: int) -> None:
+    """A NEO-5 burst is about 500 bytes; 4 Hz needs about 2,000 bytes/s. 9600 baud carries
+    960 (bytes x 10 / 9600 s each): the transmit buffer fills and whole sentences are
+    dropped, none torn; 38400 baud, or 1 Hz at 9600, carries everything."""
+    world = load_world(SCENARIOS / "default.toml")
+    rx = build_receiver(world, 1)
+    tx = UartTx(baud)
+    period_s = 1.0 / rate_hz
+    sent: list[tuple[float, float, bytes]] = []  # epoch time, arrival time, sentence
+    generated = generated_bytes = 0
+    for k in range(int(30 * rate_hz)):
+        t = k * period_s
+        lines = rx.sentences(rx.epoch(t, (0.0, 0.0, 0.34), (0.0, 0.0, 0.0)))
+        generated += len(lines)
+        generated_bytes += sum(map(len, lines))
+        out = tx.send(lines, t)
+        assert tx.queued_bytes(t) <= tx.buffer_bytes
+        kept = [line for _t, line in out]
+        assert kept == [x for x in lines if x in kept]  # whole sentences, in order
+        sent += [(t, t_rx, line) for t_rx, line in out]
+    t_end = np.array([t_rx for _t, t_rx, _ in sent])
+    n = np.array([len(line) for _t, _t_rx, line in sent])
+    # back to back at most: each sentence needs its own wire time after the previous one
+    assert (np.diff(t_end) >= n[1:] * 10.0 / baud - 1e-9).all()
+    assert tx.sent + tx.dropped == generated and tx.sent == len(sent)
+    if generated_bytes > 30.0 * baud / 10.0:
+        assert tx.dropped > 0
+        # the line is kept busy: it carried what 30 s of the line carry, no more
+        assert n.sum() == pytest.approx(30.0 * baud / 10.0, rel=0.08)
+        assert n.sum() <= 30.0 * baud / 10.0 + tx.buffer_bytes
+        kinds = [line[3:6] for _t, _t_rx, line in sent]
+        assert kinds.count(b"RMC") > 0.9 * 30 * rate_hz  # the first of each burst gets through
+    else:
+        assert tx.dropped == 0
+        # no backlog: every burst is out before the next epoch
+        assert all(t_rx - t < period_s for t, t_rx, _ in sent)
 
 
 def _template(world: World, n: int) -> PositionSeries:
