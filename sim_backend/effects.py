@@ -927,7 +927,9 @@ def _with_rows(series: PositionSeries, idx: list[int], rows: np.ndarray) -> Posi
 @dataclass(frozen=True)
 class NavFilter(GpsLayer):
     """The receiver's navigation filter smoothing its solution: the error passes ``order``
-    cascaded first-order low-passes of time constant ``tau_s`` (s) each, on ``axes``.
+    cascaded first-order low-passes of time constant ``tau_s / order`` each, on ``axes``;
+    ``tau_s`` (s) is the filter's total time constant (its delay at low frequencies), the
+    same for either order, which is what one log pins down best (the order less so).
 
     A Kalman navigation filter predicts with the Doppler velocity, so the motion itself is
     not lagged: only the error is smoothed (this layer acts on the error series). Order 1
@@ -955,7 +957,8 @@ class NavFilter(GpsLayer):
 class _NavFilterRun(_Run):
     def __init__(self, layer: NavFilter) -> None:
         self.idx = list(_axes(layer.axes))
-        self.stages = [_LowPass(layer.tau_s, len(self.idx)) for _ in range(layer.order)]
+        tau_stage_s = layer.tau_s / layer.order
+        self.stages = [_LowPass(tau_stage_s, len(self.idx)) for _ in range(layer.order)]
 
     def step(self, batch: PositionSeries) -> PositionSeries:
         valid = np.asarray(batch.valid, dtype=bool)

@@ -37,7 +37,8 @@ from x6wd.gap.drift import (
     joint_drift_fits,
     random_walk_lr,
 )
-from x6wd.gap.fit import EFFECTS, FITTABLE, FITTERS, SIM_REFIT
+from x6wd.gap.fit import EFFECTS as ERROR_EFFECTS
+from x6wd.gap.fit import SIM_REFIT
 from x6wd.gap.fitted import Fit
 from x6wd.gap.noise import noise_model
 from x6wd.gap.null import block_bootstrap, null_model
@@ -52,6 +53,7 @@ from x6wd.gap.pipeline import (
     Round,
     fingerprint_score,
 )
+from x6wd.gap.solution import EFFECTS as RECEIVER_EFFECTS
 from x6wd.gap.stats import (
     QUANT_DECIMALS,
     Cell,
@@ -61,6 +63,13 @@ from x6wd.gap.stats import (
     layout_for,
     window,
 )
+from x6wd.gap.validate import Band, Validation, direction_bands, direction_text, validate
+
+# Every GPS effect the tool fits: those that add error (:mod:`x6wd.gap.fit`) and the
+# receiver-side layers that can also make the model quieter (:mod:`x6wd.gap.solution`).
+EFFECTS = {**ERROR_EFFECTS, **RECEIVER_EFFECTS}
+FITTABLE = tuple(EFFECTS)
+FITTERS = {name: e.fit for name, e in EFFECTS.items()}
 
 FINAL_DRAWS = 4  # fresh draws of an effect ensemble, pooled, for decisions and the closure
 # Whole-log cell: signed root likelihood ratio of a random walk on top of the baseline noise
@@ -86,7 +95,11 @@ class Options(PipelineOptions):
 
 @dataclass(kw_only=True)
 class Diagnosis(Outcome[PositionSeries, Layout]):
-    """Everything the report needs (GPS half)."""
+    """Everything the report needs (GPS half), with which way the gap runs per Allan octave
+    (``direction``) and seed 000's validation of the baseline plus the selected effects."""
+
+    direction: list[Band] = field(default_factory=list)
+    validation: Validation | None = None
 
 
 def _lattice_decimals(series: Sequence[PositionSeries]) -> int | None:
@@ -252,6 +265,15 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         super().__init__(EFFECTS, options, rng, progress)
         self.lattice: int | None = None  # the baseline's NMEA lattice (decimals)
         self.plan = RoundPlan()
+
+    def run(self, real: PositionSeries, baseline: Sequence[PositionSeries]) -> Diagnosis:
+        """The shared pipeline, then the direction of the gap and the validation."""
+        outcome = super().run(real, baseline)
+        outcome.direction = direction_bands(outcome.cells, outcome.z, outcome.threshold)
+        self.say("validating the simulator with the fitted effects", 0.99)
+        with_effects = self.apply_fits(outcome.selected, self.runs)
+        outcome.validation = validate(real, with_effects, self.layout.dt_s, self.layout.duration_s)
+        return outcome
 
     # --- plug-ins
 
@@ -475,7 +497,15 @@ def report_dict(diagnosis: Diagnosis) -> dict[str, Any]:
 
 
 def verdict_text(diagnosis: Diagnosis) -> str:
-    """One line for people."""
+    """One line for people: the verdict, then which way the gap runs per time scale."""
+    text = _verdict(diagnosis)
+    way = direction_text(diagnosis.direction)
+    if diagnosis.significant and way:
+        text += f" ({way})"
+    return text
+
+
+def _verdict(diagnosis: Diagnosis) -> str:
     if not diagnosis.significant:
         return "no significant gap"
     interval = f", 90 % interval {diagnosis.closure_ci[0]:.2f}-{diagnosis.closure_ci[1]:.2f}"

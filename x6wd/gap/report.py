@@ -20,6 +20,7 @@ from x6wd.gap.compass import (
 )
 from x6wd.gap.diagnose import Diagnosis, report_dict, verdict_text
 from x6wd.gap.stats import acf, allan_var, octave_taus, regular
+from x6wd.gap.validate import ADEV_TOL, MEAN_SD_TOL, Validation, direction_text
 
 FIGURES = ("scatter.png", "cdf.png", "allan.png", "acf.png", "time.png", "map.png")
 
@@ -275,6 +276,13 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
         lines.append(
             "No statistic differs from the simulator beyond what seed-to-seed variation explains."
         )
+    lines += ["", "## Which way", ""]
+    way = direction_text(diagnosis.direction)
+    lines.append(
+        f"Allan deviation by octave, real against the simulator's runs: {way}."
+        if way
+        else "No Allan deviation cell (the log is too short for one octave)."
+    )
     lines += ["", "## Which effect", ""]
     if report["effects"]:
         lines += [
@@ -301,6 +309,11 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
             if not diagnosis.where
             else "No candidate fitted."
         )
+    if diagnosis.validation is not None:
+        lines += [
+            "",
+            *validation_markdown(diagnosis.validation, [f.name for f in diagnosis.selected]),
+        ]
     if figures:
         lines += ["", "## Figures", ""]
         lines += [
@@ -315,6 +328,44 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
         "See docs/gap.md.",
     ]
     return "\n".join(lines) + "\n"
+
+
+def validation_markdown(v: Validation, effects: list[str]) -> list[str]:
+    """The validation block of report.md: seed 000's test (mean and sigma of the horizontal
+    error within 3 %) and the overlapping Allan deviation per octave within 20 %, each with
+    pass/fail."""
+    with_what = " + ".join(effects) if effects else "no effect (none selected)"
+    lines = [
+        "## Validation (seed 000's test, with the fitted effects)",
+        "",
+        f"Simulated: the {v.n_runs} baseline runs with {with_what} added (parameters fitted on "
+        "the whole log, so this is an in-sample check, as the paper's was); each simulated "
+        "figure is the runs' average. **" + ("PASS" if v.passed else "FAIL") + "**.",
+        "",
+        "| figure | real | simulated | difference | target | pass |",
+        "|---|---|---|---|---|---|",
+    ]
+
+    def row(label: str, real: float, sim: float, tol: float, ok: bool) -> str:
+        return (
+            f"| {label} | {real:.4g} | {sim:.4g} | {Validation.rel(sim, real):+.1%} | "
+            f"±{tol:.0%} | {'yes' if ok else 'no'} |"
+        )
+
+    lines.append(
+        row("horizontal error mean (m)", v.mean_real_m, v.mean_sim_m, MEAN_SD_TOL, v.mean_ok)
+    )
+    lines.append(row("horizontal error sigma (m)", v.sd_real_m, v.sd_sim_m, MEAN_SD_TOL, v.sd_ok))
+    for tau_s, real, sim, ok in zip(v.taus_s, v.adev_real_m, v.adev_sim_m, v.adev_ok, strict=True):
+        lines.append(row(f"Allan deviation, tau = {tau_s:g} s (m)", real, sim, ADEV_TOL, ok))
+    lines += [
+        "",
+        f"Allan deviation: east and north combined, sqrt(AVAR_e + AVAR_n), octaves from one step "
+        f"to a quarter of the log. The simulated runs' own spread (sd over runs / average): "
+        f"mean {v.mean_spread:.1%}, sigma {v.sd_spread:.1%}; where that is above 3 %, one log "
+        "of this length is not expected to meet 3 % even against its own model.",
+    ]
+    return lines
 
 
 def write_figures(diagnosis: Diagnosis, out: Path) -> None:
