@@ -43,9 +43,11 @@ def test_default_mission_reaches_every_waypoint_in_fast_time(
     assert s.completed and s.waypoint_count == 4 and s.waypoints_reached == 4
     assert s.sim_time_s < load_world(SCENARIOS / "default.toml").duration_s
     # The robot drove roughly the polygon: not much shorter, not wildly longer.
-    assert 0.9 * s.straight_length_m < s.path_length_m < 1.6 * s.straight_length_m
+    # it drove the loop (a NEO-5's metres of bias cut its corners a little)
+    assert 0.8 * s.straight_length_m < s.path_length_m < 1.6 * s.straight_length_m
     assert s.fixes_valid == s.fixes > 0
-    assert 0 < s.raw_error.cep50_m < 5 and s.raw_error.r95_m >= s.raw_error.cep50_m
+    # a minute of a NEO-5 (2.5 m CEP50 over 24 h; over a minute its error is mostly bias)
+    assert 0 < s.raw_error.cep50_m < 3 * 2.5 and s.raw_error.r95_m >= s.raw_error.cep50_m
 
 
 def test_every_emitted_sentence_decodes_in_the_real_driver(
@@ -180,7 +182,8 @@ def test_paper_situations_order_of_magnitude(tmp_path: Path) -> None:
     open_s, roof = figures["open_field"], figures["broken_roof"]
     # Under the broken roof fewer satellites are seen direct and reflections add metres.
     assert roof.mean_sats_used < open_s.mean_sats_used
-    assert roof.raw_error.r95_m > 2 * open_s.raw_error.r95_m
+    assert roof.raw_error.rms_m > 1.5 * open_s.raw_error.rms_m
+    assert roof.raw_error.max_m > 2 * open_s.raw_error.max_m
     assert 2 < max(roof.dispersion_lat_m, roof.dispersion_lon_m) < 40
 
 
@@ -422,11 +425,12 @@ def test_quantization_puts_every_nmea_minute_on_the_lattice(tmp_path: Path) -> N
 
 
 def test_multipath_zone_acts_only_near_the_wall(tmp_path: Path, plain_60s: Path) -> None:
-    # A wall north of the first leg's end (the robot drives north to (0, 25) first).
+    # A wall north of the first leg's end (the robot drives north to (0, 25) first; with the
+    # NEO-5's metres of bias it may turn a few metres short of it).
     scen = _with_effects(
         tmp_path, "mp",
-        '[[effects]]\nname = "multipath_zone"\nx1_m = -10.0\ny1_m = 30.0\nx2_m = 10.0\n'
-        "y2_m = 30.0\ndistance_m = 12.0\nsigma_m = 0.5\nbias_m = 6.0\ntau_s = 5.0\n",
+        '[[effects]]\nname = "multipath_zone"\nx1_m = -10.0\ny1_m = 27.0\nx2_m = 10.0\n'
+        "y2_m = 27.0\ndistance_m = 12.0\nsigma_m = 0.5\nbias_m = 6.0\ntau_s = 5.0\n",
     )  # fmt: skip
     run_mission(load_world(scen), tmp_path / "o", seed=1, duration_s=60.0)
     t0, err0, _ = _fix_errors(plain_60s)

@@ -51,10 +51,10 @@ def test_x6wd_sim_with_the_robots_config_finishes_the_default_mission(tmp_path: 
     summary = json.loads((out / "summary.json").read_text())
     assert summary["completed"] and summary["waypoints_reached"] == 4
     assert summary["extra"]["position_source"] == "ekf"
-    # navigation adds little to the GPS's own error at the arrivals; paths are not detours
+    # navigation adds little to the GPS's own (slow) error at the arrivals; no detours
     arrivals = summary["extra"]["arrivals"]
     assert len(arrivals) == 4
-    assert max(a["true_error_m"] for a in arrivals) < 5.0
+    assert all(a["true_error_m"] < a["gps_slow_error_m"] + 2.5 for a in arrivals), arrivals
     assert summary["path_length_m"] <= 1.10 * summary["straight_length_m"]
 
 
