@@ -126,8 +126,9 @@ class ConsoleServer:
         self.control = control
         self._map_view = map_view
         self._ssl = ssl_context
-        self._pages: set[_Page] = set()
+        self._pages: dict[_Page, None] = {}  # open pages, oldest first
         self._runner: web.AppRunner | None = None
+        self._closing: set[asyncio.Task[Any]] = set()
         self._ticker: asyncio.Task[None] | None = None
         self.port = 0
         self.dropped_total = 0
@@ -247,7 +248,8 @@ class ConsoleServer:
         )
         response.headers["X-Content-Type-Options"] = "nosniff"
         response.headers["Referrer-Policy"] = "no-referrer"
-        response.headers["Cache-Control"] = "no-cache"
+        # no-store: never kept in the back/forward cache with its link open, never stale
+        response.headers["Cache-Control"] = "no-store"
 
     async def _index(self, request: web.Request) -> web.FileResponse:
         return web.FileResponse(STATIC_DIR / "index.html")
@@ -259,7 +261,7 @@ class ConsoleServer:
                 "console: refused a WebSocket from origin %r", request.headers.get("Origin")
             )
             return web.Response(status=403, text="cross-origin WebSocket refused\n")
-        if len(self._pages) >= self.config.max_clients:
+        if len(self._pages) >= self.config.max_clients and not self._make_room():
             return web.Response(
                 status=503, text=f"{self.config.max_clients} pages open (console.max_clients)\n"
             )
@@ -277,7 +279,7 @@ class ConsoleServer:
             drive_limit_s=self.config.deadman_s,
         )
         page = _Page(ws=ws, client=client, peer=peer)
-        self._pages.add(page)
+        self._pages[page] = None
         sender = asyncio.create_task(self._sender(page))
         self._reply(page, self._welcome())
         if client.authenticated:
@@ -285,7 +287,7 @@ class ConsoleServer:
         try:
             await self._read_loop(page)
         finally:
-            self._pages.discard(page)
+            self._pages.pop(page, None)
             await self._hang_up(page)
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -293,6 +295,19 @@ class ConsoleServer:
             with contextlib.suppress(Exception):
                 await ws.close()
         return ws
+
+    def _make_room(self) -> bool:
+        """A full console closes its oldest page that has not authenticated (pages that
+        never send the token cannot lock the operator out); False when every page has."""
+        victim = next((p for p in self._pages if not p.client.authenticated), None)
+        if victim is None:
+            return False
+        self._pages.pop(victim, None)
+        log.info("console: closing %s (not authenticated) to make room", victim.peer)
+        task = asyncio.create_task(victim.ws.close(code=1013, message=b"console full"))
+        self._closing.add(task)
+        task.add_done_callback(self._closing.discard)
+        return True
 
     def _welcome(self) -> dict[str, Any]:
         return {

@@ -326,7 +326,8 @@
   document.addEventListener("keyup", (ev) => { if (KEYS[ev.key] === S.drive) endDrive(true); });
   // the page going away, hidden or out of focus ends the drive at once
   document.addEventListener("visibilitychange", () => { if (document.hidden) endDrive(true); });
-  window.addEventListener("pagehide", () => endDrive(true));
+  // leaving the page (or its being kept in the back/forward cache) closes its link too
+  window.addEventListener("pagehide", () => { endDrive(true); if (S.ws) S.ws.close(1001); });
   window.addEventListener("blur", () => endDrive(true));
 
   // -- the map --------------------------------------------------------------------------------------
