@@ -68,8 +68,9 @@ class Series:
     v: np.ndarray
 
     def to_json(self) -> dict[str, Any]:
-        """Plain lists for the page's embedded data (NaN as null)."""
-        return {"label": self.label, "t_s": _floats(self.t_s, 3), "v": _floats(self.v, 4)}
+        """Plain lists for the page's embedded data (NaN as null): the points drawn."""
+        t, v = _thin(self.t_s, self.v)
+        return {"label": self.label, "t_s": _floats(t, 3), "v": _floats(v, 4)}
 
 
 @dataclass
@@ -115,7 +116,8 @@ class LogView:
     counts: dict[str, int] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        """The data behind every panel, as embedded in the HTML page (full resolution)."""
+        """The data behind every panel, as embedded in the HTML page: the points drawn
+        (series and tracks thinned to :data:`MAX_POINTS`)."""
         return {
             "file": self.path.name,
             "kind": self.kind,
@@ -124,7 +126,7 @@ class LogView:
             "origin_deg": list(self.origin_deg) if self.origin_deg else None,
             "track": {
                 k: {"east_m": _floats(e, 3), "north_m": _floats(n, 3)}
-                for k, (e, n) in self.track.items()
+                for k, (e, n) in ((k, _thin(*en)) for k, en in self.track.items())
             },
             "error": [s.to_json() for s in self.error],
             "hdop": [s.to_json() for s in self.hdop],
@@ -589,12 +591,29 @@ def _legend(items: Sequence[tuple[str, str]], x: float, y: float) -> str:
     return "".join(parts)
 
 
-def _svg_open(pid: str, w: int, h: int, axes: dict[str, float]) -> str:
+def _legend_rows(items: Sequence[tuple[str, str]], x0: float, x1: float) -> tuple[str, int]:
+    """Legend entries in rows from ``x0`` wrapping before ``x1``, the first row in the top
+    margin; (svg, rows)."""
+    parts, x, row = [], x0, 0
+    for label, color in items:
+        width = 30 + 6.2 * len(label)
+        if x > x0 and x + width > x1:
+            x, row = x0, row + 1
+        y = _MT - 8 + 14 * row
+        parts.append(
+            f'<rect x="{x:.0f}" y="{y - 8}" width="10" height="10" fill="{color}"/>'
+            f'<text x="{x + 14:.0f}" y="{y}" font-size="11">{_esc(label)}</text>'
+        )
+        x += width
+    return "".join(parts), row + 1
+
+
+def _svg_open(pid: str, w: int, h: int, axes: dict[str, float], top: int = _MT) -> str:
     data = "".join(f' data-{k}="{v:.6g}"' for k, v in axes.items())
     return (
         f'<svg id="svg-{pid}" width="{w}" height="{h}" '
         f'viewBox="0 0 {w} {h}" font-family="sans-serif"{data} '
-        f'data-plot-left="{_ML}" data-plot-right="{w - _MR}" data-plot-top="{_MT}" '
+        f'data-plot-left="{_ML}" data-plot-right="{w - _MR}" data-plot-top="{top}" '
         f'data-plot-bottom="{h - _MB}">'
     )
 
@@ -723,35 +742,43 @@ def _svg_lanes(
 ) -> str:
     x0, x1 = t_range
     lane_h = 22
-    h = _MT + _MB + lane_h * len(lanes)
+    palette: dict[str, str] = {}
+    for iv in intervals:
+        if iv.lane in lanes and iv.label not in palette:
+            palette[iv.label] = (
+                _STATE_COLORS.get(iv.label)
+                or _COLORS[sum(1 for k in palette if k not in _STATE_COLORS) % len(_COLORS)]
+            )
+    # a key of every label above the lanes (a short interval has no room for its own)
+    key, rows = _legend_rows(list(palette.items()), _ML, _W - _MR)
+    top = _MT + 14 * (rows - 1)
+    h = top + _MB + lane_h * len(lanes)
     w = _W
     pw = w - _ML - _MR
-    parts = [_svg_open(pid, w, h, {"x0": x0, "x1": x1})]
+    parts = [_svg_open(pid, w, h, {"x0": x0, "x1": x1}, top=top)]
+    parts.append(key)
     parts.append(
-        f'<rect x="{_ML}" y="{_MT}" width="{pw}" height="{h - _MT - _MB}" '
+        f'<rect x="{_ML}" y="{top}" width="{pw}" height="{h - top - _MB}" '
         'fill="#fff" stroke="#888"/>'
     )
     for tx in nice_ticks(x0, x1, 10):
         px = _ML + (tx - x0) / (x1 - x0) * pw
         parts.append(
-            f'<line x1="{px:.1f}" y1="{_MT}" x2="{px:.1f}" y2="{h - _MB}" stroke="#eee"/>'
+            f'<line x1="{px:.1f}" y1="{top}" x2="{px:.1f}" y2="{h - _MB}" stroke="#eee"/>'
             f'<text x="{px:.1f}" y="{h - _MB + 13}" font-size="10" text-anchor="middle">'
             f"{_fmt(tx)}</text>"
         )
     parts.append(
         f'<text x="{_ML + pw / 2}" y="{h - 2}" font-size="11" text-anchor="middle">time (s)</text>'
     )
-    palette: dict[str, str] = {}
     for k, lane in enumerate(lanes):
-        y = _MT + k * lane_h
+        y = top + k * lane_h
         parts.append(
             f'<text x="{_ML - 4}" y="{y + lane_h / 2 + 4}" font-size="10" text-anchor="end">'
             f"{_esc(lane)}</text>"
         )
         for iv in (i for i in intervals if i.lane == lane):
-            color = _STATE_COLORS.get(iv.label)
-            if color is None:
-                color = palette.setdefault(iv.label, _COLORS[len(palette) % len(_COLORS)])
+            color = palette[iv.label]
             a = _ML + (iv.t0_s - x0) / (x1 - x0) * pw
             b = _ML + (iv.t1_s - x0) / (x1 - x0) * pw
             width = max(b - a, 1.5)
@@ -940,8 +967,10 @@ def render_png(view: LogView, out_png: Path) -> None:
     for k, (lane, ivs) in enumerate(lanes):
         y = len(lanes) - 1 - k
         for iv in (i for i in ivs if i.lane == lane):
-            color = _STATE_COLORS.get(iv.label) or palette.setdefault(
-                iv.label, _COLORS[len(palette) % len(_COLORS)]
+            color = palette.setdefault(
+                iv.label,
+                _STATE_COLORS.get(iv.label)
+                or _COLORS[sum(1 for p in palette if p not in _STATE_COLORS) % len(_COLORS)],
             )
             ax.broken_barh(
                 [(iv.t0_s, max(iv.t1_s - iv.t0_s, t_max / 800))], (y + 0.1, 0.8), color=color
@@ -959,6 +988,14 @@ def render_png(view: LogView, out_png: Path) -> None:
     ax.set_title("Mode, navigation state, holds and device faults", fontsize=10, loc="left")
     if not (view.states or view.holds or view.faults):
         _missing(ax, view.missing.get("states", "nothing in the log"))
+    else:  # a key: a short interval has no room for its own label
+        from matplotlib.patches import Patch
+
+        ax.legend(
+            handles=[Patch(color=c, label=label) for label, c in palette.items()],
+            loc="upper left", bbox_to_anchor=(0.0, -0.32), ncol=min(6, len(palette)),
+            fontsize=7, frameon=False,
+        )  # fmt: skip
     fig.tight_layout()
     fig.savefig(out_png)
     plt.close(fig)
