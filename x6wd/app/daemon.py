@@ -1050,7 +1050,7 @@ class Daemon:
             self._gpsd_declination()
         if self.console is not None:
             for rec in records:
-                if isinstance(rec, GpsSky):
+                if isinstance(rec, GpsSky):  # the satellites' C/N0 for the page's sky table
                     self._net_call(self.console.publish_sky, rec)
         if self.gpsd is not None:
             for rec in records:
@@ -1121,10 +1121,17 @@ class Daemon:
         time.sleep(0)
 
     def _publish(self, event: dict[str, Any]) -> None:
-        if self.server is not None:
-            self._net_call(self.server.publish, event)
         if self.console is not None:
-            self._net_call(self.console.publish, event)
+            self._net_call(self._publish_net, event)  # one wake-up of the network loop
+        elif self.server is not None:
+            self._net_call(self.server.publish, event)
+
+    def _publish_net(self, event: dict[str, Any]) -> None:
+        """On the network loop: an event for the control port's watchers and the console."""
+        if self.server is not None:
+            self.server.publish(event)
+        if self.console is not None:
+            self.console.publish(event)
 
     def _on_state(self, change: StateChange) -> None:
         self.notifier.status(self._status_text())
