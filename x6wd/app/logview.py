@@ -296,7 +296,10 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
             if first is not None:
                 raw.utc0 = first - timedelta(seconds=raw.fixes[0].t_s)
     if not raw.fixes and not raw.tel:
-        raise ParseError(f"{path}: no GPS fixes and no telemetry: nothing to plot")
+        raise ParseError(
+            f"{path}: no GPS fixes and no telemetry: nothing to plot (x6wd plot reads x6wd "
+            "recordings and NMEA logs)"
+        )
     t0 = raw.t_first or 0.0
     view.duration_s = raw.t_last - t0
     if raw.utc0 is not None:
@@ -1081,5 +1084,5 @@ def main(args: argparse.Namespace) -> int:
     for p in written:
         print(p)
     for pid, why in view.missing.items():
-        print(f"x6wd plot: {pid}: not shown: {why}", file=sys.stderr)
+        print(f"x6wd plot: the {pid} panel is empty: {why}", file=sys.stderr)
     return 0
