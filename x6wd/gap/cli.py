@@ -148,6 +148,8 @@ def main(args: argparse.Namespace) -> int:
     )
     extra = f"; {compass_verdict_text(compass)}" if compass is not None else ""
     print(f"{verdict_text(diagnosis)}{extra}; report in {args.out}/report.md")
+    if diagnosis.validation is not None:
+        print(diagnosis.validation.summary())
     if not math.isfinite(diagnosis.closure):
         return 1
     return 0

@@ -313,7 +313,7 @@ def _fit_grid(
     f: Callable[[np.ndarray], float], tau_lo_s: float, tau_hi_s: float
 ) -> tuple[np.ndarray, float]:
     grids = [
-        np.linspace(math.log(0.005), math.log(10.0), GRID_POINTS + 1),
+        np.linspace(math.log(0.005), math.log(50.0), GRID_POINTS + 2),
         np.linspace(
             math.log(tau_lo_s), math.log(max(tau_hi_s, tau_lo_s)), 4 if tau_hi_s > tau_lo_s else 1
         ),
