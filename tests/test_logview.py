@@ -256,6 +256,27 @@ def test_bad_input_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixt
     assert "truth.csv: a true track needs numeric columns t_s, lat, lon" in capsys.readouterr().err
 
 
+def test_parts_bad_lines_and_a_cut_last_line(sim_run: Path, tmp_path: Path) -> None:
+    # A daemon recording in parts (the recorder's rotation), a garbled line and a crash
+    # mid-line: every part is read, the damage counted as the recorder's reader counts it.
+    records = list(read_recording(sim_run / "recording.jsonl"))
+    path = tmp_path / "run.jsonl"
+    with Recorder(path, max_bytes=200_000) as rec:
+        for r in records:
+            rec.record(r.type, r.data, r.t_mono)
+    parts = sorted(tmp_path.glob("run*.jsonl"))
+    assert len(parts) > 3
+    with open(parts[1], "ab") as f:
+        f.write(b'{"t_mono": 1.0, "type": "fix", "da\n')
+    with open(parts[-1], "ab") as f:
+        f.write(b'{"t_mono":99.0,"t_utc":"","type":"fix","data":{"t_s":99.0,"lat')
+    data = page_data(logview.render_html(path))
+    assert data["counts"]["records"] == len(records)
+    assert (data["counts"]["bad_lines"], data["counts"]["truncated_lines"]) == (1, 1)
+    assert data["counts"]["fixes"] == sum(r.type == "fix" for r in records)
+    assert data["duration_s"] == pytest.approx(records[-1].t_mono - records[0].t_mono, abs=1e-3)
+
+
 def test_a_folder_means_its_newest_recording(tmp_path: Path) -> None:
     runs = tmp_path / "recordings"
     runs.mkdir()

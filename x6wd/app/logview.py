@@ -24,7 +24,7 @@ import html
 import json
 import math
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -37,10 +37,12 @@ from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.geodesy import wrap360
 from x6wd.core.recorder import (
     ReadStats,
+    Record,
+    decode_record,
     is_recording,
     list_recordings,
     nmea_file_chunks,
-    read_recording_parts,
+    recording_parts,
 )
 from x6wd.core.records import GpsFix, GpsSky, Mode, NavState
 from x6wd.nav.geo import LocalTangentPlane
@@ -195,25 +197,87 @@ def _gps_from_decoder(chunks: Iterable[tuple[float, bytes]], raw: _Raw) -> None:
     raw.t_last = max(raw.t_last, t_last)
 
 
-def _read_recording(path: Path, raw: _Raw) -> ReadStats:
-    from x6wd.core.recorder import decode_record
+_SKIP_TYPES = frozenset({b"motor", b"odometry"})
+"""Record types no panel needs (half of a recording's lines): skipped before JSON decoding.
+A hold's reason is in the state changes and telemetry; a motor command is recorded only
+when it changes, so it adds nothing within a hold."""
+_TYPE_KEY = b'"type":"'
+_T_KEY = b'{"t_mono":'
 
+
+def _lines(path: Path, stats: ReadStats) -> Iterator[tuple[bytes, bytes]]:
+    """(type, raw line) of every line of a recording's remaining parts; the type read from
+    the recorder's key order without decoding the line (b"" when it is not where the
+    recorder writes it: the line is then decoded to find out)."""
+    parts = recording_parts(path)
+    if not parts:
+        raise DeviceUnavailable(f"cannot open recording {path}: no such file")
+    for part in parts:
+        try:
+            f = open(part, "rb")  # noqa: SIM115
+        except OSError as exc:
+            raise DeviceUnavailable(f"cannot open recording {part}: {exc}") from exc
+        with f:
+            for line in f:
+                if not line.strip():
+                    stats.blank_lines += 1
+                    continue
+                k = line.find(_TYPE_KEY, 0, 120)
+                kind = line[k + 8 : line.find(b'"', k + 8)] if k >= 0 else b""
+                yield kind, line
+
+
+def _decode_line(line: bytes, stats: ReadStats) -> dict[str, Any] | None:
+    """One recorder line as its dict (t_mono, t_utc, type, data), or None, counted as the
+    recorder's reader counts: a cut last line (no newline) as truncated, else as bad."""
+    try:
+        obj = json.loads(line)
+        ok = (
+            isinstance(obj, dict)
+            and isinstance(obj.get("t_mono"), (int, float))
+            and not isinstance(obj.get("t_mono"), bool)
+            and isinstance(obj.get("data"), dict)
+            and isinstance(obj.get("type"), str)
+        )
+    except (ValueError, UnicodeDecodeError):
+        ok = False
+    if not ok:
+        if line.endswith(b"\n"):
+            stats.bad_lines += 1
+        else:
+            stats.truncated += 1
+        return None
+    stats.records += 1
+    return obj  # type: ignore[no-any-return]
+
+
+def _read_recording(path: Path, raw: _Raw) -> ReadStats:
     stats = ReadStats()
     nmea: list[tuple[float, bytes]] = []
-    for rec in read_recording_parts(path, stats=stats):
-        t = rec.t_mono
+
+    def at(t: float) -> None:
+        raw.t_first = t if raw.t_first is None else raw.t_first
+        raw.t_last = max(raw.t_last, t)
+
+    for kind_b, line in _lines(path, stats):
+        if kind_b in _SKIP_TYPES and line.startswith(_T_KEY) and raw.t_first is not None:
+            try:
+                at(float(line[len(_T_KEY) : line.index(b",")]))
+            except ValueError:
+                stats.bad_lines += 1
+                continue
+            stats.records += 1
+            continue
+        obj = _decode_line(line, stats)
+        if obj is None:
+            continue
+        t, kind, d = float(obj["t_mono"]), obj["type"], obj["data"]
         if raw.t_first is None:
-            raw.t_first = t
-            utc = _parse_utc(rec.t_utc)
+            utc = _parse_utc(obj.get("t_utc"))
             if utc is not None:
                 raw.utc0 = utc - timedelta(seconds=t)
-        raw.t_last = max(raw.t_last, t)
-        kind, d = rec.type, rec.data
-        if kind == "motor":
-            reason = d.get("reason")
-            if isinstance(reason, str):
-                raw.hold_marks.append((t, reason[6:] if reason.startswith("hold: ") else ""))
-        elif kind == "attitude":
+        at(t)
+        if kind == "attitude":
             b = d.get("bearing_deg")
             if isinstance(b, (int, float)) and d.get("valid", True):
                 raw.att.append((t, float(b)))
@@ -229,7 +293,7 @@ def _read_recording(path: Path, raw: _Raw) -> ReadStats:
                 raw.hold_marks.append((t, ""))
         elif kind in ("fix", "sky"):
             try:
-                typed = decode_record(rec)
+                typed = decode_record(Record(t, "", kind, d))
             except ParseError:
                 continue
             (raw.fixes if kind == "fix" else raw.skies).append(typed)  # type: ignore[arg-type]
@@ -476,9 +540,8 @@ def _timelines(view: LogView, raw: _Raw, t0: float) -> None:
         view.missing["states"] = "no state changes recorded"
 
     # Holds: a change into HOLD names its reason ("state: <why>"); the reason may change
-    # during a hold, which telemetry (hold_reason, about 1 Hz) and the motor commands that
-    # changed ("hold: <why>") show. In file order (the controller's), each mark says
-    # "holding for <why>" or "not holding".
+    # during a hold, which telemetry (hold_reason, about 1 Hz) shows. In time order (file
+    # order within a time: the controller's), each mark says "holding for <why>" or not.
     marks = sorted(raw.hold_marks, key=lambda m: m[0])  # stable: file order within a time
     cur: tuple[float, str] | None = None
     for t, reason in [(t - t0, r) for t, r in marks] + [(t_end, "")]:
