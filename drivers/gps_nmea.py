@@ -55,7 +55,6 @@ code it stands for.
 from __future__ import annotations
 
 import functools
-import operator
 import re
 import struct
 from collections import deque
@@ -63,7 +62,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 from datetime import UTC, date, datetime, timedelta
 from itertools import repeat
-from typing import Any, Final
+from typing import Any, Final, cast
 
 from drivers.nmea import (
     GGA,
@@ -194,19 +193,31 @@ _LINE_XOR: Final[dict[bytes, int]] = {
 _SLOT: Final = 128
 _BATCH_LINES: Final = 256
 _BATCH_MIN: Final = 16  # fewer lines: one checksum() each
-_LAST2: Final = operator.itemgetter(slice(-2, None))
+# _LINE_XOR split by digit: _LINE_XOR[hi + lo] == _HI_XOR[hi] ^ _LO_XOR[lo], as byte tables
+# (bytes.translate) for the checksum digits of a whole batch at once.
+_HI_XOR: Final = bytes(
+    (int(chr(c), 16) << 4) ^ 0x24 ^ 0x2A ^ c if c in _HEX else 0 for c in range(256)
+)
+_LO_XOR: Final = bytes(int(chr(c), 16) ^ c if c in _HEX else 0 for c in range(256))
+assert all(_LINE_XOR[k] == _HI_XOR[k[0]] ^ _LO_XOR[k[1]] for k in _LINE_XOR)
 
 
-def _line_sums(lines: list[bytes]) -> bytes:
-    """``checksum(line)`` of every line (each at most 128 bytes), computed all at once.
+def _line_sums(lines: list[bytes]) -> tuple[bytes, bytes]:
+    """(``checksum(line)`` of every line, the value each must have: ``_LINE_XOR`` of its
+    last two characters), for lines of at most 128 bytes, computed all at once.
 
-    Each line is padded with zeros to 128 bytes (zeros change no XOR), the lot is read as one
-    little-endian integer and folded like ``checksum`` folds one line: by 64, 32, ..., 1 bytes.
-    The first byte of each 128-byte slot then holds the XOR of that slot, i.e. of its line.
+    Each line is right-aligned in a 128-byte slot with zeros (zeros change no XOR), the lot
+    is read as one little-endian integer and folded like ``checksum`` folds one line: by 64,
+    32, ..., 1 bytes. The first byte of each slot then holds the XOR of that slot, i.e. of
+    its line. Right-aligned, every line's checksum digits sit at the same two places of
+    its slot: one strided slice each gives them all.
     """
-    block = b"".join(map(bytes.ljust, lines, repeat(_SLOT), repeat(b"\0")))
+    block = b"".join(map(bytes.rjust, lines, repeat(_SLOT), repeat(b"\0")))
+    n = len(lines)
     x = fold_xor_128(int.from_bytes(block, "little"))
-    return x.to_bytes(len(block), "little")[::_SLOT]
+    hi = int.from_bytes(block[_SLOT - 2 :: _SLOT].translate(_HI_XOR), "little")
+    lo = int.from_bytes(block[_SLOT - 1 :: _SLOT].translate(_LO_XOR), "little")
+    return x.to_bytes(len(block), "little")[::_SLOT], (hi ^ lo).to_bytes(n, "little")
 
 
 class NmeaFramer:
@@ -350,19 +361,17 @@ class NmeaFramer:
                     out.append(text)
                     good += 1
         else:
-            expected = line_xor.__getitem__
             for i in range(0, len(lines), _BATCH_LINES):
-                batch = lines[i : i + _BATCH_LINES]
-                sums = _line_sums(batch)
-                if sums == bytes(map(expected, map(_LAST2, batch))):  # all good
+                sums, expected = _line_sums(lines[i : i + _BATCH_LINES])
+                if sums == expected:  # all good
                     kept = texts[i : i + _BATCH_LINES]
                 else:
                     kept = [
                         text
-                        for text, line, s in zip(
-                            texts[i : i + _BATCH_LINES], batch, sums, strict=True
+                        for text, s, e in zip(
+                            texts[i : i + _BATCH_LINES], sums, expected, strict=True
                         )
-                        if s == expected(line[-2:])
+                        if s == e
                     ]
                 out += kept
                 good += len(kept)
@@ -755,9 +764,8 @@ class GpsDecoder:
         # Field handlers by sentence type, with the number of fields each reads (shorter
         # sentences are padded with empty fields); other known types need none.
         self._handlers: dict[str, tuple[_Handler, int]] = {
-            # GSV: padded to four satellites and a signal id, so that a satellite cut
-            # short by the end of the sentence still counts, with empty fields.
-            "GSV": (self._gsv_fields, GSV.pos("signal_id") + 1),
+            # GSV: up to its first satellite (_gsv_fields completes a satellite cut short).
+            "GSV": (self._gsv_fields, _GSV_SAT1),
             "GGA": (self._gga_fields, _GGA_SEP + 1),
             "RMC": (self._rmc_fields, _RMC_DATE + 1),
             "GSA": (self._gsa_fields, _GSA_PDOP + 3),
@@ -1047,19 +1055,30 @@ class GpsDecoder:
 
     def _gsv_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         total, seq = _gsv_head(d[_GSV_NUM], d[_GSV_SEQ], d[_GSV_INVIEW])
-        sats: list[_Sat] = []
-        # Groups of four fields; NMEA 4.1 appends a signal id: zip drops a partial group.
-        fields_ = iter(d[_GSV_SAT1:])
-        known = _SATS
-        for group in zip(fields_, fields_, fields_, fields_, strict=False):
-            # A satellite's fields mostly repeat from earlier epochs (elevation and azimuth
-            # move slowly, SNR jitters over a few values): decode each group once.
-            sat = known.get(group)
-            if sat is None:
-                if not group[0]:
-                    continue
-                sat = _gsv_sat(group)
-            sats.append(sat)
+        # Groups of four fields. A satellite cut short by the end of a sentence of fewer
+        # than four counts, with empty fields; beyond four, NMEA 4.1 appends a signal id,
+        # and zip drops the partial group it makes.
+        body = d[_GSV_SAT1:]
+        n_fields = len(body)
+        if n_fields % 4 and n_fields < 16:
+            body += [""] * (4 - n_fields % 4)
+        # A satellite's fields mostly repeat from earlier epochs (elevation and azimuth
+        # move slowly, SNR jitters over a few values): each group is decoded once, and a
+        # sentence whose groups are all known is one lookup each.
+        groups = iter(body)
+        found = list(map(_SATS.get, zip(groups, groups, groups, groups, strict=False)))
+        if None not in found:
+            sats = cast("list[_Sat]", found)
+        else:
+            groups = iter(body)
+            sats = []
+            for group in zip(groups, groups, groups, groups, strict=False):
+                sat = _SATS.get(group)
+                if sat is None:
+                    if not group[0]:  # no PRN: not a satellite
+                        continue
+                    sat = _gsv_sat(group)
+                sats.append(sat)
         if seq == 1:
             self._gsv_talker = talker
             self._gsv_sats = sats

@@ -20,6 +20,7 @@ from x6wd.gap.io import GRID_FACTOR, MAX_LINE_BYTES, grid_slots, read_track
 
 ROOT = Path(__file__).resolve().parent.parent
 LOGS = ROOT / "tests" / "data" / "gap_logs"
+NMEA = ROOT / "tests" / "data" / "nmea"  # gpsd's corpus
 SCENARIO = ROOT / "config" / "scenarios" / "open_field.toml"
 
 
@@ -286,7 +287,7 @@ def test_gap_cli_reaches_a_verdict_within_memory(tmp_path: Path) -> None:
     logs = {
         "hour": _pathological_hour(tmp_path / "hour.nmea"),
         "he910": LOGS / "telit-he910.log",
-        "f9p": LOGS / "ublox-zed-f9p_hpg1.11.log",
+        "f9p": NMEA / "ublox-zed-f9p_hpg1.11.log",
     }
     procs = {name: _start_gap(log, tmp_path / name) for name, log in logs.items()}
     peak_mb = {}

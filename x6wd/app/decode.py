@@ -112,24 +112,40 @@ class ReportEncoder:
         lat, lon = fix.lat_deg, fix.lon_deg
         if not (fix.valid and mode >= 2 and lat is not None and lon is not None):
             return head + "}"
+        # Positions, speed and track change from fix to fix: not memoised. A float that is
+        # finite (v - v == 0) is _num_text's text directly; anything else goes through it.
         parts = [head]
-        text = _num_text(lat, 9)  # positions rarely repeat: not memoised
-        if text is not None:
-            parts += (',"lat":', text)
-        text = _num_text(lon, 9)
-        if text is not None:
-            parts += (',"lon":', text)
+        if type(lat) is float and lat - lat == 0.0:
+            parts += (',"lat":', _float_json(round(lat, 9)))
+        else:
+            text = _num_text(lat, 9)
+            if text is not None:
+                parts += (',"lat":', text)
+        if type(lon) is float and lon - lon == 0.0:
+            parts += (',"lon":', _float_json(round(lon, 9)))
+        else:
+            text = _num_text(lon, 9)
+            if text is not None:
+                parts += (',"lon":', text)
         alt = fix.alt_m
         if mode >= 3 and alt is not None:
             parts.append(self._group((alt, fix.geoid_sep_m), _altitudes))
-        if fix.speed_mps is not None:  # speed and track jitter: not memoised either
-            text = _num_text(fix.speed_mps, 3)
-            if text is not None:
-                parts += (',"speed":', text)
-        if fix.course_deg is not None:
-            text = _num_text(fix.course_deg, 4)
-            if text is not None:
-                parts += (',"track":', text)
+        speed = fix.speed_mps
+        if speed is not None:
+            if type(speed) is float and speed - speed == 0.0:
+                parts += (',"speed":', _float_json(round(speed, 3)))
+            else:
+                text = _num_text(speed, 3)
+                if text is not None:
+                    parts += (',"speed":', text)
+        track = fix.course_deg
+        if track is not None:
+            if type(track) is float and track - track == 0.0:
+                parts += (',"track":', _float_json(round(track, 4)))
+            else:
+                text = _num_text(track, 4)
+                if text is not None:
+                    parts += (',"track":', text)
         parts.append(self._group((fix.hdop, fix.vdop if mode >= 3 else None), _errors))
         parts.append("}")
         return "".join(parts)
@@ -165,15 +181,35 @@ class ReportEncoder:
         return texts
 
 
+# Text of the clock fields as ``isoformat(timespec="milliseconds")`` writes them: built
+# once, so that an epoch's time is a few lookups instead of a call of isoformat.
+_HOURS = tuple(f"{h:02d}:" for h in range(24))
+_SIXTY = tuple(f"{m:02d}" for m in range(60))
+_MILLIS = tuple(f".{ms:03d}Z" for ms in range(1000))
+_day_text: dict[int, str] = {}  # proleptic ordinal -> "YYYY-MM-DDT"
+
+
 def _iso_time(utc: datetime) -> str:
-    """``gpsd.iso_time(utc)``: through ``isoformat`` (C) for a UTC or naive datetime of a
-    four-digit year (``strftime``'s ``%Y`` does not pad smaller years), else ``iso_time``.
-    ``isoformat`` cuts the microseconds to milliseconds as ``iso_time`` does. The text has
-    no character JSON escapes."""
+    """``gpsd.iso_time(utc)``: the text of ``isoformat(timespec="milliseconds")`` with "Z"
+    (microseconds cut, not rounded, to milliseconds, as ``iso_time`` does) for a UTC or
+    naive datetime of a four-digit year (``strftime``'s ``%Y`` does not pad smaller years),
+    from tables; else ``iso_time``. The text has no character JSON escapes."""
     tz = utc.tzinfo
     if type(utc) is datetime and (tz is UTC or tz is None) and utc.year >= 1000:
-        text = utc.isoformat(timespec="milliseconds")
-        return (text if tz is None else text[:-6]) + "Z"
+        ordinal = utc.toordinal()
+        day = _day_text.get(ordinal)
+        if day is None:
+            if len(_day_text) >= MEMO_MAX:
+                _day_text.clear()
+            day = _day_text[ordinal] = utc.date().isoformat() + "T"
+        return (
+            day
+            + _HOURS[utc.hour]
+            + _SIXTY[utc.minute]
+            + ":"
+            + _SIXTY[utc.second]
+            + _MILLIS[utc.microsecond // 1000]
+        )
     from x6wd.app.gpsd import iso_time
 
     return str(iso_time(utc))
