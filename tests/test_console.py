@@ -713,16 +713,16 @@ def _hold_forward(d: webdriver.Chrome, r: Running) -> None:
 
 
 def test_dead_man_a_page_hidden_or_a_browser_gone_stops_the_motors(tmp_path: Path) -> None:
-    # each drive lasts 3 s here: a stop well within that is the dead-man's doing, not the
-    # drive running out
-    cfg = console_config(tmp_path, deadman_s=3.0)
+    # each drive lasts 5 s here (sent again every 1.7 s): a stop within 2.5 s is the
+    # dead-man's doing, not the drive running out (>= 3.3 s after the page's last word)
+    cfg = console_config(tmp_path, deadman_s=5.0)
     cfg = dataclasses.replace(cfg, safety=SafetyConfig(geofence_radius_m=100.0, manual_max_s=5.0))
     with daemon_with(cfg) as r:
         wait_for(lambda: has_fix(r), 30, "a fix")
         d = chromium(tmp_path)
         try:
             _hold_forward(d, r)
-            time.sleep(1.5)  # held: the page repeats its drive, the robot keeps going
+            time.sleep(2.0)  # held: the page repeats its drive, the robot keeps going
             assert vehicle_pct(r)[0] > 0.0
             # the page is hidden (another tab, the screen locked): motors stop at once
             t0 = time.monotonic()
@@ -731,8 +731,8 @@ def test_dead_man_a_page_hidden_or_a_browser_gone_stops_the_motors(tmp_path: Pat
                 "Object.defineProperty(document, 'hidden', {value: true, configurable: true});"
                 "document.dispatchEvent(new Event('visibilitychange'))",
             )
-            wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), 2.0, "stop on a hidden page")
-            assert time.monotonic() - t0 < 1.5
+            wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), 3.0, "stop on a hidden page")
+            assert time.monotonic() - t0 < 2.5
             ActionChains(d).release().perform()
             # driving again, then the browser dies (no page code runs): the daemon stops
             js(d, "delete document.hidden")
@@ -740,8 +740,8 @@ def test_dead_man_a_page_hidden_or_a_browser_gone_stops_the_motors(tmp_path: Pat
             pid = _chromium_pid(d)
             t0 = time.monotonic()
             os.kill(pid, signal.SIGKILL)
-            wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), 2.0, "stop on a browser gone")
-            assert time.monotonic() - t0 < 1.5
+            wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), 3.0, "stop on a browser gone")
+            assert time.monotonic() - t0 < 2.5
             assert r.daemon.console is not None and r.daemon.console.deadman_stops == 1
         finally:
             with contextlib.suppress(Exception):
