@@ -185,7 +185,9 @@ def test_gps_line_paces_bytes_and_drops_whole_sentences_when_full(baud: int) -> 
     if baud == 9600:
         assert w.receiver.uart.dropped > 20
         assert sent / span_s > 0.8 * baud / 10.0  # the line is kept full
-        assert kinds.count(b"GSV") < kinds.count(b"RMC")  # the later, longer ones go
+        # the first of each burst gets through, the later GSV mostly not (a whole burst
+        # carries 2-4 GSV per RMC)
+        assert kinds.count(b"RMC") >= 8 and kinds.count(b"GSV") < 1.5 * kinds.count(b"RMC")
     else:
         assert w.receiver.uart.dropped == 0
         assert kinds.count(b"GGA") >= 15 and abs(kinds.count(b"GGA") - kinds.count(b"GLL")) <= 1
