@@ -519,6 +519,7 @@ def run_mission(
         banner = receiver.banner()
         nmea_file.write(banner)
         uart.write(banner)
+        receiver.arrivals(banner, 0.0)  # it holds the receiver's UART first, as in HIL
         decoder.feed(uart.read_all(), 0.0)
         s0 = vehicle.state
         h0 = cset.device_heading_deg(s0.heading_deg, s0.pitch_deg, s0.roll_deg)
