@@ -528,7 +528,8 @@ assert ZDA.pos("month") == _ZDA_DAY + 1 and ZDA.pos("year") == _ZDA_DAY + 2
 assert GGA.pos("lat_hemi") == _GGA_LAT + 1 and GGA.pos("lon_hemi") == _GGA_LON + 1
 assert RMC.pos("lat_hemi") == _RMC_LAT + 1 and RMC.pos("lon_hemi") == _RMC_LON + 1
 assert GSA.pos("hdop") == _GSA_PDOP + 1 and GSA.pos("vdop") == _GSA_PDOP + 2
-assert len(GSV.group) == 4  # _gsv_fields reads a satellite as four fields
+assert len(GSV.group) == 4  # _gsv_sats reads a satellite as four fields
+assert _GSV_SAT1 == _GSV_INVIEW + 1  # the head is the three fields before the satellites
 
 
 def _pynmea2() -> Any:
@@ -629,9 +630,13 @@ def _gsv_head(num: str, seq: str, in_view: str) -> tuple[int, int]:
 # One GSV satellite: PRN and its SatInfo as not used / used in the fix (GSA decides which
 # at emission; both are built once, so a sky report allocates no SatInfo in steady state).
 _Sat = tuple[int, SatInfo, SatInfo]
-# (PRN, elevation, azimuth, SNR) field strings -> _Sat. Bounded: noise makes new keys.
-_SATS: Final[dict[tuple[str, ...], _Sat]] = {}
+# A satellite's text "PRN,elevation,azimuth,SNR" -> _Sat. Bounded: noise makes new keys.
+_SATS: Final[dict[str, _Sat]] = {}
 _SATS_MAX: Final = 4096
+# A GSV's satellites are its fields from the fourth on, four each: one match per satellite
+# (its text; the comma after it consumed). A partial group at the end does not match: no
+# three commas follow any of its positions.
+_GSV_GROUP: Final = re.compile(r"([^,]*,[^,]*,[^,]*,[^,]*)(?:,|\Z)")
 
 
 def clear_memos() -> None:
@@ -641,9 +646,38 @@ def clear_memos() -> None:
     _parse_gsa.cache_clear()
 
 
-def _gsv_sat(group: tuple[str, ...]) -> _Sat:
-    """Decode and range-check one satellite (PRN not empty) of a GSV sentence; memoised."""
-    p, e, a, r = group
+def _gsv_sats(text: str) -> list[_Sat]:
+    """The satellites of a GSV sentence from the text of its fields from the first
+    satellite's on (``text``): groups of four fields; a group without a PRN is skipped. A
+    satellite cut short by the end of a sentence of fewer than four counts, with empty
+    fields; beyond four, NMEA 4.1 appends a signal id, and the partial group it makes is
+    dropped. A satellite's fields mostly repeat from earlier epochs (elevation and azimuth
+    move slowly, SNR jitters over a few values): each group is decoded once and memoised
+    by its text, so a sentence whose groups are all known is one lookup each."""
+    groups: list[str] = _GSV_GROUP.findall(text)
+    n_fields = text.count(",") + 1
+    if n_fields % 4 and n_fields < 16:
+        tail = text.split(",")[4 * len(groups) :]
+        groups.append(",".join(tail + [""] * (4 - len(tail))))
+    found = list(map(_SATS.get, groups))
+    if None not in found:
+        return cast("list[_Sat]", found)
+    sats = []
+    for group in groups:
+        sat = _SATS.get(group)
+        if sat is None:
+            fields = group.split(",")
+            if not fields[0]:  # no PRN: not a satellite
+                continue
+            sat = _gsv_sat(group, fields)
+        sats.append(sat)
+    return sats
+
+
+def _gsv_sat(key: str, fields: list[str]) -> _Sat:
+    """Decode and range-check one satellite (PRN not empty) of a GSV sentence: its four
+    ``fields``, memoised under their text ``key``."""
+    p, e, a, r = fields
     if e and a and r and (p + e + a + r).isdigit():
         # Fast path for the usual all-integer group (the sentence is ASCII, see _decode).
         prn, el, az, snr = int(p), float(e), float(a), float(r)
@@ -657,7 +691,7 @@ def _gsv_sat(group: tuple[str, ...]) -> _Sat:
         sat = (prn_, SatInfo(prn_, el_, az_, snr_, False), SatInfo(prn_, el_, az_, snr_, True))
     if len(_SATS) >= _SATS_MAX:
         _SATS.clear()
-    _SATS[group] = sat
+    _SATS[key] = sat
     return sat
 
 
@@ -718,7 +752,7 @@ class DecoderCounters:
 
 _GGA_MEMORY_EPOCHS: Final = 3  # RMC cycles without GGA before a stream counts as RMC-only
 _Handler = Callable[[str, list[str], float, list[GpsOutput]], None]
-_Route = tuple[str, _Handler | None, int]
+_Route = tuple[str, _Handler | None, int, int]
 
 
 class GpsDecoder:
@@ -762,17 +796,19 @@ class GpsDecoder:
         self._midnight_day: date | None = None
         self._midnight = datetime(1970, 1, 1, tzinfo=UTC)
         # Field handlers by sentence type, with the number of fields each reads (shorter
-        # sentences are padded with empty fields); other known types need none.
-        self._handlers: dict[str, tuple[_Handler, int]] = {
-            # GSV: up to its first satellite (_gsv_fields completes a satellite cut short).
-            "GSV": (self._gsv_fields, _GSV_SAT1),
-            "GGA": (self._gga_fields, _GGA_SEP + 1),
-            "RMC": (self._rmc_fields, _RMC_DATE + 1),
-            "GSA": (self._gsa_fields, _GSA_PDOP + 3),
-            "GLL": (self._gll_fields, _GLL_TIME + 1),
-            "ZDA": (self._zda_fields, _ZDA_DAY + 3),
+        # sentences are padded with empty fields) and the most splits its fields need (-1:
+        # every field); other known types need none.
+        self._handlers: dict[str, tuple[_Handler, int, int]] = {
+            # GSV: its three head fields, then the text of its satellites (_gsv_sats).
+            "GSV": (self._gsv_fields, _GSV_SAT1, _GSV_SAT1),
+            "GGA": (self._gga_fields, _GGA_SEP + 1, -1),
+            "RMC": (self._rmc_fields, _RMC_DATE + 1, -1),
+            "GSA": (self._gsa_fields, _GSA_PDOP + 3, -1),
+            "GLL": (self._gll_fields, _GLL_TIME + 1, -1),
+            "ZDA": (self._zda_fields, _ZDA_DAY + 3, -1),
         }
-        # Sentence head (text[1:7], "GPGGA,") -> (talker, handler or None, fields it reads),
+        # Sentence head (text[1:7], "GPGGA,") -> (talker, handler or None, fields it reads,
+        # splits),
         # or None where pynmea2.parse must decide: _HEADS joined with _handlers, per decoder.
         self._routes: dict[str, _Route | None] = {}
 
@@ -887,11 +923,11 @@ class GpsDecoder:
                 except KeyError:
                     route = self._route(key)
                 if route is not None:
-                    talker, handler, fields_needed = route
+                    talker, handler, fields_needed, splits = route
                     if handler is None:  # a known type whose fields are not read
                         n_decoded += 1
                         continue
-                    d = text[7:-3].split(",")
+                    d = text[7:-3].split(",", splits)
                 else:
                     pynmea2 = _pynmea2()
                     try:
@@ -909,7 +945,9 @@ class GpsDecoder:
                     if entry is None:
                         n_decoded += 1
                         continue
-                    handler, fields_needed = entry
+                    handler, fields_needed, splits = entry
+                    if splits >= 0:
+                        d = ",".join(d).split(",", splits)
                 if len(d) < fields_needed:  # pynmea2 reads missing fields as empty
                     d += [""] * (fields_needed - len(d))
                 try:
@@ -931,8 +969,8 @@ class GpsDecoder:
         route: _Route | None = None
         if head is not None:
             talker, kind = head
-            handler, fields_needed = self._handlers.get(kind, (None, 0))
-            route = (talker, handler, fields_needed)
+            handler, fields_needed, splits = self._handlers.get(kind, (None, 0, -1))
+            route = (talker, handler, fields_needed, splits)
         if len(self._routes) >= _HEADS_MAX:
             self._routes.clear()
         self._routes[key] = route
@@ -1054,31 +1092,9 @@ class GpsDecoder:
         self._pdop, self._hdop_gsa, self._vdop = pdop, hdop, vdop
 
     def _gsv_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
+        # d: the three head fields and the text of the rest (split at most _GSV_SAT1 times)
         total, seq = _gsv_head(d[_GSV_NUM], d[_GSV_SEQ], d[_GSV_INVIEW])
-        # Groups of four fields. A satellite cut short by the end of a sentence of fewer
-        # than four counts, with empty fields; beyond four, NMEA 4.1 appends a signal id,
-        # and zip drops the partial group it makes.
-        body = d[_GSV_SAT1:]
-        n_fields = len(body)
-        if n_fields % 4 and n_fields < 16:
-            body += [""] * (4 - n_fields % 4)
-        # A satellite's fields mostly repeat from earlier epochs (elevation and azimuth
-        # move slowly, SNR jitters over a few values): each group is decoded once, and a
-        # sentence whose groups are all known is one lookup each.
-        groups = iter(body)
-        found = list(map(_SATS.get, zip(groups, groups, groups, groups, strict=False)))
-        if None not in found:
-            sats = cast("list[_Sat]", found)
-        else:
-            groups = iter(body)
-            sats = []
-            for group in zip(groups, groups, groups, groups, strict=False):
-                sat = _SATS.get(group)
-                if sat is None:
-                    if not group[0]:  # no PRN: not a satellite
-                        continue
-                    sat = _gsv_sat(group)
-                sats.append(sat)
+        sats = _gsv_sats(d[_GSV_SAT1]) if len(d) > _GSV_SAT1 else []
         if seq == 1:
             self._gsv_talker = talker
             self._gsv_sats = sats

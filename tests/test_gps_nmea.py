@@ -792,3 +792,37 @@ def test_leap_second_time_is_kept_in_its_own_day() -> None:
         datetime(2017, 1, 1, 0, 0, 0, tzinfo=UTC),
     ]
     assert dec.counters.invalid_fields == 0
+
+
+# A GSV's satellites, the plain way: all fields split, padded to four satellites and a
+# signal id, zipped in fours, groups without a PRN skipped. gps_nmea reads them by one match
+# per satellite, memoised by its text; the satellites must be the same.
+_gsv_field = st.sampled_from(
+    ["", "07", "12", "45", "90", "33", "5"] * 20  # mostly fine
+    + ["0", "99", "359", "1.5", "x", "-3", " 4", "1e2", "400"]
+)
+
+
+def _plain_gsv(fields: list[str]) -> list[tuple[str, ...]]:
+    body = fields + [""] * max(0, 20 - len(fields))
+    it = iter(body[3:])
+    return [g for g in zip(it, it, it, it, strict=False) if g[0]]
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(_gsv_field, min_size=0, max_size=24))
+def test_gsv_satellites_match_the_plain_split(sat_fields: list[str]) -> None:
+    fields = ["1", "1", "12", *sat_fields]
+    expected = []
+    try:
+        for g in _plain_gsv(fields):
+            expected.append(gps_nmea._gsv_sat(",".join(g), list(g))[1])
+    except ValueError:
+        expected = None  # a bad field rejects the sentence
+    gps_nmea.clear_memos()
+    for _ in range(2):  # cold, then from the memo
+        try:
+            got = [sat[1] for sat in gps_nmea._gsv_sats(",".join(fields[3:]))]
+        except ValueError:
+            got = None
+        assert got == expected
