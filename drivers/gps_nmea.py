@@ -169,11 +169,13 @@ _HEX: Final = frozenset(b"0123456789abcdefABCDEF")
 
 # The fast path: a run of strictly well-formed lines ("$body*HH" and CR LF or LF, at most
 # 128 bytes), which is what a healthy receiver or log sends, then possibly the start of the
-# next sentence up to the end of the data. Each line is exactly what the first alternative
-# of _SCAN matches, and the tail what its second one matches (up to the end, not too long,
-# so held), so the two paths frame identically; anything else goes through _SCAN.
+# next sentence up to the end of the data (possessive: the body's class excludes the '*'
+# that follows it, and the tail is optional, so giving back never helps). Each line is
+# exactly what the first alternative of _SCAN matches, and the tail what its second one
+# matches (up to the end, not too long, so held), so the two paths frame identically;
+# anything else goes through _SCAN.
 _RUN: Final = re.compile(
-    rb"((?:\$[^$\r\n\xb5*]{1,124}\*[0-9A-Fa-f]{2}\r?\n)*)(\$[^$\r\n\xb5]{0,%d}\Z)?"
+    rb"((?:\$[^$\r\n\xb5*]{1,124}+\*[0-9A-Fa-f]{2}\r?\n)*+)(\$[^$\r\n\xb5]{0,%d}\Z)?"
     % (MAX_SENTENCE_CHARS - 1)
 )
 
