@@ -183,7 +183,7 @@ def test_report_states_direction_and_validation(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "layer",
-    [NavFilter(10.0, order=2), NoiseScale(0.3, 10.0), StaticHold(0.3), Correction(2.2)],
+    [NavFilter(10.0, order=2), NoiseScale(0.3, 10.0), StaticHold(0.3), Correction(3.0)],
     ids=lambda e: e.name,
 )
 def test_pipeline_names_the_receiver_layer(layer: object, baseline: list[PositionSeries]) -> None:

@@ -63,7 +63,14 @@ from x6wd.gap.stats import (
     layout_for,
     window,
 )
-from x6wd.gap.validate import Band, Validation, direction_bands, direction_text, validate
+from x6wd.gap.validate import (
+    DIRECTION_Z,
+    Band,
+    Validation,
+    direction_bands,
+    direction_text,
+    validate,
+)
 
 # Every GPS effect the tool fits: those that add error (:mod:`x6wd.gap.fit`) and the
 # receiver-side layers that can also make the model quieter (:mod:`x6wd.gap.solution`).
@@ -269,7 +276,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
     def run(self, real: PositionSeries, baseline: Sequence[PositionSeries]) -> Diagnosis:
         """The shared pipeline, then the direction of the gap and the validation."""
         outcome = super().run(real, baseline)
-        outcome.direction = direction_bands(outcome.cells, outcome.z, outcome.threshold)
+        outcome.direction = direction_bands(outcome.cells, outcome.z, DIRECTION_Z)
         self.say("validating the simulator with the fitted effects", 0.99)
         with_effects = self.apply_fits(outcome.selected, self.runs)
         outcome.validation = validate(real, with_effects, self.layout.dt_s, self.layout.duration_s)
