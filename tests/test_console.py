@@ -677,6 +677,11 @@ def test_a_whole_hil_mission_driven_from_the_page(
     wait_for(lambda: text(browser, "mode") == "RUNNING", 10, "running")
     wait_for(lambda: js(browser, "return x6wd.track.length") > 20, 20, "a track")
     shot(browser, tmp_path, "mission-running.png")
+    browser.find_element(By.ID, "btn-pause").click()
+    wait_for(lambda: text(browser, "mode") == "PAUSED", 10, "paused")
+    wait_for(lambda: vehicle_pct(robot) == (0.0, 0.0), 3, "motors stopped while paused")
+    browser.find_element(By.ID, "btn-resume").click()
+    wait_for(lambda: text(browser, "mode") == "RUNNING", 10, "resumed")
     wait_for(lambda: text(browser, "state") == "MISSION_DONE", 60, "the mission done")
     assert text(browser, "mode") == "DONE"
     with RemoteClient("127.0.0.1", robot.port) as c:
@@ -688,6 +693,13 @@ def test_a_whole_hil_mission_driven_from_the_page(
     browser.find_element(By.ID, "btn-fit").click()
     time.sleep(0.3)
     shot(browser, tmp_path, "mission-done.png")
+    # Return drives back to the launch point; STOP ends it there and then
+    browser.find_element(By.ID, "btn-return").click()
+    wait_for(lambda: js(browser, "return x6wd.tel.extra.returning") == "return", 10, "returning")
+    assert text(browser, "mode") == "RUNNING"
+    browser.find_element(By.ID, "btn-stop").click()
+    wait_for(lambda: text(browser, "mode") == "IDLE", 10, "stopped")
+    wait_for(lambda: vehicle_pct(robot) == (0.0, 0.0), 3, "motors stopped")
 
 
 # -- the dead-man ----------------------------------------------------------------------------------
