@@ -693,6 +693,11 @@ def test_a_whole_hil_mission_driven_from_the_page(
     browser.find_element(By.ID, "btn-fit").click()
     time.sleep(0.3)
     shot(browser, tmp_path, "mission-done.png")
+    # a page opened now draws the track so far (the console kept it)
+    open_page(browser, robot)
+    page_ready(browser)
+    assert js(browser, "return x6wd.track.length") > 20
+    assert robot.daemon.console is not None and len(robot.daemon.console.track) > 20
     # Return drives back to the launch point; STOP ends it there and then
     browser.find_element(By.ID, "btn-return").click()
     wait_for(lambda: js(browser, "return x6wd.tel.extra.returning") == "return", 10, "returning")

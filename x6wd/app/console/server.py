@@ -23,6 +23,7 @@ import asyncio
 import collections
 import contextlib
 import logging
+import math
 import ssl
 import time
 from collections.abc import Callable
@@ -58,6 +59,11 @@ SEND_TIMEOUT_S = 10.0
 MAP_CHECK_S = 0.5
 """How often (s) the mission, launch point and geofence are compared with what pages have."""
 STOP_LINE = b'{"id":null,"cmd":"stop"}'
+TRACK_POINTS = 5000
+"""Positions the console keeps for a page opened later (the robot's track, oldest dropped)."""
+TRACK_STEP_M = 0.5
+"""A position is kept when it is this far (m) from the last one kept."""
+M_PER_DEG = 111_195.0  # mean metres per degree of latitude: the track's thinning only
 
 
 @dataclass(eq=False)
@@ -133,6 +139,7 @@ class ConsoleServer:
         self.port = 0
         self.dropped_total = 0
         self.deadman_stops = 0
+        self.track: collections.deque[tuple[float, float]] = collections.deque(maxlen=TRACK_POINTS)
 
     @property
     def url(self) -> str:
@@ -188,7 +195,25 @@ class ConsoleServer:
     # -- events (from the daemon, on this loop) --------------------------------------------------
     def publish(self, event: dict[str, Any]) -> None:
         """A control-server event (``telemetry``, ``state``) for every authenticated page."""
+        if event.get("event") == "telemetry":
+            self._keep_track(event.get("data") or {})
         self._broadcast(event)
+
+    def _keep_track(self, tel: dict[str, Any]) -> None:
+        """The navigation position every ``TRACK_STEP_M``: a page opened mid-mission draws
+        the track so far."""
+        lat, lon = tel.get("filt_lat_deg"), tel.get("filt_lon_deg")
+        if lat is None or lon is None:
+            lat, lon = tel.get("lat_deg"), tel.get("lon_deg")
+        if lat is None or lon is None:
+            return
+        if self.track:
+            lat0, lon0 = self.track[-1]
+            dn = (lat - lat0) * M_PER_DEG
+            de = (lon - lon0) * M_PER_DEG * math.cos(math.radians(lat0))
+            if dn * dn + de * de < TRACK_STEP_M * TRACK_STEP_M:
+                return
+        self.track.append((float(lat), float(lon)))
 
     def publish_sky(self, sky: GpsSky) -> None:
         """Satellites in view, for the page's sky table."""
@@ -283,7 +308,7 @@ class ConsoleServer:
         sender = asyncio.create_task(self._sender(page))
         self._reply(page, self._welcome())
         if client.authenticated:
-            self._send_map(page, self._map_view())
+            self._authenticated(page)
         try:
             await self._read_loop(page)
         finally:
@@ -295,6 +320,12 @@ class ConsoleServer:
             with contextlib.suppress(Exception):
                 await ws.close()
         return ws
+
+    def _authenticated(self, page: _Page) -> None:
+        """What a page gets once it may see the robot: the map, then the track so far."""
+        self._send_map(page, self._map_view())
+        points = [[lat, lon] for lat, lon in self.track]
+        self._event(page, encode({"event": "track", "points": points}).decode())
 
     def _make_room(self) -> bool:
         """A full console closes its oldest page that has not authenticated (pages that
@@ -333,7 +364,7 @@ class ConsoleServer:
             reply, wait_s = await self._request(page, line)
             self._reply(page, reply)
             if c.authenticated and not was_authenticated:
-                self._send_map(page, self._map_view())
+                self._authenticated(page)
             if c.close_reason:
                 notice = error_reply(None, "closed", "too many failed authentications")
                 notice["error"]["reason"] = c.close_reason

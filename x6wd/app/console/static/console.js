@@ -98,6 +98,7 @@
     if (m.event === "state") return say("state " + m.old + " → " + m.new + " (" + m.reason + ")");
     if (m.event === "sky") { S.sky = m; return renderSky(); }
     if (m.event === "map") return onMap(m);
+    if (m.event === "track") return onTrack(m.points);
     if (m.ok === false && m.error) say(m.error.message, true); // e.g. the closing notice
   }
   function onWelcome(m) {
@@ -239,6 +240,12 @@
     }
     if (changed && !S.dirty) S.draft = m.waypoints.map((p) => p.slice());
     renderMission();
+  }
+  // the track the daemon kept before this page opened (after the map: the frame is set)
+  function onTrack(points) {
+    if (!points.length) return;
+    if (!S.origin) S.origin = points[0];
+    S.track = points.map((p) => toLocal(p[0], p[1])).concat(S.track);
   }
   function setDraft(points) {
     S.draft = points;
