@@ -192,7 +192,7 @@ def test_cli_with_one_sim_log_uses_bootstrap(tmp_path: Path) -> None:
     assert code == 0
     rep = json.loads((out / "report.json").read_text())
     assert rep["verdict"]["effect"] == "bias"
-    assert "block bootstrap" in (out / "report.md").read_text()
+    assert "made of their innovations" in (out / "report.md").read_text()
     toml = (out / "effects.toml").read_text()
     assert 'name = "bias"' in toml
     import tomllib
@@ -505,3 +505,72 @@ def test_blas_pinned_to_one_thread_unless_the_user_chose(monkeypatch: pytest.Mon
     single_thread_blas()
     assert os.environ["OPENBLAS_NUM_THREADS"] == "2"
     assert all(os.environ[v] == "1" for v in BLAS_THREAD_VARS if v != "OPENBLAS_NUM_THREADS")
+
+
+# --- the null of a few sim logs (issue 15) ---------------------------------------------------
+
+SLOW = (
+    *PRE,
+    GaussMarkov(sigma_m=1.0, tau_s=2500.0, axes="en"),
+)  # a slow error, as the GNSS model's
+
+
+def test_innovations_whiten_and_colour_are_inverse_on_irregular_steps_and_outages() -> None:
+    from x6wd.gap.noise import AxisLaw, colour, whiten
+
+    rng = np.random.default_rng(3)
+    t_s = np.cumsum(rng.choice([1.0, 1.0, 2.0, 5.0], 400))
+    y_m = np.cumsum(rng.standard_normal(400)) * 0.1
+    law = AxisLaw(np.array([0.3, 1.0]), np.array([15.0, 2000.0]), 0.05, 0.2)
+    e = whiten(law, t_s, y_m, np.ones(400, dtype=bool))
+    assert np.allclose(colour(law, t_s, e[None, :])[0], y_m, atol=1e-9)
+    # on draws of the law itself the innovations are white and standard
+    draws = colour(law, t_s, rng.standard_normal((1, 400)))[0]
+    valid = rng.random(400) > 0.1
+    e = whiten(law, t_s, draws, valid)
+    assert np.isnan(e[~valid]).all()
+    assert abs(np.nanstd(e) - 1.0) < 0.1 and abs(np.nanmean(e)) < 0.15
+
+
+def test_few_logs_null_has_no_joins_and_the_spread_of_independent_runs() -> None:
+    # With three sim logs the null used to be raw blocks of them spliced together: each join
+    # a fake step of the slow error's size, which the step-tail and random-walk statistics
+    # read as an effect. Replicates made of the logs' innovations have the logs' step law,
+    # and the spread of independent runs.
+    from x6wd.gap.noise import few_logs_null
+
+    slow = [*SLOW, Quantization(5)]
+    runs = [
+        surrogate_run(HOUR_S, 1.0, np.random.default_rng(900 + i), effects=slow) for i in range(19)
+    ]
+    lay = layout_for(runs[0])
+    reps, inflation = few_logs_null(runs[:3], runs[3], lay, 20, np.random.default_rng(0))
+    assert all(len(r) == len(runs[3]) and np.array_equal(r.t_s, runs[3].t_s) for r in reps)
+    tail = Cell("step_tail", "east")
+    step_sd = Cell("log_step_std", "north")
+    indep = [battery(r, lay) for r in runs[3:]]
+    ours = [battery(r, lay) for r in reps]
+    spliced = [
+        battery(r, lay) for r in block_bootstrap(runs[:3], 20, np.random.default_rng(0), 900.0)
+    ]
+    for cell in (tail, step_sd):
+        ref = np.array([b[cell] for b in indep])
+        got = np.array([b[cell] for b in ours])
+        assert abs(got.mean() - ref.mean()) < 1.5 * ref.std(ddof=1)
+        assert 0.6 < got.std(ddof=1) / ref.std(ddof=1) < 1.7
+    # the spliced null's step tail sits far above independent runs (the joins)
+    assert np.mean([b[tail] for b in spliced]) > np.mean([b[tail] for b in indep]) + 0.3
+    assert all(1.0 < f < 3.0 for f in inflation.values())
+
+
+def test_inflation_is_one_for_null_draws_and_the_excess_spread_otherwise() -> None:
+    from x6wd.gap.null import inflation_from
+
+    rng = np.random.default_rng(2)
+    cells = [Cell("log_adev", "east", f"tau={i}s") for i in range(30)] + [Cell("mean", "up")]
+    ok = inflation_from(cells, rng.standard_normal((3, 31)), 3)
+    assert all(math.sqrt(4 / 3) <= f < 1.3 for f in ok.values())
+    z = rng.standard_normal((3, 31))
+    z[:, :30] *= 2.0
+    wide = inflation_from(cells, z, 3)
+    assert 1.6 < wide[("log_adev", "east")] < 2.5

@@ -40,8 +40,8 @@ from x6wd.gap.drift import (
 from x6wd.gap.fit import EFFECTS as ERROR_EFFECTS
 from x6wd.gap.fit import SIM_REFIT
 from x6wd.gap.fitted import Fit
-from x6wd.gap.noise import noise_model
-from x6wd.gap.null import block_bootstrap, null_model
+from x6wd.gap.noise import few_logs_null, noise_model
+from x6wd.gap.null import Inflation, block_bootstrap, null_model
 from x6wd.gap.pipeline import (
     EXPLAINED_CLOSURE,
     Battery,
@@ -313,11 +313,26 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
     ) -> list[PositionSeries]:
         return block_bootstrap(runs, n_out, self.rng, block_s, template=template)
 
+    def few_logs_null(
+        self,
+        runs: Sequence[PositionSeries],
+        n_out: int,
+        block_s: float,
+        template: PositionSeries,
+    ) -> tuple[list[PositionSeries], Inflation | None]:
+        # the logs' innovations through their noise model, resampled at the same times:
+        # blocks of the logs themselves spliced raw would put a fake jump at every join
+        return few_logs_null(runs, template, self.layout, n_out, self.rng)
+
     def bootstrap_note(self, n_logs: int, block_s: float) -> str:
+        inflation = self.inflation or {}
         return (
-            f"baseline: {n_logs} sim log(s), null from a circular block bootstrap "
-            f"({self.options.replicates} replicates, blocks of {block_s:.0f} s): slower drifts "
-            "than a block are under-represented, so treat long-scale cells with care"
+            f"baseline: {n_logs} sim log(s), fewer than {self.options.min_runs}: the null is "
+            f"{self.options.replicates} replicates made of their innovations (whitened by a "
+            "noise model fitted to them, resampled at the same times, coloured again; no "
+            "joins), its spreads widened by up to "
+            f"{max(inflation.values(), default=1.0):.2f}x where the logs themselves vary more "
+            "than the replicates; more sim logs give more power"
         )
 
     def prepare(self, runs: Sequence[PositionSeries]) -> None:

@@ -16,7 +16,8 @@ import numpy as np
 
 from sim_backend.effects import PositionSeries
 from x6wd.gap.fitted import IdentityCache
-from x6wd.gap.stats import Layout, regular
+from x6wd.gap.null import Inflation, inflation_from, null_model
+from x6wd.gap.stats import Cell, Layout, regular
 
 BASE_COMPONENTS = 2  # Gauss-Markov components of the baseline noise model (plus white noise)
 WHITE_FLOOR_M = 1e-3  # keeps the innovation variance positive when a run is exactly constant
@@ -105,9 +106,14 @@ def fit_noise_model(baseline: Sequence[PositionSeries], layout: Layout) -> Noise
 
     # log-parameters: K correlation times shared by the two axes (the same physical
     # processes), then per axis K sigmas and the white noise
+    # Without the zero-frequency term (one run) a component slower than the log is not
+    # identified (only sigma^2 / tau is): no correlation time beyond the log, rather than an
+    # arbitrary one far beyond it.
+    tau_cap_s = 100 * span_s if zero_freq_m2 is not None else span_s
+
     def unpack(log_params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         log_params = np.clip(log_params, -25.0, 25.0)  # keeps a wild line-search step finite
-        tau_s = np.minimum(np.exp(log_params[:k]), 100 * span_s)
+        tau_s = np.minimum(np.exp(log_params[:k]), tau_cap_s)
         sigma_m = np.exp(log_params[k:].reshape(2, k + 1))
         return tau_s, sigma_m[:, :k], sigma_m[:, k]
 
@@ -174,3 +180,220 @@ def noise_model(baseline: Sequence[PositionSeries], layout: Layout) -> NoiseMode
     return _NOISE_CACHE.get(
         baseline, (round(layout.duration_s),), lambda: fit_noise_model(baseline, layout)
     )
+
+
+# --- the null of a few baseline logs: their innovations through the noise model ----------------
+#
+# With fewer sim logs than an ensemble needs, replicates are made by the innovations
+# representation of each axis' noise model (two Gauss-Markov components + white noise): a log
+# is whitened by the model's Kalman filter, its standardised innovations are resampled in
+# blocks taken at the SAME times from the given logs (the sky, hence the noise level and the
+# satellite-set changes, is a function of time), and the filter's recursion colours them
+# again. Innovations are nearly white, so a join is no jump; the slow error is regenerated
+# whole by the recursion instead of being cut and spliced (a raw join of two logs is a fake
+# step of the slow error's size, ~1.5 m on the GNSS model, which every step, walk and drift
+# statistic reads as an effect). Heavy tails, satellite changes and fix losses of the logs
+# survive. What the model's spread still misses (its parameters come from a few logs) is
+# measured on the logs themselves, each scored against replicates of the others, and widens
+# the null's spread (:func:`x6wd.gap.null.inflation_from`).
+
+
+@dataclass(frozen=True)
+class AxisLaw:
+    """One axis' law: Gauss-Markov components ``sigma_m``/``tau_s`` (2,), white noise
+    ``white_m`` and mean ``mean_m`` (m, s)."""
+
+    sigma_m: np.ndarray
+    tau_s: np.ndarray
+    white_m: float
+    mean_m: float
+
+
+def axis_laws(logs: Sequence[PositionSeries], layout: Layout) -> list[AxisLaw]:
+    """The laws of east, north (one :class:`NoiseModel`) and, when the layout has it, up
+    (the same model fitted to the vertical), fitted to ``logs``."""
+    models = [(fit_noise_model(logs, layout), (0, 1))]
+    if layout.has_up:
+        ups = [s.with_(east_m=np.asarray(s.up_m), north_m=np.asarray(s.up_m)) for s in logs]
+        models.append((fit_noise_model(ups, layout), (0,)))
+    return [
+        AxisLaw(m.sigma_m[a], m.tau_s[a], float(m.white_m[a]), float(m.mean_m[a]))
+        for m, axes in models
+        for a in axes
+    ]
+
+
+def _gains(law: AxisLaw, dt_s: np.ndarray, update: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The Kalman filter of ``law`` over steps ``dt_s`` (n - 1,) with measurement updates
+    where ``update`` (n,): per epoch the innovation spread sqrt(S) and the gains k1, k2 of
+    the two components, and per step the transitions phi1, phi2. The gains do not depend on
+    the data: computed once, used to whiten and to colour."""
+    n = update.size
+    phi = np.exp(-np.asarray(dt_s)[None, :] / law.tau_s[:, None])  # (2, n-1)
+    q = law.sigma_m[:, None] ** 2 * (1.0 - phi * phi)
+    r = law.white_m**2
+    p11, p12, p22 = float(law.sigma_m[0] ** 2), 0.0, float(law.sigma_m[1] ** 2)
+    sd = np.ones(n)
+    k1 = np.zeros(n)
+    k2 = np.zeros(n)
+    phi1, phi2, q1, q2 = phi[0].tolist(), phi[1].tolist(), q[0].tolist(), q[1].tolist()
+    for t in range(n):
+        if update[t]:
+            s_t = p11 + 2.0 * p12 + p22 + r
+            a, b = (p11 + p12) / s_t, (p12 + p22) / s_t
+            sd[t], k1[t], k2[t] = math.sqrt(s_t), a, b
+            p11, p12, p22 = p11 - a * a * s_t, p12 - a * b * s_t, p22 - b * b * s_t
+        if t < n - 1:
+            f1, f2 = phi1[t], phi2[t]
+            p11, p12, p22 = f1 * f1 * p11 + q1[t], f1 * f2 * p12, f2 * f2 * p22 + q2[t]
+    return sd, k1, k2, phi[0], phi[1]
+
+
+def whiten(law: AxisLaw, t_s: np.ndarray, y_m: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Standardised innovations of ``y_m`` under ``law`` (NaN where not ``valid``)."""
+    sd, k1, k2, phi1, phi2 = _gains(law, np.diff(t_s), valid)
+    x1 = x2 = 0.0
+    out = np.full(y_m.size, np.nan)
+    for t, y in enumerate((np.asarray(y_m, dtype=float) - law.mean_m).tolist()):
+        if valid[t]:
+            e = y - x1 - x2
+            out[t] = e / sd[t]
+            x1, x2 = x1 + k1[t] * e, x2 + k2[t] * e
+        if t < y_m.size - 1:
+            x1, x2 = phi1[t] * x1, phi2[t] * x2
+    return out
+
+
+def colour(law: AxisLaw, t_s: np.ndarray, innovations: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`whiten` with every epoch updated: series (rows of
+    ``innovations``, standardised; NaN drawn afresh from N(0, 1) by the caller) of ``law``."""
+    n = t_s.size
+    sd, k1, k2, phi1, phi2 = _gains(law, np.diff(t_s), np.ones(n, dtype=bool))
+    x1 = np.zeros(innovations.shape[0])
+    x2 = np.zeros_like(x1)
+    out = np.empty_like(innovations)
+    for t in range(n):
+        e = sd[t] * innovations[:, t]
+        out[:, t] = x1 + x2 + e
+        x1, x2 = x1 + k1[t] * e, x2 + k2[t] * e
+        if t < n - 1:
+            x1, x2 = phi1[t] * x1, phi2[t] * x2
+    return out + law.mean_m
+
+
+def lattice_decimals(logs: Sequence[PositionSeries]) -> int | None:
+    """The coarsest NMEA minute lattice every one of ``logs`` lies on (None: none)."""
+    from x6wd.gap.stats import QUANT_DECIMALS, lattice_fraction
+
+    for decimals in QUANT_DECIMALS:
+        if all(lattice_fraction(s, decimals) >= 0.99 for s in logs):
+            return decimals
+    return None
+
+
+def _on(template_t_s: np.ndarray, log: PositionSeries) -> np.ndarray:
+    """Index into ``log`` of the epoch at the same time from the start as each template
+    epoch (nearest; cyclic when the log is shorter)."""
+    t_s = np.asarray(log.t_s, dtype=float)
+    rel_s = np.mod(template_t_s - template_t_s[0], max(t_s[-1] - t_s[0], 1e-9) + 1e-9)
+    return np.clip(np.searchsorted(t_s - t_s[0], rel_s - 1e-9), 0, t_s.size - 1)
+
+
+AXES = ("east_m", "north_m", "up_m")
+
+
+def innovation_replicates(
+    logs: Sequence[PositionSeries],
+    laws: Sequence[AxisLaw],
+    template: PositionSeries,
+    n_out: int,
+    block_s: float,
+    jitter_s: float,
+    rng: np.random.Generator,
+    decimals: int | None,
+) -> list[PositionSeries]:
+    """``n_out`` replicates on ``template``'s times: the laws' recursion driven by the
+    ``logs``' standardised innovations, in blocks of ``block_s`` each from one log at about
+    the same times (shifted by up to ``jitter_s``, so that n logs offer more than n choices;
+    its fix losses and satellite counts come with it), printed on the logs' lattice."""
+    t_s = np.asarray(template.t_s, dtype=float)
+    n = t_s.size
+    index = [_on(t_s, log) for log in logs]
+    valid_of = [np.asarray(log.valid, dtype=bool)[ix] for log, ix in zip(logs, index, strict=True)]
+    shocks = []  # per log, (axes, n): its innovations at the template's times
+    for log, ix in zip(logs, index, strict=True):
+        v = np.asarray(log.valid, dtype=bool)
+        rows = [
+            whiten(law, np.asarray(log.t_s, dtype=float), np.asarray(getattr(log, ax)), v)[ix]
+            for law, ax in zip(laws, AXES, strict=False)
+        ]
+        shocks.append(np.array(rows))
+    dt_s = float(np.median(np.diff(t_s))) if n > 1 else 1.0
+    block = max(2, round(block_s / dt_s))
+    jitter = max(0, round(jitter_s / dt_s))
+    n_blocks = -(-n // block)
+    # per epoch of each replicate: the log and the epoch its innovations come from
+    src_log = np.repeat(rng.integers(len(logs), size=(n_out, n_blocks)), block, axis=1)[:, :n]
+    shift = np.repeat(rng.integers(-jitter, jitter + 1, size=(n_out, n_blocks)), block, axis=1)
+    src_t = (np.arange(n)[None, :] + shift[:, :n]) % n
+    stacked = np.array(shocks)  # (logs, axes, n)
+    e = np.moveaxis(stacked[src_log, :, src_t], -1, 0)  # (axes, n_out, n)
+    valid = np.array(valid_of)[src_log, src_t]
+    nsats = None
+    if all(log.nsats is not None for log in logs):
+        counts = np.array([np.asarray(log.nsats)[ix] for log, ix in zip(logs, index, strict=True)])
+        nsats = counts[src_log, src_t]
+    missing = ~np.isfinite(e)
+    e[missing] = rng.standard_normal(int(missing.sum()))
+    paths = [colour(law, t_s, e[a]) for a, law in enumerate(laws)]
+    if len(paths) < 3:
+        paths.append(np.zeros((n_out, n)))
+    out = []
+    for j in range(n_out):
+        series = template.with_(
+            east_m=paths[0][j], north_m=paths[1][j], up_m=paths[2][j], valid=valid[j],
+            nsats=None if nsats is None else nsats[j],
+        )  # fmt: skip
+        if decimals is not None:
+            from sim_backend.effects import Quantization
+
+            series = Quantization(decimals=decimals).apply(series, rng)
+        out.append(series)
+    return out
+
+
+def few_logs_null(
+    logs: Sequence[PositionSeries],
+    template: PositionSeries,
+    layout: Layout,
+    n_out: int,
+    rng: np.random.Generator,
+    block_s: float | None = None,
+    jitter_s: float | None = None,
+) -> tuple[list[PositionSeries], Inflation]:
+    """The null ensemble of a few baseline ``logs`` (see the section's comment): ``n_out``
+    replicates on ``template``'s times and the spread factors that make it honest
+    (:func:`x6wd.gap.null.inflation_from`: each log scored against replicates of the
+    others; with one log only the floor). ``block_s`` the innovation blocks (default 1/30 of the
+    log, at least 30 steps), ``jitter_s`` how far from the same time a block may come
+    (default 1/12 of the log): innovations at exactly the same times of n logs would give
+    only n choices per epoch, and replicates that cluster around the logs' own values."""
+    from x6wd.gap.stats import battery
+
+    block_s = block_s or max(layout.duration_s / 30.0, 30 * layout.dt_s)
+    jitter_s = layout.duration_s / 12.0 if jitter_s is None else jitter_s
+    decimals = lattice_decimals(logs)
+    runs = innovation_replicates(
+        logs, axis_laws(logs, layout), template, n_out, block_s, jitter_s, rng, decimals
+    )
+    rows = []
+    cells: tuple[Cell, ...] = ()
+    for i, log in enumerate(logs if len(logs) > 1 else []):
+        others = [s for j, s in enumerate(logs) if j != i]
+        draws = innovation_replicates(
+            others, axis_laws(others, layout), log, n_out, block_s, jitter_s, rng, decimals
+        )
+        null = null_model([battery(s, layout) for s in draws])
+        cells = null.cells
+        rows.append(null.z(battery(log, layout)))
+    return runs, inflation_from(cells, np.array(rows), len(logs))

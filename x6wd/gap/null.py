@@ -76,6 +76,10 @@ class NullModel:
     mean: np.ndarray
     sd: np.ndarray
     threshold: float
+    # Per-cell factor (>= 1) on the spread a real log is scored with (z, G), where the
+    # replicates are draws from a model fitted to a few logs: the model's own spread misses
+    # the parameter uncertainty and its misfit (:func:`inflation_from`). None: 1.
+    inflation: np.ndarray | None = None
 
     @property
     def n_runs(self) -> int:
@@ -87,7 +91,8 @@ class NullModel:
         values = np.array(
             [battery.get(c, mean) for c, mean in zip(self.cells, self.mean, strict=True)]
         )
-        return (values - self.mean) / self.sd
+        sd = self.sd if self.inflation is None else self.sd * self.inflation
+        return (values - self.mean) / sd
 
     def gap(self, battery: dict[Cell, float], ref_sd: np.ndarray | None = None) -> float:
         """G: mean over the cells of clipped z^2 + 2 log(sd / ref_sd), i.e. twice the Gaussian
@@ -108,9 +113,60 @@ def _floors(cells: Sequence[Cell]) -> np.ndarray:
     return np.array([SD_FLOOR.get(c.statistic, 0.01) for c in cells])
 
 
-def null_model(batteries: Sequence[dict[Cell, float]], alpha: float = 0.05) -> NullModel:
+# Spread factors by (statistic, axis); the key ("*", "*") holds the factor of any other cell.
+Inflation = dict[tuple[str, str], float]
+INFLATION_PRIOR = 6.0  # pseudo-cells of the global factor each group's factor is shrunk with
+
+
+def inflation_from(cells: Sequence[Cell], z: np.ndarray, n_logs: int) -> Inflation:
+    """Spread factors for a null made of ``n_logs`` logs, from the z (rows: those logs,
+    columns: ``cells``) of each log scored against replicates made WITHOUT it (leave-one-out).
+
+    Every replicate is made of the logs' own material, so its cells sit near the logs'
+    average: a new log differs from that average by its own spread and the average's, a
+    factor sqrt(1 + 1/n) the replicates' spread cannot show (the prediction interval of one
+    more draw); that is the floor. Where the logs vary more than that (a misfit of the noise
+    model, the uncertainty of its parameters), their leave-one-out z^2, rescaled from n - 1
+    logs to n, says by how much: pooled by (statistic, axis) and shrunk toward the mean over
+    all cells (``INFLATION_PRIOR`` pseudo-cells), so that a group of a few cells seen on two
+    or three logs is not taken at its word."""
+    n = max(int(n_logs), 1)
+    floor = math.sqrt(1.0 + 1.0 / n)
+    # a cell the logs were not scored on (a whole-log likelihood cell with its own floor)
+    out: Inflation = {("*", "*"): floor}
+    if n < 2:
+        return out  # scored against their own replicates: no measure of the excess
+    z2 = np.asarray(z, dtype=float) ** 2 * (1.0 + 1.0 / n) / (1.0 + 1.0 / (n - 1))
+    z2 = np.where(np.isfinite(z2), z2, np.nan)
+    overall = float(np.nanmean(z2)) if np.any(np.isfinite(z2)) else 1.0
+    groups: dict[tuple[str, str], list[int]] = {}
+    for j, c in enumerate(cells):
+        groups.setdefault((c.statistic, c.axis), []).append(j)
+    for key, cols in groups.items():
+        values = z2[:, cols]
+        values = values[np.isfinite(values)]
+        mean_z2 = (float(np.sum(values)) + INFLATION_PRIOR * overall) / (
+            values.size + INFLATION_PRIOR
+        )
+        out[key] = max(floor, math.sqrt(mean_z2))
+    return out
+
+
+def _inflation_array(cells: Sequence[Cell], inflation: Inflation | None) -> np.ndarray | None:
+    if inflation is None:
+        return None
+    default = inflation.get(("*", "*"), 1.0)
+    return np.array([inflation.get((c.statistic, c.axis), default) for c in cells])
+
+
+def null_model(
+    batteries: Sequence[dict[Cell, float]],
+    alpha: float = 0.05,
+    inflation: Inflation | None = None,
+) -> NullModel:
     """Calibrate the battery on M >= 3 replicate batteries; ``alpha`` the family-wise error
-    rate of the "where" threshold."""
+    rate of the "where" threshold; ``inflation`` the spread factors of a parametric null
+    (:func:`inflation_from`; None for replicates that are runs of the simulator)."""
     if len(batteries) < 3:
         raise ConfigError(
             f"null calibration needs at least 3 baseline replicates, got {len(batteries)}"
@@ -128,7 +184,9 @@ def null_model(batteries: Sequence[dict[Cell, float]], alpha: float = 0.05) -> N
     )
     loo_max = loo_max_z(values, cells)
     quantile = float(np.quantile(loo_max, 1.0 - alpha)) if loo_max.size else 0.0
-    return NullModel(cells, values, mean, spread, max(bonferroni, quantile))
+    return NullModel(
+        cells, values, mean, spread, max(bonferroni, quantile), _inflation_array(cells, inflation)
+    )
 
 
 def _loo_z(values: np.ndarray, cells: Sequence[Cell], i: int) -> np.ndarray:
@@ -179,7 +237,9 @@ def resample_null(model: NullModel, rng: np.random.Generator) -> NullModel:
         values.std(axis=0, ddof=1) * math.sqrt(model.n_runs / (model.n_runs - 1)),
         _floors(model.cells),
     )
-    return NullModel(model.cells, values, values.mean(axis=0), spread, model.threshold)
+    return NullModel(
+        model.cells, values, values.mean(axis=0), spread, model.threshold, model.inflation
+    )
 
 
 def closure_ci(

@@ -34,7 +34,7 @@ import numpy as np
 
 from x6wd.core.errors import ConfigError
 from x6wd.gap.fitted import Fit
-from x6wd.gap.null import NullModel, closure_ci, closure_of, null_model
+from x6wd.gap.null import Inflation, NullModel, closure_ci, closure_of, null_model
 from x6wd.gap.stats import Cell
 
 Progress = Callable[[str, float], None]
@@ -305,6 +305,8 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         self.layout: LayoutT
         self.runs: list[SeriesT] = []
         self.split: Split[SeriesT, LayoutT]
+        # spread factors of a parametric null (few baseline logs), None for simulator runs
+        self.inflation: Inflation | None = None
 
     # --- the sensor's plug-ins -----------------------------------------------------------------
 
@@ -341,6 +343,18 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
     @abstractmethod
     def new_outcome(self, **fields: Any) -> OutcomeT:
         """The sensor's :class:`Outcome` subclass with these fields."""
+
+    def few_logs_null(
+        self, runs: Sequence[SeriesT], n_out: int, block_s: float, template: SeriesT
+    ) -> tuple[list[SeriesT], Inflation | None]:
+        """The null ensemble of fewer baseline logs than ``min_runs``: ``n_out`` replicates
+        on ``template``'s times and their spread factors (default: a circular block bootstrap
+        of ``block_s`` blocks, no factors)."""
+        return self.block_bootstrap(runs, n_out, block_s, template), None
+
+    def null(self, batteries: Sequence[Battery]) -> NullModel:
+        """The null of replicate ``batteries`` (with the few-logs spread factors, if any)."""
+        return null_model(batteries, self.options.alpha, self.inflation)
 
     def part_layout(self, layout: LayoutT, duration_s: float) -> LayoutT:
         """The layout of a part of the log ``duration_s`` long (default: the whole log's)."""
@@ -395,15 +409,13 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         """(selection key, held-out G, held-out null, runs) of the baseline plus ``fits`` on
         one draw: the key adds the fit part's G, so that a look-alike that matches only the
         short scales of the held-out part (a random walk for a slow Gauss-Markov drift) loses."""
-        split, alpha = self.split, self.options.alpha
+        split = self.split
         with_runs = self.apply_fits(fits, self.runs)
-        test_null = null_model(
-            self.batteries(with_runs, split.test_layout, split.t_test_s, split.end_s), alpha
+        test_null = self.null(
+            self.batteries(with_runs, split.test_layout, split.t_test_s, split.end_s)
         )
         g_test = test_null.gap(split.real_test_battery, split.ref_sd_test)
-        fit_null = null_model(
-            self.batteries(with_runs, split.fit_layout, 0.0, split.t_fit_s), alpha
-        )
+        fit_null = self.null(self.batteries(with_runs, split.fit_layout, 0.0, split.t_fit_s))
         key = g_test + fit_null.gap(split.real_fit_battery, split.ref_sd_fit)
         return key, g_test, test_null, with_runs
 
@@ -414,9 +426,8 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         pooled: list[SeriesT] = []
         for _ in range(max(self.fresh_draws, 1)):
             pooled += self.apply_fits(fits, self.runs)
-        test_null = null_model(
-            self.batteries(pooled, split.test_layout, split.t_test_s, split.end_s),
-            self.options.alpha,
+        test_null = self.null(
+            self.batteries(pooled, split.test_layout, split.t_test_s, split.end_s)
         )
         return test_null.gap(split.real_test_battery, split.ref_sd_test), test_null
 
@@ -432,9 +443,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         t_test_s = t_fit_s + options.guard_fraction * duration_s
         fit_layout = self.part_layout(layout, t_fit_s)
         test_layout = self.part_layout(layout, duration_s - t_test_s)
-        baseline_test = null_model(
-            self.batteries(self.runs, test_layout, t_test_s, end_s), options.alpha
-        )
+        baseline_test = self.null(self.batteries(self.runs, test_layout, t_test_s, end_s))
         real_test_battery = self.battery(self.window(real, t_test_s, end_s), test_layout)
         ref_sd = baseline_test.sd
         return Split(
@@ -454,9 +463,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         """The fit part's references of :class:`Split` (see there)."""
         split = self.split
         split.baseline_fit = [self.window(s, 0.0, split.t_fit_s) for s in self.runs]
-        runs_null = null_model(
-            [self.battery(s, split.fit_layout) for s in split.baseline_fit], self.options.alpha
-        )
+        runs_null = self.null([self.battery(s, split.fit_layout) for s in split.baseline_fit])
         split.ref_sd_fit = runs_null.sd
         split.real_fit_battery = self.battery(split.real_fit, split.fit_layout)
 
@@ -472,7 +479,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         if bootstrap:
             # blocks of a quarter of the log: long against the correlation times, few joins
             block_s = max(layout.duration_s / 4.0, 10 * layout.dt_s)
-            runs = self.block_bootstrap(runs, options.replicates, block_s, real)
+            runs, self.inflation = self.few_logs_null(runs, options.replicates, block_s, real)
             notes.append(self.bootstrap_note(len(baseline), block_s))
         self.runs = runs
         self.prepare(runs)
@@ -483,7 +490,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         run_batteries = self.batteries(runs, layout, 0.0, end_s)
         real_battery = self.battery(real, layout)
         self.add_whole_log_cells(real, real_battery, run_batteries)
-        null = null_model(run_batteries, options.alpha)
+        null = self.null(run_batteries)
         z = null.z(real_battery)
         where = where_cells(null, z)
 
@@ -537,9 +544,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         scored: dict[str, Candidate] = {}
         for index in range(options.max_effects):
             current_fit = [self.window(s, 0.0, split.t_fit_s) for s in current]
-            fit_null = null_model(
-                [self.battery(s, split.fit_layout) for s in current_fit], options.alpha
-            )
+            fit_null = self.null([self.battery(s, split.fit_layout) for s in current_fit])
             z_fit = fit_null.z(self.battery(split.real_fit, split.fit_layout))
             names = [n for n in options.candidates if n not in {f.name for f in selected}]
             this_round = Round(index, selected, names, current, current_fit, fit_null, z_fit)
