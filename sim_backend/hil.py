@@ -18,8 +18,8 @@ same physics as fast-time simulation (``x6wd sim``), only in real time:
   banner at start, the real no-fix forms). The sentences go through the receiver's UART
   (:class:`sim_backend.receiver.UartTx`: a bounded transmit buffer drained at the scenario's
   baud rate, dropping whole sentences when full, the same arithmetic ``x6wd sim`` runs) and
-  each is written to the pty paced at the baud rate from the moment its first byte would
-  leave, so the bytes arrive as on the real line.
+  each is written to the pty in 10 ms pieces at the times the model puts its bytes on the
+  line, so the bytes arrive as on the real line.
 - the compass: the CMPS10 register map of :mod:`sim_backend.compass`
   (:meth:`HilWorld.compass_bus`) with the scenario's ``[compass]`` field and errors and its
   compass ``[[effects]]`` layers (:func:`sim_backend.mission.compass_setup`); its registers
@@ -75,7 +75,7 @@ from sim_backend.compass import ErrorInjector, SimCmps10
 from sim_backend.epoch import GnssEpoch
 from sim_backend.mission import compass_setup, vehicle_from_world, vehicle_velocity
 from sim_backend.odometry import EncoderSim, encoder_rng
-from sim_backend.ports import PtyUart
+from sim_backend.ports import PACE_CHUNK_S, PtyUart
 from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.world import World, load_world
 from x6wd.core.config import SimConfig
@@ -326,7 +326,7 @@ class HilWorld:
         # A delayed receiver needs the true track between epochs: fed by the physics thread.
         self.receiver.observe(0.0, self._antenna_enu(s0), vehicle_velocity(s0))
         self._fds: list[int] = []
-        self.uart = PtyUart(sc.gnss.baud, realtime=True)  # paced at the baud rate
+        self.uart = PtyUart(sc.gnss.baud, realtime=False)  # paced by the receiver thread
         self._threads = [
             threading.Thread(target=self._guard(self._physics), name="hil-physics", daemon=True),
             threading.Thread(target=self._guard(self._receiver), name="hil-gps", daemon=True),
@@ -458,11 +458,16 @@ class HilWorld:
         return s.east_m, s.north_m, s.up_m + self.scenario.vehicle.antenna_height_m
 
     def _receiver(self) -> None:
-        """Epochs on their schedule; their sentences through the receiver's UART model, each
-        written paced from the time its first byte leaves (device time)."""
+        """Epochs on their schedule; their sentences through the receiver's UART model and
+        onto the pty in 10 ms pieces, each written when the model says its bytes are on
+        the line (device time). An epoch due is computed before any byte still waiting, and
+        a thread that fell behind writes what is overdue at once, so the stream keeps the
+        model's schedule on a loaded host."""
         rx = self.receiver
         period_s = 1.0 / rx.rate_hz
-        pending: deque[tuple[float, bytes]] = deque()
+        piece = max(1, int(rx.baud / 10 * PACE_CHUNK_S))
+        pending: deque[tuple[float, bytes]] = deque()  # (first byte leaves, sentence)
+        offset = 0  # bytes of pending[0] already written
 
         def queue(burst: bytes, t_s: float) -> None:
             for t_end, line in rx.arrivals(burst, t_s):
@@ -474,35 +479,39 @@ class HilWorld:
         k = 1
         while self.running:
             t_epoch = self.epoch_t_s(k)
-            if pending and pending[0][0] < t_epoch:
-                t_start, data = pending.popleft()
-                if self._stop.wait(max(0.0, self.t0 + t_start - time.monotonic())):
-                    return
-                t_write = time.monotonic()
-                with contextlib.suppress(DeviceIOError):  # unplugged: the bytes are lost
-                    self.uart.write(data)  # returns once the last byte has left
-                hook = self.on_gga
-                if data[3:6] == b"GGA" and hook is not None:
-                    # stamped as the sentence starts: the reader may finish with the fix
-                    # before this thread runs again
-                    hook(t_write)
+            now = time.monotonic() - self.t0
+            if now >= t_epoch:
+                dropped = rx.uart.dropped
+                queue(b"".join(rx.sentences(self._epoch(k))), t_epoch)
+                self.epochs += 1
+                if not warned and rx.uart.dropped > dropped:
+                    warned = True
+                    log.warning(
+                        "HIL: the NMEA output exceeds what %d baud carries at %g Hz; the "
+                        "receiver drops whole sentences (raise the baud rate)",
+                        rx.baud,
+                        rx.rate_hz,
+                    )
+                # A thread held up (a loaded host) skips epochs rather than running late.
+                late_s = time.monotonic() - self.t0 - self.epoch_phase_s
+                k = max(k + 1, math.floor(late_s / period_s) + 1)
                 continue
-            if self._stop.wait(max(0.0, self.t0 + t_epoch - time.monotonic())):
+            due = t_epoch
+            if pending:
+                t_start, data = pending[0]
+                due = min(due, t_start + rx.wire_time_s(offset))
+                if now >= due:
+                    if offset == 0 and data[3:6] == b"GGA" and self.on_gga is not None:
+                        self.on_gga(time.monotonic())  # as the GGA starts to leave
+                    with contextlib.suppress(DeviceIOError):  # unplugged: the bytes are lost
+                        self.uart.write(data[offset : offset + piece])
+                    offset += piece
+                    if offset >= len(data):
+                        pending.popleft()
+                        offset = 0
+                    continue
+            if self._stop.wait(max(0.0, due - now)):
                 return
-            dropped = rx.uart.dropped
-            queue(b"".join(rx.sentences(self._epoch(k))), t_epoch)
-            self.epochs += 1
-            if not warned and rx.uart.dropped > dropped:
-                warned = True
-                log.warning(
-                    "HIL: the NMEA output exceeds what %d baud carries at %g Hz; the receiver "
-                    "drops whole sentences (raise the baud rate)",
-                    rx.baud,
-                    rx.rate_hz,
-                )
-            # A thread held up (a loaded host) skips epochs rather than running late.
-            late_s = time.monotonic() - self.t0 - self.epoch_phase_s
-            k = max(k + 1, math.floor(late_s / period_s) + 1)
 
     def close(self) -> None:
         """Stop the threads and unplug the ptys (idempotent)."""
