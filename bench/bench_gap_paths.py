@@ -35,7 +35,7 @@ import math
 import sys
 import time
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -344,12 +344,21 @@ def run(
     todo = cases(seed_set, reps, nulls, paths)
     levels = ("moderate", "strong") if quick else levels
     todo = [c for c in todo if not c[0] or c[1] in levels]
+    # no-effect and effect cases interleaved: a run stopped early still has both
+    nulls_first = [c for c in todo if not c[0]]
+    effects = [c for c in todo if c[0]]
+    todo = [c for pair in itertools.zip_longest(effects, nulls_first) for c in pair if c]
     t0 = time.perf_counter()
+    results = []
     with ProcessPoolExecutor(max_workers=2) as ex:
-        results = list(ex.map(run_case, todo))
+        futures = [ex.submit(run_case, c) for c in todo]
+        for done, fut in enumerate(as_completed(futures), start=1):
+            results.append(fut.result())
+            r = results[-1]
+            print(f"[{done}/{len(todo)}] {r['case']} -> {r.get('top', 'CRASH')}", file=sys.stderr)
+            if json_path:  # kept as it goes: a long run stopped early still has its cases
+                Path(json_path).write_text(json.dumps(results, indent=1, default=float))
     wall_s = time.perf_counter() - t0
-    if json_path:
-        Path(json_path).write_text(json.dumps(results, indent=1, default=float))
     for r in results:
         if "error" in r:
             print(f"CRASH {r['case']}:\n{r['error']}", file=sys.stderr)
@@ -368,7 +377,14 @@ if __name__ == "__main__":
     ap.add_argument("--path", action="append", choices=("few", "seeds"), help="default both")
     ap.add_argument("--json", help="write every case's outcome here")
     ap.add_argument("--levels", default=",".join(LEVELS), help="comma-separated strengths")
+    ap.add_argument("--summarize", metavar="JSON", help="only summarise a --json file")
     a = ap.parse_args()
+    if a.summarize:
+        kept = json.loads(Path(a.summarize).read_text())
+        for r in kept:
+            r["case"] = tuple(r["case"])
+        print_table([row for p in ("few", "seeds") for row in summary(kept, p)])
+        sys.exit(0)
     paths = tuple(a.path or ("few", "seeds"))
     print_table(
         run(a.quick, a.seed_set, a.reps, a.nulls, paths, a.json, tuple(a.levels.split(",")))
