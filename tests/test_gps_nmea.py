@@ -826,3 +826,23 @@ def test_gsv_satellites_match_the_plain_split(sat_fields: list[str]) -> None:
         except ValueError:
             got = None
         assert got == expected
+
+
+def _plain_fletcher(data: bytes) -> bytes:
+    a = b = 0
+    for byte in data:
+        a = (a + byte) & 0xFF
+        b = (b + a) & 0xFF
+    return bytes((a, b))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(min_size=0, max_size=5000))
+def test_ubx_checksum_is_the_fletcher_loop(data: bytes) -> None:
+    assert gps_nmea.ubx_checksum(data) == _plain_fletcher(data)
+
+
+@pytest.mark.parametrize("n", [4095, 4096, 4097, 65539])
+def test_ubx_checksum_at_its_largest_sums(n: int) -> None:
+    # All 0xFF makes the sums largest: the 4-byte slots' limit, and past it the 8-byte ones.
+    assert gps_nmea.ubx_checksum(b"\xff" * n) == _plain_fletcher(b"\xff" * n)
