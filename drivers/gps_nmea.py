@@ -116,6 +116,7 @@ NMEA_MSG_IDS: Final[dict[str, int]] = {
 _SLOT4_MAX: Final = 4096
 _B4: Final = (1 << 32) - 1
 _B8: Final = (1 << 64) - 1
+_FOLD_TO_SLOTS: Final = 64  # below this, one % is cheaper than another fold
 
 
 def ubx_checksum(data: bytes) -> bytes:
@@ -125,15 +126,21 @@ def ubx_checksum(data: bytes) -> bytes:
     (n - k) d_k (k from 0). Both come from one big integer instead of a Python loop per
     byte (a UBX stream is mostly payload, so this loop was most of its decoding): with
     each byte in its own w-byte slot, X = sum of d_k B^k for B = 2^(8w), and as
-    B^k = 1 + k (B - 1) mod (B - 1)^2, X mod (B - 1)^2 = S + (B - 1) K with S the sum of
-    d_k and K the sum of k d_k. Both are below B - 1 for these lengths, so one divmod by
-    B - 1 gives them exactly.
+    B^m = 1 + m (B - 1) mod (B - 1)^2 for every m, X mod (B - 1)^2 = S + (B - 1) K with S
+    the sum of d_k and K the sum of k d_k. X is first folded (its slots from m on, H, are
+    added back as H (1 + m (B - 1)): the same residue, half the size), then one divmod by
+    B - 1 of the residue gives S and K exactly (both are below B - 1 for these lengths).
     """
     n = len(data)
     width, base_1 = (4, _B4) if n <= _SLOT4_MAX else (8, _B8)
+    slot_bits = 8 * width
     spread = bytearray(width * n)
     spread[::width] = data
-    k_sum, total = divmod(int.from_bytes(spread, "little") % (base_1 * base_1), base_1)
+    x = int.from_bytes(spread, "little")
+    while (n_bits := x.bit_length()) > _FOLD_TO_SLOTS * slot_bits:
+        low_bits = n_bits // (2 * slot_bits) * slot_bits
+        x = (x & ((1 << low_bits) - 1)) + (x >> low_bits) * (1 + low_bits // slot_bits * base_1)
+    k_sum, total = divmod(x % (base_1 * base_1), base_1)
     return bytes((total & 0xFF, (n * total - k_sum) & 0xFF))
 
 
