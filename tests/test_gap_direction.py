@@ -71,7 +71,8 @@ CASES = [
 
 @pytest.mark.parametrize(
     ("case", "seed"),
-    [(i, seed) for i in range(len(CASES)) for seed in (1, 2)],
+    [(i, 1) for i in range(len(CASES))]
+    + [pytest.param(i, 2, marks=pytest.mark.slow) for i in range(len(CASES))],
     ids=lambda v: str(v),
 )
 def test_injected_layer_is_fitted_with_its_parameter(
@@ -87,6 +88,7 @@ def test_injected_layer_is_fitted_with_its_parameter(
     assert all(v >= 0 or math.isnan(v) for v in fit.se.values())  # type: ignore[attr-defined]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [3, 4])
 def test_correction_reduces_the_slow_error_on_an_hour(seed: int) -> None:
     # SBAS direction: one log holds one realisation of the slow error, so the factor is only
@@ -165,6 +167,7 @@ def test_validation_passes_a_model_of_the_log_and_fails_a_scaled_one() -> None:
     assert md.count("| yes |") == len(v2.taus_s) and md.count("| no |") == 2
 
 
+@pytest.mark.slow
 def test_report_states_direction_and_validation(tmp_path: Path) -> None:
     runs = _baseline(900.0, 8)
     real = _real(NavFilter(12.0, order=2), 41, 900.0)
