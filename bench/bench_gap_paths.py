@@ -89,9 +89,10 @@ RANGES: dict[str, dict[str, dict[str, tuple[float, float]]]] = {
 
 def _print_on_lattice(s: PositionSeries, decimals: int) -> PositionSeries:
     """Positions printed as NMEA minutes with ``decimals`` (static receiver at the origin)."""
+    from sim_backend.effects import metres_per_degree  # the frame's geodesy (WGS84 radii)
+
     lat0, lon0 = s.origin_lat_deg, s.origin_lon_deg
-    m_per_deg_n = 111_132.954 - 559.822 * math.cos(2 * math.radians(lat0))
-    m_per_deg_e = 111_412.84 * math.cos(math.radians(lat0))
+    m_per_deg_e, m_per_deg_n = metres_per_degree(lat0)
     lat = lat0 + np.asarray(s.north_m) / m_per_deg_n
     lon = lon0 + np.asarray(s.east_m) / m_per_deg_e
     qlat = np.sign(lat) * np.round(np.abs(lat) * 60.0, decimals) / 60.0
