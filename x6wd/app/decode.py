@@ -112,40 +112,24 @@ class ReportEncoder:
         lat, lon = fix.lat_deg, fix.lon_deg
         if not (fix.valid and mode >= 2 and lat is not None and lon is not None):
             return head + "}"
-        # Positions, speed and track change from fix to fix: not memoised. A float that is
-        # finite (v - v == 0) is _num_text's text directly; anything else goes through it.
         parts = [head]
-        if type(lat) is float and lat - lat == 0.0:
-            parts += (',"lat":', _float_json(round(lat, 9)))
-        else:
-            text = _num_text(lat, 9)
-            if text is not None:
-                parts += (',"lat":', text)
-        if type(lon) is float and lon - lon == 0.0:
-            parts += (',"lon":', _float_json(round(lon, 9)))
-        else:
-            text = _num_text(lon, 9)
-            if text is not None:
-                parts += (',"lon":', text)
+        text = _num_text(lat, 9)  # positions rarely repeat: not memoised
+        if text is not None:
+            parts += (',"lat":', text)
+        text = _num_text(lon, 9)
+        if text is not None:
+            parts += (',"lon":', text)
         alt = fix.alt_m
         if mode >= 3 and alt is not None:
             parts.append(self._group((alt, fix.geoid_sep_m), _altitudes))
-        speed = fix.speed_mps
-        if speed is not None:
-            if type(speed) is float and speed - speed == 0.0:
-                parts += (',"speed":', _float_json(round(speed, 3)))
-            else:
-                text = _num_text(speed, 3)
-                if text is not None:
-                    parts += (',"speed":', text)
-        track = fix.course_deg
-        if track is not None:
-            if type(track) is float and track - track == 0.0:
-                parts += (',"track":', _float_json(round(track, 4)))
-            else:
-                text = _num_text(track, 4)
-                if text is not None:
-                    parts += (',"track":', text)
+        if fix.speed_mps is not None:  # speed and track jitter: not memoised either
+            text = _num_text(fix.speed_mps, 3)
+            if text is not None:
+                parts += (',"speed":', text)
+        if fix.course_deg is not None:
+            text = _num_text(fix.course_deg, 4)
+            if text is not None:
+                parts += (',"track":', text)
         parts.append(self._group((fix.hdop, fix.vdop if mode >= 3 else None), _errors))
         parts.append("}")
         return "".join(parts)
@@ -254,6 +238,8 @@ def _dops(hdop: Any, vdop: Any, pdop: Any) -> str:
 
 def _num_text(v: Any, ndigits: int) -> str | None:
     """JSON text of gpsd's ``_num(v, ndigits)`` (None if not finite: omitted)."""
+    if type(v) is float:  # what records hold: finite exactly when v - v is 0
+        return _float_json(round(v, ndigits)) if v - v == 0.0 else None
     if v is None or not math.isfinite(v):
         return None
     return _float_json(round(float(v), ndigits))
