@@ -116,6 +116,7 @@ def _floors(cells: Sequence[Cell]) -> np.ndarray:
 # Spread factors by (statistic, axis); the key ("*", "*") holds the factor of any other cell.
 Inflation = dict[tuple[str, str], float]
 INFLATION_PRIOR = 6.0  # pseudo-cells of the global factor each group's factor is shrunk with
+CHI2_MEDIAN = 0.454936  # median of a chi-square with 1 degree of freedom
 
 
 def inflation_from(cells: Sequence[Cell], z: np.ndarray, n_logs: int) -> Inflation:
@@ -127,28 +128,30 @@ def inflation_from(cells: Sequence[Cell], z: np.ndarray, n_logs: int) -> Inflati
     factor sqrt(1 + 1/n) the replicates' spread cannot show (the prediction interval of one
     more draw); that is the floor. Where the logs vary more than that (a misfit of the noise
     model, the uncertainty of its parameters), their leave-one-out z^2, rescaled from n - 1
-    logs to n, says by how much: pooled by (statistic, axis) and shrunk toward the mean over
-    all cells (``INFLATION_PRIOR`` pseudo-cells), so that a group of a few cells seen on two
-    or three logs is not taken at its word."""
+    logs to n, says by how much: medians pooled by (statistic, axis) and shrunk toward the
+    median over all cells (``INFLATION_PRIOR`` pseudo-cells), so that a group of a few
+    cells seen on two or three logs is not taken at its word."""
     n = max(int(n_logs), 1)
     floor = math.sqrt(1.0 + 1.0 / n)
     # a cell the logs were not scored on (a whole-log likelihood cell with its own floor)
     out: Inflation = {("*", "*"): floor}
     if n < 2:
         return out  # scored against their own replicates: no measure of the excess
-    z2 = np.asarray(z, dtype=float) ** 2 * (1.0 + 1.0 / n) / (1.0 + 1.0 / (n - 1))
+    # z^2 / its median under the null (chi-square, 1 dof): robust, since a log scored
+    # against replicates of n - 1 logs has heavy tails where n - 1 logs barely pin a spread
+    # (the slow error's, from one or two hour means), which n logs pin better
+    z2 = np.asarray(z, dtype=float) ** 2 * (1.0 + 1.0 / n) / (1.0 + 1.0 / (n - 1)) / CHI2_MEDIAN
     z2 = np.where(np.isfinite(z2), z2, np.nan)
-    overall = float(np.nanmean(z2)) if np.any(np.isfinite(z2)) else 1.0
+    overall = float(np.nanmedian(z2)) if np.any(np.isfinite(z2)) else 1.0
     groups: dict[tuple[str, str], list[int]] = {}
     for j, c in enumerate(cells):
         groups.setdefault((c.statistic, c.axis), []).append(j)
     for key, cols in groups.items():
         values = z2[:, cols]
         values = values[np.isfinite(values)]
-        mean_z2 = (float(np.sum(values)) + INFLATION_PRIOR * overall) / (
-            values.size + INFLATION_PRIOR
-        )
-        out[key] = max(floor, math.sqrt(mean_z2))
+        group = float(np.median(values)) if values.size else overall
+        pooled = (values.size * group + INFLATION_PRIOR * overall) / (values.size + INFLATION_PRIOR)
+        out[key] = max(floor, math.sqrt(pooled))
     return out
 
 
