@@ -168,6 +168,10 @@ def _robot_loop_anchor(recording: Path, chunk: int = 50_000) -> tuple[float, flo
     return cpu_s, now[0]
 
 
+def _dur(s: float) -> str:
+    return f"{s / 3600:g} h" if s >= 3600 else f"{s / 60:g} min"
+
+
 def run(quick: bool = False) -> list[Row]:
     """All figures; ``quick`` runs 1 h surveys and a 10 min mission instead of 10 h and 1 h."""
     survey_s = 3600.0 if quick else 36000.0
@@ -180,7 +184,7 @@ def run(quick: bool = False) -> list[Row]:
         mission = _scenario(tmp, "mission-1h", "default.toml", _mission_toml())
         physics_s = _physics_anchor(survey_s)
         physics_x = survey_s / physics_s
-        hours = f"{survey_s / 3600:.0f} h"
+        hours = _dur(survey_s)
         of = _run_cli(open_field, survey_s, tmp / "of")
         loop_cpu_s, loop_sim_s = _robot_loop_anchor(tmp / "of" / "recording.jsonl")
         wb = _run_cli(walled, survey_s, tmp / "wb")
@@ -194,7 +198,7 @@ def run(quick: bool = False) -> list[Row]:
     for label, res, target in (
         (f"open_field.toml, {hours} (CLI, CPU)", of, 10_000.0),
         (f"open field + 10 buildings, {hours} (CLI, CPU)", wb, 5_000.0),
-        (f"closed-loop mission 20 Hz compass, {mission_s / 3600:g} h (CLI, CPU)", ms, 3_000.0),
+        (f"closed-loop mission 20 Hz compass, {_dur(mission_s)} (CLI, CPU)", ms, 3_000.0),
     ):
         speed = res["sim_s"] / res["cpu_s"]
         rows.append(Row("sim_cli", label, speed, "x real time", target, "x target",
@@ -202,7 +206,7 @@ def run(quick: bool = False) -> list[Row]:
                         f"{res['loop_wall_s']:.1f} s); {speed / physics_x:.3f} of the "
                         f"physics anchor"))  # fmt: skip
     for label, res in ((f"open field, {hours}", of), (f"10 buildings, {hours}", wb),
-                       (f"mission, {mission_s / 3600:g} h", ms)):  # fmt: skip
+                       (f"mission, {_dur(mission_s)}", ms)):  # fmt: skip
         rows.append(Row("sim_cli", f"peak memory: {label}", res["rss_b"] / MB, "MB", 300.0,
                         "MB limit", "the process's peak resident set"))  # fmt: skip
     return rows
