@@ -248,7 +248,7 @@ def _decode_line(line: bytes, stats: ReadStats) -> dict[str, Any] | None:
             stats.truncated += 1
         return None
     stats.records += 1
-    return obj  # type: ignore[no-any-return]
+    return obj
 
 
 def _read_recording(path: Path, raw: _Raw) -> ReadStats:
@@ -568,9 +568,9 @@ def _timelines(view: LogView, raw: _Raw, t0: float) -> None:
             view.faults.append(Interval(dev, since, t_end, state, first))
     else:  # a recording from before device events: the holds that name a device
         for h in view.holds:
-            dev = _device_of(h.label)
-            if dev is not None:
-                view.faults.append(Interval(dev, h.t0_s, h.t1_s, h.label))
+            named = _device_of(h.label)
+            if named is not None:
+                view.faults.append(Interval(named, h.t0_s, h.t1_s, h.label))
     if not view.faults:
         view.missing["faults"] = "no device faults"
 

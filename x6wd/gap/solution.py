@@ -173,17 +173,16 @@ def _search(
 
     lo = np.array([g.min() for g in grids])
     hi = np.array([g.max() for g in grids])
-    raw = objective
 
-    def objective(x: np.ndarray) -> float:
-        return raw(np.clip(x, lo, hi))
+    def clipped(x: np.ndarray) -> float:
+        return objective(np.clip(x, lo, hi))
 
     mesh = np.array(np.meshgrid(*grids, indexing="ij")).reshape(len(grids), -1).T
-    scores = np.array([objective(x) for x in mesh])
+    scores = np.array([clipped(x) for x in mesh])
     x0 = mesh[int(np.argmin(scores))]
     steps = np.array([(g[1] - g[0]) / 2 if g.size > 1 else 0.3 for g in grids])
     result = minimize(
-        objective,
+        clipped,
         x0,
         method="Nelder-Mead",
         options={
@@ -252,10 +251,10 @@ def fit_nav_filter(
             if best is None or score < best[0]:
                 best = (score, order, axes, x, f)
     assert best is not None
-    score, order, axes, x, f = best
+    score, order, axes, x, f_best = best
     if score > obj.identity - MIN_GAIN:
         return None
-    se = _log_se(f, x, score)
+    se = _log_se(f_best, x, score)
     tau_s = math.exp(float(x[0]))
     return Fit(
         NavFilter(tau_s=round(tau_s, 4), order=order, axes=axes), {"tau_s": float(tau_s * se[0])}
@@ -297,10 +296,10 @@ def _split_scale_fit(
         if best is None or score < best[0]:
             best = (score, axes, x, f)
     assert best is not None
-    score, axes, x, f = best
+    score, axes, x, f_best = best
     if score > obj.identity - MIN_GAIN:
         return None
-    se = _log_se(f, x, score)
+    se = _log_se(f_best, x, score)
     factor, tau_s = math.exp(float(x[0])), math.exp(float(x[1]))
     if abs(float(x[0])) < FACTOR_Z * float(np.mean(one_log)):
         # within what one log's own level varies by: a factor of 1 fits as well
