@@ -322,7 +322,21 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
     ) -> tuple[list[PositionSeries], Inflation | None]:
         # the logs' innovations through their noise model, resampled at the same times:
         # blocks of the logs themselves spliced raw would put a fake jump at every join
-        return few_logs_null(runs, template, self.layout, n_out, self.rng)
+        return few_logs_null(
+            runs, template, self.layout, n_out, self.rng, whole_log_cells=self._rw_cells
+        )
+
+    def _rw_cells(
+        self,
+        runs: Sequence[PositionSeries],
+        run_batteries: Sequence[Battery],
+        real: PositionSeries,
+        real_battery: Battery,
+    ) -> None:
+        model = noise_model(runs, self.layout)
+        for bat, run in zip(run_batteries, runs, strict=True):
+            bat[RW_LR_CELL] = random_walk_lr(run, model)
+        real_battery[RW_LR_CELL] = random_walk_lr(real, model)
 
     def bootstrap_note(self, n_logs: int, block_s: float) -> str:
         inflation = self.inflation or {}
@@ -353,10 +367,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         # of the baseline, and the split parts are too short for a walk to show. The baseline
         # runs are scored against a model fitted on all of them (in-sample, so their ratios
         # are if anything smaller); its SD_FLOOR keeps the cell honest when most are 0.
-        model = noise_model(self.runs, self.layout)
-        for bat, run in zip(run_batteries, self.runs, strict=True):
-            bat[RW_LR_CELL] = random_walk_lr(run, model)
-        real_battery[RW_LR_CELL] = random_walk_lr(real, model)
+        self._rw_cells(self.runs, run_batteries, real, real_battery)
 
     # --- selection policy
 

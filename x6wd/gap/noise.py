@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -362,6 +362,13 @@ def innovation_replicates(
     return out
 
 
+# adds whole-log cells to replicate batteries and a log's battery, in place
+WholeLogCells = Callable[
+    [Sequence[PositionSeries], Sequence[dict[Cell, float]], PositionSeries, dict[Cell, float]],
+    None,
+]
+
+
 def few_logs_null(
     logs: Sequence[PositionSeries],
     template: PositionSeries,
@@ -370,6 +377,7 @@ def few_logs_null(
     rng: np.random.Generator,
     block_s: float | None = None,
     jitter_s: float | None = None,
+    whole_log_cells: WholeLogCells | None = None,
 ) -> tuple[list[PositionSeries], Inflation]:
     """The null ensemble of a few baseline ``logs`` (see the section's comment): ``n_out``
     replicates on ``template``'s times and the spread factors that make it honest
@@ -377,7 +385,9 @@ def few_logs_null(
     others; with one log only the floor). ``block_s`` the innovation blocks (default 1/30 of the
     log, at least 30 steps), ``jitter_s`` how far from the same time a block may come
     (default 1/12 of the log): innovations at exactly the same times of n logs would give
-    only n choices per epoch, and replicates that cluster around the logs' own values."""
+    only n choices per epoch, and replicates that cluster around the logs' own values.
+    ``whole_log_cells(runs, run_batteries, log, log_battery)`` adds the sensor's whole-log
+    cells (in place), so that they are scored as well."""
     from x6wd.gap.stats import battery
 
     block_s = block_s or max(layout.duration_s / 30.0, 30 * layout.dt_s)
@@ -393,7 +403,11 @@ def few_logs_null(
         draws = innovation_replicates(
             others, axis_laws(others, layout), log, n_out, block_s, jitter_s, rng, decimals
         )
-        null = null_model([battery(s, layout) for s in draws])
+        draw_batteries = [battery(s, layout) for s in draws]
+        log_battery = battery(log, layout)
+        if whole_log_cells is not None:
+            whole_log_cells(draws, draw_batteries, log, log_battery)
+        null = null_model(draw_batteries)
         cells = null.cells
-        rows.append(null.z(battery(log, layout)))
+        rows.append(null.z(log_battery))
     return runs, inflation_from(cells, np.array(rows), len(logs))
