@@ -945,13 +945,17 @@ def test_an_in_process_mission_drives_to_its_waypoint(tmp_path: Path, run_daemon
     world = d.devices.backend("sim")
     wait_for(lambda: d.first_fix, 20, "first fix")
     with RemoteClient("127.0.0.1", r.port) as c:
-        c.request("mission.load", waypoints=[[ORIGIN[0] + 8.0 / 111_200.0, ORIGIN[1]]])
+        c.request("mission.load", waypoints=[[ORIGIN[0] + 20.0 / 111_200.0, ORIGIN[1]]])
         c.request("start")
         st = wait_for(
-            lambda: (s := c.request("status"))["mode"] == "DONE" and s, 40, "mission done"
+            lambda: (s := c.request("status"))["mode"] == "DONE" and s, 90, "mission done"
         )
     assert st["state"] == "MISSION_DONE"
+    # The robot's own estimate ends at the waypoint 20 m north (arrival window) ...
+    assert abs((st["telemetry"]["filt_lat_deg"] - ORIGIN[0]) * 111_200.0 - 20.0) < 4.0
+    # ... and it truly drove there, give or take the simulated NEO-5's slowly varying error
+    # (metres: CEP50 2.5 m, a few metres of bias over a mission).
     _e, north_m, _h, _v = world.truth()
-    assert 4.0 < north_m < 12.0  # drove to the waypoint 8 m north (arrival window, GPS error)
+    assert 10.0 < north_m < 30.0
     assert d.motors is not None and d.motors.direct_sent > 0  # fixes' commands sent directly
     assert d.motors.link_errors == 0
