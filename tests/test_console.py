@@ -707,6 +707,43 @@ def test_a_whole_hil_mission_driven_from_the_page(
     wait_for(lambda: vehicle_pct(robot) == (0.0, 0.0), 3, "motors stopped")
 
 
+def test_the_robots_recordings_open_in_the_log_viewer_from_the_page(
+    tmp_path: Path, robot: Running, browser: webdriver.Chrome
+) -> None:
+    # a program: only names the recorder wrote are read, never a path
+    async def program() -> None:
+        async with ws_to(robot) as w:
+            listed = await w.request("recording.list")
+            assert listed["ok"] and listed["recordings"], listed
+            name = listed["recordings"][0]["name"]
+            assert name.startswith("x6wd-") and name.endswith(".jsonl")
+            # a log the viewer could draw, named by path: refused all the same
+            log = Path(__file__).parent / "data" / "nmea" / "ublox-lea-5h.log"
+            for bad in (str(log), os.path.relpath(log, robot.daemon.config.recorder.dir),
+                        "x6wd-none.jsonl", None):  # fmt: skip
+                reply = await w.request("recording.view", name=bad)
+                assert reply["error"]["code"] == "bad_request", (bad, reply)
+            page = await w.request("recording.view", name=name)
+            assert page["ok"] and page["html"].startswith("<!DOCTYPE html>")
+
+    asyncio.run(program())
+    # the page: list, open, the viewer's panels inside the console, close
+    open_page(browser, robot)
+    page_ready(browser)
+    browser.find_element(By.ID, "rec-list").click()
+    wait_for(lambda: browser.find_elements(By.CSS_SELECTOR, "#recordings button"), 10, "the list")
+    browser.find_element(By.CSS_SELECTOR, "#recordings button").click()
+    wait_for(lambda: browser.find_element(By.ID, "rec-view").is_displayed(), 20, "the viewer")
+    browser.switch_to.frame(browser.find_element(By.ID, "rec-frame"))
+    try:
+        wait_for(lambda: browser.find_elements(By.TAG_NAME, "svg"), 10, "the viewer's panels")
+        assert "Track" in browser.find_element(By.TAG_NAME, "body").text
+    finally:
+        browser.switch_to.default_content()
+    browser.find_element(By.ID, "rec-close").click()
+    assert not browser.find_element(By.ID, "rec-view").is_displayed()
+
+
 # -- the dead-man ----------------------------------------------------------------------------------
 def _chromium_pid(d: webdriver.Chrome) -> int:
     """The browser process chromedriver started (a child of it)."""

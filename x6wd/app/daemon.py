@@ -1335,7 +1335,10 @@ class Daemon:
         ctx = None
         if cfg.server.tls_cert and cfg.server.tls_key:
             ctx = server_ssl_context(cfg.server.tls_cert, cfg.server.tls_key)
-        return ConsoleServer(cfg.console, self.server, self._map_view, ssl_context=ctx)
+        recordings = Path(cfg.recorder.dir) if cfg.recorder.enabled else None
+        return ConsoleServer(
+            cfg.console, self.server, self._map_view, ssl_context=ctx, recordings_dir=recordings
+        )
 
     def _map_view(self) -> dict[str, Any]:
         """What the console's map draws besides the robot: the loaded mission, the launch

@@ -9,6 +9,8 @@ connection is a *detached* client of that server. What the console adds:
   them), ``sky`` (satellites with their C/N0), ``map`` (mission, launch point, geofence);
 - ``mission.parse``: a mission file's content (GPX, CSV, QGC WPL, KML) read into waypoints
   for the page's editor, without touching the robot;
+- ``recording.list`` and ``recording.view``: the runs the recorder wrote on the robot and one
+  of them as the log viewer's self-contained page (:func:`x6wd.app.logview.render_html`);
 - the dead-man for manual drive: a page's drive lasts at most ``console.deadman_s`` (the
   page repeats it while a key is held), and a page that goes away while its drive runs gets
   its motors stopped at once;
@@ -35,6 +37,7 @@ from urllib.parse import urlsplit
 from aiohttp import WSMsgType, web
 
 from x6wd import __version__
+from x6wd.app.logview import render_html
 from x6wd.app.server import (
     MOTION_COMMANDS,
     ControlServer,
@@ -44,8 +47,9 @@ from x6wd.app.server import (
     parse_request,
 )
 from x6wd.core.config import ConsoleConfig
-from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.mission_files import PARSERS, parse_content
+from x6wd.core.recorder import RecordingFile, list_recordings
 from x6wd.core.records import GpsSky
 
 log = logging.getLogger(__name__)
@@ -120,9 +124,11 @@ class ConsoleServer:
         map_view: Callable[[], dict[str, Any]],
         *,
         ssl_context: ssl.SSLContext | None = None,
+        recordings_dir: Path | None = None,
     ) -> None:
         """``map_view()``: the mission, launch point and geofence as a JSON-ready dict (read
-        from the network thread: it must only read immutable snapshots)."""
+        from the network thread: it must only read immutable snapshots). ``recordings_dir``:
+        the recorder's folder (None: no recordings to show)."""
         if not control.auth_required and not is_loopback(config.bind):
             raise ConfigError(
                 f"console.bind: {config.bind} is not loopback: the console needs the control "
@@ -132,6 +138,7 @@ class ConsoleServer:
         self.control = control
         self._map_view = map_view
         self._ssl = ssl_context
+        self._recordings_dir = recordings_dir
         self._pages: dict[_Page, None] = {}  # open pages, oldest first
         self._runner: web.AppRunner | None = None
         self._closing: set[asyncio.Task[Any]] = set()
@@ -384,6 +391,8 @@ class ConsoleServer:
             cmd = req.get("cmd")
         if cmd == "mission.parse":
             return self._parse_mission(c, req), 0.0
+        if cmd in ("recording.list", "recording.view"):
+            return await self._recording(c, req), 0.0
         reply, wait_s = await self.control.request(c, line)
         if reply.get("ok") and isinstance(cmd, str):
             if cmd == "drive":
@@ -414,6 +423,41 @@ class ConsoleServer:
         except ParseError as exc:
             return error_reply(rid, "bad_request", str(exc), "bad_mission")
         return {"id": rid, "ok": True, "waypoints": [[w.lat_deg, w.lon_deg] for w in wps]}
+
+    def _runs(self) -> dict[str, RecordingFile]:
+        """The recorder's runs by the name of their first remaining part, oldest first."""
+        if self._recordings_dir is None:
+            return {}
+        runs: dict[str, RecordingFile] = {}
+        for f in list_recordings(self._recordings_dir):
+            runs.setdefault(str(f.run), f)  # parts sort after their run's first file
+        return {f.path.name: f for f in runs.values()}
+
+    async def _recording(self, c: Any, req: dict[str, Any]) -> dict[str, Any]:
+        """``recording.list`` -> ``recordings`` ([{name, bytes}], newest first);
+        ``recording.view`` with ``name`` (one of the list) -> ``html``, the log viewer's page.
+        Only names the recorder wrote are read: a name is never a path."""
+        rid = req.get("id")
+        if isinstance(rid, (dict, list)):
+            rid = None
+        cmd = req["cmd"]
+        if not c.authenticated:
+            return error_reply(rid, "unauthorized", f"authenticate first to use '{cmd}'")
+        runs = self._runs()
+        if cmd == "recording.list":
+            items = [{"name": n, "bytes": f.size} for n, f in reversed(runs.items())]
+            return {"id": rid, "ok": True, "recordings": items}
+        name = req.get("name")
+        if not isinstance(name, str) or name not in runs:
+            return error_reply(
+                rid, "bad_request", f"no recording named {name!r} (see recording.list)",
+                "bad_argument",
+            )  # fmt: skip
+        try:  # reading a long run takes a while: off the network loop
+            page = await asyncio.to_thread(render_html, runs[name].path)
+        except (DeviceUnavailable, ParseError) as exc:
+            return error_reply(rid, "bad_request", str(exc), "bad_recording")
+        return {"id": rid, "ok": True, "name": name, "html": page}
 
     async def _hang_up(self, page: _Page) -> None:
         """The dead-man: a page that goes away while its drive runs stops the motors now."""

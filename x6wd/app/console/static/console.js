@@ -291,6 +291,34 @@
     reader.readAsText(file);
   }
 
+  // -- recordings on the robot, through the log viewer (x6wd plot's page) ------------------------
+  async function listRecordings() {
+    const r = await request("recording.list");
+    if (!r.ok) return say("recordings: " + r.error.message, true);
+    const ul = $("recordings");
+    ul.textContent = "";
+    if (!r.recordings.length) ul.textContent = "none yet";
+    for (const rec of r.recordings) {
+      const li = document.createElement("li");
+      const open = document.createElement("button");
+      open.textContent = "Open";
+      open.onclick = () => viewRecording(rec.name);
+      li.append(open, rec.name + " (" + (rec.bytes / 1e6).toFixed(1) + " MB)");
+      ul.append(li);
+    }
+  }
+  async function viewRecording(name) {
+    say("reading " + name + " ...");
+    const r = await request("recording.view", { name: name });
+    if (!r.ok) return say(name + ": " + r.error.message, true);
+    $("rec-name").textContent = name;
+    $("rec-frame").srcdoc = r.html; // sandboxed: its scripts run, it cannot reach this page
+    $("rec-view").hidden = false;
+    say(name + ": shown");
+  }
+  $("rec-list").onclick = listRecordings;
+  $("rec-close").onclick = () => { $("rec-view").hidden = true; $("rec-frame").srcdoc = ""; };
+
   // -- manual drive and its dead-man ------------------------------------------------------------
   const DIRECTIONS = { fwd: [1, 1], back: [-1, -1], left: [-0.7, 0.7], right: [0.7, -0.7] };
   function startDrive(dir) {
