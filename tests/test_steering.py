@@ -349,6 +349,7 @@ class Figures:
     path_ratio: float
     time_s: float
     arrival_err_m: tuple[float, ...]
+    gps_slow_error_m: tuple[float, ...] = ()  # the GPS's own slow error at each arrival
 
 
 def measure(world: World, seed: int, out: Path) -> Figures:
@@ -369,7 +370,10 @@ def measure(world: World, seed: int, out: Path) -> Figures:
         k = min(int(np.searchsorted(t, ta)), len(rows) - 1)
         e, n = ltp.to_xy(rows[k][1], rows[k][2])
         errs.append(math.dist((float(e), float(n)), wps[i]))
-    return Figures(s.completed, s.path_length_m / s.straight_length_m, s.sim_time_s, tuple(errs))
+    slow = tuple(float(a.get("gps_slow_error_m", 0.0)) for a in s.extra.get("arrivals", []))
+    return Figures(
+        s.completed, s.path_length_m / s.straight_length_m, s.sim_time_s, tuple(errs), slow
+    )
 
 
 # (name, waypoints (None: the scenario's), [navigation] overrides): the scenario drives at
@@ -381,8 +385,10 @@ MISSIONS: tuple[tuple[str, list[tuple[float, float]] | None, dict[str, float]], 
 )
 
 
-# True distance to the waypoint when arrival is decided: the windows' corner is 4.2 m away,
-# and the Constellation filter (N = 5 at 1 Hz) lags the robot, more at 60 % cruise.
+# True distance to the waypoint when arrival is decided, beyond the GPS's own slow error
+# there (metres of bias with the realistic NEO-5, which no navigation sees): the windows'
+# corner is 4.2 m away, and the Constellation filter (N = 5 at 1 Hz) lags the robot, more at
+# 60 % cruise.
 ARRIVAL_LIMIT_M = {"default": 5.0, "zigzag": 5.0, "zigzag-60": 7.5}
 
 
@@ -415,7 +421,9 @@ def test_pivot_arc_completes_with_a_short_path(
         f = runs[mission, "pivot_arc", seed]
         assert f.completed, (mission, seed)
         assert f.path_ratio <= 1.10, (mission, seed, f)
-        assert max(f.arrival_err_m) < ARRIVAL_LIMIT_M[mission], (mission, seed, f)
+        assert len(f.gps_slow_error_m) >= len(f.arrival_err_m), f
+        beyond = [e - g for e, g in zip(f.arrival_err_m, f.gps_slow_error_m, strict=False)]
+        assert max(beyond) < ARRIVAL_LIMIT_M[mission], (mission, seed, f)
         # the paper's mode on the same seeds, for the comparison
         assert runs[mission, "paper", seed].completed, (mission, seed)
 

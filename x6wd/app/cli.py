@@ -26,7 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "decode": ("x6wd.app.decode", "decode NMEA logs or recordings to gpsd-style JSON lines"),
     "replay": ("x6wd.app.replay", "replay a recording or NMEA log through the decoders"),
     "mission": ("x6wd.app.mission", "show or convert mission files (.waypoints, .gpx, .csv, .kml)"),
-    "plot": ("x6wd.app.logview", "draw a recording or NMEA log over time (PNG, HTML page)"),
+    "plot": ("x6wd.app.plot", "draw a recording or NMEA log over time (PNG, HTML page)"),
 }
 
 # The robot's install has only what the daemon imports (pyproject.toml's dependencies); the

@@ -1,4 +1,4 @@
-"""`x6wd plot RECORDING`: a flight recording (or a plain NMEA log) as pictures.
+"""The log viewer: a flight recording (or a plain NMEA log) as pictures (`x6wd plot`).
 
 Eight panels over one time axis (seconds since the recording's first record): the track on a
 local east/north map in metres, the position error when a true track is known, HDOP,
@@ -7,7 +7,8 @@ satellites, heading, navigation states, holds and device faults. Two outputs:
 - :func:`render_html` — one self-contained HTML page: inline SVG drawn here, the data
   embedded as JSON, no script or style from anywhere else and no matplotlib, so the daemon's
   web console can serve it on the robot's core install;
-- :func:`render_png` — the same panels with matplotlib (the ``plot`` extra).
+- ``x6wd.app.plot.render_png`` — the same panels with matplotlib (the ``plot`` extra), in
+  a module of its own so that the daemon, which imports this one, never imports matplotlib.
 
 What a recording holds decides what can be drawn; every panel that cannot be says why in
 its place (an NMEA log has no navigation states; only a simulated run has a true track).
@@ -18,12 +19,10 @@ older recordings without them, the holds that name a device.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import html
 import json
 import math
-import sys
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
@@ -33,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from x6wd import __version__
-from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
+from x6wd.core.errors import DeviceUnavailable, ParseError
 from x6wd.core.geodesy import wrap360
 from x6wd.core.recorder import (
     ReadStats,
@@ -578,8 +577,8 @@ def _timelines(view: LogView, raw: _Raw, t0: float) -> None:
 # ---------------------------------------------------------------------------- SVG / HTML
 
 _W, _H, _ML, _MR, _MT, _MB = 900, 190, 56, 16, 24, 28
-_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2")
-_STATE_COLORS = {
+COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2")
+STATE_COLORS = {
     "IDLE": "#c7c7c7",
     "RUNNING": "#98df8a",
     "PAUSED": "#ffbb78",
@@ -746,7 +745,7 @@ def _svg_series(
     parts.append(_axes(w, h, x0, x1, y0, y1, "time (s)", ylabel))
     legend = []
     for i, s in enumerate(series):
-        color = _COLORS[i % len(_COLORS)]
+        color = COLORS[i % len(COLORS)]
         t, v = _thin(s.t_s, s.v)
         if wrap:  # 359 -> 1 degree is a small turn, not a line across the panel
             cut = np.flatnonzero(np.abs(np.diff(v)) > 180.0) + 1
@@ -812,8 +811,8 @@ def _svg_lanes(
     for iv in intervals:
         if iv.lane in lanes and iv.label not in palette:
             palette[iv.label] = (
-                _STATE_COLORS.get(iv.label)
-                or _COLORS[sum(1 for k in palette if k not in _STATE_COLORS) % len(_COLORS)]
+                STATE_COLORS.get(iv.label)
+                or COLORS[sum(1 for k in palette if k not in STATE_COLORS) % len(COLORS)]
             )
     # a key of every label above the lanes (a short interval has no room for its own)
     key, rows = _legend_rows(list(palette.items()), _ML, _W - _MR)
@@ -865,7 +864,7 @@ def _svg_lanes(
     return "".join(parts)
 
 
-_TITLES = {
+TITLES = {
     "track": "Track (local east/north from the first fix)",
     "error": "Horizontal position error against the true track (m)",
     "hdop": "HDOP",
@@ -936,7 +935,7 @@ def html_page(view: LogView) -> str:
         why = view.missing.get(pid, "nothing in the log")
         body = svgs[pid] or f'<p class="missing">Not shown: {_esc(why)}.</p>'
 
-        sections.append(f'<section id="panel-{pid}"><h2>{_esc(_TITLES[pid])}</h2>{body}</section>')
+        sections.append(f'<section id="panel-{pid}"><h2>{_esc(TITLES[pid])}</h2>{body}</section>')
     # </script> inside the data must not end the element: escape every "<"
     data = json.dumps(view.to_json(), separators=(",", ":"), allow_nan=False).replace(
         "<", "\\u003c"
@@ -960,130 +959,6 @@ def render_html(recording_path: Path, truth: Path | None = None) -> str:
     return html_page(load(Path(recording_path), truth=truth))
 
 
-# ---------------------------------------------------------------------------- PNG
-
-
-def render_png(view: LogView, out_png: Path) -> None:
-    """The panels as one PNG with matplotlib (the ``plot`` extra)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = ["error", "hdop", "satellites", "heading", "timeline"]
-    fig = plt.figure(figsize=(11, 16), dpi=100)
-    gs = fig.add_gridspec(len(rows) + 1, 1, height_ratios=[3.2] + [1] * (len(rows) - 1) + [1.4])
-    ax_map = fig.add_subplot(gs[0])
-    styles = {
-        "true track": ("#2ca02c", "-"),
-        "GPS fixes": ("#d62728", "."),
-        "position estimate": ("#1f77b4", "-"),
-    }
-    for label, (e, n) in view.track.items():
-        color, ls = styles.get(label, ("#555", "-"))
-        if ls == ".":
-            ax_map.plot(e, n, ".", ms=3, color=color, label=label)
-        else:
-            ax_map.plot(e, n, ls, lw=1.2, color=color, label=label)
-    ax_map.set_aspect("equal", adjustable="datalim")
-    ax_map.set_xlabel("east (m)")
-    ax_map.set_ylabel("north (m)")
-    ax_map.set_title(f"{view.path.name}: {_TITLES['track']}", fontsize=10)
-    if view.track:
-        ax_map.legend(fontsize=8, loc="best")
-    else:
-        _missing(ax_map, view.missing.get("track", ""))
-    ax_map.grid(alpha=0.3)
-    t_max = max(view.duration_s, 1e-3)
-    first = None
-    for k, (pid, series, ylabel) in enumerate(
-        (
-            ("error", view.error, "error (m)"),
-            ("hdop", view.hdop, "HDOP"),
-            ("satellites", view.satellites, "satellites"),
-            ("heading", view.heading, "degrees"),
-        )
-    ):
-        ax = fig.add_subplot(gs[k + 1], sharex=first)
-        first = first or ax
-        ax.set_title(_TITLES[pid], fontsize=10, loc="left")
-        ax.set_ylabel(ylabel)
-        ax.grid(alpha=0.3)
-        drew = False
-        for i, s in enumerate(series):
-            if np.any(np.isfinite(s.v)):
-                style = "." if pid == "heading" else "-"
-                ax.plot(
-                    s.t_s, s.v, style, ms=2, lw=1.1, color=_COLORS[i % len(_COLORS)], label=s.label
-                )
-                drew = True
-        if drew:
-            ax.legend(fontsize=8, loc="upper right")
-            if pid == "heading":
-                ax.set_ylim(0, 360)
-                ax.set_yticks([0, 90, 180, 270, 360])
-        else:
-            _missing(ax, view.missing.get(pid, "nothing in the log"))
-        ax.set_xlim(0, t_max)
-    ax = fig.add_subplot(gs[len(rows)], sharex=first)
-    lanes = [("mode", view.states), ("navigation", view.states), ("hold", view.holds)] + [
-        (d, view.faults) for d in fault_lanes(view)
-    ]
-    palette: dict[str, str] = {}
-    for k, (lane, ivs) in enumerate(lanes):
-        y = len(lanes) - 1 - k
-        for iv in (i for i in ivs if i.lane == lane):
-            color = palette.setdefault(
-                iv.label,
-                _STATE_COLORS.get(iv.label)
-                or _COLORS[sum(1 for p in palette if p not in _STATE_COLORS) % len(_COLORS)],
-            )
-            ax.broken_barh(
-                [(iv.t0_s, max(iv.t1_s - iv.t0_s, t_max / 800))], (y + 0.1, 0.8), color=color
-            )
-            if (iv.t1_s - iv.t0_s) > t_max * len(iv.label) / 150:
-                ax.text(iv.t0_s, y + 0.5, " " + iv.label, va="center", fontsize=7, clip_on=True)
-    ax.set_yticks([len(lanes) - 1 - k + 0.5 for k in range(len(lanes))])
-    ax.set_yticklabels(
-        [lane if lane in ("mode", "navigation", "hold") else f"{lane} fault" for lane, _ in lanes],
-        fontsize=8,
-    )
-    ax.set_ylim(0, len(lanes))
-    ax.set_xlim(0, t_max)
-    ax.set_xlabel("time since the start of the log (s)")
-    ax.set_title("Mode, navigation state, holds and device faults", fontsize=10, loc="left")
-    if not (view.states or view.holds or view.faults):
-        _missing(ax, view.missing.get("states", "nothing in the log"))
-    else:  # a key: a short interval has no room for its own label
-        from matplotlib.patches import Patch
-
-        ax.legend(
-            handles=[Patch(color=c, label=label) for label, c in palette.items()],
-            loc="upper left", bbox_to_anchor=(0.0, -0.32), ncol=min(6, len(palette)),
-            fontsize=7, frameon=False,
-        )  # fmt: skip
-    fig.tight_layout()
-    fig.savefig(out_png)
-    plt.close(fig)
-
-
-def _missing(ax: Any, why: str) -> None:
-    ax.text(
-        0.5,
-        0.5,
-        f"not shown: {why}",
-        transform=ax.transAxes,
-        ha="center",
-        va="center",
-        color="#888",
-        fontsize=9,
-        style="italic",
-    )
-
-
-# ---------------------------------------------------------------------------- command line
-
-
 def newest_recording(directory: Path) -> Path:
     """The first remaining part of the newest run the daemon recorded in ``directory``
     (named ``x6wd-<UTC>.jsonl`` by the recorder); :class:`DeviceUnavailable` if none."""
@@ -1092,60 +967,3 @@ def newest_recording(directory: Path) -> Path:
         raise DeviceUnavailable(f"{directory}: no recordings (x6wd-<UTC time>.jsonl) in it")
     newest = files[-1].run
     return next(f.path for f in files if f.run == newest)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``x6wd plot``."""
-    parser.add_argument(
-        "file",
-        metavar="RECORDING",
-        help="a flight recording (.jsonl, with its parts) or NMEA log; a folder: its newest"
-        " recording (the daemon's [recorder] dir)",
-    )
-    parser.add_argument(
-        "--out",
-        default=".",
-        help="directory for <name>.png and <name>.html (default: the current directory)",
-    )
-    parser.add_argument(
-        "--format",
-        choices=("both", "png", "html"),
-        default="both",
-        help="what to write (html needs no plot extra; default both)",
-    )
-    parser.add_argument(
-        "--truth", help="a true track CSV t_s,lat,lon (default: truth.csv next to the recording)"
-    )
-    parser.add_argument(
-        "--rate",
-        type=float,
-        default=1.0,
-        help="epochs per second for NMEA logs without sentence times (default 1)",
-    )
-
-
-def main(args: argparse.Namespace) -> int:
-    """Entry point of ``x6wd plot``; 0 on success (errors raise X6wdError -> exit 2)."""
-    if args.format != "html":
-        import matplotlib  # noqa: F401  (missing: the plot extra's message, exit 2)
-    if not (math.isfinite(args.rate) and args.rate > 0):
-        raise ConfigError(f"--rate must be > 0, got {args.rate}")
-    src = newest_recording(Path(args.file)) if Path(args.file).is_dir() else Path(args.file)
-    view = load(src, truth=Path(args.truth) if args.truth else None, rate_hz=args.rate)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    stem = src.stem
-    written = []
-    if args.format in ("both", "html"):
-        p = out / f"{stem}.html"
-        p.write_text(html_page(view), encoding="utf-8")
-        written.append(p)
-    if args.format in ("both", "png"):
-        p = out / f"{stem}.png"
-        render_png(view, p)
-        written.append(p)
-    for p in written:
-        print(p)
-    for pid, why in view.missing.items():
-        print(f"x6wd plot: the {pid} panel is empty: {why}", file=sys.stderr)
-    return 0

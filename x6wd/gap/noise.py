@@ -212,7 +212,7 @@ class AxisLaw:
 def axis_laws(logs: Sequence[PositionSeries], layout: Layout) -> list[AxisLaw]:
     """The laws of east, north (one :class:`NoiseModel`) and, when the layout has it, up
     (the same model fitted to the vertical), fitted to ``logs``."""
-    models = [(fit_noise_model(logs, layout), (0, 1))]
+    models: list[tuple[NoiseModel, tuple[int, ...]]] = [(fit_noise_model(logs, layout), (0, 1))]
     if layout.has_up:
         ups = [s.with_(east_m=np.asarray(s.up_m), north_m=np.asarray(s.up_m)) for s in logs]
         models.append((fit_noise_model(ups, layout), (0,)))
