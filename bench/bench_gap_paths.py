@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from bench._common import Row, print_table, upper95
+from bench.bench_gap import OPEN_SKY  # the same open-sky scenario as the seeds benchmark
 from sim_backend.effects import PositionSeries
 
 KINDS = ("bias", "drift", "random_walk", "jumps", "outages", "quantization")
@@ -181,16 +182,6 @@ def inject(
 
 # --- cases ---------------------------------------------------------------------------------
 
-OPEN_SKY = """name = "bench open sky"
-start_utc = "2020-01-01T12:00:00Z"
-duration_s = 3600.0
-[origin]
-lat_deg = 51.712345
-lon_deg = 19.487654
-alt_m = 100.0
-[gnss]
-fidelity = "pseudorange"
-"""
 # kind ("" = no effect), level, path ("few" / "seeds"), case seed
 Case = tuple[str, str, str, int]
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import socket
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -64,3 +66,15 @@ def dense_baseline_cov(model: Any, t_s: Any, axis: int) -> Any:
     k = model.sigma_m.shape[1]
     cov = sum(model.sigma_m[axis, i] ** 2 * np.exp(-lag / model.tau_s[axis, i]) for i in range(k))
     return cov + model.white_m[axis] ** 2 * np.eye(t_s.size)
+
+
+@pytest.fixture
+def listening() -> Iterator[int]:
+    """A port some other program already listens on (127.0.0.1)."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen()
+    try:
+        yield sock.getsockname()[1]
+    finally:
+        sock.close()

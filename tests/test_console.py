@@ -230,19 +230,6 @@ def canvas_click(d: webdriver.Chrome, x: float, y: float, button: str = "left") 
 
 
 # -- configuration ---------------------------------------------------------------------------------
-@pytest.fixture
-def listening() -> Iterator[int]:
-    import socket
-
-    sock = socket.socket()
-    sock.bind(("127.0.0.1", 0))
-    sock.listen()
-    try:
-        yield sock.getsockname()[1]
-    finally:
-        sock.close()
-
-
 def test_an_unknown_console_key_is_exit_2_naming_it(tmp_path: Path) -> None:
     config = write_config(tmp_path, console={"enabled": True, "bogus": 1})
     assert_config_error(run_x6wd(config), str(config), "console.bogus: unknown key")
