@@ -727,6 +727,7 @@ def test_the_robots_recordings_open_in_the_log_viewer_from_the_page(
         assert "Track" in browser.find_element(By.TAG_NAME, "body").text
     finally:
         browser.switch_to.default_content()
+    shot(browser, tmp_path, "recording.png")
     browser.find_element(By.ID, "rec-close").click()
     assert not browser.find_element(By.ID, "rec-view").is_displayed()
 
