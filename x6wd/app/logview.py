@@ -683,19 +683,27 @@ def _svg_open(pid: str, w: int, h: int, axes: dict[str, float], top: int = _MT) 
     )
 
 
+def _x_grid(x0: float, x1: float, pw: float, top: float, h: int) -> list[str]:
+    """Vertical grid lines from ``top`` (px) down to the axis, with their tick labels, for an
+    x range [x0, x1] drawn ``pw`` px wide."""
+    parts = []
+    for tx in nice_ticks(x0, x1, 10):
+        px = _ML + (tx - x0) / (x1 - x0) * pw
+        parts.append(
+            f'<line x1="{px:.1f}" y1="{top}" x2="{px:.1f}" y2="{h - _MB}" stroke="#eee"/>'
+            f'<text x="{px:.1f}" y="{h - _MB + 13}" font-size="10" text-anchor="middle">'
+            f"{_fmt(tx)}</text>"
+        )
+    return parts
+
+
 def _axes(
     w: int, h: int, x0: float, x1: float, y0: float, y1: float, xlabel: str, ylabel: str
 ) -> str:
     """Frame, grid, ticks and labels of a plot area mapping [x0, x1] x [y0, y1]."""
     pw, ph = w - _ML - _MR, h - _MT - _MB
     parts = [f'<rect x="{_ML}" y="{_MT}" width="{pw}" height="{ph}" fill="#fff" stroke="#888"/>']
-    for tx in nice_ticks(x0, x1, 10):
-        px = _ML + (tx - x0) / (x1 - x0) * pw
-        parts.append(
-            f'<line x1="{px:.1f}" y1="{_MT}" x2="{px:.1f}" y2="{h - _MB}" stroke="#eee"/>'
-            f'<text x="{px:.1f}" y="{h - _MB + 13}" font-size="10" text-anchor="middle">'
-            f"{_fmt(tx)}</text>"
-        )
+    parts += _x_grid(x0, x1, pw, _MT, h)
     for ty in nice_ticks(y0, y1, 5):
         py = h - _MB - (ty - y0) / (y1 - y0) * ph
         parts.append(
@@ -826,13 +834,7 @@ def _svg_lanes(
         f'<rect x="{_ML}" y="{top}" width="{pw}" height="{h - top - _MB}" '
         'fill="#fff" stroke="#888"/>'
     )
-    for tx in nice_ticks(x0, x1, 10):
-        px = _ML + (tx - x0) / (x1 - x0) * pw
-        parts.append(
-            f'<line x1="{px:.1f}" y1="{top}" x2="{px:.1f}" y2="{h - _MB}" stroke="#eee"/>'
-            f'<text x="{px:.1f}" y="{h - _MB + 13}" font-size="10" text-anchor="middle">'
-            f"{_fmt(tx)}</text>"
-        )
+    parts += _x_grid(x0, x1, pw, top, h)
     parts.append(
         f'<text x="{_ML + pw / 2}" y="{h - 2}" font-size="11" text-anchor="middle">time (s)</text>'
     )
