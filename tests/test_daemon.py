@@ -186,6 +186,7 @@ def test_lost_motor_link_holds_the_mission(tmp_path: Path, run_daemon) -> None:
         assert r.stop() == 0
     finally:
         board_stop.set()
+        server.join(5)  # before closing: the thread would read whatever reuses the fd number
         os.close(master)
         os.close(slave)
 

@@ -772,6 +772,9 @@ def test_a_lost_motor_link_holds_and_its_return_resumes(tmp_path: Path, run_daem
         assert r.stop() == 0
     finally:
         board_stop.set()
+        # join before closing: a live server thread would read whatever next reuses the fd
+        # number (it once swallowed the next test's sd_notify datagram)
+        server.join(5)
         os.close(master)
         os.close(slave)
 
