@@ -50,7 +50,6 @@ from datetime import UTC, datetime, timedelta
 from typing import Any, Literal, Protocol
 
 import numpy as np
-from scipy.signal import lfilter
 
 from sim_backend.atmosphere import Atmosphere
 from sim_backend.epoch import GnssEpoch, SimSat
@@ -376,6 +375,10 @@ def gauss_markov_unit(
     for tau_g in np.unique(tau):
         cols = np.nonzero(tau == tau_g)[0]
         if even:
+            # imported here: scipy.signal takes ~1 s to import, and a moving robot's epochs
+            # come one at a time (n_e == 1 above): `x6wd sim` of a mission never needs it
+            from scipy.signal import lfilter
+
             phi = float(np.exp(-dt1[0] / tau_g))
             q = float(np.sqrt(-np.expm1(-2.0 * dt1[0] / tau_g)))
             zi = (phi * out[0, cols])[None, :]

@@ -60,7 +60,7 @@ from array import array
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
-from datetime import UTC, timedelta
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any, cast
 
@@ -426,10 +426,21 @@ def run_mission(
     # The recorder writes aware times as naive UTC; handing it naive UTC already skips a
     # conversion per record (thousands per mission) and gives the same text.
     utc0_naive = utc0.astimezone(UTC).replace(tzinfo=None) if utc0.tzinfo else utc0
+    # One datetime per simulated instant: the recorder formats the same object only once
+    # (a tick writes several records at the same time).
+    utc_memo: list[Any] = [math.nan, utc0_naive]
+
+    def utc_clock() -> datetime:
+        t = now[0]
+        if t != utc_memo[0]:
+            utc_memo[0], utc_memo[1] = t, utc0_naive + timedelta(seconds=t)
+        dt: datetime = utc_memo[1]
+        return dt
+
     rec = Recorder(
         out / "recording.jsonl",
         clock=lambda: now[0],
-        utc_clock=lambda: utc0_naive + timedelta(seconds=now[0]),
+        utc_clock=utc_clock,
         buffer_bytes=RECORDER_BUFFER_BYTES,
     )
 

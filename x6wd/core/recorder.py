@@ -42,6 +42,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from operator import attrgetter
 from pathlib import Path
 from typing import Any
 
@@ -170,26 +171,48 @@ def _json_keys(names: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(json.encoder.encode_basestring(n) + ":" for n in names)
 
 
+# dataclass type -> (its field values as a tuple, their '"name":' keys), or None for a type
+# that is not a dataclass (cached: one C call fetches all the fields of a record)
+_FLAT_SPEC: dict[type, tuple[Callable[[Any], tuple[Any, ...]], tuple[str, ...]] | None] = {}
+
+
+def _flat_spec(cls: type) -> tuple[Callable[[Any], tuple[Any, ...]], tuple[str, ...]] | None:
+    try:
+        return _FLAT_SPEC[cls]
+    except KeyError:
+        pass
+    names = _dataclass_names(cls)
+    spec = None
+    if names is not None:
+        get: Callable[[Any], tuple[Any, ...]]
+        if len(names) > 1:
+            get = attrgetter(*names)  # a tuple of the values
+        else:  # attrgetter of one name gives the value itself, of none cannot be made
+            get = lambda v: tuple(getattr(v, n) for n in names)  # noqa: E731
+        spec = (get, _json_keys(names))
+    _FLAT_SPEC[cls] = spec
+    return spec
+
+
 def _flat_json(value: Any) -> str | None:
     """``value`` (a dataclass or a dict with string keys) as the encoder's JSON object text
     when every field is a plain scalar; None otherwise (the caller converts and encodes)."""
+    scalar = _SCALAR_JSON
     if type(value) is dict:
         if not all(type(k) is str for k in value):
             return None
-        names: tuple[str, ...] | None = tuple(value)
-        values = list(value.values())
+        keys = _json_keys(tuple(value))
+        values: Any = value.values()
     else:
-        names = _dataclass_names(type(value))
-        if names is None:
+        spec = _flat_spec(type(value))
+        if spec is None:
             return None
-        values = [getattr(value, n) for n in names]
-    parts = []
-    scalar = _SCALAR_JSON
-    for key, v in zip(_json_keys(names), values, strict=True):
-        fmt = scalar.get(type(v))
-        if fmt is None:
-            return None
-        parts.append(key + fmt(v))
+        get, keys = spec
+        values = get(value)
+    try:
+        parts = [k + scalar[type(v)](v) for k, v in zip(keys, values, strict=True)]
+    except KeyError:  # a field that is not a plain scalar
+        return None
     return "{" + ",".join(parts) + "}"
 
 
@@ -370,6 +393,9 @@ class Recorder:
         self.deleted: list[Path] = []  # files retention removed, oldest first
         self._clock = clock
         self._utc_clock = utc_clock
+        # (the latest datetime utc_clock gave, its text): a clock that hands back the same
+        # object (the simulator, for the records of one step) is formatted once
+        self._utc_memo: tuple[datetime | None, str] = (None, "")
         self._lock = threading.Lock()
         self.records_written = 0
         self.bytes_written = 0
@@ -463,9 +489,16 @@ class Recorder:
             if not isinstance(data, dict):
                 raise ValueError(f"payload must be a dict or a dataclass, got {payload!r}")
             body = _ENCODE(data)
+        utc = self._utc_clock()
+        memo = self._utc_memo
+        if memo[0] is utc:
+            utc_text = memo[1]
+        else:
+            utc_text = _iso_z(utc)
+            self._utc_memo = (utc, utc_text)  # one assignment: safe between threads
         # The encoder's own text for {"t_mono", "t_utc", "type", "data"} (t is finite).
         line = (
-            f'{{"t_mono":{float.__repr__(t)},"t_utc":"{_iso_z(self._utc_clock())}",'
+            f'{{"t_mono":{float.__repr__(t)},"t_utc":"{utc_text}",'
             f'"type":"{type}","data":{body}}}\n'
         )
         blob = line.encode("utf-8")

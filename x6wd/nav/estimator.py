@@ -85,6 +85,8 @@ from x6wd.core.errors import X6wdError
 E, N, PSI, V, W, BE, BN, KT, BA = range(9)
 NX = 9
 _TWO_PI = 2.0 * math.pi
+_EYE = np.eye(NX)
+_EYE.flags.writeable = False  # copied, never written: np.eye per call cost more than the math
 
 CMPS10_LAG_S = 0.640 / 3.0
 """The CMPS10 heading filter as a first-order lag: ~640 ms to refresh fully ≈ 3 time
@@ -354,6 +356,15 @@ class Estimator:
         m = config.motion
         self._q_v = m.accel_sigma_mps2**2  # (m/s)² per s
         self._q_w = math.radians(m.yaw_accel_sigma_dps2) ** 2  # (rad/s)² per s
+        self._odometry_mode = config.mode == Mode.ODOMETRY
+        # The latest Estimate, until the state changes (the controller asks for it several
+        # times per input: position, heading, telemetry); None when it must be rebuilt.
+        self._est: Estimate | None = None
+        # The compass's measurement Jacobian [0, 0, 1, 0, -lag, 0...] (constant; never written).
+        self._h_compass = np.zeros(NX)
+        self._h_compass[PSI] = 1.0
+        self._h_compass[W] = -config.compass.lag_s
+        self._h_compass.flags.writeable = False
 
     # ------------------------------------------------------------------ read-outs
     @property
@@ -391,20 +402,24 @@ class Estimator:
         """The current state as an :class:`Estimate`, ``None`` until :attr:`ready`."""
         if not self._ready or self._t is None:
             return None
-        x, p = self._x, self._p
-        return Estimate(
-            t_s=self._t,
-            east_m=float(x[E]),
-            north_m=float(x[N]),
-            heading_deg=math.degrees(x[PSI]) % 360.0,
-            speed_mps=float(x[V]),
-            yaw_rate_dps=math.degrees(x[W]),
-            sigma_east_m=math.sqrt(max(p[E, E], 0.0)),
-            sigma_north_m=math.sqrt(max(p[N, N], 0.0)),
-            sigma_heading_deg=math.degrees(math.sqrt(max(p[PSI, PSI], 0.0))),
-            turn_scale=float(x[KT]),
-            drift_deg_per_m=math.degrees(x[BA]),
-        )
+        est = self._est
+        if est is None:
+            x = self._x.tolist()
+            p = self._p
+            est = self._est = Estimate(
+                self._t,
+                x[E],
+                x[N],
+                math.degrees(x[PSI]) % 360.0,
+                x[V],
+                math.degrees(x[W]),
+                math.sqrt(max(p.item(E, E), 0.0)),
+                math.sqrt(max(p.item(N, N), 0.0)),
+                math.degrees(math.sqrt(max(p.item(PSI, PSI), 0.0))),
+                x[KT],
+                math.degrees(x[BA]),
+            )
+        return est
 
     # ------------------------------------------------------------------ time
     def _time(self, t_s: float, what: str) -> float | None:
@@ -432,16 +447,18 @@ class Estimator:
     def _predict_to(self, t: float) -> None:
         if self._t is None:
             self._t = t
+            self._est = None
             return
         dt = t - self._t
         if dt <= 0:
             return
+        self._est = None
         if self._ready:
             # Odometry drives the pose while its increments flow; when they stop (no
             # encoders, a silent board) the commanded drive takes over, if given.
             t_odo = self._t_odo
             self._odo_fresh = (
-                self.cfg.mode == Mode.ODOMETRY
+                self._odometry_mode
                 and t_odo is not None
                 and self._t - t_odo <= self.cfg.motion.odometry_timeout_s
             )
@@ -454,14 +471,17 @@ class Estimator:
     def _step(self, h: float) -> None:
         """One time-only prediction step of ``h`` seconds (constant speed and yaw rate, or
         relaxing towards the commanded ones)."""
+        # Plain floats from the state (numpy scalars do the same IEEE arithmetic, slower);
+        # the covariance products stay numpy's, so the results are bit-identical.
         x, cfg = self._x, self.cfg
-        psi, v, w = x[PSI], x[V], x[W]
+        xs = x.tolist()
+        psi, v, w = xs[PSI], xs[V], xs[W]
         pm = psi + 0.5 * w * h
         s, c = math.sin(pm), math.cos(pm)
-        f = np.eye(NX)
-        q = np.zeros(NX)
-        x[E] += v * h * s
-        x[N] += v * h * c
+        f = _EYE.copy()
+        q = np.zeros((NX, NX))  # the process noise, diagonal
+        x[E] = xs[E] + v * h * s
+        x[N] = xs[N] + v * h * c
         x[PSI] = _wrap(psi + w * h)
         f[E, PSI] = v * h * c
         f[E, V] = h * s
@@ -470,13 +490,13 @@ class Estimator:
         f[N, V] = h * c
         f[N, W] = -0.5 * v * h * h * s
         f[PSI, W] = h
-        q[V] = self._q_v * h
-        q[W] = self._q_w * h
+        q_v = self._q_v * h
+        q_w = self._q_w * h
         odo = cfg.odometry
-        if odo is not None and cfg.mode == Mode.ODOMETRY:
-            q[KT] = odo.turn_scale_walk_per_s**2 * h
-            q[BA] = odo.drift_walk_rad_per_m_per_s**2 * h
-        q[E] = q[N] = self._q_v * h**3 / 3.0
+        if odo is not None and self._odometry_mode:
+            q[KT, KT] = odo.turn_scale_walk_per_s**2 * h
+            q[BA, BA] = odo.drift_walk_rad_per_m_per_s**2 * h
+        q[E, E] = q[N, N] = self._q_v * h**3 / 3.0
         cmd = cfg.command
         if cmd is not None and self._cmd is not None and not self._odo_fresh:
             # speed and yaw rate relax to the command; their error is Gauss-Markov
@@ -487,16 +507,18 @@ class Estimator:
             f[V, V] = a
             f[W, W] = a
             g = math.exp(-2.0 * h / cmd.error_tau_s)
-            q[V] += cmd.sigma_speed_mps**2 * (1.0 - g)
-            q[W] += math.radians(cmd.sigma_yaw_rate_dps) ** 2 * (1.0 - g)
+            q_v += cmd.sigma_speed_mps**2 * (1.0 - g)
+            q_w += math.radians(cmd.sigma_yaw_rate_dps) ** 2 * (1.0 - g)
+        q[V, V] = q_v
+        q[W, W] = q_w
         tau_b = cfg.gps.correlation_s
         if tau_b is not None:
             phi = math.exp(-h / tau_b)
-            x[BE] *= phi
-            x[BN] *= phi
+            x[BE] = xs[BE] * phi
+            x[BN] = xs[BN] * phi
             f[BE, BE] = f[BN, BN] = phi
-            q[BE] = q[BN] = self._bias_var_m2 * (1.0 - phi * phi)
-        self._p = f @ self._p @ f.T + np.diag(q)
+            q[BE, BE] = q[BN, BN] = self._bias_var_m2 * (1.0 - phi * phi)
+        self._p = f @ self._p @ f.T + q
 
     # ------------------------------------------------------------------ inputs
     def on_odometry(self, t_s: float, d_left_m: float, d_right_m: float) -> None:
@@ -513,6 +535,7 @@ class Estimator:
         t1 = float(t_s)
         if not math.isfinite(t1):
             raise EstimatorError(f"odometry: t_s must be finite, got {t_s!r}")
+        self._est = None
         t0 = self._t_odo
         self._t_odo = t1 if t0 is None else max(t0, t1)
         if t0 is None or t1 <= t0:
@@ -538,17 +561,19 @@ class Estimator:
         else:
             dl_rate, dr_rate = dl, dr
         x = self._x
-        kt, ba = x[KT], x[BA]
+        xs = x.tolist()  # plain floats: the same IEEE arithmetic as numpy scalars, faster
+        kt, ba = xs[KT], xs[BA]
         ds = 0.5 * (dl + dr)
         diff = (dl - dr) / odo.track_m  # the wheels' heading change, rad
         dpsi = kt * diff + ba * ds
-        ds_corr = ds - x[V] * span
-        x[PSI] = _wrap(x[PSI] + dpsi - x[W] * span)
-        pm = x[PSI] - 0.5 * dpsi  # mid-increment heading, for the along-track correction
+        ds_corr = ds - xs[V] * span
+        psi = _wrap(xs[PSI] + dpsi - xs[W] * span)
+        x[PSI] = psi
+        pm = psi - 0.5 * dpsi  # mid-increment heading, for the along-track correction
         s, c = math.sin(pm), math.cos(pm)
-        x[E] += ds_corr * s
-        x[N] += ds_corr * c
-        f = np.eye(NX)
+        x[E] = xs[E] + ds_corr * s
+        x[N] = xs[N] + ds_corr * c
+        f = _EYE.copy()
         f[PSI, W] = -span
         f[PSI, KT] = diff
         f[PSI, BA] = ds
@@ -609,6 +634,7 @@ class Estimator:
         t = self._time(t_s, "compass")
         if t is None:
             return Update(False, math.nan, "stale")
+        self._est = None
         b = float(magnetic_bearing_deg)
         if not math.isfinite(b):
             raise EstimatorError(f"bearing must be finite, got {magnetic_bearing_deg!r}")
@@ -621,11 +647,10 @@ class Estimator:
             return Update(True, math.nan, "init")
         x = self._x
         lag = cp.lag_s
-        r = math.radians(cp.sigma_deg) ** 2 + (cp.lag_uncertainty * lag * x[W]) ** 2
-        h = np.zeros(NX)
-        h[PSI] = 1.0
-        h[W] = -lag
-        y = _wrap(z - (x[PSI] - lag * x[W]))
+        psi, w = x.item(PSI), x.item(W)
+        r = math.radians(cp.sigma_deg) ** 2 + (cp.lag_uncertainty * lag * w) ** 2
+        h = self._h_compass
+        y = _wrap(z - (psi - lag * w))
         ph = self._p @ h
         s = float(h @ ph) + r
         nis = y * y / s
@@ -634,7 +659,7 @@ class Estimator:
             if self._compass_consistent():
                 self._compass_refused.clear()
                 self.stats.compass_resets += 1
-                x[PSI] = _wrap(z + lag * x[W])
+                x[PSI] = _wrap(z + lag * w)
                 self._p[PSI, :] = self._p[:, PSI] = 0.0
                 self._p[PSI, PSI] = r + lag * lag * self._p[W, W]
                 return Update(True, nis, "reset")
@@ -665,6 +690,7 @@ class Estimator:
         t = self._time(t_s, "gps")
         if t is None:
             return Update(False, math.nan, "stale")
+        self._est = None
         ze, zn, dp = float(east_m), float(north_m), float(dop)
         if not (math.isfinite(ze) and math.isfinite(zn)):
             raise EstimatorError(f"fix must be finite, got {east_m!r}, {north_m!r}")
@@ -735,6 +761,7 @@ class Estimator:
         if tau_b is None:
             return
         phi = math.exp(-h / tau_b)
+        self._est = None
         x, p = self._x, self._p
         for i in (BE, BN):
             x[i] *= phi
@@ -745,7 +772,7 @@ class Estimator:
     def _joseph(
         self, k: npt.NDArray[np.float64], h: npt.NDArray[np.float64], r: npt.NDArray[np.float64]
     ) -> None:
-        ikh = np.eye(NX) - k @ h
+        ikh = _EYE - k @ h
         p = ikh @ self._p @ ikh.T + k @ r @ k.T
         self._p = 0.5 * (p + p.T)
 
@@ -766,6 +793,7 @@ class Estimator:
     def _try_init(self) -> None:
         if self._pending_fix is None or self._pending_heading is None:
             return
+        self._est = None
         _, ze, zn, white_var = self._pending_fix
         _, psi = self._pending_heading
         self._x[:] = 0.0
