@@ -343,8 +343,9 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         return (
             f"baseline: {n_logs} sim log(s), fewer than {self.options.min_runs}: the null is "
             f"{self.options.replicates} replicates made of their innovations (whitened by a "
-            "noise model fitted to them, resampled at the same times, coloured again; no "
-            "joins), its spreads widened by up to "
+            "noise model fitted to them, resampled at the same times, coloured again, each "
+            "replicate with a law drawn from how the logs' own laws differ; no joins), its "
+            "spreads widened by up to "
             f"{max(inflation.values(), default=1.0):.2f}x where the logs themselves vary more "
             "than the replicates; more sim logs give more power"
         )

@@ -193,9 +193,10 @@ def noise_model(baseline: Sequence[PositionSeries], layout: Layout) -> NoiseMode
 # whole by the recursion instead of being cut and spliced (a raw join of two logs is a fake
 # step of the slow error's size, ~1.5 m on the GNSS model, which every step, walk and drift
 # statistic reads as an effect). Heavy tails, satellite changes and fix losses of the logs
-# survive. What the model's spread still misses (its parameters come from a few logs) is
-# measured on the logs themselves, each scored against replicates of the others, and widens
-# the null's spread (:func:`x6wd.gap.null.inflation_from`).
+# survive; so does how the law itself differs between logs (the next section). What the
+# replicates' spread still misses (their laws come from a few logs) is measured on the logs
+# themselves, each scored against replicates of the others, and widens the null's spread
+# (:func:`x6wd.gap.null.inflation_from`).
 
 
 @dataclass(frozen=True)
@@ -269,6 +270,8 @@ def colour(law: AxisLaw, t_s: np.ndarray, innovations: np.ndarray) -> np.ndarray
     ``innovations``, standardised; NaN drawn afresh from N(0, 1) by the caller) of ``law``."""
     n = t_s.size
     sd, k1, k2, phi1, phi2 = _gains(law, np.diff(t_s), np.ones(n, dtype=bool))
+    if innovations.shape[0] == 1:  # one series: plain floats, far faster than 1-wide arrays
+        return _colour_one(sd, k1, k2, phi1, phi2, innovations[0])[None, :] + law.mean_m
     x1 = np.zeros(innovations.shape[0])
     x2 = np.zeros_like(x1)
     out = np.empty_like(innovations)
@@ -279,6 +282,24 @@ def colour(law: AxisLaw, t_s: np.ndarray, innovations: np.ndarray) -> np.ndarray
         if t < n - 1:
             x1, x2 = phi1[t] * x1, phi2[t] * x2
     return out + law.mean_m
+
+
+def _colour_one(
+    sd: np.ndarray, k1: np.ndarray, k2: np.ndarray, phi1: np.ndarray, phi2: np.ndarray,
+    innovations: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """:func:`colour`'s recursion for one series, on Python floats."""
+    n = innovations.size
+    gains = zip(sd.tolist(), k1.tolist(), k2.tolist(), innovations.tolist(), strict=True)
+    f1 = [*phi1.tolist(), 0.0]
+    f2 = [*phi2.tolist(), 0.0]
+    out = [0.0] * n
+    x1 = x2 = 0.0
+    for t, (s_t, a, b, u) in enumerate(gains):
+        e = s_t * u
+        out[t] = x1 + x2 + e
+        x1, x2 = f1[t] * (x1 + a * e), f2[t] * (x2 + b * e)
+    return np.array(out)
 
 
 def lattice_decimals(logs: Sequence[PositionSeries]) -> int | None:
@@ -311,11 +332,14 @@ def innovation_replicates(
     jitter_s: float,
     rng: np.random.Generator,
     decimals: int | None,
+    replicate_laws: Sequence[Sequence[AxisLaw]] | None = None,
 ) -> list[PositionSeries]:
     """``n_out`` replicates on ``template``'s times: the laws' recursion driven by the
     ``logs``' standardised innovations, in blocks of ``block_s`` each from one log at about
     the same times (shifted by up to ``jitter_s``, so that n logs offer more than n choices;
-    its fix losses and satellite counts come with it), printed on the logs' lattice."""
+    its fix losses and satellite counts come with it), printed on the logs' lattice.
+    ``replicate_laws`` (one list of axis laws per replicate) colours each replicate with a
+    law of its own (:func:`drawn_laws`); None: every one with ``laws``."""
     t_s = np.asarray(template.t_s, dtype=float)
     n = t_s.size
     index = [_on(t_s, log) for log in logs]
@@ -345,7 +369,13 @@ def innovation_replicates(
         nsats = counts[src_log, src_t]
     missing = ~np.isfinite(e)
     e[missing] = rng.standard_normal(int(missing.sum()))
-    paths = [colour(law, t_s, e[a]) for a, law in enumerate(laws)]
+    if replicate_laws is None:
+        paths = [colour(law, t_s, e[a]) for a, law in enumerate(laws)]
+    else:
+        paths = [
+            np.array([colour(replicate_laws[j][a], t_s, e[a][j : j + 1])[0] for j in range(n_out)])
+            for a in range(len(laws))
+        ]
     if len(paths) < 3:
         paths.append(np.zeros((n_out, n)))
     out = []
@@ -360,6 +390,97 @@ def innovation_replicates(
             series = Quantization(decimals=decimals).apply(series, rng)
         out.append(series)
     return out
+
+
+# --- how the law itself differs from log to log --------------------------------------------
+#
+# One law fitted to n logs, coloured with their innovations, makes replicates that differ
+# only by chance within that law. The simulator's hours differ more: fitted alone, three
+# one-hour logs of the same scenario give short correlation times of 9-18 s, and the next
+# hour 5 s. A statistic that reads the whole log against a model (the random walk's
+# likelihood ratio) grows with the log's length times that misfit, so its spread between
+# logs is heavy-tailed and three logs' leave-one-out z cannot pin it. So every replicate
+# is coloured with a law of its own, drawn from the spread of the laws fitted to each log
+# alone, less the scatter a one-log fit has anyway (measured on parametric draws of the
+# pooled law, which the replicates already carry): each cell's null spread, heavy tails
+# included, then comes from the replicates instead of from n logs.
+
+LAW_DRAWS = 6  # parametric logs of the pooled law that measure a one-log fit's own scatter
+
+
+def _law_vector(laws: Sequence[AxisLaw]) -> np.ndarray:
+    """The laws' parameters as one vector of logs (per axis: sigmas, taus by increasing
+    tau, white noise)."""
+    parts = []
+    for law in laws:
+        order = np.argsort(law.tau_s)
+        parts.append(np.concatenate([law.sigma_m[order], law.tau_s[order], [law.white_m]]))
+    return np.log(np.concatenate(parts))
+
+
+def _laws_from(vector: np.ndarray, like: Sequence[AxisLaw], tau_max_s: float) -> list[AxisLaw]:
+    """The inverse of :func:`_law_vector` (means from ``like``)."""
+    out = []
+    for a, law in enumerate(like):
+        v = np.exp(vector[5 * a : 5 * a + 5])
+        tau_s = np.clip(v[2:4], 1e-3, tau_max_s)
+        out.append(AxisLaw(v[0:2], tau_s, float(v[4]), law.mean_m))
+    return out
+
+
+@dataclass(frozen=True)
+class LawSpread:
+    """The laws fitted to each log alone (rows of log-parameters, :func:`_law_vector`) and
+    the variance of a one-log fit's own scatter per parameter."""
+
+    per_log: np.ndarray  # (logs, parameters)
+    fit_var: np.ndarray  # (parameters,)
+
+
+def law_spread(
+    logs: Sequence[PositionSeries],
+    pooled: Sequence[AxisLaw],
+    template: PositionSeries,
+    layout: Layout,
+    rng: np.random.Generator,
+) -> LawSpread:
+    """Each log's own law, and the scatter of a one-log fit measured on :data:`LAW_DRAWS`
+    parametric draws of the ``pooled`` laws on ``template``'s times."""
+    per_log = np.array([_law_vector(axis_laws([log], layout)) for log in logs])
+    t_s = np.asarray(template.t_s, dtype=float)
+    paths = [colour(law, t_s, rng.standard_normal((LAW_DRAWS, t_s.size))) for law in pooled]
+    draws = []
+    for j in range(LAW_DRAWS):
+        up = paths[2][j] if len(paths) > 2 else np.zeros(t_s.size)
+        series = template.with_(
+            east_m=paths[0][j], north_m=paths[1][j], up_m=up, valid=np.ones(t_s.size, dtype=bool)
+        )
+        draws.append(_law_vector(axis_laws([series], layout)))
+    return LawSpread(per_log, np.var(np.array(draws), axis=0, ddof=1))
+
+
+def drawn_laws(
+    spread: LawSpread,
+    pooled: Sequence[AxisLaw],
+    n_out: int,
+    layout: Layout,
+    rng: np.random.Generator,
+) -> list[list[AxisLaw]] | None:
+    """``n_out`` sets of axis laws around ``pooled``: the logs' deviations from their mean
+    law, each parameter's shrunk by the part a one-log fit's scatter explains, combined with
+    Gaussian weights (the covariance of the logs' laws, parameters' correlations kept) and
+    widened by sqrt(1 + 1/n), as for one more log. None with fewer than two logs."""
+    n = spread.per_log.shape[0]
+    if n < 2:
+        return None
+    dev = spread.per_log - spread.per_log.mean(axis=0)
+    between = np.var(spread.per_log, axis=0, ddof=1)
+    keep = np.sqrt(np.clip(1.0 - spread.fit_var / np.maximum(between, 1e-12), 0.0, 1.0))
+    scale = math.sqrt((1.0 + 1.0 / n) / (n - 1))
+    centre = _law_vector(pooled)
+    tau_max_s = 100.0 * max(layout.duration_s, layout.dt_s)
+    weights = rng.standard_normal((n_out, n))
+    return [_laws_from(centre + scale * (w @ (dev * keep)), pooled, tau_max_s) for w in weights]
 
 
 # adds whole-log cells to replicate batteries and a log's battery, in place
@@ -380,7 +501,9 @@ def few_logs_null(
     whole_log_cells: WholeLogCells | None = None,
 ) -> tuple[list[PositionSeries], Inflation]:
     """The null ensemble of a few baseline ``logs`` (see the section's comment): ``n_out``
-    replicates on ``template``'s times and the spread factors that make it honest
+    replicates on ``template``'s times, each coloured with a law of its own drawn from how
+    the logs' laws differ (:func:`drawn_laws`; with one log the pooled law), and the spread
+    factors that make it honest
     (:func:`x6wd.gap.null.inflation_from`: each log scored against replicates of the
     others; with one log only the floor). ``block_s`` the innovation blocks (default 1/30 of the
     log, at least 30 steps), ``jitter_s`` how far from the same time a block may come
@@ -393,16 +516,24 @@ def few_logs_null(
     block_s = block_s or max(layout.duration_s / 30.0, 30 * layout.dt_s)
     jitter_s = layout.duration_s / 12.0 if jitter_s is None else jitter_s
     decimals = lattice_decimals(logs)
+    pooled = axis_laws(logs, layout)
+    spread = law_spread(logs, pooled, template, layout, rng) if len(logs) > 1 else None
     runs = innovation_replicates(
-        logs, axis_laws(logs, layout), template, n_out, block_s, jitter_s, rng, decimals
-    )
+        logs, pooled, template, n_out, block_s, jitter_s, rng, decimals,
+        drawn_laws(spread, pooled, n_out, layout, rng) if spread is not None else None,
+    )  # fmt: skip
     rows = []
     cells: tuple[Cell, ...] = ()
     for i, log in enumerate(logs if len(logs) > 1 else []):
         others = [s for j, s in enumerate(logs) if j != i]
+        laws = axis_laws(others, layout)
+        assert spread is not None
+        # the same procedure on n - 1 logs: their own laws, the one-log fit scatter as above
+        spread_i = LawSpread(np.delete(spread.per_log, i, axis=0), spread.fit_var)
         draws = innovation_replicates(
-            others, axis_laws(others, layout), log, n_out, block_s, jitter_s, rng, decimals
-        )
+            others, laws, log, n_out, block_s, jitter_s, rng, decimals,
+            drawn_laws(spread_i, laws, n_out, layout, rng),
+        )  # fmt: skip
         draw_batteries = [battery(s, layout) for s in draws]
         log_battery = battery(log, layout)
         if whole_log_cells is not None:
