@@ -516,9 +516,17 @@ class HilWorld:
     def close(self) -> None:
         """Stop the threads and unplug the ptys (idempotent)."""
         self._stop.set()
+        alive = []
         for t in list(self._threads):
             if t is not threading.current_thread():
-                t.join(2.0)
+                t.join(5.0)
+                if t.is_alive():
+                    alive.append(t.name)
+        if alive:
+            # A live thread would read or write whatever next reuses these fd numbers (a
+            # socket, a file): leave them open to the process's exit rather than corrupt that.
+            log.error("HIL world: %s still running after 5 s; its ptys are left open", alive)
+            return
         self.uart.close()
         fds, self._fds = self._fds, []
         for fd in fds:
