@@ -76,7 +76,7 @@ from sim_backend.effects import (
     tilted_heading_deg,
     wrap180,
 )
-from sim_backend.geodesy import enu_to_lla, lla_to_enu
+from sim_backend.geodesy import ecef_to_lla, enu_rotation, enu_to_lla, lla_to_ecef, lla_to_enu
 from sim_backend.odometry import EncoderSim, encoder_rng
 from sim_backend.ports import MemoryUart
 from sim_backend.receiver import SimRandom, build_receiver
@@ -548,6 +548,9 @@ def run_mission(
                 receiver, np.arange(0, n_ticks + 1, gps_every) * dt, pos0
             )
         truth_lla: dict[tuple[float, float, float], tuple[float, float]] = {}
+        # enu_to_lla's origin and rotation, computed once (the same numbers every epoch)
+        origin_ecef = lla_to_ecef(origin.lat_deg, origin.lon_deg, origin.alt_m)
+        enu_rot = enu_rotation(origin.lat_deg, origin.lon_deg)
         # Sentences in flight on the UART: (time the last byte arrives, epoch tick, bytes).
         in_flight: deque[tuple[float, int, bytes]] = deque()
 
@@ -600,9 +603,8 @@ def run_mission(
                 nmea_file.write(burst)
                 ll = truth_lla.get(antenna)
                 if ll is None:  # a robot standing still asks for the same point each epoch
-                    lat, lon, _alt = enu_to_lla(
-                        np.array(antenna), origin.lat_deg, origin.lon_deg, origin.alt_m
-                    )
+                    # enu_to_lla(antenna, origin), step by step
+                    lat, lon, _alt = ecef_to_lla(np.array(antenna) @ enu_rot + origin_ecef)
                     if len(truth_lla) > 1000:
                         truth_lla.clear()
                     ll = truth_lla[antenna] = (float(lat), float(lon))

@@ -161,6 +161,7 @@ class Controller:
         )
         self._filt: tuple[float, float] | None = None  # the source's (lat_deg, lon_deg)
         self._src_heading_deg: float | None = None  # the source's true heading, if it has one
+        self._src_heading_rad: tuple[float | None, float] = (None, 0.0)  # (deg, its rad)
         self._mission_nav: Navigator | None = None  # the operator's mission while returning
         self._returning = ""  # why the robot returns to launch ("" when it does not)
         self._launch: tuple[float, float] | None = None  # (lat_deg, lon_deg) at mission start
@@ -204,6 +205,11 @@ class Controller:
         self._heading = 0.0
         # (navigator decision, x, y, heading) of the last Navigator.step, for the snapshot.
         self._decided: tuple[object, float, float, float] | None = None
+        # Great-circle distances of the latest fix, memoised with their inputs (identities
+        # of the fix and the stuck check's body tuple, the target's coordinates):
+        # (fix, target lat, target lon, m) for the arrival check, (body, fix, m) for stuck.
+        self._to_target_m: tuple[GpsFix, float, float, float] | None = None
+        self._body_to_fix_m: tuple[object, GpsFix, float] | None = None
 
     # ------------------------------------------------------------------ properties
     @property
@@ -579,7 +585,7 @@ class Controller:
             wheels = self._stuck_wheels = (self._wheel_m, now)
         if (
             body is None
-            or great_circle_m(body[0], body[1], fix.lat_deg, fix.lon_deg) >= fs.stuck_min_m
+            or self._body_moved_m(body, fix) >= fs.stuck_min_m
             or abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG
         ):
             body = self._stuck_body = (fix.lat_deg, fix.lon_deg, att.bearing_deg, now)
@@ -698,14 +704,34 @@ class Controller:
         driven_m = self._nav_cfg.full_speed_mps * max(0.0, now - self._valid_fix_t)
         limit_m = max(ARRIVAL_GPS_MIN_M, ARRIVAL_GPS_SIGMAS * sigma_m) + driven_m
         lat, lon = nav.waypoints[nav.index]
-        return great_circle_m(fix.lat_deg, fix.lon_deg, lat, lon) <= limit_m
+        memo = self._to_target_m
+        if memo is None or memo[0] is not fix or memo[1] != lat or memo[2] != lon:
+            d = great_circle_m(fix.lat_deg, fix.lon_deg, lat, lon)
+            memo = self._to_target_m = (fix, lat, lon, d)
+        return memo[3] <= limit_m
+
+    def _body_moved_m(self, body: tuple[float, float, float, float], fix: GpsFix) -> float:
+        """Great-circle distance (m) from the stuck check's last body position to a usable
+        fix, computed once per pair (the fix comes at 1 Hz, the check runs at every input)."""
+        memo = self._body_to_fix_m
+        if memo is None or memo[0] is not body or memo[1] is not fix:
+            assert fix.lat_deg is not None and fix.lon_deg is not None
+            d = great_circle_m(body[0], body[1], fix.lat_deg, fix.lon_deg)
+            memo = self._body_to_fix_m = (body, fix, d)
+        return memo[2]
 
     def _current_heading_rad(self) -> float | None:
         """True heading (rad, (−π, π]): the position source's when it has one (the EKF),
         else the compass's; None without either."""
         h = self._src_heading_deg
         if h is not None:
-            return math.radians(h - 360.0 if h > 180.0 else h)
+            # memoised on the source's float itself: the step's decision and its snapshot
+            # then hold the very same heading object (the snapshot reuses the decision's
+            # numbers only for an identical heading)
+            memo = self._src_heading_rad
+            if memo[0] is not h:
+                memo = self._src_heading_rad = (h, math.radians(h - 360.0 if h > 180.0 else h))
+            return memo[1]
         att = self._att
         if att is not None and self._att_ok:
             return self._heading_rad(att)
