@@ -563,7 +563,11 @@ def test_few_logs_null_has_no_joins_and_the_spread_of_independent_runs() -> None
         ref = np.array([b[cell] for b in indep])
         got = np.array([b[cell] for b in ours])
         assert abs(got.mean() - ref.mean()) < 1.5 * ref.std(ddof=1)
-        assert 0.6 < got.std(ddof=1) / ref.std(ddof=1) < 1.7
+        # wider than runs of the one law these logs share (1.9x step tail, 2.8x step std
+        # here): each replicate's law is drawn from how three logs' laws differ, which three
+        # logs of one law can bound but not exclude (the price in power of
+        # tests/test_gap_fewlogs.py, docs/gap.md "Few sim logs")
+        assert 0.6 < got.std(ddof=1) / ref.std(ddof=1) < 3.2
     # the spliced null's step tail sits far above independent runs (the joins)
     assert np.mean([b[tail] for b in spliced]) > np.mean([b[tail] for b in indep]) + 0.3
     assert all(1.0 < f < 3.0 for f in inflation.values())
