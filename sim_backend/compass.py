@@ -251,7 +251,7 @@ class SimCmps10:
         self._filt_deg: float | None = None
         self._pitch_deg = 0.0
         self._roll_deg = 0.0
-        self._mag_body = np.zeros(3)
+        self._mag_body: tuple[float, float, float] = (0.0, 0.0, 0.0)  # µT, as measured
         self.closed = False
         # command state
         self._last_cmd_t: float | None = None
@@ -282,8 +282,7 @@ class SimCmps10:
     @property
     def mag_body_ut(self) -> tuple[float, float, float]:
         """The body-frame field the device measures now (x, y, z in µT, errors included)."""
-        x, y, z = (float(v) for v in self._mag_body)
-        return (x, y, z)
+        return self._mag_body
 
     def set_state(
         self, t_s: float, true_heading_deg: float, pitch_deg: float, roll_deg: float
@@ -328,7 +327,7 @@ class SimCmps10:
         if self.errors.noise_ut > 0 and self._rng is not None:
             nx, ny, nz = self._rng.normal(0.0, self.errors.noise_ut, 3).tolist()
             mx, my, mz = mx + nx, my + ny, mz + nz
-        self._mag_body = np.array((mx, my, mz))
+        self._mag_body = (mx, my, mz)
         # The device levels with its accelerometer's pitch/roll (taken as exact here).
         c0, c1, c2 = self.cal_offset_ut.tolist()
         if pitch_deg == 0 and roll_deg == 0:
@@ -392,7 +391,7 @@ class SimCmps10:
         self._last_cmd_t = now
         if self.calibrating:
             if value == CALIBRATION_POINT:
-                self._cal_points.append(self._mag_body.copy())
+                self._cal_points.append(np.array(self._mag_body))
                 if len(self._cal_points) == 4:
                     pts = np.array(self._cal_points)
                     offset = pts.mean(axis=0)

@@ -476,21 +476,23 @@ def run_mission(
     def observe(outputs: list[Any], _important: bool) -> None:
         nonlocal done_at
         for o in outputs:
-            if type(o) is StateChange and o.reason.endswith("return to launch"):
-                returned.append(o.t_s)
-            if type(o) is Telemetry and not returned and ctrl.mode != Mode.IDLE:
-                while len(arrivals) < min(ctrl.navigator.index, len(wp_enu)):
-                    note_arrival(o.t_s)
-            if type(o) is StateChange:
+            kind = type(o)
+            if kind is Telemetry:
+                if not returned and ctrl.mode != Mode.IDLE:
+                    while len(arrivals) < min(ctrl.navigator.index, len(wp_enu)):
+                        note_arrival(o.t_s)
+                if o.state == NavState.MISSION_DONE and done_at is None:
+                    done_at = o.t_s
+            elif kind is StateChange:
                 t = o.t_s
+                if o.reason.endswith("return to launch"):
+                    returned.append(t)
                 if o.new == NavState.HOLD and (not holds or holds[-1][1] >= 0):
                     holds.append([t, -1.0])
                 elif o.old == NavState.HOLD and holds and holds[-1][1] < 0:
                     holds[-1][1] = t
                 if o.new == Mode.DONE and done_at is None:
                     done_at = t
-            elif type(o) is Telemetry and o.state == NavState.MISSION_DONE and done_at is None:
-                done_at = o.t_s
 
     rec_methods: dict[str, Callable[[Any], None]] = {}
 
@@ -570,16 +572,19 @@ def run_mission(
                     else:
                         runner.gps_record(r)
 
+        # the per-tick calls, looked up once (thousands of ticks per simulated minute)
+        t_append, e_append, n_append = trace.t.append, trace.east.append, trace.north.append
+        u_append, h_append = trace.up.append, trace.heading.append
         for k in range(n_ticks + 1):
             t = k * dt
             deliver(t)
             now[0] = t
             s = vehicle.step(dt) if k else vehicle.state
-            trace.t.append(t)
-            trace.east.append(s.east_m)
-            trace.north.append(s.north_m)
-            trace.up.append(s.up_m)
-            trace.heading.append(s.heading_deg)
+            t_append(t)
+            e_append(s.east_m)
+            n_append(s.north_m)
+            u_append(s.up_m)
+            h_append(s.heading_deg)
             if receiver.tracks:
                 # every physics step, so a delayed position interpolates the real path
                 receiver.observe(t, (s.east_m, s.north_m, s.up_m + antenna_m), vehicle_velocity(s))

@@ -118,6 +118,8 @@ class EncoderSim:
         self._whole = [0, 0]
         self._latches = 0
         self.wheel_travel_m = [0.0, 0.0]  # true signed travel per side, noise included
+        # (params, its (left, right) counts per metre): computed once per parameter set
+        self._cpm: tuple[EncoderParams, tuple[float, float]] | None = None
 
     @property
     def counts(self) -> tuple[int, int]:
@@ -161,10 +163,13 @@ class EncoderSim:
                     mag = abs(travel[i])
                     err = float(self._rng.normal(0.0, math.sqrt(k * mag)))
                     travel[i] += max(-mag, min(mag, err))
+        cpm = self._cpm
+        if cpm is None or cpm[0] is not p:
+            cpm = self._cpm = (p, (p.counts_per_m("left"), p.counts_per_m("right")))
         out = [0, 0]
-        for i, side in enumerate(("left", "right")):
+        for i in range(2):
             self.wheel_travel_m[i] += travel[i]
-            self._real[i] += travel[i] * p.counts_per_m(side)
+            self._real[i] += travel[i] * cpm[1][i]
             whole = math.floor(self._real[i])
             out[i] = whole - self._whole[i]
             self._whole[i] = whole

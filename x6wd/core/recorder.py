@@ -498,8 +498,7 @@ class Recorder:
             self._utc_memo = (utc, utc_text)  # one assignment: safe between threads
         # The encoder's own text for {"t_mono", "t_utc", "type", "data"} (t is finite).
         line = (
-            f'{{"t_mono":{float.__repr__(t)},"t_utc":"{utc_text}",'
-            f'"type":"{type}","data":{body}}}\n'
+            f'{{"t_mono":{float.__repr__(t)},"t_utc":"{utc_text}","type":"{type}","data":{body}}}\n'
         )
         blob = line.encode("utf-8")
         rotated = False

@@ -589,7 +589,7 @@ class Estimator:
         j[N, 0] = j[N, 1] = 0.5 * c
         j[PSI, 0] = g_a
         j[PSI, 1] = g_b
-        su = np.diag([odo.k_left_m * abs(dl), odo.k_right_m * abs(dr)])
+        su = np.array([[odo.k_left_m * abs(dl), 0.0], [0.0, odo.k_right_m * abs(dr)]])  # diag
         p = f @ self._p @ f.T + j @ su @ j.T
         p[PSI, PSI] += odo.k_slip_rad * abs(dpsi)
         # speed and yaw rate from the whole increment's rates
