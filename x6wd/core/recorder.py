@@ -151,7 +151,8 @@ def _dataclass_names(cls: type) -> tuple[str, ...] | None:
 
 
 def _float_json(v: float) -> str:
-    return float.__repr__(v) if math.isfinite(v) else "null"
+    # v - v is 0.0 exactly for every finite float, NaN for NaN and the infinities
+    return float.__repr__(v) if v - v == 0.0 else "null"
 
 
 # What the encoder above writes for each plain scalar type (floats by repr, non-finite ones
