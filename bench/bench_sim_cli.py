@@ -121,6 +121,8 @@ def _physics_anchor(duration_s: float) -> float:
     o = world.origin
     n = t.shape[0]
     alt = np.full(n, o.alt_m + world.vehicle.antenna_height_m)
+    import scipy.signal  # noqa: F401 - imported on the model's first use: physics, not import, is timed
+
     a = time.process_time()
     model.batch(t, np.full(n, o.lat_deg), np.full(n, o.lon_deg), alt, np.zeros((n, 3)))
     return time.process_time() - a

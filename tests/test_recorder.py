@@ -10,12 +10,14 @@ import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from drivers.gps_nmea import GpsDecoder
 from x6wd.app.cli import main as cli_main
 from x6wd.core.errors import DeviceUnavailable, ParseError
 from x6wd.core.recorder import (
+    _ENCODE,
     RECORD_TYPES,
     ReadStats,
     Record,
@@ -28,7 +30,9 @@ from x6wd.core.recorder import (
     read_recording_parts,
     recording_parts,
     replay_records,
+    to_jsonable,
 )
+from x6wd.core.recorder import _flat_json as direct_json
 from x6wd.core.records import (
     Attitude,
     GpsFix,
@@ -132,6 +136,28 @@ def test_every_record_type_round_trips(tmp_path: Path) -> None:
     assert typed[8] == WheelOdometry(5.5, 4300, -12, 7)
     for line in path.read_text().splitlines():  # strict JSON: no NaN, one object per line
         json.loads(line, parse_constant=lambda c: pytest.fail(f"non-standard JSON {c}"))
+
+
+def test_direct_json_is_what_conversion_and_encoder_give() -> None:
+    # The recorder writes a record's JSON itself (many records per simulated second); the
+    # reference is the conversion (to_jsonable) and the encoder, computed here. Nested
+    # telemetry extras, enums, datetimes, lists and non-finite floats are written directly;
+    # values only the conversion knows (numpy scalars, dates, non-string keys) fall back.
+    utc = datetime(2026, 11, 22, 4, 43, 12, 250000, tzinfo=UTC)
+    extra = {"ekf_sigma_m": 1.5, "sensors_down": {"gps": "stale"}, "odd": float("inf")}
+    direct = [
+        GpsFix(3.0, utc=utc, lat_deg=51.9, lon_deg=4.57, valid=True, mode=3, hdop=1.2),
+        GpsFix(3.0, utc=utc.replace(tzinfo=None), lat_deg=float("nan")),
+        GpsSky(3.5, (SatInfo(5, 40.0, 120.0, 38.0, True),), pdop=1.9),
+        Telemetry(4.0, Mode.RUNNING, NavState.TURN_LEFT, theta_deg=float("nan"), extra=extra),
+        {"event": "x", "when": utc, "mode": Mode.IDLE, "nested": {"a": [{"b": -0.0}, None]}},
+        {"list": [1, 2.5, True, "é\n", ()], "empty": {}},
+    ]
+    for payload in direct:
+        assert direct_json(payload) == _ENCODE(to_jsonable(payload))
+    for payload in ({"np": np.float64(1.5)}, {"day": utc.date()}, {"k": {1: "int key"}}):
+        assert direct_json(payload) is None
+        assert json.loads(_ENCODE(to_jsonable(payload)))  # the conversion's path handles it
 
 
 def test_bad_calls_are_rejected(tmp_path: Path) -> None:

@@ -195,9 +195,49 @@ def _flat_spec(cls: type) -> tuple[Callable[[Any], tuple[Any, ...]], tuple[str, 
     return spec
 
 
+class _NotDirect(Exception):
+    """A value :func:`_value_json` leaves to ``to_jsonable`` and the encoder."""
+
+
+def _value_json(value: Any) -> str:
+    """The encoder's text for ``to_jsonable(value)``, written directly, for the values the
+    records hold: plain scalars, dicts with string keys, dataclasses, enums of plain values,
+    datetimes, lists and tuples of these. Anything else raises :class:`_NotDirect`."""
+    t = type(value)
+    fmt = _SCALAR_JSON.get(t)
+    if fmt is not None:
+        return fmt(value)
+    if t is dict:
+        if not all(type(k) is str for k in value):
+            raise _NotDirect
+        keys: Any = _json_keys(tuple(value))
+        values: Any = value.values()
+    else:
+        spec = _flat_spec(t)
+        if spec is None:
+            if isinstance(value, enum.Enum):  # to_jsonable keeps its value as it is
+                v = value.value
+                if type(v) is float and v - v != 0.0:
+                    raise _NotDirect  # the encoder refuses a non-finite float
+                fmt = _SCALAR_JSON.get(type(v))
+                if fmt is None:
+                    raise _NotDirect
+                return fmt(v)
+            if isinstance(value, datetime):
+                text = _iso_z(value) if value.tzinfo is not None else value.isoformat()
+                return json.encoder.encode_basestring(text)
+            if t is list or t is tuple:
+                return "[" + ",".join([_value_json(v) for v in value]) + "]"
+            raise _NotDirect
+        get, keys = spec
+        values = get(value)
+    return "{" + ",".join([k + _value_json(v) for k, v in zip(keys, values, strict=True)]) + "}"
+
+
 def _flat_json(value: Any) -> str | None:
     """``value`` (a dataclass or a dict with string keys) as the encoder's JSON object text
-    when every field is a plain scalar; None otherwise (the caller converts and encodes)."""
+    of ``to_jsonable(value)``, written directly; None for what only the conversion and the
+    encoder handle (the caller then takes that path)."""
     scalar = _SCALAR_JSON
     if type(value) is dict:
         if not all(type(k) is str for k in value):
@@ -212,8 +252,11 @@ def _flat_json(value: Any) -> str | None:
         values = get(value)
     try:
         parts = [k + scalar[type(v)](v) for k, v in zip(keys, values, strict=True)]
-    except KeyError:  # a field that is not a plain scalar
-        return None
+    except KeyError:  # a field that is not a plain scalar: the general writer
+        try:
+            parts = [k + _value_json(v) for k, v in zip(keys, values, strict=True)]
+        except (_NotDirect, RecursionError):
+            return None
     return "{" + ",".join(parts) + "}"
 
 
