@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import errno
 import math
+import struct
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -207,6 +208,11 @@ def _s16be(v: float) -> tuple[int, int]:
     return i >> 8, i & 0xFF
 
 
+_SIX_S16BE = struct.Struct(">6h")
+"""Registers 10-21: the three field axes, then the three accelerometer axes, each a signed
+big-endian 16-bit value (what :func:`_s16be` gives, one at a time)."""
+
+
 class SimCmps10:
     """CMPS10 register map with the smbus2 method set.
 
@@ -364,9 +370,17 @@ class SimCmps10:
         r[2], r[3] = tenths >> 8, tenths & 0xFF
         r[4] = round(self._pitch_deg) & 0xFF
         r[5] = round(self._roll_deg) & 0xFF
-        for i in range(3):
-            r[10 + 2 * i], r[11 + 2 * i] = _s16be(mag_ut[i] * MAG_COUNTS_PER_UT)
-            r[16 + 2 * i], r[17 + 2 * i] = _s16be(acc_counts[i])
+        r[10:22] = _SIX_S16BE.pack(
+            *[
+                max(-32768, min(32767, round(v)))
+                for v in (
+                    mag_ut[0] * MAG_COUNTS_PER_UT,
+                    mag_ut[1] * MAG_COUNTS_PER_UT,
+                    mag_ut[2] * MAG_COUNTS_PER_UT,
+                    *acc_counts,
+                )
+            ]
+        )
 
     @property
     def bearing_deg(self) -> float:
