@@ -27,7 +27,7 @@ def hour_log(short_tau_s: float, seed: int, duration_s: float = 3600.0) -> Posit
 
 
 def test_drawn_laws_spread_as_the_logs_laws_do() -> None:
-    logs = [hour_log(tau, 700 + i, 1800.0) for i, tau in enumerate((6.0, 12.0, 24.0))]
+    logs = [hour_log(tau, 700 + i, 1200.0) for i, tau in enumerate((6.0, 12.0, 24.0))]
     layout = layout_for(logs[0])
     rng = np.random.default_rng(1)
     pooled = axis_laws(logs, layout)
