@@ -57,6 +57,7 @@ effects).
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import logging
 import math
 import os
@@ -83,6 +84,12 @@ from x6wd.core.errors import ConfigError, DeviceIOError, DeviceUnavailable
 from x6wd.core.records import MotorCommand
 
 log = logging.getLogger(__name__)
+
+# Hardware in the loop runs the simulator's models, which need the `sim` extra's scipy (its
+# filters are imported on first use, deep in a run): refuse at start-up, not in a device
+# thread minutes later. `x6wd run` turns this into its "pip install 'x6wd[sim]'" message.
+if importlib.util.find_spec("scipy") is None:
+    raise ModuleNotFoundError("No module named 'scipy'", name="scipy")
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 DEFAULT_SCENARIO = CONFIG_DIR / "scenarios" / "default.toml"

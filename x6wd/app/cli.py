@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -50,6 +51,23 @@ OPTIONAL_MODULES = {
 }
 
 
+# what a command needs from its extra before it starts: a simulation or an analysis should not
+# run for minutes and then stop at its first use of scipy or at the plot (those are imported
+# lazily, for start-up time)
+REQUIRED_MODULES = {
+    "sim": ("scipy", "matplotlib"),
+    "gap": ("scipy", "matplotlib"),
+}
+
+
+def require_modules(modules: Sequence[str]) -> None:
+    """Raise ``ModuleNotFoundError`` (with its ``name``) for the first of ``modules`` that is
+    not installed; nothing is imported."""
+    for name in modules:
+        if importlib.util.find_spec(name) is None:
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+
+
 def missing_extra(command: str, exc: ModuleNotFoundError) -> str | None:
     """The message for a package of an extra that is not installed, or None when ``exc`` is
     about something else."""
@@ -69,6 +87,7 @@ def _load(name: str) -> ModuleType | str:
     """The subcommand's module, or why it cannot run (a message for stderr)."""
     module_name = COMMANDS[name][0]
     try:
+        require_modules(REQUIRED_MODULES.get(name, ()))
         return importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
         message = missing_extra(name, exc)
