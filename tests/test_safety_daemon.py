@@ -35,7 +35,7 @@ from x6wd.app.client import RemoteClient, RequestFailed
 from x6wd.app.daemon import Daemon, _MotorWorker, distance_m
 from x6wd.app.notify import Notifier
 from x6wd.core.config import Config, GpsConfig, MotorsConfig, SafetyConfig
-from x6wd.core.errors import DeviceUnavailable
+from x6wd.core.errors import ConfigError, DeviceUnavailable
 from x6wd.core.geodesy import EARTH_MEAN_RADIUS_M as EARTH_RADIUS_M
 from x6wd.core.records import Attitude, DeviceHealth, HealthEvent, MotorCommand
 
@@ -820,6 +820,31 @@ def test_a_motor_board_that_cannot_be_reached_is_exit_1(tmp_path: Path) -> None:
     finally:
         if d.devices is not None:
             d.devices.close()
+
+
+class LateConfigErrorDaemon(Daemon):
+    """Fault injection: a setting only the opened device can judge is wrong, found after the
+    motor link opened (its worker already runs)."""
+
+    async def _open_devices(self) -> None:
+        await super()._open_devices()
+        raise ConfigError("compass.url: the device on the bus is not a CMPS10")
+
+
+def test_a_configuration_error_found_when_the_devices_open_is_exit_2_motors_stopped(
+    tmp_path: Path, stamped: StampedLink, caplog: pytest.LogCaptureFixture
+) -> None:
+    # exit 2, not 1: the unit's RestartPreventExitStatus=2 keeps systemd from restarting a
+    # daemon whose settings no restart can fix
+    d = LateConfigErrorDaemon(log_motors_config(tmp_path))
+    try:
+        with caplog.at_level(logging.ERROR, logger="x6wd.app.daemon"):
+            assert asyncio.run(d.run()) == 2
+    finally:
+        if d.devices is not None:
+            d.devices.close()
+    assert stamped.stamped and stamped.stamped[-1][1].is_stop
+    assert any("not a CMPS10" in rec.getMessage() for rec in caplog.records)
 
 
 def _gpsd_lines(port: int, watch: str, want: Any, timeout_s: float = 20.0) -> list[str]:
