@@ -39,7 +39,7 @@ from tests.test_daemon import Running, hil_config, wait_for
 from tests.test_startup import assert_config_error, run_x6wd, write_config
 from x6wd.app.client import RemoteClient, RequestFailed
 from x6wd.app.daemon import Daemon
-from x6wd.core.config import Config, ConsoleConfig, SafetyConfig, SimConfig
+from x6wd.core.config import Config, ConsoleConfig, FailsafeConfig, SafetyConfig, SimConfig
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.mission_files import format_csv, format_gpx, format_wpl, parse_gpx
 from x6wd.core.records import Mode, NavState, Telemetry
@@ -115,6 +115,13 @@ def daemon_with(cfg: Config) -> Iterator[Running]:
 def has_fix(r: Running) -> bool:
     tel = r.daemon.last_telemetry
     return r.daemon.first_fix is not None and tel is not None and tel.fix_quality > 0
+
+
+def _first_recording(r: Running) -> str:
+    """The name of a recording the running daemon wrote (one recording.view accepts)."""
+    names = sorted(p.name for p in Path(r.daemon.config.recorder.dir).glob("x6wd-*.jsonl"))
+    assert names, "no recording yet"
+    return names[0]
 
 
 def vehicle_pct(r: Running) -> tuple[float, float]:
@@ -251,7 +258,8 @@ def test_a_console_setting_at_odds_with_the_rest_is_exit_2_naming_the_key(
     cfg = dataclasses.replace(cfg, server=dataclasses.replace(cfg.server, enabled=server_enabled))
     d = Daemon(cfg)
     try:
-        assert asyncio.run(d.run()) == 2
+        # bounded: a daemon that took the setting would run on, not exit
+        assert asyncio.run(asyncio.wait_for(d.run(), 30.0)) == 2
     finally:
         if d.devices is not None:
             d.devices.close()
@@ -283,6 +291,9 @@ def test_without_the_token_the_console_accepts_no_command_and_shows_nothing(
                     ("drive", {"left": 50, "right": 50, "duration_s": 0.5}),
                     ("mission.load", {"waypoints": [north(5)]}),
                     ("mission.parse", {"content": "51.7,-1.2\n"}),
+                    # the robot's recordings are its track: no list, no viewer
+                    ("recording.list", {}),
+                    ("recording.view", {"name": _first_recording(r)}),
                     ("log", {}),
                     ("status", {}),  # open on the control port, not here: it has telemetry
                 ):
@@ -469,6 +480,39 @@ def test_watch_only_refuses_every_command_in_the_daemon_and_tiles_come_when_conf
         tiles.close()
 
 
+def test_a_watch_only_page_does_not_keep_the_operator_link_failsafe_quiet(tmp_path: Path) -> None:
+    # the operator starts a mission over the control port and goes away; a spectator's
+    # watch-only page keeps authenticating and asking for status: it is no operator, so
+    # the operator-link failsafe still holds the robot (a watcher must not keep it driving)
+    cfg = console_config(tmp_path, token=True, watch_only=True)
+    cfg = dataclasses.replace(
+        cfg, failsafe=FailsafeConfig(operator_timeout_s=2.0, operator_action="hold")
+    )
+    with daemon_with(cfg) as r:
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        wait_for(lambda: "ekf_sigma_m" in r.daemon.last_telemetry.extra, 30, "an EKF position")  # type: ignore[union-attr]
+        with RemoteClient("127.0.0.1", r.port, token=TOKEN) as c:
+            c.request("mission.load", waypoints=[north(40)])
+            assert c.request("start")["mode"] == "RUNNING"
+        t_quiet = time.monotonic()
+
+        async def spectator() -> float:
+            async with ws_to(r) as w:
+                while time.monotonic() - t_quiet < 10.0:
+                    assert (await w.request("auth", token=TOKEN))["ok"]
+                    assert (await w.request("status"))["ok"]
+                    tel = r.daemon.last_telemetry
+                    if tel is not None and tel.extra.get("failsafe") == "operator link lost":
+                        return time.monotonic() - t_quiet
+                    await asyncio.sleep(0.2)
+            raise AssertionError("the failsafe never fired while a watch-only page talked")
+
+        quiet_s = asyncio.run(spectator())
+        assert 1.5 < quiet_s < 6.0, quiet_s
+        assert r.daemon.controller.mode == Mode.PAUSED
+        wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), 3, "motors stopped")
+
+
 # -- the running robot on the page -----------------------------------------------------------------
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
@@ -629,6 +673,31 @@ def test_mission_load_takes_qgc_wpl_and_kml_on_the_control_port(robot: Running) 
         with pytest.raises(RequestFailed) as ei:
             c.request("mission.load", wpl=format_wpl(wps), kml=kml)
         assert "exactly one of" in str(ei.value)
+
+
+def test_every_response_forbids_framing_other_sources_and_sniffing(robot: Running) -> None:
+    # another site must not frame the console (clickjacking its drive buttons), pull in
+    # scripts or send the page's data elsewhere
+    console = robot.daemon.console
+    assert console is not None
+    host = f"127.0.0.1:{console.port}"
+
+    async def headers(path: str) -> Any:
+        async with aiohttp.ClientSession() as s, s.get(console.url + path) as resp:
+            await resp.read()
+            assert resp.status == 200, (path, resp.status)
+            return resp.headers
+
+    for path in ("", "static/console.js", "static/console.css"):
+        h = asyncio.run(headers(path))
+        csp = {d.split()[0]: d.split()[1:] for d in h["Content-Security-Policy"].split("; ")}
+        assert csp["frame-ancestors"] == ["'none'"], (path, csp)
+        assert csp["default-src"] == csp["script-src"] == ["'self'"], (path, csp)
+        assert csp["connect-src"] == ["'self'", f"ws://{host}", f"wss://{host}"], (path, csp)
+        assert csp["form-action"] == csp["base-uri"] == ["'none'"], (path, csp)
+        assert h["X-Content-Type-Options"] == "nosniff", path
+        assert h["Referrer-Policy"] == "no-referrer", path
+        assert h["Cache-Control"] == "no-store", path
 
 
 def test_a_drive_from_the_console_lasts_at_most_deadman_s(robot: Running) -> None:
