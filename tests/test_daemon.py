@@ -210,10 +210,16 @@ def test_unexpected_exception_stops_motors_and_exits_non_zero(tmp_path: Path, ru
     assert d.motors is not None and d.motors.link.last_command.is_stop
 
 
+def run_to_exit(daemon: Daemon, timeout_s: float = 30.0) -> int:
+    """Run ``daemon`` in this thread to its exit code, for cases that must end by themselves
+    (a refused start): bounded, so a daemon that ran on fails here, not at the suite timeout."""
+    return asyncio.run(asyncio.wait_for(daemon.run(), timeout_s))
+
+
 def test_bad_geofence_centre_is_a_startup_error(tmp_path: Path) -> None:
     cfg = hil_config(tmp_path, safety=SafetyConfig(geofence_center=(1.0,)))
     d = Daemon(cfg)
-    assert asyncio.run(d.run()) == 2
+    assert run_to_exit(d) == 2
     assert d.devices is None  # stopped before any device (or the simulated world) existed
 
 

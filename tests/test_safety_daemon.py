@@ -28,7 +28,7 @@ import pytest
 
 from drivers import registry
 from drivers.motors import LogMotorLink, MotorBoard, serve_board_fd
-from tests.test_daemon import ORIGIN, hil_config, run_daemon, wait_for
+from tests.test_daemon import ORIGIN, hil_config, run_daemon, run_to_exit, wait_for
 from tests.test_shutdown import StampedLink, log_motors_config, stamped
 from x6wd import __version__
 from x6wd.app.client import RemoteClient, RequestFailed
@@ -797,7 +797,7 @@ def test_a_configuration_error_is_logged_and_told_to_systemd(
     d = Daemon(hil_config(tmp_path, safety=SafetyConfig(geofence_center=(1.0,))), notifier=notifier)
     try:
         with caplog.at_level(logging.ERROR, logger="x6wd.app.daemon"):
-            assert asyncio.run(d.run()) == 2
+            assert run_to_exit(d) == 2
         why = "safety.geofence_center: expected [lat_deg, lon_deg], got (1.0,)"
         assert [rec.getMessage() for rec in caplog.records] == [why]
         assert next(notices(sock)) == {"STOPPING": "1", "STATUS": f"configuration error: {why}"}
@@ -816,7 +816,7 @@ def test_a_motor_board_that_cannot_be_reached_is_exit_1(tmp_path: Path) -> None:
     )
     d = Daemon(cfg)
     try:
-        assert asyncio.run(d.run()) == 1
+        assert run_to_exit(d) == 1
     finally:
         if d.devices is not None:
             d.devices.close()
@@ -839,7 +839,7 @@ def test_a_configuration_error_found_when_the_devices_open_is_exit_2_motors_stop
     d = LateConfigErrorDaemon(log_motors_config(tmp_path))
     try:
         with caplog.at_level(logging.ERROR, logger="x6wd.app.daemon"):
-            assert asyncio.run(d.run()) == 2
+            assert run_to_exit(d) == 2
     finally:
         if d.devices is not None:
             d.devices.close()
