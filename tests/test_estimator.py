@@ -15,6 +15,7 @@ says what it measured.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, replace
 
@@ -533,3 +534,61 @@ def test_odometry_alone_dead_reckons_a_square():
         est2.on_odometry(0.1 * k, 0.1, 0.1)
     assert est2.state[1] == pytest.approx(1.0, abs=1e-9)  # north
     assert est2.estimate().speed_mps == pytest.approx(1.0)
+
+
+def _fresh_estimate(est: Estimator) -> tuple[float, ...]:
+    """What ``estimate()`` must say, rebuilt from copies of the state and covariance."""
+    x, p = est.state, est.covariance
+    assert est.t_s is not None
+    return (
+        est.t_s,
+        x[0],
+        x[1],
+        math.degrees(x[2]) % 360.0,
+        x[3],
+        math.degrees(x[4]),
+        math.sqrt(max(p[0, 0], 0.0)),
+        math.sqrt(max(p[1, 1], 0.0)),
+        math.degrees(math.sqrt(max(p[2, 2], 0.0))),
+        x[7],
+        math.degrees(x[8]),
+    )
+
+
+@pytest.mark.parametrize("mode", [Mode.ODOMETRY, Mode.GPS_COMPASS])
+def test_the_estimate_is_never_older_than_the_state(mode: Mode) -> None:
+    """estimate() keeps its last answer until the state changes (the controller asks several
+    times per input): after every kind of input, at the same time or later, it equals one
+    rebuilt from the state, so no input may leave a stale estimate behind."""
+    tr = _truth(stop_and_go, 40.0)
+    sens = _sensors(tr, seed=5)
+    est = Estimator(_config(mode))
+    events = [(t, 2, ("gps", e, n, d)) for t, e, n, d in sens.gps]
+    events += [(t, 1, ("compass", b)) for t, b in sens.compass]
+    if mode == Mode.ODOMETRY:
+        # after the compass and GPS of the same time: an increment that does not move the clock
+        events += [(t, 3, ("odo", dl, dr)) for t, dl, dr in sens.odometry]
+    events += [
+        (tr.t[i], 0, ("cmd", tr.left_pct[i], tr.right_pct[i])) for i in range(0, len(tr.t), 4)
+    ]
+    events.sort(key=lambda ev: (ev[0], ev[1]))
+    checked = 0
+    for t, _, ev in events:
+        before = est.estimate()  # asked before the input, so a stale cache would be at hand
+        if ev[0] == "odo":
+            est.on_odometry(t, ev[1], ev[2])
+        elif ev[0] == "cmd":
+            est.on_command(t, ev[1], ev[2])
+        elif ev[0] == "compass":
+            est.on_compass(t, ev[1])
+        else:
+            est.on_gps(t, ev[1], ev[2], ev[3])
+        now = est.estimate()
+        if now is None:
+            continue
+        assert dataclasses.astuple(now) == pytest.approx(_fresh_estimate(est), rel=0, abs=1e-12)
+        later = est.predict(t + 0.01)
+        assert later is not None and later.t_s == pytest.approx(t + 0.01)
+        assert dataclasses.astuple(later) == pytest.approx(_fresh_estimate(est), abs=1e-12)
+        checked += before is not None
+    assert checked > 500
