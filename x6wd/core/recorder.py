@@ -207,31 +207,40 @@ def _value_json(value: Any) -> str:
     fmt = _SCALAR_JSON.get(t)
     if fmt is not None:
         return fmt(value)
+    members = _members(value)
+    if members is not None:
+        keys, values = members
+        return "{" + ",".join([k + _value_json(v) for k, v in zip(keys, values, strict=True)]) + "}"
     if t is dict:
+        raise _NotDirect  # a key that is not a string: to_jsonable converts it
+    if isinstance(value, enum.Enum):  # to_jsonable keeps its value as it is
+        v = value.value
+        if type(v) is float and v - v != 0.0:
+            raise _NotDirect  # the encoder refuses a non-finite float
+        fmt = _SCALAR_JSON.get(type(v))
+        if fmt is None:
+            raise _NotDirect
+        return fmt(v)
+    if isinstance(value, datetime):
+        text = _iso_z(value) if value.tzinfo is not None else value.isoformat()
+        return json.encoder.encode_basestring(text)
+    if t is list or t is tuple:
+        return "[" + ",".join([_value_json(v) for v in value]) + "]"
+    raise _NotDirect
+
+
+def _members(value: Any) -> tuple[tuple[str, ...], Any] | None:
+    """The ``'"name":'`` keys and the values of a dict with string keys or of a dataclass
+    (the two kinds of JSON object the records hold); None for anything else."""
+    if type(value) is dict:
         if not all(type(k) is str for k in value):
-            raise _NotDirect
-        keys: Any = _json_keys(tuple(value))
-        values: Any = value.values()
-    else:
-        spec = _flat_spec(t)
-        if spec is None:
-            if isinstance(value, enum.Enum):  # to_jsonable keeps its value as it is
-                v = value.value
-                if type(v) is float and v - v != 0.0:
-                    raise _NotDirect  # the encoder refuses a non-finite float
-                fmt = _SCALAR_JSON.get(type(v))
-                if fmt is None:
-                    raise _NotDirect
-                return fmt(v)
-            if isinstance(value, datetime):
-                text = _iso_z(value) if value.tzinfo is not None else value.isoformat()
-                return json.encoder.encode_basestring(text)
-            if t is list or t is tuple:
-                return "[" + ",".join([_value_json(v) for v in value]) + "]"
-            raise _NotDirect
-        get, keys = spec
-        values = get(value)
-    return "{" + ",".join([k + _value_json(v) for k, v in zip(keys, values, strict=True)]) + "}"
+            return None
+        return _json_keys(tuple(value)), value.values()
+    spec = _flat_spec(type(value))
+    if spec is None:
+        return None
+    get, keys = spec
+    return keys, get(value)
 
 
 def _flat_json(value: Any) -> str | None:
@@ -239,17 +248,10 @@ def _flat_json(value: Any) -> str | None:
     of ``to_jsonable(value)``, written directly; None for what only the conversion and the
     encoder handle (the caller then takes that path)."""
     scalar = _SCALAR_JSON
-    if type(value) is dict:
-        if not all(type(k) is str for k in value):
-            return None
-        keys = _json_keys(tuple(value))
-        values: Any = value.values()
-    else:
-        spec = _flat_spec(type(value))
-        if spec is None:
-            return None
-        get, keys = spec
-        values = get(value)
+    members = _members(value)
+    if members is None:
+        return None
+    keys, values = members
     try:
         parts = [k + scalar[type(v)](v) for k, v in zip(keys, values, strict=True)]
     except KeyError:  # a field that is not a plain scalar: the general writer
