@@ -118,11 +118,29 @@ def ecef_to_enu(xyz_m: np.ndarray, lat0_deg: float, lon0_deg: float, alt0_m: flo
     return (np.asarray(xyz_m, dtype=float) - origin) @ r.T
 
 
+class EnuFrame:
+    """A local east/north/up frame whose origin's ECEF position and rotation are computed
+    once: for converting many points (one per epoch) about the same origin."""
+
+    def __init__(self, lat0_deg: float, lon0_deg: float, alt0_m: float) -> None:
+        """The origin: latitude and longitude (deg), height (m)."""
+        self.origin = (lat0_deg, lon0_deg, alt0_m)
+        self.origin_ecef_m = lla_to_ecef(lat0_deg, lon0_deg, alt0_m)
+        self.rotation = enu_rotation(lat0_deg, lon0_deg)
+
+    def to_ecef(self, enu_m: np.ndarray) -> np.ndarray:
+        """East/north/up (m), shape (..., 3), relative to the origin -> ECEF (m)."""
+        return np.asarray(enu_m, dtype=float) @ self.rotation + self.origin_ecef_m
+
+    def to_lla(self, enu_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """East/north/up (m), shape (..., 3), relative to the origin -> (lat_deg, lon_deg,
+        alt_m)."""
+        return ecef_to_lla(self.to_ecef(enu_m))
+
+
 def enu_to_ecef(enu_m: np.ndarray, lat0_deg: float, lon0_deg: float, alt0_m: float) -> np.ndarray:
     """East/north/up (m), shape (..., 3), relative to the origin -> ECEF (m)."""
-    origin = lla_to_ecef(lat0_deg, lon0_deg, alt0_m)
-    r = enu_rotation(lat0_deg, lon0_deg)
-    return np.asarray(enu_m, dtype=float) @ r + origin
+    return EnuFrame(lat0_deg, lon0_deg, alt0_m).to_ecef(enu_m)
 
 
 def lla_to_enu(

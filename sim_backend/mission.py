@@ -76,7 +76,7 @@ from sim_backend.effects import (
     tilted_heading_deg,
     wrap180,
 )
-from sim_backend.geodesy import ecef_to_lla, enu_rotation, enu_to_lla, lla_to_ecef, lla_to_enu
+from sim_backend.geodesy import EnuFrame, enu_to_lla, lla_to_enu
 from sim_backend.odometry import EncoderSim, encoder_rng
 from sim_backend.ports import MemoryUart
 from sim_backend.receiver import SimRandom, build_receiver
@@ -550,9 +550,7 @@ def run_mission(
                 receiver, np.arange(0, n_ticks + 1, gps_every) * dt, pos0
             )
         truth_lla: dict[tuple[float, float, float], tuple[float, float]] = {}
-        # enu_to_lla's origin and rotation, computed once (the same numbers every epoch)
-        origin_ecef = lla_to_ecef(origin.lat_deg, origin.lon_deg, origin.alt_m)
-        enu_rot = enu_rotation(origin.lat_deg, origin.lon_deg)
+        frame = EnuFrame(origin.lat_deg, origin.lon_deg, origin.alt_m)  # truth per epoch
         # Sentences in flight on the UART: (time the last byte arrives, epoch tick, bytes).
         in_flight: deque[tuple[float, int, bytes]] = deque()
 
@@ -608,8 +606,7 @@ def run_mission(
                 nmea_file.write(burst)
                 ll = truth_lla.get(antenna)
                 if ll is None:  # a robot standing still asks for the same point each epoch
-                    # enu_to_lla(antenna, origin), step by step
-                    lat, lon, _alt = ecef_to_lla(np.array(antenna) @ enu_rot + origin_ecef)
+                    lat, lon, _alt = frame.to_lla(np.array(antenna))
                     if len(truth_lla) > 1000:
                         truth_lla.clear()
                     ll = truth_lla[antenna] = (float(lat), float(lon))

@@ -49,7 +49,7 @@ from sim_backend.effects import (
     truth_velocity_mps,
 )
 from sim_backend.epoch import GnssEpoch
-from sim_backend.geodesy import ecef_to_lla, enu_rotation, enu_to_lla, lla_to_ecef
+from sim_backend.geodesy import EnuFrame, enu_to_lla
 from sim_backend.gnss import GnssBatch, GnssModel, LceGrid, ReceiverParams
 from sim_backend.nmea_out import NmeaFormatter, sentence, wire_time_s
 from sim_backend.sky import SatelliteSet
@@ -198,9 +198,7 @@ class SimReceiver:
         self.delay_s = float(sum(run.delay_s for run in self.layers))
         self._history = TruthHistory(self.delay_s) if self.delay_s > 0 else None
         self._lock = threading.Lock()
-        # (origin, its ECEF, its ENU rotation): enu_to_lla's constants for one antenna
-        # position per epoch, computed once
-        self._frame: tuple[tuple[float, float, float], np.ndarray, np.ndarray] | None = None
+        self._frame: EnuFrame | None = None  # about self.origin, for a position per epoch
 
     # --- properties ------------------------------------------------------------------------
 
@@ -252,12 +250,10 @@ class SimReceiver:
                 if not len(self._history):
                     self._history.add(now, pos_enu_m, vel_enu_mps)
                 pos_m, vel_m = self._history.at(now - self.delay_s)
-        origin = self.origin
         frame = self._frame
-        if frame is None or frame[0] != origin:
-            frame = self._frame = (origin, lla_to_ecef(*origin), enu_rotation(origin[0], origin[1]))
-        # enu_to_lla(pos_m, *origin), the same operations
-        lat, lon, alt = ecef_to_lla(np.array(pos_m, dtype=float) @ frame[2] + frame[1])
+        if frame is None or frame.origin != self.origin:
+            frame = self._frame = EnuFrame(*self.origin)
+        lat, lon, alt = frame.to_lla(np.array(pos_m, dtype=float))
         b = self.model.batch(
             np.array([t_s], dtype=float),
             np.array([float(lat)]),
