@@ -9,7 +9,15 @@ import pytest
 
 from sim_backend.effects import GaussMarkov, PositionSeries, Quantization
 from x6wd.gap.diagnose import Options, diagnose
-from x6wd.gap.noise import LawSpread, axis_laws, drawn_laws, law_spread
+from x6wd.gap.noise import (
+    AxisLaw,
+    LawSpread,
+    _law_vector,
+    _laws_from,
+    axis_laws,
+    drawn_laws,
+    law_spread,
+)
 from x6wd.gap.stats import layout_for
 from x6wd.gap.surrogate import surrogate_run
 
@@ -66,3 +74,16 @@ def test_three_logs_no_alarm_on_an_hour_whose_law_is_within_theirs() -> None:
     )
     d = diagnose(walked, sims, np.random.default_rng(0), Options(replicates=20))
     assert d.significant
+
+
+def test_a_law_vector_reads_back_into_the_same_laws() -> None:
+    # the drawn laws are built from these vectors: any number of Gauss-Markov components
+    laws = [
+        AxisLaw(np.array([1.0, 2.0]), np.array([400.0, 30.0]), 0.3, 0.1),
+        AxisLaw(np.array([0.5, 1.5, 0.2]), np.array([900.0, 20.0, 5.0]), 0.2, -0.1),
+    ]
+    for law, back in zip(laws, _laws_from(_law_vector(laws), laws, 1e6), strict=True):
+        order = np.argsort(law.tau_s)
+        assert back.sigma_m == pytest.approx(law.sigma_m[order])
+        assert back.tau_s == pytest.approx(law.tau_s[order])
+        assert (back.white_m, back.mean_m) == pytest.approx((law.white_m, law.mean_m))

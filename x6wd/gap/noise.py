@@ -421,10 +421,13 @@ def _law_vector(laws: Sequence[AxisLaw]) -> np.ndarray:
 def _laws_from(vector: np.ndarray, like: Sequence[AxisLaw], tau_max_s: float) -> list[AxisLaw]:
     """The inverse of :func:`_law_vector` (means from ``like``)."""
     out = []
-    for a, law in enumerate(like):
-        v = np.exp(vector[5 * a : 5 * a + 5])
-        tau_s = np.clip(v[2:4], 1e-3, tau_max_s)
-        out.append(AxisLaw(v[0:2], tau_s, float(v[4]), law.mean_m))
+    start = 0
+    for law in like:
+        k = law.sigma_m.size  # Gauss-Markov components: k sigmas, k taus, the white noise
+        v = np.exp(vector[start : start + 2 * k + 1])
+        start += 2 * k + 1
+        tau_s = np.clip(v[k : 2 * k], 1e-3, tau_max_s)
+        out.append(AxisLaw(v[:k], tau_s, float(v[2 * k]), law.mean_m))
     return out
 
 
