@@ -93,6 +93,7 @@ if importlib.util.find_spec("scipy") is None:
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 DEFAULT_SCENARIO = CONFIG_DIR / "scenarios" / "default.toml"
+CLOSE_JOIN_S = 5.0  # how long close() waits for each thread before it gives up on it
 WIRE_LOG_LEN = 4096  # motor-board traffic kept for inspection (entries)
 
 # [sim] keys that override the scenario when present (None in SimConfig = absent)
@@ -526,13 +527,17 @@ class HilWorld:
         alive = []
         for t in list(self._threads):
             if t is not threading.current_thread():
-                t.join(5.0)
+                t.join(CLOSE_JOIN_S)
                 if t.is_alive():
                     alive.append(t.name)
         if alive:
             # A live thread would read or write whatever next reuses these fd numbers (a
             # socket, a file): leave them open to the process's exit rather than corrupt that.
-            log.error("HIL world: %s still running after 5 s; its ptys are left open", alive)
+            log.error(
+                "HIL world: %s still running after %.1f s; its ptys are left open",
+                alive,
+                CLOSE_JOIN_S,
+            )
             return
         self.uart.close()
         fds, self._fds = self._fds, []

@@ -498,3 +498,25 @@ def test_params_from_a_scenario_file(tmp_path: Path) -> None:
     assert hil.HilParams.from_config(cfg.sim).load_world().gnss.rate_hz == 2.0
     with pytest.raises(ConfigError, match=r"sim\.scenario"):
         hil.HilParams.from_config(SimConfig(scenario=str(tmp_path / "missing.toml")))
+
+
+def test_close_leaves_the_ptys_open_while_a_thread_still_runs(
+    world: hil.HilWorld, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    # a thread that outlives close() would read or write whatever next takes its fd numbers
+    # (once, the next test's sd_notify socket): those stay open until the thread is gone
+    monkeypatch.setattr(hil, "CLOSE_JOIN_S", 0.2)
+    world.plug_motor_board()
+    fds = list(world._fds)
+    release = threading.Event()
+    stuck = threading.Thread(target=release.wait, args=(10.0,), name="stuck", daemon=True)
+    stuck.start()
+    world._threads.append(stuck)
+    world.close()
+    for fd in fds:
+        os.fstat(fd)  # still this world's
+    assert "['stuck'] still running" in caplog.text
+    release.set()
+    stuck.join(5.0)
+    world.close()
+    assert world._fds == []  # closed now (their numbers may already serve someone else)
