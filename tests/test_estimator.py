@@ -168,6 +168,17 @@ class Run:
     est: Estimator
 
 
+def _feed(est: Estimator, t: float, ev: tuple) -> object:
+    """One input event, ``(kind, values...)``, to the estimator at ``t`` (s); what it returns."""
+    if ev[0] == "odo":
+        return est.on_odometry(t, ev[1], ev[2])
+    if ev[0] == "cmd":
+        return est.on_command(t, ev[1], ev[2])
+    if ev[0] == "compass":
+        return est.on_compass(t, ev[1])
+    return est.on_gps(t, ev[1], ev[2], ev[3])
+
+
 def _run(
     tr: Truth,
     sens: Sensors,
@@ -194,17 +205,13 @@ def _run(
     ts, errs, psis, nees, updates = [], [], [], [], []
     k_gps = 0
     for t, _, ev in events:
-        if ev[0] == "odo":
-            est.on_odometry(t, ev[1], ev[2])
-        elif ev[0] == "cmd":
-            est.on_command(t, ev[1], ev[2])
-        elif ev[0] == "compass":
-            est.on_compass(t, ev[1])
+        if ev[0] != "gps":
+            _feed(est, t, ev)
         else:
             e, n = ev[1], ev[2]
             if gps_override is not None:
                 e, n = gps_override(k_gps, t, e, n)
-            u = est.on_gps(t, e, n, ev[3])
+            u = _feed(est, t, ("gps", e, n, ev[3]))
             updates.append(u)
             k_gps += 1
             if est.ready:
@@ -575,14 +582,7 @@ def test_the_estimate_is_never_older_than_the_state(mode: Mode) -> None:
     checked = 0
     for t, _, ev in events:
         before = est.estimate()  # asked before the input, so a stale cache would be at hand
-        if ev[0] == "odo":
-            est.on_odometry(t, ev[1], ev[2])
-        elif ev[0] == "cmd":
-            est.on_command(t, ev[1], ev[2])
-        elif ev[0] == "compass":
-            est.on_compass(t, ev[1])
-        else:
-            est.on_gps(t, ev[1], ev[2], ev[3])
+        _feed(est, t, ev)
         now = est.estimate()
         if now is None:
             continue
