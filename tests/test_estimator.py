@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -35,6 +36,7 @@ from x6wd.nav.estimator import (
     GpsParams,
     Mode,
     OdometryParams,
+    Update,
 )
 
 DT_S = 0.05  # truth step
@@ -168,12 +170,18 @@ class Run:
     est: Estimator
 
 
-def _feed(est: Estimator, t: float, ev: tuple) -> object:
-    """One input event, ``(kind, values...)``, to the estimator at ``t`` (s); what it returns."""
+Event = tuple[float, int, tuple[Any, ...]]  # (t s, order at equal t, (kind, values...))
+
+
+def _feed(est: Estimator, t: float, ev: tuple[Any, ...]) -> Update | None:
+    """One input, ``(kind, values...)``, to the estimator at ``t`` (s); a measurement's
+    update (None for odometry and commands)."""
     if ev[0] == "odo":
-        return est.on_odometry(t, ev[1], ev[2])
+        est.on_odometry(t, ev[1], ev[2])
+        return None
     if ev[0] == "cmd":
-        return est.on_command(t, ev[1], ev[2])
+        est.on_command(t, ev[1], ev[2])
+        return None
     if ev[0] == "compass":
         return est.on_compass(t, ev[1])
     return est.on_gps(t, ev[1], ev[2], ev[3])
@@ -190,7 +198,7 @@ def _run(
 ) -> Run:
     """Feed the estimator every input in time order; sample it after each fix."""
     est = Estimator(cfg)
-    events = []
+    events: list[Event] = []
     for t, e, n, d in sens.gps:
         events.append((t, 2, ("gps", e, n, d)))
     for t, b in sens.compass:
@@ -570,7 +578,7 @@ def test_the_estimate_is_never_older_than_the_state(mode: Mode) -> None:
     tr = _truth(stop_and_go, 40.0)
     sens = _sensors(tr, seed=5)
     est = Estimator(_config(mode))
-    events = [(t, 2, ("gps", e, n, d)) for t, e, n, d in sens.gps]
+    events: list[Event] = [(t, 2, ("gps", e, n, d)) for t, e, n, d in sens.gps]
     events += [(t, 1, ("compass", b)) for t, b in sens.compass]
     if mode == Mode.ODOMETRY:
         # after the compass and GPS of the same time: an increment that does not move the clock
