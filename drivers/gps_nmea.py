@@ -41,8 +41,8 @@ Epoch assembly (how a ``GpsFix`` is closed):
 
 Speed (bench/bench_nmea.py compares the whole path with ``pynmea2.parse`` alone,
 bench/bench_decode.py ``x6wd decode`` with gpsd's ``gpsdecode``): runs of well-formed lines
-are framed by one regex match and checksummed together, up to 256 lines folded as one
-integer (a short run line by line); the field parsers are built once per field from the
+are framed by one regex match and checksummed together, up to 4096 lines as one XOR of
+their byte columns (a short run line by line); the field parsers are built once per field from the
 table; values that repeat from epoch to epoch (times, positions shared by GGA and RMC,
 numeric and letter fields, GSA contents, GSV satellites, sentence heads and their
 handlers) are decoded once and memoised, in small bounded caches keyed by the field
@@ -77,7 +77,6 @@ from drivers.nmea import (
     Sentence,
     checksum,
     field_parser,
-    fold_xor_128,
 )
 from x6wd.core.errors import ConfigError, ParseError
 from x6wd.core.geodesy import wrap360
@@ -214,9 +213,8 @@ _LINE_XOR: Final[dict[bytes, int]] = {
 
 
 # Runs of many lines are checksummed in batches (_line_sums): every line of a _RUN match is at
-# most 128 bytes ("$", 124, "*HH"), so each gets a 128-byte slot of one big integer.
-_SLOT: Final = 128
-_BATCH_LINES: Final = 256
+# most 128 bytes ("$", 124, "*HH").
+_BATCH_LINES: Final = 4096  # bounds a batch's block to 512 KiB
 _BATCH_MIN: Final = 16  # fewer lines: one checksum() each
 # _LINE_XOR split by digit: _LINE_XOR[hi + lo] == _HI_XOR[hi] ^ _LO_XOR[lo], as byte tables
 # (bytes.translate) for the checksum digits of a whole batch at once.
@@ -231,18 +229,22 @@ def _line_sums(lines: list[bytes]) -> tuple[bytes, bytes]:
     """(``checksum(line)`` of every line, the value each must have: ``_LINE_XOR`` of its
     last two characters), for lines of at most 128 bytes, computed all at once.
 
-    Each line is right-aligned in a 128-byte slot with zeros (zeros change no XOR), the lot
-    is read as one little-endian integer and folded like ``checksum`` folds one line: by 64,
-    32, ..., 1 bytes. The first byte of each slot then holds the XOR of that slot, i.e. of
-    its line. Right-aligned, every line's checksum digits sit at the same two places of
-    its slot: one strided slice each gives them all.
+    The lines are right-aligned with zeros (zeros change no XOR) in slots as wide as the
+    longest line, and the block is read column by column: column ``i`` (one strided slice)
+    holds the ``i``-th byte of every slot, and the XOR of all columns, each read as one
+    integer, holds every line's XOR, one byte per line. That is one big-int XOR per column
+    (at most 128), however many lines. Right-aligned, the checksum digits are the last two
+    columns.
     """
-    block = b"".join(map(bytes.rjust, lines, repeat(_SLOT), repeat(b"\0")))
+    width = max(map(len, lines))
+    block = b"".join(map(bytes.rjust, lines, repeat(width), repeat(b"\0")))
+    x = 0
+    for i in range(width):
+        x ^= int.from_bytes(block[i::width], "little")
+    hi = int.from_bytes(block[width - 2 :: width].translate(_HI_XOR), "little")
+    lo = int.from_bytes(block[width - 1 :: width].translate(_LO_XOR), "little")
     n = len(lines)
-    x = fold_xor_128(int.from_bytes(block, "little"))
-    hi = int.from_bytes(block[_SLOT - 2 :: _SLOT].translate(_HI_XOR), "little")
-    lo = int.from_bytes(block[_SLOT - 1 :: _SLOT].translate(_LO_XOR), "little")
-    return x.to_bytes(len(block), "little")[::_SLOT], (hi ^ lo).to_bytes(n, "little")
+    return x.to_bytes(n, "little"), (hi ^ lo).to_bytes(n, "little")
 
 
 class NmeaFramer:

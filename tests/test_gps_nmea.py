@@ -200,14 +200,15 @@ def test_checksum_fold_matches_bytewise_xor() -> None:
 
 
 def test_batched_line_checksums_match_one_at_a_time() -> None:
-    # Runs of many well-formed lines are checksummed in batches (one big integer per batch,
-    # each line in a 128-byte slot); bad checksums anywhere in a batch, every body length
-    # from 1 to 124 characters, CR LF or LF, either hex case.
+    # Runs of many well-formed lines are checksummed in batches (one big integer per byte
+    # column of a batch, up to 4096 lines); bad checksums anywhere in a batch and in more
+    # than one batch, every body length from 1 to 124 characters, CR LF or LF, either hex
+    # case.
     rng = np.random.default_rng(7)
     alphabet = np.array(list("ABCDEFGHIJKLMNOPQRSTUVWXYZabcz0123456789,.- "))
     lines: list[bytes] = []
     good: list[str] = []
-    for k in range(1500):
+    for k in range(4500):
         body = "".join(rng.choice(alphabet, size=1 + k % 124))
         line = _line(body)
         if k % 2:
