@@ -31,12 +31,12 @@ deterministic NLOS extra path; the position is the weighted least-squares soluti
 receiver clock) of those errors. Signals that arrive THROUGH walls or roofs (buildings with
 materials) have the C/N0 lowered by the materials' loss (so larger code noise and a smaller
 WLS weight) and an indoor NLOS/multipath delay: positive, exponentially distributed with a
-mean that grows as C/N0 falls (``indoor_delay_scale_m``), time-correlated (Gauss-Markov, tau
-``tau_indoor_s``); the receiver does not know which signals those are. The solve is linearised
-at the true position: for metre-level
-errors over 20,000 km ranges this equals the receiver's iterated solution to better than a
-micrometre. DOP, rising/setting and blocked satellites, satellite-set jumps and time
-correlation then come out of the physics.
+mean that grows with the materials' loss on the path (``indoor_delay_scale_m``),
+time-correlated (Gauss-Markov, tau ``tau_indoor_s``); the receiver does not know which signals
+those are. The solve is linearised at the true position: for metre-level errors over 20,000 km
+ranges this equals the receiver's iterated solution to better than a micrometre. DOP,
+rising/setting and blocked satellites, satellite-set jumps and time correlation then come out
+of the physics.
 
 Conventions: ``t_s`` seconds since the scenario start; ``alt_m`` above mean sea level with a
 constant ``geoid_sep_m`` (ellipsoid = MSL + separation); ENU frames are the origin's.
@@ -143,11 +143,11 @@ class ReceiverParams:
     nlos_sigma_frac: float = 0.1  # jitter of a reflected path, fraction of its extra length
     # Indoor (through-obstruction) NLOS/multipath delay, used only for signals that arrive
     # through walls or roofs (buildings with materials): a positive, exponentially distributed,
-    # time-correlated extra delay whose mean is indoor_delay_m at indoor_ref_cn0_dbhz and
-    # grows as the amplitude ratio 10^((ref - C/N0)/20) when C/N0 falls, capped at
-    # indoor_delay_max_m; correlation time tau_indoor_s. See indoor_delay_scale_m.
+    # time-correlated extra delay whose mean is indoor_delay_m at indoor_ref_loss_db of
+    # material loss on the path and grows as the amplitude ratio 10^((loss - ref)/20),
+    # capped at indoor_delay_max_m; correlation time tau_indoor_s. See indoor_delay_scale_m.
     indoor_delay_m: float = 3.0
-    indoor_ref_cn0_dbhz: float = 35.0
+    indoor_ref_loss_db: float = 10.0
     indoor_delay_max_m: float = 100.0
     tau_indoor_s: float = 60.0
     # Code tracking (DLL) noise: sigma = chip * sqrt(Bn d / (2 C/N0) (1 + 2 / (T C/N0 (2-d))))
@@ -195,7 +195,7 @@ class ReceiverParams:
             "multipath_sigma_m",
             "nlos_sigma_frac",
             "indoor_delay_m",
-            "indoor_ref_cn0_dbhz",
+            "indoor_ref_loss_db",
             "indoor_delay_max_m",
             "smoothing_tau_s",
             "vel_sigma_mps",
@@ -427,19 +427,22 @@ def code_noise_sigma_m(cn0_dbhz: np.ndarray, p: ReceiverParams) -> np.ndarray:
     return sigma
 
 
-def indoor_delay_scale_m(cn0_dbhz: np.ndarray, p: ReceiverParams) -> np.ndarray:
-    """Mean extra delay (m) of a signal received through walls or roofs at C/N0 (dB-Hz).
+def indoor_delay_scale_m(loss_db: np.ndarray, p: ReceiverParams) -> np.ndarray:
+    """Mean extra delay (m) of a signal received through walls or roofs that cost it
+    ``loss_db`` (dB, the materials' summed loss on the path).
 
     Indoors the direct ray is attenuated by the material while the diffuse paths scattered
-    by the room (and reflected off other buildings) are not attenuated as much, so the
-    delayed energy grows relative to the direct path as the direct one weakens; the code
-    tracking bias of a delayed path scales with its amplitude relative to the direct one.
-    The mean therefore grows as the amplitude ratio 10^((ref - C/N0) / 20): 3 m at 35 dB-Hz
-    gives about 9.5 m at 25 dB-Hz and 17 m at 20 dB-Hz, the size of the indoor pseudorange
-    errors measured with high-sensitivity receivers (metres to a few tens of metres at
-    15-30 dB-Hz). Capped at ``indoor_delay_max_m`` (the correlator cannot be pulled by more
-    than about one chip)."""
-    ratio = 10.0 ** ((p.indoor_ref_cn0_dbhz - np.asarray(cn0_dbhz, dtype=float)) / 20.0)
+    by the room (through its openings, off other buildings) are not attenuated as much, so
+    the delayed energy grows relative to the direct path as the material weakens it; the
+    code tracking bias of a delayed path scales with its amplitude relative to the direct
+    one. The mean therefore grows as the amplitude ratio 10^((loss - ref) / 20): 3 m behind
+    10 dB (brick) gives 9.5 m behind 20 dB (a concrete slab) and 17 m behind 25 dB, the
+    size of the indoor pseudorange errors measured with high-sensitivity receivers. It is
+    a ratio of two signals from the same satellite, so it depends on the loss, not on the
+    absolute C/N0 (which the antenna pattern, elevation and noise floor move for the direct
+    and the diffuse energy alike). Capped at ``indoor_delay_max_m`` (the correlator cannot
+    be pulled by more than about one chip)."""
+    ratio = 10.0 ** ((np.asarray(loss_db, dtype=float) - p.indoor_ref_loss_db) / 20.0)
     return np.minimum(p.indoor_delay_m * ratio, p.indoor_delay_max_m)
 
 
@@ -733,7 +736,7 @@ class GnssModel:
 
         pen = geo["penetrated"]
         if self._penetrable:
-            indoor_mean = np.where(pen, indoor_delay_scale_m(np.nan_to_num(snr), p), 0.0)
+            indoor_mean = np.where(pen, indoor_delay_scale_m(geo["pen_loss_db"], p), 0.0)
         if self.fidelity == "seed":
             var_sat = var_model + geo["extra"] ** 2
             if self._penetrable:
@@ -961,6 +964,7 @@ class GnssModel:
             "g": g,
             "extra": np.where(used, vis.extra_path_m, 0.0),
             "penetrated": used & vis.penetrated,
+            "pen_loss_db": np.where(used & vis.penetrated, vis.loss_db, 0.0),
             "rx_ecef": rx_ecef,
             "rot": rot,
             "rx_enu": rx_enu,

@@ -428,10 +428,10 @@ def test_through_a_3_db_wall_tracked_3_db_weaker_30_db_hides(sats: sky.Satellite
     assert not (cb.used & behind).any()
 
 
-def test_indoor_delay_grows_as_c_n0_falls(sats: sky.SatelliteSet) -> None:
+def test_indoor_delay_grows_with_the_materials_loss(sats: sky.SatelliteSet) -> None:
     p = ReceiverParams()
-    scale = gnss.indoor_delay_scale_m(np.array([45.0, 35.0, 25.0, 15.0, -20.0]), p)
-    assert np.all(np.diff(scale) > 0) or scale[-1] == p.indoor_delay_max_m
+    scale = gnss.indoor_delay_scale_m(np.array([0.0, 10.0, 20.0, 30.0, 70.0]), p)
+    assert np.all(np.diff(scale[:-1]) > 0)
     assert scale[1] == pytest.approx(3.0) and scale[2] == pytest.approx(3.0 * 10**0.5)
     assert scale[-1] == p.indoor_delay_max_m
     # The unit process: positive, mean 1 (exponential), correlation time tau_indoor_s.
@@ -444,16 +444,25 @@ def test_indoor_delay_grows_as_c_n0_falls(sats: sky.SatelliteSet) -> None:
     yc = y - y.mean()
     rho = float((yc[k:] * yc[:-k]).mean() / yc.var())
     assert rho == pytest.approx(np.exp(-1.0), abs=0.06)
-    # In the receiver: the same room with thicker walls (lower C/N0) errs far more, at both
-    # fidelity levels, and the through-wall signals bias the ranges (the error grows).
+    # In the receiver: the same room with thicker walls moves the fix far more, at both
+    # fidelity levels. Judged on the error the delays add (the same draws without them are
+    # the reference): the fix's total error over 10 minutes is mostly the slow open-sky
+    # errors, which a larger indoor delay can cancel as well as add to.
+    shipped_m = ReceiverParams().indoor_delay_m
     for fid in gnss.FIDELITIES:
         med = {}
         for loss in (1.0, 12.0):
             walls = _enclosed(penetration_db=loss)
-            b = _model(sats, 6, fidelity=fid, walls=walls).batch(*_static(600, dt=10.0))
-            assert b.valid.mean() > 0.9  # weak signals: a short outage now and then
-            med[loss] = float(np.nanmedian(np.hypot(*_err_enu(b)[:2])))
-        assert med[12.0] > 1.5 * med[1.0], (fid, med)
+            err = {}
+            for delay_m in (shipped_m, 0.0):
+                rx = ReceiverParams(indoor_delay_m=delay_m)
+                b = _model(sats, 6, fidelity=fid, walls=walls, receiver=rx).batch(
+                    *_static(600, dt=10.0)
+                )
+                assert b.valid.mean() > 0.9  # weak signals: a short outage now and then
+                err[delay_m] = _err_enu(b)[:2]
+            med[loss] = float(np.nanmedian(np.hypot(*(err[shipped_m] - err[0.0]))))
+        assert med[12.0] > 2.0 * med[1.0], (fid, med)
 
 
 # ---------------------------------------------------------------- realism against real logs
