@@ -84,6 +84,7 @@ from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
 from sim_backend.world import World, load_world, with_robot_config
 from x6wd.core.errors import CommandError, ConfigError
 from x6wd.core.mission_files import Waypoint
+from x6wd.core.outdir import output_dir
 from x6wd.core.recorder import Recorder
 from x6wd.core.records import GpsFix, Mode, NavState, StateChange, Telemetry
 from x6wd.loop.runner import Runner
@@ -376,8 +377,7 @@ def run_mission(
     total_s = world.duration_s if duration_s is None else float(duration_s)
     if not (total_s > 0 and math.isfinite(total_s)):
         raise ConfigError(f"duration must be a positive number of seconds, got {duration_s!r}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(out_dir)
     cset, compass_skipped = compass_setup(world)
     rand = SimRandom.from_seed(seed)
     receiver = build_receiver(world, rand)

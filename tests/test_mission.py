@@ -171,6 +171,13 @@ def test_bad_inputs_are_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         run_mission(load_world(SCENARIOS / "default.toml"), tmp_path / "o", duration_s=-1)
     assert cli.main(["sim", str(tmp_path / "missing.toml"), "--out", str(tmp_path)]) == 2
     assert "missing.toml" in capsys.readouterr().err
+    # an output path that cannot be a directory: exit 2 naming it, nothing run
+    (tmp_path / "a_file").write_text("")
+    scen = str(SCENARIOS / "default.toml")
+    assert cli.main(["sim", scen, "--out", str(tmp_path / "a_file"), "--quiet"]) == 2
+    assert "a_file' is not a directory" in capsys.readouterr().err
+    assert cli.main(["sim", scen, "--out", str(tmp_path / "a_file" / "x"), "--quiet"]) == 2
+    assert "a_file" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -24,6 +24,7 @@ from sim_backend.executor import Executor, TextProgress
 from sim_backend.sweep import RunStore, load_sweep, plan, run_sweep, split_done
 from sim_backend.sweep_report import write_report
 from x6wd.core.errors import ConfigError
+from x6wd.core.outdir import output_dir
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -70,7 +71,7 @@ def main(args: argparse.Namespace) -> int:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
         spec = dataclasses.replace(spec, seeds=args.seeds)
     runs = plan(spec)  # a bad key or value stops here, before any cluster starts
-    out = Path(args.out) if args.out else Path("out") / "sweeps" / Path(args.sweep).stem
+    out = output_dir(args.out if args.out else Path("out") / "sweeps" / Path(args.sweep).stem)
     progress = None if args.quiet else TextProgress(len(runs), "runs")
     _done, todo = split_done(runs, RunStore(out), args.retry_failed)
     # Nothing left to run (a finished sweep run again): no cluster to start, only the report.

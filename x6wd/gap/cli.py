@@ -13,6 +13,7 @@ import numpy as np
 
 from sim_backend.effects import PositionSeries
 from x6wd.core.errors import ConfigError
+from x6wd.core.outdir import output_dir
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
 from x6wd.gap.diagnose import Diagnosis, Options, diagnose, verdict_text
 from x6wd.gap.io import (
@@ -103,6 +104,7 @@ def main(args: argparse.Namespace) -> int:
     bar = ProgressBar(enabled=not args.quiet and sys.stderr.isatty())
     if args.seeds < 1 or args.replicates < 3:
         raise ConfigError("--seeds must be >= 1 and --replicates >= 3")
+    output_dir(args.out)  # a mistaken --out is named now, not after the diagnosis
     bar("reading logs", 0.0)
     truth_track = read_track(args.truth_track) if args.truth_track else None
     real_track = read_track(args.real)

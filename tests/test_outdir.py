@@ -1,0 +1,45 @@
+"""A mistaken --out is a user's error: exit 2 naming the path, before any work is done."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from x6wd.app import cli
+from x6wd.core.errors import ConfigError
+from x6wd.core.outdir import output_dir
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_output_dir_makes_parents_and_leaves_nothing_behind(tmp_path: Path) -> None:
+    out = output_dir(tmp_path / "a" / "b")
+    assert out.is_dir() and list(out.iterdir()) == []
+    assert output_dir(out) == out  # an existing directory is fine
+
+
+def test_output_dir_names_the_file_in_the_way(tmp_path: Path) -> None:
+    (tmp_path / "f").write_text("")
+    for path in (tmp_path / "f", tmp_path / "f" / "x" / "y"):
+        with pytest.raises(ConfigError, match=r"'.*/f' is not a directory"):
+            output_dir(path)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["sim", str(ROOT / "config/scenarios/default.toml"), "--quiet"],
+        ["sweep", str(ROOT / "config/sweeps/position_source.toml"), "--quiet"],
+        ["gap", "--real", str(ROOT / "tests/data/nmea/bt451.log"), "--sim", "a", "--quiet"],
+    ],
+    ids=lambda a: a[0],
+)
+def test_commands_refuse_a_file_as_out_with_exit_2(
+    argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "f").write_text("")
+    assert cli.main([*argv, "--out", str(tmp_path / "f" / "sub")]) == 2
+    err = capsys.readouterr().err
+    assert f"x6wd {argv[0]}: error: output directory" in err and "is not a directory" in err
+    assert [p.name for p in tmp_path.iterdir()] == ["f"] and (tmp_path / "f").is_file()
