@@ -8,7 +8,7 @@ import pytest
 
 from x6wd.app import cli
 from x6wd.core.errors import ConfigError
-from x6wd.core.outdir import output_dir
+from x6wd.core.outdir import output_dir, write_output_file
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -43,3 +43,21 @@ def test_commands_refuse_a_file_as_out_with_exit_2(
     err = capsys.readouterr().err
     assert f"x6wd {argv[0]}: error: output directory" in err and "is not a directory" in err
     assert [p.name for p in tmp_path.iterdir()] == ["f"] and (tmp_path / "f").is_file()
+
+
+def test_write_output_file_names_what_is_in_the_way(tmp_path: Path) -> None:
+    assert write_output_file(tmp_path / "frag.toml", "a = 1\n").read_text() == "a = 1\n"
+    for bad in (tmp_path, tmp_path / "missing" / "frag.toml"):
+        with pytest.raises(ConfigError, match=f"output file '{bad}'"):
+            write_output_file(bad, "a = 1\n")
+
+
+def test_plot_refuses_a_file_as_out_with_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sim = ["sim", str(ROOT / "config/scenarios/open_field.toml"), "--duration", "5", "--quiet"]
+    assert cli.main([*sim, "--out", str(tmp_path / "run")]) == 0
+    (tmp_path / "f").write_text("")
+    plot = ["plot", str(tmp_path / "run" / "recording.jsonl"), "--format", "html"]
+    assert cli.main([*plot, "--out", str(tmp_path / "f" / "x")]) == 2
+    assert "x6wd plot: error: output directory" in capsys.readouterr().err

@@ -24,6 +24,7 @@ from x6wd.app.logview import (
     newest_recording,
 )
 from x6wd.core.errors import ConfigError
+from x6wd.core.outdir import output_dir
 
 # ---------------------------------------------------------------------------- PNG
 
@@ -184,8 +185,7 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(f"--rate must be > 0, got {args.rate}")
     src = newest_recording(Path(args.file)) if Path(args.file).is_dir() else Path(args.file)
     view = load(src, truth=Path(args.truth) if args.truth else None, rate_hz=args.rate)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(args.out)
     stem = src.stem
     written = []
     if args.format in ("both", "html"):

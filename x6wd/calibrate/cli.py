@@ -13,6 +13,7 @@ from x6wd.calibrate import gnss
 from x6wd.calibrate.odometry import calibrate, load_track
 from x6wd.core import config as config_mod
 from x6wd.core.errors import ConfigError
+from x6wd.core.outdir import write_output_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -149,7 +150,7 @@ def main_gnss(args: argparse.Namespace) -> int:
     text = result.toml("\n".join(header))
     sys.stdout.write(text)
     if args.out:
-        Path(args.out).write_text(text, encoding="utf-8")
+        write_output_file(args.out, text)
     if lce is not None and args.map_csv:
         gnss.write_map_csv(lce, args.map_csv)
     if lce is not None and args.plot:
@@ -189,5 +190,5 @@ def main(args: argparse.Namespace) -> int:
         )
     sys.stdout.write(text)
     if args.out:
-        Path(args.out).write_text(text, encoding="utf-8")
+        write_output_file(args.out, text)
     return 0

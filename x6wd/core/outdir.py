@@ -30,3 +30,14 @@ def output_dir(path: str | Path, probe: str = ".x6wd-write-test") -> Path:
             why = e.strerror or str(e)
         raise ConfigError(f"output directory {str(out)!r}: {why}") from e
     return out
+
+
+def write_output_file(path: str | Path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to the file ``path`` a user named; :class:`ConfigError` naming
+    it when that cannot be done (a directory there, a missing parent, a read-only place)."""
+    out = Path(path)
+    try:
+        out.write_text(text, encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(f"output file {str(out)!r}: {e.strerror or e}") from e
+    return out
