@@ -62,7 +62,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 from datetime import UTC, date, datetime, timedelta
 from itertools import repeat
-from typing import Any, Final, cast
+from typing import Any, Final
 
 from drivers.nmea import (
     GGA,
@@ -662,8 +662,9 @@ _SATS: Final[dict[str, _Sat]] = {}
 _SATS_MAX: Final = 4096
 # A GSV's satellites are its fields from the fourth on, four each: one match per satellite
 # (its text; the comma after it consumed). A partial group at the end does not match: no
-# three commas follow any of its positions.
-_GSV_GROUP: Final = re.compile(r"([^,]*,[^,]*,[^,]*,[^,]*)(?:,|\Z)")
+# three commas follow any of its positions. Possessive: a field ends at a comma, so giving
+# characters back never helps (and costs time).
+_GSV_GROUP: Final = re.compile(r"([^,]*+,[^,]*+,[^,]*+,[^,]*+)(?:,|\Z)")
 
 
 def clear_memos() -> None:
@@ -673,32 +674,42 @@ def clear_memos() -> None:
     _parse_gsa.cache_clear()
 
 
-def _gsv_sats(text: str) -> list[_Sat]:
-    """The satellites of a GSV sentence from the text of its fields from the first
-    satellite's on (``text``): groups of four fields; a group without a PRN is skipped. A
+def gsv_groups(text: str) -> list[str]:
+    """The satellites' texts (``"PRN,elevation,azimuth,SNR"``) of a GSV sentence from the
+    text of its fields from the first satellite's on (``text``): groups of four fields. A
     satellite cut short by the end of a sentence of fewer than four counts, with empty
     fields; beyond four, NMEA 4.1 appends a signal id, and the partial group it makes is
-    dropped. A satellite's fields mostly repeat from earlier epochs (elevation and azimuth
-    move slowly, SNR jitters over a few values): each group is decoded once and memoised
-    by its text, so a sentence whose groups are all known is one lookup each."""
+    dropped."""
     groups: list[str] = _GSV_GROUP.findall(text)
     n_fields = text.count(",") + 1
     if n_fields % 4 and n_fields < 16:
         tail = text.split(",")[4 * len(groups) :]
         groups.append(",".join(tail + [""] * (4 - len(tail))))
+    return groups
+
+
+def gsv_satellite(group: str) -> _Sat | None:
+    """The satellite of one group of ``gsv_groups`` (None without a PRN: not a satellite);
+    FieldError if a field is out of range. Memoised by the group's text."""
+    sat = _SATS.get(group)
+    if sat is None:
+        fields = group.split(",")
+        if not fields[0]:
+            return None
+        sat = _gsv_sat(group, fields)
+    return sat
+
+
+def _gsv_sats(text: str) -> list[_Sat]:
+    """The satellites of a GSV sentence (``gsv_groups``; a group without a PRN is skipped).
+    A satellite's fields mostly repeat from earlier epochs (elevation and azimuth move
+    slowly, SNR jitters over a few values): each group is decoded once and memoised by its
+    text, so a sentence whose groups are all known is one lookup each."""
+    groups = gsv_groups(text)
     found = list(map(_SATS.get, groups))
     if None not in found:
-        return cast("list[_Sat]", found)
-    sats = []
-    for group in groups:
-        sat = _SATS.get(group)
-        if sat is None:
-            fields = group.split(",")
-            if not fields[0]:  # no PRN: not a satellite
-                continue
-            sat = _gsv_sat(group, fields)
-        sats.append(sat)
-    return sats
+        return found  # type: ignore[return-value]
+    return [sat for sat in map(gsv_satellite, groups) if sat is not None]
 
 
 def _gsv_sat(key: str, fields: list[str]) -> _Sat:

@@ -26,7 +26,14 @@ from collections.abc import Callable, Iterable, Iterator
 from datetime import UTC, datetime
 from typing import IO, Any, cast
 
-from drivers.gps_nmea import DecoderCounters, GpsDecoder, GpsOutput
+from drivers.gps_nmea import (
+    DecoderCounters,
+    GpsDecoder,
+    GpsOutput,
+    _gsv_head,
+    gsv_groups,
+    gsv_satellite,
+)
 from x6wd.core.errors import DeviceUnavailable
 from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
@@ -139,13 +146,24 @@ class ReportEncoder:
         sats = sky.satellites
         found = list(map(self._sat_text.get, map(id, sats)))
         texts = self._add_sats(sats) if None in found else cast("list[str]", found)
+        return self.sky_line(texts, sky.utc, sky.hdop, sky.vdop, sky.pdop)
+
+    def sky_line(
+        self,
+        texts: list[str],
+        utc: datetime | None,
+        hdop: float | None,
+        vdop: float | None,
+        pdop: float | None,
+    ) -> str:
+        """The SKY line of a sky report from its satellites' texts (``sat_text``)."""
         listed = ",".join(texts)
         # A satellite's text has "used":true exactly when sky_obj counts it in uSat (no
         # string in it can hold that text: JSON escapes the quotes).
         n_used = listed.count('"used":true')
-        dops = self._group((sky.hdop, sky.vdop, sky.pdop), _dops)
+        dops = self._group((hdop, vdop, pdop), _dops)
         return (
-            f'{{"class":"SKY"{self._time(sky.utc)}{dops},"nSat":{len(texts)},"uSat":{n_used},'
+            f'{{"class":"SKY"{self._time(utc)}{dops},"nSat":{len(texts)},"uSat":{n_used},'
             f'"satellites":[{listed}]}}'
         )
 
@@ -236,10 +254,30 @@ def _dops(hdop: Any, vdop: Any, pdop: Any) -> str:
     )
 
 
+# "%.{n}f" formats for _num_text, and the magnitude below which that text is exact.
+_FIXED = tuple(f"%.{n}f" for n in range(10))
+_FIXED_MAX = tuple(10.0 ** (15 - n) for n in range(10))
+
+
 def _num_text(v: Any, ndigits: int) -> str | None:
-    """JSON text of gpsd's ``_num(v, ndigits)`` (None if not finite: omitted)."""
+    """JSON text of gpsd's ``_num(v, ndigits)`` (None if not finite: omitted).
+
+    That text is ``repr(round(v, ndigits))``; two float-to-decimal conversions, the
+    largest cost of a TPV. ``"%.{ndigits}f" % v`` is the same decimal ``round`` computes
+    (both are the correctly rounded decimal of v's exact value, ties to even), written
+    with every decimal place: below ``10 ** (15 - ndigits)`` in magnitude it has at most 15
+    significant digits, so ``repr`` of the float nearest to it is that decimal itself, and
+    without its trailing zeros that is ``repr``'s text; its plain (not exponent) notation
+    holds for ``repr`` of a multiple of ``10 ** -ndigits`` when ndigits <= 4 and from 1e-3
+    on for more digits. Anything else takes the two conversions.
+    """
     if type(v) is float:  # what records hold: finite exactly when v - v is 0
-        return _float_json(round(v, ndigits)) if v - v == 0.0 else None
+        if v - v != 0.0:
+            return None
+        if -_FIXED_MAX[ndigits] < v < _FIXED_MAX[ndigits] and (ndigits <= 4 or abs(v) >= 1e-3):
+            text = (_FIXED[ndigits] % v).rstrip("0")
+            return text + "0" if text[-1] == "." else text
+        return _float_json(round(v, ndigits))
     if v is None or not math.isfinite(v):
         return None
     return _float_json(round(float(v), ndigits))
@@ -252,6 +290,87 @@ def _sat_text(s: SatInfo) -> str:
         if v is not None and math.isfinite(v):
             d[key] = round(float(v), 1)
     return _dumps_compact(d)
+
+
+_SatTexts = tuple[int, str, str]
+"""A GSV satellite for ``ReportDecoder``: PRN, its ``_sat_text`` not used / used in the fix."""
+
+
+class ReportDecoder(GpsDecoder):
+    """``GpsDecoder`` (the reference, unchanged: same fixes, counters and epoch assembly)
+    whose sky reports come out as their SKY lines (``str``, in ``out`` among the fixes).
+
+    A satellite is taken from its GSV group straight to its two possible JSON texts
+    (memoised by the group's text, as the reference memoises its ``SatInfo`` pair), so a
+    sky report is one join of texts instead of a ``GpsSky`` of ``SatInfo`` that
+    ``ReportEncoder.sky`` then looks up again; the line is ``ReportEncoder.sky_line`` of
+    the same texts, time and DOPs, i.e. the text ``sky`` writes for the reference's record.
+    Without ``with_sky`` the reports are counted and not written. ``tests/test_decode.py``
+    compares the lines with the reference decoder's records through ``tpv_obj``/``sky_obj``.
+    """
+
+    def __init__(self, encoder: ReportEncoder, *, with_sky: bool = True) -> None:
+        super().__init__(emit_sentences=False)
+        self._encoder = encoder
+        self._with_sky = with_sky
+        self._sat_texts: dict[str, _SatTexts] = {}
+
+    def _gsv_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
+        # GpsDecoder._gsv_fields with _SatTexts for its satellites.
+        total, seq = _gsv_head(d[0], d[1], d[2])
+        sats = self._sats(d[3]) if len(d) > 3 else []
+        if seq == 1:
+            self._gsv_talker = talker
+            self._gsv_sats = sats  # type: ignore[assignment]
+        elif seq == self._gsv_next and talker == self._gsv_talker:
+            self._gsv_sats.extend(sats)  # type: ignore[arg-type]
+        else:  # a lost part: drop the group
+            self._gsv_next = 0
+            return
+        self._gsv_next = seq + 1
+        if seq == total:
+            self._gsv_next = 0
+            self._sky[talker] = (self._epoch_idx, self._gsv_sats)
+            self._gsv_sats = []
+            self._emit_sky(t_s, out)
+
+    def _sats(self, text: str) -> list[_SatTexts]:
+        """The satellites of a GSV sentence's satellite fields ``text`` (as ``_gsv_sats``:
+        the same groups, skipped or rejected alike)."""
+        groups = gsv_groups(text)
+        memo = self._sat_texts
+        found = list(map(memo.get, groups))
+        if None not in found:
+            return found  # type: ignore[return-value]
+        sats = []
+        for group in groups:
+            entry = memo.get(group)
+            if entry is None:
+                sat = gsv_satellite(group)
+                if sat is None:
+                    continue
+                entry = (sat[0], _sat_text(sat[1]), _sat_text(sat[2]))
+                if len(memo) >= MEMO_MAX:
+                    memo.clear()
+                memo[group] = entry
+            sats.append(entry)
+        return sats
+
+    def _emit_sky(self, t_s: float, out: list[GpsOutput]) -> None:
+        # GpsDecoder._emit_sky, writing the line instead of the record.
+        self._counters.skies += 1
+        if not self._with_sky:
+            return
+        used = self._used
+        texts: list[str] = []
+        oldest = self._epoch_idx - 1  # a constellation that stopped reporting drops out
+        for epoch_idx, group in self._sky.values():
+            if epoch_idx >= oldest:
+                texts += [in_use if prn in used else free for prn, free, in_use in group]  # type: ignore[misc]
+        line = self._encoder.sky_line(
+            texts, self._utc(self._tod_us), self._hdop_gsa, self._vdop, self._pdop
+        )
+        out.append(line)  # type: ignore[arg-type]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -283,6 +402,8 @@ def _write_reports(
         kind = type(r)
         if kind is GpsFix:
             lines.append(tpv(r))  # type: ignore[arg-type]
+        elif kind is str:  # a SKY line from ReportDecoder
+            lines.append(r)  # type: ignore[arg-type]
         elif kind is GpsSky:
             if with_sky:
                 lines.append(sky(r))  # type: ignore[arg-type]
@@ -318,8 +439,8 @@ def _recording_sentences(lines: Iterable[bytes]) -> Iterator[tuple[float, str]]:
 def _decode_sentences(
     sentences: Iterable[tuple[float, str]], out: IO[str], with_sky: bool
 ) -> DecoderCounters:
-    decoder = GpsDecoder(emit_sentences=False)
     encoder = ReportEncoder()
+    decoder = ReportDecoder(encoder, with_sky=with_sky)
     feed = decoder.feed_sentence
     records: list[GpsOutput] = []
     for t_s, text in sentences:
@@ -338,8 +459,8 @@ def decode_stream(stream: IO[bytes], out: IO[str], *, with_sky: bool = True) -> 
     if head.lstrip()[:1] == b"{":
         lines = (head + stream.read()).splitlines()
         return _decode_sentences(_recording_sentences(lines), out, with_sky)
-    decoder = GpsDecoder(emit_sentences=False)
     encoder = ReportEncoder()
+    decoder = ReportDecoder(encoder, with_sky=with_sky)
     chunk = head
     while chunk:
         _write_reports(decoder.feed(chunk, 0.0), encoder, out, with_sky)

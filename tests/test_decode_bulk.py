@@ -1,0 +1,143 @@
+"""`x6wd decode`'s own path (``decode_stream``: ``ReportDecoder`` + ``ReportEncoder``, built for
+speed) against the reference, in the same run: the daemon's ``GpsDecoder`` records written
+through gpsd's ``tpv_obj``/``sky_obj`` and ``json.dumps``. Same lines, byte for byte, and
+same counters (a corrupt line is counted and skipped alike), on the gpsd corpus, the
+synthetic NEO-5 hour of bench/bench_decode.py and fuzzed streams; read whole and in small
+reads."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+from typing import IO, cast
+
+import numpy as np
+import pytest
+
+from bench.bench_nmea import synthetic_neo5
+from drivers.gps_nmea import GpsDecoder
+from x6wd.app import decode
+from x6wd.app.gpsd import sky_obj, tpv_obj
+from x6wd.core.records import GpsFix, GpsSky
+
+NMEA_DIR = Path(__file__).resolve().parent / "data" / "nmea"
+CORPUS = sorted(NMEA_DIR.glob("*.log"))
+
+
+class _Reads(io.RawIOBase):
+    """A byte stream whose reads return at most ``size`` bytes (a pipe, a serial log)."""
+
+    def __init__(self, data: bytes, size: int) -> None:
+        self._data = memoryview(data)
+        self._size = size
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, b: bytearray) -> int:  # type: ignore[override]
+        n = min(len(b), self._size, len(self._data))
+        b[:n] = self._data[:n]
+        self._data = self._data[n:]
+        return n
+
+
+def _reference(data: bytes, read_size: int, with_sky: bool) -> tuple[list[str], dict[str, int]]:
+    dec = GpsDecoder(emit_sentences=False)
+    records = []
+    for k in range(0, len(data), read_size):  # the same reads: the framer's skipped_bytes
+        records += dec.feed(data[k : k + read_size], 0.0)  # depend on them (a long line)
+    records += dec.flush()
+    lines = [
+        json.dumps(tpv_obj(r) if isinstance(r, GpsFix) else sky_obj(r), separators=(",", ":"))
+        for r in records
+        if isinstance(r, GpsFix) or (with_sky and isinstance(r, GpsSky))
+    ]
+    return lines, dec.counters.as_dict()
+
+
+def _decode(data: bytes, read_size: int, with_sky: bool) -> tuple[list[str], dict[str, int]]:
+    out = io.StringIO()
+    stream = cast("IO[bytes]", _Reads(data, read_size))  # what decode_stream reads: read(n)
+    counters = decode.decode_stream(stream, out, with_sky=with_sky)
+    return out.getvalue().splitlines(), counters.as_dict()
+
+
+def _check(data: bytes, read_sizes: tuple[int, ...] = (1 << 20, 4093)) -> None:
+    assert data.lstrip()[:1] != b"{"  # a raw stream, not a recording
+    for with_sky in (True, False):
+        for size in read_sizes:
+            assert _decode(data, size, with_sky) == _reference(data, size, with_sky), size
+
+
+@pytest.mark.parametrize("path", CORPUS, ids=lambda p: p.name)
+def test_corpus_log_decodes_like_the_reference(path: Path) -> None:
+    _check(path.read_bytes())
+
+
+def test_whole_corpus_and_the_neo5_hour_decode_like_the_reference() -> None:
+    _check(b"".join(p.read_bytes() for p in CORPUS), (1 << 20,))
+    _check(synthetic_neo5(3600, np.random.default_rng(5)), (1 << 20,))
+
+
+_JUNK = (b"", b"1e5", b"-1", b"abc", b"\xe9", b"99.9.9", b"7", b"999", b"1_0", b" 2", b"nan")
+
+
+def _resummed(line: bytes, rng: np.random.Generator) -> bytes:
+    """``line`` with one field (or its type) replaced, under a checksum that matches."""
+    body = line[1 : line.index(b"*")]
+    fields = body.split(b",")
+    k = int(rng.integers(0, len(fields)))
+    if k == 0:
+        heads = (b"GPXYZ", b"PUBX", b"GP", b"GNGSV", b"GLGSA", b"GPZDA", b"PGRME")
+        fields[0] = heads[int(rng.integers(0, len(heads)))]
+    else:
+        fields[k] = _JUNK[int(rng.integers(0, len(_JUNK)))]
+    body = b",".join(fields)
+    xor = 0
+    for c in body:
+        xor ^= c
+    return b"$%s*%02X\r\n" % (body, xor)
+
+
+def _fuzzed(rng: np.random.Generator) -> bytes:
+    """Receiver output broken the ways real links and logs break it."""
+    base = synthetic_neo5(120, rng) + (NMEA_DIR / "ublox-lea-5h.log").read_bytes()
+    lines = base.splitlines(keepends=True)
+    out: list[bytes] = []
+    for line in lines:
+        r = rng.random()
+        if r < 0.03:  # a flipped byte (bad checksum, or a bad field when it still sums)
+            k = int(rng.integers(0, len(line)))
+            line = line[:k] + bytes([int(rng.integers(0, 256))]) + line[k + 1 :]
+        elif r < 0.05:  # cut short
+            line = line[: int(rng.integers(0, len(line)))]
+        elif r < 0.07:  # line ending lost or changed
+            line = (
+                line.rstrip(b"\r\n")
+                + [b"", b"\r", b"\n", b"\n\r", b"\r\r\n"][int(rng.integers(0, 5))]
+            )
+        elif r < 0.08:  # binary noise, with UBX syncs among it
+            noise = rng.integers(0, 256, size=int(rng.integers(1, 300)), dtype=np.uint8)
+            line = noise.tobytes().replace(b"\n", b"\xb5b") + line
+        elif r < 0.09:  # a very long line
+            line = line.rstrip(b"\r\n") + b"," * int(rng.integers(60, 400)) + b"*00\r\n"
+        elif r < 0.10:  # the date of an RMC gone: undated epochs
+            line = line.replace(b",010526,", b",,")
+        elif r < 0.11:  # lower-case checksum digits, a doubled '$', non-ASCII text
+            line = [line.lower(), b"$" + line, line.replace(b",", b",\xe9", 1)][
+                int(rng.integers(0, 3))
+            ]
+        elif r < 0.12:  # a sentence dropped (a lost GSV part, an RMC without its GGA)
+            continue
+        elif r < 0.16 and line.startswith(b"$") and b"*" in line:  # bad content, good sum
+            line = _resummed(line, rng)
+        out.append(line)
+    data = b"".join(out)
+    return b"x" + data if data.lstrip()[:1] == b"{" else data
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_fuzzed_streams_decode_like_the_reference(seed: int) -> None:
+    data = _fuzzed(np.random.default_rng(seed))
+    _check(data, (1 << 20, 4093, 61))
