@@ -34,6 +34,7 @@ from drivers.gps_nmea import (
     gsv_groups,
     gsv_satellite,
 )
+from drivers.nmea import GSA
 from x6wd.core.errors import DeviceUnavailable
 from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
@@ -285,13 +286,29 @@ def _num_text(v: Any, ndigits: int) -> str | None:
 
 def _sat_text(s: SatInfo) -> str:
     """One satellite of ``sky_obj`` as compact JSON."""
-    d: dict[str, Any] = {"PRN": s.prn, "used": bool(s.used)}
-    for key, v in (("el", s.el_deg), ("az", s.az_deg), ("ss", s.snr_dbhz)):
-        if v is not None and math.isfinite(v):
-            d[key] = round(float(v), 1)
-    return _dumps_compact(d)
+    free, used = _sat_texts(s)
+    return used if s.used else free
 
 
+def _sat_texts(s: SatInfo) -> tuple[str, str]:
+    """``_sat_text`` of ``s`` as not used and as used in the fix: the text of
+    ``json.dumps({"PRN": prn, "used": used, "el": .., "az": .., "ss": ..})`` (non-finite
+    values omitted, the others rounded to 0.1), written directly: both texts from one
+    conversion of the numbers."""
+    prn = s.prn
+    head = '{"PRN":' + (str(prn) if type(prn) is int else _dumps_compact(prn)) + ',"used":'
+    tail: list[str] = []
+    for key, v in ((',"el":', s.el_deg), (',"az":', s.az_deg), (',"ss":', s.snr_dbhz)):
+        if v is not None:
+            text = _num_text(v, 1)
+            if text is not None:
+                tail += (key, text)
+    tail.append("}")
+    rest = "".join(tail)
+    return head + "false" + rest, head + "true" + rest
+
+
+_GSA_FIELDS = GSA.pos("vdop") + 1  # the GSA fields GpsDecoder reads (a shorter one is padded)
 _SatTexts = tuple[int, str, str]
 """A GSV satellite for ``ReportDecoder``: PRN, its ``_sat_text`` not used / used in the fix."""
 
@@ -314,6 +331,25 @@ class ReportDecoder(GpsDecoder):
         self._encoder = encoder
         self._with_sky = with_sky
         self._sat_texts: dict[str, _SatTexts] = {}
+        # GSA: the handler gets the text of the fields unsplit (most splits 0), see _gsa_text.
+        self._handlers["GSA"] = (self._gsa_text, 1, 0)
+        self._gsa_memo: dict[str, list[str]] = {}
+
+    def _gsa_text(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
+        """A GSA from the text of its fields (``d[0]``): a receiver repeats its GSA while the
+        constellation holds, so the fields, split and padded as the reference's handler gets
+        them, are memoised by that text (and their strings keep their hashes for
+        ``_parse_gsa``'s memo)."""
+        body = d[0]
+        fields = self._gsa_memo.get(body)
+        if fields is None:
+            fields = body.split(",")
+            if len(fields) < _GSA_FIELDS:
+                fields += [""] * (_GSA_FIELDS - len(fields))
+            if len(self._gsa_memo) >= MEMO_MAX:
+                self._gsa_memo.clear()
+            self._gsa_memo[body] = fields
+        self._on_gsa(fields)
 
     def _gsv_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         # GpsDecoder._gsv_fields with _SatTexts for its satellites.
@@ -349,7 +385,7 @@ class ReportDecoder(GpsDecoder):
                 sat = gsv_satellite(group)
                 if sat is None:
                     continue
-                entry = (sat[0], _sat_text(sat[1]), _sat_text(sat[2]))
+                entry = (sat[0], *_sat_texts(sat[1]))
                 if len(memo) >= MEMO_MAX:
                     memo.clear()
                 memo[group] = entry
