@@ -1186,7 +1186,12 @@ class GpsDecoder:
             self._midnight = datetime(day.year, day.month, day.day, tzinfo=UTC)
         return self._midnight + timedelta(microseconds=tod)
 
-    def _emit(self, gga: _Gga | None, rmc: _Rmc | None, out: list[GpsOutput]) -> None:
+    def _fix_head(
+        self, gga: _Gga | None, rmc: _Rmc | None
+    ) -> tuple[float, int | None, bool, int, float | None, float | None]:
+        """(t_s, time of day, valid, mode, lat, lon) of the fix made of ``gga`` and/or
+        ``rmc``, noted as the last fix and counted (``_emit``; a subclass may write the fix
+        its own way)."""
         if gga is not None:
             valid = gga.quality > 0 and (rmc is None or rmc.valid)
             tod = gga.tod_us
@@ -1208,6 +1213,14 @@ class GpsDecoder:
             mode = 3
         else:
             mode = 2
+        if tod is not None:
+            self._last_fix_tod = tod
+            self._last_fix_had_gga = gga is not None
+        self._counters.fixes += 1
+        return t_s, tod, valid, mode, lat, lon
+
+    def _emit(self, gga: _Gga | None, rmc: _Rmc | None, out: list[GpsOutput]) -> None:
+        t_s, tod, valid, mode, lat, lon = self._fix_head(gga, rmc)
         # One call per field, in _FIX_FIELDS order (unrolled: a loop over the setters costs
         # more than the setters themselves).
         (set_t_s, set_utc, set_lat, set_lon, set_alt, set_quality, set_sats, set_hdop,
@@ -1240,10 +1253,6 @@ class GpsDecoder:
         set_mode(fix, mode)
         set_pdop(fix, self._pdop)
         set_vdop(fix, self._vdop)
-        if tod is not None:
-            self._last_fix_tod = tod
-            self._last_fix_had_gga = gga is not None
-        self._counters.fixes += 1
         out.append(fix)
 
     def _emit_sky(self, t_s: float, out: list[GpsOutput]) -> None:

@@ -30,7 +30,9 @@ from drivers.gps_nmea import (
     DecoderCounters,
     GpsDecoder,
     GpsOutput,
+    _Gga,
     _gsv_head,
+    _Rmc,
     gsv_groups,
     gsv_satellite,
 )
@@ -114,11 +116,39 @@ class ReportEncoder:
 
     def tpv(self, fix: GpsFix) -> str:
         """The TPV line (no newline) of ``fix``."""
-        mode = fix.mode if fix.valid else 1
+        return self.tpv_line(
+            fix.valid,
+            fix.mode,
+            fix.utc,
+            fix.lat_deg,
+            fix.lon_deg,
+            fix.alt_m,
+            fix.geoid_sep_m,
+            fix.speed_mps,
+            fix.course_deg,
+            fix.hdop,
+            fix.vdop,
+        )
+
+    def tpv_line(
+        self,
+        valid: bool,
+        mode: int,
+        utc: datetime | None,
+        lat: float | None,
+        lon: float | None,
+        alt: float | None,
+        geoid_sep: float | None,
+        speed: float | None,
+        course: float | None,
+        hdop: float | None,
+        vdop: float | None,
+    ) -> str:
+        """The TPV line of a fix from its fields (``GpsFix``'s, units alike)."""
+        mode = mode if valid else 1
         mode_text = str(mode) if type(mode) is int else _dumps_compact(mode)
-        head = '{"class":"TPV","mode":' + mode_text + self._time(fix.utc)
-        lat, lon = fix.lat_deg, fix.lon_deg
-        if not (fix.valid and mode >= 2 and lat is not None and lon is not None):
+        head = '{"class":"TPV","mode":' + mode_text + self._time(utc)
+        if not (valid and mode >= 2 and lat is not None and lon is not None):
             return head + "}"
         parts = [head]
         text = _num_text(lat, 9)  # positions rarely repeat: not memoised
@@ -127,18 +157,17 @@ class ReportEncoder:
         text = _num_text(lon, 9)
         if text is not None:
             parts += (',"lon":', text)
-        alt = fix.alt_m
         if mode >= 3 and alt is not None:
-            parts.append(self._group((alt, fix.geoid_sep_m), _altitudes))
-        if fix.speed_mps is not None:  # speed and track jitter: not memoised either
-            text = _num_text(fix.speed_mps, 3)
+            parts.append(self._group((alt, geoid_sep), _altitudes))
+        if speed is not None:  # speed and track jitter: not memoised either
+            text = _num_text(speed, 3)
             if text is not None:
                 parts += (',"speed":', text)
-        if fix.course_deg is not None:
-            text = _num_text(fix.course_deg, 4)
+        if course is not None:
+            text = _num_text(course, 4)
             if text is not None:
                 parts += (',"track":', text)
-        parts.append(self._group((fix.hdop, fix.vdop if mode >= 3 else None), _errors))
+        parts.append(self._group((hdop, vdop if mode >= 3 else None), _errors))
         parts.append("}")
         return "".join(parts)
 
@@ -392,6 +421,22 @@ class ReportDecoder(GpsDecoder):
             sats.append(entry)
         return sats
 
+    def _emit(self, gga: _Gga | None, rmc: _Rmc | None, out: list[GpsOutput]) -> None:
+        # GpsDecoder._emit, writing the line instead of the record.
+        _, tod, valid, mode, lat, lon = self._fix_head(gga, rmc)  # TPV has no t_s
+        if gga is None:
+            alt = sep = None
+            hdop = self._hdop_gsa
+        else:
+            alt, sep, hdop = gga.alt_m, gga.sep_m, gga.hdop
+        speed = course = None
+        if rmc is not None:
+            speed, course = rmc.speed_mps, rmc.course_deg
+        line = self._encoder.tpv_line(
+            valid, mode, self._utc(tod), lat, lon, alt, sep, speed, course, hdop, self._vdop
+        )
+        out.append(line)  # type: ignore[arg-type]
+
     def _emit_sky(self, t_s: float, out: list[GpsOutput]) -> None:
         # GpsDecoder._emit_sky, writing the line instead of the record.
         self._counters.skies += 1
@@ -438,7 +483,7 @@ def _write_reports(
         kind = type(r)
         if kind is GpsFix:
             lines.append(tpv(r))  # type: ignore[arg-type]
-        elif kind is str:  # a SKY line from ReportDecoder
+        elif kind is str:  # a line from ReportDecoder
             lines.append(r)  # type: ignore[arg-type]
         elif kind is GpsSky:
             if with_sky:
