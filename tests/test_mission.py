@@ -194,6 +194,27 @@ def test_paper_situations_order_of_magnitude(tmp_path: Path) -> None:
     assert 2 < max(roof.dispersion_lat_m, roof.dispersion_lon_m) < 40
 
 
+def test_inside_by_the_window_disperses_as_the_paper_not_as_open_ground(tmp_path: Path) -> None:
+    """docs/simulator.md, the paper's four situations: inside the room by the window the fix
+    rests on about 4 satellites, is lost in some epochs, and its dispersion is of the order
+    of the paper's (exp. 1: +-12.3 m lat, +-30.3 m lon), several times open ground's.
+    Without the signals through the walls (or their indoor delay) it is far too good."""
+    s = {
+        name: run_mission(load_world(SCENARIOS / f"{name}.toml"), tmp_path / name, 1, 200.0)
+        for name in ("open_field", "building_window")
+    }
+    room, open_s = s["building_window"], s["open_field"]
+    assert open_s.fixes_valid == open_s.fixes and open_s.mean_sats_used > 6
+    assert 0.5 * room.fixes < room.fixes_valid < room.fixes
+    assert 4.0 <= room.mean_sats_used < 5.0
+    for disp, paper_m, open_m in (
+        (room.dispersion_lat_m, 12.3, open_s.dispersion_lat_m),
+        (room.dispersion_lon_m, 30.3, open_s.dispersion_lon_m),
+    ):
+        assert 0.5 * paper_m < disp < 10 * paper_m, (disp, paper_m)
+        assert disp > 2.5 * open_m, (disp, open_m)
+
+
 def test_effect_layers_from_a_fragment_act_on_the_receiver(tmp_path: Path) -> None:
     base = (SCENARIOS / "open_field.toml").read_text()
     frag = tmp_path / "effects.toml"

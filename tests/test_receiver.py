@@ -208,17 +208,21 @@ def test_bytes_and_their_timing_on_the_uart() -> None:
 def test_uart_queues_then_drops_whole_sentences_as_a_real_line(rate_hz: float, baud: int) -> None:
     """A NEO-5 burst is about 500 bytes; 4 Hz needs about 2,000 bytes/s. 9600 baud carries
     960 (bytes x 10 / 9600 s each): the transmit buffer fills and whole sentences are
-    dropped, none torn; 38400 baud, or 1 Hz at 9600, carries everything."""
+    dropped, none torn; the first sentences of each burst get through about the full
+    buffer's wire time late and nearly all GSV and GLL are dropped (docs/simulator.md, "The
+    UART"); 38400 baud, or 1 Hz at 9600, carries everything."""
     world = load_world(SCENARIOS / "default.toml")
     rx = build_receiver(world, 1)
     tx = UartTx(baud)
     period_s = 1.0 / rate_hz
     sent: list[tuple[float, float, bytes]] = []  # epoch time, arrival time, sentence
     generated = generated_bytes = 0
+    made: list[bytes] = []  # the kind (RMC, GSV, ...) of every sentence generated
     for k in range(int(30 * rate_hz)):
         t = k * period_s
         lines = rx.sentences(rx.epoch(t, (0.0, 0.0, 0.34), (0.0, 0.0, 0.0)))
         generated += len(lines)
+        made += [line[3:6] for line in lines]
         generated_bytes += sum(map(len, lines))
         out = tx.send(lines, t)
         assert tx.queued_bytes(t) <= tx.buffer_bytes
@@ -237,6 +241,12 @@ def test_uart_queues_then_drops_whole_sentences_as_a_real_line(rate_hz: float, b
         assert n.sum() <= 30.0 * baud / 10.0 + tx.buffer_bytes
         kinds = [line[3:6] for _t, _t_rx, line in sent]
         assert kinds.count(b"RMC") > 0.9 * 30 * rate_hz  # the first of each burst gets through
+        # ... about the full buffer's wire time late; the burst's tail is what is dropped
+        late_s = [t_rx - t for t, t_rx, line in sent if line[3:6] == b"RMC"]
+        full_s = tx.buffer_bytes * 10.0 / baud
+        assert 0.5 * full_s <= float(np.median(late_s)) <= 1.1 * full_s, (late_s, full_s)
+        for kind in (b"GSV", b"GLL"):
+            assert kinds.count(kind) < 0.15 * made.count(kind), kind
     else:
         assert tx.dropped == 0
         # no backlog: every burst is out before the next epoch
