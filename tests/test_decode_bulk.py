@@ -141,3 +141,32 @@ def _fuzzed(rng: np.random.Generator) -> bytes:
 def test_fuzzed_streams_decode_like_the_reference(seed: int) -> None:
     data = _fuzzed(np.random.default_rng(seed))
     _check(data, (1 << 20, 4093, 61))
+
+
+def _sentence(body: str) -> bytes:
+    xor = 0
+    for c in body.encode():
+        xor ^= c
+    return f"${body}*{xor:02X}\r\n".encode()
+
+
+def test_midnight_leap_second_and_zda_dates_decode_like_the_reference() -> None:
+    # The time of a report is the date's day, the day after or the day before (a time of
+    # day 12 h away from the date's own) or 23:59:59.999 for a leap second.
+    pos = "5142.12345,N,00430.12345,W"
+    bodies = [
+        f"GPGGA,235958.00,{pos},1,08,1.1,35.2,M,49.0,M,,",  # undated: no time member
+        f"GPRMC,235959.50,A,{pos},0.3,,311226,,,A",
+        f"GPGGA,235959.50,{pos},1,08,1.1,35.2,M,49.0,M,,",
+        f"GPGGA,235960.00,{pos},1,08,1.1,35.2,M,49.0,M,,",  # leap second
+        f"GPGGA,000000.25,{pos},1,08,1.1,35.2,M,49.0,M,,",  # past midnight, old date
+        "GPGSV,1,1,02,02,45,123,33,05,12,045,41",
+        f"GPRMC,000001.00,A,{pos},0.3,,010127,,,A",
+        f"GPGGA,000001.00,{pos},1,08,1.1,35.2,M,49.0,M,,",
+        "GPZDA,115959.00,28,02,2100,00,00",
+        f"GPGGA,120000.00,{pos},1,08,1.1,35.2,M,49.0,M,,",
+        f"GPGGA,000000.00,{pos},1,08,1.1,35.2,M,49.0,M,,",  # 12 h before: the day before
+        "GPZDA,000000.00,01,01,2200,00,00",
+        f"GPGGA,235959.99,{pos},1,08,1.1,35.2,M,49.0,M,,",  # the day before the date
+    ]
+    _check(b"".join(map(_sentence, bodies)), (1 << 20, 7))

@@ -23,7 +23,7 @@ import math
 import os
 import sys
 from collections.abc import Callable, Iterable, Iterator
-from datetime import UTC, datetime
+from datetime import UTC, date, datetime
 from typing import IO, Any, cast
 
 from drivers.gps_nmea import (
@@ -104,7 +104,7 @@ class ReportEncoder:
             self._groups[memo_key] = text
         return text
 
-    def _time(self, utc: datetime | None) -> str:
+    def time_member(self, utc: datetime | None) -> str:
         """``,"time":"..."`` (``iso_time``), or empty without a time; fix and sky of one
         epoch share the datetime."""
         if utc is None:
@@ -119,7 +119,7 @@ class ReportEncoder:
         return self.tpv_line(
             fix.valid,
             fix.mode,
-            fix.utc,
+            self.time_member(fix.utc),
             fix.lat_deg,
             fix.lon_deg,
             fix.alt_m,
@@ -134,7 +134,7 @@ class ReportEncoder:
         self,
         valid: bool,
         mode: int,
-        utc: datetime | None,
+        time: str,
         lat: float | None,
         lon: float | None,
         alt: float | None,
@@ -144,10 +144,11 @@ class ReportEncoder:
         hdop: float | None,
         vdop: float | None,
     ) -> str:
-        """The TPV line of a fix from its fields (``GpsFix``'s, units alike)."""
+        """The TPV line of a fix from its fields (``GpsFix``'s, units alike; its time as
+        ``time_member`` writes it)."""
         mode = mode if valid else 1
         mode_text = str(mode) if type(mode) is int else _dumps_compact(mode)
-        head = '{"class":"TPV","mode":' + mode_text + self._time(utc)
+        head = '{"class":"TPV","mode":' + mode_text + time
         if not (valid and mode >= 2 and lat is not None and lon is not None):
             return head + "}"
         parts = [head]
@@ -176,24 +177,25 @@ class ReportEncoder:
         sats = sky.satellites
         found = list(map(self._sat_text.get, map(id, sats)))
         texts = self._add_sats(sats) if None in found else cast("list[str]", found)
-        return self.sky_line(texts, sky.utc, sky.hdop, sky.vdop, sky.pdop)
+        return self.sky_line(texts, self.time_member(sky.utc), sky.hdop, sky.vdop, sky.pdop)
 
     def sky_line(
         self,
         texts: list[str],
-        utc: datetime | None,
+        time: str,
         hdop: float | None,
         vdop: float | None,
         pdop: float | None,
     ) -> str:
-        """The SKY line of a sky report from its satellites' texts (``sat_text``)."""
+        """The SKY line of a sky report from its satellites' texts (``_sat_text``) and
+        its time as ``time_member`` writes it."""
         listed = ",".join(texts)
         # A satellite's text has "used":true exactly when sky_obj counts it in uSat (no
         # string in it can hold that text: JSON escapes the quotes).
         n_used = listed.count('"used":true')
         dops = self._group((hdop, vdop, pdop), _dops)
         return (
-            f'{{"class":"SKY"{self._time(utc)}{dops},"nSat":{len(texts)},"uSat":{n_used},'
+            f'{{"class":"SKY"{time}{dops},"nSat":{len(texts)},"uSat":{n_used},'
             f'"satellites":[{listed}]}}'
         )
 
@@ -363,6 +365,11 @@ class ReportDecoder(GpsDecoder):
         # GSA: the handler gets the text of the fields unsplit (most splits 0), see _gsa_text.
         self._handlers["GSA"] = (self._gsa_text, 1, 0)
         self._gsa_memo: dict[str, list[str]] = {}
+        # _time_member's last (time of day, date, date's time of day) and its text.
+        self._member_tod: int | None = None
+        self._member_day: date | None = None
+        self._member_day_tod: int | None = None
+        self._member = ""
 
     def _gsa_text(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         """A GSA from the text of its fields (``d[0]``): a receiver repeats its GSA while the
@@ -421,6 +428,43 @@ class ReportDecoder(GpsDecoder):
             sats.append(entry)
         return sats
 
+    def _time_member(self, tod: int | None) -> str:
+        """``time_member(self._utc(tod))``: the epoch's time as the reports write it. For a
+        time of day within 12 h of the date's own (the date is that day's) and not a leap
+        second, of a year from 1000 on, that is the date's text and the time of day's
+        hours, minutes, seconds and milliseconds (what ``_utc`` gives: midnight plus the
+        time of day), from ``_iso_time``'s tables without a datetime; else through
+        ``_utc``."""
+        day = self._date
+        day_tod = self._date_tod_us
+        if tod is None or day is None or day_tod is None:
+            return ""
+        if tod == self._member_tod and day is self._member_day and day_tod == self._member_day_tod:
+            return self._member  # fix and sky of one epoch
+        if (
+            day_tod - 43_200_000_000 <= tod <= day_tod + 43_200_000_000
+            and tod < 86_400_000_000
+            and day.year >= 1000
+        ):
+            ordinal = day.toordinal()
+            day_text = _day_text.get(ordinal)
+            if day_text is None:
+                if len(_day_text) >= MEMO_MAX:
+                    _day_text.clear()
+                day_text = _day_text[ordinal] = day.isoformat() + "T"
+            s, us = divmod(tod, 1_000_000)
+            m, s = divmod(s, 60)
+            h, m = divmod(m, 60)
+            text = (
+                ',"time":"' + day_text + _HOURS[h] + _SIXTY[m] + ":" + _SIXTY[s]
+                + _MILLIS[us // 1000] + '"'
+            )  # fmt: skip
+        else:
+            text = self._encoder.time_member(self._utc(tod))
+        self._member_tod, self._member_day, self._member_day_tod = tod, day, day_tod
+        self._member = text
+        return text
+
     def _emit(self, gga: _Gga | None, rmc: _Rmc | None, out: list[GpsOutput]) -> None:
         # GpsDecoder._emit, writing the line instead of the record.
         _, tod, valid, mode, lat, lon = self._fix_head(gga, rmc)  # TPV has no t_s
@@ -433,7 +477,7 @@ class ReportDecoder(GpsDecoder):
         if rmc is not None:
             speed, course = rmc.speed_mps, rmc.course_deg
         line = self._encoder.tpv_line(
-            valid, mode, self._utc(tod), lat, lon, alt, sep, speed, course, hdop, self._vdop
+            valid, mode, self._time_member(tod), lat, lon, alt, sep, speed, course, hdop, self._vdop
         )
         out.append(line)  # type: ignore[arg-type]
 
@@ -449,7 +493,7 @@ class ReportDecoder(GpsDecoder):
             if epoch_idx >= oldest:
                 texts += [in_use if prn in used else free for prn, free, in_use in group]  # type: ignore[misc]
         line = self._encoder.sky_line(
-            texts, self._utc(self._tod_us), self._hdop_gsa, self._vdop, self._pdop
+            texts, self._time_member(self._tod_us), self._hdop_gsa, self._vdop, self._pdop
         )
         out.append(line)  # type: ignore[arg-type]
 
