@@ -10,7 +10,7 @@ from dataclasses import replace
 import pytest
 
 from tests.test_controller import LTP, NAV, SAFETY, at, att, fix, split
-from x6wd.core.config import FailsafeConfig, NavigationConfig
+from x6wd.core.config import FailsafeConfig, NavigationConfig, OdometryConfig
 from x6wd.core.records import GpsFix, Mode, NavState, WheelOdometry
 from x6wd.nav.controller import CommandRejected, Controller, has_usable_position
 
@@ -326,6 +326,42 @@ def test_the_ekf_follows_a_straight_drive_and_steers_by_its_heading() -> None:
     assert tel.heading_deg == pytest.approx(0.0, abs=1.0)
     assert tel.extra["ekf_sigma_m"] < 3.0 and tel.extra["ekf_gps_rejected"] == 0
     assert tel.state == NavState.STRAIGHT
+
+
+def test_dead_reckoning_through_a_gps_gap_stops_once_the_ekf_sigma_passes_5_m() -> None:
+    """docs/navigation.md, "Driving on without a fix": with the EKF and the encoders the robot
+    drives on without a fix only while the EKF's position sigma stays under 5 m, however far
+    ``gps_outage_max_m`` would let it go. Very noisy wheels (0.1 m²/m per side) make the
+    sigma grow within metres once the fixes stop."""
+    safety = replace(SAFETY, gps_outage_max_m=1000.0)
+    odometry = OdometryConfig(k_left_m=0.1, k_right_m=0.1)
+    c = Controller(NavigationConfig(), safety, 3.0, odometry=odometry)
+    c.on_fix(fix(0.0))
+    for k in range(1, 21):
+        c.on_attitude(att(0.05 * k, 357.0))  # 357 magnetic + 3 declination = north
+    c.load_mission([at(0.0, 900.0)], 1.0)
+    c.start(1.0)
+    last_fix_s, seen = 21.0, []  # (t_s, state, ekf_sigma_m) after the last fix
+    for k in range(1, 601):  # 2 m/s north: encoders and compass at 10 Hz, fixes at 1 Hz
+        t = 1.0 + 0.1 * k
+        counts = round(0.2 * k * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t, 357.0))
+        if k % 10 == 0 and t <= last_fix_s + 1e-9:
+            c.on_fix(fix(t, 0.0, 0.2 * k))
+        tel = c.telemetry
+        if t > last_fix_s:
+            seen.append((t, tel.state, tel.extra["ekf_sigma_m"]))
+        if tel.state == NavState.HOLD:
+            break
+    t_hold, _, sigma_hold = seen[-1]
+    assert seen[-1][1] == NavState.HOLD, "never held: the sigma cap is gone"
+    stale_s = last_fix_s + safety.fix_stale_s
+    assert t_hold > stale_s + 1.0  # it drove on past the stale fix ...
+    assert all(s == NavState.STRAIGHT for _t, s, _sig in seen[:-1])
+    assert all(sig <= 5.0 for _t, _s, sig in seen[:-1])  # ... while the sigma was under 5 m
+    assert sigma_hold > 5.0
+    assert 2.0 * (t_hold - last_fix_s) < 100.0  # far short of gps_outage_max_m
 
 
 def test_set_declination_turns_the_heading() -> None:
