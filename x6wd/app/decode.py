@@ -10,8 +10,12 @@ Anything else is read as a raw byte stream (binary and line noise tolerated). Th
 counters go to standard error, one line per input.
 
 The lines are the text of ``json.dumps(tpv_obj(fix))`` / ``json.dumps(sky_obj(sky))``
-(``x6wd.app.gpsd``, compact separators), written by :class:`ReportEncoder` without building
-the dicts; bench/bench_decode.py compares the rate with gpsd's ``gpsdecode``.
+(``x6wd.app.gpsd``, compact separators) for the records of the daemon's decoder
+(``drivers.gps_nmea.GpsDecoder``), written by :class:`ReportEncoder` without building the
+dicts. :class:`ReportDecoder` is that decoder with its fixes and sky reports written as
+lines instead of records (same epochs and counters: only the writing differs);
+tests/test_decode_bulk.py checks both, byte for byte, against the reference path in the same
+run. bench/bench_decode.py compares the rate with gpsd's ``gpsdecode``.
 """
 
 from __future__ import annotations
@@ -345,16 +349,18 @@ _SatTexts = tuple[int, str, str]
 
 
 class ReportDecoder(GpsDecoder):
-    """``GpsDecoder`` (the reference, unchanged: same fixes, counters and epoch assembly)
-    whose sky reports come out as their SKY lines (``str``, in ``out`` among the fixes).
+    """``GpsDecoder`` (the reference, unchanged: same epochs, fixes and counters) whose
+    fixes and sky reports come out as their TPV and SKY lines (``str``, in ``out``).
 
-    A satellite is taken from its GSV group straight to its two possible JSON texts
-    (memoised by the group's text, as the reference memoises its ``SatInfo`` pair), so a
-    sky report is one join of texts instead of a ``GpsSky`` of ``SatInfo`` that
-    ``ReportEncoder.sky`` then looks up again; the line is ``ReportEncoder.sky_line`` of
-    the same texts, time and DOPs, i.e. the text ``sky`` writes for the reference's record.
-    Without ``with_sky`` the reports are counted and not written. ``tests/test_decode.py``
-    compares the lines with the reference decoder's records through ``tpv_obj``/``sky_obj``.
+    What a record would have been built for, and then read back by ``ReportEncoder``, is
+    skipped: a fix's line is ``ReportEncoder.tpv_line`` of the fields ``_emit`` would store;
+    a satellite goes from its GSV group straight to its two possible JSON texts (memoised
+    by the group's text, as the reference memoises its ``SatInfo`` pair), so a sky report is
+    one join of texts (``sky_line``); an epoch's time member is written from the time of
+    day and the date's text without a datetime where that is exact (``_time_member``); a
+    GSA's fields are memoised by its text. Without ``with_sky`` the sky reports are counted
+    and not written. tests/test_decode_bulk.py compares the lines and counters with the
+    reference decoder's records through ``tpv_obj``/``sky_obj`` in the same run.
     """
 
     def __init__(self, encoder: ReportEncoder, *, with_sky: bool = True) -> None:
