@@ -241,3 +241,22 @@ def test_equal_values_in_different_groups_keep_their_own_text() -> None:
     second = GpsFix(0.0, None, 0.0, 0.0, None, 1, 8, 99.99, None, None, True, 3, None, None)
     for fix in (first, second, first, second):
         assert enc.tpv(fix) == _plain(fix)
+
+
+_EDGES = [0.0, -0.0, 5e-10, -5e-10, 1e-3, -1e-3, 9.999e-4, 0.0005, 0.00049999, 2.675, 0.125]
+_EDGES += [10.0 ** (15 - n) * s for n in (1, 2, 3, 4, 9) for s in (1.0, 0.9999999999, -1.0)]
+
+
+@settings(max_examples=1500, deadline=None)
+@given(
+    st.one_of(
+        st.floats(allow_nan=False, allow_infinity=False),
+        st.floats(-200.0, 200.0),
+        st.integers(-(10**9), 10**9).map(lambda k: (k + 0.5) / 10**4),  # ties at 4 digits
+        st.sampled_from(_EDGES),
+    ),
+    st.sampled_from([1, 2, 3, 4, 9]),
+)
+def test_number_text_is_repr_of_round(v: float, ndigits: int) -> None:
+    # _num_text writes most numbers with "%.{n}f" instead of repr(round(v, n)): same text.
+    assert decode._num_text(v, ndigits) == repr(round(v, ndigits))
