@@ -228,6 +228,11 @@ def run_case(case: Case, m_seeds: int = 12) -> dict[str, Any]:
         "case": case, "top": top, "selected": sel, "significant": d.significant,
         "closure": d.closure, "seconds": seconds, "where": d.where[:5], "truth": truth,
         "params": fit.params if fit else None, "se": fit.se if fit else None,
+        # why: the threshold the cells had to pass, every candidate's held-out closure, and
+        # the drift family's likelihood table (which members the gate allowed)
+        "threshold": d.threshold, "max_abs_z": float(np.max(np.abs(d.z))),
+        "candidates": [(c.fit.name, round(c.closure, 3)) for c in d.candidates],
+        "family": [n for n in d.notes if "drift family" in n],
     }  # fmt: skip
 
 
@@ -329,8 +334,10 @@ def run(
     paths: tuple[str, ...] = ("few", "seeds"),
     json_path: str | None = None,
     levels: tuple[str, ...] = LEVELS,
+    kinds: tuple[str, ...] = KINDS,
 ) -> list[Row]:
-    """Run the cases on 2 processes and summarise each path."""
+    """Run the cases on 2 processes and summarise each path (``levels``, ``kinds``: which
+    effect cases to run; their seeds stay those of the full set)."""
     # default: about 10 min on 2 free cores (60 cases); the figures in docs/gap.md are from
     # --levels moderate,strong and --reps 2 --nulls 40 (few logs), --reps 1 --nulls 40
     # (seeds): 0 of n no-effect logs bounds the false alarms below 5 % only from n = 59
@@ -338,7 +345,7 @@ def run(
     nulls = nulls if nulls is not None else 6 if quick else 12
     todo = cases(seed_set, reps, nulls, paths)
     levels = ("moderate", "strong") if quick else levels
-    todo = [c for c in todo if not c[0] or c[1] in levels]
+    todo = [c for c in todo if not c[0] or (c[1] in levels and c[0] in kinds)]
     # no-effect and effect cases interleaved: a run stopped early still has both
     nulls_first = [c for c in todo if not c[0]]
     effects = [c for c in todo if c[0]]
@@ -372,6 +379,7 @@ if __name__ == "__main__":
     ap.add_argument("--path", action="append", choices=("few", "seeds"), help="default both")
     ap.add_argument("--json", help="write every case's outcome here")
     ap.add_argument("--levels", default=",".join(LEVELS), help="comma-separated strengths")
+    ap.add_argument("--kinds", default=",".join(KINDS), help="comma-separated effect classes")
     ap.add_argument("--summarize", metavar="JSON", help="only summarise a --json file")
     a = ap.parse_args()
     if a.summarize:
@@ -381,6 +389,5 @@ if __name__ == "__main__":
         print_table([row for p in ("few", "seeds") for row in summary(kept, p)])
         sys.exit(0)
     paths = tuple(a.path or ("few", "seeds"))
-    print_table(
-        run(a.quick, a.seed_set, a.reps, a.nulls, paths, a.json, tuple(a.levels.split(",")))
-    )
+    levels, kinds = tuple(a.levels.split(",")), tuple(a.kinds.split(","))
+    print_table(run(a.quick, a.seed_set, a.reps, a.nulls, paths, a.json, levels, kinds))

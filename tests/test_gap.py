@@ -475,6 +475,36 @@ def test_resampled_null_keeps_the_ensemble_spread() -> None:
     assert var == pytest.approx(model.sd**2, rel=0.05)
 
 
+def test_a_plausible_drift_member_enters_when_the_named_one_cannot() -> None:
+    # The likelihood names one drift-family member; when its fit cannot enter (it closes
+    # less than the first-effect minimum: a look-alike of the log's own noise), a member the
+    # likelihood did not reject decisively (rank 1) is tried before "nothing". A first-rank
+    # option that may enter is still chosen over a second-rank one with a better key.
+    import types
+
+    from sim_backend.effects import RandomWalk
+    from x6wd.gap.diagnose import GpsPipeline
+    from x6wd.gap.fitted import Fit
+    from x6wd.gap.pipeline import Option
+
+    pipe = GpsPipeline(Options(), np.random.default_rng(0))
+    pipe.fresh_draws = 0  # decide on each option's own held-out G
+    pipe.split = types.SimpleNamespace(g_baseline=11.0, g_floor=1.0)  # type: ignore[assignment]
+    null = null_model([{Cell("mean", "east"): v} for v in (0.0, 1.0, 2.0)])
+
+    def offer(fit: Fit, g_test: float, key: float, rank: int) -> Option:
+        return Option(fit, key, g_test, null, [fit], g_test, [], True, rank)
+
+    named = offer(Fit(GaussMarkov(sigma_m=0.3, tau_s=7.0)), 10.5, 20.0, 0)  # closes 0.05
+    plausible = offer(Fit(Bias(5.0, 1.0, 0.0)), 2.0, 25.0, 1)  # closes 0.9
+    best, g_new = pipe._first_to_enter([named, plausible], [], 11.0, 0)
+    assert best is plausible and g_new == 2.0
+    good = offer(Fit(RandomWalk(q_m_per_sqrt_s=0.05)), 4.0, 30.0, 0)  # closes 0.7
+    best, _ = pipe._first_to_enter([good, plausible], [], 11.0, 0)
+    assert best is good
+    assert pipe._first_to_enter([named], [], 11.0, 0) == (None, 11.0)
+
+
 def test_simulation_refit_reaches_the_truth_from_a_second_start() -> None:
     # Under a 1.85 m lattice the likelihood can read a 0.8 m / 60 s drift as 0.16 m / 2.3 s,
     # too far for a short local search; a second start (the fit-part fit) that scores better

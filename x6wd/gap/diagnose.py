@@ -78,6 +78,10 @@ EFFECTS = {**ERROR_EFFECTS, **RECEIVER_EFFECTS}
 FITTABLE = tuple(EFFECTS)
 FITTERS = {name: e.fit for name, e in EFFECTS.items()}
 
+# A BIC difference above 10 is "very strong" evidence (Kass and Raftery 1995): members of the
+# drift family within it of the named model are not rejected by the likelihood, and may enter
+# when the named one cannot (its fit landed on a look-alike the held-out part refuses)
+BIC_DECISIVE = 10.0
 FINAL_DRAWS = 4  # fresh draws of an effect ensemble, pooled, for decisions and the closure
 # Whole-log cell: signed root likelihood ratio of a random walk on top of the baseline noise
 # model (see :func:`x6wd.gap.drift.random_walk_lr`).
@@ -257,6 +261,9 @@ class RoundPlan:
     bias_flagged: bool = False
     lattice_fact: bool = False
     family_best: list[str] = field(default_factory=list)
+    # drift-family members of models the likelihood does not reject decisively (BIC within
+    # BIC_DECISIVE of the best): tried only when no first-rank option may enter
+    family_plausible: set[str] = field(default_factory=set)
 
 
 class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
@@ -414,6 +421,11 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         # sees no drift left, and no drift is added.
         best_model = family.best_effect if this_round.index == 0 else family.best
         self.plan.family_best = [] if best_model == "none" else best_model.split("+")
+        self.plan.family_plausible = {
+            m.split("+")[0]
+            for m in family.models
+            if m != "none" and family.bic(m) - family.bic(best_model) <= BIC_DECISIVE
+        }
         ranks = sorted(family.models, key=family.bic)
         outcome.notes.append(
             f"round {this_round.index + 1}: drift family by exact likelihood on the whole log: "
@@ -430,7 +442,9 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         split, plan = self.split, self.plan
         family_best = plan.family_best
         in_family = name in DRIFT_FAMILY
-        eligible = not in_family or bool(family_best and family_best[0] == name)
+        named = bool(family_best and family_best[0] == name)
+        rank = 1 if in_family and not named else 0
+        eligible = not in_family or named or name in plan.family_plausible
         if plan.lattice != self.lattice and eligible and name in SIM_REFIT:
             fit = simulation_refit(
                 fit, this_round.selected, split.real_fit_battery, split.baseline_fit,
@@ -480,7 +494,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         if plan.lattice_fact and name != "quantization":
             eligible = False
         keep = [*forced, *([name] if in_family else [])]  # what the likelihood named
-        return Option(fit, key, g_effect, null, fits, g_fits, keep, eligible)
+        return Option(fit, key, g_effect, null, fits, g_fits, keep, eligible, rank)
 
     def report_fits(
         self, selected: list[Fit], scored: dict[str, pipeline.Candidate], outcome: Diagnosis

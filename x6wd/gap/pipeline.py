@@ -267,6 +267,8 @@ class Option:
     g_fits: float
     keep: list[str] = field(default_factory=list)
     eligible: bool = True
+    # options of a lower rank are chosen only when none of a higher one may enter (0 first)
+    rank: int = 0
 
 
 class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
@@ -550,7 +552,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             this_round = Round(index, selected, names, current, current_fit, fit_null, z_fit)
             ranked = self.rank(names, fit_null.cells, z_fit)
             self.plan_round(this_round, outcome)
-            best: Option | None = None
+            offers: list[Option] = []
             for i, name in enumerate(ranked):
                 self.say(
                     f"round {index + 1}: fitting {name}",
@@ -572,10 +574,25 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
                         ci,
                         option.g_effect,
                     )
-                if option.eligible and (best is None or option.key < best.key):
-                    best = option
+                if option.eligible:
+                    offers.append(option)
+            best, g_new = self._first_to_enter(offers, selected, g_current, index)
             if best is None:
                 break
+            selected.extend(best.fits)
+            keep.update(best.keep)
+            g_current = g_new
+            current = self.apply_fits(selected, self.runs)
+        return selected, keep, g_current, scored
+
+    def _first_to_enter(
+        self, offers: Sequence[Option], selected: list[Fit], g_current: float, index: int
+    ) -> tuple[Option | None, float]:
+        """The option of a round that enters (with its held-out G): of the highest rank, the
+        best by key; only when it may not enter, the best of the next rank (and so on)."""
+        g_baseline, g_floor = self.split.g_baseline, self.split.g_floor
+        for rank in sorted({o.rank for o in offers}):
+            best = min((o for o in offers if o.rank == rank), key=lambda o: o.key)
             # The choice is the best of several one-draw scores; whether it enters is decided
             # on fresh pooled draws where the effects are random (no winner's curse).
             g_new = self.pooled_gap([*selected, *best.fits])[0] if self.fresh_draws else best.g_fits
@@ -584,14 +601,11 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             # share of the total but most of the remainder).
             left = g_current - g_floor
             if index > 0 and (left < ADD_MIN_LEFT or g_current - g_new < ADD_MIN_SHARE * left):
-                break
+                continue
             if index == 0 and closure_of(g_baseline, g_new, g_floor) < ADD_MIN_GAIN:
-                break
-            selected.extend(best.fits)
-            keep.update(best.keep)
-            g_current = g_new
-            current = self.apply_fits(selected, self.runs)
-        return selected, keep, g_current, scored
+                continue
+            return best, g_new
+        return None, g_current
 
     def _leave_one_out(
         self, selected: list[Fit], keep: set[str], g_current: float
