@@ -188,6 +188,8 @@ _SCAN: Final = re.compile(
     rb"|\$[^$\r\n\xb5]*|\xb5\x62"
 )
 _HEX: Final = frozenset(b"0123456789abcdefABCDEF")
+# Where a sentence's unterminated segment ends: a line end, or the start of another frame.
+_FRAME_END: Final = re.compile(rb"[$\r\n\xb5]")
 
 # The fast path: a run of strictly well-formed lines ("$body*HH" and CR LF or LF, at most
 # 128 bytes), which is what a healthy receiver or log sends, then possibly the start of the
@@ -252,11 +254,16 @@ class NmeaFramer:
 
     def __init__(self) -> None:
         self._buf = bytearray()
+        # The rest of an over-long sentence that was counted (one framing error) and dropped
+        # before its end arrived is dropped too, uncounted, up to where that sentence would
+        # end: the counters then do not depend on how the stream was cut into reads.
+        self._dropping = False
         self.counters = FramerCounters()
 
     def reset(self) -> None:
         """Drop any partial frame (e.g. after the port was reopened)."""
         self._buf.clear()
+        self._dropping = False
 
     @property
     def pending_bytes(self) -> int:
@@ -269,6 +276,12 @@ class NmeaFramer:
 
     def scan(self, data: bytes) -> list[str | UbxFrame]:
         """Like ``feed`` but sentences come as plain ``str`` (the decoder's fast path)."""
+        if self._dropping:
+            m = _FRAME_END.search(data)
+            if m is None:
+                return []
+            self._dropping = False
+            data = data[m.start() :]
         buf = self._buf
         if not buf and _LINE.fullmatch(data) is not None:
             # Exactly one well-formed line and nothing held (a simulated or line-buffered
@@ -333,6 +346,7 @@ class NmeaFramer:
                 if ln > MAX_SENTENCE_CHARS:
                     c.framing_errors += 1
                     pos = n
+                    self._dropping = True
                 else:
                     pos = start
                 break

@@ -694,6 +694,47 @@ def test_arbitrary_bytes_never_raise(chunks: list[bytes]) -> None:
     assert c.sentences == c.decoded + c.unknown_types + c.invalid_fields
 
 
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.sampled_from(
+                [
+                    b"$GPGGA,092750.000,5321.6802,N,00630.3372,W,1,8,1.03,61.7,M,55.2,M,,*76\r\n",
+                    b"$GPRMC,092751.000,A,5321.6802,N,00630.3371,W,0.06,31.66,280511,,,A*45\r\n",
+                ]
+            ),
+            # over-long sentences (a framing error each), ended or cut by another frame
+            st.builds(
+                lambda n, end: b"$GPGSV," + b"1," * n + end,
+                st.integers(min_value=60, max_value=300),
+                st.sampled_from([b"*00\r\n", b"\n", b"", b"$", b"\xb5b"]),
+            ),
+            st.binary(max_size=40),  # line noise, UBX syncs among it
+        ),
+        max_size=12,
+    ),
+    st.lists(st.integers(min_value=1, max_value=200), min_size=1, max_size=40),
+)
+def test_counters_do_not_depend_on_how_the_stream_is_cut(
+    parts: list[bytes], cuts: list[int]
+) -> None:
+    # The daemon's status shows these counters; a UART delivers the same bytes in reads of
+    # any size, so what they say about the stream must not change with the reads.
+    data = b"".join(parts)
+    whole = GpsDecoder()
+    whole.feed(data, 0.0)
+    whole.flush()
+    cut = GpsDecoder()
+    i = k = 0
+    while i < len(data):
+        n = cuts[k % len(cuts)]
+        cut.feed(data[i : i + n], 0.0)
+        i, k = i + n, k + 1
+    cut.flush()
+    assert cut.counters == whole.counters
+
+
 _CORPUS_LINES = [
     ln
     for ln in (NMEA_DIR / "ublox-lea-5h.log").read_bytes().splitlines()[9:60]
