@@ -1146,7 +1146,7 @@ class GpsDecoder:
     def _gsv_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         # d: the three head fields and the text of the rest (split at most _GSV_SAT1 times)
         total, seq = _gsv_head(d[_GSV_NUM], d[_GSV_SEQ], d[_GSV_INVIEW])
-        sats = _gsv_sats(d[_GSV_SAT1]) if len(d) > _GSV_SAT1 else []
+        sats = self._sats_of(d[_GSV_SAT1]) if len(d) > _GSV_SAT1 else []
         if seq == 1:
             self._gsv_talker = talker
             self._gsv_sats = sats
@@ -1161,6 +1161,11 @@ class GpsDecoder:
             self._sky[talker] = (self._epoch_idx, self._gsv_sats)
             self._gsv_sats = []
             self._emit_sky(t_s, out)
+
+    def _sats_of(self, text: str) -> list[_Sat]:
+        """The satellites of a GSV sentence's satellite fields ``text`` as the sky keeps them
+        (``x6wd decode`` keeps them as their report texts instead)."""
+        return _gsv_sats(text)
 
     def _on_zda(self, d: list[str], out: list[GpsOutput]) -> None:
         tod = _zda_time(d[_ZDA_TIME])

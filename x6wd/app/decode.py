@@ -35,7 +35,6 @@ from drivers.gps_nmea import (
     GpsDecoder,
     GpsOutput,
     _Gga,
-    _gsv_head,
     _Rmc,
     gsv_groups,
     gsv_satellite,
@@ -393,26 +392,7 @@ class ReportDecoder(GpsDecoder):
             self._gsa_memo[body] = fields
         self._on_gsa(fields)
 
-    def _gsv_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
-        # GpsDecoder._gsv_fields with _SatTexts for its satellites.
-        total, seq = _gsv_head(d[0], d[1], d[2])
-        sats = self._sats(d[3]) if len(d) > 3 else []
-        if seq == 1:
-            self._gsv_talker = talker
-            self._gsv_sats = sats  # type: ignore[assignment]
-        elif seq == self._gsv_next and talker == self._gsv_talker:
-            self._gsv_sats.extend(sats)  # type: ignore[arg-type]
-        else:  # a lost part: drop the group
-            self._gsv_next = 0
-            return
-        self._gsv_next = seq + 1
-        if seq == total:
-            self._gsv_next = 0
-            self._sky[talker] = (self._epoch_idx, self._gsv_sats)
-            self._gsv_sats = []
-            self._emit_sky(t_s, out)
-
-    def _sats(self, text: str) -> list[_SatTexts]:
+    def _sats_of(self, text: str) -> list[_SatTexts]:  # type: ignore[override]
         """The satellites of a GSV sentence's satellite fields ``text`` (as ``_gsv_sats``:
         the same groups, skipped or rejected alike)."""
         groups = gsv_groups(text)
