@@ -340,7 +340,8 @@ def run(
     effect cases to run; their seeds stay those of the full set)."""
     # default: about 10 min on 2 free cores (60 cases); the figures in docs/gap.md are from
     # --levels moderate,strong and --reps 2 --nulls 40 (few logs), --reps 1 --nulls 40
-    # (seeds): 0 of n no-effect logs bounds the false alarms below 5 % only from n = 59
+    # (seeds): 0 of n no-effect logs bounds the false alarms below 5 % only from n = 59; a
+    # change that acts only after the "where" step can rerun the effect cases (--nulls 0)
     reps = reps if reps is not None else 1
     nulls = nulls if nulls is not None else 6 if quick else 12
     todo = cases(seed_set, reps, nulls, paths)
