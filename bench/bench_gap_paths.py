@@ -335,9 +335,11 @@ def run(
     json_path: str | None = None,
     levels: tuple[str, ...] = LEVELS,
     kinds: tuple[str, ...] = KINDS,
+    nulls_from: int = 0,
 ) -> list[Row]:
     """Run the cases on 2 processes and summarise each path (``levels``, ``kinds``: which
-    effect cases to run; their seeds stay those of the full set)."""
+    effect cases to run; their seeds stay those of the full set; ``nulls_from``: skip the
+    first no-effect logs of each path, to add new ones to an earlier run's)."""
     # default: about 10 min on 2 free cores (60 cases); the figures in docs/gap.md are from
     # --levels moderate,strong and --reps 2 --nulls 40 (few logs), --reps 1 --nulls 40
     # (seeds): 0 of n no-effect logs bounds the false alarms below 5 % only from n = 59; a
@@ -347,6 +349,13 @@ def run(
     todo = cases(seed_set, reps, nulls, paths)
     levels = ("moderate", "strong") if quick else levels
     todo = [c for c in todo if not c[0] or (c[1] in levels and c[0] in kinds)]
+    if nulls_from:
+        skip = {
+            c[3]
+            for path in paths
+            for c in [c for c in todo if not c[0] and c[2] == path][:nulls_from]
+        }
+        todo = [c for c in todo if c[3] not in skip]
     # no-effect and effect cases interleaved: a run stopped early still has both
     nulls_first = [c for c in todo if not c[0]]
     effects = [c for c in todo if c[0]]
@@ -382,6 +391,10 @@ if __name__ == "__main__":
     ap.add_argument("--levels", default=",".join(LEVELS), help="comma-separated strengths")
     ap.add_argument("--kinds", default=",".join(KINDS), help="comma-separated effect classes")
     ap.add_argument("--summarize", metavar="JSON", help="only summarise a --json file")
+    ap.add_argument(
+        "--nulls-from", type=int, default=0,
+        help="skip the first N no-effect logs per path (new ones beside an earlier run's)",
+    )  # fmt: skip
     a = ap.parse_args()
     if a.summarize:
         kept = json.loads(Path(a.summarize).read_text())
@@ -391,4 +404,6 @@ if __name__ == "__main__":
         sys.exit(0)
     paths = tuple(a.path or ("few", "seeds"))
     levels, kinds = tuple(a.levels.split(",")), tuple(a.kinds.split(","))
-    print_table(run(a.quick, a.seed_set, a.reps, a.nulls, paths, a.json, levels, kinds))
+    print_table(
+        run(a.quick, a.seed_set, a.reps, a.nulls, paths, a.json, levels, kinds, a.nulls_from)
+    )
