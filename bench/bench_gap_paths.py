@@ -349,12 +349,9 @@ def run(
     todo = cases(seed_set, reps, nulls, paths)
     levels = ("moderate", "strong") if quick else levels
     todo = [c for c in todo if not c[0] or (c[1] in levels and c[0] in kinds)]
-    if nulls_from:
-        skip = {
-            c[3]
-            for path in paths
-            for c in [c for c in todo if not c[0] and c[2] == path][:nulls_from]
-        }
+    if nulls_from:  # cases() lists each path's no-effect logs in seed order
+        nulls_of = {path: [c for c in todo if not c[0] and c[2] == path] for path in paths}
+        skip = {c[3] for path in paths for c in nulls_of[path][:nulls_from]}
         todo = [c for c in todo if c[3] not in skip]
     # no-effect and effect cases interleaved: a run stopped early still has both
     nulls_first = [c for c in todo if not c[0]]
