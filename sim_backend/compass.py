@@ -34,10 +34,11 @@ import struct
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 
+from sim_backend.effects import PITCH_ROLL_LIMIT_DEG, Tilt, tilted_heading_deg, wrap180
 from x6wd.core.errors import ConfigError
 from x6wd.core.geodesy import wrap360, wrap_deg
 
@@ -531,3 +532,100 @@ class SimClock:
         if dt_s < 0:
             raise ValueError(f"cannot sleep a negative time: {dt_s}")
         self.t_s += dt_s
+
+
+# ---------------------------------------------------------------- the scenario's [compass] table
+
+
+_COMPASS_KEYS = frozenset(
+    {
+        "declination_deg",
+        "robot_declination_deg",
+        "horizontal_ut",
+        "vertical_ut",
+        "hard_iron_ut",
+        "soft_iron",
+        "noise_ut",
+        "lag_tau_s",
+        "rate_hz",
+        "p_error",
+    }
+)
+
+
+def _num(table: dict[str, Any], key: str, default: float, lo: float, hi: float) -> float:
+    v = table.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ConfigError(f"compass.{key}: expected a number, got {v!r}")
+    if not lo <= v <= hi:
+        raise ConfigError(f"compass.{key}: must be within {lo}..{hi}, got {v}")
+    return float(v)
+
+
+@dataclass(frozen=True)
+class CompassSetup:
+    """The ``[compass]`` table, validated (plus any ``[[effects]]`` tilt layers: see
+    :meth:`device_heading_deg`)."""
+
+    field_model: MagneticField
+    errors: CompassErrors
+    rate_hz: float
+    p_error: float
+    robot_declination_deg: float
+    tilt: tuple[Tilt, ...] = ()
+
+    def device_heading_deg(self, heading_deg: float, pitch_deg: float, roll_deg: float) -> float:
+        """The heading to hand the emulation's ``set_state`` for a true attitude (deg).
+
+        The emulation levels with exact pitch/roll; a tilt layer (imperfect compensation)
+        is its heading error (``effects.Tilt``: the untilted-computed heading at the layer's
+        fraction of the tilt and its inclination, at the magnetic heading) added to the
+        attitude, so it then passes the device's iron, noise and lag like the real error.
+        Without tilt layers the heading is returned unchanged (bit for bit).
+        """
+        if not self.tilt or (pitch_deg == 0.0 and roll_deg == 0.0):
+            return heading_deg
+        h = heading_deg
+        for layer in self.tilt:
+            mag = np.array([h - self.field_model.declination_deg])
+            p = max(-PITCH_ROLL_LIMIT_DEG, min(PITCH_ROLL_LIMIT_DEG, pitch_deg))
+            r = max(-PITCH_ROLL_LIMIT_DEG, min(PITCH_ROLL_LIMIT_DEG, roll_deg))
+            tilted = tilted_heading_deg(
+                mag, np.array([layer.fraction * p]), np.array([layer.fraction * r]),
+                layer.inclination_deg,
+            )  # fmt: skip
+            h += float(wrap180(tilted - mag)[0])
+        return h % 360.0
+
+    @classmethod
+    def from_table(cls, table: dict[str, Any]) -> CompassSetup:
+        """Validate the scenario's ``[compass]`` table (errors name the key)."""
+        unknown = sorted(set(table) - _COMPASS_KEYS)
+        if unknown:
+            raise ConfigError(
+                f"compass.{unknown[0]}: unknown key (valid: {', '.join(sorted(_COMPASS_KEYS))})"
+            )
+        decl = _num(table, "declination_deg", 0.0, -180, 180)
+        field_model = MagneticField(
+            _num(table, "horizontal_ut", 18.5, 0.1, 100),
+            _num(table, "vertical_ut", 46.0, -100, 100),
+            decl,
+        )
+        hard = table.get("hard_iron_ut", [0.0, 0.0, 0.0])
+        soft = table.get("soft_iron", [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+        try:
+            errors = CompassErrors(
+                hard_iron_ut=cast(tuple[float, float, float], tuple(float(x) for x in hard)),
+                soft_iron=tuple(tuple(float(x) for x in row) for row in soft),
+                noise_ut=_num(table, "noise_ut", 0.0, 0, 100),
+                lag_tau_s=_num(table, "lag_tau_s", 0.64 / 3.0, 0, 10),
+            )
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"compass.hard_iron_ut / soft_iron: {exc}") from exc
+        return cls(
+            field_model=field_model,
+            errors=errors,
+            rate_hz=_num(table, "rate_hz", 20.0, 1, 75),
+            p_error=_num(table, "p_error", 0.0, 0, 1),
+            robot_declination_deg=_num(table, "robot_declination_deg", decl, -180, 180),
+        )

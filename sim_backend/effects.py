@@ -1235,7 +1235,7 @@ class Tilt(CompassLayer):
 
     def act_on(self, phys: CompassPhysics) -> CompassPhysics:
         """No partial-compensation model in the emulation: applied in the heading domain
-        before the device's physics (``mission.CompassSetup.device_heading_deg``)."""
+        before the device's physics (``compass.CompassSetup.device_heading_deg``)."""
         return replace(phys, tilt=(*phys.tilt, self))
 
     def apply(self, series: HeadingSeries, rng: np.random.Generator) -> HeadingSeries:

@@ -50,16 +50,14 @@ docs/simulator.md, "The paper's four situations".
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
-import sys
 import time
 from array import array
 from collections import deque
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any, cast
@@ -68,21 +66,32 @@ import numpy as np
 
 from drivers.cmps10 import Cmps10
 from drivers.gps_nmea import GpsDecoder
-from sim_backend.compass import CompassErrors, ErrorInjector, MagneticField, SimCmps10
+from sim_backend.compass import (
+    CompassErrors,
+    CompassSetup,
+    ErrorInjector,
+    MagneticField,
+    SimCmps10,
+)
 from sim_backend.effects import (
-    PITCH_ROLL_LIMIT_DEG,
     CompassPhysics,
-    Tilt,
-    tilted_heading_deg,
     wrap180,
 )
 from sim_backend.geodesy import EnuFrame, enu_to_lla, lla_to_enu
 from sim_backend.odometry import EncoderSim, encoder_rng
 from sim_backend.ports import MemoryUart
 from sim_backend.receiver import SimRandom, build_receiver
-from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
-from sim_backend.world import World, load_world, with_robot_config
-from x6wd.core.errors import CommandError, ConfigError
+from sim_backend.runs import (  # re-exported: the robot engine's callers import them here
+    STATIC_CHUNK_EPOCHS,
+    ErrorStats,
+    RunPlan,
+    Summary,
+    dispersion_m,
+    plot_track,
+    vehicle_from_world,
+)
+from sim_backend.world import World
+from x6wd.core.errors import CommandError
 from x6wd.core.mission_files import Waypoint
 from x6wd.core.outdir import output_dir
 from x6wd.core.recorder import Recorder
@@ -90,234 +99,10 @@ from x6wd.core.records import GpsFix, Mode, NavState, StateChange, Telemetry
 from x6wd.loop.runner import Runner
 from x6wd.nav.controller import CommandRejected, Controller, has_usable_position
 
-R1_M = 6378160.0  # the paper's equatorial radius (x = Λ·R1)
-R2_M = 6356770.0  # the paper's polar radius (y = Φ·R2)
 DONE_TAIL_S = 2.0  # keep simulating this long after MISSION_DONE (the robot settles)
-STATIC_CHUNK_EPOCHS = 3600
-"""A static survey's receiver runs this many epochs per vectorised call (1 h at 1 Hz), so a
-long survey's memory stays bounded (10 h with walls in one call took over 1 GB). A survey of
-at most this many epochs is one call, as it always was; a longer one draws its random
-numbers chunk by chunk, so it differs from the single call by the draw order only."""
 RECORDER_BUFFER_BYTES = 1 << 20
 """The recording is written through a buffer this big: fast time needs no crash durability,
 and one ``write()`` per record was a visible share of a run."""
-
-
-@dataclass(frozen=True)
-class ErrorStats:
-    """Horizontal position error (m) against the truth: count, mean, RMS, CEP50, R95, max."""
-
-    n: int
-    mean_m: float
-    rms_m: float
-    cep50_m: float
-    r95_m: float
-    max_m: float
-
-    @classmethod
-    def of(cls, err_m: np.ndarray) -> ErrorStats:
-        """Statistics of horizontal error magnitudes (m); NaN figures when empty."""
-        e = np.asarray(err_m, dtype=float)
-        e = e[np.isfinite(e)]
-        if e.size == 0:
-            nan = math.nan
-            return cls(0, nan, nan, nan, nan, nan)
-        return cls(
-            int(e.size),
-            float(e.mean()),
-            float(np.sqrt(np.mean(e * e))),
-            float(np.percentile(e, 50)),
-            float(np.percentile(e, 95)),
-            float(e.max()),
-        )
-
-
-@dataclass(frozen=True)
-class Summary:
-    """What a mission run printed (also written as summary.json). Times in seconds, lengths
-    in metres; ``dispersion_*_m`` are the paper's ± half spreads of the raw readings."""
-
-    scenario: str
-    seed: int
-    completed: bool
-    waypoints_reached: int
-    waypoint_count: int
-    sim_time_s: float
-    wall_time_s: float
-    path_length_m: float
-    straight_length_m: float
-    raw_error: ErrorStats
-    filtered_error: ErrorStats
-    hold_periods: int
-    hold_time_s: float
-    fixes: int
-    fixes_valid: int
-    dispersion_lat_m: float
-    dispersion_lon_m: float
-    mean_hdop: float
-    mean_sats_used: float
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (NaN as None)."""
-        return _json_safe(asdict(self))
-
-    def text(self) -> str:
-        """The human-readable summary printed by ``x6wd sim``."""
-        r, f = self.raw_error, self.filtered_error
-        speed = self.sim_time_s / self.wall_time_s if self.wall_time_s > 0 else math.inf
-        if self.waypoint_count == 0:
-            outcome = "static survey (no waypoints)"
-        else:
-            outcome = "mission COMPLETED" if self.completed else "mission NOT completed"
-        lines = [
-            f"scenario {self.scenario!r} seed {self.seed}: {outcome}",
-            f"  waypoints reached   {self.waypoints_reached}/{self.waypoint_count}",
-            f"  time                {self.sim_time_s:.1f} s simulated in {self.wall_time_s:.2f} s"
-            f" wall ({speed:.0f}x)",
-            f"  path length         {self.path_length_m:.1f} m"
-            f" (straight line {self.straight_length_m:.1f} m)",
-            f"  fixes               {self.fixes_valid}/{self.fixes} valid, mean HDOP"
-            f" {self.mean_hdop:.2f}, mean satellites used {self.mean_sats_used:.1f}",
-            "  horizontal error    mean    RMS     CEP50   R95     max   (m)",
-            f"    raw GPS          {r.mean_m:6.2f}  {r.rms_m:6.2f}  {r.cep50_m:6.2f}"
-            f"  {r.r95_m:6.2f}  {r.max_m:6.2f}",
-            f"    filtered         {f.mean_m:6.2f}  {f.rms_m:6.2f}  {f.cep50_m:6.2f}"
-            f"  {f.r95_m:6.2f}  {f.max_m:6.2f}",
-            f"  dispersion (paper)  ±{self.dispersion_lat_m:.2f} m lat,"
-            f" ±{self.dispersion_lon_m:.2f} m lon (two-radius)",
-            f"  HOLD periods        {self.hold_periods} ({self.hold_time_s:.1f} s)",
-        ]
-        return "\n".join(lines)
-
-
-def _json_safe(v: Any) -> Any:
-    if isinstance(v, float):
-        return v if math.isfinite(v) else None
-    if isinstance(v, dict):
-        return {k: _json_safe(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_json_safe(x) for x in v]
-    return v
-
-
-# ---------------------------------------------------------------------------- building
-
-
-_COMPASS_KEYS = frozenset(
-    {
-        "declination_deg",
-        "robot_declination_deg",
-        "horizontal_ut",
-        "vertical_ut",
-        "hard_iron_ut",
-        "soft_iron",
-        "noise_ut",
-        "lag_tau_s",
-        "rate_hz",
-        "p_error",
-    }
-)
-
-
-def _num(table: dict[str, Any], key: str, default: float, lo: float, hi: float) -> float:
-    v = table.get(key, default)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ConfigError(f"compass.{key}: expected a number, got {v!r}")
-    if not lo <= v <= hi:
-        raise ConfigError(f"compass.{key}: must be within {lo}..{hi}, got {v}")
-    return float(v)
-
-
-@dataclass(frozen=True)
-class CompassSetup:
-    """The ``[compass]`` table, validated (plus any ``[[effects]]`` tilt layers: see
-    :meth:`device_heading_deg`)."""
-
-    field_model: MagneticField
-    errors: CompassErrors
-    rate_hz: float
-    p_error: float
-    robot_declination_deg: float
-    tilt: tuple[Tilt, ...] = ()
-
-    def device_heading_deg(self, heading_deg: float, pitch_deg: float, roll_deg: float) -> float:
-        """The heading to hand the emulation's ``set_state`` for a true attitude (deg).
-
-        The emulation levels with exact pitch/roll; a tilt layer (imperfect compensation)
-        is its heading error (``effects.Tilt``: the untilted-computed heading at the layer's
-        fraction of the tilt and its inclination, at the magnetic heading) added to the
-        attitude, so it then passes the device's iron, noise and lag like the real error.
-        Without tilt layers the heading is returned unchanged (bit for bit).
-        """
-        if not self.tilt or (pitch_deg == 0.0 and roll_deg == 0.0):
-            return heading_deg
-        h = heading_deg
-        for layer in self.tilt:
-            mag = np.array([h - self.field_model.declination_deg])
-            p = max(-PITCH_ROLL_LIMIT_DEG, min(PITCH_ROLL_LIMIT_DEG, pitch_deg))
-            r = max(-PITCH_ROLL_LIMIT_DEG, min(PITCH_ROLL_LIMIT_DEG, roll_deg))
-            tilted = tilted_heading_deg(
-                mag, np.array([layer.fraction * p]), np.array([layer.fraction * r]),
-                layer.inclination_deg,
-            )  # fmt: skip
-            h += float(wrap180(tilted - mag)[0])
-        return h % 360.0
-
-    @classmethod
-    def from_table(cls, table: dict[str, Any]) -> CompassSetup:
-        """Validate the scenario's ``[compass]`` table (errors name the key)."""
-        unknown = sorted(set(table) - _COMPASS_KEYS)
-        if unknown:
-            raise ConfigError(
-                f"compass.{unknown[0]}: unknown key (valid: {', '.join(sorted(_COMPASS_KEYS))})"
-            )
-        decl = _num(table, "declination_deg", 0.0, -180, 180)
-        field_model = MagneticField(
-            _num(table, "horizontal_ut", 18.5, 0.1, 100),
-            _num(table, "vertical_ut", 46.0, -100, 100),
-            decl,
-        )
-        hard = table.get("hard_iron_ut", [0.0, 0.0, 0.0])
-        soft = table.get("soft_iron", [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-        try:
-            errors = CompassErrors(
-                hard_iron_ut=cast(tuple[float, float, float], tuple(float(x) for x in hard)),
-                soft_iron=tuple(tuple(float(x) for x in row) for row in soft),
-                noise_ut=_num(table, "noise_ut", 0.0, 0, 100),
-                lag_tau_s=_num(table, "lag_tau_s", 0.64 / 3.0, 0, 10),
-            )
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"compass.hard_iron_ut / soft_iron: {exc}") from exc
-        return cls(
-            field_model=field_model,
-            errors=errors,
-            rate_hz=_num(table, "rate_hz", 20.0, 1, 75),
-            p_error=_num(table, "p_error", 0.0, 0, 1),
-            robot_declination_deg=_num(table, "robot_declination_deg", decl, -180, 180),
-        )
-
-
-def vehicle_from_world(world: World) -> Vehicle:
-    """The scenario's vehicle at its start pose (shared by fast time and HIL)."""
-    v = world.vehicle
-    return Vehicle(
-        VehicleParams(
-            v_max_mps=v.max_speed_mps,
-            max_turn_rate_dps=v.turn_rate_dps,
-            motor_tau_s=v.motor_tau_s,
-            stuck_from_s=v.stuck_from_s,
-            stuck_until_s=v.stuck_until_s,
-            stuck_mode=v.stuck_mode,
-        ),
-        east_m=v.start_east_m,
-        north_m=v.start_north_m,
-        heading_deg=v.start_heading_deg,
-        terrain=Terrain(v.slope_east_pct / 100.0, v.slope_north_pct / 100.0),
-    )
-
-
-# ---------------------------------------------------------------------------- the run
 
 
 def _doubles() -> array[float]:
@@ -371,14 +156,16 @@ def run_mission(
     go on. None (default): no operator after the automatic load and start at the first fix.
     """
     wall0 = time.perf_counter()
-    seed = world.seed if seed is None else int(seed)
-    if seed < 0:
-        raise ConfigError(f"seed must be >= 0, got {seed}")
-    total_s = world.duration_s if duration_s is None else float(duration_s)
-    if not (total_s > 0 and math.isfinite(total_s)):
-        raise ConfigError(f"duration must be a positive number of seconds, got {duration_s!r}")
-    out = output_dir(out_dir)
     cset, compass_skipped = compass_setup(world)
+    plan = RunPlan.of(world, seed, duration_s, cset.rate_hz)
+    seed, total_s, dt, gps_every, n_ticks = (
+        plan.seed,
+        plan.total_s,
+        plan.dt_s,
+        plan.gps_every,
+        plan.n_ticks,
+    )
+    out = output_dir(out_dir)
     rand = SimRandom.from_seed(seed)
     receiver = build_receiver(world, rand)
     uart = MemoryUart(receiver.baud)
@@ -407,14 +194,6 @@ def run_mission(
     waypoints = [Waypoint(float(a), float(b)) for a, b in world.waypoints_latlon()]
     wp_enu = world.waypoints_enu_m()
 
-    dt = 1.0 / cset.rate_hz
-    gps_every = max(1, round(cset.rate_hz / world.gnss.rate_hz))  # ticks per GPS epoch
-    if abs(cset.rate_hz / world.gnss.rate_hz - gps_every) > 1e-9:
-        raise ConfigError(
-            f"compass.rate_hz ({cset.rate_hz:g}) must be a whole multiple of gnss.rate_hz "
-            f"({world.gnss.rate_hz:g}): the loop steps at the compass rate"
-        )
-    n_ticks = math.ceil(total_s / dt - 1e-9)
     utc0 = world.start_utc
     now = [0.0]
     trace = _Trace()
@@ -546,9 +325,7 @@ def run_mission(
             # formatted per call too, STATIC_CHUNK_EPOCHS at a time.
             s0 = vehicle.state
             pos0 = np.array([s0.east_m, s0.north_m, s0.up_m + antenna_m])
-            static_bursts = _static_bursts(
-                receiver, np.arange(0, n_ticks + 1, gps_every) * dt, pos0
-            )
+            static_bursts = _static_bursts(receiver, plan.epoch_times_s(), pos0)
         truth_lla: dict[tuple[float, float, float], tuple[float, float]] = {}
         frame = EnuFrame(origin.lat_deg, origin.lon_deg, origin.alt_m)  # truth per epoch
         # Sentences in flight on the UART: (time the last byte arrives, epoch tick, bytes).
@@ -685,7 +462,7 @@ def run_mission(
         },
     )
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
-    _plot(out / "track.png", world, truth_e, truth_n, fix_enu, filt_enu, wp_enu, summary)
+    plot_track(out / "track.png", world, truth_e, truth_n, fix_enu, filt_enu, wp_enu, summary)
     return summary
 
 
@@ -884,113 +661,4 @@ def _dispersion(trace: _Trace) -> tuple[float, float]:
     truth = np.array([trace.epoch_truth[r[0]][2:] for r in trace.fix_rows])
     dlat = np.array([r[1] for r in trace.fix_rows]) - truth[:, 0]
     dlon = np.array([r[2] for r in trace.fix_rows]) - truth[:, 1]
-    half_lat = math.radians(float(dlat.max() - dlat.min())) * R2_M / 2.0
-    half_lon = math.radians(float(dlon.max() - dlon.min())) * R1_M / 2.0
-    return half_lat, half_lon
-
-
-def _plot(
-    path: Path,
-    world: World,
-    truth_e: np.ndarray,
-    truth_n: np.ndarray,
-    fix_enu: np.ndarray,
-    filt_enu: np.ndarray,
-    wp_enu: np.ndarray,
-    summary: Summary,
-) -> None:
-    # A bare Figure renders with Agg like pyplot would, without pyplot's figure manager and
-    # global state (cheaper per mission; the gap tool plots one per seed).
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(7, 7), dpi=100)
-    ax = fig.subplots()
-    try:
-        for w in world.walls:
-            ax.plot([w.x0_m, w.x1_m], [w.y0_m, w.y1_m], color="0.3", lw=3, zorder=1)
-        for r in world.roofs:
-            ax.fill(
-                [r.x0_m, r.x1_m, r.x1_m, r.x0_m], [r.y0_m, r.y0_m, r.y1_m, r.y1_m],
-                color="0.85", zorder=0,
-            )  # fmt: skip
-        if len(fix_enu):
-            ax.plot(fix_enu[:, 0], fix_enu[:, 1], ".", ms=3, color="tab:red", alpha=0.6,
-                    label="raw GPS", zorder=2)  # fmt: skip
-            ok = np.all(np.isfinite(filt_enu), axis=1)
-            ax.plot(filt_enu[ok, 0], filt_enu[ok, 1], "-", lw=1, color="tab:orange",
-                    label="filtered (Constellation)", zorder=3)  # fmt: skip
-        ax.plot(truth_e, truth_n, "-", lw=2, color="tab:blue", label="true path", zorder=4)
-        if len(wp_enu):
-            ax.plot(wp_enu[:, 0], wp_enu[:, 1], "k*", ms=12, label="waypoints", zorder=5)
-            for i, (e, n) in enumerate(wp_enu):
-                ax.annotate(str(i + 1), (e, n), textcoords="offset points", xytext=(6, 6))
-        ax.set_xlabel("east (m)")
-        ax.set_ylabel("north (m)")
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.grid(True, alpha=0.3)
-        ax.legend(loc="best", fontsize=8)
-        ax.set_title(
-            f"{world.name} (seed {summary.seed})\n{summary.waypoints_reached}/"
-            f"{summary.waypoint_count} waypoints, raw CEP50 {summary.raw_error.cep50_m:.1f} m,"
-            f" filtered CEP50 {summary.filtered_error.cep50_m:.1f} m",
-            fontsize=9,
-        )
-        fig.savefig(path)
-    finally:
-        fig.clear()
-
-
-# ---------------------------------------------------------------------------- CLI
-
-
-def _progress_bar(stream: Any) -> Callable[[float, float], None]:
-    tty = bool(getattr(stream, "isatty", lambda: False)())
-    state = {"last": -1}
-
-    def show(t_s: float, total_s: float) -> None:
-        frac = min(1.0, t_s / total_s) if total_s > 0 else 1.0
-        pct = int(frac * 100)
-        if tty:
-            bar = "#" * (pct // 4) + "-" * (25 - pct // 4)
-            stream.write(f"\r[{bar}] {pct:3d}% t={t_s:7.1f} s")
-            if frac >= 1.0 or pct == 100:
-                stream.write("\n")
-            stream.flush()
-        elif pct // 25 != state["last"]:
-            state["last"] = pct // 25
-            stream.write(f"sim: {pct}% (t={t_s:.1f} s)\n")
-            stream.flush()
-
-    return show
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """``x6wd sim SCENARIO.toml [--out DIR] [--seed N] [--duration S]``."""
-    parser.add_argument("scenario", help="scenario TOML file (see config/scenarios/)")
-    parser.add_argument("--out", default="sim-out", help="output directory (default: sim-out)")
-    parser.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
-    parser.add_argument(
-        "--duration", type=float, default=None, help="override the duration (simulated s)"
-    )
-    parser.add_argument(
-        "--config",
-        default=None,
-        help="robot configuration (e.g. config/x6wd.toml) whose [navigation], [safety], "
-        "[failsafe], [odometry] and [gnss_noise] the robot uses, under the scenario's own "
-        "keys; default: the built-in defaults, which are config/x6wd.toml's",
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-
-
-def main(args: argparse.Namespace) -> int:
-    """Run the subcommand; 0 when the mission completed (or a static survey ran), 1 if not."""
-    world = load_world(args.scenario)
-    if args.config:
-        world = with_robot_config(world, args.config)
-    progress = None if args.quiet else _progress_bar(sys.stderr)
-    summary = run_mission(world, args.out, args.seed, args.duration, progress)
-    print(summary.text())
-    print(f"  outputs in {Path(args.out).resolve()}")
-    if summary.waypoint_count == 0:
-        return 0
-    return 0 if summary.completed else 1
+    return dispersion_m(dlat, dlon)

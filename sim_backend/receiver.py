@@ -168,6 +168,29 @@ class UartTx:
             out.append((self.free_at_s, line))
         return out
 
+    def send_bursts(
+        self, bursts: Sequence[bytes], t_s: Sequence[float]
+    ) -> list[tuple[float, bytes]]:
+        """:meth:`send` of each burst's sentences at its time (s), in one call: the same
+        arithmetic, in the same order, without a method call per sentence (a 10 h survey
+        sends 290,000 of them)."""
+        out: list[tuple[float, bytes]] = []
+        append = out.append
+        baud, cap = self.baud, self.buffer_bytes
+        free_at, dropped, sent = self.free_at_s, self.dropped, self.sent
+        for burst, t in zip(bursts, t_s, strict=True):
+            for line in burst.splitlines(keepends=True):
+                n = len(line)
+                # queued_bytes() and wire_time_s() written out, operations in their order
+                if max(0.0, free_at - t) * baud / 10.0 + n > cap:
+                    dropped += 1
+                    continue
+                free_at = max(free_at, t) + n * 10 / baud
+                sent += 1
+                append((free_at, line))
+        self.free_at_s, self.dropped, self.sent = free_at, dropped, sent
+        return out
+
 
 class SimReceiver:
     """The scenario's simulated NEO-5: model, error layers, NMEA and UART timing.

@@ -19,7 +19,7 @@ from x6wd.core.errors import X6wdError
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("x6wd.app.daemon", "run the control daemon (robot, or hardware-in-the-loop)"),
-    "sim": ("sim_backend.mission", "run a whole simulated mission in fast time"),
+    "sim": ("sim_backend.cli", "run a scenario in fast time: a mission, or a static survey"),
     "client": ("x6wd.app.client", "operator client: status, load, start, stop, drive, watch"),
     "sweep": ("x6wd.app.sweep", "run a grid of scenarios x parameters x seeds on Dask"),
     "gap": ("x6wd.gap.cli", "diagnose the gap between a real log and the simulator"),

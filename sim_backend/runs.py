@@ -1,0 +1,270 @@
+"""What both engines of ``x6wd sim`` share: a run's plan (seed, length, clock), the
+scenario's vehicle at its start pose, the summary with its error statistics, and the track plot.
+
+The robot engine (:mod:`sim_backend.mission`) runs the robot's whole loop; the receiver
+engine (:mod:`sim_backend.survey`) runs a static survey on the receiver alone. Kept apart
+from both so the receiver engine starts without importing the robot's code.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
+from sim_backend.world import World
+from x6wd.core.errors import ConfigError
+from x6wd.nav.geo import R1_M, R2_M  # the paper's two radii (x = Λ·R1, y = Φ·R2)
+
+ENGINES = ("auto", "robot", "receiver")
+"""``x6wd sim --engine``: ``auto`` (default) runs a scenario without waypoints on the
+receiver engine and any other on the robot engine."""
+
+
+def engine_for(world: World, engine: str = "auto") -> str:
+    """``"robot"`` or ``"receiver"``: the engine that runs ``world`` for the ``--engine``
+    choice (``auto``: the receiver engine for a survey, a scenario without waypoints)."""
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    if engine != "auto":
+        return engine
+    return "receiver" if len(world.waypoints_enu_m()) == 0 else "robot"
+
+
+STATIC_CHUNK_EPOCHS = 3600
+"""A static survey's receiver runs this many epochs per vectorised call (1 h at 1 Hz), so a
+long survey's memory stays bounded (10 h with walls in one call took over 1 GB). A survey of
+at most this many epochs is one call, as it always was; a longer one draws its random
+numbers chunk by chunk, so it differs from the single call by the draw order only."""
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    """Horizontal position error (m) against the truth: count, mean, RMS, CEP50, R95, max."""
+
+    n: int
+    mean_m: float
+    rms_m: float
+    cep50_m: float
+    r95_m: float
+    max_m: float
+
+    @classmethod
+    def of(cls, err_m: np.ndarray) -> ErrorStats:
+        """Statistics of horizontal error magnitudes (m); NaN figures when empty."""
+        e = np.asarray(err_m, dtype=float)
+        e = e[np.isfinite(e)]
+        if e.size == 0:
+            nan = math.nan
+            return cls(0, nan, nan, nan, nan, nan)
+        return cls(
+            int(e.size),
+            float(e.mean()),
+            float(np.sqrt(np.mean(e * e))),
+            float(np.percentile(e, 50)),
+            float(np.percentile(e, 95)),
+            float(e.max()),
+        )
+
+
+@dataclass(frozen=True)
+class Summary:
+    """What a mission run printed (also written as summary.json). Times in seconds, lengths
+    in metres; ``dispersion_*_m`` are the paper's ± half spreads of the raw readings."""
+
+    scenario: str
+    seed: int
+    completed: bool
+    waypoints_reached: int
+    waypoint_count: int
+    sim_time_s: float
+    wall_time_s: float
+    path_length_m: float
+    straight_length_m: float
+    raw_error: ErrorStats
+    filtered_error: ErrorStats
+    hold_periods: int
+    hold_time_s: float
+    fixes: int
+    fixes_valid: int
+    dispersion_lat_m: float
+    dispersion_lon_m: float
+    mean_hdop: float
+    mean_sats_used: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (NaN as None)."""
+        return _json_safe(asdict(self))
+
+    def text(self) -> str:
+        """The human-readable summary printed by ``x6wd sim``."""
+        r, f = self.raw_error, self.filtered_error
+        speed = self.sim_time_s / self.wall_time_s if self.wall_time_s > 0 else math.inf
+        if self.waypoint_count == 0:
+            outcome = "static survey (no waypoints)"
+        else:
+            outcome = "mission COMPLETED" if self.completed else "mission NOT completed"
+        lines = [
+            f"scenario {self.scenario!r} seed {self.seed}: {outcome}",
+            f"  waypoints reached   {self.waypoints_reached}/{self.waypoint_count}",
+            f"  time                {self.sim_time_s:.1f} s simulated in {self.wall_time_s:.2f} s"
+            f" wall ({speed:.0f}x)",
+            f"  path length         {self.path_length_m:.1f} m"
+            f" (straight line {self.straight_length_m:.1f} m)",
+            f"  fixes               {self.fixes_valid}/{self.fixes} valid, mean HDOP"
+            f" {self.mean_hdop:.2f}, mean satellites used {self.mean_sats_used:.1f}",
+            "  horizontal error    mean    RMS     CEP50   R95     max   (m)",
+            f"    raw GPS          {r.mean_m:6.2f}  {r.rms_m:6.2f}  {r.cep50_m:6.2f}"
+            f"  {r.r95_m:6.2f}  {r.max_m:6.2f}",
+            f"    filtered         {f.mean_m:6.2f}  {f.rms_m:6.2f}  {f.cep50_m:6.2f}"
+            f"  {f.r95_m:6.2f}  {f.max_m:6.2f}"
+            if self.extra.get("engine") != "receiver"
+            else "    filtered         not run: no robot on the receiver engine"
+            " (--engine robot runs its EKF)",
+            f"  dispersion (paper)  ±{self.dispersion_lat_m:.2f} m lat,"
+            f" ±{self.dispersion_lon_m:.2f} m lon (two-radius)",
+            f"  HOLD periods        {self.hold_periods} ({self.hold_time_s:.1f} s)",
+        ]
+        return "\n".join(lines)
+
+
+def _json_safe(v: Any) -> Any:
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    return v
+
+
+# ---------------------------------------------------------------------------- building
+
+
+def vehicle_from_world(world: World) -> Vehicle:
+    """The scenario's vehicle at its start pose (shared by fast time and HIL)."""
+    v = world.vehicle
+    return Vehicle(
+        VehicleParams(
+            v_max_mps=v.max_speed_mps,
+            max_turn_rate_dps=v.turn_rate_dps,
+            motor_tau_s=v.motor_tau_s,
+            stuck_from_s=v.stuck_from_s,
+            stuck_until_s=v.stuck_until_s,
+            stuck_mode=v.stuck_mode,
+        ),
+        east_m=v.start_east_m,
+        north_m=v.start_north_m,
+        heading_deg=v.start_heading_deg,
+        terrain=Terrain(v.slope_east_pct / 100.0, v.slope_north_pct / 100.0),
+    )
+
+
+# ---------------------------------------------------------------------------- the run
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """A run's seed, length and clock: the loop steps at the compass rate (``dt_s``, s), a GPS
+    epoch every ``gps_every`` ticks, ``n_ticks`` + 1 ticks from 0 to ``total_s`` (s)."""
+
+    seed: int
+    total_s: float
+    dt_s: float
+    gps_every: int
+    n_ticks: int
+
+    @classmethod
+    def of(
+        cls, world: World, seed: int | None, duration_s: float | None, compass_hz: float
+    ) -> RunPlan:
+        """The plan for ``world`` with optional seed and duration (s) overrides, stepping at
+        ``compass_hz`` (Hz); ConfigError names a bad seed, duration or rate pair."""
+        seed = world.seed if seed is None else int(seed)
+        if seed < 0:
+            raise ConfigError(f"seed must be >= 0, got {seed}")
+        total_s = world.duration_s if duration_s is None else float(duration_s)
+        if not (total_s > 0 and math.isfinite(total_s)):
+            raise ConfigError(f"duration must be a positive number of seconds, got {duration_s!r}")
+        dt = 1.0 / compass_hz
+        gps_every = max(1, round(compass_hz / world.gnss.rate_hz))  # ticks per GPS epoch
+        if abs(compass_hz / world.gnss.rate_hz - gps_every) > 1e-9:
+            raise ConfigError(
+                f"compass.rate_hz ({compass_hz:g}) must be a whole multiple of gnss.rate_hz "
+                f"({world.gnss.rate_hz:g}): the loop steps at the compass rate"
+            )
+        return cls(seed, total_s, dt, gps_every, math.ceil(total_s / dt - 1e-9))
+
+    def epoch_times_s(self) -> np.ndarray:
+        """The GPS epochs' times (s): the ticks that carry one, exactly as the loop computes
+        them (tick index times ``dt_s``)."""
+        return np.arange(0, self.n_ticks + 1, self.gps_every) * self.dt_s
+
+
+def dispersion_m(dlat_deg: np.ndarray, dlon_deg: np.ndarray) -> tuple[float, float]:
+    """The paper's ± half spreads (m, latitude and longitude) of readings minus truth (deg),
+    two-radius converted; NaN for no readings."""
+    if len(dlat_deg) == 0:
+        return math.nan, math.nan
+    half_lat = math.radians(float(np.max(dlat_deg) - np.min(dlat_deg))) * R2_M / 2.0
+    half_lon = math.radians(float(np.max(dlon_deg) - np.min(dlon_deg))) * R1_M / 2.0
+    return half_lat, half_lon
+
+
+def plot_track(
+    path: Path,
+    world: World,
+    truth_e: np.ndarray,
+    truth_n: np.ndarray,
+    fix_enu: np.ndarray,
+    filt_enu: np.ndarray,
+    wp_enu: np.ndarray,
+    summary: Summary,
+) -> None:
+    """The run's track plot (PNG at ``path``): walls, raw fixes, filtered track, the true path
+    and the waypoints, all in scenario ENU metres."""
+    # A bare Figure renders with Agg like pyplot would, without pyplot's figure manager and
+    # global state (cheaper per mission; the gap tool plots one per seed).
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 7), dpi=100)
+    ax = fig.subplots()
+    try:
+        for w in world.walls:
+            ax.plot([w.x0_m, w.x1_m], [w.y0_m, w.y1_m], color="0.3", lw=3, zorder=1)
+        for r in world.roofs:
+            ax.fill(
+                [r.x0_m, r.x1_m, r.x1_m, r.x0_m], [r.y0_m, r.y0_m, r.y1_m, r.y1_m],
+                color="0.85", zorder=0,
+            )  # fmt: skip
+        if len(fix_enu):
+            ax.plot(fix_enu[:, 0], fix_enu[:, 1], ".", ms=3, color="tab:red", alpha=0.6,
+                    label="raw GPS", zorder=2)  # fmt: skip
+            ok = np.all(np.isfinite(filt_enu), axis=1)
+            if ok.any():  # the receiver engine runs no robot: nothing filtered
+                ax.plot(filt_enu[ok, 0], filt_enu[ok, 1], "-", lw=1, color="tab:orange",
+                        label="filtered (Constellation)", zorder=3)  # fmt: skip
+        ax.plot(truth_e, truth_n, "-", lw=2, color="tab:blue", label="true path", zorder=4)
+        if len(wp_enu):
+            ax.plot(wp_enu[:, 0], wp_enu[:, 1], "k*", ms=12, label="waypoints", zorder=5)
+            for i, (e, n) in enumerate(wp_enu):
+                ax.annotate(str(i + 1), (e, n), textcoords="offset points", xytext=(6, 6))
+        ax.set_xlabel("east (m)")
+        ax.set_ylabel("north (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="best", fontsize=8)
+        ax.set_title(
+            f"{world.name} (seed {summary.seed})\n{summary.waypoints_reached}/"
+            f"{summary.waypoint_count} waypoints, raw CEP50 {summary.raw_error.cep50_m:.1f} m,"
+            f" filtered CEP50 {summary.filtered_error.cep50_m:.1f} m",
+            fontsize=9,
+        )
+        fig.savefig(path)
+    finally:
+        fig.clear()

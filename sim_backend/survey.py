@@ -1,0 +1,238 @@
+"""The receiver engine of ``x6wd sim``: a static survey with no robot in the loop.
+
+A scenario without waypoints is a survey (the papers' static experiments): nothing moves the
+antenna, so what the receiver says cannot depend on what the robot does. This engine runs
+only the receiver: the scenario's model and error layers in vectorised chunks of
+:data:`~sim_backend.runs.STATIC_CHUNK_EPOCHS` epochs, its NMEA text, and the UART that
+carries it, and writes
+
+- ``gps.nmea``: the receiver's bytes, identical to what the robot engine writes for the same
+  scenario, seed and duration (same chunks, same draws);
+- ``recording.jsonl``: what the daemon's recorder would have kept of them, one ``nmea`` record
+  per sentence at the time its last byte arrives (sentences the 1 KiB transmit buffer drops
+  are not there), between ``sim_start`` and ``sim_end`` events. Tools that read recordings
+  (``x6wd gap``, the log viewer) decode those sentences as the daemon would;
+- ``truth.csv`` at the GPS epochs, ``summary.json`` and ``track.png``.
+
+The summary's raw-GPS figures come from the positions as the NMEA text prints them (the
+differential test decodes ``gps.nmea`` with the daemon's decoder and finds the same numbers);
+there is no filtered row, because no robot ran its EKF. ``x6wd sim --engine robot`` runs the
+robot engine on a survey too (the robot's whole loop at the compass rate, ~20x slower).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from datetime import UTC
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from sim_backend.compass import CompassSetup
+from sim_backend.geodesy import EnuFrame, lla_to_enu
+from sim_backend.receiver import SimRandom, build_receiver
+from sim_backend.runs import (
+    STATIC_CHUNK_EPOCHS,
+    ErrorStats,
+    RunPlan,
+    Summary,
+    dispersion_m,
+    plot_track,
+    vehicle_from_world,
+)
+from sim_backend.world import World
+from x6wd.core.outdir import output_dir
+
+
+def run_survey(
+    world: World,
+    out_dir: str | Path,
+    seed: int | None = None,
+    duration_s: float | None = None,
+    progress: Callable[[float, float], None] | None = None,
+) -> Summary:
+    """Run ``world`` as a static survey on the receiver alone and write the output files into
+    ``out_dir`` (see the module docstring). ``seed`` and ``duration_s`` (s, simulated)
+    override the scenario's; ``progress(t_s, total_s)`` is called once per chunk. The antenna
+    stands at the vehicle's start pose for the whole run, waypoints or not."""
+    wall0 = time.perf_counter()
+    # the robot engine's clock (it steps at the compass rate), so the same epochs
+    plan = RunPlan.of(world, seed, duration_s, CompassSetup.from_table(world.compass).rate_hz)
+    out = output_dir(out_dir)
+    receiver = build_receiver(world, SimRandom.from_seed(plan.seed))
+    s0 = vehicle_from_world(world).state
+    antenna = np.array([s0.east_m, s0.north_m, s0.up_m + world.vehicle.antenna_height_m])
+    origin = world.origin
+    truth_lat, truth_lon, truth_alt = (
+        float(v) for v in EnuFrame(origin.lat_deg, origin.lon_deg, origin.alt_m).to_lla(antenna)
+    )
+    t_ep = plan.epoch_times_s()
+    utc0 = world.start_utc
+    utc0_naive = utc0.astimezone(UTC).replace(tzinfo=None) if utc0.tzinfo else utc0
+    start_us = np.datetime64(utc0_naive, "us")
+    rec_lines = _RecordLines(start_us)
+
+    lat_parts: list[np.ndarray] = []
+    lon_parts: list[np.ndarray] = []
+    hdop_parts: list[np.ndarray] = []
+    used_parts: list[np.ndarray] = []
+    n_fix = 0
+    with open(out / "gps.nmea", "wb") as nmea, open(out / "recording.jsonl", "w") as rec:
+        rec.write(
+            rec_lines.event(
+                0.0,
+                {"event": "sim_start", "scenario": world.name, "seed": plan.seed,
+                 "duration_s": plan.total_s, "engine": "receiver"},
+            )
+        )  # fmt: skip
+        banner = receiver.banner()
+        nmea.write(banner)
+        # the banner goes out first and holds the UART, but the daemon's recording starts
+        # with the first epoch (as the robot engine's does)
+        receiver.arrivals(banner, 0.0)
+        wire_bytes = len(banner)
+        arrived: list[tuple[float, bytes]] = []
+        t_end = last_rx_s = float(t_ep[-1])
+        for start in range(0, len(t_ep), STATIC_CHUNK_EPOCHS):
+            t = t_ep[start : start + STATIC_CHUNK_EPOCHS]
+            n = t.shape[0]
+            b = receiver.batch(t, np.tile(antenna, (n, 1)), np.zeros((n, 3)))
+            bursts = receiver.formatter.format_batch(b)
+            nmea.write(b"".join(bursts))
+            arrived += receiver.uart.send_bursts(bursts, t.tolist())
+            wire_bytes += rec_lines.write_nmea(rec, arrived)
+            if arrived:
+                last_rx_s = arrived[-1][0]
+            arrived = []
+            valid = np.asarray(b.valid, dtype=bool)
+            n_fix += n
+            lat_parts.append(_as_printed(np.asarray(b.lat_deg)[valid], receiver.formatter))
+            lon_parts.append(_as_printed(np.asarray(b.lon_deg)[valid], receiver.formatter))
+            hdop_parts.append(np.round(np.asarray(b.hdop, dtype=float)[valid], 2))
+            used_parts.append(np.asarray(b.n_used)[valid])
+            if progress is not None:
+                progress(float(t[-1]), plan.total_s)
+        # the run ends when the last sentence on the wire has arrived (as the robot engine's)
+        rec.write(rec_lines.event(max(t_end, last_rx_s), {"event": "sim_end", "completed": False}))
+
+    lat, lon = np.concatenate(lat_parts), np.concatenate(lon_parts)
+    _write_truth(out / "truth.csv", t_ep, truth_lat, truth_lon, truth_alt)
+    fix_enu = np.asarray(
+        lla_to_enu(lat, lon, np.full(lat.shape, origin.alt_m),
+                   origin.lat_deg, origin.lon_deg, origin.alt_m)
+    )[:, :2] if lat.size else np.zeros((0, 2))  # fmt: skip
+    err = np.hypot(fix_enu[:, 0] - antenna[0], fix_enu[:, 1] - antenna[1])
+    hdop, used = np.concatenate(hdop_parts), np.concatenate(used_parts)
+    disp_lat, disp_lon = dispersion_m(lat - truth_lat, lon - truth_lon)
+    gps_effects = [e.name for e in world.effect_objects() if e.kind == "gps"]
+    summary = Summary(
+        scenario=world.name,
+        seed=plan.seed,
+        completed=False,
+        waypoints_reached=0,
+        waypoint_count=0,
+        sim_time_s=t_end,
+        wall_time_s=time.perf_counter() - wall0,
+        path_length_m=0.0,
+        straight_length_m=0.0,
+        raw_error=ErrorStats.of(err),
+        filtered_error=ErrorStats.of(np.zeros(0)),
+        hold_periods=0,
+        hold_time_s=0.0,
+        fixes=n_fix,
+        fixes_valid=int(lat.size),
+        dispersion_lat_m=disp_lat,
+        dispersion_lon_m=disp_lon,
+        mean_hdop=float(np.mean(hdop[np.isfinite(hdop)])) if hdop.size else math.nan,
+        mean_sats_used=float(np.mean(used)) if used.size else math.nan,
+        extra={
+            "engine": "receiver",
+            "nmea_bytes": wire_bytes,
+            "uart_dropped_sentences": receiver.uart.dropped,
+            "fidelity": world.gnss.fidelity,
+            "effects_applied": gps_effects,
+            "effects_skipped": [
+                f"{e.name}: no compass in the receiver engine"
+                for e in world.effect_objects()
+                if e.kind != "gps"
+            ],
+        },
+    )
+    (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+    e0, n0 = float(antenna[0]), float(antenna[1])
+    plot_track(
+        out / "track.png", world, np.array([e0]), np.array([n0]), fix_enu,
+        np.full(fix_enu.shape, math.nan), np.zeros((0, 2)), summary,
+    )  # fmt: skip
+    return summary
+
+
+def _as_printed(value_deg: np.ndarray, formatter: object) -> np.ndarray:
+    """Degrees (deg) as the NMEA text prints them: whole units of 1/scale of a minute."""
+    scale = float(formatter._scale)  # type: ignore[attr-defined]
+    total = np.rint(np.abs(value_deg) * 60.0 * scale)
+    deg, rem = np.divmod(total, 60.0 * scale)
+    return np.copysign(deg + (rem / scale) / 60.0, value_deg)
+
+
+def _write_truth(path: Path, t_s: np.ndarray, lat: float, lon: float, alt: float) -> None:
+    """truth.csv (the robot engine's columns) at the epochs: the antenna does not move."""
+    tail = f",{lat:.9f},{lon:.9f},{alt:.3f},0.000\n"
+    with open(path, "w") as f:
+        f.write("t_s,lat,lon,alt,heading_deg\n")
+        f.write("".join([f"{t:.3f}" + tail for t in t_s.tolist()]))
+
+
+class _RecordLines:
+    """Recording lines in the recorder's own format (:class:`x6wd.core.recorder.Recorder`),
+    written a chunk at a time: per-record calls cost more than the receiver itself."""
+
+    def __init__(self, start_us: np.datetime64) -> None:
+        self.start_us = start_us
+
+    def utc_texts(self, t_s: np.ndarray) -> list[str]:
+        """ISO UTC with microseconds and Z for times ``t_s`` (s) after the start."""
+        return [u + "Z" for u in self.utc_bare(t_s)]
+
+    def utc_bare(self, t_s: np.ndarray) -> list[str]:
+        """:meth:`utc_texts` without the Z."""
+        us = np.rint(np.asarray(t_s, dtype=float) * 1e6).astype("timedelta64[us]")
+        out: list[str] = np.datetime_as_string(self.start_us + us, unit="us").tolist()
+        return out
+
+    def event(self, t_s: float, data: dict[str, object]) -> str:
+        """One ``event`` record's line."""
+        body = json.dumps(data, separators=(",", ":"), ensure_ascii=False)
+        utc = self.utc_texts(np.array([t_s]))[0]
+        return f'{{"t_mono":{float(t_s)!r},"t_utc":"{utc}","type":"event","data":{body}}}\n'
+
+    def write_nmea(self, f: TextIO, arrived: list[tuple[float, bytes]]) -> int:
+        """``nmea`` records for (arrival time s, sentence) pairs into ``f``; the bytes carried."""
+        if not arrived:
+            return 0
+        times, lines = zip(*arrived, strict=True)
+        blob = b"".join(lines)
+        n = len(lines)
+        if blob.count(b"\r\n") == blob.count(b"\r") == blob.count(b"\n") == n:
+            # every sentence ends in one CRLF and holds no other: split the whole text once
+            texts = blob.decode("ascii", "replace").split("\r\n")[:n]
+        else:
+            texts = [line.rstrip(b"\r\n").decode("ascii", "replace") for line in lines]
+        utcs = self.utc_bare(np.array(times))
+        enc = json.encoder.encode_basestring
+        # float reprs by the list's repr (one C call), the lines by one join of their pieces
+        reprs = repr(list(times))[1:-1].split(", ")
+        parts: list[str] = [""] * (7 * n)
+        parts[0::7] = ['{"t_mono":'] * n
+        parts[1::7] = reprs
+        parts[2::7] = [',"t_utc":"'] * n
+        parts[3::7] = utcs
+        parts[4::7] = ['Z","type":"nmea","data":{"text":'] * n
+        parts[5::7] = list(map(enc, texts))
+        parts[6::7] = ["}}\n"] * n
+        f.write("".join(parts))
+        return len(blob)

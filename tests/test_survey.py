@@ -1,0 +1,192 @@
+"""The receiver engine of ``x6wd sim`` (a static survey without the robot): judged against the
+robot engine on the same scenario and seed, run in the same test."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import sim_backend.mission as mission
+import sim_backend.runs as runs
+from drivers.gps_nmea import GpsDecoder
+from sim_backend.gnss import ar1_filter
+from sim_backend.runs import engine_for
+from sim_backend.survey import run_survey
+from sim_backend.world import load_world, loads_world
+from x6wd.core.recorder import read_recording
+from x6wd.core.records import GpsFix
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENARIOS = ROOT / "config" / "scenarios"
+OPEN_FIELD = SCENARIOS / "open_field.toml"
+
+# 4 Hz at 9600 baud: more text than the line carries, so the transmit buffer drops sentences;
+# a GPS effect the receiver applies and a compass effect it cannot (no compass here).
+LOADED_UART = f"""include = ["{OPEN_FIELD}"]
+name = "open field, 4 Hz at 9600 baud, with effects"
+[gnss]
+rate_hz = 4.0
+baud = 9600
+[compass]
+rate_hz = 20.0
+[[effects]]
+name = "gauss_markov"
+sigma_m = 1.5
+tau_s = 30.0
+[[effects]]
+name = "hard_iron"
+bx_ut = 2.0
+by_ut = 0.0
+"""
+
+
+def _nmea_records(out: Path) -> list[str]:
+    with open(out / "recording.jsonl") as f:
+        return [line for line in f if '"type":"nmea"' in line]
+
+
+def _summary(out: Path) -> dict[str, Any]:
+    d: dict[str, Any] = json.loads((out / "summary.json").read_text())
+    return d
+
+
+def _both(world: Any, tmp: Path, seed: int, duration_s: float) -> tuple[Path, Path]:
+    robot, receiver = tmp / "robot", tmp / "receiver"
+    mission.run_mission(world, robot, seed=seed, duration_s=duration_s)
+    run_survey(world, receiver, seed=seed, duration_s=duration_s)
+    return robot, receiver
+
+
+def _assert_same_receiver(robot: Path, receiver: Path) -> None:
+    """The receiver's bytes, what the recorder kept of them, and every raw-GPS figure."""
+    assert (receiver / "gps.nmea").read_bytes() == (robot / "gps.nmea").read_bytes()
+    assert _nmea_records(receiver) == _nmea_records(robot)
+    a, b = _summary(robot), _summary(receiver)
+    for key in ("fixes", "fixes_valid", "sim_time_s", "waypoint_count"):
+        assert a[key] == b[key], key
+    for key in ("dispersion_lat_m", "dispersion_lon_m", "mean_hdop", "mean_sats_used"):
+        assert b[key] == pytest.approx(a[key], rel=1e-9, abs=1e-9), key
+    for key, v in a["raw_error"].items():
+        assert b["raw_error"][key] == pytest.approx(v, rel=1e-9, abs=1e-9), key
+    assert b["extra"]["nmea_bytes"] == a["extra"]["nmea_bytes"]
+    assert b["filtered_error"]["n"] == 0 and b["extra"]["engine"] == "receiver"
+    ends = [
+        [r.t_mono for r in read_recording(d / "recording.jsonl") if r.type == "event"][-1]
+        for d in (robot, receiver)
+    ]
+    assert ends[1] == ends[0]
+
+
+@pytest.mark.parametrize("name", ["open_field", "building_window"])
+def test_a_survey_matches_the_robot_engine(tmp_path: Path, name: str) -> None:
+    """Open sky and the room by the window (walls, roof, materials): the same bytes, records
+    and raw figures as the robot engine, which decodes them with the daemon's decoder."""
+    world = load_world(SCENARIOS / f"{name}.toml")
+    _assert_same_receiver(*_both(world, tmp_path, seed=7, duration_s=90.0))
+
+
+def test_a_loaded_uart_and_effects_match_the_robot_engine(tmp_path: Path) -> None:
+    """4 Hz at 9600 baud (sentences dropped by the transmit buffer) with a GPS layer: the
+    same sentences dropped; the compass layer is reported as not run."""
+    world = loads_world(LOADED_UART, base_dir=ROOT)
+    robot, receiver = _both(world, tmp_path, seed=2, duration_s=40.0)
+    _assert_same_receiver(robot, receiver)
+    extra = _summary(receiver)["extra"]
+    assert extra["uart_dropped_sentences"] > 0
+    assert extra["effects_applied"] == ["gauss_markov"]
+    assert extra["effects_skipped"] == ["hard_iron: no compass in the receiver engine"]
+
+
+@pytest.mark.slow
+def test_chunked_surveys_match_too(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Chunk boundaries (40 epochs here) fall on the same epochs in both engines."""
+    monkeypatch.setattr(mission, "STATIC_CHUNK_EPOCHS", 40)
+    monkeypatch.setattr(runs, "STATIC_CHUNK_EPOCHS", 40)
+    import sim_backend.survey as survey
+
+    monkeypatch.setattr(survey, "STATIC_CHUNK_EPOCHS", 40)
+    _assert_same_receiver(*_both(load_world(OPEN_FIELD), tmp_path, seed=3, duration_s=100.0))
+
+
+def test_the_recording_decodes_to_the_summarys_fixes(tmp_path: Path) -> None:
+    """The recording's sentences, fed to the daemon's decoder at their arrival times, give one
+    valid fix per epoch at the positions whose errors the summary states."""
+    world = load_world(OPEN_FIELD)
+    s = run_survey(world, tmp_path, seed=11, duration_s=60.0)
+    dec = GpsDecoder(emit_sentences=False)
+    fixes: list[GpsFix] = []
+    for r in read_recording(tmp_path / "recording.jsonl"):
+        if r.type == "nmea":
+            line = (r.data["text"] + "\r\n").encode()
+            fixes += [x for x in dec.feed(line, r.t_mono) if type(x) is GpsFix]
+    assert dec.counters.checksum_failures == 0
+    assert len(fixes) == s.fixes == 61 and all(f.valid for f in fixes)
+    assert s.raw_error.n == 61 and 0.1 < s.raw_error.cep50_m < 20.0
+
+
+def test_auto_picks_the_receiver_engine_only_for_a_survey() -> None:
+    assert engine_for(load_world(OPEN_FIELD)) == "receiver"
+    assert engine_for(load_world(SCENARIOS / "default.toml")) == "robot"
+    assert engine_for(load_world(OPEN_FIELD), "robot") == "robot"
+    with pytest.raises(ValueError, match="engine must be one of"):
+        engine_for(load_world(OPEN_FIELD), "fast")
+
+
+def _sim(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "x6wd", "sim", *args, "--quiet"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+
+
+def test_cli_default_is_the_receiver_engine_and_robot_runs_the_ekf(tmp_path: Path) -> None:
+    """``x6wd sim`` on a survey: the receiver engine, without importing the robot's code;
+    ``--engine robot``: the robot's loop with its filtered row; a bad engine: exit 2."""
+    probe = (
+        "import sys, runpy\n"
+        f"sys.argv = ['x6wd', 'sim', {str(OPEN_FIELD)!r}, '--duration', '20', '--out',"
+        f" {str(tmp_path / 'r')!r}, '--quiet']\n"
+        "from x6wd.app.cli import main\n"
+        "code = main()\n"
+        "robot = [m for m in sys.modules if m.startswith(('x6wd.nav.controller', 'x6wd.loop'))]\n"
+        "print('ROBOT-MODULES', robot, code)\n"
+    )
+    p = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+    assert p.returncode == 0, p.stderr
+    assert "ROBOT-MODULES [] 0" in p.stdout
+    assert "filtered         not run" in p.stdout
+    p = _sim(str(OPEN_FIELD), "--duration", "20", "--out", str(tmp_path / "b"), "--engine", "robot")
+    assert p.returncode == 0, p.stderr
+    filtered = next(line for line in p.stdout.splitlines() if "filtered" in line)
+    assert math.isfinite(float(filtered.split()[1]))
+    p = _sim(str(OPEN_FIELD), "--out", str(tmp_path / "c"), "--engine", "fast")
+    assert p.returncode == 2 and "--engine" in p.stderr
+
+
+@pytest.mark.parametrize("tau_s", [0.05, 0.4, 1.0, 7.0, 300.0, 1e6])
+@pytest.mark.parametrize("cols", [0, 3])
+def test_ar1_filter_is_the_recursion(tau_s: float, cols: int) -> None:
+    """The numpy first-order filter against the step-by-step recursion (1-D and 2-D)."""
+    rng = np.random.default_rng(int(tau_s * 100) + cols)
+    n = 5000
+    x = rng.standard_normal((n, cols) if cols else n)
+    y0 = rng.standard_normal(cols) if cols else np.array(rng.standard_normal())
+    phi, gain = math.exp(-1.0 / tau_s), math.sqrt(-math.expm1(-2.0 / tau_s))
+    want = np.empty_like(x)
+    prev = np.array(y0, dtype=float)
+    for k in range(n):
+        prev = phi * prev + gain * x[k]
+        want[k] = prev
+    got = ar1_filter(x, phi, gain, y0)
+    assert got.shape == x.shape
+    assert np.max(np.abs(got - want)) < 1e-12
+    assert ar1_filter(x[:0], phi, gain, y0).shape == x[:0].shape
