@@ -22,8 +22,10 @@ robot engine on a survey too (the robot's whole loop at the compass rate, ~20x s
 
 from __future__ import annotations
 
+import functools
 import json
 import math
+import re
 import time
 from collections.abc import Callable
 from datetime import UTC
@@ -187,6 +189,18 @@ def _write_truth(path: Path, t_s: np.ndarray, lat: float, lon: float, alt: float
         f.write("".join([f"{t:.3f}" + tail for t in t_s.tolist()]))
 
 
+# What JSON leaves as it is inside a string (printable ASCII but quote and backslash), plus
+# the CRLFs between the sentences.
+_JSON_PLAIN = re.compile(rb"[\x20\x21\x23-\x5b\x5d-\x7e\r\n]*")
+_D3 = [f"{i:03d}" for i in range(1000)]
+
+
+@functools.cache
+def _hms_table() -> list[str]:
+    """``hh:mm:ss`` of every second of a day."""
+    return [f"{h:02d}:{m:02d}:{s:02d}" for h in range(24) for m in range(60) for s in range(60)]
+
+
 class _RecordLines:
     """Recording lines in the recorder's own format (:class:`x6wd.core.recorder.Recorder`),
     written a chunk at a time: per-record calls cost more than the receiver itself."""
@@ -203,6 +217,22 @@ class _RecordLines:
         us = np.rint(np.asarray(t_s, dtype=float) * 1e6).astype("timedelta64[us]")
         out: list[str] = np.datetime_as_string(self.start_us + us, unit="us").tolist()
         return out
+
+    def _utc_parts(self, t_s: np.ndarray) -> tuple[list[str], ...]:
+        """:meth:`utc_bare` of ``t_s`` (s) in pieces (date and T, hh:mm:ss, milliseconds,
+        microseconds) from tables: 3x cheaper than numpy's date formatting."""
+        total = int(self.start_us.astype(np.int64)) + np.rint(t_s * 1e6).astype(np.int64)
+        day, of_day = np.divmod(total, 86_400_000_000)
+        sec, micro = np.divmod(of_day, 1_000_000)
+        ms, us = np.divmod(micro, 1000)
+        days = {d: str(np.datetime64(d, "D")) + "T" for d in np.unique(day).tolist()}
+        hms, d3 = _hms_table(), _D3
+        return (
+            list(map(days.__getitem__, day.tolist())),
+            list(map(hms.__getitem__, sec.tolist())),
+            list(map(d3.__getitem__, ms.tolist())),
+            list(map(d3.__getitem__, us.tolist())),
+        )
 
     def event(self, t_s: float, data: dict[str, object]) -> str:
         """One ``event`` record's line."""
@@ -222,17 +252,20 @@ class _RecordLines:
             texts = blob.decode("ascii", "replace").split("\r\n")[:n]
         else:
             texts = [line.rstrip(b"\r\n").decode("ascii", "replace") for line in lines]
-        utcs = self.utc_bare(np.array(times))
-        enc = json.encoder.encode_basestring
+        day, hms, ms, us = self._utc_parts(np.array(times))
         # float reprs by the list's repr (one C call), the lines by one join of their pieces
         reprs = repr(list(times))[1:-1].split(", ")
-        parts: list[str] = [""] * (7 * n)
-        parts[0::7] = ['{"t_mono":'] * n
-        parts[1::7] = reprs
-        parts[2::7] = [',"t_utc":"'] * n
-        parts[3::7] = utcs
-        parts[4::7] = ['Z","type":"nmea","data":{"text":'] * n
-        parts[5::7] = list(map(enc, texts))
-        parts[6::7] = ["}}\n"] * n
+        if _JSON_PLAIN.fullmatch(blob):  # nothing to escape: the text goes in as it is
+            quoted, head, tail = texts, '"type":"nmea","data":{"text":"', '"}}\n'
+        else:
+            quoted = list(map(json.encoder.encode_basestring, texts))
+            head, tail = '"type":"nmea","data":{"text":', "}}\n"
+        pieces = (
+            ['{"t_mono":'] * n, reprs, [',"t_utc":"'] * n, day, hms, ["."] * n, ms, us,
+            ['Z",' + head] * n, quoted, [tail] * n,
+        )  # fmt: skip
+        parts: list[str] = [""] * (len(pieces) * n)
+        for k, piece in enumerate(pieces):
+            parts[k :: len(pieces)] = piece
         f.write("".join(parts))
         return len(blob)

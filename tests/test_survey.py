@@ -190,3 +190,38 @@ def test_ar1_filter_is_the_recursion(tau_s: float, cols: int) -> None:
     assert got.shape == x.shape
     assert np.max(np.abs(got - want)) < 1e-12
     assert ar1_filter(x[:0], phi, gain, y0).shape == x[:0].shape
+
+
+@pytest.mark.parametrize(
+    "lines",
+    [
+        [b"$GPGGA,1*00\r\n", b"$GPRMC,2*00\r\n"],
+        [b'$GPTXT,"quoted" \\ back\r\n', b"\xff\xfe binary\r\n", b"tab\there\r\n"],
+        [b"$GPGSA,ok\r\r\n", b"$GPVTG,lf only\n"],
+    ],
+)
+def test_bulk_nmea_records_are_the_recorders_lines(tmp_path: Path, lines: list[bytes]) -> None:
+    """The receiver engine's bulk writer against the daemon's Recorder, line for line, for
+    plain sentences, text JSON must escape, and odd line endings; across a day boundary."""
+    from datetime import datetime, timedelta
+    from io import StringIO
+
+    from sim_backend.survey import _RecordLines
+    from x6wd.core.recorder import Recorder
+
+    start = datetime(2020, 12, 31, 23, 59, 59)
+    times = [0.4125 + 0.3 * k for k in range(len(lines))]
+    now = [0.0]
+    rec = Recorder(
+        tmp_path / "r.jsonl", clock=lambda: now[0],
+        utc_clock=lambda: start + timedelta(seconds=now[0]),
+    )  # fmt: skip
+    for t, line in zip(times, lines, strict=True):
+        now[0] = t
+        rec.record_nmea(line.rstrip(b"\r\n"), t)
+    rec.close()
+    out = StringIO()
+    pairs = list(zip(times, lines, strict=True))
+    n = _RecordLines(np.datetime64(start, "us")).write_nmea(out, pairs)
+    assert n == sum(map(len, lines))
+    assert out.getvalue() == (tmp_path / "r.jsonl").read_text()
