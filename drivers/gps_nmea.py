@@ -635,10 +635,11 @@ class _Rmc:
     day: date | None
 
 
+_GsaValues = tuple[int | None, frozenset[int], float | None, float | None, float | None]
+
+
 @functools.lru_cache(maxsize=64)
-def _parse_gsa(
-    f: tuple[str, ...],
-) -> tuple[int | None, frozenset[int], float | None, float | None, float | None]:
+def _parse_gsa(f: tuple[str, ...]) -> _GsaValues:
     """GSA fields ``fix_type`` .. ``vdop`` -> fix mode, PRNs used, PDOP, HDOP, VDOP.
 
     Memoised: a receiver repeats its GSA for as long as the constellation holds.
@@ -848,16 +849,17 @@ class GpsDecoder:
         self._midnight_day: date | None = None
         self._midnight = datetime(1970, 1, 1, tzinfo=UTC)
         # Field handlers by sentence type, with the number of fields each reads (shorter
-        # sentences are padded with empty fields) and the most splits its fields need (-1:
-        # every field); other known types need none.
+        # sentences are padded with empty fields) and the most splits its fields need
+        # (-1: every field); other known types need none. A handler reads only its first
+        # fields, so the split stops there (the rest of the text is one unread element).
         self._handlers: dict[str, tuple[_Handler, int, int]] = {
             # GSV: its three head fields, then the text of its satellites (_gsv_sats).
             "GSV": (self._gsv_fields, _GSV_SAT1, _GSV_SAT1),
-            "GGA": (self._gga_fields, _GGA_SEP + 1, -1),
-            "RMC": (self._rmc_fields, _RMC_DATE + 1, -1),
-            "GSA": (self._gsa_fields, _GSA_PDOP + 3, -1),
-            "GLL": (self._gll_fields, _GLL_TIME + 1, -1),
-            "ZDA": (self._zda_fields, _ZDA_DAY + 3, -1),
+            "GGA": (self._gga_fields, _GGA_SEP + 1, _GGA_SEP + 1),
+            "RMC": (self._rmc_fields, _RMC_DATE + 1, _RMC_DATE + 1),
+            "GSA": (self._gsa_fields, _GSA_PDOP + 3, _GSA_PDOP + 3),
+            "GLL": (self._gll_fields, _GLL_TIME + 1, _GLL_TIME + 1),
+            "ZDA": (self._zda_fields, _ZDA_DAY + 3, _ZDA_DAY + 3),
         }
         # Sentence head (text[1:7], "GPGGA,") -> (talker, handler or None, fields it reads,
         # splits),
@@ -1134,7 +1136,11 @@ class GpsDecoder:
             self._rmc = rmc
 
     def _on_gsa(self, d: list[str]) -> None:
-        mode, used, pdop, hdop, vdop = _parse_gsa(tuple(d[_GSA_MODE : _GSA_PDOP + 3]))
+        self._set_gsa(_parse_gsa(tuple(d[_GSA_MODE : _GSA_PDOP + 3])))
+
+    def _set_gsa(self, gsa: _GsaValues) -> None:
+        """Take a GSA's fix mode, PRNs used and DOPs (``_parse_gsa``)."""
+        mode, used, pdop, hdop, vdop = gsa
         if self._gsa_fresh:  # several GSAs per cycle (one per constellation)
             self._used |= used
         else:

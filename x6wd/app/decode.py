@@ -31,10 +31,13 @@ from datetime import UTC, date, datetime
 from typing import IO, Any, cast
 
 from drivers.gps_nmea import (
+    _GSA_MODE,
     DecoderCounters,
     GpsDecoder,
     GpsOutput,
     _Gga,
+    _GsaValues,
+    _parse_gsa,
     _Rmc,
     gsv_groups,
     gsv_satellite,
@@ -82,11 +85,13 @@ class ReportEncoder:
         self._sat_keep: list[SatInfo] = []
         self._utc: datetime | None = None
         self._utc_text = ""
+        # (altitude, separation, HDOP, VDOP) -> a TPV's altitude and error members
+        self._tails: dict[tuple[Any, Any, Any, Any], tuple[str, str]] = {}
 
     @property
     def largest_memo(self) -> int:
         """Entries in the largest memo (at most :data:`MEMO_MAX`)."""
-        return max(len(self._sat_text), len(self._groups))
+        return max(len(self._sat_text), len(self._groups), len(self._tails))
 
     def _group(self, key: tuple[Any, ...], build: Callable[..., str]) -> str:
         """``build(*key)``, memoised unless ``key`` holds a zero. The memo's key carries
@@ -150,30 +155,53 @@ class ReportEncoder:
         """The TPV line of a fix from its fields (``GpsFix``'s, units alike; its time as
         ``time_member`` writes it)."""
         mode = mode if valid else 1
-        mode_text = str(mode) if type(mode) is int else _dumps_compact(mode)
-        head = '{"class":"TPV","mode":' + mode_text + time
+        if type(mode) is int and 0 <= mode <= 3:
+            head = _TPV_HEADS[mode]
+        else:
+            mode_text = str(mode) if type(mode) is int else _dumps_compact(mode)
+            head = '{"class":"TPV","mode":' + mode_text
         if not (valid and mode >= 2 and lat is not None and lon is not None):
-            return head + "}"
-        parts = [head]
-        text = _num_text(lat, 9)  # positions rarely repeat: not memoised
-        if text is not None:
-            parts += (',"lat":', text)
-        text = _num_text(lon, 9)
-        if text is not None:
-            parts += (',"lon":', text)
-        if mode >= 3 and alt is not None:
-            parts.append(self._group((alt, geoid_sep), _altitudes))
-        if speed is not None:  # speed and track jitter: not memoised either
-            text = _num_text(speed, 3)
-            if text is not None:
-                parts += (',"speed":', text)
-        if course is not None:
-            text = _num_text(course, 4)
-            if text is not None:
-                parts += (',"track":', text)
-        parts.append(self._group((hdop, vdop if mode >= 3 else None), _errors))
-        parts.append("}")
-        return "".join(parts)
+            return head + time + "}"
+        # Altitudes (mode 3 only) and error estimates: one memo for the pair of texts.
+        if mode >= 3:
+            key = (alt, None if alt is None else geoid_sep, hdop, vdop)
+        else:
+            key = (None, None, hdop, None)
+        try:
+            alt_text, err_text = self._tails[key]
+        except KeyError:
+            alt_text, err_text = self._tail_texts(key)
+            if 0 not in key:  # 0.0 == -0.0, but they print differently
+                if len(self._tails) >= MEMO_MAX:
+                    self._tails.clear()
+                self._tails[key] = alt_text, err_text
+        except TypeError:  # unhashable values: not memoised
+            alt_text, err_text = self._tail_texts(key)
+        # Position, speed and track change from fix to fix: not memoised.
+        lat_text = _num_text(lat, 9)
+        lon_text = _num_text(lon, 9)
+        speed_text = None if speed is None else _num_text(speed, 3)
+        track_text = None if course is None else _num_text(course, 4)
+        return "".join(
+            (
+                head,
+                time,
+                "" if lat_text is None else ',"lat":' + lat_text,
+                "" if lon_text is None else ',"lon":' + lon_text,
+                alt_text,
+                "" if speed_text is None else ',"speed":' + speed_text,
+                "" if track_text is None else ',"track":' + track_text,
+                err_text,
+                "}",
+            )
+        )
+
+    @staticmethod
+    def _tail_texts(key: tuple[Any, Any, Any, Any]) -> tuple[str, str]:
+        """The altitude members (none without an altitude) and the error members of a TPV
+        for ``tpv_line``'s memo key (altitude, geoid separation, HDOP, VDOP)."""
+        alt, sep, hdop, vdop = key
+        return ("" if alt is None else _altitudes(alt, sep)), _errors(hdop, vdop)
 
     def sky(self, sky: GpsSky) -> str:
         """The SKY line (no newline) of ``sky``."""
@@ -221,6 +249,7 @@ class ReportEncoder:
 # Text of the clock fields as ``isoformat(timespec="milliseconds")`` writes them: built
 # once, so that an epoch's time is a few lookups instead of a call of isoformat.
 _HOURS = tuple(f"{h:02d}:" for h in range(24))
+_MINUTES = tuple(f"{m // 60:02d}:{m % 60:02d}:" for m in range(1440))  # "HH:MM:" by minute of day
 _SIXTY = tuple(f"{m:02d}" for m in range(60))
 _MILLIS = tuple(f".{ms:03d}Z" for ms in range(1000))
 _day_text: dict[int, str] = {}  # proleptic ordinal -> "YYYY-MM-DDT"
@@ -288,6 +317,8 @@ def _dops(hdop: Any, vdop: Any, pdop: Any) -> str:
         )
     )
 
+
+_TPV_HEADS = tuple(f'{{"class":"TPV","mode":{m}' for m in range(4))
 
 # "%.{n}f" formats for _num_text, and the magnitude below which that text is exact.
 _FIXED = tuple(f"%.{n}f" for n in range(10))
@@ -369,7 +400,7 @@ class ReportDecoder(GpsDecoder):
         self._sat_texts: dict[str, _SatTexts] = {}
         # GSA: the handler gets the text of the fields unsplit (most splits 0), see _gsa_text.
         self._handlers["GSA"] = (self._gsa_text, 1, 0)
-        self._gsa_memo: dict[str, list[str]] = {}
+        self._gsa_memo: dict[str, _GsaValues] = {}
         # _time_member's last (time of day, date, date's time of day) and its text.
         self._member_tod: int | None = None
         self._member_day: date | None = None
@@ -378,19 +409,20 @@ class ReportDecoder(GpsDecoder):
 
     def _gsa_text(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         """A GSA from the text of its fields (``d[0]``): a receiver repeats its GSA while the
-        constellation holds, so the fields, split and padded as the reference's handler gets
-        them, are memoised by that text (and their strings keep their hashes for
-        ``_parse_gsa``'s memo)."""
+        constellation holds, so its values (``_parse_gsa`` of the fields, split and padded
+        as the reference's handler gets them) are memoised by that text. A GSA that fails
+        to parse is not memoised: it raises again."""
         body = d[0]
-        fields = self._gsa_memo.get(body)
-        if fields is None:
+        values = self._gsa_memo.get(body)
+        if values is None:
             fields = body.split(",")
             if len(fields) < _GSA_FIELDS:
                 fields += [""] * (_GSA_FIELDS - len(fields))
+            values = _parse_gsa(tuple(fields[_GSA_MODE:_GSA_FIELDS]))
             if len(self._gsa_memo) >= MEMO_MAX:
                 self._gsa_memo.clear()
-            self._gsa_memo[body] = fields
-        self._on_gsa(fields)
+            self._gsa_memo[body] = values
+        self._set_gsa(values)
 
     def _sats_of(self, text: str) -> list[_SatTexts]:  # type: ignore[override]
         """The satellites of a GSV sentence's satellite fields ``text`` (as ``_gsv_sats``:
@@ -440,11 +472,7 @@ class ReportDecoder(GpsDecoder):
                 day_text = _day_text[ordinal] = day.isoformat() + "T"
             s, us = divmod(tod, 1_000_000)
             m, s = divmod(s, 60)
-            h, m = divmod(m, 60)
-            text = (
-                ',"time":"' + day_text + _HOURS[h] + _SIXTY[m] + ":" + _SIXTY[s]
-                + _MILLIS[us // 1000] + '"'
-            )  # fmt: skip
+            text = f',"time":"{day_text}{_MINUTES[m]}{_SIXTY[s]}{_MILLIS[us // 1000]}"'
         else:
             text = self._encoder.time_member(self._utc(tod))
         self._member_tod, self._member_day, self._member_day_tod = tod, day, day_tod
@@ -570,13 +598,16 @@ def decode_stream(stream: IO[bytes], out: IO[str], *, with_sky: bool = True) -> 
     if head.lstrip()[:1] == b"{":
         lines = (head + stream.read()).splitlines()
         return _decode_sentences(_recording_sentences(lines), out, with_sky)
-    encoder = ReportEncoder()
-    decoder = ReportDecoder(encoder, with_sky=with_sky)
+    decoder = ReportDecoder(ReportEncoder(), with_sky=with_sky)
     chunk = head
     while chunk:
-        _write_reports(decoder.feed(chunk, 0.0), encoder, out, with_sky)
+        lines = decoder.feed(chunk, 0.0)  # ReportDecoder's records are its lines
+        if lines:
+            out.write("\n".join(lines) + "\n")  # type: ignore[arg-type]
         chunk = stream.read(_CHUNK_BYTES)
-    _write_reports(decoder.flush(), encoder, out, with_sky)
+    lines = decoder.flush()
+    if lines:
+        out.write("\n".join(lines) + "\n")  # type: ignore[arg-type]
     return decoder.counters
 
 
