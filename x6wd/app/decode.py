@@ -32,6 +32,7 @@ from typing import IO, Any, cast
 
 from drivers.gps_nmea import (
     _GSA_MODE,
+    _GSV_GROUP,
     DecoderCounters,
     GpsDecoder,
     GpsOutput,
@@ -398,6 +399,7 @@ class ReportDecoder(GpsDecoder):
         self._encoder = encoder
         self._with_sky = with_sky
         self._sat_texts: dict[str, _SatTexts] = {}
+        self._sat_text_of = self._sat_texts.__getitem__  # (the memo is cleared, never replaced)
         # GSA: the handler gets the text of the fields unsplit (most splits 0), see _gsa_text.
         self._handlers["GSA"] = (self._gsa_text, 1, 0)
         self._gsa_memo: dict[str, _GsaValues] = {}
@@ -427,11 +429,14 @@ class ReportDecoder(GpsDecoder):
     def _sats_of(self, text: str) -> list[_SatTexts]:  # type: ignore[override]
         """The satellites of a GSV sentence's satellite fields ``text`` (as ``_gsv_sats``:
         the same groups, skipped or rejected alike)."""
+        groups = _GSV_GROUP.findall(text)
+        if len(groups) >= 4 or (text.count(",") + 1) % 4 == 0:  # gsv_groups adds no group
+            try:
+                return list(map(self._sat_text_of, groups))  # every group seen before
+            except KeyError:
+                pass
         groups = gsv_groups(text)
         memo = self._sat_texts
-        found = list(map(memo.get, groups))
-        if None not in found:
-            return found  # type: ignore[return-value]
         sats = []
         for group in groups:
             entry = memo.get(group)
