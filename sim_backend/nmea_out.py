@@ -21,7 +21,7 @@ import math
 import operator
 from collections.abc import Iterable, Sequence
 from datetime import datetime, timedelta
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -372,9 +372,7 @@ class NmeaFormatter:
             for c in wrap360(np.asarray(batch.course_deg, dtype=float)).tolist()
         ]
         alt_l = [f"{v:.1f}" for v in np.asarray(batch.alt_m, dtype=float).tolist()]
-        hdop_l = [_dop(v) for v in np.asarray(batch.hdop, dtype=float).tolist()]
-        pdop_l = [_dop(v) for v in np.asarray(batch.pdop, dtype=float).tolist()]
-        vdop_l = [_dop(v) for v in np.asarray(batch.vdop, dtype=float).tolist()]
+        hdop_l, pdop_l, vdop_l = (_dops(getattr(batch, k)) for k in ("hdop", "pdop", "vdop"))
         geoid = f"{float(batch.geoid_sep_m):.1f}"
         # GSA: used satellites per epoch in column (channel) order, at most 12 shown.
         d2 = _D2
@@ -590,6 +588,14 @@ class BatchLike(Protocol):
     def epoch(self, i: int) -> GnssEpoch: ...
 
     def epochs(self) -> list[GnssEpoch]: ...
+
+
+def _dops(values: Any) -> list[str]:
+    """:func:`_dop` of each value: its cap and NaN by numpy, the text per value."""
+    v = np.asarray(values, dtype=float)
+    capped = ~(np.isfinite(v) & (v <= 99.99))
+    v = np.where(capped | ~(v > 0.0), 0.0, v)  # max(0.0, v) of _dop: -0.0 prints 0.00
+    return [_NO_DOP if c else f"{x:.2f}" for x, c in zip(v.tolist(), capped.tolist(), strict=True)]
 
 
 def _dop(value: float) -> str:

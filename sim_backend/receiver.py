@@ -182,10 +182,12 @@ class UartTx:
             for line in burst.splitlines(keepends=True):
                 n = len(line)
                 # queued_bytes() and wire_time_s() written out, operations in their order
-                if max(0.0, free_at - t) * baud / 10.0 + n > cap:
+                # (a conditional picks what max() would, NaN included, without the call)
+                wait = free_at - t
+                if (wait if wait > 0.0 else 0.0) * baud / 10.0 + n > cap:
                     dropped += 1
                     continue
-                free_at = max(free_at, t) + n * 10 / baud
+                free_at = (t if t > free_at else free_at) + n * 10 / baud
                 sent += 1
                 append((free_at, line))
         self.free_at_s, self.dropped, self.sent = free_at, dropped, sent

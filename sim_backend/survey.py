@@ -198,7 +198,9 @@ _D3 = [f"{i:03d}" for i in range(1000)]
 @functools.cache
 def _hms_table() -> list[str]:
     """``hh:mm:ss`` of every second of a day."""
-    return [f"{h:02d}:{m:02d}:{s:02d}" for h in range(24) for m in range(60) for s in range(60)]
+    d2 = [f"{i:02d}" for i in range(60)]
+    mm_ss = [m + ":" + s for m in d2 for s in d2]
+    return [h + ":" + x for h in d2[:24] for x in mm_ss]
 
 
 class _RecordLines:
