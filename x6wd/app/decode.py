@@ -171,13 +171,19 @@ class ReportEncoder:
         try:
             alt_text, err_text = self._tails[key]
         except KeyError:
-            alt_text, err_text = self._tail_texts(key)
+            # A moving receiver's altitude changes while its DOPs hold: each part has its
+            # own memo too.
+            alt, sep, hdop, vdop = key
+            alt_text = "" if alt is None else self._group((alt, sep), _altitudes)
+            err_text = self._group((hdop, vdop), _errors)
             if 0 not in key:  # 0.0 == -0.0, but they print differently
                 if len(self._tails) >= MEMO_MAX:
                     self._tails.clear()
                 self._tails[key] = alt_text, err_text
         except TypeError:  # unhashable values: not memoised
-            alt_text, err_text = self._tail_texts(key)
+            alt, sep, hdop, vdop = key
+            alt_text = "" if alt is None else _altitudes(alt, sep)
+            err_text = _errors(hdop, vdop)
         # Position, speed and track change from fix to fix: not memoised.
         lat_text = _num_text(lat, 9)
         lon_text = _num_text(lon, 9)
@@ -196,13 +202,6 @@ class ReportEncoder:
                 "}",
             )
         )
-
-    @staticmethod
-    def _tail_texts(key: tuple[Any, Any, Any, Any]) -> tuple[str, str]:
-        """The altitude members (none without an altitude) and the error members of a TPV
-        for ``tpv_line``'s memo key (altitude, geoid separation, HDOP, VDOP)."""
-        alt, sep, hdop, vdop = key
-        return ("" if alt is None else _altitudes(alt, sep)), _errors(hdop, vdop)
 
     def sky(self, sky: GpsSky) -> str:
         """The SKY line (no newline) of ``sky``."""
