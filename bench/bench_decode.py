@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -41,6 +42,7 @@ from drivers.gps_nmea import NmeaFramer
 
 ROOT = Path(__file__).resolve().parent.parent
 TARGET_RATIO = 1.0
+CORPUS_COPIES = 4  # the corpus repeated, one process: decoding outweighs the start-up
 
 
 def _cpu_s(argv: list[str], stdin_path: Path) -> float:
@@ -63,16 +65,28 @@ def _commands(gpsdecode: str, path: Path) -> dict[str, list[str]]:
     }
 
 
-def _best(gpsdecode: str, path: Path, repeat: int) -> dict[str, float]:
-    """Best CPU time per tool on ``path``, the tools run in turns."""
-    best = dict.fromkeys(_commands(gpsdecode, path), float("inf"))
-    for _ in range(repeat):
-        for name, argv in _commands(gpsdecode, path).items():
-            best[name] = min(best[name], _cpu_s(argv, path))
-    return best
+def _rounds(gpsdecode: str, path: Path, empty: Path, repeat: int) -> list[dict[str, float]]:
+    """CPU time (s) of each tool on ``path`` and on ``empty``, ``repeat`` rounds. A round runs
+    all four back to back (the tools' order alternates between rounds), so both tools and
+    both inputs of a round see the same load."""
+    rounds = []
+    for k in range(repeat):
+        names = list(_commands(gpsdecode, path))
+        if k % 2:
+            names.reverse()
+        times = {}
+        for name in names:
+            times[name] = _cpu_s(_commands(gpsdecode, path)[name], path)
+            times[name + " start"] = _cpu_s(_commands(gpsdecode, empty)[name], empty)
+        rounds.append(times)
+    return rounds
 
 
-def _measure(label: str, data: bytes, gpsdecode: str, tmp: Path, repeat: int) -> list[Row]:
+def _measure(
+    label: str, data: bytes, gpsdecode: str, tmp: Path, repeat: int, judged: str = ""
+) -> list[Row]:
+    """Rows for one input; ``judged`` empty: the ratio is judged against the target, else
+    it is shown for information, with ``judged`` saying why not."""
     framer = NmeaFramer()
     framer.feed(data)
     n = framer.counters.sentences
@@ -80,20 +94,31 @@ def _measure(label: str, data: bytes, gpsdecode: str, tmp: Path, repeat: int) ->
     path.write_bytes(data)
     empty = tmp / "empty.nmea"
     empty.write_bytes(b"")
-    full = _best(gpsdecode, path, repeat)
-    start = _best(gpsdecode, empty, repeat)
-    rate = {k: n / max(full[k] - start[k], 1e-9) for k in full}
-    ratio = rate["x6wd decode"] / rate["gpsdecode"]
-    whole = {k: n / full[k] for k in full}
-    note = f"{n} sentences, {len(data)} bytes; start-up subtracted"
+    rounds = _rounds(gpsdecode, path, empty, repeat)
+    tools = ("gpsdecode", "x6wd decode")
+
+    def rate(r: dict[str, float], k: str) -> float:
+        return n / max(r[k] - r[k + " start"], 1e-9)
+
+    # Judged: the median over rounds of the ratio within a round (paired).
+    ratios = [rate(r, "x6wd decode") / rate(r, "gpsdecode") for r in rounds]
+    ratio = statistics.median(ratios)
+    rates = {k: statistics.median(rate(r, k) for r in rounds) for k in tools}
+    # The method before 2026-11-27 evening, for comparison: each tool's best run on the
+    # file minus its best run on the empty file, taken over all rounds.
+    best = {k: min(r[k] for r in rounds) - min(r[k + " start"] for r in rounds) for k in tools}
+    best_ratio = best["gpsdecode"] / max(best["x6wd decode"], 1e-9)
+    start = {k: statistics.median(r[k + " start"] for r in rounds) for k in tools}
+    whole = {k: statistics.median(n / r[k] for r in rounds) for k in tools}
+    note = f"{n} sentences, {len(data)} bytes; start-up subtracted; median of {repeat} rounds"
     return [
-        Row("decode", f"{label}: gpsdecode", rate["gpsdecode"], "sent/s", None, "", note),
+        Row("decode", f"{label}: gpsdecode", rates["gpsdecode"], "sent/s", None, "", note),
         Row(
             "decode",
             f"{label}: x6wd decode",
-            rate["x6wd decode"],
+            rates["x6wd decode"],
             "sent/s",
-            rate["gpsdecode"],
+            rates["gpsdecode"],
             "gpsdecode",
             note,
         ),
@@ -102,9 +127,10 @@ def _measure(label: str, data: bytes, gpsdecode: str, tmp: Path, repeat: int) ->
             f"{label}: x6wd rate / gpsdecode rate",
             ratio,
             "ratio",
-            TARGET_RATIO,
-            "target",
-            "PASS" if ratio >= TARGET_RATIO else "under target",
+            None if judged else TARGET_RATIO,
+            "" if judged else "target",
+            (judged or ("PASS" if ratio >= TARGET_RATIO else "under target"))
+            + f"; rounds {min(ratios):.3f}..{max(ratios):.3f}; best-run method {best_ratio:.3f}",
         ),
         Row(
             "decode",
@@ -127,10 +153,18 @@ def run(quick: bool = False) -> list[Row]:
     corpus = b"".join(p.read_bytes() for p in sorted(CORPUS.glob("*.log")))
     seconds = 600 if quick else 3600
     synth = synthetic_neo5(seconds, np.random.default_rng(5))
-    repeat = 3 if quick else 7
+    repeat = 5 if quick else 15
     with tempfile.TemporaryDirectory() as tmp:
         rows = _measure("gpsd corpus", corpus, gpsdecode, Path(tmp), repeat)
         rows += _measure(f"NEO-5 synthetic {seconds} s", synth, gpsdecode, Path(tmp), repeat)
+        rows += _measure(
+            f"gpsd corpus x{CORPUS_COPIES}",
+            corpus * CORPUS_COPIES,
+            gpsdecode,
+            Path(tmp),
+            repeat,
+            "not judged: favours x6wd (one-time costs spread, memos warm from copy 1)",
+        )
     return rows
 
 
