@@ -66,8 +66,8 @@ class ReportEncoder:
     Building those dicts and encoding them cost more than decoding the NMEA: every number
     goes through ``round`` and ``json`` although most repeat from epoch to epoch (DOPs,
     altitude, a satellite's elevation, azimuth and SNR). Here the text of a group of numbers
-    (the DOPs of a sky report, a fix's altitudes, its error estimates) is memoised by value,
-    a satellite's ``{...}`` by the ``SatInfo`` object (the decoder reuses one per satellite
+    (the DOPs of a sky report, a fix's altitudes, its error estimates, and a fix's altitudes
+    and error estimates together) is memoised by value, a satellite's ``{...}`` by the ``SatInfo`` object (the decoder reuses one per satellite
     state, see ``drivers.gps_nmea``), and an epoch's time by its datetime; position, speed
     and track, which change from fix to fix, are rounded each time.
     Each memo holds exactly the text the plain path writes for its key (for the floats and
@@ -386,9 +386,10 @@ class ReportDecoder(GpsDecoder):
     skipped: a fix's line is ``ReportEncoder.tpv_line`` of the fields ``_emit`` would store;
     a satellite goes from its GSV group straight to its two possible JSON texts (memoised
     by the group's text, as the reference memoises its ``SatInfo`` pair), so a sky report is
-    one join of texts (``sky_line``); an epoch's time member is written from the time of
-    day and the date's text without a datetime where that is exact (``_time_member``); a
-    GSA's fields are memoised by its text. Without ``with_sky`` the sky reports are counted
+    one join of texts (``sky_line``), and a GSV whose groups are all known is one memo read
+    per group; an epoch's time member is written from the time of day and the date's text
+    without a datetime where that is exact (``_time_member``); a GSA's values are memoised
+    by its text. Without ``with_sky`` the sky reports are counted
     and not written. tests/test_decode_bulk.py compares the lines and counters with the
     reference decoder's records through ``tpv_obj``/``sky_obj`` in the same run.
     """
