@@ -102,6 +102,55 @@ def test_null_threshold_controls_family_wise_error(baseline: list) -> None:
     assert model.threshold > 3.0  # corrected for multiplicity, not a per-cell 1.96
 
 
+def test_a_heavy_tailed_cell_gets_a_limit_of_its_own() -> None:
+    # One cell whose replicates are 0 but for one far-off run (the random walk's likelihood
+    # ratio scored out of sample: 0 for most runs, 54 for one) must raise its own limit,
+    # not every cell's: through the family-wise maximum of |z| it set the limit of all cells,
+    # and a real gap in any other cell went unseen.
+    rng = np.random.default_rng(3)
+    names = [Cell("mean", f"axis{i}") for i in range(60)]
+    values = rng.standard_normal((12, 60))
+    light = null_model([dict(zip(names, row, strict=True)) for row in values])
+    heavy_cell = Cell("random_walk_lr", "horizontal")
+    ratios = np.zeros(12)
+    ratios[4] = 54.0
+    rows = [
+        {**dict(zip(names, row, strict=True)), heavy_cell: r}
+        for row, r in zip(values, ratios, strict=True)
+    ]
+    heavy = null_model(rows)
+    limits = heavy.limits()
+    assert heavy.apart == 1 and limits[-1] > 2 * heavy.threshold
+    assert heavy.threshold == pytest.approx(light.threshold, rel=0.15)
+    real = dict(zip(names, values.mean(axis=0), strict=True)) | {heavy_cell: 0.0}
+    real[names[0]] += 8.0 * float(heavy.sd[0])  # a gap 8 spreads wide in an ordinary cell
+    assert np.abs(heavy.z(real))[0] > limits[0]
+
+
+def test_simulator_runs_are_scored_out_of_sample() -> None:
+    # The real log's random-walk ratio is scored against the noise model of all runs, so
+    # each run's must be scored against the model of the OTHER runs: in sample, a model
+    # that has seen the run's own slow wander left the cell's null too narrow.
+    from x6wd.gap.diagnose import RW_LR_CELL, GpsPipeline
+    from x6wd.gap.drift import random_walk_lr
+    from x6wd.gap.noise import fit_noise_model
+
+    runs = [surrogate_run(900.0, 1.0, np.random.default_rng(300 + i)) for i in range(9)]
+    real, runs = runs[0], runs[1:]
+    pipe = GpsPipeline(Options(), np.random.default_rng(0))
+    pipe.layout = layout_for(real)
+    pipe.runs = runs
+    bats: list[dict] = [{} for _ in runs]
+    real_bat: dict = {}
+    pipe.add_whole_log_cells(real, real_bat, bats)
+    for i, run in enumerate(runs):
+        others = fit_noise_model(runs[:i] + runs[i + 1 :], pipe.layout)
+        assert bats[i][RW_LR_CELL] == pytest.approx(random_walk_lr(run, others), abs=1e-6)
+    assert real_bat[RW_LR_CELL] == pytest.approx(
+        random_walk_lr(real, fit_noise_model(runs, pipe.layout)), abs=1e-6
+    )
+
+
 def test_block_bootstrap_keeps_length_and_time_structure(baseline: list) -> None:
     reps = block_bootstrap(baseline[:1], 5, np.random.default_rng(0), block_s=400.0)
     assert all(len(r) == len(baseline[0]) for r in reps)

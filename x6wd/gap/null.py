@@ -3,9 +3,11 @@
 The baseline ensemble is M simulator runs with different seeds; with only one or two sim
 logs a circular moving-block bootstrap of them stands in (blocks long compared with the
 correlation time, so the time structure inside a block survives). A real log's cell is then
-scored as z = (real - null mean) / null spread, and the "where" threshold controls the
-family-wise error over all cells: the larger of a Bonferroni-corrected Student-t prediction
-bound and the leave-one-out max-|z| quantile of the replicates themselves.
+scored as z = (real - null mean) / null spread, and the "where" limits control the
+family-wise error over all cells: each cell's Bonferroni-corrected Student-t prediction bound,
+with a tail of its own where the replicates show that cell's tail to be heavier than the rest
+(:func:`tail_dof`), raised if need be to the leave-one-out family-wise quantile of the
+replicates themselves measured in units of those per-cell bounds.
 """
 
 from __future__ import annotations
@@ -75,11 +77,25 @@ class NullModel:
     values: np.ndarray  # (M, K) replicate batteries
     mean: np.ndarray
     sd: np.ndarray
-    threshold: float
+    threshold: float  # |z| limit of the cells that share the pooled tail
     # Per-cell factor (>= 1) on the spread a real log is scored with (z, G), where the
     # replicates are draws from a model fitted to a few logs: the model's own spread misses
     # the parameter uncertainty and its misfit (:func:`inflation_from`). None: 1.
     inflation: np.ndarray | None = None
+    # Per-cell |z| limits (>= threshold: higher for a cell whose own tail is heavier than
+    # the rest's, :func:`tail_dof`). None: ``threshold`` for every cell.
+    cell_threshold: np.ndarray | None = None
+
+    def limits(self) -> np.ndarray:
+        """The |z| limit of every cell (the "where" test)."""
+        if self.cell_threshold is None:
+            return np.full(len(self.cells), self.threshold)
+        return self.cell_threshold
+
+    @property
+    def apart(self) -> int:
+        """How many cells are tested at a limit of their own (a heavier tail)."""
+        return int(np.sum(self.limits() > self.threshold * (1 + 1e-9)))
 
     @property
     def n_runs(self) -> int:
@@ -162,14 +178,56 @@ def _inflation_array(cells: Sequence[Cell], inflation: Inflation | None) -> np.n
     return np.array([inflation.get((c.statistic, c.axis), default) for c in cells])
 
 
+# Tail degrees of freedom tried per cell (plus the Gaussian cell's M - 2, that of a replicate
+# scored against the M - 1 others); the pooled tail clips |z| here, so that one replicate of
+# one heavy cell does not set every cell's tail.
+TAIL_DOF_GRID = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 64.0)
+TAIL_CLIP_Z = 10.0
+TAIL_APART_ALPHA = 0.05  # family-wise level of the test that sets a cell's tail apart
+
+
+def tail_dof(z_loo: np.ndarray) -> np.ndarray:
+    """Per-cell Student-t degrees of freedom of the replicates' leave-one-out z (rows:
+    replicates, columns: cells), the scale fixed at a Gaussian cell's sqrt(1 + 1/(M - 1)).
+
+    A Gaussian cell's leave-one-out z is Student-t with M - 2 degrees of freedom; a cell
+    whose replicates now and then differ by far more (a whole-log likelihood ratio that is
+    0 for most runs and 54 for one) has a heavier tail. The cells share one tail, fitted to
+    all their z pooled (each clipped at ``TAIL_CLIP_Z``), unless a cell's own z reject it
+    by a likelihood-ratio test at ``TAIL_APART_ALPHA`` over all cells: then that cell keeps
+    the heavier tail of its own. So one heavy cell raises its own limit, not every cell's
+    (through the family-wise maximum it did: one run's random-walk ratio set the limit of
+    every cell, and gpsd's ZED-F9P log came out "no significant gap")."""
+    n_runs, n_cells = z_loo.shape
+    gaussian = float(n_runs - 2)
+    grid = np.array([g for g in TAIL_DOF_GRID if g < gaussian] + [gaussian])
+    u = z_loo / math.sqrt(1.0 + 1.0 / (n_runs - 1))
+    own = np.array([sps.t.logpdf(u, nu).sum(axis=0) for nu in grid])  # (grid, cells)
+    clipped = np.clip(u, -TAIL_CLIP_Z, TAIL_CLIP_Z)
+    pooled = int(np.argmax([sps.t.logpdf(clipped, nu).sum() for nu in grid]))
+    best = np.argmax(own, axis=0)
+    gain = own[best, np.arange(n_cells)] - own[pooled]
+    critical = float(sps.chi2.ppf(1.0 - TAIL_APART_ALPHA / max(n_cells, 1), 1)) / 2.0
+    apart = (gain > critical) & (best < pooled)
+    return np.where(apart, grid[best], grid[pooled])
+
+
 def null_model(
     batteries: Sequence[dict[Cell, float]],
     alpha: float = 0.05,
     inflation: Inflation | None = None,
 ) -> NullModel:
     """Calibrate the battery on M >= 3 replicate batteries; ``alpha`` the family-wise error
-    rate of the "where" threshold; ``inflation`` the spread factors of a parametric null
-    (:func:`inflation_from`; None for replicates that are runs of the simulator)."""
+    rate of the "where" test; ``inflation`` the spread factors of a parametric null
+    (:func:`inflation_from`; None for replicates that are runs of the simulator).
+
+    Each cell's limit is the Bonferroni-corrected Student-t prediction bound of one more
+    draw against the mean of M (a Gaussian cell: M - 1 degrees of freedom; a cell with a
+    heavier tail of its own, :func:`tail_dof`: fewer). The limits are then raised together,
+    if need be, to the 1 - alpha quantile of the replicates' own leave-one-out family-wise
+    maximum of |z| / limit: the cells are not exactly Student-t (an hour of the simulator
+    can sit 8 spreads off in several cells at once), though with M replicates that
+    quantile is coarse, hence the parametric bounds beneath it."""
     if len(batteries) < 3:
         raise ConfigError(
             f"null calibration needs at least 3 baseline replicates, got {len(batteries)}"
@@ -182,13 +240,24 @@ def null_model(
     mean = values.mean(axis=0)
     spread = np.maximum(values.std(axis=0, ddof=1), _floors(cells))
     # A new draw vs the mean of M: prediction spread sd*sqrt(1+1/M), Student-t with M-1 dof.
-    bonferroni = float(sps.t.ppf(1.0 - alpha / (2 * n_cells), n_runs - 1)) * math.sqrt(
-        1.0 + 1.0 / n_runs
-    )
-    loo_max = loo_max_z(values, cells)
-    quantile = float(np.quantile(loo_max, 1.0 - alpha)) if loo_max.size else 0.0
+    level = 1.0 - alpha / (2 * n_cells)
+    widen = math.sqrt(1.0 + 1.0 / n_runs)
+    limits = np.full(n_cells, float(sps.t.ppf(level, n_runs - 1)) * widen)
+    if n_runs >= 4:
+        z_loo = np.array([_loo_z(values, cells, i) for i in range(n_runs)])
+        # from the M - 1 replicates of a leave-one-out z to the M the real log is scored on
+        dof = tail_dof(z_loo) * (n_runs - 1) / (n_runs - 2)
+        limits = sps.t.ppf(level, dof) * widen
+        excess = np.max(np.abs(z_loo) / limits, axis=1)
+        limits = limits * max(1.0, float(np.quantile(excess, 1.0 - alpha)))
     return NullModel(
-        cells, values, mean, spread, max(bonferroni, quantile), _inflation_array(cells, inflation)
+        cells,
+        values,
+        mean,
+        spread,
+        float(np.min(limits)),
+        _inflation_array(cells, inflation),
+        limits,
     )
 
 
@@ -196,13 +265,6 @@ def _loo_z(values: np.ndarray, cells: Sequence[Cell], i: int) -> np.ndarray:
     rest = np.delete(values, i, axis=0)
     spread = np.maximum(rest.std(axis=0, ddof=1), _floors(cells))
     return (values[i] - rest.mean(axis=0)) / spread
-
-
-def loo_max_z(values: np.ndarray, cells: Sequence[Cell]) -> np.ndarray:
-    """Max |z| of each replicate scored against the others (its own null of the max)."""
-    if values.shape[0] < 4:
-        return np.zeros(0)
-    return np.array([np.max(np.abs(_loo_z(values, cells, i))) for i in range(values.shape[0])])
 
 
 def loo_gaps(
@@ -241,7 +303,13 @@ def resample_null(model: NullModel, rng: np.random.Generator) -> NullModel:
         _floors(model.cells),
     )
     return NullModel(
-        model.cells, values, values.mean(axis=0), spread, model.threshold, model.inflation
+        model.cells,
+        values,
+        values.mean(axis=0),
+        spread,
+        model.threshold,
+        model.inflation,
+        model.cell_threshold,
     )
 
 

@@ -146,6 +146,7 @@ class Outcome(Generic[SeriesT, LayoutT]):
     cells: tuple[Cell, ...]
     z: np.ndarray
     threshold: float
+    alpha: float  # the family-wise level of the "where" test
     where: list[dict[str, Any]]
     g_baseline: float
     g_floor: float
@@ -194,7 +195,8 @@ def report_dict(outcome: Outcome[Any, Any]) -> dict[str, Any]:
 
 
 def where_cells(null: NullModel, z: np.ndarray) -> list[dict[str, Any]]:
-    """The cells beyond the null's family-wise threshold, by decreasing |z|."""
+    """The cells beyond their family-wise limits (:meth:`NullModel.limits`), by decreasing |z|."""
+    limits = null.limits()
     return [
         {
             "statistic": c.statistic,
@@ -204,8 +206,10 @@ def where_cells(null: NullModel, z: np.ndarray) -> list[dict[str, Any]]:
             "place": c.place,
             "z": round(float(zc), 2),
         }
-        for c, zc in sorted(zip(null.cells, z, strict=True), key=lambda p: -abs(p[1]))
-        if abs(zc) > null.threshold
+        for c, zc, limit in sorted(
+            zip(null.cells, z, limits, strict=True), key=lambda p: -abs(p[1])
+        )
+        if abs(zc) > limit
     ]
 
 
@@ -507,6 +511,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             cells=null.cells,
             z=z,
             threshold=null.threshold,
+            alpha=options.alpha,
             where=where,
             g_baseline=split.g_baseline,
             g_floor=split.g_floor,

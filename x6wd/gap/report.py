@@ -250,7 +250,13 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
         f"- log: {layout.duration_s:.0f} s at {layout.dt_s:g} s steps, {motion}, "
         f"fix availability {np.mean(diagnosis.real.valid):.1%}",
         f"- baseline: {len(diagnosis.baseline)} runs{boot}; {len(diagnosis.cells)} statistics; "
-        f"family-wise threshold |z| > {diagnosis.threshold:.2f} (alpha 5 %)",
+        f"family-wise threshold |z| > {diagnosis.threshold:.2f} "
+        f"(alpha {100 * diagnosis.alpha:g} %"
+        + (
+            f"; {diagnosis.null.apart} heavy-tailed statistic(s) at limits of their own)"
+            if diagnosis.null.apart
+            else ")"
+        ),
         f"- fit on t < {t_fit_s:.0f} s, guard gap, held-out test on t >= {t_test_s:.0f} s",
         f"- gap G (mean clipped z^2 on the held-out part): baseline "
         f"{diagnosis.g_baseline:.2f}, floor {diagnosis.g_floor:.2f} (sim vs sim), with the "
