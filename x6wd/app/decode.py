@@ -67,9 +67,10 @@ class ReportEncoder:
     goes through ``round`` and ``json`` although most repeat from epoch to epoch (DOPs,
     altitude, a satellite's elevation, azimuth and SNR). Here the text of a group of numbers
     (the DOPs of a sky report, a fix's altitudes, its error estimates, and a fix's altitudes
-    and error estimates together) is memoised by value, a satellite's ``{...}`` by the ``SatInfo`` object (the decoder reuses one per satellite
-    state, see ``drivers.gps_nmea``), and an epoch's time by its datetime; position, speed
-    and track, which change from fix to fix, are rounded each time.
+    and error estimates together) is memoised by value, a satellite's ``{...}`` by the
+    ``SatInfo`` object (the decoder reuses one per satellite state, see
+    ``drivers.gps_nmea``), and an epoch's time by its datetime; position, speed and track,
+    which change from fix to fix, are rounded each time.
     Each memo holds exactly the text the plain path writes for its key (for the floats and
     small ints records hold: equal keys give equal text). Keys containing a zero are never
     memoised: ``0.0 == -0.0`` but they print differently. The memos are bounded (cleared
@@ -606,14 +607,16 @@ def decode_stream(stream: IO[bytes], out: IO[str], *, with_sky: bool = True) -> 
     decoder = ReportDecoder(ReportEncoder(), with_sky=with_sky)
     chunk = head
     while chunk:
-        lines = decoder.feed(chunk, 0.0)  # ReportDecoder's records are its lines
-        if lines:
-            out.write("\n".join(lines) + "\n")  # type: ignore[arg-type]
+        _write_lines(decoder.feed(chunk, 0.0), out)
         chunk = stream.read(_CHUNK_BYTES)
-    lines = decoder.flush()
-    if lines:
-        out.write("\n".join(lines) + "\n")  # type: ignore[arg-type]
+    _write_lines(decoder.flush(), out)
     return decoder.counters
+
+
+def _write_lines(records: list[GpsOutput], out: IO[str]) -> None:
+    """Write the records of a ``ReportDecoder`` (its report lines, ``str``) in one call."""
+    if records:
+        out.write("\n".join(cast("list[str]", records)) + "\n")
 
 
 def decode_path(path: str, out: IO[str], *, with_sky: bool = True) -> DecoderCounters:
