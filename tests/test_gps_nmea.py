@@ -888,3 +888,18 @@ def test_ubx_checksum_is_the_fletcher_loop(data: bytes) -> None:
 def test_ubx_checksum_at_its_largest_sums(n: int) -> None:
     # All 0xFF makes the sums largest: the 4-byte slots' limit, and past it the 8-byte ones.
     assert gps_nmea.ubx_checksum(b"\xff" * n) == _plain_fletcher(b"\xff" * n)
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.text(alphabet="0123456789.,a ", max_size=60))
+def test_gsv_groups_are_the_fields_four_by_four(text: str) -> None:
+    # The regex that cuts a GSV's satellites into groups equals the plain reading of
+    # gsv_groups' docstring: the fields four by four, a short last group padded only in a
+    # sentence of fewer than four satellites' worth of fields.
+    fields = text.split(",")
+    whole = len(fields) - len(fields) % 4
+    expected = [",".join(fields[i : i + 4]) for i in range(0, whole, 4)]
+    if len(fields) % 4 and len(fields) < 16:
+        tail = fields[whole:]
+        expected.append(",".join(tail + [""] * (4 - len(tail))))
+    assert gps_nmea.gsv_groups(text) == expected
