@@ -104,6 +104,35 @@ def test_a_loaded_uart_and_effects_match_the_robot_engine(tmp_path: Path) -> Non
     assert extra["effects_skipped"] == ["hard_iron: no compass in the receiver engine"]
 
 
+SEED_LEVEL = f"""include = ["{OPEN_FIELD}"]
+name = "seed-level receiver, 2 Hz, 4 decimals, 4800 baud, delayed and held"
+[gnss]
+fidelity = "seed"
+rate_hz = 2.0
+nmea_decimals = 4
+baud = 4800
+[compass]
+rate_hz = 10.0
+[[effects]]
+name = "latency"
+delay_s = 0.7
+[[effects]]
+name = "outages"
+mean_up_s = 20.0
+mean_down_s = 5.0
+[[effects]]
+name = "static_hold"
+exit_distance_m = 0.3
+"""
+
+
+def test_the_seed_level_receiver_with_delay_outages_and_hold_matches(tmp_path: Path) -> None:
+    """The other fidelity, another rate, print and baud, and layers that look at the antenna's
+    past (latency) or hold the position: still the robot engine's bytes and figures."""
+    world = loads_world(SEED_LEVEL, base_dir=ROOT)
+    _assert_same_receiver(*_both(world, tmp_path, seed=5, duration_s=120.0))
+
+
 @pytest.mark.slow
 def test_chunked_surveys_match_too(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Chunk boundaries (40 epochs here) fall on the same epochs in both engines."""
