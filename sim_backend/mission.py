@@ -1,4 +1,6 @@
-"""``x6wd sim SCENARIO.toml``: a whole mission in simulated time, through the real decoders.
+"""The robot engine of ``x6wd sim``: a whole mission in simulated time, through the real decoders
+(:mod:`sim_backend.cli` picks it for every scenario with waypoints; a static survey runs on the
+receiver engine, :mod:`sim_backend.survey`, unless ``--engine robot``).
 
 This is the fast-time edge of the one loop (:class:`x6wd.loop.runner.Runner`, the object the
 daemon drives in real time): the simulator steps its world at the compass rate (20 Hz by
@@ -26,7 +28,8 @@ simulated seconds, ``t_utc`` = scenario UTC), ``gps.nmea`` (every byte the recei
 ``truth.csv`` (t_s, lat, lon, alt, heading_deg at each physics step), ``summary.json`` and
 ``track.png``.
 
-A scenario without waypoints is a static survey: the robot stands for ``duration_s`` and the
+A scenario without waypoints is a static survey: the robot stands for ``duration_s`` (on
+this engine its whole loop runs, at about 1/20 of the receiver engine's speed) and the
 summary's dispersion figures are the paper's Table 2 quantities (half the spread of the raw
 readings, latitude and longitude each converted with the paper's two radii, so longitude is
 stretched by 1/cos φ as in the paper).
