@@ -100,8 +100,9 @@ def fingerprint_score(
 class PipelineOptions:
     """Settings of a diagnosis: ``replicates`` the size of a bootstrap ensemble (used when
     fewer than ``min_runs`` baseline runs are given), ``fit_fraction`` and ``guard_fraction``
-    of the log, ``alpha`` the family-wise error rate, ``candidates`` the effects considered
-    (the sensor's registry by default), ``ci_resamples`` for closure intervals,
+    of the log, ``alpha`` the family-wise error rate of the "where" test (``few_logs_alpha``
+    against replicates with spread factors, the few-logs null), ``candidates`` the effects
+    considered (the sensor's registry by default), ``ci_resamples`` for closure intervals,
     ``max_effects`` selected at most."""
 
     replicates: int = 20
@@ -109,6 +110,7 @@ class PipelineOptions:
     fit_fraction: float = 0.6
     guard_fraction: float = 0.05
     alpha: float = 0.05
+    few_logs_alpha: float = 0.05
     candidates: tuple[str, ...] = ()
     ci_resamples: int = 200
     max_effects: int = 3
@@ -360,7 +362,12 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
 
     def null(self, batteries: Sequence[Battery]) -> NullModel:
         """The null of replicate ``batteries`` (with the few-logs spread factors, if any)."""
-        return null_model(batteries, self.options.alpha, self.inflation)
+        return null_model(batteries, self.level(), self.inflation)
+
+    def level(self) -> float:
+        """The family-wise level of the "where" test: ``few_logs_alpha`` when the null is
+        made of a few logs' replicates with spread factors, else ``alpha``."""
+        return self.options.alpha if self.inflation is None else self.options.few_logs_alpha
 
     def part_layout(self, layout: LayoutT, duration_s: float) -> LayoutT:
         """The layout of a part of the log ``duration_s`` long (default: the whole log's)."""
@@ -511,7 +518,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             cells=null.cells,
             z=z,
             threshold=null.threshold,
-            alpha=options.alpha,
+            alpha=self.level(),
             where=where,
             g_baseline=split.g_baseline,
             g_floor=split.g_floor,
