@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -254,3 +255,23 @@ def test_bulk_nmea_records_are_the_recorders_lines(tmp_path: Path, lines: list[b
     n = _RecordLines(np.datetime64(start, "us")).write_nmea(out, pairs)
     assert n == sum(map(len, lines))
     assert out.getvalue() == (tmp_path / "r.jsonl").read_text()
+
+
+def test_a_reader_that_goes_away_is_exit_141_without_a_traceback(tmp_path: Path) -> None:
+    """``x6wd sim ... | head -1`` when head has already gone: the summary cannot be printed;
+    the run's files are written, the exit code is the shell's for SIGPIPE, and nothing is
+    dumped on stderr. (The pipe's reader is closed before the run starts: no race.)"""
+    read_fd, write_fd = os.pipe()
+    os.close(read_fd)
+    try:
+        p = subprocess.run(
+            [sys.executable, "-m", "x6wd", "sim", str(OPEN_FIELD), "--duration", "5",
+             "--out", str(tmp_path / "o"), "--quiet"],
+            stdout=write_fd, stderr=subprocess.PIPE, cwd=ROOT, timeout=120,
+        )  # fmt: skip
+    finally:
+        os.close(write_fd)
+    err = p.stderr.decode()
+    assert p.returncode == 141, err
+    assert "Traceback" not in err
+    assert (tmp_path / "o" / "summary.json").exists()
