@@ -731,22 +731,38 @@ def _gsv_sats(text: str) -> list[_Sat]:
 def _gsv_sat(key: str, fields: list[str]) -> _Sat:
     """Decode and range-check one satellite (PRN not empty) of a GSV sentence: its four
     ``fields``, memoised under their text ``key``."""
+    prn, el, az, snr = _gsv_values(fields)
+    sat = (prn, SatInfo(prn, el, az, snr, False), SatInfo(prn, el, az, snr, True))
+    if len(_SATS) >= _SATS_MAX:
+        _SATS.clear()
+    _SATS[key] = sat
+    return sat
+
+
+_SatValues = tuple[int, float | None, float | None, float | None]
+
+
+def gsv_values(group: str) -> _SatValues | None:
+    """PRN, elevation (deg), azimuth (deg) and SNR (dB-Hz) of one group of ``gsv_groups``
+    (None without a PRN: not a satellite), as ``gsv_satellite`` decodes and checks them,
+    without building its records or using its memo (``x6wd decode`` keeps its own)."""
+    fields = group.split(",")
+    return _gsv_values(fields) if fields[0] else None
+
+
+def _gsv_values(fields: list[str]) -> _SatValues:
+    """PRN, elevation, azimuth and SNR of a satellite's four ``fields`` (PRN not empty),
+    range-checked (FieldError)."""
     p, e, a, r = fields
     if e and a and r and (p + e + a + r).isdigit():
         # Fast path for the usual all-integer group (the sentence is ASCII, see _decode).
         prn, el, az, snr = int(p), float(e), float(a), float(r)
         if prn > _GSV_PRN_MAX or el > _GSV_EL_MAX or az > _GSV_AZ_MAX or snr > _GSV_SNR_MAX:
             raise FieldError(p)
-        sat = (prn, SatInfo(prn, el, az, snr, False), SatInfo(prn, el, az, snr, True))
-    else:
-        prn_ = _gsv_prn(p)
-        assert prn_ is not None
-        el_, az_, snr_ = _gsv_el(e), _gsv_az(a), _gsv_snr(r)
-        sat = (prn_, SatInfo(prn_, el_, az_, snr_, False), SatInfo(prn_, el_, az_, snr_, True))
-    if len(_SATS) >= _SATS_MAX:
-        _SATS.clear()
-    _SATS[key] = sat
-    return sat
+        return prn, el, az, snr
+    prn_ = _gsv_prn(p)
+    assert prn_ is not None
+    return prn_, _gsv_el(e), _gsv_az(a), _gsv_snr(r)
 
 
 # ---------------------------------------------------------------------------- decoder

@@ -41,7 +41,7 @@ from drivers.gps_nmea import (
     _parse_gsa,
     _Rmc,
     gsv_groups,
-    gsv_satellite,
+    gsv_values,
 )
 from drivers.nmea import GSA
 from x6wd.core.errors import DeviceUnavailable
@@ -352,26 +352,46 @@ def _num_text(v: Any, ndigits: int) -> str | None:
 
 def _sat_text(s: SatInfo) -> str:
     """One satellite of ``sky_obj`` as compact JSON."""
-    free, used = _sat_texts(s)
+    free, used = _sat_texts(s.prn, s.el_deg, s.az_deg, s.snr_dbhz)
     return used if s.used else free
 
 
-def _sat_texts(s: SatInfo) -> tuple[str, str]:
-    """``_sat_text`` of ``s`` as not used and as used in the fix: the text of
+def _sat_texts(prn: Any, el_deg: Any, az_deg: Any, snr_dbhz: Any) -> tuple[str, str]:
+    """``_sat_text`` of a satellite as not used and as used in the fix: the text of
     ``json.dumps({"PRN": prn, "used": used, "el": .., "az": .., "ss": ..})`` (non-finite
     values omitted, the others rounded to 0.1), written directly: both texts from one
-    conversion of the numbers."""
-    prn = s.prn
+    conversion of the numbers, each number's text memoised by value (elevations,
+    azimuths and SNRs are a few hundred values)."""
     head = '{"PRN":' + (str(prn) if type(prn) is int else _dumps_compact(prn)) + ',"used":'
     tail: list[str] = []
-    for key, v in ((',"el":', s.el_deg), (',"az":', s.az_deg), (',"ss":', s.snr_dbhz)):
+    for key, v in ((',"el":', el_deg), (',"az":', az_deg), (',"ss":', snr_dbhz)):
         if v is not None:
-            text = _num_text(v, 1)
+            text = _tenths(v)
             if text is not None:
                 tail += (key, text)
     tail.append("}")
     rest = "".join(tail)
     return head + "false" + rest, head + "true" + rest
+
+
+_TENTHS: dict[Any, str] = {}  # value -> _num_text(value, 1), for values other than zero
+
+
+def _tenths(v: Any) -> str | None:
+    """``_num_text(v, 1)``, memoised by value: numbers that compare equal convert to the same
+    float and so to the same text, except 0.0 and -0.0, never memoised (nor non-finite
+    values or unhashable ones)."""
+    try:
+        return _TENTHS[v]
+    except KeyError:
+        text = _num_text(v, 1)
+        if text is not None and v != 0:
+            if len(_TENTHS) >= MEMO_MAX:
+                _TENTHS.clear()
+            _TENTHS[v] = text
+        return text
+    except TypeError:
+        return _num_text(v, 1)
 
 
 _GSA_FIELDS = GSA.pos("vdop") + 1  # the GSA fields GpsDecoder reads (a shorter one is padded)
@@ -442,10 +462,10 @@ class ReportDecoder(GpsDecoder):
         for group in groups:
             entry = memo.get(group)
             if entry is None:
-                sat = gsv_satellite(group)
-                if sat is None:
+                values = gsv_values(group)
+                if values is None:
                     continue
-                entry = (sat[0], *_sat_texts(sat[1]))
+                entry = (values[0], *_sat_texts(*values))
                 if len(memo) >= MEMO_MAX:
                     memo.clear()
                 memo[group] = entry
