@@ -6,22 +6,42 @@ GGA, GSA, GSV x3, GLL). Each tool is run as its own process on the same file wit
 to /dev/null: ``gpsdecode -d < FILE`` (gpsd's JSON reports, one or more per sentence) and
 ``python -m x6wd decode --quiet FILE`` (TPV and SKY lines, see x6wd/app/decode.py).
 
-The figure is CPU time (user + system) of the child process, the best of several runs taken
-in turns so that load from other processes hits both tools alike. Each tool's start-up is
-measured on an empty file and subtracted: the rate is sentences per second of decoding, which
-is what a long log costs. The start-up itself (the Python interpreter and imports, about
-0.1 s, against 2 ms for gpsdecode) is printed in its own rows and in a whole-process ratio.
-Sentences are the checksum-valid ones as x6wd's framer counts them, the same number for both.
-Target: x6wd's rate >= gpsdecode's (ratio >= 1).
+The figure is CPU time (user + system) of the child process. Each tool's start-up is
+measured on an empty file and subtracted: the rate is sentences per second of decoding,
+which is what a long log costs. The start-up itself (the Python interpreter and imports,
+about 0.1 s, against 2 ms for gpsdecode) is printed in its own rows and in a whole-process
+ratio. Sentences are the checksum-valid ones as x6wd's framer counts them, the same number
+for both. Target: x6wd's rate >= gpsdecode's (ratio >= 1).
 
-The corpus row is noisy: its decoding (about 0.1 s) is no longer than x6wd's start-up, so
-the spread of the two minima shows in the ratio (0.74 to 1.16 in six runs on 2026-11-27,
-against 0.74 to 0.79 for the NEO-5 hour). Where x6wd's time goes on the corpus: UBX
-checksums of the ZED-F9P log (``drivers.gps_nmea.ubx_checksum``, big-integer arithmetic,
-about a sixth) and importing pynmea2 for the proprietary sentences; on the NEO-5 hour:
-framing about an eighth, the rest spread over the per-sentence field decoding, GSV groups
-and the report text (tests/test_decode_bulk.py keeps that path byte-identical to the
-reference).
+Method (since 2026-11-27 evening): rounds of four runs back to back (each tool on the file
+and on the empty file, the tools' order alternating), the ratio taken within each round and
+the judged figure the median over 15 rounds. The earlier figure, each tool's best run on
+the file minus its best run on the empty file over all runs, is printed beside it ("best-run
+method"). Why: on this shared 2-core machine the CPU time of one run drifts by up to 1.5x
+within minutes (other processes, the host), and the two best runs of a tool may come from
+different moments; the corpus row, whose decoding (about 0.1 s) is no longer than x6wd's
+start-up, swung from 0.74 to 1.16 in six runs of the old method, while the median of paired
+rounds stayed within 0.83 to 0.85 in three runs (NEO-5 hour 0.82 to 0.84). A third,
+informative row decodes the corpus four times over in one process: decoding then outweighs
+the start-up, but it is not judged, as it spreads x6wd's one-time costs (importing pynmea2
+for the proprietary sentences, about 10 ms) and its later copies read memos filled by the
+first, which a single log does not.
+
+Figures (2026-11-27 20:30 UTC, load average 4, three runs): corpus 0.849, 0.832, 0.834;
+NEO-5 hour 0.843, 0.815, 0.820 (corpus x4: 1.02, 1.02, 0.99). The code of the session's
+start, two runs in the same conditions: corpus 0.803, 0.836; NEO-5 hour 0.761, 0.754.
+Target not met. On an idle machine gpsdecode gains more than x6wd (NEO-5 hour 0.59 with the
+old method at load 0.2, 0.77 at load 2.5-4.4).
+
+Where x6wd's time goes (py-spy samples of the decode loop, 2026-11-27): on the NEO-5 hour,
+RMC fields 18 % (time, coordinates and speed parsed afresh every epoch), framing 16 %
+(the line regex, the batched checksums, the split into lines), the TPV line 15 %, the
+per-sentence loop 14 %, GSV groups 13 %, the SKY line 10 %, the rest of the handlers 13 %;
+on the corpus, framing 22 %, UBX frames 18 % (``drivers.gps_nmea.ubx_checksum``, big-integer
+arithmetic on 700-950-byte ZED-F9P frames), GSV groups 12 %, the loop 10 %, the TPV line 9 %,
+plus the pynmea2 import. Each piece is already a C call or a memo read per field where the
+value repeats; what is left is Python's cost per operation spread over every sentence
+(tests/test_decode_bulk.py keeps the path byte-identical to the reference).
 """
 
 from __future__ import annotations
