@@ -77,6 +77,7 @@ from drivers.nmea import (
     Sentence,
     checksum,
     field_parser,
+    parse_time,
 )
 from x6wd.core.errors import ConfigError, ParseError
 from x6wd.core.geodesy import wrap360
@@ -562,10 +563,37 @@ _GSV_AZ_MAX = float(GSV.field("azimuth").hi or 0)
 _GSV_SNR_MAX = float(GSV.field("snr").hi or 0)
 _GLL_TIME, _gll_time = _at(GLL, "time")
 _ZDA_TIME, _zda_time = _at(ZDA, "time")
+assert _gga_time is _rmc_time is _gll_time is _zda_time is parse_time  # see _time_of_day
 _ZDA_DAY, _zda_day = _at(ZDA, "day")
 _zda_month = field_parser(ZDA.field("month"))
 _zda_year = field_parser(ZDA.field("year"))
 assert ZDA.pos("month") == _ZDA_DAY + 1 and ZDA.pos("year") == _ZDA_DAY + 2
+
+# A time of day's usual texts ("hhmmss", "hhmmss.ss", "hhmmss.sss") from tables: the
+# microseconds of the minute "hhmm" (00:00-23:59), of the second "ss" (00-60: a leap
+# second) and of the fraction. Every key is digits in range, so a text made of keys is one
+# parse_time accepts, with the same value; any other text goes through parse_time.
+_MINUTE_US: Final = {
+    f"{h:02d}{m:02d}": (h * 60 + m) * 60_000_000 for h in range(24) for m in range(60)
+}
+_SECOND_US: Final = {f"{sec:02d}": sec * 1_000_000 for sec in range(61)}
+_FRACTION_US: Final = {f".{c:02d}": c * 10_000 for c in range(100)} | {
+    f".{c:03d}": c * 1_000 for c in range(1000)
+}
+
+
+@functools.lru_cache(maxsize=64)  # a time repeats in every sentence of its epoch
+def _time_of_day(s: str) -> int | None:
+    """``parse_time(s)`` (microseconds of the day, None if empty, FieldError if bad): three
+    table reads for the usual forms, a new epoch's time being parsed once per epoch."""
+    try:
+        us = _MINUTE_US[s[:4]] + _SECOND_US[s[4:6]]
+        return us + _FRACTION_US[s[6:]] if len(s) > 6 else us
+    except KeyError:
+        return parse_time(s)
+
+
+_gga_time = _rmc_time = _gll_time = _zda_time = _time_of_day
 assert GGA.pos("lat_hemi") == _GGA_LAT + 1 and GGA.pos("lon_hemi") == _GGA_LON + 1
 assert RMC.pos("lat_hemi") == _RMC_LAT + 1 and RMC.pos("lon_hemi") == _RMC_LON + 1
 assert GSA.pos("hdop") == _GSA_PDOP + 1 and GSA.pos("vdop") == _GSA_PDOP + 2

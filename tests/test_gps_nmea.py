@@ -903,3 +903,44 @@ def test_gsv_groups_are_the_fields_four_by_four(text: str) -> None:
         tail = fields[whole:]
         expected.append(",".join(tail + [""] * (4 - len(tail))))
     assert gps_nmea.gsv_groups(text) == expected
+
+
+def _parsed(parse: Callable[[str], int | None], s: str) -> int | str | None:
+    try:
+        return parse(s)
+    except ValueError:
+        return "FieldError"
+
+
+@settings(max_examples=500, deadline=None)
+@given(
+    st.one_of(
+        st.text(alphabet="0123456789.:-+ ٣", max_size=12),
+        st.builds(
+            "{:02d}{:02d}{:02d}{}".format,
+            st.integers(0, 99),
+            st.integers(0, 99),
+            st.integers(0, 99),
+            st.sampled_from(["", ".", ".5", ".00", ".99", ".000", ".999", ".1234", "x"]),
+        ),
+    )
+)
+def test_time_fields_read_from_tables_as_parse_time_reads_them(text: str) -> None:
+    # The decoder reads times through tables of the usual forms; every text, usual or
+    # not, in range or not, must come out as drivers.nmea.parse_time makes it.
+    from drivers.nmea import parse_time
+
+    gps_nmea._time_of_day.cache_clear()
+    assert _parsed(gps_nmea._time_of_day, text) == _parsed(parse_time.__wrapped__, text)
+
+
+def test_time_tables_cover_every_minute_of_the_day_and_no_more() -> None:
+    from drivers.nmea import parse_time
+
+    for hh in range(25):  # 24, 60 and 61 are out of range
+        for mm in range(61):
+            for ss in (0, 59, 60, 61):
+                for frac in ("", ".00", ".25", ".125"):
+                    text = f"{hh:02d}{mm:02d}{ss:02d}{frac}"
+                    expected = _parsed(parse_time.__wrapped__, text)
+                    assert _parsed(gps_nmea._time_of_day, text) == expected
