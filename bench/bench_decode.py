@@ -21,14 +21,15 @@ method"). Why: on this shared 2-core machine the CPU time of one run drifts by u
 within minutes (other processes, the host), and the two best runs of a tool may come from
 different moments; the corpus row, whose decoding (about 0.1 s) is no longer than x6wd's
 start-up, swung from 0.74 to 1.16 in six runs of the old method, while the median of paired
-rounds stayed within 0.83 to 0.85 in three runs (NEO-5 hour 0.82 to 0.84). A third,
+rounds stayed within 0.85 to 0.87 in six runs (NEO-5 hour 0.84 to 0.89). A third,
 informative row decodes the corpus four times over in one process: decoding then outweighs
 the start-up, but it is not judged, as it spreads x6wd's one-time costs (importing pynmea2
 for the proprietary sentences, about 10 ms) and its later copies read memos filled by the
 first, which a single log does not.
 
-Figures (2026-11-27 20:30 UTC, load average 4, three runs): corpus 0.849, 0.832, 0.834;
-NEO-5 hour 0.843, 0.815, 0.820 (corpus x4: 1.02, 1.02, 0.99). The code of the session's
+Figures (2026-11-27 20:37-20:42 UTC, load average 1.6-4, six runs of the final code):
+corpus 0.870, 0.865, 0.854, 0.870, 0.861, 0.859 (median 0.863); NEO-5 hour 0.853, 0.886,
+0.863, 0.845, 0.840, 0.858 (median 0.855); corpus x4 0.99-1.09. The code of the session's
 start, two runs in the same conditions: corpus 0.803, 0.836; NEO-5 hour 0.761, 0.754.
 Target not met. On an idle machine gpsdecode gains more than x6wd (NEO-5 hour 0.59 with the
 old method at load 0.2, 0.77 at load 2.5-4.4).
