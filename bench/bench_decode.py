@@ -27,7 +27,8 @@ the start-up, but it is not judged, as it spreads x6wd's one-time costs (importi
 for the proprietary sentences, about 10 ms) and its later copies read memos filled by the
 first, which a single log does not.
 
-Figures (2026-11-27 20:37-20:42 UTC, load average 1.6-4, six runs of the final code):
+Figures (2026-11-27 20:37-20:42 UTC, load average 1.6-4, six runs, the last three of the
+final code, the first three with a slower GSV pattern since reverted, 8368a5b):
 corpus 0.870, 0.865, 0.854, 0.870, 0.861, 0.859 (median 0.863); NEO-5 hour 0.853, 0.886,
 0.863, 0.845, 0.840, 0.858 (median 0.855); corpus x4 0.99-1.09. The code of the session's
 start, two runs in the same conditions: corpus 0.803, 0.836; NEO-5 hour 0.761, 0.754.
