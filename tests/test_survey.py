@@ -93,6 +93,18 @@ def test_a_survey_matches_the_robot_engine(tmp_path: Path, name: str) -> None:
     _assert_same_receiver(*_both(world, tmp_path, seed=7, duration_s=90.0))
 
 
+def test_both_recordings_give_the_same_fixes_to_their_readers(tmp_path: Path) -> None:
+    """The robot engine records the daemon's fixes, the receiver engine the sentences only:
+    `drivers.gps_recording.recorded_gps` (what `x6wd calibrate gnss` reads) gives the same
+    fixes and sky views from both."""
+    from drivers.gps_recording import recorded_gps
+
+    robot, receiver = _both(load_world(OPEN_FIELD), tmp_path, seed=4, duration_s=30.0)
+    from_robot = list(recorded_gps(robot / "recording.jsonl"))
+    assert len(from_robot) == 62
+    assert list(recorded_gps(receiver / "recording.jsonl")) == from_robot
+
+
 def test_a_loaded_uart_and_effects_match_the_robot_engine(tmp_path: Path) -> None:
     """4 Hz at 9600 baud (sentences dropped by the transmit buffer) with a GPS layer: the
     same sentences dropped; the compass layer is reported as not run."""

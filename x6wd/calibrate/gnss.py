@@ -67,10 +67,10 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from drivers.gps_recording import recorded_gps
 from x6wd.calibrate.rtklib import looks_like_pos, read_pos
 from x6wd.core.config import GnssNoiseConfig, build
 from x6wd.core.errors import ConfigError, ParseError
-from x6wd.core.recorder import decode_record, read_recording_parts
 from x6wd.core.records import GpsFix
 from x6wd.nav.geo import LocalTangentPlane
 
@@ -139,8 +139,8 @@ class FixSeries:
 
 def load_fixes(path: str | Path) -> FixSeries:
     """Fixes from an RTKLIB ``.pos`` file (every solved epoch, HDOP 1), an x6wd recording
-    (its valid ``fix`` records, all parts) or a CSV with ``t_s``, ``lat``, ``lon`` columns
-    (``x6wd sim``'s ``truth.csv``; optional ``hdop``)."""
+    (its valid fixes, all parts: the ``fix`` records, or the ``nmea`` ones decoded) or a CSV
+    with ``t_s``, ``lat``, ``lon`` columns (``x6wd sim``'s ``truth.csv``; optional ``hdop``)."""
     p = Path(path)
     if looks_like_pos(p):
         sol = read_pos(p)
@@ -156,12 +156,7 @@ def load_fixes(path: str | Path) -> FixSeries:
         )
     if p.suffix.lower() == ".csv":
         return _load_csv(p)
-    fixes: list[GpsFix] = []
-    for rec in read_recording_parts(p):
-        if rec.type == "fix":
-            typed = decode_record(rec)
-            if isinstance(typed, GpsFix):
-                fixes.append(typed)
+    fixes = [r for r in recorded_gps(p) if isinstance(r, GpsFix)]
     return FixSeries.from_fixes(fixes, str(p))
 
 
