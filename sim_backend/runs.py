@@ -249,7 +249,11 @@ def plot_track(
             if ok.any():  # the receiver engine runs no robot: nothing filtered
                 ax.plot(filt_enu[ok, 0], filt_enu[ok, 1], "-", lw=1, color="tab:orange",
                         label="filtered (Constellation)", zorder=3)  # fmt: skip
-        ax.plot(truth_e, truth_n, "-", lw=2, color="tab:blue", label="true path", zorder=4)
+        if np.ptp(truth_e) == 0 and np.ptp(truth_n) == 0:  # standing still: a point, not a path
+            ax.plot(truth_e[:1], truth_n[:1], "P", ms=12, color="tab:blue", mec="white",
+                    label="true position", zorder=4)  # fmt: skip
+        else:
+            ax.plot(truth_e, truth_n, "-", lw=2, color="tab:blue", label="true path", zorder=4)
         if len(wp_enu):
             ax.plot(wp_enu[:, 0], wp_enu[:, 1], "k*", ms=12, label="waypoints", zorder=5)
             for i, (e, n) in enumerate(wp_enu):
@@ -259,10 +263,11 @@ def plot_track(
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(True, alpha=0.3)
         ax.legend(loc="best", fontsize=8)
+        filt = summary.filtered_error.cep50_m
         ax.set_title(
             f"{world.name} (seed {summary.seed})\n{summary.waypoints_reached}/"
-            f"{summary.waypoint_count} waypoints, raw CEP50 {summary.raw_error.cep50_m:.1f} m,"
-            f" filtered CEP50 {summary.filtered_error.cep50_m:.1f} m",
+            f"{summary.waypoint_count} waypoints, raw CEP50 {summary.raw_error.cep50_m:.1f} m"
+            + (f", filtered CEP50 {filt:.1f} m" if math.isfinite(filt) else ""),
             fontsize=9,
         )
         fig.savefig(path)
