@@ -372,7 +372,7 @@ class NmeaFormatter:
             for c in wrap360(np.asarray(batch.course_deg, dtype=float)).tolist()
         ]
         alt_l = [f"{v:.1f}" for v in np.asarray(batch.alt_m, dtype=float).tolist()]
-        hdop_l, pdop_l, vdop_l = (_dops(getattr(batch, k)) for k in ("hdop", "pdop", "vdop"))
+        hdop_l, pdop_l, vdop_l = (dop_texts(getattr(batch, k)) for k in ("hdop", "pdop", "vdop"))
         geoid = f"{float(batch.geoid_sep_m):.1f}"
         # GSA: used satellites per epoch in column (channel) order, at most 12 shown.
         d2 = _D2
@@ -590,8 +590,9 @@ class BatchLike(Protocol):
     def epochs(self) -> list[GnssEpoch]: ...
 
 
-def _dops(values: Any) -> list[str]:
-    """:func:`_dop` of each value: its cap and NaN by numpy, the text per value."""
+def dop_texts(values: Any) -> list[str]:
+    """DOP texts as u-blox prints them (:func:`_dop`) for an array of DOPs: the cap and NaN
+    by numpy, the text per value."""
     v = np.asarray(values, dtype=float)
     capped = ~(np.isfinite(v) & (v <= 99.99))
     v = np.where(capped | ~(v > 0.0), 0.0, v)  # max(0.0, v) of _dop: -0.0 prints 0.00

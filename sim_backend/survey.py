@@ -36,6 +36,7 @@ import numpy as np
 
 from sim_backend.compass import CompassSetup
 from sim_backend.geodesy import EnuFrame, lla_to_enu
+from sim_backend.nmea_out import dop_texts
 from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.runs import (
     STATIC_CHUNK_EPOCHS,
@@ -97,7 +98,6 @@ def run_survey(
         # with the first epoch (as the robot engine's does)
         receiver.arrivals(banner, 0.0)
         wire_bytes = len(banner)
-        arrived: list[tuple[float, bytes]] = []
         t_end = last_rx_s = float(t_ep[-1])
         for start in range(0, len(t_ep), STATIC_CHUNK_EPOCHS):
             t = t_ep[start : start + STATIC_CHUNK_EPOCHS]
@@ -105,17 +105,17 @@ def run_survey(
             b = receiver.batch(t, np.tile(antenna, (n, 1)), np.zeros((n, 3)))
             bursts = receiver.formatter.format_batch(b)
             nmea.write(b"".join(bursts))
-            arrived += receiver.uart.send_bursts(bursts, t.tolist())
+            arrived = receiver.uart.send_bursts(bursts, t.tolist())
             wire_bytes += rec_lines.write_nmea(rec, arrived)
             if arrived:
                 last_rx_s = arrived[-1][0]
-            arrived = []
             valid = np.asarray(b.valid, dtype=bool)
             n_fix += n
             lat_parts.append(_as_printed(np.asarray(b.lat_deg)[valid], receiver.formatter))
             lon_parts.append(_as_printed(np.asarray(b.lon_deg)[valid], receiver.formatter))
-            hdop_parts.append(np.round(np.asarray(b.hdop, dtype=float)[valid], 2))
-            used_parts.append(np.asarray(b.n_used)[valid])
+            # HDOP and satellites used as GGA prints them (2 decimals and capped; 2 digits)
+            hdop_parts.append(np.array(dop_texts(np.asarray(b.hdop)[valid]), dtype=float))
+            used_parts.append(np.minimum(np.asarray(b.n_used)[valid], 99))
             if progress is not None:
                 progress(float(t[-1]), plan.total_s)
         # the run ends when the last sentence on the wire has arrived (as the robot engine's)
@@ -149,7 +149,7 @@ def run_survey(
         fixes_valid=int(lat.size),
         dispersion_lat_m=disp_lat,
         dispersion_lon_m=disp_lon,
-        mean_hdop=float(np.mean(hdop[np.isfinite(hdop)])) if hdop.size else math.nan,
+        mean_hdop=float(np.mean(hdop)) if hdop.size else math.nan,
         mean_sats_used=float(np.mean(used)) if used.size else math.nan,
         extra={
             "engine": "receiver",

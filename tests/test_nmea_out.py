@@ -328,8 +328,8 @@ def test_format_batch_equals_per_epoch_formatting_on_the_real_model() -> None:
 def test_bulk_dop_text_is_the_receivers() -> None:
     """The batch formatter's DOP texts against the per-value rule (cap, NaN, infinities,
     negative zero, rounding edges)."""
-    from sim_backend.nmea_out import _dop, _dops
+    from sim_backend.nmea_out import _dop, dop_texts
 
     edges = [math.nan, math.inf, -math.inf, -0.0, 0.0, -1.0, 0.005, 0.015, 99.99, 99.990001, 1e-300]
     values = edges + np.random.default_rng(0).uniform(-5.0, 120.0, 5000).tolist()
-    assert _dops(values) == [_dop(v) for v in values]
+    assert dop_texts(values) == [_dop(v) for v in values]
