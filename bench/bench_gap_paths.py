@@ -340,10 +340,11 @@ def run(
     """Run the cases on 2 processes and summarise each path (``levels``, ``kinds``: which
     effect cases to run; their seeds stay those of the full set; ``nulls_from``: skip the
     first no-effect logs of each path, to add new ones to an earlier run's)."""
-    # default: about 10 min on 2 free cores (60 cases); the figures in docs/gap.md are from
-    # --levels moderate,strong and --reps 2 --nulls 40 (few logs), --reps 1 --nulls 40
-    # (seeds): 0 of n no-effect logs bounds the false alarms below 5 % only from n = 59; a
-    # change that acts only after the "where" step can rerun the effect cases (--nulls 0)
+    # default: about 10 min on 2 free cores (60 cases); the latest figures in docs/gap.md are
+    # from --levels moderate,strong with --reps 1 --nulls 93 and then --kinds none --nulls 140
+    # --nulls-from 93 (seeds), --reps 2 --nulls 100 --nulls-from 60 (few logs): 0 of n
+    # no-effect logs bounds the false alarms below 5 % only from n = 59, 2 of n from n = 124;
+    # a change that acts only after the "where" step can rerun the effect cases (--nulls 0)
     reps = reps if reps is not None else 1
     nulls = nulls if nulls is not None else 6 if quick else 12
     todo = cases(seed_set, reps, nulls, paths)
