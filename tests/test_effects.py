@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -572,3 +573,21 @@ def test_static_hold_freezes_until_the_exit_distance_and_releases_when_moving() 
 def test_receiver_layers_name_a_bad_parameter(table: dict[str, object], key: str) -> None:
     with pytest.raises(ConfigError, match=key):
         effect_from_params(table)
+
+
+@pytest.mark.parametrize("tau_s", [0.05, 3.0, 400.0])
+def test_low_pass_over_outages_is_the_recursion(tau_s: float) -> None:
+    # the vectorised closed form over irregular steps (outages of up to 300 s, blocks of 500
+    # time constants) against the recursion it replaces, y += g (x - y) with the actual step
+    rng = np.random.default_rng(3)
+    s = _white(3000, 2.0, 8)
+    valid = rng.random(len(s)) > 0.3
+    valid[1000:1300] = False
+    out = NavFilter(tau_s).apply(s.with_(valid=valid), rng)
+    idx = np.flatnonzero(valid)
+    y, want = s.east_m[idx[0]], [s.east_m[idx[0]]]
+    for prev, k in itertools.pairwise(idx):
+        y += -math.expm1(-(s.t_s[k] - s.t_s[prev]) / tau_s) * (s.east_m[k] - y)
+        want.append(y)
+    assert np.allclose(out.east_m[idx], want, rtol=0, atol=1e-9)
+    assert np.array_equal(out.east_m[~valid], s.east_m[~valid])
