@@ -10,9 +10,10 @@ satellite, then with time (and date) but status ``V`` / quality 0 / DOP 99.99.
 
 The sentence layouts (field order, unit letters) come from the NMEA table shared with the
 decoder (``drivers.nmea``, :meth:`~drivers.nmea.Sentence.template`); this module decides what
-the NEO-5 puts in the fields and with how many decimals. Speed is what matters here: sentences
-are filled in by ``%`` templates, coordinates are formatted from integers, and a batch of
-epochs is checksummed at once with numpy (:func:`drivers.nmea.checksum` for single ones).
+the NEO-5 puts in the fields and with how many decimals. Speed is what matters here: one epoch
+is filled in by ``%`` templates, coordinates are formatted from integers; a batch of epochs
+(:meth:`NmeaFormatter.format_cells`) is built field by field for all its epochs at once, as
+numpy blocks of text (:mod:`sim_backend.textblocks`), and checksummed by XOR reductions.
 """
 
 from __future__ import annotations
@@ -38,6 +39,17 @@ from drivers.nmea import (
     sentence,
 )
 from sim_backend.epoch import GnssEpoch, SimSat
+from sim_backend.textblocks import (
+    compact,
+    const_block,
+    day_texts,
+    filled,
+    fixed_block,
+    int_block,
+    joined,
+    put_texts,
+    text_block,
+)
 from x6wd.core.errors import ConfigError
 from x6wd.core.geodesy import wrap360
 
@@ -58,7 +70,6 @@ NEO5_BANNER: tuple[str, ...] = (
 
 _D2 = [f"{i:02d}" for i in range(100)]
 _D3 = [f"{i:03d}" for i in range(360)]
-_D3K = [f"{i:03d}" for i in range(1000)]
 _SNR_OR_EMPTY = [*_D2, ""]  # index 100: no SNR
 _ELAZ: list[str] = []
 
@@ -334,141 +345,206 @@ class NmeaFormatter:
 
     def format_batch(self, batch: BatchLike) -> list[bytes]:
         """One burst per epoch of a columnar receiver result (``sim_backend.gnss.GnssBatch``),
-        identical to ``format_epochs(batch.epochs())`` without building per-satellite objects.
+        identical to ``format_epochs(batch.epochs())`` without building per-satellite objects
+        (:meth:`format_cells`, cut at the epochs)."""
+        return self.format_cells(batch).bursts()
 
-        Satellite numbers are rounded with numpy over (epochs x satellites) at once and turned
-        into text by table lookups; an epoch with more than 16 satellites in view takes the
-        general path (the receiver's 16-satellite GSV selection).
+    def format_cells(self, batch: BatchLike) -> NmeaCells:
+        """The sentences of a columnar receiver result as :class:`NmeaCells`: the text of
+        ``format_epochs(batch.epochs())``, built column by column with numpy over all epochs
+        at once (digits by integer arithmetic, checksums by XOR reductions), not per epoch.
+
+        An epoch with more than 16 satellites in view takes the general path (the receiver's
+        16-satellite GSV selection), and so does a whole batch with a PRN outside 0-99.
         """
         n_e = len(batch.t_s)
         if n_e == 0:
-            return []
+            return NmeaCells.of_bursts([])
         prns = np.asarray(batch.prns, dtype=np.int64)
+        if np.any((prns < 0) | (prns > 99)):
+            return NmeaCells.of_bursts(self.format_epochs(batch.epochs()))
         in_view = np.asarray(batch.in_view, dtype=bool)
         used = np.asarray(batch.used, dtype=bool) & in_view
         snr = np.asarray(batch.snr_dbhz, dtype=float)
-        el = np.asarray(batch.el_deg, dtype=float)
-        az = np.asarray(batch.az_deg, dtype=float)
-        if np.any((prns < 0) | (prns > 99)):
-            return self.format_epochs(batch.epochs())
-        order = np.argsort(prns, kind="stable")  # GSV prints in PRN order
-        n_view = in_view.sum(axis=1)
-        rows, cols = np.nonzero(in_view[:, order])
-        cols = order[cols]
-        fields = _sat_fields(prns[cols], el[rows, cols], az[rows, cols], snr[rows, cols])
-        has_snr = (in_view & np.isfinite(snr)).any(axis=1)
         valid = np.asarray(batch.valid, dtype=bool)
-        starts = np.concatenate(([0], np.cumsum(n_view)[:-1])).tolist()
+        n_view = in_view.sum(axis=1)
+        slow = n_view > MAX_GSV_SATS
+        has_snr = (in_view & np.isfinite(snr)).any(axis=1)
         # The receiver has time from its first fix or first satellite signal on.
         known = (np.cumsum(valid | has_snr) > 0) | self.time_known
-        hms_l, dmy_l = self._times_batch(batch.start_utc, np.asarray(batch.t_s, dtype=float))
-        lat_l, ns_l = self._coords_batch(np.asarray(batch.lat_deg, dtype=float), valid, 2)
-        lon_l, ew_l = self._coords_batch(np.asarray(batch.lon_deg, dtype=float), valid, 3)
-        spd = np.fmax(np.asarray(batch.speed_mps, dtype=float), 0.0)
-        kn_l = [f"{v:.3f}" for v in (spd * KNOTS_PER_MPS).tolist()]
-        kmh_l = [f"{v:.3f}" for v in (spd * KMH_PER_MPS).tolist()]
-        crs_l = [
-            "" if c != c else f"{c:.2f}"  # NaN: at rest
-            for c in wrap360(np.asarray(batch.course_deg, dtype=float)).tolist()
-        ]
-        alt_l = [f"{v:.1f}" for v in np.asarray(batch.alt_m, dtype=float).tolist()]
-        hdop_l, pdop_l, vdop_l = (dop_texts(getattr(batch, k)) for k in ("hdop", "pdop", "vdop"))
-        geoid = f"{float(batch.geoid_sep_m):.1f}"
-        # GSA: used satellites per epoch in column (channel) order, at most 12 shown.
-        d2 = _D2
-        _rows, u_cols = np.nonzero(used)
-        n_used = used.sum(axis=1)
-        u_txt = [d2[p] for p in prns[u_cols].tolist()]
-        u_start = np.concatenate(([0], np.cumsum(n_used)[:-1])).tolist()
-        n_used_l = n_used.tolist()
-        blanks = [","] * (MAX_GSA_SATS + 1)
-        gsv_heads = self._gsv_heads
-        rmc, vtg, gga, gsa_t, gll = self._rmc, self._vtg, self._gga, self._gsa, self._gll
-        per_epoch: list[list[str]] = []
-        for i in range(n_e):
-            m = int(n_view[i])
-            if m > MAX_GSV_SATS:
-                self.time_known = bool(known[i - 1]) if i else self.time_known
-                per_epoch.append(self.epoch_bodies(batch.epoch(i)))
-                continue
-            if m == 0:
-                gsv = [self._gsv_none]
-            else:
-                f = fields[starts[i] : starts[i] + m]
-                gsv = [head + ",".join(f[4 * j : 4 * j + 4]) for j, head in enumerate(gsv_heads[m])]
-            hms = hms_l[i]
-            if not valid[i]:
-                if not known[i]:
-                    hms = dmy = ""
-                else:
-                    dmy = dmy_l[i]
-                per_epoch.append(self._no_fix_bodies(hms, dmy, gsv))
-                continue
-            nu = n_used_l[i]
-            k0 = u_start[i]
-            shown = min(nu, MAX_GSA_SATS)
-            gsa = ",".join(u_txt[k0 : k0 + shown]) + "".join(blanks[: MAX_GSA_SATS - shown])
-            if shown == 0:
-                gsa = gsa[1:]  # 12 empty fields are 11 commas
-            lat, ns, lon, ew = lat_l[i], ns_l[i], lon_l[i], ew_l[i]
-            kn, crs, h = kn_l[i], crs_l[i], hdop_l[i]
-            per_epoch.append(
-                [
-                    rmc % (hms, lat, ns, lon, ew, kn, crs, dmy_l[i]),
-                    vtg % (crs, kn, kmh_l[i]),
-                    gga % (hms, lat, ns, lon, ew, 1, d2[min(nu, 99)], h, alt_l[i], geoid),
-                    gsa_t % (3, gsa, pdop_l[i], h, vdop_l[i]),
-                    *gsv,
-                    gll % (lat, ns, lon, ew, hms),
-                ]
-            )
+        hms, dmy = self._time_blocks(batch.start_utc, np.asarray(batch.t_s, dtype=float))
+        gsv, n_msg = self._gsv_blocks(batch, prns, in_view, n_view)
+        slots: list[tuple[np.ndarray, int, np.ndarray]] = []  # (rows, slot, sentence block)
+        fix = np.flatnonzero(valid & ~slow)
+        nofix = np.flatnonzero(~valid & ~slow)
+        if fix.size:
+            bodies = self._fix_blocks(batch, fix, hms, dmy, prns, used)
+            slots += [(fix, k, _sentence_block(b)) for k, b in zip(_FIX_SLOTS, bodies, strict=True)]
+        if nofix.size:
+            unknown = ~known[nofix]
+            hms_v, dmy_v = hms[nofix], dmy[nofix]
+            hms_v[unknown] = 0  # empty time and date until the receiver has time
+            dmy_v[unknown] = 0
+            r = nofix.size
+            bodies = [
+                filled(self._rmc_v, [hms_v, dmy_v], r),
+                filled(self._vtg_v, [], r),
+                filled(self._gga_v, [hms_v], r),
+                filled(self._gsa_v, [], r),
+                filled(self._gll_v, [hms_v], r),
+            ]
+            slots += [
+                (nofix, k, _sentence_block(b)) for k, b in zip(_FIX_SLOTS, bodies, strict=True)
+            ]
+        fast = np.flatnonzero(~slow)
+        gsv_blocks = [_sentence_block(b[fast]) for b in gsv]
+        # the general path's epochs, in order, with the time state they would have seen
+        slow_lines: list[tuple[int, list[bytes]]] = []
+        for i in np.flatnonzero(slow).tolist():
+            self.time_known = bool(known[i - 1]) if i else self.time_known
+            slow_lines.append((i, [sentence(b) for b in self.epoch_bodies(batch.epoch(i))]))
         self.time_known = bool(known[-1])
-        return _assemble(per_epoch)
+        width = max(
+            [blk.shape[1] for _, _, blk in slots]
+            + [blk.shape[1] for blk in gsv_blocks]
+            + [len(line) for _, lines in slow_lines for line in lines]
+        )
+        cells = np.zeros((n_e, _SLOTS, width), dtype=np.uint8)
+        for rows, k, blk in slots:
+            cells[rows, k, : blk.shape[1]] = blk
+        for j, blk in enumerate(gsv_blocks):
+            here = n_msg[fast] > j
+            cells[fast[here], _GSV0 + j, : blk.shape[1]] = blk[here]
+        for i, lines in slow_lines:
+            for k, line in _slotted(lines):
+                cells[i, k, : len(line)] = np.frombuffer(line, dtype=np.uint8)
+        return NmeaCells(cells)
 
-    def _times_batch(self, start_utc: datetime, t_s: np.ndarray) -> tuple[list[str], list[str]]:
-        """(``hhmmss.ss``, ``ddmmyy``) per epoch for ``start_utc + t_s``, as :meth:`_time`."""
+    def _fix_blocks(
+        self,
+        batch: BatchLike,
+        rows: np.ndarray,
+        hms: np.ndarray,
+        dmy: np.ndarray,
+        prns: np.ndarray,
+        used: np.ndarray,
+    ) -> list[np.ndarray]:
+        """Bodies (RMC, VTG, GGA, GSA, GLL) of the epochs ``rows``, which have a fix."""
+        r = rows.size
+        hms, dmy = hms[rows], dmy[rows]
+        lat, ns = self._coord_blocks(np.asarray(batch.lat_deg, dtype=float)[rows], 2)
+        lon, ew = self._coord_blocks(np.asarray(batch.lon_deg, dtype=float)[rows], 3)
+        spd = np.fmax(np.asarray(batch.speed_mps, dtype=float)[rows], 0.0)
+        kn = fixed_block(spd * KNOTS_PER_MPS, 3)
+        kmh = fixed_block(spd * KMH_PER_MPS, 3)
+        crs_deg = wrap360(np.asarray(batch.course_deg, dtype=float)[rows])
+        crs = fixed_block(np.where(np.isnan(crs_deg), 0.0, crs_deg), 2)
+        crs[np.isnan(crs_deg)] = 0  # NaN: at rest, empty
+        alt = fixed_block(np.asarray(batch.alt_m, dtype=float)[rows], 1)
+        h, p, v = (_dop_block(np.asarray(getattr(batch, k), dtype=float)[rows])
+                   for k in ("hdop", "pdop", "vdop"))  # fmt: skip
+        u = used[rows]
+        n_used = u.sum(axis=1)
+        nused = _D2_BLOCK[np.minimum(n_used, 99)]
+        # GSA: the used satellites in column (channel) order, at most 12 shown.
+        rank = np.cumsum(u, axis=1) - 1
+        ur, uc = np.nonzero(u & (rank < MAX_GSA_SATS))
+        gsa = np.zeros((r, MAX_GSA_SATS, 3), dtype=np.uint8)
+        gsa[:, :-1, 2] = ord(",")
+        gsa[ur, rank[ur, uc], :2] = _D2_BLOCK[prns[uc]]
+        gsa_prns = gsa.reshape(r, 3 * MAX_GSA_SATS)[:, :-1]
+        geoid = const_block(f"{float(batch.geoid_sep_m):.1f}", r)
+        one, three = const_block("1", r), const_block("3", r)
+        return [
+            filled(self._rmc, [hms, lat, ns, lon, ew, kn, crs, dmy], r),
+            filled(self._vtg, [crs, kn, kmh], r),
+            filled(self._gga, [hms, lat, ns, lon, ew, one, nused, h, alt, geoid], r),
+            filled(self._gsa, [three, gsa_prns, p, h, v], r),
+            filled(self._gll, [lat, ns, lon, ew, hms], r),
+        ]
+
+    def _gsv_blocks(
+        self, batch: BatchLike, prns: np.ndarray, in_view: np.ndarray, n_view: np.ndarray
+    ) -> tuple[list[np.ndarray], np.ndarray]:
+        """The four GSV message bodies of every epoch (E, w) and each epoch's message count
+        (rows of more than 16 satellites are left for the general path)."""
+        n_e = in_view.shape[0]
+        order = np.argsort(prns, kind="stable")  # GSV prints in PRN order
+        iv = in_view[:, order]
+        rank = np.cumsum(iv, axis=1) - 1
+        rows, cols = np.nonzero(iv & (rank < MAX_GSV_SATS))
+        k = rank[rows, cols]
+        cols = order[cols]
+        el = np.asarray(batch.el_deg, dtype=float)[rows, cols]
+        az = np.asarray(batch.az_deg, dtype=float)[rows, cols]
+        snr = np.asarray(batch.snr_dbhz, dtype=float)[rows, cols]
+        # the numbers of _sat_fields: "PP,EE,AAA,SS", position or SNR left empty
+        pos_ok = np.isfinite(el) & np.isfinite(az) & (np.abs(el) <= 90.0)
+        with np.errstate(invalid="ignore"):
+            el_i = np.where(pos_ok, np.clip(np.floor(el + 0.5), 0, 90), 0).astype(np.int64)
+            az_i = np.where(pos_ok, np.floor(wrap360(az) + 0.5) % 360, 0).astype(np.int64)
+            snr_i = np.where(np.isfinite(snr), np.clip(np.floor(snr + 0.5), 0, 99), 0)
+        sat = np.zeros((rows.size, 13), dtype=np.uint8)
+        sat[:, 0] = np.where(k % 4 > 0, ord(","), 0)
+        sat[:, 1:3] = _D2_BLOCK[prns[cols]]
+        sat[:, [3, 6, 10]] = ord(",")
+        sat[:, 4:6] = np.where(pos_ok[:, None], _D2_BLOCK[el_i], 0)
+        sat[:, 7:10] = np.where(pos_ok[:, None], _D3_BLOCK[az_i], 0)
+        sat[:, 11:13] = np.where(np.isfinite(snr)[:, None], _D2_BLOCK[snr_i.astype(np.int64)], 0)
+        fields = np.zeros((n_e, MAX_GSV_SATS, 13), dtype=np.uint8)
+        fields[rows, k] = sat
+        m = np.minimum(n_view, MAX_GSV_SATS)
+        n_msg = np.maximum((m + 3) // 4, 1)
+        head = GSV.template(self._talker, "messages", "message", "in_view")
+        count = _D2_BLOCK[m]
+        comma = np.where(m > 0, ord(","), 0).astype(np.uint8)[:, None]
+        bodies = []
+        for j in range(GSV.groups):
+            body = filled(head, [_D1_BLOCK[n_msg], const_block(str(j + 1), n_e), count], n_e)
+            sats = fields[:, 4 * j : 4 * j + 4].reshape(n_e, 52)
+            bodies.append(joined((body, comma, sats)))
+        return bodies, n_msg
+
+    def _time_blocks(self, start_utc: datetime, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``hhmmss.ss`` and ``ddmmyy`` blocks of ``start_utc + t_s``, as :meth:`_time`."""
         ts = self._tscale
-        day_us = 86400 * 1_000_000
         s0 = start_utc
         start_us = ((s0.hour * 60 + s0.minute) * 60 + s0.second) * 1_000_000 + s0.microsecond
         total = start_us + np.rint(t_s * 1e6).astype(np.int64)
-        day, us = np.divmod(total, day_us)
+        day, us = np.divmod(total, 86400 * 1_000_000)
         unit = 1_000_000 // ts
         ticks = ((us + unit // 2) // unit) % (86400 * ts)
         sec_total, frac = np.divmod(ticks, ts)
         hh, rem = np.divmod(sec_total, 3600)
         mm, ss = np.divmod(rem, 60)
-        d2 = _D2
-        fr = d2 if ts == 100 else _D3K
-        hms = [
-            d2[a] + d2[b] + d2[c] + "." + fr[f]
-            for a, b, c, f in zip(hh.tolist(), mm.tolist(), ss.tolist(), frac.tolist(), strict=True)
-        ]
+        d2 = _D2_BLOCK
+        hms = joined(
+            (d2[hh], d2[mm], d2[ss], const_block(".", t_s.shape[0]),
+             int_block(frac, self.time_decimals))
+        )  # fmt: skip
         base = s0.date()
-        dates: dict[int, str] = {}
-        for d in np.unique(day).tolist():
-            dt = base + timedelta(days=d)
-            dates[d] = f"{dt.day:02d}{dt.month:02d}{dt.year % 100:02d}"
-        return hms, [dates[d] for d in day.tolist()]
 
-    def _coords_batch(
-        self, value_deg: np.ndarray, valid: np.ndarray, deg_digits: int
-    ) -> tuple[list[str], list[str]]:
-        """``dd(d)mm.mmmmm`` texts and hemisphere letters, as :func:`_coord` (NaN -> 0)."""
+        def ddmmyy(d: int) -> str:
+            dt = base + timedelta(days=d)
+            return f"{dt.day:02d}{dt.month:02d}{dt.year % 100:02d}"
+
+        return hms, day_texts(day, ddmmyy)
+
+    def _coord_blocks(
+        self, value_deg: np.ndarray, deg_digits: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``dd(d)mm.mmmmm`` and the hemisphere letter, as :func:`_coord` (NaN -> 0)."""
         scale = self._scale
-        v = np.where(valid & np.isfinite(value_deg), value_deg, 0.0)
+        v = np.where(np.isfinite(value_deg), value_deg, 0.0)
         total = np.rint(np.abs(v) * 60.0 * scale).astype(np.int64)
         deg, rem = np.divmod(total, 60 * scale)
         mins, frac = np.divmod(rem, scale)
-        dtab = _D2 if deg_digits == 2 else _D3K
-        pat = "%0" + str(self.minute_decimals) + "d"
-        d2 = _D2
-        txt = [
-            dtab[a] + d2[b] + "." + pat % f
-            for a, b, f in zip(deg.tolist(), mins.tolist(), frac.tolist(), strict=True)
-        ]
-        pos, neg = ("N", "S") if deg_digits == 2 else ("E", "W")
-        return txt, [pos if x else neg for x in (v >= 0.0).tolist()]
+        text = joined(
+            (int_block(deg, deg_digits), _D2_BLOCK[mins], const_block(".", v.shape[0]),
+             int_block(frac, self.minute_decimals))
+        )  # fmt: skip
+        letters = np.frombuffer(b"NS" if deg_digits == 2 else b"EW", dtype=np.uint8)
+        return text, letters[(v < 0.0).astype(np.int64)][:, None]
 
     def format_epoch(self, ep: GnssEpoch) -> bytes:
         """The complete byte burst of one epoch, CRLF-terminated sentences."""
@@ -502,6 +578,76 @@ def _sat_fields(prn: np.ndarray, el: np.ndarray, az: np.ndarray, snr: np.ndarray
         d2[p] + ("," + elaz[k] + "," if k >= 0 else ",,,") + _SNR_OR_EMPTY[q]
         for p, k, q in zip(prn.tolist(), pos_idx, snr_i.tolist(), strict=True)
     ]
+
+
+# --- sentences in numpy blocks (sim_backend.textblocks) ----------------------------------
+
+_SLOTS = 9  # sentence slots per epoch: RMC, VTG, GGA, GSA, 4 x GSV, GLL
+_GSV0 = 4
+_FIX_SLOTS = (0, 1, 2, 3, _SLOTS - 1)  # RMC, VTG, GGA, GSA, GLL
+_D1_BLOCK = text_block([str(i) for i in range(10)])
+_D2_BLOCK = text_block(_D2)
+_D3_BLOCK = text_block(_D3)
+_TRAILER_BLOCK = text_block([t.decode("ascii") for t in TRAILERS])  # "*HH\r\n" by checksum
+
+
+def _dop_block(values: np.ndarray) -> np.ndarray:
+    """:func:`dop_texts` as a block."""
+    v = np.asarray(values, dtype=float)
+    with np.errstate(invalid="ignore"):
+        capped = ~(np.isfinite(v) & (v <= 99.99))
+        out = fixed_block(np.where(capped | ~(v > 0.0), 0.0, v), 2)
+    rows = np.flatnonzero(capped)
+    if rows.size:
+        out = put_texts(out, rows, [_NO_DOP.encode("ascii")] * rows.size)
+    return out
+
+
+def _sentence_block(bodies: np.ndarray) -> np.ndarray:
+    """Complete sentences (``$``, body, ``*HH`` and CR LF) of a block of bodies."""
+    rows = bodies.shape[0]
+    checksums = np.bitwise_xor.reduce(bodies, axis=1) if bodies.shape[1] else np.zeros(rows, int)
+    return joined((const_block("$", rows), bodies, _TRAILER_BLOCK[checksums]))
+
+
+def _slotted(lines: Sequence[bytes]) -> list[tuple[int, bytes]]:
+    """One burst's sentences (RMC, VTG, GGA, GSA, GSV..., GLL) with their slots."""
+    n = len(lines)
+    if not 0 < n <= _SLOTS:
+        raise ValueError(f"a burst of {n} sentences does not fit {_SLOTS} slots")
+    return [(k if k < _GSV0 or k < n - 1 else _SLOTS - 1, line) for k, line in enumerate(lines)]
+
+
+class NmeaCells:
+    """Sentences of E epochs in fixed cells: ``cells[e, k]`` is epoch e's k-th sentence slot
+    (RMC, VTG, GGA, GSA, GSV 1-4, GLL) as bytes padded with NUL (inside too: each field has
+    its widest width), all NUL where the epoch has no such sentence."""
+
+    def __init__(self, cells: np.ndarray) -> None:
+        self.cells = cells
+        self.lengths = np.count_nonzero(cells, axis=2)
+        """(E, slots) the bytes of each sentence, 0 where there is none."""
+
+    @classmethod
+    def of_bursts(cls, bursts: Sequence[bytes]) -> NmeaCells:
+        """Cells holding ``bursts`` (one per epoch, CRLF-terminated sentences)."""
+        split = [b.splitlines(keepends=True) for b in bursts]
+        width = max([len(line) for lines in split for line in lines], default=1)
+        cells = np.zeros((len(bursts), _SLOTS, width), dtype=np.uint8)
+        for i, lines in enumerate(split):
+            for k, line in _slotted(lines):
+                cells[i, k, : len(line)] = np.frombuffer(line, dtype=np.uint8)
+        return cls(cells)
+
+    def text(self) -> bytes:
+        """All sentences, in order, as sent."""
+        return compact(self.cells)
+
+    def bursts(self) -> list[bytes]:
+        """One burst per epoch (its sentences joined)."""
+        text = self.text()
+        ends = np.cumsum(self.lengths.sum(axis=1)).tolist()
+        return [text[a:b] for a, b in zip([0, *ends[:-1]], ends, strict=True)]
 
 
 def _assemble(per_epoch: Sequence[Sequence[str]]) -> list[bytes]:

@@ -193,6 +193,70 @@ class UartTx:
         self.free_at_s, self.dropped, self.sent = free_at, dropped, sent
         return out
 
+    def send_table(self, lengths: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`send` of each epoch's sentences given by their sizes: row ``e`` of
+        ``lengths`` (E, K) the bytes of epoch e's sentences in order (0: no sentence there),
+        handed over at ``t_s[e]`` (s, increasing). Returns each sentence's arrival time (s, its
+        last byte) and whether it was sent (False: dropped, or no sentence), both (E, K).
+
+        The same arithmetic in the same order as :meth:`send`. Bursts that find the wire idle
+        and lose nothing (every burst at 1 Hz and 9600 baud) run down the K columns for all
+        epochs at once; any other burst, sentence by sentence."""
+        n = np.asarray(lengths, dtype=np.int64)
+        t = np.asarray(t_s, dtype=float)
+        n_e, n_k = n.shape
+        arrive = np.empty((n_e, n_k))
+        sent = np.zeros((n_e, n_k), dtype=bool)
+        if n_e == 0:
+            return arrive, sent
+        exists = n > 0
+        # Every burst as if it found the wire idle: its sentences one after the other from t.
+        wire = n * 10 / self.baud  # wire_time_s: (bytes * bits) / baud, one rounding
+        prev = t
+        for k in range(n_k):
+            arrive[:, k] = prev + wire[:, k]  # + 0.0 where there is no sentence: unchanged
+            prev = arrive[:, k]
+        wait = np.zeros((n_e, n_k))  # queued ahead of each sentence (s); none at an idle start
+        wait[:, 1:] = arrive[:, :-1] - t[:, None]
+        queued = np.where(wait > 0.0, wait, 0.0) * self.baud / 10.0
+        own: np.ndarray = np.any(exists & (queued + n > self.buffer_bytes), axis=1)
+        own |= ~np.any(exists, axis=1)  # (and an epoch without sentences: one by one)
+        # a burst that is fine itself is right as computed if the one before it was and
+        # ended by its time
+        fail = own.copy()
+        fail[1:] |= ~(arrive[:-1, -1] <= t[1:])
+        at = np.where(fail, np.arange(n_e), n_e)
+        next_fail = np.minimum.accumulate(at[::-1])[::-1]  # first failing burst from each on
+        baud, cap = self.baud, self.buffer_bytes
+        free_at, dropped, n_sent = self.free_at_s, self.dropped, self.sent
+        rows: list[list[int]] | None = None
+        e = 0
+        while e < n_e:
+            t_e = float(t[e])
+            if free_at <= t_e and not own[e]:
+                end = int(next_fail[e + 1]) if e + 1 < n_e else n_e
+                sent[e:end] = exists[e:end]
+                n_sent += int(np.count_nonzero(exists[e:end]))
+                free_at = float(arrive[end - 1, -1])
+                e = end
+                continue
+            if rows is None:
+                rows = n.tolist()
+            for k, size in enumerate(rows[e]):  # send_bursts' arithmetic
+                if size <= 0:
+                    continue
+                wait_s = free_at - t_e
+                if (wait_s if wait_s > 0.0 else 0.0) * baud / 10.0 + size > cap:
+                    dropped += 1
+                    continue
+                free_at = (t_e if t_e > free_at else free_at) + size * 10 / baud
+                n_sent += 1
+                arrive[e, k] = free_at
+                sent[e, k] = True
+            e += 1
+        self.free_at_s, self.dropped, self.sent = free_at, dropped, n_sent
+        return arrive, sent
+
 
 class SimReceiver:
     """The scenario's simulated NEO-5: model, error layers, NMEA and UART timing.

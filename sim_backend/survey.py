@@ -36,7 +36,7 @@ import numpy as np
 
 from sim_backend.compass import CompassSetup
 from sim_backend.geodesy import EnuFrame, lla_to_enu
-from sim_backend.nmea_out import dop_texts
+from sim_backend.nmea_out import NmeaCells, dop_texts
 from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.runs import (
     STATIC_CHUNK_EPOCHS,
@@ -46,6 +46,16 @@ from sim_backend.runs import (
     dispersion_m,
     plot_track,
     vehicle_from_world,
+)
+from sim_backend.textblocks import (
+    compact,
+    const_block,
+    day_texts,
+    int_block,
+    joined,
+    put_texts,
+    text_block,
+    uint_block,
 )
 from sim_backend.world import World
 from x6wd.core.outdir import output_dir
@@ -85,13 +95,13 @@ def run_survey(
     hdop_parts: list[np.ndarray] = []
     used_parts: list[np.ndarray] = []
     n_fix = 0
-    with open(out / "gps.nmea", "wb") as nmea, open(out / "recording.jsonl", "w") as rec:
+    with open(out / "gps.nmea", "wb") as nmea, open(out / "recording.jsonl", "wb") as rec:
         rec.write(
             rec_lines.event(
                 0.0,
                 {"event": "sim_start", "scenario": world.name, "seed": plan.seed,
                  "duration_s": plan.total_s, "engine": "receiver"},
-            )
+            ).encode("utf-8")
         )  # fmt: skip
         banner = receiver.banner()
         nmea.write(banner)
@@ -104,12 +114,15 @@ def run_survey(
             t = t_ep[start : start + STATIC_CHUNK_EPOCHS]
             n = t.shape[0]
             b = receiver.batch(t, np.tile(antenna, (n, 1)), np.zeros((n, 3)))
-            bursts = receiver.formatter.format_batch(b)
-            nmea.write(b"".join(bursts))
-            arrived = receiver.uart.send_bursts(bursts, t.tolist())
-            wire_bytes += rec_lines.write_nmea(rec, arrived)
-            if arrived:
-                last_rx_s = arrived[-1][0]
+            cells = receiver.formatter.format_cells(b)
+            text = cells.text()
+            nmea.write(text)
+            arrive, sent = receiver.uart.send_table(cells.lengths, t)
+            lines, carried = rec_lines.nmea_cells(text, cells, arrive, sent)
+            rec.write(lines)
+            wire_bytes += carried
+            if sent.any():
+                last_rx_s = float(arrive[sent][-1])
             valid = np.asarray(b.valid, dtype=bool)
             n_fix += n
             lat_parts.append(_as_printed(np.asarray(b.lat_deg)[valid], decimals))
@@ -120,7 +133,8 @@ def run_survey(
             if progress is not None:
                 progress(float(t[-1]), plan.total_s)
         # the run ends when the last sentence on the wire has arrived (as the robot engine's)
-        rec.write(rec_lines.event(max(t_end, last_rx_s), {"event": "sim_end", "completed": False}))
+        end = rec_lines.event(max(t_end, last_rx_s), {"event": "sim_end", "completed": False})
+        rec.write(end.encode("utf-8"))
 
     lat, lon = np.concatenate(lat_parts), np.concatenate(lon_parts)
     _write_truth(out / "truth.csv", t_ep, truth_lat, truth_lon, truth_alt)
@@ -238,8 +252,15 @@ class _RecordLines:
 
     def write_nmea(self, f: TextIO, arrived: list[tuple[float, bytes]]) -> int:
         """``nmea`` records for (arrival time s, sentence) pairs into ``f``; the bytes carried."""
+        text, carried = self.nmea_lines(arrived)
+        f.write(text)
+        return carried
+
+    def nmea_lines(self, arrived: list[tuple[float, bytes]]) -> tuple[str, int]:
+        """The ``nmea`` records' lines for (arrival time s, sentence) pairs, and the bytes
+        carried: any sentence text, escaped as JSON needs."""
         if not arrived:
-            return 0
+            return "", 0
         times, lines = zip(*arrived, strict=True)
         blob = b"".join(lines)
         n = len(lines)
@@ -263,5 +284,113 @@ class _RecordLines:
         parts: list[str] = [""] * (len(pieces) * n)
         for k, piece in enumerate(pieces):
             parts[k :: len(pieces)] = piece
-        f.write("".join(parts))
-        return len(blob)
+        return "".join(parts), len(blob)
+
+    def nmea_cells(
+        self, text: bytes, cells: NmeaCells, arrive: np.ndarray, sent: np.ndarray
+    ) -> tuple[bytes, int]:
+        """The ``nmea`` records' lines (UTF-8) of the sentences of ``cells`` that were
+        ``sent``, arriving at ``arrive`` (s; both as :meth:`UartTx.send_table` gives them),
+        and the bytes carried; ``text`` is all of ``cells``' sentences. Built as blocks of
+        text (:mod:`sim_backend.textblocks`) when the sentences need no JSON escaping, as the
+        receiver's own do; :meth:`nmea_lines` otherwise."""
+        flat = np.flatnonzero(sent.reshape(-1))
+        if not flat.size:
+            return b"", 0
+        lengths = cells.lengths.reshape(-1)
+        times = arrive.reshape(-1)[flat]
+        if not _plain_sentences(text, lengths[lengths > 0]):
+            width = cells.cells.shape[2]
+            rows = cells.cells.reshape(-1, width)[flat]
+            pairs = [
+                (t, row.tobytes().replace(b"\0", b""))
+                for t, row in zip(times.tolist(), rows, strict=True)
+            ]
+            lines, carried = self.nmea_lines(pairs)
+            return lines.encode("utf-8"), carried
+        body = cells.cells.reshape(-1, cells.cells.shape[2])[flat]
+        n = flat.size
+        block = joined(
+            (const_block('{"t_mono":', n), _repr_block(times), const_block(',"t_utc":"', n),
+             self._utc_block(times), const_block('Z","type":"nmea","data":{"text":"', n),
+             body, const_block('"}}' + chr(_EOL), n))
+        )  # fmt: skip
+        return compact(block, _LINE_ENDS, b"\0\r\n"), int(lengths[flat].sum())
+
+    def _utc_block(self, t_s: np.ndarray) -> np.ndarray:
+        """The ISO UTC times (``YYYY-MM-DDThh:mm:ss.ffffff``) of ``t_s`` (s) after the start,
+        as :meth:`_utc_parts` gives them, in a block."""
+        total = int(self.start_us.astype(np.int64)) + np.rint(t_s * 1e6).astype(np.int64)
+        day, of_day = np.divmod(total, 86_400_000_000)
+        sec, micro = np.divmod(of_day, 1_000_000)
+        hh, rem = np.divmod(sec, 3600)
+        mm, ss = np.divmod(rem, 60)
+        dates = day_texts(day, lambda d: str(np.datetime64(d, "D")) + "T")
+        n = t_s.shape[0]
+        colon, d2 = const_block(":", n), _D2_BLOCK
+        return joined(
+            (dates, d2[hh], colon, d2[mm], colon, d2[ss], const_block(".", n),
+             int_block(micro, 6))
+        )  # fmt: skip
+
+
+_D2_BLOCK = text_block([f"{i:02d}" for i in range(100)])
+# A recording line's end is written as 0x01 in the block (no sentence holds one), so that
+# compacting it can drop each sentence's own CR LF and turn those into the line ends.
+_EOL = 0x01
+_LINE_ENDS = bytes(range(256)).replace(bytes([_EOL]), b"\n")
+
+
+def _plain_sentences(text: bytes, lengths: np.ndarray) -> bool:
+    """Whether ``text``, sentences of ``lengths`` bytes, needs no JSON escaping and each of
+    its sentences ends in the one CR and the one LF it holds."""
+    arr = np.frombuffer(text, dtype=np.uint8)
+    n = lengths.shape[0]
+    if arr.shape[0] != int(lengths.sum()) or n == 0 or b'"' in text or b"\\" in text:
+        return False
+    # every byte outside 0x20-0x7E (uint8 arithmetic wraps those below 0x20 round): the
+    # CR LF ending each sentence, and nothing else
+    odd = np.flatnonzero(arr - np.uint8(0x20) > 0x5E)
+    if odd.shape[0] != 2 * n:
+        return False
+    ends = np.cumsum(lengths)
+    return bool(
+        np.array_equal(odd[1::2], ends - 1)
+        and np.array_equal(odd[::2], ends - 2)
+        and np.all(arr[odd[1::2]] == 10)
+        and np.all(arr[odd[::2]] == 13)
+    )
+
+
+def _repr_block(values: np.ndarray) -> np.ndarray:
+    """``repr`` of every float (the recorder's JSON for a float), as a block.
+
+    ``repr(v)`` is the shortest decimal that reads back as ``v``. For ``1 <= v < 2**52`` with
+    ``v = i + f`` (``i`` whole) the decimals that read back as ``v`` are ``i`` plus those that
+    read back as ``f`` on the grid of ``v``'s binade (whose spacing divides ``i``), so the
+    digits after the point depend on ``f`` and the binade alone; while ``f`` is farther
+    than that spacing from 0 and 1 the integer part is ``i`` itself. A chunk's arrival
+    times are whole epochs plus a few hundred distinct wire offsets: ``repr`` runs once per
+    (binade, ``f``), the integer parts are digits. Other values: ``repr`` each."""
+    v = np.asarray(values, dtype=float)
+    with np.errstate(invalid="ignore"):
+        whole = np.floor(v)
+        frac = v - whole  # exact
+        cached = np.isfinite(v) & (v >= 1.0) & (v < 2.0**52) & (frac > 1e-6) & (frac < 1.0 - 1e-6)
+    binade = np.frexp(v)[1]
+    keys, first, inverse = np.unique(
+        np.where(cached, frac + 1j * binade, -1.0), return_index=True, return_inverse=True
+    )
+    digits = []
+    for key, i in zip(keys.tolist(), first.tolist(), strict=True):
+        head, _, tail = repr(float(v[i])).partition(".")
+        ok = key.real >= 0.0 and head == str(int(whole[i])) and tail.isdigit()
+        digits.append(tail if ok else "")  # (not ok: never seen, but repr would say)
+    cached &= text_block(digits)[inverse.reshape(-1), 0] != 0
+    n = v.shape[0]
+    ints = uint_block(np.where(cached, whole, 0.0).astype(np.int64))
+    block = joined((ints, const_block(".", n), text_block(digits)[inverse.reshape(-1)]))
+    rest = np.flatnonzero(~cached)
+    if rest.size:
+        block = put_texts(block, rest, [repr(x).encode("ascii") for x in v[rest].tolist()])
+    return block

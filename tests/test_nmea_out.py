@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -333,3 +334,56 @@ def test_bulk_dop_text_is_the_receivers() -> None:
     edges = [math.nan, math.inf, -math.inf, -0.0, 0.0, -1.0, 0.005, 0.015, 99.99, 99.990001, 1e-300]
     values = edges + np.random.default_rng(0).uniform(-5.0, 120.0, 5000).tolist()
     assert dop_texts(values) == [_dop(v) for v in values]
+
+
+@pytest.mark.parametrize("minute_decimals", [4, 5])
+def test_batch_text_on_odd_values_equals_per_epoch_formatting(minute_decimals: int) -> None:
+    """The batch's text is built by numpy column by column; against the per-epoch path on
+    what a robot standing in the open never prints: altitudes below the sea and far above,
+    fast speeds, courses about any turn, DOPs on rounding edges and capped, both hemispheres,
+    epochs without a fix before the receiver has time, and consecutive batches."""
+    from dataclasses import replace
+
+    from sim_backend.gnss import GnssModel
+    from sim_backend.sky import SatelliteSet, read_yuma
+    from sim_backend.world import DEFAULT_ALMANAC
+
+    start = datetime(2020, 12, 31, 23, 59, 0, tzinfo=UTC)  # the date changes at epoch 60
+    sky = SatelliteSet.from_almanac(read_yuma(DEFAULT_ALMANAC, reference=start))
+    model = GnssModel(sky, 51.75, -1.25, 60.0, start, rng=np.random.default_rng(2))
+    n = 200
+    batch = model.batch(
+        np.arange(n, dtype=float), np.full(n, 51.75), np.full(n, -1.25), np.full(n, 60.0),
+        np.zeros((n, 3)),
+    )  # fmt: skip
+    rng = np.random.default_rng(minute_decimals)
+    edges = [math.nan, math.inf, -0.0, 0.0, 0.005, 0.015, 99.99, 99.990001, 1e-300, 1.125, 2.675]
+    odd = replace(
+        batch,
+        alt_m=np.where(rng.random(n) < 0.5, -rng.uniform(0, 2000, n), rng.uniform(0, 1e5, n)),
+        speed_mps=np.where(rng.random(n) < 0.5, rng.uniform(0, 500, n), rng.uniform(0, 5, n)),
+        course_deg=np.where(rng.random(n) < 0.3, np.nan, rng.uniform(-720, 720, n)),
+        hdop=rng.choice(edges, n),
+        pdop=np.round(rng.uniform(0, 120, n), 3),
+        vdop=rng.uniform(-5, 120, n),
+        valid=np.where(np.arange(n) < 10, False, batch.valid),
+        snr_dbhz=np.where(np.arange(n)[:, None] < 5, np.nan, batch.snr_dbhz),
+        lat_deg=np.where(rng.random(n) < 0.5, -batch.lat_deg, batch.lat_deg),
+        lon_deg=np.where(rng.random(n) < 0.5, -batch.lon_deg - 100, batch.lon_deg),
+    )
+    cells = NmeaFormatter(minute_decimals=minute_decimals)
+    one = NmeaFormatter(minute_decimals=minute_decimals)
+    got = [cells.format_batch(_rows(odd, s)) for s in (slice(0, 70), slice(70, n))]
+    assert got[0] + got[1] == one.format_epochs(odd.epochs())
+    assert got[0][0].startswith(b"$GPRMC,,V,")  # no time yet
+
+
+def _rows(batch: Any, rows: slice) -> Any:
+    """``batch`` (a GnssBatch) cut to ``rows`` of epochs."""
+    from dataclasses import replace
+
+    skip = {"start_utc", "prns", "geoid_sep_m"}
+    cut = {
+        k: v[rows] for k, v in vars(batch).items() if k not in skip and isinstance(v, np.ndarray)
+    }
+    return replace(batch, **cut)

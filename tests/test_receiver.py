@@ -309,3 +309,37 @@ def test_the_gnss_model_is_built_only_here() -> None:
                 hits.append(str(path.relative_to(ROOT)))
     assert hits == []
     assert GnssModel  # the class itself stays public for the benchmarks and tests
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_uart_table_is_send_sentence_by_sentence(seed: int) -> None:
+    """``UartTx.send_table`` (a chunk's sentence sizes at once) against ``send_bursts`` (the
+    sentences one by one): the same arrival times to the bit, the same drops and state, for
+    lines that keep up (the vectorised path), lines that fall behind or drop, a banner still
+    on the wire, empty epochs and uneven rates, over consecutive chunks."""
+    rng = np.random.default_rng(seed)
+    for trial in range(40):
+        baud = int(rng.choice([4800, 9600, 38400, 115200]))
+        rate = float(rng.choice([1.0, 2.0, 4.0, 0.5, 1 / 3]))
+        n_e = int(rng.integers(1, 50))
+        t = np.arange(n_e) / rate + float(rng.choice([0.0, 1000.0, 65530.0, 1e6]))
+        sizes = rng.integers(30, 80, size=(n_e, 9))
+        sizes[rng.random((n_e, 9)) < 0.3] = 0
+        if trial % 7 == 0:
+            sizes[rng.integers(0, n_e)] = 0  # an epoch without sentences
+        if trial % 5 == 0:
+            sizes[rng.random((n_e, 9)) < 0.05] = 2000  # longer than the buffer
+        buffer_bytes = int(rng.choice([1024, 200, 5000]))
+        one, table = UartTx(baud, buffer_bytes), UartTx(baud, buffer_bytes)
+        one.free_at_s = table.free_at_s = float(rng.choice([-math.inf, t[0] + 0.3, t[0] - 0.1]))
+        for rows in np.array_split(np.arange(n_e), 3):
+            bursts = [
+                b"".join(b"x" * (int(m) - 2) + b"\r\n" for m in row if m > 0) for row in sizes[rows]
+            ]
+            want = [(t_rx, len(line)) for t_rx, line in one.send_bursts(bursts, t[rows].tolist())]
+            arrive, sent = table.send_table(sizes[rows], t[rows])
+            got = [(float(a), int(m)) for a, m in zip(arrive[sent], sizes[rows][sent], strict=True)]
+            assert got == want
+            assert (table.free_at_s, table.dropped, table.sent) == (
+                one.free_at_s, one.dropped, one.sent,
+            )  # fmt: skip

@@ -287,3 +287,65 @@ def test_a_reader_that_goes_away_is_exit_141_without_a_traceback(tmp_path: Path)
     assert p.returncode == 141, err
     assert "Traceback" not in err
     assert (tmp_path / "o" / "summary.json").exists()
+
+
+def test_recording_lines_from_cells_are_the_general_writers(tmp_path: Path) -> None:
+    """The recording's ``nmea`` lines built as text blocks from a chunk's sentence cells
+    against the general writer on the same (arrival, sentence) pairs: a real receiver's
+    chunk across midnight with a banner still on the wire, one whose UART drops sentences,
+    and sentences JSON must escape (the general writer's path then)."""
+    from dataclasses import replace
+
+    from sim_backend.nmea_out import NmeaCells, NmeaFormatter
+    from sim_backend.receiver import SimRandom, UartTx, build_receiver
+    from sim_backend.survey import _RecordLines
+
+    world = replace(load_world(OPEN_FIELD), start_utc=load_world(OPEN_FIELD).start_utc.replace(
+        hour=23, minute=58))  # fmt: skip
+    rx = build_receiver(world, SimRandom.from_seed(3))
+    t = np.arange(0.0, 300.0)
+    b = rx.batch(t, np.zeros((t.size, 3)), np.zeros((t.size, 3)))
+    start = np.datetime64(world.start_utc.replace(tzinfo=None), "us")
+    for baud in (9600, 2400):
+        cells = NmeaFormatter().format_cells(b)
+        uart = UartTx(baud)
+        uart.send([b"$GPTXT,banner*00\r\n"] * 5, 0.0)
+        arrive, sent = uart.send_table(cells.lengths, t)
+        assert (uart.dropped == 0) == (baud == 9600)
+        text = cells.text()
+        lines = [
+            row.tobytes().replace(b"\0", b"")
+            for row in cells.cells.reshape(-1, cells.cells.shape[2])
+        ]
+        pairs = [
+            (float(a), x) for a, x, s in zip(arrive.ravel(), lines, sent.ravel(), strict=True) if s
+        ]
+        want, carried = _RecordLines(start).nmea_lines(pairs)
+        assert _RecordLines(start).nmea_cells(text, cells, arrive, sent) == (
+            want.encode(), carried,
+        )  # fmt: skip
+    odd = NmeaCells.of_bursts([b'$GPTXT,"q" \\ x*00\r\n$GPRMC,\xff*00\r\n', b"$A*00\r\n"])
+    arrive, sent = np.zeros((2, 9)), np.zeros((2, 9), dtype=bool)
+    arrive[0, :2], arrive[1, 0] = (1.5, 2.25), 3.0
+    sent[0, :2] = sent[1, 0] = True
+    pairs = [(1.5, b'$GPTXT,"q" \\ x*00\r\n'), (2.25, b"$GPRMC,\xff*00\r\n"), (3.0, b"$A*00\r\n")]
+    want, carried = _RecordLines(start).nmea_lines(pairs)
+    got = _RecordLines(start).nmea_cells(b"".join(x for _t, x in pairs), odd, arrive, sent)
+    assert got == (want.encode(), carried)
+
+
+def test_float_reprs_in_a_block_are_pythons() -> None:
+    """The recording's ``t_mono`` texts: ``repr`` once per binade and fraction."""
+    from sim_backend.survey import _repr_block
+
+    rng = np.random.default_rng(1)
+    values = np.concatenate(
+        (
+            rng.random(5000) * 1e5, rng.random(2000), np.arange(0, 600, 0.25),
+            2.0 ** np.arange(-30, 60), np.cumsum(rng.integers(30, 80, 20000) / 960.0) + 2040.0,
+            [0.0, -0.0, 1e-5, 1e16, 2**52 - 0.5, 2**52 + 1.0, math.nan, math.inf, -1.5,
+             9.999999999999998, 10.000000000000002, 1.0000000000000002, 0.9999999999999999],
+        )
+    )  # fmt: skip
+    got = [row.tobytes().replace(b"\0", b"").decode() for row in _repr_block(values)]
+    assert got == [repr(v) for v in values.tolist()]
