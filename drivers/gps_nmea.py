@@ -226,28 +226,49 @@ _HI_XOR: Final = bytes(
 )
 _LO_XOR: Final = bytes(int(chr(c), 16) ^ c if c in _HEX else 0 for c in range(256))
 assert all(_LINE_XOR[k] == _HI_XOR[k[0]] ^ _LO_XOR[k[1]] for k in _LINE_XOR)
+_HEX_DIGITS: Final = bytes(sorted(_HEX))
+
+# _RUN on a copy of the data with every byte a body may hold (anything but "$", "*", CR,
+# LF and 0xB5) written as "b": the body is then one repeated literal, which the regex
+# engine takes about five times faster than the class. The checksum digits are "bb" too,
+# so a run found this way is _RUN's once its digits are known to be hex (_line_sums).
+_BODY_AS_B: Final = bytes(c if c in b"$*\r\n\xb5" else 0x62 for c in range(256))
+_RUN_B: Final = re.compile(
+    rb"((?:\$b{1,124}+\*bb\r?\n)*+)(\$[b*]{0,%d}\Z)?" % (MAX_SENTENCE_CHARS - 1)
+)
 
 
-def _line_sums(lines: list[bytes]) -> tuple[bytes, bytes]:
+def _line_sums(lines: list[bytes]) -> tuple[bytes, bytes, bool]:
     """(``checksum(line)`` of every line, the value each must have: ``_LINE_XOR`` of its
-    last two characters), for lines of at most 128 bytes, computed all at once.
+    last two characters, whether those are all hex digits), for lines of at most 128
+    bytes, computed all at once.
 
     The lines are right-aligned with zeros (zeros change no XOR) in slots as wide as the
-    longest line, and the block is read column by column: column ``i`` (one strided slice)
-    holds the ``i``-th byte of every slot, and the XOR of all columns, each read as one
-    integer, holds every line's XOR, one byte per line. That is one big-int XOR per column
-    (at most 128), however many lines. Right-aligned, the checksum digits are the last two
-    columns.
+    longest line rounded up to 8 bytes, and the block is read column by column of 8-byte
+    words: column ``i`` (one strided view) holds the ``i``-th word of every slot, and the
+    XOR of all columns, each read as one integer, holds every line's XOR folded to 8 bytes,
+    which three shifts fold into the low byte of each slot. That is one big-int XOR per
+    column (at most 16), however many lines. Right-aligned, the checksum digits are the
+    last two byte columns.
     """
-    width = max(map(len, lines))
+    width = (max(map(len, lines)) + 7) & ~7
     block = b"".join(map(bytes.rjust, lines, repeat(width), repeat(b"\0")))
+    words = memoryview(block).cast("Q")
+    step = width // 8
     x = 0
-    for i in range(width):
-        x ^= int.from_bytes(block[i::width], "little")
-    hi = int.from_bytes(block[width - 2 :: width].translate(_HI_XOR), "little")
-    lo = int.from_bytes(block[width - 1 :: width].translate(_LO_XOR), "little")
+    for i in range(step):
+        x ^= int.from_bytes(words[i::step], "little")
+    x ^= x >> 32
+    x ^= x >> 16
+    x ^= x >> 8
     n = len(lines)
-    return x.to_bytes(n, "little"), (hi ^ lo).to_bytes(n, "little")
+    hi = block[width - 2 :: width]
+    lo = block[width - 1 :: width]
+    expected = int.from_bytes(hi.translate(_HI_XOR), "little") ^ int.from_bytes(
+        lo.translate(_LO_XOR), "little"
+    )
+    all_hex = not (hi + lo).translate(None, _HEX_DIGITS)
+    return x.to_bytes(8 * n, "little")[::8], expected.to_bytes(n, "little"), all_hex
 
 
 class NmeaFramer:
@@ -295,18 +316,54 @@ class NmeaFramer:
             self.counters.checksum_failures += 1
             return []
         buf += data
+        c = FramerCounters()
+        # One pass over a copy of the buffer (bytes: slices of it are bytes); the counters
+        # of a pass are added when it is taken. _RUN_B finds the runs unless a run's
+        # checksum digits are not all hex, then _RUN does (a second pass).
+        snapshot = bytes(buf)
+        result = self._pass(snapshot, c, fast=True)
+        if result is None:
+            c = FramerCounters()
+            result = self._pass(snapshot, c, fast=False)
+            assert result is not None
+        out, pos, dropping = result
+        total = self.counters
+        total.sentences += c.sentences
+        total.checksum_failures += c.checksum_failures
+        total.framing_errors += c.framing_errors
+        total.ubx_frames += c.ubx_frames
+        total.skipped_bytes += c.skipped_bytes
+        if dropping:
+            self._dropping = True
+        if pos:
+            del buf[:pos]
+        return out
+
+    def _pass(
+        self, buf: bytes, c: FramerCounters, *, fast: bool
+    ) -> tuple[list[str | UbxFrame], int, bool] | None:
+        """Frame ``buf``: (frames, bytes consumed, whether the rest of an over-long sentence
+        is to be dropped), counted in ``c``; None when ``fast`` and a run's checksum digits
+        are not all hex (``_RUN_B`` then framed what ``_RUN`` does not)."""
         out: list[str | UbxFrame] = []
-        c = self.counters
+        # Runs of lines, checksummed together at the end: (index in out, their lines).
+        runs: list[tuple[int, list[bytes]]] = []
         n = len(buf)
         pos = 0
+        dropping = False
         search = _SCAN.search
-        run_match = _RUN.match
+        if fast:
+            run_match = _RUN_B.match
+            target = buf.translate(_BODY_AS_B)
+        else:
+            run_match = _RUN.match
+            target = buf
         while True:
-            run = run_match(buf, pos)
+            run = run_match(target, pos)
             assert run is not None  # the pattern matches the empty string
             end = run.end(1)
             if end > pos:
-                self._run(run.group(1), out)
+                self._run(buf[pos:end], out, runs)
                 pos = end
             if run.start(2) >= 0:  # a sentence in progress: wait for the rest
                 pos = run.start(2)
@@ -317,12 +374,12 @@ class NmeaFramer:
             if m is None:
                 # Keep a lone trailing 0xB5: it may be the first half of a UBX sync.
                 keep = n - 1 if n > pos and buf[n - 1] == 0xB5 else n
-                self._skip(buf, pos, keep)
+                _skip(buf, pos, keep, c)
                 pos = keep
                 break
             start, end = m.span()
             if start > pos and not (start - pos == 2 and buf[pos] == 0x0D and buf[pos + 1] == 0x0A):
-                self._skip(buf, pos, start)
+                _skip(buf, pos, start, c)
             body = m.group(1)
             if body is not None:
                 pos = end
@@ -333,7 +390,7 @@ class NmeaFramer:
                     out.append(buf[start : start + len(body) + 4].decode("ascii", "replace"))
                 continue
             if buf[start] == 0xB5:
-                consumed, frame = self._ubx(buf, start, n)
+                consumed, frame = _ubx(buf, start, n, c)
                 if consumed == 0:  # incomplete: wait for more
                     pos = start
                     break
@@ -347,7 +404,7 @@ class NmeaFramer:
                 if ln > MAX_SENTENCE_CHARS:
                     c.framing_errors += 1
                     pos = n
-                    self._dropping = True
+                    dropping = True
                 else:
                     pos = start
                 break
@@ -382,12 +439,14 @@ class NmeaFramer:
                 continue
             c.sentences += 1
             out.append(seg.decode("ascii", "replace"))
-        if pos:
-            del buf[:pos]
-        return out
+        if runs and not _check_runs(runs, out, c):
+            return None
+        return out, pos, dropping
 
-    def _run(self, run: bytes, out: list[str | UbxFrame]) -> None:
-        """Checksum every line of a ``_RUN`` match; append the good ones to ``out``."""
+    @staticmethod
+    def _run(run: bytes, out: list[str | UbxFrame], runs: list[tuple[int, list[bytes]]]) -> None:
+        """Append the lines of a run (``_RUN``'s group 1) to ``out`` as text, and note them
+        in ``runs`` for their checksums (``_check_runs``)."""
         run = run.replace(b"\r", b"")  # CR occurs here only as part of a CR LF
         lines = run.split(b"\n")
         lines.pop()  # the empty tail after the last line end
@@ -395,56 +454,77 @@ class NmeaFramer:
         # lines pair up with the byte lines.
         texts = run.decode("ascii", "replace").split("\n")
         texts.pop()
-        line_xor = _LINE_XOR
-        good = 0
-        if len(lines) < _BATCH_MIN:
-            for line, text in zip(lines, texts, strict=True):
-                if checksum(line) == line_xor[line[-2:]]:
-                    out.append(text)
-                    good += 1
-        else:
-            for i in range(0, len(lines), _BATCH_LINES):
-                sums, expected = _line_sums(lines[i : i + _BATCH_LINES])
-                if sums == expected:  # all good
-                    kept = texts[i : i + _BATCH_LINES]
-                else:
-                    kept = [
-                        text
-                        for text, s, e in zip(
-                            texts[i : i + _BATCH_LINES], sums, expected, strict=True
-                        )
-                        if s == e
-                    ]
-                out += kept
-                good += len(kept)
-        c = self.counters
-        c.sentences += good
-        c.checksum_failures += len(texts) - good
+        runs.append((len(out), lines))
+        out += texts
 
-    def _skip(self, buf: bytearray, a: int, b: int) -> None:
-        if b - a == 2 and buf[a] == 0x0D and buf[a + 1] == 0x0A:
-            return
-        if b > a:
-            chunk = buf[a:b]
-            self.counters.skipped_bytes += b - a - chunk.count(b"\n") - chunk.count(b"\r")
 
-    def _ubx(self, buf: bytearray, at: int, n: int) -> tuple[int, UbxFrame | None]:
-        """(bytes consumed, frame or None); 0 consumed means wait for more data."""
-        if n - at < 6:
-            return 0, None
-        length = buf[at + 4] | (buf[at + 5] << 8)
-        if length > MAX_UBX_PAYLOAD:
-            self.counters.skipped_bytes += 1
-            return 1, None
-        total = 8 + length
-        if n - at < total:
-            return 0, None
-        body = bytes(buf[at + 2 : at + 6 + length])
-        if ubx_checksum(body) != buf[at + 6 + length : at + total]:
-            self.counters.skipped_bytes += 1
-            return 1, None  # false sync: rescan from the next byte
-        self.counters.ubx_frames += 1
-        return total, UbxFrame(body[0], body[1], body[4:])
+def _check_runs(
+    runs: list[tuple[int, list[bytes]]], out: list[str | UbxFrame], c: FramerCounters
+) -> bool:
+    """Checksum the lines of ``runs`` (``_run``) all together: drop the bad ones from
+    ``out`` and count them; False (nothing changed) if a line's checksum digits are not
+    all hex."""
+    lines = [line for _, part in runs for line in part] if len(runs) > 1 else runs[0][1]
+    n = len(lines)
+    if n < _BATCH_MIN:
+        try:
+            good = [checksum(line) == _LINE_XOR[line[-2:]] for line in lines]
+        except KeyError:  # not hex
+            return False
+    else:
+        sums = bytearray()
+        expected = bytearray()
+        for i in range(0, n, _BATCH_LINES):
+            s, e, all_hex = _line_sums(lines[i : i + _BATCH_LINES])
+            if not all_hex:
+                return False
+            sums += s
+            expected += e
+        if sums == expected:
+            c.sentences += n
+            return True
+        good = [s == e for s, e in zip(sums, expected, strict=True)]
+    bad = set()
+    k = 0
+    for start, part in runs:
+        for i in range(start, start + len(part)):
+            if not good[k]:
+                bad.add(i)
+            k += 1
+    if bad:
+        out[:] = [f for i, f in enumerate(out) if i not in bad]
+    c.sentences += n - len(bad)
+    c.checksum_failures += len(bad)
+    return True
+
+
+def _skip(buf: bytes, a: int, b: int, c: FramerCounters) -> None:
+    """Count the bytes ``buf[a:b]`` outside any frame (CR and LF excluded)."""
+    if b - a == 2 and buf[a] == 0x0D and buf[a + 1] == 0x0A:
+        return
+    if b > a:
+        chunk = buf[a:b]
+        c.skipped_bytes += b - a - chunk.count(b"\n") - chunk.count(b"\r")
+
+
+def _ubx(buf: bytes, at: int, n: int, c: FramerCounters) -> tuple[int, UbxFrame | None]:
+    """(bytes consumed, frame or None) at the UBX sync ``at``; 0 consumed means wait for
+    more data."""
+    if n - at < 6:
+        return 0, None
+    length = buf[at + 4] | (buf[at + 5] << 8)
+    if length > MAX_UBX_PAYLOAD:
+        c.skipped_bytes += 1
+        return 1, None
+    total = 8 + length
+    if n - at < total:
+        return 0, None
+    body = buf[at + 2 : at + 6 + length]
+    if ubx_checksum(body) != buf[at + 6 + length : at + total]:
+        c.skipped_bytes += 1
+        return 1, None  # false sync: rescan from the next byte
+    c.ubx_frames += 1
+    return total, UbxFrame(body[0], body[1], body[4:])
 
 
 # ---------------------------------------------------------------------------- UBX messages

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import io
 import json
+import re
+from dataclasses import asdict
 from pathlib import Path
 from typing import IO, cast
 
@@ -16,7 +18,8 @@ import numpy as np
 import pytest
 
 from bench.bench_nmea import synthetic_neo5
-from drivers.gps_nmea import GpsDecoder
+from drivers import gps_nmea
+from drivers.gps_nmea import GpsDecoder, NmeaFramer
 from x6wd.app import decode
 from x6wd.app.gpsd import sky_obj, tpv_obj
 from x6wd.core.records import GpsFix, GpsSky
@@ -170,3 +173,34 @@ def test_midnight_leap_second_and_zda_dates_decode_like_the_reference() -> None:
         f"GPGGA,235959.99,{pos},1,08,1.1,35.2,M,49.0,M,,",  # the day before the date
     ]
     _check(b"".join(map(_sentence, bodies)), (1 << 20, 7))
+
+
+def test_reads_cut_anywhere_decode_like_the_reference() -> None:
+    # Reads of a few hundred to a few thousand sentences, cut at odd places (inside a
+    # sentence, between CR and LF, inside a UBX frame): each read is decoded in bulk.
+    data = (
+        _fuzzed(np.random.default_rng(99)) + (NMEA_DIR / "ublox-zed-f9p_hpg1.11.log").read_bytes()
+    )
+    _check(data, (9_973, 65_537, 200_003))
+
+
+def _framed(data: bytes, size: int) -> tuple[list[object], dict[str, int]]:
+    framer = NmeaFramer()
+    frames: list[object] = []
+    for i in range(0, len(data), size):
+        frames += framer.feed(data[i : i + size])
+    return frames, asdict(framer.counters)
+
+
+def test_framer_runs_frame_like_the_general_scan(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The framer finds runs of well-formed lines with _RUN_B (on a copy whose body bytes
+    # are all "b") and checksums them together; with no runs every byte goes through
+    # _SCAN. Lines whose checksum "digits" are body bytes but not hex send a read through
+    # _RUN instead. Same frames and counters.
+    bad_digits = b"$GPGLL,,,,,,V,N*G4\r\n$GPGLL,,,,,,V,N*4g\n"
+    data = _fuzzed(np.random.default_rng(5)) + bad_digits * 3
+    data += (NMEA_DIR / "ublox-lea-5h.log").read_bytes()
+    fast = [_framed(data, size) for size in (1 << 20, 4093, 61)]
+    assert fast[0][1]["sentences"] > 1000 and fast[0][1]["framing_errors"] > 0
+    monkeypatch.setattr(gps_nmea, "_RUN_B", re.compile(rb"()((?!))?"))
+    assert [_framed(data, size) for size in (1 << 20, 4093, 61)] == fast

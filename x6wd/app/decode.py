@@ -24,27 +24,64 @@ import argparse
 import contextlib
 import json
 import math
+import operator
 import os
+import re
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from datetime import UTC, date, datetime
-from typing import IO, Any, cast
+from itertools import chain, repeat
+from typing import IO, Any, Final, cast
 
 from drivers.gps_nmea import (
+    _GGA_ALT,
+    _GGA_HDOP,
+    _GGA_LAT,
+    _GGA_LON,
+    _GGA_MEMORY_EPOCHS,
+    _GGA_QUAL,
+    _GGA_SATS,
+    _GGA_SEP,
+    _GGA_TIME,
+    _GLL_TIME,
     _GSA_MODE,
     _GSV_GROUP,
+    _GSV_SAT1,
+    _HEADS_MAX,
+    _RMC_COURSE,
+    _RMC_DATE,
+    _RMC_LAT,
+    _RMC_LON,
+    _RMC_SPEED,
+    _RMC_STATUS,
+    _RMC_TIME,
     DecoderCounters,
     GpsDecoder,
     GpsOutput,
-    _Gga,
+    UbxFrame,
+    _gga_alt,
+    _gga_hdop,
+    _gga_lat,
+    _gga_lon,
+    _gga_quality,
+    _gga_sats,
+    _gga_sep,
     _GsaValues,
+    _gsv_head,
     _parse_gsa,
-    _Rmc,
+    _rmc_course,
+    _rmc_date,
+    _rmc_lat,
+    _rmc_lon,
+    _rmc_speed,
+    _rmc_status,
+    _time_of_day,
     gsv_groups,
     gsv_values,
 )
-from drivers.nmea import GSA
+from drivers.nmea import GSA, MPS_PER_KNOT
 from x6wd.core.errors import DeviceUnavailable
+from x6wd.core.geodesy import wrap360
 from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
 _CHUNK_BYTES = 1 << 20
@@ -164,27 +201,7 @@ class ReportEncoder:
             head = '{"class":"TPV","mode":' + mode_text
         if not (valid and mode >= 2 and lat is not None and lon is not None):
             return head + time + "}"
-        # Altitudes (mode 3 only) and error estimates: one memo for the pair of texts.
-        if mode >= 3:
-            key = (alt, None if alt is None else geoid_sep, hdop, vdop)
-        else:
-            key = (None, None, hdop, None)
-        try:
-            alt_text, err_text = self._tails[key]
-        except KeyError:
-            # A moving receiver's altitude changes while its DOPs hold: each part has its
-            # own memo too.
-            alt, sep, hdop, vdop = key
-            alt_text = "" if alt is None else self._group((alt, sep), _altitudes)
-            err_text = self._group((hdop, vdop), _errors)
-            if 0 not in key:  # 0.0 == -0.0, but they print differently
-                if len(self._tails) >= MEMO_MAX:
-                    self._tails.clear()
-                self._tails[key] = alt_text, err_text
-        except TypeError:  # unhashable values: not memoised
-            alt, sep, hdop, vdop = key
-            alt_text = "" if alt is None else _altitudes(alt, sep)
-            err_text = _errors(hdop, vdop)
+        alt_text, err_text = self._tail(mode, alt, geoid_sep, hdop, vdop)
         # Position, speed and track change from fix to fix: not memoised.
         lat_text = _num_text(lat, 9)
         lon_text = _num_text(lon, 9)
@@ -203,6 +220,47 @@ class ReportEncoder:
                 "}",
             )
         )
+
+    def tpv_members(
+        self,
+        mode: int,
+        time: str,
+        position: str,
+        alt: float | None,
+        geoid_sep: float | None,
+        motion: str,
+        hdop: float | None,
+        vdop: float | None,
+    ) -> str:
+        """``tpv_line`` of a valid fix of ``mode`` 2 or 3 whose position, speed and track are
+        already written (``position`` = its lat and lon members, ``motion`` = its speed and
+        track members, as ``tpv_line`` writes them)."""
+        alt_text, err_text = self._tail(mode, alt, geoid_sep, hdop, vdop)
+        return "".join((_TPV_HEADS[mode], time, position, alt_text, motion, err_text, "}"))
+
+    def _tail(self, mode: int, alt: Any, geoid_sep: Any, hdop: Any, vdop: Any) -> tuple[str, str]:
+        """A valid fix's altitude members (mode 3 only) and error estimates: one memo for
+        the pair of texts."""
+        if mode >= 3:
+            key = (alt, None if alt is None else geoid_sep, hdop, vdop)
+        else:
+            key = (None, None, hdop, None)
+        try:
+            return self._tails[key]
+        except KeyError:
+            # A moving receiver's altitude changes while its DOPs hold: each part has its
+            # own memo too.
+            alt, sep, hdop, vdop = key
+            alt_text = "" if alt is None else self._group((alt, sep), _altitudes)
+            err_text = self._group((hdop, vdop), _errors)
+            if 0 not in key:  # 0.0 == -0.0, but they print differently
+                if len(self._tails) >= MEMO_MAX:
+                    self._tails.clear()
+                self._tails[key] = alt_text, err_text
+            return alt_text, err_text
+        except TypeError:  # unhashable values: not memoised
+            alt, sep, hdop, vdop = key
+            return ("" if alt is None else _altitudes(alt, sep)), _errors(hdop, vdop)
 
     def sky(self, sky: GpsSky) -> str:
         """The SKY line (no newline) of ``sky``."""
@@ -398,22 +456,226 @@ _GSA_FIELDS = GSA.pos("vdop") + 1  # the GSA fields GpsDecoder reads (a shorter 
 _SatTexts = tuple[int, str, str]
 """A GSV satellite for ``ReportDecoder``: PRN, its ``_sat_text`` not used / used in the fix."""
 
+# How ReportDecoder takes a sentence, by its head (``text[1:7]``): counted only (a known
+# type whose fields are not read), one of the types it reads in bulk, or the reference's path.
+_SKIP, _DO_GGA, _DO_RMC, _DO_GSA, _DO_GSV, _DO_GLL, _REFERENCE = range(7)
+_KIND_CODES: Final = {
+    "GGA": _DO_GGA,
+    "RMC": _DO_RMC,
+    "GSA": _DO_GSA,
+    "GSV": _DO_GSV,
+    "GLL": _DO_GLL,
+}
+_BULK_MIN: Final = 16  # fewer sentences in one call: the reference's loop, one at a time
+_PERIOD_MAX: Final = 64  # longest sentence cycle looked for (see _phases)
+_HEAD: Final = operator.itemgetter(slice(1, 7))
+_BODY: Final = operator.itemgetter(slice(7, -3))
+
+# The fields a handler reads, cut from the sentences of one type joined by "\n", one match
+# each: whole fields (a field ends at a comma), grouped as they are memoised, then the rest
+# of the line. A field class without "\n" would be slower; instead a match that runs into
+# the next line leaves fewer matches than lines, and then each line is matched alone
+# (_matches). A sentence with fewer fields than these need takes the reference's path.
+_F = "[^,]*"
+_L = "[^,*]*"  # the last field of a cut: "*HH" may follow it
+_REST = r"(?:,[^\n]*)?\*.."  # the fields not read and the checksum
+_GGA_CUT: Final = re.compile(
+    rf"\$..GGA,({_F}),({_F},{_F},{_F},{_F}),({_F},{_F},{_F},{_F},{_F},{_L}){_REST}"
+)
+_RMC_CUT: Final = re.compile(
+    rf"\$..RMC,({_F}),({_F}),({_F},{_F},{_F},{_L}),({_F},{_F},{_L}){_REST}"
+)
+_GLL_CUT: Final = re.compile(rf"\$..GLL,{_F},{_F},{_F},{_F},({_L}){_REST}")
+_GSV_CUT: Final = re.compile(rf"\$(..)GSV,({_F},{_F},{_L})(?:,([^\n]*))?\*..")
+assert (_GGA_TIME, _GGA_LAT, _GGA_QUAL, _GGA_SEP) == (0, 1, 5, 10)
+assert (_RMC_TIME, _RMC_STATUS, _RMC_LAT, _RMC_SPEED, _RMC_DATE) == (0, 1, 2, 6, 8)
+assert (_GLL_TIME, _GSV_SAT1) == (4, 3)
+
+_BAD: Final = object()
+"""A memo's value for a text whose parse raised (ValueError): its sentence takes the
+reference's path, which raises again and counts it."""
+_STATUS_VALID: Final = {"A": True, "V": False, "": False}  # RMC status letters (_rmc_status)
+
+_Position = tuple[float | None, float | None, str]  # lat, lon, their TPV members
+_GgaTail = tuple[int, Any, Any, Any]  # quality, HDOP, altitude, geoid separation
+_RmcTail = tuple[str, date | None]  # speed and track members, date
+# A GGA or RMC as ReportDecoder holds it (what its fix's line needs):
+_GgaTuple = tuple[int | None, _Position, _GgaTail]  # time of day, position, the rest
+_RmcTuple = tuple[int | None, bool, _Position, _RmcTail]  # time of day, valid, ...
+_GsvTuple = tuple[str, tuple[int, int], list[_SatTexts]]  # talker, count and number, sats
+
+
+def _position(lat: float | None, lon: float | None) -> _Position:
+    """(lat, lon, ``,"lat":..,"lon":..`` as ``tpv_line`` writes them)."""
+    lat_text = None if lat is None else _num_text(lat, 9)
+    lon_text = None if lon is None else _num_text(lon, 9)
+    return (
+        lat,
+        lon,
+        ("" if lat_text is None else ',"lat":' + lat_text)
+        + ("" if lon_text is None else ',"lon":' + lon_text),
+    )
+
+
+def _motion(speed: float | None, course: float | None) -> str:
+    """A TPV's speed and track members as ``tpv_line`` writes them."""
+    speed_text = None if speed is None else _num_text(speed, 3)
+    track_text = None if course is None else _num_text(course, 4)
+    return ("" if speed_text is None else ',"speed":' + speed_text) + (
+        "" if track_text is None else ',"track":' + track_text
+    )
+
+
+def _gga_tail(quality: str, sats: str, hdop: str, alt: str, sep: str) -> _GgaTail:
+    """Quality (0 if empty), HDOP, altitude (m) and geoid separation (m) of GGA's fields, as
+    ``GpsDecoder._gga_fields`` reads them (the satellites used are checked, not kept)."""
+    q = _gga_quality(quality) or 0
+    _gga_sats(sats)
+    return q, _gga_hdop(hdop), _gga_alt(alt), _gga_sep(sep)
+
+
+def _rmc_tail(speed: str, course: str, day: str) -> _RmcTail:
+    """The speed (m/s) and track (deg) members of RMC's speed (kn) and course fields, and its
+    date, as ``GpsDecoder._rmc_fields`` reads them."""
+    speed_kn = _rmc_speed(speed)
+    course_deg = _rmc_course(course)
+    return (
+        _motion(
+            None if speed_kn is None else speed_kn * MPS_PER_KNOT,
+            None if course_deg is None else wrap360(course_deg),
+        ),
+        _rmc_date(day),
+    )
+
+
+assert _gga_lat is _rmc_lat and _gga_lon is _rmc_lon  # one position memo for GGA and RMC
+
+
+def _position_of(text: str) -> _Position:
+    """The position of the fields ``lat,N/S,lon,E/W`` (GGA and RMC alike)."""
+    lat, ns, lon, ew = text.split(",")
+    return _position(_gga_lat(lat, ns), _gga_lon(lon, ew))
+
+
+def _gga_tail_of(text: str) -> _GgaTail:
+    """``_gga_tail`` of GGA's fields from quality to geoid separation (``text``)."""
+    quality, sats, hdop, alt, _, sep = text.split(",")
+    return _gga_tail(quality, sats, hdop, alt, sep)
+
+
+def _rmc_tail_of(text: str) -> _RmcTail:
+    """``_rmc_tail`` of RMC's fields speed, course and date (``text``)."""
+    speed, course, day = text.split(",")
+    return _rmc_tail(speed, course, day)
+
+
+def _gsv_counts_of(text: str) -> tuple[int, int]:
+    """A GSV's message count and number from its three head fields (``_gsv_head``)."""
+    return _gsv_head(*text.split(","))
+
+
+def _fill(memo: dict[str, Any], keys: Iterable[str], parse: Callable[[str], Any]) -> None:
+    """Put ``parse(key)`` in ``memo`` for every key not in it (``_BAD`` where it raises
+    ValueError). A memo above MEMO_MAX is cleared first; it holds at least this call's keys,
+    so one read of a chunk's keys never misses."""
+    new = set(keys).difference(memo)
+    if not new:
+        return
+    if len(memo) + len(new) > MEMO_MAX:
+        memo.clear()
+    for key in new:
+        try:
+            memo[key] = parse(key)
+        except ValueError:  # FieldError is one
+            memo[key] = _BAD
+
+
+def _matches(pattern: re.Pattern[str], texts: list[str]) -> list[Any]:
+    """``pattern``'s groups in each of ``texts`` (all of one sentence type), or None for a
+    text it does not match: one ``findall`` over the texts joined when every text matches
+    once, else one match per text."""
+    found = pattern.findall("\n".join(texts))
+    if len(found) == len(texts):  # no match spans two lines, so each is its line's
+        return found
+    matches = [pattern.fullmatch(text) for text in texts]
+    if pattern.groups == 1:
+        return [None if m is None else m.group(1) for m in matches]
+    return [None if m is None else m.groups("") for m in matches]
+
+
+def _per_text(
+    parse: Callable[[list[str]], list[Any]], texts: list[str], groups: list[Any]
+) -> list[Any]:
+    """The events of ``texts`` of which some do not match their cut (``groups`` None): those
+    take the reference's path (their event is their text), the others ``parse``."""
+    matched = iter(parse([t for t, g in zip(texts, groups, strict=True) if g is not None]))
+    return [t if g is None else next(matched) for t, g in zip(texts, groups, strict=True)]
+
+
+def _unparsed(events: list[Any], texts: list[str]) -> list[Any]:
+    """``events`` with the text in place of each event that holds ``_BAD``."""
+    return [
+        t if e is _BAD or (type(e) is tuple and _BAD in e) else e
+        for e, t in zip(events, texts, strict=True)
+    ]
+
+
+def _phases(codes: list[int]) -> list[int] | None:
+    """The codes of one cycle if ``codes`` repeats one of at most ``_PERIOD_MAX`` sentences
+    (``codes[i] == codes[i % p]``), else None."""
+    n = len(codes)
+    p = 0
+    while True:
+        try:
+            p = codes.index(codes[0], p + 1)
+        except ValueError:
+            return None
+        if p > _PERIOD_MAX or p >= n:
+            return None
+        if codes[p : p + 256] == codes[: min(256, n - p)] and codes[p:] == codes[: n - p]:
+            return codes[:p]
+
+
+def _gsa_values(body: str) -> _GsaValues:
+    """A GSA's values from the text of its fields (``body``): ``_parse_gsa`` of the fields,
+    split and padded as the reference's handler gets them."""
+    fields = body.split(",")
+    if len(fields) < _GSA_FIELDS:
+        fields += [""] * (_GSA_FIELDS - len(fields))
+    return _parse_gsa(tuple(fields[_GSA_MODE:_GSA_FIELDS]))
+
 
 class ReportDecoder(GpsDecoder):
-    """``GpsDecoder`` (the reference, unchanged: same epochs, fixes and counters) whose
-    fixes and sky reports come out as their TPV and SKY lines (``str``, in ``out``).
+    """``GpsDecoder``'s epochs and counters, its fixes and sky reports written as their TPV
+    and SKY lines (``str``, in ``out``), the sentences of a read decoded in bulk.
 
-    What a record would have been built for, and then read back by ``ReportEncoder``, is
-    skipped: a fix's line is ``ReportEncoder.tpv_line`` of the fields ``_emit`` would store;
-    a satellite goes from its GSV group straight to its two possible JSON texts (memoised
-    by the group's text, as the reference memoises its ``SatInfo`` pair), so a sky report is
-    one join of texts (``sky_line``), and a GSV whose groups are all known is one memo read
-    per group; an epoch's time member is written from the time of day and the date's text
-    without a datetime where that is exact (``_time_member``); a GSA's values are memoised
-    by its text. Without ``with_sky`` the sky reports are counted
-    and not written. tests/test_decode_bulk.py compares the lines and counters with the
-    reference decoder's records through ``tpv_obj``/``sky_obj`` in the same run.
+    Most sentences of a receiver are GGA, RMC, GSA, GSV and GLL. Of the sentences one read
+    frames, those of each of these types are cut into the groups of fields their handlers
+    read by one regex over the texts joined (``_matches``), and each group's value is read
+    from a memo by its text, new texts parsed once each (``_fill``): a time; a position
+    (lat, lon and their TPV members, which GGA, RMC and GLL of an epoch repeat); GGA's
+    quality to geoid separation; RMC's speed and track members and date; a GSV's head and
+    satellites; a GSA. A stream repeats its cycle of sentence types, so the texts of one
+    type are mostly slices of the read (``_phases``). Then one loop goes through the
+    sentences in order with their values and runs ``GpsDecoder``'s epoch logic
+    (``_on_gga_tuple``, ``_on_rmc_tuple``, ``_on_gsv``, ``_set_gsa``, ``_on_time``) over
+    compact tuples (``_GgaTuple``, ``_RmcTuple``); a sentence whose groups do not parse, of
+    another type (ZDA, proprietary, unknown or odd heads) or of a small read takes
+    ``GpsDecoder._decode``, whose GGA and RMC handlers here build the same tuples. Every
+    field a handler reads is parsed before any state changes, so the counters and epochs
+    are the reference's.
+
+    A fix's line is written from the tuples with the texts memoised beside the values
+    (``ReportEncoder.tpv_members``); a satellite goes from its GSV group straight to its
+    two possible JSON texts, so a sky report is one join of texts (``sky_line``); an
+    epoch's time member is written from the time of day and the date's text without a
+    datetime where that is exact (``_time_member``). Without ``with_sky`` the sky reports
+    are counted and not written. tests/test_decode_bulk.py compares the lines and counters
+    with the reference decoder's records through ``tpv_obj``/``sky_obj`` in the same run.
     """
+
+    _gga: _GgaTuple | None  # type: ignore[assignment]
+    _rmc: _RmcTuple | None  # type: ignore[assignment]
 
     def __init__(self, encoder: ReportEncoder, *, with_sky: bool = True) -> None:
         super().__init__(emit_sentences=False)
@@ -423,29 +685,305 @@ class ReportDecoder(GpsDecoder):
         self._sat_text_of = self._sat_texts.__getitem__  # (the memo is cleared, never replaced)
         # GSA: the handler gets the text of the fields unsplit (most splits 0), see _gsa_text.
         self._handlers["GSA"] = (self._gsa_text, 1, 0)
-        self._gsa_memo: dict[str, _GsaValues] = {}
         # _time_member's last (time of day, date, date's time of day) and its text.
         self._member_tod: int | None = None
         self._member_day: date | None = None
         self._member_day_tod: int | None = None
         self._member = ""
+        # Sentence head -> _SKIP .. _REFERENCE (bounded like the reference's routes).
+        self._codes: dict[str, int] = {}
+        # The memos of the bulk path, by the text of their fields (see _fill).
+        self._times: dict[str, int | None] = {}
+        self._positions: dict[str, _Position] = {}
+        self._gga_tails: dict[str, _GgaTail] = {}
+        self._rmc_tails: dict[str, _RmcTail] = {}
+        self._gsv_heads: dict[str, tuple[int, int]] = {}
+        self._gsa_memo: dict[str, _GsaValues] = {}
+        # The bulk parser of each type, by code.
+        self._bulk: dict[int, Callable[[list[str]], list[Any]]] = {
+            _DO_GGA: self._ggas,
+            _DO_RMC: self._rmcs,
+            _DO_GSA: self._gsas,
+            _DO_GSV: self._gsvs,
+            _DO_GLL: self._glls,
+        }
+
+    # -- the bulk path
+
+    def _decode(self, frames: list[str | UbxFrame], t_s: float, out: list[GpsOutput]) -> None:
+        """``GpsDecoder._decode`` of ``frames``: same counters, epochs and state."""
+        if len(frames) < _BULK_MIN:
+            super()._decode(frames, t_s, out)
+            return
+        texts = [f for f in frames if type(f) is str]
+        if len(texts) < len(frames):
+            self._ubx.extend(f for f in frames if type(f) is not str)  # type: ignore[misc]
+        heads = list(map(_HEAD, texts))
+        codes: list[int] = list(map(self._codes.get, heads))  # type: ignore[arg-type]
+        if None in codes:
+            known = {h: self._code(h) for h in set(heads).difference(self._codes)}
+            known.update(self._codes)
+            codes = list(map(known.__getitem__, heads))
+        if not "".join(texts).isascii():  # the reference's path counts them invalid
+            ascii_ = list(map(str.isascii, texts))
+            codes = [c if a else _REFERENCE for c, a in zip(codes, ascii_, strict=True)]
+        events = self._events(texts, codes)
+        self._run_events(codes, events, t_s, out)
+
+    def _events(self, texts: list[str], codes: list[int]) -> list[Any]:
+        """What the loop takes for each sentence, in order: its parsed groups (a type read in
+        bulk), its text (the reference's path) or None (counted only)."""
+        n = len(texts)
+        phases = _phases(codes)
+        bulk = self._bulk
+        if phases:  # one cycle repeated: a type's texts are slices
+            period = len(phases)
+            values = []
+            for k, code in enumerate(phases):
+                part = texts[k::period]
+                parse = bulk.get(code)
+                values.append(part if parse is None else parse(part))
+            events = list(chain.from_iterable(zip(*values, strict=False)))
+            events += [values[k][-1] for k in range(n % period)]
+            return events
+        by_code: dict[int, list[str]] = {}
+        for text, code in zip(texts, codes, strict=True):
+            try:
+                by_code[code].append(text)
+            except KeyError:
+                by_code[code] = [text]
+        iters: list[Iterator[Any]] = [iter(())] * (_REFERENCE + 1)
+        for code, part in by_code.items():
+            parse = bulk.get(code)
+            iters[code] = iter(part if parse is None else parse(part))
+        return list(map(next, map(iters.__getitem__, codes)))
+
+    def _run_events(
+        self, codes: list[int], events: list[Any], t_s: float, out: list[GpsOutput]
+    ) -> None:
+        """The epoch logic over the sentences in order (``_events``); counted as the
+        reference's loop counts."""
+        c = self._counters
+        reference = super()._decode
+        n_reference = codes.count(_REFERENCE)
+        n_bulk = len(codes) - n_reference
+        n_failed = 0
+        try:
+            for code, event in zip(codes, events, strict=True):
+                if code >= _REFERENCE or code == _SKIP:
+                    if code == _REFERENCE:
+                        reference([event], t_s, out)
+                    continue
+                if type(event) is str:  # its groups did not parse
+                    n_bulk -= 1
+                    reference([event], t_s, out)
+                    continue
+                try:
+                    if code == _DO_GSV:
+                        talker, counts, sats = event
+                        self._on_gsv(talker, counts, sats, out)
+                    elif code == _DO_GLL:
+                        if event != self._tod_us:
+                            self._on_time(event, out)
+                    elif code == _DO_GGA:
+                        self._on_gga_tuple(event, out)
+                    elif code == _DO_RMC:
+                        self._on_rmc_tuple(event, out)
+                    else:  # _DO_GSA
+                        self._set_gsa(event)
+                except (IndexError, ValueError):  # as the reference's loop
+                    c.invalid_fields += 1
+                    n_failed += 1
+        finally:
+            c.sentences += n_bulk
+            c.decoded += n_bulk - n_failed
+
+    def _code(self, key: str) -> int:
+        """The ``_codes`` entry for sentence head ``key`` (computed and stored on a miss)."""
+        route = self._route(key)
+        if route is None:
+            code = _REFERENCE
+        elif route[1] is None:
+            code = _SKIP
+        else:
+            code = _KIND_CODES.get(key[2:5], _REFERENCE)
+        if len(self._codes) >= _HEADS_MAX:
+            self._codes.clear()
+        self._codes[key] = code
+        return code
+
+    # -- each type's groups, in bulk: one event per text, the text itself where they fail
+
+    def _tods(self, texts: Iterable[str]) -> list[Any]:
+        """The times of day of time fields (``_time_of_day``; ``_BAD`` if bad)."""
+        texts = list(texts)
+        _fill(self._times, texts, _time_of_day)
+        return list(map(self._times.__getitem__, texts))
+
+    def _ggas(self, texts: list[str]) -> list[Any]:
+        groups = _matches(_GGA_CUT, texts)
+        if None in groups:
+            return _per_text(self._ggas, texts, groups)
+        tods_text, positions_text, tails_text = zip(*groups, strict=True)
+        tods = self._tods(tods_text)
+        _fill(self._positions, positions_text, _position_of)
+        _fill(self._gga_tails, tails_text, _gga_tail_of)
+        positions = list(map(self._positions.__getitem__, positions_text))
+        tails = list(map(self._gga_tails.__getitem__, tails_text))
+        events = list(zip(tods, positions, tails, strict=True))
+        if _BAD in tods or _BAD in positions or _BAD in tails:
+            return _unparsed(events, texts)
+        return events
+
+    def _rmcs(self, texts: list[str]) -> list[Any]:
+        groups = _matches(_RMC_CUT, texts)
+        if None in groups:
+            return _per_text(self._rmcs, texts, groups)
+        tods_text, status, positions_text, tails_text = zip(*groups, strict=True)
+        tods = self._tods(tods_text)
+        valid = list(map(_STATUS_VALID.get, status, repeat(_BAD)))
+        _fill(self._positions, positions_text, _position_of)
+        _fill(self._rmc_tails, tails_text, _rmc_tail_of)
+        positions = list(map(self._positions.__getitem__, positions_text))
+        tails = list(map(self._rmc_tails.__getitem__, tails_text))
+        events = list(zip(tods, valid, positions, tails, strict=True))
+        if _BAD in tods or _BAD in valid or _BAD in positions or _BAD in tails:
+            return _unparsed(events, texts)
+        return events
+
+    def _gsas(self, texts: list[str]) -> list[Any]:
+        bodies = list(map(_BODY, texts))
+        _fill(self._gsa_memo, bodies, _gsa_values)
+        events = list(map(self._gsa_memo.__getitem__, bodies))
+        return _unparsed(events, texts) if _BAD in events else events
+
+    def _gsvs(self, texts: list[str]) -> list[Any]:
+        groups = _matches(_GSV_CUT, texts)
+        if None in groups:
+            return _per_text(self._gsvs, texts, groups)
+        talkers, heads, rests = zip(*groups, strict=True)
+        _fill(self._gsv_heads, heads, _gsv_counts_of)
+        counts = list(map(self._gsv_heads.__getitem__, heads))
+        sats = list(map(self._sats_or_bad, rests))
+        events = list(zip(talkers, counts, sats, strict=True))
+        if _BAD in counts or _BAD in sats:
+            return _unparsed(events, texts)
+        return events
+
+    def _glls(self, texts: list[str]) -> list[Any]:
+        groups = _matches(_GLL_CUT, texts)
+        if None in groups:
+            return _per_text(self._glls, texts, groups)
+        events = self._tods(groups)
+        return _unparsed(events, texts) if _BAD in events else events
+
+    def _sats_or_bad(self, text: str) -> list[_SatTexts] | object:
+        """``_sats_of(text)``, or ``_BAD`` where it raises."""
+        try:
+            return self._sats_of(text)
+        except ValueError:
+            return _BAD
+
+    # -- the reference's handlers, for sentences that take its path
 
     def _gsa_text(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
-        """A GSA from the text of its fields (``d[0]``): a receiver repeats its GSA while the
-        constellation holds, so its values (``_parse_gsa`` of the fields, split and padded
-        as the reference's handler gets them) are memoised by that text. A GSA that fails
-        to parse is not memoised: it raises again."""
-        body = d[0]
-        values = self._gsa_memo.get(body)
-        if values is None:
-            fields = body.split(",")
-            if len(fields) < _GSA_FIELDS:
-                fields += [""] * (_GSA_FIELDS - len(fields))
-            values = _parse_gsa(tuple(fields[_GSA_MODE:_GSA_FIELDS]))
-            if len(self._gsa_memo) >= MEMO_MAX:
-                self._gsa_memo.clear()
-            self._gsa_memo[body] = values
-        self._set_gsa(values)
+        """A GSA from the text of its fields (``d[0]``), see ``_gsa_values``."""
+        self._set_gsa(_gsa_values(d[0]))
+
+    def _gga_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
+        tod = _time_of_day(d[_GGA_TIME])
+        lat = _gga_lat(d[_GGA_LAT], d[_GGA_LAT + 1])
+        lon = _gga_lon(d[_GGA_LON], d[_GGA_LON + 1])
+        tail = _gga_tail(d[_GGA_QUAL], d[_GGA_SATS], d[_GGA_HDOP], d[_GGA_ALT], d[_GGA_SEP])
+        self._on_gga_tuple((tod, _position(lat, lon), tail), out)
+
+    def _rmc_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
+        status = _rmc_status(d[_RMC_STATUS])
+        tail = _rmc_tail(d[_RMC_SPEED], d[_RMC_COURSE], d[_RMC_DATE])
+        tod = _time_of_day(d[_RMC_TIME])
+        lat = _rmc_lat(d[_RMC_LAT], d[_RMC_LAT + 1])
+        lon = _rmc_lon(d[_RMC_LON], d[_RMC_LON + 1])
+        self._on_rmc_tuple((tod, status == "A", _position(lat, lon), tail), out)
+
+    # -- epochs: GpsDecoder's logic over the tuples
+
+    def _on_gga_tuple(self, gga: _GgaTuple, out: list[GpsOutput]) -> None:
+        # GpsDecoder._on_gga
+        self._epochs_without_gga = 0
+        self._ggas_seen += 1
+        tod = gga[0]
+        if tod is None:
+            self._emit(gga, None, out)
+            return
+        if tod != self._tod_us:
+            self._on_time(tod, out)
+        rmc = self._rmc
+        if rmc is not None and rmc[0] == tod:
+            self._rmc = None
+            self._rmc_after_gga = False
+            self._emit(gga, rmc, out)
+        elif self._rmc_after_gga or (self._rmcs_seen == 0 and self._ggas_seen == 1):
+            self._gga = gga
+        else:
+            self._emit(gga, None, out)
+
+    def _on_rmc_tuple(self, rmc: _RmcTuple, out: list[GpsOutput]) -> None:
+        # GpsDecoder._on_rmc
+        self._rmcs_seen += 1
+        tod = rmc[0]
+        day = rmc[3][1]
+        if day is not None and tod is not None:
+            self._date = day
+            self._date_tod_us = tod
+        if tod is None:
+            if self._epochs_without_gga > _GGA_MEMORY_EPOCHS:
+                self._emit(None, rmc, out)
+            return
+        if tod != self._tod_us:
+            self._epochs_without_gga += 1
+            self._on_time(tod, out)
+        gga = self._gga
+        if gga is not None and gga[0] == tod:
+            self._gga = None
+            self._rmc_after_gga = True
+            self._emit(gga, rmc, out)
+        elif self._last_fix_tod == tod and self._last_fix_had_gga:
+            self._rmc_after_gga = True
+        elif self._epochs_without_gga > _GGA_MEMORY_EPOCHS:
+            self._emit(None, rmc, out)
+        else:
+            self._rmc = rmc
+
+    def _close_epoch(self, out: list[GpsOutput]) -> None:
+        # GpsDecoder._close_epoch
+        gga = self._gga
+        rmc = self._rmc
+        self._gga = None
+        self._rmc = None
+        if gga is not None:
+            self._emit(gga, rmc if rmc is not None and rmc[0] == gga[0] else None, out)
+        elif rmc is not None and rmc[0] != self._last_fix_tod:
+            self._emit(None, rmc, out)
+
+    def _on_gsv(
+        self, talker: str, counts: tuple[int, int], sats: list[_SatTexts], out: list[GpsOutput]
+    ) -> None:
+        # GpsDecoder._gsv_fields after its fields are read
+        total, seq = counts
+        if seq == 1:
+            self._gsv_talker = talker
+            self._gsv_sats = sats  # type: ignore[assignment]
+        elif seq == self._gsv_next and talker == self._gsv_talker:
+            self._gsv_sats.extend(sats)  # type: ignore[arg-type]
+        else:  # a lost part: drop the group
+            self._gsv_next = 0
+            return
+        self._gsv_next = seq + 1
+        if seq == total:
+            self._gsv_next = 0
+            self._sky[talker] = (self._epoch_idx, self._gsv_sats)
+            self._gsv_sats = []
+            self._emit_sky(0.0, out)
 
     def _sats_of(self, text: str) -> list[_SatTexts]:  # type: ignore[override]
         """The satellites of a GSV sentence's satellite fields ``text`` (as ``_gsv_sats``:
@@ -505,19 +1043,37 @@ class ReportDecoder(GpsDecoder):
         self._member = text
         return text
 
-    def _emit(self, gga: _Gga | None, rmc: _Rmc | None, out: list[GpsOutput]) -> None:
-        # GpsDecoder._emit, writing the line instead of the record.
-        _, tod, valid, mode, lat, lon = self._fix_head(gga, rmc)  # TPV has no t_s
-        if gga is None:
-            alt = sep = None
-            hdop = self._hdop_gsa
+    def _emit(self, gga: _GgaTuple | None, rmc: _RmcTuple | None, out: list[GpsOutput]) -> None:  # type: ignore[override]
+        # GpsDecoder._fix_head and _emit, writing the line instead of the record.
+        if gga is not None:
+            tod, (lat, lon, position), (quality, hdop, alt, sep) = gga
+            valid = quality > 0 and (rmc is None or rmc[1])
         else:
-            alt, sep, hdop = gga.alt_m, gga.sep_m, gga.hdop
-        speed = course = None
-        if rmc is not None:
-            speed, course = rmc.speed_mps, rmc.course_deg
-        line = self._encoder.tpv_line(
-            valid, mode, self._time_member(tod), lat, lon, alt, sep, speed, course, hdop, self._vdop
+            assert rmc is not None
+            tod, valid, (lat, lon, position), _ = rmc
+            hdop = self._hdop_gsa
+            alt = sep = None
+        if lat is None or lon is None:
+            valid = False
+        if tod is not None:
+            self._last_fix_tod = tod
+            self._last_fix_had_gga = gga is not None
+        self._counters.fixes += 1
+        if not valid:
+            out.append(_TPV_HEADS[1] + self._time_member(tod) + "}")  # type: ignore[arg-type]
+            return
+        mode = self._gsa_mode
+        if mode != 2 and mode != 3:
+            mode = 3 if gga is not None and alt is not None else 2
+        line = self._encoder.tpv_members(
+            mode,
+            self._time_member(tod),
+            position,
+            alt,
+            sep,
+            "" if rmc is None else rmc[3][0],
+            hdop,
+            self._vdop,
         )
         out.append(line)  # type: ignore[arg-type]
 
