@@ -44,7 +44,6 @@ from sim_backend.runs import (
     RunPlan,
     Summary,
     dispersion_m,
-    plot_track,
     vehicle_from_world,
 )
 from sim_backend.textblocks import (
@@ -57,6 +56,7 @@ from sim_backend.textblocks import (
     text_block,
     uint_block,
 )
+from sim_backend.trackpng import plot_survey
 from sim_backend.world import World
 from x6wd.core.outdir import output_dir
 
@@ -180,11 +180,7 @@ def run_survey(
         },
     )
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
-    e0, n0 = float(antenna[0]), float(antenna[1])
-    plot_track(
-        out / "track.png", world, np.array([e0]), np.array([n0]), fix_enu,
-        np.full(fix_enu.shape, math.nan), np.zeros((0, 2)), summary,
-    )  # fmt: skip
+    plot_survey(out / "track.png", world, (float(antenna[0]), float(antenna[1])), fix_enu, summary)
     return summary
 
 
