@@ -374,18 +374,17 @@ class NmeaFormatter:
         known = (np.cumsum(valid | has_snr) > 0) | self.time_known
         hms, dmy = self._time_blocks(batch.start_utc, np.asarray(batch.t_s, dtype=float))
         gsv, n_msg = self._gsv_blocks(batch, prns, in_view, n_view)
-        slots: list[tuple[np.ndarray, int, np.ndarray]] = []  # (rows, slot, sentence block)
-        fix = np.flatnonzero(valid & ~slow)
-        nofix = np.flatnonzero(~valid & ~slow)
-        if fix.size:
-            bodies = self._fix_blocks(batch, fix, hms, dmy, prns, used)
+        slots: list[tuple[_Rows, int, np.ndarray]] = []  # (rows, slot, sentence block)
+        fix, n_fix = _rows(valid & ~slow)
+        nofix, r = _rows(~valid & ~slow)
+        if n_fix:
+            bodies = self._fix_blocks(batch, fix, n_fix, hms, dmy, prns, used)
             slots += [(fix, k, _sentence_block(b)) for k, b in zip(_FIX_SLOTS, bodies, strict=True)]
-        if nofix.size:
+        if r:
             unknown = ~known[nofix]
-            hms_v, dmy_v = hms[nofix], dmy[nofix]
+            hms_v, dmy_v = hms[nofix].copy(), dmy[nofix].copy()
             hms_v[unknown] = 0  # empty time and date until the receiver has time
             dmy_v[unknown] = 0
-            r = nofix.size
             bodies = [
                 filled(self._rmc_v, [hms_v, dmy_v], r),
                 filled(self._vtg_v, [], r),
@@ -396,7 +395,7 @@ class NmeaFormatter:
             slots += [
                 (nofix, k, _sentence_block(b)) for k, b in zip(_FIX_SLOTS, bodies, strict=True)
             ]
-        fast = np.flatnonzero(~slow)
+        fast, _n = _rows(~slow)
         gsv_blocks = [_sentence_block(b[fast]) for b in gsv]
         # the general path's epochs, in order, with the time state they would have seen
         slow_lines: list[tuple[int, list[bytes]]] = []
@@ -414,7 +413,10 @@ class NmeaFormatter:
             cells[rows, k, : blk.shape[1]] = blk
         for j, blk in enumerate(gsv_blocks):
             here = n_msg[fast] > j
-            cells[fast[here], _GSV0 + j, : blk.shape[1]] = blk[here]
+            if here.all():
+                cells[fast, _GSV0 + j, : blk.shape[1]] = blk
+            else:
+                cells[np.arange(n_e)[fast][here], _GSV0 + j, : blk.shape[1]] = blk[here]
         for i, lines in slow_lines:
             for k, line in _slotted(lines):
                 cells[i, k, : len(line)] = np.frombuffer(line, dtype=np.uint8)
@@ -423,14 +425,14 @@ class NmeaFormatter:
     def _fix_blocks(
         self,
         batch: BatchLike,
-        rows: np.ndarray,
+        rows: _Rows,
+        r: int,
         hms: np.ndarray,
         dmy: np.ndarray,
         prns: np.ndarray,
         used: np.ndarray,
     ) -> list[np.ndarray]:
-        """Bodies (RMC, VTG, GGA, GSA, GLL) of the epochs ``rows``, which have a fix."""
-        r = rows.size
+        """Bodies (RMC, VTG, GGA, GSA, GLL) of the ``r`` epochs ``rows``, which have a fix."""
         hms, dmy = hms[rows], dmy[rows]
         lat, ns = self._coord_blocks(np.asarray(batch.lat_deg, dtype=float)[rows], 2)
         lon, ew = self._coord_blocks(np.asarray(batch.lon_deg, dtype=float)[rows], 3)
@@ -468,29 +470,30 @@ class NmeaFormatter:
     ) -> tuple[list[np.ndarray], np.ndarray]:
         """The four GSV message bodies of every epoch (E, w) and each epoch's message count
         (rows of more than 16 satellites are left for the general path)."""
-        n_e = in_view.shape[0]
+        n_e, n_s = in_view.shape
         order = np.argsort(prns, kind="stable")  # GSV prints in PRN order
         iv = in_view[:, order]
         rank = np.cumsum(iv, axis=1) - 1
         rows, cols = np.nonzero(iv & (rank < MAX_GSV_SATS))
         k = rank[rows, cols]
         cols = order[cols]
-        el = np.asarray(batch.el_deg, dtype=float)[rows, cols]
-        az = np.asarray(batch.az_deg, dtype=float)[rows, cols]
-        snr = np.asarray(batch.snr_dbhz, dtype=float)[rows, cols]
+        at = rows * n_s + cols
+        el = np.asarray(batch.el_deg, dtype=float).reshape(-1).take(at)
+        az = np.asarray(batch.az_deg, dtype=float).reshape(-1).take(at)
+        snr = np.asarray(batch.snr_dbhz, dtype=float).reshape(-1).take(at)
         # the numbers of _sat_fields: "PP,EE,AAA,SS", position or SNR left empty
         pos_ok = np.isfinite(el) & np.isfinite(az) & (np.abs(el) <= 90.0)
         with np.errstate(invalid="ignore"):
-            el_i = np.where(pos_ok, np.clip(np.floor(el + 0.5), 0, 90), 0).astype(np.int64)
-            az_i = np.where(pos_ok, np.floor(wrap360(az) + 0.5) % 360, 0).astype(np.int64)
-            snr_i = np.where(np.isfinite(snr), np.clip(np.floor(snr + 0.5), 0, 99), 0)
-        sat = np.zeros((rows.size, 13), dtype=np.uint8)
-        sat[:, 0] = np.where(k % 4 > 0, ord(","), 0)
-        sat[:, 1:3] = _D2_BLOCK[prns[cols]]
-        sat[:, [3, 6, 10]] = ord(",")
-        sat[:, 4:6] = np.where(pos_ok[:, None], _D2_BLOCK[el_i], 0)
-        sat[:, 7:10] = np.where(pos_ok[:, None], _D3_BLOCK[az_i], 0)
-        sat[:, 11:13] = np.where(np.isfinite(snr)[:, None], _D2_BLOCK[snr_i.astype(np.int64)], 0)
+            el_i = np.clip(np.floor(el + 0.5), 0, 90)
+            az_i = np.floor(wrap360(az) + 0.5) % 360
+            snr_i = np.where(np.isfinite(snr), np.clip(np.floor(snr + 0.5), 0, 99), 100)
+        elaz = np.where(pos_ok, el_i * 360 + az_i, _ELAZ_EMPTY).astype(np.int64)
+        n = rows.size
+        sat = joined(
+            (np.where(k % 4 > 0, ord(","), 0).astype(np.uint8)[:, None],
+             _D2_BLOCK[prns[cols]], const_block(",", n), _ELAZ_BLOCK[elaz], const_block(",", n),
+             _SNR_BLOCK[snr_i.astype(np.int64)])
+        )  # fmt: skip
         fields = np.zeros((n_e, MAX_GSV_SATS, 13), dtype=np.uint8)
         fields[rows, k] = sat
         m = np.minimum(n_view, MAX_GSV_SATS)
@@ -589,6 +592,25 @@ _D1_BLOCK = text_block([str(i) for i in range(10)])
 _D2_BLOCK = text_block(_D2)
 _D3_BLOCK = text_block(_D3)
 _TRAILER_BLOCK = text_block([t.decode("ascii") for t in TRAILERS])  # "*HH\r\n" by checksum
+_SNR_BLOCK = text_block(_SNR_OR_EMPTY)  # index 100: no SNR
+# "EE,AAA" for elevation * 360 + azimuth, and ",," with the numbers left out (no position)
+_ELAZ_EMPTY = 91 * 360
+_ELAZ_BLOCK = np.zeros((_ELAZ_EMPTY + 1, 6), dtype=np.uint8)
+_ELAZ_BLOCK[:-1, :2] = np.repeat(_D2_BLOCK[:91], 360, axis=0)
+_ELAZ_BLOCK[:, 2] = ord(",")
+_ELAZ_BLOCK[:-1, 3:] = np.tile(_D3_BLOCK, (91, 1))
+
+
+_Rows = np.ndarray | slice
+
+
+def _rows(mask: np.ndarray) -> tuple[_Rows, int]:
+    """The rows where ``mask`` holds, as an index (a slice when it holds everywhere: no
+    copies), and how many."""
+    if mask.all():
+        return slice(None), int(mask.shape[0])
+    index = np.flatnonzero(mask)
+    return index, int(index.shape[0])
 
 
 def _dop_block(values: np.ndarray) -> np.ndarray:

@@ -50,7 +50,6 @@ from sim_backend.textblocks import (
     compact,
     const_block,
     day_texts,
-    int_block,
     joined,
     put_texts,
     text_block,
@@ -319,18 +318,24 @@ class _RecordLines:
         total = int(self.start_us.astype(np.int64)) + np.rint(t_s * 1e6).astype(np.int64)
         day, of_day = np.divmod(total, 86_400_000_000)
         sec, micro = np.divmod(of_day, 1_000_000)
-        hh, rem = np.divmod(sec, 3600)
-        mm, ss = np.divmod(rem, 60)
+        ms, us = np.divmod(micro, 1000)
         dates = day_texts(day, lambda d: str(np.datetime64(d, "D")) + "T")
-        n = t_s.shape[0]
-        colon, d2 = const_block(":", n), _D2_BLOCK
-        return joined(
-            (dates, d2[hh], colon, d2[mm], colon, d2[ss], const_block(".", n),
-             int_block(micro, 6))
-        )  # fmt: skip
+        d3 = _D3_BLOCK
+        return joined((dates, _hms_block()[sec], const_block(".", t_s.shape[0]), d3[ms], d3[us]))
 
 
-_D2_BLOCK = text_block([f"{i:02d}" for i in range(100)])
+@functools.cache
+def _hms_block() -> np.ndarray:
+    """``hh:mm:ss`` of every second of a day, as a block."""
+    d2 = text_block([f"{i:02d}" for i in range(60)])
+    colon = np.full((86400, 1), ord(":"), dtype=np.uint8)
+    hh = np.repeat(d2[:24], 3600, axis=0)
+    mm = np.tile(np.repeat(d2, 60, axis=0), (24, 1))
+    ss = np.tile(d2, (1440, 1))
+    return np.concatenate((hh, colon, mm, colon, ss), axis=1)
+
+
+_D3_BLOCK = text_block(_D3)
 # A recording line's end is written as 0x01 in the block (no sentence holds one), so that
 # compacting it can drop each sentence's own CR LF and turn those into the line ends.
 _EOL = 0x01
@@ -373,19 +378,24 @@ def _repr_block(values: np.ndarray) -> np.ndarray:
         whole = np.floor(v)
         frac = v - whole  # exact
         cached = np.isfinite(v) & (v >= 1.0) & (v < 2.0**52) & (frac > 1e-6) & (frac < 1.0 - 1e-6)
+    # one key per (binade, f): f's bits (below 2**62: 0 <= f < 1) and the binade above them
     binade = np.frexp(v)[1]
+    low = int(binade[cached].min()) if cached.any() else 0
+    cached &= binade - low <= 1
+    key = frac.view(np.int64) | ((binade - low).astype(np.int64) << 62)
     keys, first, inverse = np.unique(
-        np.where(cached, frac + 1j * binade, -1.0), return_index=True, return_inverse=True
+        np.where(cached, key, -1), return_index=True, return_inverse=True
     )
     digits = []
-    for key, i in zip(keys.tolist(), first.tolist(), strict=True):
+    for k, i in zip(keys.tolist(), first.tolist(), strict=True):
         head, _, tail = repr(float(v[i])).partition(".")
-        ok = key.real >= 0.0 and head == str(int(whole[i])) and tail.isdigit()
+        ok = k >= 0 and head == str(int(whole[i])) and tail.isdigit()
         digits.append(tail if ok else "")  # (not ok: never seen, but repr would say)
-    cached &= text_block(digits)[inverse.reshape(-1), 0] != 0
+    table = text_block(digits)
+    cached &= table[inverse.reshape(-1), 0] != 0
     n = v.shape[0]
     ints = uint_block(np.where(cached, whole, 0.0).astype(np.int64))
-    block = joined((ints, const_block(".", n), text_block(digits)[inverse.reshape(-1)]))
+    block = joined((ints, const_block(".", n), table[inverse.reshape(-1)]))
     rest = np.flatnonzero(~cached)
     if rest.size:
         block = put_texts(block, rest, [repr(x).encode("ascii") for x in v[rest].tolist()])

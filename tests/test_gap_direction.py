@@ -27,6 +27,7 @@ from sim_backend.effects import (
     StaticHold,
 )
 from x6wd.gap.diagnose import diagnose, verdict_text
+from x6wd.gap.level import Calibration
 from x6wd.gap.report import validation_markdown, write_report
 from x6wd.gap.solution import EFFECTS as RECEIVER_EFFECTS
 from x6wd.gap.stats import Cell, layout_for
@@ -162,9 +163,15 @@ def test_validation_passes_a_model_of_the_log_and_fails_a_scaled_one() -> None:
     # 5 % louder everywhere: mean and sigma fail the 3 %, every octave passes the 20 %
     assert not v2.mean_ok and not v2.sd_ok and all(v2.adev_ok) and not v2.passed
     assert v2.mean_sim_m / v2.mean_real_m == pytest.approx(1.05, rel=1e-3)
-    md = "\n".join(validation_markdown(v2, ["nav_filter"]))
-    assert "**FAIL**" in md and "| horizontal error mean (m) |" in md and "+5.0%" in md
-    assert md.count("| yes |") == len(v2.taus_s) and md.count("| no |") == 2
+    # the report's block: (a) the scaled runs, (b) the runs themselves, pass/fail per figure
+    c = Calibration(selected=v2, calibrated=v, layers=(), evaluations=0)
+    md = "\n".join(validation_markdown(c, ["nav_filter"]))
+    assert "- (a) the selected effects only (nav_filter," in md and "**FAIL**" in md
+    assert "**PASS**" in md and "| horizontal error mean (m) |" in md and "+5.0%" in md
+    rows = [line.split("|") for line in md.splitlines() if line.startswith("| horizontal error")]
+    rows += [line.split("|") for line in md.splitlines() if line.startswith("| Allan deviation")]
+    assert [r[5].strip() for r in rows] == ["no", "no"] + ["yes"] * len(v2.taus_s)
+    assert [r[8].strip() for r in rows] == ["yes"] * (2 + len(v2.taus_s))
 
 
 @pytest.mark.slow

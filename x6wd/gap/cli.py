@@ -150,8 +150,16 @@ def main(args: argparse.Namespace) -> int:
     )
     extra = f"; {compass_verdict_text(compass)}" if compass is not None else ""
     print(f"{verdict_text(diagnosis)}{extra}; report in {args.out}/report.md")
-    if diagnosis.validation is not None:
-        print(diagnosis.validation.summary())
+    calibration = diagnosis.calibration
+    if calibration is not None:
+        print(f"validation, selected effects only: {calibration.selected.summary()}")
+        print(
+            f"validation, calibrated (in sample; {args.out}/calibrated.toml): "
+            f"{calibration.calibrated.summary()}; the runs' own spread: mean "
+            f"{calibration.selected.mean_spread:.1%}, sigma {calibration.selected.sd_spread:.1%}"
+        )
+        if not calibration.calibrated.passed:
+            print(f"calibrated validation {calibration.miss_text()}")
     if not math.isfinite(diagnosis.closure):
         return 1
     return 0

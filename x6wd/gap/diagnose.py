@@ -40,6 +40,7 @@ from x6wd.gap.drift import (
 from x6wd.gap.fit import EFFECTS as ERROR_EFFECTS
 from x6wd.gap.fit import SIM_REFIT
 from x6wd.gap.fitted import Fit
+from x6wd.gap.level import Calibration, calibrate_level
 from x6wd.gap.noise import few_logs_null, fit_noise_model, noise_model
 from x6wd.gap.null import Inflation, block_bootstrap, null_model
 from x6wd.gap.pipeline import (
@@ -69,7 +70,6 @@ from x6wd.gap.validate import (
     Validation,
     direction_bands,
     direction_text,
-    validate,
 )
 
 # Every GPS effect the tool fits: those that add error (:mod:`x6wd.gap.fit`) and the
@@ -113,10 +113,12 @@ class Options(PipelineOptions):
 @dataclass(kw_only=True)
 class Diagnosis(Outcome[PositionSeries, Layout]):
     """Everything the report needs (GPS half), with which way the gap runs per Allan octave
-    (``direction``) and seed 000's validation of the baseline plus the selected effects."""
+    (``direction``) and seed 000's validation of the baseline plus the selected effects
+    (``validation``) and plus the level calibration after them (``calibration``)."""
 
     direction: list[Band] = field(default_factory=list)
     validation: Validation | None = None
+    calibration: Calibration | None = None
 
 
 def _lattice_decimals(series: Sequence[PositionSeries]) -> int | None:
@@ -290,9 +292,13 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         """The shared pipeline, then the direction of the gap and the validation."""
         outcome = super().run(real, baseline)
         outcome.direction = direction_bands(outcome.cells, outcome.z, DIRECTION_Z)
-        self.say("validating the simulator with the fitted effects", 0.99)
-        with_effects = self.apply_fits(outcome.selected, self.runs)
-        outcome.validation = validate(real, with_effects, self.layout.dt_s, self.layout.duration_s)
+        self.say("validating the simulator with the fitted effects, calibrating its level", 0.99)
+        layout = self.layout
+        outcome.calibration = calibrate_level(
+            real, self.runs, outcome.selected, apply_fits, self.lattice, layout.dt_s,
+            layout.duration_s,
+        )  # fmt: skip
+        outcome.validation = outcome.calibration.selected
         return outcome
 
     # --- plug-ins
