@@ -61,7 +61,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from datetime import UTC, date, datetime, timedelta
-from itertools import repeat
+from itertools import chain, repeat
 from typing import Any, Final
 
 from drivers.nmea import (
@@ -227,6 +227,7 @@ _HI_XOR: Final = bytes(
 _LO_XOR: Final = bytes(int(chr(c), 16) ^ c if c in _HEX else 0 for c in range(256))
 assert all(_LINE_XOR[k] == _HI_XOR[k[0]] ^ _LO_XOR[k[1]] for k in _LINE_XOR)
 _HEX_DIGITS: Final = bytes(sorted(_HEX))
+_ZERO_IS_OK: Final = bytes([1] + [0] * 255)  # a line's sum XOR what it must be: 1 if equal
 
 # _RUN on a copy of the data with every byte a body may hold (anything but "$", "*", CR,
 # LF and 0xB5) written as "b": the body is then one repeated literal, which the regex
@@ -464,13 +465,16 @@ def _check_runs(
     """Checksum the lines of ``runs`` (``_run``) all together: drop the bad ones from
     ``out`` and count them; False (nothing changed) if a line's checksum digits are not
     all hex."""
-    lines = [line for _, part in runs for line in part] if len(runs) > 1 else runs[0][1]
+    lines = list(chain.from_iterable(part for _, part in runs))
     n = len(lines)
     if n < _BATCH_MIN:
         try:
-            good = [checksum(line) == _LINE_XOR[line[-2:]] for line in lines]
+            ok = bytes(checksum(line) == _LINE_XOR[line[-2:]] for line in lines)
         except KeyError:  # not hex
             return False
+        if all(ok):
+            c.sentences += n
+            return True
     else:
         sums = bytearray()
         expected = bytearray()
@@ -483,16 +487,20 @@ def _check_runs(
         if sums == expected:
             c.sentences += n
             return True
-        good = [s == e for s, e in zip(sums, expected, strict=True)]
-    bad = set()
-    k = 0
+        # 1 where a line's sum differs from what it must be
+        diff = int.from_bytes(sums, "little") ^ int.from_bytes(expected, "little")
+        ok = diff.to_bytes(n, "little").translate(_ZERO_IS_OK)
+    # A line's place in out: its number among the lines + its run's offset.
+    offsets: list[int] = []
     for start, part in runs:
-        for i in range(start, start + len(part)):
-            if not good[k]:
-                bad.add(i)
-            k += 1
-    if bad:
-        out[:] = [f for i, f in enumerate(out) if i not in bad]
+        offsets += repeat(start - len(offsets), len(part))
+    bad = []
+    i = ok.find(0)
+    while i >= 0:
+        bad.append(i)
+        i = ok.find(0, i + 1)
+    for i in reversed(bad):
+        del out[offsets[i] + i]
     c.sentences += n - len(bad)
     c.checksum_failures += len(bad)
     return True

@@ -28,12 +28,13 @@ import operator
 import os
 import re
 import sys
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from datetime import UTC, date, datetime
-from itertools import chain, repeat
+from itertools import accumulate, chain, compress, repeat
 from typing import IO, Any, Final, cast
 
 from drivers.gps_nmea import (
+    _FRACTION_US,
     _GGA_ALT,
     _GGA_HDOP,
     _GGA_LAT,
@@ -48,6 +49,7 @@ from drivers.gps_nmea import (
     _GSV_GROUP,
     _GSV_SAT1,
     _HEADS_MAX,
+    _MINUTE_US,
     _RMC_COURSE,
     _RMC_DATE,
     _RMC_LAT,
@@ -55,6 +57,7 @@ from drivers.gps_nmea import (
     _RMC_SPEED,
     _RMC_STATUS,
     _RMC_TIME,
+    _SECOND_US,
     DecoderCounters,
     GpsDecoder,
     GpsOutput,
@@ -201,7 +204,7 @@ class ReportEncoder:
             head = '{"class":"TPV","mode":' + mode_text
         if not (valid and mode >= 2 and lat is not None and lon is not None):
             return head + time + "}"
-        alt_text, err_text = self._tail(mode, alt, geoid_sep, hdop, vdop)
+        alt_text, err_text = self.fix_tail(mode, alt, geoid_sep, hdop, vdop)
         # Position, speed and track change from fix to fix: not memoised.
         lat_text = _num_text(lat, 9)
         lon_text = _num_text(lon, 9)
@@ -221,26 +224,11 @@ class ReportEncoder:
             )
         )
 
-    def tpv_members(
-        self,
-        mode: int,
-        time: str,
-        position: str,
-        alt: float | None,
-        geoid_sep: float | None,
-        motion: str,
-        hdop: float | None,
-        vdop: float | None,
-    ) -> str:
-        """``tpv_line`` of a valid fix of ``mode`` 2 or 3 whose position, speed and track are
-        already written (``position`` = its lat and lon members, ``motion`` = its speed and
-        track members, as ``tpv_line`` writes them)."""
-        alt_text, err_text = self._tail(mode, alt, geoid_sep, hdop, vdop)
-        return "".join((_TPV_HEADS[mode], time, position, alt_text, motion, err_text, "}"))
-
-    def _tail(self, mode: int, alt: Any, geoid_sep: Any, hdop: Any, vdop: Any) -> tuple[str, str]:
-        """A valid fix's altitude members (mode 3 only) and error estimates: one memo for
-        the pair of texts."""
+    def fix_tail(
+        self, mode: int, alt: Any, geoid_sep: Any, hdop: Any, vdop: Any
+    ) -> tuple[str, str]:
+        """A valid fix's altitude members (m; mode 3 only) and error estimates (m), as
+        ``tpv_line`` writes them: one memo for the pair of texts."""
         if mode >= 3:
             key = (alt, None if alt is None else geoid_sep, hdop, vdop)
         else:
@@ -282,12 +270,16 @@ class ReportEncoder:
         listed = ",".join(texts)
         # A satellite's text has "used":true exactly when sky_obj counts it in uSat (no
         # string in it can hold that text: JSON escapes the quotes).
-        n_used = listed.count('"used":true')
-        dops = self._group((hdop, vdop, pdop), _dops)
+        n_used = listed.count(_USED)
+        dops = self.dops(hdop, vdop, pdop)
         return (
             f'{{"class":"SKY"{time}{dops},"nSat":{len(texts)},"uSat":{n_used},'
             f'"satellites":[{listed}]}}'
         )
+
+    def dops(self, hdop: float | None, vdop: float | None, pdop: float | None) -> str:
+        """A SKY line's hdop, vdop and pdop members (memoised by value)."""
+        return self._group((hdop, vdop, pdop), _dops)
 
     def _add_sats(self, sats: tuple[SatInfo, ...]) -> list[str]:
         """Memoise the satellites of ``sats`` not memoised yet; their texts in order."""
@@ -378,6 +370,7 @@ def _dops(hdop: Any, vdop: Any, pdop: Any) -> str:
 
 
 _TPV_HEADS = tuple(f'{{"class":"TPV","mode":{m}' for m in range(4))
+_USED = '"used":true'  # in a satellite's text exactly when sky_obj counts it in uSat
 
 # "%.{n}f" formats for _num_text, and the magnitude below which that text is exact.
 _FIXED = tuple(f"%.{n}f" for n in range(10))
@@ -458,7 +451,8 @@ _SatTexts = tuple[int, str, str]
 
 # How ReportDecoder takes a sentence, by its head (``text[1:7]``): counted only (a known
 # type whose fields are not read), one of the types it reads in bulk, or the reference's path.
-_SKIP, _DO_GGA, _DO_RMC, _DO_GSA, _DO_GSV, _DO_GLL, _REFERENCE = range(7)
+_SKIP, _DO_GGA, _DO_RMC, _DO_GSA, _DO_GSV, _DO_GLL, _REFERENCE = range(7)  # _SKIP false
+_DO_SKY = _REFERENCE + 1  # the parts of a GSV group at once (ReportDecoder._events)
 _KIND_CODES: Final = {
     "GGA": _DO_GGA,
     "RMC": _DO_RMC,
@@ -494,6 +488,7 @@ assert (_GLL_TIME, _GSV_SAT1) == (4, 3)
 _BAD: Final = object()
 """A memo's value for a text whose parse raised (ValueError): its sentence takes the
 reference's path, which raises again and counts it."""
+_PER_TEXT: Final = object()  # ReportDecoder._gsv_sats_of: read this text alone
 _STATUS_VALID: Final = {"A": True, "V": False, "": False}  # RMC status letters (_rmc_status)
 
 _Position = tuple[float | None, float | None, str]  # lat, lon, their TPV members
@@ -590,6 +585,111 @@ def _fill(memo: dict[str, Any], keys: Iterable[str], parse: Callable[[str], Any]
             memo[key] = _BAD
 
 
+def _new_keys(memo: dict[str, Any], keys: Iterable[str]) -> list[str]:
+    """The keys not in ``memo``, which is cleared first if they would take it above
+    MEMO_MAX (as ``_fill``)."""
+    new = list(set(keys).difference(memo))
+    if new and len(memo) + len(new) > MEMO_MAX:
+        memo.clear()
+    return new
+
+
+_MINUTE_OF: Final = operator.itemgetter(slice(0, 4))
+_SECOND_OF: Final = operator.itemgetter(slice(4, 6))
+_FRACTION_OF: Final = operator.itemgetter(slice(6, None))
+_FRACTION_OR_NONE: Final = {"": 0, **_FRACTION_US}  # "hhmmss" has no fraction
+
+
+def _fill_times(memo: dict[str, Any], keys: Iterable[str]) -> None:
+    """``_fill(memo, keys, _time_of_day)``, the usual forms all at once from its tables:
+    a time whose minute, second or fraction is not a key of them is parsed alone."""
+    new = _new_keys(memo, keys)
+    if not new:
+        return
+    minutes = map(_MINUTE_US.get, map(_MINUTE_OF, new))
+    seconds = map(_SECOND_US.get, map(_SECOND_OF, new))
+    fractions = map(_FRACTION_OR_NONE.get, map(_FRACTION_OF, new))
+    parts = list(zip(minutes, seconds, fractions, strict=True))
+    if any(map(operator.contains, parts, repeat(None))):
+        usual = [p if None not in p else None for p in parts]
+        for key, part in zip(new, usual, strict=True):
+            if part is None:
+                try:
+                    memo[key] = _time_of_day(key)
+                except ValueError:
+                    memo[key] = _BAD
+        new = [k for k, p in zip(new, usual, strict=True) if p is not None]
+        parts = [p for p in usual if p is not None]
+    memo.update(zip(new, map(sum, parts), strict=True))  # type: ignore[arg-type]
+
+
+# A position in its usual form: two (lat) or three (lon) digits of degrees below 90 or 180,
+# minutes below 60 with decimals, a hemisphere letter. For these _coord_parser's checks
+# hold but one (minutes that round to 60.0), checked after.
+_USUAL_POSITION: Final = re.compile(
+    r"^([0-8][0-9])([0-5][0-9]\.[0-9]+),([NS]),(0[0-9][0-9]|1[0-7][0-9])([0-5][0-9]\.[0-9]+),([EW])$",
+    re.M,
+)
+_SIGN: Final = {"N": 1.0, "S": -1.0, "E": 1.0, "W": -1.0}  # -v is v * -1.0, exactly
+_DEG9: Final = "%.9f".__mod__
+_LAT_LON: Final = ',"lat":%s,"lon":%s'.__mod__
+
+
+def _degrees(degrees: Iterable[str], minutes: list[float], hemis: Iterable[str]) -> list[float]:
+    """Signed degrees as _coord_parser computes them: degrees + minutes / 60, negated in
+    the southern or western hemisphere."""
+    unsigned = map(operator.add, map(int, degrees), map(operator.truediv, minutes, repeat(60.0)))
+    return list(map(operator.mul, unsigned, map(_SIGN.__getitem__, hemis)))
+
+
+def _texts9(values: list[float]) -> list[str] | None:
+    """``_num_text(v, 9)`` of each value (``"%.9f"`` without trailing zeros), or None if
+    one is below 1e-3 in magnitude or whole (those take ``_num_text``'s other branches)."""
+    if min(map(abs, values)) < 1e-3:
+        return None
+    texts = list(map(str.rstrip, map(_DEG9, values), repeat("0")))
+    if any(map(str.endswith, texts, repeat("."))):
+        return None
+    return texts
+
+
+def _fill_positions(memo: dict[str, Any], keys: Iterable[str]) -> None:
+    """``_fill(memo, keys, _position_of)``, positions in their usual form all at once (the
+    numbers converted and written by whole columns), any other alone."""
+    new = _new_keys(memo, keys)
+    if not new:
+        return
+    usual = _USUAL_POSITION.findall("\n".join(new))
+    if len(usual) != len(new):  # (anchored: one match per key, or none)
+        matches = list(map(_USUAL_POSITION.fullmatch, new))
+        others = [k for k, m in zip(new, matches, strict=True) if m is None]
+        new = [k for k, m in zip(new, matches, strict=True) if m is not None]
+        usual = [m.groups() for m in matches if m is not None]
+    else:
+        others = []
+    if new:
+        lat_d, lat_m, ns, lon_d, lon_m, ew = zip(*usual, strict=True)
+        lat_min = list(map(float, lat_m))
+        lon_min = list(map(float, lon_m))
+        if max(lat_min) < 60.0 and max(lon_min) < 60.0:
+            lats = _degrees(lat_d, lat_min, ns)
+            lons = _degrees(lon_d, lon_min, ew)
+            lat_texts = _texts9(lats)
+            lon_texts = _texts9(lons)
+            if lat_texts is not None and lon_texts is not None:
+                texts = map(_LAT_LON, zip(lat_texts, lon_texts, strict=True))
+                memo.update(zip(new, zip(lats, lons, texts, strict=True), strict=True))
+                new = []
+    for key in new + others:
+        try:
+            memo[key] = _position_of(key)
+        except ValueError:
+            memo[key] = _BAD
+
+
+_GSV_GROUPS: Final = re.compile(r"([^,]*+,[^,]*+,[^,]*+,[^,]*+)(?:,|\Z)")
+
+
 def _matches(pattern: re.Pattern[str], texts: list[str]) -> list[Any]:
     """``pattern``'s groups in each of ``texts`` (all of one sentence type), or None for a
     text it does not match: one ``findall`` over the texts joined when every text matches
@@ -645,6 +745,63 @@ def _gsa_values(body: str) -> _GsaValues:
     return _parse_gsa(tuple(fields[_GSA_MODE:_GSA_FIELDS]))
 
 
+def _whole_group(
+    phases: list[int], values: list[list[Any]], k: int, full: int
+) -> tuple[int, list[tuple[str, tuple[_SatTexts, ...]]]] | None:
+    """(number of parts, each cycle's talker and satellites) if the GSVs at places ``k``,
+    ``k + 1``, ... of a cycle are, in each of the ``full`` cycles, the parts 1..m of one
+    group of m from one talker, all parsed; else None."""
+    first = values[k][:full]
+    if str in map(type, first):
+        return None
+    total = first[0][1][0]
+    if k + total > len(phases) or phases[k : k + total] != [_DO_GSV] * total:
+        return None
+    parts = [values[k + i][:full] for i in range(total)]
+    talkers = list(map(_FIRST, first))
+    sats = list(map(_THIRD, first))
+    for i, part in enumerate(parts):
+        if str in map(type, part) or set(map(_SECOND, part)) != {(total, i + 1)}:
+            return None
+        if i:
+            if list(map(_FIRST, part)) != talkers:
+                return None
+            sats = list(map(operator.add, sats, map(_THIRD, part)))
+    return total, list(zip(talkers, sats, strict=True))
+
+
+def _same_time(phases: list[int], values: list[list[Any]], k: int, full: int) -> bool:
+    """Whether the GLLs at place ``k`` of each of the ``full`` cycles have the time the
+    epoch has then: that of the nearest RMC, GGA or GLL before it in the cycle, which set
+    it, with only GSA, GSV or counted-only sentences between."""
+    gll = values[k][:full]
+    if str in map(type, gll) or None in gll:
+        return False
+    for j in range(k - 1, -1, -1):
+        code = phases[j]
+        if code in (_SKIP, _DO_GSA, _DO_GSV):
+            continue
+        if code not in (_DO_RMC, _DO_GGA, _DO_GLL):
+            return False
+        column = values[j][:full]
+        if str in map(type, column):
+            return False
+        tods = column if code == _DO_GLL else list(map(_FIRST, column))
+        return None not in tods and tods == gll
+    return False
+
+
+_FIRST: Final = operator.itemgetter(0)
+_SECOND: Final = operator.itemgetter(1)
+_THIRD: Final = operator.itemgetter(2)
+
+
+def _sat_of(group: str) -> _SatTexts | None:
+    """PRN and ``_sat_texts`` of one GSV group (``gsv_values``; None without a PRN)."""
+    values = gsv_values(group)
+    return None if values is None else (values[0], *_sat_texts(*values))
+
+
 class ReportDecoder(GpsDecoder):
     """``GpsDecoder``'s epochs and counters, its fixes and sky reports written as their TPV
     and SKY lines (``str``, in ``out``), the sentences of a read decoded in bulk.
@@ -666,7 +823,7 @@ class ReportDecoder(GpsDecoder):
     are the reference's.
 
     A fix's line is written from the tuples with the texts memoised beside the values
-    (``ReportEncoder.tpv_members``); a satellite goes from its GSV group straight to its
+    (``ReportEncoder.fix_tail``); a satellite goes from its GSV group straight to its
     two possible JSON texts, so a sky report is one join of texts (``sky_line``); an
     epoch's time member is written from the time of day and the date's text without a
     datetime where that is exact (``_time_member``). Without ``with_sky`` the sky reports
@@ -690,6 +847,16 @@ class ReportDecoder(GpsDecoder):
         self._member_day: date | None = None
         self._member_day_tod: int | None = None
         self._member = ""
+        # _emit's last GGA fields (by identity), GSA mode and VDOP, and its line's parts
+        # from them (head, altitudes, error estimates); _emit_sky's last DOPs and members.
+        self._fix_tail: _GgaTail | None = None
+        self._fix_mode: int | None = None
+        self._fix_vdop: float | None = None
+        self._fix_parts = ("", "", "")
+        self._sky_hdop: float | None = None
+        self._sky_vdop: float | None = None
+        self._sky_pdop: float | None = None
+        self._sky_dops = encoder.dops(None, None, None)
         # Sentence head -> _SKIP .. _REFERENCE (bounded like the reference's routes).
         self._codes: dict[str, int] = {}
         # The memos of the bulk path, by the text of their fields (see _fill).
@@ -698,6 +865,7 @@ class ReportDecoder(GpsDecoder):
         self._gga_tails: dict[str, _GgaTail] = {}
         self._rmc_tails: dict[str, _RmcTail] = {}
         self._gsv_heads: dict[str, tuple[int, int]] = {}
+        self._gsv_sat_memo: dict[str, _SatTexts | None] = {}
         self._gsa_memo: dict[str, _GsaValues] = {}
         # The bulk parser of each type, by code.
         self._bulk: dict[int, Callable[[list[str]], list[Any]]] = {
@@ -727,70 +895,169 @@ class ReportDecoder(GpsDecoder):
         if not "".join(texts).isascii():  # the reference's path counts them invalid
             ascii_ = list(map(str.isascii, texts))
             codes = [c if a else _REFERENCE for c, a in zip(codes, ascii_, strict=True)]
-        events = self._events(texts, codes)
-        self._run_events(codes, events, t_s, out)
+        n_bulk = len(codes) - codes.count(_REFERENCE)
+        codes, events = self._events(texts, codes)
+        self._run_events(codes, events, n_bulk, t_s, out)
 
-    def _events(self, texts: list[str], codes: list[int]) -> list[Any]:
-        """What the loop takes for each sentence, in order: its parsed groups (a type read in
-        bulk), its text (the reference's path) or None (counted only)."""
+    def _events(self, texts: list[str], codes: list[int]) -> tuple[list[int], list[Any]]:
+        """The codes and events the loop (``_run_events``) takes, in order: a sentence's
+        parsed groups (a type read in bulk), its text (the reference's path), None (counted
+        only). In a read that repeats one cycle of sentence types (``_phases``) whole
+        cycles need fewer: counted-only sentences are left out, so is a GLL whose time is
+        that of the RMC or GGA before it in the cycle (the epoch is already that time),
+        and the parts of a GSV group that fills consecutive places of the cycle are one
+        event (``_DO_SKY``: what the parts do one after the other)."""
         n = len(texts)
         phases = _phases(codes)
         bulk = self._bulk
-        if phases:  # one cycle repeated: a type's texts are slices
-            period = len(phases)
-            values = []
-            for k, code in enumerate(phases):
-                part = texts[k::period]
+        if not phases:
+            by_code: dict[int, list[str]] = {}
+            for text, code in zip(texts, codes, strict=True):
+                try:
+                    by_code[code].append(text)
+                except KeyError:
+                    by_code[code] = [text]
+            by_code.pop(_SKIP, None)  # counted only: left out
+            codes = list(compress(codes, codes))  # (_SKIP is 0)
+            iters: list[Iterator[Any]] = [iter(())] * (_REFERENCE + 1)
+            for code, part in by_code.items():
                 parse = bulk.get(code)
-                values.append(part if parse is None else parse(part))
-            events = list(chain.from_iterable(zip(*values, strict=False)))
-            events += [values[k][-1] for k in range(n % period)]
-            return events
-        by_code: dict[int, list[str]] = {}
-        for text, code in zip(texts, codes, strict=True):
-            try:
-                by_code[code].append(text)
-            except KeyError:
-                by_code[code] = [text]
-        iters: list[Iterator[Any]] = [iter(())] * (_REFERENCE + 1)
-        for code, part in by_code.items():
+                iters[code] = iter(part if parse is None else parse(part))
+            return codes, list(map(next, map(iters.__getitem__, codes)))
+        period = len(phases)
+        full = n // period
+        values = []
+        for k, code in enumerate(phases):
+            part = texts[k::period]
             parse = bulk.get(code)
-            iters[code] = iter(part if parse is None else parse(part))
-        return list(map(next, map(iters.__getitem__, codes)))
+            values.append(part if parse is None else parse(part))
+        # Whole cycles: the codes and columns of the events each takes.
+        plan_codes: list[int] = []
+        columns: list[list[Any]] = []
+        k = 0
+        while k < period:
+            code = phases[k]
+            column = values[k][:full]
+            if code == _SKIP:
+                k += 1
+                continue
+            if code == _DO_GSV:
+                group = _whole_group(phases, values, k, full)
+                if group is not None:
+                    size, merged = group
+                    plan_codes.append(_DO_SKY)
+                    columns.append(merged)
+                    k += size
+                    continue
+            elif code == _DO_GLL and _same_time(phases, values, k, full):
+                k += 1
+                continue
+            plan_codes.append(code)
+            columns.append(column)
+            k += 1
+        events = list(chain.from_iterable(zip(*columns, strict=True))) if columns else []
+        # The cycle cut by the end of the read: each sentence its own event.
+        rest = range(n - full * period)
+        return plan_codes * full + codes[full * period :], events + [values[k][full] for k in rest]
 
     def _run_events(
-        self, codes: list[int], events: list[Any], t_s: float, out: list[GpsOutput]
+        self, codes: list[int], events: list[Any], n_bulk: int, t_s: float, out: list[GpsOutput]
     ) -> None:
-        """The epoch logic over the sentences in order (``_events``); counted as the
-        reference's loop counts."""
+        """GpsDecoder's epoch logic over the events of ``_events`` in order: ``_on_gga``,
+        ``_on_rmc``, ``_on_time``, ``_set_gsa`` and ``_gsv_fields`` after their fields are
+        read, inline (``_on_gga_tuple`` etc. are the same for the reference's path).
+        ``n_bulk`` sentences are counted as decoded, less those that take the reference's
+        path here (which counts them)."""
         c = self._counters
         reference = super()._decode
-        n_reference = codes.count(_REFERENCE)
-        n_bulk = len(codes) - n_reference
+        emit = self._emit
+        emit_sky = self._emit_sky
         n_failed = 0
         try:
             for code, event in zip(codes, events, strict=True):
-                if code >= _REFERENCE or code == _SKIP:
-                    if code == _REFERENCE:
-                        reference([event], t_s, out)
+                if code == _SKIP:
+                    continue
+                if code == _REFERENCE:
+                    reference([event], t_s, out)
                     continue
                 if type(event) is str:  # its groups did not parse
                     n_bulk -= 1
                     reference([event], t_s, out)
                     continue
                 try:
-                    if code == _DO_GSV:
+                    if code == _DO_GGA:  # _on_gga
+                        tod = event[0]
+                        self._epochs_without_gga = 0
+                        self._ggas_seen += 1
+                        if tod is None:
+                            emit(event, None, out)
+                            continue
+                        if tod != self._tod_us:  # _on_time
+                            if self._gga is not None or self._rmc is not None:
+                                self._close_epoch(out)
+                            self._tod_us = tod
+                            self._gsa_fresh = False
+                            self._epoch_idx += 1
+                        rmc = self._rmc
+                        if rmc is not None and rmc[0] == tod:
+                            self._rmc = None
+                            self._rmc_after_gga = False
+                            emit(event, rmc, out)
+                        elif self._rmc_after_gga or (self._rmcs_seen == 0 and self._ggas_seen == 1):
+                            self._gga = event
+                        else:
+                            emit(event, None, out)
+                    elif code == _DO_RMC:  # _on_rmc
+                        tod = event[0]
+                        self._rmcs_seen += 1
+                        day = event[3][1]
+                        if tod is None:
+                            if self._epochs_without_gga > _GGA_MEMORY_EPOCHS:
+                                emit(None, event, out)
+                            continue
+                        if day is not None:
+                            self._date = day
+                            self._date_tod_us = tod
+                        if tod != self._tod_us:
+                            self._epochs_without_gga += 1
+                            if self._gga is not None or self._rmc is not None:
+                                self._close_epoch(out)
+                            self._tod_us = tod
+                            self._gsa_fresh = False
+                            self._epoch_idx += 1
+                        gga = self._gga
+                        if gga is not None and gga[0] == tod:
+                            self._gga = None
+                            self._rmc_after_gga = True
+                            emit(gga, event, out)
+                        elif self._last_fix_tod == tod and self._last_fix_had_gga:
+                            self._rmc_after_gga = True
+                        elif self._epochs_without_gga > _GGA_MEMORY_EPOCHS:
+                            emit(None, event, out)
+                        else:
+                            self._rmc = event
+                    elif code == _DO_SKY:  # a whole GSV group: its parts one after the other
+                        talker, sats = event
+                        self._gsv_talker = talker
+                        self._gsv_next = 0
+                        self._sky[talker] = (self._epoch_idx, sats)
+                        emit_sky(t_s, out)
+                    elif code == _DO_GSA:  # _set_gsa
+                        mode, used, pdop, hdop, vdop = event
+                        if self._gsa_fresh:
+                            self._used |= used
+                        else:
+                            self._used = used
+                            self._gsa_fresh = True
+                        self._gsa_mode = mode
+                        self._pdop = pdop
+                        self._hdop_gsa = hdop
+                        self._vdop = vdop
+                    elif code == _DO_GSV:
                         talker, counts, sats = event
                         self._on_gsv(talker, counts, sats, out)
-                    elif code == _DO_GLL:
-                        if event != self._tod_us:
-                            self._on_time(event, out)
-                    elif code == _DO_GGA:
-                        self._on_gga_tuple(event, out)
-                    elif code == _DO_RMC:
-                        self._on_rmc_tuple(event, out)
-                    else:  # _DO_GSA
-                        self._set_gsa(event)
+                    elif event is not None and event != self._tod_us:  # _DO_GLL
+                        self._on_time(event, out)
                 except (IndexError, ValueError):  # as the reference's loop
                     c.invalid_fields += 1
                     n_failed += 1
@@ -817,7 +1084,7 @@ class ReportDecoder(GpsDecoder):
     def _tods(self, texts: Iterable[str]) -> list[Any]:
         """The times of day of time fields (``_time_of_day``; ``_BAD`` if bad)."""
         texts = list(texts)
-        _fill(self._times, texts, _time_of_day)
+        _fill_times(self._times, texts)
         return list(map(self._times.__getitem__, texts))
 
     def _ggas(self, texts: list[str]) -> list[Any]:
@@ -826,7 +1093,7 @@ class ReportDecoder(GpsDecoder):
             return _per_text(self._ggas, texts, groups)
         tods_text, positions_text, tails_text = zip(*groups, strict=True)
         tods = self._tods(tods_text)
-        _fill(self._positions, positions_text, _position_of)
+        _fill_positions(self._positions, positions_text)
         _fill(self._gga_tails, tails_text, _gga_tail_of)
         positions = list(map(self._positions.__getitem__, positions_text))
         tails = list(map(self._gga_tails.__getitem__, tails_text))
@@ -842,7 +1109,7 @@ class ReportDecoder(GpsDecoder):
         tods_text, status, positions_text, tails_text = zip(*groups, strict=True)
         tods = self._tods(tods_text)
         valid = list(map(_STATUS_VALID.get, status, repeat(_BAD)))
-        _fill(self._positions, positions_text, _position_of)
+        _fill_positions(self._positions, positions_text)
         _fill(self._rmc_tails, tails_text, _rmc_tail_of)
         positions = list(map(self._positions.__getitem__, positions_text))
         tails = list(map(self._rmc_tails.__getitem__, tails_text))
@@ -864,7 +1131,12 @@ class ReportDecoder(GpsDecoder):
         talkers, heads, rests = zip(*groups, strict=True)
         _fill(self._gsv_heads, heads, _gsv_counts_of)
         counts = list(map(self._gsv_heads.__getitem__, heads))
-        sats = list(map(self._sats_or_bad, rests))
+        sats = self._gsv_sats_of(rests)
+        if _PER_TEXT in sats:
+            sats = [
+                self._sats_or_bad(r) if s is _PER_TEXT else s
+                for s, r in zip(sats, rests, strict=True)
+            ]
         events = list(zip(talkers, counts, sats, strict=True))
         if _BAD in counts or _BAD in sats:
             return _unparsed(events, texts)
@@ -877,10 +1149,47 @@ class ReportDecoder(GpsDecoder):
         events = self._tods(groups)
         return _unparsed(events, texts) if _BAD in events else events
 
+    def _gsv_sats_of(self, rests: tuple[str, ...]) -> list[Any]:
+        """The satellites of GSVs from the text of their satellite fields (``rests``), each
+        GSV's a tuple, all at once: the groups of four fields (as ``_sats_of`` cuts them)
+        by one ``findall`` over the texts joined by commas when each is of whole groups,
+        else one per text; each group's satellite from a memo (``_sat_of``). ``_PER_TEXT``
+        for a text whose last group is partial or a group no satellite (``_sats_of`` then
+        reads it)."""
+        memo = self._gsv_sat_memo
+        commas = list(map(str.count, rests, repeat(",")))
+        kinds = set(commas)
+        if len(kinds) == 1 and kinds.pop() % 4 == 3:  # the same whole groups in each
+            groups = _GSV_GROUPS.findall(",".join(rests))
+            _fill(memo, groups, _sat_of)
+            found = list(map(memo.__getitem__, groups))
+            if None not in found and _BAD not in found:
+                return list(zip(*[iter(found)] * ((commas[0] + 1) // 4), strict=True))
+        per_text = list(map(_GSV_GROUP.findall, rests))
+        counts = list(map(len, per_text))
+        flat = list(chain.from_iterable(per_text))
+        _fill(memo, flat, _sat_of)
+        sats = list(map(memo.__getitem__, flat))
+        ends = list(accumulate(counts))
+        out = list(map(tuple, map(sats.__getitem__, map(slice, [0, *ends[:-1]], ends))))
+        # gsv_groups adds a partial group to a text not of whole groups and of fewer than
+        # four: such a text, or one with a group that is no satellite, is read alone.
+        whole = map(operator.not_, map(operator.mod, map((1).__add__, commas), repeat(4)))
+        if all(map(operator.or_, whole, map((4).__le__, counts))) and (
+            None not in sats and _BAD not in sats
+        ):
+            return out
+        return [
+            _PER_TEXT
+            if ((n_commas + 1) % 4 and len(part) < 4) or None in part or _BAD in part
+            else part
+            for n_commas, part in zip(commas, out, strict=True)
+        ]
+
     def _sats_or_bad(self, text: str) -> list[_SatTexts] | object:
         """``_sats_of(text)``, or ``_BAD`` where it raises."""
         try:
-            return self._sats_of(text)
+            return tuple(self._sats_of(text))
         except ValueError:
             return _BAD
 
@@ -966,13 +1275,17 @@ class ReportDecoder(GpsDecoder):
             self._emit(None, rmc, out)
 
     def _on_gsv(
-        self, talker: str, counts: tuple[int, int], sats: list[_SatTexts], out: list[GpsOutput]
+        self,
+        talker: str,
+        counts: tuple[int, int],
+        sats: Sequence[_SatTexts],
+        out: list[GpsOutput],
     ) -> None:
         # GpsDecoder._gsv_fields after its fields are read
         total, seq = counts
         if seq == 1:
             self._gsv_talker = talker
-            self._gsv_sats = sats  # type: ignore[assignment]
+            self._gsv_sats = list(sats)  # type: ignore[arg-type]
         elif seq == self._gsv_next and talker == self._gsv_talker:
             self._gsv_sats.extend(sats)  # type: ignore[arg-type]
         else:  # a lost part: drop the group
@@ -1046,36 +1359,54 @@ class ReportDecoder(GpsDecoder):
     def _emit(self, gga: _GgaTuple | None, rmc: _RmcTuple | None, out: list[GpsOutput]) -> None:  # type: ignore[override]
         # GpsDecoder._fix_head and _emit, writing the line instead of the record.
         if gga is not None:
-            tod, (lat, lon, position), (quality, hdop, alt, sep) = gga
-            valid = quality > 0 and (rmc is None or rmc[1])
+            tod, (lat, lon, position), tail = gga
+            valid = tail[0] > 0 and (rmc is None or rmc[1])
         else:
             assert rmc is not None
             tod, valid, (lat, lon, position), _ = rmc
-            hdop = self._hdop_gsa
-            alt = sep = None
+            tail = None
         if lat is None or lon is None:
             valid = False
         if tod is not None:
             self._last_fix_tod = tod
             self._last_fix_had_gga = gga is not None
         self._counters.fixes += 1
+        if (
+            tod == self._member_tod
+            and self._date is self._member_day
+            and self._date_tod_us == self._member_day_tod
+        ):
+            time = self._member
+        else:
+            time = self._time_member(tod)
         if not valid:
-            out.append(_TPV_HEADS[1] + self._time_member(tod) + "}")  # type: ignore[arg-type]
+            out.append(_TPV_HEADS[1] + time + "}")  # type: ignore[arg-type]
             return
+        motion = "" if rmc is None else rmc[3][0]
         mode = self._gsa_mode
-        if mode != 2 and mode != 3:
-            mode = 3 if gga is not None and alt is not None else 2
-        line = self._encoder.tpv_members(
-            mode,
-            self._time_member(tod),
-            position,
-            alt,
-            sep,
-            "" if rmc is None else rmc[3][0],
-            hdop,
-            self._vdop,
-        )
-        out.append(line)  # type: ignore[arg-type]
+        vdop = self._vdop
+        if (
+            tail is not None
+            and tail is self._fix_tail
+            and mode is self._fix_mode
+            and vdop is self._fix_vdop
+        ):
+            head, alt_text, err_text = self._fix_parts  # the same GGA fields, GSA mode and VDOP
+        else:
+            if tail is None:
+                hdop = self._hdop_gsa
+                alt = sep = None
+            else:
+                _, hdop, alt, sep = tail
+            fix_mode = (
+                mode if mode == 2 or mode == 3 else 3 if gga is not None and alt is not None else 2
+            )
+            alt_text, err_text = self._encoder.fix_tail(fix_mode, alt, sep, hdop, vdop)
+            head = _TPV_HEADS[fix_mode]
+            if tail is not None:
+                self._fix_tail, self._fix_mode, self._fix_vdop = tail, mode, vdop
+                self._fix_parts = head, alt_text, err_text
+        out.append("".join((head, time, position, alt_text, motion, err_text, "}")))  # type: ignore[arg-type]
 
     def _emit_sky(self, t_s: float, out: list[GpsOutput]) -> None:
         # GpsDecoder._emit_sky, writing the line instead of the record.
@@ -1088,8 +1419,23 @@ class ReportDecoder(GpsDecoder):
         for epoch_idx, group in self._sky.values():
             if epoch_idx >= oldest:
                 texts += [in_use if prn in used else free for prn, free, in_use in group]  # type: ignore[misc]
-        line = self._encoder.sky_line(
-            texts, self._time_member(self._tod_us), self._hdop_gsa, self._vdop, self._pdop
+        tod = self._tod_us
+        if (
+            tod == self._member_tod
+            and self._date is self._member_day
+            and self._date_tod_us == self._member_day_tod
+        ):
+            time = self._member  # the epoch's fix wrote it
+        else:
+            time = self._time_member(tod)
+        hdop, vdop, pdop = self._hdop_gsa, self._vdop, self._pdop
+        if hdop is not self._sky_hdop or vdop is not self._sky_vdop or pdop is not self._sky_pdop:
+            self._sky_dops = self._encoder.dops(hdop, vdop, pdop)
+            self._sky_hdop, self._sky_vdop, self._sky_pdop = hdop, vdop, pdop
+        listed = ",".join(texts)
+        line = (
+            f'{{"class":"SKY"{time}{self._sky_dops},"nSat":{len(texts)},'
+            f'"uSat":{listed.count(_USED)},"satellites":[{listed}]}}'
         )
         out.append(line)  # type: ignore[arg-type]
 
@@ -1192,7 +1538,9 @@ def decode_stream(stream: IO[bytes], out: IO[str], *, with_sky: bool = True) -> 
 def _write_lines(records: list[GpsOutput], out: IO[str]) -> None:
     """Write the records of a ``ReportDecoder`` (its report lines, ``str``) in one call."""
     if records:
-        out.write("\n".join(cast("list[str]", records)) + "\n")
+        lines = cast("list[str]", records)
+        lines.append("")  # the last line's end, without copying the text again
+        out.write("\n".join(lines))
 
 
 def decode_path(path: str, out: IO[str], *, with_sky: bool = True) -> DecoderCounters:
