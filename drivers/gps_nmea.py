@@ -168,6 +168,10 @@ class UbxFrame:
 
 
 Frame = NmeaFrame | UbxFrame
+# UbxFrame's fields set through their slot descriptors (a frozen dataclass's __init__ sets
+# each through object.__setattr__, a lookup by name): the same object, built faster.
+_SET_UBX: Final = tuple(vars(UbxFrame)[name].__set__ for name in ("msg_class", "msg_id", "payload"))
+assert tuple(f.name for f in fields(UbxFrame)) == ("msg_class", "msg_id", "payload")
 
 
 @dataclass(slots=True)
@@ -316,12 +320,15 @@ class NmeaFramer:
                 return [line.decode("ascii", "replace")]
             self.counters.checksum_failures += 1
             return []
-        buf += data
         c = FramerCounters()
-        # One pass over a copy of the buffer (bytes: slices of it are bytes); the counters
-        # of a pass are added when it is taken. _RUN_B finds the runs unless a run's
-        # checksum digits are not all hex, then _RUN does (a second pass).
-        snapshot = bytes(buf)
+        # One pass over the data as bytes (slices of it are bytes), after what is held; the
+        # counters of a pass are added when it is taken. _RUN_B finds the runs unless a
+        # run's checksum digits are not all hex, then _RUN does (a second pass).
+        if buf:
+            buf += data
+            snapshot = bytes(buf)
+        else:
+            snapshot = bytes(data)  # (bytes is not copied)
         result = self._pass(snapshot, c, fast=True)
         if result is None:
             c = FramerCounters()
@@ -336,8 +343,10 @@ class NmeaFramer:
         total.skipped_bytes += c.skipped_bytes
         if dropping:
             self._dropping = True
-        if pos:
-            del buf[:pos]
+        if pos < len(snapshot):
+            self._buf = bytearray(snapshot[pos:])  # held for the next read
+        elif buf:
+            buf.clear()
         return out
 
     def _pass(
@@ -532,7 +541,12 @@ def _ubx(buf: bytes, at: int, n: int, c: FramerCounters) -> tuple[int, UbxFrame 
         c.skipped_bytes += 1
         return 1, None  # false sync: rescan from the next byte
     c.ubx_frames += 1
-    return total, UbxFrame(body[0], body[1], body[4:])
+    frame = object.__new__(UbxFrame)  # UbxFrame(body[0], body[1], body[4:]), see _SET_UBX
+    set_class, set_id, set_payload = _SET_UBX
+    set_class(frame, body[0])
+    set_id(frame, body[1])
+    set_payload(frame, body[4:])
+    return total, frame
 
 
 # ---------------------------------------------------------------------------- UBX messages

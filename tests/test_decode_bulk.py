@@ -204,3 +204,36 @@ def test_framer_runs_frame_like_the_general_scan(monkeypatch: pytest.MonkeyPatch
     assert fast[0][1]["sentences"] > 1000 and fast[0][1]["framing_errors"] > 0
     monkeypatch.setattr(gps_nmea, "_RUN_B", re.compile(rb"()((?!))?"))
     assert [_framed(data, size) for size in (1 << 20, 4093, 61)] == fast
+
+
+def test_positions_times_and_satellites_at_their_edges_decode_like_the_reference() -> None:
+    # Read in bulk (by columns): positions at zero, near zero, on whole degrees, at the
+    # poles and the antimeridian, minutes that round to 60, odd forms; times in each form;
+    # GSV groups of every length, with empty fields and a signal id.
+    lats = ["0000.0000,N", "0000.0001,S", "4500.0000,N", "8959.9999999,S", "9000.0000,N",
+            "5159.99999999999999999,N", "512.5,N", "05142.1,N", "5142,N", "5142.,S", ",",
+            "5142.1,n", "-5142.1,N", "5142.1,"]  # fmt: skip
+    lons = ["00000.0000,E", "00000.0001,W", "17959.9999,W", "18000.0000,E", "00430.5,W",
+            "0430.5,W", "00430.12345678901,E", ","]  # fmt: skip
+    times = ["120000", "120000.5", "120000.25", "120000.125", "120000.1234", "235960.00",
+             "1200", "", "12000x.00", "246000.00"]  # fmt: skip
+    gsvs = ["3,1,11,02,08,259,44,05,26,058,28,08,16,338,27,12,22,125,39",
+            "3,2,11,15,10,112,22,18,51,005,40,21,39,105,21,24,56,267,30",
+            "3,3,11,26,39,061,33,27,21,221,46,29,11,063",
+            "3,3,11,26,39,061,33,27,21,221,46,29,11,063,22",
+            "1,1,02,05,,,,07,12,300,",
+            "1,1,01,05,45,123,33,1",
+            "1,1,05,01,02,003,04,05,06,007,08,09,10,011,12,13,14,015,16,17,18,019,20,7",
+            "1,1,00", "1,1,00,", "2,1,05,99,45,123,99,,,,"]  # fmt: skip
+    bodies = []
+    for k in range(400):
+        lat, lon, hms = lats[k % len(lats)], lons[k % len(lons)], times[k % len(times)]
+        bodies += [
+            f"GPRMC,{hms},A,{lat},{lon},0.3,,010526,,,A",
+            "GPVTG,,T,,M,0.3,N,0.6,K,A",
+            f"GPGGA,{hms},{lat},{lon},1,08,1.10,35.2,M,49.0,M,,",
+            "GPGSA,A,3,02,05,08,12,15,18,21,24,,,,,2.10,1.10,1.80",
+            "GPGSV," + gsvs[k % len(gsvs)],
+            f"GPGLL,{lat},{lon},{hms},A,A",
+        ]
+    _check(b"".join(map(_sentence, bodies)), (1 << 20, 4093, 61))

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import math
 import operator
@@ -642,14 +643,14 @@ def _degrees(degrees: Iterable[str], minutes: list[float], hemis: Iterable[str])
     return list(map(operator.mul, unsigned, map(_SIGN.__getitem__, hemis)))
 
 
-def _texts9(values: list[float]) -> list[str] | None:
-    """``_num_text(v, 9)`` of each value (``"%.9f"`` without trailing zeros), or None if
-    one is below 1e-3 in magnitude or whole (those take ``_num_text``'s other branches)."""
-    if min(map(abs, values)) < 1e-3:
-        return None
+def _texts9(values: list[float]) -> list[str]:
+    """``_num_text(v, 9)`` of each value: ``"%.9f"`` without trailing zeros by columns, a
+    value below 1e-3 in magnitude or whole through ``_num_text`` (its other branches)."""
     texts = list(map(str.rstrip, map(_DEG9, values), repeat("0")))
-    if any(map(str.endswith, texts, repeat("."))):
-        return None
+    if min(map(abs, values)) < 1e-3 or any(map(str.endswith, texts, repeat("."))):
+        for i, v in enumerate(values):
+            if abs(v) < 1e-3 or texts[i][-1] == ".":
+                texts[i] = cast("str", _num_text(v, 9))  # (finite: never None)
     return texts
 
 
@@ -674,12 +675,9 @@ def _fill_positions(memo: dict[str, Any], keys: Iterable[str]) -> None:
         if max(lat_min) < 60.0 and max(lon_min) < 60.0:
             lats = _degrees(lat_d, lat_min, ns)
             lons = _degrees(lon_d, lon_min, ew)
-            lat_texts = _texts9(lats)
-            lon_texts = _texts9(lons)
-            if lat_texts is not None and lon_texts is not None:
-                texts = map(_LAT_LON, zip(lat_texts, lon_texts, strict=True))
-                memo.update(zip(new, zip(lats, lons, texts, strict=True), strict=True))
-                new = []
+            texts = map(_LAT_LON, zip(_texts9(lats), _texts9(lons), strict=True))
+            memo.update(zip(new, zip(lats, lons, texts, strict=True), strict=True))
+            new = []
     for key in new + others:
         try:
             memo[key] = _position_of(key)
@@ -1571,6 +1569,24 @@ def decode_path(path: str, out: IO[str], *, with_sky: bool = True) -> DecoderCou
 
 def main(args: argparse.Namespace) -> int:
     """Decode every FILE in order; returns 0, or 1 when a file could not be read."""
+    # Decoding allocates tuples by the hundred thousand, hardly any in a cycle: the
+    # collector's passes over them (and over every object of the imports, each full pass)
+    # only cost time. The imports' objects are set aside (gc.freeze) and a pass waits for
+    # many more allocations; cycles are still collected. Both undone on return.
+    thresholds = gc.get_threshold()
+    gc.freeze()
+    gc.set_threshold(_GC_THRESHOLD, *thresholds[1:])
+    try:
+        return _main(args)
+    finally:
+        gc.set_threshold(*thresholds)
+        gc.unfreeze()
+
+
+_GC_THRESHOLD: Final = 20_000  # allocations between collections (CPython's default: 700)
+
+
+def _main(args: argparse.Namespace) -> int:
     status = 0
     for name in args.files:
         try:
