@@ -50,6 +50,7 @@ from sim_backend.textblocks import (
     compact,
     const_block,
     day_texts,
+    fixed_block,
     joined,
     put_texts,
     text_block,
@@ -193,11 +194,14 @@ def _as_printed(value_deg: np.ndarray, minute_decimals: int) -> np.ndarray:
 
 
 def _write_truth(path: Path, t_s: np.ndarray, lat: float, lon: float, alt: float) -> None:
-    """truth.csv (the robot engine's columns) at the epochs: the antenna does not move."""
+    """truth.csv (the robot engine's columns) at the epochs: the antenna does not move. The
+    times' ``f"{t:.3f}"`` as a text block, a chunk at a time."""
     tail = f",{lat:.9f},{lon:.9f},{alt:.3f},0.000\n"
-    with open(path, "w") as f:
-        f.write("t_s,lat,lon,alt,heading_deg\n")
-        f.write("".join([f"{t:.3f}" + tail for t in t_s.tolist()]))
+    with open(path, "wb") as f:
+        f.write(b"t_s,lat,lon,alt,heading_deg\n")
+        for start in range(0, t_s.shape[0], STATIC_CHUNK_EPOCHS):
+            t = t_s[start : start + STATIC_CHUNK_EPOCHS]
+            f.write(compact(joined((fixed_block(t, 3), const_block(tail, t.shape[0])))))
 
 
 # What JSON leaves as it is inside a string (printable ASCII but quote and backslash), plus
