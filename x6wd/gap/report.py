@@ -376,7 +376,11 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
     closing figure), each figure with pass/fail, the calibration's layers, and what (b)
     being in sample means. ``own``: the errors are against each log's own mean."""
     a, b = c.selected, c.calibrated
-    with_what = " + ".join(effects) if effects else "no effect (none selected)"
+    with_what = (
+        f"the selected effects only ({' + '.join(effects)}, parameters fitted on the whole log)"
+        if effects
+        else "the baseline runs alone (no effect selected)"
+    )
 
     def verdict(v: Validation) -> str:
         return f"**{'PASS' if v.passed else 'FAIL'}** (furthest off: {v.worst_text()})"
@@ -392,8 +396,7 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
         + (" (errors against each log's own mean, as the real log's: no truth)" if own else "")
         + ":",
         "",
-        f"- (a) the selected effects only ({with_what}, parameters fitted on the whole log): "
-        + verdict(a),
+        f"- (a) {with_what}: " + verdict(a),
         "- (b) **calibrated**, the closing figure: (a) plus the level calibration below, "
         f"fitted to these figures by {c.evaluations} simulations: " + verdict(b),
     ]

@@ -173,11 +173,11 @@ class Validation:
 
     def worst_text(self) -> str:
         """The figure furthest off and which way it misses, e.g. "Allan deviation at 1 s:
-        simulated 43.4 % above the real (the simulator noisier there)"."""
+        simulated 43.4 % above the real, the simulator noisier there"."""
         label, rel = self.worst()
         text = f"{label}: simulated {abs(rel):.1%} {'above' if rel > 0 else 'below'} the real"
         if label.startswith("Allan"):
-            text += " (the simulator noisier there)" if rel > 0 else " (the simulator quieter)"
+            text += ", the simulator noisier there" if rel > 0 else ", the simulator quieter there"
         return text
 
     def summary(self) -> str:
