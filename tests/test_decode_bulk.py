@@ -209,7 +209,8 @@ def test_framer_runs_frame_like_the_general_scan(monkeypatch: pytest.MonkeyPatch
 def test_positions_times_and_satellites_at_their_edges_decode_like_the_reference() -> None:
     # Read in bulk (by columns): positions at zero, near zero, on whole degrees, at the
     # poles and the antimeridian, minutes that round to 60, odd forms; times in each form;
-    # GSV groups of every length, with empty fields and a signal id.
+    # GSV groups of every length, with empty fields and a signal id; ZDA dates that are
+    # none, bad or partial, with and without a time.
     lats = ["0000.0000,N", "0000.0001,S", "4500.0000,N", "8959.9999999,S", "9000.0000,N",
             "5159.99999999999999999,N", "512.5,N", "05142.1,N", "5142,N", "5142.,S", ",",
             "5142.1,n", "-5142.1,N", "5142.1,"]  # fmt: skip
@@ -225,9 +226,15 @@ def test_positions_times_and_satellites_at_their_edges_decode_like_the_reference
             "1,1,01,05,45,123,33,1",
             "1,1,05,01,02,003,04,05,06,007,08,09,10,011,12,13,14,015,16,17,18,019,20,7",
             "1,1,00", "1,1,00,", "2,1,05,99,45,123,99,,,,"]  # fmt: skip
+    zdas = ["{t},01,05,2026,00,00", "{t},31,02,2026,00,00", ",31,02,2026,00,00", "{t},,05,2026",
+            ",02,05,2026,00,00",
+            "{t},00,05,2026,00,00", "{t},01,13,2026,00,00", "{t},01,05,1979,00,00", "{t},1,5,2026",
+            "{t},01,05", "{t},01,05,2026,00,00,7", "{t},0x,05,2026,00,00"]  # fmt: skip
     bodies = []
     for k in range(400):
         lat, lon, hms = lats[k % len(lats)], lons[k % len(lons)], times[k % len(times)]
+        if k % 3 == 0:
+            bodies.append("GPZDA," + zdas[k // 3 % len(zdas)].format(t=hms))
         bodies += [
             f"GPRMC,{hms},A,{lat},{lon},0.3,,010526,,,A",
             "GPVTG,,T,,M,0.3,N,0.6,K,A",

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import gc
 import json
 import math
@@ -59,6 +60,8 @@ from drivers.gps_nmea import (
     _RMC_STATUS,
     _RMC_TIME,
     _SECOND_US,
+    _ZDA_DAY,
+    _ZDA_TIME,
     DecoderCounters,
     GpsDecoder,
     GpsOutput,
@@ -80,6 +83,9 @@ from drivers.gps_nmea import (
     _rmc_speed,
     _rmc_status,
     _time_of_day,
+    _zda_day,
+    _zda_month,
+    _zda_year,
     gsv_groups,
     gsv_values,
 )
@@ -452,7 +458,7 @@ _SatTexts = tuple[int, str, str]
 
 # How ReportDecoder takes a sentence, by its head (``text[1:7]``): counted only (a known
 # type whose fields are not read), one of the types it reads in bulk, or the reference's path.
-_SKIP, _DO_GGA, _DO_RMC, _DO_GSA, _DO_GSV, _DO_GLL, _REFERENCE = range(7)  # _SKIP false
+_SKIP, _DO_GGA, _DO_RMC, _DO_GSA, _DO_GSV, _DO_GLL, _DO_ZDA, _REFERENCE = range(8)  # _SKIP false
 _DO_SKY = _REFERENCE + 1  # the parts of a GSV group at once (ReportDecoder._events)
 _KIND_CODES: Final = {
     "GGA": _DO_GGA,
@@ -460,6 +466,7 @@ _KIND_CODES: Final = {
     "GSA": _DO_GSA,
     "GSV": _DO_GSV,
     "GLL": _DO_GLL,
+    "ZDA": _DO_ZDA,
 }
 _BULK_MIN: Final = 16  # fewer sentences in one call: the reference's loop, one at a time
 _PERIOD_MAX: Final = 64  # longest sentence cycle looked for (see _phases)
@@ -481,15 +488,17 @@ _RMC_CUT: Final = re.compile(
     rf"\$..RMC,({_F}),({_F}),({_F},{_F},{_F},{_L}),({_F},{_F},{_L}){_REST}"
 )
 _GLL_CUT: Final = re.compile(rf"\$..GLL,{_F},{_F},{_F},{_F},({_L}){_REST}")
+_ZDA_CUT: Final = re.compile(rf"\$..ZDA,({_F}),({_F},{_F},{_L}){_REST}")
 _GSV_CUT: Final = re.compile(rf"\$(..)GSV,({_F},{_F},{_L})(?:,([^\n]*))?\*..")
 assert (_GGA_TIME, _GGA_LAT, _GGA_QUAL, _GGA_SEP) == (0, 1, 5, 10)
 assert (_RMC_TIME, _RMC_STATUS, _RMC_LAT, _RMC_SPEED, _RMC_DATE) == (0, 1, 2, 6, 8)
-assert (_GLL_TIME, _GSV_SAT1) == (4, 3)
+assert (_GLL_TIME, _GSV_SAT1, _ZDA_TIME, _ZDA_DAY) == (4, 3, 0, 1)
 
 _BAD: Final = object()
 """A memo's value for a text whose parse raised (ValueError): its sentence takes the
 reference's path, which raises again and counts it."""
 _PER_TEXT: Final = object()  # ReportDecoder._gsv_sats_of: read this text alone
+_NO_DATE: Final = object()  # a ZDA's day, month and year that make no date
 _STATUS_VALID: Final = {"A": True, "V": False, "": False}  # RMC status letters (_rmc_status)
 
 _Position = tuple[float | None, float | None, str]  # lat, lon, their TPV members
@@ -565,6 +574,22 @@ def _rmc_tail_of(text: str) -> _RmcTail:
     return _rmc_tail(speed, course, day)
 
 
+def _zda_date_of(text: str) -> date | object | None:
+    """A ZDA's date from its fields day, month, year (checked, as ``GpsDecoder._on_zda``
+    reads them): None where one is empty or zero (no date), ``_NO_DATE`` where they make
+    no date (a bad field when the ZDA has a time)."""
+    day_text, month_text, year_text = text.split(",")
+    day = _zda_day(day_text)
+    month = _zda_month(month_text)
+    year = _zda_year(year_text)
+    if not (day and month and year):
+        return None
+    try:
+        return date(year, month, day)
+    except ValueError:
+        return _NO_DATE
+
+
 def _gsv_counts_of(text: str) -> tuple[int, int]:
     """A GSV's message count and number from its three head fields (``_gsv_head``)."""
     return _gsv_head(*text.split(","))
@@ -584,6 +609,24 @@ def _fill(memo: dict[str, Any], keys: Iterable[str], parse: Callable[[str], Any]
             memo[key] = parse(key)
         except ValueError:  # FieldError is one
             memo[key] = _BAD
+
+
+def _read(
+    memo: dict[str, Any], keys: Sequence[str], fill: Callable[[dict[str, Any], Sequence[str]], None]
+) -> list[Any]:
+    """The memo's values of ``keys``, the keys it lacks put in first by ``fill`` (``_fill``
+    with a parser, ``_fill_times``, ``_fill_positions``): one pass when every key is known,
+    the usual case for all but times and positions."""
+    try:
+        return list(map(memo.__getitem__, keys))
+    except KeyError:
+        fill(memo, keys)
+        return list(map(memo.__getitem__, keys))
+
+
+def _filler(parse: Callable[[str], Any]) -> Callable[[dict[str, Any], Sequence[str]], None]:
+    """``_fill`` with ``parse``, for ``_read``."""
+    return functools.partial(_fill, parse=parse)
 
 
 def _new_keys(memo: dict[str, Any], keys: Iterable[str]) -> list[str]:
@@ -628,7 +671,8 @@ def _fill_times(memo: dict[str, Any], keys: Iterable[str]) -> None:
 # minutes below 60 with decimals, a hemisphere letter. For these _coord_parser's checks
 # hold but one (minutes that round to 60.0), checked after.
 _USUAL_POSITION: Final = re.compile(
-    r"^([0-8][0-9])([0-5][0-9]\.[0-9]+),([NS]),(0[0-9][0-9]|1[0-7][0-9])([0-5][0-9]\.[0-9]+),([EW])$",
+    r"^([0-8][0-9])([0-5][0-9]\.[0-9]+),([NS]),"
+    r"(0[0-9][0-9]|1[0-7][0-9])([0-5][0-9]\.[0-9]+),([EW])$",
     re.M,
 )
 _SIGN: Final = {"N": 1.0, "S": -1.0, "E": 1.0, "W": -1.0}  # -v is v * -1.0, exactly
@@ -800,6 +844,14 @@ def _sat_of(group: str) -> _SatTexts | None:
     return None if values is None else (values[0], *_sat_texts(*values))
 
 
+_FILL_GGA_TAIL: Final = _filler(_gga_tail_of)
+_FILL_RMC_TAIL: Final = _filler(_rmc_tail_of)
+_FILL_GSA: Final = _filler(_gsa_values)
+_FILL_GSV_HEAD: Final = _filler(_gsv_counts_of)
+_FILL_SAT: Final = _filler(_sat_of)
+_FILL_ZDA_DATE: Final = _filler(_zda_date_of)
+
+
 class ReportDecoder(GpsDecoder):
     """``GpsDecoder``'s epochs and counters, its fixes and sky reports written as their TPV
     and SKY lines (``str``, in ``out``), the sentences of a read decoded in bulk.
@@ -855,6 +907,7 @@ class ReportDecoder(GpsDecoder):
         self._sky_vdop: float | None = None
         self._sky_pdop: float | None = None
         self._sky_dops = encoder.dops(None, None, None)
+        self._ubx_counted = 0  # the framer's UBX count when _decode last took frames
         # Sentence head -> _SKIP .. _REFERENCE (bounded like the reference's routes).
         self._codes: dict[str, int] = {}
         # The memos of the bulk path, by the text of their fields (see _fill).
@@ -863,6 +916,7 @@ class ReportDecoder(GpsDecoder):
         self._gga_tails: dict[str, _GgaTail] = {}
         self._rmc_tails: dict[str, _RmcTail] = {}
         self._gsv_heads: dict[str, tuple[int, int]] = {}
+        self._zda_dates: dict[str, date | object | None] = {}
         self._gsv_sat_memo: dict[str, _SatTexts | None] = {}
         self._gsa_memo: dict[str, _GsaValues] = {}
         # The bulk parser of each type, by code.
@@ -872,6 +926,7 @@ class ReportDecoder(GpsDecoder):
             _DO_GSA: self._gsas,
             _DO_GSV: self._gsvs,
             _DO_GLL: self._glls,
+            _DO_ZDA: self._zdas,
         }
 
     # -- the bulk path
@@ -881,9 +936,13 @@ class ReportDecoder(GpsDecoder):
         if len(frames) < _BULK_MIN:
             super()._decode(frames, t_s, out)
             return
-        texts = [f for f in frames if type(f) is str]
-        if len(texts) < len(frames):
+        ubx_frames = self.framer.counters.ubx_frames
+        if ubx_frames == self._ubx_counted:  # the framer found no UBX frame since
+            texts = cast("list[str]", frames)
+        else:
+            texts = [f for f in frames if type(f) is str]
             self._ubx.extend(f for f in frames if type(f) is not str)  # type: ignore[misc]
+            self._ubx_counted = ubx_frames
         heads = list(map(_HEAD, texts))
         codes: list[int] = list(map(self._codes.get, heads))  # type: ignore[arg-type]
         if None in codes:
@@ -1054,6 +1113,12 @@ class ReportDecoder(GpsDecoder):
                     elif code == _DO_GSV:
                         talker, counts, sats = event
                         self._on_gsv(talker, counts, sats, out)
+                    elif code == _DO_ZDA:  # _on_zda
+                        tod, day = event
+                        if tod is not None and day is not None:  # (not _NO_DATE: _zdas)
+                            self._date = day
+                            self._date_tod_us = tod
+                        self._on_time(tod, out)
                     elif event is not None and event != self._tod_us:  # _DO_GLL
                         self._on_time(event, out)
                 except (IndexError, ValueError):  # as the reference's loop
@@ -1082,8 +1147,7 @@ class ReportDecoder(GpsDecoder):
     def _tods(self, texts: Iterable[str]) -> list[Any]:
         """The times of day of time fields (``_time_of_day``; ``_BAD`` if bad)."""
         texts = list(texts)
-        _fill_times(self._times, texts)
-        return list(map(self._times.__getitem__, texts))
+        return _read(self._times, texts, _fill_times)
 
     def _ggas(self, texts: list[str]) -> list[Any]:
         groups = _matches(_GGA_CUT, texts)
@@ -1091,10 +1155,8 @@ class ReportDecoder(GpsDecoder):
             return _per_text(self._ggas, texts, groups)
         tods_text, positions_text, tails_text = zip(*groups, strict=True)
         tods = self._tods(tods_text)
-        _fill_positions(self._positions, positions_text)
-        _fill(self._gga_tails, tails_text, _gga_tail_of)
-        positions = list(map(self._positions.__getitem__, positions_text))
-        tails = list(map(self._gga_tails.__getitem__, tails_text))
+        positions = _read(self._positions, positions_text, _fill_positions)
+        tails = _read(self._gga_tails, tails_text, _FILL_GGA_TAIL)
         events = list(zip(tods, positions, tails, strict=True))
         if _BAD in tods or _BAD in positions or _BAD in tails:
             return _unparsed(events, texts)
@@ -1107,10 +1169,8 @@ class ReportDecoder(GpsDecoder):
         tods_text, status, positions_text, tails_text = zip(*groups, strict=True)
         tods = self._tods(tods_text)
         valid = list(map(_STATUS_VALID.get, status, repeat(_BAD)))
-        _fill_positions(self._positions, positions_text)
-        _fill(self._rmc_tails, tails_text, _rmc_tail_of)
-        positions = list(map(self._positions.__getitem__, positions_text))
-        tails = list(map(self._rmc_tails.__getitem__, tails_text))
+        positions = _read(self._positions, positions_text, _fill_positions)
+        tails = _read(self._rmc_tails, tails_text, _FILL_RMC_TAIL)
         events = list(zip(tods, valid, positions, tails, strict=True))
         if _BAD in tods or _BAD in valid or _BAD in positions or _BAD in tails:
             return _unparsed(events, texts)
@@ -1118,8 +1178,7 @@ class ReportDecoder(GpsDecoder):
 
     def _gsas(self, texts: list[str]) -> list[Any]:
         bodies = list(map(_BODY, texts))
-        _fill(self._gsa_memo, bodies, _gsa_values)
-        events = list(map(self._gsa_memo.__getitem__, bodies))
+        events = _read(self._gsa_memo, bodies, _FILL_GSA)
         return _unparsed(events, texts) if _BAD in events else events
 
     def _gsvs(self, texts: list[str]) -> list[Any]:
@@ -1127,8 +1186,7 @@ class ReportDecoder(GpsDecoder):
         if None in groups:
             return _per_text(self._gsvs, texts, groups)
         talkers, heads, rests = zip(*groups, strict=True)
-        _fill(self._gsv_heads, heads, _gsv_counts_of)
-        counts = list(map(self._gsv_heads.__getitem__, heads))
+        counts = _read(self._gsv_heads, heads, _FILL_GSV_HEAD)
         sats = self._gsv_sats_of(rests)
         if _PER_TEXT in sats:
             sats = [
@@ -1147,6 +1205,22 @@ class ReportDecoder(GpsDecoder):
         events = self._tods(groups)
         return _unparsed(events, texts) if _BAD in events else events
 
+    def _zdas(self, texts: list[str]) -> list[Any]:
+        groups = _matches(_ZDA_CUT, texts)
+        if None in groups:
+            return _per_text(self._zdas, texts, groups)
+        tods_text, dates_text = zip(*groups, strict=True)
+        tods = self._tods(tods_text)
+        dates = _read(self._zda_dates, dates_text, _FILL_ZDA_DATE)
+        events = list(zip(tods, dates, strict=True))
+        if _BAD in tods or _BAD in dates or _NO_DATE in dates:
+            # _on_zda raises for a bad field, and for no date only with a time
+            return [
+                t if e[0] is _BAD or e[1] is _BAD or (e[1] is _NO_DATE and e[0] is not None) else e
+                for e, t in zip(events, texts, strict=True)
+            ]
+        return events
+
     def _gsv_sats_of(self, rests: tuple[str, ...]) -> list[Any]:
         """The satellites of GSVs from the text of their satellite fields (``rests``), each
         GSV's a tuple, all at once: the groups of four fields (as ``_sats_of`` cuts them)
@@ -1159,15 +1233,13 @@ class ReportDecoder(GpsDecoder):
         kinds = set(commas)
         if len(kinds) == 1 and kinds.pop() % 4 == 3:  # the same whole groups in each
             groups = _GSV_GROUPS.findall(",".join(rests))
-            _fill(memo, groups, _sat_of)
-            found = list(map(memo.__getitem__, groups))
+            found = _read(memo, groups, _FILL_SAT)
             if None not in found and _BAD not in found:
                 return list(zip(*[iter(found)] * ((commas[0] + 1) // 4), strict=True))
         per_text = list(map(_GSV_GROUP.findall, rests))
         counts = list(map(len, per_text))
         flat = list(chain.from_iterable(per_text))
-        _fill(memo, flat, _sat_of)
-        sats = list(map(memo.__getitem__, flat))
+        sats = _read(memo, flat, _FILL_SAT)
         ends = list(accumulate(counts))
         out = list(map(tuple, map(sats.__getitem__, map(slice, [0, *ends[:-1]], ends))))
         # gsv_groups adds a partial group to a text not of whole groups and of fewer than
