@@ -671,8 +671,8 @@ def _fill_times(memo: dict[str, Any], keys: Iterable[str]) -> None:
 # minutes below 60 with decimals, a hemisphere letter. For these _coord_parser's checks
 # hold but one (minutes that round to 60.0), checked after.
 _USUAL_POSITION: Final = re.compile(
-    r"^([0-8][0-9])([0-5][0-9]\.[0-9]+),([NS]),"
-    r"(0[0-9][0-9]|1[0-7][0-9])([0-5][0-9]\.[0-9]+),([EW])$",
+    r"^(([0-8][0-9])([0-5][0-9]\.[0-9]+),([NS]),"
+    r"(0[0-9][0-9]|1[0-7][0-9])([0-5][0-9]\.[0-9]+),([EW]))$",
     re.M,
 )
 _SIGN: Final = {"N": 1.0, "S": -1.0, "E": 1.0, "W": -1.0}  # -v is v * -1.0, exactly
@@ -704,25 +704,24 @@ def _fill_positions(memo: dict[str, Any], keys: Iterable[str]) -> None:
     new = _new_keys(memo, keys)
     if not new:
         return
+    # One findall over the keys joined; each match is a whole key (anchored), first group.
     usual = _USUAL_POSITION.findall("\n".join(new))
-    if len(usual) != len(new):  # (anchored: one match per key, or none)
-        matches = list(map(_USUAL_POSITION.fullmatch, new))
-        others = [k for k, m in zip(new, matches, strict=True) if m is None]
-        new = [k for k, m in zip(new, matches, strict=True) if m is not None]
-        usual = [m.groups() for m in matches if m is not None]
-    else:
-        others = []
-    if new:
-        lat_d, lat_m, ns, lon_d, lon_m, ew = zip(*usual, strict=True)
+    others: Iterable[str] = (
+        () if len(usual) == len(new) else set(new).difference(map(_FIRST, usual))
+    )
+    alone: Iterable[str] = ()
+    if usual:
+        found, lat_d, lat_m, ns, lon_d, lon_m, ew = zip(*usual, strict=True)
         lat_min = list(map(float, lat_m))
         lon_min = list(map(float, lon_m))
         if max(lat_min) < 60.0 and max(lon_min) < 60.0:
             lats = _degrees(lat_d, lat_min, ns)
             lons = _degrees(lon_d, lon_min, ew)
             texts = map(_LAT_LON, zip(_texts9(lats), _texts9(lons), strict=True))
-            memo.update(zip(new, zip(lats, lons, texts, strict=True), strict=True))
-            new = []
-    for key in new + others:
+            memo.update(zip(found, zip(lats, lons, texts, strict=True), strict=True))
+        else:
+            alone = found
+    for key in chain(alone, others):
         try:
             memo[key] = _position_of(key)
         except ValueError:
