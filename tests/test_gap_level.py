@@ -138,6 +138,7 @@ def test_report_shows_both_validations_and_calibrated_toml_is_a_scenario_fragmen
     assert "- (b) **calibrated**, the closing figure" in md
     assert "| figure | real | (a) selected | (a) difference | (a) pass | (b) calibrated |" in md
     assert "is **in sample**" in md and "the simulated runs' own spread" in md
+    assert f"sigma / mean {c.selected.ratio_spread:.1%}" in md
     for fit in c.layers:
         assert f"- {fit.name}: " in md
     verdicts = [line for line in md.splitlines() if line.startswith(("- (a)", "- (b)"))]

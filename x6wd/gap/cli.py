@@ -156,7 +156,8 @@ def main(args: argparse.Namespace) -> int:
         print(
             f"validation, calibrated (in sample; {args.out}/calibrated.toml): "
             f"{calibration.calibrated.summary()}; the runs' own spread: mean "
-            f"{calibration.selected.mean_spread:.1%}, sigma {calibration.selected.sd_spread:.1%}"
+            f"{calibration.selected.mean_spread:.1%}, sigma {calibration.selected.sd_spread:.1%}, "
+            f"sigma / mean {calibration.selected.ratio_spread:.1%}"
         )
         if not calibration.calibrated.passed:
             print(f"calibrated validation {calibration.miss_text()}")

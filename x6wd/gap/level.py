@@ -30,8 +30,8 @@ draw nothing, so the objective is deterministic; it is solved in log parameters 
 bounds (a factor 0.005-50, as the layers' own fits search; split times from two steps to
 the log's length, the correction's to four times it) by trust-region least squares with a
 forward-difference Jacobian on a step of 0.05 (the NMEA lattice makes the figures step-wise
-on finer ones), from a start read off the figures, then from other starts while it fails,
-all within :data:`MAX_EVALS` evaluations; it stops once every figure is within
+on finer ones), from a start read off the figures, then from other starts while an Allan
+octave fails, all within :data:`MAX_EVALS` evaluations; it stops once every figure is within
 :data:`MARGIN` of its tolerance (fitting one log's realisation closer is not fitting the
 receiver better: the layers trade off, a longer filter with more fast noise gives the same
 figures).
@@ -39,7 +39,11 @@ figures).
 The outcome is in sample, fitted to the very figures it reports, as seed 000's was: it
 shows the simulator CAN be set to this receiver, not that it predicts it. How far one log of
 this length lands from its own model is the runs' own spread (``mean_spread``,
-``sd_spread``).
+``sd_spread``). Mean and sigma together are met only as far as the log's sigma / mean is the
+model's: scaling the error per time scale hardly moves it, and one log's varies by the runs'
+``ratio_spread`` (7-17 % on 25-minute logs of the NEO-5 surrogate, of which 8 in 15 drawn
+from the model itself passed calibrated, every miss on mean and sigma in opposite
+directions).
 """
 
 from __future__ import annotations
@@ -102,7 +106,9 @@ class Calibration:
                 "; mean and sigma miss in opposite directions: the real horizontal error's "
                 f"sigma / mean is {v.sd_real_m / v.mean_real_m:.3g}, the calibrated runs' "
                 f"{v.sd_sim_m / v.mean_sim_m:.3g}, a shape of the error's distribution that "
-                "these layers, which scale it per time scale, did not reach"
+                "these layers, which scale it per time scale, did not reach; the runs' own "
+                f"spread of it is {v.ratio_spread:.1%} (one log of this length is that far "
+                "from its own model)"
             )
         return text
 
@@ -289,8 +295,10 @@ def calibrate_level(
         except _Stop:
             break
         assert objective.best is not None
-        if objective.best[2].passed:
-            break  # other starts are for a fit that fails
+        if all(objective.best[2].adev_ok):
+            # passed, or only mean and sigma miss: the split times of other starts move
+            # the Allan deviation, not the shape of the error's distribution
+            break
     assert objective.best is not None
     _cost, layers, v_best, x_best = objective.best
     return Calibration(

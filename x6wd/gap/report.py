@@ -428,9 +428,12 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
         "as seed 000 configured its model for the conditions of its one real hour. It shows "
         "that the simulator can be set to this receiver, not that it predicts it. How far "
         "one log of this length lands from its own model is the simulated runs' own spread "
-        f"(sd over runs / average): mean {a.mean_spread:.1%}, sigma {a.sd_spread:.1%}; a "
-        "new log of this receiver is expected that far from (b)'s figures, and where that "
-        "spread is above 3 % even a perfect model meets (a)'s 3 % on one log only by luck. "
+        f"(sd over runs / average): mean {a.mean_spread:.1%}, sigma {a.sd_spread:.1%}, "
+        f"sigma / mean {a.ratio_spread:.1%}; a new log of this receiver is expected that far "
+        "from (b)'s figures; where the first two are above 3 % even a perfect model meets "
+        "(a)'s 3 % on one log only by luck, and where the third is, (b) meets mean and sigma "
+        "together only when this log's sigma / mean happens to be the model's (scaling the "
+        "error does not change it). "
         "`calibrated.toml` is `effects.toml` with the calibration's layers after the "
         "selected effects: a scenario fragment to use instead of it, to simulate this "
         "receiver at its level.",
@@ -465,7 +468,11 @@ def validation_dict(c: Calibration) -> dict[str, Any]:
             "runs": v.n_runs,
             "figures": figures,
             "furthest_off": {"figure": label, "difference": num(rel)},
-            "runs_spread": {"mean": num(v.mean_spread), "sigma": num(v.sd_spread)},
+            "runs_spread": {
+                "mean": num(v.mean_spread),
+                "sigma": num(v.sd_spread),
+                "sigma_over_mean": num(v.ratio_spread),
+            },
         }
 
     return {

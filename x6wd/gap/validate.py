@@ -101,7 +101,8 @@ class Validation:
     combined, sqrt(AVAR_e + AVAR_n) (m), at octaves ``taus_s`` from one step to a quarter of
     the log (simulated: the root of the runs' mean Allan variance). ``mean_spread`` and
     ``sd_spread`` are the runs' own relative spread (standard deviation over runs / their
-    average) of the mean and sigma."""
+    average) of the mean and sigma, ``ratio_spread`` that of each run's sigma / mean (the
+    shape of one log's error distribution, which no scaling of the error changes)."""
 
     n_runs: int
     mean_real_m: float
@@ -115,6 +116,7 @@ class Validation:
     # length can be expected to come to its own model
     mean_spread: float = math.nan
     sd_spread: float = math.nan
+    ratio_spread: float = math.nan
 
     @staticmethod
     def rel(sim: float, real: float) -> float:
@@ -263,4 +265,5 @@ def validate(
         adev_sim_m=tuple(float(a) for a in adev_sim),
         mean_spread=_relative_spread(means),
         sd_spread=_relative_spread(sds),
+        ratio_spread=_relative_spread(sds / np.where(means > 0, means, np.nan)),
     )
