@@ -55,6 +55,7 @@ code it stands for.
 from __future__ import annotations
 
 import functools
+import operator
 import re
 import struct
 from collections import deque
@@ -62,7 +63,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, fields
 from datetime import UTC, date, datetime, timedelta
 from itertools import chain, repeat
-from typing import Any, Final
+from typing import Any, Final, cast
 
 from drivers.nmea import (
     GGA,
@@ -231,6 +232,8 @@ _HI_XOR: Final = bytes(
 _LO_XOR: Final = bytes(int(chr(c), 16) ^ c if c in _HEX else 0 for c in range(256))
 assert all(_LINE_XOR[k] == _HI_XOR[k[0]] ^ _LO_XOR[k[1]] for k in _LINE_XOR)
 _HEX_DIGITS: Final = bytes(sorted(_HEX))
+_Run = tuple[int, list[bytes] | list[str]]  # a run's place in the frames, its lines (_run)
+_ASCII: Final = operator.methodcaller("encode", "ascii")
 _ZERO_IS_OK: Final = bytes([1] + [0] * 255)  # a line's sum XOR what it must be: 1 if equal
 
 # _RUN on a copy of the data with every byte a body may hold (anything but "$", "*", CR,
@@ -243,7 +246,7 @@ _RUN_B: Final = re.compile(
 )
 
 
-def _line_sums(lines: list[bytes]) -> tuple[bytes, bytes, bool]:
+def _line_sums(lines: list[bytes] | list[str]) -> tuple[bytes, bytes, bool]:
     """(``checksum(line)`` of every line, the value each must have: ``_LINE_XOR`` of its
     last two characters, whether those are all hex digits), for lines of at most 128
     bytes, computed all at once.
@@ -254,10 +257,15 @@ def _line_sums(lines: list[bytes]) -> tuple[bytes, bytes, bool]:
     XOR of all columns, each read as one integer, holds every line's XOR folded to 8 bytes,
     which three shifts fold into the low byte of each slot. That is one big-int XOR per
     column (at most 16), however many lines. Right-aligned, the checksum digits are the
-    last two byte columns.
+    last two byte columns. The lines may be ASCII ``str`` (all of them) instead.
     """
     width = (max(map(len, lines)) + 7) & ~7
-    block = b"".join(map(bytes.rjust, lines, repeat(width), repeat(b"\0")))
+    if type(lines[0]) is str:  # ASCII text: its bytes are its characters
+        texts = cast("list[str]", lines)
+        block = "".join(map(str.rjust, texts, repeat(width), repeat("\0"))).encode("ascii")
+    else:
+        raw = cast("list[bytes]", lines)
+        block = b"".join(map(bytes.rjust, raw, repeat(width), repeat(b"\0")))
     words = memoryview(block).cast("Q")
     step = width // 8
     x = 0
@@ -357,7 +365,7 @@ class NmeaFramer:
         are not all hex (``_RUN_B`` then framed what ``_RUN`` does not)."""
         out: list[str | UbxFrame] = []
         # Runs of lines, checksummed together at the end: (index in out, their lines).
-        runs: list[tuple[int, list[bytes]]] = []
+        runs: list[_Run] = []
         n = len(buf)
         pos = 0
         dropping = False
@@ -454,29 +462,36 @@ class NmeaFramer:
         return out, pos, dropping
 
     @staticmethod
-    def _run(run: bytes, out: list[str | UbxFrame], runs: list[tuple[int, list[bytes]]]) -> None:
+    def _run(run: bytes, out: list[str | UbxFrame], runs: list[_Run]) -> None:
         """Append the lines of a run (``_RUN``'s group 1) to ``out`` as text, and note them
-        in ``runs`` for their checksums (``_check_runs``)."""
-        run = run.replace(b"\r", b"")  # CR occurs here only as part of a CR LF
-        lines = run.split(b"\n")
-        lines.pop()  # the empty tail after the last line end
-        # One decode for the whole run; a replaced byte stays one character, so the str
-        # lines pair up with the byte lines.
-        texts = run.decode("ascii", "replace").split("\n")
-        texts.pop()
-        runs.append((len(out), lines))
+        in ``runs`` for their checksums (``_check_runs``): the text lines themselves when
+        the run is ASCII (their bytes are their characters), else its byte lines."""
+        # CR occurs here only as part of a CR LF. One decode for the whole run; a replaced
+        # byte stays one character, so the str lines pair up with the byte lines.
+        texts = run.decode("ascii", "replace").replace("\r", "").split("\n")
+        texts.pop()  # the empty tail after the last line end
+        if run.isascii():
+            runs.append((len(out), texts))
+        else:
+            lines = run.replace(b"\r", b"").split(b"\n")
+            lines.pop()
+            runs.append((len(out), lines))
         out += texts
 
 
-def _check_runs(
-    runs: list[tuple[int, list[bytes]]], out: list[str | UbxFrame], c: FramerCounters
-) -> bool:
+def _check_runs(runs: list[_Run], out: list[str | UbxFrame], c: FramerCounters) -> bool:
     """Checksum the lines of ``runs`` (``_run``) all together: drop the bad ones from
     ``out`` and count them; False (nothing changed) if a line's checksum digits are not
     all hex."""
-    lines = list(chain.from_iterable(part for _, part in runs))
+    if any(type(part[0]) is bytes for _, part in runs):  # a run not ASCII: all as bytes
+        runs = [
+            (i, part if type(part[0]) is bytes else list(map(_ASCII, part))) for i, part in runs
+        ]
+    lines: list[Any] = list(chain.from_iterable(part for _, part in runs))
     n = len(lines)
     if n < _BATCH_MIN:
+        if type(lines[0]) is str:
+            lines = list(map(_ASCII, lines))
         try:
             ok = bytes(checksum(line) == _LINE_XOR[line[-2:]] for line in lines)
         except KeyError:  # not hex
