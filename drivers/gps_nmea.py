@@ -118,6 +118,14 @@ _SLOT4_MAX: Final = 4096
 _B4: Final = (1 << 32) - 1
 _B8: Final = (1 << 64) - 1
 _FOLD_TO_SLOTS: Final = 64  # below this, one % is cheaper than another fold
+_B4_SQUARED: Final = _B4 * _B4
+# The folds of a 4-byte-slot X for up to 2048 slots (a UBX body is at most 1028 bytes),
+# precomputed: (fold when there are more slots than, bits kept, their mask, what the rest
+# is multiplied by: 1 + m (B - 1) for m slots kept).
+_FOLDED_MAX: Final = 2048
+_FOLDS4: Final = tuple(
+    (half, 32 * half, (1 << (32 * half)) - 1, 1 + half * _B4) for half in (1024, 512, 256, 128, 64)
+)
 
 
 def ubx_checksum(data: bytes) -> bytes:
@@ -133,6 +141,15 @@ def ubx_checksum(data: bytes) -> bytes:
     B - 1 of the residue gives S and K exactly (both are below B - 1 for these lengths).
     """
     n = len(data)
+    if n <= _FOLDED_MAX:  # every UBX frame this framer takes: the folds are fixed
+        spread = bytearray(4 * n)
+        spread[::4] = data
+        x = int.from_bytes(spread, "little")
+        for above, low_bits, low_mask, high_times in _FOLDS4:
+            if n > above:
+                x = (x & low_mask) + (x >> low_bits) * high_times
+        k_sum, total = divmod(x % _B4_SQUARED, _B4)
+        return bytes((total & 0xFF, (n * total - k_sum) & 0xFF))
     width, base_1 = (4, _B4) if n <= _SLOT4_MAX else (8, _B8)
     slot_bits = 8 * width
     spread = bytearray(width * n)
@@ -409,12 +426,18 @@ class NmeaFramer:
                 continue
             if buf[start] == 0xB5:
                 consumed, frame = _ubx(buf, start, n, c)
+                # A UBX stream sends frames back to back: the next sync right after a frame
+                # is where the scan would find the next match, so take it here.
+                while frame is not None:
+                    out.append(frame)
+                    start += consumed
+                    if buf[start : start + 2] != UBX_SYNC:
+                        break
+                    consumed, frame = _ubx(buf, start, n, c)
                 if consumed == 0:  # incomplete: wait for more
                     pos = start
                     break
-                if frame is not None:
-                    out.append(frame)
-                pos = start + consumed
+                pos = start + consumed if frame is None else start
                 continue
             seg = m.group()
             ln = len(seg)

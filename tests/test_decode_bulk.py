@@ -244,3 +244,31 @@ def test_positions_times_and_satellites_at_their_edges_decode_like_the_reference
             f"GPGLL,{lat},{lon},{hms},A,A",
         ]
     _check(b"".join(map(_sentence, bodies)), (1 << 20, 4093, 61))
+
+
+def test_back_to_back_ubx_frames_frame_alike_in_any_reads() -> None:
+    # UBX frames one after the other (taken without rescanning, see NmeaFramer._pass),
+    # among them a bad checksum, a false sync, a frame cut by the end of a read, a length
+    # over the cap, and NMEA between: the same frames and counters whatever the reads.
+    rng = np.random.default_rng(3)
+    parts: list[bytes] = []
+    for k in range(300):
+        frame = gps_nmea.ubx_frame(1, k % 256, rng.integers(0, 256, k % 90, np.uint8).tobytes())
+        r = k % 7
+        if r == 1:  # bad checksum
+            frame = frame[:-1] + bytes([frame[-1] ^ 0x5A])
+        elif r == 2:  # a false sync inside noise
+            frame = b"\xb5b\x01" + frame
+        elif r == 3:  # length over MAX_UBX_PAYLOAD
+            frame = b"\xb5b\x01\x02\xff\x7f" + frame
+        elif r == 4:
+            frame += _sentence("GPGLL,5142.1,N,00430.5,W,120000.00,A,A")
+        parts.append(frame)
+    data = b"".join(parts)
+    whole = _framed(data, 1 << 20)
+    # As the framer counted them before frames were taken back to back (5b7edd0's; a "$"
+    # in the payload of a frame with a bad checksum starts a sentence that cuts another).
+    counted = ("ubx_frames", "sentences", "framing_errors", "skipped_bytes")
+    assert tuple(whole[1][k] for k in counted) == (253, 42, 5, 2379)
+    for size in (4093, 517, 61, 7):
+        assert _framed(data, size) == whole, size
