@@ -390,96 +390,122 @@ class NmeaFramer:
         if fast:
             run_match = _RUN_B.match
             target = buf.translate(_BODY_AS_B)
+            take_ubx = _guess_ubx
         else:
             run_match = _RUN.match
             target = buf
+            take_ubx = _ubx
+        # UBX frames taken before their checksums are known (fast): (sync, len(out),
+        # len(runs), counters) before each; checked together after the scan, which resumes
+        # at the first bad one as if it had been checked at once (_first_bad_ubx).
+        guessed: list[tuple[int, int, int, tuple[int, ...]]] = []
+        checked = 0
         while True:
-            run = run_match(target, pos)
-            assert run is not None  # the pattern matches the empty string
-            end = run.end(1)
-            if end > pos:
-                self._run(buf[pos:end], out, runs)
-                pos = end
-            if run.start(2) >= 0:  # a sentence in progress: wait for the rest
-                pos = run.start(2)
-                break
-            if pos == n:
-                break
-            m = search(buf, pos)
-            if m is None:
-                # Keep a lone trailing 0xB5: it may be the first half of a UBX sync.
-                keep = n - 1 if n > pos and buf[n - 1] == 0xB5 else n
-                _skip(buf, pos, keep, c)
-                pos = keep
-                break
-            start, end = m.span()
-            if start > pos and not (start - pos == 2 and buf[pos] == 0x0D and buf[pos + 1] == 0x0A):
-                _skip(buf, pos, start, c)
-            body = m.group(1)
-            if body is not None:
-                pos = end
-                if checksum(body) != int(m.group(2), 16):
-                    c.checksum_failures += 1
-                else:
-                    c.sentences += 1
-                    out.append(buf[start : start + len(body) + 4].decode("ascii", "replace"))
-                continue
-            if buf[start] == 0xB5:
-                consumed, frame = _ubx(buf, start, n, c)
-                # A UBX stream sends frames back to back: the next sync right after a frame
-                # is where the scan would find the next match, so take it here.
-                while frame is not None:
-                    out.append(frame)
-                    start += consumed
-                    if buf[start : start + 2] != UBX_SYNC:
-                        break
-                    consumed, frame = _ubx(buf, start, n, c)
-                if consumed == 0:  # incomplete: wait for more
-                    pos = start
+            while True:
+                run = run_match(target, pos)
+                assert run is not None  # the pattern matches the empty string
+                end = run.end(1)
+                if end > pos:
+                    self._run(buf[pos:end], out, runs)
+                    pos = end
+                if run.start(2) >= 0:  # a sentence in progress: wait for the rest
+                    pos = run.start(2)
                     break
-                pos = start + consumed if frame is None else start
-                continue
-            seg = m.group()
-            ln = len(seg)
-            if end == n:  # no terminator yet
-                if ln > MAX_SENTENCE_CHARS:
-                    c.framing_errors += 1
-                    pos = n
-                    dropping = True
-                else:
-                    pos = start
-                break
-            term = buf[end]
-            if term == 0x0A or term == 0x0D:
-                pos = end + 1
-                seg = seg.rstrip(b" \t")
-                ln = len(seg)
-            else:
-                pos = end
-                if ln < 4 or seg[-3] != 0x2A:
-                    # A new frame began before this one ended: collision or truncation
-                    # ("$$" is a doubled start, not a lost sentence).
-                    if ln > 1:
-                        c.framing_errors += 1
+                if pos == n:
+                    break
+                m = search(buf, pos)
+                if m is None:
+                    # Keep a lone trailing 0xB5: it may be the first half of a UBX sync.
+                    keep = n - 1 if n > pos and buf[n - 1] == 0xB5 else n
+                    _skip(buf, pos, keep, c)
+                    pos = keep
+                    break
+                start, end = m.span()
+                if start > pos and not (
+                    start - pos == 2 and buf[pos] == 0x0D and buf[pos + 1] == 0x0A
+                ):
+                    _skip(buf, pos, start, c)
+                body = m.group(1)
+                if body is not None:
+                    pos = end
+                    if checksum(body) != int(m.group(2), 16):
+                        c.checksum_failures += 1
                     else:
-                        c.skipped_bytes += 1
+                        c.sentences += 1
+                        out.append(buf[start : start + len(body) + 4].decode("ascii", "replace"))
                     continue
-                # Complete up to "*HH", only its line ending was lost: taken as is.
-            if (
-                ln > MAX_SENTENCE_CHARS
-                or ln < 4
-                or seg[-3] != 0x2A  # '*'
-                or seg[-2] not in _HEX
-                or seg[-1] not in _HEX
-                or seg.find(b"*", 1, ln - 3) != -1  # spliced remains of another sentence
-            ):
-                c.framing_errors += 1
-                continue
-            if checksum(seg[1:-3]) != int(seg[-2:], 16):
-                c.checksum_failures += 1
-                continue
-            c.sentences += 1
-            out.append(seg.decode("ascii", "replace"))
+                if buf[start] == 0xB5:
+                    consumed, frame = take_ubx(buf, start, n, c, guessed, out, runs)
+                    # A UBX stream sends frames back to back: the next sync right after a frame
+                    # is where the scan would find the next match, so take it here.
+                    while frame is not None:
+                        out.append(frame)
+                        start += consumed
+                        if buf[start : start + 2] != UBX_SYNC:
+                            break
+                        consumed, frame = take_ubx(buf, start, n, c, guessed, out, runs)
+                    if consumed == 0:  # incomplete: wait for more
+                        pos = start
+                        break
+                    pos = start + consumed if frame is None else start
+                    continue
+                seg = m.group()
+                ln = len(seg)
+                if end == n:  # no terminator yet
+                    if ln > MAX_SENTENCE_CHARS:
+                        c.framing_errors += 1
+                        pos = n
+                        dropping = True
+                    else:
+                        pos = start
+                    break
+                term = buf[end]
+                if term == 0x0A or term == 0x0D:
+                    pos = end + 1
+                    seg = seg.rstrip(b" \t")
+                    ln = len(seg)
+                else:
+                    pos = end
+                    if ln < 4 or seg[-3] != 0x2A:
+                        # A new frame began before this one ended: collision or truncation
+                        # ("$$" is a doubled start, not a lost sentence).
+                        if ln > 1:
+                            c.framing_errors += 1
+                        else:
+                            c.skipped_bytes += 1
+                        continue
+                    # Complete up to "*HH", only its line ending was lost: taken as is.
+                if (
+                    ln > MAX_SENTENCE_CHARS
+                    or ln < 4
+                    or seg[-3] != 0x2A  # '*'
+                    or seg[-2] not in _HEX
+                    or seg[-1] not in _HEX
+                    or seg.find(b"*", 1, ln - 3) != -1  # spliced remains of another sentence
+                ):
+                    c.framing_errors += 1
+                    continue
+                if checksum(seg[1:-3]) != int(seg[-2:], 16):
+                    c.checksum_failures += 1
+                    continue
+                c.sentences += 1
+                out.append(seg.decode("ascii", "replace"))
+            if checked == len(guessed):
+                break
+            bad = _first_bad_ubx(buf, guessed, checked)
+            if bad is None:
+                break
+            # As if that frame had been checked when it was found: a false sync, one byte.
+            # The scan goes on from there checking each frame at once (a stream with many
+            # bad frames would be scanned again after each).
+            at, n_out, n_runs, counts = guessed[bad]
+            del guessed[bad:], out[n_out:], runs[n_runs:]
+            _set_counters(c, counts)
+            c.skipped_bytes += 1
+            pos = at + 1
+            dropping = False
+            checked = bad
+            take_ubx = _ubx
         if runs and not _check_runs(runs, out, c):
             return None
         return out, pos, dropping
@@ -562,9 +588,20 @@ def _skip(buf: bytes, a: int, b: int, c: FramerCounters) -> None:
         c.skipped_bytes += b - a - chunk.count(b"\n") - chunk.count(b"\r")
 
 
-def _ubx(buf: bytes, at: int, n: int, c: FramerCounters) -> tuple[int, UbxFrame | None]:
+_Guess = tuple[int, int, int, tuple[int, ...]]  # see NmeaFramer._pass
+
+
+def _ubx(
+    buf: bytes,
+    at: int,
+    n: int,
+    c: FramerCounters,
+    guessed: list[_Guess] | None = None,
+    out: list[str | UbxFrame] | None = None,
+    runs: list[_Run] | None = None,
+) -> tuple[int, UbxFrame | None]:
     """(bytes consumed, frame or None) at the UBX sync ``at``; 0 consumed means wait for
-    more data."""
+    more data. (``guessed``, ``out`` and ``runs`` are ``_guess_ubx``'s.)"""
     if n - at < 6:
         return 0, None
     length = buf[at + 4] | (buf[at + 5] << 8)
@@ -574,17 +611,113 @@ def _ubx(buf: bytes, at: int, n: int, c: FramerCounters) -> tuple[int, UbxFrame 
     total = 8 + length
     if n - at < total:
         return 0, None
-    body = buf[at + 2 : at + 6 + length]
-    if ubx_checksum(body) != buf[at + 6 + length : at + total]:
+    if ubx_checksum(buf[at + 2 : at + 6 + length]) != buf[at + 6 + length : at + total]:
         c.skipped_bytes += 1
         return 1, None  # false sync: rescan from the next byte
     c.ubx_frames += 1
-    frame = object.__new__(UbxFrame)  # UbxFrame(body[0], body[1], body[4:]), see _SET_UBX
+    return total, _ubx_frame(buf, at, length)
+
+
+def _guess_ubx(
+    buf: bytes,
+    at: int,
+    n: int,
+    c: FramerCounters,
+    guessed: list[_Guess],
+    out: list[str | UbxFrame],
+    runs: list[_Run],
+) -> tuple[int, UbxFrame | None]:
+    """``_ubx`` taking a whole frame before its checksum is known: noted in ``guessed``
+    with where the scan stood, for ``_first_bad_ubx``."""
+    if n - at < 6:
+        return 0, None
+    length = buf[at + 4] | (buf[at + 5] << 8)
+    if length > MAX_UBX_PAYLOAD:
+        c.skipped_bytes += 1
+        return 1, None
+    total = 8 + length
+    if n - at < total:
+        return 0, None
+    guessed.append((at, len(out), len(runs), _counts(c)))
+    c.ubx_frames += 1
+    return total, _ubx_frame(buf, at, length)
+
+
+def _ubx_frame(buf: bytes, at: int, length: int) -> UbxFrame:
+    """The UbxFrame at sync ``at``: ``UbxFrame(class, id, payload)`` (see _SET_UBX)."""
+    frame = object.__new__(UbxFrame)
     set_class, set_id, set_payload = _SET_UBX
-    set_class(frame, body[0])
-    set_id(frame, body[1])
-    set_payload(frame, body[4:])
-    return total, frame
+    set_class(frame, buf[at + 2])
+    set_id(frame, buf[at + 3])
+    set_payload(frame, buf[at + 6 : at + 6 + length])
+    return frame
+
+
+_COUNTERS: Final = tuple(f.name for f in fields(FramerCounters))
+
+
+def _counts(c: FramerCounters) -> tuple[int, ...]:
+    return tuple(getattr(c, name) for name in _COUNTERS)
+
+
+def _set_counters(c: FramerCounters, counts: tuple[int, ...]) -> None:
+    for name, value in zip(_COUNTERS, counts, strict=True):
+        setattr(c, name, value)
+
+
+_UBX_BATCH_MIN: Final = 16  # fewer frames: ubx_checksum each
+_SMALL_UBX: Final = 64  # bodies up to this long are checked in a batch of their own
+
+
+def _first_bad_ubx(buf: bytes, guessed: list[_Guess], start: int) -> int | None:
+    """The index of the first frame of ``guessed[start:]`` whose checksum is wrong, None
+    if all are right."""
+    ats = [g[0] for g in guessed[start:]]
+    lengths = [buf[at + 4] | (buf[at + 5] << 8) for at in ats]
+    bodies = [buf[at + 2 : at + 6 + length] for at, length in zip(ats, lengths, strict=True)]
+    sums = [buf[at + 6 + length : at + 8 + length] for at, length in zip(ats, lengths, strict=True)]
+    if len(bodies) < _UBX_BATCH_MIN:
+        found = list(map(ubx_checksum, bodies))
+    else:  # the small ones (NAV-CLOCK and the like) in a batch of their own
+        small = [i for i, body in enumerate(bodies) if len(body) <= _SMALL_UBX]
+        large = [i for i, body in enumerate(bodies) if len(body) > _SMALL_UBX]
+        found = [b""] * len(bodies)
+        for part in (small, large):
+            if part:
+                for i, ck in zip(part, _fletcher_lanes([bodies[i] for i in part]), strict=True):
+                    found[i] = ck
+    if found == sums:
+        return None
+    return start + next(i for i, (f, e) in enumerate(zip(found, sums, strict=True)) if f != e)
+
+
+_LOW7: Final = 0x7F
+_HIGH1: Final = 0x80
+
+
+def _fletcher_lanes(bodies: list[bytes]) -> list[bytes]:
+    """``ubx_checksum`` of each body, all at once: the bodies are the rows of a block (padded
+    with zeros to the longest, W bytes) and each byte column, read as one integer with a
+    byte per body, is added to the running sum A and A to B, bytewise mod 256 (SWAR: the
+    low 7 bits of each byte added, the top bit by XOR, so no carry crosses a byte). Zeros
+    after a body's end leave its A as it was and add it to B once per column:
+    CK_B = B - (W - n) A. About 12 big-int operations per column, however many bodies."""
+    width = max(map(len, bodies))
+    block = b"".join(map(bytes.ljust, bodies, repeat(width), repeat(b"\0")))
+    n = len(bodies)
+    low = int.from_bytes(bytes([_LOW7]) * n, "little")
+    high = int.from_bytes(bytes([_HIGH1]) * n, "little")
+    a = b = 0
+    for k in range(width):
+        d = int.from_bytes(block[k::width], "little")
+        a = ((a & low) + (d & low)) ^ ((a ^ d) & high)
+        b = ((b & low) + (a & low)) ^ ((b ^ a) & high)
+    ck_a = a.to_bytes(n, "little")
+    ck_b = b.to_bytes(n, "little")
+    return [
+        bytes((x, (y - (width - len(body)) * x) & 0xFF))
+        for x, y, body in zip(ck_a, ck_b, bodies, strict=True)
+    ]
 
 
 # ---------------------------------------------------------------------------- UBX messages
