@@ -517,7 +517,11 @@ class NmeaFramer:
         the run is ASCII (their bytes are their characters), else its byte lines."""
         # CR occurs here only as part of a CR LF. One decode for the whole run; a replaced
         # byte stays one character, so the str lines pair up with the byte lines.
-        texts = run.decode("ascii", "replace").replace("\r", "").split("\n")
+        text = run.decode("ascii", "replace")
+        if run.count(b"\r") == run.count(b"\n"):  # every line ends in CR LF
+            texts = text.split("\r\n")
+        else:
+            texts = text.replace("\r", "").split("\n")
         texts.pop()  # the empty tail after the last line end
         if run.isascii():
             runs.append((len(out), texts))

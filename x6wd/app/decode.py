@@ -33,7 +33,7 @@ import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from datetime import UTC, date, datetime
 from itertools import accumulate, chain, compress, repeat
-from typing import IO, Any, Final, cast
+from typing import IO, Any, Final, TypeVar, cast
 
 from drivers.gps_nmea import (
     _FRACTION_US,
@@ -470,6 +470,7 @@ _KIND_CODES: Final = {
 }
 _BULK_MIN: Final = 16  # fewer sentences in one call: the reference's loop, one at a time
 _PERIOD_MAX: Final = 64  # longest sentence cycle looked for (see _phases)
+_CYCLE_MIN: Final = 4 * _PERIOD_MAX  # fewer sentences: their heads one by one (_cycle)
 _HEAD: Final = operator.itemgetter(slice(1, 7))
 _BODY: Final = operator.itemgetter(slice(7, -3))
 
@@ -494,6 +495,7 @@ assert (_GGA_TIME, _GGA_LAT, _GGA_QUAL, _GGA_SEP) == (0, 1, 5, 10)
 assert (_RMC_TIME, _RMC_STATUS, _RMC_LAT, _RMC_SPEED, _RMC_DATE) == (0, 1, 2, 6, 8)
 assert (_GLL_TIME, _GSV_SAT1, _ZDA_TIME, _ZDA_DAY) == (4, 3, 0, 1)
 
+_T = TypeVar("_T")
 _BAD: Final = object()
 """A memo's value for a text whose parse raised (ValueError): its sentence takes the
 reference's path, which raises again and counts it."""
@@ -731,11 +733,11 @@ def _fill_positions(memo: dict[str, Any], keys: Iterable[str]) -> None:
 _GSV_GROUPS: Final = re.compile(r"([^,]*+,[^,]*+,[^,]*+,[^,]*+)(?:,|\Z)")
 
 
-def _matches(pattern: re.Pattern[str], texts: list[str]) -> list[Any]:
+def _matches(pattern: re.Pattern[str], texts: list[str], joined: str | None = None) -> list[Any]:
     """``pattern``'s groups in each of ``texts`` (all of one sentence type), or None for a
-    text it does not match: one ``findall`` over the texts joined when every text matches
-    once, else one match per text."""
-    found = pattern.findall("\n".join(texts))
+    text it does not match: one ``findall`` over the texts joined (``joined``, if given:
+    ``"\\n".join(texts)``) when every text matches once, else one match per text."""
+    found = pattern.findall("\n".join(texts) if joined is None else joined)
     if len(found) == len(texts):  # no match spans two lines, so each is its line's
         return found
     matches = [pattern.fullmatch(text) for text in texts]
@@ -761,7 +763,7 @@ def _unparsed(events: list[Any], texts: list[str]) -> list[Any]:
     ]
 
 
-def _phases(codes: list[int]) -> list[int] | None:
+def _phases(codes: list[_T]) -> list[_T] | None:
     """The codes of one cycle if ``codes`` repeats one of at most ``_PERIOD_MAX`` sentences
     (``codes[i] == codes[i % p]``), else None."""
     n = len(codes)
@@ -775,6 +777,32 @@ def _phases(codes: list[int]) -> list[int] | None:
             return None
         if codes[p : p + 256] == codes[: min(256, n - p)] and codes[p:] == codes[: n - p]:
             return codes[:p]
+
+
+def _cycle(texts: list[str]) -> tuple[list[str], list[str | None]] | None:
+    """(the heads of one cycle, each place's texts joined by "\\n") if the sentences repeat
+    one cycle of heads (``text[1:7]``, at most ``_PERIOD_MAX`` sentences) and are all
+    ASCII, else None. The cycle is found among the first heads; the rest is checked
+    without a head per sentence: the texts of a place joined, whose every line must
+    start with that place's head (a text holds one "$", its first character)."""
+    n = len(texts)
+    if n < _CYCLE_MIN:
+        return None
+    first = list(map(_HEAD, texts[: 2 * _PERIOD_MAX]))
+    phases = _phases(first)
+    if phases is None:
+        return None
+    period = len(phases)
+    joined: list[str | None] = []
+    for k, head in enumerate(phases):
+        text = "\n".join(texts[k::period])
+        lines = len(range(k, n, period))
+        if not (
+            text.startswith(head, 1) and text.count("\n$" + head) == lines - 1 and text.isascii()
+        ):
+            return None
+        joined.append(text)
+    return phases, joined
 
 
 def _gsa_values(body: str) -> _GsaValues:
@@ -919,7 +947,7 @@ class ReportDecoder(GpsDecoder):
         self._gsv_sat_memo: dict[str, _SatTexts | None] = {}
         self._gsa_memo: dict[str, _GsaValues] = {}
         # The bulk parser of each type, by code.
-        self._bulk: dict[int, Callable[[list[str]], list[Any]]] = {
+        self._bulk: dict[int, Callable[[list[str], str | None], list[Any]]] = {
             _DO_GGA: self._ggas,
             _DO_RMC: self._rmcs,
             _DO_GSA: self._gsas,
@@ -942,51 +970,72 @@ class ReportDecoder(GpsDecoder):
             texts = [f for f in frames if type(f) is str]
             self._ubx.extend(f for f in frames if type(f) is not str)  # type: ignore[misc]
             self._ubx_counted = ubx_frames
-        heads = list(map(_HEAD, texts))
-        codes: list[int] = list(map(self._codes.get, heads))  # type: ignore[arg-type]
-        if None in codes:
-            known = {h: self._code(h) for h in set(heads).difference(self._codes)}
-            known.update(self._codes)
-            codes = list(map(known.__getitem__, heads))
-        if not "".join(texts).isascii():  # the reference's path counts them invalid
-            ascii_ = list(map(str.isascii, texts))
-            codes = [c if a else _REFERENCE for c, a in zip(codes, ascii_, strict=True)]
-        n_bulk = len(codes) - codes.count(_REFERENCE)
-        codes, events = self._events(texts, codes)
+        cycle = _cycle(texts)
+        if cycle is not None:  # the heads repeat one cycle: each place's texts a slice
+            heads, joined = cycle
+            phases = [self._codes.get(h) or self._code(h) for h in heads]
+            period = len(phases)
+            n_bulk = sum(
+                len(range(k, len(texts), period)) for k, c in enumerate(phases) if c != _REFERENCE
+            )
+            codes, events = self._cycle_events(texts, phases, joined)
+        else:
+            heads = list(map(_HEAD, texts))
+            codes = list(map(self._codes.get, heads))  # type: ignore[arg-type]
+            if None in codes:
+                known = {h: self._code(h) for h in set(heads).difference(self._codes)}
+                known.update(self._codes)
+                codes = list(map(known.__getitem__, heads))
+            if not "".join(texts).isascii():  # the reference's path counts them invalid
+                ascii_ = list(map(str.isascii, texts))
+                codes = [c if a else _REFERENCE for c, a in zip(codes, ascii_, strict=True)]
+            n_bulk = len(codes) - codes.count(_REFERENCE)
+            codes, events = self._events(texts, codes)
         self._run_events(codes, events, n_bulk, t_s, out)
 
     def _events(self, texts: list[str], codes: list[int]) -> tuple[list[int], list[Any]]:
         """The codes and events the loop (``_run_events``) takes, in order: a sentence's
-        parsed groups (a type read in bulk), its text (the reference's path), None (counted
-        only). In a read that repeats one cycle of sentence types (``_phases``) whole
-        cycles need fewer: counted-only sentences are left out, so is a GLL whose time is
-        that of the RMC or GGA before it in the cycle (the epoch is already that time),
-        and the parts of a GSV group that fills consecutive places of the cycle are one
-        event (``_DO_SKY``: what the parts do one after the other)."""
-        n = len(texts)
+        parsed groups (a type read in bulk), its text (the reference's path); counted-only
+        sentences are left out. A read whose codes repeat one cycle takes
+        ``_cycle_events``."""
         phases = _phases(codes)
+        if phases:
+            period = len(phases)
+            return self._cycle_events(texts, phases, [None] * period)
         bulk = self._bulk
-        if not phases:
-            by_code: dict[int, list[str]] = {}
-            for text, code in zip(texts, codes, strict=True):
-                try:
-                    by_code[code].append(text)
-                except KeyError:
-                    by_code[code] = [text]
-            by_code.pop(_SKIP, None)  # counted only: left out
-            codes = list(compress(codes, codes))  # (_SKIP is 0)
-            iters: list[Iterator[Any]] = [iter(())] * (_REFERENCE + 1)
-            for code, part in by_code.items():
-                parse = bulk.get(code)
-                iters[code] = iter(part if parse is None else parse(part))
-            return codes, list(map(next, map(iters.__getitem__, codes)))
+        by_code: dict[int, list[str]] = {}
+        for text, code in zip(texts, codes, strict=True):
+            try:
+                by_code[code].append(text)
+            except KeyError:
+                by_code[code] = [text]
+        by_code.pop(_SKIP, None)  # counted only: left out
+        codes = list(compress(codes, codes))  # (_SKIP is 0)
+        iters: list[Iterator[Any]] = [iter(())] * (_REFERENCE + 1)
+        for code, part in by_code.items():
+            parse = bulk.get(code)
+            iters[code] = iter(part if parse is None else parse(part, None))
+        return codes, list(map(next, map(iters.__getitem__, codes)))
+
+    def _cycle_events(
+        self, texts: list[str], phases: list[int], joined: Sequence[str | None]
+    ) -> tuple[list[int], list[Any]]:
+        """``_events`` of a read whose sentences repeat one cycle of codes (``phases``; the
+        texts of place k of the cycle ``texts[k::period]``, joined by "\\n" in
+        ``joined[k]`` where known): whole cycles need fewer events: counted-only sentences
+        are left out, so is a GLL whose time is that of the RMC or GGA before it in the
+        cycle (the epoch is already that time), and the parts of a GSV group that fills
+        consecutive places of the cycle are one event (``_DO_SKY``: what the parts do one
+        after the other)."""
+        n = len(texts)
+        bulk = self._bulk
         period = len(phases)
         full = n // period
         values = []
         for k, code in enumerate(phases):
             part = texts[k::period]
             parse = bulk.get(code)
-            values.append(part if parse is None else parse(part))
+            values.append(part if parse is None else parse(part, joined[k]))
         # Whole cycles: the codes and columns of the events each takes.
         plan_codes: list[int] = []
         columns: list[list[Any]] = []
@@ -1014,7 +1063,8 @@ class ReportDecoder(GpsDecoder):
         events = list(chain.from_iterable(zip(*columns, strict=True))) if columns else []
         # The cycle cut by the end of the read: each sentence its own event.
         rest = range(n - full * period)
-        return plan_codes * full + codes[full * period :], events + [values[k][full] for k in rest]
+        codes = plan_codes * full + [phases[k] for k in rest]
+        return codes, events + [values[k][full] for k in rest]
 
     def _run_events(
         self, codes: list[int], events: list[Any], n_bulk: int, t_s: float, out: list[GpsOutput]
@@ -1148,8 +1198,8 @@ class ReportDecoder(GpsDecoder):
         texts = list(texts)
         return _read(self._times, texts, _fill_times)
 
-    def _ggas(self, texts: list[str]) -> list[Any]:
-        groups = _matches(_GGA_CUT, texts)
+    def _ggas(self, texts: list[str], joined: str | None = None) -> list[Any]:
+        groups = _matches(_GGA_CUT, texts, joined)
         if None in groups:
             return _per_text(self._ggas, texts, groups)
         tods_text, positions_text, tails_text = zip(*groups, strict=True)
@@ -1161,8 +1211,8 @@ class ReportDecoder(GpsDecoder):
             return _unparsed(events, texts)
         return events
 
-    def _rmcs(self, texts: list[str]) -> list[Any]:
-        groups = _matches(_RMC_CUT, texts)
+    def _rmcs(self, texts: list[str], joined: str | None = None) -> list[Any]:
+        groups = _matches(_RMC_CUT, texts, joined)
         if None in groups:
             return _per_text(self._rmcs, texts, groups)
         tods_text, status, positions_text, tails_text = zip(*groups, strict=True)
@@ -1175,13 +1225,13 @@ class ReportDecoder(GpsDecoder):
             return _unparsed(events, texts)
         return events
 
-    def _gsas(self, texts: list[str]) -> list[Any]:
+    def _gsas(self, texts: list[str], joined: str | None = None) -> list[Any]:
         bodies = list(map(_BODY, texts))
         events = _read(self._gsa_memo, bodies, _FILL_GSA)
         return _unparsed(events, texts) if _BAD in events else events
 
-    def _gsvs(self, texts: list[str]) -> list[Any]:
-        groups = _matches(_GSV_CUT, texts)
+    def _gsvs(self, texts: list[str], joined: str | None = None) -> list[Any]:
+        groups = _matches(_GSV_CUT, texts, joined)
         if None in groups:
             return _per_text(self._gsvs, texts, groups)
         talkers, heads, rests = zip(*groups, strict=True)
@@ -1197,15 +1247,15 @@ class ReportDecoder(GpsDecoder):
             return _unparsed(events, texts)
         return events
 
-    def _glls(self, texts: list[str]) -> list[Any]:
-        groups = _matches(_GLL_CUT, texts)
+    def _glls(self, texts: list[str], joined: str | None = None) -> list[Any]:
+        groups = _matches(_GLL_CUT, texts, joined)
         if None in groups:
             return _per_text(self._glls, texts, groups)
         events = self._tods(groups)
         return _unparsed(events, texts) if _BAD in events else events
 
-    def _zdas(self, texts: list[str]) -> list[Any]:
-        groups = _matches(_ZDA_CUT, texts)
+    def _zdas(self, texts: list[str], joined: str | None = None) -> list[Any]:
+        groups = _matches(_ZDA_CUT, texts, joined)
         if None in groups:
             return _per_text(self._zdas, texts, groups)
         tods_text, dates_text = zip(*groups, strict=True)
