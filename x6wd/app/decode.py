@@ -731,6 +731,15 @@ def _fill_positions(memo: dict[str, Any], keys: Iterable[str]) -> None:
 
 
 _GSV_GROUPS: Final = re.compile(r"([^,]*+,[^,]*+,[^,]*+,[^,]*+)(?:,|\Z)")
+_GSV_GROUPS_MAX: Final = 9  # most groups of a GSV cut whole by _gsv_cut
+
+
+@functools.cache
+def _gsv_cut(k: int) -> re.Pattern[str]:
+    """A GSV of exactly k satellite groups and nothing after them: talker, the three head
+    fields, each group's text (as gsv_groups cuts them)."""
+    group = ",([^,]*,[^,]*,[^,]*,[^,*]*)"
+    return re.compile(rf"\$(..)GSV,({_F},{_F},{_F}){group * k}\*..")
 
 
 def _matches(pattern: re.Pattern[str], texts: list[str], joined: str | None = None) -> list[Any]:
@@ -1231,6 +1240,9 @@ class ReportDecoder(GpsDecoder):
         return _unparsed(events, texts) if _BAD in events else events
 
     def _gsvs(self, texts: list[str], joined: str | None = None) -> list[Any]:
+        whole = self._whole_gsvs(texts, joined)
+        if whole is not None:
+            return whole
         groups = _matches(_GSV_CUT, texts, joined)
         if None in groups:
             return _per_text(self._gsvs, texts, groups)
@@ -1246,6 +1258,25 @@ class ReportDecoder(GpsDecoder):
         if _BAD in counts or _BAD in sats:
             return _unparsed(events, texts)
         return events
+
+    def _whole_gsvs(self, texts: list[str], joined: str | None) -> list[Any] | None:
+        """``_gsvs`` of GSVs that all hold the same number k of whole satellite groups and
+        no other field (a place of a cycle, mostly): head and groups cut by one findall
+        (``_gsv_cut(k)``), the satellites read by columns. None otherwise."""
+        k, extra = divmod(texts[0].count(",") - 3, 4)
+        if extra or not 1 <= k <= _GSV_GROUPS_MAX:
+            return None
+        found = _gsv_cut(k).findall("\n".join(texts) if joined is None else joined)
+        if len(found) != len(texts):
+            return None
+        columns = list(zip(*found, strict=True))
+        counts = _read(self._gsv_heads, columns[1], _FILL_GSV_HEAD)
+        memo = self._gsv_sat_memo
+        _fill(memo, chain.from_iterable(columns[2:]), _sat_of)
+        sats = [list(map(memo.__getitem__, column)) for column in columns[2:]]
+        if any(None in column or _BAD in column for column in sats) or _BAD in counts:
+            return None
+        return list(zip(columns[0], counts, zip(*sats, strict=True), strict=True))
 
     def _glls(self, texts: list[str], joined: str | None = None) -> list[Any]:
         groups = _matches(_GLL_CUT, texts, joined)
