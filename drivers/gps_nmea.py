@@ -62,7 +62,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from datetime import UTC, date, datetime, timedelta
-from itertools import chain, repeat
+from itertools import chain, compress, repeat
 from typing import Any, Final, cast
 
 from drivers.nmea import (
@@ -395,10 +395,11 @@ class NmeaFramer:
             run_match = _RUN.match
             target = buf
             take_ubx = _ubx
-        # UBX frames taken before their checksums are known (fast): (sync, len(out),
-        # len(runs), counters) before each; checked together after the scan, which resumes
-        # at the first bad one as if it had been checked at once (_first_bad_ubx).
-        guessed: list[tuple[int, int, int, tuple[int, ...]]] = []
+        # UBX frames taken before their checksums are known (fast): (sync, frame length,
+        # len(out), len(runs), counters) before each; checked together after the scan,
+        # which resumes at the first bad one as if it had been checked at once
+        # (_first_bad_ubx).
+        guessed: list[_Guess] = []
         checked = 0
         while True:
             while True:
@@ -498,7 +499,7 @@ class NmeaFramer:
             # As if that frame had been checked when it was found: a false sync, one byte.
             # The scan goes on from there checking each frame at once (a stream with many
             # bad frames would be scanned again after each).
-            at, n_out, n_runs, counts = guessed[bad]
+            at, _, n_out, n_runs, counts = guessed[bad]
             del guessed[bad:], out[n_out:], runs[n_runs:]
             _set_counters(c, counts)
             c.skipped_bytes += 1
@@ -592,7 +593,7 @@ def _skip(buf: bytes, a: int, b: int, c: FramerCounters) -> None:
         c.skipped_bytes += b - a - chunk.count(b"\n") - chunk.count(b"\r")
 
 
-_Guess = tuple[int, int, int, tuple[int, ...]]  # see NmeaFramer._pass
+_Guess = tuple[int, int, int, int, tuple[int, ...]]  # see NmeaFramer._pass
 
 
 def _ubx(
@@ -642,7 +643,7 @@ def _guess_ubx(
     total = 8 + length
     if n - at < total:
         return 0, None
-    guessed.append((at, len(out), len(runs), _counts(c)))
+    guessed.append((at, total, len(out), len(runs), _counts(c)))
     c.ubx_frames += 1
     return total, _ubx_frame(buf, at, length)
 
@@ -669,6 +670,8 @@ def _set_counters(c: FramerCounters, counts: tuple[int, ...]) -> None:
         setattr(c, name, value)
 
 
+_FIRST: Final = operator.itemgetter(0)
+_SECOND: Final = operator.itemgetter(1)
 _UBX_BATCH_MIN: Final = 16  # fewer frames: ubx_checksum each
 _SMALL_UBX: Final = 64  # bodies up to this long are checked in a batch of their own
 
@@ -676,20 +679,22 @@ _SMALL_UBX: Final = 64  # bodies up to this long are checked in a batch of their
 def _first_bad_ubx(buf: bytes, guessed: list[_Guess], start: int) -> int | None:
     """The index of the first frame of ``guessed[start:]`` whose checksum is wrong, None
     if all are right."""
-    ats = [g[0] for g in guessed[start:]]
-    lengths = [buf[at + 4] | (buf[at + 5] << 8) for at in ats]
-    bodies = [buf[at + 2 : at + 6 + length] for at, length in zip(ats, lengths, strict=True)]
-    sums = [buf[at + 6 + length : at + 8 + length] for at, length in zip(ats, lengths, strict=True)]
+    part = guessed[start:]
+    ats = list(map(_FIRST, part))
+    ends = list(map(operator.add, ats, map(_SECOND, part)))  # each frame's end
+    sums_at = list(map(operator.sub, ends, repeat(2)))
+    bodies = list(map(buf.__getitem__, map(slice, map((2).__add__, ats), sums_at)))
+    sums = list(map(buf.__getitem__, map(slice, sums_at, ends)))
     if len(bodies) < _UBX_BATCH_MIN:
         found = list(map(ubx_checksum, bodies))
-    else:  # the small ones (NAV-CLOCK and the like) in a batch of their own
-        small = [i for i, body in enumerate(bodies) if len(body) <= _SMALL_UBX]
-        large = [i for i, body in enumerate(bodies) if len(body) > _SMALL_UBX]
-        found = [b""] * len(bodies)
-        for part in (small, large):
-            if part:
-                for i, ck in zip(part, _fletcher_lanes([bodies[i] for i in part]), strict=True):
-                    found[i] = ck
+    else:  # the small ones (NAV-CLOCK and the like) in a block of their own
+        small = list(map((_SMALL_UBX).__ge__, map(len, bodies)))
+        large = list(map(operator.not_, small))
+        if list(compress(sums, small)) == _fletcher_lanes(list(compress(bodies, small))) and (
+            list(compress(sums, large)) == _fletcher_lanes(list(compress(bodies, large)))
+        ):
+            return None
+        found = list(map(ubx_checksum, bodies))
     if found == sums:
         return None
     return start + next(i for i, (f, e) in enumerate(zip(found, sums, strict=True)) if f != e)
@@ -700,14 +705,16 @@ _HIGH1: Final = 0x80
 
 
 def _fletcher_lanes(bodies: list[bytes]) -> list[bytes]:
-    """``ubx_checksum`` of each body, all at once: the bodies are the rows of a block (padded
-    with zeros to the longest, W bytes) and each byte column, read as one integer with a
-    byte per body, is added to the running sum A and A to B, bytewise mod 256 (SWAR: the
-    low 7 bits of each byte added, the top bit by XOR, so no carry crosses a byte). Zeros
-    after a body's end leave its A as it was and add it to B once per column:
-    CK_B = B - (W - n) A. About 12 big-int operations per column, however many bodies."""
+    """``ubx_checksum`` of each body, all at once: the bodies are the rows of a block
+    (right-aligned with zeros to the longest, W bytes: zeros before a body leave both of
+    its sums at 0) and each byte column, read as one integer with a byte per body, is added
+    to the running sum A and A to B, bytewise mod 256 (SWAR: the low 7 bits of each byte
+    added, the top bit by XOR, so no carry crosses a byte). About 12 big-int operations per
+    column, however many bodies."""
+    if not bodies:
+        return []
     width = max(map(len, bodies))
-    block = b"".join(map(bytes.ljust, bodies, repeat(width), repeat(b"\0")))
+    block = b"".join(map(bytes.rjust, bodies, repeat(width), repeat(b"\0")))
     n = len(bodies)
     low = int.from_bytes(bytes([_LOW7]) * n, "little")
     high = int.from_bytes(bytes([_HIGH1]) * n, "little")
@@ -716,12 +723,7 @@ def _fletcher_lanes(bodies: list[bytes]) -> list[bytes]:
         d = int.from_bytes(block[k::width], "little")
         a = ((a & low) + (d & low)) ^ ((a ^ d) & high)
         b = ((b & low) + (a & low)) ^ ((b ^ a) & high)
-    ck_a = a.to_bytes(n, "little")
-    ck_b = b.to_bytes(n, "little")
-    return [
-        bytes((x, (y - (width - len(body)) * x) & 0xFF))
-        for x, y, body in zip(ck_a, ck_b, bodies, strict=True)
-    ]
+    return list(map(bytes, zip(a.to_bytes(n, "little"), b.to_bytes(n, "little"), strict=True)))
 
 
 # ---------------------------------------------------------------------------- UBX messages
