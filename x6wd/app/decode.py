@@ -1168,9 +1168,23 @@ class ReportDecoder(GpsDecoder):
                         self._pdop = pdop
                         self._hdop_gsa = hdop
                         self._vdop = vdop
-                    elif code == _DO_GSV:
-                        talker, counts, sats = event
-                        self._on_gsv(talker, counts, sats, out)
+                    elif code == _DO_GSV:  # _on_gsv
+                        talker, (total, seq), sats = event
+                        if seq == 1:
+                            self._gsv_talker = talker
+                            self._gsv_sats = list(sats)
+                        elif seq == self._gsv_next and talker == self._gsv_talker:
+                            self._gsv_sats.extend(sats)
+                        else:  # a lost part: drop the group
+                            self._gsv_next = 0
+                            continue
+                        if seq == total:
+                            self._gsv_next = 0
+                            self._sky[talker] = (self._epoch_idx, self._gsv_sats)
+                            self._gsv_sats = []
+                            emit_sky(t_s, out)
+                        else:
+                            self._gsv_next = seq + 1
                     elif code == _DO_ZDA:  # _on_zda
                         tod, day = event
                         if tod is not None and day is not None:  # (not _NO_DATE: _zdas)
