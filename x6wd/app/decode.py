@@ -943,6 +943,8 @@ class ReportDecoder(GpsDecoder):
         self._sky_vdop: float | None = None
         self._sky_pdop: float | None = None
         self._sky_dops = encoder.dops(None, None, None)
+        self._chosen: dict[Any, str] = {}  # see _emit_sky
+        self._chosen_used: frozenset[int] | None = None
         self._ubx_counted = 0  # the framer's UBX count when _decode last took frames
         # Sentence head -> _SKIP .. _REFERENCE (bounded like the reference's routes).
         self._codes: dict[str, int] = {}
@@ -1578,11 +1580,23 @@ class ReportDecoder(GpsDecoder):
         if not self._with_sky:
             return
         used = self._used
+        # Each satellite's text as used or not, by the satellite (its memoised tuple), for
+        # as long as the PRNs used are the same set object (a repeated GSA's).
+        if used is not self._chosen_used or len(self._chosen) > MEMO_MAX:
+            self._chosen = {}
+            self._chosen_used = used
+        chosen = self._chosen
         texts: list[str] = []
         oldest = self._epoch_idx - 1  # a constellation that stopped reporting drops out
         for epoch_idx, group in self._sky.values():
             if epoch_idx >= oldest:
-                texts += [in_use if prn in used else free for prn, free, in_use in group]  # type: ignore[misc]
+                try:
+                    texts += list(map(chosen.__getitem__, group))
+                except KeyError:
+                    for sat in group:
+                        prn, free, in_use = cast("_SatTexts", sat)
+                        chosen[sat] = in_use if prn in used else free
+                    texts += list(map(chosen.__getitem__, group))
         tod = self._tod_us
         if (
             tod == self._member_tod
