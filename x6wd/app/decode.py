@@ -1581,9 +1581,10 @@ class ReportDecoder(GpsDecoder):
             return
         used = self._used
         # Each satellite's text as used or not, by the satellite (its memoised tuple), for
-        # as long as the PRNs used are the same set object (a repeated GSA's).
-        if used is not self._chosen_used or len(self._chosen) > MEMO_MAX:
-            self._chosen = {}
+        # as long as the PRNs used are the same (a GSA repeated, or several merged alike).
+        if used is not self._chosen_used:
+            if used != self._chosen_used:
+                self._chosen = {}
             self._chosen_used = used
         chosen = self._chosen
         texts: list[str] = []
@@ -1593,6 +1594,8 @@ class ReportDecoder(GpsDecoder):
                 try:
                     texts += list(map(chosen.__getitem__, group))
                 except KeyError:
+                    if len(chosen) > MEMO_MAX:
+                        chosen.clear()
                     for sat in group:
                         prn, free, in_use = cast("_SatTexts", sat)
                         chosen[sat] = in_use if prn in used else free
