@@ -272,3 +272,16 @@ def test_back_to_back_ubx_frames_frame_alike_in_any_reads() -> None:
     assert tuple(whole[1][k] for k in counted) == (253, 42, 5, 2379)
     for size in (4093, 517, 61, 7):
         assert _framed(data, size) == whole, size
+
+
+def test_memos_cleared_while_reading_decode_like_the_reference(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Every memo of the bulk path full many times over within one read (times, positions,
+    # satellites, heads, ...: a memo is cleared when a read's new keys would take it
+    # above MEMO_MAX, and then holds all of that read's keys). The NEO-5 hour's 3,600 times
+    # and positions do not fill MEMO_MAX (4096): only a longer log does, here a small one.
+    monkeypatch.setattr(decode, "MEMO_MAX", 40)
+    data = synthetic_neo5(900, np.random.default_rng(8))
+    _check(data + _fuzzed(np.random.default_rng(4)), (1 << 20, 65_537))
+    _check(b"".join(p.read_bytes() for p in CORPUS), (1 << 20,))

@@ -601,12 +601,7 @@ def _fill(memo: dict[str, Any], keys: Iterable[str], parse: Callable[[str], Any]
     """Put ``parse(key)`` in ``memo`` for every key not in it (``_BAD`` where it raises
     ValueError). A memo above MEMO_MAX is cleared first; it holds at least this call's keys,
     so one read of a chunk's keys never misses."""
-    new = set(keys).difference(memo)
-    if not new:
-        return
-    if len(memo) + len(new) > MEMO_MAX:
-        memo.clear()
-    for key in new:
+    for key in _new_keys(memo, keys):
         try:
             memo[key] = parse(key)
         except ValueError:  # FieldError is one
@@ -632,12 +627,14 @@ def _filler(parse: Callable[[str], Any]) -> Callable[[dict[str, Any], Sequence[s
 
 
 def _new_keys(memo: dict[str, Any], keys: Iterable[str]) -> list[str]:
-    """The keys not in ``memo``, which is cleared first if they would take it above
-    MEMO_MAX (as ``_fill``)."""
-    new = list(set(keys).difference(memo))
+    """The keys not in ``memo``; if they would take it above MEMO_MAX it is cleared first
+    and all ``keys`` are new (so it holds every one of them once they are put in)."""
+    distinct = set(keys)
+    new = distinct.difference(memo)
     if new and len(memo) + len(new) > MEMO_MAX:
         memo.clear()
-    return new
+        return list(distinct)
+    return list(new)
 
 
 _MINUTE_OF: Final = operator.itemgetter(slice(0, 4))
