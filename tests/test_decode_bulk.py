@@ -285,3 +285,12 @@ def test_memos_cleared_while_reading_decode_like_the_reference(
     data = synthetic_neo5(900, np.random.default_rng(8))
     _check(data + _fuzzed(np.random.default_rng(4)), (1 << 20, 65_537))
     _check(b"".join(p.read_bytes() for p in CORPUS), (1 << 20,))
+
+
+def test_more_heads_than_the_route_memo_holds_decode_like_the_reference() -> None:
+    # A read with more distinct sentence heads than the decoder keeps routes for (line
+    # noise makes new heads): the memo is cleared while the read's heads are looked up.
+    bodies = [f"Q{k:04d},1,2" for k in range(1500)]
+    bodies[::50] = [f"GPGGA,1200{k % 60:02d}.00,5142.1,N,00430.5,W,1,08,1.1,35.2,M,49.0,M,,"
+                    for k in range(len(bodies[::50]))]  # fmt: skip
+    _check(b"".join(map(_sentence, bodies)), (1 << 20, 4093))

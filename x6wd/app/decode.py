@@ -981,7 +981,7 @@ class ReportDecoder(GpsDecoder):
         cycle = _cycle(texts)
         if cycle is not None:  # the heads repeat one cycle: each place's texts a slice
             heads, joined = cycle
-            phases = [self._codes.get(h) or self._code(h) for h in heads]
+            phases = list(map(self._code_of, heads))
             period = len(phases)
             n_bulk = sum(
                 len(range(k, len(texts), period)) for k, c in enumerate(phases) if c != _REFERENCE
@@ -990,9 +990,8 @@ class ReportDecoder(GpsDecoder):
         else:
             heads = list(map(_HEAD, texts))
             codes = list(map(self._codes.get, heads))  # type: ignore[arg-type]
-            if None in codes:
-                known = {h: self._code(h) for h in set(heads).difference(self._codes)}
-                known.update(self._codes)
+            if None in codes:  # (_codes is bounded: the read's heads in a dict of its own)
+                known = {h: self._code_of(h) for h in set(heads)}
                 codes = list(map(known.__getitem__, heads))
             if not "".join(texts).isascii():  # the reference's path counts them invalid
                 ascii_ = list(map(str.isascii, texts))
@@ -1198,6 +1197,13 @@ class ReportDecoder(GpsDecoder):
         finally:
             c.sentences += n_bulk
             c.decoded += n_bulk - n_failed
+
+    def _code_of(self, key: str) -> int:
+        """The code of sentence head ``key`` (``_codes``, or ``_code`` on a miss)."""
+        try:
+            return self._codes[key]
+        except KeyError:
+            return self._code(key)
 
     def _code(self, key: str) -> int:
         """The ``_codes`` entry for sentence head ``key`` (computed and stored on a miss)."""
