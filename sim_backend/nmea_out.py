@@ -643,12 +643,14 @@ def _slotted(lines: Sequence[bytes]) -> list[tuple[int, bytes]]:
 class NmeaCells:
     """Sentences of E epochs in fixed cells: ``cells[e, k]`` is epoch e's k-th sentence slot
     (RMC, VTG, GGA, GSA, GSV 1-4, GLL) as bytes padded with NUL (inside too: each field has
-    its widest width), all NUL where the epoch has no such sentence."""
+    its widest width), all NUL where the epoch has no such sentence; a sentence's first byte
+    is its cell's first."""
 
     def __init__(self, cells: np.ndarray) -> None:
         self.cells = cells
-        self.lengths = np.count_nonzero(cells, axis=2)
-        """(E, slots) the bytes of each sentence, 0 where there is none."""
+        self._text: bytes | None = None
+        self._lengths: np.ndarray | None = None
+        self._plain = False
 
     @classmethod
     def of_bursts(cls, bursts: Sequence[bytes]) -> NmeaCells:
@@ -663,7 +665,48 @@ class NmeaCells:
 
     def text(self) -> bytes:
         """All sentences, in order, as sent."""
-        return compact(self.cells)
+        if self._text is None:
+            self._text = compact(self.cells)
+        return self._text
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """(E, slots) the bytes of each sentence, 0 where there is none."""
+        if self._lengths is None:
+            self._scan()
+        assert self._lengths is not None
+        return self._lengths
+
+    @property
+    def plain_lines(self) -> bool:
+        """Whether every sentence is printable ASCII up to the CR LF that ends it."""
+        if self._lengths is None:
+            self._scan()
+        return self._plain
+
+    def _scan(self) -> None:
+        """The sentences' lengths from where their CR LFs are in the text (when every byte
+        outside printable ASCII is such a pair, one per sentence), else by counting."""
+        arr = np.frombuffer(self.text(), dtype=np.uint8)
+        exists = self.cells[:, :, 0] != 0
+        n = int(np.count_nonzero(exists))
+        # bytes outside 0x20-0x7E (uint8 arithmetic wraps those below 0x20 round)
+        odd = np.flatnonzero(arr - np.uint8(0x20) > 0x5E)
+        cr, lf = odd[::2], odd[1::2]
+        self._plain = bool(
+            n > 0
+            and odd.shape[0] == 2 * n
+            and lf[-1] == arr.shape[0] - 1
+            and np.array_equal(cr + 1, lf)
+            and np.all(arr[cr] == 13)
+            and np.all(arr[lf] == 10)
+        )
+        if self._plain:
+            lengths = np.zeros(exists.shape, dtype=np.int64)
+            lengths[exists] = np.diff(lf, prepend=-1)
+            self._lengths = lengths
+        else:
+            self._lengths = np.count_nonzero(self.cells, axis=2)
 
     def bursts(self) -> list[bytes]:
         """One burst per epoch (its sentences joined)."""

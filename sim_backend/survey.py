@@ -298,7 +298,7 @@ class _RecordLines:
             return b"", 0
         lengths = cells.lengths.reshape(-1)
         times = arrive.reshape(-1)[flat]
-        if not _plain_sentences(text, lengths[lengths > 0]):
+        if not (cells.plain_lines and b'"' not in text and b"\\" not in text):
             width = cells.cells.shape[2]
             rows = cells.cells.reshape(-1, width)[flat]
             pairs = [
@@ -344,27 +344,6 @@ _D3_BLOCK = text_block(_D3)
 # compacting it can drop each sentence's own CR LF and turn those into the line ends.
 _EOL = 0x01
 _LINE_ENDS = bytes(range(256)).replace(bytes([_EOL]), b"\n")
-
-
-def _plain_sentences(text: bytes, lengths: np.ndarray) -> bool:
-    """Whether ``text``, sentences of ``lengths`` bytes, needs no JSON escaping and each of
-    its sentences ends in the one CR and the one LF it holds."""
-    arr = np.frombuffer(text, dtype=np.uint8)
-    n = lengths.shape[0]
-    if arr.shape[0] != int(lengths.sum()) or n == 0 or b'"' in text or b"\\" in text:
-        return False
-    # every byte outside 0x20-0x7E (uint8 arithmetic wraps those below 0x20 round): the
-    # CR LF ending each sentence, and nothing else
-    odd = np.flatnonzero(arr - np.uint8(0x20) > 0x5E)
-    if odd.shape[0] != 2 * n:
-        return False
-    ends = np.cumsum(lengths)
-    return bool(
-        np.array_equal(odd[1::2], ends - 1)
-        and np.array_equal(odd[::2], ends - 2)
-        and np.all(arr[odd[1::2]] == 10)
-        and np.all(arr[odd[::2]] == 13)
-    )
 
 
 def _repr_block(values: np.ndarray) -> np.ndarray:
