@@ -889,29 +889,34 @@ class ReportDecoder(GpsDecoder):
     """``GpsDecoder``'s epochs and counters, its fixes and sky reports written as their TPV
     and SKY lines (``str``, in ``out``), the sentences of a read decoded in bulk.
 
-    Most sentences of a receiver are GGA, RMC, GSA, GSV and GLL. Of the sentences one read
-    frames, those of each of these types are cut into the groups of fields their handlers
-    read by one regex over the texts joined (``_matches``), and each group's value is read
-    from a memo by its text, new texts parsed once each (``_fill``): a time; a position
-    (lat, lon and their TPV members, which GGA, RMC and GLL of an epoch repeat); GGA's
-    quality to geoid separation; RMC's speed and track members and date; a GSV's head and
-    satellites; a GSA. A stream repeats its cycle of sentence types, so the texts of one
-    type are mostly slices of the read (``_phases``). Then one loop goes through the
-    sentences in order with their values and runs ``GpsDecoder``'s epoch logic
-    (``_on_gga_tuple``, ``_on_rmc_tuple``, ``_on_gsv``, ``_set_gsa``, ``_on_time``) over
-    compact tuples (``_GgaTuple``, ``_RmcTuple``); a sentence whose groups do not parse, of
-    another type (ZDA, proprietary, unknown or odd heads) or of a small read takes
+    Most sentences of a receiver are GGA, RMC, GSA, GSV, GLL and ZDA. Of the sentences one
+    read frames (``_decode``), those of each of these types are cut into the groups of
+    fields their handlers read by one regex over their texts joined (``_matches``,
+    ``_gsv_cut``), and each group's value is read from a memo by its text, the texts new
+    to it parsed once each, by whole columns where the form is the usual one (``_read``,
+    ``_fill_times``, ``_fill_positions``): a time; a position (lat, lon and their TPV
+    members, which GGA, RMC and GLL of an epoch repeat); GGA's quality to geoid separation;
+    RMC's speed and track members and date; a ZDA's date; a GSV's head and satellites; a
+    GSA. A receiver repeats one cycle of sentences: then each place's texts are a slice of
+    the read, found without a head per sentence (``_cycle``), and whole cycles need fewer
+    events (``_cycle_events``: counted-only sentences left out, a GLL at its epoch's time
+    too, a GSV group's parts as one). Then one loop (``_run_events``) runs
+    ``GpsDecoder``'s epoch logic inline over the events in order, compact tuples
+    (``_GgaTuple``, ``_RmcTuple``); a sentence whose groups do not parse, of another type
+    (proprietary, unknown or odd heads, not ASCII) or of a small read takes
     ``GpsDecoder._decode``, whose GGA and RMC handlers here build the same tuples. Every
     field a handler reads is parsed before any state changes, so the counters and epochs
     are the reference's.
 
-    A fix's line is written from the tuples with the texts memoised beside the values
-    (``ReportEncoder.fix_tail``); a satellite goes from its GSV group straight to its
-    two possible JSON texts, so a sky report is one join of texts (``sky_line``); an
-    epoch's time member is written from the time of day and the date's text without a
-    datetime where that is exact (``_time_member``). Without ``with_sky`` the sky reports
-    are counted and not written. tests/test_decode_bulk.py compares the lines and counters
-    with the reference decoder's records through ``tpv_obj``/``sky_obj`` in the same run.
+    A fix's line is written from the tuples with the texts memoised beside the values, its
+    altitude and error members kept while the GGA fields, GSA mode and VDOP are the same
+    (``_emit``, ``ReportEncoder.fix_tail``); a satellite goes from its GSV group straight
+    to its two possible JSON texts, the one a sky report takes kept while the PRNs used
+    are the same, so a sky report is one join of texts (``_emit_sky``); an epoch's time
+    member is written from the time of day and the date's text without a datetime where
+    that is exact (``_time_member``). Without ``with_sky`` the sky reports are counted and
+    not written. tests/test_decode_bulk.py compares the lines and counters with the
+    reference decoder's records through ``tpv_obj``/``sky_obj`` in the same run.
     """
 
     _gga: _GgaTuple | None  # type: ignore[assignment]
@@ -1166,7 +1171,7 @@ class ReportDecoder(GpsDecoder):
                         self._pdop = pdop
                         self._hdop_gsa = hdop
                         self._vdop = vdop
-                    elif code == _DO_GSV:  # _on_gsv
+                    elif code == _DO_GSV:  # GpsDecoder._gsv_fields after its fields are read
                         talker, (total, seq), sats = event
                         if seq == 1:
                             self._gsv_talker = talker
@@ -1442,30 +1447,6 @@ class ReportDecoder(GpsDecoder):
             self._emit(gga, rmc if rmc is not None and rmc[0] == gga[0] else None, out)
         elif rmc is not None and rmc[0] != self._last_fix_tod:
             self._emit(None, rmc, out)
-
-    def _on_gsv(
-        self,
-        talker: str,
-        counts: tuple[int, int],
-        sats: Sequence[_SatTexts],
-        out: list[GpsOutput],
-    ) -> None:
-        # GpsDecoder._gsv_fields after its fields are read
-        total, seq = counts
-        if seq == 1:
-            self._gsv_talker = talker
-            self._gsv_sats = list(sats)  # type: ignore[arg-type]
-        elif seq == self._gsv_next and talker == self._gsv_talker:
-            self._gsv_sats.extend(sats)  # type: ignore[arg-type]
-        else:  # a lost part: drop the group
-            self._gsv_next = 0
-            return
-        self._gsv_next = seq + 1
-        if seq == total:
-            self._gsv_next = 0
-            self._sky[talker] = (self._epoch_idx, self._gsv_sats)
-            self._gsv_sats = []
-            self._emit_sky(0.0, out)
 
     def _sats_of(self, text: str) -> list[_SatTexts]:  # type: ignore[override]
         """The satellites of a GSV sentence's satellite fields ``text`` (as ``_gsv_sats``:
