@@ -658,16 +658,23 @@ def _ubx_frame(buf: bytes, at: int, length: int) -> UbxFrame:
     return frame
 
 
-_COUNTERS: Final = tuple(f.name for f in fields(FramerCounters))
+_COUNTERS: Final = (
+    "sentences",
+    "checksum_failures",
+    "framing_errors",
+    "ubx_frames",
+    "skipped_bytes",
+)
+assert tuple(f.name for f in fields(FramerCounters)) == _COUNTERS, "update _counts"
 
 
 def _counts(c: FramerCounters) -> tuple[int, ...]:
-    return tuple(getattr(c, name) for name in _COUNTERS)
+    """The counters' values (a frame at a time: written out, no loop)."""
+    return (c.sentences, c.checksum_failures, c.framing_errors, c.ubx_frames, c.skipped_bytes)
 
 
 def _set_counters(c: FramerCounters, counts: tuple[int, ...]) -> None:
-    for name, value in zip(_COUNTERS, counts, strict=True):
-        setattr(c, name, value)
+    c.sentences, c.checksum_failures, c.framing_errors, c.ubx_frames, c.skipped_bytes = counts
 
 
 _FIRST: Final = operator.itemgetter(0)
