@@ -27,23 +27,40 @@ the start-up, but it is not judged, as it spreads x6wd's one-time costs (importi
 for the proprietary sentences, about 10 ms) and its later copies read memos filled by the
 first, which a single log does not.
 
-Figures (2026-11-27 20:37-20:42 UTC, load average 1.6-4, six runs, the last three of the
-final code, the first three with a slower GSV pattern since reverted, 8368a5b):
-corpus 0.870, 0.865, 0.854, 0.870, 0.861, 0.859 (median 0.863); NEO-5 hour 0.853, 0.886,
-0.863, 0.845, 0.840, 0.858 (median 0.855); corpus x4 0.99-1.09. The code of the session's
-start, two runs in the same conditions: corpus 0.803, 0.836; NEO-5 hour 0.761, 0.754.
-Target not met. On an idle machine gpsdecode gains more than x6wd (NEO-5 hour 0.59 with the
-old method at load 0.2, 0.77 at load 2.5-4.4).
+Figures (2026-12-01 23:22-23:35 UTC, load average 2.6-3.0 on the shared 2-core machine,
+five runs of this file on the final code, each 15 rounds, the first three alternating with
+three runs of the session's starting code, ad4fa7e, in the same conditions): gpsd corpus
+1.302, 1.131, 1.149, 0.985, 1.202 (median 1.149; ad4fa7e 0.816, 0.914, 0.914); NEO-5 hour
+1.371, 1.312, 1.291, 1.378, 1.433 (median 1.371; ad4fa7e 0.813, 0.838, 0.904); corpus x4
+1.27-1.41 (ad4fa7e 1.04-1.09). The NEO-5 row meets the target, at about the aim of 1.3; the
+corpus row meets it in the median but not with a margin (one run of five under 1) and does
+not reach 1.3. In process, in a fresh process each (cold memos, as the command runs), the
+decoding is 1.3-1.5x (corpus) and 1.4-1.6x (NEO-5 hour) as fast as ad4fa7e's. The
+start-up rose from about 150 ms to 170-190 ms (a larger decode module, compiled at every
+start where bytecode is not written, as here). On an idle machine gpsdecode gained more
+than x6wd in earlier sessions (NEO-5 hour 0.59 at load 0.2 against 0.77 at load 2.5-4.4
+with the old method): not measured idle this time (the machine never was).
 
-Where x6wd's time goes (py-spy samples of the decode loop, 2026-11-27): on the NEO-5 hour,
-RMC fields 18 % (time, coordinates and speed parsed afresh every epoch), framing 16 %
-(the line regex, the batched checksums, the split into lines), the TPV line 15 %, the
-per-sentence loop 14 %, GSV groups 13 %, the SKY line 10 %, the rest of the handlers 13 %;
-on the corpus, framing 22 %, UBX frames 18 % (``drivers.gps_nmea.ubx_checksum``, big-integer
-arithmetic on 700-950-byte ZED-F9P frames), GSV groups 12 %, the loop 10 %, the TPV line 9 %,
-plus the pynmea2 import. Each piece is already a C call or a memo read per field where the
-value repeats; what is left is Python's cost per operation spread over every sentence
-(tests/test_decode_bulk.py keeps the path byte-identical to the reference).
+How x6wd decodes (x6wd/app/decode.py, drivers/gps_nmea.py): in reads of 1 MiB the framer
+finds runs of well-formed lines with one literal-repeat regex on a translated copy and
+checksums all of a read's lines at once (8-byte word columns), and takes a read's UBX
+frames before checking them all at once (bytewise running sums over byte columns,
+resuming at a bad one); the decoder cuts each sentence type's fields by one regex over
+its texts joined, reads every group of fields from a memo by its text (new texts converted
+by whole columns), takes a receiver's repeated cycle of sentences as slices, and runs the
+epoch logic inline over compact tuples, fewer events per cycle; anything else takes the
+reference decoder's path. tests/test_decode_bulk.py keeps the output byte-identical.
+
+Where x6wd's time goes (py-spy samples of 12 runs of the command each, 2026-12-01): on the
+NEO-5 hour, cutting and reading the fields 48 % (GSV 19 %, RMC 18 % of which positions
+10 %, GGA and GLL 7 %), the epoch loop and the lines 23 % (sky lines 10 %, fixes 7 %),
+framing 23 % (line checksums 12 %, splitting runs 6 %), writing 2 %; on the corpus, fields
+33 % (GSV 15 %, RMC 11 %), importing pynmea2 for its proprietary and unknown sentences 16 %
+(a one-time cost the corpus needs: a log without such sentences does not pay it), the
+epoch loop 17 %, framing 26 % (UBX frames 7 %, line checksums 6 %). What is left is
+Python's cost per sentence and per epoch (a regex match, a few dict reads, the tuples and
+strings each makes) and the float-to-text conversion of each new position; the checksums
+of lines and UBX frames are already computed a whole read at a time.
 """
 
 from __future__ import annotations
