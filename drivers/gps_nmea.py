@@ -41,9 +41,12 @@ Epoch assembly (how a ``GpsFix`` is closed):
 
 Speed (bench/bench_nmea.py compares the whole path with ``pynmea2.parse`` alone,
 bench/bench_decode.py ``x6wd decode`` with gpsd's ``gpsdecode``): runs of well-formed lines
-are framed by one regex match and checksummed together, up to 4096 lines as one XOR of
-their byte columns (a short run line by line); the field parsers are built once per field from the
-table; values that repeat from epoch to epoch (times, positions shared by GGA and RMC,
+are found by one regex match on a copy of the read whose body bytes are one letter, and
+all the lines of a read are checksummed together, 4096 at a time as one XOR of their
+8-byte word columns (a few lines one by one); a read's UBX frames are taken first and
+checked together by bytewise running sums over their byte columns, the scan resumed at
+a bad one as if it had been checked at once; the field parsers are built once per field
+from the table; values that repeat from epoch to epoch (times, positions shared by GGA and RMC,
 numeric and letter fields, GSA contents, GSV satellites, sentence heads and their
 handlers) are decoded once and memoised, in small bounded caches keyed by the field
 strings, so a cached result is exactly what decoding the same strings again gives; an
