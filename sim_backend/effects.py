@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Callable, Mapping
+import zlib
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Protocol
 
@@ -65,6 +66,9 @@ class PositionSeries:
     which acts on NMEA minutes). ``speed_mps``/``course_deg`` of the TRUE motion are
     optional (latency and the gap tool's error-vs-speed use them).
     ``nsats`` optional satellites-used count (jumps at satellite-set changes).
+    ``sat_set`` optional identity of the set of satellites used (equal values: the same
+    set; -1 unknown; :func:`satellite_set_id`), where the log tells which (an NMEA GSA):
+    the count alone misses a satellite swapped for another.
     ``true_east_m``/``true_north_m`` optional TRUE position (m, the origin's local frame):
     when given, the layers that depend on where the vehicle is use it instead of integrating
     speed/course (the simulator's receiver hands its layers one epoch at a time, with the
@@ -81,6 +85,7 @@ class PositionSeries:
     speed_mps: np.ndarray | None = None
     course_deg: np.ndarray | None = None
     nsats: np.ndarray | None = None
+    sat_set: np.ndarray | None = None
     true_east_m: np.ndarray | None = None
     true_north_m: np.ndarray | None = None
 
@@ -90,6 +95,14 @@ class PositionSeries:
     def with_(self, **changes: object) -> PositionSeries:
         """Copy with some arrays replaced."""
         return replace(self, **changes)  # type: ignore[arg-type]
+
+
+def satellite_set_id(prns: Iterable[int]) -> float:
+    """An identity of a set of satellites (PRN or NMEA ids): the CRC-32 of the sorted ids, a
+    whole number below 2^32, so it is exact in a float array. Two different sets share one
+    with probability 2^-32."""
+    ids = np.array(sorted({int(p) for p in prns}), dtype="<u2")
+    return float(zlib.crc32(ids.tobytes()))
 
 
 @dataclass(frozen=True)

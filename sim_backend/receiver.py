@@ -45,6 +45,7 @@ from sim_backend.effects import (
     Quantization,
     interp_track,
     metres_per_degree,
+    satellite_set_id,
     truth_track_m,
     truth_velocity_mps,
 )
@@ -402,8 +403,9 @@ class SimReceiver:
                     up_m=np.nan_to_num(s.up_m))  # fmt: skip
         s = Quantization(decimals=self.formatter.minute_decimals).start(_NO_DRAWS).step(s)
         return template.with_(
-            east_m=s.east_m, north_m=s.north_m, up_m=s.up_m, valid=s.valid, nsats=s.nsats
-        )
+            east_m=s.east_m, north_m=s.north_m, up_m=s.up_m, valid=s.valid, nsats=s.nsats,
+            sat_set=used_set_ids(b.used, b.prns),
+        )  # fmt: skip
 
     # --- bytes and timing ------------------------------------------------------------------
 
@@ -523,6 +525,18 @@ def build_gnss_model(world: World, rng: np.random.Generator) -> GnssModel:
         receiver=params,
         rng=rng,
     )
+
+
+def used_set_ids(used: np.ndarray, prns: np.ndarray) -> np.ndarray:
+    """Per epoch, the identity (:func:`~sim_backend.effects.satellite_set_id`) of the
+    satellites used (``used``: epochs x satellites, bool; ``prns``: the satellites' ids), as
+    the receiver's GSA lists them; computed once per distinct set."""
+    used = np.asarray(used, dtype=bool)
+    if used.ndim != 2 or used.shape[0] == 0:
+        return np.zeros(used.shape[0] if used.ndim else 0)
+    sets, inverse = np.unique(used, axis=0, return_inverse=True)
+    ids = np.array([satellite_set_id(np.asarray(prns)[row]) for row in sets])
+    return ids[np.ravel(inverse)]
 
 
 def build_receiver(

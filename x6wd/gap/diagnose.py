@@ -60,6 +60,7 @@ from x6wd.gap.stats import (
     Cell,
     Layout,
     battery,
+    cell_weights,
     lattice_fraction,
     layout_for,
     window,
@@ -316,6 +317,9 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
 
     def battery(self, series: PositionSeries, layout: Layout) -> Battery:
         return battery(series, layout)
+
+    def cell_weights(self, cells: Sequence[Cell]) -> np.ndarray:
+        return cell_weights(cells)
 
     def window(self, series: PositionSeries, t0_s: float, t1_s: float) -> PositionSeries:
         return window(series, t0_s, t1_s)

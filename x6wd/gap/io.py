@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from sim_backend.effects import PositionSeries, metres_per_degree
+from sim_backend.effects import PositionSeries, metres_per_degree, satellite_set_id
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 
 MAX_LINE_BYTES = 1 << 16
@@ -55,7 +55,9 @@ class Track:
     """Reported positions of one log. ``t_s`` seconds (UTC/GPST epoch seconds when the log
     has dates, else the log's own clock), strictly increasing; ``alt_m`` NaN where unknown;
     ``valid`` False on no-fix epochs; ``nsats`` satellites used (-1 unknown); speed/course
-    NaN where unknown; ``notes`` what reading dropped or cut, for the report."""
+    NaN where unknown; ``notes`` what reading dropped or cut, for the report; ``sat_set``
+    the identity of the satellites used (:func:`sim_backend.effects.satellite_set_id`, -1
+    unknown; None when the log never lists them)."""
 
     t_s: np.ndarray
     lat_deg: np.ndarray
@@ -67,14 +69,16 @@ class Track:
     course_deg: np.ndarray
     source: str = ""
     notes: tuple[str, ...] = ()
+    sat_set: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
 
 
 def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()) -> Track:
-    """Rows (t, lat, lon, alt, valid, nsats, speed, course) in log order -> Track sorted by
-    time, duplicates of a time stamp dropped (first kept), the span bounded (module doc)."""
+    """Rows (t, lat, lon, alt, valid, nsats, speed, course[, satellite set]) in log order ->
+    Track sorted by time, duplicates of a time stamp dropped (first kept), the span bounded
+    (module doc)."""
     notes = list(notes)
     if not rows:
         raise ParseError(f"{source}: no position epochs found")
@@ -115,6 +119,7 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
         course_deg=table[:, 7],
         source=source,
         notes=tuple(notes),
+        sat_set=table[:, 8] if table.shape[1] > 8 and np.any(table[:, 8] >= 0) else None,
     )
 
 
@@ -190,6 +195,7 @@ def fill_missing_epochs(track: Track) -> Track:
         course_deg=spread(track.course_deg, math.nan),
         source=track.source,
         notes=track.notes,
+        sat_set=None if track.sat_set is None else spread(track.sat_set, -1.0),
     )
 
 
@@ -292,13 +298,27 @@ def _fix_row(fix: object, t_s: float) -> tuple[float, ...]:
     )
 
 
-def _decoded_fixes(decoder: Any, feed: Iterable[tuple[float, bytes]]) -> Iterator[Any]:
-    """The GpsFix records ``decoder`` makes of ``feed`` ((receive time s, bytes) pairs)."""
-    from x6wd.core.records import GpsFix
+def _decoded_fixes(
+    decoder: Any, feed: Iterable[tuple[float, bytes]], skies: dict[float, float] | None = None
+) -> Iterator[Any]:
+    """The GpsFix records ``decoder`` makes of ``feed`` ((receive time s, bytes) pairs);
+    ``skies``, when given, receives each sky's UTC (s) -> the identity of the satellites
+    its GSA lists as used."""
+    from x6wd.core.records import GpsFix, GpsSky
 
-    for t_s, data in feed:
-        yield from (r for r in decoder.feed(data, t_s) if type(r) is GpsFix)
-    yield from (r for r in decoder.flush() if type(r) is GpsFix)
+    def records() -> Iterator[Any]:
+        for t_s, data in feed:
+            yield from decoder.feed(data, t_s)
+        yield from decoder.flush()
+
+    for r in records():
+        if type(r) is GpsFix:
+            yield r
+        elif skies is not None and type(r) is GpsSky:
+            utc = _utc_s(r.utc)
+            used = [sat.prn for sat in r.satellites if sat.used]
+            if utc is not None and used:
+                skies[utc] = satellite_set_id(used)
 
 
 def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[str] = ()) -> Track:
@@ -338,12 +358,20 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
         decoder.assume_date(first.date(), tod_us + first.microsecond)
     rows: list[tuple[float, ...]] = []
     timeless = 0
-    for fix in _decoded_fixes(decoder, feed()):
+    skies: dict[float, float] = {}  # UTC s -> the set the epoch's GSA lists as used
+    fix_utc: list[float | None] = []
+    for fix in _decoded_fixes(decoder, feed(), skies):
         t_s = fix.t_s if first is None else _utc_s(fix.utc)
         if t_s is None:
             timeless += 1
         else:
             rows.append(_fix_row(fix, t_s))
+            fix_utc.append(_utc_s(fix.utc))
+    if skies:
+        rows = [
+            (*row, skies.get(utc, -1.0) if utc is not None else -1.0)
+            for row, utc in zip(rows, fix_utc, strict=True)
+        ]
     notes = list(notes)
     if timeless:
         notes.append(
@@ -367,6 +395,7 @@ def _read_recording(path: Path) -> Track:
 
     rows: list[tuple[float, ...]] = []
     utc_s: list[float] = []
+    skies: dict[float, float] = {}  # UTC s -> the identity of the satellites used
     has_nmea = False
     for rec in read_recording(path):
         if rec.type == "fix":
@@ -374,8 +403,19 @@ def _read_recording(path: Path) -> Track:
             rows.append(_fix_row(rec.data, t_s if isinstance(t_s, (int, float)) else math.nan))
             utc = _utc_s(rec.data.get("utc"))
             utc_s.append(math.nan if utc is None else utc)
+        elif rec.type == "sky":
+            utc = _utc_s(rec.data.get("utc"))
+            sats = rec.data.get("satellites") or []
+            used = [x["prn"] for x in sats if isinstance(x, dict) and x.get("used") and "prn" in x]
+            if utc is not None and used:
+                skies[utc] = satellite_set_id(used)
         elif rec.type == "nmea":
             has_nmea = True
+    if rows and skies:
+        rows = [
+            (*row, skies.get(utc, -1.0) if math.isfinite(utc) else -1.0)
+            for row, utc in zip(rows, utc_s, strict=True)
+        ]
     if rows:
         dated = np.isfinite(utc_s)
         if not np.any(dated):
@@ -588,6 +628,9 @@ def _series(
     valid = track.valid & np.isfinite(east_m) & np.isfinite(north_m)
     up_m = np.where(np.isfinite(up_m), up_m, 0.0)
     nsats = track.nsats if np.all(track.nsats >= 0) else None
+    sat_set = track.sat_set
+    if sat_set is not None and not np.any(sat_set[track.valid] >= 0):
+        sat_set = None
     return PositionSeries(
         t_s=track.t_s - track.t_s[0],
         east_m=np.where(valid, east_m, 0.0),
@@ -599,6 +642,7 @@ def _series(
         speed_mps=speed_mps,
         course_deg=course_deg,
         nsats=nsats,
+        sat_set=sat_set,
     )
 
 
@@ -646,6 +690,7 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
         speed_mps=track.speed_mps[kept],
         course_deg=track.course_deg[kept],
         source=track.source,
+        sat_set=None if track.sat_set is None else track.sat_set[kept],
     )
     true_east_m, true_north_m = (
         (true_lon_deg - lon0_deg) * e_per_deg,

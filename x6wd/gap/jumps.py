@@ -11,26 +11,7 @@ import numpy as np
 
 from sim_backend.effects import Jumps, PositionSeries
 from x6wd.gap.fitted import Fit, IdentityCache
-from x6wd.gap.stats import Layout
-
-
-def _steps(series: PositionSeries, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Horizontal steps (n, 2; m) between consecutive valid epochs no more than 1.5 dt_s
-    apart (a step across an outage is drift, not a jump) and the epoch index each ends at."""
-    valid_idx = np.flatnonzero(np.asarray(series.valid, dtype=bool))
-    if valid_idx.size < 2:
-        return np.zeros((0, 2)), np.zeros(0, dtype=int)
-    t_s = np.asarray(series.t_s, dtype=float)[valid_idx]
-    keep = np.diff(t_s) <= 1.5 * dt_s
-    steps_m = np.stack(
-        [
-            np.diff(np.asarray(series.east_m, dtype=float)[valid_idx]),
-            np.diff(np.asarray(series.north_m)[valid_idx]),
-        ],
-        1,
-    )
-    return steps_m[keep], valid_idx[1:][keep]
-
+from x6wd.gap.stats import STEADY_JUMP_SPREADS, Layout, steady_steps
 
 STEP_VAR_FLOOR_M2 = 1e-6  # (1 mm)^2: smallest per-axis step variance of a mixture component
 
@@ -97,21 +78,37 @@ def scale_mixture(
 JUMP_MIN_WIDTH = 4.0  # a jump step is at least this much wider (variance) than the null's widest
 JUMP_MAX_SHARE = 0.05  # at most one step in 20 is a jump
 # (weights, per-axis variances m^2) of the baseline's step mixture, its own jump share
-StepLaw = tuple[np.ndarray, np.ndarray, float]
+# and the narrowest per-axis variance (m^2) a jump component may have
+StepLaw = tuple[np.ndarray, np.ndarray, float, float]
 _STEP_LAW_CACHE: IdentityCache[StepLaw | None] = IdentityCache(4)
 
 
-def _step_law(baseline: Sequence[PositionSeries], layout: Layout) -> StepLaw | None:
+def _step_law(
+    baseline: Sequence[PositionSeries], layout: Layout, steady: bool = False
+) -> StepLaw | None:
     """The baseline's step law for :func:`fit_jumps`: (weights, per-axis variances) of a
-    two-component scale mixture on the pooled steps, and the jump share the jump fit finds in
-    the runs themselves (its floor). Cached on the identity of the runs."""
+    two-component scale mixture on the pooled steps (only those between epochs with the same
+    satellite count when ``steady``), and the jump share the jump fit finds in the runs
+    themselves (its floor). Cached on the identity of the runs."""
     return _STEP_LAW_CACHE.get(
-        baseline, (round(layout.dt_s, 6),), lambda: _fit_step_law(baseline, layout)
+        baseline,
+        (round(layout.dt_s, 6), steady),
+        lambda: _fit_step_law(baseline, layout, steady),
     )
 
 
-def _fit_step_law(baseline: Sequence[PositionSeries], layout: Layout) -> StepLaw | None:
-    run_r2_m2 = [np.sum(_steps(s, layout.dt_s)[0] ** 2, axis=1) for s in baseline]
+def _step_r2(series: PositionSeries, dt_s: float, steady: bool) -> np.ndarray:
+    """Squared horizontal step lengths (m^2): all steps, or the steady ones."""
+    steps_m, _end, is_steady = steady_steps(series, dt_s)
+    if steady:
+        steps_m = steps_m[is_steady]
+    return np.sum(steps_m * steps_m, axis=1)
+
+
+def _fit_step_law(
+    baseline: Sequence[PositionSeries], layout: Layout, steady: bool
+) -> StepLaw | None:
+    run_r2_m2 = [_step_r2(s, layout.dt_s, steady) for s in baseline]
     pooled = np.concatenate(run_r2_m2) if run_r2_m2 else np.zeros(0)
     if pooled.size < 10:
         return None
@@ -119,6 +116,12 @@ def _fit_step_law(baseline: Sequence[PositionSeries], layout: Layout) -> StepLaw
     var0_m2 = max(float(np.median(pooled)), 1e-10) / (2 * math.log(2.0))
     null_weights, null_vars_m2, _ = scale_mixture(pooled, [var0_m2, 4 * var0_m2])
     jump_var_min_m2 = JUMP_MIN_WIDTH * float(np.max(null_vars_m2))
+    if steady:
+        # Steady steps are light-tailed: a two-part mixture of them leaves a thin tail (steps
+        # of 3-4 robust spreads) that a jump component just above it would take for jumps,
+        # in the runs as much as in the log. A jump is a step the "where" test's count would
+        # see: at least STEADY_JUMP_SPREADS robust spreads.
+        jump_var_min_m2 = max(jump_var_min_m2, STEADY_JUMP_SPREADS**2 * var0_m2)
     baseline_share = float(
         np.mean(
             [
@@ -127,10 +130,11 @@ def _fit_step_law(baseline: Sequence[PositionSeries], layout: Layout) -> StepLaw
                     var_min_m2=jump_var_min_m2,
                 )[0][0]
                 for r2 in run_r2_m2
+                if r2.size
             ]
         )
     )  # fmt: skip
-    return null_weights, null_vars_m2, baseline_share
+    return null_weights, null_vars_m2, baseline_share, jump_var_min_m2
 
 
 def fit_jumps(
@@ -141,20 +145,40 @@ def fit_jumps(
     tailed: their spread changes with the geometry); on top of it a jump component, a step
     between two independent N(0, sigma^2) offsets (per-axis variance v + 2 sigma^2), at least
     JUMP_MIN_WIDTH times wider than the null's widest part. The rate is the jump share per
-    step less the baseline runs' own share under the same fit. The trigger is "sat_change"
-    when the log reports satellite counts and most jumps sit on changes of them, else
-    "poisson"."""
-    steps_m, step_end = _steps(real, layout.dt_s)
+    step less the baseline runs' own share under the same fit. With satellite counts in the
+    log and the runs, the steady steps (same count at both ends) are tried first (trigger
+    "poisson", the rate per second of steady time); otherwise, or when they show no jumps,
+    all steps, and the trigger is "sat_change" when the log reports satellite counts and
+    most jumps sit on changes of them, else "poisson"."""
+    # With satellite counts, jumps are sought among the steady steps (same count at both
+    # ends) against the baseline's steady steps: the simulator's own big steps fall on count
+    # changes (97 % of those over 1 m), so there a moderate jump is one of many, while among
+    # steady steps it stands out (a 1.2 m jump fitted as 1.1-1.3 m where all steps gave
+    # nothing). Jumps on the changes themselves (trigger sat_change) are sought among all
+    # steps when the steady ones show none.
+    if real.nsats is not None and all(s.nsats is not None for s in baseline):
+        steady_fit = _fit_jumps(real, baseline, layout, steady=True)
+        if steady_fit is not None:
+            return steady_fit
+    return _fit_jumps(real, baseline, layout, steady=False)
+
+
+def _fit_jumps(
+    real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout, steady: bool
+) -> Fit | None:
+    steps_m, step_end, is_steady = steady_steps(real, layout.dt_s)
+    if steady:
+        steps_m, step_end = steps_m[is_steady], step_end[is_steady]
     r2_m2 = np.sum(steps_m * steps_m, axis=1)
-    law = _step_law(baseline, layout)
+    law = _step_law(baseline, layout, steady)
     if r2_m2.size < 10 or law is None:
         return None
-    null_weights, null_vars_m2, baseline_share = law
+    null_weights, null_vars_m2, baseline_share, jump_var_min_m2 = law
     widest_m2 = float(np.max(null_vars_m2))
     null_loglik = float(np.sum(_null_log_dens(r2_m2, null_weights, null_vars_m2)))
     (share,), (jump_var_m2,), loglik = scale_mixture(
-        r2_m2, [10 * widest_m2], null=(null_weights, null_vars_m2),
-        var_min_m2=JUMP_MIN_WIDTH * widest_m2,
+        r2_m2, [max(10 * widest_m2, 2.5 * jump_var_min_m2)], null=(null_weights, null_vars_m2),
+        var_min_m2=jump_var_min_m2,
     )  # fmt: skip
     n_jumps = (float(share) - baseline_share) * r2_m2.size
     # Jumps are rare: a step law wider than the baseline's in a large share of the steps is
@@ -166,7 +190,7 @@ def fit_jumps(
     sigma_m = math.sqrt(max(float(jump_var_m2) - ref_var_m2, 1e-12) / 2.0)
     rate_per_s = n_jumps / (r2_m2.size * layout.dt_s)
     trigger = "poisson"
-    if real.nsats is not None:
+    if real.nsats is not None and not steady:
         nsats = np.asarray(real.nsats)
         change = np.zeros(nsats.size, dtype=bool)
         change[1:] = nsats[1:] != nsats[:-1]

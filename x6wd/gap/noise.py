@@ -363,10 +363,16 @@ def innovation_replicates(
     stacked = np.array(shocks)  # (logs, axes, n)
     e = np.moveaxis(stacked[src_log, :, src_t], -1, 0)  # (axes, n_out, n)
     valid = np.array(valid_of)[src_log, src_t]
-    nsats = None
-    if all(log.nsats is not None for log in logs):
-        counts = np.array([np.asarray(log.nsats)[ix] for log, ix in zip(logs, index, strict=True)])
-        nsats = counts[src_log, src_t]
+    # the satellites used travel with the innovations they explain (a set change's step)
+    labels: dict[str, np.ndarray | None] = {}
+    for name in ("nsats", "sat_set"):
+        labels[name] = None
+        if all(getattr(log, name) is not None for log in logs):
+            per_log = np.array(
+                [np.asarray(getattr(log, name))[ix] for log, ix in zip(logs, index, strict=True)]
+            )
+            labels[name] = per_log[src_log, src_t]
+    nsats, sat_set = labels["nsats"], labels["sat_set"]
     missing = ~np.isfinite(e)
     e[missing] = rng.standard_normal(int(missing.sum()))
     if replicate_laws is None:
@@ -383,6 +389,7 @@ def innovation_replicates(
         series = template.with_(
             east_m=paths[0][j], north_m=paths[1][j], up_m=paths[2][j], valid=valid[j],
             nsats=None if nsats is None else nsats[j],
+            sat_set=None if sat_set is None else sat_set[j],
         )  # fmt: skip
         if decimals is not None:
             from sim_backend.effects import Quantization

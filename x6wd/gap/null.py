@@ -12,6 +12,7 @@ replicates themselves measured in units of those per-cell bounds.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -64,6 +65,7 @@ def block_bootstrap(
                 up_m=joined["up_m"],
                 valid=joined["valid"].astype(bool),
                 nsats=None,
+                sat_set=None,
             )
         )
     return out
@@ -83,8 +85,13 @@ class NullModel:
     # the parameter uncertainty and its misfit (:func:`inflation_from`). None: 1.
     inflation: np.ndarray | None = None
     # Per-cell |z| limits (>= threshold: higher for a cell whose own tail is heavier than
-    # the rest's, :func:`tail_dof`). None: ``threshold`` for every cell.
+    # the rest's, :func:`tail_dof`, or whose share of the level is smaller). None:
+    # ``threshold`` for every cell.
     cell_threshold: np.ndarray | None = None
+    # Which cells keep a heavier tail of their own (None: none).
+    tail_apart: np.ndarray | None = None
+    # Each cell's share of the family-wise level (None: equal shares).
+    share: np.ndarray | None = None
 
     def limits(self) -> np.ndarray:
         """The |z| limit of every cell (the "where" test)."""
@@ -95,7 +102,17 @@ class NullModel:
     @property
     def apart(self) -> int:
         """How many cells are tested at a limit of their own (a heavier tail)."""
-        return int(np.sum(self.limits() > self.threshold * (1 + 1e-9)))
+        return 0 if self.tail_apart is None else int(np.sum(self.tail_apart))
+
+    def limit_of(self, primary: bool) -> float:
+        """The lowest |z| limit of the cells with the larger share of the level (``primary``)
+        or of the others (nan when there are none)."""
+        limits = self.limits()
+        if self.share is None:
+            return float(np.min(limits)) if primary else math.nan
+        mask = self.share > float(np.min(self.share)) * (1 + 1e-9)
+        mask = mask if primary else ~mask
+        return float(np.min(limits[mask])) if np.any(mask) else math.nan
 
     @property
     def n_runs(self) -> int:
@@ -111,18 +128,33 @@ class NullModel:
         return (values - self.mean) / sd
 
     def gap(self, battery: dict[Cell, float], ref_sd: np.ndarray | None = None) -> float:
-        """G: mean over the cells of clipped z^2 + 2 log(sd / ref_sd), i.e. twice the Gaussian
-        negative log predictive density up to a constant. The log term is what stops an
-        over-dispersed model (one that widens every spread) from looking like a good fit;
-        with ``ref_sd`` None (the model's own spread) G is the mean z^2, about 1 + 1/M for a
-        draw from the null law."""
+        """G: the mean over the cells (weighted by their ``share`` of the "where" test's
+        level, where the cells have shares) of clipped z^2 + 2 log(sd / ref_sd), i.e. twice
+        the Gaussian negative log predictive density up to a constant. The log term is what
+        stops an over-dispersed model (one that widens every spread) from looking like a
+        good fit; with ``ref_sd`` None (the model's own spread) G is the mean z^2, about
+        1 + 1/M for a draw from the null law. The weights are the test's: a gap found in a
+        primary cell (a jump count) weighs in G as it weighed in finding it, not as one
+        cell in ~75."""
         z = np.clip(self.z(battery), -Z_CLIP, Z_CLIP)
         penalty = 0.0 if ref_sd is None else 2.0 * np.log(self.sd / ref_sd)
-        return float(np.mean(z * z + penalty))
+        return float(np.average(z * z + penalty, weights=gap_weights(self.share)))
 
     def floor(self, ref_sd: np.ndarray | None = None) -> float:
         """G_floor: the mean leave-one-out G of the replicates themselves."""
-        return float(np.mean(loo_gaps(self.values, self.cells, ref_sd)))
+        return float(np.mean(loo_gaps(self.values, self.cells, ref_sd, gap_weights(self.share))))
+
+
+# How much of G's weighting follows the "where" test's shares (the rest is equal over cells).
+GAP_SHARE_MIX = 0.5
+
+
+def gap_weights(share: np.ndarray | None) -> np.ndarray | None:
+    """G's weight per cell: GAP_SHARE_MIX of the test's shares and the rest equal (None:
+    equal weights)."""
+    if share is None:
+        return None
+    return GAP_SHARE_MIX * share + (1.0 - GAP_SHARE_MIX) / share.size
 
 
 def _floors(cells: Sequence[Cell]) -> np.ndarray:
@@ -216,14 +248,20 @@ def null_model(
     batteries: Sequence[dict[Cell, float]],
     alpha: float = 0.05,
     inflation: Inflation | None = None,
+    weights: np.ndarray | None = None,
 ) -> NullModel:
     """Calibrate the battery on M >= 3 replicate batteries; ``alpha`` the family-wise error
     rate of the "where" test; ``inflation`` the spread factors of a parametric null
-    (:func:`inflation_from`; None for replicates that are runs of the simulator).
+    (:func:`inflation_from`; None for replicates that are runs of the simulator);
+    ``weights`` each cell's share of ``alpha`` (in the batteries' cell order; normalised
+    here; None: equal shares).
 
-    Each cell's limit is the Bonferroni-corrected Student-t prediction bound of one more
+    Each cell's limit is the weighted-Bonferroni Student-t prediction bound of one more
     draw against the mean of M (a Gaussian cell: M - 1 degrees of freedom; a cell with a
-    heavier tail of its own, :func:`tail_dof`: fewer). The limits are then raised together,
+    heavier tail of its own, :func:`tail_dof`: fewer): a cell with share w is tested at
+    level alpha w, so the family-wise level stays alpha whatever the shares, and a battery
+    can spend most of it on the few cells most sensitive to each kind of gap instead of
+    spreading it evenly over dozens of descriptive ones. The limits are then raised together,
     if need be, to the 1 - alpha quantile of the replicates' own leave-one-out family-wise
     maximum of |z| / limit: the cells are not exactly Student-t (an hour of the simulator
     can sit 8 spreads off in several cells at once), though with M replicates that
@@ -240,13 +278,17 @@ def null_model(
     mean = values.mean(axis=0)
     spread = np.maximum(values.std(axis=0, ddof=1), _floors(cells))
     # A new draw vs the mean of M: prediction spread sd*sqrt(1+1/M), Student-t with M-1 dof.
-    level = 1.0 - alpha / (2 * n_cells)
+    share = np.full(n_cells, 1.0 / n_cells) if weights is None else cell_shares(weights)
+    level = 1.0 - alpha * share / 2
     widen = math.sqrt(1.0 + 1.0 / n_runs)
-    limits = np.full(n_cells, float(sps.t.ppf(level, n_runs - 1)) * widen)
+    limits = sps.t.ppf(level, n_runs - 1) * widen
+    apart = None
     if n_runs >= 4:
         z_loo = np.array([_loo_z(values, cells, i) for i in range(n_runs)])
         # from the M - 1 replicates of a leave-one-out z to the M the real log is scored on
-        dof = tail_dof(z_loo) * (n_runs - 1) / (n_runs - 2)
+        own_dof = tail_dof(z_loo)
+        apart = own_dof < float(np.max(own_dof))
+        dof = own_dof * (n_runs - 1) / (n_runs - 2)
         limits = sps.t.ppf(level, dof) * widen
         excess = np.max(np.abs(z_loo) / limits, axis=1)
         limits = limits * max(1.0, float(np.quantile(excess, 1.0 - alpha)))
@@ -258,7 +300,17 @@ def null_model(
         float(np.min(limits)),
         _inflation_array(cells, inflation),
         limits,
+        apart,
+        None if weights is None else share,
     )
+
+
+def cell_shares(weights: np.ndarray) -> np.ndarray:
+    """Weights (>= 0, at least one > 0) as shares of a family-wise level (summing to 1)."""
+    w = np.asarray(weights, dtype=float)
+    if w.ndim != 1 or not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
+        raise ConfigError(f"cell weights must be finite, >= 0 and not all 0: {w!r}")
+    return w / float(w.sum())
 
 
 def _loo_z(values: np.ndarray, cells: Sequence[Cell], i: int) -> np.ndarray:
@@ -268,9 +320,13 @@ def _loo_z(values: np.ndarray, cells: Sequence[Cell], i: int) -> np.ndarray:
 
 
 def loo_gaps(
-    values: np.ndarray, cells: Sequence[Cell], ref_sd: np.ndarray | None = None
+    values: np.ndarray,
+    cells: Sequence[Cell],
+    ref_sd: np.ndarray | None = None,
+    share: np.ndarray | None = None,
 ) -> np.ndarray:
-    """G of each replicate scored against the others (see :meth:`NullModel.gap`)."""
+    """G of each replicate scored against the others (see :meth:`NullModel.gap`; ``share``
+    the cells' weights, None: equal)."""
     out = []
     floors = _floors(cells)
     for i in range(values.shape[0]):
@@ -279,7 +335,7 @@ def loo_gaps(
         if ref_sd is not None:
             spread = np.maximum(np.delete(values, i, axis=0).std(axis=0, ddof=1), floors)
             penalty = 2.0 * np.log(spread / ref_sd)
-        out.append(float(np.mean(z * z + penalty)))
+        out.append(float(np.average(z * z + penalty, weights=share)))
     return np.array(out)
 
 
@@ -302,15 +358,7 @@ def resample_null(model: NullModel, rng: np.random.Generator) -> NullModel:
         values.std(axis=0, ddof=1) * math.sqrt(model.n_runs / (model.n_runs - 1)),
         _floors(model.cells),
     )
-    return NullModel(
-        model.cells,
-        values,
-        values.mean(axis=0),
-        spread,
-        model.threshold,
-        model.inflation,
-        model.cell_threshold,
-    )
+    return dataclasses.replace(model, values=values, mean=values.mean(axis=0), sd=spread)
 
 
 def closure_ci(

@@ -362,7 +362,12 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
 
     def null(self, batteries: Sequence[Battery]) -> NullModel:
         """The null of replicate ``batteries`` (with the few-logs spread factors, if any)."""
-        return null_model(batteries, self.level(), self.inflation)
+        cells = tuple(batteries[0]) if batteries else ()
+        return null_model(batteries, self.level(), self.inflation, self.cell_weights(cells))
+
+    def cell_weights(self, cells: Sequence[Cell]) -> np.ndarray | None:
+        """Each cell's share of the "where" test's level (default None: equal shares)."""
+        return None
 
     def level(self) -> float:
         """The family-wise level of the "where" test: ``few_logs_alpha`` when the null is

@@ -22,6 +22,7 @@ from x6wd.gap.compass import (
 )
 from x6wd.gap.diagnose import Diagnosis, report_dict, verdict_text
 from x6wd.gap.level import Calibration
+from x6wd.gap.null import NullModel
 from x6wd.gap.stats import acf, allan_var, octave_taus, regular
 from x6wd.gap.validate import Validation, direction_text, own_mean
 
@@ -272,7 +273,7 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
         f"- log: {layout.duration_s:.0f} s at {layout.dt_s:g} s steps, {motion}, "
         f"fix availability {np.mean(diagnosis.real.valid):.1%}",
         f"- baseline: {len(diagnosis.baseline)} runs{boot}; {len(diagnosis.cells)} statistics; "
-        f"family-wise threshold |z| > {diagnosis.threshold:.2f} "
+        f"family-wise limits |z| > {_limits_text(diagnosis.null)} "
         f"(alpha {100 * diagnosis.alpha:g} %"
         + (
             f"; {diagnosis.null.apart} heavy-tailed statistic(s) at limits of their own)"
@@ -367,6 +368,15 @@ def _params_text(fit: Any) -> str:
         f"{key}={value:.4g}" if isinstance(value, float) else f"{key}={value}"
         for key, value in fit.params.items()
     )
+
+
+def _limits_text(null: NullModel) -> str:
+    """The "where" test's limits: the primary cells' and the others' (or the one limit)."""
+    primary, other = null.limit_of(True), null.limit_of(False)
+    if math.isnan(other) or null.share is None:
+        return f"{primary:.2f}"
+    n_primary = int(np.sum(null.share > float(np.min(null.share)) * (1 + 1e-9)))
+    return f"{primary:.2f} on the {n_primary} primary statistics, {other:.2f} on the others"
 
 
 def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -> list[str]:
