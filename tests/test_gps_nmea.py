@@ -182,12 +182,14 @@ def _framing_cases() -> bytes:
 
 @pytest.mark.parametrize("seed", range(3))
 def test_fast_framing_path_matches_general_path(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
-    # The framer takes runs of well-formed lines through _RUN and everything else through
-    # _SCAN; both must frame, count and decode alike. A _RUN that never matches a line or
-    # a tail sends every byte through _SCAN.
+    # The framer takes runs of well-formed lines through _RUN_B (or _RUN, its second pass)
+    # and everything else through _SCAN; both must frame, count and decode alike. Runs
+    # that never match a line or a tail send every byte through _SCAN.
     data = _framing_cases()
     fast = _decode_in_chunks(data, seed)
-    monkeypatch.setattr(gps_nmea, "_RUN", re.compile(rb"()((?!))?"))
+    never = re.compile(rb"()((?!))?")
+    monkeypatch.setattr(gps_nmea, "_RUN", never)
+    monkeypatch.setattr(gps_nmea, "_RUN_B", never)
     assert _decode_in_chunks(data, seed) == fast
     assert fast[1]["sentences"] > 100 and fast[1]["checksum_failures"] >= 1
 
