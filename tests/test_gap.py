@@ -664,3 +664,42 @@ def test_inflation_is_one_for_null_draws_and_the_excess_spread_otherwise() -> No
     z[:, :30] *= 2.0
     wide = inflation_from(cells, z, 3)
     assert 1.6 < wide[("log_adev", "east")] < 2.5
+
+
+def test_without_a_truth_the_scenario_runs_are_taken_against_their_own_mean(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The real log's errors are against its own mean when no truth is given; the scenario's
+    # runs (errors against the point they simulate) must be too, or CEP50, R95 and the means
+    # read the runs' hour offsets as a gap. The diagnosis is observed, not replaced.
+    from x6wd.gap import cli as gap_cli
+    from x6wd.gap.io import against_own_mean
+    from x6wd.gap.stats import lattice_fraction
+
+    run = surrogate_run(600.0, 1.0, np.random.default_rng(3), effects=[*PRE, Quantization(5)])
+    own = against_own_mean(run)
+    valid = np.asarray(own.valid)
+    assert abs(float(np.mean(np.asarray(run.east_m)[valid]))) > 0.01
+    for axis in (own.east_m, own.north_m, own.up_m):
+        assert abs(float(np.mean(np.asarray(axis)[valid]))) < 1e-9
+    assert lattice_fraction(own, 5) == lattice_fraction(run, 5) == 1.0  # positions kept
+
+    scenario = _scenario(tmp_path)
+    sim_out = tmp_path / "sim"
+    x6wd_main(["sim", str(scenario), "--duration", "300", "--seed", "4", "--out", str(sim_out),
+               "--quiet"])  # fmt: skip
+    seen: list = []
+    real_diagnose = gap_cli.diagnose
+
+    def observe(real: PositionSeries, baseline: list, *args: object, **kw: object) -> object:
+        seen.append(baseline)
+        return real_diagnose(real, baseline, *args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(gap_cli, "diagnose", observe)
+    argv = ["gap", "--real", str(sim_out / "gps.nmea"), "--scenario", str(scenario), "--seeds",
+            "3", "--out", str(tmp_path / "rep"), "--quiet", "--no-figures"]  # fmt: skip
+    assert x6wd_main(argv) == 0
+    for s in seen[0]:
+        v = np.asarray(s.valid)
+        assert abs(float(np.mean(np.asarray(s.east_m)[v]))) < 1e-6
+        assert abs(float(np.mean(np.asarray(s.north_m)[v]))) < 1e-6

@@ -18,6 +18,7 @@ from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
 from x6wd.gap.diagnose import Diagnosis, Options, diagnose, verdict_text
 from x6wd.gap.io import (
     Track,
+    against_own_mean,
     errors_vs_mean,
     errors_vs_point,
     errors_vs_track,
@@ -127,6 +128,10 @@ def main(args: argparse.Namespace) -> int:
                 progress=lambda i: bar(f"simulating seed {i}/{args.seeds}", 0.05 * i / args.seeds),
                 executor=executor,
             )
+        if not args.truth and truth_track is None:
+            # the real log's errors are against its own mean: the runs' must be too, or
+            # every level cell (CEP50, R95, the means) reads the runs' hour offsets as a gap
+            baseline = [against_own_mean(s) for s in baseline]
     else:
         baseline = [to_errors(read_track(p), args, truth_track) for p in args.sim]
     rng = np.random.default_rng(args.seed)

@@ -722,6 +722,26 @@ def errors_vs_mean(track: Track) -> PositionSeries:
     )
 
 
+def against_own_mean(series: PositionSeries) -> PositionSeries:
+    """An error series (m) taken against its own mean instead of its truth, as
+    :func:`errors_vs_mean` takes a log without a truth: each axis less its mean over the
+    valid epochs, the origin moved by the horizontal means so that the positions themselves
+    (and the NMEA lattice they lie on) stay where they were."""
+    valid = np.asarray(series.valid, dtype=bool)
+    if not np.any(valid):
+        return series
+    means = [float(np.mean(np.asarray(a, dtype=float)[valid])) for a in
+             (series.east_m, series.north_m, series.up_m)]  # fmt: skip
+    e_per_deg, n_per_deg = metres_per_degree(series.origin_lat_deg)
+    return series.with_(
+        east_m=np.where(valid, np.asarray(series.east_m, dtype=float) - means[0], 0.0),
+        north_m=np.where(valid, np.asarray(series.north_m, dtype=float) - means[1], 0.0),
+        up_m=np.where(valid, np.asarray(series.up_m, dtype=float) - means[2], 0.0),
+        origin_lat_deg=series.origin_lat_deg + means[1] / n_per_deg,
+        origin_lon_deg=series.origin_lon_deg + means[0] / e_per_deg,
+    )
+
+
 def write_csv(path: str | Path, track: Track) -> None:
     """Write a Track as CSV ``time,lat,lon,alt,valid,nsats`` (readable by :func:`read_track`)."""
     with open(path, "w", newline="") as file:
