@@ -374,12 +374,12 @@ class NmeaFormatter:
         known = (np.cumsum(valid | has_snr) > 0) | self.time_known
         hms, dmy = self._time_blocks(batch.start_utc, np.asarray(batch.t_s, dtype=float))
         gsv, n_msg = self._gsv_blocks(batch, prns, in_view, n_view)
-        slots: list[tuple[_Rows, int, np.ndarray]] = []  # (rows, slot, sentence block)
+        slots: list[tuple[_Rows, int, np.ndarray]] = []  # (rows, slot, bodies)
         fix, n_fix = _rows(valid & ~slow)
         nofix, r = _rows(~valid & ~slow)
         if n_fix:
             bodies = self._fix_blocks(batch, fix, n_fix, hms, dmy, prns, used)
-            slots += [(fix, k, _sentence_block(b)) for k, b in zip(_FIX_SLOTS, bodies, strict=True)]
+            slots += [(fix, k, b) for k, b in zip(_FIX_SLOTS, bodies, strict=True)]
         if r:
             unknown = ~known[nofix]
             hms_v, dmy_v = hms[nofix].copy(), dmy[nofix].copy()
@@ -392,11 +392,11 @@ class NmeaFormatter:
                 filled(self._gsa_v, [], r),
                 filled(self._gll_v, [hms_v], r),
             ]
-            slots += [
-                (nofix, k, _sentence_block(b)) for k, b in zip(_FIX_SLOTS, bodies, strict=True)
-            ]
-        fast, _n = _rows(~slow)
-        gsv_blocks = [_sentence_block(b[fast]) for b in gsv]
+            slots += [(nofix, k, b) for k, b in zip(_FIX_SLOTS, bodies, strict=True)]
+        for j, body in enumerate(gsv):
+            rows, n_rows = _rows(~slow & (n_msg > j))
+            if n_rows:
+                slots.append((rows, _GSV0 + j, body[rows]))
         # the general path's epochs, in order, with the time state they would have seen
         slow_lines: list[tuple[int, list[bytes]]] = []
         for i in np.flatnonzero(slow).tolist():
@@ -404,19 +404,17 @@ class NmeaFormatter:
             slow_lines.append((i, [sentence(b) for b in self.epoch_bodies(batch.epoch(i))]))
         self.time_known = bool(known[-1])
         width = max(
-            [blk.shape[1] for _, _, blk in slots]
-            + [blk.shape[1] for blk in gsv_blocks]
+            [body.shape[1] + _FRAME_BYTES for _, _, body in slots]
             + [len(line) for _, lines in slow_lines for line in lines]
         )
         cells = np.zeros((n_e, _SLOTS, width), dtype=np.uint8)
-        for rows, k, blk in slots:
-            cells[rows, k, : blk.shape[1]] = blk
-        for j, blk in enumerate(gsv_blocks):
-            here = n_msg[fast] > j
-            if here.all():
-                cells[fast, _GSV0 + j, : blk.shape[1]] = blk
-            else:
-                cells[np.arange(n_e)[fast][here], _GSV0 + j, : blk.shape[1]] = blk[here]
+        for rows, k, body in slots:
+            # "$", the body, "*HH" and CR LF, straight into the cells
+            w = body.shape[1]
+            checksums = np.bitwise_xor.reduce(body, axis=1) if w else 0
+            cells[rows, k, 0] = ord("$")
+            cells[rows, k, 1 : 1 + w] = body
+            cells[rows, k, 1 + w : w + _FRAME_BYTES] = _TRAILER_BLOCK[checksums]
         for i, lines in slow_lines:
             for k, line in _slotted(lines):
                 cells[i, k, : len(line)] = np.frombuffer(line, dtype=np.uint8)
@@ -592,6 +590,7 @@ _D1_BLOCK = text_block([str(i) for i in range(10)])
 _D2_BLOCK = text_block(_D2)
 _D3_BLOCK = text_block(_D3)
 _TRAILER_BLOCK = text_block([t.decode("ascii") for t in TRAILERS])  # "*HH\r\n" by checksum
+_FRAME_BYTES = 6  # "$" before a body, "*HH" and CR LF after it
 _SNR_BLOCK = text_block(_SNR_OR_EMPTY)  # index 100: no SNR
 # "EE,AAA" for elevation * 360 + azimuth, and ",," with the numbers left out (no position)
 _ELAZ_EMPTY = 91 * 360
@@ -623,13 +622,6 @@ def _dop_block(values: np.ndarray) -> np.ndarray:
     if rows.size:
         out = put_texts(out, rows, [_NO_DOP.encode("ascii")] * rows.size)
     return out
-
-
-def _sentence_block(bodies: np.ndarray) -> np.ndarray:
-    """Complete sentences (``$``, body, ``*HH`` and CR LF) of a block of bodies."""
-    rows = bodies.shape[0]
-    checksums = np.bitwise_xor.reduce(bodies, axis=1) if bodies.shape[1] else np.zeros(rows, int)
-    return joined((const_block("$", rows), bodies, _TRAILER_BLOCK[checksums]))
 
 
 def _slotted(lines: Sequence[bytes]) -> list[tuple[int, bytes]]:

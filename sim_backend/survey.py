@@ -310,8 +310,8 @@ class _RecordLines:
         body = cells.cells.reshape(-1, cells.cells.shape[2])[flat]
         n = flat.size
         block = joined(
-            (const_block('{"t_mono":', n), _repr_block(times), const_block(',"t_utc":"', n),
-             self._utc_block(times), const_block('Z","type":"nmea","data":{"text":"', n),
+            (const_block('{"t_mono":', n), *_repr_pieces(times), const_block(',"t_utc":"', n),
+             *self._utc_pieces(times), const_block('Z","type":"nmea","data":{"text":"', n),
              body, const_block('"}}' + chr(_EOL), n))
         )  # fmt: skip
         return compact(block, _LINE_ENDS, b"\0\r\n"), int(lengths[flat].sum())
@@ -319,13 +319,17 @@ class _RecordLines:
     def _utc_block(self, t_s: np.ndarray) -> np.ndarray:
         """The ISO UTC times (``YYYY-MM-DDThh:mm:ss.ffffff``) of ``t_s`` (s) after the start,
         as :meth:`_utc_parts` gives them, in a block."""
+        return joined(self._utc_pieces(t_s))
+
+    def _utc_pieces(self, t_s: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`_utc_block`'s blocks, to be put side by side."""
         total = int(self.start_us.astype(np.int64)) + np.rint(t_s * 1e6).astype(np.int64)
         day, of_day = np.divmod(total, 86_400_000_000)
         sec, micro = np.divmod(of_day, 1_000_000)
         ms, us = np.divmod(micro, 1000)
         dates = day_texts(day, lambda d: str(np.datetime64(d, "D")) + "T")
         d3 = _D3_BLOCK
-        return joined((dates, _hms_block()[sec], const_block(".", t_s.shape[0]), d3[ms], d3[us]))
+        return (dates, _hms_block()[sec], const_block(".", t_s.shape[0]), d3[ms], d3[us])
 
 
 @functools.cache
@@ -347,7 +351,12 @@ _LINE_ENDS = bytes(range(256)).replace(bytes([_EOL]), b"\n")
 
 
 def _repr_block(values: np.ndarray) -> np.ndarray:
-    """``repr`` of every float (the recorder's JSON for a float), as a block.
+    """``repr`` of every float (the recorder's JSON for a float), as a block."""
+    return joined(_repr_pieces(values))
+
+
+def _repr_pieces(values: np.ndarray) -> tuple[np.ndarray, ...]:
+    """:func:`_repr_block`'s blocks, to be put side by side.
 
     ``repr(v)`` is the shortest decimal that reads back as ``v``. For ``1 <= v < 2**52`` with
     ``v = i + f`` (``i`` whole) the decimals that read back as ``v`` are ``i`` plus those that
@@ -377,9 +386,14 @@ def _repr_block(values: np.ndarray) -> np.ndarray:
     table = text_block(digits)
     cached &= table[inverse.reshape(-1), 0] != 0
     n = v.shape[0]
-    ints = uint_block(np.where(cached, whole, 0.0).astype(np.int64))
-    block = joined((ints, const_block(".", n), table[inverse.reshape(-1)]))
+    # the integer parts: digits once per whole second of the chunk
+    ints = np.where(cached, whole, 0.0).astype(np.int64)
+    lo, hi = (int(ints.min()), int(ints.max())) if n else (0, n)
+    few = hi - lo < n  # (a chunk's arrivals span its hour)
+    int_text = uint_block(np.arange(lo, hi + 1))[ints - lo] if few else uint_block(ints)
+    pieces = (int_text, const_block(".", n), table[inverse.reshape(-1)])
     rest = np.flatnonzero(~cached)
-    if rest.size:
-        block = put_texts(block, rest, [repr(x).encode("ascii") for x in v[rest].tolist()])
-    return block
+    if not rest.size:
+        return pieces
+    block = put_texts(joined(pieces), rest, [repr(x).encode("ascii") for x in v[rest].tolist()])
+    return (block,)
