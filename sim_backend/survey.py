@@ -128,7 +128,7 @@ def run_survey(
             lat_parts.append(_as_printed(np.asarray(b.lat_deg)[valid], decimals))
             lon_parts.append(_as_printed(np.asarray(b.lon_deg)[valid], decimals))
             # HDOP and satellites used as GGA prints them (2 decimals and capped; 2 digits)
-            hdop_parts.append(np.array(dop_texts(np.asarray(b.hdop)[valid]), dtype=float))
+            hdop_parts.append(_printed_dops(np.asarray(b.hdop)[valid]))
             used_parts.append(np.minimum(np.asarray(b.n_used)[valid], 99))
             if progress is not None:
                 progress(float(t[-1]), plan.total_s)
@@ -182,6 +182,21 @@ def run_survey(
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     plot_survey(out / "track.png", world, (float(antenna[0]), float(antenna[1])), fix_enu, summary)
     return summary
+
+
+def _printed_dops(values: np.ndarray) -> np.ndarray:
+    """DOPs as numbers read back from their GGA text (:func:`dop_texts`): the capped ones
+    99.99, the others ``rint(100 v) / 100``, which is the double nearest the two-decimal
+    text wherever ``100 v`` is not within 1e-6 of a rounding half (there: the text read)."""
+    v = np.asarray(values, dtype=float)
+    with np.errstate(invalid="ignore"):
+        capped = ~(np.isfinite(v) & (v <= 99.99))
+        x = np.where(capped | ~(v > 0.0), 0.0, v) * 100.0
+        near = np.abs(x - np.floor(x) - 0.5) <= 1e-6
+    out = np.where(capped, 99.99, np.rint(x) / 100.0)
+    if near.any():
+        out[near] = np.array(dop_texts(v[near]), dtype=float)
+    return out
 
 
 def _as_printed(value_deg: np.ndarray, minute_decimals: int) -> np.ndarray:

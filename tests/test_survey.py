@@ -349,3 +349,17 @@ def test_float_reprs_in_a_block_are_pythons() -> None:
     )  # fmt: skip
     got = [row.tobytes().replace(b"\0", b"").decode() for row in _repr_block(values)]
     assert got == [repr(v) for v in values.tolist()]
+
+
+def test_the_summarys_dops_are_the_gga_texts_read_back() -> None:
+    """The mean HDOP's values as numbers equal the GGA texts read back, edges included."""
+    from sim_backend.nmea_out import dop_texts
+    from sim_backend.survey import _printed_dops
+
+    rng = np.random.default_rng(0)
+    edges = [math.nan, math.inf, -math.inf, -0.0, 0.0, -1.0, 0.005, 0.015, 99.99, 99.990001]
+    values = np.concatenate(
+        (edges, [1e-300, 1.125, 2.675, 0.125], rng.uniform(-5, 120, 20000),
+         rng.integers(0, 10000, 5000) / 100 + 0.005)
+    )  # fmt: skip
+    assert np.array_equal(_printed_dops(values), np.array(dop_texts(values), dtype=float))
