@@ -24,11 +24,11 @@ records, nothing recorded): what no simulator change can take the robot engine p
 ``--quick``: 1 h open field (with and without buildings) and a 10 min mission.
 Run: ``python -m bench.bench_sim_cli [--quick]``.
 
-Last measured 2026-12-01 (three full runs on 594e6a4; docs/simulator.md, "Speed"): receiver
-engine, open field 10 h 16,500x (14,600-17,600x; 0.50-0.71 of the physics anchor, which read
-23,400-33,800x), ten buildings 12,500x (12,300-14,200x), 113-122 MB; robot engine 351-381x
-and 339-435x, 123-124 MB; mission 69-84x, 107 MB. The session-start code (ad4fa7e), run twice
-in the same session: open field 10,500x and 13,000x (0.34 and 0.37 of its anchors). The
+Last measured 2026-12-01 (three full runs on b4d393b; docs/simulator.md, "Speed"): receiver
+engine, open field 10 h 18,200x (14,970-19,200x; 0.58-0.65 of the physics anchor, which read
+26,000-32,200x), ten buildings 13,800x (12,200-14,400x), 113-114 MB; robot engine 331-409x
+and 330-363x, 124 MB; mission 69-78x, 107 MB. The session-start code (ad4fa7e), run twice in
+the same session: open field 10,500x and 13,000x (0.34 and 0.37 of its anchors). The
 children inherit the environment: with ``PYTHONDONTWRITEBYTECODE=1``, as in that session,
 every run compiles the project's modules (0.1-0.17 s of a 10 h survey's ~2 s).
 """
