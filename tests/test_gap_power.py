@@ -168,3 +168,36 @@ def test_satellite_sets_from_the_nmea_gsa_are_the_model_s(tmp_path) -> None:
     assert np.count_nonzero(~same_set & same_count) > 0  # swaps: a set change, the same count
     # steady means the same set (and count): a swap is not steady
     assert np.array_equal(steady_steps(real, 1.0)[2], same_set & same_count)
+
+
+def _jumps_early(seed: int, until_s: float, sigma_m: float = 1.5, rate_per_s: float = 0.008):
+    """A set-change log whose offset is redrawn at Poisson events before ``until_s`` only, and
+    back to none after it: the gap lives in the log's first part."""
+    rng = np.random.default_rng(seed + 1000)
+    real = _log(seed)
+    t_s = np.asarray(real.t_s)
+    offset = np.zeros((2, t_s.size))
+    events = np.cumsum(rng.exponential(1 / rate_per_s, 200))
+    events = events[events < until_s]
+    for start_s, stop_s in zip(events, [*events[1:], until_s], strict=True):
+        inside = (t_s >= start_s) & (t_s < stop_s)
+        offset[:, inside] = rng.normal(0.0, sigma_m, (2, 1))
+    return real.with_(
+        east_m=np.asarray(real.east_m) + offset[0], north_m=np.asarray(real.north_m) + offset[1]
+    )
+
+
+def test_a_gap_only_in_the_first_part_is_held_out_there(
+    set_change_baseline: list[PositionSeries],
+) -> None:
+    # Jumps before 55 % of the hour only: the forward held-out part (the last 35 %) shows
+    # no gap, so it could tell no effect from none (every closure 0). The reversed split
+    # holds out the first 35 % (jumps) and fits on the last 60 % (jumps from 40 to 55 %).
+    from x6wd.gap.diagnose import Options, diagnose, verdict_text
+
+    runs = set_change_baseline + [_log(600 + i) for i in range(2)]
+    real = _jumps_early(71, until_s=0.55 * HOUR_S)
+    d = diagnose(real, runs, np.random.default_rng(0), Options())
+    (fit0_s, _fit1_s), (test0_s, _test1_s) = d.split_s
+    assert test0_s == 0.0 and fit0_s > 0.0  # the start is held out
+    assert d.explained and d.selected[0].name == "jumps", verdict_text(d)

@@ -496,7 +496,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
             for companion_name in companions:
                 companion = FITTERS[companion_name](
                     split.real_fit,
-                    [window(s, 0.0, split.t_fit_s) for s in with_runs],
+                    [window(s, *split.fit_s) for s in with_runs],
                     split.fit_layout,
                 )
                 if companion is not None:
@@ -511,7 +511,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
             and "bias" in this_round.names
         ):  # fmt: skip
             companion = FITTERS["bias"](
-                split.real_fit, [window(s, 0.0, split.t_fit_s) for s in with_runs], split.fit_layout
+                split.real_fit, [window(s, *split.fit_s) for s in with_runs], split.fit_layout
             )
             if companion is not None:
                 key2, g_pair, _null, _runs = self.evaluate([*this_round.selected, fit, companion])
@@ -541,9 +541,10 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
             outcome.notes.append(
                 "parameters (+- standard errors) are fitted on the whole log (exact Kalman "
                 "likelihood for gauss_markov / random_walk on top of a noise model of the "
-                "baseline runs); each closure is that of the fit on the first "
-                f"{options.fit_fraction:.0%} of the log, scored on the held-out last "
-                f"{1 - options.fit_fraction - options.guard_fraction:.0%} after a guard gap"
+                "baseline runs); each closure is that of the fit on the "
+                f"{'last' if self.split.reversed else 'first'} {options.fit_fraction:.0%} of "
+                f"the log, scored on the held-out {'first' if self.split.reversed else 'last'} "
+                f"{1 - options.fit_fraction - options.guard_fraction:.0%} beyond a guard gap"
             )
         if selected != whole:
             outcome.notes.append(

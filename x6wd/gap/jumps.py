@@ -122,8 +122,10 @@ def _fit_step_law(
         # in the runs as much as in the log. A jump is a step the "where" test's count would
         # see: at least STEADY_JUMP_SPREADS robust spreads.
         jump_var_min_m2 = max(jump_var_min_m2, STEADY_JUMP_SPREADS**2 * var0_m2)
+    # the median run's share: one run whose fit lands on a wide part of its own (an outlier
+    # episode; 15 % of one replicate's steady steps) must not set the floor of every log
     baseline_share = float(
-        np.mean(
+        np.median(
             [
                 scale_mixture(
                     r2, [2.5 * jump_var_min_m2], null=(null_weights, null_vars_m2),

@@ -156,7 +156,8 @@ class Outcome(Generic[SeriesT, LayoutT]):
     candidates: list[Candidate]
     selected: list[Fit]
     closure: float
-    split_s: tuple[float, float, float]
+    # the fit part and the held-out test part, each [start, end) s from the log's start
+    split_s: tuple[tuple[float, float], tuple[float, float]]
     # 5-95 % interval of the selection's held-out closure over resamples of the ensembles
     closure_ci: tuple[float, float] = (0.0, 0.0)
     notes: list[str] = field(default_factory=list)
@@ -217,16 +218,18 @@ def where_cells(null: NullModel, z: np.ndarray) -> list[dict[str, Any]]:
 
 @dataclass
 class Split(Generic[SeriesT, LayoutT]):
-    """The fit part (t < ``t_fit_s``), guard gap and held-out test part (``t_test_s`` <= t <
-    ``end_s``; s from the log's start) of one log, and the baseline scored on them:
-    ``baseline_test`` its null on the test part, ``ref_sd_test``/``ref_sd_fit`` the baseline's
-    spreads (the reference of every G), ``g_baseline``/``g_floor`` on the test part. The fit
-    part's references (the real fit part's battery, the baseline runs' fit parts and their
-    spread) are filled in only once there is a gap to explain (:meth:`Pipeline._select`)."""
+    """The fit part ([``fit_s[0]``, ``fit_s[1]``)), guard gap and held-out test part
+    ([``test_s[0]``, ``test_s[1]``); s from the log's start) of one log, and the baseline
+    scored on them: ``baseline_test`` its null on the test part, ``ref_sd_test`` /
+    ``ref_sd_fit`` the baseline's spreads (the reference of every G), ``g_baseline`` /
+    ``g_floor`` on the test part. Forward (the default) the fit part is the start of the log
+    and the test part its end; ``reversed`` the other way round. The fit part's references
+    (the real fit part's battery, the baseline runs' fit parts and their spread) are filled
+    in only once there is a gap to explain (:meth:`Pipeline._select`)."""
 
-    t_fit_s: float
-    t_test_s: float
-    end_s: float
+    fit_s: tuple[float, float]
+    test_s: tuple[float, float]
+    reversed: bool
     fit_layout: LayoutT
     test_layout: LayoutT
     real_fit: SeriesT
@@ -429,11 +432,9 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         short scales of the held-out part (a random walk for a slow Gauss-Markov drift) loses."""
         split = self.split
         with_runs = self.apply_fits(fits, self.runs)
-        test_null = self.null(
-            self.batteries(with_runs, split.test_layout, split.t_test_s, split.end_s)
-        )
+        test_null = self.null(self.batteries(with_runs, split.test_layout, *split.test_s))
         g_test = test_null.gap(split.real_test_battery, split.ref_sd_test)
-        fit_null = self.null(self.batteries(with_runs, split.fit_layout, 0.0, split.t_fit_s))
+        fit_null = self.null(self.batteries(with_runs, split.fit_layout, *split.fit_s))
         key = g_test + fit_null.gap(split.real_fit_battery, split.ref_sd_fit)
         return key, g_test, test_null, with_runs
 
@@ -444,43 +445,63 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         pooled: list[SeriesT] = []
         for _ in range(max(self.fresh_draws, 1)):
             pooled += self.apply_fits(fits, self.runs)
-        test_null = self.null(
-            self.batteries(pooled, split.test_layout, split.t_test_s, split.end_s)
-        )
+        test_null = self.null(self.batteries(pooled, split.test_layout, *split.test_s))
         return test_null.gap(split.real_test_battery, split.ref_sd_test), test_null
 
     def _round_progress(self, rounds: float) -> float:
         start, width = self.progress_span
         return start + width * rounds / self.options.max_effects
 
-    def _split(self, real: SeriesT, layout: LayoutT) -> Split[SeriesT, LayoutT]:
+    def _split(
+        self, real: SeriesT, layout: LayoutT, reverse: bool = False
+    ) -> Split[SeriesT, LayoutT]:
+        """The split of the log: forward, the fit part at its start; ``reverse``, at its end."""
         options = self.options
         duration_s = layout.duration_s
         end_s = duration_s + layout.dt_s  # one step past the last sample: every sample is in
-        t_fit_s = options.fit_fraction * duration_s
-        t_test_s = t_fit_s + options.guard_fraction * duration_s
-        fit_layout = self.part_layout(layout, t_fit_s)
-        test_layout = self.part_layout(layout, duration_s - t_test_s)
-        baseline_test = self.null(self.batteries(self.runs, test_layout, t_test_s, end_s))
-        real_test_battery = self.battery(self.window(real, t_test_s, end_s), test_layout)
+        fit_len_s = options.fit_fraction * duration_s
+        test_from_s = fit_len_s + options.guard_fraction * duration_s
+        if reverse:
+            fit_s, test_s = (duration_s - fit_len_s, end_s), (0.0, duration_s - test_from_s)
+        else:
+            fit_s, test_s = (0.0, fit_len_s), (test_from_s, end_s)
+        fit_layout = self.part_layout(layout, fit_len_s)
+        test_layout = self.part_layout(layout, duration_s - test_from_s)
+        baseline_test = self.null(self.batteries(self.runs, test_layout, *test_s))
+        real_test_battery = self.battery(self.window(real, *test_s), test_layout)
         ref_sd = baseline_test.sd
         return Split(
-            t_fit_s=t_fit_s,
-            t_test_s=t_test_s,
-            end_s=end_s,
+            fit_s=fit_s,
+            test_s=test_s,
+            reversed=reverse,
             fit_layout=fit_layout,
             test_layout=test_layout,
-            real_fit=self.window(real, 0.0, t_fit_s),
+            real_fit=self.window(real, *fit_s),
             real_test_battery=real_test_battery,
             baseline_test=baseline_test,
             g_baseline=baseline_test.gap(real_test_battery, ref_sd),
             g_floor=baseline_test.floor(ref_sd),
         )
 
+    def _held_out_split(self, real: SeriesT, layout: LayoutT) -> Split[SeriesT, LayoutT]:
+        """The forward split, or the reversed one when the forward held-out part shows no gap
+        to speak of (G within ``ADD_MIN_LEFT`` of its floor) and the reversed one shows more:
+        a gap of rare events (a dozen jumps an hour) can miss the last third of the log, and a
+        held-out part without the gap cannot tell any effect from none (every closure 0).
+        Which part is held out is chosen on the baseline's G alone, before anything is fitted,
+        so the effect's fit never sees the part it is scored on."""
+        forward = self._split(real, layout)
+        if forward.g_baseline - forward.g_floor >= ADD_MIN_LEFT:
+            return forward
+        backward = self._split(real, layout, reverse=True)
+        if backward.g_baseline - backward.g_floor > forward.g_baseline - forward.g_floor:
+            return backward
+        return forward
+
     def _fill_fit_part(self) -> None:
         """The fit part's references of :class:`Split` (see there)."""
         split = self.split
-        split.baseline_fit = [self.window(s, 0.0, split.t_fit_s) for s in self.runs]
+        split.baseline_fit = [self.window(s, *split.fit_s) for s in self.runs]
         runs_null = self.null([self.battery(s, split.fit_layout) for s in split.baseline_fit])
         split.ref_sd_fit = runs_null.sd
         split.real_fit_battery = self.battery(split.real_fit, split.fit_layout)
@@ -513,7 +534,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         where = where_cells(null, z)
 
         # 2. split: fit part, guard gap, held-out test part
-        split = self.split = self._split(real, layout)
+        split = self.split = self._held_out_split(real, layout)
         outcome = self.new_outcome(
             layout=layout,
             real=real,
@@ -531,7 +552,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             candidates=[],
             selected=[],
             closure=0.0,
-            split_s=(split.t_fit_s, split.t_test_s, layout.duration_s),
+            split_s=(split.fit_s, split.test_s),
             notes=notes,
         )
         if not where:
@@ -562,7 +583,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         g_current = g_baseline
         scored: dict[str, Candidate] = {}
         for index in range(options.max_effects):
-            current_fit = [self.window(s, 0.0, split.t_fit_s) for s in current]
+            current_fit = [self.window(s, *split.fit_s) for s in current]
             fit_null = self.null([self.battery(s, split.fit_layout) for s in current_fit])
             z_fit = fit_null.z(self.battery(split.real_fit, split.fit_layout))
             names = [n for n in options.candidates if n not in {f.name for f in selected}]

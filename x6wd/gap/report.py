@@ -176,7 +176,7 @@ def compass_markdown(compass: CompassDiagnosis, figures: bool) -> str:
         f"steps); baseline {len(compass.baseline)} runs{boot}; {len(compass.cells)} "
         f"statistics; threshold |z| > {compass.threshold:.2f}; field magnitude "
         f"{'used' if layout.has_field else 'not available'}",
-        f"- gap G on the held-out part (t >= {compass.split_s[1]:.0f} s): baseline "
+        f"- gap G on the held-out part ({split_text(compass.split_s, test_only=True)}): baseline "
         f"{compass.g_baseline:.2f}, floor {compass.g_floor:.2f}, with the selected layers "
         f"{compass.g_with:.2f}; closure {compass.closure:.2f}",
     ]
@@ -264,7 +264,6 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
     layout = diagnosis.layout
     motion = "moving" if layout.moving else "static"
     boot = " (block bootstrap)" if diagnosis.bootstrap else ""
-    t_fit_s, t_test_s, _end_s = diagnosis.split_s
     lines = [
         f"# Sim-to-real gap: {real_name}",
         "",
@@ -280,7 +279,7 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
             if diagnosis.null.apart
             else ")"
         ),
-        f"- fit on t < {t_fit_s:.0f} s, guard gap, held-out test on t >= {t_test_s:.0f} s",
+        f"- {split_text(diagnosis.split_s)}",
         f"- gap G (mean clipped z^2 on the held-out part): baseline "
         f"{diagnosis.g_baseline:.2f}, floor {diagnosis.g_floor:.2f} (sim vs sim), with the "
         f"selected effects {diagnosis.g_with:.2f}; closure {diagnosis.closure:.2f}"
@@ -368,6 +367,20 @@ def _params_text(fit: Any) -> str:
         f"{key}={value:.4g}" if isinstance(value, float) else f"{key}={value}"
         for key, value in fit.params.items()
     )
+
+
+def split_text(
+    split_s: tuple[tuple[float, float], tuple[float, float]], test_only: bool = False
+) -> str:
+    """The fit and held-out parts in words (s from the log's start), e.g. "fit on t < 842 s,
+    guard gap, held-out test on t >= 913 s"; reversed (the test part first) it says why."""
+    (fit0_s, fit1_s), (test0_s, test1_s) = split_s
+    if test0_s > fit0_s:
+        fit, test, why = f"t < {fit1_s:.0f} s", f"t >= {test0_s:.0f} s", ""
+    else:
+        fit, test = f"t >= {fit0_s:.0f} s", f"t < {test1_s:.0f} s"
+        why = " (the log's start is held out: its end showed no gap to close)"
+    return test if test_only else f"fit on {fit}, guard gap, held-out test on {test}{why}"
 
 
 def _limits_text(null: NullModel) -> str:
@@ -591,8 +604,9 @@ def write_figures(diagnosis: Diagnosis, out: Path) -> None:
         if cell["period"] != "all":
             start_s, end_s = (float(edge) for edge in cell["period"][2:-1].split("-"))
             ax.axvspan(start_s, end_s, color="C1", alpha=0.15)
-    ax.axvline(diagnosis.split_s[0], color="k", ls="--", lw=0.8)
-    ax.axvline(diagnosis.split_s[1], color="k", ls="--", lw=0.8)
+    (fit0_s, fit1_s), (test0_s, test1_s) = diagnosis.split_s
+    for edge_s in (fit1_s, test0_s) if test0_s > fit0_s else (test1_s, fit0_s):
+        ax.axvline(edge_s, color="k", ls="--", lw=0.8)
     ax.set(
         xlabel="time (s)",
         ylabel="horizontal error (m)",
