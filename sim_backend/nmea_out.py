@@ -99,6 +99,11 @@ def wire_time_s(data: bytes | int, baud: int = 9600, bits_per_byte: int = 10) ->
     return n * bits_per_byte / baud
 
 
+MINUTE_DECIMALS = (4, 5, 6, 7)
+"""Decimals of NMEA minutes the formatter prints (at 7, 180 degrees in units of the last
+digit is 1.1e11: exact in the int64 and double arithmetic both paths use)."""
+
+
 def _coord(value_deg: float, deg_digits: int, decimals: int, scale: int) -> tuple[str, bool]:
     """``dd(d)mm.mmmmm`` text of |value| and whether it is non-negative."""
     total = round(abs(value_deg) * 60.0 * scale)  # in units of 10**-decimals minutes
@@ -113,7 +118,10 @@ def _coord(value_deg: float, deg_digits: int, decimals: int, scale: int) -> tupl
 class NmeaFormatter:
     """Formats :class:`GnssEpoch` objects into NEO-5 sentence bursts.
 
-    ``minute_decimals`` 5 (NEO-5 firmware 6) or 4 (older u-blox 5 firmware); ``time_decimals``
+    ``minute_decimals`` 5 (NEO-5 firmware 6) or 4 (older u-blox 5 firmware); 6 or 7 for
+    scenarios of other receivers (u-blox M8/F9 print 7 in their high-precision NMEA mode:
+    a lattice of 0.2 mm, where 5 decimals add ~0.5 cm of rounding noise per axis, more than
+    such a receiver's own 1 s noise); ``time_decimals``
     2 (``hhmmss.ss``) or 3; ``rate_hz`` the navigation rate, 1-4 Hz as the NEO-5 allows (it only
     validates here: epoch times come from the model); ``talker`` is fixed at construction.
     The formatter remembers whether the receiver has time yet: the no-fix forms carry time
@@ -128,8 +136,8 @@ class NmeaFormatter:
         rate_hz: float = 1.0,
         talker: str = "GP",
     ) -> None:
-        if minute_decimals not in (4, 5):
-            raise ConfigError(f"minute_decimals must be 4 or 5, got {minute_decimals}")
+        if minute_decimals not in MINUTE_DECIMALS:
+            raise ConfigError(f"minute_decimals must be 4..7, got {minute_decimals}")
         if time_decimals not in (2, 3):
             raise ConfigError(f"time_decimals must be 2 or 3, got {time_decimals}")
         if not (isinstance(rate_hz, (int, float)) and 1.0 <= rate_hz <= 4.0):

@@ -20,7 +20,7 @@ Scenario layout (every key optional unless stated; errors name the dotted key)::
     almanac = "almanac.txt"      # relative to the scenario file; default DEFAULT_ALMANAC
     include = ["effects.toml"]   # merged first; this file's own keys win
     [origin]  lat_deg, lon_deg (required), alt_m
-    [gnss]    fidelity "seed"|"pseudorange", mask_deg, rate_hz 1..4, nmea_decimals 4|5, baud,
+    [gnss]    fidelity "seed"|"pseudorange", mask_deg, rate_hz 1..4, nmea_decimals 4..7, baud,
               seed_uere "modelled"|"re_ase_lce", re_m, ase_m, max_channels,
               lce_cell_m, lce_east0_m, lce_north0_m, lce_outside_m,
               lce_sigma_m = [[...], ...] (row i = north cell i) or lce_csv = "map.csv"
@@ -68,6 +68,7 @@ import numpy as np
 
 from sim_backend.atmosphere import Atmosphere
 from sim_backend.buildings import Hole, Roof, Wall, Walls, Window, building
+from sim_backend.nmea_out import MINUTE_DECIMALS
 from sim_backend.odometry import EncoderParams
 from sim_backend.vehicle import STUCK_MODES, check_stuck
 from x6wd.core.config import (
@@ -105,7 +106,7 @@ class GnssSettings:
     fidelity: str = field(default="pseudorange", metadata={"choices": ("seed", "pseudorange")})
     mask_deg: float = field(default=5.0, metadata=_rng(0.0, 60.0))
     rate_hz: float = field(default=1.0, metadata=_rng(1.0, 4.0))
-    nmea_decimals: int = field(default=5, metadata={"choices": (4, 5)})
+    nmea_decimals: int = field(default=5, metadata={"choices": MINUTE_DECIMALS})
     baud: int = field(default=9600, metadata={"choices": (4800, 9600, 19200, 38400, 57600, 115200)})
     seed_uere: str = field(default="modelled", metadata={"choices": ("modelled", "re_ase_lce")})
     re_m: float = field(default=0.5, metadata=_rng(0.0, 100.0))

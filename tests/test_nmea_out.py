@@ -150,7 +150,7 @@ def test_course_is_empty_at_rest_and_present_when_moving() -> None:
     assert fix.course_deg is None and fix.valid
 
 
-@pytest.mark.parametrize("decimals", [5, 4])
+@pytest.mark.parametrize("decimals", [5, 4, 7])
 def test_round_trip_through_the_real_decoder(decimals: int) -> None:
     rng = np.random.default_rng(7)
     f = NmeaFormatter(minute_decimals=decimals)
@@ -265,6 +265,7 @@ def test_wire_time_of_a_burst() -> None:
     "kwargs,match",
     [
         ({"minute_decimals": 3}, "minute_decimals"),
+        ({"minute_decimals": 8}, "minute_decimals"),
         ({"time_decimals": 1}, "time_decimals"),
         ({"rate_hz": 5.0}, "rate_hz"),
         ({"rate_hz": 0.5}, "rate_hz"),
@@ -336,7 +337,7 @@ def test_bulk_dop_text_is_the_receivers() -> None:
     assert dop_texts(values) == [_dop(v) for v in values]
 
 
-@pytest.mark.parametrize("minute_decimals", [4, 5])
+@pytest.mark.parametrize("minute_decimals", [4, 5, 6, 7])
 def test_batch_text_on_odd_values_equals_per_epoch_formatting(minute_decimals: int) -> None:
     """The batch's text is built by numpy column by column; against the per-epoch path on
     what a robot standing in the open never prints: altitudes below the sea and far above,

@@ -146,6 +146,19 @@ def test_the_seed_level_receiver_with_delay_outages_and_hold_matches(tmp_path: P
     _assert_same_receiver(*_both(world, tmp_path, seed=5, duration_s=120.0))
 
 
+def test_a_high_precision_print_matches(tmp_path: Path) -> None:
+    """7 decimals of minutes (a scenario of a u-blox M8/F9 in high-precision NMEA mode): the
+    robot engine's bytes, and raw figures computed from the printed positions."""
+    world = loads_world(
+        f'include = ["{OPEN_FIELD}"]\nname = "7 decimals"\n[gnss]\nnmea_decimals = 7\n',
+        base_dir=ROOT,
+    )
+    robot, receiver = _both(world, tmp_path, seed=6, duration_s=40.0)
+    _assert_same_receiver(robot, receiver)
+    gga = next(ln for ln in (robot / "gps.nmea").read_text().splitlines() if "GGA," in ln)
+    assert len(gga.split(",")[2].split(".")[1]) == 7
+
+
 @pytest.mark.slow
 def test_chunked_surveys_match_too(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Chunk boundaries (40 epochs here) fall on the same epochs in both engines."""

@@ -168,7 +168,7 @@ def test_minimal_scenario_defaults() -> None:
             r"gnss\.fidelity",
         ),
         (
-            'name = "x"\n[origin]\nlat_deg = 1\nlon_deg = 2\n[gnss]\nnmea_decimals = 6\n',
+            'name = "x"\n[origin]\nlat_deg = 1\nlon_deg = 2\n[gnss]\nnmea_decimals = 8\n',
             r"gnss\.nmea_decimals",
         ),
         (
