@@ -65,18 +65,22 @@ SD_FLOOR: dict[str, float] = {
 
 # The "where" test's primary cells, (statistic, axis) over the whole log: for each kind of
 # gap the statistic that reads it most directly (a bias: the means; a drift at any scale:
-# the spectrum's bands; a walk: its likelihood ratio; jumps: steady steps; fix losses; the
-# fast noise's level; frozen or lattice fixes; the overall error level; latency). They share
+# the spectrum's bands; jumps: steady steps; fix losses; the fast noise's level; frozen or
+# lattice fixes; the overall error level; latency). They share
 # PRIMARY_SHARE of the family-wise level, the descriptive cells (every Allan octave and
 # autocorrelation lag, periods, places, the vertical, tails) the rest: a moderate effect
 # then needs |z| ~3.5-4.2 in its own cell; the descriptive cells' limits are ~4.7-5.7
-# (measured on few-logs nulls; ~4.2 and up for all cells with an even split).
+# (measured on few-logs nulls; ~4.2 and up for all cells with an even split). Not primary:
+# the random walk's likelihood ratio, though it reads a walk most directly. Its null is a
+# point mass at 0 with a tail that a few logs rarely show (the SD is its floor), so a primary
+# limit of ~3.5 put 3 of the 5 false alarms of 135 no-effect hours on it (few-logs path,
+# report set), while no walk of the benchmark's was found by it alone; a walk also moves the
+# spectrum's lowest band, which is primary.
 PRIMARY_CELLS = frozenset(
     {
         ("mean", "east"),
         ("mean", "north"),
         ("log_psd", "horizontal"),
-        ("random_walk_lr", "horizontal"),
         ("steady_jumps", "horizontal"),
         ("availability", "fix"),
         ("log_outage_s", "fix"),
