@@ -248,7 +248,7 @@ def test_cli_with_one_sim_log_uses_bootstrap(tmp_path: Path) -> None:
     rep = json.loads((out / "report.json").read_text())
     assert rep["verdict"]["effect"] == "bias"
     md = (out / "report.md").read_text()
-    assert "made of their innovations" in md and "(alpha 5 %" in md  # the few-logs level
+    assert "made of their innovations" in md and "(alpha 1 %" in md  # the few-logs level
     toml = (out / "effects.toml").read_text()
     assert 'name = "bias"' in toml
     import tomllib

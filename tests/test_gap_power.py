@@ -132,13 +132,17 @@ def test_every_kind_of_gap_has_a_primary_cell() -> None:
     primary = {c.statistic for c in cells if is_primary(c)}
     for statistic in ("mean", "log_psd", "steady_jumps", "availability", "log_step_std"):
         assert statistic in primary
-    # the descriptive cells (octaves, lags, periods, the vertical) are not, nor the walk's
-    # likelihood ratio, whose null a few logs cannot estimate (see PRIMARY_CELLS)
+    # the descriptive cells (octaves, lags, periods, the vertical) are not; the walk's
+    # likelihood ratio only against independent runs (a few logs cannot estimate its null)
     assert not any(
-        is_primary(c)
-        for c in cells
-        if c.statistic in ("log_adev", "acf", "random_walk_lr") or c.axis == "up"
+        is_primary(c) for c in cells if c.statistic in ("log_adev", "acf") or c.axis == "up"
     )
+    walk = Cell("random_walk_lr", "horizontal")  # added to the battery by the pipeline
+    assert is_primary(walk) and not is_primary(walk, few_logs=True)
+    with_walk = [*cells, walk]
+    few = cell_weights(with_walk, few_logs=True)
+    assert math.isclose(float(np.sum(few)), 1.0)
+    assert few[-1] < cell_weights(with_walk)[-1]
     assert not any(is_primary(c) for c in cells if c.period != "all")
     assert math.isclose(float(np.sum(cell_weights(cells))), 1.0)
 
@@ -204,3 +208,16 @@ def test_a_gap_only_in_the_first_part_is_held_out_there(
     (fit0_s, _fit1_s), (test0_s, _test1_s) = d.split_s
     assert test0_s == 0.0 and fit0_s > 0.0  # the start is held out
     assert d.explained and d.selected[0].name == "jumps", verdict_text(d)
+
+
+def test_the_gps_pipeline_weighs_the_walk_cell_by_its_null() -> None:
+    """Against a few logs' replicates (spread factors set) the walk's likelihood ratio gets a
+    descriptive cell's share, against simulator runs a primary one."""
+    from x6wd.gap.diagnose import RW_LR_CELL, GpsPipeline, Options
+
+    cells = [*battery(_log(3), layout_for(_log(3))), RW_LR_CELL]
+    pipe = GpsPipeline(Options(), np.random.default_rng(0))
+    runs = pipe.cell_weights(cells)[-1]
+    pipe.inflation = {("*", "*"): 1.0}
+    assert pipe.cell_weights(cells)[-1] < 0.5 * runs
+    assert pipe.level() == 0.01  # the few-logs level, 1 % as against runs
