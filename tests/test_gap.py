@@ -13,7 +13,7 @@ from sim_backend.effects import Bias, GaussMarkov, PositionSeries, Quantization,
 from tests.conftest import dense_baseline_cov, filter_case
 from x6wd.app.cli import main as x6wd_main
 from x6wd.core.errors import ConfigError, ParseError
-from x6wd.gap.diagnose import Options, diagnose, report_dict
+from x6wd.gap.diagnose import RW_LR_CELL, Options, diagnose, report_dict
 from x6wd.gap.io import errors_vs_track, parse_truth, read_track, series_to_track, write_csv
 from x6wd.gap.null import block_bootstrap, null_model
 from x6wd.gap.stats import Cell, allan_var, battery, layout_for
@@ -131,7 +131,7 @@ def test_simulator_runs_are_scored_out_of_sample() -> None:
     # The real log's random-walk ratio is scored against the noise model of all runs, so
     # each run's must be scored against the model of the OTHER runs: in sample, a model
     # that has seen the run's own slow wander left the cell's null too narrow.
-    from x6wd.gap.diagnose import RW_LR_CELL, GpsPipeline
+    from x6wd.gap.diagnose import GpsPipeline
     from x6wd.gap.drift import random_walk_lr
     from x6wd.gap.noise import fit_noise_model
 
@@ -398,15 +398,17 @@ def test_injected_random_walk_identified(hour_baseline: list) -> None:
     assert any("whole log" in n for n in d.notes)
 
 
-def test_moderate_random_walk_flagged_by_likelihood_ratio_cell(hour_baseline: list) -> None:
+def test_moderate_random_walk_read_by_likelihood_ratio_cell(hour_baseline: list) -> None:
     # A moderate walk (0.03 m/s^0.5) hides under the baseline's 0.8 m / 120 s drift at every
-    # scale the Allan deviations reach; the whole-log likelihood-ratio cell sees it, and a
-    # null hour does not trip it.
+    # scale the Allan deviations reach; the whole-log likelihood-ratio cell reads it (a root
+    # of ~6, beyond the 3.6-4.5 of the heaviest no-effect hours its floor was set on) and it
+    # is named; a null hour does not trip the cell.
     from sim_backend.effects import RandomWalk
 
     d = diagnose(hour_real(RandomWalk(0.03), seed=13), hour_baseline, np.random.default_rng(5))
     rep = report_dict(d)
-    assert any(w["statistic"] == "random_walk_lr" for w in rep["where"])
+    (walk_z,) = [float(z) for c, z in zip(d.cells, d.z, strict=True) if c == RW_LR_CELL]
+    assert walk_z > 5.0
     assert rep["verdict"] == {"effect": "random_walk", "explained": True}
     null = diagnose(hour_real(seed=21), hour_baseline, np.random.default_rng(5))
     assert not any(w["statistic"] == "random_walk_lr" for w in report_dict(null)["where"])

@@ -55,12 +55,15 @@ SD_FLOOR: dict[str, float] = {
     # fewest) 6.8
     "steady_jumps": 0.5,
     # Signed root likelihood ratio (x6wd.gap.drift.random_walk_lr): mostly exactly 0 without a
-    # walk, so a dozen runs can show no spread at all and this floor sets the alarm level. At
-    # 0.7 the family-wise limit (z ~ 4.9 over ~75 cells at 5 %, 12 runs) sits near a root of
-    # 3.4, whose tail under the asymptotic (chi-bar-square) law is ~0.03 %: this cell's share
-    # of a 5 % family-wise budget (at 1 %, z ~ 6: a root of 4.2). Chosen from that budget, not
-    # from the benchmark's cases.
-    "random_walk_lr": 0.7,
+    # walk, so a dozen runs can show no spread at all and this floor sets the alarm level.
+    # The asymptotic (chi-bar-square) law would allow 0.7 (a root of 3.4 has a tail of
+    # ~0.03 %), but the roots are taken on top of a noise model that is not the simulator's
+    # exact law, and its hours are heavier-tailed: 5 of 235 no-effect hours of the report set
+    # (both baseline paths, 2026-12-01/02) had roots of 3.6-4.5, each alone the alarm at a
+    # primary limit (~5-5.5 z at 0.7). At 1.0 a primary limit sits at a root of ~4.2-5.5.
+    # Calibrated on no-effect hours only; a moderate walk under the surrogate's drift (root
+    # ~6) is still flagged by this cell alone (tests/test_gap.py).
+    "random_walk_lr": 1.0,
 }
 
 # The "where" test's primary cells, (statistic, axis) over the whole log: for each kind of
