@@ -3,7 +3,8 @@
 At boot the receiver prints a ``$GPTXT`` banner; then, once per navigation epoch, the burst
 RMC, VTG, GGA, GSA, GSV (1-4 messages, 4 satellites each), GLL. NMEA 2.3: RMC, VTG and GLL
 carry a mode letter (``A`` autonomous, ``N`` not valid). Latitude/longitude as
-``ddmm.mmmmm``/``dddmm.mmmmm`` (5 decimals of minutes; 4 for the older firmware), time as
+``ddmm.mmmmm``/``dddmm.mmmmm`` (5 decimals of minutes; 4 for the older firmware; 6-7 for
+scenarios of receivers with a high-precision print), time as
 ``hhmmss.ss``. Course over ground is EMPTY when the receiver is at rest (course None). Without a
 fix the receiver prints its real no-fix forms: all fields empty until it has time from a
 satellite, then with time (and date) but status ``V`` / quality 0 / DOP 99.99.
