@@ -331,13 +331,9 @@ class _RecordLines:
         )  # fmt: skip
         return compact(block, _LINE_ENDS, b"\0\r\n"), int(lengths[flat].sum())
 
-    def _utc_block(self, t_s: np.ndarray) -> np.ndarray:
-        """The ISO UTC times (``YYYY-MM-DDThh:mm:ss.ffffff``) of ``t_s`` (s) after the start,
-        as :meth:`_utc_parts` gives them, in a block."""
-        return joined(self._utc_pieces(t_s))
-
     def _utc_pieces(self, t_s: np.ndarray) -> tuple[np.ndarray, ...]:
-        """:meth:`_utc_block`'s blocks, to be put side by side."""
+        """The ISO UTC times (``YYYY-MM-DDThh:mm:ss.ffffff``) of ``t_s`` (s) after the start,
+        as blocks to be put side by side (:func:`joined`)."""
         total = int(self.start_us.astype(np.int64)) + np.rint(t_s * 1e6).astype(np.int64)
         day, of_day = np.divmod(total, 86_400_000_000)
         sec, micro = np.divmod(of_day, 1_000_000)
@@ -365,13 +361,9 @@ _EOL = 0x01
 _LINE_ENDS = bytes(range(256)).replace(bytes([_EOL]), b"\n")
 
 
-def _repr_block(values: np.ndarray) -> np.ndarray:
-    """``repr`` of every float (the recorder's JSON for a float), as a block."""
-    return joined(_repr_pieces(values))
-
-
 def _repr_pieces(values: np.ndarray) -> tuple[np.ndarray, ...]:
-    """:func:`_repr_block`'s blocks, to be put side by side.
+    """``repr`` of every float (the recorder's JSON for a float), as blocks to be put side
+    by side (:func:`joined`).
 
     ``repr(v)`` is the shortest decimal that reads back as ``v``. For ``1 <= v < 2**52`` with
     ``v = i + f`` (``i`` whole) the decimals that read back as ``v`` are ``i`` plus those that

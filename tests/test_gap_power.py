@@ -215,9 +215,25 @@ def test_the_gps_pipeline_weighs_the_walk_cell_by_its_null() -> None:
     descriptive cell's share, against simulator runs a primary one."""
     from x6wd.gap.diagnose import RW_LR_CELL, GpsPipeline, Options
 
-    cells = [*battery(_log(3), layout_for(_log(3))), RW_LR_CELL]
+    real = _log(3)
+    cells = [*battery(real, layout_for(real)), RW_LR_CELL]
     pipe = GpsPipeline(Options(), np.random.default_rng(0))
     runs = pipe.cell_weights(cells)[-1]
     pipe.inflation = {("*", "*"): 1.0}
     assert pipe.cell_weights(cells)[-1] < 0.5 * runs
     assert pipe.level() == 0.01  # the few-logs level, 1 % as against runs
+
+
+def test_a_flight_recordings_sky_records_give_the_nmea_s_satellite_sets(tmp_path) -> None:
+    # The robot engine's recording keeps the decoder's sky records: read from them, the set
+    # identity per fix is the one read from the same run's NMEA (its GSA)
+    from x6wd.app.cli import main as x6wd_main
+    from x6wd.gap.io import read_track
+
+    out = tmp_path / "mission"
+    argv = ["sim", "config/scenarios/default.toml", "--seed", "3", "--out", str(out), "--quiet"]
+    assert x6wd_main(argv) == 0
+    from_nmea = read_track(out / "gps.nmea").sat_set
+    from_recording = read_track(out / "recording.jsonl").sat_set
+    assert from_nmea is not None and from_recording is not None
+    assert np.all(from_recording >= 0) and np.array_equal(from_recording, from_nmea)

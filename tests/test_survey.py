@@ -349,7 +349,8 @@ def test_recording_lines_from_cells_are_the_general_writers(tmp_path: Path) -> N
 
 def test_float_reprs_in_a_block_are_pythons() -> None:
     """The recording's ``t_mono`` texts: ``repr`` once per binade and fraction."""
-    from sim_backend.survey import _repr_block
+    from sim_backend.survey import _repr_pieces
+    from sim_backend.textblocks import joined
 
     rng = np.random.default_rng(1)
     values = np.concatenate(
@@ -360,7 +361,7 @@ def test_float_reprs_in_a_block_are_pythons() -> None:
              9.999999999999998, 10.000000000000002, 1.0000000000000002, 0.9999999999999999],
         )
     )  # fmt: skip
-    got = [row.tobytes().replace(b"\0", b"").decode() for row in _repr_block(values)]
+    got = [row.tobytes().replace(b"\0", b"").decode() for row in joined(_repr_pieces(values))]
     assert got == [repr(v) for v in values.tolist()]
 
 

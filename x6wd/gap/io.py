@@ -26,7 +26,7 @@ from __future__ import annotations
 import csv
 import math
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -321,6 +321,19 @@ def _decoded_fixes(
                 skies[utc] = satellite_set_id(used)
 
 
+def _with_sets(
+    rows: list[tuple[float, ...]], utc_s: Sequence[float | None], skies: dict[float, float]
+) -> list[tuple[float, ...]]:
+    """Fix rows with the identity of the satellites used at their UTC (s; None or NaN:
+    undated) appended, -1 where no sky of that time lists them; unchanged when no sky does."""
+    if not skies:
+        return rows
+    return [
+        (*row, -1.0 if utc is None or not math.isfinite(utc) else skies.get(utc, -1.0))
+        for row, utc in zip(rows, utc_s, strict=True)
+    ]
+
+
 def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[str] = ()) -> Track:
     """Decode the NMEA of ``feed()`` (an iterable of (receive time s, bytes), read twice).
 
@@ -367,11 +380,7 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
         else:
             rows.append(_fix_row(fix, t_s))
             fix_utc.append(_utc_s(fix.utc))
-    if skies:
-        rows = [
-            (*row, skies.get(utc, -1.0) if utc is not None else -1.0)
-            for row, utc in zip(rows, fix_utc, strict=True)
-        ]
+    rows = _with_sets(rows, fix_utc, skies)
     notes = list(notes)
     if timeless:
         notes.append(
@@ -411,11 +420,7 @@ def _read_recording(path: Path) -> Track:
                 skies[utc] = satellite_set_id(used)
         elif rec.type == "nmea":
             has_nmea = True
-    if rows and skies:
-        rows = [
-            (*row, skies.get(utc, -1.0) if math.isfinite(utc) else -1.0)
-            for row, utc in zip(rows, utc_s, strict=True)
-        ]
+    rows = _with_sets(rows, utc_s, skies)
     if rows:
         dated = np.isfinite(utc_s)
         if not np.any(dated):

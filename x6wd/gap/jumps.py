@@ -87,9 +87,9 @@ def _step_law(
     baseline: Sequence[PositionSeries], layout: Layout, steady: bool = False
 ) -> StepLaw | None:
     """The baseline's step law for :func:`fit_jumps`: (weights, per-axis variances) of a
-    two-component scale mixture on the pooled steps (only those between epochs with the same
-    satellite count when ``steady``), and the jump share the jump fit finds in the runs
-    themselves (its floor). Cached on the identity of the runs."""
+    two-component scale mixture on the pooled steps (only the steady ones,
+    :func:`~x6wd.gap.stats.steady_steps`, when ``steady``), and the jump share the jump fit
+    finds in the runs themselves (its floor). Cached on the identity of the runs."""
     return _STEP_LAW_CACHE.get(
         baseline,
         (round(layout.dt_s, 6), steady),
@@ -148,12 +148,12 @@ def fit_jumps(
     between two independent N(0, sigma^2) offsets (per-axis variance v + 2 sigma^2), at least
     JUMP_MIN_WIDTH times wider than the null's widest part. The rate is the jump share per
     step less the baseline runs' own share under the same fit. With satellite counts in the
-    log and the runs, the steady steps (same count at both ends) are tried first (trigger
-    "poisson", the rate per second of steady time); otherwise, or when they show no jumps,
-    all steps, and the trigger is "sat_change" when the log reports satellite counts and
-    most jumps sit on changes of them, else "poisson"."""
-    # With satellite counts, jumps are sought among the steady steps (same count at both
-    # ends) against the baseline's steady steps: the simulator's own big steps fall on count
+    log and the runs, the steady steps (the same set, or count, at both ends) are tried
+    first (trigger "poisson", the rate per second of steady time); otherwise, or when they
+    show no jumps, all steps, and the trigger is "sat_change" when the log reports satellite
+    counts and most jumps sit on changes of them, else "poisson"."""
+    # With satellite counts, jumps are sought among the steady steps (the same set, or count,
+    # at both ends) against the baseline's steady steps: the simulator's own big steps fall on count
     # changes (97 % of those over 1 m), so there a moderate jump is one of many, while among
     # steady steps it stands out (a 1.2 m jump fitted as 1.1-1.3 m where all steps gave
     # nothing). Jumps on the changes themselves (trigger sat_change) are sought among all

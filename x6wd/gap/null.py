@@ -104,13 +104,19 @@ class NullModel:
         """How many cells are tested at a limit of their own (a heavier tail)."""
         return 0 if self.tail_apart is None else int(np.sum(self.tail_apart))
 
+    def primary(self) -> np.ndarray | None:
+        """Which cells have the larger share of the level (None: equal shares)."""
+        if self.share is None:
+            return None
+        return self.share > float(np.min(self.share)) * (1 + 1e-9)
+
     def limit_of(self, primary: bool) -> float:
         """The lowest |z| limit of the cells with the larger share of the level (``primary``)
         or of the others (nan when there are none)."""
         limits = self.limits()
-        if self.share is None:
+        mask = self.primary()
+        if mask is None:
             return float(np.min(limits)) if primary else math.nan
-        mask = self.share > float(np.min(self.share)) * (1 + 1e-9)
         mask = mask if primary else ~mask
         return float(np.min(limits[mask])) if np.any(mask) else math.nan
 

@@ -229,7 +229,6 @@ class Split(Generic[SeriesT, LayoutT]):
 
     fit_s: tuple[float, float]
     test_s: tuple[float, float]
-    reversed: bool
     fit_layout: LayoutT
     test_layout: LayoutT
     real_fit: SeriesT
@@ -244,6 +243,11 @@ class Split(Generic[SeriesT, LayoutT]):
     @property
     def ref_sd_test(self) -> np.ndarray:
         return self.baseline_test.sd
+
+    @property
+    def reversed(self) -> bool:
+        """Whether the held-out part is the log's start (the fit part its end)."""
+        return self.test_s[0] < self.fit_s[0]
 
 
 @dataclass
@@ -473,7 +477,6 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         return Split(
             fit_s=fit_s,
             test_s=test_s,
-            reversed=reverse,
             fit_layout=fit_layout,
             test_layout=test_layout,
             real_fit=self.window(real, *fit_s),

@@ -386,9 +386,10 @@ def split_text(
 def _limits_text(null: NullModel) -> str:
     """The "where" test's limits: the primary cells' and the others' (or the one limit)."""
     primary, other = null.limit_of(True), null.limit_of(False)
-    if math.isnan(other) or null.share is None:
+    mask = null.primary()
+    if math.isnan(other) or mask is None:
         return f"{primary:.2f}"
-    n_primary = int(np.sum(null.share > float(np.min(null.share)) * (1 + 1e-9)))
+    n_primary = int(np.sum(mask))
     return f"{primary:.2f} on the {n_primary} primary statistics, {other:.2f} on the others"
 
 

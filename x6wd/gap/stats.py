@@ -61,8 +61,8 @@ SD_FLOOR: dict[str, float] = {
     # exact law, and its hours are heavier-tailed: 5 of 235 no-effect hours of the report set
     # (both baseline paths, 2026-12-01/02) had roots of 3.6-4.5, each alone the alarm at a
     # primary limit (~5-5.5 z at 0.7). At 1.0 a primary limit sits at a root of ~4.2-5.5.
-    # Calibrated on no-effect hours only; a moderate walk under the surrogate's drift (root
-    # ~6) is still flagged by this cell alone (tests/test_gap.py).
+    # Calibrated on no-effect hours only; a moderate walk under the surrogate's drift still
+    # reads a root of ~6 here and is named (tests/test_gap.py).
     "random_walk_lr": 1.0,
 }
 
@@ -96,8 +96,7 @@ PRIMARY_SHARE = 0.75
 # a point mass at 0 with a tail that three logs rarely show (the spread is its floor), so at
 # a primary limit (~3.5) it raised 3 of the 5 false alarms in 135 no-effect hours of the
 # few-logs path (report set) and found no walk of the benchmark's alone; against M >= 8
-# independent runs its tail is seen, and it stays primary (a moderate walk under the
-# surrogate's drift is flagged by it alone, tests/test_gap.py).
+# independent runs its tail is seen, and it stays primary.
 FEW_LOGS_NOT_PRIMARY = frozenset({("random_walk_lr", "horizontal")})
 
 
