@@ -20,7 +20,7 @@ from sim_backend.effects import Bias, GaussMarkov, Latency, PositionSeries, Rand
 from x6wd.gap.fitted import Fit, IdentityCache
 from x6wd.gap.kalman import kalman_terms, latency_regressor, quadratic_peak
 from x6wd.gap.noise import NoiseModel, noise_model
-from x6wd.gap.stats import Layout
+from x6wd.gap.stats import Layout, with_despiked
 
 # Model names: a drift ("gauss_markov", "random_walk" or none) with GLS companions "+bias"
 # (one mean per horizontal axis) and "+latency" (moving logs); the drift alone reads as its
@@ -253,7 +253,11 @@ def random_walk_lr(series: PositionSeries, model: NoiseModel) -> float:
     when there is no walk. It is the most powerful statistic against a random walk, whose
     variance keeps growing with time where the battery's Allan deviations stop (a tenth of
     the log); its null comes from the baseline runs like any other cell, so it needs no
-    asymptotic law. The bias is profiled in both models so a plain offset does not feed it."""
+    asymptotic law. The bias is profiled in both models so a plain offset does not feed it.
+    Read with the series' short spikes taken out (:func:`~x6wd.gap.stats.with_despiked`): an
+    epoch's 30 m geometry spike is no walk, yet alone it set the ratio of a no-effect hour
+    7 spreads off a few logs' null."""
+    series = with_despiked(series)
     effect_var = np.concatenate([RW_LR_Q**2, [0.0]])
     effect_tau_s = np.concatenate([np.full(RW_LR_Q.size, np.inf), [1.0]])
     loglik = kalman_terms(series, model, effect_var, effect_tau_s).loglik(True)
