@@ -413,9 +413,7 @@ def battery(series: PositionSeries, layout: Layout) -> dict[Cell, float]:
     )
 
     # time structure on a regular grid
-    grid_east_m, grid_north_m, grid_up_m = (
-        despiked(y) for y in regular(series, layout.dt_s)
-    )
+    grid_east_m, grid_north_m, grid_up_m = (despiked(y) for y in regular(series, layout.dt_s))
     grid = {"east": grid_east_m, "north": grid_north_m}
     if layout.has_up:
         grid["up"] = grid_up_m
