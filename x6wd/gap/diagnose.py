@@ -360,14 +360,16 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         real: PositionSeries,
         real_battery: Battery,
         out_of_sample: bool = False,
+        few_logs: bool = True,
     ) -> None:
+        # despiked against a few logs' replicates only (random_walk_lr says why)
         model = noise_model(runs, self.layout)
         for i, (bat, run) in enumerate(zip(run_batteries, runs, strict=True)):
             own = model
             if out_of_sample:
                 own = fit_noise_model([r for j, r in enumerate(runs) if j != i], self.layout)
-            bat[RW_LR_CELL] = random_walk_lr(run, own)
-        real_battery[RW_LR_CELL] = random_walk_lr(real, model)
+            bat[RW_LR_CELL] = random_walk_lr(run, own, despike=few_logs)
+        real_battery[RW_LR_CELL] = random_walk_lr(real, model, despike=few_logs)
 
     def bootstrap_note(self, n_logs: int, block_s: float) -> str:
         inflation = self.inflation or {}
@@ -403,9 +405,11 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         # too narrow (the runs' ratios 0-76 in sample, 0-120 out of sample on one hour). The
         # few-logs replicates (20, each drawn with a law of its own) stay in sample: one is a
         # twentieth of the fit, and 20 more fits would cost about 14 s.
+        few_logs = self.inflation is not None
         self._rw_cells(
-            self.runs, run_batteries, real, real_battery, out_of_sample=self.inflation is None
-        )
+            self.runs, run_batteries, real, real_battery, out_of_sample=not few_logs,
+            few_logs=few_logs,
+        )  # fmt: skip
 
     # --- selection policy
 

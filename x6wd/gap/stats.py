@@ -274,17 +274,6 @@ def despiked(y: np.ndarray) -> np.ndarray:
     return np.where(np.abs(y - median) > limit, median, y)
 
 
-def with_despiked(series: PositionSeries) -> PositionSeries:
-    """``series`` with :func:`despiked` applied to each axis over its valid epochs."""
-    valid = np.asarray(series.valid, dtype=bool)
-    out = {}
-    for name in ("east_m", "north_m", "up_m"):
-        y = np.array(getattr(series, name), dtype=float)
-        y[valid] = despiked(y[valid])
-        out[name] = y
-    return series.with_(**out)
-
-
 def _log(x: float) -> float:
     return float(np.log(max(x, 1e-6)))
 
