@@ -151,6 +151,32 @@ def test_simulator_runs_are_scored_out_of_sample() -> None:
     )
 
 
+def test_the_walk_ratio_is_despiked_against_a_few_logs_only() -> None:
+    # A few logs' replicates rarely carry a geometry spike, so there the ratio is read
+    # despiked; simulator runs show its heavy tail themselves, spikes and all, so there it
+    # stays raw (despiked, 9 of 240 no-effect hours were flagged on this cell alone).
+    from x6wd.gap.diagnose import GpsPipeline
+    from x6wd.gap.drift import random_walk_lr
+    from x6wd.gap.noise import noise_model
+
+    logs = [surrogate_run(900.0, 1.0, np.random.default_rng(320 + i)) for i in range(5)]
+    real, runs = logs[0], logs[1:]
+    north = np.array(real.north_m, dtype=float)
+    north[400:402] += 30.0  # two epochs out and back
+    real = real.with_(north_m=north)
+    pipe = GpsPipeline(Options(), np.random.default_rng(0))
+    pipe.layout = layout_for(real)
+    pipe.runs = runs
+    model = noise_model(runs, pipe.layout)
+    raw, despiked = (random_walk_lr(real, model, despike=d) for d in (False, True))
+    assert abs(raw - despiked) > 0.5  # the spike moves the ratio
+    for inflation, want in ((None, raw), ({("*", "*"): 1.0}, despiked)):
+        pipe.inflation = inflation
+        real_bat: dict = {}
+        pipe.add_whole_log_cells(real, real_bat, [{} for _ in runs])
+        assert real_bat[RW_LR_CELL] == pytest.approx(want, abs=1e-6)
+
+
 def test_block_bootstrap_keeps_length_and_time_structure(baseline: list) -> None:
     reps = block_bootstrap(baseline[:1], 5, np.random.default_rng(0), block_s=400.0)
     assert all(len(r) == len(baseline[0]) for r in reps)

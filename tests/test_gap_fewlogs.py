@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bench.bench_gap import OPEN_SKY  # the benchmark's open-sky scenario
 from sim_backend.effects import GaussMarkov, PositionSeries, Quantization
 from x6wd.gap.diagnose import Options, diagnose
 from x6wd.gap.noise import (
@@ -112,18 +113,6 @@ def test_despiked_drops_a_spike_keeps_a_jump_and_the_noise_level() -> None:
     jumped = despiked(north + np.where(np.arange(north.size) >= 1800, 5.0, 0.0))
     shift_m = np.mean(jumped[1800:1900]) - np.mean(despiked(north)[1800:1900])
     assert shift_m == pytest.approx(5.0, abs=0.1)
-
-
-OPEN_SKY = """name = "open sky"
-start_utc = "2020-01-01T12:00:00Z"
-duration_s = 3600.0
-[origin]
-lat_deg = 51.712345
-lon_deg = 19.487654
-alt_m = 100.0
-[gnss]
-fidelity = "pseudorange"
-"""
 
 
 @pytest.mark.slow

@@ -359,14 +359,14 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         run_batteries: Sequence[Battery],
         real: PositionSeries,
         real_battery: Battery,
-        out_of_sample: bool = False,
         few_logs: bool = True,
     ) -> None:
-        # despiked against a few logs' replicates only (random_walk_lr says why)
+        # a few logs' replicates: in sample and despiked; simulator runs: each out of sample
+        # and raw (add_whole_log_cells and random_walk_lr say why)
         model = noise_model(runs, self.layout)
         for i, (bat, run) in enumerate(zip(run_batteries, runs, strict=True)):
             own = model
-            if out_of_sample:
+            if not few_logs:
                 own = fit_noise_model([r for j, r in enumerate(runs) if j != i], self.layout)
             bat[RW_LR_CELL] = random_walk_lr(run, own, despike=few_logs)
         real_battery[RW_LR_CELL] = random_walk_lr(real, model, despike=few_logs)
@@ -405,11 +405,9 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         # too narrow (the runs' ratios 0-76 in sample, 0-120 out of sample on one hour). The
         # few-logs replicates (20, each drawn with a law of its own) stay in sample: one is a
         # twentieth of the fit, and 20 more fits would cost about 14 s.
-        few_logs = self.inflation is not None
         self._rw_cells(
-            self.runs, run_batteries, real, real_battery, out_of_sample=not few_logs,
-            few_logs=few_logs,
-        )  # fmt: skip
+            self.runs, run_batteries, real, real_battery, few_logs=self.inflation is not None
+        )
 
     # --- selection policy
 

@@ -20,7 +20,7 @@ from sim_backend.effects import Bias, GaussMarkov, Latency, PositionSeries, Rand
 from x6wd.gap.fitted import Fit, IdentityCache
 from x6wd.gap.kalman import kalman_terms, latency_regressor, quadratic_peak
 from x6wd.gap.noise import NoiseModel, noise_model
-from x6wd.gap.stats import Layout, despiked
+from x6wd.gap.stats import Layout, with_despiked
 
 # Model names: a drift ("gauss_markov", "random_walk" or none) with GLS companions "+bias"
 # (one mean per horizontal axis) and "+latency" (moving logs); the drift alone reads as its
@@ -261,22 +261,12 @@ def random_walk_lr(series: PositionSeries, model: NoiseModel, despike: bool = Fa
     and all; despiked, most of their ratios fell to 0 while some no-effect hours kept 6-16
     (longer excursions), and 9 of 240 such hours were flagged on this cell alone."""
     if despike:
-        series = series.with_(
-            **{a: _despiked_valid(series, a) for a in ("east_m", "north_m", "up_m")}
-        )
+        series = with_despiked(series)
     effect_var = np.concatenate([RW_LR_Q**2, [0.0]])
     effect_tau_s = np.concatenate([np.full(RW_LR_Q.size, np.inf), [1.0]])
     loglik = kalman_terms(series, model, effect_var, effect_tau_s).loglik(True)
     log_ratio = float(np.max(loglik[:-1]) - loglik[-1])
     return math.sqrt(2.0 * max(log_ratio, 0.0))
-
-
-def _despiked_valid(series: PositionSeries, axis: str) -> np.ndarray:
-    """One axis of ``series`` (m) with :func:`~x6wd.gap.stats.despiked` over its valid epochs."""
-    valid = np.asarray(series.valid, dtype=bool)
-    y = np.array(getattr(series, axis), dtype=float)
-    y[valid] = despiked(y[valid])
-    return y
 
 
 def fit_gauss_markov(

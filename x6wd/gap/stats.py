@@ -274,6 +274,17 @@ def despiked(y: np.ndarray) -> np.ndarray:
     return np.where(np.abs(y - median) > limit, median, y)
 
 
+def with_despiked(series: PositionSeries) -> PositionSeries:
+    """``series`` with :func:`despiked` applied to each axis over its valid epochs."""
+    valid = np.asarray(series.valid, dtype=bool)
+    out = {}
+    for axis in ("east_m", "north_m", "up_m"):
+        y = np.array(getattr(series, axis), dtype=float)
+        y[valid] = despiked(y[valid])
+        out[axis] = y
+    return series.with_(**out)
+
+
 def _log(x: float) -> float:
     return float(np.log(max(x, 1e-6)))
 
