@@ -19,8 +19,9 @@ from x6wd.gap.noise import (
     drawn_laws,
     law_spread,
 )
+from x6wd.gap.null import between_log_dof, null_model
 from x6wd.gap.scenario import scenario_baseline
-from x6wd.gap.stats import despiked, layout_for
+from x6wd.gap.stats import Cell, despiked, layout_for
 from x6wd.gap.surrogate import surrogate_run
 
 
@@ -115,6 +116,16 @@ def test_despiked_drops_a_spike_keeps_a_jump_and_the_noise_level() -> None:
     assert shift_m == pytest.approx(5.0, abs=0.1)
 
 
+def _benchmark_case(tmp_path, seed: int) -> tuple[PositionSeries, list[PositionSeries]]:
+    """A no-effect case of ``bench_gap_paths``' few-logs path: the "real" simulated hour
+    and its three baseline hours (open sky, NEO-5)."""
+    scenario = tmp_path / "open.toml"
+    scenario.write_text(OPEN_SKY)
+    template = surrogate_run(3600.0, 1.0, np.random.default_rng(0), moving=False)
+    (real,) = scenario_baseline(scenario, template, 1, base_seed=seed)
+    return real, scenario_baseline(scenario, template, 3, base_seed=1_000_000 + 50 * seed)
+
+
 @pytest.mark.slow
 def test_three_simulated_hours_no_alarm_on_an_hour_with_geometry_spikes(tmp_path) -> None:
     # A no-effect hour of the simulated NEO-5 (the benchmark's case 200250: two epochs 26 m
@@ -122,14 +133,37 @@ def test_three_simulated_hours_no_alarm_on_an_hour_with_geometry_spikes(tmp_path
     # hours without such a spike. Raw, its step spread, short Allan octaves and 10-s
     # autocorrelation sat 8-16 spreads off the few-logs null; with its spikes taken out it
     # is no gap. Watched to alarm (z 15.6) with despiked the identity.
-    scenario = tmp_path / "open.toml"
-    scenario.write_text(OPEN_SKY)
-    template = surrogate_run(3600.0, 1.0, np.random.default_rng(0), moving=False)
-    seed = 200_250
-    (real,) = scenario_baseline(scenario, template, 1, base_seed=seed)
-    sims = scenario_baseline(scenario, template, 3, base_seed=1_000_000 + 50 * seed)
+    real, sims = _benchmark_case(tmp_path, 200_250)
     steps_m = np.hypot(np.diff(real.east_m), np.diff(real.north_m))
     assert np.max(steps_m) > 20.0  # the spike is there
+    d = diagnose(real, sims, np.random.default_rng(0), Options(replicates=20))  # CLI defaults
+    assert d.bootstrap
+    assert not d.significant, d.where[:3]
+
+
+def test_hour_mean_cells_take_a_t_limit_with_the_logs_few_degrees_of_freedom() -> None:
+    rng = np.random.default_rng(3)
+    cells = (Cell("mean", "east"), Cell("log_std", "east"))
+    rows = [dict(zip(cells, rng.normal(size=2), strict=True)) for _ in range(20)]
+    runs = null_model(rows, 0.01).limits()
+    few = null_model(rows, 0.01, {("*", "*"): 1.0}, None, 3).limits()
+    assert few[1] == pytest.approx(runs[1])  # a within-log statistic: the replicates decide
+    # the mean: about one draw of the slow error per log, t with (about) 3 dof, not 19
+    assert few[0] > 2.5 * runs[0]
+    assert np.array_equal(between_log_dof(cells, None), [np.inf, np.inf])
+    assert np.array_equal(between_log_dof(cells, 3), [3.0, np.inf])
+
+
+@pytest.mark.slow
+def test_three_simulated_hours_no_alarm_on_an_hour_whose_mean_they_do_not_span(tmp_path) -> None:
+    # A no-effect hour of the simulated NEO-5 (the benchmark's case 200412): its mean is
+    # 3.2 m east and north, 2.5 and 1.9 of the simulator's spreads of hour means (1.3, 1.7 m), but
+    # the three baseline hours sit within 1 m, and replicates of their law spread hour means
+    # by 0.6 m. With the mean cells scored as if twenty replicates pinned that spread it was
+    # flagged (north z 5.2 against 4.2); with the three logs' few degrees of freedom it is
+    # no gap. Watched to alarm with between_log_dof returning inf for every cell.
+    real, sims = _benchmark_case(tmp_path, 200_412)
+    assert np.hypot(np.mean(real.east_m), np.mean(real.north_m)) > 4.0
     d = diagnose(real, sims, np.random.default_rng(0), Options(replicates=20))  # CLI defaults
     assert d.bootstrap
     assert not d.significant, d.where[:3]
