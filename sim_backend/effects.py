@@ -279,6 +279,71 @@ def gauss_markov_noise(
     return out
 
 
+def gm2_transition(
+    dt_s: np.ndarray | float, tau_s: np.ndarray | float, var_m2: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discretisation over ``dt_s`` (s) of a critically damped second-order
+    Gauss-Markov process, state (position m, rate m/s), correlation time ``tau_s`` (s),
+    stationary position variance ``var_m2`` (m^2); the arguments broadcast together.
+    Returns the transition F and the process noise Q, each (2, 2, *shape).
+
+    Its spectrum falls as f^-4 beyond 1/(2 pi tau) where a first-order process falls as
+    f^-2: a smooth drift (a receiver's filtered slow error, a slowly moving reflector)
+    whose steps a first-order law would make far too large. With a = 1/tau the rate's
+    stationary variance is a^2 var, and Q = P_inf - F P_inf F'."""
+    dt, tau, var = np.broadcast_arrays(
+        np.asarray(dt_s, float), np.asarray(tau_s, float), np.asarray(var_m2, float)
+    )
+    a = 1.0 / tau
+    x = dt * a
+    e2 = np.exp(-2.0 * x)
+    e = np.exp(-x)
+    f = np.array([[e * (1.0 + x), e * dt], [-e * a * x, e * (1.0 - x)]])
+    q11 = var * (-np.expm1(-2.0 * x) - e2 * (2.0 * x + 2.0 * x * x))
+    q22 = var * a * a * (-np.expm1(-2.0 * x) - e2 * (-2.0 * x + 2.0 * x * x))
+    q12 = 2.0 * e2 * var * a * x * x
+    return f, np.array([[q11, q12], [q12, q22]])
+
+
+class _Gm2Process:
+    """A stationary critically damped second-order Gauss-Markov process of ``size`` axes
+    carried across calls (:func:`gm2_transition`); the first call starts from the
+    stationary law."""
+
+    def __init__(self, sigma: float, tau_s: float, rng: np.random.Generator, size: int) -> None:
+        self.sigma, self.tau_s, self.rng, self.size = sigma, tau_s, rng, size
+        self._x: np.ndarray | None = None  # (2, size): position, rate
+        self._t_s = 0.0
+
+    def draw(self, t_s: np.ndarray) -> np.ndarray:
+        """Position samples (size, n) at the times ``t_s`` (s, after any earlier call's)."""
+        t = np.asarray(t_s, dtype=float)
+        out = np.empty((self.size, t.shape[0]))
+        if t.shape[0] == 0:
+            return out
+        first = self._x is None
+        if self._x is None:  # the stationary law at the first epoch, then steps from it
+            sd = np.array([self.sigma, self.sigma / self.tau_s])[:, None]
+            self._x = sd * self.rng.standard_normal((2, self.size))
+            self._t_s = float(t[0])
+        dt = _dt_s(np.concatenate(([self._t_s], t[1:] if first else t)))
+        w = self.rng.standard_normal((dt.size, 2, self.size))
+        distinct, index = np.unique(np.round(dt, 9), return_inverse=True)
+        steps = []
+        for d in distinct:
+            f, q = gm2_transition(float(d), self.tau_s, self.sigma**2)
+            steps.append((f, np.linalg.cholesky(q + 1e-18 * np.eye(2))))
+        x = self._x
+        if first:
+            out[:, 0] = x[0]
+        for k in range(dt.size):
+            f, chol = steps[index[k]]
+            x = f @ x + chol @ w[k]
+            out[:, k + int(first)] = x[0]
+        self._x, self._t_s = x, float(t[-1])
+        return out
+
+
 _AXES = {"e": (0,), "n": (1,), "u": (2,), "en": (0, 1), "enu": (0, 1, 2)}
 
 
@@ -468,18 +533,22 @@ class CompassLayer(_Params, abc.ABC):
 
 @dataclass(frozen=True)
 class GaussMarkov(GpsLayer):
-    """First-order Gauss-Markov drift, independent per axis: sigma_m (stationary std, m),
-    tau_s (correlation time, s); axes 'en' (horizontal, default), 'enu', 'e', 'n' or 'u'."""
+    """Gauss-Markov drift, independent per axis: sigma_m (stationary std, m), tau_s
+    (correlation time, s); axes 'en' (horizontal, default), 'enu', 'e', 'n' or 'u'; order 1
+    (exponential, default) or 2 (critically damped: smooth, :func:`gm2_transition`)."""
 
     name: ClassVar[str] = "gauss_markov"
     sigma_m: float
     tau_s: float
     axes: str = "en"
+    order: int = 1
 
     def __post_init__(self) -> None:
         _positive("sigma_m", self.sigma_m, allow_zero=True)
         _positive("tau_s", self.tau_s)
         _axes(self.axes)
+        if self.order not in (1, 2):
+            raise ConfigError(f"order={self.order!r}: must be 1 or 2")
 
     def start(self, rng: np.random.Generator) -> LayerRun:
         """The drift running on: one Gauss-Markov process per axis (stationary start)."""
@@ -489,7 +558,8 @@ class GaussMarkov(GpsLayer):
 class _GaussMarkovRun(_Run):
     def __init__(self, layer: GaussMarkov, rng: np.random.Generator) -> None:
         self.idx = list(_axes(layer.axes))
-        self.gm = _GmProcess(layer.sigma_m, layer.tau_s, rng, len(self.idx))
+        process = _GmProcess if layer.order == 1 else _Gm2Process
+        self.gm = process(layer.sigma_m, layer.tau_s, rng, len(self.idx))
 
     def step(self, batch: PositionSeries) -> PositionSeries:
         delta = np.zeros((3, len(batch)))

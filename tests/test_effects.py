@@ -591,3 +591,23 @@ def test_low_pass_over_outages_is_the_recursion(tau_s: float) -> None:
         want.append(y)
     assert np.allclose(out.east_m[idx], want, rtol=0, atol=1e-9)
     assert np.array_equal(out.east_m[~valid], s.east_m[~valid])
+
+
+def test_second_order_gauss_markov_is_smooth_with_its_sigma_and_tau() -> None:
+    # critically damped: autocorrelation (1 + lag/tau) exp(-lag/tau), steps far smaller than
+    # a first-order drift's of the same sigma and tau; run whole or epoch by epoch alike
+    dt, sigma_m, tau_s = 1.0, 0.7, 20.0
+    smooth, rough = GaussMarkov(sigma_m, tau_s, "e", order=2), GaussMarkov(sigma_m, tau_s, "e")
+    rngs = [np.random.default_rng(i) for i in range(200)]
+    rows = np.array([smooth.apply(zeros(600, dt), rng).east_m for rng in rngs])
+    stepped = np.array([_stepwise(smooth, zeros(600, dt), rng).east_m for rng in rngs])
+    first = np.array([rough.apply(zeros(600, dt), rng).east_m for rng in rngs])
+    for x in (rows, stepped):
+        assert float(np.sqrt(np.mean(x**2))) == pytest.approx(sigma_m, rel=0.05)
+        acf_tau = float(np.mean(x[:, 20:] * x[:, :-20]) / np.mean(x**2))
+        assert acf_tau == pytest.approx(2.0 * math.exp(-1.0), abs=0.05)
+        assert float(np.std(x[:, 0])) == pytest.approx(sigma_m, rel=0.15)  # stationary start
+    assert float(np.std(np.diff(rows))) < 0.25 * float(np.std(np.diff(first)))
+    with pytest.raises(ConfigError, match="order"):
+        GaussMarkov(1.0, 1.0, order=3)
+    assert effect_from_params(smooth.to_params()) == smooth

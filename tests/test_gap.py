@@ -14,6 +14,7 @@ from tests.conftest import dense_baseline_cov, filter_case
 from x6wd.app.cli import main as x6wd_main
 from x6wd.core.errors import ConfigError, ParseError
 from x6wd.gap.diagnose import RW_LR_CELL, Options, diagnose, report_dict
+from x6wd.gap.drift import fit_gauss_markov
 from x6wd.gap.io import errors_vs_track, parse_truth, read_track, series_to_track, write_csv
 from x6wd.gap.null import block_bootstrap, null_model
 from x6wd.gap.stats import Cell, allan_var, battery, layout_for
@@ -258,8 +259,10 @@ def test_real_static_f9p_against_scenario_report(tmp_path: Path) -> None:
 
 
 def test_cli_with_one_sim_log_uses_bootstrap(tmp_path: Path) -> None:
+    # One 15-minute sim log pins the spread of 15-minute means with under 3 degrees of
+    # freedom (null.between_log_dof): a 4 m offset (z 8) is no longer enough, 15 m is.
     real = surrogate_run(
-        900.0, 1.0, np.random.default_rng(5), effects=[*PRE, Bias(4.0, 0.0, 0.0), Quantization(5)]
+        900.0, 1.0, np.random.default_rng(5), effects=[*PRE, Bias(15.0, 0.0, 0.0), Quantization(5)]
     )
     origin = (real.origin_lat_deg, real.origin_lon_deg)
     sim = surrogate_run(900.0, 1.0, np.random.default_rng(6))
@@ -280,7 +283,7 @@ def test_cli_with_one_sim_log_uses_bootstrap(tmp_path: Path) -> None:
     import tomllib
 
     eff = tomllib.loads(toml)["effects"][0]
-    assert math.isclose(eff["east_m"], 4.0, abs_tol=1.0)
+    assert math.isclose(eff["east_m"], 15.0, abs_tol=1.0)
     # the fragment is what the simulator's scenario loader accepts
     from sim_backend.world import load_world, merge_fragment
 
@@ -296,6 +299,22 @@ HOUR_S = 3600.0
 @pytest.fixture(scope="module")
 def hour_baseline() -> list:
     return [surrogate_run(HOUR_S, 1.0, np.random.default_rng(300 + i)) for i in range(8)]
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_the_drift_family_names_the_order_of_a_gauss_markov_drift(
+    hour_baseline: list, order: int
+) -> None:
+    # a smooth (critically damped) drift and an exponential one of the same sigma and tau:
+    # each is fitted with its own order, and its parameters, by exact likelihood
+    *noise, lattice = BASELINE_EFFECTS
+    effects = [*noise, GaussMarkov(sigma_m=1.5, tau_s=60.0, order=order), lattice]
+    real = surrogate_run(HOUR_S, 1.0, np.random.default_rng(5), effects=effects)
+    fit = fit_gauss_markov(real, hour_baseline, layout_for(hour_baseline[0]))
+    assert fit is not None and isinstance(fit.effect, GaussMarkov)
+    assert fit.effect.order == order
+    assert fit.effect.sigma_m == pytest.approx(1.5, rel=0.2)
+    assert fit.effect.tau_s == pytest.approx(60.0, rel=0.25)
 
 
 def hour_real(*effects: object, seed: int = 7) -> PositionSeries:
@@ -658,7 +677,7 @@ def test_few_logs_null_has_no_joins_and_the_spread_of_independent_runs() -> None
         surrogate_run(HOUR_S, 1.0, np.random.default_rng(900 + i), effects=slow) for i in range(19)
     ]
     lay = layout_for(runs[0])
-    reps, inflation = few_logs_null(runs[:3], runs[3], lay, 20, np.random.default_rng(0))
+    reps, inflation, _dof = few_logs_null(runs[:3], runs[3], lay, 20, np.random.default_rng(0))
     assert all(len(r) == len(runs[3]) and np.array_equal(r.t_s, runs[3].t_s) for r in reps)
     tail = Cell("step_tail", "east")
     step_sd = Cell("log_step_std", "north")

@@ -200,7 +200,16 @@ def test_report_states_direction_and_validation(tmp_path: Path) -> None:
 def test_pipeline_names_the_receiver_layer(layer: object, baseline: list[PositionSeries]) -> None:
     diagnosis = diagnose(_real(layer, 43), baseline, np.random.default_rng(1))
     assert diagnosis.explained, verdict_text(diagnosis)
-    assert diagnosis.selected[0].name == layer.name  # type: ignore[attr-defined]
+    name = layer.name  # type: ignore[attr-defined]
+    if isinstance(layer, Correction) and layer.factor > 1:
+        # the slow error (its 60-s low-pass) made 3x larger adds a smooth drift: a
+        # second-order Gauss-Markov of tau ~60 s is the same law and may score higher
+        # (docs/gap.md, Limits); the correction must still close the gap on its own
+        closure = {c.fit.name: c.closure for c in diagnosis.candidates}
+        assert diagnosis.selected[0].name in (name, "gauss_markov")
+        assert closure[name] >= 0.5
+    else:
+        assert diagnosis.selected[0].name == name
     assert diagnosis.closure >= 0.5
 
 

@@ -146,12 +146,12 @@ def test_hour_mean_cells_take_a_t_limit_with_the_logs_few_degrees_of_freedom() -
     cells = (Cell("mean", "east"), Cell("log_std", "east"))
     rows = [dict(zip(cells, rng.normal(size=2), strict=True)) for _ in range(20)]
     runs = null_model(rows, 0.01).limits()
-    few = null_model(rows, 0.01, {("*", "*"): 1.0}, None, 3).limits()
+    few = null_model(rows, 0.01, {("*", "*"): 1.0}, None, {"east": 3.0}).limits()
     assert few[1] == pytest.approx(runs[1])  # a within-log statistic: the replicates decide
-    # the mean: about one draw of the slow error per log, t with (about) 3 dof, not 19
+    # the mean: t with the logs' 3 dof, not the replicates' 19
     assert few[0] > 2.5 * runs[0]
     assert np.array_equal(between_log_dof(cells, None), [np.inf, np.inf])
-    assert np.array_equal(between_log_dof(cells, 3), [3.0, np.inf])
+    assert np.array_equal(between_log_dof(cells, {"east": 3.0}), [3.0, np.inf])
 
 
 @pytest.mark.slow

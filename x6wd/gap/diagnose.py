@@ -349,9 +349,10 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
     ) -> tuple[list[PositionSeries], Inflation | None]:
         # the logs' innovations through their noise model, resampled at the same times:
         # blocks of the logs themselves spliced raw would put a fake jump at every join
-        return few_logs_null(
+        replicates, inflation, self.dof_by_axis = few_logs_null(
             runs, template, self.layout, n_out, self.rng, whole_log_cells=self._rw_cells
         )
+        return replicates, inflation
 
     def _rw_cells(
         self,

@@ -1,5 +1,5 @@
-"""The drift family by exact likelihood: none / bias / Gauss-Markov / random walk, with a
-bias and a latency as GLS companions, on top of the baseline noise model.
+"""The drift family by exact likelihood: none / bias / Gauss-Markov (first or second order) /
+random walk, with a bias and a latency as GLS companions, on top of the baseline noise model.
 
 :func:`drift_fit` evaluates every member on one log with the Kalman filter of
 :mod:`x6wd.gap.kalman` (batched grids and zooms) and names the best by BIC; the per-effect
@@ -58,6 +58,9 @@ class DriftFit:
     # GLS companions at each model's optimum: model name -> (values, standard errors) in the
     # order [bias east (m), bias north (m)] then [latency (s)], as the flags say
     coefs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    # the Gauss-Markov drift's order per companion flags: 1 (exponential) or 2 (critically
+    # damped, smooth), whichever has the higher likelihood (both have two parameters)
+    gm_order: dict[Flags, int] = field(default_factory=dict)
 
     @property
     def models(self) -> list[str]:
@@ -135,10 +138,13 @@ def _fit_drift(
     )
     effect_tau_s = np.concatenate([np.exp(grid_log_tau), np.full(log_q_axis.size, np.inf), [1.0]])
     terms = kalman_terms(real, model, effect_var, effect_tau_s)
+    # the same grid for a critically damped (second-order) drift: its own filter
+    terms2 = kalman_terms(real, model, effect_var[:n_gm], effect_tau_s[:n_gm], order=2)
     flag_set: list[Flags] = [(False, False), (True, False)]
     if terms.has_latency:
         flag_set += [(False, True), (True, True)]
     coarse = {flags: terms.loglik(*flags) for flags in flag_set}
+    coarse2 = {flags: terms2.loglik(*flags) for flags in flag_set}
     loglik = {drift_model_name(None, flags): float(coarse[flags][-1]) for flags in flag_set}
     coefs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for flags in flag_set:
@@ -151,11 +157,12 @@ def _fit_drift(
     step_log_q = log_q_axis[1] - log_q_axis[0]
     zooms: dict[tuple[str, Flags], _Zoom] = {}
     for flags in flag_set:
-        i = int(np.argmax(coarse[flags][:n_gm]))
-        zooms[("gm", flags)] = _Zoom(
-            np.array([grid_log_q[i], grid_log_tau[i]]),
-            np.array([step_log_q, log_tau_axis[1] - log_tau_axis[0]]),
-        )
+        for kind, grid_loglik in (("gm", coarse[flags][:n_gm]), ("gm2", coarse2[flags])):
+            i = int(np.argmax(grid_loglik))
+            zooms[(kind, flags)] = _Zoom(
+                np.array([grid_log_q[i], grid_log_tau[i]]),
+                np.array([step_log_q, log_tau_axis[1] - log_tau_axis[0]]),
+            )
     for flags in flag_set:
         i = int(np.argmax(coarse[flags][n_gm:-1]))
         zooms[("rw", flags)] = _Zoom(np.array([log_q_axis[i]]), np.array([step_log_q]))
@@ -167,29 +174,41 @@ def _fit_drift(
             break
         batches = []
         for flags in flag_set:
-            gm, rw = zooms[("gm", flags)], zooms[("rw", flags)]
-            log_q = gm.centre[0] + unit_q * gm.half_width[0]
-            log_tau = np.clip(gm.centre[1] + unit_tau * gm.half_width[1], log_tau_min, log_tau_max)
-            batches.append(
-                (_gm_variance_m2(log_q, log_tau), np.exp(log_tau), ("gm", flags),
-                 np.stack([log_q, log_tau], 1))
-            )  # fmt: skip
+            for kind in ("gm", "gm2"):
+                gm = zooms[(kind, flags)]
+                log_q = gm.centre[0] + unit_q * gm.half_width[0]
+                log_tau = np.clip(
+                    gm.centre[1] + unit_tau * gm.half_width[1], log_tau_min, log_tau_max
+                )
+                batches.append(
+                    (_gm_variance_m2(log_q, log_tau), np.exp(log_tau), (kind, flags),
+                     np.stack([log_q, log_tau], 1))
+                )  # fmt: skip
+            rw = zooms[("rw", flags)]
             log_q_rw = rw.centre[0] + unit * rw.half_width[0]
             batches.append(
                 (np.exp(2 * log_q_rw), np.full(unit.size, np.inf), ("rw", flags),
                  log_q_rw[:, None])
             )  # fmt: skip
-        terms = kalman_terms(
-            real,
-            model,
-            np.concatenate([b[0] for b in batches]),
-            np.concatenate([b[1] for b in batches]),
-        )
-        offset = 0
+        by_order = {
+            order: [b for b in batches if (b[2][0] == "gm2") == (order == 2)] for order in (1, 2)
+        }
+        order_terms = {
+            order: kalman_terms(
+                real,
+                model,
+                np.concatenate([b[0] for b in group]),
+                np.concatenate([b[1] for b in group]),
+                order=order,
+            )
+            for order, group in by_order.items()
+        }
+        offsets = {1: 0, 2: 0}
         for var, _tau, key, points in batches:
-            flags = key[1]
+            flags, order = key[1], 2 if key[0] == "gm2" else 1
+            terms, offset = order_terms[order], offsets[order]
             grid_loglik = terms.loglik(*flags)[offset : offset + var.size]
-            offset += var.size
+            offset = offsets[order] = offset + var.size
             j = int(np.argmax(grid_loglik))
             zoom = zooms[key]
             if zoom.scored and zoom.halvings >= 3:
@@ -201,7 +220,7 @@ def _fit_drift(
                 else (gls[0][offset - var.size + j], gls[1][offset - var.size + j])
             )  # fmt: skip
             zoom.centre = points[j]
-            if key[0] == "gm":
+            if key[0] != "rw":
                 at_bound = not log_tau_min + 1e-9 < points[j, 1] < log_tau_max - 1e-9
                 inside = abs(unit_q[j]) < 1 and (abs(unit_tau[j]) < 1 or at_bound)
             else:
@@ -210,6 +229,7 @@ def _fit_drift(
                 zoom.half_width = zoom.half_width / 2
                 zoom.halvings += 1
     gauss_markov: dict[Flags, tuple[tuple[float, float], tuple[float, float]]] = {}
+    gm_order: dict[Flags, int] = {}
     random_walk: dict[Flags, tuple[float, float]] = {}
     for (kind, flags), zoom in zooms.items():
         peak = quadratic_peak(zoom.points, zoom.loglik)
@@ -221,11 +241,14 @@ def _fit_drift(
             # the vertex of the local quadratic when it lies inside the zoom grid
             if np.all(np.abs(vertex - zoom.points.mean(axis=0)) <= np.ptp(zoom.points, axis=0) / 2):
                 centre = vertex
-        name = drift_model_name("gauss_markov" if kind == "gm" else "random_walk", flags)
+        name = drift_model_name("random_walk" if kind == "rw" else "gauss_markov", flags)
+        if kind == "gm2" and float(np.max(zoom.loglik)) <= loglik[name]:
+            continue  # "gauss_markov" is whichever order has the higher likelihood
         loglik[name] = float(np.max(zoom.loglik))
         if zoom.gls is not None:
             coefs[name] = zoom.gls
-        if kind == "gm":
+        if kind != "rw":
+            gm_order[flags] = 2 if kind == "gm2" else 1
             # log sigma = log q + (log tau - log 2) / 2
             sigma_m = math.exp(centre[0] + (centre[1] - math.log(2.0)) / 2)
             tau_s = math.exp(centre[1])
@@ -239,7 +262,7 @@ def _fit_drift(
         else:
             q = math.exp(centre[0])
             random_walk[flags] = (q, q * float(se_log[0]))
-    return DriftFit(loglik, gauss_markov, random_walk, 2 * terms.nobs, model, coefs)
+    return DriftFit(loglik, gauss_markov, random_walk, 2 * terms.nobs, model, coefs, gm_order)
 
 
 # Random-walk rates (m/s^0.5) searched by :func:`random_walk_lr`: from far below anything a
@@ -293,8 +316,9 @@ def drift_effect(family: DriftFit, drift: str, flags: Flags, layout: Layout) -> 
     if drift == "gauss_markov":
         (sigma_m, tau_s), (se_sigma_m, se_tau_s) = family.gauss_markov[flags]
         tau_s = min(tau_s, 10 * layout.duration_s)
+        order = family.gm_order.get(flags, 1)
         return Fit(
-            GaussMarkov(sigma_m=round(sigma_m, 4), tau_s=round(tau_s, 3)),
+            GaussMarkov(sigma_m=round(sigma_m, 4), tau_s=round(tau_s, 3), order=order),
             {"sigma_m": se_sigma_m, "tau_s": se_tau_s},
         )
     q, se_q = family.random_walk[flags]

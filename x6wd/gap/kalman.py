@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_backend.effects import PositionSeries, truth_velocity_mps
+from sim_backend.effects import PositionSeries, gm2_transition, truth_velocity_mps
 from x6wd.gap.noise import NoiseModel
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -137,13 +137,15 @@ def kalman_terms(
     model: NoiseModel,
     effect_var: np.ndarray,
     effect_tau_s: np.ndarray,
+    order: int = 1,
 ) -> KalmanTerms:
     """Run the Kalman filter of baseline model + one effect component for a batch of effect
     parameters: ``effect_var`` (B,) the stationary variance sigma^2 (m^2) of a Gauss-Markov
     effect of correlation time ``effect_tau_s`` (s) or, where that is inf, the random-walk
-    rate q^2 (m^2/s); ``effect_var`` 0 = no effect. The innovations are linear in the data,
-    so the filter run on a column of ones and on the latency regressor gives their
-    innovations for GLS at no extra Riccati cost."""
+    rate q^2 (m^2/s); ``effect_var`` 0 = no effect; ``order`` 2: the Gauss-Markov effect is
+    critically damped (:func:`sim_backend.effects.gm2_transition`, two states). The
+    innovations are linear in the data, so the filter run on a column of ones and on the
+    latency regressor gives their innovations for GLS at no extra Riccati cost."""
     valid = np.asarray(real.valid, dtype=bool)
     t_s = np.asarray(real.t_s, dtype=float)[valid]
     east_m = np.asarray(real.east_m, dtype=float)[valid]
@@ -152,27 +154,43 @@ def kalman_terms(
     latency = latency_regressor(real)
     n_epochs = t_s.size
     batch = effect_var.size
-    n_states = model.tau_s.shape[1] + 1
     n_cols = 2 if latency is None else 3
     # Layout: state index first, the batch (B parameter sets x 2 axes, flattened, column
     # j = (batch j // 2, axis j % 2)) LAST and contiguous, so that every time step is a
-    # handful of vector operations over the whole batch. x, P, S, e: the usual Kalman state,
-    # its covariance, the innovation variance and the innovations.
-    n_filters = 2 * batch
+    # handful of vector operations over the whole batch.
     var, tau_s = component_law(model, np.repeat(effect_var, 2), np.repeat(effect_tau_s, 2))
     white_var_m2 = np.tile(model.white_m**2, batch)  # (n_filters,)
-    p0 = np.where(np.isfinite(tau_s), var, 0.0)  # a walk starts at zero
-    trans = transitions(var, tau_s, np.diff(t_s))
-    x = np.zeros((n_states, n_cols, n_filters))  # middle axis: [data, ones(, latency)]
-    p = np.eye(n_states)[:, :, None] * p0[None, :, :]
-    obs = np.empty((n_epochs, n_cols, n_filters))
+    obs = np.empty((n_epochs, n_cols, 2 * batch))
     obs[:, 0, :] = np.tile(error_m.T, (1, batch))
     obs[:, 1, :] = 1.0
     if latency is not None:
         obs[:, 2, :] = np.tile(latency.T, (1, batch))
-    e_all = np.empty((n_epochs, n_cols, n_filters))
-    s_all = np.empty((n_epochs, n_filters))
-    for i in range(n_epochs):
+    run = _filter_diagonal if order == 1 else _filter_coupled
+    e_all, s_all = run(obs, var, tau_s, white_var_m2, np.diff(t_s))
+    scaled = e_all / np.sqrt(s_all)[:, None, :]
+    gram = np.einsum("ncj,ndj->jcd", scaled, scaled)  # (n_filters, C, C)
+    return KalmanTerms(
+        log_s=np.log(s_all).sum(axis=0).reshape(batch, 2),
+        gram=gram.reshape(batch, 2, n_cols, n_cols),
+        nobs=n_epochs,
+    )
+
+
+def _filter_diagonal(
+    obs: np.ndarray, var: np.ndarray, tau_s: np.ndarray, white_var_m2: np.ndarray,
+    steps_s: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Innovations (n, cols, filters) and their variances (n, filters) of independent
+    first-order components (:func:`transitions`), all observed: x, P, S, e the usual Kalman
+    state, its covariance, the innovation variance and the innovations."""
+    n_states, n_filters = var.shape
+    p0 = np.where(np.isfinite(tau_s), var, 0.0)  # a walk starts at zero
+    trans = transitions(var, tau_s, steps_s)
+    x = np.zeros((n_states, obs.shape[1], n_filters))  # middle axis: [data, ones(, latency)]
+    p = np.eye(n_states)[:, :, None] * p0[None, :, :]
+    e_all = np.empty_like(obs)
+    s_all = np.empty((obs.shape[0], n_filters))
+    for i in range(obs.shape[0]):
         if i > 0:
             phi, phi2, q = trans(i - 1)
             p = p * phi2 + q
@@ -185,13 +203,52 @@ def kalman_terms(
         p -= gain[:, None, :] * pk[None, :, :]
         e_all[i] = e
         s_all[i] = s
-    scaled = e_all / np.sqrt(s_all)[:, None, :]
-    gram = np.einsum("ncj,ndj->jcd", scaled, scaled)  # (n_filters, C, C)
-    return KalmanTerms(
-        log_s=np.log(s_all).sum(axis=0).reshape(batch, 2),
-        gram=gram.reshape(batch, 2, n_cols, n_cols),
-        nobs=n_epochs,
-    )
+    return e_all, s_all
+
+
+def _filter_coupled(
+    obs: np.ndarray, var: np.ndarray, tau_s: np.ndarray, white_var_m2: np.ndarray,
+    steps_s: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """As :func:`_filter_diagonal` with the effect (the last row of ``var``/``tau_s``) a
+    critically damped second-order process: two states (position, observed; rate, not)
+    coupled by a full 2 x 2 transition, so P moves as F P F' + Q."""
+    n_base, n_filters = var.shape[0] - 1, var.shape[1]
+    n_states = n_base + 2
+    observed = n_base + 1  # the baseline components and the effect's position
+    effect_var, effect_tau_s = var[-1], tau_s[-1]
+
+    def step(dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        f = np.zeros((n_states, n_states, n_filters))
+        q = np.zeros_like(f)
+        base = np.arange(n_base)
+        f[base, base] = np.exp(-dt_s / tau_s[:-1])
+        q[base, base] = var[:-1] * -np.expm1(-2.0 * dt_s / tau_s[:-1])
+        f[n_base:, n_base:], q[n_base:, n_base:] = gm2_transition(dt_s, effect_tau_s, effect_var)
+        return f, q
+
+    distinct, index = np.unique(np.round(steps_s, 6), return_inverse=True)
+    table = [step(float(d)) for d in distinct] if distinct.size <= 32 else None
+    x = np.zeros((n_states, obs.shape[1], n_filters))
+    p = np.zeros((n_states, n_states, n_filters))
+    stationary = np.concatenate([var[:-1], [effect_var, effect_var / effect_tau_s**2]])
+    p[np.arange(n_states), np.arange(n_states)] = stationary
+    e_all = np.empty_like(obs)
+    s_all = np.empty((obs.shape[0], n_filters))
+    for i in range(obs.shape[0]):
+        if i > 0:
+            f, q = table[index[i - 1]] if table is not None else step(float(steps_s[i - 1]))
+            x = np.einsum("ijc,jkc->ikc", f, x)
+            p = np.einsum("ijc,kjc->ikc", np.einsum("ijc,jkc->ikc", f, p), f) + q
+        pk = p[:, :observed].sum(axis=1)  # P H' with H = [1 ... 1, 1, 0]
+        s = pk[:observed].sum(axis=0) + white_var_m2
+        e = obs[i] - x[:observed].sum(axis=0)
+        gain = pk / s
+        x += gain[:, None, :] * e[None, :, :]
+        p -= gain[:, None, :] * pk[None, :, :]
+        e_all[i] = e
+        s_all[i] = s
+    return e_all, s_all
 
 
 def quadratic_peak(points: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

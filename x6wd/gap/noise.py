@@ -500,6 +500,21 @@ WholeLogCells = Callable[
 ]
 
 
+AXIS_NAMES = ("east", "north", "up")  # the order of :func:`axis_laws`
+
+
+def slow_error_dof(laws: Sequence[AxisLaw], n_logs: int, duration_s: float) -> dict[str, float]:
+    """Per axis, the degrees of freedom with which ``n_logs`` logs of ``duration_s`` (s) pin
+    the spread of their means: that spread is the slow error's low-frequency level, read
+    from the periodogram ordinates below its corner 1 / (2 pi tau) (tau its longest
+    correlation time), duration / (2 pi tau) per log and two dof each; at least one per log.
+    On three simulated NEO-5 hours (fitted tau 300-450 s) that is about 8-11."""
+    return {
+        name: n_logs * max(1.0, duration_s / (math.pi * float(np.max(law.tau_s))))
+        for name, law in zip(AXIS_NAMES, laws, strict=False)
+    }
+
+
 def few_logs_null(
     logs: Sequence[PositionSeries],
     template: PositionSeries,
@@ -509,13 +524,14 @@ def few_logs_null(
     block_s: float | None = None,
     jitter_s: float | None = None,
     whole_log_cells: WholeLogCells | None = None,
-) -> tuple[list[PositionSeries], Inflation]:
+) -> tuple[list[PositionSeries], Inflation, dict[str, float]]:
     """The null ensemble of a few baseline ``logs`` (see the section's comment): ``n_out``
     replicates on ``template``'s times, each coloured with a law of its own drawn from how
-    the logs' laws differ (:func:`drawn_laws`; with one log the pooled law), and the spread
+    the logs' laws differ (:func:`drawn_laws`; with one log the pooled law), the spread
     factors that make it honest
     (:func:`x6wd.gap.null.inflation_from`: each log scored against replicates of the
-    others; with one log only the floor). ``block_s`` the innovation blocks (default 1/30 of the
+    others; with one log only the floor) and the degrees of freedom of the spread of means
+    per axis (:func:`slow_error_dof`). ``block_s`` the innovation blocks (default 1/30 of the
     log, at least 30 steps), ``jitter_s`` how far from the same time a block may come
     (default 1/12 of the log): innovations at exactly the same times of n logs would give
     only n choices per epoch, and replicates that cluster around the logs' own values.
@@ -551,4 +567,5 @@ def few_logs_null(
         null = null_model(draw_batteries)
         cells = null.cells
         rows.append(null.z(log_battery))
-    return runs, inflation_from(cells, np.array(rows), len(logs))
+    dof = slow_error_dof(pooled, len(logs), layout.duration_s)
+    return runs, inflation_from(cells, np.array(rows), len(logs)), dof

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -250,27 +250,32 @@ def tail_dof(z_loo: np.ndarray) -> np.ndarray:
     return np.where(apart, grid[best], grid[pooled])
 
 
-# Statistics whose null spread is the spread of a few numbers per log: an hour's mean is about
-# one draw of the slow error (its correlation time is a fifth to a third of an hour), so n
-# logs pin the spread of means with about n degrees of freedom, whatever the replicates made
-# of them say (:func:`between_log_dof`).
+# Statistics whose null spread is the spread of a few numbers per log: an hour's mean is a
+# few draws of the slow error at most, so n logs pin the spread of means with few degrees of
+# freedom, whatever the replicates made of them say (:func:`between_log_dof`).
 PER_LOG_STATISTICS = frozenset({"mean"})
 
 
-def between_log_dof(cells: Sequence[Cell], n_logs: int | None) -> np.ndarray:
-    """Degrees of freedom of each cell's spread as n baseline logs pin it (inf: the
-    replicates alone decide; None: a null of simulator runs).
+def between_log_dof(cells: Sequence[Cell], dof_by_axis: Mapping[str, float] | None) -> np.ndarray:
+    """Degrees of freedom of each cell's spread as a few baseline logs pin it: for the
+    :data:`PER_LOG_STATISTICS` cells ``dof_by_axis[axis]`` (see
+    :func:`x6wd.gap.noise.slow_error_dof`), inf for the rest (the replicates alone decide) and
+    for every cell when ``dof_by_axis`` is None (a null of simulator runs).
 
-    Replicates drawn from a law fitted to n logs spread their hour means by what that law's
-    slow error implies, and a law fitted to n hours pins that poorly: on three simulated
-    NEO-5 hours the replicates' spread of hour means was 0.4-3.1 m against the simulator's
-    1.3 m (east), about 3 chi-square degrees of freedom, and with the spread factors the
-    real hour's z had heavy tails (sd 1.4, kurtosis 6-11). A t limit with about n degrees of
-    freedom is what n hour means support."""
-    if n_logs is None:
+    Replicates drawn from a law fitted to n logs spread their means by what that law's slow
+    error implies, and a law fitted to a few hours pins that poorly: on three simulated NEO-5
+    hours the replicates' spread of hour means was 0.4-3.1 m against the simulator's 1.3 m
+    (east), and with the spread factors the real hour's z had heavy tails (sd 1.4, kurtosis
+    6-11). A t limit with the logs' degrees of freedom is what they support."""
+    if dof_by_axis is None:
         return np.full(len(cells), np.inf)
-    few = max(int(n_logs), 1)
-    return np.array([few if c.statistic in PER_LOG_STATISTICS else np.inf for c in cells], float)
+    return np.array(
+        [
+            dof_by_axis.get(c.axis, np.inf) if c.statistic in PER_LOG_STATISTICS else np.inf
+            for c in cells
+        ],
+        dtype=float,
+    )
 
 
 def null_model(
@@ -278,7 +283,7 @@ def null_model(
     alpha: float = 0.05,
     inflation: Inflation | None = None,
     weights: np.ndarray | None = None,
-    n_logs: int | None = None,
+    dof_by_axis: Mapping[str, float] | None = None,
 ) -> NullModel:
     """Calibrate the battery on M >= 3 replicate batteries; ``alpha`` the family-wise error
     rate of the "where" test; ``inflation`` the spread factors of a parametric null
@@ -295,10 +300,10 @@ def null_model(
     if need be, to the 1 - alpha quantile of the replicates' own leave-one-out family-wise
     maximum of |z| / limit: the cells are not exactly Student-t (an hour of the simulator
     can sit 8 spreads off in several cells at once), though with M replicates that
-    quantile is coarse, hence the parametric bounds beneath it. ``n_logs``: the number of
-    logs a few-logs null's replicates were made of; the cells whose spread those logs pin
-    with few degrees of freedom (:func:`between_log_dof`) get a t limit with them (the
-    two dof combined as 1 / (1 / tail + 1 / logs))."""
+    quantile is coarse, hence the parametric bounds beneath it. ``dof_by_axis``: a few-logs
+    null's degrees of freedom of the spread of means per axis; those cells
+    (:func:`between_log_dof`) get a t limit with them (the two dof combined as
+    1 / (1 / tail + 1 / logs))."""
     if len(batteries) < 3:
         raise ConfigError(
             f"null calibration needs at least 3 baseline replicates, got {len(batteries)}"
@@ -314,7 +319,7 @@ def null_model(
     share = np.full(n_cells, 1.0 / n_cells) if weights is None else cell_shares(weights)
     level = 1.0 - alpha * share / 2
     widen = math.sqrt(1.0 + 1.0 / n_runs)
-    few = between_log_dof(cells, n_logs)
+    few = between_log_dof(cells, dof_by_axis)
     limits = sps.t.ppf(level, _with_logs(np.full(n_cells, n_runs - 1.0), few)) * widen
     apart = None
     if n_runs >= 4:

@@ -322,7 +322,8 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         self.split: Split[SeriesT, LayoutT]
         # spread factors of a parametric null (few baseline logs), None for simulator runs
         self.inflation: Inflation | None = None
-        self.n_logs = 0  # the baseline logs given (before any replicates)
+        # a few-logs null's degrees of freedom of the spread of means per axis (None: runs)
+        self.dof_by_axis: dict[str, float] | None = None
 
     # --- the sensor's plug-ins -----------------------------------------------------------------
 
@@ -371,8 +372,8 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
     def null(self, batteries: Sequence[Battery]) -> NullModel:
         """The null of replicate ``batteries`` (with the few-logs spread factors, if any)."""
         cells = tuple(batteries[0]) if batteries else ()
-        n_logs = self.n_logs if self.inflation is not None else None
-        return null_model(batteries, self.level(), self.inflation, self.cell_weights(cells), n_logs)
+        dof = self.dof_by_axis if self.inflation is not None else None
+        return null_model(batteries, self.level(), self.inflation, self.cell_weights(cells), dof)
 
     def cell_weights(self, cells: Sequence[Cell]) -> np.ndarray | None:
         """Each cell's share of the "where" test's level (default None: equal shares)."""
@@ -519,7 +520,6 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         self.real, self.layout = real, layout
         notes = self.input_notes(real, layout)
         runs = list(baseline)
-        self.n_logs = len(runs)
         bootstrap = len(runs) < options.min_runs
         if bootstrap:
             # blocks of a quarter of the log: long against the correlation times, few joins
