@@ -63,6 +63,19 @@ def test_injected_gauss_markov_identified_with_parameters(baseline: list) -> Non
 
 
 @pytest.mark.slow
+def test_a_smooth_drift_is_closed_by_a_second_order_gauss_markov(baseline: list) -> None:
+    # a critically damped drift: an exponential law of its sigma and tau would add 1-8 s
+    # noise it does not have and close nothing held out; order 2 names and closes it
+    d = diagnose(
+        real_with(GaussMarkov(sigma_m=1.0, tau_s=30.0, order=2)), baseline, np.random.default_rng(1)
+    )
+    rep = report_dict(d)
+    assert rep["verdict"] == {"effect": "gauss_markov", "explained": True}
+    assert rep["effects"][0]["params"]["order"] == 2
+    assert rep["effects"][0]["closure"] >= 0.7
+
+
+@pytest.mark.slow
 def test_injected_bias_found_within_standard_errors(baseline: list) -> None:
     real = real_with(Bias(east_m=3.0, north_m=-2.0), seed=12)
     d = diagnose(real, baseline, np.random.default_rng(2))
