@@ -141,29 +141,40 @@ def test_three_simulated_hours_no_alarm_on_an_hour_with_geometry_spikes(tmp_path
     assert not d.significant, d.where[:3]
 
 
-def test_hour_mean_cells_take_a_t_limit_with_the_logs_few_degrees_of_freedom() -> None:
+def test_per_log_cells_take_a_t_limit_with_the_logs_few_degrees_of_freedom() -> None:
     rng = np.random.default_rng(3)
-    cells = (Cell("mean", "east"), Cell("log_std", "east"))
-    rows = [dict(zip(cells, rng.normal(size=2), strict=True)) for _ in range(20)]
+    cells = (
+        Cell("mean", "east"),
+        Cell("log_std", "east"),
+        Cell("random_walk_lr", "horizontal"),
+        Cell("step_tail", "north"),
+    )
+    rows = [dict(zip(cells, rng.normal(size=4), strict=True)) for _ in range(20)]
+    dof = {"east": 3.0, "north": 3.0, "horizontal": 3.0}
     runs = null_model(rows, 0.01).limits()
-    few = null_model(rows, 0.01, {("*", "*"): 1.0}, None, {"east": 3.0}).limits()
+    few = null_model(rows, 0.01, {("*", "*"): 1.0}, None, dof).limits()
     assert few[1] == pytest.approx(runs[1])  # a within-log statistic: the replicates decide
-    # the mean: t with the logs' 3 dof, not the replicates' 19
-    assert few[0] > 2.5 * runs[0]
-    assert np.array_equal(between_log_dof(cells, None), [np.inf, np.inf])
-    assert np.array_equal(between_log_dof(cells, {"east": 3.0}), [3.0, np.inf])
+    # an hour's mean, slow wander and step tail: t with the logs' 3 dof, not the replicates' 19
+    assert np.all(few[[0, 2, 3]] > 2.5 * runs[[0, 2, 3]])
+    assert np.all(np.isinf(between_log_dof(cells, None)))
+    assert np.array_equal(between_log_dof(cells, dof), [3.0, np.inf, 3.0, 3.0])
 
 
 @pytest.mark.slow
-def test_three_simulated_hours_no_alarm_on_an_hour_whose_mean_they_do_not_span(tmp_path) -> None:
-    # A no-effect hour of the simulated NEO-5 (the benchmark's case 200412): its mean is
-    # 3.2 m east and north, 2.5 and 1.9 of the simulator's spreads of hour means (1.3, 1.7 m), but
-    # the three baseline hours sit within 1 m, and replicates of their law spread hour means
-    # by 0.6 m. With the mean cells scored as if twenty replicates pinned that spread it was
-    # flagged (north z 5.2 against 4.2); with the three logs' few degrees of freedom it is
-    # no gap. Watched to alarm with between_log_dof returning inf for every cell.
-    real, sims = _benchmark_case(tmp_path, 200_412)
-    assert np.hypot(np.mean(real.east_m), np.mean(real.north_m)) > 4.0
+@pytest.mark.parametrize(
+    "seed",
+    [200_412, 200_471, 200_472],
+    ids=["hour-means", "walk-ratio", "step-tail"],
+)
+def test_three_simulated_hours_no_alarm_on_an_hour_they_do_not_span(tmp_path, seed: int) -> None:
+    # No-effect hours of the simulated NEO-5 (the benchmark's cases) that three other hours
+    # do not span in a per-log statistic: 200412's mean is 3.2 m east and north (2.5 and 1.9
+    # of the simulator's spreads of hour means, 1.3 and 1.7 m) while its three baseline
+    # hours sit within 1 m, and replicates of their law spread hour means by 0.6 m (north z
+    # 5.2 against 4.2); 200471's walk ratio read 9.9, 200472's north step tail 7.5. With the
+    # three logs' few degrees of freedom each is no gap. Watched to alarm with
+    # between_log_dof returning inf for every cell.
+    real, sims = _benchmark_case(tmp_path, seed)
     d = diagnose(real, sims, np.random.default_rng(0), Options(replicates=20))  # CLI defaults
     assert d.bootstrap
     assert not d.significant, d.where[:3]

@@ -508,11 +508,14 @@ def slow_error_dof(laws: Sequence[AxisLaw], n_logs: int, duration_s: float) -> d
     the spread of their means: that spread is the slow error's low-frequency level, read
     from the periodogram ordinates below its corner 1 / (2 pi tau) (tau its longest
     correlation time), duration / (2 pi tau) per log and two dof each; at least one per log.
-    On three simulated NEO-5 hours (fitted tau 300-450 s) that is about 8-11."""
-    return {
+    On three simulated NEO-5 hours (fitted tau 300-450 s) that is about 8-11. "horizontal":
+    the smaller of east and north."""
+    dof = {
         name: n_logs * max(1.0, duration_s / (math.pi * float(np.max(law.tau_s))))
         for name, law in zip(AXIS_NAMES, laws, strict=False)
     }
+    dof["horizontal"] = min(dof["east"], dof["north"])  # whole-plane cells
+    return dof
 
 
 def few_logs_null(

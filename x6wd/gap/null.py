@@ -250,10 +250,11 @@ def tail_dof(z_loo: np.ndarray) -> np.ndarray:
     return np.where(apart, grid[best], grid[pooled])
 
 
-# Statistics whose null spread is the spread of a few numbers per log: an hour's mean is a
-# few draws of the slow error at most, so n logs pin the spread of means with few degrees of
-# freedom, whatever the replicates made of them say (:func:`between_log_dof`).
-PER_LOG_STATISTICS = frozenset({"mean"})
+# Statistics an hour holds only a few independent draws of, so that n logs pin their spread
+# with few degrees of freedom, whatever the replicates made of them say
+# (:func:`between_log_dof`): the means and the random walk's likelihood ratio read the slow
+# error (a few correlation times an hour), the step tail the few bad-geometry episodes.
+PER_LOG_STATISTICS = frozenset({"mean", "random_walk_lr", "step_tail"})
 
 
 def between_log_dof(cells: Sequence[Cell], dof_by_axis: Mapping[str, float] | None) -> np.ndarray:
