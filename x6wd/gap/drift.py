@@ -61,6 +61,10 @@ class DriftFit:
     # the Gauss-Markov drift's order per companion flags: 1 (exponential) or 2 (critically
     # damped, smooth), whichever has the higher likelihood (both have two parameters)
     gm_order: dict[Flags, int] = field(default_factory=dict)
+    # both orders' fits per (flags, order), as ``gauss_markov`` (the winner's is there too)
+    gm_by_order: dict[tuple[Flags, int], tuple[tuple[float, float], tuple[float, float]]] = field(
+        default_factory=dict
+    )
 
     @property
     def models(self) -> list[str]:
@@ -230,6 +234,7 @@ def _fit_drift(
                 zoom.halvings += 1
     gauss_markov: dict[Flags, tuple[tuple[float, float], tuple[float, float]]] = {}
     gm_order: dict[Flags, int] = {}
+    gm_by_order: dict[tuple[Flags, int], tuple[tuple[float, float], tuple[float, float]]] = {}
     random_walk: dict[Flags, tuple[float, float]] = {}
     for (kind, flags), zoom in zooms.items():
         peak = quadratic_peak(zoom.points, zoom.loglik)
@@ -242,27 +247,34 @@ def _fit_drift(
             if np.all(np.abs(vertex - zoom.points.mean(axis=0)) <= np.ptp(zoom.points, axis=0) / 2):
                 centre = vertex
         name = drift_model_name("random_walk" if kind == "rw" else "gauss_markov", flags)
-        if kind == "gm2" and float(np.max(zoom.loglik)) <= loglik[name]:
+        if kind == "rw":
+            loglik[name] = float(np.max(zoom.loglik))
+            if zoom.gls is not None:
+                coefs[name] = zoom.gls
+            q = math.exp(centre[0])
+            random_walk[flags] = (q, q * float(se_log[0]))
+            continue
+        order = 2 if kind == "gm2" else 1
+        # log sigma = log q + (log tau - log 2) / 2
+        sigma_m = math.exp(centre[0] + (centre[1] - math.log(2.0)) / 2)
+        tau_s = math.exp(centre[1])
+        se_log_sigma = float("nan")
+        if peak is not None:
+            cov = peak[1]
+            se_log_sigma = math.sqrt(max(cov[0, 0] + cov[1, 1] / 4 + cov[0, 1], 0.0))
+        gm_by_order[(flags, order)] = (
+            (sigma_m, tau_s), (sigma_m * se_log_sigma, tau_s * float(se_log[1]))
+        )  # fmt: skip
+        if order == 2 and float(np.max(zoom.loglik)) <= loglik[name]:
             continue  # "gauss_markov" is whichever order has the higher likelihood
         loglik[name] = float(np.max(zoom.loglik))
         if zoom.gls is not None:
             coefs[name] = zoom.gls
-        if kind != "rw":
-            gm_order[flags] = 2 if kind == "gm2" else 1
-            # log sigma = log q + (log tau - log 2) / 2
-            sigma_m = math.exp(centre[0] + (centre[1] - math.log(2.0)) / 2)
-            tau_s = math.exp(centre[1])
-            se_log_sigma = float("nan")
-            if peak is not None:
-                cov = peak[1]
-                se_log_sigma = math.sqrt(max(cov[0, 0] + cov[1, 1] / 4 + cov[0, 1], 0.0))
-            gauss_markov[flags] = (
-                (sigma_m, tau_s), (sigma_m * se_log_sigma, tau_s * float(se_log[1]))
-            )  # fmt: skip
-        else:
-            q = math.exp(centre[0])
-            random_walk[flags] = (q, q * float(se_log[0]))
-    return DriftFit(loglik, gauss_markov, random_walk, 2 * terms.nobs, model, coefs, gm_order)
+        gm_order[flags] = order
+        gauss_markov[flags] = gm_by_order[(flags, order)]
+    return DriftFit(
+        loglik, gauss_markov, random_walk, 2 * terms.nobs, model, coefs, gm_order, gm_by_order
+    )
 
 
 # Random-walk rates (m/s^0.5) searched by :func:`random_walk_lr`: from far below anything a
@@ -293,30 +305,41 @@ def random_walk_lr(series: PositionSeries, model: NoiseModel, despike: bool = Fa
 
 
 def fit_gauss_markov(
-    real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout
+    real: PositionSeries,
+    baseline: Sequence[PositionSeries],
+    layout: Layout,
+    order: int | None = None,
 ) -> Fit | None:
     """Horizontal GM (sigma_m, tau_s) by exact likelihood (Kalman filter on the valid epochs,
-    phi = exp(-dt/tau) with the actual steps) on top of the noise model of the ``baseline``
-    runs; with a bias profiled out beside it when that lowers the BIC. Standard errors from
-    the curvature of the log-likelihood."""
+    the exact discretisation with the actual steps) on top of the noise model of the
+    ``baseline`` runs; with a bias profiled out beside it when that lowers the BIC. Standard
+    errors from the curvature of the log-likelihood. ``order`` 1 or 2: that order's best
+    fit; None: the order with the higher likelihood."""
     if len(real) < 32:
         return None
     family = drift_fit(real, baseline, layout)
     flags = family.companions("gauss_markov")
-    sigma_m, tau_s = family.gauss_markov[flags][0]
+    params = family.gm_by_order.get((flags, order)) if order else family.gauss_markov[flags]
+    if params is None:
+        return None
+    sigma_m, tau_s = params[0]
     if not (math.isfinite(sigma_m) and math.isfinite(tau_s)) or sigma_m < 1e-4:
         return None
-    return drift_effect(family, "gauss_markov", flags, layout)
+    return drift_effect(family, "gauss_markov", flags, layout, order)
 
 
-def drift_effect(family: DriftFit, drift: str, flags: Flags, layout: Layout) -> Fit:
+def drift_effect(
+    family: DriftFit, drift: str, flags: Flags, layout: Layout, order: int | None = None
+) -> Fit:
     """The horizontal drift layer of ``family``'s fit with companions ``flags``, rounded for
     the report; a Gauss-Markov tau is capped at ten log lengths (beyond, it is a walk or a
-    bias)."""
+    bias); ``order`` a Gauss-Markov order (None: the likelier)."""
     if drift == "gauss_markov":
-        (sigma_m, tau_s), (se_sigma_m, se_tau_s) = family.gauss_markov[flags]
+        order = order or family.gm_order.get(flags, 1)
+        (sigma_m, tau_s), (se_sigma_m, se_tau_s) = family.gm_by_order.get(
+            (flags, order), family.gauss_markov[flags]
+        )
         tau_s = min(tau_s, 10 * layout.duration_s)
-        order = family.gm_order.get(flags, 1)
         return Fit(
             GaussMarkov(sigma_m=round(sigma_m, 4), tau_s=round(tau_s, 3), order=order),
             {"sigma_m": se_sigma_m, "tau_s": se_tau_s},
@@ -331,16 +354,18 @@ def joint_drift_fits(
     layout: Layout,
     drift: str,
     flags: Flags,
+    order: int | None = None,
 ) -> list[Fit]:
     """The drift ("gauss_markov" or "random_walk") and its GLS companions (bias, latency, as
     ``flags`` say) from ONE exact-likelihood fit on top of the baseline noise model: the
     parameters of each are estimated with the others in the model, so a speed-correlated or
-    constant error is not soaked up by the drift (and vice versa)."""
+    constant error is not soaked up by the drift (and vice versa). ``order``: a Gauss-Markov
+    drift's order (None: the likelier); the companions are those of the likelier order."""
     family = drift_fit(real, baseline, layout)
     name = drift_model_name(drift, flags)
     if name not in family.loglik:
         return []
-    out = [drift_effect(family, drift, flags, layout)]
+    out = [drift_effect(family, drift, flags, layout, order)]
     coef, se = family.coefs.get(name, (np.zeros(0), np.zeros(0)))
     if flags[0] and coef.size >= 2:
         up = fit_bias(real, baseline, layout)  # the GLS is horizontal; up from the means
