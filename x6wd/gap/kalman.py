@@ -195,15 +195,22 @@ def _filter_diagonal(
             phi, phi2, q = trans(i - 1)
             p = p * phi2 + q
             x = x * phi
-        pk = p.sum(axis=1)  # (n_states, n_filters): P @ 1
-        s = pk.sum(axis=0) + white_var_m2  # innovation variance
-        e = obs[i] - x.sum(axis=0)  # innovations of every column
-        gain = pk / s
-        x += gain[:, None, :] * e[None, :, :]
-        p -= gain[:, None, :] * pk[None, :, :]
-        e_all[i] = e
-        s_all[i] = s
+        e_all[i], s_all[i] = _update(x, p, obs[i], white_var_m2, n_states)
     return e_all, s_all
+
+
+def _update(
+    x: np.ndarray, p: np.ndarray, obs: np.ndarray, white_var_m2: np.ndarray, observed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """One measurement update in place (the first ``observed`` states summed are seen, plus
+    white noise): the innovations of every column and their variance."""
+    pk = p[:, :observed].sum(axis=1)  # (n_states, n_filters): P H' with H = [1 ... 1, 0 ...]
+    s = pk[:observed].sum(axis=0) + white_var_m2  # innovation variance
+    e = obs - x[:observed].sum(axis=0)  # innovations of every column
+    gain = pk / s
+    x += gain[:, None, :] * e[None, :, :]
+    p -= gain[:, None, :] * pk[None, :, :]
+    return e, s
 
 
 def _filter_coupled(
@@ -240,14 +247,7 @@ def _filter_coupled(
             f, q = table[index[i - 1]] if table is not None else step(float(steps_s[i - 1]))
             x = np.einsum("ijc,jkc->ikc", f, x)
             p = np.einsum("ijc,kjc->ikc", np.einsum("ijc,jkc->ikc", f, p), f) + q
-        pk = p[:, :observed].sum(axis=1)  # P H' with H = [1 ... 1, 1, 0]
-        s = pk[:observed].sum(axis=0) + white_var_m2
-        e = obs[i] - x[:observed].sum(axis=0)
-        gain = pk / s
-        x += gain[:, None, :] * e[None, :, :]
-        p -= gain[:, None, :] * pk[None, :, :]
-        e_all[i] = e
-        s_all[i] = s
+        e_all[i], s_all[i] = _update(x, p, obs[i], white_var_m2, observed)
     return e_all, s_all
 
 
