@@ -337,7 +337,7 @@ class _Gm2Process:
         if first:
             out[:, 0] = x[0]
         if distinct.size == 1 and dt.size > 1:
-            x = _gm2_regular(x, *steps[0], w, out[:, int(first) :])
+            x = _gm2_regular(x, float(dt[0]), self.tau_s, *steps[0], w, out[:, int(first) :])
         else:
             # variable steps: a loop over time, vectorised across axes
             for k in range(dt.size):
@@ -349,31 +349,35 @@ class _Gm2Process:
 
 
 def _gm2_regular(
-    x0: np.ndarray, f: np.ndarray, chol: np.ndarray, w: np.ndarray, out: np.ndarray
+    x0: np.ndarray,
+    dt_s: float,
+    tau_s: float,
+    f: np.ndarray,
+    chol: np.ndarray,
+    w: np.ndarray,
+    out: np.ndarray,
 ) -> np.ndarray:
-    """The recursion x <- F x + chol w_k of :class:`_Gm2Process` for one step everywhere,
-    run in C: F's characteristic polynomial is (1 - lam B)^2 (lam = exp(-dt/tau)), so each
-    state is an IIR filter of the noise (numerator from adj(I - F B)) plus F^k x0, which has
-    a closed form. Writes the positions into ``out`` (size, n) and returns the last state."""
+    """The recursion x <- F x + chol w_k of :class:`_Gm2Process` for one step ``dt_s``
+    everywhere (F, chol from :func:`gm2_transition` at ``dt_s``, ``tau_s``), run in C: F's
+    characteristic polynomial is (1 - lam B)^2 (lam = exp(-dt/tau)), so each state is an IIR
+    filter of the noise (numerator from adj(I - F B)) plus F^k x0, which has a closed form.
+    Writes the positions into ``out`` (size, n) and returns the last state."""
     from scipy.signal import lfilter
 
     n = np.einsum("ij,kjs->kis", chol, w)  # (steps, 2, size) noise per step
     lag = np.zeros_like(n)
     lag[1:] = n[:-1]
-    lam = f[0, 0] + f[1, 1]  # the trace: 2 lam
-    den = [1.0, -lam, lam * lam / 4.0]
+    x = dt_s / tau_s
+    lam = math.exp(-x)
+    den = [1.0, -2.0 * lam, lam * lam]
     u_pos = n[:, 0] - f[1, 1] * lag[:, 0] + f[0, 1] * lag[:, 1]
     u_rate = n[:, 1] - f[0, 0] * lag[:, 1] + f[1, 0] * lag[:, 0]
     pos, rate = lfilter([1.0], den, u_pos, axis=0), lfilter([1.0], den, u_rate, axis=0)
-    # F^k = lam^k [[1 + k x, k dt], [-k a x, 1 - k x]] with x = dt / tau, a = 1 / tau
-    half = lam / 2.0
+    # F^k = lam^k [[1 + k x, k dt], [-k x / tau, 1 - k x]]
     k = np.arange(1, n.shape[0] + 1)[:, None]
-    x_dt = -math.log(half)  # dt / tau
-    dt_s = f[0, 1] / half
-    a = x_dt / dt_s
-    power = half**k
-    pos += power * ((1.0 + k * x_dt) * x0[0] + k * dt_s * x0[1])
-    rate += power * (-k * a * x_dt * x0[0] + (1.0 - k * x_dt) * x0[1])
+    power = lam**k
+    pos += power * ((1.0 + k * x) * x0[0] + k * dt_s * x0[1])
+    rate += power * (-k * x / tau_s * x0[0] + (1.0 - k * x) * x0[1])
     out[:, :] = pos.T
     return np.stack([pos[-1], rate[-1]])
 

@@ -624,7 +624,7 @@ def test_second_order_regular_steps_in_c_match_the_recursion(tau_s: float) -> No
     f, q = gm2_transition(1.0, tau_s, 4.0)
     chol = np.linalg.cholesky(q)
     fast = np.empty((3, 500))
-    last = _gm2_regular(x0, f, chol, w, fast)
+    last = _gm2_regular(x0, 1.0, tau_s, f, chol, w, fast)
     x, loop = x0.copy(), np.empty((3, 500))
     for k in range(500):
         x = f @ x + chol @ w[k]

@@ -76,6 +76,26 @@ def test_a_smooth_drift_is_closed_by_a_second_order_gauss_markov(baseline: list)
 
 
 @pytest.mark.slow
+def test_the_held_out_test_picks_the_gauss_markov_order(baseline: list) -> None:
+    # whichever order the likelihood offers first, consider() keeps the one with the lower
+    # held-out key: for a smooth drift, order 2, even when order 1 is put forward
+    from x6wd.gap.diagnose import GpsPipeline, window
+    from x6wd.gap.pipeline import Round
+
+    real = real_with(GaussMarkov(sigma_m=1.0, tau_s=30.0, order=2))
+    pipe = GpsPipeline(Options(), np.random.default_rng(1))
+    pipe.run(real, baseline)
+    split = pipe.split
+    current_fit = [window(s, *split.fit_s) for s in pipe.runs]
+    null = pipe.null([pipe.battery(s, split.fit_layout) for s in current_fit])
+    this_round = Round(0, [], ["gauss_markov"], pipe.runs, current_fit, null, null.z({}))
+    for offered in (1, 2):
+        fit = fit_gauss_markov(split.real_fit, current_fit, split.fit_layout, offered)
+        assert fit is not None and fit.effect.order == offered
+        assert pipe._better_order(this_round, fit).effect.order == 2
+
+
+@pytest.mark.slow
 def test_injected_bias_found_within_standard_errors(baseline: list) -> None:
     real = real_with(Bias(east_m=3.0, north_m=-2.0), seed=12)
     d = diagnose(real, baseline, np.random.default_rng(2))

@@ -224,6 +224,16 @@ def simulation_refit(
     return make(log_x0) if moved else fit
 
 
+def _refit_same(
+    fit: Fit, real: PositionSeries, runs: Sequence[PositionSeries], layout: Layout
+) -> Fit | None:
+    """``fit``'s effect fitted again on ``real`` against ``runs`` (None when it does not
+    fit); a Gauss-Markov drift at ``fit``'s order, the one the held-out test chose."""
+    if isinstance(fit.effect, GaussMarkov):
+        return fit_gauss_markov(real, runs, layout, fit.effect.order)
+    return FITTERS[fit.name](real, runs, layout)
+
+
 def _refit_whole(
     selected: Sequence[Fit],
     real: PositionSeries,
@@ -258,10 +268,7 @@ def _refit_whole(
             whole: Fit | None = joint[fit.name]
         else:
             runs_with = apply_fits(others, runs, rng, lattice) if others else list(runs)
-            if isinstance(fit.effect, GaussMarkov):
-                whole = fit_gauss_markov(real, runs_with, layout, fit.effect.order)
-            else:
-                whole = FITTERS[fit.name](real, runs_with, layout)
+            whole = _refit_same(fit, real, runs_with, layout)
         if whole is not None and coarse and fit.name in SIM_REFIT:
             # the fit-part fit was already refined by simulation: a second start
             whole = simulation_refit(
@@ -570,10 +577,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         whole = _refit_whole(selected, self.real, self.runs, self.layout, self.rng, self.lattice)
         for name, c in scored.items():
             if name not in {f.name for f in whole}:
-                if isinstance(c.fit.effect, GaussMarkov):  # the order its closure was of
-                    refit = fit_gauss_markov(self.real, self.runs, self.layout, c.fit.effect.order)
-                else:
-                    refit = FITTERS[name](self.real, self.runs, self.layout)
+                refit = _refit_same(c.fit, self.real, self.runs, self.layout)
                 if refit is not None:
                     c.fit = refit
         if scored:

@@ -30,6 +30,7 @@ DRIFTS = ("gauss_markov", "random_walk")  # the drift layers proper
 DRIFT_FAMILY = (*DRIFTS, "bias")
 COMPANIONS = ("bias", "latency")
 Flags = tuple[bool, bool]  # (bias, latency)
+GmParams = tuple[tuple[float, float], tuple[float, float]]  # (sigma_m, tau_s), standard errors
 
 
 def drift_model_name(drift: str | None, flags: Flags) -> str:
@@ -46,25 +47,26 @@ def _n_params(name: str) -> int:
 @dataclass(frozen=True)
 class DriftFit:
     """Exact-likelihood fits of the drift family to one log on top of the baseline noise
-    model. ``loglik`` per model name (see :func:`drift_model_name`); per companion flags
-    (bias, latency), ``gauss_markov`` ((sigma_m, tau_s), their standard errors) and
-    ``random_walk`` (q_m_per_sqrt_s, its standard error); ``nobs`` the scalar observations."""
+    model. ``loglik`` per model name (see :func:`drift_model_name`); per (companion flags
+    (bias, latency), order 1 or 2) ``gm_by_order`` ((sigma_m, tau_s), their standard
+    errors); per flags ``gm_order``, the order with the higher likelihood (both have two
+    parameters), and ``random_walk`` (q_m_per_sqrt_s, its standard error); ``nobs`` the
+    scalar observations."""
 
     loglik: dict[str, float]
-    gauss_markov: dict[Flags, tuple[tuple[float, float], tuple[float, float]]]
+    gm_by_order: dict[tuple[Flags, int], GmParams]
+    gm_order: dict[Flags, int]
     random_walk: dict[Flags, tuple[float, float]]
     nobs: int
     model: NoiseModel
     # GLS companions at each model's optimum: model name -> (values, standard errors) in the
     # order [bias east (m), bias north (m)] then [latency (s)], as the flags say
     coefs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    # the Gauss-Markov drift's order per companion flags: 1 (exponential) or 2 (critically
-    # damped, smooth), whichever has the higher likelihood (both have two parameters)
-    gm_order: dict[Flags, int] = field(default_factory=dict)
-    # both orders' fits per (flags, order), as ``gauss_markov`` (the winner's is there too)
-    gm_by_order: dict[tuple[Flags, int], tuple[tuple[float, float], tuple[float, float]]] = field(
-        default_factory=dict
-    )
+
+    @property
+    def gauss_markov(self) -> dict[Flags, GmParams]:
+        """Per companion flags, the likelier order's Gauss-Markov fit."""
+        return {flags: self.gm_by_order[(flags, o)] for flags, o in self.gm_order.items()}
 
     @property
     def models(self) -> list[str]:
@@ -87,7 +89,7 @@ class DriftFit:
 
     def companions(self, drift: str) -> Flags:
         """The companion flags (bias, latency) with which ``drift`` has the lowest BIC."""
-        return min(self.gauss_markov, key=lambda f: self.bic(drift_model_name(drift, f)))
+        return min(self.gm_order, key=lambda f: self.bic(drift_model_name(drift, f)))
 
 
 _DRIFT_CACHE: IdentityCache[DriftFit] = IdentityCache(6)
@@ -232,9 +234,8 @@ def _fit_drift(
             if inside:
                 zoom.half_width = zoom.half_width / 2
                 zoom.halvings += 1
-    gauss_markov: dict[Flags, tuple[tuple[float, float], tuple[float, float]]] = {}
     gm_order: dict[Flags, int] = {}
-    gm_by_order: dict[tuple[Flags, int], tuple[tuple[float, float], tuple[float, float]]] = {}
+    gm_by_order: dict[tuple[Flags, int], GmParams] = {}
     random_walk: dict[Flags, tuple[float, float]] = {}
     for (kind, flags), zoom in zooms.items():
         peak = quadratic_peak(zoom.points, zoom.loglik)
@@ -271,10 +272,7 @@ def _fit_drift(
         if zoom.gls is not None:
             coefs[name] = zoom.gls
         gm_order[flags] = order
-        gauss_markov[flags] = gm_by_order[(flags, order)]
-    return DriftFit(
-        loglik, gauss_markov, random_walk, 2 * terms.nobs, model, coefs, gm_order, gm_by_order
-    )
+    return DriftFit(loglik, gm_by_order, gm_order, random_walk, 2 * terms.nobs, model, coefs)
 
 
 # Random-walk rates (m/s^0.5) searched by :func:`random_walk_lr`: from far below anything a
@@ -319,10 +317,7 @@ def fit_gauss_markov(
         return None
     family = drift_fit(real, baseline, layout)
     flags = family.companions("gauss_markov")
-    params = family.gm_by_order.get((flags, order)) if order else family.gauss_markov[flags]
-    if params is None:
-        return None
-    sigma_m, tau_s = params[0]
+    sigma_m, tau_s = family.gm_by_order[(flags, order or family.gm_order[flags])][0]
     if not (math.isfinite(sigma_m) and math.isfinite(tau_s)) or sigma_m < 1e-4:
         return None
     return drift_effect(family, "gauss_markov", flags, layout, order)
@@ -335,10 +330,8 @@ def drift_effect(
     the report; a Gauss-Markov tau is capped at ten log lengths (beyond, it is a walk or a
     bias); ``order`` a Gauss-Markov order (None: the likelier)."""
     if drift == "gauss_markov":
-        order = order or family.gm_order.get(flags, 1)
-        (sigma_m, tau_s), (se_sigma_m, se_tau_s) = family.gm_by_order.get(
-            (flags, order), family.gauss_markov[flags]
-        )
+        order = order or family.gm_order[flags]
+        (sigma_m, tau_s), (se_sigma_m, se_tau_s) = family.gm_by_order[(flags, order)]
         tau_s = min(tau_s, 10 * layout.duration_s)
         return Fit(
             GaussMarkov(sigma_m=round(sigma_m, 4), tau_s=round(tau_s, 3), order=order),

@@ -372,8 +372,9 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
     def null(self, batteries: Sequence[Battery]) -> NullModel:
         """The null of replicate ``batteries`` (with the few-logs spread factors, if any)."""
         cells = tuple(batteries[0]) if batteries else ()
-        dof = self.dof_by_axis if self.inflation is not None else None
-        return null_model(batteries, self.level(), self.inflation, self.cell_weights(cells), dof)
+        return null_model(
+            batteries, self.level(), self.inflation, self.cell_weights(cells), self.dof_by_axis
+        )
 
     def cell_weights(self, cells: Sequence[Cell]) -> np.ndarray | None:
         """Each cell's share of the "where" test's level (default None: equal shares)."""
