@@ -238,6 +238,46 @@ def test_not_a_log_names_the_formats(tmp_path: Path) -> None:
         read_track(path)
 
 
+def test_nmea_lines_with_a_prefix_are_an_nmea_log(tmp_path: Path) -> None:
+    # Loggers put a time stamp before each sentence; gpsd's ST Teseo log doubles the "$".
+    parts = [b"2020-01-01 12:00:00 " + _rmc(_hhmmss(36_000 + k), "010120", k) for k in range(70)]
+    assert len(read_track(_write(tmp_path / "stamped.nmea", parts))) == 70
+    teseo = read_track(NMEA / "st-teseo-liv4f.log")
+    assert len(teseo) == 12 and bool(np.all(teseo.valid))
+
+
+def _gap_cli(real: Path, out_dir: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    """`x6wd gap --real REAL --sim <gpsd's ZED-F9P log>` (a real log standing in for a sim
+    log: only the reading and the checks are under test), no figures."""
+    argv = [sys.executable, "-m", "x6wd", "gap", "--real", str(real)]
+    argv += ["--sim", str(NMEA / "ublox-zed-f9p_hpg1.11.log"), "--out", str(out_dir)]
+    argv += ["--no-figures", "--quiet", *extra]
+    return subprocess.run(argv, capture_output=True, text=True, cwd=ROOT, timeout=600)
+
+
+def test_a_log_with_too_few_fixes_is_a_clear_error(tmp_path: Path) -> None:
+    # gpsd's fuzzing log: 94 epochs on a 0.1 s grid, 10 of them fixes. Counting epochs let
+    # it through, and the noise model's periodograms crashed on replicates of ten fixes.
+    done = _gap_cli(NMEA / "nmea-fuzzy-cases.log", tmp_path / "report")
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "real log has too few fixes for a gap diagnosis: 10 of 94 epochs" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+@pytest.mark.slow
+def test_every_gpsd_corpus_log_gets_a_verdict_or_a_clear_error(tmp_path: Path) -> None:
+    """Each log of gpsd's corpus (receivers, fuzzing, binary) as the real log: a report
+    (exit 0) or an error naming the problem (exit 2), never a traceback."""
+    outcomes = {}
+    for log in sorted(NMEA.glob("*.log")):
+        done = _gap_cli(log, tmp_path / log.stem, "--replicates", "8")
+        outcomes[log.name] = (done.returncode, done.stderr.strip().splitlines()[-1:])
+        assert done.returncode in (0, 2) and "Traceback" not in done.stderr, (log, done.stderr)
+        if done.returncode == 2:
+            assert done.stderr.startswith("x6wd gap: error: "), (log, done.stderr)
+    assert sum(code == 0 for code, _ in outcomes.values()) >= 4, outcomes
+
+
 # ---------------------------------------------------------------------------- memory
 
 

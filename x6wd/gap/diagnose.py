@@ -156,6 +156,7 @@ def apply_fits(
 
 
 SIM_REFIT_EVALS = 30
+MIN_FIXES = 60  # the fewest fixes a log (real or baseline) may have
 
 
 def simulation_refit(
@@ -325,12 +326,22 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
     # --- plug-ins
 
     def check(self, real: PositionSeries, baseline: Sequence[PositionSeries]) -> None:
-        if len(real) < 60:
+        if len(real) < MIN_FIXES:
             raise ConfigError(
-                f"real log too short for a gap diagnosis: {len(real)} epochs (need >= 60)"
+                f"real log too short for a gap diagnosis: {len(real)} epochs (need >= {MIN_FIXES})"
             )
         if not baseline:
             raise ConfigError("no baseline: give --sim logs or --scenario")
+        # fixes, not epochs: a log of no-fix epochs (or of a few fixes among filled-in gaps)
+        # has nothing to read its time structure from
+        for i, series in enumerate([real, *baseline]):
+            fixes = int(np.count_nonzero(series.valid))
+            if fixes < MIN_FIXES:
+                which = "real log" if i == 0 else f"baseline log {i} of {len(baseline)}"
+                raise ConfigError(
+                    f"{which} has too few fixes for a gap diagnosis: {fixes} of "
+                    f"{len(series)} epochs (need >= {MIN_FIXES})"
+                )
 
     def layout_for(self, real: PositionSeries, baseline: Sequence[PositionSeries]) -> Layout:
         return layout_for(real)

@@ -44,9 +44,11 @@ GRID_FACTOR = 10
 _CHUNK_BYTES = 1 << 20
 _SNIFF_BYTES = 1 << 16
 _MAX_CUTS = 64  # a time axis needing more cuts than this is rejected, not searched
-# A line starting like an NMEA sentence ("$GPGGA,", "!AIVDM,", "$PUBX,"): what makes a file
-# an NMEA log, wherever in the first 64 KiB it starts.
-_NMEA_HEAD = re.compile(rb"(?:^|[\r\n])[$!][A-Z][A-Z0-9]{1,5},")
+# An NMEA sentence with its checksum ("$GPGGA,...*hh", "!AIVDM,...*hh") anywhere in a line
+# of the first 64 KiB: what makes a file an NMEA log. Not only at a line's start: loggers
+# prefix lines with a time stamp or a second "$" (gpsd's ST Teseo log), and the framer skips
+# such bytes.
+_NMEA_HEAD = re.compile(rb"[$!][A-Z][A-Z0-9]{1,5},[^\r\n$!]*\*[0-9A-Fa-f]{2}")
 _TEXT_BYTES = frozenset(b"\t\n\r\f") | frozenset(range(0x20, 0x7F)) | frozenset(range(0x80, 0x100))
 
 
