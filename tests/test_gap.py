@@ -120,19 +120,32 @@ def test_a_drift_member_tied_with_the_named_one_competes_with_it(smooth_drift_ro
     # Within 2 BIC of the likelihood's pick a member ranks as the pick (both meet the other
     # effects on the held-out key); between 2 and 10 it is tried only when nothing else may
     # enter; beyond 10 never.
-    from x6wd.gap.diagnose import RoundPlan
+    from dataclasses import replace
 
     pipe, this_round, fits = smooth_drift_round
-    for tied, rank in ((True, 0), (False, 1)):
-        pipe.plan = RoundPlan(
+    run_plan = pipe.plan  # the run's lattice stays: no coarser-lattice path, and restored
+    assert run_plan.lattice == pipe.lattice
+    try:
+        for tied, rank in ((True, 0), (False, 1)):
+            pipe.plan = replace(
+                run_plan,
+                family_best=["random_walk"],
+                family_plausible={"random_walk", "gauss_markov"},
+                family_tied={"random_walk", "gauss_markov"} if tied else {"random_walk"},
+                lattice_fact=False,
+            )
+            option = pipe.consider(this_round, "gauss_markov", fits[2])
+            assert (option.rank, option.eligible) == (rank, True)
+        pipe.plan = replace(
+            run_plan,
             family_best=["random_walk"],
-            family_plausible={"random_walk", "gauss_markov"},
-            family_tied={"random_walk", "gauss_markov"} if tied else {"random_walk"},
+            family_plausible={"random_walk"},
+            family_tied={"random_walk"},
+            lattice_fact=False,
         )
-        option = pipe.consider(this_round, "gauss_markov", fits[2])
-        assert (option.rank, option.eligible) == (rank, True)
-    pipe.plan = RoundPlan(family_best=["random_walk"], family_plausible={"random_walk"})
-    assert not pipe.consider(this_round, "gauss_markov", fits[2]).eligible
+        assert not pipe.consider(this_round, "gauss_markov", fits[2]).eligible
+    finally:
+        pipe.plan = run_plan
 
 
 @pytest.mark.slow

@@ -9,7 +9,8 @@ What the GPS adds to the shared pipeline:
   whole-log likelihood names by BIC may be selected (:func:`x6wd.gap.drift.drift_fit`), with
   the bias or latency it names beside them from one joint fit;
 - an NMEA lattice coarser than the baseline's is a fact: it enters first, and the effects
-  after it are refined by simulation through the rounding (:func:`simulation_refit`);
+  after it are refined by simulation through the rounding (:func:`simulation_refit`); a
+  Gauss-Markov drift is offered at both orders and refined by simulation too;
 - decisions and the selection's closure on fresh pooled draws of the effects, and
   leave-one-out (except what the likelihood named);
 - the reported parameters (with standard errors) are refitted on the WHOLE log; the closures
@@ -89,6 +90,7 @@ BIC_DECISIVE = 10.0
 # key (a smooth drift the likelihood put 1.8 behind a random walk closed 1.31, the walk
 # -0.27; demoted, it never met the correction that entered at 0.30)
 BIC_TIE = 2.0
+MIN_FIXES = 60  # the fewest fixes a log (real or baseline) may have
 FINAL_DRAWS = 4  # fresh draws of an effect ensemble, pooled, for decisions and the closure
 # Whole-log cell: signed root likelihood ratio of a random walk on top of the baseline noise
 # model (see :func:`x6wd.gap.drift.random_walk_lr`).
@@ -161,7 +163,6 @@ def apply_fits(
 
 
 SIM_REFIT_EVALS = 30
-MIN_FIXES = 60  # the fewest fixes a log (real or baseline) may have
 
 
 def simulation_refit(
@@ -181,8 +182,10 @@ def simulation_refit(
     additive: an effect that moves the position makes it cross lattice lines faster, which a
     likelihood on top of the quantised baseline's own noise credits to the effect (a 0.8 m /
     60 s drift under a 1.85 m lattice fitted as 0.74 m / 19 s, or on another log as 0.16 m /
-    2.3 s, too far for a short local search). A parameter moved by simulation has no standard
-    error (NaN): the analytical one belongs to another point."""
+    2.3 s, too far for a short local search). The same search refines a Gauss-Markov drift
+    whose likelihood stands on a noise model that misfits the log's slow error
+    (:meth:`GpsPipeline._better_gauss_markov`). A parameter moved by simulation has no
+    standard error (NaN): the analytical one belongs to another point."""
     from scipy.optimize import minimize
 
     keys = SIM_REFIT.get(fit.name, ())
@@ -524,10 +527,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
             fit = self._better_gauss_markov(this_round, fit)
             order = fit.effect.order if isinstance(fit.effect, GaussMarkov) else None
         if refit:
-            fit = simulation_refit(
-                fit, this_round.selected, split.real_fit_battery, split.baseline_fit,
-                split.fit_layout, plan.lattice, split.ref_sd_fit,
-            )  # fmt: skip
+            fit = self._refined(this_round, fit)
         key, g_effect, null, with_runs = self.evaluate([*this_round.selected, fit])
         fits, g_fits = [fit], g_effect
         forced: list[str] = []  # companions named beside it by the likelihood
@@ -592,13 +592,19 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
             offers.append(other)
         keys = [self.evaluate([*this_round.selected, f])[0] for f in offers]
         best, key = min(zip(offers, keys, strict=True), key=lambda fk: fk[1])
-        refined = simulation_refit(
-            best, this_round.selected, split.real_fit_battery, split.baseline_fit,
-            split.fit_layout, self.plan.lattice, split.ref_sd_fit,
-        )  # fmt: skip
+        refined = self._refined(this_round, best)
         if refined is best or self.evaluate([*this_round.selected, refined])[0] >= key:
             return best
         return refined
+
+    def _refined(self, this_round: Round[PositionSeries], fit: Fit) -> Fit:
+        # simulation_refit on the fit part, on top of the round's selection, printed on the
+        # round's lattice
+        split = self.split
+        return simulation_refit(
+            fit, this_round.selected, split.real_fit_battery, split.baseline_fit,
+            split.fit_layout, self.plan.lattice, split.ref_sd_fit,
+        )  # fmt: skip
 
     def report_fits(
         self, selected: list[Fit], scored: dict[str, pipeline.Candidate], outcome: Diagnosis
