@@ -4,6 +4,8 @@ logs, is not scored as if three logs pinned its spread (issue 15)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -18,6 +20,7 @@ from x6wd.gap.noise import (
     axis_laws,
     drawn_laws,
     law_spread,
+    slow_error_dof,
 )
 from x6wd.gap.null import between_log_dof, null_model
 from x6wd.gap.scenario import scenario_baseline
@@ -145,35 +148,57 @@ def test_per_log_cells_take_a_t_limit_with_the_logs_few_degrees_of_freedom() -> 
     rng = np.random.default_rng(3)
     cells = (
         Cell("mean", "east"),
-        Cell("log_std", "east"),
+        Cell("log_step_std", "east"),
         Cell("random_walk_lr", "horizontal"),
         Cell("step_tail", "north"),
+        Cell("acf", "north", "lag=10s"),
+        Cell("log_cep50", "horizontal"),
+        Cell("log_std", "east"),
     )
-    rows = [dict(zip(cells, rng.normal(size=4), strict=True)) for _ in range(20)]
+    rows = [dict(zip(cells, rng.normal(size=len(cells)), strict=True)) for _ in range(20)]
     dof = {"east": 3.0, "north": 3.0, "horizontal": 3.0}
     runs = null_model(rows, 0.01).limits()
     few = null_model(rows, 0.01, {("*", "*"): 1.0}, None, dof).limits()
     assert few[1] == pytest.approx(runs[1])  # a within-log statistic: the replicates decide
-    # an hour's mean, slow wander and step tail: t with the logs' 3 dof, not the replicates' 19
-    assert np.all(few[[0, 2, 3]] > 2.5 * runs[[0, 2, 3]])
+    # an hour's mean, slow wander, step tail, autocorrelation and spread: t with the logs'
+    # 3 dof, not the replicates' 19
+    per_log = [0, 2, 3, 4, 5, 6]
+    assert np.all(few[per_log] > 2.5 * runs[per_log])
     assert np.all(np.isinf(between_log_dof(cells, None)))
-    assert np.array_equal(between_log_dof(cells, dof), [3.0, np.inf, 3.0, 3.0])
+    assert np.array_equal(between_log_dof(cells, dof), [3.0, np.inf, 3.0, 3.0, 3.0, 3.0, 3.0])
+
+
+def test_a_few_hours_count_one_draw_of_the_slow_error_each() -> None:
+    # An hour's fit finds the simulator's multipath (300-450 s), not its hour-long
+    # ionosphere, troposphere and orbit errors: counted from the fit, three hours held 8.6
+    # draws of their means; they hold about three. Longer logs hold more.
+    law = AxisLaw(np.array([0.5, 1.5]), np.array([8.0, 400.0]), 0.1, 0.0)
+    laws = [law, law, law]
+    assert slow_error_dof(laws, 3, 3600.0)["east"] == pytest.approx(3.0)
+    assert slow_error_dof(laws, 3, 36_000.0)["north"] == pytest.approx(3 * 10 / math.pi)
+    slower = AxisLaw(np.array([0.5, 1.5]), np.array([8.0, 20_000.0]), 0.1, 0.0)
+    assert slow_error_dof([slower] * 3, 3, 36_000.0)["east"] == pytest.approx(3.0)
+    # one short log: never below 3, where a t limit would run to hundreds of spreads
+    assert slow_error_dof(laws, 1, 900.0)["horizontal"] == pytest.approx(3.0)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "seed",
-    [200_412, 200_471, 200_472],
-    ids=["hour-means", "walk-ratio", "step-tail"],
+    [200_412, 200_471, 200_472, 200_589, 200_660],
+    ids=["hour-means", "walk-ratio", "step-tail", "autocorrelation", "hour-spread"],
 )
 def test_three_simulated_hours_no_alarm_on_an_hour_they_do_not_span(tmp_path, seed: int) -> None:
     # No-effect hours of the simulated NEO-5 (the benchmark's cases) that three other hours
     # do not span in a per-log statistic: 200412's mean is 3.2 m east and north (2.5 and 1.9
     # of the simulator's spreads of hour means, 1.3 and 1.7 m) while its three baseline
     # hours sit within 1 m, and replicates of their law spread hour means by 0.6 m (north z
-    # 5.2 against 4.2); 200471's walk ratio read 9.9, 200472's north step tail 7.5. With the
-    # three logs' few degrees of freedom each is no gap. Watched to alarm with
-    # between_log_dof returning inf for every cell.
+    # 5.2 against 4.2); 200471's walk ratio read 9.9, 200472's north step tail 7.5; 200589
+    # decorrelates faster than its three baseline hours (north autocorrelation at 10 s, z
+    # -6.1 against 5.5), 200660 sits far off in the north (hour mean z -12.1 against 5.6 with
+    # the fit's 10 dof, then CEP50 4.9 against 4.2). With the three logs' few degrees of
+    # freedom each is no gap. Watched to alarm with between_log_dof returning inf for every
+    # cell (the last two: with the statistics and the slow-time floor of 2026-12-02 undone).
     real, sims = _benchmark_case(tmp_path, seed)
     d = diagnose(real, sims, np.random.default_rng(0), Options(replicates=20))  # CLI defaults
     assert d.bootstrap

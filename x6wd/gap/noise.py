@@ -503,17 +503,29 @@ WholeLogCells = Callable[
 AXIS_NAMES = ("east", "north", "up")  # the order of :func:`axis_laws`
 
 
+# The shortest correlation time assumed for the slowest error (s). GNSS's slow errors
+# (ionosphere, troposphere, orbit and clock; the simulator's run at 1800-3600 s) decorrelate
+# over about an hour, which an hour's fit cannot see: on three simulated NEO-5 hours it found
+# 300-450 s (the multipath's 300 s) and so counted three times the draws the hours hold.
+SLOW_TAU_FLOOR_S = 3600.0
+# The fewest degrees of freedom given: a t law with 2 or fewer has no finite variance, and
+# its family-wise limit runs to hundreds of spreads (one sim log would then flag no bias of
+# any size; 3 dof is about what one 15-minute log of a 2-minute drift pins).
+MIN_SLOW_DOF = 3.0
+
+
 def slow_error_dof(laws: Sequence[AxisLaw], n_logs: int, duration_s: float) -> dict[str, float]:
     """Per axis, the degrees of freedom with which ``n_logs`` logs of ``duration_s`` (s) pin
-    the spread of their means: that spread is the slow error's low-frequency level, read
-    from the periodogram ordinates below its corner 1 / (2 pi tau) (tau its longest
-    correlation time), duration / (2 pi tau) per log and two dof each; at least one per log.
-    On three simulated NEO-5 hours (fitted tau 300-450 s) that is about 8-11. "horizontal":
-    the smaller of east and north."""
-    dof = {
-        name: n_logs * max(1.0, duration_s / (math.pi * float(np.max(law.tau_s))))
-        for name, law in zip(AXIS_NAMES, laws, strict=False)
-    }
+    the spread of their per-log statistics (means, spread, autocorrelation: the slow error's
+    low-frequency level), read from the periodogram ordinates below its corner 1 / (2 pi tau):
+    duration / (2 pi tau) per log and two dof each, at least one per log, and no fewer than
+    :data:`MIN_SLOW_DOF` in all. tau is the longest fitted correlation time, but no shorter
+    than :data:`SLOW_TAU_FLOOR_S`: one per log for logs of up to about three hours.
+    "horizontal": the smaller of east and north."""
+    dof = {}
+    for name, law in zip(AXIS_NAMES, laws, strict=False):
+        tau_s = max(float(np.max(law.tau_s)), SLOW_TAU_FLOOR_S)
+        dof[name] = max(MIN_SLOW_DOF, n_logs * max(1.0, duration_s / (math.pi * tau_s)))
     dof["horizontal"] = min(dof["east"], dof["north"])  # whole-plane cells
     return dof
 

@@ -252,9 +252,13 @@ def tail_dof(z_loo: np.ndarray) -> np.ndarray:
 
 # Statistics an hour holds only a few independent draws of, so that n logs pin their spread
 # with few degrees of freedom, whatever the replicates made of them say
-# (:func:`between_log_dof`): the means and the random walk's likelihood ratio read the slow
-# error (a few correlation times an hour), the step tail the few bad-geometry episodes.
-PER_LOG_STATISTICS = frozenset({"mean", "random_walk_lr", "step_tail"})
+# (:func:`between_log_dof`): the means, the spread about the origin (std, CEP50, R95), the
+# autocorrelation (normalised by the hour's variance) and the random walk's likelihood
+# ratio all read the slow error, most of an hour's variance and a correlation time of about
+# an hour; the step tail reads the few bad-geometry episodes.
+PER_LOG_STATISTICS = frozenset(
+    {"mean", "log_std", "log_cep50", "log_r95", "acf", "random_walk_lr", "step_tail"}
+)
 
 
 def between_log_dof(cells: Sequence[Cell], dof_by_axis: Mapping[str, float] | None) -> np.ndarray:
