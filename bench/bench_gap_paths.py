@@ -342,7 +342,8 @@ def run(
     first no-effect logs of each path, to add new ones to an earlier run's)."""
     # default: about 10 min on 2 free cores (60 cases); the latest figures in docs/gap.md are
     # from --levels moderate,strong with --reps 1 --nulls 93 and then --kinds none --nulls 140
-    # --nulls-from 93 (seeds), --reps 2 --nulls 100 --nulls-from 60 (few logs): 0 of n
+    # --nulls-from 93 (seeds), --reps 2 --nulls 100 --nulls-from 60 (few logs; the latest
+    # few-logs hours: --levels none --reps 2 --nulls 902 --nulls-from 662): 0 of n
     # no-effect logs bounds the false alarms below 5 % only from n = 59, 2 of n from n = 124;
     # a change that acts only after the "where" step can rerun the effect cases (--nulls 0)
     reps = reps if reps is not None else 1
