@@ -545,7 +545,7 @@ def few_logs_null(
     the logs' laws differ (:func:`drawn_laws`; with one log the pooled law), the spread
     factors that make it honest
     (:func:`x6wd.gap.null.inflation_from`: each log scored against replicates of the
-    others; with one log only the floor) and the degrees of freedom of the spread of means
+    others; with one log only the floor) and the degrees of freedom of the per-log statistics
     per axis (:func:`slow_error_dof`). ``block_s`` the innovation blocks (default 1/30 of the
     log, at least 30 steps), ``jitter_s`` how far from the same time a block may come
     (default 1/12 of the log): innovations at exactly the same times of n logs would give

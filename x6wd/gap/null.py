@@ -306,7 +306,7 @@ def null_model(
     maximum of |z| / limit: the cells are not exactly Student-t (an hour of the simulator
     can sit 8 spreads off in several cells at once), though with M replicates that
     quantile is coarse, hence the parametric bounds beneath it. ``dof_by_axis``: a few-logs
-    null's degrees of freedom of the spread of means per axis; those cells
+    null's degrees of freedom of its per-log statistics per axis; those cells
     (:func:`between_log_dof`) get a t limit with them (the two dof combined as
     1 / (1 / tail + 1 / logs))."""
     if len(batteries) < 3:

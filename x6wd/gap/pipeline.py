@@ -322,7 +322,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         self.split: Split[SeriesT, LayoutT]
         # spread factors of a parametric null (few baseline logs), None for simulator runs
         self.inflation: Inflation | None = None
-        # a few-logs null's degrees of freedom of the spread of means per axis (None: runs)
+        # a few-logs null's dof of its per-log statistics per axis (None: runs)
         self.dof_by_axis: dict[str, float] | None = None
 
     # --- the sensor's plug-ins -----------------------------------------------------------------
