@@ -49,7 +49,6 @@ import argparse
 import math
 import os
 import sys
-import tempfile
 import time
 import traceback
 from collections.abc import Sequence
@@ -191,8 +190,8 @@ def _finite(values: list[Any]) -> list[float]:
 
 
 def run_one(scenario: str | Path, method: str, seed: int) -> RunResult:
-    """One mission of the scenario file with METHOD ``method`` and ``seed``, in a temporary
-    directory deleted afterwards. Never raises: an exception becomes ``error``."""
+    """One mission of the scenario file with METHOD ``method`` and ``seed``, its summary
+    only (no files). Never raises: an exception becomes ``error``."""
     path = Path(scenario)
     res = RunResult(scenario=path.stem, method=method, seed=int(seed))
     t0 = time.perf_counter()
@@ -205,8 +204,7 @@ def run_one(scenario: str | Path, method: str, seed: int) -> RunResult:
         world = method_world(base, method)
         res.cruise_mps = world.vehicle.max_speed_mps * world.navigation.cruise_pct / 100.0
         res.windows_m = (world.navigation.delta_x_m, world.navigation.delta_y_m)
-        with tempfile.TemporaryDirectory(prefix="bench_mission_") as out:
-            s = run_mission(world, out, seed=int(seed))
+        s = run_mission(world, None, seed=int(seed))
         res.completed = bool(s.completed)
         res.waypoints_reached = s.waypoints_reached
         res.waypoint_count = s.waypoint_count

@@ -136,13 +136,16 @@ class _Trace:
 
 def run_mission(
     world: World,
-    out_dir: str | Path,
+    out_dir: str | Path | None,
     seed: int | None = None,
     duration_s: float | None = None,
     progress: Callable[[float, float], None] | None = None,
     operator: Callable[[float, Runner], None] | None = None,
 ) -> Summary:
-    """Run ``world``'s mission in simulated time and write the output files into ``out_dir``.
+    """Run ``world``'s mission in simulated time and write the output files into ``out_dir``
+    (None: no files, only the returned :class:`Summary`, whose figures are the same; a sweep
+    cell keeps nothing else, and the recording, NMEA, truth and plot were a third of a
+    short mission's time).
 
     ``seed`` overrides the scenario's seed, ``duration_s`` its duration (s, simulated); the run
     ends ``DONE_TAIL_S`` after the mission completes, or at the duration. ``progress(t_s,
@@ -168,7 +171,7 @@ def run_mission(
         plan.gps_every,
         plan.n_ticks,
     )
-    out = output_dir(out_dir)
+    out = output_dir(out_dir) if out_dir is not None else None
     rand = SimRandom.from_seed(seed)
     receiver = build_receiver(world, rand)
     uart = MemoryUart(receiver.baud)
@@ -203,8 +206,11 @@ def run_mission(
     holds: list[list[float]] = []  # [start, end]
     done_at: float | None = None
 
-    nmea_file = open(out / "gps.nmea", "wb")  # noqa: SIM115 - closed in finally
-    (out / "recording.jsonl").unlink(missing_ok=True)
+    nmea_file: Any = _NoFiles()
+    rec: Any = _NoFiles()
+    if out is not None:
+        nmea_file = open(out / "gps.nmea", "wb")  # noqa: SIM115 - closed in finally
+        (out / "recording.jsonl").unlink(missing_ok=True)
     # The recorder writes aware times as naive UTC; handing it naive UTC already skips a
     # conversion per record (thousands per mission) and gives the same text.
     utc0_naive = utc0.astimezone(UTC).replace(tzinfo=None) if utc0.tzinfo else utc0
@@ -219,12 +225,13 @@ def run_mission(
         dt: datetime = utc_memo[1]
         return dt
 
-    rec = Recorder(
-        out / "recording.jsonl",
-        clock=lambda: now[0],
-        utc_clock=utc_clock,
-        buffer_bytes=RECORDER_BUFFER_BYTES,
-    )
+    if out is not None:
+        rec = Recorder(
+            out / "recording.jsonl",
+            clock=lambda: now[0],
+            utc_clock=utc_clock,
+            buffer_bytes=RECORDER_BUFFER_BYTES,
+        )
 
     arrivals: list[dict[str, Any]] = []
     last_fix: list[tuple[GpsFix, int] | None] = [None]  # latest usable fix, its epoch tick
@@ -291,7 +298,7 @@ def run_mission(
         world.safety,
         lambda: now[0],
         motors=lambda cmd: vehicle.command(cmd.left_pct, cmd.right_pct),
-        record=recorder_call,
+        record=recorder_call if out is not None else None,
         observe=observe,
     )
     mission_state: dict[str, Any] = {"loaded": not waypoints, "rejected": None}
@@ -415,7 +422,8 @@ def run_mission(
 
     truth_e = np.array(trace.east)
     truth_n = np.array(trace.north)
-    _write_truth(out / "truth.csv", world, trace, antenna_m)
+    if out is not None:
+        _write_truth(out / "truth.csv", world, trace, antenna_m)
     raw_err, filt_err, fix_enu, filt_enu = _errors(world, trace)
     path_len = float(np.sum(np.hypot(np.diff(truth_e), np.diff(truth_n))))
     pts = np.vstack([[world.vehicle.start_east_m, world.vehicle.start_north_m], wp_enu])
@@ -464,9 +472,20 @@ def run_mission(
             "effects_skipped": list(compass_skipped),
         },
     )
-    (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
-    plot_track(out / "track.png", world, truth_e, truth_n, fix_enu, filt_enu, wp_enu, summary)
+    if out is not None:
+        (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+        plot_track(out / "track.png", world, truth_e, truth_n, fix_enu, filt_enu, wp_enu, summary)
     return summary
+
+
+class _NoFiles:
+    """Stands in for the NMEA file and the recorder of a run without files: takes every
+    write and record and keeps nothing."""
+
+    def _nothing(self, *_args: Any, **_kwargs: Any) -> None:
+        return None
+
+    write = close = record_event = record_nmea = _nothing
 
 
 def _static_bursts(receiver: Any, t_s: np.ndarray, pos_enu_m: np.ndarray) -> Callable[[int], bytes]:

@@ -304,8 +304,9 @@ def plan(spec: SweepSpec) -> list[Run]:
 
 
 def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
-    """One mission (on a worker): the scenario TOML with ``seed``, in a temporary directory.
-    Never raises for a failed mission: the record's ``status`` is "error" with ``error``."""
+    """One mission (on a worker): the scenario TOML with ``seed``, its summary only (no
+    files: a sweep keeps the figures). Never raises for a failed mission: the record's
+    ``status`` is "error" with ``error``."""
     t0 = time.perf_counter()
     rec: dict[str, Any] = {
         "run_id": run_id,
@@ -315,8 +316,7 @@ def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
     }
     try:
         world = loads_world(world_toml, source=run_id)
-        with tempfile.TemporaryDirectory(prefix="x6wd_sweep_") as out:
-            s = run_mission(world, out, seed=int(seed))
+        s = run_mission(world, None, seed=int(seed))
         rec.update(
             completed=bool(s.completed),
             waypoints_reached=int(s.waypoints_reached),

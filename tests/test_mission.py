@@ -123,6 +123,20 @@ def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path: Path) -> None:
     assert rec_a == (tmp_path / "b" / "recording.jsonl").read_bytes()
 
 
+def test_a_run_without_files_has_the_same_summary_and_writes_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, default_run: tuple[Path, Summary]
+) -> None:
+    # What a sweep cell runs (out_dir None): the figures must be those of the run with files,
+    # computed here in the same process (the module's run of default.toml, its seed).
+    monkeypatch.chdir(tmp_path)
+    bare = run_mission(load_world(SCENARIOS / "default.toml"), None)
+    _out, with_files = default_run
+    a, b = bare.to_dict(), with_files.to_dict()
+    a.pop("wall_time_s"), b.pop("wall_time_s")
+    assert a == b and bare.completed
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_static_survey_reports_the_papers_dispersion(tmp_path: Path) -> None:
     world = load_world(SCENARIOS / "open_field.toml")
     s = run_mission(world, tmp_path, duration_s=60.0)
