@@ -39,7 +39,10 @@ decoding is 1.3-1.5x (corpus) and 1.4-1.6x (NEO-5 hour) as fast as ad4fa7e's. Th
 start-up rose from about 150 ms to 170-190 ms (a larger decode module, compiled at every
 start where bytecode is not written, as here). On an idle machine gpsdecode gained more
 than x6wd in earlier sessions (NEO-5 hour 0.59 at load 0.2 against 0.77 at load 2.5-4.4
-with the old method): not measured idle this time (the machine never was).
+with the old method): not measured idle this time (the machine never was). Idle on
+2026-12-02 (load average 0.01, code of b09db0a, one run of 15 rounds): gpsd corpus 1.236
+(rounds 0.80-3.64), NEO-5 hour 1.54 (0.80-3.21), corpus x4 1.48; with start-up counted
+(x6wd about 205 ms, gpsdecode 3.2 ms) the whole processes compare 0.54 and 0.68, x4 1.2.
 
 How x6wd decodes (x6wd/app/decode.py, drivers/gps_nmea.py): in reads of 1 MiB the framer
 finds runs of well-formed lines with one literal-repeat regex on a translated copy and
