@@ -216,6 +216,33 @@ def dispersion_m(dlat_deg: np.ndarray, dlon_deg: np.ndarray) -> tuple[float, flo
     return half_lat, half_lon
 
 
+MAX_WAYPOINT_LABELS = 40
+"""The plot numbers at most this many waypoints: a long route's labels would cover it (and
+took matplotlib about a second per 200)."""
+MAX_PATH_POINTS = 50_000
+"""The true path is drawn through at most this many of its ticks (a 10 h mission at 20 Hz
+has 720,000; on 700 px a tick in 15 is no visible loss)."""
+
+
+def waypoint_labels(wp_enu: np.ndarray, most: int = MAX_WAYPOINT_LABELS) -> list[tuple[int, str]]:
+    """The waypoint numbers the plot prints, as (index of the first waypoint at the place,
+    text), for the waypoints ``wp_enu`` (N, 2) m. The numbers at one place (to the
+    centimetre: a route that comes back, or laps) share a label, "1,5,9..." after three; of
+    more than ``most`` (>= 2) places, ``most`` spread evenly along the route are labelled,
+    the first and the last among them."""
+    at: dict[tuple[float, float], list[int]] = {}
+    for i, (e, n) in enumerate(np.asarray(wp_enu, dtype=float)[:, :2].tolist()):
+        at.setdefault((round(e, 2), round(n, 2)), []).append(i)
+    places = list(at.values())  # in the order of their first visit
+    if len(places) > most:
+        picks = sorted({round(k * (len(places) - 1) / (most - 1)) for k in range(most)})
+        places = [places[k] for k in picks]
+    return [
+        (idx[0], ",".join(str(i + 1) for i in idx[:3]) + ("..." if len(idx) > 3 else ""))
+        for idx in places
+    ]
+
+
 def plot_track(
     path: Path,
     world: World,
@@ -253,11 +280,15 @@ def plot_track(
             ax.plot(truth_e[:1], truth_n[:1], "P", ms=12, color="tab:blue", mec="white",
                     label="true position", zorder=4)  # fmt: skip
         else:
-            ax.plot(truth_e, truth_n, "-", lw=2, color="tab:blue", label="true path", zorder=4)
+            step = -(-truth_e.size // MAX_PATH_POINTS)
+            keep = np.r_[np.arange(0, truth_e.size - 1, step), truth_e.size - 1]
+            ax.plot(truth_e[keep], truth_n[keep], "-", lw=2, color="tab:blue", label="true path",
+                    zorder=4)  # fmt: skip
         if len(wp_enu):
             ax.plot(wp_enu[:, 0], wp_enu[:, 1], "k*", ms=12, label="waypoints", zorder=5)
-            for i, (e, n) in enumerate(wp_enu):
-                ax.annotate(str(i + 1), (e, n), textcoords="offset points", xytext=(6, 6))
+            for i, text in waypoint_labels(wp_enu):
+                e, n = wp_enu[i]
+                ax.annotate(text, (e, n), textcoords="offset points", xytext=(6, 6))
         ax.set_xlabel("east (m)")
         ax.set_ylabel("north (m)")
         ax.set_aspect("equal", adjustable="datalim")

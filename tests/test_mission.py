@@ -137,6 +137,22 @@ def test_a_run_without_files_has_the_same_summary_and_writes_nothing(
     assert list(tmp_path.iterdir()) == []
 
 
+def test_the_plot_numbers_each_place_once_and_at_most_forty() -> None:
+    from sim_backend.runs import MAX_WAYPOINT_LABELS, waypoint_labels
+
+    square = [[0.0, 25.0], [25.0, 25.0], [25.0, 0.0], [0.0, 0.0]]
+    assert waypoint_labels(np.array(square)) == [(0, "1"), (1, "2"), (2, "3"), (3, "4")]
+    # laps (bench_sim_cli's hour): one label per corner, not 120 drawn over each other
+    laps = waypoint_labels(np.array(square * 120))
+    assert laps == [(0, "1,5,9..."), (1, "2,6,10..."), (2, "3,7,11..."), (3, "4,8,12...")]
+    assert waypoint_labels(np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 0.004]])) == [
+        (0, "1,3"),
+        (1, "2"),
+    ]
+    line = waypoint_labels(np.c_[np.arange(500.0), np.zeros(500)])
+    assert len(line) == MAX_WAYPOINT_LABELS and line[0] == (0, "1") and line[-1] == (499, "500")
+
+
 def test_static_survey_reports_the_papers_dispersion(tmp_path: Path) -> None:
     world = load_world(SCENARIOS / "open_field.toml")
     s = run_mission(world, tmp_path, duration_s=60.0)
