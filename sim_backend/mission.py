@@ -63,7 +63,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, BinaryIO, cast
 
 import numpy as np
 
@@ -206,8 +206,8 @@ def run_mission(
     holds: list[list[float]] = []  # [start, end]
     done_at: float | None = None
 
-    nmea_file: Any = _NoFiles()
-    rec: Any = _NoFiles()
+    nmea_file: BinaryIO | _NoFiles = _NoFiles()
+    rec: Recorder | _NoFiles = _NoFiles()
     if out is not None:
         nmea_file = open(out / "gps.nmea", "wb")  # noqa: SIM115 - closed in finally
         (out / "recording.jsonl").unlink(missing_ok=True)

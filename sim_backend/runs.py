@@ -18,6 +18,7 @@ import numpy as np
 from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
 from sim_backend.world import World
 from x6wd.core.errors import ConfigError
+from x6wd.core.thinning import thinned_indices
 from x6wd.nav.geo import R1_M, R2_M  # the paper's two radii (x = Λ·R1, y = Φ·R2)
 
 ENGINES = ("auto", "robot", "receiver")
@@ -230,6 +231,8 @@ def waypoint_labels(wp_enu: np.ndarray, most: int = MAX_WAYPOINT_LABELS) -> list
     centimetre: a route that comes back, or laps) share a label, "1,5,9..." after three; of
     more than ``most`` (>= 2) places, ``most`` spread evenly along the route are labelled,
     the first and the last among them."""
+    if most < 2:
+        raise ValueError(f"most must be at least 2, got {most}")
     at: dict[tuple[float, float], list[int]] = {}
     for i, (e, n) in enumerate(np.asarray(wp_enu, dtype=float)[:, :2].tolist()):
         at.setdefault((round(e, 2), round(n, 2)), []).append(i)
@@ -280,8 +283,7 @@ def plot_track(
             ax.plot(truth_e[:1], truth_n[:1], "P", ms=12, color="tab:blue", mec="white",
                     label="true position", zorder=4)  # fmt: skip
         else:
-            step = -(-truth_e.size // MAX_PATH_POINTS)
-            keep = np.r_[np.arange(0, truth_e.size - 1, step), truth_e.size - 1]
+            keep = thinned_indices(truth_e.size, MAX_PATH_POINTS)
             ax.plot(truth_e[keep], truth_n[keep], "-", lw=2, color="tab:blue", label="true path",
                     zorder=4)  # fmt: skip
         if len(wp_enu):

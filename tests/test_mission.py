@@ -153,6 +153,22 @@ def test_the_plot_numbers_each_place_once_and_at_most_forty() -> None:
     assert len(line) == MAX_WAYPOINT_LABELS and line[0] == (0, "1") and line[-1] == (499, "500")
 
 
+def test_a_long_path_is_thinned_to_its_limit_keeping_both_ends() -> None:
+    from sim_backend.runs import MAX_PATH_POINTS, waypoint_labels
+    from x6wd.core.thinning import thinned_indices
+
+    assert thinned_indices(5, 10).tolist() == [0, 1, 2, 3, 4]
+    assert thinned_indices(10, 4).tolist() == [0, 3, 6, 9]
+    ticks = 720_000  # a 10 h mission at 20 Hz
+    idx = thinned_indices(ticks, MAX_PATH_POINTS)
+    assert idx[0] == 0 and idx[-1] == ticks - 1 and len(idx) <= MAX_PATH_POINTS + 1
+    assert np.all(np.diff(idx) > 0)
+    with pytest.raises(ValueError, match="limit"):
+        thinned_indices(10, 0)
+    with pytest.raises(ValueError, match="most"):
+        waypoint_labels(np.zeros((5, 2)), most=1)
+
+
 def test_static_survey_reports_the_papers_dispersion(tmp_path: Path) -> None:
     world = load_world(SCENARIOS / "open_field.toml")
     s = run_mission(world, tmp_path, duration_s=60.0)

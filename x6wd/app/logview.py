@@ -44,6 +44,7 @@ from x6wd.core.recorder import (
     recording_parts,
 )
 from x6wd.core.records import GpsFix, GpsSky, Mode, NavState
+from x6wd.core.thinning import thinned_indices
 from x6wd.nav.geo import LocalTangentPlane
 
 PANELS = ("track", "error", "hdop", "satellites", "heading", "states", "holds", "faults")
@@ -618,10 +619,7 @@ def _esc(s: str) -> str:
 
 
 def _thin(t: np.ndarray, v: np.ndarray, limit: int = MAX_POINTS) -> tuple[np.ndarray, np.ndarray]:
-    if len(t) <= limit:
-        return t, v
-    stride = math.ceil(len(t) / limit)
-    idx = np.r_[np.arange(0, len(t), stride), len(t) - 1]
+    idx = thinned_indices(len(t), limit)
     return t[idx], v[idx]
 
 

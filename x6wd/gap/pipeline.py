@@ -576,7 +576,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         if self.leave_one_out and len(selected) > 1:
             selected, g_current = self._leave_one_out(selected, keep, g_current)
         if len(selected) > 1:
-            selected = self._by_share(selected, outcome.where)
+            selected = self._explaining_first(selected, outcome.where)
         self._report(outcome, selected, scored, g_current)
 
     def _add_one_in(
@@ -673,7 +673,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
                 g_current = g_rest
         return selected, g_current
 
-    def _by_share(self, selected: list[Fit], where: Sequence[dict[str, Any]]) -> list[Fit]:
+    def _explaining_first(self, selected: list[Fit], where: Sequence[dict[str, Any]]) -> list[Fit]:
         """The selection, the effect that explains where the gap was found first: each is
         scored on the held-out part with the others alone, by the z^2 left in the flagged
         cells ("where"; G where none of them is in the held-out battery), most first. The
@@ -682,9 +682,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         little from the runs', which the drift closes most of G with), and the first
         effect is the report's answer."""
         self.say("ordering the effects", 0.96)
-        flagged = {
-            Cell(w["statistic"], w["axis"], w["scale"], w["period"], w["place"]) for w in where
-        }
+        flagged = {Cell(*(w[k] for k in Cell._fields)) for w in where}  # where_cells' dicts
         real = self.split.real_test_battery
         left: list[tuple[float, float]] = []
         for f in selected:
