@@ -59,6 +59,30 @@ def test_drawn_laws_spread_as_the_logs_laws_do() -> None:
     assert drawn_laws(one, pooled, 5, layout, rng) is None
 
 
+def test_a_drawn_law_stays_near_the_span_of_the_logs_laws() -> None:
+    # Three simulated NEO-5 hours whose north white noise came out 0, 0.39 and 0 m (the fast
+    # Gauss-Markov component took it over in two): drawn in log-parameters, 3 of 20 laws had
+    # 21-190 m of it, and their replicates' spurious jumps hid 2.5 m jumps in a real hour.
+    logs = [hour_log(tau, 700 + i, 1200.0) for i, tau in enumerate((6.0, 12.0, 24.0))]
+    layout = layout_for(logs[0])
+    rng = np.random.default_rng(1)
+    pooled = axis_laws(logs, layout)
+    spread = law_spread(logs, pooled, logs[0], layout, rng)
+    white = 4  # east's white noise in the law vector (sigmas, taus, white)
+    per_log = spread.per_log.copy()
+    per_log[:, white] = np.log([1e-6, 0.39, 1e-6])
+    wide = LawSpread(per_log, spread.fit_var)
+    laws = drawn_laws(wide, pooled, 400, layout, rng)
+    assert laws is not None
+    drawn_m = np.array([law[0].white_m for law in laws])
+    high_m = 2.0 * max(0.39, pooled[0].white_m)  # LAW_DRAW_MARGIN beyond the span
+    assert np.max(drawn_m) <= high_m * (1 + 1e-9)
+    assert np.mean(drawn_m > 0.39) < 0.5  # most stay inside the span: a bound, not a pile-up
+    # the other parameters draw as before, well inside their logs' span
+    tau_s = np.array([min(law[0].tau_s) for law in laws])
+    assert np.std(np.log(tau_s)) > 0.1
+
+
 @pytest.mark.slow
 def test_three_logs_no_alarm_on_an_hour_whose_law_is_within_theirs() -> None:
     # The benchmark's two few-logs false alarms were this: three simulator hours fitted

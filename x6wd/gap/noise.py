@@ -469,6 +469,16 @@ def law_spread(
     return LawSpread(per_log, np.var(np.array(draws), axis=0, ddof=1))
 
 
+# How far beyond the span of the logs' own laws a drawn law's parameter may go (a factor).
+# The draws are Gaussian in log-parameters, and a parameter that one log's fit puts near 0
+# (the white noise, when the fast Gauss-Markov component takes it over) spreads by many
+# units in log: on three simulated NEO-5 hours whose north white noise came out 0, 0.39 and
+# 0 m, 3 of 20 drawn laws had 21-190 m of it, and their replicates (up to 29 "steady
+# jumps" where the logs had none) widened every cell's spread and limit, hiding jumps of
+# 2-2.5 m that the logs' own hours tell apart at once.
+LAW_DRAW_MARGIN = 2.0
+
+
 def drawn_laws(
     spread: LawSpread,
     pooled: Sequence[AxisLaw],
@@ -479,7 +489,9 @@ def drawn_laws(
     """``n_out`` sets of axis laws around ``pooled``: the logs' deviations from their mean
     law, each parameter's shrunk by the part a one-log fit's scatter explains, combined with
     Gaussian weights (the covariance of the logs' laws, parameters' correlations kept) and
-    widened by sqrt(1 + 1/n), as for one more log. None with fewer than two logs."""
+    widened by sqrt(1 + 1/n), as for one more log; each parameter kept within
+    ``LAW_DRAW_MARGIN`` times the span of the logs' and the pooled law's. None with fewer
+    than two logs."""
     n = spread.per_log.shape[0]
     if n < 2:
         return None
@@ -488,9 +500,15 @@ def drawn_laws(
     keep = np.sqrt(np.clip(1.0 - spread.fit_var / np.maximum(between, 1e-12), 0.0, 1.0))
     scale = math.sqrt((1.0 + 1.0 / n) / (n - 1))
     centre = _law_vector(pooled)
+    margin = math.log(LAW_DRAW_MARGIN)
+    low = np.minimum(spread.per_log.min(axis=0), centre) - margin
+    high = np.maximum(spread.per_log.max(axis=0), centre) + margin
     tau_max_s = 100.0 * max(layout.duration_s, layout.dt_s)
     weights = rng.standard_normal((n_out, n))
-    return [_laws_from(centre + scale * (w @ (dev * keep)), pooled, tau_max_s) for w in weights]
+    return [
+        _laws_from(np.clip(centre + scale * (w @ (dev * keep)), low, high), pooled, tau_max_s)
+        for w in weights
+    ]
 
 
 # adds whole-log cells to replicate batteries and a log's battery, in place
