@@ -376,7 +376,8 @@ def test_fixes_are_decided_and_sent_on_the_gps_thread_under_the_control_lock(
     assert {t for k, t, _h in calls if k == "gps"} == {"x6wd-gps"}
     assert {t for k, t, _h in calls if k == "attitude"} - {"x6wd-gps"}  # on the event loop
     assert all(held for _k, _t, held in calls)  # every controller input under the lock
-    assert d.motors.direct_sent >= 1
+    # counted after the send returns, so a moment after the watch above has seen it
+    wait_for(lambda: d.motors is not None and d.motors.direct_sent >= 1, 5, "a direct send")
     assert d.gc_pacer is not None  # it collects after a fix's send, in the same thread
     wait_for(lambda: d.gc_pacer.collections >= 1, 5, "a paced collection")
     if sys.platform == "linux":  # the network thread yields the processor to the others

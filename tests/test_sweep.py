@@ -421,8 +421,9 @@ def test_a_sweep_resumes_with_only_the_missing_runs(tmp_path: Path, cluster: Clu
 @pytest.mark.slow
 def test_an_interrupted_sweep_finishes_on_the_next_call(tmp_path: Path, cluster: Cluster) -> None:
     # enough runs that the two workers cannot finish them all between the second file and
-    # the Ctrl-C on a loaded machine (with 8 they once did: exit 0, not 130)
-    n_runs = 24
+    # the Ctrl-C on a loaded machine: a run takes ~0.25 s, and with 8, then 24 (3 s of work)
+    # they once did (exit 0, not 130); 96 leave ~12 s
+    n_runs = 96
     f = sweep_file(tmp_path, f"seeds = {n_runs}\n[set]\nduration_s = 30.0\n")
     out = tmp_path / "out"
     proc = subprocess.Popen(
