@@ -108,6 +108,9 @@ class LinkCounters:
     write_errors: int = 0  # the port raised on write/read
     stop_failures: int = 0  # stop() calls that got no OK
     events: int = 0  # unsolicited EVT lines from the board (e.g. watchdog trips)
+    watchdog_stops: int = 0  # EVT WATCHDOG: the board stopped the motors on its own
+    board_restarts: int = 0  # EVT BOOT after the link was up: a brown-out or a reset
+    reopens: int = 0  # the port reopened after it broke
 
 
 def wrap_count_delta(delta: int) -> int:
@@ -179,6 +182,12 @@ class SerialMotorLink:
     :attr:`healthy` False (``unhealthy_after`` failed commands in a row, or at once for a
     non-transient port error); :attr:`health` says connected / degraded / disconnected /
     reconnecting (commands failing while lost), with error and reconnect counts.
+
+    ``reopen`` (optional) opens the port again: after a non-transient port error (a TCP
+    board that closed its socket, a USB adapter that re-enumerated) the link closes the dead
+    port and, on the commands that follow, calls it with capped exponential backoff
+    (``reopen_initial_s`` doubling to ``reopen_max_s``); until then commands fail at once.
+    Without it a broken port stays broken (the owner replaces the link).
     """
 
     def __init__(
@@ -190,6 +199,9 @@ class SerialMotorLink:
         retries: int = 1,
         unhealthy_after: int = 2,
         clock: Callable[[], float] = time.monotonic,
+        reopen: Callable[[], Any] | None = None,
+        reopen_initial_s: float = 0.2,
+        reopen_max_s: float = 5.0,
     ) -> None:
         if not (ack_timeout_s > 0 and math.isfinite(ack_timeout_s)):
             raise ValueError(f"ack_timeout_s must be > 0 s, got {ack_timeout_s!r}")
@@ -199,7 +211,17 @@ class SerialMotorLink:
             )
         if retries < 0 or unhealthy_after < 1:
             raise ValueError("retries must be >= 0 and unhealthy_after >= 1")
-        self.port = port
+        if not 0 < reopen_initial_s <= reopen_max_s < math.inf:
+            raise ValueError(
+                "reopen backoff must satisfy 0 < reopen_initial_s <= reopen_max_s, got "
+                f"{reopen_initial_s!r} and {reopen_max_s!r}"
+            )
+        self._reopen = reopen
+        self.reopen_initial_s = float(reopen_initial_s)
+        self.reopen_max_s = float(reopen_max_s)
+        self._reopen_backoff_s = self.reopen_initial_s
+        self._next_reopen_t = -math.inf
+        self._port_dead = False  # closed after a non-transient error, reopen pending
         self.ack_timeout_s = float(ack_timeout_s)
         self.watchdog_ms = int(watchdog_ms)
         self.retries = retries
@@ -213,17 +235,22 @@ class SerialMotorLink:
         self._last: MotorCommand | None = None
         self._lock = threading.Lock()
         self._tracker = HealthTracker("motors", t_s=clock())
+        self._set_port(port)
+        self.encoders = EncoderUnwrap()
+        self.odometry_supported: bool | None = None
+        self._refusal: str | None = None  # the payload of an ERR accepted by refusal_ok
+        self.configured = False
+        self._configure()
+
+    def _set_port(self, port: Any) -> None:
+        self.port = port
+        self._rx = bytearray()
         # Poll the port in short slices so a deadline is honoured whatever the port's timeout.
         if hasattr(port, "timeout"):
             try:
                 port.timeout = min(self.ack_timeout_s, 0.02)
             except Exception:  # a port that refuses: we still bound waits by our deadline
                 log.debug("motor port does not accept a timeout", exc_info=True)
-        self.encoders = EncoderUnwrap()
-        self.odometry_supported: bool | None = None
-        self._refusal: str | None = None  # the payload of an ERR accepted by refusal_ok
-        self.configured = False
-        self._configure()
 
     def _configure(self) -> None:
         """Set the board's watchdog; until that succeeds the link counts as unhealthy."""
@@ -365,6 +392,9 @@ class SerialMotorLink:
             return None
         tracker = self._tracker
         with self._lock:
+            if self._port_dead and not self._reopen_port():
+                self._failures = max(self._failures + 1, self.unhealthy_after)
+                return None
             broken = False
             for _attempt in range(self.retries + 1):
                 self._seq = self._seq % (SEQ_MODULO - 1) + 1
@@ -409,8 +439,41 @@ class SerialMotorLink:
             self._failures += 1
             if broken:
                 self._failures = max(self._failures, self.unhealthy_after)
+                if self._reopen is not None:
+                    self._drop_port()
             self._track_failure()
             return None
+
+    def _drop_port(self) -> None:
+        """Close the broken port; the next command after the backoff reopens it."""
+        self._port_dead = True
+        self._next_reopen_t = self._clock() + self._reopen_backoff_s
+        try:
+            self.port.close()
+        except Exception:
+            log.debug("closing the broken motor port failed", exc_info=True)
+
+    def _reopen_port(self) -> bool:
+        """Try to open the port again if the backoff allows; True once it is open. The
+        board may have restarted meanwhile: the watchdog setting is sent again."""
+        t_s = self._clock()
+        if t_s < self._next_reopen_t:
+            return False
+        assert self._reopen is not None
+        try:
+            port = self._reopen()
+        except Exception as exc:
+            self._next_reopen_t = t_s + self._reopen_backoff_s
+            self._reopen_backoff_s = min(2.0 * self._reopen_backoff_s, self.reopen_max_s)
+            self._tracker.open_failed(f"reopening the port failed: {exc}", t_s, self._next_reopen_t)
+            return False
+        self._set_port(port)
+        self._port_dead = False
+        self._reopen_backoff_s = self.reopen_initial_s
+        self.configured = False
+        self.counters.reopens += 1
+        log.info("motor port reopened")
+        return True
 
     def _track_failure(self) -> None:
         """A command failed: degraded, lost once unhealthy, reconnecting while lost."""
@@ -422,6 +485,31 @@ class SerialMotorLink:
             tracker.lost(state.last_error, t_s, count_error=False)  # counted per attempt
         else:  # already lost: this command was another attempt to reach the board
             tracker.open_failed(state.last_error, t_s, count_error=False)
+
+    def _board_event(self, payload: str) -> None:
+        """An unsolicited ``EVT``. A watchdog stop, or a restart once the link was up, is
+        a fault of the drive (the robot stopped, or lost its settings, without being told
+        to): counted, logged as a warning and shown in :attr:`health` (degraded). The
+        power-up ``BOOT`` before the first acknowledged command is the normal start."""
+        self.counters.events += 1
+        what = payload.split()[:1]
+        t_s = self._clock()
+        if what == ["BOOT"]:
+            self.configured = False  # it forgot our watchdog setting
+            self.encoders.rebase()  # and its counters start again at 0
+            if self.counters.acked == 0:
+                log.info("motor board powered up")
+                return
+            self.counters.board_restarts += 1
+            why = "board restarted (EVT BOOT): its settings and counters were lost"
+        elif what == ["WATCHDOG"]:
+            self.counters.watchdog_stops += 1
+            why = "board watchdog stopped the motors (EVT WATCHDOG): commands came too late"
+        else:
+            log.info("motor board event: %s", payload)
+            return
+        log.warning("motors: %s", why)
+        self._tracker.failed(why, t_s)
 
     def _await(self, seq: int) -> tuple[bool, str] | None:
         """Read lines until the reply for ``seq`` or the ack deadline."""
@@ -435,11 +523,7 @@ class SerialMotorLink:
                     continue
                 kind, rseq, payload = parsed
                 if kind == "EVT":
-                    self.counters.events += 1
-                    log.info("motor board event: %s", payload)
-                    if payload.split()[:1] == ["BOOT"]:
-                        self.configured = False  # it forgot our watchdog setting
-                        self.encoders.rebase()  # and its counters start again at 0
+                    self._board_event(payload)
                 elif rseq == seq:
                     return kind == "OK", payload
                 # replies to older, timed-out commands are dropped

@@ -500,10 +500,12 @@ def open_motors(url: str, devices: Devices | None = None) -> MotorLink:
 
     if dev.scheme == "log":
         return LogMotorLink()
-    port = _serial_port(dev, min(dev.options["ack_timeout"], 0.02))
+    timeout_s = min(dev.options["ack_timeout"], 0.02)
+    port = _serial_port(dev, timeout_s)
     return SerialMotorLink(
         port,
         ack_timeout_s=dev.options["ack_timeout"],
         watchdog_ms=dev.options["watchdog_ms"],
         retries=dev.options["retries"],
+        reopen=lambda: _serial_port(dev, timeout_s),  # a board that dropped the link
     )

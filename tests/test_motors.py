@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import errno
 import itertools
+import logging
 import math
 import os
+import socket
 import threading
 import time
 import tty
@@ -18,6 +20,7 @@ import serial
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers import registry
 from drivers.motors import (
     ENC_MODULO,
     EncoderUnwrap,
@@ -277,6 +280,114 @@ def test_link_resets_the_watchdog_after_a_board_reboot(pty_board: PtyBoard) -> N
         assert link.drive(30, 30)
         assert pty_board.board.watchdog_ms == 3000 and pty_board.state() == (30, 30)
         assert link.configured and link.counters.events == 1
+
+
+@pytest.mark.integration
+def test_a_watchdog_stop_or_a_board_restart_shows_in_health_and_the_log(
+    pty_board: PtyBoard, caplog: pytest.LogCaptureFixture
+) -> None:
+    with open_link(pty_board, watchdog_ms=50) as link, caplog.at_level(logging.INFO):
+        assert link.drive(30, 30)
+        assert wait_for(lambda: pty_board.state() == (0, 0))  # the host fell silent
+        assert link.stop()  # EVT WATCHDOG arrives before this OK
+        h = link.health
+        assert link.counters.watchdog_stops == 1 and h.state == "degraded" and h.errors == 1
+        assert "EVT WATCHDOG" in h.last_error
+        assert link.healthy  # the board answers: a fault to show, not a lost link
+        pty_board.halt()
+        pty_board.start(boot=True)  # a brown-out
+        assert link.drive(10, 10)
+        assert link.counters.board_restarts == 1 and "EVT BOOT" in link.health.last_error
+        assert link.stop()
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert sum("EVT WATCHDOG" in m for m in warned) == 1
+    assert sum("EVT BOOT" in m for m in warned) == 1
+
+
+@pytest.mark.integration
+def test_a_broken_port_is_reopened_with_backoff_and_the_board_set_up_again(
+    pty_board: PtyBoard,
+) -> None:
+    opens: list[float] = []
+    refuse = [True]
+
+    def reopen() -> serial.Serial:
+        opens.append(time.monotonic())
+        if refuse[0]:
+            raise OSError(errno.ENODEV, "no such device")
+        return serial.Serial(pty_board.name, baudrate=115200, timeout=0.02)
+
+    port = serial.Serial(pty_board.name, baudrate=115200, timeout=0.02)
+    link = SerialMotorLink(
+        port, ack_timeout_s=0.5, watchdog_ms=2000, reopen=reopen, reopen_initial_s=0.5,
+        reopen_max_s=1.0,
+    )  # fmt: skip
+    assert link.drive(10, 10)
+    link.port.close()  # the adapter vanishes under the link
+    t_break = time.monotonic()
+    assert not link.drive(10, 10) and not link.healthy
+    assert link.health.state == "disconnected" and link.port is port
+    assert not link.drive(10, 10)  # within the backoff: no attempt, no write
+    assert opens == [] or opens[0] - t_break >= 0.5
+    pty_board.board.feed(b"W 500\n", time.monotonic())  # the board lost the setting
+    time.sleep(0.55)
+    assert not link.drive(10, 10) and len(opens) == 1
+    h = link.health
+    assert h.state == "reconnecting" and "reopening the port failed" in h.last_error
+    refuse[0] = False
+    time.sleep(1.05)  # the backoff doubled to its 1 s cap
+    assert link.drive(20, 20) and len(opens) == 2 and link.port is not port
+    h = link.health
+    assert link.healthy and h.state == "connected" and h.reconnects == 1
+    assert link.counters.reopens == 1 and pty_board.state() == (20, 20)
+    assert pty_board.board.watchdog_ms == 2000  # sent again after the reopen
+    link.close()
+    assert pty_board.state() == (0, 0)
+
+
+@pytest.mark.integration
+def test_a_tcp_board_that_drops_the_connection_is_reached_again() -> None:
+    board = MotorBoard()
+    server = socket.create_server(("127.0.0.1", 0))
+    conns: list[socket.socket] = []
+
+    def serve() -> None:
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            conns.append(conn)
+            with conn:
+                while data := _recv(conn):
+                    reply = board.feed(data, time.monotonic())
+                    if reply:
+                        conn.sendall(reply)
+
+    threading.Thread(target=serve, daemon=True).start()
+    url = f"tcp://127.0.0.1:{server.getsockname()[1]}?watchdog_ms=3000"
+    link = registry.open_motors(url)
+    try:
+        assert isinstance(link, SerialMotorLink) and link.drive(30, 30)
+        conns[-1].shutdown(socket.SHUT_RDWR)  # ser2net restarted, a Wi-Fi bridge dropped
+        board.feed(b"W 500\n", time.monotonic())
+        end = time.monotonic() + 10
+        while not link.drive(25, 25):
+            assert time.monotonic() < end, link.health
+            time.sleep(0.05)
+        assert len(conns) == 2 and link.health.reconnects == 1
+        assert (board.left_pct, board.right_pct, board.watchdog_ms) == (25, 25, 3000)
+    finally:
+        link.close()
+        server.close()
+    assert (board.left_pct, board.right_pct) == (0, 0)
+
+
+def _recv(conn: socket.socket) -> bytes:
+    try:
+        return conn.recv(4096)
+    except OSError:
+        return b""
 
 
 def test_drive_rejects_bad_values() -> None:
