@@ -197,7 +197,12 @@ def parse_url(url: str, kind: str) -> DeviceUrl:
             url,
             f"expected scheme://..., valid schemes: {', '.join(s + '://' for s in SCHEMES[kind])}",
         )
-    parts = urlsplit(url)
+    if "\x00" in unquote(url):  # raw or as %00: no device path or host can hold one
+        raise UrlError(kind, url, "contains a NUL character")
+    try:
+        parts = urlsplit(url)
+    except ValueError as exc:  # e.g. an unclosed [IPv6 bracket
+        raise UrlError(kind, url, f"malformed URL: {exc}") from None
     scheme = parts.scheme.lower()
     schemes = SCHEMES[kind]
     if scheme not in schemes:
@@ -253,7 +258,8 @@ def _target(url: str, kind: str, scheme: str, netloc: str, path: str) -> str:
         return target
     if scheme == "tcp":
         host, sep, port = netloc.rpartition(":")
-        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536 or path:
+        digits = port.isascii() and port.isdigit()  # not "²", which isdigit() accepts
+        if not sep or not host or not digits or not 0 < int(port) < 65536 or path:
             raise bad("expected tcp://HOST:PORT with PORT 1..65535")
         return netloc
     if scheme == "i2c":
@@ -308,8 +314,10 @@ def _check_node(dev: DeviceUrl, path: str, *, char: bool, hint: str) -> None:
         st = os.stat(path)
     except FileNotFoundError:
         raise UrlError(dev.kind, dev.url, f"{path} does not exist") from None
-    except OSError as exc:
-        raise UrlError(dev.kind, dev.url, f"{path}: {exc.strerror or exc}") from None
+    except (OSError, ValueError) as exc:  # ValueError: a path the OS cannot take
+        raise UrlError(
+            dev.kind, dev.url, f"{path}: {getattr(exc, 'strerror', None) or exc}"
+        ) from None
     if char and not stat.S_ISCHR(st.st_mode):
         raise UrlError(dev.kind, dev.url, f"{path} is not a character device")
     if not char and not stat.S_ISREG(st.st_mode):

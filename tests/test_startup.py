@@ -111,6 +111,11 @@ def files_under(path: Path) -> list[Path]:
         ({"navigation": {"delta_z_m": 1.0}}, "", ["navigation.delta_z_m: unknown key"]),
         ({"sim": {"scenario": "no/such/world.toml"}}, "sim.scenario", ["no such file"]),
         ({"safety": {"geofence_center": [1.0]}}, "safety.geofence_center", []),
+        # what urlsplit, int() and os.stat raise on, not our own checks (an outside check)
+        ({"gps": {"url": "tcp://[::1:2947"}}, "gps.url", ["malformed URL"]),
+        ({"motors": {"url": "tcp://localhost:\u00b2"}}, "motors.url", ["HOST:PORT"]),
+        ({"gps": {"url": "serial:///dev/tty%00S0"}}, "gps.url", ["NUL"]),
+        ({"recorder": {"dir": "/tmp/a\u0000b"}}, "", ["recorder.dir: must not contain a NUL"]),
     ],
 )
 def test_bad_setting_is_one_line_and_exit_2(

@@ -142,8 +142,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``x6wd`` console script; returns the process exit code."""
     single_thread_blas()
     args_list = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(args_list)
-    args, unknown = parser.parse_known_args(args_list)
+    try:  # building the parser imports the subcommand (numpy, ...): a Ctrl-C may land here
+        parser = build_parser(args_list)
+        args, unknown = parser.parse_known_args(args_list)
+    except KeyboardInterrupt:
+        return 130
     if unknown and not getattr(args, "_any_arguments", False):
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     try:

@@ -354,6 +354,8 @@ def _check_value(key: str, value: Any, tp: Any, meta: Any) -> Any:
     elif tp is str:
         if not isinstance(value, str):
             raise ConfigError(f"{key}: expected a string, got {value!r}")
+        if "\x00" in value:  # no path, URL or name may hold one; the OS refuses it late
+            raise ConfigError(f"{key}: must not contain a NUL character")
     elif typing.get_origin(tp) in (tuple, list):
         if not isinstance(value, list):
             raise ConfigError(f"{key}: expected a list, got {value!r}")
