@@ -168,6 +168,33 @@ def test_poll_devices_version_and_errors_over_a_socket(gpsd: GpsdServer) -> None
         assert json.loads(f.readline())["class"] == "VERSION"
 
 
+def test_requests_without_a_newline_are_answered_as_gpsd_answers_them(gpsd: GpsdServer) -> None:
+    # gpsd takes each read whole; many clients send ?WATCH={...} with no newline at all
+    with socket.create_connection(("127.0.0.1", gpsd.port), timeout=5) as s:
+        f = s.makefile("rb")
+        assert json.loads(f.readline())["class"] == "VERSION"
+        s.sendall(b"?POLL;")
+        assert json.loads(f.readline())["class"] == "POLL"
+        s.sendall(b"?VERSION")
+        assert json.loads(f.readline())["class"] == "VERSION"
+        s.sendall(b'?WATCH={"enable":fal')  # an object cut in two: it waits for the rest
+        time.sleep(0.2)
+        s.sendall(b"se}")
+        assert json.loads(f.readline())["class"] == "DEVICES"
+        watch = json.loads(f.readline())
+        assert watch["class"] == "WATCH" and watch["enable"] is False
+        s.sendall(b'?WATCH={"enable":true,"json":true}')
+        assert json.loads(f.readline())["class"] == "DEVICES"
+        assert json.loads(f.readline())["class"] == "WATCH"
+        assert {json.loads(f.readline())["class"] for _ in range(6)} >= {"TPV", "SKY"}
+    with socket.create_connection(("127.0.0.1", gpsd.port), timeout=5) as s:
+        f = s.makefile("rb")
+        f.readline()
+        s.sendall(b'?WATCH={"device":"' + b"x" * 5000)  # no end: refused, not kept for ever
+        assert json.loads(f.readline()) == {"class": "ERROR", "message": "request too long"}
+        assert f.readline() == b""
+
+
 def test_stuck_gpsd_client_queue_is_bounded() -> None:
     p = Published(queue_len=4)
     try:

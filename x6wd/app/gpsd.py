@@ -20,6 +20,7 @@ import asyncio
 import json
 import logging
 import math
+import re
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -177,6 +178,51 @@ def att_obj(att: Attitude, device: str, declination_deg: float = 0.0) -> dict[st
         obj["pitch"] = _num(att.pitch_deg, 1)
         obj["roll"] = _num(att.roll_deg, 1)
     return {k: v for k, v in obj.items() if v is not None}
+
+
+_BARE_COMMANDS = re.compile(r"\s*(\?[A-Za-z]+\s*;?\s*)+")
+
+
+def _complete_without_newline(data: bytes | bytearray) -> bool:
+    """Whether requests that arrived without a newline are whole. gpsd answers what each
+    read brought, and many clients send ``?WATCH={...}`` or ``?POLL;`` with no newline: a
+    text ending in ``;``, bare commands, or a JSON argument that parses is taken as it is;
+    a ``}`` whose JSON does not parse yet waits for the rest of the object."""
+    text = data.decode("utf-8", "replace").rstrip()
+    if not text or text.endswith(";") or _BARE_COMMANDS.fullmatch(text):
+        return bool(text)
+    if not text.endswith("}"):
+        return False
+    try:
+        parse_commands(text)
+    except ProtocolError:
+        return False
+    return True
+
+
+async def next_request(reader: asyncio.StreamReader, pending: bytearray) -> bytes | None:
+    """The next request from ``reader``: a line, or what arrived without a newline once it
+    is complete (:func:`_complete_without_newline`); None at the end of the stream.
+    ``pending`` keeps the bytes read past it. A request longer than
+    :data:`MAX_COMMAND_BYTES` comes back as it is, longer than the limit, for the caller
+    to refuse."""
+    while True:
+        end = pending.find(b"\n")
+        if end >= 0 or len(pending) > MAX_COMMAND_BYTES:
+            cut = end + 1 if end >= 0 else len(pending)
+            raw = bytes(pending[:cut])
+            del pending[:cut]
+            return raw
+        if pending and _complete_without_newline(pending):
+            raw = bytes(pending)
+            pending.clear()
+            return raw
+        chunk = await reader.read(MAX_COMMAND_BYTES)
+        if not chunk:  # the end of the stream: what is left is the last request
+            raw = bytes(pending)
+            pending.clear()
+            return raw or None
+        pending += chunk
 
 
 def parse_commands(text: str) -> list[tuple[str, dict[str, Any] | None]]:
@@ -420,14 +466,12 @@ class GpsdServer(LineServer[_Client]):
             self._connected(c)
             c.reply(dumps(version_obj()))
             c.sender = asyncio.create_task(self._sender(c))
+            pending = bytearray()
             while not c.closed:
-                try:
-                    raw = await reader.readuntil(b"\n")
-                except asyncio.IncompleteReadError as exc:
-                    raw = exc.partial
-                    if not raw:
-                        break
-                except asyncio.LimitOverrunError:
+                raw = await next_request(reader, pending)
+                if raw is None:
+                    break
+                if len(raw) > MAX_COMMAND_BYTES:
                     c.reply(dumps({"class": "ERROR", "message": "request too long"}))
                     break
                 c.t_active_s = self._clock()
