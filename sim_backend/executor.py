@@ -98,6 +98,40 @@ def _workers_ignore_sigint() -> Iterator[None]:
         signal.signal(signal.SIGINT, old)
 
 
+def _probe_scheduler(address: str, timeout_s: float) -> None:
+    """Raise :class:`ConfigError` unless a Dask scheduler answers at ``address`` within
+    ``timeout_s`` (s). ``Client`` alone raises a bare ValueError for a malformed address,
+    waits with no limit in its handshake with a peer that never speaks (an HTTP server, the
+    dashboard's port), and tries to allocate exabytes for one that speaks something else."""
+    import asyncio
+
+    from distributed.comm import connect
+    from distributed.comm.addressing import resolve_address
+
+    try:
+        resolved = resolve_address(address)
+    except ValueError as exc:
+        raise ConfigError(f"scheduler: {exc} (expected tcp://HOST:PORT)") from None
+
+    async def identity() -> Any:
+        comm = await connect(resolved, timeout=timeout_s)
+        try:
+            await comm.write({"op": "identity"})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    try:
+        reply = asyncio.run(asyncio.wait_for(identity(), timeout_s))
+    except Exception as exc:  # OSError, a timeout, garbage framing (MemoryError) ...
+        why = str(exc) or type(exc).__name__
+        raise ConfigError(
+            f"cannot reach a Dask scheduler at {address} within {timeout_s:g} s: {why}"
+        ) from None
+    if not (isinstance(reply, dict) and reply.get("type") == "Scheduler"):
+        raise ConfigError(f"{address} answered, but not as a Dask scheduler: {reply!r:.200}")
+
+
 class Executor:
     """Runs independent tasks on a Dask cluster (local or remote) or in this process; use it
     as a context manager. See the module docstring."""
@@ -129,6 +163,8 @@ class Executor:
             from distributed import Client, LocalCluster
         except ImportError as exc:
             raise ConfigError(f"a Dask cluster needs {INSTALL_HINT}: {exc}") from exc
+        if self.scheduler:
+            _probe_scheduler(self.scheduler, self.connect_timeout_s)
         try:
             if self.scheduler:
                 self._client = Client(self.scheduler, timeout=self.connect_timeout_s)

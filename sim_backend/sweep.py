@@ -158,6 +158,11 @@ def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: s
             raise ConfigError(f"grid.{key}: expected a non-empty list of values, got {values!r}")
         if key in fixed:
             raise ConfigError(f"grid.{key}: also in [set]; give it in one of them")
+        seen: set[str] = set()
+        for v in values:  # a repeat would run the same cell twice and count it twice
+            if _canonical(v) in seen:
+                raise ConfigError(f"grid.{key}: value {v!r} given twice")
+            seen.add(_canonical(v))
         grid[key] = values
     return SweepSpec(
         name=name,
@@ -179,10 +184,11 @@ def _dotted(table: Any, where: str, prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in table.items():
         full = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(_dotted(value, where, f"{full}."))
-        else:
-            out[full] = value
+        flat = _dotted(value, where, f"{full}.") if isinstance(value, dict) else {full: value}
+        for k, v in flat.items():
+            if k in out:  # gnss.rate_hz and "gnss.rate_hz" both: one would be lost
+                raise ConfigError(f"{where}.{k}: given twice")
+            out[k] = v
     return out
 
 

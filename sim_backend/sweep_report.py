@@ -278,10 +278,21 @@ def _f(v: float, fmt: str = ".2f") -> str:
     return format(v, fmt) if math.isfinite(v) else "-"
 
 
+FIGURES = {  # file -> its caption in the summary
+    "completion.png": "completion",
+    "arrival_cdf.png": "arrival error CDF",
+    "path_ratio.png": "path ratio",
+}
+
+
 def markdown(
-    result_info: dict[str, Any], cells: Sequence[CellStats], records: Sequence[dict[str, Any]]
+    result_info: dict[str, Any],
+    cells: Sequence[CellStats],
+    records: Sequence[dict[str, Any]],
+    figures: Sequence[str] = tuple(FIGURES),
 ) -> str:
-    """The summary: the sweep, a row per cell, the failed runs."""
+    """The summary: the sweep, a row per cell, the figures (the ``figures`` files), the
+    failed runs."""
     i = result_info
     lines = [f"# Sweep {i['name']!r}", ""]
     lines += [
@@ -312,15 +323,9 @@ def markdown(
             f" | {_f(_median(ratios), '.3f')} ({_f(max(ratios) if ratios else math.nan, '.3f')})"
             f" | {_f(_median(c.sim_times_s), '.1f')} s | {_f(_median(c.wall_times_s))} s |"
         )
-    lines += [
-        "",
-        "![completion](completion.png)",
-        "",
-        "![arrival error CDF](arrival_cdf.png)",
-        "",
-        "![path ratio](path_ratio.png)",
-        "",
-    ]
+    lines.append("")
+    for name in figures:
+        lines += [f"![{FIGURES.get(name, name)}]({name})", ""]
     failed = [r for r in records if r.get("status") != "ok"]
     if failed:
         lines += [f"## Failed runs ({len(failed)})", ""]
@@ -375,8 +380,11 @@ def write_report(
     )
     written.append("arrivals.csv")
     cells = cell_stats(records)
-    if figures:
-        written += _plots(cells, out)
-    (out / "summary.md").write_text(markdown(result_info, cells, records), encoding="utf-8")
+    drawn = _plots(cells, out) if figures else []
+    for stale in set(FIGURES) - set(drawn):  # an earlier call's, of other runs
+        (out / stale).unlink(missing_ok=True)
+    written += drawn
+    text = markdown(result_info, cells, records, drawn)
+    (out / "summary.md").write_text(text, encoding="utf-8")
     written.append("summary.md")
     return written

@@ -102,7 +102,23 @@ def test_recording_decodes_like_the_raw_log(
     code_raw, from_raw, _ = _run(capsys, str(LEA5H))
     assert code == code_raw == 0
     assert from_rec == from_raw
-    assert "sentences=164 " in err_rec
+    assert "sentences=164 " in err_rec and err_rec.endswith(" bad_recording_lines=0\n")
+    # torn lines (a copy cut short, an editor's damage): skipped and counted, never silent
+    lines = rec_path.read_bytes().splitlines(keepends=True)
+    torn = [ln[: len(ln) // 2] + b"\n" if i % 7 == 3 else ln for i, ln in enumerate(lines)]
+    n_torn = sum(i % 7 == 3 for i in range(len(lines)))
+    rec_path.write_bytes(b"".join(torn) + b'{"bad json\n')
+    code, _out, err = _run(capsys, str(rec_path))
+    assert code == 0 and err.endswith(f" bad_recording_lines={n_torn + 1}\n"), err
+    proc = subprocess.run(
+        [sys.executable, "-m", "x6wd", "decode", "-"],
+        input=rec_path.read_bytes(),
+        capture_output=True,
+        cwd=ROOT,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 0 and f" bad_recording_lines={n_torn + 1}\n" in proc.stderr.decode()
 
 
 def test_stdin_dash_and_binary_tolerated(tmp_path: Path) -> None:

@@ -15,8 +15,10 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,6 +27,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import ROOT
+from x6wd.core.errors import ConfigError
 
 DEFAULT = ROOT / "config" / "scenarios" / "default.toml"
 ZIGZAG = ROOT / "config" / "scenarios" / "zigzag.toml"
@@ -282,6 +285,9 @@ def test_a_run_is_the_same_mission_wherever_it_runs() -> None:
         ("compass.bogus = [1]", "compass.bogus"),
         ("name.sub = [1]", "name.sub: name is not a table"),
         ("failsafe.stuck_s = []", "grid.failsafe.stuck_s: expected a non-empty list"),
+        # a repeat would run each mission twice and count it twice in its cell
+        ('navigation.position_source = ["ekf", "ekf"]', "'ekf' given twice"),
+        ('gnss.rate_hz = [1.0]\n"gnss.rate_hz" = [2.0]', "grid.gnss.rate_hz: given twice"),
     ],
 )
 def test_a_bad_key_or_value_stops_the_sweep_naming_it(
@@ -421,9 +427,8 @@ def test_a_sweep_resumes_with_only_the_missing_runs(tmp_path: Path, cluster: Clu
 @pytest.mark.slow
 def test_an_interrupted_sweep_finishes_on_the_next_call(tmp_path: Path, cluster: Cluster) -> None:
     # enough runs that the two workers cannot finish them all between the second file and
-    # the Ctrl-C on a loaded machine: a run takes ~0.25 s, and with 8, then 24 (3 s of work)
-    # they once did (exit 0, not 130); 96 leave ~12 s
-    n_runs = 96
+    # the Ctrl-C on a loaded machine (with 8 they once did: exit 0, not 130)
+    n_runs = 24
     f = sweep_file(tmp_path, f"seeds = {n_runs}\n[set]\nduration_s = 30.0\n")
     out = tmp_path / "out"
     proc = subprocess.Popen(
@@ -433,6 +438,9 @@ def test_an_interrupted_sweep_finishes_on_the_next_call(tmp_path: Path, cluster:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        # Ctrl-C as a terminal delivers it: a child of a shell's background job (nohup ...
+        # &) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         deadline = time.monotonic() + 120
@@ -575,3 +583,51 @@ def test_results_table_and_report_from_records(tmp_path: Path) -> None:
         assert "results.parquet" not in written
     else:
         assert "results.parquet" in written
+    assert "![completion](completion.png)" in (tmp_path / "summary.md").read_text()
+    # the same directory without figures: no stale figure of other runs, no dangling link
+    written = write_report({**info, "ran": 1}, records[:1], tmp_path, figures=False)
+    assert not list(tmp_path.glob("*.png")) and not any(w.endswith(".png") for w in written)
+    assert "![" not in (tmp_path / "summary.md").read_text()
+
+
+@pytest.mark.parametrize("peer", ["silent", "garbage"])
+def test_a_scheduler_address_that_is_no_scheduler_is_a_clear_error_in_time(peer: str) -> None:
+    # an HTTP server waits for a request (the dashboard's port, a typo): Client alone waited
+    # for ever; a peer that speaks something else made it allocate exabytes
+    from sim_backend.executor import Executor
+
+    server = socket.create_server(("127.0.0.1", 0))
+    held: list[socket.socket] = []
+
+    def serve() -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                conn, _ = server.accept()
+                held.append(conn)
+                if peer == "garbage":
+                    conn.sendall(b"HTTP/1.0 400 Bad Request\r\n\r\n" + b"x" * 64)
+
+    threading.Thread(target=serve, daemon=True).start()
+    t0 = time.monotonic()
+    try:
+        with (
+            pytest.raises(ConfigError, match="Dask scheduler"),
+            Executor(f"tcp://127.0.0.1:{server.getsockname()[1]}", connect_timeout_s=2.0),
+        ):
+            pass
+    finally:
+        server.close()
+        for conn in held:
+            conn.close()
+    assert time.monotonic() - t0 < 10
+
+
+@pytest.mark.parametrize("address", ["nonsense", "foo://bar"])
+def test_a_malformed_scheduler_address_is_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], address: str
+) -> None:
+    from x6wd.app.cli import main
+
+    f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n")
+    assert main(["sweep", str(f), "--scheduler", address, "--out", str(tmp_path / "o")]) == 2
+    assert "scheduler" in capsys.readouterr().err

@@ -33,7 +33,7 @@ import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from datetime import UTC, date, datetime
 from itertools import accumulate, chain, compress, repeat
-from typing import IO, Any, Final, TypeVar, cast
+from typing import IO, TYPE_CHECKING, Any, Final, TypeVar, cast
 
 from drivers.gps_nmea import (
     _FRACTION_US,
@@ -93,6 +93,9 @@ from drivers.nmea import GSA, MPS_PER_KNOT
 from x6wd.core.errors import DeviceUnavailable
 from x6wd.core.geodesy import wrap360
 from x6wd.core.records import GpsFix, GpsSky, SatInfo
+
+if TYPE_CHECKING:  # imported where used: a plain NMEA log never needs the recorder
+    from x6wd.core.recorder import ReadStats
 
 _CHUNK_BYTES = 1 << 20
 UERE_M = 5.0
@@ -1648,18 +1651,26 @@ def _write_reports(
         out.write("\n".join(lines))
 
 
-def _recording_sentences(lines: Iterable[bytes]) -> Iterator[tuple[float, str]]:
-    """(t_s, text) of the raw NMEA records in recording lines; other lines are skipped.
+def _recording_sentences(lines: Iterable[bytes], stats: ReadStats) -> Iterator[tuple[float, str]]:
+    """(t_s, text) of the raw NMEA records in recording lines; other records are skipped,
+    lines that are not a JSON object skipped and counted in ``stats.bad_lines``.
 
     Accepts the recorder's ``{"t_mono":..,"type":"nmea","data":{"text":..}}`` and the flat
     ``{"type":"nmea","text":..}`` form.
     """
     for raw in lines:
+        if not raw.strip():
+            stats.blank_lines += 1
+            continue
         try:
             obj = json.loads(raw)
         except (ValueError, UnicodeDecodeError):
+            obj = None
+        if not isinstance(obj, dict):
+            stats.bad_lines += 1
             continue
-        if not isinstance(obj, dict) or obj.get("type") != "nmea":
+        stats.records += 1
+        if obj.get("type") != "nmea":
             continue
         data = obj.get("data")
         text = data.get("text") if isinstance(data, dict) else obj.get("text")
@@ -1685,12 +1696,18 @@ def _decode_sentences(
     return decoder.counters
 
 
-def decode_stream(stream: IO[bytes], out: IO[str], *, with_sky: bool = True) -> DecoderCounters:
-    """Decode one input (NMEA bytes or a recording) and write report lines to ``out``."""
+def decode_stream(
+    stream: IO[bytes], out: IO[str], *, with_sky: bool = True, stats: ReadStats | None = None
+) -> DecoderCounters:
+    """Decode one input (NMEA bytes or a recording) and write report lines to ``out``.
+    A recording's lines that are not records are counted in ``stats`` (if given)."""
     head = stream.read(_CHUNK_BYTES)
     if head.lstrip()[:1] == b"{":
+        from x6wd.core.recorder import ReadStats
+
         lines = (head + stream.read()).splitlines()
-        return _decode_sentences(_recording_sentences(lines), out, with_sky)
+        st = stats if stats is not None else ReadStats()
+        return _decode_sentences(_recording_sentences(lines, st), out, with_sky)
     decoder = ReportDecoder(ReportEncoder(), with_sky=with_sky)
     chunk = head
     while chunk:
@@ -1708,8 +1725,11 @@ def _write_lines(records: list[GpsOutput], out: IO[str]) -> None:
         out.write("\n".join(lines))
 
 
-def decode_path(path: str, out: IO[str], *, with_sky: bool = True) -> DecoderCounters:
-    """Decode a file; recordings go through ``x6wd.core.recorder.read_recording``."""
+def decode_path(
+    path: str, out: IO[str], *, with_sky: bool = True, stats: ReadStats | None = None
+) -> DecoderCounters:
+    """Decode a file; recordings go through ``x6wd.core.recorder.read_recording``, which
+    counts their bad and truncated lines in ``stats`` (if given)."""
     try:
         f = open(path, "rb")  # noqa: SIM115
     except OSError as exc:
@@ -1728,7 +1748,7 @@ def decode_path(path: str, out: IO[str], *, with_sky: bool = True) -> DecoderCou
 
     sentences = (
         (rec.t_mono, rec.data["text"])
-        for rec in read_recording(path)
+        for rec in read_recording(path, stats=stats)
         if rec.type == "nmea" and isinstance(rec.data.get("text"), str)
     )
     return _decode_sentences(sentences, out, with_sky)
@@ -1756,11 +1776,16 @@ _GC_THRESHOLD: Final = 20_000  # allocations between collections (CPython's defa
 def _main(args: argparse.Namespace) -> int:
     status = 0
     for name in args.files:
+        from x6wd.core.recorder import ReadStats
+
+        stats = ReadStats()
         try:
             if name == "-":
-                counters = decode_stream(sys.stdin.buffer, sys.stdout, with_sky=not args.no_sky)
+                counters = decode_stream(
+                    sys.stdin.buffer, sys.stdout, with_sky=not args.no_sky, stats=stats
+                )
             else:
-                counters = decode_path(name, sys.stdout, with_sky=not args.no_sky)
+                counters = decode_path(name, sys.stdout, with_sky=not args.no_sky, stats=stats)
         except BrokenPipeError:
             # The reader went away (e.g. `| head`): stop quietly like other filters.
             with contextlib.suppress(OSError):
@@ -1773,5 +1798,7 @@ def _main(args: argparse.Namespace) -> int:
         sys.stdout.flush()
         if not args.quiet:
             figures = " ".join(f"{k}={v}" for k, v in counters.as_dict().items())
+            if stats.records or stats.bad_lines or stats.truncated:  # a recording
+                figures += f" bad_recording_lines={stats.bad_lines + stats.truncated}"
             print(f"{name}: {figures}", file=sys.stderr)
     return status

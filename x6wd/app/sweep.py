@@ -74,10 +74,9 @@ def main(args: argparse.Namespace) -> int:
     out = output_dir(args.out if args.out else Path("out") / "sweeps" / Path(args.sweep).stem)
     progress = None if args.quiet else TextProgress(len(runs), "runs")
     _done, todo = split_done(runs, RunStore(out), args.retry_failed)
+    executor = Executor(scheduler=args.scheduler, workers=args.workers)  # checks --workers
     # Nothing left to run (a finished sweep run again): no cluster to start, only the report.
-    if todo:
-        executor = Executor(scheduler=args.scheduler, workers=args.workers)
-    else:
+    if not todo:
         executor = Executor(inline=True)
     try:
         with executor:
