@@ -350,3 +350,61 @@ def test_gap_cli_reaches_a_verdict_within_memory(tmp_path: Path) -> None:
     assert "reading the real log: 37 epochs without a time" in report
     print("x6wd gap peak RSS (MB):", {k: round(v) for k, v in peak_mb.items()})
     assert max(peak_mb.values()) < 400.0, peak_mb
+
+
+# ------------------------------------------ logs the tool cannot compare (an outside check)
+
+
+def test_a_moving_log_without_a_truth_is_named_not_diagnosed_as_static(tmp_path: Path) -> None:
+    # gpsd's sailing log (2.9 m/s): against its own mean its route read as 107 m of error
+    done = _gap_cli(NMEA / "bundg_zeus_9.log", tmp_path / "report")
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "the log moves (median speed 2.9 m/s" in done.stderr and "--truth-track" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_a_sim_log_of_another_place_is_named_not_read_as_a_bias(tmp_path: Path) -> None:
+    # the real log is Brussels, the "sim" log New Zealand: against the real log's truth it
+    # read as a bias of 18,000 km, and the verdict said "explained by bias"
+    done = _gap_cli(LOGS / "telit-he910.log", tmp_path / "report", "--truth", "50.8402,4.3471")
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "ublox-zed-f9p_hpg1.11.log: its fixes lie a median" in done.stderr
+    assert "km from the truth" in done.stderr and "Traceback" not in done.stderr
+    done = _gap_cli(LOGS / "telit-he910.log", tmp_path / "report", "--truth", "")
+    assert done.returncode == 2 and "--truth ''" in done.stderr  # not silently ignored
+
+
+def test_a_real_log_whose_step_is_far_from_the_sims_is_named(tmp_path: Path) -> None:
+    # times in hours, read as seconds: each sim log's grid at that step would hold millions
+    # of slots per epoch (2.7 GB and rising, then killed)
+    rows = [f"{k / 3600:.9f},51.75000{k % 7},-1.25700{k % 5},60.0" for k in range(600)]
+    (tmp_path / "hours.csv").write_text("time,lat,lon,alt\n" + "\n".join(rows) + "\n")
+    done = _gap_cli(tmp_path / "hours.csv", tmp_path / "report")
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "is a time column in hours or milliseconds?" in done.stderr
+
+
+def test_fields_out_of_range_or_of_the_wrong_type_are_skipped_and_counted(tmp_path: Path) -> None:
+    t0 = _utc_s("2026-01-01T00:00:00")
+    rows = [f"{t0 + k:.1f},{91.0 if k % 10 == 0 else 51.75},-1.257,60.0" for k in range(100)]
+    rows[50] = "1e300,51.75,-1.257,60.0"  # a time no clock gives
+    csv = tmp_path / "a.csv"
+    csv.write_bytes(b"\xef\xbb\xbf" + ("time,lat,lon,alt\n" + "\n".join(rows)).encode())  # Excel
+    track = read_track(csv)
+    assert int(np.count_nonzero(track.valid)) == 90 and track.t_s[-1] - track.t_s[0] == 99
+    assert any("9 fixes with a latitude beyond ±90°" in n for n in track.notes), track.notes
+    assert any("1 epochs without a usable time dropped" in n for n in track.notes), track.notes
+    fix = {"t_s": 0.0, "lat_deg": 51.75, "lon_deg": -1.257, "alt_m": 60.0, "valid": True}
+    lines = []
+    for k in range(100):
+        utc = datetime.fromtimestamp(t0 + k, UTC).isoformat()
+        bad = {"lat_deg": "abc"} if k == 3 else {"sats_used": [1]} if k == 4 else {}
+        data = {**fix, "t_s": float(k), "utc": utc, **bad}
+        lines.append(json.dumps({"t_mono": float(k), "type": "fix", "data": data}))
+    lines.append(json.dumps({"t_mono": 1.0, "type": "sky", "data": {"utc": utc, "satellites":
+                 [{"prn": "G01", "used": True}]}}))  # fmt: skip
+    rec = tmp_path / "rec.jsonl"
+    rec.write_text("\n".join(lines) + "\n" + "x" * (3 << 20) + "\n")  # and a 3 MB line
+    track = read_track(rec)
+    assert int(np.count_nonzero(track.valid)) == 98
+    assert any("4 recording lines or records not readable" in n for n in track.notes)

@@ -459,3 +459,26 @@ def test_cli_replay_as_a_process() -> None:
     assert proc.returncode == 0, proc.stderr
     assert len(proc.stdout.splitlines()) == len(fixes_of(NL402U.read_bytes()))
     assert "sentences=" in proc.stderr
+
+
+def test_an_over_long_line_is_skipped_without_being_held_whole(tmp_path: Path) -> None:
+    # a card's garbage tail (NULs, no newline for hundreds of MB) or one huge line: the
+    # reader held each whole (613 MB for a 300 MB tail); now 1 MiB pieces at a time
+    import tracemalloc
+
+    from x6wd.core.recorder import MAX_RECORD_LINE_BYTES, ReadStats, read_recording
+
+    good = json.dumps({"t_mono": 1.0, "type": "event", "data": {"what": "x"}}) + "\n"
+    path = tmp_path / "r.jsonl"
+    with open(path, "wb") as f:
+        f.write(good.encode() + b"y" * (16 * MAX_RECORD_LINE_BYTES) + b"\n" + good.encode())
+        f.write(b"\0" * (16 * MAX_RECORD_LINE_BYTES))  # the tail, unterminated
+    stats = ReadStats()
+    tracemalloc.start()
+    try:
+        records = list(read_recording(path, stats=stats))
+        peak_b = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(records) == 2 and stats.bad_lines == 2
+    assert peak_b < 4 * MAX_RECORD_LINE_BYTES, peak_b  # not the 16 MiB of either

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from operator import attrgetter
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from x6wd.core.errors import DeviceUnavailable, ParseError
 from x6wd.core.records import (
@@ -665,6 +665,24 @@ def _parse_line(raw: bytes) -> Record:
     return Record(float(t_mono), t_utc if isinstance(t_utc, str) else "", rtype, data)
 
 
+MAX_RECORD_LINE_BYTES = 1 << 20
+"""A recording line longer than this (bytes) is no record (the longest, a sky of 32
+satellites, is about 3 kB): a card's garbage tail, skipped a piece at a time."""
+
+
+def _bounded_lines(f: BinaryIO) -> Iterator[bytes | None]:
+    """The lines of ``f``; None for each line longer than :data:`MAX_RECORD_LINE_BYTES`,
+    whose bytes are read and dropped a piece at a time."""
+    limit = MAX_RECORD_LINE_BYTES
+    while raw := f.readline(limit + 1):
+        if len(raw) <= limit or raw.endswith(b"\n"):
+            yield raw
+            continue
+        while raw and not raw.endswith(b"\n"):
+            raw = f.readline(limit)
+        yield None
+
+
 def read_recording(
     path: str | os.PathLike[str], *, stats: ReadStats | None = None, strict: bool = False
 ) -> Iterator[Record]:
@@ -681,7 +699,14 @@ def read_recording(
     except OSError as exc:
         raise DeviceUnavailable(f"cannot open recording {path}: {exc}") from exc
     with f:
-        for lineno, raw in enumerate(f, 1):
+        for lineno, raw in enumerate(_bounded_lines(f), 1):
+            if raw is None:  # longer than any record: skipped without holding it whole
+                if strict:
+                    raise ParseError(
+                        f"{path}:{lineno}: line longer than {MAX_RECORD_LINE_BYTES} bytes"
+                    )
+                st.bad_lines += 1
+                continue
             if not raw.strip():
                 st.blank_lines += 1
                 continue

@@ -19,6 +19,7 @@ from x6wd.gap.diagnose import Diagnosis, Options, diagnose, verdict_text
 from x6wd.gap.io import (
     Track,
     against_own_mean,
+    check_near_truth,
     errors_vs_mean,
     errors_vs_point,
     errors_vs_track,
@@ -91,12 +92,13 @@ class ProgressBar:
 
 
 def to_errors(track: Track, args: argparse.Namespace, truth_track: Track | None) -> PositionSeries:
-    """A log's errors against the chosen truth."""
-    if args.truth:
+    """A log's errors against the chosen truth (ConfigError for a log far from it, or a
+    moving log without one)."""
+    if args.truth is not None:  # "" too: parse_truth names it
         lat, lon, alt = parse_truth(args.truth)
-        return errors_vs_point(track, lat, lon, alt)
+        return check_near_truth(errors_vs_point(track, lat, lon, alt), track.source)
     if truth_track is not None:
-        return errors_vs_track(track, truth_track)
+        return check_near_truth(errors_vs_track(track, truth_track), track.source)
     return errors_vs_mean(track)
 
 
@@ -107,11 +109,11 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError("--seeds must be >= 1 and --replicates >= 3")
     output_dir(args.out)  # a mistaken --out is named now, not after the diagnosis
     bar("reading logs", 0.0)
-    truth_track = read_track(args.truth_track) if args.truth_track else None
+    truth_track = read_track(args.truth_track) if args.truth_track is not None else None
     real_track = read_track(args.real)
     real = to_errors(real_track, args, truth_track)
     notes = [f"reading the real log: {note}" for note in real_track.notes]
-    if not args.truth and truth_track is None:
+    if args.truth is None and truth_track is None:
         notes.append(
             "no truth given: errors are taken against each log's own mean, so a bias is invisible"
         )
@@ -128,7 +130,7 @@ def main(args: argparse.Namespace) -> int:
                 progress=lambda i: bar(f"simulating seed {i}/{args.seeds}", 0.05 * i / args.seeds),
                 executor=executor,
             )
-        if not args.truth and truth_track is None:
+        if args.truth is None and truth_track is None:
             # the real log's errors are against its own mean: the runs' must be too, or
             # every level cell (CEP50, R95, the means) reads the runs' hour offsets as a gap
             baseline = [against_own_mean(s) for s in baseline]

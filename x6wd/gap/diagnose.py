@@ -42,6 +42,7 @@ from x6wd.gap.drift import (
 from x6wd.gap.fit import EFFECTS as ERROR_EFFECTS
 from x6wd.gap.fit import SIM_REFIT
 from x6wd.gap.fitted import Fit
+from x6wd.gap.io import GRID_FACTOR
 from x6wd.gap.level import Calibration, calibrate_level
 from x6wd.gap.noise import few_logs_null, fit_noise_model, noise_model
 from x6wd.gap.null import Inflation, block_bootstrap, null_model
@@ -342,6 +343,18 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
             )
         if not baseline:
             raise ConfigError("no baseline: give --sim logs or --scenario")
+        # Every log is read on a grid at the real log's step: a baseline log far coarser
+        # (a time column in hours, in ms) would need a grid of millions of slots per epoch
+        step_s = float(np.median(np.diff(real.t_s)))
+        for i, series in enumerate(baseline, start=1):
+            span_s = float(series.t_s[-1] - series.t_s[0]) if len(series) else 0.0
+            if not span_s / step_s + 1.0 <= GRID_FACTOR * len(series):
+                own_s = float(np.median(np.diff(series.t_s))) if len(series) > 1 else math.nan
+                raise ConfigError(
+                    f"baseline log {i} of {len(baseline)} steps {own_s:g} s, the real log"
+                    f" {step_s:g} s: more than {GRID_FACTOR} times apart (is a time column in"
+                    " hours or milliseconds?); simulate at the real log's rate"
+                )
         # fixes, not epochs: a log of no-fix epochs (or of a few fixes among filled-in gaps)
         # has nothing to read its time structure from
         for i, series in enumerate([real, *baseline]):

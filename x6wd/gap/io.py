@@ -40,6 +40,15 @@ from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 MAX_LINE_BYTES = 1 << 16
 """Longest line of a text log (CSV, .pos) read (bytes); longer is not such a log."""
 GRID_FACTOR = 10
+MAX_ABS_TIME_S = 1e11  # a time stamp beyond it (s) is not a time: the epoch is dropped
+# Beyond these a log is no static receiver (errors against its own mean would count its
+# route as error): a static receiver's reported speed is noise of a few cm/s to a few dm/s,
+# and even a poor urban fix lies a few tens of metres from its median.
+STATIC_MAX_SPEED_MPS = 1.0
+STATIC_MAX_SPREAD_M = 100.0
+# Errors against a truth beyond this (m, the median) are no GNSS error: the log was made
+# elsewhere (a simulation of another place) or the truth is wrong.
+MAX_ERROR_FROM_TRUTH_M = 1000.0
 """Most slots of the log's regular time grid (span / median step + 1) per epoch read."""
 _CHUNK_BYTES = 1 << 20
 _SNIFF_BYTES = 1 << 16
@@ -85,7 +94,8 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
     if not rows:
         raise ParseError(f"{source}: no position epochs found")
     table = np.array(rows, dtype=float)
-    finite = np.isfinite(table[:, 0])
+    # beyond MAX_ABS_TIME_S no clock of a log lies (1e11 s: year 5138 as Unix time)
+    finite = np.isfinite(table[:, 0]) & (np.abs(table[:, 0]) < MAX_ABS_TIME_S)
     if not np.all(finite):
         notes.append(f"{int(np.count_nonzero(~finite))} epochs without a usable time dropped")
         table = table[finite]
@@ -110,6 +120,13 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
         )
         table = table[lo:hi]
     valid = (table[:, 4] > 0) & np.isfinite(table[:, 1]) & np.isfinite(table[:, 2])
+    on_earth = (np.abs(table[:, 1]) <= 90.0) & (np.abs(table[:, 2]) <= 180.0)
+    if np.any(valid & ~on_earth):
+        notes.append(
+            f"{int(np.count_nonzero(valid & ~on_earth))} fixes with a latitude beyond"
+            " ±90° or a longitude beyond ±180° taken as no fix"
+        )
+        valid &= on_earth
     return Track(
         t_s=table[:, 0],
         lat_deg=table[:, 1],
@@ -265,7 +282,8 @@ def _line_text(line: bytes, path: Path, lineno: int) -> str:
         raise ParseError(
             f"{path}:{lineno}: line longer than {MAX_LINE_BYTES} bytes: not a CSV or .pos log"
         )
-    return line.decode("utf-8", "replace").rstrip("\r")
+    text = line.decode("utf-8", "replace").rstrip("\r")
+    return text.removeprefix("\ufeff") if lineno == 1 else text  # Excel's byte-order mark
 
 
 def _utc_s(utc: object) -> float | None:
@@ -402,36 +420,47 @@ def _read_nmea(path: Path) -> Track:
 def _read_recording(path: Path) -> Track:
     """``fix`` records (their UTC when any has one, else their receive time ``t_mono`` for
     all), else the ``nmea`` records decoded (see _nmea_track)."""
-    from x6wd.core.recorder import read_recording
+    from x6wd.core.recorder import ReadStats, read_recording
 
     rows: list[tuple[float, ...]] = []
     utc_s: list[float] = []
     skies: dict[float, float] = {}  # UTC s -> the identity of the satellites used
     has_nmea = False
-    for rec in read_recording(path):
-        if rec.type == "fix":
-            t_s = rec.data.get("t_s", rec.t_mono)
-            rows.append(_fix_row(rec.data, t_s if isinstance(t_s, (int, float)) else math.nan))
-            utc = _utc_s(rec.data.get("utc"))
-            utc_s.append(math.nan if utc is None else utc)
-        elif rec.type == "sky":
-            utc = _utc_s(rec.data.get("utc"))
-            sats = rec.data.get("satellites") or []
-            used = [x["prn"] for x in sats if isinstance(x, dict) and x.get("used") and "prn" in x]
-            if utc is not None and used:
-                skies[utc] = satellite_set_id(used)
-        elif rec.type == "nmea":
-            has_nmea = True
+    malformed = 0  # records whose fields have the wrong type (a hand-edited or foreign file)
+    stats = ReadStats()
+    for rec in read_recording(path, stats=stats):
+        try:
+            if rec.type == "fix":
+                t_s = rec.data.get("t_s", rec.t_mono)
+                row = _fix_row(rec.data, t_s if isinstance(t_s, (int, float)) else math.nan)
+                utc = _utc_s(rec.data.get("utc"))
+                rows.append(row)
+                utc_s.append(math.nan if utc is None else utc)
+            elif rec.type == "sky":
+                utc = _utc_s(rec.data.get("utc"))
+                sats = rec.data.get("satellites") or []
+                used = [
+                    x["prn"] for x in sats if isinstance(x, dict) and x.get("used") and "prn" in x
+                ]
+                if utc is not None and used:
+                    skies[utc] = satellite_set_id(used)
+            elif rec.type == "nmea":
+                has_nmea = True
+        except (TypeError, ValueError, AttributeError):
+            malformed += 1
+    skipped = malformed + stats.bad_lines + stats.truncated
+    notes_read = [f"{skipped} recording lines or records not readable, skipped"] * bool(skipped)
     rows = _with_sets(rows, utc_s, skies)
     if rows:
         dated = np.isfinite(utc_s)
         if not np.any(dated):
-            return _track(rows, str(path), ["no fix has a UTC time: receive times used"])
+            notes_read.append("no fix has a UTC time: receive times used")
+            return _track(rows, str(path), notes_read)
         kept = [(t, *row[1:]) for t, row, ok in zip(utc_s, rows, dated, strict=True) if ok]
         notes = [f"{len(rows) - len(kept)} fixes without a UTC time dropped"] * (
             len(kept) < len(rows)
         )
-        return _track(kept, str(path), notes)
+        return _track(kept, str(path), notes_read + notes)
     if has_nmea:
 
         def feed() -> Iterator[tuple[float, bytes]]:
@@ -718,15 +747,49 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
 
 
 def errors_vs_mean(track: Track) -> PositionSeries:
-    """Errors of a static log against its own mean position (no truth: a bias is invisible)."""
+    """Errors of a static log against its own mean position (no truth: a bias is invisible).
+    Raises ConfigError for a log that moves (:data:`STATIC_MAX_SPEED_MPS`,
+    :data:`STATIC_MAX_SPREAD_M`): its route is no error, it needs a truth track."""
     valid = track.valid
     if not np.any(valid):
         raise ParseError(f"{track.source}: no valid fix")
+    speed_mps = track.speed_mps[valid]
+    speed_mps = speed_mps[np.isfinite(speed_mps)]
+    median_speed_mps = float(np.median(speed_mps)) if speed_mps.size else 0.0
+    e_per_deg, n_per_deg = metres_per_degree(float(np.median(track.lat_deg[valid])))
+    spread_m = float(np.median(np.hypot(
+        (track.lon_deg[valid] - np.median(track.lon_deg[valid])) * e_per_deg,
+        (track.lat_deg[valid] - np.median(track.lat_deg[valid])) * n_per_deg,
+    )))  # fmt: skip
+    if median_speed_mps > STATIC_MAX_SPEED_MPS or spread_m > STATIC_MAX_SPREAD_M:
+        raise ConfigError(
+            f"{track.source}: the log moves (median speed {median_speed_mps:.1f} m/s, fixes a"
+            f" median {spread_m:.0f} m from their centre): without a truth its route would"
+            " count as error; give --truth-track (the true path)"
+        )
     alt_m = track.alt_m[valid]
     alt0_m = float(np.nanmean(alt_m)) if np.any(np.isfinite(alt_m)) else math.nan
     return errors_vs_point(
         track, float(np.mean(track.lat_deg[valid])), float(np.mean(track.lon_deg[valid])), alt0_m
     )
+
+
+def check_near_truth(series: PositionSeries, source: str) -> PositionSeries:
+    """``series`` (errors against a truth, m) unless its median horizontal error exceeds
+    :data:`MAX_ERROR_FROM_TRUTH_M`: then ConfigError naming ``source`` and the distance (a
+    simulation of another place, or a wrong truth, would otherwise read as a bias of
+    thousands of kilometres)."""
+    valid = np.asarray(series.valid, dtype=bool)
+    if np.any(valid):
+        error_m = np.hypot(np.asarray(series.east_m)[valid], np.asarray(series.north_m)[valid])
+        median_m = float(np.median(error_m))
+        if median_m > MAX_ERROR_FROM_TRUTH_M:
+            raise ConfigError(
+                f"{source}: its fixes lie a median {median_m / 1000:.1f} km from the truth:"
+                " not a log of that place (a --sim log must simulate the real log's place and"
+                " path; is --truth or --truth-track right?)"
+            )
+    return series
 
 
 def against_own_mean(series: PositionSeries) -> PositionSeries:
