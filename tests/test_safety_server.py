@@ -267,6 +267,12 @@ def test_hello_status_watch_and_log_replies(servers) -> None:
             "code": "bad_request", "message": "'n' must be an integer 0..1000",
             "reason": "bad_argument",
         }  # fmt: skip
+        assert raw.ask({"id": 10, "cmd": "drive", "left": 10, "right": 10, "duration_s": 0})[
+            "error"
+        ] == {
+            "code": "bad_request", "message": "'duration_s' must be > 0 s, got 0",
+            "reason": "bad_argument",
+        }  # fmt: skip
     finally:
         raw.close()
 

@@ -676,6 +676,8 @@ class ControlServer(LineServer[_Client]):
             return (self._waypoints(req),)
         if cmd == "drive":
             duration_s = _number(req, "duration_s", 0.0, 3600.0)
+            if duration_s <= 0.0:  # an argument out of range, not a state the robot refuses
+                raise _bad("bad_argument", f"'duration_s' must be > 0 s, got {duration_s:g}")
             if c.drive_limit_s is not None:
                 duration_s = min(duration_s, c.drive_limit_s)
             return (
