@@ -320,6 +320,24 @@ def test_cli_refuses_a_drive_without_its_reference(
     assert "--ref-lat" in capsys.readouterr().err
 
 
+def test_cli_refuses_flags_out_of_range_before_any_work_and_a_short_csv_row(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # --re-m -1 was squared into the LCE map while the fragment said 0.0001; a short row of
+    # a CSV reference was a TypeError traceback
+    drive = ["calibrate", "gnss", "--drive", "no.pos", "--reference", "no.pos"]
+    for flag, value in (("--re-m", "-1"), ("--ase-m", "nan"), ("--visit-gap-s", "-1"),
+                        ("--min-fixes", "0"), ("--min-visits", "0"), ("--max-gap-s", "nan"),
+                        ("--cell-m", "0")):  # fmt: skip
+        assert cli.main([*drive, flag, value]) == 2
+        assert f"{flag} must be" in capsys.readouterr().err
+    ref = tmp_path / "ref.csv"
+    ref.write_text("t_s,lat,lon\n0.0,51.75,-1.25\n1.0,51.75\n")
+    argv = ["calibrate", "gnss", "--static", str(ref), "--ref-lat", "51.75", "--ref-lon", "-1.25"]
+    assert cli.main(argv) == 2
+    assert "not a number" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------------------ config
 
 

@@ -6,6 +6,7 @@ standard errors of the truth, and those standard errors must be honest over many
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -150,6 +151,30 @@ def test_standard_errors_are_honest_over_seeds() -> None:
         assert 0.17 < msq < 2.5, (key, msq, [round(z[key], 2) for z in zs])
     for key in ("k_left_m", "k_right_m"):  # cruder: a variance from a dozen passes
         assert all(abs(z[key]) < 4.0 for z in zs), (key, [round(z[key], 2) for z in zs])
+
+
+def test_cli_skips_and_counts_damaged_records_and_refuses_bad_flags(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside check: a count of "abc" was a traceback, 859 torn lines went unmentioned,
+    # --stop-s 0 was blamed on the recording
+    straight = write(tmp_path / "straight.jsonl", *simulate(STRAIGHT, 1))
+    circle = write(tmp_path / "circle.jsonl", *simulate(CIRCLE, 2))
+    lines = straight.read_text().splitlines(keepends=True)
+    odo_at = [i for i, ln in enumerate(lines) if '"type":"odometry"' in ln]
+    lines[odo_at[5]] = re.sub(r'"left_counts":-?\d+', '"left_counts":"abc"', lines[odo_at[5]])
+    lines[odo_at[9]] = lines[odo_at[9]][:30] + "\n"  # torn
+    straight.write_text("".join(lines))
+    argv = ["calibrate", "odometry", "--straight", str(straight), "--circle", str(circle)]
+    assert cli.main(argv) == 0
+    assert "2 unreadable lines or records of the straight recording skipped" in (
+        capsys.readouterr().err
+    )
+    for flag, value in (("--stop-s", "0"), ("--min-pass-m", "nan"), ("--ref-sigma-m", "-1")):
+        assert cli.main([*argv, flag, value]) == 2
+        assert f"{flag} must be" in capsys.readouterr().err
+    assert cli.main(["calibrate", "odometry", "--straight", str(tmp_path), "--circle", "x"]) == 2
+    assert "a directory, not a recording" in capsys.readouterr().err
 
 
 def test_passes_are_the_motion_between_stops() -> None:

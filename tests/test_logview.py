@@ -160,6 +160,15 @@ def test_a_real_nmea_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
         assert f'<svg id="svg-{pid}"' not in page
         assert re.search(rf'<section id="panel-{pid}"><h2>[^<]*</h2><p class="missing">', page)
     assert (tmp_path / "ublox-lea-5h.png").read_bytes()[:4] == b"\x89PNG"
+    assert "skipped" not in err
+    # damaged sentences: counted on the page and said on stderr, not silently missing data
+    lines = NMEA_LOG.read_bytes().splitlines(keepends=True)
+    bad = [ln[:10] + b"\xff\x00junk" + ln[10:] if i % 4 == 1 else ln for i, ln in enumerate(lines)]
+    (tmp_path / "bad.nmea").write_bytes(b"".join(bad))
+    assert cli_main(["plot", str(tmp_path / "bad.nmea"), "--out", str(tmp_path)]) == 0
+    counts = page_data((tmp_path / "bad.html").read_text())["counts"]
+    assert counts["checksum_failures"] > 0
+    assert f"skipped {counts['checksum_failures']} checksum failures" in capsys.readouterr().err
 
 
 def _recorded(path: Path, hold_reason: str) -> None:

@@ -18,6 +18,7 @@ from tests.conftest import ROOT
 from tests.test_server import LoopThread, RecordingBackend, start_server
 from x6wd.app import cli
 from x6wd.app.server import ControlServer
+from x6wd.core import mission_files
 from x6wd.core.errors import ParseError
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.mission_files import (
@@ -368,3 +369,12 @@ def test_client_loads_every_format(served, tmp_path: Path) -> None:
     r = x6wd("client", "--port", str(srv.port), "load", str(bad))
     assert r.returncode == 2 and "line 3: command 21 (NAV_LAND) is not supported" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_a_csv_field_over_the_csv_modules_limit_is_a_parse_error() -> None:
+    # csv.Error escaped as a traceback (an outside check)
+    with pytest.raises(ParseError, match=r"big\.csv: line 2: field larger than field limit"):
+        mission_files.parse_csv("lat,lon\n" + "5" * 200_000 + ",1\n", "big.csv")
+    rows = "".join(f"{51 + i * 1e-5},-1\n" for i in range(mission_files.MAX_WAYPOINTS + 500))
+    with pytest.raises(ParseError, match=r"more than 10000 waypoints"):
+        mission_files.parse_csv(rows, "huge.csv")

@@ -482,3 +482,23 @@ def test_an_over_long_line_is_skipped_without_being_held_whole(tmp_path: Path) -
         tracemalloc.stop()
     assert len(records) == 2 and stats.bad_lines == 2
     assert peak_b < 4 * MAX_RECORD_LINE_BYTES, peak_b  # not the 16 MiB of either
+
+
+def test_a_very_slow_replay_sleeps_in_pieces_the_os_accepts(tmp_path: Path) -> None:
+    # --speed 1e-300 asked time.sleep for 1e300 s: OverflowError, a traceback
+    from x6wd.core.recorder import MAX_SLEEP_S, replay_records
+
+    path = tmp_path / "r.jsonl"
+    lines = [json.dumps({"t_mono": float(t), "type": "event", "data": {}}) for t in (0, 1)]
+    path.write_text("\n".join(lines) + "\n")
+    asked: list[float] = []
+
+    def sleep(s: float) -> None:
+        asked.append(s)
+        raise KeyboardInterrupt  # the operator gives up
+
+    records = replay_records(path, speed=1e-300, sleep=sleep)
+    assert next(records).t_mono == 0.0
+    with pytest.raises(KeyboardInterrupt):
+        next(records)
+    assert asked == [MAX_SLEEP_S]

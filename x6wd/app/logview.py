@@ -178,7 +178,14 @@ def _parse_utc(text: Any) -> datetime | None:
         return None
 
 
-def _gps_from_decoder(chunks: Iterable[tuple[float, bytes]], raw: _Raw) -> None:
+LOST_COUNTS = frozenset(
+    {"bad_lines", "truncated_lines", "checksum_failures", "framing_errors", "invalid_sentences"}
+)
+"""The counts of :attr:`LogView.counts` that say input was skipped (``x6wd plot`` says so)."""
+
+
+def _gps_from_decoder(chunks: Iterable[tuple[float, bytes]], raw: _Raw) -> dict[str, int]:
+    """Decode ``chunks`` into ``raw``'s fixes and skies; the decoder's error counts."""
     from drivers.gps_nmea import GpsDecoder
 
     decoder = GpsDecoder(emit_sentences=False)
@@ -195,6 +202,12 @@ def _gps_from_decoder(chunks: Iterable[tuple[float, bytes]], raw: _Raw) -> None:
         if isinstance(rec, GpsFix):
             raw.fixes.append(rec)
     raw.t_last = max(raw.t_last, t_last)
+    c = decoder.counters
+    return {
+        "checksum_failures": c.checksum_failures,
+        "framing_errors": c.framing_errors,
+        "invalid_sentences": c.invalid_fields,
+    }
 
 
 _SKIP_TYPES = frozenset({b"motor", b"odometry"})
@@ -354,7 +367,7 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
         if truth is None:
             truth = default_truth(path)
     else:
-        _gps_from_decoder(nmea_file_chunks(path, rate_hz), raw)
+        view.counts = _gps_from_decoder(nmea_file_chunks(path, rate_hz), raw)
         if raw.fixes and raw.fixes[0].utc is not None:
             first = next((f.utc for f in raw.fixes if f.utc is not None), None)
             if first is not None:

@@ -15,6 +15,7 @@ import numpy as np
 
 from x6wd.app.logview import (
     COLORS,
+    LOST_COUNTS,
     STATE_COLORS,
     TITLES,
     LogView,
@@ -200,4 +201,8 @@ def main(args: argparse.Namespace) -> int:
         print(p)
     for pid, why in view.missing.items():
         print(f"x6wd plot: the {pid} panel is empty: {why}", file=sys.stderr)
+    lost = {k: v for k, v in view.counts.items() if k in LOST_COUNTS and v}
+    if lost:  # what was skipped is on the page too; say it where the command ran
+        text = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in lost.items())
+        print(f"x6wd plot: {src}: skipped {text}", file=sys.stderr)
     return 0

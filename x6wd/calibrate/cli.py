@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
@@ -101,8 +102,31 @@ def _latlon(text: str) -> tuple[float, float]:
     return lat, lon
 
 
+def _check_flags(args: argparse.Namespace, rules: dict[str, str]) -> None:
+    """ConfigError naming the first flag (attribute: rule) out of range, before any work:
+    "finite>=0", "finite>0", "int>=1"; None (not given) passes."""
+    for name, rule in rules.items():
+        v = getattr(args, name, None)
+        if v is None:
+            continue
+        ok = {
+            "finite>=0": math.isfinite(v) and v >= 0,
+            "finite>0": math.isfinite(v) and v > 0,
+            "int>=1": v >= 1,
+        }[rule]
+        if not ok:
+            flag = "--" + name.replace("_", "-")
+            want = {"finite>=0": ">= 0", "finite>0": "> 0", "int>=1": ">= 1"}[rule]
+            raise ConfigError(f"{flag} must be {want}, got {v!r}")
+
+
 def main_gnss(args: argparse.Namespace) -> int:
     """``x6wd calibrate gnss``: 0 on success."""
+    _check_flags(args, {
+        "re_m": "finite>=0", "ase_m": "finite>=0", "correlation_s": "finite>=0",
+        "cell_m": "finite>0", "max_gap_s": "finite>0", "visit_gap_s": "finite>=0",
+        "min_fixes": "int>=1", "min_visits": "int>=1",
+    })  # fmt: skip
     if not args.static and not args.drive:
         raise ConfigError("calibrate gnss: give --static, --drive, or both")
     if len(args.drive) != len(args.reference):
@@ -170,9 +194,18 @@ def main(args: argparse.Namespace) -> int:
         cpr = cfg.odometry.counts_per_rev
     if cpr < 1:
         raise ConfigError(f"--counts-per-rev must be >= 1, got {cpr}")
+    _check_flags(args, {"stop_s": "finite>0", "min_pass_m": "finite>=0", "ref_sigma_m": "finite>0"})
+    straight, circle = load_track(args.straight), load_track(args.circle)
+    for name, track in (("straight", straight), ("circle", circle)):
+        if track.skipped:
+            print(
+                f"x6wd calibrate: {track.skipped} unreadable lines or records of the {name}"
+                " recording skipped",
+                file=sys.stderr,
+            )
     result = calibrate(
-        load_track(args.straight),
-        load_track(args.circle),
+        straight,
+        circle,
         counts_per_rev=cpr,
         ref_sigma_m=args.ref_sigma_m,
         stop_s=args.stop_s,

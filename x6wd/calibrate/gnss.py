@@ -173,7 +173,7 @@ def _load_csv(p: Path) -> FixSeries:
         lat = np.array([float(r["lat"]) for r in rows])
         lon = np.array([float(r["lon"]) for r in rows])
         hdop = np.array([float(r.get("hdop") or 1.0) for r in rows])
-    except ValueError as exc:
+    except (ValueError, TypeError) as exc:  # TypeError: a short row's missing field (None)
         raise ParseError(f"{p}: not a number: {exc}") from exc
     order = np.argsort(t, kind="stable")
     return FixSeries(

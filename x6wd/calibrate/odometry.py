@@ -39,6 +39,7 @@ are needed for a k good to 20 %).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,7 +49,7 @@ import numpy.typing as npt
 
 from x6wd.core.config import OdometryConfig, build
 from x6wd.core.errors import ConfigError, ParseError
-from x6wd.core.recorder import decode_record, read_recording_parts
+from x6wd.core.recorder import ReadStats, decode_record, read_recording_parts
 from x6wd.core.records import GpsFix, WheelOdometry
 from x6wd.nav.geo import LocalTangentPlane
 
@@ -68,6 +69,7 @@ class Track:
     east_m: Array
     north_m: Array
     origin: tuple[float, float] = (0.0, 0.0)  # (lat_deg, lon_deg) of the plane
+    skipped: int = 0  # recording lines or records that could not be read
 
     @classmethod
     def from_records(
@@ -99,20 +101,35 @@ class Track:
 
 
 def load_track(path: str | Path, origin: tuple[float, float] | None = None) -> Track:
-    """The odometry and fix records of a recording (all its parts)."""
+    """The odometry and fix records of a recording (all its parts). Lines that are not
+    records, and odometry or fix records with fields of the wrong type, are skipped and
+    counted in the track's ``skipped`` (the CLI says how many)."""
     odo: list[WheelOdometry] = []
     fixes: list[GpsFix] = []
-    for rec in read_recording_parts(path):
+    stats = ReadStats()
+    malformed = 0
+    for rec in read_recording_parts(path, stats=stats):
         if rec.type in ("odometry", "fix"):
             typed = decode_record(rec)
             if isinstance(typed, WheelOdometry):
+                try:  # the counts go into int arrays: a count of "abc" is a bad record
+                    int(typed.left_counts), int(typed.right_counts), float(typed.t_s)
+                except (TypeError, ValueError):
+                    malformed += 1
+                    continue
                 odo.append(typed)
             elif isinstance(typed, GpsFix):
+                try:
+                    float(typed.t_s), float(typed.lat_deg), float(typed.lon_deg)  # type: ignore[arg-type]
+                except (TypeError, ValueError):
+                    malformed += 1
+                    continue
                 fixes.append(typed)
     try:
-        return Track.from_records(odo, fixes, origin)
+        track = Track.from_records(odo, fixes, origin)
     except ParseError as exc:
         raise ParseError(f"{path}: {exc}") from exc
+    return dataclasses.replace(track, skipped=malformed + stats.bad_lines + stats.truncated)
 
 
 @dataclass(frozen=True)

@@ -64,8 +64,8 @@ def make_waypoint(lat: object, lon: object, where: str = "") -> Waypoint:
 def _check_count(wps: Sequence[Waypoint], source: str) -> list[Waypoint]:
     if not wps:
         raise ParseError(f"{source}: no waypoints")
-    if len(wps) > MAX_WAYPOINTS:
-        raise ParseError(f"{source}: {len(wps)} waypoints, at most {MAX_WAYPOINTS} allowed")
+    if len(wps) > MAX_WAYPOINTS:  # the parsers stop reading one past the limit
+        raise ParseError(f"{source}: more than {MAX_WAYPOINTS} waypoints, the most allowed")
     return list(wps)
 
 
@@ -113,11 +113,15 @@ def parse_csv(text: str, source: str = "CSV") -> list[Waypoint]:
     ``lon``/``lng``/``longitude``; other columns ignored) or headerless rows ``lat,lon``.
     Blank lines and lines starting with ``#`` are skipped.
     """
-    rows = [
-        (n, r)
-        for n, r in enumerate(csv.reader(io.StringIO(text)), start=1)
-        if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")
-    ]
+    reader = csv.reader(io.StringIO(text))
+    try:
+        rows = [
+            (n, r)
+            for n, r in enumerate(reader, start=1)
+            if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")
+        ]
+    except csv.Error as exc:  # e.g. a field over the csv module's 128 KiB
+        raise ParseError(f"{source}: line {reader.line_num}: {exc}") from None
     if not rows:
         raise ParseError(f"{source}: no waypoints")
     first = [c.strip().lower() for c in rows[0][1]]

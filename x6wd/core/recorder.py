@@ -786,7 +786,12 @@ def read_recording_parts(
     when no part exists."""
     parts = recording_parts(path)
     if not parts:
-        raise DeviceUnavailable(f"cannot open recording {path}: no such file, nor parts of it")
+        what = (
+            "a directory, not a recording"
+            if Path(path).is_dir()
+            else "no such file, nor parts of it"
+        )
+        raise DeviceUnavailable(f"cannot open recording {path}: {what}")
     for part in parts:
         yield from read_recording(part, stats=stats, strict=strict)
 
@@ -815,6 +820,9 @@ def _check_speed(speed: float) -> float:
     if not (math.isfinite(speed) and speed >= 0):
         raise ValueError(f"speed must be finite and >= 0 (0 = as fast as possible), got {speed}")
     return float(speed)
+
+
+MAX_SLEEP_S = 60.0  # the longest single sleep of a paced replay (s)
 
 
 class _Pacer:
@@ -849,7 +857,8 @@ class _Pacer:
             remaining = due - self.clock()
             if remaining <= 0:
                 return
-            self.sleep(remaining)
+            # in pieces: a speed of 1e-300 makes remaining too large for the OS to sleep
+            self.sleep(min(remaining, MAX_SLEEP_S))
 
 
 def replay_records(

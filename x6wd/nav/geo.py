@@ -59,15 +59,28 @@ def _out(a: ArrayLike, scalar: bool) -> ArrayLike:
 def _as_array(name: str, value: ArrayLike) -> npt.NDArray[np.float64]:
     a = np.asarray(value, dtype=float)
     if not np.all(np.isfinite(a)):
-        raise GeoError(f"{name} must be finite, got {value!r}")
+        raise GeoError(f"{name} must be finite, got {_first_bad(a, ~np.isfinite(a))}")
     return a
+
+
+def _first_bad(a: npt.NDArray[np.float64], bad: npt.NDArray[np.bool_]) -> str:
+    """The bad value itself, or for an array the count and the first (not 12 kB of it)."""
+    if a.ndim == 0:
+        return repr(float(a))
+    i = int(np.flatnonzero(bad)[0])
+    n_bad = int(np.count_nonzero(bad))
+    return f"{n_bad} of {a.size} values, the first {float(a.flat[i])!r} at index {i}"
 
 
 def _check_latlon(lat: npt.NDArray[np.float64], lon: npt.NDArray[np.float64]) -> None:
     if np.any(np.abs(lat) > 90.0):
-        raise GeoError(f"latitude must be within [-90, 90] deg, got {lat}")
+        raise GeoError(
+            f"latitude must be within [-90, 90] deg, got {_first_bad(lat, np.abs(lat) > 90.0)}"
+        )
     if np.any(np.abs(lon) > 180.0):
-        raise GeoError(f"longitude must be within [-180, 180] deg, got {lon}")
+        raise GeoError(
+            f"longitude must be within [-180, 180] deg, got {_first_bad(lon, np.abs(lon) > 180.0)}"
+        )
 
 
 def _snap_poles(lat: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
