@@ -190,7 +190,7 @@ def test_requests_without_a_newline_are_answered_as_gpsd_answers_them(gpsd: Gpsd
     with socket.create_connection(("127.0.0.1", gpsd.port), timeout=5) as s:
         f = s.makefile("rb")
         f.readline()
-        s.sendall(b'?WATCH={"device":"' + b"x" * 5000)  # no end: refused, not kept for ever
+        s.sendall(b'?WATCH={"device":"' + b"x" * 9000)  # no end: refused, not kept for ever
         assert json.loads(f.readline()) == {"class": "ERROR", "message": "request too long"}
         assert f.readline() == b""
 

@@ -41,7 +41,8 @@ PROTO_MAJOR = 3
 PROTO_MINOR = 14
 UERE_M = 5.0
 """User-equivalent range error used to turn DOP into the eph/epv estimates (metres, 1 sigma)."""
-MAX_COMMAND_BYTES = 4096
+MAX_COMMAND_BYTES = 4096  # one read of a client's bytes
+MAX_REQUEST_BYTES = 2 * MAX_COMMAND_BYTES  # the longest request taken, with or without "\n"
 MAX_PENDING_REPLIES = 256
 COMMANDS = frozenset({"WATCH", "POLL", "VERSION", "DEVICES"})
 DEFAULT_MAX_PENDING = 32
@@ -204,11 +205,11 @@ async def next_request(reader: asyncio.StreamReader, pending: bytearray) -> byte
     """The next request from ``reader``: a line, or what arrived without a newline once it
     is complete (:func:`_complete_without_newline`); None at the end of the stream.
     ``pending`` keeps the bytes read past it. A request longer than
-    :data:`MAX_COMMAND_BYTES` comes back as it is, longer than the limit, for the caller
+    :data:`MAX_REQUEST_BYTES` comes back as it is, longer than the limit, for the caller
     to refuse."""
     while True:
         end = pending.find(b"\n")
-        if end >= 0 or len(pending) > MAX_COMMAND_BYTES:
+        if end >= 0 or len(pending) > MAX_REQUEST_BYTES:
             cut = end + 1 if end >= 0 else len(pending)
             raw = bytes(pending[:cut])
             del pending[:cut]
@@ -353,7 +354,7 @@ class GpsdServer(LineServer[_Client]):
             self._handle,
             self.bind,
             self._configured_port,
-            limit=MAX_COMMAND_BYTES * 2,
+            limit=MAX_REQUEST_BYTES,
             backlog=LISTEN_BACKLOG,
         )
         self._listening(server)
@@ -471,7 +472,7 @@ class GpsdServer(LineServer[_Client]):
                 raw = await next_request(reader, pending)
                 if raw is None:
                     break
-                if len(raw) > MAX_COMMAND_BYTES:
+                if len(raw) > MAX_REQUEST_BYTES:
                     c.reply(dumps({"class": "ERROR", "message": "request too long"}))
                     break
                 c.t_active_s = self._clock()
