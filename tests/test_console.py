@@ -16,6 +16,7 @@ import math
 import os
 import shutil
 import signal
+import socket
 import ssl
 import struct
 import subprocess
@@ -38,6 +39,7 @@ from tests.conftest import ROOT, require_program
 from tests.test_daemon import Running, hil_config, wait_for
 from tests.test_startup import assert_config_error, run_x6wd, write_config
 from x6wd.app.client import RemoteClient, RequestFailed
+from x6wd.app.console.server import CONNECTION_SLACK
 from x6wd.app.daemon import Daemon
 from x6wd.core.config import Config, ConsoleConfig, FailsafeConfig, SafetyConfig, SimConfig
 from x6wd.core.geodesy import great_circle_m
@@ -375,6 +377,55 @@ def test_a_websocket_from_another_site_is_refused(tmp_path: Path) -> None:
                 assert (await w.request("hello"))["ok"]
 
         asyncio.run(program())
+
+
+def test_a_rebound_host_name_is_refused_and_idle_connections_cannot_starve_the_stop(
+    tmp_path: Path,
+) -> None:
+    # Found by an outside check. DNS rebinding: a site whose name the attacker points at
+    # 127.0.0.1 sent its own Host and a matching Origin, and drove the robot (no token).
+    # 1100 idle HTTP connections took the daemon's file descriptors, and with them `stop`.
+    with daemon_with(console_config(tmp_path, hostnames=("robot.lan",))) as r:
+        console = r.daemon.console
+        assert console is not None
+        port = console.port
+        evil = f"evil.example:{port}"
+
+        async def program() -> None:
+            with pytest.raises(aiohttp.WSServerHandshakeError) as ei:
+                async with ws_to(r, Host=evil, Origin=f"http://{evil}"):
+                    pass
+            assert ei.value.status == 421
+            async with aiohttp.ClientSession() as s:
+                for host, status in ((evil, 421), (f"localhost:{port}", 200),
+                                     (f"ROBOT.lan:{port}", 200), (f"[::1]:{port}", 200),
+                                     (f"127.0.0.1:{port}", 200), ("[::1", 421)):  # fmt: skip
+                    async with s.get(console.url, headers={"Host": host}) as resp:
+                        assert resp.status == status, host
+
+        asyncio.run(program())
+        assert console.refused_hosts == 3
+        cap = console.config.max_clients + CONNECTION_SLACK
+        idle = []
+        for _ in range(cap + 40):  # each sends half a request and waits
+            s = socket.create_connection(("127.0.0.1", port), timeout=5)
+            s.sendall(b"GET / HTTP/1.1\r\n")
+            idle.append(s)
+        try:
+            wait_for(lambda: console.connections_closed >= 40, 10, "the oldest idle closed")
+            server = console._runner.server  # type: ignore[union-attr]
+            wait_for(lambda: len(server.connections) <= cap, 10, "the connections capped")
+
+            async def page() -> None:  # a page still opens, and the brake still works
+                async with ws_to(r) as w:
+                    assert (await w.request("hello"))["ok"]
+
+            asyncio.run(page())
+            with RemoteClient("127.0.0.1", r.port) as c:
+                assert c.request("stop")["ok"]
+        finally:
+            for s in idle:
+                s.close()
 
 
 # -- watch-only and the map's tiles ----------------------------------------------------------------

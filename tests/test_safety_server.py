@@ -20,6 +20,7 @@ import pytest
 import x6wd.app.server as server_module
 from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
 from x6wd import __version__
+from x6wd.app.client import RemoteClient
 from x6wd.app.server import COMMANDS, ControlServer, load_token
 from x6wd.core.config import ServerConfig
 from x6wd.core.errors import ConfigError, X6wdError
@@ -460,3 +461,33 @@ def test_a_client_that_hangs_up_leaves_the_pools(servers, lt: LoopThread) -> Non
     raw.close()
     silent.close()
     wait_until(lambda: lt.call(lambda: (srv.client_count, srv.pending_count)) == (0, 0))
+
+
+def test_a_browsers_request_is_closed_before_its_body_can_act(servers) -> None:
+    # a page of any site can fetch(..., {method: "POST", mode: "no-cors"}) this port: without
+    # a token its body's lines were commands, each header only a bad_json (an outside check)
+    backend = RecordingBackend()
+    srv = servers(backend, token=None)
+    raw = Raw(srv.port)
+    try:
+        raw.send(
+            b"POST / HTTP/1.1\r\nHost: 127.0.0.1\r\nOrigin: http://evil.example\r\n"
+            b"Content-Type: text/plain\r\n\r\n"
+            b'\n{"id":1,"cmd":"drive","left":55,"right":55,"duration_s":2}\n'
+        )
+        first = raw.line()
+        assert first["error"]["reason"] == "http", first
+        assert raw.line()["error"]["code"] == "closed"
+        assert raw.f.readline() == b""  # closed: the body never read
+    finally:
+        raw.close()
+    assert backend.calls == []
+    for header in (b"Host: 127.0.0.1:7601", b"user-agent: Mozilla/5.0"):  # alone, any case
+        raw = Raw(srv.port)
+        try:
+            raw.send(header + b"\r\n")
+            assert raw.line()["error"]["reason"] == "http"
+        finally:
+            raw.close()
+    with RemoteClient("127.0.0.1", srv.port) as c:  # a program of ours is not affected
+        assert c.request("hello")["ok"]

@@ -28,6 +28,7 @@ import inspect
 import ipaddress
 import json
 import logging
+import re
 import ssl
 import stat
 import time
@@ -292,6 +293,13 @@ def parse_request(line: bytes) -> dict[str, Any]:
     return req
 
 
+_HTTP_LINE = re.compile(
+    rb"\s*(?:[A-Z]{3,10} \S+ HTTP/\d|(?i:host|origin|user-agent|content-type|content-length):)"
+)
+"""An HTTP request line or one of the headers every browser request carries (the first
+line of a cross-protocol request from a web page; a JSON request never starts so)."""
+
+
 def _number(args: dict[str, Any], key: str, lo: float, hi: float) -> float:
     v = args.get(key)
     if isinstance(v, bool) or not isinstance(v, (int, float)):
@@ -484,6 +492,14 @@ class ControlServer(LineServer[_Client]):
                 if discarding:
                     discarding = False  # the rest of an oversized line
                     continue
+                if _HTTP_LINE.match(line):
+                    # a browser's request (a page of any site can POST here with no-cors;
+                    # the body would follow as lines): no program of ours sends this
+                    why = "an HTTP request on the control port"
+                    self._reply(c, error_reply(None, "bad_request", why, "http"))
+                    self._count_close(c, "http", why)
+                    c.reply(self._notice("http", why))
+                    return
                 if len(line) > limit:
                     reply = self._too_long()
                 elif line.strip():

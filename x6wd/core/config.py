@@ -266,6 +266,10 @@ class ConsoleConfig:
     max_clients: int = field(default=8, metadata=_rng(1, 1000))
     max_message_bytes: int = field(default=1 << 20, metadata=_rng(1024, 64 << 20))
     queue_len: int = field(default=64, metadata=_rng(1, 100_000))  # events per page
+    # names (besides an IP address, localhost and this machine's hostname[.local]) by which
+    # the operator opens the page: any other Host is refused, so that a site whose name is
+    # made to point here (DNS rebinding) cannot use the console from the operator's browser
+    hostnames: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

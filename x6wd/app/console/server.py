@@ -24,8 +24,10 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import ipaddress
 import logging
 import math
+import socket
 import ssl
 import time
 from collections.abc import Callable
@@ -83,6 +85,32 @@ class _Page:
     dropped: int = 0
     drive_until_s: float = 0.0  # monotonic time its latest drive ends (0: not driving)
     map_sent: Any = None
+    transport: Any = None  # its connection's (kept open when connections are capped)
+
+
+CONNECTION_SLACK = 16
+"""HTTP connections allowed beyond ``max_clients`` pages (a browser opens up to 6 per host
+for a page's files). Past them the oldest that is not a page's WebSocket is closed: idle
+connections cannot take the process's file descriptors, and with them the control port
+where the operator's stop arrives."""
+
+
+def allowed_host(host_header: str, names: frozenset[str]) -> bool:
+    """Whether the Host of a request names this console: an IP address (a rebound name
+    never is one), or one of ``names`` (lower case, without the port)."""
+    try:
+        host = urlsplit("//" + host_header).hostname
+    except ValueError:  # e.g. an unclosed [IPv6 bracket
+        return False
+    if not host:
+        return False
+    if host in names:
+        return True
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return True
 
 
 def _origin_ok(request: web.Request) -> bool:
@@ -146,6 +174,12 @@ class ConsoleServer:
         self.port = 0
         self.dropped_total = 0
         self.deadman_stops = 0
+        self.refused_hosts = 0  # requests whose Host named no name of this console
+        self.connections_closed = 0  # idle HTTP connections closed to stay within the cap
+        me = socket.gethostname().lower()
+        self._hostnames = frozenset(
+            {"localhost", me, f"{me}.local", *(n.lower() for n in config.hostnames)}
+        )
         self.track: collections.deque[tuple[float, float]] = collections.deque(maxlen=TRACK_POINTS)
 
     @property
@@ -158,13 +192,16 @@ class ConsoleServer:
     # -- lifecycle ----------------------------------------------------------------------------
     async def start(self) -> None:
         """Bind and listen (OSError when the address cannot be had)."""
-        app = web.Application(client_max_size=self.config.max_message_bytes)
+        app = web.Application(
+            client_max_size=self.config.max_message_bytes, middlewares=[self._host_guard]
+        )
         app.router.add_get("/", self._index)
         app.router.add_get("/ws", self._websocket)
         app.router.add_static("/static/", STATIC_DIR, follow_symlinks=False)
         app.on_response_prepare.append(self._headers)
         runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=1.0)
         await runner.setup()
+        self._cap_connections(runner.server)
         site = web.TCPSite(
             runner,
             self.config.bind,
@@ -184,6 +221,39 @@ class ConsoleServer:
             self.url,
             " (watch only)" if self.config.watch_only else "",
         )
+
+    @web.middleware
+    async def _host_guard(self, request: web.Request, handler: Any) -> web.StreamResponse:
+        if allowed_host(request.host, self._hostnames):
+            return await handler(request)
+        self.refused_hosts += 1
+        if self.refused_hosts <= 3 or self.refused_hosts % 100 == 0:
+            log.warning(
+                "console: refused a request for host %r from %s (%d so far; an expected name"
+                " goes in console.hostnames)",
+                request.host, request.remote, self.refused_hosts,
+            )  # fmt: skip
+        return web.Response(status=421, text="unknown host name (console.hostnames)\n")
+
+    def _cap_connections(self, server: Any) -> None:
+        """Close the oldest connection that is not a page's WebSocket whenever more than
+        ``max_clients`` + :data:`CONNECTION_SLACK` are open (checked as each one opens)."""
+        made = server.connection_made
+        cap = self.config.max_clients + CONNECTION_SLACK
+
+        def connection_made(handler: Any, transport: asyncio.Transport) -> None:
+            made(handler, transport)
+            conns = server._connections  # handler -> transport, oldest first
+            if len(conns) <= cap:
+                return
+            pages = {page.transport for page in self._pages}
+            for old in conns.values():  # a closing one stays listed until its handler ends
+                if old not in pages and not old.is_closing():
+                    self.connections_closed += 1
+                    old.close()
+                    return
+
+        server.connection_made = connection_made
 
     async def close(self) -> None:
         """Close every page and stop listening (idempotent)."""
@@ -310,7 +380,7 @@ class ConsoleServer:
             watch_only=self.config.watch_only,
             drive_limit_s=self.config.deadman_s,
         )
-        page = _Page(ws=ws, client=client, peer=peer)
+        page = _Page(ws=ws, client=client, peer=peer, transport=request.transport)
         self._pages[page] = None
         sender = asyncio.create_task(self._sender(page))
         self._reply(page, self._welcome())
