@@ -444,7 +444,14 @@ def test_white_gps_noise_mode_is_the_papers_filter():
     odo = OdometryParams(track_m=TRACK_M, k_left_m=K_WHEEL_M, k_right_m=K_WHEEL_M,
                          sigma_turn_scale=0.0, sigma_drift_rad_per_m=0.0,
                          turn_scale_walk_per_s=0.0, drift_walk_rad_per_m_per_s=0.0)  # fmt: skip
-    cfg = _config(gps=GpsParams(re_m=GPS_RE_M, ase_m=GPS_ASE_M, correlation_s=None), odometry=odo)
+    cfg = _config(
+        gps=GpsParams(re_m=GPS_RE_M, ase_m=GPS_ASE_M, correlation_s=None),
+        odometry=odo,
+        # nor a compass offset state
+        compass=CompassParams(
+            sigma_deg=COMPASS_SIGMA_DEG, declination_deg=DECLINATION_DEG, offset_sigma_deg=0.0
+        ),
+    )
     run = _run(tr, sens, cfg)
     keep = run.t >= WARMUP_S
     assert run.est.state[5] == 0.0 and run.est.covariance[5, 5] == 0.0
@@ -482,8 +489,13 @@ def test_compass_lag_model_removes_the_turning_bias():
     for lag in (CMPS10_LAG_S, 0.0):
         cfg = _config(
             Mode.GPS_COMPASS,
+            # the lag model alone: on a circle a constant offset and the lag's turning bias
+            # are one constant, so the offset state would share the bias out (about 1 deg)
             compass=CompassParams(
-                sigma_deg=COMPASS_SIGMA_DEG, declination_deg=DECLINATION_DEG, lag_s=lag
+                sigma_deg=COMPASS_SIGMA_DEG,
+                declination_deg=DECLINATION_DEG,
+                lag_s=lag,
+                offset_sigma_deg=0.0,
             ),
         )
         run = _run(tr, sens, cfg)
@@ -492,6 +504,34 @@ def test_compass_lag_model_removes_the_turning_bias():
     # truth turns clockwise (bearing grows); a lagging compass pulls the estimate back
     assert abs(res[CMPS10_LAG_S]) < 0.5
     assert res[0.0] < -1.0
+
+
+def test_a_compass_10_degrees_off_is_learnt_and_the_position_stays_on_the_gps():
+    """The compass reads 10 deg above the true bearing (a mounting, a wrong declination):
+    with the offset state the filter learns it from the GPS track and keeps the position at
+    GPS quality; without it the heading stays 10 deg off and the dead reckoning runs
+    sideways, which the GPS bias states take up (an outside check: 27 m at 15 sigma, and
+    missions that failed as 'stuck')."""
+    tr = _truth(straight, 600.0)  # a long leg: 600 m at 1 m/s
+    sens = _sensors(tr, 21)
+    sens.compass = [(t, (b + 10.0) % 360.0) for t, b in sens.compass]
+    off = _run(
+        tr,
+        sens,
+        _config(
+            compass=CompassParams(
+                sigma_deg=COMPASS_SIGMA_DEG, declination_deg=DECLINATION_DEG, offset_sigma_deg=0.0
+            )
+        ),
+    )
+    on = _run(tr, sens, _config())
+    keep = on.t >= 300.0
+    est = on.est.estimate()
+    assert est is not None and est.compass_offset_deg == pytest.approx(10.0, abs=2.0)
+    assert abs(math.degrees(float(np.mean(on.psi_err[keep])))) < 1.5
+    rms_on, rms_off = _rms2d(on.err[keep]), _rms2d(off.err[keep])
+    print(f"position RMS with / without the offset state: {rms_on:.2f} / {rms_off:.2f} m")
+    assert rms_on < 3.5 and rms_off > 4.0 * rms_on  # measured 2.5 m and 25 m
 
 
 # ----------------------------------------------------------------------------- sans-IO
@@ -567,6 +607,7 @@ def _fresh_estimate(est: Estimator) -> tuple[float, ...]:
         math.degrees(math.sqrt(max(p[2, 2], 0.0))),
         x[7],
         math.degrees(x[8]),
+        math.degrees(x[9]),
     )
 
 

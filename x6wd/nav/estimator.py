@@ -4,7 +4,7 @@ State (local tangent plane, east/north metres; headings are BEARINGS, clockwise 
 north, radians)::
 
     x = [east_m, north_m, heading_rad, speed_mps, yaw_rate_rps, bias_east_m, bias_north_m,
-         turn_scale, drift_rad_per_m]
+         turn_scale, drift_rad_per_m, compass_offset_rad]
 
 ``yaw_rate_rps`` is clockwise positive (the compass sense). The two bias states are the
 slowly varying part of the GPS error (first-order Gauss-Markov); they exist only when
@@ -19,6 +19,13 @@ compass observing it in turns; ``drift_rad_per_m`` takes up unequal wheel diamet
 apart on a 0.245 m track is 0.04 rad per metre driven), the compass observing it on straights.
 Both start at the calibration's values (1, 0) with :class:`OdometryParams`'s uncertainty and
 wander slowly (surface, load). In mode GPS_COMPASS they stay where they are.
+
+``compass_offset_rad`` is what the compass reads above the true bearing, constant over
+headings: its mounting, a declination the robot has wrong (WMM off its dates, a site's
+anomaly), residual iron. Without it a compass 10° off pinned the heading 10° off and the
+dead reckoning drifted sideways; the GPS bias states took up the drift (27 m at 15 sigma)
+until the robot reached its waypoints only in its own estimate. The GPS track observes it on
+every leg (:attr:`CompassParams.offset_sigma_deg`; 0 freezes it at 0).
 
 Nothing here reads a clock: every input carries its time ``t_s`` (seconds, one monotonic
 clock), and the filter predicts to each input's time before using it. Inputs stamped slightly
@@ -82,8 +89,8 @@ import numpy.typing as npt
 
 from x6wd.core.errors import X6wdError
 
-E, N, PSI, V, W, BE, BN, KT, BA = range(9)
-NX = 9
+E, N, PSI, V, W, BE, BN, KT, BA, CO = range(10)
+NX = 10
 _TWO_PI = 2.0 * math.pi
 _EYE = np.eye(NX)
 _EYE.flags.writeable = False  # copied, never written: np.eye per call cost more than the math
@@ -190,15 +197,22 @@ class CompassParams:
     """The compass: ``sigma_deg`` white noise of one sample (deg); ``lag_s`` the first-order
     lag of its heading filter (s; :data:`CMPS10_LAG_S`, 0 = none); ``lag_uncertainty`` the
     fraction of the lag term ``lag_s·ω`` added as noise; ``declination_deg`` added to the
-    magnetic bearing (deg, east positive; see :mod:`x6wd.nav.declination`)."""
+    magnetic bearing (deg, east positive; see :mod:`x6wd.nav.declination`);
+    ``offset_sigma_deg`` the prior one-sigma of the compass's constant offset from the true
+    bearing after the declination (deg; 0: none is estimated), ``offset_walk_deg_per_s`` its
+    random walk (deg after 1 s)."""
 
     sigma_deg: float = 2.0
     lag_s: float = CMPS10_LAG_S
     lag_uncertainty: float = 0.5
     declination_deg: float = 0.0
+    offset_sigma_deg: float = 10.0
+    offset_walk_deg_per_s: float = 0.01
 
     def __post_init__(self) -> None:
         _pos("sigma_deg", self.sigma_deg)
+        _pos("offset_sigma_deg", self.offset_sigma_deg, zero_ok=True)
+        _pos("offset_walk_deg_per_s", self.offset_walk_deg_per_s, zero_ok=True)
         _pos("lag_s", self.lag_s, zero_ok=True)
         _pos("lag_uncertainty", self.lag_uncertainty, zero_ok=True)
         if not math.isfinite(self.declination_deg):
@@ -312,6 +326,7 @@ class Estimate:
     sigma_heading_deg: float
     turn_scale: float = 1.0
     drift_deg_per_m: float = 0.0
+    compass_offset_deg: float = 0.0
 
 
 @dataclass
@@ -360,10 +375,14 @@ class Estimator:
         # The latest Estimate, until the state changes (the controller asks for it several
         # times per input: position, heading, telemetry); None when it must be rebuilt.
         self._est: Estimate | None = None
-        # The compass's measurement Jacobian [0, 0, 1, 0, -lag, 0...] (constant; never written).
+        # The compass's measurement Jacobian [0, 0, 1, 0, -lag, 0..., 1] (constant; never
+        # written): it reads the heading, late by the lag, plus its offset
         self._h_compass = np.zeros(NX)
         self._h_compass[PSI] = 1.0
         self._h_compass[W] = -config.compass.lag_s
+        self._estimate_offset = config.compass.offset_sigma_deg > 0
+        self._h_compass[CO] = 1.0 if self._estimate_offset else 0.0
+        self._q_co = math.radians(config.compass.offset_walk_deg_per_s) ** 2  # rad² per s
         self._h_compass.flags.writeable = False
 
     # ------------------------------------------------------------------ read-outs
@@ -418,6 +437,7 @@ class Estimator:
                 math.degrees(math.sqrt(max(p.item(PSI, PSI), 0.0))),
                 x[KT],
                 math.degrees(x[BA]),
+                math.degrees(x[CO]),
             )
         return est
 
@@ -497,6 +517,8 @@ class Estimator:
             q[KT, KT] = odo.turn_scale_walk_per_s**2 * h
             q[BA, BA] = odo.drift_walk_rad_per_m_per_s**2 * h
         q[E, E] = q[N, N] = self._q_v * h**3 / 3.0
+        if self._estimate_offset:
+            q[CO, CO] = self._q_co * h
         cmd = cfg.command
         if cmd is not None and self._cmd is not None and not self._odo_fresh:
             # speed and yaw rate relax to the command; their error is Gauss-Markov
@@ -647,10 +669,10 @@ class Estimator:
             return Update(True, math.nan, "init")
         x = self._x
         lag = cp.lag_s
-        psi, w = x.item(PSI), x.item(W)
+        psi, w, co = x.item(PSI), x.item(W), x.item(CO)
         r = math.radians(cp.sigma_deg) ** 2 + (cp.lag_uncertainty * lag * w) ** 2
         h = self._h_compass
-        y = _wrap(z - (psi - lag * w))
+        y = _wrap(z - (psi - lag * w + co))
         ph = self._p @ h
         s = float(h @ ph) + r
         nis = y * y / s
@@ -659,9 +681,11 @@ class Estimator:
             if self._compass_consistent():
                 self._compass_refused.clear()
                 self.stats.compass_resets += 1
-                x[PSI] = _wrap(z + lag * w)
+                x[PSI] = _wrap(z + lag * w - co)
+                p_co = self._p[CO, CO]
                 self._p[PSI, :] = self._p[:, PSI] = 0.0
-                self._p[PSI, PSI] = r + lag * lag * self._p[W, W]
+                self._p[PSI, PSI] = r + lag * lag * self._p[W, W] + p_co
+                self._p[PSI, CO] = self._p[CO, PSI] = -p_co  # read through the offset
                 return Update(True, nis, "reset")
             self.stats.compass_rejected += 1
             return Update(False, nis, "gated")
@@ -669,6 +693,7 @@ class Estimator:
         kg = ph / s
         x += kg * y
         x[PSI] = _wrap(x[PSI])
+        x[CO] = _wrap(x[CO])
         self._joseph(kg[:, None], h[None, :], np.array([[r]]))
         self.stats.compass_accepted += 1
         return Update(True, nis, "ok")
@@ -801,6 +826,11 @@ class Estimator:
         self._reset_position(ze, zn, white_var)
         self._x[PSI] = psi
         self._p[PSI, PSI] = math.radians(self.cfg.compass.sigma_deg) ** 2
+        if self._estimate_offset:  # the first heading is read through the unknown offset
+            var_co = math.radians(self.cfg.compass.offset_sigma_deg) ** 2
+            self._p[CO, CO] = var_co
+            self._p[PSI, PSI] += var_co
+            self._p[PSI, CO] = self._p[CO, PSI] = -var_co
         self._p[V, V] = 1.0  # (m/s)²: unknown speed at start, up to the 1.1 m/s top speed
         self._p[W, W] = math.radians(30.0) ** 2
         self._x[KT] = 1.0  # the odometry calibration as configured ...
