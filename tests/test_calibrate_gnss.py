@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import csv
 import math
+import subprocess
+import sys
 import tomllib
 from datetime import UTC, datetime
 from pathlib import Path
@@ -437,3 +439,19 @@ def test_an_x6wd_recording_matches_a_pos_reference_through_its_utc_stamp() -> No
     assert (len(got), missed) == (550, 1)
     assert np.allclose(got.err_east_m, want.err_east_m, atol=1e-6)
     assert np.allclose(got.err_north_m, want.err_north_m, atol=1e-6)
+
+
+def test_plot_without_its_extra_stops_before_any_work(tmp_path: Path) -> None:
+    # it made the map, wrote the fragment, then stopped at the plot (an outside check)
+    script = "import sys\nsys.modules['matplotlib'] = None\nfrom x6wd.app.cli import main\n"
+    script += "sys.exit(main(sys.argv[1:]))\n"
+    urban = ROOT / "tests" / "data" / "urban"
+    out = tmp_path / "g.toml"
+    r = subprocess.run(
+        [sys.executable, "-c", script, "calibrate", "gnss", "--drive",
+         str(urban / "rover_1Hz_spp.pos"), "--reference", str(urban / "reference_1Hz.pos"),
+         "--re-m", "0.1", "--ase-m", "0.1", "--out", str(out), "--plot", str(tmp_path / "m.png")],
+        capture_output=True, text=True, timeout=120, cwd=ROOT,
+    )  # fmt: skip
+    assert r.returncode == 2 and "x6wd[plot]" in r.stderr and "Traceback" not in r.stderr
+    assert not out.exists() and r.stdout == ""

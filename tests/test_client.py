@@ -308,3 +308,69 @@ def test_tls_from_the_command_line(tmp_path: Path, token_file: Path) -> None:
         lt.run(srv.close())
         lt.close()
     assert [name for name, _ in backend.calls] == ["start"]
+
+
+def test_bad_options_and_peers_that_are_not_the_robot_give_clear_errors(
+    served, token_file: Path, tmp_path: Path
+) -> None:
+    # an outside check: each was a traceback, a wrap-around to another port, a hang, or the
+    # token in plain text
+    import socket
+    import threading
+
+    _, srv, _ = served
+    for opts in (["--port", str(srv.port + 65536)], ["--port", "-1"], ["--timeout", "nan"],
+                 ["--timeout", "0"]):  # fmt: skip
+        r = subprocess.run([sys.executable, "-m", "x6wd", "client", *opts, "status"],
+                           capture_output=True, text=True, timeout=30)  # fmt: skip
+        assert r.returncode == 2 and "Traceback" not in r.stderr, (opts, r.stderr)
+    r = client(srv.port, "watch", "--count", "0")
+    assert r.returncode == 2 and "must be >= 1" in r.stderr
+    r = client(srv.port, "--cafile", str(tmp_path / "missing.pem"), "status")
+    assert r.returncode == 2 and "--cafile" in r.stderr and "Traceback" not in r.stderr
+    raw = tmp_path / "raw"
+    raw.write_bytes(b"abcdefgh\xff\xfe")
+    raw.chmod(0o600)
+    r = client(srv.port, "status", token=raw)
+    assert r.returncode == 2 and "--token-file" in r.stderr and "not UTF-8" in r.stderr
+
+    # peers that are not the control port: one dripping bytes with no newline, one HTTP
+    # server, one that never listens for TLS; and what --insecure sends
+    got: list[bytes] = []
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def answer(conn: socket.socket, k: int) -> None:
+        import contextlib
+
+        with conn, contextlib.suppress(OSError):  # the client hangs up first
+            got.append(conn.recv(4096))
+            if got[-1].startswith(b"\x16"):  # a TLS hello: answer nothing
+                return
+            conn.sendall(b"HTTP/1.0 400 Bad request\r\n\r\n" if k == 1 else b"x")
+            for _ in range(40):
+                conn.sendall(b"x")
+                threading.Event().wait(0.1)
+
+    def serve() -> None:
+        import contextlib
+
+        with contextlib.suppress(OSError):
+            for k in range(3):
+                conn, _ = server.accept()
+                threading.Thread(target=answer, args=(conn, k), daemon=True).start()
+
+    threading.Thread(target=serve, daemon=True).start()
+    port = server.getsockname()[1]
+    try:
+        r = subprocess.run(
+            [sys.executable, "-m", "x6wd", "client", "--port", str(port), "--timeout", "1",
+             "status"], capture_output=True, text=True, timeout=30,
+        )  # fmt: skip
+        assert r.returncode == 3 and "within 1 s" in r.stderr, r.stderr  # not 4 s of drips
+        r = client(port, "status")
+        assert r.returncode == 3 and "does not answer in the x6wd control protocol" in r.stderr
+        r = client(port, "--insecure", "status", token=token_file)
+        assert r.returncode == 3
+        assert got[-1].startswith(b"\x16")  # a TLS hello, never the token in the clear
+    finally:
+        server.close()

@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import socket
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -18,6 +21,7 @@ from typing import Any
 import pytest
 
 import x6wd.app.server as server_module
+from tests.conftest import ROOT, require_program
 from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
 from x6wd import __version__
 from x6wd.app.client import RemoteClient
@@ -115,6 +119,30 @@ def test_the_token_file_rules(tmp_path: Path) -> None:
     assert str(ei.value) == (
         f"server.token_file: cannot read {tmp_path / 'missing'}: No such file or directory"
     )
+
+
+def test_a_token_file_the_daemon_may_not_read_is_a_configuration_error(tmp_path: Path) -> None:
+    # another user's file (mode 600, not ours): read_bytes raised PermissionError, exit 1,
+    # and systemd restarted the daemon every 2 s (an outside check). Root reads any file, so
+    # as root the check runs without the capabilities that allow it.
+    p = tmp_path / "token"
+    p.write_text("12345678\n")
+    p.chmod(0o000 if os.geteuid() else 0o600)
+    if os.geteuid():
+        tmp_path.chmod(0o755)
+    drop = [] if os.geteuid() else [require_program("setpriv"), "--inh-caps=-all",
+                                    "--bounding-set=-all"]  # fmt: skip
+    if not os.geteuid():
+        os.chown(p, 12345, 12345)  # a file of another user
+    code = (
+        "import sys\nfrom x6wd.app.server import load_token\nfrom x6wd.core.errors import "
+        "ConfigError\ntry:\n    load_token(sys.argv[1])\nexcept ConfigError as e:\n"
+        "    print(e)\n"
+    )
+    r = subprocess.run([*drop, sys.executable, "-c", code, str(p)], capture_output=True,
+                       text=True, timeout=60, cwd=ROOT)  # fmt: skip
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert r.stdout.strip() == f"server.token_file: cannot read {p}: Permission denied"
 
 
 def test_a_configured_token_file_is_required_and_no_file_means_no_token(

@@ -29,7 +29,7 @@ from collections import deque
 from typing import Any, NoReturn, TextIO
 
 from x6wd.app.server import load_token
-from x6wd.core.errors import ParseError, ProtocolError, X6wdError
+from x6wd.core.errors import ConfigError, ParseError, ProtocolError, X6wdError
 from x6wd.core.mission_files import PARSERS, Waypoint, load_file, parse_args
 
 EXIT_OK = 0
@@ -112,7 +112,14 @@ class RemoteClient:
     def _readline(self, timeout_s: float | None) -> bytes:
         if self._sock is None:
             raise ConnectionFailed("connection closed")
+        # one deadline for the whole line: a peer dripping bytes without a newline must not
+        # restart the wait with each of them
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while b"\n" not in self._buf:
+            if deadline is not None:
+                timeout_s = deadline - time.monotonic()
+                if timeout_s <= 0:
+                    raise TimeoutError
             self._sock.settimeout(timeout_s)
             try:
                 chunk = self._sock.recv(65536)
@@ -135,8 +142,12 @@ class RemoteClient:
         line = self._readline(timeout_s)
         try:
             msg = json.loads(line)
-        except json.JSONDecodeError as exc:
-            raise ProtocolError(f"server sent invalid JSON: {exc}") from None
+        except (ValueError, RecursionError) as exc:  # bad UTF-8 and digit limits are too
+            shown = line[:40].decode("utf-8", "replace")
+            raise ProtocolError(
+                f"{self.host}:{self.port} does not answer in the x6wd control protocol (it"
+                f" sent {shown!r}: {exc}); the control port is [server] port, 7601"
+            ) from None
         if not isinstance(msg, dict):
             raise ProtocolError("server sent a non-object line")
         return msg
@@ -225,7 +236,7 @@ def fmt_heading(v: Any) -> str:
 def _telemetry_lines(tel: dict[str, Any]) -> list[str]:
     """The lines of a telemetry snapshot that the watch and status views share."""
     wp_i, wp_n = tel.get("waypoint_index"), tel.get("waypoint_count", 0)
-    wp = "-" if wp_i is None else f"{wp_i + 1}/{wp_n}"
+    wp = f"{wp_i + 1}/{wp_n}" if isinstance(wp_i, int) else "-"
     hold = tel.get("hold_reason") or ""
     return [
         f"state      {tel.get('mode', '?')} / {tel.get('state', '?')}"
@@ -314,13 +325,66 @@ def render_status(st: dict[str, Any]) -> str:
 
 
 def _client_ssl(args: argparse.Namespace) -> ssl.SSLContext | None:
-    if not args.tls and not args.cafile:
+    """The TLS context (``--cafile`` and ``--insecure`` imply ``--tls``: an --insecure alone
+    sent the token in plain text). Raises ConfigError for a CA file that cannot be used."""
+    if not args.tls and not args.cafile and not args.insecure:
         return None
-    ctx = ssl.create_default_context(cafile=args.cafile or None)
+    try:
+        ctx = ssl.create_default_context(cafile=args.cafile or None)
+    except (OSError, ssl.SSLError) as exc:
+        raise ConfigError(
+            f"--cafile {args.cafile}: {getattr(exc, 'strerror', None) or exc}"
+        ) from None
     if args.insecure:
         ctx.check_hostname = False
         ctx.verify_mode = ssl.CERT_NONE
     return ctx
+
+
+def _token(path: str) -> str:
+    """The token of ``--token-file`` (the daemon's rules: mode 600, 8 bytes or more), as
+    text: it travels in a JSON string."""
+    try:
+        raw = load_token(path)
+    except ConfigError as exc:
+        raise ConfigError(str(exc).replace("server.token_file", "--token-file", 1)) from None
+    try:
+        return raw.decode()
+    except UnicodeDecodeError:
+        raise ConfigError(
+            f"--token-file: {path} is not UTF-8 text (make a token with e.g. "
+            "`openssl rand -base64 32`)"
+        ) from None
+
+
+def _port(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if not 1 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"must be 1..65535, got {v}")
+    return v
+
+
+def _positive_s(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0, got {text}")
+    return v
+
+
+def _count(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
+    return n
 
 
 def _waypoints(args: argparse.Namespace) -> list[Waypoint]:
@@ -372,14 +436,14 @@ def _watch(client: RemoteClient, args: argparse.Namespace, out: TextIO, ansi: bo
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``x6wd client``."""
     parser.add_argument("--host", default="127.0.0.1", help="robot address (default 127.0.0.1)")
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="control port (7601)")
+    parser.add_argument("--port", type=_port, default=DEFAULT_PORT, help="control port (7601)")
     parser.add_argument("--token-file", help="file holding the shared token (mode 600)")
     parser.add_argument("--tls", action="store_true", help="connect with TLS")
     parser.add_argument("--cafile", help="CA/certificate to trust for TLS (implies --tls)")
     parser.add_argument(
         "--insecure", action="store_true", help="TLS without certificate verification"
     )
-    parser.add_argument("--timeout", type=float, default=5.0, help="reply timeout in s (5)")
+    parser.add_argument("--timeout", type=_positive_s, default=5.0, help="reply timeout in s (5)")
     parser.add_argument("--json", action="store_true", help="print replies as JSON (for programs)")
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     sub.add_parser("status", help="show the robot's state")
@@ -404,7 +468,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("right", type=float, help="right side, -100..100 %%")
     p.add_argument("seconds", type=float, help="duration in s")
     p = sub.add_parser("watch", help="live one-screen view")
-    p.add_argument("--count", type=int, help="exit after N screens")
+    p.add_argument("--count", type=_count, help="exit after N screens")
     p.add_argument("--no-ansi", action="store_true", help="do not clear the screen")
     p = sub.add_parser("log", help="recent daemon log lines")
     p.add_argument("n", type=int, nargs="?", default=50)
@@ -449,14 +513,15 @@ def _drop_output(out: TextIO) -> None:
 def _run(args: argparse.Namespace, out: TextIO) -> int:
     err = sys.stderr
     try:
-        token = load_token(args.token_file).decode() if args.token_file else None
+        token = _token(args.token_file) if args.token_file else None
         waypoints = _waypoints(args) if args.action == "load" else None
+        ssl_context = _client_ssl(args)
     except X6wdError as exc:
         print(f"x6wd client: {exc}", file=err)
         return EXIT_USAGE
     try:
         with RemoteClient(
-            args.host, args.port, token=token, ssl_context=_client_ssl(args), timeout_s=args.timeout
+            args.host, args.port, token=token, ssl_context=ssl_context, timeout_s=args.timeout
         ) as client:
             action: str = args.action
             if action in ("status", "start", "pause", "resume", "return", "stop"):
@@ -472,7 +537,10 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
             elif action == "log":
                 reply = client.request("log", n=args.n)
                 if not args.json:
-                    for line in reply.get("lines", []):
+                    lines = reply.get("lines", [])
+                    if not isinstance(lines, list):
+                        raise ProtocolError(f"'log' reply without a list of lines: {lines!r:.60}")
+                    for line in lines:
                         print(line, file=out)
                     return EXIT_OK
             elif action == "watch":
@@ -494,7 +562,7 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
     except RequestFailed as exc:
         code = f"{exc.code} ({exc.reason})" if exc.reason else exc.code
         print(f"x6wd client: {args.action} refused: {code}: {exc.message}", file=err)
-        return EXIT_REFUSED
+        return EXIT_REFUSED  # whatever the reason: the robot said no (2: found here)
     except (ConnectionFailed, ProtocolError) as exc:
         print(f"x6wd client: {exc}", file=err)
         return EXIT_CONNECTION

@@ -130,7 +130,10 @@ def load_token(path: str | Path) -> bytes:
             f"server.token_file: {p} has mode {stat.S_IMODE(st.st_mode):04o}; it must not be "
             f"accessible to group or others (chmod 600 {p})"
         )
-    token = p.read_bytes().strip()
+    try:
+        token = p.read_bytes().strip()
+    except OSError as exc:  # another user's file: exit 2, not a restart loop of tracebacks
+        raise ConfigError(f"server.token_file: cannot read {p}: {exc.strerror or exc}") from None
     if len(token) < 8:
         raise ConfigError(f"server.token_file: {p}: token shorter than 8 bytes")
     return token

@@ -122,6 +122,8 @@ def _check_flags(args: argparse.Namespace, rules: dict[str, str]) -> None:
 
 def main_gnss(args: argparse.Namespace) -> int:
     """``x6wd calibrate gnss``: 0 on success."""
+    if args.plot:  # now, not after the map is made and the fragment written
+        import matplotlib  # noqa: F401  (missing: the CLI names the extra to install)
     _check_flags(args, {
         "re_m": "finite>=0", "ase_m": "finite>=0", "correlation_s": "finite>=0",
         "cell_m": "finite>0", "max_gap_s": "finite>0", "visit_gap_s": "finite>=0",
