@@ -26,6 +26,7 @@ import ssl
 import sys
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any, NoReturn, TextIO
 
 from x6wd.app.server import load_token
@@ -357,14 +358,20 @@ def _token(path: str) -> str:
         ) from None
 
 
-def _port(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if not 1 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"must be 1..65535, got {v}")
-    return v
+def _int_in(lo: int, hi: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer from ``lo`` to ``hi`` (no upper limit when None)."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if v < lo or (hi is not None and v > hi):
+            want = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+            raise argparse.ArgumentTypeError(f"must be {want}, got {v}")
+        return v
+
+    return parse
 
 
 def _positive_s(text: str) -> float:
@@ -375,16 +382,6 @@ def _positive_s(text: str) -> float:
     if not (math.isfinite(v) and v > 0):
         raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0, got {text}")
     return v
-
-
-def _count(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
-    return n
 
 
 def _waypoints(args: argparse.Namespace) -> list[Waypoint]:
@@ -436,7 +433,9 @@ def _watch(client: RemoteClient, args: argparse.Namespace, out: TextIO, ansi: bo
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``x6wd client``."""
     parser.add_argument("--host", default="127.0.0.1", help="robot address (default 127.0.0.1)")
-    parser.add_argument("--port", type=_port, default=DEFAULT_PORT, help="control port (7601)")
+    parser.add_argument(
+        "--port", type=_int_in(1, 65535), default=DEFAULT_PORT, help="control port (7601)"
+    )
     parser.add_argument("--token-file", help="file holding the shared token (mode 600)")
     parser.add_argument("--tls", action="store_true", help="connect with TLS")
     parser.add_argument("--cafile", help="CA/certificate to trust for TLS (implies --tls)")
@@ -468,7 +467,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("right", type=float, help="right side, -100..100 %%")
     p.add_argument("seconds", type=float, help="duration in s")
     p = sub.add_parser("watch", help="live one-screen view")
-    p.add_argument("--count", type=_count, help="exit after N screens")
+    p.add_argument("--count", type=_int_in(1), help="exit after N screens")
     p.add_argument("--no-ansi", action="store_true", help="do not clear the screen")
     p = sub.add_parser("log", help="recent daemon log lines")
     p.add_argument("n", type=int, nargs="?", default=50)
