@@ -22,6 +22,7 @@ from x6wd.calibrate.odometry import (
     calibrate,
     find_passes,
     fit_circle,
+    load_track,
 )
 from x6wd.core import config
 from x6wd.core.errors import ConfigError
@@ -175,6 +176,15 @@ def test_cli_skips_and_counts_damaged_records_and_refuses_bad_flags(
         assert f"{flag} must be" in capsys.readouterr().err
     assert cli.main(["calibrate", "odometry", "--straight", str(tmp_path), "--circle", "x"]) == 2
     assert "a directory, not a recording" in capsys.readouterr().err
+
+
+def test_no_fix_epochs_are_not_counted_as_unreadable(tmp_path: Path) -> None:
+    # a fix record without a position is a receiver's no-fix epoch, which every real
+    # recording has: dropped, not reported as damage
+    odo, fixes = simulate(STRAIGHT, 1)
+    no_fix = [GpsFix(f.t_s + 0.5, valid=False) for f in fixes[::10]]
+    track = load_track(write(tmp_path / "s.jsonl", odo, [*fixes, *no_fix]))
+    assert track.skipped == 0 and track.t_ref_s.size == len(fixes)
 
 
 def test_passes_are_the_motion_between_stops() -> None:

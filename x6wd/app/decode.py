@@ -1774,10 +1774,10 @@ _GC_THRESHOLD: Final = 20_000  # allocations between collections (CPython's defa
 
 
 def _main(args: argparse.Namespace) -> int:
+    from x6wd.core.recorder import ReadStats
+
     status = 0
     for name in args.files:
-        from x6wd.core.recorder import ReadStats
-
         stats = ReadStats()
         try:
             if name == "-":

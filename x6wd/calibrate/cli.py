@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -102,22 +103,21 @@ def _latlon(text: str) -> tuple[float, float]:
     return lat, lon
 
 
+_FLAG_RULES: dict[str, tuple[Callable[[float], bool], str]] = {
+    "finite>=0": (lambda v: math.isfinite(v) and v >= 0, ">= 0"),
+    "finite>0": (lambda v: math.isfinite(v) and v > 0, "> 0"),
+    "int>=1": (lambda v: v >= 1, ">= 1"),
+}
+
+
 def _check_flags(args: argparse.Namespace, rules: dict[str, str]) -> None:
-    """ConfigError naming the first flag (attribute: rule) out of range, before any work:
-    "finite>=0", "finite>0", "int>=1"; None (not given) passes."""
+    """ConfigError naming the first flag (attribute: a rule of :data:`_FLAG_RULES`) out of
+    range, before any work; None (not given) passes."""
     for name, rule in rules.items():
         v = getattr(args, name, None)
-        if v is None:
-            continue
-        ok = {
-            "finite>=0": math.isfinite(v) and v >= 0,
-            "finite>0": math.isfinite(v) and v > 0,
-            "int>=1": v >= 1,
-        }[rule]
-        if not ok:
-            flag = "--" + name.replace("_", "-")
-            want = {"finite>=0": ">= 0", "finite>0": "> 0", "int>=1": ">= 1"}[rule]
-            raise ConfigError(f"{flag} must be {want}, got {v!r}")
+        ok, want = _FLAG_RULES[rule]
+        if v is not None and not ok(v):
+            raise ConfigError(f"--{name.replace('_', '-')} must be {want}, got {v!r}")
 
 
 def main_gnss(args: argparse.Namespace) -> int:

@@ -100,6 +100,14 @@ class Track:
         )
 
 
+def _numbers(*values: object, none: bool = False) -> bool:
+    """Every value a real number (not a bool), or None where ``none``."""
+    return all(
+        (none and v is None) or (isinstance(v, (int, float)) and not isinstance(v, bool))
+        for v in values
+    )
+
+
 def load_track(path: str | Path, origin: tuple[float, float] | None = None) -> Track:
     """The odometry and fix records of a recording (all its parts). Lines that are not
     records, and odometry or fix records with fields of the wrong type, are skipped and
@@ -111,17 +119,15 @@ def load_track(path: str | Path, origin: tuple[float, float] | None = None) -> T
     for rec in read_recording_parts(path, stats=stats):
         if rec.type in ("odometry", "fix"):
             typed = decode_record(rec)
+            # the values go into numeric arrays: a count of "abc" makes a bad record; a fix
+            # without a position (None) is a no-fix epoch, dropped later, not a bad record
             if isinstance(typed, WheelOdometry):
-                try:  # the counts go into int arrays: a count of "abc" is a bad record
-                    int(typed.left_counts), int(typed.right_counts), float(typed.t_s)
-                except (TypeError, ValueError):
+                if not _numbers(typed.t_s, typed.left_counts, typed.right_counts):
                     malformed += 1
                     continue
                 odo.append(typed)
             elif isinstance(typed, GpsFix):
-                try:
-                    float(typed.t_s), float(typed.lat_deg), float(typed.lon_deg)  # type: ignore[arg-type]
-                except (TypeError, ValueError):
+                if not _numbers(typed.t_s) or not _numbers(typed.lat_deg, typed.lon_deg, none=True):
                     malformed += 1
                     continue
                 fixes.append(typed)

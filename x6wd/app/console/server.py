@@ -243,12 +243,12 @@ class ConsoleServer:
 
         def connection_made(handler: Any, transport: asyncio.Transport) -> None:
             made(handler, transport)
-            conns = server._connections  # handler -> transport, oldest first
+            conns = server.connections  # their handlers, oldest first
             if len(conns) <= cap:
                 return
             pages = {page.transport for page in self._pages}
-            for old in conns.values():  # a closing one stays listed until its handler ends
-                if old not in pages and not old.is_closing():
+            for old in (h.transport for h in conns):  # a closing one stays listed a while
+                if old is not None and old not in pages and not old.is_closing():
                     self.connections_closed += 1
                     old.close()
                     return
