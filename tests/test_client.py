@@ -104,6 +104,35 @@ def test_bad_input_and_refusals_give_clear_messages(
     assert r.returncode == 0, r.stderr
 
 
+def test_drive_holds_its_connection_and_ctrl_c_stops_the_robot(served, token_file: Path) -> None:
+    """The robot stops a drive whose client went away, so the client stays for the drive's
+    duration; Ctrl-C sends ``stop`` and exits 130."""
+    import signal
+    import time
+
+    _, srv, backend = served
+    t0 = time.monotonic()
+    r = client(srv.port, "drive", "20", "-20", "1.5", token=token_file)
+    assert r.returncode == 0 and "drive: ok" in r.stdout, r.stderr
+    assert time.monotonic() - t0 >= 1.5
+    assert [n for n, _ in backend.calls] == ["drive"]
+    cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(srv.port)]
+    proc = subprocess.Popen(
+        [*cmd, "--token-file", str(token_file), "drive", "30", "30", "20"],
+        stderr=subprocess.PIPE, text=True,
+        # a background job may inherit SIGINT ignored: give the child Ctrl-C's default
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    deadline = time.monotonic() + 20
+    while [n for n, _ in backend.calls] != ["drive", "drive"]:
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=10)
+    assert proc.returncode == 130 and "stop sent" in stderr, stderr
+    assert [n for n, _ in backend.calls] == ["drive", "drive", "stop"]
+
+
 def test_the_servers_reason_for_closing_is_reported(tmp_path: Path) -> None:
     """A connection that does not authenticate in time is closed with a notice; the client
     says why (exit 3 from the command line)."""

@@ -131,7 +131,7 @@ def test_silent_sockets_cannot_lock_the_operator_out(lt: LoopThread) -> None:
         t0 = time.monotonic()
         with RemoteClient("127.0.0.1", srv.port, token=TOKEN) as op:
             assert op.request("stop")["did"] == "stop"
-            assert op.request("drive", left=10, right=10, duration_s=1.0)["did"] == "drive"
+            assert op.request("drive", left=10, right=10, duration_s=1.0)["duration_s"] == 1.0
             stats = op.request("status")["server"]
         assert time.monotonic() - t0 < 1.0
         assert [n for n, _ in backend.calls] == ["stop", "drive"]

@@ -646,11 +646,11 @@ def drive_then_arm_a_bug(d: Any, run_daemon: Any, stamped: StampedLink) -> None:
     """Drive the running daemon ``d``, arm its injected bug, and check it exits 1 with the
     motors stopped after the bug."""
     r = run_daemon(d)
-    with RemoteClient("127.0.0.1", r.port) as c:
+    with RemoteClient("127.0.0.1", r.port) as c:  # open: the robot stops a drive left alone
         c.request("drive", left=25, right=25, duration_s=5)
-    wait_for(lambda: stamped.driving(25.0, 25.0), 3, "motors driven")
-    d.armed = True
-    r.thread.join(10)
+        wait_for(lambda: stamped.driving(25.0, 25.0), 3, "motors driven")
+        d.armed = True
+        r.thread.join(10)
     assert r.code == 1
     assert d.t_boom is not None and stamped.first_stop_after(d.t_boom) is not None
     assert stamped.stamped[-1][1].is_stop

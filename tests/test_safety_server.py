@@ -491,6 +491,47 @@ def test_a_client_that_hangs_up_leaves_the_pools(servers, lt: LoopThread) -> Non
     wait_until(lambda: lt.call(lambda: (srv.client_count, srv.pending_count)) == (0, 0))
 
 
+# -- the dead-man on the control port ---------------------------------------------------------
+DRIVE = {"cmd": "drive", "left": 30, "right": 30}
+
+
+def test_a_client_that_goes_away_while_driving_stops_the_motors(servers, lt: LoopThread) -> None:
+    backend = RecordingBackend()
+    srv = servers(backend, token=None)
+    raw = Raw(srv.port)
+    assert raw.ask({"id": 1, **DRIVE, "duration_s": 30})["ok"]
+    raw.close()  # the operator's program died, its laptop left the Wi-Fi, ...
+    wait_until(lambda: [n for n, _ in backend.calls] == ["drive", "stop"], 2.0)
+    assert lt.call(lambda: srv.server_stats()["stops"]["orphaned"]) == 1
+    # a reset (no FIN) is the same
+    raw = Raw(srv.port)
+    assert raw.ask({"id": 1, **DRIVE, "duration_s": 30})["ok"]
+    raw.sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\1\0\0\0\0\0\0\0")
+    raw.close()
+    wait_until(lambda: [n for n, _ in backend.calls][-2:] == ["drive", "stop"], 2.0)
+
+
+def test_only_the_client_whose_drive_still_runs_stops_the_motors(servers, lt: LoopThread) -> None:
+    backend = RecordingBackend()
+    srv = servers(backend, token=None)
+    names = lambda: [n for n, _ in backend.calls]  # noqa: E731
+    a, b, w = Raw(srv.port), Raw(srv.port), Raw(srv.port)
+    assert a.ask({"id": 1, **DRIVE, "duration_s": 30})["ok"]
+    assert b.ask({"id": 1, "cmd": "start"})["ok"]  # another operator took the motors over
+    a.close()
+    assert w.ask({"id": 1, "cmd": "status"})["ok"]  # a round trip after a's hang-up
+    time.sleep(0.2)
+    assert names() == ["drive", "start"]
+    assert b.ask({"id": 2, **DRIVE, "duration_s": 0.2})["ok"]
+    time.sleep(0.4)  # its drive is over: leaving stops nothing
+    b.close()
+    w.ask({"id": 2, "cmd": "status"})
+    time.sleep(0.2)
+    assert names() == ["drive", "start", "drive"]
+    w.close()
+    assert lt.call(lambda: srv.server_stats()["stops"]["orphaned"]) == 0
+
+
 def test_a_browsers_request_is_closed_before_its_body_can_act(servers) -> None:
     # a page of any site can fetch(..., {method: "POST", mode: "no-cors"}) this port: without
     # a token its body's lines were commands, each header only a bad_json (an outside check)

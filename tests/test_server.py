@@ -66,7 +66,8 @@ class RecordingBackend:
         return self._call("stop")
 
     def drive(self, left_pct: float, right_pct: float, duration_s: float) -> dict[str, Any]:
-        return self._call("drive", (left_pct, right_pct, duration_s))
+        self._call("drive", (left_pct, right_pct, duration_s))
+        return {"left": left_pct, "right": right_pct, "duration_s": duration_s}  # the daemon's
 
     def log_tail(self, n: int) -> list[str]:
         return [f"line {i}" for i in range(n)]
@@ -344,7 +345,7 @@ def test_drive_is_validated_and_backend_refusals_become_error_codes(loop_thread)
     backend = RecordingBackend()
     srv = start_server(loop_thread, backend)
     with RemoteClient("127.0.0.1", srv.port) as c:
-        assert c.request("drive", left=50, right=-50, duration_s=1.5)["did"] == "drive"
+        assert c.request("drive", left=50, right=-50, duration_s=1.5)["duration_s"] == 1.5
         for bad in (
             {"left": 150, "right": 0, "duration_s": 1},
             {"left": True, "right": 0, "duration_s": 1},

@@ -78,14 +78,14 @@ def test_stop_request_while_driving_stops_the_motors_within_50_ms(
     tmp_path: Path, run_daemon, stamped: StampedLink
 ) -> None:
     r = run_daemon(Daemon(log_motors_config(tmp_path)))
-    with RemoteClient("127.0.0.1", r.port) as c:
+    with RemoteClient("127.0.0.1", r.port) as c:  # open: the robot stops a drive left alone
         c.request("drive", left=40, right=40, duration_s=5)
         wait_for(lambda: stamped.driving(40.0, 40.0), 3, "motors driven")
-    time.sleep(0.2)  # keep-alives flowing: the stop must not be the controller's own
-    assert stamped.driving(40.0, 40.0)
-    t0 = time.monotonic()
-    r.loop.call_soon_threadsafe(r.daemon.request_stop)  # what the SIGTERM handler does
-    r.thread.join(10)
+        time.sleep(0.2)  # keep-alives flowing: the stop must not be the controller's own
+        assert stamped.driving(40.0, 40.0)
+        t0 = time.monotonic()
+        r.loop.call_soon_threadsafe(r.daemon.request_stop)  # what the SIGTERM handler does
+        r.thread.join(10)
     assert r.code == 0
     t_stop = stamped.first_stop_after(t0)
     assert t_stop is not None, "no stop reached the motors"
@@ -111,11 +111,11 @@ def test_unexpected_exception_while_driving_stops_the_motors_within_50_ms(
 ) -> None:
     d = ExplodingDaemon(log_motors_config(tmp_path))
     r = run_daemon(d)
-    with RemoteClient("127.0.0.1", r.port) as c:
+    with RemoteClient("127.0.0.1", r.port) as c:  # open: the robot stops a drive left alone
         c.request("drive", left=-30, right=30, duration_s=5)
         wait_for(lambda: stamped.driving(-30.0, 30.0), 3, "motors driven")
-    d.armed = True
-    r.thread.join(10)
+        d.armed = True
+        r.thread.join(10)
     assert r.code == 1
     assert d.t_boom is not None
     t_stop = stamped.first_stop_after(d.t_boom)
@@ -224,22 +224,25 @@ def daemon_process(tmp_path: Path, board: TcpMotorBoard) -> Iterator[DaemonProce
     p.stop()
 
 
-def drive_and_wait(p: DaemonProcess, board: TcpMotorBoard, left: int, right: int) -> None:
+def drive_and_wait(p: DaemonProcess, board: TcpMotorBoard, left: int, right: int) -> RemoteClient:
+    """Drive; the connection that drives, to be held open (the robot stops a drive whose
+    client went away)."""
     assert p.port is not None
-    with RemoteClient("127.0.0.1", p.port) as c:
-        c.request("drive", left=left, right=right, duration_s=5)
+    c = RemoteClient("127.0.0.1", p.port)
+    c.request("drive", left=left, right=right, duration_s=5)
     wait_for(lambda: board.saw(rf"M {left} {right} #"), 5, f"board driven at {left} {right}")
+    return c
 
 
 def _sigterm_stop_s(p: DaemonProcess, board: TcpMotorBoard) -> float:
     """Drive, SIGTERM the daemon: the time (s) from the signal to the board's S line, after
     checking the daemon exited 0, the board stopped and the log says so."""
-    drive_and_wait(p, board, 40, 40)
-    time.sleep(0.2)  # keep-alives flowing
-    assert (board.board.left_pct, board.board.right_pct) == (40, 40)
-    t_sig = time.monotonic()
-    p.proc.send_signal(signal.SIGTERM)
-    assert p.proc.wait(15) == 0
+    with drive_and_wait(p, board, 40, 40):
+        time.sleep(0.2)  # keep-alives flowing
+        assert (board.board.left_pct, board.board.right_pct) == (40, 40)
+        t_sig = time.monotonic()
+        p.proc.send_signal(signal.SIGTERM)
+        assert p.proc.wait(15) == 0
     t_stop = board.first_after(t_sig, r"S #\d+$")
     assert t_stop is not None, f"no S line after SIGTERM: {board.lines[-5:]}"
     assert (board.board.left_pct, board.board.right_pct) == (0, 0)
@@ -284,10 +287,11 @@ def test_kill_9_loses_at_most_one_record(
     # the recorder busy with every kind of input when the kill comes
     wait_for(lambda: recording_has("nmea", "fix", "attitude"), 10, "inputs recorded")
     speeds = [10, 20, 30, 40, 50]
-    for v in speeds:
-        drive_and_wait(daemon_process, board, v, v)
+    drivers = [drive_and_wait(daemon_process, board, v, v) for v in speeds]
     daemon_process.proc.send_signal(signal.SIGKILL)  # the moment the board acted on 50
     assert daemon_process.proc.wait(10) == -signal.SIGKILL
+    for c in drivers:
+        c.close()
     (first,) = sorted((tmp_path / "rec").glob("x6wd-*Z.jsonl"))
     stats = ReadStats()
     records = list(read_recording_parts(first, stats=stats))

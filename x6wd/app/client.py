@@ -17,6 +17,7 @@ A reader of the output that goes away (``x6wd client watch | head``) ends it qui
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import math
@@ -37,6 +38,7 @@ EXIT_OK = 0
 EXIT_REFUSED = 1
 EXIT_USAGE = 2
 EXIT_CONNECTION = 3
+EXIT_INTERRUPTED = 130  # Ctrl-C during a drive: the robot was told to stop
 DEFAULT_PORT = 7601
 MAX_REPLY_BYTES = 16 * 1024 * 1024
 CLEAR = "\x1b[H\x1b[2J"
@@ -399,6 +401,23 @@ def _print_reply(reply: dict[str, Any], out: TextIO) -> None:
     print(json.dumps(body, indent=2, sort_keys=True), file=out)
 
 
+def _hold_drive(client: RemoteClient, reply: dict[str, Any], err: TextIO) -> bool:
+    """Keep the connection open while the drive the robot granted runs: the robot stops a
+    drive whose client went away, so leaving early would cut it short. Ctrl-C sends ``stop``
+    (the connection's close alone would too) and returns False."""
+    duration_s = reply.get("duration_s")
+    if not isinstance(duration_s, (int, float)) or not 0.0 < duration_s <= 3600.0:
+        raise ProtocolError(f"'drive' reply without a usable duration_s: {duration_s!r:.60}")
+    try:
+        time.sleep(float(duration_s))
+    except KeyboardInterrupt:
+        with contextlib.suppress(X6wdError, OSError):
+            client.request("stop")
+        print("x6wd client: drive interrupted: stop sent", file=err)
+        return False
+    return True
+
+
 def _watch(client: RemoteClient, args: argparse.Namespace, out: TextIO, ansi: bool) -> None:
     info = client.request("status")
     client.request("watch", on=True)
@@ -462,7 +481,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         ("stop", "stop everything (always allowed)"),
     ):
         sub.add_parser(name, help=text)
-    p = sub.add_parser("drive", help="manual drive for a limited time (dead-man)")
+    p = sub.add_parser(
+        "drive",
+        help="manual drive for a limited time; the robot stops when this program ends "
+        "(dead-man: Ctrl-C stops it at once)",
+    )
     p.add_argument("left", type=float, help="left side, -100..100 %%")
     p.add_argument("right", type=float, help="right side, -100..100 %%")
     p.add_argument("seconds", type=float, help="duration in s")
@@ -533,6 +556,8 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
                 reply = client.request(
                     "drive", left=args.left, right=args.right, duration_s=args.seconds
                 )
+                if not _hold_drive(client, reply, err):
+                    return EXIT_INTERRUPTED
             elif action == "log":
                 reply = client.request("log", n=args.n)
                 if not args.json:

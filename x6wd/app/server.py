@@ -356,7 +356,11 @@ class ControlServer(LineServer[_Client]):
         self.requests_total = 0
         self.errors_total = 0
         self.auth_failed_total = 0
-        self.stops = collections.Counter({"requested": 0, "sent": 0, "coalesced": 0, "early": 0})
+        self.stops = collections.Counter(
+            {"requested": 0, "sent": 0, "coalesced": 0, "early": 0, "orphaned": 0}
+        )
+        self._drive_owner: _Client | None = None  # whose manual drive runs (the dead-man)
+        self._drive_until_s = 0.0  # time.monotonic() when it ends
         self._command_seq = 0  # incremented before each motion command reaches the backend
         self._stop_call = _Shared()
         self._status_call = _Shared()
@@ -453,7 +457,23 @@ class ControlServer(LineServer[_Client]):
         except asyncio.CancelledError:
             pass  # close() or eviction: a finished task keeps asyncio's stream callback quiet
         finally:
+            self._drive_orphaned(c)
             await self._hang_up(c, reader)
+
+    def drive_active(self, c: _Client) -> bool:
+        """True while ``c``'s manual drive runs and no later command replaced it."""
+        return self._drive_owner is c and time.monotonic() < self._drive_until_s
+
+    def _drive_orphaned(self, c: _Client) -> None:
+        """The dead-man on the control port: a client that goes away (closed, reset, evicted)
+        while its drive runs stops the motors now, not when ``duration_s`` ends."""
+        if not self.drive_active(c):
+            return
+        self._drive_owner = None
+        self.stops["requested"] += 1
+        self.stops["orphaned"] += 1
+        log.warning("%s went away while driving: motors stopped", c.peer)
+        self._fire_stop()
 
     def _bucket(self, now: float) -> _Bucket:
         burst = max(5.0, self.config.rate_per_s)
@@ -651,7 +671,10 @@ class ControlServer(LineServer[_Client]):
             if cmd == "mission.load":
                 return await _result(b.load_mission(*args))
             if cmd == "drive":
-                return await _result(b.drive(*args))
+                reply = await _result(b.drive(*args))
+                self._drive_owner, self._drive_until_s = c, time.monotonic() + args[2]
+                return reply
+            self._drive_owner = None  # another command took the motors over
             if cmd == "return":  # a Python keyword: the backend's method is return_home
                 return await _result(b.return_home())
             return await _result(getattr(b, cmd)())
@@ -672,6 +695,7 @@ class ControlServer(LineServer[_Client]):
             st["server"] = self.server_stats()
             return st
         if cmd == "stop":
+            self._drive_owner = None
             self.stops["requested"] += 1
             self._rlog.log("stop requests", logging.INFO, "stop requested by %s", c.peer)
             return dict(await asyncio.shield(self._fire_stop()))

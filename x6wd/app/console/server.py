@@ -29,7 +29,6 @@ import logging
 import math
 import socket
 import ssl
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,7 +40,6 @@ from aiohttp import WSMsgType, web
 from x6wd import __version__
 from x6wd.app.logview import render_html
 from x6wd.app.server import (
-    MOTION_COMMANDS,
     ControlServer,
     encode,
     error_reply,
@@ -83,7 +81,6 @@ class _Page:
     events: collections.deque[str] = field(default_factory=collections.deque)
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     dropped: int = 0
-    drive_until_s: float = 0.0  # monotonic time its latest drive ends (0: not driving)
     map_sent: Any = None
     transport: Any = None  # its connection's (kept open when connections are capped)
 
@@ -453,7 +450,7 @@ class ConsoleServer:
 
     async def _request(self, page: _Page, line: bytes) -> tuple[dict[str, Any], float]:
         """One message: ``mission.parse`` here, everything else through the control server's
-        dispatcher. Tracks the page's own drive for the dead-man."""
+        dispatcher (which tracks whose drive runs, for the dead-man)."""
         c = page.client
         cmd = None
         with contextlib.suppress(Exception):  # the dispatcher reports a bad line itself
@@ -463,13 +460,7 @@ class ConsoleServer:
             return self._parse_mission(c, req), 0.0
         if cmd in ("recording.list", "recording.view"):
             return await self._recording(c, req), 0.0
-        reply, wait_s = await self.control.request(c, line)
-        if reply.get("ok") and isinstance(cmd, str):
-            if cmd == "drive":
-                page.drive_until_s = time.monotonic() + float(reply["duration_s"])
-            elif cmd in MOTION_COMMANDS or cmd == "stop":
-                page.drive_until_s = 0.0  # a later command replaced the page's drive
-        return reply, wait_s
+        return await self.control.request(c, line)
 
     def _parse_mission(self, c: Any, req: dict[str, Any]) -> dict[str, Any]:
         """``{"cmd": "mission.parse", "content": TEXT, "format": "gpx"|...|null}`` ->
@@ -531,7 +522,7 @@ class ConsoleServer:
 
     async def _hang_up(self, page: _Page) -> None:
         """The dead-man: a page that goes away while its drive runs stops the motors now."""
-        if page.drive_until_s > time.monotonic():
+        if self.control.drive_active(page.client):  # its drive runs, no command replaced it
             self.deadman_stops += 1
             log.warning("console: %s went away while driving: motors stopped", page.peer)
             with contextlib.suppress(Exception):
