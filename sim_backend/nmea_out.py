@@ -212,17 +212,21 @@ class NmeaFormatter:
         return b"".join(sentence(b) for b in NEO5_BANNER)
 
     def _time(self, utc: datetime) -> tuple[str, str]:
-        """(``hhmmss.ss``, ``ddmmyy``) with rounding carried into the seconds."""
+        """(``hhmmss.ss``, ``ddmmyy``) of ``utc`` rounded to the printed decimals, the
+        rounding carried into the seconds and on into the date."""
         ts = self._tscale
         us = ((utc.hour * 60 + utc.minute) * 60 + utc.second) * 1_000_000 + utc.microsecond
         unit = 1_000_000 // ts
         ticks = (us + unit // 2) // unit
-        ticks %= 86400 * ts  # a round-up at midnight wraps (date kept: receiver epoch edge)
+        # A time that rounds up to midnight is the next day's 000000.00: the date comes from
+        # the rounded time, so the (time, date) pair never steps back 24 h.
+        days, ticks = divmod(ticks, 86400 * ts)
+        day = utc.date() + timedelta(days=days)
         sec_total, frac = divmod(ticks, ts)
         h, rem = divmod(sec_total, 3600)
         m, s = divmod(rem, 60)
         hms = f"{h:02d}{m:02d}{s:02d}.{frac:0{self.time_decimals}d}"
-        return hms, f"{utc.day:02d}{utc.month:02d}{utc.year % 100:02d}"
+        return hms, f"{day.day:02d}{day.month:02d}{day.year % 100:02d}"
 
     def _gsv(self, sats: Sequence[SimSat]) -> list[str]:
         if not sats:
@@ -521,9 +525,9 @@ class NmeaFormatter:
         s0 = start_utc
         start_us = ((s0.hour * 60 + s0.minute) * 60 + s0.second) * 1_000_000 + s0.microsecond
         total = start_us + np.rint(t_s * 1e6).astype(np.int64)
-        day, us = np.divmod(total, 86400 * 1_000_000)
         unit = 1_000_000 // ts
-        ticks = ((us + unit // 2) // unit) % (86400 * ts)
+        # the day from the rounded time (a round-up to midnight is the next day's), as _time
+        day, ticks = np.divmod((total + unit // 2) // unit, 86400 * ts)
         sec_total, frac = np.divmod(ticks, ts)
         hh, rem = np.divmod(sec_total, 3600)
         mm, ss = np.divmod(rem, 60)

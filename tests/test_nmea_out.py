@@ -388,3 +388,71 @@ def _rows(batch: Any, rows: slice) -> Any:
         k: v[rows] for k, v in vars(batch).items() if k not in skip and isinstance(v, np.ndarray)
     }
     return replace(batch, **cut)
+
+
+def _steady_batch(start: datetime, t_s: np.ndarray) -> Any:
+    """A crafted ``GnssBatch``: a fix at every epoch ``t_s`` (s after ``start``), 6 satellites."""
+    from sim_backend.gnss import GnssBatch
+
+    e, s = t_s.shape[0], 6
+    return GnssBatch(
+        t_s=t_s, start_utc=start, valid=np.ones(e, dtype=bool),
+        lat_deg=np.full(e, 51.75), lon_deg=np.full(e, -1.25), alt_m=np.full(e, 60.0),
+        speed_mps=np.zeros(e), course_deg=np.full(e, np.nan),
+        hdop=np.full(e, 1.1), pdop=np.full(e, 1.9), vdop=np.full(e, 1.5),
+        n_used=np.full(e, s), prns=np.arange(1, s + 1),
+        az_deg=np.full((e, s), 90.0), el_deg=np.full((e, s), 45.0), snr_dbhz=np.full((e, s), 40.0),
+        in_view=np.ones((e, s), dtype=bool), used=np.ones((e, s), dtype=bool),
+        err_enu_m=np.zeros((e, 3)), sigma_uere_m=np.ones(e),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "start,time_decimals,rate_hz",
+    [
+        ("2020-01-01T23:59:58.997", 2, 1.0),  # midnight
+        ("2020-01-01T23:59:58.9996", 3, 1.0),
+        ("2020-12-31T23:59:58.995", 2, 1.0),  # year end (a half rounds up)
+        ("2020-12-31T23:59:59.4996", 3, 4.0),
+        # the GPS week-number rollover (week 2047 -> 2048 at 23:59:42 UTC), then midnight
+        ("2019-04-06T23:59:41.997", 2, 1.0),
+        ("2019-04-06T23:59:41.9996", 3, 2.0),
+    ],
+)
+def test_a_time_rounded_up_to_midnight_carries_into_the_date(
+    start: str, time_decimals: int, rate_hz: float
+) -> None:
+    """RMC's time and date are those of the rounded time: an epoch a few ms before midnight
+    prints the next day's 000000.00 and date (it printed the old date, a 24 h step back), in
+    the per-epoch and the batch paths, and the decoder sees time only move forward."""
+    t0 = datetime.fromisoformat(start).replace(tzinfo=UTC)
+    t_s = np.arange(0.0, 20.0, 1.0 / rate_hz)
+    batch = _steady_batch(t0, t_s)
+    unit = timedelta(microseconds=10 ** (6 - time_decimals))
+    expected = []
+    for t in t_s.tolist():
+        exact = t0 + timedelta(seconds=t)
+        # round half up to the printed unit (utc - epoch in whole microseconds)
+        us = (exact - datetime(1970, 1, 1, tzinfo=UTC)) // timedelta(microseconds=1)
+        q = unit // timedelta(microseconds=1)
+        expected.append(
+            datetime(1970, 1, 1, tzinfo=UTC) + timedelta(microseconds=(us + q // 2) // q * q)
+        )
+    assert any(
+        e.date() != (t0 + timedelta(seconds=float(t))).date()
+        for e, t in zip(expected, t_s, strict=True)
+    )
+    for bursts in (
+        NmeaFormatter(time_decimals=time_decimals, rate_hz=rate_hz).format_batch(batch),
+        NmeaFormatter(time_decimals=time_decimals, rate_hz=rate_hz).format_epochs(batch.epochs()),
+    ):
+        printed = []
+        for burst in bursts:
+            rmc = burst.decode().split("\r\n")[0].split(",")
+            printed.append(
+                datetime.strptime(rmc[9] + rmc[1], "%d%m%y%H%M%S.%f").replace(tzinfo=UTC)
+            )
+        assert printed == expected
+        dec = GpsDecoder(emit_sentences=False)
+        fixes = [r for r in dec.feed(b"".join(bursts), 0.0) + dec.flush() if isinstance(r, GpsFix)]
+        assert [fx.utc for fx in fixes] == expected
