@@ -5,6 +5,7 @@ standard errors of the truth, and those standard errors must be honest over many
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from collections.abc import Sequence
@@ -223,3 +224,58 @@ def test_cli_reports_a_recording_without_reference(
     rec = write(tmp_path / "r.jsonl", odo, [])
     assert cli.main(["calibrate", "odometry", "--straight", str(rec), "--circle", str(rec)]) == 2
     assert "no reference" in capsys.readouterr().err
+
+
+def test_a_circle_pass_with_a_gps_gap_of_more_than_a_quarter_lap_is_left_out(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside check: 10 s without fixes (0.6 lap) inside a circle pass made np.unwrap
+    # lose a whole lap; the track came out 0.426 m (truth 0.37) and the run stopped with
+    # "k_left_m must be <= 0.1"
+    def no_fixes(fixes: list[GpsFix], t0: float, t1: float) -> list[GpsFix]:
+        return [f for f in fixes if not t0 <= f.t_s <= t1]
+
+    s_odo, s_fix = simulate(STRAIGHT, 1)
+    c_odo, c_fix = simulate(CIRCLE, 2)
+    straight = write(tmp_path / "straight.jsonl", s_odo, s_fix)
+    circle = write(tmp_path / "circle.jsonl", c_odo, no_fixes(c_fix, 50.0, 60.0))
+    argv = ["calibrate", "odometry", "--straight", str(straight), "--circle", str(circle)]
+    assert cli.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "1 circle passes with reference fixes more than a quarter lap apart" in err
+    cal = run_from_files(straight, circle)
+    assert cal.gap_passes == 1 and cal.circle.passes == 3
+    assert abs(cal.track_m.value - TRUE.effective_track_m) < 4 * cal.track_m.se
+    # a gap of 0.85 lap aliases to a small backward step: the time between fixes tells
+    circle = write(tmp_path / "c2.jsonl", c_odo, no_fixes(c_fix, 50.0, 63.6))
+    assert run_from_files(straight, circle).gap_passes == 1
+    # every pass with a gap: the error says why, not "no pass of half a lap" alone
+    gappy = no_fixes(c_fix, 0.0, -1.0)
+    for t0 in (14.0, 50.0, 86.0, 122.0):
+        gappy = no_fixes(gappy, t0, t0 + 10.0)
+    circle = write(tmp_path / "c3.jsonl", c_odo, gappy)
+    with pytest.raises(ConfigError, match="4 passes left out: reference fixes more than a quar"):
+        run_from_files(straight, circle)
+
+
+def test_odometry_and_fixes_without_common_time_are_named_as_such() -> None:
+    # an outside check: fixes 10000 s off the odometry's clock were reported as
+    # "straight track: 0 usable passes", and why only after a successful run
+    s_odo, s_fix = simulate(STRAIGHT, 1)
+    c_odo, c_fix = simulate(CIRCLE, 2)
+    late = [dataclasses.replace(f, t_s=f.t_s + 10_000.0) for f in c_fix]
+    with pytest.raises(ConfigError, match=r"circle track: no reference fix during the odometry: "
+                       r"odometry 0\.1 to 148\.0 s, fixes 10000\.2 to 10148\.0 s"):  # fmt: skip
+        calibrate(
+            Track.from_records(s_odo, s_fix, ORIGIN),
+            Track.from_records(c_odo, late, ORIGIN),
+            counts_per_rev=TRUE.counts_per_rev,
+        )
+    # fixes for part of the run only: the pass count says how many went and why
+    early = [f for f in s_fix if f.t_s < 40.0]
+    with pytest.raises(ConfigError, match=r"2 usable passes .* 10 passes left out: no reference"):
+        calibrate(
+            Track.from_records(s_odo, early, ORIGIN),
+            Track.from_records(c_odo, c_fix, ORIGIN),
+            counts_per_rev=TRUE.counts_per_rev,
+        )

@@ -223,6 +223,12 @@ def main(args: argparse.Namespace) -> int:
             "stops around them were left out",
             file=sys.stderr,
         )
+    if result.gap_passes:
+        print(
+            f"x6wd calibrate: {result.gap_passes} circle passes with reference fixes more than "
+            "a quarter lap apart (a GPS gap: their laps cannot be counted) were left out",
+            file=sys.stderr,
+        )
     sys.stdout.write(text)
     if args.out:
         write_output_file(args.out, text)

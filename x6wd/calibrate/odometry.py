@@ -152,6 +152,7 @@ class Pass:
     n_start: int
     n_end: int
     path_m: Array  # (n, 2) reference positions while moving, in time order
+    path_t_s: Array  # (n,) their times, s
 
 
 def find_passes(track: Track, *, stop_s: float = 1.0) -> tuple[list[Pass], int]:
@@ -190,7 +191,7 @@ def find_passes(track: Track, *, stop_s: float = 1.0) -> tuple[list[Pass], int]:
                 int(lc[i1] - lc[i0]), int(rc[i1] - rc[i0]),
                 _point(xy[start]), _point(xy[end]),
                 int(start.sum()), int(end.sum()),
-                xy[inside],
+                xy[inside], tr[inside],
             )
         )  # fmt: skip
     return passes, dropped
@@ -287,18 +288,49 @@ class CircleResult:
     passes: int
     turn_deg: float  # total |heading change|
     radius_m: float  # mean fitted radius
+    gap_passes: int = 0  # left out: reference fixes too far apart to count the laps
+
+
+MAX_STEP_RAD = math.pi / 2
+"""Largest angle about the circle's centre between two reference points of a pass (rad, a
+quarter lap) for the swept angle to be unwrapped safely. Past half a lap a gap's angle
+aliases (a 0.6-lap gap reads as 0.4 lap backwards), so a whole lap could go uncounted."""
+
+
+def _swept_rad(p: Pass, xc: float, yc: float, pts: Array) -> float | None:
+    """The angle (rad, counter-clockwise) swept about (xc, yc) over the pass's points, or
+    None when the laps cannot be counted: two points more than :data:`MAX_STEP_RAD` apart in
+    angle, or in time at the pass's typical turn rate (the angle of a long gap aliases, so
+    the angle alone cannot show it)."""
+    theta = np.arctan2(pts[:, 1] - yc, pts[:, 0] - xc)
+    step = np.angle(np.exp(1j * np.diff(theta)))  # wrapped to (-pi, pi]
+    times = np.concatenate(([p.t0_s], p.path_t_s, [p.t1_s]))
+    dt = np.diff(times)
+    ok = dt > 0
+    if np.abs(step).max() > MAX_STEP_RAD:
+        return None
+    if ok.any():
+        rate = float(np.median(np.abs(step[ok]) / dt[ok]))  # rad/s, robust to one gap
+        if float(dt.max()) * rate > MAX_STEP_RAD:
+            return None
+    return float(step.sum())
 
 
 def circle_fit(passes: list[Pass], straight: StraightResult, *, ref_sigma_m: float) -> CircleResult:
-    """Effective track from circle passes and the calibrated wheels (steps 2 and 3)."""
+    """Effective track from circle passes and the calibrated wheels (steps 2 and 3). A pass
+    whose reference fixes are more than a quarter lap apart (a GPS gap) is left out and
+    counted in ``gap_passes``: its lap count would be a guess."""
     rows = []
+    gaps = 0
     for p in passes:
         if len(p.path_m) < 3:
             continue
         pts = np.vstack([p.start_m, p.path_m, p.end_m])
         xc, yc, radius = fit_circle(pts)
-        theta = np.unwrap(np.arctan2(pts[:, 1] - yc, pts[:, 0] - xc))
-        swept = float(theta[-1] - theta[0])  # counter-clockwise about the centre
+        swept = _swept_rad(p, xc, yc, pts)  # counter-clockwise about the centre
+        if swept is None:
+            gaps += 1
+            continue
         if abs(swept) < math.pi:
             continue  # not even half a lap: no circle to speak of
         direction = 1.0 if p.d_left_counts + p.d_right_counts >= 0 else -1.0
@@ -306,7 +338,14 @@ def circle_fit(passes: list[Pass], straight: StraightResult, *, ref_sigma_m: flo
         rows.append((-swept, direction * radius * abs(swept), p.d_left_counts, p.d_right_counts,
                      v_theta, radius))  # fmt: skip
     if not rows:
-        raise ConfigError("circle track: no pass of at least half a lap between stops")
+        raise ConfigError(
+            "circle track: no pass of at least half a lap between stops"
+            + (
+                f"; {gaps} passes left out: reference fixes more than a quarter lap apart"
+                if gaps
+                else ""
+            )
+        )
     dpsi, s_true, cl, cr, var_theta, radii = (np.array(c, float) for c in zip(*rows, strict=True))
     n = len(rows)
     s_l, s_r = straight.alpha_left * cl, straight.alpha_right * cr
@@ -329,7 +368,7 @@ def circle_fit(passes: list[Pass], straight: StraightResult, *, ref_sigma_m: flo
     f = n / (n - 1) if n > 1 else 1.0  # B̂ used one degree of freedom of d
     k_l = _k_terms(a * d + 0.5 * f * d * d, float(np.abs(s_l).sum()))
     k_r = _k_terms(-a * d + 0.5 * f * d * d, float(np.abs(s_r).sum()))
-    return CircleResult(track, k_l, k_r, n, math.degrees(turned), float(radii.mean()))
+    return CircleResult(track, k_l, k_r, n, math.degrees(turned), float(radii.mean()), gaps)
 
 
 @dataclass(frozen=True)
@@ -345,7 +384,12 @@ class OdometryCalibration:
     straight: StraightResult
     circle: CircleResult
     ref_sigma_m: float
-    dropped_passes: int
+    dropped_passes: int  # without reference fixes in the stops around them (both tracks)
+
+    @property
+    def gap_passes(self) -> int:
+        """Circle passes left out for a reference gap of more than a quarter lap."""
+        return self.circle.gap_passes
 
     def config(self) -> OdometryConfig:
         """The ``[odometry]`` section (range-checked: ConfigError if an estimate is absurd)."""
@@ -409,10 +453,18 @@ def calibrate(
     """
     if not (ref_sigma_m > 0 and math.isfinite(ref_sigma_m)):
         raise ConfigError(f"ref_sigma_m must be > 0, got {ref_sigma_m!r}")
+    _check_overlap(straight, "straight")
+    _check_overlap(circle, "circle")
     s_passes, s_dropped = find_passes(straight, stop_s=stop_s)
     c_passes, c_dropped = find_passes(circle, stop_s=stop_s)
-    st = straight_fit(s_passes, min_pass_m=min_pass_m)
-    ci = circle_fit(c_passes, st, ref_sigma_m=ref_sigma_m)
+    try:
+        st = straight_fit(s_passes, min_pass_m=min_pass_m)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc}{_left_out(s_dropped)}") from None
+    try:
+        ci = circle_fit(c_passes, st, ref_sigma_m=ref_sigma_m)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc}{_left_out(c_dropped)}") from None
     to_d = counts_per_rev / math.pi  # diameter per (metres per count)
     pick_l = max((st.k_left_m, ci.k_left_m), key=lambda e: e.value)
     pick_r = max((st.k_right_m, ci.k_right_m), key=lambda e: e.value)
@@ -428,3 +480,23 @@ def calibrate(
         ref_sigma_m=ref_sigma_m,
         dropped_passes=s_dropped + c_dropped,
     )
+
+
+def _left_out(dropped: int) -> str:
+    """The note a too-few-passes error gets when passes were dropped for want of fixes."""
+    if not dropped:
+        return ""
+    return f"; {dropped} passes left out: no reference fixes in the stops around them"
+
+
+def _check_overlap(track: Track, name: str) -> None:
+    """ConfigError naming both time ranges (s) when no reference fix falls within the
+    odometry's: every pass would be dropped, and a count of usable passes hides why (two
+    clocks, or the wrong pair of files)."""
+    a, b = float(track.t_odo_s[0]), float(track.t_odo_s[-1])  # sorted by from_records
+    c, d = float(track.t_ref_s[0]), float(track.t_ref_s[-1])
+    if d < a or c > b:
+        raise ConfigError(
+            f"{name} track: no reference fix during the odometry: odometry {a:.1f} to "
+            f"{b:.1f} s, fixes {c:.1f} to {d:.1f} s (not the same clock, or not the same run?)"
+        )
