@@ -18,6 +18,8 @@ And the real urban drive (tests/data/urban, taroz/MatRTKLIB, MIT): a map with sa
 from __future__ import annotations
 
 import csv
+import io
+import json
 import math
 import subprocess
 import sys
@@ -32,6 +34,7 @@ from sim_backend.geodesy import enu_to_lla
 from sim_backend.receiver import build_receiver
 from sim_backend.world import World, loads_world
 from x6wd.app import cli
+from x6wd.app.decode import decode_path
 from x6wd.calibrate import gnss
 from x6wd.calibrate.rtklib import parse_pos, read_pos
 from x6wd.core import config
@@ -42,6 +45,10 @@ from x6wd.nav.geo import LocalTangentPlane
 
 ROOT = Path(__file__).resolve().parent.parent
 URBAN = ROOT / "tests" / "data" / "urban"
+STATIC = ROOT / "tests" / "data" / "static"
+NMEA = ROOT / "tests" / "data" / "nmea"
+# NGS mark KK1446 in WGS84(G730), tests/data/static/htdp.txt: 39 49 17.99968 N, 105 05 42.64410 W
+KK1446 = (39 + 49 / 60 + 17.99968 / 3600, -(105 + 5 / 60 + 42.64410 / 3600))
 ORIGIN = (51.7, 5.0)
 SQRT2 = math.sqrt(2.0)
 
@@ -196,12 +203,13 @@ def test_a_static_run_without_white_noise_still_writes_a_fragment_the_daemon_loa
     # A receiver that smooths its fixes has no white part: RE comes out as 0, which the
     # daemon refuses (re_m > 0). The fragment carries its one-SE upper bound and says so.
     r = gnss.static_noise(synthetic_static(seed, re_m=0.0, ase_m=1.5, n=3600), *ORIGIN)
-    assert r.re_m.value == 0.0
+    assert r.re_m.value == 0.0 and r.re_m.se > 0.0  # the resolution, not 0
     cal = gnss.GnssCalibration(r.re_m, r.ase_m, r.correlation_s, r, None)
     text = cal.toml()
     got = config.loads(text).gnss_noise
-    assert 0.0 < got.re_m <= max(r.re_m.se, 0.0001) + 1e-4
-    assert "not resolved: its upper bound" in text
+    # the bound that holds whatever the split: gamma(1) = RE² + ASE²(1 - rho) >= RE²
+    assert got.re_m == pytest.approx(math.sqrt(r.gamma1_m2), abs=1e-4)
+    assert "not resolved: RE = 0 ± " in text and "its upper bound sqrt(variogram lag 1)" in text
     assert got.ase_m == pytest.approx(1.5, rel=0.2)
 
 
@@ -455,3 +463,68 @@ def test_plot_without_its_extra_stops_before_any_work(tmp_path: Path) -> None:
     )  # fmt: skip
     assert r.returncode == 2 and "x6wd[plot]" in r.stderr and "Traceback" not in r.stderr
     assert not out.exists() and r.stdout == ""
+
+
+def test_static_reads_a_receivers_csv_layout_and_says_what_it_left_out(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The real ZED-F9P on NGS mark KK1446 (tests/data/static): its CSV (TIME, LATITUDE,
+    LONGITUDE, spaces after the commas) is read as it is; 341 of 1406 rows repeat the time
+    stamp of the row before (the logger read a stale TIME, the next row jumps 2 s): they are
+    left out and counted. An outside check found the layout refused ("needs the columns t_s,
+    lat, lon"), the rows dropped without a word and RE written as 0.0001 ± 0.0000."""
+    out = tmp_path / "f9p.toml"
+    argv = ["calibrate", "gnss", "--static", str(STATIC / "mobile.csv"), "--ref-lat",
+            str(KK1446[0]), "--ref-lon", str(KK1446[1]), "--out", str(out)]  # fmt: skip
+    assert cli.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "341 static fixes sharing an epoch with the fix before" in err
+    text = out.read_text()
+    assert "1065 fixes over 1404 s" in text and "341 fixes sharing an epoch" in text
+    r = gnss.static_noise(gnss.load_fixes(STATIC / "mobile.csv"), *KK1446)
+    # the receiver smooths: epoch-to-epoch steps of millimetres, the variogram's nugget
+    # below 0. RE is not resolved; sqrt(gamma(1)) = 3.1 mm bounds it, not 0.1 mm
+    assert r.re_m.value == 0.0 and 0.0003 < r.re_m.se < 0.003
+    assert math.sqrt(r.gamma1_m2) == pytest.approx(0.0031, abs=0.0001)
+    got = config.loads(text).gnss_noise
+    assert got.re_m == 0.0031 and "re_m = 0.0031  # not resolved: RE = 0 ± 0.0010" in text
+    assert got.ase_m == pytest.approx(0.81, abs=0.01)  # incl. the ~1 m datum offset (README)
+    # the header written with spaces after the commas, t_s, lat, lon
+    spaced = tmp_path / "spaced.csv"
+    spaced.write_text("t_s, lat, lon, hdop\n" + "".join(
+        f"{i}.0, {KK1446[0]:.9f}, {KK1446[1] + 1e-6 * (i % 7):.9f}, 1.2\n" for i in range(200)
+    ))  # fmt: skip
+    series = gnss.load_fixes(spaced)
+    assert len(series) == 200 and series.hdop_known and series.hdop[0] == 1.2
+
+
+def test_static_reads_plain_nmea_logs_as_x6wd_decode_does(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """gpsd's logs (tests/data/nmea, BSD-2-Clause) were refused with "no valid fix with a
+    position" although x6wd decode reads them; now the same decoder gives the same fixes,
+    timed by their UTC."""
+    for name, n in (("ublox-zed-f9p_hpg1.11.log", 655), ("ublox-lea-5h.log", 20)):
+        series = gnss.load_fixes(NMEA / name)
+        buf = io.StringIO()
+        decode_path(str(NMEA / name), buf, with_sky=False)
+        tpv = [o for o in map(json.loads, buf.getvalue().splitlines()) if "lat" in o]
+        assert len(series) == len(tpv) == n
+        assert np.allclose(series.lat_deg, [o["lat"] for o in tpv], atol=1e-9)
+        first = datetime.fromisoformat(tpv[0]["time"].replace("Z", "+00:00"))
+        assert series.t_s[0] == pytest.approx(first.timestamp())
+    # 655 s of a static ZED-F9P (no surveyed position: its mean stands in)
+    zed = gnss.load_fixes(NMEA / "ublox-zed-f9p_hpg1.11.log")
+    lat, lon = float(zed.lat_deg.mean()), float(zed.lon_deg.mean())
+    argv = ["calibrate", "gnss", "--static", str(NMEA / "ublox-zed-f9p_hpg1.11.log"),
+            "--ref-lat", str(lat), "--ref-lon", str(lon)]  # fmt: skip
+    assert cli.main(argv) == 0
+    assert "655 fixes over 654 s" in capsys.readouterr().out
+    # 18 s of a LEA-5H: read, then refused for what it is, too short
+    argv[3] = str(NMEA / "ublox-lea-5h.log")
+    assert cli.main(argv) == 2
+    assert "20 fixes; need at least 100" in capsys.readouterr().err
+    noise = tmp_path / "noise.log"
+    noise.write_bytes(b"not nmea at all\n$GPTXT,01,01,02,hello*00\n")
+    with pytest.raises(ParseError, match="no NMEA fix with a date and time"):
+        gnss.load_fixes(noise)

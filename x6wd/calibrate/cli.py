@@ -56,7 +56,8 @@ def _add_gnss(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         description="Estimate the [gnss_noise] section (docs/gnss_calibration.md): RE and ASE "
         "from a static recording at a known position (the white and the slow part of the "
         "error), the LCE map from drives with a reference trajectory. Recordings: x6wd "
-        "recordings (fix records), RTKLIB .pos files or CSV (t_s, lat, lon[, hdop]).",
+        "recordings (fix or nmea records), plain NMEA logs, RTKLIB .pos files or CSV (t_s, "
+        "lat, lon[, hdop], or TIME, LATITUDE, LONGITUDE).",
     )
     g.add_argument("--static", help="static open-sky recording at a known position")
     g.add_argument("--ref-lat", type=float, help="the static position's latitude, deg")
@@ -142,6 +143,12 @@ def main_gnss(args: argparse.Namespace) -> int:
         if args.ref_lat is None or args.ref_lon is None:
             raise ConfigError("calibrate gnss: --static needs --ref-lat and --ref-lon")
         static = gnss.static_noise(gnss.load_fixes(args.static), args.ref_lat, args.ref_lon)
+        if static.duplicates:
+            print(
+                f"x6wd calibrate: {static.duplicates} static fixes sharing an epoch with the "
+                "fix before (a repeated time stamp) left out",
+                file=sys.stderr,
+            )
         re_m, ase_m, tau = static.re_m, static.ase_m, static.correlation_s
         header.append(f"static: {args.static} at {args.ref_lat}, {args.ref_lon}")
     else:

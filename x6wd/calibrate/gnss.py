@@ -33,7 +33,11 @@ Standard errors: RE² by a delete-one-block jackknife over 20 contiguous blocks 
 at lag 1 and 2 is local in time); M from the Gauss-Markov model itself,
 ``Var(M) = [ASE⁴·(1 + ρ²)/(1 − ρ²) + 2·RE²·ASE² + RE⁴] / n`` with n fixes (per axis, then the two
 axes averaged), the factor (1 + ρ²)/(1 − ρ²) capped at n (a record shorter than τ is one
-sample of the slow error). ASE² carries both. An estimate that comes out negative is set to 0.
+sample of the slow error). ASE² carries both. An estimate that comes out negative is set to 0
+(the jackknife runs over the nugget before that clamp, so a 0 still gets its resolution as SE).
+An RE of 0 cannot be written (the daemon needs white noise > 0): the fragment then carries
+RE's hard bound sqrt(γ(1)), since γ(1) = RE² + ASE²·(1 − ρ) ≥ RE² (docs/gnss_calibration.md).
+Fixes on the same epoch as the fix before (repeated time stamps) are left out and counted.
 τ is given without a standard error: it is rough unless the record lasts many τ.
 
 **Drives with a reference trajectory: the LCE map** (:func:`lce_map`). Each fix is matched
@@ -60,13 +64,14 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 
+from drivers.gps_nmea import GpsDecoder
 from drivers.gps_recording import recorded_gps
 from x6wd.calibrate.rtklib import looks_like_pos, read_pos
 from x6wd.core.config import GnssNoiseConfig, build
@@ -138,9 +143,10 @@ class FixSeries:
 
 
 def load_fixes(path: str | Path) -> FixSeries:
-    """Fixes from an RTKLIB ``.pos`` file (every solved epoch, HDOP 1), an x6wd recording
-    (its valid fixes, all parts: the ``fix`` records, or the ``nmea`` ones decoded) or a CSV
-    with ``t_s``, ``lat``, ``lon`` columns (``x6wd sim``'s ``truth.csv``; optional ``hdop``)."""
+    """Fixes from an RTKLIB ``.pos`` file (every solved epoch, HDOP 1), a CSV (see
+    :func:`_load_csv`), an x6wd recording (its valid fixes, all parts: the ``fix`` records,
+    or the ``nmea`` ones decoded) or a plain NMEA log (a file whose first non-blank character
+    is not ``{``: decoded as ``x6wd decode`` does, its fixes timed by their UTC)."""
     p = Path(path)
     if looks_like_pos(p):
         sol = read_pos(p)
@@ -156,29 +162,97 @@ def load_fixes(path: str | Path) -> FixSeries:
         )
     if p.suffix.lower() == ".csv":
         return _load_csv(p)
+    if not _is_recording(p):
+        return _load_nmea(p)
     fixes = [r for r in recorded_gps(p) if isinstance(r, GpsFix)]
     return FixSeries.from_fixes(fixes, str(p))
 
 
-def _load_csv(p: Path) -> FixSeries:
+def _is_recording(p: Path) -> bool:
+    """An x6wd recording (JSON lines: the first non-blank character is ``{``), the test
+    ``x6wd decode`` uses; a directory or a missing file is left to the recording reader,
+    which names the fault."""
+    if not p.is_file():
+        return True
     try:
-        with open(p, newline="", encoding="utf-8") as f:
-            rows = list(csv.DictReader(f))
+        with open(p, "rb") as f:
+            while block := f.read(4096):
+                if head := block.lstrip():
+                    return head[:1] == b"{"
     except OSError as exc:
         raise ParseError(f"cannot read {p}: {exc.strerror or exc}") from exc
-    if not rows or not {"t_s", "lat", "lon"} <= set(rows[0]):
-        raise ParseError(f"{p}: a CSV reference needs the columns t_s, lat, lon")
+    return True
+
+
+def _load_nmea(p: Path) -> FixSeries:
+    """A plain NMEA log (u-blox and others; binary and line noise tolerated) through the
+    daemon's decoder. A log carries no receive clock, so a fix's time is its UTC (s): the
+    first dated sentence (RMC, ZDA) dates the epochs before it too; epochs without a time
+    are dropped. ``t_gpst_s`` is that UTC + :data:`GPS_UTC_LEAP_S`."""
+
+    def fixes(decoder: GpsDecoder) -> Iterator[GpsFix]:
+        with open(p, "rb") as f:
+            while chunk := f.read(1 << 16):
+                yield from (o for o in decoder.feed(chunk, 0.0) if isinstance(o, GpsFix))
+        yield from (o for o in decoder.flush() if isinstance(o, GpsFix))
+
     try:
-        t = np.array([float(r["t_s"]) for r in rows])
-        lat = np.array([float(r["lat"]) for r in rows])
-        lon = np.array([float(r["lon"]) for r in rows])
-        hdop = np.array([float(r.get("hdop") or 1.0) for r in rows])
-    except (ValueError, TypeError) as exc:  # TypeError: a short row's missing field (None)
+        first = next((f.utc for f in fixes(GpsDecoder(emit_sentences=False)) if f.utc), None)
+        decoder = GpsDecoder(emit_sentences=False)
+        if first is not None:  # a GGA before the log's first RMC has a time but no date
+            tod_us = (first.hour * 3600 + first.minute * 60 + first.second) * 1_000_000
+            decoder.assume_date(first.date(), tod_us + first.microsecond)
+        timed = [replace(f, t_s=f.utc.timestamp()) for f in fixes(decoder) if f.utc is not None]
+    except OSError as exc:
+        raise ParseError(f"cannot read {p}: {exc.strerror or exc}") from exc
+    if not timed:
+        raise ParseError(
+            f"{p}: no NMEA fix with a date and time (an x6wd recording starts with '{{'; "
+            "a plain log needs RMC or ZDA sentences for its dates)"
+        )
+    return FixSeries.from_fixes(timed, str(p))
+
+
+CSV_COLUMNS = {"t_s": ("t_s", "time"), "lat": ("lat", "latitude"), "lon": ("lon", "longitude")}
+"""The CSV columns (any case, spaces around names and values ignored): ``x6wd sim``'s
+``truth.csv`` (t_s, lat, lon[, hdop]) and a receiver-log layout (TIME, LATITUDE, LONGITUDE,
+as in the ZED-F9P log of coverclock/com-diag-hazer, tests/data/static: TIME in UTC epoch
+seconds; its HORIZONTAL is an accuracy in metres, not an HDOP, and is not read)."""
+
+
+def _load_csv(p: Path) -> FixSeries:
+    """A CSV of times (s), latitudes and longitudes (deg), optional ``hdop``
+    (:data:`CSV_COLUMNS`); no HDOP column: HDOP 1. The time is the file's own clock (no GPST:
+    such a file does not match a ``.pos`` reference)."""
+    try:
+        with open(p, newline="", encoding="utf-8") as f:
+            reader = csv.reader(f, skipinitialspace=True)
+            header = [h.strip().lower() for h in next(reader, [])]
+            rows = list(reader)
+    except OSError as exc:
+        raise ParseError(f"cannot read {p}: {exc.strerror or exc}") from exc
+    col: dict[str, int] = {}
+    for key, names in CSV_COLUMNS.items():
+        found = next((header.index(n) for n in names if n in header), None)
+        if found is not None:
+            col[key] = found
+    if not rows or len(col) < 3:
+        raise ParseError(
+            f"{p}: a CSV reference needs the columns t_s, lat, lon (or TIME, LATITUDE, "
+            f"LONGITUDE); the header has {', '.join(header) or 'nothing'}"
+        )
+    hd = header.index("hdop") if "hdop" in header else None
+    try:
+        t = np.array([float(r[col["t_s"]]) for r in rows])
+        lat = np.array([float(r[col["lat"]]) for r in rows])
+        lon = np.array([float(r[col["lon"]]) for r in rows])
+        hdop = np.array([float(r[hd].strip() or 1.0) if hd is not None else 1.0 for r in rows])
+    except (ValueError, IndexError) as exc:  # IndexError: a short row
         raise ParseError(f"{p}: not a number: {exc}") from exc
     order = np.argsort(t, kind="stable")
     return FixSeries(
         t[order], np.full(t.shape, math.nan), lat[order], lon[order], hdop[order],
-        "hdop" in rows[0], str(p),
+        hd is not None, str(p),
     )  # fmt: skip
 
 
@@ -203,6 +277,13 @@ class StaticResult:
     epoch_s: float
     hdop_known: bool
     mean_hdop: float
+    duplicates: int = 0  # fixes dropped for sharing an epoch with the fix before
+
+    @property
+    def re_bound_m(self) -> float:
+        """A hard upper bound on RE (m): ``γ(1) = RE² + ASE²·(1 − ρ) ≥ RE²``, so RE is at
+        most sqrt(γ(1)) however the split comes out."""
+        return math.sqrt(max(self.gamma1_m2, 0.0))
 
 
 def _variogram_sums(z: Array, idx: npt.NDArray[np.int64], lag: int) -> tuple[Array, Array]:
@@ -216,21 +297,24 @@ def _variogram_sums(z: Array, idx: npt.NDArray[np.int64], lag: int) -> tuple[Arr
     return (d * d).sum(axis=1), i.astype(float)
 
 
-def _solve_re_ase(m: float, g1: float, g2: float) -> tuple[float, float, float]:
-    """RE², ASE² and ρ from M, γ(1), γ(2) (module docstring); negatives clamped to 0."""
+def _solve_re_ase(m: float, g1: float, g2: float) -> tuple[float, float, float, float]:
+    """RE², ASE² and ρ from M, γ(1), γ(2) (module docstring), negatives clamped to 0, and
+    the nugget before its clamp (m², may be negative: the jackknife needs its spread)."""
     re2 = max(2.0 * g1 - g2, 0.0)
     ase2 = max(m - re2, 0.0)
     rho = 0.0
+    raw = 2.0 * g1 - g2
     for _ in range(50):
         rho = 1.0 - (g1 - re2) / ase2 if ase2 > 0 else 0.0
         rho = min(max(rho, 0.0), 1.0)
-        new = min(max(2.0 * g1 - g2 + ase2 * (1.0 - rho) ** 2, 0.0), m)
+        raw = 2.0 * g1 - g2 + ase2 * (1.0 - rho) ** 2
+        new = min(max(raw, 0.0), m)
         if abs(new - re2) < 1e-12 * max(m, 1e-12):
             re2 = new
             break
         re2 = new
         ase2 = max(m - re2, 0.0)
-    return re2, max(m - re2, 0.0), rho
+    return re2, max(m - re2, 0.0), rho, raw
 
 
 def static_noise(
@@ -265,10 +349,11 @@ def static_noise(
     zz = (z * z).sum(axis=1)
     m = float(zz.mean()) / 2.0
     g1, g2 = float(d1.mean()) / 4.0, float(d2.mean()) / 4.0  # ½·mean over pairs and axes
-    re2, ase2, rho = _solve_re_ase(m, g1, g2)
+    re2, ase2, rho, _ = _solve_re_ase(m, g1, g2)
 
     # RE²: delete-one-block jackknife (the estimate depends on M only through the small
-    # curvature term, which the jackknife carries too)
+    # curvature term, which the jackknife carries too). Over the unclamped nugget: replicates
+    # clamped at 0 would give an unresolved RE an SE of 0 (a ZED-F9P did: "0.0001 ± 0.0000")
     edges = np.linspace(0, n, JACKKNIFE_BLOCKS + 1).astype(int)
     reps = []
     for b in range(JACKKNIFE_BLOCKS):
@@ -279,10 +364,10 @@ def static_noise(
         kz[lo:hi] = False
         if k1.sum() < 10 or k2.sum() < 10:
             continue
-        r2, _, _ = _solve_re_ase(
+        *_, raw2 = _solve_re_ase(
             float(zz[kz].mean()) / 2.0, float(d1[k1].mean()) / 4.0, float(d2[k2].mean()) / 4.0
         )
-        reps.append(r2)
+        reps.append(raw2)
     nb = len(reps)
     var_re2 = (nb - 1) / nb * float(np.sum((np.array(reps) - np.mean(reps)) ** 2)) if nb > 1 else 0
     # M: the Gauss-Markov law (per axis, then the mean of two independent axes)
@@ -304,6 +389,7 @@ def static_noise(
         epoch_s=dt,
         hdop_known=fixes.hdop_known,
         mean_hdop=float(fixes.hdop.mean()),
+        duplicates=int((~keep).sum()),
     )
 
 
@@ -591,11 +677,17 @@ class GnssCalibration:
 
     @property
     def re_m_written(self) -> float:
-        """``re_m`` as written (m): the estimate, or when it is not resolved its one-SE upper
-        bound (at least 0.1 mm): the daemon needs white noise > 0."""
+        """``re_m`` as written (m): the estimate, or when it is not resolved an upper bound
+        (at least 0.1 mm, rounded up): the daemon needs white noise > 0. From a static
+        recording the bound is sqrt(γ(1)) (:attr:`StaticResult.re_bound_m`), which holds
+        whatever the split; a one-SE bound would lean on a nugget that came out negative,
+        i.e. on a model the data did not fit (a ZED-F9P: 0 ± 1.0 mm, bound 3.1 mm)."""
         if self.re_resolved:
             return round(self.re_m.value, 4)
-        return max(round(self.re_m.value + self.re_m.se, 4), 0.0001)
+        bound = (
+            self.static.re_bound_m if self.static is not None else self.re_m.value + self.re_m.se
+        )
+        return max(math.ceil(round(bound * 1e4, 6)) / 1e4, 0.0001)
 
     def table(self) -> dict[str, object]:
         """The ``[gnss_noise]`` keys and values."""
@@ -635,16 +727,24 @@ class GnssCalibration:
                 f"mean HDOP {st.mean_hdop:.2f}{'' if st.hdop_known else ' (no HDOP: taken as 1)'}",
                 f"# mean error east {st.bias_east_m:+.3f} m, north {st.bias_north_m:+.3f} m; "
                 f"per axis at HDOP 1: mean square {st.mean_square_m2:.4f} m², variogram "
-                f"lag 1 {st.gamma1_m2:.4f} m², lag 2 {st.gamma2_m2:.4f} m²",
+                f"lag 1 {st.gamma1_m2:.4g} m², lag 2 {st.gamma2_m2:.4g} m²",
             ]
+            if st.duplicates:
+                lines.append(
+                    f"# {st.duplicates} fixes sharing an epoch with the fix before (a repeated "
+                    "time stamp) left out"
+                )
             src = "static recording"
         else:
             src = "given, not estimated here"
         lines += [
             "# seed 003: sigma per axis = HDOP * sqrt(re_m^2 + ase_m^2 + LCE^2)",
             "[gnss_noise]",
-            f"re_m = {t['re_m']}  # ± {self.re_m.se:.4f} ({src}: the white part"
-            + (")" if self.re_resolved else "; not resolved: its upper bound)"),
+            f"re_m = {t['re_m']}  # ± {self.re_m.se:.4f} ({src}: the white part)"
+            if self.re_resolved
+            else f"re_m = {t['re_m']}  # not resolved: RE = 0 ± {self.re_m.se:.4f} ({src}: the "
+            "white part); written: its upper bound"
+            + (" sqrt(variogram lag 1)" if st is not None else " (estimate + SE)"),
             f"ase_m = {t['ase_m']}  # ± {self.ase_m.se:.4f} ({src}: the slow part)",
             f"correlation_s = {t['correlation_s']}  # of the slow part; rough",
         ]
