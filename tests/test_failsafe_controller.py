@@ -18,12 +18,14 @@ FS = FailsafeConfig(stuck_s=10.0, stuck_min_m=2.0, sensor_timeout_s=30.0)
 COUNTS_PER_M = 1632 / (math.pi * 0.120)  # the default [odometry] wheel
 
 
-def started(fs: FailsafeConfig = FS, nav: NavigationConfig = NAV) -> Controller:
-    """A mission 100 m north started at the origin with a fix and a compass sample."""
+def started(
+    fs: FailsafeConfig = FS, nav: NavigationConfig = NAV, north_m: float = 100.0
+) -> Controller:
+    """A mission ``north_m`` north started at the origin with a fix and a compass sample."""
     c = Controller(nav, SAFETY, failsafe=fs)
     c.on_fix(fix(0.0))
     c.on_attitude(att(0.0))
-    c.load_mission([at(0.0, 100.0)], 0.0)
+    c.load_mission([at(0.0, north_m)], 0.0)
     c.start(0.0)
     assert c.launch_point == pytest.approx(at(0.0, 0.0))
     return c
@@ -377,3 +379,81 @@ def ltp_xy(lat: float | None, lon: float | None) -> tuple[float, float]:
     assert lat is not None and lon is not None
     x, y = LTP.to_xy(lat, lon)
     return float(x), float(y)
+
+
+# ------------------------------------------------------------------ off course
+
+
+def drive(c: Controller, bearing_deg: float, course_deg: float, steps: int) -> int:
+    """1 Hz: the compass reads ``bearing_deg`` while the fixes go 2 m a second along
+    ``course_deg`` (true) from the origin. The step a failsafe acted at, else -1."""
+    s, co = math.sin(math.radians(course_deg)), math.cos(math.radians(course_deg))
+    for k in range(1, steps + 1):
+        c.on_attitude(att(float(k), bearing_deg))
+        c.on_fix(fix(float(k), 2.0 * k * s, 2.0 * k * co))
+        if c.mode != Mode.RUNNING or c.returning:
+            return k
+    return -1
+
+
+def test_a_heading_the_fixes_do_not_follow_stops_the_mission() -> None:
+    """A compass knocked 90 deg round: the robot steers 'north' by it while the fixes go
+    east (the target 1 km north: it stays within the straight's tolerance for a while)."""
+    c = started(replace(FS, stuck_s=0.0), north_m=1000.0)
+    k = drive(c, 0.0, 90.0, 30)
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    why = c.telemetry.extra["failsafe"]
+    assert why.startswith("off course (heading 90 deg from the GPS course"), why
+    # 10 m of fixes (5 s), then three windows in a row over the limit
+    assert 5 + 2 <= k <= 5 + 5, k
+
+
+def test_a_robot_on_its_course_is_never_off_course() -> None:
+    c = started(replace(FS, stuck_s=0.0), north_m=1000.0)
+    assert drive(c, 0.0, 8.0, 40) == -1  # 8 deg off: within the navigator's tolerance
+    assert c.mode == Mode.RUNNING and "failsafe" not in c.telemetry.extra
+
+
+def test_driving_away_from_the_target_stops_the_mission() -> None:
+    """The fixes go south while the target is north (the heading check off, so the distance
+    check alone must catch it): on the third fix in a row over 25 m past the leg's closest.
+    One fix that far (a GPS jump) is not enough."""
+    c = started(replace(FS, stuck_s=0.0, heading_check_deg=0.0))
+    k = drive(c, 0.0, 180.0, 30)
+    assert c.mode == Mode.PAUSED
+    assert c.telemetry.extra["failsafe"].startswith("off course (130 m from the target, 30 m")
+    assert k == 15  # 2 m a second: past 25 m farther at 13 s, the third such fix at 15 s
+    c = started(replace(FS, stuck_s=0.0, heading_check_deg=0.0, off_course_m=0.0))
+    assert drive(c, 0.0, 180.0, 30) == -1  # both checks off
+    c = started(replace(FS, stuck_s=0.0, heading_check_deg=0.0))
+    for k in range(1, 12):  # on course north, one fix of them 40 m off
+        c.on_attitude(att(float(k), 0.0))
+        c.on_fix(fix(float(k), 40.0 if k == 6 else 0.0, 2.0 * k))
+    assert c.mode == Mode.RUNNING
+
+
+def test_off_course_action_return_drives_back() -> None:
+    c = started(replace(FS, stuck_s=0.0, off_course_action="return"), north_m=1000.0)
+    drive(c, 0.0, 90.0, 30)
+    assert c.mode == Mode.RUNNING and c.returning.startswith("failsafe: off course (heading")
+
+
+def test_a_stale_fix_is_no_evidence_of_being_stuck() -> None:
+    """Fixes gone for longer than stuck_s while the EKF dead-reckons on the wheels (garbage
+    on the NMEA line): the wheels turn and the compass is fine, so the robot is not stuck,
+    whatever the last fix says."""
+    safety = replace(SAFETY, gps_outage_max_m=1000.0)
+    c = Controller(NavigationConfig(), safety, 3.0, failsafe=FS)
+    c.on_fix(fix(0.0))
+    for k in range(1, 21):
+        c.on_attitude(att(0.05 * k, 357.0))
+    c.load_mission([at(0.0, 900.0)], 1.0)
+    c.start(1.0)
+    for k in range(1, 301):  # 1 m/s north; the fixes stop after 5 s, for 25 s
+        t = 1.0 + 0.1 * k
+        counts = round(0.1 * k * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t, 357.0))
+        if k % 10 == 0 and (t <= 6.0 or t > 30.0):
+            c.on_fix(fix(t, 0.0, 0.1 * k))
+        assert c.mode == Mode.RUNNING, (t, c.telemetry.extra.get("failsafe"))

@@ -574,3 +574,35 @@ def test_a_long_gps_outage_holds_after_the_dead_reckoning_distance(tmp_path: Pat
     assert run.moved_after(hold["t_s"] + 1.5) < 0.05
     paused = run.first("PAUSED", "failsafe: no valid fix")
     assert paused["t_s"] == pytest.approx(hold["t_s"] + SENSOR_TIMEOUT_S, abs=0.1)
+
+
+# ------------------------------------------------------------------- off course
+
+
+def _compass_off_world(offset_deg: float) -> World:
+    """One 60 m leg north with the compass mounted ``offset_deg`` round (it reads the true
+    heading minus the offset: the robot steers that far off by it)."""
+    assert "declination_deg = -0.5\n" in DEFAULT
+    text = DEFAULT.replace("duration_s = 400.0", "duration_s = 60.0")
+    text = text.replace(DEFAULT_WAYPOINTS, f"waypoints_enu = {LONG_LEG}")
+    robot = f"robot_declination_deg = {-0.5 - offset_deg}\n"
+    text = text.replace("declination_deg = -0.5\n", f"declination_deg = -0.5\n{robot}")
+    return loads_world(text, base_dir=SCENARIOS)
+
+
+def test_a_compass_90_degrees_off_pauses_the_robot_before_it_goes_far(tmp_path: Path) -> None:
+    """The robot steers by a compass 90 deg off: it drives sideways while its heading says it
+    goes north. The fixes' course shows it: paused, motors stopped, within metres."""
+    run = _mission(tmp_path, _compass_off_world(90.0))
+    paused = run.first("PAUSED", "failsafe: off course (heading")
+    assert paused["t_s"] < 20.0
+    assert run.mode_changes()[-1][1] == "PAUSED"
+    assert run.final_from_start_m() < 20.0
+    motors = [m for m in run.of("motor") if m["t_s"] >= paused["t_s"]]
+    assert motors and all(m["left_pct"] == m["right_pct"] == 0.0 for m in motors)
+
+
+def test_a_compass_20_degrees_off_still_completes(tmp_path: Path) -> None:
+    run = _mission(tmp_path, _compass_off_world(20.0))
+    assert not any("failsafe" in r for _t, _n, r in run.mode_changes())
+    assert run.summary.completed

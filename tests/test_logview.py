@@ -202,6 +202,22 @@ def test_holds_and_device_faults(tmp_path: Path) -> None:
     assert heading["v"] == [270.0] * 6  # true degrees 0-360, as every heading shown
 
 
+@pytest.mark.parametrize(
+    ("reason", "lane"),
+    [("no valid fix", "gps"), ("fix stale", "gps"), ("attitude invalid", "compass"),
+     ("attitude stale", "compass"), ("motor link lost", "motors")],
+)  # fmt: skip
+def test_a_hold_on_data_the_controller_refused_is_a_device_fault(
+    tmp_path: Path, reason: str, lane: str
+) -> None:
+    """No reader reported anything (a simulated outage, a compass reading 0xFF): the hold's
+    own words name the device."""
+    path = tmp_path / "r.jsonl"
+    _recorded(path, reason)
+    data = page_data(logview.render_html(path))
+    assert [(f["lane"], f["t0_s"], f["t1_s"]) for f in data["faults"]] == [(lane, 2.0, 4.0)]
+
+
 def test_device_faults_recorded_by_the_loop(tmp_path: Path) -> None:
     # The loop records every health event it is handed (x6wd.loop.runner -> Recorder); the
     # page draws a device's time away from "connected", whatever the robot was doing.

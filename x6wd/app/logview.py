@@ -520,13 +520,24 @@ def _lane_intervals(
     return out
 
 
+_HOLD_DEVICES = (
+    ("motor link", "motors"),
+    ("gps ", "gps"),
+    ("no valid fix", "gps"),
+    ("fix stale", "gps"),
+    ("compass ", "compass"),
+    ("attitude invalid", "compass"),
+    ("attitude stale", "compass"),
+)
+"""Hold reasons (the controller's words) that name a device: a reader's report ("gps
+stale", "compass disconnected", "motor link lost", "gps back, waiting ...") or what the
+controller saw of the data itself (no valid fix, a stale fix, an out-of-range attitude)."""
+
+
 def _device_of(reason: str) -> str | None:
-    """The device a hold reason names (the controller's words: "gps stale", "compass
-    disconnected", "motor link lost", "gps back, waiting ..."), or None."""
-    if reason.startswith("motor link"):
-        return "motors"
-    for dev in ("gps", "compass"):
-        if reason.startswith(dev + " "):
+    """The device a hold reason names (:data:`_HOLD_DEVICES`), or None."""
+    for prefix, dev in _HOLD_DEVICES:
+        if reason.startswith(prefix):
             return dev
     return None
 
@@ -579,11 +590,13 @@ def _timelines(view: LogView, raw: _Raw, t0: float) -> None:
                 down[dev] = (t - t0, new, msg)
         for dev, (since, state, first) in down.items():
             view.faults.append(Interval(dev, since, t_end, state, first))
-    else:  # a recording from before device events: the holds that name a device
-        for h in view.holds:
-            named = _device_of(h.label)
-            if named is not None:
-                view.faults.append(Interval(named, h.t0_s, h.t1_s, h.label))
+    # a device no reader reported on (an older recording, a simulator's GPS outage, data
+    # the controller refused itself): the holds that name it
+    reported = {dev for _t, dev, _new, _msg in raw.device_events}
+    for h in view.holds:
+        named = _device_of(h.label)
+        if named is not None and named not in reported:
+            view.faults.append(Interval(named, h.t0_s, h.t1_s, h.label))
     if not view.faults:
         view.missing["faults"] = "no device faults"
 

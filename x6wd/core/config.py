@@ -207,7 +207,9 @@ class FailsafeConfig:
     as for a robot sent on its way and left alone); stuck: driving forward at
     ``stuck_min_pct`` or more for ``stuck_s`` while neither the wheels nor the GPS moved
     ``stuck_min_m``; a sensor stale or down for ``sensor_timeout_s`` (the robot already
-    holds from the first moment; the action is what follows)."""
+    holds from the first moment; the action is what follows); off course: a fix
+    ``off_course_m`` farther from the target than the leg's closest, or the fixes' course
+    ``heading_check_deg`` from the heading steered by (``off_course_action``)."""
 
     geofence_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
     operator_timeout_s: float = field(default=0.0, metadata=_rng(0, 3600))
@@ -218,6 +220,10 @@ class FailsafeConfig:
     stuck_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
     sensor_timeout_s: float = field(default=30.0, metadata=_rng(0, 3600))  # 0: off
     sensor_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
+    # off course, from the fixes alone (x6wd/nav/course_watch.py); 0: that check off
+    off_course_m: float = field(default=25.0, metadata=_rng(0, 10_000))
+    heading_check_deg: float = field(default=45.0, metadata=_rng(0, 180))
+    off_course_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
 
 
 @dataclass(frozen=True)

@@ -73,6 +73,7 @@ from x6wd.core.records import (
     WheelOdometry,
 )
 from x6wd.nav import geo, steering
+from x6wd.nav.course_watch import CourseWatch
 from x6wd.nav.navigator import NavigationError, Navigator
 from x6wd.nav.odometry import wheel_travel_m
 from x6wd.nav.position import DEFAULT_HDOP, PositionSource, make_source
@@ -172,6 +173,10 @@ class Controller:
         self._stuck_wheels: tuple[float, float] | None = None
         self._stuck_body: tuple[float, float, float, float] | None = None
         self._stuck_forward = False
+        self._course = CourseWatch(
+            self._failsafe.off_course_m, self._failsafe.heading_check_deg, nav.full_speed_mps
+        )
+        self._course_fix: GpsFix | None = None  # the last fix the course watch took
         self._wheel_m = 0.0  # |wheel travel| summed over both sides / 2 (m)
         self._wheel_at_fix = 0.0  # _wheel_m at the latest valid fix
         self._odo_prev: WheelOdometry | None = None
@@ -392,6 +397,7 @@ class Controller:
         self._navigator.restart()
         self._source.reset()
         self._stuck_wheels = self._stuck_body = None
+        self._course.reset()
         self._hold_since = None
         now = t if self._now is None else max(self._now, t)
         pos = self._source.position(now)
@@ -427,6 +433,7 @@ class Controller:
         self._navigator = home
         self._returning = why
         self._stuck_wheels = self._stuck_body = None
+        self._course.reset()
         self._hold_since = None
         if self._mode == Mode.RUNNING:
             # still RUNNING, towards another target: a mode change with old == new says so
@@ -451,6 +458,7 @@ class Controller:
         if self._mode != Mode.PAUSED:
             raise CommandRejected(f"nothing to resume: mode is {self._mode}")
         changes: list[ControllerOutput] = []
+        self._course.reset()  # the operator looked and sent it on: a fresh leg
         self._set_mode(Mode.RUNNING, "resume", t, changes)
         return self._step(t, "resume", changes)
 
@@ -556,9 +564,38 @@ class Controller:
         if fs.operator_timeout_s > 0 and op_t is not None and now - op_t > fs.operator_timeout_s:
             self._operator_t = None  # re-armed by the operator's next request
             return "operator link lost", fs.operator_action
-        if fs.stuck_s > 0 and not hold:
-            return self._stuck_check(now)
-        return None
+        if hold:
+            return None
+        if fs.stuck_s > 0:
+            fired = self._stuck_check(now)
+            if fired is not None:
+                return fired
+        return self._course_check(now)
+
+    def _course_check(self, now: float) -> tuple[str, str] | None:
+        """The off-course watch (:mod:`x6wd.nav.course_watch`), once per fresh usable fix:
+        the GPS against where the robot steers, independent of the compass and the wheels."""
+        fix, nav = self._fix, self._navigator
+        if (
+            fix is None
+            or fix is self._course_fix
+            or not self._fix_ok
+            or self._valid_fix_t is None
+            or now - self._valid_fix_t > self._safety.fix_stale_s
+            or nav.done
+        ):
+            return None
+        self._course_fix = fix
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        heading_deg = None
+        cmd = self._cmd
+        straight = self._state == NavState.STRAIGHT
+        if straight and 0.5 * (cmd.left_pct + cmd.right_pct) >= self._failsafe.stuck_min_pct:
+            h = self._current_heading_rad()
+            heading_deg = None if h is None else math.degrees(h)
+        target = nav.waypoints[nav.index]
+        why = self._course.on_fix(fix.t_s, fix.lat_deg, fix.lon_deg, target, heading_deg)
+        return None if why is None else (why, self._failsafe.off_course_action)
 
     def _stuck_check(self, now: float) -> tuple[str, str] | None:
         """Driving (the previous command: forward, or a pivot) at ``stuck_min_pct`` or more
@@ -583,8 +620,10 @@ class Controller:
             or self._wheel_m - wheels[0] >= (0.1 * fs.stuck_min_m)
         ):
             wheels = self._stuck_wheels = (self._wheel_m, now)
+        stale = self._valid_fix_t is None or now - self._valid_fix_t > self._safety.fix_stale_s
         if (
             body is None
+            or stale  # an old fix says nothing of motion: the body's clock waits for a new one
             or self._body_moved_m(body, fix) >= fs.stuck_min_m
             or abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG
         ):
