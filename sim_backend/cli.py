@@ -12,8 +12,22 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from sim_backend.runs import ENGINES, engine_for
-from sim_backend.world import load_world, with_robot_config
+from sim_backend.runs import ENGINES, engine_for, sky_warnings
+from sim_backend.world import MAX_DURATION_S, load_world, with_robot_config
+
+
+def _duration_s(text: str) -> float:
+    """``--duration``: a positive, finite number of simulated seconds up to 30 days (the
+    scenario's ``duration_s`` cap; a run's per-tick arrays grow with it)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not (0.0 < value <= MAX_DURATION_S):  # also NaN and infinities
+        raise argparse.ArgumentTypeError(
+            f"must be more than 0 and at most {MAX_DURATION_S:.0f} s (30 days), got {text}"
+        )
+    return value
 
 
 def _progress_bar(stream: Any) -> Callable[[float, float], None]:
@@ -43,7 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="sim-out", help="output directory (default: sim-out)")
     parser.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     parser.add_argument(
-        "--duration", type=float, default=None, help="override the duration (simulated s)"
+        "--duration",
+        type=_duration_s,
+        default=None,
+        help="override the duration (simulated s, at most 30 days)",
     )
     parser.add_argument(
         "--config",
@@ -68,8 +85,11 @@ def main(args: argparse.Namespace) -> int:
     world = load_world(args.scenario)
     if args.config:
         world = with_robot_config(world, args.config)
+    engine = engine_for(world, args.engine)
+    for warning in sky_warnings(world, args.duration):
+        print(f"x6wd sim: warning: {warning}", file=sys.stderr)
     progress = None if args.quiet else _progress_bar(sys.stderr)
-    if engine_for(world, args.engine) == "receiver":
+    if engine == "receiver":
         from sim_backend.survey import run_survey
 
         summary = run_survey(world, args.out, args.seed, args.duration, progress)

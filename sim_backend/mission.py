@@ -91,6 +91,8 @@ from sim_backend.runs import (  # re-exported: the robot engine's callers import
     Summary,
     dispersion_m,
     plot_track,
+    sky_warnings,
+    straight_length_m,
     vehicle_from_world,
 )
 from sim_backend.world import World
@@ -426,8 +428,7 @@ def run_mission(
         _write_truth(out / "truth.csv", world, trace, antenna_m)
     raw_err, filt_err, fix_enu, filt_enu = _errors(world, trace)
     path_len = float(np.sum(np.hypot(np.diff(truth_e), np.diff(truth_n))))
-    pts = np.vstack([[world.vehicle.start_east_m, world.vehicle.start_north_m], wp_enu])
-    straight = float(np.sum(np.hypot(np.diff(pts[:, 0]), np.diff(pts[:, 1]))))
+    straight = straight_length_m(world)  # leg by leg on the great circle
     disp_lat, disp_lon = _dispersion(trace)
     # a mission that returned to launch is not completed, whatever the controller's DONE
     completed = ctrl.mode == Mode.DONE and not returned
@@ -454,6 +455,7 @@ def run_mission(
         extra={
             "holds_s": [[round(a, 3), round(b, 3)] for a, b in holds],
             "mission_rejected": mission_state["rejected"],
+            "warnings": sky_warnings(world, total_s),
             "arrivals": _with_slow_error(arrivals, world, trace, dt),
             "returned_at_s": returned[0] if returned else None,
             "position_source": world.navigation.position_source,

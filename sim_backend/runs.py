@@ -10,14 +10,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
-from sim_backend.world import World
+from sim_backend.world import DEFAULT_ALMANAC, DEFAULT_ALMANAC_DATE, MAX_DURATION_S, World
 from x6wd.core.errors import ConfigError
+from x6wd.core.geodesy import EARTH_MEAN_RADIUS_M
 from x6wd.core.thinning import thinned_indices
 from x6wd.nav.geo import R1_M, R2_M  # the paper's two radii (x = Λ·R1, y = Φ·R2)
 
@@ -28,12 +30,65 @@ receiver engine and any other on the robot engine."""
 
 def engine_for(world: World, engine: str = "auto") -> str:
     """``"robot"`` or ``"receiver"``: the engine that runs ``world`` for the ``--engine``
-    choice (``auto``: the receiver engine for a survey, a scenario without waypoints)."""
+    choice (``auto``: the receiver engine for a survey, a scenario without waypoints).
+    ConfigError for ``receiver`` on a scenario with waypoints: that engine has no robot, so
+    it would stand at the start and drop the mission without a word."""
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    n_wp = len(world.waypoints_enu_m())
+    if engine == "receiver" and n_wp:
+        raise ConfigError(
+            f"--engine receiver: the scenario has {n_wp} waypoint(s), and the receiver engine "
+            "cannot drive a mission (it only runs a static survey): use --engine robot or auto"
+        )
     if engine != "auto":
         return engine
-    return "receiver" if len(world.waypoints_enu_m()) == 0 else "robot"
+    return "receiver" if n_wp == 0 else "robot"
+
+
+ALMANAC_MAX_AGE_S = 28 * 86400.0
+"""A run farther than this (s) from its almanac's reference time gets a warning: an almanac
+propagated for weeks drifts by tens of km along track, and the real constellation changes
+(satellites set unhealthy, moved, launched), so the sky is no longer that day's."""
+
+
+def sky_warnings(world: World, total_s: float | None = None) -> list[str]:
+    """Warnings about the scenario's sky for a run of ``total_s`` s (default: the scenario's
+    duration): one when the run lies more than :data:`ALMANAC_MAX_AGE_S` from the almanac's
+    reference time (YUMA and SEM almanacs; a RINEX navigation file limits itself, its
+    satellites vanish 2 h from any toe). Empty when the sky is the almanac's own epoch's."""
+    from sim_backend.geodesy import gps_seconds_to_utc, utc_to_gps_seconds
+    from sim_backend.sky import _read_text, read_sem, read_yuma
+
+    path = world.almanac_path
+    text = _read_text(path)
+    if "RINEX VERSION" in text[:200]:
+        return []
+    # The files' weeks are 10-bit; the packaged almanac's real date is known, a user's is
+    # taken as the sky takes it: the week nearest the start.
+    reference = DEFAULT_ALMANAC_DATE if path == DEFAULT_ALMANAC else world.start_utc
+    yuma = "almanac for PRN" in text[:200] or "ID:" in text[:200]
+    almanacs = (read_yuma if yuma else read_sem)(path, reference)
+    if not almanacs:
+        return []
+    toa_s = float(np.median([a.toa_gps_s for a in almanacs]))
+    total = world.duration_s if total_s is None else total_s
+    t0 = utc_to_gps_seconds(world.start_utc)
+    far_s = max(abs(t0 - toa_s), abs(t0 + total - toa_s))
+    if far_s <= ALMANAC_MAX_AGE_S:
+        return []
+    toa_utc = gps_seconds_to_utc(toa_s)
+    age = timedelta(seconds=round(far_s))
+    which = "the packaged almanac" if path == DEFAULT_ALMANAC else f"the almanac {path}"
+    return [
+        f"start_utc {world.start_utc:%Y-%m-%d %H:%M}Z is {age.days} days from the reference "
+        f"time of {which} ({toa_utc:%Y-%m-%d %H:%M}Z): the sky is that almanac propagated far "
+        "from its epoch, so the satellite positions (and the satellites in view, DOP and the "
+        "errors they cause) are not those a real receiver saw then. To compare with a real "
+        'log of that date, give the scenario an almanac of that date: almanac = "FILE" '
+        "(a YUMA or SEM almanac from within a few weeks, or the day's RINEX navigation file; "
+        "the path is relative to the scenario file)"
+    ]
 
 
 STATIC_CHUNK_EPOCHS = 3600
@@ -106,8 +161,11 @@ class Summary:
         """The human-readable summary printed by ``x6wd sim``."""
         r, f = self.raw_error, self.filtered_error
         speed = self.sim_time_s / self.wall_time_s if self.wall_time_s > 0 else math.inf
+        rejected = self.extra.get("mission_rejected")
         if self.waypoint_count == 0:
             outcome = "static survey (no waypoints)"
+        elif rejected:  # the robot refused the mission: say why, not only that it failed
+            outcome = f"mission NOT completed: the robot rejected it ({rejected})"
         else:
             outcome = "mission COMPLETED" if self.completed else "mission NOT completed"
         lines = [
@@ -192,6 +250,10 @@ class RunPlan:
         total_s = world.duration_s if duration_s is None else float(duration_s)
         if not (total_s > 0 and math.isfinite(total_s)):
             raise ConfigError(f"duration must be a positive number of seconds, got {duration_s!r}")
+        if total_s > MAX_DURATION_S:  # as the scenario's duration_s: the run's arrays grow
+            raise ConfigError(
+                f"duration must be at most {MAX_DURATION_S:.0f} s (30 days), got {duration_s!r}"
+            )
         dt = 1.0 / compass_hz
         gps_every = max(1, round(compass_hz / world.gnss.rate_hz))  # ticks per GPS epoch
         if abs(compass_hz / world.gnss.rate_hz - gps_every) > 1e-9:
@@ -205,6 +267,26 @@ class RunPlan:
         """The GPS epochs' times (s): the ticks that carry one, exactly as the loop computes
         them (tick index times ``dt_s``)."""
         return np.arange(0, self.n_ticks + 1, self.gps_every) * self.dt_s
+
+
+def straight_length_m(world: World) -> float:
+    """The planned route's length (m): from the vehicle's start through every waypoint, each
+    leg along the great circle (the ground's ECEF chord turned into the arc on the mean
+    Earth sphere: equal to the flat distance on a field, and meaningful for a waypoint on
+    another continent, where a tangent-plane east/north chord is not). 0 without waypoints."""
+    from sim_backend.geodesy import enu_to_ecef, lla_to_ecef
+
+    ll = world.waypoints_latlon()
+    if len(ll) == 0:
+        return 0.0
+    o, v = world.origin, world.vehicle
+    start = enu_to_ecef(np.array([v.start_east_m, v.start_north_m, 0.0]), o.lat_deg,
+                        o.lon_deg, o.alt_m)  # fmt: skip
+    wps = lla_to_ecef(ll[:, 0], ll[:, 1], np.full(len(ll), o.alt_m))
+    pts = np.vstack([np.reshape(start, (1, 3)), np.reshape(wps, (-1, 3))])
+    chord = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    r = EARTH_MEAN_RADIUS_M
+    return float(np.sum(2.0 * r * np.arcsin(np.minimum(1.0, chord / (2.0 * r)))))
 
 
 def dispersion_m(dlat_deg: np.ndarray, dlon_deg: np.ndarray) -> tuple[float, float]:

@@ -44,6 +44,7 @@ from sim_backend.runs import (
     RunPlan,
     Summary,
     dispersion_m,
+    sky_warnings,
     vehicle_from_world,
 )
 from sim_backend.textblocks import (
@@ -168,6 +169,7 @@ def run_survey(
         mean_sats_used=float(np.mean(used)) if used.size else math.nan,
         extra={
             "engine": "receiver",
+            "warnings": sky_warnings(world, plan.total_s),
             "nmea_bytes": wire_bytes,
             "uart_dropped_sentences": receiver.uart.dropped,
             "fidelity": world.gnss.fidelity,

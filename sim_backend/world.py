@@ -82,6 +82,13 @@ from x6wd.core.config import (
 from x6wd.core.errors import ConfigError
 
 DEFAULT_ALMANAC = Path(__file__).resolve().parent / "data" / "almyuma_01jan2020.txt"
+DEFAULT_ALMANAC_DATE = datetime(2020, 1, 1, tzinfo=UTC)
+"""The packaged almanac's real date: its 10-bit week (38) is read as week 2086 near it."""
+GPS_EPOCH_UTC = datetime(1980, 1, 6, tzinfo=UTC)
+"""GPS time starts here; the simulated sky (GPS seconds, almanac weeks) has no earlier time."""
+MAX_DURATION_S = 30 * 86400.0
+"""The longest run (s): ``duration_s`` and ``x6wd sim --duration`` are capped here (a run's
+per-tick arrays grow with it)."""
 MAX_SPEED_MPS = 14.0 / 3.6
 _LIST_TABLES = ("walls", "buildings", "roofs", "effects")
 
@@ -156,7 +163,7 @@ class MissionSettings:
 class _Top:
     name: str = ""
     start_utc: str = "2020-01-01T12:00:00Z"
-    duration_s: float = field(default=600.0, metadata=_rng(0.001, 30 * 86400.0))
+    duration_s: float = field(default=600.0, metadata=_rng(0.001, MAX_DURATION_S))
     seed: int = field(default=1, metadata=_rng(0, 2**63 - 1))
     almanac: str = ""
 
@@ -319,6 +326,10 @@ def _read_merged(path: Path, stack: tuple[Path, ...]) -> dict[str, Any]:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read scenario: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:  # TOML is UTF-8: a binary or Latin-1 file is no scenario
+        raise ConfigError(
+            f"{path}: not a scenario: not UTF-8 text (byte {exc.start}: {exc.reason})"
+        ) from exc
     data = _parse(text, str(path))
     return _expand_includes(data, path.parent, (*stack, path), str(path))
 
@@ -474,7 +485,13 @@ def _parse_time(value: Any) -> datetime:
             raise ConfigError(f"start_utc: not an ISO-8601 time: {value!r}") from exc
     else:
         raise ConfigError(f"start_utc: expected an ISO-8601 time, got {value!r}")
-    return dt.replace(tzinfo=UTC) if dt.tzinfo is None else dt.astimezone(UTC)
+    dt = dt.replace(tzinfo=UTC) if dt.tzinfo is None else dt.astimezone(UTC)
+    if dt < GPS_EPOCH_UTC:
+        raise ConfigError(
+            f"start_utc: {dt.isoformat()} is before the GPS epoch (1980-01-06T00:00:00Z): "
+            "there is no GPS time, and so no simulated sky, before it"
+        )
+    return dt
 
 
 def _read_lce_csv(path: str) -> tuple[tuple[float, ...], ...]:
@@ -483,6 +500,8 @@ def _read_lce_csv(path: str) -> tuple[tuple[float, ...], ...]:
             rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
     except OSError as exc:
         raise ConfigError(f"gnss.lce_csv: cannot read {path}: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"gnss.lce_csv: {path}: not UTF-8 text ({exc.reason})") from exc
     try:
         grid = tuple(tuple(float(c) for c in row) for row in rows)
     except ValueError as exc:
