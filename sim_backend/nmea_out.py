@@ -3,8 +3,8 @@
 At boot the receiver prints a ``$GPTXT`` banner; then, once per navigation epoch, the burst
 RMC, VTG, GGA, GSA, GSV (1-4 messages, 4 satellites each), GLL. NMEA 2.3: RMC, VTG and GLL
 carry a mode letter (``A`` autonomous, ``N`` not valid). Latitude/longitude as
-``ddmm.mmmmm``/``dddmm.mmmmm`` (5 decimals of minutes; 4 for the older firmware; 6-7 for
-scenarios of receivers with a high-precision print), time as
+``ddmm.mmmmm``/``dddmm.mmmmm`` (5 decimals of minutes; 4, 6 or 7 on request: only the
+minutes change, every other field keeps the NEO-5's form), time as
 ``hhmmss.ss``. Course over ground is EMPTY when the receiver is at rest (course None). Without a
 fix the receiver prints its real no-fix forms: all fields empty until it has time from a
 satellite, then with time (and date) but status ``V`` / quality 0 / DOP 99.99.
@@ -119,10 +119,11 @@ def _coord(value_deg: float, deg_digits: int, decimals: int, scale: int) -> tupl
 class NmeaFormatter:
     """Formats :class:`GnssEpoch` objects into NEO-5 sentence bursts.
 
-    ``minute_decimals`` 5 (NEO-5 firmware 6) or 4 (older u-blox 5 firmware); 6 or 7 for
-    scenarios of other receivers (u-blox M8/F9 print 7 in their high-precision NMEA mode:
-    a lattice of 0.2 mm, where 5 decimals add ~0.5 cm of rounding noise per axis, more than
-    such a receiver's own 1 s noise); ``time_decimals``
+    ``minute_decimals`` 5 (NEO-5 firmware 6), 4, 6 or 7: the minutes' decimals only, the
+    rest of every sentence stays the NEO-5's (so 4 is not a u-blox 5 firmware 5.00 stream,
+    which also prints ``hhmmss.sss`` and other field widths; 7 gives a receiver with a
+    high-precision print, u-blox M8/F9, its 0.2 mm lattice, where 5 decimals add ~0.5 cm of
+    rounding noise per axis, more than such a receiver's own 1 s noise); ``time_decimals``
     2 (``hhmmss.ss``) or 3; ``rate_hz`` the navigation rate, 1-4 Hz as the NEO-5 allows (it only
     validates here: epoch times come from the model); ``talker`` is fixed at construction.
     The formatter remembers whether the receiver has time yet: the no-fix forms carry time
@@ -300,7 +301,8 @@ class NmeaFormatter:
             self.time_known = True
         if not ep.valid:
             return self._no_fix(ep.utc, gsv)
-        # GSA lists the used satellites in the receiver's channel order (as given).
+        # GSA lists the used satellites in the order given: the model's, ascending PRN (a
+        # real NEO-5 prints its tracking channels' order, which is not modelled).
         used = [s.prn for s in ep.satellites if s.used]
         return self._fix_bodies(
             ep.utc, ep.lat_deg, ep.lon_deg, ep.speed_mps, ep.course_deg,
@@ -459,7 +461,7 @@ class NmeaFormatter:
         u = used[rows]
         n_used = u.sum(axis=1)
         nused = _D2_BLOCK[np.minimum(n_used, 99)]
-        # GSA: the used satellites in column (channel) order, at most 12 shown.
+        # GSA: the used satellites in column order (the model's: ascending PRN), at most 12.
         rank = np.cumsum(u, axis=1) - 1
         ur, uc = np.nonzero(u & (rank < MAX_GSA_SATS))
         gsa = np.zeros((r, MAX_GSA_SATS, 3), dtype=np.uint8)

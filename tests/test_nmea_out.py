@@ -456,3 +456,28 @@ def test_a_time_rounded_up_to_midnight_carries_into_the_date(
         dec = GpsDecoder(emit_sentences=False)
         fixes = [r for r in dec.feed(b"".join(bursts), 0.0) + dec.flush() if isinstance(r, GpsFix)]
         assert [fx.utc for fx in fixes] == expected
+
+
+def test_gsa_lists_the_models_used_satellites_in_ascending_prn_order() -> None:
+    """What the docstrings say: the model has no tracking channels, so GSA's used satellites
+    come in ascending PRN order (a real NEO-5 prints its channel order), in both paths."""
+    from sim_backend.gnss import GnssModel
+    from sim_backend.sky import SatelliteSet, read_yuma
+    from sim_backend.world import DEFAULT_ALMANAC
+
+    start = datetime(2020, 1, 1, 12, tzinfo=UTC)
+    sky = SatelliteSet.from_almanac(read_yuma(DEFAULT_ALMANAC, reference=start))
+    model = GnssModel(sky, 51.75, -1.25, 60.0, start, rng=np.random.default_rng(5))
+    n = 30
+    batch = model.batch(
+        np.arange(n, dtype=float), np.full(n, 51.75), np.full(n, -1.25), np.full(n, 60.0),
+        np.zeros((n, 3)),
+    )  # fmt: skip
+    for bursts in (
+        NmeaFormatter().format_batch(batch),
+        NmeaFormatter().format_epochs(batch.epochs()),
+    ):
+        for burst in bursts:
+            gsa = next(ln for ln in burst.decode().split("\r\n") if ln.startswith("$GPGSA"))
+            prns = [int(p) for p in gsa.split(",")[3:15] if p]
+            assert len(prns) >= 4 and prns == sorted(prns)
