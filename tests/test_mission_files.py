@@ -224,7 +224,7 @@ coordinates = st.builds(
     Waypoint,
     st.floats(-90, 90, allow_nan=False, allow_infinity=False),
     st.floats(-180, 180, allow_nan=False, allow_infinity=False),
-)
+).filter(lambda w: (w.lat_deg, w.lon_deg) != (0.0, 0.0))  # ArduPilot's "here" in .waypoints
 
 
 @given(st.lists(coordinates, min_size=1, max_size=30))
@@ -243,7 +243,7 @@ def test_round_trips_through_files(tmp_path: Path) -> None:
     # a chain through every format ends where it began
     chain = wps
     for fmt in ("waypoints", "gpx", "csv", "waypoints"):
-        save_file(tmp_path / f"c.{fmt}", chain)
+        save_file(tmp_path / f"c.{fmt}", chain, force=True)  # .waypoints twice
         chain = load_file(tmp_path / f"c.{fmt}")
     assert chain == wps
     assert "<rtept" in format_gpx(wps) and format_csv(wps).startswith("lat,lon\n")
@@ -342,6 +342,27 @@ def test_x6wd_mission_show_and_convert(tmp_path: Path) -> None:
     ]
     r = x6wd("mission", "convert", "missions/default.gpx", str(tmp_path / "x.kml"))
     assert r.returncode == 2 and "reads but does not write" in r.stderr
+    # an existing output is replaced only on request
+    before = out.read_bytes()
+    r = x6wd("mission", "convert", "missions/default.csv", str(out))
+    assert (
+        r.returncode == 2
+        and r.stderr.strip() == f"x6wd mission: {out}: exists; give --force to replace it"
+    )
+    assert out.read_bytes() == before
+    r = x6wd("mission", "convert", "missions/default.csv", str(out), "--force")
+    assert r.returncode == 0 and load_file(out) == load_file(MISSIONS / "default.csv")
+
+
+def test_a_waypoint_at_0_0_is_refused_in_waypoints_files() -> None:
+    """ArduPilot and QGroundControl read a NAV_WAYPOINT at 0, 0 as the vehicle's current
+    position: taken literally it is a point in the Gulf of Guinea."""
+    zero = QGC_FILE + "3\t0\t3\t16\t0\t0\t0\t0\t0.0\t0\t0\t1\n"
+    with pytest.raises(ParseError, match=r"line 5: latitude and longitude are 0, 0"):
+        parse_wpl(zero)
+    with pytest.raises(ParseError, match="waypoint 2 is at 0, 0"):
+        format_content([Waypoint(51.0, -1.0), Waypoint(0.0, 0.0)], "waypoints")
+    assert parse_wpl(QGC_FILE + "3\t0\t3\t16\t0\t0\t0\t0\t0.0\t1e-7\t0\t1\n")[-1] == (0.0, 1e-7)
 
 
 @pytest.fixture

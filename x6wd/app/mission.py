@@ -42,6 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("output", help="file to write (.waypoints, .gpx, .csv); '-' for stdout")
     p.add_argument("--from", dest="from_fmt", choices=sorted(PARSERS), help="format of INPUT")
     p.add_argument("--to", dest="to_fmt", choices=sorted(WRITERS), help="format of OUTPUT")
+    p.add_argument("--force", action="store_true", help="replace OUTPUT if it exists")
 
 
 def main(args: argparse.Namespace, out: TextIO | None = None) -> int:
@@ -63,7 +64,7 @@ def main(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 raise ParseError("writing to stdout ('-') needs --to FORMAT")
             out.write(format_content(wps, format_of("-", args.to_fmt, writing=True)))
             return EXIT_OK
-        kind = save_file(args.output, wps, args.to_fmt)
+        kind = save_file(args.output, wps, args.to_fmt, force=args.force)
         print(f"{args.output}: {len(wps)} waypoints written ({kind})", file=sys.stderr)
         return EXIT_OK
     except ParseError as exc:

@@ -299,7 +299,15 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> list[Waypoint]:
                 f"{where}: frame {frame} is not a global latitude/longitude frame "
                 f"(valid: {', '.join(f'{k} {v}' for k, v in _GLOBAL_FRAMES.items())})"
             )
-        out.append(make_waypoint(cols[8], cols[9], where))
+        wp = make_waypoint(cols[8], cols[9], where)
+        if wp.lat_deg == 0.0 and wp.lon_deg == 0.0:
+            # ArduPilot reads a waypoint at 0, 0 as "where the vehicle is now"; x6wd would
+            # drive to the Gulf of Guinea
+            raise ParseError(
+                f"{where}: latitude and longitude are 0, 0 (ArduPilot's 'current position'): "
+                "give the waypoint's real position"
+            )
+        out.append(wp)
         if len(out) > MAX_WAYPOINTS:
             break
     return _check_count(out, source)
@@ -317,6 +325,9 @@ def format_wpl(waypoints: Sequence[Waypoint], home: Waypoint | None = None) -> s
     NAV_WAYPOINT per waypoint in frame GLOBAL_RELATIVE_ALT (3) at altitude 0, as
     QGroundControl writes them (it replaces the home line with the vehicle's on upload)."""
     wps = _check_count(list(waypoints), "mission")
+    for i, w in enumerate(wps, start=1):
+        if w[0] == 0.0 and w[1] == 0.0:  # ArduPilot would read it as "where the vehicle is"
+            raise ParseError(f"waypoint {i} is at 0, 0, which a .waypoints file cannot hold")
     h = home if home is not None else wps[0]
     rows = [
         WPL_HEADER,
@@ -489,15 +500,20 @@ def load_file(
     return parse_content(text, kind, str(p))
 
 
-def save_file(path: str | Path, waypoints: Sequence[Waypoint], fmt: str | None = None) -> str:
+def save_file(
+    path: str | Path, waypoints: Sequence[Waypoint], fmt: str | None = None, *, force: bool = False
+) -> str:
     """Write a mission file in ``fmt`` or the format of its extension (:data:`WRITERS`);
-    returns the format written."""
+    returns the format written. An existing file is replaced only with ``force`` (a
+    mistyped output name must not wipe the mission it names)."""
     p = Path(path)
     kind = format_of(p, fmt, writing=True)
     text = format_content(waypoints, kind)
     try:
-        with open(p, "w", encoding="utf-8", newline="") as f:
+        with open(p, "w" if force else "x", encoding="utf-8", newline="") as f:
             f.write(text)
+    except FileExistsError:
+        raise ParseError(f"{p}: exists; give --force to replace it") from None
     except OSError as exc:
         raise ParseError(f"{p}: cannot write: {exc.strerror or exc}") from None
     return kind
