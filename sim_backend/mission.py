@@ -263,6 +263,7 @@ def run_mission(
         arrivals.append(row)
 
     returned: list[float] = []  # when a return to launch began (the mission is then over)
+    failsafes: list[list[Any]] = []  # [t_s, why] of each failsafe that acted
 
     def observe(outputs: list[Any], _important: bool) -> None:
         nonlocal done_at
@@ -278,6 +279,9 @@ def run_mission(
                 t = o.t_s
                 if o.reason.endswith("return to launch"):
                     returned.append(t)
+                if o.reason.startswith("mode: failsafe: "):
+                    why = o.reason[len("mode: failsafe: ") :].removesuffix(": return to launch")
+                    failsafes.append([round(t, 3), why])
                 if o.new == NavState.HOLD and (not holds or holds[-1][1] >= 0):
                     holds.append([t, -1.0])
                 elif o.old == NavState.HOLD and holds and holds[-1][1] < 0:
@@ -360,6 +364,7 @@ def run_mission(
                         runner.gps_record(r)
 
         # the per-tick calls, looked up once (thousands of ticks per simulated minute)
+        take_compass_events = compass.take_health_events
         t_append, e_append, n_append = trace.t.append, trace.east.append, trace.north.append
         u_append, h_append = trace.up.append, trace.heading.append
         for k in range(n_ticks + 1):
@@ -380,6 +385,9 @@ def run_mission(
                 s.pitch_deg, s.roll_deg,
             )  # fmt: skip
             runner.attitude(compass.read(t))
+            events = take_compass_events()
+            if events:  # the daemon's compass thread hands these over the same way
+                runner.device_events(events)
             if k:
                 encoders.step(dt, s)
                 runner.odometry(encoders.reading(t))
@@ -458,6 +466,7 @@ def run_mission(
             "warnings": sky_warnings(world, total_s),
             "arrivals": _with_slow_error(arrivals, world, trace, dt),
             "returned_at_s": returned[0] if returned else None,
+            "failsafes": failsafes,
             "position_source": world.navigation.position_source,
             "geofence_breaches": runner.geofence_breaches,
             "i2c_errors_injected": injector.injected,

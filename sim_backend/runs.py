@@ -189,6 +189,8 @@ class Summary:
             f" ±{self.dispersion_lon_m:.2f} m lon (two-radius)",
             f"  HOLD periods        {self.hold_periods} ({self.hold_time_s:.1f} s)",
         ]
+        for t_s, why in self.extra.get("failsafes") or ():  # what stopped the mission, and when
+            lines.append(f"  failsafe            at {t_s:.1f} s: {why}")
         return "\n".join(lines)
 
 

@@ -596,6 +596,9 @@ def test_a_compass_90_degrees_off_pauses_the_robot_before_it_goes_far(tmp_path: 
     run = _mission(tmp_path, _compass_off_world(90.0))
     paused = run.first("PAUSED", "failsafe: off course (heading")
     assert paused["t_s"] < 20.0
+    ((t_s, why),) = run.summary.extra["failsafes"]  # in the summary, and said by x6wd sim
+    assert t_s == pytest.approx(paused["t_s"], abs=1e-3) and why.startswith("off course (")
+    assert f"  failsafe            at {t_s:.1f} s: off course (heading" in run.summary.text()
     assert run.mode_changes()[-1][1] == "PAUSED"
     assert run.final_from_start_m() < 20.0
     motors = [m for m in run.of("motor") if m["t_s"] >= paused["t_s"]]
@@ -606,3 +609,14 @@ def test_a_compass_20_degrees_off_still_completes(tmp_path: Path) -> None:
     run = _mission(tmp_path, _compass_off_world(20.0))
     assert not any("failsafe" in r for _t, _n, r in run.mode_changes())
     assert run.summary.completed
+
+
+def test_compass_faults_reach_the_recording_as_the_daemons_do(tmp_path: Path) -> None:
+    """The simulated loop hands the compass driver's health events to the runner, as the
+    daemon's compass thread does: I2C errors are device records, drawn by x6wd plot."""
+    text = DEFAULT.replace("duration_s = 400.0", "duration_s = 30.0")
+    text = text.replace("declination_deg = -0.5\n", "declination_deg = -0.5\np_error = 0.3\n")
+    run = _mission(tmp_path, loads_world(text, base_dir=SCENARIOS))
+    devices = [e for e in run.of("event") if e["event"] == "device"]
+    assert devices and all(d["device"] == "compass" for d in devices), devices[:3]
+    assert {d["new"] for d in devices} >= {"connected", "degraded"}
