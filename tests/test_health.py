@@ -118,6 +118,22 @@ def test_stale_by_time_counts_from_the_open_and_recovers_on_data() -> None:
     ]  # fmt: skip
 
 
+def test_a_peer_that_keeps_dropping_us_without_data_goes_stale() -> None:
+    """A tcp:// GPS whose server accepts and drops every 0.4 s, never sending a byte: each
+    reconnect is no fresh start, so the device is stale once stale_s passed since the first
+    of those opens (it looked connected between drops for ever)."""
+    t = tracker(stale_s=1.0)
+    t.opened(0.0)
+    t.good(0.5)  # it worked once
+    for k in range(1, 6):
+        t.lost("reset by peer", 0.4 * k + 0.5)
+        t.opened(0.4 * k + 0.6)  # first data-less open: 1.0 s
+        t.check(0.4 * k + 0.8)
+    assert t.health.state == "stale", t.health  # 2.8 s: 1.8 s since that open
+    t.good(3.0)
+    assert t.health.state == "degraded"  # data again (after five losses in a row)
+
+
 def test_degraded_recovers_only_after_recover_s_without_errors() -> None:
     t = tracker(recover_s=1.0)
     t.opened(0.0)

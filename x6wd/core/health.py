@@ -102,6 +102,7 @@ class HealthTracker:
         self._reconnects = 0
         self._opened_once = False
         self._opened_t: float | None = None
+        self._quiet_open_t: float | None = None  # first open of the run of data-less ones
         self._last_data_t: float | None = None
         self._next_attempt_t: float | None = None
         self._open_failures = 0  # failed reopens since the link was lost
@@ -144,12 +145,20 @@ class HealthTracker:
     def opened(self, t_s: float) -> None:
         """The device was opened (first time, or a reconnect: counted) at ``t_s`` (s).
 
-        Staleness counts from here, not from the data before an outage.
+        Staleness counts from here, not from the data before an outage; but from the first
+        of several opens in a row that brought no data (a peer that keeps dropping us).
         """
         reconnect = self._opened_once
         if reconnect:
             self._reconnects += 1
         self._opened_once = True
+        quiet = self._opened_t is not None and (
+            self._last_data_t is None or self._last_data_t < self._opened_t
+        )
+        # a reconnect after a connection that brought no data keeps the quiet streak's start:
+        # a peer that accepts and drops, never sending, must go stale, not look fresh
+        if not quiet:
+            self._quiet_open_t = t_s
         self._opened_t = t_s
         self._consecutive = 0
         self._open_failures = 0
@@ -268,8 +277,9 @@ class HealthTracker:
         if stale_s is None or self._state not in (CONNECTED, DEGRADED):
             return
         ref = self._last_data_t
-        if self._opened_t is not None and (ref is None or self._opened_t > ref):
-            ref = self._opened_t  # a fresh connection: count from the open, not the outage
+        opened = self._quiet_open_t
+        if opened is not None and (ref is None or opened > ref):
+            ref = opened  # a fresh connection: count from the open, not the outage
         if ref is None:
             ref = self._since_t
         if t_s - ref > stale_s:
