@@ -36,8 +36,11 @@ Epoch assembly (how a ``GpsFix`` is closed):
 - ``mode`` follows gpsd: 1 unless the fix is valid; else the latest GSA mode (2/3) when the
   stream has GSA, else 3 when GGA gives an altitude, else 2. GSA arrives after GGA, so the
   GSA mode and PDOP/VDOP used are those of the previous cycle.
-- A ``GpsSky`` is emitted when a GSV group (per talker) completes; ``used`` flags and DOPs
-  come from the GSA sentences of the current cycle; satellites of every talker are merged.
+- A ``GpsSky`` is emitted when a GSV group (per talker and NMEA 4.10 signal id) completes;
+  ``used`` flags and DOPs come from the GSA sentences of the current cycle; satellites of
+  every talker are merged. Satellites carry gpsd's numbering (``gpsd_satellite``: PRN across
+  systems, gnssid, svid), so that a GSA marks its own system's satellites used; one
+  without an SNR is never used, as in gpsd.
 
 Speed (bench/bench_nmea.py compares the whole path with ``pynmea2.parse`` alone,
 bench/bench_decode.py ``x6wd decode`` with gpsd's ``gpsdecode``): runs of well-formed lines
@@ -952,12 +955,105 @@ class _Rmc:
     day: date | None
 
 
+# ---------------------------------------------------------------------------- satellite numbers
+# gpsd numbers every satellite in one range (driver_nmea0183.c, nmeaid_to_prn): NMEA numbers
+# 1-32 of GPS, BeiDou and Galileo collide, so a BeiDou 13 must become 413 before a GSA's
+# "used" can be matched to it. The system comes from the talker (GSV, GSA) or from an NMEA
+# 4.10 GSA's system id; GP and GN (and unknown talkers) leave it to the number's range.
+
+# NMEA 4.10 system ids (GSA's last field) and the talkers that name one.
+NMEA_GPS: Final = 1
+NMEA_GLONASS: Final = 2
+NMEA_GALILEO: Final = 3
+NMEA_BEIDOU: Final = 4
+NMEA_QZSS: Final = 5
+_SYSTEM_OF_TALKER: Final = {
+    "GL": NMEA_GLONASS,
+    "GA": NMEA_GALILEO,
+    "GB": NMEA_BEIDOU,
+    "BD": NMEA_BEIDOU,
+    "GQ": NMEA_QZSS,
+    "QZ": NMEA_QZSS,
+}
+# gpsd's gnssid values (u-blox's numbering, gps.h struct satellite_t).
+GNSSID_GPS: Final = 0
+GNSSID_SBAS: Final = 1
+GNSSID_GALILEO: Final = 2
+GNSSID_BEIDOU: Final = 3
+GNSSID_IMES: Final = 4
+GNSSID_QZSS: Final = 5
+GNSSID_GLONASS: Final = 6
+# By number alone: (first, last NMEA number, gnssid, svid = number - offset, PRN = number + shift).
+_RANGES: Final = (
+    (1, 32, GNSSID_GPS, 0, 0),
+    (33, 64, GNSSID_SBAS, -87, 0),  # NMEA 33-64 are SBAS PRNs 120-151
+    (65, 96, GNSSID_GLONASS, 64, 0),
+    (120, 158, GNSSID_SBAS, 0, 0),
+    (173, 182, GNSSID_IMES, 172, 0),
+    (193, 199, GNSSID_QZSS, 192, 0),
+    (201, 237, GNSSID_BEIDOU, 200, 200),  # some SiRF: BeiDou 201-237, gpsd's 401-437
+    (301, 356, GNSSID_GALILEO, 300, 0),
+    (401, 437, GNSSID_BEIDOU, 400, 0),
+)
+# A named system: (gnssid, PRN base, NMEA number offsets tried in order: svid = n - offset
+# for the first offset that leaves 1..99, for the vendor variants gpsd accepts).
+_SYSTEMS: Final = {
+    NMEA_GLONASS: (GNSSID_GLONASS, 64, (0, 64)),
+    NMEA_GALILEO: (GNSSID_GALILEO, 300, (0, 100, 300)),
+    NMEA_BEIDOU: (GNSSID_BEIDOU, 400, (0, 200, 400)),
+    NMEA_QZSS: (GNSSID_QZSS, 192, (0, 192)),
+}
+
+_SYSTEM_IDS: Final = frozenset(str(k) for k in (NMEA_GPS, *_SYSTEMS))
+
+SatId = tuple[int, int | None, int | None]
+"""gpsd's PRN, gnssid and svid of a satellite (gnssid and svid None: no known range)."""
+
+
+@functools.lru_cache(maxsize=1024)
+def gpsd_satellite(system: int, number: int) -> SatId:
+    """gpsd's PRN, gnssid and svid of NMEA satellite ``number`` of ``system`` (an NMEA 4.10
+    system id, 0 or GPS: by the number's range, as gpsd reads GP and GN talkers). A number
+    in no range keeps its value, without gnssid and svid."""
+    named = _SYSTEMS.get(system)
+    if named is not None:
+        gnssid, base, offsets = named
+        for offset in offsets:
+            if 1 <= number - offset <= (32 if gnssid == GNSSID_GLONASS else 99):
+                return base + number - offset, gnssid, number - offset
+        return number, None, None
+    for first, last, gnssid, offset, shift in _RANGES:
+        if first <= number <= last:
+            return number + shift, gnssid, number - offset
+    return number, None, None
+
+
+def talker_system(talker: str) -> int:
+    """The NMEA 4.10 system id a talker names (GL, GA, GB/BD, GQ/QZ), else 0."""
+    return _SYSTEM_OF_TALKER.get(talker, 0)
+
+
+# gpsd's fix status (gps.h STATUS_*: 0 no fix, 1 fix, 2 DGPS, 3 RTK fixed, 4 RTK float,
+# 5 dead reckoning, 7 surveyed/time, 8 simulated) for each GGA quality 0..8 (gpsd's
+# processGGA: 3, PPS, is a plain fix; 7, manual input, its "time" status).
+_FIX_STATUS: Final = (0, 1, 2, 1, 3, 4, 5, 7, 8)
+STATUS_DGPS: Final = 2
+"""The lowest status gpsd's TPV shows (0 and 1 it leaves out, as its regressions do)."""
+
+
+def fix_status(quality: int) -> int:
+    """gpsd's TPV ``status`` for a fix of GGA ``quality`` (1, a plain fix, if unknown)."""
+    return _FIX_STATUS[quality] if type(quality) is int and 0 <= quality <= 8 else 1
+
+
 _GsaValues = tuple[int | None, frozenset[int], float | None, float | None, float | None]
 
 
 @functools.lru_cache(maxsize=64)
-def _parse_gsa(f: tuple[str, ...]) -> _GsaValues:
-    """GSA fields ``fix_type`` .. ``vdop`` -> fix mode, PRNs used, PDOP, HDOP, VDOP.
+def _parse_gsa(talker: str, f: tuple[str, ...], system_id: str = "") -> _GsaValues:
+    """GSA fields ``fix_type`` .. ``vdop`` of ``talker`` and the NMEA 4.10 ``system_id``
+    field after them ("" if absent) -> fix mode, gpsd PRNs used (``gpsd_satellite``), PDOP,
+    HDOP, VDOP.
 
     Memoised: a receiver repeats its GSA for as long as the constellation holds.
     """
@@ -965,9 +1061,15 @@ def _parse_gsa(f: tuple[str, ...]) -> _GsaValues:
     prns = [s for s in f[_GSA_SV1 - _GSA_MODE : _GSA_PDOP - _GSA_MODE] if s]
     if prns and not ("".join(prns).isdigit() and "".join(prns).isascii()):
         raise FieldError("GSA PRN")
-    used = frozenset(int(s) for s in prns)
-    if len(used) and (min(used) < _GSA_PRN_LO or max(used) > _GSA_PRN_HI):
+    numbers = frozenset(int(s) for s in prns)
+    if len(numbers) and (min(numbers) < _GSA_PRN_LO or max(numbers) > _GSA_PRN_HI):
         raise FieldError("GSA PRN range")
+    # A GN talker's GSA names its system in NMEA 4.10 (one GSA per system): without it,
+    # a BeiDou GSA's 13 would mark GPS 13 used. An unknown id leaves it to the talker.
+    system = talker_system(talker)
+    if system_id in _SYSTEM_IDS:  # another value (or several extra fields): not one
+        system = int(system_id)
+    used = frozenset(gpsd_satellite(system, n)[0] for n in numbers)
     dops = f[_GSA_PDOP - _GSA_MODE :]
     return mode, used, _gsa_dop(dops[0]), _gsa_dop(dops[1]), _gsa_dop(dops[2])
 
@@ -986,11 +1088,15 @@ def _gsv_head(num: str, seq: str, in_view: str) -> tuple[int, int]:
     return total, n
 
 
-# One GSV satellite: PRN and its SatInfo as not used / used in the fix (GSA decides which
-# at emission; both are built once, so a sky report allocates no SatInfo in steady state).
+# One GSV satellite: the PRN a GSA marks it used by, and its SatInfo as not used / used in
+# the fix (GSA decides which at emission; both are built once, so a sky report allocates
+# no SatInfo in steady state). That PRN is 0 (never used) without an SNR: gpsd marks no
+# satellite used that it does not hear, as a receiver listing one signal of a satellite
+# in its GSA cannot say which of the satellite's GSV signal groups it used.
 _Sat = tuple[int, SatInfo, SatInfo]
-# A satellite's text "PRN,elevation,azimuth,SNR" -> _Sat. Bounded: noise makes new keys.
-_SATS: Final[dict[str, _Sat]] = {}
+# Per system (talker_system), a satellite's text "PRN,elevation,azimuth,SNR" -> _Sat: the
+# same text is another satellite in another system. Bounded: noise makes new keys.
+_SATS: Final[dict[int, dict[str, _Sat]]] = {}
 _SATS_MAX: Final = 4096
 # A GSV's satellites are its fields from the fourth on, four each: one match per satellite
 # (its text; the comma after it consumed). A partial group at the end does not match: no
@@ -1005,54 +1111,77 @@ def clear_memos() -> None:
     afresh. They never change a result; this is for tests and memory accounting."""
     _SATS.clear()
     _parse_gsa.cache_clear()
+    gpsd_satellite.cache_clear()
 
 
 def gsv_groups(text: str) -> list[str]:
     """The satellites' texts (``"PRN,elevation,azimuth,SNR"``) of a GSV sentence from the
-    text of its fields from the first satellite's on (``text``): groups of four fields. A
-    satellite cut short by the end of a sentence of fewer than four counts, with empty
-    fields; beyond four, NMEA 4.1 appends a signal id, and the partial group it makes is
-    dropped."""
+    text of its fields from the first satellite's on (``text``): groups of four fields. One
+    field after whole groups is NMEA 4.10's signal id (``gsv_signal``), not a satellite; a
+    satellite cut short (two or three fields left) by the end of a sentence of fewer than
+    four counts, with empty fields."""
     groups: list[str] = _GSV_GROUP.findall(text)
     n_fields = text.count(",") + 1
-    if n_fields % 4 and n_fields < 16:
+    if n_fields % 4 > 1 and n_fields < 16:
         tail = text.split(",")[4 * len(groups) :]
         groups.append(",".join(tail + [""] * (4 - len(tail))))
     return groups
 
 
-def gsv_satellite(group: str) -> _Sat | None:
-    """The satellite of one group of ``gsv_groups`` (None without a PRN: not a satellite);
-    FieldError if a field is out of range. Memoised by the group's text."""
-    sat = _SATS.get(group)
+def gsv_signal(text: str) -> str:
+    """The NMEA 4.10 signal id of a GSV from the text of its fields from the first
+    satellite's on (``text``): the field after whole groups of four, "" if there is none;
+    FieldError if it is not a hexadecimal digit string (NMEA 4.11 ids run 1-F)."""
+    if text.count(",") % 4:  # not 4k + 1 fields
+        return ""
+    signal = text[text.rfind(",") + 1 :]
+    if signal.strip(SIGNAL_DIGITS):  # (strip leaves a character only if one is not a digit)
+        raise FieldError("GSV signal id")
+    return signal
+
+
+SIGNAL_DIGITS: Final = "0123456789ABCDEF"
+"""The characters of a GSV signal id (hexadecimal, upper case)."""
+
+
+def gsv_satellite(group: str, system: int = 0) -> _Sat | None:
+    """The satellite of one group of ``gsv_groups`` of a GSV of ``system``
+    (``talker_system``; None without a PRN: not a satellite); FieldError if a field is out
+    of range. Memoised by the group's text."""
+    sat = _SATS.get(system, {}).get(group)
     if sat is None:
         fields = group.split(",")
         if not fields[0]:
             return None
-        sat = _gsv_sat(group, fields)
+        sat = _gsv_sat(group, fields, system)
     return sat
 
 
-def _gsv_sats(text: str) -> list[_Sat]:
-    """The satellites of a GSV sentence (``gsv_groups``; a group without a PRN is skipped).
-    A satellite's fields mostly repeat from earlier epochs (elevation and azimuth move
-    slowly, SNR jitters over a few values): each group is decoded once and memoised by its
-    text, so a sentence whose groups are all known is one lookup each."""
+def _gsv_sats(text: str, system: int = 0) -> list[_Sat]:
+    """The satellites of a GSV sentence of ``system`` (``gsv_groups``; a group without a
+    PRN is skipped). A satellite's fields mostly repeat from earlier epochs (elevation and
+    azimuth move slowly, SNR jitters over a few values): each group is decoded once and
+    memoised by its text, so a sentence whose groups are all known is one lookup each."""
     groups = gsv_groups(text)
-    found = list(map(_SATS.get, groups))
-    if None not in found:
-        return found  # type: ignore[return-value]
-    return [sat for sat in map(gsv_satellite, groups) if sat is not None]
+    memo = _SATS.get(system)
+    if memo is not None:
+        found = list(map(memo.get, groups))
+        if None not in found:
+            return found  # type: ignore[return-value]
+    return [sat for sat in (gsv_satellite(g, system) for g in groups) if sat is not None]
 
 
-def _gsv_sat(key: str, fields: list[str]) -> _Sat:
-    """Decode and range-check one satellite (PRN not empty) of a GSV sentence: its four
-    ``fields``, memoised under their text ``key``."""
-    prn, el, az, snr = _gsv_values(fields)
-    sat = (prn, SatInfo(prn, el, az, snr, False), SatInfo(prn, el, az, snr, True))
-    if len(_SATS) >= _SATS_MAX:
-        _SATS.clear()
-    _SATS[key] = sat
+def _gsv_sat(key: str, fields: list[str], system: int = 0) -> _Sat:
+    """Decode and range-check one satellite (PRN not empty) of a GSV sentence of ``system``:
+    its four ``fields``, memoised under their text ``key``."""
+    number, el, az, snr = _gsv_values(fields)
+    prn, gnssid, svid = gpsd_satellite(system, number)
+    free = SatInfo(prn, el, az, snr, False, gnssid, svid)
+    sat = (prn if snr else 0, free, SatInfo(prn, el, az, snr, True, gnssid, svid))
+    memo = _SATS.setdefault(system, {})
+    if len(memo) >= _SATS_MAX:
+        memo.clear()
+    memo[key] = sat
     return sat
 
 
@@ -1191,6 +1320,7 @@ class GpsDecoder:
             "GSV": (self._gsv_fields, _GSV_SAT1, _GSV_SAT1),
             "GGA": (self._gga_fields, _GGA_SEP + 1, _GGA_SEP + 1),
             "RMC": (self._rmc_fields, _RMC_DATE + 1, _RMC_DATE + 1),
+            # GSA: its fields to VDOP, then the rest (NMEA 4.10's system id, if any).
             "GSA": (self._gsa_fields, _GSA_PDOP + 3, _GSA_PDOP + 3),
             "GLL": (self._gll_fields, _GLL_TIME + 1, _GLL_TIME + 1),
             "ZDA": (self._zda_fields, _ZDA_DAY + 3, _ZDA_DAY + 3),
@@ -1395,7 +1525,7 @@ class GpsDecoder:
         self._on_rmc(rmc, out)
 
     def _gsa_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
-        self._on_gsa(d)
+        self._on_gsa(talker, d)
 
     def _gll_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         tod = _gll_time(d[_GLL_TIME])
@@ -1469,8 +1599,10 @@ class GpsDecoder:
         else:
             self._rmc = rmc
 
-    def _on_gsa(self, d: list[str]) -> None:
-        self._set_gsa(_parse_gsa(tuple(d[_GSA_MODE : _GSA_PDOP + 3])))
+    def _on_gsa(self, talker: str, d: list[str]) -> None:
+        # (the rest of the text after VDOP: one field, the system id, or anything else)
+        system_id = d[_GSA_PDOP + 3] if len(d) > _GSA_PDOP + 3 else ""
+        self._set_gsa(_parse_gsa(talker, tuple(d[_GSA_MODE : _GSA_PDOP + 3]), system_id))
 
     def _set_gsa(self, gsa: _GsaValues) -> None:
         """Take a GSA's fix mode, PRNs used and DOPs (``_parse_gsa``)."""
@@ -1486,7 +1618,14 @@ class GpsDecoder:
     def _gsv_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         # d: the three head fields and the text of the rest (split at most _GSV_SAT1 times)
         total, seq = _gsv_head(d[_GSV_NUM], d[_GSV_SEQ], d[_GSV_INVIEW])
-        sats = self._sats_of(d[_GSV_SAT1]) if len(d) > _GSV_SAT1 else []
+        if len(d) > _GSV_SAT1:
+            text = d[_GSV_SAT1]
+            sats = self._sats_of(talker, text)
+            # One group per talker and signal: NMEA 4.10 receivers send a GPS group per
+            # signal (L1, L5, ...); each must not replace the other.
+            talker += gsv_signal(text)
+        else:
+            sats = []
         if seq == 1:
             self._gsv_talker = talker
             self._gsv_sats = sats
@@ -1502,10 +1641,10 @@ class GpsDecoder:
             self._gsv_sats = []
             self._emit_sky(t_s, out)
 
-    def _sats_of(self, text: str) -> list[_Sat]:
-        """The satellites of a GSV sentence's satellite fields ``text`` as the sky keeps them
-        (``x6wd decode`` keeps them as their report texts instead)."""
-        return _gsv_sats(text)
+    def _sats_of(self, talker: str, text: str) -> list[_Sat]:
+        """The satellites of a GSV sentence's satellite fields ``text`` from ``talker`` as
+        the sky keeps them (``x6wd decode`` keeps them as their report texts instead)."""
+        return _gsv_sats(text, talker_system(talker))
 
     def _on_zda(self, d: list[str], out: list[GpsOutput]) -> None:
         tod = _zda_time(d[_ZDA_TIME])
@@ -1649,6 +1788,8 @@ __all__ = [
     "UbxFrame",
     "cfg_msg",
     "cfg_rate",
+    "fix_status",
+    "gpsd_satellite",
     "parse_ack",
     "ubx_checksum",
     "ubx_frame",

@@ -79,7 +79,8 @@ def test_log_to_compact_tpv_and_sky_matching_gpsd(capsys: pytest.CaptureFixture[
             b["vdop"],
         )
         strip = [
-            {k: s[k] for k in ("PRN", "el", "az", "ss", "used") if k in s} for s in b["satellites"]
+            {k: s[k] for k in ("PRN", "gnssid", "svid", "el", "az", "ss", "used") if k in s}
+            for s in b["satellites"]
         ]
         assert a["satellites"] == strip
     assert f"{LEA5H}: sentences=164 " in err
@@ -198,6 +199,8 @@ _sats = st.builds(
     az_deg=_floats,
     snr_dbhz=_floats,
     used=st.booleans(),
+    gnssid=st.none() | st.integers(0, 7),
+    svid=st.none() | st.integers(0, 999),
 )
 _skies = st.builds(
     GpsSky,

@@ -581,7 +581,7 @@ def test_sky_merges_talkers_and_drops_a_silent_one() -> None:
             f"GNGGA,{t},5155.5,N,00434.6,E,1,06,1.0,1.0,M,4.0,M,,",
             "GNGSA,A,3,03,07,,,,,,,,,,,1.5,1.0,1.1",
             "GNGSA,A,3,70,,,,,,,,,,,,1.5,1.0,1.1",
-            "GPGSV,1,1,02,03,45,120,40,07,10,300,",
+            "GPGSV,1,1,02,03,45,120,40,07,10,300,31",
         ]
         if k < 2:  # GLONASS reports in the first two epochs only
             bodies.append("GLGSV,1,1,01,70,30,200,35")
@@ -838,9 +838,10 @@ def test_leap_second_time_is_kept_in_its_own_day() -> None:
     assert dec.counters.invalid_fields == 0
 
 
-# A GSV's satellites, the plain way: all fields split, padded to four satellites and a
-# signal id, zipped in fours, groups without a PRN skipped. gps_nmea reads them by one match
-# per satellite, memoised by its text; the satellites must be the same.
+# A GSV's satellites, the plain way: all fields split, one field after whole groups of four
+# dropped (NMEA 4.10's signal id), a short last group padded in a sentence of fewer than
+# four satellites, zipped in fours, groups without a PRN skipped. gps_nmea reads them by one
+# match per satellite, memoised by its text; the satellites must be the same.
 _gsv_field = st.sampled_from(
     ["", "07", "12", "45", "90", "33", "5"] * 20  # mostly fine
     + ["0", "99", "359", "1.5", "x", "-3", " 4", "1e2", "400"]
@@ -848,8 +849,12 @@ _gsv_field = st.sampled_from(
 
 
 def _plain_gsv(fields: list[str]) -> list[tuple[str, ...]]:
-    body = fields + [""] * max(0, 20 - len(fields))
-    it = iter(body[3:])
+    sats = fields[3:]
+    if len(sats) % 4 == 1:
+        sats = sats[:-1]  # the signal id
+    elif len(sats) < 16:
+        sats = sats + [""] * (-len(sats) % 4)
+    it = iter(sats)
     return [g for g in zip(it, it, it, it, strict=False) if g[0]]
 
 
@@ -896,12 +901,13 @@ def test_ubx_checksum_at_its_largest_sums(n: int) -> None:
 @given(st.text(alphabet="0123456789.,a ", max_size=60))
 def test_gsv_groups_are_the_fields_four_by_four(text: str) -> None:
     # The regex that cuts a GSV's satellites into groups equals the plain reading of
-    # gsv_groups' docstring: the fields four by four, a short last group padded only in a
-    # sentence of fewer than four satellites' worth of fields.
+    # gsv_groups' docstring: the fields four by four, one field after them a signal id (no
+    # satellite), a short last group of two or three fields padded only in a sentence of
+    # fewer than four satellites' worth of fields.
     fields = text.split(",")
     whole = len(fields) - len(fields) % 4
     expected = [",".join(fields[i : i + 4]) for i in range(0, whole, 4)]
-    if len(fields) % 4 and len(fields) < 16:
+    if len(fields) % 4 > 1 and len(fields) < 16:
         tail = fields[whole:]
         expected.append(",".join(tail + [""] * (4 - len(tail))))
     assert gps_nmea.gsv_groups(text) == expected

@@ -62,6 +62,7 @@ from drivers.gps_nmea import (
     _SECOND_US,
     _ZDA_DAY,
     _ZDA_TIME,
+    SIGNAL_DIGITS,
     DecoderCounters,
     GpsDecoder,
     GpsOutput,
@@ -86,8 +87,12 @@ from drivers.gps_nmea import (
     _zda_day,
     _zda_month,
     _zda_year,
+    fix_status,
+    gpsd_satellite,
     gsv_groups,
+    gsv_signal,
     gsv_values,
+    talker_system,
 )
 from drivers.nmea import GSA, MPS_PER_KNOT
 from x6wd.core.errors import DeviceUnavailable
@@ -188,6 +193,7 @@ class ReportEncoder:
             fix.course_deg,
             fix.hdop,
             fix.vdop,
+            fix.quality,
         )
 
     def tpv_line(
@@ -203,15 +209,12 @@ class ReportEncoder:
         course: float | None,
         hdop: float | None,
         vdop: float | None,
+        quality: int = 0,
     ) -> str:
         """The TPV line of a fix from its fields (``GpsFix``'s, units alike; its time as
         ``time_member`` writes it)."""
         mode = mode if valid else 1
-        if type(mode) is int and 0 <= mode <= 3:
-            head = _TPV_HEADS[mode]
-        else:
-            mode_text = str(mode) if type(mode) is int else _dumps_compact(mode)
-            head = '{"class":"TPV","mode":' + mode_text
+        head = _tpv_head(quality if valid else 0, mode)
         if not (valid and mode >= 2 and lat is not None and lon is not None):
             return head + time + "}"
         alt_text, err_text = self.fix_tail(mode, alt, geoid_sep, hdop, vdop)
@@ -380,6 +383,31 @@ def _dops(hdop: Any, vdop: Any, pdop: Any) -> str:
 
 
 _TPV_HEADS = tuple(f'{{"class":"TPV","mode":{m}' for m in range(4))
+# By (GGA quality, mode): the head with gpsd's "status" where it shows one (DGPS and up).
+_TPV_STATUS_HEADS: Final = {
+    (q, m): (
+        f'{{"class":"TPV","status":{fix_status(q)},"mode":{m}'
+        if fix_status(q) >= 2
+        else _TPV_HEADS[m]
+    )
+    for q in range(9)
+    for m in range(4)
+}
+
+
+def _tpv_head(quality: Any, mode: Any) -> str:
+    """A TPV's text up to its mode: class, gpsd's ``status`` of a fix of GGA ``quality``
+    where ``tpv_obj`` writes one (a valid fix's quality; 0 for an invalid fix), mode."""
+    try:
+        return _TPV_STATUS_HEADS[quality, mode]
+    except (KeyError, TypeError):
+        pass
+    status = fix_status(quality)
+    mode_text = str(mode) if type(mode) is int else _dumps_compact(mode)
+    shown = f'"status":{status},' if status >= 2 else ""
+    return '{"class":"TPV",' + shown + '"mode":' + mode_text
+
+
 _USED = '"used":true'  # in a satellite's text exactly when sky_obj counts it in uSat
 
 # "%.{n}f" formats for _num_text, and the magnitude below which that text is exact.
@@ -413,17 +441,29 @@ def _num_text(v: Any, ndigits: int) -> str | None:
 
 def _sat_text(s: SatInfo) -> str:
     """One satellite of ``sky_obj`` as compact JSON."""
-    free, used = _sat_texts(s.prn, s.el_deg, s.az_deg, s.snr_dbhz)
+    free, used = _sat_texts(s.prn, s.el_deg, s.az_deg, s.snr_dbhz, s.gnssid, s.svid)
     return used if s.used else free
 
 
-def _sat_texts(prn: Any, el_deg: Any, az_deg: Any, snr_dbhz: Any) -> tuple[str, str]:
+def _int_text(v: Any) -> str:
+    """JSON text of an int (what records hold), or of any other value."""
+    return str(v) if type(v) is int else _dumps_compact(v)
+
+
+def _sat_texts(
+    prn: Any, el_deg: Any, az_deg: Any, snr_dbhz: Any, gnssid: Any = None, svid: Any = None
+) -> tuple[str, str]:
     """``_sat_text`` of a satellite as not used and as used in the fix: the text of
-    ``json.dumps({"PRN": prn, "used": used, "el": .., "az": .., "ss": ..})`` (non-finite
-    values omitted, the others rounded to 0.1), written directly: both texts from one
-    conversion of the numbers, each number's text memoised by value (elevations,
-    azimuths and SNRs are a few hundred values)."""
-    head = '{"PRN":' + (str(prn) if type(prn) is int else _dumps_compact(prn)) + ',"used":'
+    ``json.dumps({"PRN": prn, "gnssid": .., "svid": .., "used": used, "el": .., "az": ..,
+    "ss": ..})`` (None and non-finite values omitted, the others rounded to 0.1), written
+    directly: both texts from one conversion of the numbers, each number's text memoised
+    by value (elevations, azimuths and SNRs are a few hundred values)."""
+    head = '{"PRN":' + _int_text(prn)
+    if gnssid is not None:
+        head += ',"gnssid":' + _int_text(gnssid)
+    if svid is not None:
+        head += ',"svid":' + _int_text(svid)
+    head += ',"used":'
     tail: list[str] = []
     for key, v in ((',"el":', el_deg), (',"az":', az_deg), (',"ss":', snr_dbhz)):
         if v is not None:
@@ -457,7 +497,8 @@ def _tenths(v: Any) -> str | None:
 
 _GSA_FIELDS = GSA.pos("vdop") + 1  # the GSA fields GpsDecoder reads (a shorter one is padded)
 _SatTexts = tuple[int, str, str]
-"""A GSV satellite for ``ReportDecoder``: PRN, its ``_sat_text`` not used / used in the fix."""
+"""A GSV satellite for ``ReportDecoder``: the PRN a GSA marks it used by (0: never, see
+``drivers.gps_nmea._Sat``), its ``_sat_text`` not used / used in the fix."""
 
 # How ReportDecoder takes a sentence, by its head (``text[1:7]``): counted only (a known
 # type whose fields are not read), one of the types it reads in bulk, or the reference's path.
@@ -475,7 +516,7 @@ _BULK_MIN: Final = 16  # fewer sentences in one call: the reference's loop, one 
 _PERIOD_MAX: Final = 64  # longest sentence cycle looked for (see _phases)
 _CYCLE_MIN: Final = 4 * _PERIOD_MAX  # fewer sentences: their heads one by one (_cycle)
 _HEAD: Final = operator.itemgetter(slice(1, 7))
-_BODY: Final = operator.itemgetter(slice(7, -3))
+_GSA_KEY: Final = operator.itemgetter(slice(1, -3))  # a GSA's talker, type and fields
 
 # The fields a handler reads, cut from the sentences of one type joined by "\n", one match
 # each: whole fields (a field ends at a comma), grouped as they are memoised, then the rest
@@ -735,11 +776,13 @@ _GSV_GROUPS_MAX: Final = 9  # most groups of a GSV cut whole by _gsv_cut
 
 
 @functools.cache
-def _gsv_cut(k: int) -> re.Pattern[str]:
-    """A GSV of exactly k satellite groups and nothing after them: talker, the three head
-    fields, each group's text (as gsv_groups cuts them)."""
+def _gsv_cut(k: int, signal: int = 0) -> re.Pattern[str]:
+    """A GSV of exactly k satellite groups and after them nothing, or (``signal`` 1) one
+    field, NMEA 4.10's signal id: talker, the three head fields, each group's text (as
+    gsv_groups cuts them), the signal id."""
     group = ",([^,]*,[^,]*,[^,]*,[^,*]*)"
-    return re.compile(rf"\$(..)GSV,({_F},{_F},{_F}){group * k}\*..")
+    tail = ",([^,*]*)" if signal else ""
+    return re.compile(rf"\$(..)GSV,({_F},{_F},{_F}){group * k}{tail}\*..")
 
 
 def _matches(pattern: re.Pattern[str], texts: list[str], joined: str | None = None) -> list[Any]:
@@ -814,13 +857,20 @@ def _cycle(texts: list[str]) -> tuple[list[str], list[str | None]] | None:
     return phases, joined
 
 
-def _gsa_values(body: str) -> _GsaValues:
-    """A GSA's values from the text of its fields (``body``): ``_parse_gsa`` of the fields,
-    split and padded as the reference's handler gets them."""
-    fields = body.split(",")
+def _gsa_values(talker: str, body: str) -> _GsaValues:
+    """A GSA's values from its talker and the text of its fields (``body``): ``_parse_gsa``
+    of the fields, split and padded as the reference's handler gets them, and of the rest
+    after VDOP (NMEA 4.10's system id)."""
+    fields = body.split(",", _GSA_FIELDS)
     if len(fields) < _GSA_FIELDS:
         fields += [""] * (_GSA_FIELDS - len(fields))
-    return _parse_gsa(tuple(fields[_GSA_MODE:_GSA_FIELDS]))
+    rest = fields[_GSA_FIELDS] if len(fields) > _GSA_FIELDS else ""
+    return _parse_gsa(talker, tuple(fields[_GSA_MODE:_GSA_FIELDS]), rest)
+
+
+def _gsa_values_of(key: str) -> _GsaValues:
+    """``_gsa_values`` of a GSA's text from its talker to its last field (``text[1:-3]``)."""
+    return _gsa_values(key[:2], key[6:])
 
 
 def _whole_group(
@@ -874,17 +924,35 @@ _SECOND: Final = operator.itemgetter(1)
 _THIRD: Final = operator.itemgetter(2)
 
 
-def _sat_of(group: str) -> _SatTexts | None:
-    """PRN and ``_sat_texts`` of one GSV group (``gsv_values``; None without a PRN)."""
+def _sat_of(system: int, group: str) -> _SatTexts | None:
+    """The ``_SatTexts`` of one GSV group of a GSV of ``system`` (``gsv_values``, gpsd's
+    numbering as ``drivers.gps_nmea._gsv_sat`` gives it; None without a PRN)."""
     values = gsv_values(group)
-    return None if values is None else (values[0], *_sat_texts(*values))
+    if values is None:
+        return None
+    number, el, az, snr = values
+    prn, gnssid, svid = gpsd_satellite(system, number)
+    return (prn if snr else 0, *_sat_texts(prn, el, az, snr, gnssid, svid))
+
+
+@functools.cache
+def _sat_filler(system: int) -> Callable[[dict[str, Any], Sequence[str]], None]:
+    """``_fill`` with ``_sat_of`` of ``system``, for ``_read``."""
+    return _filler(functools.partial(_sat_of, system))
+
+
+def _signal_or_bad(text: str) -> str | object:
+    """``gsv_signal(text)``, or ``_BAD`` where it raises."""
+    try:
+        return gsv_signal(text)
+    except ValueError:
+        return _BAD
 
 
 _FILL_GGA_TAIL: Final = _filler(_gga_tail_of)
 _FILL_RMC_TAIL: Final = _filler(_rmc_tail_of)
-_FILL_GSA: Final = _filler(_gsa_values)
+_FILL_GSA: Final = _filler(_gsa_values_of)
 _FILL_GSV_HEAD: Final = _filler(_gsv_counts_of)
-_FILL_SAT: Final = _filler(_sat_of)
 _FILL_ZDA_DATE: Final = _filler(_zda_date_of)
 
 
@@ -929,8 +997,9 @@ class ReportDecoder(GpsDecoder):
         super().__init__(emit_sentences=False)
         self._encoder = encoder
         self._with_sky = with_sky
-        self._sat_texts: dict[str, _SatTexts] = {}
-        self._sat_text_of = self._sat_texts.__getitem__  # (the memo is cleared, never replaced)
+        # A GSV group's text -> its _SatTexts, per system (talker_system: the same text is
+        # another satellite in another system), for the reference's path (_sats_of).
+        self._sat_texts: dict[int, dict[str, _SatTexts]] = {}
         # GSA: the handler gets the text of the fields unsplit (most splits 0), see _gsa_text.
         self._handlers["GSA"] = (self._gsa_text, 1, 0)
         # _time_member's last (time of day, date, date's time of day) and its text.
@@ -960,7 +1029,7 @@ class ReportDecoder(GpsDecoder):
         self._rmc_tails: dict[str, _RmcTail] = {}
         self._gsv_heads: dict[str, tuple[int, int]] = {}
         self._zda_dates: dict[str, date | object | None] = {}
-        self._gsv_sat_memo: dict[str, _SatTexts | None] = {}
+        self._gsv_sat_memos: dict[int, dict[str, _SatTexts | None]] = {}  # likewise
         self._gsa_memo: dict[str, _GsaValues] = {}
         # The bulk parser of each type, by code.
         self._bulk: dict[int, Callable[[list[str], str | None], list[Any]]] = {
@@ -1262,11 +1331,14 @@ class ReportDecoder(GpsDecoder):
         return events
 
     def _gsas(self, texts: list[str], joined: str | None = None) -> list[Any]:
-        bodies = list(map(_BODY, texts))
-        events = _read(self._gsa_memo, bodies, _FILL_GSA)
+        # Keyed by the talker too: it names the system of the PRNs (BD 13 is 413).
+        keys = list(map(_GSA_KEY, texts))
+        events = _read(self._gsa_memo, keys, _FILL_GSA)
         return _unparsed(events, texts) if _BAD in events else events
 
     def _gsvs(self, texts: list[str], joined: str | None = None) -> list[Any]:
+        """A GSV's event: its group's key (talker and NMEA 4.10 signal id: one group per
+        talker and signal), message count and number, satellites."""
         whole = self._whole_gsvs(texts, joined)
         if whole is not None:
             return whole
@@ -1274,36 +1346,61 @@ class ReportDecoder(GpsDecoder):
         if None in groups:
             return _per_text(self._gsvs, texts, groups)
         talkers, heads, rests = zip(*groups, strict=True)
+        talker = talkers[0]
+        if talkers.count(talker) != len(talkers):  # the talker decides the PRNs: one each
+            return self._gsvs_by_talker(texts, talkers)
         counts = _read(self._gsv_heads, heads, _FILL_GSV_HEAD)
-        sats = self._gsv_sats_of(rests)
+        signals = list(map(_signal_or_bad, rests))
+        keys = list(map(talker.__add__, signals)) if _BAD not in signals else signals
+        sats = self._gsv_sats_of(rests, talker_system(talker))
         if _PER_TEXT in sats:
             sats = [
-                self._sats_or_bad(r) if s is _PER_TEXT else s
+                self._sats_or_bad(talker, r) if s is _PER_TEXT else s
                 for s, r in zip(sats, rests, strict=True)
             ]
-        events = list(zip(talkers, counts, sats, strict=True))
-        if _BAD in counts or _BAD in sats:
+        events = list(zip(keys, counts, sats, strict=True))
+        if _BAD in counts or _BAD in sats or _BAD in keys:
             return _unparsed(events, texts)
         return events
 
+    def _gsvs_by_talker(self, texts: list[str], talkers: tuple[str, ...]) -> list[Any]:
+        """``_gsvs`` of GSVs of several talkers: each talker's apart, in order."""
+        by_talker: dict[str, list[str]] = {}
+        for text, talker in zip(texts, talkers, strict=True):
+            by_talker.setdefault(talker, []).append(text)
+        parsed = {t: iter(self._gsvs(part)) for t, part in by_talker.items()}
+        return [next(parsed[t]) for t in talkers]
+
     def _whole_gsvs(self, texts: list[str], joined: str | None) -> list[Any] | None:
-        """``_gsvs`` of GSVs that all hold the same number k of whole satellite groups and
-        no other field (a place of a cycle, mostly): head and groups cut by one findall
-        (``_gsv_cut(k)``), the satellites read by columns. None otherwise."""
+        """``_gsvs`` of GSVs of one talker that all hold the same number k of whole
+        satellite groups and no other field but an NMEA 4.10 signal id (a place of a cycle,
+        mostly): head, groups and signal cut by one findall (``_gsv_cut(k, signal)``), the
+        satellites read by columns. None otherwise."""
         k, extra = divmod(texts[0].count(",") - 3, 4)
-        if extra or not 1 <= k <= _GSV_GROUPS_MAX:
+        if extra > 1 or not 1 <= k <= _GSV_GROUPS_MAX:
             return None
-        found = _gsv_cut(k).findall("\n".join(texts) if joined is None else joined)
+        found = _gsv_cut(k, extra).findall("\n".join(texts) if joined is None else joined)
         if len(found) != len(texts):
             return None
         columns = list(zip(*found, strict=True))
+        talkers = columns[0]
+        talker = talkers[0]
+        if talkers.count(talker) != len(talkers):
+            return None
+        keys: Sequence[str] = talkers
+        if extra:  # the signal ids: each talker's group per signal
+            signals = columns.pop()
+            if any(map(str.strip, set(signals), repeat(SIGNAL_DIGITS))):
+                return None  # not an id: the reference's path rejects it
+            keys = list(map(talker.__add__, signals))
         counts = _read(self._gsv_heads, columns[1], _FILL_GSV_HEAD)
-        memo = self._gsv_sat_memo
-        _fill(memo, chain.from_iterable(columns[2:]), _sat_of)
+        system = talker_system(talker)
+        memo = self._gsv_sat_memos.setdefault(system, {})
+        _fill(memo, chain.from_iterable(columns[2:]), functools.partial(_sat_of, system))
         sats = [list(map(memo.__getitem__, column)) for column in columns[2:]]
         if any(None in column or _BAD in column for column in sats) or _BAD in counts:
             return None
-        return list(zip(columns[0], counts, zip(*sats, strict=True), strict=True))
+        return list(zip(keys, counts, zip(*sats, strict=True), strict=True))
 
     def _glls(self, texts: list[str], joined: str | None = None) -> list[Any]:
         groups = _matches(_GLL_CUT, texts, joined)
@@ -1328,45 +1425,47 @@ class ReportDecoder(GpsDecoder):
             ]
         return events
 
-    def _gsv_sats_of(self, rests: tuple[str, ...]) -> list[Any]:
+    def _gsv_sats_of(self, rests: tuple[str, ...], system: int) -> list[Any]:
         """The satellites of GSVs from the text of their satellite fields (``rests``), each
         GSV's a tuple, all at once: the groups of four fields (as ``_sats_of`` cuts them)
         by one ``findall`` over the texts joined by commas when each is of whole groups,
-        else one per text; each group's satellite from a memo (``_sat_of``). ``_PER_TEXT``
-        for a text whose last group is partial or a group no satellite (``_sats_of`` then
-        reads it)."""
-        memo = self._gsv_sat_memo
+        else one per text; each group's satellite from a memo (``_sat_of``; ``system``,
+        the GSVs' talker's). ``_PER_TEXT`` for a text whose last group is partial or a group
+        no satellite (``_sats_of`` then reads it)."""
+        memo = self._gsv_sat_memos.setdefault(system, {})
+        fill = _sat_filler(system)
         commas = list(map(str.count, rests, repeat(",")))
         kinds = set(commas)
         if len(kinds) == 1 and kinds.pop() % 4 == 3:  # the same whole groups in each
             groups = _GSV_GROUPS.findall(",".join(rests))
-            found = _read(memo, groups, _FILL_SAT)
+            found = _read(memo, groups, fill)
             if None not in found and _BAD not in found:
                 return list(zip(*[iter(found)] * ((commas[0] + 1) // 4), strict=True))
         per_text = list(map(_GSV_GROUP.findall, rests))
         counts = list(map(len, per_text))
         flat = list(chain.from_iterable(per_text))
-        sats = _read(memo, flat, _FILL_SAT)
+        sats = _read(memo, flat, fill)
         ends = list(accumulate(counts))
         out = list(map(tuple, map(sats.__getitem__, map(slice, [0, *ends[:-1]], ends))))
-        # gsv_groups adds a partial group to a text not of whole groups and of fewer than
-        # four: such a text, or one with a group that is no satellite, is read alone.
-        whole = map(operator.not_, map(operator.mod, map((1).__add__, commas), repeat(4)))
+        # gsv_groups adds a partial group to a text of 4k + 2 or 4k + 3 fields and fewer
+        # than four groups (4k + 1: the last field is a signal id): such a text, or one
+        # with a group that is no satellite, is read alone.
+        whole = map((2).__gt__, map(operator.mod, map((1).__add__, commas), repeat(4)))
         if all(map(operator.or_, whole, map((4).__le__, counts))) and (
             None not in sats and _BAD not in sats
         ):
             return out
         return [
             _PER_TEXT
-            if ((n_commas + 1) % 4 and len(part) < 4) or None in part or _BAD in part
+            if ((n_commas + 1) % 4 > 1 and len(part) < 4) or None in part or _BAD in part
             else part
             for n_commas, part in zip(commas, out, strict=True)
         ]
 
-    def _sats_or_bad(self, text: str) -> list[_SatTexts] | object:
-        """``_sats_of(text)``, or ``_BAD`` where it raises."""
+    def _sats_or_bad(self, talker: str, text: str) -> list[_SatTexts] | object:
+        """``_sats_of(talker, text)``, or ``_BAD`` where it raises."""
         try:
-            return tuple(self._sats_of(text))
+            return tuple(self._sats_of(talker, text))
         except ValueError:
             return _BAD
 
@@ -1374,7 +1473,7 @@ class ReportDecoder(GpsDecoder):
 
     def _gsa_text(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         """A GSA from the text of its fields (``d[0]``), see ``_gsa_values``."""
-        self._set_gsa(_gsa_values(d[0]))
+        self._set_gsa(_gsa_values(talker, d[0]))
 
     def _gga_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         tod = _time_of_day(d[_GGA_TIME])
@@ -1451,25 +1550,25 @@ class ReportDecoder(GpsDecoder):
         elif rmc is not None and rmc[0] != self._last_fix_tod:
             self._emit(None, rmc, out)
 
-    def _sats_of(self, text: str) -> list[_SatTexts]:  # type: ignore[override]
-        """The satellites of a GSV sentence's satellite fields ``text`` (as ``_gsv_sats``:
-        the same groups, skipped or rejected alike)."""
+    def _sats_of(self, talker: str, text: str) -> list[_SatTexts]:  # type: ignore[override]
+        """The satellites of a GSV sentence's satellite fields ``text`` from ``talker`` (as
+        ``_gsv_sats``: the same groups, skipped or rejected alike)."""
+        system = talker_system(talker)
+        memo = self._sat_texts.setdefault(system, {})
         groups = _GSV_GROUP.findall(text)
-        if len(groups) >= 4 or (text.count(",") + 1) % 4 == 0:  # gsv_groups adds no group
+        if len(groups) >= 4 or (text.count(",") + 1) % 4 < 2:  # gsv_groups adds no group
             try:
-                return list(map(self._sat_text_of, groups))  # every group seen before
+                return list(map(memo.__getitem__, groups))  # every group seen before
             except KeyError:
                 pass
         groups = gsv_groups(text)
-        memo = self._sat_texts
         sats = []
         for group in groups:
             entry = memo.get(group)
             if entry is None:
-                values = gsv_values(group)
-                if values is None:
+                entry = _sat_of(system, group)
+                if entry is None:
                     continue
-                entry = (values[0], *_sat_texts(*values))
                 if len(memo) >= MEMO_MAX:
                     memo.clear()
                 memo[group] = entry
@@ -1555,7 +1654,7 @@ class ReportDecoder(GpsDecoder):
                 mode if mode == 2 or mode == 3 else 3 if gga is not None and alt is not None else 2
             )
             alt_text, err_text = self._encoder.fix_tail(fix_mode, alt, sep, hdop, vdop)
-            head = _TPV_HEADS[fix_mode]
+            head = _tpv_head(0 if tail is None else tail[0], fix_mode)  # quality: status
             if tail is not None:
                 self._fix_tail, self._fix_mode, self._fix_vdop = tail, mode, vdop
                 self._fix_parts = head, alt_text, err_text

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
+from drivers.gps_nmea import STATUS_DGPS, fix_status
 from x6wd import __version__
 from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
 from x6wd.core.config import GpsdConfig
@@ -114,10 +115,20 @@ def device_obj(
 def tpv_obj(fix: GpsFix, device: str | None = None) -> dict[str, Any]:
     """TPV report for one fix; fields the fix does not have are omitted, never null.
 
-    eph/epx/epy/epv (metres) are DOP x :data:`UERE_M` estimates.
+    ``status`` is gpsd's fix status of the GGA quality (2 DGPS, 3 RTK fixed, 4 RTK float,
+    5 dead reckoning, 7 surveyed, 8 simulated; ``drivers.gps_nmea.fix_status``), shown from
+    2 on as gpsd shows it. eph/epx/epy/epv (metres) are DOP x :data:`UERE_M` estimates.
     """
     mode = fix.mode if fix.valid else 1
-    obj: dict[str, Any] = {"class": "TPV", "device": device, "mode": mode}
+    # gpsd's fix status (DGPS, RTK, ...) from the GGA quality; gpsd leaves out 0 (no fix)
+    # and 1 (a plain fix), so does this, and an invalid fix has none.
+    status = fix_status(fix.quality) if fix.valid else 0
+    obj: dict[str, Any] = {
+        "class": "TPV",
+        "device": device,
+        "status": status if status >= STATUS_DGPS else None,
+        "mode": mode,
+    }
     t = iso_time(fix.utc)
     if t is not None:
         obj["time"] = t
@@ -144,10 +155,11 @@ def tpv_obj(fix: GpsFix, device: str | None = None) -> dict[str, Any]:
 
 
 def sky_obj(sky: GpsSky, device: str | None = None) -> dict[str, Any]:
-    """SKY report: DOPs, satellite counts and the satellite list (PRN, el, az, ss, used)."""
+    """SKY report: DOPs, satellite counts and the satellite list (PRN, gnssid, svid, used,
+    el, az, ss; gnssid and svid omitted for a number in no known range)."""
     sats: list[dict[str, Any]] = []
     for s in sky.satellites:
-        d: dict[str, Any] = {"PRN": s.prn, "used": bool(s.used)}
+        d: dict[str, Any] = {"PRN": s.prn, "gnssid": s.gnssid, "svid": s.svid, "used": bool(s.used)}
         if s.el_deg is not None:
             d["el"] = _num(s.el_deg, 1)
         if s.az_deg is not None:

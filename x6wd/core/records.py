@@ -39,13 +39,22 @@ class GpsFix:
 
 @dataclass(frozen=True, slots=True)
 class SatInfo:
-    """One satellite in view (from GSV, ``used`` from GSA)."""
+    """One satellite in view (from GSV, ``used`` from GSA).
+
+    ``prn`` is gpsd's number, unique across systems (GPS 1-32, SBAS 33-64 and 120-158,
+    GLONASS 65-96, QZSS 193-199, Galileo 301-336, BeiDou 401-437), ``gnssid`` and ``svid``
+    the system (0 GPS, 1 SBAS, 2 Galileo, 3 BeiDou, 4 IMES, 5 QZSS, 6 GLONASS) and the
+    satellite's number within it, as gpsd's SKY reports them; None where the number is in
+    no known range.
+    """
 
     prn: int
     el_deg: float | None
     az_deg: float | None
     snr_dbhz: float | None
     used: bool = False
+    gnssid: int | None = None
+    svid: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
