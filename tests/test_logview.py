@@ -7,6 +7,7 @@ reader) and against the simulator's summary of the same run (its raw-fix error s
 from __future__ import annotations
 
 import json
+import math
 import re
 import struct
 import subprocess
@@ -338,3 +339,37 @@ def test_without_the_plot_extra(tmp_path: Path) -> None:
     proc = run("--format", "html")  # the page needs no extra (the robot's console)
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "ublox-lea-5h.html").is_file()
+
+
+def _nan_positions(path: Path) -> None:
+    """Four fixes and four estimates, one of each with a NaN or infinite position (as only a
+    foreign or hand-edited file has: the recorder writes allow_nan=False)."""
+    lines = []
+    for i, t in enumerate((0.0, 1.0, 2.0, 3.0)):
+        lat = math.nan if i == 1 else 51.75 + t * 1e-5
+        lon = math.inf if i == 2 else -1.25
+        fix = {"t_s": t, "utc": None, "lat_deg": lat, "lon_deg": -1.25, "alt_m": 50.0,
+               "quality": 1, "sats_used": 7, "hdop": 1.0, "valid": True}  # fmt: skip
+        tel = {"t_s": t, "mode": "IDLE", "state": "IDLE", "hold_reason": "",
+               "filt_lat_deg": 51.75 + t * 1e-5, "filt_lon_deg": lon}  # fmt: skip
+        for kind, data in (("fix", fix), ("telemetry", tel)):
+            lines.append(json.dumps({"t_mono": t, "t_utc": "", "type": kind, "data": data}))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_a_nan_position_is_skipped_and_counted_not_a_refused_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Found by an outside check: one fix with "lat_deg": NaN made x6wd plot refuse the whole
+    # file ("lat_deg must be finite", exit 2) and crashed the console's Recordings view.
+    path = tmp_path / "r.jsonl"
+    _nan_positions(path)
+    assert "NaN" in path.read_text() and "Infinity" in path.read_text()
+    assert cli_main(["plot", str(path), "--out", str(tmp_path), "--format", "html"]) == 0
+    assert "skipped 2 nonfinite positions" in capsys.readouterr().err
+    data = page_data((tmp_path / "r.html").read_text())
+    assert data["counts"]["nonfinite_positions"] == 2
+    fixes, est = data["track"]["GPS fixes"], data["track"]["position estimate"]
+    assert len(fixes["north_m"]) == len(est["north_m"]) == 3
+    assert fixes["north_m"] == pytest.approx([0.0, 2.2, 3.3], abs=0.05)
+    assert None not in fixes["east_m"] + est["east_m"]

@@ -179,7 +179,14 @@ def _parse_utc(text: Any) -> datetime | None:
 
 
 LOST_COUNTS = frozenset(
-    {"bad_lines", "truncated_lines", "checksum_failures", "framing_errors", "invalid_sentences"}
+    {
+        "bad_lines",
+        "truncated_lines",
+        "checksum_failures",
+        "framing_errors",
+        "invalid_sentences",
+        "nonfinite_positions",
+    }
 )
 """The counts of :attr:`LogView.counts` that say input was skipped (``x6wd plot`` says so)."""
 
@@ -395,6 +402,10 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
     return view
 
 
+def _finite(*values: Any) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
 def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) -> None:
     good = [f for f in raw.fixes if f.valid and f.lat_deg is not None and f.lon_deg is not None]
     est = [
@@ -403,6 +414,12 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) ->
         if isinstance(d.get("filt_lat_deg"), (int, float))
         and isinstance(d.get("filt_lon_deg"), (int, float))
     ]
+    # A NaN or infinite position (a foreign or hand-edited file: the recorder writes none)
+    # is skipped and counted, not allowed to refuse the whole file in the plane's to_xy.
+    n = len(good) + len(est)
+    good = [f for f in good if _finite(f.lat_deg, f.lon_deg)]
+    est = [d for d in est if _finite(d.get("filt_lat_deg"), d.get("filt_lon_deg"))]
+    view.counts["nonfinite_positions"] = n - len(good) - len(est)
     tt = _read_truth(truth) if truth is not None else None
     if good:
         origin = (good[0].lat_deg, good[0].lon_deg)
