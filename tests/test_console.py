@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import json
 import math
 import os
 import shutil
@@ -34,11 +35,13 @@ from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.action_chains import ActionChains
 from selenium.webdriver.common.by import By
+from selenium.webdriver.common.keys import Keys
 
 from tests.conftest import ROOT, require_program
 from tests.test_daemon import Running, hil_config, wait_for
 from tests.test_startup import assert_config_error, run_x6wd, write_config
 from x6wd.app.client import RemoteClient, RequestFailed
+from x6wd.app.console import server as console_server
 from x6wd.app.console.server import CONNECTION_SLACK
 from x6wd.app.daemon import Daemon
 from x6wd.core.config import Config, ConsoleConfig, FailsafeConfig, SafetyConfig, SimConfig
@@ -845,11 +848,279 @@ def test_the_robots_recordings_open_in_the_log_viewer_from_the_page(
     try:
         wait_for(lambda: browser.find_elements(By.TAG_NAME, "svg"), 10, "the viewer's panels")
         assert "Track" in browser.find_element(By.TAG_NAME, "body").text
+        # the viewer's own inline style applies under the console's policy (found by an
+        # outside check: style-src 'self' blocked it in the srcdoc frame)
+        styled = js(
+            browser,
+            "const css = (el) => getComputedStyle(el);"
+            "return [css(document.body).fontFamily, css(document.body).maxWidth,"
+            " css(document.querySelector('h1')).fontSize,"
+            " css(document.body.lastElementChild).fontSize]",
+        )
+        assert styled == ["sans-serif", "940px", "20px", "11px"], styled
     finally:
         browser.switch_to.default_content()
     shot(browser, tmp_path, "recording.png")
     browser.find_element(By.ID, "rec-close").click()
     assert not browser.find_element(By.ID, "rec-view").is_displayed()
+
+
+def test_a_recording_that_cannot_be_drawn_is_an_error_reply_not_a_lost_link(
+    robot: Running, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Found by an outside check: a fix with "lat_deg": NaN (a hand-edited file) raised
+    # GeoError in the viewer, which crashed the page's WebSocket handler: "connection lost",
+    # and the reconnection would have stopped a running drive.
+    rec_dir = Path(robot.daemon.config.recorder.dir)
+    nan_rec = rec_dir / "x6wd-20200101T000000Z.jsonl"  # the oldest: listed last
+    fix = {"t_s": 0.0, "lat_deg": 51.75, "lon_deg": -1.25, "quality": 1, "valid": True}
+    lines = [
+        {"t_mono": t, "t_utc": "", "type": "fix", "data": {**fix, "t_s": t}} for t in (0, 1, 2)
+    ]
+    lines[1]["data"]["lat_deg"] = math.nan
+    nan_rec.write_text("".join(json.dumps(line) + "\n" for line in lines))
+
+    async def program() -> None:
+        async with ws_to(robot) as w:
+            page = await w.request("recording.view", name=nan_rec.name)
+            assert page["ok"] and "nonfinite positions" in page["html"], page.get("error")
+
+            # whatever else the viewer may choke on: a reply, the link stays
+            def broken(_path: Path) -> str:
+                raise ValueError("lat_deg must be finite")
+
+            monkeypatch.setattr(console_server, "render_html", broken)
+            reply = await w.request("recording.view", name=nan_rec.name)
+            assert reply["error"]["reason"] == "bad_recording", reply
+            assert "lat_deg must be finite" in reply["error"]["message"]
+            assert (await w.request("hello"))["ok"]
+
+    try:
+        asyncio.run(program())
+    finally:
+        nan_rec.unlink()
+
+
+def _focus_map(d: webdriver.Chrome) -> None:
+    js(d, "document.getElementById('map').focus()")
+
+
+def test_releasing_a_drive_key_stops_whatever_shift_did_to_it(
+    robot: Running, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: W down, Shift down, W up (the key reads "W" now), Shift up:
+    # the page matched the release by ev.key and drove on at 40 % for as long as it was open.
+    open_page(browser, robot)
+    page_ready(browser)
+    _focus_map(browser)
+    ActionChains(browser).key_down("w").perform()
+    wait_for(lambda: vehicle_pct(robot)[0] > 0.0, 5, "the robot driving on W")
+    ActionChains(browser).key_down(Keys.SHIFT).key_up("w").perform()
+    wait_for(lambda: vehicle_pct(robot) == (0.0, 0.0), 2, "a stop on W released with Shift down")
+    assert js(browser, "return x6wd.drive") is None
+    time.sleep(1.0)  # the page does not drive again
+    assert vehicle_pct(robot) == (0.0, 0.0)
+    ActionChains(browser).key_up(Keys.SHIFT).perform()
+    # Cmd down while a key is held: macOS sends no keyup for a key released meanwhile
+    ActionChains(browser).key_down("d").perform()
+    wait_for(lambda: vehicle_pct(robot)[0] > 0.0, 5, "the robot turning on D")
+    ActionChains(browser).key_down(Keys.META).perform()
+    wait_for(lambda: vehicle_pct(robot) == (0.0, 0.0), 2, "a stop on Cmd")
+    assert js(browser, "return x6wd.drive") is None
+    ActionChains(browser).key_up(Keys.META).key_up("d").perform()
+
+
+def test_the_space_bar_stops_with_the_speed_slider_focused(
+    robot: Running, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: the keydown handler left INPUTs alone before it looked at
+    # the space bar, so with the slider just moved the operator's stop was ignored.
+    open_page(browser, robot)
+    page_ready(browser)
+    tel = robot.daemon.last_telemetry
+    assert tel is not None and tel.filt_lat_deg is not None
+    here_n = (tel.filt_lat_deg - ORIGIN[0]) * M_PER_DEG_LAT
+    with RemoteClient("127.0.0.1", robot.port) as c:
+        c.request("mission.load", waypoints=[north(here_n + 15)])
+        assert c.request("start")["mode"] == "RUNNING"
+    try:
+        browser.find_element(By.ID, "speed").click()
+        assert js(browser, "return document.activeElement.id") == "speed"
+        ActionChains(browser).send_keys(Keys.SPACE).perform()
+        wait_for(lambda: robot.daemon.controller.mode == Mode.IDLE, 3, "stopped by the space bar")
+    finally:
+        with RemoteClient("127.0.0.1", robot.port) as c:
+            c.request("stop")
+    # the token field is a text field: a space typed there is text, not a stop
+    assert js(
+        browser,
+        "const ev = new KeyboardEvent('keydown', {key: ' ', code: 'Space', bubbles: true,"
+        " cancelable: true}); return document.getElementById('token-input').dispatchEvent(ev)",
+    ), "a space in the token field was taken for a stop"
+
+
+def test_a_reconnected_page_does_not_duplicate_the_track(
+    robot: Running, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: each reconnection prepended the daemon's whole track to the
+    # page's (14 -> 26 -> 63 points over four reconnections).
+    console = robot.daemon.console
+    assert console is not None
+    saved = list(console.track)
+    console.track.clear()
+    console.track.extend(tuple(north(float(i), 30.0)) for i in range(60))  # type: ignore[misc]
+    try:
+        open_page(browser, robot)
+        page_ready(browser)
+        wait_for(lambda: js(browser, "return x6wd.track.length") >= 60, 10, "the kept track")
+        for _ in range(3):
+            js(browser, "window.oldWs = x6wd.ws; x6wd.ws.close()")
+            wait_for(
+                lambda: js(browser, "return x6wd.ws !== window.oldWs && x6wd.authed"),
+                10, "reconnected",
+            )  # fmt: skip
+            time.sleep(0.5)  # the track event, after the map
+        n = js(browser, "return x6wd.track.length")
+        assert 60 <= n <= len(console.track) + 10, (n, len(console.track))
+    finally:
+        console.track.clear()
+        console.track.extend(saved)
+
+
+class FreezingProxy:
+    """A TCP relay in front of the console that can go silent (as a frozen daemon or a dead
+    network path does: no FIN, bytes held) or hang up (as a daemon that stops does)."""
+
+    def __init__(self, target_port: int) -> None:
+        self.target = target_port
+        self.flowing = threading.Event()
+        self.flowing.set()
+        self.accepting = True
+        self.writers: list[asyncio.StreamWriter] = []
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.port = asyncio.run_coroutine_threadsafe(self._start(), self.loop).result(10)
+
+    async def _start(self) -> int:
+        self.server = await asyncio.start_server(self._handle, "127.0.0.1", 0)
+        return int(self.server.sockets[0].getsockname()[1])
+
+    async def _handle(self, cr: asyncio.StreamReader, cw: asyncio.StreamWriter) -> None:
+        if not self.accepting:
+            cw.close()
+            return
+        sr, sw = await asyncio.open_connection("127.0.0.1", self.target)
+        self.writers += [cw, sw]
+        await asyncio.gather(self._pipe(cr, sw), self._pipe(sr, cw), return_exceptions=True)
+
+    async def _pipe(self, r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        try:
+            while data := await r.read(65536):
+                while not self.flowing.is_set():  # held: the rest waits in the kernel
+                    await asyncio.sleep(0.01)
+                w.write(data)
+                await w.drain()
+        finally:
+            w.close()
+
+    def hang_up(self) -> None:
+        """Close every connection (a FIN each way) and refuse new ones until resume()."""
+
+        def close() -> None:
+            self.accepting = False
+            for w in self.writers:
+                w.close()
+            self.writers.clear()
+
+        self.loop.call_soon_threadsafe(close)
+
+    def resume(self) -> None:
+        self.accepting = True
+
+    def close(self) -> None:
+        self.flowing.set()
+        self.hang_up()
+
+        async def shut() -> None:
+            self.server.close()
+            tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+        asyncio.run_coroutine_threadsafe(shut(), self.loop).result(10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+
+
+def _stale(d: webdriver.Chrome) -> bool:
+    return bool(js(d, "return document.body.classList.contains('stale')"))
+
+
+def test_a_silent_link_is_shown_stale_and_drives_it_held_back_never_run(
+    robot: Running, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: with the link silent (the daemon stopped with SIGSTOP, or a
+    # relay that stops forwarding) the page showed "connected", MANUAL and L 40 % R 40 % as
+    # live for 30 s and more; and a key released during a short freeze had its queued
+    # drives run when the link thawed (20-60 ms of 40 % after the release).
+    console = robot.daemon.console
+    assert console is not None
+    proxy = FreezingProxy(console.port)
+    try:
+        browser.get("about:blank")
+        browser.get(f"http://127.0.0.1:{proxy.port}/")
+        page_ready(browser)
+        _focus_map(browser)
+        ActionChains(browser).key_down(Keys.ARROW_UP).perform()
+        wait_for(lambda: vehicle_pct(robot)[0] > 0.0, 5, "the robot driving")
+        late0 = console.late_drives
+        proxy.flowing.clear()
+        t0 = time.monotonic()
+        wait_for(lambda: vehicle_pct(robot) == (0.0, 0.0), 2, "the drive run out")
+        time.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))
+        ActionChains(browser).key_up(Keys.ARROW_UP).perform()  # released during the freeze
+        time.sleep(max(0.0, 2.0 - (time.monotonic() - t0)))
+        assert not _stale(browser)  # 2 s: within the page's patience
+        proxy.flowing.set()  # the queued drives arrive, then the stop
+        moved, end = [], time.monotonic() + 1.5
+        while time.monotonic() < end:
+            pct = vehicle_pct(robot)
+            if pct != (0.0, 0.0):
+                moved.append(pct)
+            time.sleep(0.002)
+        assert not moved, f"queued drives ran after the key was up: {moved[:5]}"
+        assert console.late_drives > late0
+        assert js(browser, "return x6wd.authed")  # the link itself lived on
+        # a longer silence: the page says so within SILENCE_MS (3 s), greys what it shows
+        proxy.flowing.clear()
+        t0 = time.monotonic()
+        wait_for(lambda: _stale(browser), 6, "the page marked stale")
+        assert 2.5 < time.monotonic() - t0 < 5.0
+        assert text(browser, "conn").startswith("no data for 3 s")
+        opacity = js(
+            browser,
+            "return getComputedStyle(document.getElementById('tel-motors').closest('.live'))"
+            ".opacity",
+        )
+        assert float(opacity) < 0.6, opacity
+        proxy.flowing.set()
+        wait_for(lambda: not _stale(browser), 10, "fresh values after reconnecting")
+        assert text(browser, "conn") == "connected"
+        # the daemon hanging up (it stopped): "disconnected", and the values stale too
+        proxy.hang_up()
+        wait_for(lambda: _stale(browser), 3, "stale on a closed link")
+        assert text(browser, "conn") == "disconnected"
+        assert "(stale)" in js(
+            browser, "return getComputedStyle(document.getElementById('mode'), '::after').content"
+        )
+        proxy.resume()
+        wait_for(lambda: not _stale(browser), 10, "reconnected")
+    finally:
+        proxy.close()
+        with RemoteClient("127.0.0.1", robot.port) as c:
+            c.request("stop")
 
 
 # -- the dead-man ----------------------------------------------------------------------------------

@@ -13,7 +13,8 @@ connection is a *detached* client of that server. What the console adds:
   of them as the log viewer's self-contained page (:func:`x6wd.app.logview.render_html`);
 - the dead-man for manual drive: a page's drive lasts at most ``console.deadman_s`` (the
   page repeats it while a key is held), and a page that goes away while its drive runs gets
-  its motors stopped at once;
+  its motors stopped at once; a drive that arrives more than ``deadman_s`` late (by the
+  page's ``sent_ms``: held in a stalled link) is refused, not replayed;
 - ``console.watch_only``: every command that acts (``stop`` too) is refused by the server;
 - cross-origin WebSockets are refused: another site open in the operator's browser must not
   be able to reach the robot through it.
@@ -22,13 +23,17 @@ connection is a *detached* client of that server. What the console adds:
 from __future__ import annotations
 
 import asyncio
+import base64
 import collections
 import contextlib
+import hashlib
 import ipaddress
 import logging
 import math
+import re
 import socket
 import ssl
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,7 +43,7 @@ from urllib.parse import urlsplit
 from aiohttp import WSMsgType, web
 
 from x6wd import __version__
-from x6wd.app.logview import render_html
+from x6wd.app.logview import LogView, html_page, render_html
 from x6wd.app.server import (
     ControlServer,
     encode,
@@ -70,6 +75,24 @@ TRACK_STEP_M = 0.5
 M_PER_DEG = 111_195.0  # mean metres per degree of latitude: the track's thinning only
 
 
+def _viewer_style_sources() -> str:
+    """CSP sources for the log viewer's own inline styles (its <style> element and style
+    attributes, by their SHA-256): its page, shown in a srcdoc frame, lives under the
+    console's policy, and ``'unsafe-inline'`` would open the console to any style."""
+    page = html_page(LogView(path=Path("x.jsonl"), kind="recording"))
+    styles = re.findall(r"<style>(.*?)</style>", page, re.S)
+    attrs = re.findall(r' style="([^"]*)"', page)
+
+    def h(text: str) -> str:
+        return "'sha256-" + base64.b64encode(hashlib.sha256(text.encode()).digest()).decode() + "'"
+
+    # 'unsafe-hashes': hashes that match style attributes too (only these exact ones)
+    return " ".join([*map(h, styles), *(["'unsafe-hashes'"] if attrs else []), *map(h, attrs)])
+
+
+VIEWER_STYLES = _viewer_style_sources()
+
+
 @dataclass(eq=False)
 class _Page:
     """One open page: its WebSocket, its control-protocol client, its outboxes."""
@@ -83,6 +106,7 @@ class _Page:
     dropped: int = 0
     map_sent: Any = None
     transport: Any = None  # its connection's (kept open when connections are capped)
+    clock_offset_s: float = math.inf  # min(arrival - page's sent_ms) so far: see _late_s
 
 
 CONNECTION_SLACK = 16
@@ -173,6 +197,7 @@ class ConsoleServer:
         self.deadman_stops = 0
         self.refused_hosts = 0  # requests whose Host named no name of this console
         self.connections_closed = 0  # idle HTTP connections closed to stay within the cap
+        self.late_drives = 0  # drives refused for arriving later than they would have lasted
         me = socket.gethostname().lower()
         self._hostnames = frozenset(
             {"localhost", me, f"{me}.local", *(n.lower() for n in config.hostnames)}
@@ -341,7 +366,7 @@ class ConsoleServer:
             tiles = f" {parts.scheme}://{parts.netloc}"
         host = request.host
         response.headers["Content-Security-Policy"] = (
-            "default-src 'self'; script-src 'self'; style-src 'self'; "
+            f"default-src 'self'; script-src 'self'; style-src 'self' {VIEWER_STYLES}; "
             f"img-src 'self' data:{tiles}; connect-src 'self' ws://{host} wss://{host}; "
             "frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
         )
@@ -456,11 +481,33 @@ class ConsoleServer:
         with contextlib.suppress(Exception):  # the dispatcher reports a bad line itself
             req = parse_request(line)
             cmd = req.get("cmd")
+        late_s = self._late_s(page, req) if cmd is not None else 0.0
+        if cmd == "drive" and late_s > self.config.deadman_s:
+            # it sat in a stalled link (a frozen network, a suspended laptop) longer than it
+            # would have lasted: the key may well be up by now, and its stop is behind it
+            self.late_drives += 1
+            rid = req.get("id")
+            return error_reply(
+                rid if isinstance(rid, (int, str)) else None, "rejected",
+                f"drive arrived {late_s:.1f} s late (the link stalled): not driven", "late",
+            ), 0.0  # fmt: skip
         if cmd == "mission.parse":
             return self._parse_mission(c, req), 0.0
         if cmd in ("recording.list", "recording.view"):
             return await self._recording(c, req), 0.0
         return await self.control.request(c, line)
+
+    @staticmethod
+    def _late_s(page: _Page, req: dict[str, Any]) -> float:
+        """How much later than the page's fastest message so far this one arrives (s), from
+        its ``sent_ms`` (the page's monotonic clock); 0 without one. The fastest message
+        fixes the clocks' offset plus the link's least delay: the rest is the stall."""
+        sent = req.get("sent_ms")
+        if not isinstance(sent, (int, float)) or isinstance(sent, bool):
+            return 0.0
+        offset = time.monotonic() - sent / 1000.0
+        page.clock_offset_s = min(page.clock_offset_s, offset)
+        return offset - page.clock_offset_s
 
     def _parse_mission(self, c: Any, req: dict[str, Any]) -> dict[str, Any]:
         """``{"cmd": "mission.parse", "content": TEXT, "format": "gpx"|...|null}`` ->
@@ -518,6 +565,11 @@ class ConsoleServer:
             page = await asyncio.to_thread(render_html, runs[name].path)
         except (DeviceUnavailable, ParseError) as exc:
             return error_reply(rid, "bad_request", str(exc), "bad_recording")
+        except Exception as exc:  # a file the viewer chokes on must not end the operator's link
+            log.exception("console: rendering recording %s failed", name)
+            return error_reply(
+                rid, "bad_request", f"{name}: cannot be shown: {exc}", "bad_recording"
+            )
         return {"id": rid, "ok": True, "name": name, "html": page}
 
     async def _hang_up(self, page: _Page) -> None:

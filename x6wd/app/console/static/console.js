@@ -5,6 +5,10 @@
 
 (function () {
   const R_EARTH_M = 6371008.8; // mean radius: the map's equirectangular local frame
+  // An authenticated page hears from the daemon every second at least (its status poll): this
+  // long without a word, the link is taken for dead (a frozen daemon or a silent network),
+  // the values shown are marked stale and the page connects again.
+  const SILENCE_MS = 3000;
   const $ = (id) => document.getElementById(id);
   const S = {
     ws: null, nextId: 1, pending: new Map(), info: null, authed: false,
@@ -13,7 +17,8 @@
     map: { revision: -1, waypoints: [], launch: null, geofence: null },
     draft: [], dirty: false, adding: false,
     track: [], view: { e: 0, n: 0, pxPerM: 4 }, followed: false,
-    drive: null, driveTimer: null, tiles: new Map(),
+    drive: null, driveKey: null, driveTimer: null, tiles: new Map(),
+    heardAt: 0, stale: true,
   };
   window.x6wd = S; // for a person at the browser's console, and for the tests
 
@@ -57,7 +62,10 @@
       }
       const id = S.nextId++;
       S.pending.set(id, resolve);
-      S.ws.send(JSON.stringify(Object.assign({ id: id, cmd: cmd }, args || {})));
+      // sent_ms: the console refuses a drive that arrives later than it would have lasted
+      // (one held in a stalled link's buffers must not move the robot when the link thaws)
+      const sent = Math.round(performance.now());
+      S.ws.send(JSON.stringify(Object.assign({ id: id, cmd: cmd, sent_ms: sent }, args || {})));
     });
   }
   async function command(cmd, args) {
@@ -71,16 +79,41 @@
   function connect() {
     const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/ws");
     S.ws = ws;
-    ws.onmessage = (ev) => onMessage(JSON.parse(ev.data));
+    S.heardAt = performance.now();
+    ws.onmessage = (ev) => {
+      if (S.ws !== ws) return; // a link given up for dead that woke up: not listened to
+      S.heardAt = performance.now();
+      onMessage(JSON.parse(ev.data));
+    };
     ws.onclose = () => {
-      endDrive(false);
-      S.authed = false;
-      for (const resolve of S.pending.values()) resolve({ ok: false, error: { code: "closed", message: "connection lost" } });
-      S.pending.clear();
-      setConn("disconnected", "bad");
+      if (S.ws !== ws) return;
+      linkLost("disconnected");
       setTimeout(connect, 1000);
     };
   }
+  // the link is gone (closed, or silent too long): nothing shown is live any more
+  function linkLost(why) {
+    endDrive(false);
+    S.authed = false;
+    for (const resolve of S.pending.values()) resolve({ ok: false, error: { code: "closed", message: "connection lost" } });
+    S.pending.clear();
+    setConn(why, "bad");
+    setStale(true);
+  }
+  function setStale(stale) {
+    S.stale = stale;
+    document.body.classList.toggle("stale", stale);
+  }
+  // a closed link says so at once; a silent one (a frozen daemon, a dead network path: no
+  // FIN, no close for a long while) only by its silence
+  setInterval(() => {
+    const ws = S.ws;
+    if (!ws || !S.authed || performance.now() - S.heardAt < SILENCE_MS) return;
+    S.ws = null; // its late messages and its close are ignored from here on
+    linkLost("no data for " + Math.round(SILENCE_MS / 1000) + " s: reconnecting");
+    ws.close();
+    connect();
+  }, 250);
   function setConn(text, cls) {
     const c = $("conn");
     c.textContent = text;
@@ -131,26 +164,29 @@
   function authenticated() {
     S.authed = true;
     setConn("connected" + (S.info.tls ? " (TLS)" : ""), "ok");
-    poll();
+    poll(S.ws);
   }
   // status once a second: links and devices, and (for a page that may command) the
   // operator-link failsafe's sign of life
-  async function poll() {
-    if (!S.authed) return;
+  // (one loop per link: a loop of an earlier link ends)
+  async function poll(ws) {
+    if (!S.authed || S.ws !== ws) return;
     const r = await request("status");
+    if (S.ws !== ws) return;
     if (r.ok) {
       S.links = r.links;
       if (r.devices) S.devices = r.devices;
-      if (!S.tel && r.telemetry) onTelemetry(r.telemetry, r.devices);
+      if ((!S.tel || S.stale) && r.telemetry) onTelemetry(r.telemetry, r.devices);
       renderDevices();
     }
-    setTimeout(poll, 1000);
+    setTimeout(() => poll(ws), 1000);
   }
 
   // -- telemetry --------------------------------------------------------------------------------
   const FIX = { 0: "no fix", 1: "GPS", 2: "DGPS", 4: "RTK fixed", 5: "RTK float", 6: "dead reckoning" };
   function onTelemetry(t, devices) {
     S.tel = t;
+    setStale(false);
     if (devices) S.devices = devices;
     const lat = t.filt_lat_deg !== null ? t.filt_lat_deg : t.lat_deg;
     const lon = t.filt_lon_deg !== null ? t.filt_lon_deg : t.lon_deg;
@@ -168,7 +204,7 @@
     }
     $("mode").textContent = t.mode;
     $("state").textContent = t.state;
-    $("mode").className = "pill " + (t.mode === "RUNNING" || t.mode === "MANUAL" ? "ok" : t.mode === "DONE" ? "info" : "");
+    $("mode").className = "pill live " + (t.mode === "RUNNING" || t.mode === "MANUAL" ? "ok" : t.mode === "DONE" ? "info" : "");
     $("hold").hidden = !t.hold_reason;
     $("hold").textContent = t.hold_reason || "";
     $("tel-fix").textContent = (FIX[t.fix_quality] || "quality " + t.fix_quality) + "  HDOP " + fmt(t.hdop, 1) + "  age " + fmt(t.fix_age_s, 1) + " s";
@@ -245,7 +281,9 @@
   function onTrack(points) {
     if (!points.length) return;
     if (!S.origin) S.origin = points[0];
-    S.track = points.map((p) => toLocal(p[0], p[1])).concat(S.track);
+    // sent on every (re)connection: the daemon's track replaces the page's, which it
+    // includes (prepending it doubled the track at each reconnection)
+    S.track = points.map((p) => toLocal(p[0], p[1]));
   }
   function setDraft(points) {
     S.draft = points;
@@ -341,6 +379,7 @@
   function endDrive(sendStop) {
     if (S.driveTimer !== null) clearInterval(S.driveTimer);
     S.driveTimer = null;
+    S.driveKey = null;
     if (S.drive === null) return;
     $("drive-" + S.drive).classList.remove("active");
     S.drive = null;
@@ -351,19 +390,35 @@
     b.addEventListener("pointerdown", (ev) => { b.setPointerCapture(ev.pointerId); startDrive(dir); });
     for (const end of ["pointerup", "pointercancel", "lostpointercapture"]) b.addEventListener(end, () => endDrive(true));
   }
-  const KEYS = { ArrowUp: "fwd", w: "fwd", ArrowDown: "back", s: "back", ArrowLeft: "left", a: "left", ArrowRight: "right", d: "right" };
+  // by the physical key (ev.code): ev.key of the same key changes with Shift and Caps Lock
+  // ("w" down, "W" up), and a release that matched no drive never stopped it
+  const KEYS = { ArrowUp: "fwd", KeyW: "fwd", ArrowDown: "back", KeyS: "back", ArrowLeft: "left", KeyA: "left", ArrowRight: "right", KeyD: "right" };
+  const TEXT_INPUTS = new Set(["text", "password", "search", "email", "url", "tel", "number"]);
+  const typing = (el) => el.isContentEditable || el.tagName === "TEXTAREA" ||
+    (el.tagName === "INPUT" && TEXT_INPUTS.has(el.type));
   document.addEventListener("keydown", (ev) => {
-    if (ev.target.tagName === "INPUT" || ev.repeat) return;
-    if (ev.key === " ") { ev.preventDefault(); endDrive(false); command("stop"); return; }
-    const dir = KEYS[ev.key];
-    if (dir) { ev.preventDefault(); startDrive(dir); }
+    // the space bar stops whatever has focus (the speed slider, a button), but a space typed
+    // into a text field (the token) is text
+    if ((ev.code === "Space" || ev.key === " ") && !typing(ev.target)) {
+      ev.preventDefault();
+      endDrive(false);
+      if (!ev.repeat) command("stop");
+      return;
+    }
+    // macOS sends no keyup for a key released while Cmd is down: the held key is lost
+    if (ev.key === "Meta" && S.driveKey) { endDrive(true); return; }
+    if (ev.target.tagName === "INPUT" || ev.repeat) return; // arrows move the slider
+    const dir = KEYS[ev.code];
+    if (dir) { ev.preventDefault(); startDrive(dir); if (S.drive === dir) S.driveKey = ev.code; }
   });
-  document.addEventListener("keyup", (ev) => { if (KEYS[ev.key] === S.drive) endDrive(true); });
+  document.addEventListener("keyup", (ev) => { if (S.driveKey && ev.code === S.driveKey) endDrive(true); });
   // the page going away, hidden or out of focus ends the drive at once
   document.addEventListener("visibilitychange", () => { if (document.hidden) endDrive(true); });
   // leaving the page (or its being kept in the back/forward cache) closes its link too
   window.addEventListener("pagehide", () => { endDrive(true); if (S.ws) S.ws.close(1001); });
   window.addEventListener("blur", () => endDrive(true));
+  // a context menu takes the keyboard: the held key's release may never come here
+  document.addEventListener("contextmenu", () => { if (S.driveKey) endDrive(true); });
 
   // -- the map --------------------------------------------------------------------------------------
   function niceStep(m) {
@@ -493,7 +548,7 @@
       ctx.save();
       ctx.translate(x, y);
       ctx.rotate(((t && t.heading_deg) || 0) * Math.PI / 180);
-      ctx.fillStyle = "#1b5e20";
+      ctx.fillStyle = S.stale ? "#9e9e9e" : "#1b5e20"; // grey: where it was, not where it is
       ctx.strokeStyle = "#fff";
       ctx.beginPath();
       ctx.moveTo(0, -14); ctx.lineTo(9, 10); ctx.lineTo(0, 5); ctx.lineTo(-9, 10); ctx.closePath();
