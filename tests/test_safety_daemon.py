@@ -498,7 +498,8 @@ def test_moves_are_refused_until_the_devices_are_open(
             }  # fmt: skip
             assert st["links"] == {"gps": "unknown", "gps_reconnects": 0, "compass": "unknown",
                                    "compass_errors": 0, "motors": "lost",
-                                   "odometry": "unknown"}  # fmt: skip
+                                   "odometry": "unknown", "recorder": "unknown"}  # fmt: skip
+            assert st["recorder"] is None  # not open yet
             assert st["version"] == __version__
             assert isinstance(st["uptime_s"], float) and 0.0 <= st["uptime_s"] < 30.0
             assert c.request("stop")["mode"] == "IDLE"  # always obeyed
@@ -701,7 +702,9 @@ def test_the_geofence_and_the_manual_limit_hold_at_their_edges(tmp_path: Path, r
         odometry = st["links"].pop("odometry")  # readings so far: the sim:// board has encoders
         assert isinstance(odometry, int) and odometry >= 0
         assert st["links"] == {"gps": "connected", "gps_reconnects": 0, "compass": "connected",
-                               "compass_errors": 0, "motors": "ok"}  # fmt: skip
+                               "compass_errors": 0, "motors": "ok",
+                               "recorder": "ok"}  # fmt: skip
+        assert st["recorder"]["state"] == "ok" and st["recorder"]["records_dropped"] == 0
         assert set(st["devices"]) == {"gps", "compass", "motors", "odometry"}
         assert st["devices"]["odometry"]["state"] == "polling"
         assert st["devices"]["motors"]["state"] == "connected"

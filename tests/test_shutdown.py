@@ -28,7 +28,7 @@ from tests.conftest import ROOT
 from tests.test_daemon import hil_config, run_daemon, wait_for
 from tests.test_startup import write_config
 from x6wd.app.client import RemoteClient
-from x6wd.app.daemon import Daemon
+from x6wd.app.daemon import Daemon, stop_signals
 from x6wd.core.recorder import ReadStats, read_recording_parts
 from x6wd.core.records import Attitude, MotorCommand
 
@@ -172,6 +172,14 @@ class TcpMotorBoard:
         self.sock.close()
 
 
+def default_signals() -> None:
+    """In the child before exec: the default action for every signal the tests send (a
+    background shell may have left SIGINT/SIGQUIT/SIGHUP ignored, which would hide the
+    daemon's own handling, or its lack)."""
+    for sig in stop_signals():
+        signal.signal(sig, signal.SIG_DFL)
+
+
 class DaemonProcess:
     """``python -m x6wd run --config FILE`` with its stderr read line by line."""
 
@@ -181,6 +189,7 @@ class DaemonProcess:
             stderr=subprocess.PIPE,
             text=True,
             cwd=ROOT,
+            preexec_fn=default_signals,
         )
         self.lines: list[str] = []
         self.port: int | None = None

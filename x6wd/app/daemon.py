@@ -16,8 +16,12 @@ commands. Data flow::
     health, operator ─────┘                 └─> sd_notify (WATCHDOG / STATUS)
 
 Safety: the controller holds (motors stopped) on stale input, lost motor link and dead-man
-expiry; the daemon additionally stops the motors on any exit path. SIGTERM/SIGINT exit 0;
-an unexpected exception stops the motors and exits 1 (systemd then restarts us).
+expiry; the daemon additionally stops the motors on any exit path. Every signal whose default
+action would kill the process stops the motors and shuts down cleanly (:func:`stop_signals`):
+SIGTERM, SIGINT and SIGHUP (a closed terminal) exit 0; the others (SIGQUIT, SIGUSR1 ...,
+which nothing should send x6wd) exit 1, so systemd restarts us. An unexpected exception in
+any thread, the motor thread's included, stops the motors and exits 1. The recorder never
+holds up the exit: its thread gets :data:`RECORDER_CLOSE_S` to drain, then is left behind.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import collections
 import contextlib
 import errno
 import gc
+import ipaddress
 import logging
 import math
 import os
@@ -94,6 +99,16 @@ GC_OVERDUE_S = 2.5
 RECORDER_FSYNC_S = 5.0
 """fsync period of the recording (s): what a power cut can lose. A crash or ``kill -9`` loses
 no written record either way (each is one ``write()``), only what is queued for the writer."""
+RECORDER_QUEUE_MAX = 10_000
+"""Records queued for the recorder thread at most (about a minute of the daemon's ~150
+records/s, a few MB); more are dropped and counted: a stuck disk must not grow the memory."""
+RECORDER_STALL_S = 5.0
+"""A recorder call taking this long (s) makes the recorder "stalled" in ``status``."""
+RECORDER_LOG_S = 60.0
+"""While the recorder fails or drops records, one summary log line per this many seconds."""
+RECORDER_CLOSE_S = 3.0
+"""At exit, how long (s) the recorder thread may take to drain its queue and close the file;
+a thread stuck in the file system is left behind (the process exits all the same)."""
 
 
 distance_m = great_circle_m  # the geofence's distance (m), kept under its old name
@@ -140,7 +155,10 @@ class _MotorWorker:
         on_events: Callable[[list[HealthEvent]], None] | None = None,
         on_odometry: Callable[[WheelOdometry], None] | None = None,
         odometry_s: float = 1.0 / ODOMETRY_HZ,
+        on_death: Callable[[BaseException], None] | None = None,
     ) -> None:
+        """``on_death(exc)``: the thread died of ``exc`` (a bug); the motors were stopped
+        (best effort) first. The daemon passes its :meth:`Daemon.fail_from_thread`."""
         self.link = link
         self.keepalive_s = keepalive_s
         self._on_health = on_health
@@ -176,7 +194,8 @@ class _MotorWorker:
             else:
                 self._odometry_unavailable("the motor backend has no wheel encoders")
         self._t_odo = time.monotonic()  # when the next encoder poll is due
-        self.thread = threading.Thread(target=self._run, name="x6wd-motors", daemon=True)
+        self._on_death = on_death
+        self.thread = guarded_thread(self._run, "x6wd-motors", self._died)
 
     def start(self) -> None:
         self.thread.start()
@@ -375,6 +394,17 @@ class _MotorWorker:
         if events and self._on_events is not None:
             self._on_events(events)
 
+    def _died(self, exc: BaseException) -> None:
+        """The motor thread's death (a bug): nothing keeps the board fed any more, so stop
+        the motors now (best effort; none may start after), then report it."""
+        with self._cond:
+            self._stop = True  # send_now refuses from here on
+            self._cond.notify_all()
+        with contextlib.suppress(Exception):
+            self.link.stop("motor thread died")
+        if self._on_death is not None:
+            self._on_death(exc)
+
     def shutdown(self, reason: str) -> None:
         """Stop the thread, then stop the motors and close the link (idempotent)."""
         with self._cond:
@@ -387,7 +417,7 @@ class _MotorWorker:
                 if left_s <= 0:
                     break
                 self._cond.wait(left_s)
-        if self.thread.is_alive():
+        if self.thread.is_alive() and self.thread is not threading.current_thread():
             self.thread.join(5.0)
         with contextlib.suppress(Exception):
             self.link.stop(reason)
@@ -456,16 +486,57 @@ class _GcPacer:
 
 
 class _RecorderWorker:
-    """Writes recorder calls from a thread so disk stalls never reach the event loop."""
+    """Writes recorder calls from a thread so disk stalls never reach the event loop.
 
-    def __init__(self, recorder: Any) -> None:
+    The queue is bounded (``max_queued`` records): a writer stuck in the file system (a hung
+    SD card or NFS mount) makes the callers drop records, counted and logged, instead of
+    growing the memory. While the recorder fails or drops records, one summary line is
+    logged every ``log_every_s`` seconds; :meth:`status` says how it goes."""
+
+    def __init__(
+        self,
+        recorder: Any,
+        *,
+        max_queued: int = RECORDER_QUEUE_MAX,
+        stall_s: float = RECORDER_STALL_S,
+        log_every_s: float = RECORDER_LOG_S,
+    ) -> None:
         self.recorder = recorder
         self._q: queue.SimpleQueue[tuple[str, Any] | None] = queue.SimpleQueue()
-        self.errors = 0
+        self.max_queued = max_queued
+        self.stall_s = stall_s
+        self.log_every_s = log_every_s
+        self.errors = 0  # recorder calls that raised
+        self.queue_dropped = 0  # records dropped because the queue was full
+        self.last_error = ""
+        self._failed_last = False  # the latest call raised
+        self._call = ""  # the recorder method in progress
+        self._t_call: float | None = None  # time.monotonic() it started (None: idle)
+        now = time.monotonic()
+        self._t_summary = now  # the writer's latest summary line (s, monotonic)
+        self._summarised = (0, 0)  # (errors, records lost) at that line
+        self._t_drop_log = -math.inf  # the callers' latest line about dropped records
+        self._drops_logged = 0
         self.thread = threading.Thread(target=self._run, name="x6wd-recorder", daemon=True)
         self.thread.start()
 
     def put(self, method: str, arg: Any) -> None:
+        """Queue one recorder call; never blocks (a full queue drops it, counted)."""
+        if self._q.qsize() >= self.max_queued:
+            self.queue_dropped += 1
+            now = time.monotonic()
+            if now - self._t_drop_log >= self.log_every_s:  # at most once a minute
+                t = self._t_call
+                stuck = f" for {now - t:.0f} s in {self._call}" if t is not None else ""
+                log.error(
+                    "recorder queue full (%d records): the writer is stuck%s; %d records "
+                    "dropped so far",
+                    self.max_queued,
+                    stuck,
+                    self.queue_dropped,
+                )
+                self._t_drop_log = now
+            return
         self._q.put((method, arg))
 
     def _run(self) -> None:
@@ -479,22 +550,102 @@ class _RecorderWorker:
         while True:
             item = self._q.get()
             if item is None:
-                return
+                break
             method, arg = item
+            self._call, self._t_call = method, time.monotonic()
             try:
                 getattr(self.recorder, method)(arg)
-            except Exception:
-                self.errors += 1
-                if self.errors in (1, 10, 100, 1000):
-                    log.exception("recorder write failed (%d so far)", self.errors)
+            except Exception as exc:
+                self._failed(exc)
+            else:
+                self._failed_last = False
+            finally:
+                self._t_call = None
+            self._summary()
+        # closed here, in this thread: a file system that hangs holds up only this thread
+        self._call, self._t_call = "close", time.monotonic()
+        try:
+            self.recorder.close()
+        except Exception:
+            log.exception("closing the recording failed")
+        self._t_call = None
 
-    def close(self) -> None:
-        """Drain, flush to disk and close (idempotent)."""
+    def _failed(self, exc: Exception) -> None:
+        self.errors += 1
+        self.last_error = one_line(str(exc))
+        self._failed_last = True
+        if self.errors == 1:  # then summaries (_summary), never one line per record
+            log.exception("recorder write failed")
+
+    def _summary(self) -> None:
+        """Once every ``log_every_s``: what failed and what was lost since the last line."""
+        now = time.monotonic()
+        if now - self._t_summary < self.log_every_s:
+            return
+        lost = int(getattr(self.recorder, "records_lost", 0))
+        errors0, lost0 = self._summarised
+        if self.errors > errors0 or lost > lost0:
+            log.warning(
+                "recorder: %d errors, %d records lost in the last %.0f s (%d errors, %d lost "
+                "in all), recorder %s; last error: %s",
+                self.errors - errors0,
+                lost - lost0,
+                now - self._t_summary,
+                self.errors,
+                lost,
+                getattr(self.recorder, "state", "ok"),
+                self.last_error or "-",
+            )
+        self._t_summary = now
+        self._summarised = (self.errors, lost)
+
+    @property
+    def state(self) -> str:
+        """ "stalled" (a call has taken ``stall_s`` or more), "failing" (the latest call
+        failed, or the recorder waits to open a part again) or "ok"."""
+        t = self._t_call
+        if t is not None and time.monotonic() - t >= self.stall_s:
+            return "stalled"
+        if self._failed_last or getattr(self.recorder, "state", "ok") == "failing":
+            return "failing"
+        return "ok"
+
+    def status(self) -> dict[str, Any]:
+        """The recorder for ``status``: state, file, records written and dropped, errors."""
+        rec = self.recorder
+        lost = int(getattr(rec, "records_lost", 0))
+        out: dict[str, Any] = {
+            "state": self.state,
+            "file": str(getattr(rec, "path", "")),
+            "records_written": int(getattr(rec, "records_written", 0)),
+            # queue full (the writer stuck) + not written (the file system failing)
+            "records_dropped": self.queue_dropped + lost,
+            "queue_dropped": self.queue_dropped,
+            "queued": self._q.qsize(),
+            "errors": self.errors,
+            "last_error": self.last_error or getattr(rec, "last_error", ""),
+        }
+        t = self._t_call
+        if t is not None:
+            out["busy_s"] = round(time.monotonic() - t, 1)  # in the current call
+        return out
+
+    def close(self, timeout_s: float = RECORDER_CLOSE_S) -> bool:
+        """Drain, flush to disk and close, waiting ``timeout_s`` (s) at most; False (logged)
+        when the writer is stuck: its queue is then lost, the process may exit all the same
+        (idempotent)."""
         if self.thread.is_alive():
             self._q.put(None)
-            self.thread.join(10.0)
-        with contextlib.suppress(Exception):
-            self.recorder.close()
+            self.thread.join(timeout_s)
+        if self.thread.is_alive():
+            t = self._t_call
+            log.error(
+                "recorder stuck%s: exiting without closing the recording (%d queued records lost)",
+                f" for {time.monotonic() - t:.0f} s in {self._call}" if t is not None else "",
+                self._q.qsize(),
+            )
+            return False
+        return True
 
 
 class _NetThread:
@@ -605,6 +756,7 @@ class Daemon:
         self._gpsd_wmm = False  # the gpsd port still waits for the WMM declination
         self._t_operator = -math.inf  # latest operator request handed to the controller (s)
         self.t_start = time.monotonic()
+        self._stop_signal: tuple[str, int] | None = None  # (name, exit code) of the first
 
     @property
     def last_telemetry(self) -> Telemetry | None:
@@ -626,6 +778,18 @@ class Daemon:
         """Ask the daemon to shut down cleanly (signal handlers call this)."""
         if self._stop_event is not None:
             self._stop_event.set()
+
+    def stop_on_signal(self, signum: int, code: int) -> None:
+        """A signal (``main`` installs this for :func:`stop_signals`): log it, then shut down
+        as on SIGTERM (motors first); the first signal's ``code`` is the exit code."""
+        name = signal.Signals(signum).name
+        if self._stop_signal is None:
+            self._stop_signal = (name, code)
+            level = logging.INFO if code == EXIT_OK else logging.WARNING
+            log.log(
+                level, "%s received: stopping the motors and shutting down (exit %d)", name, code
+            )
+        self.request_stop()
 
     def _fail(self, exc: BaseException) -> None:
         if self._fatal is None:
@@ -679,6 +843,8 @@ class Daemon:
             await self._control_loop()
             if self._fatal is not None:
                 raise self._fatal
+            if self._stop_signal is not None:
+                code = self._stop_signal[1]
         except (ConfigError, DeviceUnavailable) as exc:
             log.error("startup failed: %s", exc)
             code = EXIT_CONFIG if isinstance(exc, ConfigError) else EXIT_FAILURE
@@ -742,6 +908,15 @@ class Daemon:
             health_log=self._health_log,
             wmm_declination=decl is None,
         )
+        for key, enabled, host in (
+            ("server.bind", cfg.server.enabled, cfg.server.bind),
+            ("console.bind", cfg.console.enabled, cfg.console.bind),
+            ("gpsd.bind", cfg.gpsd.enabled, cfg.gpsd.bind),
+        ):
+            # before the server's own checks, which would blame the token for a typo
+            problem = _bind_problem(host) if enabled else ""
+            if problem:
+                raise ConfigError(f"{key}: {problem}")
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
         self.console = self._make_console()
         if cfg.gpsd.enabled:
@@ -846,6 +1021,7 @@ class Daemon:
             self._health_events_from_thread,
             on_odometry=self._odometry_from_thread,
             odometry_s=1.0 / ODOMETRY_HZ,
+            on_death=self.fail_from_thread,  # a bug there stops the daemon, as in the others
         )
         self.motors.start()
         compass = await asyncio.to_thread(registry.open_compass, cfg.compass.url, self.devices)
@@ -872,14 +1048,7 @@ class Daemon:
         self._spawn(self._compass_thread, "x6wd-compass")
 
     def _spawn(self, target: Callable[[], None], name: str) -> None:
-        def guarded() -> None:
-            try:
-                target()
-            except BaseException as exc:  # any escape is a bug: fail loudly, motors stop
-                log.exception("thread %s died", name)
-                self.fail_from_thread(exc)
-
-        t = threading.Thread(target=guarded, name=name, daemon=True)
+        t = guarded_thread(target, name, self.fail_from_thread)
         self._threads.append(t)
         t.start()
 
@@ -900,7 +1069,7 @@ class Daemon:
             if dev is not None and hasattr(dev, "close"):
                 with contextlib.suppress(Exception):
                     await asyncio.to_thread(dev.close)
-        if self.recorder is not None:
+        if self.recorder is not None:  # bounded: a stuck file system never holds up the exit
             await asyncio.to_thread(self.recorder.close)
         if self.devices is not None:  # last: the simulated world outlives every device
             await asyncio.to_thread(self.devices.close)
@@ -1287,6 +1456,7 @@ class Daemon:
         odometry: int | str = "unknown"
         if odo is not None:
             odometry = odo["readings"] if odo["state"] == "polling" else odo["state"]
+        recorder = self.recorder.status() if self.recorder is not None else None
         return {
             "version": __version__,
             "uptime_s": round(now - self.t_start, 3),
@@ -1302,7 +1472,15 @@ class Daemon:
                 "compass_errors": compass.get("errors", self.compass_errors),
                 "motors": "ok" if link_ok else "lost",
                 "odometry": odometry,  # readings so far, or "unavailable"
+                "recorder": (
+                    recorder["state"]
+                    if recorder is not None
+                    else "unknown"
+                    if self.config.recorder.enabled
+                    else "off"  # not open yet
+                ),
             },
+            "recorder": recorder,
             # where the compass declination comes from: config, or the WMM with its value
             "declination": dict(self.runner.declination) if self.runner is not None else {},
         }
@@ -1416,6 +1594,57 @@ class _StderrFormatter(logging.Formatter):
         return super().format(record)
 
 
+def guarded_thread(
+    target: Callable[[], None], name: str, on_death: Callable[[BaseException], None]
+) -> threading.Thread:
+    """A daemon thread running ``target``; whatever escapes it is a bug: logged, then handed
+    to ``on_death`` (which stops the daemon: exit 1, motors stopped). Not started."""
+
+    def guarded() -> None:
+        try:
+            target()
+        except BaseException as exc:  # any escape is a bug: fail loudly, motors stop
+            log.exception("thread %s died", name)
+            on_death(exc)
+
+    return threading.Thread(target=guarded, name=name, daemon=True)
+
+
+def _bind_problem(host: str) -> str:
+    """Why a server cannot bind to ``host`` ("" when it can be tried): it must be an IP
+    address or a host name that resolves ("" and "localhost" are fine)."""
+    if host in ("", "localhost"):
+        return ""
+    try:
+        ipaddress.ip_address(host)
+        return ""
+    except ValueError:
+        pass
+    try:
+        socket.getaddrinfo(host, None, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (OSError, UnicodeError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        return f"{host!r} is not an IP address or a host name that resolves ({reason})"
+    return ""
+
+
+def stop_signals() -> dict[signal.Signals, int]:
+    """The signals that stop the daemon cleanly, each with its exit code: every signal whose
+    default action would kill the process without stopping the motors. SIGTERM (systemd),
+    SIGINT (Ctrl-C) and SIGHUP (the terminal closed) are requests to stop: exit 0. The
+    others are nothing x6wd expects (SIGQUIT, SIGUSR1/2, timers, SIGPWR ...): exit 1, so
+    systemd's Restart=on-failure brings the daemon back (motors stopped, IDLE)."""
+    out = {signal.SIGTERM: EXIT_OK, signal.SIGINT: EXIT_OK, signal.SIGHUP: EXIT_OK}
+    for name in (
+        "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGVTALRM", "SIGPROF", "SIGPWR", "SIGIO",
+        "SIGSTKFLT", "SIGXCPU",
+    ):  # fmt: skip
+        sig = getattr(signal, name, None)
+        if sig is not None:
+            out[sig] = EXIT_FAILURE
+    return out
+
+
 def _dir_problem(directory: Path) -> str:
     """Why recordings cannot be created in ``directory`` ("" when they can), checked without
     creating anything: it is (or its nearest existing ancestor is) a directory this user may
@@ -1491,7 +1720,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    """Run the daemon until SIGTERM/SIGINT; exit 0 on a clean stop, non-zero on failure."""
+    """Run the daemon until a signal (:func:`stop_signals`: exit 0 for SIGTERM, SIGINT and
+    SIGHUP, 1 for the others) or a failure (1; a configuration error 2)."""
     tail = LogTail()
     root = logging.getLogger()
     root.setLevel(args.log_level)
@@ -1510,8 +1740,13 @@ def main(args: argparse.Namespace) -> int:
 
     async def amain() -> int:
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, daemon.request_stop)
+        for sig, code in stop_signals().items():
+            if sig == signal.SIGHUP and signal.getsignal(sig) == signal.SIG_IGN:
+                # started under nohup: the user asked it to outlive the terminal, and it does
+                # (still in control); every other inherited SIG_IGN is overridden as before
+                log.info("SIGHUP ignored (nohup): x6wd keeps running when its terminal closes")
+                continue
+            loop.add_signal_handler(sig, daemon.stop_on_signal, sig, code)
         return await daemon.run()
 
     return asyncio.run(amain())

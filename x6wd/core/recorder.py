@@ -24,6 +24,15 @@ own run, never the part being written) while they add up to more than ``max_tota
 the file system has less than ``min_free_bytes`` free. It does so when asked
 (:meth:`Recorder.enforce_retention`, the daemon's recorder thread at start) and after every
 rotation, in the thread that writes. Files of any other name are never touched.
+
+Faults (a full or read-only file system, an unwritable or removed directory): a part that
+cannot be opened, or a write that fails, does not end the recording. The recorder counts
+the records it cannot write (``records_lost``), tries again after a back-off
+(:data:`REOPEN_BACKOFF_S`) and carries on once it can: a failed write is retried by
+reopening the same part (a record cut off by the failure then ends on its own line, so
+readers lose only that record), a failed rotation by opening the next part again. Every
+``check_interval_s`` it also checks that the part it writes is still in its directory
+(removed with its directory, replaced by another file) and continues in a new part if not.
 """
 
 from __future__ import annotations
@@ -31,6 +40,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import enum
+import errno
 import functools
 import json
 import logging
@@ -63,6 +73,11 @@ log = logging.getLogger(__name__)
 
 MB = 1 << 20
 """Bytes in the recorder's megabyte ([recorder] *_mb keys): MiB, as ``du -m``/``df -m`` count."""
+
+REOPEN_BACKOFF_S = (1.0, 15.0)
+"""First and longest wait (s, monotonic) between attempts to open a part after a failure."""
+CHECK_INTERVAL_S = 5.0
+"""How often (s) the recorder checks that its part is still in the directory (one stat)."""
 
 RECORD_TYPES = frozenset(
     {"nmea", "attitude", "motor", "state", "telemetry", "sky", "fix", "event", "odometry"}
@@ -411,6 +426,9 @@ class Recorder:
     ``buffer_bytes``: 0 (default) writes each record at once; more collects records in a
     buffer of that size first (the simulator's fast time, which needs no crash durability:
     a crash then loses up to that much).
+    ``reopen_backoff_s``: (first, longest) wait in seconds between attempts to open a part
+    after a failure (see the module docstring); ``check_interval_s``: how often (s) to check
+    that the part is still in its directory (None: never).
     """
 
     def __init__(
@@ -423,6 +441,8 @@ class Recorder:
         clock: Callable[[], float] = time.monotonic,
         utc_clock: Callable[[], datetime] = _utc_now,
         buffer_bytes: int = 0,
+        reopen_backoff_s: tuple[float, float] = REOPEN_BACKOFF_S,
+        check_interval_s: float | None = CHECK_INTERVAL_S,
     ) -> None:
         if fsync_interval_s is not None and not fsync_interval_s >= 0:
             raise ValueError(f"fsync_interval_s must be >= 0 or None, got {fsync_interval_s}")
@@ -445,10 +465,22 @@ class Recorder:
         self._lock = threading.Lock()
         self.records_written = 0
         self.bytes_written = 0
-        self.write_errors = 0
+        self.write_errors = 0  # failed writes and failed attempts to open a part
+        self.records_lost = 0  # records not written while a part could not be written
+        self.reopens = 0  # parts opened again after a failure or a removed file
+        self.last_error = ""
         self.dropped_after_close = 0
-        self._file = self._open(self.path)
-        self._last_fsync = time.monotonic()
+        self.reopen_backoff_s = reopen_backoff_s
+        self.check_interval_s = check_interval_s
+        self._closed = False
+        self._recovering = False  # a part failed: say so when one opens again
+        self._file: Any = self._open(self.path)  # None while a part waits to be (re)opened
+        self._reopen_path: Path | None = None  # the part to open then
+        self._backoff_s = reopen_backoff_s[0]
+        self._t_retry = 0.0  # time.monotonic() of the next attempt to open it
+        now = time.monotonic()
+        self._last_fsync = now
+        self._t_check = now + (check_interval_s or 0.0)
 
     def _open(self, path: Path) -> Any:
         try:
@@ -467,16 +499,99 @@ class Recorder:
         self._file.flush()
         os.fsync(self._file.fileno())
 
-    def _rotate(self) -> None:
-        """Continue in the next part, ``<stem>.<n><suffix>`` (see :func:`recording_parts`)."""
-        with contextlib.suppress(OSError):
-            self._sync()
-        self._file.close()
+    def _next_part(self) -> Path:
         first = self.paths[0]
-        nxt = first.with_name(f"{first.stem}.{len(self.paths)}{first.suffix}")
-        self._file = self._open(nxt)
-        self.path = nxt
-        self.paths.append(nxt)
+        return first.with_name(f"{first.stem}.{len(self.paths)}{first.suffix}")
+
+    def _rotate(self, now: float) -> None:
+        """Continue in the next part, ``<stem>.<n><suffix>`` (see :func:`recording_parts`).
+        Raises DeviceUnavailable when it cannot be opened (it is tried again later)."""
+        self._drop_file()
+        self._reopen_path = self._next_part()
+        self._t_retry = now
+        self._reopen(now)
+
+    def _drop_file(self) -> None:
+        """Close the part (best effort: its file system may be failing)."""
+        f, self._file = self._file, None
+        if f is None:
+            return
+        with contextlib.suppress(OSError):
+            f.flush()
+            os.fsync(f.fileno())
+        with contextlib.suppress(OSError):
+            f.close()
+
+    def _reopen(self, now: float) -> bool:
+        """Open the waiting part when the back-off allows: True when one is open now, False
+        while waiting; raises DeviceUnavailable when the attempt fails (next one later)."""
+        if self._file is not None:
+            return True
+        if now < self._t_retry:
+            return False
+        path = self._reopen_path or self.path
+        if self.retention is not None and self._recovering:
+            # a full file system: retention's min_free_bytes may make room first
+            with contextlib.suppress(OSError):
+                self.enforce_retention()
+        try:
+            f = self._open(path)
+        except DeviceUnavailable as exc:
+            self.write_errors += 1
+            self.last_error = str(exc)
+            self._recovering = True
+            self._t_retry = now + self._backoff_s
+            self._backoff_s = min(2.0 * self._backoff_s, self.reopen_backoff_s[1])
+            raise
+        self._file = f
+        self._reopen_path = None
+        self._backoff_s = self.reopen_backoff_s[0]
+        if path != self.path or path not in self.paths:
+            self.path = path
+            self.paths.append(path)
+        if self._recovering:
+            self._recovering = False
+            self.reopens += 1
+            log.warning(
+                "recording continues in %s (%d records lost so far)", path, self.records_lost
+            )
+        return True
+
+    def _write_failed(self, exc: OSError, now: float) -> None:
+        """A write failed: the part is closed and reopened after the back-off (appending
+        after a newline when the failed write left part of its line)."""
+        self.write_errors += 1
+        self.last_error = f"{self.path}: write failed: {exc}"
+        self._recovering = True
+        self._drop_file()
+        self._reopen_path = self.path
+        self._t_retry = now + self._backoff_s
+        self._backoff_s = min(2.0 * self._backoff_s, self.reopen_backoff_s[1])
+
+    def _check_still_there(self, now: float) -> None:
+        """Continue in a new part when the one being written left its directory (removed, or
+        the directory with it, or replaced): writing on would fill a deleted file."""
+        self._t_check = now + (self.check_interval_s or 0.0)
+        try:
+            st = os.stat(self.path)
+            fst = os.fstat(self._file.fileno())
+        except FileNotFoundError:
+            same = False
+        except OSError:
+            return  # cannot tell (a failing file system): the writes will say
+        else:
+            same = (st.st_dev, st.st_ino) == (fst.st_dev, fst.st_ino)
+        if not same:
+            log.warning("recording %s was removed: continuing in a new part", self.path)
+            self.last_error = f"{self.path} was removed"
+            self._rotate(now)
+
+    @property
+    def state(self) -> str:
+        """ "ok" (a part is open), "failing" (waiting to open one) or "closed"."""
+        if self._closed:
+            return "closed"
+        return "ok" if self._file is not None else "failing"
 
     def enforce_retention(self) -> list[Path]:
         """Run the retention pass now (no-op without ``retention``); the deleted paths.
@@ -512,15 +627,18 @@ class Recorder:
     @property
     def closed(self) -> bool:
         """True once :meth:`close` ran."""
-        return self._file.closed
+        return self._closed
 
     def record(self, type: str, payload: Any, t_mono: float | None = None) -> None:
         """Write one record of ``type`` (one of :data:`RECORD_TYPES`) with ``payload``.
 
         ``payload`` is a dict or a dataclass (converted); ``t_mono`` (s) defaults to the
         clock. Raises ValueError for an unknown type or a non-finite time; an I/O error on
-        write is re-raised as :class:`DeviceUnavailable` after being counted. After
-        :meth:`close`, records are dropped and counted in ``dropped_after_close``.
+        write, or on opening a part, is re-raised as :class:`DeviceUnavailable` after being
+        counted (``write_errors``; the record in ``records_lost``). While a part waits to be
+        opened again (the back-off), records are counted in ``records_lost`` without an
+        exception. After :meth:`close`, records are dropped and counted in
+        ``dropped_after_close``.
         """
         if type not in RECORD_TYPES:
             raise ValueError(
@@ -549,20 +667,31 @@ class Recorder:
         blob = line.encode("utf-8")
         rotated = False
         with self._lock:
-            if self._file.closed:  # a late record during shutdown: counted, not fatal
+            if self._closed:  # a late record during shutdown: counted, not fatal
                 self.dropped_after_close += 1
                 return
+            now = time.monotonic()
             try:
+                if self._file is None and not self._reopen(now):
+                    self.records_lost += 1  # waiting out the back-off
+                    return
+                if self.check_interval_s is not None and now >= self._t_check:
+                    self._check_still_there(now)
                 if (
                     self.max_bytes is not None
                     and self._file.tell() > 0
                     and self._file.tell() + len(blob) > self.max_bytes
                 ):
-                    self._rotate()
+                    self._rotate(now)
                     rotated = True
-                self._file.write(blob)
+            except DeviceUnavailable:
+                self.records_lost += 1
+                raise
+            try:
+                self._write_all(blob)
             except OSError as exc:
-                self.write_errors += 1
+                self.records_lost += 1
+                self._write_failed(exc, now)
                 raise DeviceUnavailable(f"recording {self.path}: write failed: {exc}") from exc
             self.records_written += 1
             self.bytes_written += len(blob)
@@ -576,6 +705,18 @@ class Recorder:
                 self.enforce_retention()
             except OSError as exc:  # retention is housekeeping: recording goes on
                 log.warning("retention pass failed: %s", exc)
+
+    def _write_all(self, blob: bytes) -> None:
+        """Write ``blob`` whole: an unbuffered file may take part of it (a file system that
+        just filled up), the rest then goes in further writes, whose error is raised."""
+        view = memoryview(blob)
+        while view:
+            n = self._file.write(view)
+            if n is None or n >= len(view):  # buffered: all or an exception
+                return
+            if n == 0:
+                raise OSError(errno.EIO, "the write took nothing")
+            view = view[n:]
 
     def record_nmea(self, text: str | bytes, t_mono: float | None = None) -> None:
         """One raw NMEA sentence as received (line ending stripped)."""
@@ -628,17 +769,16 @@ class Recorder:
     def flush(self) -> None:
         """Force the data to stable storage (``os.fsync``)."""
         with self._lock:
-            if not self._file.closed:
+            if not self._closed and self._file is not None:
                 self._sync()
 
     def close(self) -> None:
         """fsync and close (idempotent)."""
         with self._lock:
-            if self._file.closed:
+            if self._closed:
                 return
-            with contextlib.suppress(OSError):
-                self._sync()
-            self._file.close()
+            self._closed = True
+            self._drop_file()
 
     def __enter__(self) -> Recorder:
         return self

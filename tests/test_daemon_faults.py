@@ -1,0 +1,213 @@
+"""The daemon under faults an outside audit found: signals other than SIGTERM, a dying motor
+thread, a recorder stuck in the file system (a FIFO in place of its next part, as a hung SD
+card or NFS mount), failing or removed recordings, and a bind address that is no address.
+
+Real processes, a real motor protocol board on TCP, real files and a real FIFO."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import re
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.test_daemon import run_daemon, wait_for
+from tests.test_shutdown import (
+    DaemonProcess,
+    StampedLink,
+    TcpMotorBoard,
+    board,
+    daemon_process,
+    drive_and_wait,
+    log_motors_config,
+)
+from tests.test_startup import assert_config_error, run_x6wd, write_config
+from x6wd.app.client import RemoteClient
+from x6wd.app.daemon import Daemon, _RecorderWorker
+from x6wd.core.recorder import Recorder
+
+__all__ = ["board", "daemon_process", "run_daemon"]  # the fixtures
+
+# -- signals: every one that would kill the process stops the motors first -----------------
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize(
+    ("sig", "code"),
+    [(signal.SIGHUP, 0), (signal.SIGUSR1, 1), (signal.SIGQUIT, 1)],
+    ids=["HUP", "USR1", "QUIT"],
+)
+def test_a_signal_while_driving_stops_the_motors_and_exits_cleanly(
+    daemon_process: DaemonProcess, board: TcpMotorBoard, sig: signal.Signals, code: int
+) -> None:
+    p = daemon_process
+    with drive_and_wait(p, board, 40, 40):
+        time.sleep(0.2)  # keep-alives flowing: the stop must be the daemon's exit
+        t_sig = time.monotonic()
+        p.proc.send_signal(sig)
+        assert p.proc.wait(15) == code, "\n".join(p.lines[-5:])
+    assert board.first_after(t_sig, r"S #\d+$") is not None, f"no S: {board.lines[-3:]}"
+    assert (board.board.left_pct, board.board.right_pct) == (0, 0)
+    p.reader.join(5)
+    assert any(f"{sig.name} received" in line for line in p.lines), p.lines[-5:]
+    assert any("x6wd stopped" in line for line in p.lines)
+
+
+# -- the motor thread is guarded like the others ------------------------------------------
+
+
+class BuggyLink(StampedLink):
+    """A motor link whose health-event call hits a bug once armed (in the motor thread's
+    ``_after_io``)."""
+
+    armed = False
+    t_boom: float | None = None
+
+    def take_health_events(self) -> list:  # type: ignore[type-arg]
+        if self.armed and self.t_boom is None:
+            self.t_boom = time.monotonic()
+            raise RuntimeError("injected bug in the motor thread")
+        return super().take_health_events()
+
+
+@pytest.fixture
+def buggy(monkeypatch: pytest.MonkeyPatch) -> BuggyLink:
+    from drivers import registry
+
+    link = BuggyLink()
+    monkeypatch.setattr(registry, "open_motors", lambda url, devices=None: link)
+    return link
+
+
+def test_a_bug_in_the_motor_thread_stops_the_motors_and_exits_1(
+    tmp_path: Path, run_daemon, buggy: BuggyLink, caplog: pytest.LogCaptureFixture
+) -> None:
+    r = run_daemon(Daemon(log_motors_config(tmp_path)))
+    with RemoteClient("127.0.0.1", r.port) as c:
+        c.request("drive", left=40, right=40, duration_s=5)
+        wait_for(lambda: buggy.driving(40.0, 40.0), 3, "motors driven")
+        buggy.armed = True
+        r.thread.join(5)
+    assert r.code == 1, "the daemon went on without its motor thread"
+    assert buggy.t_boom is not None
+    t_stop = buggy.first_stop_after(buggy.t_boom)
+    assert t_stop is not None and t_stop - buggy.t_boom < 0.5
+    assert "thread x6wd-motors died" in caplog.text
+
+
+# -- the recorder thread: bounded queue, bounded exit, status --------------------------
+
+
+@pytest.fixture
+def fifo_dir(tmp_path: Path) -> Iterator[Path]:
+    """A directory whose FIFOs are opened for reading at teardown, so that a writer blocked
+    opening one is let go."""
+    d = tmp_path / "rec"
+    d.mkdir()
+    yield d
+    for f in d.iterdir():
+        if f.is_fifo():
+            with contextlib.suppress(OSError):
+                os.close(os.open(f, os.O_RDONLY | os.O_NONBLOCK))
+
+
+def test_a_stuck_recorder_drops_records_and_lets_go_at_close(fifo_dir: Path) -> None:
+    rec = Recorder(fifo_dir / "r.jsonl", max_bytes=2000)
+    os.mkfifo(fifo_dir / "r.1.jsonl")  # the next part: its open blocks
+    w = _RecorderWorker(rec, max_queued=50, stall_s=0.2, log_every_s=60.0)
+    for i in range(40):  # ~100 B each: the 21st needs the next part
+        w.put("record_nmea", f"$GPTXT,{i:04d}*00")
+    wait_for(lambda: w.status().get("busy_s", 0) > 0.2, 3, "writer stuck in the open")
+    assert w.state == "stalled"
+    for i in range(200):
+        w.put("record_nmea", f"$GPTXT,late{i}*00")
+    st = w.status()
+    assert st["queued"] <= 50 and st["queue_dropped"] >= 150
+    assert st["records_dropped"] >= 150 and st["state"] == "stalled"
+    t0 = time.monotonic()
+    assert w.close(timeout_s=0.5) is False
+    assert time.monotonic() - t0 < 1.5
+
+
+@pytest.mark.slow  # ~10 s: the first part must fill, then the writer stall for 5 s
+@pytest.mark.integration
+def test_sigterm_with_the_recorder_stuck_exits_in_bounded_time(
+    tmp_path: Path, board: TcpMotorBoard
+) -> None:
+    rec_dir = tmp_path / "rec"
+    config = write_config(
+        tmp_path,
+        motors={"url": f"tcp://127.0.0.1:{board.port}?watchdog_ms=500"},
+        recorder={"dir": str(rec_dir), "max_file_mb": 0.02, "min_free_mb": 0},
+    )
+    p = DaemonProcess(config)
+    try:
+        first = next(
+            Path(m[1]) for line in p.lines if (m := re.search(r"recording to (\S+)", line))
+        )
+        nxt = first.with_name(f"{first.stem}.1.jsonl")
+        if not nxt.exists():
+            os.mkfifo(nxt)  # the next part's open blocks, as on a hung mount
+        assert p.port is not None
+        with RemoteClient("127.0.0.1", p.port) as c:
+
+            def recorder() -> dict:  # type: ignore[type-arg]
+                st: dict = c.request("status")  # type: ignore[type-arg]
+                return st["recorder"]
+
+            wait_for(lambda: recorder()["state"] == "stalled", 20, "recorder stalled")
+            st = c.request("status")
+            assert st["links"]["recorder"] == "stalled"
+            assert st["recorder"]["file"] == str(first)
+        t_sig = time.monotonic()
+        p.proc.send_signal(signal.SIGTERM)
+        assert p.proc.wait(8) == 0  # RECORDER_CLOSE_S after the motors, not when open returns
+        assert time.monotonic() - t_sig < 6.0
+        assert board.first_after(t_sig, r"S #\d+$") is not None
+        p.reader.join(5)
+        assert any("recorder stuck" in line for line in p.lines), p.lines[-5:]
+    finally:
+        if nxt.is_fifo():
+            with contextlib.suppress(OSError):
+                os.close(os.open(nxt, os.O_RDONLY | os.O_NONBLOCK))
+        p.stop()
+
+
+def test_a_failing_recorder_is_logged_at_a_bounded_rate_and_shown_in_status(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    rec = Recorder(tmp_path / "r.jsonl", max_bytes=500, reopen_backoff_s=(0.02, 0.05))
+    (tmp_path / "r.1.jsonl").mkdir()  # the next part cannot be opened (EISDIR), ever
+    w = _RecorderWorker(rec, log_every_s=0.2)
+    t_end = time.monotonic() + 1.1
+    with caplog.at_level(logging.WARNING, logger="x6wd.app.daemon"):
+        i = 0
+        while time.monotonic() < t_end:
+            w.put("record_nmea", f"$GPTXT,{i:05d}*00")
+            i += 1
+            time.sleep(0.002)
+        wait_for(lambda: w.status()["queued"] == 0, 3, "queue drained")
+        st = w.status()
+        assert st["state"] == "failing"
+        assert st["records_dropped"] > 100 and "r.1.jsonl" in st["last_error"]
+        assert st["file"] == str(tmp_path / "r.jsonl")
+        assert w.close() is True
+    summaries = [r for r in caplog.records if "records lost in the last" in r.getMessage()]
+    assert 3 <= len(summaries) <= 7, [r.getMessage() for r in summaries]  # ~every 0.2 s
+    assert len(caplog.records) <= len(summaries) + 2  # no line per failure
+
+
+# -- a bind address that is not one ----------------------------------------------------
+
+
+@pytest.mark.integration
+def test_an_invalid_bind_address_is_named_as_such(tmp_path: Path) -> None:
+    proc = run_x6wd(write_config(tmp_path, server={"bind": "127.0.0.999"}))
+    line = assert_config_error(proc, "server.bind", "127.0.0.999", "not an IP address")
+    assert "token_file" not in line
