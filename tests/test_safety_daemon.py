@@ -555,8 +555,9 @@ def test_at_exit_the_motors_stop_first_and_nothing_is_left_open(
     assert gps_fds >= 1  # the daemon's GPS reader holds its device
     watcher = RemoteClient("127.0.0.1", port)
     watcher.request("watch", on=True)
-    with RemoteClient("127.0.0.1", port) as c:
-        c.request("drive", left=30, right=-30, duration_s=5)
+    # held open until the motors drove: the robot stops a drive whose client went away
+    driver = RemoteClient("127.0.0.1", port)
+    driver.request("drive", left=30, right=-30, duration_s=5)
     state = wait_for(lambda: (e := watcher.next_event(2.0))["event"] == "state" and e, 5)
     assert state == {
         "event": "state", "old": "IDLE", "new": "MANUAL", "reason": "mode: manual drive"
@@ -567,6 +568,7 @@ def test_at_exit_the_motors_stop_first_and_nothing_is_left_open(
     }  # fmt: skip
     assert (tel["data"]["mode"], tel["data"]["left_pct"]) == ("MANUAL", 30.0)
     wait_for(lambda: stamped.driving(30.0, -30.0), 3, "motors driven")
+    driver.close()
     # a change of state is also told to systemd (`systemctl status` shows it)
     assert any(m.get("STATUS") == "MANUAL IDLE" for m in itertools.islice(notices(sock), 20))
     # a first fix, and the next epoch's: the first epoch's sky report (its GSV sentences come
