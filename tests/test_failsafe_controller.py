@@ -432,6 +432,23 @@ def test_driving_away_from_the_target_stops_the_mission() -> None:
     assert c.mode == Mode.RUNNING
 
 
+def test_fixes_that_jump_away_while_the_wheels_stand_still_are_no_runaway() -> None:
+    """Beside a wall the fix can sit 30-40 m off for many seconds while the robot waits: with
+    encoders, 'farther away' counts only once the wheels drove that far."""
+    c = started(replace(FS, stuck_s=0.0, heading_check_deg=0.0), north_m=1000.0)
+    for k in range(1, 11):  # on course north at 2 m/s, the wheels counting it
+        feed(c, float(k), 2.0 * k, counts=round(2.0 * k * COUNTS_PER_M))
+    for k in range(11, 21):  # the fixes jump 40 m south; the wheels: 2 m more in all
+        feed(c, float(k), 20.0 - 40.0, counts=round(22.0 * COUNTS_PER_M))
+    assert c.mode == Mode.RUNNING
+    for k in range(21, 40):  # now the wheels drive on while the fixes recede
+        y = -20.0 - 2.0 * (k - 20)
+        feed(c, float(k), y, counts=round((22.0 + 2.0 * (k - 20)) * COUNTS_PER_M))
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED and c.telemetry.extra["failsafe"].startswith("off course (")
+
+
 def test_off_course_action_return_drives_back() -> None:
     c = started(replace(FS, stuck_s=0.0, off_course_action="return"), north_m=1000.0)
     drive(c, 0.0, 90.0, 30)

@@ -594,7 +594,8 @@ class Controller:
             h = self._current_heading_rad()
             heading_deg = None if h is None else math.degrees(h)
         target = nav.waypoints[nav.index]
-        why = self._course.on_fix(fix.t_s, fix.lat_deg, fix.lon_deg, target, heading_deg)
+        travel_m = self._wheel_m if self._odo_prev is not None else None
+        why = self._course.on_fix(fix.t_s, fix.lat_deg, fix.lon_deg, target, heading_deg, travel_m)
         return None if why is None else (why, self._failsafe.off_course_action)
 
     def _stuck_check(self, now: float) -> tuple[str, str] | None:

@@ -5,7 +5,9 @@ estimate takes in (a compass knocked round, an offset the EKF has not learnt, a 
 fixes it refused) cannot hide itself:
 
 - *away*: :data:`AWAY_CHECKS` fixes in a row lie ``off_course_m`` farther from the current
-  target than the leg's closest fix: the robot drives away from where it steers to;
+  target than the leg's closest fix, and (with wheel encoders) the wheels drove at least
+  that far since it: the robot drives away from where it steers to, not a fix beside a wall
+  jumping tens of metres while the robot waits;
 - *heading*: over the last :data:`COURSE_WINDOW_M` of straight driving, the course the
   fixes made good differs from the heading the robot steered by (its mean over the window)
   by more than ``heading_check_deg``, on :data:`HEADING_CHECKS` windows in a row. Only
@@ -68,6 +70,7 @@ class CourseWatch:
         self._window: deque[tuple[float, float, float, float, float]] = deque()
         self._bad = 0
         self._away = 0  # fixes in a row past off_course_m
+        self._best_travel_m: float | None = None  # the wheels' travel at the closest fix
 
     def reset(self) -> None:
         """Forget the leg and the window (the mission starts, resumes or returns)."""
@@ -84,8 +87,11 @@ class CourseWatch:
         lon_deg: float,
         target: tuple[float, float],
         heading_deg: float | None,
+        travel_m: float | None = None,
     ) -> str | None:
         """A usable fix at ``t_s`` (s) while running towards ``target`` (lat_deg, lon_deg).
+        ``travel_m``: the wheels' distance travelled so far (m, any origin), None without
+        encoders.
         ``heading_deg``: the true heading the robot steers by now, when it drives straight
         ahead (None while it pivots, holds or is otherwise not driving straight: the
         heading check's window starts again). The failsafe's reason, or None."""
@@ -95,8 +101,14 @@ class CourseWatch:
             self._window.clear()
             self._bad = self._away = 0
         d_m = great_circle_m(lat_deg, lon_deg, target[0], target[1])
-        self._best_m = min(self._best_m, d_m)
-        if self.off_course_m > 0 and d_m > self._best_m + self.off_course_m:
+        if d_m < self._best_m:
+            self._best_m, self._best_travel_m = d_m, travel_m
+        drove = (
+            travel_m is None
+            or self._best_travel_m is None
+            or travel_m - self._best_travel_m >= self.off_course_m
+        )
+        if self.off_course_m > 0 and d_m > self._best_m + self.off_course_m and drove:
             self._away += 1
             if self._away >= AWAY_CHECKS:
                 self._away = 0
