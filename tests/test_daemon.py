@@ -541,10 +541,10 @@ def test_the_motor_thread_polls_the_encoders_at_the_rate_between_sends() -> None
         (lambda: EncoderLink(answers=False), "the motor board did not answer"),
     ],
 )
-def test_a_board_without_encoders_is_asked_once_and_logged_once(
+def test_a_board_without_encoders_is_given_up_on_and_logged_once(
     make_link: Callable[[], Any], reason: str, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from x6wd.app.daemon import _MotorWorker
+    from x6wd.app.daemon import ODOMETRY_GIVE_UP_AFTER, _MotorWorker
 
     link = make_link()
     got: list[Any] = []
@@ -555,12 +555,69 @@ def test_a_board_without_encoders_is_asked_once_and_logged_once(
     w.start()
     try:
         wait_for(lambda: w.odometry_state == "unavailable", 3, "unavailable")
-        time.sleep(0.3)  # the keep-alive goes on, the encoders are not asked again
-        assert getattr(link, "reads", []) == [] or len(link.reads) == 1
+        time.sleep(0.3)  # the keep-alive goes on, the encoders are not asked again (10 s)
+        reads = getattr(link, "reads", None)
+        assert reads is None or len(reads) == ODOMETRY_GIVE_UP_AFTER
         assert w.odometry_reason.startswith(reason) and got == []
         assert len(link.sent) >= 3  # the motors are not affected
         logged = [r for r in caplog.records if "wheel odometry unavailable" in r.getMessage()]
         assert len(logged) == 1 and reason in logged[0].getMessage()
+    finally:
+        w.shutdown("test end")
+
+
+class FlakyEncoderLink(EncoderLink):
+    """Refuses ``E`` (ERR) for its first ``refuse_first`` requests and while ``refusing``
+    is set, answers otherwise."""
+
+    def __init__(self, refuse_first: int = 0) -> None:
+        super().__init__()
+        self.refusing = threading.Event()
+        self.refuse_first = refuse_first
+
+    def read_odometry(self) -> Any:
+        rec = super().read_odometry()
+        if self.refusing.is_set() or len(self.reads) <= self.refuse_first:
+            self.odometry_supported = False
+            return None
+        self.odometry_supported = True
+        return rec
+
+
+def test_a_refusal_or_two_does_not_end_the_odometry_and_it_comes_back(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A board that answers ERR to a few E requests (booting, a glitch) is polled on; one that
+    refuses long enough is unavailable, asked again every ODOMETRY_RETRY_S, and polled again
+    once it answers."""
+    import x6wd.app.daemon as daemon_module
+    from x6wd.app.daemon import ODOMETRY_GIVE_UP_AFTER, _MotorWorker
+
+    monkeypatch.setattr(daemon_module, "ODOMETRY_RETRY_S", 0.3)
+    assert ODOMETRY_GIVE_UP_AFTER > 3
+    link = FlakyEncoderLink(refuse_first=3)  # a board still booting
+    got: list[Any] = []
+    w = _MotorWorker(
+        link, keepalive_s=0.05, on_health=lambda ok, t: None, on_odometry=got.append,
+        odometry_s=0.02,
+    )  # fmt: skip
+    w.start()
+    try:
+        wait_for(lambda: len(got) >= 3, 3, "readings after a few refusals")
+        assert w.odometry_state == "polling" and w.odometry_failures == 3
+        assert not [r for r in caplog.records if "wheel odometry" in r.getMessage()]
+        link.refusing.set()
+        wait_for(lambda: w.odometry_state == "unavailable", 3, "unavailable")
+        assert w.odometry_reason.startswith("the motor board refuses")
+        n = len(link.reads)
+        time.sleep(0.15)
+        assert len(link.reads) == n  # not at the polling rate any more
+        link.refusing.clear()
+        wait_for(lambda: w.odometry_state == "polling", 3, "asked again and back")
+        n = len(got)
+        wait_for(lambda: len(got) >= n + 5, 3, "polled at its rate again")
+        msgs = [r.getMessage() for r in caplog.records if "wheel odometry" in r.getMessage()]
+        assert len(msgs) == 2 and "back" in msgs[1], msgs
     finally:
         w.shutdown("test end")
 

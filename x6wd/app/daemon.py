@@ -82,6 +82,13 @@ MOTOR_REPEAT_S = 1.0 / TICK_HZ
 """The same motor command from the event loop (compass samples, ticks) is sent at most this
 often (s); the keep-alive repeats it in between when needed, a fix's command always goes."""
 ODOMETRY_HZ = 20.0
+ODOMETRY_GIVE_UP_AFTER = 5
+"""Encoder requests refused (ERR) or unanswered in a row (before any reading, for the
+unanswered) before the encoders count as unavailable: one ERR from a board still booting
+or a line glitch must not turn the odometry off."""
+ODOMETRY_RETRY_S = 10.0
+"""While unavailable, the encoders are asked again this often (s): a board that comes back
+with its encoders (rebooted, firmware updated, its ERR a transient) is polled again."""
 """Wheel-encoder poll rate (docs/motors.md, "Wheel encoders"): the motor thread sends ``E``."""
 OPERATOR_SEEN_S = 0.25
 """An operator's requests reach the controller's operator-link failsafe at most this often
@@ -142,9 +149,10 @@ class _MotorWorker:
     ``on_events(events)`` with the link's health events (transitions, failures while lost).
     ``on_odometry(rec)``: the thread also polls the board's wheel encoders
     (``link.read_odometry``) every ``odometry_s`` while the link is healthy and nothing is
-    queued, and hands each reading over. A backend without encoders, a board that refuses
-    ``E`` or does not answer the first one, turns the polling off for good
-    (:attr:`odometry_state` "unavailable", logged once).
+    queued, and hands each reading over. A backend without encoders turns the polling off
+    for good; a board that refuses ``E``, or does not answer it before any reading,
+    :data:`ODOMETRY_GIVE_UP_AFTER` times in a row makes the odometry "unavailable" (logged
+    once), asked again every :data:`ODOMETRY_RETRY_S` and polled again once it answers.
     """
 
     def __init__(
@@ -188,9 +196,12 @@ class _MotorWorker:
         self.odometry_failures = 0
         self.odometry_state = "off"  # "polling", "unavailable" or "off" (nobody takes them)
         self.odometry_reason = ""
+        self._odo_retry = False  # the encoders are asked (polling, or retrying unavailable)
+        self._odo_fail_run = 0  # requests refused or unanswered in a row
         if on_odometry is not None:
             if callable(getattr(link, "read_odometry", None)):
                 self.odometry_state = "polling"
+                self._odo_retry = True
             else:
                 self._odometry_unavailable("the motor backend has no wheel encoders")
         self._t_odo = time.monotonic()  # when the next encoder poll is due
@@ -276,7 +287,7 @@ class _MotorWorker:
                     left_s = self._t_sent + self.keepalive_s - now
                     if left_s <= 0:
                         break
-                    if self.odometry_state == "polling" and self._healthy:
+                    if self._odo_retry and self._healthy:
                         odo_s = self._t_odo - now
                         if odo_s <= 0:
                             poll = True
@@ -329,13 +340,20 @@ class _MotorWorker:
     def _odometry_unavailable(self, reason: str) -> None:
         self.odometry_state = "unavailable"
         self.odometry_reason = reason
-        log.warning("wheel odometry unavailable: %s; not polling the encoders", reason)
+        if self._odo_retry:
+            log.warning(
+                "wheel odometry unavailable: %s; asking again every %g s",
+                reason, ODOMETRY_RETRY_S,
+            )  # fmt: skip
+        else:
+            log.warning("wheel odometry unavailable: %s; not polling the encoders", reason)
 
     def _poll_odometry(self) -> None:
         """Read the encoders once (this thread owns the link: ``_busy`` is set)."""
         now = time.monotonic()
         # a fixed schedule, but no burst to catch up after a stall
-        self._t_odo = max(self._t_odo + self.odometry_s, now)
+        period_s = self.odometry_s if self.odometry_state == "polling" else ODOMETRY_RETRY_S
+        self._t_odo = max(self._t_odo + period_s, now)
         rec: WheelOdometry | None = None
         try:
             rec = self.link.read_odometry()
@@ -343,15 +361,29 @@ class _MotorWorker:
             log.debug("reading the wheel encoders failed: %s", exc)
             rec = None
         if rec is not None:
+            self._odo_fail_run = 0
+            if self.odometry_state == "unavailable":
+                self.odometry_state, self.odometry_reason = "polling", ""
+                self._t_odo = now + self.odometry_s
+                log.warning("wheel odometry back: the motor board answers the encoder request")
             self.odometry_readings += 1
             assert self._on_odometry is not None
             self._on_odometry(rec)
         else:
             self.odometry_failures += 1
-            if getattr(self.link, "odometry_supported", None) is False:
-                self._odometry_unavailable("the motor board refuses the encoder request (E)")
-            elif self.odometry_readings == 0:
-                self._odometry_unavailable("the motor board did not answer the encoder request")
+            self._odo_fail_run += 1
+            refused = getattr(self.link, "odometry_supported", None) is False
+            if (
+                self.odometry_state == "polling"
+                and self._odo_fail_run >= ODOMETRY_GIVE_UP_AFTER
+                and (refused or self.odometry_readings == 0)
+            ):
+                self._t_odo = now + ODOMETRY_RETRY_S
+                self._odometry_unavailable(
+                    "the motor board refuses the encoder request (E)"
+                    if refused
+                    else "the motor board did not answer the encoder request"
+                )
         self._after_io()
 
     def _send(self, cmd: MotorCommand) -> None:
