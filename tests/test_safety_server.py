@@ -281,7 +281,9 @@ def test_hello_status_watch_and_log_replies(servers) -> None:
                          "tls": False}  # fmt: skip
         st = raw.ask({"id": 2, "cmd": "status"})
         assert st["client"] == {"watching": False, "dropped": 0}
-        assert st["server"]["stops"] == {"requested": 0, "sent": 0, "coalesced": 0, "early": 0}
+        assert st["server"]["stops"] == {
+            "requested": 0, "sent": 0, "coalesced": 0, "early": 0, "orphaned": 0
+        }  # fmt: skip
         assert raw.ask({"id": 3, "cmd": "watch"}) == {"id": 3, "ok": True, "watching": True,
                                                       "dropped": 0}  # fmt: skip
         assert raw.ask({"id": 4, "cmd": "watch", "enable": False})["watching"] is False
