@@ -120,3 +120,25 @@ def test_bad_toml_in_a_file_names_it_once_on_one_line(tmp_path: Path) -> None:
     msg = str(info.value)
     assert msg.startswith(f"{broken}: not valid TOML") and msg.count(str(broken)) == 1
     assert "line 3" in msg and "\n" not in msg
+
+
+def test_the_compass_offset_prior_reaches_the_ekf() -> None:
+    """[navigation] compass_offset_sigma_deg is the EKF's prior on a constant compass offset;
+    0 turns that state off (beside walls a well-calibrated compass does better without it)."""
+    from x6wd.core.config import GnssNoiseConfig, OdometryConfig
+    from x6wd.nav.estimator import Estimator
+    from x6wd.nav.position import estimator_config
+
+    shipped = load(Path(__file__).resolve().parent.parent / "config" / "x6wd.toml")
+    assert shipped.navigation.compass_offset_sigma_deg == 10.0
+    off = loads("[navigation]\ncompass_offset_sigma_deg = 0.0\n").navigation
+    for nav, sigma in ((shipped.navigation, 10.0), (off, 0.0)):
+        cfg = estimator_config(nav, OdometryConfig(), GnssNoiseConfig(), 2.0)
+        assert cfg.compass.offset_sigma_deg == sigma and cfg.compass.declination_deg == 2.0
+    for nav, learns in ((shipped.navigation, True), (off, False)):
+        est = Estimator(estimator_config(nav, OdometryConfig(), GnssNoiseConfig(), 0.0))
+        est.on_gps(0.0, 0.0, 0.0, 1.0)
+        est.on_compass(0.0, 0.0)
+        assert (est.covariance[9, 9] > 0.0) == learns  # state 9: the offset (0: frozen)
+    with pytest.raises(ConfigError, match="compass_offset_sigma_deg"):
+        loads("[navigation]\ncompass_offset_sigma_deg = -1\n")

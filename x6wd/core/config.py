@@ -154,6 +154,9 @@ class NavigationConfig:
     # ground speed at +100/+100 % (m/s); with steer_track_m it predicts the motion from the
     # commands when no encoder counts arrive (the simulator's robot: 14 km/h)
     full_speed_mps: float = field(default=3.888, metadata=_rng(0.05, 20))
+    # the EKF's prior one-sigma (deg) of a constant compass offset (mounting, a declination
+    # off) that it learns from the GPS track; 0: the compass is taken as it reads
+    compass_offset_sigma_deg: float = field(default=10.0, metadata=_rng(0, 90))
 
     @classmethod
     def paper(cls, **overrides: Any) -> NavigationConfig:

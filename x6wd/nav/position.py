@@ -157,7 +157,9 @@ def estimator_config(
             # T = 2·v_full / w_full (steer_track_m), so w_full = 2·v_full / T
             yaw_rate_dps_per_pct=math.degrees(2.0 * full_mps / nav.steer_track_m) / 100.0,
         ),
-        compass=ekf.CompassParams(declination_deg=declination_deg),
+        compass=ekf.CompassParams(
+            declination_deg=declination_deg, offset_sigma_deg=nav.compass_offset_sigma_deg
+        ),
         gps=ekf.GpsParams(
             re_m=gnss.re_m,
             ase_m=gnss.ase_m,
