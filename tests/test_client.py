@@ -133,6 +133,41 @@ def test_drive_holds_its_connection_and_ctrl_c_stops_the_robot(served, token_fil
     assert [n for n, _ in backend.calls] == ["drive", "drive", "stop"]
 
 
+def test_drive_reports_a_robot_stopped_early_or_a_server_gone(token_file: Path) -> None:
+    """Another operator's stop mid-drive: exit 1, 'ended early'; the server going away:
+    exit 3. Neither is 'drive: ok'."""
+    import time
+
+    from x6wd.app.client import RemoteClient
+
+    for how, code, said in (("stop", 1, "ended early: the robot is IDLE"), ("close", 3, "")):
+        lt = LoopThread()
+        backend = RecordingBackend()
+        srv = start_server(lt, backend, token=TOKEN.encode())
+        cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(srv.port)]
+        proc = subprocess.Popen(
+            [*cmd, "--token-file", str(token_file), "drive", "30", "30", "10"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + 20
+            while not backend.calls:
+                assert time.monotonic() < deadline and proc.poll() is None
+                time.sleep(0.02)
+            if how == "stop":
+                with RemoteClient("127.0.0.1", srv.port) as other:
+                    other.request("stop")
+            else:
+                lt.run(srv.close())
+            out, stderr = proc.communicate(timeout=10)
+        finally:
+            proc.kill()
+            lt.run(srv.close())
+            lt.close()
+        assert proc.returncode == code and "drive: ok" not in out, (how, out, stderr)
+        assert said in stderr, stderr
+
+
 def test_the_servers_reason_for_closing_is_reported(tmp_path: Path) -> None:
     """A connection that does not authenticate in time is closed with a notice; the client
     says why (exit 3 from the command line)."""

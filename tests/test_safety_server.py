@@ -513,6 +513,44 @@ def test_a_client_that_goes_away_while_driving_stops_the_motors(servers, lt: Loo
     wait_until(lambda: [n for n, _ in backend.calls][-2:] == ["drive", "stop"], 2.0)
 
 
+class RefusingBackend(RecordingBackend):
+    """Refuses start and pause as the robot does during a manual drive."""
+
+    def start(self) -> dict[str, Any]:
+        from x6wd.core.errors import CommandError
+
+        raise CommandError("rejected", "no mission loaded")
+
+    pause = start
+
+
+def test_a_command_the_robot_refused_leaves_the_drive_and_its_dead_man(
+    servers, lt: LoopThread
+) -> None:
+    backend = RefusingBackend()
+    srv = servers(backend, token=None)
+    a, b = Raw(srv.port), Raw(srv.port)
+    assert a.ask({"id": 1, **DRIVE, "duration_s": 30})["ok"]
+    assert not b.ask({"id": 1, "cmd": "start"})["ok"]  # refused: nothing took over
+    assert not b.ask({"id": 2, "cmd": "pause"})["ok"]
+    b.close()
+    a.close()
+    wait_until(lambda: [n for n, _ in backend.calls] == ["drive", "stop"], 2.0)
+
+
+def test_the_servers_own_close_is_no_orphaned_drive(servers, lt: LoopThread) -> None:
+    """At shutdown the daemon stops the motors itself; its connections ending then is not a
+    client that went away (no stop counted, no warning naming the client)."""
+    backend = RecordingBackend()
+    srv = servers(backend, token=None)
+    a = Raw(srv.port)
+    assert a.ask({"id": 1, **DRIVE, "duration_s": 30})["ok"]
+    lt.run(srv.close())
+    assert lt.call(lambda: srv.server_stats()["stops"]["orphaned"]) == 0
+    assert [n for n, _ in backend.calls] == ["drive"]
+    a.close()
+
+
 def test_only_the_client_whose_drive_still_runs_stops_the_motors(servers, lt: LoopThread) -> None:
     backend = RecordingBackend()
     srv = servers(backend, token=None)

@@ -9,6 +9,7 @@ import socket
 import ssl
 import subprocess
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -40,8 +41,11 @@ class RecordingBackend:
             raise exc
         return {"did": name}
 
+    manual_until = 0.0  # time.monotonic() when the latest drive ends (MANUAL until then)
+
     def status(self) -> dict[str, Any]:
-        return {"mode": "IDLE", "state": "IDLE", "links": {"gps": "ok", "motors": "ok"}}
+        mode = "MANUAL" if time.monotonic() < self.manual_until else "IDLE"
+        return {"mode": mode, "state": "IDLE", "links": {"gps": "ok", "motors": "ok"}}
 
     def load_mission(self, waypoints: list[Waypoint]) -> dict[str, Any]:
         self._call("load_mission", waypoints)
@@ -63,10 +67,12 @@ class RecordingBackend:
         self.seen += 1  # not a call: every request of an operator makes one
 
     def stop(self) -> dict[str, Any]:
+        self.manual_until = 0.0
         return self._call("stop")
 
     def drive(self, left_pct: float, right_pct: float, duration_s: float) -> dict[str, Any]:
         self._call("drive", (left_pct, right_pct, duration_s))
+        self.manual_until = time.monotonic() + duration_s
         return {"left": left_pct, "right": right_pct, "duration_s": duration_s}  # the daemon's
 
     def log_tail(self, n: int) -> list[str]:

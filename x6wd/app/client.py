@@ -401,21 +401,38 @@ def _print_reply(reply: dict[str, Any], out: TextIO) -> None:
     print(json.dumps(body, indent=2, sort_keys=True), file=out)
 
 
-def _hold_drive(client: RemoteClient, reply: dict[str, Any], err: TextIO) -> bool:
+HOLD_POLL_S = 0.5
+"""While a drive runs, ``x6wd client drive`` asks ``status`` this often (s): a robot that
+stopped early (another operator's stop, a fault) or a server gone is reported, not taken
+for a drive that ran its course."""
+HOLD_END_GRACE_S = 0.3
+"""The last part of a drive (s) in which a robot no longer in MANUAL is its normal end."""
+
+
+def _hold_drive(client: RemoteClient, reply: dict[str, Any], err: TextIO) -> int | None:
     """Keep the connection open while the drive the robot granted runs: the robot stops a
-    drive whose client went away, so leaving early would cut it short. Ctrl-C sends ``stop``
-    (the connection's close alone would too) and returns False."""
+    drive whose client went away, so leaving early would cut it short. Returns None when
+    the drive ran its course; :data:`EXIT_REFUSED` when the robot left manual drive early
+    (said on ``err``); :data:`EXIT_INTERRUPTED` on Ctrl-C, after sending ``stop`` (the
+    connection's close alone would stop it too). A connection lost meanwhile raises
+    :class:`ConnectionFailed`."""
     duration_s = reply.get("duration_s")
     if not isinstance(duration_s, (int, float)) or not 0.0 < duration_s <= 3600.0:
         raise ProtocolError(f"'drive' reply without a usable duration_s: {duration_s!r:.60}")
+    end = time.monotonic() + float(duration_s)
     try:
-        time.sleep(float(duration_s))
+        while (left_s := end - time.monotonic()) > 0.0:
+            time.sleep(min(HOLD_POLL_S, left_s))
+            mode = client.request("status").get("mode")
+            if mode != "MANUAL" and end - time.monotonic() > HOLD_END_GRACE_S:
+                print(f"x6wd client: the drive ended early: the robot is {mode}", file=err)
+                return EXIT_REFUSED
     except KeyboardInterrupt:
         with contextlib.suppress(X6wdError, OSError):
             client.request("stop")
         print("x6wd client: drive interrupted: stop sent", file=err)
-        return False
-    return True
+        return EXIT_INTERRUPTED
+    return None
 
 
 def _watch(client: RemoteClient, args: argparse.Namespace, out: TextIO, ansi: bool) -> None:
@@ -556,8 +573,9 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
                 reply = client.request(
                     "drive", left=args.left, right=args.right, duration_s=args.seconds
                 )
-                if not _hold_drive(client, reply, err):
-                    return EXIT_INTERRUPTED
+                held = _hold_drive(client, reply, err)
+                if held is not None:
+                    return held
             elif action == "log":
                 reply = client.request("log", n=args.n)
                 if not args.json:

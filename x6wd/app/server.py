@@ -360,6 +360,7 @@ class ControlServer(LineServer[_Client]):
             {"requested": 0, "sent": 0, "coalesced": 0, "early": 0, "orphaned": 0}
         )
         self._drive_owner: _Client | None = None  # whose manual drive runs (the dead-man)
+        self._closing = False  # close() has begun: connections end because the server does
         self._drive_until_s = 0.0  # time.monotonic() when it ends
         self._command_seq = 0  # incremented before each motion command reaches the backend
         self._stop_call = _Shared()
@@ -460,14 +461,20 @@ class ControlServer(LineServer[_Client]):
             self._drive_orphaned(c)
             await self._hang_up(c, reader)
 
+    async def close(self) -> None:
+        """Stop listening and disconnect every client (idempotent)."""
+        self._closing = True
+        await super().close()
+
     def drive_active(self, c: _Client) -> bool:
         """True while ``c``'s manual drive runs and no later command replaced it."""
         return self._drive_owner is c and time.monotonic() < self._drive_until_s
 
     def _drive_orphaned(self, c: _Client) -> None:
         """The dead-man on the control port: a client that goes away (closed, reset, evicted)
-        while its drive runs stops the motors now, not when ``duration_s`` ends."""
-        if not self.drive_active(c):
+        while its drive runs stops the motors now, not when ``duration_s`` ends. Not when
+        the server itself closes: the daemon's shutdown stops the motors, no client left."""
+        if self._closing or not self.drive_active(c):
             return
         self._drive_owner = None
         self.stops["requested"] += 1
@@ -674,10 +681,14 @@ class ControlServer(LineServer[_Client]):
                 reply = await _result(b.drive(*args))
                 self._drive_owner, self._drive_until_s = c, time.monotonic() + args[2]
                 return reply
-            self._drive_owner = None  # another command took the motors over
             if cmd == "return":  # a Python keyword: the backend's method is return_home
-                return await _result(b.return_home())
-            return await _result(getattr(b, cmd)())
+                reply = await _result(b.return_home())
+            else:
+                reply = await _result(getattr(b, cmd)())
+            # start, pause, resume, return took the motors over; one the robot refused
+            # raised above and left the drive (and its dead-man) as it was
+            self._drive_owner = None
+            return reply
         if cmd == "hello":
             return {
                 "server": "x6wd",
