@@ -595,12 +595,12 @@ def test_a_compass_90_degrees_off_pauses_the_robot_before_it_goes_far(tmp_path: 
     goes north. The fixes' course shows it: paused, motors stopped, within metres."""
     run = _mission(tmp_path, _compass_off_world(90.0))
     paused = run.first("PAUSED", "failsafe: off course (heading")
-    assert paused["t_s"] < 20.0
+    assert paused["t_s"] < 25.0  # three fresh 10 m windows: about 30 m of driving
     ((t_s, why),) = run.summary.extra["failsafes"]  # in the summary, and said by x6wd sim
     assert t_s == pytest.approx(paused["t_s"], abs=1e-3) and why.startswith("off course (")
     assert f"  failsafe            at {t_s:.1f} s: off course (heading" in run.summary.text()
     assert run.mode_changes()[-1][1] == "PAUSED"
-    assert run.final_from_start_m() < 20.0
+    assert run.final_from_start_m() < 45.0
     motors = [m for m in run.of("motor") if m["t_s"] >= paused["t_s"]]
     assert motors and all(m["left_pct"] == m["right_pct"] == 0.0 for m in motors)
 

@@ -101,6 +101,9 @@ ODOMETRY_FRESH_S = 0.5
 """Encoder counts older than this (s) do not count as reporting."""
 STUCK_TURN_DEG = 30.0
 """Heading change (deg) that counts as motion for the stuck failsafe while pivoting."""
+SLIP_MIN_TRAVEL = 4.0
+"""With encoders, the body counts as still (slipping) only once the wheels drove this many
+``stuck_min_m`` without it moving: at a slow cruise a drifting GPS can hide 6 m in 10 s."""
 
 SENSORS = ("gps", "compass")
 """The sensors :meth:`Controller.sensor_health` knows, in the order their holds are named."""
@@ -169,9 +172,10 @@ class Controller:
         self._failsafe_why = ""  # the last failsafe that acted (telemetry)
         self._operator_t: float | None = None  # latest operator request (s), when watched
         self._hold_since: float | None = None  # a sensor hold began (s)
-        # the stuck failsafe's last progress: (wheel m, t_s) and (lat, lon, bearing, t_s)
+        # the stuck failsafe's last progress: (wheel m, t_s) and (lat, lon, bearing, t_s,
+        # wheel m)
         self._stuck_wheels: tuple[float, float] | None = None
-        self._stuck_body: tuple[float, float, float, float] | None = None
+        self._stuck_body: tuple[float, float, float, float, float] | None = None
         self._stuck_forward = False
         self._course = CourseWatch(
             self._failsafe.off_course_m, self._failsafe.heading_check_deg, nav.full_speed_mps
@@ -628,13 +632,21 @@ class Controller:
             or self._body_moved_m(body, fix) >= fs.stuck_min_m
             or abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG
         ):
-            body = self._stuck_body = (fix.lat_deg, fix.lon_deg, att.bearing_deg, now)
+            body = (fix.lat_deg, fix.lon_deg, att.bearing_deg, now, self._wheel_m)
+            self._stuck_body = body
             self._stuck_forward = False
         # did it try to drive forward since the body last moved (else it only pivoted)?
         self._stuck_forward = self._stuck_forward or abs(forward) >= fs.stuck_min_pct
         still_wheels_s, still_body_s = now - wheels[1], now - body[3]
         if max(still_wheels_s, still_body_s) < fs.stuck_s:
             return None
+        if (
+            still_wheels_s < fs.stuck_s
+            and self._stuck_forward  # the fixes judge it (a pivot: the compass, which is sure)
+            and self._odo_prev is not None
+            and self._wheel_m - body[4] < SLIP_MIN_TRAVEL * fs.stuck_min_m
+        ):
+            return None  # the wheels drove too little to tell a slip from the GPS's wander
         self._stuck_wheels = self._stuck_body = None
         if still_wheels_s >= 0.5 * fs.stuck_s:
             what = "the wheels"
@@ -750,7 +762,7 @@ class Controller:
             memo = self._to_target_m = (fix, lat, lon, d)
         return memo[3] <= limit_m
 
-    def _body_moved_m(self, body: tuple[float, float, float, float], fix: GpsFix) -> float:
+    def _body_moved_m(self, body: tuple[float, ...], fix: GpsFix) -> float:
         """Great-circle distance (m) from the stuck check's last body position to a usable
         fix, computed once per pair (the fix comes at 1 Hz, the check runs at every input)."""
         memo = self._body_to_fix_m

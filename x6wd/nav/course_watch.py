@@ -10,7 +10,8 @@ fixes it refused) cannot hide itself:
   jumping tens of metres while the robot waits;
 - *heading*: over the last :data:`COURSE_WINDOW_M` of straight driving, the course the
   fixes made good differs from the heading the robot steered by (its mean over the window)
-  by more than ``heading_check_deg``, on :data:`HEADING_CHECKS` windows in a row. Only
+  by more than ``heading_check_deg``, on :data:`HEADING_CHECKS` windows in a row that do
+  not overlap (so over 30 m of straight driving at least). Only
   windows whose fixes could be a straight drive count: a fix that jumped farther than the
   robot can drive (a satellite lost, a reflection beside a wall) starts the window again,
   and a window whose fixes stray more than :data:`STRAY_M` from its chord is skipped.
@@ -157,6 +158,10 @@ class CourseWatch:
             self._bad = 0
             return None
         self._bad += 1
+        # the next window starts here: the checks in a row cover fresh stretches (a GPS
+        # drift bends one stretch of fixes, not three in turn)
+        w.clear()
+        w.append((t_s, lat_deg, lon_deg, s, c))
         if self._bad < HEADING_CHECKS:
             return None
         self._bad = 0
