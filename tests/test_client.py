@@ -273,6 +273,15 @@ def test_status_for_a_person_names_what_is_wrong() -> None:
                  "server     2 clients, 0 pending, 5 events dropped"):  # fmt: skip
         assert part in text, (part, text)
     assert "motors   connected" not in text  # only the devices with a problem
+    assert "recorder" not in text
+    st["recorder"] = {"state": "failing", "last_error": "[Errno 28] No space left on device",
+                      "records_dropped": 940}  # fmt: skip
+    assert (
+        "  recorder failing: [Errno 28] No space left on device (940 records not recorded)"
+        in render_status(st)
+    )
+    st["recorder"] = {"state": "ok", "last_error": "an old one", "records_dropped": 940}
+    assert "recorder" not in render_status(st)
 
 
 def test_a_closed_pipe_ends_the_client_quietly(served, token_file: Path) -> None:

@@ -318,6 +318,13 @@ def render_status(st: dict[str, Any]) -> str:
             state = dev.get("state", "?")
             if problem and state not in ("connected", "polling"):
                 lines.append(f"  {name:<9}{state}: {problem}")
+    rec = st.get("recorder")
+    if isinstance(rec, dict) and rec.get("state") not in (None, "ok"):
+        # recording is how a run is looked at afterwards: say what is lost and why
+        lines.append(
+            f"  recorder {rec.get('state')}: {rec.get('last_error') or '?'}"
+            f" ({rec.get('records_dropped', 0)} records not recorded)"
+        )
     server = st.get("server")
     if isinstance(server, dict):
         lines.append(

@@ -387,6 +387,8 @@ def enforce_retention(
         cap, floor = retention.max_total_bytes, retention.min_free_bytes
         if cap is not None and total > cap:
             return f"recordings take {total} B (the current part full) > {cap} B"
+        if floor is not None and free_now < 0:  # no negative byte counts in the log
+            return f"the current part, once full, would not fit ({-free_now} B short) < {floor} B"
         if floor is not None and free_now < floor:
             return f"{free_now} B free (the current part full) < {floor} B"
         return ""
