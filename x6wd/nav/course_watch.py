@@ -45,13 +45,14 @@ STRAY_M = 2.0
 course (GPS wander, or a tight arc), so the window says nothing of the heading."""
 
 
-def course_deg(lat1_deg: float, lon1_deg: float, lat2_deg: float, lon2_deg: float) -> float:
-    """Bearing (deg true, [0, 360)) from point 1 to point 2, in the local plane (fine over
-    the few tens of metres the watch compares)."""
-    d_lon = wrap_deg(lon2_deg - lon1_deg)
-    east = d_lon * math.cos(math.radians(0.5 * (lat1_deg + lat2_deg)))
-    north = lat2_deg - lat1_deg
-    return math.degrees(math.atan2(east, north)) % 360.0
+def east_north_m(
+    lat0_deg: float, lon0_deg: float, lat_deg: float, lon_deg: float
+) -> tuple[float, float]:
+    """(east, north) metres of a point from (lat0, lon0) in the local plane at lat0: exact
+    enough over the tens of metres the watch compares, and defined up to the poles (unlike
+    :class:`x6wd.nav.geo.LocalTangentPlane`, which refuses an origin within 0.1 deg)."""
+    k = math.cos(math.radians(lat0_deg)) * M_PER_DEG
+    return wrap_deg(lon_deg - lon0_deg) * k, (lat_deg - lat0_deg) * M_PER_DEG
 
 
 class CourseWatch:
@@ -64,22 +65,22 @@ class CourseWatch:
         self.off_course_m = off_course_m
         self.heading_check_deg = heading_check_deg
         self.max_speed_mps = max_speed_mps
-        self._target: tuple[float, float] | None = None
-        self._best_m = math.inf
         # straight driving since the last break: (t_s, lat, lon, sin and cos of the
         # headings summed so far)
         self._window: deque[tuple[float, float, float, float, float]] = deque()
-        self._bad = 0
-        self._away = 0  # fixes in a row past off_course_m
-        self._best_travel_m: float | None = None  # the wheels' travel at the closest fix
+        self.reset()
 
     def reset(self) -> None:
         """Forget the leg and the window (the mission starts, resumes or returns)."""
-        self._target = None
-        self._best_m = math.inf
+        self._new_leg(None)
+
+    def _new_leg(self, target: tuple[float, float] | None) -> None:
+        self._target = target
+        self._best_m = math.inf  # the leg's closest fix to the target (m)
+        self._best_travel_m: float | None = None  # the wheels' travel at that fix
         self._window.clear()
-        self._bad = 0
-        self._away = 0
+        self._bad = 0  # heading windows in a row over the limit
+        self._away = 0  # fixes in a row past off_course_m
 
     def on_fix(
         self,
@@ -98,9 +99,7 @@ class CourseWatch:
         heading check's window starts again). The failsafe's reason, or None."""
         target = (float(target[0]), float(target[1]))
         if target != self._target:
-            self._target, self._best_m = target, math.inf
-            self._window.clear()
-            self._bad = self._away = 0
+            self._new_leg(target)
         d_m = great_circle_m(lat_deg, lon_deg, target[0], target[1])
         if d_m < self._best_m:
             self._best_m, self._best_travel_m = d_m, travel_m
@@ -147,7 +146,8 @@ class CourseWatch:
             return None
         # the mean heading since the window's first fix (cumulative sums: one subtraction)
         mean_deg = math.degrees(math.atan2(s - first[3], c - first[4]))
-        course = course_deg(first[1], first[2], lat_deg, lon_deg)
+        east, north = east_north_m(first[1], first[2], lat_deg, lon_deg)
+        course = math.degrees(math.atan2(east, north))
         off_deg = abs(wrap_deg(course - mean_deg))
         straight = self._strays_m(course) <= STRAY_M
         while len(w) > 2 and great_circle_m(w[1][1], w[1][2], lat_deg, lon_deg) >= COURSE_WINDOW_M:
@@ -176,11 +176,9 @@ class CourseWatch:
         ``course`` (deg true), at most."""
         w = self._window
         lat0, lon0 = w[0][1], w[0][2]
-        k = math.cos(math.radians(lat0))
         ux, uy = math.sin(math.radians(course)), math.cos(math.radians(course))
         worst = 0.0
         for _t, lat, lon, _s, _c in w:
-            east = wrap_deg(lon - lon0) * k * M_PER_DEG
-            north = (lat - lat0) * M_PER_DEG
+            east, north = east_north_m(lat0, lon0, lat, lon)
             worst = max(worst, abs(east * uy - north * ux))
         return worst
