@@ -505,16 +505,23 @@ class EncoderLink(BlockingLink):
             self.busy.release()
 
 
-def test_the_motor_thread_polls_the_encoders_at_the_rate_between_sends() -> None:
+def encoder_worker(link: Any, got: list[Any], keepalive_s: float, odometry_s: float) -> Any:
+    """A started motor thread on ``link`` polling its encoders into ``got``."""
     from x6wd.app.daemon import _MotorWorker
+
+    w = _MotorWorker(
+        link, keepalive_s=keepalive_s, on_health=lambda ok, t: None, on_odometry=got.append,
+        odometry_s=odometry_s,
+    )  # fmt: skip
+    w.start()
+    return w
+
+
+def test_the_motor_thread_polls_the_encoders_at_the_rate_between_sends() -> None:
 
     link = EncoderLink()
     got: list[Any] = []
-    w = _MotorWorker(
-        link, keepalive_s=0.1, on_health=lambda ok, t: None, on_odometry=got.append,
-        odometry_s=0.05,
-    )  # fmt: skip
-    w.start()
+    w = encoder_worker(link, got, keepalive_s=0.1, odometry_s=0.05)
     try:
         t0 = time.monotonic()
         for k in range(40):  # commands from another thread meanwhile
@@ -544,15 +551,11 @@ def test_the_motor_thread_polls_the_encoders_at_the_rate_between_sends() -> None
 def test_a_board_without_encoders_is_given_up_on_and_logged_once(
     make_link: Callable[[], Any], reason: str, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from x6wd.app.daemon import ODOMETRY_GIVE_UP_AFTER, _MotorWorker
+    from x6wd.app.daemon import ODOMETRY_GIVE_UP_AFTER
 
     link = make_link()
     got: list[Any] = []
-    w = _MotorWorker(
-        link, keepalive_s=0.05, on_health=lambda ok, t: None, on_odometry=got.append,
-        odometry_s=0.02,
-    )  # fmt: skip
-    w.start()
+    w = encoder_worker(link, got, keepalive_s=0.05, odometry_s=0.02)
     try:
         wait_for(lambda: w.odometry_state == "unavailable", 3, "unavailable")
         time.sleep(0.3)  # the keep-alive goes on, the encoders are not asked again (10 s)
@@ -591,17 +594,13 @@ def test_a_refusal_or_two_does_not_end_the_odometry_and_it_comes_back(
     refuses long enough is unavailable, asked again every ODOMETRY_RETRY_S, and polled again
     once it answers."""
     import x6wd.app.daemon as daemon_module
-    from x6wd.app.daemon import ODOMETRY_GIVE_UP_AFTER, _MotorWorker
+    from x6wd.app.daemon import ODOMETRY_GIVE_UP_AFTER
 
     monkeypatch.setattr(daemon_module, "ODOMETRY_RETRY_S", 0.3)
     assert ODOMETRY_GIVE_UP_AFTER > 3
     link = FlakyEncoderLink(refuse_first=3)  # a board still booting
     got: list[Any] = []
-    w = _MotorWorker(
-        link, keepalive_s=0.05, on_health=lambda ok, t: None, on_odometry=got.append,
-        odometry_s=0.02,
-    )  # fmt: skip
-    w.start()
+    w = encoder_worker(link, got, keepalive_s=0.05, odometry_s=0.02)
     try:
         wait_for(lambda: len(got) >= 3, 3, "readings after a few refusals")
         assert w.odometry_state == "polling" and w.odometry_failures == 3
@@ -638,16 +637,11 @@ def test_status_shows_the_odometry_and_the_declination(tmp_path: Path, run_daemo
 
 
 def test_the_encoders_are_not_polled_while_the_link_is_lost() -> None:
-    from x6wd.app.daemon import _MotorWorker
 
     link = EncoderLink()
     link.healthy = False
     got: list[Any] = []
-    w = _MotorWorker(
-        link, keepalive_s=0.05, on_health=lambda ok, t: None, on_odometry=got.append,
-        odometry_s=0.02,
-    )  # fmt: skip
-    w.start()
+    w = encoder_worker(link, got, keepalive_s=0.05, odometry_s=0.02)
     try:
         wait_for(lambda: len(link.sent) >= 4, 3, "keep-alives to the lost link")
         assert link.reads == [] and w.odometry_state == "polling"  # not given up either

@@ -82,6 +82,7 @@ MOTOR_REPEAT_S = 1.0 / TICK_HZ
 """The same motor command from the event loop (compass samples, ticks) is sent at most this
 often (s); the keep-alive repeats it in between when needed, a fix's command always goes."""
 ODOMETRY_HZ = 20.0
+"""Wheel-encoder poll rate (docs/motors.md, "Wheel encoders"): the motor thread sends ``E``."""
 ODOMETRY_GIVE_UP_AFTER = 5
 """Encoder requests refused (ERR) or unanswered in a row (before any reading, for the
 unanswered) before the encoders count as unavailable: one ERR from a board still booting
@@ -89,7 +90,6 @@ or a line glitch must not turn the odometry off."""
 ODOMETRY_RETRY_S = 10.0
 """While unavailable, the encoders are asked again this often (s): a board that comes back
 with its encoders (rebooted, firmware updated, its ERR a transient) is polled again."""
-"""Wheel-encoder poll rate (docs/motors.md, "Wheel encoders"): the motor thread sends ``E``."""
 OPERATOR_SEEN_S = 0.25
 """An operator's requests reach the controller's operator-link failsafe at most this often
 (s): a client polling ``status`` in a loop must not load the control loop."""
@@ -196,12 +196,14 @@ class _MotorWorker:
         self.odometry_failures = 0
         self.odometry_state = "off"  # "polling", "unavailable" or "off" (nobody takes them)
         self.odometry_reason = ""
-        self._odo_retry = False  # the encoders are asked (polling, or retrying unavailable)
+        # a backend with encoders and a taker: asked while polling, and while unavailable
+        # every ODOMETRY_RETRY_S
+        self._has_encoders = False
         self._odo_fail_run = 0  # requests refused or unanswered in a row
         if on_odometry is not None:
             if callable(getattr(link, "read_odometry", None)):
                 self.odometry_state = "polling"
-                self._odo_retry = True
+                self._has_encoders = True
             else:
                 self._odometry_unavailable("the motor backend has no wheel encoders")
         self._t_odo = time.monotonic()  # when the next encoder poll is due
@@ -287,7 +289,7 @@ class _MotorWorker:
                     left_s = self._t_sent + self.keepalive_s - now
                     if left_s <= 0:
                         break
-                    if self._odo_retry and self._healthy:
+                    if self._has_encoders and self._healthy:
                         odo_s = self._t_odo - now
                         if odo_s <= 0:
                             poll = True
@@ -340,7 +342,7 @@ class _MotorWorker:
     def _odometry_unavailable(self, reason: str) -> None:
         self.odometry_state = "unavailable"
         self.odometry_reason = reason
-        if self._odo_retry:
+        if self._has_encoders:
             log.warning(
                 "wheel odometry unavailable: %s; asking again every %g s",
                 reason, ODOMETRY_RETRY_S,
