@@ -539,11 +539,7 @@ class Recorder:
         try:
             f = self._open(path)
         except DeviceUnavailable as exc:
-            self.write_errors += 1
-            self.last_error = str(exc)
-            self._recovering = True
-            self._t_retry = now + self._backoff_s
-            self._backoff_s = min(2.0 * self._backoff_s, self.reopen_backoff_s[1])
+            self._failed(str(exc), now)
             raise
         self._file = f
         self._reopen_path = None
@@ -562,11 +558,15 @@ class Recorder:
     def _write_failed(self, exc: OSError, now: float) -> None:
         """A write failed: the part is closed and reopened after the back-off (appending
         after a newline when the failed write left part of its line)."""
-        self.write_errors += 1
-        self.last_error = f"{self.path}: write failed: {exc}"
-        self._recovering = True
+        self._failed(f"{self.path}: write failed: {exc}", now)
         self._drop_file()
         self._reopen_path = self.path
+
+    def _failed(self, error: str, now: float) -> None:
+        """Count a failed open or write and try again after the back-off (doubling, capped)."""
+        self.write_errors += 1
+        self.last_error = error
+        self._recovering = True
         self._t_retry = now + self._backoff_s
         self._backoff_s = min(2.0 * self._backoff_s, self.reopen_backoff_s[1])
 
