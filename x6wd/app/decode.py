@@ -63,6 +63,7 @@ from drivers.gps_nmea import (
     _ZDA_DAY,
     _ZDA_TIME,
     SIGNAL_DIGITS,
+    STATUS_DGPS,
     DecoderCounters,
     GpsDecoder,
     GpsOutput,
@@ -382,17 +383,15 @@ def _dops(hdop: Any, vdop: Any, pdop: Any) -> str:
     )
 
 
-_TPV_HEADS = tuple(f'{{"class":"TPV","mode":{m}' for m in range(4))
-# By (GGA quality, mode): the head with gpsd's "status" where it shows one (DGPS and up).
-_TPV_STATUS_HEADS: Final = {
-    (q, m): (
-        f'{{"class":"TPV","status":{fix_status(q)},"mode":{m}'
-        if fix_status(q) >= 2
-        else _TPV_HEADS[m]
-    )
-    for q in range(9)
-    for m in range(4)
-}
+def _head_text(quality: Any, mode_text: str) -> str:
+    """A TPV's text up to its mode: gpsd's ``status`` only from DGPS (``STATUS_DGPS``) up."""
+    status = fix_status(quality)
+    shown = f'"status":{status},' if status >= STATUS_DGPS else ""
+    return '{"class":"TPV",' + shown + '"mode":' + mode_text
+
+
+# By (GGA quality, mode): the heads of every fix a receiver sends, built once.
+_TPV_STATUS_HEADS: Final = {(q, m): _head_text(q, str(m)) for q in range(9) for m in range(4)}
 
 
 def _tpv_head(quality: Any, mode: Any) -> str:
@@ -402,10 +401,7 @@ def _tpv_head(quality: Any, mode: Any) -> str:
         return _TPV_STATUS_HEADS[quality, mode]
     except (KeyError, TypeError):
         pass
-    status = fix_status(quality)
-    mode_text = str(mode) if type(mode) is int else _dumps_compact(mode)
-    shown = f'"status":{status},' if status >= 2 else ""
-    return '{"class":"TPV",' + shown + '"mode":' + mode_text
+    return _head_text(quality, str(mode) if type(mode) is int else _dumps_compact(mode))
 
 
 _USED = '"used":true'  # in a satellite's text exactly when sky_obj counts it in uSat
@@ -1632,7 +1628,7 @@ class ReportDecoder(GpsDecoder):
         else:
             time = self._time_member(tod)
         if not valid:
-            out.append(_TPV_HEADS[1] + time + "}")  # type: ignore[arg-type]
+            out.append(_TPV_STATUS_HEADS[0, 1] + time + "}")  # type: ignore[arg-type]
             return
         motion = "" if rmc is None else rmc[3][0]
         mode = self._gsa_mode
