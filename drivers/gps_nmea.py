@@ -1355,6 +1355,11 @@ class GpsDecoder:
         self._date = day
         self._date_tod_us = tod_us
 
+    def assume_utc(self, utc: datetime) -> None:
+        """:meth:`assume_date` from a dated epoch's UTC (the first a log reader found)."""
+        tod_us = (utc.hour * 3600 + utc.minute * 60 + utc.second) * 1_000_000
+        self.assume_date(utc.date(), tod_us + utc.microsecond)
+
     def reset(self) -> None:
         """Forget partial frames and the epoch in progress (after a reconnect)."""
         self.framer.reset()

@@ -200,8 +200,7 @@ def _load_nmea(p: Path) -> FixSeries:
         first = next((f.utc for f in fixes(GpsDecoder(emit_sentences=False)) if f.utc), None)
         decoder = GpsDecoder(emit_sentences=False)
         if first is not None:  # a GGA before the log's first RMC has a time but no date
-            tod_us = (first.hour * 3600 + first.minute * 60 + first.second) * 1_000_000
-            decoder.assume_date(first.date(), tod_us + first.microsecond)
+            decoder.assume_utc(first)
         timed = [replace(f, t_s=f.utc.timestamp()) for f in fixes(decoder) if f.utc is not None]
     except OSError as exc:
         raise ParseError(f"cannot read {p}: {exc.strerror or exc}") from exc

@@ -387,8 +387,7 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
         )
     decoder = GpsDecoder(emit_sentences=False)
     if first is not None:
-        tod_us = (first.hour * 3600 + first.minute * 60 + first.second) * 1_000_000
-        decoder.assume_date(first.date(), tod_us + first.microsecond)
+        decoder.assume_utc(first)
     rows: list[tuple[float, ...]] = []
     timeless = 0
     skies: dict[float, float] = {}  # UTC s -> the set the epoch's GSA lists as used
