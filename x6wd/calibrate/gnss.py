@@ -75,7 +75,8 @@ from drivers.gps_nmea import GpsDecoder
 from drivers.gps_recording import recorded_gps
 from x6wd.calibrate.rtklib import looks_like_pos, read_pos
 from x6wd.core.config import GnssNoiseConfig, build
-from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
+from x6wd.core.recorder import is_recording
 from x6wd.core.records import GpsFix
 from x6wd.nav.geo import LocalTangentPlane
 
@@ -169,19 +170,14 @@ def load_fixes(path: str | Path) -> FixSeries:
 
 
 def _is_recording(p: Path) -> bool:
-    """An x6wd recording (JSON lines: the first non-blank character is ``{``), the test
-    ``x6wd decode`` uses; a directory or a missing file is left to the recording reader,
-    which names the fault."""
+    """An x6wd recording (the test ``x6wd decode`` uses); a directory or a missing file is
+    left to the recording reader, which names the fault."""
     if not p.is_file():
         return True
     try:
-        with open(p, "rb") as f:
-            while block := f.read(4096):
-                if head := block.lstrip():
-                    return head[:1] == b"{"
-    except OSError as exc:
-        raise ParseError(f"cannot read {p}: {exc.strerror or exc}") from exc
-    return True
+        return is_recording(p)
+    except DeviceUnavailable as exc:
+        raise ParseError(str(exc)) from exc
 
 
 def _load_nmea(p: Path) -> FixSeries:

@@ -946,11 +946,10 @@ def is_recording(path: str | os.PathLike[str]) -> bool:
     if parts:
         path = parts[0]
     try:
-        with open(path, "rb") as f:
-            for raw in f:
-                s = raw.strip()
-                if s:
-                    return s.startswith(b"{")
+        with open(path, "rb") as f:  # by blocks: a binary file may have no newline at all
+            while block := f.read(4096):
+                if head := block.lstrip():
+                    return head[:1] == b"{"
     except OSError as exc:
         raise DeviceUnavailable(f"cannot open {path}: {exc}") from exc
     return False
