@@ -139,6 +139,33 @@ def test_stdin_dash_and_binary_tolerated(tmp_path: Path) -> None:
     assert b"framing_errors=" in proc.stderr
 
 
+GPSPIPE_R = Path(__file__).resolve().parent / "data" / "gpspipe" / "lea-5h-gpspipe-r.log"
+
+
+def test_gpspipe_r_capture_is_nmea_not_a_recording(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """``gpspipe -r`` writes gpsd's VERSION/DEVICES/WATCH JSON before the NMEA: such a
+    file (and such stdin) is NMEA with noise, decoded like the NMEA alone."""
+    data = GPSPIPE_R.read_bytes()
+    assert data.startswith(b'{"class":"VERSION"')
+    nmea_only = tmp_path / "nmea-only.log"
+    nmea_only.write_bytes(b"".join(ln for ln in data.splitlines(True) if ln[:1] != b"{"))
+    code, lines, err = _run(capsys, str(GPSPIPE_R))
+    code_ref, ref, _ = _run(capsys, str(nmea_only))
+    assert code == code_ref == 0 and "bad_recording_lines" not in err
+    assert lines == ref and sum('"class":"TPV"' in x for x in lines) >= 8
+    proc = subprocess.run(
+        [sys.executable, "-m", "x6wd", "decode", "-"],
+        input=data,
+        capture_output=True,
+        cwd=ROOT,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 0 and proc.stdout.decode().splitlines() == ref
+
+
 def test_missing_file_reported_and_others_decoded(capsys: pytest.CaptureFixture[str]) -> None:
     code, lines, err = _run(capsys, "/nonexistent/x.log", str(LEA5H), "--no-sky")
     assert code == 1

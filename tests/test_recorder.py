@@ -25,7 +25,9 @@ from x6wd.core.recorder import (
     ReplayPort,
     decode_record,
     is_recording,
+    looks_like_recording,
     nmea_file_chunks,
+    paced,
     read_recording,
     read_recording_parts,
     recording_parts,
@@ -312,6 +314,22 @@ def test_in_dir_names_files_by_utc_time(tmp_path: Path) -> None:
     assert is_recording(a.path) and not is_recording(LEA5H)
 
 
+def test_a_recording_is_told_from_gpsd_json_and_nmea(tmp_path: Path) -> None:
+    """A file beginning with gpsd's own JSON (``gpspipe -r``) is NMEA, not a recording; a
+    recording whose first line is torn still is one (its reader names the fault)."""
+    gpspipe = ROOT / "tests" / "data" / "gpspipe" / "lea-5h-gpspipe-r.log"
+    assert not is_recording(gpspipe)
+    assert [t for t, _ in nmea_file_chunks(gpspipe)][-1] > 0  # its NMEA's times
+    assert looks_like_recording(b'\n  {"t_mono":0.0,"type":"event","data":{}}\n')
+    assert looks_like_recording(b'{"t_mono":0.0,"ty')  # torn, or longer than the head
+    assert looks_like_recording(b'{"bad json\n$GPGGA,...\n')
+    assert not looks_like_recording(b'{"class":"TPV","mode":1}\n$GPGGA,...\n')
+    assert not looks_like_recording(b"$GPGGA,...\n") and not looks_like_recording(b"")
+    binary = tmp_path / "binary.bin"
+    binary.write_bytes(b"\xb5\x62" + bytes(range(11, 256)) * 4000)  # no newline at all
+    assert not is_recording(binary)
+
+
 # --- paced replay -----------------------------------------------------------------------------
 
 
@@ -403,6 +421,58 @@ def test_plain_log_time_wraps_at_midnight_and_falls_back_to_rate(tmp_path: Path)
         nmea_file_chunks(untimed, rate_hz=0)
 
 
+def test_plain_log_time_steps_back_across_midnight_and_lines_end_with_cr(tmp_path: Path) -> None:
+    """A receiver restarting at 00:03:46 with a default clock of 23:59:48 steps back 238 s
+    (not forward a day); CR-only line ends split lines like LF."""
+    log = tmp_path / "coldboot.nmea"
+    log.write_bytes(
+        b"$GPGGA,000346.00,,,,,0,00,99.99,,,,,,*00\r"
+        b"$GPGGA,235948.00,,,,,0,00,99.99,,,,,,*00\r"
+        b"$GPGGA,235949.00,,,,,0,00,99.99,,,,,,*00\r"
+        b"$GPGGA,000001.00,,,,,0,00,99.99,,,,,,*00"
+    )
+    assert [t for t, _ in nmea_file_chunks(log)] == [0.0, -238.0, -237.0, -225.0]
+
+
+def test_plain_log_is_streamed_not_read_whole(tmp_path: Path) -> None:
+    import tracemalloc
+
+    one = LEA5H.read_bytes()
+    big = tmp_path / "big.nmea"
+    with open(big, "wb") as f:
+        for _ in range(8_000_000 // len(one)):
+            f.write(one)
+    n = 0
+    tracemalloc.start()
+    try:
+        for _t, _line in nmea_file_chunks(big):
+            n += 1
+        _now, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert n > 50_000 and peak < 1_500_000, peak
+
+
+def test_paced_replay_does_not_wait_out_a_long_gap() -> None:
+    """Four hours without data in a log (a receiver off, logs joined) are replayed as a
+    second at speed 1, and said; short gaps and the pace itself are kept."""
+    clock = VirtualClock()
+    chunks = [(0.0, b"a"), (1.0, b"b"), (31.0, b"c"), (14_431.0, b"d"), (14_432.0, b"e")]
+    gaps: list[tuple[float, float]] = []
+    out = list(
+        paced(
+            iter(chunks),
+            1.0,
+            clock=clock,
+            sleep=clock.sleep,
+            on_gap=lambda t, jump: gaps.append((t, jump)),
+        )
+    )
+    assert out == chunks
+    assert clock.now_s - 1000.0 == pytest.approx(1.0 + 30.0 + 1.0 + 1.0)
+    assert gaps == [(14_431.0, 14_400.0)]
+
+
 # --- x6wd replay ------------------------------------------------------------------------------
 
 
@@ -441,8 +511,16 @@ def test_cli_replay_summary_lines(capsys: pytest.CaptureFixture[str]) -> None:
 def test_cli_replay_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["replay", str(tmp_path / "missing.nmea"), "--speed", "0"]) == 2
     assert "missing.nmea" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        cli_main(["replay", str(LEA5H), "--speed", "-1"])
+    for option, value, says in [
+        ("--speed", "-1", "must be >= 0"),
+        ("--speed", "inf", "must be a finite number"),
+        ("--rate", "-1", "--rate: must be > 0"),
+        ("--rate", "0", "--rate: must be > 0"),
+        ("--rate", "nan", "must be a finite number"),
+    ]:
+        with pytest.raises(SystemExit) as exc:
+            cli_main(["replay", str(LEA5H), option, value])
+        assert exc.value.code == 2 and says in capsys.readouterr().err, (option, value)
 
 
 @pytest.mark.integration

@@ -3,7 +3,8 @@
 Like gpsd's ``gpsdecode``: one compact JSON object per line for every fix (``TPV``) and sky
 report (``SKY``), with gpsd's field names and units (lat/lon deg, altMSL/altHAE m, speed
 m/s, track deg true). Unknown fields are omitted, never null. A file whose first non-blank
-character is ``{`` is an x6wd recording (JSON lines); its ``nmea`` records are decoded
+line is a JSON object (not gpsd's own, as ``gpspipe -r`` captures begin) is an x6wd
+recording (JSON lines); its ``nmea`` records are decoded
 (files through ``x6wd.core.recorder.read_recording``; standard input by a small line parser that
 also takes the flat ``{"type":"nmea","text":...}`` form); its other records are ignored.
 Anything else is read as a raw byte stream (binary and line noise tolerated). The decoder's
@@ -1796,8 +1797,10 @@ def decode_stream(
 ) -> DecoderCounters:
     """Decode one input (NMEA bytes or a recording) and write report lines to ``out``.
     A recording's lines that are not records are counted in ``stats`` (if given)."""
+    from x6wd.core.recorder import looks_like_recording
+
     head = stream.read(_CHUNK_BYTES)
-    if head.lstrip()[:1] == b"{":
+    if looks_like_recording(head):
         from x6wd.core.recorder import ReadStats
 
         lines = (head + stream.read()).splitlines()
@@ -1825,21 +1828,15 @@ def decode_path(
 ) -> DecoderCounters:
     """Decode a file; recordings go through ``x6wd.core.recorder.read_recording``, which
     counts their bad and truncated lines in ``stats`` (if given)."""
+    from x6wd.core.recorder import is_recording, read_recording
+
     try:
         f = open(path, "rb")  # noqa: SIM115
     except OSError as exc:
         raise DeviceUnavailable(f"cannot open {path}: {exc.strerror}") from exc
     with f:
-        first = f.read(4096).lstrip()
-        while not first:
-            block = f.read(4096)
-            if not block:
-                break
-            first = block.lstrip()
-        f.seek(0)
-        if first[:1] != b"{":
+        if not is_recording(path):
             return decode_stream(f, out, with_sky=with_sky)
-    from x6wd.core.recorder import read_recording
 
     sentences = (
         (rec.t_mono, rec.data["text"])

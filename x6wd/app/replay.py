@@ -15,22 +15,36 @@ import math
 import sys
 from typing import Any, TextIO
 
-from x6wd.core.recorder import ReadStats, is_recording, nmea_chunks, paced, to_jsonable
+from x6wd.core.recorder import (
+    GAP_REPLAY_S,
+    ReadStats,
+    is_recording,
+    nmea_chunks,
+    paced,
+    to_jsonable,
+)
 from x6wd.core.records import GpsFix, GpsSky
 
 
-def _speed(text: str) -> float:
+def _number(text: str) -> float:
     try:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v >= 0):
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number: {text!r}")
+    return v
+
+
+def _speed(text: str) -> float:
+    v = _number(text)
+    if v < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0 (0 = as fast as possible): {text!r}")
     return v
 
 
 def _rate(text: str) -> float:
-    v = _speed(text)
+    v = _number(text)
     if v <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0: {text!r}")
     return v
@@ -112,7 +126,15 @@ def replay_file(
     decoder = GpsDecoder(emit_sentences=False)
     fixes = skies = 0
     t_last = 0.0
-    for t_s, data in paced(nmea_chunks(path, rate_hz=rate_hz, stats=stats), speed):
+
+    def on_gap(t_s: float, jump_s: float) -> None:
+        err.write(
+            f"x6wd replay: the recorded time jumps {jump_s:.0f} s forward at t={t_s:.3f}:"
+            f" not waited out (replayed as {GAP_REPLAY_S:g} s)\n"
+        )
+
+    chunks = nmea_chunks(path, rate_hz=rate_hz, stats=stats)
+    for t_s, data in paced(chunks, speed, on_gap=on_gap if speed else None):
         t_last = t_s
         for rec in decoder.feed(data, t_s):
             if isinstance(rec, GpsFix):

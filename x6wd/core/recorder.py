@@ -938,8 +938,30 @@ def read_recording_parts(
         yield from read_recording(part, stats=stats, strict=strict)
 
 
+def looks_like_recording(head: bytes) -> bool:
+    """True when ``head`` (a file's first bytes) begins like a recording: its first non-blank
+    line is a JSON object. A complete first line that is gpsd's own JSON (an object with a
+    ``class`` and no ``t_mono``, as ``gpspipe -r`` writes before the NMEA it captures) is
+    not: such a file is NMEA with a few lines of noise. A torn first line still counts, so
+    the recording reader can name the fault."""
+    text = head.lstrip()
+    if text[:1] != b"{":
+        return False
+    line, newline, _rest = text.partition(b"\n")
+    if not newline:
+        return True
+    try:
+        first = json.loads(line)
+    except ValueError:
+        return True
+    return not (isinstance(first, dict) and "class" in first and "t_mono" not in first)
+
+
+_HEAD_BYTES = 1 << 16  # enough for any record's line; a first line longer is judged by its start
+
+
 def is_recording(path: str | os.PathLike[str]) -> bool:
-    """True when the file's first non-blank line is a JSON object (a recording), False for
+    """True when the file begins like a recording (:func:`looks_like_recording`), False for
     plain NMEA or other text. A first part that retention deleted is judged by its first
     remaining part."""
     parts = [] if Path(path).exists() else recording_parts(path)
@@ -947,12 +969,14 @@ def is_recording(path: str | os.PathLike[str]) -> bool:
         path = parts[0]
     try:
         with open(path, "rb") as f:  # by blocks: a binary file may have no newline at all
+            head = b""
             while block := f.read(4096):
-                if head := block.lstrip():
-                    return head[:1] == b"{"
+                head = (head + block).lstrip()
+                if head and (b"\n" in head or len(head) >= _HEAD_BYTES):
+                    break
     except OSError as exc:
         raise DeviceUnavailable(f"cannot open {path}: {exc}") from exc
-    return False
+    return looks_like_recording(head)
 
 
 def _check_speed(speed: float) -> float:
@@ -964,26 +988,47 @@ def _check_speed(speed: float) -> float:
 
 
 MAX_SLEEP_S = 60.0  # the longest single sleep of a paced replay (s)
+MAX_GAP_S = 60.0  # a longer forward jump of recorded time is not waited out (s)
+GAP_REPLAY_S = 1.0  # ... but replayed as this much recorded time (s)
 
 
 class _Pacer:
-    """Releases items at ``start + (t - t0) / speed`` on the wall clock (speed 0: at once)."""
+    """Releases items at ``start + (t - t0) / speed`` on the wall clock (speed 0: at once).
+
+    A backward jump of the recorded time (a restarted clock) goes on without a pause; a
+    forward jump of more than :data:`MAX_GAP_S` (a receiver switched off, logs joined, a
+    clock reset to a default) is replayed as :data:`GAP_REPLAY_S`, counted in
+    :attr:`gaps` and passed to ``on_gap(t, jump_s)``: a real-time replay must not go silent
+    for hours."""
 
     def __init__(
-        self, speed: float, clock: Callable[[], float], sleep: Callable[[float], Any]
+        self,
+        speed: float,
+        clock: Callable[[], float],
+        sleep: Callable[[float], Any],
+        on_gap: Callable[[float, float], Any] | None = None,
     ) -> None:
         self.speed = speed
         self.clock = clock
         self.sleep = sleep
+        self.on_gap = on_gap
+        self.gaps = 0
         self._t0: float | None = None  # recorded time of the pace origin
         self._wall0 = 0.0
         self._last_t: float | None = None
-        self._offset = 0.0  # added to recorded times so backward jumps do not stall
+        self._offset = 0.0  # added to recorded times so jumps do not stall
 
     def due(self, t: float) -> float:
         """Wall time at which recorded time ``t`` is due."""
-        if self._last_t is not None and t + self._offset < self._last_t:
-            self._offset = self._last_t - t  # clock restarted in the recording: continue
+        if self._last_t is not None:
+            step = t + self._offset - self._last_t
+            if step < 0:
+                self._offset -= step  # clock restarted in the recording: continue
+            elif step > MAX_GAP_S:
+                self._offset -= step - GAP_REPLAY_S
+                self.gaps += 1
+                if self.on_gap is not None:
+                    self.on_gap(t, step)
         t += self._offset
         self._last_t = t
         if self._t0 is None:
@@ -1050,45 +1095,73 @@ def _sentence_utc_s(line: bytes) -> float | None:
 def nmea_file_chunks(
     path: str | os.PathLike[str], rate_hz: float = 1.0
 ) -> Iterator[tuple[float, bytes]]:
-    """(time s, line bytes) of a plain NMEA log, the bytes exactly as in the file.
+    """(time s, line bytes) of a plain NMEA log, the bytes exactly as in the file, streamed
+    (memory does not grow with the file).
 
     A line's time is the UTC time of the latest sentence carrying one, in seconds after the
-    first such time (earlier lines get 0; the day wraps at midnight). In a file without any
+    first such time (earlier lines get 0). Successive times are taken to be within 12 h of
+    each other, so the day wraps at midnight both ways: a receiver whose clock restarts from
+    a default just before midnight steps back minutes, not on a day. In a file without any
     UTC time, an epoch ends whenever a sentence type repeats and epochs are ``1/rate_hz`` s
-    apart. Raises :class:`DeviceUnavailable` if the file cannot be read.
+    apart. Raises :class:`DeviceUnavailable` if the file cannot be opened.
     """
     if not (rate_hz > 0 and math.isfinite(rate_hz)):
         raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
     try:
-        blob = Path(path).read_bytes()
+        f = open(path, "rb")  # noqa: SIM115 - closed by the generator
     except OSError as exc:
         raise DeviceUnavailable(f"cannot open {path}: {exc}") from exc
-    return _nmea_lines_timed(blob.splitlines(keepends=True), rate_hz)
+    return _nmea_lines_timed(f, rate_hz)
 
 
-def _nmea_lines_timed(lines: list[bytes], rate_hz: float) -> Iterator[tuple[float, bytes]]:
-    times = [_sentence_utc_s(line) for line in lines]
-    first = next((t for t in times if t is not None), None)
-    if first is not None:
-        current, day = first, 0.0
-        for line, t in zip(lines, times, strict=True):
-            if t is not None:
-                if t + day < current - 43_200:  # midnight
-                    day += 86_400
-                current = t + day
-            yield current - first, line
-        return
-    seen: set[bytes] = set()
-    epoch = 0
-    for line in lines:
-        start = line.find(b"$")
-        kind = line[start + 1 : start + 6] if start >= 0 else b""
-        if kind:
-            if kind in seen:
-                epoch += 1
-                seen.clear()
-            seen.add(kind)
-        yield epoch / rate_hz, line
+_BLOCK_BYTES = 1 << 16
+_MAX_LINE_BYTES = 1 << 20  # a longer run without a line end (binary) is passed on in pieces
+
+
+def _file_lines(f: BinaryIO) -> Iterator[bytes]:
+    """The lines of ``f`` from where it is, ends kept, split at LF, CR or CRLF (as
+    ``bytes.splitlines``; some receivers end sentences with CR alone), read by blocks."""
+    carry = b""
+    while block := f.read(_BLOCK_BYTES):
+        lines = (carry + block).splitlines(keepends=True)
+        carry = lines.pop()
+        if carry.endswith(b"\n") or len(carry) > _MAX_LINE_BYTES:
+            lines.append(carry)  # a complete line (a lone CR may yet be a CRLF's first half)
+            carry = b""
+        yield from lines
+    if carry:
+        yield carry
+
+
+def _nmea_lines_timed(f: BinaryIO, rate_hz: float) -> Iterator[tuple[float, bytes]]:
+    with f:
+        first = next((t for t in map(_sentence_utc_s, _file_lines(f)) if t is not None), None)
+        f.seek(0)
+        if first is not None:
+            current = first
+            for line in _file_lines(f):
+                t = _sentence_utc_s(line)
+                if t is not None:
+                    day = current - current % 86_400
+                    t += day
+                    if t < current - 43_200:  # midnight, forwards
+                        t += 86_400
+                    elif t > current + 43_200:  # midnight, backwards
+                        t -= 86_400
+                    current = t
+                yield current - first, line
+            return
+        seen: set[bytes] = set()
+        epoch = 0
+        for line in _file_lines(f):
+            start = line.find(b"$")
+            kind = line[start + 1 : start + 6] if start >= 0 else b""
+            if kind:
+                if kind in seen:
+                    epoch += 1
+                    seen.clear()
+                seen.add(kind)
+            yield epoch / rate_hz, line
 
 
 def recording_nmea_chunks(
@@ -1118,10 +1191,12 @@ def paced(
     *,
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], Any] = time.sleep,
+    on_gap: Callable[[float, float], Any] | None = None,
 ) -> Iterator[tuple[float, bytes]]:
     """Yield ``chunks`` no earlier than their recorded time divided by ``speed`` (0: at once),
-    counted from the first chunk."""
-    pacer = _Pacer(_check_speed(speed), clock, sleep)
+    counted from the first chunk; forward jumps of more than :data:`MAX_GAP_S` are shortened
+    (``on_gap(t, jump_s)`` is told)."""
+    pacer = _Pacer(_check_speed(speed), clock, sleep, on_gap)
     for t, data in chunks:
         pacer.wait(t)
         yield t, data
