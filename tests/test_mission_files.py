@@ -195,7 +195,10 @@ def test_kml_reads_lon_lat_order_linestring_first() -> None:
             "<Point> coordinate 1: latitude 95.0 outside -90..90",
         ),
         ("<Placemark><Point/></Placemark>", "<Placemark> #1 <Point>: no <coordinates>"),
-        ("<Placemark><Polygon/></Placemark>", "no <Placemark> with a <Point> or <LineString>"),
+        (
+            "<Placemark><Polygon/></Placemark>",
+            "no <Placemark> with a <Point> or a <LineString> that has coordinates",
+        ),
         (
             "<Placemark><Point><coordinates>1,2 3,4</coordinates></Point></Placemark>",
             "<Point>: 2 coordinates, expected one",
@@ -216,6 +219,48 @@ def test_kml_refuses_bad_documents() -> None:
         parse_kml("<kml><Placemark>")
     with pytest.raises(ParseError, match="root element is <gpx>, expected <kml>"):
         parse_kml("<gpx/>")
+
+
+def test_kml_with_several_paths_is_refused_naming_them() -> None:
+    """Only the first <LineString> was read, silently (an outside check): a second placemark's
+    path, or a MultiGeometry's second part, was dropped."""
+
+    def line(name: str, coords: str) -> str:
+        return f"<Placemark><name>{name}</name><LineString><coordinates>{coords}</coordinates>"
+
+    pin = (
+        "<Placemark><name>P</name><Point><coordinates>-1.1,51.1,0</coordinates></Point></Placemark>"
+    )
+    two = (
+        f"<kml {KML_NS}><Document>{pin}{line('L1', '-1.3,51.3 -1.4,51.4')}</LineString>"
+        f"</Placemark>{line('L2', '-1.5,51.5')}</LineString></Placemark></Document></kml>"
+    )
+    with pytest.raises(
+        ParseError,
+        match="^m.kml: "
+        + _re(
+            "2 <LineString> paths: <Placemark> #2 'L1' (2 points), <Placemark> #3 'L2' (1 point); "
+            "x6wd drives one path: delete the others from the file, or join them into one"
+        ),
+    ):
+        parse_kml(two, "m.kml")
+    mg = (
+        f"<kml {KML_NS}><Placemark><name>MG</name><MultiGeometry><LineString><coordinates>"
+        "-1.3,51.3 -1.4,51.4</coordinates></LineString><LineString><coordinates>-1.5,51.5"
+        "</coordinates></LineString></MultiGeometry></Placemark></kml>"
+    )
+    with pytest.raises(
+        ParseError,
+        match=_re(
+            "2 <LineString> paths: <Placemark> #1 'MG' <LineString> #1 (2 points), "
+            "<Placemark> #1 'MG' <LineString> #2 (1 point)"
+        ),
+    ):
+        parse_kml(mg)
+    # one path with pins beside it is still the path; a path without coordinates is no path
+    one = two.replace("-1.5,51.5", " ")
+    assert parse_kml(one) == [(51.3, -1.3), (51.4, -1.4)]
+    assert parse_kml(one.replace("-1.3,51.3 -1.4,51.4", "")) == [(51.1, -1.1)]
 
 
 # -- writers and round trips -----------------------------------------------------------------
@@ -272,6 +317,123 @@ def test_the_format_comes_from_the_extension(tmp_path: Path) -> None:
     with pytest.raises(ParseError, match=r"m.gpx line 1: expected at least 2 columns"):
         load_file(tmp_path / "m.gpx", "csv") if (tmp_path / "m.gpx").write_text("51\n") else None
     assert set(PARSERS) == {"waypoints", "gpx", "csv", "kml"}
+
+
+GPX_NS = 'xmlns="http://www.topografix.com/GPX/1/1"'
+
+
+def _gpx(body: str) -> str:
+    return f'<?xml version="1.0" encoding="UTF-8"?><gpx version="1.1" {GPX_NS}>{body}</gpx>'
+
+
+def _rte(*lats: float, name: str = "") -> str:
+    named = f"<name>{name}</name>" if name else ""
+    return f"<rte>{named}" + "".join(f'<rtept lat="{a}" lon="-1.1"/>' for a in lats) + "</rte>"
+
+
+def _trk(*segments: tuple[float, ...]) -> str:
+    segs = "".join(
+        "<trkseg>" + "".join(f'<trkpt lat="{a}" lon="-1.1"/>' for a in seg) + "</trkseg>"
+        for seg in segments
+    )
+    return f"<trk>{segs}</trk>"
+
+
+def test_gpx_routes_and_tracks_without_points_are_skipped() -> None:
+    """An empty first <rte> (or <trk>) hid the second's points: 'no <rtept>, <wpt> or <trkpt>
+    elements', which was false (an outside check)."""
+    assert mission_files.parse_gpx(_gpx("<rte></rte>" + _rte(55.1))) == [(55.1, -1.1)]
+    assert mission_files.parse_gpx(_gpx(_trk(()) + _trk((53.1, 53.2)))) == [
+        (53.1, -1.1),
+        (53.2, -1.1),
+    ]
+    # an empty route does not hide the waypoints either
+    assert mission_files.parse_gpx(_gpx('<wpt lat="51.1" lon="-1.1"/><rte/>')) == [(51.1, -1.1)]
+
+
+def test_gpx_with_several_routes_or_tracks_is_refused_naming_them(tmp_path: Path) -> None:
+    """Only the first route or track was read, silently (an outside check): a robot mission
+    must never drop half its waypoints. One track's segments are one path."""
+    two = _gpx(_rte(52.1, 52.2, name="Out") + "<rte/>" + _rte(55.1))
+    with pytest.raises(
+        ParseError,
+        match="^m.gpx: "
+        + _re(
+            "2 routes with points: <rte> #1 'Out' (2 points), <rte> #3 (1 point); x6wd drives "
+            "one route: delete the others from the file, or join them into one"
+        ),
+    ):
+        mission_files.parse_gpx(two, "m.gpx")
+    with pytest.raises(
+        ParseError, match=_re("2 tracks with points: <trk> #1 (3 points), <trk> #2")
+    ):
+        mission_files.parse_gpx(_gpx(_trk((53.1, 53.2), (53.3,)) + _trk((54.1,))))
+    # one track of several segments (the receiver lost its fix): every segment, in order
+    assert mission_files.parse_gpx(_gpx(_trk((53.1, 53.2), (), (53.3,)))) == [
+        (53.1, -1.1),
+        (53.2, -1.1),
+        (53.3, -1.1),
+    ]
+    # the route is the plan: the waypoints it names and a recorded track beside it are not
+    # driven, however many tracks there are
+    both = _gpx('<wpt lat="51.1" lon="-1.1"/>' + _rte(52.1) + _trk((53.1,)) + _trk((54.1,)))
+    assert mission_files.parse_gpx(both) == [(52.1, -1.1)]
+    path = tmp_path / "two.gpx"
+    path.write_text(two)
+    r = x6wd("mission", "show", str(path))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.startswith(f"x6wd mission: {path}: 2 routes with points"), r.stderr
+
+
+def test_xml_files_are_read_in_their_declared_encoding(tmp_path: Path) -> None:
+    """A GPX file declaring ISO-8859-1 with a non-ASCII name, and a UTF-16 one, were refused as
+    'not UTF-8 text' (an outside check): XML names its own encoding."""
+    body = f"<gpx {GPX_NS}>" + _rte(52.1, name="Straße") + "</gpx>"
+    files = {
+        "latin1.gpx": ('<?xml version="1.0" encoding="ISO-8859-1"?>' + body).encode("latin-1"),
+        "cp1252.gpx": ("<?xml version='1.0' encoding='windows-1252'?>" + body).encode("cp1252"),
+        "utf16.gpx": ('<?xml version="1.0" encoding="UTF-16"?>' + body).encode("utf-16"),
+        "utf16be.gpx": ('<?xml version="1.0" encoding="UTF-16"?>' + body).encode("utf-16-be"),
+        "bom.gpx": ('<?xml version="1.0"?>' + body).encode("utf-8-sig"),
+        "none.gpx": body.encode(),
+        # a string's declaration saved as UTF-8: '<?xml' read one byte a character says so
+        "said16.gpx": ('<?xml version="1.0" encoding="utf-16"?>' + body).encode(),
+        "latin1.kml": (
+            '<?xml version="1.0" encoding="ISO-8859-1"?>'
+            f"<kml {KML_NS}><Placemark><name>Straße</name><Point><coordinates>-1.1,52.1"
+            "</coordinates></Point></Placemark></kml>"
+        ).encode("latin-1"),
+    }
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+        assert load_file(tmp_path / name) == [(52.1, -1.1)], name
+    assert mission_files.decode_xml(files["latin1.gpx"]).count("Straße") == 1
+    # bytes that are not in the encoding, or an encoding Python does not know: refused
+    bad = {
+        "bad.gpx": (body.encode("latin-1"), r"bad.gpx: not UTF-8 text \(XML's default\): 'utf-8'"),
+        "bad8.gpx": (
+            b'<?xml version="1.0" encoding="utf-8"?>' + body.encode("latin-1"),
+            r"bad8.gpx: not utf-8 text \(its XML declaration\): 'utf-8' codec can't decode",
+        ),
+        "odd.kml": (
+            b'<?xml version="1.0" encoding="klingon"?><kml/>',
+            r"odd.kml: unknown encoding 'klingon' in its XML declaration",
+        ),
+    }
+    for name, (data, message) in bad.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(ParseError, match=message):
+            load_file(tmp_path / name)
+    # a DTD is refused in any encoding
+    (tmp_path / "dtd.gpx").write_bytes(
+        ('<!DOCTYPE gpx [<!ENTITY a "b">]><gpx><wpt lat="1" lon="2"/></gpx>').encode("utf-16")
+    )
+    with pytest.raises(ParseError, match="DTDs and entities are not allowed in GPX"):
+        load_file(tmp_path / "dtd.gpx")
+    # CSV and .waypoints stay UTF-8
+    (tmp_path / "m.csv").write_bytes("# Straße\n51,-1\n".encode("latin-1"))
+    with pytest.raises(ParseError, match=r"m\.csv: not UTF-8 text"):
+        load_file(tmp_path / "m.csv")
 
 
 # -- the shipped examples --------------------------------------------------------------------

@@ -5,10 +5,15 @@ ignored: the robot drives on the ground). Parsers and writers are pure functions
 :func:`load_file` and :func:`save_file` pick the format by the file's extension:
 
 - ``.waypoints``: QGroundControl / Mission Planner plain text, ``QGC WPL 110`` (read, write);
-- ``.gpx``: GPX 1.0/1.1, the first route, else the waypoints, else the first track (read;
-  written as one route);
+- ``.gpx``: GPX 1.0/1.1, the route, else the waypoints, else the track (read; written as one
+  route);
 - ``.csv``: ``lat,lon`` rows, or a header naming the columns (read, write);
-- ``.kml``: KML 2.2 (Google Earth), the first ``LineString``, else every ``Point`` (read).
+- ``.kml``: KML 2.2 (Google Earth), the ``LineString``, else every ``Point`` (read).
+
+A GPX file with two routes (or tracks) with points, or a KML file with two line strings, is
+refused naming them: x6wd drives one path, and never silently drops part of a file. GPX and
+KML files are read in the encoding their XML declaration or byte-order mark names (UTF-8 if
+none); ``.waypoints`` and ``.csv`` files are UTF-8.
 
 Also the command-line form ``LAT,LON`` (:func:`parse_args`) and the protocol's JSON pairs
 (:func:`from_pairs`).
@@ -16,6 +21,7 @@ Also the command-line form ``LAT,LON`` (:func:`parse_args`) and the protocol's J
 
 from __future__ import annotations
 
+import codecs
 import csv
 import io
 import math
@@ -148,14 +154,17 @@ def _local(tag: str) -> str:
 
 
 def parse_gpx(text: str, source: str = "GPX") -> list[Waypoint]:
-    """Waypoints from GPX 1.0/1.1 text: the first ``<rte>``'s ``<rtept>`` if any, else ``<wpt>``,
-    else the first track's ``<trkpt>``.
+    """Waypoints from GPX 1.0/1.1 text: the route's ``<rtept>`` if it has a route, else every
+    ``<wpt>``, else the track's ``<trkpt>`` (all its ``<trkseg>`` in order: a track split
+    where the receiver lost its fix is still one track).
+
+    Routes and tracks without points are ignored. Two routes with points, or two tracks, are
+    refused with their names and sizes: x6wd drives one path, and reading only the first
+    would silently drop the other's waypoints.
 
     DTDs and entities are refused: the content may come from the network.
     """
-    head = text[:4096].upper()
-    if "<!DOCTYPE" in head or "<!ENTITY" in text.upper():
-        raise ParseError(f"{source}: DTDs and entities are not allowed in GPX")
+    _no_dtd(text, source, "GPX")
     try:
         root = ET.fromstring(text)
     except ET.ParseError as exc:
@@ -166,14 +175,30 @@ def parse_gpx(text: str, source: str = "GPX") -> list[Waypoint]:
     def points(parent: ET.Element, name: str) -> list[ET.Element]:
         return [e for e in parent.iter() if _local(e.tag) == name]
 
-    rtes = [e for e in root if _local(e.tag) == "rte"]
-    trks = [e for e in root if _local(e.tag) == "trk"]
-    if rtes and points(rtes[0], "rtept"):
-        elems, kind = points(rtes[0], "rtept"), "rtept"
-    elif any(_local(e.tag) == "wpt" for e in root):
-        elems, kind = [e for e in root if _local(e.tag) == "wpt"], "wpt"
-    elif trks and points(trks[0], "trkpt"):
-        elems, kind = points(trks[0], "trkpt"), "trkpt"
+    def path(tag: str, what: str, kind: str) -> list[ET.Element]:
+        """The points of the one ``tag`` (rte, trk) that has any; [] if none has, refused if
+        several have."""
+        found = [
+            (n, e, pts)
+            for n, e in enumerate((e for e in root if _local(e.tag) == tag), start=1)
+            if (pts := points(e, kind))
+        ]
+        if len(found) > 1:
+            listed = ", ".join(
+                f"<{tag}> #{n} {_name(e)}({_points(len(pts))})" for n, e, pts in found
+            )
+            raise ParseError(
+                f"{source}: {len(found)} {what}s with points: {listed}; x6wd drives one {what}: "
+                f"delete the others from the file, or join them into one"
+            )
+        return found[0][2] if found else []
+
+    if elems := path("rte", "route", "rtept"):
+        kind = "rtept"
+    elif elems := [e for e in root if _local(e.tag) == "wpt"]:
+        kind = "wpt"
+    elif elems := path("trk", "track", "trkpt"):
+        kind = "trkpt"
     else:
         raise ParseError(f"{source}: no <rtept>, <wpt> or <trkpt> elements")
     out: list[Waypoint] = []
@@ -186,6 +211,55 @@ def parse_gpx(text: str, source: str = "GPX") -> list[Waypoint]:
         if len(out) > MAX_WAYPOINTS:
             break
     return _check_count(out, source)
+
+
+def _points(n: int) -> str:
+    return f"{n} point" if n == 1 else f"{n} points"
+
+
+def _name(e: ET.Element) -> str:
+    """``'NAME' `` from an element's ``<name>`` child, quoted, with a trailing space; or ''."""
+    name = next((c.text for c in e if _local(c.tag) == "name" and c.text), None)
+    return f"{name.strip()[:40]!r} " if name and name.strip() else ""
+
+
+_BOMS = (  # UTF-32 before UTF-16: UTF-32-LE's mark begins with UTF-16-LE's
+    (codecs.BOM_UTF8, "utf-8-sig"),
+    (codecs.BOM_UTF32_LE, "utf-32"),
+    (codecs.BOM_UTF32_BE, "utf-32"),
+    (codecs.BOM_UTF16_LE, "utf-16"),
+    (codecs.BOM_UTF16_BE, "utf-16"),
+)
+_XML_ENCODING = re.compile(rb"""^\s*<\?xml[^>]*?\sencoding\s*=\s*["']([A-Za-z][\w.-]*)["']""")
+
+
+def decode_xml(data: bytes, source: str = "XML") -> str:
+    """An XML file's bytes as text, in the encoding its byte-order mark or XML declaration
+    names (``encoding="ISO-8859-1"``, UTF-16 with a BOM ...), else UTF-8 as XML says; a
+    :class:`ParseError` for an unknown encoding or bytes that are not in it."""
+    declared = None
+    encoding, how = next(
+        ((enc, "its byte-order mark") for bom, enc in _BOMS if data.startswith(bom)), (None, "")
+    )
+    if encoding is None and data[:4] in (b"<\0?\0", b"\0<\0?"):  # UTF-16 without a BOM
+        encoding, how = ("utf-16-le" if data[0] else "utf-16-be"), "its first bytes"
+    if encoding is None:
+        m = _XML_ENCODING.match(data[:1024])
+        declared = m.group(1).decode("ascii") if m else None
+        # '<?xml' was read one byte a character: a declared UTF-16 or -32 cannot be true (a
+        # string saved as UTF-8 by a tool that wrote the declaration for the string)
+        if declared and not re.sub(r"[-_]", "", declared.lower()).startswith(("utf16", "utf32")):
+            encoding, how = declared, "its XML declaration"
+        else:
+            encoding, how = "UTF-8", "XML's default"
+    try:
+        return data.decode(encoding)
+    except LookupError:
+        raise ParseError(
+            f"{source}: unknown encoding {declared!r} in its XML declaration"
+        ) from None
+    except UnicodeDecodeError as exc:
+        raise ParseError(f"{source}: not {encoding} text ({how}): {exc}") from None
 
 
 def _no_dtd(text: str, source: str, kind: str) -> None:
@@ -366,9 +440,13 @@ def format_csv(waypoints: Sequence[Waypoint]) -> str:
 
 
 def parse_kml(text: str, source: str = "KML") -> list[Waypoint]:
-    """Waypoints from KML: the first ``<Placemark>``'s ``<LineString>`` if there is one (a drawn
-    path is the route, as a GPX route wins over its waypoints), else the ``<Point>`` of every
-    ``<Placemark>`` in document order. KML writes ``lon,lat[,alt]``; the altitude is ignored.
+    """Waypoints from KML: the ``<LineString>`` if there is one (a drawn path is the route, as
+    a GPX route wins over its waypoints), else the ``<Point>`` of every ``<Placemark>`` in
+    document order. KML writes ``lon,lat[,alt]``; the altitude is ignored.
+
+    Two line strings with coordinates (two placemarks, or a ``<MultiGeometry>``'s parts) are
+    refused with their placemarks and sizes: x6wd drives one path, and reading only the first
+    would silently drop the other's waypoints.
     """
     _no_dtd(text, source, "KML")
     try:
@@ -379,9 +457,12 @@ def parse_kml(text: str, source: str = "KML") -> list[Waypoint]:
         raise ParseError(f"{source}: root element is <{_local(root.tag)}>, expected <kml>")
     placemarks = [e for e in root.iter() if _local(e.tag) == "Placemark"]
 
-    def label(i: int, pm: ET.Element) -> str:
+    def place(i: int, pm: ET.Element) -> str:
         name = next((c.text for c in pm if _local(c.tag) == "name" and c.text), None)
-        return f"{source} <Placemark> #{i + 1}" + (f" {name.strip()!r}" if name else "")
+        return f"<Placemark> #{i + 1}" + (f" {name.strip()!r}" if name else "")
+
+    def label(i: int, pm: ET.Element) -> str:
+        return f"{source} {place(i, pm)}"
 
     def coords(pm_label: str, geom: ET.Element) -> list[Waypoint]:
         kind = _local(geom.tag)
@@ -399,10 +480,21 @@ def parse_kml(text: str, source: str = "KML") -> list[Waypoint]:
                 break
         return out
 
+    # every path with coordinates, a MultiGeometry's one by one: (where, waypoints)
+    lines: list[tuple[str, list[Waypoint]]] = []
     for i, pm in enumerate(placemarks):
-        line = next((g for g in pm.iter() if _local(g.tag) == "LineString"), None)
-        if line is not None:
-            return _check_count(coords(label(i, pm), line), source)
+        geoms = [g for g in pm.iter() if _local(g.tag) == "LineString" and _has_coordinates(g)]
+        for k, line in enumerate(geoms, start=1):
+            where = place(i, pm) + (f" <LineString> #{k}" if len(geoms) > 1 else "")
+            lines.append((where, coords(label(i, pm), line)))
+    if len(lines) > 1:
+        listed = ", ".join(f"{where} ({_points(len(pts))})" for where, pts in lines)
+        raise ParseError(
+            f"{source}: {len(lines)} <LineString> paths: {listed}; x6wd drives one path: "
+            "delete the others from the file, or join them into one"
+        )
+    if lines:
+        return _check_count(lines[0][1], source)
     out: list[Waypoint] = []
     for i, pm in enumerate(placemarks):
         for point in (g for g in pm.iter() if _local(g.tag) == "Point"):
@@ -413,8 +505,14 @@ def parse_kml(text: str, source: str = "KML") -> list[Waypoint]:
         if len(out) > MAX_WAYPOINTS:
             break
     if not out:
-        raise ParseError(f"{source}: no <Placemark> with a <Point> or <LineString>")
+        raise ParseError(
+            f"{source}: no <Placemark> with a <Point> or a <LineString> that has coordinates"
+        )
     return _check_count(out, source)
+
+
+def _has_coordinates(geom: ET.Element) -> bool:
+    return any(_local(c.tag) == "coordinates" and (c.text or "").strip() for c in geom.iter())
 
 
 # -- choosing by extension -------------------------------------------------------------------
@@ -492,9 +590,13 @@ def load_file(
     try:
         if p.stat().st_size > max_bytes:
             raise ParseError(f"{p}: larger than {max_bytes} bytes")
-        text = p.read_text(encoding="utf-8-sig")
+        data = p.read_bytes()
     except OSError as exc:
         raise ParseError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    if kind in ("gpx", "kml"):  # XML names its encoding
+        return parse_content(decode_xml(data, str(p)), kind, str(p))
+    try:
+        text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise ParseError(f"{p}: not UTF-8 text: {exc}") from None
     return parse_content(text, kind, str(p))
