@@ -12,6 +12,7 @@ import re
 import struct
 import subprocess
 import sys
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -373,3 +374,119 @@ def test_a_nan_position_is_skipped_and_counted_not_a_refused_file(
     assert len(fixes["north_m"]) == len(est["north_m"]) == 3
     assert fixes["north_m"] == pytest.approx([0.0, 2.2, 3.3], abs=0.05)
     assert None not in fixes["east_m"] + est["east_m"]
+
+
+BT451 = ROOT / "tests" / "data" / "nmea" / "bt451.log"  # 15:25, then 14:33 the same day
+
+
+def _nmea(body: str) -> str:
+    cs = 0
+    for ch in body.encode():
+        cs ^= ch
+    return f"${body}*{cs:02X}\r\n"
+
+
+def _session(start: datetime, seconds: int, lat: str = "5147.000") -> str:
+    """A receiver's RMC and GGA once a second from ``start`` (UTC)."""
+    out = []
+    for k in range(seconds):
+        t = start + timedelta(seconds=k)
+        hms, dmy = t.strftime("%H%M%S.00"), t.strftime("%d%m%y")
+        out.append(_nmea(f"GPRMC,{hms},A,{lat},N,00115.000,W,0.1,,{dmy},,,A"))
+        out.append(_nmea(f"GPGGA,{hms},{lat},N,00115.000,W,1,08,1.1,50.0,M,0.0,M,,"))
+    return "".join(out)
+
+
+def _time_panels_on_screen(page: str) -> int:
+    """Asserts every point of every time panel's lines lies inside its plot area; the number
+    of polylines drawn."""
+    n = 0
+    for pid in ("error", "hdop", "satellites", "heading"):
+        svg = re.search(rf'<svg id="svg-{pid}"([^>]*)>(.*?)</svg>', page, re.S)
+        if svg is None:
+            continue
+        a = {k: float(v) for k, v in re.findall(r'data-(plot-\w+)="([^"]*)"', svg.group(1))}
+        for line in re.findall(r'points="([^"]*)"', svg.group(2)):
+            n += 1
+            xs = [float(p.split(",")[0]) for p in line.split()]
+            assert a["plot-left"] <= min(xs) and max(xs) <= a["plot-right"], (pid, xs)
+    return n
+
+
+def test_a_log_whose_time_goes_back_is_drawn_in_file_order(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Found by an outside check: bt451.log holds two sessions, 15:25 then 14:33, and x6wd
+    # plot drew nothing usable: a duration of 0.0, the PNG's time axes 0..0.001 s, the page's
+    # lines at x = 414056 and -2582117944. Now: the segments in file order, one epoch apart,
+    # the jump marked and said.
+    import matplotlib.figure
+
+    figures: list[Any] = []
+    savefig = matplotlib.figure.Figure.savefig
+
+    def keep(fig: Any, *args: Any, **kwargs: Any) -> None:
+        figures.append(fig)
+        savefig(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    assert cli_main(["plot", str(BT451), "--out", str(tmp_path)]) == 0
+    err = capsys.readouterr().err
+    assert "bt451.log: the log's time jumps: line 112: time went back 3122.5 s (52 min)" in err
+    page = (tmp_path / "bt451.html").read_text()
+    data = page_data(page)
+    # 4 s stationary at 15:25:04.5-08.5, half a second, 2.5 s driving from 14:33:06
+    assert data["duration_s"] == pytest.approx(7.0)
+    assert data["time_jumps"] == [
+        {"t_s": 4.25, "line": 112, "step_s": -3122.5,
+         "before_utc": "2009-12-09 15:25:08.5", "after_utc": "2009-12-09 14:33:06"}
+    ]  # fmt: skip
+    assert "<td>time jumps (1)</td><td>line 112: time went back 3122.5 s (52 min)" in page
+    for pid in ("hdop", "satellites", "heading"):
+        for s in data[pid]:
+            t = np.array([x for x in s["t_s"] if x is not None])
+            assert t.min() >= 0.0 and t.max() <= 7.0 and np.all(np.diff(t) >= 0), (pid, t)
+        assert page.count('class="time-jump"', page.index(f'<svg id="svg-{pid}"')) >= 1
+    # every line inside its panel, and broken at the jump: HDOP and both satellite counts
+    # in two pieces each (heading is dots)
+    assert _time_panels_on_screen(page) >= 6
+    hdop = re.search(r'data-label="HDOP \(fix\)">(.*?)</g>', page)
+    assert hdop is not None and hdop.group(1).count("<polyline") == 2
+    # the PNG's time axes hold every point drawn on them
+    (fig,) = figures
+    for ax in fig.axes[1:]:
+        lo, hi = ax.get_xlim()
+        assert (lo, hi) == pytest.approx((0.0, 7.0)), ax.get_title()
+        for line in ax.get_lines():
+            x = np.asarray(line.get_xdata(), dtype=float)
+            x = x[np.isfinite(x)]
+            assert x.size == 0 or (lo <= x.min() and x.max() <= hi), ax.get_title()
+
+
+def test_time_jumps_and_what_is_not_one(tmp_path: Path) -> None:
+    day = datetime(2025, 12, 31, tzinfo=UTC)
+    # across midnight (and into a new year): one segment, time running on
+    path = tmp_path / "midnight.nmea"
+    path.write_text(_session(day + timedelta(hours=23, minutes=59, seconds=55), 10))
+    view = logview.load(path)
+    assert view.jumps == [] and view.duration_s == pytest.approx(9.0)
+    assert view.start_utc == "2025-12-31T23:59:55+00:00"
+    assert np.array_equal(view.hdop[0].t_s, np.arange(10.0))
+    assert _time_panels_on_screen(logview.html_page(view)) == 2  # HDOP, satellites: unbroken
+    # two sessions four hours apart: forward by more than TIME_JUMP_S is a jump too
+    path.write_text(_session(day + timedelta(hours=10), 5) + _session(day + timedelta(hours=14), 5))
+    view = logview.load(path)
+    assert [(j.line, j.step_s) for j in view.jumps] == [(11, 4 * 3600.0 - 4.0)]
+    assert view.duration_s == pytest.approx(9.0)
+    assert view.jumps[0].describe() == (
+        "line 11: time went forward 14396.0 s (4 h 0 min), "
+        "2025-12-31 10:00:04 -> 2025-12-31 14:00:00 UTC"
+    )
+    # the same, later session first
+    path.write_text(_session(day + timedelta(hours=14), 5) + _session(day + timedelta(hours=10), 5))
+    view = logview.load(path)
+    assert [(j.line, j.step_s) for j in view.jumps] == [(11, -4 * 3600.0 - 4.0)]
+    assert np.array_equal(view.hdop[0].t_s, [0, 1, 2, 3, 4, 5, 6, 7, 8, 9])
+    # a gap under the limit (this log's 1059 s pause) is drawn as the time it was
+    view = logview.load(NMEA_LOG)
+    assert view.jumps == [] and view.duration_s == pytest.approx(1077.0)

@@ -15,6 +15,12 @@ its place (an NMEA log has no navigation states; only a simulated run has a true
 The true track is the simulator's ``truth.csv`` next to the recording (``--truth`` for
 another). Device faults are the recorder's ``device`` events (health transitions) and, in
 older recordings without them, the holds that name a device.
+
+A plain NMEA log's clock is the receiver's time of day, which can go backwards (a file of two
+sessions, a cold start's unset clock) or jump by hours. The time axis is then the file's
+order: where the log's time goes back, or forward by more than :data:`TIME_JUMP_S`, the next
+segment is drawn one epoch after the previous one, the place marked on every time panel and
+said in the page's facts (:class:`TimeJump`). Crossing midnight is not a jump.
 """
 
 from __future__ import annotations
@@ -23,6 +29,8 @@ import csv
 import html
 import json
 import math
+import statistics
+from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
@@ -56,6 +64,12 @@ MAX_POINTS = 2000
 
 DEVICES = ("gps", "compass", "motors")
 """Lanes of the device-fault panel."""
+
+TIME_JUMP_S = 3600.0
+"""A plain NMEA log's time running forward by more than this between two lines is a jump
+(another session, a receiver's clock set at last), drawn as one like a step back: an axis of
+hours would squeeze the log's minutes out of sight. Shorter gaps (an outage, a pause between
+runs in one file) are drawn as the time they were."""
 
 _MODES = frozenset(str(m) for m in Mode)
 _NAV_STATES = frozenset(str(s) for s in NavState)
@@ -97,6 +111,46 @@ class Interval:
 
 
 @dataclass
+class TimeJump:
+    """A place where a plain NMEA log's own time goes back (or far forward): the segments
+    either side are drawn in file order, one epoch apart, and the place marked."""
+
+    t_s: float  # on the time axis: between the two segments
+    line: int  # the file's line (1-based) where the later segment starts
+    step_s: float  # the log's own time step there (negative: it went back)
+    before_utc: str = ""  # the last dated fix before, the first dated fix after
+    after_utc: str = ""
+
+    def describe(self) -> str:
+        """In words, as the page's facts and ``x6wd plot`` say it."""
+        way = "back" if self.step_s < 0 else "forward"
+        text = f"line {self.line}: time went {way} {_duration(abs(self.step_s))}"
+        if self.before_utc and self.after_utc:
+            text += f", {self.before_utc} -> {self.after_utc} UTC"
+        return text
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain dict for the page's embedded data."""
+        return {
+            "t_s": round(self.t_s, 3),
+            "line": self.line,
+            "step_s": round(self.step_s, 3),
+            "before_utc": self.before_utc,
+            "after_utc": self.after_utc,
+        }
+
+
+def _duration(s: float) -> str:
+    """``s`` seconds as "12.5 s", or with its hours and minutes when long ("3122.5 s (52
+    min)")."""
+    text = f"{s:.1f} s"
+    if s >= 120:
+        h, m = divmod(round(s / 60), 60)
+        text += f" ({h} h {m} min)" if h else f" ({m} min)"
+    return text
+
+
+@dataclass
 class LogView:
     """Everything the panels draw, taken from one recording or NMEA log."""
 
@@ -116,6 +170,19 @@ class LogView:
     faults: list[Interval] = field(default_factory=list)  # lanes: DEVICES
     missing: dict[str, str] = field(default_factory=dict)  # panel id -> why it is empty
     counts: dict[str, int] = field(default_factory=dict)
+    jumps: list[TimeJump] = field(default_factory=list)  # a plain NMEA log's time jumps
+
+    def time_range(self) -> tuple[float, float]:
+        """The time axis: 0 to the duration, widened to any time drawn outside it (so that
+        nothing is ever off the panels), at least 1 ms long."""
+        lo, hi = 0.0, self.duration_s
+        for s in (*self.error, *self.hdop, *self.satellites, *self.heading):
+            t = s.t_s[np.isfinite(s.t_s)]
+            if t.size:
+                lo, hi = min(lo, float(t.min())), max(hi, float(t.max()))
+        for iv in (*self.states, *self.holds, *self.faults):
+            lo, hi = min(lo, iv.t0_s, iv.t1_s), max(hi, iv.t0_s, iv.t1_s)
+        return lo, max(hi, lo + 1e-3)
 
     def to_json(self) -> dict[str, Any]:
         """The data behind every panel, as embedded in the HTML page: the points drawn
@@ -139,7 +206,18 @@ class LogView:
             "faults": [i.to_json() for i in self.faults],
             "missing": self.missing,
             "counts": self.counts,
+            "time_jumps": [j.to_json() for j in self.jumps],
         }
+
+
+def broken_at(t: np.ndarray, v: np.ndarray, cuts: Sequence[float]) -> tuple[np.ndarray, ...]:
+    """``t``, ``v`` with a NaN point at each of ``cuts`` that falls between two points (times
+    in order): a line drawn through them breaks there."""
+    if not cuts or t.size < 2:
+        return t, v
+    at = np.searchsorted(t, np.asarray(cuts, dtype=float))
+    at = at[(at > 0) & (at < t.size)]
+    return np.insert(t, at, np.nan), np.insert(v, at, np.nan)
 
 
 def _floats(a: np.ndarray, ndigits: int) -> list[float | None]:
@@ -215,6 +293,45 @@ def _gps_from_decoder(chunks: Iterable[tuple[float, bytes]], raw: _Raw) -> dict[
         "framing_errors": c.framing_errors,
         "invalid_sentences": c.invalid_fields,
     }
+
+
+def _in_file_order(
+    chunks: Iterable[tuple[float, bytes]], jumps: list[TimeJump]
+) -> Iterator[tuple[float, bytes]]:
+    """A plain NMEA log's (time, line) with its time made to run forward in file order: where
+    the log's time goes back, or forward by more than :data:`TIME_JUMP_S`, the next line is
+    one epoch (the median of the recent steps) after the previous one and a :class:`TimeJump`
+    is appended to ``jumps``. A log without jumps is unchanged."""
+    offset = 0.0
+    prev = last = math.nan
+    steps: deque[float] = deque(maxlen=64)
+    for line, (t, data) in enumerate(chunks, start=1):
+        step = t - prev
+        if step < 0 or step > TIME_JUMP_S:
+            gap = statistics.median(steps) if steps else 1.0
+            offset = last + gap - t
+            jumps.append(TimeJump(last + gap / 2, line, step))
+        elif step > 0:
+            steps.append(step)
+        prev, last = t, t + offset
+        yield last, data
+
+
+def _date_jumps(jumps: list[TimeJump], fixes: Sequence[GpsFix]) -> None:
+    """Each jump's last dated fix before it and first after it, within the segments beside
+    it (what the receiver said the time was either side)."""
+    dated = [f for f in fixes if f.utc is not None]
+    bounds = [-math.inf, *(j.t_s for j in jumps), math.inf]
+    for k, j in enumerate(jumps):
+        before = [f for f in dated if bounds[k] < f.t_s < j.t_s]
+        after = [f for f in dated if j.t_s < f.t_s < bounds[k + 2]]
+        if before and after:
+            j.before_utc, j.after_utc = _utc_text(before[-1]), _utc_text(after[0])
+
+
+def _utc_text(fix: GpsFix) -> str:
+    assert fix.utc is not None
+    return fix.utc.strftime("%Y-%m-%d %H:%M:%S.%f").rstrip("0").rstrip(".")
 
 
 _SKIP_TYPES = frozenset({b"motor", b"odometry"})
@@ -374,8 +491,11 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
         if truth is None:
             truth = default_truth(path)
     else:
-        view.counts = _gps_from_decoder(nmea_file_chunks(path, rate_hz), raw)
-        if raw.fixes and raw.fixes[0].utc is not None:
+        chunks = _in_file_order(nmea_file_chunks(path, rate_hz), view.jumps)
+        view.counts = _gps_from_decoder(chunks, raw)
+        _date_jumps(view.jumps, raw.fixes)
+        first_jump = view.jumps[0].t_s if view.jumps else math.inf
+        if raw.fixes and raw.fixes[0].utc is not None and raw.fixes[0].t_s < first_jump:
             first = next((f.utc for f in raw.fixes if f.utc is not None), None)
             if first is not None:
                 raw.utc0 = first - timedelta(seconds=raw.fixes[0].t_s)
@@ -738,6 +858,23 @@ def _x_grid(x0: float, x1: float, pw: float, top: float, h: int) -> list[str]:
     return parts
 
 
+JUMP_COLOR = "#9467bd"
+"""The marks of a log's time jumps on the time panels."""
+
+
+def _jump_marks(
+    jumps: Sequence[TimeJump], x0: float, x1: float, pw: float, top: float, h: int
+) -> str:
+    """A dashed vertical line at each of a log's time jumps, saying what it is on hover."""
+    return "".join(
+        f'<line class="time-jump" x1="{px:.1f}" y1="{top}" x2="{px:.1f}" y2="{h - _MB}" '
+        f'stroke="{JUMP_COLOR}" stroke-width="1.2" stroke-dasharray="4,3">'
+        f"<title>{_esc(j.describe())}</title></line>"
+        for j in jumps
+        for px in [_ML + (j.t_s - x0) / (x1 - x0) * pw]
+    )
+
+
 def _axes(
     w: int, h: int, x0: float, x1: float, y0: float, y1: float, xlabel: str, ylabel: str
 ) -> str:
@@ -785,6 +922,7 @@ def _svg_series(
     y_range: tuple[float, float] | None = None,
     floor: float | None = None,
     wrap: bool = False,
+    jumps: Sequence[TimeJump] = (),
 ) -> str:
     x0, x1 = t_range
     y0, y1 = y_range or _range((s.v for s in series), floor=floor)
@@ -792,10 +930,11 @@ def _svg_series(
     pw, ph = w - _ML - _MR, h - _MT - _MB
     parts = [_svg_open(pid, w, h, {"x0": x0, "x1": x1, "y0": y0, "y1": y1})]
     parts.append(_axes(w, h, x0, x1, y0, y1, "time (s)", ylabel))
+    parts.append(_jump_marks(jumps, x0, x1, pw, _MT, h))
     legend = []
     for i, s in enumerate(series):
         color = COLORS[i % len(COLORS)]
-        t, v = _thin(s.t_s, s.v)
+        t, v = broken_at(*_thin(s.t_s, s.v), [j.t_s for j in jumps])
         if wrap:  # 359 -> 1 degree is a small turn, not a line across the panel
             cut = np.flatnonzero(np.abs(np.diff(v)) > 180.0) + 1
             t, v = np.insert(t, cut, np.nan), np.insert(v, cut, np.nan)
@@ -852,7 +991,11 @@ def _svg_track(view: LogView) -> str:
 
 
 def _svg_lanes(
-    pid: str, intervals: Sequence[Interval], lanes: Sequence[str], t_range: tuple[float, float]
+    pid: str,
+    intervals: Sequence[Interval],
+    lanes: Sequence[str],
+    t_range: tuple[float, float],
+    jumps: Sequence[TimeJump] = (),
 ) -> str:
     x0, x1 = t_range
     lane_h = 22
@@ -876,6 +1019,7 @@ def _svg_lanes(
         'fill="#fff" stroke="#888"/>'
     )
     parts += _x_grid(x0, x1, pw, top, h)
+    parts.append(_jump_marks(jumps, x0, x1, pw, top, h))
     parts.append(
         f'<text x="{_ML + pw / 2}" y="{h - 2}" font-size="11" text-anchor="middle">time (s)</text>'
     )
@@ -934,33 +1078,52 @@ def fault_lanes(view: LogView) -> list[str]:
 
 def panel_svgs(view: LogView) -> dict[str, str]:
     """Each panel's SVG (or "" when the log has nothing for it; ``view.missing`` says why)."""
-    t_range = (0.0, max(view.duration_s, 1e-3))
+    t_range = view.time_range()
+    j = view.jumps
     out: dict[str, str] = {}
     out["track"] = _svg_track(view) if view.track else ""
     out["error"] = (
-        _svg_series("error", view.error, t_range, "error (m)", floor=0.0) if view.error else ""
+        _svg_series("error", view.error, t_range, "error (m)", floor=0.0, jumps=j)
+        if view.error
+        else ""
     )
     out["hdop"] = (
-        "" if "hdop" in view.missing else _svg_series("hdop", view.hdop, t_range, "HDOP", floor=0.0)
+        ""
+        if "hdop" in view.missing
+        else _svg_series("hdop", view.hdop, t_range, "HDOP", floor=0.0, jumps=j)
     )
     out["satellites"] = (
         ""
         if "satellites" in view.missing
-        else _svg_series("satellites", view.satellites, t_range, "satellites", floor=0.0)
+        else _svg_series("satellites", view.satellites, t_range, "satellites", floor=0.0, jumps=j)
     )
     out["heading"] = (
-        _svg_series("heading", view.heading, t_range, "degrees", y_range=(0.0, 360.0), wrap=True)
+        _svg_series(
+            "heading", view.heading, t_range, "degrees", y_range=(0.0, 360.0), wrap=True, jumps=j
+        )
         if view.heading
         else ""
     )
     out["states"] = (
-        _svg_lanes("states", view.states, ("mode", "navigation"), t_range) if view.states else ""
+        _svg_lanes("states", view.states, ("mode", "navigation"), t_range, j) if view.states else ""
     )
-    out["holds"] = _svg_lanes("holds", view.holds, ("hold",), t_range) if view.holds else ""
+    out["holds"] = _svg_lanes("holds", view.holds, ("hold",), t_range, j) if view.holds else ""
     out["faults"] = (
-        _svg_lanes("faults", view.faults, fault_lanes(view), t_range) if view.faults else ""
+        _svg_lanes("faults", view.faults, fault_lanes(view), t_range, j) if view.faults else ""
     )
     return out
+
+
+def jumps_note(view: LogView, most: int = 3) -> str:
+    """What the page and ``x6wd plot`` say of a log's time jumps ("" when it has none)."""
+    if not view.jumps:
+        return ""
+    said = "; ".join(j.describe() for j in view.jumps[:most])
+    more = f"; and {len(view.jumps) - most} more" if len(view.jumps) > most else ""
+    return (
+        f"{said}{more}. Drawn in file order, each jump one epoch wide and marked with a "
+        "dashed line; the time axis is the log's time within each segment"
+    )
 
 
 def html_page(view: LogView) -> str:
@@ -971,7 +1134,10 @@ def html_page(view: LogView) -> str:
         ("kind", view.kind),
         ("duration", f"{view.duration_s:.1f} s"),
         ("start (UTC)", view.start_utc or "unknown"),
-    ] + [(k.replace("_", " "), str(v)) for k, v in view.counts.items()]
+    ]
+    if view.jumps:
+        facts.append((f"time jumps ({len(view.jumps)})", jumps_note(view)))
+    facts += [(k.replace("_", " "), str(v)) for k, v in view.counts.items()]
     rows = "".join(f"<tr><td>{_esc(k)}</td><td>{_esc(v)}</td></tr>" for k, v in facts)
     sections = []
     for pid in PANELS:

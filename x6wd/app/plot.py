@@ -15,12 +15,15 @@ import numpy as np
 
 from x6wd.app.logview import (
     COLORS,
+    JUMP_COLOR,
     LOST_COUNTS,
     STATE_COLORS,
     TITLES,
     LogView,
+    broken_at,
     fault_lanes,
     html_page,
+    jumps_note,
     load,
     newest_recording,
 )
@@ -61,7 +64,9 @@ def render_png(view: LogView, out_png: Path) -> None:
     else:
         _missing(ax_map, view.missing.get("track", ""))
     ax_map.grid(alpha=0.3)
-    t_max = max(view.duration_s, 1e-3)
+    t_min, t_max = view.time_range()
+    t_len = t_max - t_min
+    cuts = [j.t_s for j in view.jumps]
     first = None
     for k, (pid, series, ylabel) in enumerate(
         (
@@ -80,9 +85,8 @@ def render_png(view: LogView, out_png: Path) -> None:
         for i, s in enumerate(series):
             if np.any(np.isfinite(s.v)):
                 style = "." if pid == "heading" else "-"
-                ax.plot(
-                    s.t_s, s.v, style, ms=2, lw=1.1, color=COLORS[i % len(COLORS)], label=s.label
-                )
+                t, v = broken_at(s.t_s, s.v, cuts)  # no line across a time jump
+                ax.plot(t, v, style, ms=2, lw=1.1, color=COLORS[i % len(COLORS)], label=s.label)
                 drew = True
         if drew:
             ax.legend(fontsize=8, loc="upper right")
@@ -91,7 +95,8 @@ def render_png(view: LogView, out_png: Path) -> None:
                 ax.set_yticks([0, 90, 180, 270, 360])
         else:
             _missing(ax, view.missing.get(pid, "nothing in the log"))
-        ax.set_xlim(0, t_max)
+        _jump_lines(ax, view, label=k == 0)
+        ax.set_xlim(t_min, t_max)
     ax = fig.add_subplot(gs[len(rows)], sharex=first)
     lanes = [("mode", view.states), ("navigation", view.states), ("hold", view.holds)] + [
         (d, view.faults) for d in fault_lanes(view)
@@ -106,9 +111,9 @@ def render_png(view: LogView, out_png: Path) -> None:
                 or COLORS[sum(1 for p in palette if p not in STATE_COLORS) % len(COLORS)],
             )
             ax.broken_barh(
-                [(iv.t0_s, max(iv.t1_s - iv.t0_s, t_max / 800))], (y + 0.1, 0.8), color=color
+                [(iv.t0_s, max(iv.t1_s - iv.t0_s, t_len / 800))], (y + 0.1, 0.8), color=color
             )
-            if (iv.t1_s - iv.t0_s) > t_max * len(iv.label) / 150:
+            if (iv.t1_s - iv.t0_s) > t_len * len(iv.label) / 150:
                 ax.text(iv.t0_s, y + 0.5, " " + iv.label, va="center", fontsize=7, clip_on=True)
     ax.set_yticks([len(lanes) - 1 - k + 0.5 for k in range(len(lanes))])
     ax.set_yticklabels(
@@ -116,8 +121,12 @@ def render_png(view: LogView, out_png: Path) -> None:
         fontsize=8,
     )
     ax.set_ylim(0, len(lanes))
-    ax.set_xlim(0, t_max)
-    ax.set_xlabel("time since the start of the log (s)")
+    _jump_lines(ax, view, label=False)
+    ax.set_xlim(t_min, t_max)
+    ax.set_xlabel(
+        "time since the start of the log (s)"
+        + (", its segments in file order (dashed: the log's time jumped)" if cuts else "")
+    )
     ax.set_title("Mode, navigation state, holds and device faults", fontsize=10, loc="left")
     if not (view.states or view.holds or view.faults):
         _missing(ax, view.missing.get("states", "nothing in the log"))
@@ -132,6 +141,23 @@ def render_png(view: LogView, out_png: Path) -> None:
     fig.tight_layout()
     fig.savefig(out_png)
     plt.close(fig)
+
+
+def _jump_lines(ax: Any, view: LogView, *, label: bool) -> None:
+    """A dashed line at each of the log's time jumps; ``label``: with its line number and
+    step (not the ones too close to the last labelled to be read)."""
+    lo, hi = view.time_range()
+    labelled = -math.inf
+    for j in view.jumps:
+        ax.axvline(j.t_s, color=JUMP_COLOR, ls="--", lw=1.0)
+        if label and j.t_s - labelled > (hi - lo) / 8:
+            labelled = j.t_s
+            way = "back" if j.step_s < 0 else "on"
+            ax.text(
+                j.t_s, 1.0, f" line {j.line}: time {way} {abs(j.step_s):.0f} s",
+                transform=ax.get_xaxis_transform(), va="top", fontsize=7, color=JUMP_COLOR,
+                clip_on=True,
+            )  # fmt: skip
 
 
 def _missing(ax: Any, why: str) -> None:
@@ -201,6 +227,8 @@ def main(args: argparse.Namespace) -> int:
         print(p)
     for pid, why in view.missing.items():
         print(f"x6wd plot: the {pid} panel is empty: {why}", file=sys.stderr)
+    if view.jumps:
+        print(f"x6wd plot: {src}: the log's time jumps: {jumps_note(view)}", file=sys.stderr)
     lost = {k: v for k, v in view.counts.items() if k in LOST_COUNTS and v}
     if lost:  # what was skipped is on the page too; say it where the command ran
         text = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in lost.items())
