@@ -330,6 +330,15 @@ def waypoint_labels(wp_enu: np.ndarray, most: int = MAX_WAYPOINT_LABELS) -> list
     ]
 
 
+_SOURCE_LABELS = {"ekf": " (EKF)", "constellation": " (Constellation)", "raw": " (latest fix)"}
+
+
+def filtered_label(summary: Summary) -> str:
+    """The filtered track's legend: the robot's position source (navigation.position_source)
+    as the run's summary records it."""
+    return "filtered" + _SOURCE_LABELS.get(str(summary.extra.get("position_source")), "")
+
+
 def plot_track(
     path: Path,
     world: World,
@@ -362,7 +371,7 @@ def plot_track(
             ok = np.all(np.isfinite(filt_enu), axis=1)
             if ok.any():  # the receiver engine runs no robot: nothing filtered
                 ax.plot(filt_enu[ok, 0], filt_enu[ok, 1], "-", lw=1, color="tab:orange",
-                        label="filtered (Constellation)", zorder=3)  # fmt: skip
+                        label=filtered_label(summary), zorder=3)  # fmt: skip
         if np.ptp(truth_e) == 0 and np.ptp(truth_n) == 0:  # standing still: a point, not a path
             ax.plot(truth_e[:1], truth_n[:1], "P", ms=12, color="tab:blue", mec="white",
                     label="true position", zorder=4)  # fmt: skip

@@ -138,8 +138,9 @@ class VehicleSettings:
     turn_rate_dps: float = field(default=90.0, metadata=_rng(1.0, 720.0))
     motor_tau_s: float = field(default=0.25, metadata=_rng(0.0, 10.0))
     start_heading_deg: float = field(default=0.0, metadata=_rng(0.0, 360.0))
-    start_east_m: float = 0.0
-    start_north_m: float = 0.0
+    # the same bounds as mission.waypoints_enu: the scenario's flat-earth frame
+    start_east_m: float = field(default=0.0, metadata=_rng(-1e6, 1e6))
+    start_north_m: float = field(default=0.0, metadata=_rng(-1e6, 1e6))
     slope_east_pct: float = field(default=0.0, metadata=_rng(-170.0, 170.0))
     slope_north_pct: float = field(default=0.0, metadata=_rng(-170.0, 170.0))
     antenna_height_m: float = field(default=0.34, metadata=_rng(0.0, 100.0))

@@ -82,3 +82,20 @@ def test_matplotlib_draws_it_when_pillow_cannot_draw_text(
     out = tmp_path / "track.png"
     trackpng.plot_survey(out, world, (0.0, math.pi), np.zeros((3, 2)), _summary(world.name))
     assert drawn == [out]
+
+
+def test_a_missions_filtered_track_is_named_by_its_position_source() -> None:
+    """The legend of a mission's track.png says which estimate the robot steered by (it said
+    'Constellation' under the shipped EKF)."""
+    from sim_backend.runs import filtered_label
+
+    s = _summary("x")
+    labels = {}
+    for source in ("ekf", "constellation", "raw"):
+        s.extra["position_source"] = source
+        labels[source] = filtered_label(s)
+    assert labels == {
+        "ekf": "filtered (EKF)",
+        "constellation": "filtered (Constellation)",
+        "raw": "filtered (latest fix)",
+    }

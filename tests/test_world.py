@@ -241,6 +241,14 @@ def test_minimal_scenario_defaults() -> None:
             r"buildings\[0\].*penetration_db",
         ),
         ('name = "x"\nalmanac = "nope.txt"\n[origin]\nlat_deg = 1\nlon_deg = 2\n', "almanac"),
+        (  # 1e9 m east: every fix invalid and no message, before the bound
+            'name = "x"\n[origin]\nlat_deg = 1\nlon_deg = 2\n[vehicle]\nstart_east_m = 1e9\n',
+            r"vehicle\.start_east_m",
+        ),
+        (
+            'name = "x"\n[origin]\nlat_deg = 1\nlon_deg = 2\n[vehicle]\nstart_north_m = -2e6\n',
+            r"vehicle\.start_north_m",
+        ),
         ('name = "x"\n[origin\n', "not valid TOML"),
     ],
 )
