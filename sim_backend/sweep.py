@@ -20,7 +20,9 @@ key: ``duration_s``, ``gnss.rate_hz``, ``vehicle.max_speed_mps``, ``compass.nois
 robot configuration key: ``navigation.position_source``, ``failsafe.stuck_s``, ...). They are
 applied to each scenario's merged table (after its includes and the robot config) *before* the
 scenario is validated, so every cell is checked when the sweep starts and a bad key or value
-stops it with the scenario's own error message naming the key (``x6wd sweep`` exits 2).
+stops it with the scenario's own error message naming the key (``x6wd sweep`` exits 2). A file
+given as a value (``almanac``, ``gnss.lce_csv``) is relative to the sweep file, as its
+``scenarios`` and ``robot_config`` are; the scenario's own files stay relative to it.
 
 Words: a *cell* is one scenario x one combination of the grid's values; a *run* is one mission
 of a cell with one seed. Each run's seed is derived (SHA-256) from the sweep's seed, the
@@ -39,8 +41,9 @@ cluster lost (:class:`~sim_backend.executor.Outcome` kind "executor") is run aga
 
 The runs are executed by :class:`sim_backend.executor.Executor` (a Dask LocalCluster, an
 existing scheduler, or this process). A task carries the resolved scenario as TOML text
-(without the packaged almanac's local path), so workers need x6wd installed but not the
-scenario files.
+(without the packaged almanac's local path, with any LCE CSV inlined, and any other almanac by
+its absolute path), so workers need x6wd installed but not the scenario files, and read the
+files that were checked whatever their current folder.
 """
 
 from __future__ import annotations
@@ -73,6 +76,9 @@ from sim_backend.world import (
 from x6wd.core.errors import ConfigError
 
 SWEEP_KEYS = ("name", "seed", "seeds", "scenarios", "robot_config", "set", "grid")
+PATH_KEYS = ("almanac", "gnss.lce_csv")
+"""Scenario keys whose value is a file: given in [set] or [grid], a relative one is relative to
+the sweep file's folder (a path is relative to the file that names it, as in a scenario)."""
 SEED_BITS = 48  # run seeds are 0 .. 2**48 - 1 (a collision in 10,000 runs: ~2e-7)
 
 
@@ -82,7 +88,8 @@ SEED_BITS = 48  # run seeds are 0 .. 2**48 - 1 (a collision in 10,000 runs: ~2e-
 @dataclass(frozen=True)
 class SweepSpec:
     """A validated sweep file. ``fixed`` ([set]) and ``grid`` ([grid]) map dotted scenario
-    keys to a value and to a list of values (file order)."""
+    keys to a value and to a list of values (file order), as written; ``base_dir`` is the
+    folder their relative file names (:data:`PATH_KEYS`) are relative to (the sweep file's)."""
 
     name: str
     seed: int
@@ -92,6 +99,7 @@ class SweepSpec:
     fixed: dict[str, Any] = field(default_factory=dict)
     grid: dict[str, list[Any]] = field(default_factory=dict)
     source: Path | None = None
+    base_dir: Path = Path(".")
 
 
 def load_sweep(path: str | Path) -> SweepSpec:
@@ -173,6 +181,7 @@ def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: s
         fixed=fixed,
         grid=grid,
         source=source.resolve() if source is not None else None,
+        base_dir=base.resolve(),
     )
 
 
@@ -265,19 +274,33 @@ def base_table(path: Path, robot_config: Path | None) -> tuple[dict[str, Any], P
 
 
 def cell_world(
-    table: dict[str, Any], base_dir: Path, overrides: dict[str, Any], source: str
+    table: dict[str, Any],
+    base_dir: Path,
+    overrides: dict[str, Any],
+    source: str,
+    values_dir: Path | None = None,
 ) -> tuple[World, str]:
     """The validated world of ``table`` with ``overrides`` (dotted keys) applied, and its
-    portable TOML (the packaged almanac left to each worker's own install)."""
+    portable TOML: the one a worker reads, whatever its current folder. A file named by an
+    override (:data:`PATH_KEYS`) is relative to ``values_dir`` (default ``base_dir``); the
+    TOML names the almanac by its absolute path (the packaged one is left to each worker's
+    own install) and carries an LCE CSV's grid inline (``gnss.lce_sigma_m``), so what a
+    worker runs is what was checked here."""
     data = copy.deepcopy(table)
     for key, value in overrides.items():
+        if key in PATH_KEYS and isinstance(value, str) and value:
+            value = str(((values_dir or base_dir) / value).resolve())
+        if key == "gnss.lce_csv" and "gnss.lce_sigma_m" not in overrides:
+            gnss = data.get("gnss")  # it replaces the scenario's own map (inlined when read)
+            if isinstance(gnss, dict):
+                gnss.pop("lce_sigma_m", None)
         set_dotted(data, key, value)
-    if data.get("almanac") == str(DEFAULT_ALMANAC):
-        del data["almanac"]
-    text = dumps_toml(data)
-    world = loads_world(text, base_dir, source=source)
+    world = loads_world(dumps_toml(data), base_dir, source=source)
     compass_setup(world)  # the [compass] table is checked when a mission starts: check it now
-    return world, text
+    portable = copy.deepcopy(world.raw)  # paths absolute, the LCE CSV read into the table
+    if portable.get("almanac") == str(DEFAULT_ALMANAC):
+        del portable["almanac"]
+    return world, dumps_toml(portable)
 
 
 def plan(spec: SweepSpec) -> list[Run]:
@@ -294,7 +317,9 @@ def plan(spec: SweepSpec) -> list[Run]:
             overrides = {**spec.fixed, **params}
             where = ", ".join(f"{k}={v!r}" for k, v in overrides.items()) or "no overrides"
             try:
-                _world, text = cell_world(table, base, overrides, f"{path.stem} ({where})")
+                _world, text = cell_world(
+                    table, base, overrides, f"{path.stem} ({where})", spec.base_dir
+                )
             except ConfigError as exc:
                 raise ConfigError(f"scenario {path}: {exc}") from exc
             cid = cell_id(path.stem, overrides)

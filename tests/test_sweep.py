@@ -277,6 +277,49 @@ def test_a_run_is_the_same_mission_wherever_it_runs() -> None:
     }
 
 
+def test_a_file_named_by_a_sweep_value_is_the_one_the_worker_reads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A relative file name in [set] or [grid] is relative to the sweep file (as in a
+    # scenario: to the file that names it). It was checked against the scenario's folder
+    # and read by the worker from its own current folder: every run failed, or silently
+    # used a same-named file there. The cell's TOML carries the LCE grid inline and the
+    # almanac by its absolute path.
+    import tomllib
+
+    from sim_backend.sweep import load_sweep, plan, run_task
+    from sim_backend.world import DEFAULT_ALMANAC
+
+    sw, scen, worker_cwd = tmp_path / "sw", tmp_path / "scen", tmp_path / "worker"
+    for d in (sw, scen, worker_cwd):
+        d.mkdir()
+    # the scenario has its own LCE map: a sweep value replaces it
+    (scen / "s.toml").write_text(
+        f'include = ["{DEFAULT}"]\nduration_s = 5.0\n[gnss]\nlce_csv = "own.csv"\n'
+    )
+    (scen / "own.csv").write_text("9.0,9.0\n9.0,9.0\n")
+    (sw / "a.csv").write_text("1.0,2.0\n3.0,4.0\n")
+    (sw / "b.csv").write_text("5.0,6.0\n7.0,8.0\n")
+    shutil.copy(DEFAULT_ALMANAC, sw / "alm.txt")
+    (worker_cwd / "a.csv").write_text("not, a grid\n")  # never to be read
+    f = sw / "sweep.toml"
+    f.write_text(
+        'seeds = 1\nscenarios = ["../scen/s.toml"]\n[set]\nalmanac = "alm.txt"\n'
+        '[grid]\ngnss.lce_csv = ["a.csv", "b.csv"]\n'
+    )
+    monkeypatch.chdir(worker_cwd)
+    runs = plan(load_sweep(f))
+    assert [r.cell.params for r in runs] == [{"gnss.lce_csv": "a.csv"}, {"gnss.lce_csv": "b.csv"}]
+    grids = []
+    for run in runs:
+        data = tomllib.loads(run.cell.world_toml)
+        assert data["almanac"] == str(sw / "alm.txt") and "lce_csv" not in data["gnss"]
+        grids.append(data["gnss"]["lce_sigma_m"])
+        rec = run_task(run.run_id, run.cell.world_toml, run.seed)
+        assert rec["status"] == "ok", rec["error"]
+    assert grids == [[[1.0, 2.0], [3.0, 4.0]], [[5.0, 6.0], [7.0, 8.0]]]
+
+
 @pytest.mark.parametrize(
     ("grid", "named"),
     [
