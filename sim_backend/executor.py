@@ -98,20 +98,28 @@ def _workers_ignore_sigint() -> Iterator[None]:
         signal.signal(signal.SIGINT, old)
 
 
-def _probe_scheduler(address: str, timeout_s: float) -> None:
-    """Raise :class:`ConfigError` unless a Dask scheduler answers at ``address`` within
-    ``timeout_s`` (s). ``Client`` alone raises a bare ValueError for a malformed address,
-    waits with no limit in its handshake with a peer that never speaks (an HTTP server, the
-    dashboard's port), and tries to allocate exabytes for one that speaks something else."""
+def probe_scheduler(address: str, timeout_s: float) -> None:
+    """Raise :class:`ConfigError` naming ``address`` unless a Dask scheduler answers there
+    within ``timeout_s`` (s). ``Client`` alone raises a bare ValueError for a malformed
+    address and a ``socket.gaierror`` for a host no resolver knows, waits with no limit in
+    its handshake with a peer that never speaks (an HTTP server, the dashboard's port), and
+    tries to allocate exabytes for one that speaks something else."""
     import asyncio
 
-    from distributed.comm import connect
-    from distributed.comm.addressing import resolve_address
+    try:
+        from distributed.comm import connect
+        from distributed.comm.addressing import resolve_address
+    except ImportError as exc:
+        raise ConfigError(f"a Dask cluster needs {INSTALL_HINT}: {exc}") from exc
 
     try:
         resolved = resolve_address(address)
     except ValueError as exc:
-        raise ConfigError(f"scheduler: {exc} (expected tcp://HOST:PORT)") from None
+        raise ConfigError(f"scheduler {address}: {exc} (expected tcp://HOST:PORT)") from None
+    except OSError as exc:  # socket.gaierror: an unknown host name, or 256.1.1.1
+        raise ConfigError(
+            f"scheduler {address}: cannot resolve its host: {exc.strerror or exc}"
+        ) from None
 
     async def identity() -> Any:
         comm = await connect(resolved, timeout=timeout_s)
@@ -164,7 +172,7 @@ class Executor:
         except ImportError as exc:
             raise ConfigError(f"a Dask cluster needs {INSTALL_HINT}: {exc}") from exc
         if self.scheduler:
-            _probe_scheduler(self.scheduler, self.connect_timeout_s)
+            probe_scheduler(self.scheduler, self.connect_timeout_s)
         try:
             if self.scheduler:
                 self._client = Client(self.scheduler, timeout=self.connect_timeout_s)

@@ -665,7 +665,16 @@ def test_a_scheduler_address_that_is_no_scheduler_is_a_clear_error_in_time(peer:
     assert time.monotonic() - t0 < 10
 
 
-@pytest.mark.parametrize("address", ["nonsense", "foo://bar"])
+BAD_SCHEDULERS = [
+    "nonsense",
+    "foo://bar",
+    # a host no resolver knows: socket.gaierror, a traceback and exit 1
+    "tcp://nosuchhost.invalid:18786",
+    "tcp://256.1.1.1:8786",
+]
+
+
+@pytest.mark.parametrize("address", BAD_SCHEDULERS)
 def test_a_malformed_scheduler_address_is_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], address: str
 ) -> None:
@@ -673,4 +682,24 @@ def test_a_malformed_scheduler_address_is_exit_2(
 
     f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n")
     assert main(["sweep", str(f), "--scheduler", address, "--out", str(tmp_path / "o")]) == 2
-    assert "scheduler" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "scheduler" in err and address.split("://")[-1] in err, err
+    assert "Traceback" not in err
+
+
+def test_a_bad_scheduler_is_exit_2_on_a_finished_sweep_too(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # nothing left to run used to mean no look at --scheduler at all: exit 0
+    from sim_backend.executor import Executor
+    from sim_backend.sweep import load_sweep, run_sweep
+    from x6wd.app.cli import main
+
+    f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n")
+    out = tmp_path / "o"
+    with Executor(inline=True) as ex:
+        assert not run_sweep(load_sweep(f), out, ex).failed
+    assert main(["sweep", str(f), "--out", str(out), "--quiet"]) == 0  # finished: the report
+    for address in BAD_SCHEDULERS[::2]:
+        assert main(["sweep", str(f), "--scheduler", address, "--out", str(out)]) == 2
+        assert address.split("://")[-1] in capsys.readouterr().err

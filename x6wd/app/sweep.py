@@ -9,7 +9,8 @@ pyarrow), ``arrivals.csv``, three figures and ``summary.md`` (:mod:`sim_backend.
 Usage and costs: docs/sweeps.md.
 
 Exit codes: 0 every run succeeded; 1 some run failed (recorded with its error); 2 a bad sweep
-file, scenario key or value, or no Dask; 130 interrupted (finished runs are kept: run the same
+file, scenario key or value, no Dask, or a --scheduler that is malformed, unknown or silent
+(checked even when nothing is left to run); 130 interrupted (finished runs are kept: run the same
 command again to finish).
 """
 
@@ -20,7 +21,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from sim_backend.executor import Executor, TextProgress
+from sim_backend.executor import Executor, TextProgress, probe_scheduler
 from sim_backend.sweep import RunStore, load_sweep, plan, run_sweep, split_done
 from sim_backend.sweep_report import write_report
 from x6wd.core.errors import ConfigError
@@ -75,8 +76,11 @@ def main(args: argparse.Namespace) -> int:
     progress = None if args.quiet else TextProgress(len(runs), "runs")
     _done, todo = split_done(runs, RunStore(out), args.retry_failed)
     executor = Executor(scheduler=args.scheduler, workers=args.workers)  # checks --workers
-    # Nothing left to run (a finished sweep run again): no cluster to start, only the report.
+    # Nothing left to run (a finished sweep run again): no cluster to start, only the report;
+    # but a --scheduler that is wrong is said so (exit 2), as it would be with runs to do.
     if not todo:
+        if args.scheduler:
+            probe_scheduler(args.scheduler, executor.connect_timeout_s)
         executor = Executor(inline=True)
     try:
         with executor:
