@@ -11,9 +11,11 @@ import logging
 import os
 import re
 import signal
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any, cast
 
 import pytest
 
@@ -26,13 +28,14 @@ from tests.test_shutdown import (
     daemon_process,
     drive_and_wait,
     log_motors_config,
+    stamped,
 )
 from tests.test_startup import assert_config_error, run_x6wd, write_config
 from x6wd.app.client import RemoteClient
 from x6wd.app.daemon import Daemon, _RecorderWorker
-from x6wd.core.recorder import Recorder
+from x6wd.core.recorder import ReadStats, Record, Recorder, read_recording_parts
 
-__all__ = ["board", "daemon_process", "run_daemon"]  # the fixtures
+__all__ = ["board", "daemon_process", "run_daemon", "stamped"]  # the fixtures
 
 # -- signals: every one that would kill the process stops the motors first -----------------
 
@@ -44,7 +47,11 @@ __all__ = ["board", "daemon_process", "run_daemon"]  # the fixtures
     ids=["HUP", "USR1", "QUIT"],
 )
 def test_a_signal_while_driving_stops_the_motors_and_exits_cleanly(
-    daemon_process: DaemonProcess, board: TcpMotorBoard, sig: signal.Signals, code: int
+    tmp_path: Path,
+    daemon_process: DaemonProcess,
+    board: TcpMotorBoard,
+    sig: signal.Signals,
+    code: int,
 ) -> None:
     p = daemon_process
     with drive_and_wait(p, board, 40, 40):
@@ -57,20 +64,133 @@ def test_a_signal_while_driving_stops_the_motors_and_exits_cleanly(
     p.reader.join(5)
     assert any(f"{sig.name} received" in line for line in p.lines), p.lines[-5:]
     assert any("x6wd stopped" in line for line in p.lines)
+    # write_config's [recorder] dir
+    assert_recording_ends_with_the_stop(tmp_path / "rec", f"shutdown ({sig.name})", code)
+
+
+# -- the recording ends with the stop: a clean exit is not a crash or a power cut ----------
+
+
+def assert_recording_ends_with_the_stop(
+    rec_dir: Path, reason: str, code: int, cause: str = ""
+) -> list[Record]:
+    """The recording in ``rec_dir`` says how the daemon ended: after its last drive, a motor
+    record 0/0 and the controller's change to IDLE, both with ``reason``; last of all a
+    ``shutdown`` event with the exit ``code`` and a cause containing ``cause``."""
+    (first,) = sorted(rec_dir.glob("x6wd-*Z.jsonl"))
+    stats = ReadStats()
+    records = list(read_recording_parts(first, stats=stats))
+    assert stats.bad_lines == 0 and stats.truncated == 0
+    tail = [(r.type, r.data) for r in records[-8:]]
+    end = records[-1]
+    assert (end.type, end.data.get("event")) == ("event", "shutdown"), tail
+    assert end.data["exit_code"] == code and end.data["reason"] == reason, end.data
+    assert cause in end.data["cause"], end.data
+    motors = [i for i, r in enumerate(records) if r.type == "motor"]
+    drives = [i for i in motors if records[i].data["left_pct"] or records[i].data["right_pct"]]
+    assert drives, "the robot never drove: the test proves nothing"
+    stop = records[motors[-1]]
+    assert motors[-1] > drives[-1], tail
+    assert (stop.data["left_pct"], stop.data["right_pct"], stop.data["reason"]) == (0, 0, reason)
+    idle = [
+        r
+        for r in records[drives[-1] :]
+        if r.type == "state" and r.data["new"] == "IDLE" and reason in r.data["reason"]
+    ]
+    assert idle, tail
+    return records
+
+
+def test_a_stop_signal_ends_the_recording_with_the_stop_and_the_exit(
+    tmp_path: Path, run_daemon, stamped: StampedLink
+) -> None:
+    r = run_daemon(Daemon(log_motors_config(tmp_path)))
+    with RemoteClient("127.0.0.1", r.port) as c:
+        c.request("drive", left=65, right=55, duration_s=5)
+        wait_for(lambda: stamped.driving(65.0, 55.0), 3, "motors driven")
+        time.sleep(0.3)  # fixes, samples and ticks recorded while driving
+        r.loop.call_soon_threadsafe(r.daemon.stop_on_signal, signal.SIGINT, 0)  # the handler
+        r.thread.join(10)
+    assert r.code == 0
+    assert stamped.stamped[-1][1].is_stop
+    assert_recording_ends_with_the_stop(tmp_path / "rec", "shutdown (SIGINT)", 0, "SIGINT")
+
+
+class DyingCompassDaemon(Daemon):
+    """Fault injection: once armed, the compass thread dies of a bug."""
+
+    armed = False
+
+    def _compass_thread(self) -> None:
+        wait_for(lambda: self.armed, 30, "armed")
+        raise RuntimeError("injected bug in the compass thread")
+
+
+def test_a_dying_device_thread_ends_the_recording_with_the_stop_and_the_exit(
+    tmp_path: Path, run_daemon, stamped: StampedLink
+) -> None:
+    d = DyingCompassDaemon(log_motors_config(tmp_path))
+    r = run_daemon(d)
+    with RemoteClient("127.0.0.1", r.port) as c:
+        c.request("drive", left=40, right=40, duration_s=5)
+        wait_for(lambda: stamped.driving(40.0, 40.0), 3, "motors driven")
+        d.armed = True
+        r.thread.join(10)
+    assert r.code == 1
+    assert_recording_ends_with_the_stop(
+        tmp_path / "rec", "shutdown (error)", 1, "thread x6wd-compass: RuntimeError: injected bug"
+    )
+
+
+def test_a_control_lock_held_at_exit_does_not_keep_the_stop_out_of_the_recording(
+    tmp_path: Path,
+) -> None:
+    calls: list[tuple[str, Any]] = []
+
+    class Sink:  # the recorder worker's and the runner's part in the exit
+        def put(self, method: str, arg: Any) -> None:
+            calls.append((method, arg))
+
+        def shutdown(self, reason: str) -> None:
+            calls.append(("runner", reason))
+
+    d = Daemon(log_motors_config(tmp_path))
+    d.recorder = d.runner = cast(Any, Sink())
+    held, release = threading.Event(), threading.Event()
+
+    def hold() -> None:  # a thread stuck in a decision
+        with d._control_lock:
+            held.set()
+            release.wait(5)
+
+    threading.Thread(target=hold, daemon=True).start()
+    assert held.wait(5)
+    t0 = time.monotonic()
+    d._stop_controller("shutdown (SIGTERM)")
+    assert time.monotonic() - t0 < 1.0
+    release.set()
+    ((method, cmd),) = calls
+    assert method == "record_motor"
+    assert (cmd.left_pct, cmd.right_pct, cmd.reason) == (0, 0, "shutdown (SIGTERM)")
+    wait_for(lambda: d._control_lock.acquire(blocking=False), 5, "lock released")
+    d._control_lock.release()
+    d._stop_controller("shutdown (SIGTERM)")  # the lock free: the runner stops the controller
+    assert calls[-1] == ("runner", "shutdown (SIGTERM)")
 
 
 # -- the motor thread is guarded like the others ------------------------------------------
 
 
 class BuggyLink(StampedLink):
-    """A motor link whose health-event call hits a bug once armed (in the motor thread's
-    ``_after_io``)."""
+    """A motor link whose health-event call hits a bug once armed, in the motor thread's
+    ``_after_io`` (not in a GPS thread's direct send, which calls it too)."""
 
     armed = False
     t_boom: float | None = None
 
     def take_health_events(self) -> list:  # type: ignore[type-arg]
-        if self.armed and self.t_boom is None:
+        in_motor_thread = threading.current_thread().name == "x6wd-motors"
+        if self.armed and self.t_boom is None and in_motor_thread:
             self.t_boom = time.monotonic()
             raise RuntimeError("injected bug in the motor thread")
         return super().take_health_events()
@@ -99,6 +219,10 @@ def test_a_bug_in_the_motor_thread_stops_the_motors_and_exits_1(
     t_stop = buggy.first_stop_after(buggy.t_boom)
     assert t_stop is not None and t_stop - buggy.t_boom < 0.5
     assert "thread x6wd-motors died" in caplog.text
+    # the recorder outlives the motor thread: the recording says how it ended
+    assert_recording_ends_with_the_stop(
+        tmp_path / "rec", "shutdown (error)", 1, "thread x6wd-motors: RuntimeError: injected bug"
+    )
 
 
 # -- the recorder thread: bounded queue, bounded exit, status --------------------------

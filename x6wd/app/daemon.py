@@ -20,8 +20,11 @@ expiry; the daemon additionally stops the motors on any exit path. Every signal 
 action would kill the process stops the motors and shuts down cleanly (:func:`stop_signals`):
 SIGTERM, SIGINT and SIGHUP (a closed terminal) exit 0; the others (SIGQUIT, SIGUSR1 ...,
 which nothing should send x6wd) exit 1, so systemd restarts us. An unexpected exception in
-any thread, the motor thread's included, stops the motors and exits 1. The recorder never
-holds up the exit: its thread gets :data:`RECORDER_CLOSE_S` to drain, then is left behind.
+any thread, the motor thread's included, stops the motors and exits 1. The recording ends
+with the stop (a motor record 0/0, the change to IDLE) and a ``shutdown`` event naming the
+cause and the exit code, so a clean exit is told apart from a crash or a power cut. The
+recorder never holds up the exit: its thread gets :data:`RECORDER_CLOSE_S` to drain, then is
+left behind.
 """
 
 from __future__ import annotations
@@ -113,6 +116,10 @@ RECORDER_STALL_S = 5.0
 """A recorder call taking this long (s) makes the recorder "stalled" in ``status``."""
 RECORDER_LOG_S = 60.0
 """While the recorder fails or drops records, one summary log line per this many seconds."""
+SHUTDOWN_LOCK_S = 0.2
+"""At exit, how long (s) the shutdown waits for the control lock to stop the controller (a
+decision holds it for about a millisecond); a thread stuck holding it does not hold up the
+motors' stop, whose record is then written without the controller."""
 RECORDER_CLOSE_S = 3.0
 """At exit, how long (s) the recorder thread may take to drain its queue and close the file;
 a thread stuck in the file system is left behind (the process exits all the same)."""
@@ -536,7 +543,8 @@ class _RecorderWorker:
         log_every_s: float = RECORDER_LOG_S,
     ) -> None:
         self.recorder = recorder
-        self._q: queue.SimpleQueue[tuple[str, Any] | None] = queue.SimpleQueue()
+        # (recorder method, its arguments), or None: drain and close
+        self._q: queue.SimpleQueue[tuple[str, tuple[Any, ...]] | None] = queue.SimpleQueue()
         self.max_queued = max_queued
         self.stall_s = stall_s
         self.log_every_s = log_every_s
@@ -556,6 +564,13 @@ class _RecorderWorker:
 
     def put(self, method: str, arg: Any) -> None:
         """Queue one recorder call; never blocks (a full queue drops it, counted)."""
+        self._put(method, (arg,))
+
+    def put_event(self, name: str, t_mono: float, **fields: Any) -> None:
+        """Queue ``Recorder.record_event(name, t_mono, **fields)``, as :meth:`put` does."""
+        self._put("record", ("event", {"event": name, **fields}, t_mono))
+
+    def _put(self, method: str, args: tuple[Any, ...]) -> None:
         if self._q.qsize() >= self.max_queued:
             self.queue_dropped += 1
             now = time.monotonic()
@@ -571,7 +586,7 @@ class _RecorderWorker:
                 )
                 self._t_drop_log = now
             return
-        self._q.put((method, arg))
+        self._q.put((method, args))
 
     def _run(self) -> None:
         # The start-of-run retention pass deletes files: here, never on the event loop.
@@ -585,10 +600,10 @@ class _RecorderWorker:
             item = self._q.get()
             if item is None:
                 break
-            method, arg = item
+            method, args = item
             self._call, self._t_call = method, time.monotonic()
             try:
-                getattr(self.recorder, method)(arg)
+                getattr(self.recorder, method)(*args)
             except Exception as exc:
                 self._failed(exc)
             else:
@@ -755,6 +770,7 @@ class Daemon:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop_event: asyncio.Event | None = None
         self._fatal: BaseException | None = None
+        self._fatal_cause = ""  # the first fatal error, for the recording's shutdown event
         self._accepting = False  # operator commands that move the robot wait for "ready"
         self._threads_stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -825,17 +841,21 @@ class Daemon:
             )
         self.request_stop()
 
-    def _fail(self, exc: BaseException) -> None:
+    def _fail(self, exc: BaseException, cause: str = "") -> None:
+        """Stop the daemon on ``exc`` (exit 1); ``cause``: where it came from, for the
+        recording (default: the control loop)."""
         if self._fatal is None:
             self._fatal = exc
+            self._fatal_cause = cause or f"error on the control loop: {_exc_text(exc)}"
         self.request_stop()
 
     def fail_from_thread(self, exc: BaseException) -> None:
         """Report an unexpected exception from a worker thread (exits non-zero)."""
+        cause = f"error in thread {threading.current_thread().name}: {_exc_text(exc)}"
         loop = self._loop
         if loop is not None and not loop.is_closed():
             with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(self._fail, exc)
+                loop.call_soon_threadsafe(self._fail, exc, cause)
 
     async def run(self, ready: Callable[[Daemon], Any] | None = None) -> int:
         """Open everything, serve until stopped; return the process exit code.
@@ -857,7 +877,11 @@ class Daemon:
             config_error(exc)
             self.notifier.stopping(f"configuration error: {one_line(str(exc))}")
             return EXIT_CONFIG
-        code = EXIT_OK
+        code = EXIT_FAILURE
+        # how the run ended, for the recording: the stop's reason "shutdown (<why>)", the
+        # shutdown event's cause and exit code (None: cancelled, no exit code of ours)
+        why = cause = "cancelled"
+        exit_code: int | None = None
         try:
             await self._open_devices()
             await self._open_recorder()  # last: a failed start leaves no empty recording
@@ -877,18 +901,26 @@ class Daemon:
             await self._control_loop()
             if self._fatal is not None:
                 raise self._fatal
+            code, why, cause = EXIT_OK, "stop requested", "stop requested"
             if self._stop_signal is not None:
-                code = self._stop_signal[1]
+                why, code = self._stop_signal
+                cause = f"signal {why}"
+            exit_code = code
         except (ConfigError, DeviceUnavailable) as exc:
             log.error("startup failed: %s", exc)
-            code = EXIT_CONFIG if isinstance(exc, ConfigError) else EXIT_FAILURE
+            exit_code = code = EXIT_CONFIG if isinstance(exc, ConfigError) else EXIT_FAILURE
+            why, cause = "startup failed", f"startup failed: {one_line(str(exc))}"
+            if exc is self._fatal:
+                why, cause = "error", self._fatal_cause
         except Exception as exc:
             log.exception("fatal error, stopping the motors: %s", exc)
-            code = EXIT_FAILURE
+            exit_code = code = EXIT_FAILURE
+            why = "error"
+            cause = self._fatal_cause if exc is self._fatal else f"error: {_exc_text(exc)}"
         finally:
             self.notifier.stopping("stopping")
             try:
-                await self._close()
+                await self._close(f"shutdown ({why})", cause, exit_code)
             finally:
                 if self.gc_pacer is not None:
                     self.gc_pacer.stop()
@@ -1086,10 +1118,23 @@ class Daemon:
         self._threads.append(t)
         t.start()
 
-    async def _close(self) -> None:
+    async def _close(
+        self,
+        reason: str = "shutdown",
+        cause: str = "stop requested",
+        exit_code: int | None = EXIT_OK,
+    ) -> None:
+        """Stop the motors, then close everything. The recording ends with the stop (a motor
+        record 0/0 and the controller's change to IDLE, both with ``reason``) and a
+        ``shutdown`` event with ``cause`` and ``exit_code``: a clean exit, told apart from
+        a crash or a power cut."""
+        self._accepting = False  # nothing may set the robot moving again
         # Motors first: whatever else fails below, the robot must be stopped.
-        if self.motors is not None:
-            await asyncio.to_thread(self.motors.shutdown, "daemon exit")
+        try:
+            self._stop_controller(reason)
+        finally:
+            if self.motors is not None:
+                await asyncio.to_thread(self.motors.shutdown, "daemon exit")
         self._threads_stop.set()
         for t in self._threads:
             await asyncio.to_thread(t.join, 3.0)
@@ -1103,11 +1148,38 @@ class Daemon:
             if dev is not None and hasattr(dev, "close"):
                 with contextlib.suppress(Exception):
                     await asyncio.to_thread(dev.close)
-        if self.recorder is not None:  # bounded: a stuck file system never holds up the exit
+        if self.recorder is not None:
+            await asyncio.sleep(0)  # what the threads queued before they stopped, first
+            self.recorder.put_event(
+                "shutdown", time.monotonic(), cause=cause, exit_code=exit_code, reason=reason
+            )
+            # bounded: a stuck file system never holds up the exit
             await asyncio.to_thread(self.recorder.close)
         if self.devices is not None:  # last: the simulated world outlives every device
             await asyncio.to_thread(self.devices.close)
         log.info("x6wd stopped")
+
+    def _stop_controller(self, reason: str) -> None:
+        """At exit, before the motor thread stops: the controller stops (IDLE), its stop goes
+        to the motors and into the recording (:meth:`Runner.shutdown`), under the control
+        lock, so no device thread's decision comes after it. A thread stuck holding the
+        lock for :data:`SHUTDOWN_LOCK_S` is not waited for: the stop is then recorded alone."""
+        runner = self.runner
+        if runner is None:
+            return
+        if not self._control_lock.acquire(timeout=SHUTDOWN_LOCK_S):
+            log.error(
+                "control lock held for %g s at exit: stopping without the controller",
+                SHUTDOWN_LOCK_S,
+            )
+            self._record("record_motor", MotorCommand(time.monotonic(), 0.0, 0.0, reason))
+            return
+        try:
+            runner.shutdown(reason)
+        except Exception:  # the motors stop all the same (_close)
+            log.exception("stopping the controller at exit failed")
+        finally:
+            self._control_lock.release()
 
     # -- device threads (never touch the controller directly) ------------------------------
     def _post(self, fn: Callable[..., Any], *args: Any) -> None:
@@ -1605,6 +1677,12 @@ def _run_calls(calls: list[tuple[Callable[..., Any], tuple[Any, ...]]]) -> None:
 def one_line(text: str) -> str:
     """``text`` with every run of whitespace (newlines too) as one space."""
     return " ".join(text.split())
+
+
+def _exc_text(exc: BaseException) -> str:
+    """``Type: message`` of an exception, on one line."""
+    text = one_line(str(exc))
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 CONFIG_ERROR_ATTR = "x6wd_config_error"

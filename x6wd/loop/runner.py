@@ -252,6 +252,20 @@ class Runner:
         self._motors(MotorCommand(self.clock(), 0.0, 0.0, "operator stop"))
         return self.command("stop")
 
+    def shutdown(self, reason: str) -> None:
+        """The edge is shutting down (a signal, a fatal error): the motors get a stop with
+        ``reason`` and the controller stops (mode IDLE, the state change's reason
+        ``reason``). The stop is recorded even when the motors stood still already, so a
+        recording that ends this way says so: a clean exit, not a crash or a power cut."""
+        t = self.clock()
+        cmd = MotorCommand(t, 0.0, 0.0, reason)
+        try:
+            self._motors(cmd)
+        finally:  # a failing motor sink must not keep the stop out of the recording
+            self._last_motor_rec = (cmd.left_pct, cmd.right_pct)
+            self._record("record_motor", cmd)
+            self._handle(self.controller.stop(t, reason))
+
     def drive(self, left_pct: float, right_pct: float, duration_s: float) -> dict[str, Any]:
         """Manual drive (%) for ``duration_s`` (s); refused above ``safety.manual_max_s``."""
         limit = self.safety.manual_max_s
