@@ -65,6 +65,7 @@ from typing import Any
 
 from sim_backend.executor import Executor, Outcome, describe_exception
 from sim_backend.mission import compass_setup, run_mission
+from sim_backend.sweep_report import FIXED_COLUMNS
 from sim_backend.world import (
     DEFAULT_ALMANAC,
     World,
@@ -160,6 +161,17 @@ def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: s
         raise ConfigError(f"robot_config: expected a file name, got {robot!r}")
     fixed = _dotted(data.get("set", {}), "set")
     grid_raw = _dotted(data.get("grid", {}), "grid")
+    for where, table in (("set", fixed), ("grid", grid_raw)):
+        for key in table:
+            if key == "seed":  # each run's own seed would override it, whatever it is
+                raise ConfigError(
+                    f"{where}.seed: not a parameter: each run's seed comes from the sweep's"
+                    " seed (the top-level 'seed') and its replicate number ('seeds' per cell)"
+                )
+            if key in FIXED_COLUMNS:
+                raise ConfigError(
+                    f"{where}.{key}: not a parameter: {key!r} is a column of the results"
+                )
     grid: dict[str, list[Any]] = {}
     for key, values in grid_raw.items():
         if not isinstance(values, list) or not values:

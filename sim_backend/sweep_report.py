@@ -52,6 +52,9 @@ RUN_COLUMNS = (
     "worker",
 )
 ARRIVAL_COLUMNS = ("index", "t_s", "true_error_m", "gps_error_m", "gps_slow_error_m")
+FIXED_COLUMNS = frozenset(RUN_COLUMNS) | frozenset(ARRIVAL_COLUMNS)
+"""The tables' own columns: no parameter ([set] or [grid] key) may have one of these names
+(:func:`sim_backend.sweep.load_sweep` refuses it; :func:`param_keys` raises)."""
 
 
 def _num(v: Any) -> float:
@@ -87,11 +90,15 @@ def _cell_text(value: Any) -> str:
 
 
 def param_keys(records: Sequence[dict[str, Any]]) -> list[str]:
-    """Every override key of the records, in first-seen order."""
+    """Every override key of the records, in first-seen order; one named as a fixed column
+    (:data:`FIXED_COLUMNS`) raises ValueError: its column would overwrite that one."""
     keys: dict[str, None] = {}
     for r in records:
         for k in r.get("overrides") or {}:
             keys.setdefault(k, None)
+    clash = [k for k in keys if k in FIXED_COLUMNS]
+    if clash:
+        raise ValueError(f"parameter {clash[0]!r} has the name of a column of the results")
     return list(keys)
 
 

@@ -331,6 +331,10 @@ def test_a_file_named_by_a_sweep_value_is_the_one_the_worker_reads(
         # a repeat would run each mission twice and count it twice in its cell
         ('navigation.position_source = ["ekf", "ekf"]', "'ekf' given twice"),
         ('gnss.rate_hz = [1.0]\n"gnss.rate_hz" = [2.0]', "grid.gnss.rate_hz: given twice"),
+        # the scenario's seed: each run's own seed overrode it, and its column took the
+        # place of the run's seed in the tables
+        ("seed = [1, 2]", "grid.seed: not a parameter: each run's seed comes from"),
+        ('status = ["a", "b"]', "grid.status: not a parameter: 'status' is a column"),
     ],
 )
 def test_a_bad_key_or_value_stops_the_sweep_naming_it(
@@ -343,6 +347,31 @@ def test_a_bad_key_or_value_stops_the_sweep_naming_it(
     err = capsys.readouterr().err
     assert named in err, err
     assert not (tmp_path / "out" / "runs").exists()  # stopped before anything ran
+
+
+@pytest.mark.parametrize(
+    ("body", "named"),
+    [
+        ("seed = 3", "set.seed: not a parameter"),
+        ('run_id = "x"', "set.run_id: not a parameter"),
+        ("true_error_m = 1.0", "set.true_error_m: not a parameter"),  # arrivals.csv's
+    ],
+)
+def test_a_parameter_never_takes_the_place_of_a_column(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], body: str, named: str
+) -> None:
+    from sim_backend.sweep_report import write_report
+    from x6wd.app.cli import main
+
+    f = sweep_file(tmp_path, f"seeds = 1\n[set]\nduration_s = 5.0\n{body}\n")
+    assert main(["sweep", str(f), "--out", str(tmp_path / "out")]) == 2
+    assert named in capsys.readouterr().err
+    # and records that have one anyway make no table with two such columns
+    key = body.split(" ")[0]
+    rec = {"run_id": "c-000", "cell_id": "c", "seed": 9, "overrides": {key: 1}, "status": "ok"}
+    with pytest.raises(ValueError, match=f"parameter '{key}'"):
+        write_report({}, [rec], tmp_path, figures=False)
+    assert not (tmp_path / "results.csv").exists()
 
 
 def test_the_daemon_and_x6wd_sim_never_import_dask() -> None:
