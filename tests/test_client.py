@@ -404,8 +404,10 @@ def test_bad_options_and_peers_that_are_not_the_robot_give_clear_errors(
     raw = tmp_path / "raw"
     raw.write_bytes(b"abcdefgh\xff\xfe")
     raw.chmod(0o600)
-    r = client(srv.port, "status", token=raw)
+    r = client(srv.port, "start", token=raw)
     assert r.returncode == 2 and "--token-file" in r.stderr and "not UTF-8" in r.stderr
+    r = client(srv.port, "status", token=raw)  # answered without a token: only a warning
+    assert r.returncode == 0 and "warning: --token-file" in r.stderr and "not UTF-8" in r.stderr
 
     # peers that are not the control port: one dripping bytes with no newline, one HTTP
     # server, one that never listens for TLS; and what --insecure sends
@@ -447,3 +449,112 @@ def test_bad_options_and_peers_that_are_not_the_robot_give_clear_errors(
         assert got[-1].startswith(b"\x16")  # a TLS hello, never the token in the clear
     finally:
         server.close()
+
+
+def test_stop_reaches_the_robot_whatever_happens_with_the_token(
+    served, token_file: Path, tmp_path: Path
+) -> None:
+    """stop is always obeyed (docs/protocol.md): a wrong token, a token file that does not
+    exist or that others may read is a warning for ``stop`` (and the read-only ``status``),
+    the robot is stopped all the same, exit 0. Every other command still fails."""
+    _, srv, backend = served
+    wrong = tmp_path / "wrong"
+    wrong.write_text("not-the-token-at-all\n")
+    wrong.chmod(0o600)
+    loose = tmp_path / "loose"
+    loose.write_text(TOKEN + "\n")
+    loose.chmod(0o644)
+    missing = tmp_path / "missing"
+    for bad, said in ((wrong, "refused the token"), (missing, "cannot read"),
+                      (loose, "chmod 600")):  # fmt: skip
+        backend.calls.clear()
+        r = client(srv.port, "stop", token=bad)
+        assert r.returncode == 0 and r.stdout == "stop: ok\n", (bad, r.stdout, r.stderr)
+        assert backend.calls == [("stop", None)], bad  # the robot was told to stop
+        assert "warning" in r.stderr and said in r.stderr, (bad, r.stderr)
+        r = client(srv.port, "status", token=bad)  # read-only: answered too, with a warning
+        assert r.returncode == 0 and "state      IDLE / IDLE" in r.stdout, (bad, r.stderr)
+        assert "warning" in r.stderr and said in r.stderr, (bad, r.stderr)
+        r = client(srv.port, "start", token=bad)  # anything else: as before
+        assert r.returncode == (1 if bad is wrong else 2), (bad, r.stderr)
+        assert "warning" not in r.stderr
+        assert backend.calls == [("stop", None)], bad
+    r = client(srv.port, "--json", "stop", token=wrong)
+    assert r.returncode == 0 and json.loads(r.stdout) == {"did": "stop"}, r.stderr
+    r = client(srv.port, "stop", token=token_file)  # the right token: no word about it
+    assert r.returncode == 0 and r.stdout == "stop: ok\n" and r.stderr == "", r.stderr
+
+
+def test_a_status_whose_token_closes_the_connection_asks_again_without_it(
+    token_file: Path, tmp_path: Path
+) -> None:
+    """With ``max_auth_failures = 1`` the robot closes the connection at the first wrong
+    token: ``status`` asks again on a new one; ``stop`` was sent before the token."""
+    lt = LoopThread()
+    backend = RecordingBackend()
+    srv = start_server(lt, backend, token=TOKEN.encode(), max_auth_failures=1)
+    wrong = tmp_path / "wrong"
+    wrong.write_text("not-the-token-at-all\n")
+    wrong.chmod(0o600)
+    try:
+        r = client(srv.port, "status", token=wrong)
+        assert r.returncode == 0 and "state      IDLE / IDLE" in r.stdout, r.stderr
+        assert "auth_failed" in r.stderr and "warning" in r.stderr, r.stderr
+        r = client(srv.port, "stop", token=wrong)
+        assert r.returncode == 0 and "stop: ok" in r.stdout, r.stderr
+        assert "warning" in r.stderr, r.stderr
+        assert backend.calls == [("stop", None)]
+        assert client(srv.port, "pause", token=wrong).returncode == 1  # refused: as before
+    finally:
+        lt.run(srv.close())
+        lt.close()
+
+
+def test_watch_json_prints_one_object_per_line_and_no_screen(served, token_file: Path) -> None:
+    lt, srv, _ = served
+    stop = threading.Event()
+    state = {"event": "state", "old": "STRAIGHT", "new": "TURN_LEFT", "reason": "state: fix"}
+
+    def publish() -> None:
+        while not stop.wait(0.05):
+            lt.call(lambda: srv.publish({"event": "telemetry", "data": TEL}))
+            lt.call(lambda: srv.publish(state))
+
+    t = threading.Thread(target=publish, daemon=True)
+    t.start()
+    try:
+        for args in (("watch", "--json", "--count", "3"), ("--json", "watch", "--count", "3")):
+            r = client(srv.port, *args, token=token_file)
+            assert r.returncode == 0, r.stderr
+            assert "\x1b" not in r.stdout and "x6wd watch" not in r.stdout, r.stdout
+            objs = [json.loads(line) for line in r.stdout.splitlines()]
+            assert objs[0]["status"]["mode"] == "IDLE"  # the status it watches with
+            assert "id" not in objs[0]["status"] and "ok" not in objs[0]["status"]
+            telemetry = [o for o in objs if o.get("event") == "telemetry"]
+            assert telemetry == [{"event": "telemetry", "data": TEL}] * 3
+            assert objs[-1]["event"] == "telemetry"  # --count: three telemetry events
+            assert state in objs  # the other events as they came
+    finally:
+        stop.set()
+        t.join()
+
+
+def test_status_and_watch_show_a_return_to_launch_and_its_cause() -> None:
+    """A return is a one-point mission to the launch point: the views say it is one, and
+    whether a failsafe ordered it (telemetry ``extra.returning``), not "waypoint 1/1"."""
+    tel = {**TEL, "waypoint_index": 0, "waypoint_count": 1, "state": "TURN_RIGHT"}
+    plain = render_status({"telemetry": tel})
+    assert "waypoint   1/1" in plain and "RETURN" not in plain and "failsafe" not in plain
+    home = {**tel, "extra": {"returning": "return"}}
+    for screen in (render_status({"telemetry": home}), render_watch(home)):
+        assert "RUNNING / TURN_RIGHT  RETURN TO LAUNCH (the operator's command)" in screen
+        assert "waypoint   launch point  distance 12.3 m" in screen and "1/1" not in screen
+        assert "failsafe" not in screen
+    why = "operator link lost"
+    fs = {**tel, "extra": {"returning": f"failsafe: {why}", "failsafe": why}}
+    screen = render_status({"telemetry": fs})
+    assert f"RETURN TO LAUNCH (failsafe: {why})" in screen, screen
+    assert screen.count("failsafe") == 1  # said once
+    paused = {**tel, "mode": "PAUSED", "extra": {"failsafe": "stuck for 5 s"}}
+    screen = render_watch(paused)
+    assert "failsafe   stuck for 5 s" in screen and "RETURN" not in screen, screen

@@ -450,3 +450,93 @@ def test_tls_with_openssl_certificate(tmp_path: Path, loop_thread: LoopThread) -
     assert b'"ok"' not in raw.recv(4096)
     raw.close()
     loop_thread.run(srv.close())
+
+
+def test_a_drive_over_the_robots_limit_is_a_bad_argument_like_every_other(loop_thread) -> None:
+    """The backend's refusal of ``duration_s`` over ``[safety] manual_max_s`` (the runner's
+    CommandError("bad_request", ...)) carries reason bad_argument, as the server's own
+    range checks do; other refusals keep their code without a reason."""
+    backend = RecordingBackend()
+    srv = start_server(loop_thread, backend)
+    raw = Raw(srv.port)
+    try:
+        backend.fail_next = CommandError("bad_request", "duration_s 99 > limit 5 s")
+        r = raw.ask({"id": 7, "cmd": "drive", "left": 1, "right": 1, "duration_s": 99})
+        assert r == {
+            "id": 7,
+            "ok": False,
+            "error": {
+                "code": "bad_request",
+                "message": "duration_s 99 > limit 5 s",
+                "reason": "bad_argument",
+            },
+        }
+        r = raw.ask({"id": 8, "cmd": "drive", "left": 150, "right": 1, "duration_s": 1})
+        assert r["error"]["reason"] == "bad_argument"  # the server's own check: the same
+        backend.fail_next = CommandError("rejected", "motor link down")
+        r = raw.ask({"id": 9, "cmd": "start"})
+        assert r["error"] == {"code": "rejected", "message": "motor link down"}
+    finally:
+        raw.close()
+        loop_thread.run(srv.close())
+
+
+def test_an_integer_too_long_to_convert_is_a_number_out_of_range(served) -> None:
+    srv, _ = served
+    raw = Raw(srv.port)
+    try:
+        assert raw.ask({"id": 1, "cmd": "auth", "token": TOKEN})["ok"] is True
+        for digits in ("1" * 5000, "-" + "9" * 4301):
+            raw.send(b'{"id":7,"cmd":"drive","left":' + digits.encode() + b',"right":1}\n')
+            err = raw.line()["error"]
+            assert (err["code"], err["reason"]) == ("bad_request", "bad_number"), err
+            assert "out of range" in err["message"] and "integer of" in err["message"], err
+            assert "sys." not in err["message"] and "Exceeds" not in err["message"], err
+        # the longest integer that converts is a number like any other (here: out of range)
+        raw.send(b'{"id":8,"cmd":"drive","left":' + b"1" * 4300 + b',"right":1}\n')
+        assert raw.line()["error"]["reason"] == "bad_argument"
+        assert raw.ask({"id": 9, "cmd": "hello"})["ok"] is True  # the connection carries on
+    finally:
+        raw.close()
+
+
+def test_status_does_not_count_its_own_asker_as_pending(loop_thread) -> None:
+    """Without a token a connection is pending until one valid request: a status is one, so
+    the figures in its reply show the asker admitted (a session), not pending. With a token
+    an unauthenticated asker is pending, and counted so."""
+    backend = RecordingBackend()
+    srv = start_server(loop_thread, backend)  # no token
+    raw, silent = Raw(srv.port), Raw(srv.port)
+
+    def until_pending(n: int) -> None:
+        deadline = time.monotonic() + 5
+        while loop_thread.call(lambda: srv.pending_count) != n:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+
+    try:
+        until_pending(2)
+        stats = raw.ask({"id": 1, "cmd": "status"})["server"]
+        assert (stats["clients"], stats["pending"]) == (1, 1)  # the silent one is pending
+        silent.close()
+        until_pending(0)
+        stats = raw.ask({"id": 2, "cmd": "status"})["server"]
+        assert (stats["clients"], stats["pending"]) == (1, 0)
+        other = Raw(srv.port)
+        stats = other.ask({"id": 1, "cmd": "status"})["server"]  # a first status too
+        assert (stats["clients"], stats["pending"]) == (2, 0)
+        other.close()
+    finally:
+        raw.close()
+        loop_thread.run(srv.close())
+    srv = start_server(loop_thread, backend, token=TOKEN.encode())
+    raw = Raw(srv.port)
+    try:
+        stats = raw.ask({"id": 1, "cmd": "status"})["server"]
+        assert (stats["clients"], stats["pending"]) == (0, 1)  # not authenticated: pending
+        assert raw.ask({"id": 2, "cmd": "auth", "token": TOKEN})["ok"] is True
+        stats = raw.ask({"id": 3, "cmd": "status"})["server"]
+        assert (stats["clients"], stats["pending"]) == (1, 0)
+    finally:
+        raw.close()
+        loop_thread.run(srv.close())

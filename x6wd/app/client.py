@@ -6,8 +6,10 @@ with COMMAND one of ``status``, ``load FILE | load --wp LAT,LON ...`` (FILE: ``.
 ``drive LEFT RIGHT SECONDS``, ``watch``, ``log [N]``.
 
 ``status`` prints a summary for a person, ``--json`` (before or after the action) the reply
-as JSON, for programs. Every heading shown is true, in degrees, 0 <= h < 360 (docs/protocol.md,
-"Headings").
+as JSON, for programs; ``watch --json`` one JSON object per line. ``stop`` is sent before any
+``auth`` and ``status`` falls back to asking without the token: for these two, which the robot
+obeys unauthenticated, a wrong or unusable token is a warning on stderr, not a failure.
+Every heading shown is true, in degrees, 0 <= h < 360 (docs/protocol.md, "Headings").
 
 Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed
 (also when the robot closed the connection: pool full, auth deadline, too many failed tokens).
@@ -98,7 +100,15 @@ class RemoteClient:
             raise ConnectionFailed(f"TLS handshake with {host}:{port} failed: {exc}") from None
         self._sock: socket.socket | None = sock
         if token is not None:
-            self.request("auth", token=token)
+            try:
+                self.authenticate(token)
+            except BaseException:
+                self.close()
+                raise
+
+    def authenticate(self, token: str) -> None:
+        """Send ``auth``; RequestFailed when the robot refuses the token."""
+        self.request("auth", token=token)
 
     def close(self) -> None:
         """Close the connection (idempotent)."""
@@ -236,14 +246,36 @@ def fmt_heading(v: Any) -> str:
     return f"{round(float(v), 1) % 360.0:.1f} deg true"
 
 
+def _returning_text(why: str) -> str:
+    """Why the robot returns to launch, for a person: telemetry ``extra.returning`` is
+    ``return`` (the operator's command) or ``failsafe: CONDITION``."""
+    return "the operator's command" if why == "return" else why
+
+
 def _telemetry_lines(tel: dict[str, Any]) -> list[str]:
-    """The lines of a telemetry snapshot that the watch and status views share."""
+    """The lines of a telemetry snapshot that the watch and status views share. A return to
+    launch (``extra.returning``) is said, with its cause, and its target is the launch point,
+    not the mission's waypoint 1/1; the last failsafe that acted (``extra.failsafe``) too."""
+    extra = tel.get("extra")
+    if not isinstance(extra, dict):
+        extra = {}
+    returning = str(extra.get("returning") or "")
+    failsafe = str(extra.get("failsafe") or "")
     wp_i, wp_n = tel.get("waypoint_index"), tel.get("waypoint_count", 0)
     wp = f"{wp_i + 1}/{wp_n}" if isinstance(wp_i, int) else "-"
+    if returning:
+        wp = "launch point"  # the return's one target, not the mission's waypoint 1/1
     hold = tel.get("hold_reason") or ""
+    head = f"state      {tel.get('mode', '?')} / {tel.get('state', '?')}"
+    if returning:
+        head += f"  RETURN TO LAUNCH ({_returning_text(returning)})"
+    if hold:
+        head += f"  HOLD: {hold}"
+    lines = [head]
+    if failsafe and f"failsafe: {failsafe}" != returning:
+        lines.append(f"failsafe   {failsafe} (the last one that acted)")
     return [
-        f"state      {tel.get('mode', '?')} / {tel.get('state', '?')}"
-        + (f"  HOLD: {hold}" if hold else ""),
+        *lines,
         f"position   {_fmt(tel.get('lat_deg'), '.7f')} {_fmt(tel.get('lon_deg'), '.7f')}",
         f"filtered   {_fmt(tel.get('filt_lat_deg'), '.7f')} {_fmt(tel.get('filt_lon_deg'), '.7f')}",
         f"heading    {fmt_heading(tel.get('heading_deg'))}",
@@ -403,9 +435,19 @@ def _waypoints(args: argparse.Namespace) -> list[Waypoint]:
     raise ParseError(f"load needs a FILE ({MISSION_EXTENSIONS}) or --wp LAT,LON ...")
 
 
+def _body(reply: dict[str, Any]) -> dict[str, Any]:
+    """A reply without its ``id`` and ``ok``."""
+    return {k: v for k, v in reply.items() if k not in ("id", "ok")}
+
+
 def _print_reply(reply: dict[str, Any], out: TextIO) -> None:
-    body = {k: v for k, v in reply.items() if k not in ("id", "ok")}
-    print(json.dumps(body, indent=2, sort_keys=True), file=out)
+    print(json.dumps(_body(reply), indent=2, sort_keys=True), file=out)
+
+
+def _json_line(obj: dict[str, Any], out: TextIO) -> None:
+    """One compact JSON object on one line (``watch --json``)."""
+    out.write(json.dumps(obj, separators=(",", ":")) + "\n")
+    out.flush()
 
 
 HOLD_POLL_S = 0.5
@@ -442,8 +484,17 @@ def _hold_drive(client: RemoteClient, reply: dict[str, Any], err: TextIO) -> int
     return None
 
 
-def _watch(client: RemoteClient, args: argparse.Namespace, out: TextIO, ansi: bool) -> None:
+def _watch(
+    client: RemoteClient, args: argparse.Namespace, out: TextIO, ansi: bool, err: TextIO
+) -> None:
+    """The live view: one screen per telemetry event (at most ~10 per second); with
+    ``--json`` one JSON object per line instead, no screen codes: every event as the robot
+    sent it (``{"event": ..}``) and each status the view asks for (at the start, then every
+    2 s) as ``{"status": REPLY}``; ``--count`` counts telemetry events then."""
+    as_json = bool(args.json)
     info = client.request("status")
+    if as_json:
+        _json_line({"status": _body(info)}, out)
     client.request("watch", on=True)
     shown = 0
     t_last_status = time.monotonic()
@@ -452,16 +503,27 @@ def _watch(client: RemoteClient, args: argparse.Namespace, out: TextIO, ansi: bo
         try:
             ev = client.next_event(timeout_s=5.0)
         except TimeoutError:
-            out.write((CLEAR if ansi else "") + "no telemetry for 5 s\n")
-            out.flush()
+            if as_json:  # not an object of the stream: for the person, on stderr
+                print("x6wd client: no telemetry for 5 s", file=err)
+            else:
+                out.write((CLEAR if ansi else "") + "no telemetry for 5 s\n")
+                out.flush()
             continue
         if ev.get("event") != "telemetry":
+            if as_json:
+                _json_line(ev, out)
             continue
         now = time.monotonic()
         if now - t_last_status > 2.0:
             client.request("watch", on=True)  # keep-alive; also refreshes link state below
             info = client.request("status")
             t_last_status = now
+            if as_json:
+                _json_line({"status": _body(info)}, out)
+        if as_json:
+            _json_line(ev, out)
+            shown += 1
+            continue
         if args.count is None and now - t_last_draw < 0.1:
             continue  # at most ~10 redraws per second
         t_last_draw = now
@@ -513,8 +575,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("left", type=float, help="left side, -100..100 %%")
     p.add_argument("right", type=float, help="right side, -100..100 %%")
     p.add_argument("seconds", type=float, help="duration in s")
-    p = sub.add_parser("watch", help="live one-screen view")
-    p.add_argument("--count", type=_int_in(1), help="exit after N screens")
+    p = sub.add_parser(
+        "watch", help="live one-screen view (--json: one JSON object per line, for programs)"
+    )
+    p.add_argument(
+        "--count", type=_int_in(1), help="exit after N screens (--json: N telemetry events)"
+    )
     p.add_argument("--no-ansi", action="store_true", help="do not clear the screen")
     p = sub.add_parser("log", help="recent daemon log lines")
     p.add_argument("n", type=int, nargs="?", default=50)
@@ -556,21 +622,85 @@ def _drop_output(out: TextIO) -> None:
         os.close(null)
 
 
+TOKEN_OPTIONAL = frozenset({"stop", "status"})
+"""Actions the robot obeys without a token (docs/protocol.md): for them a token that is
+wrong or cannot be read is a warning, not a failure. ``stop`` must reach the robot."""
+
+
+def _warn(text: str, err: TextIO) -> None:
+    print(f"x6wd client: warning: {text}", file=err)
+
+
+def _connect(
+    args: argparse.Namespace,
+    token: str | None,
+    ssl_context: ssl.SSLContext | None,
+    err: TextIO,
+) -> RemoteClient:
+    """The connection for ``args.action``. ``stop`` connects without authenticating: it
+    goes out first thing, so nothing about the token can delay or prevent it (its token is
+    checked after, :func:`_check_token`). ``status`` authenticates (an operator's status
+    keeps the operator-link failsafe quiet); if the robot refuses the token it asks on a new
+    connection without one (a wrong token's back-off holds up the old one, and the robot
+    may close it: ``[server] max_auth_failures``), with a warning. Any other action fails
+    as the robot refuses it."""
+
+    def connect(tok: str | None) -> RemoteClient:
+        return RemoteClient(
+            args.host, args.port, token=tok, ssl_context=ssl_context, timeout_s=args.timeout
+        )
+
+    if args.action == "stop":
+        return connect(None)
+    if args.action != "status" or token is None:
+        return connect(token)
+    try:
+        return connect(token)
+    except RequestFailed as exc:
+        why = f"{exc.code}: {exc.message}"
+    _warn(f"the robot refused the token of --token-file ({why}); asking without it", err)
+    return connect(None)
+
+
+def _check_token(client: RemoteClient, token: str | None, err: TextIO) -> None:
+    """After an unauthenticated ``stop``: tell whether the robot accepts the token, so a
+    wrong one is found now and not at the next command (only a warning: the stop is done)."""
+    if token is None:
+        return
+    try:
+        client.authenticate(token)
+    except RequestFailed as exc:
+        _warn(
+            f"the robot refused the token of --token-file ({exc.code}: {exc.message}); the"
+            " stop was sent without it, other commands will be refused",
+            err,
+        )
+    except (ConnectionFailed, ProtocolError) as exc:
+        _warn(f"the token of --token-file could not be checked: {exc}", err)
+
+
 def _run(args: argparse.Namespace, out: TextIO) -> int:
     err = sys.stderr
+    action: str = args.action
     try:
-        token = _token(args.token_file) if args.token_file else None
-        waypoints = _waypoints(args) if args.action == "load" else None
+        try:
+            token = _token(args.token_file) if args.token_file else None
+        except ConfigError as exc:
+            if action not in TOKEN_OPTIONAL:
+                raise
+            token = None  # the robot obeys these without a token: say so, and go on
+            _warn(f"{exc}; sending {action} without a token", err)
+        waypoints = _waypoints(args) if action == "load" else None
         ssl_context = _client_ssl(args)
     except X6wdError as exc:
         print(f"x6wd client: {exc}", file=err)
         return EXIT_USAGE
     try:
-        with RemoteClient(
-            args.host, args.port, token=token, ssl_context=ssl_context, timeout_s=args.timeout
-        ) as client:
-            action: str = args.action
-            if action in ("status", "start", "pause", "resume", "return", "stop"):
+        with _connect(args, token, ssl_context, err) as client:
+            if action == "stop":
+                reply = client.request(action)
+                _check_token(client, token, err)
+            elif action in ("status", "start", "pause", "resume", "return"):
                 reply = client.request(action)
             elif action == "load":
                 assert waypoints is not None
@@ -595,7 +725,7 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
             elif action == "watch":
                 ansi = not args.no_ansi
                 try:
-                    _watch(client, args, out, ansi)
+                    _watch(client, args, out, ansi, err)
                 except KeyboardInterrupt:
                     return EXIT_OK
                 return EXIT_OK

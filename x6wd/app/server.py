@@ -31,6 +31,7 @@ import logging
 import re
 import ssl
 import stat
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -242,6 +243,19 @@ def _no_constant(name: str) -> Any:
     raise _bad("bad_number", f"{name} is not allowed (numbers must be finite)")
 
 
+def _bounded_int(text: str) -> int:
+    """An integer of a request (``parse_int``): one longer than the interpreter converts
+    (``sys.get_int_max_str_digits()``, 4300 digits by default) is a number out of range,
+    not a JSON error (its message would be Python's, naming a Python setting)."""
+    try:
+        return int(text)
+    except ValueError:
+        digits, most = len(text.lstrip("-")), sys.get_int_max_str_digits()
+        raise _bad(
+            "bad_number", f"number out of range: an integer of {digits} digits (at most {most})"
+        ) from None
+
+
 def _finite_float(text: str) -> float:
     v = float(text)
     if v in (float("inf"), float("-inf")):
@@ -282,10 +296,12 @@ def parse_request(line: bytes) -> dict[str, Any]:
     except UnicodeDecodeError as exc:
         raise _bad("bad_utf8", f"not UTF-8: {exc.reason} at byte {exc.start}") from None
     try:
-        req = json.loads(text, parse_constant=_no_constant, parse_float=_finite_float)
+        req = json.loads(
+            text, parse_constant=_no_constant, parse_float=_finite_float, parse_int=_bounded_int
+        )
     except RecursionError:
         raise _bad("too_deep", f"nested deeper than {MAX_JSON_DEPTH} levels") from None
-    except ValueError as exc:  # JSONDecodeError, and ints past the digit limit
+    except ValueError as exc:  # JSONDecodeError
         raise _bad("bad_json", f"not valid JSON: {exc}") from None
     if not isinstance(req, dict):
         raise _bad("not_object", "a request must be a JSON object")
@@ -294,6 +310,17 @@ def parse_request(line: bytes) -> dict[str, Any]:
     if depth_check or unicode_check:
         _check_tree(req, depth_check, unicode_check)
     return req
+
+
+def _command_reason(exc: CommandError) -> str | None:
+    """The ``reason`` of a backend's refusal: its own when it gives one; for ``bad_request``
+    (every one carries a reason, docs/protocol.md) ``bad_argument``: the backend only sees
+    requests that parsed, so it refuses an argument's value (``duration_s`` over
+    ``[safety] manual_max_s``)."""
+    reason = getattr(exc, "reason", None)
+    if isinstance(reason, str) and reason:
+        return reason
+    return "bad_argument" if exc.code == "bad_request" else None
 
 
 _HTTP_LINE = re.compile(
@@ -652,7 +679,7 @@ class ControlServer(LineServer[_Client]):
         except _Reject as exc:
             reply = error_reply(req_id, exc.code, str(exc), exc.reason)
         except CommandError as exc:
-            reply = error_reply(req_id, exc.code, str(exc))
+            reply = error_reply(req_id, exc.code, str(exc), _command_reason(exc))
         except ParseError as exc:
             reply = error_reply(req_id, "bad_request", str(exc), "bad_mission")
         except X6wdError as exc:
@@ -701,6 +728,10 @@ class ControlServer(LineServer[_Client]):
         if cmd == "auth":
             return await self._auth(c, req)
         if cmd == "status":
+            if self._token is None:
+                # a status is a valid request, which admits a connection without a token:
+                # admitted before the figures are taken, the asker is not counted as pending
+                self._promote(c)
             st = dict(await self._status())
             st["client"] = {"watching": c.watching, "dropped": c.dropped}
             st["server"] = self.server_stats()
