@@ -442,8 +442,10 @@ def is_done(record: dict[str, Any] | None, run: Run, retry_failed: bool = False)
 
 @dataclass
 class SweepResult:
-    """The records of every planned run (plan order), what this call ran and skipped, its
-    wall time (s) and the executor's description."""
+    """The records of every planned run (plan order); what this call ran (missions that
+    finished, succeeded or raised) and skipped (found done); its wall time (s) and the
+    executor's description. A run the cluster lost (status "lost") is neither run nor
+    skipped: it is run again by the next call."""
 
     spec: SweepSpec
     runs: list[Run]
@@ -455,11 +457,23 @@ class SweepResult:
 
     @property
     def failed(self) -> list[dict[str, Any]]:
+        """Every run that did not succeed: its mission raised, or the cluster lost it."""
         return [r for r in self.records if r.get("status") != "ok"]
 
     @property
+    def errors(self) -> list[dict[str, Any]]:
+        """The runs whose mission raised (a result, kept on resume)."""
+        return [r for r in self.failed if r.get("status") != "lost"]
+
+    @property
+    def lost(self) -> list[dict[str, Any]]:
+        """The runs the cluster could not finish (no result: the next call runs them)."""
+        return [r for r in self.records if r.get("status") == "lost"]
+
+    @property
     def missions_per_min(self) -> float:
-        """Missions finished by this call per wall minute (NaN when none ran)."""
+        """Missions finished by this call per wall minute, lost runs not counted (NaN when
+        none finished)."""
         return self.ran / self.wall_s * 60.0 if self.ran and self.wall_s > 0 else float("nan")
 
 
@@ -565,18 +579,20 @@ def run_sweep(
     if progress:
         progress(len(records), failed_count())
     args = [(r.run_id, r.cell.world_toml, r.seed) for r in todo]
+    ran = 0
     for outcome in executor.map_unordered(run_task, args, names=[r.run_id for r in todo]):
         run = todo[outcome.index]
         rec = _record(run, outcome.value if outcome.ok else None, outcome)
         store.write(rec)
         records[run.run_id] = rec
+        ran += rec.get("status") != "lost"
         if progress:
             progress(len(records), failed_count())
     return SweepResult(
         spec=spec,
         runs=runs,
         records=[records[r.run_id] for r in runs],
-        ran=len(todo),
+        ran=ran,
         skipped=skipped,
         wall_s=time.perf_counter() - t0,
         executor=executor.description,

@@ -9,11 +9,12 @@ Written into the sweep's output directory from the run records (``runs/*.json``)
   ``results.parquet`` the same when pyarrow is installed (it is not a dependency);
 - ``arrivals.csv`` — one row per waypoint arrival: the true horizontal error from the antenna to
   the waypoint when the arrival was decided (m) and the GPS's slow error at that moment (m);
-- ``completion.png`` (completed runs per cell, %), ``arrival_cdf.png`` (the empirical CDF of
-  the true arrival error per cell, the GPS slow error dashed), ``path_ratio.png`` (true path /
-  straight polyline per completed run, per cell);
-- ``summary.md`` — the sweep, the executor and its throughput, a table per cell and the failed
-  runs with their errors.
+- ``completion.png`` (completed runs per cell, % of the runs that finished: a run the cluster
+  lost is no mission the robot failed, and is shown apart), ``arrival_cdf.png`` (the empirical
+  CDF of the true arrival error per cell, the GPS slow error dashed), ``path_ratio.png`` (true
+  path / straight polyline per completed run, per cell);
+- ``summary.md`` — the sweep, the executor and its throughput, a table per cell, the failed
+  runs with their errors and the runs the cluster lost.
 """
 
 from __future__ import annotations
@@ -148,7 +149,9 @@ def _write_parquet(path: Path, rows: Sequence[dict[str, Any]], columns: Sequence
 
 @dataclass
 class CellStats:
-    """The figures of one cell over its runs (m, s; ratios dimensionless)."""
+    """The figures of one cell over its runs (m, s; ratios dimensionless). ``failed``: the
+    mission raised; ``lost``: the cluster could not finish the run (no result: neither a
+    success nor a failure of the robot, and not in the completion rate)."""
 
     cell_id: str
     scenario: str
@@ -156,6 +159,7 @@ class CellStats:
     runs: int = 0
     ok: int = 0
     failed: int = 0
+    lost: int = 0
     completed: int = 0
     arrival_true_m: list[float] = field(default_factory=list)
     arrival_gps_m: list[float] = field(default_factory=list)
@@ -170,8 +174,14 @@ class CellStats:
         return " ".join([self.scenario, *parts])
 
     @property
+    def finished(self) -> int:
+        """The runs with a result (succeeded or raised): all but the lost ones."""
+        return self.runs - self.lost
+
+    @property
     def completion_pct(self) -> float:
-        return 100.0 * self.completed / self.runs if self.runs else math.nan
+        """Completed missions, % of the finished runs (NaN when none finished)."""
+        return 100.0 * self.completed / self.finished if self.finished else math.nan
 
 
 def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
@@ -183,6 +193,9 @@ def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
         if c is None:
             c = cells[cid] = CellStats(cid, r.get("scenario", ""), dict(r.get("params") or {}))
         c.runs += 1
+        if r.get("status") == "lost":
+            c.lost += 1
+            continue
         if r.get("status") != "ok":
             c.failed += 1
             continue
@@ -216,20 +229,20 @@ def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
 
     fig, ax = plt.subplots(figsize=(8, height))
     y = np.arange(len(cells))
-    ax.barh(y, [c.completion_pct for c in cells], color="tab:green")
+    pct = [c.completion_pct if math.isfinite(c.completion_pct) else 0.0 for c in cells]
+    ax.barh(y, pct, color="tab:green")
     ax.set_yticks(y, labels, fontsize=8)
     ax.invert_yaxis()
-    ax.set_xlim(0, 105)
-    ax.set_xlabel("missions completed (%)")
+    ax.set_xlim(0, 115)
+    lost = sum(c.lost for c in cells)
+    ax.set_xlabel(
+        "missions completed (% of the finished runs"
+        + (f"; {lost} runs lost by the cluster not counted)" if lost else ")")
+    )
     ax.set_title("Completion rate per cell")
-    for yi, c in zip(y, cells, strict=True):
-        ax.text(
-            min(c.completion_pct, 100) + 1 if c.runs else 1,
-            float(yi),
-            f"{c.completed}/{c.runs}",
-            va="center",
-            fontsize=7,
-        )
+    for yi, c, x in zip(y, cells, pct, strict=True):
+        note = f", {c.lost} lost" if c.lost else ""
+        ax.text(x + 1, float(yi), f"{c.completed}/{c.finished}{note}", va="center", fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "completion.png", dpi=100)
     plt.close(fig)
@@ -301,6 +314,13 @@ def markdown(
     """The summary: the sweep, a row per cell, the figures (the ``figures`` files), the
     failed runs."""
     i = result_info
+    lost = [r for r in records if r.get("status") == "lost"]
+    lost_text = (
+        f"; {len(lost)} lost by the cluster (no result, not counted anywhere below: the same"
+        " command runs them again)"
+        if lost
+        else ""
+    )
     lines = [f"# Sweep {i['name']!r}", ""]
     lines += [
         f"- sweep file: `{i.get('source') or '-'}`; sweep seed {i['seed']}, {i['seeds']} seeds"
@@ -308,7 +328,7 @@ def markdown(
         f"- scenarios: {', '.join(f'`{s}`' for s in i['scenarios'])}",
         f"- [set]: `{json.dumps(i['set'])}`; [grid]: `{json.dumps(i['grid'])}`",
         f"- {len(records)} runs in {len(cells)} cells: {i['ran']} run now, {i['skipped']}"
-        f" found done; {sum(c.failed for c in cells)} failed",
+        f" found done; {sum(c.failed for c in cells)} failed" + lost_text,
         f"- executor: {i['executor']}; {_f(i['wall_s'], '.1f')} s wall,"
         f" {_f(i['missions_per_min'], '.1f')} missions/min",
         "",
@@ -317,15 +337,19 @@ def markdown(
         " (what no navigation can see); the path ratio is the true path over the straight"
         " polyline, over completed runs.",
         "",
-        "| cell | runs | completed | failed | arrival error median / p95 | GPS slow median"
-        " | path ratio median (max) | sim time median | wall per run |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "*Completed* is a share of the runs that finished (*lost* runs, which the cluster"
+        " could not finish, are no missions of the robot).",
+        "",
+        "| cell | runs | completed | failed | lost | arrival error median / p95"
+        " | GPS slow median | path ratio median (max) | sim time median | wall per run |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for c in cells:
         ratios = [x for x in c.path_ratios if math.isfinite(x)]
         lines.append(
-            f"| `{c.cell_id}` {c.label} | {c.runs} | {c.completed} ({_f(c.completion_pct, '.0f')}"
-            f" %) | {c.failed} | {_f(_median(c.arrival_true_m))} /"
+            f"| `{c.cell_id}` {c.label} | {c.runs} | {c.completed}/{c.finished}"
+            f" ({_f(c.completion_pct, '.0f')} %) | {c.failed} | {c.lost}"
+            f" | {_f(_median(c.arrival_true_m))} /"
             f" {_f(_pct(c.arrival_true_m, 95))} m | {_f(_median(c.arrival_gps_m))} m"
             f" | {_f(_median(ratios), '.3f')} ({_f(max(ratios) if ratios else math.nan, '.3f')})"
             f" | {_f(_median(c.sim_times_s), '.1f')} s | {_f(_median(c.wall_times_s))} s |"
@@ -333,7 +357,7 @@ def markdown(
     lines.append("")
     for name in figures:
         lines += [f"![{FIGURES.get(name, name)}]({name})", ""]
-    failed = [r for r in records if r.get("status") != "ok"]
+    failed = [r for r in records if r.get("status") not in ("ok", "lost")]
     if failed:
         lines += [f"## Failed runs ({len(failed)})", ""]
         for r in failed[:50]:
@@ -342,6 +366,19 @@ def markdown(
             )
         if len(failed) > 50:
             lines.append(f"- ... and {len(failed) - 50} more (results.csv)")
+        lines.append("")
+    if lost:
+        lines += [
+            f"## Lost runs ({len(lost)})",
+            "",
+            "The cluster could not finish them (a worker died too often, or the scheduler went"
+            " away): run the same command again to finish them.",
+            "",
+        ]
+        for r in lost[:10]:
+            lines.append(f"- `{r['run_id']}` seed {r.get('seed')}: {r.get('error')}")
+        if len(lost) > 10:
+            lines.append(f"- ... and {len(lost) - 10} more (results.csv)")
         lines.append("")
     lines += [
         "Replay a run: `x6wd sim cells/CELL_ID.toml --seed SEED` (the cell's resolved scenario;"

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import json
+import math
 import os
 import shutil
 import signal
@@ -20,7 +21,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -660,6 +661,66 @@ def test_results_table_and_report_from_records(tmp_path: Path) -> None:
     written = write_report({**info, "ran": 1}, records[:1], tmp_path, figures=False)
     assert not list(tmp_path.glob("*.png")) and not any(w.endswith(".png") for w in written)
     assert "![" not in (tmp_path / "summary.md").read_text()
+
+
+def test_runs_the_cluster_lost_are_no_missions_and_no_throughput(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The scheduler died (kill -9) after one run: the 7 others came back "lost". They were
+    # counted as run (8 run now, the missions/min over 8) and as runs of the robot that did
+    # not complete (1/4 = 25 % and 0/4 = 0 %).
+    from sim_backend import sweep
+    from sim_backend.executor import Executor, Outcome
+    from sim_backend.sweep_report import cell_stats
+    from x6wd.app import sweep as app
+    from x6wd.app.cli import main
+
+    class SchedulerDies(Executor):
+        def __init__(self, scheduler: str | None = None, workers: int | None = None) -> None:
+            super().__init__(inline=True)
+
+        def map_unordered(
+            self,
+            fn: Any,
+            args_list: Sequence[tuple[Any, ...]],
+            names: Sequence[str] | None = None,
+            reraise: bool = False,
+        ) -> Iterator[Outcome]:
+            run_id = args_list[0][0]
+            time.sleep(0.2)  # the one mission this cluster finished
+            yield Outcome(0, value={"run_id": run_id, "status": "ok", "completed": True})
+            for i in range(1, len(args_list)):
+                yield Outcome(i, error="task cancelled by the cluster", kind="executor")
+
+    monkeypatch.setattr(app, "Executor", SchedulerDies)
+    f = sweep_file(
+        tmp_path, "seeds = 4\n[set]\nduration_s = 5.0\n[grid]\ngnss.rate_hz = [1.0, 2.0]\n"
+    )
+    out = tmp_path / "out"
+    assert main(["sweep", str(f), "--out", str(out), "--quiet"]) == 1
+    cap = capsys.readouterr()
+    assert "8 runs (1 run now, 0 found done, 7 lost: the same command runs them), 0 failed" in (
+        cap.out
+    )
+    rate = float(cap.out.split("failed; ")[1].split(" missions/min")[0])
+    assert 0 < rate <= 60 / 0.2  # one mission in at least 0.2 s
+    assert "7 runs lost by the cluster" in cap.err and "run failed:" not in cap.err
+    records = [json.loads(p.read_text()) for p in sorted(run_files(out).values())]
+    cells = cell_stats(records)
+    assert [(c.runs, c.finished, c.completed, c.failed, c.lost) for c in cells] == [
+        (4, 1, 1, 0, 3),
+        (4, 0, 0, 0, 4),
+    ]
+    assert cells[0].completion_pct == 100.0 and math.isnan(cells[1].completion_pct)
+    summary = (out / "summary.md").read_text()
+    assert "| 4 | 1/1 (100 %) | 0 | 3 |" in summary and "| 4 | 0/0 (- %) | 0 | 4 |" in summary
+    assert "## Lost runs (7)" in summary and "Failed runs" not in summary
+    assert (out / "completion.png").stat().st_size > 0
+    # the library's own count, as the benchmark reads it
+    with SchedulerDies() as ex:
+        res = sweep.run_sweep(sweep.load_sweep(f), tmp_path / "again", ex)
+    assert res.ran == 1 and len(res.lost) == 7 and not res.errors and len(res.failed) == 7
+    assert res.missions_per_min == pytest.approx(60.0 / res.wall_s)
 
 
 @pytest.mark.parametrize("peer", ["silent", "garbage"])

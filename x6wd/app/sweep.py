@@ -8,10 +8,10 @@ machine by default, or ``--scheduler tcp://HOST:PORT`` for a running cluster. Wr
 pyarrow), ``arrivals.csv``, three figures and ``summary.md`` (:mod:`sim_backend.sweep_report`).
 Usage and costs: docs/sweeps.md.
 
-Exit codes: 0 every run succeeded; 1 some run failed (recorded with its error); 2 a bad sweep
-file, scenario key or value, no Dask, or a --scheduler that is malformed, unknown or silent
-(checked even when nothing is left to run); 130 interrupted (finished runs are kept: run the same
-command again to finish).
+Exit codes: 0 every run succeeded; 1 some run failed (recorded with its error) or was lost by
+the cluster (run again by the same command); 2 a bad sweep file, scenario key or value, no
+Dask, or a --scheduler that is malformed, unknown or silent (checked even when nothing is left
+to run); 130 interrupted (finished runs are kept: run the same command again to finish).
 """
 
 from __future__ import annotations
@@ -110,15 +110,22 @@ def main(args: argparse.Namespace) -> int:
         "missions_per_min": result.missions_per_min,
     }
     write_report(info, result.records, out, figures=not args.no_figures)
-    failed = result.failed
+    errors, lost = result.errors, result.lost
     rate = f"{result.missions_per_min:.1f} missions/min" if result.ran else "nothing to run"
+    lost_text = f", {len(lost)} lost: the same command runs them" if lost else ""
     print(
         f"sweep {spec.name!r}: {len(result.records)} runs ({result.ran} run now, {result.skipped}"
-        f" found done), {len(failed)} failed; {rate} on {result.executor};"
+        f" found done{lost_text}), {len(errors)} failed; {rate} on {result.executor};"
         f" summary in {out / 'summary.md'}"
     )
-    for rec in failed[:10]:
+    for rec in errors[:10]:
         print(
             f"run failed: {rec['run_id']} seed {rec['seed']}: {rec.get('error')}", file=sys.stderr
         )
-    return 1 if failed else 0
+    if lost:
+        print(
+            f"{len(lost)} runs lost by the cluster (the first: {lost[0].get('error')}):"
+            " run the same command again to finish them",
+            file=sys.stderr,
+        )
+    return 1 if errors or lost else 0
