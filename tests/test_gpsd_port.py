@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import socket
 import subprocess
@@ -191,8 +192,55 @@ def test_requests_without_a_newline_are_answered_as_gpsd_answers_them(gpsd: Gpsd
         f = s.makefile("rb")
         f.readline()
         s.sendall(b'?WATCH={"device":"' + b"x" * 9000)  # no end: refused, not kept for ever
-        assert json.loads(f.readline()) == {"class": "ERROR", "message": "request too long"}
+        error = json.loads(f.readline())
+        assert error["class"] == "ERROR" and error["message"].startswith("request too long")
         assert f.readline() == b""
+
+
+def _send_in_background(s: socket.socket, data: bytes) -> threading.Thread:
+    """``sendall(data)`` from a thread (the server may stop reading); errors are kept."""
+
+    def send() -> None:
+        with contextlib.suppress(OSError):
+            s.sendall(data)
+
+    t = threading.Thread(target=send, daemon=True)
+    t.start()
+    return t
+
+
+def test_an_overlong_request_gets_one_short_error_then_a_clean_close(gpsd: GpsdServer) -> None:
+    # the audit's request: 300 000 letters in one "command"; it used to get two errors, the
+    # first echoing 4 KB of it, then a reset that may throw the errors away unread
+    with socket.create_connection(("127.0.0.1", gpsd.port), timeout=5) as s:
+        f = s.makefile("rb")
+        assert json.loads(f.readline())["class"] == "VERSION"
+        sender = _send_in_background(s, b"?" + b"A" * 300_000 + b";\n")
+        line = f.readline()
+        error = json.loads(line)
+        assert error["class"] == "ERROR" and error["message"].startswith("request too long")
+        assert "'?AAAA" in error["message"] and len(line) < 200, line
+        assert f.readline() == b""  # then the end of the stream, not a reset
+        sender.join(5)
+
+
+def test_an_unknown_command_is_echoed_shortened(gpsd: GpsdServer) -> None:
+    # within the request limit: one short error, and the connection stays usable (as gpsd)
+    with socket.create_connection(("127.0.0.1", gpsd.port), timeout=5) as s:
+        f = s.makefile("rb")
+        assert json.loads(f.readline())["class"] == "VERSION"
+        for request in (b"?" + b"A" * 5000 + b";\n", b"?" + b"B" * 3000 + b"={}\n"):
+            s.sendall(request)
+            line = f.readline()
+            error = json.loads(line)
+            assert error["class"] == "ERROR" and len(line) < 200, line
+            assert error["message"].endswith("...'"), line
+        s.sendall(b"?" + b"C" * 1000 + b'={"a":\n')  # the JSON argument's error too
+        line = f.readline()
+        assert json.loads(line)["message"].startswith("Invalid JSON argument to ?CCCC")
+        assert len(line) < 200, line
+        s.sendall(b"?VERSION;\n")
+        assert json.loads(f.readline())["class"] == "VERSION"
 
 
 def test_stuck_gpsd_client_queue_is_bounded() -> None:

@@ -17,6 +17,7 @@ watcher that never reads (``slow_client_s``). A full pool makes room instead of 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import math
@@ -45,6 +46,19 @@ UERE_M = 5.0
 MAX_COMMAND_BYTES = 4096  # one read of a client's bytes
 MAX_REQUEST_BYTES = 2 * MAX_COMMAND_BYTES  # the longest request taken, with or without "\n"
 MAX_PENDING_REPLIES = 256
+MAX_ECHO_CHARS = 40
+"""An error echoes at most this much of the request it refuses (gpsd echoes the whole of
+its 8 KB input buffer): a client learns what was refused without getting it back whole."""
+MAX_NAME_CHARS = 16
+"""A bare command name longer than this (gpsd's are 4 to 7 letters) that arrived without a
+newline is not taken as complete: it is a long request cut by a read, and waits for its end."""
+REFUSED_LINGER_S = 1.0
+"""After refusing a request too long, the port reads and discards what the client still sends
+for this long (s) at most before closing, so the close is a FIN after the error, not a reset
+that may throw the error away unread."""
+REFUSED_DISCARD_BYTES = 1 << 20
+"""The most bytes read and dropped after refusing a request too long (1 MiB; see
+:data:`REFUSED_LINGER_S`)."""
 COMMANDS = frozenset({"WATCH", "POLL", "VERSION", "DEVICES"})
 DEFAULT_MAX_PENDING = 32
 """Connections that have not sent a valid command yet (there is no GpsdConfig key)."""
@@ -193,14 +207,22 @@ def att_obj(att: Attitude, device: str, declination_deg: float = 0.0) -> dict[st
     return {k: v for k, v in obj.items() if v is not None}
 
 
-_BARE_COMMANDS = re.compile(r"\s*(\?[A-Za-z]+\s*;?\s*)+")
+_BARE_COMMANDS = re.compile(rf"\s*(\?[A-Za-z]{{1,{MAX_NAME_CHARS}}}\s*;?\s*)+")
+
+
+def shown(text: str) -> str:
+    """``text`` as an error echoes it: at most :data:`MAX_ECHO_CHARS`, then ``...``."""
+    if len(text) <= MAX_ECHO_CHARS:
+        return text
+    return text[:MAX_ECHO_CHARS] + "..."
 
 
 def _complete_without_newline(data: bytes | bytearray) -> bool:
     """Whether requests that arrived without a newline are whole. gpsd answers what each
     read brought, and many clients send ``?WATCH={...}`` or ``?POLL;`` with no newline: a
-    text ending in ``;``, bare commands, or a JSON argument that parses is taken as it is;
-    a ``}`` whose JSON does not parse yet waits for the rest of the object."""
+    text ending in ``;``, bare commands (of at most :data:`MAX_NAME_CHARS` letters), or a
+    JSON argument that parses is taken as it is; a ``}`` whose JSON does not parse yet waits
+    for the rest of the object."""
     text = data.decode("utf-8", "replace").rstrip()
     if not text or text.endswith(";") or _BARE_COMMANDS.fullmatch(text):
         return bool(text)
@@ -252,7 +274,7 @@ def parse_commands(text: str) -> list[tuple[str, dict[str, Any] | None]]:
             i += 1
             continue
         if c != "?":
-            raise ProtocolError(f"Unrecognized request '{text[i : i + 20].strip()}'")
+            raise ProtocolError(f"Unrecognized request '{shown(text[i : i + 200].strip())}'")
         j = i + 1
         while j < n and text[j].isalpha():
             j += 1
@@ -264,15 +286,15 @@ def parse_commands(text: str) -> list[tuple[str, dict[str, Any] | None]]:
             try:
                 value, end = decoder.raw_decode(text, j + 1)
             except json.JSONDecodeError as exc:
-                raise ProtocolError(f"Invalid JSON argument to ?{name}: {exc.msg}") from None
+                raise ProtocolError(f"Invalid JSON argument to ?{shown(name)}: {exc.msg}") from None
             except RecursionError:
                 raise ProtocolError(
-                    f"Invalid JSON argument to ?{name}: nested too deeply"
+                    f"Invalid JSON argument to ?{shown(name)}: nested too deeply"
                 ) from None
             except ValueError as exc:  # e.g. an integer past the digit limit
-                raise ProtocolError(f"Invalid JSON argument to ?{name}: {exc}") from None
+                raise ProtocolError(f"Invalid JSON argument to ?{shown(name)}: {exc}") from None
             if not isinstance(value, dict):
-                raise ProtocolError(f"?{name} argument must be a JSON object")
+                raise ProtocolError(f"?{shown(name)} argument must be a JSON object")
             arg, j = value, end
         out.append((name, arg))
         i = j
@@ -461,7 +483,7 @@ class GpsdServer(LineServer[_Client]):
                 # an immediate report so a fresh watcher does not wait a whole epoch
                 out.extend(dumps(o) for o in (self._last_tpv, self._last_sky) if o is not None)
             return out
-        return [dumps({"class": "ERROR", "message": f"Unrecognized request '{name}'"})]
+        return [dumps({"class": "ERROR", "message": f"Unrecognized request '{shown(name)}'"})]
 
     def _is_watching(self, c: _Client) -> bool:
         return c.watch_json or c.watch_nmea
@@ -485,7 +507,7 @@ class GpsdServer(LineServer[_Client]):
                 if raw is None:
                     break
                 if len(raw) > MAX_REQUEST_BYTES:
-                    c.reply(dumps({"class": "ERROR", "message": "request too long"}))
+                    await self._refuse(c, reader, raw)
                     break
                 c.t_active_s = self._clock()
                 text = raw.decode("utf-8", "replace")
@@ -510,6 +532,41 @@ class GpsdServer(LineServer[_Client]):
             pass  # close() or eviction: a finished task keeps asyncio's stream callback quiet
         finally:
             await self._hang_up(c, reader)
+
+    async def _refuse(self, c: _Client, reader: asyncio.StreamReader, raw: bytes) -> None:
+        """Refuse a request too long: one short error (its start echoed), sent before the
+        end of the stream; what the client still sends is read and dropped (at most
+        :data:`REFUSED_LINGER_S`, :data:`REFUSED_DISCARD_BYTES`), so that the close that
+        follows is not a reset, which could throw the error away before the client reads
+        it. A client that does not read gets no such wait."""
+        echo = shown(raw.decode("utf-8", "replace").strip())
+        message = f"request too long (over {MAX_REQUEST_BYTES} bytes): '{echo}'"
+        c.watch_json = c.watch_nmea = False  # nothing more goes out after the error
+        c.events.clear()
+        c.reply(dumps({"class": "ERROR", "message": message}))
+        c.closed = True  # the sender ends once the error is out
+        c.wake.set()
+        sender = c.sender
+        if sender is None:
+            return
+        done, _ = await asyncio.wait({sender}, timeout=REFUSED_LINGER_S)
+        if not done or c.writer.transport.get_write_buffer_size() > 0:
+            return  # it does not read: the hang-up resets it
+        with contextlib.suppress(Exception):
+            c.writer.write_eof()
+        deadline = self._clock() + REFUSED_LINGER_S
+        dropped = 0
+        while dropped < REFUSED_DISCARD_BYTES:
+            left_s = deadline - self._clock()
+            if left_s <= 0:
+                break
+            try:
+                chunk = await asyncio.wait_for(reader.read(65536), left_s)
+            except (TimeoutError, ConnectionError, OSError):
+                break
+            if not chunk:
+                break
+            dropped += len(chunk)
 
 
 def read_objects(lines: Iterable[bytes]) -> list[dict[str, Any]]:
