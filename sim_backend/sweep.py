@@ -35,7 +35,9 @@ the client as results arrive), ``cells/CELL_ID.toml`` (each cell's resolved scen
 cells/CELL_ID.toml --seed SEED`` replays a run), ``sweep.json`` (the plan), and at the end the
 table and summary of :mod:`sim_backend.sweep_report`. Running the same sweep into the same
 directory again (after a crash, Ctrl-C or a change of the grid) skips every run whose file is
-there with the same seed and configuration: only the missing runs are simulated. A run whose
+there with the same seed and configuration: only the missing runs are simulated. A directory
+that holds another sweep (another name or seed in its ``sweep.json``) is refused
+(:func:`check_out_dir`). A run whose
 mission raised is recorded with its error (kept on resume unless ``retry_failed``); a run the
 cluster lost (:class:`~sim_backend.executor.Outcome` kind "executor") is run again on resume.
 
@@ -537,6 +539,32 @@ def write_plan(spec: SweepSpec, runs: Sequence[Run], out_dir: Path) -> None:
     write_atomic(out_dir / "sweep.json", json.dumps(_json_safe(plan_data), indent=1))
 
 
+def check_out_dir(spec: SweepSpec, out_dir: str | Path) -> None:
+    """Raise :class:`ConfigError` when ``out_dir`` holds another sweep's results: its
+    ``sweep.json`` names another sweep (a sweep is known by its name and seed: the same file
+    with a grid that grew is the same sweep, a sweep with another seed has other runs).
+    Writing there would replace that plan and overwrite the run files of the same run ids
+    (a run id is its scenario, parameters and replicate), and mix the two in ``runs/``."""
+    path = Path(out_dir) / "sweep.json"
+    if not path.exists():
+        return
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        theirs = (data["name"], data["seed"])
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise ConfigError(
+            f"output directory {str(out_dir)!r}: its sweep.json is not a sweep's plan ({exc});"
+            " choose another --out"
+        ) from None
+    if theirs != (spec.name, spec.seed):
+        raise ConfigError(
+            f"output directory {str(out_dir)!r} holds the results of another sweep:"
+            f" {theirs[0]!r} seed {theirs[1]} (from {data.get('source') or '?'}), not"
+            f" {spec.name!r} seed {spec.seed}; choose another --out, or remove that folder"
+            " to replace them"
+        )
+
+
 def split_done(
     runs: Sequence[Run], store: RunStore, retry_failed: bool = False
 ) -> tuple[dict[str, dict[str, Any]], list[Run]]:
@@ -563,9 +591,11 @@ def run_sweep(
     """Plan (unless ``runs`` is given), skip the runs already in ``out_dir``, run the rest on
     ``executor`` (entered by the caller), store each as it finishes, and return every planned
     run's record. ``progress(done, failed)`` counts over all planned runs. The report
-    (:func:`sim_backend.sweep_report.write_report`) is the caller's next step."""
+    (:func:`sim_backend.sweep_report.write_report`) is the caller's next step. A folder that
+    holds another sweep is a :class:`ConfigError` (:func:`check_out_dir`)."""
     t0 = time.perf_counter()
     out = Path(out_dir)
+    check_out_dir(spec, out)
     runs = list(runs) if runs is not None else plan(spec)
     out.mkdir(parents=True, exist_ok=True)
     write_plan(spec, runs, out)

@@ -723,6 +723,41 @@ def test_runs_the_cluster_lost_are_no_missions_and_no_throughput(
     assert res.missions_per_min == pytest.approx(60.0 / res.wall_s)
 
 
+def test_an_out_folder_of_another_sweep_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Another sweep's folder used to be taken over: its sweep.json replaced, and its run files
+    # overwritten where the run ids were the same (same scenario, parameters, replicate).
+    from sim_backend.executor import Executor
+    from sim_backend.sweep import load_sweep, run_sweep
+    from x6wd.app.cli import main
+
+    body = "seeds = 1\n[set]\nduration_s = 5.0\n"
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a = sweep_file(tmp_path / "a", body)
+    b = sweep_file(tmp_path / "b", body)
+    b.write_text(b.read_text().replace('name = "test"', 'name = "other"'))
+    reseeded = sweep_file(tmp_path, body)
+    reseeded.write_text(reseeded.read_text().replace("seed = 7", "seed = 8"))
+    out = tmp_path / "out"
+    with Executor(inline=True) as ex:
+        run_sweep(load_sweep(a), out, ex)
+    before = {p: p.read_bytes() for p in [out / "sweep.json", *run_files(out).values()]}
+    assert len(before) == 2
+    for other, named in ((b, "'other' seed 7"), (reseeded, "'test' seed 8")):
+        assert main(["sweep", str(other), "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"output directory {str(out)!r} holds the results of another sweep:" in err
+        assert f"'test' seed 7 (from {a})" in err and named in err, err
+        with Executor(inline=True) as ex, pytest.raises(ConfigError, match="another sweep"):
+            run_sweep(load_sweep(other), out, ex)
+    assert {p: p.read_bytes() for p in before} == before
+    assert set(run_files(out)) == {p.stem for p in before if p.parent.name == "runs"}
+    # the sweep itself (its grid may grow): welcome
+    assert main(["sweep", str(a), "--out", str(out), "--quiet", "--no-figures"]) == 0
+
+
 @pytest.mark.parametrize("peer", ["silent", "garbage"])
 def test_a_scheduler_address_that_is_no_scheduler_is_a_clear_error_in_time(peer: str) -> None:
     # an HTTP server waits for a request (the dashboard's port, a typo): Client alone waited

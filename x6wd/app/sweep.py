@@ -10,8 +10,9 @@ Usage and costs: docs/sweeps.md.
 
 Exit codes: 0 every run succeeded; 1 some run failed (recorded with its error) or was lost by
 the cluster (run again by the same command); 2 a bad sweep file, scenario key or value, no
-Dask, or a --scheduler that is malformed, unknown or silent (checked even when nothing is left
-to run); 130 interrupted (finished runs are kept: run the same command again to finish).
+Dask, an --out folder holding another sweep (another name or seed), or a --scheduler that is
+malformed, unknown or silent (checked even when nothing is left to run); 130 interrupted
+(finished runs are kept: run the same command again to finish).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import sys
 from pathlib import Path
 
 from sim_backend.executor import Executor, TextProgress, probe_scheduler
-from sim_backend.sweep import RunStore, load_sweep, plan, run_sweep, split_done
+from sim_backend.sweep import RunStore, check_out_dir, load_sweep, plan, run_sweep, split_done
 from sim_backend.sweep_report import write_report
 from x6wd.core.errors import ConfigError
 from x6wd.core.outdir import output_dir
@@ -45,7 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " N workers have joined",
     )
     parser.add_argument(
-        "--out", default=None, help="output directory (default out/sweeps/SWEEP_FILE_STEM)"
+        "--out",
+        default=None,
+        help="output directory (default out/sweeps/SWEEP_FILE_STEM); one that holds another"
+        " sweep's results (another name or seed) is refused",
     )
     parser.add_argument(
         "--retry-failed",
@@ -73,6 +77,7 @@ def main(args: argparse.Namespace) -> int:
         spec = dataclasses.replace(spec, seeds=args.seeds)
     runs = plan(spec)  # a bad key or value stops here, before any cluster starts
     out = output_dir(args.out if args.out else Path("out") / "sweeps" / Path(args.sweep).stem)
+    check_out_dir(spec, out)  # another sweep's results are not replaced
     progress = None if args.quiet else TextProgress(len(runs), "runs")
     _done, todo = split_done(runs, RunStore(out), args.retry_failed)
     executor = Executor(scheduler=args.scheduler, workers=args.workers)  # checks --workers
