@@ -310,7 +310,10 @@ class Executor:
 
 class TextProgress:
     """A plain-text progress bar on ``stream`` (stderr): redrawn in place on a terminal,
-    otherwise a line at most every ``every_s`` seconds and at the end."""
+    otherwise a line at most every ``every_s`` seconds and at the end. Call it with the count
+    done so far (of ``total``); the first call's count is what was done before this process
+    ran anything (a resumed sweep's runs found done): the rate and the ETA are of the tasks
+    run since then, from that call on."""
 
     def __init__(
         self,
@@ -328,9 +331,12 @@ class TextProgress:
         self.width = width
         self.t0 = time.monotonic()
         self._last = -math.inf
+        self._start: tuple[int, float] | None = None  # (done, time) of the first call
 
     def __call__(self, done: int, failed: int = 0) -> None:
         now = time.monotonic()
+        if self._start is None:
+            self._start = (done, now)
         final = done >= self.total
         if not self.tty and not final and now - self._last < self.every_s:
             return
@@ -338,7 +344,8 @@ class TextProgress:
         frac = done / self.total if self.total else 1.0
         filled = round(frac * self.width)
         elapsed = now - self.t0
-        rate = done / elapsed * 60.0 if elapsed > 0 and done else 0.0
+        ran, running_s = done - self._start[0], now - self._start[1]
+        rate = ran / running_s * 60.0 if running_s > 0 and ran > 0 else 0.0
         eta = (self.total - done) / (rate / 60.0) if rate > 0 else float("nan")
         eta_text = f", ETA {eta:.0f} s" if rate > 0 and not final else ""
         line = (

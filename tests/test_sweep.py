@@ -758,6 +758,29 @@ def test_an_out_folder_of_another_sweep_is_refused(
     assert main(["sweep", str(a), "--out", str(out), "--quiet", "--no-figures"]) == 0
 
 
+def test_the_progress_rate_counts_only_the_runs_run_here(monkeypatch: pytest.MonkeyPatch) -> None:
+    # 19 of 20 runs found done, one run in a minute: 1/min, not 20/min; and 10 to go is an
+    # ETA of 600 s, not 30 s
+    import io
+
+    from sim_backend import executor
+
+    clock = [100.0]
+    monkeypatch.setattr(executor.time, "monotonic", lambda: clock[0])
+    stream = io.StringIO()
+    bar = executor.TextProgress(30, stream=stream, every_s=0.0)
+    clock[0] += 5.0  # starting the cluster
+    bar(19)  # found done
+    clock[0] += 60.0
+    bar(20)
+    clock[0] += 30.0
+    bar(21, 1)
+    lines = stream.getvalue().splitlines()
+    assert lines[1].endswith("20/30 runs, 0 failed, 65 s, 1.0/min, ETA 600 s"), lines
+    assert lines[2].endswith("21/30 runs, 1 failed, 95 s, 1.3/min, ETA 405 s"), lines
+    assert "0.0/min" in lines[0] and "ETA" not in lines[0]
+
+
 @pytest.mark.parametrize("peer", ["silent", "garbage"])
 def test_a_scheduler_address_that_is_no_scheduler_is_a_clear_error_in_time(peer: str) -> None:
     # an HTTP server waits for a request (the dashboard's port, a typo): Client alone waited
