@@ -220,13 +220,14 @@ class Executor:
     @property
     def description(self) -> str:
         """What runs the tasks, for reports: "in this process", "LocalCluster, 2 workers",
-        "scheduler tcp://..., 3 workers"."""
+        "scheduler tcp://..., 1 worker"."""
         if self.inline:
             return "in this process"
         n = self.worker_count()
+        workers = f"{n} worker{'' if n == 1 else 's'}"
         if self.scheduler:
-            return f"scheduler {self.scheduler}, {n} workers"
-        return f"LocalCluster, {n} workers"
+            return f"scheduler {self.scheduler}, {workers}"
+        return f"LocalCluster, {workers}"
 
     def worker_count(self) -> int:
         """Workers connected now (1 in this process)."""

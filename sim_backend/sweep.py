@@ -180,11 +180,12 @@ def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: s
             raise ConfigError(f"grid.{key}: expected a non-empty list of values, got {values!r}")
         if key in fixed:
             raise ConfigError(f"grid.{key}: also in [set]; give it in one of them")
-        seen: set[str] = set()
+        seen: dict[str, Any] = {}
         for v in values:  # a repeat would run the same cell twice and count it twice
-            if _canonical(v) in seen:
-                raise ConfigError(f"grid.{key}: value {v!r} given twice")
-            seen.add(_canonical(v))
+            first = seen.setdefault(_value_key(v), v)
+            if first is not v:
+                same = "" if repr(first) == repr(v) else f" (as {first!r})"
+                raise ConfigError(f"grid.{key}: value {v!r} given twice{same}")
         grid[key] = values
     return SweepSpec(
         name=name,
@@ -259,6 +260,23 @@ class Run:
 
 def _canonical(value: Any) -> str:
     return json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
+
+
+def _value_key(value: Any) -> str:
+    """``value`` for telling two grid values apart: numbers by their value (1 and 1.0 are
+    one value, the same in the scenario; true is not 1), in lists and tables too. (Seeds and
+    cell ids keep :func:`_canonical` of the value as written.)"""
+
+    def norm(v: Any) -> Any:
+        if isinstance(v, float) and v.is_integer():
+            return int(v)
+        if isinstance(v, list):
+            return [norm(x) for x in v]
+        if isinstance(v, dict):
+            return {k: norm(x) for k, x in v.items()}
+        return v
+
+    return _canonical(norm(value))
 
 
 def run_seed(sweep_seed: int, scenario: str, overrides: dict[str, Any], replicate: int) -> int:

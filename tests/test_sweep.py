@@ -332,6 +332,8 @@ def test_a_file_named_by_a_sweep_value_is_the_one_the_worker_reads(
         # a repeat would run each mission twice and count it twice in its cell
         ('navigation.position_source = ["ekf", "ekf"]', "'ekf' given twice"),
         ('gnss.rate_hz = [1.0]\n"gnss.rate_hz" = [2.0]', "grid.gnss.rate_hz: given twice"),
+        # the same number, written twice (1 Hz both)
+        ("gnss.rate_hz = [1, 2.0, 1.0]", "grid.gnss.rate_hz: value 1.0 given twice (as 1)"),
         # the scenario's seed: each run's own seed overrode it, and its column took the
         # place of the run's seed in the tables
         ("seed = [1, 2]", "grid.seed: not a parameter: each run's seed comes from"),
@@ -758,6 +760,16 @@ def test_an_out_folder_of_another_sweep_is_refused(
     assert main(["sweep", str(a), "--out", str(out), "--quiet", "--no-figures"]) == 0
 
 
+def test_the_executor_counts_its_workers_in_words() -> None:
+    from sim_backend.executor import Executor
+
+    assert Executor(workers=1).description == "LocalCluster, 1 worker"  # not "1 workers"
+    assert (
+        Executor("tcp://127.0.0.1:18799").description == "scheduler tcp://127.0.0.1:18799, 1 worker"
+    )
+    assert Executor(inline=True).description == "in this process"
+
+
 def test_the_progress_rate_counts_only_the_runs_run_here(monkeypatch: pytest.MonkeyPatch) -> None:
     # 19 of 20 runs found done, one run in a minute: 1/min, not 20/min; and 10 to go is an
     # ETA of 600 s, not 30 s
@@ -848,6 +860,8 @@ def test_a_bad_scheduler_is_exit_2_on_a_finished_sweep_too(
     with Executor(inline=True) as ex:
         assert not run_sweep(load_sweep(f), out, ex).failed
     assert main(["sweep", str(f), "--out", str(out), "--quiet"]) == 0  # finished: the report
+    said = capsys.readouterr().out  # it said "nothing to run on in this process"
+    assert ": 1 run (0 run now, 1 found done), 0 failed; nothing left to run; summary in" in said
     for address in BAD_SCHEDULERS[::2]:
         assert main(["sweep", str(f), "--scheduler", address, "--out", str(out)]) == 2
         assert address.split("://")[-1] in capsys.readouterr().err

@@ -68,6 +68,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _runs(n: int) -> str:
+    return f"{n} run{'' if n == 1 else 's'}"
+
+
 def main(args: argparse.Namespace) -> int:
     """Plan (validating every cell), run what is missing, write the report."""
     spec = load_sweep(args.sweep)
@@ -116,11 +120,16 @@ def main(args: argparse.Namespace) -> int:
     }
     write_report(info, result.records, out, figures=not args.no_figures)
     errors, lost = result.errors, result.lost
-    rate = f"{result.missions_per_min:.1f} missions/min" if result.ran else "nothing to run"
+    if result.ran:
+        rate = f"{result.missions_per_min:.1f} missions/min on {result.executor}"
+    elif lost:
+        rate = f"no run finished on {result.executor}"
+    else:
+        rate = "nothing left to run"
     lost_text = f", {len(lost)} lost: the same command runs them" if lost else ""
     print(
-        f"sweep {spec.name!r}: {len(result.records)} runs ({result.ran} run now, {result.skipped}"
-        f" found done{lost_text}), {len(errors)} failed; {rate} on {result.executor};"
+        f"sweep {spec.name!r}: {_runs(len(result.records))} ({result.ran} run now, {result.skipped}"
+        f" found done{lost_text}), {len(errors)} failed; {rate};"
         f" summary in {out / 'summary.md'}"
     )
     for rec in errors[:10]:
@@ -129,7 +138,7 @@ def main(args: argparse.Namespace) -> int:
         )
     if lost:
         print(
-            f"{len(lost)} runs lost by the cluster (the first: {lost[0].get('error')}):"
+            f"{_runs(len(lost))} lost by the cluster (the first: {lost[0].get('error')}):"
             " run the same command again to finish them",
             file=sys.stderr,
         )
