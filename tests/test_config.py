@@ -8,7 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from x6wd.core.config import Config, ConfigError, NavigationConfig, load, loads
+from x6wd.core.config import (
+    PACKAGED_CONFIG_DIR,
+    Config,
+    ConfigError,
+    NavigationConfig,
+    load,
+    loads,
+)
 
 ROBOT_TOML = Path(__file__).resolve().parent.parent / "config" / "x6wd.toml"
 
@@ -95,6 +102,49 @@ def test_sim_scenario_resolves_against_the_config_folder(tmp_path: Path) -> None
     cfg = load(cfg_file)
     assert cfg.sim.scenario == str((tmp_path / "worlds" / "here.toml").resolve())
     assert cfg.sim.seed is None and cfg.sim.gps_rate_hz is None  # absent: the scenario's own
+
+
+def test_a_missing_scenario_lists_every_path_tried_in_order(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the audit's case: started from another folder, the config file's own folder (searched
+    # first) was left out of the error
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    cfg_file = tmp_path / "cfg" / "e1.toml"
+    cfg_file.write_text('[gps]\nurl = "sim://"\n[sim]\nscenario = "scenarios/nope.toml"\n')
+    with pytest.raises(ConfigError) as ei:
+        load(cfg_file)
+    tried = [
+        tmp_path / "cfg" / "scenarios" / "nope.toml",
+        PACKAGED_CONFIG_DIR / "scenarios" / "nope.toml",
+        tmp_path / "elsewhere" / "scenarios" / "nope.toml",
+    ]
+    assert str(ei.value) == (
+        f"{cfg_file}: sim.scenario: no such file 'scenarios/nope.toml' "
+        f"(tried {', '.join(str(t) for t in tried)})"
+    )
+    # a scenario no sim:// device uses is not looked for
+    cfg_file.write_text('[sim]\nscenario = "scenarios/nope.toml"\n')
+    assert load(cfg_file).sim.scenario == "scenarios/nope.toml"
+
+
+def test_a_scenario_is_found_where_the_error_says_it_is_looked_for(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from sim_backend.hil import CONFIG_DIR
+
+    assert PACKAGED_CONFIG_DIR == CONFIG_DIR  # one folder, named in two layers
+    monkeypatch.chdir(tmp_path)
+    cfg_file = tmp_path / "robot.toml"
+    cfg_file.write_text('[gps]\nurl = "sim://"\n[sim]\nscenario = "scenarios/default.toml"\n')
+    packaged = PACKAGED_CONFIG_DIR / "scenarios" / "default.toml"
+    assert load(cfg_file).sim.scenario == str(packaged.resolve())  # not beside the config
+    (tmp_path / "scenarios").mkdir()
+    (tmp_path / "scenarios" / "default.toml").write_text("name = 'mine'\n")
+    mine = tmp_path / "scenarios" / "default.toml"
+    assert load(cfg_file).sim.scenario == str(mine.resolve())  # beside it: first
 
 
 def test_retired_sim_keys_stop_startup_with_the_key() -> None:

@@ -109,7 +109,7 @@ def files_under(path: Path) -> list[Path]:
         ({"gps": {"url": "replay:///nonexistent/a.nmea"}}, "gps.url", ["does not exist"]),
         ({"gps": {"url": f"serial://{LEA5H}"}}, "gps.url", ["not a character device"]),
         ({"navigation": {"delta_z_m": 1.0}}, "", ["navigation.delta_z_m: unknown key"]),
-        ({"sim": {"scenario": "no/such/world.toml"}}, "sim.scenario", ["no such file"]),
+        ({"sim": {"scenario": "no/such/world.toml"}}, "", ["sim.scenario: no such file"]),
         ({"safety": {"geofence_center": [1.0]}}, "safety.geofence_center", []),
         # what urlsplit, int() and os.stat raise on, not our own checks (an outside check)
         ({"gps": {"url": "tcp://[::1:2947"}}, "gps.url", ["malformed URL"]),

@@ -310,7 +310,9 @@ class RecorderConfig:
 class SimConfig:
     """Hardware-in-the-loop: the simulated world behind the sim:// device URLs."""
 
-    scenario: str = ""  # relative paths: against the config file's folder
+    # a relative path: in the config file's folder, then in PACKAGED_CONFIG_DIR, then in the
+    # working directory (scenario_candidates)
+    scenario: str = ""
     seed: int | None = field(default=None, metadata=_rng(0, 2**63 - 1))
     # Overrides of the scenario's own values; absent (None) means "as the scenario says".
     origin_lat_deg: float | None = field(default=None, metadata=_rng(-85, 85))
@@ -410,6 +412,29 @@ def build(cls: type[T], data: Any, prefix: str = "") -> T:
     return cls(**kwargs)
 
 
+PACKAGED_CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+"""The ``config/`` folder that ships with x6wd (hil.toml, scenarios/): the second place a
+relative ``[sim] scenario`` is looked for (``sim_backend.hil.CONFIG_DIR``, the same folder)."""
+
+
+def scenario_candidates(scenario: str, config_dir: Path) -> list[Path]:
+    """Where the ``[sim] scenario`` of a configuration file in ``config_dir`` is looked for,
+    in order: an absolute path (``~`` expanded) as it is; a relative one in ``config_dir``,
+    then in :data:`PACKAGED_CONFIG_DIR`, then in the working directory."""
+    path = Path(scenario).expanduser()
+    if path.is_absolute():
+        return [path]
+    return [config_dir / path, PACKAGED_CONFIG_DIR / path, Path.cwd() / path]
+
+
+def _uses_world(cfg: Config) -> bool:
+    """Whether a device URL is ``sim://``: the simulated world, built from the scenario."""
+    return any(
+        url.strip().lower().startswith("sim:")
+        for url in (cfg.gps.url, cfg.compass.url, cfg.motors.url)
+    )
+
+
 def _parse(text: str, source: str) -> dict[str, Any]:
     try:
         return tomllib.loads(text)
@@ -435,7 +460,9 @@ def load(path: str | Path) -> Config:
 
     Every problem is a one-line :class:`ConfigError` starting with the file's path: it
     cannot be read, is not UTF-8 (with the line and byte offset), is not valid TOML (with
-    line and column), or a key is unknown, of the wrong type or out of range (the dotted key).
+    line and column), a key is unknown, of the wrong type or out of range (the dotted key),
+    or the ``[sim] scenario`` that sim:// devices need is found nowhere (every path tried).
+    A scenario found becomes an absolute path (:func:`scenario_candidates`).
     """
     p = Path(path)
     try:
@@ -455,9 +482,19 @@ def load(path: str | Path) -> Config:
         cfg = build(Config, data)
     except ConfigError as exc:
         raise ConfigError(f"{p}: {exc}") from exc
-    # A scenario named next to the config file must not depend on the working directory.
-    scenario = Path(cfg.sim.scenario).expanduser()
-    if cfg.sim.scenario and not scenario.is_absolute() and (p.parent / scenario).is_file():
-        sim = dataclasses.replace(cfg.sim, scenario=str((p.parent / scenario).resolve()))
-        cfg = dataclasses.replace(cfg, sim=sim)
+    if not cfg.sim.scenario:
+        return cfg
+    # The scenario, found where scenario_candidates says: a file next to the config file does
+    # not depend on the working directory. Not found while sim:// devices need it: the
+    # error lists every path tried, in order.
+    tried = scenario_candidates(cfg.sim.scenario, p.parent)
+    found = next((c for c in tried if c.is_file()), None)
+    if found is not None:
+        sim = dataclasses.replace(cfg.sim, scenario=str(found.resolve()))
+        return dataclasses.replace(cfg, sim=sim)
+    if _uses_world(cfg):
+        raise ConfigError(
+            f"{p}: sim.scenario: no such file {cfg.sim.scenario!r} (tried "
+            f"{', '.join(str(c) for c in tried)})"
+        )
     return cfg
