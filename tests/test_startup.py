@@ -19,7 +19,7 @@ import pytest
 
 from tests.conftest import ROOT
 from tests.test_daemon import hil_config
-from x6wd.app.daemon import Daemon
+from x6wd.app.daemon import Daemon, _dir_problem
 from x6wd.app.server import CommandError
 from x6wd.core.config import RecorderConfig
 
@@ -185,6 +185,21 @@ def test_recorder_dir_without_write_permission(tmp_path: Path) -> None:
         assert list(locked.iterdir()) == []
     finally:
         locked.chmod(0o755)
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("directory", ["/proc/x6wd", "/proc"])
+def test_recorder_dir_where_no_file_can_be_created(tmp_path: Path, directory: str) -> None:
+    # the permission bits say yes to root everywhere; procfs takes no file all the same: the
+    # preflight tries (and leaves nothing), instead of start-up failing later with exit 1
+    proc = run_x6wd(write_config(tmp_path, recorder={"dir": directory}))
+    assert_config_error(proc, "recorder.dir", repr(directory))
+
+
+def test_the_recorder_dir_check_leaves_nothing_behind(tmp_path: Path) -> None:
+    assert _dir_problem(tmp_path / "new" / "rec") == ""  # created later, by the recorder
+    assert _dir_problem(tmp_path) == ""
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.integration

@@ -43,6 +43,7 @@ import queue
 import signal
 import socket
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -1759,8 +1760,10 @@ def stop_signals() -> dict[signal.Signals, int]:
 
 def _dir_problem(directory: Path) -> str:
     """Why recordings cannot be created in ``directory`` ("" when they can), checked without
-    creating anything: it is (or its nearest existing ancestor is) a directory this user may
-    write and enter."""
+    leaving anything behind: it is (or its nearest existing ancestor is) a directory this user
+    may write and enter, and a file can be created there (an unnamed temporary one: the
+    permission bits say yes to root everywhere, also in /proc, and a network or FUSE file
+    system may refuse what they allow)."""
     d = directory if directory.is_absolute() else Path.cwd() / directory
     probe = d
     try:
@@ -1775,6 +1778,12 @@ def _dir_problem(directory: Path) -> str:
     if not os.access(probe, os.W_OK | os.X_OK):
         verb = "write in" if probe == d else f"create {d} in"
         return f"this user may not {verb} {probe}"
+    try:
+        with tempfile.TemporaryFile(dir=probe, prefix=".x6wd-probe-"):
+            pass
+    except OSError as exc:  # procfs says ENOENT, which would read as "no such directory"
+        why = "its file system takes no files" if exc.errno == errno.ENOENT else exc.strerror
+        return f"cannot create a file in {probe}: {why or exc}"
     return ""
 
 
