@@ -312,9 +312,10 @@ class Executor:
 class TextProgress:
     """A plain-text progress bar on ``stream`` (stderr): redrawn in place on a terminal,
     otherwise a line at most every ``every_s`` seconds and at the end. Call it with the count
-    done so far (of ``total``); the first call's count is what was done before this process
-    ran anything (a resumed sweep's runs found done): the rate and the ETA are of the tasks
-    run since then, from that call on."""
+    done so far (of ``total``), of them the failed and the lost ones (tasks the cluster could
+    not finish); the first call's count is what was done before this process ran anything (a
+    resumed sweep's runs found done): the rate and the ETA are of the tasks run since then,
+    from that call on, lost ones not counted."""
 
     def __init__(
         self,
@@ -334,7 +335,7 @@ class TextProgress:
         self._last = -math.inf
         self._start: tuple[int, float] | None = None  # (done, time) of the first call
 
-    def __call__(self, done: int, failed: int = 0) -> None:
+    def __call__(self, done: int, failed: int = 0, lost: int = 0) -> None:
         now = time.monotonic()
         if self._start is None:
             self._start = (done, now)
@@ -345,13 +346,14 @@ class TextProgress:
         frac = done / self.total if self.total else 1.0
         filled = round(frac * self.width)
         elapsed = now - self.t0
-        ran, running_s = done - self._start[0], now - self._start[1]
+        ran, running_s = done - lost - self._start[0], now - self._start[1]
         rate = ran / running_s * 60.0 if running_s > 0 and ran > 0 else 0.0
         eta = (self.total - done) / (rate / 60.0) if rate > 0 else float("nan")
         eta_text = f", ETA {eta:.0f} s" if rate > 0 and not final else ""
         line = (
             f"[{'#' * filled}{'.' * (self.width - filled)}] {done}/{self.total} {self.label}"
-            f", {failed} failed, {elapsed:.0f} s, {rate:.1f}/min{eta_text}"
+            f", {failed} failed{f', {lost} lost' if lost else ''}, {elapsed:.0f} s, {rate:.1f}/min"
+            f"{eta_text}"
         )
         if self.tty:
             self.stream.write("\r" + line.ljust(100) + ("\n" if final else ""))

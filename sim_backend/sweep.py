@@ -602,13 +602,15 @@ def run_sweep(
     spec: SweepSpec,
     out_dir: str | Path,
     executor: Executor,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Callable[[int, int, int], None] | None = None,
     retry_failed: bool = False,
     runs: Sequence[Run] | None = None,
 ) -> SweepResult:
     """Plan (unless ``runs`` is given), skip the runs already in ``out_dir``, run the rest on
     ``executor`` (entered by the caller), store each as it finishes, and return every planned
-    run's record. ``progress(done, failed)`` counts over all planned runs. The report
+    run's record. ``progress(done, failed, lost)`` counts over all planned runs: ``done``
+    the runs with a record (found done, finished or lost), ``failed`` those whose mission
+    raised, ``lost`` those the cluster could not finish. The report
     (:func:`sim_backend.sweep_report.write_report`) is the caller's next step. A folder that
     holds another sweep is a :class:`ConfigError` (:func:`check_out_dir`)."""
     t0 = time.perf_counter()
@@ -621,11 +623,13 @@ def run_sweep(
     records, todo = split_done(runs, store, retry_failed)
     skipped = len(records)
 
-    def failed_count() -> int:
-        return sum(1 for r in records.values() if r.get("status") != "ok")
+    def report() -> None:
+        if progress:
+            status = [r.get("status") for r in records.values()]
+            lost = status.count("lost")
+            progress(len(records), len(status) - status.count("ok") - lost, lost)
 
-    if progress:
-        progress(len(records), failed_count())
+    report()
     args = [(r.run_id, r.cell.world_toml, r.seed) for r in todo]
     ran = 0
     for outcome in executor.map_unordered(run_task, args, names=[r.run_id for r in todo]):
@@ -634,8 +638,7 @@ def run_sweep(
         store.write(rec)
         records[run.run_id] = rec
         ran += rec.get("status") != "lost"
-        if progress:
-            progress(len(records), failed_count())
+        report()
     return SweepResult(
         spec=spec,
         runs=runs,

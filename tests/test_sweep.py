@@ -699,8 +699,9 @@ def test_runs_the_cluster_lost_are_no_missions_and_no_throughput(
         tmp_path, "seeds = 4\n[set]\nduration_s = 5.0\n[grid]\ngnss.rate_hz = [1.0, 2.0]\n"
     )
     out = tmp_path / "out"
-    assert main(["sweep", str(f), "--out", str(out), "--quiet"]) == 1
+    assert main(["sweep", str(f), "--out", str(out)]) == 1
     cap = capsys.readouterr()
+    assert "] 8/8 runs, 0 failed, 7 lost, " in cap.err  # the progress bar's last line
     assert "8 runs (1 run now, 0 found done, 7 lost: the same command runs them), 0 failed" in (
         cap.out
     )
@@ -791,6 +792,11 @@ def test_the_progress_rate_counts_only_the_runs_run_here(monkeypatch: pytest.Mon
     assert lines[1].endswith("20/30 runs, 0 failed, 65 s, 1.0/min, ETA 600 s"), lines
     assert lines[2].endswith("21/30 runs, 1 failed, 95 s, 1.3/min, ETA 405 s"), lines
     assert "0.0/min" in lines[0] and "ETA" not in lines[0]
+    # the scheduler dies: 8 runs lost at once are no throughput (shown as "lost", not
+    # "failed": 302/min for 3 runs in 4 s)
+    bar(30, 1, 8)
+    last = stream.getvalue().splitlines()[-1]
+    assert last.endswith("30/30 runs, 1 failed, 8 lost, 95 s, 2.0/min"), last
 
 
 @pytest.mark.parametrize("peer", ["silent", "garbage"])
