@@ -1,5 +1,7 @@
 """The gap tool's log reader on bad time axes and bad input (issue 15 item 4): one time axis
-per log from dated sentences, a span bounded by the epochs read, clear errors, bounded memory."""
+per log from dated sentences, a span bounded by the epochs read, clear errors, bounded memory;
+every log's time in UTC (RTKLIB's GPST too), a constant offset between a log and its truth
+track noticed."""
 
 from __future__ import annotations
 
@@ -15,11 +17,19 @@ import pytest
 
 from drivers.nmea import sentence
 from x6wd.core.errors import ParseError
-from x6wd.gap.io import GRID_FACTOR, MAX_LINE_BYTES, grid_slots, read_track
+from x6wd.gap.io import (
+    GRID_FACTOR,
+    MAX_LINE_BYTES,
+    errors_vs_track,
+    grid_slots,
+    read_track,
+    time_offset_note,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 LOGS = ROOT / "tests" / "data" / "gap_logs"
 NMEA = ROOT / "tests" / "data" / "nmea"  # gpsd's corpus
+DATA = ROOT / "tests" / "data"
 SCENARIO = ROOT / "config" / "scenarios" / "open_field.toml"
 
 
@@ -181,7 +191,7 @@ def test_irregular_axis_is_bounded_or_rejected(tmp_path: Path) -> None:
 def test_recording_with_some_fixes_lacking_utc_uses_utc_only(tmp_path: Path) -> None:
     records = []
     for k in range(20):
-        data = {"lat_deg": 51.75, "lon_deg": -1.25, "valid": True, "alt_m": 60.0}
+        data: dict[str, object] = {"lat_deg": 51.75, "lon_deg": -1.25, "valid": True, "alt_m": 60.0}
         if k >= 5:  # the first five fixes came before the receiver had UTC
             data["utc"] = f"2020-01-01T12:00:{k:02d}Z"
         records.append({"t_mono": 100.0 + k, "type": "fix", "data": data})
@@ -408,3 +418,88 @@ def test_fields_out_of_range_or_of_the_wrong_type_are_skipped_and_counted(tmp_pa
     track = read_track(rec)
     assert int(np.count_nonzero(track.valid)) == 98
     assert any("4 recording lines or records not readable" in n for n in track.notes)
+
+
+# ------------------------------------------------------------------ time systems (RTKLIB)
+
+
+def _minutes(deg: float, width: int) -> str:
+    """``deg`` as NMEA degrees and minutes (7 decimals), ``width`` digits of degrees."""
+    whole = int(abs(deg))
+    return f"{whole:0{width}d}{(abs(deg) - whole) * 60.0:010.7f}"
+
+
+def _nmea_of(rows: list[tuple[float, float, float]]) -> list[bytes]:
+    """RMC + GGA pairs of (UTC s, lat, lon) rows (north, east), 7-decimal minutes."""
+    parts = []
+    for t_s, lat, lon in rows:
+        when = datetime.fromtimestamp(t_s, UTC)
+        hms, dmy = f"{when:%H%M%S}.00", f"{when:%d%m%y}"
+        pos = f"{_minutes(lat, 2)},N,{_minutes(lon, 3)},E"
+        parts.append(sentence(f"GPRMC,{hms},A,{pos},0.0,,{dmy},,,A"))
+        parts.append(sentence(f"GPGGA,{hms},{pos},1,08,1.0,41.4,M,0.0,M,,"))
+    return parts
+
+
+def test_rtklib_gpst_truth_lines_up_with_an_nmea_log_in_utc(tmp_path: Path) -> None:
+    # The audit's case: the urban reference (RTKLIB, GPST) written as the UTC NMEA of a
+    # receiver without error. GPST read as UTC put the truth 18 s late: a median error of
+    # 27 m and a verdict of a 127 m Gauss-Markov error; in UTC the error is the print's.
+    ref = read_track(DATA / "urban" / "reference_1Hz.pos")
+    assert ref.t_s[0] == pytest.approx(_utc_s("2023-07-11T06:04:12"))  # 06:04:30 GPST
+    assert any("GPST" in note and "(18 s)" in note for note in ref.notes), ref.notes
+    pos_rows = [
+        line.split() for line in (DATA / "urban" / "reference_1Hz.pos").read_text().splitlines()
+    ]
+    rows = [
+        (_utc_s(f[0].replace("/", "-") + "T" + f[1]) - 18.0, float(f[2]), float(f[3]))
+        for f in pos_rows
+        if f and not f[0].startswith("%")
+    ][150:450]  # five minutes of the drive
+    log = read_track(_write(tmp_path / "utc.nmea", _nmea_of(rows)))
+    errors = errors_vs_track(log, ref)
+    error_m = np.hypot(errors.east_m, errors.north_m)[errors.valid]
+    assert errors.valid.sum() == 300 and float(np.median(error_m)) < 0.01
+    assert time_offset_note(log, ref) is None
+
+
+def test_rtklib_time_systems_and_formats(tmp_path: Path) -> None:
+    body = "   35.165361090  136.881408660    41.3910   1   8   0.0000\n"
+
+    def pos(name: str, header: str, stamps: list[str]) -> float:
+        lines = [f"% program   : RTKLIB\n{header}"] + [f"{t}{body}" for t in stamps]
+        return float(read_track(_write(tmp_path / name, [x.encode() for x in lines])).t_s[0])
+
+    stamps = [f"2023/07/11 06:04:{s:02d}.000" for s in range(30, 40)]
+    legend = "   latitude(deg) longitude(deg)  height(m)   Q  ns   sdn(m)\n"
+    utc_s = _utc_s("2023-07-11T06:04:30")
+    assert pos("gpst.pos", "%  GPST    " + legend, stamps) == pytest.approx(utc_s - 18.0)
+    assert pos("utc.pos", "%  UTC     " + legend, stamps) == pytest.approx(utc_s)
+    assert pos("jst.pos", "%  JST     " + legend, stamps) == pytest.approx(utc_s - 9 * 3600.0)
+    assert pos("bare.pos", "", stamps) == pytest.approx(utc_s - 18.0)  # RTKLIB's default
+    # GPS week and seconds (RTKLIB's "tow" format): week 2270, Tuesday 06:04:30 GPST
+    tow = [f"2270 {2 * 86400 + 6 * 3600 + 4 * 60 + s:11.3f}" for s in range(30, 40)]
+    assert pos("tow.pos", "%  GPST    " + legend, tow) == pytest.approx(utc_s - 18.0)
+    # the leap seconds in force at the date: 17 in 2016, 0 before July 1981
+    old = [f"2016/04/07 21:31:{s:02d}.000" for s in range(20, 30)]
+    assert pos("y2016.pos", "", old) == pytest.approx(_utc_s("2016-04-07T21:31:03"))
+    older = [f"1981/01/01 00:00:{s:02d}.000" for s in range(10)]
+    assert pos("y1981.pos", "", older) == pytest.approx(_utc_s("1981-01-01T00:00:00"))
+
+
+def test_a_constant_offset_between_a_log_and_its_truth_is_noticed(tmp_path: Path) -> None:
+    truth = read_track(DATA / "urban" / "reference_1Hz.pos")
+    ok = truth.valid
+    rows = list(zip(truth.t_s[ok], truth.lat_deg[ok], truth.lon_deg[ok], strict=True))
+    late = [(t + 5.0, lat, lon) for t, lat, lon in rows[150:450]]  # a clock 5 s ahead
+    note = time_offset_note(read_track(_write(tmp_path / "late.nmea", _nmea_of(late))), truth)
+    assert note is not None and "5 s earlier" in note and "as stamped" in note
+    on_time = [(t, lat, lon) for t, lat, lon in rows[150:450]]
+    assert (
+        time_offset_note(read_track(_write(tmp_path / "ok.nmea", _nmea_of(on_time))), truth) is None
+    )
+    # a static truth tells no offset (every shift fits as well)
+    lines = "".join(f"{t:.1f},{rows[0][1]:.9f},{rows[0][2]:.9f}\n" for t, _, _ in rows)
+    still = read_track(_write(tmp_path / "still.csv", [b"time,lat,lon\n", lines.encode()]))
+    log = read_track(_write(tmp_path / "late2.nmea", _nmea_of(late)))
+    assert time_offset_note(log, still) is None

@@ -25,6 +25,7 @@ from x6wd.gap.io import (
     errors_vs_track,
     parse_truth,
     read_track,
+    time_offset_note,
 )
 from x6wd.gap.report import write_report
 
@@ -113,6 +114,12 @@ def main(args: argparse.Namespace) -> int:
     real_track = read_track(args.real)
     real = to_errors(real_track, args, truth_track)
     notes = [f"reading the real log: {note}" for note in real_track.notes]
+    if truth_track is not None:
+        notes += [f"reading the truth track: {note}" for note in truth_track.notes]
+        offset = time_offset_note(real_track, truth_track)
+        if offset is not None:
+            notes.append(offset)
+            print(f"x6wd gap: warning: {offset}", file=sys.stderr)
     if args.truth is None and truth_track is None:
         notes.append(
             "no truth given: errors are taken against each log's own mean, so a bias is invisible"

@@ -7,7 +7,11 @@ Formats, chosen by content then suffix:
   protocols interleaved or not;
 - CSV with a header naming time, lat, lon[, alt] (case-insensitive; ``latitude``, ``msl`` ...
   accepted) or headerless ``time,lat,lon[,alt]``;
-- RTKLIB ``.pos`` solutions (GPST date/time, lat, lon, height, Q, ns).
+- RTKLIB ``.pos`` solutions (date/time or GPS week/seconds, lat, lon, height, Q, ns), in the
+  time system their header's column legend names (``GPST``, RTKLIB's default and what a
+  header-less file is taken to be; ``UTC``; ``JST``), turned into UTC (GPST less the GPS-UTC
+  leap seconds in force then: 18 s since 2017), so that a truth track from RTKLIB lines up
+  with an NMEA log's UTC.
 
 Robust input (the tool's arrays are sized from the time axis, so a bad axis is a memory
 bomb): a log is read in chunks, never whole, and a line longer than :data:`MAX_LINE_BYTES`
@@ -63,12 +67,13 @@ _TEXT_BYTES = frozenset(b"\t\n\r\f") | frozenset(range(0x20, 0x7F)) | frozenset(
 
 @dataclass(frozen=True)
 class Track:
-    """Reported positions of one log. ``t_s`` seconds (UTC/GPST epoch seconds when the log
-    has dates, else the log's own clock), strictly increasing; ``alt_m`` NaN where unknown;
-    ``valid`` False on no-fix epochs; ``nsats`` satellites used (-1 unknown); speed/course
-    NaN where unknown; ``notes`` what reading dropped or cut, for the report; ``sat_set``
-    the identity of the satellites used (:func:`sim_backend.effects.satellite_set_id`, -1
-    unknown; None when the log never lists them)."""
+    """Reported positions of one log. ``t_s`` seconds (UTC epoch seconds when the log has
+    dates, RTKLIB's GPST turned into UTC too; else the log's own clock), strictly
+    increasing; ``alt_m`` NaN where unknown; ``valid`` False on no-fix epochs; ``nsats``
+    satellites used (-1 unknown); speed/course NaN where unknown; ``notes`` what reading
+    dropped or cut, for the report; ``sat_set`` the identity of the satellites used
+    (:func:`sim_backend.effects.satellite_set_id`, -1 unknown; None when the log never lists
+    them)."""
 
     t_s: np.ndarray
     lat_deg: np.ndarray
@@ -580,19 +585,39 @@ def _parse_time(s: str) -> float:
         return t_s
 
 
+# The column legend RTKLIB writes above its solutions: "%  GPST  latitude(deg) ...", the time
+# system first (RTKLIB's outsolheads: GPST, UTC or JST; BJT in some forks).
+_POS_LEGEND = re.compile(r"^%\s+(GPST|UTC|JST|BJT)\s")
+_POS_ZONE_S = {"UTC": 0.0, "JST": 9 * 3600.0, "BJT": 8 * 3600.0}  # ahead of UTC
+_GPS_EPOCH_S = 315_964_800.0  # 1980-01-06T00:00:00Z, where GPS week 0 starts
+
+
 def _read_pos(path: Path) -> Track:
+    """An RTKLIB solution file: its times (date and time, or GPS week and seconds) in the
+    time system of its column legend, GPST when it has none (RTKLIB's default), turned into
+    UTC (:func:`gpst_to_utc_s`) like every other log's."""
     source = str(path)
     rows: list[tuple[float, ...]] = []
+    systems: list[str] = []
+    system: str | None = None
     for lineno, line in _text_lines(path):
-        if not line.strip() or line.startswith("%"):
+        if line.startswith("%"):
+            legend = _POS_LEGEND.match(line)
+            if legend:
+                system = legend.group(1)
+            continue
+        if not line.strip():
             continue
         fields = line.split()
         try:
-            t_s = (
-                datetime.strptime(fields[0] + " " + fields[1], "%Y/%m/%d %H:%M:%S.%f")
-                .replace(tzinfo=UTC)
-                .timestamp()
-            )
+            if "/" in fields[0]:
+                t_s = (
+                    datetime.strptime(fields[0] + " " + fields[1], "%Y/%m/%d %H:%M:%S.%f")
+                    .replace(tzinfo=UTC)
+                    .timestamp()
+                )
+            else:  # GPS week and seconds of the week (RTKLIB's "tow" time format)
+                t_s = _GPS_EPOCH_S + int(fields[0]) * 604_800.0 + float(fields[1])
             lat_deg, lon_deg, height_m, quality, n_sats = (
                 float(fields[2]),
                 float(fields[3]),
@@ -623,7 +648,49 @@ def _read_pos(path: Path) -> Track:
                 course_deg,
             )
         )
-    return _track(rows, source)
+        systems.append(system or "GPST")
+    if not rows:
+        return _track(rows, source)
+    t_sys_s = np.array([row[0] for row in rows])
+    system_of = np.array(systems)
+    gpst = system_of == "GPST"
+    t_utc_s = np.where(gpst, gpst_to_utc_s(t_sys_s), t_sys_s)
+    for zone, ahead_s in _POS_ZONE_S.items():
+        t_utc_s = np.where(system_of == zone, t_sys_s - ahead_s, t_utc_s)
+    notes = []
+    if np.any(gpst):
+        leap_s = t_sys_s[gpst] - t_utc_s[gpst]
+        spread = f"{np.min(leap_s):.0f}" + (
+            f" to {np.max(leap_s):.0f}" if np.max(leap_s) != np.min(leap_s) else ""
+        )
+        said = "" if system else " (the header names no time system: RTKLIB's default taken)"
+        notes.append(
+            f"RTKLIB times in GPST{said}: taken to UTC by the GPS-UTC leap seconds then"
+            f" ({spread} s), as the other logs' times are UTC"
+        )
+    for zone in ("JST", "BJT"):
+        if np.any(system_of == zone):
+            notes.append(f"RTKLIB times in {zone}: taken to UTC")
+    rows = [(float(t), *row[1:]) for t, row in zip(t_utc_s, rows, strict=True)]
+    return _track(rows, source, notes)
+
+
+def gpst_to_utc_s(t_s: np.ndarray) -> np.ndarray:
+    """GPST dates and times read as if they were UTC (epoch s) -> UTC epoch seconds: less
+    the GPS-UTC leap seconds in force then (:func:`sim_backend.geodesy.leap_seconds`, 18 s
+    since 2017-01-01; 0 before 1981-07)."""
+    from sim_backend.geodesy import leap_seconds
+
+    def leap(at_s: np.ndarray) -> np.ndarray:
+        # a leap second only ever starts at 00:00 UTC: one look-up per day
+        # (days clipped to 1970..9909, which datetime holds; NaN times stay NaN)
+        day = np.clip(np.nan_to_num(np.floor(at_s / 86_400.0)), 0.0, 2_900_000.0)
+        days, index = np.unique(day, return_inverse=True)
+        counts = [leap_seconds(datetime.fromtimestamp(d * 86_400.0, UTC)) for d in days.tolist()]
+        return np.asarray(counts, dtype=float)[index.reshape(-1)]
+
+    t_s = np.asarray(t_s, dtype=float)
+    return t_s - leap(t_s - leap(t_s))
 
 
 def parse_truth(text: str) -> tuple[float, float, float]:
@@ -681,32 +748,40 @@ def _series(
     )
 
 
-def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> PositionSeries:
-    """Errors (m) of a log against a truth track matched in time (linear interpolation of the
-    truth; epochs farther than ``max_gap_s`` from a valid truth sample are dropped). If the two
-    time spans do not overlap, both are taken from their own start (a simulated log).
-    The series carries the truth's speed/course (from its positions) and its origin is the
-    truth at the first kept epoch, so effect layers see the true motion."""
-    truth_valid = truth.valid
-    truth_t_s, truth_lat_deg, truth_lon_deg, truth_alt_m = (
-        truth.t_s[truth_valid],
-        truth.lat_deg[truth_valid],
-        truth.lon_deg[truth_valid],
-        truth.alt_m[truth_valid],
-    )
-    if truth_t_s.size < 2:
+def _truth_samples(truth: Track) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t s, lat, lon, alt) of a truth track's valid epochs; ParseError below two."""
+    ok = truth.valid
+    if np.count_nonzero(ok) < 2:
         raise ParseError(f"{truth.source}: truth track has fewer than 2 valid epochs")
+    return truth.t_s[ok], truth.lat_deg[ok], truth.lon_deg[ok], truth.alt_m[ok]
+
+
+def _matched(track: Track, truth_t_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, bool]:
+    """Indices of ``track``'s epochs within the truth's span and within ``max_gap_s`` of a
+    truth sample, and whether the log was moved onto the truth's start (spans apart)."""
     t_s = track.t_s
-    if t_s[-1] < truth_t_s[0] or t_s[0] > truth_t_s[-1]:
+    apart = bool(t_s[-1] < truth_t_s[0] or t_s[0] > truth_t_s[-1])
+    if apart:
         t_s = t_s - t_s[0] + truth_t_s[0]
     index = np.clip(np.searchsorted(truth_t_s, t_s), 1, truth_t_s.size - 1)
     near = (
         np.minimum(np.abs(truth_t_s[index] - t_s), np.abs(truth_t_s[index - 1] - t_s)) <= max_gap_s
     )
     inside = (t_s >= truth_t_s[0]) & (t_s <= truth_t_s[-1]) & near
-    if not np.any(inside):
+    return np.flatnonzero(inside), apart
+
+
+def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> PositionSeries:
+    """Errors (m) of a log against a truth track matched in time (linear interpolation of the
+    truth; epochs farther than ``max_gap_s`` from a valid truth sample are dropped). If the two
+    time spans do not overlap, both are taken from their own start (a simulated log).
+    The series carries the truth's speed/course (from its positions) and its origin is the
+    truth at the first kept epoch, so effect layers see the true motion."""
+    truth_t_s, truth_lat_deg, truth_lon_deg, truth_alt_m = _truth_samples(truth)
+    kept, apart = _matched(track, truth_t_s, max_gap_s)
+    if not kept.size:
         raise ParseError(f"{track.source}: no epoch matches the truth track {truth.source} in time")
-    kept = np.flatnonzero(inside)
+    t_s = track.t_s - track.t_s[0] + truth_t_s[0] if apart else track.t_s
     t_s = t_s[kept]
     true_lat_deg, true_lon_deg, true_alt_m = (
         np.interp(t_s, truth_t_s, truth_lat_deg),
@@ -742,6 +817,57 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
     course_deg = np.degrees(np.arctan2(v_east_mps, v_north_mps)) % 360.0
     return _series(
         sub, east_m, north_m, sub.alt_m - true_alt_m, lat0_deg, lon0_deg, speed_mps, course_deg
+    )
+
+
+TIME_OFFSET_SEARCH_S = 120
+"""Constant clock offsets (s) between a log and its truth track that are looked for."""
+
+
+def time_offset_note(track: Track, truth: Track, max_gap_s: float = 1.5) -> str | None:
+    """A warning when ``track`` lines up with the moving ``truth`` clearly better with its
+    time stamps shifted by a constant (whole seconds within ±:data:`TIME_OFFSET_SEARCH_S`):
+    the median horizontal distance at the best shift of at least 1 s is under half the
+    distance as stamped. None when the shift is under 1 s, the truth hardly moves (every
+    shift gives the same distance), or the spans do not overlap. The errors stay as
+    stamped: the note names the offset (GPS-UTC is 18 s; a time zone is hours)."""
+    truth_t_s, truth_lat_deg, truth_lon_deg, _ = _truth_samples(truth)
+    kept, apart = _matched(track, truth_t_s, max_gap_s)
+    kept = kept[track.valid[kept]]
+    if apart or kept.size < 10:
+        return None
+    kept = kept[np.linspace(0, kept.size - 1, min(kept.size, 3000)).astype(int)]
+    t_s = track.t_s[kept]
+    e_per_deg, n_per_deg = metres_per_degree(float(truth_lat_deg[0]))
+    east_m = (track.lon_deg[kept] - truth_lon_deg[0]) * e_per_deg
+    north_m = (track.lat_deg[kept] - truth_lat_deg[0]) * n_per_deg
+    truth_east_m = (truth_lon_deg - truth_lon_deg[0]) * e_per_deg
+    truth_north_m = (truth_lat_deg - truth_lat_deg[0]) * n_per_deg
+
+    def median_distance_m(shift_s: float) -> float:
+        at_s = t_s - shift_s  # the truth's time of a fix stamped t_s by a clock shift_s ahead
+        index = np.clip(np.searchsorted(truth_t_s, at_s), 1, truth_t_s.size - 1)
+        gap_s = np.minimum(np.abs(truth_t_s[index] - at_s), np.abs(truth_t_s[index - 1] - at_s))
+        ok = (at_s >= truth_t_s[0]) & (at_s <= truth_t_s[-1]) & (gap_s <= max_gap_s)
+        if np.count_nonzero(ok) < max(10, kept.size // 2):
+            return math.inf
+        return float(np.median(np.hypot(
+            east_m[ok] - np.interp(at_s[ok], truth_t_s, truth_east_m),
+            north_m[ok] - np.interp(at_s[ok], truth_t_s, truth_north_m),
+        )))  # fmt: skip
+
+    shifts = range(-TIME_OFFSET_SEARCH_S, TIME_OFFSET_SEARCH_S + 1)
+    distance_m = {shift: median_distance_m(float(shift)) for shift in shifts}
+    best = min(distance_m, key=lambda shift: (distance_m[shift], abs(shift)))
+    stamped_m, best_m = distance_m[0], distance_m[best]
+    if best == 0 or not math.isfinite(best_m) or not best_m < 0.5 * stamped_m:
+        return None
+    return (
+        f"{track.source} lines up with the truth track {truth.source} best with its time"
+        f" stamps {abs(best)} s {'earlier' if best > 0 else 'later'} (median distance"
+        f" {best_m:.1f} m, against {stamped_m:.1f} m as stamped): the two clocks differ by a"
+        " constant (a time system: GPS-UTC is 18 s since 2017; a time zone; a logger's"
+        " clock). The errors are taken as stamped: correct the log's or the truth's times"
     )
 
 
