@@ -1,7 +1,7 @@
 """The gap tool's log reader on bad time axes and bad input (issue 15 item 4): one time axis
 per log from dated sentences, a span bounded by the epochs read, clear errors, bounded memory;
-every log's time in UTC (RTKLIB's GPST too), a constant offset between a log and its truth
-track noticed."""
+every log's time in UTC (RTKLIB's GPST too), a jittering logger clock's repeated stamps
+re-timed, a constant offset between a log and its truth track noticed."""
 
 from __future__ import annotations
 
@@ -145,6 +145,60 @@ def test_duplicates_and_time_going_back_are_sorted_and_counted(tmp_path: Path) -
     np.testing.assert_allclose(np.diff(track.t_s), 1.0)
     notes = " ".join(track.notes)
     assert "2 epochs repeating a time stamp" in notes and "went back in time" in notes
+
+
+def _csv_log(path: Path, stamps: list[float]) -> Path:
+    """A CSV log with one distinct fix per row (latitude rising by 1e-7 deg a row)."""
+    rows = "".join(f"{t:.3f},{51.75 + k * 1e-7:.9f},-1.257\n" for k, t in enumerate(stamps))
+    return _write(path, [b"time,lat,lon\n", rows.encode()])
+
+
+def test_a_jittering_logger_clock_is_retimed_not_read_as_outages(tmp_path: Path) -> None:
+    # A host logger stamping each 1 Hz fix with its own clock in whole seconds: when the
+    # clock jitters across a second, two fixes get one stamp and the next second none. The
+    # reader dropped the second fix and refilled the empty second as a no-fix epoch: 600
+    # fixes read as 90 % availability and an "outages" verdict. Every fix is kept, in order.
+    t0 = _utc_s("2020-05-18T16:23:13")
+    jitter = np.random.default_rng(7).normal(0.0, 0.3, 600)
+    jitter[[0, -1]] = 0.0
+    stamps = [float(np.floor(t0 + k + 0.5 + j)) for k, j in enumerate(jitter)]
+    assert len(set(stamps)) < 560  # the clock did jitter
+    track = read_track(_csv_log(tmp_path / "jitter.csv", stamps))
+    assert len(track) == 600 and bool(np.all(track.valid))
+    np.testing.assert_allclose(track.t_s - t0, np.arange(600))
+    assert bool(np.all(np.diff(track.lat_deg) > 0))  # the fixes in their logged order
+    assert any("re-timed onto the empty slot" in note for note in track.notes), track.notes
+    # A run of rows between a repeated stamp and the empty second a few seconds on shifts by
+    # one step each; an empty second before a repeat takes the first of the pair.
+    track = read_track(
+        _csv_log(tmp_path / "chain.csv", [t0 + s for s in (0, 1, 2, 2, 3, 4, 5, 7, 8)])
+    )
+    np.testing.assert_allclose(track.t_s - t0, np.arange(9))
+    track = read_track(_csv_log(tmp_path / "before.csv", [t0 + s for s in (0, 2, 2, 3, 4)]))
+    np.testing.assert_allclose(track.t_s - t0, np.arange(5))
+
+
+def test_repeated_fixes_are_dropped_and_real_outages_stay(tmp_path: Path) -> None:
+    t0 = _utc_s("2020-01-01T12:00:00")
+    rows = [f"{t0 + k:.3f},{51.75 + k * 1e-7:.9f},-1.257\n" for k in (*range(10), *range(15, 25))]
+    rows.insert(5, rows[4])  # the same fix logged twice
+    track = read_track(_write(tmp_path / "twice.csv", [b"time,lat,lon\n", "".join(rows).encode()]))
+    assert len(track) == 25 and int(np.count_nonzero(track.valid)) == 20  # 5 s without a fix
+    assert any("1 epochs repeating a time stamp with the same fix" in n for n in track.notes)
+    # every slot around a repeated stamp is taken: the extra fix has nowhere to go
+    track = read_track(_csv_log(tmp_path / "full.csv", [t0 + s for s in (0, 1, 2, 2, 3, 4)]))
+    assert len(track) == 5 and bool(np.all(track.valid))
+    assert any("1 epochs repeating a time stamp with another fix dropped" in n for n in track.notes)
+
+
+def test_f9p_csv_with_a_host_clock_keeps_its_fixes() -> None:
+    # static/mobile.csv: gpsd's TIME column in whole seconds, 1406 rows over 1405 s with
+    # 341 repeated stamps and 340 empty seconds. Read as 75.8 % availability before.
+    track = read_track(DATA / "static" / "mobile.csv")
+    assert len(track) == 1405 and bool(np.all(track.valid))
+    notes = " ".join(track.notes)
+    assert "340 epochs repeating a time stamp with another fix kept" in notes, notes
+    assert "1 epochs repeating a time stamp with another fix dropped" in notes, notes
 
 
 def test_days_long_hole_is_cut_and_the_longer_session_kept(tmp_path: Path) -> None:

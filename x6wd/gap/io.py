@@ -19,8 +19,11 @@ is an error. One log has one time axis: for NMEA it comes from dated sentences o
 with a date, ZDA); epochs before the first date are dated from it, epochs without any time
 are dropped and counted, and a log without a date is an error naming what is missing. A
 recording without UTC uses its receive clock for every epoch, never a mix of the two. Times
-are then sorted (out-of-order and duplicate epochs dropped and counted) and the axis is
-bounded: the regular grid the tool builds over a log holds at most :data:`GRID_FACTOR`
+are then sorted (out-of-order epochs counted) and repeated time stamps resolved
+(:func:`_resolve_repeats`: a row that repeats the one before it whole is dropped; a distinct fix
+stamped with a neighbour's time by a jittery logger clock is moved onto the empty slot beside
+it, as are the rows between, never by more than one step; counted in the notes) and the axis
+is bounded: the regular grid the tool builds over a log holds at most :data:`GRID_FACTOR`
 slots per epoch read; a log whose holes exceed that is cut at its largest hole, the part
 with more epochs kept (said in ``Track.notes``), until it fits.
 """
@@ -71,7 +74,7 @@ class Track:
     dates, RTKLIB's GPST turned into UTC too; else the log's own clock), strictly
     increasing; ``alt_m`` NaN where unknown; ``valid`` False on no-fix epochs; ``nsats``
     satellites used (-1 unknown); speed/course NaN where unknown; ``notes`` what reading
-    dropped or cut, for the report; ``sat_set`` the identity of the satellites used
+    dropped, cut or re-timed, for the report; ``sat_set`` the identity of the satellites used
     (:func:`sim_backend.effects.satellite_set_id`, -1 unknown; None when the log never lists
     them)."""
 
@@ -110,10 +113,9 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
     back = int(np.count_nonzero(t_s[1:] < np.maximum.accumulate(t_s)[:-1]))
     order = np.argsort(t_s, kind="stable")
     table = table[order]
-    keep = np.concatenate(([True], np.diff(table[:, 0]) > 0))
-    if not np.all(keep):
-        notes.append(f"{int(np.count_nonzero(~keep))} epochs repeating a time stamp dropped")
-        table = table[keep]
+    if np.any(np.diff(table[:, 0]) <= 0):
+        table, repeat_notes = _resolve_repeats(table)
+        notes += repeat_notes
     if back:
         notes.append(f"{back} epochs went back in time in the log (sorted by time)")
     lo, hi, cuts = _bounded_span(table[:, 0], source)
@@ -145,6 +147,116 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
         notes=tuple(notes),
         sat_set=table[:, 8] if table.shape[1] > 8 and np.any(table[:, 8] >= 0) else None,
     )
+
+
+_NO_SLOT = -(1 << 62)  # "no row assigned yet" in _retime_segment
+
+
+def _resolve_repeats(table: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Rows sorted by time (stable: file order within a time stamp) -> the same without
+    repeated time stamps, and notes saying what was done.
+
+    A row equal to the one before it in every field (NaN equal to NaN) is the same epoch
+    logged twice: dropped. Distinct fixes under one time stamp are different epochs whose
+    stamp is off: a host logger stamping each fix with its own clock in whole seconds stamps
+    two fixes with one second and none with the next when its clock jitters across a second
+    (gpsd's ``gpxlogger``/CSV loggers on a loaded host; ``static/mobile.csv``: 341 repeated
+    stamps and 340 empty seconds in 1406 rows). Dropping them would leave those seconds empty
+    and read them as the receiver's outages. On a regular time axis they are re-timed: each
+    row may move by at most one step, rows keep their order, and the assignment keeps the
+    most rows, then moves the fewest (:func:`_retime_segment`), so a fix next to an empty slot
+    takes it, and a run of rows between a repeat and an empty slot a few steps away shifts
+    by one step each. A repeat with no empty slot within reach is dropped. An irregular
+    axis (no step to re-time by) keeps the first row of each stamp, as before."""
+    notes: list[str] = []
+    t_s = table[:, 0]
+    same_stamp = np.concatenate(([False], np.diff(t_s) <= 0))
+    whole = np.zeros(len(table), dtype=bool)
+    for i in np.flatnonzero(same_stamp):
+        whole[i] = np.array_equal(table[i], table[i - 1], equal_nan=True)
+    if np.any(whole):
+        notes.append(
+            f"{int(np.count_nonzero(whole))} epochs repeating a time stamp with the same fix"
+            " (logged twice) dropped"
+        )
+        table = table[~whole]
+        t_s = table[:, 0]
+    if not np.any(np.diff(t_s) <= 0):
+        return table, notes
+    unique_t = np.unique(t_s)
+    steps_s = np.diff(unique_t)
+    dt_s = float(np.median(steps_s)) if steps_s.size else 0.0
+    ratio = steps_s / dt_s if dt_s > 0 else steps_s
+    if dt_s <= 0 or np.mean(np.abs(ratio - np.round(ratio)) < 0.1) < 0.9:
+        keep = np.concatenate(([True], np.diff(t_s) > 0))
+        notes.append(
+            f"{int(np.count_nonzero(~keep))} epochs repeating a time stamp with another fix"
+            " dropped (the time axis has no regular step to re-time them by)"
+        )
+        return table[keep], notes
+    slot = np.round((t_s - t_s[0]) / dt_s).astype(np.int64)
+    assigned = slot.copy()
+    kept = np.ones(len(slot), dtype=bool)
+    lo_slot, hi_slot = int(slot[0]), int(slot[-1])
+    # Rows more than two slots apart cannot compete for a slot: solve each stretch alone,
+    # and only the stretches that hold a repeated stamp (elsewhere nothing moves).
+    bounds = np.flatnonzero(np.diff(slot) >= 3) + 1
+    for start, end in zip(
+        np.concatenate(([0], bounds)), np.concatenate((bounds, [len(slot)])), strict=True
+    ):
+        part = slot[start:end]
+        if part.size > 1 and np.any(np.diff(part) == 0):
+            assigned[start:end], kept[start:end] = _retime_segment(part, lo_slot, hi_slot)
+    moved = kept & (assigned != slot)
+    repeats = int(np.count_nonzero(np.diff(slot) == 0))
+    dropped = int(np.count_nonzero(~kept))
+    if repeats - dropped > 0:
+        notes.append(
+            f"{repeats - dropped} epochs repeating a time stamp with another fix kept, re-timed"
+            " onto the empty slot beside them as a logger clock jittering by a step stamps"
+            f" them ({int(np.count_nonzero(moved))} rows moved by one step of {dt_s:g} s)"
+        )
+    if dropped:
+        notes.append(
+            f"{dropped} epochs repeating a time stamp with another fix dropped: no empty slot"
+            " within one step"
+        )
+    table = table.copy()
+    table[:, 0] += (assigned - slot) * dt_s
+    return table[kept], notes
+
+
+def _retime_segment(slot: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+    """(assigned slot, kept) of rows at grid slots ``slot`` (non-decreasing): each kept row
+    moves to its slot or one beside it, within [lo, hi], kept rows strictly increasing; the
+    most rows kept, then the fewest moved (dynamic programming over the last slot taken)."""
+    # state: last slot taken -> ((kept, -moved), back-pointer (previous, row, slot) or None)
+    states: dict[int, tuple[tuple[int, int], Any]] = {_NO_SLOT: ((0, 0), None)}
+    for row, s in enumerate(slot.tolist()):
+        merged: dict[int, tuple[tuple[int, int], Any]] = {}
+        for last, entry in states.items():  # a last slot below s - 1 constrains nothing now
+            key = last if last >= s - 1 else _NO_SLOT
+            if key not in merged or entry[0] > merged[key][0]:
+                merged[key] = entry
+        nxt: dict[int, tuple[tuple[int, int], Any]] = {}
+        for last, (score, node) in merged.items():
+            options = [(last, score, node)]  # the row dropped
+            options += [
+                (a, (score[0] + 1, score[1] - abs(a - s)), (node, row, a))
+                for a in (s, s - 1, s + 1)
+                if lo <= a <= hi and a > last
+            ]
+            for key, new_score, new_node in options:
+                if key not in nxt or new_score > nxt[key][0]:
+                    nxt[key] = (new_score, new_node)
+        states = nxt
+    _, node = max(states.values(), key=lambda entry: entry[0])
+    assigned = slot.copy()
+    kept = np.zeros(slot.size, dtype=bool)
+    while node is not None:
+        node, row, a = node
+        assigned[row], kept[row] = a, True
+    return assigned, kept
 
 
 def grid_slots(t_s: np.ndarray) -> float:
