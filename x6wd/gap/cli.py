@@ -23,6 +23,9 @@ from x6wd.gap.io import (
     errors_vs_mean,
     errors_vs_point,
     errors_vs_track,
+    is_date,
+    log_start_s,
+    mean_alt_m,
     parse_truth,
     read_track,
     time_offset_note,
@@ -103,6 +106,21 @@ def to_errors(track: Track, args: argparse.Namespace, truth_track: Track | None)
     return errors_vs_mean(track)
 
 
+def _log_time_and_height(
+    args: argparse.Namespace, track: Track, truth_track: Track | None
+) -> tuple[float | None, float, str]:
+    """What the scenario's runs take from the real log (:func:`place_at_log`): the UTC (s) of
+    its error series' first epoch when the log is dated, else None; and the site's altitude
+    (m, NaN unknown) with whose it is: --truth's, the truth track's mean, or the log's mean."""
+    start_s = log_start_s(track, truth_track)
+    start = start_s if is_date(start_s) else None
+    if args.truth is not None and math.isfinite(alt_m := parse_truth(args.truth)[2]):
+        return start, alt_m, "--truth's altitude"
+    if truth_track is not None and math.isfinite(alt_m := mean_alt_m(truth_track)):
+        return start, alt_m, "the truth track's mean altitude"
+    return start, mean_alt_m(track), "the real log's mean altitude"
+
+
 def main(args: argparse.Namespace) -> int:
     """Run the diagnosis and write the report; exit code 0 (whatever the verdict)."""
     bar = ProgressBar(enabled=not args.quiet and sys.stderr.isatty())
@@ -126,12 +144,19 @@ def main(args: argparse.Namespace) -> int:
         )
     if args.scenario:
         from sim_backend.executor import Executor
-        from x6wd.gap.scenario import scenario_baseline
+        from sim_backend.world import load_world
+        from x6wd.gap.scenario import place_at_log, scenario_baseline
 
+        world, placed = place_at_log(
+            load_world(args.scenario), real, *_log_time_and_height(args, real_track, truth_track)
+        )
+        notes += placed
+        for note in placed[1:]:  # the almanac's age at the log's date
+            print(f"x6wd gap: warning: {note}", file=sys.stderr)
         cluster = args.workers is not None or args.scheduler is not None
         with Executor(args.scheduler, args.workers, inline=not cluster) as executor:
             baseline = scenario_baseline(
-                args.scenario,
+                world,
                 real,
                 args.seeds,
                 progress=lambda i: bar(f"simulating seed {i}/{args.seeds}", 0.05 * i / args.seeds),

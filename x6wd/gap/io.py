@@ -983,6 +983,27 @@ def time_offset_note(track: Track, truth: Track, max_gap_s: float = 1.5) -> str 
     )
 
 
+def mean_alt_m(track: Track) -> float:
+    """Mean altitude (m) of a log's valid fixes; NaN when it has none."""
+    alt_m = track.alt_m[track.valid & np.isfinite(track.alt_m)]
+    return float(np.mean(alt_m)) if alt_m.size else math.nan
+
+
+def is_date(t_s: float) -> bool:
+    """Whether a log time (s) is a UTC date the sky can be simulated at: from the GPS epoch
+    (1980-01-06) to 2100, not a receive clock or seconds from a log's start."""
+    return _GPS_EPOCH_S <= t_s < 4_102_444_800.0
+
+
+def log_start_s(track: Track, truth: Track | None = None, max_gap_s: float = 1.5) -> float:
+    """Time (s, the log's own clock) of the first epoch of ``track``'s error series: its first
+    epoch, or against ``truth`` the first one matched in time (:func:`errors_vs_track`)."""
+    if truth is None:
+        return float(track.t_s[0])
+    kept, _ = _matched(track, _truth_samples(truth)[0], max_gap_s)
+    return float(track.t_s[kept[0]]) if kept.size else float(track.t_s[0])
+
+
 def errors_vs_mean(track: Track) -> PositionSeries:
     """Errors of a static log against its own mean position (no truth: a bias is invisible).
     Raises ConfigError for a log that moves (:data:`STATIC_MAX_SPEED_MPS`,

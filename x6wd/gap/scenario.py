@@ -5,22 +5,89 @@ For each seed the scenario's receiver (:func:`sim_backend.receiver.build_receive
 grid, every ``[[effects]]`` GPS layer, the NMEA minutes' decimals) reports positions for a
 receiver that is truly where the real one was (the surveyed point, or the truth track at the
 real log's times), placed at the real log's origin.
+
+:func:`place_at_log` puts the scenario where and when the real log was: its origin at the
+log's (the truth's) position and the log's mean altitude, its ``start_utc`` at the log's first
+epoch when the log is dated. The sky (satellites in view, their elevations, DOP, the hour's
+atmosphere) is the log's only at the log's own time, so the log's date wins over the
+scenario's ``start_utc``, and the notes say so, with the almanac's age at that date
+(:func:`sim_backend.runs.sky_warnings`). A log without a date (a receive clock, seconds from
+its start) keeps the scenario's, also said.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sim_backend.effects import PositionSeries
 from sim_backend.executor import Executor
 from x6wd.core.errors import ConfigError
 
+if TYPE_CHECKING:
+    from sim_backend.world import World
+
+ORIGIN_ALT_RANGE_M = (-500.0, 9000.0)
+"""Altitudes (m) a scenario's origin takes (sim_backend.world.Origin): a log's mean outside
+them (a bad altitude column) leaves the scenario's."""
+
+
+def place_at_log(
+    world: World,
+    template: PositionSeries,
+    start_utc_s: float | None = None,
+    alt_m: float = math.nan,
+    alt_from: str = "the real log's mean altitude",
+) -> tuple[World, list[str]]:
+    """``world`` (a loaded scenario) placed where and when the real log was, and notes for
+    the report saying what the runs simulate and what was taken from the log.
+
+    The origin's latitude and longitude are ``template``'s (the truth's, or the log's mean);
+    its altitude ``alt_m`` when finite and within :data:`ORIGIN_ALT_RANGE_M` (``alt_from``
+    says whose); ``start_utc`` the log's first epoch ``start_utc_s`` (UTC s) when given,
+    whatever the scenario says (a scenario describes a receiver and a site; the sky must be
+    that log's). The notes end with the almanac's age at that date, when it is far."""
+    from sim_backend.runs import sky_warnings
+
+    notes: list[str] = []
+    said = world.start_utc
+    origin = replace(world.origin, lat_deg=template.origin_lat_deg, lon_deg=template.origin_lon_deg)
+    lo_m, hi_m = ORIGIN_ALT_RANGE_M
+    if math.isfinite(alt_m) and lo_m <= alt_m <= hi_m:
+        origin = replace(origin, alt_m=float(alt_m))
+        alt_text = f"{alt_m:.0f} m ({alt_from})"
+    else:
+        alt_text = f"{origin.alt_m:.0f} m (the scenario's; the log gives none)"
+    if start_utc_s is not None:
+        start = datetime.fromtimestamp(start_utc_s, UTC)
+        world = replace(world, start_utc=start)
+        when = (
+            f"{start:%Y-%m-%d %H:%M:%S}Z, the real log's first epoch"
+            + ("" if start == said else f" (the scenario's start_utc {said:%Y-%m-%d %H:%M}Z is"
+               " not used: the sky must be the log's)")
+        )  # fmt: skip
+    else:
+        when = (
+            f"{said:%Y-%m-%d %H:%M:%S}Z, the scenario's start_utc: the real log has no date (a"
+            " receive clock or seconds from its start), so the simulated sky may not be the"
+            " one it saw"
+        )
+    world = replace(world, origin=origin)
+    notes.append(
+        f"the scenario's runs simulate {when}; at {origin.lat_deg:.6f}, {origin.lon_deg:.6f}"
+        f" (the truth, or the log's mean), altitude {alt_text}"
+    )
+    duration_s = float(template.t_s[-1] - template.t_s[0]) if len(template) else 0.0
+    notes += [f"simulated sky: {w}" for w in sky_warnings(world, duration_s)]
+    return world, notes
+
 
 def scenario_baseline(
-    path: str | Path,
+    path: str | Path | World,
     template: PositionSeries,
     seeds: int,
     base_seed: int = 1000,
@@ -34,14 +101,16 @@ def scenario_baseline(
     ``extra_effects`` (GPS layers) run after the scenario's own, before the NMEA printing
     (the injection benchmark's withheld effects). The seeds run on ``executor`` (entered by
     the caller: x6wd's one executor, e.g. a Dask cluster), or one after another in this
-    process; the list is in seed order either way. ``progress(k)``: k seeds done."""
+    process; the list is in seed order either way. ``progress(k)``: k seeds done.
+    ``path``: a scenario file, or a scenario already loaded (:func:`place_at_log`'s); a file
+    keeps its own start_utc and altitude."""
     try:
-        from sim_backend.world import load_world
+        from sim_backend.world import World, load_world
     except ImportError as exc:  # pragma: no cover - the simulator ships with the package
         raise ConfigError(f"--scenario needs the simulator: {exc}") from exc
     if seeds < 1:
         raise ConfigError(f"--seeds {seeds}: must be >= 1")
-    world = load_world(path)
+    world = path if isinstance(path, World) else load_world(path)
     # The scenario describes the real log's site: its frame is the log's origin.
     origin = replace(world.origin, lat_deg=template.origin_lat_deg, lon_deg=template.origin_lon_deg)
     world = replace(world, origin=origin)
