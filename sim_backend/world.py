@@ -78,6 +78,7 @@ from x6wd.core.config import (
     OdometryConfig,
     SafetyConfig,
     build,
+    check_drive_vs_stuck,
 )
 from x6wd.core.errors import ConfigError
 
@@ -605,6 +606,7 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
     navigation = build(NavigationConfig, _table(data, "navigation"), "navigation.")
     safety = build(SafetyConfig, _table(data, "safety"), "safety.")
     failsafe = build(FailsafeConfig, _table(data, "failsafe"), "failsafe.")
+    check_drive_vs_stuck(navigation, failsafe)
     odometry = build(OdometryConfig, _table(data, "odometry"), "odometry.")
     gnss_noise = build(GnssNoiseConfig, _table(data, "gnss_noise"), "gnss_noise.")
     encoders = build(EncoderParams, _table(data, "encoders"), "encoders.")

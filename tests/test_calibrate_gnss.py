@@ -352,7 +352,8 @@ def test_cli_refuses_flags_out_of_range_before_any_work_and_a_short_csv_row(
 
 
 def test_gnss_noise_section_is_range_checked() -> None:
-    ok = config.loads("[gnss_noise]\nre_m = 0.4\nlce_cells = [[0, -1, 2.5], [3, 4, 0]]\n")
+    origin = "lce_origin_lat_deg = 51.7\nlce_origin_lon_deg = 5.0\n"
+    ok = config.loads(f"[gnss_noise]\nre_m = 0.4\n{origin}lce_cells = [[0, -1, 2.5], [3, 4, 0]]\n")
     assert ok.gnss_noise.lce_m_at(5.0, -5.0) == 2.5
     assert ok.gnss_noise.lce_m_at(35.0, 45.0) == 0.0
     assert config.Config().gnss_noise.re_m == 1.0  # the estimator's default
@@ -360,10 +361,16 @@ def test_gnss_noise_section_is_range_checked() -> None:
         ("re_m = 0", "must be > 0"),
         ("ase_m = -1", ">= 0"),
         ("lce_cell_m = 0", ">= 0.1"),
-        ("lce_cells = [[0, 0]]", "expected \\[east index"),
-        ("lce_cells = [[0.5, 0, 1]]", "integers"),
-        ("lce_cells = [[0, 0, -1]]", "0..1000"),
-        ("lce_cells = [[0, 0, 1], [0, 0, 2]]", "twice"),
+        (f"{origin}lce_cells = [[0, 0]]", "expected \\[east index"),
+        (f"{origin}lce_cells = [[0.5, 0, 1]]", "integers"),
+        (f"{origin}lce_cells = [[0, 0, -1]]", "0..1000"),
+        (f"{origin}lce_cells = [[0, 0, 1], [0, 0, 2]]", "twice"),
+        # a hand-written map without its origin sat at 0 N 0 E and was never looked up
+        ("lce_cells = [[0, 0, 1]]", r"^gnss_noise\.lce_origin_lat_deg: required with lce_cells"),
+        (
+            "lce_origin_lat_deg = 51.7\nlce_cells = [[0, 0, 1]]",
+            r"^gnss_noise\.lce_origin_lon_deg: required",
+        ),
         ("correlation_s = -5", ">= 0"),
         ("lce_origin_lat_deg = 91", "<= 85"),
     ):

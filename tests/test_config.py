@@ -64,6 +64,18 @@ def test_values_are_converted_and_validated() -> None:
         # out of range
         ("[navigation]\nfilter_n = 2\n", r"^navigation\.filter_n: must be >= 3, got 2"),
         ("[navigation]\ncruise_pct = 100.5\n", r"^navigation\.cruise_pct: must be <= 100"),
+        # a drive under stuck_min_pct: the robot sat in RUNNING at 0 % for good, unnoticed
+        ("[navigation]\ncruise_pct = 0\n", r"^navigation\.cruise_pct: must be >= failsafe\.stuck"),
+        ("[navigation]\nturn_pct = 0\n", r"^navigation\.turn_pct: must be >= failsafe\.stuck"),
+        (
+            "[navigation]\ncruise_pct = 20\n[failsafe]\nstuck_min_pct = 25\n",
+            r"^navigation\.cruise_pct: .*\(25 %\).*got 20$",
+        ),
+        ('[console]\ntile_url = "tile.osm.org/{z}/{x}/{y}.png"\n', r"^console\.tile_url: .*http"),
+        (
+            '[console]\ntile_url = "https://t.org/{z}/{x}.png"\n',
+            r"^console\.tile_url: .*\{y\} missing",
+        ),
         ("[server]\nport = 70000\n", r"^server\.port: must be <= 65535"),
         ("[compass]\ndeclination_deg = nan\n", r"^compass\.declination_deg: must be finite"),
         # bad choice

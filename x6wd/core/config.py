@@ -16,6 +16,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
+from urllib.parse import urlsplit
 
 from x6wd.core.errors import ConfigError
 
@@ -80,8 +81,9 @@ class GnssNoiseConfig:
     re_m: float = field(default=1.0, metadata=_rng(0.0, 100.0))
     ase_m: float = field(default=1.5, metadata=_rng(0.0, 100.0))
     correlation_s: float = field(default=120.0, metadata=_rng(0.0, 86400.0))
-    lce_origin_lat_deg: float = field(default=0.0, metadata=_rng(-85.0, 85.0))
-    lce_origin_lon_deg: float = field(default=0.0, metadata=_rng(-180.0, 180.0))
+    # the map's origin: required with lce_cells (a map at 0 N 0 E would never be looked up)
+    lce_origin_lat_deg: float | None = field(default=None, metadata=_rng(-85.0, 85.0))
+    lce_origin_lon_deg: float | None = field(default=None, metadata=_rng(-180.0, 180.0))
     lce_cell_m: float = field(default=10.0, metadata=_rng(0.1, 10000.0))
     lce_default_m: float = field(default=0.0, metadata=_rng(0.0, 1000.0))
     lce_cells: tuple[tuple[float, ...], ...] = ()
@@ -89,6 +91,13 @@ class GnssNoiseConfig:
     def __post_init__(self) -> None:
         if self.re_m <= 0.0:
             raise ConfigError(f"gnss_noise.re_m: must be > 0 (white noise), got {self.re_m}")
+        if self.lce_cells:
+            for key in ("lce_origin_lat_deg", "lce_origin_lon_deg"):
+                if getattr(self, key) is None:
+                    raise ConfigError(
+                        f"gnss_noise.{key}: required with lce_cells (the map's origin, as "
+                        "x6wd calibrate gnss writes it)"
+                    )
         seen: set[tuple[int, int]] = set()
         for k, cell in enumerate(self.lce_cells):
             key = f"gnss_noise.lce_cells[{k}]"
@@ -267,7 +276,7 @@ class ConsoleConfig:
     bind: str = "127.0.0.1"
     port: int = field(default=7602, metadata=_rng(0, 65535))
     watch_only: bool = False  # every command that acts (stop included) refused by the server
-    # map tiles under the local frame: an XYZ URL with {z} {x} {y}; empty: no tiles (offline)
+    # map tiles under the local frame: an http(s) XYZ URL with {z} {x} {y}; empty: no tiles
     tile_url: str = ""
     # manual drive from the page: each drive command lasts this long and the page repeats it
     # while the operator holds a key; a closed page or link stops the motors (the dead-man)
@@ -279,6 +288,21 @@ class ConsoleConfig:
     # the operator opens the page: any other Host is refused, so that a site whose name is
     # made to point here (DNS rebinding) cannot use the console from the operator's browser
     hostnames: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        url = self.tile_url
+        if url:
+            parts = urlsplit(url)
+            if parts.scheme not in ("http", "https") or not parts.netloc:
+                raise ConfigError(
+                    f"console.tile_url: must be an http:// or https:// URL, got {url!r}"
+                )
+            missing = [p for p in ("{z}", "{x}", "{y}") if p not in url]
+            if missing:
+                raise ConfigError(
+                    f"console.tile_url: must hold {{z}}, {{x}} and {{y}} (XYZ tiles); "
+                    f"{', '.join(missing)} missing in {url!r}"
+                )
 
 
 @dataclass(frozen=True)
@@ -345,6 +369,23 @@ class Config:
     gpsd: GpsdConfig = field(default_factory=GpsdConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+
+    def __post_init__(self) -> None:
+        check_drive_vs_stuck(self.navigation, self.failsafe)
+
+
+def check_drive_vs_stuck(nav: NavigationConfig, failsafe: FailsafeConfig) -> None:
+    """The mission's drives must reach ``failsafe.stuck_min_pct``: below it a robot that does
+    not move is never judged stuck (a cruise of 0 % sat in RUNNING for good, unnoticed).
+    Raises :class:`ConfigError` naming the key."""
+    for key in ("cruise_pct", "turn_pct"):
+        pct = getattr(nav, key)
+        if pct < failsafe.stuck_min_pct:
+            raise ConfigError(
+                f"navigation.{key}: must be >= failsafe.stuck_min_pct "
+                f"({failsafe.stuck_min_pct:g} %), else a robot that does not move at that "
+                f"drive is never found stuck; got {pct:g}"
+            )
 
 
 def _check_value(key: str, value: Any, tp: Any, meta: Any) -> Any:

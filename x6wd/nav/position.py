@@ -196,6 +196,7 @@ class EkfSource:
         if not g.lce_cells:
             return lambda _e, _n: g.lce_default_m
         # the map has its own plane: filter plane -> lat/lon -> map plane
+        assert g.lce_origin_lat_deg is not None and g.lce_origin_lon_deg is not None
         mp = LocalTangentPlane(g.lce_origin_lat_deg, g.lce_origin_lon_deg)
 
         def lce(e_m: float, n_m: float) -> float:
