@@ -79,7 +79,7 @@ from sim_backend.odometry import EncoderSim, encoder_rng
 from sim_backend.ports import PACE_CHUNK_S, PtyUart
 from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.world import World, load_world
-from x6wd.core.config import SimConfig
+from x6wd.core.config import PACKAGED_CONFIG_DIR, SimConfig, scenario_candidates
 from x6wd.core.errors import ConfigError, DeviceIOError, DeviceUnavailable
 from x6wd.core.records import MotorCommand
 
@@ -91,7 +91,7 @@ log = logging.getLogger(__name__)
 if importlib.util.find_spec("scipy") is None:
     raise ModuleNotFoundError("No module named 'scipy'", name="scipy")
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+CONFIG_DIR = PACKAGED_CONFIG_DIR  # where hil.toml and the scenarios ship
 DEFAULT_SCENARIO = CONFIG_DIR / "scenarios" / "default.toml"
 CLOSE_JOIN_S = 5.0  # how long close() waits for each thread before it gives up on it
 WIRE_LOG_LEN = 4096  # motor-board traffic kept for inspection (entries)
@@ -113,13 +113,12 @@ _OVERRIDES = (
 
 
 def resolve_scenario(path: str) -> Path:
-    """The scenario file ``[sim] scenario`` names: "" -> the packaged default; a relative
-    path is looked up in the packaged ``config/`` folder (where hil.toml ships), then in the
-    current directory. ConfigError if it does not exist."""
+    """The scenario file ``[sim] scenario`` names: "" -> the packaged default; else where
+    :func:`x6wd.core.config.scenario_candidates` looks (a configuration file's loader has
+    already resolved one beside it). ConfigError if it does not exist."""
     if not path:
         return DEFAULT_SCENARIO
-    p = Path(path).expanduser()
-    tried = [p] if p.is_absolute() else [CONFIG_DIR / p, Path.cwd() / p]
+    tried = scenario_candidates(path, None)
     for cand in tried:
         if cand.is_file():
             return cand.resolve()

@@ -15,6 +15,7 @@ from x6wd.core.config import (
     NavigationConfig,
     load,
     loads,
+    scenario_candidates,
 )
 
 ROBOT_TOML = Path(__file__).resolve().parent.parent / "config" / "x6wd.toml"
@@ -145,9 +146,14 @@ def test_a_missing_scenario_lists_every_path_tried_in_order(
 def test_a_scenario_is_found_where_the_error_says_it_is_looked_for(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from sim_backend.hil import CONFIG_DIR
+    from sim_backend.hil import CONFIG_DIR, resolve_scenario
 
     assert PACKAGED_CONFIG_DIR == CONFIG_DIR  # one folder, named in two layers
+    with pytest.raises(ConfigError) as exc:  # a Config not from a file: the same search
+        resolve_scenario("scenarios/nope.toml")
+    assert str(exc.value).endswith(
+        f"(tried {', '.join(map(str, scenario_candidates('scenarios/nope.toml', None)))})"
+    )
     monkeypatch.chdir(tmp_path)
     cfg_file = tmp_path / "robot.toml"
     cfg_file.write_text('[gps]\nurl = "sim://"\n[sim]\nscenario = "scenarios/default.toml"\n')

@@ -458,14 +458,18 @@ PACKAGED_CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 relative ``[sim] scenario`` is looked for (``sim_backend.hil.CONFIG_DIR``, the same folder)."""
 
 
-def scenario_candidates(scenario: str, config_dir: Path) -> list[Path]:
-    """Where the ``[sim] scenario`` of a configuration file in ``config_dir`` is looked for,
-    in order: an absolute path (``~`` expanded) as it is; a relative one in ``config_dir``,
-    then in :data:`PACKAGED_CONFIG_DIR`, then in the working directory."""
+def scenario_candidates(scenario: str, config_dir: Path | None) -> list[Path]:
+    """Where the ``[sim] scenario`` of a configuration file in ``config_dir`` (None: a
+    configuration not read from a file) is looked for, in order: an absolute path (``~``
+    expanded) as it is; a relative one in ``config_dir``, then in
+    :data:`PACKAGED_CONFIG_DIR`, then in the working directory."""
     path = Path(scenario).expanduser()
     if path.is_absolute():
         return [path]
-    return [config_dir / path, PACKAGED_CONFIG_DIR / path, Path.cwd() / path]
+    dirs = [PACKAGED_CONFIG_DIR, Path.cwd()]
+    if config_dir is not None:
+        dirs.insert(0, config_dir)
+    return [d / path for d in dirs]
 
 
 def _uses_world(cfg: Config) -> bool:
