@@ -404,6 +404,10 @@ def test_rtklib_reader_reads_the_urban_files_and_refuses_other_formats() -> None
         parse_pos("% header\n2023/07/11 06:04:30.000 1 2\n", "x.pos")
     with pytest.raises(ParseError, match="no solution lines"):
         parse_pos("% only a header\n")
+    # a solution written in UTC would be 18 s off against GPST stamps: named, not read
+    utc = (URBAN / "reference_1Hz.pos").read_text().replace("%  GPST ", "%  UTC  ", 1)
+    with pytest.raises(ParseError, match=r"^u\.pos:\d+: times in UTC; this reader takes GPST"):
+        parse_pos(utc, "u.pos")
 
 
 def test_urban_drive_gives_a_sane_lce_map(

@@ -9,7 +9,8 @@ columns GPST date and time, latitude and longitude (deg, WGS-84), ellipsoidal he
 solution quality Q (1 fix, 2 float, 3 SBAS, 4 DGPS, 5 single, 6 PPP), number of satellites,
 then the standard deviations sdn, sde, sdu (m) and more that are read when present. RTKLIB
 leaves unsolved epochs out. Only this format is read: solutions written in x/y/z or e/n/u, or
-with times in GPS week/seconds or UTC, are refused with the line that does not fit.
+with times in GPS week/seconds, are refused with the line that does not fit, and a legend
+naming another time system than GPST (UTC, JST) with its line.
 
 The time is GPST as printed, turned into seconds by reading the date as if it were UTC
 (``t_gpst_s``): a clock that only has to agree with other GPST stamps, not a real UTC epoch.
@@ -18,6 +19,7 @@ The time is GPST as printed, turned into seconds by reading the date as if it we
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -49,11 +51,24 @@ class PosSolution:
         return int(self.t_gpst_s.shape[0])
 
 
+# The column legend above the solutions, its first word the time system (GPST, UTC, JST, ...):
+# a UTC file read as GPST would be off by the leap seconds (18 s since 2017), silently.
+_LEGEND = re.compile(r"^%\s+(GPST|UTC|JST|BJT)\s")
+
+
 def parse_pos(text: str, source: str = "<string>") -> PosSolution:
     """Parse the text of a ``.pos`` file; :class:`ParseError` names the line that does not fit."""
     rows: list[tuple[float, float, float, float, int, int, float, float]] = []
     for lineno, line in enumerate(text.splitlines(), 1):
-        if not line.strip() or line.lstrip().startswith("%"):
+        if not line.strip():
+            continue
+        if line.lstrip().startswith("%"):
+            legend = _LEGEND.match(line)
+            if legend is not None and legend[1] != "GPST":
+                raise ParseError(
+                    f"{source}:{lineno}: times in {legend[1]}; this reader takes GPST, RTKLIB's "
+                    "default (rtkpost/rnx2rtkp: time format 'ww ssss GPST' off, 'hh:mm:ss GPST')"
+                )
             continue
         f = line.split()
         try:
