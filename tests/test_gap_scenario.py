@@ -54,6 +54,30 @@ def test_the_runs_simulate_the_real_logs_date_and_height(
     assert "simulated sky: start_utc 2016-04-07 21:31Z is 1365 days from" in md
 
 
+def test_without_a_scenario_the_packaged_open_field_is_the_baseline(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A first report needs no scenario file: the open-field scenario, at the log's place
+    and date, said in the report (it was an argparse error)."""
+    import sim_backend.receiver as receiver
+
+    seen: list[Any] = []
+    build = receiver.build_receiver
+
+    def recording_build(world: Any, seed: int, **kwargs: Any) -> Any:
+        seen.append(world)
+        return build(world, seed, **kwargs)
+
+    monkeypatch.setattr(receiver, "build_receiver", recording_build)
+    out = tmp_path / "report"
+    argv = ["gap", "--real", str(SKYTRAQ), "--seeds", "1", "--replicates", "3"]
+    assert x6wd_main([*argv, "--no-figures", "--quiet", "--out", str(out)]) == 0
+    assert seen and {w.name for w in seen} == {load_world(SCENARIO).name}
+    assert all(w.start_utc == datetime(2016, 4, 7, 21, 31, 21, tzinfo=UTC) for w in seen)
+    md = (out / "report.md").read_text()
+    assert "no --scenario or --sim: the baseline is the packaged open-field scenario" in md
+
+
 def _template(n: int = 100) -> PositionSeries:
     zeros = np.zeros(n)
     return PositionSeries(

@@ -1,5 +1,5 @@
-"""``x6wd gap --real REAL (--sim SIM ... | --scenario FILE [--seeds M]
-[--workers N | --scheduler ADDRESS]) [--truth LAT,LON[,ALT] | --truth-track FILE] [--out DIR]``."""
+"""``x6wd gap --real REAL [--sim SIM ... | --scenario FILE [--seeds M]
+[--workers N | --scheduler ADDRESS]] [--truth LAT,LON[,ALT] | --truth-track FILE] [--out DIR]``."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_backend.effects import PositionSeries
+from x6wd.core.config import PACKAGED_CONFIG_DIR
 from x6wd.core.errors import ConfigError
 from x6wd.core.outdir import output_dir
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
@@ -38,12 +39,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--real", required=True, help="real log: NMEA, x6wd recording, CSV or RTKLIB .pos"
     )
-    baseline = parser.add_mutually_exclusive_group(required=True)
+    baseline = parser.add_mutually_exclusive_group()
     baseline.add_argument(
         "--sim", action="append", default=[], help="baseline sim log (repeatable)"
     )
     baseline.add_argument(
-        "--scenario", help="scenario TOML: the baseline is run with --seeds seeds"
+        "--scenario",
+        help="scenario TOML: the baseline is run with --seeds seeds, placed where and when the"
+        " log was (default, without --sim: the packaged open-field scenario)",
     )
     parser.add_argument(
         "--seeds", type=int, default=20, help="baseline runs with --scenario (default 20)"
@@ -121,6 +124,11 @@ def _log_time_and_height(
     return start, mean_alt_m(track), "the real log's mean altitude"
 
 
+# The baseline when the user names none: open sky, the default receiver, at the log's place
+# and time (place_at_log), so a first report needs no scenario file.
+DEFAULT_SCENARIO = PACKAGED_CONFIG_DIR / "scenarios" / "open_field.toml"
+
+
 def main(args: argparse.Namespace) -> int:
     """Run the diagnosis and write the report; exit code 0 (whatever the verdict)."""
     bar = ProgressBar(enabled=not args.quiet and sys.stderr.isatty())
@@ -141,6 +149,13 @@ def main(args: argparse.Namespace) -> int:
     if args.truth is None and truth_track is None:
         notes.append(
             "no truth given: errors are taken against each log's own mean, so a bias is invisible"
+        )
+    if not args.sim and not args.scenario:
+        args.scenario = str(DEFAULT_SCENARIO)
+        notes.append(
+            "no --scenario or --sim: the baseline is the packaged open-field scenario"
+            " (config/scenarios/open_field.toml: open sky, no buildings), placed at the log;"
+            " give a scenario of the site for buildings, walls or another receiver model"
         )
     if args.scenario:
         from sim_backend.executor import Executor
