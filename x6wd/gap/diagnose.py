@@ -66,6 +66,7 @@ from x6wd.gap.stats import (
     cell_weights,
     lattice_fraction,
     layout_for,
+    same_observables,
     window,
 )
 from x6wd.gap.validate import (
@@ -365,6 +366,11 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
                     f"{which} has too few fixes for a gap diagnosis: {fixes} of "
                     f"{len(series)} epochs (need >= {MIN_FIXES})"
                 )
+
+    def same_observables(
+        self, real: PositionSeries, baseline: Sequence[PositionSeries]
+    ) -> tuple[PositionSeries, list[PositionSeries], list[str]]:
+        return same_observables(real, baseline)
 
     def layout_for(self, real: PositionSeries, baseline: Sequence[PositionSeries]) -> Layout:
         return layout_for(real)

@@ -1,9 +1,11 @@
 """The gap pipeline of every sensor: where the gap lies, which effect explains it, how far it
 closes. GPS (:mod:`x6wd.gap.diagnose`) and compass (:mod:`x6wd.gap.compass`) plug into it.
 
-1. **Null and where.** The baseline ensemble (M sim runs, or a block bootstrap of fewer)
-   calibrates every cell of the sensor's battery (:class:`x6wd.gap.null.NullModel`); the real
-   log's cells beyond the family-wise threshold are "where".
+1. **Null and where.** The baseline ensemble (M sim runs, or replicates made of fewer:
+   :meth:`Pipeline.few_logs_null`), reduced to the observables the real log carries too
+   (:meth:`Pipeline.same_observables`), calibrates every cell of the sensor's battery
+   (:class:`x6wd.gap.null.NullModel`); the real log's cells beyond the family-wise threshold
+   are "where".
 2. **Split.** A fit part (the first ``fit_fraction`` of the log), a guard gap, and a
    held-out test part; G of the baseline and its floor on the test part.
 3. **Candidates.** Each effect of the sensor's registry (:class:`EffectFitter`: a fitter and
@@ -389,6 +391,15 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         """The layout of a part of the log ``duration_s`` long (default: the whole log's)."""
         return layout
 
+    def same_observables(
+        self, real: SeriesT, baseline: Sequence[SeriesT]
+    ) -> tuple[SeriesT, list[SeriesT], list[str]]:
+        """The real log and the baseline reduced to the observables they all carry (what a
+        log may or may not tell beside its samples), with notes on what was set aside: every
+        statistic of the runs must read what the real log gives, or it compares different
+        things (default: the logs as they are)."""
+        return real, list(baseline), []
+
     def input_notes(self, real: SeriesT, layout: LayoutT) -> list[str]:
         """Notes on the real log itself (e.g. too little of it to test some cells)."""
         return []
@@ -517,10 +528,11 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         """The whole pipeline on a real series and its baseline runs."""
         options = self.options
         self.check(real, baseline)
-        layout = self.layout_for(real, baseline)
+        real, runs, observed_notes = self.same_observables(real, baseline)
+        layout = self.layout_for(real, runs)
         self.real, self.layout = real, layout
-        notes = self.input_notes(real, layout)
-        runs = list(baseline)
+        notes = [*observed_notes, *self.input_notes(real, layout)]
+        baseline = list(runs)
         bootstrap = len(runs) < options.min_runs
         if bootstrap:
             # blocks of a quarter of the log: long against the correlation times, few joins

@@ -142,6 +142,13 @@ class Layout:
     has_up: bool = True
 
 
+def has_up(series: PositionSeries) -> bool:
+    """Whether the series has a height error (its log gives an altitude and the truth one):
+    some valid epoch's ``up_m`` is not 0 (the readers put 0 where either is missing)."""
+    valid = np.asarray(series.valid, dtype=bool)
+    return bool(np.any(np.asarray(series.up_m)[valid] != 0.0))
+
+
 def layout_for(series: PositionSeries) -> Layout:
     """The cell layout a real series implies (its step, length, motion, map split)."""
     t_s = np.asarray(series.t_s, dtype=float)
@@ -151,9 +158,13 @@ def layout_for(series: PositionSeries) -> Layout:
     if moving:
         true_east_m, true_north_m = truth_track_m(series)
         place_e_m, place_n_m = float(np.median(true_east_m)), float(np.median(true_north_m))
-    has_up = bool(np.any(np.asarray(series.up_m)[np.asarray(series.valid, dtype=bool)] != 0.0))
     return Layout(
-        dt_s, float(t_s[-1] - t_s[0]) if t_s.size else 0.0, moving, place_e_m, place_n_m, has_up
+        dt_s,
+        float(t_s[-1] - t_s[0]) if t_s.size else 0.0,
+        moving,
+        place_e_m,
+        place_n_m,
+        has_up(series),
     )
 
 
@@ -349,6 +360,115 @@ def steady_steps(series: PositionSeries, dt_s: float) -> tuple[np.ndarray, np.nd
             known = (at[1:] >= 0) & (at[:-1] >= 0)
             steady &= ((at[1:] == at[:-1]) | ~known)[keep]
     return steps_m, valid_idx[1:][keep], steady
+
+
+SAT_LABELS = ("nsats", "sat_set")  # what a log may tell of the satellites used (-1: unknown)
+
+
+def _on_times(t_s: np.ndarray, reference_t_s: np.ndarray) -> np.ndarray:
+    """Index of the ``reference_t_s`` epoch nearest to each of ``t_s`` in time from the
+    start (logs of one situation share their times from the start, not their clocks)."""
+    ref_s = np.asarray(reference_t_s, dtype=float) - float(reference_t_s[0])
+    rel_s = np.asarray(t_s, dtype=float) - float(t_s[0])
+    after = np.clip(np.searchsorted(ref_s, rel_s), 0, ref_s.size - 1)
+    before = np.clip(after - 1, 0, ref_s.size - 1)
+    return np.where(np.abs(ref_s[before] - rel_s) <= np.abs(ref_s[after] - rel_s), before, after)
+
+
+def _knows(series: PositionSeries, name: str) -> bool:
+    """Whether ``series`` tells the satellite label ``name`` (:data:`SAT_LABELS`) anywhere."""
+    label = getattr(series, name)
+    return label is not None and bool(np.any(np.asarray(label) >= 0))
+
+
+def observed_like(series: PositionSeries, reference: PositionSeries) -> PositionSeries:
+    """``series`` told only what ``reference`` tells beyond its fixes: no satellite count
+    or set where ``reference`` has none (and unknown, -1, at the epochs where it has a fix
+    but does not tell its own, matched by time from the start; where it has no fix there is
+    no step of it to match), no height error where it has none."""
+    changes: dict[str, object] = {}
+    for name in SAT_LABELS:
+        own = getattr(series, name)
+        if own is None:
+            continue
+        if not _knows(reference, name):
+            changes[name] = None
+            continue
+        at = _on_times(series.t_s, reference.t_s)
+        ref = np.asarray(getattr(reference, name), dtype=float)[at]
+        unknown = (ref < 0) & np.asarray(reference.valid, dtype=bool)[at]
+        if np.any(unknown):
+            changes[name] = np.where(unknown, -1.0, np.asarray(own, dtype=float))
+    if not has_up(reference) and has_up(series):
+        changes["up_m"] = np.zeros(len(series))
+    return series.with_(**changes) if changes else series
+
+
+OBSERVABLE_WORDS = {"nsats": "satellite counts", "sat_set": "satellite sets", "up_m": "heights"}
+
+
+def _steady_text(real: PositionSeries, set_aside: set[str]) -> str:
+    """What the steady steps are once the satellite labels ``set_aside`` are gone ("" when
+    none of them is)."""
+    if not set_aside & set(SAT_LABELS):
+        return ""
+    if _knows(real, "nsats"):
+        return " (the steady steps are then those between equal satellite counts)"
+    return " (the steady steps, between equal satellites used, are then all steps)"
+
+
+def same_observables(
+    real: PositionSeries, runs: Sequence[PositionSeries]
+) -> tuple[PositionSeries, list[PositionSeries], list[str]]:
+    """``real`` and the baseline ``runs`` reduced to the observables they all carry, and
+    notes on what was set aside. Every statistic of the runs is then read from what the real
+    log gives, and the real log's from what every run gives: the satellites used, a count or
+    a set (the steady steps, :func:`steady_steps`, are the steps between equal ones, and
+    every step when the log tells neither), and the height (the vertical cells and fits).
+
+    Without it a log that does not list its satellites (a bare ``time,lat,lon`` CSV, an
+    RTKLIB solution) had every step counted as steady while the runs counted only the steps
+    between equal sets: the simulator's own output, written as such a CSV, read 42 steady
+    jumps where its runs read none, and came out "gap not explained" (z +10.7)."""
+    notes = []
+    real_lacks = [
+        name
+        for name in SAT_LABELS
+        if not _knows(real, name) and any(_knows(run, name) for run in runs)
+    ]
+    if not has_up(real) and any(has_up(run) for run in runs):
+        real_lacks.append("up_m")
+    if real_lacks:
+        notes.append(
+            "the real log has no "
+            + " or ".join(OBSERVABLE_WORDS[n] for n in real_lacks)
+            + ": the baseline runs' are set aside too, so that every statistic reads the "
+            "same observables" + _steady_text(real, set(real_lacks))
+        )
+    reduced = [observed_like(run, real) for run in runs]
+    # what the real log tells but a run does not: set aside in the real log and every run
+    runs_lack = [
+        name
+        for name in SAT_LABELS
+        if _knows(real, name) and not all(_knows(run, name) for run in reduced)
+    ]
+    if has_up(real) and not all(has_up(run) for run in reduced):
+        runs_lack.append("up_m")
+    if runs_lack:
+        changes: dict[str, object] = {n: None for n in runs_lack if n != "up_m"}
+        if "up_m" in runs_lack:
+            real = real.with_(up_m=np.zeros(len(real)), **changes)
+            reduced = [run.with_(up_m=np.zeros(len(run)), **changes) for run in reduced]
+        else:
+            real = real.with_(**changes)
+            reduced = [run.with_(**changes) for run in reduced]
+        notes.append(
+            "a baseline log has no "
+            + " or ".join(OBSERVABLE_WORDS[n] for n in runs_lack)
+            + ": the real log's and the other runs' are set aside too, so that every "
+            "statistic reads the same observables"
+        )
+    return real, reduced, notes
 
 
 STEADY_JUMP_SPREADS = 8.0  # a steady step beyond this many robust spreads counts as a jump
