@@ -124,17 +124,19 @@ def test_errors_against_their_own_mean_are_compared_with_runs_against_theirs() -
 def test_report_shows_both_validations_and_calibrated_toml_is_a_scenario_fragment(
     tmp_path: Path,
 ) -> None:
-    # a receiver 0.7 times the model's level: no significant gap on one 15-minute log, so
-    # nothing is selected, and the closing figure is the calibration's
+    # a receiver with half the model's fast noise: a significant gap on one 15-minute log,
+    # the noise scale selected, and the closing figure is the calibration's after it (a log
+    # without a significant gap gets no calibration: tests/test_gap_null_report.py)
     base = [_log(700 + i, duration_s=900.0) for i in range(8)]
-    real = _log(9, Correction(0.7, 60.0), duration_s=900.0)
+    real = _log(9, NoiseScale(0.5, 10.0), duration_s=900.0)
     diagnosis = diagnose(real, base, np.random.default_rng(0))
+    assert diagnosis.significant and [f.name for f in diagnosis.selected] == ["noise_scale"]
     c = diagnosis.calibration
     assert c is not None and diagnosis.validation is c.selected
     write_report(diagnosis, tmp_path, figures=False)
     md = (tmp_path / "report.md").read_text()
     assert "## Validation (seed 000's test)" in md
-    assert "- (a) the baseline runs alone (no effect selected): **" in md
+    assert "- (a) the selected effects only (noise_scale, parameters fitted on the whole" in md
     assert "- (b) **calibrated**, the closing figure" in md
     assert "| figure | real | (a) selected | (a) difference | (a) pass | (b) calibrated |" in md
     assert "is **in sample**" in md and "the simulated runs' own spread" in md
@@ -155,7 +157,9 @@ def test_report_shows_both_validations_and_calibrated_toml_is_a_scenario_fragmen
     }  # fmt: skip
     # effects.toml keeps the selected effects only; calibrated.toml adds the calibration,
     # and the simulator's scenario loader takes it with the same layers
-    assert tomllib.loads((tmp_path / "effects.toml").read_text()).get("effects", []) == []
+    selected = [(f.name, f.effect.to_params()) for f in diagnosis.selected]
+    effects = tomllib.loads((tmp_path / "effects.toml").read_text())["effects"]
+    assert [(e["name"], e) for e in effects] == selected
     from sim_backend.world import load_world, merge_fragment
 
     scenario = tmp_path / "site.toml"
@@ -164,9 +168,11 @@ def test_report_shows_both_validations_and_calibrated_toml_is_a_scenario_fragmen
         "[origin]\nlat_deg = 51.712345\nlon_deg = 19.487654\nalt_m = 100.0\n"
     )
     world = merge_fragment(load_world(scenario), tmp_path / "calibrated.toml")
-    assert [(e.name, e.to_params()) for e in world.effect_objects()] == [
+    assert [(e.name, e.to_params()) for e in world.effect_objects()] == selected + [
         (fit.name, fit.effect.to_params()) for fit in c.layers
     ]
-    # with the calibrated layers the simulated runs give the reported figure
-    again = validate(real, apply_fits(c.layers, base, np.random.default_rng(0), 5), 1.0, 900.0)
+    # with the selected effects and the calibrated layers (all deterministic) the simulated
+    # runs give the reported figure
+    layers = [*diagnosis.selected, *c.layers]
+    again = validate(real, apply_fits(layers, base, np.random.default_rng(0), 5), 1.0, 900.0)
     assert again.mean_sim_m == pytest.approx(c.calibrated.mean_sim_m, rel=1e-9)

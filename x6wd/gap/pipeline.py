@@ -163,6 +163,8 @@ class Outcome(Generic[SeriesT, LayoutT]):
     # 5-95 % interval of the selection's held-out closure over resamples of the ensembles
     closure_ci: tuple[float, float] = (0.0, 0.0)
     notes: list[str] = field(default_factory=list)
+    # what the null was made of, in words for the report's header (Pipeline.baseline_text)
+    baseline_text: str = ""
 
     @property
     def significant(self) -> bool:
@@ -354,6 +356,17 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
     @abstractmethod
     def bootstrap_note(self, n_logs: int, block_s: float) -> str:
         """The report's note on a bootstrap null of ``n_logs`` baseline logs."""
+
+    def baseline_text(self, n_logs: int, n_null: int, bootstrap: bool) -> str:
+        """The report header's account of the null: ``n_logs`` baseline logs given, made
+        into ``n_null`` replicates when ``bootstrap`` (fewer than ``min_runs``; default: a
+        circular block bootstrap, :meth:`few_logs_null`)."""
+        if not bootstrap:
+            return f"{n_logs} sim runs"
+        return (
+            f"{n_logs} sim log(s), fewer than {self.options.min_runs}: {n_null} block-bootstrap "
+            "replicates of them"
+        )
 
     @abstractmethod
     def apply_fits(self, fits: Sequence[Fit], runs: Sequence[SeriesT]) -> list[SeriesT]:
@@ -573,6 +586,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
             closure=0.0,
             split_s=(split.fit_s, split.test_s),
             notes=notes,
+            baseline_text=self.baseline_text(len(baseline), len(runs), bootstrap),
         )
         if not where:
             self.say("no significant gap", 1.0)

@@ -151,6 +151,13 @@ def write_report(
         (out / "validation.json").write_text(
             json.dumps(validation_dict(diagnosis.calibration), indent=2) + "\n"
         )
+    elif diagnosis.validation is not None:
+        # no significant gap: no calibration, so no calibrated.toml (not even an earlier
+        # run's left in this directory, which would read as this log's)
+        (out / "calibrated.toml").unlink(missing_ok=True)
+        (out / "validation.json").write_text(
+            json.dumps(uncalibrated_dict(diagnosis.validation), indent=2) + "\n"
+        )
     if figures:
         write_figures(diagnosis, out)
         if compass is not None:
@@ -165,7 +172,6 @@ def write_report(
 def compass_markdown(compass: CompassDiagnosis, figures: bool) -> str:
     """The compass section of report.md."""
     layout = compass.layout
-    boot = " (block bootstrap)" if compass.bootstrap else ""
     lines = [
         "",
         "## Compass (heading)",
@@ -173,7 +179,7 @@ def compass_markdown(compass: CompassDiagnosis, figures: bool) -> str:
         f"**{compass_verdict_text(compass)}.**",
         "",
         f"- {len(compass.real)} samples over {layout.duration_s:.0f} s ({layout.dt_s:g} s "
-        f"steps); baseline {len(compass.baseline)} runs{boot}; {len(compass.cells)} "
+        f"steps); baseline {compass.baseline_text}; {len(compass.cells)} "
         f"statistics; threshold |z| > {compass.threshold:.2f}; field magnitude "
         f"{'used' if layout.has_field else 'not available'}",
         f"- gap G on the held-out part ({split_text(compass.split_s, test_only=True)}): baseline "
@@ -263,7 +269,6 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
     """report.md text."""
     layout = diagnosis.layout
     motion = "moving" if layout.moving else "static"
-    boot = " (block bootstrap)" if diagnosis.bootstrap else ""
     lines = [
         f"# Sim-to-real gap: {real_name}",
         "",
@@ -271,7 +276,7 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
         "",
         f"- log: {layout.duration_s:.0f} s at {layout.dt_s:g} s steps, {motion}, "
         f"fix availability {np.mean(diagnosis.real.valid):.1%}",
-        f"- baseline: {len(diagnosis.baseline)} runs{boot}; {len(diagnosis.cells)} statistics; "
+        f"- baseline: {diagnosis.baseline_text}; {len(diagnosis.cells)} statistics; "
         f"family-wise limits |z| > {_limits_text(diagnosis.null)} "
         f"(alpha {100 * diagnosis.alpha:g} %"
         + (
@@ -346,6 +351,8 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
                 own_mean(diagnosis.real),
             ),
         ]
+    elif diagnosis.validation is not None:
+        lines += ["", *uncalibrated_markdown(diagnosis.validation, own_mean(diagnosis.real))]
     if figures:
         lines += ["", "## Figures", ""]
         lines += [
@@ -393,6 +400,63 @@ def _limits_text(null: NullModel) -> str:
     return f"{primary:.2f} on the {n_primary} primary statistics, {other:.2f} on the others"
 
 
+NO_CALIBRATION = (
+    "no significant gap (no statistic beyond its family-wise limit), so no level calibration "
+    "is fitted and no calibrated.toml written: layers fitted to this one log's figures would "
+    "be fitted to how it happened to fall, not to a difference the test found; the scenario "
+    "as it is stands"
+)
+
+
+def _validation_intro(n_runs: int, own: bool, both_ways: bool) -> str:
+    return (
+        "Mean and sigma of the horizontal error within 3 % (seed 000 reached 3.256 % on one "
+        "hour) and the overlapping Allan deviation of east and north combined, "
+        "sqrt(AVAR_e + AVAR_n), within 20 % at every octave from one step to a quarter of "
+        f"the log; real against the average of the {n_runs} simulated runs, each one log "
+        "like the real one"
+        + (", both ways on the same draws" if both_ways else "")
+        + (" (errors against each log's own mean, as the real log's: no truth)" if own else "")
+        + ":"
+    )
+
+
+def _spread_text(v: Validation) -> str:
+    return f"mean {v.mean_spread:.1%}, sigma {v.sd_spread:.1%}, sigma / mean {v.ratio_spread:.1%}"
+
+
+def uncalibrated_markdown(v: Validation, own: bool = False) -> list[str]:
+    """The validation block of report.md without a significant gap: seed 000's figures of
+    the baseline runs alone, how many are within their tolerance, the runs' own spread, and
+    why nothing is calibrated (no pass/fail verdict: one log within the seed-to-seed spread
+    meets seed 000's tolerance only as far as the runs' own spread allows)."""
+    figures = v.figures()
+    within = sum(abs(Validation.rel(sim, real)) <= tol for _label, real, sim, tol in figures)
+    lines = [
+        "## Validation (seed 000's test)",
+        "",
+        _validation_intro(v.n_runs, own, both_ways=False),
+        "",
+        f"- the baseline runs alone: {within} of {len(figures)} figures within seed 000's "
+        f"tolerance (furthest off: {v.worst_text()}); how far one log of this length lands "
+        f"from its own model is the runs' own spread (sd over runs / average): "
+        f"{_spread_text(v)}",
+        f"- {NO_CALIBRATION}.",
+        "",
+        "| figure | real | simulated | difference | within tolerance | target |",
+        "|---|---|---|---|---|---|",
+    ]
+    labels = ["horizontal error mean (m)", "horizontal error sigma (m)"]
+    labels += [f"Allan deviation, tau = {tau_s:g} s (m)" for tau_s in v.taus_s]
+    for label, (_name, real, sim, tol) in zip(labels, figures, strict=True):
+        rel = Validation.rel(sim, real)
+        lines.append(
+            f"| {label} | {real:.4g} | {sim:.4g} | {rel:+.1%} | "
+            f"{'yes' if abs(rel) <= tol else 'no'} | ±{tol:.0%} |"
+        )
+    return lines
+
+
 def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -> list[str]:
     """The validation block of report.md: seed 000's test (mean and sigma of the horizontal
     error within 3 %, the overlapping Allan deviation per octave within 20 %) of the runs
@@ -412,13 +476,7 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
     lines = [
         "## Validation (seed 000's test)",
         "",
-        "Mean and sigma of the horizontal error within 3 % (seed 000 reached 3.256 % on one "
-        "hour) and the overlapping Allan deviation of east and north combined, "
-        "sqrt(AVAR_e + AVAR_n), within 20 % at every octave from one step to a quarter of "
-        f"the log; real against the average of the {a.n_runs} simulated runs, each one log "
-        "like the real one, both ways on the same draws"
-        + (" (errors against each log's own mean, as the real log's: no truth)" if own else "")
-        + ":",
+        _validation_intro(a.n_runs, own, both_ways=True),
         "",
         f"- (a) {with_what}: " + verdict(a),
         "- (b) **calibrated**, the closing figure: (a) plus the level calibration below, "
@@ -465,43 +523,60 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
     return lines
 
 
+def _num(x: float) -> float | None:  # JSON has no NaN
+    return round(float(x), 6) if math.isfinite(x) else None
+
+
+def _validation_json(v: Validation) -> dict[str, Any]:
+    """One validation's part of validation.json."""
+    figures = []
+    for label, real, sim, tol in v.figures():
+        rel = Validation.rel(sim, real)
+        figures.append(
+            {
+                "figure": label,
+                "real": _num(real),
+                "simulated": _num(sim),
+                "difference": _num(rel),
+                "tolerance": tol,
+                "pass": abs(rel) <= tol,
+            }
+        )
+    label, rel = v.worst()
+    return {
+        "passed": v.passed,
+        "runs": v.n_runs,
+        "figures": figures,
+        "furthest_off": {"figure": label, "difference": _num(rel)},
+        "runs_spread": {
+            "mean": _num(v.mean_spread),
+            "sigma": _num(v.sd_spread),
+            "sigma_over_mean": _num(v.ratio_spread),
+        },
+    }
+
+
+def uncalibrated_dict(v: Validation) -> dict[str, Any]:
+    """validation.json without a significant gap: the baseline runs' validation as
+    ``selected``, ``calibrated`` and ``in_sample`` null, no calibration layers, and why
+    (``not_calibrated``)."""
+    return {
+        "selected": _validation_json(v),
+        "calibrated": None,
+        "calibration": [],
+        "in_sample": None,
+        "evaluations": 0,
+        "at_edge": [],
+        "not_calibrated": NO_CALIBRATION,
+    }
+
+
 def validation_dict(c: Calibration) -> dict[str, Any]:
     """validation.json: both validations (figures, differences, pass/fail, the runs' own
     spread), the calibration's layers and whether it is in sample (always)."""
-
-    def num(x: float) -> float | None:  # JSON has no NaN
-        return round(float(x), 6) if math.isfinite(x) else None
-
-    def one(v: Validation) -> dict[str, Any]:
-        figures = []
-        for label, real, sim, tol in v.figures():
-            rel = Validation.rel(sim, real)
-            figures.append(
-                {
-                    "figure": label,
-                    "real": num(real),
-                    "simulated": num(sim),
-                    "difference": num(rel),
-                    "tolerance": tol,
-                    "pass": abs(rel) <= tol,
-                }
-            )
-        label, rel = v.worst()
-        return {
-            "passed": v.passed,
-            "runs": v.n_runs,
-            "figures": figures,
-            "furthest_off": {"figure": label, "difference": num(rel)},
-            "runs_spread": {
-                "mean": num(v.mean_spread),
-                "sigma": num(v.sd_spread),
-                "sigma_over_mean": num(v.ratio_spread),
-            },
-        }
-
     return {
-        "selected": one(c.selected),
-        "calibrated": one(c.calibrated),
+        "selected": _validation_json(c.selected),
+        "calibrated": _validation_json(c.calibrated),
         "calibration": [{"name": fit.name, "params": fit.params} for fit in c.layers],
         "in_sample": True,
         "evaluations": c.evaluations,

@@ -22,7 +22,8 @@ from sim_backend.effects import PositionSeries
 from x6wd.gap.stats import Cell, allan_var, regular
 
 # |z| of an Allan octave that says which way it runs: a per-octave reading once the gap is
-# established (the family-wise threshold answers "is there a gap"; with 8 runs it is |z| 27)
+# established (the family-wise threshold answers "is there a gap"; with 8 runs it is |z| 27).
+# Without a gap no octave is read at it (:func:`gap_direction`).
 DIRECTION_Z = 3.0
 MEAN_SD_TOL = 0.03  # seed 000 reached 3.256 % on mean and sigma of the error
 ADEV_TOL = 0.20  # per octave of the overlapping Allan deviation
@@ -40,20 +41,25 @@ class Band:
 
 
 def direction_bands(
-    cells: Sequence[Cell], z: np.ndarray, threshold: float, last_tau_s: float | None = None
+    cells: Sequence[Cell],
+    z: np.ndarray,
+    threshold: float | np.ndarray,
+    last_tau_s: float | None = None,
 ) -> list[Band]:
     """The Allan deviation cells (east and north) by octave: where the real log's z is beyond
-    ``threshold`` the simulator is noisier (z < 0: the receiver is quieter) or quieter (z > 0)
-    than the receiver; octaves where the axes disagree beyond it are "mixed". Consecutive
-    octaves of one kind are merged."""
+    ``threshold`` (one for all cells, or one per cell) the simulator is noisier (z < 0: the
+    receiver is quieter) or quieter (z > 0) than the receiver; octaves where the axes
+    disagree beyond it are "mixed". Consecutive octaves of one kind are merged."""
+    limits = np.broadcast_to(np.asarray(threshold, dtype=float), (len(cells),))
     by_tau: dict[float, list[float]] = {}
-    for cell, zc in zip(cells, z, strict=True):
+    for cell, zc, limit in zip(cells, z, limits, strict=True):
         if cell.statistic == "log_adev" and cell.axis in ("east", "north"):
             tau_s = float(cell.scale.removeprefix("tau=").removesuffix("s"))
-            by_tau.setdefault(tau_s, []).append(float(zc))
+            # a cell within its limit reads as 0: it says neither way
+            by_tau.setdefault(tau_s, []).append(float(zc) if abs(zc) > limit else 0.0)
     bands: list[Band] = []
     for tau_s in sorted(by_tau):
-        zs = [zc for zc in by_tau[tau_s] if abs(zc) > threshold]
+        zs = [zc for zc in by_tau[tau_s] if zc != 0.0]
         if not zs:
             kind = "agrees"
         elif all(zc < 0 for zc in zs):
@@ -67,6 +73,17 @@ def direction_bands(
         else:
             bands.append(Band(kind, tau_s, tau_s))
     return bands
+
+
+def gap_direction(
+    cells: Sequence[Cell], z: np.ndarray, limits: np.ndarray, significant: bool
+) -> list[Band]:
+    """Which way the gap runs per Allan octave (:func:`direction_bands`): once the "where"
+    test has found a gap (``significant``), each octave read at |z| > ``DIRECTION_Z``; without
+    one, at the test's own family-wise ``limits`` (one per cell), so that every octave is
+    within the seed-to-seed spread: a reading at 3 would claim a direction (the simulator
+    quieter from 1 to 32 s on its own output, three runs) the test has just refused."""
+    return direction_bands(cells, z, DIRECTION_Z if significant else limits)
 
 
 def direction_text(bands: Sequence[Band]) -> str:
