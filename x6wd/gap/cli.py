@@ -71,7 +71,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="gap-report", help="output directory (default gap-report)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the tool's own randomness")
     parser.add_argument(
-        "--replicates", type=int, default=20, help="block-bootstrap replicates (default 20)"
+        "--replicates",
+        type=int,
+        default=20,
+        help="replicates made of the --sim logs' innovations when fewer than 8 (default 20)",
     )
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
