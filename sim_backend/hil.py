@@ -79,7 +79,7 @@ from sim_backend.odometry import EncoderSim, encoder_rng
 from sim_backend.ports import PACE_CHUNK_S, PtyUart
 from sim_backend.receiver import SimRandom, build_receiver
 from sim_backend.world import World, load_world
-from x6wd.core.config import PACKAGED_CONFIG_DIR, SimConfig, scenario_candidates
+from x6wd.core.config import PACKAGED_CONFIG_DIR, SimConfig, path_is_file, scenario_candidates
 from x6wd.core.errors import ConfigError, DeviceIOError, DeviceUnavailable
 from x6wd.core.records import MotorCommand
 
@@ -120,7 +120,7 @@ def resolve_scenario(path: str) -> Path:
         return DEFAULT_SCENARIO
     tried = scenario_candidates(path, None)
     for cand in tried:
-        if cand.is_file():
+        if path_is_file(cand):
             return cand.resolve()
     raise ConfigError(
         f"sim.scenario: no such file {path!r} (tried {', '.join(str(c) for c in tried)})"

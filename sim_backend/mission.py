@@ -96,6 +96,7 @@ from sim_backend.runs import (  # re-exported: the robot engine's callers import
     vehicle_from_world,
 )
 from sim_backend.world import World
+from x6wd.core.config import check_drive_vs_stuck
 from x6wd.core.errors import CommandError
 from x6wd.core.mission_files import Waypoint
 from x6wd.core.outdir import output_dir
@@ -163,6 +164,9 @@ def run_mission(
     from the hook (``CommandError``, ``CommandRejected``) and ends the run: catch it there to
     go on. None (default): no operator after the automatic load and start at the first fix.
     """
+    # the robot as it will drive (scenario and robot config merged): a drive that cannot move
+    # it, or that the stuck failsafe cannot watch, is refused before anything runs
+    check_drive_vs_stuck(world.navigation, world.failsafe)
     wall0 = time.perf_counter()
     cset, compass_skipped = compass_setup(world)
     plan = RunPlan.of(world, seed, duration_s, cset.rate_hz)

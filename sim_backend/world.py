@@ -606,7 +606,6 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
     navigation = build(NavigationConfig, _table(data, "navigation"), "navigation.")
     safety = build(SafetyConfig, _table(data, "safety"), "safety.")
     failsafe = build(FailsafeConfig, _table(data, "failsafe"), "failsafe.")
-    check_drive_vs_stuck(navigation, failsafe)
     odometry = build(OdometryConfig, _table(data, "odometry"), "odometry.")
     gnss_noise = build(GnssNoiseConfig, _table(data, "gnss_noise"), "gnss_noise.")
     encoders = build(EncoderParams, _table(data, "encoders"), "encoders.")
@@ -653,7 +652,9 @@ def with_robot_config(world: World, robot_config: str | Path) -> World:
         if merged:
             data[sec] = merged
     base = world.source.parent if world.source is not None else Path(".")
-    return _build_world(data, base, world.source)
+    merged_world = _build_world(data, base, world.source)
+    check_drive_vs_stuck(merged_world.navigation, merged_world.failsafe)
+    return merged_world
 
 
 def _check_effects(effects: tuple[dict[str, Any], ...]) -> None:

@@ -66,12 +66,15 @@ def test_values_are_converted_and_validated() -> None:
         ("[navigation]\nfilter_n = 2\n", r"^navigation\.filter_n: must be >= 3, got 2"),
         ("[navigation]\ncruise_pct = 100.5\n", r"^navigation\.cruise_pct: must be <= 100"),
         # a drive under stuck_min_pct: the robot sat in RUNNING at 0 % for good, unnoticed
-        ("[navigation]\ncruise_pct = 0\n", r"^navigation\.cruise_pct: must be >= failsafe\.stuck"),
-        ("[navigation]\nturn_pct = 0\n", r"^navigation\.turn_pct: must be >= failsafe\.stuck"),
+        ("[navigation]\ncruise_pct = 5\n", r"^navigation\.cruise_pct: must be >= failsafe\.stuck"),
+        ("[navigation]\nturn_pct = 0\n", r"^navigation\.turn_pct: must be > 0"),
         (
             "[navigation]\ncruise_pct = 20\n[failsafe]\nstuck_min_pct = 25\n",
             r"^navigation\.cruise_pct: .*\(25 %\).*got 20$",
         ),
+        ("[navigation]\nmin_speed_pct = 5\n", r"^navigation\.min_speed_pct: must be >= fail"),
+        # with the stuck check off only a drive of 0 is refused
+        ("[navigation]\ncruise_pct = 0\n[failsafe]\nstuck_s = 0\n", r"cruise_pct: must be > 0"),
         ('[console]\ntile_url = "tile.osm.org/{z}/{x}/{y}.png"\n', r"^console\.tile_url: .*http"),
         (
             '[console]\ntile_url = "https://t.org/{z}/{x}.png"\n',
@@ -210,3 +213,47 @@ def test_the_compass_offset_prior_reaches_the_ekf() -> None:
         assert (est.covariance[9, 9] > 0.0) == learns  # state 9: the offset (0: frozen)
     with pytest.raises(ConfigError, match="compass_offset_sigma_deg"):
         loads("[navigation]\ncompass_offset_sigma_deg = -1\n")
+
+
+def test_slow_drives_load_with_the_stuck_check_off_or_below_them(tmp_path: Path) -> None:
+    """The drive check follows the failsafe it protects: off (stuck_s 0), or a lower
+    stuck_min_pct, and an 8 % cruise is a robot's own choice."""
+    assert (
+        loads("[navigation]\ncruise_pct = 8\n[failsafe]\nstuck_s = 0\n").navigation.cruise_pct == 8
+    )
+    low = "[navigation]\ncruise_pct = 8\nmin_speed_pct = 5\n[failsafe]\nstuck_min_pct = 5\n"
+    assert loads(low).failsafe.stuck_min_pct == 5
+    # a scenario's slow cruise under a robot config whose stuck_min_pct allows it: judged merged
+    from sim_backend.world import load_world, with_robot_config
+
+    scenario = tmp_path / "slow.toml"
+    default = PACKAGED_CONFIG_DIR / "scenarios" / "default.toml"
+    scenario.write_text(f'include = ["{default}"]\n[navigation]\ncruise_pct = 8.0\n')
+    robot = tmp_path / "robot.toml"
+    robot.write_text("[failsafe]\nstuck_min_pct = 5.0\n")
+    assert with_robot_config(load_world(scenario), robot).navigation.cruise_pct == 8.0
+    robot.write_text("[failsafe]\nstuck_min_pct = 9.0\n")
+    with pytest.raises(ConfigError, match=r"cruise_pct: must be >= failsafe\.stuck_min_pct \(9"):
+        with_robot_config(load_world(scenario), robot)
+
+
+def test_a_scenario_name_the_os_refuses_is_a_config_error(tmp_path: Path) -> None:
+    cfg_file = tmp_path / "robot.toml"
+    cfg_file.write_text(f'[gps]\nurl = "sim://"\n[sim]\nscenario = "{"x" * 300}.toml"\n')
+    with pytest.raises(ConfigError, match=r"sim\.scenario: no such file"):
+        load(cfg_file)
+
+
+def test_a_scenario_whose_own_drive_the_stuck_check_cannot_watch_does_not_run(
+    tmp_path: Path,
+) -> None:
+    """Without a robot config the scenario's sections are the robot: refused at the run's
+    start (x6wd sim: exit 2), not driven at 5 % unwatched."""
+    from sim_backend.mission import run_mission
+    from sim_backend.world import load_world
+
+    scenario = tmp_path / "slow.toml"
+    default = PACKAGED_CONFIG_DIR / "scenarios" / "default.toml"
+    scenario.write_text(f'include = ["{default}"]\n[navigation]\ncruise_pct = 5.0\n')
+    with pytest.raises(ConfigError, match=r"^navigation\.cruise_pct: must be >= failsafe"):
+        run_mission(load_world(scenario), None, duration_s=5.0)

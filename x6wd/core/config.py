@@ -375,16 +375,24 @@ class Config:
 
 
 def check_drive_vs_stuck(nav: NavigationConfig, failsafe: FailsafeConfig) -> None:
-    """The mission's drives must reach ``failsafe.stuck_min_pct``: below it a robot that does
-    not move is never judged stuck (a cruise of 0 % sat in RUNNING for good, unnoticed).
-    Raises :class:`ConfigError` naming the key."""
+    """The mission's drives must move the robot: cruise and turn above 0 %, and, with the
+    stuck failsafe on (``stuck_s`` > 0), cruise, turn and the approach's ``min_speed_pct`` at
+    ``failsafe.stuck_min_pct`` or more: below it a robot that does not move is never judged
+    stuck (a cruise of 0 % sat in RUNNING for good, unnoticed). Raises :class:`ConfigError`
+    naming the key."""
     for key in ("cruise_pct", "turn_pct"):
+        if getattr(nav, key) <= 0:
+            raise ConfigError(f"navigation.{key}: must be > 0 (the robot would not move)")
+    if failsafe.stuck_s <= 0:
+        return
+    for key in ("cruise_pct", "turn_pct", "min_speed_pct"):
         pct = getattr(nav, key)
         if pct < failsafe.stuck_min_pct:
             raise ConfigError(
                 f"navigation.{key}: must be >= failsafe.stuck_min_pct "
-                f"({failsafe.stuck_min_pct:g} %), else a robot that does not move at that "
-                f"drive is never found stuck; got {pct:g}"
+                f"({failsafe.stuck_min_pct:g} %) while the stuck check is on (failsafe.stuck_s"
+                f" > 0), else a robot that does not move at that drive is never found stuck;"
+                f" got {pct:g}"
             )
 
 
@@ -472,6 +480,14 @@ def scenario_candidates(scenario: str, config_dir: Path | None) -> list[Path]:
     return [d / path for d in dirs]
 
 
+def path_is_file(path: Path) -> bool:
+    """``path.is_file()``, False where the OS refuses the name itself (over 255 bytes, ...)."""
+    try:
+        return path.is_file()
+    except OSError:
+        return False
+
+
 def _uses_world(cfg: Config) -> bool:
     """Whether a device URL is ``sim://``: the simulated world, built from the scenario."""
     return any(
@@ -533,7 +549,7 @@ def load(path: str | Path) -> Config:
     # not depend on the working directory. Not found while sim:// devices need it: the
     # error lists every path tried, in order.
     tried = scenario_candidates(cfg.sim.scenario, p.parent)
-    found = next((c for c in tried if c.is_file()), None)
+    found = next((c for c in tried if path_is_file(c)), None)
     if found is not None:
         sim = dataclasses.replace(cfg.sim, scenario=str(found.resolve()))
         return dataclasses.replace(cfg, sim=sim)
