@@ -561,3 +561,20 @@ def test_a_csv_field_over_the_csv_modules_limit_is_a_parse_error() -> None:
     rows = "".join(f"{51 + i * 1e-5},-1\n" for i in range(mission_files.MAX_WAYPOINTS + 500))
     with pytest.raises(ParseError, match=r"more than 10000 waypoints"):
         mission_files.parse_csv(rows, "huge.csv")
+
+
+def test_gpx_waypoints_beside_a_track_without_a_route_are_refused() -> None:
+    """A handheld's export (the day's track and a mark) was read as the mark alone, the track
+    dropped silently (a second outside check): without a route, which is the path is the
+    user's to say."""
+    marked = _gpx('<wpt lat="51.753" lon="-1.258"><name>001</name></wpt>' + _trk((53.1, 53.2)))
+    with pytest.raises(
+        ParseError,
+        match="^w.gpx: "
+        + _re("1 point as <wpt> and a <trk> of 2 points, no <rte>: x6wd drives one path"),
+    ):
+        mission_files.parse_gpx(marked, "w.gpx")
+    # an empty track beside the marks is no path: the marks are read
+    assert mission_files.parse_gpx(_gpx('<wpt lat="51.1" lon="-1.1"/>' + _trk(()))) == [
+        (51.1, -1.1)
+    ]

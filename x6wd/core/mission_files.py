@@ -154,9 +154,11 @@ def _local(tag: str) -> str:
 
 
 def parse_gpx(text: str, source: str = "GPX") -> list[Waypoint]:
-    """Waypoints from GPX 1.0/1.1 text: the route's ``<rtept>`` if it has a route, else every
-    ``<wpt>``, else the track's ``<trkpt>`` (all its ``<trkseg>`` in order: a track split
-    where the receiver lost its fix is still one track).
+    """Waypoints from GPX 1.0/1.1 text: the route's ``<rtept>`` if it has a route (the
+    ``<wpt>`` beside it are its points of interest), else every ``<wpt>``, else the track's
+    ``<trkpt>`` (all its ``<trkseg>`` in order: a track split where the receiver lost its fix
+    is still one track). Waypoints and a track without a route are refused: which is the
+    path is the user's to say.
 
     Routes and tracks without points are ignored. Two routes with points, or two tracks, are
     refused with their names and sizes: x6wd drives one path, and reading only the first
@@ -197,6 +199,12 @@ def parse_gpx(text: str, source: str = "GPX") -> list[Waypoint]:
         kind = "rtept"
     elif elems := [e for e in root if _local(e.tag) == "wpt"]:
         kind = "wpt"
+        if track := path("trk", "track", "trkpt"):  # a handheld's marks beside its track
+            raise ParseError(
+                f"{source}: {_points(len(elems))} as <wpt> and a <trk> of "
+                f"{_points(len(track))}, no <rte>: x6wd drives one path: delete the waypoints "
+                "or the track from the file, or make the path a route"
+            )
     elif elems := path("trk", "track", "trkpt"):
         kind = "trkpt"
     else:
