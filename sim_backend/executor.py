@@ -43,6 +43,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, TextIO
+from urllib.parse import urlsplit
 
 from x6wd.core.errors import ConfigError
 
@@ -112,6 +113,18 @@ def probe_scheduler(address: str, timeout_s: float) -> None:
     except ImportError as exc:
         raise ConfigError(f"a Dask cluster needs {INSTALL_HINT}: {exc}") from exc
 
+    scheme, sep, rest = address.partition("://")
+    if sep and scheme.lower() not in ("tcp", "tls"):  # ucx://, inproc:// ...: not a cluster's
+        raise ConfigError(
+            f"scheduler {address}: protocol {scheme!r} not supported (expected tcp://HOST:PORT"
+            " or tls://HOST:PORT)"
+        )
+    try:
+        port = urlsplit(f"//{rest if sep else address}").port
+    except ValueError as exc:  # a port out of 0..65535, or not a number
+        raise ConfigError(f"scheduler {address}: {exc} (expected tcp://HOST:PORT)") from None
+    if port == 0:
+        raise ConfigError(f"scheduler {address}: port 0 (expected tcp://HOST:PORT)")
     try:
         resolved = resolve_address(address)
     except ValueError as exc:
@@ -120,6 +133,8 @@ def probe_scheduler(address: str, timeout_s: float) -> None:
         raise ConfigError(
             f"scheduler {address}: cannot resolve its host: {exc.strerror or exc}"
         ) from None
+    except Exception as exc:  # whatever else distributed's parser meets: a clear refusal
+        raise ConfigError(f"scheduler {address}: {exc} (expected tcp://HOST:PORT)") from None
 
     async def identity() -> Any:
         comm = await connect(resolved, timeout=timeout_s)

@@ -837,6 +837,11 @@ BAD_SCHEDULERS = [
     # a host no resolver knows: socket.gaierror, a traceback and exit 1
     "tcp://nosuchhost.invalid:18786",
     "tcp://256.1.1.1:8786",
+    # a protocol no cluster listens on (ucx: a traceback, exit 1), a port out of range
+    # (30 s of waiting, then 'cannot reach ... TimeoutError')
+    "ucx://127.0.0.1:18201",
+    "inproc://x",
+    "tcp://127.0.0.1:99999",
 ]
 
 
@@ -847,7 +852,9 @@ def test_a_malformed_scheduler_address_is_exit_2(
     from x6wd.app.cli import main
 
     f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n")
+    t0 = time.monotonic()
     assert main(["sweep", str(f), "--scheduler", address, "--out", str(tmp_path / "o")]) == 2
+    assert time.monotonic() - t0 < 15  # named at once, not after the connect timeout
     err = capsys.readouterr().err
     assert "scheduler" in err and address.split("://")[-1] in err, err
     assert "Traceback" not in err
