@@ -578,8 +578,9 @@ def check_out_dir(spec: SweepSpec, out_dir: str | Path) -> None:
         raise ConfigError(
             f"output directory {str(out_dir)!r} holds the results of another sweep:"
             f" {theirs[0]!r} seed {theirs[1]} (from {data.get('source') or '?'}), not"
-            f" {spec.name!r} seed {spec.seed}; choose another --out, or remove that folder"
-            " to replace them"
+            f" {spec.name!r} seed {spec.seed}; choose another --out, remove that folder to"
+            f" replace them, or (the same sweep renamed) give the file name = {theirs[0]!r}"
+            f" and seed = {theirs[1]} back to go on with them"
         )
 
 

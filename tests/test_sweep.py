@@ -753,6 +753,7 @@ def test_an_out_folder_of_another_sweep_is_refused(
         err = capsys.readouterr().err
         assert f"output directory {str(out)!r} holds the results of another sweep:" in err
         assert f"'test' seed 7 (from {a})" in err and named in err, err
+        assert "give the file name = 'test' and seed = 7 back to go on with them" in err
         with Executor(inline=True) as ex, pytest.raises(ConfigError, match="another sweep"):
             run_sweep(load_sweep(other), out, ex)
     assert {p: p.read_bytes() for p in before} == before
