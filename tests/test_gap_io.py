@@ -191,6 +191,41 @@ def test_repeated_fixes_are_dropped_and_real_outages_stay(tmp_path: Path) -> Non
     assert any("1 epochs repeating a time stamp with another fix dropped" in n for n in track.notes)
 
 
+def test_re_timing_never_fills_a_real_outage_far_from_a_repeat(tmp_path: Path) -> None:
+    """One extra fix at 100 s filled a real 1 s outage at 400 s by shifting the 300 rows
+    between them (a second outside check): an empty slot beyond MAX_RETIME_REACH of every
+    repeat is an outage, and the extra fix is dropped instead."""
+    t0 = _utc_s("2020-01-01T12:00:00")
+    stamps = [t0 + k for k in range(600) if k != 400]
+    stamps.insert(100, t0 + 100)  # a second, distinct fix under the 100 s stamp
+    track = read_track(_csv_log(tmp_path / "far.csv", stamps))
+    assert len(track) == 600 and int(np.count_nonzero(~track.valid)) == 1
+    assert not track.valid[400]
+    assert any("dropped: no empty slot within 5 steps" in n for n in track.notes), track.notes
+
+
+def test_a_log_of_several_rows_per_epoch_keeps_its_outages_and_fullest_rows(
+    tmp_path: Path,
+) -> None:
+    """Every epoch logged as two different rows (one per sentence: RMC without altitude,
+    GGA with it): each outage was filled by a neighbour's copy moved a step, and the
+    altitude mostly lost. Nothing is re-timed then; each stamp keeps its fullest row."""
+    t0 = _utc_s("2020-01-01T12:00:00")
+    outages = {50, 51, 120, 300}
+    lines = [b"time,lat,lon,alt\n"]
+    for k in range(400):
+        if k in outages:
+            continue
+        lat = f"{51.75 + k * 1e-6:.9f}"
+        lines.append(f"{t0 + k:.3f},{lat},-1.257,\n".encode())  # the RMC row: no altitude
+        lines.append(f"{t0 + k:.3f},{lat},-1.257,{60 + k * 0.01:.2f}\n".encode())
+    track = read_track(_write(tmp_path / "doubled.csv", lines))
+    assert len(track) == 400
+    assert set(np.flatnonzero(~track.valid).tolist()) == outages
+    assert bool(np.all(np.isfinite(track.alt_m[track.valid])))
+    assert any("each stamp keeps its most complete row" in n for n in track.notes)
+
+
 def test_f9p_csv_with_a_host_clock_keeps_its_fixes() -> None:
     # static/mobile.csv: gpsd's TIME column in whole seconds, 1406 rows over 1405 s with
     # 341 repeated stamps and 340 empty seconds. Read as 75.8 % availability before.
