@@ -35,7 +35,9 @@ def null_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, Path]:
         check=True, capture_output=True, timeout=300,
     )  # fmt: skip
     out = tmp_path_factory.mktemp("report")
-    (out / "calibrated.toml").write_text('[[effects]]\nname = "bias"\neast_m = 1.0\n')
+    (out / "calibrated.toml").write_text(
+        '# x6wd gap: fitted effects (x), then the level calibration\n[[effects]]\nname = "bias"\n'
+    )
     done = subprocess.run(
         [sys.executable, "-m", "x6wd", "gap", "--real", str(sim / "gps.nmea"), "--scenario",
          str(SCENARIO), "--seeds", "3", "--out", str(out), "--quiet", "--no-figures"],
@@ -105,3 +107,16 @@ def test_the_header_of_a_null_of_runs_and_of_few_logs(tmp_path: Path) -> None:
         assert not d.significant and d.calibration is None
         write_report(d, tmp_path, figures=False)
         assert text in (tmp_path / "report.md").read_text()
+
+
+def test_a_calibrated_toml_the_tool_did_not_write_is_kept(tmp_path: Path) -> None:
+    """Only an earlier run's file is removed on a log without a gap: a user's own
+    hand-tuned calibrated.toml went too, unsaid (a second outside check)."""
+    from x6wd.gap.report import remove_earlier_calibration
+
+    mine = tmp_path / "calibrated.toml"
+    mine.write_text("# my own hand-tuned calibration, keep\n")
+    assert not remove_earlier_calibration(tmp_path) and mine.exists()
+    mine.write_text("# x6wd gap: fitted effects (bias), then the level calibration\n")
+    assert remove_earlier_calibration(tmp_path) and not mine.exists()
+    assert not remove_earlier_calibration(tmp_path)  # none: nothing to do

@@ -100,8 +100,12 @@ def test_what_is_taken_from_the_log_and_what_is_not() -> None:
     assert len(notes) == 1 and "altitude 123 m (--truth's altitude)" in notes[0]  # no sky warning
     # a log without a date (a receive clock) keeps the scenario's, and says what that means;
     # an altitude no origin takes (a bad column) or none keeps the scenario's
-    for alt_m in (math.nan, 1e6):
+    for alt_m, said in (
+        (math.nan, "altitude 60 m (the scenario's; the log gives none)"),
+        (1e6, "altitude 60 m (the scenario's: the real log's mean altitude, 1000000 m, is"
+         " outside -500..9000 m)"),
+    ):  # fmt: skip
         world, (note,) = place_at_log(scenario, _template(), None, alt_m)
         assert world.start_utc == scenario.start_utc and world.origin.alt_m == 60.0
         assert "2020-01-01 12:00:00Z, the scenario's start_utc: the real log has no date" in note
-        assert "altitude 60 m (the scenario's; the log gives none)" in note
+        assert said in note, note

@@ -44,6 +44,23 @@ def _toml_value(v: Any) -> str:
 ZONE_POINTS = ("x1_m", "y1_m", "x2_m", "y2_m")
 
 
+_OUR_HEADER = "# x6wd gap:"  # the first words of every TOML file this tool writes
+
+
+def remove_earlier_calibration(out: Path) -> bool:
+    """Remove an earlier run's ``calibrated.toml`` from ``out`` (a log without a significant
+    gap gets none, and a left one would read as this log's); True if one was removed. A file
+    of that name this tool did not write (its first line is not ours) is the user's: kept."""
+    stale = out / "calibrated.toml"
+    if not stale.is_file():
+        return False
+    with open(stale, encoding="utf-8", errors="replace") as f:
+        ours = f.read(len(_OUR_HEADER)) == _OUR_HEADER
+    if ours:
+        stale.unlink()
+    return ours
+
+
 def effects_toml(
     diagnosis: Diagnosis,
     compass: CompassDiagnosis | None = None,
@@ -59,13 +76,13 @@ def effects_toml(
     if calibrated and diagnosis.calibration is not None:
         gps += diagnosis.calibration.layers
         lines = [
-            f"# x6wd gap: fitted effects ({verdict_text(diagnosis)}), then the level calibration",
+            f"{_OUR_HEADER} fitted effects ({verdict_text(diagnosis)}), then the level calibration",
             "# (in sample: fitted to seed 000's validation figures on this very log, see",
             '# report.md); use it INSTEAD of effects.toml: include = ["calibrated.toml"]',
         ]
     else:
         lines = [
-            f"# x6wd gap: fitted effects ({verdict_text(diagnosis)})",
+            f"{_OUR_HEADER} fitted effects ({verdict_text(diagnosis)})",
             '# merge into a scenario: include = ["effects.toml"]',
         ]
     if compass is not None:
@@ -152,9 +169,7 @@ def write_report(
             json.dumps(validation_dict(diagnosis.calibration), indent=2) + "\n"
         )
     elif diagnosis.validation is not None:
-        # no significant gap: no calibration, so no calibrated.toml (not even an earlier
-        # run's left in this directory, which would read as this log's)
-        (out / "calibrated.toml").unlink(missing_ok=True)
+        remove_earlier_calibration(out)
         (out / "validation.json").write_text(
             json.dumps(uncalibrated_dict(diagnosis.validation), indent=2) + "\n"
         )

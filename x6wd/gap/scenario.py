@@ -60,6 +60,11 @@ def place_at_log(
     if math.isfinite(alt_m) and lo_m <= alt_m <= hi_m:
         origin = replace(origin, alt_m=float(alt_m))
         alt_text = f"{alt_m:.0f} m ({alt_from})"
+    elif math.isfinite(alt_m):
+        alt_text = (
+            f"{origin.alt_m:.0f} m (the scenario's: {alt_from}, {alt_m:.0f} m, is outside"
+            f" {lo_m:.0f}..{hi_m:.0f} m)"
+        )
     else:
         alt_text = f"{origin.alt_m:.0f} m (the scenario's; the log gives none)"
     if start_utc_s is not None:
