@@ -583,6 +583,13 @@ def test_a_constant_offset_between_a_log_and_its_truth_is_noticed(tmp_path: Path
     late = [(t + 5.0, lat, lon) for t, lat, lon in rows[150:450]]  # a clock 5 s ahead
     note = time_offset_note(read_track(_write(tmp_path / "late.nmea", _nmea_of(late))), truth)
     assert note is not None and "5 s earlier" in note and "as stamped" in note
+    assert "the two clocks differ by a constant" in note
+    # one second is as much the receiver's latency (an effect the tool fits) as a clock: the
+    # note said 'correct the times', which would remove what the tool should diagnose
+    lag = [(t + 1.0, lat, lon) for t, lat, lon in rows[150:450]]
+    note = time_offset_note(read_track(_write(tmp_path / "lag.nmea", _nmea_of(lag))), truth)
+    assert note is not None and "a receiver latency of about a second" in note
+    assert "correct the" not in note
     on_time = [(t, lat, lon) for t, lat, lon in rows[150:450]]
     assert (
         time_offset_note(read_track(_write(tmp_path / "ok.nmea", _nmea_of(on_time))), truth) is None

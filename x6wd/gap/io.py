@@ -1006,12 +1006,20 @@ def time_offset_note(track: Track, truth: Track, max_gap_s: float = 1.5) -> str 
     stamped_m, best_m = distance_m[0], distance_m[best]
     if best == 0 or not math.isfinite(best_m) or not best_m < 0.5 * stamped_m:
         return None
-    return (
+    head = (
         f"{track.source} lines up with the truth track {truth.source} best with its time"
         f" stamps {abs(best)} s {'earlier' if best > 0 else 'later'} (median distance"
-        f" {best_m:.1f} m, against {stamped_m:.1f} m as stamped): the two clocks differ by a"
-        " constant (a time system: GPS-UTC is 18 s since 2017; a time zone; a logger's"
-        " clock). The errors are taken as stamped: correct the log's or the truth's times"
+        f" {best_m:.1f} m, against {stamped_m:.1f} m as stamped)"
+    )
+    if abs(best) == 1:  # as much a receiver's output latency (an effect fitted) as a clock
+        return (
+            f"{head}: a receiver latency of about a second (the latency effect measures it)"
+            " or clocks 1 s apart; the errors are taken as stamped"
+        )
+    return (
+        f"{head}: the two clocks differ by a constant (a time system: GPS-UTC is 18 s since"
+        " 2017; a time zone; a logger's clock). The errors are taken as stamped: correct the"
+        " log's or the truth's times"
     )
 
 
