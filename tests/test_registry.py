@@ -318,8 +318,10 @@ def test_gpsd_device_path_from_url() -> None:
     assert device_path("not a url") == ("not a url", 9600)
 
 
-# Files that take web addresses apart (a page's Origin, a tile URL), never device URLs.
-WEB_ADDRESSES = {"x6wd/app/console/server.py"}
+# Files that take other addresses apart, never device URLs: the console (a page's Origin,
+# a tile URL), the configuration (console.tile_url's check), the sweep executor (a Dask
+# scheduler's tcp:// address).
+WEB_ADDRESSES = {"x6wd/app/console/server.py", "x6wd/core/config.py", "sim_backend/executor.py"}
 
 
 def test_only_the_registry_takes_device_urls_apart() -> None:
