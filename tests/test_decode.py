@@ -111,20 +111,13 @@ def test_recording_decodes_like_the_raw_log(
     rec_path.write_bytes(b"".join(torn) + b'{"bad json\n')
     code, _out, err = _run(capsys, str(rec_path))
     assert code == 0 and err.endswith(f" bad_recording_lines={n_torn + 1}\n"), err
-    proc = subprocess.run(
-        [sys.executable, "-m", "x6wd", "decode", "-"],
-        input=rec_path.read_bytes(),
-        capture_output=True,
-        cwd=ROOT,
-        timeout=60,
-        check=False,
-    )
+    proc = decode_stdin(rec_path.read_bytes())
     assert proc.returncode == 0 and f" bad_recording_lines={n_torn + 1}\n" in proc.stderr.decode()
 
 
-def test_stdin_dash_and_binary_tolerated(tmp_path: Path) -> None:
-    data = (NMEA_DIR / "quectel-l76k-dual.log").read_bytes()
-    proc = subprocess.run(
+def decode_stdin(data: bytes) -> subprocess.CompletedProcess[bytes]:
+    """``x6wd decode -`` as a process, ``data`` on its standard input."""
+    return subprocess.run(
         [sys.executable, "-m", "x6wd", "decode", "-"],
         input=data,
         capture_output=True,
@@ -132,6 +125,10 @@ def test_stdin_dash_and_binary_tolerated(tmp_path: Path) -> None:
         timeout=60,
         check=False,
     )
+
+
+def test_stdin_dash_and_binary_tolerated(tmp_path: Path) -> None:
+    proc = decode_stdin((NMEA_DIR / "quectel-l76k-dual.log").read_bytes())
     assert proc.returncode == 0, proc.stderr
     objs = [json.loads(x) for x in proc.stdout.decode().splitlines()]
     assert sum(o["class"] == "TPV" for o in objs) >= 100
@@ -155,14 +152,7 @@ def test_gpspipe_r_capture_is_nmea_not_a_recording(
     code_ref, ref, _ = _run(capsys, str(nmea_only))
     assert code == code_ref == 0 and "bad_recording_lines" not in err
     assert lines == ref and sum('"class":"TPV"' in x for x in lines) >= 8
-    proc = subprocess.run(
-        [sys.executable, "-m", "x6wd", "decode", "-"],
-        input=data,
-        capture_output=True,
-        cwd=ROOT,
-        timeout=60,
-        check=False,
-    )
+    proc = decode_stdin(data)
     assert proc.returncode == 0 and proc.stdout.decode().splitlines() == ref
 
 

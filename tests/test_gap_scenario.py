@@ -23,9 +23,8 @@ SCENARIO = ROOT / "config" / "scenarios" / "open_field.toml"  # 2020-01-01 12:00
 SKYTRAQ = ROOT / "tests" / "data" / "nmea" / "skytraq-dgps.log"  # 2016-04-07, Bend OR
 
 
-def test_the_runs_simulate_the_real_logs_date_and_height(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def worlds_built(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
+    """The list each scenario run's world is appended to as its receiver is built."""
     import sim_backend.receiver as receiver
 
     seen: list[Any] = []
@@ -36,6 +35,13 @@ def test_the_runs_simulate_the_real_logs_date_and_height(
         return build(world, seed, **kwargs)
 
     monkeypatch.setattr(receiver, "build_receiver", recording_build)
+    return seen
+
+
+def test_the_runs_simulate_the_real_logs_date_and_height(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    seen = worlds_built(monkeypatch)
     out = tmp_path / "report"
     argv = ["gap", "--real", str(SKYTRAQ), "--scenario", str(SCENARIO), "--seeds", "1"]
     assert (
@@ -59,16 +65,7 @@ def test_without_a_scenario_the_packaged_open_field_is_the_baseline(
 ) -> None:
     """A first report needs no scenario file: the open-field scenario, at the log's place
     and date, said in the report (it was an argparse error)."""
-    import sim_backend.receiver as receiver
-
-    seen: list[Any] = []
-    build = receiver.build_receiver
-
-    def recording_build(world: Any, seed: int, **kwargs: Any) -> Any:
-        seen.append(world)
-        return build(world, seed, **kwargs)
-
-    monkeypatch.setattr(receiver, "build_receiver", recording_build)
+    seen = worlds_built(monkeypatch)
     out = tmp_path / "report"
     argv = ["gap", "--real", str(SKYTRAQ), "--seeds", "1", "--replicates", "3"]
     assert x6wd_main([*argv, "--no-figures", "--quiet", "--out", str(out)]) == 0
