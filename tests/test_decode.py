@@ -158,7 +158,7 @@ def test_gpspipe_r_capture_is_nmea_not_a_recording(
 
 def test_missing_file_reported_and_others_decoded(capsys: pytest.CaptureFixture[str]) -> None:
     code, lines, err = _run(capsys, "/nonexistent/x.log", str(LEA5H), "--no-sky")
-    assert code == 1
+    assert code == 2
     assert "cannot open /nonexistent/x.log" in err
     assert lines and all(json.loads(x)["class"] == "TPV" for x in lines)
 

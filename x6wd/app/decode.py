@@ -1884,8 +1884,9 @@ def _main(args: argparse.Namespace) -> int:
                 sys.stdout = open(os.devnull, "w")  # noqa: SIM115
             return status
         except DeviceUnavailable as exc:
+            # Exit 2 like every other subcommand's unreadable input; the other files still go.
             print(f"x6wd decode: {exc}", file=sys.stderr)
-            status = 1
+            status = 2
             continue
         sys.stdout.flush()
         if not args.quiet:
