@@ -1,0 +1,82 @@
+"""The console's brake and what the page shows, as an outside audit of the console found
+them wanting: the real daemon (``sim://`` devices) behind a token, its console on 127.0.0.1,
+Debian's headless chromium (helpers from tests/test_console.py)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+from selenium import webdriver
+from selenium.webdriver.common.action_chains import ActionChains
+from selenium.webdriver.common.by import By
+from selenium.webdriver.common.keys import Keys
+
+from tests.test_console import (
+    TOKEN,
+    chromium,
+    console_config,
+    daemon_with,
+    js,
+    open_page,
+    vehicle_pct,
+)
+from tests.test_daemon import Running, wait_for
+from x6wd.app.client import RemoteClient
+
+pytestmark = pytest.mark.integration
+
+
+@pytest.fixture(scope="module")
+def guarded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
+    """One HIL daemon whose console needs the token."""
+    with daemon_with(console_config(tmp_path_factory.mktemp("guarded"), token=True)) as r:
+        yield r
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriver.Chrome]:
+    d = chromium(tmp_path_factory.mktemp("browser"))
+    try:
+        yield d
+    finally:
+        d.quit()
+
+
+def driving(r: Running) -> RemoteClient:
+    """A control-port client (kept open: its drive would stop with it) driving for 4 s."""
+    c = RemoteClient("127.0.0.1", r.port, token=TOKEN)
+    c.request("drive", left=30, right=30, duration_s=4.0)
+    wait_for(lambda: vehicle_pct(r)[0] > 0.0, 5, "the robot driving")
+    return c
+
+
+def stopped_within(r: Running, seconds: float, what: str) -> None:
+    """The motors stop within ``seconds`` (the drive would last 4 s)."""
+    wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), seconds, what)
+
+
+def test_stop_is_clickable_and_the_space_bar_stops_while_the_token_is_asked_for(
+    guarded: Running, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: the token box (fixed, inset 0) covered the STOP button
+    # while the server accepts stop before auth.
+    js(browser, "sessionStorage.clear()")
+    open_page(browser, guarded)
+    wait_for(lambda: browser.find_element(By.ID, "login").is_displayed(), 10, "the token box")
+    assert js(browser, "return document.activeElement.id") == "token-input"
+    with driving(guarded) as c:
+        # a real click: Selenium refuses one that another element would take
+        browser.find_element(By.ID, "btn-stop").click()
+        stopped_within(guarded, 1.5, "stopped by STOP under the token box")
+        # in the token field a space is text; out of it (Tab: the Connect button) it stops
+        c.request("drive", left=30, right=30, duration_s=4.0)
+        wait_for(lambda: vehicle_pct(guarded)[0] > 0.0, 5, "driving again")
+        browser.find_element(By.ID, "token-input").click()
+        ActionChains(browser).send_keys(Keys.SPACE).perform()
+        assert js(browser, "return document.getElementById('token-input').value") == " "
+        assert vehicle_pct(guarded)[0] > 0.0
+        ActionChains(browser).send_keys(Keys.TAB).perform()
+        assert js(browser, "return document.activeElement.id") != "token-input"
+        ActionChains(browser).send_keys(Keys.SPACE).perform()
+        stopped_within(guarded, 1.5, "stopped by the space bar beside the token box")
