@@ -4,6 +4,8 @@ Debian's headless chromium (helpers from tests/test_console.py)."""
 
 from __future__ import annotations
 
+import asyncio
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -20,6 +22,7 @@ from tests.test_console import (
     js,
     open_page,
     vehicle_pct,
+    ws_to,
 )
 from tests.test_daemon import Running, wait_for
 from x6wd.app.client import RemoteClient
@@ -80,3 +83,24 @@ def test_stop_is_clickable_and_the_space_bar_stops_while_the_token_is_asked_for(
         assert js(browser, "return document.activeElement.id") != "token-input"
         ActionChains(browser).send_keys(Keys.SPACE).perform()
         stopped_within(guarded, 1.5, "stopped by the space bar beside the token box")
+
+
+def test_a_stop_sent_during_the_auth_back_off_is_obeyed_at_once(guarded: Running) -> None:
+    # Found by an outside check: the page's read loop slept out the back-off after a wrong
+    # token (2 s after the second) before it read the stop behind it.
+    async def program() -> None:
+        async with ws_to(guarded) as w:
+            assert (await w.request("auth", token="wrong-1"))["error"]["code"] == "auth_failed"
+            await asyncio.sleep(1.1)  # the first back-off (auth_fail_delay_s, 1 s)
+            assert (await w.request("auth", token="wrong-2"))["error"]["code"] == "auth_failed"
+            with driving(guarded):  # meanwhile, from the control port
+                t0 = time.monotonic()
+                w.n += 1
+                await w.ws.send_json({"id": w.n, "cmd": "stop"})  # in the 2 s back-off
+                while vehicle_pct(guarded) != (0.0, 0.0):
+                    assert time.monotonic() - t0 < 0.5, "the stop waited"
+                    await asyncio.sleep(0.01)
+                reply = await asyncio.wait_for(w.ws.receive_json(), 5)  # answered in turn
+                assert reply["id"] == w.n and reply["ok"] and time.monotonic() - t0 > 1.0
+
+    asyncio.run(program())

@@ -429,6 +429,25 @@ def test_a_flood_is_read_at_the_input_rate_and_a_stop_in_it_goes_out_at_once(ser
         raw.close()
 
 
+def test_a_stop_sent_during_the_auth_back_off_goes_out_at_once(servers) -> None:
+    # Found by an outside check: the stops in a client's input were looked for only before
+    # its back-off began, so one arriving during it waited the back-off out (2 s here).
+    backend = StampedBackend()
+    srv = servers(backend, auth_fail_delay_s=2.0)
+    raw = Raw(srv.port)
+    try:
+        assert raw.ask({"id": 1, "cmd": "auth", "token": "wrong"})["error"]["code"] == "auth_failed"
+        t0 = time.monotonic()
+        raw.send(line({"id": 2, "cmd": "stop"}))  # during the 2 s back-off
+        wait_until(lambda: backend.stamps, 1.0)
+        assert backend.stamps[0][0] - t0 < 0.3 and backend.stamps[0][1] == "stop"
+        assert srv.stops["early"] == 1
+        reply = raw.line()  # answered in order, when the back-off ends
+        assert reply["id"] == 2 and reply["ok"] and time.monotonic() - t0 > 1.5
+    finally:
+        raw.close()
+
+
 # -- framing ---------------------------------------------------------------------------------
 def test_no_line_layout_leaves_a_request_unanswered(servers) -> None:
     srv = servers(token=None, rate_per_s=1e6, max_line_bytes=256)

@@ -530,8 +530,8 @@ class ControlServer(LineServer[_Client]):
             budget.level -= len(chunk)
             if budget.level < 0:
                 # a flood: stop reading this client for a while (only it waits)
-                scanned = self._early_stops(buf, scanned, discarding)
-                await self._nap(c, -budget.level / rate)
+                nap = -budget.level / rate
+                scanned = await self._nap_reading(reader, c, buf, scanned, discarding, budget, nap)
             while not c.closed:
                 nl = buf.find(b"\n")
                 if nl < 0:
@@ -579,13 +579,42 @@ class ControlServer(LineServer[_Client]):
                     wait = self._fault_wait(c)
                 wait, c.backoff_s = max(wait, c.backoff_s), 0.0
                 if wait > 0.0:
-                    scanned = self._early_stops(buf, scanned, discarding)
-                    await self._nap(c, wait)
+                    scanned = await self._nap_reading(
+                        reader, c, buf, scanned, discarding, budget, wait
+                    )
             while len(c.replies) > MAX_PENDING_REPLIES and not c.closed:
                 # a client that asks without reading waits here, alone
                 scanned = self._early_stops(buf, scanned, discarding)
                 c.drained.clear()
                 await c.drained.wait()
+
+    async def _nap_reading(
+        self, reader: asyncio.StreamReader, c: _Client, buf: bytearray, scanned: int,
+        discarding: bool, budget: _Bucket, seconds: float,
+    ) -> int:  # fmt: skip
+        """Sleep out a client's back-off while still reading its input into ``buf`` (charged to
+        its input ``budget``; at most ``2 * max_line_bytes`` held): a stop that arrives
+        meanwhile goes to the motors at once, not when the back-off ends. Returns how far
+        ``buf`` has been searched for stops."""
+        scanned = self._early_stops(buf, scanned, discarding)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + seconds
+        c.napping = True  # an eviction cancels the handler, as in _nap
+        try:
+            while (left := deadline - loop.time()) > 0.0:
+                if reader.at_eof() or len(buf) >= 2 * self.config.max_line_bytes:
+                    await asyncio.sleep(left)  # held back: the rest waits in the kernel
+                    break
+                try:  # a read cancelled by the timeout loses nothing: its data stays queued
+                    chunk = await asyncio.wait_for(reader.read(65536), left)
+                except TimeoutError:
+                    break
+                buf += chunk
+                budget.level -= len(chunk)
+                scanned = self._early_stops(buf, scanned, discarding)
+        finally:
+            c.napping = False
+        return scanned
 
     def _early_stops(self, buf: bytearray, scanned: int, discarding: bool) -> int:
         """Before a client waits out its own back-off, send the stops already in its input to
@@ -601,16 +630,28 @@ class ControlServer(LineServer[_Client]):
             if scanned == 0 and discarding:
                 lines = lines[1:]  # the tail of an oversized line
             for line in lines:
-                if b"stop" not in line or len(line) > self.config.max_line_bytes:
-                    continue
-                try:
-                    req = parse_request(line)
-                except _Reject:
-                    continue
-                if req.get("cmd") == "stop":
-                    self.stops["early"] += 1
-                    self._fire_stop()
+                if len(line) <= self.config.max_line_bytes:
+                    self._early_stop(line)
         return end
+
+    def _early_stop(self, line: bytes) -> None:
+        """Send a ``stop`` request line to the backend at once (anything else: nothing)."""
+        if b"stop" not in line:
+            return
+        try:
+            req = parse_request(line)
+        except _Reject:
+            return
+        if req.get("cmd") == "stop":
+            self.stops["early"] += 1
+            self._fire_stop()
+
+    def early_stop(self, c: _Client, line: bytes) -> None:
+        """A detached client's request line that arrived while its transport was still busy
+        with an earlier one or its back-off: a ``stop`` goes to the backend now, as on the
+        TCP port (it is still answered in turn, through :meth:`request`)."""
+        if not c.watch_only:  # a watch-only client's stop is refused, early or not
+            self._early_stop(line)
 
     def _fault_wait(self, c: _Client) -> float:
         """Charge one error reply to the client's fault bucket; seconds to wait before its

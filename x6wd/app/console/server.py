@@ -107,6 +107,9 @@ class _Page:
     map_sent: Any = None
     transport: Any = None  # its connection's (kept open when connections are capped)
     clock_offset_s: float = math.inf  # min(arrival - page's sent_ms) so far: see _late_s
+    busy: bool = False  # a request of it is being handled or sleeps out its back-off
+    held: int = 0  # bytes of its messages read, not handled yet
+    room: asyncio.Event = field(default_factory=asyncio.Event)  # held went down
 
 
 CONNECTION_SLACK = 16
@@ -451,27 +454,66 @@ class ConsoleServer:
         }
 
     async def _read_loop(self, page: _Page) -> None:
-        ws, c = page.ws, page.client
-        async for msg in ws:
-            if msg.type == WSMsgType.BINARY:
-                line = bytes(msg.data)
-            elif msg.type == WSMsgType.TEXT:
-                line = str(msg.data).encode("utf-8", "surrogatepass")
-            else:
-                break  # an error or a close
-            was_authenticated = c.authenticated
-            reply, wait_s = await self._request(page, line)
-            self._reply(page, reply)
-            if c.authenticated and not was_authenticated:
-                self._authenticated(page)
-            if c.close_reason:
-                notice = error_reply(None, "closed", "too many failed authentications")
-                notice["error"]["reason"] = c.close_reason
-                self._reply(page, notice)
-                await asyncio.sleep(0.1)  # let the sender write the reply and the notice
-                return
-            if wait_s > 0.0:
-                await asyncio.sleep(wait_s)  # only this page waits (aiohttp queues its input)
+        """The page's requests in order, each after the back-off of the one before; its
+        messages are read meanwhile (:meth:`_receive`), so a stop is obeyed on arrival."""
+        inbox: asyncio.Queue[bytes | None] = asyncio.Queue()
+        receiver = asyncio.create_task(self._receive(page, inbox))
+        try:
+            while True:
+                page.busy = False
+                line = await inbox.get()
+                if line is None:
+                    return
+                page.busy = True
+                page.held -= len(line)
+                page.room.set()
+                if not await self._handle(page, line):
+                    return
+        finally:
+            receiver.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await receiver
+
+    async def _receive(self, page: _Page, inbox: asyncio.Queue[bytes | None]) -> None:
+        """Every message of the page into ``inbox`` (None: the page closed), at most
+        ``max_message_bytes`` held. One that arrives while an earlier request is handled or
+        sleeps out its back-off (seconds after a wrong token) is a ``stop`` sent to the
+        motors now; its reply still comes in turn."""
+        try:
+            async for msg in page.ws:
+                if msg.type == WSMsgType.BINARY:
+                    line = bytes(msg.data)
+                elif msg.type == WSMsgType.TEXT:
+                    line = str(msg.data).encode("utf-8", "surrogatepass")
+                else:
+                    break  # an error or a close
+                if page.busy or not inbox.empty():
+                    self.control.early_stop(page.client, line)
+                page.held += len(line)
+                inbox.put_nowait(line)
+                while page.held > self.config.max_message_bytes:
+                    page.room.clear()  # held back: the rest waits in aiohttp and the kernel
+                    await page.room.wait()
+        finally:
+            inbox.put_nowait(None)
+
+    async def _handle(self, page: _Page, line: bytes) -> bool:
+        """One request: its reply, then its back-off; False: the page is to be closed."""
+        c = page.client
+        was_authenticated = c.authenticated
+        reply, wait_s = await self._request(page, line)
+        self._reply(page, reply)
+        if c.authenticated and not was_authenticated:
+            self._authenticated(page)
+        if c.close_reason:
+            notice = error_reply(None, "closed", "too many failed authentications")
+            notice["error"]["reason"] = c.close_reason
+            self._reply(page, notice)
+            await asyncio.sleep(0.1)  # let the sender write the reply and the notice
+            return False
+        if wait_s > 0.0:
+            await asyncio.sleep(wait_s)  # only this page waits (_receive reads on)
+        return True
 
     async def _request(self, page: _Page, line: bytes) -> tuple[dict[str, Any], float]:
         """One message: ``mission.parse`` here, everything else through the control server's
