@@ -104,3 +104,27 @@ def test_a_stop_sent_during_the_auth_back_off_is_obeyed_at_once(guarded: Running
                 assert reply["id"] == w.n and reply["ok"] and time.monotonic() - t0 > 1.0
 
     asyncio.run(program())
+
+
+def test_stop_and_the_space_bar_work_while_a_recording_is_shown(
+    guarded: Running, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: the recording viewer covered STOP, and a space bar pressed
+    # with the focus in its (sandboxed, cross-origin) frame never reached the page.
+    js(browser, "sessionStorage.clear()")
+    open_page(browser, guarded, f"#token={TOKEN}")
+    wait_for(lambda: js(browser, "return x6wd.authed"), 10, "the page authenticated")
+    browser.find_element(By.ID, "rec-list").click()
+    wait_for(lambda: browser.find_elements(By.CSS_SELECTOR, "#recordings button"), 10, "the list")
+    browser.find_element(By.CSS_SELECTOR, "#recordings button").click()
+    wait_for(lambda: browser.find_element(By.ID, "rec-view").is_displayed(), 20, "the viewer")
+    frame = browser.find_element(By.ID, "rec-frame")
+    with driving(guarded) as c:
+        browser.find_element(By.ID, "btn-stop").click()  # a real click: nothing covers it
+        stopped_within(guarded, 1.5, "stopped by STOP over the viewer")
+        c.request("drive", left=30, right=30, duration_s=4.0)
+        wait_for(lambda: vehicle_pct(guarded)[0] > 0.0, 5, "driving again")
+        ActionChains(browser).move_to_element(frame).click().perform()  # focus into the frame
+        ActionChains(browser).send_keys(Keys.SPACE).perform()
+        stopped_within(guarded, 1.5, "stopped by the space bar after a click in the viewer")
+    browser.find_element(By.ID, "rec-close").click()

@@ -356,6 +356,12 @@
   }
   $("rec-list").onclick = listRecordings;
   $("rec-close").onclick = () => { $("rec-view").hidden = true; $("rec-frame").srcdoc = ""; };
+  // The viewer's frame is sandboxed (another origin): a key pressed while it has the focus
+  // never reaches this page, nor does the space bar's stop. So the focus is taken back from
+  // it as soon as it gets it (a click in the frame still acts there; the wheel scrolls it).
+  window.addEventListener("blur", () => setTimeout(() => {
+    if (document.activeElement === $("rec-frame")) $("rec-view").focus();
+  }, 0));
 
   // -- manual drive and its dead-man ------------------------------------------------------------
   const DIRECTIONS = { fwd: [1, 1], back: [-1, -1], left: [-0.7, 0.7], right: [0.7, -0.7] };
