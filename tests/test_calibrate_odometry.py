@@ -279,3 +279,33 @@ def test_odometry_and_fixes_without_common_time_are_named_as_such() -> None:
             Track.from_records(c_odo, c_fix, ORIGIN),
             counts_per_rev=TRUE.counts_per_rev,
         )
+
+
+def test_a_nan_or_fractional_number_is_refused_naming_the_file_and_record(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside check: a NaN count was a traceback ("cannot convert float NaN to integer"),
+    # 1234.5 counts were truncated unmentioned, a NaN first fix named neither file nor record
+    odo, fixes = simulate(STRAIGHT[:3], 7)
+    good = write(tmp_path / "good.jsonl", odo, fixes)
+    lines = good.read_text().splitlines(keepends=True)
+    odo_at = [i for i, ln in enumerate(lines) if '"type":"odometry"' in ln]
+    fix_at = [i for i, ln in enumerate(lines) if '"type":"fix"' in ln]
+    for name, at, pattern, value, message in (
+        ("nan_count", odo_at[40], r'"left_counts":-?\d+', '"left_counts":NaN',
+         "odometry record 41 (t_mono 2.050 s): left_counts must be a whole number of counts, "
+         "got nan"),
+        ("half_count", odo_at[40], r'"right_counts":-?\d+', '"right_counts":1234.5',
+         "odometry record 41 (t_mono 2.050 s): right_counts must be a whole number of counts, "
+         "got 1234.5"),
+        ("nan_first_fix", fix_at[0], r'"lat_deg":[-\d.e]+', '"lat_deg":NaN',
+         "fix record 1 (t_mono 0.200 s): lat_deg must be finite, got nan"),
+    ):  # fmt: skip
+        bad = tmp_path / f"{name}.jsonl"
+        edited = list(lines)
+        edited[at] = re.sub(pattern, value, edited[at])
+        assert edited[at] != lines[at]
+        bad.write_text("".join(edited))
+        argv = ["calibrate", "odometry", "--straight", str(bad), "--circle", str(good)]
+        assert cli.main(argv) == 2, name
+        assert f"{bad}: {message}" in capsys.readouterr().err, name

@@ -108,16 +108,38 @@ def _numbers(*values: object, none: bool = False) -> bool:
     )
 
 
+def _bad_value(rec: WheelOdometry | GpsFix) -> str | None:
+    """What is wrong with a record's numbers that the arrays would hide, or None: a count
+    that is not a whole number (np.int64 truncates 1234.5 and fails on NaN), a time or a
+    used position that is not finite (it would poison every mean it enters)."""
+    values: dict[str, float | None] = {"t_s": rec.t_s}
+    if isinstance(rec, WheelOdometry):
+        for side in ("left_counts", "right_counts"):
+            v = getattr(rec, side)
+            if not (math.isfinite(v) and float(v).is_integer()):
+                return f"{side} must be a whole number of counts, got {v!r}"
+    elif rec.valid:  # an invalid fix's position is dropped unused
+        values |= {"lat_deg": rec.lat_deg, "lon_deg": rec.lon_deg}
+    for name, value in values.items():
+        if value is not None and not math.isfinite(value):
+            return f"{name} must be finite, got {value!r}"
+    return None
+
+
 def load_track(path: str | Path, origin: tuple[float, float] | None = None) -> Track:
     """The odometry and fix records of a recording (all its parts). Lines that are not
     records, and odometry or fix records with fields of the wrong type, are skipped and
-    counted in the track's ``skipped`` (the CLI says how many)."""
+    counted in the track's ``skipped`` (the CLI says how many). A number of the right type
+    but unusable (NaN, a fractional count) raises ParseError naming the file and record: it
+    is no torn line but a writer's fault, and skipping it would shift a pass's counts."""
     odo: list[WheelOdometry] = []
     fixes: list[GpsFix] = []
     stats = ReadStats()
     malformed = 0
+    seen = {"odometry": 0, "fix": 0}
     for rec in read_recording_parts(path, stats=stats):
-        if rec.type in ("odometry", "fix"):
+        if rec.type in seen:
+            seen[rec.type] += 1
             typed = decode_record(rec)
             # the values go into numeric arrays: a count of "abc" makes a bad record; a fix
             # without a position (None) is a no-fix epoch, dropped later, not a bad record
@@ -131,6 +153,13 @@ def load_track(path: str | Path, origin: tuple[float, float] | None = None) -> T
                     malformed += 1
                     continue
                 fixes.append(typed)
+            else:
+                continue
+            why = _bad_value(typed)
+            if why is not None:
+                raise ParseError(
+                    f"{path}: {rec.type} record {seen[rec.type]} (t_mono {rec.t_mono:.3f} s): {why}"
+                )
     try:
         track = Track.from_records(odo, fixes, origin)
     except ParseError as exc:
