@@ -21,6 +21,7 @@ from tests.test_console import (
     daemon_with,
     js,
     open_page,
+    text,
     vehicle_pct,
     ws_to,
 )
@@ -128,3 +129,18 @@ def test_stop_and_the_space_bar_work_while_a_recording_is_shown(
         ActionChains(browser).send_keys(Keys.SPACE).perform()
         stopped_within(guarded, 1.5, "stopped by the space bar after a click in the viewer")
     browser.find_element(By.ID, "rec-close").click()
+
+
+def test_a_token_in_the_address_is_always_taken_out_of_it(
+    guarded: Running, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: #token=abc%zz threw URIError (the page never connected and
+    # the token stayed in the address), and a #token= set on an open page was ignored.
+    js(browser, "sessionStorage.clear()")
+    open_page(browser, guarded, "#token=abc%zz")
+    wait_for(lambda: "wrong token" in text(browser, "login-error"), 10, "the raw text tried")
+    assert "token" not in browser.current_url and "%zz" not in browser.current_url
+    js(browser, f"location.hash = '#token={TOKEN}'")  # on the open page, the token box up
+    wait_for(lambda: js(browser, "return x6wd.authed"), 10, "authenticated by the new hash")
+    assert "token" not in browser.current_url
+    assert not browser.find_element(By.ID, "login").is_displayed()

@@ -658,12 +658,21 @@
   $("token-form").addEventListener("submit", (ev) => { ev.preventDefault(); auth($("token-input").value); });
 
   // a token in the address (#token=...) is taken and removed from it: never sent to the server
-  // in a URL, nor left in the history
-  const m = /[#&]token=([^&]+)/.exec(location.hash);
-  if (m) {
-    sessionStorage.setItem("x6wd-token", decodeURIComponent(m[1]));
-    history.replaceState(null, "", location.pathname);
+  // in a URL, nor left in the history; also when it is typed into an open page's address
+  function takeToken() {
+    const m = /[#&]token=([^&]*)/.exec(location.hash);
+    if (!m) return null;
+    history.replaceState(null, "", location.pathname + location.search); // first: whatever follows
+    let token = m[1];
+    try { token = decodeURIComponent(token); } catch (e) { /* a malformed escape (%zz): as written */ }
+    if (token) sessionStorage.setItem("x6wd-token", token);
+    return token;
   }
+  takeToken();
+  window.addEventListener("hashchange", () => {
+    const token = takeToken();
+    if (token && S.info && S.info.auth_required && !S.authed) auth(token); // the token box is up
+  });
   function frame() { draw(); requestAnimationFrame(frame); }
   connect();
   requestAnimationFrame(frame);
