@@ -5,8 +5,11 @@ Debian's headless chromium (helpers from tests/test_console.py)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import dataclasses
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 from selenium import webdriver
@@ -15,18 +18,24 @@ from selenium.webdriver.common.by import By
 from selenium.webdriver.common.keys import Keys
 
 from tests.test_console import (
+    ORIGIN,
     TOKEN,
+    FreezingProxy,
     chromium,
     console_config,
     daemon_with,
+    has_fix,
     js,
+    north,
     open_page,
+    page_ready,
     text,
     vehicle_pct,
     ws_to,
 )
 from tests.test_daemon import Running, wait_for
 from x6wd.app.client import RemoteClient
+from x6wd.core.config import Config, SafetyConfig
 
 pytestmark = pytest.mark.integration
 
@@ -144,3 +153,64 @@ def test_a_token_in_the_address_is_always_taken_out_of_it(
     wait_for(lambda: js(browser, "return x6wd.authed"), 10, "authenticated by the new hash")
     assert "token" not in browser.current_url
     assert not browser.find_element(By.ID, "login").is_displayed()
+
+
+RESTART_PORT = 47611  # the console's, the same for both daemons (the page's address)
+
+
+def restart_config(tmp_path: Path, *, gps: bool) -> Config:
+    """A console on RESTART_PORT, the geofence centred on the origin (missions load without
+    a fix); without ``gps`` the GPS is a TCP port nobody listens on: no fix, no track."""
+    cfg = console_config(tmp_path)
+    cfg = dataclasses.replace(
+        cfg,
+        console=dataclasses.replace(cfg.console, port=RESTART_PORT),
+        safety=SafetyConfig(geofence_radius_m=100.0, geofence_center=ORIGIN),
+    )
+    if not gps:
+        cfg = dataclasses.replace(
+            cfg, gps=dataclasses.replace(cfg.gps, url="tcp://127.0.0.1:47612")
+        )
+    return cfg
+
+
+@contextlib.contextmanager
+def restarted(
+    tmp_path: Path, browser: webdriver.Chrome, second: list[list[float]]
+) -> Iterator[Running]:
+    """A page that saw a first daemon's mission (2 waypoints) and track, reconnected (through a
+    relay that held it off meanwhile) to a second daemon on the same port, without a fix, whose
+    mission is ``second``, loaded once as the first one was (the same revision)."""
+    proxy = FreezingProxy(RESTART_PORT)
+    try:
+        with daemon_with(restart_config(tmp_path / "one", gps=True)) as one:
+            wait_for(lambda: has_fix(one), 30, "a fix")
+            with RemoteClient("127.0.0.1", one.port) as c:
+                c.request("mission.load", waypoints=[north(5), north(10)])
+            browser.get("about:blank")
+            browser.get(f"http://127.0.0.1:{proxy.port}/")
+            page_ready(browser)
+            wait_for(lambda: len(js(browser, "return x6wd.draft")) == 2, 10, "the first mission")
+            wait_for(lambda: js(browser, "return x6wd.track.length") > 0, 10, "a track")
+            proxy.hang_up()  # the page waits outside until the second daemon is ready
+        with daemon_with(restart_config(tmp_path / "two", gps=False)) as two:
+            with RemoteClient("127.0.0.1", two.port) as c:
+                c.request("mission.load", waypoints=second)
+            proxy.resume()
+            wait_for(lambda: js(browser, "return x6wd.authed"), 10, "the page reconnected")
+            time.sleep(1.0)  # the map and the track, sent right after the welcome
+            yield two
+    finally:
+        proxy.close()
+
+
+def test_after_a_daemon_restart_the_page_shows_the_new_daemons_mission(
+    tmp_path: Path, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: the page refreshed its mission only when the map's revision
+    # changed, and each daemon counts revisions from 0: the old mission stayed, and "Send to
+    # robot" would have put it back.
+    with restarted(tmp_path, browser, [north(20, 5)]) as two:
+        assert js(browser, "return x6wd.draft") == [north(20, 5)]
+        assert "1 waypoints on the robot" in text(browser, "mission-state")
+        assert two.daemon._mission == (tuple(north(20, 5)),)

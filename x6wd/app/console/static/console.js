@@ -136,6 +136,9 @@
   }
   function onWelcome(m) {
     S.info = m;
+    // a new connection may be to a new daemon, whose revisions count from 0 again: its map
+    // is taken whatever its revision (else the old mission stayed, and "Send" put it back)
+    S.map.revision = -1;
     document.body.classList.toggle("watch-only", m.watch_only);
     $("watch-only").hidden = !m.watch_only;
     $("deadman-note").textContent = "Dead-man: each drive lasts " + m.deadman_s + " s and is repeated while you hold; " +
