@@ -214,3 +214,13 @@ def test_after_a_daemon_restart_the_page_shows_the_new_daemons_mission(
         assert js(browser, "return x6wd.draft") == [north(20, 5)]
         assert "1 waypoints on the robot" in text(browser, "mission-state")
         assert two.daemon._mission == (tuple(north(20, 5)),)
+
+
+def test_after_a_daemon_restart_the_old_track_is_gone(
+    tmp_path: Path, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: the new daemon's track was empty (no fix yet), the page kept
+    # the old run's, and the first new position joined it with a line never driven.
+    with restarted(tmp_path, browser, [north(20, 5)]) as two:
+        assert two.daemon.console is not None and not two.daemon.console.track
+        assert js(browser, "return x6wd.track.length") == 0

@@ -282,11 +282,11 @@
   }
   // the track the daemon kept before this page opened (after the map: the frame is set)
   function onTrack(points) {
-    if (!points.length) return;
-    if (!S.origin) S.origin = points[0];
+    if (!S.origin && points.length) S.origin = points[0];
     // sent on every (re)connection: the daemon's track replaces the page's, which it
-    // includes (prepending it doubled the track at each reconnection)
-    S.track = points.map((p) => toLocal(p[0], p[1]));
+    // includes (prepending it doubled the track at each reconnection); an empty one too
+    // (a restarted daemon without a fix yet: the old run's track is not this one's)
+    S.track = S.origin ? points.map((p) => toLocal(p[0], p[1])) : [];
   }
   function setDraft(points) {
     S.draft = points;
