@@ -224,3 +224,28 @@ def test_after_a_daemon_restart_the_old_track_is_gone(
     with restarted(tmp_path, browser, [north(20, 5)]) as two:
         assert two.daemon.console is not None and not two.daemon.console.track
         assert js(browser, "return x6wd.track.length") == 0
+
+
+def test_a_mission_file_too_large_to_send_is_refused_on_the_page(
+    tmp_path: Path, guarded: Running, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: a file over max_message_bytes (1 MiB) was sent, and the
+    # console closed the link ("connection lost").
+    big = tmp_path / "big.csv"
+    big.write_text("lat,lon\n" + f"{ORIGIN[0]:.9f},{ORIGIN[1]:.9f}\n" * 50_000)  # 1.3 MB
+    js(browser, "sessionStorage.clear()")
+    open_page(browser, guarded, f"#token={TOKEN}")
+    wait_for(lambda: js(browser, "return x6wd.authed"), 10, "the page authenticated")
+    js(browser, "window.firstWs = x6wd.ws")
+    browser.find_element(By.ID, "mission-file").send_keys(str(big))
+    wait_for(lambda: "big.csv:" in text(browser, "msg"), 10, "the refusal shown")
+    assert "1048576 bytes" in text(browser, "msg"), text(browser, "msg")
+    time.sleep(0.5)
+    assert js(browser, "return x6wd.authed && x6wd.ws === window.firstWs"), "the link was lost"
+    # under the limit as a file, over it as a message (each line's end is two bytes in JSON)
+    airy = tmp_path / "airy.csv"
+    airy.write_text("lat,lon\n" + "\n" * 600_000 + f"{ORIGIN[0]},{ORIGIN[1]}\n")
+    browser.find_element(By.ID, "mission-file").send_keys(str(airy))
+    wait_for(lambda: "airy.csv:" in text(browser, "msg"), 10, "the refusal shown")
+    assert "too large to send" in text(browser, "msg"), text(browser, "msg")
+    assert js(browser, "return x6wd.authed && x6wd.ws === window.firstWs"), "the link was lost"

@@ -451,6 +451,7 @@ class ConsoleServer:
             "tile_url": self.config.tile_url,
             "deadman_s": self.config.deadman_s,
             "tls": self._ssl is not None,
+            "max_message_bytes": self.config.max_message_bytes,  # larger ones close the link
         }
 
     async def _read_loop(self, page: _Page) -> None:

@@ -61,11 +61,18 @@
         return;
       }
       const id = S.nextId++;
-      S.pending.set(id, resolve);
       // sent_ms: the console refuses a drive that arrives later than it would have lasted
       // (one held in a stalled link's buffers must not move the robot when the link thaws)
       const sent = Math.round(performance.now());
-      S.ws.send(JSON.stringify(Object.assign({ id: id, cmd: cmd, sent_ms: sent }, args || {})));
+      const text = JSON.stringify(Object.assign({ id: id, cmd: cmd, sent_ms: sent }, args || {}));
+      // the console closes the link on a message over its limit: refused here instead
+      const limit = S.info ? S.info.max_message_bytes : Infinity;
+      if (text.length > limit / 3 && new TextEncoder().encode(text).length > limit) {
+        resolve({ ok: false, error: { code: "too_large", message: "too large to send: the console takes at most " + limit + " bytes (console.max_message_bytes)" } });
+        return;
+      }
+      S.pending.set(id, resolve);
+      S.ws.send(text);
     });
   }
   async function command(cmd, args) {
@@ -319,6 +326,8 @@
   }
   const FORMATS = { gpx: "gpx", csv: "csv", kml: "kml", waypoints: "waypoints" };
   function loadFile(file) {
+    const limit = S.info ? S.info.max_message_bytes : Infinity;
+    if (file.size > limit) return say(file.name + ": " + file.size + " bytes, too large to send: the console takes at most " + limit + " bytes (console.max_message_bytes)", true);
     const reader = new FileReader();
     reader.onload = async () => {
       const ext = file.name.split(".").pop().toLowerCase();
