@@ -249,3 +249,21 @@ def test_a_mission_file_too_large_to_send_is_refused_on_the_page(
     wait_for(lambda: "airy.csv:" in text(browser, "msg"), 10, "the refusal shown")
     assert "too large to send" in text(browser, "msg"), text(browser, "msg")
     assert js(browser, "return x6wd.authed && x6wd.ws === window.firstWs"), "the link was lost"
+
+
+def test_a_page_refused_by_a_full_console_says_so(
+    tmp_path: Path, browser: webdriver.Chrome
+) -> None:
+    # Found by an outside check: refused (max_clients reached) the page said "disconnected",
+    # and its STOP "not connected".
+    with daemon_with(console_config(tmp_path, max_clients=1)) as r:
+
+        async def program() -> None:
+            async with ws_to(r) as w:  # the one page allowed (no token: authenticated)
+                assert (await w.request("hello"))["ok"]
+                open_page(browser, r)
+                wait_for(lambda: "console full" in text(browser, "conn"), 10, "the reason shown")
+                browser.find_element(By.ID, "btn-stop").click()
+                wait_for(lambda: "console full" in text(browser, "msg"), 5, "the stop's refusal")
+
+        asyncio.run(program())

@@ -388,14 +388,15 @@ class ConsoleServer:
                 "console: refused a WebSocket from origin %r", request.headers.get("Origin")
             )
             return web.Response(status=403, text="cross-origin WebSocket refused\n")
-        if len(self._pages) >= self.config.max_clients and not self._make_room():
-            return web.Response(
-                status=503, text=f"{self.config.max_clients} pages open (console.max_clients)\n"
-            )
+        full = len(self._pages) >= self.config.max_clients and not self._make_room()
         ws = web.WebSocketResponse(
             heartbeat=HEARTBEAT_S, max_msg_size=self.config.max_message_bytes
         )
         await ws.prepare(request)
+        if full:  # closed with its reason: a browser sees no HTTP status of a refused WebSocket
+            why = f"console full: {self.config.max_clients} pages open (console.max_clients)"
+            await ws.close(code=1013, message=why.encode())
+            return ws
         peername = request.transport.get_extra_info("peername") if request.transport else None
         host = str(peername[0]) if isinstance(peername, tuple) else "?"
         peer = f"{host}:{peername[1]}" if isinstance(peername, tuple) else "?"

@@ -18,7 +18,7 @@
     draft: [], dirty: false, adding: false,
     track: [], view: { e: 0, n: 0, pxPerM: 4 }, followed: false,
     drive: null, driveKey: null, driveTimer: null, tiles: new Map(),
-    heardAt: 0, stale: true,
+    heardAt: 0, stale: true, closedWhy: "", // closedWhy: the console's reason for closing the link (full)
   };
   window.x6wd = S; // for a person at the browser's console, and for the tests
 
@@ -57,7 +57,7 @@
   function request(cmd, args) {
     return new Promise((resolve) => {
       if (!S.ws || S.ws.readyState !== WebSocket.OPEN) {
-        resolve({ ok: false, error: { code: "closed", message: "not connected" } });
+        resolve({ ok: false, error: { code: "closed", message: "not connected" + (S.closedWhy ? " (" + S.closedWhy + ")" : "") } });
         return;
       }
       const id = S.nextId++;
@@ -92,9 +92,13 @@
       S.heardAt = performance.now();
       onMessage(JSON.parse(ev.data));
     };
-    ws.onclose = () => {
+    ws.onopen = () => { S.closedWhy = ""; };
+    ws.onclose = (ev) => {
       if (S.ws !== ws) return;
-      linkLost("disconnected");
+      // 1013 "try again later": the console is full (its reason says so), or closed this
+      // page to make room for another
+      S.closedWhy = ev.code === 1013 ? ev.reason || "console full" : "";
+      linkLost(S.closedWhy || "disconnected");
       setTimeout(connect, 1000);
     };
   }
