@@ -13,8 +13,10 @@ fault is data, never an exception to the caller.
 
 Health: :attr:`GpsReader.health` is a :class:`~x6wd.core.records.DeviceHealth` (connected,
 degraded, stale when no valid sentence arrived for ``stale_s``, disconnected, reconnecting,
-with error and reconnect counts); :meth:`GpsReader.take_health_events` hands each transition
-to the caller at once (the daemon holds the robot on it, without waiting for a fix timeout).
+with error and reconnect counts, and the decoder's counts of corrupt input, which also make
+a ``corrupt`` event at most once a minute and name the cause when the GPS goes stale);
+:meth:`GpsReader.take_health_events` hands each transition to the caller at once (the daemon
+holds the robot on it, without waiting for a fix timeout).
 
 The reader sets ``port.timeout = 0`` on every port it opens and waits with ``select()``
 itself, so a port opened blocking cannot hang it. On a plain pyserial POSIX port (a UART, or
@@ -44,6 +46,14 @@ from x6wd.core.health import HealthTracker, root_oserror
 from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent
 
 _IDLE_POLL_S = 0.01  # wait step for ports that cannot be select()ed
+CORRUPT_LABELS = {
+    "checksum_failures": "lines with bad checksums",
+    "framing_errors": "malformed lines",
+    "invalid_fields": "sentences with invalid fields",
+    "skipped_bytes": "bytes of noise",
+}
+"""The decoder's counts of corrupt input that health shows (``DeviceHealth.corrupt``), in
+words. Noise bytes alone make no log line: every open starts in a partial line."""
 _NO_DATA_ERRNOS = frozenset({errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR, errno.EINPROGRESS,
                              errno.EALREADY})  # fmt: skip
 """Read errors that only mean "nothing to read yet" (pyserial's read ignores them too)."""
@@ -126,7 +136,14 @@ class GpsReader:
         self._port: PortLike | None = None
         self._backoff_s = backoff_initial_s
         self._next_attempt = clock()
-        self._tracker = HealthTracker("gps", t_s=self._next_attempt, stale_s=stale_s)
+        self._tracker = HealthTracker(
+            "gps",
+            t_s=self._next_attempt,
+            stale_s=stale_s,
+            corrupt_labels=CORRUPT_LABELS,
+            corrupt_minor=frozenset({"skipped_bytes"}),
+        )
+        self._corrupt_seen = (0, 0, 0, 0)  # the decoder's CORRUPT_LABELS counts, last told
         self._transient_run = 0  # transient read errors in a row on the open port
         self._acks: deque[UbxAck] = deque(maxlen=64)
         self._closed = False
@@ -287,6 +304,11 @@ class GpsReader:
         seen = before.sentences + before.ubx_frames
         records = self.decoder.feed(data, t_s)
         after = self.decoder.framer.counters
+        invalid = self.decoder.counters.invalid_fields
+        bad = (after.checksum_failures, after.framing_errors, invalid, after.skipped_bytes)
+        if bad != self._corrupt_seen:  # rare on a healthy line: the tuple compare is the cost
+            self._corrupt_seen = bad
+            self._tracker.corrupt(dict(zip(CORRUPT_LABELS, bad, strict=True)), t_s)
         if after.sentences + after.ubx_frames > seen:
             self._tracker.good(t_s)
         for frame in self.decoder.take_ubx():

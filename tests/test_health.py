@@ -10,6 +10,7 @@ import errno
 import logging
 import math
 import os
+import re
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -20,7 +21,7 @@ import pytest
 
 from drivers import registry
 from sim_backend.compass import ErrorInjector
-from x6wd.app.client import RemoteClient
+from x6wd.app.client import RemoteClient, render_status
 from x6wd.app.daemon import TICK_HZ, Daemon
 from x6wd.core.config import (
     CompassConfig,
@@ -34,6 +35,7 @@ from x6wd.core.config import (
 )
 from x6wd.core.errors import DeviceIOError
 from x6wd.core.health import HealthLog, HealthTracker
+from x6wd.core.recorder import read_recording_parts
 from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent, StateChange
 
 # --- HealthTracker (sans-IO, injected times) --------------------------------------------------
@@ -164,6 +166,36 @@ def test_closed_is_quiet_and_bad_limits_are_refused() -> None:
     d = t.health.to_dict()
     assert d["state"] == "disconnected" and isinstance(d["state"], str)
     assert set(d) == {f.name for f in dataclasses.fields(DeviceHealth)}
+
+
+def test_corrupt_input_is_shown_told_once_a_minute_and_named_as_the_stale_cause() -> None:
+    labels = {"checksum_failures": "lines with bad checksums", "skipped_bytes": "bytes of noise"}
+    t = tracker(stale_s=1.0, corrupt_labels=labels, corrupt_minor=frozenset({"skipped_bytes"}))
+    assert t.health.to_dict()["corrupt"] == {"checksum_failures": 0, "skipped_bytes": 0}
+    t.opened(0.0)
+    t.corrupt({"checksum_failures": 0, "skipped_bytes": 30}, 0.1)  # the partial first line
+    t.good(0.2)
+    assert [e.kind for e in t.take_events()] == ["transition"]  # noise alone: no event
+    for k in range(1, 41):  # from here on every line is corrupt, 20 a second
+        t.corrupt({"checksum_failures": k, "skipped_bytes": 30}, 0.2 + 0.05 * k)
+        t.check(0.2 + 0.05 * k)
+    assert t.health.corrupt == {"checksum_failures": 40, "skipped_bytes": 30}
+    events = t.take_events()
+    assert [(e.kind, e.message) for e in events] == [
+        ("corrupt", "gps corrupt input skipped: 1 lines with bad checksums, 30 bytes of noise"),
+        (
+            "transition",
+            "gps stale: no good data for 1.05 s (limit 1 s): 21 lines with bad checksums",
+        ),
+    ]
+    t.check(61.0)  # the rest of the growth, once the minute is over
+    (ev,) = t.take_events()
+    assert ev.message == (
+        "gps corrupt input skipped in the last 61 s: 39 lines with bad checksums "
+        "(since start: 40 lines with bad checksums, 30 bytes of noise)"
+    )
+    t.check(200.0)
+    assert t.take_events() == []  # no growth, no line
 
 
 # --- HealthLog ----------------------------------------------------------------------------------
@@ -539,3 +571,52 @@ def test_gps_unplug_holds_within_a_tick_and_reconnects(
         "gps reconnected (reconnect 1, ",
     )
     assert r.stop() == 0
+
+
+def bad_checksums(lines: list[bytes]) -> list[bytes]:
+    """Each ``$...*HH\\r\\n`` line with its checksum one bit off (the same length: the UART's
+    timing is kept)."""
+    return [line[:-3] + b"%X" % (int(line[-3:-2], 16) ^ 1) + line[-2:] for line in lines]
+
+
+def test_corrupt_gps_lines_are_counted_in_status_logged_and_named_as_the_stale_cause(
+    tmp_path: Path, run_daemon: Callable[[Daemon], Running], caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="x6wd")
+    cfg = hil_config(tmp_path)
+    r = run_daemon(Daemon(dataclasses.replace(cfg, gps=GpsConfig(url="sim://", stale_s=1.0))))
+    receiver = r.daemon.devices.backend("sim").receiver
+    sentences = receiver.sentences
+    with RemoteClient("127.0.0.1", r.port) as c:
+        st = wait_for(
+            lambda: (s := c.request("status"))["telemetry"] and s["telemetry"]["fix_quality"] and s,
+            what="a fix",
+        )
+        assert st["devices"]["gps"]["corrupt"]["checksum_failures"] == 0  # there from the start
+        # the receiver's stream goes on arriving, every line with a bad checksum
+        receiver.sentences = lambda ep: bad_checksums(sentences(ep))
+        st = wait_for(
+            lambda: (s := c.request("status"))["devices"]["gps"]["state"] == "stale" and s,
+            5,
+            "gps stale",
+        )
+    corrupt = st["devices"]["gps"]["corrupt"]
+    assert corrupt["checksum_failures"] >= 4 and corrupt["invalid_fields"] == 0
+    text = render_status(st)
+    assert re.search(r"\n  gps +corrupt input since start: \d+ checksum failures", text)
+    stale = messages(caplog, "gps stale: ")[-1]
+    assert re.fullmatch(
+        r"gps stale: no good data for [\d.]+ s \(limit 1 s\): \d+ lines with bad checksums", stale
+    )
+    (told,) = [r for r in caplog.records if r.getMessage().startswith("gps corrupt input")]
+    assert told.levelname == "WARNING", "a minute's worth: one line"
+    told_text = told.getMessage()
+    assert re.fullmatch(r"gps corrupt input skipped: \d+ lines with bad checksums.*", told_text)
+    assert r.stop() == 0
+    (first,) = sorted((tmp_path / "rec").glob("x6wd-*Z.jsonl"))
+    recorded = [
+        rec.data["message"]
+        for rec in read_recording_parts(first)
+        if rec.type == "event" and rec.data.get("kind") == "corrupt"
+    ]
+    assert recorded == [told_text]

@@ -350,6 +350,10 @@ def render_status(st: dict[str, Any]) -> str:
             state = dev.get("state", "?")
             if problem and state not in ("connected", "polling"):
                 lines.append(f"  {name:<9}{state}: {problem}")
+            corrupt = dev.get("corrupt")
+            if isinstance(corrupt, dict) and any(corrupt.values()):  # counted and skipped
+                counts = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in corrupt.items() if n)
+                lines.append(f"  {name:<9}corrupt input since start: {counts}")
     rec = st.get("recorder")
     if isinstance(rec, dict) and rec.get("state") not in (None, "ok"):
         # recording is how a run is looked at afterwards: say what is lost and why

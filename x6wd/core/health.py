@@ -8,6 +8,9 @@ It keeps an immutable :class:`~x6wd.core.records.DeviceHealth` snapshot (swapped
 thread may read :attr:`HealthTracker.health`) and queues a :class:`~x6wd.core.records.HealthEvent`
 for every state transition and every repeated failed reopen; the owner's thread drains them
 with :meth:`HealthTracker.take_events` (as the GPS reader's UBX acknowledgements are).
+Corrupt input the owner's decoder counted and skipped (the GPS's NMEA lines with bad
+checksums ...) is in the snapshot (``corrupt``), in one ``corrupt`` event at most every
+``corrupt_log_s`` while it grows, and in the stale reason when nothing good came meanwhile.
 
 :class:`HealthLog` writes those events to a logger: every transition once (WARNING into a
 bad state, INFO back to good), at most ``burst`` lines per device and then one per
@@ -21,7 +24,7 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from datetime import UTC, datetime
 
 from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent
@@ -34,6 +37,11 @@ RECONNECTING = DeviceState.RECONNECTING
 
 TRANSITION = "transition"
 OPEN_FAILED = "open_failed"
+CORRUPT = "corrupt"
+
+CORRUPT_LOG_S = 60.0
+"""At most one ``corrupt`` event (a log line, a recorded device event) per this many seconds
+(s) per device: a noisy line is a fault to see, but not one line per bad sentence."""
 
 DEFAULT_RECOVER_S = 1.0
 """Error-free time after which a degraded device counts as connected again (s): a device
@@ -70,6 +78,11 @@ class HealthTracker:
     good data; ``recover_s`` (s) how long a degraded device must run without errors to count
     as connected again. ``t_s`` is the creation time; the device starts ``disconnected``
     (not opened yet). Not thread-safe for writers: one owner thread calls the methods.
+
+    ``corrupt_labels``: the kinds of corrupt input the owner counts (:meth:`corrupt`), each
+    with its words for a person ("lines with bad checksums"); they start at 0, so status
+    shows them before anything goes wrong. Kinds in ``corrupt_minor`` (bytes of noise: a
+    partial first line at every open) are shown but do not on their own make an event.
     """
 
     def __init__(
@@ -81,6 +94,9 @@ class HealthTracker:
         recover_s: float = DEFAULT_RECOVER_S,
         wall_clock: Callable[[], str] = utc_now_iso,
         max_events: int = 256,
+        corrupt_labels: Mapping[str, str] | None = None,
+        corrupt_minor: frozenset[str] = frozenset(),
+        corrupt_log_s: float = CORRUPT_LOG_S,
     ) -> None:
         if stale_s is not None and not (stale_s > 0 and math.isfinite(stale_s)):
             raise ValueError(f"stale_s must be > 0 s or None, got {stale_s!r}")
@@ -108,6 +124,15 @@ class HealthTracker:
         self._open_failures = 0  # failed reopens since the link was lost
         self._down_t: float | None = None  # when the link was lost (for the outage length)
         self._errors_in_episode = 0  # errors since the device last left ``connected``
+        self._corrupt_labels = dict(corrupt_labels or {})
+        self._corrupt_minor = corrupt_minor
+        self.corrupt_log_s = corrupt_log_s
+        # totals since start; at the last good data; at the last corrupt event (replaced
+        # whole, never changed in place: the snapshots share them)
+        self._corrupt = dict.fromkeys(self._corrupt_labels, 0)
+        self._corrupt_at_good = self._corrupt
+        self._corrupt_logged = self._corrupt
+        self._t_corrupt_log: float | None = None
         self._health = self._snapshot()
 
     # -- reading -----------------------------------------------------------------------------
@@ -247,6 +272,7 @@ class HealthTracker:
         if self._state in (DISCONNECTED, RECONNECTING):
             self.opened(t_s)
         self._consecutive = 0
+        self._corrupt_at_good = self._corrupt
         if self._last_data_t is None or t_s > self._last_data_t:
             self._last_data_t = t_s
         recent_error = self._last_error_t is not None and t_s - self._last_error_t < self.recover_s
@@ -271,8 +297,21 @@ class HealthTracker:
         if self._state in (CONNECTED, DEGRADED):
             self._go(STALE, t_s, f"{self.device} stale: {why}")
 
+    def corrupt(self, counts: Mapping[str, int], t_s: float) -> None:
+        """The owner's decoder has counted and skipped ``counts`` (totals since start, by the
+        kinds of ``corrupt_labels``) by ``t_s`` (s): shown in the snapshot, and a growth is
+        a ``corrupt`` event at most every ``corrupt_log_s``."""
+        if counts == self._corrupt:
+            return
+        self._corrupt = dict(counts)
+        self._health = self._snapshot()
+        self._corrupt_event(t_s)
+
     def check(self, t_s: float) -> None:
-        """Time passes: an open device without good data for more than ``stale_s`` is stale."""
+        """Time passes: an open device without good data for more than ``stale_s`` is stale;
+        corrupt input held back by the event interval is reported once it has passed."""
+        if self._corrupt is not self._corrupt_logged:
+            self._corrupt_event(t_s)
         stale_s = self._stale_s
         if stale_s is None or self._state not in (CONNECTED, DEGRADED):
             return
@@ -284,7 +323,10 @@ class HealthTracker:
             ref = self._since_t
         if t_s - ref > stale_s:
             what = "no good data" if self._last_data_t is not None else "no data yet"
-            self.set_stale(t_s, f"{what} for {t_s - ref:.2f} s (limit {stale_s:g} s)")
+            why = f"{what} for {t_s - ref:.2f} s (limit {stale_s:g} s)"
+            # the stream may be arriving, every line of it corrupt: say so
+            cause = self._describe(self._corrupt, self._corrupt_at_good)
+            self.set_stale(t_s, f"{why}: {cause}" if cause else why)
 
     def closed(self, t_s: float) -> None:
         """Deliberately closed at ``t_s`` (s): disconnected, no error and no event."""
@@ -296,6 +338,34 @@ class HealthTracker:
         self._health = self._snapshot()
 
     # -- internals ---------------------------------------------------------------------------
+
+    def _describe(self, now: Mapping[str, int], before: Mapping[str, int]) -> str:
+        """The growth from ``before`` to ``now`` in words ("40 lines with bad checksums")."""
+        return ", ".join(
+            f"{n - before.get(k, 0)} {self._corrupt_labels.get(k, k)}"
+            for k, n in now.items()
+            if n > before.get(k, 0)
+        )
+
+    def _corrupt_event(self, t_s: float) -> None:
+        """A ``corrupt`` event for the growth since the last one, unless that was less than
+        ``corrupt_log_s`` ago or only minor kinds grew."""
+        last = self._t_corrupt_log
+        if last is not None and t_s - last < self.corrupt_log_s:
+            return
+        now, before = self._corrupt, self._corrupt_logged
+        if not any(n > before.get(k, 0) for k, n in now.items() if k not in self._corrupt_minor):
+            return
+        what = f"{self.device} corrupt input skipped"
+        if last is None:  # the first: since start
+            what += f": {self._describe(now, before)}"
+        else:
+            what += (
+                f" in the last {t_s - last:.0f} s: {self._describe(now, before)} "
+                f"(since start: {self._describe(now, {})})"
+            )
+        self._corrupt_logged, self._t_corrupt_log = now, t_s
+        self._emit(CORRUPT, self._state, t_s, what)
 
     def _error(self, error: str, t_s: float) -> None:
         self._errors += 1
@@ -338,6 +408,7 @@ class HealthTracker:
             last_data_t_s=self._last_data_t,
             next_attempt_t_s=self._next_attempt_t,
             stale_s=self._stale_s,
+            corrupt=self._corrupt,
         )
 
 
@@ -347,7 +418,8 @@ class HealthLog:
     Transitions: WARNING into degraded/stale/disconnected/reconnecting, INFO back to
     connected; a token bucket of ``burst`` lines per device refilled one per ``refill_s``
     (s), the next line saying how many were held back. Repeated failed reopens: at most one
-    line per ``repeat_s`` (s) per device. ``clock`` (s, monotonic) drives the limits.
+    line per ``repeat_s`` (s) per device. Corrupt input (its source already rate-limits it):
+    WARNING. ``clock`` (s, monotonic) drives the limits.
     """
 
     def __init__(
@@ -392,6 +464,6 @@ class HealthLog:
         text = ev.message
         if held:
             text += f" ({held} earlier {dev} health messages suppressed)"
-        level = logging.WARNING if ev.new in _BAD else logging.INFO
+        level = logging.WARNING if ev.new in _BAD or ev.kind == CORRUPT else logging.INFO
         self._log.log(level, "%s", text)
         return True

@@ -7,6 +7,7 @@ in seconds on one monotonic clock. The controller never reads a clock; it trusts
 from __future__ import annotations
 
 import enum
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from datetime import datetime
 from typing import Any
@@ -235,6 +236,9 @@ class DeviceHealth:
     last_data_t_s: float | None = None  # last good data (sample, sentence, acknowledgement)
     next_attempt_t_s: float | None = None  # next reopen attempt while (re)connecting
     stale_s: float | None = None  # the staleness limit in use (None: not checked by time)
+    # corrupt input counted and skipped since start, by kind (GPS: checksum_failures,
+    # framing_errors, invalid_fields, skipped_bytes); empty for a device that has none
+    corrupt: Mapping[str, int] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -257,8 +261,9 @@ class DeviceHealth:
 class HealthEvent:
     """Something worth one log line happened to a device's health at ``t_s`` (s).
 
-    ``kind`` is ``"transition"`` (``old`` != ``new``) or ``"open_failed"`` (another failed
-    reopen while already reconnecting: ``old`` == ``new``). ``message`` is the log text;
+    ``kind`` is ``"transition"`` (``old`` != ``new``), ``"open_failed"`` (another failed
+    reopen while already reconnecting: ``old`` == ``new``) or ``"corrupt"`` (corrupt input
+    counted and skipped since the last such event: ``old`` == ``new``). ``message`` is the log text;
     ``health`` the snapshot right after the event.
     """
 
