@@ -29,8 +29,8 @@ same physics as fast-time simulation (``x6wd sim``), only in real time:
   docs/motors.md line protocol crosses the pty byte for byte, the board's left/right drive
   moves the :class:`sim_backend.vehicle.Vehicle`, and the board's watchdog stops it. The
   board's wheel-encoder counters follow the vehicle's true motion through
-  :class:`sim_backend.odometry.EncoderSim` (default :class:`~sim_backend.odometry.EncoderParams`,
-  its own random stream of the scenario seed), stepped with the physics.
+  :class:`sim_backend.odometry.EncoderSim` (the scenario's ``[encoders]``, as ``x6wd sim``
+  builds it, and its own random stream of the scenario seed), stepped with the physics.
 
 Time: the receiver's clock, what its NMEA says, is the host's UTC, as a real receiver's is
 true UTC; its epochs fall on the host clock's whole ``1 / rate_hz`` s (:attr:`HilWorld.utc0`
@@ -318,7 +318,7 @@ class HilWorld:
         h0 = cset.device_heading_deg(s0.heading_deg, s0.pitch_deg, s0.roll_deg)
         self.compass.set_state(0.0, h0, s0.pitch_deg, s0.roll_deg)
         self.board = _Board(params.motor_watchdog_ms, self._board_changed)
-        self.encoders = EncoderSim(rng=encoder_rng(sc.seed), start=s0)
+        self.encoders = EncoderSim(sc.encoders, rng=encoder_rng(sc.seed), start=s0)
         self.on_gga: Callable[[float], Any] | None = None
         self.on_motor: Callable[[MotorCommand, float], Any] | None = None
         self.epochs = 0
