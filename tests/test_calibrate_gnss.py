@@ -18,6 +18,7 @@ And the real urban drive (tests/data/urban, taroz/MatRTKLIB, MIT): a map with sa
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -237,6 +238,33 @@ def test_static_refuses_too_little_data() -> None:
     )  # fmt: skip
     with pytest.raises(ConfigError, match="pairs"):
         gnss.static_noise(sparse, *ORIGIN, epoch_s=1.0)
+
+
+def test_static_refuses_a_moving_recording_or_a_reference_far_from_the_fixes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside audit: the zigzag mission's recording as --static wrote ase_m 78 m (exit 0),
+    # and swapped --ref-lat/--ref-lon ended in "gnss_noise.re_m: must be <= 100.0"
+    still = synthetic_static(1, n=600)
+    plane = LocalTangentPlane(*ORIGIN)
+    x, y = plane.to_xy(still.lat_deg, still.lon_deg)
+    lat, lon = plane.to_latlon(np.asarray(x) + 0.5 * still.t_s, np.asarray(y))  # 0.5 m/s east
+    moving = dataclasses.replace(still, lat_deg=np.asarray(lat), lon_deg=np.asarray(lon))
+    with pytest.raises(ConfigError, match=r"the recording moves: its fixes lie a median \d+"):
+        gnss.static_noise(moving, *ORIGIN)
+    # a reference 60 m north of where the receiver stood; 30 m is still taken (as ASE)
+    north_60 = plane.to_latlon(0.0, 60.0)
+    with pytest.raises(ConfigError, match=r"is 6\d m from the reference .* beyond 50 m"):
+        gnss.static_noise(still, *north_60)
+    assert gnss.static_noise(still, *plane.to_latlon(0.0, 30.0)).bias_north_m < -29.0
+    # swapped on the command line: refused before any fragment is written
+    csv_path = write_truth_csv(tmp_path / "still.csv", still)
+    argv = ["calibrate", "gnss", "--static", str(csv_path), "--ref-lat", "5.0", "--ref-lon",
+            "51.7"]  # fmt: skip
+    assert cli.main(argv) == 2
+    out, err = capsys.readouterr()
+    assert not out and f"static {csv_path}: the fixes' median position" in err
+    assert "km from the reference (5.0, 51.7)" in err and "swapped" in err
 
 
 # ------------------------------------------------------------------------------ LCE map

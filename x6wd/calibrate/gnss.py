@@ -76,6 +76,7 @@ from drivers.gps_recording import recorded_gps
 from x6wd.calibrate.rtklib import looks_like_pos, read_pos
 from x6wd.core.config import GnssNoiseConfig, build
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
+from x6wd.core.geodesy import great_circle_m
 from x6wd.core.recorder import is_recording
 from x6wd.core.records import GpsFix
 from x6wd.nav.geo import LocalTangentPlane
@@ -87,6 +88,19 @@ GPS_UTC_LEAP_S = 18.0
 reference. Recordings from before 2017 would need the older value."""
 
 JACKKNIFE_BLOCKS = 20
+
+MAX_STATIC_SPREAD_M = 20.0
+"""Largest median distance (m, at HDOP 1) of a static recording's fixes from their median
+position. A receiver standing still scatters about 1.18 times its per-axis error (the median
+of a 2-D normal's radius): 1-4 m for a NEO-5 in the open, 20 m is a per-axis error of 17 m,
+which no open-sky receiver shows, but a robot that drove a few tens of metres does. The
+median, not the mean square, so a few multipath jumps of a still receiver do not count."""
+
+MAX_STATIC_OFFSET_M = 50.0
+"""Largest distance (m) of a static recording's median position from the given reference.
+A NEO-5's slow error is a few metres (10 m at worst in the open); a reference in another
+datum (ED50 vs WGS-84: 100-200 m in Europe), a slip in the third decimal (111 m) or swapped
+latitude and longitude are far beyond it, and would be written as an ASE of that size."""
 
 
 @dataclass(frozen=True)
@@ -323,6 +337,7 @@ def static_noise(
     if n < 100:
         raise ConfigError(f"static: {n} fixes; need at least 100 (an hour at 1 Hz is better)")
     plane = LocalTangentPlane(ref_lat_deg, ref_lon_deg)
+    _check_standing(fixes, ref_lat_deg, ref_lon_deg)
     x, y = plane.to_xy(fixes.lat_deg, fixes.lon_deg)
     err = np.column_stack([np.asarray(x, float), np.asarray(y, float)])
     z = err / fixes.hdop[:, None]
@@ -386,6 +401,31 @@ def static_noise(
         mean_hdop=float(fixes.hdop.mean()),
         duplicates=int((~keep).sum()),
     )
+
+
+def _check_standing(fixes: FixSeries, ref_lat_deg: float, ref_lon_deg: float) -> None:
+    """ConfigError when a static recording moves (:data:`MAX_STATIC_SPREAD_M`) or lies far
+    from its reference (:data:`MAX_STATIC_OFFSET_M`): either would be written as an ASE of
+    tens of metres that passes the configuration's checks and misleads the estimator."""
+    what = f"static {fixes.source}" if fixes.source else "static"
+    lat_m, lon_m = float(np.median(fixes.lat_deg)), float(np.median(fixes.lon_deg))
+    x, y = LocalTangentPlane(lat_m, lon_m).to_xy(fixes.lat_deg, fixes.lon_deg)
+    spread_m = float(np.median(np.hypot(x, y) / fixes.hdop))
+    if spread_m > MAX_STATIC_SPREAD_M:
+        raise ConfigError(
+            f"{what}: the recording moves: its fixes lie a median {spread_m:.1f} m (at HDOP 1) "
+            f"from their median position; a receiver standing still shows a few metres "
+            f"(refused above {MAX_STATIC_SPREAD_M:g} m)"
+        )
+    off_m = great_circle_m(lat_m, lon_m, ref_lat_deg, ref_lon_deg)
+    if off_m > MAX_STATIC_OFFSET_M:
+        far = f"{off_m:.0f} m" if off_m < 10_000 else f"{off_m / 1000:.0f} km"
+        raise ConfigError(
+            f"{what}: the fixes' median position ({lat_m:.6f}, {lon_m:.6f}) is {far} from the "
+            f"reference ({ref_lat_deg}, {ref_lon_deg}); a receiver's error is a few metres "
+            f"(refused beyond {MAX_STATIC_OFFSET_M:g} m): a typo, latitude and longitude "
+            "swapped, or a reference in another datum?"
+        )
 
 
 def _root(v2: float, var_v2: float) -> Estimate:
