@@ -376,6 +376,33 @@ def test_cli_refuses_flags_out_of_range_before_any_work_and_a_short_csv_row(
     assert "not a number" in capsys.readouterr().err
 
 
+def test_a_header_only_csv_and_a_nan_position_are_refused_naming_the_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside audit: a header-only CSV was told it lacks the columns its header has; a
+    # NaN in a CSV or a recording's fix said "origin_lat_deg must be finite" and no file
+    header_only = tmp_path / "header.csv"
+    header_only.write_text("t_s,lat,lon,alt,heading_deg\n")
+    nan_csv = tmp_path / "nan.csv"
+    nan_csv.write_text("t_s,lat,lon\n0.0,51.75,-1.25\n1.0,nan,-1.25\n")
+    good = tmp_path / "good.csv"
+    good.write_text("t_s,lat,lon\n0.0,51.75,-1.25\n1.0,51.75,-1.25\n")
+    fixes = [GpsFix(float(t), lat_deg=51.75, lon_deg=-1.25, valid=True) for t in range(200)]
+    nan_rec = write_recording(tmp_path / "nan.jsonl", fixes)
+    text = nan_rec.read_text()  # the recorder writes NaN as null (no fix): a hand edit
+    nan_rec.write_text(text.replace('"lon_deg":-1.25', '"lon_deg":NaN', 1))
+    for path, message in (
+        (header_only, f"{header_only}: no rows of data, only the header (t_s, lat, lon, alt"),
+        (nan_csv, f"{nan_csv}:3: lat_deg must be finite and within ±90, got nan"),
+        (nan_rec, f"{nan_rec}: the fix at t_s 0.000: lon_deg must be finite"),
+    ):
+        static = ["--static", str(path), "--ref-lat", "51.75", "--ref-lon", "-1.25"]
+        for args in (static, ["--drive", str(good), "--reference", str(path)]):
+            assert cli.main(["calibrate", "gnss", *args]) == 2, args
+            err = capsys.readouterr().err
+            assert message in err, (args, err)
+
+
 # ------------------------------------------------------------------------------ config
 
 

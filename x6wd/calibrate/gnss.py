@@ -140,6 +140,10 @@ class FixSeries:
         )
         if not good:
             raise ParseError(f"{source or 'fixes'}: no valid fix with a position")
+        for f in good:
+            why = _bad_position(f.t_s, f.lat_deg, f.lon_deg)  # type: ignore[arg-type]
+            if why:
+                raise ParseError(f"{source or 'fixes'}: the fix at t_s {f.t_s:.3f}: {why}")
         hd = [f.hdop for f in good]
         return cls(
             t_s=np.array([f.t_s for f in good], float),
@@ -229,6 +233,17 @@ as in the ZED-F9P log of coverclock/com-diag-hazer, tests/data/static: TIME in U
 seconds; its HORIZONTAL is an accuracy in metres, not an HDOP, and is not read)."""
 
 
+def _bad_position(t_s: float, lat_deg: float, lon_deg: float) -> str | None:
+    """What is wrong with a fix's time or position (a NaN from a writer, a value out of
+    range), or None; the caller names the file and the line or fix."""
+    for name, v, limit in (("t_s", t_s, math.inf), ("lat_deg", lat_deg, 90.0),
+                           ("lon_deg", lon_deg, 180.0)):  # fmt: skip
+        if not (math.isfinite(v) and abs(v) <= limit):
+            within = f" and within ±{limit:g}" if limit < math.inf else ""
+            return f"{name} must be finite{within}, got {v}"
+    return None
+
+
 def _load_csv(p: Path) -> FixSeries:
     """A CSV of times (s), latitudes and longitudes (deg), optional ``hdop``
     (:data:`CSV_COLUMNS`); no HDOP column: HDOP 1. The time is the file's own clock (no GPST:
@@ -237,7 +252,10 @@ def _load_csv(p: Path) -> FixSeries:
         with open(p, newline="", encoding="utf-8") as f:
             reader = csv.reader(f, skipinitialspace=True)
             header = [h.strip().lower() for h in next(reader, [])]
-            rows = list(reader)
+            lines, rows = [], []  # each row's line number, for the errors
+            for row in reader:
+                lines.append(reader.line_num)
+                rows.append(row)
     except OSError as exc:
         raise ParseError(f"cannot read {p}: {exc.strerror or exc}") from exc
     col: dict[str, int] = {}
@@ -245,11 +263,13 @@ def _load_csv(p: Path) -> FixSeries:
         found = next((header.index(n) for n in names if n in header), None)
         if found is not None:
             col[key] = found
-    if not rows or len(col) < 3:
+    if len(col) < 3:
         raise ParseError(
             f"{p}: a CSV reference needs the columns t_s, lat, lon (or TIME, LATITUDE, "
             f"LONGITUDE); the header has {', '.join(header) or 'nothing'}"
         )
+    if not rows:
+        raise ParseError(f"{p}: no rows of data, only the header ({', '.join(header)})")
     hd = header.index("hdop") if "hdop" in header else None
     try:
         t = np.array([float(r[col["t_s"]]) for r in rows])
@@ -258,6 +278,11 @@ def _load_csv(p: Path) -> FixSeries:
         hdop = np.array([float(r[hd].strip() or 1.0) if hd is not None else 1.0 for r in rows])
     except (ValueError, IndexError) as exc:  # IndexError: a short row
         raise ParseError(f"{p}: not a number: {exc}") from exc
+    bad = ~np.isfinite(t + lat + lon + hdop) | (np.abs(lat) > 90.0) | (np.abs(lon) > 180.0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        why = _bad_position(t[i], lat[i], lon[i]) or f"hdop must be finite, got {hdop[i]}"
+        raise ParseError(f"{p}:{lines[i]}: {why}")
     order = np.argsort(t, kind="stable")
     return FixSeries(
         t[order], np.full(t.shape, math.nan), lat[order], lon[order], hdop[order],
