@@ -22,6 +22,7 @@ import dataclasses
 import io
 import json
 import math
+import re
 import subprocess
 import sys
 import tomllib
@@ -345,6 +346,26 @@ def test_cli_static_and_drive_write_a_fragment_the_daemon_loads(
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = list(csv.DictReader(table.open()))
     assert len(rows) >= 16 and {"lce_m", "se_m", "fixes", "visits", "enough"} <= set(rows[0])
+
+
+def test_cli_says_why_no_cell_was_mapped_instead_of_a_nan_median(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside audit: with no cell mapped the fragment said "median LCE nan m, 95 % nan m"
+    w = world(re=0.8, ase=0.0)
+    t, pos = loop_track(laps=1)
+    drive = write_recording(tmp_path / "drive.jsonl", sim_fixes(w, 4, t, pos))
+    truth = write_truth_csv(tmp_path / "truth.csv", truth_series(w, t, pos))
+    argv = ["calibrate", "gnss", "--drive", str(drive), "--reference", str(truth),
+            "--re-m", "0.5", "--ase-m", "0.5"]  # fmt: skip
+    assert cli.main(argv) == 0
+    out, err = capsys.readouterr()
+    why = re.search(r"no cell mapped: (\d+) of (\d+) cells have fewer than 10 fixes, "
+                    r"(\d+) fewer than 2 visits \(the most in a cell: \d+ fixes, \d+ visits\)",
+                    out)  # fmt: skip
+    assert why and int(why[3]) >= int(why[2]) - 1, out  # one lap: the start cell seen twice
+    assert "nan" not in out and "only lce_default_m applies" in err
+    config.loads(out)  # the daemon loads it: the pooled default stands for every cell
 
 
 def test_cli_refuses_a_drive_without_its_reference(

@@ -179,6 +179,11 @@ def main_gnss(args: argparse.Namespace) -> int:
             visit_gap_s=args.visit_gap_s,
         )
         header += [f"drive: {s}" for s in lce.sources]
+        if not lce.mapped():
+            print(
+                f"x6wd calibrate: LCE map: {lce.spread_text()}; only lce_default_m applies",
+                file=sys.stderr,
+            )
     result = gnss.GnssCalibration(re_m, ase_m, tau, static, lce)
     text = result.toml("\n".join(header))
     sys.stdout.write(text)

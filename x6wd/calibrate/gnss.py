@@ -574,6 +574,23 @@ class LceMap:
         """The cells with enough data (the ones written to the configuration)."""
         return [c for c in self.cells if c.enough]
 
+    def spread_text(self) -> str:
+        """The mapped cells' median and 95th percentile LCE, or, with none mapped, why: how
+        many cells lack fixes or visits, and the most any has (no percentile of nothing)."""
+        v = np.array([c.lce_m for c in self.mapped()])
+        if v.size:
+            return f"median LCE {np.median(v):.2f} m, 95 % {np.percentile(v, 95):.2f} m"
+        few_fixes = sum(c.fixes < self.min_fixes for c in self.cells)
+        few_visits = sum(c.visits < self.min_visits for c in self.cells)
+        most = (max(c.fixes for c in self.cells), max(c.visits for c in self.cells))
+        return (
+            f"no cell mapped: {few_fixes} of {len(self.cells)} cells have fewer than "
+            f"{self.min_fixes} fixes, {few_visits} fewer than {self.min_visits} visits (the "
+            f"most in a cell: {most[0]} fixes, {most[1]} visits)"
+            if self.cells
+            else "no cell mapped: no fix matched"
+        )
+
     def summary(self) -> dict[str, float]:
         """Cells (all, mapped), fixes, and the median, 95th percentile and max LCE (m) over
         the mapped cells."""
@@ -814,8 +831,7 @@ class GnssCalibration:
             lines += [
                 f"# LCE map: {len(lm.matched)} fixes matched ({lm.unmatched} without reference)"
                 f", {int(s['cells'])} cells visited, {int(s['mapped'])} with >= {lm.min_fixes} "
-                f"fixes and >= {lm.min_visits} visits; median LCE {s['median_lce_m']:.2f} m, "
-                f"95 % {s['p95_lce_m']:.2f} m"
+                f"fixes and >= {lm.min_visits} visits; {lm.spread_text()}"
                 + ("" if lm.hdop_known else "; no HDOP in the drive: taken as 1"),
                 f"lce_origin_lat_deg = {t['lce_origin_lat_deg']}",
                 f"lce_origin_lon_deg = {t['lce_origin_lon_deg']}",
@@ -900,7 +916,7 @@ def plot_lce_map(lm: LceMap, path: str | Path, title: str = "") -> None:
     ax.set_title(
         (title + "\n" if title else "")
         + f"LCE map, {lm.cell_m:g} m cells: {int(summ['mapped'])} mapped (hatched: too little "
-        f"data), median {summ['median_lce_m']:.2f} m, 95 % {summ['p95_lce_m']:.2f} m",
+        f"data), {lm.spread_text()}",
         fontsize=9,
     )
     ax.legend(loc="best", fontsize=8)
