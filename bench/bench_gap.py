@@ -376,7 +376,7 @@ def _summary(results: list[dict[str, Any]], quick: bool) -> list[Row]:
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     ap.add_argument("--quick", action="store_true", help="15-minute logs, fewer cases")
     ap.add_argument("--source", choices=("gnss", "surrogate"), default="gnss")
     ap.add_argument("--json", help="write every case's outcome here")

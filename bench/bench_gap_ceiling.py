@@ -162,7 +162,7 @@ def run(
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     ap.add_argument("--quick", action="store_true", help="24 / 100 / 12 / 24 hours")
     ap.add_argument("--null", type=int, default=60, help="no-effect hours: each cell's z")
     ap.add_argument("--calib", type=int, default=300, help="no-effect hours: each limit")

@@ -380,7 +380,7 @@ def run(
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     ap.add_argument("--quick", action="store_true", help="moderate and strong only, 6 nulls")
     ap.add_argument("--seed-set", choices=tuple(SEED_BASE), default="report")
     ap.add_argument("--reps", type=int, help="cases per class and level (default 1)")

@@ -409,7 +409,9 @@ def run(quick: bool = False) -> list[Row]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: run, print the rows and the markdown table; 0 unless a run raised."""
     parser = argparse.ArgumentParser(
-        prog="python -m bench.bench_mission", description=__doc__.splitlines()[0]
+        prog="python -m bench.bench_mission",
+        description=__doc__.splitlines()[0],
+        allow_abbrev=False,
     )
     parser.add_argument(
         "--seeds",

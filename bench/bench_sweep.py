@@ -140,7 +140,7 @@ def run(quick: bool = False) -> list[Row]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m bench.bench_sweep", description=__doc__.splitlines()[0]
+        prog="python -m bench.bench_sweep", description=__doc__.splitlines()[0], allow_abbrev=False
     )
     parser.add_argument("--quick", action="store_true", help=f"{QUICK_MISSIONS} missions each")
     parser.add_argument("--missions", type=int, default=None, help="missions per configuration")

@@ -29,7 +29,9 @@ def available() -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the chosen benchmarks; return the process exit code."""
-    parser = argparse.ArgumentParser(prog="bench/run.py", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="bench/run.py", description=__doc__.splitlines()[0], allow_abbrev=False
+    )
     parser.add_argument("--quick", action="store_true", help="smaller inputs, quicker figures")
     parser.add_argument(
         "--only", action="append", metavar="NAME", help="run only this benchmark (repeatable)"

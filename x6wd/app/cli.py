@@ -10,7 +10,7 @@ import importlib
 import importlib.util
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from types import ModuleType
 
 from x6wd import __version__
@@ -115,7 +115,21 @@ def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
         else:
             module.add_arguments(p)
             p.set_defaults(_main=module.main)
+    for each in parsers(parser):
+        # a misspelt option (`sweep --seed 42`) is an error, not a silent prefix match
+        # (`--seeds 42`: 8x the planned runs). Set here on the whole tree, so that the nested
+        # parsers the subcommand modules build (client status, ...) are covered too.
+        each.allow_abbrev = False
     return parser
+
+
+def parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser]:
+    """``parser`` and all its subcommands' parsers, nested ones too."""
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                yield from parsers(sub)
 
 
 def _fail(message: str) -> Callable[[argparse.Namespace], int]:
