@@ -35,10 +35,29 @@ def test_no_parser_matches_an_abbreviated_option(command: str) -> None:
         # a nested parser; nothing listens on the port
         (["client", "--port", "47901", "status", "--js"], "--js"),  # not --json
     ],
-    ids=lambda a: a[0] if isinstance(a, list) else "",
+    ids=["sweep", "sim", "client status"],
 )  # fmt: skip
 def test_an_abbreviated_option_is_an_error(argv: list[str], unknown: str, tmp_path: Path) -> None:
     (tmp_path / "f").write_text("")
     r = x6wd(*(str(tmp_path / a) if a == "f/x" else a for a in argv))
     assert r.returncode == 2, r.stderr
     assert f"unrecognized arguments: {unknown}" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize(
+    ("argv", "prog", "unknown"),
+    [
+        (["sim", "config/scenarios/default.toml", "--seeds", "3"], "x6wd sim", "--seeds 3"),
+        (["replay", "X", "--sped", "0"], "x6wd replay", "--sped 0"),
+        (["decode", "F", "--quite"], "x6wd decode", "--quite"),
+        (["client", "--port", "47901", "status", "--foo"], "x6wd client status", "--foo"),
+    ],
+    ids=["sim", "replay", "decode", "client status"],
+)
+def test_a_misspelt_option_is_reported_with_the_subcommands_usage(
+    argv: list[str], prog: str, unknown: str
+) -> None:
+    r = x6wd(*argv)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.startswith(f"usage: {prog} [-h]"), r.stderr
+    assert f"\n{prog}: error: unrecognized arguments: {unknown}\n" in r.stderr, r.stderr

@@ -132,6 +132,18 @@ def parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser
                 yield from parsers(sub)
 
 
+def chosen_parser(
+    parser: argparse.ArgumentParser, args: argparse.Namespace
+) -> argparse.ArgumentParser:
+    """The parser of the (nested) subcommand chosen in ``args``, e.g. ``x6wd client status``'s."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            sub = action.choices.get(getattr(args, action.dest, ""))
+            if sub is not None:
+                return chosen_parser(sub, args)
+    return parser
+
+
 def _fail(message: str) -> Callable[[argparse.Namespace], int]:
     def run(_args: argparse.Namespace) -> int:
         print(message, file=sys.stderr)
@@ -162,7 +174,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     if unknown and not getattr(args, "_any_arguments", False):
-        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+        # the chosen subcommand's usage and name (`x6wd sim: error: ...`), not the top level's
+        chosen_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         return int(args._main(args) or 0)
     except X6wdError as exc:
