@@ -309,3 +309,24 @@ def test_a_nan_or_fractional_number_is_refused_naming_the_file_and_record(
         argv = ["calibrate", "odometry", "--straight", str(bad), "--circle", str(good)]
         assert cli.main(argv) == 2, name
         assert f"{bad}: {message}" in capsys.readouterr().err, name
+
+
+def test_runs_merged_by_a_short_stop_are_left_out_and_the_passes_used_are_said(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside audit: with 3 s stops (under 1 s truly still after the motors' lag) a
+    # forward and a return run merged into one "pass", silently left out or, forwards-back-
+    # forwards, fitted with its net length; only the fragment's pass count showed it
+    out_and_back = [(50.0, 50.0, 10.0), STOP, (-50.0, -50.0, 10.0), STOP]
+    merged = [(50.0, 50.0, 10.0), (0.0, 0.0, 0.5), (-50.0, -50.0, 10.0), STOP]
+    thrice = [(50.0, 50.0, 10.0), (0.0, 0.0, 0.5), (-50.0, -50.0, 10.0), (0.0, 0.0, 0.5),
+              (50.0, 50.0, 10.0), STOP, (-50.0, -50.0, 10.0), STOP]  # fmt: skip
+    script = [STOP, *out_and_back * 2, *merged, *thrice]
+    straight = write(tmp_path / "straight.jsonl", *simulate(script, 8))
+    circle = write(tmp_path / "circle.jsonl", *simulate(CIRCLE, 9))
+    argv = ["calibrate", "odometry", "--straight", str(straight), "--circle", str(circle)]
+    assert cli.main(argv) == 0
+    out, err = capsys.readouterr()
+    assert "straight track: 5 of 7 passes used; 2 drove forwards and back between two stops" in err
+    assert "0 shorter than --min-pass-m 2 m" in err
+    assert "# straight: 5 passes of " in out and " m (of 7 between stops); circle" in out

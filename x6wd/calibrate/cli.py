@@ -235,6 +235,16 @@ def main(args: argparse.Namespace) -> int:
             "stops around them were left out",
             file=sys.stderr,
         )
+    st = result.straight
+    if st.found > st.passes:
+        short = st.found - st.passes - st.returned
+        print(
+            f"x6wd calibrate: straight track: {st.passes} of {st.found} passes used; "
+            f"{st.returned} drove forwards and back between two stops (runs merged: the stop "
+            f"between was shorter than --stop-s {args.stop_s:g} s once the motors' lag is "
+            f"counted), {short} shorter than --min-pass-m {args.min_pass_m:g} m (pivots, nudges)",
+            file=sys.stderr,
+        )
     if result.gap_passes:
         print(
             f"x6wd calibrate: {result.gap_passes} circle passes with reference fixes more than "

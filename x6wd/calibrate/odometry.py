@@ -182,6 +182,7 @@ class Pass:
     n_end: int
     path_m: Array  # (n, 2) reference positions while moving, in time order
     path_t_s: Array  # (n,) their times, s
+    back_counts: int = 0  # the larger side's counts against its net direction (a reversal)
 
 
 def find_passes(track: Track, *, stop_s: float = 1.0) -> tuple[list[Pass], int]:
@@ -221,9 +222,16 @@ def find_passes(track: Track, *, stop_s: float = 1.0) -> tuple[list[Pass], int]:
                 _point(xy[start]), _point(xy[end]),
                 int(start.sum()), int(end.sum()),
                 xy[inside], tr[inside],
+                max(_back_counts(lc[i0 : i1 + 1]), _back_counts(rc[i0 : i1 + 1])),
             )
         )  # fmt: skip
     return passes, dropped
+
+
+def _back_counts(counts: npt.NDArray[np.int64]) -> int:
+    """Counts rolled against the net direction over a stretch of cumulative counts."""
+    steps = np.diff(counts)
+    return int((np.abs(steps).sum() - abs(int(steps.sum()))) // 2)
 
 
 def _point(xy: Array) -> tuple[float, float]:
@@ -267,12 +275,22 @@ class StraightResult:
     mean_length_m: float
     k_left_m: Estimate
     k_right_m: Estimate
+    found: int = 0  # passes between stops, used or not
+    returned: int = 0  # of the unused: the wheels turned both ways (runs merged)
 
 
 def straight_fit(passes: list[Pass], *, min_pass_m: float = 2.0) -> StraightResult:
     """Wheel scale factors from straight passes (see the module docstring, step 1 and 3)."""
     rows = []
+    returned = 0
     for p in passes:
+        # Runs out and back with no stop of stop_s between (the motors' lag eats a short
+        # commanded stop) merge into one "pass" whose wheels turned both ways: its net
+        # length is not what they rolled (and the k terms need the rolled travel). A
+        # straight pass's counts only creep back by noise, a count or two.
+        if p.back_counts > 0.1 * max(abs(p.d_left_counts), abs(p.d_right_counts)) + 10:
+            returned += 1
+            continue
         length = math.dist(p.start_m, p.end_m)
         if length < min_pass_m:
             continue
@@ -304,6 +322,8 @@ def straight_fit(passes: list[Pass], *, min_pass_m: float = 2.0) -> StraightResu
         total / len(rows),
         _k_terms(r_l * r_l - r_l * r_r, dof),
         _k_terms(r_r * r_r - r_l * r_r, dof),
+        found=len(passes),
+        returned=returned,
     )
 
 
@@ -442,7 +462,9 @@ class OdometryCalibration:
         st, ci = self.straight, self.circle
         lines = [f"# {line}" for line in header.splitlines()]
         lines += [
-            f"# straight: {st.passes} passes of {st.mean_length_m:.2f} m; circle: {ci.passes} "
+            f"# straight: {st.passes} passes of {st.mean_length_m:.2f} m"
+            + (f" (of {st.found} between stops)" if st.found > st.passes else "")
+            + f"; circle: {ci.passes} "
             f"passes, {ci.turn_deg:.0f} deg in all, radius {ci.radius_m:.2f} m; reference "
             f"sigma {self.ref_sigma_m:g} m per fix",
             "# value  # ± standard error",
