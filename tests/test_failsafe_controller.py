@@ -5,8 +5,11 @@ tests/test_hil_failsafe.py."""
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import replace
+from typing import Any
 
+import numpy as np
 import pytest
 
 from tests.test_controller import LTP, NAV, SAFETY, at, att, fix, split
@@ -491,3 +494,75 @@ def test_a_slow_robot_on_a_drifting_gps_is_not_stuck_until_its_wheels_drove_far(
     assert c.telemetry.extra["failsafe"] == "stuck (the GPS: no motion in 10 s of driving)"
     # not at stuck_s (10 s, 5 m driven) but once 8 m were: 16-17 s
     assert SLIP_MIN_TRAVEL * FS.stuck_min_m / 0.5 <= k <= 18, k
+
+
+# ------------------------------------------------------------------ compass untrusted
+
+
+def ekf_driving_north(fs: FailsafeConfig) -> Controller:
+    """The robot's EKF with a mission 1 km north, started after 2 s of compass samples."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=fs)
+    c.on_fix(fix(0.0))
+    for k in range(1, 21):
+        c.on_attitude(att(0.1 * k))
+    c.load_mission([at(0.0, 1000.0)], 2.0)
+    c.start(2.0)
+    return c
+
+
+def drive_north(c: Controller, t0_s: float, seconds: float, bearing: Any) -> float | None:
+    """1 m/s north from ``t0_s``: encoders and compass (``bearing(t_s)``, magnetic deg) at
+    10 Hz, fixes at 1 Hz. The time the mission left RUNNING, else None."""
+    for k in range(1, round(10 * seconds) + 1):
+        t = t0_s + 0.1 * k
+        counts = round((t - 2.0) * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t, bearing(t)))
+        if k % 10 == 0:
+            c.on_fix(fix(t, 0.0, t - 2.0))
+        if c.mode != Mode.RUNNING:
+            return t
+    return None
+
+
+def test_a_compass_the_ekf_refuses_pauses_the_mission_and_keeps_it_paused() -> None:
+    """A compass reading a random valid bearing every time: its reader and the controller's
+    checks see nothing wrong, the EKF refuses nearly all of it. After ``compass_refused_s``
+    of that the mission pauses; a resume while it lasts pauses again at once."""
+    fs = replace(FS, compass_refused_s=10.0)
+    c = ekf_driving_north(fs)
+    # healthy for 15 s, then a 90 deg step (the EKF takes it after 20 refusals: the
+    # off-course watch's fault, not this one), healthy again
+    assert drive_north(c, 2.0, 15.0, lambda t: 0.0) is None
+    assert drive_north(c, 17.0, 5.0, lambda t: 90.0) is None
+    assert drive_north(c, 22.0, 10.0, lambda t: 0.0) is None
+    assert "compass_untrusted" not in c.telemetry.extra
+    rng = np.random.default_rng(3)
+    erratic = lambda t: float(rng.uniform(0.0, 360.0))  # noqa: E731
+    t_paused = drive_north(c, 32.0, 20.0, erratic)
+    assert t_paused is not None and 32.0 + 5.0 <= t_paused <= 32.0 + 11.0
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    why = c.telemetry.extra["failsafe"]
+    assert re.fullmatch(
+        r"compass untrusted \(the EKF refused \d\d % of 10\d readings in 10 s\)", why
+    )
+    assert c.telemetry.extra["compass_untrusted"] == why[len("compass untrusted (") : -1]
+    c.resume(t_paused + 1.0)
+    assert drive_north(c, t_paused + 1.0, 1.0, erratic) is not None
+    assert c.mode == Mode.PAUSED  # the next sample paused it again: never driven
+    # the compass sound again: trusted once the window no longer holds the refusals
+    for k in range(1, 121):
+        t = t_paused + 2.0 + 0.1 * k
+        c.on_attitude(att(t, 0.0))
+        if k % 10 == 0:
+            c.on_fix(fix(t, 0.0, t_paused - 2.0))
+    assert "compass_untrusted" not in c.telemetry.extra
+    c.resume(t_paused + 15.0)
+    assert drive_north(c, t_paused + 15.0, 2.0, lambda t: 0.0) is None
+
+
+def test_the_compass_refusal_watch_is_off_at_zero() -> None:
+    c = ekf_driving_north(replace(FS, compass_refused_s=0.0, stuck_s=0.0))
+    rng = np.random.default_rng(3)
+    assert drive_north(c, 2.0, 15.0, lambda t: float(rng.uniform(0.0, 360.0))) is None
+    assert "compass_untrusted" not in c.telemetry.extra

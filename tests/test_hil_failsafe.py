@@ -21,6 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from tests.conftest import ROOT
@@ -395,5 +396,47 @@ def test_a_gps_without_fix_holds_then_pauses(tmp_path: Path, run_daemon, log_tai
         assert st["telemetry"]["extra"]["failsafe"] == "no valid fix for 3 s"
         wait_for(lambda: world.vehicle.command_pct == (0.0, 0.0), 3, "motors stopped")
         assert any("failsafe: no valid fix" in x for x in log_tail.tail(300))
+        c.request("stop")
+    assert r.stop() == 0
+
+
+def test_a_compass_reading_random_bearings_is_untrusted_and_pauses_the_mission(
+    tmp_path: Path, run_daemon, log_tail: LogTail
+) -> None:
+    """The compass answers every read with good registers showing a random bearing: the
+    driver and the controller's checks pass it, the EKF refuses most of it. Within
+    ``compass_refused_s`` of driving on it the mission pauses with the motors stopped, the
+    compass shows degraded in status with why, and the log says so."""
+    cfg = with_failsafe(hil_config(tmp_path), compass_refused_s=3.0, stuck_s=0.0)
+    r = run_daemon(Daemon(cfg, log_tail=log_tail))
+    d = r.daemon
+    world = d.devices.backend("sim")
+    compass = world.compass
+    set_state, rng = compass.set_state, np.random.default_rng(11)
+    with RemoteClient("127.0.0.1", r.port) as c:
+        start_north(c, d, world, 100.0)
+        wait_for(lambda: world.vehicle.command_pct[0] > 10.0, 10, "driving")
+        assert c.request("status")["devices"]["compass"]["state"] == "connected"
+        # no filter lag: each read shows the latest random bearing, not an average of them
+        compass.errors = dataclasses.replace(compass.errors, lag_tau_s=0.0)
+        compass.set_state = lambda t, _h, pitch, roll: set_state(
+            t, float(rng.uniform(0.0, 360.0)), pitch, roll
+        )
+        t0 = time.monotonic()
+        st = wait_for(
+            lambda: (s := c.request("status"))["mode"] != "RUNNING" and s, 15, "the failsafe"
+        )
+        assert time.monotonic() - t0 < 8.0
+        assert st["mode"] == "PAUSED", st
+        why = st["telemetry"]["extra"]["failsafe"]
+        assert re.fullmatch(
+            r"compass untrusted \(the EKF refused \d+ % of \d+ readings in 3 s\)", why
+        )
+        comp = st["devices"]["compass"]
+        assert comp["state"] == st["links"]["compass"] == "degraded"
+        assert comp["reason"].startswith("untrusted: the EKF refused ")
+        assert "\n  compass  degraded: untrusted: the EKF refused " in client_cli.render_status(st)
+        wait_for(lambda: world.vehicle.command_pct == (0.0, 0.0), 3, "motors stopped")
+        assert any("WARNING" in x and "compass untrusted: " in x for x in log_tail.tail(300))
         c.request("stop")
     assert r.stop() == 0

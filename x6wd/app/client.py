@@ -346,7 +346,7 @@ def render_status(st: dict[str, Any]) -> str:
         for name, dev in devices.items():
             if not isinstance(dev, dict):
                 continue
-            problem = dev.get("last_error") or dev.get("reason") or ""
+            problem = dev.get("reason") or dev.get("last_error") or ""
             state = dev.get("state", "?")
             if problem and state not in ("connected", "polling"):
                 lines.append(f"  {name:<9}{state}: {problem}")

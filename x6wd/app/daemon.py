@@ -1536,6 +1536,12 @@ class Daemon:
                 cached = (health, health.to_dict())
                 self._dev_dicts[name] = cached
             out[name] = cached[1]
+        tel = self.last_telemetry
+        untrusted = tel.extra.get("compass_untrusted") if tel is not None else None
+        comp = out["compass"]
+        if untrusted and comp is not None and comp["state"] == "connected":
+            # its reader sees good registers; the EKF refuses what they say
+            out["compass"] = {**comp, "state": "degraded", "reason": f"untrusted: {untrusted}"}
         out["odometry"] = self._odometry_status()
         return out
 

@@ -221,7 +221,9 @@ class FailsafeConfig:
     ``stuck_min_m``; a sensor stale or down for ``sensor_timeout_s`` (the robot already
     holds from the first moment; the action is what follows); off course: a fix
     ``off_course_m`` farther from the target than the leg's closest, or the fixes' course
-    ``heading_check_deg`` from the heading steered by (``off_course_action``)."""
+    ``heading_check_deg`` from the heading steered by (``off_course_action``); the EKF
+    refused half or more of the compass readings over ``compass_refused_s`` (0: off;
+    always a pause: a return needs the heading it cannot trust)."""
 
     geofence_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
     operator_timeout_s: float = field(default=0.0, metadata=_rng(0, 3600))
@@ -236,6 +238,8 @@ class FailsafeConfig:
     off_course_m: float = field(default=25.0, metadata=_rng(0, 10_000))
     heading_check_deg: float = field(default=45.0, metadata=_rng(0, 180))
     off_course_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
+    # compass untrusted, from the EKF's refusals (x6wd/nav/compass_trust.py); 0: off
+    compass_refused_s: float = field(default=10.0, metadata=_rng(0, 600))
 
 
 @dataclass(frozen=True)

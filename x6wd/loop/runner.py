@@ -110,6 +110,7 @@ class Runner:
         )
         self._operator_log = RateLimitedLog(log, 1.0, clock)
         self.last_telemetry: Telemetry | None = None
+        self._compass_untrusted = False  # the controller's verdict, logged as it changes
         self.first_fix: tuple[float, float] | None = None
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
         self.geofence_breaches = 0
@@ -353,6 +354,13 @@ class Runner:
                     self._record("record_motor", out)
             elif type(out) is Telemetry:
                 self.last_telemetry = out
+                untrusted = out.extra.get("compass_untrusted")
+                if bool(untrusted) != self._compass_untrusted:  # its reader cannot see this
+                    self._compass_untrusted = bool(untrusted)
+                    if untrusted:
+                        log.warning("compass untrusted: %s", untrusted)
+                    else:
+                        log.info("compass trusted again: the EKF takes its readings")
                 now = out.t_s
                 force = important or bool(changes)
                 if self._publish is not None and (

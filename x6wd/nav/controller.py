@@ -73,6 +73,7 @@ from x6wd.core.records import (
     WheelOdometry,
 )
 from x6wd.nav import geo, steering
+from x6wd.nav.compass_trust import CompassTrust
 from x6wd.nav.course_watch import CourseWatch
 from x6wd.nav.navigator import NavigationError, Navigator
 from x6wd.nav.odometry import wheel_travel_m
@@ -181,6 +182,7 @@ class Controller:
             self._failsafe.off_course_m, self._failsafe.heading_check_deg, nav.full_speed_mps
         )
         self._course_fix: GpsFix | None = None  # the last fix the course watch took
+        self._trust = CompassTrust(self._failsafe.compass_refused_s)  # the EKF's refusals
         self._wheel_m = 0.0  # |wheel travel| summed over both sides / 2 (m)
         self._wheel_at_fix = 0.0  # _wheel_m at the latest valid fix
         self._odo_prev: WheelOdometry | None = None
@@ -284,7 +286,9 @@ class Controller:
         self._att = att
         self._att_ok = bool(att.valid) and _finite(att.bearing_deg) and 0 <= att.bearing_deg < 360
         if self._att_ok:
-            self._source.on_compass(t, att.bearing_deg)
+            took = self._source.on_compass(t, att.bearing_deg)
+            if took is not None:
+                self._trust.on_reading(t, not took)
         back_t = self._sensor_back.get("compass")
         if back_t is not None and self._att_ok and t >= back_t:
             del self._sensor_back["compass"]  # a fresh sample since the compass came back
@@ -570,6 +574,11 @@ class Controller:
             return "operator link lost", fs.operator_action
         if hold:
             return None
+        untrusted = self._trust.verdict(now)
+        if untrusted:
+            # a heading it cannot trust: pause, whatever the actions say (a return would
+            # steer by it too)
+            return f"compass untrusted ({untrusted})", "hold"
         if fs.stuck_s > 0:
             fired = self._stuck_check(now)
             if fired is not None:
@@ -918,6 +927,9 @@ class Controller:
             extra["returning"] = self._returning
         if self._failsafe_why:
             extra["failsafe"] = self._failsafe_why
+        untrusted = self._trust.verdict(now)
+        if untrusted:
+            extra["compass_untrusted"] = untrusted
         if self._sky is not None:
             extra["sats_in_view"] = len(self._sky.satellites)
         if not self._link_ok:

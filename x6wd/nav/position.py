@@ -41,8 +41,9 @@ class PositionSource(Protocol):
     def on_fix(self, fix: GpsFix) -> None:
         """A usable fix (valid, coordinates present and in range)."""
 
-    def on_compass(self, t_s: float, bearing_mag_deg: float) -> None:
-        """A usable compass sample: magnetic bearing (deg) at ``t_s`` (s)."""
+    def on_compass(self, t_s: float, bearing_mag_deg: float) -> bool | None:
+        """A usable compass sample: magnetic bearing (deg) at ``t_s`` (s). True or False:
+        the source took or refused it (the EKF's gate); None: it does not judge this one."""
 
     def on_odometry(self, rec: WheelOdometry) -> None:
         """Cumulative encoder counts at ``rec.t_s`` (s)."""
@@ -76,7 +77,7 @@ class RawSource:
         assert fix.lat_deg is not None and fix.lon_deg is not None
         self._pos = (fix.lat_deg, fix.lon_deg)
 
-    def on_compass(self, t_s: float, bearing_mag_deg: float) -> None:
+    def on_compass(self, t_s: float, bearing_mag_deg: float) -> bool | None:
         return None
 
     def on_odometry(self, rec: WheelOdometry) -> None:
@@ -218,11 +219,13 @@ class EkfSource:
         hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else DEFAULT_HDOP
         self._ekf.on_gps(fix.t_s, float(e), float(n), hdop)
 
-    def on_compass(self, t_s: float, bearing_mag_deg: float) -> None:
+    def on_compass(self, t_s: float, bearing_mag_deg: float) -> bool | None:
         if self._ekf is None:
             # the filter starts at the first fix; the heading it needs comes next sample
-            return
-        self._ekf.on_compass(t_s, bearing_mag_deg)
+            return None
+        upd = self._ekf.on_compass(t_s, bearing_mag_deg)
+        # too late for the filter, or its first heading: no judgement of the compass
+        return None if upd.reason in ("stale", "init") else upd.accepted
 
     def on_odometry(self, rec: WheelOdometry) -> None:
         prev, self._counts = self._counts, (rec.left_counts, rec.right_counts)
