@@ -163,6 +163,44 @@ def test_missing_file_reported_and_others_decoded(capsys: pytest.CaptureFixture[
     assert lines and all(json.loads(x)["class"] == "TPV" for x in lines)
 
 
+def _x6wd(*argv: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "x6wd", *argv], capture_output=True, text=True, timeout=60
+    )
+
+
+@pytest.mark.parametrize("command", ["decode", "replay"])
+def test_an_input_in_which_nothing_decodes_is_exit_2_naming_the_file(
+    command: str, tmp_path: Path
+) -> None:
+    noise = tmp_path / "noise.bin"
+    noise.write_bytes(bytes(range(256)) * 8)
+    junk = tmp_path / "junk.jsonl"  # looks like a recording: read as one
+    junk.write_text('{"t_mono": 1,\nnot json\n')
+    cases = {
+        noise: "2048 bytes",
+        junk: "2 lines",
+        ROOT / "missions/default.gpx": "bytes",  # a mission file is not a log
+    }
+    more = ["--speed", "0"] if command == "replay" else []
+    for path, what in cases.items():
+        r = _x6wd(command, str(path), *more)
+        assert r.returncode == 2, r.stderr
+        assert f"{path}: no NMEA sentence or x6wd record in " in r.stderr, r.stderr
+        assert what in r.stderr.splitlines()[-1], r.stderr
+    # empty in, empty out; a log with some junk lines is decoded as usual
+    empty = tmp_path / "empty.log"
+    empty.write_bytes(b"")
+    mixed = tmp_path / "mixed.log"
+    mixed.write_bytes(b"junk\n" + LEA5H.read_bytes()[:4000] + b"\x00\xff junk\n")
+    for path in (empty, mixed):
+        r = _x6wd(command, str(path), *more)
+        assert r.returncode == 0 and "no NMEA sentence" not in r.stderr, r.stderr
+    if command == "decode":  # the other files are still decoded
+        r = _x6wd("decode", str(noise), str(LEA5H), "--quiet")
+        assert r.returncode == 2 and len(r.stdout.splitlines()) > 10, r.stderr
+
+
 # --------------------------------------------------------------- the direct encoder
 # `x6wd decode` writes its lines with ReportEncoder instead of json.dumps(tpv_obj/sky_obj);
 # the text must be the same, character for character, as the plain path computed here.

@@ -1792,11 +1792,42 @@ def _decode_sentences(
     return decoder.counters
 
 
+class InputSize:
+    """The bytes of a plain (not recording) input, and whether any of them was not blank."""
+
+    def __init__(self) -> None:
+        self.bytes = 0
+        self.blank = True
+
+    def add(self, chunk: bytes) -> None:
+        self.bytes += len(chunk)
+        if self.blank and chunk.strip():
+            self.blank = False
+
+
+def nothing_decoded(counters: DecoderCounters, stats: ReadStats, size: InputSize) -> str | None:
+    """``"N bytes"`` or ``"N lines"`` when an input that is not empty held no NMEA sentence,
+    UBX frame or x6wd record at all (not a log: random bytes, a mission file, junk JSON
+    lines), else None. An empty or blank input is no error: empty in, empty out."""
+    lines = stats.records + stats.bad_lines + stats.truncated + stats.blank_lines
+    if lines:  # a recording
+        return f"{lines} lines" if not stats.records and lines > stats.blank_lines else None
+    if counters.sentences or counters.ubx_frames or size.blank:
+        return None
+    return f"{size.bytes} bytes"
+
+
 def decode_stream(
-    stream: IO[bytes], out: IO[str], *, with_sky: bool = True, stats: ReadStats | None = None
+    stream: IO[bytes],
+    out: IO[str],
+    *,
+    with_sky: bool = True,
+    stats: ReadStats | None = None,
+    size: InputSize | None = None,
 ) -> DecoderCounters:
     """Decode one input (NMEA bytes or a recording) and write report lines to ``out``.
-    A recording's lines that are not records are counted in ``stats`` (if given)."""
+    A recording's lines that are not records are counted in ``stats``, a plain input's
+    bytes in ``size`` (if given)."""
     from x6wd.core.recorder import looks_like_recording
 
     head = stream.read(_CHUNK_BYTES)
@@ -1807,8 +1838,10 @@ def decode_stream(
         st = stats if stats is not None else ReadStats()
         return _decode_sentences(_recording_sentences(lines, st), out, with_sky)
     decoder = ReportDecoder(ReportEncoder(), with_sky=with_sky)
+    size = size if size is not None else InputSize()
     chunk = head
     while chunk:
+        size.add(chunk)
         _write_lines(decoder.feed(chunk, 0.0), out)
         chunk = stream.read(_CHUNK_BYTES)
     _write_lines(decoder.flush(), out)
@@ -1824,10 +1857,16 @@ def _write_lines(records: list[GpsOutput], out: IO[str]) -> None:
 
 
 def decode_path(
-    path: str, out: IO[str], *, with_sky: bool = True, stats: ReadStats | None = None
+    path: str,
+    out: IO[str],
+    *,
+    with_sky: bool = True,
+    stats: ReadStats | None = None,
+    size: InputSize | None = None,
 ) -> DecoderCounters:
     """Decode a file; recordings go through ``x6wd.core.recorder.read_recording``, which
-    counts their bad and truncated lines in ``stats`` (if given)."""
+    counts their bad and truncated lines in ``stats``, a plain file's bytes are counted in
+    ``size`` (if given)."""
     from x6wd.core.recorder import is_recording, read_recording
 
     try:
@@ -1836,7 +1875,7 @@ def decode_path(
         raise DeviceUnavailable(f"cannot open {path}: {exc.strerror}") from exc
     with f:
         if not is_recording(path):
-            return decode_stream(f, out, with_sky=with_sky)
+            return decode_stream(f, out, with_sky=with_sky, size=size)
 
     sentences = (
         (rec.t_mono, rec.data["text"])
@@ -1847,7 +1886,8 @@ def decode_path(
 
 
 def main(args: argparse.Namespace) -> int:
-    """Decode every FILE in order; returns 0, or 1 when a file could not be read."""
+    """Decode every FILE in order; returns 0, or 2 when a file could not be read or held
+    nothing to decode (the other files are still decoded)."""
     # Decoding allocates tuples by the hundred thousand, hardly any in a cycle: the
     # collector's passes over them (and over every object of the imports, each full pass)
     # only cost time. The imports' objects are set aside (gc.freeze) and a pass waits for
@@ -1871,13 +1911,16 @@ def _main(args: argparse.Namespace) -> int:
     status = 0
     for name in args.files:
         stats = ReadStats()
+        size = InputSize()
         try:
             if name == "-":
                 counters = decode_stream(
-                    sys.stdin.buffer, sys.stdout, with_sky=not args.no_sky, stats=stats
+                    sys.stdin.buffer, sys.stdout, with_sky=not args.no_sky, stats=stats, size=size
                 )
             else:
-                counters = decode_path(name, sys.stdout, with_sky=not args.no_sky, stats=stats)
+                counters = decode_path(
+                    name, sys.stdout, with_sky=not args.no_sky, stats=stats, size=size
+                )
         except BrokenPipeError:
             # The reader went away (e.g. `| head`): stop quietly like other filters.
             with contextlib.suppress(OSError):
@@ -1894,4 +1937,9 @@ def _main(args: argparse.Namespace) -> int:
             if stats.records or stats.bad_lines or stats.truncated:  # a recording
                 figures += f" bad_recording_lines={stats.bad_lines + stats.truncated}"
             print(f"{name}: {figures}", file=sys.stderr)
+        if (what := nothing_decoded(counters, stats, size)) is not None:
+            print(
+                f"x6wd decode: {name}: no NMEA sentence or x6wd record in {what}", file=sys.stderr
+            )
+            status = 2
     return status

@@ -15,6 +15,7 @@ import math
 import sys
 from typing import Any, TextIO
 
+from x6wd.core.errors import ParseError
 from x6wd.core.recorder import (
     GAP_REPLAY_S,
     ReadStats,
@@ -115,7 +116,8 @@ def replay_file(
     err: TextIO | None = None,
 ) -> dict[str, int]:
     """Decode ``path`` through :class:`GpsDecoder`, write the reports to ``out`` (default
-    stdout) and the counts to ``err`` (default stderr); return the counts."""
+    stdout) and the counts to ``err`` (default stderr); return the counts. Raises
+    :class:`ParseError` for a file that is not empty but holds nothing to decode."""
     from drivers.gps_nmea import GpsDecoder
 
     out = sys.stdout if out is None else out
@@ -126,6 +128,8 @@ def replay_file(
     decoder = GpsDecoder(emit_sentences=False)
     fixes = skies = 0
     t_last = 0.0
+    nbytes = 0
+    blank = True  # no byte but white space yet
 
     def on_gap(t_s: float, jump_s: float) -> None:
         err.write(
@@ -136,6 +140,8 @@ def replay_file(
     chunks = nmea_chunks(path, rate_hz=rate_hz, stats=stats)
     for t_s, data in paced(chunks, speed, on_gap=on_gap if speed else None):
         t_last = t_s
+        nbytes += len(data)
+        blank = blank and not data.strip()
         for rec in decoder.feed(data, t_s):
             if isinstance(rec, GpsFix):
                 fixes += 1
@@ -156,7 +162,16 @@ def replay_file(
         counts["truncated_lines"] = stats.truncated
         counts["bad_lines"] = stats.bad_lines
     err.write(" ".join(f"{k}={v}" for k, v in counts.items()) + "\n")
-    return counts
+    # not a log at all (random bytes, a mission file, junk lines): an error, not an empty
+    # replay; an empty file is no error (empty in, empty out)
+    lines = stats.records + stats.bad_lines + stats.truncated + stats.blank_lines
+    if recording and not stats.records and lines > stats.blank_lines:
+        what = f"{lines} lines"
+    elif not recording and not (counts["sentences"] or counts["ubx_frames"] or blank):
+        what = f"{nbytes} bytes"
+    else:
+        return counts
+    raise ParseError(f"{path}: no NMEA sentence or x6wd record in {what}")
 
 
 def main(args: argparse.Namespace) -> int:
