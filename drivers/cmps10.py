@@ -247,8 +247,8 @@ class Cmps10:
         attitude unchanged, so its ``t_s`` keeps ageing honestly; with no good sample yet, or
         once ``stale_after`` samples in a row failed or the last good one is more than
         ``stale_s`` old, it returns ``valid=False`` at ``t_s`` (holding the last good values,
-        or zeros). Raises :class:`DeviceIOError` for non-transient errors (health:
-        disconnected).
+        or zeros; the controller's ``attitude_age_s`` still counts from the last good one).
+        Raises :class:`DeviceIOError` for non-transient errors (health: disconnected).
         """
         self._start(t_s)
         self.counters.samples += 1

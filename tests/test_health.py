@@ -485,6 +485,8 @@ def test_compass_stale_holds_the_mission_and_it_resumes_on_fresh_samples(
         )
         assert st["telemetry"]["hold_reason"] == "compass stale"
         assert st["devices"]["compass"]["state"] == "stale"
+        # the age since the last good sample, not since the invalid one handed on meanwhile
+        assert st["telemetry"]["attitude_age_s"] >= 0.15, st["telemetry"]  # 5 failed reads
         wait_for(lambda: c.request("status")["state"] != "HOLD", 10, "resumed")
     # the storm's stale spell (a loaded machine may add a short one of its own elsewhere)
     t_stale = next(e.t_s for _, e in d.seen_events if e.new == "stale" and e.t_s >= storm_t0_s)

@@ -222,6 +222,22 @@ def test_an_attitude_exactly_attitude_stale_s_old_is_fresh_and_older_holds() -> 
     assert tel.hold_reason == "attitude stale" and cmd.is_stop
 
 
+def test_the_attitude_age_counts_from_the_last_good_sample() -> None:
+    """A compass stale from I2C errors: its reader hands on invalid samples stamped with the
+    time of each read; the age shown keeps growing from the last good one (it read 0.00 s)."""
+    c = running()
+    c.on_attitude(att(1.0))
+    for t in (1.1, 1.6, 2.5):
+        c.on_fix(fix(t))
+        _, cmd, tel = split(c.on_attitude(att(t, valid=False)))
+    assert tel.attitude_age_s == pytest.approx(1.5) and tel.hold_reason == "attitude invalid"
+    assert cmd.is_stop
+    _, _, tel = split(c.on_attitude(att(2.6)))
+    assert tel.attitude_age_s == 0.0
+    c = Controller(NAV, SAFETY)
+    assert c.on_attitude(att(1.0, valid=False))[-1].attitude_age_s is None  # none good yet
+
+
 def test_a_late_fix_does_not_make_the_position_look_older() -> None:
     c = running()
     c.on_attitude(att(5.0))

@@ -195,6 +195,9 @@ class Controller:
         self._valid_fix_t: float | None = None
         self._att: Attitude | None = None
         self._att_ok = False
+        # the latest usable sample's time (s): a stale compass's reader hands on an invalid
+        # sample stamped now, and the age shown must keep growing from the last good one
+        self._good_att_t: float | None = None
         self._sky: GpsSky | None = None
         self._link_ok = True
         # Sensors a reader reported unusable: name -> its state ("disconnected", "stale"...).
@@ -286,6 +289,8 @@ class Controller:
         self._att = att
         self._att_ok = bool(att.valid) and _finite(att.bearing_deg) and 0 <= att.bearing_deg < 360
         if self._att_ok:
+            good_t = self._good_att_t
+            self._good_att_t = t if good_t is None else max(good_t, t)
             took = self._source.on_compass(t, att.bearing_deg)
             if took is not None:
                 self._trust.on_reading(t, not took)
@@ -955,11 +960,12 @@ class Controller:
         else:
             lat, lon, quality = fix.lat_deg, fix.lon_deg, fix.quality
             sats_used, hdop = fix.sats_used, fix.hdop
+        good_att_t = self._good_att_t
+        att_age = now - good_att_t if good_att_t is not None else None
         if att is None:
-            bearing = pitch = roll = att_age = None
+            bearing = pitch = roll = None
         else:
             bearing, pitch, roll = att.bearing_deg, att.pitch_deg, att.roll_deg
-            att_age = now - att.t_s
         return Telemetry(
             t_s=now,
             mode=self._mode,
