@@ -204,6 +204,20 @@ def test_holds_and_device_faults(tmp_path: Path) -> None:
     assert heading["v"] == [270.0] * 6  # true degrees 0-360, as every heading shown
 
 
+def test_a_recording_from_before_headings_were_recorded_0_to_360_still_shows_them(
+    tmp_path: Path,
+) -> None:
+    """Recordings before the recorder wrapped them hold the controller's (-180, 180]."""
+    path = tmp_path / "r.jsonl"
+    _recorded(path, "gps disconnected")
+    text = path.read_text()
+    assert text.count('"heading_deg":270.0') == 6  # the recorder writes 0-360 now
+    path.write_text(text.replace('"heading_deg":270.0', '"heading_deg":-90.0'))
+    series = page_data(logview.render_html(path))["heading"]
+    heading = next(s for s in series if s["label"].startswith("heading"))
+    assert heading["v"] == [270.0] * 6
+
+
 @pytest.mark.parametrize(
     ("reason", "lane"),
     [("no valid fix", "gps"), ("fix stale", "gps"), ("attitude invalid", "compass"),

@@ -580,3 +580,24 @@ def test_a_very_slow_replay_sleeps_in_pieces_the_os_accepts(tmp_path: Path) -> N
     with pytest.raises(KeyboardInterrupt):
         next(records)
     assert asked == [MAX_SLEEP_S]
+
+
+def test_telemetry_headings_are_recorded_as_shown_0_to_360(tmp_path: Path) -> None:
+    """docs/protocol.md, "Headings": the recording carries what status and watch show
+    (Telemetry.to_dict), not the controller's (-180, 180]."""
+    path = tmp_path / "r.jsonl"
+    run, straight = Mode.RUNNING, NavState.STRAIGHT
+    tels = [
+        Telemetry(1.0, run, straight, heading_deg=-90.0, target_bearing_deg=-0.0),
+        Telemetry(2.0, run, straight, heading_deg=-1e-17, target_bearing_deg=180.0),
+        Telemetry(3.0, Mode.IDLE, NavState.IDLE, heading_deg=45.0),
+    ]
+    with Recorder(path, fsync_interval_s=0.0) as rec:
+        for tel in tels:
+            rec.record_telemetry(tel)
+    assert "-0.0" not in path.read_text()
+    got = [r.data for r in read_recording(path)]
+    assert [(d["heading_deg"], d["target_bearing_deg"]) for d in got] == [
+        (270.0, 0.0), (0.0, 180.0), (45.0, None)
+    ]  # fmt: skip
+    assert got == [json.loads(json.dumps(tel.to_dict())) for tel in tels]

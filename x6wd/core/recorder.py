@@ -739,10 +739,12 @@ class Recorder:
         self.record("state", change, change.t_s)
 
     def record_telemetry(self, tel: Telemetry) -> None:
-        """A controller telemetry snapshot; ``t_mono`` is its ``t_s``."""
+        """A controller telemetry snapshot; ``t_mono`` is its ``t_s``. Its heading and
+        target bearing as status and watch show them, 0 <= h < 360 (recordings before
+        this held the controller's (-180, 180]: their readers wrap)."""
         # The dataclass itself, not ``tel.to_dict()``: same JSON (enums by value), without
         # ``asdict``'s deep copy.
-        self.record("telemetry", tel, tel.t_s)
+        self.record("telemetry", tel.shown(), tel.t_s)
 
     def record_fix(self, fix: GpsFix) -> None:
         """A decoded fix; ``t_mono`` is its ``t_s``."""

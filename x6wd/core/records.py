@@ -7,8 +7,9 @@ in seconds on one monotonic clock. The controller never reads a clock; it trusts
 from __future__ import annotations
 
 import enum
+import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime
 from typing import Any
 
@@ -184,9 +185,31 @@ class Telemetry:
         d["state"] = str(self.state)
         for key in ("heading_deg", "target_bearing_deg"):
             if d[key] is not None:
-                h = d[key] % 360.0
-                d[key] = 0.0 if h >= 360.0 else h  # -1e-17 % 360 rounds to 360.0
+                d[key] = heading_360(d[key])
         return d
+
+    def shown(self) -> Telemetry:
+        """This snapshot with the heading and the target bearing as :meth:`to_dict` shows
+        them, 0 <= h < 360 (itself when they are already): what the recorder writes."""
+        h, b = self.heading_deg, self.target_bearing_deg
+        if (h is None or _shown(h)) and (b is None or _shown(b)):
+            return self
+        return replace(
+            self,
+            heading_deg=None if h is None else heading_360(h),
+            target_bearing_deg=None if b is None else heading_360(b),
+        )
+
+
+def _shown(h_deg: float) -> bool:
+    """``h_deg`` is in [0, 360), and not -0.0 (which the JSON would write as such)."""
+    return math.copysign(1.0, h_deg) > 0 and h_deg < 360.0
+
+
+def heading_360(h_deg: float) -> float:
+    """A heading (deg) as x6wd shows every one, 0 <= h < 360."""
+    h = h_deg % 360.0
+    return 0.0 if h >= 360.0 else h  # -1e-17 % 360 rounds to 360.0
 
 
 ControllerOutput = MotorCommand | Telemetry | StateChange
