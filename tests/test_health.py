@@ -168,6 +168,22 @@ def test_closed_is_quiet_and_bad_limits_are_refused() -> None:
     assert set(d) == {f.name for f in dataclasses.fields(DeviceHealth)}
 
 
+def test_the_reason_is_the_current_fault_not_the_last_error() -> None:
+    """An open failure, then the port opens but stays silent: the reason is the silence,
+    where last_error still names the open failure (status showed that as the fault)."""
+    t = tracker(stale_s=1.0)
+    t.open_failed("open failed: [Errno 2] No such file", 0.0, 0.5)
+    assert t.health.reason == "open failed: [Errno 2] No such file, next attempt in 0.5 s"
+    t.opened(0.5)
+    assert t.health.reason == ""
+    t.check(2.0)
+    h = t.health
+    assert (h.state, h.reason) == ("stale", "no data yet for 1.50 s (limit 1 s)")
+    assert h.last_error.startswith("open failed")
+    st = {"devices": {"gps": h.to_dict()}}
+    assert "\n  gps      stale: no data yet for 1.50 s (limit 1 s)\n" in render_status(st)
+
+
 def test_corrupt_input_is_shown_told_once_a_minute_and_named_as_the_stale_cause() -> None:
     labels = {"checksum_failures": "lines with bad checksums", "skipped_bytes": "bytes of noise"}
     t = tracker(stale_s=1.0, corrupt_labels=labels, corrupt_minor=frozenset({"skipped_bytes"}))

@@ -124,6 +124,7 @@ class HealthTracker:
         self._open_failures = 0  # failed reopens since the link was lost
         self._down_t: float | None = None  # when the link was lost (for the outage length)
         self._errors_in_episode = 0  # errors since the device last left ``connected``
+        self._reason = "not opened yet"  # why it is in its state now ("" when connected)
         self._corrupt_labels = dict(corrupt_labels or {})
         self._corrupt_minor = corrupt_minor
         self.corrupt_log_s = corrupt_log_s
@@ -215,6 +216,7 @@ class HealthTracker:
         if next_attempt_t_s is not None:
             retry = f", next attempt in {max(0.0, next_attempt_t_s - t_s):.1f} s"
         if self._state == RECONNECTING:
+            self._reason = f"{error}{retry}"
             self._health = self._snapshot()
             self._emit(
                 OPEN_FAILED,
@@ -330,6 +332,7 @@ class HealthTracker:
 
     def closed(self, t_s: float) -> None:
         """Deliberately closed at ``t_s`` (s): disconnected, no error and no event."""
+        self._reason = "closed"
         if self._state != DISCONNECTED:
             self._state = DISCONNECTED
             self._since_t = t_s
@@ -382,6 +385,10 @@ class HealthTracker:
             return
         if new == CONNECTED:
             self._errors_in_episode = 0
+        # the transition's own words, without the device's name: the current fault, not
+        # the last error (an old open failure while the open port is silent)
+        why = message.removeprefix(f"{self.device} ").removeprefix(f"{new}: ")
+        self._reason = "" if new == CONNECTED else why
         self._state = new
         self._since_t = t_s
         self._since_utc = self._wall()
@@ -409,6 +416,7 @@ class HealthTracker:
             next_attempt_t_s=self._next_attempt_t,
             stale_s=self._stale_s,
             corrupt=self._corrupt,
+            reason=self._reason,
         )
 
 

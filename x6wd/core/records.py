@@ -262,6 +262,9 @@ class DeviceHealth:
     # corrupt input counted and skipped since start, by kind (GPS: checksum_failures,
     # framing_errors, invalid_fields, skipped_bytes); empty for a device that has none
     corrupt: Mapping[str, int] = field(default_factory=dict)
+    # why the device is in ``state`` now ("" when connected): the current fault, where
+    # ``last_error`` may be an older one (an open failure while the open port is silent)
+    reason: str = ""
 
     @property
     def ok(self) -> bool:
