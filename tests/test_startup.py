@@ -116,6 +116,17 @@ def files_under(path: Path) -> list[Path]:
         ({"motors": {"url": "tcp://localhost:\u00b2"}}, "motors.url", ["HOST:PORT"]),
         ({"gps": {"url": "serial:///dev/tty%00S0"}}, "gps.url", ["NUL"]),
         ({"recorder": {"dir": "/tmp/a\u0000b"}}, "", ["recorder.dir: must not contain a NUL"]),
+        # two servers on one port: both keys named, before binding blames another program
+        (
+            {"server": {"port": 47710}, "gpsd": {"port": 47710}},
+            "",
+            ["gpsd.port: 47710 is server.port too: each server needs a port of its own"],
+        ),
+        (
+            {"server": {"port": 47711}, "console": {"enabled": True, "port": 47711}},
+            "",
+            ["console.port: 47711 is server.port too"],
+        ),
     ],
 )
 def test_bad_setting_is_one_line_and_exit_2(

@@ -520,6 +520,22 @@ def loads(text: str, source: str = "<string>") -> Config:
     return build(Config, _parse(text, source))
 
 
+def _check_ports(cfg: Config) -> None:
+    """Two enabled servers given one TCP port: a ConfigError naming both keys (binding
+    would blame another program holding the port)."""
+    seen: dict[int, str] = {}
+    for section in ("server", "console", "gpsd"):
+        sec = getattr(cfg, section)
+        if not sec.enabled or sec.port == 0:  # 0: the system picks a free port for each
+            continue
+        other = seen.setdefault(sec.port, section)
+        if other != section:
+            raise ConfigError(
+                f"{section}.port: {sec.port} is {other}.port too: each server needs a port "
+                "of its own"
+            )
+
+
 def load(path: str | Path) -> Config:
     """Read and validate a TOML configuration file (UTF-8, as TOML requires).
 
@@ -545,6 +561,7 @@ def load(path: str | Path) -> Config:
     data = _parse(text, str(p))
     try:
         cfg = build(Config, data)
+        _check_ports(cfg)
     except ConfigError as exc:
         raise ConfigError(f"{p}: {exc}") from exc
     if not cfg.sim.scenario:
