@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -61,3 +63,24 @@ def test_plot_refuses_a_file_as_out_with_exit_2(
     plot = ["plot", str(tmp_path / "run" / "recording.jsonl"), "--format", "html"]
     assert cli.main([*plot, "--out", str(tmp_path / "f" / "x")]) == 2
     assert "x6wd plot: error: output directory" in capsys.readouterr().err
+
+
+def test_the_paths_printed_are_normalised(tmp_path: Path) -> None:
+    """`--out report/` printed `report//report.md`: each command prints clean paths."""
+
+    def x6wd(*argv: str) -> str:
+        r = subprocess.run(
+            [sys.executable, "-m", "x6wd", *argv, "--out", "out/"],
+            capture_output=True, text=True, timeout=120, cwd=tmp_path,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stderr
+        assert "//" not in r.stdout, r.stdout
+        return r.stdout
+
+    real = str(ROOT / "tests/data/nmea/skytraq-dgps.log")
+    out = x6wd("gap", "--real", real, "--seeds", "1", "--replicates", "3", "--no-figures")
+    assert "report in out/report.md" in out, out
+    out = x6wd("sim", str(ROOT / "config/scenarios/open_field.toml"), "--duration", "5")
+    assert f"outputs in {tmp_path / 'out'}" in out, out
+    out = x6wd("plot", "out/recording.jsonl", "--format", "html")
+    assert out == "out/recording.html\n"

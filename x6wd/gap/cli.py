@@ -206,12 +206,12 @@ def main(args: argparse.Namespace) -> int:
         origin_deg=origin,
     )
     extra = f"; {compass_verdict_text(compass)}" if compass is not None else ""
-    print(f"{verdict_text(diagnosis)}{extra}; report in {args.out}/report.md")
+    print(f"{verdict_text(diagnosis)}{extra}; report in {Path(args.out) / 'report.md'}")
     calibration = diagnosis.calibration
     if calibration is not None:
         print(f"validation, selected effects only: {calibration.selected.summary()}")
         print(
-            f"validation, calibrated (in sample; {args.out}/calibrated.toml): "
+            f"validation, calibrated (in sample; {Path(args.out) / 'calibrated.toml'}): "
             f"{calibration.calibrated.summary()}; the runs' own spread: mean "
             f"{calibration.selected.mean_spread:.1%}, sigma {calibration.selected.sd_spread:.1%}, "
             f"sigma / mean {calibration.selected.ratio_spread:.1%}"
