@@ -324,6 +324,9 @@ def test_a_failing_recorder_is_logged_at_a_bounded_rate_and_shown_in_status(
         assert w.close() is True
     summaries = [r for r in caplog.records if "records lost in the last" in r.getMessage()]
     assert 3 <= len(summaries) <= 7, [r.getMessage() for r in summaries]  # ~every 0.2 s
+    # the file system's fault, expected: one line saying what, no traceback
+    (first,) = [r for r in caplog.records if r.getMessage().startswith("recorder write failed")]
+    assert first.exc_info is None and "Is a directory" in first.getMessage(), first.getMessage()
     assert len(caplog.records) <= len(summaries) + 2  # no line per failure
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
+import re
 import threading
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -236,3 +237,50 @@ def test_daemon_refuses_a_part_larger_than_the_total(tmp_path: Path) -> None:
 
 def test_mb_is_a_mebibyte() -> None:
     assert MB == 1 << 20
+
+
+def test_a_full_card_is_one_readable_retention_line_a_minute(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The pass runs at every retry to open a part on a full card: its warning came on each
+    (10 in 80 s) and read '... (667648 B short) < 268435456 B'."""
+    rec = Recorder(
+        tmp_path / "x6wd-20250101T000000Z.jsonl",
+        max_bytes=KB,
+        retention=Retention(min_free_bytes=1 << 62),  # more than any card has
+    )
+    with caplog.at_level(logging.WARNING, logger="x6wd.core.recorder"):
+        for _ in range(10):
+            rec.enforce_retention()
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert re.fullmatch(
+        r"retention: once the current part is full, \d+ B free, under the "
+        rf"{1 << 62} B to keep, and only the recording being written is left",
+        line,
+    ), line
+    got: list[str] = []
+    enforce_retention(
+        tmp_path,
+        Retention(min_free_bytes=10 * KB),
+        current=rec.path,
+        reserve_bytes=KB,
+        free=lambda d: 6 * KB,
+        warn=got.append,
+    )
+    assert got == [
+        "retention: once the current part is full, 5120 B free, under the 10240 B to keep, "
+        "and only the recording being written is left"
+    ]
+    got.clear()  # a card too full for the part itself: no negative byte count
+    enforce_retention(
+        tmp_path,
+        Retention(min_free_bytes=10 * KB),
+        current=rec.path,
+        reserve_bytes=8 * KB,
+        free=lambda d: 6 * KB,
+        warn=got.append,
+    )
+    assert got == [
+        "retention: the file system lacks 2048 B for the current part to fill up, and must "
+        "keep 10240 B free, and only the recording being written is left"
+    ]

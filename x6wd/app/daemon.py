@@ -625,7 +625,10 @@ class _RecorderWorker:
         self.last_error = one_line(str(exc))
         self._failed_last = True
         if self.errors == 1:  # then summaries (_summary), never one line per record
-            log.exception("recorder write failed")
+            if isinstance(exc, (OSError, DeviceUnavailable)):  # a full, read-only, gone disk
+                log.error("recorder write failed: %s", self.last_error)
+            else:  # a bug: its traceback
+                log.exception("recorder write failed")
 
     def _summary(self) -> None:
         """Once every ``log_every_s``: what failed and what was lost since the last line."""

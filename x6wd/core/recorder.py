@@ -57,6 +57,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from x6wd.core.errors import DeviceUnavailable, ParseError
+from x6wd.core.ratelog import RateLimitedLog
 from x6wd.core.records import (
     Attitude,
     GpsFix,
@@ -70,6 +71,10 @@ from x6wd.core.records import (
 )
 
 log = logging.getLogger(__name__)
+
+RETENTION_WARN_S = 60.0
+"""At most one "only the recording being written is left" warning per recorder this often
+(s): the pass repeats at every retry of a part that cannot be opened (docs/install.md)."""
 
 MB = 1 << 20
 """Bytes in the recorder's megabyte ([recorder] *_mb keys): MiB, as ``du -m``/``df -m`` count."""
@@ -356,6 +361,7 @@ def enforce_retention(
     current: str | os.PathLike[str] | None = None,
     reserve_bytes: int = 0,
     free: Callable[[Path], int] = free_bytes,
+    warn: Callable[[str], object] | None = None,
 ) -> list[Path]:
     """Delete the oldest recordings in ``directory`` until they take at most
     ``retention.max_total_bytes`` and the file system has ``retention.min_free_bytes`` free,
@@ -365,7 +371,8 @@ def enforce_retention(
     Order: every run other than ``current``'s (oldest first, each run's parts in order), then
     the parts of ``current``'s run oldest first; ``current`` itself is never deleted, nor any
     file outside the naming pattern. ``free(dir)`` gives the free bytes (asked once; each
-    deletion then counts as freed). Returns the deleted paths, each one logged.
+    deletion then counts as freed). Returns the deleted paths, each one logged; a limit
+    still broken with nothing left to delete goes to ``warn(text)`` (default: a WARNING).
     """
     d = Path(directory)
     cur = Path(current) if current is not None else None
@@ -387,10 +394,13 @@ def enforce_retention(
         cap, floor = retention.max_total_bytes, retention.min_free_bytes
         if cap is not None and total > cap:
             return f"recordings take {total} B (the current part full) > {cap} B"
-        if floor is not None and free_now < 0:  # no negative byte counts in the log
-            return f"the current part, once full, would not fit ({-free_now} B short) < {floor} B"
-        if floor is not None and free_now < floor:
-            return f"{free_now} B free (the current part full) < {floor} B"
+        if floor is not None and free_now < floor:  # no negative byte counts in the log
+            if free_now < 0:
+                return (
+                    f"the file system lacks {-free_now} B for the current part to fill up, "
+                    f"and must keep {floor} B free"
+                )
+            return f"once the current part is full, {free_now} B free, under the {floor} B to keep"
         return ""
 
     deleted: list[Path] = []
@@ -410,8 +420,13 @@ def enforce_retention(
             log.info("retention: deleted %s (%d B): %s", f.path, f.size, why)
         total -= f.size
         free_now += f.size
-    if over():
-        log.warning("retention: %s, and only the recording being written is left", over())
+    why = over()
+    if why:
+        text = f"retention: {why}, and only the recording being written is left"
+        if warn is None:
+            log.warning("%s", text)
+        else:
+            warn(text)
     return deleted
 
 
@@ -459,6 +474,8 @@ class Recorder:
         self.max_bytes = max_bytes
         self.retention = retention
         self.deleted: list[Path] = []  # files retention removed, oldest first
+        # a pass runs at each part opened, also each retry of a full card: one line a minute
+        self._retention_log = RateLimitedLog(log, RETENTION_WARN_S)
         self._clock = clock
         self._utc_clock = utc_clock
         # (the latest datetime utc_clock gave, its text): a clock that hands back the same
@@ -607,6 +624,7 @@ class Recorder:
             self.retention,
             current=self.path,
             reserve_bytes=self.max_bytes or 0,
+            warn=lambda text: self._retention_log.log("retention", logging.WARNING, "%s", text),
         )
         self.deleted.extend(gone)
         return gone
