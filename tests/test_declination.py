@@ -103,6 +103,21 @@ def test_outside_the_model_is_refused(date):
         declination_deg(45.0, 10.0, 0.0, date)
 
 
+@pytest.mark.parametrize(
+    ("date", "shown"),
+    [
+        # a replayed 2010 log's fix time: was "datetime.datetime(2010, 8, 21, 8, 37, ...)"
+        (dt.datetime(2010, 8, 21, 8, 37, 23, tzinfo=dt.UTC), "date 2010-08-21T08:37:23+00:00"),
+        (dt.date(2010, 8, 21), "date 2010-08-21"),
+        (2010.5, "year 2010.5000"),
+    ],
+)
+def test_a_date_outside_the_model_is_named_in_iso_form(date, shown):
+    with pytest.raises(DeclinationError, match="covers 2024-11-13 to 2030-01-01; ") as info:
+        declination_deg(45.0, 10.0, 0.0, date)
+    assert f"; {shown} " in str(info.value) and "datetime" not in str(info.value), info.value
+
+
 def test_bad_inputs_are_refused():
     for args in [(math.nan, 0, 0), (0, math.inf, 0), (91, 0, 0), (0, 0, "x")]:
         with pytest.raises(DeclinationError):

@@ -96,9 +96,13 @@ def declination_deg(
         raise DeclinationError(f"latitude/longitude out of range: {lat_deg!r}, {lon_deg!r}")
     year = decimal_year(date)
     if not (VALID_FROM_YEAR <= year <= VALID_UNTIL_YEAR):
-        raise DeclinationError(
-            f"{MODEL_NAME} covers 2024-11-13 to 2030-01-01; date {date!r} ({year:.4f}) is outside"
-        )
+        if isinstance(date, _dt.datetime):  # ISO, never the object's repr (a log's date)
+            when = f"date {date.isoformat(timespec='seconds')} ({year:.4f})"
+        elif isinstance(date, _dt.date):
+            when = f"date {date.isoformat()} ({year:.4f})"
+        else:
+            when = f"year {year:.4f}"
+        raise DeclinationError(f"{MODEL_NAME} covers 2024-11-13 to 2030-01-01; {when} is outside")
     from wmm import wmm_calc  # imported on first use (see the module docstring)
 
     model = wmm_calc()
