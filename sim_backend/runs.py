@@ -229,6 +229,12 @@ def vehicle_from_world(world: World) -> Vehicle:
 # ---------------------------------------------------------------------------- the run
 
 
+def steps_evenly(clock_hz: float, gnss_hz: float) -> bool:
+    """Whether a clock of ``clock_hz`` (Hz) has a GPS epoch of ``gnss_hz`` every whole
+    number of ticks."""
+    return abs(clock_hz / gnss_hz - max(1, round(clock_hz / gnss_hz))) <= 1e-9
+
+
 @dataclass(frozen=True)
 class RunPlan:
     """A run's seed, length and clock: the loop steps at the compass rate (``dt_s``, s), a GPS
@@ -258,10 +264,11 @@ class RunPlan:
             )
         dt = 1.0 / compass_hz
         gps_every = max(1, round(compass_hz / world.gnss.rate_hz))  # ticks per GPS epoch
-        if abs(compass_hz / world.gnss.rate_hz - gps_every) > 1e-9:
+        if not steps_evenly(compass_hz, world.gnss.rate_hz):
             raise ConfigError(
                 f"compass.rate_hz ({compass_hz:g}) must be a whole multiple of gnss.rate_hz "
-                f"({world.gnss.rate_hz:g}): the loop steps at the compass rate"
+                f"({world.gnss.rate_hz:g}): the robot engine's loop steps at the compass rate "
+                "(the receiver engine, a static survey, takes any pair)"
             )
         return cls(seed, total_s, dt, gps_every, math.ceil(total_s / dt - 1e-9))
 

@@ -45,6 +45,7 @@ from sim_backend.runs import (
     Summary,
     dispersion_m,
     sky_warnings,
+    steps_evenly,
     vehicle_from_world,
 )
 from sim_backend.textblocks import (
@@ -74,8 +75,13 @@ def run_survey(
     override the scenario's; ``progress(t_s, total_s)`` is called once per chunk. The antenna
     stands at the vehicle's start pose for the whole run, waypoints or not."""
     wall0 = time.perf_counter()
-    # the robot engine's clock (it steps at the compass rate), so the same epochs
-    plan = RunPlan.of(world, seed, duration_s, CompassSetup.from_table(world.compass).rate_hz)
+    # the robot engine's clock (it steps at the compass rate), so the same epochs; a rate
+    # pair that clock cannot step (compass 5 Hz, GPS 4 Hz) has no such run to match, and the
+    # receiver alone has no control loop: then the GPS rate is the clock
+    clock_hz = CompassSetup.from_table(world.compass).rate_hz
+    if not steps_evenly(clock_hz, world.gnss.rate_hz):
+        clock_hz = world.gnss.rate_hz
+    plan = RunPlan.of(world, seed, duration_s, clock_hz)
     out = output_dir(out_dir)
     receiver = build_receiver(world, SimRandom.from_seed(plan.seed))
     s0 = vehicle_from_world(world).state

@@ -377,3 +377,21 @@ def test_the_summarys_dops_are_the_gga_texts_read_back() -> None:
          rng.integers(0, 10000, 5000) / 100 + 0.005)
     )  # fmt: skip
     assert np.array_equal(_printed_dops(values), np.array(dop_texts(values), dtype=float))
+
+
+def test_a_gps_rate_the_robot_loop_cannot_step_runs_on_the_receiver_engine(
+    tmp_path: Path,
+) -> None:
+    """compass 5 Hz, GPS 4 Hz: the robot engine's loop (a whole number of compass ticks per
+    epoch) cannot step it and says so; the receiver engine has no loop and runs it, its
+    epochs those of a robot whose compass steps at the GPS rate."""
+    scenario = tmp_path / "four_hz.toml"
+    scenario.write_text(f'include = ["{OPEN_FIELD}"]\n[gnss]\nrate_hz = 4.0\n')
+    p = _sim(str(scenario), "--duration", "5", "--out", str(tmp_path / "r"))
+    assert p.returncode == 0, p.stderr
+    p = _sim(str(scenario), "--duration", "5", "--out", str(tmp_path / "b"), "--engine", "robot")
+    assert p.returncode == 2
+    assert "the robot engine's loop steps at the compass rate" in p.stderr, p.stderr
+    robot = loads_world(scenario.read_text() + "[compass]\nrate_hz = 4.0\n", tmp_path)
+    mission.run_mission(robot, tmp_path / "robot", seed=1, duration_s=5.0)
+    _assert_same_receiver(tmp_path / "robot", tmp_path / "r")
