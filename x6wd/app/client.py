@@ -99,6 +99,7 @@ class RemoteClient:
             sock.close()
             raise ConnectionFailed(f"TLS handshake with {host}:{port} failed: {exc}") from None
         self._sock: socket.socket | None = sock
+        self._tls = ssl_context is not None
         if token is not None:
             try:
                 self.authenticate(token)
@@ -143,7 +144,9 @@ class RemoteClient:
                     f"connection to {self.host}:{self.port}: {_why(exc)}"
                 ) from None
             if not chunk:
-                raise ConnectionFailed(f"{self.host}:{self.port} closed the connection")
+                # the daemon's TLS server closes a plain-text connection without a word
+                hint = "" if self._tls else " (if the daemon uses TLS, add --tls)"
+                raise ConnectionFailed(f"{self.host}:{self.port} closed the connection{hint}")
             self._buf += chunk
             if len(self._buf) > MAX_REPLY_BYTES:
                 raise ProtocolError("server line longer than 16 MiB")
