@@ -919,8 +919,9 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
     """Errors (m) of a log against a truth track matched in time (linear interpolation of the
     truth; epochs farther than ``max_gap_s`` from a valid truth sample are dropped). If the two
     time spans do not overlap, both are taken from their own start (a simulated log).
-    The series carries the truth's speed/course (from its positions) and its origin is the
-    truth at the first kept epoch, so effect layers see the true motion."""
+    The series carries the truth's speed/course (from its positions), the truth's positions
+    themselves (``true_east_m``/``true_north_m``), and its origin is the truth at the first
+    kept epoch, so effect layers see the true motion."""
     truth_t_s, truth_lat_deg, truth_lon_deg, truth_alt_m = _truth_samples(truth)
     kept, apart = _matched(track, truth_t_s, max_gap_s)
     if not kept.size:
@@ -959,9 +960,12 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
         v_east_mps, v_north_mps = np.zeros(1), np.zeros(1)
     speed_mps = np.hypot(v_east_mps, v_north_mps)
     course_deg = np.degrees(np.arctan2(v_east_mps, v_north_mps)) % 360.0
+    # The truth's own positions ride along: integrating the central-difference velocity
+    # drifts by millimetres to decimetres, and the lattice test needs the absolute position
+    # to 0.5 mm (a moving log read as off its NMEA lattice: outside audit).
     return _series(
         sub, east_m, north_m, sub.alt_m - true_alt_m, lat0_deg, lon0_deg, speed_mps, course_deg
-    )
+    ).with_(true_east_m=true_east_m, true_north_m=true_north_m)
 
 
 TIME_OFFSET_SEARCH_S = 120

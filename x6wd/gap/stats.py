@@ -695,8 +695,10 @@ def window(series: PositionSeries, t0_s: float, t1_s: float) -> PositionSeries:
     def cut(a: np.ndarray | None) -> np.ndarray | None:
         return None if a is None else np.asarray(a)[inside]
 
-    # The origin moves to the truth at the window start so the implied truth track matches.
+    # The origin moves to the truth at the window start so the implied truth track matches
+    # (and a carried truth track is re-based onto it).
     true_east_m, true_north_m = truth_track_m(series)
+    carries_truth = series.true_east_m is not None and series.true_north_m is not None
     from sim_backend.effects import metres_per_degree
 
     m_per_deg_lon, m_per_deg_lat = metres_per_degree(series.origin_lat_deg)
@@ -713,4 +715,6 @@ def window(series: PositionSeries, t0_s: float, t1_s: float) -> PositionSeries:
         course_deg=cut(series.course_deg),
         nsats=cut(series.nsats),
         sat_set=cut(series.sat_set),
+        true_east_m=true_east_m[inside] - true_east_m[first] if carries_truth else None,
+        true_north_m=true_north_m[inside] - true_north_m[first] if carries_truth else None,
     )
