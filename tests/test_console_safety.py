@@ -35,6 +35,7 @@ from tests.test_console import (
 )
 from tests.test_daemon import Running, wait_for
 from x6wd.app.client import RemoteClient
+from x6wd.app.console.server import MESSAGE_COST_B
 from x6wd.core.config import Config, SafetyConfig
 
 pytestmark = pytest.mark.integration
@@ -112,6 +113,28 @@ def test_a_stop_sent_during_the_auth_back_off_is_obeyed_at_once(guarded: Running
                     await asyncio.sleep(0.01)
                 reply = await asyncio.wait_for(w.ws.receive_json(), 5)  # answered in turn
                 assert reply["id"] == w.n and reply["ok"] and time.monotonic() - t0 > 1.0
+
+    asyncio.run(program())
+
+
+def test_messages_queued_behind_a_back_off_are_bounded_however_short(guarded: Running) -> None:
+    # Found by an outside check: empty messages sent during a back-off were charged 0 bytes,
+    # so they queued without end (the daemon grew by 2 MB/s).
+    console = guarded.daemon.console
+    assert console is not None
+    limit = console.config.max_message_bytes // MESSAGE_COST_B + 1
+    sent = 4 * limit
+
+    async def program() -> None:
+        async with ws_to(guarded) as w:
+            for token in ("wrong-1", "wrong-2"):  # a 2 s back-off after the second
+                w.n += 1
+                await w.ws.send_json({"id": w.n, "cmd": "auth", "token": token})
+            for _ in range(sent):
+                await w.ws.send_str("")
+            await asyncio.sleep(1.0)  # inside the back-off: the page reads what it may
+            queued = [p.queued for p in list(console._pages)]
+            assert queued and max(queued) <= limit, (queued, limit, sent)
 
     asyncio.run(program())
 

@@ -593,9 +593,9 @@ class ControlServer(LineServer[_Client]):
         discarding: bool, budget: _Bucket, seconds: float,
     ) -> int:  # fmt: skip
         """Sleep out a client's back-off while still reading its input into ``buf`` (charged to
-        its input ``budget``; at most ``2 * max_line_bytes`` held): a stop that arrives
-        meanwhile goes to the motors at once, not when the back-off ends. Returns how far
-        ``buf`` has been searched for stops."""
+        its input ``budget``; at most ``2 * max_line_bytes`` + one 64 KiB read held): a stop
+        that arrives meanwhile goes to the motors at once, not when the back-off ends. Returns
+        how far ``buf`` has been searched for stops."""
         scanned = self._early_stops(buf, scanned, discarding)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + seconds

@@ -108,8 +108,19 @@ class _Page:
     transport: Any = None  # its connection's (kept open when connections are capped)
     clock_offset_s: float = math.inf  # min(arrival - page's sent_ms) so far: see _late_s
     busy: bool = False  # a request of it is being handled or sleeps out its back-off
-    held: int = 0  # bytes of its messages read, not handled yet
+    held: int = 0  # bytes charged for its messages read, not handled yet (_message_cost)
+    queued: int = 0  # its messages read, not handled yet
     room: asyncio.Event = field(default_factory=asyncio.Event)  # held went down
+
+
+MESSAGE_COST_B = 1024
+"""What one queued page message is charged against ``max_message_bytes`` besides its bytes:
+its objects take a few hundred bytes however short it is, so empty messages sent during a
+back-off could otherwise queue without end (an outside check: 2 MB/s of daemon memory)."""
+
+
+def _message_cost(line: bytes) -> int:
+    return len(line) + MESSAGE_COST_B
 
 
 CONNECTION_SLACK = 16
@@ -467,7 +478,8 @@ class ConsoleServer:
                 if line is None:
                     return
                 page.busy = True
-                page.held -= len(line)
+                page.held -= _message_cost(line)
+                page.queued -= 1
                 page.room.set()
                 if not await self._handle(page, line):
                     return
@@ -491,7 +503,8 @@ class ConsoleServer:
                     break  # an error or a close
                 if page.busy or not inbox.empty():
                     self.control.early_stop(page.client, line)
-                page.held += len(line)
+                page.held += _message_cost(line)
+                page.queued += 1
                 inbox.put_nowait(line)
                 while page.held > self.config.max_message_bytes:
                     page.room.clear()  # held back: the rest waits in aiohttp and the kernel
