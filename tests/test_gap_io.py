@@ -21,6 +21,7 @@ from x6wd.core.errors import ParseError
 from x6wd.gap.io import (
     GRID_FACTOR,
     MAX_LINE_BYTES,
+    check_step,
     errors_vs_track,
     grid_slots,
     read_track,
@@ -483,6 +484,27 @@ def test_a_real_log_whose_step_is_far_from_the_sims_is_named(tmp_path: Path) -> 
     done = _gap_cli(tmp_path / "hours.csv", tmp_path / "report")
     assert done.returncode == 2, done.stderr[-2000:]
     assert "is a time column in hours or milliseconds?" in done.stderr
+
+
+def test_a_log_of_fixes_minutes_apart_is_refused_with_a_hint_for_milliseconds(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # times in ms read as seconds: a 600 s log became 600,000 s at 1000 s steps and got a
+    # confident "nav_filter + jumps, closure 0.92" without a warning (outside audit)
+    rows = [f"{k * 1000},51.75000{k % 7},-1.25700{k % 5}" for k in range(600)]
+    (tmp_path / "ms.csv").write_text("time,lat,lon\n" + "\n".join(rows) + "\n")
+    argv = ["gap", "--real", str(tmp_path / "ms.csv"), "--out", str(tmp_path / "report")]
+    assert x6wd_main(argv) == 2
+    err = capsys.readouterr().err
+    assert "ms.csv: its fixes are a median 1000 s apart (time column 'time')" in err
+    assert "at most 60 s between fixes; are the times in milliseconds (1 s apart)?" in err
+    # a column that says seconds gets no milliseconds hint; seconds pass
+    (tmp_path / "s.csv").write_text("t_s,lat,lon\n" + "\n".join(rows) + "\n")
+    with pytest.raises(ParseError, match=r"'t_s'\): the gap tool diagnoses .* between fixes$"):
+        check_step(read_track(tmp_path / "s.csv"))
+    rows = [f"{k * 60},51.75000{k % 7},-1.25700{k % 5}" for k in range(600)]
+    (tmp_path / "minute.csv").write_text("time,lat,lon\n" + "\n".join(rows) + "\n")
+    check_step(read_track(tmp_path / "minute.csv"))
 
 
 def test_fields_out_of_range_or_of_the_wrong_type_are_skipped_and_counted(tmp_path: Path) -> None:

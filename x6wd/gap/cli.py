@@ -21,6 +21,7 @@ from x6wd.gap.io import (
     Track,
     against_own_mean,
     check_near_truth,
+    check_step,
     errors_vs_mean,
     errors_vs_point,
     errors_vs_track,
@@ -141,6 +142,7 @@ def main(args: argparse.Namespace) -> int:
     bar("reading logs", 0.0)
     truth_track = read_track(args.truth_track) if args.truth_track is not None else None
     real_track = read_track(args.real)
+    check_step(real_track)
     real = to_errors(real_track, args, truth_track)
     notes = [f"reading the real log: {note}" for note in real_track.notes]
     if truth_track is not None:
@@ -185,7 +187,10 @@ def main(args: argparse.Namespace) -> int:
             # every level cell (CEP50, R95, the means) reads the runs' hour offsets as a gap
             baseline = [against_own_mean(s) for s in baseline]
     else:
-        baseline = [to_errors(read_track(p), args, truth_track) for p in args.sim]
+        sims = [read_track(p) for p in args.sim]
+        for sim in sims:
+            check_step(sim)
+        baseline = [to_errors(sim, args, truth_track) for sim in sims]
     rng = np.random.default_rng(args.seed)
     diagnosis = diagnose(real, baseline, rng, Options(replicates=args.replicates), progress=bar)
     diagnosis.notes.extend(notes)

@@ -34,7 +34,7 @@ import csv
 import math
 import re
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -89,6 +89,7 @@ class Track:
     source: str = ""
     notes: tuple[str, ...] = ()
     sat_set: np.ndarray | None = None
+    time_column: str = ""  # a CSV's column of numeric times, as its header names it
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -364,6 +365,7 @@ def fill_missing_epochs(track: Track) -> Track:
         source=track.source,
         notes=track.notes,
         sat_set=None if track.sat_set is None else spread(track.sat_set, -1.0),
+        time_column=track.time_column,
     )
 
 
@@ -676,10 +678,22 @@ def _read_csv(path: Path) -> Track:
                 "nsats": None,
             }
             body = _chain_row(first, reader)
-        rows = [_csv_row(row, column, source, linenos) for row in body]
+        rows, numeric = [], False
+        for row in body:
+            rows.append(_csv_row(row, column, source, linenos))
+            numeric = numeric or _is_number(row[column["t"]])  # type: ignore[index]
     except csv.Error as exc:
         raise ParseError(f"{source}:{linenos[-1] if linenos else 1}: not CSV: {exc}") from exc
-    return _track(rows, source)
+    name = first[column["t"]].strip().strip('"') if has_header else "1 (no header)"  # type: ignore[index]
+    return replace(_track(rows, source), time_column=name if numeric else "")
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _chain_row(first: list[str], rest: Iterable[list[str]]) -> Iterator[list[str]]:
@@ -913,6 +927,36 @@ def _matched(track: Track, truth_t_s: np.ndarray, max_gap_s: float) -> tuple[np.
     )
     inside = (t_s >= truth_t_s[0]) & (t_s <= truth_t_s[-1]) & near
     return np.flatnonzero(inside), apart
+
+
+MAX_STEP_S = 60.0
+"""Largest median step (s) between a log's epochs the tool diagnoses. Receivers log at
+1-20 Hz and the sparsest trackers once a minute; the effects it fits act within seconds
+(latency, filter lag, jumps, short outages) and vanish between fixes farther apart, and a
+step of about 1000 is a time column in milliseconds read as seconds."""
+_TIME_UNIT = re.compile(r"(^|[^a-z])(s|sec|secs|seconds?|ms|msec|millis|milliseconds?)([^a-z]|$)")
+
+
+def check_step(track: Track) -> None:
+    """ParseError naming the file (and a CSV's time column) when the median step between
+    ``track``'s epochs exceeds :data:`MAX_STEP_S`; a hint when they look like milliseconds
+    (the step / 1000 a receiver's, and the column's name gives no unit or milliseconds)."""
+    if len(track) < 2:
+        return
+    step_s = float(np.median(np.diff(track.t_s)))
+    if step_s <= MAX_STEP_S:
+        return
+    column = f" (time column {track.time_column!r})" if track.time_column else ""
+    hint = ""
+    unit = _TIME_UNIT.search(track.time_column.lower())
+    in_ms = track.time_column and (unit is None or unit.group(2).startswith("m"))
+    if in_ms and 0.05 <= step_s / 1000.0 <= MAX_STEP_S:
+        hint = f"; are the times in milliseconds ({step_s / 1000.0:g} s apart)? give seconds"
+
+    raise ParseError(
+        f"{track.source}: its fixes are a median {step_s:g} s apart{column}: the gap tool"
+        f" diagnoses logs of at most {MAX_STEP_S:g} s between fixes{hint}"
+    )
 
 
 def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> PositionSeries:
