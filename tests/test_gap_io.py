@@ -656,3 +656,52 @@ def test_a_moving_log_against_its_truth_track_has_no_false_gap(
             "--out", str(tmp_path / "report"), "--quiet", "--no-figures"]  # fmt: skip
     assert x6wd_main(argv) == 0
     assert capsys.readouterr().out.startswith("no significant gap")
+
+
+# ---------------------------------------------------------------- degenerate logs, heights
+
+
+def test_a_real_figure_of_zero_reads_not_applicable_not_infinite_percent() -> None:
+    # a CSV whose position never changes: real mean, sigma and Allan deviation 0, and the
+    # validation printed "+inf%" for every figure (outside audit)
+    from x6wd.gap.report import uncalibrated_markdown
+    from x6wd.gap.validate import Validation
+
+    v = Validation(3, 0.0, 1.79, 0.0, 1.09, (1.0, 2.0), (0.0, 0.0), (0.55, 0.62))
+    assert "horizontal error mean n/a, the real is 0, sigma n/a, the real is 0" in v.summary()
+    assert v.worst_text().endswith(": n/a, the real is 0")
+    text = v.summary() + "\n".join(uncalibrated_markdown(v))
+    assert "inf" not in text and "| 0 | 0.55 | n/a, the real is 0 | no |" in text
+    assert Validation.rel_text(1.1, 1.0) == "+10.0%"
+
+
+def test_a_log_too_short_is_refused_before_the_almanac_is_warned_of(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # gpsd's bt451.log (2009, 8 epochs): the packaged almanac's age at its date was warned
+    # of, then the log refused
+    argv = ["gap", "--real", str(NMEA / "bt451.log"), "--out", str(tmp_path / "report")]
+    assert x6wd_main(argv) == 2
+    err = capsys.readouterr().err
+    assert "real log too short for a gap diagnosis: 8 epochs" in err and "almanac" not in err
+
+
+def test_csv_heights_say_their_column_and_height_system(tmp_path: Path) -> None:
+    # static/mobile.csv has MSL and WGS84 (ellipsoidal) heights, 21.5 m apart: MSL is read
+    # (NMEA's system), and the report's notes say so; an ellipsoidal column alone is read
+    rows = [f"{1589818993 + k},39.82167{k % 7},-105.09517{k % 5}" for k in range(100)]
+    both = tmp_path / "both.csv"
+    both.write_text("TIME, LATITUDE, LONGITUDE, MSL, WGS84\n" + "".join(
+        f"{r}, 1724.4, 1702.9\n" for r in rows))  # fmt: skip
+    track = read_track(both)
+    assert np.allclose(track.alt_m, 1724.4)
+    assert "heights from column 'MSL' (above mean sea level, as NMEA's), not from 'WGS84'" in (
+        "; ".join(track.notes)
+    )
+    ellipsoidal = tmp_path / "ell.csv"
+    ellipsoidal.write_text("time,lat,lon,WGS84\n" + "".join(f"{r},1702.9\n" for r in rows))
+    track = read_track(ellipsoidal)
+    assert np.allclose(track.alt_m, 1702.9) and "above the WGS-84 ellipsoid" in track.notes[0]
+    none = tmp_path / "none.csv"
+    none.write_text("time,lat,lon\n" + "".join(f"{r}\n" for r in rows))
+    assert "no height column (one of alt, alt_m, msl," in read_track(none).notes[0]

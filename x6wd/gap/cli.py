@@ -16,7 +16,7 @@ from x6wd.core.config import PACKAGED_CONFIG_DIR
 from x6wd.core.errors import ConfigError
 from x6wd.core.outdir import output_dir
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
-from x6wd.gap.diagnose import Diagnosis, Options, diagnose, verdict_text
+from x6wd.gap.diagnose import Diagnosis, Options, check_real, diagnose, verdict_text
 from x6wd.gap.io import (
     Track,
     against_own_mean,
@@ -144,6 +144,7 @@ def main(args: argparse.Namespace) -> int:
     real_track = read_track(args.real)
     check_step(real_track)
     real = to_errors(real_track, args, truth_track)
+    check_real(real)  # refused before the runs are placed and their almanac's age warned of
     notes = [f"reading the real log: {note}" for note in real_track.notes]
     if truth_track is not None:
         notes += [f"reading the truth track: {note}" for note in truth_track.notes]
@@ -151,6 +152,15 @@ def main(args: argparse.Namespace) -> int:
         if offset is not None:
             notes.append(offset)
             print(f"x6wd gap: warning: {offset}", file=sys.stderr)
+    if (
+        args.truth
+        and not math.isfinite(parse_truth(args.truth)[2])
+        and np.any(np.isfinite(real_track.alt_m[real_track.valid]))
+    ):
+        notes.append(
+            "the real log's heights are not compared: --truth has no ALT (LAT,LON,ALT, in the"
+            " log's height system)"
+        )
     if args.truth is None and truth_track is None:
         notes.append(
             "no truth given: errors are taken against each log's own mean, so a bias is invisible"

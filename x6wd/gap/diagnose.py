@@ -352,10 +352,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
     # --- plug-ins
 
     def check(self, real: PositionSeries, baseline: Sequence[PositionSeries]) -> None:
-        if len(real) < MIN_FIXES:
-            raise ConfigError(
-                f"real log too short for a gap diagnosis: {len(real)} epochs (need >= {MIN_FIXES})"
-            )
+        check_real(real)
         if not baseline:
             raise ConfigError("no baseline: give --sim logs or --scenario")
         # Every log is read on a grid at the real log's step: a baseline log far coarser
@@ -370,16 +367,8 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
                     f" {step_s:g} s: more than {GRID_FACTOR} times apart (is a time column in"
                     " hours or milliseconds?); simulate at the real log's rate"
                 )
-        # fixes, not epochs: a log of no-fix epochs (or of a few fixes among filled-in gaps)
-        # has nothing to read its time structure from
-        for i, series in enumerate([real, *baseline]):
-            fixes = int(np.count_nonzero(series.valid))
-            if fixes < MIN_FIXES:
-                which = "real log" if i == 0 else f"baseline log {i} of {len(baseline)}"
-                raise ConfigError(
-                    f"{which} has too few fixes for a gap diagnosis: {fixes} of "
-                    f"{len(series)} epochs (need >= {MIN_FIXES})"
-                )
+        for i, series in enumerate(baseline, start=1):
+            _enough_fixes(series, f"baseline log {i} of {len(baseline)}")
 
     def same_observables(
         self, real: PositionSeries, baseline: Sequence[PositionSeries]
@@ -677,6 +666,27 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
                 + "; ".join(f"{f.name} {f.params}" for f in selected)
             )
         return whole
+
+
+def check_real(real: PositionSeries) -> None:
+    """ConfigError when the real log is too short, or has too few fixes, for a diagnosis:
+    before anything is simulated or warned about (the almanac's age was warned of first)."""
+    if len(real) < MIN_FIXES:
+        raise ConfigError(
+            f"real log too short for a gap diagnosis: {len(real)} epochs (need >= {MIN_FIXES})"
+        )
+    _enough_fixes(real, "real log")
+
+
+def _enough_fixes(series: PositionSeries, which: str) -> None:
+    # fixes, not epochs: a log of no-fix epochs (or of a few fixes among filled-in gaps)
+    # has nothing to read its time structure from
+    fixes = int(np.count_nonzero(series.valid))
+    if fixes < MIN_FIXES:
+        raise ConfigError(
+            f"{which} has too few fixes for a gap diagnosis: {fixes} of {len(series)} epochs"
+            f" (need >= {MIN_FIXES})"
+        )
 
 
 def diagnose(

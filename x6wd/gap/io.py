@@ -628,6 +628,9 @@ _CSV_NAMES = {
     "lat": ("lat", "latitude", "lat_deg"),
     "lon": ("lon", "longitude", "lon_deg", "lng"),
     "alt": ("alt", "alt_m", "msl", "altitude", "height", "h"),
+    # read only without one of the above: heights above the WGS-84 ellipsoid (mobile.csv's
+    # WGS84 beside its MSL; RTKLIB's), tens of metres from those above sea level
+    "ellipsoidal": ("wgs84", "hae", "ellipsoidal", "ellipsoid_height", "height_ellipsoid"),
     "valid": ("valid", "fix"),
     "nsats": ("nsats", "sats", "sats_used", "ns"),
 }
@@ -661,8 +664,12 @@ def _read_csv(path: Path) -> Track:
             return None
 
         has_header = col("lat") is not None and col("lon") is not None
+        notes = []
         if has_header:
             column = {k: col(k) for k in _CSV_NAMES}
+            notes = [note for note in [_height_note(first, column)] if note]
+            if column["alt"] is None:
+                column["alt"] = column["ellipsoidal"]
             if column["t"] is None:
                 raise ParseError(
                     f"{source}: CSV header has no time column (one of {', '.join(_CSV_NAMES['t'])})"
@@ -685,7 +692,31 @@ def _read_csv(path: Path) -> Track:
     except csv.Error as exc:
         raise ParseError(f"{source}:{linenos[-1] if linenos else 1}: not CSV: {exc}") from exc
     name = first[column["t"]].strip().strip('"') if has_header else "1 (no header)"  # type: ignore[index]
-    return replace(_track(rows, source), time_column=name if numeric else "")
+    return replace(_track(rows, source, notes), time_column=name if numeric else "")
+
+
+def _height_note(header: list[str], column: dict[str, int | None]) -> str:
+    """Which column of a CSV the heights are read from, and in which height system: a
+    --truth ALT is compared with them as they are."""
+
+    def name(key: str) -> str:
+        return repr(header[column[key]].strip().strip('"'))  # type: ignore[index]
+
+    if column["alt"] is not None and column["ellipsoidal"] is not None:
+        msl = " (above mean sea level, as NMEA's)" if name("alt").lower() == "'msl'" else ""
+        return (
+            f"heights from column {name('alt')}{msl}, not from {name('ellipsoidal')} (above the"
+            " WGS-84 ellipsoid): a --truth ALT is compared with them"
+        )
+    if column["ellipsoidal"] is not None:
+        return (
+            f"heights from column {name('ellipsoidal')}, above the WGS-84 ellipsoid (as"
+            " RTKLIB's): a --truth ALT is compared with them"
+        )
+    if column["alt"] is not None:
+        return ""
+    known = ", ".join(_CSV_NAMES["alt"] + _CSV_NAMES["ellipsoidal"])
+    return f"no height column (one of {known}): heights not compared"
 
 
 def _is_number(text: str) -> bool:

@@ -92,7 +92,7 @@ class Calibration:
         when mean and sigma miss in opposite directions, why ("" when all pass)."""
         v = self.calibrated
         out = [
-            f"{label} {v.rel(sim, real):+.1%}"
+            f"{label} {v.rel_text(sim, real)}"
             for label, real, sim, tol in v.figures()
             if not abs(v.rel(sim, real)) <= tol
         ]

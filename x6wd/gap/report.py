@@ -466,7 +466,7 @@ def uncalibrated_markdown(v: Validation, own: bool = False) -> list[str]:
     for label, (_name, real, sim, tol) in zip(labels, figures, strict=True):
         rel = Validation.rel(sim, real)
         lines.append(
-            f"| {label} | {real:.4g} | {sim:.4g} | {rel:+.1%} | "
+            f"| {label} | {real:.4g} | {sim:.4g} | {Validation.rel_text(sim, real)} | "
             f"{'yes' if abs(rel) <= tol else 'no'} | ±{tol:.0%} |"
         )
     return lines
@@ -513,7 +513,11 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
         cells = [label, f"{real:.4g}"]
         for sim in (sim_a, sim_b):
             rel = Validation.rel(sim, real)
-            cells += [f"{sim:.4g}", f"{rel:+.1%}", "yes" if abs(rel) <= tol else "no"]
+            cells += [
+                f"{sim:.4g}",
+                Validation.rel_text(sim, real),
+                "yes" if abs(rel) <= tol else "no",
+            ]
         lines.append("| " + " | ".join([*cells, f"±{tol:.0%}"]) + " |")
     lines += ["", "Level calibration (after the selected effects; `calibrated.toml`):", ""]
     lines += [f"- {fit.name}: {_params_text(fit)}" for fit in c.layers]

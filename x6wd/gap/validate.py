@@ -142,6 +142,13 @@ class Validation:
             return 0.0 if sim == 0 else math.inf
         return (sim - real) / real
 
+    @staticmethod
+    def rel_text(sim: float, real: float) -> str:
+        """:meth:`rel` as a signed percentage; "n/a, the real is 0" where it is infinite (a
+        log whose position never changes has a real sigma and Allan deviation of 0)."""
+        rel = Validation.rel(sim, real)
+        return f"{rel:+.1%}" if math.isfinite(rel) else "n/a, the real is 0"
+
     @property
     def mean_ok(self) -> bool:
         return abs(self.rel(self.mean_sim_m, self.mean_real_m)) <= MEAN_SD_TOL
@@ -194,6 +201,8 @@ class Validation:
         """The figure furthest off and which way it misses, e.g. "Allan deviation at 1 s:
         simulated 43.4 % above the real, the simulator noisier there"."""
         label, rel = self.worst()
+        if not math.isfinite(rel):
+            return f"{label}: n/a, the real is 0"
         text = f"{label}: simulated {abs(rel):.1%} {'above' if rel > 0 else 'below'} the real"
         if label.startswith("Allan"):
             text += ", the simulator noisier there" if rel > 0 else ", the simulator quieter there"
@@ -203,8 +212,8 @@ class Validation:
         """One line: pass/fail with the figures and the one furthest off."""
         return (
             f"{'PASS' if self.passed else 'FAIL'}: horizontal error mean "
-            f"{self.rel(self.mean_sim_m, self.mean_real_m):+.1%}, sigma "
-            f"{self.rel(self.sd_sim_m, self.sd_real_m):+.1%} (within {MEAN_SD_TOL:.0%}?), "
+            f"{self.rel_text(self.mean_sim_m, self.mean_real_m)}, sigma "
+            f"{self.rel_text(self.sd_sim_m, self.sd_real_m)} (within {MEAN_SD_TOL:.0%}?), "
             f"{sum(self.adev_ok)} of {len(self.adev_ok)} Allan octaves within {ADEV_TOL:.0%}; "
             f"furthest off: {self.worst_text()}"
         )
