@@ -145,8 +145,13 @@ def test_direction_bands_per_octave() -> None:
     assert text.startswith("the simulator is noisier than the receiver from 1 to 4 s;")
     assert "quieter than the receiver at 32 s" in text
     assert direction_text(direction_bands(*_adev_cells({1: (1, 1), 2: (0, 0)}), 4.0)) == (
-        "Allan deviation within the seed-to-seed spread at every octave"
+        "Allan deviation within the test's family-wise limits at every octave"
+        " (nearest: east at 1 s, z +1.0 against 4.0)"
     )
+    # the nearest is judged against each cell's own limit, across merged octaves
+    cells, z = _adev_cells({1: (1, 1), 2: (3, -2), 4: (0, 0)})
+    text = direction_text(direction_bands(cells, z, np.array([2, 2, 8, 8, 4, 4, 1])))
+    assert text.endswith("(nearest: east at 1 s, z +1.0 against 2.0)"), text
 
 
 # --- seed 000's validation ---------------------------------------------------------------------

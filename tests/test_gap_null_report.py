@@ -53,7 +53,8 @@ def test_no_direction_is_claimed_without_a_gap(null_run: tuple[str, Path]) -> No
     _stdout, out = null_run
     md = (out / "report.md").read_text()
     way = md.split("## Which way", 1)[1].split("##", 1)[0]
-    assert "Allan deviation within the seed-to-seed spread at every octave" in way, way
+    assert "Allan deviation within the test's family-wise limits at every octave" in way, way
+    assert "(nearest: " in way, way
     assert "quieter than" not in way and "noisier than" not in way
 
 

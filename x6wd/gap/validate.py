@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,6 +38,10 @@ class Band:
     kind: str
     tau_lo_s: float
     tau_hi_s: float
+    # the band's cell closest to (or furthest beyond) its limit: (z, limit, axis, tau s), so
+    # "within the limits" can say how close an octave came (a slow drift reads z 6.7 at a
+    # family-wise limit of 8 on one hour: within, but not "within the spread")
+    closest: tuple[float, float, str, float] | None = field(default=None, compare=False)
 
 
 def direction_bands(
@@ -52,11 +56,15 @@ def direction_bands(
     disagree beyond it are "mixed". Consecutive octaves of one kind are merged."""
     limits = np.broadcast_to(np.asarray(threshold, dtype=float), (len(cells),))
     by_tau: dict[float, list[float]] = {}
+    closest: dict[float, tuple[float, float, str, float]] = {}
     for cell, zc, limit in zip(cells, z, limits, strict=True):
         if cell.statistic == "log_adev" and cell.axis in ("east", "north"):
             tau_s = float(cell.scale.removeprefix("tau=").removesuffix("s"))
             # a cell within its limit reads as 0: it says neither way
             by_tau.setdefault(tau_s, []).append(float(zc) if abs(zc) > limit else 0.0)
+            here = (float(zc), float(limit), cell.axis, tau_s)
+            if math.isfinite(zc) and _nearer(here, closest.get(tau_s)):
+                closest[tau_s] = here
     bands: list[Band] = []
     for tau_s in sorted(by_tau):
         zs = [zc for zc in by_tau[tau_s] if zc != 0.0]
@@ -68,11 +76,23 @@ def direction_bands(
             kind = "quieter"
         else:
             kind = "mixed"
+        near = closest.get(tau_s)
         if bands and bands[-1].kind == kind:
-            bands[-1] = Band(kind, bands[-1].tau_lo_s, tau_s)
+            last = bands[-1]
+            keep = near if _nearer(near, last.closest) else last.closest
+            bands[-1] = Band(kind, last.tau_lo_s, tau_s, keep)
         else:
-            bands.append(Band(kind, tau_s, tau_s))
+            bands.append(Band(kind, tau_s, tau_s, near))
     return bands
+
+
+def _nearer(
+    a: tuple[float, float, str, float] | None, b: tuple[float, float, str, float] | None
+) -> bool:
+    """Whether cell ``a`` (z, limit, ...) lies nearer its limit than ``b`` (|z| / limit)."""
+    if a is None:
+        return False
+    return b is None or abs(a[0]) / a[1] > abs(b[0]) / b[1]
 
 
 def gap_direction(
@@ -80,9 +100,9 @@ def gap_direction(
 ) -> list[Band]:
     """Which way the gap runs per Allan octave (:func:`direction_bands`): once the "where"
     test has found a gap (``significant``), each octave read at |z| > ``DIRECTION_Z``; without
-    one, at the test's own family-wise ``limits`` (one per cell), so that every octave is
-    within the seed-to-seed spread: a reading at 3 would claim a direction (the simulator
-    quieter from 1 to 32 s on its own output, three runs) the test has just refused."""
+    one, at the test's own family-wise ``limits`` (one per cell), so that no octave claims a
+    direction the test has just refused (read at 3, the simulator was "quieter from 1 to
+    32 s" on its own output, three runs); the text then names the octave nearest its limit."""
     return direction_bands(cells, z, DIRECTION_Z if significant else limits)
 
 
@@ -94,7 +114,7 @@ def direction_text(bands: Sequence[Band]) -> str:
     words = {
         "noisier": "noisier than the receiver",
         "quieter": "quieter than the receiver",
-        "agrees": "within the seed-to-seed spread",
+        "agrees": "within the test's limits",
         "mixed": "noisier on one axis and quieter on the other",
     }
     parts = []
@@ -106,7 +126,12 @@ def direction_text(bands: Sequence[Band]) -> str:
         )
         parts.append(f"{words[band.kind]} {span}")
     if all(b.kind == "agrees" for b in bands):
-        return "Allan deviation within the seed-to-seed spread at every octave"
+        text = "Allan deviation within the test's family-wise limits at every octave"
+        near = [b.closest for b in bands if b.closest is not None]
+        if near:
+            z, limit, axis, tau_s = max(near, key=lambda c: abs(c[0]) / c[1])
+            text += f" (nearest: {axis} at {tau_s:g} s, z {z:+.1f} against {limit:.1f})"
+        return text
     return "the simulator is " + "; ".join(parts)
 
 
