@@ -17,11 +17,11 @@ from selenium.webdriver.common.action_chains import ActionChains
 from selenium.webdriver.common.by import By
 from selenium.webdriver.common.keys import Keys
 
+from tests import test_console
 from tests.test_console import (
     ORIGIN,
     TOKEN,
     FreezingProxy,
-    chromium,
     console_config,
     daemon_with,
     has_fix,
@@ -48,13 +48,7 @@ def guarded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
         yield r
 
 
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriver.Chrome]:
-    d = chromium(tmp_path_factory.mktemp("browser"))
-    try:
-        yield d
-    finally:
-        d.quit()
+browser = test_console.browser  # the same module-scoped fixture: one chromium per module
 
 
 def driving(r: Running) -> RemoteClient:
