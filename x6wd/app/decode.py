@@ -102,7 +102,7 @@ from x6wd.core.geodesy import wrap360
 from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
 if TYPE_CHECKING:  # imported where used: a plain NMEA log never needs the recorder
-    from x6wd.core.recorder import ReadStats
+    from x6wd.core.recorder import InputSize, ReadStats
 
 _CHUNK_BYTES = 1 << 20
 UERE_M = 5.0
@@ -1792,31 +1792,6 @@ def _decode_sentences(
     return decoder.counters
 
 
-class InputSize:
-    """The bytes of a plain (not recording) input, and whether any of them was not blank."""
-
-    def __init__(self) -> None:
-        self.bytes = 0
-        self.blank = True
-
-    def add(self, chunk: bytes) -> None:
-        self.bytes += len(chunk)
-        if self.blank and chunk.strip():
-            self.blank = False
-
-
-def nothing_decoded(counters: DecoderCounters, stats: ReadStats, size: InputSize) -> str | None:
-    """``"N bytes"`` or ``"N lines"`` when an input that is not empty held no NMEA sentence,
-    UBX frame or x6wd record at all (not a log: random bytes, a mission file, junk JSON
-    lines), else None. An empty or blank input is no error: empty in, empty out."""
-    lines = stats.records + stats.bad_lines + stats.truncated + stats.blank_lines
-    if lines:  # a recording
-        return f"{lines} lines" if not stats.records and lines > stats.blank_lines else None
-    if counters.sentences or counters.ubx_frames or size.blank:
-        return None
-    return f"{size.bytes} bytes"
-
-
 def decode_stream(
     stream: IO[bytes],
     out: IO[str],
@@ -1828,7 +1803,7 @@ def decode_stream(
     """Decode one input (NMEA bytes or a recording) and write report lines to ``out``.
     A recording's lines that are not records are counted in ``stats``, a plain input's
     bytes in ``size`` (if given)."""
-    from x6wd.core.recorder import looks_like_recording
+    from x6wd.core.recorder import InputSize, looks_like_recording
 
     head = stream.read(_CHUNK_BYTES)
     if looks_like_recording(head):
@@ -1906,7 +1881,7 @@ _GC_THRESHOLD: Final = 20_000  # allocations between collections (CPython's defa
 
 
 def _main(args: argparse.Namespace) -> int:
-    from x6wd.core.recorder import ReadStats
+    from x6wd.core.recorder import InputSize, ReadStats, nothing_decoded
 
     status = 0
     for name in args.files:
@@ -1937,7 +1912,7 @@ def _main(args: argparse.Namespace) -> int:
             if stats.records or stats.bad_lines or stats.truncated:  # a recording
                 figures += f" bad_recording_lines={stats.bad_lines + stats.truncated}"
             print(f"{name}: {figures}", file=sys.stderr)
-        if (what := nothing_decoded(counters, stats, size)) is not None:
+        if what := nothing_decoded(counters.sentences, counters.ubx_frames, stats, size):
             print(
                 f"x6wd decode: {name}: no NMEA sentence or x6wd record in {what}", file=sys.stderr
             )

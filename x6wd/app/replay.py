@@ -18,9 +18,11 @@ from typing import Any, TextIO
 from x6wd.core.errors import ParseError
 from x6wd.core.recorder import (
     GAP_REPLAY_S,
+    InputSize,
     ReadStats,
     is_recording,
     nmea_chunks,
+    nothing_decoded,
     paced,
     to_jsonable,
 )
@@ -128,8 +130,7 @@ def replay_file(
     decoder = GpsDecoder(emit_sentences=False)
     fixes = skies = 0
     t_last = 0.0
-    nbytes = 0
-    blank = True  # no byte but white space yet
+    size = InputSize()
 
     def on_gap(t_s: float, jump_s: float) -> None:
         err.write(
@@ -140,8 +141,7 @@ def replay_file(
     chunks = nmea_chunks(path, rate_hz=rate_hz, stats=stats)
     for t_s, data in paced(chunks, speed, on_gap=on_gap if speed else None):
         t_last = t_s
-        nbytes += len(data)
-        blank = blank and not data.strip()
+        size.add(data)
         for rec in decoder.feed(data, t_s):
             if isinstance(rec, GpsFix):
                 fixes += 1
@@ -164,14 +164,10 @@ def replay_file(
     err.write(" ".join(f"{k}={v}" for k, v in counts.items()) + "\n")
     # not a log at all (random bytes, a mission file, junk lines): an error, not an empty
     # replay; an empty file is no error (empty in, empty out)
-    lines = stats.records + stats.bad_lines + stats.truncated + stats.blank_lines
-    if recording and not stats.records and lines > stats.blank_lines:
-        what = f"{lines} lines"
-    elif not recording and not (counts["sentences"] or counts["ubx_frames"] or blank):
-        what = f"{nbytes} bytes"
-    else:
-        return counts
-    raise ParseError(f"{path}: no NMEA sentence or x6wd record in {what}")
+    what = nothing_decoded(counts["sentences"], counts["ubx_frames"], stats, size)
+    if what:
+        raise ParseError(f"{path}: no NMEA sentence or x6wd record in {what}")
+    return counts
 
 
 def main(args: argparse.Namespace) -> int:

@@ -109,6 +109,32 @@ class ReadStats:
     blank_lines: int = 0
 
 
+class InputSize:
+    """The bytes of a plain (not recording) input, and whether any of them was not blank."""
+
+    def __init__(self) -> None:
+        self.bytes = 0
+        self.blank = True
+
+    def add(self, chunk: bytes) -> None:
+        self.bytes += len(chunk)
+        if self.blank and chunk.strip():
+            self.blank = False
+
+
+def nothing_decoded(sentences: int, ubx_frames: int, stats: ReadStats, size: InputSize) -> str:
+    """``"N bytes"`` or ``"N lines"`` when an input that is not empty held no NMEA sentence,
+    UBX frame or x6wd record at all (not a log: random bytes, a mission file, junk JSON
+    lines), else "". An empty or blank input is no error: empty in, empty out (decode and
+    replay judge their inputs alike)."""
+    lines = stats.records + stats.bad_lines + stats.truncated + stats.blank_lines
+    if lines:  # a recording
+        return f"{lines} lines" if not stats.records and lines > stats.blank_lines else ""
+    if sentences or ubx_frames or size.blank:
+        return ""
+    return f"{size.bytes} bytes"
+
+
 def _utc_now() -> datetime:
     return datetime.now(UTC)
 

@@ -35,13 +35,7 @@ class CompassTrust:
         self.window_s = window_s
         self._readings: deque[tuple[float, bool]] = deque()  # (t_s, refused)
         self._refused = 0
-        self._first_t: float | None = None  # the first reading since the last reset (s)
-
-    def reset(self) -> None:
-        """Forget the readings (the estimator started afresh)."""
-        self._readings.clear()
-        self._refused = 0
-        self._first_t = None
+        self._first_t: float | None = None  # the first reading (s): a window must pass
 
     def on_reading(self, t_s: float, refused: bool) -> None:
         """A compass reading at ``t_s`` (s) that the estimator took or ``refused``."""
