@@ -211,6 +211,38 @@ def test_a_pivot_that_does_not_turn_is_stuck_naming_the_compass() -> None:
     assert c.telemetry.extra["failsafe"] == "stuck (the compass: no motion in 10 s of driving)"
 
 
+def test_a_pivot_whose_compass_swings_without_nearing_the_target_is_stuck() -> None:
+    # A magnet stronger than the earth's field: as the body spins the bearing swings +-40 deg
+    # round north and never reaches the target 90 deg east. The swing passes the 30 deg
+    # motion test; the robot spun for 500 s with no failsafe.
+    c = pivoting()
+    for k in range(1, 600):
+        t = 0.05 * k
+        c.on_attitude(att(t, 40.0 * math.sin(2 * math.pi * t / 4.0) % 360.0))
+        if k % 20 == 0:
+            c.on_fix(fix(t))
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    assert 10.0 <= t <= 20.0  # stuck_s after its best (the EKF's heading settles first)
+    why = c.telemetry.extra["failsafe"]
+    assert why.startswith("stuck (the pivot: ") and "no nearer in 10 s of turning" in why
+
+
+def test_a_slow_or_wavering_pivot_that_nears_its_target_is_not_stuck() -> None:
+    # 3.5 deg/s with +-20 deg of swing on top: every 10 s it is 35 deg nearer its target
+    c = pivoting()
+    for k in range(1, 1100):
+        t = 0.05 * k
+        c.on_attitude(att(t, (3.5 * t + 20.0 * math.sin(2 * math.pi * t / 3.0)) % 360.0))
+        if k % 20 == 0:
+            c.on_fix(fix(t))
+        if c.state != NavState.TURN_RIGHT:
+            break
+    assert c.mode == Mode.RUNNING and "failsafe" not in c.telemetry.extra
+    assert t > 15.0  # it pivoted for longer than stuck_s
+
+
 def test_stuck_is_caught_stuck_s_after_the_robot_stopped_moving() -> None:
     c = started()
     for k in range(1, 8):  # 7 s of good progress

@@ -620,3 +620,23 @@ def test_compass_faults_reach_the_recording_as_the_daemons_do(tmp_path: Path) ->
     devices = [e for e in run.of("event") if e["event"] == "device"]
     assert devices and all(d["device"] == "compass" for d in devices), devices[:3]
     assert {d["new"] for d in devices} >= {"connected", "degraded"}
+
+
+def test_a_compass_overwhelmed_by_hard_iron_pauses_a_pivot_that_cannot_finish(
+    tmp_path: Path,
+) -> None:
+    """A 30 uT hard iron (stronger than the earth's field): the bearing swings round a fixed
+    direction as the body spins, enough for the stuck check's 30 deg of motion, so the robot
+    pivoted in place until the mission's time ran out. The pivot's headway check pauses it."""
+    text = DEFAULT.replace("duration_s = 400.0", "duration_s = 90.0")
+    text = text.replace("start_heading_deg = 0.0\n", "start_heading_deg = 90.0\n")
+    text = text.replace(
+        "declination_deg = -0.5\n", "declination_deg = -0.5\nhard_iron_ut = [30.0, 0.0, 0.0]\n"
+    )
+    run = _mission(tmp_path, loads_world(text, base_dir=SCENARIOS))
+    paused = run.first("PAUSED", "failsafe: stuck (the pivot: ")
+    assert paused["t_s"] < 30.0
+    assert run.mode_changes()[-1][1] == "PAUSED"
+    motors = [m for m in run.of("motor") if m["t_s"] >= paused["t_s"]]
+    assert motors and all(m["left_pct"] == m["right_pct"] == 0.0 for m in motors)
+    assert run.moved_after(paused["t_s"] + 1.0) < 0.5

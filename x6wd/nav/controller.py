@@ -102,6 +102,10 @@ ODOMETRY_FRESH_S = 0.5
 """Encoder counts older than this (s) do not count as reporting."""
 STUCK_TURN_DEG = 30.0
 """Heading change (deg) that counts as motion for the stuck failsafe while pivoting."""
+PIVOT_HEADWAY_DEG = 10.0
+"""A pivot must bring its heading error this much (deg) nearer zero every ``stuck_s``: a
+compass that swings without following the body (a magnet stronger than the earth's field)
+passes the 30° motion test while the robot spins in place for ever."""
 SLIP_MIN_TRAVEL = 4.0
 """With encoders, the body counts as still (slipping) only once the wheels drove this many
 ``stuck_min_m`` without it moving: at a slow cruise a drifting GPS can hide 6 m in 10 s."""
@@ -178,6 +182,8 @@ class Controller:
         self._stuck_wheels: tuple[float, float] | None = None
         self._stuck_body: tuple[float, float, float, float, float] | None = None
         self._stuck_forward = False
+        # the pivot's headway: (best |heading error| deg, t_s it was reached, waypoint index)
+        self._pivot_best: tuple[float, float, int] | None = None
         self._course = CourseWatch(
             self._failsafe.off_course_m, self._failsafe.heading_check_deg, nav.full_speed_mps
         )
@@ -409,7 +415,7 @@ class Controller:
         self._returning = self._failsafe_why = ""
         self._navigator.restart()
         self._source.reset()
-        self._stuck_wheels = self._stuck_body = None
+        self._stuck_wheels = self._stuck_body = self._pivot_best = None
         self._course.reset()
         self._hold_since = None
         now = t if self._now is None else max(self._now, t)
@@ -445,7 +451,7 @@ class Controller:
             self._mission_nav = self._navigator
         self._navigator = home
         self._returning = why
-        self._stuck_wheels = self._stuck_body = None
+        self._stuck_wheels = self._stuck_body = self._pivot_best = None
         self._course.reset()
         self._hold_since = None
         if self._mode == Mode.RUNNING:
@@ -585,7 +591,7 @@ class Controller:
             # steer by it too)
             return f"compass untrusted ({untrusted})", "hold"
         if fs.stuck_s > 0:
-            fired = self._stuck_check(now)
+            fired = self._stuck_check(now) or self._pivot_check(now)
             if fired is not None:
                 return fired
         return self._course_check(now)
@@ -669,6 +675,34 @@ class Controller:
         return (
             f"stuck ({what}: no motion in {fs.stuck_s:g} s of driving)",
             fs.stuck_action,
+        )
+
+    def _pivot_check(self, now: float) -> tuple[str, str] | None:
+        """A pivot (the last decision TURN_LEFT or TURN_RIGHT, turning at ``stuck_min_pct``
+        or more) whose heading error to its target has not come ``PIVOT_HEADWAY_DEG``
+        nearer zero for ``stuck_s``: the compass moves but never towards the target, so the
+        robot would spin on. A slow pivot still gains 10° in 10 s at 1°/s."""
+        last, cmd = self._navigator.last, self._cmd
+        err_rad = None
+        if self._state in (NavState.TURN_LEFT, NavState.TURN_RIGHT) and last is not None:
+            err_rad = last.theta_rad if last.steer_alpha_rad is None else last.steer_alpha_rad
+        turning = 0.5 * abs(cmd.left_pct - cmd.right_pct) >= self._failsafe.stuck_min_pct
+        if err_rad is None or last is None or not turning:
+            self._pivot_best = None
+            return None
+        err_deg = abs(math.degrees(err_rad))
+        best = self._pivot_best
+        if best is None or best[2] != last.waypoint_index or err_deg <= best[0] - PIVOT_HEADWAY_DEG:
+            self._pivot_best = (err_deg, now, last.waypoint_index)
+            return None
+        stuck_s = self._failsafe.stuck_s
+        if now - best[1] < stuck_s:
+            return None
+        self._pivot_best = None
+        return (
+            f"stuck (the pivot: {best[0]:.0f}° from its heading and no nearer in {stuck_s:g} s"
+            " of turning; the compass does not follow the wheels)",
+            self._failsafe.stuck_action,
         )
 
     # ------------------------------------------------------------------ internals
