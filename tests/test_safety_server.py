@@ -282,7 +282,8 @@ def test_hello_status_watch_and_log_replies(servers) -> None:
         st = raw.ask({"id": 2, "cmd": "status"})
         assert st["client"] == {"watching": False, "dropped": 0}
         assert st["server"]["stops"] == {
-            "requested": 0, "sent": 0, "coalesced": 0, "early": 0, "orphaned": 0
+            "requested": 0, "sent": 0, "coalesced": 0, "early": 0, "orphaned": 0,
+            "superseded": 0,
         }  # fmt: skip
         assert raw.ask({"id": 3, "cmd": "watch"}) == {"id": 3, "ok": True, "watching": True,
                                                       "dropped": 0}  # fmt: skip
@@ -619,3 +620,63 @@ def test_a_browsers_request_is_closed_before_its_body_can_act(servers) -> None:
             raw.close()
     with RemoteClient("127.0.0.1", srv.port) as c:  # a program of ours is not affected
         assert c.request("hello")["ok"]
+
+
+# -- a stop cancels what came before it --------------------------------------------------------
+def _calls_after_first_stop(backend: RecordingBackend) -> list[tuple[str, Any]]:
+    names = [n for n, _ in backend.calls]
+    assert "stop" in names
+    return backend.calls[names.index("stop") + 1 :]
+
+
+def _replies_until(raw: Raw, last_id: Any) -> dict[Any, dict[str, Any]]:
+    out: dict[Any, dict[str, Any]] = {}
+    while last_id not in out:
+        r = raw.line()
+        out[r.get("id")] = r
+    return out
+
+
+def test_a_backlog_of_drives_is_not_carried_out_after_the_stop_behind_it(servers) -> None:
+    # Found by an outside check: 500 drives sent in a burst, then stop. The stop went out at
+    # once, then the drives that the throttle had held back were carried out after it and the
+    # robot drove again for 4 s.
+    backend = RecordingBackend()
+    srv = servers(backend, token=None, rate_per_s=100.0)
+    drive = {"cmd": "drive", "left": 30, "right": 30, "duration_s": 5}
+    burst = b"".join(line({"id": i, **drive}) for i in range(300))
+    after = {"id": "after", "cmd": "drive", "left": 10, "right": 10, "duration_s": 1}
+    raw = Raw(srv.port)
+    try:
+        raw.send(burst + line({"id": "s", "cmd": "stop"}) + line(after))
+        replies = _replies_until(raw, "after")
+        assert replies["s"]["ok"]
+        later = _calls_after_first_stop(backend)
+        assert all(n != "drive" or arg == (10.0, 10.0, 1.0) for n, arg in later), later[:3]
+        stopped = [r for r in replies.values() if r.get("error", {}).get("reason") == "stopped"]
+        assert stopped and srv.stops["superseded"] == len(stopped)
+        assert stopped[0]["error"]["code"] == "rejected"
+        assert replies["after"].get("error", {}).get("reason") != "stopped"  # sent after it
+    finally:
+        raw.close()
+
+
+def test_a_stop_from_another_connection_cancels_the_backlog_of_this_one(servers) -> None:
+    backend = RecordingBackend()
+    srv = servers(backend, token=None, rate_per_s=100.0)
+    drive = {"cmd": "drive", "left": 30, "right": 30, "duration_s": 5}
+    a, b = Raw(srv.port), Raw(srv.port)
+    try:
+        a.send(b"".join(line({"id": i, **drive}) for i in range(300)))
+        wait_until(lambda: any(n == "drive" for n, _ in backend.calls))
+        time.sleep(0.2)  # the backlog is read and throttled
+        assert b.ask({"id": "s", "cmd": "stop"})["ok"]
+        replies = _replies_until(a, 299)
+        assert not any(n == "drive" for n, _ in _calls_after_first_stop(backend))
+        assert any(r.get("error", {}).get("reason") == "stopped" for r in replies.values())
+        # a drive sent after the stop is carried out
+        time.sleep(1.0)  # the throttle's burst refills
+        assert a.ask({"id": "new", **drive})["ok"]
+    finally:
+        a.close()
+        b.close()

@@ -33,6 +33,7 @@ import ssl
 import stat
 import sys
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,6 +67,9 @@ COMMANDS = (
 # in for a stop requested after it
 MOTION_COMMANDS = frozenset({"mission.load", "start", "pause", "resume", "return", "drive"})
 ACTING_COMMANDS = MOTION_COMMANDS | {"stop"}
+SUPERSEDED_COMMANDS = frozenset({"start", "resume", "return", "drive"})
+"""What a later ``stop`` cancels: one of these received before it (a backlog held behind the
+request throttle, on any connection) is refused, never carried out after the stop."""
 """What a watch-only client (the web console with ``console.watch_only``) is refused."""
 DETACHED_OPEN_COMMANDS = frozenset({"hello", "auth", "stop"})
 """What a detached client (the web console) may send before ``auth``: the brake, no status."""
@@ -214,6 +218,12 @@ class _Client(LineClient):
     watch_only: bool = False  # refused every command in ACTING_COMMANDS
     open_commands: frozenset[str] = UNAUTHENTICATED_COMMANDS  # allowed before ``auth``
     drive_limit_s: float | None = None  # a drive's duration_s is cut to this (the dead-man)
+    # the input as a stream (TCP: bytes; a detached client: messages): how much was received,
+    # where the line being handled ends, and the stop fence: lines ending at or before it
+    # were received before a stop
+    received: int = 0
+    taken: int = 0
+    fence: int = 0
 
 
 class _Shared:
@@ -384,8 +394,12 @@ class ControlServer(LineServer[_Client]):
         self.errors_total = 0
         self.auth_failed_total = 0
         self.stops = collections.Counter(
-            {"requested": 0, "sent": 0, "coalesced": 0, "early": 0, "orphaned": 0}
-        )
+            {
+                "requested": 0, "sent": 0, "coalesced": 0, "early": 0, "orphaned": 0,
+                "superseded": 0,
+            }
+        )  # fmt: skip
+        self._fenced: weakref.WeakSet[_Client] = weakref.WeakSet()  # every client, any transport
         self._drive_owner: _Client | None = None  # whose manual drive runs (the dead-man)
         self._closing = False  # close() has begun: connections end because the server does
         self._drive_until_s = 0.0  # time.monotonic() when it ends
@@ -476,6 +490,7 @@ class ControlServer(LineServer[_Client]):
             tokens=self._bucket(now),
             faults=self._bucket(now),
         )
+        self._fenced.add(c)
         try:
             self._connected(c)
             c.sender = asyncio.create_task(self._sender(c))
@@ -507,6 +522,7 @@ class ControlServer(LineServer[_Client]):
         self.stops["requested"] += 1
         self.stops["orphaned"] += 1
         log.warning("%s went away while driving: motors stopped", c.peer)
+        self._stop_fence(None, 0)
         self._fire_stop()
 
     def _bucket(self, now: float) -> _Bucket:
@@ -526,6 +542,7 @@ class ControlServer(LineServer[_Client]):
             if not chunk:
                 return
             buf += chunk
+            c.received += len(chunk)
             budget.refill(self._clock())
             budget.level -= len(chunk)
             if budget.level < 0:
@@ -539,11 +556,13 @@ class ControlServer(LineServer[_Client]):
                         if not discarding:
                             self._reply(c, self._too_long())
                         discarding = True
+                        c.taken += len(buf)
                         buf.clear()
                         scanned = 0
                     break
                 line = bytes(buf[:nl])
                 del buf[: nl + 1]
+                c.taken += nl + 1
                 scanned = max(0, scanned - (nl + 1))
                 c.t_active_s = self._clock()
                 if discarding:
@@ -584,7 +603,7 @@ class ControlServer(LineServer[_Client]):
                     )
             while len(c.replies) > MAX_PENDING_REPLIES and not c.closed:
                 # a client that asks without reading waits here, alone
-                scanned = self._early_stops(buf, scanned, discarding)
+                scanned = self._early_stops(c, buf, scanned, discarding)
                 c.drained.clear()
                 await c.drained.wait()
 
@@ -596,7 +615,7 @@ class ControlServer(LineServer[_Client]):
         its input ``budget``; at most ``2 * max_line_bytes`` + one 64 KiB read held): a stop
         that arrives meanwhile goes to the motors at once, not when the back-off ends. Returns
         how far ``buf`` has been searched for stops."""
-        scanned = self._early_stops(buf, scanned, discarding)
+        scanned = self._early_stops(c, buf, scanned, discarding)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + seconds
         c.napping = True  # an eviction cancels the handler, as in _nap
@@ -610,13 +629,14 @@ class ControlServer(LineServer[_Client]):
                 except TimeoutError:
                     break
                 buf += chunk
+                c.received += len(chunk)
                 budget.level -= len(chunk)
-                scanned = self._early_stops(buf, scanned, discarding)
+                scanned = self._early_stops(c, buf, scanned, discarding)
         finally:
             c.napping = False
         return scanned
 
-    def _early_stops(self, buf: bytearray, scanned: int, discarding: bool) -> int:
+    def _early_stops(self, c: _Client, buf: bytearray, scanned: int, discarding: bool) -> int:
         """Before a client waits out its own back-off, send the stops already in its input to
         the backend at once (each is still answered in order, when its turn comes: then it
         joins the stop in flight, or is sent again if a command came in between). Returns
@@ -626,16 +646,19 @@ class ControlServer(LineServer[_Client]):
             return scanned
         region = bytes(buf[scanned:end])
         if b"stop" in region:
-            lines = region.split(b"\n")
-            if scanned == 0 and discarding:
-                lines = lines[1:]  # the tail of an oversized line
-            for line in lines:
+            lines = region.split(b"\n")[:-1]
+            at = c.taken + scanned  # where the region begins in the client's input
+            for i, line in enumerate(lines):
+                at += len(line) + 1
+                if i == 0 and scanned == 0 and discarding:
+                    continue  # the tail of an oversized line
                 if len(line) <= self.config.max_line_bytes:
-                    self._early_stop(line)
+                    self._early_stop(c, line, at)
         return end
 
-    def _early_stop(self, line: bytes) -> None:
-        """Send a ``stop`` request line to the backend at once (anything else: nothing)."""
+    def _early_stop(self, c: _Client, line: bytes, end: int) -> None:
+        """Send a ``stop`` request line that ends at ``end`` in ``c``'s input to the backend
+        at once (anything else: nothing)."""
         if b"stop" not in line:
             return
         try:
@@ -644,14 +667,30 @@ class ControlServer(LineServer[_Client]):
             return
         if req.get("cmd") == "stop":
             self.stops["early"] += 1
+            self._stop_fence(c, end)
             self._fire_stop()
 
-    def early_stop(self, c: _Client, line: bytes) -> None:
-        """A detached client's request line that arrived while its transport was still busy
-        with an earlier one or its back-off: a ``stop`` goes to the backend now, as on the
-        TCP port (it is still answered in turn, through :meth:`request`)."""
-        if not c.watch_only:  # a watch-only client's stop is refused, early or not
-            self._early_stop(line)
+    def receive(self, c: _Client, line: bytes, *, early: bool) -> None:
+        """A detached client's request line as it arrives (each, in order, then handled in
+        turn through :meth:`take` and :meth:`request`). ``early``: it came while the
+        transport was still busy with an earlier one or its back-off, and a ``stop`` goes to
+        the backend now, as on the TCP port."""
+        c.received += 1
+        if early and not c.watch_only:  # a watch-only client's stop is refused, early or not
+            self._early_stop(c, line, c.received)
+
+    @staticmethod
+    def take(c: _Client) -> None:
+        """A detached client's next received line is about to be handled (every line the
+        transport took from its queue, whether or not it reaches :meth:`request`)."""
+        c.taken += 1
+
+    def _stop_fence(self, origin: _Client | None, end: int) -> None:
+        """A stop was asked for: every motion command received before it is refused, on
+        every connection. On ``origin``'s own input (where the stop ends at ``end``) the
+        lines after the stop were sent after it and stand."""
+        for c in self._fenced:
+            c.fence = max(c.fence, end if c is origin else c.received)
 
     def _fault_wait(self, c: _Client) -> float:
         """Charge one error reply to the client's fault bucket; seconds to wait before its
@@ -711,6 +750,9 @@ class ControlServer(LineServer[_Client]):
                 raise _Reject("unauthorized", f"authenticate first to use {cmd!r}")
             if c.watch_only and cmd in ACTING_COMMANDS:
                 raise _Reject("watch_only", f"this connection only watches: {cmd!r} refused")
+            if cmd in SUPERSEDED_COMMANDS and c.taken <= c.fence:
+                self.stops["superseded"] += 1
+                raise _Reject("rejected", f"a stop came after this {cmd}: not done", "stopped")
             if c.authenticated and not c.watch_only:  # an operator is there (the
                 self.backend.operator_seen()  # operator-link failsafe; not a spectator)
             result = await self._execute(c, cmd, req)
@@ -779,6 +821,7 @@ class ControlServer(LineServer[_Client]):
             return st
         if cmd == "stop":
             self._drive_owner = None
+            self._stop_fence(c, c.taken)
             self.stops["requested"] += 1
             self._rlog.log("stop requests", logging.INFO, "stop requested by %s", c.peer)
             return dict(await asyncio.shield(self._fire_stop()))
@@ -828,7 +871,7 @@ class ControlServer(LineServer[_Client]):
         nothing of the robot without the token). ``watch_only``: every command that acts is
         refused; ``drive_limit_s``: drives last at most this (s)."""
         now = self._clock()
-        return _Client(
+        c = _Client(
             writer=None,  # type: ignore[arg-type]  # never written: the transport replies
             peer=peer,
             host=host,
@@ -840,6 +883,8 @@ class ControlServer(LineServer[_Client]):
             open_commands=DETACHED_OPEN_COMMANDS,
             drive_limit_s=drive_limit_s,
         )
+        self._fenced.add(c)
+        return c
 
     async def request(self, c: _Client, line: bytes) -> tuple[dict[str, Any], float]:
         """One request line of a detached client: its reply, and how long (s) the transport

@@ -478,6 +478,7 @@ class ConsoleServer:
                 if line is None:
                     return
                 page.busy = True
+                self.control.take(page.client)
                 page.held -= _message_cost(line)
                 page.queued -= 1
                 page.room.set()
@@ -501,8 +502,7 @@ class ConsoleServer:
                     line = str(msg.data).encode("utf-8", "surrogatepass")
                 else:
                     break  # an error or a close
-                if page.busy or not inbox.empty():
-                    self.control.early_stop(page.client, line)
+                self.control.receive(page.client, line, early=page.busy or not inbox.empty())
                 page.held += _message_cost(line)
                 page.queued += 1
                 inbox.put_nowait(line)
