@@ -694,6 +694,9 @@ def test_the_geofence_and_the_manual_limit_hold_at_their_edges(tmp_path: Path, r
         with pytest.raises(RequestFailed) as ei:
             c.request("drive", left=20, right=-20, duration_s=5.5)
         assert (ei.value.code, ei.value.message) == ("bad_request", "duration_s 5.5 > limit 5 s")
+        with pytest.raises(RequestFailed) as ei:  # just over: said so, not "5 > limit 5"
+            c.request("drive", left=20, right=-20, duration_s=5.0000001)
+        assert ei.value.message == "duration_s 5.0000001 > limit 5 s"
         st = wait_for(
             lambda: (
                 (s := c.request("status"))["links"]["gps"] == "connected" and s["telemetry"] and s

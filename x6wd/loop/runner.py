@@ -271,7 +271,8 @@ class Runner:
         """Manual drive (%) for ``duration_s`` (s); refused above ``safety.manual_max_s``."""
         limit = self.safety.manual_max_s
         if duration_s > limit:
-            raise CommandError("bad_request", f"duration_s {duration_s:g} > limit {limit:g} s")
+            # 12 digits: "5.0000001 > limit 5", never "5 > limit 5"
+            raise CommandError("bad_request", f"duration_s {duration_s:.12g} > limit {limit:g} s")
         self._handle(self.controller.manual_drive(left_pct, right_pct, duration_s, self.clock()))
         log.info("operator: drive L%+.0f R%+.0f for %.1f s", left_pct, right_pct, duration_s)
         return {"left": left_pct, "right": right_pct, "duration_s": duration_s}
