@@ -18,7 +18,7 @@ import pytest
 from tests.conftest import DATA, require_program
 from x6wd.app.gpsd import GpsdServer, att_obj, iso_time, parse_commands, sky_obj, tpv_obj
 from x6wd.core.errors import ProtocolError
-from x6wd.core.records import Attitude, GpsFix, GpsSky, SatInfo
+from x6wd.core.records import Attitude, DeviceState, GpsFix, GpsSky, SatInfo
 
 UTC0 = datetime(2026, 11, 22, 5, 0, 1, 250000, tzinfo=UTC)
 FIX = GpsFix(
@@ -60,6 +60,81 @@ class Published:
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(5)
         self.loop.close()
+
+
+class Served:
+    """A GpsdServer on its own loop thread that publishes only when told (:meth:`call`)."""
+
+    def __init__(self, **kw: Any) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.srv = GpsdServer("127.0.0.1", 0, "/dev/ttyS0", **kw)
+        asyncio.run_coroutine_threadsafe(self.srv.start(), self.loop).result(5)
+
+    def call(self, fn: Any, *args: Any) -> None:
+        """Run ``fn(*args)`` on the server's loop, as the daemon's network thread does."""
+
+        async def run() -> None:
+            fn(*args)
+
+        asyncio.run_coroutine_threadsafe(run(), self.loop).result(5)
+
+    def close(self) -> None:
+        asyncio.run_coroutine_threadsafe(self.srv.close(), self.loop).result(5)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+        self.loop.close()
+
+
+class Peer:
+    """A client socket that reads lines, and what arrives within a time, without a file
+    object (a file object cannot be read again after a timeout)."""
+
+    def __init__(self, port: int, request: bytes = b"") -> None:
+        self.s = socket.create_connection(("127.0.0.1", port), timeout=5)
+        self.buf = b""
+        assert self.obj()["class"] == "VERSION"
+        if request:
+            self.s.sendall(request)
+
+    def line(self) -> bytes:
+        """The next line (b"" at the end of the stream)."""
+        while b"\n" not in self.buf:
+            chunk = self.s.recv(65536)
+            if not chunk:
+                rest, self.buf = self.buf, b""
+                return rest
+            self.buf += chunk
+        line, _, self.buf = self.buf.partition(b"\n")
+        return line + b"\n"
+
+    def obj(self) -> dict[str, Any]:
+        """The next line's JSON object."""
+        return json.loads(self.line())
+
+    def within(self, seconds: float) -> list[dict[str, Any]]:
+        """The JSON objects that arrive within ``seconds``."""
+        out: list[dict[str, Any]] = []
+        deadline = time.monotonic() + seconds
+        while (left_s := deadline - time.monotonic()) > 0:
+            if b"\n" not in self.buf:
+                self.s.settimeout(left_s)
+                try:
+                    chunk = self.s.recv(65536)
+                except TimeoutError:
+                    break
+                finally:
+                    self.s.settimeout(5)
+                if not chunk:
+                    break
+                self.buf += chunk
+                continue
+            out.append(self.obj())
+        return out
+
+    def close(self) -> None:
+        self.s.close()
 
 
 @pytest.fixture
@@ -426,3 +501,181 @@ def test_device_reports_the_serial_settings_and_cycle_of_the_gps_as_opened() -> 
         assert not {"bps", "parity", "stopbits"} & set(dev)
     finally:
         p.close()
+
+
+WATCH_JSON = b'?WATCH={"enable":true,"json":true};\n'
+
+
+def test_a_lost_gps_is_no_device_and_its_fix_is_not_replayed() -> None:
+    # audit: with the NMEA source gone (reconnecting), watchers got no notice, DEVICES still
+    # listed it, POLL said active with a 15 s old 3D fix and new watchers got that fix
+    p = Served()
+    try:
+        p.call(p.srv.publish_fix, FIX)
+        p.call(p.srv.publish_sky, SKY)
+        a = Peer(p.srv.port, WATCH_JSON)
+        assert [o["class"] for o in a.within(0.3)] == ["DEVICES", "WATCH", "TPV", "SKY"]
+        p.call(p.srv.set_gps_state, DeviceState.RECONNECTING)
+        assert a.obj() == {"class": "DEVICE", "path": "/dev/ttyS0", "activated": 0}
+        b = Peer(p.srv.port, WATCH_JSON + b"?POLL;\n")
+        got = b.within(0.3)
+        assert got[0] == {"class": "DEVICES", "devices": []}
+        assert [o["class"] for o in got[1:]] == ["WATCH", "POLL"]  # no TPV, no SKY
+        assert (got[2]["active"], got[2]["tpv"], got[2]["sky"]) == (0, [], [])
+        # it comes back: watchers are told (the whole DEVICE, activated when reopened)
+        p.call(p.srv.set_device, "/dev/ttyS0", 9600, 1.0)
+        p.call(p.srv.set_gps_state, DeviceState.CONNECTED)
+        for peer in (a, b):
+            dev = peer.obj()
+            assert dev["class"] == "DEVICE" and dev["path"] == "/dev/ttyS0"
+            assert dev["activated"] == iso_time(p.srv.activated)
+        b.s.sendall(b"?DEVICES;\n")
+        assert [d["path"] for d in b.obj()["devices"]] == ["/dev/ttyS0"]
+        a.close()
+        b.close()
+    finally:
+        p.close()
+
+
+def test_a_fix_older_than_the_stale_limit_is_no_fix_to_poll_or_a_new_watcher() -> None:
+    # the link stays open but only garbage arrives: no new fix; new watchers got the last
+    # good one as a current 3D fix
+    p = Served(fix_stale_s=0.3)
+    try:
+        p.call(p.srv.publish_fix, FIX)
+        p.call(p.srv.publish_sky, SKY)
+        s = Peer(p.srv.port, b"?POLL;\n")
+        poll = s.obj()
+        assert poll["active"] == 1 and poll["tpv"][0]["mode"] == 3 and poll["sky"]
+        time.sleep(0.5)
+        s.s.sendall(b"?POLL;\n")
+        poll = s.obj()
+        assert poll["active"] == 1 and poll["sky"] == []
+        assert poll["tpv"] == [{"class": "TPV", "device": "/dev/ttyS0", "mode": 1}]
+        s.close()
+        s = Peer(p.srv.port, WATCH_JSON)
+        assert [o["class"] for o in s.within(0.3)] == ["DEVICES", "WATCH"]
+        s.close()
+    finally:
+        p.close()
+
+
+def test_no_fix_without_satellites_clears_the_polled_sky() -> None:
+    # a receiver booting (RMC V, GGA 0, GSA 1 and no GSV): gpsd's SKY says 99.99 and no
+    # satellites used; POLL kept the last fix's hdop and uSat
+    p = Served()
+    try:
+        p.call(p.srv.publish_fix, FIX)
+        p.call(p.srv.publish_sky, SKY)
+        p.call(p.srv.publish_fix, GpsFix(t_s=2.0, valid=False, mode=1, hdop=99.99))
+        s = Peer(p.srv.port, b"?POLL;\n")
+        poll = s.obj()
+        assert poll["tpv"][0]["mode"] == 1
+        sky = poll["sky"][0]
+        assert (sky["hdop"], sky["uSat"], sky["satellites"]) == (99.99, 0, [])
+        s.close()
+    finally:
+        p.close()
+
+
+def _epoch_nmea(utc: datetime) -> bytes:
+    """One 3D-fix epoch of NMEA (RMC, GGA, GSA, GSV) at ``utc``, as a receiver sends it."""
+    hms, dmy = utc.strftime("%H%M%S.00"), utc.strftime("%d%m%y")
+    bodies = (
+        f"GPRMC,{hms},A,5145.12235,N,00115.46338,W,0.157,,{dmy},,,A",
+        f"GPGGA,{hms},5145.12235,N,00115.46338,W,1,08,0.98,67.4,M,47.7,M,,",
+        "GPGSA,A,3,02,05,07,13,15,21,28,30,,,,,1.57,0.98,1.22",
+        "GPGSV,1,1,02,05,70,227,40,07,42,060,32",
+    )
+    out = b""
+    for body in bodies:
+        check = 0
+        for ch in body.encode():
+            check ^= ch
+        out += f"${body}*{check:02X}\r\n".encode()
+    return out
+
+
+class NmeaSource:
+    """A receiver behind a TCP port (the daemon's ``[gps] url = tcp://...``): 5 epochs a
+    second to whoever connects, until :meth:`stop` closes the port and its connections."""
+
+    def __init__(self, port: int = 0) -> None:
+        self.srv = socket.create_server(("127.0.0.1", port))
+        self.port = self.srv.getsockname()[1]
+        self.stopped = threading.Event()
+        self.conns: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                c, _ = self.srv.accept()
+                self.conns.append(c)
+                threading.Thread(target=self._send, args=(c,), daemon=True).start()
+
+    def _send(self, c: socket.socket) -> None:
+        with contextlib.suppress(OSError):
+            while not self.stopped.wait(0.2):
+                c.sendall(_epoch_nmea(datetime.now(UTC)))
+
+    def stop(self) -> None:
+        self.stopped.set()
+        with contextlib.suppress(OSError):
+            self.srv.shutdown(socket.SHUT_RDWR)  # wakes accept(): the port really closes
+        self.srv.close()
+        for c in self.conns:
+            with contextlib.suppress(OSError):
+                c.shutdown(socket.SHUT_RDWR)
+            c.close()
+
+
+def test_the_daemons_gpsd_port_follows_its_tcp_gps_going_and_coming_back(tmp_path: Any) -> None:
+    # the audit's setup: [gps] url = tcp://..., the NMEA source killed; watchers got no
+    # notice and new ones the old fix as current
+    import dataclasses
+
+    from tests.test_daemon import Running, hil_config
+    from x6wd.app.daemon import Daemon
+
+    source = NmeaSource()
+    cfg = hil_config(tmp_path)
+    cfg = dataclasses.replace(
+        cfg, gps=dataclasses.replace(cfg.gps, url=f"tcp://127.0.0.1:{source.port}")
+    )
+    running = Running(Daemon(cfg))
+    try:
+        assert running.daemon.gpsd is not None
+        port = running.daemon.gpsd.port
+        watcher = Peer(port, WATCH_JSON)
+        deadline = time.monotonic() + 15
+        while not any(o["class"] == "TPV" and o["mode"] == 3 for o in watcher.within(0.5)):
+            assert time.monotonic() < deadline, "no 3D fix through the port"
+        source.stop()
+        lost = {"class": "DEVICE", "path": f"tcp://127.0.0.1:{source.port}", "activated": 0}
+        deadline = time.monotonic() + 10
+        while lost not in watcher.within(0.5):
+            assert time.monotonic() < deadline, "the watcher was not told the GPS is gone"
+        late = Peer(port, WATCH_JSON + b"?POLL;\n")
+        got = late.within(1.0)
+        assert got[0] == {"class": "DEVICES", "devices": []}
+        poll = next(o for o in got if o["class"] == "POLL")
+        assert (poll["active"], poll["tpv"], poll["sky"]) == (0, [], [])
+        assert not [o for o in got if o["class"] in ("TPV", "SKY")]
+        back = NmeaSource(source.port)  # the receiver returns on the same address
+        try:
+            deadline = time.monotonic() + 20
+            while not any(
+                o["class"] == "DEVICE" and isinstance(o.get("activated"), str)
+                for o in watcher.within(0.5)
+            ):
+                assert time.monotonic() < deadline, "the watcher was not told the GPS is back"
+        finally:
+            back.stop()
+        watcher.close()
+        late.close()
+    finally:
+        source.stop()
+        running.stop()
+        if running.daemon.devices is not None:
+            running.daemon.devices.close()

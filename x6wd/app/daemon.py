@@ -999,6 +999,7 @@ class Daemon:
                 bps=bps,
                 declination_deg=0.0 if decl is None else decl,
                 cycle_s=cycle_s,
+                fix_stale_s=cfg.safety.fix_stale_s,
             )
             self._gpsd_wmm = decl is None
         if cfg.recorder.enabled:
@@ -1372,6 +1373,10 @@ class Daemon:
     def _on_device_events(self, events: list[HealthEvent]) -> None:
         assert self.runner is not None
         self.runner.device_events(events)
+        if self.gpsd is not None:
+            for ev in events:
+                if ev.device == "gps" and ev.kind == "transition":  # gpsd clients see it too
+                    self._net_call(self.gpsd.set_gps_state, ev.new)
 
     def _net_call(self, fn: Callable[..., Any], *args: Any) -> None:
         if self._net is not None:

@@ -7,6 +7,12 @@ by text match), CRLF line ends, and no ``null`` (unknown fields are omitted).
 A slow client never blocks the publisher: each client has a bounded queue and the oldest
 report is dropped (and counted) when it is full.
 
+The port follows the GPS link (:meth:`GpsdServer.set_gps_state`): while it is lost, DEVICES
+lists no device, POLL is inactive and watchers were sent ``DEVICE`` ``"activated":0``, as
+gpsd does. A fix older than the robot's own staleness limit (``[safety] fix_stale_s``) is
+never handed out again, neither by POLL nor to a new watcher: a client must not show a
+lost position as current.
+
 Lock-out protection (shared mechanics in :mod:`x6wd.app.lineserver`): there is no
 authentication, so a connection is pending until it sends one valid command (``?WATCH``,
 ``?POLL``, ``?VERSION``, ``?DEVICES``); pending connections have their own pool and deadline,
@@ -31,10 +37,10 @@ from typing import Any
 from drivers.gps_nmea import STATUS_DGPS, fix_status
 from x6wd import __version__
 from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
-from x6wd.core.config import GpsdConfig
+from x6wd.core.config import GpsdConfig, SafetyConfig
 from x6wd.core.errors import ProtocolError
 from x6wd.core.geodesy import wrap360
-from x6wd.core.records import Attitude, GpsFix, GpsSky
+from x6wd.core.records import Attitude, DeviceState, GpsFix, GpsSky
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +66,9 @@ REFUSED_DISCARD_BYTES = 1 << 20
 """The most bytes read and dropped after refusing a request too long (1 MiB; see
 :data:`REFUSED_LINGER_S`)."""
 COMMANDS = frozenset({"WATCH", "POLL", "VERSION", "DEVICES"})
+GPS_DOWN_STATES = frozenset({DeviceState.DISCONNECTED, DeviceState.RECONNECTING})
+"""GPS link states in which the port lists no device (the link is closed; a stale but open
+link stays listed, as gpsd keeps a silent receiver's device)."""
 DEFAULT_MAX_PENDING = 32
 """Connections that have not sent a valid command yet (there is no GpsdConfig key)."""
 DEFAULT_PENDING_TIMEOUT_S = 5.0
@@ -328,6 +337,7 @@ class GpsdServer(LineServer[_Client]):
         slow_client_s: float = 10.0,
         max_pending: int = DEFAULT_MAX_PENDING,
         pending_timeout_s: float = DEFAULT_PENDING_TIMEOUT_S,
+        fix_stale_s: float = SafetyConfig.fix_stale_s,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         """``port`` 0 picks a free port (see :attr:`port`); ``device_path``, ``bps`` (the GPS
@@ -335,7 +345,8 @@ class GpsdServer(LineServer[_Client]):
         DEVICE until :meth:`set_device` says what was opened. Defaults are GpsdConfig's.
         ``max_clients``: sessions (clients that sent a valid command); ``max_pending``:
         connections that have not yet; deadlines in seconds of ``clock`` (monotonic; tests
-        inject one)."""
+        inject one). ``fix_stale_s``: a TPV/SKY older than this (s) is not handed to POLL or
+        a new watcher (the daemon passes ``[safety] fix_stale_s``)."""
         super().__init__(
             port,
             max_clients=max_clients,
@@ -353,8 +364,11 @@ class GpsdServer(LineServer[_Client]):
         self.activated: datetime | None = None
         self.declination_deg = declination_deg
         self.queue_len = queue_len
+        self.fix_stale_s = fix_stale_s
+        self.gps_up = True  # the GPS link is open (set_gps_state)
         self._last_tpv: dict[str, Any] | None = None
         self._last_sky: dict[str, Any] | None = None
+        self._tpv_t_s = self._sky_t_s = -math.inf  # when they were published (clock, s)
         self._last_att: dict[str, Any] | None = None
 
     @classmethod
@@ -365,10 +379,12 @@ class GpsdServer(LineServer[_Client]):
         bps: int | None = 9600,
         declination_deg: float = 0.0,
         cycle_s: float = 1.0,
+        fix_stale_s: float = SafetyConfig.fix_stale_s,
     ) -> GpsdServer:
         """Build from the ``[gpsd]`` section; ``bps`` (GPS baud rate) and ``cycle_s`` (s
         between fixes) are shown in DEVICE, ``declination_deg`` turns the compass's magnetic
-        heading into ATT's true one."""
+        heading into ATT's true one, ``fix_stale_s`` ([safety]) bounds the age of a fix
+        POLL or a new watcher gets."""
         return cls(
             cfg.bind,
             cfg.port,
@@ -380,6 +396,7 @@ class GpsdServer(LineServer[_Client]):
             queue_len=cfg.queue_len,
             idle_timeout_s=cfg.idle_timeout_s,
             slow_client_s=cfg.slow_client_s,
+            fix_stale_s=fix_stale_s,
         )
 
     async def start(self) -> None:
@@ -404,13 +421,18 @@ class GpsdServer(LineServer[_Client]):
     def publish_fix(self, fix: GpsFix) -> None:
         """Send a TPV to JSON watchers and keep it for ?POLL."""
         obj = tpv_obj(fix, self.device_path)
-        self._last_tpv = obj
+        self._last_tpv, self._tpv_t_s = obj, self._clock()
+        if obj["mode"] < 2:
+            # no fix: the kept SKY's DOPs and used satellites are no longer true; an epoch
+            # with a GSV/GSA sends its own SKY after this TPV, which replaces this one
+            nofix = GpsSky(t_s=fix.t_s, hdop=fix.hdop, vdop=fix.vdop, pdop=fix.pdop, utc=fix.utc)
+            self._last_sky, self._sky_t_s = sky_obj(nofix, self.device_path), self._tpv_t_s
         self._fanout(dumps(obj), nmea=False)
 
     def publish_sky(self, sky: GpsSky) -> None:
         """Send a SKY to JSON watchers and keep it for ?POLL."""
         obj = sky_obj(sky, self.device_path)
-        self._last_sky = obj
+        self._last_sky, self._sky_t_s = obj, self._clock()
         self._fanout(dumps(obj), nmea=False)
 
     def set_device(self, path: str, bps: int | None, cycle_s: float) -> None:
@@ -419,8 +441,32 @@ class GpsdServer(LineServer[_Client]):
         self.device_path, self.bps, self.cycle_s = path, bps, float(cycle_s)
         self.activated = datetime.now(UTC)
 
+    def set_gps_state(self, state: DeviceState) -> None:
+        """Follow the GPS link's health state: when it is lost (:data:`GPS_DOWN_STATES`)
+        JSON watchers get ``DEVICE`` ``"activated":0`` and the kept fix is forgotten; when it
+        is back they get the whole DEVICE again (gpsd's notices)."""
+        up = state not in GPS_DOWN_STATES
+        if up == self.gps_up:
+            return
+        self.gps_up = up
+        if up:
+            line = dumps(device_obj(self.device_path, self.bps, self.cycle_s, self.activated))
+        else:
+            line = dumps({"class": "DEVICE", "path": self.device_path, "activated": 0})
+            self._last_tpv = self._last_sky = None
+        self._fanout(line, nmea=False)
+
     def _devices(self) -> bytes:
+        if not self.gps_up:
+            return dumps({"class": "DEVICES", "devices": []})  # as gpsd, with no device open
         return dumps(devices_obj(self.device_path, self.bps, self.cycle_s, self.activated))
+
+    def _fresh(self) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+        """The kept TPV and SKY, each None unless published within ``fix_stale_s``."""
+        now = self._clock()
+        tpv = self._last_tpv if now - self._tpv_t_s <= self.fix_stale_s else None
+        sky = self._last_sky if now - self._sky_t_s <= self.fix_stale_s else None
+        return tpv, sky
 
     def set_declination(self, declination_deg: float) -> None:
         """Use ``declination_deg`` (deg, east positive) for ATT's true heading from now on
@@ -440,12 +486,18 @@ class GpsdServer(LineServer[_Client]):
 
     # -- connection handling ----------------------------------------------------------
     def _poll_obj(self) -> dict[str, Any]:
+        # active: the link is open and has sent a report (gpsd: a device that was seen); a
+        # stale fix reads as no fix (mode 1) rather than the old position (see the module)
+        active = self.gps_up and self._last_tpv is not None
+        tpv, sky = self._fresh()
+        if active and tpv is None:
+            tpv = {"class": "TPV", "device": self.device_path, "mode": 1}
         return {
             "class": "POLL",
             "time": iso_time(datetime.now(UTC)),
-            "active": 1 if self._last_tpv is not None else 0,
-            "tpv": [self._last_tpv] if self._last_tpv else [],
-            "sky": [self._last_sky] if self._last_sky else [],
+            "active": 1 if active else 0,
+            "tpv": [tpv] if active else [],
+            "sky": [sky] if active and sky is not None else [],
         }
 
     def _watch_obj(self, c: _Client) -> dict[str, Any]:
@@ -479,9 +531,10 @@ class GpsdServer(LineServer[_Client]):
             else:
                 c.watch_json = c.watch_nmea = False
             out = [self._devices(), dumps(self._watch_obj(c))]
-            if c.watch_json:
-                # an immediate report so a fresh watcher does not wait a whole epoch
-                out.extend(dumps(o) for o in (self._last_tpv, self._last_sky) if o is not None)
+            if c.watch_json and self.gps_up:
+                # an immediate report so a fresh watcher does not wait a whole epoch, but
+                # never one older than fix_stale_s: that would show a lost fix as current
+                out.extend(dumps(o) for o in self._fresh() if o is not None)
             return out
         return [dumps({"class": "ERROR", "message": f"Unrecognized request '{shown(name)}'"})]
 
