@@ -330,6 +330,23 @@ def test_a_folder_means_its_newest_recording(tmp_path: Path) -> None:
     assert cli_main(["plot", str(out), "--out", str(out)]) == 2  # no recordings there
 
 
+def test_a_folder_whose_newest_run_lost_its_first_part(sim_run: Path, tmp_path: Path) -> None:
+    # Retention deletes a run's first part first: the folder's newest run is then found as
+    # its part .1, and every remaining part (.1, .2, ...) is still drawn, not .1 alone.
+    records = list(read_recording(sim_run / "recording.jsonl"))
+    path = tmp_path / "x6wd-20260102T000000Z.jsonl"
+    with Recorder(path, max_bytes=200_000) as rec:
+        for r in records:
+            rec.record(r.type, r.data, r.t_mono)
+    assert len(rec.paths) > 3
+    first = [r for r in read_recording(path) if r.type == "fix"]
+    path.unlink()
+    src = logview.newest_recording(tmp_path)
+    assert src.name == "x6wd-20260102T000000Z.1.jsonl"
+    view = logview.load(src)
+    assert view.counts["fixes"] == sum(r.type == "fix" for r in records) - len(first)
+
+
 @pytest.mark.integration
 def test_without_the_plot_extra(tmp_path: Path) -> None:
     script = (

@@ -295,7 +295,9 @@ def test_parts_are_found_past_gaps_and_a_missing_first_part(tmp_path: Path) -> N
     (tmp_path / "rot.x.jsonl").write_text("not a part\n")
     for gone in (paths[0], paths[1], paths[3]):  # retention, or a hand, removed some
         gone.unlink()
-    assert recording_parts(tmp_path / "rot.jsonl") == [p for p in paths if p.exists()]
+    remaining = [p for p in paths if p.exists()]
+    assert recording_parts(tmp_path / "rot.jsonl") == remaining
+    assert recording_parts(paths[4]) == remaining  # a part names its whole run
     got = [r.data["n"] for r in read_recording_parts(tmp_path / "rot.jsonl")]
     assert got == sorted(got) and got[-1] == 39
     assert recording_parts(tmp_path / "nothing.jsonl") == []

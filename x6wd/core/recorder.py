@@ -947,11 +947,21 @@ def decode_record(
     return rec
 
 
+_PART_NAME = re.compile(r"^(.+)\.[1-9]\d*(\.[^.]+)$")
+
+
 def recording_parts(path: str | os.PathLike[str]) -> list[Path]:
     """The existing files of the recording whose first part is ``path``: ``path`` itself and
     its rotated parts ``<stem>.1<suffix>``, ``.2`` ..., in part order. Parts that retention
-    deleted are skipped (the first ones go first), so the list may not start at ``path``."""
+    deleted are skipped (the first ones go first), so the list may not start at ``path``.
+
+    ``path`` may also name any part ``<stem>.N<suffix>`` (the first remaining one, once
+    retention deleted the first part, is what a folder's newest run is found as): the list
+    is then every remaining part of its run ``<stem><suffix>``, not ``path``'s own
+    sub-parts ``<stem>.N.1<suffix>``, which the recorder never writes."""
     first = Path(path)
+    if m := _PART_NAME.match(first.name):
+        first = first.with_name(m[1] + m[2])
     found: list[tuple[int, Path]] = [(0, first)] if first.is_file() else []
     head, tail = f"{first.stem}.", first.suffix
     try:
