@@ -114,10 +114,14 @@ class Peer:
         return json.loads(self.line())
 
     def within(self, seconds: float) -> list[dict[str, Any]]:
-        """The JSON objects that arrive within ``seconds``."""
+        """The JSON objects that arrive within ``seconds`` (a sentence: {"class": "NMEA"})."""
         out: list[dict[str, Any]] = []
         deadline = time.monotonic() + seconds
         while (left_s := deadline - time.monotonic()) > 0:
+            if b"\n" in self.buf and self.buf.startswith(b"$"):
+                self.line()
+                out.append({"class": "NMEA"})
+                continue
             if b"\n" not in self.buf:
                 self.s.settimeout(left_s)
                 try:
@@ -679,3 +683,74 @@ def test_the_daemons_gpsd_port_follows_its_tcp_gps_going_and_coming_back(tmp_pat
         running.stop()
         if running.daemon.devices is not None:
             running.daemon.devices.close()
+
+
+def _watch(peer: Peer, request: bytes) -> tuple[dict[str, Any], set[str]]:
+    """Send a ?WATCH; its echo and the classes ("NMEA" for sentences) that stream after it
+    (what the earlier policy streamed before the answer is skipped)."""
+    peer.s.sendall(request)
+    got = peer.within(0.5)
+    at = next(i for i, o in enumerate(got) if o["class"] == "WATCH")
+    assert got[at - 1]["class"] == "DEVICES"
+    return got[at], {o["class"] for o in got[at + 1 :]}
+
+
+def test_watch_merges_with_the_sessions_options_as_gpsd(gpsd: GpsdServer) -> None:
+    # audit: ?WATCH={"nmea":true} after json:true echoed json:false and stopped JSON; gpsd
+    # (3.22, checked on the same feed) keeps every option a WATCH does not name
+    peer = Peer(gpsd.port)
+    echo, streamed = _watch(peer, WATCH_JSON)
+    assert (echo["enable"], echo["json"], echo["nmea"]) == (True, True, False)
+    assert {"TPV", "SKY"} <= streamed and "NMEA" not in streamed
+    echo, streamed = _watch(peer, b'?WATCH={"nmea":true};\n')
+    assert (echo["enable"], echo["json"], echo["nmea"]) == (True, True, True)
+    assert {"TPV", "NMEA"} <= streamed
+    echo, streamed = _watch(peer, b'?WATCH={"enable":false};\n')
+    assert (echo["enable"], echo["json"], echo["nmea"]) == (False, True, True)
+    assert not streamed
+    echo, streamed = _watch(peer, b"?WATCH;\n")  # bare: the policy, unchanged
+    assert (echo["enable"], echo["json"], echo["nmea"]) == (False, True, True)
+    echo, streamed = _watch(peer, b'?WATCH={"json":false};\n')
+    assert (echo["enable"], echo["json"], echo["nmea"]) == (True, False, True)
+    assert streamed == {"NMEA"}
+    peer.close()
+
+
+def test_watch_enabled_without_json_is_echoed_enabled_and_streams_nothing(
+    gpsd: GpsdServer,
+) -> None:
+    # audit: echoed "enable":false; gpsd echoes enable:true, json:false (watching for ?POLL)
+    peer = Peer(gpsd.port)
+    echo, streamed = _watch(peer, b'?WATCH={"enable":true,"json":false};\n')
+    assert (echo["enable"], echo["json"], echo["nmea"], echo["raw"]) == (True, False, False, 0)
+    assert not streamed
+    peer.s.sendall(b"?POLL;\n")
+    assert peer.obj()["class"] == "POLL"
+    peer.close()
+
+
+def test_the_watch_echo_says_what_was_asked(gpsd: GpsdServer) -> None:
+    # audit: scaled/split24/pps/timing always false, "nmea":true echoed raw 1 and "raw":2
+    # echoed raw 1 with nmea true; gpsd echoes each as asked
+    flags = ("scaled", "timing", "split24", "pps")
+    cases = [
+        (b'?WATCH={"nmea":true};\n', {"nmea": True, "raw": 0}),
+        (b'?WATCH={"raw":2};\n', {"nmea": False, "raw": 2}),
+        (b'?WATCH={"raw":1};\n', {"nmea": False, "raw": 1}),
+    ]
+    for request, want in cases:
+        peer = Peer(gpsd.port)
+        echo, streamed = _watch(peer, request)
+        assert {k: echo[k] for k in want} == want and not any(echo[k] for k in flags)
+        assert streamed == {"NMEA"}  # raw 1 and 2 alike: the sentences as received
+        peer.close()
+    peer = Peer(gpsd.port)
+    asked = b'?WATCH={"enable":true,"json":true,' + b",".join(
+        b'"%s":true' % k.encode() for k in flags
+    )
+    asked += b"}\n"
+    echo, _ = _watch(peer, asked)
+    assert all(echo[k] is True for k in flags)
+    echo, _ = _watch(peer, b'?WATCH={"enable":true};\n')  # gpsd: these are per request
+    assert not any(echo[k] for k in flags) and echo["json"] is True
+    peer.close()

@@ -30,7 +30,7 @@ import math
 import re
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
@@ -66,6 +66,9 @@ REFUSED_DISCARD_BYTES = 1 << 20
 """The most bytes read and dropped after refusing a request too long (1 MiB; see
 :data:`REFUSED_LINGER_S`)."""
 COMMANDS = frozenset({"WATCH", "POLL", "VERSION", "DEVICES"})
+WATCH_FLAGS = ("scaled", "timing", "split24", "pps")
+"""?WATCH options that change nothing this port sends (no scaling, PPS or timing objects):
+echoed as asked, as gpsd echoes them."""
 GPS_DOWN_STATES = frozenset({DeviceState.DISCONNECTED, DeviceState.RECONNECTING})
 """GPS link states in which the port lists no device (the link is closed; a stale but open
 link stays listed, as gpsd keeps a silent receiver's device)."""
@@ -312,8 +315,22 @@ def parse_commands(text: str) -> list[tuple[str, dict[str, Any] | None]]:
 
 @dataclass(eq=False, kw_only=True)
 class _Client(LineClient):
+    # the session's ?WATCH policy, as gpsd keeps it (gps_policy_t)
+    watch_enable: bool = False
     watch_json: bool = False
     watch_nmea: bool = False
+    watch_raw: int = 0  # 1 and 2 both stream the sentences as received (they are NMEA)
+    watch_flags: dict[str, bool] = field(default_factory=dict)  # scaled, timing, ... echoed
+
+    @property
+    def streams_json(self) -> bool:
+        """Whether JSON reports go to it."""
+        return self.watch_enable and self.watch_json
+
+    @property
+    def streams_nmea(self) -> bool:
+        """Whether the received sentences go to it."""
+        return self.watch_enable and (self.watch_nmea or self.watch_raw > 0)
 
 
 class GpsdServer(LineServer[_Client]):
@@ -414,7 +431,7 @@ class GpsdServer(LineServer[_Client]):
     # -- publishing (sync, never blocks) ----------------------------------------------
     def _fanout(self, line: bytes, nmea: bool) -> None:
         for c in self._sessions:
-            wanted = (c.watch_nmea if nmea else c.watch_json) and not c.closed
+            wanted = (c.streams_nmea if nmea else c.streams_json) and not c.closed
             if wanted and c.put(line, self.queue_len):
                 self.dropped_total += 1
 
@@ -481,7 +498,7 @@ class GpsdServer(LineServer[_Client]):
 
     def publish_nmea(self, sentence: str) -> None:
         """Pass one raw NMEA sentence (without line end) to NMEA watchers."""
-        if any(c.watch_nmea for c in self._sessions):
+        if any(c.streams_nmea for c in self._sessions):
             self._fanout(sentence.rstrip("\r\n").encode("ascii", "replace") + b"\r\n", nmea=True)
 
     # -- connection handling ----------------------------------------------------------
@@ -501,17 +518,30 @@ class GpsdServer(LineServer[_Client]):
         }
 
     def _watch_obj(self, c: _Client) -> dict[str, Any]:
-        return {
+        obj: dict[str, Any] = {
             "class": "WATCH",
-            "enable": c.watch_json or c.watch_nmea,
+            "enable": c.watch_enable,
             "json": c.watch_json,
             "nmea": c.watch_nmea,
-            "raw": 1 if c.watch_nmea else 0,
-            "scaled": False,
-            "timing": False,
-            "split24": False,
-            "pps": False,
+            "raw": c.watch_raw,
         }
+        obj.update((k, c.watch_flags.get(k, False)) for k in WATCH_FLAGS)
+        return obj
+
+    @staticmethod
+    def _set_watch(c: _Client, arg: dict[str, Any]) -> None:
+        """Apply a ?WATCH argument as gpsd does: ``enable`` is true unless it says false;
+        ``json``, ``nmea`` and ``raw`` keep the session's values unless named; the flags gpsd
+        only echoes (scaled, timing, split24, pps) are what this request says (else false)."""
+        c.watch_enable = arg.get("enable", True) is not False
+        if "json" in arg:
+            c.watch_json = bool(arg["json"])
+        if "nmea" in arg:
+            c.watch_nmea = bool(arg["nmea"])
+        if "raw" in arg:
+            raw = arg["raw"]
+            c.watch_raw = min(2, max(0, int(raw))) if isinstance(raw, int) else int(bool(raw))
+        c.watch_flags = {k: bool(arg.get(k, False)) for k in WATCH_FLAGS}
 
     def _answer(self, c: _Client, name: str, arg: dict[str, Any] | None) -> list[bytes]:
         if name == "VERSION":
@@ -521,17 +551,10 @@ class GpsdServer(LineServer[_Client]):
         if name == "POLL":
             return [dumps(self._poll_obj())]
         if name == "WATCH":
-            a = arg or {}
-            enable = a.get("enable", True) is not False
-            if enable:
-                nmea = bool(a.get("nmea", False)) or bool(a.get("raw", 0))
-                # gpsd: json defaults on unless nmea/raw was asked for alone
-                c.watch_json = bool(a.get("json", not nmea))
-                c.watch_nmea = nmea
-            else:
-                c.watch_json = c.watch_nmea = False
+            if arg is not None:  # a bare ?WATCH shows the session's policy, as gpsd
+                self._set_watch(c, arg)
             out = [self._devices(), dumps(self._watch_obj(c))]
-            if c.watch_json and self.gps_up:
+            if c.streams_json and self.gps_up:
                 # an immediate report so a fresh watcher does not wait a whole epoch, but
                 # never one older than fix_stale_s: that would show a lost fix as current
                 out.extend(dumps(o) for o in self._fresh() if o is not None)
@@ -539,7 +562,8 @@ class GpsdServer(LineServer[_Client]):
         return [dumps({"class": "ERROR", "message": f"Unrecognized request '{shown(name)}'"})]
 
     def _is_watching(self, c: _Client) -> bool:
-        return c.watch_json or c.watch_nmea
+        # a session watching for ?POLL only (enable, nothing streamed) can still idle out
+        return c.streams_json or c.streams_nmea
 
     def _notice(self, reason: str, message: str) -> bytes:
         return dumps({"class": "ERROR", "message": f"closing: {reason}: {message}"})
@@ -594,7 +618,7 @@ class GpsdServer(LineServer[_Client]):
         it. A client that does not read gets no such wait."""
         echo = shown(raw.decode("utf-8", "replace").strip())
         message = f"request too long (over {MAX_REQUEST_BYTES} bytes): '{echo}'"
-        c.watch_json = c.watch_nmea = False  # nothing more goes out after the error
+        c.watch_enable = False  # nothing more goes out after the error
         c.events.clear()
         c.reply(dumps({"class": "ERROR", "message": message}))
         c.closed = True  # the sender ends once the error is out
