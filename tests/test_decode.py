@@ -115,6 +115,28 @@ def test_recording_decodes_like_the_raw_log(
     assert proc.returncode == 0 and f" bad_recording_lines={n_torn + 1}\n" in proc.stderr.decode()
 
 
+def test_a_split_recording_is_decoded_whole(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The daemon splits a recording in parts ([recorder] max_file_mb): decode reads every
+    # remaining part, as replay and plot do, also once retention deleted the first part.
+    from x6wd.core import recorder
+
+    whole, split = tmp_path / "whole.jsonl", tmp_path / "x6wd-20260101T000000Z.jsonl"
+    for path, max_bytes in ((whole, None), (split, 4000)):
+        with recorder.Recorder(path, max_bytes=max_bytes) as rec:
+            for k, line in enumerate(LEA5H.read_bytes().splitlines()):
+                rec.record_nmea(line, t_mono=float(k))
+    assert len(rec.paths) > 3
+    _, ref, _ = _run(capsys, str(whole))
+    code, got, err = _run(capsys, str(split))
+    assert code == 0 and got == ref and "sentences=164 " in err
+    split.unlink()
+    code, got, _ = _run(capsys, str(rec.paths[1]))
+    # the same reports to the end (the first epochs lack the deleted part's GSA context)
+    assert code == 0 and len(ref) > len(got) > len(ref) // 2 and got[-10:] == ref[-10:]
+
+
 def decode_stdin(data: bytes) -> subprocess.CompletedProcess[bytes]:
     """``x6wd decode -`` as a process, ``data`` on its standard input."""
     return subprocess.run(

@@ -5,7 +5,8 @@ report (``SKY``), with gpsd's field names and units (lat/lon deg, altMSL/altHAE 
 m/s, track deg true). Unknown fields are omitted, never null. A file whose first non-blank
 line is a JSON object (not gpsd's own, as ``gpspipe -r`` captures begin) is an x6wd
 recording (JSON lines); its ``nmea`` records are decoded
-(files through ``x6wd.core.recorder.read_recording``; standard input by a small line parser that
+(files through ``x6wd.core.recorder.read_recording_parts``, every remaining part of a
+recording split by ``[recorder] max_file_mb``; standard input by a small line parser that
 also takes the flat ``{"type":"nmea","text":...}`` form); its other records are ignored.
 Anything else is read as a raw byte stream (binary and line noise tolerated). The decoder's
 counters go to standard error, one line per input.
@@ -1839,22 +1840,23 @@ def decode_path(
     stats: ReadStats | None = None,
     size: InputSize | None = None,
 ) -> DecoderCounters:
-    """Decode a file; recordings go through ``x6wd.core.recorder.read_recording``, which
-    counts their bad and truncated lines in ``stats``, a plain file's bytes are counted in
-    ``size`` (if given)."""
-    from x6wd.core.recorder import is_recording, read_recording
+    """Decode a file; a recording is read whole, every remaining part of it, through
+    ``x6wd.core.recorder.read_recording_parts`` (as replay and plot read it), which counts
+    its bad and truncated lines in ``stats``; a plain file's bytes are counted in ``size``
+    (if given)."""
+    from x6wd.core.recorder import is_recording, read_recording_parts
 
-    try:
-        f = open(path, "rb")  # noqa: SIM115
-    except OSError as exc:
-        raise DeviceUnavailable(f"cannot open {path}: {exc.strerror}") from exc
-    with f:
-        if not is_recording(path):
+    if not is_recording(path):  # a first part that retention deleted is judged by the rest
+        try:
+            f = open(path, "rb")  # noqa: SIM115
+        except OSError as exc:
+            raise DeviceUnavailable(f"cannot open {path}: {exc.strerror}") from exc
+        with f:
             return decode_stream(f, out, with_sky=with_sky, size=size)
 
     sentences = (
         (rec.t_mono, rec.data["text"])
-        for rec in read_recording(path, stats=stats)
+        for rec in read_recording_parts(path, stats=stats)
         if rec.type == "nmea" and isinstance(rec.data.get("text"), str)
     )
     return _decode_sentences(sentences, out, with_sky)
