@@ -754,3 +754,21 @@ def test_the_watch_echo_says_what_was_asked(gpsd: GpsdServer) -> None:
     echo, _ = _watch(peer, b'?WATCH={"enable":true};\n')  # gpsd: these are per request
     assert not any(echo[k] for k in flags) and echo["json"] is True
     peer.close()
+
+
+def test_good_commands_before_junk_on_the_same_line_are_answered_first(gpsd: GpsdServer) -> None:
+    # audit: ?VERSION;junk got only the ERROR; gpsd answers VERSION, then refuses the junk
+    peer = Peer(gpsd.port)
+    for request, answer in (
+        (b"?VERSION;junk\n", "VERSION"),
+        (b"?VERSION;\x00\n", "VERSION"),
+        (b"?POLL;\x00\n", "POLL"),
+        (b"?VERSION;\xff\n", "VERSION"),
+    ):
+        peer.s.sendall(request)
+        assert peer.obj()["class"] == answer, request
+        error = peer.obj()
+        assert error["class"] == "ERROR" and error["message"].startswith("Unrecognized"), request
+    peer.s.sendall(b"?VERSION;\n")  # and the session carries on
+    assert peer.obj()["class"] == "VERSION"
+    peer.close()

@@ -277,7 +277,27 @@ def parse_commands(text: str) -> list[tuple[str, dict[str, Any] | None]]:
 
     The trailing ``;`` is optional. Raises ProtocolError naming the first bad command.
     """
+    cmds, error = parse_request(text)
+    if error is not None:
+        raise error
+    return cmds
+
+
+def parse_request(
+    text: str,
+) -> tuple[list[tuple[str, dict[str, Any] | None]], ProtocolError | None]:
+    """The commands of one request up to the first bad one, and that one's error (None if
+    all are good): a client gets answers to the good commands before the error, as gpsd
+    answers ``?VERSION;junk``."""
     out: list[tuple[str, dict[str, Any] | None]] = []
+    try:
+        _parse_into(text, out)
+    except ProtocolError as exc:
+        return out, exc
+    return out, None
+
+
+def _parse_into(text: str, out: list[tuple[str, dict[str, Any] | None]]) -> None:
     decoder = json.JSONDecoder()
     i, n = 0, len(text)
     while i < n:
@@ -310,7 +330,6 @@ def parse_commands(text: str) -> list[tuple[str, dict[str, Any] | None]]:
             arg, j = value, end
         out.append((name, arg))
         i = j
-    return out
 
 
 @dataclass(eq=False, kw_only=True)
@@ -588,19 +607,16 @@ class GpsdServer(LineServer[_Client]):
                     break
                 c.t_active_s = self._clock()
                 text = raw.decode("utf-8", "replace")
-                try:
-                    cmds = parse_commands(text)
-                except ProtocolError as exc:
-                    c.suspect = not c.session
-                    c.reply(dumps({"class": "ERROR", "message": str(exc)}))
-                    continue
+                cmds, error = parse_request(text)
                 if any(name in COMMANDS for name, _ in cmds):
                     self._promote(c)  # one valid command admits (before ?WATCH counts)
-                elif cmds:
+                elif cmds or error is not None:
                     c.suspect = not c.session
                 for name, arg in cmds:
                     for line in self._answer(c, name, arg):
                         c.reply(line)
+                if error is not None:  # after the answers to what came before it
+                    c.reply(dumps({"class": "ERROR", "message": str(error)}))
                 if len(c.replies) > MAX_PENDING_REPLIES:
                     break  # asks without reading: disconnect rather than buffer forever
         except (ConnectionError, OSError):
