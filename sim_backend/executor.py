@@ -83,20 +83,27 @@ def dask_available() -> bool:
     return True
 
 
+WORKER_IGNORES_SIGINT = "import signal\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+"""A LocalCluster worker's preload: a Ctrl-C at the terminal reaches the whole process group,
+and only this process should act on it (it stops the cluster); otherwise every worker prints a
+KeyboardInterrupt traceback on its way down."""
+
+
 @contextlib.contextmanager
-def _workers_ignore_sigint() -> Iterator[None]:
-    """SIGINT ignored while a LocalCluster starts its worker processes, which inherit that:
-    a Ctrl-C at the terminal reaches the whole process group, and only this process should
-    act on it (it stops the cluster); otherwise every worker prints a KeyboardInterrupt
-    traceback on its way down."""
+def _sigint_held() -> Iterator[None]:
+    """A Ctrl-C while a LocalCluster starts is held and raised once it is up, when the caller
+    can shut it down (ignored, as before, it was dropped and the sweep ran on to exit 0)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    held: list[int] = []
+    old = signal.signal(signal.SIGINT, lambda signum, _frame: held.append(signum))
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, old)
+        if held:  # also when the start failed: the user asked to stop
+            raise KeyboardInterrupt
 
 
 def probe_scheduler(address: str, timeout_s: float) -> None:
@@ -183,7 +190,8 @@ class Executor:
         if self.inline:
             return self
         try:
-            from distributed import Client, LocalCluster
+            with _sigint_held():  # Python drops a KeyboardInterrupt raised in an import's lock
+                from distributed import Client, LocalCluster
         except ImportError as exc:
             raise ConfigError(f"a Dask cluster needs {INSTALL_HINT}: {exc}") from exc
         if self.scheduler:
@@ -195,19 +203,23 @@ class Executor:
                     self._client.wait_for_workers(self.workers, timeout=self.connect_timeout_s)
             else:
                 n = self.workers or os.cpu_count() or 1
-                with _workers_ignore_sigint():
+                with _sigint_held():
                     self._cluster = LocalCluster(
                         n_workers=n,
                         threads_per_worker=1,
                         processes=True,
                         dashboard_address=None,
                         silence_logs=logging.ERROR,
+                        preload=[WORKER_IGNORES_SIGINT],
                     )
                 self._client = Client(self._cluster)
         except (OSError, TimeoutError) as exc:
             self.close()
             where = self.scheduler or "a LocalCluster"
             raise ConfigError(f"cannot reach {where}: {exc}") from exc
+        except BaseException:  # a Ctrl-C held while the cluster started: no 'with' to close it
+            self.close()
+            raise
         return self
 
     def __exit__(

