@@ -772,3 +772,15 @@ def test_good_commands_before_junk_on_the_same_line_are_answered_first(gpsd: Gps
     peer.s.sendall(b"?VERSION;\n")  # and the session carries on
     assert peer.obj()["class"] == "VERSION"
     peer.close()
+
+
+def test_bytes_that_are_not_utf8_in_a_watch_argument_get_an_error(gpsd: GpsdServer) -> None:
+    # audit: accepted (decoded as U+FFFD); docs/protocol.md says not UTF-8 gets an ERROR
+    peer = Peer(gpsd.port)
+    peer.s.sendall(b'?WATCH={"enable":true,"json":false,"device":"\xff"};\n')
+    error = peer.obj()
+    assert error == {"class": "ERROR", "message": "Invalid JSON argument to ?WATCH: not UTF-8"}
+    peer.s.sendall('?VERSION;?WATCH={"enable":false,"device":"\ufffd"};\n'.encode())
+    assert peer.obj()["class"] == "VERSION"  # U+FFFD sent as UTF-8 is text like any other
+    assert peer.obj()["class"] == "DEVICES"
+    peer.close()

@@ -219,11 +219,15 @@ def att_obj(att: Attitude, device: str, declination_deg: float = 0.0) -> dict[st
     return {k: v for k, v in obj.items() if v is not None}
 
 
+_NOT_UTF8 = re.compile("[\udc80-\udcff]")
+"""Bytes that were not UTF-8, as ``surrogateescape`` decoding keeps them."""
 _BARE_COMMANDS = re.compile(rf"\s*(\?[A-Za-z]{{1,{MAX_NAME_CHARS}}}\s*;?\s*)+")
 
 
 def shown(text: str) -> str:
-    """``text`` as an error echoes it: at most :data:`MAX_ECHO_CHARS`, then ``...``."""
+    """``text`` as an error echoes it: at most :data:`MAX_ECHO_CHARS`, then ``...``; a
+    byte that was not UTF-8 is shown as U+FFFD."""
+    text = _NOT_UTF8.sub("\ufffd", text)
     if len(text) <= MAX_ECHO_CHARS:
         return text
     return text[:MAX_ECHO_CHARS] + "..."
@@ -327,6 +331,8 @@ def _parse_into(text: str, out: list[tuple[str, dict[str, Any] | None]]) -> None
                 raise ProtocolError(f"Invalid JSON argument to ?{shown(name)}: {exc}") from None
             if not isinstance(value, dict):
                 raise ProtocolError(f"?{shown(name)} argument must be a JSON object")
+            if _NOT_UTF8.search(text, j + 1, end):  # JSON takes the escaped bytes as text
+                raise ProtocolError(f"Invalid JSON argument to ?{shown(name)}: not UTF-8")
             arg, j = value, end
         out.append((name, arg))
         i = j
@@ -606,7 +612,8 @@ class GpsdServer(LineServer[_Client]):
                     await self._refuse(c, reader, raw)
                     break
                 c.t_active_s = self._clock()
-                text = raw.decode("utf-8", "replace")
+                # bytes that are not UTF-8 are kept apart from U+FFFD sent as such
+                text = raw.decode("utf-8", "surrogateescape")
                 cmds, error = parse_request(text)
                 if any(name in COMMANDS for name, _ in cmds):
                     self._promote(c)  # one valid command admits (before ?WATCH counts)
