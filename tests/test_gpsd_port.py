@@ -784,3 +784,31 @@ def test_bytes_that_are_not_utf8_in_a_watch_argument_get_an_error(gpsd: GpsdServ
     assert peer.obj()["class"] == "VERSION"  # U+FFFD sent as UTF-8 is text like any other
     assert peer.obj()["class"] == "DEVICES"
     peer.close()
+
+
+def test_watch_of_a_device_that_is_not_here_gets_gpsds_error_and_nothing_streams(
+    gpsd: GpsdServer,
+) -> None:
+    # audit: the "device" option was ignored, gpspipe -w HOST:PORT:/dev/ttyNOPE streamed
+    gpspipe = require_program("gpspipe")
+    pipe = subprocess.Popen(
+        [gpspipe, "-w", "-n", "4", f"127.0.0.1:{gpsd.port}:/dev/ttyNOPE"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        out, _ = pipe.communicate(timeout=1.5)
+    except subprocess.TimeoutExpired:
+        pipe.kill()
+        out, _ = pipe.communicate()
+    objs = [json.loads(x) for x in out.splitlines() if x.strip()]
+    assert [o["class"] for o in objs] == ["VERSION", "ERROR"], out
+    assert objs[1]["message"] == "No such device as /dev/ttyNOPE"
+    # the port's own path: served, and echoed as gpsd echoes it
+    out = subprocess.run(
+        [gpspipe, "-w", "-n", "6", f"127.0.0.1:{gpsd.port}:/dev/ttyS0"],
+        capture_output=True, text=True, timeout=20, check=True,
+    ).stdout  # fmt: skip
+    objs = [json.loads(x) for x in out.splitlines() if x.strip()]
+    watch = next(o for o in objs if o["class"] == "WATCH")
+    assert watch["device"] == "/dev/ttyS0" and watch["enable"] is True
+    assert "TPV" in {o["class"] for o in objs}

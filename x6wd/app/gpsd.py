@@ -346,16 +346,22 @@ class _Client(LineClient):
     watch_nmea: bool = False
     watch_raw: int = 0  # 1 and 2 both stream the sentences as received (they are NMEA)
     watch_flags: dict[str, bool] = field(default_factory=dict)  # scaled, timing, ... echoed
+    watch_device: str = ""  # the one device asked for ("" all); another path gets nothing
+    watch_path: str = ""  # the GPS's path when it asked (the port's one device)
 
     @property
     def streams_json(self) -> bool:
         """Whether JSON reports go to it."""
-        return self.watch_enable and self.watch_json
+        return self.watch_enable and self.watch_json and self._device_ok
 
     @property
     def streams_nmea(self) -> bool:
         """Whether the received sentences go to it."""
-        return self.watch_enable and (self.watch_nmea or self.watch_raw > 0)
+        return self.watch_enable and (self.watch_nmea or self.watch_raw > 0) and self._device_ok
+
+    @property
+    def _device_ok(self) -> bool:
+        return self.watch_device in ("", self.watch_path)
 
 
 class GpsdServer(LineServer[_Client]):
@@ -551,6 +557,8 @@ class GpsdServer(LineServer[_Client]):
             "raw": c.watch_raw,
         }
         obj.update((k, c.watch_flags.get(k, False)) for k in WATCH_FLAGS)
+        if c.watch_device:
+            obj["device"] = c.watch_device
         return obj
 
     @staticmethod
@@ -567,6 +575,8 @@ class GpsdServer(LineServer[_Client]):
             raw = arg["raw"]
             c.watch_raw = min(2, max(0, int(raw))) if isinstance(raw, int) else int(bool(raw))
         c.watch_flags = {k: bool(arg.get(k, False)) for k in WATCH_FLAGS}
+        device = arg.get("device", "")  # per request, as gpsd
+        c.watch_device = device if isinstance(device, str) else str(device)
 
     def _answer(self, c: _Client, name: str, arg: dict[str, Any] | None) -> list[bytes]:
         if name == "VERSION":
@@ -578,6 +588,11 @@ class GpsdServer(LineServer[_Client]):
         if name == "WATCH":
             if arg is not None:  # a bare ?WATCH shows the session's policy, as gpsd
                 self._set_watch(c, arg)
+            c.watch_path = self.device_path
+            if c.watch_enable and c.watch_device not in ("", self.device_path):
+                # gpsd: this error alone, and the session streams nothing (no such device)
+                message = f"No such device as {shown(c.watch_device)}"
+                return [dumps({"class": "ERROR", "message": message})]
             out = [self._devices(), dumps(self._watch_obj(c))]
             if c.streams_json and self.gps_up:
                 # an immediate report so a fresh watcher does not wait a whole epoch, but
