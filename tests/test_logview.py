@@ -318,6 +318,34 @@ def test_parts_bad_lines_and_a_cut_last_line(sim_run: Path, tmp_path: Path) -> N
     assert data["duration_s"] == pytest.approx(records[-1].t_mono - records[0].t_mono, abs=1e-3)
 
 
+def test_records_that_do_not_fit_their_type_are_counted(
+    sim_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A fix with a field this version lacks is drawn without it; a fix whose latitude is a
+    # string and a sky whose satellite lacks fields are skipped and counted: never a
+    # traceback, never a record gone without a word.
+    lines = (sim_run / "recording.jsonl").read_text().splitlines(keepends=True)
+    fixes = [i for i, ln in enumerate(lines) if '"type":"fix"' in ln]
+    skies = [i for i, ln in enumerate(lines) if '"type":"sky"' in ln]
+    obj = json.loads(lines[fixes[1]])
+    obj["data"]["new_field_m"] = 1.5
+    lines[fixes[1]] = json.dumps(obj) + "\n"
+    obj = json.loads(lines[fixes[2]])
+    obj["data"]["lat_deg"] = str(obj["data"]["lat_deg"])
+    lines[fixes[2]] = json.dumps(obj) + "\n"
+    obj = json.loads(lines[skies[0]])
+    obj["data"]["satellites"][0] = {"prn": 3, "elevation": 10}
+    lines[skies[0]] = json.dumps(obj) + "\n"
+    path = tmp_path / "recording.jsonl"
+    path.write_text("".join(lines))
+    assert cli_main(["plot", str(path), "--out", str(tmp_path), "--format", "html"]) == 0
+    err = capsys.readouterr().err
+    assert "skipped 2 bad records" in err and "1 records with fields" in err, err
+    counts = page_data((tmp_path / "recording.html").read_text())["counts"]
+    assert (counts["fixes"], counts["sky_reports"]) == (len(fixes) - 1, len(skies) - 1)
+    assert counts["records_with_unknown_fields"] == 1
+
+
 def test_a_folder_means_its_newest_recording(tmp_path: Path) -> None:
     runs = tmp_path / "recordings"
     runs.mkdir()

@@ -33,6 +33,7 @@ from x6wd.core.recorder import (
     recording_parts,
     replay_records,
     to_jsonable,
+    unknown_fields,
 )
 from x6wd.core.recorder import _flat_json as direct_json
 from x6wd.core.records import (
@@ -177,6 +178,19 @@ def test_bad_calls_are_rejected(tmp_path: Path) -> None:
     bad = Record(1.0, "", "attitude", {"t_s": 1.0, "heading": 3})
     with pytest.raises(ParseError, match="attitude record"):
         decode_record(bad)
+
+
+def test_decode_record_ignores_unknown_fields_and_refuses_wrong_types() -> None:
+    fix = {"t_s": 1.0, "lat_deg": 51.75, "lon_deg": -1.25, "valid": True, "new_m": 2}
+    rec = Record(1.0, "", "fix", fix)
+    assert decode_record(rec) == GpsFix(1.0, lat_deg=51.75, lon_deg=-1.25, valid=True)
+    assert unknown_fields(rec) == ["new_m"]
+    for field, value in (("lat_deg", "51.75"), ("valid", 1), ("sats_used", True)):
+        with pytest.raises(ParseError, match=f"GpsFix.{field} is"):
+            decode_record(Record(1.0, "", "fix", {**fix, field: value}))
+    sky = Record(1.0, "", "sky", {"t_s": 1.0, "satellites": [{"prn": 3, "elevation": 1}]})
+    with pytest.raises(ParseError, match="sky record"):
+        decode_record(sky)
 
 
 def test_missing_recording_is_device_unavailable(tmp_path: Path) -> None:

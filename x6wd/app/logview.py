@@ -50,6 +50,7 @@ from x6wd.core.recorder import (
     list_recordings,
     nmea_file_chunks,
     recording_parts,
+    unknown_fields,
 )
 from x6wd.core.records import GpsFix, GpsSky, Mode, NavState
 from x6wd.core.thinning import thinned_indices
@@ -264,6 +265,7 @@ LOST_COUNTS = frozenset(
         "framing_errors",
         "invalid_sentences",
         "nonfinite_positions",
+        "bad_records",
     }
 )
 """The counts of :attr:`LogView.counts` that say input was skipped (``x6wd plot`` says so)."""
@@ -388,8 +390,11 @@ def _decode_line(line: bytes, stats: ReadStats) -> dict[str, Any] | None:
     return obj
 
 
-def _read_recording(path: Path, raw: _Raw) -> ReadStats:
+def _read_recording(path: Path, raw: _Raw) -> tuple[ReadStats, int, int]:
+    """Read a recording's records into ``raw``; the reader's counts, the fix and sky
+    records skipped as not fitting their type, and those drawn without an unknown field."""
     stats = ReadStats()
+    bad_records = unknown = 0
     nmea: list[tuple[float, bytes]] = []
 
     def at(t: float) -> None:
@@ -429,10 +434,14 @@ def _read_recording(path: Path, raw: _Raw) -> ReadStats:
             elif new in _NAV_STATES and not why.startswith("mode:"):
                 raw.hold_marks.append((t, ""))
         elif kind in ("fix", "sky"):
+            rec = Record(t, "", kind, d)
             try:
-                typed = decode_record(Record(t, "", kind, d))
-            except ParseError:
+                typed = decode_record(rec)
+            except ParseError:  # a field missing or of the wrong type: skipped, counted
+                bad_records += 1
                 continue
+            # a newer recorder's extra field: the record is drawn, the field counted
+            unknown += bool(unknown_fields(rec))
             (raw.fixes if kind == "fix" else raw.skies).append(typed)  # type: ignore[arg-type]
         elif kind == "nmea":
             text = d.get("text")
@@ -445,7 +454,7 @@ def _read_recording(path: Path, raw: _Raw) -> ReadStats:
     if not raw.fixes and nmea:
         # a recording of the sentences only: decode them as the daemon would have
         _gps_from_decoder(nmea, raw)
-    return stats
+    return stats, bad_records, unknown
 
 
 def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -482,11 +491,13 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
     raw = _Raw()
     view = LogView(path=path, kind="recording" if is_recording(path) else "NMEA log")
     if view.kind == "recording":
-        stats = _read_recording(path, raw)
+        stats, bad_records, unknown = _read_recording(path, raw)
         view.counts = {
             "records": stats.records,
             "bad_lines": stats.bad_lines,
             "truncated_lines": stats.truncated,
+            "bad_records": bad_records,
+            "records_with_unknown_fields": unknown,
         }
         if truth is None:
             truth = default_truth(path)

@@ -229,6 +229,12 @@ def main(args: argparse.Namespace) -> int:
         print(f"x6wd plot: the {pid} panel is empty: {why}", file=sys.stderr)
     if view.jumps:
         print(f"x6wd plot: {src}: the log's time jumps: {jumps_note(view)}", file=sys.stderr)
+    if n := view.counts.get("records_with_unknown_fields"):
+        print(
+            f"x6wd plot: {src}: {n} records with fields this version does not know"
+            " (a newer recorder's?): drawn without those fields",
+            file=sys.stderr,
+        )
     lost = {k: v for k, v in view.counts.items() if k in LOST_COUNTS and v}
     if lost:  # what was skipped is on the page too; say it where the command ran
         text = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in lost.items())

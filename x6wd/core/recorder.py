@@ -49,6 +49,8 @@ import os
 import re
 import threading
 import time
+import types
+import typing
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -921,30 +923,83 @@ def _utc_field(value: Any) -> datetime | None:
         return None
 
 
+_KINDS: dict[Any, tuple[type, ...]] = {float: (int, float), int: (int,), bool: (bool,)}
+
+
+@functools.cache
+def _fields_of(cls: type) -> tuple[frozenset[str], dict[str, tuple[tuple[type, ...], bool]]]:
+    """A record class's field names, and for its number and flag fields (``float``, ``int``,
+    ``bool``, each maybe ``| None``) the JSON types they take and whether None is one."""
+    checks = {}
+    for name, hint in typing.get_type_hints(cls).items():
+        args = typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
+        rest = [a for a in args if a is not type(None)]
+        if len(rest) == 1 and rest[0] in _KINDS:
+            checks[name] = (_KINDS[rest[0]], len(rest) < len(args))
+    return frozenset(f.name for f in dataclasses.fields(cls)), checks
+
+
+def _typed(cls: type, d: Any) -> Any:
+    """``cls(**d)`` without ``d``'s unknown keys (a newer recorder may add fields: the
+    record is kept, see :func:`unknown_fields`); TypeError when a field is missing or a
+    number or flag holds anything else (``"51.75"``, ``true`` for a number)."""
+    if not isinstance(d, dict):
+        raise TypeError(f"{cls.__name__} is {type(d).__name__}, not an object")
+    names, checks = _fields_of(cls)
+    kw = {k: v for k, v in d.items() if k in names}
+    for k, (kinds, optional) in checks.items():
+        v = kw.get(k)
+        if k not in kw or (v is None and optional):
+            continue
+        if not isinstance(v, kinds) or (isinstance(v, bool) and bool not in kinds):
+            raise TypeError(f"{cls.__name__}.{k} is {v!r}")
+    return cls(**kw)
+
+
 def decode_record(
     rec: Record,
 ) -> Attitude | MotorCommand | StateChange | GpsFix | GpsSky | WheelOdometry | Record:
     """The typed record behind an attitude, motor, state, fix, sky or odometry record; other types
-    (nmea, telemetry, event) are returned unchanged. Raises :class:`ParseError` when the
-    payload does not fit its type."""
+    (nmea, telemetry, event) are returned unchanged. A fix's or sky's fields that the type
+    does not have are ignored (:func:`unknown_fields` names them), its numbers and flags
+    checked. Raises :class:`ParseError` when the payload does not fit its type (a field
+    missing or unknown, a fix's or sky's number that is not one)."""
     d = rec.data
     try:
-        if rec.type == "attitude":
-            return Attitude(**d)
-        if rec.type == "motor":
-            return MotorCommand(**d)
-        if rec.type == "state":
-            return StateChange(**d)
         if rec.type == "fix":
-            return GpsFix(**{**d, "utc": _utc_field(d.get("utc"))})
+            return _typed(GpsFix, {**d, "utc": _utc_field(d.get("utc"))})
         if rec.type == "sky":
-            sats = tuple(SatInfo(**s) for s in d.get("satellites", ()))
-            return GpsSky(**{**d, "satellites": sats, "utc": _utc_field(d.get("utc"))})
-        if rec.type == "odometry":
-            return WheelOdometry(**d)
+            sats = tuple(_typed(SatInfo, s) for s in d.get("satellites", ()))
+            return _typed(GpsSky, {**d, "satellites": sats, "utc": _utc_field(d.get("utc"))})
+        cls = _RECORD_CLASSES.get(rec.type)
+        if cls is not None:  # as strict as ever: their readers judge the values themselves
+            return cls(**d)
     except TypeError as exc:
         raise ParseError(f"{rec.type} record at t_mono={rec.t_mono}: {exc}") from exc
     return rec
+
+
+_RECORD_CLASSES: dict[str, type] = {
+    "attitude": Attitude,
+    "motor": MotorCommand,
+    "state": StateChange,
+    "odometry": WheelOdometry,
+}
+
+
+def unknown_fields(rec: Record) -> list[str]:
+    """The fields of a fix or sky record (see :func:`decode_record`) that its type does not
+    have and decoding ignores, satellites' included; [] for other types."""
+    cls = {"fix": GpsFix, "sky": GpsSky}.get(rec.type)
+    if cls is None:
+        return []
+    out = sorted(rec.data.keys() - _fields_of(cls)[0])
+    if rec.type == "sky" and isinstance(sats := rec.data.get("satellites"), list):
+        names = _fields_of(SatInfo)[0]
+        out += sorted(
+            {f"satellites.{k}" for s in sats if isinstance(s, dict) for k in s.keys() - names}
+        )
+    return out
 
 
 _PART_NAME = re.compile(r"^(.+)\.[1-9]\d*(\.[^.]+)$")
