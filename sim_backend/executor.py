@@ -20,7 +20,8 @@ has three backends, chosen when it is made:
 an outcome with ``error`` (kind ``"task"``); a task the cluster could not finish (its worker
 died more often than Dask's ``distributed.scheduler.allowed-failures``, or the cluster went
 away) is an outcome with kind ``"executor"``. A worker that dies once costs nothing but time:
-the scheduler runs its tasks again on the workers that are left.
+the scheduler runs its tasks again on the workers that are left, and the finished results it
+held that were not collected yet (Dask marks them "lost": they are waited for, not lost).
 
 Dask is imported only here and only when a cluster backend is entered, so the daemon and
 ``x6wd sim`` never import it, and the package works without the optional ``sweep`` extra.
@@ -293,10 +294,14 @@ class Executor:
         index = {f.key: i for i, f in enumerate(futures)}
         pending = set(index)
         try:
-            for fut in as_completed(futures):
+            done = as_completed(futures)
+            for fut in done:
                 i = index[fut.key]
-                pending.discard(fut.key)
                 outcome = self._outcome(i, fut)
+                if outcome.kind == "executor" and fut.status == "lost":
+                    done.add(fut)  # finished, then its worker died: the scheduler runs it again
+                    continue
+                pending.discard(fut.key)
                 if reraise and outcome.kind == "task":
                     fut.result()  # raises the task's own exception
                 yield outcome
@@ -319,6 +324,7 @@ class Executor:
             if isinstance(err, KilledWorker):
                 return Outcome(i, error=f"KilledWorker: {err}", kind="executor")
             return Outcome(i, error=describe_exception(err, fut.traceback()), kind="task")
+        # "cancelled": the scheduler went away (the client gave up reconnecting)
         return Outcome(i, error=f"task {fut.status} by the cluster", kind="executor")
 
     @staticmethod

@@ -58,3 +58,30 @@ def test_a_ctrl_c_while_the_local_cluster_starts_is_exit_130(tmp_path: Path) -> 
     assert proc.returncode == 130, err
     assert "sweep interrupted" in err
     assert "KeyboardInterrupt" not in err  # the workers ignored it: no traceback of theirs
+
+
+def test_a_finished_run_whose_worker_dies_afterwards_is_not_lost(tmp_path: Path) -> None:
+    # Dask marks a finished result whose worker died "lost" and computes it again; the
+    # executor recorded it as lost by the cluster (a healthy run of the audit's).
+    from sim_backend.executor import Executor
+
+    def task(i: int, delay_s: float, folder: str) -> int:
+        pid_file = Path(folder) / f"{i}.pid"
+        time.sleep(5.0 if pid_file.exists() else delay_s)  # run again: still running when asked
+        pid_file.write_text(str(os.getpid()))
+        return i
+
+    with Executor(workers=2) as ex:
+        outcomes = ex.map_unordered(task, [(0, 2.0, str(tmp_path)), (1, 0.2, str(tmp_path))])
+        first = next(outcomes)
+        assert first.ok and first.value == 1
+        slow = tmp_path / "0.pid"
+        deadline = time.monotonic() + 60
+        while not slow.exists():
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        time.sleep(0.5)  # its result is on its worker now, not yet collected here
+        os.kill(int(slow.read_text()), signal.SIGKILL)
+        time.sleep(2.0)  # the scheduler has heard of it: the result is lost, run again
+        second = next(outcomes)
+    assert second.ok and second.value == 0, second.error
