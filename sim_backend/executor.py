@@ -185,6 +185,7 @@ class Executor:
         self.connect_timeout_s = connect_timeout_s
         self._cluster: Any = None
         self._client: Any = None
+        self._peak_workers = 0  # the most seen at once: those the tasks ran on
 
     # -- life cycle ------------------------------------------------------------------------
     def __enter__(self) -> Executor:
@@ -221,6 +222,7 @@ class Executor:
         except BaseException:  # a Ctrl-C held while the cluster started: no 'with' to close it
             self.close()
             raise
+        self._peak_workers = self.worker_count()
         return self
 
     def __exit__(
@@ -248,11 +250,15 @@ class Executor:
     @property
     def description(self) -> str:
         """What runs the tasks, for reports: "in this process", "LocalCluster, 2 workers",
-        "scheduler tcp://..., 1 worker"."""
+        "scheduler tcp://..., 1 worker"; the most workers seen at once (those the tasks ran
+        on), and "(1 at the end)" when fewer are left."""
         if self.inline:
             return "in this process"
         n = self.worker_count()
-        workers = f"{n} worker{'' if n == 1 else 's'}"
+        peak = max(n, self._peak_workers)
+        workers = f"{peak} worker{'' if peak == 1 else 's'}" + (
+            f" ({n} at the end)" if n < peak else ""
+        )
         if self.scheduler:
             return f"scheduler {self.scheduler}, {workers}"
         return f"LocalCluster, {workers}"
@@ -302,6 +308,7 @@ class Executor:
                     done.add(fut)  # finished, then its worker died: the scheduler runs it again
                     continue
                 pending.discard(fut.key)
+                self._peak_workers = max(self._peak_workers, self.worker_count())
                 if reraise and outcome.kind == "task":
                     fut.result()  # raises the task's own exception
                 yield outcome

@@ -85,3 +85,19 @@ def test_a_finished_run_whose_worker_dies_afterwards_is_not_lost(tmp_path: Path)
         time.sleep(2.0)  # the scheduler has heard of it: the result is lost, run again
         second = next(outcomes)
     assert second.ok and second.value == 0, second.error
+
+
+def test_the_report_names_the_workers_the_runs_ran_on() -> None:
+    # it named those alive at the end: "LocalCluster, 1 worker" for a 2-worker run whose
+    # worker died (or 0 workers)
+    from sim_backend.executor import Executor
+
+    with Executor(workers=2) as ex:
+        assert [o.value for o in ex.map_unordered(abs, [(-1,), (-2,)])] in ([1, 2], [2, 1])
+        assert ex._cluster is not None
+        ex._cluster.scale(1)
+        deadline = time.monotonic() + 60
+        while ex.worker_count() != 1:
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        assert ex.description == "LocalCluster, 2 workers (1 at the end)"
