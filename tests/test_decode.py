@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import subprocess
 import sys
@@ -135,6 +136,34 @@ def test_a_split_recording_is_decoded_whole(
     code, got, _ = _run(capsys, str(rec.paths[1]))
     # the same reports to the end (the first epochs lack the deleted part's GSA context)
     assert code == 0 and len(ref) > len(got) > len(ref) // 2 and got[-10:] == ref[-10:]
+
+
+@pytest.mark.parametrize("damage", [b"\x93\xfe garbage\xff\n", b"\0" * 4096 + b"\n"])
+def test_a_recording_with_a_damaged_first_line_is_still_one(
+    damage: bytes, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A card's garbage or a block of NULs on the first line: the format is told by the next
+    # intact lines, the damaged line skipped and counted like any other, not the whole file
+    # refused as "no NMEA sentence or x6wd record" (decode, replay) or "nothing to plot".
+    from x6wd.app.logview import load
+    from x6wd.app.replay import replay_file
+    from x6wd.core import recorder
+
+    good = tmp_path / "good.jsonl"
+    with recorder.Recorder(good) as rec:
+        for k, line in enumerate(LEA5H.read_bytes().splitlines()):
+            rec.record_nmea(line, t_mono=float(k))
+    path = tmp_path / "damaged.jsonl"
+    path.write_bytes(damage + good.read_bytes())
+    _, ref, _ = _run(capsys, str(good))
+    code, got, err = _run(capsys, str(path))
+    assert code == 0 and got == ref and err.endswith(" bad_recording_lines=1\n"), err
+    proc = decode_stdin(path.read_bytes())
+    assert proc.returncode == 0 and proc.stdout.decode().splitlines() == ref
+    counts = replay_file(str(path), speed=0, out=io.StringIO(), err=io.StringIO())
+    assert counts["bad_lines"] == 1 and counts["fixes_printed"] > 0
+    view = load(path)
+    assert view.counts["bad_lines"] == 1 and view.counts["fixes"] == counts["fixes_printed"]
 
 
 def decode_stdin(data: bytes) -> subprocess.CompletedProcess[bytes]:

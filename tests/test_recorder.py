@@ -341,6 +341,9 @@ def test_a_recording_is_told_from_gpsd_json_and_nmea(tmp_path: Path) -> None:
     assert looks_like_recording(b'{"bad json\n$GPGGA,...\n')
     assert not looks_like_recording(b'{"class":"TPV","mode":1}\n$GPGGA,...\n')
     assert not looks_like_recording(b"$GPGGA,...\n") and not looks_like_recording(b"")
+    # a damaged first line (garbage, NULs): the next intact line tells
+    assert looks_like_recording(b"\0" * 64 + b'\n{"t_mono":0.0,"type":"event","data":{}}\n')
+    assert not looks_like_recording(b"\xff junk\n$GPGGA,...\n{}\n")
     binary = tmp_path / "binary.bin"
     binary.write_bytes(b"\xb5\x62" + bytes(range(11, 256)) * 4000)  # no newline at all
     assert not is_recording(binary)

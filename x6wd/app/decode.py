@@ -3,8 +3,10 @@
 Like gpsd's ``gpsdecode``: one compact JSON object per line for every fix (``TPV``) and sky
 report (``SKY``), with gpsd's field names and units (lat/lon deg, altMSL/altHAE m, speed
 m/s, track deg true). Unknown fields are omitted, never null. A file whose first non-blank
-line is a JSON object (not gpsd's own, as ``gpspipe -r`` captures begin) is an x6wd
-recording (JSON lines); its ``nmea`` records are decoded
+line is a JSON object (not gpsd's own, as ``gpspipe -r`` captures begin), or whose first
+intact line after damaged ones is an x6wd record
+(``x6wd.core.recorder.looks_like_recording``), is an x6wd recording (JSON lines); its
+``nmea`` records are decoded
 (files through ``x6wd.core.recorder.read_recording_parts``, every remaining part of a
 recording split by ``[recorder] max_file_mb``; standard input by a small line parser that
 also takes the flat ``{"type":"nmea","text":...}`` form); its other records are ignored.

@@ -1049,26 +1049,42 @@ def read_recording_parts(
         yield from read_recording(part, stats=stats, strict=strict)
 
 
+HEAD_LINES = 8
+"""Non-blank lines :func:`looks_like_recording` looks at past damaged ones (garbage, a block
+of NULs from a card) for the first intact line that tells the format."""
+
+
 def looks_like_recording(head: bytes) -> bool:
     """True when ``head`` (a file's first bytes) begins like a recording: its first non-blank
-    line is a JSON object. A complete first line that is gpsd's own JSON (an object with a
-    ``class`` and no ``t_mono``, as ``gpspipe -r`` writes before the NMEA it captures) is
-    not: such a file is NMEA with a few lines of noise. A torn first line still counts, so
-    the recording reader can name the fault."""
-    text = head.lstrip()
-    if text[:1] != b"{":
-        return False
-    line, newline, _rest = text.partition(b"\n")
-    if not newline:
-        return True
-    try:
-        first = json.loads(line)
-    except ValueError:
-        return True
-    return not (isinstance(first, dict) and "class" in first and "t_mono" not in first)
+    line is a JSON object, or, when that line and the next few are damaged (neither JSON nor
+    NMEA), the first intact one is a recorder record. A complete line of gpsd's own JSON (an
+    object with a ``class`` and no ``t_mono``, as ``gpspipe -r`` writes before the NMEA it
+    captures) decides nothing: such a file is NMEA with a few lines of noise. A torn first
+    line still counts, so the recording reader can name the fault."""
+    *whole, last = head.split(b"\n")  # ``last``: cut off by the head's end (b"" if not)
+    lines = [(ln.strip(), True) for ln in whole] + [(last.strip(), False)]
+    lines = [ln for ln in lines if ln[0]][:HEAD_LINES]
+    for k, (text, complete) in enumerate(lines):
+        if text[:1] in (b"$", b"!"):
+            return False  # NMEA
+        if text[:1] != b"{":
+            continue  # damaged: the reader skips and counts it
+        if not complete:
+            return True  # torn (or longer than the head)
+        try:
+            obj = json.loads(text)
+        except ValueError:
+            if k == 0:
+                return True
+            continue
+        if isinstance(obj, dict) and "class" in obj and "t_mono" not in obj:
+            continue  # gpsd's own JSON
+        if k == 0 or (isinstance(obj, dict) and ("t_mono" in obj or "type" in obj)):
+            return True
+    return False
 
 
-_HEAD_BYTES = 1 << 16  # enough for any record's line; a first line longer is judged by its start
+_HEAD_BYTES = 1 << 16  # enough for HEAD_LINES records; a first line longer is judged by its start
 
 
 def is_recording(path: str | os.PathLike[str]) -> bool:
@@ -1079,12 +1095,8 @@ def is_recording(path: str | os.PathLike[str]) -> bool:
     if parts:
         path = parts[0]
     try:
-        with open(path, "rb") as f:  # by blocks: a binary file may have no newline at all
-            head = b""
-            while block := f.read(4096):
-                head = (head + block).lstrip()
-                if head and (b"\n" in head or len(head) >= _HEAD_BYTES):
-                    break
+        with open(path, "rb") as f:
+            head = f.read(_HEAD_BYTES)
     except OSError as exc:
         raise DeviceUnavailable(f"cannot open {path}: {exc}") from exc
     return looks_like_recording(head)
