@@ -16,7 +16,16 @@ from typing import Any
 import pytest
 
 from tests.conftest import DATA, require_program
-from x6wd.app.gpsd import GpsdServer, att_obj, iso_time, parse_commands, sky_obj, tpv_obj
+from x6wd.app.gpsd import (
+    MAX_COMMAND_BYTES,
+    MAX_PENDING_REPLIES,
+    GpsdServer,
+    att_obj,
+    iso_time,
+    parse_commands,
+    sky_obj,
+    tpv_obj,
+)
 from x6wd.core.errors import ProtocolError
 from x6wd.core.records import Attitude, DeviceState, GpsFix, GpsSky, SatInfo
 
@@ -812,3 +821,36 @@ def test_watch_of_a_device_that_is_not_here_gets_gpsds_error_and_nothing_streams
     watch = next(o for o in objs if o["class"] == "WATCH")
     assert watch["device"] == "/dev/ttyS0" and watch["enable"] is True
     assert "TPV" in {o["class"] for o in objs}
+
+
+def test_a_burst_of_requests_from_a_reading_client_is_answered_whole(gpsd: GpsdServer) -> None:
+    # audit: one write of 300 x ?VERSION got 257 answers, then the end of the stream with
+    # no ERROR and no log line; gpsd answers them all and keeps the connection
+    peer = Peer(gpsd.port, b"?VERSION;\n" * 3000)
+    assert all(peer.obj()["class"] == "VERSION" for _ in range(3000))
+    peer.s.sendall(b"?POLL;\n")
+    assert peer.obj()["class"] == "POLL"
+    peer.close()
+
+
+def test_a_client_asking_without_ever_reading_is_held_back_then_closed_as_slow() -> None:
+    p = Published(slow_client_s=0.5)
+    try:
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.connect(("127.0.0.1", p.srv.port))
+        sender = _send_in_background(s, b"?VERSION;\n" * 100_000)
+
+        async def most_queued() -> int:
+            return max((len(c.replies) for c in p.srv.connections), default=0)
+
+        deadline = time.monotonic() + 10
+        while not p.srv.closed_counts["slow_reader"]:
+            assert time.monotonic() < deadline, "never closed"
+            queued = asyncio.run_coroutine_threadsafe(most_queued(), p.loop).result(5)
+            assert queued <= MAX_PENDING_REPLIES + MAX_COMMAND_BYTES // 9  # one read's worth
+            time.sleep(0.05)
+        s.close()
+        sender.join(5)
+    finally:
+        p.close()

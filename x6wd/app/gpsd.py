@@ -52,6 +52,9 @@ UERE_M = 5.0
 MAX_COMMAND_BYTES = 4096  # one read of a client's bytes
 MAX_REQUEST_BYTES = 2 * MAX_COMMAND_BYTES  # the longest request taken, with or without "\n"
 MAX_PENDING_REPLIES = 256
+"""With more replies than this waiting, the port reads no more of that client's requests
+until they are written: a client asking faster than it reads is held back, not closed (one
+that does not read at all is closed as a slow reader)."""
 MAX_ECHO_CHARS = 40
 """An error echoes at most this much of the request it refuses (gpsd echoes the whole of
 its 8 KB input buffer): a client learns what was refused without getting it back whole."""
@@ -253,7 +256,9 @@ def _complete_without_newline(data: bytes | bytearray) -> bool:
 
 async def next_request(reader: asyncio.StreamReader, pending: bytearray) -> bytes | None:
     """The next request from ``reader``: a line, or what arrived without a newline once it
-    is complete (:func:`_complete_without_newline`); None at the end of the stream.
+    is complete (:func:`_complete_without_newline`) and nothing more is buffered behind it
+    (a burst longer than one read is cut by the read, not by the client); None at the end of
+    the stream.
     ``pending`` keeps the bytes read past it. A request longer than
     :data:`MAX_REQUEST_BYTES` comes back as it is, longer than the limit, for the caller
     to refuse."""
@@ -264,7 +269,9 @@ async def next_request(reader: asyncio.StreamReader, pending: bytearray) -> byte
             raw = bytes(pending[:cut])
             del pending[:cut]
             return raw
-        if pending and _complete_without_newline(pending):
+        # bytes already buffered behind them mean a read cut them: not a request on its own
+        more = bool(getattr(reader, "_buffer", b""))  # CPython's StreamReader keeps it here
+        if pending and not more and _complete_without_newline(pending):
             raw = bytes(pending)
             pending.clear()
             return raw
@@ -640,7 +647,12 @@ class GpsdServer(LineServer[_Client]):
                 if error is not None:  # after the answers to what came before it
                     c.reply(dumps({"class": "ERROR", "message": str(error)}))
                 if len(c.replies) > MAX_PENDING_REPLIES:
-                    break  # asks without reading: disconnect rather than buffer forever
+                    # read on once the sender has written them out (an eviction or a
+                    # failed write also sets drained): memory stays bounded, and a reading
+                    # client gets every answer
+                    c.drained.clear()
+                    c.wake.set()
+                    await c.drained.wait()
         except (ConnectionError, OSError):
             pass
         except asyncio.CancelledError:
