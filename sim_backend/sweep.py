@@ -54,6 +54,7 @@ import copy
 import hashlib
 import itertools
 import json
+import math
 import os
 import socket
 import tempfile
@@ -320,6 +321,8 @@ def cell_world(
     worker runs is what was checked here."""
     data = copy.deepcopy(table)
     for key, value in overrides.items():
+        if _non_finite(value):  # TOML cannot carry it to a worker; no scenario key takes one
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
         if key in PATH_KEYS and isinstance(value, str) and value:
             value = str(((values_dir or base_dir) / value).resolve())
         if key == "gnss.lce_csv" and "gnss.lce_sigma_m" not in overrides:
@@ -335,6 +338,17 @@ def cell_world(
     return world, dumps_toml(portable)
 
 
+def _non_finite(value: Any) -> bool:
+    """A NaN or infinite float in ``value`` (in its lists and tables too)."""
+    if isinstance(value, float):
+        return not math.isfinite(value)
+    if isinstance(value, list):
+        return any(_non_finite(v) for v in value)
+    if isinstance(value, dict):
+        return any(_non_finite(v) for v in value.values())
+    return False
+
+
 def plan(spec: SweepSpec) -> list[Run]:
     """Every run of the sweep (scenario, then grid combination, then replicate), each cell
     validated; a bad key or value raises :class:`ConfigError` naming the scenario, the cell's
@@ -348,12 +362,12 @@ def plan(spec: SweepSpec) -> list[Run]:
             params = dict(zip(keys, combo, strict=True))
             overrides = {**spec.fixed, **params}
             where = ", ".join(f"{k}={v!r}" for k, v in overrides.items()) or "no overrides"
+            label = f"{path.stem} ({where})"
             try:
-                _world, text = cell_world(
-                    table, base, overrides, f"{path.stem} ({where})", spec.base_dir
-                )
-            except ConfigError as exc:
-                raise ConfigError(f"scenario {path}: {exc}") from exc
+                _world, text = cell_world(table, base, overrides, label, spec.base_dir)
+            except ConfigError as exc:  # the scenario's loader names the cell, other checks not
+                msg = str(exc) if str(exc).startswith(label) else f"{label}: {exc}"
+                raise ConfigError(f"scenario {path}: {msg}") from exc
             cid = cell_id(path.stem, overrides)
             digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
             cell = Cell(cid, path.stem, path, params, overrides, text, digest)
