@@ -177,6 +177,11 @@ class Executor:
     ) -> None:
         if workers is not None and workers < 1:
             raise ConfigError(f"workers: must be >= 1, got {workers}")
+        if scheduler is not None and not scheduler.strip():  # an unset $DASK_SCHEDULER
+            raise ConfigError(
+                f"scheduler: empty address {scheduler!r} (expected tcp://HOST:PORT; omit it for"
+                " a LocalCluster)"
+            )
         if inline and scheduler:
             raise ConfigError("an in-process executor has no scheduler")
         self.scheduler = scheduler

@@ -124,3 +124,16 @@ def test_a_bad_grid_value_names_its_key_and_cell(
     err = capsys.readouterr().err
     assert named in err, err
     assert not (tmp_path / "out" / "runs").exists()
+
+
+@pytest.mark.parametrize("address", ["", "  "])
+def test_an_empty_scheduler_address_is_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], address: str
+) -> None:
+    # --scheduler "$DASK_SCHEDULER" with the variable unset ran a LocalCluster instead
+    from x6wd.app.cli import main
+
+    f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n")
+    assert main(["sweep", str(f), "--scheduler", address, "--out", str(tmp_path / "o")]) == 2
+    assert "scheduler: empty address" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "runs").exists()

@@ -83,8 +83,9 @@ def main(args: argparse.Namespace) -> int:
     out = output_dir(args.out if args.out else Path("out") / "sweeps" / Path(args.sweep).stem)
     check_out_dir(spec, out)  # another sweep's results are not replaced
     progress = None if args.quiet else TextProgress(len(runs), "runs")
+    # checks --workers and an empty --scheduler before RunStore makes OUT/runs
+    executor = Executor(scheduler=args.scheduler, workers=args.workers)
     _done, todo = split_done(runs, RunStore(out), args.retry_failed)
-    executor = Executor(scheduler=args.scheduler, workers=args.workers)  # checks --workers
     # Nothing left to run (a finished sweep run again): no cluster to start, only the report;
     # but a --scheduler that is wrong is said so (exit 2), as it would be with runs to do.
     if not todo:
