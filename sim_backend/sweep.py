@@ -438,9 +438,14 @@ class RunStore:
 
 
 def write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` so that a reader never sees half of it."""
+    """Write ``text`` to ``path`` so that a reader never sees half of it, with the mode a
+    plain ``open`` gives (0666 less the umask): mkstemp's 0600 kept others on a shared folder
+    from replaying a cell."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
+        umask = os.umask(0o022)  # read it (the only way) and put it back
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
             f.flush()

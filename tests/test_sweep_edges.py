@@ -137,3 +137,22 @@ def test_an_empty_scheduler_address_is_exit_2(
     assert main(["sweep", str(f), "--scheduler", address, "--out", str(tmp_path / "o")]) == 2
     assert "scheduler: empty address" in capsys.readouterr().err
     assert not (tmp_path / "o" / "runs").exists()
+
+
+def test_the_sweeps_files_honour_the_umask(tmp_path: Path) -> None:
+    # sweep.json, runs/*.json and cells/*.toml were 0600 (mkstemp) whatever the umask
+    from sim_backend.executor import Executor
+    from sim_backend.sweep import load_sweep, run_sweep
+
+    f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n")
+    old = os.umask(0o022)
+    try:
+        with Executor(inline=True) as ex:
+            run_sweep(load_sweep(f), tmp_path / "o", ex)
+    finally:
+        os.umask(old)
+    files = [tmp_path / "o" / "sweep.json", *(tmp_path / "o").glob("*/*.*")]
+    assert len(files) == 3
+    assert {p.name: oct(p.stat().st_mode & 0o777) for p in files} == {
+        p.name: "0o644" for p in files
+    }
