@@ -1,8 +1,9 @@
 """The one executor for many simulations: Dask's distributed scheduler, or this process.
 
-Everything in x6wd that runs a batch of independent simulations goes through
-:class:`Executor`: ``x6wd sweep`` (:mod:`sim_backend.sweep`), the mission benchmark
-(``bench/bench_mission.py``) and the gap tool's baseline seeds (``x6wd gap --seeds M``). It
+x6wd's tools run their batches of independent simulations through :class:`Executor`:
+``x6wd sweep`` (:mod:`sim_backend.sweep`), the mission benchmark (``bench/bench_mission.py``)
+and the gap tool's baseline seeds (``x6wd gap --seeds M``); the gap benchmarks
+(``bench/bench_gap*.py``) use a ProcessPoolExecutor of their own. It
 has three backends, chosen when it is made:
 
 - ``Executor(workers=N)``: a Dask ``LocalCluster`` of N worker processes on this machine
