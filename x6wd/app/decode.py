@@ -1812,8 +1812,8 @@ def decode_stream(
     if looks_like_recording(head):
         from x6wd.core.recorder import ReadStats
 
-        lines = (head + stream.read()).splitlines()
         st = stats if stats is not None else ReadStats()
+        lines = _stream_lines(head, stream)
         return _decode_sentences(_recording_sentences(lines, st), out, with_sky)
     decoder = ReportDecoder(ReportEncoder(), with_sky=with_sky)
     size = size if size is not None else InputSize()
@@ -1824,6 +1824,18 @@ def decode_stream(
         chunk = stream.read(_CHUNK_BYTES)
     _write_lines(decoder.flush(), out)
     return decoder.counters
+
+
+def _stream_lines(head: bytes, stream: IO[bytes]) -> Iterator[bytes]:
+    """The lines of ``head`` and the rest of ``stream``, read a chunk at a time: a recording
+    piped in (``decode -``) is held one chunk deep, not whole (112 MB took 264 MB)."""
+    pending, chunk = b"", head
+    while chunk:
+        *lines, pending = (pending + chunk).split(b"\n")
+        yield from lines
+        chunk = stream.read(_CHUNK_BYTES)
+    if pending:
+        yield pending
 
 
 def _write_lines(records: list[GpsOutput], out: IO[str]) -> None:
