@@ -133,6 +133,30 @@ def test_messages_queued_behind_a_back_off_are_bounded_however_short(guarded: Ru
     asyncio.run(program())
 
 
+def test_a_drive_the_page_sent_before_another_clients_stop_is_not_done(
+    guarded: Running,
+) -> None:
+    # Found by an outside check: drives a page sent before a stop from the control port, but
+    # held in the page's link (behind a back-off, in aiohttp and the kernel), were carried
+    # out after the stop. The console judges them by the page's own send time (sent_ms).
+    def page_ms() -> float:  # the page's clock: any monotonic clock of its own
+        return time.monotonic() * 1000.0 + 5_000_000.0
+
+    async def program() -> None:
+        async with ws_to(guarded) as w:
+            assert (await w.request("auth", token=TOKEN, sent_ms=page_ms()))["ok"]
+            before_ms = page_ms()
+            with RemoteClient("127.0.0.1", guarded.port, token=TOKEN) as c:
+                c.request("stop")
+            drive = {"left": 20, "right": 20, "duration_s": 0.4}
+            held = await w.request("drive", sent_ms=before_ms, **drive)
+            assert held["error"]["reason"] == "stopped", held
+            assert vehicle_pct(guarded) == (0.0, 0.0)
+            assert (await w.request("drive", sent_ms=page_ms(), **drive))["ok"]  # after it
+
+    asyncio.run(program())
+
+
 def test_stop_and_the_space_bar_work_while_a_recording_is_shown(
     guarded: Running, browser: webdriver.Chrome
 ) -> None:

@@ -13,6 +13,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -677,6 +678,36 @@ def test_a_stop_from_another_connection_cancels_the_backlog_of_this_one(servers)
         # a drive sent after the stop is carried out
         time.sleep(1.0)  # the throttle's burst refills
         assert a.ask({"id": "new", **drive})["ok"]
+    finally:
+        a.close()
+        b.close()
+
+
+def test_a_stop_cancels_drives_still_held_in_the_kernel_behind_a_throttled_client(
+    servers,
+) -> None:
+    # Found by a second outside check: 16 drives padded to 30 kB each (481 kB in one write)
+    # and a stop from another connection. The server reads a throttled client at most
+    # 2 x max_line_bytes + 64 KiB ahead; the drives still in the kernel when the stop came
+    # were carried out after it, and the robot drove for 4 s after an acknowledged stop.
+    backend = RecordingBackend()
+    srv = servers(backend, token=None, input_bytes_per_s=100_000, max_line_bytes=40_000)
+    pad = " " * 30_000
+    drives = b"".join(
+        f'{{"id": {i}, "cmd": "drive", "left": 30, "right": 30, "duration_s": 2{pad}}}\n'.encode()
+        for i in range(12)
+    )
+    a, b = Raw(srv.port), Raw(srv.port)
+    try:
+        sender = threading.Thread(target=a.send, args=(drives,))
+        sender.start()
+        wait_until(lambda: any(n == "drive" for n, _ in backend.calls))
+        assert b.ask({"id": "s", "cmd": "stop"})["ok"]
+        replies = _replies_until(a, 11)
+        sender.join(5)
+        assert not any(n == "drive" for n, _ in _calls_after_first_stop(backend))
+        late = [i for i in range(12) if replies[i].get("error", {}).get("reason") == "stopped"]
+        assert late and late[-1] == 11  # the last ones were still on their way in
     finally:
         a.close()
         b.close()

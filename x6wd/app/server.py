@@ -22,16 +22,21 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
+import fcntl
 import hashlib
 import hmac
 import inspect
 import ipaddress
 import json
 import logging
+import math
 import re
 import ssl
 import stat
+import struct
 import sys
+import termios
 import time
 import weakref
 from collections.abc import Callable
@@ -224,6 +229,8 @@ class _Client(LineClient):
     received: int = 0
     taken: int = 0
     fence: int = 0
+    early_stop_end: int = 0  # where the latest stop sent ahead of its turn ends
+    other_stop_s: float = -math.inf  # time.monotonic() of the latest stop from elsewhere
 
 
 class _Shared:
@@ -240,6 +247,19 @@ def _retrieve(f: asyncio.Future[Any]) -> None:
     # a shared call nobody awaits any more must not warn "exception never retrieved"
     if not f.cancelled():
         f.exception()
+
+
+def _in_flight_b(c: _Client) -> int:
+    """Bytes a TCP client sent that the server has not read yet: in its stream reader and in
+    the kernel's receive queue (FIONREAD; on TLS the encrypted bytes, a little more than
+    the text: a line sent just after a stop may be refused with the ones before it)."""
+    reader = c.reader
+    n = len(getattr(reader, "_buffer", b"")) if reader is not None else 0  # no public size
+    sock = c.writer.get_extra_info("socket") if c.writer is not None else None
+    if sock is not None:
+        with contextlib.suppress(OSError, ValueError):
+            n += struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0" * 4))[0]
+    return n
 
 
 async def _result(value: Any) -> Any:
@@ -667,6 +687,7 @@ class ControlServer(LineServer[_Client]):
             return
         if req.get("cmd") == "stop":
             self.stops["early"] += 1
+            c.early_stop_end = max(c.early_stop_end, end)
             self._stop_fence(c, end)
             self._fire_stop()
 
@@ -687,10 +708,26 @@ class ControlServer(LineServer[_Client]):
 
     def _stop_fence(self, origin: _Client | None, end: int) -> None:
         """A stop was asked for: every motion command received before it is refused, on
-        every connection. On ``origin``'s own input (where the stop ends at ``end``) the
-        lines after the stop were sent after it and stand."""
+        every connection, also what is still on its way in (held in the kernel behind a
+        throttled client). On ``origin``'s own input (where the stop ends at ``end``) the
+        lines after the stop were sent after it and stand. A detached client's messages
+        still in its transport are judged there, by their send time (:meth:`stopped_since`)."""
+        now_s = time.monotonic()
         for c in self._fenced:
-            c.fence = max(c.fence, end if c is origin else c.received)
+            if c is origin:
+                c.fence = max(c.fence, end)
+            else:
+                c.fence = max(c.fence, c.received + _in_flight_b(c))
+                c.other_stop_s = now_s
+
+    def stopped_since(self, c: _Client, sent_s: float) -> bool:
+        """A stop came from another client after ``sent_s`` (time.monotonic() s, the latest
+        ``c`` can have sent a motion command): the command is refused (counted in
+        ``stops.superseded``). ``c``'s own stops are judged by order (:meth:`dispatch`)."""
+        if sent_s < c.other_stop_s:
+            self.stops["superseded"] += 1
+            return True
+        return False
 
     def _fault_wait(self, c: _Client) -> float:
         """Charge one error reply to the client's fault bucket; seconds to wait before its
@@ -821,7 +858,8 @@ class ControlServer(LineServer[_Client]):
             return st
         if cmd == "stop":
             self._drive_owner = None
-            self._stop_fence(c, c.taken)
+            if c.taken > c.early_stop_end:  # (one sent ahead fenced the others on arrival)
+                self._stop_fence(c, c.taken)
             self.stops["requested"] += 1
             self._rlog.log("stop requests", logging.INFO, "stop requested by %s", c.peer)
             return dict(await asyncio.shield(self._fire_stop()))

@@ -45,6 +45,7 @@ from aiohttp import WSMsgType, web
 from x6wd import __version__
 from x6wd.app.logview import LogView, html_page, render_html
 from x6wd.app.server import (
+    SUPERSEDED_COMMANDS,
     ControlServer,
     encode,
     error_reply,
@@ -547,6 +548,22 @@ class ConsoleServer:
             return error_reply(
                 rid if isinstance(rid, (int, str)) else None, "rejected",
                 f"drive arrived {late_s:.1f} s late (the link stalled): not driven", "late",
+            ), 0.0  # fmt: skip
+        sent = req.get("sent_ms") if cmd is not None else None
+        if (
+            cmd in SUPERSEDED_COMMANDS
+            and c.authenticated
+            and not c.watch_only
+            and isinstance(sent, (int, float))
+            and not isinstance(sent, bool)
+            and self.control.stopped_since(c, sent / 1000.0 + page.clock_offset_s)
+        ):
+            # sent before another client's stop, held in this page's link meanwhile (the
+            # order-based fence sees only what the console has read)
+            rid = req.get("id")
+            return error_reply(
+                rid if isinstance(rid, (int, str)) else None, "rejected",
+                f"a stop came after this {cmd}: not done", "stopped",
             ), 0.0  # fmt: skip
         if cmd == "mission.parse":
             return self._parse_mission(c, req), 0.0
