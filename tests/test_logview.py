@@ -498,7 +498,7 @@ def test_a_log_whose_time_goes_back_is_drawn_in_file_order(
     assert data["duration_s"] == pytest.approx(7.0)
     assert data["time_jumps"] == [
         {"t_s": 4.25, "line": 112, "step_s": -3122.5,
-         "before_utc": "2009-12-09 15:25:08.5", "after_utc": "2009-12-09 14:33:06"}
+         "before_utc": "2009-12-09 15:25:08.5", "after_utc": "2009-12-09 14:33:06", "file": ""}
     ]  # fmt: skip
     assert "<td>time jumps (1)</td><td>line 112: time went back 3122.5 s (52 min)" in page
     for pid in ("hdop", "satellites", "heading"):
@@ -549,3 +549,67 @@ def test_time_jumps_and_what_is_not_one(tmp_path: Path) -> None:
     # a gap under the limit (this log's 1059 s pause) is drawn as the time it was
     view = logview.load(NMEA_LOG)
     assert view.jumps == [] and view.duration_s == pytest.approx(1077.0)
+
+
+def _series_in_order(data: dict[str, Any], duration_s: float) -> None:
+    """Asserts every time series of the page's data lies within [0, duration] in order."""
+    for pid in ("error", "hdop", "satellites", "heading"):
+        for s in data[pid]:
+            t = np.array([x for x in s["t_s"] if x is not None])
+            assert t.min() >= 0.0 and t.max() <= duration_s + 1e-3, (pid, s["label"])
+            assert np.all(np.diff(t) >= 0), (pid, s["label"])
+
+
+def test_a_recording_whose_time_jumps_is_drawn_in_file_order(
+    sim_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Found by an outside audit: two daemon sessions appended to one file (t_mono restarts)
+    # were drawn over each other, joined by diagonals, the duration one session's and no
+    # word said; a forward jump of 100000 s left the data as slivers. Now a recording's time
+    # is put in file order as an NMEA log's is, the jump marked and said.
+    lines = (sim_run / "recording.jsonl").read_text().splitlines(keepends=True)
+    records = list(read_recording(sim_run / "recording.jsonl"))
+    one_s = records[-1].t_mono - records[0].t_mono
+    assert logview.load(sim_run / "recording.jsonl").jumps == []
+    path = tmp_path / "recording.jsonl"  # two sessions of the simulator, appended
+    path.write_text("".join(lines + lines))
+    (tmp_path / "truth.csv").write_bytes((sim_run / "truth.csv").read_bytes())
+    assert cli_main(["plot", str(path), "--out", str(tmp_path), "--format", "html"]) == 0
+    err = capsys.readouterr().err
+    assert f"line {len(lines) + 1}: time went back {one_s:.1f} s" in err, err
+    page = (tmp_path / "recording.html").read_text()
+    data = page_data(page)
+    (jump,) = data["time_jumps"]
+    assert (jump["line"], jump["step_s"]) == (len(lines) + 1, pytest.approx(-one_s, abs=1e-3))
+    assert jump["after_utc"] == "2020-01-01 12:00:00"  # the recorder's t_utc either side
+    assert jump["before_utc"] == records[-1].t_utc.replace("T", " ").rstrip("Z0")
+    assert data["duration_s"] == pytest.approx(2 * one_s, abs=0.2)  # two sessions, one epoch
+    assert data["counts"]["fixes"] == 2 * sum(r.type == "fix" for r in records)
+    _series_in_order(data, data["duration_s"])
+    assert _time_panels_on_screen(page) >= 6
+    for pid, label in (("hdop", "HDOP (fix)"), ("error", "position estimate"),
+                       ("track", "position estimate")):  # fmt: skip
+        # a line each side, none across (on the map: none from one session's end to the next)
+        svg = page[page.index(f'<svg id="svg-{pid}"') :]
+        g = re.search(rf'data-label="{re.escape(label)}">(.*?)</g>', svg)
+        assert g is not None and g.group(1).count("<polyline") == 2, (pid, label)
+    # the second session's error is against the run's own clock: the same as the first's
+    est = next(s for s in data["error"] if s["label"] == "position estimate")
+    v = [x for x in est["v"] if x is not None]
+    assert v[: len(v) // 2] == pytest.approx(v[len(v) - len(v) // 2 :], abs=0.01)
+
+    # forward by 100000 s half way (a daemon's clock after a suspend): the same, marked
+    half = len(records) // 2
+    path = tmp_path / "run.jsonl"
+    with Recorder(path, max_bytes=200_000) as rec:  # in parts: the jump names its part
+        for k, r in enumerate(records):
+            t = r.t_mono + (100_000.0 if k >= half else 0.0)
+            data_t = {**r.data, "t_s": t} if "t_s" in r.data else r.data
+            rec.record(r.type, data_t, t)
+    view = logview.load(path)
+    (j,) = view.jumps
+    assert j.step_s == pytest.approx(100_000.0, abs=1.0) and j.file.startswith("run.")
+    assert f"line {j.line} of {j.file}: time went forward" in j.describe()
+    assert view.duration_s == pytest.approx(one_s, abs=0.2)
+    assert view.time_range() == pytest.approx((0.0, view.duration_s))
+    _series_in_order(page_data(logview.html_page(view)), view.duration_s)

@@ -16,11 +16,12 @@ The true track is the simulator's ``truth.csv`` next to the recording (``--truth
 another). Device faults are the recorder's ``device`` events (health transitions) and, in
 older recordings without them, the holds that name a device.
 
-A plain NMEA log's clock is the receiver's time of day, which can go backwards (a file of two
-sessions, a cold start's unset clock) or jump by hours. The time axis is then the file's
-order: where the log's time goes back, or forward by more than :data:`TIME_JUMP_S`, the next
-segment is drawn one epoch after the previous one, the place marked on every time panel and
-said in the page's facts (:class:`TimeJump`). Crossing midnight is not a jump.
+A log's own clock can go backwards or jump: a plain NMEA log's is the receiver's time of day
+(a file of two sessions, a cold start's unset clock), a recording's the daemon's monotonic
+clock (two sessions appended to one file, each restarting it). The time axis is then the
+file's order: where the log's time goes back, or forward by more than :data:`TIME_JUMP_S`,
+the next segment is drawn one epoch after the previous one, the place marked on every time
+panel and said in the page's facts (:class:`TimeJump`). Crossing midnight is not a jump.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import math
 import statistics
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -71,6 +72,13 @@ TIME_JUMP_S = 3600.0
 (another session, a receiver's clock set at last), drawn as one like a step back: an axis of
 hours would squeeze the log's minutes out of sight. Shorter gaps (an outage, a pause between
 runs in one file) are drawn as the time they were."""
+
+RECORDING_JITTER_S = 10.0
+"""A recording's time stepping back by less than this is not a jump: the recorder stamps a
+record with its data's own time (a fix with its arrival, a device event with when it
+happened) and several threads write, so neighbours can be out of order by a loop's latency
+or a batch of device events (a reconnect's several seconds). Another session (the daemon
+started again, its monotonic clock with it) steps back by about the previous one's length."""
 
 _MODES = frozenset(str(m) for m in Mode)
 _NAV_STATES = frozenset(str(s) for s in NavState)
@@ -113,19 +121,21 @@ class Interval:
 
 @dataclass
 class TimeJump:
-    """A place where a plain NMEA log's own time goes back (or far forward): the segments
-    either side are drawn in file order, one epoch apart, and the place marked."""
+    """A place where a log's own time goes back (or far forward): the segments either side
+    are drawn in file order, one epoch apart, and the place marked."""
 
     t_s: float  # on the time axis: between the two segments
     line: int  # the file's line (1-based) where the later segment starts
     step_s: float  # the log's own time step there (negative: it went back)
-    before_utc: str = ""  # the last dated fix before, the first dated fix after
+    before_utc: str = ""  # UTC either side: an NMEA log's fixes, a recording's t_utc
     after_utc: str = ""
+    file: str = ""  # a recording's part holding ``line``, when not the file plotted
 
     def describe(self) -> str:
         """In words, as the page's facts and ``x6wd plot`` say it."""
         way = "back" if self.step_s < 0 else "forward"
-        text = f"line {self.line}: time went {way} {_duration(abs(self.step_s))}"
+        where = f"line {self.line}" + (f" of {self.file}" if self.file else "")
+        text = f"{where}: time went {way} {_duration(abs(self.step_s))}"
         if self.before_utc and self.after_utc:
             text += f", {self.before_utc} -> {self.after_utc} UTC"
         return text
@@ -138,6 +148,7 @@ class TimeJump:
             "step_s": round(self.step_s, 3),
             "before_utc": self.before_utc,
             "after_utc": self.after_utc,
+            "file": self.file,
         }
 
 
@@ -171,7 +182,7 @@ class LogView:
     faults: list[Interval] = field(default_factory=list)  # lanes: DEVICES
     missing: dict[str, str] = field(default_factory=dict)  # panel id -> why it is empty
     counts: dict[str, int] = field(default_factory=dict)
-    jumps: list[TimeJump] = field(default_factory=list)  # a plain NMEA log's time jumps
+    jumps: list[TimeJump] = field(default_factory=list)  # the log's time jumps
 
     def time_range(self) -> tuple[float, float]:
         """The time axis: 0 to the duration, widened to any time drawn outside it (so that
@@ -271,23 +282,30 @@ LOST_COUNTS = frozenset(
 """The counts of :attr:`LogView.counts` that say input was skipped (``x6wd plot`` says so)."""
 
 
-def _gps_from_decoder(chunks: Iterable[tuple[float, bytes]], raw: _Raw) -> dict[str, int]:
-    """Decode ``chunks`` into ``raw``'s fixes and skies; the decoder's error counts."""
+def _gps_from_decoder(
+    chunks: Iterable[tuple[float, bytes]], raw: _Raw, order: _FileOrder | None = None
+) -> dict[str, int]:
+    """Decode ``chunks`` into ``raw``'s fixes and skies; the decoder's error counts.
+    ``order``: a plain log's lines (one a chunk), their times put in file order by it."""
     from drivers.gps_nmea import GpsDecoder
 
     decoder = GpsDecoder(emit_sentences=False)
-    t_last = 0.0
-    for t_s, data in chunks:
-        t_last = t_s
-        raw.t_first = t_s if raw.t_first is None else raw.t_first
-        for rec in decoder.feed(data, t_s):
+
+    def keep(records: Iterable[Any]) -> None:
+        for rec in records:
             if isinstance(rec, GpsFix):
                 raw.fixes.append(rec)
             elif isinstance(rec, GpsSky):
                 raw.skies.append(rec)
-    for rec in decoder.flush(t_last):
-        if isinstance(rec, GpsFix):
-            raw.fixes.append(rec)
+
+    t_last = 0.0
+    for line, (t_s, data) in enumerate(chunks, start=1):
+        if order is not None:
+            t_s = order.place(t_s, line)
+        t_last = t_s
+        raw.t_first = t_s if raw.t_first is None else raw.t_first
+        keep(decoder.feed(data, t_s))
+    keep(decoder.flush(t_last))
     raw.t_last = max(raw.t_last, t_last)
     c = decoder.counters
     return {
@@ -297,26 +315,31 @@ def _gps_from_decoder(chunks: Iterable[tuple[float, bytes]], raw: _Raw) -> dict[
     }
 
 
-def _in_file_order(
-    chunks: Iterable[tuple[float, bytes]], jumps: list[TimeJump]
-) -> Iterator[tuple[float, bytes]]:
-    """A plain NMEA log's (time, line) with its time made to run forward in file order: where
-    the log's time goes back, or forward by more than :data:`TIME_JUMP_S`, the next line is
-    one epoch (the median of the recent steps) after the previous one and a :class:`TimeJump`
-    is appended to ``jumps``. A log without jumps is unchanged."""
-    offset = 0.0
-    prev = last = math.nan
-    steps: deque[float] = deque(maxlen=64)
-    for line, (t, data) in enumerate(chunks, start=1):
-        step = t - prev
-        if step < 0 or step > TIME_JUMP_S:
-            gap = statistics.median(steps) if steps else 1.0
-            offset = last + gap - t
-            jumps.append(TimeJump(last + gap / 2, line, step))
+class _FileOrder:
+    """A log's own time made to run forward in file order (an NMEA log's time of day, a
+    recording's t_mono): where it goes back by more than ``jitter_s``, or forward by more
+    than :data:`TIME_JUMP_S`, the next line is placed one epoch (the median of the recent
+    steps) after the previous one and a :class:`TimeJump` appended to :attr:`jumps`. A log
+    without jumps keeps its times."""
+
+    def __init__(self, jumps: list[TimeJump], jitter_s: float = 0.0) -> None:
+        self.jumps = jumps
+        self.offset_s = 0.0  # axis time - the log's own time, in the current segment
+        self._jitter_s = jitter_s
+        self._prev = self._last = math.nan
+        self._steps: deque[float] = deque(maxlen=64)
+
+    def place(self, t: float, line: int, file: str = "") -> float:
+        """The time axis's time of the log's own time ``t`` at ``line`` (of ``file``)."""
+        step = t - self._prev
+        if step < -self._jitter_s or step > TIME_JUMP_S:
+            gap = statistics.median(self._steps) if self._steps else 1.0
+            self.offset_s = self._last + gap - t
+            self.jumps.append(TimeJump(self._last + gap / 2, line, step, file=file))
         elif step > 0:
-            steps.append(step)
-        prev, last = t, t + offset
-        yield last, data
+            self._steps.append(step)
+        self._prev, self._last = t, t + self.offset_s
+        return self._last
 
 
 def _date_jumps(jumps: list[TimeJump], fixes: Sequence[GpsFix]) -> None:
@@ -333,7 +356,20 @@ def _date_jumps(jumps: list[TimeJump], fixes: Sequence[GpsFix]) -> None:
 
 def _utc_text(fix: GpsFix) -> str:
     assert fix.utc is not None
-    return fix.utc.strftime("%Y-%m-%d %H:%M:%S.%f").rstrip("0").rstrip(".")
+    return _utc_str(fix.utc)
+
+
+def _utc_str(utc: datetime) -> str:
+    return utc.strftime("%Y-%m-%d %H:%M:%S.%f").rstrip("0").rstrip(".")
+
+
+def _record_utc(line: bytes) -> str:
+    """A recorder line's t_utc as a jump states it ("" when it has none)."""
+    try:
+        utc = _parse_utc(json.loads(line).get("t_utc"))
+    except (ValueError, UnicodeDecodeError, AttributeError):
+        return ""
+    return _utc_str(utc) if utc is not None else ""
 
 
 _SKIP_TYPES = frozenset({b"motor", b"odometry"})
@@ -344,10 +380,11 @@ _TYPE_KEY = b'"type":"'
 _T_KEY = b'{"t_mono":'
 
 
-def _lines(path: Path, stats: ReadStats) -> Iterator[tuple[bytes, bytes]]:
-    """(type, raw line) of every line of a recording's remaining parts; the type read from
-    the recorder's key order without decoding the line (b"" when it is not where the
-    recorder writes it: the line is then decoded to find out)."""
+def _lines(path: Path, stats: ReadStats) -> Iterator[tuple[str, int, bytes, bytes]]:
+    """(part, line number, type, raw line) of every line of a recording's remaining parts
+    (part: its name, "" for ``path`` itself); the type read from the recorder's key order
+    without decoding the line (b"" when it is not where the recorder writes it: the line is
+    then decoded to find out)."""
     parts = recording_parts(path)
     if not parts:
         raise DeviceUnavailable(f"cannot open recording {path}: no such file")
@@ -356,14 +393,15 @@ def _lines(path: Path, stats: ReadStats) -> Iterator[tuple[bytes, bytes]]:
             f = open(part, "rb")  # noqa: SIM115
         except OSError as exc:
             raise DeviceUnavailable(f"cannot open recording {part}: {exc}") from exc
+        name = "" if part == path else part.name
         with f:
-            for line in f:
+            for number, line in enumerate(f, start=1):
                 if not line.strip():
                     stats.blank_lines += 1
                     continue
                 k = line.find(_TYPE_KEY, 0, 120)
                 kind = line[k + 8 : line.find(b'"', k + 8)] if k >= 0 else b""
-                yield kind, line
+                yield name, number, kind, line
 
 
 def _decode_line(line: bytes, stats: ReadStats) -> dict[str, Any] | None:
@@ -390,41 +428,56 @@ def _decode_line(line: bytes, stats: ReadStats) -> dict[str, Any] | None:
     return obj
 
 
-def _read_recording(path: Path, raw: _Raw) -> tuple[ReadStats, int, int]:
-    """Read a recording's records into ``raw``; the reader's counts, the fix and sky
-    records skipped as not fitting their type, and those drawn without an unknown field."""
+def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadStats, int, int]:
+    """Read a recording's records into ``raw``, its times in file order (its time jumps
+    appended to ``jumps``); the reader's counts, the fix and sky records skipped as not
+    fitting their type, and those drawn without an unknown field."""
     stats = ReadStats()
     bad_records = unknown = 0
     nmea: list[tuple[float, bytes]] = []
+    order = _FileOrder(jumps, RECORDING_JITTER_S)
+    prev_line = b""
 
-    def at(t: float) -> None:
+    def at(t: float, part: str, number: int, line: bytes) -> float:
+        """``t`` placed on the time axis; a jump there dated by the recorder's t_utc."""
+        nonlocal prev_line
+        n = len(jumps)
+        t = order.place(t, number, part)
+        if len(jumps) > n:
+            jumps[-1].before_utc, jumps[-1].after_utc = _record_utc(prev_line), _record_utc(line)
+        prev_line = line
         raw.t_first = t if raw.t_first is None else raw.t_first
         raw.t_last = max(raw.t_last, t)
+        return t
 
-    for kind_b, line in _lines(path, stats):
+    for part, number, kind_b, line in _lines(path, stats):
         if kind_b in _SKIP_TYPES and line.startswith(_T_KEY) and raw.t_first is not None:
             try:
-                at(float(line[len(_T_KEY) : line.index(b",")]))
+                t_own = float(line[len(_T_KEY) : line.index(b",")])
             except ValueError:
                 stats.bad_lines += 1
                 continue
             stats.records += 1
+            at(t_own, part, number, line)
             continue
         obj = _decode_line(line, stats)
         if obj is None:
             continue
-        t, kind, d = float(obj["t_mono"]), obj["type"], obj["data"]
+        t_own, kind, d = float(obj["t_mono"]), obj["type"], obj["data"]
         if raw.t_first is None:
             utc = _parse_utc(obj.get("t_utc"))
             if utc is not None:
-                raw.utc0 = utc - timedelta(seconds=t)
-        at(t)
+                raw.utc0 = utc - timedelta(seconds=t_own)
+        # A record's data are drawn at the record's time: the recorder stamps it with the
+        # data's own time (t_s), so the two differ only where the axis moved a segment.
+        t = at(t_own, part, number, line)
         if kind == "attitude":
             b = d.get("bearing_deg")
             if isinstance(b, (int, float)) and d.get("valid", True):
                 raw.att.append((t, float(b)))
         elif kind == "telemetry":
-            raw.tel.append({**d, "t_s": d.get("t_s", t)})
+            # t_own_s: on the true track's clock (the run's own), for the error
+            raw.tel.append({**d, "t_s": t, "t_own_s": d.get("t_s", t_own)})
             raw.hold_marks.append((t, str(d.get("hold_reason") or "")))
         elif kind == "state":
             old, new, why = str(d.get("old", "")), str(d.get("new", "")), str(d.get("reason", ""))
@@ -442,6 +495,9 @@ def _read_recording(path: Path, raw: _Raw) -> tuple[ReadStats, int, int]:
                 continue
             # a newer recorder's extra field: the record is drawn, the field counted
             unknown += bool(unknown_fields(rec))
+            assert isinstance(typed, (GpsFix, GpsSky))
+            if typed.t_s != t:
+                typed = replace(typed, t_s=t)
             (raw.fixes if kind == "fix" else raw.skies).append(typed)  # type: ignore[arg-type]
         elif kind == "nmea":
             text = d.get("text")
@@ -491,7 +547,7 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
     raw = _Raw()
     view = LogView(path=path, kind="recording" if is_recording(path) else "NMEA log")
     if view.kind == "recording":
-        stats, bad_records, unknown = _read_recording(path, raw)
+        stats, bad_records, unknown = _read_recording(path, raw, view.jumps)
         view.counts = {
             "records": stats.records,
             "bad_lines": stats.bad_lines,
@@ -502,8 +558,8 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
         if truth is None:
             truth = default_truth(path)
     else:
-        chunks = _in_file_order(nmea_file_chunks(path, rate_hz), view.jumps)
-        view.counts = _gps_from_decoder(chunks, raw)
+        chunks = nmea_file_chunks(path, rate_hz)
+        view.counts = _gps_from_decoder(chunks, raw, _FileOrder(view.jumps))
         _date_jumps(view.jumps, raw.fixes)
         first_jump = view.jumps[0].t_s if view.jumps else math.inf
         if raw.fixes and raw.fixes[0].utc is not None and raw.fixes[0].t_s < first_jump:
@@ -578,7 +634,12 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) ->
         view.track["GPS fixes"] = (fx_e, fx_n)
     if est:
         es_e, es_n = xy(_arr(d["filt_lat_deg"] for d in est), _arr(d["filt_lon_deg"] for d in est))
-        view.track["position estimate"] = (es_e, es_n)
+        # no line across a time jump on the map either (it would join two sessions)
+        cuts, t_est = [j.t_s for j in view.jumps], _arr(d["t_s"] for d in est)
+        view.track["position estimate"] = (
+            broken_at(t_est, es_e, cuts)[1],
+            broken_at(t_est, es_n, cuts)[1],
+        )
     if tt is None:
         view.missing["error"] = (
             "no true track: only a simulated run has one (truth.csv next to the recording, "
@@ -597,9 +658,9 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) ->
         err = np.hypot(fx_e - np.interp(ep, tr_t, tr_e), fx_n - np.interp(ep, tr_t, tr_n))
         view.error.append(Series("GPS fix", _arr(f.t_s for f in good) - t0, err))
     if est:
-        te = _arr(d["t_s"] for d in est)
+        te = _arr(d.get("t_own_s", d["t_s"]) for d in est)
         err = np.hypot(es_e - np.interp(te, tr_t, tr_e), es_n - np.interp(te, tr_t, tr_n))
-        view.error.append(Series("position estimate", te - t0, err))
+        view.error.append(Series("position estimate", _arr(d["t_s"] for d in est) - t0, err))
 
 
 def _gps_quality(view: LogView, raw: _Raw, t0: float) -> None:
