@@ -349,6 +349,16 @@ def _non_finite(value: Any) -> bool:
     return False
 
 
+MAX_RUNS = 100_000
+"""Default ceiling on a sweep's runs: planning checks each cell (~4.5 ms) and the plan is
+written whole, so a mistyped grid or seed count would plan silently for hours."""
+
+
+def run_count(spec: SweepSpec) -> int:
+    """Runs the sweep plans (scenarios x grid combinations x seeds), without planning."""
+    return len(spec.scenarios) * math.prod(len(v) for v in spec.grid.values()) * spec.seeds
+
+
 def plan(spec: SweepSpec) -> list[Run]:
     """Every run of the sweep (scenario, then grid combination, then replicate), each cell
     validated; a bad key or value raises :class:`ConfigError` naming the scenario, the cell's

@@ -156,3 +156,35 @@ def test_the_sweeps_files_honour_the_umask(tmp_path: Path) -> None:
     assert {p.name: oct(p.stat().st_mode & 0o777) for p in files} == {
         p.name: "0o644" for p in files
     }
+
+
+@pytest.mark.parametrize(
+    ("body", "extra", "named"),
+    [
+        (
+            "seeds = 10\n[grid]\n"
+            + "\n".join(
+                f"{k} = [{', '.join(str(5.0 + i) for i in range(100))}]"
+                for k in ("duration_s", "navigation.approach_m", "compass.noise_ut")
+            ),
+            [],
+            "10,000,000 runs (scenarios x grid x seeds) over --max-runs 100,000",
+        ),
+        ("seeds = 1000000\n", [], "1,000,000 runs"),
+        ("seeds = 3\n[set]\nduration_s = 5.0\n", ["--max-runs", "2"], "3 runs"),
+    ],
+)
+def test_a_sweep_over_the_run_limit_is_refused_before_planning(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], body: str, extra: list[str], named: str
+) -> None:
+    # an outside audit: a 100 x 100 x 100 grid planned silently for over an hour (4.5 ms a
+    # cell); seeds = 1000000 wrote a 133 MB sweep.json before the first run
+    from x6wd.app.cli import main
+
+    f = sweep_file(tmp_path, body)
+    t0 = time.monotonic()
+    assert main(["sweep", str(f), "--out", str(tmp_path / "o"), *extra]) == 2
+    assert time.monotonic() - t0 < 60.0  # from the sizes: planning them would take hours
+    err = capsys.readouterr().err
+    assert named in err and "--max-runs" in err, err
+    assert not (tmp_path / "o").exists()

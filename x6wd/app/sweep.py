@@ -23,7 +23,16 @@ import sys
 from pathlib import Path
 
 from sim_backend.executor import Executor, TextProgress, probe_scheduler
-from sim_backend.sweep import RunStore, check_out_dir, load_sweep, plan, run_sweep, split_done
+from sim_backend.sweep import (
+    MAX_RUNS,
+    RunStore,
+    check_out_dir,
+    load_sweep,
+    plan,
+    run_count,
+    run_sweep,
+    split_done,
+)
 from sim_backend.sweep_report import write_report
 from x6wd.core.errors import ConfigError
 from x6wd.core.outdir import output_dir
@@ -64,6 +73,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="missions per cell instead of the file's seeds (the first N of them: a quick"
         " look with 1; the same command without it adds the rest)",
     )
+    parser.add_argument(
+        "--max-runs",
+        type=int,
+        default=MAX_RUNS,
+        metavar="N",
+        help=f"refuse a sweep of more than N runs (default {MAX_RUNS:,}): a mistyped grid or"
+        " seed count would otherwise plan for hours",
+    )
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -79,6 +96,12 @@ def main(args: argparse.Namespace) -> int:
         if args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
         spec = dataclasses.replace(spec, seeds=args.seeds)
+    total = run_count(spec)
+    if total > args.max_runs:
+        raise ConfigError(
+            f"{args.sweep}: {total:,} runs (scenarios x grid x seeds) over --max-runs"
+            f" {args.max_runs:,}; raise --max-runs to run it"
+        )
     runs = plan(spec)  # a bad key or value stops here, before any cluster starts
     out = output_dir(args.out if args.out else Path("out") / "sweeps" / Path(args.sweep).stem)
     check_out_dir(spec, out)  # another sweep's results are not replaced
