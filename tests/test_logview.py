@@ -613,3 +613,24 @@ def test_a_recording_whose_time_jumps_is_drawn_in_file_order(
     assert view.duration_s == pytest.approx(one_s, abs=0.2)
     assert view.time_range() == pytest.approx((0.0, view.duration_s))
     _series_in_order(page_data(logview.html_page(view)), view.duration_s)
+
+
+COLDBOOT = ROOT / "tests" / "data" / "nmea" / "gp-320fw-2019-04-07-coldboot.log"
+
+
+def test_a_jumps_utc_is_the_receivers_at_the_step_s_two_ends() -> None:
+    # Found by an outside audit on this real cold start: "line 45: time went back 15873.0 s,
+    # 2010-09-30 23:59:50 -> ..." though the receiver said 23:59:50 on 2006-12-16 (RMC, line
+    # 42): the decoder still held that epoch when line 45's RMC brought 2010-09-30, and gave
+    # it that date. And line 48's step was measured to 23:59:52 (its damaged GGA, no fix)
+    # while its "after" was 23:59:57, a fix five lines on. Now the epoch is closed at the
+    # jump, and a side whose time made no dated fix is said to be unknown.
+    view = logview.load(COLDBOOT)
+    said = {j.line: j.describe() for j in view.jumps}
+    assert said[45] == (
+        "line 45: time went back 15873.0 s (4 h 25 min), "
+        "2006-12-16 23:59:50 -> 2010-09-30 19:35:15 UTC"
+    )
+    assert said[48] == (
+        "line 48: time went forward 15877.0 s (4 h 25 min), 2010-09-30 19:35:15 -> unknown UTC"
+    )

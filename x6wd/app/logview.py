@@ -130,14 +130,17 @@ class TimeJump:
     before_utc: str = ""  # UTC either side: an NMEA log's fixes, a recording's t_utc
     after_utc: str = ""
     file: str = ""  # a recording's part holding ``line``, when not the file plotted
+    # on the time axis: the last segment's last time, the next one's first (the step's ends)
+    t_before_s: float = math.nan
+    t_after_s: float = math.nan
 
     def describe(self) -> str:
         """In words, as the page's facts and ``x6wd plot`` say it."""
         way = "back" if self.step_s < 0 else "forward"
         where = f"line {self.line}" + (f" of {self.file}" if self.file else "")
         text = f"{where}: time went {way} {_duration(abs(self.step_s))}"
-        if self.before_utc and self.after_utc:
-            text += f", {self.before_utc} -> {self.after_utc} UTC"
+        if self.before_utc or self.after_utc:
+            text += f", {self.before_utc or 'unknown'} -> {self.after_utc or 'unknown'} UTC"
         return text
 
     def to_json(self) -> dict[str, Any]:
@@ -301,7 +304,13 @@ def _gps_from_decoder(
     t_last = 0.0
     for line, (t_s, data) in enumerate(chunks, start=1):
         if order is not None:
+            n = len(order.jumps)
             t_s = order.place(t_s, line)
+            if len(order.jumps) > n:
+                # The epoch in progress is the last segment's: closed before the next one's
+                # first sentence, whose date the decoder would otherwise give it (a cold
+                # start's 23:59:50 on 2006-12-16 came out as 2010-09-30, the next RMC's day).
+                keep(decoder.flush(t_last))
         t_last = t_s
         raw.t_first = t_s if raw.t_first is None else raw.t_first
         keep(decoder.feed(data, t_s))
@@ -335,7 +344,10 @@ class _FileOrder:
         if step < -self._jitter_s or step > TIME_JUMP_S:
             gap = statistics.median(self._steps) if self._steps else 1.0
             self.offset_s = self._last + gap - t
-            self.jumps.append(TimeJump(self._last + gap / 2, line, step, file=file))
+            self.jumps.append(
+                TimeJump(self._last + gap / 2, line, step, file=file,
+                         t_before_s=self._last, t_after_s=t + self.offset_s)
+            )  # fmt: skip
         elif step > 0:
             self._steps.append(step)
         self._prev, self._last = t, t + self.offset_s
@@ -343,15 +355,20 @@ class _FileOrder:
 
 
 def _date_jumps(jumps: list[TimeJump], fixes: Sequence[GpsFix]) -> None:
-    """Each jump's last dated fix before it and first after it, within the segments beside
-    it (what the receiver said the time was either side)."""
-    dated = [f for f in fixes if f.utc is not None]
-    bounds = [-math.inf, *(j.t_s for j in jumps), math.inf]
-    for k, j in enumerate(jumps):
-        before = [f for f in dated if bounds[k] < f.t_s < j.t_s]
-        after = [f for f in dated if j.t_s < f.t_s < bounds[k + 2]]
-        if before and after:
-            j.before_utc, j.after_utc = _utc_text(before[-1]), _utc_text(after[0])
+    """Each jump's receiver UTC either side: of the dated fix at the last time before it and
+    of the one at the first time after it, the times its step is between. A side whose time
+    came from a sentence that made no fix (a damaged one) is left unsaid, not taken from a
+    later fix the step was not measured to."""
+    last_at: dict[float, GpsFix] = {}
+    first_at: dict[float, GpsFix] = {}
+    for f in fixes:
+        if f.utc is not None:
+            last_at[f.t_s] = f
+            first_at.setdefault(f.t_s, f)
+    for j in jumps:
+        before, after = last_at.get(j.t_before_s), first_at.get(j.t_after_s)
+        j.before_utc = _utc_text(before) if before is not None else ""
+        j.after_utc = _utc_text(after) if after is not None else ""
 
 
 def _utc_text(fix: GpsFix) -> str:
