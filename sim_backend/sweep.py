@@ -622,7 +622,9 @@ def split_done(
     for run in runs:
         rec = store.load(run.run_id)
         if rec is not None and is_done(rec, run, retry_failed):
-            records[run.run_id] = rec
+            # the same cell and seed, labelled as this plan has it (a key moved from [grid]
+            # to [set] keeps the run, not its old column)
+            records[run.run_id] = {**rec, "params": run.cell.params}
         else:
             todo.append(run)
     return records, todo

@@ -188,3 +188,17 @@ def test_a_sweep_over_the_run_limit_is_refused_before_planning(
     err = capsys.readouterr().err
     assert named in err and "--max-runs" in err, err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_key_moved_from_the_grid_to_set_relabels_the_runs_it_keeps(tmp_path: Path) -> None:
+    # an outside audit: the same cell and seed were reused (right) but the summary still
+    # labelled them with the old grid key
+    from x6wd.app.cli import main
+
+    out = tmp_path / "o"
+    f = sweep_file(tmp_path, "seeds = 1\n[grid]\nduration_s = [5.0]\n")
+    assert main(["sweep", str(f), "--out", str(out), "--workers", "1", "--quiet"]) == 0
+    assert "duration_s=5" in (out / "summary.md").read_text()
+    f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n")
+    assert main(["sweep", str(f), "--out", str(out), "--quiet", "--no-figures"]) == 0
+    assert "duration_s=5" not in (out / "summary.md").read_text()
