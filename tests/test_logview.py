@@ -294,7 +294,9 @@ def test_bad_input_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixt
     bad_truth = tmp_path / "truth.csv"
     bad_truth.write_text("time,x\n1,2\n")
     assert cli_main(["plot", str(rec_path), "--out", str(tmp_path)]) == 2
-    assert "truth.csv: a true track needs numeric columns t_s, lat, lon" in capsys.readouterr().err
+    assert "truth.csv line 1: a true track needs columns t_s, lat, lon, got time, x" in (
+        capsys.readouterr().err
+    )
 
 
 def test_parts_bad_lines_and_a_cut_last_line(sim_run: Path, tmp_path: Path) -> None:
@@ -633,4 +635,35 @@ def test_a_jumps_utc_is_the_receivers_at_the_step_s_two_ends() -> None:
     )
     assert said[48] == (
         "line 48: time went forward 15877.0 s (4 h 25 min), 2010-09-30 19:35:15 -> unknown UTC"
+    )
+
+
+def test_a_true_track_cut_mid_line_is_read_and_a_bad_row_named(
+    sim_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Found by an outside audit: a truth.csv cut mid-line (a run that lost power) was
+    # refused whole, and the message named no line ("could not convert string to float:
+    # ''"). Now the torn last line is skipped and counted, as a recording's is; a bad row
+    # elsewhere is refused naming its line.
+    text = (sim_run / "truth.csv").read_text()
+    rows = text.count("\n") - 1
+    rec = tmp_path / "recording.jsonl"
+    rec.write_bytes((sim_run / "recording.jsonl").read_bytes())
+    truth = tmp_path / "truth.csv"
+    head, last = text[: text.rindex("\n", 0, -1) + 1], text[text.rindex("\n", 0, -1) + 1 :]
+    lon_at = last.index(",-1.") + 1
+    for cut in (last[:lon_at], last[: lon_at + 3]):  # lon empty, lon cut to "-1."
+        truth.write_text(head + cut)
+        assert cli_main(["plot", str(rec), "--out", str(tmp_path), "--format", "html"]) == 0
+        assert "skipped 1 truncated truth lines" in capsys.readouterr().err
+        data = page_data((tmp_path / "recording.html").read_text())
+        assert data["counts"]["truncated_truth_lines"] == 1
+        assert len(data["track"]["true track"]["east_m"]) == min(rows - 1, logview.MAX_POINTS)
+        assert data["error"]  # drawn
+    lines = text.splitlines(keepends=True)
+    lines[7] = lines[7].replace(",", ",x", 1)
+    truth.write_text("".join(lines))
+    assert cli_main(["plot", str(rec), "--out", str(tmp_path), "--format", "html"]) == 2
+    assert "truth.csv line 8: a true track needs numbers in t_s, lat, lon" in (
+        capsys.readouterr().err
     )

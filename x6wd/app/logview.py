@@ -280,6 +280,7 @@ LOST_COUNTS = frozenset(
         "invalid_sentences",
         "nonfinite_positions",
         "bad_records",
+        "truncated_truth_lines",
     }
 )
 """The counts of :attr:`LogView.counts` that say input was skipped (``x6wd plot`` says so)."""
@@ -530,24 +531,42 @@ def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadS
     return stats, bad_records, unknown
 
 
-def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t s, lat deg, lon deg) of a true track CSV with columns t_s, lat, lon."""
+def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """(t s, lat deg, lon deg, torn last lines: 0 or 1) of a true track CSV with columns
+    t_s, lat, lon. A last line without its newline that does not read (a run that lost
+    power while writing) is skipped and counted, as a recording's is; any other bad row is
+    a :class:`ParseError` naming its line."""
     try:
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
-    except OSError as exc:
+        with open(path, newline="", encoding="utf-8") as f:
+            text = f.read()
+    except (OSError, UnicodeDecodeError) as exc:
         raise DeviceUnavailable(f"cannot open true track {path}: {exc}") from exc
-    try:
-        t = np.array([float(r["t_s"]) for r in rows])
-        lat = np.array([float(r["lat"]) for r in rows])
-        lon = np.array([float(r["lon"]) for r in rows])
-    except (KeyError, TypeError, ValueError) as exc:
+    reader = csv.DictReader(text.splitlines(keepends=True))
+    if not {"t_s", "lat", "lon"} <= set(reader.fieldnames or ()):
         raise ParseError(
-            f"{path}: a true track needs numeric columns t_s, lat, lon ({exc})"
-        ) from exc
-    if len(t) < 2 or np.any(np.diff(t) < 0):
+            f"{path} line 1: a true track needs columns t_s, lat, lon, "
+            f"got {', '.join(reader.fieldnames or ()) or 'nothing'}"
+        )
+    rows: list[tuple[float, float, float]] = []
+    torn = 0
+    unterminated = text.count("\n") + 1 if not text.endswith("\n") else -1
+    for r in reader:
+        try:
+            if None in r.values() and reader.line_num == unterminated:
+                raise ValueError("columns missing")  # cut: its numbers may be cut too
+            rows.append((float(r["t_s"]), float(r["lat"]), float(r["lon"])))
+        except (TypeError, ValueError) as exc:  # TypeError: a short row's missing value
+            if reader.line_num == unterminated:
+                torn += 1  # the last line, cut while written
+                continue
+            raise ParseError(
+                f"{path} line {reader.line_num}: a true track needs numbers in t_s, lat, lon"
+                f" ({exc})"
+            ) from exc
+    a = np.array(rows, dtype=float).reshape(-1, 3)
+    if len(a) < 2 or np.any(np.diff(a[:, 0]) < 0):
         raise ParseError(f"{path}: a true track needs at least two rows in time order")
-    return t, lat, lon
+    return a[:, 0], a[:, 1], a[:, 2], torn
 
 
 def default_truth(recording: Path) -> Path | None:
@@ -624,7 +643,9 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) ->
     good = [f for f in good if _finite(f.lat_deg, f.lon_deg)]
     est = [d for d in est if _finite(d.get("filt_lat_deg"), d.get("filt_lon_deg"))]
     view.counts["nonfinite_positions"] = n - len(good) - len(est)
-    tt = _read_truth(truth) if truth is not None else None
+    tt = None
+    if truth is not None:
+        *tt, view.counts["truncated_truth_lines"] = _read_truth(truth)
     if good:
         origin = (good[0].lat_deg, good[0].lon_deg)
     elif tt is not None:
