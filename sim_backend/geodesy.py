@@ -181,6 +181,13 @@ def leap_seconds(utc: datetime) -> int:
     return n
 
 
+def leap_midnights_after(utc: datetime) -> list[datetime]:
+    """The UTC midnights later than ``utc`` that follow an inserted leap second (23:59:60
+    of the day before), in order."""
+    utc = _as_utc(utc)
+    return [start for start, _ in _LEAP_TABLE if start > utc]
+
+
 def utc_to_gps_seconds(utc: datetime) -> float:
     """Aware UTC datetime -> continuous GPS seconds since 1980-01-06 (leap seconds added)."""
     utc = _as_utc(utc)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import operator
 from collections.abc import Iterable, Sequence
-from datetime import datetime, timedelta
+from datetime import date, datetime, timedelta
 from typing import Any, Protocol
 
 import numpy as np
@@ -40,6 +40,7 @@ from drivers.nmea import (
     sentence,
 )
 from sim_backend.epoch import GnssEpoch, SimSat
+from sim_backend.geodesy import leap_midnights_after
 from sim_backend.textblocks import (
     compact,
     const_block,
@@ -212,20 +213,29 @@ class NmeaFormatter:
         """The ``$GPTXT`` boot banner (printed once when the receiver starts)."""
         return b"".join(sentence(b) for b in NEO5_BANNER)
 
-    def _time(self, utc: datetime) -> tuple[str, str]:
+    def _time(self, utc: datetime, start_utc: datetime) -> tuple[str, str]:
         """(``hhmmss.ss``, ``ddmmyy``) of ``utc`` rounded to the printed decimals, the
-        rounding carried into the seconds and on into the date."""
+        rounding carried into the seconds and on into the date. ``utc`` is read on the
+        scenario's clock from ``start_utc`` (``GnssEpoch.utc``), which has no leap seconds:
+        one inserted since ``start_utc`` prints as 23:59:60 (:func:`_utc_ticks`)."""
         ts = self._tscale
         us = ((utc.hour * 60 + utc.minute) * 60 + utc.second) * 1_000_000 + utc.microsecond
         unit = 1_000_000 // ts
         ticks = (us + unit // 2) // unit
+        leap = False
+        starts = _leap_starts(start_utc, utc.date(), ts)
+        if starts:
+            shifted, in_leap = _utc_ticks(np.array([ticks]), starts, ts)
+            ticks, leap = int(shifted[0]), bool(in_leap[0])
         # A time that rounds up to midnight is the next day's 000000.00: the date comes from
         # the rounded time, so the (time, date) pair never steps back 24 h.
         days, ticks = divmod(ticks, 86400 * ts)
-        day = utc.date() + timedelta(days=days)
         sec_total, frac = divmod(ticks, ts)
         h, rem = divmod(sec_total, 3600)
         m, s = divmod(rem, 60)
+        if leap:  # the first second of the day after it: print the day before's 23:59:60
+            days, h, m, s = days - 1, 23, 59, 60
+        day = utc.date() + timedelta(days=days)
         hms = f"{h:02d}{m:02d}{s:02d}.{frac:0{self.time_decimals}d}"
         return hms, f"{day.day:02d}{day.month:02d}{day.year % 100:02d}"
 
@@ -299,20 +309,22 @@ class NmeaFormatter:
     def _bodies(self, ep: GnssEpoch, sats: Sequence[SimSat], gsv: list[str]) -> list[str]:
         if ep.valid or any(s.snr_dbhz is not None for s in sats):
             self.time_known = True
+        start_utc = ep.utc - timedelta(seconds=ep.t_s)  # GnssBatch: start_utc + t_s
         if not ep.valid:
-            return self._no_fix(ep.utc, gsv)
+            return self._no_fix(ep.utc, start_utc, gsv)
         # GSA lists the used satellites in the order given: the model's, ascending PRN (a
         # real NEO-5 prints its tracking channels' order, which is not modelled).
         used = [s.prn for s in ep.satellites if s.used]
         return self._fix_bodies(
-            ep.utc, ep.lat_deg, ep.lon_deg, ep.speed_mps, ep.course_deg,
+            *self._time(ep.utc, start_utc), ep.lat_deg, ep.lon_deg, ep.speed_mps, ep.course_deg,
             ep.quality if ep.quality > 0 else 1, ep.mode if ep.mode in (2, 3) else 3,
             used, ep.hdop, ep.pdop, ep.vdop, ep.alt_m, ep.geoid_sep_m, gsv,
         )  # fmt: skip
 
     def _fix_bodies(
         self,
-        utc: datetime,
+        hms: str,
+        dmy: str,
         lat_deg: float,
         lon_deg: float,
         speed_mps: float,
@@ -327,7 +339,6 @@ class NmeaFormatter:
         geoid_sep_m: float,
         gsv: list[str],
     ) -> list[str]:
-        hms, dmy = self._time(utc)
         lat, north = _coord(lat_deg, 2, self.minute_decimals, self._scale)
         lon, east = _coord(lon_deg, 3, self.minute_decimals, self._scale)
         ns = "N" if north else "S"
@@ -351,9 +362,9 @@ class NmeaFormatter:
             self._gll % (lat, ns, lon, ew, hms),
         ]
 
-    def _no_fix(self, utc: datetime, gsv: list[str]) -> list[str]:
+    def _no_fix(self, utc: datetime, start_utc: datetime, gsv: list[str]) -> list[str]:
         if self.time_known:
-            hms, dmy = self._time(utc)
+            hms, dmy = self._time(utc, start_utc)
         else:
             hms, dmy = "", ""
         return self._no_fix_bodies(hms, dmy, gsv)
@@ -528,11 +539,19 @@ class NmeaFormatter:
         start_us = ((s0.hour * 60 + s0.minute) * 60 + s0.second) * 1_000_000 + s0.microsecond
         total = start_us + np.rint(t_s * 1e6).astype(np.int64)
         unit = 1_000_000 // ts
+        ticks = (total + unit // 2) // unit
+        starts = _leap_starts(s0, s0.date(), ts)
+        leap = None
+        if starts:
+            ticks, leap = _utc_ticks(ticks, starts, ts)
         # the day from the rounded time (a round-up to midnight is the next day's), as _time
-        day, ticks = np.divmod((total + unit // 2) // unit, 86400 * ts)
+        day, ticks = np.divmod(ticks, 86400 * ts)
         sec_total, frac = np.divmod(ticks, ts)
         hh, rem = np.divmod(sec_total, 3600)
         mm, ss = np.divmod(rem, 60)
+        if leap is not None:  # as _time: the day before's 23:59:60
+            day, hh, mm = day - leap, np.where(leap, 23, hh), np.where(leap, 59, mm)
+            ss = np.where(leap, 60, ss)
         d2 = _D2_BLOCK
         hms = joined(
             (d2[hh], d2[mm], d2[ss], const_block(".", t_s.shape[0]),
@@ -578,6 +597,32 @@ class NmeaFormatter:
         return _assemble(
             [self._bodies(ep, sats, gsv) for ep, sats, gsv in zip(eps, selected, gsvs, strict=True)]
         )
+
+
+def _leap_starts(start_utc: datetime, midnight: date, ticks_per_s: int) -> list[int]:
+    """Where each leap second inserted after ``start_utc`` begins, in ticks (1/ticks_per_s s)
+    from ``midnight`` on the scenario's clock (``start_utc`` + t). That clock counts no leap
+    seconds, as GPS time does, so the k-th (from 0) begins k s after its UTC midnight."""
+    return [
+        ((m.date() - midnight).days * 86400 + k) * ticks_per_s
+        for k, m in enumerate(leap_midnights_after(start_utc))
+    ]
+
+
+def _utc_ticks(
+    ticks: np.ndarray, leap_starts: Sequence[int], ticks_per_s: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Scenario-clock ticks as UTC ticks (a second fewer after each leap second), and which
+    fall inside a leap second: those come out as the first second of the day after it,
+    printed as the day before's 23:59:60: every label then names one second of GPS time
+    (repeating 23:59:59, as some receivers do, would print one label twice), and the NMEA
+    seconds field allows 60 (``drivers.nmea.parse_time`` reads it)."""
+    shift = np.zeros(ticks.shape, dtype=np.int64)
+    leap = np.zeros(ticks.shape, dtype=bool)
+    for b in leap_starts:
+        shift += ticks >= b + ticks_per_s
+        leap |= (ticks >= b) & (ticks < b + ticks_per_s)
+    return ticks - shift * ticks_per_s, leap
 
 
 def _sat_fields(prn: np.ndarray, el: np.ndarray, az: np.ndarray, snr: np.ndarray) -> list[str]:
