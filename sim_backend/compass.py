@@ -354,8 +354,9 @@ class SimCmps10:
         self._t_s = t_s
         self._pitch_deg = max(-MAX_TILT_DEG, min(MAX_TILT_DEG, pitch_deg))
         self._roll_deg = max(-MAX_TILT_DEG, min(MAX_TILT_DEG, roll_deg))
-        # Specific force at rest: the reaction to gravity, -g along NED down, in body axes,
-        # i.e. -(rot.T @ [0, 0, -1]) g: the rotation's bottom row.
+        # The gravity direction (NED down, +1 g) in body axes, rot.T @ [0, 0, 1]: the
+        # rotation's bottom row, so level reads z = +1000 (the module's convention), not
+        # the specific force a real accelerometer senses (the opposite sign).
         self._write_registers(
             (mx, my, mz),
             (rot[6] * ACC_COUNTS_PER_G, rot[7] * ACC_COUNTS_PER_G, rot[8] * ACC_COUNTS_PER_G),
