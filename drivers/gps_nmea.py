@@ -1581,16 +1581,16 @@ class GpsDecoder:
 
     def _on_rmc(self, rmc: _Rmc, out: list[GpsOutput]) -> None:
         self._rmcs_seen += 1
-        if rmc.day is not None and rmc.tod_us is not None:
-            self._date = rmc.day
-            self._date_tod_us = rmc.tod_us
         if rmc.tod_us is None:
             if self._epochs_without_gga > _GGA_MEMORY_EPOCHS:
                 self._emit(None, rmc, out)
             return
         if rmc.tod_us != self._tod_us:
             self._epochs_without_gga += 1
-        self._on_time(rmc.tod_us, out)
+        self._on_time(rmc.tod_us, out)  # an epoch of another time closes with its own date
+        if rmc.day is not None:
+            self._date = rmc.day
+            self._date_tod_us = rmc.tod_us
         gga = self._gga
         if gga is not None and gga.tod_us == rmc.tod_us:
             self._gga = None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import io
 import json
 import operator
 import re
@@ -952,3 +953,19 @@ def test_time_tables_cover_every_minute_of_the_day_and_no_more() -> None:
                     text = f"{hh:02d}{mm:02d}{ss:02d}{frac}"
                     expected = _parsed(parse_time.__wrapped__, text)
                     assert _parsed(gps_nmea._time_of_day, text) == expected
+
+
+def test_an_epoch_closed_by_an_rmc_of_another_time_keeps_its_own_date() -> None:
+    # Found by an outside check on a real cold start: the 23:59:50 epoch of 2006-12-16 was
+    # still open when an RMC of 19:35:15, 2010-09-30 came; its date was taken first and the
+    # 23:59:50 fix was dated 2010-09-30. The same order in the fast decoder of x6wd decode.
+    from x6wd.app.decode import decode_stream
+
+    data = (NMEA_DIR / "gp-320fw-2019-04-07-coldboot.log").read_bytes()
+    times = [f.utc.isoformat() for f in _fixes(_decode_all(data)[1]) if f.utc is not None]
+    assert "2006-12-16T23:59:50+00:00" in times, times[:8]
+    assert not any(t.startswith("2010-09-30T23:59:50") for t in times)
+    out = io.StringIO()
+    decode_stream(io.BytesIO(data), out)
+    tpv = [json.loads(x).get("time") for x in out.getvalue().splitlines() if '"TPV"' in x]
+    assert "2006-12-16T23:59:50.000Z" in tpv and "2010-09-30T19:35:15.000Z" in tpv

@@ -1205,16 +1205,16 @@ class ReportDecoder(GpsDecoder):
                             if self._epochs_without_gga > _GGA_MEMORY_EPOCHS:
                                 emit(None, event, out)
                             continue
-                        if day is not None:
-                            self._date = day
-                            self._date_tod_us = tod
                         if tod != self._tod_us:
                             self._epochs_without_gga += 1
                             if self._gga is not None or self._rmc is not None:
-                                self._close_epoch(out)
+                                self._close_epoch(out)  # with its own date
                             self._tod_us = tod
                             self._gsa_fresh = False
                             self._epoch_idx += 1
+                        if day is not None:
+                            self._date = day
+                            self._date_tod_us = tod
                         gga = self._gga
                         if gga is not None and gga[0] == tod:
                             self._gga = None
@@ -1517,16 +1517,16 @@ class ReportDecoder(GpsDecoder):
         self._rmcs_seen += 1
         tod = rmc[0]
         day = rmc[3][1]
-        if day is not None and tod is not None:
-            self._date = day
-            self._date_tod_us = tod
         if tod is None:
             if self._epochs_without_gga > _GGA_MEMORY_EPOCHS:
                 self._emit(None, rmc, out)
             return
         if tod != self._tod_us:
             self._epochs_without_gga += 1
-            self._on_time(tod, out)
+            self._on_time(tod, out)  # an epoch of another time closes with its own date
+        if day is not None:
+            self._date = day
+            self._date_tod_us = tod
         gga = self._gga
         if gga is not None and gga[0] == tod:
             self._gga = None
