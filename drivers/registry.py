@@ -152,6 +152,9 @@ SCHEMES: dict[str, dict[str, dict[str, Any]]] = {
     },
 }
 
+DEFAULT_MOTOR_WATCHDOG_MS = 500
+"""The board's watchdog period (ms) when neither [motors] watchdog_ms nor the URL sets one."""
+
 DEFAULTS: dict[str, dict[str, dict[str, Any]]] = {
     "gps": {
         "serial": {"baud": 9600, "timeout": 0.1},
@@ -160,8 +163,13 @@ DEFAULTS: dict[str, dict[str, dict[str, Any]]] = {
     },
     "compass": {"i2c": {"retries": 3, "stale_after": 5}},
     "motors": {
-        "serial": {"baud": 115200, "watchdog_ms": 500, "ack_timeout": 0.1, "retries": 1},
-        "tcp": {"watchdog_ms": 500, "ack_timeout": 0.1, "retries": 1},
+        "serial": {
+            "baud": 115200,
+            "watchdog_ms": DEFAULT_MOTOR_WATCHDOG_MS,
+            "ack_timeout": 0.1,
+            "retries": 1,
+        },
+        "tcp": {"watchdog_ms": DEFAULT_MOTOR_WATCHDOG_MS, "ack_timeout": 0.1, "retries": 1},
     },
 }
 
@@ -496,10 +504,23 @@ def open_compass(url: str, devices: Devices | None = None) -> Cmps10:
     return compass
 
 
-def open_motors(url: str, devices: Devices | None = None) -> MotorLink:
+def open_motors(
+    url: str, devices: Devices | None = None, *, watchdog_ms: int | None = None
+) -> MotorLink:
     """Open the motor link named by ``url`` (serial, tcp, log, sim; a plug-in scheme through
-    ``devices``)."""
+    ``devices``). ``watchdog_ms`` ([motors] watchdog_ms): the board's watchdog period (ms)
+    unless the URL names its own ``watchdog_ms``; the two differing, the default aside, is a
+    ConfigError naming both."""
     dev = parse_url(url, "motors")
+    if watchdog_ms is not None and "watchdog_ms" in dev.options:
+        in_url = "watchdog_ms" in dict(parse_qsl(urlsplit(url).query))
+        if not in_url:
+            dev.options["watchdog_ms"] = int(watchdog_ms)
+        elif watchdog_ms not in (DEFAULT_MOTOR_WATCHDOG_MS, dev.options["watchdog_ms"]):
+            raise ConfigError(
+                f"motors.watchdog_ms: {watchdog_ms} ms, but motors.url says"
+                f" watchdog_ms={dev.options['watchdog_ms']}: set one of them"
+            )
     if dev.scheme in PLUGIN_SCHEMES:
         handler, backend = _plugin(dev, devices)
         link: MotorLink = handler.open_motors(dev, backend)

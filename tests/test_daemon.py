@@ -27,6 +27,7 @@ from x6wd.app.daemon import Daemon, distance_m
 from x6wd.core.config import (
     Config,
     GpsdConfig,
+    MotorsConfig,
     RecorderConfig,
     SafetyConfig,
     ServerConfig,
@@ -187,6 +188,32 @@ def test_lost_motor_link_holds_the_mission(tmp_path: Path, run_daemon) -> None:
     finally:
         board_stop.set()
         server.join(5)  # before closing: the thread would read whatever reuses the fd number
+        os.close(master)
+        os.close(slave)
+
+
+def test_the_configured_watchdog_reaches_the_motor_board(tmp_path: Path, run_daemon) -> None:
+    # Found by an outside check: [motors] watchdog_ms only set the daemon's keep-alive; the
+    # board was always sent W 500 (the URL option's default), so an owner's 100 ms (a faster
+    # stop on a lost link) was 500 ms on the board
+    from drivers.motors import MotorBoard, serve_board_fd
+
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    board = MotorBoard(watchdog_ms=500)
+    board_stop = threading.Event()
+    server = threading.Thread(target=serve_board_fd, args=(master, board, board_stop), daemon=True)
+    server.start()
+    cfg = hil_config(tmp_path)
+    motors = MotorsConfig(url=f"serial://{os.ttyname(slave)}", watchdog_ms=2000)
+    try:
+        r = run_daemon(Daemon(dataclasses.replace(cfg, motors=motors)))
+        wait_for(lambda: board.watchdog_ms == 2000, 5, "W 2000 on the board")
+        assert r.stop() == 0
+    finally:
+        board_stop.set()
+        server.join(5)
         os.close(master)
         os.close(slave)
 

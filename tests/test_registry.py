@@ -371,3 +371,27 @@ def test_check_available_names_the_problem(tmp_path: Path) -> None:
 def test_check_available_refuses_a_device_this_user_may_not_use(tmp_path: Path) -> None:
     with pytest.raises(UrlError, match="may not read and write"):
         check_available("serial:///dev/mem", "gps")
+
+
+@pytest.mark.integration
+def test_the_configured_watchdog_is_the_boards_unless_the_url_sets_one(
+    pty_pair: tuple[int, str],
+) -> None:
+    master, name = pty_pair
+    board, stop = MotorBoard(), threading.Event()
+    thread = threading.Thread(target=serve_board_fd, args=(master, board, stop), daemon=True)
+    thread.start()
+    try:
+        for url, config_ms, board_ms in (
+            (f"serial://{name}", 2000, 2000),  # [motors] watchdog_ms reaches the board
+            (f"serial://{name}?watchdog_ms=750", 500, 750),  # the URL's, over the default
+            (f"serial://{name}?watchdog_ms=750", 750, 750),
+        ):
+            link = open_motors(url, watchdog_ms=config_ms)
+            assert isinstance(link, SerialMotorLink) and board.watchdog_ms == board_ms
+            link.close()
+        with pytest.raises(ConfigError, match=r"^motors.watchdog_ms: 100 ms, but motors.url"):
+            open_motors(f"serial://{name}?watchdog_ms=750", watchdog_ms=100)
+    finally:
+        stop.set()
+        thread.join(5)

@@ -1083,8 +1083,11 @@ class Daemon:
         from drivers.gps_io import GpsReader
 
         cfg = self.config
-        link = await asyncio.to_thread(registry.open_motors, cfg.motors.url, self.devices)
-        keepalive_s = max(0.02, cfg.motors.watchdog_ms / 3000.0)
+        link = await asyncio.to_thread(
+            registry.open_motors, cfg.motors.url, self.devices, watchdog_ms=cfg.motors.watchdog_ms
+        )
+        # three keep-alives per watchdog period: the board's (the URL may set its own)
+        keepalive_s = max(0.02, getattr(link, "watchdog_ms", cfg.motors.watchdog_ms) / 3000.0)
         self.motors = _MotorWorker(
             link,
             keepalive_s,

@@ -48,7 +48,8 @@ class CompassConfig:
 @dataclass(frozen=True)
 class MotorsConfig:
     url: str = "log://"
-    watchdog_ms: int = field(default=500, metadata=_rng(50, 10000))
+    # the board's watchdog (ms): sent to it as W at start; the URL's watchdog_ms overrides
+    watchdog_ms: int = field(default=500, metadata=_rng(50, 60_000))
 
 
 @dataclass(frozen=True)
