@@ -127,6 +127,21 @@ def files_under(path: Path) -> list[Path]:
             "",
             ["console.port: 47711 is server.port too"],
         ),
+        # the GPS and the motor board on one line (an outside check: the daemon started,
+        # the GPS flapped and the motor commands went down the GPS line)
+        (
+            {
+                "gps": {"url": "serial:///dev/ttyS0?baud=9600"},
+                "motors": {"url": "serial:///dev/../dev/ttyS0?baud=115200"},
+            },
+            "",
+            ["motors.url: serial:///dev/../dev/ttyS0?baud=115200 opens /dev/ttyS0, as gps.url"],
+        ),
+        (
+            {"gps": {"url": "tcp://Robot.local:4001"}, "motors": {"url": "tcp://robot.local:4001"}},
+            "",
+            ["as gps.url does: each device needs a line of its own"],
+        ),
     ],
 )
 def test_bad_setting_is_one_line_and_exit_2(

@@ -10,9 +10,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import os
 import tomllib
 import types
 import typing
+import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -537,6 +539,31 @@ def _check_ports(cfg: Config) -> None:
             )
 
 
+def _device_node(url: str) -> str | None:
+    """The node a serial or tcp device URL opens (a resolved path, or host:port), else None
+    (also for a malformed URL: the device's own check names what is wrong with it)."""
+    try:
+        parts = urllib.parse.urlsplit(url)
+        if parts.scheme == "serial" and parts.path:
+            return os.path.realpath(urllib.parse.unquote(parts.path))
+    except ValueError:
+        return None
+    if parts.scheme == "tcp" and parts.netloc:
+        return "tcp://" + parts.netloc.lower()
+    return None
+
+
+def _check_devices(cfg: Config) -> None:
+    """The GPS and the motor board on one node: a ConfigError naming both keys (each reader
+    would take the other's bytes, the motor commands going down the GPS line)."""
+    gps, motors = _device_node(cfg.gps.url), _device_node(cfg.motors.url)
+    if gps is not None and gps == motors:
+        raise ConfigError(
+            f"motors.url: {cfg.motors.url} opens {gps}, as gps.url does: each device needs"
+            " a line of its own"
+        )
+
+
 def load(path: str | Path) -> Config:
     """Read and validate a TOML configuration file (UTF-8, as TOML requires).
 
@@ -563,6 +590,7 @@ def load(path: str | Path) -> Config:
     try:
         cfg = build(Config, data)
         _check_ports(cfg)
+        _check_devices(cfg)
     except ConfigError as exc:
         raise ConfigError(f"{p}: {exc}") from exc
     if not cfg.sim.scenario:
