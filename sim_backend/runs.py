@@ -300,9 +300,12 @@ def straight_length_m(world: World) -> float:
 
 def dispersion_m(dlat_deg: np.ndarray, dlon_deg: np.ndarray) -> tuple[float, float]:
     """The paper's ± half spreads (m, latitude and longitude) of readings minus truth (deg),
-    two-radius converted; NaN for no readings."""
+    two-radius converted; NaN for no readings. A longitude difference is taken the short
+    way round: a fix at -179.99999 against a truth of +179.99999 is 0.00002 deg off, not
+    360 (it read half the earth's circumference on a route over the 180th meridian)."""
     if len(dlat_deg) == 0:
         return math.nan, math.nan
+    dlon_deg = (np.asarray(dlon_deg, dtype=float) + 180.0) % 360.0 - 180.0
     half_lat = math.radians(float(np.max(dlat_deg) - np.min(dlat_deg))) * R2_M / 2.0
     half_lon = math.radians(float(np.max(dlon_deg) - np.min(dlon_deg))) * R1_M / 2.0
     return half_lat, half_lon

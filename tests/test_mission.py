@@ -642,3 +642,14 @@ def test_compass_lag_noise_and_tilt_layers(tmp_path: Path) -> None:
     diff = (np.array(got) - want + 180.0) % 360.0 - 180.0
     assert np.max(np.abs(diff)) < 1e-6
     assert np.max(np.abs((want - magnetic + 180.0) % 360.0 - 180.0)) > 3.0
+
+
+def test_the_dispersion_across_the_180th_meridian_is_the_short_way_round() -> None:
+    # an outside check: a route over the 180th meridian read +-20,037,581 m of longitude
+    # dispersion (a fix at -179.99999 against a truth of +179.99999 taken as 360 deg off)
+    from sim_backend.runs import dispersion_m
+
+    dlat = np.array([0.0, 1e-5, -1e-5])
+    same = dispersion_m(dlat, np.array([1e-5, -1e-5, 0.0]))
+    across = dispersion_m(dlat, np.array([1e-5 - 360.0, -1e-5, 360.0]))
+    assert across == pytest.approx(same, abs=1e-6) and same[1] < 2.0
