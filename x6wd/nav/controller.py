@@ -317,7 +317,10 @@ class Controller:
                 rec.right_counts - prev.right_counts,
             )
             self._wheel_m += 0.5 * (abs(dl) + abs(dr))
-        self._source.on_odometry(rec)
+        att = self._att
+        fresh = att is not None and self._att_ok and abs(t - att.t_s) <= ODOMETRY_FRESH_S
+        pitch = att.pitch_deg if fresh and att is not None and _finite(att.pitch_deg) else 0.0
+        self._source.on_odometry(rec, pitch)
         return self._step(t, "odometry")
 
     def set_declination(self, declination_deg: float, t_s: float) -> list[ControllerOutput]:

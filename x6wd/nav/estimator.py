@@ -543,9 +543,12 @@ class Estimator:
         self._p = f @ self._p @ f.T + q
 
     # ------------------------------------------------------------------ inputs
-    def on_odometry(self, t_s: float, d_left_m: float, d_right_m: float) -> None:
+    def on_odometry(
+        self, t_s: float, d_left_m: float, d_right_m: float, slip_m: float = 0.0
+    ) -> None:
         """Wheel travel (m, forward positive) on each side since the previous increment, which
-        ended at ``t_s`` (s). Mode ODOMETRY only."""
+        ended at ``t_s`` (s). Mode ODOMETRY only. ``slip_m`` (m²/m) is added to each side's
+        ``k_*_m`` for this increment: the travel's extra uncertainty on a slope."""
         odo = self.cfg.odometry
         if self.cfg.mode != Mode.ODOMETRY or odo is None:
             raise EstimatorError("on_odometry needs mode odometry")
@@ -611,7 +614,8 @@ class Estimator:
         j[N, 0] = j[N, 1] = 0.5 * c
         j[PSI, 0] = g_a
         j[PSI, 1] = g_b
-        su = np.array([[odo.k_left_m * abs(dl), 0.0], [0.0, odo.k_right_m * abs(dr)]])  # diag
+        k_l, k_r = odo.k_left_m + slip_m, odo.k_right_m + slip_m
+        su = np.array([[k_l * abs(dl), 0.0], [0.0, k_r * abs(dr)]])  # diag
         p = f @ self._p @ f.T + j @ su @ j.T
         p[PSI, PSI] += odo.k_slip_rad * abs(dpsi)
         # speed and yaw rate from the whole increment's rates
@@ -619,8 +623,8 @@ class Estimator:
         if span > 0:
             x[V] = 0.5 * (dl + dr) / span
             x[W] = (kt * (dl - dr) / odo.track_m + ba * 0.5 * (dl + dr)) / span
-            var_v = 0.25 * (odo.k_left_m * abs(dl) + odo.k_right_m * abs(dr)) / span**2
-            var_w = (odo.k_left_m * abs(dl) + odo.k_right_m * abs(dr)) / (odo.track_m * span) ** 2
+            var_v = 0.25 * (k_l * abs(dl) + k_r * abs(dr)) / span**2
+            var_w = (k_l * abs(dl) + k_r * abs(dr)) / (odo.track_m * span) ** 2
             var_w += odo.k_slip_rad * abs(dl - dr) / odo.track_m / span**2
             p[V, :] = p[:, V] = 0.0
             p[V, V] = var_v + self._q_v * span
