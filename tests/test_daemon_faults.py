@@ -201,7 +201,7 @@ def buggy(monkeypatch: pytest.MonkeyPatch) -> BuggyLink:
     from drivers import registry
 
     link = BuggyLink()
-    monkeypatch.setattr(registry, "open_motors", lambda url, devices=None: link)
+    monkeypatch.setattr(registry, "open_motors", lambda url, devices=None, **_kw: link)
     return link
 
 

@@ -463,7 +463,7 @@ def test_moves_are_refused_until_the_devices_are_open(
     opened = threading.Event()
     link = LogMotorLink()
 
-    def open_motors(url: str, devices: Any = None) -> LogMotorLink:
+    def open_motors(url: str, devices: Any = None, **_kw: Any) -> LogMotorLink:
         opened.wait(10)
         return link
 

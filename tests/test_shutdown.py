@@ -65,7 +65,7 @@ class StampedLink(LogMotorLink):
 @pytest.fixture
 def stamped(monkeypatch: pytest.MonkeyPatch) -> StampedLink:
     link = StampedLink()
-    monkeypatch.setattr(registry, "open_motors", lambda url, devices=None: link)
+    monkeypatch.setattr(registry, "open_motors", lambda url, devices=None, **_kw: link)
     return link
 
 
