@@ -214,6 +214,25 @@ def test_corrupt_input_is_shown_told_once_a_minute_and_named_as_the_stale_cause(
     assert t.take_events() == []  # no growth, no line
 
 
+def test_a_stale_reason_follows_the_fault_while_it_lasts() -> None:
+    # an outside check: status said "no good data for 2.60 s ... 2 malformed lines, 492 bytes
+    # of noise" for the whole 14 s of junk while the counters kept growing
+    labels = {"checksum_failures": "lines with bad checksums"}
+    t = tracker(stale_s=1.0, corrupt_labels=labels)
+    t.opened(0.0)
+    t.good(0.1)
+    for k in range(1, 101):
+        t.corrupt({"checksum_failures": k}, 0.1 + 0.1 * k)
+        t.check(0.1 + 0.1 * k)
+    assert t.health.reason == "no good data for 10.00 s (limit 1 s): 100 lines with bad checksums"
+    assert [e.kind for e in t.take_events()].count("transition") == 2  # one into stale only
+    t.set_stale(11.0, "5 failed samples in a row")  # an owner's own reason while stale...
+    t.set_stale(12.0, "9 failed samples in a row")
+    assert t.health.reason == "9 failed samples in a row"  # ...kept up to date
+    t.check(13.0)
+    assert t.health.reason == "9 failed samples in a row"  # not overwritten by the clock's
+
+
 # --- HealthLog ----------------------------------------------------------------------------------
 
 

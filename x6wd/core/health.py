@@ -295,9 +295,13 @@ class HealthTracker:
             self._health = self._snapshot()
 
     def set_stale(self, t_s: float, why: str) -> None:
-        """The owner knows the data is unusable (e.g. too many failed samples in a row)."""
+        """The owner knows the data is unusable (e.g. too many failed samples in a row).
+        Said again while stale: the reason is brought up to date (no new event)."""
         if self._state in (CONNECTED, DEGRADED):
             self._go(STALE, t_s, f"{self.device} stale: {why}")
+        elif self._state == STALE and why != self._reason:
+            self._reason = why
+            self._health = self._snapshot()
 
     def corrupt(self, counts: Mapping[str, int], t_s: float) -> None:
         """The owner's decoder has counted and skipped ``counts`` (totals since start, by the
@@ -315,8 +319,10 @@ class HealthTracker:
         if self._corrupt is not self._corrupt_logged:
             self._corrupt_event(t_s)
         stale_s = self._stale_s
-        if stale_s is None or self._state not in (CONNECTED, DEGRADED):
+        if stale_s is None or self._state not in (CONNECTED, DEGRADED, STALE):
             return
+        if self._state == STALE and not self._reason.startswith(("no good data", "no data")):
+            return  # the owner's own reason (set_stale) stands
         ref = self._last_data_t
         opened = self._quiet_open_t
         if opened is not None and (ref is None or opened > ref):
