@@ -171,7 +171,10 @@ class HilParams:
     def load_world(self) -> World:
         """The scenario with the overrides applied (ConfigError naming the key if invalid)."""
         path = resolve_scenario(self.scenario)
-        w = load_world(path)
+        try:
+            w = load_world(path)
+        except ConfigError as exc:  # the scenario's own message, under the key that names it
+            raise ConfigError(f"sim.scenario: {exc}") from exc
 
         def pick(value: Any, scenario_value: Any) -> Any:
             return scenario_value if value is None else value

@@ -127,6 +127,12 @@ def files_under(path: Path) -> list[Path]:
             "",
             ["console.port: 47711 is server.port too"],
         ),
+        # an outside check: an empty recorder.dir recorded into the working directory
+        (
+            {"recorder": {"dir": ""}},
+            "",
+            ["recorder.dir: empty: name a directory, or set recorder.enabled = false"],
+        ),
         # the GPS and the motor board on one line (an outside check: the daemon started,
         # the GPS flapped and the motor commands went down the GPS line)
         (
@@ -155,6 +161,15 @@ def test_bad_setting_is_one_line_and_exit_2(
         assert_config_error(proc, str(config), *reason)
     assert files_under(tmp_path / "rec") == []
     assert not (tmp_path / "rec").exists()
+
+
+@pytest.mark.integration
+def test_a_scenario_that_cannot_be_read_is_named_by_its_key(tmp_path: Path) -> None:
+    # an outside check: "x6wd: /path/scen.toml: cannot read scenario: ..." named no key
+    bad = tmp_path / "scen.toml"
+    bad.write_text("name = [\n", encoding="utf-8")
+    config = write_config(tmp_path, sim={"scenario": str(bad)})
+    assert_config_error(run_x6wd(config), "sim.scenario: ", str(bad), "not valid TOML")
 
 
 @pytest.mark.integration

@@ -564,6 +564,12 @@ def _check_devices(cfg: Config) -> None:
         )
 
 
+def _check_recorder(cfg: Config) -> None:
+    """An enabled recorder with no directory would write wherever the daemon was started."""
+    if cfg.recorder.enabled and not cfg.recorder.dir.strip():
+        raise ConfigError("recorder.dir: empty: name a directory, or set recorder.enabled = false")
+
+
 def load(path: str | Path) -> Config:
     """Read and validate a TOML configuration file (UTF-8, as TOML requires).
 
@@ -591,6 +597,7 @@ def load(path: str | Path) -> Config:
         cfg = build(Config, data)
         _check_ports(cfg)
         _check_devices(cfg)
+        _check_recorder(cfg)
     except ConfigError as exc:
         raise ConfigError(f"{p}: {exc}") from exc
     if not cfg.sim.scenario:
