@@ -153,29 +153,57 @@ def test_geofence_from_first_fix_and_from_configured_centre(tmp_path: Path, run_
             c.request("mission.load", waypoints=[list(ORIGIN)])
 
 
-def test_lost_motor_link_holds_the_mission(tmp_path: Path, run_daemon) -> None:
-    from drivers.motors import MotorBoard, serve_board_fd
+class BoardOnPty:
+    """A motor board (drivers.motors.MotorBoard) served on a pseudo-terminal: ``url`` for
+    [motors]; :meth:`serve` and :meth:`halt` start and stop its answering (a board that
+    dies and comes back); the context closes the pty, the server thread joined first (a live
+    one would read whatever next reuses the fd number)."""
 
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    board = MotorBoard(watchdog_ms=500)
-    board_stop = threading.Event()
-    server = threading.Thread(target=serve_board_fd, args=(master, board, board_stop), daemon=True)
-    server.start()
+    def __init__(self, watchdog_ms: int = 500) -> None:
+        from drivers.motors import MotorBoard
+
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.master)
+        tty.setraw(self.slave)
+        self.board = MotorBoard(watchdog_ms=watchdog_ms)
+        self.url = f"serial://{os.ttyname(self.slave)}"
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def serve(self) -> None:
+        from drivers.motors import serve_board_fd
+
+        self._stop = threading.Event()
+        args = (self.master, self.board, self._stop)
+        self._thread = threading.Thread(target=serve_board_fd, args=args, daemon=True)
+        self._thread.start()
+
+    def halt(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+
+    def __enter__(self) -> BoardOnPty:
+        self.serve()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.halt()
+        os.close(self.master)
+        os.close(self.slave)
+
+
+def test_lost_motor_link_holds_the_mission(tmp_path: Path, run_daemon) -> None:
     cfg = hil_config(tmp_path)
-    cfg = dataclasses.replace(
-        cfg, motors=dataclasses.replace(cfg.motors, url=f"serial://{os.ttyname(slave)}")
-    )
-    try:
+    with BoardOnPty() as pb:
+        cfg = dataclasses.replace(cfg, motors=dataclasses.replace(cfg.motors, url=pb.url))
         r = run_daemon(Daemon(cfg))
         with RemoteClient("127.0.0.1", r.port) as c:
             wait_for(lambda: r.daemon.first_fix, what="first fix")
             c.request("mission.load", waypoints=[[ORIGIN[0] + 0.0005, ORIGIN[1]]])
             c.request("start")
-            wait_for(lambda: board.running, 5, "board driven")
-            board_stop.set()  # the board dies: no more acknowledgements
-            server.join(5)
+            wait_for(lambda: pb.board.running, 5, "board driven")
+            pb.halt()  # the board dies: no more acknowledgements
             tel = wait_for(
                 lambda: (t := status(c)["telemetry"]) and t["state"] == "HOLD" and t,
                 10,
@@ -185,37 +213,17 @@ def test_lost_motor_link_holds_the_mission(tmp_path: Path, run_daemon) -> None:
             assert (tel["left_pct"], tel["right_pct"]) == (0.0, 0.0)
             assert status(c)["links"]["motors"] == "lost"
         assert r.stop() == 0
-    finally:
-        board_stop.set()
-        server.join(5)  # before closing: the thread would read whatever reuses the fd number
-        os.close(master)
-        os.close(slave)
 
 
 def test_the_configured_watchdog_reaches_the_motor_board(tmp_path: Path, run_daemon) -> None:
     # Found by an outside check: [motors] watchdog_ms only set the daemon's keep-alive; the
     # board was always sent W 500 (the URL option's default), so an owner's 100 ms (a faster
     # stop on a lost link) was 500 ms on the board
-    from drivers.motors import MotorBoard, serve_board_fd
-
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    board = MotorBoard(watchdog_ms=500)
-    board_stop = threading.Event()
-    server = threading.Thread(target=serve_board_fd, args=(master, board, board_stop), daemon=True)
-    server.start()
-    cfg = hil_config(tmp_path)
-    motors = MotorsConfig(url=f"serial://{os.ttyname(slave)}", watchdog_ms=2000)
-    try:
-        r = run_daemon(Daemon(dataclasses.replace(cfg, motors=motors)))
-        wait_for(lambda: board.watchdog_ms == 2000, 5, "W 2000 on the board")
+    with BoardOnPty() as pb:
+        motors = MotorsConfig(url=pb.url, watchdog_ms=2000)
+        r = run_daemon(Daemon(dataclasses.replace(hil_config(tmp_path), motors=motors)))
+        wait_for(lambda: pb.board.watchdog_ms == 2000, 5, "W 2000 on the board")
         assert r.stop() == 0
-    finally:
-        board_stop.set()
-        server.join(5)
-        os.close(master)
-        os.close(slave)
 
 
 class FaultyDaemon(Daemon):

@@ -299,14 +299,20 @@ def test_bad_input_says_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixt
     )
 
 
+def _rewrite_in_parts(records: list[Any], path: Path) -> list[Path]:
+    """``records`` written at ``path`` by the recorder in 200 kB parts; the parts."""
+    with Recorder(path, max_bytes=200_000) as rec:
+        for r in records:
+            rec.record(r.type, r.data, r.t_mono)
+    return list(rec.paths)
+
+
 def test_parts_bad_lines_and_a_cut_last_line(sim_run: Path, tmp_path: Path) -> None:
     # A daemon recording in parts (the recorder's rotation), a garbled line and a crash
     # mid-line: every part is read, the damage counted as the recorder's reader counts it.
     records = list(read_recording(sim_run / "recording.jsonl"))
     path = tmp_path / "run.jsonl"
-    with Recorder(path, max_bytes=200_000) as rec:
-        for r in records:
-            rec.record(r.type, r.data, r.t_mono)
+    _rewrite_in_parts(records, path)
     parts = sorted(tmp_path.glob("run*.jsonl"))
     assert len(parts) > 3
     with open(parts[1], "ab") as f:
@@ -365,10 +371,7 @@ def test_a_folder_whose_newest_run_lost_its_first_part(sim_run: Path, tmp_path: 
     # its part .1, and every remaining part (.1, .2, ...) is still drawn, not .1 alone.
     records = list(read_recording(sim_run / "recording.jsonl"))
     path = tmp_path / "x6wd-20260102T000000Z.jsonl"
-    with Recorder(path, max_bytes=200_000) as rec:
-        for r in records:
-            rec.record(r.type, r.data, r.t_mono)
-    assert len(rec.paths) > 3
+    assert len(_rewrite_in_parts(records, path)) > 3
     first = [r for r in read_recording(path) if r.type == "fix"]
     path.unlink()
     src = logview.newest_recording(tmp_path)

@@ -19,7 +19,6 @@ import os
 import socket
 import threading
 import time
-import tty
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -27,8 +26,15 @@ from typing import Any
 import pytest
 
 from drivers import registry
-from drivers.motors import LogMotorLink, MotorBoard, serve_board_fd
-from tests.test_daemon import ORIGIN, hil_config, run_daemon, run_to_exit, wait_for
+from drivers.motors import LogMotorLink
+from tests.test_daemon import (
+    ORIGIN,
+    BoardOnPty,
+    hil_config,
+    run_daemon,
+    run_to_exit,
+    wait_for,
+)
 from tests.test_shutdown import StampedLink, log_motors_config, stamped
 from x6wd import __version__
 from x6wd.app.client import RemoteClient, RequestFailed
@@ -738,34 +744,19 @@ def test_without_a_fix_or_a_configured_centre_no_mission_is_loaded(
 
 
 def test_a_lost_motor_link_holds_and_its_return_resumes(tmp_path: Path, run_daemon) -> None:
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    board = MotorBoard(watchdog_ms=500)
-
-    def serve() -> tuple[threading.Event, threading.Thread]:
-        stop = threading.Event()
-        t = threading.Thread(target=serve_board_fd, args=(master, board, stop), daemon=True)
-        t.start()
-        return stop, t
-
-    board_stop, server = serve()
     cfg = hil_config(tmp_path)
-    cfg = dataclasses.replace(
-        cfg, motors=dataclasses.replace(cfg.motors, url=f"serial://{os.ttyname(slave)}")
-    )
-    try:
+    with BoardOnPty() as pb:
+        cfg = dataclasses.replace(cfg, motors=dataclasses.replace(cfg.motors, url=pb.url))
         r = run_daemon(Daemon(cfg))
         with RemoteClient("127.0.0.1", r.port) as c:
             wait_for(lambda: r.daemon.first_fix, what="first fix")
             c.request("mission.load", waypoints=[[ORIGIN[0] + 0.0005, ORIGIN[1]]])
             c.request("start")
-            wait_for(lambda: board.running, 5, "board driven")
-            board_stop.set()  # the board stops answering
-            server.join(5)
+            wait_for(lambda: pb.board.running, 5, "board driven")
+            pb.halt()  # the board stops answering
             wait_for(lambda: c.request("status")["links"]["motors"] == "lost", 10, "lost")
             assert c.request("status")["telemetry"]["hold_reason"] == "motor link lost"
-            board_stop, server = serve()  # and comes back
+            pb.serve()  # and comes back
             st = wait_for(
                 lambda: (
                     (s := c.request("status"))["links"]["motors"] == "ok"
@@ -776,15 +767,8 @@ def test_a_lost_motor_link_holds_and_its_return_resumes(tmp_path: Path, run_daem
                 "link back",
             )
             assert st["mode"] == "RUNNING"
-            wait_for(lambda: board.running, 5, "board driven again")
+            wait_for(lambda: pb.board.running, 5, "board driven again")
         assert r.stop() == 0
-    finally:
-        board_stop.set()
-        # join before closing: a live server thread would read whatever next reuses the fd
-        # number (it once swallowed the next test's sd_notify datagram)
-        server.join(5)
-        os.close(master)
-        os.close(slave)
 
 
 def test_distance_along_parallels_and_to_the_antipode() -> None:

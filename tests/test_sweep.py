@@ -338,6 +338,12 @@ def test_a_file_named_by_a_sweep_value_is_the_one_the_worker_reads(
         # place of the run's seed in the tables
         ("seed = [1, 2]", "grid.seed: not a parameter: each run's seed comes from"),
         ('status = ["a", "b"]', "grid.status: not a parameter: 'status' is a column"),
+        # an outside audit: a NaN or inf said "cannot write a non-finite number nan to TOML"
+        # (no key, no cell); the compass's own check named the key but not the cell
+        ("gnss.rate_hz = [nan]", "default (gnss.rate_hz=nan): gnss.rate_hz: expected a finite"),
+        ("duration_s = [inf]", "default (duration_s=inf): duration_s: expected a finite"),
+        ("vehicle.max_speed_mps = [-inf]", "(vehicle.max_speed_mps=-inf): vehicle.max_speed_mps"),
+        ("compass.noise_ut = [-1.0]", "default (compass.noise_ut=-1.0): compass.noise_ut: must"),
     ],
 )
 def test_a_bad_key_or_value_stops_the_sweep_naming_it(

@@ -103,29 +103,6 @@ def test_the_report_names_the_workers_the_runs_ran_on() -> None:
         assert ex.description == "LocalCluster, 2 workers (1 at the end)"
 
 
-@pytest.mark.parametrize(
-    ("grid", "named"),
-    [
-        ("gnss.rate_hz = [nan]", "default (gnss.rate_hz=nan): gnss.rate_hz: expected a finite"),
-        ("duration_s = [inf]", "default (duration_s=inf): duration_s: expected a finite"),
-        ("vehicle.max_speed_mps = [-inf]", "(vehicle.max_speed_mps=-inf): vehicle.max_speed_mps"),
-        ("compass.noise_ut = [-1.0]", "default (compass.noise_ut=-1.0): compass.noise_ut: must"),
-    ],
-)
-def test_a_bad_grid_value_names_its_key_and_cell(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], grid: str, named: str
-) -> None:
-    # a NaN or inf said "cannot write a non-finite number nan to TOML" (no key, no cell); the
-    # compass's own check named the key but not the cell
-    from x6wd.app.cli import main
-
-    f = sweep_file(tmp_path, f"seeds = 1\n[grid]\n{grid}\n")
-    assert main(["sweep", str(f), "--out", str(tmp_path / "out")]) == 2
-    err = capsys.readouterr().err
-    assert named in err, err
-    assert not (tmp_path / "out" / "runs").exists()
-
-
 @pytest.mark.parametrize("address", ["", "  "])
 def test_an_empty_scheduler_address_is_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], address: str
