@@ -229,6 +229,7 @@ class _Client(LineClient):
     received: int = 0
     taken: int = 0
     fence: int = 0
+    fed: int = 0  # TCP: bytes the transport handed to the stream reader
     early_stop_end: int = 0  # where the latest stop sent ahead of its turn ends
     other_stop_s: float = -math.inf  # time.monotonic() of the latest stop from elsewhere
 
@@ -249,17 +250,43 @@ def _retrieve(f: asyncio.Future[Any]) -> None:
         f.exception()
 
 
-def _in_flight_b(c: _Client) -> int:
-    """Bytes a TCP client sent that the server has not read yet: in its stream reader and in
-    the kernel's receive queue (FIONREAD; on TLS the encrypted bytes, a little more than
-    the text: a line sent just after a stop may be refused with the ones before it)."""
-    reader = c.reader
-    n = len(getattr(reader, "_buffer", b"")) if reader is not None else 0  # no public size
-    sock = c.writer.get_extra_info("socket") if c.writer is not None else None
+TLS_RECORD_B = 16_384 + 256
+"""The most text one TLS record holds (its plaintext limit, with room): OpenSSL may keep one
+read from the socket but not yet decrypted, which no buffer size shows."""
+
+
+def _arrived_b(c: _Client) -> int:
+    """Bytes of a client's input that have reached this host (its position in the input):
+    a detached client's messages received; a TCP client's bytes handed to its stream reader
+    (counted as they are fed, so none is missed while a read is under way) plus, not read
+    yet, on TLS asyncio's SSL layer (encrypted bytes it holds while the reader is paused,
+    decrypted ones not handed on, and while any is held one record OpenSSL may keep) and
+    the kernel's receive queue (FIONREAD). Encrypted counts and that record are a little
+    more than their text: behind a backlog, a line sent just after a stop may be refused
+    with the ones before it. asyncio has no public size for its SSL buffers (its own
+    attributes, read defensively; tests/test_safety_server.py checks both transports)."""
+    writer = c.writer
+    if writer is None:
+        return c.received
+    n = c.fed
+    proto = getattr(writer.transport, "_ssl_protocol", None)
+    held = 0
+    if proto is not None:
+        incoming = getattr(proto, "_incoming", None)
+        held = int(getattr(incoming, "pending", 0))
+        n += held
+        sslobj = getattr(proto, "_sslobj", None)
+        with contextlib.suppress(ssl.SSLError, ValueError, AttributeError):
+            n += int(sslobj.pending()) if sslobj is not None else 0
+    sock = writer.get_extra_info("socket")
+    queued = 0
     if sock is not None:
         with contextlib.suppress(OSError, ValueError):
-            n += struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0" * 4))[0]
-    return n
+            queued = struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0" * 4))[0]
+    if proto is not None and queued + held > 0:
+        # a held-back TLS stream: OpenSSL may hold a record it read but did not decrypt
+        n += TLS_RECORD_B
+    return n + queued
 
 
 async def _result(value: Any) -> Any:
@@ -511,6 +538,13 @@ class ControlServer(LineServer[_Client]):
             faults=self._bucket(now),
         )
         self._fenced.add(c)
+        feed = reader.feed_data
+
+        def counted(data: bytes) -> None:  # the stop fence's count of what has arrived
+            c.fed += len(data)
+            feed(data)
+
+        reader.feed_data = counted  # type: ignore[method-assign,assignment]
         try:
             self._connected(c)
             c.sender = asyncio.create_task(self._sender(c))
@@ -717,7 +751,7 @@ class ControlServer(LineServer[_Client]):
             if c is origin:
                 c.fence = max(c.fence, end)
             else:
-                c.fence = max(c.fence, c.received + _in_flight_b(c))
+                c.fence = max(c.fence, _arrived_b(c))
                 c.other_stop_s = now_s
 
     def stopped_since(self, c: _Client, sent_s: float) -> bool:
