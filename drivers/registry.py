@@ -522,7 +522,9 @@ def open_motors(
                 f" watchdog_ms={dev.options['watchdog_ms']}: set one of them"
             )
     if dev.scheme in PLUGIN_SCHEMES:
-        handler, backend = _plugin(dev, devices)
+        handler, backend = _plugin(dev, devices)  # (judges the URL's own options)
+        if watchdog_ms is not None:  # the daemon's setting, as for a real board
+            dev.options.setdefault("watchdog_ms", str(int(watchdog_ms)))
         link: MotorLink = handler.open_motors(dev, backend)
         return link
     from drivers.motors import LogMotorLink, SerialMotorLink

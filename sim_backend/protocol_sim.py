@@ -74,8 +74,10 @@ def open_compass(dev: DeviceUrl, world: HilWorld) -> Any:
 
 
 def open_motors(dev: DeviceUrl, world: HilWorld) -> Any:
-    """The real motor driver (:class:`drivers.motors.SerialMotorLink`, watchdog
-    ``motor_watchdog_ms``) on a new pseudo-terminal served by the world's motor board."""
+    """The real motor driver (:class:`drivers.motors.SerialMotorLink`) on a new
+    pseudo-terminal served by the world's motor board. Its watchdog (sent as ``W``) is the
+    daemon's ``[motors] watchdog_ms`` (the registry passes it as ``watchdog_ms``), else the
+    world's ``motor_watchdog_ms`` (also the board's power-up value)."""
     import serial
 
     from drivers.motors import SerialMotorLink
@@ -85,4 +87,5 @@ def open_motors(dev: DeviceUrl, world: HilWorld) -> Any:
         port = serial.Serial(path, baudrate=MOTOR_BAUD, timeout=0.02)
     except (serial.SerialException, OSError) as exc:
         raise DeviceUnavailable(f"cannot open simulated motor board {path}: {exc}") from exc
-    return SerialMotorLink(port, watchdog_ms=world.params.motor_watchdog_ms)
+    watchdog_ms = int(dev.options.get("watchdog_ms", world.params.motor_watchdog_ms))
+    return SerialMotorLink(port, watchdog_ms=watchdog_ms)

@@ -226,6 +226,18 @@ def test_the_configured_watchdog_reaches_the_motor_board(tmp_path: Path, run_dae
         assert r.stop() == 0
 
 
+def test_in_hil_the_configured_watchdog_reaches_the_simulated_board(
+    tmp_path: Path, run_daemon
+) -> None:
+    # a second outside check: with sim:// motors the driver sent [sim] motor_watchdog_ms and
+    # [motors] watchdog_ms was silently ignored (HIL runs the real daemon)
+    cfg = hil_config(tmp_path)
+    r = run_daemon(Daemon(dataclasses.replace(cfg, motors=MotorsConfig("sim://", 2000))))
+    board = r.daemon.devices.backend("sim").board
+    wait_for(lambda: board.watchdog_ms == 2000, 5, "W 2000 on the simulated board")
+    assert r.stop() == 0
+
+
 class FaultyDaemon(Daemon):
     """Fault injection: the 10th compass sample hits a bug."""
 
