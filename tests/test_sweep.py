@@ -21,7 +21,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -195,6 +195,36 @@ def sweep_file(tmp: Path, body: str, scenarios: tuple[Path, ...] = (DEFAULT,)) -
     p = tmp / "sweep.toml"
     p.write_text(f'name = "test"\nseed = 7\nscenarios = [{scen}]\n{body}')
     return p
+
+
+def ctrl_c_when(
+    args: list[str], ready: Callable[[int], bool], timeout_s: float, *, group: bool
+) -> tuple[int, str]:
+    """Run ``x6wd ARGS`` as a terminal would (SIGINT not ignored: a child of a shell's
+    background job inherits it ignored, and Python then never raises KeyboardInterrupt), send
+    it SIGINT once ``ready(pid)`` (to its whole process group with ``group``, as a terminal's
+    Ctrl-C does), and return its exit code and stderr."""
+    proc = subprocess.Popen(
+        [*X6WD, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not ready(proc.pid):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        if group:
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(signal.SIGINT)
+        _out, err = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return proc.returncode, err
 
 
 def run_cli(*args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
@@ -512,30 +542,11 @@ def test_an_interrupted_sweep_finishes_on_the_next_call(tmp_path: Path, cluster:
     n_runs = 24
     f = sweep_file(tmp_path, f"seeds = {n_runs}\n[set]\nduration_s = 30.0\n")
     out = tmp_path / "out"
-    proc = subprocess.Popen(
-        [*X6WD, "sweep", str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        # Ctrl-C as a terminal delivers it: a child of a shell's background job (nohup ...
-        # &) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    args = ["sweep", str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet"]
+    returncode, stderr = ctrl_c_when(
+        args, lambda _pid: (out / "runs").exists() and len(run_files(out)) >= 2, 120.0, group=False
     )
-    try:
-        deadline = time.monotonic() + 120
-        while len(run_files(out)) < 2 if (out / "runs").exists() else True:
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)  # Ctrl-C
-        _stdout, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    assert proc.returncode == 130, stderr
+    assert returncode == 130, stderr
     assert "the same command finishes the rest" in stderr
     kept = run_files(out)
     assert 2 <= len(kept) < n_runs

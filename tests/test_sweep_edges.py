@@ -7,14 +7,12 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import time
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import ROOT
-from tests.test_sweep import X6WD, sweep_file
+from tests.test_sweep import ctrl_c_when, sweep_file
 
 pytest.importorskip("distributed")
 
@@ -34,28 +32,10 @@ def test_a_ctrl_c_while_the_local_cluster_starts_is_exit_130(tmp_path: Path) -> 
     # SIGINT was ignored in this process too while LocalCluster(...) started its workers (so
     # they would inherit it): a Ctrl-C then was dropped and the whole sweep ran to exit 0.
     f = sweep_file(tmp_path, "seeds = 6\n[set]\nduration_s = 30.0\n")
-    proc = subprocess.Popen(
-        [*X6WD, "sweep", str(f), "--workers", "1", "--out", str(tmp_path / "o"), "--quiet"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as a terminal's
-    )
-    try:
-        deadline = time.monotonic() + 60
-        while not _children(proc.pid):  # the cluster's first process: it is starting
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
-        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole process group
-        _out, err = proc.communicate(timeout=90)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    assert proc.returncode == 130, err
+    args = ["sweep", str(f), "--workers", "1", "--out", str(tmp_path / "o"), "--quiet"]
+    # the cluster's first process appears: it is starting
+    returncode, err = ctrl_c_when(args, lambda pid: bool(_children(pid)), 60.0, group=True)
+    assert returncode == 130, err
     assert "sweep interrupted" in err
     assert "KeyboardInterrupt" not in err  # the workers ignored it: no traceback of theirs
 

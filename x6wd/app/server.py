@@ -223,13 +223,12 @@ class _Client(LineClient):
     watch_only: bool = False  # refused every command in ACTING_COMMANDS
     open_commands: frozenset[str] = UNAUTHENTICATED_COMMANDS  # allowed before ``auth``
     drive_limit_s: float | None = None  # a drive's duration_s is cut to this (the dead-man)
-    # the input as a stream (TCP: bytes; a detached client: messages): how much was received,
-    # where the line being handled ends, and the stop fence: lines ending at or before it
-    # were received before a stop
+    # the input as a stream (TCP: bytes, counted as the transport feeds the stream reader; a
+    # detached client: messages): how much was received, where the line being handled ends,
+    # and the stop fence: lines ending at or before it were received before a stop
     received: int = 0
     taken: int = 0
     fence: int = 0
-    fed: int = 0  # TCP: bytes the transport handed to the stream reader
     early_stop_end: int = 0  # where the latest stop sent ahead of its turn ends
     other_stop_s: float = -math.inf  # time.monotonic() of the latest stop from elsewhere
 
@@ -266,9 +265,9 @@ def _arrived_b(c: _Client) -> int:
     with the ones before it. asyncio has no public size for its SSL buffers (its own
     attributes, read defensively; tests/test_safety_server.py checks both transports)."""
     writer = c.writer
+    n = c.received
     if writer is None:
-        return c.received
-    n = c.fed
+        return n
     proto = getattr(writer.transport, "_ssl_protocol", None)
     held = 0
     if proto is not None:
@@ -541,7 +540,7 @@ class ControlServer(LineServer[_Client]):
         feed = reader.feed_data
 
         def counted(data: bytes) -> None:  # the stop fence's count of what has arrived
-            c.fed += len(data)
+            c.received += len(data)
             feed(data)
 
         reader.feed_data = counted  # type: ignore[method-assign,assignment]
@@ -596,7 +595,6 @@ class ControlServer(LineServer[_Client]):
             if not chunk:
                 return
             buf += chunk
-            c.received += len(chunk)
             budget.refill(self._clock())
             budget.level -= len(chunk)
             if budget.level < 0:
@@ -683,7 +681,6 @@ class ControlServer(LineServer[_Client]):
                 except TimeoutError:
                     break
                 buf += chunk
-                c.received += len(chunk)
                 budget.level -= len(chunk)
                 scanned = self._early_stops(c, buf, scanned, discarding)
         finally:
