@@ -166,7 +166,8 @@ def test_stop_and_the_space_bar_work_while_a_recording_is_shown(
     open_page(browser, guarded, f"#token={TOKEN}")
     wait_for(lambda: js(browser, "return x6wd.authed"), 10, "the page authenticated")
     browser.find_element(By.ID, "rec-list").click()
-    wait_for(lambda: browser.find_elements(By.CSS_SELECTOR, "#recordings button"), 10, "the list")
+    # 30 s: on a loaded 2-core CI machine the list once took longer than 10 s
+    wait_for(lambda: browser.find_elements(By.CSS_SELECTOR, "#recordings button"), 30, "the list")
     browser.find_element(By.CSS_SELECTOR, "#recordings button").click()
     wait_for(lambda: browser.find_element(By.ID, "rec-view").is_displayed(), 20, "the viewer")
     frame = browser.find_element(By.ID, "rec-frame")
