@@ -368,7 +368,7 @@ def test_scalar_bearing_and_deviation_are_bit_identical_to_arrays(
 def test_scalar_projections_are_bit_identical_to_arrays(
     lat0: float, lon0: float, lat: float, lon: float
 ) -> None:
-    for proj in (LocalTangentPlane(lat0, lon0), geo.TwoRadius()):
+    for proj in (LocalTangentPlane(lat0, lon0), geo.TwoRadius(lon0)):
         x, y = (float(v) for v in proj.to_xy(lat, lon))
         xa, ya = proj.to_xy(_one(lat), _one(lon))
         assert all(type(v) is float for v in proj.to_xy(lat, lon))
@@ -402,3 +402,39 @@ def test_bad_scalars_raise_the_array_paths_errors(bad: float) -> None:
         xy_to_latlon(0.0, 1e8)
     with pytest.raises(GeoError, match="latitude"):
         LocalTangentPlane(51.7, 30.0).to_latlon(0.0, 1e8)
+
+
+def test_two_radius_is_continuous_across_the_180th_meridian() -> None:
+    # A mission 21 m across ±180° (outside audit): x was +20,037,569 m for one waypoint and
+    # -20,037,569 m for the other, so the robot would have headed round the earth.
+    p = make_projection("two_radius", -16.5, 179.9999)
+    (xa, ya), (xb, yb) = p.to_xy(-16.5, 179.9999), p.to_xy(-16.5, -179.9999)
+    assert ya == yb and 0.0 < xb - xa < 25.0  # 22.3 m: the paper's x, stretched by 1/cos Φ
+    xs, ys = p.to_xy(np.array([-16.5, -16.5]), np.array([179.9999, -179.9999]))
+    assert np.array_equal(xs, [xa, xb]) and np.array_equal(ys, [ya, yb])
+    lat, lon = p.to_latlon(xb, yb)
+    assert lat == pytest.approx(-16.5) and lon == pytest.approx(-179.9999, abs=1e-9)
+    lats, lons = p.to_latlon(np.array([xa, xb]), np.array([ya, yb]))
+    assert np.allclose(lons, [179.9999, -179.9999], atol=1e-9) and np.allclose(lats, -16.5)
+    # away from the meridian: the paper's absolute figures, bit for bit
+    assert make_projection("two_radius", 51.7, -1.25).to_xy(51.7, -1.26) == latlon_to_xy(
+        51.7, -1.26
+    )
+
+
+def test_navigator_heads_across_the_180th_meridian_with_two_radius() -> None:
+    import dataclasses
+
+    from x6wd.core.config import NavigationConfig
+    from x6wd.nav.navigator import Navigator
+
+    for steering in ("paper", "pivot_arc"):
+        cfg = dataclasses.replace(NavigationConfig(), projection="two_radius", steering=steering)
+        nav = Navigator(cfg, 0.0)
+        nav.set_waypoints([(-16.5, 179.9999), (-16.5, -179.9999)])
+        nav.step(*nav.to_xy(-16.5, 179.9999), math.pi / 2)  # on the first: arrives
+        # the second lies 21 m east; heading east must be (nearly) straight on
+        x, y = nav.to_xy(-16.5, 179.99992)
+        tx, ty = nav.target_xy()
+        assert 0.0 < tx - x < 25.0 and abs(ty - y) < 1e-6
+        assert abs(float(geo.destination_bearing(x, y, tx, ty)) - math.pi / 2) < 1e-6

@@ -245,17 +245,56 @@ class Projection(Protocol):
 
 
 class TwoRadius:
-    """The paper's projection (:func:`latlon_to_xy`); absolute, no origin."""
+    """The paper's projection (:func:`latlon_to_xy`), absolute: x and y are the paper's.
+
+    A mission across the 180th meridian would put two points metres apart 40,000 km apart
+    in x, so a longitude more than 180° from ``origin_lon_deg`` (the first waypoint's) is
+    taken one turn round (x ± 2π·R1) and comes back wrapped from :meth:`to_latlon`. Anywhere
+    else the figures are the paper's, bit for bit.
+    """
 
     name = "two_radius"
 
+    def __init__(self, origin_lon_deg: float = 0.0) -> None:
+        lon0 = float(origin_lon_deg)
+        if not (math.isfinite(lon0) and -180.0 <= lon0 <= 180.0):
+            raise GeoError(f"two-radius origin longitude {origin_lon_deg!r} outside [-180, 180]")
+        self.origin_lon_deg = lon0
+
     def to_xy(self, lat_deg: ArrayLike, lon_deg: ArrayLike) -> tuple[ArrayLike, ArrayLike]:
-        """(lat_deg, lon_deg) -> (x_m, y_m) by the two-radius formulas."""
-        return latlon_to_xy(lat_deg, lon_deg)
+        """(lat_deg, lon_deg) -> (x_m, y_m) by the two-radius formulas, x continuous
+        within 180° of the origin's longitude."""
+        x, y = latlon_to_xy(lat_deg, lon_deg)
+        if isinstance(x, float):
+            d = float(lon_deg) - self.origin_lon_deg
+            if d > 180.0:
+                return x - _TURN_X_M, y
+            if d < -180.0:
+                return x + _TURN_X_M, y
+            return x, y
+        d_arr = np.asarray(lon_deg, dtype=float) - self.origin_lon_deg
+        xa = np.asarray(x)
+        xa = np.where(d_arr > 180.0, xa - _TURN_X_M, np.where(d_arr < -180.0, xa + _TURN_X_M, xa))
+        return (xa if xa.ndim else float(xa)), y
 
     def to_latlon(self, x_m: ArrayLike, y_m: ArrayLike) -> tuple[ArrayLike, ArrayLike]:
-        """(x_m, y_m) -> (lat_deg, lon_deg)."""
-        return xy_to_latlon(x_m, y_m)
+        """(x_m, y_m) -> (lat_deg, lon_deg), longitude wrapped to [-180, 180]."""
+        if _real(x_m):
+            xf = float(x_m)
+            if xf > _HALF_TURN_X_M:
+                xf -= _TURN_X_M
+            elif xf < -_HALF_TURN_X_M:
+                xf += _TURN_X_M
+            return xy_to_latlon(xf, y_m)
+        x = _as_array("x_m", x_m)
+        x = np.where(
+            x > _HALF_TURN_X_M, x - _TURN_X_M, np.where(x < -_HALF_TURN_X_M, x + _TURN_X_M, x)
+        )
+        return xy_to_latlon(x if x.ndim else float(x), y_m)
+
+
+_HALF_TURN_X_M = math.pi * R1_M
+_TURN_X_M = 2.0 * math.pi * R1_M
 
 
 class LocalTangentPlane:
@@ -328,9 +367,10 @@ class LocalTangentPlane:
 
 def make_projection(name: str, origin_lat_deg: float, origin_lon_deg: float) -> Projection:
     """The projection called ``name`` (see :data:`PROJECTIONS`); the origin (deg) is used by
-    the local tangent plane and ignored by the absolute two-radius conversion."""
+    the local tangent plane; the two-radius conversion stays absolute and uses the origin's
+    longitude only to keep x continuous across the 180th meridian."""
     if name == "two_radius":
-        return TwoRadius()
+        return TwoRadius(origin_lon_deg)
     if name == "local_tangent_plane":
         return LocalTangentPlane(origin_lat_deg, origin_lon_deg)
     raise GeoError(f"unknown projection {name!r} (valid: {', '.join(PROJECTIONS)})")
