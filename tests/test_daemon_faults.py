@@ -322,12 +322,15 @@ def test_a_failing_recorder_is_logged_at_a_bounded_rate_and_shown_in_status(
         assert st["records_dropped"] > 100 and "r.1.jsonl" in st["last_error"]
         assert st["file"] == str(tmp_path / "r.jsonl")
         assert w.close() is True
-    summaries = [r for r in caplog.records if "records lost in the last" in r.getMessage()]
+    # only this recorder's lines: the stuck-recorder test's worker, let go at its close, may
+    # still log its own FIFO's failure while this test runs
+    mine = [r for r in caplog.records if str(tmp_path) in r.getMessage()]
+    summaries = [r for r in mine if "records lost in the last" in r.getMessage()]
     assert 3 <= len(summaries) <= 7, [r.getMessage() for r in summaries]  # ~every 0.2 s
     # the file system's fault, expected: one line saying what, no traceback
-    (first,) = [r for r in caplog.records if r.getMessage().startswith("recorder write failed")]
+    (first,) = [r for r in mine if r.getMessage().startswith("recorder write failed")]
     assert first.exc_info is None and "Is a directory" in first.getMessage(), first.getMessage()
-    assert len(caplog.records) <= len(summaries) + 2  # no line per failure
+    assert len(mine) <= len(summaries) + 2  # no line per failure
 
 
 # -- a bind address that is not one ----------------------------------------------------
