@@ -50,6 +50,8 @@ def main(args: argparse.Namespace, out: TextIO | None = None) -> int:
     out = out or sys.stdout
     try:
         wps = load_file(args.file if args.mission_action == "show" else args.input, args.from_fmt)
+        for note in wps.notes:  # what the file holds that x6wd does not use
+            print(f"x6wd mission: note: {note}", file=sys.stderr)
         if args.mission_action == "show":
             total = 0.0
             print(f"{len(wps)} waypoints (lat, lon in degrees WGS-84; leg length)", file=out)

@@ -67,12 +67,37 @@ def make_waypoint(lat: object, lon: object, where: str = "") -> Waypoint:
     return Waypoint(lat_deg, lon_deg)
 
 
-def _check_count(wps: Sequence[Waypoint], source: str) -> list[Waypoint]:
+class Mission(list[Waypoint]):
+    """The waypoints read from a file (a list), with what else the reader has to say.
+
+    ``home``: a ``.waypoints`` file's home row, kept so that converting to ``.waypoints``
+    writes it back. ``notes``: what in the file x6wd read but does not use (a GPX route's
+    waypoints beside it, a ``.waypoints`` acceptance radius ...), one sentence each, for the
+    user to see (``x6wd mission show`` prints them): nothing in a file is dropped silently.
+    """
+
+    def __init__(
+        self,
+        waypoints: Iterable[Waypoint] = (),
+        home: Waypoint | None = None,
+        notes: Iterable[str] = (),
+    ) -> None:
+        super().__init__(waypoints)
+        self.home = home
+        self.notes = list(notes)
+
+
+def _check_count(
+    wps: Sequence[Waypoint],
+    source: str,
+    home: Waypoint | None = None,
+    notes: Iterable[str] = (),
+) -> Mission:
     if not wps:
         raise ParseError(f"{source}: no waypoints")
     if len(wps) > MAX_WAYPOINTS:  # the parsers stop reading one past the limit
         raise ParseError(f"{source}: more than {MAX_WAYPOINTS} waypoints, the most allowed")
-    return list(wps)
+    return Mission(wps, home, notes)
 
 
 def from_pairs(pairs: Iterable[object], source: str = "waypoints") -> list[Waypoint]:
@@ -112,7 +137,7 @@ _LAT_NAMES = ("lat", "latitude", "lat_deg")
 _LON_NAMES = ("lon", "lng", "long", "longitude", "lon_deg")
 
 
-def parse_csv(text: str, source: str = "CSV") -> list[Waypoint]:
+def parse_csv(text: str, source: str = "CSV") -> Mission:
     """Waypoints from CSV text.
 
     Either a header row naming the latitude and longitude columns (``lat``/``latitude``,
@@ -153,7 +178,7 @@ def _local(tag: str) -> str:
     return tag.rsplit("}", 1)[-1]
 
 
-def parse_gpx(text: str, source: str = "GPX") -> list[Waypoint]:
+def parse_gpx(text: str, source: str = "GPX") -> Mission:
     """Waypoints from GPX 1.0/1.1 text: the route's ``<rtept>`` if it has a route (the
     ``<wpt>`` beside it are its points of interest), else every ``<wpt>``, else the track's
     ``<trkpt>`` (all its ``<trkseg>`` in order: a track split where the receiver lost its fix
@@ -280,7 +305,7 @@ def _no_dtd(text: str, source: str, kind: str) -> None:
 # -- QGC WPL 110 (QGroundControl, Mission Planner, ArduPilot) ---------------------------------
 # One mission item per line, 12 tab-separated columns: index, current (0/1), frame, command,
 # param1..param4, param5 = latitude, param6 = longitude, param7 = altitude, autocontinue.
-# In version 110 the first item is the home position (QGroundControl's planned home,
+# In version 110 the item of index 0 is the home position (QGroundControl's planned home,
 # ArduPilot's index 0), not a place to drive to.
 
 WPL_HEADER = "QGC WPL 110"
@@ -322,13 +347,20 @@ _MAV_CMD_NAMES = {
 }
 
 
-def parse_wpl(text: str, source: str = "QGC WPL") -> list[Waypoint]:
-    """Waypoints from a QGC WPL 110 (``.waypoints``) mission: the NAV_WAYPOINT (16) items
-    after the first line (home, skipped as QGroundControl and ArduPilot do).
+def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
+    """Waypoints from a QGC WPL 110 (``.waypoints``) mission: its NAV_WAYPOINT (16) items.
+
+    The items' indices must count up by one from the first: from 0 if the file has a home row
+    (index 0, skipped as QGroundControl and ArduPilot do; kept as the result's ``home``), from 1
+    if it has none (a hand-made or trimmed file: its first item is a waypoint). Out-of-order or
+    repeated indices are refused: which order is meant is the user's to say.
 
     Every other command is refused with its line: x6wd drives to waypoints and nothing else,
-    so a mission that loiters, jumps or changes speed would silently mean something else.
-    ``QGC WPL 120`` (QGroundControl's older files, no home line) is read too.
+    so a mission that loiters, jumps or changes speed would silently mean something else. So
+    is a waypoint with a hold time (param1 > 0) or autocontinue 0 (stop there): x6wd does not
+    hold at waypoints. An acceptance radius (param2) is not used (x6wd arrives by its own
+    window, ``[navigation] delta_x_m``/``delta_y_m``): the result's ``notes`` say so.
+    ``QGC WPL 120`` (QGroundControl's older files, no home row) is read too.
     """
     lines = text.splitlines()
     first = next((n for n, line in enumerate(lines, start=1) if line.strip()), None)
@@ -339,9 +371,11 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> list[Waypoint]:
         raise ParseError(
             f"{source} line {first}: expected the header {WPL_HEADER!r}, got {header[:40]!r}"
         )
-    has_home = header == "QGC WPL 110"
+    may_have_home = header == "QGC WPL 110"
     out: list[Waypoint] = []
-    home_seen = False
+    notes: list[str] = []
+    home: Waypoint | None = None
+    expected: int | None = None  # the next item's index; None before the first item
     for n, line in enumerate(lines[first:], start=first + 1):
         if not line.strip():
             continue
@@ -360,16 +394,38 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> list[Waypoint]:
                 ints.append(int(raw))
             except ValueError:
                 raise ParseError(f"{where}: {name} is not an integer: {raw!r}") from None
-        _index, _current, frame, command = ints
-        for i, raw in enumerate(cols[4:8] + cols[10:11], start=1):
+        index, _current, frame, command = ints
+        params: list[float] = []
+        for i, raw in enumerate(cols[4:8] + cols[10:12], start=1):
             try:
-                float(raw)
+                params.append(float(raw))
             except ValueError:
-                name = f"param{i}" if i <= 4 else "altitude"
+                name = f"param{i}" if i <= 4 else ("altitude", "autocontinue")[i - 5]
                 raise ParseError(f"{where}: {name} is not a number: {raw!r}") from None
-        if has_home and not home_seen:
-            home_seen = True  # the home position: where the vehicle was, not a waypoint
-            continue
+        hold_s, accept_radius_m, _pass_radius_m, _yaw_deg, _alt_m, autocontinue = params
+        if expected is None:
+            # QGC writes the home as index 0 and the items from 1; a file without a home row
+            # starts at 1 (in version 120, which has none, the first item is index 0)
+            if index not in (0, 1):
+                raise ParseError(
+                    f"{where}: index {index}, expected 0 (the home row) or 1 (the first "
+                    "waypoint): the items are numbered 0, 1, 2 ... in file order"
+                )
+            expected = index + 1
+            if may_have_home and index == 0:
+                try:  # kept only to be written back; a bad one is never driven to
+                    home = make_waypoint(cols[8], cols[9], where)
+                except ParseError as exc:
+                    notes.append(f"{exc}: the home row is not kept")
+                continue  # the home position: where the vehicle was, not a waypoint
+        elif index != expected:
+            raise ParseError(
+                f"{where}: index {index}, expected {expected}: the items must be numbered "
+                "0 (home), 1, 2 ... in the order they are driven, without gaps or repeats; "
+                "renumber them, or save the mission again from QGroundControl"
+            )
+        else:
+            expected += 1
         if command != MAV_CMD_NAV_WAYPOINT:
             name = _MAV_CMD_NAMES.get(command, "unknown")
             raise ParseError(
@@ -381,6 +437,18 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> list[Waypoint]:
                 f"{where}: frame {frame} is not a global latitude/longitude frame "
                 f"(valid: {', '.join(f'{k} {v}' for k, v in _GLOBAL_FRAMES.items())})"
             )
+        # a hold or a stop would change where and when the robot waits; it never waits
+        if hold_s > 0:
+            raise ParseError(
+                f"{where}: hold time (param1) {cols[4]} s: x6wd does not hold at waypoints "
+                "(it drives on when it arrives); set param1 to 0 (Hold in QGroundControl, "
+                "Delay in Mission Planner)"
+            )
+        if autocontinue != 1:
+            raise ParseError(
+                f"{where}: autocontinue (the last column) {cols[11]}: 0 stops the mission at "
+                "this waypoint and x6wd does not hold at waypoints (it drives on); set it to 1"
+            )
         wp = make_waypoint(cols[8], cols[9], where)
         if wp.lat_deg == 0.0 and wp.lon_deg == 0.0:
             # ArduPilot reads a waypoint at 0, 0 as "where the vehicle is now"; x6wd would
@@ -389,10 +457,15 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> list[Waypoint]:
                 f"{where}: latitude and longitude are 0, 0 (ArduPilot's 'current position'): "
                 "give the waypoint's real position"
             )
+        if accept_radius_m != 0 and not math.isnan(accept_radius_m):  # NaN: MAVLink's unset
+            notes.append(
+                f"{where}: acceptance radius (param2) {cols[5]} m not used: x6wd arrives by "
+                "its own window from the config ([navigation] delta_x_m, delta_y_m)"
+            )
         out.append(wp)
         if len(out) > MAX_WAYPOINTS:
             break
-    return _check_count(out, source)
+    return _check_count(out, source, home, notes)
 
 
 def _num(v: float) -> str:
@@ -403,13 +476,16 @@ def _num(v: float) -> str:
 
 
 def format_wpl(waypoints: Sequence[Waypoint], home: Waypoint | None = None) -> str:
-    """A QGC WPL 110 mission: line 0 the home (``home``, else the first waypoint), then one
-    NAV_WAYPOINT per waypoint in frame GLOBAL_RELATIVE_ALT (3) at altitude 0, as
-    QGroundControl writes them (it replaces the home line with the vehicle's on upload)."""
+    """A QGC WPL 110 mission: line 0 the home (``home``, else the home row the waypoints were
+    read with (:class:`Mission`), else the first waypoint), then one NAV_WAYPOINT per waypoint
+    in frame GLOBAL_RELATIVE_ALT (3) at altitude 0, as QGroundControl writes them (it replaces
+    the home line with the vehicle's on upload)."""
     wps = _check_count(list(waypoints), "mission")
     for i, w in enumerate(wps, start=1):
         if w[0] == 0.0 and w[1] == 0.0:  # ArduPilot would read it as "where the vehicle is"
             raise ParseError(f"waypoint {i} is at 0, 0, which a .waypoints file cannot hold")
+    if home is None and isinstance(waypoints, Mission):
+        home = waypoints.home  # a .waypoints file's own home row, converted back
     h = home if home is not None else wps[0]
     rows = [
         WPL_HEADER,
@@ -447,7 +523,7 @@ def format_csv(waypoints: Sequence[Waypoint]) -> str:
 # -- KML (Google Earth, Google My Maps, most GIS tools) ----------------------------------------
 
 
-def parse_kml(text: str, source: str = "KML") -> list[Waypoint]:
+def parse_kml(text: str, source: str = "KML") -> Mission:
     """Waypoints from KML: the ``<LineString>`` if there is one (a drawn path is the route, as
     a GPX route wins over its waypoints), else the ``<Point>`` of every ``<Placemark>`` in
     document order. KML writes ``lon,lat[,alt]``; the altitude is ignored.
@@ -525,7 +601,7 @@ def _has_coordinates(geom: ET.Element) -> bool:
 
 # -- choosing by extension -------------------------------------------------------------------
 
-PARSERS: dict[str, Callable[[str, str], list[Waypoint]]] = {
+PARSERS: dict[str, Callable[[str, str], Mission]] = {
     "waypoints": parse_wpl,
     "gpx": parse_gpx,
     "csv": parse_csv,
@@ -564,7 +640,7 @@ def format_of(path: str | Path, fmt: str | None = None, *, writing: bool = False
     raise ParseError(f"{path}: {problem}{hint}; missions are {what} as {valid}")
 
 
-def parse_content(text: str, fmt: str | None = None, source: str = "mission") -> list[Waypoint]:
+def parse_content(text: str, fmt: str | None = None, source: str = "mission") -> Mission:
     """Parse mission text as ``fmt`` (``waypoints``, ``gpx``, ``csv``, ``kml``); None guesses
     from the content (a ``QGC WPL`` header, ``<kml``, other XML as GPX, else CSV)."""
     if fmt is None:
@@ -591,7 +667,7 @@ def format_content(waypoints: Sequence[Waypoint], fmt: str) -> str:
 
 def load_file(
     path: str | Path, fmt: str | None = None, max_bytes: int = 8 * 1024 * 1024
-) -> list[Waypoint]:
+) -> Mission:
     """Read a mission file; its format from ``fmt`` or else its extension (:data:`PARSERS`)."""
     p = Path(path)
     kind = format_of(p, fmt)
