@@ -21,6 +21,7 @@ from x6wd.core.mission_files import (
     Waypoint,
     format_content,
     load_file,
+    parse_gpx,
     parse_wpl,
 )
 
@@ -137,3 +138,61 @@ def test_wpl_to_wpl_keeps_the_home_row(tmp_path: Path) -> None:
         "51.7"
     )
     assert load_file(out) == [(51.7522, -1.2577), (51.7524, -1.2577)]
+
+
+# -- GPX -------------------------------------------------------------------------------------
+
+GPX11 = 'xmlns="http://www.topografix.com/GPX/1/1"'
+ROUTE = '<rtept lat="51.752" lon="-1.2577"/><rtept lat="51.7522" lon="-1.2577"/>'
+PATH = [(51.752, -1.2577), (51.7522, -1.2577)]
+
+
+def _gpx(body: str, ns: str = GPX11) -> str:
+    return f'<?xml version="1.0"?><gpx version="1.1" {ns} xmlns:x="urn:x">{body}</gpx>'
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        # another schema's <rtept> in a route's extensions: read as a point 5,647 km away
+        f'<rte><extensions><x:rtept lat="1" lon="1"/></extensions>{ROUTE}</rte>',
+        # a GPX-namespace <rtept> inside <extensions> is not the route's either
+        f'<rte><extensions><rtept lat="1" lon="1"/></extensions>{ROUTE}</rte>',
+        # Garmin's route-point extension (the road between two points)
+        '<rte><rtept lat="51.752" lon="-1.2577"><extensions><x:rpt lat="1" lon="1"/>'
+        '<x:rtept lat="1" lon="1"/></extensions></rtept><rtept lat="51.7522" lon="-1.2577"/>'
+        "</rte>",
+        # a track's extensions, and a foreign <trkpt> beside the segments
+        '<trk><x:trkpt lat="1" lon="1"/><trkseg><trkpt lat="51.752" lon="-1.2577"/>'
+        '<extensions><trkpt lat="1" lon="1"/></extensions></trkseg>'
+        '<trkseg><trkpt lat="51.7522" lon="-1.2577"/></trkseg></trk>',
+        # waypoints: a foreign <wpt>, and one in the file's extensions
+        '<x:wpt lat="1" lon="1"/><extensions><wpt lat="1" lon="1"/></extensions>'
+        '<wpt lat="51.752" lon="-1.2577"/><wpt lat="51.7522" lon="-1.2577"/>',
+    ],
+)
+def test_gpx_reads_only_the_gpx_namespaces_elements_where_gpx_puts_them(body: str) -> None:
+    assert parse_gpx(_gpx(body)) == PATH
+
+
+def test_gpx_namespaces_1_0_1_1_and_none_are_read_others_refused() -> None:
+    for ns in (GPX11, 'xmlns="http://www.topografix.com/GPX/1/0"', ""):
+        assert parse_gpx(_gpx(f"<rte>{ROUTE}</rte>", ns)) == PATH
+    with pytest.raises(ParseError, match=r"^m\.gpx: <gpx> is in the namespace 'urn:y', not GPX"):
+        parse_gpx(_gpx(f"<rte>{ROUTE}</rte>", 'xmlns="urn:y"'), "m.gpx")
+
+
+def test_gpx_waypoints_and_track_beside_the_route_are_named_in_a_note() -> None:
+    wps = parse_gpx(
+        _gpx(
+            f'<wpt lat="51.7" lon="-1.2"/><rte>{ROUTE}</rte>'
+            '<trk><trkseg><trkpt lat="51.7" lon="-1.2"/></trkseg></trk>'
+        ),
+        "m.gpx",
+    )
+    assert wps == PATH
+    assert wps.notes == [
+        "m.gpx: the <rte> is driven; beside it, not driven: 1 point as <wpt> and a <trk> of "
+        "1 point (a route wins over waypoints and tracks)"
+    ]
+    assert parse_gpx(_gpx(f"<rte>{ROUTE}</rte>")).notes == []

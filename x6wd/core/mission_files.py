@@ -178,6 +178,9 @@ def _local(tag: str) -> str:
     return tag.rsplit("}", 1)[-1]
 
 
+_GPX_NAMESPACES = ("http://www.topografix.com/GPX/1/1", "http://www.topografix.com/GPX/1/0", "")
+
+
 def parse_gpx(text: str, source: str = "GPX") -> Mission:
     """Waypoints from GPX 1.0/1.1 text: the route's ``<rtept>`` if it has a route (the
     ``<wpt>`` beside it are its points of interest), else every ``<wpt>``, else the track's
@@ -187,7 +190,12 @@ def parse_gpx(text: str, source: str = "GPX") -> Mission:
 
     Routes and tracks without points are ignored. Two routes with points, or two tracks, are
     refused with their names and sizes: x6wd drives one path, and reading only the first
-    would silently drop the other's waypoints.
+    would silently drop the other's waypoints. Waypoints or a track beside the route are
+    named in the result's ``notes``.
+
+    Only elements of the GPX namespace (1.1, 1.0, or none in a file without one) are read,
+    and only where GPX puts them (``gpx/rte/rtept``, ``gpx/trk/trkseg/trkpt``, ``gpx/wpt``):
+    an ``<extensions>`` element's content is another schema's, never the path.
 
     DTDs and entities are refused: the content may come from the network.
     """
@@ -198,16 +206,30 @@ def parse_gpx(text: str, source: str = "GPX") -> Mission:
         raise ParseError(f"{source}: not valid XML: {exc}") from None
     if _local(root.tag) != "gpx":
         raise ParseError(f"{source}: root element is <{_local(root.tag)}>, expected <gpx>")
+    ns = root.tag[1:].split("}", 1)[0] if root.tag.startswith("{") else ""
+    if ns not in _GPX_NAMESPACES:
+        raise ParseError(
+            f"{source}: <gpx> is in the namespace {ns!r}, not GPX 1.1's "
+            f"{_GPX_NAMESPACES[0]!r} (nor 1.0's, nor none)"
+        )
 
-    def points(parent: ET.Element, name: str) -> list[ET.Element]:
-        return [e for e in parent.iter() if _local(e.tag) == name]
+    def children(parent: ET.Element, name: str) -> list[ET.Element]:
+        """``parent``'s own ``<name>`` children in the GPX namespace: never what an
+        ``<extensions>`` holds, nor another schema's element of the same name (a Garmin
+        ``<gpxx:rpt>``, an ``<x:rtept>``), which are not the file's path."""
+        return [e for e in parent if e.tag == (f"{{{ns}}}{name}" if ns else name)]
+
+    def points(parent: ET.Element, kind: str) -> list[ET.Element]:
+        if kind == "rtept":  # rte/rtept; trk/trkseg/trkpt, the segments in order
+            return children(parent, "rtept")
+        return [p for seg in children(parent, "trkseg") for p in children(seg, "trkpt")]
 
     def path(tag: str, what: str, kind: str) -> list[ET.Element]:
         """The points of the one ``tag`` (rte, trk) that has any; [] if none has, refused if
         several have."""
         found = [
             (n, e, pts)
-            for n, e in enumerate((e for e in root if _local(e.tag) == tag), start=1)
+            for n, e in enumerate(children(root, tag), start=1)
             if (pts := points(e, kind))
         ]
         if len(found) > 1:
@@ -220,9 +242,23 @@ def parse_gpx(text: str, source: str = "GPX") -> Mission:
             )
         return found[0][2] if found else []
 
+    notes: list[str] = []
     if elems := path("rte", "route", "rtept"):
         kind = "rtept"
-    elif elems := [e for e in root if _local(e.tag) == "wpt"]:
+        # the route wins: what is beside it is not driven, and the user is told so
+        wpts = children(root, "wpt")
+        beside = [f"{_points(len(wpts))} as <wpt>"] if wpts else []
+        beside += [
+            f"a <trk> of {_points(len(pts))}"
+            for trk in children(root, "trk")
+            if (pts := points(trk, "trkpt"))
+        ]
+        if beside:
+            notes.append(
+                f"{source}: the <rte> is driven; beside it, not driven: {' and '.join(beside)} "
+                "(a route wins over waypoints and tracks)"
+            )
+    elif elems := children(root, "wpt"):
         kind = "wpt"
         if track := path("trk", "track", "trkpt"):  # a handheld's marks beside its track
             raise ParseError(
@@ -243,7 +279,7 @@ def parse_gpx(text: str, source: str = "GPX") -> Mission:
         out.append(make_waypoint(lat, lon, where))
         if len(out) > MAX_WAYPOINTS:
             break
-    return _check_count(out, source)
+    return _check_count(out, source, notes=notes)
 
 
 def _points(n: int) -> str:
