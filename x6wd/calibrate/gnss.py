@@ -63,6 +63,7 @@ marked and unvisited cells, is the same estimate pooled over every matched fix.
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -95,6 +96,19 @@ position. A receiver standing still scatters about 1.18 times its per-axis error
 of a 2-D normal's radius): 1-4 m for a NEO-5 in the open, 20 m is a per-axis error of 17 m,
 which no open-sky receiver shows, but a robot that drove a few tens of metres does. The
 median, not the mean square, so a few multipath jumps of a still receiver do not count."""
+
+MAX_STATIC_SPEED_MPS = 0.5
+"""Largest steady speed (m/s) a static recording may show (:func:`_steady_speed_mps`). A
+robot circling inside the spread limit (3.5 m circles at 1 m/s: ASE written as 3.2 m) shows
+its speed; a receiver standing still does not: real static logs show 0.004 m/s (ZED-F9P on
+KK1446), 0.05 m/s (ZED-F9P, gpsd), 0.007 m/s (Quectel L76K), the gpsd corpus's u-blox steps
+at most 0.18 m/s; the simulator's static survey 0.10 m/s, the tests' model (ASE 1.5 m,
+τ 60 s) 0.15-0.18 m/s. A slow error would need ASE 3 m with τ under 20 s to reach it."""
+
+MOVE_SIGNIFICANCE = 3.0
+"""The steady-speed evidence must also stand this many jackknife SEs above 0: a short record
+of a noisy receiver (white 2-3 m, 100 fixes) scatters its speed estimate to 0.9-1.3 m/s by
+chance, but never to 2 SEs; a drive, even with a 0.5 m reference, stands at 6 SEs or more."""
 
 MAX_STATIC_OFFSET_M = 50.0
 """Largest distance (m) of a static recording's median position from the given reference.
@@ -429,7 +443,8 @@ def static_noise(
 
 
 def _check_standing(fixes: FixSeries, ref_lat_deg: float, ref_lon_deg: float) -> None:
-    """ConfigError when a static recording moves (:data:`MAX_STATIC_SPREAD_M`) or lies far
+    """ConfigError when a static recording moves (:data:`MAX_STATIC_SPREAD_M`, or
+    :data:`MAX_STATIC_SPEED_MPS` for motion within that spread) or lies far
     from its reference (:data:`MAX_STATIC_OFFSET_M`): either would be written as an ASE of
     tens of metres that passes the configuration's checks and misleads the estimator."""
     what = f"static {fixes.source}" if fixes.source else "static"
@@ -442,6 +457,14 @@ def _check_standing(fixes: FixSeries, ref_lat_deg: float, ref_lon_deg: float) ->
             f"from their median position; a receiver standing still shows a few metres "
             f"(refused above {MAX_STATIC_SPREAD_M:g} m)"
         )
+    speed = _steady_speed_mps(fixes, x, y)
+    if speed is not None and speed[0] > MAX_STATIC_SPEED_MPS and speed[1] >= MOVE_SIGNIFICANCE:
+        raise ConfigError(
+            f"{what}: the recording moves: a steady speed of {speed[0]:.2f} m/s over "
+            f"{len(fixes):,} fixes (the fixes' median displacement grows from 1 s to 3 s apart "
+            f"as a drive's does, {speed[1]:.0f} standard errors above noise); a receiver "
+            f"standing still shows under 0.2 m/s (refused above {MAX_STATIC_SPEED_MPS:g} m/s)"
+        )
     off_m = great_circle_m(lat_m, lon_m, ref_lat_deg, ref_lon_deg)
     if off_m > MAX_STATIC_OFFSET_M:
         far = f"{off_m:.0f} m" if off_m < 10_000 else f"{off_m / 1000:.0f} km"
@@ -451,6 +474,51 @@ def _check_standing(fixes: FixSeries, ref_lat_deg: float, ref_lon_deg: float) ->
             f"(refused beyond {MAX_STATIC_OFFSET_M:g} m): a typo, latitude and longitude "
             "swapped, or a reference in another datum?"
         )
+
+
+def _steady_speed_mps(
+    fixes: FixSeries, x: npt.ArrayLike, y: npt.ArrayLike
+) -> tuple[float, float] | None:
+    """The steady speed (m/s) in a recording's positions ``x``, ``y`` (m) and how many
+    jackknife SEs it stands above 0; None when there are too few pairs to tell.
+
+    With d(T) the median distance between fixes T apart, a steady speed v gives d(T) = v·T,
+    so d(3 s)² − d(1 s)² = 8 s²·v², while noise adds alike at both lags and cancels: white
+    noise exactly, a slow error nearly (the mean, not the median, would let a few multipath
+    jumps pass for motion). Lags in epochs for records slower than 1 Hz."""
+    t = fixes.t_s - fixes.t_s[0]
+    steps = np.diff(t)
+    if not (steps > 0).any():
+        return None
+    dt = float(np.median(steps[steps > 0]))
+    idx = np.round(t / dt).astype(np.int64)
+    keep = np.concatenate(([True], np.diff(idx) > 0))
+    xy = np.column_stack([np.asarray(x, float), np.asarray(y, float)])[keep]
+    idx = idx[keep]
+    k1 = max(1, round(1.0 / dt))
+    k3 = 3 * k1
+
+    def dist(k: int) -> tuple[Array, npt.NDArray[np.int64]]:
+        pos = np.searchsorted(idx, idx + k)
+        ok = pos < idx.size
+        ok[ok] = idx[pos[ok]] == idx[ok] + k
+        first = np.flatnonzero(ok)
+        return np.hypot(*(xy[pos[ok]] - xy[first]).T), first
+
+    d1, i1 = dist(k1)
+    d3, i3 = dist(k3)
+    if d1.size < 50 or d3.size < 50:
+        return None
+    growth = float(np.median(d3)) ** 2 - float(np.median(d1)) ** 2
+    edges = np.linspace(0, idx.size, JACKKNIFE_BLOCKS + 1).astype(int)
+    reps = []
+    for lo, hi in itertools.pairwise(edges):
+        m1, m3 = (i1 < lo) | (i1 >= hi), (i3 < lo) | (i3 >= hi)
+        reps.append(float(np.median(d3[m3])) ** 2 - float(np.median(d1[m1])) ** 2)
+    r = np.array(reps)
+    se = math.sqrt((r.size - 1) / r.size * float(((r - r.mean()) ** 2).sum()))
+    speed = math.sqrt(max(growth, 0.0) / (((k3 * dt) ** 2) - (k1 * dt) ** 2))
+    return speed, (growth / se if se > 0 else (math.inf if growth > 0 else 0.0))
 
 
 def _root(v2: float, var_v2: float) -> Estimate:
