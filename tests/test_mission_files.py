@@ -197,7 +197,8 @@ def test_kml_reads_lon_lat_order_linestring_first() -> None:
         ("<Placemark><Point/></Placemark>", "<Placemark> #1 <Point>: no <coordinates>"),
         (
             "<Placemark><Polygon/></Placemark>",
-            "no <Placemark> with a <Point> or a <LineString> that has coordinates",
+            "<Placemark> #1 <Polygon>: x6wd drives one path (a <LineString> or a <gx:Track>) "
+            "or <Point>s, not an area or a model",
         ),
         (
             "<Placemark><Point><coordinates>1,2 3,4</coordinates></Point></Placemark>",

@@ -22,6 +22,7 @@ from x6wd.core.mission_files import (
     format_content,
     load_file,
     parse_gpx,
+    parse_kml,
     parse_wpl,
 )
 
@@ -196,3 +197,84 @@ def test_gpx_waypoints_and_track_beside_the_route_are_named_in_a_note() -> None:
         "1 point (a route wins over waypoints and tracks)"
     ]
     assert parse_gpx(_gpx(f"<rte>{ROUTE}</rte>")).notes == []
+
+
+# -- KML -------------------------------------------------------------------------------------
+
+KML = '<kml xmlns="http://www.opengis.net/kml/2.2" xmlns:gx="http://www.google.com/kml/ext/2.2">'
+LINE = "<LineString><coordinates>-1.2577,51.752,0 -1.2577,51.7522,0</coordinates></LineString>"
+TRACK = "<gx:Track><gx:coord>-1.2577 51.752 0</gx:coord><gx:coord>-1.2577 51.7522</gx:coord>"
+TRACK += "<when>2026-12-01T10:00:00Z</when></gx:Track>"
+POINT = "<Point><coordinates>-1.25,51.76</coordinates></Point>"
+
+
+def _kml(*placemarks: str) -> str:
+    return KML + "<Document>" + "".join(placemarks) + "</Document></kml>"
+
+
+def _pm(name: str, geometry: str) -> str:
+    return f"<Placemark><name>{name}</name>{geometry}</Placemark>"
+
+
+def test_kml_gx_track_is_read_as_its_path() -> None:
+    """A gx:Track (Google Earth's recorded path) was dropped: the file read as its Points."""
+    assert parse_kml(_kml(_pm("T", TRACK))) == PATH
+    assert parse_kml(_kml(_pm("M", f"<gx:MultiTrack>{TRACK}</gx:MultiTrack>"))) == PATH
+    with pytest.raises(
+        ParseError, match=re.escape("m.kml: 2 paths: <Placemark> #1 'L' <LineString> (2 points)")
+    ):
+        parse_kml(_kml(_pm("L", LINE), _pm("T", TRACK)), "m.kml")
+    bad = TRACK.replace("51.7522</gx", "north</gx")
+    with pytest.raises(
+        ParseError,
+        match=re.escape("<Placemark> #1 'T' <gx:Track> coordinate 2: latitude is not a number"),
+    ):
+        parse_kml(_kml(_pm("T", bad)), "m.kml")
+
+
+def test_kml_points_beside_a_path_are_named_in_a_note() -> None:
+    """Points beside a LineString were dropped silently; the path wins, as a GPX route over
+    its waypoints, and the note says what is not driven."""
+    wps = parse_kml(_kml(_pm("P", POINT), _pm("L", LINE), _pm("Q", POINT)), "m.kml")
+    assert wps == PATH
+    assert wps.notes == [
+        "m.kml: the path <Placemark> #2 'L' <LineString> is driven; beside it, not driven: "
+        "2 <Point> (<Placemark> #1 'P', <Placemark> #3 'Q') (a path wins over points)"
+    ]
+    assert parse_kml(_kml(_pm("L", LINE))).notes == []
+    assert parse_kml(_kml(_pm("P", POINT), _pm("Q", POINT))) == [(51.76, -1.25)] * 2
+
+
+@pytest.mark.parametrize(
+    ("geometry", "kind"),
+    [
+        (
+            "<Polygon><outerBoundaryIs><LinearRing><coordinates>-1.2577,51.752 -1.2577,51.7522 "
+            "-1.2575,51.7522 -1.2577,51.752</coordinates></LinearRing></outerBoundaryIs>"
+            "</Polygon>",
+            "Polygon",
+        ),
+        (
+            "<LinearRing><coordinates>-1.2577,51.752 -1.2577,51.7522</coordinates></LinearRing>",
+            "LinearRing",
+        ),
+        (
+            "<Model><Location><longitude>-1.2</longitude><latitude>51.7</latitude></Location></Model>",
+            "Model",
+        ),
+        (f"<MultiGeometry>{LINE}<Polygon/></MultiGeometry>", "Polygon"),
+    ],
+)
+def test_kml_areas_are_refused_naming_them(geometry: str, kind: str) -> None:
+    """A Polygon or LinearRing was dropped silently (beside Points, the Points were driven)."""
+    with pytest.raises(
+        ParseError,
+        match=re.escape(
+            f"m.kml <Placemark> #2 'A' <{kind}>: x6wd drives one path (a <LineString> or a "
+            "<gx:Track>) or <Point>s, not an area or a model: draw the path as a line, or "
+            f"delete the <{kind}> from the file"
+        ),
+    ):
+        parse_kml(_kml(_pm("P", POINT), _pm("A", geometry)), "m.kml")
+    with pytest.raises(ParseError, match="no <Placemark> with a <Point>, a <LineString> or a"):
+        parse_kml(_kml("<Placemark/>"))

@@ -8,10 +8,12 @@ ignored: the robot drives on the ground). Parsers and writers are pure functions
 - ``.gpx``: GPX 1.0/1.1, the route, else the waypoints, else the track (read; written as one
   route);
 - ``.csv``: ``lat,lon`` rows, or a header naming the columns (read, write);
-- ``.kml``: KML 2.2 (Google Earth), the ``LineString``, else every ``Point`` (read).
+- ``.kml``: KML 2.2 (Google Earth), the ``LineString`` or ``gx:Track``, else every ``Point``
+  (read).
 
-A GPX file with two routes (or tracks) with points, or a KML file with two line strings, is
-refused naming them: x6wd drives one path, and never silently drops part of a file. GPX and
+A GPX file with two routes (or tracks) with points, or a KML file with two paths or an area,
+is refused naming them: x6wd drives one path, and never silently drops part of a file (what
+it reads but does not drive is named in the result's :attr:`Mission.notes`). GPX and
 KML files are read in the encoding their XML declaration or byte-order mark names (UTF-8 if
 none); ``.waypoints`` and ``.csv`` files are UTF-8.
 
@@ -560,13 +562,17 @@ def format_csv(waypoints: Sequence[Waypoint]) -> str:
 
 
 def parse_kml(text: str, source: str = "KML") -> Mission:
-    """Waypoints from KML: the ``<LineString>`` if there is one (a drawn path is the route, as
-    a GPX route wins over its waypoints), else the ``<Point>`` of every ``<Placemark>`` in
-    document order. KML writes ``lon,lat[,alt]``; the altitude is ignored.
+    """Waypoints from KML: the path if there is one (a ``<LineString>``, or a ``<gx:Track>``'s
+    ``<gx:coord>`` in order: a drawn or recorded path is the route, as a GPX route wins over
+    its waypoints), else the ``<Point>`` of every ``<Placemark>`` in document order. KML
+    writes ``lon,lat[,alt]`` (a gx:coord ``lon lat [alt]``); the altitude is ignored.
 
-    Two line strings with coordinates (two placemarks, or a ``<MultiGeometry>``'s parts) are
-    refused with their placemarks and sizes: x6wd drives one path, and reading only the first
-    would silently drop the other's waypoints.
+    Nothing is dropped silently: Points beside the path are named in the result's ``notes``;
+    two paths with coordinates (two placemarks, a ``<MultiGeometry>``'s or a
+    ``<gx:MultiTrack>``'s parts) are refused with their placemarks and sizes (x6wd drives
+    one path); an area (``<Polygon>``, ``<LinearRing>``) or a ``<Model>``, which x6wd does not
+    drive, is refused naming its placemark (a ring is no route: where it starts and which
+    way round are not the file's to say).
     """
     _no_dtd(text, source, "KML")
     try:
@@ -586,47 +592,95 @@ def parse_kml(text: str, source: str = "KML") -> Mission:
 
     def coords(pm_label: str, geom: ET.Element) -> list[Waypoint]:
         kind = _local(geom.tag)
-        el = next((c for c in geom.iter() if _local(c.tag) == "coordinates"), None)
-        if el is None or not (el.text or "").strip():
-            raise ParseError(f"{pm_label} <{kind}>: no <coordinates>")
+        if kind == "Track":  # gx:Track: one <gx:coord>lon lat [alt]</gx:coord> a point
+            kind = "gx:Track"
+            tuples = [(c.text or "").split() for c in geom if _local(c.tag) == "coord"]
+            if not tuples:
+                raise ParseError(f"{pm_label} <{kind}>: no <gx:coord>")
+        else:
+            el = next((c for c in geom.iter() if _local(c.tag) == "coordinates"), None)
+            if el is None or not (el.text or "").strip():
+                raise ParseError(f"{pm_label} <{kind}>: no <coordinates>")
+            tuples = [tup.split(",") for tup in (el.text or "").split()]
         out: list[Waypoint] = []
-        for k, tup in enumerate((el.text or "").split(), start=1):
+        for k, parts in enumerate(tuples, start=1):
             where = f"{pm_label} <{kind}> coordinate {k}"
-            parts = tup.split(",")
             if len(parts) not in (2, 3):
-                raise ParseError(f"{where}: expected lon,lat[,alt], got {tup[:60]!r}")
+                shown = (" " if kind == "gx:Track" else ",").join(parts)[:60]
+                raise ParseError(f"{where}: expected lon,lat[,alt], got {shown!r}")
             out.append(make_waypoint(parts[1], parts[0], where))
             if len(out) > MAX_WAYPOINTS:
                 break
         return out
 
-    # every path with coordinates, a MultiGeometry's one by one: (where, waypoints)
-    lines: list[tuple[str, list[Waypoint]]] = []
+    for i, pm in enumerate(placemarks):  # areas and models: refused, never dropped
+        in_polygon = {id(e) for g in pm.iter() if _local(g.tag) == "Polygon" for e in g.iter()}
+        for g in pm.iter():
+            kind = _local(g.tag)
+            if kind in ("Polygon", "Model") or (kind == "LinearRing" and id(g) not in in_polygon):
+                raise ParseError(
+                    f"{label(i, pm)} <{kind}>: x6wd drives one path (a <LineString> or a "
+                    "<gx:Track>) or <Point>s, not an area or a model: draw the path as a line, "
+                    f"or delete the <{kind}> from the file"
+                )
+
+    # every path with coordinates, a MultiGeometry's one by one: (placemark, kind, waypoints)
+    lines: list[tuple[str, str, list[Waypoint]]] = []
     for i, pm in enumerate(placemarks):
-        geoms = [g for g in pm.iter() if _local(g.tag) == "LineString" and _has_coordinates(g)]
+        geoms = [
+            g
+            for g in pm.iter()
+            if (_local(g.tag) == "LineString" and _has_coordinates(g))
+            or (_local(g.tag) == "Track" and any(_local(c.tag) == "coord" for c in g))
+        ]
         for k, line in enumerate(geoms, start=1):
-            where = place(i, pm) + (f" <LineString> #{k}" if len(geoms) > 1 else "")
-            lines.append((where, coords(label(i, pm), line)))
+            kind = "<LineString>" if _local(line.tag) == "LineString" else "<gx:Track>"
+            lines.append(
+                (
+                    place(i, pm),
+                    kind + (f" #{k}" if len(geoms) > 1 else ""),
+                    coords(label(i, pm), line),
+                )
+            )
     if len(lines) > 1:
-        listed = ", ".join(f"{where} ({_points(len(pts))})" for where, pts in lines)
-        raise ParseError(
-            f"{source}: {len(lines)} <LineString> paths: {listed}; x6wd drives one path: "
-            "delete the others from the file, or join them into one"
+        only_lines = all(kind.startswith("<LineString>") for _, kind, _ in lines)
+        listed = ", ".join(
+            f"{pm}{'' if kind == '<LineString>' else ' ' + kind} ({_points(len(pts))})"
+            if only_lines
+            else f"{pm} {kind} ({_points(len(pts))})"
+            for pm, kind, pts in lines
         )
+        raise ParseError(
+            f"{source}: {len(lines)} {'<LineString> ' if only_lines else ''}paths: {listed}; "
+            "x6wd drives one path: delete the others from the file, or join them into one"
+        )
+    points = [
+        (i, pm, point)
+        for i, pm in enumerate(placemarks)
+        for point in pm.iter()
+        if _local(point.tag) == "Point"
+    ]
     if lines:
-        return _check_count(lines[0][1], source)
+        notes = []
+        if points:  # the path wins, as a GPX route over its waypoints: said, not silent
+            names = ", ".join(dict.fromkeys(place(i, pm) for i, pm, _ in points))
+            notes.append(
+                f"{source}: the path {lines[0][0]} {lines[0][1]} is driven; beside it, not driven: "
+                f"{len(points)} <Point> ({names[:200]}) (a path wins over points)"
+            )
+        return _check_count(lines[0][2], source, notes=notes)
     out: list[Waypoint] = []
-    for i, pm in enumerate(placemarks):
-        for point in (g for g in pm.iter() if _local(g.tag) == "Point"):
-            pts = coords(label(i, pm), point)
-            if len(pts) != 1:
-                raise ParseError(f"{label(i, pm)} <Point>: {len(pts)} coordinates, expected one")
-            out.extend(pts)
+    for i, pm, point in points:
+        pts = coords(label(i, pm), point)
+        if len(pts) != 1:
+            raise ParseError(f"{label(i, pm)} <Point>: {len(pts)} coordinates, expected one")
+        out.extend(pts)
         if len(out) > MAX_WAYPOINTS:
             break
     if not out:
         raise ParseError(
-            f"{source}: no <Placemark> with a <Point> or a <LineString> that has coordinates"
+            f"{source}: no <Placemark> with a <Point>, a <LineString> or a <gx:Track> that has "
+            "coordinates"
         )
     return _check_count(out, source)
 
