@@ -139,9 +139,18 @@ def main_gnss(args: argparse.Namespace) -> int:
         )
     header = [f"x6wd calibrate gnss, {datetime.now(UTC).strftime('%Y-%m-%dT%H:%M:%SZ')}"]
     static = None
+    given: dict[str, str] = {}  # where RE, ASE and correlation_s came from, when not measured
     if args.static:
         if args.ref_lat is None or args.ref_lon is None:
             raise ConfigError("calibrate gnss: --static needs --ref-lat and --ref-lon")
+        # --static measures all three: a value given beside it would be silently unused
+        extra = [f"--{k.replace('_', '-')}" for k in ("re_m", "ase_m", "correlation_s", "config")
+                 if getattr(args, k) is not None]  # fmt: skip
+        if extra:
+            raise ConfigError(
+                f"calibrate gnss: --static measures RE, ASE and correlation_s, and "
+                f"{', '.join(extra)} would set them too: give one or the other"
+            )
         static = gnss.static_noise(gnss.load_fixes(args.static), args.ref_lat, args.ref_lon)
         if static.duplicates:
             print(
@@ -152,14 +161,40 @@ def main_gnss(args: argparse.Namespace) -> int:
         re_m, ase_m, tau = static.re_m, static.ase_m, static.correlation_s
         header.append(f"static: {args.static} at {args.ref_lat}, {args.ref_lon}")
     else:
+        if args.config is None and (args.re_m is None) != (args.ase_m is None):
+            # the LCE map subtracts both: one given and a built-in default for the other
+            # would be taken for the user's value
+            have, missing = ("--re-m", "--ase-m") if args.ase_m is None else ("--ase-m", "--re-m")
+            raise ConfigError(
+                f"calibrate gnss: {have} without {missing}: give both (the LCE map subtracts "
+                "RE and ASE), or --config with a [gnss_noise] section, or --static"
+            )
         base = (config_mod.load(args.config) if args.config else config_mod.Config()).gnss_noise
+        default = "the built-in default, not measured"
+        src = f"from --config {args.config}" if args.config else default
         re_m = gnss.Estimate(args.re_m if args.re_m is not None else base.re_m, 0.0)
         ase_m = gnss.Estimate(args.ase_m if args.ase_m is not None else base.ase_m, 0.0)
         tau = args.correlation_s if args.correlation_s is not None else base.correlation_s
-        if args.re_m is None and args.config is None:
+        sources = {
+            "re": "given with --re-m" if args.re_m is not None else src,
+            "ase": "given with --ase-m" if args.ase_m is not None else src,
+            "tau": "given with --correlation-s" if args.correlation_s is not None else src,
+        }
+        defaults = [
+            (f"{name} {value:g} {unit}", flag)
+            for name, value, unit, key, flag in (
+                ("RE", re_m.value, "m", "re", "--re-m"),
+                ("ASE", ase_m.value, "m", "ase", "--ase-m"),
+                ("correlation_s", tau, "s", "tau", "--correlation-s"))
+            if sources[key] == default
+        ]  # fmt: skip
+        given = {"re_from": sources["re"], "ase_from": sources["ase"], "tau_from": sources["tau"]}
+        if defaults:
+            what, flags = (", ".join(d) for d in zip(*defaults, strict=True))
+            plural = "s" if len(defaults) > 1 else ""
             print(
-                "x6wd calibrate: no --static, --re-m or --config: RE and ASE are the defaults "
-                f"({re_m.value} m, {ase_m.value} m)",
+                f"x6wd calibrate: {what}: the built-in default{plural}, not measured (no "
+                f"--static, --config or {flags}); the fragment says so",
                 file=sys.stderr,
             )
     lce = None
@@ -184,7 +219,7 @@ def main_gnss(args: argparse.Namespace) -> int:
                 f"x6wd calibrate: LCE map: {lce.spread_text()}; only lce_default_m applies",
                 file=sys.stderr,
             )
-    result = gnss.GnssCalibration(re_m, ase_m, tau, static, lce)
+    result = gnss.GnssCalibration(re_m, ase_m, tau, static, lce, **given)
     text = result.toml("\n".join(header))
     sys.stdout.write(text)
     if args.out:

@@ -813,6 +813,10 @@ class GnssCalibration:
     correlation_s: float
     static: StaticResult | None
     lce: LceMap | None
+    # where the values came from when not measured by ``static`` (said in the fragment)
+    re_from: str = "given, not estimated here"
+    ase_from: str = "given, not estimated here"
+    tau_from: str = "given, not estimated here"
 
     @property
     def re_resolved(self) -> bool:
@@ -879,9 +883,11 @@ class GnssCalibration:
                     f"# {st.duplicates} fixes sharing an epoch with the fix before (a repeated "
                     "time stamp) left out"
                 )
-            src = "static recording"
+            src = ase_src = "static recording"
+            tau_note = "of the slow part; rough"
         else:
-            src = "given, not estimated here"
+            src, ase_src = self.re_from, self.ase_from
+            tau_note = f"of the slow part ({self.tau_from})"
         lines += [
             "# seed 003: sigma per axis = HDOP * sqrt(re_m^2 + ase_m^2 + LCE^2)",
             "[gnss_noise]",
@@ -890,8 +896,8 @@ class GnssCalibration:
             else f"re_m = {t['re_m']}  # not resolved: RE = 0 ± {self.re_m.se:.4f} ({src}: the "
             "white part); written: its upper bound"
             + (" sqrt(variogram lag 1)" if st is not None else " (estimate + SE)"),
-            f"ase_m = {t['ase_m']}  # ± {self.ase_m.se:.4f} ({src}: the slow part)",
-            f"correlation_s = {t['correlation_s']}  # of the slow part; rough",
+            f"ase_m = {t['ase_m']}  # ± {self.ase_m.se:.4f} ({ase_src}: the slow part)",
+            f"correlation_s = {t['correlation_s']}  # {tau_note}",
         ]
         lm = self.lce
         if lm is not None:
