@@ -21,6 +21,7 @@ from x6wd.core.mission_files import (
     Waypoint,
     format_content,
     load_file,
+    parse_csv,
     parse_gpx,
     parse_kml,
     parse_wpl,
@@ -278,3 +279,30 @@ def test_kml_areas_are_refused_naming_them(geometry: str, kind: str) -> None:
         parse_kml(_kml(_pm("P", POINT), _pm("A", geometry)), "m.kml")
     with pytest.raises(ParseError, match="no <Placemark> with a <Point>, a <LineString> or a"):
         parse_kml(_kml("<Placemark/>"))
+
+
+# -- CSV -------------------------------------------------------------------------------------
+
+SEPARATOR = "the separator must be a comma, and ';' was found"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("lat;lon\n51.752;-1.2577\n", f"line 1: {SEPARATOR}"),
+        ("\ufefflat;lon\r\n51,752;-1,2577\r\n", f"line 1: {SEPARATOR}"),
+        ("51,752;-1,2577\n", f"line 1: {SEPARATOR}"),
+        ("lat,lon\n51.752;-1.2577\n", f"line 2: {SEPARATOR}"),
+        (
+            'lat,lon\n"51,752","-1,2577"\n',
+            "line 2: '51,752' has a decimal comma: write a decimal point (51.752)",
+        ),
+        ("lat\tlon\n51.752\t-1.2577\n", "line 1: the separator must be a comma, and a tab"),
+    ],
+)
+def test_csv_with_another_separator_or_decimal_commas_says_so(text: str, message: str) -> None:
+    """A ';'-separated file got 'expected at least 2 columns', naming neither."""
+    with pytest.raises(ParseError, match="^m.csv " + re.escape(message)):
+        parse_csv(text, "m.csv")
+    # a ';' in a column x6wd does not read is no problem
+    assert parse_csv("lat,lon,name\n51.752,-1.2577,a;b\n") == [(51.752, -1.2577)]

@@ -168,12 +168,45 @@ def parse_csv(text: str, source: str = "CSV") -> Mission:
     out: list[Waypoint] = []
     for n, row in rows:
         where = f"{source} line {n}"
+        _csv_separator(where, row, (lat_col, lon_col))
         if len(row) <= max(lat_col, lon_col):
             raise ParseError(f"{where}: expected at least {max(lat_col, lon_col) + 1} columns")
         out.append(make_waypoint(row[lat_col].strip(), row[lon_col].strip(), where))
         if len(out) > MAX_WAYPOINTS:
             break
     return _check_count(out, source)
+
+
+_DECIMAL_COMMA = re.compile(r"^\s*[+-]?\d+,\d+\s*$")
+
+
+def _csv_separator(where: str, row: list[str], cols: tuple[int, int]) -> None:
+    """Refuse a row written with another separator or decimal commas, saying so: a
+    spreadsheet in a locale with decimal commas writes ``51,752;-1,2577``, which read with
+    commas is a short row or a latitude of 51 and a longitude of 752."""
+    used = [row[c] for c in cols if c < len(row)]
+    if len(row) <= max(cols) or any(not _is_number(f) for f in used):
+        if any(";" in f for f in row):
+            raise ParseError(
+                f"{where}: the separator must be a comma, and ';' was found (a spreadsheet "
+                "set to decimal commas writes ';'): save the file with ',' between columns "
+                "and '.' as the decimal point"
+            )
+        if "\t" in "".join(row):
+            raise ParseError(f"{where}: the separator must be a comma, and a tab was found")
+        if bad := next((f for f in used if _DECIMAL_COMMA.match(f)), None):
+            raise ParseError(
+                f"{where}: {bad.strip()!r} has a decimal comma: write a decimal point "
+                f"({bad.strip().replace(',', '.')})"
+            )
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _local(tag: str) -> str:
