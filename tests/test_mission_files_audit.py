@@ -306,3 +306,25 @@ def test_csv_with_another_separator_or_decimal_commas_says_so(text: str, message
         parse_csv(text, "m.csv")
     # a ';' in a column x6wd does not read is no problem
     assert parse_csv("lat,lon,name\n51.752,-1.2577,a;b\n") == [(51.752, -1.2577)]
+
+
+# -- DTDs wherever the prolog puts them -------------------------------------------------------
+_ATTLIST = '<!DOCTYPE {root} [<!ATTLIST wpt lat CDATA "51.7530" lon CDATA "-1.2577">]>'
+
+
+@pytest.mark.parametrize("pad", ["", " " * 5000, "<!--" + "x" * 5000 + "-->", "\n" * 4100])
+def test_a_dtd_is_refused_wherever_the_prolog_puts_it(pad: str) -> None:
+    # console audit: 5000 spaces before the DOCTYPE hid it from a search of the first 4 KiB,
+    # and its default attributes made two empty <wpt/> into waypoints the file never shows
+    gpx = (
+        f'<?xml version="1.0"?>{pad}{_ATTLIST.format(root="gpx")}\n'
+        '<gpx version="1.1" creator="x"><wpt lat="51.7520" lon="-1.2577"/><wpt/><wpt/></gpx>'
+    )
+    with pytest.raises(ParseError, match="DTDs and entities are not allowed in GPX"):
+        parse_gpx(gpx, "t.gpx")
+    kml = (
+        f'<?xml version="1.0"?>{pad}<!DOCTYPE kml>\n<kml xmlns="http://www.opengis.net/kml/2.2">'
+        "<Placemark><Point><coordinates>-1.2577,51.752</coordinates></Point></Placemark></kml>"
+    )
+    with pytest.raises(ParseError, match="DTDs and entities are not allowed in KML"):
+        parse_kml(kml, "t.kml")

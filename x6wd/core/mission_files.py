@@ -33,6 +33,7 @@ from collections.abc import Callable, Iterable, Sequence
 from decimal import Decimal
 from pathlib import Path
 from typing import NamedTuple
+from xml.parsers import expat
 
 from x6wd.core.errors import ParseError
 
@@ -366,11 +367,30 @@ def decode_xml(data: bytes, source: str = "XML") -> str:
         raise ParseError(f"{source}: not {encoding} text ({how}): {exc}") from None
 
 
+class _HasDtd(Exception):
+    """Raised from expat's handler at the first DOCTYPE or entity declaration."""
+
+
 def _no_dtd(text: str, source: str, kind: str) -> None:
-    """Refuse DTDs and entities: the content may come from the network (billion laughs)."""
-    head = text[:4096].upper()
-    if "<!DOCTYPE" in head or "<!ENTITY" in text.upper():
+    """Refuse DTDs and entities: the content may come from the network (billion laughs), and
+    a DTD's default attributes can add waypoints written nowhere in the visible file. Expat
+    finds the declaration wherever the prolog puts it (after a long comment or whitespace);
+    a text search of the file's head did not."""
+    if "<!ENTITY" in text.upper():
         raise ParseError(f"{source}: DTDs and entities are not allowed in {kind}")
+
+    def refuse(*_: object) -> None:
+        raise _HasDtd
+
+    scan = expat.ParserCreate()
+    scan.StartDoctypeDeclHandler = refuse
+    scan.EntityDeclHandler = refuse
+    try:
+        scan.Parse(text, True)
+    except _HasDtd:
+        raise ParseError(f"{source}: DTDs and entities are not allowed in {kind}") from None
+    except expat.ExpatError:
+        pass  # not well-formed: the real parse says where
 
 
 # -- QGC WPL 110 (QGroundControl, Mission Planner, ArduPilot) ---------------------------------
