@@ -7,6 +7,7 @@ small and with fixed seeds.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -15,6 +16,7 @@ import pytest
 
 from x6wd.app import cli
 from x6wd.calibrate import gnss
+from x6wd.core import config
 from x6wd.nav.geo import LocalTangentPlane
 
 ORIGIN = (51.7, 5.0)
@@ -155,3 +157,85 @@ def test_static_with_re_or_ase_given_is_refused_naming_the_options(
         assert cli.main([*static, *extra]) == 2
         out, err = capsys.readouterr()
         assert not out and "--static measures RE, ASE and correlation_s" in err and named in err
+
+
+# ------------------------------------------------------------------------------ 2: odometry k
+
+
+def odometry_run(
+    path: Path,
+    kind: str,
+    *,
+    seed: int = 1,
+    passes: int = 3,
+    length_m: float = 4.0,
+    laps: float = 1.0,
+    radius_m: float = 3.5,
+    ref_sigma_m: float = 0.02,
+    k_m: float = 2e-4,
+) -> Path:
+    """The auditor's gen_odo.py: a recording of straight passes (out and back) or circle
+    passes at 1 m/s with 5 s stops, wheels 121.2/118.8 mm, effective track 0.37 m, 1632
+    counts a turn, noise variance k·|travel| per side; odometry at 20 Hz, reference fixes
+    (``ref_sigma_m`` per axis) at 5 Hz. Same draws in the same order, so seed 1 is the
+    audit's file."""
+    rng = np.random.default_rng(seed)
+    dt, track_m, cpr = 0.05, 0.37, 1632
+    segs = [(5.0, 0.0, 0.0)]
+    for p in range(passes):
+        if kind == "straight":
+            segs.append((length_m, 1.0 if p % 2 == 0 else -1.0, 0.0))
+        else:
+            segs.append((laps * 2 * math.pi * radius_m, 1.0, 1.0 / radius_m))
+        segs.append((5.0, 0.0, 0.0))
+    alpha_l, alpha_r = math.pi * 0.1212 / cpr, math.pi * 0.1188 / cpr
+    plane = LocalTangentPlane(*ORIGIN)
+    e = n = t = cl = cr = 0.0
+    h = math.radians(30.0)
+    seq, next_fix, lines = 0, 0.0, []
+    for dur, v, w in segs:
+        for _ in range(round(dur / dt)):
+            t += dt
+            s, dpsi = v * dt, w * dt
+            e += s * math.sin(h + dpsi / 2)
+            n += s * math.cos(h + dpsi / 2)
+            h += dpsi
+            sl, sr = s + dpsi * track_m / 2, s - dpsi * track_m / 2
+            if sl:
+                sl += rng.normal(0, math.sqrt(k_m * abs(sl)))
+            if sr:
+                sr += rng.normal(0, math.sqrt(k_m * abs(sr)))
+            cl, cr, seq = cl + sl / alpha_l, cr + sr / alpha_r, seq + 1
+            odo = {"t_s": t, "left_counts": round(cl), "right_counts": round(cr), "seq": seq}
+            lines.append({"t_mono": t, "t_utc": None, "type": "odometry", "data": odo})
+            if t + 1e-9 >= next_fix:
+                next_fix += 0.2
+                dn, de = rng.normal(0, ref_sigma_m), rng.normal(0, ref_sigma_m)
+                lat, lon = plane.to_latlon(e + de, n + dn)
+                fix = {"t_s": t, "lat_deg": float(lat), "lon_deg": float(lon), "quality": 4,
+                       "valid": True, "mode": 3}  # fmt: skip
+                lines.append({"t_mono": t, "t_utc": None, "type": "fix", "data": fix})
+    path.write_text("".join(json.dumps(r) + "\n" for r in lines))
+    return path
+
+
+def test_a_k_clamped_at_zero_is_written_as_not_resolved_and_few_passes_are_called_rough(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Audit: 3 passes of 4 m and 3 one-lap circles (true k 2e-4) wrote k_right_m =
+    0.000e+00 ± 2.2e-05, 9 SEs from the truth, and nothing said 2 degrees of freedom make
+    every SE rough."""
+    straight = odometry_run(tmp_path / "s.jsonl", "straight")
+    circle = odometry_run(tmp_path / "c.jsonl", "circle")
+    argv = ["calibrate", "odometry", "--straight", str(straight), "--circle", str(circle)]
+    assert cli.main(argv) == 0
+    out, err = capsys.readouterr()
+    line = next(x for x in out.splitlines() if x.startswith("k_right_m = "))
+    assert "# not resolved: k = 0 on both tracks" in line and "upper bound" in line
+    written = float(line.split("=")[1].split("#")[0])
+    assert written > 1e-4  # the larger SE (the circle's), no longer 0
+    assert "k_right_m not resolved (0 on both tracks)" in err
+    rough = "rest on 2 (straight, 3 passes) and 2 (circle, 3 passes) degrees of freedom"
+    assert rough in err and f"# rough: the standard errors {rough}" in out
+    # the daemon loads what was written
+    assert config.loads(out).odometry.k_right_m == pytest.approx(written)

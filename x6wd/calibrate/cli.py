@@ -280,6 +280,15 @@ def main(args: argparse.Namespace) -> int:
             f"counted), {short} shorter than --min-pass-m {args.min_pass_m:g} m (pivots, nudges)",
             file=sys.stderr,
         )
+    unresolved = [k for k in ("k_left_m", "k_right_m") if not getattr(result, k).resolved]
+    if unresolved:
+        print(
+            f"x6wd calibrate: {' and '.join(unresolved)} not resolved (0 on both tracks): "
+            "written as an upper bound, 0 + the larger standard error",
+            file=sys.stderr,
+        )
+    if result.few_passes:
+        print(f"x6wd calibrate: rough: {result.few_passes}", file=sys.stderr)
     if result.gap_passes:
         print(
             f"x6wd calibrate: {result.gap_passes} circle passes with reference fixes more than "

@@ -241,10 +241,13 @@ def _point(xy: Array) -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class Estimate:
-    """A value and its standard error (same unit)."""
+    """A value and its standard error (same unit); ``resolved`` False for a k whose
+    estimate came out at or below 0 (clamped: the passes' scatter did not show the wheel's
+    noise), or for the bound written in place of such a k."""
 
     value: float
     se: float
+    resolved: bool = True
 
 
 def fit_circle(xy: Array) -> tuple[float, float, float]:
@@ -257,10 +260,29 @@ def fit_circle(xy: Array) -> tuple[float, float, float]:
 
 
 def _k_terms(u: Array, scale: float) -> Estimate:
-    """k from per-pass terms u (sum / scale), SE from their spread; clamped at 0."""
+    """k from per-pass terms u (sum / scale), SE from their spread; clamped at 0 (and then
+    marked not resolved)."""
     n = u.size
     se = math.sqrt(n * float(np.var(u, ddof=1))) / scale if n > 1 else math.inf
-    return Estimate(max(float(u.sum()) / scale, 0.0), se)
+    k = float(u.sum()) / scale
+    return Estimate(max(k, 0.0), se, k > 0.0)
+
+
+def _pick_k(straight: Estimate, circle: Estimate) -> Estimate:
+    """The larger resolved k of the two tracks (as the paper keeps the larger). When both
+    came out at 0, a 0 would tell the estimator the wheels never slip: an upper bound is
+    written instead, 0 + the larger finite SE, marked not resolved."""
+    resolved = [e for e in (straight, circle) if e.resolved]
+    if resolved:
+        return max(resolved, key=lambda e: e.value)
+    bound = max((e.se for e in (straight, circle) if math.isfinite(e.se)), default=0.0)
+    return Estimate(bound, bound, resolved=False)
+
+
+MIN_DOF = 5
+"""Degrees of freedom (passes − 1 per track) below which the fragment and the command warn
+that the standard errors are rough: an SE from ν degrees of freedom is itself uncertain by
+about 1/sqrt(2ν) (50 % at 2, 32 % at 5), and a k near 0 can come out as 0."""
 
 
 @dataclass(frozen=True)
@@ -444,6 +466,25 @@ class OdometryCalibration:
         """The ``[odometry]`` section (range-checked: ConfigError if an estimate is absurd)."""
         return build(OdometryConfig, self.table(), "odometry.")
 
+    @property
+    def few_passes(self) -> str | None:
+        """A warning when either track has fewer than :data:`MIN_DOF` degrees of freedom
+        for its scatter (every SE here comes from that scatter), else None."""
+        dof_s, dof_c = self.straight.passes - 1, self.circle.passes - 1
+        low = min(dof_s, dof_c)
+        if low >= MIN_DOF:
+            return None
+        rough = (
+            f"each ± is itself uncertain by {100 / math.sqrt(2 * low):.0f} % or more"
+            if low > 0
+            else "a track without a scatter has no SE of its own"
+        )
+        return (
+            f"the standard errors rest on {dof_s} (straight, {self.straight.passes} passes) and "
+            f"{dof_c} (circle, {self.circle.passes} passes) degrees of freedom: {rough}, and "
+            f"a k near 0 can come out as 0; drive {MIN_DOF + 1} or more passes of each track"
+        )
+
     def table(self) -> dict[str, float | int]:
         """The section's keys and values."""
         return {
@@ -467,6 +508,7 @@ class OdometryCalibration:
             + f"; circle: {ci.passes} "
             f"passes, {ci.turn_deg:.0f} deg in all, radius {ci.radius_m:.2f} m; reference "
             f"sigma {self.ref_sigma_m:g} m per fix",
+            *([f"# rough: {self.few_passes}"] if self.few_passes else []),
             "# value  # ± standard error",
             "[odometry]",
             f"counts_per_rev = {self.counts_per_rev}",
@@ -479,9 +521,13 @@ class OdometryCalibration:
             ("k_right_m", st.k_right_m, ci.k_right_m),
         ):
             e = getattr(self, key)
+            both = f"straight {s.value:.2e} ± {s.se:.1e}, circle {c.value:.2e} ± {c.se:.1e}"
             lines.append(
-                f"{key} = {e.value:.3e}  # ± {e.se:.1e}; straight {s.value:.2e} ± {s.se:.1e}, "
-                f"circle {c.value:.2e} ± {c.se:.1e} (the larger is kept)"
+                f"{key} = {e.value:.3e}  # ± {e.se:.1e}; {both} (the larger is kept)"
+                if e.resolved
+                else f"{key} = {e.value:.3e}  # not resolved: k = 0 on both tracks ({both}: "
+                "the passes' scatter did not show this wheel's noise); written: its upper "
+                "bound, 0 + the larger SE"
             )
         return "\n".join(lines) + "\n"
 
@@ -517,8 +563,8 @@ def calibrate(
     except ConfigError as exc:
         raise ConfigError(f"{exc}{_left_out(c_dropped)}") from None
     to_d = counts_per_rev / math.pi  # diameter per (metres per count)
-    pick_l = max((st.k_left_m, ci.k_left_m), key=lambda e: e.value)
-    pick_r = max((st.k_right_m, ci.k_right_m), key=lambda e: e.value)
+    pick_l = _pick_k(st.k_left_m, ci.k_left_m)
+    pick_r = _pick_k(st.k_right_m, ci.k_right_m)
     return OdometryCalibration(
         counts_per_rev=counts_per_rev,
         left_diameter_m=Estimate(st.alpha_left * to_d, math.sqrt(st.cov_alpha[0, 0]) * to_d),
