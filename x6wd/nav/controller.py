@@ -98,6 +98,11 @@ ARRIVAL_GPS_MIN_M = 5.0
 """... and never less than this (m) of the waypoint."""
 DEAD_RECKONING_MAX_SIGMA_M = 5.0
 """Largest EKF position uncertainty (m, both axes together) to drive on without a fix."""
+DEAD_RECKONING_MIN_SPEED = 0.5
+"""Without a fix the robot drives on for at most the time its slowest commanded drive
+(cruise, turn, the approach's ``min_speed_pct``) would take at this fraction of its nominal
+speed to cover ``safety.gps_outage_max_m``: wheels that count far less than they are driven
+(a miscounting or jittering encoder) must not stretch the outage without bound."""
 ODOMETRY_FRESH_S = 0.5
 """Encoder counts older than this (s) do not count as reporting."""
 STUCK_TURN_DEG = 30.0
@@ -165,6 +170,14 @@ class Controller:
             raise CommandRejected(str(exc)) from exc
         self._odo_cfg = odometry or OdometryConfig()
         self._gnss_cfg = gnss_noise or GnssNoiseConfig()
+        slowest_pct = min(nav.cruise_pct, nav.turn_pct)
+        if nav.steering == "pivot_arc":
+            slowest_pct = min(slowest_pct, nav.min_speed_pct)
+        slowest_mps = DEAD_RECKONING_MIN_SPEED * nav.full_speed_mps * slowest_pct / 100.0
+        # 20 m at half of 15 % of 3.888 m/s: 68.6 s
+        self._dead_reckoning_max_s = (
+            safety.gps_outage_max_m / slowest_mps if slowest_mps > 0 else math.inf
+        )
         self._source: PositionSource = make_source(
             nav, self._odo_cfg, self._gnss_cfg, declination_deg
         )
@@ -632,39 +645,50 @@ class Controller:
         ``stuck_min_m`` away, or the compass ``STUCK_TURN_DEG`` round). Each kind of progress
         restarts its own clock, so a stuck robot is caught ``stuck_s`` after it stopped, and
         the reason names what stopped: the wheels (blocked), else the GPS or the compass
-        (the wheels turn, the robot does not: slipping)."""
+        (the wheels turn, the robot does not: slipping). The wheels' test also runs without
+        a usable fix or heading (dead-reckoning through an outage); the body's clock then
+        restarts with the next fix."""
         fs, cmd, fix, att = self._failsafe, self._cmd, self._fix, self._att
         forward = 0.5 * (cmd.left_pct + cmd.right_pct)
         turning = 0.5 * abs(cmd.left_pct - cmd.right_pct)
         driving = max(abs(forward), turning) >= fs.stuck_min_pct
-        if not driving or fix is None or not self._fix_ok or att is None or not self._att_ok:
+        if not driving:
             self._stuck_wheels = self._stuck_body = None
             return None
-        assert fix.lat_deg is not None and fix.lon_deg is not None
-        wheels, body = self._stuck_wheels, self._stuck_body
+        wheels = self._stuck_wheels
         if (
             wheels is None
             or self._odo_prev is None
             or self._wheel_m - wheels[0] >= (0.1 * fs.stuck_min_m)
         ):
             wheels = self._stuck_wheels = (self._wheel_m, now)
-        stale = self._valid_fix_t is None or now - self._valid_fix_t > self._safety.fix_stale_s
-        if (
-            body is None
-            or stale  # an old fix says nothing of motion: the body's clock waits for a new one
-            or self._body_moved_m(body, fix) >= fs.stuck_min_m
-            or abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG
-        ):
-            body = (fix.lat_deg, fix.lon_deg, att.bearing_deg, now, self._wheel_m)
-            self._stuck_body = body
-            self._stuck_forward = False
+        body = self._stuck_body
+        if fix is None or not self._fix_ok or att is None or not self._att_ok:
+            # The body tests need a fix and a heading; the wheels' test does not. It used to
+            # stop here too, so a robot blocked in a GPS outage, dead-reckoning on wheels
+            # that add no travel, drove its motors until the fix came back (1005 s).
+            body = self._stuck_body = None
+        else:
+            assert fix.lat_deg is not None and fix.lon_deg is not None
+            stale = self._valid_fix_t is None or now - self._valid_fix_t > self._safety.fix_stale_s
+            if (
+                body is None
+                or stale  # an old fix says nothing of motion: the body's clock waits for a new one
+                or self._body_moved_m(body, fix) >= fs.stuck_min_m
+                or abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG
+            ):
+                body = (fix.lat_deg, fix.lon_deg, att.bearing_deg, now, self._wheel_m)
+                self._stuck_body = body
+                self._stuck_forward = False
         # did it try to drive forward since the body last moved (else it only pivoted)?
         self._stuck_forward = self._stuck_forward or abs(forward) >= fs.stuck_min_pct
-        still_wheels_s, still_body_s = now - wheels[1], now - body[3]
+        still_wheels_s = now - wheels[1]
+        still_body_s = 0.0 if body is None else now - body[3]
         if max(still_wheels_s, still_body_s) < fs.stuck_s:
             return None
         if (
             still_wheels_s < fs.stuck_s
+            and body is not None
             and self._stuck_forward  # the fixes judge it (a pivot: the compass, which is sure)
             and self._odo_prev is not None
             and self._wheel_m - body[4] < SLIP_MIN_TRAVEL * fs.stuck_min_m
@@ -778,13 +802,16 @@ class Controller:
     def _dead_reckoning_ok(self, now: float) -> bool:
         """May the robot drive on without a valid fix? Only on the EKF while the wheel
         encoders report (fresh), for at most ``safety.gps_outage_max_m`` of wheel travel since
-        the last valid fix and while the estimate's uncertainty stays under
+        the last valid fix, at most ``_dead_reckoning_max_s`` since it (see
+        ``DEAD_RECKONING_MIN_SPEED``) and while the estimate's uncertainty stays under
         ``DEAD_RECKONING_MAX_SIGMA_M``: beside a building the fix comes back a few metres on."""
         limit_m = self._safety.gps_outage_max_m
-        odo = self._odo_prev
+        odo, fix_t = self._odo_prev, self._valid_fix_t
         if limit_m <= 0 or self._nav_cfg.position_source != "ekf" or odo is None:
             return False
         if now - odo.t_s > ODOMETRY_FRESH_S or self._wheel_m - self._wheel_at_fix > limit_m:
+            return False
+        if fix_t is not None and now - fix_t > self._dead_reckoning_max_s:
             return False
         sigma_m = self._source.extra().get("ekf_sigma_m")
         return isinstance(sigma_m, float) and sigma_m <= DEAD_RECKONING_MAX_SIGMA_M

@@ -1,0 +1,82 @@
+"""Failsafes while the robot dead-reckons through a GPS outage (an outside audit): the
+wheels' stuck test without a fix, the time bound of a drive without one, dead encoders
+named as such, the geofence checked on the estimate. Fast-time missions reuse the harness
+of tests/test_failsafe_sim.py; the rest drive the controller with real records."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from tests.test_controller import SAFETY, at, att, fix
+from tests.test_failsafe_controller import COUNTS_PER_M, FS
+from tests.test_failsafe_sim import LONG_LEG, STUCK_S, _mission, _world
+from x6wd.core.config import NavigationConfig
+from x6wd.core.records import Mode, NavState, WheelOdometry
+from x6wd.nav.controller import DEAD_RECKONING_MIN_SPEED, Controller
+
+OUTAGE_FROM_S = 8.0
+
+
+def _outage(start_s: float, duration_s: float) -> str:
+    return f'[[effects]]\nname = "outage"\nstart_s = {start_s}\nduration_s = {duration_s}\n'
+
+
+def test_a_robot_blocked_in_a_gps_outage_pauses_on_its_wheels(tmp_path: Path) -> None:
+    """Blocked 4 s into a long outage, about 9 m of the 20 m of dead reckoning driven: its
+    wheels add no travel, so the outage never became a hold and the motors ran at 60 % until
+    the fix came back. The wheels' test needs no fix: paused within stuck_s."""
+    block_s = OUTAGE_FROM_S + 4.0
+    world = _world(
+        60.0,
+        vehicle=f'stuck_from_s = {block_s}\nstuck_mode = "blocked"',
+        waypoints=LONG_LEG,
+        extra=_outage(OUTAGE_FROM_S, 500.0) + "[safety]\ngps_outage_max_m = 20.0\n",
+    )
+    run = _mission(tmp_path, world)
+    # dead-reckoning, no hold, when it blocked and until the pause
+    assert not any(s["new"] == "HOLD" for s in run.states if s["t_s"] > 1.0), run.states
+    paused = run.first("PAUSED", "failsafe: stuck (the wheels: no motion in 10 s of driving)")
+    assert block_s + STUCK_S - 1.0 <= paused["t_s"] <= block_s + STUCK_S + 1.0
+    assert run.mode_changes()[-1][1] == "PAUSED"
+    motors = [m for m in run.of("motor") if m["t_s"] >= paused["t_s"]]
+    assert motors and all(m["left_pct"] == m["right_pct"] == 0.0 for m in motors)
+    assert [why for _t, why in run.summary.extra["failsafes"]] == [
+        "stuck (the wheels: no motion in 10 s of driving)"
+    ]
+
+
+def test_a_drive_without_a_fix_is_bounded_in_time_as_well_as_in_wheel_travel() -> None:
+    """Wheels that count 5 cm/s while driven at 60 % (a miscounting encoder): enough for the
+    stuck test (0.2 m in 10 s), 20 m of travel only after 400 s. The drive without a fix
+    holds once the slowest drive at half its nominal speed would have covered 20 m."""
+    nav = NavigationConfig()
+    safety = replace(SAFETY, gps_outage_max_m=20.0)
+    c = Controller(nav, safety, 3.0, failsafe=FS)
+    c.on_fix(fix(0.0))
+    for k in range(1, 21):
+        c.on_attitude(att(0.05 * k, 357.0))  # 357 magnetic + 3 declination = north
+    c.load_mission([at(0.0, 900.0)], 1.0)
+    c.start(1.0)
+    last_fix_s = 5.0
+    limit_s = 20.0 / (DEAD_RECKONING_MIN_SPEED * nav.full_speed_mps * nav.min_speed_pct / 100)
+    assert limit_s == pytest.approx(68.6, abs=0.1)
+    t_hold = None
+    for k in range(1, 2001):  # encoders and compass at 10 Hz, fixes at 1 Hz until 5 s
+        t = 1.0 + 0.1 * k
+        counts = round(0.005 * k * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t, 357.0))
+        if k % 10 == 0:
+            c.on_fix(fix(t, 0.0, 0.005 * k) if t <= last_fix_s + 1e-9 else fix(t, valid=False))
+        assert c.mode == Mode.RUNNING, c.telemetry.extra.get("failsafe")
+        if c.state == NavState.HOLD:
+            t_hold = t
+            break
+    assert t_hold is not None, "never held: the drive without a fix has no time bound"
+    assert c.telemetry.hold_reason == "no valid fix" and c.command.is_stop
+    assert t_hold == pytest.approx(last_fix_s + limit_s, abs=0.15)
+    assert math.isclose(c.telemetry.left_pct, 0.0)
