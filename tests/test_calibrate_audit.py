@@ -239,3 +239,27 @@ def test_a_k_clamped_at_zero_is_written_as_not_resolved_and_few_passes_are_calle
     assert rough in err and f"# rough: the standard errors {rough}" in out
     # the daemon loads what was written
     assert config.loads(out).odometry.k_right_m == pytest.approx(written)
+
+
+# ------------------------------------------------------------------------------ 5: messages
+
+
+def test_circle_passes_lost_to_reference_noise_are_not_called_a_gps_gap(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Audit: passes dropped because the reference's noise is a large part of the radius
+    were reported as "a GPS gap". 1 m circles with a 0.3-0.4 m reference, fixes every 0.2 s
+    without a pause."""
+    straight = odometry_run(tmp_path / "s.jsonl", "straight", passes=6, length_m=10.0)
+    circle = odometry_run(tmp_path / "c.jsonl", "circle", passes=4, laps=2, radius_m=1.0,
+                          ref_sigma_m=0.3)  # fmt: skip
+    argv = ["calibrate", "odometry", "--straight", str(straight), "--circle", str(circle)]
+    assert cli.main(argv) == 0
+    err = capsys.readouterr().err
+    assert "1 circle passes with consecutive reference fixes at the usual spacing" in err
+    assert "not a gap" in err and "GPS gap" not in err
+    odometry_run(tmp_path / "c.jsonl", "circle", passes=4, laps=2, radius_m=1.0, ref_sigma_m=0.4)
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "4 passes left out: consecutive reference fixes at the usual spacing" in err
+    assert "quarter lap apart;" not in err  # the gap wording

@@ -12,7 +12,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from x6wd.calibrate import gnss
-from x6wd.calibrate.odometry import calibrate, load_track
+from x6wd.calibrate.odometry import NOISY_PASS, calibrate, load_track
 from x6wd.core import config as config_mod
 from x6wd.core.errors import ConfigError
 from x6wd.core.outdir import write_output_file
@@ -293,6 +293,12 @@ def main(args: argparse.Namespace) -> int:
         print(
             f"x6wd calibrate: {result.gap_passes} circle passes with reference fixes more than "
             "a quarter lap apart (a GPS gap: their laps cannot be counted) were left out",
+            file=sys.stderr,
+        )
+    if result.circle.noisy_passes:
+        print(
+            f"x6wd calibrate: {result.circle.noisy_passes} circle passes with {NOISY_PASS} "
+            "were left out: their laps cannot be counted",
             file=sys.stderr,
         )
     sys.stdout.write(text)

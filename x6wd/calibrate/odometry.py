@@ -360,6 +360,7 @@ class CircleResult:
     turn_deg: float  # total |heading change|
     radius_m: float  # mean fitted radius
     gap_passes: int = 0  # left out: reference fixes too far apart to count the laps
+    noisy_passes: int = 0  # left out: fixes at the usual spacing a quarter lap apart (noise)
 
 
 MAX_STEP_RAD = math.pi / 2
@@ -368,39 +369,53 @@ quarter lap) for the swept angle to be unwrapped safely. Past half a lap a gap's
 aliases (a 0.6-lap gap reads as 0.4 lap backwards), so a whole lap could go uncounted."""
 
 
-def _swept_rad(p: Pass, xc: float, yc: float, pts: Array) -> float | None:
-    """The angle (rad, counter-clockwise) swept about (xc, yc) over the pass's points, or
-    None when the laps cannot be counted: two points more than :data:`MAX_STEP_RAD` apart in
-    angle, or in time at the pass's typical turn rate (the angle of a long gap aliases, so
-    the angle alone cannot show it)."""
+def _swept_rad(p: Pass, xc: float, yc: float, pts: Array) -> float | str:
+    """The angle (rad, counter-clockwise) swept about (xc, yc) over the pass's points, or why
+    the laps cannot be counted: "gap" when two points are more than :data:`MAX_STEP_RAD`
+    apart in time at the pass's typical turn rate (the angle of a long gap aliases, so the
+    angle alone cannot show it) or in angle across a pause in the fixes; "noise" when two
+    fixes at the usual spacing are that far apart in angle (the reference's scatter is a
+    large part of the radius)."""
     theta = np.arctan2(pts[:, 1] - yc, pts[:, 0] - xc)
     step = np.angle(np.exp(1j * np.diff(theta)))  # wrapped to (-pi, pi]
     times = np.concatenate(([p.t0_s], p.path_t_s, [p.t1_s]))
     dt = np.diff(times)
     ok = dt > 0
-    if np.abs(step).max() > MAX_STEP_RAD:
-        return None
+    big = np.abs(step) > MAX_STEP_RAD
+    if big.any():
+        # the stop's averaged ends are a fix's spacing from the path: judge the path's
+        usual = float(np.median(dt[ok])) if ok.any() else 0.0
+        return "gap" if float(dt[big].max()) > 1.5 * usual else "noise"
     if ok.any():
         rate = float(np.median(np.abs(step[ok]) / dt[ok]))  # rad/s, robust to one gap
         if float(dt.max()) * rate > MAX_STEP_RAD:
-            return None
+            return "gap"
     return float(step.sum())
+
+
+NOISY_PASS = (
+    "consecutive reference fixes at the usual spacing more than a quarter lap apart about the "
+    "circle's centre (not a gap: the reference's scatter, or a jump, is a large part of the "
+    "radius; a better reference, a higher fix rate or a larger circle)"
+)
 
 
 def circle_fit(passes: list[Pass], straight: StraightResult, *, ref_sigma_m: float) -> CircleResult:
     """Effective track from circle passes and the calibrated wheels (steps 2 and 3). A pass
-    whose reference fixes are more than a quarter lap apart (a GPS gap) is left out and
-    counted in ``gap_passes``: its lap count would be a guess."""
+    whose reference fixes are more than a quarter lap apart is left out and counted in
+    ``gap_passes`` (a GPS gap) or ``noisy_passes`` (at the usual fix spacing: the reference's
+    noise): its lap count would be a guess."""
     rows = []
-    gaps = 0
+    gaps = noisy = 0
     for p in passes:
         if len(p.path_m) < 3:
             continue
         pts = np.vstack([p.start_m, p.path_m, p.end_m])
         xc, yc, radius = fit_circle(pts)
         swept = _swept_rad(p, xc, yc, pts)  # counter-clockwise about the centre
-        if swept is None:
-            gaps += 1
+        if isinstance(swept, str):
+            gaps += swept == "gap"
+            noisy += swept == "noise"
             continue
         if abs(swept) < math.pi:
             continue  # not even half a lap: no circle to speak of
@@ -416,6 +431,7 @@ def circle_fit(passes: list[Pass], straight: StraightResult, *, ref_sigma_m: flo
                 if gaps
                 else ""
             )
+            + (f"; {noisy} passes left out: {NOISY_PASS}" if noisy else "")
         )
     dpsi, s_true, cl, cr, var_theta, radii = (np.array(c, float) for c in zip(*rows, strict=True))
     n = len(rows)
@@ -439,7 +455,7 @@ def circle_fit(passes: list[Pass], straight: StraightResult, *, ref_sigma_m: flo
     f = n / (n - 1) if n > 1 else 1.0  # B̂ used one degree of freedom of d
     k_l = _k_terms(a * d + 0.5 * f * d * d, float(np.abs(s_l).sum()))
     k_r = _k_terms(-a * d + 0.5 * f * d * d, float(np.abs(s_r).sum()))
-    return CircleResult(track, k_l, k_r, n, math.degrees(turned), float(radii.mean()), gaps)
+    return CircleResult(track, k_l, k_r, n, math.degrees(turned), float(radii.mean()), gaps, noisy)
 
 
 @dataclass(frozen=True)
