@@ -263,3 +263,35 @@ def test_circle_passes_lost_to_reference_noise_are_not_called_a_gps_gap(
     err = capsys.readouterr().err
     assert "4 passes left out: consecutive reference fixes at the usual spacing" in err
     assert "quarter lap apart;" not in err  # the gap wording
+
+
+def test_flags_files_and_a_correlation_time_beyond_the_record_are_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Audit: --ref-lat nan got "origin_lat_deg must be finite"; "static: 20 fixes; need at
+    least 100" named no file; a 2-minute record's correlation_s went to 86400 without a word."""
+    rng = np.random.default_rng(1)
+    err = rng.normal(0.0, 1.5, 2) + rng.normal(0.0, 0.5, (120, 2))  # a constant offset + white
+    still = write_csv(tmp_path / "two_minutes.csv", np.arange(120.0), err[:, 0], err[:, 1])
+    static = ["calibrate", "gnss", "--static", str(still)]
+    for flags, message in (
+        (["--ref-lat", "nan", "--ref-lon", "5"], "--ref-lat must be finite and within ±90"),
+        (["--ref-lat", "51.7", "--ref-lon", "181"], "--ref-lon must be finite and within ±180"),
+    ):
+        assert cli.main([*static, *flags]) == 2
+        out, err_text = capsys.readouterr()
+        assert not out and message in err_text and "origin_lat_deg" not in err_text
+    drive = ["calibrate", "gnss", *rectangle_drive(tmp_path), "--re-m", "1", "--ase-m", "1"]
+    assert cli.main([*drive, "--origin", "nan,5"]) == 2
+    assert "--origin 'nan,5': latitude must be finite" in capsys.readouterr().err
+    short = write_csv(tmp_path / "short.csv", np.arange(20.0), err[:20, 0], err[:20, 1])
+    argv = ["calibrate", "gnss", "--static", str(short), "--ref-lat", "51.7", "--ref-lon", "5"]
+    assert cli.main(argv) == 2
+    assert f"static {short}: 20 fixes; need at least 100" in capsys.readouterr().err
+    # the slow part did not decay in 2 minutes: written as the configuration's bound, said so
+    assert cli.main([*static, "--ref-lat", "51.7", "--ref-lon", "5"]) == 0
+    out, err_text = capsys.readouterr()
+    line = next(x for x in out.splitlines() if x.startswith("correlation_s = "))
+    assert line.startswith("correlation_s = 86400.0  # of the slow part; not measured: no decay")
+    assert "the record (119 s) is too short to measure a correlation time beyond 86400 s" in line
+    assert "x6wd calibrate: correlation_s: no decay seen: the record (119 s)" in err_text

@@ -101,6 +101,10 @@ def _latlon(text: str) -> tuple[float, float]:
         lat, lon = (float(v) for v in text.split(","))
     except ValueError:
         raise ConfigError(f"--origin {text!r}: expected LAT,LON in degrees") from None
+    if not (math.isfinite(lat) and abs(lat) <= 90 and math.isfinite(lon) and abs(lon) <= 180):
+        raise ConfigError(
+            f"--origin {text!r}: latitude must be finite and within ±90, longitude within ±180"
+        )
     return lat, lon
 
 
@@ -108,6 +112,8 @@ _FLAG_RULES: dict[str, tuple[Callable[[float], bool], str]] = {
     "finite>=0": (lambda v: math.isfinite(v) and v >= 0, ">= 0"),
     "finite>0": (lambda v: math.isfinite(v) and v > 0, "> 0"),
     "int>=1": (lambda v: v >= 1, ">= 1"),
+    "lat": (lambda v: math.isfinite(v) and abs(v) <= 90.0, "finite and within ±90 degrees"),
+    "lon": (lambda v: math.isfinite(v) and abs(v) <= 180.0, "finite and within ±180 degrees"),
 }
 
 
@@ -128,7 +134,7 @@ def main_gnss(args: argparse.Namespace) -> int:
     _check_flags(args, {
         "re_m": "finite>=0", "ase_m": "finite>=0", "correlation_s": "finite>=0",
         "cell_m": "finite>0", "max_gap_s": "finite>0", "visit_gap_s": "finite>=0",
-        "min_fixes": "int>=1", "min_visits": "int>=1",
+        "min_fixes": "int>=1", "min_visits": "int>=1", "ref_lat": "lat", "ref_lon": "lon",
     })  # fmt: skip
     if not args.static and not args.drive:
         raise ConfigError("calibrate gnss: give --static, --drive, or both")
@@ -220,6 +226,8 @@ def main_gnss(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
     result = gnss.GnssCalibration(re_m, ase_m, tau, static, lce, **given)
+    if result.tau_bound_note:
+        print(f"x6wd calibrate: correlation_s: {result.tau_bound_note}", file=sys.stderr)
     text = result.toml("\n".join(header))
     sys.stdout.write(text)
     if args.out:

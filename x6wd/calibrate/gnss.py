@@ -110,6 +110,10 @@ MOVE_SIGNIFICANCE = 3.0
 of a noisy receiver (white 2-3 m, 100 fixes) scatters its speed estimate to 0.9-1.3 m/s by
 chance, but never to 2 SEs; a drive, even with a 0.5 m reference, stands at 6 SEs or more."""
 
+MAX_CORRELATION_S = 86400.0
+"""The largest ``correlation_s`` the configuration takes (s); an estimate beyond it (a record
+far shorter than the slow part's correlation time) is written as this bound, and said so."""
+
 MAX_STATIC_OFFSET_M = 50.0
 """Largest distance (m) of a static recording's median position from the given reference.
 A NEO-5's slow error is a few metres (10 m at worst in the open); a reference in another
@@ -373,8 +377,9 @@ def static_noise(
     ``epoch_s``: the receiver's epoch spacing (s); default the median spacing of the fixes.
     Needs at least 100 fixes and 50 pairs at lags 1 and 2."""
     n = len(fixes)
+    what = f"static {fixes.source}" if fixes.source else "static"
     if n < 100:
-        raise ConfigError(f"static: {n} fixes; need at least 100 (an hour at 1 Hz is better)")
+        raise ConfigError(f"{what}: {n} fixes; need at least 100 (an hour at 1 Hz is better)")
     plane = LocalTangentPlane(ref_lat_deg, ref_lon_deg)
     _check_standing(fixes, ref_lat_deg, ref_lon_deg)
     x, y = plane.to_xy(fixes.lat_deg, fixes.lon_deg)
@@ -383,7 +388,7 @@ def static_noise(
     t = fixes.t_s - fixes.t_s[0]
     dt = float(np.median(np.diff(t))) if epoch_s is None else float(epoch_s)
     if not (dt > 0 and math.isfinite(dt)):
-        raise ConfigError(f"static: epoch spacing must be > 0 s, got {dt!r}")
+        raise ConfigError(f"{what}: epoch spacing must be > 0 s, got {dt!r}")
     idx = np.round(t / dt).astype(np.int64)
     keep = np.concatenate(([True], np.diff(idx) > 0))  # one fix per epoch
     z, idx, t = z[keep], idx[keep], t[keep]
@@ -392,7 +397,7 @@ def static_noise(
     d2, i2 = _variogram_sums(z, idx, 2)
     if d1.size < 50 or d2.size < 50:
         raise ConfigError(
-            f"static: {d1.size} pairs one epoch apart and {d2.size} two apart; need 50 each "
+            f"{what}: {d1.size} pairs one epoch apart and {d2.size} two apart; need 50 each "
             f"(epoch {dt:g} s: are the fixes that far apart?)"
         )
     zz = (z * z).sum(axis=1)
@@ -838,13 +843,29 @@ class GnssCalibration:
         )
         return max(math.ceil(round(bound * 1e4, 6)) / 1e4, 0.0001)
 
+    @property
+    def tau_bound_note(self) -> str | None:
+        """Why ``correlation_s`` is written as the configuration's limit, when a static
+        record's estimate is beyond it (or the slow part did not decay at all), else None."""
+        tau = self.correlation_s
+        if self.static is None or (math.isfinite(tau) and tau <= MAX_CORRELATION_S):
+            return None
+        est = f"the estimate {tau:.3g} s" if math.isfinite(tau) else "no decay seen"
+        return (
+            f"{est}: the record ({self.static.duration_s:.0f} s) is too short to measure a "
+            f"correlation time beyond {MAX_CORRELATION_S:g} s; written as that bound (the slow "
+            "part taken as near constant)"
+        )
+
     def table(self) -> dict[str, object]:
         """The ``[gnss_noise]`` keys and values."""
         tau = self.correlation_s
         t: dict[str, object] = {
             "re_m": self.re_m_written,
             "ase_m": round(self.ase_m.value, 4),
-            "correlation_s": round(min(tau, 86400.0), 1) if math.isfinite(tau) else 86400.0,
+            "correlation_s": round(min(tau, MAX_CORRELATION_S), 1)
+            if math.isfinite(tau)
+            else MAX_CORRELATION_S,
         }
         if self.lce is not None:
             lm = self.lce
@@ -884,7 +905,9 @@ class GnssCalibration:
                     "time stamp) left out"
                 )
             src = ase_src = "static recording"
-            tau_note = "of the slow part; rough"
+            tau_note = "of the slow part; " + (
+                f"not measured: {self.tau_bound_note}" if self.tau_bound_note else "rough"
+            )
         else:
             src, ase_src = self.re_from, self.ase_from
             tau_note = f"of the slow part ({self.tau_from})"
