@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_controller import SAFETY, at, att, fix
-from tests.test_failsafe_controller import COUNTS_PER_M, FS
+from tests.test_controller import NAV, SAFETY, at, att, fix
+from tests.test_failsafe_controller import COUNTS_PER_M, FS, feed, started
 from tests.test_failsafe_sim import LONG_LEG, STUCK_S, _mission, _world
 from x6wd.core.config import NavigationConfig
 from x6wd.core.records import Mode, NavState, WheelOdometry
@@ -80,3 +80,67 @@ def test_a_drive_without_a_fix_is_bounded_in_time_as_well_as_in_wheel_travel() -
     assert c.telemetry.hold_reason == "no valid fix" and c.command.is_stop
     assert t_hold == pytest.approx(last_fix_s + limit_s, abs=0.15)
     assert math.isclose(c.telemetry.left_pct, 0.0)
+
+
+# ------------------------------------------------------------------- dead encoders
+
+
+def test_dead_encoders_are_named_as_such_not_a_block(tmp_path: Path) -> None:
+    """Encoders counting once a wheel turn (the robot's config expects 1632): the wheels'
+    test stops the robot, as it must (no odometry), but the fixes show it drove about 23 m
+    in those 10 s, so the reason names the encoders, not a block."""
+    world = _world(30.0, waypoints=LONG_LEG, extra="[encoders]\ncounts_per_rev = 1\n")
+    run = _mission(tmp_path, world)
+    why = "encoders: under 0.2 m counted in 10 s of driving while the fixes show motion"
+    paused = run.first("PAUSED", f"failsafe: {why}")
+    assert paused["t_s"] <= STUCK_S + 1.5
+    assert [w for _t, w in run.summary.extra["failsafes"]] == [why]
+    assert not any("stuck" in r for _t, _n, r in run.mode_changes())
+    motors = [m for m in run.of("motor") if m["t_s"] >= paused["t_s"]]
+    assert motors and all(m["left_pct"] == m["right_pct"] == 0.0 for m in motors)
+
+
+def test_a_blocked_robot_whose_fix_lags_and_wanders_is_still_blocked() -> None:
+    """Blocked: the wheels count nothing. The fixes move the body's anchor on twice in the
+    first seconds (the receiver's lag behind the last metres driven) and once more later
+    (wander): not the strong evidence that names the encoders."""
+    c = started()
+    ys = {1: 2.5, 2: 5.0, 7: 7.5}  # metres north of the start, from t = 1, 2 and 7 s
+    y = 0.0
+    for k in range(1, 16):
+        y = ys.get(k, y)
+        feed(c, float(k), y, counts=0)
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    assert c.telemetry.extra["failsafe"] == "stuck (the wheels: no motion in 10 s of driving)"
+
+
+def test_encoders_that_stop_counting_in_a_pivot_are_named_by_the_compass() -> None:
+    """Encoders frozen from the start: the robot pivots 20 deg/s from north towards a target
+    south, then drives south at 2.3 m/s. The compass moved the anchor on 30 deg at a time,
+    then the fixes 2 m at a time."""
+    c = Controller(NAV, SAFETY, failsafe=FS)
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(0.0, -200.0)], 0.0)
+    c.start(0.0)
+    heading, y, states = 0.0, 0.0, set()
+    for k in range(1, 60):
+        t = 0.5 * k
+        if c.state in (NavState.TURN_LEFT, NavState.TURN_RIGHT):
+            heading += 10.0 if c.state == NavState.TURN_RIGHT else -10.0
+        elif c.state == NavState.STRAIGHT:
+            y -= 0.5 * 2.3
+        states.add(c.state)
+        c.on_attitude(att(t, heading % 360.0))
+        c.on_fix(fix(t, 0.0, y))
+        c.on_odometry(WheelOdometry(t, 0, 0, k))
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED
+    assert NavState.STRAIGHT in states and NavState.TURN_RIGHT in states, states
+    assert c.telemetry.extra["failsafe"] == (
+        "encoders: under 0.2 m counted in 10 s of driving while the compass and the fixes"
+        " show motion"
+    )

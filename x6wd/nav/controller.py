@@ -111,6 +111,12 @@ PIVOT_HEADWAY_DEG = 10.0
 """A pivot must bring its heading error this much (deg) nearer zero every ``stuck_s``: a
 compass that swings without following the body (a magnet stronger than the earth's field)
 passes the 30° motion test while the robot spins in place for ever."""
+ENCODER_FAULT_MOVES = 2
+"""The wheels' test names the encoders, not a block, when the body's anchor moved on
+(fixes ``stuck_min_m`` apart, or the compass ``STUCK_TURN_DEG`` round) at least this often
+in the second half of the ``stuck_s`` the wheels stood still: once could be the GPS's
+wander, and in the first seconds after a block the compass's and the receiver's lag still
+move a blocked robot's anchor on."""
 SLIP_MIN_TRAVEL = 4.0
 """With encoders, the body counts as still (slipping) only once the wheels drove this many
 ``stuck_min_m`` without it moving: at a slow cruise a drifting GPS can hide 6 m in 10 s."""
@@ -195,6 +201,9 @@ class Controller:
         self._stuck_wheels: tuple[float, float] | None = None
         self._stuck_body: tuple[float, float, float, float, float] | None = None
         self._stuck_forward = False
+        # (t_s, "the fixes" or "the compass") of each time the body's anchor moved on since
+        # the wheels' clock last restarted
+        self._stuck_seen: list[tuple[float, str]] = []
         # the pivot's headway: (best |heading error| deg, t_s it was reached, waypoint index)
         self._pivot_best: tuple[float, float, int] | None = None
         self._course = CourseWatch(
@@ -645,7 +654,9 @@ class Controller:
         ``stuck_min_m`` away, or the compass ``STUCK_TURN_DEG`` round). Each kind of progress
         restarts its own clock, so a stuck robot is caught ``stuck_s`` after it stopped, and
         the reason names what stopped: the wheels (blocked), else the GPS or the compass
-        (the wheels turn, the robot does not: slipping). The wheels' test also runs without
+        (the wheels turn, the robot does not: slipping), or the encoders when the wheels'
+        test fires though the body moved on ``ENCODER_FAULT_MOVES`` times in the second half
+        of that time. The wheels' test also runs without
         a usable fix or heading (dead-reckoning through an outage); the body's clock then
         restarts with the next fix."""
         fs, cmd, fix, att = self._failsafe, self._cmd, self._fix, self._att
@@ -662,6 +673,7 @@ class Controller:
             or self._wheel_m - wheels[0] >= (0.1 * fs.stuck_min_m)
         ):
             wheels = self._stuck_wheels = (self._wheel_m, now)
+            self._stuck_seen = []
         body = self._stuck_body
         if fix is None or not self._fix_ok or att is None or not self._att_ok:
             # The body tests need a fix and a heading; the wheels' test does not. It used to
@@ -671,12 +683,16 @@ class Controller:
         else:
             assert fix.lat_deg is not None and fix.lon_deg is not None
             stale = self._valid_fix_t is None or now - self._valid_fix_t > self._safety.fix_stale_s
-            if (
-                body is None
-                or stale  # an old fix says nothing of motion: the body's clock waits for a new one
-                or self._body_moved_m(body, fix) >= fs.stuck_min_m
-                or abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG
-            ):
+            moved = ""
+            if body is None or stale:
+                pass  # an old fix says nothing of motion: the body's clock waits for a new one
+            elif self._body_moved_m(body, fix) >= fs.stuck_min_m:
+                moved = "the fixes"
+            elif abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG:
+                moved = "the compass"
+            if body is None or stale or moved:
+                if moved:
+                    self._stuck_seen.append((now, moved))
                 body = (fix.lat_deg, fix.lon_deg, att.bearing_deg, now, self._wheel_m)
                 self._stuck_body = body
                 self._stuck_forward = False
@@ -696,6 +712,18 @@ class Controller:
             return None  # the wheels drove too little to tell a slip from the GPS's wander
         self._stuck_wheels = self._stuck_body = None
         if still_wheels_s >= 0.5 * fs.stuck_s:
+            late_s = wheels[1] + 0.5 * fs.stuck_s
+            seen = [kind for t, kind in self._stuck_seen if t >= late_s]
+            if len(seen) >= ENCODER_FAULT_MOVES:
+                # the body moved on while the wheels counted (almost) nothing: the encoders
+                # failed, not the drive; stopping is still right (no odometry, no EKF)
+                shows = " and ".join(dict.fromkeys(seen))
+                return (
+                    f"encoders: under {0.1 * fs.stuck_min_m:g} m counted in {fs.stuck_s:g} s"
+                    f" of driving while {shows} {'shows' if shows == 'the compass' else 'show'}"
+                    " motion",
+                    fs.stuck_action,
+                )
             what = "the wheels"
         else:
             what = "the GPS" if self._stuck_forward else "the compass"
