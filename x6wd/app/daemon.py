@@ -194,7 +194,9 @@ class _MotorWorker:
         self._polling = False  # the send in progress is an encoder poll (this thread)
         self._acked = True  # the latest send went through (send_now may then send directly)
         self._stop = False
-        self._healthy = bool(link.healthy)
+        # What the controller was told: it starts with the link up, so a link that is not
+        # (a board silent from power-up) is a change that start() reports at once.
+        self._healthy = True
         self.direct_sent = 0  # commands sent by send_now in its caller's thread
         self.repeats_skipped = 0  # commands submit() did not send again (repeat_after_s)
         self.sent = 0
@@ -219,6 +221,9 @@ class _MotorWorker:
         self.thread = guarded_thread(self._run, "x6wd-motors", self._died)
 
     def start(self) -> None:
+        """Report the link's health as it is now (a link that never reached its board is
+        lost before any command is accepted), then start the thread."""
+        self._after_io()
         self.thread.start()
 
     @property

@@ -1,0 +1,147 @@
+"""Device faults an outside audit found the drivers and the daemon mishandled, each on the
+real part: pseudo-terminals for the serial devices, the real `x6wd run` process where the
+behaviour is the daemon's.
+
+- A motor board silent from power-up is reported to the controller: drives are refused and
+  a mission is held until it answers.
+- A motor port that keeps failing with a transient errno (EIO from a pty whose far end went
+  away) counts as broken after a few errors in a row, and is reopened.
+- A GPS that sends only checksum-valid sentences with invalid fields goes stale.
+- A serial device another process holds (locked) is refused at start-up naming the key, and
+  is a reconnect error on a reopen.
+- A character device that is not a serial port is refused at start-up naming the key.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from drivers.motors import MotorBoard
+from tests.conftest import ROOT
+from tests.test_shutdown import DaemonProcess
+from tests.test_startup import write_config
+from x6wd.app.client import RemoteClient, RequestFailed
+
+pytestmark = pytest.mark.integration
+
+MISSION = ROOT / "missions" / "default.gpx"
+
+
+def wait_until(cond: Callable[[], Any], limit_s: float, what: str) -> Any:
+    end = time.monotonic() + limit_s
+    while time.monotonic() < end:
+        got = cond()
+        if got:
+            return got
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+class PtyMotorBoard:
+    """A motor board on a pseudo-terminal that reads every byte the host sends and answers
+    only while :attr:`answering` (a board powered up later, or never)."""
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.master)
+        tty.setraw(self.slave)
+        self.path = os.ttyname(self.slave)
+        self.board = MotorBoard()
+        self.answering = False
+        self.lines = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.005)
+            data = b""
+            if ready:
+                try:
+                    data = os.read(self.master, 4096)
+                except OSError:
+                    return
+            self.lines += data.count(b"\n")
+            if not self.answering:
+                continue
+            reply = self.board.feed(data, time.monotonic())
+            if reply:
+                os.write(self.master, reply)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        os.close(self.master)
+        os.close(self.slave)
+
+
+@pytest.fixture
+def silent_board() -> Iterator[PtyMotorBoard]:
+    b = PtyMotorBoard()
+    yield b
+    b.close()
+
+
+def load_mission(c: RemoteClient) -> bool:
+    try:
+        c.request("mission.load", gpx=MISSION.read_text())
+    except RequestFailed as exc:
+        if "no fix yet" in exc.message:
+            return False
+        raise
+    return True
+
+
+def status(c: RemoteClient) -> dict[str, Any]:
+    st: dict[str, Any] = c.request("status")
+    return st
+
+
+def test_a_board_silent_from_power_up_holds_the_robot_until_it_answers(
+    tmp_path: Path, silent_board: PtyMotorBoard
+) -> None:
+    config = write_config(tmp_path, motors={"url": f"serial://{silent_board.path}?baud=115200"})
+    p = DaemonProcess(config)
+    try:
+        assert p.port is not None
+        with RemoteClient("127.0.0.1", p.port) as c:
+            st = status(c)
+            assert st["links"]["motors"] == "lost"
+            assert st["devices"]["motors"]["state"] in ("disconnected", "reconnecting")
+            with pytest.raises(RequestFailed) as ei:
+                c.request("drive", left=30, right=30, duration_s=2)
+            assert ei.value.code == "rejected" and "motor link lost" in ei.value.message
+            st = status(c)
+            assert st["mode"] == "IDLE"
+            assert silent_board.board.running is False
+            wait_until(lambda: load_mission(c), 15, "a fix to load the mission against")
+            c.request("start")  # accepted, but held while the motors are lost
+            time.sleep(0.5)
+            st = status(c)
+            tel = st["telemetry"]
+            assert st["mode"] == "RUNNING" and st["state"] == "HOLD", st
+            assert tel["hold_reason"] == "motor link lost"
+            assert (tel["left_pct"], tel["right_pct"]) == (0.0, 0.0)
+            c.request("stop")
+            assert silent_board.lines > 0  # the daemon kept trying (W, S ...)
+
+            silent_board.answering = True  # the board powers up
+            wait_until(lambda: status(c)["links"]["motors"] == "ok", 10, "motors ok")
+            assert status(c)["devices"]["motors"]["state"] == "connected"
+            c.request("drive", left=30, right=30, duration_s=2)
+            wait_until(lambda: silent_board.board.running, 5, "board driven")
+            assert silent_board.board.watchdog_ms == 500  # W was sent once it answered
+            c.request("stop")
+            wait_until(lambda: not silent_board.board.running, 5, "board stopped")
+    finally:
+        p.stop()
