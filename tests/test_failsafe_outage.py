@@ -5,16 +5,20 @@ of tests/test_failsafe_sim.py; the rest drive the controller with real records."
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from sim_backend.geodesy import enu_to_lla
 from tests.test_controller import NAV, SAFETY, at, att, fix
 from tests.test_failsafe_controller import COUNTS_PER_M, FS, feed, started
-from tests.test_failsafe_sim import LONG_LEG, STUCK_S, _mission, _world
+from tests.test_failsafe_sim import LONG_LEG, ORIGIN, STUCK_S, _mission, _outside, _world
 from x6wd.core.config import NavigationConfig
+from x6wd.core.geodesy import great_circle_m
 from x6wd.core.records import Mode, NavState, WheelOdometry
 from x6wd.nav.controller import DEAD_RECKONING_MIN_SPEED, Controller
 
@@ -144,3 +148,49 @@ def test_encoders_that_stop_counting_in_a_pivot_are_named_by_the_compass() -> No
         "encoders: under 0.2 m counted in 10 s of driving while the compass and the fixes"
         " show motion"
     )
+
+
+# ------------------------------------------------------------------- the geofence
+
+
+def test_the_geofence_is_checked_on_the_estimate_while_dead_reckoning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The fence's edge runs (nearly straight) 3 m west of the start; the robot starts
+    heading 305 deg, so it arcs about 4.6 m west before following its leg north. The GPS
+    is out from 1 s (the robot still about 3 m inside) for the whole run: the loop checked
+    the fence only at valid fixes, so the robot left it unseen. The EKF's estimate is
+    checked: paused, motors stopped, "estimated" in the reason and the log."""
+    margin_m = 3.0
+    lat, lon, _alt = enu_to_lla(np.array([1000.0, 15.0, 0.0]), *ORIGIN)
+    centre = (float(lat), float(lon))
+    radius = great_circle_m(*centre, ORIGIN[0], ORIGIN[1]) + margin_m
+    world = _world(
+        40.0,
+        heading_deg=305.0,
+        waypoints="[[0.0, 30.0]]",
+        extra=f"[safety]\ngeofence_radius_m = {radius!r}\n"
+        f"geofence_center = [{centre[0]!r}, {centre[1]!r}]\n"
+        f'[failsafe]\ngeofence_action = "hold"\n' + _outage(1.0, 100.0),
+    )
+    with caplog.at_level(logging.WARNING, logger="x6wd.loop.runner"):
+        run = _mission(tmp_path, world)
+    why = "geofence breach (estimated position)"
+    paused = run.first("PAUSED", f"failsafe: {why}")
+    t = paused["t_s"]
+    assert not any(f["valid"] for f in run.of("fix") if 1.5 <= f["t_s"] <= t)  # blind
+    assert t < 5.0 and run.summary.extra["geofence_breaches"] == 1
+    assert [w for _t, w in run.summary.extra["failsafes"]] == [why]
+    assert run.mode_changes()[-1][1] == "PAUSED"
+    outside = _outside(run, centre, radius)
+    assert outside.any() and not outside[run.t <= 1.0].any()  # the route led out
+    motors = [m for m in run.of("motor") if m["t_s"] >= t]
+    assert motors and all(m["left_pct"] == m["right_pct"] == 0.0 for m in motors)
+    assert run.moved_after(t + 1.5) < 0.05
+    lat_t, lon_t, _alt = enu_to_lla(np.stack([run.east, run.north, 0 * run.east], axis=-1), *ORIGIN)
+    beyond_m = (
+        max(great_circle_m(*centre, a, b) for a, b in zip(lat_t, lon_t, strict=True)) - radius
+    )
+    assert beyond_m < 1.0, beyond_m  # the free arc goes 1.6 m beyond the fence
+    logged = [r.getMessage() for r in caplog.records if r.name == "x6wd.loop.runner"]
+    assert any(m.startswith(f"{why}: ") and "no fresh fix: failsafe hold" in m for m in logged)

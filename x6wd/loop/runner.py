@@ -11,7 +11,8 @@ Every edge drives this same object (docs/architecture.md, "The loop and its edge
 
 So every safety rule lives either in the sans-IO controller or here, and a fast-time run
 exercises all of them: the geofence (waypoints checked when a mission is loaded, the position
-checked at every valid fix while a mission runs; a breach gets ``failsafe.geofence_action``),
+checked at every valid fix while a mission runs, and the controller's estimate a few times a
+second while it runs without a fresh one; a breach gets ``failsafe.geofence_action``),
 the manual-drive limit, the hold on a sensor its reader reports down, the stop that reaches
 the motors first.
 
@@ -58,6 +59,10 @@ TELEMETRY_EVENT_HZ = 10.0
 """Most telemetry events per second to watching clients (fixes and state changes always go)."""
 TELEMETRY_RECORD_HZ = 1.0
 """Most telemetry snapshots per second to the recorder (fixes and state changes always go)."""
+ESTIMATE_FENCE_PERIOD_S = 0.25
+"""Without a fresh usable fix the geofence is checked on the controller's position estimate
+at most this often (s): the robot drives on its wheels through an outage (up to
+``safety.gps_outage_max_m``) and must not leave the fence unseen until the next fix."""
 
 Clock = Callable[[], float]
 """Seconds on one monotonic clock: ``time.monotonic`` on the robot, simulated time in fast time."""
@@ -115,6 +120,9 @@ class Runner:
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
         self.geofence_breaches = 0
         self._last_pos: tuple[float, float] | None = None  # latest valid fix (lat, lon deg)
+        self._last_pos_t: float | None = None  # its time (s)
+        self._fix_usable = False  # the latest fix record had a usable position
+        self._t_fence_est = -math.inf  # the latest geofence check of the estimate (s)
         self._last_motor_rec: tuple[float, float] | None = None
         self._t_pub = -math.inf
         self._t_rec = -math.inf
@@ -136,14 +144,18 @@ class Runner:
         if isinstance(rec, GpsFix):
             self.stats["fixes"] += 1
             self._record("record_fix", rec)
-            if has_usable_position(rec):
+            self._fix_usable = has_usable_position(rec)
+            if self._fix_usable:
                 assert rec.lat_deg is not None and rec.lon_deg is not None
                 self._last_pos = (rec.lat_deg, rec.lon_deg)
+                self._last_pos_t = rec.t_s
                 if self.first_fix is None:
                     self.first_fix = self._last_pos
                 if self._wmm_pending and rec.utc is not None:
                     self._set_wmm_declination(rec)
                 self._check_position(rec)  # before the fix can steer: a breach stops first
+            else:
+                self._check_estimate(rec.t_s)
             outputs = self.controller.on_fix(rec)
             self._t_stepped = rec.t_s
             self._handle(outputs, True)
@@ -183,6 +195,7 @@ class Runner:
         """Wheel-encoder counts from the motor board (recorded)."""
         self.stats["odometry"] += 1
         self._record("record_odometry", rec)
+        self._check_estimate(rec.t_s)
         outputs = self.controller.on_odometry(rec)
         self._t_stepped = rec.t_s
         self._handle(outputs, False)
@@ -195,6 +208,7 @@ class Runner:
         """A compass sample."""
         self.stats["attitudes"] += 1
         self._record("record_attitude", att)
+        self._check_estimate(att.t_s)
         outputs = self.controller.on_attitude(att)
         self._t_stepped = att.t_s
         self._handle(outputs, False)
@@ -221,6 +235,7 @@ class Runner:
         t = self.clock() if t_s is None else t_s
         if t == self._t_stepped:
             return
+        self._check_estimate(t)
         outputs = self.controller.tick(t)
         self._t_stepped = t
         self._handle(outputs, False)
@@ -316,29 +331,58 @@ class Runner:
         """A running mission outside the geofence gets ``failsafe.geofence_action``: the
         motors stop first, then the mission pauses or returns to launch (the operator may
         also drive back by hand: manual drive is bounded by its own dead-man)."""
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        self._check_fence(fix.lat_deg, fix.lon_deg, fix.t_s, estimated=False)
+
+    def _check_estimate(self, t_s: float) -> None:
+        """Without a fresh usable fix (the latest fix record unusable, or the last usable one
+        older than ``safety.fix_stale_s``), the position the controller steers by (the EKF
+        dead-reckoning on its wheels) is checked against the geofence, at most every
+        ``ESTIMATE_FENCE_PERIOD_S``. Called before an input steps the controller, on the
+        estimate of its previous step, so that a breach stops the motors before the input
+        can drive them (as a fix is checked before it steers)."""
+        if (
+            self.controller.mode != Mode.RUNNING
+            or t_s - self._t_fence_est < ESTIMATE_FENCE_PERIOD_S
+        ):
+            return
+        fix_t = self._last_pos_t
+        if self._fix_usable and fix_t is not None and t_s - fix_t <= self.safety.fix_stale_s:
+            return
+        tel = self.controller.telemetry
+        if tel.filt_lat_deg is None or tel.filt_lon_deg is None:
+            return
+        self._t_fence_est = t_s
+        self._check_fence(tel.filt_lat_deg, tel.filt_lon_deg, t_s, estimated=True)
+
+    def _check_fence(self, lat_deg: float, lon_deg: float, t_s: float, *, estimated: bool) -> None:
+        """The geofence rule of :meth:`_check_position`, for a fix or (``estimated``) the
+        controller's estimate without one."""
         if self.controller.mode != Mode.RUNNING:
             return
         centre = self.geofence_centre()
         if centre is None:
             return
-        assert fix.lat_deg is not None and fix.lon_deg is not None
-        d = great_circle_m(centre[0], centre[1], fix.lat_deg, fix.lon_deg)
+        d = great_circle_m(centre[0], centre[1], lat_deg, lon_deg)
         radius_m = self.safety.geofence_radius_m
         if d <= radius_m:
             return
         if self.controller.returning and self.controller.mode == Mode.RUNNING:
             return  # a return to launch leads back inside: let it
         self.geofence_breaches += 1
+        why = "geofence breach (estimated position)" if estimated else "geofence breach"
         try:
-            self._motors(MotorCommand(fix.t_s, 0.0, 0.0, "geofence breach"))
+            self._motors(MotorCommand(t_s, 0.0, 0.0, why))
         finally:  # a failing motor sink must not leave the mission running
             log.warning(
-                "geofence breach: %.1f m from the centre, limit %.0f m: failsafe %s",
+                "%s: %.1f m from the centre, limit %.0f m%s: failsafe %s",
+                why,
                 d,
                 radius_m,
+                ", no fresh fix" if estimated else "",
                 self.controller.failsafe_config.geofence_action,
             )
-            self._handle(self.controller.geofence_breach(fix.t_s))
+            self._handle(self.controller.geofence_breach(t_s, why))
 
     # -- outputs ------------------------------------------------------------------------------
     def _handle(self, outputs: list[Any], important: bool = True) -> None:

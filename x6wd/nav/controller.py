@@ -520,17 +520,18 @@ class Controller:
         self._set_mode(Mode.IDLE, why, t, changes)
         return self._step(t, why, changes)
 
-    def geofence_breach(self, t_s: float) -> list[ControllerOutput]:
+    def geofence_breach(self, t_s: float, why: str = "geofence breach") -> list[ControllerOutput]:
         """The loop found the robot outside the geofence at ``t_s`` (s): a running or paused
         mission gets ``failsafe.geofence_action`` (hold: paused; return: back to launch). A
-        return to launch already under way goes on (it leads back inside)."""
+        return to launch already under way goes on (it leads back inside). ``why`` is the
+        failsafe's reason ("geofence breach (estimated position)" without a fix)."""
         t = _check_t(t_s, "geofence_breach")
         changes: list[ControllerOutput] = []
         if self._mode in (Mode.RUNNING, Mode.PAUSED) and not (
             self._returning and self._mode == Mode.RUNNING
         ):
-            self._apply_failsafe("geofence breach", self._failsafe.geofence_action, t, changes)
-        return self._step(t, "geofence breach", changes)
+            self._apply_failsafe(why, self._failsafe.geofence_action, t, changes)
+        return self._step(t, why, changes)
 
     @property
     def failsafe_config(self) -> FailsafeConfig:
