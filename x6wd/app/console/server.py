@@ -14,7 +14,9 @@ connection is a *detached* client of that server. What the console adds:
 - the dead-man for manual drive: a page's drive lasts at most ``console.deadman_s`` (the
   page repeats it while a key is held), and a page that goes away while its drive runs gets
   its motors stopped at once; a drive that arrives more than ``deadman_s`` late (by the
-  page's ``sent_ms``: held in a stalled link) is refused, not replayed;
+  page's ``sent_ms``: held in a stalled link) is refused, not replayed; a stop from
+  another client ends a held drive: a drive whose press began before it (the page's
+  ``press_ms``, else the press the console infers from the page's drives) is refused;
 - ``console.watch_only``: every command that acts (``stop`` too) is refused by the server;
 - cross-origin WebSockets are refused: another site open in the operator's browser must not
   be able to reach the robot through it.
@@ -112,6 +114,12 @@ class _Page:
     held: int = 0  # bytes charged for its messages read, not handled yet (_message_cost)
     queued: int = 0  # its messages read, not handled yet
     room: asyncio.Event = field(default_factory=asyncio.Event)  # held went down
+    # its drives without press_ms, taken as one press while less than deadman_s apart (by
+    # their send time, this clock; see _press_s): the send time of the first of them the
+    # robot carried out (inf: none yet), of the latest, and of the one being handled
+    run_drove_s: float = math.inf
+    run_last_s: float = -math.inf
+    drive_sent_s: float = math.inf
 
 
 MESSAGE_COST_B = 1024
@@ -131,19 +139,33 @@ connections cannot take the process's file descriptors, and with them the contro
 where the operator's stop arrives."""
 
 
+_HOST_RE = re.compile(
+    r"(?:(?P<name>[a-z0-9](?:[a-z0-9-]{0,61}[a-z0-9])?(?:\.[a-z0-9](?:[a-z0-9-]{0,61}[a-z0-9])?)*)"
+    r"|\[(?P<ipv6>[0-9a-f:.]+)\])(?::(?P<port>[0-9]{1,5}))?",
+    re.ASCII | re.IGNORECASE,
+)
+"""A ``Host`` as a browser sends it: a hostname (or dotted IPv4) or a bracketed IPv6, and an
+optional port of digits. Nothing else (no user@, no spaces, no ``;``, no zone id)."""
+
+
 def allowed_host(host_header: str, names: frozenset[str]) -> bool:
-    """Whether the Host of a request names this console: an IP address (a rebound name
-    never is one), or one of ``names`` (lower case, without the port)."""
-    try:
-        host = urlsplit("//" + host_header).hostname
-    except ValueError:  # e.g. an unclosed [IPv6 bracket
+    """Whether the Host of a request is a well-formed host[:port] that names this console: an
+    IP address (a rebound name never is one), or one of ``names`` (lower case, without the
+    port). Only such a Host is ever copied into a response header."""
+    m = _HOST_RE.fullmatch(host_header)
+    if m is None or len(host_header) > 261 or int(m["port"] or 0) > 65535:
         return False
-    if not host:
-        return False
+    if m["ipv6"] is not None:
+        try:
+            ipaddress.IPv6Address(m["ipv6"])
+        except ValueError:
+            return False
+        return True
+    host = m["name"].lower()
     if host in names:
         return True
     try:
-        ipaddress.ip_address(host)
+        ipaddress.IPv4Address(host)
     except ValueError:
         return False
     return True
@@ -213,6 +235,7 @@ class ConsoleServer:
         self.refused_hosts = 0  # requests whose Host named no name of this console
         self.connections_closed = 0  # idle HTTP connections closed to stay within the cap
         self.late_drives = 0  # drives refused for arriving later than they would have lasted
+        self.held_drives_stopped = 0  # drives refused: their press began before another's stop
         me = socket.gethostname().lower()
         self._hostnames = frozenset(
             {"localhost", me, f"{me}.local", *(n.lower() for n in config.hostnames)}
@@ -379,10 +402,13 @@ class ConsoleServer:
         if self.config.tile_url:
             parts = urlsplit(self.config.tile_url)
             tiles = f" {parts.scheme}://{parts.netloc}"
-        host = request.host
+        # the page's own WebSocket by name, for browsers whose 'self' leaves ws: out; only a
+        # Host the guard accepts (a refused one gets its 421 with 'self' alone)
+        host = request.headers.get("Host", "")
+        sockets = f" ws://{host} wss://{host}" if allowed_host(host, self._hostnames) else ""
         response.headers["Content-Security-Policy"] = (
             f"default-src 'self'; script-src 'self'; style-src 'self' {VIEWER_STYLES}; "
-            f"img-src 'self' data:{tiles}; connect-src 'self' ws://{host} wss://{host}; "
+            f"img-src 'self' data:{tiles}; connect-src 'self'{sockets}; "
             "frame-ancestors 'none'; base-uri 'none'; form-action 'none'"
         )
         response.headers["X-Content-Type-Options"] = "nosniff"
@@ -540,6 +566,18 @@ class ConsoleServer:
             req = parse_request(line)
             cmd = req.get("cmd")
         late_s = self._late_s(page, req) if cmd is not None else 0.0
+        press_s: float | None = None
+        if cmd == "drive":
+            try:
+                press_s = self._press_s(page, req)
+            except ValueError as exc:
+                rid = req.get("id")
+                return error_reply(
+                    rid if isinstance(rid, (int, str)) else None, "bad_request", str(exc),
+                    "bad_argument",
+                ), 0.0  # fmt: skip
+        elif cmd == "stop":
+            page.run_last_s = -math.inf  # the page's own stop: its held drive was let go
         if cmd == "drive" and late_s > self.config.deadman_s:
             # it sat in a stalled link (a frozen network, a suspended laptop) longer than it
             # would have lasted: the key may well be up by now, and its stop is behind it
@@ -565,11 +603,29 @@ class ConsoleServer:
                 rid if isinstance(rid, (int, str)) else None, "rejected",
                 f"a stop came after this {cmd}: not done", "stopped",
             ), 0.0  # fmt: skip
+        if (
+            press_s is not None
+            and c.authenticated
+            and not c.watch_only
+            and self.control.stopped_since(c, press_s)
+        ):
+            # a resend of a held drive whose press began before another client's stop: that
+            # stop ended the press; the robot stays stopped until the key is pressed again
+            self.held_drives_stopped += 1
+            rid = req.get("id")
+            return error_reply(
+                rid if isinstance(rid, (int, str)) else None, "rejected",
+                "the robot was stopped by another client while this drive was held: not "
+                "driven (release and press again to drive)", "stopped",
+            ), 0.0  # fmt: skip
         if cmd == "mission.parse":
             return self._parse_mission(c, req), 0.0
         if cmd in ("recording.list", "recording.view"):
             return await self._recording(c, req), 0.0
-        return await self.control.request(c, line)
+        reply, wait_s = await self.control.request(c, line)
+        if cmd == "drive" and reply.get("ok"):  # driven: its press, if inferred, drove since
+            page.run_drove_s = min(page.run_drove_s, page.drive_sent_s)
+        return reply, wait_s
 
     @staticmethod
     def _late_s(page: _Page, req: dict[str, Any]) -> float:
@@ -582,6 +638,37 @@ class ConsoleServer:
         offset = time.monotonic() - sent / 1000.0
         page.clock_offset_s = min(page.clock_offset_s, offset)
         return offset - page.clock_offset_s
+
+    def _press_s(self, page: _Page, req: dict[str, Any]) -> float:
+        """When the press a drive belongs to began (time.monotonic() s, at the latest): a
+        stop from elsewhere after it ends the press. Its ``press_ms`` (the page's clock)
+        mapped as ``sent_ms`` is. Without one (a page with an older console.js, another
+        program) the press is inferred: the page's drives sent (by ``sent_ms``, else as they
+        arrive) less than ``deadman_s`` apart since its last own ``stop`` (a held key's
+        resends are ``deadman_s``/3 apart), begun when the first of them the robot carried
+        out was sent (one refused, e.g. sent before the stop, never drove: the older page
+        ended its drive on that refusal). ValueError: a bad ``press_ms``."""
+        raw = req.get("sent_ms")
+        sent = float(raw) if isinstance(raw, (int, float)) and not isinstance(raw, bool) else None
+        sent_s = time.monotonic() if sent is None else sent / 1000.0 + page.clock_offset_s
+        if not sent_s - page.run_last_s <= self.config.deadman_s:  # (also a NaN: a new run)
+            page.run_drove_s = math.inf
+        page.run_last_s = max(page.run_last_s, sent_s)
+        page.drive_sent_s = sent_s
+        if "press_ms" not in req:
+            return page.run_drove_s
+        press = req["press_ms"]
+        if (
+            sent is None
+            or isinstance(press, bool)
+            or not isinstance(press, (int, float))
+            or not press <= sent
+        ):
+            raise ValueError(
+                "'press_ms' must be the page's time (ms, its sent_ms clock) when the drive's "
+                "key was pressed: a number, not after 'sent_ms', which it needs"
+            )
+        return press / 1000.0 + page.clock_offset_s
 
     def _parse_mission(self, c: Any, req: dict[str, Any]) -> dict[str, Any]:
         """``{"cmd": "mission.parse", "content": TEXT, "format": "gpx"|...|null}`` ->

@@ -17,7 +17,7 @@
     map: { revision: -1, waypoints: [], launch: null, geofence: null },
     draft: [], dirty: false, adding: false,
     track: [], view: { e: 0, n: 0, pxPerM: 4 }, followed: false,
-    drive: null, driveKey: null, driveTimer: null, tiles: new Map(),
+    drive: null, driveKey: null, driveTimer: null, press: null, driveSend: null, tiles: new Map(),
     heardAt: 0, stale: true, closedWhy: "", // closedWhy: the console's reason for closing the link (full)
   };
   window.x6wd = S; // for a person at the browser's console, and for the tests
@@ -139,11 +139,18 @@
     }
     if (m.event === "console") return onWelcome(m);
     if (m.event === "telemetry") return onTelemetry(m.data, m.devices);
-    if (m.event === "state") return say("state " + m.old + " → " + m.new + " (" + m.reason + ")");
+    if (m.event === "state") return onState(m);
     if (m.event === "sky") { S.sky = m; return renderSky(); }
     if (m.event === "map") return onMap(m);
     if (m.event === "track") return onTrack(m.points);
     if (m.ok === false && m.error) say(m.error.message, true); // e.g. the closing notice
+  }
+  function onState(m) {
+    say("state " + m.old + " → " + m.new + " (" + m.reason + ")");
+    // the held drive's MANUAL ended (a stop, maybe another client's): its resend goes now,
+    // and the daemon says whether this press may still drive (a stop from elsewhere after
+    // the press began: refused, reason "stopped", which ends the press below)
+    if (m.old === "MANUAL" && S.driveSend) S.driveSend();
   }
   function onWelcome(m) {
     S.info = m;
@@ -381,27 +388,49 @@
 
   // -- manual drive and its dead-man ------------------------------------------------------------
   const DIRECTIONS = { fwd: [1, 1], back: [-1, -1], left: [-0.7, 0.7], right: [0.7, -0.7] };
+  // A press: from the button or key going down to its release. Every drive of it carries
+  // press_ms, when it began (this page's clock, as sent_ms): the daemon refuses the drives of
+  // a press that began before another client's stop, so a stop ends a held drive (the robot
+  // stays stopped until the operator lets go and presses again).
   function startDrive(dir) {
     if (!S.info || S.info.watch_only) return;
     if (S.drive === dir) return;
     endDrive(false);
     S.drive = dir;
+    const press = Math.round(performance.now());
+    S.press = press;
+    $("drive-stopped").hidden = true;
     $("drive-" + dir).classList.add("active");
     const send = () => {
+      if (S.press !== press) return;
       const speed = Number($("speed").value);
       const [l, r] = DIRECTIONS[dir];
-      request("drive", { left: l * speed, right: r * speed, duration_s: S.info.deadman_s }).then((r) => {
-        if (!r.ok) { say("drive: " + r.error.message, true); endDrive(false); }
+      request("drive", { left: l * speed, right: r * speed, duration_s: S.info.deadman_s, press_ms: press }).then((r) => {
+        if (r.ok || S.press !== press) return; // a refusal of an ended press ends nothing
+        if (r.error.reason === "stopped") stoppedElsewhere();
+        else say("drive: " + r.error.message, true);
+        endDrive(false);
       });
     };
+    S.driveSend = send;
     send();
     // three sends per dead-man period: one lost or late message does not stop the robot
     S.driveTimer = setInterval(send, Math.max(50, S.info.deadman_s * 1000 / 3));
+  }
+  // this page's stops end its press before they are sent: a drive of the press held now
+  // refused as "stopped" means a stop it did not send (another client's, or a page's)
+  function stoppedElsewhere() {
+    const text = "The robot was stopped by another client: the drive ended. Release and press again to drive.";
+    say(text, true);
+    $("drive-stopped").textContent = text;
+    $("drive-stopped").hidden = false;
   }
   function endDrive(sendStop) {
     if (S.driveTimer !== null) clearInterval(S.driveTimer);
     S.driveTimer = null;
     S.driveKey = null;
+    S.press = null;
+    S.driveSend = null;
     if (S.drive === null) return;
     $("drive-" + S.drive).classList.remove("active");
     S.drive = null;
