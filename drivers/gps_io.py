@@ -54,6 +54,10 @@ CORRUPT_LABELS = {
 }
 """The decoder's counts of corrupt input that health shows (``DeviceHealth.corrupt``), in
 words. Noise bytes alone make no log line: every open starts in a partial line."""
+TRANSIENT_LIMIT = 3
+"""Transient port errors in a row (:data:`x6wd.core.errors.TRANSIENT_ERRNOS`) after which a port
+counts as broken, is closed and opened again: the GPS reader's default ``transient_limit``,
+and the motor link's (an EIO that never ends is a device that went away)."""
 _NO_DATA_ERRNOS = frozenset({errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR, errno.EINPROGRESS,
                              errno.EALREADY})  # fmt: skip
 """Read errors that only mean "nothing to read yet" (pyserial's read ignores them too)."""
@@ -105,7 +109,7 @@ class GpsReader:
         decoder: GpsDecoder | None = None,
         init_bytes: bytes = b"",
         read_max: int = 4096,
-        transient_limit: int = 3,
+        transient_limit: int = TRANSIENT_LIMIT,
         retry_delay_s: float = 0.01,
     ) -> None:
         if not stale_s > 0:

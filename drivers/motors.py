@@ -14,7 +14,9 @@ board confirmed. If the link is dead, the board's watchdog stops the motors by i
 Health: both links keep a :class:`~x6wd.core.records.DeviceHealth` (:attr:`health`) and queue its
 transitions for :meth:`take_health_events`. A port error with a transient errno
 (:data:`x6wd.core.errors.TRANSIENT_ERRNOS`) or a missing acknowledgement is retried within the
-command; any other port error is not (the port is broken): the link is lost at once.
+command; any other port error is not (the port is broken): the link is lost at once. So are
+``transient_limit`` transient errors in a row (:data:`drivers.gps_io.TRANSIENT_LIMIT`, as for
+the GPS), across commands: a pty or USB adapter that went away answers EIO for ever.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
+from drivers.gps_io import TRANSIENT_LIMIT
 from x6wd.core.errors import is_transient
 from x6wd.core.health import HealthTracker, root_oserror
 from x6wd.core.records import DeviceHealth, HealthEvent, MotorCommand, WheelOdometry
@@ -202,6 +205,7 @@ class SerialMotorLink:
         reopen: Callable[[], Any] | None = None,
         reopen_initial_s: float = 0.2,
         reopen_max_s: float = 5.0,
+        transient_limit: int = TRANSIENT_LIMIT,
     ) -> None:
         if not (ack_timeout_s > 0 and math.isfinite(ack_timeout_s)):
             raise ValueError(f"ack_timeout_s must be > 0 s, got {ack_timeout_s!r}")
@@ -211,6 +215,8 @@ class SerialMotorLink:
             )
         if retries < 0 or unhealthy_after < 1:
             raise ValueError("retries must be >= 0 and unhealthy_after >= 1")
+        if transient_limit < 1:
+            raise ValueError(f"transient_limit must be >= 1, got {transient_limit!r}")
         if not 0 < reopen_initial_s <= reopen_max_s < math.inf:
             raise ValueError(
                 "reopen backoff must satisfy 0 < reopen_initial_s <= reopen_max_s, got "
@@ -222,6 +228,8 @@ class SerialMotorLink:
         self._reopen_backoff_s = self.reopen_initial_s
         self._next_reopen_t = -math.inf
         self._port_dead = False  # closed after a non-transient error, reopen pending
+        self.transient_limit = transient_limit
+        self._transient_run = 0  # transient port errors in a row, across commands
         self.ack_timeout_s = float(ack_timeout_s)
         self.watchdog_ms = int(watchdog_ms)
         self.retries = retries
@@ -406,11 +414,18 @@ class SerialMotorLink:
                 except Exception as exc:  # SerialException is an OSError; closed ports differ
                     self.counters.write_errors += 1
                     log.debug("motor link I/O error: %s", exc)
-                    tracker.error(f"{body.split()[0]}: port error: {exc}", self._clock())
+                    text = f"{body.split()[0]}: port error: {exc}"
                     if is_transient(root_oserror(exc)):
-                        continue
+                        self._transient_run += 1
+                        if self._transient_run < self.transient_limit:
+                            tracker.error(text, self._clock())
+                            continue
+                        # EIO for ever: the device went away (a pty's far end, a USB adapter)
+                        text += f" ({self._transient_run} transient errors in a row)"
+                    tracker.error(text, self._clock())
                     broken = True  # EBADF, a closed port ...: repeating will not help
                     break
+                self._transient_run = 0  # the port worked, whether or not the board answered
                 if reply is None:
                     self.counters.timeouts += 1
                     tracker.error(
@@ -469,6 +484,7 @@ class SerialMotorLink:
             return False
         self._set_port(port)
         self._port_dead = False
+        self._transient_run = 0
         self._reopen_backoff_s = self.reopen_initial_s
         self.configured = False
         self.counters.reopens += 1

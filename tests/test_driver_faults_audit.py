@@ -25,7 +25,8 @@ from typing import Any
 
 import pytest
 
-from drivers.motors import MotorBoard
+from drivers import registry
+from drivers.motors import MotorBoard, SerialMotorLink, serve_board_fd
 from tests.conftest import ROOT
 from tests.test_shutdown import DaemonProcess
 from tests.test_startup import write_config
@@ -145,3 +146,74 @@ def test_a_board_silent_from_power_up_holds_the_robot_until_it_answers(
             wait_until(lambda: not silent_board.board.running, 5, "board stopped")
     finally:
         p.stop()
+
+
+class PluggedBoard:
+    """A MotorBoard on a fresh pty reached through the symlink ``link`` (a USB adapter's
+    by-id name): :meth:`unplug` closes both ends, :meth:`plug` makes a new pty there."""
+
+    def __init__(self, link: Path) -> None:
+        self.link = link
+        self.board = MotorBoard()
+        self.fds: tuple[int, int] | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def plug(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(master)
+        tty.setraw(slave)
+        tmp = self.link.with_suffix(".tmp")
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(os.ttyname(slave))
+        tmp.replace(self.link)
+        self.board = MotorBoard()
+        self.fds = (master, slave)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(
+            target=serve_board_fd, args=(master, self.board, self._stop), daemon=True
+        )
+        self._thread.start()
+
+    def unplug(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5)
+        if self.fds is not None:
+            for fd in self.fds:
+                os.close(fd)
+            self.fds = None
+
+
+@pytest.fixture
+def plugged(tmp_path: Path) -> Iterator[PluggedBoard]:
+    b = PluggedBoard(tmp_path / "ttyUSB-board")
+    b.plug()
+    yield b
+    b.unplug()
+
+
+def test_a_motor_port_failing_with_eio_for_ever_is_reopened(plugged: PluggedBoard) -> None:
+    link = registry.open_motors(f"serial://{plugged.link}?baud=115200&watchdog_ms=700")
+    try:
+        assert link.drive(10, 10) and plugged.board.left_pct == 10
+        link.take_health_events()
+        plugged.unplug()  # the adapter is gone: the link's port answers EIO from now on
+        for _ in range(5):
+            assert not link.stop()
+            time.sleep(0.3)
+        h = link.health
+        assert h.state == "reconnecting", h
+        assert "reopening the port failed" in h.reason, h.reason  # not the old write error
+        plugged.plug()  # back at the same path
+        wait_until(lambda: link.stop(), 8, "the board reached again")
+        assert isinstance(link, SerialMotorLink)
+        assert link.counters.reopens == 1
+        assert link.health.state == "connected" and link.health.reconnects >= 1
+        assert link.drive(20, 20) and plugged.board.left_pct == 20
+        assert plugged.board.watchdog_ms == 700  # the new board was set up again
+        states = [(e.old, e.new) for e in link.take_health_events() if e.kind == "transition"]
+        assert [new for _old, new in states].count("disconnected") == 1  # closed once
+        assert states[-1] == ("reconnecting", "connected")
+    finally:
+        link.close()
