@@ -698,6 +698,8 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
             token = None  # the robot obeys these without a token: say so, and go on
             _warn(f"{exc}; sending {action} without a token", err)
         waypoints = _waypoints(args) if action == "load" else None
+        for note in getattr(waypoints, "notes", ()):  # what the file held but x6wd won't use
+            print(f"x6wd client: note: {note}", file=err)
         ssl_context = _client_ssl(args)
     except X6wdError as exc:
         print(f"x6wd client: {exc}", file=err)

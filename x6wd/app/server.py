@@ -854,7 +854,9 @@ class ControlServer(LineServer[_Client]):
             args = self._motion_args(c, cmd, req)
             self._command_seq += 1
             if cmd == "mission.load":
-                return await _result(b.load_mission(*args))
+                reply = await _result(b.load_mission(*args))
+                notes = getattr(args[0], "notes", None)  # what the file held but x6wd won't use
+                return {**reply, "notes": list(notes)} if notes else reply
             if cmd == "drive":
                 reply = await _result(b.drive(*args))
                 self._drive_owner, self._drive_until_s = c, time.monotonic() + args[2]

@@ -691,7 +691,9 @@ class ConsoleServer:
             wps = parse_content(text, fmt or None, str(req.get("name") or "mission"))
         except ParseError as exc:
             return error_reply(rid, "bad_request", str(exc), "bad_mission")
-        return {"id": rid, "ok": True, "waypoints": [[w.lat_deg, w.lon_deg] for w in wps]}
+        reply = {"id": rid, "ok": True, "waypoints": [[w.lat_deg, w.lon_deg] for w in wps]}
+        notes = getattr(wps, "notes", None)  # what the file held but x6wd won't use
+        return {**reply, "notes": list(notes)} if notes else reply
 
     def _runs(self) -> dict[str, RecordingFile]:
         """The recorder's runs by the name of their first remaining part, oldest first."""

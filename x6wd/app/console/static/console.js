@@ -345,7 +345,8 @@
       const r = await request("mission.parse", { content: reader.result, format: FORMATS[ext] || null, name: file.name });
       if (r.ok) {
         setDraft(r.waypoints);
-        say(file.name + ": " + r.waypoints.length + " waypoints (not sent yet)");
+        const notes = Array.isArray(r.notes) && r.notes.length ? "; note: " + r.notes.join("; ") : "";
+        say(file.name + ": " + r.waypoints.length + " waypoints (not sent yet)" + notes);
         fit();
       } else say(file.name + ": " + r.error.message, true);
     };
