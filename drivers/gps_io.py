@@ -12,11 +12,12 @@ that left) closes the port, marks the GPS disconnected and schedules a reopen: a
 fault is data, never an exception to the caller.
 
 Health: :attr:`GpsReader.health` is a :class:`~x6wd.core.records.DeviceHealth` (connected,
-degraded, stale when no valid sentence arrived for ``stale_s``, disconnected, reconnecting,
-with error and reconnect counts, and the decoder's counts of corrupt input, which also make
-a ``corrupt`` event at most once a minute and name the cause when the GPS goes stale);
-:meth:`GpsReader.take_health_events` hands each transition to the caller at once (the daemon
-holds the robot on it, without waiting for a fix timeout).
+degraded, stale when no valid sentence arrived for ``stale_s`` (a checksum-valid sentence
+with invalid fields is not valid: it is counted in ``invalid_fields``), disconnected,
+reconnecting, with error and reconnect counts, and the decoder's counts of corrupt input,
+which also make a ``corrupt`` event at most once a minute and name the cause when the GPS
+goes stale); :meth:`GpsReader.take_health_events` hands each transition to the caller at
+once (the daemon holds the robot on it, without waiting for a fix timeout).
 
 The reader sets ``port.timeout = 0`` on every port it opens and waits with ``select()``
 itself, so a port opened blocking cannot hang it. On a plain pyserial POSIX port (a UART, or
@@ -304,16 +305,19 @@ class GpsReader:
             return None
         t_s = self._clock()
         self._transient_run = 0
-        before = self.decoder.framer.counters
-        seen = before.sentences + before.ubx_frames
+        decoded = self.decoder.counters  # the decoder's own counters (updated in place)
+        # Good data: sentences whose content was valid (a GGA without a fix is: a receiver
+        # still searching says so) and UBX frames; checksum-valid sentences with invalid
+        # fields (a latitude of 99 degrees) are not, and leave the GPS to go stale.
+        seen = decoded.decoded + self.decoder.framer.counters.ubx_frames
         records = self.decoder.feed(data, t_s)
         after = self.decoder.framer.counters
-        invalid = self.decoder.counters.invalid_fields
+        invalid = decoded.invalid_fields
         bad = (after.checksum_failures, after.framing_errors, invalid, after.skipped_bytes)
         if bad != self._corrupt_seen:  # rare on a healthy line: the tuple compare is the cost
             self._corrupt_seen = bad
             self._tracker.corrupt(dict(zip(CORRUPT_LABELS, bad, strict=True)), t_s)
-        if after.sentences + after.ubx_frames > seen:
+        if decoded.decoded + after.ubx_frames > seen:
             self._tracker.good(t_s)
         for frame in self.decoder.take_ubx():
             try:

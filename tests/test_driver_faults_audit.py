@@ -26,6 +26,7 @@ from typing import Any
 import pytest
 
 from drivers import registry
+from drivers.gps_io import GpsReader
 from drivers.motors import MotorBoard, SerialMotorLink, serve_board_fd
 from tests.conftest import ROOT
 from tests.test_shutdown import DaemonProcess
@@ -217,3 +218,57 @@ def test_a_motor_port_failing_with_eio_for_ever_is_reopened(plugged: PluggedBoar
         assert states[-1] == ("reconnecting", "connected")
     finally:
         link.close()
+
+
+def nmea(body: str) -> bytes:
+    c = 0
+    for ch in body.encode("ascii"):
+        c ^= ch
+    return f"${body}*{c:02X}\r\n".encode("ascii")
+
+
+ABSURD = nmea("GPGGA,120000.00,9959.0000,N,00015.4620,W,1,08,0.9,60.0,M,47.0,M,,") + nmea(
+    "GPRMC,120000.00,A,9959.0000,N,00015.4620,W,0.5,10.0,010125,,,A"
+)  # latitude 99 degrees 59': checksum-valid, fields invalid
+NO_FIX = nmea("GPGGA,,,,,,0,00,99.9,,,,,,") + nmea("GPRMC,,V,,,,,,,,,,N")
+# a receiver still searching: valid data, no fix
+
+
+@pytest.fixture
+def gps_pty() -> Iterator[tuple[int, str]]:
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    yield master, os.ttyname(slave)
+    os.close(master)
+    os.close(slave)
+
+
+def feed_for(reader: GpsReader, master: int, sentences: bytes, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        os.write(master, sentences)
+        t_next = time.monotonic() + 0.1
+        while time.monotonic() < t_next:
+            reader.poll(0.02)
+
+
+@pytest.mark.parametrize(
+    ("sentences", "state"), [(ABSURD, "stale"), (NO_FIX, "connected")], ids=["absurd", "no_fix"]
+)
+def test_a_gps_sending_only_invalid_fields_goes_stale(
+    gps_pty: tuple[int, str], sentences: bytes, state: str
+) -> None:
+    master, path = gps_pty
+    reader = GpsReader(lambda: registry.open_gps_port(f"serial://{path}?baud=9600"), stale_s=0.5)
+    try:
+        feed_for(reader, master, sentences, 1.5)
+        h = reader.health
+        assert h.state == state, h
+        if state == "stale":
+            assert "sentences with invalid fields" in h.reason, h.reason
+            assert h.corrupt["invalid_fields"] > 10
+        else:
+            assert h.reason == "" and h.corrupt["invalid_fields"] == 0
+    finally:
+        reader.close()
