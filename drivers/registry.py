@@ -287,10 +287,11 @@ def _target(url: str, kind: str, scheme: str, netloc: str, path: str) -> str:
 
 
 def check_available(url: str, kind: str) -> DeviceUrl:
-    """Start-up check of a device URL for ``kind``, opening nothing: the URL is valid
-    (:func:`parse_url`; ``sim://`` also by the simulator's own rules) and the local device it
-    names is there: a serial path is an existing character device this user may read and
-    write, ``i2c://N/..`` has its ``/dev/i2c-N`` node, a replay file exists and is readable.
+    """Start-up check of a device URL for ``kind``, opening nothing but a serial port for a
+    moment: the URL is valid (:func:`parse_url`; ``sim://`` also by the simulator's own rules)
+    and the local device it names is there: a serial path is an existing character device
+    this user may read and write, and a serial port (a terminal: :func:`_check_serial`);
+    ``i2c://N/..`` has its ``/dev/i2c-N`` node, a replay file exists and is readable.
     ``tcp://`` and ``log://`` have nothing local to check (a remote peer may come later).
 
     Raises :class:`UrlError`: the daemon stops with a configuration error rather than run
@@ -307,6 +308,7 @@ def check_available(url: str, kind: str) -> DeviceUrl:
             raise UrlError(kind, url, problem)
     elif dev.scheme == "serial":
         _check_node(dev, dev.target, char=True, hint="is the user in group dialout?")
+        _check_serial(dev, dev.target)
     elif dev.scheme == "i2c":
         node = I2C_DEV.format(bus=int(dev.target.split("/")[0]))
         _check_node(dev, node, char=True, hint="is I2C enabled and the user in group i2c?")
@@ -335,6 +337,23 @@ def _check_node(dev: DeviceUrl, path: str, *, char: bool, hint: str) -> None:
         rights = "read and write" if char else "read"
         extra = f" ({hint})" if hint else ""
         raise UrlError(dev.kind, dev.url, f"{path}: this user may not {rights} it{extra}")
+
+
+def _check_serial(dev: DeviceUrl, path: str) -> None:
+    """``path`` (an accessible character device) is a serial port: a terminal device, not
+    e.g. ``/dev/null``, which opens but refuses every serial setting ("Inappropriate ioctl
+    for device") for ever. Opened for a moment, without changing its settings
+    (``O_NONBLOCK``: no wait for a carrier; ``O_NOCTTY``); an open that fails is left to the
+    device's own opening, which reports and retries it."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError:
+        return
+    try:
+        if not os.isatty(fd):
+            raise UrlError(dev.kind, dev.url, f"{path} is not a serial port (not a terminal)")
+    finally:
+        os.close(fd)
 
 
 def device_path(url: str) -> tuple[str, int]:

@@ -30,7 +30,7 @@ from drivers.gps_io import GpsReader
 from drivers.motors import MotorBoard, SerialMotorLink, serve_board_fd
 from tests.conftest import ROOT
 from tests.test_shutdown import DaemonProcess
-from tests.test_startup import write_config
+from tests.test_startup import assert_config_error, run_x6wd, write_config
 from x6wd.app.client import RemoteClient, RequestFailed
 
 pytestmark = pytest.mark.integration
@@ -272,3 +272,11 @@ def test_a_gps_sending_only_invalid_fields_goes_stale(
             assert h.reason == "" and h.corrupt["invalid_fields"] == 0
     finally:
         reader.close()
+
+
+@pytest.mark.parametrize("key", ["gps", "motors"])
+def test_a_character_device_that_is_not_a_serial_port_is_refused_at_start_up(
+    tmp_path: Path, key: str
+) -> None:
+    proc = run_x6wd(write_config(tmp_path, **{key: {"url": "serial:///dev/null"}}), 30)
+    assert_config_error(proc, f"{key}.url", "/dev/null is not a serial port")

@@ -354,7 +354,8 @@ def test_check_available_names_the_problem(tmp_path: Path) -> None:
     assert check_available("log://", "motors").scheme == "log"
     assert check_available(f"replay://{LEA5H}", "gps").target == str(LEA5H)
     assert check_available("tcp://192.0.2.1:9", "gps").scheme == "tcp"  # not probed
-    assert check_available("serial:///dev/null", "gps").target == "/dev/null"
+    with pytest.raises(UrlError, match=r"^.*: /dev/null is not a serial port"):
+        check_available("serial:///dev/null", "gps")  # a character device, not a terminal
     with pytest.raises(UrlError) as info:
         check_available("serial:///dev/ttyNOPE", "motors")
     assert info.value.reason == "/dev/ttyNOPE does not exist"
