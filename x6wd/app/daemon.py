@@ -56,7 +56,7 @@ from x6wd.app.console import ConsoleServer
 from x6wd.app.gpsd import GpsdServer
 from x6wd.app.notify import Notifier
 from x6wd.app.server import ControlServer, server_ssl_context
-from x6wd.core.config import Config
+from x6wd.core.config import Config, check_plaintext, plaintext_binds
 from x6wd.core.config import load as load_config
 from x6wd.core.errors import CommandError, ConfigError, DeviceUnavailable, X6wdError
 from x6wd.core.geodesy import great_circle_m
@@ -790,6 +790,8 @@ class Daemon:
         self.server: ControlServer | None = None
         self.gpsd: GpsdServer | None = None
         self.console: ConsoleServer | None = None
+        # the bind keys listening beyond loopback in clear text ([server] allow_plaintext)
+        self._plaintext: tuple[str, ...] = ()
         # the loaded mission as the console's map shows it: ((lat_deg, lon_deg), ...)
         self._mission: tuple[tuple[float, float], ...] = ()
         self._mission_rev = 0
@@ -886,6 +888,18 @@ class Daemon:
             config_error(exc)
             self.notifier.stopping(f"configuration error: {one_line(str(exc))}")
             return EXIT_CONFIG
+        if self._plaintext:
+            binds = {
+                "server.bind": self.config.server.bind,
+                "console.bind": self.config.console.bind,
+            }
+            where = ", ".join(f"{key} = {binds[key]!r}" for key in self._plaintext)
+            log.warning(
+                "listening beyond loopback without TLS (%s; server.allow_plaintext = true): "
+                "the token and every command travel in clear text, anyone on that network "
+                "can take the token and drive the robot",
+                where,
+            )
         code = EXIT_FAILURE
         # how the run ended, for the recording: the stop's reason "shutdown (<why>)", the
         # shutdown event's cause and exit code (None: cancelled, no exit code of ours)
@@ -992,6 +1006,9 @@ class Daemon:
             problem = _bind_problem(host) if enabled else ""
             if problem:
                 raise ConfigError(f"{key}: {problem}")
+        # beyond loopback only with TLS, or [server] allow_plaintext (then warned at start-up)
+        check_plaintext(cfg)
+        self._plaintext = plaintext_binds(cfg)
         self.server = ControlServer.from_config(cfg.server, self) if cfg.server.enabled else None
         self.console = self._make_console()
         if cfg.gpsd.enabled:
@@ -1612,6 +1629,8 @@ class Daemon:
             "recorder": recorder,
             # where the compass declination comes from: config, or the WMM with its value
             "declination": dict(self.runner.declination) if self.runner is not None else {},
+            # bind keys listening beyond loopback in clear text (server.allow_plaintext)
+            "plaintext_beyond_loopback": list(self._plaintext),
         }
 
     # the runner's operator requests, run on the control loop by _on_control

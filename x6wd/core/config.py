@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import ipaddress
 import math
 import os
 import tomllib
@@ -253,6 +254,10 @@ class ServerConfig:
     token_file: str = ""  # empty: no authentication required (only on loopback binds)
     tls_cert: str = ""
     tls_key: str = ""
+    # Listening beyond loopback needs TLS (check_plaintext); true lets an owner on an isolated
+    # network listen there without it: the token and every command then travel in clear text
+    # (logged at start-up, and in status as plaintext_beyond_loopback)
+    allow_plaintext: bool = False
     max_clients: int = field(default=16, metadata=_rng(1, 10000))
     max_line_bytes: int = field(default=65536, metadata=_rng(256, 16 * 1024 * 1024))
     rate_per_s: float = field(default=50.0, metadata=_rng(0.1, 1e6))
@@ -537,6 +542,57 @@ def _check_ports(cfg: Config) -> None:
                 f"{section}.port: {sec.port} is {other}.port too: each server needs a port "
                 "of its own"
             )
+
+
+def is_loopback_bind(host: str) -> bool:
+    """True for a bind address only this machine reaches: "localhost", 127.0.0.0/8, ::1 (as
+    ``x6wd.app.server.is_loopback``, which decides who may run without a token)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def plaintext_binds(cfg: Config) -> tuple[str, ...]:
+    """The bind keys (``server.bind``, ``console.bind``) of the enabled servers that would
+    listen beyond loopback without TLS: the control server without ``[server] tls_cert`` and
+    ``tls_key``, and the console, which uses the server's TLS (and needs the server)."""
+    srv = cfg.server
+    if not srv.enabled or (srv.tls_cert and srv.tls_key):
+        return ()
+    out = []
+    if not is_loopback_bind(srv.bind):
+        out.append("server.bind")
+    if cfg.console.enabled and not is_loopback_bind(cfg.console.bind):
+        out.append("console.bind")
+    return tuple(out)
+
+
+def check_plaintext(cfg: Config) -> None:
+    """Listening beyond loopback without TLS: a ConfigError naming ``server.tls_cert`` (or
+    ``console.bind`` when only the console does), unless ``[server] allow_plaintext``. There
+    the ``auth`` line with the token and every drive command would travel in clear text:
+    anyone on the network could take the token and drive the robot. The daemon calls this
+    after checking that the bind addresses are addresses (a typo is named as such)."""
+    binds = plaintext_binds(cfg)
+    if not binds or cfg.server.allow_plaintext:
+        return
+    srv = cfg.server
+    why = (
+        "without TLS the token and every command travel in clear text; set server.tls_cert "
+        "and server.tls_key, or server.allow_plaintext = true (an isolated network only)"
+    )
+    if not srv.token_file:
+        why += "; server.token_file is needed too"
+    if binds[0] == "server.bind":
+        key = "server.tls_key" if srv.tls_cert else "server.tls_cert"
+        raise ConfigError(f"{key}: required when server.bind ({srv.bind}) is not loopback: {why}")
+    raise ConfigError(
+        f"console.bind: {cfg.console.bind} is not loopback: the console needs the control "
+        f"server's TLS; {why}"
+    )
 
 
 def _device_node(url: str) -> str | None:
