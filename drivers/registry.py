@@ -35,6 +35,8 @@ builds the backend once and closes it.
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import importlib
 import math
 import os
@@ -344,16 +346,29 @@ def _check_serial(dev: DeviceUrl, path: str) -> None:
     e.g. ``/dev/null``, which opens but refuses every serial setting ("Inappropriate ioctl
     for device") for ever. Opened for a moment, without changing its settings
     (``O_NONBLOCK``: no wait for a carrier; ``O_NOCTTY``); an open that fails is left to the
-    device's own opening, which reports and retries it."""
+    device's own opening, which reports and retries it. It is not in use: the ports are
+    opened exclusively (:func:`_serial_port`), and one another process holds (its lock) would
+    never open; two readers of one GPS would split its byte stream."""
     try:
         fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
-    except OSError:
+    except OSError as exc:
+        if exc.errno == errno.EBUSY:  # opened exclusively (TIOCEXCL) by another process
+            raise UrlError(dev.kind, dev.url, _in_use(path)) from None
         return
     try:
         if not os.isatty(fd):
             raise UrlError(dev.kind, dev.url, f"{path} is not a serial port (not a terminal)")
+        try:  # the lock pyserial's exclusive open takes (ours too): released by the close
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK):
+                raise UrlError(dev.kind, dev.url, _in_use(path)) from None
     finally:
         os.close(fd)
+
+
+def _in_use(path: str) -> str:
+    return f"{path} is in use: another process holds it (locked; another x6wd, gpsd?)"
 
 
 def device_path(url: str) -> tuple[str, int]:
@@ -463,8 +478,14 @@ def _serial_port(dev: DeviceUrl, timeout_s: float) -> Any:
     try:
         if dev.scheme == "tcp":
             return serial.serial_for_url(f"socket://{dev.target}", timeout=timeout_s)
-        return serial.Serial(dev.target, baudrate=dev.options["baud"], timeout=timeout_s)
+        # exclusive: pyserial takes a non-blocking flock; a port held by another process
+        # (another x6wd, gpsd) fails to open instead of sharing, and splitting, its bytes
+        return serial.Serial(
+            dev.target, baudrate=dev.options["baud"], timeout=timeout_s, exclusive=True
+        )
     except (serial.SerialException, OSError, ValueError) as exc:
+        if getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK):
+            raise DeviceUnavailable(f"cannot open {dev.url}: {_in_use(dev.target)}") from exc
         raise DeviceUnavailable(f"cannot open {dev.url}: {exc}") from exc
 
 
