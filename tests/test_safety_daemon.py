@@ -16,6 +16,7 @@ import json
 import logging
 import math
 import os
+import re
 import socket
 import threading
 import time
@@ -790,13 +791,30 @@ def test_a_configuration_error_is_logged_and_told_to_systemd(
     try:
         with caplog.at_level(logging.ERROR, logger="x6wd.app.daemon"):
             assert run_to_exit(d) == 2
-        why = "safety.geofence_center: expected [lat_deg, lon_deg], got (1.0,)"
+        why = "safety.geofence_center: expected [] or [lat_deg, lon_deg], got [1]"
         assert [rec.getMessage() for rec in caplog.records] == [why]
         assert next(notices(sock)) == {"STOPPING": "1", "STATUS": f"configuration error: {why}"}
     finally:
         sock.close()
         if d.devices is not None:
             d.devices.close()
+
+
+@pytest.mark.parametrize(
+    ("centre", "why"),
+    [
+        ((91.0, 0.0), "latitude 91 outside [-90, 90] deg"),
+        ((51.7, -181.0), "longitude -181 outside [-180, 180] deg"),
+        ((float("nan"), 0.0), "latitude nan outside [-90, 90] deg"),
+    ],
+)
+def test_a_geofence_centre_out_of_range_names_the_coordinate(
+    tmp_path: Path, centre: tuple[float, float], why: str
+) -> None:
+    # an outside audit: [91, 0] got "expected [lat_deg, lon_deg], got (91.0, 0.0)"
+    d = Daemon(hil_config(tmp_path, safety=SafetyConfig(geofence_center=centre)))
+    with pytest.raises(ConfigError, match=re.escape(f"safety.geofence_center: {why}")):
+        d._preflight()
 
 
 def test_a_motor_board_that_cannot_be_reached_is_exit_1(tmp_path: Path) -> None:

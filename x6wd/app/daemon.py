@@ -955,10 +955,17 @@ class Daemon:
         token and TLS files, the recorder directory. Raises ConfigError naming the key."""
         cfg = self.config
         gc = cfg.safety.geofence_center
-        if len(gc) not in (0, 2) or (
-            len(gc) == 2 and not (-90.0 <= gc[0] <= 90.0 and -180.0 <= gc[1] <= 180.0)
-        ):
-            raise ConfigError(f"safety.geofence_center: expected [lat_deg, lon_deg], got {gc!r}")
+        shown = "[" + ", ".join(f"{v:g}" for v in gc) + "]"  # as the TOML wrote it
+        if len(gc) not in (0, 2):
+            raise ConfigError(
+                f"safety.geofence_center: expected [] or [lat_deg, lon_deg], got {shown}"
+            )
+        if len(gc) == 2 and not -90.0 <= gc[0] <= 90.0:
+            raise ConfigError(f"safety.geofence_center: latitude {gc[0]:g} outside [-90, 90] deg")
+        if len(gc) == 2 and not -180.0 <= gc[1] <= 180.0:
+            raise ConfigError(
+                f"safety.geofence_center: longitude {gc[1]:g} outside [-180, 180] deg"
+            )
         from drivers import registry
 
         devices = (
