@@ -75,15 +75,15 @@ def fit_noise_model(baseline: Sequence[PositionSeries], layout: Layout) -> Noise
     the exact likelihood is kept for the single real log, where the effect is estimated."""
     from scipy.optimize import minimize
 
-    n = max(min(regular(s, layout.dt_s)[0].size for s in baseline), 8)  # samples per run
-    periodogram = np.mean([_periodograms(s, layout, n) for s in baseline], axis=0)  # (2, n//2)
+    runs, n = _spectral_runs(baseline, layout)
+    periodogram = np.mean([_periodograms(s, layout, n) for s in runs], axis=0)  # (2, n//2)
     n_freq = periodogram.shape[1]
     # Zero frequency: n (run mean - grand mean)^2, whose debiased expectation is n Var(mean).
     # Without it nothing bounds the slowest component (each run's own mean is removed above):
     # on the GNSS model the fit put 10-13 m on a drift far longer than the log, where the
     # runs' hour means actually spread by under a metre, and every bias looked like noise.
     run_means_m = np.array(
-        [[float(np.mean(c[:n])) for c in regular(s, layout.dt_s)[:2]] for s in baseline]
+        [[float(np.mean(c[:n])) for c in regular(s, layout.dt_s)[:2]] for s in runs]
     )
     n_runs = run_means_m.shape[0]
     zero_freq_m2 = (
@@ -98,7 +98,8 @@ def fit_noise_model(baseline: Sequence[PositionSeries], layout: Layout) -> Noise
             np.asarray(getattr(s, axis), dtype=float)[np.asarray(s.valid, dtype=bool)]
             for s in baseline
         ]
-        mean_m.append(float(np.mean(np.concatenate(valid_values))) if valid_values else 0.0)
+        values = np.concatenate(valid_values) if valid_values else np.zeros(0)
+        mean_m.append(float(np.mean(values)) if values.size else 0.0)  # no fix in any run: 0
     span_s = max(layout.duration_s, 4 * dt_s)
     k = BASE_COMPONENTS
     # total power per axis; a constant run (a coarse lattice) has none
@@ -151,12 +152,40 @@ def fit_noise_model(baseline: Sequence[PositionSeries], layout: Layout) -> Noise
     )
 
 
+MIN_SPECTRUM_SAMPLES = 8  # regular samples a run needs for its periodogram to count
+
+
+def _spectral_runs(
+    baseline: Sequence[PositionSeries], layout: Layout
+) -> tuple[list[PositionSeries], int]:
+    """(runs, n): the runs whose periodograms are averaged, and the common number of regular
+    samples each contributes (the shortest of them).
+
+    A run's regular grid spans its valid fixes only, so an outage effect (a fitted 20-minute
+    fix loss, or a log of two sessions) leaves some runs short or empty: a run lost whole has
+    one sample. Runs under :data:`MIN_SPECTRUM_SAMPLES` or under half the longest run are
+    left out (a few hundred samples would shorten every run's periodogram to theirs, and an
+    empty run has none: periodograms of different lengths cannot be averaged). When no run
+    is long enough, the longest ones are kept and padded (:func:`_periodograms`)."""
+    lengths = [regular(s, layout.dt_s)[0].size for s in baseline]
+    longest = max(lengths)
+    floor = max(MIN_SPECTRUM_SAMPLES, longest // 2)
+    kept = [s for s, size in zip(baseline, lengths, strict=True) if size >= floor]
+    if not kept:
+        kept = [s for s, size in zip(baseline, lengths, strict=True) if size == longest]
+        return kept, MIN_SPECTRUM_SAMPLES
+    return kept, min(size for size in lengths if size >= floor)
+
+
 def _periodograms(series: PositionSeries, layout: Layout, n: int) -> np.ndarray:
-    """Periodograms (2, n//2; m^2) of the first n regular samples of east and north (no DC)."""
+    """Periodograms (2, n//2; m^2) of the first n regular samples of east and north (no DC);
+    a run shorter than n is padded with its mean (no power added), so that every run gives
+    the same frequencies."""
     east_m, north_m, _up_m = regular(series, layout.dt_s)
     out = []
     for y in (east_m[:n], north_m[:n]):
-        x = y - y.mean()
+        x = np.zeros(n)
+        x[: y.size] = y - y.mean()
         out.append((np.abs(np.fft.rfft(x)) ** 2 / n)[1 : n // 2 + 1])
     return np.array(out)
 
