@@ -323,11 +323,19 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         self.real: SeriesT
         self.layout: LayoutT
         self.runs: list[SeriesT] = []
+        # the baseline logs themselves, on the real log's observables: the simulator runs
+        # (``--scenario``) or the user's ``--sim`` logs. ``runs`` is the null's material and,
+        # with fewer than ``min_runs`` logs, the widened replicates made of them
+        # (:meth:`few_logs_null`), which are right for the test's null and wrong as the
+        # simulator's own figures (the validation's)
+        self.logs: list[SeriesT] = []
         self.split: Split[SeriesT, LayoutT]
         # spread factors of a parametric null (few baseline logs), None for simulator runs
         self.inflation: Inflation | None = None
         # a few-logs null's dof of its per-log statistics per axis (None: runs)
         self.dof_by_axis: dict[str, float] | None = None
+        # why each candidate that did not enter was passed over, round by round
+        self.passed_over: dict[str, list[str]] = {}
 
     # --- the sensor's plug-ins -----------------------------------------------------------------
 
@@ -546,6 +554,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         self.real, self.layout = real, layout
         notes = [*observed_notes, *self.input_notes(real, layout)]
         baseline = list(runs)
+        self.logs = list(runs)
         bootstrap = len(runs) < options.min_runs
         if bootstrap:
             # blocks of a quarter of the log: long against the correlation times, few joins
@@ -598,6 +607,7 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
     def _select(self, outcome: OutcomeT) -> None:
         """Steps 3-5: candidates, greedy add-one-in, leave-one-out, the reported outcome."""
         self._fill_fit_part()
+        self.passed_over = {}
         selected, keep, g_current, scored = self._add_one_in(outcome)
         if self.leave_one_out and len(selected) > 1:
             selected, g_current = self._leave_one_out(selected, keep, g_current)
@@ -633,6 +643,9 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
                 )
                 fit = self.effects[name].fit(split.real_fit, current_fit, split.fit_layout)
                 if fit is None:
+                    self._pass_over(
+                        name, f"round {index + 1}: its fit found nothing to add on the fit part"
+                    )
                     continue
                 option = self.consider(this_round, name, fit)
                 if index == 0:
@@ -649,6 +662,8 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
                     )
                 if option.eligible:
                     offers.append(option)
+                else:
+                    self._pass_over(name, f"round {index + 1}: {self.ineligible_reason(name)}")
             best, g_new = self._first_to_enter(offers, selected, g_current, index)
             if best is None:
                 break
@@ -661,24 +676,84 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
     def _first_to_enter(
         self, offers: Sequence[Option], selected: list[Fit], g_current: float, index: int
     ) -> tuple[Option | None, float]:
-        """The option of a round that enters (with its held-out G): of the highest rank, the
-        best by key; only when it may not enter, the best of the next rank (and so on)."""
+        """The option of a round that enters (with its held-out G): those of the highest rank
+        in order of their key, the first that may enter; only when none of that rank may,
+        those of the next rank (and so on). Before 2026-12-03 only the best by key of each
+        rank was tried: a quieter log's ``noise_scale`` led on the key by its fit part's G,
+        closed -1.16 on fresh draws and so could not enter, and the ``correction`` behind
+        it, closing 0.83, was never tried ("not explained", no reason given). Why each
+        option that did not enter was passed over is kept for the report's notes."""
         g_baseline, g_floor = self.split.g_baseline, self.split.g_floor
+        round_no = index + 1
+        left = g_current - g_floor
+        if index > 0 and left < ADD_MIN_LEFT:
+            for o in offers:
+                self._pass_over(
+                    o.fit.name,
+                    f"round {round_no}: the gap left (G {g_current:.2f} against a floor of "
+                    f"{g_floor:.2f}) was too small to add a further effect to",
+                )
+            return None, g_current
+        on_top = " + ".join(f.name for f in selected)
         for rank in sorted({o.rank for o in offers}):
-            best = min((o for o in offers if o.rank == rank), key=lambda o: o.key)
-            # The choice is the best of several one-draw scores; whether it enters is decided
-            # on fresh pooled draws where the effects are random (no winner's curse).
-            g_new = self.pooled_gap([*selected, *best.fits])[0] if self.fresh_draws else best.g_fits
-            # A further effect must remove a real part of what is LEFT of the gap (a first
-            # effect with a huge signature, e.g. a coarse lattice, leaves a second one a small
-            # share of the total but most of the remainder).
-            left = g_current - g_floor
-            if index > 0 and (left < ADD_MIN_LEFT or g_current - g_new < ADD_MIN_SHARE * left):
-                continue
-            if index == 0 and closure_of(g_baseline, g_new, g_floor) < ADD_MIN_GAIN:
-                continue
-            return best, g_new
+            for best in sorted((o for o in offers if o.rank == rank), key=lambda o: o.key):
+                # Options are chosen on one-draw scores; whether one enters is decided on fresh
+                # pooled draws where the effects are random (no winner's curse).
+                g_new = (
+                    self.pooled_gap([*selected, *best.fits])[0] if self.fresh_draws else best.g_fits
+                )
+                # A further effect must remove a real part of what is LEFT of the gap (a first
+                # effect with a huge signature, e.g. a coarse lattice, leaves a second one a
+                # small share of the total but most of the remainder).
+                if index > 0 and g_current - g_new < ADD_MIN_SHARE * left:
+                    self._pass_over(
+                        best.fit.name,
+                        f"round {round_no}: on top of {on_top} it removed "
+                        f"{(g_current - g_new) / left:.0%} of the gap left, "
+                        f"{ADD_MIN_SHARE:.0%} needed",
+                    )
+                    continue
+                closure = closure_of(g_baseline, g_new, g_floor)
+                if index == 0 and closure < ADD_MIN_GAIN:
+                    draws = "on fresh draws " if self.fresh_draws else ""
+                    self._pass_over(
+                        best.fit.name,
+                        f"round 1: {draws}it closed {closure:.2f} of the held-out gap, "
+                        f"{ADD_MIN_GAIN:g} needed to enter",
+                    )
+                    continue
+                for other in offers:
+                    if other is best or other.fit.name in self._tried(round_no):
+                        continue
+                    if other.rank > best.rank:
+                        why = f"{best.fit.name} entered at a higher rank"
+                    else:
+                        why = (
+                            f"{best.fit.name} came first on the selection's key (held-out G "
+                            f"plus the fit part's: {best.key:.2f} against {other.key:.2f}; the "
+                            f"fit part's {best.key - best.g_fits:.2f} against "
+                            f"{other.key - other.g_fits:.2f}) and entered"
+                        )
+                    self._pass_over(other.fit.name, f"round {round_no}: {why}")
+                return best, g_new
         return None, g_current
+
+    def _pass_over(self, name: str, reason: str) -> None:
+        """Keep why ``name`` did not enter (for the report's notes)."""
+        self.passed_over.setdefault(name, []).append(reason)
+
+    def _tried(self, round_no: int) -> set[str]:
+        """The names already passed over in round ``round_no``."""
+        prefix = f"round {round_no}:"
+        return {
+            name
+            for name, reasons in self.passed_over.items()
+            if any(r.startswith(prefix) for r in reasons)
+        }
+
+    def ineligible_reason(self, name: str) -> str:
+        """Why ``name`` may not be chosen this round (a sensor's policy says more)."""
+        return "not eligible this round"
 
     def _leave_one_out(
         self, selected: list[Fit], keep: set[str], g_current: float
@@ -769,3 +844,14 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         outcome.closure = closure_of(g_baseline, outcome.g_with, g_floor)
         if not math.isfinite(outcome.closure):
             outcome.closure = 0.0
+        # A candidate that closes more of the held-out gap alone than the selection does says
+        # why it was not taken (the rules that keep look-alikes out are not weakened for it)
+        for c in outcome.candidates:
+            reasons = self.passed_over.get(c.fit.name)
+            if c.fit.name in names or not reasons:
+                continue
+            if c.closure >= ADD_MIN_GAIN and c.closure > outcome.closure:
+                outcome.notes.append(
+                    f"{c.fit.name} closes {c.closure:.2f} of the held-out gap alone (one draw) "
+                    f"but was not selected: {'; '.join(reasons)}"
+                )
