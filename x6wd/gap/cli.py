@@ -1,4 +1,4 @@
-"""``x6wd gap --real REAL [--sim SIM ... | --scenario FILE [--seeds M]
+"""``x6wd gap --real REAL [--sim SIM [SIM ...] | --scenario FILE [--seeds M]
 [--workers N | --scheduler ADDRESS]] [--truth LAT,LON[,ALT] | --truth-track FILE] [--out DIR]``."""
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from x6wd.gap.io import (
     time_offset_note,
 )
 from x6wd.gap.report import write_report
+from x6wd.gap.stats import has_up
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,7 +43,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     baseline = parser.add_mutually_exclusive_group()
     baseline.add_argument(
-        "--sim", action="append", default=[], help="baseline sim log (repeatable)"
+        "--sim",
+        nargs="+",
+        action="extend",
+        default=[],
+        help="baseline sim log(s): several after one --sim, or --sim repeated",
     )
     baseline.add_argument(
         "--scenario",
@@ -128,6 +133,16 @@ def _log_time_and_height(
     return start, mean_alt_m(track), "the real log's mean altitude"
 
 
+def _heights_not_compared(note: str, reason: str) -> str:
+    """A note saying that the real log has no heights, when it has them but no height error
+    (the truth has none), made accurate: it is the height errors that are missing."""
+    if note.startswith("the real log has no ") and "heights:" in note:
+        return note.replace(
+            "heights:", f"height errors (its heights are not compared: {reason}):", 1
+        )
+    return note
+
+
 # The baseline when the user names none: open sky, the default receiver, at the log's place
 # and time (place_at_log), so a first report needs no scenario file.
 DEFAULT_SCENARIO = PACKAGED_CONFIG_DIR / "scenarios" / "open_field.toml"
@@ -204,6 +219,9 @@ def main(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     diagnosis = diagnose(real, baseline, rng, Options(replicates=args.replicates), progress=bar)
     diagnosis.notes.extend(notes)
+    if not has_up(real) and np.any(np.isfinite(real_track.alt_m[real_track.valid])):
+        reason = "--truth has no ALT" if args.truth else "the truth track has no heights"
+        diagnosis.notes[:] = [_heights_not_compared(note, reason) for note in diagnosis.notes]
     compass = compass_diagnosis(args, diagnosis, rng, bar)
     bar("writing report", 1.0)
     origin = None

@@ -107,9 +107,10 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
     finite = np.isfinite(table[:, 0]) & (np.abs(table[:, 0]) < MAX_ABS_TIME_S)
     if not np.all(finite):
         notes.append(f"{int(np.count_nonzero(~finite))} epochs without a usable time dropped")
+        times = table[:, 0][np.isfinite(table[:, 0])]
         table = table[finite]
         if not table.size:
-            raise ParseError(f"{source}: no epoch has a usable time")
+            raise ParseError(f"{source}: no epoch has a usable time{_ms_hint(times)}")
     t_s = table[:, 0]
     back = int(np.count_nonzero(t_s[1:] < np.maximum.accumulate(t_s)[:-1]))
     order = np.argsort(t_s, kind="stable")
@@ -129,6 +130,13 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
         table = table[lo:hi]
     valid = (table[:, 4] > 0) & np.isfinite(table[:, 1]) & np.isfinite(table[:, 2])
     on_earth = (np.abs(table[:, 1]) <= 90.0) & (np.abs(table[:, 2]) <= 180.0)
+    if np.any(valid & ~on_earth) and not np.any(valid & on_earth):
+        off = table[valid & ~on_earth][0]
+        raise ParseError(
+            f"{source}: every fix has a latitude beyond ±90° or a longitude beyond ±180°"
+            f" (the first: {off[1]:g}, {off[2]:g}): degrees and minutes (ddmm.mmmm, as NMEA"
+            " writes them)? give decimal degrees (51° 45.12' is 51.752)"
+        )
     if np.any(valid & ~on_earth):
         notes.append(
             f"{int(np.count_nonzero(valid & ~on_earth))} fixes with a latitude beyond"
@@ -148,6 +156,19 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
         notes=tuple(notes),
         sat_set=table[:, 8] if table.shape[1] > 8 and np.any(table[:, 8] >= 0) else None,
     )
+
+
+def _ms_hint(times: np.ndarray) -> str:
+    """A hint when finite times beyond MAX_ABS_TIME_S read as dates once divided by 1000
+    (milliseconds since 1970), else ""."""
+    if times.size and np.all(np.abs(times) >= MAX_ABS_TIME_S):
+        seconds = float(np.median(times)) / 1000.0
+        if is_date(seconds):
+            return (
+                f" (times such as {float(times[0]):.0f} are milliseconds since 1970:"
+                f" {_utc_text(float(times[0]) / 1000.0)} as seconds; give seconds)"
+            )
+    return ""
 
 
 _NO_SLOT = -(1 << 62)  # "no row assigned yet" in _retime_segment
@@ -370,10 +391,103 @@ def fill_missing_epochs(track: Track) -> Track:
 
 
 def read_track(path: str | Path) -> Track:
-    """Read any supported log (see module doc) and mark skipped epochs of a regularly
-    sampled log as no-fix. Raises DeviceUnavailable for a missing file, ParseError (naming
-    the file and the problem) when nothing usable is in it."""
-    return fill_missing_epochs(_read_any(path))
+    """Read any supported log (see module doc), mark skipped epochs of a regularly
+    sampled log as no-fix, and settle its satellite counts and heights
+    (:func:`settle_counts`, :func:`settle_heights`). Raises DeviceUnavailable for a missing
+    file, ParseError (naming the file and the problem) when nothing usable is in it."""
+    return settle_heights(settle_counts(fill_missing_epochs(_read_any(path))))
+
+
+MAX_MISSING_FRACTION = 0.05
+"""Fixes of a log without a satellite count (or a height), at most this fraction of them,
+are filled from their neighbours; more, and the log's counts (heights) are not used."""
+
+
+def _fill_from_neighbours(t_s: np.ndarray, values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``values`` where ``known``, elsewhere the value of the nearest known epoch in time
+    (the earlier one on a tie)."""
+    at = np.flatnonzero(known)
+    index = np.clip(np.searchsorted(t_s[at], t_s), 1, at.size - 1) if at.size > 1 else None
+    if index is None:
+        return np.where(known, values, values[at[0]])
+    before, after = at[index - 1], at[index]
+    nearest = np.where(np.abs(t_s[after] - t_s) < np.abs(t_s - t_s[before]), after, before)
+    return np.where(known, values, values[nearest])
+
+
+def settle_counts(track: Track) -> Track:
+    """``track`` with satellite counts the gap tool can read, and notes saying what was done.
+
+    The counts matter at the fixes (the steady steps are those between equal counts). A
+    count that never changes over the log, with no GSA listing the satellites, tells no
+    satellite change (multi-GNSS receivers cap GGA's count at 12): taken as no counts, as a
+    bare CSV gives, or every step would be "steady" while the baseline runs' counts change.
+    A few fixes without a count (at most :data:`MAX_MISSING_FRACTION`) take their nearest
+    neighbour's; more, and the counts are not used. Epochs without a fix get 0."""
+    valid = track.valid
+    nsats = track.nsats
+    known = valid & (nsats >= 0)
+    n_valid = int(np.count_nonzero(valid))
+    n_known = int(np.count_nonzero(known))
+    if n_known == 0:
+        return replace(track, nsats=np.full(len(track), -1.0)) if np.any(nsats >= 0) else track
+    notes = list(track.notes)
+    counts = nsats[known]
+    if track.sat_set is None and n_known > 1 and np.all(counts == counts[0]):
+        notes.append(
+            f"every fix's satellite count is {counts[0]:g} and no GSA lists the satellites"
+            " used: a count that never changes (multi-GNSS receivers cap GGA's at 12) tells no"
+            " satellite change, so it is taken as no counts (the baseline's are then set"
+            " aside too)"
+        )
+        return replace(track, nsats=np.full(len(track), -1.0), notes=tuple(notes))
+    missing = n_valid - n_known
+    if missing == 0:
+        return replace(track, nsats=np.where(valid, nsats, np.maximum(nsats, 0.0)))
+    share = missing / n_valid
+    if share > MAX_MISSING_FRACTION:
+        notes.append(
+            f"{missing} of {n_valid} fixes ({share:.1%}) have no satellite count: the counts"
+            f" are not used (at most {MAX_MISSING_FRACTION:.0%} missing are filled from their"
+            " neighbours)"
+        )
+        return replace(track, nsats=np.full(len(track), -1.0), notes=tuple(notes))
+    notes.append(
+        f"{missing} of {n_valid} fixes ({share:.1%}) have no satellite count: each takes its"
+        " nearest neighbour's"
+    )
+    filled = _fill_from_neighbours(track.t_s, nsats, known)
+    return replace(track, nsats=np.where(valid, filled, np.maximum(nsats, 0.0)), notes=tuple(notes))
+
+
+def settle_heights(track: Track) -> Track:
+    """``track`` with a height at every fix or at none, and notes saying what was done: a
+    few fixes without a height (at most :data:`MAX_MISSING_FRACTION`) are interpolated in
+    time from their neighbours; more, and the log's heights are not used (NaN). A fix without
+    a height used to be an up error of 0: a perfect height amid the real ones."""
+    valid = track.valid
+    known = valid & np.isfinite(track.alt_m)
+    n_valid = int(np.count_nonzero(valid))
+    n_known = int(np.count_nonzero(known))
+    missing = n_valid - n_known
+    if n_known == 0 or missing == 0:
+        return track
+    notes = list(track.notes)
+    share = missing / n_valid
+    if share > MAX_MISSING_FRACTION or n_known < 2:
+        notes.append(
+            f"{missing} of {n_valid} fixes ({share:.1%}) have no height: the log's heights are"
+            f" not used (at most {MAX_MISSING_FRACTION:.0%} missing are interpolated)"
+        )
+        return replace(track, alt_m=np.full(len(track), math.nan), notes=tuple(notes))
+    notes.append(
+        f"{missing} of {n_valid} fixes ({share:.1%}) have no height: interpolated from their"
+        " neighbours'"
+    )
+    alt_m = track.alt_m.copy()
+    fill = valid & ~known
+    alt_m[fill] = np.interp(track.t_s[fill], track.t_s[known], track.alt_m[known])
+    return replace(track, alt_m=alt_m, notes=tuple(notes))
 
 
 def _read_any(path: str | Path) -> Track:
@@ -384,6 +498,9 @@ def _read_any(path: str | Path) -> Track:
             head = f.read(_SNIFF_BYTES)
     except OSError as exc:
         raise DeviceUnavailable(f"cannot read {log_path}: {exc}") from exc
+    for magic, kind in _COMPRESSED:
+        if head.startswith(magic):
+            raise ParseError(f"{source}: compressed ({kind}): decompress it first")
     start = head.lstrip()[:1]
     if not start:
         raise ParseError(f"{source}: empty file" if not head else f"{source}: only blank lines")
@@ -396,6 +513,15 @@ def _read_any(path: str | Path) -> Track:
         # its counters say what was there when no position is found.
         return _read_nmea(log_path)
     return _read_csv(log_path)
+
+
+_COMPRESSED = (
+    (b"\x1f\x8b", "gzip"),
+    (b"BZh", "bzip2"),
+    (b"\xfd7zXZ\x00", "xz"),
+    (b"\x28\xb5\x2f\xfd", "zstd"),
+    (b"PK\x03\x04", "zip"),
+)
 
 
 def _looks_like_text(head: bytes) -> bool:
@@ -523,14 +649,20 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
         if fix.utc is not None:
             first = fix.utc
             break
+    if n_fixes == 0:
+        # GGA and RMC are what the daemon's decoder makes fixes of; a receiver set to send
+        # only GLL or GNS positions is read here instead (GLL/GNS with ZDA or RMC dates)
+        fallback = _gll_gns_track(feed, source, receive_clock=receive_clock, notes=notes)
+        if fallback is not None:
+            return fallback
     if first is None and not receive_clock:
         counts = probe.counters
         if n_fixes == 0:
             raise ParseError(
-                f"{source}: no NMEA position sentence (GGA, RMC or GLL) decoded"
-                f" ({counts.sentences} NMEA sentences, {counts.ubx_frames} UBX frames,"
-                f" {counts.skipped_bytes} other bytes): the gap tool reads NMEA, x6wd"
-                " recordings, CSV and RTKLIB .pos"
+                f"{source}: no NMEA position sentence (GGA, RMC, GLL or GNS) decoded"
+                f" ({counts.sentences} NMEA sentences, {_bad_text(counts)}"
+                f"{counts.ubx_frames} UBX frames, {counts.skipped_bytes} other bytes): the gap"
+                " tool reads NMEA, x6wd recordings, CSV and RTKLIB .pos"
             )
         raise ParseError(
             f"{source}: no dated sentence: {n_fixes} position epochs but no RMC with a date"
@@ -552,6 +684,9 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
             fix_utc.append(_utc_s(fix.utc))
     rows = _with_sets(rows, fix_utc, skies)
     notes = list(notes)
+    corrupt = _corrupt_note(decoder.counters)
+    if corrupt:
+        notes.append(corrupt)
     if timeless:
         notes.append(
             f"{timeless} epochs without a time (e.g. no-fix GGA with empty fields) dropped"
@@ -559,6 +694,154 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
     if first is None:
         notes.append("no dated NMEA sentence: the recording's receive clock is the time axis")
     return _track(rows, source, notes)
+
+
+def _bad_text(counts: Any) -> str:
+    """The corrupt sentences of a decoder's counters as text for a message ("" when none)."""
+    parts = []
+    if counts.checksum_failures:
+        parts.append(f"{counts.checksum_failures} with a bad checksum")
+    if counts.framing_errors:
+        parts.append(
+            f"{counts.framing_errors} malformed (too long, cut short or without a checksum)"
+        )
+    return "".join(f"{part}, " for part in parts)
+
+
+def _corrupt_note(counts: Any) -> str:
+    """A note on the NMEA sentences the decoder skipped as corrupt ("" when none)."""
+    bad = _bad_text(counts).rstrip(", ")
+    if not bad:
+        return ""
+    return f"corrupt NMEA sentences skipped: {bad} (their fixes, if any, are missing)"
+
+
+_GLL_GNS = re.compile(r"\$(?:[A-Z]{2})(GLL|GNS|ZDA|RMC),[^*$]*\*[0-9A-Fa-f]{2}")
+
+
+def _nmea_lines(feed: Any) -> Iterator[tuple[float, str]]:
+    """(receive time s, sentence text) of the NMEA lines of ``feed()``, joined across its
+    chunks; lines over MAX_LINE_BYTES are skipped (no NMEA sentence is that long)."""
+    rest, rest_t = b"", 0.0
+    for t_s, data in feed():
+        lines = (rest + data).split(b"\n")
+        rest, rest_t = lines.pop(), t_s
+        if len(rest) > MAX_LINE_BYTES:
+            rest = b""
+        for line in lines:
+            if len(line) <= MAX_LINE_BYTES:
+                yield t_s, line.decode("ascii", "replace").strip()
+    if rest:
+        yield rest_t, rest.decode("ascii", "replace").strip()
+
+
+def _gll_gns_track(
+    feed: Any, source: str, *, receive_clock: bool, notes: Iterable[str]
+) -> Track | None:
+    """The positions of a log's GLL or GNS sentences (None when it has none with a valid
+    checksum), dated by its ZDA or RMC dates; for logs without GGA or RMC positions.
+
+    GLL and GNS carry the time of day only: each is dated by the last ZDA (or RMC) date
+    before it (the first one for those before any), a day added when the time of day falls
+    back by over 12 h (midnight). GLL gives no satellite count or height; GNS gives both
+    (its count covers every constellation). Without any date a recording's receive times
+    are used; a plain log is an error, as for GGA."""
+    import pynmea2
+
+    positions: list[tuple[float, str, Any]] = []  # (receive time, type, sentence)
+    dates: list[tuple[int, datetime]] = []  # (index in positions, a dated time)
+    for t_s, line in _nmea_lines(feed):
+        match = _GLL_GNS.search(line)
+        if match is None:
+            continue
+        try:
+            msg = pynmea2.parse(match.group(0), check=True)
+        except (pynmea2.ParseError, ValueError, TypeError, AttributeError):
+            continue
+        kind = match.group(1)
+        try:
+            if kind in ("GLL", "GNS"):
+                positions.append((t_s, kind, msg))
+            elif kind == "ZDA" and msg.datetime is not None:
+                dates.append((len(positions), msg.datetime))
+            elif kind == "RMC" and msg.datestamp is not None and msg.timestamp is not None:
+                dates.append((len(positions), datetime.combine(msg.datestamp, msg.timestamp)))
+        except (ValueError, TypeError, AttributeError):
+            continue
+    if not positions:
+        return None
+    if not dates and not receive_clock:
+        raise ParseError(
+            f"{source}: no dated sentence: {len(positions)} GLL/GNS positions but no RMC with"
+            " a date and no ZDA, so no UTC time axis (the gap tool does not guess a date)"
+        )
+    rows: list[tuple[float, ...]] = []
+    timeless = 0
+    next_date = 0
+    day: datetime | None = dates[0][1] if dates else None
+    for i, (t_s, kind, msg) in enumerate(positions):
+        while next_date < len(dates) and dates[next_date][0] <= i:
+            day = dates[next_date][1]
+            next_date += 1
+        row = _gll_gns_row(kind, msg)
+        if day is None:
+            rows.append((t_s, *row))
+            continue
+        stamp = getattr(msg, "timestamp", None)
+        if stamp is None:
+            timeless += 1
+            continue
+        at = datetime.combine(day.date(), stamp).replace(tzinfo=UTC)
+        when = at.timestamp()
+        ref_s = day.replace(tzinfo=day.tzinfo or UTC).timestamp()
+        if when < ref_s - 43_200.0:
+            when += 86_400.0  # past midnight since the date
+        elif when > ref_s + 43_200.0:
+            when -= 86_400.0
+        rows.append((when, *row))
+    kinds = sorted({kind for _, kind, _ in positions})
+    read_notes = [
+        *notes,
+        f"positions read from {' and '.join(kinds)} sentences (the log has no GGA or RMC"
+        " position)" + ("; GLL gives no satellite count or height" if "GLL" in kinds else ""),
+    ]
+    if timeless:
+        read_notes.append(f"{timeless} epochs without a time dropped")
+    if not dates:
+        read_notes.append("no dated NMEA sentence: the recording's receive clock is the time axis")
+    return _track(rows, source, read_notes)
+
+
+def _gll_gns_row(kind: str, msg: Any) -> tuple[float, ...]:
+    """(lat, lon, alt, valid, satellites used, speed, course) of a GLL or GNS sentence."""
+
+    def number(text: object) -> float:
+        try:
+            return float(str(text))
+        except ValueError:
+            return math.nan
+
+    try:
+        lat_deg, lon_deg = float(msg.latitude), float(msg.longitude)
+    except (ValueError, TypeError, AttributeError):
+        lat_deg = lon_deg = math.nan
+    has_position = bool(getattr(msg, "lat", "")) and bool(getattr(msg, "lon", ""))
+    if kind == "GLL":
+        mode = str(getattr(msg, "faa_mode", "") or "")
+        valid = has_position and msg.status == "A" and mode[:1] != "N"
+        return (lat_deg, lon_deg, math.nan, float(valid), -1.0, math.nan, math.nan)
+    mode = str(getattr(msg, "mode_indicator", "") or "")
+    valid = has_position and any(c not in "N" for c in mode) and mode != ""
+    nsats = number(msg.num_sats)
+    return (
+        lat_deg,
+        lon_deg,
+        number(msg.altitude),
+        float(valid),
+        nsats if math.isfinite(nsats) else -1.0,
+        math.nan,
+        math.nan,
+    )
 
 
 def _read_nmea(path: Path) -> Track:
@@ -917,8 +1200,12 @@ def _series(
     course_deg: np.ndarray | None,
 ) -> PositionSeries:
     valid = track.valid & np.isfinite(east_m) & np.isfinite(north_m)
+    # heights are at every fix or none (settle_heights): 0 where unknown, and an all-zero
+    # up error is what "no heights" is downstream (stats.has_up)
     up_m = np.where(np.isfinite(up_m), up_m, 0.0)
-    nsats = track.nsats if np.all(track.nsats >= 0) else None
+    # counts at every fix or none (settle_counts); epochs without a fix do not count
+    has_counts = np.any(valid) and np.all(track.nsats[valid] >= 0)
+    nsats = np.maximum(track.nsats, 0.0) if has_counts else None
     sat_set = track.sat_set
     if sat_set is not None and not np.any(sat_set[track.valid] >= 0):
         sat_set = None
