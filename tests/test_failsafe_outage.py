@@ -20,7 +20,8 @@ from tests.test_failsafe_sim import LONG_LEG, ORIGIN, STUCK_S, _mission, _outsid
 from x6wd.core.config import NavigationConfig
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.records import Mode, NavState, WheelOdometry
-from x6wd.nav.controller import DEAD_RECKONING_MIN_SPEED, Controller
+from x6wd.nav import controller as controller_module
+from x6wd.nav.controller import DEAD_RECKONING_COMMANDED, DEAD_RECKONING_MIN_SPEED, Controller
 
 OUTAGE_FROM_S = 8.0
 
@@ -29,11 +30,28 @@ def _outage(start_s: float, duration_s: float) -> str:
     return f'[[effects]]\nname = "outage"\nstart_s = {start_s}\nduration_s = {duration_s}\n'
 
 
-def test_a_robot_blocked_in_a_gps_outage_pauses_on_its_wheels(tmp_path: Path) -> None:
-    """Blocked 4 s into a long outage, about 9 m of the 20 m of dead reckoning driven: its
-    wheels add no travel, so the outage never became a hold and the motors ran at 60 % until
-    the fix came back. The wheels' test needs no fix: paused within stuck_s."""
-    block_s = OUTAGE_FROM_S + 4.0
+@pytest.mark.parametrize(
+    ("block_after_s", "why", "within_s"),
+    [
+        (1.0, "stuck (the wheels: no motion in 10 s of driving)", (STUCK_S - 1.0, STUCK_S + 1.0)),
+        (
+            4.0,
+            "stuck (the wheels: no motion in 8 s of driving, 30 m commanded without a fix)",
+            (0.5 * STUCK_S, STUCK_S),
+        ),
+    ],
+    ids=["wheels-test", "commanded-bound"],
+)
+def test_a_robot_blocked_in_a_gps_outage_pauses_on_its_wheels(
+    tmp_path: Path, block_after_s: float, why: str, within_s: tuple[float, float]
+) -> None:
+    """Blocked early in a long outage: its wheels add no travel, so the outage never became
+    a hold and the motors ran at 60 % until the fix came back. The wheels' test needs no
+    fix: paused within stuck_s. Blocked 4 s in (about 9 m driven), the commanded travel
+    (2.33 m/s) reaches its 30 m bound 8 s after the block, before the wheels' test: the
+    hold it would bring is named for the wheels instead (a pause, stuck_action), not left
+    to say "no valid fix" 30 s later."""
+    block_s = OUTAGE_FROM_S + block_after_s
     world = _world(
         60.0,
         vehicle=f'stuck_from_s = {block_s}\nstuck_mode = "blocked"',
@@ -43,20 +61,22 @@ def test_a_robot_blocked_in_a_gps_outage_pauses_on_its_wheels(tmp_path: Path) ->
     run = _mission(tmp_path, world)
     # dead-reckoning, no hold, when it blocked and until the pause
     assert not any(s["new"] == "HOLD" for s in run.states if s["t_s"] > 1.0), run.states
-    paused = run.first("PAUSED", "failsafe: stuck (the wheels: no motion in 10 s of driving)")
-    assert block_s + STUCK_S - 1.0 <= paused["t_s"] <= block_s + STUCK_S + 1.0
+    paused = run.first("PAUSED", f"failsafe: {why}")
+    assert block_s + within_s[0] <= paused["t_s"] <= block_s + within_s[1]
     assert run.mode_changes()[-1][1] == "PAUSED"
     motors = [m for m in run.of("motor") if m["t_s"] >= paused["t_s"]]
     assert motors and all(m["left_pct"] == m["right_pct"] == 0.0 for m in motors)
-    assert [why for _t, why in run.summary.extra["failsafes"]] == [
-        "stuck (the wheels: no motion in 10 s of driving)"
-    ]
+    assert [w for _t, w in run.summary.extra["failsafes"]] == [why]
 
 
-def test_a_drive_without_a_fix_is_bounded_in_time_as_well_as_in_wheel_travel() -> None:
+def test_a_drive_without_a_fix_is_bounded_in_time_as_well_as_in_wheel_travel(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """Wheels that count 5 cm/s while driven at 60 % (a miscounting encoder): enough for the
-    stuck test (0.2 m in 10 s), 20 m of travel only after 400 s. The drive without a fix
-    holds once the slowest drive at half its nominal speed would have covered 20 m."""
+    stuck test (0.2 m in 10 s), 20 m of travel only after 400 s. The bound on commanded
+    travel (tested below) would end this drive after 30 m; lifted, the time limit, the last
+    backstop, holds once the slowest drive at half its nominal speed would have covered 20 m."""
+    monkeypatch.setattr(controller_module, "DEAD_RECKONING_COMMANDED", math.inf)
     nav = NavigationConfig()
     safety = replace(SAFETY, gps_outage_max_m=20.0)
     c = Controller(nav, safety, 3.0, failsafe=FS)
@@ -84,6 +104,36 @@ def test_a_drive_without_a_fix_is_bounded_in_time_as_well_as_in_wheel_travel() -
     assert c.telemetry.hold_reason == "no valid fix" and c.command.is_stop
     assert t_hold == pytest.approx(last_fix_s + limit_s, abs=0.15)
     assert math.isclose(c.telemetry.left_pct, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("counts_per_rev", "lo_m", "hi_m"),
+    [(1632, 18.0, 22.0), (408, 28.0, 32.0), (196, 28.0, 32.0)],
+    ids=["healthy", "25%", "12%"],
+)
+def test_a_drive_without_a_fix_is_bounded_by_its_commanded_travel(
+    tmp_path: Path, counts_per_rev: int, lo_m: float, hi_m: float
+) -> None:
+    """Encoders counting a quarter or an eighth of the travel (408 or 196 counts a wheel
+    turn where the robot's config expects 1632), the GPS out from 8 s on a 300 m leg:
+    20 m counted took 80-160 m of real driving (an outside audit: 44-79 m, 135-158 m blind).
+    The commanded travel (cruise 60 %: 2.33 m/s) ends the drive after 1.5 x 20 m; healthy
+    encoders end it on their counted 20 m as before."""
+    world = _world(
+        45.0,
+        waypoints="[[0.0, 300.0]]",
+        extra=_outage(OUTAGE_FROM_S, 500.0)
+        + f"[encoders]\ncounts_per_rev = {counts_per_rev}\n[safety]\ngps_outage_max_m = 20.0\n",
+    )
+    run = _mission(tmp_path, world)
+    last_fix_s = max(f["t_s"] for f in run.of("fix") if f["valid"])
+    assert last_fix_s < OUTAGE_FROM_S + 0.5
+    hold = run.first("HOLD", "no valid fix")
+    k = (run.t >= last_fix_s) & (run.t <= hold["t_s"] + 2.0)
+    driven_m = float(np.sum(np.hypot(np.diff(run.east[k]), np.diff(run.north[k]))))
+    assert lo_m <= driven_m <= hi_m, driven_m
+    assert run.moved_after(hold["t_s"] + 2.0) < 0.05
+    assert DEAD_RECKONING_COMMANDED * 20.0 == 30.0
 
 
 # ------------------------------------------------------------------- dead encoders
