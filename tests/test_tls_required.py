@@ -77,7 +77,8 @@ def test_a_control_port_beyond_loopback_without_tls_is_exit_2_naming_tls_cert(
     line = assert_config_error(
         run_x6wd(config),
         "server.tls_cert",
-        f"server.bind ({bind}) is not loopback",
+        f"server.bind = {bind!r}",
+        "is not loopback",
         "clear text",
         "server.allow_plaintext = true",
     )
@@ -103,7 +104,7 @@ def test_a_console_beyond_loopback_without_tls_is_exit_2_naming_console_bind(
     assert_config_error(
         run_x6wd(config),
         "console.bind",
-        "0.0.0.0 is not loopback",
+        "console.bind: '0.0.0.0' (all interfaces) is not loopback",
         "server's TLS",
         "server.allow_plaintext = true",
     )
@@ -233,8 +234,44 @@ HOSTS = [
 
 @pytest.mark.parametrize("host", HOSTS)
 def test_loopback_is_what_the_control_server_calls_loopback(host: str) -> None:
-    # the TLS rule and the token rule (x6wd.app.server) must agree on what loopback is
+    # the TLS rule and the token rule (x6wd.app.server) must agree on what loopback is, but
+    # for "LOCALHOST": loopback for TLS; the token rule still asks a token for it (safe side)
+    if host == "LOCALHOST":
+        assert is_loopback_bind(host) and not is_loopback(host)
+        return
     assert is_loopback_bind(host) == is_loopback(host)
+
+
+@pytest.mark.parametrize(
+    ("bind", "said"),
+    [
+        ("", "server.bind = '' (all interfaces) is not loopback"),
+        ("0.0.0.0", "server.bind = '0.0.0.0' (all interfaces) is not loopback"),
+        ("::", "server.bind = '::' (all interfaces) is not loopback"),
+        ("10.0.0.1", "server.bind = '10.0.0.1' is not loopback"),
+        ("127.1", "server.bind = '127.1' is not a literal loopback address"),
+        ("vm", "server.bind = 'vm' is not a literal loopback address"),
+    ],
+)
+def test_the_message_names_the_bind_as_it_is(bind: str, said: str) -> None:
+    # an outside audit: bind = "" was "server.bind () is not loopback", and names that are
+    # loopback (127.1, a name /etc/hosts maps to 127.0.0.1) were called not loopback
+    with pytest.raises(ConfigError) as err:
+        check_plaintext(config_with({"bind": bind, "token_file": "/t"}))
+    msg = str(err.value)
+    assert msg.startswith("server.tls_cert: required when " + said), msg
+    literal = "x6wd checks only literal loopback addresses and 'localhost'; use 127.0.0.1"
+    assert (literal in msg) == (bind in ("127.1", "vm")), msg
+    with pytest.raises(ConfigError) as err:
+        check_plaintext(config_with({"token_file": "/t"}, {"enabled": True, "bind": bind}))
+    assert str(err.value).startswith("console.bind: " + said.removeprefix("server.bind = "))
+
+
+def test_localhost_in_any_case_is_loopback() -> None:
+    for bind in ("localhost", "LOCALHOST", "LocalHost"):
+        cfg = config_with({"bind": bind}, {"enabled": True, "bind": bind})
+        assert plaintext_binds(cfg) == ()
+        check_plaintext(cfg)
 
 
 def config_with(server: dict[str, Any], console: dict[str, Any] | None = None) -> Any:

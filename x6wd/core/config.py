@@ -545,9 +545,11 @@ def _check_ports(cfg: Config) -> None:
 
 
 def is_loopback_bind(host: str) -> bool:
-    """True for a bind address only this machine reaches: "localhost", 127.0.0.0/8, ::1 (as
-    ``x6wd.app.server.is_loopback``, which decides who may run without a token)."""
-    if host == "localhost":
+    """True for a bind address only this machine reaches: "localhost" (any case), 127.0.0.0/8,
+    ::1 written as addresses (as ``x6wd.app.server.is_loopback``, which decides who may run
+    without a token, but for the case of "localhost"). Other names (a hostname that
+    /etc/hosts maps to 127.0.0.1) and short forms (127.1) are not resolved: False."""
+    if host.lower() == "localhost":
         return True
     try:
         return ipaddress.ip_address(host).is_loopback
@@ -586,13 +588,29 @@ def check_plaintext(cfg: Config) -> None:
     )
     if not srv.token_file:
         why += "; server.token_file is needed too"
+    value, clause = _not_loopback(srv.bind if binds[0] == "server.bind" else cfg.console.bind)
     if binds[0] == "server.bind":
         key = "server.tls_key" if srv.tls_cert else "server.tls_cert"
-        raise ConfigError(f"{key}: required when server.bind ({srv.bind}) is not loopback: {why}")
+        raise ConfigError(f"{key}: required when server.bind = {value} {clause}: {why}")
     raise ConfigError(
-        f"console.bind: {cfg.console.bind} is not loopback: the console needs the control "
-        f"server's TLS; {why}"
+        f"console.bind: {value} {clause}: the console needs the control server's TLS; {why}"
     )
+
+
+def _not_loopback(bind: str) -> tuple[str, str]:
+    """A bind address beyond loopback for a message, and why it counts as such: an address
+    is not loopback; a name or short form (127.1) is not called beyond loopback, only not
+    checked."""
+    if bind in ("", "0.0.0.0", "::"):
+        return f"{bind!r} (all interfaces)", "is not loopback"
+    try:
+        ipaddress.ip_address(bind)
+    except ValueError:
+        return repr(bind), (
+            "is not a literal loopback address (x6wd checks only literal loopback addresses "
+            "and 'localhost'; use 127.0.0.1)"
+        )
+    return repr(bind), "is not loopback"
 
 
 def _device_node(url: str) -> str | None:
