@@ -12,6 +12,7 @@ import functools
 import ipaddress
 import math
 import os
+import re
 import tomllib
 import types
 import typing
@@ -279,6 +280,15 @@ class ServerConfig:
     max_auth_failures: int = field(default=3, metadata=_rng(1, 100))
 
 
+HOSTNAME_PATTERN = (
+    r"[a-z0-9_](?:[a-z0-9_-]{0,61}[a-z0-9_])?(?:\.[a-z0-9_](?:[a-z0-9_-]{0,61}[a-z0-9_])?)*"
+)
+"""A host name as the console takes it in a ``Host`` and in ``[console] hostnames`` (ASCII,
+case-insensitive): dot-separated labels of letters, digits, ``-`` (not first or last) and
+``_`` (which DNS names lack but host names have: ``socket.gethostname()`` may say
+``my_robot``); a dotted IPv4 address is one too."""
+
+
 @dataclass(frozen=True)
 class ConsoleConfig:
     """The operator's web console (x6wd.app.console): the control server's token, TLS and
@@ -302,6 +312,12 @@ class ConsoleConfig:
     hostnames: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        for name in self.hostnames:
+            if len(name) > 253 or not re.fullmatch(HOSTNAME_PATTERN, name, re.ASCII | re.I):
+                raise ConfigError(
+                    f"console.hostnames: {name!r} is not a host name (labels of letters, "
+                    "digits, '-' and '_' joined by dots; no port, no scheme, no trailing dot)"
+                )
         url = self.tile_url
         if url:
             parts = urlsplit(url)

@@ -54,7 +54,7 @@ from x6wd.app.server import (
     is_loopback,
     parse_request,
 )
-from x6wd.core.config import ConsoleConfig
+from x6wd.core.config import HOSTNAME_PATTERN, ConsoleConfig
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.mission_files import PARSERS, parse_content
 from x6wd.core.recorder import RecordingFile, list_recordings
@@ -140,12 +140,13 @@ where the operator's stop arrives."""
 
 
 _HOST_RE = re.compile(
-    r"(?:(?P<name>[a-z0-9](?:[a-z0-9-]{0,61}[a-z0-9])?(?:\.[a-z0-9](?:[a-z0-9-]{0,61}[a-z0-9])?)*)"
+    rf"(?:(?P<name>{HOSTNAME_PATTERN})"
     r"|\[(?P<ipv6>[0-9a-f:.]+)\])(?::(?P<port>[0-9]{1,5}))?",
     re.ASCII | re.IGNORECASE,
 )
-"""A ``Host`` as a browser sends it: a hostname (or dotted IPv4) or a bracketed IPv6, and an
-optional port of digits. Nothing else (no user@, no spaces, no ``;``, no zone id)."""
+"""A ``Host`` as a browser sends it: a hostname (or dotted IPv4; ``_`` allowed, as
+``[console] hostnames`` allows it) or a bracketed IPv6, and an optional port of digits.
+Nothing else (no user@, no spaces, no ``;``, no zone id)."""
 
 
 def allowed_host(host_header: str, names: frozenset[str]) -> bool:
