@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import importlib
 import math
 import os
@@ -289,10 +288,11 @@ def _target(url: str, kind: str, scheme: str, netloc: str, path: str) -> str:
 
 
 def check_available(url: str, kind: str) -> DeviceUrl:
-    """Start-up check of a device URL for ``kind``, opening nothing but a serial port for a
-    moment: the URL is valid (:func:`parse_url`; ``sim://`` also by the simulator's own rules)
-    and the local device it names is there: a serial path is an existing character device
-    this user may read and write, and a serial port (a terminal: :func:`_check_serial`);
+    """Start-up check of a device URL for ``kind``, opening nothing: the URL is valid
+    (:func:`parse_url`; ``sim://`` also by the simulator's own rules) and the local device it
+    names is there: a serial path is an existing character device this user may read and
+    write, and not a non-terminal (:func:`_check_serial`; whether another process holds it
+    is not checked: that is for the opening to report and retry);
     ``i2c://N/..`` has its ``/dev/i2c-N`` node, a replay file exists and is readable.
     ``tcp://`` and ``log://`` have nothing local to check (a remote peer may come later).
 
@@ -341,34 +341,40 @@ def _check_node(dev: DeviceUrl, path: str, *, char: bool, hint: str) -> None:
         raise UrlError(dev.kind, dev.url, f"{path}: this user may not {rights} it{extra}")
 
 
+SYSFS_CHAR = "/sys/dev/char/{major}:{minor}/subsystem"
+"""The kernel's class of a character device (a symlink ending in ``tty``, ``mem`` ...)."""
+
+
 def _check_serial(dev: DeviceUrl, path: str) -> None:
-    """``path`` (an accessible character device) is a serial port: a terminal device, not
-    e.g. ``/dev/null``, which opens but refuses every serial setting ("Inappropriate ioctl
-    for device") for ever. Opened for a moment, without changing its settings
-    (``O_NONBLOCK``: no wait for a carrier; ``O_NOCTTY``); an open that fails is left to the
-    device's own opening, which reports and retries it. It is not in use: the ports are
-    opened exclusively (:func:`_serial_port`), and one another process holds (its lock) would
-    never open; two readers of one GPS would split its byte stream."""
+    """``path`` (an accessible character device) is a serial port, as far as can be told
+    without opening it: not e.g. ``/dev/null``, which opens but refuses every serial setting
+    ("Inappropriate ioctl for device") for ever. The kernel's class of the device number
+    (:data:`SYSFS_CHAR`) says it: every terminal (UART, USB adapter, ACM board) is ``tty``.
+    A device sysfs does not list (a pseudo-terminal's ``/dev/pts/N``, or no ``/sys``) is
+    left to the device's own opening, which reports and retries a failure.
+
+    Nothing is opened: opening a serial port raises DTR and the close (HUPCL) drops it,
+    which resets an Arduino-class motor board. Whether the port is in use is not checked
+    either: a port held for a moment at boot (ModemManager probing a ttyACM, gpsd
+    hot-plugging) is a runtime condition the device's opening reports and retries (the
+    GPS), or a start-up failure systemd restarts (the motors), not a configuration error."""
     try:
-        fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
-    except OSError as exc:
-        if exc.errno == errno.EBUSY:  # opened exclusively (TIOCEXCL) by another process
-            raise UrlError(dev.kind, dev.url, _in_use(path)) from None
+        rdev = os.stat(path).st_rdev
+        kind = os.path.basename(
+            os.readlink(SYSFS_CHAR.format(major=os.major(rdev), minor=os.minor(rdev)))
+        )
+    except (OSError, ValueError):
         return
-    try:
-        if not os.isatty(fd):
-            raise UrlError(dev.kind, dev.url, f"{path} is not a serial port (not a terminal)")
-        try:  # the lock pyserial's exclusive open takes (ours too): released by the close
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            if exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK):
-                raise UrlError(dev.kind, dev.url, _in_use(path)) from None
-    finally:
-        os.close(fd)
+    if kind != "tty":
+        raise UrlError(
+            dev.kind,
+            dev.url,
+            f"{path} is not a serial port (not a terminal: the kernel's class of it is {kind!r})",
+        )
 
 
-def _in_use(path: str) -> str:
-    return f"{path} is in use: another process holds it (locked; another x6wd, gpsd?)"
+def _in_use(path: str, how: str) -> str:
+    return f"{path} is in use: another process holds it ({how}; another x6wd, gpsd?)"
 
 
 def device_path(url: str) -> tuple[str, int]:
@@ -484,8 +490,14 @@ def _serial_port(dev: DeviceUrl, timeout_s: float) -> Any:
             dev.target, baudrate=dev.options["baud"], timeout=timeout_s, exclusive=True
         )
     except (serial.SerialException, OSError, ValueError) as exc:
-        if getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK):
-            raise DeviceUnavailable(f"cannot open {dev.url}: {_in_use(dev.target)}") from exc
+        code = getattr(exc, "errno", None)
+        if code in (errno.EAGAIN, errno.EWOULDBLOCK):  # pyserial's flock (another x6wd)
+            raise DeviceUnavailable(
+                f"cannot open {dev.url}: {_in_use(dev.target, 'locked')}"
+            ) from exc
+        if code == errno.EBUSY:  # TIOCEXCL (gpsd, ModemManager): refused at the open itself
+            why = _in_use(dev.target, "opened exclusively")
+            raise DeviceUnavailable(f"cannot open {dev.url}: {why}") from exc
         raise DeviceUnavailable(f"cannot open {dev.url}: {exc}") from exc
 
 

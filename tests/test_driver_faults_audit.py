@@ -7,8 +7,8 @@ behaviour is the daemon's.
 - A motor port that keeps failing with a transient errno (EIO from a pty whose far end went
   away) counts as broken after a few errors in a row, and is reopened.
 - A GPS that sends only checksum-valid sentences with invalid fields goes stale.
-- A serial device another process holds (locked) is refused at start-up naming the key, and
-  is a reconnect error on a reopen.
+- A serial device another process holds (locked) is a reconnect error on a reopen (at
+  start-up too: tests/test_driver_faults_round2.py).
 - A character device that is not a serial port is refused at start-up naming the key.
 """
 
@@ -281,39 +281,6 @@ def test_a_character_device_that_is_not_a_serial_port_is_refused_at_start_up(
 ) -> None:
     proc = run_x6wd(write_config(tmp_path, **{key: {"url": "serial:///dev/null"}}), 30)
     assert_config_error(proc, f"{key}.url", "/dev/null is not a serial port")
-
-
-def test_a_second_daemon_on_the_same_gps_is_refused_naming_the_key(
-    tmp_path: Path, gps_pty: tuple[int, str]
-) -> None:
-    _master, path = gps_pty
-    url = f"serial://{path}?baud=9600"
-    (tmp_path / "a").mkdir()
-    (tmp_path / "b").mkdir()
-    first = DaemonProcess(write_config(tmp_path / "a", gps={"url": url}))
-    try:
-        assert first.port is not None
-        with RemoteClient("127.0.0.1", first.port) as c:  # the first one holds the port
-            wait_until(lambda: status(c)["devices"]["gps"]["reconnects"] == 0, 5, "gps open")
-        proc = run_x6wd(write_config(tmp_path / "b", gps={"url": url}), 30)
-        assert_config_error(proc, "gps.url", f"{path} is in use: another process holds it")
-        assert first.proc.poll() is None
-    finally:
-        first.stop()
-
-
-def test_a_motor_port_locked_at_start_up_is_refused_naming_the_key(
-    tmp_path: Path, silent_board: PtyMotorBoard
-) -> None:
-    holder = serial.Serial(silent_board.path, exclusive=True)
-    try:
-        url = f"serial://{silent_board.path}?baud=115200"
-        proc = run_x6wd(write_config(tmp_path, motors={"url": url}), 30)
-        assert_config_error(
-            proc, "motors.url", f"{silent_board.path} is in use: another process holds it"
-        )
-    finally:
-        holder.close()
 
 
 def test_a_port_locked_when_reopened_is_a_reconnect_error_until_released(
