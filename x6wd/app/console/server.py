@@ -15,8 +15,9 @@ connection is a *detached* client of that server. What the console adds:
   page repeats it while a key is held), and a page that goes away while its drive runs gets
   its motors stopped at once; a drive that arrives more than ``deadman_s`` late (by the
   page's ``sent_ms``: held in a stalled link) is refused, not replayed; a stop from
-  another client ends a held drive: a drive whose press began before it (the page's
-  ``press_ms``, else the press the console infers from the page's drives) is refused;
+  another client ends a held drive: a drive whose press began before it or less than
+  ``deadman_s`` after it (the page's ``press_ms``, else the press the console infers from
+  the page's drives) is refused, and logged once per press;
 - ``console.watch_only``: every command that acts (``stop`` too) is refused by the server;
 - cross-origin WebSockets are refused: another site open in the operator's browser must not
   be able to reach the robot through it.
@@ -109,18 +110,34 @@ class _Page:
     dropped: int = 0
     map_sent: Any = None
     transport: Any = None  # its connection's (kept open when connections are capped)
-    clock_offset_s: float = math.inf  # min(arrival - page's sent_ms) so far: see _late_s
+    # the clocks' offset: min(arrival - page's sent_ms) over a recent window (see _late_s):
+    # the minimum over this period and over the one before it
+    clock_offset_s: float = math.inf
+    offset_now_s: float = math.inf
+    offset_before_s: float = math.inf
+    offset_period_s: float = -math.inf  # when this period began (time.monotonic())
     busy: bool = False  # a request of it is being handled or sleeps out its back-off
     held: int = 0  # bytes charged for its messages read, not handled yet (_message_cost)
     queued: int = 0  # its messages read, not handled yet
     room: asyncio.Event = field(default_factory=asyncio.Event)  # held went down
     # its drives without press_ms, taken as one press while less than deadman_s apart (by
     # their send time, this clock; see _press_s): the send time of the first of them the
-    # robot carried out (inf: none yet), of the latest, and of the one being handled
-    run_drove_s: float = math.inf
+    # robot carried out or refused because of another client's stop (inf: none yet), of
+    # the latest, and of the one being handled
+    run_start_s: float = math.inf
     run_last_s: float = -math.inf
     drive_sent_s: float = math.inf
+    last_drove_s: float = -math.inf  # the send time of its latest drive carried out
+    logged_press: Any = None  # the press whose refusal (another client's stop) was logged
 
+
+OFFSET_PERIOD_S = 5.0
+"""The clocks' offset is the least (arrival - ``sent_ms``) over the current period of this
+length and the one before it (a window of 5-10 s of messages; a page asks ``status`` every
+second): a page clock running slow or fast is followed (1 % off: under 0.1 s of error), and
+one absurd ``sent_ms`` (a far-future one: every later message late, refused) is forgotten
+within 10 s. A period begins only with a message, so messages held in a stalled link, however
+long the stall, are judged against the offset of the messages that came before it."""
 
 MESSAGE_COST_B = 1024
 """What one queued page message is charged against ``max_message_bytes`` besides its bytes:
@@ -599,6 +616,8 @@ class ConsoleServer:
         ):
             # sent before another client's stop, held in this page's link meanwhile (the
             # order-based fence sees only what the console has read)
+            if cmd == "drive":
+                self._log_stopped(page, req)
             rid = req.get("id")
             return error_reply(
                 rid if isinstance(rid, (int, str)) else None, "rejected",
@@ -608,11 +627,16 @@ class ConsoleServer:
             press_s is not None
             and c.authenticated
             and not c.watch_only
-            and self.control.stopped_since(c, press_s)
+            and self.control.stopped_since(c, press_s - self._guard_s(page, req))
         ):
             # a resend of a held drive whose press began before another client's stop: that
-            # stop ended the press; the robot stays stopped until the key is pressed again
+            # stop ended the press; the robot stays stopped until the key is pressed again.
+            # A press placed less than deadman_s after the stop counts as before it: the
+            # offset holds the link's least one-way delay, so a press is placed up to that
+            # much late (a press within deadman_s of another's stop must be made again)
             self.held_drives_stopped += 1
+            page.run_start_s = min(page.run_start_s, page.drive_sent_s)  # stays stopped
+            self._log_stopped(page, req)
             rid = req.get("id")
             return error_reply(
                 rid if isinstance(rid, (int, str)) else None, "rejected",
@@ -624,40 +648,94 @@ class ConsoleServer:
         if cmd in ("recording.list", "recording.view"):
             return await self._recording(c, req), 0.0
         reply, wait_s = await self.control.request(c, line)
-        if cmd == "drive" and reply.get("ok"):  # driven: its press, if inferred, drove since
-            page.run_drove_s = min(page.run_drove_s, page.drive_sent_s)
+        if cmd == "drive" and reply.get("ok"):  # driven: its press, if inferred, began
+            page.run_start_s = min(page.run_start_s, page.drive_sent_s)
+            page.last_drove_s = max(page.last_drove_s, page.drive_sent_s)
         return reply, wait_s
+
+    def _guard_s(self, page: _Page, req: dict[str, Any]) -> float:
+        """How long after another client's stop a press still counts as begun before it:
+        ``deadman_s`` for a press the page names (``press_ms``: the offset holds the link's
+        least one-way delay, so the press is placed up to that much late), and for an
+        inferred press of a page whose drive ran at the stop (its latest drive carried out
+        sent less than ``deadman_s`` before it: a drive that starts a "new press" after a
+        stall is still the stopped press); 0 for a page that was not driving (a program
+        that sends a drive just after another's stop is obeyed, as before)."""
+        if "press_ms" in req:
+            return self.config.deadman_s
+        other_stop_s = getattr(page.client, "other_stop_s", -math.inf)
+        return (
+            self.config.deadman_s
+            if page.last_drove_s > other_stop_s - self.config.deadman_s
+            else 0.0
+        )
+
+    def _log_stopped(self, page: _Page, req: dict[str, Any]) -> None:
+        """A drive refused because of another client's stop: the first refusal of each press
+        is logged."""
+        press = req.get("press_ms", ("inferred", page.run_start_s))
+        if press == page.logged_press:
+            return
+        page.logged_press = press
+        log.warning(
+            "console: %s: a drive refused: another client stopped the robot after its press "
+            "began (the robot stays stopped until that key is pressed again; "
+            "held_drives_stopped %d, late_drives %d)",
+            page.peer, self.held_drives_stopped, self.late_drives,
+        )  # fmt: skip
+
+    def stats(self) -> dict[str, int]:
+        """The console's counts: motors stopped by the dead-man (a page gone while driving),
+        drives refused for arriving more than ``deadman_s`` late, drives refused because
+        another client stopped the robot after their press began, requests refused for
+        their Host, idle connections closed at the cap, events dropped for slow pages."""
+        return {
+            "deadman_stops": self.deadman_stops,
+            "late_drives": self.late_drives,
+            "held_drives_stopped": self.held_drives_stopped,
+            "refused_hosts": self.refused_hosts,
+            "connections_closed": self.connections_closed,
+            "dropped": self.dropped_total,
+        }
 
     @staticmethod
     def _late_s(page: _Page, req: dict[str, Any]) -> float:
-        """How much later than the page's fastest message so far this one arrives (s), from
+        """How much later than the page's fastest recent message this one arrives (s), from
         its ``sent_ms`` (the page's monotonic clock); 0 without one. The fastest message
-        fixes the clocks' offset plus the link's least delay: the rest is the stall."""
+        fixes the clocks' offset plus the link's least delay: the rest is the stall. Recent:
+        this period of :data:`OFFSET_PERIOD_S` and the one before it (see there)."""
         sent = req.get("sent_ms")
         if not isinstance(sent, (int, float)) or isinstance(sent, bool):
             return 0.0
-        offset = time.monotonic() - sent / 1000.0
-        page.clock_offset_s = min(page.clock_offset_s, offset)
+        now = time.monotonic()
+        offset = now - sent / 1000.0
+        if now - page.offset_period_s >= OFFSET_PERIOD_S:  # a new period, begun by a message
+            page.offset_before_s, page.offset_now_s = page.offset_now_s, math.inf
+            page.offset_period_s = now
+        page.offset_now_s = min(page.offset_now_s, offset)
+        page.clock_offset_s = min(page.offset_before_s, page.offset_now_s)
         return offset - page.clock_offset_s
 
     def _press_s(self, page: _Page, req: dict[str, Any]) -> float:
         """When the press a drive belongs to began (time.monotonic() s, at the latest): a
-        stop from elsewhere after it ends the press. Its ``press_ms`` (the page's clock)
-        mapped as ``sent_ms`` is. Without one (a page with an older console.js, another
-        program) the press is inferred: the page's drives sent (by ``sent_ms``, else as they
-        arrive) less than ``deadman_s`` apart since its last own ``stop`` (a held key's
-        resends are ``deadman_s``/3 apart), begun when the first of them the robot carried
-        out was sent (one refused, e.g. sent before the stop, never drove: the older page
-        ended its drive on that refusal). ValueError: a bad ``press_ms``."""
+        stop from elsewhere after it, or shortly before it (:meth:`_guard_s`), ends the press.
+        Its ``press_ms`` (the page's clock) mapped as ``sent_ms`` is. Without one (a page
+        with an older console.js, another program) the press is inferred: the page's drives
+        sent (by ``sent_ms``, else as they arrive) less than ``deadman_s`` apart since its
+        last own ``stop`` (a held key's resends are ``deadman_s``/3 apart), begun when the
+        first of them the robot carried out, or that was refused as begun before another
+        client's stop, was sent; until then at this drive (one refused for another reason
+        never drove: the older page ended its drive on that refusal). ValueError: a bad
+        ``press_ms``."""
         raw = req.get("sent_ms")
         sent = float(raw) if isinstance(raw, (int, float)) and not isinstance(raw, bool) else None
         sent_s = time.monotonic() if sent is None else sent / 1000.0 + page.clock_offset_s
         if not sent_s - page.run_last_s <= self.config.deadman_s:  # (also a NaN: a new run)
-            page.run_drove_s = math.inf
+            page.run_start_s = math.inf
         page.run_last_s = max(page.run_last_s, sent_s)
         page.drive_sent_s = sent_s
         if "press_ms" not in req:
-            return page.run_drove_s
+            return min(page.run_start_s, sent_s)
         press = req["press_ms"]
         if (
             sent is None
