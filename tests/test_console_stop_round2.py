@@ -20,6 +20,7 @@ import pytest
 from tests.test_console import console_config, daemon_with, has_fix, vehicle_pct, ws_to
 from tests.test_console_stop_override import DRIVE, page_ms, stop_from_elsewhere
 from tests.test_daemon import Running, wait_for
+from x6wd.app.client import RemoteClient
 from x6wd.app.console import server as console_server
 from x6wd.app.console.server import ConsoleServer, _Page, allowed_host
 from x6wd.core.config import ConsoleConfig
@@ -256,5 +257,9 @@ def test_a_held_drive_refused_by_another_clients_stop_is_logged_once_per_press(
             assert stats["held_drives_stopped"] == count + 4
             assert set(stats) >= {"late_drives", "held_drives_stopped", "deadman_stops"}
             assert (await w.request("stop", sent_ms=page_ms()))["ok"]
+            # and the operator sees them in status, as every fault and refusal
+            with RemoteClient("127.0.0.1", robot.port) as c:
+                shown = c.request("status")["console"]
+            assert shown["held_drives_stopped"] == count + 4 and "late_drives" in shown
 
     asyncio.run(program())

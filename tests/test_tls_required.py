@@ -234,11 +234,7 @@ HOSTS = [
 
 @pytest.mark.parametrize("host", HOSTS)
 def test_loopback_is_what_the_control_server_calls_loopback(host: str) -> None:
-    # the TLS rule and the token rule (x6wd.app.server) must agree on what loopback is, but
-    # for "LOCALHOST": loopback for TLS; the token rule still asks a token for it (safe side)
-    if host == "LOCALHOST":
-        assert is_loopback_bind(host) and not is_loopback(host)
-        return
+    # the TLS rule and the token rule (x6wd.app.server) agree on what loopback is
     assert is_loopback_bind(host) == is_loopback(host)
 
 

@@ -1638,6 +1638,9 @@ class Daemon:
             "declination": dict(self.runner.declination) if self.runner is not None else {},
             # bind keys listening beyond loopback in clear text (server.allow_plaintext)
             "plaintext_beyond_loopback": list(self._plaintext),
+            # the web console's counts (dead-man stops, drives refused late or after another
+            # client's stop, refused Hosts ...); absent without the console
+            **({"console": self.console.stats()} if self.console is not None else {}),
         }
 
     # the runner's operator requests, run on the control loop by _on_control

@@ -27,7 +27,6 @@ import fcntl
 import hashlib
 import hmac
 import inspect
-import ipaddress
 import json
 import logging
 import math
@@ -46,7 +45,7 @@ from typing import Any, Protocol
 
 from x6wd import __version__
 from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
-from x6wd.core.config import ServerConfig
+from x6wd.core.config import ServerConfig, is_loopback_bind
 from x6wd.core.errors import CommandError, ConfigError, ParseError, X6wdError
 from x6wd.core.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx, parse_kml, parse_wpl
 
@@ -161,13 +160,9 @@ def server_ssl_context(cert: str, key: str) -> ssl.SSLContext:
 
 
 def is_loopback(host: str) -> bool:
-    """True for localhost / 127.0.0.0/8 / ::1 binds."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
+    """True for localhost (any case) / 127.0.0.0/8 / ::1 binds: the token rule and the TLS
+    rule (:func:`x6wd.core.config.is_loopback_bind`) are one rule."""
+    return is_loopback_bind(host)
 
 
 def encode(obj: dict[str, Any]) -> bytes:
