@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from sim_backend.geodesy import enu_to_lla
+from sim_backend.world import loads_world
 from tests.test_controller import NAV, SAFETY, at, att, fix
 from tests.test_failsafe_controller import COUNTS_PER_M, FS, feed, started
 from tests.test_failsafe_sim import LONG_LEG, ORIGIN, STUCK_S, _mission, _outside, _world
@@ -244,3 +245,45 @@ def test_the_geofence_is_checked_on_the_estimate_while_dead_reckoning(
     assert beyond_m < 1.0, beyond_m  # the free arc goes 1.6 m beyond the fence
     logged = [r.getMessage() for r in caplog.records if r.name == "x6wd.loop.runner"]
     assert any(m.startswith(f"{why}: ") and "no fresh fix: failsafe hold" in m for m in logged)
+
+
+PIVOT_BLOCK = """
+name = "blocked while pivoting, inside an outage (a second outside audit, seed 1)"
+start_utc = "2020-01-01T12:00:00Z"
+duration_s = 45
+seed = 1
+[origin]
+lat_deg = 51.752
+lon_deg = -1.2577
+alt_m = 60.0
+[gnss]
+fidelity = "pseudorange"
+[atmosphere]
+env_noise_db = 1.0
+[vehicle]
+start_heading_deg = 0.0
+stuck_from_s = 26.0
+[compass]
+declination_deg = -0.5
+noise_ut = 0.05
+horizontal_ut = 18.5
+vertical_ut = 46.0
+[mission]
+waypoints_enu = [[17.1, 47.0], [46.0, 12.5], [88.2, 47.9]]
+[[effects]]
+name = "outage"
+start_s = 24.0
+duration_s = 200.0
+"""
+
+
+def test_a_robot_blocked_mid_pivot_is_a_block_of_the_wheels_not_the_pivot(
+    tmp_path: Path,
+) -> None:
+    """Blocked at 26 s while pivoting (outage from 24 s): the pivot's headway clock had
+    started just before the wheels' one, so the pivot check fired first and blamed the
+    compass ("the compass does not follow the wheels") with the encoders counting nothing.
+    The wheels' block is named when they stood still for half of stuck_s."""
+    run = _mission(tmp_path, loads_world(PIVOT_BLOCK, base_dir=tmp_path))
+    why = [w for _t, w in run.summary.extra["failsafes"]]
+    assert why == ["stuck (the wheels: no motion in 10 s of driving)"], why

@@ -806,6 +806,15 @@ class Controller:
         if now - best[1] < stuck_s:
             return None
         self._pivot_best = None
+        still_s = self._wheels_still_s(now)
+        if still_s >= 0.5 * stuck_s:
+            # the pivot's clock may start just before the wheels' one: a robot blocked
+            # mid-pivot is a block of the wheels, not a compass that fails to follow them
+            self._stuck_wheels = self._stuck_body = None
+            return (
+                f"stuck (the wheels: no motion in {still_s:.0f} s of driving)",
+                self._failsafe.stuck_action,
+            )
         return (
             f"stuck (the pivot: {best[0]:.0f}° from its heading and no nearer in {stuck_s:g} s"
             " of turning; the compass does not follow the wheels)",
