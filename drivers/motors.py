@@ -16,7 +16,11 @@ transitions for :meth:`take_health_events`. A port error with a transient errno
 (:data:`x6wd.core.errors.TRANSIENT_ERRNOS`) or a missing acknowledgement is retried within the
 command; any other port error is not (the port is broken): the link is lost at once. So are
 ``transient_limit`` transient errors in a row (:data:`drivers.gps_io.TRANSIENT_LIMIT`, as for
-the GPS), across commands: a pty or USB adapter that went away answers EIO for ever.
+the GPS), across commands, once they have gone on for :data:`TRANSIENT_MIN_S` with no
+command through in between: a pty or USB adapter that went away answers EIO for ever. A
+port that reopens but still fails is reopened with the backoff still growing: it is reset
+only by a command that succeeds on the new port. A link where over half of the last
+:data:`RETRY_WINDOW` commands needed a retry is degraded.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ from typing import Any, Protocol, runtime_checkable
 from drivers.gps_io import TRANSIENT_LIMIT
 from x6wd.core.errors import is_transient
 from x6wd.core.health import HealthTracker, root_oserror
-from x6wd.core.records import DeviceHealth, HealthEvent, MotorCommand, WheelOdometry
+from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent, MotorCommand, WheelOdometry
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +55,18 @@ SEQ_MODULO = 10_000
 ENC_MODULO = 1 << 32
 ENC_SEQ_MODULO = 1 << 16
 ENC_MAX_SEQ_STEP = 1000
+TRANSIENT_MIN_S = 0.5
+"""How long (s) transient port errors must go on, with no command through in between, before
+the port counts as broken (besides ``transient_limit`` of them): the board's default watchdog
+period, after which the board has stopped the motors by itself, so closing and reopening
+costs no more; a USB or EMI hiccup of tens of ms (or one command's back-to-back retries,
+which have no delay between them) is ridden out on the same port."""
+RETRY_WINDOW = 20
+"""Commands kept to judge how often they needed a retry: when over half of the last
+``RETRY_WINDOW`` did, the link is degraded (a board answering every other command)."""
+REOPEN_LOG_S = 30.0
+"""At most one "motor port reopened" log line per this many seconds (s); status counts
+every reopen."""
 
 
 class PortLike(Protocol):
@@ -230,6 +246,10 @@ class SerialMotorLink:
         self._port_dead = False  # closed after a non-transient error, reopen pending
         self.transient_limit = transient_limit
         self._transient_run = 0  # transient port errors in a row, across commands
+        self._transient_t0: float | None = None  # when that run began
+        self._reopens_since_break = 0  # reopens since the port last carried a command
+        self._reopen_log_t = -math.inf
+        self._retried: deque[bool] = deque(maxlen=RETRY_WINDOW)  # per answered command
         self.ack_timeout_s = float(ack_timeout_s)
         self.watchdog_ms = int(watchdog_ms)
         self.retries = retries
@@ -404,7 +424,7 @@ class SerialMotorLink:
                 self._failures = max(self._failures + 1, self.unhealthy_after)
                 return None
             broken = False
-            for _attempt in range(self.retries + 1):
+            for attempt in range(self.retries + 1):
                 self._seq = self._seq % (SEQ_MODULO - 1) + 1
                 seq = self._seq
                 try:
@@ -415,17 +435,29 @@ class SerialMotorLink:
                     self.counters.write_errors += 1
                     log.debug("motor link I/O error: %s", exc)
                     text = f"{body.split()[0]}: port error: {exc}"
+                    t_err = self._clock()
                     if is_transient(root_oserror(exc)):
                         self._transient_run += 1
-                        if self._transient_run < self.transient_limit:
-                            tracker.error(text, self._clock())
+                        if self._transient_t0 is None:
+                            self._transient_t0 = t_err
+                        lasted = t_err - self._transient_t0
+                        if self._transient_run < self.transient_limit or lasted < TRANSIENT_MIN_S:
+                            tracker.error(text, t_err)
                             continue
                         # EIO for ever: the device went away (a pty's far end, a USB adapter)
-                        text += f" ({self._transient_run} transient errors in a row)"
-                    tracker.error(text, self._clock())
+                        text += (
+                            f" ({self._transient_run} transient errors in a row over "
+                            f"{lasted:.2f} s)"
+                        )
+                    if self._reopens_since_break:
+                        text += (
+                            f"; the port reopened {self._reopens_since_break} times and still fails"
+                        )
+                    tracker.error(text, t_err)
                     broken = True  # EBADF, a closed port ...: repeating will not help
                     break
                 self._transient_run = 0  # the port worked, whether or not the board answered
+                self._transient_t0 = None
                 if reply is None:
                     self.counters.timeouts += 1
                     tracker.error(
@@ -442,9 +474,13 @@ class SerialMotorLink:
                         self.counters.rejected += 1
                         self._refusal = payload
                     self._failures = 0
+                    # the new port carried a command: the next break starts the backoff anew
+                    self._reopen_backoff_s = self.reopen_initial_s
+                    self._reopens_since_break = 0
                     t_s = self._clock()
                     if not tracker.health.connected:
                         tracker.opened(t_s)  # the board answers again: a reconnect
+                    self._note_retries(attempt > 0, t_s)
                     tracker.good(t_s)
                     return payload if ok else None
                 self.counters.rejected += 1
@@ -463,6 +499,9 @@ class SerialMotorLink:
         """Close the broken port; the next command after the backoff reopens it."""
         self._port_dead = True
         self._next_reopen_t = self._clock() + self._reopen_backoff_s
+        # doubled here too: a port that reopens fine but breaks again is not reopened at
+        # the first step for ever (a command through on it resets the backoff)
+        self._reopen_backoff_s = min(2.0 * self._reopen_backoff_s, self.reopen_max_s)
         try:
             self.port.close()
         except Exception:
@@ -484,12 +523,34 @@ class SerialMotorLink:
             return False
         self._set_port(port)
         self._port_dead = False
-        self._transient_run = 0
-        self._reopen_backoff_s = self.reopen_initial_s
+        # Not reset here: the transient run (a port that reopens but whose writes still fail
+        # is broken again at its first error) and the backoff (it keeps growing until a
+        # command succeeds on the new port).
         self.configured = False
         self.counters.reopens += 1
-        log.info("motor port reopened")
+        self._reopens_since_break += 1
+        if t_s - self._reopen_log_t >= REOPEN_LOG_S:
+            self._reopen_log_t = t_s
+            log.info(
+                "motor port reopened (%d reopens since the break, %d in all)",
+                self._reopens_since_break,
+                self.counters.reopens,
+            )
         return True
+
+    def _note_retries(self, retried: bool, t_s: float) -> None:
+        """An answered command that did (not) need a retry: over half of the last
+        :data:`RETRY_WINDOW` needing one degrades the link, naming the rate; it recovers
+        once they stop (no error for the tracker's recover time)."""
+        self._retried.append(retried)
+        n = sum(self._retried)
+        if retried and n * 2 > RETRY_WINDOW and self._tracker.state == DeviceState.CONNECTED:
+            self._tracker.failed(
+                f"{n} of the last {len(self._retried)} commands needed a retry "
+                f"(the board misses commands; each retry costs up to "
+                f"{self.ack_timeout_s * 1000:.0f} ms)",
+                t_s,
+            )
 
     def _track_failure(self) -> None:
         """A command failed: degraded, lost once unhealthy, reconnecting while lost."""
@@ -498,9 +559,11 @@ class SerialMotorLink:
         if self._failures < self.unhealthy_after:
             tracker.degrade(t_s)
         elif state.connected:
-            tracker.lost(state.last_error, t_s, count_error=False)  # counted per attempt
+            next_t = self._next_reopen_t if self._port_dead else None
+            tracker.lost(state.last_error, t_s, next_t, count_error=False)  # counted per attempt
         else:  # already lost: this command was another attempt to reach the board
-            tracker.open_failed(state.last_error, t_s, count_error=False)
+            next_t = self._next_reopen_t if self._port_dead else None
+            tracker.open_failed(state.last_error, t_s, next_t, count_error=False)
 
     def _board_event(self, payload: str) -> None:
         """An unsolicited ``EVT``. A watchdog stop, or a restart once the link was up, is

@@ -7,13 +7,20 @@ serial devices, the real `x6wd run` process where the behaviour is the daemon's.
 - The start-up check opens no serial port (an open and close toggles DTR: an Arduino-class
   board resets).
 - A port held exclusively (TIOCEXCL, EBUSY) is reported as in use.
+- The motor link rides out a short EIO hiccup on the same port, backs off a port that
+  reopens but keeps failing (counted in status, logged once), and is degraded while most
+  commands need a retry.
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import errno
+import logging
 import os
+import re
+import select
 import shutil
 import struct
 import subprocess
@@ -29,7 +36,9 @@ import pytest
 import serial
 
 from drivers import registry
+from drivers.motors import SerialMotorLink
 from tests.conftest import ROOT
+from tests.test_driver_faults_audit import PluggedBoard
 from tests.test_shutdown import DaemonProcess
 from tests.test_startup import run_x6wd, write_config
 from x6wd.app.client import RemoteClient
@@ -211,3 +220,171 @@ def test_a_port_held_exclusively_is_reported_in_use(pty_gps: PtyGps) -> None:
     assert f"{pty_gps.path} is in use: another process holds it (opened exclusively" in (
         out.stdout
     ), out.stdout
+
+
+# --- the motor link: transient errors, reopens, retries --------------------------------------
+
+
+class EioWrites:
+    """pyserial writes to one port failing with EIO on demand, raised as pyserial raises it
+    (a SerialException while handling the OSError): the OS boundary, which a pty cannot be
+    made to fail at will. ``next(n)``: the next n writes fail; ``until``: every write
+    before that monotonic time fails; ``always``."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, path: str) -> None:
+        import serial.serialposix as sp
+
+        self.path = os.path.realpath(path)
+        self.next_n = 0
+        self.until = 0.0
+        self.always = False
+        self.failed = 0
+        original = sp.Serial.write
+
+        def write(port: Any, data: bytes) -> int | None:
+            if os.path.realpath(port.portstr) == self.path and (
+                self.always or self.next_n > 0 or time.monotonic() < self.until
+            ):
+                self.failed += 1
+                self.next_n = max(0, self.next_n - 1)
+                try:
+                    raise OSError(errno.EIO, "Input/output error")
+                except OSError as e:
+                    raise serial.SerialException(f"write failed: {e}") from e
+            result: int | None = original(port, data)
+            return result
+
+        monkeypatch.setattr(sp.Serial, "write", write)
+
+
+@pytest.fixture
+def plugged(tmp_path: Path) -> Iterator[PluggedBoard]:
+    b = PluggedBoard(tmp_path / "ttyUSB-board")
+    b.plug()
+    yield b
+    b.unplug()
+
+
+def transitions(link: SerialMotorLink) -> list[str]:
+    return [e.new for e in link.take_health_events() if e.kind == "transition"]
+
+
+def test_a_short_eio_hiccup_is_ridden_out_on_the_same_port(
+    plugged: PluggedBoard, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    eio = EioWrites(monkeypatch, str(plugged.link))
+    link = registry.open_motors(f"serial://{plugged.link}?baud=115200&retries=2")
+    assert isinstance(link, SerialMotorLink)
+    try:
+        assert link.drive(10, 10)
+        link.take_health_events()
+        eio.next_n = 3  # one command's three back-to-back attempts fail
+        assert not link.ping()
+        assert link.ping()  # the same port carries the next one
+        assert "disconnected" not in transitions(link)  # not closed: one command lost
+        eio.until = time.monotonic() + 0.06  # a 60 ms hiccup across commands
+        end = time.monotonic() + 0.3
+        while time.monotonic() < end:
+            link.ping()
+            time.sleep(0.02)
+        assert eio.failed >= 5
+        assert link.ping() and link.drive(20, 20) and plugged.board.left_pct == 20
+        assert link.counters.reopens == 0  # the port was never closed
+    finally:
+        link.close()
+
+
+def test_a_port_that_reopens_but_keeps_failing_backs_off(
+    plugged: PluggedBoard, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    eio = EioWrites(monkeypatch, str(plugged.link))
+    link = registry.open_motors(f"serial://{plugged.link}?baud=115200")
+    assert isinstance(link, SerialMotorLink)
+    try:
+        assert link.drive(10, 10)
+        eio.always = True  # every write fails, every reopen succeeds
+        with caplog.at_level(logging.INFO, logger="drivers.motors"):
+            end = time.monotonic() + 4.0
+            while time.monotonic() < end:
+                link.ping()
+                time.sleep(0.05)
+        # broken after 0.5 s, then reopened 0.2, 0.4, 0.8, 1.6 s apart: 3 or 4 in 4 s (the
+        # backoff was reset by every open: 15 and more)
+        assert 2 <= link.counters.reopens <= 4, link.counters
+        lines = [r for r in caplog.records if "motor port reopened" in r.getMessage()]
+        assert len(lines) == 1, [r.getMessage() for r in lines]
+        h = link.health
+        assert h.state == "reconnecting", h
+        assert h.next_attempt_t_s is not None, h
+        assert f"reopened {link.counters.reopens} times and still fails" in h.reason, h.reason
+        eio.always = False
+        wait_until(lambda: link.ping(), 8, "the board reached once writes work")
+        assert link.health.state == "connected"
+        assert link.drive(20, 20) and plugged.board.left_pct == 20
+        # a command went through: the next break starts the backoff at 0.2 s again
+        assert link._reopen_backoff_s == link.reopen_initial_s
+    finally:
+        link.close()
+
+
+class FlakyBoard(PluggedBoard):
+    """A MotorBoard that ignores every other command while :attr:`flaky`."""
+
+    def __init__(self, link: Path) -> None:
+        super().__init__(link)
+        self.flaky = True
+        self.lines = 0
+
+    def plug(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(master)
+        tty.setraw(slave)
+        tmp = self.link.with_suffix(".tmp")
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(os.ttyname(slave))
+        tmp.replace(self.link)
+        self.fds = (master, slave)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, args=(master,), daemon=True)
+        self._thread.start()
+
+    def _serve(self, fd: int) -> None:
+        buf = b""
+        while not self._stop.is_set():
+            ready, _, _ = select.select([fd], [], [], 0.005)
+            if not ready:
+                continue
+            try:
+                buf += os.read(fd, 4096)
+            except OSError:
+                return
+            while b"\n" in buf:
+                line, buf = buf.split(b"\n", 1)
+                self.lines += 1
+                if self.flaky and self.lines % 2:
+                    continue  # lost
+                reply = self.board.feed(line + b"\n", time.monotonic())
+                if reply:
+                    os.write(fd, reply)
+
+
+def test_a_board_answering_every_other_command_is_degraded(tmp_path: Path) -> None:
+    board = FlakyBoard(tmp_path / "ttyACM-board")
+    board.plug()
+    link = registry.open_motors(f"serial://{board.link}?baud=115200&retries=1")
+    assert isinstance(link, SerialMotorLink)
+    try:
+        for _ in range(25):
+            assert link.ping()  # every command gets through, at its retry
+        h = link.health
+        assert h.state == "degraded", h
+        assert re.search(r"^1\d of the last [12]\d commands needed a retry", h.reason), h.reason
+        board.flaky = False
+        end = time.monotonic() + 1.5
+        while time.monotonic() < end:
+            assert link.ping()
+            time.sleep(0.05)
+        assert link.health.state == "connected", link.health
+    finally:
+        link.close()
+        board.unplug()
