@@ -122,12 +122,16 @@ PIVOT_HEADWAY_DEG = 10.0
 """A pivot must bring its heading error this much (deg) nearer zero every ``stuck_s``: a
 compass that swings without following the body (a magnet stronger than the earth's field)
 passes the 30° motion test while the robot spins in place for ever."""
-ENCODER_FAULT_MOVES = 2
-"""The wheels' test names the encoders, not a block, when the body's anchor moved on
-(fixes ``stuck_min_m`` apart, or the compass ``STUCK_TURN_DEG`` round) at least this often
-in the second half of the ``stuck_s`` the wheels stood still: once could be the GPS's
-wander, and in the first seconds after a block the compass's and the receiver's lag still
-move a blocked robot's anchor on."""
+ENCODER_FAULT_TURN_DEG = 90.0
+"""The wheels' test names the encoders, not a block, when over the time the wheels stood
+still the compass turned this far net (deg; its noise cancels in a net turn, a pivot's
+rotation adds up) ..."""
+ENCODER_FAULT_SIGMAS = 3.0
+"""... or the fixes moved ahead along the heading by this many of the GPS's noise σ (from
+HDOP and RE/ASE/LCE, at least ``stuck_min_m`` each): a blocked robot's fixes wander or jump
+by a few metres in any direction (a second outside audit: two 2 m anchor moves in 5 s named
+3 of 3 blocked robots under a 10 m wander 'encoders'), a robot driving on dead encoders at
+cruise covers 20 m in 10 s along its heading."""
 SLIP_MIN_TRAVEL = 4.0
 """With encoders, the body counts as still (slipping) only once the wheels drove this many
 ``stuck_min_m`` without it moving: at a slow cruise a drifting GPS can hide 6 m in 10 s."""
@@ -212,9 +216,11 @@ class Controller:
         self._stuck_wheels: tuple[float, float] | None = None
         self._stuck_body: tuple[float, float, float, float, float] | None = None
         self._stuck_forward = False
-        # (t_s, "the fixes" or "the compass") of each time the body's anchor moved on since
-        # the wheels' clock last restarted
-        self._stuck_seen: list[tuple[float, str]] = []
+        # since the wheels' clock last restarted: the compass's net turn (deg), its last
+        # bearing, and the first fresh fix (lat, lon): the encoders' evidence
+        self._enc_turn_deg = 0.0
+        self._enc_bearing: float | None = None
+        self._enc_fix: tuple[float, float] | None = None
         # the pivot's headway: (best |heading error| deg, t_s it was reached, waypoint index)
         self._pivot_best: tuple[float, float, int] | None = None
         self._course = CourseWatch(
@@ -676,10 +682,10 @@ class Controller:
         restarts its own clock, so a stuck robot is caught ``stuck_s`` after it stopped, and
         the reason names what stopped: the wheels (blocked), else the GPS or the compass
         (the wheels turn, the robot does not: slipping), or the encoders when the wheels'
-        test fires though the body moved on ``ENCODER_FAULT_MOVES`` times in the second half
-        of that time. The wheels' test also runs without
-        a usable fix or heading (dead-reckoning through an outage); the body's clock then
-        restarts with the next fix."""
+        test fires though the compass turned or the fixes moved ahead well beyond their noise
+        in that time (``ENCODER_FAULT_TURN_DEG``, ``ENCODER_FAULT_SIGMAS``). The wheels'
+        test also runs without a usable fix or heading (dead-reckoning through an outage);
+        the body's clock then restarts with the next fix."""
         fs, cmd, fix, att = self._failsafe, self._cmd, self._fix, self._att
         forward = 0.5 * (cmd.left_pct + cmd.right_pct)
         turning = 0.5 * abs(cmd.left_pct - cmd.right_pct)
@@ -694,16 +700,22 @@ class Controller:
             or self._wheel_m - wheels[0] >= (0.1 * fs.stuck_min_m)
         ):
             wheels = self._stuck_wheels = (self._wheel_m, now)
-            self._stuck_seen = []
+            self._enc_turn_deg, self._enc_bearing, self._enc_fix = 0.0, None, None
         body = self._stuck_body
         if fix is None or not self._fix_ok or att is None or not self._att_ok:
             # The body tests need a fix and a heading; the wheels' test does not. It used to
             # stop here too, so a robot blocked in a GPS outage, dead-reckoning on wheels
             # that add no travel, drove its motors until the fix came back (1005 s).
             body = self._stuck_body = None
+            self._enc_bearing = None  # no turn counted across a heading it cannot read
         else:
             assert fix.lat_deg is not None and fix.lon_deg is not None
             stale = self._valid_fix_t is None or now - self._valid_fix_t > self._safety.fix_stale_s
+            if self._enc_bearing is not None:
+                self._enc_turn_deg += geo.wrap_deg(att.bearing_deg - self._enc_bearing)
+            self._enc_bearing = att.bearing_deg
+            if self._enc_fix is None and not stale:
+                self._enc_fix = (fix.lat_deg, fix.lon_deg)
             moved = ""
             if body is None or stale:
                 pass  # an old fix says nothing of motion: the body's clock waits for a new one
@@ -712,8 +724,6 @@ class Controller:
             elif abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG:
                 moved = "the compass"
             if body is None or stale or moved:
-                if moved:
-                    self._stuck_seen.append((now, moved))
                 body = (fix.lat_deg, fix.lon_deg, att.bearing_deg, now, self._wheel_m)
                 self._stuck_body = body
                 self._stuck_forward = False
@@ -733,12 +743,11 @@ class Controller:
             return None  # the wheels drove too little to tell a slip from the GPS's wander
         self._stuck_wheels = self._stuck_body = None
         if still_wheels_s >= 0.5 * fs.stuck_s:
-            late_s = wheels[1] + 0.5 * fs.stuck_s
-            seen = [kind for t, kind in self._stuck_seen if t >= late_s]
-            if len(seen) >= ENCODER_FAULT_MOVES:
-                # the body moved on while the wheels counted (almost) nothing: the encoders
+            seen = self._encoder_evidence(now)
+            if seen:
+                # the body moved while the wheels counted (almost) nothing: the encoders
                 # failed, not the drive; stopping is still right (no odometry, no EKF)
-                shows = " and ".join(dict.fromkeys(seen))
+                shows = " and ".join(seen)
                 return (
                     f"encoders: under {0.1 * fs.stuck_min_m:g} m counted in {fs.stuck_s:g} s"
                     f" of driving while {shows} {'shows' if shows == 'the compass' else 'show'}"
@@ -752,6 +761,33 @@ class Controller:
             f"stuck ({what}: no motion in {fs.stuck_s:g} s of driving)",
             fs.stuck_action,
         )
+
+    def _encoder_evidence(self, now: float) -> list[str]:
+        """What shows the body moving while the wheels stood still: "the compass" (a net
+        turn of ``ENCODER_FAULT_TURN_DEG``), "the fixes" (a fresh fix ahead of the first one
+        along the heading by ``ENCODER_FAULT_SIGMAS`` of the GPS's noise)."""
+        out = []
+        if abs(self._enc_turn_deg) >= ENCODER_FAULT_TURN_DEG:
+            out.append("the compass")
+        fix, first, heading = self._fix, self._enc_fix, self._current_heading_rad()
+        fresh = (
+            self._valid_fix_t is not None and now - self._valid_fix_t <= self._safety.fix_stale_s
+        )
+        if fix is not None and self._fix_ok and fresh and first is not None and heading is not None:
+            assert fix.lat_deg is not None and fix.lon_deg is not None
+            north_m = great_circle_m(first[0], first[1], fix.lat_deg, first[1])
+            north_m = math.copysign(north_m, fix.lat_deg - first[0])
+            east_m = great_circle_m(fix.lat_deg, first[1], fix.lat_deg, fix.lon_deg)
+            east_m = math.copysign(east_m, geo.wrap_deg(fix.lon_deg - first[1]))
+            ahead_m = north_m * math.cos(heading) + east_m * math.sin(heading)
+            if 0.5 * (self._cmd.left_pct + self._cmd.right_pct) < 0:
+                ahead_m = -ahead_m  # driving backwards
+            g = self._gnss_cfg
+            hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else DEFAULT_HDOP
+            sigma_m = hdop * math.sqrt(g.re_m**2 + g.ase_m**2 + g.lce_default_m**2)
+            if ahead_m >= ENCODER_FAULT_SIGMAS * max(sigma_m, self._failsafe.stuck_min_m):
+                out.append("the fixes")
+        return out
 
     def _wheels_still_s(self, now: float) -> float:
         """How long (s) the wheels' stuck test has seen them count under a tenth of
