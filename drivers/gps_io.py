@@ -9,7 +9,10 @@ the OSError in a ``SerialException`` without errno; the errno is taken from the 
 is counted and retried on the same port, ``retry_delay_s`` later within the same poll, up to
 ``transient_limit`` in a row. Any other error, too many transient ones, or EOF (a socket peer
 that left) closes the port, marks the GPS disconnected and schedules a reopen: a device
-fault is data, never an exception to the caller.
+fault is data, never an exception to the caller. The backoff is reset only once a reopened
+port yields bytes; a port that reopens twice or more in a row but fails each time before it
+does stays ``reconnecting`` ("the port reopened N times in a row without a byte read: ...")
+and is reopened ever more slowly.
 
 Health: :attr:`GpsReader.health` is a :class:`~x6wd.core.records.DeviceHealth` (connected,
 degraded, stale when no valid sentence arrived for ``stale_s`` (a checksum-valid sentence
@@ -150,6 +153,9 @@ class GpsReader:
         )
         self._corrupt_seen = (0, 0, 0, 0)  # the decoder's CORRUPT_LABELS counts, last told
         self._transient_run = 0  # transient read errors in a row on the open port
+        self._opened_before = False
+        self._data_since_open = False  # bytes read on the port opened last
+        self._quiet_reopens = 0  # reopens in a row that read nothing before failing
         self._acks: deque[UbxAck] = deque(maxlen=64)
         self._closed = False
         self._nonblocking = False
@@ -249,9 +255,23 @@ class GpsReader:
             self._nonblocking = False
         self._fd = _direct_fd(port) if self._nonblocking else None
         self.decoder.reset()
-        self._backoff_s = self.backoff_initial_s
-        # Fresh connection: staleness counts from now, not from before the outage.
-        self._tracker.opened(now)
+        # The backoff is reset only once bytes are read (_read_once): a port that opens but
+        # fails before yielding anything is reopened ever more slowly, and is not reported
+        # connected while it does (a first open is: staleness then counts from it).
+        quiet = self._opened_before and not self._data_since_open
+        self._opened_before = True
+        self._data_since_open = False
+        self._quiet_reopens = self._quiet_reopens + 1 if quiet else 0
+        if self._quiet_reopens >= 2:  # one data-less port may be bad luck; two in a row not
+            last = self._tracker.health.last_error
+            self._tracker.open_failed(
+                f"the port reopened {self._quiet_reopens} times in a row without a byte read:"
+                f" {last}",
+                now,
+                count_error=False,
+            )
+        else:
+            self._tracker.opened(now)
         if self.init_bytes:
             write = getattr(port, "write", None)
             if write is None:
@@ -305,6 +325,12 @@ class GpsReader:
             return None
         t_s = self._clock()
         self._transient_run = 0
+        if not self._data_since_open:
+            self._data_since_open = True
+            self._backoff_s = self.backoff_initial_s  # the port works: a break starts anew
+            self._quiet_reopens = 0
+            if not self._tracker.health.connected:
+                self._tracker.opened(t_s)  # connected now that it yields bytes
         decoded = self.decoder.counters  # the decoder's own counters (updated in place)
         # Good data: sentences whose content was valid (a GGA without a fix is: a receiver
         # still searching says so) and UBX frames; checksum-valid sentences with invalid

@@ -388,3 +388,72 @@ def test_a_board_answering_every_other_command_is_degraded(tmp_path: Path) -> No
     finally:
         link.close()
         board.unplug()
+
+
+# --- the GPS reader: a port that opens but yields nothing ------------------------------------
+
+
+class DroppingPeer:
+    """A ser2net-like TCP GPS that accepts and closes at once (the reader reads EOF) until
+    :attr:`streaming`, then sends no-fix sentences."""
+
+    def __init__(self) -> None:
+        import socket
+
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        self.accepts = 0
+        self.streaming = False
+        self._stop = threading.Event()
+        self.sock.settimeout(0.05)
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self.sock.accept()
+            except TimeoutError:
+                continue
+            self.accepts += 1
+            with conn:
+                while self.streaming and not self._stop.is_set():
+                    try:
+                        conn.sendall(NO_FIX)
+                    except OSError:
+                        break
+                    time.sleep(0.1)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.sock.close()
+
+
+def test_a_gps_port_that_reopens_but_yields_nothing_backs_off_and_is_not_connected() -> None:
+    from drivers.gps_io import GpsReader
+
+    peer = DroppingPeer()
+    reader = GpsReader(lambda: registry.open_gps_port(f"tcp://127.0.0.1:{peer.port}"), stale_s=2.0)
+    try:
+        states = []
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end:
+            reader.poll(0.05)
+            states.append(reader.health.state)
+        h = reader.health
+        assert h.state == "reconnecting", h
+        assert "times in a row without a byte read" in h.reason, h.reason
+        assert "connected" not in states[len(states) // 2 :]
+        # opened at 0, 0.1, 0.3, 0.7, 1.5 s (with the backoff reset at every open: 8)
+        assert 3 <= peer.accepts <= 6, peer.accepts
+        peer.streaming = True
+        wait_until(
+            lambda: reader.poll(0.05) is not None and reader.health.state == "connected",
+            10,
+            "gps connected once it streams",
+        )
+        assert reader._backoff_s == reader.backoff_initial_s  # bytes read: reset
+    finally:
+        reader.close()
+        peer.close()
