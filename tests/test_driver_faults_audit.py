@@ -49,20 +49,37 @@ def wait_until(cond: Callable[[], Any], limit_s: float, what: str) -> Any:
     raise AssertionError(f"timed out waiting for {what}")
 
 
-class PtyMotorBoard:
-    """A motor board on a pseudo-terminal that reads every byte the host sends and answers
-    only while :attr:`answering` (a board powered up later, or never)."""
+class PtyPeer:
+    """A device on a raw pseudo-terminal (:attr:`path` is its serial port), served by
+    :meth:`_run` on a thread until :meth:`close`."""
 
     def __init__(self) -> None:
         self.master, self.slave = os.openpty()
         tty.setraw(self.master)
         tty.setraw(self.slave)
         self.path = os.ttyname(self.slave)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        os.close(self.master)
+        os.close(self.slave)
+
+
+class PtyMotorBoard(PtyPeer):
+    """A motor board on a pseudo-terminal that reads every byte the host sends and answers
+    only while :attr:`answering` (a board powered up later, or never)."""
+
+    def __init__(self) -> None:
+        super().__init__()
         self.board = MotorBoard()
         self.answering = False
         self.lines = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
@@ -80,12 +97,6 @@ class PtyMotorBoard:
             reply = self.board.feed(data, time.monotonic())
             if reply:
                 os.write(self.master, reply)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
-        os.close(self.master)
-        os.close(self.slave)
 
 
 @pytest.fixture

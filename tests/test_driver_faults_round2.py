@@ -38,7 +38,7 @@ import serial
 from drivers import registry
 from drivers.motors import SerialMotorLink
 from tests.conftest import ROOT
-from tests.test_driver_faults_audit import PluggedBoard
+from tests.test_driver_faults_audit import PluggedBoard, PtyPeer
 from tests.test_shutdown import DaemonProcess
 from tests.test_startup import run_x6wd, write_config
 from x6wd.app.client import RemoteClient
@@ -66,16 +66,11 @@ def nmea(body: str) -> bytes:
 NO_FIX = nmea("GPGGA,,,,,,0,00,99.9,,,,,,") + nmea("GPRMC,,V,,,,,,,,,,N")
 
 
-class PtyGps:
+class PtyGps(PtyPeer):
     """A receiver on a pseudo-terminal sending no-fix sentences every 0.1 s."""
 
     def __init__(self) -> None:
-        self.master, self.slave = os.openpty()
-        tty.setraw(self.master)
-        tty.setraw(self.slave)
-        self.path = os.ttyname(self.slave)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
+        super().__init__()
         self._thread.start()
 
     def _run(self) -> None:
@@ -91,12 +86,6 @@ class PtyGps:
                 pass
             except OSError:
                 pass
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5)
-        os.close(self.master)
-        os.close(self.slave)
 
 
 @pytest.fixture

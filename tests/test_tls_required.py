@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import ROOT
-from tests.test_startup import GOOD, assert_config_error, run_x6wd, toml
+from tests.test_startup import assert_config_error, run_x6wd, write_config
 from x6wd.app.server import is_loopback
 from x6wd.core.config import (
     ConsoleConfig,
@@ -40,17 +40,6 @@ def token_file(tmp_path: Path) -> Path:
     p.write_text("0123456789abcdef\n")
     p.chmod(0o600)
     return p
-
-
-def write_config(tmp_path: Path, **changes: dict[str, Any]) -> Path:
-    """A configuration that starts (simulated devices, a recorder in tmp) with ``changes``."""
-    sections = {name: dict(table) for name, table in GOOD.items()}
-    sections["recorder"] = {"dir": str(tmp_path / "rec")}
-    for name, table in changes.items():
-        sections.setdefault(name, {}).update(table)
-    path = tmp_path / "x6wd.toml"
-    path.write_text(toml(sections), encoding="utf-8")
-    return path
 
 
 def free_port(host: str) -> int:
@@ -120,6 +109,20 @@ def test_allow_plaintext_must_be_a_bool(tmp_path: Path, value: Any) -> None:
 
 
 # -- the real start-up path: starts -----------------------------------------------------------
+def start_and_status(config: Path, port: int) -> tuple[Running, dict[str, Any]]:
+    """Start ``x6wd run`` on ``config``, read ``status`` from its control ``port``, stop it
+    (SIGTERM, exit 0 asserted); the finished run (its stderr lines) and the status."""
+    run = Running(config)
+    try:
+        run.wait_ready()
+        st = status(port)
+        code = run.stop()
+    finally:
+        run.kill()
+    assert code == 0, run.lines
+    return run, st
+
+
 class Running:
     """``x6wd run --config`` in a subprocess; its stderr lines are collected as they come."""
 
@@ -191,14 +194,7 @@ def test_allow_plaintext_starts_beyond_loopback_warns_once_and_status_says_so(
             "allow_plaintext": True,
         },
     )
-    run = Running(config)
-    try:
-        run.wait_ready()
-        st = status(port)
-        code = run.stop()
-    finally:
-        run.kill()
-    assert code == 0, run.lines
+    run, st = start_and_status(config, port)
     assert st["plaintext_beyond_loopback"] == ["server.bind"]
     warnings = [line for line in run.lines if line.startswith("WARNING") and "TLS" in line]
     assert len(warnings) == 1, run.lines
@@ -213,14 +209,7 @@ def test_a_loopback_bind_without_tls_or_token_starts_as_before(tmp_path: Path) -
         server={"bind": "127.0.0.1", "port": port},
         console={"enabled": True, "bind": "127.0.0.1", "port": 0},
     )
-    run = Running(config)
-    try:
-        run.wait_ready()
-        st = status(port)
-        code = run.stop()
-    finally:
-        run.kill()
-    assert code == 0, run.lines
+    run, st = start_and_status(config, port)
     assert st["plaintext_beyond_loopback"] == []
     assert not [line for line in run.lines if line.startswith("WARNING") and "TLS" in line]
 
