@@ -19,7 +19,7 @@ import select
 import threading
 import time
 import tty
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ from drivers import registry
 from drivers.gps_io import GpsReader
 from drivers.motors import MotorBoard, SerialMotorLink, serve_board_fd
 from tests.conftest import ROOT
+from tests.test_daemon import wait_for
 from tests.test_shutdown import DaemonProcess
 from tests.test_startup import assert_config_error, run_x6wd, write_config
 from x6wd.app.client import RemoteClient, RequestFailed
@@ -37,16 +38,6 @@ from x6wd.app.client import RemoteClient, RequestFailed
 pytestmark = pytest.mark.integration
 
 MISSION = ROOT / "missions" / "default.gpx"
-
-
-def wait_until(cond: Callable[[], Any], limit_s: float, what: str) -> Any:
-    end = time.monotonic() + limit_s
-    while time.monotonic() < end:
-        got = cond()
-        if got:
-            return got
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 class PtyPeer:
@@ -138,7 +129,7 @@ def test_a_board_silent_from_power_up_holds_the_robot_until_it_answers(
             st = status(c)
             assert st["mode"] == "IDLE"
             assert silent_board.board.running is False
-            wait_until(lambda: load_mission(c), 15, "a fix to load the mission against")
+            wait_for(lambda: load_mission(c), 15, "a fix to load the mission against")
             c.request("start")  # accepted, but held while the motors are lost
             time.sleep(0.5)
             st = status(c)
@@ -150,13 +141,13 @@ def test_a_board_silent_from_power_up_holds_the_robot_until_it_answers(
             assert silent_board.lines > 0  # the daemon kept trying (W, S ...)
 
             silent_board.answering = True  # the board powers up
-            wait_until(lambda: status(c)["links"]["motors"] == "ok", 10, "motors ok")
+            wait_for(lambda: status(c)["links"]["motors"] == "ok", 10, "motors ok")
             assert status(c)["devices"]["motors"]["state"] == "connected"
             c.request("drive", left=30, right=30, duration_s=2)
-            wait_until(lambda: silent_board.board.running, 5, "board driven")
+            wait_for(lambda: silent_board.board.running, 5, "board driven")
             assert silent_board.board.watchdog_ms == 500  # W was sent once it answered
             c.request("stop")
-            wait_until(lambda: not silent_board.board.running, 5, "board stopped")
+            wait_for(lambda: not silent_board.board.running, 5, "board stopped")
     finally:
         p.stop()
 
@@ -219,7 +210,7 @@ def test_a_motor_port_failing_with_eio_for_ever_is_reopened(plugged: PluggedBoar
         assert h.state == "reconnecting", h
         assert "reopening the port failed" in h.reason, h.reason  # not the old write error
         plugged.plug()  # back at the same path
-        wait_until(lambda: link.stop(), 8, "the board reached again")
+        wait_for(lambda: link.stop(), 8, "the board reached again")
         assert isinstance(link, SerialMotorLink)
         assert link.counters.reopens == 1
         assert link.health.state == "connected" and link.health.reconnects >= 1
@@ -311,7 +302,7 @@ def test_a_port_locked_when_reopened_is_a_reconnect_error_until_released(
         assert h.state == "reconnecting", h
         assert "is in use: another process holds it" in h.reason, h.reason
         holder.close()
-        wait_until(lambda: link.stop(), 8, "the board reached once released")
+        wait_for(lambda: link.stop(), 8, "the board reached once released")
         assert link.health.state == "connected"
         assert link.drive(20, 20) and plugged.board.left_pct == 20
     finally:

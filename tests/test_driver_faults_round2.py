@@ -38,22 +38,13 @@ import serial
 from drivers import registry
 from drivers.motors import SerialMotorLink
 from tests.conftest import ROOT
+from tests.test_daemon import wait_for
 from tests.test_driver_faults_audit import PluggedBoard, PtyPeer
 from tests.test_shutdown import DaemonProcess
 from tests.test_startup import run_x6wd, write_config
 from x6wd.app.client import RemoteClient
 
 pytestmark = pytest.mark.integration
-
-
-def wait_until(cond: Callable[[], Any], limit_s: float, what: str) -> Any:
-    end = time.monotonic() + limit_s
-    while time.monotonic() < end:
-        got = cond()
-        if got:
-            return got
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def nmea(body: str) -> bytes:
@@ -105,7 +96,7 @@ def test_a_gps_port_held_at_start_up_is_retried_and_connects_once_released(
         p = DaemonProcess(write_config(tmp_path, gps={"url": f"serial://{pty_gps.path}"}))
         assert p.port is not None
         with RemoteClient("127.0.0.1", p.port) as c:
-            gps = wait_until(
+            gps = wait_for(
                 lambda: (
                     (g := c.request("status")["devices"]["gps"])["state"] == "reconnecting" and g
                 ),
@@ -115,7 +106,7 @@ def test_a_gps_port_held_at_start_up_is_retried_and_connects_once_released(
             assert f"{pty_gps.path} is in use: another process holds it" in gps["reason"], gps
             assert gps["next_attempt_t_s"] is not None
             holder.close()
-            wait_until(
+            wait_for(
                 lambda: c.request("status")["devices"]["gps"]["state"] == "connected",
                 15,
                 "gps connected once released",
@@ -307,7 +298,7 @@ def test_a_port_that_reopens_but_keeps_failing_backs_off(
         assert h.next_attempt_t_s is not None, h
         assert f"reopened {link.counters.reopens} times and still fails" in h.reason, h.reason
         eio.always = False
-        wait_until(lambda: link.ping(), 8, "the board reached once writes work")
+        wait_for(lambda: link.ping(), 8, "the board reached once writes work")
         assert link.health.state == "connected"
         assert link.drive(20, 20) and plugged.board.left_pct == 20
         # a command went through: the next break starts the backoff at 0.2 s again
@@ -437,7 +428,7 @@ def test_a_gps_port_that_reopens_but_yields_nothing_backs_off_and_is_not_connect
         # opened at 0, 0.1, 0.3, 0.7, 1.5 s (with the backoff reset at every open: 8)
         assert 3 <= peer.accepts <= 6, peer.accepts
         peer.streaming = True
-        wait_until(
+        wait_for(
             lambda: reader.poll(0.05) is not None and reader.health.state == "connected",
             10,
             "gps connected once it streams",
