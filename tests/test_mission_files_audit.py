@@ -184,6 +184,21 @@ def test_gpx_namespaces_1_0_1_1_and_none_are_read_others_refused() -> None:
         parse_gpx(_gpx(f"<rte>{ROUTE}</rte>", 'xmlns="urn:y"'), "m.gpx")
 
 
+@pytest.mark.parametrize(
+    "ns",
+    [
+        "https://www.topografix.com/GPX/1/1",  # OsmAnd 5's format docs
+        "http://www.topografix.com/GPX/1/1/",  # a Garmin-style header, Onloc
+        "http://www.topografix.com/GPX/1/0/",
+    ],
+)
+def test_gpx_namespaces_as_exporters_write_them_are_read(ns: str) -> None:
+    # a second outside audit: these were refused after the namespace check came in, though
+    # the reader before it read them; another schema's elements stay out all the same
+    body = f'<rte>{ROUTE}<x:rtept xmlns:x="urn:x" lat="10" lon="10"/></rte>'
+    assert parse_gpx(_gpx(body, f'xmlns="{ns}"')) == PATH
+
+
 def test_gpx_waypoints_and_track_beside_the_route_are_named_in_a_note() -> None:
     wps = parse_gpx(
         _gpx(

@@ -215,6 +215,9 @@ def _local(tag: str) -> str:
 
 
 _GPX_NAMESPACES = ("http://www.topografix.com/GPX/1/1", "http://www.topografix.com/GPX/1/0", "")
+# GPX's own namespace as exporters write it: https (OsmAnd 5's format docs), a trailing "/"
+# (Garmin-style headers, Onloc), any case of the host. Another schema's namespace is not.
+_GPX_NAMESPACE_RE = re.compile(r"(?i:https?://www\.topografix\.com)/GPX/1/[01]/?")
 
 
 def parse_gpx(text: str, source: str = "GPX") -> Mission:
@@ -243,7 +246,7 @@ def parse_gpx(text: str, source: str = "GPX") -> Mission:
     if _local(root.tag) != "gpx":
         raise ParseError(f"{source}: root element is <{_local(root.tag)}>, expected <gpx>")
     ns = root.tag[1:].split("}", 1)[0] if root.tag.startswith("{") else ""
-    if ns not in _GPX_NAMESPACES:
+    if ns not in _GPX_NAMESPACES and not _GPX_NAMESPACE_RE.fullmatch(ns):
         raise ParseError(
             f"{source}: <gpx> is in the namespace {ns!r}, not GPX 1.1's "
             f"{_GPX_NAMESPACES[0]!r} (nor 1.0's, nor none)"
