@@ -99,11 +99,12 @@ median, not the mean square, so a few multipath jumps of a still receiver do not
 
 MAX_STATIC_SPEED_MPS = 0.5
 """Largest steady speed (m/s) a static recording may show (:func:`_steady_speed_mps`). A
-robot circling inside the spread limit (3.5 m circles at 1 m/s: ASE written as 3.2 m) shows
-its speed; a receiver standing still does not: real static logs show 0.004 m/s (ZED-F9P on
-KK1446), 0.05 m/s (ZED-F9P, gpsd), 0.007 m/s (Quectel L76K), the gpsd corpus's u-blox steps
-at most 0.18 m/s; the simulator's static survey 0.10 m/s, the tests' model (ASE 1.5 m,
-τ 60 s) 0.15-0.18 m/s. A slow error would need ASE 3 m with τ under 20 s to reach it."""
+robot circling inside the spread limit (3.5 m circles at 1 m/s, 5 s stops: read as 0.79 m/s,
+12.7 SEs; ASE written as 3.2 m before the check) shows its speed; a receiver standing still
+does not: real static logs read 0.005 m/s (ZED-F9P on KK1446) and 0.064 m/s (ZED-F9P, gpsd),
+a Gauss-Markov error cannot read above 0 on average (its steps revert), whatever its ASE and
+τ: 10 seeds of ASE 1.5 m τ 60 s and of ASE 5 m τ 600 s read at most 0.18 m/s by chance
+(2.3 SEs), ASE 3 m τ 15 s and ASE 5 m τ 5 s read 0."""
 
 MOVE_SIGNIFICANCE = 3.0
 """The steady-speed evidence must also stand this many jackknife SEs above 0: a short record
@@ -466,8 +467,8 @@ def _check_standing(fixes: FixSeries, ref_lat_deg: float, ref_lon_deg: float) ->
     if speed is not None and speed[0] > MAX_STATIC_SPEED_MPS and speed[1] >= MOVE_SIGNIFICANCE:
         raise ConfigError(
             f"{what}: the recording moves: a steady speed of {speed[0]:.2f} m/s over "
-            f"{len(fixes):,} fixes (the fixes' median displacement grows from 1 s to 3 s apart "
-            f"as a drive's does, {speed[1]:.0f} standard errors above noise); a receiver "
+            f"{len(fixes):,} fixes (successive 1 s steps point the same way "
+            f"as a drive's do, {speed[1]:.0f} standard errors above noise); a receiver "
             f"standing still shows under 0.2 m/s (refused above {MAX_STATIC_SPEED_MPS:g} m/s)"
         )
     off_m = great_circle_m(lat_m, lon_m, ref_lat_deg, ref_lon_deg)
@@ -487,10 +488,17 @@ def _steady_speed_mps(
     """The steady speed (m/s) in a recording's positions ``x``, ``y`` (m) and how many
     jackknife SEs it stands above 0; None when there are too few pairs to tell.
 
-    With d(T) the median distance between fixes T apart, a steady speed v gives d(T) = v·T,
-    so d(3 s)² − d(1 s)² = 8 s²·v², while noise adds alike at both lags and cancels: white
-    noise exactly, a slow error nearly (the mean, not the median, would let a few multipath
-    jumps pass for motion). Lags in epochs for records slower than 1 Hz."""
+    The mean dot product of two 1 s displacements that share no fix, 2 s apart
+    (p(t+1)−p(t))·(p(t+3)−p(t+2)): a robot moving at v along a smooth path gives v²·cos(its
+    turn in 2 s), while a receiver standing still cannot make it positive: white noise gives
+    0 (the two steps are independent) and a slow, mean-reverting (Gauss-Markov) error
+    −σ²·φ(1−φ)² per axis (φ = e^(−1/τ): its steps revert), however large its spread σ and
+    however long its correlation time τ. The comparison of d(3 s) with d(1 s) used before
+    read a slow error as motion (ASE 3 m, τ 15 s: 0.61 m/s) because its displacement still
+    grows between those lags. A smooth error (a receiver's filter) does give a positive
+    product, but only its own speed squared, hundredths of a m/s. The mean, not the median:
+    a jump or a spike sits in one of the two steps and averages out, and the median of these
+    products is biased low for a noisy drive. Lags in epochs for records slower than 1 Hz."""
     t = fixes.t_s - fixes.t_s[0]
     steps = np.diff(t)
     if not (steps > 0).any():
@@ -500,30 +508,30 @@ def _steady_speed_mps(
     keep = np.concatenate(([True], np.diff(idx) > 0))
     xy = np.column_stack([np.asarray(x, float), np.asarray(y, float)])[keep]
     idx = idx[keep]
-    k1 = max(1, round(1.0 / dt))
-    k3 = 3 * k1
+    k = max(1, round(1.0 / dt))
 
-    def dist(k: int) -> tuple[Array, npt.NDArray[np.int64]]:
-        pos = np.searchsorted(idx, idx + k)
+    def at(lag: int) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_]]:
+        pos = np.searchsorted(idx, idx + lag)
         ok = pos < idx.size
-        ok[ok] = idx[pos[ok]] == idx[ok] + k
-        first = np.flatnonzero(ok)
-        return np.hypot(*(xy[pos[ok]] - xy[first]).T), first
+        ok[ok] = idx[pos[ok]] == idx[ok] + lag
+        return np.where(ok, pos, 0), ok
 
-    d1, i1 = dist(k1)
-    d3, i3 = dist(k3)
-    if d1.size < 50 or d3.size < 50:
+    (p1, o1), (p2, o2), (p3, o3) = at(k), at(2 * k), at(3 * k)
+    first = np.flatnonzero(o1 & o2 & o3)
+    if first.size < 50:
         return None
-    growth = float(np.median(d3)) ** 2 - float(np.median(d1)) ** 2
+    dots = ((xy[p1[first]] - xy[first]) * (xy[p3[first]] - xy[p2[first]])).sum(axis=1)
+    mean = float(dots.mean())
     edges = np.linspace(0, idx.size, JACKKNIFE_BLOCKS + 1).astype(int)
     reps = []
     for lo, hi in itertools.pairwise(edges):
-        m1, m3 = (i1 < lo) | (i1 >= hi), (i3 < lo) | (i3 >= hi)
-        reps.append(float(np.median(d3[m3])) ** 2 - float(np.median(d1[m1])) ** 2)
+        out = (first < lo) | (first >= hi)
+        if out.any():
+            reps.append(float(dots[out].mean()))
     r = np.array(reps)
     se = math.sqrt((r.size - 1) / r.size * float(((r - r.mean()) ** 2).sum()))
-    speed = math.sqrt(max(growth, 0.0) / (((k3 * dt) ** 2) - (k1 * dt) ** 2))
-    return speed, (growth / se if se > 0 else (math.inf if growth > 0 else 0.0))
+    speed = math.sqrt(max(mean, 0.0)) / (k * dt)
+    return speed, (mean / se if se > 0 else (math.inf if mean > 0 else 0.0))
 
 
 def _root(v2: float, var_v2: float) -> Estimate:
