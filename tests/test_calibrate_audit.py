@@ -351,3 +351,30 @@ def test_flags_files_and_a_correlation_time_beyond_the_record_are_named(
     assert line.startswith("correlation_s = 86400.0  # of the slow part; not measured: no decay")
     assert "the record (119 s) is too short to measure a correlation time beyond 86400 s" in line
     assert "x6wd calibrate: correlation_s: no decay seen: the record (119 s)" in err_text
+
+
+def test_a_config_without_gnss_noise_gives_defaults_labelled_as_such_and_the_pairing_rule(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Second audit D3: --config with no [gnss_noise] wrote the built-in RE, ASE and
+    correlation_s as '(from --config FILE)' and let --re-m through without --ase-m."""
+    drive = ["calibrate", "gnss", *rectangle_drive(tmp_path)]
+    bare = tmp_path / "bare.toml"
+    bare.write_text("[gps]\nstale_s = 2.0\n")
+    assert cli.main([*drive, "--config", str(bare), "--re-m", "0.3"]) == 2
+    out, err = capsys.readouterr()
+    assert not out and "--re-m without --ase-m" in err and f"{bare} does not set ase_m" in err
+    assert cli.main([*drive, "--config", str(bare)]) == 0
+    out, err = capsys.readouterr()
+    assert out.count("(the built-in default, not measured") == 3 and "from --config" not in out
+    assert f"not in --config {bare}'s [gnss_noise]" in err
+    # the file sets ASE: --re-m pairs with it; correlation_s is still a default
+    ase = tmp_path / "ase.toml"
+    ase.write_text("[gnss_noise]\nase_m = 2.0\n")
+    assert cli.main([*drive, "--config", str(ase), "--re-m", "0.3"]) == 0
+    out = capsys.readouterr().out
+    assert "re_m = 0.3  # ± 0.0000 (given with --re-m: the white part)" in out
+    assert f"ase_m = 2.0  # ± 0.0000 (from --config {ase}: the slow part)" in out
+    assert "correlation_s = 120.0  # of the slow part (the built-in default, not measured)" in out
+    assert cli.main([*drive, "--config", str(ase), "--ase-m", "0.3"]) == 2
+    assert "--ase-m without --re-m" in capsys.readouterr().err

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import tomllib
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
@@ -96,6 +97,14 @@ def _add_gnss(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     g.add_argument("--map-csv", help="write every visited cell (counts, SE, marks) here")
 
 
+def _gnss_noise_keys(path: str) -> set[str]:
+    """The keys a configuration file sets in its [gnss_noise] section (none without one);
+    the file has passed :func:`config_mod.load`, so it reads and parses."""
+    with open(path, "rb") as f:
+        section = tomllib.load(f).get("gnss_noise", {})
+    return set(section) if isinstance(section, dict) else set()
+
+
 def _latlon(text: str) -> tuple[float, float]:
     try:
         lat, lon = (float(v) for v in text.split(","))
@@ -167,24 +176,40 @@ def main_gnss(args: argparse.Namespace) -> int:
         re_m, ase_m, tau = static.re_m, static.ase_m, static.correlation_s
         header.append(f"static: {args.static} at {args.ref_lat}, {args.ref_lon}")
     else:
-        if args.config is None and (args.re_m is None) != (args.ase_m is None):
+        # the keys the --config file's [gnss_noise] sets: the others are built-in defaults
+        base = (config_mod.load(args.config) if args.config else config_mod.Config()).gnss_noise
+        in_file = _gnss_noise_keys(args.config) if args.config else set()
+        if (args.re_m is None) != (args.ase_m is None):
             # the LCE map subtracts both: one given and a built-in default for the other
             # would be taken for the user's value
             have, missing = ("--re-m", "--ase-m") if args.ase_m is None else ("--ase-m", "--re-m")
-            raise ConfigError(
-                f"calibrate gnss: {have} without {missing}: give both (the LCE map subtracts "
-                "RE and ASE), or --config with a [gnss_noise] section, or --static"
-            )
-        base = (config_mod.load(args.config) if args.config else config_mod.Config()).gnss_noise
+            if missing.removeprefix("--").replace("-", "_") not in in_file:
+                where = (
+                    f" (--config {args.config} does not set {missing[2:].replace('-', '_')} "
+                    "in [gnss_noise])"
+                    if args.config
+                    else ""
+                )
+                raise ConfigError(
+                    f"calibrate gnss: {have} without {missing}{where}: give both (the LCE map "
+                    "subtracts RE and ASE), or --config with a [gnss_noise] section setting "
+                    f"{missing[2:].replace('-', '_')}, or --static"
+                )
         default = "the built-in default, not measured"
-        src = f"from --config {args.config}" if args.config else default
+        src = f"from --config {args.config}"
         re_m = gnss.Estimate(args.re_m if args.re_m is not None else base.re_m, 0.0)
         ase_m = gnss.Estimate(args.ase_m if args.ase_m is not None else base.ase_m, 0.0)
         tau = args.correlation_s if args.correlation_s is not None else base.correlation_s
         sources = {
-            "re": "given with --re-m" if args.re_m is not None else src,
-            "ase": "given with --ase-m" if args.ase_m is not None else src,
-            "tau": "given with --correlation-s" if args.correlation_s is not None else src,
+            "re": "given with --re-m"
+            if args.re_m is not None
+            else (src if "re_m" in in_file else default),
+            "ase": "given with --ase-m"
+            if args.ase_m is not None
+            else (src if "ase_m" in in_file else default),
+            "tau": "given with --correlation-s"
+            if args.correlation_s is not None
+            else (src if "correlation_s" in in_file else default),
         }
         defaults = [
             (f"{name} {value:g} {unit}", flag)
@@ -198,9 +223,14 @@ def main_gnss(args: argparse.Namespace) -> int:
         if defaults:
             what, flags = (", ".join(d) for d in zip(*defaults, strict=True))
             plural = "s" if len(defaults) > 1 else ""
+            absent = (
+                f"not in --config {args.config}'s [gnss_noise], no --static or {flags}"
+                if args.config
+                else f"no --static, --config or {flags}"
+            )
             print(
-                f"x6wd calibrate: {what}: the built-in default{plural}, not measured (no "
-                f"--static, --config or {flags}); the fragment says so",
+                f"x6wd calibrate: {what}: the built-in default{plural}, not measured "
+                f"({absent}); the fragment says so",
                 file=sys.stderr,
             )
     lce = None
