@@ -321,8 +321,9 @@ def main(args: argparse.Namespace) -> int:
     unresolved = [k for k in ("k_left_m", "k_right_m") if not getattr(result, k).resolved]
     if unresolved:
         print(
-            f"x6wd calibrate: {' and '.join(unresolved)} not resolved (0 on both tracks): "
-            "written as an upper bound, 0 + the larger standard error",
+            f"x6wd calibrate: {' and '.join(unresolved)} not resolved (not 2 standard errors "
+            "above 0 on either track): written as an upper bound, the larger k + its standard "
+            "error",
             file=sys.stderr,
         )
     if result.few_passes:

@@ -242,8 +242,9 @@ def _point(xy: Array) -> tuple[float, float]:
 @dataclass(frozen=True)
 class Estimate:
     """A value and its standard error (same unit); ``resolved`` False for a k whose
-    estimate came out at or below 0 (clamped: the passes' scatter did not show the wheel's
-    noise), or for the bound written in place of such a k."""
+    estimate is not significantly above 0 (under :data:`K_RESOLVED_SES` SEs; below 0 it is
+    clamped: the passes' scatter did not show the wheel's noise), or for the bound written
+    in place of such a k."""
 
     value: float
     se: float
@@ -259,23 +260,31 @@ def fit_circle(xy: Array) -> tuple[float, float, float]:
     return float(xc), float(yc), float(math.sqrt(max(xc * xc + yc * yc - r, 0.0)))
 
 
+K_RESOLVED_SES = 2.0
+"""A k counts as resolved only this many SEs above 0. A k just above 0 with an SE larger
+than itself (a second outside audit: k_right_m = 7.865e-06 ± 8.6e-06, true 2e-4) says no
+more than a clamped 0 does, and written as a value it would tell the estimator the wheel
+hardly slips."""
+
+
 def _k_terms(u: Array, scale: float) -> Estimate:
-    """k from per-pass terms u (sum / scale), SE from their spread; clamped at 0 (and then
-    marked not resolved)."""
+    """k from per-pass terms u (sum / scale), SE from their spread; clamped at 0, and not
+    resolved unless :data:`K_RESOLVED_SES` SEs above 0."""
     n = u.size
     se = math.sqrt(n * float(np.var(u, ddof=1))) / scale if n > 1 else math.inf
     k = float(u.sum()) / scale
-    return Estimate(max(k, 0.0), se, k > 0.0)
+    return Estimate(max(k, 0.0), se, k > K_RESOLVED_SES * se)
 
 
 def _pick_k(straight: Estimate, circle: Estimate) -> Estimate:
-    """The larger resolved k of the two tracks (as the paper keeps the larger). When both
-    came out at 0, a 0 would tell the estimator the wheels never slip: an upper bound is
-    written instead, 0 + the larger finite SE, marked not resolved."""
+    """The larger resolved k of the two tracks (as the paper keeps the larger). When neither
+    is resolved (0, or under 2 SEs above it), a 0 or a tiny k would tell the estimator the
+    wheels never slip: an upper bound is written instead, the larger of k + SE over the
+    tracks with a finite SE (0 + SE for a clamped k), marked not resolved."""
     resolved = [e for e in (straight, circle) if e.resolved]
     if resolved:
         return max(resolved, key=lambda e: e.value)
-    bound = max((e.se for e in (straight, circle) if math.isfinite(e.se)), default=0.0)
+    bound = max((e.value + e.se for e in (straight, circle) if math.isfinite(e.se)), default=0.0)
     return Estimate(bound, bound, resolved=False)
 
 
@@ -541,9 +550,9 @@ class OdometryCalibration:
             lines.append(
                 f"{key} = {e.value:.3e}  # ± {e.se:.1e}; {both} (the larger is kept)"
                 if e.resolved
-                else f"{key} = {e.value:.3e}  # not resolved: k = 0 on both tracks ({both}: "
-                "the passes' scatter did not show this wheel's noise); written: its upper "
-                "bound, 0 + the larger SE"
+                else f"{key} = {e.value:.3e}  # not resolved: k not 2 SE above 0 on either "
+                f"track ({both}: the passes' scatter did not show this wheel's noise); "
+                "written: its upper bound, the larger k + SE"
             )
         return "\n".join(lines) + "\n"
 
