@@ -401,3 +401,24 @@ def test_a_k_just_above_zero_with_a_larger_se_is_not_resolved(
                 se = float(line.split("± ")[1].split(";")[0])
                 assert value > 2 * se, (seed, line)
     assert seen >= 4
+
+
+def test_map_options_without_a_drive_are_refused_naming_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Second audit D5: --map-csv, --cell-m and --origin with --static alone were silently
+    ignored (exit 0, no map file); only --plot said it needed --drive."""
+    s = gauss_markov_static(1, 0.5, 1.5, 60.0, n=600)
+    path = write_csv(
+        tmp_path / "st.csv", s.t_s, *LocalTangentPlane(*ORIGIN).to_xy(s.lat_deg, s.lon_deg)
+    )
+    static = ["calibrate", "gnss", "--static", str(path), "--ref-lat", "51.7", "--ref-lon", "5"]
+    extra = ["--map-csv", str(tmp_path / "m.csv"), "--cell-m", "5", "--origin", "51.7,5"]
+    assert cli.main([*static, *extra]) == 2
+    out, err = capsys.readouterr()
+    assert not out and "--cell-m, --origin, --map-csv shape or write the LCE map" in err
+    assert not (tmp_path / "m.csv").exists()
+    assert cli.main([*static, "--plot", str(tmp_path / "p.png")]) == 2
+    assert "--plot shape or write the LCE map" in capsys.readouterr().err
+    assert cli.main(static) == 0  # the defaults alone are not options given
+    capsys.readouterr()

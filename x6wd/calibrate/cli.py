@@ -78,20 +78,14 @@ def _add_gnss(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--correlation-s", type=float, help="the slow part's correlation time, s (with --re-m)"
     )
     g.add_argument("--config", help="take RE, ASE and correlation_s from this configuration")
-    g.add_argument("--cell-m", type=float, default=10.0, help="LCE map cell size, m (10)")
-    g.add_argument("--min-fixes", type=int, default=10, help="fixes a mapped cell needs (10)")
-    g.add_argument(
-        "--min-visits", type=int, default=2, help="separate passes a mapped cell needs (2)"
-    )
-    g.add_argument(
-        "--visit-gap-s", type=float, default=30.0, help="a new pass after this long away, s"
-    )
+    g.add_argument("--cell-m", type=float, help="LCE map cell size, m (10)")
+    g.add_argument("--min-fixes", type=int, help="fixes a mapped cell needs (10)")
+    g.add_argument("--min-visits", type=int, help="separate passes a mapped cell needs (2)")
+    g.add_argument("--visit-gap-s", type=float, help="a new pass after this long away, s")
     g.add_argument(
         "--origin", help="LAT,LON of the map's plane (default: the first reference point)"
     )
-    g.add_argument(
-        "--max-gap-s", type=float, default=1.5, help="longest reference gap to interpolate, s"
-    )
+    g.add_argument("--max-gap-s", type=float, help="longest reference gap to interpolate, s")
     g.add_argument("--out", help="write the TOML fragment here (default: only print it)")
     g.add_argument("--plot", help="write a PNG of the LCE map and the drive track here")
     g.add_argument("--map-csv", help="write every visited cell (counts, SE, marks) here")
@@ -136,8 +130,32 @@ def _check_flags(args: argparse.Namespace, rules: dict[str, str]) -> None:
             raise ConfigError(f"--{name.replace('_', '-')} must be {want}, got {v!r}")
 
 
+_DRIVE_ONLY = {
+    "cell_m": 10.0,
+    "min_fixes": 10,
+    "min_visits": 2,
+    "visit_gap_s": 30.0,
+    "max_gap_s": 1.5,
+    "origin": None,
+    "plot": None,
+    "map_csv": None,
+}
+"""The options that shape or write the LCE map, which only --drive makes, and their defaults
+(None in the parser, so an option given without --drive is seen and refused)."""
+
+
 def main_gnss(args: argparse.Namespace) -> int:
     """``x6wd calibrate gnss``: 0 on success."""
+    if not args.drive:
+        unused = [f"--{k.replace('_', '-')}" for k in _DRIVE_ONLY if getattr(args, k) is not None]
+        if unused:
+            raise ConfigError(
+                f"calibrate gnss: {', '.join(unused)} shape or write the LCE map, which only "
+                "--drive makes: give --drive with --reference, or leave them out"
+            )
+    for key, value in _DRIVE_ONLY.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
     if args.plot:  # now, not after the map is made and the fragment written
         import matplotlib  # noqa: F401  (missing: the CLI names the extra to install)
     _check_flags(args, {
@@ -266,8 +284,6 @@ def main_gnss(args: argparse.Namespace) -> int:
         gnss.write_map_csv(lce, args.map_csv)
     if lce is not None and args.plot:
         gnss.plot_lce_map(lce, args.plot, title=", ".join(Path(d).name for d in args.drive))
-    elif args.plot:
-        print("x6wd calibrate: --plot needs --drive (no map to draw)", file=sys.stderr)
     return 0
 
 
