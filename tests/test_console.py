@@ -227,7 +227,13 @@ def open_page(d: webdriver.Chrome, r: Running, suffix: str = "") -> None:
 def page_ready(d: webdriver.Chrome) -> None:
     """Until the page is authenticated, has telemetry and the map's frame."""
     wait_for(
-        lambda: js(d, "return x6wd.authed && x6wd.tel !== null && x6wd.originFromFence === true"),
+        # typeof first: under load the wait may start before the page's script ran (a CI run:
+        # "x6wd is not defined" ended the wait instead of continuing it)
+        lambda: js(
+            d,
+            "return typeof x6wd !== 'undefined' && x6wd.authed && x6wd.tel !== null"
+            " && x6wd.originFromFence === true",
+        ),
         20,
         "the page connected, with telemetry and the geofence",
     )
@@ -841,12 +847,14 @@ def test_the_robots_recordings_open_in_the_log_viewer_from_the_page(
     open_page(browser, robot)
     page_ready(browser)
     browser.find_element(By.ID, "rec-list").click()
-    wait_for(lambda: browser.find_elements(By.CSS_SELECTOR, "#recordings button"), 10, "the list")
+    # generous waits: the robot's recording grows through the module, and a loaded 2-core
+    # machine takes a while to list and draw it (a 10 s wait timed out in a CI run)
+    wait_for(lambda: browser.find_elements(By.CSS_SELECTOR, "#recordings button"), 30, "the list")
     browser.find_element(By.CSS_SELECTOR, "#recordings button").click()
-    wait_for(lambda: browser.find_element(By.ID, "rec-view").is_displayed(), 20, "the viewer")
+    wait_for(lambda: browser.find_element(By.ID, "rec-view").is_displayed(), 60, "the viewer")
     browser.switch_to.frame(browser.find_element(By.ID, "rec-frame"))
     try:
-        wait_for(lambda: browser.find_elements(By.TAG_NAME, "svg"), 10, "the viewer's panels")
+        wait_for(lambda: browser.find_elements(By.TAG_NAME, "svg"), 30, "the viewer's panels")
         assert "Track" in browser.find_element(By.TAG_NAME, "body").text
         # the viewer's own inline style applies under the console's policy (found by an
         # outside check: style-src 'self' blocked it in the srcdoc frame)
