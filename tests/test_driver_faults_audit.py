@@ -163,7 +163,8 @@ class PluggedBoard:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def plug(self) -> None:
+    def new_port(self) -> int:
+        """A fresh raw pty behind :attr:`link` (a USB adapter plugged in again); its master."""
         master, slave = os.openpty()
         tty.setraw(master)
         tty.setraw(slave)
@@ -171,9 +172,13 @@ class PluggedBoard:
         tmp.unlink(missing_ok=True)
         tmp.symlink_to(os.ttyname(slave))
         tmp.replace(self.link)
-        self.board = MotorBoard()
         self.fds = (master, slave)
         self._stop = threading.Event()
+        return master
+
+    def plug(self) -> None:
+        master = self.new_port()
+        self.board = MotorBoard()
         self._thread = threading.Thread(
             target=serve_board_fd, args=(master, self.board, self._stop), daemon=True
         )

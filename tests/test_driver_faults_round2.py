@@ -27,7 +27,6 @@ import subprocess
 import sys
 import threading
 import time
-import tty
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -316,15 +315,7 @@ class FlakyBoard(PluggedBoard):
         self.lines = 0
 
     def plug(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(master)
-        tty.setraw(slave)
-        tmp = self.link.with_suffix(".tmp")
-        tmp.unlink(missing_ok=True)
-        tmp.symlink_to(os.ttyname(slave))
-        tmp.replace(self.link)
-        self.fds = (master, slave)
-        self._stop = threading.Event()
+        master = self.new_port()
         self._thread = threading.Thread(target=self._serve, args=(master,), daemon=True)
         self._thread.start()
 
