@@ -186,28 +186,28 @@ def inject(
 Case = tuple[str, str, str, int]
 
 
-def _sim(seeds: list[int]) -> list[PositionSeries]:
+def _sim(seeds: list[int], duration_s: float = DURATION_S) -> list[PositionSeries]:
     import tempfile
 
     from x6wd.gap.scenario import scenario_baseline
     from x6wd.gap.surrogate import surrogate_run
 
-    tpl = surrogate_run(DURATION_S, 1.0, np.random.default_rng(0), moving=False)
+    tpl = surrogate_run(duration_s, 1.0, np.random.default_rng(0), moving=False)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "open.toml"
         path.write_text(OPEN_SKY)
         return [scenario_baseline(path, tpl, 1, base_seed=sd)[0] for sd in seeds]
 
 
-def run_case(case: Case, m_seeds: int = 12) -> dict[str, Any]:
+def run_case(case: Case, m_seeds: int = 12, duration_s: float = DURATION_S) -> dict[str, Any]:
     """One case: simulate the "real" log (case seed) and its baseline (3 logs on the few-logs
     path, ``m_seeds`` on the seeds path; seeds derived from the case seed, disjoint from it),
-    inject, diagnose with the CLI's options."""
+    each ``duration_s`` long, inject, diagnose with the CLI's options."""
     from x6wd.gap.diagnose import Options, diagnose
 
     kind, level, path, seed = case
     n_base = 3 if path == "few" else m_seeds
-    runs = _sim([seed, *[1_000_000 + 50 * seed + i for i in range(n_base)]])
+    runs = _sim([seed, *[1_000_000 + 50 * seed + i for i in range(n_base)]], duration_s)
     real, base = runs[0], runs[1:]
     truth: dict[str, Any] = {}
     if kind:
@@ -225,7 +225,8 @@ def run_case(case: Case, m_seeds: int = 12) -> dict[str, Any]:
     want = TOOL_NAME.get(kind, kind)
     fit = next((c.fit for c in d.candidates if c.fit.name == want), None)
     return {
-        "case": case, "top": top, "selected": sel, "significant": d.significant,
+        "case": case, "duration_s": duration_s, "top": top, "selected": sel,
+        "significant": d.significant,
         "closure": d.closure, "seconds": seconds, "where": d.where[:5], "truth": truth,
         "params": fit.params if fit else None, "se": fit.se if fit else None,
         # why: the threshold the cells had to pass, every candidate's held-out closure, and
@@ -336,6 +337,7 @@ def run(
     levels: tuple[str, ...] = LEVELS,
     kinds: tuple[str, ...] = KINDS,
     nulls_from: int = 0,
+    duration_s: float = DURATION_S,
 ) -> list[Row]:
     """Run the cases on 2 processes and summarise each path (``levels``, ``kinds``: which
     effect cases to run; their seeds stay those of the full set; ``nulls_from``: skip the
@@ -362,7 +364,7 @@ def run(
     t0 = time.perf_counter()
     results = []
     with ProcessPoolExecutor(max_workers=2) as ex:
-        futures = [ex.submit(run_case, c) for c in todo]
+        futures = [ex.submit(run_case, c, 12, duration_s) for c in todo]
         for done, fut in enumerate(as_completed(futures), start=1):
             results.append(fut.result())
             r = results[-1]
@@ -375,7 +377,7 @@ def run(
             print(f"CRASH {r['case']}:\n{r['error']}", file=sys.stderr)
     rows = [row for path in paths for row in summary(results, path)]
     rows.append(Row("gap_paths", "wall time, all cases", wall_s, "s", 600.0, "target <=",
-                    f"{len(todo)} cases, seed set {seed_set}"))  # fmt: skip
+                    f"{len(todo)} cases, seed set {seed_set}, {duration_s:g} s logs"))  # fmt: skip
     return rows
 
 
@@ -391,6 +393,10 @@ if __name__ == "__main__":
     ap.add_argument("--kinds", default=",".join(KINDS), help="comma-separated effect classes")
     ap.add_argument("--summarize", metavar="JSON", help="only summarise a --json file")
     ap.add_argument(
+        "--duration-s", type=float, default=DURATION_S,
+        help="length of every log (s; default 3600): shorter logs for the short-log nulls",
+    )  # fmt: skip
+    ap.add_argument(
         "--nulls-from", type=int, default=0,
         help="skip the first N no-effect logs per path (new ones beside an earlier run's)",
     )  # fmt: skip
@@ -404,5 +410,16 @@ if __name__ == "__main__":
     paths = tuple(a.path or ("few", "seeds"))
     levels, kinds = tuple(a.levels.split(",")), tuple(a.kinds.split(","))
     print_table(
-        run(a.quick, a.seed_set, a.reps, a.nulls, paths, a.json, levels, kinds, a.nulls_from)
+        run(
+            a.quick,
+            a.seed_set,
+            a.reps,
+            a.nulls,
+            paths,
+            a.json,
+            levels,
+            kinds,
+            a.nulls_from,
+            a.duration_s,
+        )
     )
