@@ -641,3 +641,35 @@ def test_the_estimate_is_never_older_than_the_state(mode: Mode) -> None:
         assert dataclasses.astuple(later) == pytest.approx(_fresh_estimate(est), abs=1e-12)
         checked += before is not None
     assert checked > 500
+
+
+def test_odometry_counting_a_fraction_of_the_travel_keeps_the_estimate_on_the_fixes():
+    """Encoders counting 12 % of the travel while the fixes arrive: the prediction falls
+    behind by ~0.9 m every second and the refused fixes' innovations grow steadily. The
+    estimate goes back onto the fixes (here by the step rule, on a straight line at 1 m/s
+    with this covariance; in closed loop only the drift rule does: tests/test_mission.py), so
+    its error is bounded by the gate plus ``recover_after`` seconds of that drift."""
+    tr = _truth(straight, 200.0)
+    sens = _sensors(tr, 8)
+    sens.odometry = [(t, 0.12 * dl, 0.12 * dr) for t, dl, dr in sens.odometry]
+    run = _run(tr, sens, _config())
+    late = run.t >= 30.0
+    err = np.hypot(*run.err[late].T)
+    assert float(np.max(err)) < 20.0, float(np.max(err))  # the gate + 8 s of drift
+    assert run.est.stats.gps_resets >= 10
+
+def test_a_steady_drift_rule_takes_no_scattered_or_short_runs():
+    """The drift rule adds no reset where the step rule refused: outliers that move along a
+    line but scatter 25 m either side of it (a reflection whose path changes) are not a
+    steady drift."""
+    tr = _truth(straight, 200.0)
+    sens = _sensors(tr, 9)
+    rng = np.random.default_rng(90)
+    kick = rng.choice([-25.0, 25.0], 12)
+
+    def zigzag(k, t, e, n):
+        return (e + 2.0 * (k - 100), n + kick[k - 100]) if 100 <= k < 112 else (e, n)
+
+    run = _run(tr, sens, _config(), gps_override=zigzag)
+    assert all(not u.accepted for u in run.updates[100:112])
+    assert run.est.stats.gps_resets == 0 and run.est.stats.gps_drift_resets == 0

@@ -653,3 +653,22 @@ def test_the_dispersion_across_the_180th_meridian_is_the_short_way_round() -> No
     same = dispersion_m(dlat, np.array([1e-5, -1e-5, 0.0]))
     across = dispersion_m(dlat, np.array([1e-5 - 360.0, -1e-5, 360.0]))
     assert across == pytest.approx(same, abs=1e-6) and same[1] < 2.0
+
+
+def test_encoders_counting_a_fraction_of_the_travel_do_not_lose_the_mission(
+    tmp_path: Path,
+) -> None:
+    """The default mission with the robot's own navigation and encoders counting 12 % of the
+    travel (wheels of 1 m where the odometry assumes 120 mm: a wheel size or counts per turn
+    set 8x off). Fixes arrive all along, so the EKF must follow them: before the drift rule
+    (x6wd.nav.estimator) it refused every fix as the prediction fell behind, drove on the
+    wheels' count, ended 167 m from the truth and reached 1 of 4 waypoints."""
+    path = tmp_path / "encoders.toml"
+    path.write_text(
+        f'include = ["{SCENARIOS / "default.toml"}"]\nname = "encoders count 12 %"\n'
+        "[encoders]\nleft_diameter_m = 1.0\nright_diameter_m = 1.0\n"
+    )
+    summary = run_mission(load_world(path), None)
+    assert summary.completed and summary.waypoints_reached == 4
+    assert summary.filtered_error.max_m < 40.0, summary.filtered_error
+    assert summary.extra["position_source"] == "ekf"

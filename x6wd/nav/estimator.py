@@ -70,10 +70,16 @@ innovations of consecutive refused fixes are kept; once ``recover_after`` of the
 consistent with each other (each one's distance from their mean, in its own innovation
 covariance, is inside the gate) the filter accepts the step: the position (or the heading) is
 re-initialised from the latest measurement with the measurement's covariance and the
-``*_resets`` counter goes up. A short NLOS jump (fewer fixes than ``recover_after``) or
-scattered outliers are thus never accepted, while a real, persistent step (the robot was moved,
-the odometry slipped during a long GPS outage) is accepted after ``recover_after`` fixes. Long
-outages also open the gate by themselves, as the predicted covariance grows.
+``*_resets`` counter goes up. GPS fixes are also accepted when they agree with a steady drift
+instead (each one inside the gate of a straight line in time through their innovations): dead
+reckoning running away from the fixes (encoders counting a fraction of the travel, a wrong
+wheel size) gives innovations that grow by the same amount every second, which never agree
+with their mean, so the estimate drove on the wheels' count while the fixes arrived (167 m
+off, the mission lost, with encoders counting 12 %); ``gps_drift_resets`` counts those.
+A short NLOS jump (fewer fixes than ``recover_after``) or scattered outliers are thus never
+accepted, while a real, persistent step (the robot was moved, the odometry slipped during a
+long GPS outage) is accepted after ``recover_after`` fixes. Long outages also open the gate by
+themselves, as the predicted covariance grows.
 """
 
 from __future__ import annotations
@@ -338,6 +344,7 @@ class EstimatorStats:
     gps_accepted: int = 0
     gps_rejected: int = 0
     gps_resets: int = 0
+    gps_drift_resets: int = 0  # of gps_resets: refused fixes that agreed with a steady drift
     gps_consecutive_rejected: int = 0
     compass_accepted: int = 0
     compass_rejected: int = 0
@@ -362,9 +369,9 @@ class Estimator:
         self._odo_fresh = False  # odometry increments arrived within odometry_timeout_s
         self._bias_var_m2 = 0.0  # stationary variance of the GPS bias states, m²
         self._declination_rad = math.radians(config.compass.declination_deg)
-        self._gps_refused: deque[tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]] = deque(
-            maxlen=config.gating.recover_after
-        )
+        self._gps_refused: deque[tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64]]] = (
+            deque(maxlen=config.gating.recover_after)
+        )  # (t s, innovation, its covariance)
         self._compass_refused: deque[tuple[float, float]] = deque(
             maxlen=config.gating.compass_recover_after
         )
@@ -753,8 +760,10 @@ class Estimator:
         s_inv = np.linalg.inv(s)
         nis = float(y @ s_inv @ y)
         if nis > self.cfg.gating.gps_chi2:
-            self._gps_refused.append((y, s))
-            if self._gps_consistent():
+            self._gps_refused.append((t, y, s))
+            agree = self._gps_agreement()
+            if agree is not None:
+                self.stats.gps_drift_resets += agree == "drift"
                 self._gps_refused.clear()
                 self.stats.gps_resets += 1
                 self.stats.gps_consecutive_rejected = 0
@@ -772,15 +781,31 @@ class Estimator:
         self.stats.gps_accepted += 1
         return Update(True, nis, "ok")
 
-    def _gps_consistent(self) -> bool:
-        if len(self._gps_refused) < self.cfg.gating.recover_after:
-            return False
-        ys = np.array([y for y, _ in self._gps_refused])
-        mean = ys.mean(axis=0)
+    def _gps_agreement(self) -> str | None:
+        """How the last ``recover_after`` refused fixes agree, if they do: "step" (with their
+        mean), "drift" (with a straight line in time through them), else None."""
+        refused = self._gps_refused
+        if len(refused) < self.cfg.gating.recover_after:
+            return None
         gate = self.cfg.gating.gps_chi2
-        return all(
-            float((y - mean) @ np.linalg.solve(s, y - mean)) <= gate for y, s in self._gps_refused
-        )
+        ts = np.array([t for t, _, _ in refused])
+        ys = np.array([y for _, y, _ in refused])
+        mean = ys.mean(axis=0)
+
+        def inside(centres: npt.NDArray[np.float64]) -> bool:
+            return all(
+                float((y - c) @ np.linalg.solve(s, y - c)) <= gate
+                for (_, y, s), c in zip(refused, centres, strict=True)
+            )
+
+        if inside(np.broadcast_to(mean, ys.shape)):
+            return "step"
+        dt = ts - ts.mean()
+        if float(dt @ dt) > 0.0:
+            slope = (dt @ (ys - mean)) / float(dt @ dt)  # m/s per axis
+            if inside(mean + np.outer(dt, slope)):
+                return "drift"
+        return None
 
     # ------------------------------------------------------------------ helpers
     def _propagate_bias(self, h: float) -> None:

@@ -297,6 +297,7 @@ class EkfSource:
         out: dict[str, Any] = {
             "ekf_gps_rejected": st.gps_rejected,
             "ekf_gps_resets": st.gps_resets,
+            "ekf_gps_drift_resets": st.gps_drift_resets,
             "ekf_compass_rejected": st.compass_rejected,
         }
         if est is not None:
