@@ -16,11 +16,12 @@
 
 Clients run in a separate process so they do not compete with the daemon for the GIL (the
 operator, one request a second, runs in this one).
-Run: ``python -m bench.bench_daemon [--quick]``.
+Run: ``python -m bench.bench_daemon [--quick] [--only-hostile [--gc-freeze]]`` (``--help``).
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import dataclasses
 import gc
@@ -32,6 +33,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -515,10 +517,39 @@ def run(quick: bool = False) -> list[Row]:
     return rows
 
 
-if __name__ == "__main__":
-    if "--only-hostile" in sys.argv:  # re-run the section issue 12 is about (--gc-freeze: see
-        table: list[Row] = []  # bench_hostile)
-        bench_hostile(12.0 if "--quick" in sys.argv else 60.0, table, "--gc-freeze" in sys.argv)
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command line: run the benchmarks and print their table."""
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.bench_daemon",
+        description=__doc__.splitlines()[0],
+        allow_abbrev=False,
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="short measurement windows: latency 8 s, CPU 5 s, swarm 12 s (default 30, 30, 60 s)",
+    )
+    parser.add_argument(
+        "--only-hostile",
+        action="store_true",
+        help="the hostile swarm alone (benchmark 3), not the latency and CPU ones",
+    )
+    parser.add_argument(
+        "--gc-freeze",
+        action="store_true",
+        help="with --only-hostile: gc.freeze() once the daemon is up (rows labelled so)",
+    )
+    args = parser.parse_args(argv)
+    if args.gc_freeze and not args.only_hostile:
+        parser.error("--gc-freeze needs --only-hostile")
+    if args.only_hostile:  # re-run the section issue 12 is about
+        table: list[Row] = []
+        bench_hostile(12.0 if args.quick else 60.0, table, args.gc_freeze)
         print_table(table)
     else:
-        print_table(run(quick="--quick" in sys.argv))
+        print_table(run(quick=args.quick))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
