@@ -156,7 +156,7 @@ class Telemetry:
     waypoint_count: int = 0
     lat_deg: float | None = None  # raw fix
     lon_deg: float | None = None
-    filt_lat_deg: float | None = None  # Constellation-filtered
+    filt_lat_deg: float | None = None  # [navigation] position_source (EKF by default)
     filt_lon_deg: float | None = None
     x_m: float | None = None  # projected filtered position
     y_m: float | None = None
