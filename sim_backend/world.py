@@ -23,7 +23,10 @@ Scenario layout (every key optional unless stated; errors name the dotted key)::
     [gnss]    fidelity "seed"|"pseudorange", mask_deg, rate_hz 1..4, nmea_decimals 4..7, baud,
               seed_uere "modelled"|"re_ase_lce", re_m, ase_m, max_channels,
               lce_cell_m, lce_east0_m, lce_north0_m, lce_outside_m,
-              lce_sigma_m = [[...], ...] (row i = north cell i) or lce_csv = "map.csv"
+              lce_sigma_m = [[...], ...] (row i = north cell i) or lce_csv = "map.csv";
+              re_m, ase_m and the lce_* keys only with fidelity = "seed" and
+              seed_uere = "re_ase_lce", seed_uere only with fidelity = "seed" (given
+              elsewhere they would do nothing: a ConfigError)
     [atmosphere]  the fields of sim_backend.atmosphere.Atmosphere
     [[walls]]     x0_m, y0_m, x1_m, y1_m, thickness_m, height_m,
                   windows = [{u0_m, u1_m, z0_m, z1_m}, ...], penetration_db, refractive_index
@@ -511,6 +514,38 @@ def _read_lce_csv(path: str) -> tuple[tuple[float, ...], ...]:
     return grid
 
 
+SEED_003_KEYS = (
+    "re_m",
+    "ase_m",
+    "lce_sigma_m",
+    "lce_csv",
+    "lce_cell_m",
+    "lce_east0_m",
+    "lce_north0_m",
+    "lce_outside_m",
+)
+"""The [gnss] keys of the seed-003 error form: they act only under ``fidelity = "seed"`` with
+``seed_uere = "re_ase_lce"`` (sim_backend.gnss.GnssModel)."""
+
+
+def _check_gnss_form(gnss: GnssSettings, given: set[str]) -> None:
+    """Refuse [gnss] keys given where the fidelity and error form make them do nothing (a
+    ``re_m = 50`` under the pseudorange fidelity gave the output of none)."""
+    if gnss.fidelity != "seed" and "seed_uere" in given:
+        raise ConfigError(
+            f'gnss.seed_uere: acts only under fidelity = "seed" (this scenario has fidelity = '
+            f'"{gnss.fidelity}"); remove it or set fidelity = "seed"'
+        )
+    idle = [k for k in SEED_003_KEYS if k in given]
+    if idle and not (gnss.fidelity == "seed" and gnss.seed_uere == "re_ase_lce"):
+        keys = ", ".join(f"gnss.{k}" for k in idle)
+        raise ConfigError(
+            f'{keys}: act only under fidelity = "seed" with seed_uere = "re_ase_lce" (this '
+            f'scenario has fidelity = "{gnss.fidelity}", seed_uere = "{gnss.seed_uere}"), '
+            "where they would be ignored; remove them or set those two keys"
+        )
+
+
 def _check_grid(grid: tuple[tuple[float, ...], ...], key: str) -> None:
     widths = {len(r) for r in grid}
     if len(widths) > 1 or 0 in widths:
@@ -576,6 +611,7 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
     if gnss_data.get("lce_csv") and gnss_data.get("lce_sigma_m"):
         raise ConfigError("gnss.lce_csv: give either lce_csv or lce_sigma_m, not both")
     gnss = build(GnssSettings, gnss_data, "gnss.")
+    given_gnss = set(gnss_data)
     if gnss.lce_csv:
         csv_path = Path(gnss.lce_csv)
         if not csv_path.is_absolute():
@@ -587,6 +623,7 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
         data["gnss"] = gnss_data
     if gnss.lce_sigma_m:
         _check_grid(gnss.lce_sigma_m, "gnss.lce_sigma_m")
+    _check_gnss_form(gnss, given_gnss)
     atmosphere = build(Atmosphere, _table(data, "atmosphere"), "atmosphere.")
     walls, roofs = _build_walls(data)
     vehicle = build(VehicleSettings, _table(data, "vehicle"), "vehicle.")

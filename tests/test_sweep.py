@@ -327,6 +327,8 @@ def test_a_file_named_by_a_sweep_value_is_the_one_the_worker_reads(
     # the scenario has its own LCE map: a sweep value replaces it
     (scen / "s.toml").write_text(
         f'include = ["{DEFAULT}"]\nduration_s = 5.0\n[gnss]\nlce_csv = "own.csv"\n'
+        # the map acts (and so may be given) in the seed-003 form only
+        'fidelity = "seed"\nseed_uere = "re_ase_lce"\n'
     )
     (scen / "own.csv").write_text("9.0,9.0\n9.0,9.0\n")
     (sw / "a.csv").write_text("1.0,2.0\n3.0,4.0\n")

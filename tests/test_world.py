@@ -264,7 +264,8 @@ def test_relative_paths_resolve_against_scenario_folder(tmp_path: Path) -> None:
     (sub / "data" / "lce.csv").write_text("# north rows\n0.5,1.5,2.5\n3.0,4.0,5.0\n")
     text = (
         'name = "x"\nalmanac = "data/alm.txt"\n[origin]\nlat_deg = 1\nlon_deg = 2\n'
-        '[gnss]\nlce_csv = "data/lce.csv"\nlce_cell_m = 2.0\n'
+        '[gnss]\nfidelity = "seed"\nseed_uere = "re_ase_lce"\nlce_csv = "data/lce.csv"\n'
+        "lce_cell_m = 2.0\n"
     )
     path = _write(sub, "s.toml", text)
     world = load_world(path)
