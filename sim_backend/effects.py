@@ -26,7 +26,9 @@ INTERFACE (fixed; implementations are filled in below it):
 from __future__ import annotations
 
 import abc
+import dataclasses
 import math
+import typing
 import zlib
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
@@ -34,6 +36,7 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
+from x6wd.core.config import _check_value  # the one type check of every configuration key
 from x6wd.core.errors import ConfigError
 from x6wd.core.geodesy import WGS84_A_M, WGS84_E2, wrap360, wrap_deg
 from x6wd.core.geodesy import wrap_deg as wrap180  # the name gap and mission import
@@ -493,24 +496,39 @@ class _Params:
         return out
 
     @classmethod
-    def from_params(cls, params: Mapping[str, Any]) -> Any:
-        """Build from a table (``name`` optional; unknown keys are a ConfigError)."""
+    def from_params(cls, params: Mapping[str, Any], where: str = "") -> Any:
+        """Build from a table (``name`` optional). Unknown and missing parameters are a
+        ConfigError, and so is a value not of its parameter's type, checked as every
+        configuration key is (``x6wd.core.config``): a number real and finite (not a bool),
+        an integer, a string. Errors name the key as ``where.key`` (``where`` as
+        ``effects[0]``; default: the effect's name)."""
+        label = f"{where} ({cls.name})" if where else f"effect {cls.name}"
+        prefix = f"{where}." if where else ""
         data = {k: v for k, v in params.items() if k != "name"}
         if "name" in params and params["name"] != cls.name:
-            raise ConfigError(f"effect name {params['name']!r} given to {cls.name}")
-        fields_ = cls.__dataclass_fields__  # type: ignore[attr-defined]
-        unknown = sorted(set(data) - set(fields_))
+            raise ConfigError(f"{label}: effect name {params['name']!r} given to {cls.name}")
+        fields_ = dataclasses.fields(cls)  # type: ignore[arg-type]
+        names = [f.name for f in fields_]
+        unknown = sorted(set(data) - set(names))
         if unknown:
-            raise ConfigError(
-                f"effect {cls.name}: unknown parameter(s) {unknown}; valid: {sorted(fields_)}"
-            )
+            raise ConfigError(f"{label}: unknown parameter(s) {unknown}; valid: {sorted(names)}")
+        required = [
+            f.name
+            for f in fields_
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+        ]
+        for key in required:
+            if key not in data:
+                raise ConfigError(
+                    f"{prefix}{key}: required ({cls.name} needs {', '.join(required)})"
+                )
+        hints = typing.get_type_hints(cls)
         for key, value in list(data.items()):
-            if isinstance(value, list):
-                data[key] = tuple(value)
+            data[key] = _check_value(f"{prefix}{key}", value, hints[key], {})
         try:
             return cls(**data)
-        except TypeError as exc:
-            raise ConfigError(f"effect {cls.name}: {exc}") from None
+        except ConfigError as exc:
+            raise ConfigError(f"{label}: {exc}") from None
 
 
 class GpsLayer(_Params, abc.ABC):
@@ -1485,12 +1503,15 @@ EFFECTS: dict[str, type[Any]] = {
 }
 
 
-def effect_from_params(params: Mapping[str, Any]) -> Any:
-    """Construct an effect from a table with a ``name`` key (as in a scenario's [[effects]])."""
+def effect_from_params(params: Mapping[str, Any], where: str = "") -> Any:
+    """Construct an effect from a table with a ``name`` key (as in a scenario's [[effects]]);
+    errors name the key as ``where.key`` (``where`` as ``effects[0]``)."""
     name = params.get("name")
-    if name not in EFFECTS:
-        raise ConfigError(f"effects: unknown name {name!r}; valid: {sorted(EFFECTS)}")
-    return EFFECTS[str(name)].from_params(params)
+    if not isinstance(name, str) or name not in EFFECTS:
+        raise ConfigError(
+            f"{where or 'effects'}.name: unknown name {name!r}; valid: {sorted(EFFECTS)}"
+        )
+    return EFFECTS[name].from_params(params, where)
 
 
 def apply_effects(series: Any, effects: Any, rng: np.random.Generator) -> Any:

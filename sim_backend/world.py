@@ -701,9 +701,7 @@ def _check_effects(effects: tuple[dict[str, Any], ...]) -> None:
         if "name" not in eff:
             raise ConfigError(f"effects[{i}].name: required")
         try:
-            effect_from_params(eff)
-        except ConfigError as exc:
-            raise ConfigError(f"effects[{i}]: {exc}") from exc
+            effect_from_params(eff, f"effects[{i}]")  # its errors name effects[i].key
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"effects[{i}] ({eff.get('name')}): {exc}") from exc
 
