@@ -14,7 +14,8 @@ PUBLIC API
 Scenario layout (every key optional unless stated; errors name the dotted key)::
 
     name = "open field"          # required
-    start_utc = "2020-01-01T12:00:00Z"   # ISO-8601 string or TOML datetime; naive = UTC
+    start_utc = "2020-01-01T12:00:00Z"   # ISO-8601 string or TOML datetime; naive = UTC;
+                                         # GPS epoch (1980-01-06) .. 9999-11-30T00:00:00Z
     duration_s = 600.0
     seed = 1
     almanac = "almanac.txt"      # relative to the scenario file; default DEFAULT_ALMANAC
@@ -62,7 +63,7 @@ import json
 import math
 import tomllib
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -93,6 +94,10 @@ GPS_EPOCH_UTC = datetime(1980, 1, 6, tzinfo=UTC)
 MAX_DURATION_S = 30 * 86400.0
 """The longest run (s): ``duration_s`` and ``x6wd sim --duration`` are capped here (a run's
 per-tick arrays grow with it)."""
+LATEST_START_UTC = datetime(9999, 12, 31, tzinfo=UTC) - timedelta(seconds=MAX_DURATION_S, days=1)
+"""The latest ``start_utc`` (9999-11-30T00:00:00Z): a run of the longest duration (a
+scenario's or ``x6wd sim --duration``'s), with a day to spare, still ends inside the dates
+Python (and so the NMEA date fields) can hold, which end with the year 9999."""
 MAX_SPEED_MPS = 14.0 / 3.6
 _LIST_TABLES = ("walls", "buildings", "roofs", "effects")
 
@@ -495,6 +500,12 @@ def _parse_time(value: Any) -> datetime:
         raise ConfigError(
             f"start_utc: {dt.isoformat()} is before the GPS epoch (1980-01-06T00:00:00Z): "
             "there is no GPS time, and so no simulated sky, before it"
+        )
+    if dt > LATEST_START_UTC:
+        raise ConfigError(
+            f"start_utc: {dt.isoformat()} is after {LATEST_START_UTC.isoformat()}, the latest "
+            "start from which a run of up to 30 days ends inside the supported date range "
+            "(up to the year 9999)"
         )
     return dt
 

@@ -188,3 +188,17 @@ def test_sim_refuses_a_nan_zone_and_an_infinite_declination(
     decl = _effect("declination", {"declination_deg": "inf"})
     rc, err = _sim(tmp_path, _write(tmp_path, BASE + decl), capsys)
     assert rc == 2 and "Traceback" not in err and "effects[0].declination_deg" in err
+
+
+# --- 4. a start whose run would leave the date range ----------------------------------------
+
+
+def test_a_start_at_the_end_of_the_date_range_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    late = BASE.replace("2020-01-01T12:00:00Z", "9999-12-31T23:59:50Z").replace("3.0", "20.0")
+    rc, err = _sim(tmp_path, _write(tmp_path, late), capsys)
+    assert rc == 2 and "Traceback" not in err and "start_utc" in err
+    assert "9999-11-30T00:00:00" in err  # the bound is said
+    ok = BASE.replace("2020-01-01T12:00:00Z", "9999-11-30T00:00:00Z")
+    assert load_world(_write(tmp_path, ok)).start_utc.year == 9999
