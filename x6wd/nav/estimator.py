@@ -96,6 +96,10 @@ import numpy.typing as npt
 from x6wd.core.errors import X6wdError
 
 E, N, PSI, V, W, BE, BN, KT, BA, CO = range(10)
+# The drift rule's direction (Estimator._gps_agreement): a steady drift of refused fixes
+# within this angle of the heading (either way) is travel counted wrong.
+DRIFT_ALONG_DEG = 30.0
+DRIFT_ALONG_COS = math.cos(math.radians(DRIFT_ALONG_DEG))
 NX = 10
 _TWO_PI = 2.0 * math.pi
 _EYE = np.eye(NX)
@@ -783,7 +787,11 @@ class Estimator:
 
     def _gps_agreement(self) -> str | None:
         """How the last ``recover_after`` refused fixes agree, if they do: "step" (with their
-        mean), "drift" (with a straight line in time through them), else None."""
+        mean), "drift" (with a straight line in time through them whose slope runs along the
+        heading, within :data:`DRIFT_ALONG_DEG`), else None. Only along: the travel counted
+        wrong moves the fixes ahead of (or behind) the prediction; a drift across the heading
+        is the heading that is wrong (a compass 90 deg off), which resets would hide from
+        the off-course check while the robot steers on it."""
         refused = self._gps_refused
         if len(refused) < self.cfg.gating.recover_after:
             return None
@@ -803,7 +811,10 @@ class Estimator:
         dt = ts - ts.mean()
         if float(dt @ dt) > 0.0:
             slope = (dt @ (ys - mean)) / float(dt @ dt)  # m/s per axis
-            if inside(mean + np.outer(dt, slope)):
+            along = abs(math.sin(self._x[PSI]) * slope[0] + math.cos(self._x[PSI]) * slope[1])
+            if along >= DRIFT_ALONG_COS * float(np.hypot(*slope)) and inside(
+                mean + np.outer(dt, slope)
+            ):
                 return "drift"
         return None
 
