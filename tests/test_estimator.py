@@ -672,4 +672,4 @@ def test_a_steady_drift_rule_takes_no_scattered_or_short_runs():
 
     run = _run(tr, sens, _config(), gps_override=zigzag)
     assert all(not u.accepted for u in run.updates[100:112])
-    assert run.est.stats.gps_resets == 0 and run.est.stats.gps_drift_resets == 0
+    assert run.est.stats.gps_resets == 0 and run.est.stats.odometry_runaway_resets == 0

@@ -668,7 +668,17 @@ def test_encoders_counting_a_fraction_of_the_travel_do_not_lose_the_mission(
         f'include = ["{SCENARIOS / "default.toml"}"]\nname = "encoders count 12 %"\n'
         "[encoders]\nleft_diameter_m = 1.0\nright_diameter_m = 1.0\n"
     )
-    summary = run_mission(load_world(path), None)
+    summary = run_mission(load_world(path), tmp_path / "out")
     assert summary.completed and summary.waypoints_reached == 4
     assert summary.filtered_error.max_m < 40.0, summary.filtered_error
     assert summary.extra["position_source"] == "ekf"
+    # and the operator is told the wheels' calibration is off (status extra, as telemetry)
+    text = (tmp_path / "out" / "recording.jsonl").read_text()
+    assert '"odometry_warning"' in text and "x6wd calibrate odometry" in text
+
+
+def test_a_well_calibrated_robot_gets_no_odometry_warning(
+    default_run: tuple[Path, Summary],
+) -> None:
+    out, _summary = default_run
+    assert '"odometry_warning"' not in (out / "recording.jsonl").read_text()

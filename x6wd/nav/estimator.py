@@ -75,7 +75,7 @@ instead (each one inside the gate of a straight line in time through their innov
 reckoning running away from the fixes (encoders counting a fraction of the travel, a wrong
 wheel size) gives innovations that grow by the same amount every second, which never agree
 with their mean, so the estimate drove on the wheels' count while the fixes arrived (167 m
-off, the mission lost, with encoders counting 12 %); ``gps_drift_resets`` counts those.
+off, the mission lost, with encoders counting 12 %); ``odometry_runaway_resets`` counts those.
 A short NLOS jump (fewer fixes than ``recover_after``) or scattered outliers are thus never
 accepted, while a real, persistent step (the robot was moved, the odometry slipped during a
 long GPS outage) is accepted after ``recover_after`` fixes. Long outages also open the gate by
@@ -348,7 +348,7 @@ class EstimatorStats:
     gps_accepted: int = 0
     gps_rejected: int = 0
     gps_resets: int = 0
-    gps_drift_resets: int = 0  # of gps_resets: refused fixes that agreed with a steady drift
+    odometry_runaway_resets: int = 0  # of gps_resets: refused fixes that agreed with a steady drift
     gps_consecutive_rejected: int = 0
     compass_accepted: int = 0
     compass_rejected: int = 0
@@ -767,7 +767,7 @@ class Estimator:
             self._gps_refused.append((t, y, s))
             agree = self._gps_agreement()
             if agree is not None:
-                self.stats.gps_drift_resets += agree == "drift"
+                self.stats.odometry_runaway_resets += agree == "drift"
                 self._gps_refused.clear()
                 self.stats.gps_resets += 1
                 self.stats.gps_consecutive_rejected = 0
