@@ -663,6 +663,9 @@ class _RandomWalkRun(_Run):
         return _add(batch, delta)
 
 
+MAX_BIAS_M = 100_000.0  # the largest bias offset per axis (m)
+
+
 @dataclass(frozen=True)
 class Bias(GpsLayer):
     """Constant offset (m) east, north, up."""
@@ -671,6 +674,15 @@ class Bias(GpsLayer):
     east_m: float = 0.0
     north_m: float = 0.0
     up_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for key in ("east_m", "north_m", "up_m"):
+            value = getattr(self, key)
+            if not abs(value) <= MAX_BIAS_M:  # NaN fails too
+                raise ConfigError(
+                    f"{key}={value!r}: must be within +-{MAX_BIAS_M:g} m (an offset beyond"
+                    " 100 km is no receiver's error; east_m = 1e300 crashed the NMEA output)"
+                )
 
     def start(self, rng: np.random.Generator) -> LayerRun:
         """The constant offset (no state, no draws)."""

@@ -202,3 +202,13 @@ def test_a_start_at_the_end_of_the_date_range_is_refused(
     assert "9999-11-30T00:00:00" in err  # the bound is said
     ok = BASE.replace("2020-01-01T12:00:00Z", "9999-11-30T00:00:00Z")
     assert load_world(_write(tmp_path, ok)).start_utc.year == 9999
+
+
+def test_sim_refuses_a_bias_beyond_any_receivers_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # the audit's fixer: east_m = 1e300 passed the finite check and crashed the NMEA output
+    path = _write(tmp_path, BASE + _effect("bias", {"east_m": 1e300}))
+    rc, err = _sim(tmp_path, path, capsys)
+    assert rc == 2 and "Traceback" not in err and "east_m" in err and "100000" in err
+    assert load_world(_write(tmp_path, BASE + _effect("bias", {"north_m": -99_999.0})))
