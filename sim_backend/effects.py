@@ -36,7 +36,7 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from x6wd.core.config import _check_value  # the one type check of every configuration key
+from x6wd.core.config import check_value  # the one type check of every configuration key
 from x6wd.core.errors import ConfigError
 from x6wd.core.geodesy import WGS84_A_M, WGS84_E2, wrap360, wrap_deg
 from x6wd.core.geodesy import wrap_deg as wrap180  # the name gap and mission import
@@ -524,7 +524,7 @@ class _Params:
                 )
         hints = typing.get_type_hints(cls)
         for key, value in list(data.items()):
-            data[key] = _check_value(f"{prefix}{key}", value, hints[key], {})
+            data[key] = check_value(f"{prefix}{key}", value, hints[key], {})
         try:
             return cls(**data)
         except ConfigError as exc:

@@ -658,6 +658,7 @@ def test_odometry_counting_a_fraction_of_the_travel_keeps_the_estimate_on_the_fi
     assert float(np.max(err)) < 20.0, float(np.max(err))  # the gate + 8 s of drift
     assert run.est.stats.gps_resets >= 10
 
+
 def test_a_steady_drift_rule_takes_no_scattered_or_short_runs():
     """The drift rule adds no reset where the step rule refused: outliers that move along a
     line but scatter 25 m either side of it (a reflection whose path changes) are not a

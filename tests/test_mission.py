@@ -656,7 +656,7 @@ def test_the_dispersion_across_the_180th_meridian_is_the_short_way_round() -> No
 
 
 def test_encoders_counting_a_fraction_of_the_travel_do_not_lose_the_mission(
-    tmp_path: Path,
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """The default mission with the robot's own navigation and encoders counting 12 % of the
     travel (wheels of 1 m where the odometry assumes 120 mm: a wheel size or counts per turn
@@ -675,6 +675,8 @@ def test_encoders_counting_a_fraction_of_the_travel_do_not_lose_the_mission(
     # and the operator is told the wheels' calibration is off (status extra, as telemetry)
     text = (tmp_path / "out" / "recording.jsonl").read_text()
     assert '"odometry_warning"' in text and "x6wd calibrate odometry" in text
+    logged = [r for r in caplog.records if r.getMessage().startswith("odometry: ")]
+    assert len(logged) == 1 and logged[0].levelname == "WARNING"  # the runner logs it once
 
 
 def test_a_well_calibrated_robot_gets_no_odometry_warning(

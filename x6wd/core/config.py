@@ -424,7 +424,11 @@ def check_drive_vs_stuck(nav: NavigationConfig, failsafe: FailsafeConfig) -> Non
             )
 
 
-def _check_value(key: str, value: Any, tp: Any, meta: Any) -> Any:
+def check_value(key: str, value: Any, tp: Any, meta: Any) -> Any:
+    """``value`` checked against type ``tp`` (a number real and finite, not a bool; an int; a
+    str; a list or tuple of them; ``meta`` a field's range metadata), converted as the
+    configuration stores it; a ConfigError naming ``key`` otherwise. Every configuration key
+    goes through it, and so do the simulator's effect parameters."""
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
@@ -453,7 +457,7 @@ def _check_value(key: str, value: Any, tp: Any, meta: Any) -> Any:
             raise ConfigError(f"{key}: expected a list, got {value!r}")
         (item_tp, *_rest) = typing.get_args(tp) or (Any,)
         if item_tp is not Any and item_tp is not Ellipsis:
-            value = [_check_value(f"{key}[{i}]", v, item_tp, {}) for i, v in enumerate(value)]
+            value = [check_value(f"{key}[{i}]", v, item_tp, {}) for i, v in enumerate(value)]
         value = tuple(value)
     lo, hi = meta.get("min"), meta.get("max")
     if lo is not None and value < lo:
@@ -485,7 +489,7 @@ def build(cls: type[T], data: Any, prefix: str = "") -> T:
         if dataclasses.is_dataclass(tp):
             kwargs[name] = build(tp, value, key + ".")  # type: ignore[arg-type]
         else:
-            kwargs[name] = _check_value(key, value, tp, fields[name].metadata)
+            kwargs[name] = check_value(key, value, tp, fields[name].metadata)
     return cls(**kwargs)
 
 

@@ -116,6 +116,7 @@ class Runner:
         self._operator_log = RateLimitedLog(log, 1.0, clock)
         self.last_telemetry: Telemetry | None = None
         self._compass_untrusted = False  # the controller's verdict, logged as it changes
+        self._odometry_warned = False  # the wheels-vs-fixes warning, logged once
         self.first_fix: tuple[float, float] | None = None
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
         self.geofence_breaches = 0
@@ -406,6 +407,9 @@ class Runner:
                         log.warning("compass untrusted: %s", untrusted)
                     else:
                         log.info("compass trusted again: the EKF takes its readings")
+                if not self._odometry_warned and "odometry_warning" in out.extra:
+                    self._odometry_warned = True  # once: the count in it keeps rising
+                    log.warning("odometry: %s", out.extra["odometry_warning"])
                 now = out.t_s
                 force = important or bool(changes)
                 if self._publish is not None and (

@@ -71,11 +71,13 @@ consistent with each other (each one's distance from their mean, in its own inno
 covariance, is inside the gate) the filter accepts the step: the position (or the heading) is
 re-initialised from the latest measurement with the measurement's covariance and the
 ``*_resets`` counter goes up. GPS fixes are also accepted when they agree with a steady drift
-instead (each one inside the gate of a straight line in time through their innovations): dead
-reckoning running away from the fixes (encoders counting a fraction of the travel, a wrong
-wheel size) gives innovations that grow by the same amount every second, which never agree
-with their mean, so the estimate drove on the wheels' count while the fixes arrived (167 m
-off, the mission lost, with encoders counting 12 %); ``odometry_runaway_resets`` counts those.
+along the heading instead (each one inside the gate of a straight line in time through their
+innovations, its slope within ``DRIFT_ALONG_DEG`` of the heading; across it, the heading is
+what is wrong, which the off-course check must see): dead reckoning running away from the
+fixes (encoders counting a fraction of the travel, a wrong wheel size) gives innovations that
+grow by the same amount every second, which never agree with their mean, so the estimate
+drove on the wheels' count while the fixes arrived (167 m off, the mission lost, with
+encoders counting 12 %); ``odometry_runaway_resets`` counts those.
 A short NLOS jump (fewer fixes than ``recover_after``) or scattered outliers are thus never
 accepted, while a real, persistent step (the robot was moved, the odometry slipped during a
 long GPS outage) is accepted after ``recover_after`` fixes. Long outages also open the gate by

@@ -18,7 +18,6 @@ None). Every source answers ``position(t_s)`` with (lat_deg, lon_deg) or None be
 
 from __future__ import annotations
 
-import logging
 import math
 from typing import Any, Protocol
 
@@ -186,12 +185,10 @@ def estimator_config(
 
 RUNAWAY_WARN_RESETS = 3
 """Position resets by the EKF's drift rule (the fixes running steadily ahead of, or behind,
-the wheels' count) after which the wheels' calibration is called into question in status
-and the log: one can be a slipping stretch, three in a mission are a wheel size or a counts
-per turn set wrong (the drift rule's audit: 3-4 resets with counts of 10-50 %, 17-19 on a
-390 m route at 10 %, none with counts of 75-133 %)."""
-
-log = logging.getLogger(__name__)
+the wheels' count) after which the telemetry's ``odometry_warning`` questions the wheels'
+calibration (the runner logs it once): one can be a slipping stretch, three in a mission are
+a wheel size or a counts per turn set wrong (the drift rule's audit: 3-4 resets with counts
+of 10-50 %, 17-19 on a 390 m route at 10 %, none with counts of 75-133 %)."""
 
 
 def runaway_warning(resets: int) -> str:
@@ -249,11 +246,7 @@ class EkfSource:
         assert self._plane is not None
         e, n = self._plane.to_xy(fix.lat_deg, fix.lon_deg)
         hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else DEFAULT_HDOP
-        before = self._ekf.stats.odometry_runaway_resets
         self._ekf.on_gps(fix.t_s, float(e), float(n), hdop)
-        after = self._ekf.stats.odometry_runaway_resets
-        if before < RUNAWAY_WARN_RESETS <= after:
-            log.warning("odometry: %s", runaway_warning(after))
 
     def on_compass(self, t_s: float, bearing_mag_deg: float) -> bool | None:
         if self._ekf is None:
