@@ -85,7 +85,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -278,6 +278,8 @@ class TraceResult:
 
 
 DEFAULT_MAX_DIRECTIONS = 4096
+# (epoch x satellite, wall) pairs one trace call works on at once: 2^22, ~40 MB of temporaries.
+TRACE_BLOCK_ELEMENTS = 1 << 22
 # A shot escapes "along d" when its final horizontal direction is within this (components).
 # Mirror products accumulate ~1e-15 of rounding; distinct look directions differ by far more.
 _DIR_TOL = 1e-9
@@ -677,6 +679,25 @@ class Walls:
             raise ValueError("rx_enu_m, az_deg and el_deg must be finite")
         if max_reflections < 0:
             raise ValueError(f"max_reflections must be >= 0, got {max_reflections}")
+        # The prefilters are dense over (rays, walls): trace many epochs in blocks, so memory
+        # stays bounded however many walls there are (rays are traced independently).
+        per_epoch = az.shape[1] * (len(self.walls) + len(self.roofs))
+        if n_e > 1 and n_e * per_epoch > TRACE_BLOCK_ELEMENTS:
+            step = max(1, TRACE_BLOCK_ELEMENTS // per_epoch)
+            lim = None if max_loss_db is None else np.broadcast_to(max_loss_db, az.shape)
+            parts = [
+                self.trace(
+                    rx if rx.shape[0] == 1 else rx[a : a + step],
+                    az[a : a + step],
+                    el[a : a + step],
+                    max_reflections,
+                    None if lim is None else lim[a : a + step],
+                )
+                for a in range(0, n_e, step)
+            ]
+            return TraceResult(
+                *(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(TraceResult))
+            )
         shape = az.shape
         n_s = shape[1]
         n = az.size
