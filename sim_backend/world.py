@@ -14,7 +14,8 @@ PUBLIC API
 Scenario layout (every key optional unless stated; errors name the dotted key)::
 
     name = "open field"          # required
-    start_utc = "2020-01-01T12:00:00Z"   # ISO-8601 string or TOML datetime; naive = UTC;
+    start_utc = "2020-01-01T12:00:00Z"   # ISO-8601 string or TOML datetime; without an
+                                         # offset = UTC, a date alone = its 00:00 UTC;
                                          # GPS epoch (1980-01-06) .. 9999-11-30T00:00:00Z
     duration_s = 600.0
     seed = 1
@@ -52,6 +53,11 @@ Scenario layout (every key optional unless stated; errors name the dotted key)::
 
 Merging (includes and fragments): tables merge key by key, arrays of tables (walls,
 buildings, roofs, effects) are concatenated, any other value is replaced by the later file.
+A file reached by two includes (a diamond: both include a shared site file) is applied once,
+at its first include (twice would double its effects, walls and roofs); a file named twice
+in one ``include`` list and a circular include are errors. An error names the file that
+holds the key, an included one with its include chain, and numbers arrays of tables as in
+that file.
 """
 
 from __future__ import annotations
@@ -61,9 +67,11 @@ import csv
 import dataclasses
 import json
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, date, datetime, timedelta
+from datetime import time as dt_time
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -287,37 +295,39 @@ class World:
 
 
 def load_world(path: str | Path) -> World:
-    """Read, merge (``include``) and validate a scenario file."""
+    """Read, merge (``include``) and validate a scenario file. An error names the file where
+    the key is (an included file's with its include chain) and the key as written there."""
     p = Path(path).resolve()
-    data = _read_merged(p, ())
+    src = _Sources()
+    data, src.tree = src.read(p, (), None)
     try:
         return _build_world(data, p.parent, p)
     except ConfigError as exc:
-        raise ConfigError(f"{p}: {exc}") from exc
+        raise src.blame(exc, str(p)) from exc
 
 
 def loads_world(text: str, base_dir: str | Path = ".", source: str = "<string>") -> World:
     """Validate scenario TOML text; relative paths resolve against ``base_dir``."""
     base = Path(base_dir).resolve()
-    data = _parse(text, source)
-    data = _expand_includes(data, base, (), source)
+    src = _Sources()
+    data, src.tree = src.expand(_parse(text, source), base, (), source)
     try:
         return _build_world(data, base, None)
     except ConfigError as exc:
-        raise ConfigError(f"{source}: {exc}") from exc
+        raise src.blame(exc, source) from exc
 
 
 def merge_fragment(world: World, path: str | Path) -> World:
     """A new world: ``world`` with the TOML fragment at ``path`` merged on top (its arrays of
     tables such as ``[[effects]]`` are appended, other keys replace)."""
     p = Path(path).resolve()
-    fragment = _read_merged(p, ())
+    fragment, _ = _Sources().read(p, (), None)
     _resolve_paths(fragment, p.parent)
     merged = _merge(world.raw, fragment)
     base = world.source.parent if world.source is not None else p.parent
     try:
         return _build_world(merged, base, world.source)
-    except ConfigError as exc:
+    except ConfigError as exc:  # keys numbered in the merged scenario (effects appended)
         raise ConfigError(f"{p}: {exc}") from exc
 
 
@@ -328,38 +338,130 @@ def _parse(text: str, source: str) -> dict[str, Any]:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
 
 
-def _read_merged(path: Path, stack: tuple[Path, ...]) -> dict[str, Any]:
-    if path in stack:
-        chain = " -> ".join(str(s) for s in (*stack, path))
-        raise ConfigError(f"include: circular include {chain}")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read scenario: {exc.strerror or exc}") from exc
-    except UnicodeDecodeError as exc:  # TOML is UTF-8: a binary or Latin-1 file is no scenario
-        raise ConfigError(
-            f"{path}: not a scenario: not UTF-8 text (byte {exc.start}: {exc.reason})"
-        ) from exc
-    data = _parse(text, str(path))
-    return _expand_includes(data, path.parent, (*stack, path), str(path))
+def _tag(value: Any, file: str, key: str = "") -> Any:
+    """``value``'s shape with every leaf replaced by (``file``, its dotted key in that file)."""
+    if isinstance(value, dict):
+        return {k: _tag(v, file, f"{key}.{k}" if key else k) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_tag(v, file, f"{key}[{i}]") for i, v in enumerate(value)]
+    return (file, key)
 
 
-def _expand_includes(
-    data: dict[str, Any], base: Path, stack: tuple[Path, ...], source: str
-) -> dict[str, Any]:
-    includes = data.pop("include", [])
-    if isinstance(includes, str):
-        includes = [includes]
-    if not isinstance(includes, list) or not all(isinstance(i, str) for i in includes):
-        raise ConfigError(f"{source}: include: expected a list of file names, got {includes!r}")
-    _resolve_paths(data, base)
-    merged: dict[str, Any] = {}
-    for inc in includes:
-        inc_path = (base / inc).resolve()
-        part = _read_merged(inc_path, stack)
-        _resolve_paths(part, inc_path.parent)
-        merged = _merge(merged, part)
-    return _merge(merged, data)
+def _leaves(node: Any, rel: str = "") -> list[tuple[tuple[str, str], str]]:
+    """The (file, key) leaves under a tagged node, each with its key relative to the node."""
+    if isinstance(node, tuple):
+        return [(node, rel)]
+    if isinstance(node, dict):
+        return [leaf for k, v in node.items() for leaf in _leaves(v, f"{rel}.{k}")]
+    return [leaf for i, v in enumerate(node) for leaf in _leaves(v, f"{rel}[{i}]")]
+
+
+_LEADING_KEY = re.compile(r"[A-Za-z_]\w*(?:\[\d+\]|\.[A-Za-z_]\w*)*")
+_KEY_STEP = re.compile(r"\.?([A-Za-z_]\w*)|\[(\d+)\]")
+
+
+class _Sources:
+    """Reads a scenario and its includes, and remembers where each key came from.
+
+    Validation runs on the merged table, so without this an error blamed the top file for a
+    key of an included one, and numbered an ``[[effects]]`` table by its place in the merged
+    list. ``tree`` has the merged table's shape, each leaf (file, key in that file); ``by``
+    maps an included file to the file that included it."""
+
+    def __init__(self) -> None:
+        self.tree: dict[str, Any] = {}
+        self.by: dict[str, str | None] = {}
+
+    def read(
+        self, path: Path, stack: tuple[Path, ...], by: str | None
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
+        if path in stack:
+            chain = " -> ".join(str(s) for s in (*stack, path))
+            raise ConfigError(f"include: circular include {chain}")
+        if str(path) in self.by:
+            # a diamond (two includes that both include it): a shared file is applied once,
+            # at its first include; twice would double its [[effects]], walls and roofs
+            return {}, {}
+        self.by[str(path)] = by
+        try:
+            text = path.read_text(encoding="utf-8")
+            data = _parse(text, str(path))
+        except OSError as exc:
+            raise ConfigError(
+                f"{path}: cannot read scenario: {exc.strerror or exc}{self.via(str(path))}"
+            ) from exc
+        except UnicodeDecodeError as exc:  # TOML is UTF-8: a binary or Latin-1 file is no scenario
+            raise ConfigError(
+                f"{path}: not a scenario: not UTF-8 text (byte {exc.start}: {exc.reason})"
+                + self.via(str(path))
+            ) from exc
+        except ConfigError as exc:
+            raise ConfigError(f"{exc}{self.via(str(path))}") from exc
+        return self.expand(data, path.parent, (*stack, path), str(path))
+
+    def expand(
+        self, data: dict[str, Any], base: Path, stack: tuple[Path, ...], source: str
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
+        """``data`` (from ``source``) with its includes merged underneath, and its tree."""
+        includes = data.pop("include", [])
+        if isinstance(includes, str):
+            includes = [includes]
+        if not isinstance(includes, list) or not all(isinstance(i, str) for i in includes):
+            raise ConfigError(
+                f"{source}: include: expected a list of file names, got {includes!r}"
+                + self.via(source)
+            )
+        _resolve_paths(data, base)
+        paths = [(base / inc).resolve() for inc in includes]
+        for inc, inc_path in zip(includes, paths, strict=True):
+            if paths.count(inc_path) > 1:
+                raise ConfigError(
+                    f"{source}: include: {inc} ({inc_path}) is listed twice{self.via(source)}"
+                )
+        merged: dict[str, Any] = {}
+        tree: dict[str, Any] = {}
+        for inc_path in paths:
+            part, part_tree = self.read(inc_path, stack, source)
+            _resolve_paths(part, inc_path.parent)
+            merged, tree = _merge(merged, part), _merge(tree, part_tree)
+        return _merge(merged, data), _merge(tree, _tag(data, source))
+
+    def blame(self, exc: ConfigError, default: str) -> ConfigError:
+        """``exc`` (a message leading with the merged table's dotted key) prefixed with the
+        file that holds that key (or its table), the key renumbered as in that file; else
+        ``default``, the top file (a top-level key missing, a table from two files)."""
+        msg = str(exc)
+        lead = _LEADING_KEY.match(msg)
+        if lead and lead.group().startswith("roofs[") and "roof" in self.tree:
+            return ConfigError(f"{default}: {msg}")  # roofs[0] is then [roof] (_build_walls)
+        node: Any = self.tree
+        rest = ""
+        for step in _KEY_STEP.finditer(lead.group() if lead else ""):
+            name, index = step.groups()
+            if name is not None and isinstance(node, dict) and name in node:
+                node = node[name]
+            elif index is not None and isinstance(node, list) and int(index) < len(node):
+                node = node[int(index)]
+            else:
+                rest = step.string[step.start() :]
+                break
+        leaves = _leaves(node) if node is not self.tree else []
+        files = {file for (file, _), _ in leaves}
+        if len(files) != 1:
+            return ConfigError(f"{default}: {msg}")
+        (file, key), rel = leaves[0]
+        assert lead is not None  # a node was reached
+        msg = key[: len(key) - len(rel)] + rest + msg[lead.end() :]
+        return ConfigError(f"{file}: {msg}{self.via(file)}")
+
+    def via(self, file: str) -> str:
+        """`` (included from top -> ... -> includer)`` for an included file, else ''."""
+        chain = []
+        by = self.by.get(file)
+        while by is not None:
+            chain.append(by)
+            by = self.by.get(by)
+        return f" (included from {' -> '.join(reversed(chain))})" if chain else ""
 
 
 def _resolve_paths(data: dict[str, Any], base: Path) -> None:
@@ -486,8 +588,18 @@ def _build_walls(data: dict[str, Any]) -> tuple[tuple[Wall, ...], tuple[Roof, ..
 
 
 def _parse_time(value: Any) -> datetime:
+    """``start_utc``: an ISO-8601 string or a TOML datetime; one with an offset is converted
+    to UTC, one without (naive) is taken as UTC, as is a date alone (its 00:00). A TOML time
+    of day alone has no date: refused."""
     if isinstance(value, datetime):
         dt = value
+    elif isinstance(value, date):  # a TOML date (1979-05-27): as the string "1979-05-27"
+        dt = datetime.combine(value, dt_time())
+    elif isinstance(value, dt_time):
+        raise ConfigError(
+            f"start_utc: {value.isoformat()} is a time of day without a date; give a date "
+            "and time, e.g. 2020-01-01T12:00:00Z"
+        )
     elif isinstance(value, str):
         try:
             dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
@@ -736,7 +848,7 @@ def _toml_value(value: Any) -> str:
         return repr(value)
     if isinstance(value, str):
         return json.dumps(value, ensure_ascii=False)
-    if isinstance(value, datetime):
+    if isinstance(value, date):  # a datetime or a date (start_utc)
         return value.isoformat()
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
