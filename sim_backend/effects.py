@@ -401,6 +401,29 @@ def _positive(name: str, value: float, allow_zero: bool = False) -> None:
         raise ConfigError(f"{name}={value!r}: must be {'>= 0' if allow_zero else '> 0'}")
 
 
+# Magnitude bounds. A finite but huge parameter (1e300) passed the finite check and then
+# crashed the run (OverflowError squaring it) or printed NMEA positions hundreds of digits
+# long; beyond these no receiver or compass is modelled. (A sum of many layers each within
+# its bound is not bounded.)
+MAX_BIAS_M = 100_000.0
+"""The largest error magnitude (m): a bias per axis, a sigma, a multipath bias, a distance."""
+MAX_WALK_M_PER_SQRT_S = MAX_BIAS_M / math.sqrt(30 * 86400.0)
+"""The largest random walk (~62 m/sqrt(s)): 1 sigma after the longest run (30 days) within
+MAX_BIAS_M."""
+MAX_FACTOR = 1000.0
+"""The largest noise_scale / correction factor (the gap tool's fits search 0.005-50)."""
+MAX_FRAME_M = 1e6
+"""The largest coordinate (m) in the scenario's local frame (as its waypoints_enu)."""
+MAX_HEADING_SIGMA_DEG = 180.0
+"""The largest heading noise (deg): beyond it the heading is all noise anyway."""
+
+
+def _bounded(name: str, value: float, bound: float, unit: str, signed: bool = False) -> None:
+    if not abs(value) <= bound:  # NaN fails too
+        rule = f"within +-{bound:g}" if signed else f"<= {bound:g}"
+        raise ConfigError(f"{name}={value!r}: must be {rule} {unit}".rstrip())
+
+
 def _add(series: PositionSeries, delta: np.ndarray) -> PositionSeries:
     """Series plus a (3, n) east/north/up error."""
     return series.with_(
@@ -601,6 +624,7 @@ class GaussMarkov(GpsLayer):
 
     def __post_init__(self) -> None:
         _positive("sigma_m", self.sigma_m, allow_zero=True)
+        _bounded("sigma_m", self.sigma_m, MAX_BIAS_M, "m")
         _positive("tau_s", self.tau_s)
         _axes(self.axes)
         if self.order not in (1, 2):
@@ -633,6 +657,7 @@ class RandomWalk(GpsLayer):
 
     def __post_init__(self) -> None:
         _positive("q_m_per_sqrt_s", self.q_m_per_sqrt_s, allow_zero=True)
+        _bounded("q_m_per_sqrt_s", self.q_m_per_sqrt_s, MAX_WALK_M_PER_SQRT_S, "m/sqrt(s)")
         _axes(self.axes)
 
     def start(self, rng: np.random.Generator) -> LayerRun:
@@ -663,9 +688,6 @@ class _RandomWalkRun(_Run):
         return _add(batch, delta)
 
 
-MAX_BIAS_M = 100_000.0  # the largest bias offset per axis (m)
-
-
 @dataclass(frozen=True)
 class Bias(GpsLayer):
     """Constant offset (m) east, north, up."""
@@ -677,12 +699,7 @@ class Bias(GpsLayer):
 
     def __post_init__(self) -> None:
         for key in ("east_m", "north_m", "up_m"):
-            value = getattr(self, key)
-            if not abs(value) <= MAX_BIAS_M:  # NaN fails too
-                raise ConfigError(
-                    f"{key}={value!r}: must be within +-{MAX_BIAS_M:g} m (an offset beyond"
-                    " 100 km is no receiver's error; east_m = 1e300 crashed the NMEA output)"
-                )
+            _bounded(key, getattr(self, key), MAX_BIAS_M, "m", signed=True)
 
     def start(self, rng: np.random.Generator) -> LayerRun:
         """The constant offset (no state, no draws)."""
@@ -762,6 +779,8 @@ class Jumps(GpsLayer):
         _positive("sigma_m", self.sigma_m, allow_zero=True)
         _positive("rate_per_s", self.rate_per_s, allow_zero=True)
         _positive("up_sigma_m", self.up_sigma_m, allow_zero=True)
+        _bounded("sigma_m", self.sigma_m, MAX_BIAS_M, "m")
+        _bounded("up_sigma_m", self.up_sigma_m, MAX_BIAS_M, "m")
         if self.trigger not in JUMP_TRIGGERS:
             raise ConfigError(f"trigger={self.trigger!r}: expected one of {list(JUMP_TRIGGERS)}")
 
@@ -966,6 +985,10 @@ class MultipathZone(GpsLayer):
         _positive("distance_m", self.distance_m)
         _positive("sigma_m", self.sigma_m, allow_zero=True)
         _positive("tau_s", self.tau_s)
+        for key in ("x1_m", "y1_m", "x2_m", "y2_m"):  # 1e300 overflowed the wall's geometry
+            _bounded(key, getattr(self, key), MAX_FRAME_M, "m", signed=True)
+        _bounded("sigma_m", self.sigma_m, MAX_BIAS_M, "m")
+        _bounded("bias_m", self.bias_m, MAX_BIAS_M, "m", signed=True)
         if (self.x1_m, self.y1_m) == (self.x2_m, self.y2_m):
             raise ConfigError("multipath_zone: wall end points coincide")
 
@@ -1167,6 +1190,7 @@ class NoiseScale(GpsLayer):
 
     def __post_init__(self) -> None:
         _positive("factor", self.factor, allow_zero=True)
+        _bounded("factor", self.factor, MAX_FACTOR, "")
         _positive("split_tau_s", self.split_tau_s)
         _axes(self.axes)
 
@@ -1190,6 +1214,7 @@ class Correction(GpsLayer):
 
     def __post_init__(self) -> None:
         _positive("factor", self.factor, allow_zero=True)
+        _bounded("factor", self.factor, MAX_FACTOR, "")
         _positive("tau_s", self.tau_s)
         _axes(self.axes)
 
@@ -1212,6 +1237,7 @@ class StaticHold(GpsLayer):
 
     def __post_init__(self) -> None:
         _positive("exit_distance_m", self.exit_distance_m)
+        _bounded("exit_distance_m", self.exit_distance_m, MAX_BIAS_M, "m")
         _positive("speed_threshold_mps", self.speed_threshold_mps, allow_zero=True)
 
     def start(self, rng: np.random.Generator) -> LayerRun:
@@ -1432,6 +1458,7 @@ class HeadingNoise(CompassLayer):
 
     def __post_init__(self) -> None:
         _positive("sigma_deg", self.sigma_deg, allow_zero=True)
+        _bounded("sigma_deg", self.sigma_deg, MAX_HEADING_SIGMA_DEG, "deg")
 
     def act_on(self, phys: CompassPhysics) -> CompassPhysics:
         """White heading noise adds up in variance (turned into field noise by the caller)."""

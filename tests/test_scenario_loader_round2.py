@@ -1,17 +1,23 @@
 """The scenario loader after a second outside audit of ``x6wd sim``: a file included twice (a
 diamond applied once, a file listed twice refused, a cycle refused); an error in an included
 file names that file, the include chain and the key as numbered there; start_utc as a TOML
-date or time. Bad configuration must stop with exit 2 and a message naming the
+date or time; effect parameters of 1e300 that crashed the run or printed NMEA positions
+hundreds of digits long. Bad configuration must stop with exit 2 and a message naming the
 key and the file, never a traceback. Each test was watched to fail on the code before its
 fix (except the pins said to pass before)."""
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import typing
+import warnings
 from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
 
+from sim_backend.effects import EFFECTS
 from sim_backend.world import load_world, loads_world
 from x6wd.app import cli
 from x6wd.core.errors import ConfigError
@@ -171,3 +177,104 @@ def test_a_toml_time_of_day_is_refused_saying_it_has_no_date(
     rc, err = _sim(tmp_path, path, capsys)
     assert rc == 2 and "Traceback" not in err
     assert f"{path}: start_utc: 12:00:00 is a time of day without a date" in err
+
+
+# --- 5. effect parameters of +-1e300 -----------------------------------------------------------
+
+VALID: dict[str, dict[str, float]] = {
+    "gauss_markov": {"sigma_m": 1.0, "tau_s": 10.0},
+    "random_walk": {"q_m_per_sqrt_s": 0.1},
+    "jumps": {"sigma_m": 1.0},
+    "outages": {"mean_up_s": 100.0, "mean_down_s": 5.0},
+    "outage": {"start_s": 1.0, "duration_s": 1.0},
+    "latency": {"delay_s": 0.2},
+    "multipath_zone": {"x1_m": 0.0, "y1_m": 0.0, "x2_m": 10.0, "y2_m": 0.0, "distance_m": 5.0},
+    "nav_filter": {"tau_s": 2.0},
+    "noise_scale": {"factor": 0.5},
+    "static_hold": {"exit_distance_m": 1.0},
+    "correction": {"factor": 0.5},
+    "hard_iron": {"bx_ut": 1.0, "by_ut": 2.0},
+    "soft_iron": {"k": 0.1},
+    "declination": {"declination_deg": 2.0},
+    "heading_noise": {"sigma_deg": 1.0},
+}
+# a route, so the robot engine runs (the compass layers act only there)
+ROUTE = "[mission]\nwaypoints_enu = [[30.0, 0.0], [30.0, 30.0]]\n"
+# sim_backend.effects' bounds, as literals so that this file loads on the code before them
+MAX_M, MAX_FACTOR, MAX_FRAME_M = 100_000.0, 1000.0, 1e6
+MAX_WALK = MAX_M / math.sqrt(30 * 86400.0)
+BOUNDS = {  # the bounded parameters at their bound: still accepted
+    ("bias", "east_m"): -MAX_M,
+    ("gauss_markov", "sigma_m"): MAX_M,
+    ("random_walk", "q_m_per_sqrt_s"): MAX_WALK,
+    ("jumps", "sigma_m"): MAX_M,
+    ("jumps", "up_sigma_m"): MAX_M,
+    ("multipath_zone", "x1_m"): -MAX_FRAME_M,
+    ("multipath_zone", "sigma_m"): MAX_M,
+    ("multipath_zone", "bias_m"): -MAX_M,
+    ("noise_scale", "factor"): MAX_FACTOR,
+    ("correction", "factor"): MAX_FACTOR,
+    ("static_hold", "exit_distance_m"): MAX_M,
+    ("heading_noise", "sigma_deg"): 180.0,
+}
+
+
+def _effect(name: str, params: dict[str, object]) -> str:
+    lines = [f'name = "{name}"'] + [f"{k} = {v}" for k, v in params.items()]
+    return "[[effects]]\n" + "\n".join(lines) + "\n"
+
+
+def _huge_cases() -> list[tuple[str, str, str]]:
+    out = []
+    for name, cls in EFFECTS.items():
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if hints[f.name] is float:
+                out += [(name, f.name, "1e300"), (name, f.name, "-1e300")]
+    return out
+
+
+@pytest.mark.parametrize(("name", "key", "value"), _huge_cases())
+def test_a_huge_effect_parameter_is_refused_or_runs_sanely(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str, key: str, value: str
+) -> None:
+    # Before: heading_noise.sigma_deg and static_hold.exit_distance_m crashed the run
+    # (OverflowError); gauss_markov/jumps/multipath_zone sigma_m, jumps.up_sigma_m,
+    # multipath_zone.bias_m, random_walk.q_m_per_sqrt_s and the noise_scale/correction
+    # factors printed NMEA fields of hundreds of digits; multipath_zone.x1_m/y1_m overflowed
+    # the wall geometry. Either a load-time refusal naming the key (exit 2), or a run whose
+    # NMEA sentences are of NMEA's length (<= 82 characters) with finite numbers.
+    params = {**VALID.get(name, {}), key: value}
+    path = _write(tmp_path, "s.toml", BASE + ROUTE + _effect(name, params))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rc, err = _sim(tmp_path, path, capsys, "--duration", "20")
+    assert "Traceback" not in err
+    assert not [w for w in caught if "overflow" in str(w.message)]
+    if rc == 2:
+        assert f"{path}: effects[0] ({name}): " in err and f"{key}={float(value)!r}: must be" in err
+        return
+    assert rc in (0, 1), err
+    nmea = (tmp_path / "o" / "gps.nmea").read_text().splitlines()
+    assert nmea and max(len(s) for s in nmea) <= 82
+    assert not any(w in s.lower() for s in nmea for w in ("nan", "inf"))
+
+
+@pytest.mark.parametrize(("name", "key"), list(BOUNDS))
+def test_an_effect_parameter_at_its_bound_loads(tmp_path: Path, name: str, key: str) -> None:
+    params = {**VALID.get(name, {}), key: repr(BOUNDS[name, key])}
+    if name == "multipath_zone":
+        params["x2_m"] = "10.0"
+    world = load_world(_write(tmp_path, "s.toml", BASE + _effect(name, params)))
+    assert getattr(world.effect_objects()[0], key) == BOUNDS[name, key]
+
+
+def test_the_bounds_here_are_the_modules() -> None:
+    from sim_backend import effects
+
+    assert (effects.MAX_BIAS_M, effects.MAX_FACTOR, effects.MAX_FRAME_M) == (
+        MAX_M,
+        MAX_FACTOR,
+        MAX_FRAME_M,
+    )
+    assert (effects.MAX_WALK_M_PER_SQRT_S, effects.MAX_HEADING_SIGMA_DEG) == (MAX_WALK, 180.0)
