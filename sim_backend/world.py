@@ -80,6 +80,7 @@ import numpy as np
 
 from sim_backend.atmosphere import Atmosphere
 from sim_backend.buildings import Hole, Roof, Wall, Walls, Window, building
+from sim_backend.compass import CompassSetup
 from sim_backend.nmea_out import MINUTE_DECIMALS
 from sim_backend.odometry import EncoderParams
 from sim_backend.vehicle import STUCK_MODES, check_stuck
@@ -751,6 +752,11 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
     walls, roofs = _build_walls(data)
     vehicle = build(VehicleSettings, _table(data, "vehicle"), "vehicle.")
     compass = dict(_table(data, "compass"))
+    try:  # checked here, not at the run's start, so an error names the file like any other
+        CompassSetup.from_table(compass)
+    except ConfigError as exc:
+        msg = str(exc)  # CompassErrors' own messages lead with the bare key
+        raise ConfigError(msg if msg.startswith("compass.") else f"compass.{msg}") from exc
     effects = tuple(dict(e) for e in _table_list(data, "effects"))
     _check_effects(effects)
     mission = build(MissionSettings, _table(data, "mission"), "mission.")

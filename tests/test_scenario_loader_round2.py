@@ -278,3 +278,32 @@ def test_the_bounds_here_are_the_modules() -> None:
         MAX_FRAME_M,
     )
     assert (effects.MAX_WALK_M_PER_SQRT_S, effects.MAX_HEADING_SIGMA_DEG) == (MAX_WALK, 180.0)
+
+
+# --- 3. [compass] errors name the file -------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("foo = 1.0\n", "compass.foo: unknown key"),
+        ("noise_ut = -1.0\n", "compass.noise_ut: must be within 0..100, got -1.0"),
+        ("hard_iron_ut = [1.0, 2.0]\n", "compass.hard_iron_ut needs 3 components"),
+        (
+            "soft_iron = [[0.0, 0, 0], [0, 0, 0], [0, 0, 0]]\n",
+            "compass.soft_iron matrix is singular",
+        ),
+    ],
+)
+def test_a_compass_error_names_the_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, message: str
+) -> None:
+    # was raised at the run's start, without the file ("x6wd sim: error: compass.foo: ...")
+    path = _write(tmp_path, "s.toml", BASE + "[compass]\n" + text)
+    rc, err = _sim(tmp_path, path, capsys)
+    assert rc == 2 and "Traceback" not in err
+    assert f"x6wd sim: error: {path}: {message}" in err
+    inc = _write(tmp_path, "inc.toml", "[compass]\n" + text)
+    top = _write(tmp_path, "s.toml", 'include = ["inc.toml"]\n' + BASE)
+    with pytest.raises(ConfigError, match=rf"^{inc}: compass\."):
+        load_world(top)

@@ -74,7 +74,7 @@ slope_east_pct = 5.0
 
 [compass]
 declination_deg = 7.5
-noise_deg = 1.0
+noise_ut = 1.0
 
 [[effects]]
 name = "gauss_markov"
@@ -115,7 +115,7 @@ def test_full_scenario_loads(tmp_path: Path) -> None:
     assert world.walls[0].windows[0].u1_m == 21.0
     assert world.roofs[0].holes[0].x1_m == 1.0
     assert world.vehicle.max_speed_mps == 2.0 and world.vehicle.slope_east_pct == 5.0
-    assert world.compass == {"declination_deg": 7.5, "noise_deg": 1.0}
+    assert world.compass == {"declination_deg": 7.5, "noise_ut": 1.0}
     assert world.effects[0]["name"] == "gauss_markov"
     (eff,) = world.effect_objects()
     assert eff.name == "gauss_markov"
@@ -345,11 +345,11 @@ def test_merge_fragment_appends_effects(tmp_path: Path) -> None:
         "effects.toml",
         '[[effects]]\nname = "quantization"\ndecimals = 4\n'
         '[[effects]]\nname = "latency"\ndelay_s = 0.5\n'
-        "[compass]\nnoise_deg = 2.0\n",
+        "[compass]\nnoise_ut = 2.0\n",
     )
     merged = merge_fragment(world, frag)
     assert [e["name"] for e in merged.effects] == ["gauss_markov", "quantization", "latency"]
-    assert merged.compass == {"declination_deg": 7.5, "noise_deg": 2.0}
+    assert merged.compass == {"declination_deg": 7.5, "noise_ut": 2.0}
     assert merged.walls == world.walls and merged.seed == world.seed
     assert world.effects[-1]["name"] == "gauss_markov"  # the original is unchanged
     assert len(merged.effect_objects()) == 3
