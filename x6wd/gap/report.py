@@ -20,8 +20,8 @@ from x6wd.gap.compass import (
     heading_error_deg,
     regression,
 )
-from x6wd.gap.diagnose import Diagnosis, report_dict, verdict_text
-from x6wd.gap.level import Calibration
+from x6wd.gap.diagnose import Diagnosis, headline, report_dict, verdict_text
+from x6wd.gap.level import Calibration, closeness_text
 from x6wd.gap.null import NullModel
 from x6wd.gap.stats import acf, allan_var, octave_taus, regular
 from x6wd.gap.validate import Validation, direction_text, own_mean
@@ -74,12 +74,16 @@ def effects_toml(
     scenario's local frame, where the simulator evaluates zones."""
     gps = list(diagnosis.selected)
     if calibrated and diagnosis.calibration is not None:
-        gps += diagnosis.calibration.layers
+        c = diagnosis.calibration
+        gps += c.layers
         lines = [
             f"{_OUR_HEADER} fitted effects ({verdict_text(diagnosis)}), then the level calibration",
             "# (in sample: fitted to seed 000's validation figures on this very log, see",
             '# report.md); use it INSTEAD of effects.toml: include = ["calibrated.toml"]',
         ]
+        if not c.layers:
+            lines.append("# no level layer is kept: this file holds the selected effects only")
+        lines += [f"# level layer left out: {name}: {why}" for name, why in c.left_out]
     else:
         lines = [
             f"{_OUR_HEADER} fitted effects ({verdict_text(diagnosis)})",
@@ -122,6 +126,7 @@ def merged_report(diagnosis: Diagnosis, compass: CompassDiagnosis | None) -> dic
     ``verdict.explained``: no significant gap is left unexplained in either half."""
     report = report_dict(diagnosis)
     if compass is None:
+        report["verdict"].update(headline(diagnosis))
         return report
     compass_report = compass_report_dict(compass)
     report["where"] = sorted(
@@ -140,6 +145,15 @@ def merged_report(diagnosis: Diagnosis, compass: CompassDiagnosis | None) -> dic
         "effect": max(found)[1] if found else None,
         "explained": all(half.explained or not half.significant for half in (diagnosis, compass)),
     }
+    halves = {"gps": headline(diagnosis), "heading": headline(compass)}
+    # the headline's figures are those of the half verdict.effect names (the GPS half's when
+    # neither is explained); the status sums both halves
+    named = compass if found and max(found)[1] == compass.selected[0].name else diagnosis
+    statuses = {h["status"] for h in halves.values()} - {"no_gap"}
+    status = (
+        "no_gap" if not statuses else statuses.pop() if len(statuses) == 1 else "partly_explained"
+    )
+    report["verdict"].update({**headline(named), "status": status, "halves": halves})
     return report
 
 
@@ -284,6 +298,7 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
     """report.md text."""
     layout = diagnosis.layout
     motion = "moving" if layout.moving else "static"
+    head = report["verdict"] if "status" in report["verdict"] else headline(diagnosis)
     lines = [
         f"# Sim-to-real gap: {real_name}",
         "",
@@ -302,12 +317,15 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
         f"- {split_text(diagnosis.split_s)}",
         f"- gap G (mean clipped z^2 on the held-out part): baseline "
         f"{diagnosis.g_baseline:.2f}, floor {diagnosis.g_floor:.2f} (sim vs sim), with the "
-        f"selected effects {diagnosis.g_with:.2f}; closure {diagnosis.closure:.2f}"
+        f"selected effects {diagnosis.g_with:.2f}; closure "
         + (
-            f" (90 % interval {diagnosis.closure_ci[0]:.2f} to {diagnosis.closure_ci[1]:.2f})"
-            if diagnosis.selected
-            else " (no effect selected)"
+            f"{head['closure']:.2f} (90 % interval {head['closure_ci'][0]:.2f} to "
+            f"{head['closure_ci'][1]:.2f}; report.json's verdict.closure, verdict.closure_ci)"
+            if head["closure"] is not None
+            else f"{diagnosis.closure:.2f} (no effect selected)"
         ),
+        f"- verdict status: {head['status']} (report.json's verdict.status; with a compass "
+        "half, verdict.halves.gps.status)",
     ]
     lines += [f"- note: {note}" for note in diagnosis.notes]
     lines += ["", "## Where", ""]
@@ -351,6 +369,16 @@ def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figur
                 f"{'yes' if cand.fit.name in selected else ''} |"
             )
         lines += ["", "The selected effects are in `effects.toml` (a scenario fragment)."]
+        if head["closure"] is not None:
+            lines += [
+                "",
+                f"Each row's closure is that effect's alone on the baseline, scored on the draw "
+                "it was offered with in the first round (report.json's effects[].closure, "
+                f"closure_ci). The verdict's, {head['closure']:.2f} "
+                f"({head['closure_ci'][0]:.2f}-{head['closure_ci'][1]:.2f}), is the selection's "
+                f"({' + '.join(head['effects'])}) scored again on fresh pooled draws of its "
+                "effects (report.json's verdict.closure, verdict.closure_ci).",
+            ]
     else:
         lines.append(
             "No candidate was fitted (no significant gap)."
@@ -446,7 +474,7 @@ def uncalibrated_markdown(v: Validation, own: bool = False) -> list[str]:
     why nothing is calibrated (no pass/fail verdict: one log within the seed-to-seed spread
     meets seed 000's tolerance only as far as the runs' own spread allows)."""
     figures = v.figures()
-    within = sum(abs(Validation.rel(sim, real)) <= tol for _label, real, sim, tol in figures)
+    within = sum(bool(Validation.within(sim, real, tol)) for _label, real, sim, tol in figures)
     lines = [
         "## Validation (seed 000's test)",
         "",
@@ -464,12 +492,15 @@ def uncalibrated_markdown(v: Validation, own: bool = False) -> list[str]:
     labels = ["horizontal error mean (m)", "horizontal error sigma (m)"]
     labels += [f"Allan deviation, tau = {tau_s:g} s (m)" for tau_s in v.taus_s]
     for label, (_name, real, sim, tol) in zip(labels, figures, strict=True):
-        rel = Validation.rel(sim, real)
         lines.append(
             f"| {label} | {real:.4g} | {sim:.4g} | {Validation.rel_text(sim, real)} | "
-            f"{'yes' if abs(rel) <= tol else 'no'} | ±{tol:.0%} |"
+            f"{_yes_no(Validation.within(sim, real, tol))} | ±{tol:.0%} |"
         )
     return lines
+
+
+def _yes_no(within: bool | None) -> str:
+    return "n/a" if within is None else ("yes" if within else "no")
 
 
 def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -> list[str]:
@@ -512,17 +543,29 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
         sim_b = fb[2]
         cells = [label, f"{real:.4g}"]
         for sim in (sim_a, sim_b):
-            rel = Validation.rel(sim, real)
             cells += [
                 f"{sim:.4g}",
                 Validation.rel_text(sim, real),
-                "yes" if abs(rel) <= tol else "no",
+                _yes_no(Validation.within(sim, real, tol)),
             ]
         lines.append("| " + " | ".join([*cells, f"±{tol:.0%}"]) + " |")
     lines += ["", "Level calibration (after the selected effects; `calibrated.toml`):", ""]
     lines += [f"- {fit.name}: {_params_text(fit)}" for fit in c.layers]
+    if not c.layers:
+        lines.append(
+            "- no level layer is kept: `calibrated.toml` holds the selected effects only, and "
+            "(b) is (a)"
+        )
     if c.at_edge:
         lines.append(f"- at the edge of the search: {', '.join(c.at_edge)}")
+    if c.held_out is not None and c.held_out_s is not None:
+        before, after = c.held_out
+        lines.append(
+            f"- held-out check (the layers fitted on the fit part, validated on t "
+            f"{c.held_out_s[0]:.0f}-{c.held_out_s[1]:.0f} s): without them "
+            f"{closeness_text(before)}; with them {closeness_text(after)}"
+        )
+    lines += [f"- left out: {name}: {why}" for name, why in c.left_out]
     lines += [
         "",
         "(b) is **in sample**: its layers are fitted to these very figures on this very log, "
@@ -537,7 +580,9 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
         "error does not change it). "
         "`calibrated.toml` is `effects.toml` with the calibration's layers after the "
         "selected effects: a scenario fragment to use instead of it, to simulate this "
-        "receiver at its level.",
+        "receiver at its level. A level layer is written only when the explanation or the "
+        "test asks for it and, fitted on the fit part, it leaves the held-out part at least "
+        "as close to the real log (mean and sigma, and the Allan octaves) as without it.",
     ]
     return lines
 
@@ -551,6 +596,7 @@ def _validation_json(v: Validation) -> dict[str, Any]:
     figures = []
     for label, real, sim, tol in v.figures():
         rel = Validation.rel(sim, real)
+        within = Validation.within(sim, real, tol)
         figures.append(
             {
                 "figure": label,
@@ -558,7 +604,8 @@ def _validation_json(v: Validation) -> dict[str, Any]:
                 "simulated": _num(sim),
                 "difference": _num(rel),
                 "tolerance": tol,
-                "pass": abs(rel) <= tol,
+                # null: the simulated logs do not reach this octave (they are shorter)
+                "pass": within,
             }
         )
     label, rel = v.worst()
@@ -600,6 +647,17 @@ def validation_dict(c: Calibration) -> dict[str, Any]:
         "in_sample": True,
         "evaluations": c.evaluations,
         "at_edge": list(c.at_edge),
+        # the level layers not written, and why; the held-out check of those written
+        "left_out": [{"name": name, "why": why} for name, why in c.left_out],
+        "held_out": (
+            None
+            if c.held_out is None or c.held_out_s is None
+            else {
+                "part_s": [_num(c.held_out_s[0]), _num(c.held_out_s[1])],
+                "without": _validation_json(c.held_out[0]),
+                "with": _validation_json(c.held_out[1]),
+            }
+        ),
     }
 
 
