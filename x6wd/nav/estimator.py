@@ -4,7 +4,7 @@ State (local tangent plane, east/north metres; headings are BEARINGS, clockwise 
 north, radians)::
 
     x = [east_m, north_m, heading_rad, speed_mps, yaw_rate_rps, bias_east_m, bias_north_m,
-         turn_scale, drift_rad_per_m, compass_offset_rad]
+         turn_scale, drift_rad_per_m, compass_offset_rad, travel_scale]
 
 ``yaw_rate_rps`` is clockwise positive (the compass sense). The two bias states are the
 slowly varying part of the GPS error (first-order Gauss-Markov); they exist only when
@@ -19,6 +19,13 @@ compass observing it in turns; ``drift_rad_per_m`` takes up unequal wheel diamet
 apart on a 0.245 m track is 0.04 rad per metre driven), the compass observing it on straights.
 Both start at the calibration's values (1, 0) with :class:`OdometryParams`'s uncertainty and
 wander slowly (surface, load). In mode GPS_COMPASS they stay where they are.
+
+``travel_scale`` multiplies the wheels' mean travel: ``ds = travel_scale·(dl + dr)/2``. Wheel
+diameters a few per cent off (tyre pressure, wear, load, a config rounded) made dead
+reckoning run steadily ahead of or behind the fixes; without this state the GPS bias states
+took the offset up as "slow GPS error" (10-33 m behind on a 500 m leg with wheels 10 %
+small, σ reading 2 m, the robot past its waypoint). The fixes observe it on every straight,
+as the along-track innovation grows with the distance driven.
 
 ``compass_offset_rad`` is what the compass reads above the true bearing, constant over
 headings: its mounting, a declination the robot has wrong (WMM off its dates, a site's
@@ -36,8 +43,8 @@ Inputs (see docs/navigation.md for the equations):
 
 - :meth:`Estimator.on_odometry` (mode ODOMETRY): wheel travel ``d_left_m``, ``d_right_m`` since
   the previous increment. The increment drives the prediction (the paper's odometry motion
-  model): ``ds = (dl + dr)/2``, ``dψ = (dl − dr)/track_m`` (left ahead turns clockwise), the pose
-  moves along the mid-step heading, and the wheel-travel covariance
+  model): ``ds = travel_scale·(dl + dr)/2``, ``dψ = (dl − dr)/track_m`` (left ahead turns
+  clockwise), the pose moves along the mid-step heading, and the wheel-travel covariance
   ``diag(k_left·|dl|, k_right·|dr|)`` (seed 003) plus a skid-slip term ``k_slip·|dψ|`` is
   propagated through the Jacobian into the process noise. Speed and yaw rate are set from the
   increment's rates; between increments the pose is extrapolated with them.
@@ -97,12 +104,12 @@ import numpy.typing as npt
 
 from x6wd.core.errors import X6wdError
 
-E, N, PSI, V, W, BE, BN, KT, BA, CO = range(10)
+E, N, PSI, V, W, BE, BN, KT, BA, CO, TS = range(11)
 # The drift rule's direction (Estimator._gps_agreement): a steady drift of refused fixes
 # within this angle of the heading (either way) is travel counted wrong.
 DRIFT_ALONG_DEG = 30.0
 DRIFT_ALONG_COS = math.cos(math.radians(DRIFT_ALONG_DEG))
-NX = 10
+NX = 11
 _TWO_PI = 2.0 * math.pi
 _EYE = np.eye(NX)
 _EYE.flags.writeable = False  # copied, never written: np.eye per call cost more than the math
@@ -152,9 +159,10 @@ class OdometryParams:
     steer often 1.2-2× the geometric one); ``k_left_m``, ``k_right_m``: variance of a wheel's
     travel per metre it travelled (m²/m, so metres); ``k_slip_rad``: extra heading variance per
     radian turned (rad²/rad), the skid-steer slip the encoders do not see.
-    ``sigma_turn_scale``, ``sigma_drift_rad_per_m``: the initial uncertainty of the two
-    online calibration states (see the module docstring; 0 freezes them at 1 and 0), and
-    their random walks per second (``*_walk_*``, one sigma after 1 s).
+    ``sigma_turn_scale``, ``sigma_drift_rad_per_m``, ``sigma_travel_scale``: the initial
+    uncertainty of the three online calibration states (see the module docstring; 0 freezes
+    them at 1, 0 and 1), and their random walks per second (``*_walk_*``, one sigma after
+    1 s).
     """
 
     track_m: float
@@ -165,8 +173,12 @@ class OdometryParams:
     sigma_drift_rad_per_m: float = 0.1
     turn_scale_walk_per_s: float = 1e-3
     drift_walk_rad_per_m_per_s: float = 1e-5
+    sigma_travel_scale: float = 0.1
+    travel_scale_walk_per_s: float = 1e-4
 
     def __post_init__(self) -> None:
+        _pos("sigma_travel_scale", self.sigma_travel_scale, zero_ok=True)
+        _pos("travel_scale_walk_per_s", self.travel_scale_walk_per_s, zero_ok=True)
         _pos("sigma_turn_scale", self.sigma_turn_scale, zero_ok=True)
         _pos("sigma_drift_rad_per_m", self.sigma_drift_rad_per_m, zero_ok=True)
         _pos("turn_scale_walk_per_s", self.turn_scale_walk_per_s, zero_ok=True)
@@ -325,7 +337,7 @@ class Update:
 class Estimate:
     """The filter's state at ``t_s`` (s): position (m), true bearing ``heading_deg`` in
     [0, 360), ``speed_mps``, clockwise ``yaw_rate_dps``, one-sigma uncertainties, and the
-    odometry's online calibration (``turn_scale``, ``drift_deg_per_m``)."""
+    odometry's online calibration (``turn_scale``, ``drift_deg_per_m``, ``travel_scale``)."""
 
     t_s: float
     east_m: float
@@ -339,6 +351,7 @@ class Estimate:
     turn_scale: float = 1.0
     drift_deg_per_m: float = 0.0
     compass_offset_deg: float = 0.0
+    travel_scale: float = 1.0
 
 
 @dataclass
@@ -451,6 +464,7 @@ class Estimator:
                 x[KT],
                 math.degrees(x[BA]),
                 math.degrees(x[CO]),
+                x[TS],
             )
         return est
 
@@ -529,6 +543,7 @@ class Estimator:
         if odo is not None and self._odometry_mode:
             q[KT, KT] = odo.turn_scale_walk_per_s**2 * h
             q[BA, BA] = odo.drift_walk_rad_per_m_per_s**2 * h
+            q[TS, TS] = odo.travel_scale_walk_per_s**2 * h
         q[E, E] = q[N, N] = self._q_v * h**3 / 3.0
         if self._estimate_offset:
             q[CO, CO] = self._q_co * h
@@ -600,8 +615,9 @@ class Estimator:
             dl_rate, dr_rate = dl, dr
         x = self._x
         xs = x.tolist()  # plain floats: the same IEEE arithmetic as numpy scalars, faster
-        kt, ba = xs[KT], xs[BA]
-        ds = 0.5 * (dl + dr)
+        kt, ba, ts = xs[KT], xs[BA], xs[TS]
+        ds_wheels = 0.5 * (dl + dr)
+        ds = ts * ds_wheels
         diff = (dl - dr) / odo.track_m  # the wheels' heading change, rad
         dpsi = kt * diff + ba * ds
         ds_corr = ds - xs[V] * span
@@ -615,16 +631,19 @@ class Estimator:
         f[PSI, W] = -span
         f[PSI, KT] = diff
         f[PSI, BA] = ds
+        f[PSI, TS] = ba * ds_wheels
         f[E, V] = -span * s
         f[N, V] = -span * c
         f[E, PSI] = ds_corr * c
         f[N, PSI] = -ds_corr * s
+        f[E, TS] = ds_wheels * s
+        f[N, TS] = ds_wheels * c
         # Jacobian of the pose wrt the wheel travels (a, b) and their covariance (seed 003)
-        g_a = kt / odo.track_m + 0.5 * ba  # d dpsi / d a
-        g_b = -kt / odo.track_m + 0.5 * ba
+        g_a = kt / odo.track_m + 0.5 * ba * ts  # d dpsi / d a
+        g_b = -kt / odo.track_m + 0.5 * ba * ts
         j = np.zeros((NX, 2))
-        j[E, 0] = j[E, 1] = 0.5 * s
-        j[N, 0] = j[N, 1] = 0.5 * c
+        j[E, 0] = j[E, 1] = 0.5 * ts * s
+        j[N, 0] = j[N, 1] = 0.5 * ts * c
         j[PSI, 0] = g_a
         j[PSI, 1] = g_b
         k_l, k_r = odo.k_left_m + slip_m, odo.k_right_m + slip_m
@@ -634,16 +653,16 @@ class Estimator:
         # speed and yaw rate from the whole increment's rates
         dl, dr = dl_rate, dr_rate
         if span > 0:
-            x[V] = 0.5 * (dl + dr) / span
-            x[W] = (kt * (dl - dr) / odo.track_m + ba * 0.5 * (dl + dr)) / span
-            var_v = 0.25 * (k_l * abs(dl) + k_r * abs(dr)) / span**2
+            x[V] = ts * 0.5 * (dl + dr) / span
+            x[W] = (kt * (dl - dr) / odo.track_m + ba * ts * 0.5 * (dl + dr)) / span
+            var_v = 0.25 * ts * ts * (k_l * abs(dl) + k_r * abs(dr)) / span**2
             var_w = (k_l * abs(dl) + k_r * abs(dr)) / (odo.track_m * span) ** 2
             var_w += odo.k_slip_rad * abs(dl - dr) / odo.track_m / span**2
             p[V, :] = p[:, V] = 0.0
             p[V, V] = var_v + self._q_v * span
             # W only extrapolates until the next increment replaces the guess: it carries no
             # correlation with the calibration states, which learn from the measured
-            # increments alone (through f[PSI, KT], f[PSI, BA] above)
+            # increments alone (through f[PSI, KT], f[PSI, BA], f[E/N, TS] above)
             p[W, :] = p[:, W] = 0.0
             p[W, W] = var_w + self._q_w * span
         self._p = 0.5 * (p + p.T)
@@ -875,10 +894,11 @@ class Estimator:
             self._p[PSI, CO] = self._p[CO, PSI] = -var_co
         self._p[V, V] = 1.0  # (m/s)²: unknown speed at start, up to the 1.1 m/s top speed
         self._p[W, W] = math.radians(30.0) ** 2
-        self._x[KT] = 1.0  # the odometry calibration as configured ...
+        self._x[KT] = self._x[TS] = 1.0  # the odometry calibration as configured ...
         odo = self.cfg.odometry
         if odo is not None and self.cfg.mode == Mode.ODOMETRY:  # ... and how far to trust it
             self._p[KT, KT] = odo.sigma_turn_scale**2
             self._p[BA, BA] = odo.sigma_drift_rad_per_m**2
+            self._p[TS, TS] = odo.sigma_travel_scale**2
         self._ready = True
         self._pending_fix = self._pending_heading = None

@@ -323,6 +323,7 @@ class EkfSource:
             out["ekf_speed_mps"] = est.speed_mps
             out["odometry_turn_scale"] = est.turn_scale
             out["odometry_drift_deg_per_m"] = est.drift_deg_per_m
+            out["odometry_travel_scale"] = est.travel_scale
         if self.odometry_dropped:
             out["odometry_dropped"] = self.odometry_dropped
         return out
