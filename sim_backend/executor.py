@@ -24,6 +24,16 @@ away) is an outcome with kind ``"executor"``. A worker that dies once costs noth
 the scheduler runs its tasks again on the workers that are left, and the finished results it
 held that were not collected yet (Dask marks them "lost": they are waited for, not lost).
 
+A cluster with no worker at all waits for one, but not for ever: when no worker has been
+connected for ``worker_timeout_s`` (default :data:`WORKER_TIMEOUT_S`, 60 s) in a row, every
+task not finished is an outcome of kind ``"executor"`` saying so (a scheduler no worker
+joined, workers that closed on their first task because they cannot import x6wd, the last
+worker killed). A worker that comes back within that time resets the clock: the tasks go on.
+The same time bounds the wait for ``workers=N`` workers to join an existing scheduler.
+
+A LocalCluster opens no dashboard (Dask's default is one on port 8787, which a second sweep
+on the same machine then finds taken) unless ``dashboard="HOST:PORT"`` asks for one.
+
 Dask is imported only here and only when a cluster backend is entered, so the daemon and
 ``x6wd sim`` never import it, and the package works without the optional ``sweep`` extra.
 """
@@ -50,6 +60,12 @@ from urllib.parse import urlsplit
 from x6wd.core.errors import ConfigError
 
 INSTALL_HINT = "pip install 'x6wd[sweep]' (dask[distributed])"
+
+WORKER_TIMEOUT_S = 60.0
+"""How long (s) :class:`Executor` waits with no worker connected before it gives up the tasks
+not finished (and how long it waits for ``workers=N`` to join an existing scheduler)."""
+WORKER_POLL_S = 1.0
+"""How often (s) the worker count is asked for while no task result is ready."""
 
 
 @dataclass
@@ -175,9 +191,22 @@ class Executor:
         *,
         inline: bool = False,
         connect_timeout_s: float = 30.0,
+        worker_timeout_s: float | None = None,
+        dashboard: str | None = None,
     ) -> None:
         if workers is not None and workers < 1:
             raise ConfigError(f"workers: must be >= 1, got {workers}")
+        if worker_timeout_s is None:
+            worker_timeout_s = WORKER_TIMEOUT_S
+        if not (worker_timeout_s > 0 and math.isfinite(worker_timeout_s)):
+            raise ConfigError(
+                f"worker timeout: expected a positive number of seconds, got {worker_timeout_s!r}"
+            )
+        if dashboard is not None and (scheduler or inline):
+            raise ConfigError(
+                "dashboard: only a LocalCluster started here has one to open (an existing"
+                " scheduler has its own: dask scheduler --dashboard-address)"
+            )
         if scheduler is not None and not scheduler.strip():  # an unset $DASK_SCHEDULER
             raise ConfigError(
                 f"scheduler: empty address {scheduler!r} (expected tcp://HOST:PORT; omit it for"
@@ -189,6 +218,8 @@ class Executor:
         self.workers = workers
         self.inline = inline
         self.connect_timeout_s = connect_timeout_s
+        self.worker_timeout_s = float(worker_timeout_s)
+        self.dashboard = dashboard
         self._cluster: Any = None
         self._client: Any = None
         self._peak_workers = 0  # the most seen at once: those the tasks ran on
@@ -208,7 +239,7 @@ class Executor:
             if self.scheduler:
                 self._client = Client(self.scheduler, timeout=self.connect_timeout_s)
                 if self.workers:
-                    self._client.wait_for_workers(self.workers, timeout=self.connect_timeout_s)
+                    self._wait_for_workers(self.workers)
             else:
                 n = self.workers or os.cpu_count() or 1
                 with _sigint_held():
@@ -216,11 +247,19 @@ class Executor:
                         n_workers=n,
                         threads_per_worker=1,
                         processes=True,
-                        dashboard_address=None,
+                        # dashboard_address=None only leaves out the dashboard's pages: the
+                        # scheduler's HTTP server still took 8787 (or warned it was taken)
+                        dashboard_address=self.dashboard,
+                        scheduler_kwargs=(
+                            {} if self.dashboard else {"dashboard_address": "127.0.0.1:0"}
+                        ),
                         silence_logs=logging.ERROR,
                         preload=[WORKER_IGNORES_SIGINT],
                     )
                 self._client = Client(self._cluster)
+        except ConfigError:
+            self.close()
+            raise
         except (OSError, TimeoutError) as exc:
             self.close()
             where = self.scheduler or "a LocalCluster"
@@ -230,6 +269,19 @@ class Executor:
             raise
         self._peak_workers = self.worker_count()
         return self
+
+    def _wait_for_workers(self, n: int) -> None:
+        """Wait until ``n`` workers have joined the scheduler (at most ``worker_timeout_s``);
+        the scheduler was reached, so a timeout says how many came, not "cannot reach"."""
+        try:
+            self._client.wait_for_workers(n, timeout=self.worker_timeout_s)
+        except TimeoutError:
+            have = self.worker_count()
+            raise ConfigError(
+                f"scheduler {self.scheduler} answered, but only {have} of the {n} workers asked"
+                f" for (--workers {n}) joined within {self.worker_timeout_s:g} s: start more"
+                f" (dask worker {self.scheduler}), or ask for fewer"
+            ) from None
 
     def __exit__(
         self,
@@ -273,8 +325,18 @@ class Executor:
         """Workers connected now (1 in this process)."""
         if self.inline or self._client is None:
             return 1
-        info = self._client.scheduler_info()
-        return len(info.get("workers", {}))
+        info = self._client.scheduler_info(n_workers=0)  # the count, not every worker's facts
+        n = info.get("n_workers")
+        return int(n) if isinstance(n, int) else len(info.get("workers", {}))
+
+    def _no_worker_message(self) -> str:
+        where = f"the scheduler {self.scheduler}" if self.scheduler else "the LocalCluster"
+        return (
+            f"no Dask worker connected to {where} for {self.worker_timeout_s:g} s: none joined,"
+            " or every worker left or died (a worker that cannot import x6wd's sim_backend"
+            " closes on its first task: see the workers' logs); start workers, then run the"
+            " same command again"
+        )
 
     # -- running ---------------------------------------------------------------------------
     def map_unordered(
@@ -307,7 +369,20 @@ class Executor:
         pending = set(index)
         try:
             done = as_completed(futures)
-            for fut in done:
+            watch = _WorkerWatch(self.worker_count, self.worker_timeout_s)
+            while not done.is_empty():
+                if not done.has_ready():
+                    if watch.gone():  # no worker for the whole timeout: give the rest up
+                        left = sorted(pending, key=index.__getitem__)
+                        self._client.cancel([futures[index[k]] for k in left])
+                        pending.clear()
+                        message = self._no_worker_message()
+                        for k in left:
+                            yield Outcome(index[k], error=message, kind="executor")
+                        return
+                    time.sleep(0.02)
+                    continue
+                fut = next(done)
                 i = index[fut.key]
                 outcome = self._outcome(i, fut)
                 if outcome.kind == "executor" and fut.status == "lost":
@@ -353,6 +428,31 @@ class Executor:
                 yield Outcome(i, error=describe_exception(exc), kind="task")
             else:
                 yield Outcome(i, value=value)
+
+
+class _WorkerWatch:
+    """Whether a cluster has had no worker for ``timeout_s`` in a row; ``count()`` (a call to
+    the scheduler) is asked at most every :data:`WORKER_POLL_S`."""
+
+    def __init__(self, count: Callable[[], int], timeout_s: float) -> None:
+        self.count = count
+        self.timeout_s = timeout_s
+        self._asked = -math.inf
+        self._none_since: float | None = None
+
+    def gone(self) -> bool:
+        now = time.monotonic()
+        if now - self._asked >= WORKER_POLL_S:
+            self._asked = now
+            try:
+                n = self.count()
+            except Exception:  # the scheduler went away: the futures say so in their time
+                n = 1
+            if n > 0:
+                self._none_since = None
+            elif self._none_since is None:
+                self._none_since = now
+        return self._none_since is not None and now - self._none_since >= self.timeout_s
 
 
 class TextProgress:

@@ -35,7 +35,8 @@ the client as results arrive), ``cells/CELL_ID.toml`` (each cell's resolved scen
 cells/CELL_ID.toml --seed SEED`` replays a run), ``sweep.json`` (the plan), and at the end the
 table and summary of :mod:`sim_backend.sweep_report`. Running the same sweep into the same
 directory again (after a crash, Ctrl-C or a change of the grid) skips every run whose file is
-there with the same seed and configuration: only the missing runs are simulated. A directory
+there with the same seed and cell fingerprint (:func:`cell_digest`: the resolved scenario and
+the contents of the files it names): only the missing runs are simulated. A directory
 that holds another sweep (another name or seed in its ``sweep.json``) is refused
 (:func:`check_out_dir`). A run whose
 mission raised is recorded with its error (kept on resume unless ``retry_failed``); a run the
@@ -62,13 +63,15 @@ import time
 import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import UTC, date, datetime
+from datetime import time as clock_time
 from pathlib import Path
 from typing import Any
 
 from sim_backend.executor import Executor, Outcome, describe_exception
 from sim_backend.mission import compass_setup, run_mission
-from sim_backend.sweep_report import FIXED_COLUMNS
+from sim_backend.runs import RunPlan, sky_warnings
+from sim_backend.sweep_report import FIXED_COLUMNS, json_value
 from sim_backend.world import (
     DEFAULT_ALMANAC,
     World,
@@ -77,7 +80,8 @@ from sim_backend.world import (
     loads_world,
     with_robot_config,
 )
-from x6wd.core.errors import ConfigError
+from x6wd.core.config import check_drive_vs_stuck
+from x6wd.core.errors import ConfigError, X6wdError
 
 SWEEP_KEYS = ("name", "seed", "seeds", "scenarios", "robot_config", "set", "grid")
 PATH_KEYS = ("almanac", "gnss.lce_csv")
@@ -238,7 +242,10 @@ def set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
 @dataclass(frozen=True)
 class Cell:
     """One scenario x one combination of the grid's values. ``params`` are the grid's values,
-    ``overrides`` those and [set]; ``world_toml`` the resolved scenario with them applied."""
+    ``overrides`` those and [set]; ``world_toml`` the resolved scenario with them applied;
+    ``files`` the (path, SHA-256) of every file it names (an almanac other than the packaged
+    one), and ``digest`` its fingerprint (:func:`cell_digest`): a run is done only for the
+    same digest. ``warnings``: what ``x6wd sim`` would warn about (its sky)."""
 
     cell_id: str
     scenario: str
@@ -247,6 +254,8 @@ class Cell:
     overrides: dict[str, Any]
     world_toml: str
     digest: str
+    files: tuple[tuple[str, str], ...] = ()
+    warnings: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -271,6 +280,8 @@ def _value_key(value: Any) -> str:
     def norm(v: Any) -> Any:
         if isinstance(v, float) and v.is_integer():
             return int(v)
+        if isinstance(v, datetime) and v.tzinfo is not None:  # one instant, any offset
+            return v.astimezone(UTC).isoformat()
         if isinstance(v, list):
             return [norm(x) for x in v]
         if isinstance(v, dict):
@@ -318,7 +329,8 @@ def cell_world(
     override (:data:`PATH_KEYS`) is relative to ``values_dir`` (default ``base_dir``); the
     TOML names the almanac by its absolute path (the packaged one is left to each worker's
     own install) and carries an LCE CSV's grid inline (``gnss.lce_sigma_m``), so what a
-    worker runs is what was checked here."""
+    worker runs is what was checked here. The checks of a mission's start are
+    :func:`start_checks` (:func:`plan` makes them)."""
     data = copy.deepcopy(table)
     for key, value in overrides.items():
         if _non_finite(value):  # TOML cannot carry it to a worker; no scenario key takes one
@@ -331,11 +343,76 @@ def cell_world(
                 gnss.pop("lce_sigma_m", None)
         set_dotted(data, key, value)
     world = loads_world(dumps_toml(data), base_dir, source=source)
-    compass_setup(world)  # the [compass] table is checked when a mission starts: check it now
     portable = copy.deepcopy(world.raw)  # paths absolute, the LCE CSV read into the table
     if portable.get("almanac") == str(DEFAULT_ALMANAC):
         del portable["almanac"]
     return world, dumps_toml(portable)
+
+
+def start_checks(world: World, sky: dict[tuple[Any, ...], list[str]] | None = None) -> list[str]:
+    """The checks ``x6wd sim`` makes before a mission moves (a :class:`ConfigError` there is
+    its exit 2), called, not copied: :func:`sim_backend.runs.sky_warnings` (it reads the
+    almanac), and :func:`sim_backend.mission.run_mission`'s start: the drive against the stuck
+    failsafe, the [compass] table with the compass effects, and the run's clock
+    (:class:`sim_backend.runs.RunPlan`: the compass rate a whole multiple of the GPS rate).
+    Returns the sky's warnings; ``sky`` caches them by almanac, start and duration."""
+    key = (str(world.almanac_path), world.start_utc.isoformat(), world.duration_s)
+    if sky is None or key not in sky:
+        found = sky_warnings(world)
+        if sky is not None:
+            sky[key] = found
+    else:
+        found = sky[key]
+    check_drive_vs_stuck(world.navigation, world.failsafe)
+    cset, _skipped = compass_setup(world)
+    RunPlan.of(world, None, None, cset.rate_hz)
+    return list(found)
+
+
+def named_files(table: Any) -> list[Path]:
+    """Every existing file a resolved scenario table names by an absolute path (its almanac;
+    any file key to come), in table order, once each. The packaged almanac is no input of the
+    scenario's: it is the installed x6wd's, like its code, and each worker reads its own."""
+    found: dict[Path, None] = {}
+
+    def walk(v: Any) -> None:
+        if isinstance(v, dict):
+            for x in v.values():
+                walk(x)
+        elif isinstance(v, list):
+            for x in v:
+                walk(x)
+        elif isinstance(v, str) and v.startswith(os.sep) and "\n" not in v:
+            p = Path(v)
+            if p != DEFAULT_ALMANAC and p.is_file():
+                found.setdefault(p, None)
+
+    walk(table)
+    return list(found)
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes (a :class:`ConfigError` naming it when it cannot be read)."""
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+
+
+def cell_digest(world_toml: str, files: Sequence[tuple[str, str]] = ()) -> str:
+    """A cell's fingerprint: SHA-256 of its resolved scenario (includes, robot config and LCE
+    grid are in it) and of the contents of the files it names (``files``: path and SHA-256),
+    so a changed almanac is a changed cell; without files, the digest of the text alone (as
+    before files were counted, so such folders keep their runs)."""
+    blob = world_toml + "".join(f"\0{path}\0{sha}" for path, sha in files)
+    return hashlib.sha256(blob.encode("utf-8")).hexdigest()[:16]
+
+
+def show_value(value: Any) -> str:
+    """A value as a cell's label shows it: a TOML date or time as written, others by repr."""
+    if isinstance(value, (date, clock_time)):
+        return value.isoformat()
+    return repr(value)
 
 
 def _non_finite(value: Any) -> bool:
@@ -366,21 +443,39 @@ def plan(spec: SweepSpec) -> list[Run]:
     keys = list(spec.grid)
     combos = list(itertools.product(*(spec.grid[k] for k in keys)))
     runs: list[Run] = []
+    sky: dict[tuple[Any, ...], list[str]] = {}
+    hashes: dict[Path, str] = {}
     for path in spec.scenarios:
         table, base = base_table(path, spec.robot_config)
         for combo in combos:
             params = dict(zip(keys, combo, strict=True))
             overrides = {**spec.fixed, **params}
-            where = ", ".join(f"{k}={v!r}" for k, v in overrides.items()) or "no overrides"
-            label = f"{path.stem} ({where})"
+            where = ", ".join(f"{k}={show_value(v)}" for k, v in overrides.items())
+            label = f"{path.stem} ({where or 'no overrides'})"
             try:
-                _world, text = cell_world(table, base, overrides, label, spec.base_dir)
-            except ConfigError as exc:  # the scenario's loader names the cell, other checks not
+                world, text = cell_world(table, base, overrides, label, spec.base_dir)
+                warnings = start_checks(world, sky)  # x6wd sim's exit 2 is the sweep's
+                files = []
+                for f in named_files(world.raw):
+                    if f not in hashes:
+                        hashes[f] = file_sha256(f)
+                    files.append((str(f), hashes[f]))
+            except X6wdError as exc:  # the scenario's loader names the cell, other checks not
+                # (x6wd sim's exit 2 is any X6wdError: an almanac it cannot parse, ...)
                 msg = str(exc) if str(exc).startswith(label) else f"{label}: {exc}"
                 raise ConfigError(f"scenario {path}: {msg}") from exc
             cid = cell_id(path.stem, overrides)
-            digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
-            cell = Cell(cid, path.stem, path, params, overrides, text, digest)
+            cell = Cell(
+                cid,
+                path.stem,
+                path,
+                params,
+                overrides,
+                text,
+                cell_digest(text, files),
+                tuple(files),
+                tuple(warnings),
+            )
             for r in range(spec.seeds):
                 seed = run_seed(spec.seed, path.stem, overrides, r)
                 runs.append(Run(f"{cid}-{r:03d}", cell, r, seed))
@@ -467,13 +562,15 @@ def write_atomic(path: Path, text: str) -> None:
 
 
 def _json_safe(v: Any) -> Any:
+    """``v`` as JSON takes it: non-finite floats as null, a TOML date or time as its ISO text
+    (:func:`sim_backend.sweep_report.json_value`)."""
     if isinstance(v, float):
         return v if v == v and v not in (float("inf"), float("-inf")) else None
     if isinstance(v, dict):
         return {str(k): _json_safe(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
         return [_json_safe(x) for x in v]
-    return v
+    return json_value(v)
 
 
 def is_done(record: dict[str, Any] | None, run: Run, retry_failed: bool = False) -> bool:
@@ -531,8 +628,8 @@ def _record(run: Run, result: dict[str, Any] | None, outcome: Outcome | None) ->
         "run_id": run.run_id,
         "cell_id": run.cell.cell_id,
         "scenario": run.cell.scenario,
-        "params": run.cell.params,
-        "overrides": run.cell.overrides,
+        "params": _json_safe(run.cell.params),  # as the file has them (a datetime as text)
+        "overrides": _json_safe(run.cell.overrides),
         "replicate": run.replicate,
         "seed": run.seed,
         "digest": run.cell.digest,
@@ -557,8 +654,10 @@ def write_plan(spec: SweepSpec, runs: Sequence[Run], out_dir: Path) -> None:
     for cid, cell in seen.items():
         head = (
             f"# sweep {spec.name!r}, cell {cid}: {cell.scenario_path}"
-            f" with {_canonical(cell.overrides)}\n"
+            f" with {_canonical(_json_safe(cell.overrides))}\n"
             f"# replay a run: x6wd sim {cells_dir / (cid + '.toml')} --seed SEED\n"
+            + "".join(f"# reads {path} (sha256 {sha})\n" for path, sha in cell.files)
+            + "".join(f"# warning: {w}\n" for w in cell.warnings)
         )
         path = cells_dir / f"{cid}.toml"
         text = head + cell.world_toml
@@ -624,7 +723,7 @@ def split_done(
         if rec is not None and is_done(rec, run, retry_failed):
             # the same cell and seed, labelled as this plan has it (a key moved from [grid]
             # to [set] keeps the run, not its old column)
-            records[run.run_id] = {**rec, "params": run.cell.params}
+            records[run.run_id] = {**rec, "params": _json_safe(run.cell.params)}
         else:
             todo.append(run)
     return records, todo

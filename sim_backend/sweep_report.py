@@ -25,6 +25,7 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from datetime import date, time
 from pathlib import Path
 from typing import Any
 
@@ -80,14 +81,44 @@ def _pct(values: Sequence[float], q: float) -> float:
     return float(np.percentile(v, q)) if v else math.nan
 
 
+def json_value(value: Any) -> Any:
+    """A TOML date, time or datetime (a sweep value) as its ISO text, as JSON cannot hold
+    it (``2020-01-01T12:00:00+00:00``); any other value as it is."""
+    if isinstance(value, (date, time)):
+        return value.isoformat()
+    return value
+
+
+def _json_default(value: Any) -> Any:
+    out = json_value(value)
+    if out is value:
+        raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
+    return out
+
+
 def _cell_text(value: Any) -> str:
     if value is None:
         return ""
     if isinstance(value, float) and not math.isfinite(value):
         return ""
     if isinstance(value, (list, dict)):
-        return json.dumps(value)
-    return str(value)
+        return json.dumps(value, default=_json_default)
+    return str(json_value(value))
+
+
+def short_keys(keys: Sequence[str]) -> dict[str, str]:
+    """Each dotted key's shortest suffix (whole parts) that no other of ``keys`` ends with:
+    ``gnss.rate_hz`` and ``compass.rate_hz`` stay whole, ``navigation.position_source`` alone
+    is ``position_source``; a key that is another's suffix (``rate_hz``, ``gnss.rate_hz``) is
+    itself whole, the other longer."""
+    split = {k: k.split(".") for k in keys}
+    out: dict[str, str] = {}
+    for k, parts in split.items():
+        n = 1
+        while n < len(parts) and any(o != k and op[-n:] == parts[-n:] for o, op in split.items()):
+            n += 1
+        out[k] = ".".join(parts[-n:])
+    return out
 
 
 def param_keys(records: Sequence[dict[str, Any]]) -> list[str]:
@@ -137,7 +168,7 @@ def _write_parquet(path: Path, rows: Sequence[dict[str, Any]], columns: Sequence
         return False
 
     def value(v: Any) -> Any:
-        return json.dumps(v) if isinstance(v, (list, dict)) else v
+        return json.dumps(v, default=_json_default) if isinstance(v, (list, dict)) else v
 
     table = pa.table({c: [value(r.get(c)) for r in rows] for c in columns})
     pq.write_table(table, path)
@@ -156,6 +187,7 @@ class CellStats:
     cell_id: str
     scenario: str
     params: dict[str, Any]
+    names: dict[str, str] = field(default_factory=dict)
     runs: int = 0
     ok: int = 0
     failed: int = 0
@@ -169,8 +201,10 @@ class CellStats:
 
     @property
     def label(self) -> str:
-        """ "scenario key=value ..." with the last part of each dotted key."""
-        parts = [f"{k.rsplit('.', 1)[-1]}={_cell_text(v)}" for k, v in self.params.items()]
+        """ "scenario key=value ...", each dotted key by its name in ``names`` (the shortest
+        suffix that tells the sweep's keys apart, :func:`short_keys`), else its own."""
+        names = self.names or short_keys(list(self.params))
+        parts = [f"{names.get(k, k)}={_cell_text(v)}" for k, v in self.params.items()]
         return " ".join([self.scenario, *parts])
 
     @property
@@ -211,6 +245,9 @@ def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
             c.completed += 1
             c.path_ratios.append(path_ratio(r))
             c.sim_times_s.append(_num(r.get("sim_time_s")))
+    names = short_keys(list({k: None for c in cells.values() for k in c.params}))
+    for c in cells.values():  # one naming over the whole sweep: a label means one key
+        c.names = {k: names[k] for k in c.params}
     return list(cells.values())
 
 
@@ -326,7 +363,8 @@ def markdown(
         f"- sweep file: `{i.get('source') or '-'}`; sweep seed {i['seed']}, {i['seeds']} seeds"
         " per cell",
         f"- scenarios: {', '.join(f'`{s}`' for s in i['scenarios'])}",
-        f"- [set]: `{json.dumps(i['set'])}`; [grid]: `{json.dumps(i['grid'])}`",
+        f"- [set]: `{json.dumps(i['set'], default=_json_default)}`;"
+        f" [grid]: `{json.dumps(i['grid'], default=_json_default)}`",
         f"- {len(records)} runs in {len(cells)} cells: {i['ran']} run now, {i['skipped']}"
         f" found done; {sum(c.failed for c in cells)} failed" + lost_text,
         f"- executor: {i['executor']}; {_f(i['wall_s'], '.1f')} s wall,"
