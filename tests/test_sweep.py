@@ -565,34 +565,61 @@ def test_an_interrupted_sweep_finishes_on_the_next_call(tmp_path: Path, cluster:
 def test_a_failed_run_is_recorded_with_its_error_and_the_sweep_goes_on(
     tmp_path: Path, cluster: Cluster
 ) -> None:
-    # 3 GPS epochs a second pass validation, but the 20 Hz compass loop needs a whole
-    # multiple: those runs raise when the mission starts
+    # What planning cannot see (it runs x6wd sim's start-up checks per cell): the almanac
+    # spoiled between planning and the runs. Planned, spoiled, run in-process; then the
+    # CLI on the cluster finds those runs done and failed, and --retry-failed reruns them.
+    import shutil
+
+    from sim_backend.executor import Executor
+    from sim_backend.sweep import load_sweep, plan, run_sweep
+    from sim_backend.world import DEFAULT_ALMANAC
+
+    alm = tmp_path / "alm.txt"
+    shutil.copy(DEFAULT_ALMANAC, alm)
+    good = alm.read_bytes()
+    f = sweep_file(
+        tmp_path,
+        'seeds = 2\n[set]\nduration_s = 10.0\nalmanac = "alm.txt"\n'
+        "[grid]\ngnss.rate_hz = [1.0, 2.0]\n",
+    )
+    out = tmp_path / "out"
+    spec = load_sweep(f)
+    runs = plan(spec)
+    alm.write_text("garbage\n")
+    with Executor(workers=1) as ex:
+        res = run_sweep(spec, out, ex, runs=runs)
+    assert len(res.records) == 4 and len(res.errors) == 4 and not res.lost
+    alm.write_bytes(good)  # the cells as planned again
+    r = run_cli(str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet")
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    assert "0 run now, 4 found done), 4 failed" in r.stdout  # a failure is a result
+    rows = results(out)
+    assert len(rows) == 4 and all(
+        row["status"] == "error" and "too short for a SEM almanac" in row["error"] for row in rows
+    )
+    assert "Failed runs (4)" in (out / "summary.md").read_text()
+    retry = run_cli(
+        str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet", "--retry-failed"
+    )
+    assert retry.returncode == 0, (retry.stdout, retry.stderr)
+    assert "4 run now, 0 found done), 0 failed" in retry.stdout
+    assert all(row["status"] == "ok" and row["sim_time_s"] for row in results(out))
+
+
+def test_a_rate_the_compass_loop_cannot_step_stops_the_sweep_at_planning(
+    tmp_path: Path,
+) -> None:
+    # 3 GPS epochs a second pass the scenario's checks, but the 20 Hz compass loop needs a
+    # whole multiple: x6wd sim refuses it at start (exit 2), so the sweep does at planning
+    # instead of starting a cluster whose every such run fails
     f = sweep_file(
         tmp_path, "seeds = 2\n[set]\nduration_s = 10.0\n[grid]\ngnss.rate_hz = [1.0, 3.0]\n"
     )
     out = tmp_path / "out"
-    r = run_cli(str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet")
-    assert r.returncode == 1, (r.stdout, r.stderr)
-    rows = {row["run_id"]: row for row in results(out)}
-    assert len(rows) == 4
-    bad = [row for row in rows.values() if row["gnss.rate_hz"] == "3.0"]
-    good = [row for row in rows.values() if row["gnss.rate_hz"] == "1.0"]
-    assert all(row["status"] == "ok" and row["sim_time_s"] for row in good)
-    assert all(
-        row["status"] == "error"
-        and "ConfigError" in row["error"]
-        and "whole multiple" in row["error"]
-        for row in bad
-    )
-    assert "Failed runs (2)" in (out / "summary.md").read_text()
-    assert "run failed:" in r.stderr
-    # a failed mission is a result: not run again, unless asked
-    again = run_cli(str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet")
-    assert "0 run now, 4 found done), 2 failed" in again.stdout
-    retry = run_cli(
-        str(f), "--scheduler", cluster.address, "--out", str(out), "--quiet", "--retry-failed"
-    )
-    assert "2 run now, 2 found done), 2 failed" in retry.stdout
+    r = run_cli(str(f), "--out", str(out), "--quiet")
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    assert "whole multiple" in r.stderr and "rate_hz" in r.stderr
+    assert not (out / "results.csv").exists()
 
 
 @pytest.mark.integration

@@ -450,3 +450,36 @@ def test_cell_labels_tell_keys_that_end_alike_apart() -> None:
     assert "gnss.rate_hz=1.0 compass.rate_hz=10.0" in markdown(
         info, cell_stats(records), records, ()
     )
+
+
+def test_the_cli_passes_its_worker_timeout_and_dashboard(tmp_path: Path) -> None:
+    # a scheduler no worker joins: --worker-timeout 3 gives up in seconds, not the default 60
+    sched = subprocess.Popen(
+        [str(Path(sys.executable).parent / "dask"), "scheduler", "--host", "127.0.0.1",
+         "--port", "0", "--no-dashboard", "--scheduler-file", str(tmp_path / "s.json")],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        for _ in range(300):
+            if (tmp_path / "s.json").exists() and (tmp_path / "s.json").read_text().strip():
+                break
+            time.sleep(0.1)
+        address = json.loads((tmp_path / "s.json").read_text())["address"]
+        f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n")
+        a = time.monotonic()
+        r = subprocess.run(
+            [sys.executable, "-m", "x6wd", "sweep", str(f), "--scheduler", address,
+             "--out", str(tmp_path / "out"), "--quiet", "--worker-timeout", "3"],
+            capture_output=True, text=True, timeout=120, cwd=ROOT,
+        )  # fmt: skip
+        assert r.returncode == 1 and "for 3 s" in r.stderr, (r.stdout, r.stderr)
+        assert time.monotonic() - a < 50
+        bad = subprocess.run(
+            [sys.executable, "-m", "x6wd", "sweep", str(f), "--scheduler", address,
+             "--out", str(tmp_path / "out2"), "--dashboard", "127.0.0.1:0"],
+            capture_output=True, text=True, timeout=120, cwd=ROOT,
+        )  # fmt: skip
+        assert bad.returncode == 2 and "dashboard" in bad.stderr, (bad.stdout, bad.stderr)
+    finally:
+        sched.terminate()
+        sched.wait(timeout=30)

@@ -81,6 +81,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"refuse a sweep of more than N runs (default {MAX_RUNS:,}): a mistyped grid or"
         " seed count would otherwise plan for hours",
     )
+    parser.add_argument(
+        "--worker-timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="give up the runs left once no worker has been connected for S seconds (default"
+        " 60; they are lost, exit 1, and the same command runs them); also how long --workers"
+        " N waits for N workers to join a --scheduler",
+    )
+    parser.add_argument(
+        "--dashboard",
+        default=None,
+        metavar="ADDRESS",
+        help="open the LocalCluster's Dask dashboard at ADDRESS (e.g. 127.0.0.1:8787);"
+        " default none",
+    )
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -107,7 +123,12 @@ def main(args: argparse.Namespace) -> int:
     check_out_dir(spec, out)  # another sweep's results are not replaced
     progress = None if args.quiet else TextProgress(len(runs), "runs")
     # checks --workers and an empty --scheduler before RunStore makes OUT/runs
-    executor = Executor(scheduler=args.scheduler, workers=args.workers)
+    executor = Executor(
+        scheduler=args.scheduler,
+        workers=args.workers,
+        worker_timeout_s=args.worker_timeout,
+        dashboard=args.dashboard,
+    )
     _done, todo = split_done(runs, RunStore(out), args.retry_failed)
     # Nothing left to run (a finished sweep run again): no cluster to start, only the report;
     # but a --scheduler that is wrong is said so (exit 2), as it would be with runs to do.
