@@ -115,26 +115,72 @@ def _doubles() -> array[float]:
     return array("d")
 
 
+def _ints() -> array[int]:
+    return array("q")
+
+
+def _col(a: array[Any], dtype: Any = float) -> np.ndarray:
+    """A packed column as a numpy array: a view of its buffer, no copy (the column cannot
+    grow while the view lives)."""
+    return np.frombuffer(a, dtype=dtype)
+
+
 @dataclass
 class _Trace:
-    """What the loop keeps for the figures and files. The per-tick series are packed
-    doubles (8 bytes a value, not a 32-byte float object and its pointer): a 10 h mission at
-    20 Hz keeps 3.6 million of them."""
+    """What the loop keeps for the figures and files, all in packed columns (8 bytes a
+    value, not a 32-byte float object, its pointer and a tuple or a dict entry around it).
+
+    Per tick (the compass rate): t, east, north, up, heading; a 10 h mission at 60 Hz keeps
+    2.2 million of each. Per GPS epoch ``i`` (tick ``i * gps_every``): the true antenna's
+    east/north (m) and lat/lon (deg). Per valid fix: its epoch tick, the raw lat/lon and the
+    filtered lat/lon (deg; NaN for both when the robot had no filtered position), then
+    HDOP and satellites used of the fixes that give them."""
 
     t: array[float] = field(default_factory=_doubles)
     east: array[float] = field(default_factory=_doubles)
     north: array[float] = field(default_factory=_doubles)
     up: array[float] = field(default_factory=_doubles)
     heading: array[float] = field(default_factory=_doubles)
-    # epoch tick -> true antenna (east m, north m, lat deg, lon deg)
-    epoch_truth: dict[int, tuple[float, float, float, float]] = field(default_factory=dict)
-    fix_rows: list[tuple[int, float, float, float | None, float | None]] = field(
-        default_factory=list
-    )  # (epoch tick, raw lat, raw lon, filt lat, filt lon)
+    gps_every: int = 1
+    epoch_east: array[float] = field(default_factory=_doubles)
+    epoch_north: array[float] = field(default_factory=_doubles)
+    epoch_lat: array[float] = field(default_factory=_doubles)
+    epoch_lon: array[float] = field(default_factory=_doubles)
+    fix_tick: array[int] = field(default_factory=_ints)
+    fix_lat: array[float] = field(default_factory=_doubles)
+    fix_lon: array[float] = field(default_factory=_doubles)
+    filt_lat: array[float] = field(default_factory=_doubles)
+    filt_lon: array[float] = field(default_factory=_doubles)
     fixes: int = 0
     fixes_valid: int = 0
-    hdop: list[float] = field(default_factory=list)
-    sats: list[int] = field(default_factory=list)
+    hdop: array[float] = field(default_factory=_doubles)
+    sats: array[int] = field(default_factory=_ints)
+
+    def add_epoch(self, tick: int, east_m: float, north_m: float, lat: float, lon: float) -> None:
+        """The true antenna at the GPS epoch of ``tick`` (epochs come in order, one each
+        ``gps_every`` ticks from tick 0)."""
+        if tick != len(self.epoch_east) * self.gps_every:
+            raise ValueError(f"GPS epoch at tick {tick} out of order")
+        self.epoch_east.append(east_m)
+        self.epoch_north.append(north_m)
+        self.epoch_lat.append(lat)
+        self.epoch_lon.append(lon)
+
+    def epoch_en(self, tick: int) -> tuple[float, float]:
+        """The true antenna's east/north (m) at the GPS epoch of ``tick``."""
+        i = tick // self.gps_every
+        return self.epoch_east[i], self.epoch_north[i]
+
+    def fix_truth(self, lat_lon: bool = False) -> np.ndarray:
+        """(n, 2): the truth at each valid fix's epoch, east/north (m) or lat/lon (deg)."""
+        i = _col(self.fix_tick, np.int64) // self.gps_every
+        a, b = (self.epoch_lat, self.epoch_lon) if lat_lon else (self.epoch_east, self.epoch_north)
+        return np.column_stack([_col(a)[i], _col(b)[i]])
+
+    def fix_latlon(self, filtered: bool = False) -> np.ndarray:
+        """(n, 2) lat/lon (deg) of the valid fixes, raw or filtered (NaN: none)."""
+        a, b = (self.filt_lat, self.filt_lon) if filtered else (self.fix_lat, self.fix_lon)
+        return np.column_stack([_col(a), _col(b)])
 
 
 def run_mission(
@@ -208,7 +254,7 @@ def run_mission(
 
     utc0 = world.start_utc
     now = [0.0]
-    trace = _Trace()
+    trace = _Trace(gps_every=gps_every)
     holds: list[list[float]] = []  # [start, end]
     done_at: float | None = None
 
@@ -259,7 +305,7 @@ def run_mission(
         if latest is not None:
             fx, tick = latest
             assert fx.lat_deg is not None and fx.lon_deg is not None
-            te, tn = trace.epoch_truth[tick][:2]
+            te, tn = trace.epoch_en(tick)
             fe, fn, _ = lla_to_enu(
                 fx.lat_deg, fx.lon_deg, origin.alt_m, origin.lat_deg, origin.lon_deg, origin.alt_m
             )
@@ -411,7 +457,7 @@ def run_mission(
                     if len(truth_lla) > 1000:
                         truth_lla.clear()
                     ll = truth_lla[antenna] = (float(lat), float(lon))
-                trace.epoch_truth[k] = (s.east_m, s.north_m, *ll)
+                trace.add_epoch(k, s.east_m, s.north_m, ll[0], ll[1])
                 for t_rx, line in receiver.arrivals(burst, t):
                     in_flight.append((t_rx, k, line))
             if progress is not None and k % report_every == 0:
@@ -434,12 +480,10 @@ def run_mission(
         nmea_file.close()
         rec.close()
 
-    truth_e = np.array(trace.east)
-    truth_n = np.array(trace.north)
     if out is not None:
         _write_truth(out / "truth.csv", world, trace, antenna_m)
     raw_err, filt_err, fix_enu, filt_enu = _errors(world, trace)
-    path_len = float(np.sum(np.hypot(np.diff(truth_e), np.diff(truth_n))))
+    path_len = _path_length_m(trace)
     straight = straight_length_m(world)  # leg by leg on the great circle
     disp_lat, disp_lon = _dispersion(trace)
     # a mission that returned to launch is not completed, whatever the controller's DONE
@@ -462,8 +506,8 @@ def run_mission(
         fixes_valid=trace.fixes_valid,
         dispersion_lat_m=disp_lat,
         dispersion_lon_m=disp_lon,
-        mean_hdop=float(np.mean(trace.hdop)) if trace.hdop else math.nan,
-        mean_sats_used=float(np.mean(trace.sats)) if trace.sats else math.nan,
+        mean_hdop=float(np.mean(_col(trace.hdop))) if trace.hdop else math.nan,
+        mean_sats_used=float(np.mean(_col(trace.sats, np.int64))) if trace.sats else math.nan,
         extra={
             "holds_s": [[round(a, 3), round(b, 3)] for a, b in holds],
             "mission_rejected": mission_state["rejected"],
@@ -489,6 +533,7 @@ def run_mission(
     )
     if out is not None:
         (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+        truth_e, truth_n = _col(trace.east), _col(trace.north)
         plot_track(out / "track.png", world, truth_e, truth_n, fix_enu, filt_enu, wp_enu, summary)
     return summary
 
@@ -608,7 +653,14 @@ def _note_fix(trace: _Trace, tick: int, r: GpsFix, tel: Telemetry) -> None:
     trace.fixes += 1
     if r.valid and r.lat_deg is not None and r.lon_deg is not None:
         trace.fixes_valid += 1
-        trace.fix_rows.append((tick, r.lat_deg, r.lon_deg, tel.filt_lat_deg, tel.filt_lon_deg))
+        trace.fix_tick.append(tick)
+        trace.fix_lat.append(r.lat_deg)
+        trace.fix_lon.append(r.lon_deg)
+        flat, flon = tel.filt_lat_deg, tel.filt_lon_deg
+        if flat is None or flon is None:
+            flat = flon = math.nan
+        trace.filt_lat.append(flat)
+        trace.filt_lon.append(flon)
         if r.hdop is not None:
             trace.hdop.append(r.hdop)
         if r.sats_used is not None:
@@ -617,6 +669,26 @@ def _note_fix(trace: _Trace, tick: int, r: GpsFix, tel: Telemetry) -> None:
 
 TRUTH_CHUNK_ROWS = 50_000
 """truth.csv is converted and written this many rows at a time (bounded memory)."""
+
+PATH_CHUNK_TICKS = 1 << 16
+"""The path length's per-tick steps are computed this many at a time (bounded temporaries)."""
+
+
+def _path_length_m(trace: _Trace) -> float:
+    """Length (m) of the true path, the sum of the horizontal steps between ticks.
+
+    The same float as ``np.sum(np.hypot(np.diff(east), np.diff(north)))`` over the whole
+    run: each step is the same elementwise operation whatever the chunk, and the steps are
+    summed in one ``np.sum`` call (its pairwise summation over the whole array; summing
+    chunk sums would change the last bits). The whole-run temporaries were two copies of
+    the series, their two differences and the hypotenuses (40 bytes a tick); this keeps
+    the steps (8) and one chunk's temporaries."""
+    east, north = _col(trace.east), _col(trace.north)
+    steps = np.empty(max(east.size - 1, 0))
+    for a in range(0, steps.size, PATH_CHUNK_TICKS):
+        b = min(a + PATH_CHUNK_TICKS, steps.size)
+        np.hypot(np.diff(east[a : b + 1]), np.diff(north[a : b + 1]), out=steps[a:b])
+    return float(np.sum(steps))
 
 
 def _write_truth(path: Path, world: World, trace: _Trace, antenna_m: float) -> None:
@@ -641,17 +713,14 @@ def _write_truth(path: Path, world: World, trace: _Trace, antenna_m: float) -> N
 
 def _errors(world: World, trace: _Trace) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Horizontal errors (m) of raw and filtered fixes against the truth at their epoch."""
-    if not trace.fix_rows:
+    if not trace.fix_tick:
         empty = np.zeros((0, 2))
         return np.zeros(0), np.zeros(0), empty, empty
     o = world.origin
-    rows = trace.fix_rows
-    truth = np.array([trace.epoch_truth[r[0]][:2] for r in rows])
-    raw = np.array([[r[1], r[2]] for r in rows])
-    filt = np.array(
-        [[math.nan, math.nan] if r[3] is None or r[4] is None else [r[3], r[4]] for r in rows]
-    )
-    z = np.full(len(rows), o.alt_m)
+    truth = trace.fix_truth()
+    raw = trace.fix_latlon()
+    filt = trace.fix_latlon(filtered=True)
+    z = np.full(len(raw), o.alt_m)
     raw_enu = np.asarray(lla_to_enu(raw[:, 0], raw[:, 1], z, o.lat_deg, o.lon_deg, o.alt_m))
     filt_enu = np.asarray(lla_to_enu(filt[:, 0], filt[:, 1], z, o.lat_deg, o.lon_deg, o.alt_m))
     raw_err = np.hypot(raw_enu[:, 0] - truth[:, 0], raw_enu[:, 1] - truth[:, 1])
@@ -670,14 +739,13 @@ def _with_slow_error(
     minus truth at its epoch, m) over the fixes within ±``SLOW_ERROR_WINDOW_S`` of the
     arrival. The white part of the error averages out, the slow part (what no navigation can
     see without a reference) remains: the floor of the true arrival error."""
-    if not arrivals or not trace.fix_rows:
+    if not arrivals or not trace.fix_tick:
         return arrivals
     o = world.origin
-    rows = trace.fix_rows
-    t_ep = np.array([r[0] * dt_s for r in rows])
-    truth = np.array([trace.epoch_truth[r[0]][:2] for r in rows])
-    raw = np.array([[r[1], r[2]] for r in rows])
-    z = np.full(len(rows), o.alt_m)
+    t_ep = _col(trace.fix_tick, np.int64) * dt_s
+    truth = trace.fix_truth()
+    raw = trace.fix_latlon()
+    z = np.full(len(raw), o.alt_m)
     enu = np.asarray(lla_to_enu(raw[:, 0], raw[:, 1], z, o.lat_deg, o.lon_deg, o.alt_m))
     err = enu[:, :2] - truth
     for a in arrivals:
@@ -693,9 +761,9 @@ def _dispersion(trace: _Trace) -> tuple[float, float]:
     For a robot standing still (the paper's experiments) this is the spread of the readings
     themselves; for a moving one the truth is taken out first.
     """
-    if not trace.fix_rows:
+    if not trace.fix_tick:
         return math.nan, math.nan
-    truth = np.array([trace.epoch_truth[r[0]][2:] for r in trace.fix_rows])
-    dlat = np.array([r[1] for r in trace.fix_rows]) - truth[:, 0]
-    dlon = np.array([r[2] for r in trace.fix_rows]) - truth[:, 1]
+    truth = trace.fix_truth(lat_lon=True)
+    dlat = _col(trace.fix_lat) - truth[:, 0]
+    dlon = _col(trace.fix_lon) - truth[:, 1]
     return dispersion_m(dlat, dlon)
