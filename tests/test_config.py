@@ -257,3 +257,23 @@ def test_a_scenario_whose_own_drive_the_stuck_check_cannot_watch_does_not_run(
     scenario.write_text(f'include = ["{default}"]\n[navigation]\ncruise_pct = 5.0\n')
     with pytest.raises(ConfigError, match=r"^navigation\.cruise_pct: must be >= failsafe"):
         run_mission(load_world(scenario), None, duration_s=5.0)
+
+
+def test_the_compass_deviation_prior_reaches_the_ekf() -> None:
+    """[navigation] compass_deviation_sigma_deg is the EKF's prior on each coefficient of the
+    heading-dependent deviation card (states 11-14); 0 turns them off."""
+    from x6wd.core.config import GnssNoiseConfig, OdometryConfig
+    from x6wd.nav.estimator import Estimator
+    from x6wd.nav.position import estimator_config
+
+    shipped = load(Path(__file__).resolve().parent.parent / "config" / "x6wd.toml")
+    assert shipped.navigation.compass_deviation_sigma_deg == 2.0
+    off = loads("[navigation]\ncompass_deviation_sigma_deg = 0.0\n").navigation
+    for nav, learns in ((shipped.navigation, True), (off, False)):
+        cfg = estimator_config(nav, OdometryConfig(), GnssNoiseConfig(), 0.0)
+        est = Estimator(cfg)
+        est.on_gps(0.0, 0.0, 0.0, 1.0)
+        est.on_compass(0.0, 30.0)
+        assert all((est.covariance[i, i] > 0.0) == learns for i in range(11, 15))
+    with pytest.raises(ConfigError, match="compass_deviation_sigma_deg"):
+        loads("[navigation]\ncompass_deviation_sigma_deg = -1\n")

@@ -171,6 +171,9 @@ class NavigationConfig:
     # the EKF's prior one-sigma (deg) of a constant compass offset (mounting, a declination
     # off) that it learns from the GPS track; 0: the compass is taken as it reads
     compass_offset_sigma_deg: float = field(default=10.0, metadata=_rng(0, 90))
+    # ... and of each coefficient of a heading-dependent deviation (iron near the compass:
+    # once and twice per turn); 0: none is learnt
+    compass_deviation_sigma_deg: float = field(default=2.0, metadata=_rng(0, 45))
 
     @classmethod
     def paper(cls, **overrides: Any) -> NavigationConfig:

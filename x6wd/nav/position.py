@@ -172,7 +172,9 @@ def estimator_config(
             yaw_rate_dps_per_pct=math.degrees(2.0 * full_mps / nav.steer_track_m) / 100.0,
         ),
         compass=ekf.CompassParams(
-            declination_deg=declination_deg, offset_sigma_deg=nav.compass_offset_sigma_deg
+            declination_deg=declination_deg,
+            offset_sigma_deg=nav.compass_offset_sigma_deg,
+            deviation_sigma_deg=nav.compass_deviation_sigma_deg,
         ),
         gps=ekf.GpsParams(
             re_m=gnss.re_m,
@@ -324,6 +326,7 @@ class EkfSource:
             out["odometry_turn_scale"] = est.turn_scale
             out["odometry_drift_deg_per_m"] = est.drift_deg_per_m
             out["odometry_travel_scale"] = est.travel_scale
+            out["compass_deviation_deg"] = est.compass_deviation_deg
         if self.odometry_dropped:
             out["odometry_dropped"] = self.odometry_dropped
         return out
