@@ -261,7 +261,14 @@ def test_cli_merges_compass_into_the_report(tmp_path: Path) -> None:
     rep = json.loads((out / "report.json").read_text())
     assert set(rep) == {"gap", "where", "effects", "verdict"}
     assert set(rep["gap"]["heading"]) == {"baseline", "floor", "with_effects"}
-    assert rep["verdict"] == {"effect": "hard_iron", "explained": True}
+    verdict = rep["verdict"]
+    assert (verdict["effect"], verdict["explained"], verdict["status"]) == (
+        "hard_iron",
+        True,
+        "explained",
+    )
+    # the compass half computes no closure interval: none, not [0, 0]
+    assert verdict["halves"]["heading"]["closure_ci"] is None
     assert any(w["axis"] == "heading" for w in rep["where"])
     hard = next(e for e in rep["effects"] if e["name"] == "hard_iron")
     assert hard["params"]["by_ut"] == pytest.approx(2.5, abs=0.3)
