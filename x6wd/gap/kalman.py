@@ -15,7 +15,7 @@ filter run on a column of ones gives the regressor's innovations at no extra Ric
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -160,43 +160,75 @@ def kalman_terms(
     # handful of vector operations over the whole batch.
     var, tau_s = component_law(model, np.repeat(effect_var, 2), np.repeat(effect_tau_s, 2))
     white_var_m2 = np.tile(model.white_m**2, batch)  # (n_filters,)
-    obs = np.empty((n_epochs, n_cols, 2 * batch))
-    obs[:, 0, :] = np.tile(error_m.T, (1, batch))
-    obs[:, 1, :] = 1.0
-    if latency is not None:
-        obs[:, 2, :] = np.tile(latency.T, (1, batch))
+    columns = [error_m] if latency is None else [error_m, latency]
+
+    def rows(a: int, b: int) -> np.ndarray:
+        """The filter's observations of epochs a..b (b - a, cols, filters): [data, ones
+        (, latency regressor)] per axis, repeated over the batch."""
+        obs = np.empty((b - a, n_cols, 2 * batch))
+        obs[:, 0, :] = np.tile(columns[0][:, a:b].T, (1, batch))
+        obs[:, 1, :] = 1.0
+        if latency is not None:
+            obs[:, 2, :] = np.tile(columns[1][:, a:b].T, (1, batch))
+        return obs
+
+    # The innovations are summed into the Gram matrix block by block of epochs, never held
+    # for the whole log: they are epochs x columns x filters (a batch of ~200 parameter sets
+    # over a 1 h log at 10 Hz is 0.2 GB per array; three such arrays made the peak).
+    gram = np.zeros((2 * batch, n_cols, n_cols))
+    log_s = np.zeros(2 * batch)
     run = _filter_diagonal if order == 1 else _filter_coupled
-    e_all, s_all = run(obs, var, tau_s, white_var_m2, np.diff(t_s))
-    scaled = e_all / np.sqrt(s_all)[:, None, :]
-    gram = np.einsum("ncj,ndj->jcd", scaled, scaled)  # (n_filters, C, C)
+    for e_block, s_block in run(rows, n_epochs, var, tau_s, white_var_m2, np.diff(t_s)):
+        scaled = e_block / np.sqrt(s_block)[:, None, :]
+        gram += np.einsum("ncj,ndj->jcd", scaled, scaled)  # (n_filters, C, C)
+        log_s += np.log(s_block).sum(axis=0)
     return KalmanTerms(
-        log_s=np.log(s_all).sum(axis=0).reshape(batch, 2),
+        log_s=log_s.reshape(batch, 2),
         gram=gram.reshape(batch, 2, n_cols, n_cols),
         nobs=n_epochs,
     )
 
 
+KALMAN_BLOCK_BYTES = 16 * 2**20
+"""Size (bytes) of one block of a filter's observations or innovations: the epochs a filter
+holds at once are as many as fit (at least 16)."""
+
+
+def _block_len(n_cols: int, n_filters: int) -> int:
+    return max(16, KALMAN_BLOCK_BYTES // (8 * n_cols * n_filters))
+
+
+Rows = Callable[[int, int], np.ndarray]
+
+
 def _filter_diagonal(
-    obs: np.ndarray, var: np.ndarray, tau_s: np.ndarray, white_var_m2: np.ndarray,
+    rows: Rows, n_epochs: int, var: np.ndarray, tau_s: np.ndarray, white_var_m2: np.ndarray,
     steps_s: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Innovations (n, cols, filters) and their variances (n, filters) of independent
-    first-order components (:func:`transitions`), all observed: x, P, S, e the usual Kalman
-    state, its covariance, the innovation variance and the innovations."""
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
+    """Innovations (n, cols, filters) and their variances (n, filters), block by block of
+    epochs, of independent first-order components (:func:`transitions`), all observed:
+    x, P, S, e the usual Kalman state, its covariance, the innovation variance and the
+    innovations. ``rows(a, b)``: the observations (b - a, cols, filters) of epochs a..b."""
     n_states, n_filters = var.shape
     p0 = np.where(np.isfinite(tau_s), var, 0.0)  # a walk starts at zero
     trans = transitions(var, tau_s, steps_s)
-    x = np.zeros((n_states, obs.shape[1], n_filters))  # middle axis: [data, ones(, latency)]
+    x: np.ndarray | None = None
     p = np.eye(n_states)[:, :, None] * p0[None, :, :]
-    e_all = np.empty_like(obs)
-    s_all = np.empty((obs.shape[0], n_filters))
-    for i in range(obs.shape[0]):
-        if i > 0:
-            phi, phi2, q = trans(i - 1)
-            p = p * phi2 + q
-            x = x * phi
-        e_all[i], s_all[i] = _update(x, p, obs[i], white_var_m2, n_states)
-    return e_all, s_all
+    block = _block_len(3, n_filters)
+    for a in range(0, n_epochs, block):
+        obs = rows(a, min(n_epochs, a + block))
+        if x is None:
+            x = np.zeros((n_states, obs.shape[1], n_filters))  # middle: [data, ones(, latency)]
+        e_all = np.empty_like(obs)
+        s_all = np.empty((obs.shape[0], n_filters))
+        for k in range(obs.shape[0]):
+            i = a + k
+            if i > 0:
+                phi, phi2, q = trans(i - 1)
+                p = p * phi2 + q
+                x = x * phi
+            e_all[k], s_all[k] = _update(x, p, obs[k], white_var_m2, n_states)
+        yield e_all, s_all
 
 
 def _update(
@@ -214,9 +246,9 @@ def _update(
 
 
 def _filter_coupled(
-    obs: np.ndarray, var: np.ndarray, tau_s: np.ndarray, white_var_m2: np.ndarray,
+    rows: Rows, n_epochs: int, var: np.ndarray, tau_s: np.ndarray, white_var_m2: np.ndarray,
     steps_s: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
     """As :func:`_filter_diagonal` with the effect (the last row of ``var``/``tau_s``) a
     critically damped second-order process: two states (position, observed; rate, not)
     coupled by a full 2 x 2 transition, so P moves as F P F' + Q."""
@@ -236,19 +268,25 @@ def _filter_coupled(
 
     distinct, index = np.unique(np.round(steps_s, 6), return_inverse=True)
     table = [step(float(d)) for d in distinct] if distinct.size <= 32 else None
-    x = np.zeros((n_states, obs.shape[1], n_filters))
+    x: np.ndarray | None = None
     p = np.zeros((n_states, n_states, n_filters))
     stationary = np.concatenate([var[:-1], [effect_var, effect_var / effect_tau_s**2]])
     p[np.arange(n_states), np.arange(n_states)] = stationary
-    e_all = np.empty_like(obs)
-    s_all = np.empty((obs.shape[0], n_filters))
-    for i in range(obs.shape[0]):
-        if i > 0:
-            f, q = table[index[i - 1]] if table is not None else step(float(steps_s[i - 1]))
-            x = np.einsum("ijc,jkc->ikc", f, x)
-            p = np.einsum("ijc,kjc->ikc", np.einsum("ijc,jkc->ikc", f, p), f) + q
-        e_all[i], s_all[i] = _update(x, p, obs[i], white_var_m2, observed)
-    return e_all, s_all
+    block = _block_len(3, n_filters)
+    for a in range(0, n_epochs, block):
+        obs = rows(a, min(n_epochs, a + block))
+        if x is None:
+            x = np.zeros((n_states, obs.shape[1], n_filters))
+        e_all = np.empty_like(obs)
+        s_all = np.empty((obs.shape[0], n_filters))
+        for k in range(obs.shape[0]):
+            i = a + k
+            if i > 0:
+                f, q = table[index[i - 1]] if table is not None else step(float(steps_s[i - 1]))
+                x = np.einsum("ijc,jkc->ikc", f, x)
+                p = np.einsum("ijc,kjc->ikc", np.einsum("ijc,jkc->ikc", f, p), f) + q
+            e_all[k], s_all[k] = _update(x, p, obs[k], white_var_m2, observed)
+        yield e_all, s_all
 
 
 def quadratic_peak(points: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
