@@ -7,6 +7,7 @@ import argparse
 import math
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -30,10 +31,33 @@ from x6wd.gap.io import (
     mean_alt_m,
     parse_truth,
     read_track,
+    realign_note,
     time_offset_note,
 )
-from x6wd.gap.report import write_report
+from x6wd.gap.report import FIGURES, write_report
 from x6wd.gap.stats import has_up
+
+
+def _int_in(low: int, high: int) -> Callable[[str], int]:
+    """An argparse type: an integer within ``low``..``high`` (argparse then exits 2 naming
+    the option and the value, before anything is read)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if not low <= value <= high:
+            bound = f"within {low}..{high}" if high < 2**62 else f">= {low}"
+            raise argparse.ArgumentTypeError(f"{value}: must be {bound}")
+        return value
+
+    return parse
+
+
+MAX_SEEDS = 1000
+"""Most --scenario runs (each a full simulation of the log); --replicates' bound too."""
+DEFAULT_SEEDS = 20
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -55,11 +79,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " log was (default, without --sim: the packaged open-field scenario)",
     )
     parser.add_argument(
-        "--seeds", type=int, default=20, help="baseline runs with --scenario (default 20)"
+        "--seeds",
+        type=_int_in(1, MAX_SEEDS),
+        default=None,
+        help=f"baseline runs with --scenario (default {DEFAULT_SEEDS}; not with --sim)",
     )
     parser.add_argument(
         "--workers",
-        type=int,
+        type=_int_in(1, 1024),
         default=None,
         metavar="N",
         help="run the --scenario seeds on a Dask LocalCluster of N workers (the executor of"
@@ -75,10 +102,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     truth.add_argument("--truth", help="surveyed point LAT,LON[,ALT] (deg, deg, m)")
     truth.add_argument("--truth-track", help="truth trajectory (any log format, e.g. RTKLIB .pos)")
     parser.add_argument("--out", default="gap-report", help="output directory (default gap-report)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the tool's own randomness")
+    parser.add_argument(
+        "--seed",
+        type=_int_in(0, 2**63 - 1),
+        default=0,
+        help="seed of the tool's own randomness (an integer >= 0)",
+    )
     parser.add_argument(
         "--replicates",
-        type=int,
+        type=_int_in(3, MAX_SEEDS),
         default=20,
         help="replicates made of the --sim logs' innovations when fewer than 8 (default 20)",
     )
@@ -118,6 +150,58 @@ def to_errors(track: Track, args: argparse.Namespace, truth_track: Track | None)
     return errors_vs_mean(track)
 
 
+FIGURE_NAMES = (*FIGURES, "compass.png")
+"""The PNG figures the report writes (x6wd.gap.report)."""
+
+
+def remove_earlier_figures(out: Path) -> list[str]:
+    """Remove an earlier run's figures from ``out`` (with --no-figures, a left one would read
+    as this log's, as a left calibrated.toml would); their names. A PNG of one of those
+    names that matplotlib did not write (its header does not say so) is the user's: kept."""
+    removed = []
+    for name in FIGURE_NAMES:
+        path = out / name
+        if not path.is_file():
+            continue
+        with open(path, "rb") as f:
+            head = f.read(512)
+        if head.startswith(b"\x89PNG") and b"Matplotlib" in head:
+            path.unlink()
+            removed.append(name)
+    return removed
+
+
+def short_sims_notes(
+    real: PositionSeries, baseline: list[PositionSeries], names: list[str]
+) -> list[str]:
+    """A note naming the --sim logs shorter than the real log (by more than two of its steps):
+    the real log's later part, and its time scales beyond a sim log's length, have no or
+    fewer simulated values to be compared with (the held-out part, the validation's longest
+    Allan octaves). Also said on stderr. Empty when every sim log is as long."""
+
+    def span_s(series: PositionSeries) -> float:
+        t_s = np.asarray(series.t_s, dtype=float)
+        return float(t_s[-1] - t_s[0]) if t_s.size else 0.0
+
+    real_s = span_s(real)
+    steps = np.diff(np.asarray(real.t_s, dtype=float))
+    slack_s = 2.0 * float(np.median(steps)) if steps.size else 0.0
+    short = [(name, span_s(s)) for name, s in zip(names, baseline, strict=True)
+             if span_s(s) < real_s - slack_s]  # fmt: skip
+    if not short:
+        return []
+    listed = ", ".join(f"{name} {length:.0f} s" for name, length in short)
+    note = (
+        f"{len(short)} of {len(baseline)} --sim logs are shorter than the real log ({real_s:.0f}"
+        f" s): {listed}. Past a sim log's end the real log has no simulated counterpart: the"
+        " held-out part and the longest time scales are compared with fewer runs or none"
+        " (a figure with no run is not a finding). Give --sim logs at least as long as the"
+        " real log"
+    )
+    print(f"x6wd gap: warning: {note}", file=sys.stderr)
+    return [note]
+
+
 def _log_time_and_height(
     args: argparse.Namespace, track: Track, truth_track: Track | None
 ) -> tuple[float | None, float, str]:
@@ -151,8 +235,18 @@ DEFAULT_SCENARIO = PACKAGED_CONFIG_DIR / "scenarios" / "open_field.toml"
 def main(args: argparse.Namespace) -> int:
     """Run the diagnosis and write the report; exit code 0 (whatever the verdict)."""
     bar = ProgressBar(enabled=not args.quiet and sys.stderr.isatty())
-    if args.seeds < 1 or args.replicates < 3:
-        raise ConfigError("--seeds must be >= 1 and --replicates >= 3")
+    if args.sim:
+        # the --sim logs are the baseline: options of the scenario's runs would be ignored
+        given = [f"--{name}" for name in ("seeds", "workers", "scheduler")
+                 if getattr(args, name) is not None]  # fmt: skip
+        if given:
+            raise ConfigError(
+                f"{' and '.join(given)} with --sim: {'they apply' if len(given) > 1 else 'it'}"
+                f" {'' if len(given) > 1 else 'applies '}to a --scenario's runs; with --sim the"
+                " baseline is the given logs (drop it, or give --scenario instead of --sim)"
+            )
+    if args.seeds is None:
+        args.seeds = DEFAULT_SEEDS
     output_dir(args.out)  # a mistaken --out is named now, not after the diagnosis
     bar("reading logs", 0.0)
     truth_track = read_track(args.truth_track) if args.truth_track is not None else None
@@ -163,6 +257,10 @@ def main(args: argparse.Namespace) -> int:
     notes = [f"reading the real log: {note}" for note in real_track.notes]
     if truth_track is not None:
         notes += [f"reading the truth track: {note}" for note in truth_track.notes]
+        moved = realign_note(real_track, truth_track)
+        if moved is not None:
+            notes.append(moved)
+            print(f"x6wd gap: warning: {moved}", file=sys.stderr)
         offset = time_offset_note(real_track, truth_track)
         if offset is not None:
             notes.append(offset)
@@ -216,6 +314,16 @@ def main(args: argparse.Namespace) -> int:
         for sim in sims:
             check_step(sim)
         baseline = [to_errors(sim, args, truth_track) for sim in sims]
+        if truth_track is not None:
+            moved_sims = [n for sim in sims if (n := realign_note(sim, truth_track)) is not None]
+            if len(moved_sims) > 1:  # a simulator's clock is its own: one note for them all
+                moved_sims = [
+                    f"{len(moved_sims)} of {len(sims)} --sim logs do not overlap the truth"
+                    f" track's time span and were realigned start to start: {moved_sims[0]}"
+                    " (the others alike)"
+                ]
+            notes += moved_sims
+        notes += short_sims_notes(real, baseline, args.sim)
     rng = np.random.default_rng(args.seed)
     diagnosis = diagnose(real, baseline, rng, Options(replicates=args.replicates), progress=bar)
     diagnosis.notes.extend(notes)
@@ -230,6 +338,8 @@ def main(args: argparse.Namespace) -> int:
 
         world = load_world(args.scenario)
         origin = (world.origin.lat_deg, world.origin.lon_deg)
+    if args.no_figures:
+        remove_earlier_figures(Path(args.out))
     write_report(
         diagnosis,
         Path(args.out),

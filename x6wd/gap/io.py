@@ -33,7 +33,7 @@ from __future__ import annotations
 import csv
 import math
 import re
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -129,6 +129,12 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
         )
         table = table[lo:hi]
     valid = (table[:, 4] > 0) & np.isfinite(table[:, 1]) & np.isfinite(table[:, 2])
+    unplaced = int(np.count_nonzero((table[:, 4] > 0) & ~valid))
+    if unplaced:  # a CSV row of nan (or an empty) latitude or longitude: no position
+        notes.append(
+            f"{unplaced} of {len(table)} epochs have no finite latitude or longitude (nan, inf"
+            " or empty): taken as no fix"
+        )
     on_earth = (np.abs(table[:, 1]) <= 90.0) & (np.abs(table[:, 2]) <= 180.0)
     if np.any(valid & ~on_earth) and not np.any(valid & on_earth):
         off = table[valid & ~on_earth][0]
@@ -631,6 +637,24 @@ def _with_sets(
     ]
 
 
+def _chained_decoder() -> Any:
+    """A GpsDecoder whose epochs without a date of their own (GGA, between RMC dates) are
+    dated from the epoch before them, not from the last dated sentence: the time of day
+    rises, and falling back by over 12 h is the next day. Dated from the last RMC alone, a
+    GGA-only log with one RMC at 02:00 that runs 20 h put every epoch after 14:00 on the
+    day before (28,801 epochs went back in time). A sentence with a date still sets it."""
+    from drivers.gps_nmea import GpsDecoder
+
+    class ChainedDecoder(GpsDecoder):
+        def _utc_compute(self, tod: int, day: Any, date_tod_us: int) -> datetime:
+            utc: datetime = super()._utc_compute(tod, day, date_tod_us)
+            if tod < 86_400_000_000:  # a leap second (23:59:60) moves no date
+                self._date, self._date_tod_us = utc.date(), tod
+            return utc
+
+    return ChainedDecoder(emit_sentences=False)
+
+
 def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[str] = ()) -> Track:
     """Decode the NMEA of ``feed()`` (an iterable of (receive time s, bytes), read twice).
 
@@ -639,9 +663,7 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
     Epochs without a time are dropped and counted. Without any date, the receive times
     are used when they are a clock (``receive_clock``, a recording), else ParseError.
     """
-    from drivers.gps_nmea import GpsDecoder
-
-    probe = GpsDecoder(emit_sentences=False)
+    probe = _chained_decoder()
     first: datetime | None = None
     n_fixes = 0
     for fix in _decoded_fixes(probe, feed()):
@@ -649,11 +671,24 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
         if fix.utc is not None:
             first = fix.utc
             break
+    corrupt_text = _bad_text(probe.counters).rstrip(", ")
+    corrupt_hint = (
+        f"; NMEA sentences skipped as corrupt: {corrupt_text} (the log's GGA and RMC"
+        " sentences may be among them: are they cut or altered on the way?)"
+        if corrupt_text and first is None
+        else ""
+    )
     if n_fixes == 0:
         # GGA and RMC are what the daemon's decoder makes fixes of; a receiver set to send
         # only GLL or GNS positions is read here instead (GLL/GNS with ZDA or RMC dates)
-        fallback = _gll_gns_track(feed, source, receive_clock=receive_clock, notes=notes)
+        try:
+            fallback = _gll_gns_track(feed, source, receive_clock=receive_clock, notes=notes)
+        except ParseError as exc:
+            raise ParseError(f"{exc}{corrupt_hint}") from None
         if fallback is not None:
+            if corrupt_text:
+                note = _corrupt_note(probe.counters)
+                return replace(fallback, notes=(*fallback.notes, note))
             return fallback
     if first is None and not receive_clock:
         counts = probe.counters
@@ -666,9 +701,9 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
             )
         raise ParseError(
             f"{source}: no dated sentence: {n_fixes} position epochs but no RMC with a date"
-            " and no ZDA, so no UTC time axis (the gap tool does not guess a date)"
+            f" and no ZDA, so no UTC time axis (the gap tool does not guess a date){corrupt_hint}"
         )
-    decoder = GpsDecoder(emit_sentences=False)
+    decoder = _chained_decoder()
     if first is not None:
         decoder.assume_utc(first)
     rows: list[tuple[float, ...]] = []
@@ -741,11 +776,12 @@ def _gll_gns_track(
     """The positions of a log's GLL or GNS sentences (None when it has none with a valid
     checksum), dated by its ZDA or RMC dates; for logs without GGA or RMC positions.
 
-    GLL and GNS carry the time of day only: each is dated by the last ZDA (or RMC) date
-    before it (the first one for those before any), a day added when the time of day falls
-    back by over 12 h (midnight). GLL gives no satellite count or height; GNS gives both
-    (its count covers every constellation). Without any date a recording's receive times
-    are used; a plain log is an error, as for GGA."""
+    GLL and GNS carry the time of day only: each is dated from the epoch before it, or
+    the last ZDA (or RMC) date when one came since (the first one for those before any), a
+    day added when the time of day falls back by over 12 h (midnight). GLL gives no
+    satellite count or height; GNS gives both (its count covers every constellation).
+    Without any date a recording's receive times are used; a plain log is an error, as for
+    GGA."""
     import pynmea2
 
     positions: list[tuple[float, str, Any]] = []  # (receive time, type, sentence)
@@ -799,6 +835,7 @@ def _gll_gns_track(
         elif when > ref_s + 43_200.0:
             when -= 86_400.0
         rows.append((when, *row))
+        day = datetime.fromtimestamp(when, UTC)  # the next is dated from this epoch
     kinds = sorted({kind for _, kind, _ in positions})
     read_notes = [
         *notes,
@@ -1165,16 +1202,58 @@ def gpst_to_utc_s(t_s: np.ndarray) -> np.ndarray:
     return t_s - leap(t_s - leap(t_s))
 
 
+TRUTH_ALT_RANGE_M = (-1000.0, 10_000.0)
+"""Altitudes (m) --truth accepts: below the Dead Sea shore's -430 m (and a geoid's -106 m)
+to above Everest; NaN, inf and 1e300 are refused."""
+
+
 def parse_truth(text: str) -> tuple[float, float, float]:
     """``LAT,LON[,ALT]`` (degrees, metres) -> (lat, lon, alt or NaN); ConfigError if malformed."""
     parts = [p.strip() for p in text.split(",")]
+    if len(parts) not in (2, 3):
+        raise ConfigError(
+            f"--truth {text!r}: {len(parts)} value{'s' if len(parts) != 1 else ''}, expected 2"
+            " or 3: LAT,LON[,ALT] (degrees, degrees, metres)"
+        )
     try:
         values = [float(p) for p in parts]
     except ValueError:
         raise ConfigError(f"--truth {text!r}: expected LAT,LON[,ALT] in degrees/metres") from None
-    if len(values) not in (2, 3) or not (-90 <= values[0] <= 90 and -180 <= values[1] <= 180):
+    if not (-90 <= values[0] <= 90 and -180 <= values[1] <= 180):
         raise ConfigError(f"--truth {text!r}: expected LAT,LON[,ALT] with |LAT|<=90, |LON|<=180")
+    lo_m, hi_m = TRUTH_ALT_RANGE_M
+    if len(values) == 3 and not lo_m <= values[2] <= hi_m:
+        raise ConfigError(
+            f"--truth {text!r}: ALT {values[2]:g} m is outside {lo_m:g}..{hi_m:g} m (a height"
+            " above the ellipsoid or sea level where a receiver stands; leave ALT out when"
+            " unknown)"
+        )
     return values[0], values[1], values[2] if len(values) == 3 else math.nan
+
+
+def wrap_lon_deg(delta_deg: np.ndarray | float) -> np.ndarray:
+    """A longitude difference (deg) wrapped to (-180, 180]: across the antimeridian
+    179.99999 - (-179.99999) is -0.00002°, not 359.99998° (24,860 km at 51° N)."""
+    delta = np.asarray(delta_deg, dtype=float)
+    return 180.0 - np.mod(180.0 - delta, 360.0)
+
+
+def lon_centre_deg(lon_deg: np.ndarray, how: Callable[[np.ndarray], Any] = np.mean) -> float:
+    """The centre (``how``: np.mean, np.median) of longitudes (deg) that may straddle the
+    antimeridian: ``how`` of their wrapped differences from the first, added back to it and
+    wrapped to (-180, 180]. A log's fixes span metres, so the reference is as good as any."""
+    lon_deg = np.asarray(lon_deg, dtype=float)
+    ref_deg = float(lon_deg[0])
+    return float(wrap_lon_deg(ref_deg + float(how(wrap_lon_deg(lon_deg - ref_deg)))))
+
+
+def unwrap_lon_deg(lon_deg: np.ndarray) -> np.ndarray:
+    """Longitudes (deg) of a path made continuous (no 360° step where it crosses the
+    antimeridian), so that they interpolate; values may leave ±180 by the path's extent."""
+    lon_deg = np.asarray(lon_deg, dtype=float)
+    if lon_deg.size == 0:
+        return lon_deg
+    return lon_deg[0] + np.concatenate(([0.0], np.cumsum(wrap_lon_deg(np.diff(lon_deg)))))
 
 
 def errors_vs_point(
@@ -1183,10 +1262,18 @@ def errors_vs_point(
     """Errors (m) of a static log against a surveyed point; the frame origin is the point.
     Up error is NaN-free: zero when either altitude is unknown."""
     e_per_deg, n_per_deg = metres_per_degree(lat_deg)
-    east_m = (track.lon_deg - lon_deg) * e_per_deg
+    east_m = wrap_lon_deg(track.lon_deg - lon_deg) * e_per_deg
     north_m = (track.lat_deg - lat_deg) * n_per_deg
     up_m = track.alt_m - alt_m
     return _series(track, east_m, north_m, up_m, lat_deg, lon_deg, None, None)
+
+
+def relative_times_s(t_s: np.ndarray) -> np.ndarray:
+    """Times (s) from the first, rounded to the microsecond: absolute UTC seconds (1.6e9) hold
+    a time only to ~2e-7 s, so a 10 Hz log's steps came out as 0.0999999 s (and printed so);
+    no log's clock is finer than a microsecond."""
+    t_s = np.asarray(t_s, dtype=float)
+    return np.round(t_s - t_s[0], 6) if t_s.size else t_s
 
 
 def _series(
@@ -1210,7 +1297,7 @@ def _series(
     if sat_set is not None and not np.any(sat_set[track.valid] >= 0):
         sat_set = None
     return PositionSeries(
-        t_s=track.t_s - track.t_s[0],
+        t_s=relative_times_s(track.t_s),
         east_m=np.where(valid, east_m, 0.0),
         north_m=np.where(valid, north_m, 0.0),
         up_m=np.where(valid, up_m, 0.0),
@@ -1245,6 +1332,44 @@ def _matched(track: Track, truth_t_s: np.ndarray, max_gap_s: float) -> tuple[np.
     )
     inside = (t_s >= truth_t_s[0]) & (t_s <= truth_t_s[-1]) & near
     return np.flatnonzero(inside), apart
+
+
+def realign_note(track: Track, truth: Track, max_gap_s: float = 1.5) -> str | None:
+    """A note when ``track``'s time span does not overlap the truth track's, so that
+    :func:`errors_vs_track` moved it onto the truth's start (start to start): by how much,
+    and how many of its epochs then fall within the truth's span. None when they overlap."""
+    truth_t_s = _truth_samples(truth)[0]
+    kept, apart = _matched(track, truth_t_s, max_gap_s)
+    if not apart:
+        return None
+    shift_s = float(truth_t_s[0] - track.t_s[0])
+    return (
+        f"{track.source}: its times ({_span_text(track.t_s[0], track.t_s[-1])}) do not overlap"
+        f" the truth track's ({_span_text(truth_t_s[0], truth_t_s[-1])}): it was realigned"
+        f" start to start, its times moved {_duration_text(shift_s)}"
+        f" {'later' if shift_s >= 0 else 'earlier'}; {kept.size} of {len(track)} epochs then"
+        " match the truth in time (a simulated log's clock is its own; for a real log, is the"
+        " truth track this log's?)"
+    )
+
+
+def _span_text(t0_s: float, t1_s: float) -> str:
+    """A time span as dates when it is dated, else as seconds."""
+    if is_date(t0_s) and is_date(t1_s):
+        return f"{_utc_text(t0_s)} to {_utc_text(t1_s)}"
+    return f"{t0_s:.1f} s to {t1_s:.1f} s"
+
+
+def _duration_text(seconds: float) -> str:
+    """|seconds| as days, hours, minutes and seconds (e.g. 366 d 0 h 0 min 0 s)."""
+    left = round(abs(seconds), 1)
+    days, left = divmod(left, 86_400.0)
+    hours, left = divmod(left, 3_600.0)
+    minutes, left = divmod(left, 60.0)
+    parts = [f"{days:.0f} d"] if days else []
+    parts += [f"{hours:.0f} h"] if days or hours else []
+    parts += [f"{minutes:.0f} min"] if days or hours or minutes else []
+    return " ".join([*parts, f"{left:g} s"])
 
 
 MAX_STEP_S = 60.0
@@ -1285,9 +1410,15 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
     themselves (``true_east_m``/``true_north_m``), and its origin is the truth at the first
     kept epoch, so effect layers see the true motion."""
     truth_t_s, truth_lat_deg, truth_lon_deg, truth_alt_m = _truth_samples(truth)
+    truth_lon_deg = unwrap_lon_deg(truth_lon_deg)  # interpolated across the antimeridian too
     kept, apart = _matched(track, truth_t_s, max_gap_s)
     if not kept.size:
-        raise ParseError(f"{track.source}: no epoch matches the truth track {truth.source} in time")
+        moved = " (moved start to start: their spans do not overlap)" if apart else ""
+        raise ParseError(
+            f"{track.source}: no epoch matches the truth track {truth.source} in time{moved}:"
+            f" the log spans {_span_text(track.t_s[0], track.t_s[-1])}, the truth"
+            f" {_span_text(truth_t_s[0], truth_t_s[-1])}"
+        )
     t_s = track.t_s - track.t_s[0] + truth_t_s[0] if apart else track.t_s
     t_s = t_s[kept]
     true_lat_deg, true_lon_deg, true_alt_m = (
@@ -1295,7 +1426,7 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
         np.interp(t_s, truth_t_s, truth_lon_deg),
         np.interp(t_s, truth_t_s, truth_alt_m),
     )
-    lat0_deg, lon0_deg = float(true_lat_deg[0]), float(true_lon_deg[0])
+    lat0_deg, lon0_deg = float(true_lat_deg[0]), float(wrap_lon_deg(true_lon_deg[0]))
     e_per_deg, n_per_deg = metres_per_degree(lat0_deg)
     sub = Track(
         t_s=t_s,
@@ -1310,10 +1441,10 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
         sat_set=None if track.sat_set is None else track.sat_set[kept],
     )
     true_east_m, true_north_m = (
-        (true_lon_deg - lon0_deg) * e_per_deg,
+        wrap_lon_deg(true_lon_deg - lon0_deg) * e_per_deg,
         (true_lat_deg - lat0_deg) * n_per_deg,
     )
-    east_m = (sub.lon_deg - lon0_deg) * e_per_deg - true_east_m
+    east_m = wrap_lon_deg(sub.lon_deg - lon0_deg) * e_per_deg - true_east_m
     north_m = (sub.lat_deg - lat0_deg) * n_per_deg - true_north_m
     # truth velocity from its own positions (central differences)
     if t_s.size > 1:
@@ -1342,6 +1473,7 @@ def time_offset_note(track: Track, truth: Track, max_gap_s: float = 1.5) -> str 
     shift gives the same distance), or the spans do not overlap. The errors stay as
     stamped: the note names the offset (GPS-UTC is 18 s; a time zone is hours)."""
     truth_t_s, truth_lat_deg, truth_lon_deg, _ = _truth_samples(truth)
+    truth_lon_deg = unwrap_lon_deg(truth_lon_deg)
     kept, apart = _matched(track, truth_t_s, max_gap_s)
     kept = kept[track.valid[kept]]
     if apart or kept.size < 10:
@@ -1349,7 +1481,7 @@ def time_offset_note(track: Track, truth: Track, max_gap_s: float = 1.5) -> str 
     kept = kept[np.linspace(0, kept.size - 1, min(kept.size, 3000)).astype(int)]
     t_s = track.t_s[kept]
     e_per_deg, n_per_deg = metres_per_degree(float(truth_lat_deg[0]))
-    east_m = (track.lon_deg[kept] - truth_lon_deg[0]) * e_per_deg
+    east_m = wrap_lon_deg(track.lon_deg[kept] - truth_lon_deg[0]) * e_per_deg
     north_m = (track.lat_deg[kept] - truth_lat_deg[0]) * n_per_deg
     truth_east_m = (truth_lon_deg - truth_lon_deg[0]) * e_per_deg
     truth_north_m = (truth_lat_deg - truth_lat_deg[0]) * n_per_deg
@@ -1421,8 +1553,9 @@ def errors_vs_mean(track: Track) -> PositionSeries:
     speed_mps = speed_mps[np.isfinite(speed_mps)]
     median_speed_mps = float(np.median(speed_mps)) if speed_mps.size else 0.0
     e_per_deg, n_per_deg = metres_per_degree(float(np.median(track.lat_deg[valid])))
+    lon_deg = track.lon_deg[valid]
     spread_m = float(np.median(np.hypot(
-        (track.lon_deg[valid] - np.median(track.lon_deg[valid])) * e_per_deg,
+        wrap_lon_deg(lon_deg - lon_centre_deg(lon_deg, np.median)) * e_per_deg,
         (track.lat_deg[valid] - np.median(track.lat_deg[valid])) * n_per_deg,
     )))  # fmt: skip
     if median_speed_mps > STATIC_MAX_SPEED_MPS or spread_m > STATIC_MAX_SPREAD_M:
@@ -1434,7 +1567,7 @@ def errors_vs_mean(track: Track) -> PositionSeries:
     alt_m = track.alt_m[valid]
     alt0_m = float(np.nanmean(alt_m)) if np.any(np.isfinite(alt_m)) else math.nan
     return errors_vs_point(
-        track, float(np.mean(track.lat_deg[valid])), float(np.mean(track.lon_deg[valid])), alt0_m
+        track, float(np.mean(track.lat_deg[valid])), lon_centre_deg(lon_deg), alt0_m
     )
 
 
@@ -1472,7 +1605,7 @@ def against_own_mean(series: PositionSeries) -> PositionSeries:
         north_m=np.where(valid, np.asarray(series.north_m, dtype=float) - means[1], 0.0),
         up_m=np.where(valid, np.asarray(series.up_m, dtype=float) - means[2], 0.0),
         origin_lat_deg=series.origin_lat_deg + means[1] / n_per_deg,
-        origin_lon_deg=series.origin_lon_deg + means[0] / e_per_deg,
+        origin_lon_deg=float(wrap_lon_deg(series.origin_lon_deg + means[0] / e_per_deg)),
     )
 
 
@@ -1504,7 +1637,7 @@ def series_to_track(series: PositionSeries, alt0_m: float = 0.0) -> Track:
     return Track(
         t_s=np.asarray(series.t_s, dtype=float),
         lat_deg=series.origin_lat_deg + (true_north_m + series.north_m) / n_per_deg,
-        lon_deg=series.origin_lon_deg + (true_east_m + series.east_m) / e_per_deg,
+        lon_deg=wrap_lon_deg(series.origin_lon_deg + (true_east_m + series.east_m) / e_per_deg),
         alt_m=alt0_m + np.asarray(series.up_m, dtype=float),
         valid=np.asarray(series.valid, dtype=bool),
         nsats=np.full(n_epochs, -1.0)
