@@ -28,6 +28,7 @@ from x6wd.gap.io import (
     parse_truth,
     read_track,
     realign_note,
+    relative_times_s,
     series_to_track,
     wrap_lon_deg,
 )
@@ -212,7 +213,15 @@ def test_relative_times_are_rounded_so_a_10_hz_step_prints_as_0_1(tmp_path: Path
     series = errors_vs_point(read_track(tmp_path / "hz10.nmea"), 51.752, -1.2577)
     step_s = layout_for(series).dt_s
     assert f"{step_s:g}" == "0.1"
-    assert np.all(np.diff(series.t_s) > 0)
+    # even to the simulator (sim_backend.gnss.gauss_markov_unit's test): a 1e-6 s rounding
+    # left steps 1e-6 apart on the audit's 1 h log, and its uneven path peaked at ~1 GB
+    steps = np.diff(series.t_s)
+    assert np.ptp(steps) <= 1e-9 * steps.max()
+    # the audit's 1 h 10 Hz log's first 4 min, 12:00:00.0 on 2020-01-01
+    t0 = 1577880000.0
+    times = np.array([t0 + k * 0.1 for k in range(2400)])
+    rel = relative_times_s(times + np.where(np.arange(2400) % 3 == 0, 2.4e-7, -2.4e-7))
+    assert np.ptp(np.diff(rel)) <= 1e-9 * 0.1
 
 
 # ------------------------------------------- 3. a fit part where runs have no fix at all
@@ -399,3 +408,19 @@ def test_no_figures_removes_an_earlier_run_s_figures(tmp_path: Path) -> None:
     assert sorted(removed) == ["allan.png", "compass.png"]
     assert not (out / "allan.png").exists() and (out / "map.png").exists()
     assert (out / "photo.png").exists()  # not one of the tool's names
+
+
+def test_a_regular_log_with_a_hole_keeps_its_own_times(tmp_path: Path) -> None:
+    # Before: fill_missing_epochs put every epoch on t0 + k x (the smallest step), a step off
+    # by ~2e-7 s at 1.6e9 s: over 1 h at 10 Hz the last epoch came 3.4 ms early and the
+    # steps were uneven (the simulator's 2x larger path). Now the log's own stamps stay, the
+    # grid fills its holes only.
+    t0 = 1577880000.0
+    rows = [f"{t0 + k / 10:.2f},51.752,-1.2577,60.0" for k in range(36_001) if k != 5000]
+    (tmp_path / "hz10.csv").write_text("time,lat,lon,alt\n" + "\n".join(rows) + "\n")
+    track = read_track(tmp_path / "hz10.csv")
+    assert len(track) == 36_001 and not track.valid[5000]
+    assert track.t_s[-1] == t0 + 3600.0
+    series = errors_vs_point(track, 51.752, -1.2577)
+    steps = np.diff(series.t_s)
+    assert np.ptp(steps) <= 1e-9 * steps.max()

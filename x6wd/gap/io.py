@@ -369,6 +369,9 @@ def fill_missing_epochs(track: Track) -> Track:
     slot = np.round((t_s - t_s[0]) / dt_s).astype(int)
     if slot[-1] > GRID_FACTOR * t_s.size:  # a huge hole is not a run of missed epochs
         return track
+    if slot[-1] > 0:  # the step over the whole log: the smallest step is off by ~2e-7 s
+        dt_s = float(t_s[-1] - t_s[0]) / float(slot[-1])
+        slot = np.round((t_s - t_s[0]) / dt_s).astype(int)
     n_slots = int(slot[-1]) + 1
     first = np.concatenate(([True], np.diff(slot) > 0))
     slot, rows = slot[first], np.flatnonzero(first)
@@ -380,8 +383,12 @@ def fill_missing_epochs(track: Track) -> Track:
 
     valid = np.zeros(n_slots, dtype=bool)
     valid[slot] = track.valid[rows]
+    # the log's own times where it has epochs, the grid only in its holes: t0 + k dt from the
+    # smallest step drifted 3.4 ms over a 1 h 10 Hz log, and its steps were then uneven
+    times_s = t_s[0] + np.arange(n_slots) * dt_s
+    times_s[slot] = t_s[rows]
     return Track(
-        t_s=t_s[0] + np.arange(n_slots) * dt_s,
+        t_s=times_s,
         lat_deg=spread(track.lat_deg, math.nan),
         lon_deg=spread(track.lon_deg, math.nan),
         alt_m=spread(track.alt_m, math.nan),
@@ -1268,12 +1275,18 @@ def errors_vs_point(
     return _series(track, east_m, north_m, up_m, lat_deg, lon_deg, None, None)
 
 
+RELATIVE_TIME_DECIMALS = 5
+"""Decimals (s) of a log's times from its first: absolute UTC seconds (1.6e9) hold a time
+only to ~2.4e-7 s, a difference of two to ~5e-7, so a 10 Hz log's steps came out as
+0.0999999 s (printed so), and rounded to the microsecond some still fell 1e-6 off: the
+simulator then took the axis as uneven (its slower, 2x larger path). 10 us is far above
+that error and far below any receiver's step (NMEA prints 1-10 ms)."""
+
+
 def relative_times_s(t_s: np.ndarray) -> np.ndarray:
-    """Times (s) from the first, rounded to the microsecond: absolute UTC seconds (1.6e9) hold
-    a time only to ~2e-7 s, so a 10 Hz log's steps came out as 0.0999999 s (and printed so);
-    no log's clock is finer than a microsecond."""
+    """Times (s) from the first, rounded to :data:`RELATIVE_TIME_DECIMALS`."""
     t_s = np.asarray(t_s, dtype=float)
-    return np.round(t_s - t_s[0], 6) if t_s.size else t_s
+    return np.round(t_s - t_s[0], RELATIVE_TIME_DECIMALS) if t_s.size else t_s
 
 
 def _series(
