@@ -6,9 +6,10 @@ most 500 MB peak for a 1 h log).
 The logs are ``x6wd sim`` runs of the open-field scenario (its ``[gnss] rate_hz`` set to 10
 for the 10 Hz one). Each ``x6wd gap`` runs in a child process that reports its own peak
 resident set (VmHWM); the CPU and wall seconds are printed without a target.
-Measured 2026-12-04 (a shared 2-core machine): 10 Hz, 1 h peaked at 1.23 GB before the
-Kalman likelihood was blocked in time and 1.05 GB after; what is left is the simulator's
-receiver run over all 36,000 epochs in one call (see docs/gap.md, "Memory").
+Measured 2026-12-04 (a shared 2-core machine) on the audit's 1 h 10 Hz log: 1.23 GB before
+the Kalman likelihood was blocked in time and the time axis kept even, 551 MB after; what is
+left is the simulator's receiver run over all 36,000 epochs in one call (docs/gap.md,
+"Memory of a long or high-rate log").
 
     python -m bench.bench_gap_memory [--quick]   (--quick: 15 min logs)
 """
