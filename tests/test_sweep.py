@@ -724,7 +724,7 @@ def test_runs_the_cluster_lost_are_no_missions_and_no_throughput(
     from x6wd.app.cli import main
 
     class SchedulerDies(Executor):
-        def __init__(self, scheduler: str | None = None, workers: int | None = None) -> None:
+        def __init__(self, *_args: Any, **_kwargs: Any) -> None:  # the CLI's options
             super().__init__(inline=True)
 
         def map_unordered(
