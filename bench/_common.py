@@ -52,3 +52,20 @@ def print_table(rows: list[Row]) -> None:
     widths = [max(len(str(x)) for x in col) for col in zip(head, *body, strict=True)]
     for line in (head, *body):
         print("  ".join(str(x).ljust(w) for x, w in zip(line, widths, strict=True)).rstrip())
+
+
+# ``python -c PEAK_CHILD HWM_FILE ARGS...`` runs ``x6wd ARGS`` and writes its own peak
+# resident set (VmHWM of the exec'd process, bytes) to HWM_FILE. ``ru_maxrss`` from wait4
+# would not do: Linux carries the forking parent's high-water mark across exec.
+PEAK_CHILD = """
+import atexit, sys
+path = sys.argv[1]
+def _hwm():
+    with open("/proc/self/status") as f:
+        kb = next(int(ln.split()[1]) for ln in f if ln.startswith("VmHWM:"))
+    with open(path, "w") as out:
+        out.write(str(kb * 1024))
+atexit.register(_hwm)
+from x6wd.app.cli import main
+sys.exit(main(sys.argv[2:]))
+"""

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench._common import Row, print_table
+from bench._common import PEAK_CHILD, Row, print_table
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "config" / "scenarios"
@@ -31,25 +31,11 @@ MB = 1e6
 LIMIT_MB = 500.0
 TRUTH = "51.752,-1.2577,60.0"  # open_field.toml's origin
 
-# The child reports its own peak (VmHWM of the exec'd process), as bench_sim_cli's does.
-_CHILD = """
-import atexit, sys
-path = sys.argv[1]
-def _hwm():
-    with open("/proc/self/status") as f:
-        kb = next(int(ln.split()[1]) for ln in f if ln.startswith("VmHWM:"))
-    with open(path, "w") as out:
-        out.write(str(kb * 1024))
-atexit.register(_hwm)
-from x6wd.app.cli import main
-sys.exit(main(sys.argv[2:]))
-"""
-
 
 def _child(args: list[str], hwm: Path) -> dict[str, float]:
     """One ``x6wd`` process: its CPU s, wall s and peak resident set (bytes)."""
     a = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-c", _CHILD, str(hwm), *args], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-c", PEAK_CHILD, str(hwm), *args], cwd=ROOT,
                             stdout=subprocess.DEVNULL)  # fmt: skip
     _pid, status, ru = os.wait4(proc.pid, 0)
     wall_s = time.perf_counter() - a

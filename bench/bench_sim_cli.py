@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from bench._common import Row, print_table
+from bench._common import PEAK_CHILD, Row, print_table
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "config" / "scenarios"
@@ -86,29 +86,13 @@ def _scenario(tmp: Path, name: str, base: str, extra: str) -> Path:
     return path
 
 
-# The child reports its own peak (VmHWM of the exec'd process). ``ru_maxrss`` from wait4
-# would not do: Linux carries the forking parent's high-water mark across exec.
-_CHILD = """
-import atexit, sys
-path = sys.argv[1]
-def _hwm():
-    with open("/proc/self/status") as f:
-        kb = next(int(ln.split()[1]) for ln in f if ln.startswith("VmHWM:"))
-    with open(path, "w") as out:
-        out.write(str(kb * 1024))
-atexit.register(_hwm)
-from x6wd.app.cli import main
-sys.exit(main(sys.argv[2:]))
-"""
-
-
 def _run_cli(scenario: Path, duration_s: float, out: Path, *extra: str) -> dict[str, float]:
     """One ``x6wd sim`` process (``extra`` arguments added): its CPU s, peak RSS (bytes),
     simulated s, the run's own wall s (before the plot)."""
     args = ["sim", str(scenario), "--duration", str(duration_s), "--out", str(out), "--quiet"]
     args += list(extra)
     hwm = out.with_suffix(".hwm")
-    cmd = [sys.executable, "-c", _CHILD, str(hwm), *args]
+    cmd = [sys.executable, "-c", PEAK_CHILD, str(hwm), *args]
     a = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL)
     _pid, status, ru = os.wait4(proc.pid, 0)
