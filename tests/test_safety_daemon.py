@@ -943,12 +943,12 @@ def test_a_bug_in_a_control_loop_task_stops_the_motors_and_exits_1(
     notifier = Notifier(str(tmp_path / "notify.sock"), watchdog_usec=200_000)
     d = FailingWatchdogDaemon(log_motors_config(tmp_path), notifier=notifier)
     r = run_daemon(d)
-    with RemoteClient("127.0.0.1", r.port) as c:
+    with RemoteClient("127.0.0.1", r.port) as c:  # kept open: its drive would stop with it
         c.request("drive", left=25, right=25, duration_s=5)
-    wait_for(lambda: stamped.driving(25.0, 25.0), 3, "motors driven")
-    t_armed = time.monotonic()
-    d.armed = True
-    r.thread.join(10)
+        wait_for(lambda: stamped.driving(25.0, 25.0), 3, "motors driven")
+        t_armed = time.monotonic()
+        d.armed = True
+        r.thread.join(10)
     assert r.code == 1
     assert stamped.first_stop_after(t_armed) is not None and stamped.stamped[-1][1].is_stop
     sock.close()
