@@ -16,6 +16,7 @@ B. Of a round's options of one rank only the best by key was tried: when it coul
 from __future__ import annotations
 
 import math
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
@@ -138,3 +139,15 @@ def test_b_an_option_passed_over_on_the_key_says_so_with_the_figures() -> None:
     assert best is None and g_new == 2.5
     assert "removed 3% of the gap left, 30% needed" in pipe.passed_over["correction"][0]
     assert math.isfinite(g_new)
+
+
+def test_a_validation_with_no_simulated_fix_reads_nan_without_a_warning() -> None:
+    # noticed in an audit: runs with no fix in the part validated warned "Mean of empty
+    # slice" and the figure was NaN by accident
+    real = _log(830)
+    none = [real.with_(valid=np.zeros(real.t_s.shape[0], dtype=bool)) for _ in range(2)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        v = validate(real, none, 1.0, DURATION_S)
+    assert math.isnan(v.mean_sim_m) and math.isnan(v.sd_sim_m)
+    assert v.mean_real_m > 0

@@ -220,3 +220,9 @@ def test_diagnosis_names_the_zone_and_writes_it_in_the_scenario_frame(
     assert eff["x1_m"] == pytest.approx(zone.x1_m + 0.002 * e_per, abs=0.01)
     assert eff["y2_m"] == pytest.approx(zone.y2_m + 0.001 * n_per, abs=0.01)
     assert (tmp_path / "map.png").stat().st_size > 0
+    # the same origin written across the antimeridian (lon + 360 or - 360): the same frame
+    from x6wd.gap.report import effects_toml
+
+    for turn_deg in (360.0, -360.0):
+        text = effects_toml(d, origin_deg=(origin[0], origin[1] + turn_deg))
+        assert tomllib.loads(text)["effects"][0]["x1_m"] == pytest.approx(eff["x1_m"], abs=0.01)

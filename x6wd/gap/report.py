@@ -96,7 +96,7 @@ def effects_toml(
     if origin_deg is not None:
         m_per_deg_lon, m_per_deg_lat = metres_per_degree(origin_deg[0])
         shift_m = (
-            (origin_lon_deg - origin_deg[1]) * m_per_deg_lon,
+            ((origin_lon_deg - origin_deg[1] + 180.0) % 360.0 - 180.0) * m_per_deg_lon,  # ±180
             (origin_lat_deg - origin_deg[0]) * m_per_deg_lat,
         )
     for fit in [*gps, *(compass.selected if compass is not None else [])]:

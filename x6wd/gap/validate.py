@@ -400,9 +400,9 @@ def validate(
     return Validation(
         n_runs=len(sim_runs),
         mean_real_m=float(np.mean(radial_real)) if radial_real.size else math.nan,
-        mean_sim_m=float(np.mean(means)),
+        mean_sim_m=float(np.mean(means)) if means.size else math.nan,  # no run had a fix
         sd_real_m=float(np.std(radial_real)) if radial_real.size else math.nan,
-        sd_sim_m=float(np.mean(sds)),
+        sd_sim_m=float(np.mean(sds)) if sds.size else math.nan,
         taus_s=tuple(f * dt_s for f in factors),
         adev_real_m=tuple(float(a) for a in adev_real),
         adev_sim_m=tuple(float(a) for a in adev_sim),
