@@ -33,7 +33,7 @@ import math
 import threading
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any, cast
 
 import numpy as np
@@ -397,14 +397,26 @@ class SimReceiver:
         te, tn = truth_track_m(template)
         ve, vn = truth_velocity_mps(template)
         zeros = np.zeros(t.shape[0])
-        b = self.batch(t, np.column_stack([te, tn, zeros]), np.column_stack([ve, vn, zeros]))
-        s = self._series(b, te, tn, zeros, ve, vn)
+        pos, vel = np.column_stack([te, tn, zeros]), np.column_stack([ve, vn, zeros])
+        parts: list[PositionSeries] = []
+        sets: list[np.ndarray] = []
+        n_calls = -(-t.shape[0] // ERRORS_CHUNK_EPOCHS)  # bounded memory (see there)
+        size = -(-t.shape[0] // n_calls)  # even chunks: no call of a few epochs at the end
+        for a in range(0, t.shape[0], size):
+            z = slice(a, a + size)
+            b = self.batch(t[z], pos[z], vel[z])
+            parts.append(self._series(b, te[z], tn[z], zeros[z], ve[z], vn[z]))
+            sets.append(used_set_ids(b.used, b.prns))
+        s = parts[0] if len(parts) == 1 else replace(parts[0], **{
+            f.name: np.concatenate([getattr(p, f.name) for p in parts])
+            for f in fields(PositionSeries) if isinstance(getattr(parts[0], f.name), np.ndarray)
+        })  # fmt: skip
         s = s.with_(east_m=np.nan_to_num(s.east_m), north_m=np.nan_to_num(s.north_m),
                     up_m=np.nan_to_num(s.up_m))  # fmt: skip
         s = Quantization(decimals=self.formatter.minute_decimals).start(_NO_DRAWS).step(s)
         return template.with_(
             east_m=s.east_m, north_m=s.north_m, up_m=s.up_m, valid=s.valid, nsats=s.nsats,
-            sat_set=used_set_ids(b.used, b.prns),
+            sat_set=np.concatenate(sets),
         )  # fmt: skip
 
     # --- bytes and timing ------------------------------------------------------------------
@@ -490,6 +502,13 @@ class SimReceiver:
             err_enu_m=np.where(ok[:, None], b.err_enu_m + d, nan[:, None]),
         )
 
+
+ERRORS_CHUNK_EPOCHS = 7200
+""":meth:`SimReceiver.errors` runs the model at most this many epochs per call, in even
+chunks: one call over a 1 h 10 Hz log (36,000 epochs) took ~240 MB of per-satellite
+processes and geometry, 7,200 epochs take ~50 MB. A template of at most this many epochs (an
+hour at 1 Hz, with or without its closing epoch, and two hours) is one call, as it always
+was; a longer one draws chunk by chunk, differing from one call by the draw order only."""
 
 _NO_DRAWS = cast(np.random.Generator, None)  # for layers that draw nothing (the print lattice)
 

@@ -343,3 +343,38 @@ def test_the_uart_table_is_send_sentence_by_sentence(seed: int) -> None:
             assert (table.free_at_s, table.dropped, table.sent) == (
                 one.free_at_s, one.dropped, one.sent,
             )  # fmt: skip
+
+
+def test_errors_of_a_long_template_run_in_even_chunks_that_join_seamlessly(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The gap tool's simulated logs: a 1 h 10 Hz template in one call took ~240 MB more than
+    # in chunks. Chunks continue the processes' state, so the joins do not show; a template
+    # within one chunk is one call, as it always was.
+    import sim_backend.receiver as receiver
+    from sim_backend.effects import PositionSeries
+
+    world = load_world(SCENARIOS / "open_field.toml")
+    n = 2_400
+    t = np.arange(n) * 0.5
+    template = PositionSeries(t, np.zeros(n), np.zeros(n), np.zeros(n), np.ones(n, dtype=bool),
+                              world.origin.lat_deg, world.origin.lon_deg)  # fmt: skip
+    whole = build_receiver(world, 4).errors(template)
+    assert len(whole.t_s) == n and whole.sat_set is not None and len(whole.sat_set) == n
+    monkeypatch.setattr(receiver, "ERRORS_CHUNK_EPOCHS", 700)  # 4 calls of 600
+    calls: list[int] = []
+    rx = build_receiver(world, 4)
+    batch = rx.batch
+    monkeypatch.setattr(rx, "batch", lambda t, p, v: calls.append(len(t)) or batch(t, p, v))
+    parts = rx.errors(template)
+    assert calls == [600] * 4
+    assert np.array_equal(parts.t_s, whole.t_s) and len(parts.sat_set) == n
+    assert np.all(parts.valid) and np.all(whole.valid)
+    for e in (parts, whole):  # same law: the slow error's spread, the step size
+        assert 0.3 < np.std(e.east_m) < 8.0
+    steps = np.hypot(np.diff(parts.east_m), np.diff(parts.north_m))
+    joins = steps[np.arange(599, n - 1, 600)]
+    assert np.max(joins) < np.percentile(steps, 99.9) + 0.05  # no jump where chunks meet
+    assert np.median(steps) == pytest.approx(
+        np.median(np.hypot(np.diff(whole.east_m), np.diff(whole.north_m))), rel=0.3
+    )
