@@ -274,6 +274,13 @@ def test_back_to_back_ubx_frames_frame_alike_in_any_reads() -> None:
         assert _framed(data, size) == whole, size
 
 
+def test_a_read_of_ubx_frames_only_decodes_like_the_reference() -> None:
+    # an outside audit: 16 or more UBX frames and no NMEA in one read (a u-blox set to
+    # binary output) crashed the bulk path with an IndexError
+    frames = [gps_nmea.ubx_frame(1, 7, bytes(92)) for _ in range(100)]
+    _check(b"".join(frames), (1 << 20, 4093))
+
+
 def test_memos_cleared_while_reading_decode_like_the_reference(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

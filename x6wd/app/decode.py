@@ -819,6 +819,8 @@ def _phases(codes: list[_T]) -> list[_T] | None:
     """The codes of one cycle if ``codes`` repeats one of at most ``_PERIOD_MAX`` sentences
     (``codes[i] == codes[i % p]``), else None."""
     n = len(codes)
+    if n == 0:  # a read of UBX frames only
+        return None
     p = 0
     while True:
         try:
