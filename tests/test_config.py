@@ -62,6 +62,11 @@ def test_values_are_converted_and_validated() -> None:
         ("navigation = 3\n", r"^navigation: expected a table"),
         ("[safety]\ngeofence_center = 'here'\n", r"^safety\.geofence_center: expected a list"),
         ("[safety]\ngeofence_center = [51.7, 'x']\n", r"^safety\.geofence_center\[1\]: expected"),
+        # checked by the config itself, so x6wd sim, scenarios and sweeps refuse them too
+        ("[safety]\ngeofence_center = [51.7]\n", r"^safety\.geofence_center: expected \[\] or"),
+        ("[safety]\ngeofence_center = [95.0, 0.0]\n", r"^safety\.geofence_center: latitude 95"),
+        ("[safety]\ngeofence_center = [51.7, -181]\n", r"^safety\.geofence_center: longitude"),
+        ("[safety]\ngeofence_center = [nan, 0.0]\n", r"^safety\.geofence_center\[0\]: must be fin"),
         # out of range
         ("[navigation]\nfilter_n = 2\n", r"^navigation\.filter_n: must be >= 3, got 2"),
         ("[navigation]\ncruise_pct = 100.5\n", r"^navigation\.cruise_pct: must be <= 100"),

@@ -33,6 +33,7 @@ from x6wd.core.config import (
     ServerConfig,
     SimConfig,
 )
+from x6wd.core.errors import ConfigError
 from x6wd.core.records import Attitude, MotorCommand
 
 ORIGIN = (51.7520, -1.2577)
@@ -264,10 +265,14 @@ def run_to_exit(daemon: Daemon, timeout_s: float = 30.0) -> int:
 
 
 def test_bad_geofence_centre_is_a_startup_error(tmp_path: Path) -> None:
-    cfg = hil_config(tmp_path, safety=SafetyConfig(geofence_center=(1.0,)))
-    d = Daemon(cfg)
-    assert run_to_exit(d) == 2
-    assert d.devices is None  # stopped before any device (or the simulated world) existed
+    cfg_path = tmp_path / "bad.toml"  # the file the daemon is started with: exit 2, named
+    cfg_path.write_text('[gps]\nurl = "sim://"\n[safety]\ngeofence_center = [1.0]\n')
+    done = subprocess.run([sys.executable, "-m", "x6wd", "run", "--config", str(cfg_path)],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert "safety.geofence_center: expected [] or [lat_deg, lon_deg], got [1]" in done.stderr
+    with pytest.raises(ConfigError, match="safety.geofence_center"):
+        SafetyConfig(geofence_center=(1.0,))  # the config itself refuses it
 
 
 def test_distance() -> None:

@@ -953,19 +953,7 @@ class Daemon:
         """Check every setting that can be checked without opening a device or creating a
         file: device URLs and the local devices they name, the simulator's world, the server
         token and TLS files, the recorder directory. Raises ConfigError naming the key."""
-        cfg = self.config
-        gc = cfg.safety.geofence_center
-        shown = "[" + ", ".join(f"{v:g}" for v in gc) + "]"  # as the TOML wrote it
-        if len(gc) not in (0, 2):
-            raise ConfigError(
-                f"safety.geofence_center: expected [] or [lat_deg, lon_deg], got {shown}"
-            )
-        if len(gc) == 2 and not -90.0 <= gc[0] <= 90.0:
-            raise ConfigError(f"safety.geofence_center: latitude {gc[0]:g} outside [-90, 90] deg")
-        if len(gc) == 2 and not -180.0 <= gc[1] <= 180.0:
-            raise ConfigError(
-                f"safety.geofence_center: longitude {gc[1]:g} outside [-180, 180] deg"
-            )
+        cfg = self.config  # (safety.geofence_center: SafetyConfig checks it)
         from drivers import registry
 
         devices = (

@@ -211,6 +211,22 @@ class SafetyConfig:
     # [lat_deg, lon_deg]; empty: the geofence is centred on the first valid fix
     geofence_center: tuple[float, ...] = ()
 
+    def __post_init__(self) -> None:
+        # here, not only in the daemon's preflight: x6wd sim, scenarios and sweeps build this
+        # too (an outside audit: [95, 0] drove a whole run, then the fence refused it)
+        gc = self.geofence_center
+        shown = "[" + ", ".join(f"{v:g}" for v in gc) + "]"  # as the TOML wrote it
+        if len(gc) not in (0, 2):
+            raise ConfigError(
+                f"safety.geofence_center: expected [] or [lat_deg, lon_deg], got {shown}"
+            )
+        if len(gc) == 2 and not -90.0 <= gc[0] <= 90.0:
+            raise ConfigError(f"safety.geofence_center: latitude {gc[0]:g} outside [-90, 90] deg")
+        if len(gc) == 2 and not -180.0 <= gc[1] <= 180.0:
+            raise ConfigError(
+                f"safety.geofence_center: longitude {gc[1]:g} outside [-180, 180] deg"
+            )
+
 
 FAILSAFE_ACTIONS = ("hold", "return")
 
