@@ -298,6 +298,9 @@ def test_a_nan_or_fractional_number_is_refused_naming_the_file_and_record(
         ("half_count", odo_at[40], r'"right_counts":-?\d+', '"right_counts":1234.5',
          "odometry record 41 (t_mono 2.050 s): right_counts must be a whole number of counts, "
          "got 1234.5"),
+        ("huge_count", odo_at[40], r'"left_counts":-?\d+', '"left_counts":' + "1" + "0" * 30,
+         "odometry record 41 (t_mono 2.050 s): left_counts must be within +-1e+15 counts, "
+         "got 1" + "0" * 30),  # an outside audit: an OverflowError traceback
         ("nan_first_fix", fix_at[0], r'"lat_deg":[-\d.e]+', '"lat_deg":NaN',
          "fix record 1 (t_mono 0.200 s): lat_deg must be finite, got nan"),
     ):  # fmt: skip

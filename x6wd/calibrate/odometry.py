@@ -55,6 +55,7 @@ from x6wd.nav.geo import LocalTangentPlane
 
 Array = npt.NDArray[np.float64]
 MIN_PASSES = 3  # repetitions needed for the scatter-based k and standard errors
+ODOMETRY_MAX_COUNTS = 1e15  # ~1e9 km of 120 mm wheels: beyond it a count is a writer's fault
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,8 @@ def _bad_value(rec: WheelOdometry | GpsFix) -> str | None:
             v = getattr(rec, side)
             if not (math.isfinite(v) and float(v).is_integer()):
                 return f"{side} must be a whole number of counts, got {v!r}"
+            if not -ODOMETRY_MAX_COUNTS <= v <= ODOMETRY_MAX_COUNTS:  # would overflow int64
+                return f"{side} must be within +-{ODOMETRY_MAX_COUNTS:.0e} counts, got {v!r}"
     elif rec.valid:  # an invalid fix's position is dropped unused
         values |= {"lat_deg": rec.lat_deg, "lon_deg": rec.lon_deg}
     for name, value in values.items():
