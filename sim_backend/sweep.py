@@ -78,6 +78,7 @@ from sim_backend.world import (
     dumps_toml,
     load_world,
     loads_world,
+    parse_start_utc,
     with_robot_config,
 )
 from x6wd.core.config import check_drive_vs_stuck
@@ -187,10 +188,10 @@ def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: s
             raise ConfigError(f"grid.{key}: also in [set]; give it in one of them")
         seen: dict[str, Any] = {}
         for v in values:  # a repeat would run the same cell twice and count it twice
-            first = seen.setdefault(_value_key(v), v)
+            first = seen.setdefault(_value_key(v, key), v)
             if first is not v:
-                same = "" if repr(first) == repr(v) else f" (as {first!r})"
-                raise ConfigError(f"grid.{key}: value {v!r} given twice{same}")
+                same = "" if _shown(first) == _shown(v) else f" (as {_shown(first)})"
+                raise ConfigError(f"grid.{key}: value {_shown(v)} given twice{same}")
         grid[key] = values
     return SweepSpec(
         name=name,
@@ -272,10 +273,21 @@ def _canonical(value: Any) -> str:
     return json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
 
 
-def _value_key(value: Any) -> str:
+def _shown(value: Any) -> str:
+    """A grid value as the file writes it: a TOML date or time in ISO form, else its repr."""
+    return value.isoformat() if isinstance(value, (date, clock_time)) else repr(value)
+
+
+def _value_key(value: Any, key: str = "") -> str:
     """``value`` for telling two grid values apart: numbers by their value (1 and 1.0 are
-    one value, the same in the scenario; true is not 1), in lists and tables too. (Seeds and
-    cell ids keep :func:`_canonical` of the value as written.)"""
+    one value, the same in the scenario; true is not 1), in lists and tables too; a
+    ``start_utc`` by the instant the scenario takes from it (a string or a TOML datetime,
+    any offset). (Seeds and cell ids keep :func:`_canonical` of the value as written.)"""
+    if key == "start_utc":
+        try:
+            return "instant:" + parse_start_utc(value).isoformat()
+        except ConfigError:
+            pass  # the scenario loader names it when the cell runs
 
     def norm(v: Any) -> Any:
         if isinstance(v, float) and v.is_integer():

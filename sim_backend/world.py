@@ -588,7 +588,7 @@ def _build_walls(data: dict[str, Any]) -> tuple[tuple[Wall, ...], tuple[Roof, ..
     return tuple(walls), tuple(roofs)
 
 
-def _parse_time(value: Any) -> datetime:
+def parse_start_utc(value: Any) -> datetime:
     """``start_utc``: an ISO-8601 string or a TOML datetime; one with an offset is converted
     to UTC, one without (naive) is taken as UTC, as is a date alone (its 00:00). A TOML time
     of day alone has no date: refused."""
@@ -715,7 +715,7 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
         raise ConfigError(f"{unknown[0]}: unknown key (valid keys: {', '.join(sorted(_TOP_KEYS))})")
     data = copy.deepcopy(data)
     start = data.get("start_utc", _Top.start_utc)
-    start_utc = _parse_time(start)
+    start_utc = parse_start_utc(start)
     top_data = {k: data[k] for k in ("name", "duration_s", "seed", "almanac") if k in data}
     top = build(_Top, top_data)
     if not top.name:

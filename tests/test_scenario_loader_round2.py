@@ -290,7 +290,7 @@ def test_the_bounds_here_are_the_modules() -> None:
         ("noise_ut = -1.0\n", "compass.noise_ut: must be within 0..100, got -1.0"),
         ("hard_iron_ut = [1.0, 2.0]\n", "compass.hard_iron_ut needs 3 components"),
         ("hard_iron_ut = [nan, 0.0, 0.0]\n", "compass.hard_iron_ut must be 3 finite"),  # crashed
-        ("hard_iron_ut = [0.0, 1e9, 0.0]\n", "compass.hard_iron_ut must be 3 finite"),
+        ("hard_iron_ut = [0.0, inf, 0.0]\n", "compass.hard_iron_ut must be 3 finite"),
         (
             "soft_iron = [[0.0, 0, 0], [0, 0, 0], [0, 0, 0]]\n",
             "compass.soft_iron matrix is singular",

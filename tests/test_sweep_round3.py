@@ -303,11 +303,18 @@ def test_a_toml_datetime_is_a_value(tmp_path: Path, table: str) -> None:
 def test_one_instant_written_twice_in_a_grid_is_one_value() -> None:
     from sim_backend.sweep import loads_sweep
 
-    with pytest.raises(ConfigError, match=r"grid\.start_utc: value .* given twice"):
-        loads_sweep(
-            f'scenarios = ["{DEFAULT}"]\n[grid]\n'
-            "start_utc = [2020-01-01T12:00:00Z, 2020-01-01T13:00:00+01:00]\n"
-        )
+    head = f'scenarios = ["{DEFAULT}"]\n[grid]\n'
+    # shown as the file writes it (ISO), not as Python's datetime(...) repr
+    twice = r"grid\.start_utc: value 2020-01-01T13:00:00\+01:00 given twice \(as 2020-01-01T12"
+    with pytest.raises(ConfigError, match=twice):
+        loads_sweep(head + "start_utc = [2020-01-01T12:00:00Z, 2020-01-01T13:00:00+01:00]\n")
+    # an outside audit: the same instant as a string and as a TOML datetime ran twice
+    for values in ('"2020-01-01T12:00:00Z", 2020-01-01T12:00:00Z',
+                   '"2020-01-01T12:00:00Z", "2020-01-01T13:00:00+01:00"',
+                   '2020-01-01, "2020-01-01T00:00:00Z"'):  # fmt: skip
+        with pytest.raises(ConfigError, match=r"grid\.start_utc: value .* given twice"):
+            loads_sweep(head + f"start_utc = [{values}]\n")
+    loads_sweep(head + 'start_utc = ["2020-01-01T12:00:00Z", 2020-01-01T12:00:01Z]\n')
 
 
 # ---------------------------------------------------------------------------- D4: start checks
