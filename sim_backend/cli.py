@@ -30,6 +30,19 @@ def _duration_s(text: str) -> float:
     return value
 
 
+def _seed(text: str) -> int:
+    """``--seed``: a whole number within the scenario's ``seed`` range, 0..2**63 - 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not 0 <= value <= 2**63 - 1:
+        raise argparse.ArgumentTypeError(
+            f"must be within 0..2**63 - 1 (a scenario's seed), got {text}"
+        )
+    return value
+
+
 def _progress_bar(stream: Any) -> Callable[[float, float], None]:
     tty = bool(getattr(stream, "isatty", lambda: False)())
     state = {"last": -1}
@@ -55,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``x6wd sim SCENARIO.toml [--out DIR] [--seed N] [--duration S]``."""
     parser.add_argument("scenario", help="scenario TOML file (see config/scenarios/)")
     parser.add_argument("--out", default="sim-out", help="output directory (default: sim-out)")
-    parser.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    parser.add_argument("--seed", type=_seed, default=None, help="override the scenario's seed")
     parser.add_argument(
         "--duration",
         type=_duration_s,

@@ -511,6 +511,7 @@ def run_mission(
         extra={
             "holds_s": [[round(a, 3), round(b, 3)] for a, b in holds],
             "mission_rejected": mission_state["rejected"],
+            "final_mode": str(ctrl.mode),
             "warnings": sky_warnings(world, total_s),
             "arrivals": _with_slow_error(arrivals, world, trace, dt),
             "returned_at_s": returned[0] if returned else None,

@@ -157,6 +157,16 @@ class Summary:
         """JSON-ready dict (NaN as None)."""
         return _json_safe(asdict(self))
 
+    def _not_completed_why(self) -> str:
+        returned_s, mode = self.extra.get("returned_at_s"), self.extra.get("final_mode")
+        if returned_s is not None:
+            return f"a failsafe returned the robot to its launch point at {returned_s:.0f} s"
+        if mode == "PAUSED":
+            return f"the mission was on hold when the run ended at {self.sim_time_s:.0f} s"
+        if mode == "RUNNING":
+            return f"the run's {self.sim_time_s:.0f} s ended before the last waypoint"
+        return f"the run ended at {self.sim_time_s:.0f} s with the robot {mode or 'stopped'}"
+
     def text(self) -> str:
         """The human-readable summary printed by ``x6wd sim``."""
         r, f = self.raw_error, self.filtered_error
@@ -166,8 +176,10 @@ class Summary:
             outcome = "static survey (no waypoints)"
         elif rejected:  # the robot refused the mission: say why, not only that it failed
             outcome = f"mission NOT completed: the robot rejected it ({rejected})"
-        else:
-            outcome = "mission COMPLETED" if self.completed else "mission NOT completed"
+        elif self.completed:
+            outcome = "mission COMPLETED"
+        else:  # say why (an outside audit: a run cut by its duration said nothing)
+            outcome = f"mission NOT completed: {self._not_completed_why()}"
         lines = [
             f"scenario {self.scenario!r} seed {self.seed}: {outcome}",
             f"  waypoints reached   {self.waypoints_reached}/{self.waypoint_count}",

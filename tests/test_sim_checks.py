@@ -142,3 +142,23 @@ def test_the_straight_length_of_a_field_route_is_its_flat_length() -> None:
     pts = np.vstack([[v.start_east_m, v.start_north_m], world.waypoints_enu_m()])
     flat = float(np.sum(np.hypot(*np.diff(pts, axis=0).T)))
     assert straight_length_m(world) == pytest.approx(flat, abs=1e-3)
+
+
+def test_a_mission_cut_by_the_runs_duration_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside audit: "mission NOT completed" and nothing more
+    argv = ["sim", str(SCENARIOS / "default.toml"), "--duration", "20", "--quiet"]
+    assert cli.main([*argv, "--out", str(tmp_path / "o")]) == 1
+    out = capsys.readouterr().out
+    assert "mission NOT completed: the run's 20 s ended before the last waypoint" in out
+
+
+@pytest.mark.parametrize("seed", ["-1", str(2**63), "99999999999999999999999", "1.5"])
+def test_a_seed_outside_a_scenarios_seed_range_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], seed: str
+) -> None:
+    argv = ["sim", str(SCENARIOS / "default.toml"), "--seed", seed, "--out", str(tmp_path / "o")]
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 2 and "argument --seed: " in capsys.readouterr().err
