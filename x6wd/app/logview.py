@@ -22,6 +22,10 @@ clock (two sessions appended to one file, each restarting it). The time axis is 
 file's order: where the log's time goes back, or forward by more than :data:`TIME_JUMP_S`,
 the next segment is drawn one epoch after the previous one, the place marked on every time
 panel and said in the page's facts (:class:`TimeJump`). Crossing midnight is not a jump.
+
+A log of any length is read in bounded memory (the daemon serves this page): each series is
+kept whole up to :data:`SAMPLE_ROWS` rows and thinned as it is read beyond that, keeping its
+first and last rows and its extremes (:class:`_Sample`), so the axes are those of the whole.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import html
 import json
 import math
 import statistics
+from array import array
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -41,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from x6wd import __version__
-from x6wd.core.errors import DeviceUnavailable, ParseError
+from x6wd.core.errors import DeviceUnavailable, ParseError, X6wdError
 from x6wd.core.geodesy import wrap360
 from x6wd.core.recorder import (
     ReadStats,
@@ -246,20 +251,220 @@ def _arr(values: Iterable[float | None]) -> np.ndarray:
 # ---------------------------------------------------------------------------- reading
 
 
+SAMPLE_ROWS = 16384
+"""Rows the reader keeps of each series (:class:`_Sample`): a series of up to this many is
+kept whole (the page is as if every record were kept); a longer one is thinned as it is read,
+so that reading a recording of any length takes bounded memory."""
+
+HOLD_WINDOW_S = 60.0
+"""Hold marks older than this (s) before the newest are run-length compacted
+(:class:`_HoldMarks`): the recorder's threads write out of order by far less."""
+
+
+def _key_float(v: Any) -> float | None:
+    """``v`` as a float for a sample's extremes, or None (not a finite number)."""
+    if isinstance(v, (int, float)) and math.isfinite(v):
+        return float(v)
+    return None
+
+
+class _Sample:
+    """A bounded sample of a series' rows in file order: every ``stride``-th row from the
+    first (the stride doubling whenever more than :data:`SAMPLE_ROWS` would be kept), the
+    last row, and the rows holding the least and greatest finite value of each of ``keys``
+    (the page's axes span the whole series). A series of up to :data:`SAMPLE_ROWS` rows is
+    kept whole; at most ``SAMPLE_ROWS + 1 + 2 * len(keys)`` rows are ever held."""
+
+    def __init__(self, *keys: Any) -> None:
+        self.n = 0  # rows offered
+        self.stride = 1
+        self._limit = SAMPLE_ROWS
+        self._kept: list[tuple[int, Any]] = []  # (row number, row)
+        self._last: tuple[int, Any] | None = None
+        self._keys = keys
+        self._ends: list[list[tuple[float, int, Any] | None]] = [[None, None] for _ in keys]
+
+    def add(self, row: Any) -> None:
+        """Offer the next row."""
+        i, self.n = self.n, self.n + 1
+        self._last = (i, row)
+        if i % self.stride == 0:
+            self._kept.append(self._last)
+            if len(self._kept) > self._limit:
+                self.stride *= 2
+                self._kept = [k for k in self._kept if k[0] % self.stride == 0]
+        for key, ends in zip(self._keys, self._ends, strict=True):
+            v = _key_float(key(row))
+            if v is not None:
+                if ends[0] is None or v < ends[0][0]:
+                    ends[0] = (v, i, row)
+                if ends[1] is None or v > ends[1][0]:
+                    ends[1] = (v, i, row)
+
+    def held(self) -> int:
+        """Rows held now (at most ``SAMPLE_ROWS + 1 + 2 * len(keys)``)."""
+        return len(self._kept) + 1 + 2 * len(self._keys) if self.n else 0
+
+    def rows(self) -> list[Any]:
+        """The kept rows, in file order."""
+        kept = dict(self._kept)
+        if self._last is not None:
+            kept[self._last[0]] = self._last[1]
+        kept.update((e[1], e[2]) for ends in self._ends for e in ends if e is not None)
+        return [kept[i] for i in sorted(kept)]
+
+
+class _HoldMarks:
+    """Hold marks (t s, reason; "" = not holding), drawn as holds in time order (file order
+    within a time, :func:`_timelines`). A mark after one of the same reason in that order
+    changes nothing, so those older than :data:`HOLD_WINDOW_S` before the newest are dropped
+    as the marks come: what is held is the reason changes and the last window."""
+
+    def __init__(self) -> None:
+        self.marks: list[tuple[float, str]] = []
+        self._compacted = 0  # marks held after the last compaction
+
+    def add(self, t_s: float, reason: str) -> None:
+        """A mark: from ``t_s`` on, holding for ``reason`` ("": not holding)."""
+        self.marks.append((t_s, reason))
+        if len(self.marks) > self._compacted + 1024:
+            self.marks.sort(key=lambda m: m[0])  # stable: file order within a time
+            old_s = self.marks[-1][0] - HOLD_WINDOW_S
+            out: list[tuple[float, str]] = []
+            for m in self.marks:
+                if not (m[0] < old_s and out and out[-1][1] == m[1]):
+                    out.append(m)
+            self.marks, self._compacted = out, len(out)
+
+
+def _fix_error_key(raw: _Raw) -> Any:
+    """A valid fix's distance from the true track in degrees (roughly: only to keep the
+    sample's largest error), None without a true track."""
+
+    def key(f: GpsFix) -> float | None:
+        assert f.lat_deg is not None and f.lon_deg is not None  # a good fix's
+        t = (
+            (f.utc - raw.utc0).total_seconds()
+            if f.utc is not None and raw.utc0 is not None
+            else f.t_s
+        )
+        return raw.off_truth_deg(t, f.lat_deg, f.lon_deg)
+
+    return key
+
+
 @dataclass
 class _Raw:
-    """Records gathered from a log before they become panels (times in the log's own s)."""
+    """What the panels draw of a log, gathered as it is read (times in the log's own s):
+    bounded samples of each series (:class:`_Sample`), counts of the rest."""
 
-    fixes: list[GpsFix] = field(default_factory=list)
-    skies: list[GpsSky] = field(default_factory=list)
-    tel: list[dict[str, Any]] = field(default_factory=list)  # telemetry data dicts
-    att: list[tuple[float, float]] = field(default_factory=list)  # (t, magnetic bearing deg)
+    truth: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # t s, lat deg, lon deg
+    fixes: _Sample = field(default_factory=lambda: _Sample(_t, _hdop, _sats))  # GpsFix
+    good: _Sample = field(init=False)  # valid fixes with a finite position
+    moving: _Sample = field(default_factory=lambda: _Sample(_t))  # valid fixes with a course
+    # (t, satellites in view or None, HDOP)
+    skies: _Sample = field(default_factory=lambda: _Sample(_c(0), _c(1), _c(2)))
+    # telemetry's position estimate: (t, the run's own t s, lat deg, lon deg)
+    est: _Sample = field(init=False)
+    heading: _Sample = field(default_factory=lambda: _Sample(_c(0)))  # (t, heading deg)
+    att: _Sample = field(default_factory=lambda: _Sample(_c(0)))  # (t, magnetic bearing deg)
+    n_fixes: int = 0
+    n_valid: int = 0  # valid fixes with a latitude
+    n_skies: int = 0
+    n_tel: int = 0
+    nonfinite: int = 0  # positions that are NaN or infinite: skipped
     states: list[tuple[float, str, str, str]] = field(default_factory=list)  # t, old, new, why
     device_events: list[tuple[float, str, str, str]] = field(default_factory=list)
-    hold_marks: list[tuple[float, str]] = field(default_factory=list)  # t, reason ("": none)
+    hold_marks: _HoldMarks = field(default_factory=_HoldMarks)
     t_first: float | None = None
     t_last: float = 0.0
     utc0: datetime | None = None  # wall-clock time of the log's time 0
+
+    def __post_init__(self) -> None:
+        self.good = _Sample(_t, _lat, _lon, _fix_error_key(self))
+        self.est = _Sample(_c(0), _c(2), _c(3), lambda r: self.off_truth_deg(r[1], r[2], r[3]))
+
+    def off_truth_deg(self, t_s: Any, lat_deg: float, lon_deg: float) -> float | None:
+        """Roughly how far a position at the run's time ``t_s`` is from the true track
+        (degrees of latitude): which of a series is furthest. None without a true track."""
+        if self.truth is None or not isinstance(t_s, (int, float)):
+            return None
+        tt, la, lo = self.truth
+        d_lat = lat_deg - float(np.interp(t_s, tt, la))
+        d_lon = lon_deg - float(np.interp(t_s, tt, lo))
+        return math.hypot(d_lat, d_lon * math.cos(math.radians(lat_deg)))
+
+    def add_fix(self, f: GpsFix) -> None:
+        """A fix, into the series that draw it."""
+        self.n_fixes += 1
+        self.fixes.add(f)
+        if f.valid and f.lat_deg is not None:
+            self.n_valid += 1
+            if f.lon_deg is not None:
+                if _finite(f.lat_deg, f.lon_deg):
+                    self.good.add(f)
+                else:
+                    self.nonfinite += 1
+        if f.valid and f.course_deg is not None:
+            self.moving.add(f)
+
+    def add_sky(self, s: GpsSky) -> None:
+        """A sky report: its count of satellites in view and its HDOP."""
+        self.n_skies += 1
+        self.skies.add((s.t_s, len(s.satellites) if s.satellites else None, s.hdop))
+
+    def add_tel(self, t_s: float, t_own_s: Any, d: dict[str, Any]) -> None:
+        """A telemetry record's data ``d`` at ``t_s`` (``t_own_s``: on the true track's
+        clock, the run's own): its position estimate and heading."""
+        self.n_tel += 1
+        lat, lon = d.get("filt_lat_deg"), d.get("filt_lon_deg")
+        if isinstance(lat, (int, float)) and isinstance(lon, (int, float)):
+            if _finite(lat, lon):
+                self.est.add((t_s, t_own_s, float(lat), float(lon)))
+            else:
+                self.nonfinite += 1
+        h = d.get("heading_deg")
+        if isinstance(h, (int, float)):
+            self.heading.add((t_s, h))
+
+    def take_gps(self, other: _Raw) -> None:
+        """``other``'s fixes (and its skies, if this has none) in place of this one's."""
+        self.fixes, self.good, self.moving = other.fixes, other.good, other.moving
+        self.n_fixes, self.n_valid = other.n_fixes, other.n_valid
+        self.nonfinite += other.nonfinite
+        if not self.n_skies:
+            self.skies, self.n_skies = other.skies, other.n_skies
+
+    def held(self) -> int:
+        """Rows and marks held now: bounded, however long the log (state changes and
+        device events aside: the page draws every one)."""
+        samples = (self.fixes, self.good, self.moving, self.skies, self.est, self.heading)
+        return sum(s.held() for s in (*samples, self.att)) + len(self.hold_marks.marks)
+
+
+def _t(f: GpsFix | GpsSky) -> float:
+    return f.t_s
+
+
+def _hdop(f: GpsFix) -> float | None:
+    return f.hdop
+
+
+def _sats(f: GpsFix) -> int | None:
+    return f.sats_used
+
+
+def _lat(f: GpsFix) -> float | None:
+    return f.lat_deg
+
+
+def _lon(f: GpsFix) -> float | None:
+    return f.lon_deg
+
+
+def _c(k: int) -> Any:
+    """The ``k``-th column of a row."""
+    return lambda row: row[k]
 
 
 def _parse_utc(text: Any) -> datetime | None:
@@ -286,43 +491,57 @@ LOST_COUNTS = frozenset(
 """The counts of :attr:`LogView.counts` that say input was skipped (``x6wd plot`` says so)."""
 
 
-def _gps_from_decoder(
-    chunks: Iterable[tuple[float, bytes]], raw: _Raw, order: _FileOrder | None = None
-) -> dict[str, int]:
-    """Decode ``chunks`` into ``raw``'s fixes and skies; the decoder's error counts.
-    ``order``: a plain log's lines (one a chunk), their times put in file order by it."""
-    from drivers.gps_nmea import GpsDecoder
+class _Decoding:
+    """NMEA decoded into a :class:`_Raw`'s fixes and skies as it comes. ``order``: a plain
+    log's lines (one a chunk), their times put in file order by it and its jumps dated by
+    the receiver's UTC (:class:`_JumpDates`)."""
 
-    decoder = GpsDecoder(emit_sentences=False)
+    def __init__(self, raw: _Raw, order: _FileOrder | None = None) -> None:
+        from drivers.gps_nmea import GpsDecoder
 
-    def keep(records: Iterable[Any]) -> None:
+        self.raw, self.order = raw, order
+        self.decoder = GpsDecoder(emit_sentences=False)
+        self.dates = _JumpDates() if order is not None else None
+        self.line = 0
+        self.t_last_s = 0.0
+
+    def _keep(self, records: Iterable[Any]) -> None:
         for rec in records:
             if isinstance(rec, GpsFix):
-                raw.fixes.append(rec)
+                self.raw.add_fix(rec)
+                if self.dates is not None:
+                    self.dates.see(rec)
             elif isinstance(rec, GpsSky):
-                raw.skies.append(rec)
+                self.raw.add_sky(rec)
 
-    t_last = 0.0
-    for line, (t_s, data) in enumerate(chunks, start=1):
-        if order is not None:
-            n = len(order.jumps)
-            t_s = order.place(t_s, line)
-            if len(order.jumps) > n:
+    def feed(self, t_s: float, data: bytes) -> None:
+        """The next chunk, received at ``t_s`` (the log's own s)."""
+        self.line += 1
+        if self.order is not None and self.dates is not None:
+            n = len(self.order.jumps)
+            t_s = self.order.place(t_s, self.line)
+            if len(self.order.jumps) > n:
+                self.dates.expect(self.order.jumps[-1])
                 # The epoch in progress is the last segment's: closed before the next one's
                 # first sentence, whose date the decoder would otherwise give it (a cold
                 # start's 23:59:50 on 2006-12-16 came out as 2010-09-30, the next RMC's day).
-                keep(decoder.flush(t_last))
-        t_last = t_s
-        raw.t_first = t_s if raw.t_first is None else raw.t_first
-        keep(decoder.feed(data, t_s))
-    keep(decoder.flush(t_last))
-    raw.t_last = max(raw.t_last, t_last)
-    c = decoder.counters
-    return {
-        "checksum_failures": c.checksum_failures,
-        "framing_errors": c.framing_errors,
-        "invalid_sentences": c.invalid_fields,
-    }
+                self._keep(self.decoder.flush(self.t_last_s))
+        self.t_last_s = t_s
+        self.raw.t_first = t_s if self.raw.t_first is None else self.raw.t_first
+        self._keep(self.decoder.feed(data, t_s))
+
+    def close(self) -> dict[str, int]:
+        """The last epoch decoded, the jumps dated; the decoder's error counts."""
+        self._keep(self.decoder.flush(self.t_last_s))
+        self.raw.t_last = max(self.raw.t_last, self.t_last_s)
+        if self.order is not None and self.dates is not None:
+            self.dates.date(self.order.jumps)
+        c = self.decoder.counters
+        return {
+            "checksum_failures": c.checksum_failures,
+            "framing_errors": c.framing_errors,
+            "invalid_sentences": c.invalid_fields,
+        }
 
 
 class _FileOrder:
@@ -355,21 +574,43 @@ class _FileOrder:
         return self._last
 
 
-def _date_jumps(jumps: list[TimeJump], fixes: Sequence[GpsFix]) -> None:
-    """Each jump's receiver UTC either side: of the dated fix at the last time before it and
-    of the one at the first time after it, the times its step is between. A side whose time
-    came from a sentence that made no fix (a damaged one) is left unsaid, not taken from a
-    later fix the step was not measured to."""
-    last_at: dict[float, GpsFix] = {}
-    first_at: dict[float, GpsFix] = {}
-    for f in fixes:
-        if f.utc is not None:
-            last_at[f.t_s] = f
-            first_at.setdefault(f.t_s, f)
-    for j in jumps:
-        before, after = last_at.get(j.t_before_s), first_at.get(j.t_after_s)
-        j.before_utc = _utc_text(before) if before is not None else ""
-        j.after_utc = _utc_text(after) if after is not None else ""
+class _JumpDates:
+    """A plain log's time jumps dated as its fixes come: each jump's receiver UTC either
+    side, of the last dated fix at the time before it (``t_before_s``) and of the first at
+    the time after it (``t_after_s``). A side whose time came from a sentence that made no
+    fix (a damaged one) is left unsaid, not taken from a later fix the step was not measured
+    to. Held: the fixes of the last few times and of the jumps' times."""
+
+    _RECENT = 64  # times: a jump's time before is the newest line's when it is found
+
+    def __init__(self) -> None:
+        self.at: dict[float, list[GpsFix]] = {}  # t -> [first, last] dated fix at t
+        self._wanted: set[float] = set()
+
+    def expect(self, jump: TimeJump) -> None:
+        """``jump`` is dated at the end: keep the fixes at its two times."""
+        self._wanted.update((jump.t_before_s, jump.t_after_s))
+
+    def see(self, fix: GpsFix) -> None:
+        """The next fix the decoder made."""
+        if fix.utc is None:
+            return
+        ends = self.at.get(fix.t_s)
+        if ends is not None:
+            ends[1] = fix
+            return
+        self.at[fix.t_s] = [fix, fix]
+        if len(self.at) > self._RECENT + len(self._wanted):
+            old = next((t for t in self.at if t not in self._wanted), None)
+            if old is not None:
+                del self.at[old]
+
+    def date(self, jumps: Sequence[TimeJump]) -> None:
+        """Each of ``jumps``' before_utc and after_utc."""
+        for j in jumps:
+            before, after = self.at.get(j.t_before_s), self.at.get(j.t_after_s)
+            j.before_utc = _utc_text(before[1]) if before is not None else ""
+            j.after_utc = _utc_text(after[0]) if after is not None else ""
 
 
 def _utc_text(fix: GpsFix) -> str:
@@ -449,10 +690,12 @@ def _decode_line(line: bytes, stats: ReadStats) -> dict[str, Any] | None:
 def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadStats, int, int]:
     """Read a recording's records into ``raw``, its times in file order (its time jumps
     appended to ``jumps``); the reader's counts, the fix and sky records skipped as not
-    fitting their type, and those drawn without an unknown field."""
+    fitting their type, and those drawn without an unknown field. A recording of the
+    sentences only (no fix records) has them decoded as the daemon would have: as they
+    come, until a fix record shows they are not needed."""
     stats = ReadStats()
     bad_records = unknown = 0
-    nmea: list[tuple[float, bytes]] = []
+    side: _Decoding | None = None  # the sentences decoded while no fix record was seen
     order = _FileOrder(jumps, RECORDING_JITTER_S)
     prev_line = b""
 
@@ -469,7 +712,10 @@ def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadS
         return t
 
     for part, number, kind_b, line in _lines(path, stats):
-        if kind_b in _SKIP_TYPES and line.startswith(_T_KEY) and raw.t_first is not None:
+        skip = kind_b in _SKIP_TYPES or (
+            kind_b == b"nmea" and raw.n_fixes > 0 and line.endswith(b"}\n")  # not needed
+        )
+        if skip and line.startswith(_T_KEY) and raw.t_first is not None:
             try:
                 t_own = float(line[len(_T_KEY) : line.index(b",")])
             except ValueError:
@@ -492,18 +738,18 @@ def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadS
         if kind == "attitude":
             b = d.get("bearing_deg")
             if isinstance(b, (int, float)) and d.get("valid", True):
-                raw.att.append((t, float(b)))
+                raw.att.add((t, float(b)))
         elif kind == "telemetry":
-            # t_own_s: on the true track's clock (the run's own), for the error
-            raw.tel.append({**d, "t_s": t, "t_own_s": d.get("t_s", t_own)})
-            raw.hold_marks.append((t, str(d.get("hold_reason") or "")))
+            # the run's own time: on the true track's clock, for the error
+            raw.add_tel(t, d.get("t_s", t_own), d)
+            raw.hold_marks.add(t, str(d.get("hold_reason") or ""))
         elif kind == "state":
             old, new, why = str(d.get("old", "")), str(d.get("new", "")), str(d.get("reason", ""))
             raw.states.append((t, old, new, why))
             if new == NavState.HOLD:
-                raw.hold_marks.append((t, why.removeprefix("state: ") or "hold"))
+                raw.hold_marks.add(t, why.removeprefix("state: ") or "hold")
             elif new in _NAV_STATES and not why.startswith("mode:"):
-                raw.hold_marks.append((t, ""))
+                raw.hold_marks.add(t, "")
         elif kind in ("fix", "sky"):
             rec = Record(t, "", kind, d)
             try:
@@ -516,57 +762,69 @@ def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadS
             assert isinstance(typed, (GpsFix, GpsSky))
             if typed.t_s != t:
                 typed = replace(typed, t_s=t)
-            (raw.fixes if kind == "fix" else raw.skies).append(typed)  # type: ignore[arg-type]
-        elif kind == "nmea":
+            if isinstance(typed, GpsFix):
+                raw.add_fix(typed)
+                side = None  # the sentences are not needed
+            else:
+                raw.add_sky(typed)
+        elif kind == "nmea" and not raw.n_fixes:
             text = d.get("text")
             if isinstance(text, str):
-                nmea.append((t, text.encode("utf-8", "replace") + b"\r\n"))
+                side = side or _Decoding(_Raw(truth=raw.truth, utc0=raw.utc0))
+                side.feed(t, text.encode("utf-8", "replace") + b"\r\n")
         elif kind == "event" and d.get("event") == "device":
             raw.device_events.append(
                 (t, str(d.get("device", "")), str(d.get("new", "")), str(d.get("message", "")))
             )
-    if not raw.fixes and nmea:
-        # a recording of the sentences only: decode them as the daemon would have
-        _gps_from_decoder(nmea, raw)
+    if side is not None:
+        side.close()
+        raw.take_gps(side.raw)
     return stats, bad_records, unknown
 
 
 def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """(t s, lat deg, lon deg, torn last lines: 0 or 1) of a true track CSV with columns
-    t_s, lat, lon. A last line without its newline that does not read (a run that lost
-    power while writing) is skipped and counted, as a recording's is; any other bad row is
-    a :class:`ParseError` naming its line."""
+    t_s, lat, lon, read a line at a time (24 bytes a row held). A last line without its
+    newline that does not read (a run that lost power while writing) is skipped and counted,
+    as a recording's is; any other bad row is a :class:`ParseError` naming its line."""
+    cut = False  # the line read last has no newline: the file's last, cut
+
+    def lines(f: Iterable[str]) -> Iterator[str]:
+        nonlocal cut
+        for line in f:
+            cut = not line.endswith("\n")
+            yield line
+
+    rows = array("d")  # t_s, lat, lon of each row
+    torn = 0
     try:
         with open(path, newline="", encoding="utf-8") as f:
-            text = f.read()
+            reader = csv.DictReader(lines(f))
+            if not {"t_s", "lat", "lon"} <= set(reader.fieldnames or ()):
+                raise ParseError(
+                    f"{path} line 1: a true track needs columns t_s, lat, lon, "
+                    f"got {', '.join(reader.fieldnames or ()) or 'nothing'}"
+                )
+            for r in reader:
+                try:
+                    if None in r.values() and cut:
+                        raise ValueError("columns missing")  # cut: its numbers may be cut too
+                    rows.extend((float(r["t_s"]), float(r["lat"]), float(r["lon"])))
+                except (TypeError, ValueError) as exc:  # TypeError: a short row's missing value
+                    if cut:
+                        torn += 1  # the last line, cut while written
+                        continue
+                    raise ParseError(
+                        f"{path} line {reader.line_num}: a true track needs numbers in t_s, "
+                        f"lat, lon ({exc})"
+                    ) from exc
     except (OSError, UnicodeDecodeError) as exc:
         raise DeviceUnavailable(f"cannot open true track {path}: {exc}") from exc
-    reader = csv.DictReader(text.splitlines(keepends=True))
-    if not {"t_s", "lat", "lon"} <= set(reader.fieldnames or ()):
-        raise ParseError(
-            f"{path} line 1: a true track needs columns t_s, lat, lon, "
-            f"got {', '.join(reader.fieldnames or ()) or 'nothing'}"
-        )
-    rows: list[tuple[float, float, float]] = []
-    torn = 0
-    unterminated = text.count("\n") + 1 if not text.endswith("\n") else -1
-    for r in reader:
-        try:
-            if None in r.values() and reader.line_num == unterminated:
-                raise ValueError("columns missing")  # cut: its numbers may be cut too
-            rows.append((float(r["t_s"]), float(r["lat"]), float(r["lon"])))
-        except (TypeError, ValueError) as exc:  # TypeError: a short row's missing value
-            if reader.line_num == unterminated:
-                torn += 1  # the last line, cut while written
-                continue
-            raise ParseError(
-                f"{path} line {reader.line_num}: a true track needs numbers in t_s, lat, lon"
-                f" ({exc})"
-            ) from exc
-    a = np.array(rows, dtype=float).reshape(-1, 3)
+    a = np.frombuffer(rows, dtype=float).reshape(-1, 3)
     if len(a) < 2 or np.any(np.diff(a[:, 0]) < 0):
         raise ParseError(f"{path}: a true track needs at least two rows in time order")
-    return a[:, 0], a[:, 1], a[:, 2], torn
+    t, lat, lon = (np.ascontiguousarray(a[:, k]) for k in range(3))
+    return t, lat, lon, torn
 
 
 def default_truth(recording: Path) -> Path | None:
@@ -582,6 +840,17 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
     path = Path(path)
     raw = _Raw()
     view = LogView(path=path, kind="recording" if is_recording(path) else "NMEA log")
+    if truth is None and view.kind == "recording":
+        truth = default_truth(path)
+    # read first (the reader keeps each series' furthest from it), said after the log's own
+    # errors as before
+    torn, truth_error = 0, None
+    if truth is not None:
+        try:
+            *tt, torn = _read_truth(truth)
+            raw.truth = (tt[0], tt[1], tt[2])
+        except X6wdError as exc:
+            truth_error = exc
     if view.kind == "recording":
         stats, bad_records, unknown = _read_recording(path, raw, view.jumps)
         view.counts = {
@@ -591,34 +860,34 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
             "bad_records": bad_records,
             "records_with_unknown_fields": unknown,
         }
-        if truth is None:
-            truth = default_truth(path)
     else:
-        chunks = nmea_file_chunks(path, rate_hz)
-        view.counts = _gps_from_decoder(chunks, raw, _FileOrder(view.jumps))
-        _date_jumps(view.jumps, raw.fixes)
+        decoding = _Decoding(raw, _FileOrder(view.jumps))
+        for t_s, data in nmea_file_chunks(path, rate_hz):
+            decoding.feed(t_s, data)
+        view.counts = decoding.close()
         first_jump = view.jumps[0].t_s if view.jumps else math.inf
-        if raw.fixes and raw.fixes[0].utc is not None and raw.fixes[0].t_s < first_jump:
-            first = next((f.utc for f in raw.fixes if f.utc is not None), None)
-            if first is not None:
-                raw.utc0 = first - timedelta(seconds=raw.fixes[0].t_s)
-    if not raw.fixes and not raw.tel:
+        first = raw.fixes.rows()[0] if raw.n_fixes else None
+        if first is not None and first.utc is not None and first.t_s < first_jump:
+            raw.utc0 = first.utc - timedelta(seconds=first.t_s)
+    if not raw.n_fixes and not raw.n_tel:
         raise ParseError(
             f"{path}: no GPS fixes and no telemetry: nothing to plot (x6wd plot reads x6wd "
             "recordings and NMEA logs)"
         )
+    if truth_error is not None:
+        raise truth_error
     t0 = raw.t_first or 0.0
     view.duration_s = raw.t_last - t0
     if raw.utc0 is not None:
         view.start_utc = (raw.utc0 + timedelta(seconds=t0)).isoformat()
     view.counts.update(
-        fixes=len(raw.fixes),
-        valid_fixes=sum(1 for f in raw.fixes if f.valid and f.lat_deg is not None),
-        sky_reports=len(raw.skies),
-        telemetry=len(raw.tel),
+        fixes=raw.n_fixes,
+        valid_fixes=raw.n_valid,
+        sky_reports=raw.n_skies,
+        telemetry=raw.n_tel,
         state_changes=len(raw.states),
     )
-    _track_and_error(view, raw, t0, truth)
+    _track_and_error(view, raw, t0, torn if truth is not None else None)
     _gps_quality(view, raw, t0)
     _headings(view, raw, t0)
     _timelines(view, raw, t0)
@@ -629,29 +898,23 @@ def _finite(*values: Any) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
-def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) -> None:
-    good = [f for f in raw.fixes if f.valid and f.lat_deg is not None and f.lon_deg is not None]
-    est = [
-        d
-        for d in raw.tel
-        if isinstance(d.get("filt_lat_deg"), (int, float))
-        and isinstance(d.get("filt_lon_deg"), (int, float))
-    ]
+def _track_and_error(view: LogView, raw: _Raw, t0: float, torn: int | None) -> None:
+    """The map's tracks and the error panel; ``torn``: the true track's cut last lines
+    (None: no true track)."""
+    good: list[GpsFix] = raw.good.rows()
+    est: list[tuple[float, Any, float, float]] = raw.est.rows()
     # A NaN or infinite position (a foreign or hand-edited file: the recorder writes none)
     # is skipped and counted, not allowed to refuse the whole file in the plane's to_xy.
-    n = len(good) + len(est)
-    good = [f for f in good if _finite(f.lat_deg, f.lon_deg)]
-    est = [d for d in est if _finite(d.get("filt_lat_deg"), d.get("filt_lon_deg"))]
-    view.counts["nonfinite_positions"] = n - len(good) - len(est)
-    tt = None
-    if truth is not None:
-        *tt, view.counts["truncated_truth_lines"] = _read_truth(truth)
+    view.counts["nonfinite_positions"] = raw.nonfinite
+    tt = raw.truth
+    if torn is not None:
+        view.counts["truncated_truth_lines"] = torn
     if good:
         origin = (good[0].lat_deg, good[0].lon_deg)
     elif tt is not None:
         origin = (float(tt[1][0]), float(tt[2][0]))
     elif est:
-        origin = (float(est[0]["filt_lat_deg"]), float(est[0]["filt_lon_deg"]))
+        origin = (est[0][2], est[0][3])
     else:
         view.missing["track"] = "no valid fix and no position estimate in the log"
         view.missing["error"] = view.missing["track"]
@@ -665,15 +928,19 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) ->
         return np.asarray(x, dtype=float), np.asarray(y, dtype=float)
 
     if tt is not None:
-        view.track["true track"] = xy(tt[1], tt[2])
+        # drawn: up to SAMPLE_ROWS rows whole, a longer track by a stride and its extremes
+        lat, lon = tt[1], tt[2]
+        ends = [a.argmin() for a in (lat, lon)] + [a.argmax() for a in (lat, lon)]
+        drawn = np.union1d(thinned_indices(len(lat), SAMPLE_ROWS), ends)
+        view.track["true track"] = xy(lat[drawn], lon[drawn])
     fx_e = fx_n = np.zeros(0)
     if good:
         fx_e, fx_n = xy(_arr(f.lat_deg for f in good), _arr(f.lon_deg for f in good))
         view.track["GPS fixes"] = (fx_e, fx_n)
     if est:
-        es_e, es_n = xy(_arr(d["filt_lat_deg"] for d in est), _arr(d["filt_lon_deg"] for d in est))
+        es_e, es_n = xy(_arr(r[2] for r in est), _arr(r[3] for r in est))
         # no line across a time jump on the map either (it would join two sessions)
-        cuts, t_est = [j.t_s for j in view.jumps], _arr(d["t_s"] for d in est)
+        cuts, t_est = [j.t_s for j in view.jumps], _arr(r[0] for r in est)
         view.track["position estimate"] = (
             broken_at(t_est, es_e, cuts)[1],
             broken_at(t_est, es_n, cuts)[1],
@@ -684,7 +951,7 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) ->
             "or --truth FILE)"
         )
         return
-    tr_t, (tr_e, tr_n) = tt[0], view.track["true track"]
+    tr_t, (tr_e, tr_n) = tt[0], xy(tt[1], tt[2])
     if good:
         # a fix is the receiver's position at its epoch (its UTC), not at its arrival
         ep = _arr(
@@ -696,26 +963,23 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, truth: Path | None) ->
         err = np.hypot(fx_e - np.interp(ep, tr_t, tr_e), fx_n - np.interp(ep, tr_t, tr_n))
         view.error.append(Series("GPS fix", _arr(f.t_s for f in good) - t0, err))
     if est:
-        te = _arr(d.get("t_own_s", d["t_s"]) for d in est)
+        te = _arr(r[1] for r in est)
         err = np.hypot(es_e - np.interp(te, tr_t, tr_e), es_n - np.interp(te, tr_t, tr_n))
-        view.error.append(Series("position estimate", _arr(d["t_s"] for d in est) - t0, err))
+        view.error.append(Series("position estimate", t_est - t0, err))
 
 
 def _gps_quality(view: LogView, raw: _Raw, t0: float) -> None:
-    fixes = raw.fixes
+    fixes: list[GpsFix] = raw.fixes.rows()
     if fixes:
         t = _arr(f.t_s for f in fixes) - t0
         view.hdop.append(Series("HDOP (fix)", t, _arr(f.hdop for f in fixes)))
         view.satellites.append(Series("used (fix)", t, _arr(f.sats_used for f in fixes)))
-    if raw.skies:
-        t = _arr(s.t_s for s in raw.skies) - t0
-        view.satellites.append(
-            Series(
-                "in view", t, _arr(len(s.satellites) if s.satellites else None for s in raw.skies)
-            )
-        )
+    skies: list[tuple[float, int | None, float | None]] = raw.skies.rows()
+    if skies:
+        t = _arr(s[0] for s in skies) - t0
+        view.satellites.append(Series("in view", t, _arr(s[1] for s in skies)))
         if not fixes:
-            view.hdop.append(Series("HDOP (sky)", t, _arr(s.hdop for s in raw.skies)))
+            view.hdop.append(Series("HDOP (sky)", t, _arr(s[2] for s in skies)))
     if not view.hdop or all(np.all(np.isnan(s.v)) for s in view.hdop):
         view.missing["hdop"] = "the receiver reported no HDOP (no GGA or GSA sentences)"
     if not view.satellites or all(np.all(np.isnan(s.v)) for s in view.satellites):
@@ -723,20 +987,15 @@ def _gps_quality(view: LogView, raw: _Raw, t0: float) -> None:
 
 
 def _headings(view: LogView, raw: _Raw, t0: float) -> None:
-    tel = [d for d in raw.tel if isinstance(d.get("heading_deg"), (int, float))]
-    if tel:
+    if tel := raw.heading.rows():
+        h = np.array(tel, dtype=float).reshape(-1, 2)
         view.heading.append(
-            Series(
-                "heading (true, navigation)",
-                _arr(d["t_s"] for d in tel) - t0,
-                np.asarray(wrap360(_arr(d["heading_deg"] for d in tel))),
-            )
+            Series("heading (true, navigation)", h[:, 0] - t0, np.asarray(wrap360(h[:, 1])))
         )
-    if raw.att:
-        a = np.array(raw.att)
+    if att := raw.att.rows():
+        a = np.array(att)
         view.heading.append(Series("compass (magnetic)", a[:, 0] - t0, a[:, 1]))
-    moving = [f for f in raw.fixes if f.valid and f.course_deg is not None]
-    if moving:
+    if moving := raw.moving.rows():
         view.heading.append(
             Series(
                 "GPS course (true)",
@@ -813,7 +1072,7 @@ def _timelines(view: LogView, raw: _Raw, t0: float) -> None:
     # Holds: a change into HOLD names its reason ("state: <why>"); the reason may change
     # during a hold, which telemetry (hold_reason, about 1 Hz) shows. In time order (file
     # order within a time: the controller's), each mark says "holding for <why>" or not.
-    marks = sorted(raw.hold_marks, key=lambda m: m[0])  # stable: file order within a time
+    marks = sorted(raw.hold_marks.marks, key=lambda m: m[0])  # stable: file order within a time
     cur: tuple[float, str] | None = None
     for t, reason in [(t - t0, r) for t, r in marks] + [(t_end, "")]:
         if cur is not None and reason != cur[1]:
