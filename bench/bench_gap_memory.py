@@ -3,25 +3,32 @@
 static receiver at 10 Hz (36,000 epochs) and, for comparison, at 1 Hz (issue 15 item 4: at
 most 500 MB peak for a 1 h log).
 
-The logs are ``x6wd sim`` runs of the open-field scenario (its ``[gnss] rate_hz`` set to 10
-for the 10 Hz one). Each ``x6wd gap`` runs in a child process that reports its own peak
-resident set (VmHWM); the CPU and wall seconds are printed without a target.
-Measured 2026-12-04 (a shared 2-core machine) on the audit's 1 h 10 Hz log: 1.23 GB before
-the Kalman likelihood was blocked in time and the time axis kept even, 551 MB after; what is
-left is the simulator's receiver run over all 36,000 epochs in one call (docs/gap.md,
-"Memory of a long or high-rate log").
+The 1 Hz log is an ``x6wd sim`` run of the open-field scenario. The simulated NEO-5 prints
+at most 4 Hz (``[gnss] rate_hz`` 1..4), so the 10 Hz log (a ZED-F9P's or M8's rate) is
+written here: RMC and GGA at the open field's origin with a 2 m, 300 s Gauss-Markov error and
+0.3 m of white noise, at 5 decimals. Each ``x6wd gap`` runs in a child process that reports
+its own peak resident set (VmHWM); the CPU and wall seconds are printed without a target.
+Measured 2026-12-04 (a shared 2-core machine): the audit's 1 h 10 Hz log peaked at 1.23 GB
+before the Kalman likelihood was blocked in time and the time axis kept even, 551 MB after.
+On this file's 10 Hz log, the same run: 534 MB with the simulator's receiver over all
+36,000 epochs in one call, **298 MB** with it in chunks of at most 7,200 epochs (351 s wall,
+193 s CPU); 1 h at 1 Hz 162 MB (docs/gap.md, "Memory of a long or high-rate log").
 
     python -m bench.bench_gap_memory [--quick]   (--quick: 15 min logs)
 """
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
 import tempfile
 import time
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
+
+import numpy as np
 
 from bench._common import PEAK_CHILD, Row, print_table
 
@@ -45,8 +52,45 @@ def _child(args: list[str], hwm: Path) -> dict[str, float]:
     return {"cpu_s": ru.ru_utime + ru.ru_stime, "wall_s": wall_s, "rss_b": float(hwm.read_text())}
 
 
+def _nmea_deg(value_deg: float, hemi: str, width: int) -> str:
+    a = abs(value_deg)
+    d = int(a)
+    return f"{d:0{width}d}{(a - d) * 60.0:08.5f},{hemi[int(value_deg < 0)]}"
+
+
+def _synthetic_log(tmp: Path, rate_hz: float, duration_s: float) -> Path:
+    """A static receiver's RMC + GGA at ``rate_hz`` (see the module docstring), seed 11."""
+    from drivers.nmea import sentence
+    from sim_backend.effects import metres_per_degree
+
+    lat0, lon0 = (float(v) for v in TRUTH.split(",")[:2])
+    n = round(duration_s * rate_hz)
+    rng = np.random.default_rng(11)
+    phi = math.exp(-1.0 / (rate_hz * 300.0))
+    drive = rng.standard_normal((n, 2)) * 2.0 * math.sqrt(1.0 - phi * phi)
+    gm = np.empty((n, 2))
+    gm[0] = rng.standard_normal(2) * 2.0
+    for k in range(1, n):  # 36,000 steps: the first-order recursion in plain Python is fine
+        gm[k] = phi * gm[k - 1] + drive[k]
+    err = gm + rng.standard_normal((n, 2)) * 0.3
+    e_per, n_per = metres_per_degree(lat0)
+    lines = []
+    for k in range(n):
+        t = datetime(2020, 1, 1, 12, tzinfo=UTC) + timedelta(seconds=k / rate_hz)
+        hms = f"{t:%H%M%S}.{t.microsecond // 10000:02d}"
+        lat = _nmea_deg(float(lat0 + err[k, 1] / n_per), "NS", 2)
+        lon = _nmea_deg(float(lon0 + err[k, 0] / e_per), "EW", 3)
+        lines.append(sentence(f"GPRMC,{hms},A,{lat},{lon},0.0,,010120,,,A"))
+        lines.append(sentence(f"GPGGA,{hms},{lat},{lon},1,08,1.0,60.0,M,47.0,M,,"))
+    path = tmp / f"synthetic_{rate_hz:g}hz.nmea"
+    path.write_bytes(b"".join(lines))
+    return path
+
+
 def _log(tmp: Path, rate_hz: float, duration_s: float) -> Path:
     """A static open-field log of ``duration_s`` at ``rate_hz`` (x6wd sim, seed 11)."""
+    if rate_hz > 4.0:
+        return _synthetic_log(tmp, rate_hz, duration_s)
     scenario = tmp / f"open_field_{rate_hz:g}hz.toml"
     scenario.write_text(
         f'include = ["{SCENARIOS / "open_field.toml"}"]\n[gnss]\nrate_hz = {rate_hz}\n'

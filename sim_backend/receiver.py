@@ -407,10 +407,11 @@ class SimReceiver:
             b = self.batch(t[z], pos[z], vel[z])
             parts.append(self._series(b, te[z], tn[z], zeros[z], ve[z], vn[z]))
             sets.append(used_set_ids(b.used, b.prns))
-        s = parts[0] if len(parts) == 1 else replace(parts[0], **{
+        joined: dict[str, Any] = {
             f.name: np.concatenate([getattr(p, f.name) for p in parts])
             for f in fields(PositionSeries) if isinstance(getattr(parts[0], f.name), np.ndarray)
-        })  # fmt: skip
+        }  # fmt: skip
+        s = parts[0] if len(parts) == 1 else replace(parts[0], **joined)
         s = s.with_(east_m=np.nan_to_num(s.east_m), north_m=np.nan_to_num(s.north_m),
                     up_m=np.nan_to_num(s.up_m))  # fmt: skip
         s = Quantization(decimals=self.formatter.minute_decimals).start(_NO_DRAWS).step(s)
