@@ -424,3 +424,65 @@ def test_a_regular_log_with_a_hole_keeps_its_own_times(tmp_path: Path) -> None:
     series = errors_vs_point(track, 51.752, -1.2577)
     steps = np.diff(series.t_s)
     assert np.ptp(steps) <= 1e-9 * steps.max()
+
+
+# ------------------------------------------- 4. a receiver's glitch: a fix kilometres off
+
+
+def _static_log(path: Path, glitches: dict[int, float], n: int = 600) -> Path:
+    """A static 1 Hz log (RMC + GGA); ``glitches``: epoch -> whole degrees north of the rest."""
+    lines = []
+    for k in range(n):
+        t = f"12{k // 60 % 60:02d}{k % 60:02d}.00"
+        lat = f"{5145.12 + 100.0 * glitches.get(k, 0.0) + 0.00001 * (k % 7):010.5f}"  # ddmm
+        pos = f"{lat},N,00115.46000,W"
+        lines.append(sentence(f"GPRMC,{t},A,{pos},0.1,,010120,,,A"))
+        lines.append(sentence(f"GPGGA,{t},{pos},1,08,1.0,60.0,M,47.0,M,,"))
+    path.write_bytes(b"".join(lines))
+    return path
+
+
+def test_a_fix_kilometres_off_its_neighbours_is_a_glitch_taken_as_no_fix(tmp_path: Path) -> None:
+    # An outside audit: one epoch 555 km off made a 155 m "bias" and a validation sigma of
+    # 9 km; three of them stopped the tool with an effect's parameter bound (exit 2)
+    track = read_track(_static_log(tmp_path / "g.nmea", {100: 5.0, 101: 5.0, 400: 1.0}))
+    assert np.flatnonzero(~track.valid).tolist() == [100, 101, 400]
+    (note,) = [n for n in track.notes if "glitch" in n]
+    assert note.startswith("3 fixes lie more than 1 km (up to 556.0 km) from the median")
+    clean = read_track(_static_log(tmp_path / "c.nmea", {}))
+    assert np.all(clean.valid) and not any("glitch" in n for n in clean.notes)
+
+
+def test_a_fast_or_sparse_moving_log_has_no_glitches() -> None:
+    from x6wd.gap.io import _glitches
+
+    # 30 m/s for 10 min at 1 Hz, then one fix a minute at 60 m/s: kilometres between fixes
+    t = np.concatenate([np.arange(600.0), 600.0 + 60.0 * np.arange(1, 60)])
+    speed = np.where(t < 600.0, 30.0, 60.0)
+    north_m = np.concatenate([[0.0], np.cumsum(np.diff(t) * speed[1:])])
+    lat = 51.0 + north_m / 111_195.0
+    lon = np.full(t.shape, 179.9999)  # and across the antimeridian
+    lon[::2] = -179.9999
+    assert not np.any(_glitches(t, lat, lon, np.ones(t.shape, dtype=bool)))
+
+
+def test_a_fit_beyond_an_effects_bounds_passes_the_candidate_over(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The same audit: the glitches' random-walk fit (q 5406 m/sqrt(s)) raised the layer's
+    # bound check out of the diagnosis: "x6wd gap: error: q_m_per_sqrt_s=5406.4: must be
+    # <= 62.1". A fit the layer refuses is now passed over, as one that found nothing.
+    import dataclasses
+
+    from sim_backend.effects import RandomWalk
+    from x6wd.gap import diagnose as diag
+
+    def refused(*_args: object) -> None:
+        raise ConfigError("q_m_per_sqrt_s=5406.4: must be <= 62.1 m/sqrt(s)")
+
+    for name, effect in list(diag.EFFECTS.items()):
+        monkeypatch.setitem(diag.EFFECTS, name, dataclasses.replace(effect, fit=refused))
+    runs = [surrogate_run(1200.0, 1.0, np.random.default_rng(i)) for i in range(3)]
+    real = surrogate_run(1200.0, 1.0, np.random.default_rng(9), effects=[RandomWalk(0.3)])
+    d = diag.diagnose(real, runs, np.random.default_rng(0), diag.Options(replicates=20))
+    assert d.significant and not d.selected

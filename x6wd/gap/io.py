@@ -95,6 +95,41 @@ class Track:
         return int(self.t_s.shape[0])
 
 
+GLITCH_M = 1000.0
+"""A fix further than this (m) from the median of its neighbours (:data:`GLITCH_WINDOW`
+valid fixes) is a receiver's glitch: no GNSS error lies a kilometre off for a moment.
+Further still where the window spans more time than a ground vehicle at
+:data:`GLITCH_SPEED_MPS` crosses it (sparse fixes of a moving log)."""
+GLITCH_WINDOW = 11
+GLITCH_SPEED_MPS = 100.0
+
+
+def _glitches(
+    t_s: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray, valid: np.ndarray
+) -> np.ndarray:
+    """Per epoch, how far (m) a valid fix lies from the median of the :data:`GLITCH_WINDOW`
+    valid fixes around it where that is beyond its glitch limit (:data:`GLITCH_M`); 0
+    elsewhere. A log of fewer valid fixes than the window has none."""
+    out = np.zeros(t_s.shape[0])
+    idx = np.flatnonzero(valid)
+    if idx.size < GLITCH_WINDOW:
+        return out
+    half = GLITCH_WINDOW // 2
+    lat, lon, t = lat_deg[idx], lon_deg[idx], t_s[idx]
+    lon_rel = (lon - lon[0] + 180.0) % 360.0 - 180.0  # continuous across ±180
+    pad = [np.pad(a, half, mode="edge") for a in (lat, lon_rel, t)]
+    win = [np.lib.stride_tricks.sliding_window_view(a, GLITCH_WINDOW) for a in pad]
+    med_lat, med_lon = np.median(win[0], axis=1), np.median(win[1], axis=1)
+    m_per_deg_lat = 111_195.0  # the mean sphere's: a kilometre test needs no ellipsoid
+    north_m = (lat - med_lat) * m_per_deg_lat
+    east_m = (lon_rel - med_lon) * m_per_deg_lat * np.cos(np.radians(med_lat))
+    off_m = np.hypot(north_m, east_m)
+    span_s = win[2][:, -1] - win[2][:, 0]
+    limit_m = np.maximum(GLITCH_M, GLITCH_SPEED_MPS * span_s / 2.0)
+    out[idx] = np.where(off_m > limit_m, off_m, 0.0)
+    return out
+
+
 def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()) -> Track:
     """Rows (t, lat, lon, alt, valid, nsats, speed, course[, satellite set]) in log order ->
     Track sorted by time, duplicates of a time stamp dropped (first kept), the span bounded
@@ -149,6 +184,15 @@ def _track(rows: list[tuple[float, ...]], source: str, notes: Iterable[str] = ()
             " ±90° or a longitude beyond ±180° taken as no fix"
         )
         valid &= on_earth
+    glitches = _glitches(table[:, 0], table[:, 1], table[:, 2], valid)
+    if np.any(glitches):
+        worst_km = float(np.max(glitches[glitches > 0])) / 1000.0
+        notes.append(
+            f"{int(np.count_nonzero(glitches))} fixes lie more than {GLITCH_M / 1000:g} km"
+            f" (up to {worst_km:.1f} km) from the median of their neighbours: a receiver's"
+            " glitch, no error of the GNSS model: taken as no fix"
+        )
+        valid &= glitches == 0
     return Track(
         t_s=table[:, 0],
         lat_deg=table[:, 1],

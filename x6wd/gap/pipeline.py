@@ -641,7 +641,12 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
                     f"round {index + 1}: fitting {name}",
                     self._round_progress(index + i / len(ranked)),
                 )
-                fit = self.effects[name].fit(split.real_fit, current_fit, split.fit_layout)
+                try:
+                    fit = self.effects[name].fit(split.real_fit, current_fit, split.fit_layout)
+                except ConfigError as exc:  # its parameters beyond the layer's bounds
+                    self._pass_over(name, f"round {index + 1}: its fit lies outside the"
+                                    f" effect's bounds ({exc})")  # fmt: skip
+                    continue
                 if fit is None:
                     self._pass_over(
                         name, f"round {index + 1}: its fit found nothing to add on the fit part"
