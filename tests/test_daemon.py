@@ -271,7 +271,7 @@ def test_bad_geofence_centre_is_a_startup_error(tmp_path: Path) -> None:
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert done.returncode == 2, done.stderr
     assert "safety.geofence_center: expected [] or [lat_deg, lon_deg], got [1]" in done.stderr
-    with pytest.raises(ConfigError, match="safety.geofence_center"):
+    with pytest.raises(ConfigError, match=r"safety\.geofence_center"):
         SafetyConfig(geofence_center=(1.0,))  # the config itself refuses it
 
 

@@ -486,3 +486,17 @@ def test_a_fit_beyond_an_effects_bounds_passes_the_candidate_over(
     real = surrogate_run(1200.0, 1.0, np.random.default_rng(9), effects=[RandomWalk(0.3)])
     d = diag.diagnose(real, runs, np.random.default_rng(0), diag.Options(replicates=20))
     assert d.significant and not d.selected
+
+
+def test_sim_logs_of_another_place_are_named_without_a_truth(tmp_path: Path) -> None:
+    # The same audit: a real log 5 km from its three --sim logs read "no significant gap"
+    # without a word (its errors are against its own mean, where the place cannot show)
+    from x6wd.gap.cli import place_note
+
+    real = read_track(_static_log(tmp_path / "r.nmea", {}))
+    near = read_track(_static_log(tmp_path / "n.nmea", {}))
+    far = read_track(_static_log(tmp_path / "f.nmea", dict.fromkeys(range(600), 1.0)))
+    assert place_note(real, [near, near], ["a", "b"]) is None
+    note = place_note(real, [near, far], ["a", "b"])
+    assert note is not None
+    assert note.startswith("1 of 2 --sim logs lie far from the real log (b 111")

@@ -15,10 +15,12 @@ import numpy as np
 from sim_backend.effects import PositionSeries
 from x6wd.core.config import PACKAGED_CONFIG_DIR
 from x6wd.core.errors import ConfigError
+from x6wd.core.geodesy import great_circle_m
 from x6wd.core.outdir import output_dir
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
 from x6wd.gap.diagnose import Diagnosis, Options, check_real, diagnose, verdict_text
 from x6wd.gap.io import (
+    MAX_ERROR_FROM_TRUTH_M,
     Track,
     against_own_mean,
     check_near_truth,
@@ -28,6 +30,7 @@ from x6wd.gap.io import (
     errors_vs_track,
     is_date,
     log_start_s,
+    lon_centre_deg,
     mean_alt_m,
     parse_truth,
     read_track,
@@ -148,6 +151,38 @@ def to_errors(track: Track, args: argparse.Namespace, truth_track: Track | None)
     if truth_track is not None:
         return check_near_truth(errors_vs_track(track, truth_track), track.source)
     return errors_vs_mean(track)
+
+
+def place_note(real: Track, sims: list[Track], names: list[str]) -> str | None:
+    """Without a truth (errors against each log's own mean), a note naming the --sim logs
+    whose median fix lies more than :data:`~x6wd.gap.io.MAX_ERROR_FROM_TRUTH_M` from the
+    real log's: they simulate another place (its sky, its walls), which the errors cannot
+    show. None when every one is near."""
+
+    def centre(track: Track) -> tuple[float, float] | None:
+        v = np.asarray(track.valid, dtype=bool)
+        if not np.any(v):
+            return None
+        return float(np.median(track.lat_deg[v])), lon_centre_deg(track.lon_deg[v], np.median)
+
+    here = centre(real)
+    if here is None:
+        return None
+    far = []
+    for name, sim in zip(names, sims, strict=True):
+        there = centre(sim)
+        if there is not None:
+            d_m = great_circle_m(here[0], here[1], there[0], there[1])
+            if d_m > MAX_ERROR_FROM_TRUTH_M:
+                far.append(f"{name} {d_m / 1000:.1f} km")
+    if not far:
+        return None
+    return (
+        f"{len(far)} of {len(sims)} --sim logs lie far from the real log ({', '.join(far)}):"
+        " without a truth each log's errors are against its own mean, so the place cannot"
+        " show in them, but the sky, walls and satellites of another place do (simulate the"
+        " real log's place, or give --truth)"
+    )
 
 
 FIGURE_NAMES = (*FIGURES, "compass.png")
@@ -324,6 +359,11 @@ def main(args: argparse.Namespace) -> int:
                 ]
             notes += moved_sims
         notes += short_sims_notes(real, baseline, args.sim)
+        if args.truth is None and truth_track is None:
+            far = place_note(real_track, sims, args.sim)
+            if far is not None:
+                notes.append(far)
+                print(f"x6wd gap: warning: {far}", file=sys.stderr)
     rng = np.random.default_rng(args.seed)
     diagnosis = diagnose(real, baseline, rng, Options(replicates=args.replicates), progress=bar)
     diagnosis.notes.extend(notes)
