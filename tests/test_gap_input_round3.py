@@ -500,3 +500,23 @@ def test_sim_logs_of_another_place_are_named_without_a_truth(tmp_path: Path) -> 
     note = place_note(real, [near, far], ["a", "b"])
     assert note is not None
     assert note.startswith("1 of 2 --sim logs lie far from the real log (b 111")
+
+
+def test_a_report_with_no_gap_names_the_cells_nearest_to_their_limits(tmp_path: Path) -> None:
+    # The same audit: a 25 m bias against three logs read "no statistic differs" while the
+    # whole-log mean sat at z 11 against a t limit of 21.5 that three logs leave it
+    from sim_backend.effects import Bias
+    from x6wd.gap.diagnose import Options, diagnose
+    from x6wd.gap.report import write_report
+    from x6wd.gap.surrogate import BASELINE_EFFECTS
+
+    runs = [surrogate_run(1200.0, 1.0, np.random.default_rng(i)) for i in range(3)]
+    biased = [*BASELINE_EFFECTS[:-1], Bias(east_m=2.0), BASELINE_EFFECTS[-1]]  # then the print
+    real = surrogate_run(1200.0, 1.0, np.random.default_rng(9), effects=biased)
+    d = diagnose(real, runs, np.random.default_rng(0), Options(replicates=20))
+    assert not d.significant  # mean east z 8.1 against 20.9
+    write_report(d, tmp_path, figures=False)
+    text = (tmp_path / "report.md").read_text()
+    (line,) = [ln for ln in text.splitlines() if ln.startswith("Nearest to their limits: ")]
+    assert line.startswith("Nearest to their limits: mean east: z +") and line.count(";") == 2
+    assert "more --sim logs (or --scenario with its 20 seeds) lower it" in text
