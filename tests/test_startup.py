@@ -110,7 +110,11 @@ def files_under(path: Path) -> list[Path]:
         ({"gps": {"url": f"serial://{LEA5H}"}}, "gps.url", ["not a character device"]),
         ({"navigation": {"delta_z_m": 1.0}}, "", ["navigation.delta_z_m: unknown key"]),
         ({"sim": {"scenario": "no/such/world.toml"}}, "", ["sim.scenario: no such file"]),
-        ({"safety": {"geofence_center": [1.0]}}, "safety.geofence_center", []),
+        (  # checked as the file is read now (x6wd sim and sweeps too): the file, then the key
+            {"safety": {"geofence_center": [1.0]}},
+            "",
+            ["safety.geofence_center: expected [] or [lat_deg, lon_deg], got [1]"],
+        ),
         # what urlsplit, int() and os.stat raise on, not our own checks (an outside check)
         ({"gps": {"url": "tcp://[::1:2947"}}, "gps.url", ["malformed URL"]),
         ({"motors": {"url": "tcp://localhost:\u00b2"}}, "motors.url", ["HOST:PORT"]),
