@@ -521,6 +521,14 @@ def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
             wall_time_s=s.wall_time_s,
             arrivals=[dict(a) for a in s.extra.get("arrivals") or []],
             position_source=s.extra.get("position_source"),
+            # the receiver's own figures: a sweep of a static scenario (a survey) or of
+            # receiver keys is about these, not about arrivals
+            gps_cep50_m=s.raw_error.cep50_m,
+            gps_r95_m=s.raw_error.r95_m,
+            gps_rms_m=s.raw_error.rms_m,
+            filtered_rms_m=s.filtered_error.rms_m,
+            fix_fraction=s.fixes_valid / s.fixes if s.fixes else math.nan,
+            hold_time_s=s.hold_time_s,
         )
     except Exception as exc:  # a failed run is a result, not the end of the sweep
         rec.update(status="error", error=describe_exception(exc), completed=False)

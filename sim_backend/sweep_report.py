@@ -50,6 +50,12 @@ RUN_COLUMNS = (
     "arrivals",
     "arrival_true_median_m",
     "arrival_gps_slow_median_m",
+    "gps_cep50_m",
+    "gps_r95_m",
+    "gps_rms_m",
+    "filtered_rms_m",
+    "fix_fraction",
+    "hold_time_s",
     "position_source",
     "worker",
 )
@@ -196,6 +202,7 @@ class CellStats:
     arrival_true_m: list[float] = field(default_factory=list)
     arrival_gps_m: list[float] = field(default_factory=list)
     path_ratios: list[float] = field(default_factory=list)
+    gps_cep50_m: list[float] = field(default_factory=list)  # per run, raw fixes
     sim_times_s: list[float] = field(default_factory=list)
     wall_times_s: list[float] = field(default_factory=list)
 
@@ -235,6 +242,7 @@ def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
             continue
         c.ok += 1
         c.wall_times_s.append(_num(r.get("wall_time_s")))
+        c.gps_cep50_m.append(_num(r.get("gps_cep50_m")))
         for a in r.get("arrivals") or []:
             t, g = _num(a.get("true_error_m")), _num(a.get("gps_slow_error_m"))
             if math.isfinite(t):
@@ -372,15 +380,18 @@ def markdown(
         "",
         "Arrival errors are true horizontal distances (m) from the antenna to the waypoint when"
         " the arrival was decided; *GPS slow* is the GPS's own slow error at those moments"
-        " (what no navigation can see); the path ratio is the true path over the straight"
+        " (what no navigation can see); *GPS CEP50* is the median over a cell's runs of each"
+        " run's raw-fix horizontal CEP50 against the truth (also results.csv's gps_* columns,"
+        " the figures of a survey's sweep); the path ratio is the true path over the straight"
         " polyline, over completed runs.",
         "",
         "*Completed* is a share of the runs that finished (*lost* runs, which the cluster"
         " could not finish, are no missions of the robot).",
         "",
         "| cell | runs | completed | failed | lost | arrival error median / p95"
-        " | GPS slow median | path ratio median (max) | sim time median | wall per run |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        " | GPS slow median | GPS CEP50 median | path ratio median (max) | sim time median"
+        " | wall per run |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for c in cells:
         ratios = [x for x in c.path_ratios if math.isfinite(x)]
@@ -389,6 +400,7 @@ def markdown(
             f" ({_f(c.completion_pct, '.0f')} %) | {c.failed} | {c.lost}"
             f" | {_f(_median(c.arrival_true_m))} /"
             f" {_f(_pct(c.arrival_true_m, 95))} m | {_f(_median(c.arrival_gps_m))} m"
+            f" | {_f(_median(c.gps_cep50_m))} m"
             f" | {_f(_median(ratios), '.3f')} ({_f(max(ratios) if ratios else math.nan, '.3f')})"
             f" | {_f(_median(c.sim_times_s), '.1f')} s | {_f(_median(c.wall_times_s))} s |"
         )

@@ -490,3 +490,39 @@ def test_the_cli_passes_its_worker_timeout_and_dashboard(tmp_path: Path) -> None
     finally:
         sched.terminate()
         sched.wait(timeout=30)
+
+
+# ---------------------------------------------------------------------------- the GPS's figures
+
+
+def test_a_survey_sweep_tabulates_the_receivers_error(tmp_path: Path) -> None:
+    # a sweep of a static scenario (or of receiver keys) had no column about the GPS at all:
+    # completion and arrivals are a mission's. Each run's raw CEP50 / R95 / RMS, the filtered
+    # RMS, the fix fraction and the hold time are in results.csv, the CEP50 in the summary.
+    from sim_backend.executor import Executor
+    from sim_backend.sweep import load_sweep, run_sweep
+    from sim_backend.sweep_report import write_report
+
+    survey = ROOT / "config" / "scenarios" / "open_field.toml"
+    body = 'seeds = 2\n[set]\nduration_s = 60.0\n[grid]\n"gnss.mask_deg" = [5.0, 25.0]\n'
+    f = sweep_file(tmp_path, body, (survey,))
+    out = tmp_path / "out"
+    with Executor(inline=True) as ex:
+        res = run_sweep(load_sweep(f), out, ex)
+    assert not res.failed, res.failed
+    info = {
+        "name": "t", "seed": 7, "seeds": 2, "scenarios": [str(survey)], "set": res.spec.fixed,
+        "grid": res.spec.grid, "ran": 4, "skipped": 0, "executor": "x", "wall_s": 1.0,
+        "missions_per_min": 1.0,
+    }  # fmt: skip
+    write_report(info, res.records, out, figures=False)
+    rows = results(out)
+    cep = {row["gnss.mask_deg"]: [] for row in rows}
+    for row in rows:
+        assert 0.0 < float(row["gps_cep50_m"]) < float(row["gps_r95_m"])
+        assert float(row["gps_rms_m"]) > 0 and float(row["filtered_rms_m"]) > 0
+        assert float(row["fix_fraction"]) == 1.0 and float(row["hold_time_s"]) >= 0.0
+        cep[row["gnss.mask_deg"]].append(float(row["gps_cep50_m"]))
+    assert min(cep["25.0"]) > max(cep["5.0"])  # a high mask leaves a poor geometry
+    summary = (out / "summary.md").read_text()
+    assert "| GPS CEP50 median |" in summary
