@@ -116,9 +116,15 @@ def _sigint_held() -> Iterator[None]:
         return
     held: list[int] = []
     old = signal.signal(signal.SIGINT, lambda signum, _frame: held.append(signum))
+    # Blocked, not only handled: the threads and worker processes started meanwhile inherit
+    # the mask (across exec too), so a Ctrl-C sent to the whole group while a worker's
+    # interpreter starts stays pending there until its preload ignores it; before, it killed
+    # that worker in its site import ("Fatal Python error ... KeyboardInterrupt")
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # a held one lands now
         signal.signal(signal.SIGINT, old)
         if held:  # also when the start failed: the user asked to stop
             raise KeyboardInterrupt
