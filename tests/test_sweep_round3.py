@@ -18,6 +18,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -264,6 +265,15 @@ def test_a_cell_that_names_no_file_keeps_its_digest() -> None:
 # ---------------------------------------------------------------------------- D3: datetimes
 
 
+def _report_info(res: Any, scenarios: list[Path], seeds: int, ran: int) -> dict[str, Any]:
+    """What the CLI hands write_report about a sweep run here (sweep seed 7, inline)."""
+    return {
+        "name": "t", "seed": 7, "seeds": seeds, "scenarios": [str(p) for p in scenarios],
+        "set": res.spec.fixed, "grid": res.spec.grid, "ran": ran, "skipped": 0,
+        "executor": "x", "wall_s": 1.0, "missions_per_min": 1.0,
+    }  # fmt: skip
+
+
 @pytest.mark.parametrize("table", ["grid", "set"])
 def test_a_toml_datetime_is_a_value(tmp_path: Path, table: str) -> None:
     # TypeError: Object of type datetime is not JSON serializable (sweep.json), exit 1
@@ -286,12 +296,7 @@ def test_a_toml_datetime_is_a_value(tmp_path: Path, table: str) -> None:
     plan = json.loads((out / "sweep.json").read_text())
     written = plan[table]["start_utc"]
     assert (written[0] if table == "grid" else written) == "2020-01-01T12:00:00+00:00"
-    info = {
-        "name": "t", "seed": 7, "seeds": 1, "scenarios": [str(DEFAULT)], "set": res.spec.fixed,
-        "grid": res.spec.grid, "ran": 1, "skipped": 0, "executor": "x", "wall_s": 1.0,
-        "missions_per_min": 1.0,
-    }  # fmt: skip
-    write_report(info, res.records, out, figures=False)
+    write_report(_report_info(res, [DEFAULT], seeds=1, ran=1), res.records, out, figures=False)
     assert {row["start_utc"] for row in results(out)} >= {"2020-01-01T12:00:00+00:00"}
     cell = next((out / "cells").glob("*.toml")).read_text()
     assert re.search(r"^start_utc = 2020-01-01T1[23]:00:00\+00:00$", cell, re.M), cell
@@ -510,12 +515,7 @@ def test_a_survey_sweep_tabulates_the_receivers_error(tmp_path: Path) -> None:
     with Executor(inline=True) as ex:
         res = run_sweep(load_sweep(f), out, ex)
     assert not res.failed, res.failed
-    info = {
-        "name": "t", "seed": 7, "seeds": 2, "scenarios": [str(survey)], "set": res.spec.fixed,
-        "grid": res.spec.grid, "ran": 4, "skipped": 0, "executor": "x", "wall_s": 1.0,
-        "missions_per_min": 1.0,
-    }  # fmt: skip
-    write_report(info, res.records, out, figures=False)
+    write_report(_report_info(res, [survey], seeds=2, ran=4), res.records, out, figures=False)
     rows = results(out)
     cep = {row["gnss.mask_deg"]: [] for row in rows}
     for row in rows:

@@ -43,6 +43,7 @@ import numpy as np
 
 from sim_backend.effects import PositionSeries, metres_per_degree, satellite_set_id
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
+from x6wd.core.geodesy import EARTH_MEAN_RADIUS_M
 
 MAX_LINE_BYTES = 1 << 16
 """Longest line of a text log (CSV, .pos) read (bytes); longer is not such a log."""
@@ -120,7 +121,7 @@ def _glitches(
     pad = [np.pad(a, half, mode="edge") for a in (lat, lon_rel, t)]
     win = [np.lib.stride_tricks.sliding_window_view(a, GLITCH_WINDOW) for a in pad]
     med_lat, med_lon = np.median(win[0], axis=1), np.median(win[1], axis=1)
-    m_per_deg_lat = 111_195.0  # the mean sphere's: a kilometre test needs no ellipsoid
+    m_per_deg_lat = math.radians(EARTH_MEAN_RADIUS_M)  # a kilometre test needs no ellipsoid
     north_m = (lat - med_lat) * m_per_deg_lat
     east_m = (lon_rel - med_lon) * m_per_deg_lat * np.cos(np.radians(med_lat))
     off_m = np.hypot(north_m, east_m)
