@@ -19,7 +19,6 @@ A reader of the output that goes away (``x6wd client watch | head``) ends it qui
 from __future__ import annotations
 
 import argparse
-import contextlib
 import itertools
 import json
 import math
@@ -469,9 +468,10 @@ def _hold_drive(client: RemoteClient, reply: dict[str, Any], err: TextIO) -> int
     """Keep the connection open while the drive the robot granted runs: the robot stops a
     drive whose client went away, so leaving early would cut it short. Returns None when
     the drive ran its course; :data:`EXIT_REFUSED` when the robot left manual drive early
-    (said on ``err``); :data:`EXIT_INTERRUPTED` on Ctrl-C, after sending ``stop`` (the
-    connection's close alone would stop it too). A connection lost meanwhile raises
-    :class:`ConnectionFailed`."""
+    (said on ``err``); :data:`EXIT_INTERRUPTED` on Ctrl-C, after a ``stop`` the robot
+    acknowledged (the connection's close alone would stop it too); a stop the robot refused
+    or did not answer is said as such, never "stop sent", and is :data:`EXIT_REFUSED` or
+    :data:`EXIT_CONNECTION`. A connection lost meanwhile raises :class:`ConnectionFailed`."""
     duration_s = reply.get("duration_s")
     if not isinstance(duration_s, (int, float)) or not 0.0 < duration_s <= 3600.0:
         raise ProtocolError(f"'drive' reply without a usable duration_s: {duration_s!r:.60}")
@@ -484,11 +484,25 @@ def _hold_drive(client: RemoteClient, reply: dict[str, Any], err: TextIO) -> int
                 print(f"x6wd client: the drive ended early: the robot is {mode}", file=err)
                 return EXIT_REFUSED
     except KeyboardInterrupt:
-        with contextlib.suppress(X6wdError, OSError):
-            client.request("stop")
-        print("x6wd client: drive interrupted: stop sent", file=err)
-        return EXIT_INTERRUPTED
+        return _interrupted_stop(client, err)
     return None
+
+
+def _interrupted_stop(client: RemoteClient, err: TextIO) -> int:
+    """Ctrl-C during a drive: ``stop``, and say truthfully whether the robot confirmed it."""
+    try:
+        client.request("stop")
+    except (X6wdError, OSError) as exc:
+        refused = isinstance(exc, RequestFailed)
+        print(
+            f"x6wd client: drive interrupted: the robot did not confirm the stop ({exc});"
+            " closing the connection, which stops a drive the robot still runs; check with"
+            " `x6wd client status`",
+            file=err,
+        )
+        return EXIT_REFUSED if refused else EXIT_CONNECTION
+    print("x6wd client: drive interrupted: stop sent (the robot confirmed it)", file=err)
+    return EXIT_INTERRUPTED
 
 
 def _watch(

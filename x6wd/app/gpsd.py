@@ -36,7 +36,13 @@ from typing import Any
 
 from drivers.gps_nmea import STATUS_DGPS, fix_status
 from x6wd import __version__
-from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
+from x6wd.app.lineserver import (
+    LISTEN_BACKLOG,
+    LineClient,
+    LineServer,
+    peer_names,
+    write_buffer_size,
+)
 from x6wd.core.config import GpsdConfig, SafetyConfig
 from x6wd.core.errors import ProtocolError
 from x6wd.core.geodesy import wrap360
@@ -677,7 +683,7 @@ class GpsdServer(LineServer[_Client]):
         if sender is None:
             return
         done, _ = await asyncio.wait({sender}, timeout=REFUSED_LINGER_S)
-        if not done or c.writer.transport.get_write_buffer_size() > 0:
+        if not done or write_buffer_size(c.writer.transport) > 0:
             return  # it does not read: the hang-up resets it
         with contextlib.suppress(Exception):
             c.writer.write_eof()

@@ -117,35 +117,56 @@ def unread_bytes(c: LineClient) -> int:
     reader = c.reader
     if reader is not None:
         n += len(getattr(reader, "_buffer", b""))  # CPython's StreamReader keeps it here
-    sock = c.writer.transport.get_extra_info("socket")
-    if sock is not None:
-        try:
-            raw = fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0")
-            n += int(struct.unpack("i", raw)[0])
-        except (OSError, ValueError):
-            pass
+    n += socket_queue_bytes(transport_socket(c.writer.transport), termios.FIONREAD) or 0
     return n
+
+
+def transport_socket(transport: asyncio.BaseTransport) -> Any:
+    """The socket under a transport, or None. Never raises: a closed or closing transport of
+    any kind may have no socket any more, and asyncio's SSL transport, once closed twice
+    (the peer's hang-up, then ours), raises AttributeError from ``get_extra_info`` itself:
+    no bookkeeping about one connection may fail a stop or a deadline of the others."""
+    try:
+        return transport.get_extra_info("socket")
+    except Exception:
+        return None
+
+
+def write_buffer_size(transport: asyncio.BaseTransport) -> int:
+    """Bytes a transport holds that it has not handed to the kernel yet; 0 for a closed
+    transport (asyncio's SSL transport raises AttributeError then). Never raises."""
+    try:
+        return int(transport.get_write_buffer_size())  # type: ignore[attr-defined]
+    except Exception:
+        return 0
+
+
+def socket_queue_bytes(sock: Any, request: int) -> int | None:
+    """One of a socket's kernel queues (``termios.FIONREAD``: received, not read yet;
+    ``termios.TIOCOUTQ`` = SIOCOUTQ: sent, not acknowledged by the peer), bytes; None where
+    it cannot be read (no socket, a closed one). Never raises."""
+    if sock is None:
+        return None
+    try:
+        raw = fcntl.ioctl(sock.fileno(), request, b"\0\0\0\0")
+        return int(struct.unpack("i", raw)[0])
+    except Exception:  # OSError, ValueError (fd -1), or a socket object gone odd
+        return None
 
 
 def unacknowledged_bytes(transport: asyncio.BaseTransport) -> int | None:
     """Bytes in the kernel's send queue of a TCP transport that the peer has not
-    acknowledged (Linux SIOCOUTQ); None where that cannot be read."""
-    sock = transport.get_extra_info("socket")
-    if sock is None:
-        return None
-    try:
-        raw = fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, b"\0\0\0\0")  # = SIOCOUTQ
-    except (OSError, ValueError):
-        return None
-    return int(struct.unpack("i", raw)[0])
+    acknowledged (Linux SIOCOUTQ); None where that cannot be read (also a closed transport,
+    plain or TLS). Never raises."""
+    return socket_queue_bytes(transport_socket(transport), termios.TIOCOUTQ)
 
 
 def reset(transport: asyncio.WriteTransport) -> None:
     """Close at once with a TCP reset: data still queued for a peer that does not read is
     dropped now, instead of the kernel holding it (and the connection) while it retries."""
-    sock = transport.get_extra_info("socket")
+    sock = transport_socket(transport)
     if sock is not None:
-        with contextlib.suppress(OSError):
+        with contextlib.suppress(Exception):  # OSError; a closed socket object of any kind
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
     transport.abort()
 
@@ -248,7 +269,8 @@ class LineServer(Generic[C]):
             c.closed = True
             c.wake.set()
             c.drained.set()
-            c.writer.close()
+            with contextlib.suppress(Exception):  # one odd connection must not keep the rest
+                c.writer.close()
         for t in list(self._tasks):
             t.cancel()
         if self._tasks:
@@ -354,9 +376,9 @@ class LineServer(Generic[C]):
         c.drained.set()
         transport = c.writer.transport
         with contextlib.suppress(Exception):
-            if reason != SLOW_READER and transport.get_write_buffer_size() == 0:
+            if reason != SLOW_READER and write_buffer_size(transport) == 0:
                 transport.write(self._notice(reason, message))
-            if reason != SLOW_READER and transport.get_write_buffer_size() == 0:
+            if reason != SLOW_READER and write_buffer_size(transport) == 0:
                 transport.close()
             else:  # it does not read: do not keep the socket open for its buffer
                 reset(transport)
@@ -377,26 +399,49 @@ class LineServer(Generic[C]):
         for c in list(self._clients):
             if c.closed:
                 continue
-            stalled_s = self._stalled_s(c, now)
-            if c.drain_since_s is not None:  # the sender waits in drain(): no room at all
-                stalled_s = max(stalled_s, now - c.drain_since_s)
-            if stalled_s >= self.slow_client_s:
-                self._evict(c, SLOW_READER, f"has not read for {stalled_s:.1f} s")
-            elif not c.session and now - c.t_connect_s >= self.pending_timeout_s:
-                self._evict(
-                    c,
-                    self.pending_timeout_reason,
-                    f"not admitted within {self.pending_timeout_s:g} s",
-                )
-            elif (
-                c.session and not self._is_watching(c) and now - c.t_active_s >= self.idle_timeout_s
-            ):
-                self._evict(c, IDLE_TIMEOUT, f"idle for {now - c.t_active_s:.1f} s")
-            else:
-                continue
-            closed += 1
+            try:  # one connection in a state nobody foresaw must not exempt the others
+                closed += self._sweep_one(c, now)
+            except Exception as exc:
+                self._sweep_failed(c, "deadline check", exc)
         self._rlog.flush()
         return closed
+
+    def _sweep_one(self, c: C, now: float) -> int:
+        """Close ``c`` if it is past a deadline; 1 if it was closed."""
+        try:
+            stalled_s = self._stalled_s(c, now)
+        except Exception as exc:  # its pending and idle deadlines still hold
+            self._sweep_failed(c, "send-queue check", exc)
+            stalled_s = 0.0
+        if c.drain_since_s is not None:  # the sender waits in drain(): no room at all
+            stalled_s = max(stalled_s, now - c.drain_since_s)
+        if stalled_s >= self.slow_client_s:
+            self._evict(c, SLOW_READER, f"has not read for {stalled_s:.1f} s")
+        elif not c.session and now - c.t_connect_s >= self.pending_timeout_s:
+            self._evict(
+                c,
+                self.pending_timeout_reason,
+                f"not admitted within {self.pending_timeout_s:g} s",
+            )
+        elif c.session and not self._is_watching(c) and now - c.t_active_s >= self.idle_timeout_s:
+            self._evict(c, IDLE_TIMEOUT, f"idle for {now - c.t_active_s:.1f} s")
+        else:
+            return 0
+        return 1
+
+    def _sweep_failed(self, c: C, what: str, exc: Exception) -> None:
+        """Log (at most once per second) a sweep step that failed for one connection; the
+        sweep goes on with the others."""
+        self._rlog.log(
+            f"{self.label}: sweep errors",
+            logging.ERROR,
+            "%s: %s of %s failed (the sweep goes on): %s: %s",
+            self.label,
+            what,
+            c.peer,
+            type(exc).__name__,
+            exc,
+        )
 
     @staticmethod
     def _stalled_s(c: C, now: float) -> float:
@@ -406,7 +451,7 @@ class LineServer(Generic[C]):
         outq = unacknowledged_bytes(transport)
         if outq is None:
             return 0.0
-        waiting = outq + transport.get_write_buffer_size()
+        waiting = outq + write_buffer_size(transport)
         acked = c.bytes_out - waiting
         if waiting == 0:
             c.stalled_since_s = None
@@ -456,7 +501,7 @@ class LineServer(Generic[C]):
                 await asyncio.wait_for(sender, 1.0)
         transport = c.writer.transport
         with contextlib.suppress(Exception):
-            if transport.get_write_buffer_size() > 0:
+            if write_buffer_size(transport) > 0:
                 reset(transport)  # a peer that does not read: do not wait for it
             else:
                 c.writer.close()

@@ -23,7 +23,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-import fcntl
+import functools
 import hashlib
 import hmac
 import inspect
@@ -33,18 +33,24 @@ import math
 import re
 import ssl
 import stat
-import struct
 import sys
 import termios
 import time
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 from x6wd import __version__
-from x6wd.app.lineserver import LISTEN_BACKLOG, LineClient, LineServer, peer_names
+from x6wd.app.lineserver import (
+    LISTEN_BACKLOG,
+    LineClient,
+    LineServer,
+    peer_names,
+    socket_queue_bytes,
+    transport_socket,
+)
 from x6wd.core.config import ServerConfig, is_loopback_bind
 from x6wd.core.errors import CommandError, ConfigError, ParseError, X6wdError
 from x6wd.core.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx, parse_kml, parse_wpl
@@ -244,6 +250,18 @@ def _retrieve(f: asyncio.Future[Any]) -> None:
         f.exception()
 
 
+def _report_failed_stop(peer: str, f: asyncio.Future[Any]) -> None:
+    """The dead-man's stop (nobody awaits its reply) failed: say so, the log said it was
+    stopping the motors."""
+    if not f.cancelled() and f.exception() is not None:
+        log.error(
+            "the stop for %s, which went away while driving, failed: %s: %s",
+            peer,
+            type(f.exception()).__name__,
+            f.exception(),
+        )
+
+
 TLS_RECORD_B = 16_384 + 256
 """The most text one TLS record holds (its plaintext limit, with room): OpenSSL may keep one
 read from the socket but not yet decrypted, which no buffer size shows."""
@@ -258,25 +276,25 @@ def _arrived_b(c: _Client) -> int:
     the kernel's receive queue (FIONREAD). Encrypted counts and that record are a little
     more than their text: behind a backlog, a line sent just after a stop may be refused
     with the ones before it. asyncio has no public size for its SSL buffers (its own
-    attributes, read defensively; tests/test_safety_server.py checks both transports)."""
+    attributes, read defensively; tests/test_safety_server.py checks both transports).
+    Never raises: a closed transport (asyncio's SSL one raises AttributeError from
+    ``get_extra_info`` once closed twice) has nothing more to give than what was received
+    (tests/test_tls_stop.py)."""
     writer = c.writer
     n = c.received
     if writer is None:
         return n
-    proto = getattr(writer.transport, "_ssl_protocol", None)
+    transport = writer.transport
+    proto = getattr(transport, "_ssl_protocol", None)  # None once that transport is closed
     held = 0
     if proto is not None:
-        incoming = getattr(proto, "_incoming", None)
-        held = int(getattr(incoming, "pending", 0))
+        with contextlib.suppress(Exception):
+            held = int(getattr(getattr(proto, "_incoming", None), "pending", 0))
         n += held
-        sslobj = getattr(proto, "_sslobj", None)
-        with contextlib.suppress(ssl.SSLError, ValueError, AttributeError):
+        with contextlib.suppress(Exception):  # ssl.SSLError, ValueError, AttributeError
+            sslobj = getattr(proto, "_sslobj", None)
             n += int(sslobj.pending()) if sslobj is not None else 0
-    sock = writer.get_extra_info("socket")
-    queued = 0
-    if sock is not None:
-        with contextlib.suppress(OSError, ValueError):
-            queued = struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0" * 4))[0]
+    queued = socket_queue_bytes(transport_socket(transport), termios.FIONREAD) or 0
     if proto is not None and queued + held > 0:
         # a held-back TLS stream: OpenSSL may hold a record it read but did not decrypt
         n += TLS_RECORD_B
@@ -548,8 +566,10 @@ class ControlServer(LineServer[_Client]):
         except asyncio.CancelledError:
             pass  # close() or eviction: a finished task keeps asyncio's stream callback quiet
         finally:
-            self._drive_orphaned(c)
-            await self._hang_up(c, reader)
+            try:
+                self._drive_orphaned(c)
+            finally:  # whatever happened there, the connection leaves the pools
+                await self._hang_up(c, reader)
 
     async def close(self) -> None:
         """Stop listening and disconnect every client (idempotent)."""
@@ -567,11 +587,30 @@ class ControlServer(LineServer[_Client]):
         if self._closing or not self.drive_active(c):
             return
         self._drive_owner = None
-        self.stops["requested"] += 1
-        self.stops["orphaned"] += 1
-        log.warning("%s went away while driving: motors stopped", c.peer)
-        self._stop_fence(None, 0)
-        self._fire_stop()
+        stopping = self._fire_stop()  # the motors first: nothing below may skip or delay it
+        with self._bookkeeping("the dead-man's stop"):
+            self.stops["requested"] += 1
+            self.stops["orphaned"] += 1
+            log.warning("%s went away while driving: stopping the motors", c.peer)
+            stopping.add_done_callback(functools.partial(_report_failed_stop, c.peer))
+            self._stop_fence(None, 0)
+
+    @contextlib.contextmanager
+    def _bookkeeping(self, what: str) -> Iterator[None]:
+        """Around the counts, log lines and fences that follow a stop already sent to the
+        motors: an error in them is logged (at most once per second) and goes no further,
+        so it can neither undo the stop nor fail its reply."""
+        try:
+            yield
+        except Exception as exc:
+            self._rlog.log(
+                "stop bookkeeping errors",
+                logging.ERROR,
+                "bookkeeping after %s failed (the stop was sent): %s: %s",
+                what,
+                type(exc).__name__,
+                exc,
+            )
 
     def _bucket(self, now: float) -> _Bucket:
         burst = max(5.0, self.config.rate_per_s)
@@ -712,10 +751,11 @@ class ControlServer(LineServer[_Client]):
         except _Reject:
             return
         if req.get("cmd") == "stop":
-            self.stops["early"] += 1
-            c.early_stop_end = max(c.early_stop_end, end)
-            self._stop_fence(c, end)
-            self._fire_stop()
+            self._fire_stop()  # the motors first, then the bookkeeping
+            with self._bookkeeping("an early stop"):
+                self.stops["early"] += 1
+                c.early_stop_end = max(c.early_stop_end, end)
+                self._stop_fence(c, end)
 
     def receive(self, c: _Client, line: bytes, *, early: bool) -> None:
         """A detached client's request line as it arrives (each, in order, then handled in
@@ -739,12 +779,25 @@ class ControlServer(LineServer[_Client]):
         lines after the stop were sent after it and stand. A detached client's messages
         still in its transport are judged there, by their send time (:meth:`stopped_since`)."""
         now_s = time.monotonic()
-        for c in self._fenced:
+        for c in list(self._fenced):
             if c is origin:
                 c.fence = max(c.fence, end)
-            else:
-                c.fence = max(c.fence, _arrived_b(c))
-                c.other_stop_s = now_s
+                continue
+            c.other_stop_s = now_s
+            try:
+                arrived = _arrived_b(c)
+            except Exception as exc:  # (it does not raise; if it ever did: this client only)
+                arrived = c.received  # at least all that reached its reader is fenced
+                self._rlog.log(
+                    "stop fence errors",
+                    logging.ERROR,
+                    "stop fence: cannot measure the input of %s (fenced at what it has "
+                    "received): %s: %s",
+                    c.peer,
+                    type(exc).__name__,
+                    exc,
+                )
+            c.fence = max(c.fence, arrived)
 
     def stopped_since(self, c: _Client, sent_s: float) -> bool:
         """A stop came from another client after ``sent_s`` (time.monotonic() s, the latest
@@ -886,11 +939,15 @@ class ControlServer(LineServer[_Client]):
             return st
         if cmd == "stop":
             self._drive_owner = None
-            if c.taken > c.early_stop_end:  # (one sent ahead fenced the others on arrival)
-                self._stop_fence(c, c.taken)
-            self.stops["requested"] += 1
-            self._rlog.log("stop requests", logging.INFO, "stop requested by %s", c.peer)
-            return dict(await asyncio.shield(self._fire_stop()))
+            # the motors first: no bookkeeping below (on any client) may skip or delay it.
+            # Nothing awaits in between, so no other request runs before the fence is up.
+            stopping = self._fire_stop()
+            with self._bookkeeping("a stop"):
+                if c.taken > c.early_stop_end:  # (one sent ahead fenced the others on arrival)
+                    self._stop_fence(c, c.taken)
+                self.stops["requested"] += 1
+                self._rlog.log("stop requests", logging.INFO, "stop requested by %s", c.peer)
+            return dict(await asyncio.shield(stopping))
         if cmd == "watch":
             on = req.get("on", req.get("enable", True))
             if not isinstance(on, bool):

@@ -817,10 +817,20 @@ class ConsoleServer:
     async def _hang_up(self, page: _Page) -> None:
         """The dead-man: a page that goes away while its drive runs stops the motors now."""
         if self.control.drive_active(page.client):  # its drive runs, no command replaced it
+            # the stop first (the control server sends it to the motors before any of its
+            # bookkeeping), then the counts and the log line, which says how it went
+            try:
+                reply, _ = await self.control.request(page.client, STOP_LINE)
+            except Exception as exc:  # (request never raises; if it did: say so)
+                reply = error_reply(None, "internal", f"{type(exc).__name__}: {exc}")
             self.deadman_stops += 1
-            log.warning("console: %s went away while driving: motors stopped", page.peer)
-            with contextlib.suppress(Exception):
-                await self.control.request(page.client, STOP_LINE)
+            if reply.get("ok"):
+                log.warning("console: %s went away while driving: motors stopped", page.peer)
+            else:
+                log.error(
+                    "console: %s went away while driving: its stop failed: %s",
+                    page.peer, reply.get("error"),
+                )  # fmt: skip
 
     async def _sender(self, page: _Page) -> None:
         ws = page.ws
