@@ -8,14 +8,24 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-from collections.abc import Sequence
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from sim_backend.odometry import EncoderParams, EncoderSim
-from sim_backend.vehicle import Vehicle, VehicleParams
+from sim_backend.calibration_runs import (
+    CIRCLE,
+    ORIGIN,
+    REF_SIGMA_M,
+    STOP,
+    STRAIGHT,
+    TRUE,
+    simulate,
+    write,
+)
+from tests.conftest import ROOT
 from x6wd.app import cli
 from x6wd.calibrate.odometry import (
     OdometryCalibration,
@@ -27,53 +37,7 @@ from x6wd.calibrate.odometry import (
 )
 from x6wd.core import config
 from x6wd.core.errors import ConfigError
-from x6wd.core.recorder import Recorder
-from x6wd.core.records import GpsFix, WheelOdometry
-from x6wd.nav.geo import LocalTangentPlane
-
-ORIGIN = (51.7, 5.0)
-TRUE = EncoderParams(
-    left_diameter_m=0.1212,  # +1 % of the nominal 120 mm
-    right_diameter_m=0.1188,  # -1 %
-    effective_track_m=0.37,  # 1.5x the geometric 0.245 m
-    k_left_m=2e-4,
-    k_right_m=3e-4,
-)
-REF_SIGMA_M = 0.02
-DT_S = 0.025  # physics step; odometry every 2 steps (20 Hz), a fix every 8 (5 Hz)
-STOP = (0.0, 0.0, 4.0)  # the motors' exponential stop creeps for ~2 s
-STRAIGHT = [STOP] + [(50.0, 50.0, 10.0), STOP, (-50.0, -50.0, 10.0), STOP] * 6  # 12 x 19 m
-CIRCLE = [STOP] + [(60.0, 10.0, 32.0), STOP] * 4  # 4 x 2 laps of radius ~3.5 m, clockwise
-
-
-def simulate(
-    script: Sequence[tuple[float, float, float]], seed: int, params: EncoderParams = TRUE
-) -> tuple[list[WheelOdometry], list[GpsFix]]:
-    """Drive (left %, right %, seconds) legs; the odometry records and reference fixes."""
-    rng = np.random.default_rng(seed)
-    v = Vehicle(VehicleParams(), heading_deg=float(rng.uniform(0, 360)))
-    enc = EncoderSim(params, rng=rng, start=v.state)
-    plane = LocalTangentPlane(*ORIGIN)
-    odo: list[WheelOdometry] = []
-    fixes: list[GpsFix] = []
-    k = 0
-    for left, right, secs in script:
-        v.command(left, right)
-        for _ in range(round(secs / DT_S)):
-            s = v.step(DT_S)
-            enc.step(DT_S, s)
-            k += 1
-            if k % 2 == 0:
-                odo.append(WheelOdometry(s.t_s, *enc.counts, seq=(k // 2) % 65536))
-            if k % 8 == 0:
-                e, n = s.east_m + rng.normal(0, REF_SIGMA_M), s.north_m + rng.normal(0, REF_SIGMA_M)
-                lat, lon = plane.to_latlon(e, n)
-                fixes.append(
-                    GpsFix(
-                        s.t_s, lat_deg=float(lat), lon_deg=float(lon), quality=4, valid=True, mode=3
-                    )
-                )
-    return odo, fixes
+from x6wd.core.records import GpsFix
 
 
 def run(seed: int) -> OdometryCalibration:
@@ -96,17 +60,6 @@ def z_scores(cal: OdometryCalibration) -> dict[str, float]:
         "k_right_m": TRUE.k_right_m,
     }
     return {k: (getattr(cal, k).value - t) / getattr(cal, k).se for k, t in truth.items()}
-
-
-def write(path: Path, odo: list[WheelOdometry], fixes: list[GpsFix]) -> Path:
-    records: list[WheelOdometry | GpsFix] = [*odo, *fixes]
-    with Recorder(path) as rec:
-        for r in sorted(records, key=lambda r: r.t_s):
-            if isinstance(r, WheelOdometry):
-                rec.record_odometry(r)
-            else:
-                rec.record_fix(r)
-    return path
 
 
 def test_cli_writes_a_fragment_whose_estimates_hold_the_truth(
@@ -333,3 +286,36 @@ def test_runs_merged_by_a_short_stop_are_left_out_and_the_passes_used_are_said(
     assert "straight track: 5 of 7 passes used; 2 drove forwards and back between two stops" in err
     assert "0 shorter than --min-pass-m 2 m" in err
     assert "# straight: 5 passes of " in out and " m (of 7 between stops); circle" in out
+
+
+def test_the_calibration_runs_tool_needs_no_test_tools_and_writes_the_tested_runs(
+    tmp_path: Path,
+) -> None:
+    """tools/calibration-runs (a README tour line) runs with the `sim` extra alone: no pytest
+    (only `dev` has it), nothing imported from tests/ (an outside audit: it imported its
+    simulator from this file, which imports pytest: a traceback). Its recordings are the
+    runs this file checks the estimator on (seeds 1 and 2), record for record."""
+    out = tmp_path / "calibration"
+    wrapper = (
+        "import runpy, sys\n"
+        "sys.modules['pytest'] = sys.modules['_pytest'] = None  # as without the dev extra\n"
+        f"sys.argv = ['tools/calibration-runs', {str(out)!r}]\n"
+        "runpy.run_path('tools/calibration-runs', run_name='__main__')\n"
+        f"tests = sorted(n for n, m in list(sys.modules.items()) if m is not None\n"
+        f"    and str(getattr(m, '__file__', None) or '').startswith({str(ROOT / 'tests')!r}))\n"
+        "sys.exit(f'imported from tests/: {tests}' if tests else 0)\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", wrapper], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert res.returncode == 0, res.stderr
+    assert "Traceback" not in res.stderr
+    assert res.stdout.split() == [str(out / "straight.jsonl"), str(out / "circle.jsonl")]
+    assert "truth: left diameter 121.2 mm, right 118.8 mm, effective track 0.37 m" in res.stderr
+
+    def records(path: Path) -> list[str]:  # the wall-clock stamp t_utc is the writer's time
+        return [re.sub(r'"t_utc":"[^"]*"', "", line) for line in path.read_text().splitlines()]
+
+    for name, script, seed in (("straight", STRAIGHT, 1), ("circle", CIRCLE, 2)):
+        here = write(tmp_path / f"{name}.jsonl", *simulate(script, seed))
+        assert records(out / f"{name}.jsonl") == records(here), name
