@@ -26,6 +26,25 @@ def require_program(name: str) -> str:
     return path
 
 
+def option_help(argv: list[str], option: str, capsys: pytest.CaptureFixture[str]) -> str:
+    """The text ``x6wd ARGV --help`` prints for ``option``, on one line."""
+    from x6wd.app import cli
+
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([*argv, "--help"])
+    assert exit_.value.code == 0
+    text, lines = "", capsys.readouterr().out.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith(f"  {option} "):
+            text = line
+            for more in lines[i + 1 :]:
+                if more.startswith("  -") or not more.startswith("   "):
+                    break
+                text += " " + more.strip()
+    assert text, f"{option} not in the help"
+    return " ".join(text.split())
+
+
 @pytest.fixture
 def data_dir() -> Path:
     return DATA

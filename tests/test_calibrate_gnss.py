@@ -35,6 +35,7 @@ import pytest
 from sim_backend.geodesy import enu_to_lla
 from sim_backend.receiver import build_receiver
 from sim_backend.world import World, loads_world
+from tests.conftest import option_help
 from x6wd.app import cli
 from x6wd.app.decode import decode_path
 from x6wd.calibrate import gnss
@@ -615,3 +616,18 @@ def test_static_reads_plain_nmea_logs_as_x6wd_decode_does(
     noise.write_bytes(b"not nmea at all\n$GPTXT,01,01,02,hello*00\n")
     with pytest.raises(ParseError, match="no NMEA fix with a date and time"):
         gnss.load_fixes(noise)
+
+
+def test_help_gives_the_default_of_every_lce_map_option(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # an outside audit: --visit-gap-s and --max-gap-s showed no default (docs: 30 s, 1.5 s)
+    argv = ["calibrate", "gnss"]
+    for option, shown in (
+        ("--visit-gap-s", "a new pass after this long away, s (30)"),
+        ("--max-gap-s", "longest reference gap to interpolate, s (1.5)"),
+        ("--cell-m", "LCE map cell size, m (10)"),
+        ("--min-fixes", "fixes a mapped cell needs (10)"),
+        ("--min-visits", "separate passes a mapped cell needs (2)"),
+    ):
+        assert option_help(argv, option, capsys).endswith(shown), option

@@ -25,7 +25,7 @@ from sim_backend.calibration_runs import (
     simulate,
     write,
 )
-from tests.conftest import ROOT
+from tests.conftest import ROOT, option_help
 from x6wd.app import cli
 from x6wd.calibrate.odometry import (
     OdometryCalibration,
@@ -319,3 +319,13 @@ def test_the_calibration_runs_tool_needs_no_test_tools_and_writes_the_tested_run
     for name, script, seed in (("straight", STRAIGHT, 1), ("circle", CIRCLE, 2)):
         here = write(tmp_path / f"{name}.jsonl", *simulate(script, seed))
         assert records(out / f"{name}.jsonl") == records(here), name
+
+
+def test_help_gives_the_defaults_of_stop_and_pass_length(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # an outside audit: docs/odometry.md gives 1 s and 2 m, --help gave neither
+    argv = ["calibrate", "odometry"]
+    assert option_help(argv, "--stop-s", capsys).endswith("at least this, s (default 1)")
+    assert option_help(argv, "--min-pass-m", capsys).endswith("are ignored, m (default 2)")
+    assert option_help(argv, "--ref-sigma-m", capsys).endswith("(default 0.02: RTK)")

@@ -42,10 +42,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="standard deviation of one reference fix per axis, m (default 0.02: RTK)",
     )
     odo.add_argument(
-        "--stop-s", type=float, default=1.0, help="a stop between passes lasts at least this, s"
+        "--stop-s",
+        type=float,
+        default=1.0,
+        help="a stop between passes lasts at least this, s (default %(default)g)",
     )
     odo.add_argument(
-        "--min-pass-m", type=float, default=2.0, help="shorter straight passes are ignored, m"
+        "--min-pass-m",
+        type=float,
+        default=2.0,
+        help="shorter straight passes are ignored, m (default %(default)g)",
     )
     _add_gnss(sub)
 
@@ -78,14 +84,26 @@ def _add_gnss(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--correlation-s", type=float, help="the slow part's correlation time, s (with --re-m)"
     )
     g.add_argument("--config", help="take RE, ASE and correlation_s from this configuration")
-    g.add_argument("--cell-m", type=float, help="LCE map cell size, m (10)")
-    g.add_argument("--min-fixes", type=int, help="fixes a mapped cell needs (10)")
-    g.add_argument("--min-visits", type=int, help="separate passes a mapped cell needs (2)")
-    g.add_argument("--visit-gap-s", type=float, help="a new pass after this long away, s")
+    # their defaults are _DRIVE_ONLY's (None here: given without --drive, they are refused)
+    d = _DRIVE_ONLY
+    g.add_argument("--cell-m", type=float, help=f"LCE map cell size, m ({d['cell_m']:g})")
+    g.add_argument("--min-fixes", type=int, help=f"fixes a mapped cell needs ({d['min_fixes']})")
+    g.add_argument(
+        "--min-visits", type=int, help=f"separate passes a mapped cell needs ({d['min_visits']})"
+    )
+    g.add_argument(
+        "--visit-gap-s",
+        type=float,
+        help=f"a new pass after this long away, s ({d['visit_gap_s']:g})",
+    )
     g.add_argument(
         "--origin", help="LAT,LON of the map's plane (default: the first reference point)"
     )
-    g.add_argument("--max-gap-s", type=float, help="longest reference gap to interpolate, s")
+    g.add_argument(
+        "--max-gap-s",
+        type=float,
+        help=f"longest reference gap to interpolate, s ({d['max_gap_s']:g})",
+    )
     g.add_argument("--out", help="write the TOML fragment here (default: only print it)")
     g.add_argument("--plot", help="write a PNG of the LCE map and the drive track here")
     g.add_argument("--map-csv", help="write every visited cell (counts, SE, marks) here")
