@@ -6,6 +6,7 @@ or the baseline it is compared with) and the ratio value / anchor.
 
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import dataclass
 
 
@@ -24,6 +25,33 @@ class Row:
         if self.anchor in (None, 0):
             return None
         return self.value / self.anchor  # type: ignore[operator]
+
+
+class MissingExtra(Exception):
+    """A benchmark needs a package of an extra that is not installed; the message is the one
+    line that says which extra to install (bench/run.py prints it with no traceback)."""
+
+
+def extra_hint(bench: str, module: str) -> str | None:
+    """The line for ``module`` (a top-level package) missing from benchmark ``bench``, or None
+    when no extra of x6wd installs it (then it is a bug, not a missing extra)."""
+    from x6wd.app.cli import OPTIONAL_MODULES
+
+    extra = OPTIONAL_MODULES.get(module)
+    if extra is None:
+        return None
+    return (
+        f"benchmark {bench} needs {module}, which is not installed: pip install "
+        f"'x6wd[{extra}]' (from a checkout: pip install -e '.[{extra}]')"
+    )
+
+
+def require_modules(bench: str, *modules: str) -> None:
+    """Raise :class:`MissingExtra` for the first of ``modules`` that is not installed, before
+    a benchmark spends minutes on the figures that do not need it; nothing is imported."""
+    for name in modules:
+        if importlib.util.find_spec(name) is None:
+            raise MissingExtra(extra_hint(bench, name) or f"benchmark {bench} needs {name}")
 
 
 def upper95(k: int, n: int) -> float:

@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:  # run as a script: make ``bench._common`` importable
     sys.path.insert(0, str(ROOT))
 
-from bench._common import Row, print_table  # noqa: E402
+from bench._common import MissingExtra, Row, print_table, require_modules  # noqa: E402
 
 if TYPE_CHECKING:
     from sim_backend.sweep import SweepSpec
@@ -64,6 +64,8 @@ def measure(missions: int, repeats: int = 1) -> dict[str, float]:
     that pays the imports), the clusters' start-up with that warm-up (s), and the median
     mission wall time in process (s). Every sweep has its own sweep seed, so none reuses
     another's results."""
+    # the LocalClusters need Dask: said now, not after the in-process sweeps
+    require_modules("sweep", "dask", "distributed")
     from sim_backend.executor import Executor
     from sim_backend.sweep import run_sweep
 
@@ -148,7 +150,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     n = args.missions or (QUICK_MISSIONS if args.quick else DEFAULT_MISSIONS)
     if n < 1:
         parser.error("--missions must be >= 1")
-    print_table(rows(measure(n, 1 if args.quick else REPEATS), n))
+    try:
+        print_table(rows(measure(n, 1 if args.quick else REPEATS), n))
+    except MissingExtra as exc:
+        print(exc, file=sys.stderr)
+        return 2
     return 0
 
 
