@@ -12,7 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from sim_backend.runs import ENGINES, engine_for, sky_warnings
+from sim_backend.runs import ENGINES, check_mission_geofence, engine_for, sky_warnings
 from sim_backend.world import MAX_DURATION_S, load_world, with_robot_config
 
 
@@ -93,12 +93,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+EXIT_REFUSED = 2
+"""A scenario or mission that cannot run, refused before the run (one line on stderr, as
+every X6wdError), or a mission the robot rejected in the run (which then stops there)."""
+
+
 def main(args: argparse.Namespace) -> int:
-    """Run the subcommand; 0 when the mission completed (or a static survey ran), 1 if not."""
+    """Run the subcommand; 0 when the mission completed (or a static survey ran), 1 if it
+    did not, 2 when the mission was refused: before the run (a waypoint beyond the geofence,
+    as every bad input) or by the robot in it."""
     world = load_world(args.scenario)
     if args.config:
         world = with_robot_config(world, args.config)
     engine = engine_for(world, args.engine)
+    check_mission_geofence(world)  # the robot would refuse it: say so now, not after the run
+    for note in world.mission_notes:  # what the mission file holds that the robot ignores
+        print(f"x6wd sim: note: {note}", file=sys.stderr)
     for warning in sky_warnings(world, args.duration):
         print(f"x6wd sim: warning: {warning}", file=sys.stderr)
     progress = None if args.quiet else _progress_bar(sys.stderr)
@@ -114,4 +124,6 @@ def main(args: argparse.Namespace) -> int:
     print(f"  outputs in {Path(args.out).resolve()}")
     if summary.waypoint_count == 0:
         return 0
+    if summary.extra.get("mission_rejected"):
+        return EXIT_REFUSED
     return 0 if summary.completed else 1

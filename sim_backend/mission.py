@@ -106,6 +106,10 @@ from x6wd.loop.runner import Runner
 from x6wd.nav.controller import CommandRejected, Controller, has_usable_position
 
 DONE_TAIL_S = 2.0  # keep simulating this long after MISSION_DONE (the robot settles)
+STARTUP_HOLD = "position estimate not ready"
+"""The controller's hold reason between the mission's start and its first decision, while
+its estimator takes its first fix and compass sample (about one tick): the run's start-up
+wait, reported apart from the holds (``extra["startup_wait_s"]``), not as one of them."""
 RECORDER_BUFFER_BYTES = 1 << 20
 """The recording is written through a buffer this big: fast time needs no crash durability,
 and one ``write()`` per record was a visible share of a run."""
@@ -197,7 +201,9 @@ def run_mission(
     short mission's time).
 
     ``seed`` overrides the scenario's seed, ``duration_s`` its duration (s, simulated); the run
-    ends ``DONE_TAIL_S`` after the mission completes, or at the duration. ``progress(t_s,
+    ends ``DONE_TAIL_S`` after the mission completes, at the tick the robot rejects the
+    mission (``extra["mission_rejected"]`` says why, ``extra["mission_rejected_at_s"]``
+    when: nothing would happen after it), or at the duration. ``progress(t_s,
     total_s)`` is called now and then. Same scenario + seed -> identical files (except
     ``summary.json``'s wall-time figure).
 
@@ -256,6 +262,10 @@ def run_mission(
     now = [0.0]
     trace = _Trace(gps_every=gps_every)
     holds: list[list[float]] = []  # [start, end]
+    # The start-up wait: the first hold, if it began before any decision drove, for
+    # STARTUP_HOLD, and every telemetry in it said only that (a fix lost or a compass gone
+    # meanwhile makes it a hold like any other); "ended" once the robot drove out of it.
+    startup: dict[str, Any] = {"index": None, "clean": True, "drove": False, "ended": False}
     done_at: float | None = None
 
     nmea_file: BinaryIO | _NoFiles = _NoFiles()
@@ -323,6 +333,14 @@ def run_mission(
                 if not returned and ctrl.mode != Mode.IDLE:
                     while len(arrivals) < min(ctrl.navigator.index, len(wp_enu)):
                         note_arrival(o.t_s)
+                if (
+                    o.state == NavState.HOLD
+                    and startup["index"] is not None
+                    and startup["index"] == len(holds) - 1
+                    and holds[-1][1] < 0
+                    and o.hold_reason != STARTUP_HOLD
+                ):
+                    startup["clean"] = False
                 if o.state == NavState.MISSION_DONE and done_at is None:
                     done_at = o.t_s
             elif kind is StateChange:
@@ -332,10 +350,18 @@ def run_mission(
                 if o.reason.startswith("mode: failsafe: "):
                     why = o.reason[len("mode: failsafe: ") :].removesuffix(": return to launch")
                     failsafes.append([round(t, 3), why])
+                state_change = o.reason.startswith("state: ")
+                drives = state_change and o.new not in (NavState.HOLD, NavState.IDLE)
                 if o.new == NavState.HOLD and (not holds or holds[-1][1] >= 0):
+                    if not holds and not startup["drove"] and o.reason == f"state: {STARTUP_HOLD}":
+                        startup["index"] = 0
                     holds.append([t, -1.0])
                 elif o.old == NavState.HOLD and holds and holds[-1][1] < 0:
                     holds[-1][1] = t
+                    if startup["index"] == len(holds) - 1:
+                        startup["ended"] = drives
+                if drives:
+                    startup["drove"] = True
                 if o.new == Mode.DONE and done_at is None:
                     done_at = t
 
@@ -357,7 +383,7 @@ def run_mission(
         record=recorder_call if out is not None else None,
         observe=observe,
     )
-    mission_state: dict[str, Any] = {"loaded": not waypoints, "rejected": None}
+    mission_state: dict[str, Any] = {"loaded": not waypoints, "rejected": None, "at": None}
 
     def load_at_first_fix(fix: GpsFix) -> None:
         # As an operator does: load the mission once the robot has a fix (the geofence is
@@ -370,6 +396,7 @@ def run_mission(
             runner.command("start")
         except (CommandError, CommandRejected) as exc:
             mission_state["rejected"] = f"{getattr(exc, 'code', 'rejected')}: {exc}"
+            mission_state["at"] = fix.t_s
             rec.record_event("mission_rejected", fix.t_s, reason=str(exc))
 
     try:
@@ -464,12 +491,20 @@ def run_mission(
                 progress(t, total_s)
             if done_at is not None and t >= done_at + DONE_TAIL_S:
                 break
+            if mission_state["rejected"] is not None:
+                break  # the robot refused the mission: it would stand idle to the end
         deliver(math.inf)  # the last burst still on the wire
         t_end = max(trace.t[-1], now[0])
         now[0] = t_end
         runner.tick(t_end)
         if holds and holds[-1][1] < 0:
             holds[-1][1] = t_end
+        # the start-up wait is no hold (it was one in every run's summary); one the robot
+        # never drove out of (the run ended in it) is
+        startup_wait: list[float] | None = None
+        i = startup["index"]
+        if i is not None and startup["clean"] and startup["ended"]:
+            startup_wait = holds.pop(i)
         # a hold of no duration stopped nothing: the first decision's wait for the EKF's
         # first estimate, the closing tick's look at a compass sample not yet read
         holds[:] = [h for h in holds if h[1] > h[0]]
@@ -510,7 +545,13 @@ def run_mission(
         mean_sats_used=float(np.mean(_col(trace.sats, np.int64))) if trace.sats else math.nan,
         extra={
             "holds_s": [[round(a, 3), round(b, 3)] for a, b in holds],
+            "startup_wait_s": (
+                [round(startup_wait[0], 3), round(startup_wait[1], 3)]
+                if startup_wait is not None and startup_wait[1] > startup_wait[0]
+                else None
+            ),
             "mission_rejected": mission_state["rejected"],
+            "mission_rejected_at_s": mission_state["at"],
             "final_mode": str(ctrl.mode),
             "warnings": sky_warnings(world, total_s),
             "arrivals": _with_slow_error(arrivals, world, trace, dt),

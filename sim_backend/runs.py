@@ -46,6 +46,67 @@ def engine_for(world: World, engine: str = "auto") -> str:
     return "receiver" if n_wp == 0 else "robot"
 
 
+def check_mission_geofence(world: World) -> None:
+    """Refuse, before a run, a mission the robot would refuse to load or start: a
+    :class:`ConfigError` naming the waypoint's key (``mission.waypoints[i]``,
+    ``mission.waypoints_enu[i]``, or the waypoint of ``mission.file``) and
+    ``safety.geofence_radius_m`` when a waypoint lies farther than that from the geofence
+    centre; with a configured ``safety.geofence_center``, also when the start position lies
+    outside the fence.
+
+    The centre is ``safety.geofence_center`` if configured, else the scenario's known start
+    position (the truth): the robot centres its fence on its first fix, which is the start
+    plus the GPS error, so a check on the fix would refuse a waypoint near the limit for
+    some seeds and not others. Distances are the robot's own (great circle,
+    :func:`x6wd.core.geodesy.great_circle_m`); NaN fails closed, as in the robot. A waypoint
+    within the GPS error of the limit can still be refused by the robot at run time; the run
+    then stops there (:func:`sim_backend.mission.run_mission`)."""
+    from sim_backend.geodesy import enu_to_lla
+    from x6wd.core.geodesy import great_circle_m
+
+    ll = world.waypoints_latlon()
+    if len(ll) == 0:
+        return
+    safety, o, v = world.safety, world.origin, world.vehicle
+    radius_m = safety.geofence_radius_m
+    lat0, lon0, _alt = enu_to_lla(
+        np.array([v.start_east_m, v.start_north_m, 0.0]), o.lat_deg, o.lon_deg, o.alt_m
+    )
+    start = (float(lat0), float(lon0))
+    where = f"{world.source}: " if world.source is not None else ""
+    limit = f"safety.geofence_radius_m is {radius_m:g} m: the robot would refuse the mission"
+    if len(safety.geofence_center) == 2:
+        centre = (safety.geofence_center[0], safety.geofence_center[1])
+        named = f"safety.geofence_center ({centre[0]:.7f}, {centre[1]:.7f})"
+        d = great_circle_m(centre[0], centre[1], start[0], start[1])
+        if not d <= radius_m:
+            raise ConfigError(
+                f"{where}vehicle.start_east_m/start_north_m: the start position "
+                f"({start[0]:.7f}, {start[1]:.7f}) is {d:.0f} m from the geofence centre, "
+                f"{named}; safety.geofence_radius_m is {radius_m:g} m: the robot would refuse "
+                "to start the mission"
+            )
+    else:
+        centre = start
+        named = "the start position (no safety.geofence_center)"
+    m = world.mission
+    n_geo = len(m.waypoints)
+    for i, (lat, lon) in enumerate(ll.tolist()):
+        d = great_circle_m(centre[0], centre[1], lat, lon)
+        if d <= radius_m:
+            continue
+        if m.file:
+            key = f"mission.file: {m.file}: waypoint {i + 1}"
+        elif i < n_geo:
+            key = f"mission.waypoints[{i}]"
+        else:
+            key = f"mission.waypoints_enu[{i - n_geo}] {list(m.waypoints_enu[i - n_geo])} m ="
+        raise ConfigError(
+            f"{where}{key} ({lat:.7f}, {lon:.7f}) is {d:.0f} m from the geofence centre, "
+            f"{named}; {limit}"
+        )
+
+
 ALMANAC_MAX_AGE_S = 28 * 86400.0
 """A run farther than this (s) from its almanac's reference time gets a warning: an almanac
 propagated for weeks drifts by tens of km along track, and the real constellation changes
@@ -167,6 +228,12 @@ class Summary:
             return f"the run's {self.sim_time_s:.0f} s ended before the last waypoint"
         return f"the run ended at {self.sim_time_s:.0f} s with the robot {mode or 'stopped'}"
 
+    def _startup_wait_text(self) -> str:
+        wait = self.extra.get("startup_wait_s")
+        if not wait:
+            return ""
+        return f"; start-up wait {wait[1] - wait[0]:.2f} s for the first estimate, not counted"
+
     def text(self) -> str:
         """The human-readable summary printed by ``x6wd sim``."""
         r, f = self.raw_error, self.filtered_error
@@ -175,7 +242,12 @@ class Summary:
         if self.waypoint_count == 0:
             outcome = "static survey (no waypoints)"
         elif rejected:  # the robot refused the mission: say why, not only that it failed
-            outcome = f"mission NOT completed: the robot rejected it ({rejected})"
+            at_s = self.extra.get("mission_rejected_at_s")
+            when = f" at {at_s:.1f} s" if at_s is not None else ""
+            outcome = (
+                f"mission NOT completed: the robot rejected it{when} ({rejected}); "
+                "the run stopped there"
+            )
         elif self.completed:
             outcome = "mission COMPLETED"
         else:  # say why (an outside audit: a run cut by its duration said nothing)
@@ -199,7 +271,8 @@ class Summary:
             " (--engine robot runs its EKF)",
             f"  dispersion (paper)  ±{self.dispersion_lat_m:.2f} m lat,"
             f" ±{self.dispersion_lon_m:.2f} m lon (two-radius)",
-            f"  HOLD periods        {self.hold_periods} ({self.hold_time_s:.1f} s)",
+            f"  HOLD periods        {self.hold_periods} ({self.hold_time_s:.1f} s)"
+            + self._startup_wait_text(),
         ]
         for t_s, why in self.extra.get("failsafes") or ():  # what stopped the mission, and when
             lines.append(f"  failsafe            at {t_s:.1f} s: {why}")

@@ -70,7 +70,7 @@ from typing import Any
 
 from sim_backend.executor import Executor, Outcome, describe_exception
 from sim_backend.mission import compass_setup, run_mission
-from sim_backend.runs import RunPlan, sky_warnings
+from sim_backend.runs import RunPlan, check_mission_geofence, sky_warnings
 from sim_backend.sweep_report import FIXED_COLUMNS, json_value
 from sim_backend.world import (
     DEFAULT_ALMANAC,
@@ -85,7 +85,7 @@ from x6wd.core.config import check_drive_vs_stuck
 from x6wd.core.errors import ConfigError, X6wdError
 
 SWEEP_KEYS = ("name", "seed", "seeds", "scenarios", "robot_config", "set", "grid")
-PATH_KEYS = ("almanac", "gnss.lce_csv")
+PATH_KEYS = ("almanac", "gnss.lce_csv", "mission.file")
 """Scenario keys whose value is a file: given in [set] or [grid], a relative one is relative to
 the sweep file's folder (a path is relative to the file that names it, as in a scenario)."""
 SEED_BITS = 48  # run seeds are 0 .. 2**48 - 1 (a collision in 10,000 runs: ~2e-7)
@@ -340,9 +340,10 @@ def cell_world(
     portable TOML: the one a worker reads, whatever its current folder. A file named by an
     override (:data:`PATH_KEYS`) is relative to ``values_dir`` (default ``base_dir``); the
     TOML names the almanac by its absolute path (the packaged one is left to each worker's
-    own install) and carries an LCE CSV's grid inline (``gnss.lce_sigma_m``), so what a
-    worker runs is what was checked here. The checks of a mission's start are
-    :func:`start_checks` (:func:`plan` makes them)."""
+    own install) and carries an LCE CSV's grid inline (``gnss.lce_sigma_m``) and a mission
+    file's waypoints (``mission.waypoints``), so what a worker runs is what was checked
+    here. The checks of a mission's start are :func:`start_checks` (:func:`plan` makes
+    them)."""
     data = copy.deepcopy(table)
     for key, value in overrides.items():
         if _non_finite(value):  # TOML cannot carry it to a worker; no scenario key takes one
@@ -358,13 +359,17 @@ def cell_world(
     portable = copy.deepcopy(world.raw)  # paths absolute, the LCE CSV read into the table
     if portable.get("almanac") == str(DEFAULT_ALMANAC):
         del portable["almanac"]
+    if world.mission.file:  # the waypoints as read here: a worker needs no mission file
+        portable["mission"] = {"waypoints": [list(wp) for wp in world.mission.waypoints]}
     return world, dumps_toml(portable)
 
 
 def start_checks(world: World, sky: dict[tuple[Any, ...], list[str]] | None = None) -> list[str]:
     """The checks ``x6wd sim`` makes before a mission moves (a :class:`ConfigError` there is
     its exit 2), called, not copied: :func:`sim_backend.runs.sky_warnings` (it reads the
-    almanac), and :func:`sim_backend.mission.run_mission`'s start: the drive against the stuck
+    almanac), the waypoints against the geofence
+    (:func:`sim_backend.runs.check_mission_geofence`), and
+    :func:`sim_backend.mission.run_mission`'s start: the drive against the stuck
     failsafe, the [compass] table with the compass effects, and the run's clock
     (:class:`sim_backend.runs.RunPlan`: the compass rate a whole multiple of the GPS rate).
     Returns the sky's warnings; ``sky`` caches them by almanac, start and duration."""
@@ -375,6 +380,7 @@ def start_checks(world: World, sky: dict[tuple[Any, ...], list[str]] | None = No
             sky[key] = found
     else:
         found = sky[key]
+    check_mission_geofence(world)
     check_drive_vs_stuck(world.navigation, world.failsafe)
     cset, _skipped = compass_setup(world)
     RunPlan.of(world, None, None, cset.rate_hz)

@@ -5,8 +5,8 @@ PUBLIC API
 - ``loads_world(text, base_dir=".", source="<string>") -> World``: same from text.
 - ``merge_fragment(world, path) -> World``: merge a TOML fragment (e.g. the gap tool's
   ``effects.toml``) on top of a loaded world and validate again.
-- ``World.to_toml() -> str``: a resolved, self-contained copy (absolute almanac path, includes
-  merged, the LCE CSV inlined) that loads back to an equal world.
+- ``World.to_toml() -> str``: a resolved, self-contained copy (absolute almanac and mission
+  file paths, includes merged, the LCE CSV inlined) that loads back to an equal world.
 - ``World.walls_model() -> buildings.Walls | None``, ``World.waypoints_latlon()``,
   ``World.waypoints_enu_m()``, ``World.effect_objects()``, ``World.lce_array()``.
 - ``DEFAULT_ALMANAC``: the packaged YUMA almanac (USCG, GPS week 2086, 2020-01-01).
@@ -44,7 +44,10 @@ Scenario layout (every key optional unless stated; errors name the dotted key)::
               stuck_from_s, stuck_until_s, stuck_mode "blocked"|"slipping" (a fault)
     [compass] a plain table handed to the compass emulation
     [[effects]] {name = "...", params...}: sim_backend.effects layers (validated by name)
-    [mission] waypoints = [[lat, lon], ...] and/or waypoints_enu = [[east_m, north_m], ...]
+    [mission] waypoints = [[lat, lon], ...] and/or waypoints_enu = [[east_m, north_m], ...],
+              or file = "route.gpx" (relative to the scenario file; .waypoints, .gpx, .csv,
+              .kml, read by x6wd.core.mission_files as ``x6wd mission show`` reads them);
+              an empty list or table is refused (leave [mission] out for a static survey)
     [navigation], [safety], [failsafe], [odometry], [gnss_noise]: the robot's configuration
               (x6wd.core.config), each key defaulting to the robot's default, so a scenario
               overrides only what it means to; :func:`with_robot_config` lays a robot
@@ -93,7 +96,8 @@ from x6wd.core.config import (
     build,
     check_drive_vs_stuck,
 )
-from x6wd.core.errors import ConfigError
+from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.mission_files import load_file
 
 DEFAULT_ALMANAC = Path(__file__).resolve().parent / "data" / "almyuma_01jan2020.txt"
 DEFAULT_ALMANAC_DATE = datetime(2020, 1, 1, tzinfo=UTC)
@@ -172,10 +176,13 @@ class VehicleSettings:
 
 @dataclass(frozen=True)
 class MissionSettings:
-    """Waypoints as geographic (lat, lon) degrees and/or local (east, north) metres."""
+    """Waypoints as geographic (lat, lon) degrees and/or local (east, north) metres, or read
+    from a mission ``file`` (its absolute path once loaded; ``waypoints`` then holds what the
+    project's reader, :func:`x6wd.core.mission_files.load_file`, read from it)."""
 
     waypoints: tuple[tuple[float, ...], ...] = ()
     waypoints_enu: tuple[tuple[float, ...], ...] = ()
+    file: str = ""
 
 
 @dataclass(frozen=True)
@@ -214,11 +221,14 @@ class World:
     gnss_noise: GnssNoiseConfig = field(default_factory=GnssNoiseConfig)
     encoders: EncoderParams = field(default_factory=EncoderParams)
     source: Path | None = None
+    mission_notes: tuple[str, ...] = ()
+    """What the mission file's reader read but the robot does not drive (a GPX route's
+    waypoints beside it, ...), one sentence each: ``x6wd sim`` prints them."""
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, World):
             return NotImplemented
-        skip = {"raw", "source"}
+        skip = {"raw", "source", "mission_notes"}
         return all(
             getattr(self, f.name) == getattr(other, f.name)
             for f in dataclasses.fields(self)
@@ -472,6 +482,9 @@ def _resolve_paths(data: dict[str, Any], base: Path) -> None:
     gnss = data.get("gnss")
     if isinstance(gnss, dict) and isinstance(gnss.get("lce_csv"), str) and gnss["lce_csv"]:
         gnss["lce_csv"] = str((base / gnss["lce_csv"]).resolve())
+    mission = data.get("mission")
+    if isinstance(mission, dict) and isinstance(mission.get("file"), str) and mission["file"]:
+        mission["file"] = str((base / mission["file"]).resolve())
 
 
 def _merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
@@ -759,7 +772,7 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
         raise ConfigError(msg if msg.startswith("compass.") else f"compass.{msg}") from exc
     effects = tuple(dict(e) for e in _table_list(data, "effects"))
     _check_effects(effects)
-    mission = build(MissionSettings, _table(data, "mission"), "mission.")
+    mission, mission_notes = _build_mission(data)
     for key, points, lo, hi in (
         ("mission.waypoints", mission.waypoints, (-90.0, -180.0), (90.0, 180.0)),
         ("mission.waypoints_enu", mission.waypoints_enu, (-1e6, -1e6), (1e6, 1e6)),
@@ -798,7 +811,44 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
         encoders=encoders,
         raw=data,
         source=source,
+        mission_notes=mission_notes,
     )
+
+
+MISSION_POINT_KEYS = ("waypoints", "waypoints_enu")
+
+
+def _build_mission(data: dict[str, Any]) -> tuple[MissionSettings, tuple[str, ...]]:
+    """The ``[mission]`` table: inline waypoints, or a mission file read with the project's
+    own readers (the ones ``x6wd mission show`` and ``x6wd client load`` use). An explicitly
+    empty list or table is refused: a static survey is a scenario without ``[mission]``.
+    Returns the settings and the file reader's notes (what it read but does not drive)."""
+    table = _table(data, "mission")
+    if "mission" in data and not table:
+        raise ConfigError(
+            "mission: no waypoints (give waypoints, waypoints_enu or file); leave [mission] "
+            "out for a static survey"
+        )
+    mission = build(MissionSettings, table, "mission.")
+    for key in MISSION_POINT_KEYS:
+        if key in table and not getattr(mission, key):
+            raise ConfigError(f"mission.{key}: empty; leave [mission] out for a static survey")
+    if "file" not in table:
+        return mission, ()
+    inline = [f"mission.{k}" for k in MISSION_POINT_KEYS if k in table]
+    if inline:
+        raise ConfigError(
+            f"mission.file, {', '.join(inline)}: give either a mission file or inline "
+            "waypoints, not both"
+        )
+    if not mission.file:
+        raise ConfigError("mission.file: empty; name a .waypoints, .gpx, .csv or .kml file")
+    try:
+        read = load_file(mission.file)
+    except ParseError as exc:  # its message leads with the file's path
+        raise ConfigError(f"mission.file: {exc}") from exc
+    points = tuple((wp.lat_deg, wp.lon_deg) for wp in read)
+    return dataclasses.replace(mission, waypoints=points), tuple(read.notes)
 
 
 def with_robot_config(world: World, robot_config: str | Path) -> World:
