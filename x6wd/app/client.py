@@ -12,7 +12,8 @@ obeys unauthenticated, a wrong or unusable token is a warning on stderr, not a f
 Every heading shown is true, in degrees, 0 <= h < 360 (docs/protocol.md, "Headings").
 
 Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed
-(also when the robot closed the connection: pool full, auth deadline, too many failed tokens).
+(also when the robot closed the connection: pool full, auth deadline, too many failed tokens,
+its daemon shutting down).
 A reader of the output that goes away (``x6wd client watch | head``) ends it quietly, 0.
 """
 
@@ -63,6 +64,8 @@ class RequestFailed(X6wdError):
 
 CLOSED = "closed"
 """Error code of the server's last line before it closes a connection (id null)."""
+SHUTDOWN = "shutdown"
+"""That line's reason when the daemon itself shuts down (it stops the motors first)."""
 
 
 class RemoteClient:
@@ -209,6 +212,10 @@ class RemoteClient:
         reason = str(err.get("reason") or "")
         if code == CLOSED and msg.get("id") is None:
             self.close()
+            if reason == SHUTDOWN:
+                raise ConnectionFailed(
+                    f"the robot's daemon shut down ({self.host}:{self.port}: {message})"
+                )
             raise ConnectionFailed(
                 f"{self.host}:{self.port} closed the connection ({reason or 'closed'}): {message}"
             )
@@ -421,6 +428,18 @@ def _int_in(lo: int, hi: int | None = None) -> Callable[[str], int]:
     return parse
 
 
+def _finite(text: str) -> float:
+    """An argparse type: a finite number (NaN, inf and 1e309 are bad input, found here and
+    never sent: the robot would refuse them, and exit 1 means "the robot refused")."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return v
+
+
 def _positive_s(text: str) -> float:
     try:
         v = float(text)
@@ -593,9 +612,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="manual drive for a limited time; the robot stops when this program ends "
         "(dead-man: Ctrl-C stops it at once)",
     )
-    p.add_argument("left", type=float, help="left side, -100..100 %%")
-    p.add_argument("right", type=float, help="right side, -100..100 %%")
-    p.add_argument("seconds", type=float, help="duration in s")
+    p.add_argument("left", type=_finite, help="left side, -100..100 %%")
+    p.add_argument("right", type=_finite, help="right side, -100..100 %%")
+    p.add_argument("seconds", type=_positive_s, help="duration in s (> 0)")
     p = sub.add_parser(
         "watch", help="live one-screen view (--json: one JSON object per line, for programs)"
     )

@@ -1166,8 +1166,14 @@ class Daemon:
         if self._net is not None:
             for server in (self.console, self.server, self.gpsd):
                 if server is not None:
+                    # the control port's clients are told why (the motors stopped above)
+                    closing = (
+                        server.close("x6wd is shutting down: the motors are stopped")
+                        if isinstance(server, ControlServer)
+                        else server.close()
+                    )
                     with contextlib.suppress(Exception):
-                        await self._net.run(server.close())
+                        await self._net.run(closing)
             await asyncio.to_thread(self._net.stop)
         for dev in (self._gps_reader, self._compass):
             if dev is not None and hasattr(dev, "close"):
@@ -1622,14 +1628,25 @@ class Daemon:
                 ),
             },
             "recorder": recorder,
-            # where the compass declination comes from: config, or the WMM with its value
-            "declination": dict(self.runner.declination) if self.runner is not None else {},
+            # where the compass declination comes from, and its value: config, or the WMM
+            "declination": self._declination_status(),
             # bind keys listening beyond loopback in clear text (server.allow_plaintext)
             "plaintext_beyond_loopback": list(self._plaintext),
             # the web console's counts (dead-man stops, drives refused late or after another
             # client's stop, refused Hosts ...); absent without the console
             **({"console": self.console.stats()} if self.console is not None else {}),
         }
+
+    def _declination_status(self) -> dict[str, Any]:
+        """``status``'s ``declination``: the runner's (``source``; with the WMM ``deg`` or
+        ``error``), with the configured value as ``deg`` when it comes from the config."""
+        if self.runner is None:
+            return {}
+        decl = dict(self.runner.declination)
+        configured = self.config.compass.declination_deg
+        if decl.get("source") == "config" and "deg" not in decl and configured is not None:
+            decl["deg"] = round(float(configured), 3)
+        return decl
 
     # the runner's operator requests, run on the control loop by _on_control
     def _load_mission(self, waypoints: list[Waypoint]) -> dict[str, Any]:

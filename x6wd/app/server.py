@@ -50,6 +50,7 @@ from x6wd.app.lineserver import (
     peer_names,
     socket_queue_bytes,
     transport_socket,
+    write_buffer_size,
 )
 from x6wd.core.config import ServerConfig, is_loopback_bind
 from x6wd.core.errors import CommandError, ConfigError, ParseError, X6wdError
@@ -101,6 +102,9 @@ STATUS_REUSE_S = 0.05
 crowd polling ``status`` costs the control loop at most ~20 calls per second."""
 CLOSED = "closed"
 """Error code of the notice sent (id null) before the server closes a connection."""
+SHUTDOWN = "shutdown"
+"""The notice's reason when the server itself closes (the daemon shuts down)."""
+SHUTDOWN_MESSAGE = "x6wd is shutting down"
 # error codes of requests that do not count as "one valid request" (admission without token)
 _INVALID_CODES = frozenset(
     {"bad_request", "unknown_command", "rate_limited", "unauthorized", "auth_failed"}
@@ -571,10 +575,31 @@ class ControlServer(LineServer[_Client]):
             finally:  # whatever happened there, the connection leaves the pools
                 await self._hang_up(c, reader)
 
-    async def close(self) -> None:
-        """Stop listening and disconnect every client (idempotent)."""
-        self._closing = True
+    async def close(self, message: str = SHUTDOWN_MESSAGE) -> None:
+        """Stop listening and disconnect every client (idempotent), each told so first: the
+        ``closed`` notice with reason ``shutdown`` and ``message`` (what the daemon has
+        done about the motors), unless it does not read (its queue is full)."""
+        if not self._closing:
+            self._closing = True
+            notice = self._notice(SHUTDOWN, message)
+            for c in list(self._clients):
+                with contextlib.suppress(Exception):  # a goodbye never holds up the close
+                    self._goodbye(c, notice)
         await super().close()
+
+    @staticmethod
+    def _goodbye(c: _Client, notice: bytes) -> None:
+        """The last line to an open connection, after the replies still queued for it (the
+        events are dropped): written now, as the transport closes next."""
+        if c.closed or c.evicted:
+            return
+        c.evicted = SHUTDOWN  # its sender writes nothing more
+        c.events.clear()
+        line = b"".join(c.replies) + notice
+        c.replies.clear()
+        transport = c.writer.transport
+        if not transport.is_closing() and write_buffer_size(transport) == 0:
+            transport.write(line)
 
     def drive_active(self, c: _Client) -> bool:
         """True while ``c``'s manual drive runs and no later command replaced it."""
