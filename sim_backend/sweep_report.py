@@ -14,7 +14,9 @@ Written into the sweep's output directory from the run records (``runs/*.json``)
   CDF of the true arrival error per cell, the GPS slow error dashed), ``path_ratio.png`` (true
   path / straight polyline per completed run, per cell);
 - ``summary.md`` — the sweep, the executor and its throughput, a table per cell, the failed
-  runs with their errors and the runs the cluster lost.
+  runs with their errors and the runs the cluster lost; the folder's finished runs that this
+  sweep does not plan (a quick look with ``--seeds 1`` at a finished sweep) are counted there,
+  not tabled.
 """
 
 from __future__ import annotations
@@ -350,6 +352,28 @@ FIGURES = {  # file -> its caption in the summary
 }
 
 
+def _outside_lines(outside: dict[str, int]) -> list[str]:
+    """The summary's line about the finished runs of the folder that this sweep does not plan
+    (``outside``: count, more_seeds, seeds, as :func:`x6wd.app.sweep.outside_runs` counts
+    them): none without any."""
+    n, more = int(outside.get("count", 0)), int(outside.get("more_seeds", 0))
+    if not n:
+        return []
+    why = []
+    if more:
+        why.append(
+            f"{more} further seeds of these cells (a sweep of {outside.get('seeds')} seeds"
+            " tables them)"
+        )
+    if n - more:
+        why.append(f"{n - more} of cells not in this grid")
+    return [
+        f"- **not in this summary**: {n} finished run{'' if n == 1 else 's'} in `runs/`"
+        f" outside this sweep's grid ({'; '.join(why)}); their files are kept, and the sweep"
+        " that plans them tables them without running them again"
+    ]
+
+
 def markdown(
     result_info: dict[str, Any],
     cells: Sequence[CellStats],
@@ -377,6 +401,7 @@ def markdown(
         f" found done; {sum(c.failed for c in cells)} failed" + lost_text,
         f"- executor: {i['executor']}; {_f(i['wall_s'], '.1f')} s wall,"
         f" {_f(i['missions_per_min'], '.1f')} missions/min",
+        *_outside_lines(i.get("outside") or {}),
         "",
         "Arrival errors are true horizontal distances (m) from the antenna to the waypoint when"
         " the arrival was decided; *GPS slow* is the GPS's own slow error at those moments"
@@ -446,7 +471,8 @@ def write_report(
 ) -> list[str]:
     """Write the table(s), figures and ``summary.md``; returns the file names written.
     ``result_info``: name, source, seed, seeds, scenarios, set, grid, ran, skipped, executor,
-    wall_s, missions_per_min."""
+    wall_s, missions_per_min, and (optional) outside: the folder's finished runs this sweep
+    does not plan (count, more_seeds, seeds), said in the summary."""
     out = Path(out_dir)
     rows = run_rows(records)
     keys = param_keys(records)

@@ -20,11 +20,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 from sim_backend.executor import Executor, TextProgress, probe_scheduler
 from sim_backend.sweep import (
     MAX_RUNS,
+    Run,
     RunStore,
     check_out_dir,
     load_sweep,
@@ -71,7 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="missions per cell instead of the file's seeds (the first N of them: a quick"
-        " look with 1; the same command without it adds the rest)",
+        " look with 1; the same command without it adds the rest). The tables are of these"
+        " runs; finished runs of the folder outside them are kept, counted on stderr and in"
+        " summary.md",
     )
     parser.add_argument(
         "--max-runs",
@@ -105,9 +109,58 @@ def _runs(n: int) -> str:
     return f"{n} run{'' if n == 1 else 's'}"
 
 
+def outside_runs(runs: Sequence[Run], store: RunStore) -> dict[str, int]:
+    """The finished runs (succeeded or raised) in ``store`` that ``runs`` do not plan, and so
+    are in no table of this call: ``count``; ``more_seeds`` of them replicates of a planned
+    cell past this plan's seeds (a quick look with ``--seeds 1`` at a finished sweep), the
+    highest such replicate + 1 as ``seeds`` (0 without any); the rest are of cells not in
+    this grid (a value or a scenario since left out). Their files are kept: the sweep that
+    plans them again tables them, without running them."""
+    planned = {r.run_id for r in runs}
+    cells = {r.cell.cell_id for r in runs}
+    count = more = seeds = 0
+    for path in sorted(store.dir.glob("*.json")):
+        if path.stem in planned:
+            continue
+        rec = store.load(path.stem)
+        if rec is None or rec.get("status") not in ("ok", "error"):
+            continue
+        count += 1
+        replicate = rec.get("replicate")
+        if rec.get("cell_id") in cells and isinstance(replicate, int):
+            more += 1
+            seeds = max(seeds, replicate + 1)
+    return {"count": count, "more_seeds": more, "seeds": seeds}
+
+
+def _outside_text(outside: dict[str, int], runs_dir: Path, file_seeds: int, seeds: int) -> str:
+    """The stderr line about :func:`outside_runs` ("" when there are none)."""
+    n, more = outside["count"], outside["more_seeds"]
+    if not n:
+        return ""
+    why = []
+    if more:
+        again = (
+            "the same command without --seeds tables them"
+            if seeds < file_seeds and outside["seeds"] <= file_seeds
+            else f"--seeds {outside['seeds']} tables them"
+        )
+        why.append(f"{more} of them further seeds of these cells: {again}")
+    if n - more:
+        why.append(
+            f"{n - more} of cells not in this grid: the sweep file that planned them tables them"
+        )
+    return (
+        f"sweep: {_runs(n)} finished in {runs_dir} {'is' if n == 1 else 'are'} outside this"
+        f" sweep's grid and not in results.csv or summary.md ({'; '.join(why)}; none is run"
+        " again)"
+    )
+
+
 def main(args: argparse.Namespace) -> int:
     """Plan (validating every cell), run what is missing, write the report."""
     spec = load_sweep(args.sweep)
+    file_seeds = spec.seeds
     if args.seeds is not None:
         if args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
@@ -149,6 +202,7 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         raise
+    outside = outside_runs(runs, RunStore(out))
     info = {
         "name": spec.name,
         "source": str(spec.source) if spec.source else None,
@@ -162,6 +216,7 @@ def main(args: argparse.Namespace) -> int:
         "executor": result.executor,
         "wall_s": result.wall_s,
         "missions_per_min": result.missions_per_min,
+        "outside": outside,
     }
     write_report(info, result.records, out, figures=not args.no_figures)
     errors, lost = result.errors, result.lost
@@ -177,6 +232,9 @@ def main(args: argparse.Namespace) -> int:
         f" found done{lost_text}), {len(errors)} failed; {rate};"
         f" summary in {out / 'summary.md'}"
     )
+    said = _outside_text(outside, out / "runs", file_seeds, spec.seeds)
+    if said:
+        print(said, file=sys.stderr)
     for rec in errors[:10]:
         print(
             f"run failed: {rec['run_id']} seed {rec['seed']}: {rec.get('error')}", file=sys.stderr
