@@ -12,7 +12,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from sim_backend.runs import ENGINES, check_mission_geofence, engine_for, sky_warnings
+from sim_backend.runs import (
+    ENGINES,
+    check_mission_geofence,
+    engine_for,
+    engine_note,
+    sky_warnings,
+)
 from sim_backend.world import MAX_DURATION_S, load_world, with_robot_config
 
 
@@ -88,8 +94,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=ENGINES,
         default="auto",
         help="robot: the robot's whole loop at the compass rate; receiver: the receiver "
-        "alone at a standing antenna (a static survey, ~20x faster); auto (default): "
-        "receiver for a scenario without waypoints, robot otherwise",
+        "alone at a standing antenna (a static survey, ~20x faster; it ignores the robot's "
+        "settings, with a warning); auto (default): receiver for a scenario without "
+        "waypoints, unless it (or --config) sets what only the robot reads ([navigation], "
+        "[safety], [failsafe], [odometry], [gnss_noise], [encoders], compass [[effects]]: "
+        "said in one note); robot otherwise",
     )
 
 
@@ -102,10 +111,13 @@ def main(args: argparse.Namespace) -> int:
     """Run the subcommand; 0 when the mission completed (or a static survey ran), 1 if it
     did not, 2 when the mission was refused: before the run (a waypoint beyond the geofence,
     as every bad input) or by the robot in it."""
-    world = load_world(args.scenario)
+    scenario = world = load_world(args.scenario)
     if args.config:
         world = with_robot_config(world, args.config)
     engine = engine_for(world, args.engine)
+    said = engine_note(world, args.engine, scenario=scenario, robot_config=args.config)
+    if said is not None:  # a survey's robot-only settings: run (auto) or ignored (receiver)
+        print(f"x6wd sim: {said[0]}: {said[1]}", file=sys.stderr)
     check_mission_geofence(world)  # the robot would refuse it: say so now, not after the run
     for note in world.mission_notes:  # what the mission file holds that the robot ignores
         print(f"x6wd sim: note: {note}", file=sys.stderr)

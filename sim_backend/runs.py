@@ -17,7 +17,13 @@ from typing import Any
 import numpy as np
 
 from sim_backend.vehicle import Terrain, Vehicle, VehicleParams
-from sim_backend.world import DEFAULT_ALMANAC, DEFAULT_ALMANAC_DATE, MAX_DURATION_S, World
+from sim_backend.world import (
+    DEFAULT_ALMANAC,
+    DEFAULT_ALMANAC_DATE,
+    MAX_DURATION_S,
+    ROBOT_SECTIONS,
+    World,
+)
 from x6wd.core.errors import ConfigError
 from x6wd.core.geodesy import EARTH_MEAN_RADIUS_M
 from x6wd.core.thinning import thinned_indices
@@ -25,14 +31,47 @@ from x6wd.nav.geo import R1_M, R2_M  # the paper's two radii (x = Λ·R1, y = Φ
 
 ENGINES = ("auto", "robot", "receiver")
 """``x6wd sim --engine``: ``auto`` (default) runs a scenario without waypoints on the
-receiver engine and any other on the robot engine."""
+receiver engine unless it sets what only the robot reads (:func:`robot_only_settings`), and
+any other on the robot engine."""
+
+ROBOT_ONLY_TABLES = (*ROBOT_SECTIONS, "encoders")
+"""A scenario's tables (and ``--config``'s: :func:`sim_backend.world.with_robot_config` lays
+its robot sections under the scenario's) of which the receiver engine reads no key: the
+robot's configuration ([navigation], [safety], [failsafe], [odometry], [gnss_noise]) and the
+simulated wheel encoders ([encoders]): that engine runs no robot. Not here: [compass] and
+[vehicle], which every scenario sets and the receiver engine reads in part (its clock from
+``compass.rate_hz``, the antenna's place from the vehicle's start pose and
+``antenna_height_m``); their other keys act on a robot that moves or steers."""
+
+MAX_NAMED = 6
+"""At most this many settings are named in ``x6wd sim``'s engine note (then "and N more")."""
+
+
+def robot_only_settings(world: World) -> list[str]:
+    """What ``world`` sets that only the robot engine reads, by name, in file order: each key
+    of its :data:`ROBOT_ONLY_TABLES` (``navigation.position_source``) and each compass
+    ``[[effects]]`` layer (``effects[2] (compass_bias)``: no compass in the receiver engine).
+    Empty for a survey the receiver engine runs in full."""
+    names = [
+        f"{sec}.{key}"
+        for sec in ROBOT_ONLY_TABLES
+        if isinstance(table := world.raw.get(sec), dict)
+        for key in table
+    ]
+    names += [
+        f"effects[{i}] ({layer.name})"
+        for i, layer in enumerate(world.effect_objects())
+        if layer.kind != "gps"
+    ]
+    return names
 
 
 def engine_for(world: World, engine: str = "auto") -> str:
     """``"robot"`` or ``"receiver"``: the engine that runs ``world`` for the ``--engine``
-    choice (``auto``: the receiver engine for a survey, a scenario without waypoints).
-    ConfigError for ``receiver`` on a scenario with waypoints: that engine has no robot, so
-    it would stand at the start and drop the mission without a word."""
+    choice (``auto``: the receiver engine for a survey, a scenario without waypoints, unless
+    it sets what only the robot reads, :func:`robot_only_settings`; the robot engine
+    otherwise). ConfigError for ``receiver`` on a scenario with waypoints: that engine has no
+    robot, so it would stand at the start and drop the mission without a word."""
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
     n_wp = len(world.waypoints_enu_m())
@@ -43,7 +82,71 @@ def engine_for(world: World, engine: str = "auto") -> str:
         )
     if engine != "auto":
         return engine
-    return "receiver" if n_wp == 0 else "robot"
+    if n_wp:
+        return "robot"
+    return "robot" if robot_only_settings(world) else "receiver"
+
+
+def _named(settings: list[str], scenario: World | None, robot_config: str | Path | None) -> str:
+    """``settings`` (:func:`robot_only_settings` of a run's world) in words: the scenario's
+    own by name (at most :data:`MAX_NAMED`), then what ``--config`` added, counted by
+    table."""
+    own = settings if scenario is None else robot_only_settings(scenario)
+    added = [s for s in settings if s not in own]
+    mine = [s for s in settings if s in own]
+    parts = []
+    if mine:
+        more = len(mine) - MAX_NAMED
+        parts.append(", ".join(mine[:MAX_NAMED]) + (f" and {more} more" if more > 0 else ""))
+    if added:
+        tables = ", ".join(dict.fromkeys(f"[{s.split('.')[0]}]" for s in added))
+        keys = "key" if len(added) == 1 else "keys"
+        parts.append(f"the {len(added)} {keys} of {tables} from --config {robot_config}")
+    return " and ".join(parts)
+
+
+def engine_note(
+    world: World,
+    engine: str = "auto",
+    *,
+    scenario: World | None = None,
+    robot_config: str | Path | None = None,
+) -> tuple[str, str] | None:
+    """What ``x6wd sim`` says on stderr about its engine choice for ``world`` (the run's,
+    ``--config`` laid under it) and ``--engine`` ``engine``: ``("note", text)`` when ``auto``
+    picks the robot engine for a survey because of :func:`robot_only_settings`,
+    ``("warning", text)`` when ``--engine receiver`` runs a survey that sets some (they are
+    ignored), None otherwise. ``scenario`` (the world before ``--config``) and
+    ``robot_config`` (the file) tell the scenario's settings from the file's."""
+    if len(world.waypoints_enu_m()):
+        return None
+    settings = robot_only_settings(world)
+    if not settings or engine == "robot":
+        return None
+    what = _named(settings, scenario, robot_config)
+    them = "it" if len(settings) == 1 else "them"
+    if engine == "receiver":
+        source = world.navigation.position_source
+        return (
+            "warning",
+            f"--engine receiver ignores {what}: only the robot engine reads {them}, and no "
+            "robot runs here (no filtered row; --engine robot or auto runs "
+            f"{_SOURCE_RUNS.get(source, source)})",
+        )
+    return (
+        "note",
+        f"the robot engine runs this survey: only the robot reads {what} (the receiver "
+        f"engine, the default for a survey, would ignore {them}); --engine receiver runs "
+        f"the receiver alone, about 20x faster, without {them}",
+    )
+
+
+_SOURCE_RUNS = {
+    "ekf": "its EKF",
+    "constellation": "its Constellation filter",
+    "raw": "the robot on the latest fix, position_source raw",
+}
+"""The robot's position source (``navigation.position_source``) as ``x6wd sim`` names it."""
 
 
 def check_mission_geofence(world: World) -> None:
@@ -234,6 +337,12 @@ class Summary:
             return ""
         return f"; start-up wait {wait[1] - wait[0]:.2f} s for the first estimate, not counted"
 
+    def _source_text(self) -> str:
+        """The robot's configured position source, as the receiver engine's summary names
+        what it did not run."""
+        source = str(self.extra.get("position_source", "ekf"))
+        return _SOURCE_RUNS.get(source, source)
+
     def text(self) -> str:
         """The human-readable summary printed by ``x6wd sim``."""
         r, f = self.raw_error, self.filtered_error
@@ -268,7 +377,7 @@ class Summary:
             f"  {f.r95_m:6.2f}  {f.max_m:6.2f}"
             if self.extra.get("engine") != "receiver"
             else "    filtered         not run: no robot on the receiver engine"
-            " (--engine robot runs its EKF)",
+            f" (--engine robot runs {self._source_text()})",
             f"  dispersion (paper)  ±{self.dispersion_lat_m:.2f} m lat,"
             f" ±{self.dispersion_lon_m:.2f} m lon (two-radius)",
             f"  HOLD periods        {self.hold_periods} ({self.hold_time_s:.1f} s)"

@@ -175,6 +175,8 @@ def run_survey(
         mean_sats_used=float(np.mean(used)) if used.size else math.nan,
         extra={
             "engine": "receiver",
+            # not run here; what --engine robot would run (the summary names it)
+            "position_source": world.navigation.position_source,
             "warnings": sky_warnings(world, plan.total_s),
             "nmea_bytes": wire_bytes,
             "uart_dropped_sentences": receiver.uart.dropped,
