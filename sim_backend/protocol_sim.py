@@ -14,7 +14,8 @@ A URL is ``sim://`` (or ``sim:///``): no path and no options, the world is set i
   simulated NEO-5 at its baud rate).
 - compass: a :class:`drivers.cmps10.Cmps10` on the world's CMPS10 register map.
 - motors: the real :class:`drivers.motors.SerialMotorLink` on a new pseudo-terminal served by
-  the world's motor board (watchdog ``[sim] motor_watchdog_ms``).
+  the world's motor board (watchdog ``[motors] watchdog_ms``, else ``[sim]
+  motor_watchdog_ms``), reopened after a port error as a ``serial://`` board's is.
 """
 
 from __future__ import annotations
@@ -77,15 +78,26 @@ def open_motors(dev: DeviceUrl, world: HilWorld) -> Any:
     """The real motor driver (:class:`drivers.motors.SerialMotorLink`) on a new
     pseudo-terminal served by the world's motor board. Its watchdog (sent as ``W``) is the
     daemon's ``[motors] watchdog_ms`` (the registry passes it as ``watchdog_ms``), else the
-    world's ``motor_watchdog_ms`` (also the board's power-up value)."""
+    world's ``motor_watchdog_ms`` (also the board's power-up value).
+
+    It reopens as the ``serial://`` link does (:func:`drivers.registry.open_motors`): after a
+    port error that breaks it (the pty hung up, as a USB adapter that went away) the driver
+    closes the port and opens the same pty again, with its capped exponential backoff
+    (0.2 s doubling to 5 s, reset by a command through); the board serves the pty's far end
+    for as long as the world runs, so the link recovers and the mission goes on."""
     import serial
 
     from drivers.motors import SerialMotorLink
 
     path = world.plug_motor_board()
-    try:
-        port = serial.Serial(path, baudrate=MOTOR_BAUD, timeout=0.02)
-    except (serial.SerialException, OSError) as exc:
-        raise DeviceUnavailable(f"cannot open simulated motor board {path}: {exc}") from exc
+
+    def open_port() -> Any:
+        if not world.running:
+            raise DeviceUnavailable("the HIL world is closed")
+        try:
+            return serial.Serial(path, baudrate=MOTOR_BAUD, timeout=0.02)
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceUnavailable(f"cannot open simulated motor board {path}: {exc}") from exc
+
     watchdog_ms = int(dev.options.get("watchdog_ms", world.params.motor_watchdog_ms))
-    return SerialMotorLink(port, watchdog_ms=watchdog_ms)
+    return SerialMotorLink(open_port(), watchdog_ms=watchdog_ms, reopen=open_port)

@@ -1,24 +1,40 @@
-"""``x6wd sim``'s engine choice for a survey that sets robot-only keys (outside
-fresh-machine audit, item 2): docs/navigation.md's recipe (``[navigation] position_source =
-"constellation"`` added to open_field.toml, then ``x6wd sim``) ran on the receiver engine,
-which ignored the table without a word and named the EKF in its "filtered not run" line.
+"""``x6wd sim``'s engine choice for a survey that sets robot-only keys, and the ``sim://``
+motor link's reopen after a port error (outside audits: fresh-machine item 2, live-path
+item 2).
+
+- docs/navigation.md's recipe (``[navigation] position_source = "constellation"`` added to
+  open_field.toml, then ``x6wd sim``) ran on the receiver engine, which ignored the table
+  without a word and named the EKF in its "filtered not run" line;
+- the ``sim://`` motors were built without a reopen: after a pty hang-up the link stayed
+  lost for good, a write attempt per command (about 44 a second).
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
+import fcntl
 import json
+import os
+import re
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from sim_backend import cli, runs
+from drivers import registry
+from drivers.motors import SerialMotorLink
+from sim_backend import cli, hil, runs
 from sim_backend.world import load_world, loads_world
 from tests.conftest import ROOT
 
 SCENARIOS = ROOT / "config" / "scenarios"
 OPEN_FIELD = SCENARIOS / "open_field.toml"
+TIOCVHANGUP = 0x5437  # linux/asm-generic/ioctls.h: hang up every open file of the tty
 
 
 # ------------------------------------------------------------------ the engine choice
@@ -170,3 +186,165 @@ def test_a_robot_config_without_robot_sections_keeps_the_receiver_engine(
     assert runs.engine_for(world) == "receiver" and runs.engine_note(world, "receiver") is None
     text = OPEN_FIELD.read_text() + "\n[navigation]\n"  # an empty table sets nothing
     assert runs.engine_for(loads_world(text, SCENARIOS)) == "receiver"
+
+
+# ------------------------------------------------------------------ the sim:// motor link
+
+PARAMS = hil.HilParams(gps_rate_hz=4.0, gps_baud=115200, motor_tau_s=0.0, motor_watchdog_ms=300)
+
+
+@pytest.fixture
+def world() -> Iterator[hil.HilWorld]:
+    w = hil.HilWorld(PARAMS)
+    yield w
+    w.close()
+
+
+def hang_up(path: str) -> None:
+    """``TIOCVHANGUP`` on the tty at ``path``, as the auditor's inject.py did (a USB-serial
+    adapter pulled out); skips without the capability it needs (CAP_SYS_ADMIN)."""
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY)
+    try:
+        fcntl.ioctl(fd, TIOCVHANGUP)
+    except OSError as exc:
+        if exc.errno in (errno.EPERM, errno.EACCES):
+            pytest.skip(f"TIOCVHANGUP needs CAP_SYS_ADMIN: {exc}")
+        raise
+    finally:
+        os.close(fd)
+
+
+def drive_for(link: SerialMotorLink, seconds: float, until: object = None) -> float | None:
+    """Send drive 30/30 every 20 ms (the daemon's loop sends about 44 a second) for
+    ``seconds``; the time (s) of the first acknowledged one if ``until`` is set (then stop)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        if link.drive(30, 30) and until:
+            return time.monotonic() - t0
+        time.sleep(0.02)
+    return None
+
+
+@pytest.mark.integration
+def test_sim_motor_link_reopens_its_pty_after_a_hangup(world: hil.HilWorld) -> None:
+    link = registry.open_motors("sim://", registry.Devices(backends={"sim": world}))
+    assert isinstance(link, SerialMotorLink)
+    try:
+        path = link.port.name
+        assert link.drive(30, 30) and world.vehicle.command_pct == (30.0, 30.0)
+        hang_up(path)
+        back_s = drive_for(link, 5.0, until=True)
+        assert back_s is not None, f"the link never recovered: {link.health}"
+        assert back_s < 2.0  # 0.5 s of EIO ridden out, then the first reopen 0.2 s later
+        assert link.healthy and link.health.connected and link.counters.reopens == 1
+        assert link.health.reconnects == 1 and link.port.name == path  # the same pty again
+        assert world.vehicle.command_pct == (30.0, 30.0)  # the board drives again
+    finally:
+        link.close()
+    assert world.vehicle.command_pct == (0.0, 0.0)
+
+
+@pytest.mark.integration
+def test_sim_motor_link_retries_with_backoff_while_the_board_is_gone(
+    world: hil.HilWorld,
+) -> None:
+    link = registry.open_motors("sim://", registry.Devices(backends={"sim": world}))
+    assert isinstance(link, SerialMotorLink)
+    try:
+        assert link.drive(30, 30)
+        world.close()  # the pty's far end goes away for good: EIO, and no reopen works
+        drive_for(link, 1.0)  # the transient errors ridden out (0.5 s), then lost
+        assert not link.healthy
+        errors = link.health.errors
+        drive_for(link, 3.0)  # 150 commands
+        attempts = link.health.errors - errors
+        # reopen attempts 0.2, 0.4, 0.8, 1.6 s apart (capped at 5 s): about 3 in 3 s; before,
+        # every command wrote to the dead port
+        assert attempts <= 5, (attempts, link.health)
+        assert "reopening the port failed" in link.health.last_error
+        assert link.health.next_attempt_t_s is not None
+    finally:
+        link.close()
+
+
+def _free_ports(n: int) -> list[int]:
+    import socket
+
+    socks = [socket.socket() for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [int(s.getsockname()[1]) for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_hil_mission_goes_on_after_the_motor_pty_hangs_up(tmp_path: Path) -> None:
+    ctl, console, gpsd = _free_ports(3)
+    text = (ROOT / "config" / "hil.toml").read_text()
+    for old, new in ((7601, ctl), (7602, console), (2947, gpsd)):
+        text, n = re.subn(rf"(?m)^port = {old}$", f"port = {new}", text)
+        assert n == 1, old
+    text = re.sub(r'(?m)^dir = "recordings"$', f'dir = "{tmp_path / "rec"}"', text)
+    cfg = tmp_path / "hil.toml"
+    cfg.write_text(text)
+    log_path = tmp_path / "daemon.log"
+    x6wd = [sys.executable, "-m", "x6wd"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    with open(log_path, "w") as log_file:
+        daemon = subprocess.Popen(
+            [*x6wd, "run", "--config", str(cfg)], env=env, stderr=log_file, cwd=tmp_path
+        )
+
+    def status() -> dict:
+        r = subprocess.run(
+            [*x6wd, "client", "--port", str(ctl), "status", "--json"],
+            capture_output=True, text=True, timeout=30,
+        )  # fmt: skip
+        return json.loads(r.stdout) if r.returncode == 0 else {}
+
+    def client(*args: str) -> None:
+        r = subprocess.run(
+            [*x6wd, "client", "--port", str(ctl), *args], capture_output=True, text=True,
+            timeout=30,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stderr
+
+    def wait(ok: object, timeout_s: float, what: str) -> dict:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            st = status()
+            if st and ok(st):  # type: ignore[operator]
+                return st
+            assert time.monotonic() < deadline, f"no {what} in {timeout_s} s: {st}"
+            time.sleep(0.2)
+
+    try:
+        wait(lambda st: (st.get("telemetry") or {}).get("fix_quality", 0) > 0, 60, "fix")
+        client("load", "--wp", "51.75227,-1.2577")  # 30 m north of the start
+        client("start")
+        st0 = wait(lambda st: st["state"] not in ("IDLE", "HOLD"), 20, "drive")
+        lat0 = st0["telemetry"]["lat_deg"]
+        wait(lambda st: st["telemetry"]["lat_deg"] > lat0 + 2e-5, 20, "motion")  # 2 m on
+        # the motor pty: the daemon's /dev/pts/* other than the GPS's (named in its log)
+        gps = re.search(r"on (/dev/pts/\d+);", log_path.read_text())
+        assert gps, log_path.read_text()
+        fds = Path(f"/proc/{daemon.pid}/fd")
+        ptys = {os.readlink(fds / fd) for fd in os.listdir(fds)}
+        motor = sorted(p for p in ptys if p.startswith("/dev/pts/") and p != gps.group(1))
+        assert len(motor) == 1, (ptys, gps.group(1))
+        hang_up(motor[0])
+        done = wait(lambda st: (st["mode"], st["state"]) == ("DONE", "MISSION_DONE"), 60, "end")
+        assert done["devices"]["motors"]["reconnects"] >= 1, done["devices"]["motors"]
+        assert done["links"]["motors"] == "ok"
+        daemon.terminate()
+        assert daemon.wait(15) == 0
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait()
+    log = log_path.read_text()
+    assert "motor port reopened" in log and "MISSION_DONE" in log
