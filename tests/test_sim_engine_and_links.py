@@ -1,12 +1,13 @@
-"""``x6wd sim``'s engine choice for a survey that sets robot-only keys, and the ``sim://``
-motor link's reopen after a port error (outside audits: fresh-machine item 2, live-path
-item 2).
+"""``x6wd sim``'s engine choice for a survey that sets robot-only keys, the ``sim://`` motor
+link's reopen after a port error, and config/hil.toml's [sim] examples (outside audits:
+fresh-machine item 2, live-path items 2 and 5).
 
 - docs/navigation.md's recipe (``[navigation] position_source = "constellation"`` added to
   open_field.toml, then ``x6wd sim``) ran on the receiver engine, which ignored the table
   without a word and named the EKF in its "filtered not run" line;
 - the ``sim://`` motors were built without a reopen: after a pty hang-up the link stayed
-  lost for good, a write attempt per command (about 44 a second).
+  lost for good, a write attempt per command (about 44 a second);
+- config/hil.toml's example ``v_max_mps = 1.5`` was not the simulated robot's 3.89 m/s.
 """
 
 from __future__ import annotations
@@ -348,3 +349,51 @@ def test_hil_mission_goes_on_after_the_motor_pty_hangs_up(tmp_path: Path) -> Non
             daemon.wait()
     log = log_path.read_text()
     assert "motor port reopened" in log and "MISSION_DONE" in log
+
+
+# ------------------------------------------------------------------ config/hil.toml
+
+
+def test_hil_toml_sim_examples_are_the_simulated_robots_values(tmp_path: Path) -> None:
+    """config/hil.toml's commented [sim] overrides show the values HIL uses now: uncommented,
+    they change nothing (the auditor read ``v_max_mps = 1.5`` and measured 3.89 m/s)."""
+    from sim_backend.vehicle import Vehicle, VehicleParams
+    from x6wd.core.config import NavigationConfig, load
+
+    path = ROOT / "config" / "hil.toml"
+    text = path.read_text()
+    examples = dict(re.findall(r"(?m)^# ([a-z_]+) = ([-0-9.]+)\s", text.split("\n[sim]\n", 1)[1]))
+    assert set(examples) >= set(hil._OVERRIDES) - {"seed", "gps_rate_hz", "gps_baud"}, examples
+    as_is = tmp_path / "as_is.toml"
+    as_is.write_text(text)
+    used = hil.HilParams.from_config(load(as_is).sim).load_world()
+    now = {
+        "origin_lat_deg": used.origin.lat_deg,
+        "origin_lon_deg": used.origin.lon_deg,
+        "origin_alt_m": used.origin.alt_m,
+        "start_heading_deg": used.vehicle.start_heading_deg,
+        "start_east_m": used.vehicle.start_east_m,
+        "start_north_m": used.vehicle.start_north_m,
+        "v_max_mps": used.vehicle.max_speed_mps,
+        "motor_tau_s": used.vehicle.motor_tau_s,
+    }
+    for key, value in examples.items():
+        assert float(value) == pytest.approx(now[key], rel=1e-3, abs=1e-9), key
+    # uncommented, they load (within their ranges) and leave the world as it was
+    on = tmp_path / "on.toml"
+    on.write_text(re.sub(r"(?m)^# ([a-z_]+ = [-0-9.]+\s)", r"\1", text))
+    with_them = hil.HilParams.from_config(load(on).sim).load_world()
+    assert with_them.origin == used.origin
+    for name in ("start_heading_deg", "start_east_m", "start_north_m", "motor_tau_s"):
+        assert getattr(with_them.vehicle, name) == getattr(used.vehicle, name), name
+    assert with_them.vehicle.max_speed_mps == pytest.approx(now["v_max_mps"], rel=1e-3)
+    # ... and the speeds the comment gives are the vehicle's: at 100 % and at 60 % cruise
+    v = Vehicle(VehicleParams(v_max_mps=used.vehicle.max_speed_mps, motor_tau_s=0.0))
+    v.command(100.0, 100.0)
+    for _ in range(100):
+        v.step(0.05)
+    assert v.state.speed_mps == pytest.approx(float(examples["v_max_mps"]), rel=1e-3)
+    said = re.search(r"(\d+) % cruise the simulated robot drives ([0-9.]+) m/s", text)
+    assert said, "the comment's speed at the robot's cruise"
+    assert float(said.group(1)) == NavigationConfig().cruise_pct  # the robot's default
+    assert 0.6 * v.state.speed_mps == pytest.approx(float(said.group(2)), abs=0.05)
