@@ -63,6 +63,7 @@ from x6wd.gap.stats import (
     Cell,
     Layout,
     battery,
+    carry_twin,
     cell_weights,
     lattice_fraction,
     layout_for,
@@ -154,16 +155,18 @@ def apply_fits(
 ) -> list[PositionSeries]:
     """Each run with the effects added, then printed on the baseline's NMEA lattice again
     (a receiver prints its final position; an added error does not leave the lattice)."""
-    out = []
     lattice_now = next((fit.effect.decimals for fit in fits if fit.name == "quantization"), lattice)
-    for run in runs:
+
+    def one(run: PositionSeries) -> PositionSeries:
+        out = run
         for fit in fits:
             if fit.name != "quantization":
-                run = fit.effect.apply(run, rng)
+                out = fit.effect.apply(out, rng)
         if lattice_now is not None:
-            run = Quantization(decimals=int(lattice_now)).apply(run, rng)
-        out.append(run)
-    return out
+            out = Quantization(decimals=int(lattice_now)).apply(out, rng)
+        return carry_twin(run, out, one)
+
+    return [one(run) for run in runs]
 
 
 SIM_REFIT_EVALS = 30

@@ -89,11 +89,22 @@ EFFECTS: dict[str, EffectFitter[PositionSeries, Layout]] = {
     "bias": EffectFitter(fit_bias, ("mean",)),
     "gauss_markov": EffectFitter(
         fit_gauss_markov,
-        ("log_std", "log_adev", "log_psd", "acf", "log_cep50", "log_r95"),
+        (
+            "log_std",
+            "log_adev",
+            "log_psd",
+            "acf",
+            "log_cep50",
+            "log_r95",
+            "log_step_med",
+            "log_incr_med",
+        ),
         sim_refit=("sigma_m", "tau_s"),
     ),
     "random_walk": EffectFitter(
-        fit_random_walk, ("log_adev", "log_psd", "log_std", "acf"), sim_refit=("q_m_per_sqrt_s",)
+        fit_random_walk,
+        ("log_adev", "log_psd", "log_std", "acf", "log_step_med", "log_incr_med"),
+        sim_refit=("q_m_per_sqrt_s",),
     ),
     "quantization": EffectFitter(fit_quantization, ("lattice", "zero_step")),
     "jumps": EffectFitter(

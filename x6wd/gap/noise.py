@@ -17,7 +17,7 @@ import numpy as np
 from sim_backend.effects import PositionSeries
 from x6wd.gap.fitted import IdentityCache
 from x6wd.gap.null import Inflation, inflation_from, null_model
-from x6wd.gap.stats import Cell, Layout, regular
+from x6wd.gap.stats import Cell, Layout, regular, with_twin
 
 BASE_COMPONENTS = 2  # Gauss-Markov components of the baseline noise model (plus white noise)
 WHITE_FLOOR_M = 1e-3  # keeps the innovation variance positive when a run is exactly constant
@@ -404,12 +404,22 @@ def innovation_replicates(
     nsats, sat_set = labels["nsats"], labels["sat_set"]
     missing = ~np.isfinite(e)
     e[missing] = rng.standard_normal(int(missing.sum()))
+    twins = None
     if replicate_laws is None:
         paths = [colour(law, t_s, e[a]) for a, law in enumerate(laws)]
     else:
         paths = [
             np.array([colour(replicate_laws[j][a], t_s, e[a][j : j + 1])[0] for j in range(n_out)])
             for a in range(len(laws))
+        ]
+        twins = [  # east and north only: the robust fast cells are horizontal
+            np.array(
+                [
+                    colour(fast_pooled(replicate_laws[j][a], law), t_s, e[a][j : j + 1])[0]
+                    for j in range(n_out)
+                ]
+            )
+            for a, law in enumerate(laws[:2])
         ]
     if len(paths) < 3:
         paths.append(np.zeros((n_out, n)))
@@ -420,12 +430,27 @@ def innovation_replicates(
             nsats=None if nsats is None else nsats[j],
             sat_set=None if sat_set is None else sat_set[j],
         )  # fmt: skip
+        twin = None
+        if twins is not None:
+            twin = series.with_(east_m=twins[0][j], north_m=twins[1][j])
         if decimals is not None:
             from sim_backend.effects import Quantization
 
             series = Quantization(decimals=decimals).apply(series, rng)
-        out.append(series)
+            twin = None if twin is None else Quantization(decimals=decimals).apply(twin, rng)
+        out.append(with_twin(series, twin))
     return out
+
+
+def fast_pooled(law: AxisLaw, pooled: AxisLaw) -> AxisLaw:
+    """``law`` with its fast part (the faster Gauss-Markov component and the white noise)
+    taken from ``pooled``: what a replicate's twin is coloured with (:class:`Twinned`)."""
+    sigma_m = np.array(law.sigma_m, dtype=float)
+    tau_s = np.array(law.tau_s, dtype=float)
+    fast, fast_pooled_ = int(np.argmin(tau_s)), int(np.argmin(pooled.tau_s))
+    sigma_m[fast] = pooled.sigma_m[fast_pooled_]
+    tau_s[fast] = pooled.tau_s[fast_pooled_]
+    return AxisLaw(sigma_m, tau_s, pooled.white_m, law.mean_m)
 
 
 # --- how the law itself differs from log to log --------------------------------------------

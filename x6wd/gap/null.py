@@ -218,9 +218,10 @@ def inflation_from(cells: Sequence[Cell], z: np.ndarray, n_logs: int) -> Inflati
     factor sqrt(1 + 1/n) the replicates' spread cannot show (the prediction interval of one
     more draw); that is the floor. Where the logs vary more than that (a misfit of the noise
     model, the uncertainty of its parameters), their leave-one-out z^2, rescaled from n - 1
-    logs to n, says by how much: medians pooled by (statistic, axis) and shrunk toward the
-    median over all cells (``INFLATION_PRIOR`` pseudo-cells), so that a group of a few
-    cells seen on two or three logs is not taken at its word."""
+    logs to n, says by how much: medians pooled by (statistic, axis) (per scale too,
+    :func:`inflation_key`) and shrunk toward the median over all cells (``INFLATION_PRIOR``
+    pseudo-cells), so that a group of a few cells seen on two or three logs is not taken at
+    its word."""
     n = max(int(n_logs), 1)
     floor = math.sqrt(1.0 + 1.0 / n)
     # a cell the logs were not scored on (a whole-log likelihood cell with its own floor)
@@ -235,7 +236,7 @@ def inflation_from(cells: Sequence[Cell], z: np.ndarray, n_logs: int) -> Inflati
     overall = float(np.nanmedian(z2)) if np.any(np.isfinite(z2)) else 1.0
     groups: dict[tuple[str, str], list[int]] = {}
     for j, c in enumerate(cells):
-        groups.setdefault((c.statistic, c.axis), []).append(j)
+        groups.setdefault(inflation_key(c), []).append(j)
     for key, cols in groups.items():
         values = z2[:, cols]
         values = values[np.isfinite(values)]
@@ -249,7 +250,21 @@ def _inflation_array(cells: Sequence[Cell], inflation: Inflation | None) -> np.n
     if inflation is None:
         return None
     default = inflation.get(("*", "*"), 1.0)
-    return np.array([inflation.get((c.statistic, c.axis), default) for c in cells])
+    return np.array([inflation.get(inflation_key(c), default) for c in cells])
+
+
+# Statistics whose spread factor is measured per scale: the robust increments at 4 and 64 s
+# read different parts of the law (logs whose fast correlation times differ, 9-18 s, differ
+# at 4 s and agree at 64 s), and pooled over the scales their median z^2 hid the 4-s excess.
+PER_SCALE_INFLATION = frozenset({"log_incr_med"})
+
+
+def inflation_key(cell: Cell) -> tuple[str, str]:
+    """The group whose spread factor ``cell`` takes: (statistic, axis), and the scale for
+    :data:`PER_SCALE_INFLATION`."""
+    if cell.statistic in PER_SCALE_INFLATION:
+        return (cell.statistic, f"{cell.axis} {cell.scale}")
+    return (cell.statistic, cell.axis)
 
 
 # Tail degrees of freedom tried per cell (plus the Gaussian cell's M - 2, that of a replicate
