@@ -580,7 +580,9 @@ def test_arc_telemetry_names_how_a_waypoint_was_reached() -> None:
         "filter_samples": 1, "steer_alpha_deg": None, "curvature_per_m": None,
         "speed_pct": None, "pivoting": False, "arrived_by": "windows",
     }  # fmt: skip
-    # past the waypoint's line, 5 m beside it: "passed", ARRIVED stops for that decision
+    # past the waypoint's line, 5 m beside it: "passed". The path goes straight on, so the
+    # arrival drives on into the next leg at once (it stopped for that decision until a
+    # recorded track's points 1-3 m apart made every point a stop; docs/navigation.md)
     c = Controller(replace(ARC, filter_n=3), SAFETY)
     c.load_mission([at(0.0, 100.0), at(0.0, 200.0)], 0.0)
     c.start(0.0)
@@ -590,13 +592,32 @@ def test_arc_telemetry_names_how_a_waypoint_was_reached() -> None:
     for t in (1.8, 1.9, 2.0):  # the filter's three samples all there
         c.on_fix(fix(t, 5.0, 100.5))
     _, cmd, tel = split(c.on_attitude(att(2.0, 0.0)))
-    assert tel.state == NavState.ARRIVED and (cmd.left_pct, cmd.right_pct) == (0.0, 0.0)
-    assert tel.extra["arrived_by"] == "passed" and tel.extra["steer_alpha_deg"] is None
+    # the next leg's lookahead point: 8 m from the robot on the line 5 m to the west
+    alpha = math.atan2(-5.0, math.sqrt(8.0**2 - 5.0**2))
+    assert tel.state == NavState.ARRIVED and tel.extra["arrived_by"] == "passed"
+    assert tel.extra["steer_alpha_deg"] == pytest.approx(math.degrees(alpha), abs=0.01)
+    assert (cmd.left_pct, cmd.right_pct) == pytest.approx(
+        mixed(60.0, 2.0 * math.sin(alpha) / 8.0, 2.0), abs=0.01
+    )  # the next leg's line is to the west: arc left
     assert tel.waypoint_index == 1
     # the next decision drives towards the second waypoint: no arrival any more
     _, cmd, tel = split(c.on_attitude(att(2.1, 0.0)))
     assert tel.state == NavState.STRAIGHT and "arrived_by" not in tel.extra
-    assert cmd.left_pct < cmd.right_pct  # the next leg's line is to the west: arc left
+    assert cmd.left_pct < cmd.right_pct
+    # where the next leg starts with a pivot (a corner of 90 deg), ARRIVED stops for that
+    # decision as before, and the next one pivots
+    c = Controller(replace(ARC, filter_n=3), SAFETY)
+    c.load_mission([at(0.0, 100.0), at(100.0, 100.0)], 0.0)
+    c.start(0.0)
+    c.on_fix(fix(1.0, 0.0, 50.0))
+    c.on_attitude(att(1.0, 0.0))
+    for t in (1.8, 1.9, 2.0):
+        c.on_fix(fix(t, -2.0, 101.5))  # past the line, beside the 1 m windows
+    _, cmd, tel = split(c.on_attitude(att(2.0, 0.0)))
+    assert tel.state == NavState.ARRIVED and (cmd.left_pct, cmd.right_pct) == (0.0, 0.0)
+    assert tel.extra["arrived_by"] == "passed" and tel.extra["steer_alpha_deg"] is None
+    _, cmd, tel = split(c.on_attitude(att(2.1, 0.0)))
+    assert tel.state == NavState.TURN_RIGHT and (cmd.left_pct, cmd.right_pct) == (40.0, -40.0)
 
 
 def test_steering_numbers_only_in_pivot_arc_and_after_a_decision() -> None:

@@ -36,7 +36,10 @@ its curvature at its approach speed over ``steer_track_m``; its steering numbers
 telemetry's ``extra``: ``steer_alpha_deg``, ``curvature_per_m``, ``speed_pct``, ``pivoting``);
 TURN_RIGHT -> left ``+turn_pct``, right ``-turn_pct`` (clockwise spin in place); TURN_LEFT ->
 left ``-turn_pct``, right ``+turn_pct``; every other state -> stop. ARRIVED stops for the one
-decision in which it is reported; the next input turns towards the next waypoint.
+decision in which it is reported and the next input turns towards the next waypoint, except
+that in pivot_arc an arrival whose next leg does not start with a pivot drives on at once
+(the navigator's decision carries the next leg's arc: a recorded track's points 1-3 m apart
+stopped the robot at each of them).
 
 Mode rules: a mission loads in IDLE, MANUAL or DONE (not while RUNNING or PAUSED: stop first);
 start needs a mission and restarts it from its first waypoint (not while RUNNING or PAUSED);
@@ -665,11 +668,14 @@ class Controller:
         assert fix.lat_deg is not None and fix.lon_deg is not None
         heading_deg = None
         cmd = self._cmd
-        straight = self._state == NavState.STRAIGHT
+        # an arrival that drives on into the next leg (pivot_arc) drives straight too
+        straight = self._state in (NavState.STRAIGHT, NavState.ARRIVED)
         if straight and 0.5 * (cmd.left_pct + cmd.right_pct) >= self._failsafe.stuck_min_pct:
             h = self._current_heading_rad()
             heading_deg = None if h is None else math.degrees(h)
-        target = nav.waypoints[nav.index]
+        # the leg's end: a recorded track's points on a straight are one leg (a new target
+        # every fix restarted both checks, which then never fired)
+        target = nav.waypoints[nav.course_index]
         travel_m = self._wheel_m if self._odo_prev is not None else None
         why = self._course.on_fix(fix.t_s, fix.lat_deg, fix.lon_deg, target, heading_deg, travel_m)
         return None if why is None else (why, self._failsafe.off_course_action)
@@ -900,12 +906,15 @@ class Controller:
     def _mix(self, state: NavState) -> tuple[float, float]:
         """Left/right percentages for the navigator's decision just made."""
         c = self._nav_cfg
-        if state == NavState.STRAIGHT:
+        if state in (NavState.STRAIGHT, NavState.ARRIVED):
             last = self._navigator.last
             if last is not None and last.curvature_per_m is not None:
-                # pivot_arc: drive the arc at the approach speed.
+                # pivot_arc: drive the arc at the approach speed (on an arrival: the next
+                # leg's, when it does not start with a pivot).
                 speed = c.cruise_pct if last.speed_pct is None else last.speed_pct
                 return steering.skid_mix(last.curvature_per_m, speed, c.steer_track_m)
+            if state == NavState.ARRIVED:
+                return 0.0, 0.0
             return c.cruise_pct, c.cruise_pct
         if state == NavState.TURN_RIGHT:
             return c.turn_pct, -c.turn_pct
@@ -948,8 +957,10 @@ class Controller:
         """May the navigator declare an arrival now? Always with the GPS itself as the
         position; with the EKF only while the latest fix lies within ``ARRIVAL_GPS_SIGMAS``
         of its own noise (at least ``ARRIVAL_GPS_MIN_M``, plus the distance driven since) of
-        the target: wheels spinning on the spot must not carry the estimate to a waypoint
-        the robot never reached (the stuck failsafe then acts)."""
+        the target, or (pivot_arc, a waypoint the path goes straight on through) is itself
+        past the target along the track (:meth:`Navigator.passed_on_track`): wheels
+        spinning on the spot must not carry the estimate to a waypoint the robot never
+        reached (the stuck failsafe then acts)."""
         nav, fix = self._navigator, self._fix
         if self._nav_cfg.position_source != "ekf" or nav.done:
             return True
@@ -966,7 +977,29 @@ class Controller:
         if memo is None or memo[0] is not fix or memo[1] != lat or memo[2] != lon:
             d = great_circle_m(fix.lat_deg, fix.lon_deg, lat, lon)
             memo = self._to_target_m = (fix, lat, lon, d)
-        return memo[3] <= limit_m
+        if memo[3] <= limit_m:
+            return True
+        # a track point the path goes straight on through: the fix past it along the track
+        # agrees too (spinning wheels leave the fixes behind it)
+        return nav.passed_on_track(fix.lat_deg, fix.lon_deg)
+
+    def _position_error_m(self) -> float:
+        """The error radius of the position the navigator steers by (m): ``ARRIVAL_GPS_SIGMAS``
+        standard deviations per axis, the EKF's own (the RMS of east and north) or, for the
+        other sources, the latest fix's (``HDOP·sqrt(RE² + ASE² + LCE_default²)``). The
+        navigator does not chase round a waypoint behind the robot within it (``BEHIND_M``,
+        its floor)."""
+        if self._nav_cfg.position_source == "ekf":
+            sigma_m = self._source.extra().get("ekf_sigma_m")
+            if isinstance(sigma_m, float) and math.isfinite(sigma_m):
+                return ARRIVAL_GPS_SIGMAS * sigma_m / math.sqrt(2.0)
+            return 0.0
+        fix = self._fix
+        if fix is None or not self._fix_ok:
+            return 0.0
+        g = self._gnss_cfg
+        hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else DEFAULT_HDOP
+        return ARRIVAL_GPS_SIGMAS * hdop * math.sqrt(g.re_m**2 + g.ase_m**2 + g.lce_default_m**2)
 
     def _body_moved_m(self, body: tuple[float, ...], fix: GpsFix) -> float:
         """Great-circle distance (m) from the stuck check's last body position to a usable
@@ -1046,7 +1079,9 @@ class Controller:
                 x, y = self._position_xy(self._filt)
                 heading = self._current_heading_rad()
                 assert heading is not None
-                state = self._navigator.step(x, y, heading, self._gps_agrees(now))
+                state = self._navigator.step(
+                    x, y, heading, self._gps_agrees(now), self._position_error_m()
+                )
                 self._decided = (self._navigator.last, x, y, heading)
                 if state == NavState.MISSION_DONE:
                     done = (

@@ -16,13 +16,23 @@ projection):
 - arrival when eq. 7's windows hold in true metres (``|Δe| <= Δx``, ``|Δn| <= Δy``) and, if
   the waypoint carries a final bearing, the heading is within Δφ of it; OR when the robot has
   passed the line through the waypoint perpendicular to its segment (previous waypoint, or
-  the position at the mission's first decision, to the waypoint). Inside the windows with the
-  final bearing not yet met, it turns in place towards that bearing;
-- otherwise pure pursuit of the point ``lookahead_m`` ahead on the segment: with α the angle
-  from the heading to that point, it pivots in place (TURN_LEFT / TURN_RIGHT) once
+  the position at the mission's first decision, to the waypoint); OR, for a waypoint with
+  more after it where the path goes straight on, when it lies behind the robot (at 90° or
+  more from the heading) within the position's error (``BEHIND_M``) and the robot is
+  already past it along the path (a point closer than the GPS error to the start is not
+  chased round). Inside the windows with the final bearing not yet met, it turns in place
+  towards that bearing;
+- otherwise pure pursuit of the point ``lookahead_m`` ahead on the segment, carried on along
+  the path past waypoints it goes straight on through (``steering.STRAIGHT_ON_DEG``): with α
+  the angle from the heading to that point, it pivots in place (TURN_LEFT / TURN_RIGHT) once
   ``|α| > pivot_angle_deg`` and until ``|α| < pivot_resume_deg``; else STRAIGHT with the arc's
   curvature ``κ = 2·sin α / d`` and the approach speed in :attr:`NavDecision.curvature_per_m`
   and :attr:`NavDecision.speed_pct`, which the controller mixes into left/right percentages.
+  The approach speed slows for each waypoint within ``approach_m`` along the path only to
+  the speed its turn allows (:func:`steering.corner_speed_pct`; the last waypoint: to
+  ``min_speed_pct``, as before);
+- an arrival at a waypoint with more after it carries the next leg's arc in its decision
+  (the robot drives on) unless the next leg starts with a pivot.
 
 Headings: the CMPS10 reports a MAGNETIC bearing 0..359.9°; the paper's compass angle φc is in
 (−180°, 180°] (bearings above 180° become negative, i.e. west). The destination bearing φi is
@@ -37,8 +47,23 @@ from dataclasses import dataclass
 
 from x6wd.core.config import NavigationConfig
 from x6wd.core.errors import X6wdError
+from x6wd.core.geodesy import wrap_rad
 from x6wd.core.records import NavState
 from x6wd.nav import geo, steering
+
+BEHIND_M = 5.0
+"""pivot_arc: a waypoint with more after it where the path goes straight on, behind the
+robot and within the position's error radius, counts as reached once the robot is past it
+along the path: at the start a first point closer than the GPS error was chased round in a
+pivot (an outside audit: -174° on a straight line). The radius is the caller's (the
+controller: three standard deviations of its position), never less than this (m: a NEO-5's
+error in the open, the controller's ``ARRIVAL_GPS_MIN_M``) nor more than ``BEHIND_MAX_M``.
+The same radius decides whether the first leg, from where the mission's first decision was
+made, has a direction of its own."""
+BEHIND_MAX_M = 10.0
+"""The largest radius (m) ``BEHIND_M``'s rule takes from its caller: a position worse than
+that (a start on a fix of HDOP 10) says little of where the robot is, and a point further
+behind is driven to, as the mission says."""
 
 
 class NavigationError(X6wdError, ValueError):
@@ -78,11 +103,14 @@ class NavDecision:
     theta_rad: float | None  # course deviation; None once arrived
     # pivot_arc steering only (None / "" in paper mode):
     curvature_per_m: float | None = None  # arc to drive while STRAIGHT, positive right
-    speed_pct: float | None = None  # drive speed while STRAIGHT (approach slow-down applied)
+    # drive speed while STRAIGHT (approach slow-down applied), and on an ARRIVED that drives
+    # on into the next leg (curvature and speed are then the next leg's)
+    speed_pct: float | None = None
     steer_alpha_rad: float | None = None  # heading error to the steering target
     true_de_m: float | None = None  # waypoint − position, true metres east
     true_dn_m: float | None = None  # ... and north
-    arrived_by: str = ""  # "windows" (eq. 7) or "passed" (the waypoint's line) on arrival
+    # on arrival: "windows" (eq. 7), "passed" (the waypoint's line) or "behind" (BEHIND_M)
+    arrived_by: str = ""
 
 
 class Navigator:
@@ -112,6 +140,14 @@ class Navigator:
         self._final_bearing_rad: list[float | None] = []
         self._seg_start: tuple[float, float] | None = None
         self._pivoting = False
+        # the path's shape, set at the first decision (the first leg starts there): per
+        # waypoint the chord directions in and out (rad, None: unknown), the turn (rad) and
+        # the path distance from the first waypoint (m)
+        self._dir_in: list[float | None] = []
+        self._dir_out: list[float | None] = []
+        self._turn: list[float] = []
+        self._cum_m: list[float] = []
+        self._first_start: tuple[float, float] = (0.0, 0.0)  # where the first leg starts
 
     # -------------------------------------------------------------- mission
     def set_waypoints(
@@ -184,6 +220,7 @@ class Navigator:
         self.last = None
         self._seg_start = None
         self._pivoting = False
+        self._dir_in, self._dir_out, self._turn, self._cum_m = [], [], [], []
 
     @property
     def waypoints(self) -> tuple[tuple[float, float], ...]:
@@ -230,7 +267,12 @@ class Navigator:
 
     # -------------------------------------------------------------- decision
     def step(
-        self, x_m: float, y_m: float, heading_true_rad: float, may_arrive: bool = True
+        self,
+        x_m: float,
+        y_m: float,
+        heading_true_rad: float,
+        may_arrive: bool = True,
+        behind_m: float = BEHIND_M,
     ) -> NavState:
         """One decision for position (x_m, y_m) and true heading φc (rad, (−π, π]).
 
@@ -238,6 +280,9 @@ class Navigator:
         TURN_RIGHT or STRAIGHT. After the last waypoint it keeps returning MISSION_DONE.
         ``may_arrive`` False: no arrival now, whatever the position says (the caller's
         independent check disagrees: the controller's GPS check of an EKF position).
+        ``behind_m`` (pivot_arc): the position's error radius (m), see ``BEHIND_M``; the
+        caller may pass a larger one from its position's uncertainty (at most
+        ``BEHIND_MAX_M`` is used).
         """
         if not (math.isfinite(x_m) and math.isfinite(y_m)):
             raise NavigationError(f"position must be finite, got ({x_m!r}, {y_m!r})")
@@ -248,7 +293,13 @@ class Navigator:
         if self.done:
             return NavState.MISSION_DONE
         if self.config.steering == "pivot_arc":
-            return self._step_pivot_arc(x_m, y_m, heading_true_rad, may_arrive)
+            return self._step_pivot_arc(
+                x_m,
+                y_m,
+                heading_true_rad,
+                may_arrive,
+                min(BEHIND_MAX_M, max(BEHIND_M, float(behind_m))),
+            )
         i = self._index
         xi, yi = self._xy[i]
         dx, dy = xi - x_m, yi - y_m
@@ -285,8 +336,167 @@ class Navigator:
         e, n = ltp.to_xy(float(lat), float(lon))
         return float(e), float(n)
 
+    def _path_shape(self, first_start: tuple[float, float], behind_m: float) -> None:
+        """The chord directions into and out of each waypoint (``steering.TURN_CHORD_M`` of
+        path either side), the path's turn there and the path distance from the first
+        waypoint. The first leg starts at ``first_start`` (the first decision's position).
+        Within ``behind_m`` (the position's error) of the first waypoint the first leg's
+        direction is mostly the GPS's noise: it is left out of every chord, and the first
+        waypoint's incoming direction is unknown (the path taken as going straight on
+        through it) unless the start lies beyond it along the path that follows (the robot
+        starts on the next leg: a reversal, which keeps its turn)."""
+        en = self._en
+        near = math.dist(first_start, en[0]) <= behind_m
+        pts = en if near else [first_start, *en]
+        off = 0 if near else 1
+        chord = steering.TURN_CHORD_M
+        self._dir_in, self._dir_out, self._turn = [], [], []
+        self._cum_m = [0.0]
+        for j in range(1, len(en)):
+            self._cum_m.append(self._cum_m[-1] + math.dist(en[j - 1], en[j]))
+        for j, w in enumerate(en):
+            k = j + off
+            d_in = steering.chord_bearing_rad(steering.point_along(pts, k, -chord), w)
+            d_out = steering.chord_bearing_rad(w, steering.point_along(pts, k, chord))
+            if j == 0 and near and d_out is not None:
+                beyond = (first_start[0] - w[0]) * math.sin(d_out) + (
+                    first_start[1] - w[1]
+                ) * math.cos(d_out) > 0.0
+                if beyond and math.dist(first_start, w) >= 0.1 * chord:
+                    d_in = steering.bearing_rad(first_start, w)
+            if d_out is None:
+                turn = math.pi  # the end of the path: a stop
+            elif d_in is None:
+                turn = 0.0
+            else:
+                turn = abs(wrap_rad(d_out - d_in))
+            self._dir_in.append(d_in)
+            self._dir_out.append(d_out)
+            self._turn.append(turn)
+
+    def _steer(
+        self, i: int, p: tuple[float, float], heading_rad: float
+    ) -> tuple[float, float | None, float | None, bool]:
+        """Towards waypoint ``i`` on the current leg from ``p``: (α rad, curvature 1/m or None,
+        speed % or None, pivot now?) given the pivot flag's current value."""
+        cfg = self.config
+        assert self._seg_start is not None
+        start, end = self._seg_start, self._en[i]
+        de, dn = end[0] - p[0], end[1] - p[1]
+        final = self._final_bearing_rad[i]
+        if final is not None and steering.in_windows(de, dn, cfg.delta_x_m, cfg.delta_y_m):
+            # In the windows, final bearing not met: turn in place towards it.
+            return float(geo.course_deviation(final, heading_rad)), None, None, True
+        n = len(self._en)
+        # carry the lookahead on past waypoints the path goes straight on through (as far
+        # as it can reach: the robot may be past the waypoint, its arrival not yet agreed)
+        past_m = max(0.0, steering.along_cross_m(start, end, p)[0])
+        end_j = self._straight_run_end(i, past_m + cfg.lookahead_m)
+        beyond = self._en[i + 1 : end_j + 1]
+        target = steering.lookahead_on_path(start, end, p, cfg.lookahead_m, beyond)
+        curvature, alpha = steering.pure_pursuit_curvature(p, heading_rad, target)
+        pivot = steering.pivot_update(self._pivoting, alpha, self._pivot_rad, self._resume_rad)
+        if pivot:
+            return alpha, None, None, True
+        # slow for each waypoint within approach_m along the path, to its corner speed
+        r = math.hypot(de, dn)
+        speed = cfg.cruise_pct
+        j = i
+        while j < n:
+            d = r + self._cum_m[j] - self._cum_m[i]
+            if d >= cfg.approach_m:
+                break
+            corner: float | None = None  # the last waypoint, or the path ends here: stop
+            if j + 1 < n and self._dir_out[j] is not None:
+                corner = steering.corner_speed_pct(
+                    self._turn[j], cfg.cruise_pct, cfg.min_speed_pct, self._pivot_rad
+                )
+            v = steering.approach_speed_pct(
+                d, cfg.cruise_pct, cfg.approach_m, cfg.min_speed_pct, corner
+            )
+            speed = min(speed, v)
+            j += 1
+        return alpha, curvature, speed, False
+
+    def _straight_run_end(self, i: int, within_m: float = math.inf) -> int:
+        """The last waypoint of the straight run from waypoint ``i``: the path goes straight
+        on (``steering.STRAIGHT_ON_DEG``) through every waypoint before it, and keeps within
+        that angle of its direction into ``i``; ``within_m``: no further than this along
+        the path from ``i`` (m). ``i`` itself at a corner or the end."""
+        n = len(self._en)
+        ref = self._dir_in[i] if self._dir_in[i] is not None else self._dir_out[i]
+        straight_on = math.radians(steering.STRAIGHT_ON_DEG)
+        j = i
+        while j + 1 < n and self._cum_m[j] - self._cum_m[i] < within_m:
+            out = self._dir_out[j]
+            if (
+                out is None
+                or ref is None
+                or self._turn[j] > straight_on
+                or abs(wrap_rad(out - ref)) > straight_on
+            ):
+                break
+            j += 1
+        return j
+
+    @property
+    def course_index(self) -> int:
+        """The waypoint the current leg leads to for a watch over the whole leg (the
+        controller's off-course checks): in pivot_arc, the end of the straight run from the
+        current waypoint (:meth:`_straight_run_end`), so a recorded track's points 1-3 m
+        apart on a straight are one leg, as a single waypoint would be; otherwise (and
+        before the first decision, or when done) :attr:`index`."""
+        if self.done or not self._turn:
+            return self._index
+        return self._straight_run_end(self._index)
+
+    def passed_on_track(self, lat_deg: float, lon_deg: float) -> bool:
+        """pivot_arc: is the point (e.g. the latest GPS fix) past the current waypoint along
+        the track, where the path goes straight on through it (``steering.STRAIGHT_ON_DEG``):
+        on or beyond the line through it perpendicular to its segment, or past it along the
+        path that follows? False at a corner, the last waypoint, in paper steering and
+        before the first decision. The controller's GPS check of an EKF arrival accepts
+        this as well as a fix near the waypoint: a robot that passed a track point a few
+        metres to the side must not turn round for it (a corner and the last waypoint keep
+        the distance rule)."""
+        i = self._index
+        if self._ltp is None or self.done or not self._turn or self._seg_start is None:
+            return False
+        out = self._dir_out[i]
+        if i + 1 >= len(self._en) or out is None:
+            return False
+        if self._turn[i] > math.radians(steering.STRAIGHT_ON_DEG):
+            return False
+        e, n = self._ltp.to_xy(lat_deg, lon_deg)
+        f = (float(e), float(n))
+        w = self._en[i]
+        if steering.passed_line(self._seg_start, w, f):
+            return True
+        return (f[0] - w[0]) * math.sin(out) + (f[1] - w[1]) * math.cos(out) >= 0.0
+
+    def _behind(self, i: int, p: tuple[float, float], heading_rad: float, behind_m: float) -> bool:
+        """Waypoint ``i`` (with more after it) where the path goes straight on
+        (``steering.STRAIGHT_ON_DEG``; also a first waypoint within ``behind_m`` of where the
+        mission started, whatever the first leg's direction) lies behind the robot within
+        ``behind_m`` and the robot is past it along the path: reached (see ``BEHIND_M``). A
+        corner or a reversal further on is not: the robot drives to it as the mission says."""
+        out = self._dir_out[i]
+        if i + 1 >= len(self._en) or out is None:
+            return False
+        if self._turn[i] > math.radians(steering.STRAIGHT_ON_DEG) and not (
+            i == 0 and math.dist(self._en[0], self._first_start) <= behind_m
+        ):
+            return False
+        w = self._en[i]
+        de, dn = w[0] - p[0], w[1] - p[1]
+        if math.hypot(de, dn) > behind_m:
+            return False
+        if de * math.sin(heading_rad) + dn * math.cos(heading_rad) > 0.0:
+            return False  # ahead of the robot: it drives there
+        return -de * math.sin(out) - dn * math.cos(out) >= 0.0
+
     def _step_pivot_arc(
-        self, x_m: float, y_m: float, heading_rad: float, may_arrive: bool = True
+        self, x_m: float, y_m: float, heading_rad: float, may_arrive: bool, behind_m: float
     ) -> NavState:
         cfg = self.config
         i = self._index
@@ -296,6 +506,8 @@ class Navigator:
         p = self.true_en(x_m, y_m)
         if self._seg_start is None:
             self._seg_start = p  # the first leg starts where the mission's first decision was
+            self._first_start = p
+            self._path_shape(p, behind_m)
         start, end = self._seg_start, self._en[i]
         de, dn = end[0] - p[0], end[1] - p[1]
         final = self._final_bearing_rad[i]
@@ -308,13 +520,23 @@ class Navigator:
             arrived_by = "windows"
         elif steering.passed_line(start, end, p):
             arrived_by = "passed"
+        elif self._behind(i, p, heading_rad, behind_m):
+            arrived_by = "behind"
         if arrived_by:
             self._index += 1
             self._seg_start = end
             self._pivoting = False
             state = NavState.MISSION_DONE if self.done else NavState.ARRIVED
+            alpha = curvature = speed = None
+            if not self.done:
+                # drive on into the next leg unless it starts with a pivot (then stop for
+                # this decision, and the next one pivots)
+                a, k, v, pivot = self._steer(self._index, p, heading_rad)
+                if not pivot:
+                    alpha, curvature, speed = a, k, v
             self.last = NavDecision(
                 state, i, dx, dy, dist, None, heading_rad, None,
+                curvature_per_m=curvature, speed_pct=speed, steer_alpha_rad=alpha,
                 true_de_m=de, true_dn_m=dn, arrived_by=arrived_by,
             )  # fmt: skip
             return state
@@ -322,24 +544,9 @@ class Navigator:
         if dist > 0.0:
             phi_i = float(geo.destination_bearing(x_m, y_m, xi, yi))
             theta = float(geo.course_deviation(phi_i, heading_rad))
-        curvature = speed = None
-        if windows and bearing_err is not None:
-            # In the windows, final bearing not met: turn in place towards it.
-            alpha = bearing_err
-            self._pivoting = True
-        else:
-            target = steering.lookahead_point(start, end, p, cfg.lookahead_m)
-            curvature, alpha = steering.pure_pursuit_curvature(p, heading_rad, target)
-            self._pivoting = steering.pivot_update(
-                self._pivoting, alpha, self._pivot_rad, self._resume_rad
-            )
-            if not self._pivoting:
-                speed = steering.approach_speed_pct(
-                    math.hypot(de, dn), cfg.cruise_pct, cfg.approach_m, cfg.min_speed_pct
-                )
+        alpha, curvature, speed, self._pivoting = self._steer(i, p, heading_rad)
         if self._pivoting:
             state = NavState.TURN_RIGHT if alpha > 0 else NavState.TURN_LEFT
-            curvature = None
         else:
             state = NavState.STRAIGHT
         self.last = NavDecision(

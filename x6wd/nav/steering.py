@@ -1,7 +1,8 @@
 """Skid-steer geometry for the ``pivot_arc`` steering mode (docs/navigation.md, "Steering and
-arrival"): pivot hysteresis, the pure-pursuit lookahead point and curvature, the waypoint's
-"passed" line, eq. 7's windows in true metres, the approach speed and the mixing of a
-curvature into left/right percentages.
+arrival"): pivot hysteresis, the pure-pursuit lookahead point (on a segment, or carried on
+along the path past waypoints the path goes straight on through) and curvature, the
+waypoint's "passed" line, eq. 7's windows in true metres, the path's turn at a waypoint,
+the approach and corner speeds and the mixing of a curvature into left/right percentages.
 
 Plain functions of plain floats, no state and no clock. Plane coordinates are east/north in
 TRUE metres (a local tangent plane, :class:`x6wd.nav.geo.LocalTangentPlane`), bearings and
@@ -12,6 +13,7 @@ right-hand turn, the sign of the paper's Θ).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 from x6wd.core.geodesy import wrap_rad
 
@@ -19,6 +21,18 @@ Point = tuple[float, float]
 """(east_m, north_m) in a true-metre plane."""
 
 _DEGENERATE_M = 1e-6
+
+STRAIGHT_ON_DEG = 20.0
+"""A waypoint where the path turns by at most this (deg) is one the robot drives through:
+no slowing down for it, no stop at its arrival, and the pure-pursuit lookahead carries on
+past it along the path (a recorded track's points, 1-3 m apart on a straight or gently
+bending path). Beyond it the corner speed falls linearly to ``min_speed_pct`` at the pivot
+angle (docs/navigation.md, "Closely spaced waypoints")."""
+TURN_CHORD_M = 5.0
+"""The path's direction into and out of a waypoint is the chord over this much path (m)
+either side of it, not the single legs: with points 1-3 m apart a corner rounded over
+several of them still shows its whole turn, and a point a metre off the line does not
+look like a corner."""
 
 
 def pivot_update(pivoting: bool, theta_rad: float, pivot_rad: float, resume_rad: float) -> bool:
@@ -108,19 +122,109 @@ def pure_pursuit_curvature(p: Point, heading_rad: float, target: Point) -> tuple
     return 2.0 * math.sin(alpha) / d, alpha
 
 
+def lookahead_on_path(
+    start: Point, end: Point, p: Point, lookahead_m: float, beyond: Sequence[Point] = ()
+) -> Point:
+    """:func:`lookahead_point`, except that where that point would lie beyond ``end`` it
+    carries on along the polyline ``end`` -> ``beyond[0]`` -> ``beyond[1]`` ... by the same
+    distance (measured along the path), never past the last of them. With ``beyond`` empty
+    it is :func:`lookahead_point`. Metres."""
+    if not (lookahead_m > 0.0):
+        raise ValueError(f"lookahead_m must be positive, got {lookahead_m!r}")
+    ue, un = end[0] - start[0], end[1] - start[1]
+    seg = math.hypot(ue, un)
+    if seg < _DEGENERATE_M:
+        s = math.hypot(p[0] - end[0], p[1] - end[1])
+        s = lookahead_m - s if s < lookahead_m else 0.0  # what is left of the lookahead
+    else:
+        along, cross = along_cross_m(start, end, p)
+        ahead = (
+            math.sqrt(lookahead_m * lookahead_m - cross * cross)
+            if abs(cross) < lookahead_m
+            else 0.0
+        )
+        s = along + ahead  # relative to end
+        if s <= 0.0 or not beyond:
+            s = min(s, 0.0)
+            return end[0] + s * ue / seg, end[1] + s * un / seg
+    cur = end
+    for q in beyond:
+        leg = math.hypot(q[0] - cur[0], q[1] - cur[1])
+        if s <= leg:
+            if leg < _DEGENERATE_M:
+                return q
+            f = s / leg
+            return cur[0] + f * (q[0] - cur[0]), cur[1] + f * (q[1] - cur[1])
+        s -= leg
+        cur = q
+    return cur
+
+
+def point_along(points: Sequence[Point], index: int, distance_m: float) -> Point:
+    """The point ``distance_m`` along the polyline ``points`` from ``points[index]``: forward
+    (towards the end) for a positive distance, backward for a negative one; the polyline's
+    first or last point when it is shorter than that. Metres."""
+    step = 1 if distance_m >= 0.0 else -1
+    left = abs(distance_m)
+    cur = points[index]
+    k = index + step
+    while 0 <= k < len(points):
+        q = points[k]
+        leg = math.hypot(q[0] - cur[0], q[1] - cur[1])
+        if left <= leg and leg >= _DEGENERATE_M:
+            f = left / leg
+            return cur[0] + f * (q[0] - cur[0]), cur[1] + f * (q[1] - cur[1])
+        left -= leg
+        cur = q
+        k += step
+    return cur
+
+
+def chord_bearing_rad(frm: Point, to: Point) -> float | None:
+    """:func:`bearing_rad` of a chord, or None when it is shorter than
+    ``TURN_CHORD_M / 10`` (no direction to speak of)."""
+    if math.hypot(to[0] - frm[0], to[1] - frm[1]) < 0.1 * TURN_CHORD_M:
+        return None
+    return bearing_rad(frm, to)
+
+
+def corner_speed_pct(
+    turn_rad: float, cruise_pct: float, min_speed_pct: float, pivot_rad: float
+) -> float:
+    """Speed (%) to pass a waypoint where the path turns by ``turn_rad``: ``cruise_pct`` up
+    to ``STRAIGHT_ON_DEG``, ``min_speed_pct`` from the pivot angle ``pivot_rad`` on (the
+    robot stops and pivots there), linear in between; never over ``cruise_pct``."""
+    floor = min(min_speed_pct, cruise_pct)
+    t = abs(turn_rad)
+    straight = math.radians(STRAIGHT_ON_DEG)
+    if t <= straight:
+        return cruise_pct
+    if t >= pivot_rad:
+        return floor
+    return cruise_pct - (cruise_pct - floor) * (t - straight) / (pivot_rad - straight)
+
+
 def in_windows(de_m: float, dn_m: float, delta_x_m: float, delta_y_m: float) -> bool:
     """Eq. 7's position windows: ``|de| <= Δx`` and ``|dn| <= Δy`` (true metres east, north)."""
     return abs(de_m) <= delta_x_m and abs(dn_m) <= delta_y_m
 
 
 def approach_speed_pct(
-    distance_m: float, cruise_pct: float, approach_m: float, min_speed_pct: float
+    distance_m: float,
+    cruise_pct: float,
+    approach_m: float,
+    min_speed_pct: float,
+    corner_pct: float | None = None,
 ) -> float:
     """Drive speed (%) ``distance_m`` from the waypoint: ``cruise_pct`` beyond ``approach_m``,
-    then falling linearly with the distance, never under ``min_speed_pct`` (nor over cruise)."""
+    then falling linearly with the distance, never under ``min_speed_pct`` (nor over cruise).
+    ``corner_pct`` (:func:`corner_speed_pct`, an intermediate waypoint the path turns at by
+    less than the pivot angle) raises that floor: the robot slows only to the speed it may
+    pass the waypoint at; None is a stop there (the last waypoint, a pivot)."""
     if approach_m <= 0.0 or distance_m >= approach_m:
         return cruise_pct
-    return min(cruise_pct, max(min_speed_pct, cruise_pct * distance_m / approach_m))
+    floor = min_speed_pct if corner_pct is None else max(min_speed_pct, corner_pct)
+    return min(cruise_pct, max(floor, cruise_pct * distance_m / approach_m))
 
 
 def skid_mix(curvature_per_m: float, speed_pct: float, track_m: float) -> tuple[float, float]:
