@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import require_program
+from tests.conftest import self_signed_cert
 from tests.test_daemon import Running, hil_config, wait_for
 from tests.test_server import LoopThread, Raw, RecordingBackend, start_server
 from x6wd.app.daemon import Daemon
@@ -89,14 +89,7 @@ def test_the_server_tells_every_connection_it_shuts_down(lt: LoopThread, tmp_pat
     """The notice (id null, code closed, reason shutdown) after the replies still queued;
     plain TCP and TLS; `watch` and `drive` say "the robot's daemon shut down", exit 3, and
     no TLS hint."""
-    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
-    subprocess.run(
-        [require_program("openssl"), "req", "-x509", "-newkey", "rsa:2048", "-nodes",
-         "-days", "2", "-subj", "/CN=localhost",
-         "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1",
-         "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True,
-    )  # fmt: skip
+    cert, key = self_signed_cert(tmp_path)
     for tls in (False, True):
         backend = RecordingBackend()
         ctx = server_ssl_context(str(cert), str(key)) if tls else None
@@ -194,12 +187,7 @@ def test_watch_and_drive_say_the_daemon_shut_down(robot: Running) -> None:
 
 def test_the_tls_hint_is_kept_for_a_plain_client_on_a_tls_port(tmp_path: Path) -> None:
     """The hint is for what it was meant for: a connection closed before any reply."""
-    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
-    subprocess.run(
-        [require_program("openssl"), "req", "-x509", "-newkey", "rsa:2048", "-nodes",
-         "-days", "2", "-subj", "/CN=localhost", "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True,
-    )  # fmt: skip
+    cert, key = self_signed_cert(tmp_path)
     lt = LoopThread()
     try:
         srv = start_server(

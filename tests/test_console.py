@@ -20,7 +20,6 @@ import signal
 import socket
 import ssl
 import struct
-import subprocess
 import threading
 import time
 import zlib
@@ -37,7 +36,7 @@ from selenium.webdriver.common.action_chains import ActionChains
 from selenium.webdriver.common.by import By
 from selenium.webdriver.common.keys import Keys
 
-from tests.conftest import ROOT, require_program
+from tests.conftest import ROOT, require_program, self_signed_cert
 from tests.test_daemon import Running, hil_config, wait_for
 from tests.test_startup import assert_config_error, run_x6wd, write_config
 from x6wd.app.client import RemoteClient, RequestFailed
@@ -93,15 +92,7 @@ def console_config(
         path.chmod(0o600)
         server = dataclasses.replace(server, token_file=str(path))
     if tls:
-        cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
-        subprocess.run(
-            [require_program("openssl"), "req", "-x509", "-newkey", "rsa:2048", "-nodes",
-             "-days", "2", "-subj", "/CN=localhost",
-             "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1",
-             "-keyout", str(key), "-out", str(cert)],
-            check=True, capture_output=True,
-        )  # fmt: skip
-        key.chmod(0o600)
+        cert, key = self_signed_cert(tmp_path)
         server = dataclasses.replace(server, tls_cert=str(cert), tls_key=str(key))
     return dataclasses.replace(cfg, server=server)
 

@@ -34,7 +34,7 @@ from typing import Any
 import aiohttp
 import pytest
 
-from tests.conftest import require_program
+from tests.conftest import self_signed_cert
 from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
 from x6wd.app.console.server import ConsoleServer
 from x6wd.app.server import ControlServer, server_ssl_context
@@ -50,15 +50,8 @@ def tls_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Pat
     """A throwaway self-signed certificate for localhost/127.0.0.1, its key, and a token
     file (mode 600, as the daemon and the client require)."""
     d = tmp_path_factory.mktemp("tls")
-    cert, key, token = d / "cert.pem", d / "key.pem", d / "token"
-    subprocess.run(
-        [require_program("openssl"), "req", "-x509", "-newkey", "rsa:2048", "-nodes",
-         "-days", "2", "-subj", "/CN=localhost",
-         "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1",
-         "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True,
-    )  # fmt: skip
-    key.chmod(0o600)
+    cert, key = self_signed_cert(d)
+    token = d / "token"
     token.write_text(TOKEN + "\n")
     token.chmod(0o600)
     return cert, key, token
