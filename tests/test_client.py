@@ -133,6 +133,51 @@ def test_drive_holds_its_connection_and_ctrl_c_stops_the_robot(served, token_fil
     assert [n for n, _ in backend.calls] == ["drive", "drive", "stop"]
 
 
+class SlowDriveBackend(RecordingBackend):
+    """A robot that takes its time to confirm a drive it has already started."""
+
+    async def drive(self, left_pct: float, right_pct: float, duration_s: float) -> dict[str, Any]:
+        import asyncio
+
+        reply = super().drive(left_pct, right_pct, duration_s)
+        await asyncio.sleep(1.0)
+        return reply
+
+
+def test_ctrl_c_before_the_drive_is_confirmed_stops_the_robot_too(token_file: Path) -> None:
+    """Ctrl-C while the drive's reply is on its way (the motors already run): the client
+    sends ``stop`` and says so, rather than leaving with exit 130 and no stop (CI saw this
+    on a loaded machine: the daemon's dead-man stopped the motors, the client claimed it)."""
+    import signal
+    import time
+
+    lt = LoopThread()
+    backend = SlowDriveBackend()
+    srv = start_server(lt, backend, token=TOKEN.encode())
+    cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(srv.port)]
+    proc = subprocess.Popen(
+        [*cmd, "--token-file", str(token_file), "drive", "30", "30", "20"],
+        stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 20
+        while not backend.calls:
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)  # the drive's reply is a second away
+        _, stderr = proc.communicate(timeout=10)
+        time.sleep(0.2)  # the server sees the close
+        stops = srv.server_stats()["stops"]
+    finally:
+        proc.kill()
+        lt.run(srv.close())
+        lt.close()
+    assert proc.returncode == 130 and "stop sent" in stderr, stderr
+    assert [n for n, _ in backend.calls] == ["drive", "stop"]
+    assert stops["orphaned"] == 0, stops  # the client's stop, not the dead-man's
+
+
 def test_drive_reports_a_robot_stopped_early_or_a_server_gone(token_file: Path) -> None:
     """Another operator's stop mid-drive: exit 1, 'ended early'; the server going away:
     exit 3. Neither is 'drive: ok'."""

@@ -491,11 +491,11 @@ def _hold_drive(client: RemoteClient, reply: dict[str, Any], err: TextIO) -> int
     acknowledged (the connection's close alone would stop it too); a stop the robot refused
     or did not answer is said as such, never "stop sent", and is :data:`EXIT_REFUSED` or
     :data:`EXIT_CONNECTION`. A connection lost meanwhile raises :class:`ConnectionFailed`."""
-    duration_s = reply.get("duration_s")
-    if not isinstance(duration_s, (int, float)) or not 0.0 < duration_s <= 3600.0:
-        raise ProtocolError(f"'drive' reply without a usable duration_s: {duration_s!r:.60}")
-    end = time.monotonic() + float(duration_s)
     try:
+        duration_s = reply.get("duration_s")
+        if not isinstance(duration_s, (int, float)) or not 0.0 < duration_s <= 3600.0:
+            raise ProtocolError(f"'drive' reply without a usable duration_s: {duration_s!r:.60}")
+        end = time.monotonic() + float(duration_s)
         while (left_s := end - time.monotonic()) > 0.0:
             time.sleep(min(HOLD_POLL_S, left_s))
             mode = client.request("status").get("mode")
@@ -749,9 +749,12 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
                 pairs = [[w.lat_deg, w.lon_deg] for w in waypoints]
                 reply = client.request("mission.load", waypoints=pairs)
             elif action == "drive":
-                reply = client.request(
-                    "drive", left=args.left, right=args.right, duration_s=args.seconds
-                )
+                try:  # a Ctrl-C while the robot takes the drive stops it too, said so
+                    reply = client.request(
+                        "drive", left=args.left, right=args.right, duration_s=args.seconds
+                    )
+                except KeyboardInterrupt:
+                    return _interrupted_stop(client, err)
                 held = _hold_drive(client, reply, err)
                 if held is not None:
                     return held
