@@ -98,8 +98,15 @@ def test_bad_input_and_refusals_give_clear_messages(
     assert r.returncode == 2 and "cannot read" in r.stderr
     r = client(srv.port, "load", "--wp", "51.0;-1.0", token=token_file)
     assert r.returncode == 2 and "LAT,LON" in r.stderr
-    r = client(srv.port, "drive", "150", "0", "1", token=token_file)
-    assert r.returncode == 1 and "bad_request (bad_argument)" in r.stderr and "left" in r.stderr
+    for args, said in (
+        (("150", "0", "1"), "left: must be within -100..100 %, got 150"),
+        (("0", "-100.5", "1"), "right: must be within -100..100 %, got -100.5"),
+        (("10", "10", "3601"), "seconds: must be a finite number of seconds, > 0 and at most"),
+    ):  # bad input, found by the client and never sent: exit 2, as for NaN
+        r = client(srv.port, "drive", *args, token=token_file)
+        assert r.returncode == 2 and said in r.stderr, r.stderr
+    r = client(srv.port, "drive", "-100", "100", "0.2", token=token_file)  # the bounds themselves
+    assert r.returncode == 0, r.stderr
     r = client(srv.port, "drive", "20", "-20", "1.5", token=token_file)
     assert r.returncode == 0, r.stderr
 

@@ -440,13 +440,28 @@ def _finite(text: str) -> float:
     return v
 
 
+DRIVE_PCT_MAX = 100.0  # the protocol's bound on a side's command (%), either way
+DRIVE_S_MAX = 3600.0  # the protocol's longest drive (s)
+
+
+def _drive_pct(text: str) -> float:
+    """An argparse type: a side's command, -100..100 % (outside it is bad input, found here
+    and never sent, as for NaN: exit 2, not the robot's refusal, exit 1)."""
+    v = _finite(text)
+    if abs(v) > DRIVE_PCT_MAX:
+        raise argparse.ArgumentTypeError(f"must be within -100..100 %, got {text}")
+    return v
+
+
 def _positive_s(text: str) -> float:
     try:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0, got {text}")
+    if not (math.isfinite(v) and 0 < v <= DRIVE_S_MAX):
+        raise argparse.ArgumentTypeError(
+            f"must be a finite number of seconds, > 0 and at most {DRIVE_S_MAX:g}, got {text}"
+        )
     return v
 
 
@@ -612,9 +627,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="manual drive for a limited time; the robot stops when this program ends "
         "(dead-man: Ctrl-C stops it at once)",
     )
-    p.add_argument("left", type=_finite, help="left side, -100..100 %%")
-    p.add_argument("right", type=_finite, help="right side, -100..100 %%")
-    p.add_argument("seconds", type=_positive_s, help="duration in s (> 0)")
+    p.add_argument("left", type=_drive_pct, help="left side, -100..100 %%")
+    p.add_argument("right", type=_drive_pct, help="right side, -100..100 %%")
+    p.add_argument("seconds", type=_positive_s, help="duration in s (> 0, at most 3600)")
     p = sub.add_parser(
         "watch", help="live one-screen view (--json: one JSON object per line, for programs)"
     )
