@@ -598,3 +598,51 @@ def test_the_compass_refusal_watch_is_off_at_zero() -> None:
     rng = np.random.default_rng(3)
     assert drive_north(c, 2.0, 15.0, lambda t: float(rng.uniform(0.0, 360.0))) is None
     assert "compass_untrusted" not in c.telemetry.extra
+
+
+# ------------------------------------------------------------------ position jump
+
+
+def drive_north_fixes_off(
+    c: Controller, t0_s: float, seconds: float, east_m: float
+) -> float | None:
+    """:func:`drive_north` with every fix ``east_m`` to the east of the robot (a receiver
+    back somewhere else): the time the mission left RUNNING, else None."""
+    for k in range(1, round(10 * seconds) + 1):
+        t = t0_s + 0.1 * k
+        counts = round((t - 2.0) * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t, 0.0))
+        if k % 10 == 0:
+            c.on_fix(fix(t, east_m, t - 2.0))
+        if c.mode != Mode.RUNNING:
+            return t
+    return None
+
+
+@pytest.mark.parametrize("east_m", [112.0, 30.0])
+def test_a_position_jump_the_ekf_takes_pauses_the_mission(east_m: float) -> None:
+    """An outside HIL audit: the GPS came back 112 m away (another device on the port); the
+    EKF refused the fixes until they agreed, moved to them, and the robot resumed on its
+    own and drove 27 m the wrong way until the off-course watch paused it. A jump of
+    ``gps_jump_m`` or more now pauses the mission at the reset, motors stopped, naming it."""
+    c = ekf_driving_north(FS)
+    assert drive_north(c, 2.0, 10.0, lambda t: 0.0) is None
+    t_paused = drive_north_fixes_off(c, 12.0, 30.0, east_m)
+    assert t_paused is not None and t_paused <= 12.0 + 12.0  # the reset after 8 refusals
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    why = c.telemetry.extra["failsafe"]
+    assert why.startswith(f"position jumped {east_m:.0f} m: "), why
+    assert c.telemetry.extra["ekf_gps_resets"] == 1
+    assert c.telemetry.extra["ekf_last_reset_m"] == pytest.approx(east_m, abs=3.0)
+    c.resume(t_paused + 1.0)  # the operator looked: it drives on from the new position
+    assert drive_north_fixes_off(c, t_paused + 1.0, 10.0, east_m) is None
+
+
+def test_a_jump_under_gps_jump_m_or_with_the_check_off_drives_on() -> None:
+    for fs, east_m in ((FS, 15.0), (replace(FS, gps_jump_m=0.0), 112.0)):
+        c = ekf_driving_north(fs)
+        assert drive_north(c, 2.0, 10.0, lambda t: 0.0) is None
+        assert drive_north_fixes_off(c, 12.0, 15.0, east_m) is None, (fs, east_m)
+        assert c.telemetry.extra["ekf_gps_resets"] == 1
+        assert "failsafe" not in c.telemetry.extra

@@ -247,7 +247,11 @@ class FailsafeConfig:
     ``off_course_m`` farther from the target than the leg's closest, or the fixes' course
     ``heading_check_deg`` from the heading steered by (``off_course_action``); the EKF
     refused half or more of the compass readings over ``compass_refused_s`` (0: off;
-    always a pause: a return needs the heading it cannot trust)."""
+    always a pause: a return needs the heading it cannot trust); the position jumped
+    ``gps_jump_m`` or more at once: the EKF moved to fixes it had refused until they agreed
+    (a receiver that came back somewhere else, another device on the port, a robot carried;
+    0: off; always a pause: the operator looks before the robot drives on either
+    position)."""
 
     geofence_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
     operator_timeout_s: float = field(default=0.0, metadata=_rng(0, 3600))
@@ -264,6 +268,8 @@ class FailsafeConfig:
     off_course_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
     # compass untrusted, from the EKF's refusals (x6wd/nav/compass_trust.py); 0: off
     compass_refused_s: float = field(default=10.0, metadata=_rng(0, 600))
+    # the EKF's position reset by this much or more at once (m); 0: off
+    gps_jump_m: float = field(default=25.0, metadata=_rng(0, 100_000))
 
 
 @dataclass(frozen=True)

@@ -214,6 +214,7 @@ class Controller:
         self._failsafe_why = ""  # the last failsafe that acted (telemetry)
         self._operator_t: float | None = None  # latest operator request (s), when watched
         self._hold_since: float | None = None  # a sensor hold began (s)
+        self._jump_m: float | None = None  # the source's position jump since the last check (m)
         # the stuck failsafe's last progress: (wheel m, t_s) and (lat, lon, bearing, t_s,
         # wheel m)
         self._stuck_wheels: tuple[float, float] | None = None
@@ -322,6 +323,9 @@ class Controller:
         self._fix_ok = ok
         if ok:
             self._source.on_fix(fix)
+            jump_m = self._source.take_jump_m()
+            if jump_m is not None and self._mode == Mode.RUNNING:  # for its failsafe check
+                self._jump_m = jump_m if self._jump_m is None else max(self._jump_m, jump_m)
             self._wheel_at_fix = self._wheel_m
             self._commanded_at_fix = self._commanded_m
             self._valid_fix_t = t if self._valid_fix_t is None else max(self._valid_fix_t, t)
@@ -638,6 +642,15 @@ class Controller:
             blocked = self._blocked_at_commanded_bound(now)
             if blocked is not None:
                 return blocked
+        jump_m, self._jump_m = self._jump_m, None
+        if fs.gps_jump_m > 0 and jump_m is not None and jump_m >= fs.gps_jump_m:
+            # farther than the robot can have driven unseen: the operator looks before it
+            # drives on either position (a return would trust the new one too)
+            return (
+                f"position jumped {jump_m:.0f} m: the fixes disagreed with the estimate until"
+                " it moved to them (GPS back somewhere else, or the robot carried?)",
+                "hold",
+            )
         if hold:
             return None
         untrusted = self._trust.verdict(now)

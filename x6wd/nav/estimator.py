@@ -388,6 +388,7 @@ class EstimatorStats:
     gps_resets: int = 0
     odometry_runaway_resets: int = 0  # of gps_resets: refused fixes that agreed with a steady drift
     gps_consecutive_rejected: int = 0
+    last_reset_m: float = 0.0  # how far the latest reset moved the position (m)
     compass_accepted: int = 0
     compass_rejected: int = 0
     compass_resets: int = 0
@@ -830,6 +831,7 @@ class Estimator:
                 self._gps_refused.clear()
                 self.stats.gps_resets += 1
                 self.stats.gps_consecutive_rejected = 0
+                self.stats.last_reset_m = math.hypot(ze - x[E], zn - x[N])
                 self._reset_position(ze, zn, white_var)
                 return Update(True, nis, "reset")
             self.stats.gps_rejected += 1

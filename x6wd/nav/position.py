@@ -79,6 +79,10 @@ class PositionSource(Protocol):
     def extra(self) -> dict[str, Any]:
         """Figures for the telemetry's ``extra``."""
 
+    def take_jump_m(self) -> float | None:
+        """How far (m) the source moved its position at once since last asked, to fixes it
+        had refused until they agreed (the EKF's reset), or None: not since then."""
+
 
 class RawSource:
     """The latest valid fix, as it came."""
@@ -113,6 +117,9 @@ class RawSource:
 
     def extra(self) -> dict[str, Any]:
         return {}
+
+    def take_jump_m(self) -> float | None:
+        return None  # every fix is taken as it comes: no estimate of its own to jump
 
 
 class ConstellationSource(RawSource):
@@ -215,6 +222,7 @@ class EkfSource:
         self._decl = declination_deg
         self._plane: LocalTangentPlane | None = None
         self._ekf: ekf.Estimator | None = None
+        self._jump_m: float | None = None  # the largest reset since take_jump_m last asked
         self._counts: tuple[int, int] | None = None
         self._odo_t: float | None = None
         self.odometry_dropped = 0
@@ -248,7 +256,13 @@ class EkfSource:
         assert self._plane is not None
         e, n = self._plane.to_xy(fix.lat_deg, fix.lon_deg)
         hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else DEFAULT_HDOP
-        self._ekf.on_gps(fix.t_s, float(e), float(n), hdop)
+        if self._ekf.on_gps(fix.t_s, float(e), float(n), hdop).reason == "reset":
+            jump_m = self._ekf.stats.last_reset_m
+            self._jump_m = jump_m if self._jump_m is None else max(self._jump_m, jump_m)
+
+    def take_jump_m(self) -> float | None:
+        jump_m, self._jump_m = self._jump_m, None
+        return jump_m
 
     def on_compass(self, t_s: float, bearing_mag_deg: float) -> bool | None:
         if self._ekf is None:
@@ -315,6 +329,7 @@ class EkfSource:
         out: dict[str, Any] = {
             "ekf_gps_rejected": st.gps_rejected,
             "ekf_gps_resets": st.gps_resets,
+            "ekf_last_reset_m": st.last_reset_m,
             "ekf_odometry_runaway_resets": st.odometry_runaway_resets,
             "ekf_compass_rejected": st.compass_rejected,
         }
