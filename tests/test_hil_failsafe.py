@@ -396,6 +396,14 @@ def test_a_gps_without_fix_holds_then_pauses(tmp_path: Path, run_daemon, log_tai
         assert st["telemetry"]["extra"]["failsafe"] == "no valid fix for 3 s"
         wait_for(lambda: world.vehicle.command_pct == (0.0, 0.0), 3, "motors stopped")
         assert any("failsafe: no valid fix" in x for x in log_tail.tail(300))
+        # its link is healthy but it reports no position: status and the log say so (an
+        # outside audit saw "connected" and only info lines through a 40 s spell)
+        gps = st["devices"]["gps"]
+        assert st["links"]["gps"] == gps["state"] == "degraded", gps
+        assert gps["reason"].startswith("no valid fix for "), gps
+        lines = log_tail.tail(300)
+        assert any("WARNING" in x and "gps: no valid fix for" in x for x in lines), lines
+        assert any("WARNING" in x and "-> HOLD" in x for x in lines), lines
         c.request("stop")
     assert r.stop() == 0
 

@@ -768,3 +768,33 @@ def test_a_tick_at_the_time_of_an_odometry_reading_is_skipped() -> None:
     n = len(lp.observed)
     lp.runner.tick(1.5)
     assert len(lp.observed) == n
+
+
+def test_a_spell_without_a_valid_fix_is_a_warning_and_its_end_is_said(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """An outside audit: a receiver talking on with quality 0 for 40 s (its link healthy)
+    left only info lines in the log while the robot dead-reckoned and held. The spell is
+    now a warning after fix_stale_s, once, and its end an info line; entering a hold is a
+    warning too."""
+    lp = Loop()
+    with caplog.at_level(logging.INFO, logger="x6wd.loop.runner"):
+        lp.start_mission(north(50))
+        for k in range(1, 41):  # 4 s of invalid fixes at 10 Hz, the compass fresh
+            lp.now = 0.1 * k
+            lp.compass(0.0)
+            lp.fix(valid=False)
+        for k in range(41, 46):
+            lp.now = 0.1 * k
+            lp.compass(0.0)
+            lp.fix(1.0)
+    said = [(r.levelno, r.getMessage()) for r in caplog.records if r.name == "x6wd.loop.runner"]
+    no_fix = [(lv, m) for lv, m in said if m.startswith("gps: ")]
+    stale_s = lp.safety.fix_stale_s
+    assert len(no_fix) == 2, said
+    assert no_fix[0][0] == logging.WARNING and no_fix[0][1].startswith("gps: no valid fix for ")
+    assert float(no_fix[0][1].split()[5]) == pytest.approx(stale_s, abs=0.15)
+    assert no_fix[1][0] == logging.INFO and no_fix[1][1].startswith("gps: valid fix again after")
+    holds = [(lv, m) for lv, m in said if "-> HOLD" in m]
+    assert holds and all(lv == logging.WARNING for lv, _ in holds), said
+    assert any(lv == logging.INFO and "HOLD ->" in m for lv, m in said), said

@@ -1576,6 +1576,18 @@ class Daemon:
         if untrusted and comp is not None and comp["state"] == "connected":
             # its reader sees good registers; the EKF refuses what they say
             out["compass"] = {**comp, "state": "degraded", "reason": f"untrusted: {untrusted}"}
+        gps = out["gps"]
+        stale_s = self.config.safety.fix_stale_s
+        if gps is not None and gps["state"] == "connected" and tel is not None:
+            # the line is healthy, but what it says is "no position": the robot cannot use it
+            age_s = tel.fix_age_s
+            if age_s is None or age_s > stale_s:
+                since = "since start-up" if age_s is None else f"for {age_s:.0f} s"
+                out["gps"] = {
+                    **gps,
+                    "state": "degraded",
+                    "reason": f"no valid fix {since}: the receiver reports no position",
+                }
         out["odometry"] = self._odometry_status()
         return out
 

@@ -117,6 +117,8 @@ class Runner:
         self.last_telemetry: Telemetry | None = None
         self._compass_untrusted = False  # the controller's verdict, logged as it changes
         self._odometry_warned = False  # the wheels-vs-fixes warning, logged once
+        self._no_fix_since: float | None = None  # no valid fix from then (s; None: have one)
+        self._no_fix_warned = False  # "no valid fix" logged for the current spell
         self.first_fix: tuple[float, float] | None = None
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
         self.geofence_breaches = 0
@@ -407,6 +409,7 @@ class Runner:
                         log.warning("compass untrusted: %s", untrusted)
                     else:
                         log.info("compass trusted again: the EKF takes its readings")
+                self._watch_fix(out)
                 if not self._odometry_warned and "odometry_warning" in out.extra:
                     self._odometry_warned = True  # once: the count in it keeps rising
                     log.warning("odometry: %s", out.extra["odometry_warning"])
@@ -424,7 +427,15 @@ class Runner:
                     self._record("record_telemetry", out)
             elif type(out) is StateChange:
                 changes.append(out)
-                log.info("state %s -> %s %s", out.old, out.new, out.reason)
+                # into a hold or a failsafe's pause: a fault, logged as one (the way back: info)
+                fault = out.new == "HOLD" or out.reason.startswith("mode: failsafe")
+                log.log(
+                    logging.WARNING if fault else logging.INFO,
+                    "state %s -> %s %s",
+                    out.old,
+                    out.new,
+                    out.reason,
+                )
                 self._record("record_state", out)
                 if self._publish is not None:
                     self._publish(
@@ -435,6 +446,28 @@ class Runner:
                 self._on_state(change)
         if self._observe is not None:
             self._observe(outputs, important)
+
+    def _watch_fix(self, tel: Telemetry) -> None:
+        """Log a spell without a valid fix once, as a warning, after ``fix_stale_s`` (the
+        receiver may talk on, its link healthy, and report no position: searching, the sky
+        blocked), and its end: the robot holds or dead-reckons meanwhile, which the state
+        changes say, but not outside a mission."""
+        age_s = tel.fix_age_s
+        if age_s is not None and age_s <= self.safety.fix_stale_s:
+            if self._no_fix_warned and self._no_fix_since is not None:
+                log.info("gps: valid fix again after %.1f s without", tel.t_s - self._no_fix_since)
+            self._no_fix_since, self._no_fix_warned = None, False
+            return
+        if self._no_fix_since is None:
+            self._no_fix_since = tel.t_s if age_s is None else tel.t_s - age_s
+        if not self._no_fix_warned and tel.t_s - self._no_fix_since > self.safety.fix_stale_s:
+            self._no_fix_warned = True
+            log.warning(
+                "gps: no valid fix for %.1f s%s (the receiver reports no position: searching,"
+                " or the sky blocked)",
+                tel.t_s - self._no_fix_since,
+                " since start-up" if age_s is None else "",
+            )
 
 
 async def every(period_s: float, clock: Clock, step: Callable[[float], None]) -> None:
