@@ -328,4 +328,8 @@ def test_help_gives_the_defaults_of_stop_and_pass_length(
     argv = ["calibrate", "odometry"]
     assert option_help(argv, "--stop-s", capsys).endswith("at least this, s (default 1)")
     assert option_help(argv, "--min-pass-m", capsys).endswith("are ignored, m (default 2)")
-    assert option_help(argv, "--ref-sigma-m", capsys).endswith("(default 0.02: RTK)")
+    # an outside audit: the 0.02 m default claimed RTK for any fixes; now the fixes' quality's
+    assert option_help(argv, "--ref-sigma-m", capsys).endswith(
+        "(default: from the fixes' GGA quality: 0.02 for RTK fixed, 0.3 for RTK float; other "
+        "fixes are left out, and a recording without RTK fixes refused)"
+    )

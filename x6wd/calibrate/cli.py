@@ -13,7 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from x6wd.calibrate import gnss
-from x6wd.calibrate.odometry import NOISY_PASS, calibrate, load_track
+from x6wd.calibrate.odometry import NOISY_PASS, RTK_SIGMA_M, calibrate, load_track
 from x6wd.core import config as config_mod
 from x6wd.core.errors import ConfigError
 from x6wd.core.outdir import write_output_file
@@ -38,8 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     odo.add_argument(
         "--ref-sigma-m",
         type=float,
-        default=0.02,
-        help="standard deviation of one reference fix per axis, m (default 0.02: RTK)",
+        help="standard deviation of one reference fix per axis, m, and use every valid fix "
+        f"whatever its quality (default: from the fixes' GGA quality: {RTK_SIGMA_M[4]:g} for "
+        f"RTK fixed, {RTK_SIGMA_M[5]:g} for RTK float; other fixes are left out, and a "
+        "recording without RTK fixes refused)",
     )
     odo.add_argument(
         "--stop-s",
@@ -336,6 +338,8 @@ def main(args: argparse.Namespace) -> int:
     text = result.toml(
         f"x6wd calibrate odometry, {stamp}\nstraight: {args.straight}\ncircle: {args.circle}"
     )
+    for note in result.reference.notes():
+        print(f"x6wd calibrate: {note}", file=sys.stderr)
     if result.dropped_passes:
         print(
             f"x6wd calibrate: {result.dropped_passes} passes without reference fixes in the "

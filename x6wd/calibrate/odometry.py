@@ -2,9 +2,11 @@
 
 Inputs are flight recordings (:mod:`x6wd.core.recorder`) holding ``odometry`` records (the
 motor board's unwrapped encoder counts) and ``fix`` records that are the REFERENCE: a
-receiver good to centimetres (RTK) or the simulator's truth written as fixes. Their error is
-taken as independent between fixes with standard deviation ``ref_sigma_m`` per axis (a
-NEO-5 at metres is too coarse and, worse, correlated in time; see the report's SEs).
+receiver good to centimetres (RTK) or the simulator's truth written as fixes (GGA quality 4).
+Their error is taken as independent between fixes with standard deviation ``ref_sigma_m``
+per axis, by default from the fixes' GGA quality (:func:`choose_reference`): RTK fixed and
+float are a reference, anything else (a NEO-5's GPS fixes, metres and correlated in time)
+is refused unless ``ref_sigma_m`` is given.
 
 Both recordings are cut into PASSES: motion between stops of at least ``stop_s`` (no count
 changes). A pass's start and end points are the mean of the reference fixes during the stops
@@ -41,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,6 +72,7 @@ class Track:
     t_ref_s: Array
     east_m: Array
     north_m: Array
+    ref_quality: npt.NDArray[np.int64]  # each fix's GGA quality (4 RTK fixed, 1 GPS, ...)
     origin: tuple[float, float] = (0.0, 0.0)  # (lat_deg, lon_deg) of the plane
     skipped: int = 0  # recording lines or records that could not be read
 
@@ -97,7 +101,19 @@ class Track:
             t_ref_s=np.array([f.t_s for f in good], float),
             east_m=np.asarray(x, float),
             north_m=np.asarray(y, float),
+            ref_quality=np.array([f.quality for f in good], np.int64),
             origin=(lat0, lon0),
+        )
+
+    def fixes_of(self, qualities: tuple[int, ...]) -> Track:
+        """The track with only the reference fixes of these GGA qualities."""
+        keep = np.isin(self.ref_quality, qualities)
+        return dataclasses.replace(
+            self,
+            t_ref_s=self.t_ref_s[keep],
+            east_m=self.east_m[keep],
+            north_m=self.north_m[keep],
+            ref_quality=self.ref_quality[keep],
         )
 
 
@@ -152,7 +168,12 @@ def load_track(path: str | Path, origin: tuple[float, float] | None = None) -> T
                     continue
                 odo.append(typed)
             elif isinstance(typed, GpsFix):
-                if not _numbers(typed.t_s) or not _numbers(typed.lat_deg, typed.lon_deg, none=True):
+                if (
+                    not _numbers(typed.t_s)
+                    or not _numbers(typed.lat_deg, typed.lon_deg, none=True)
+                    or not isinstance(typed.quality, int)
+                    or isinstance(typed.quality, bool)
+                ):
                     malformed += 1
                     continue
                 fixes.append(typed)
@@ -168,6 +189,121 @@ def load_track(path: str | Path, origin: tuple[float, float] | None = None) -> T
     except ParseError as exc:
         raise ParseError(f"{path}: {exc}") from exc
     return dataclasses.replace(track, skipped=malformed + stats.bad_lines + stats.truncated)
+
+
+QUALITY_NAMES = {
+    0: "invalid or not recorded", 1: "GPS", 2: "DGPS", 3: "PPS", 4: "RTK fixed", 5: "RTK float",
+    6: "dead reckoning", 7: "manual input", 8: "simulation",
+}  # fmt: skip
+"""GGA fix quality (NMEA 0183) by number."""
+
+RTK_SIGMA_M = {4: 0.02, 5: 0.3}
+"""The reference's error per fix and axis (m) by GGA quality, for the qualities that are a
+reference. RTK fixed: centimetres (the simulator's truth is written as quality 4, with 2 cm
+of noise). RTK float: the carrier's ambiguities are not fixed, so decimetres (0.1-0.5 m once
+converged, more before): 0.3 m, the upper middle, so as not to flatter the standard errors.
+Anything else (GPS, DGPS: metres, correlated over minutes) is no reference for wheels
+measured to 0.1 mm: refused unless the user gives ``ref_sigma_m``."""
+
+
+def _quality_text(counts: Mapping[int, int]) -> str:
+    """'600 fixes of quality 1 (GPS), 3 of quality 2 (DGPS)'."""
+    parts = [
+        f"{n} {'fixes ' if i == 0 else ''}of quality {q} ({QUALITY_NAMES.get(q, 'unknown')})"
+        for i, (q, n) in enumerate(sorted(counts.items()))
+    ]
+    return ", ".join(parts)
+
+
+def _counts(quality: npt.NDArray[np.int64]) -> dict[int, int]:
+    values, n = np.unique(quality, return_counts=True)
+    return {int(q): int(c) for q, c in zip(values, n, strict=True)}
+
+
+@dataclass(frozen=True)
+class Reference:
+    """What the reference fixes are: the sigma per fix and axis (m) the standard errors
+    assume, whether the user gave it, the fixes used by GGA quality (both tracks), and per
+    track the fixes left out by quality (not RTK, with RTK ones to use instead)."""
+
+    sigma_m: float
+    given: bool
+    used: Mapping[int, int]
+    left_out: Mapping[str, Mapping[int, int]]
+
+    @property
+    def rtk(self) -> bool:
+        """Every fix used is RTK fixed or float."""
+        return all(q in RTK_SIGMA_M for q in self.used)
+
+    def summary(self) -> str:
+        """'sigma 0.02 m per fix (1488 fixes of quality 4 (RTK fixed))' and where the sigma
+        came from when given."""
+        how = " as given with --ref-sigma-m" if self.given else ""
+        return f"sigma {self.sigma_m:g} m per fix{how} ({_quality_text(self.used)})"
+
+    def notes(self) -> list[str]:
+        """What the user must know about the reference, one line each (stderr and the
+        fragment's comments): fixes left out, a float reference, a reference not RTK."""
+        lines = [
+            f"{name} recording: {_quality_text(n)} left out of the reference: not RTK "
+            "(only RTK fixed (4) and float (5) fixes are used unless --ref-sigma-m is given)"
+            for name, n in self.left_out.items()
+            if n
+        ]
+        if not self.rtk:
+            lines.append(
+                f"NOT A CALIBRATION: the reference is not RTK ({_quality_text(self.used)}), "
+                f"taken at the {self.sigma_m:g} m per fix given: such fixes are metres off, "
+                "the error correlated over minutes, so every estimate carries it and its "
+                "standard error need not show it (docs/odometry.md, 'Calibrating')"
+            )
+        elif 5 in self.used and not self.given:
+            lines.append(
+                f"{self.used[5]} reference fixes are RTK float (quality 5): sigma "
+                f"{self.sigma_m:g} m per fix, not RTK fixed's {RTK_SIGMA_M[4]:g}; wait for a "
+                "fixed solution for better estimates"
+            )
+        return lines
+
+
+def choose_reference(
+    straight: Track, circle: Track, ref_sigma_m: float | None = None
+) -> tuple[Track, Track, Reference]:
+    """The tracks with the fixes to use as the reference, and what that reference is.
+
+    ``ref_sigma_m`` None: the fixes' GGA quality decides. Only RTK fixed (4) and float (5)
+    fixes are used, the others left out and counted; the sigma is :data:`RTK_SIGMA_M` of
+    the worst quality used. A track with no RTK fix is refused (ConfigError naming the
+    qualities and counts): a NEO-5's metre-level, time-correlated error made diameters 4 %
+    high at 2 SEs (an outside audit, a HIL session) while the fragment claimed 2 cm.
+    ``ref_sigma_m`` given: the user says what the reference is; every valid fix is used.
+    """
+    tracks = {"straight": straight, "circle": circle}
+    if ref_sigma_m is not None:
+        if not (ref_sigma_m > 0 and math.isfinite(ref_sigma_m)):
+            raise ConfigError(f"ref_sigma_m must be > 0, got {ref_sigma_m!r}")
+        used = _counts(np.concatenate([t.ref_quality for t in tracks.values()]))
+        return straight, circle, Reference(ref_sigma_m, True, used, {})
+    rtk = tuple(RTK_SIGMA_M)
+    kept = {name: t.fixes_of(rtk) for name, t in tracks.items()}
+    none = [name for name, t in kept.items() if t.t_ref_s.size == 0]
+    if none:
+        which = "; ".join(f"{n}: {_quality_text(_counts(tracks[n].ref_quality))}" for n in none)
+        raise ConfigError(
+            f"the reference is not RTK ({which}; no fix of quality 4 (RTK fixed) or 5 (RTK "
+            "float)): such fixes are metres off, the error correlated over minutes, far too "
+            "coarse to measure the wheels (a HIL session's GPS fixes gave diameters 4 % high "
+            "under a header claiming a 2 cm reference). Record with an RTK receiver as the GPS "
+            "(in simulation: tools/calibration-runs writes the truth as RTK fixes), or give "
+            "--ref-sigma-m SIGMA to take these fixes at SIGMA m per fix anyway"
+        )
+    used = _counts(np.concatenate([t.ref_quality for t in kept.values()]))
+    left_out = {
+        name: _counts(t.ref_quality[~np.isin(t.ref_quality, rtk)]) for name, t in tracks.items()
+    }
+    sigma = max(RTK_SIGMA_M[q] for q in used)
+    return kept["straight"], kept["circle"], Reference(sigma, False, used, left_out)
 
 
 @dataclass(frozen=True)
@@ -482,8 +618,13 @@ class OdometryCalibration:
     k_right_m: Estimate
     straight: StraightResult
     circle: CircleResult
-    ref_sigma_m: float
+    reference: Reference
     dropped_passes: int  # without reference fixes in the stops around them (both tracks)
+
+    @property
+    def ref_sigma_m(self) -> float:
+        """The reference's error per fix and axis the standard errors assume, m."""
+        return self.reference.sigma_m
 
     @property
     def gap_passes(self) -> int:
@@ -534,8 +675,9 @@ class OdometryCalibration:
             f"# straight: {st.passes} passes of {st.mean_length_m:.2f} m"
             + (f" (of {st.found} between stops)" if st.found > st.passes else "")
             + f"; circle: {ci.passes} "
-            f"passes, {ci.turn_deg:.0f} deg in all, radius {ci.radius_m:.2f} m; reference "
-            f"sigma {self.ref_sigma_m:g} m per fix",
+            f"passes, {ci.turn_deg:.0f} deg in all, radius {ci.radius_m:.2f} m",
+            f"# reference {self.reference.summary()}",
+            *(f"# {note}" for note in self.reference.notes()),
             *([f"# rough: {self.few_passes}"] if self.few_passes else []),
             "# value  # ± standard error",
             "[odometry]",
@@ -565,19 +707,19 @@ def calibrate(
     circle: Track,
     *,
     counts_per_rev: int,
-    ref_sigma_m: float = 0.02,
+    ref_sigma_m: float | None = None,
     stop_s: float = 1.0,
     min_pass_m: float = 2.0,
 ) -> OdometryCalibration:
-    """Wheel diameters, effective track and k_l, k_r from the two tracks.
+    """Wheel diameters, effective track and k_l, k_r from the two tracks. The reference is
+    the fixes' GGA quality's, or every fix at ``ref_sigma_m`` (:func:`choose_reference`).
 
     Driving protocol: stand still for 2 s or more (several reference fixes) before and after
     every pass. Straight: at least 3 passes of 10 m or more (longer and more passes shrink
     every standard error). Circle: constant drive (e.g. ``drive 60 10``) for whole laps, at
     least 3 passes; the fix rate must give well under half a lap between fixes.
     """
-    if not (ref_sigma_m > 0 and math.isfinite(ref_sigma_m)):
-        raise ConfigError(f"ref_sigma_m must be > 0, got {ref_sigma_m!r}")
+    straight, circle, reference = choose_reference(straight, circle, ref_sigma_m)
     _check_overlap(straight, "straight")
     _check_overlap(circle, "circle")
     s_passes, s_dropped = find_passes(straight, stop_s=stop_s)
@@ -587,7 +729,7 @@ def calibrate(
     except ConfigError as exc:
         raise ConfigError(f"{exc}{_left_out(s_dropped)}") from None
     try:
-        ci = circle_fit(c_passes, st, ref_sigma_m=ref_sigma_m)
+        ci = circle_fit(c_passes, st, ref_sigma_m=reference.sigma_m)
     except ConfigError as exc:
         raise ConfigError(f"{exc}{_left_out(c_dropped)}") from None
     to_d = counts_per_rev / math.pi  # diameter per (metres per count)
@@ -602,7 +744,7 @@ def calibrate(
         k_right_m=pick_r,
         straight=st,
         circle=ci,
-        ref_sigma_m=ref_sigma_m,
+        reference=reference,
         dropped_passes=s_dropped + c_dropped,
     )
 
