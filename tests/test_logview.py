@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import shutil
 import struct
 import subprocess
 import sys
@@ -191,6 +192,23 @@ def _recorded(path: Path, hold_reason: str) -> None:
                 filt_lat_deg=51.0 + t * 1e-5, filt_lon_deg=-1.0, heading_deg=-90.0,
             )  # fmt: skip
             rec.record_telemetry(tel)
+
+
+def test_a_recording_without_a_true_track_says_which_runs_have_one(
+    sim_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An outside audit: a HIL recording (a simulated receiver, but no truth.csv) was told
+    "only a simulated run has one". The simulator's recording alone in its folder is what
+    a HIL or a real run's folder holds."""
+    rec = tmp_path / "hil" / "recording.jsonl"
+    rec.parent.mkdir()
+    shutil.copy(sim_run / "recording.jsonl", rec)
+    assert cli_main(["plot", str(rec), "--out", str(tmp_path / "plot")]) == 0
+    assert (
+        "the error panel is empty: no true track: only `x6wd sim` writes one (truth.csv next "
+        "to its recording); a HIL or real run has none (--truth FILE for a true track of your "
+        "own)"
+    ) in capsys.readouterr().err
 
 
 def test_holds_and_device_faults(tmp_path: Path) -> None:

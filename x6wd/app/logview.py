@@ -11,10 +11,10 @@ satellites, heading, navigation states, holds and device faults. Two outputs:
   a module of its own so that the daemon, which imports this one, never imports matplotlib.
 
 What a recording holds decides what can be drawn; every panel that cannot be says why in
-its place (an NMEA log has no navigation states; only a simulated run has a true track).
-The true track is the simulator's ``truth.csv`` next to the recording (``--truth`` for
-another). Device faults are the recorder's ``device`` events (health transitions) and, in
-older recordings without them, the holds that name a device.
+its place (an NMEA log has no navigation states; only ``x6wd sim`` writes a true track, a
+HIL or real run none). The true track is the simulator's ``truth.csv`` next to the
+recording (``--truth`` for another). Device faults are the recorder's ``device`` events
+(health transitions) and, in older recordings without them, the holds that name a device.
 
 A log's own clock can go backwards or jump: a plain NMEA log's is the receiver's time of day
 (a file of two sessions, a cold start's unset clock), a recording's the daemon's monotonic
@@ -947,8 +947,8 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, torn: int | None) -> N
         )
     if tt is None:
         view.missing["error"] = (
-            "no true track: only a simulated run has one (truth.csv next to the recording, "
-            "or --truth FILE)"
+            "no true track: only `x6wd sim` writes one (truth.csv next to its recording); a "
+            "HIL or real run has none (--truth FILE for a true track of your own)"
         )
         return
     tr_t, (tr_e, tr_n) = tt[0], xy(tt[1], tt[2])
