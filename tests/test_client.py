@@ -220,6 +220,52 @@ def test_drive_reports_a_robot_stopped_early_or_a_server_gone(token_file: Path) 
         assert said in stderr, stderr
 
 
+class CountingBackend(RecordingBackend):
+    """Counts the status requests (a drive's client polls them)."""
+
+    statuses = 0
+
+    def status(self) -> dict[str, Any]:
+        self.statuses += 1
+        return super().status()
+
+
+def test_a_daemon_shutting_down_mid_drive_is_said_as_such(token_file: Path) -> None:
+    """An outside audit: SIGTERM to the daemon during `x6wd client drive` gave "the drive
+    ended early: the robot is IDLE" (exit 1) in 5 of 9 tries: the daemon stops the motors
+    and answers IDLE a moment before its closing notice. The client waits for that notice
+    before calling a drive cut short: "the robot's daemon shut down", exit 3."""
+    import time
+
+    lt = LoopThread()
+    backend = CountingBackend()
+    srv = start_server(lt, backend, token=TOKEN.encode())
+    cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(srv.port)]
+    proc = subprocess.Popen(
+        [*cmd, "--token-file", str(token_file), "drive", "30", "30", "10"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 20
+        while not backend.calls:
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.01)
+        backend.manual_until = 0.0  # the daemon's shutdown: motors stopped, IDLE ...
+        seen = backend.statuses
+        while backend.statuses == seen:  # ... which the client has seen ...
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        time.sleep(0.2)
+        lt.run(srv.close())  # ... then its goodbye
+        out, stderr = proc.communicate(timeout=10)
+    finally:
+        proc.kill()
+        lt.run(srv.close())
+        lt.close()
+    assert proc.returncode == 3 and "shut down" in stderr, (proc.returncode, stderr)
+    assert "ended early" not in stderr and "drive: ok" not in out
+
+
 def test_the_servers_reason_for_closing_is_reported(tmp_path: Path) -> None:
     """A connection that does not authenticate in time is closed with a notice; the client
     says why (exit 3 from the command line)."""

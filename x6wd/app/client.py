@@ -515,11 +515,34 @@ def _hold_drive(client: RemoteClient, reply: dict[str, Any], err: TextIO) -> int
             time.sleep(min(HOLD_POLL_S, left_s))
             mode = client.request("status").get("mode")
             if mode != "MANUAL" and end - time.monotonic() > HOLD_END_GRACE_S:
+                _closing_notice(client, SHUTDOWN_NOTICE_WAIT_S)  # raises if the daemon went
                 print(f"x6wd client: the drive ended early: the robot is {mode}", file=err)
                 return EXIT_REFUSED
     except KeyboardInterrupt:
         return _interrupted_stop(client, err)
     return None
+
+
+SHUTDOWN_NOTICE_WAIT_S = 0.5
+"""How long a drive that ended early waits for the daemon's closing notice (s): a daemon
+shutting down stops the motors and shows IDLE to a ``status`` a moment before it says
+goodbye, and that is "the daemon shut down" (exit 3), not "the drive ended early"."""
+
+
+def _closing_notice(client: RemoteClient, wait_s: float) -> None:
+    """Raise :class:`ConnectionFailed` (with the server's reason) when the connection closes
+    within ``wait_s`` (s); an event that arrives meanwhile is kept, nothing else is waited
+    for."""
+    deadline = time.monotonic() + wait_s
+    while (left_s := deadline - time.monotonic()) > 0.0:
+        try:
+            msg = client.read_message(left_s)
+        except TimeoutError:
+            return
+        if "event" in msg:
+            client.events.append(msg)
+        elif msg.get("ok") is False and msg.get("id") is None:
+            client._raise(msg)  # the server closing the connection, and why
 
 
 def _interrupted_stop(client: RemoteClient, err: TextIO) -> int:
