@@ -222,10 +222,10 @@ def test_the_compass_offset_prior_reaches_the_ekf() -> None:
 
 def test_slow_drives_load_with_the_stuck_check_off_or_below_them(tmp_path: Path) -> None:
     """The drive check follows the failsafe it protects: off (stuck_s 0), or a lower
-    stuck_min_pct, and an 8 % cruise is a robot's own choice."""
-    assert (
-        loads("[navigation]\ncruise_pct = 8\n[failsafe]\nstuck_s = 0\n").navigation.cruise_pct == 8
-    )
+    stuck_min_pct, and an 8 % cruise is a robot's own choice (with an approach floor no faster:
+    min_speed_pct <= cruise_pct)."""
+    slow = "[navigation]\ncruise_pct = 8\nmin_speed_pct = 8\n[failsafe]\nstuck_s = 0\n"
+    assert loads(slow).navigation.cruise_pct == 8
     low = "[navigation]\ncruise_pct = 8\nmin_speed_pct = 5\n[failsafe]\nstuck_min_pct = 5\n"
     assert loads(low).failsafe.stuck_min_pct == 5
     # a scenario's slow cruise under a robot config whose stuck_min_pct allows it: judged merged
@@ -233,7 +233,9 @@ def test_slow_drives_load_with_the_stuck_check_off_or_below_them(tmp_path: Path)
 
     scenario = tmp_path / "slow.toml"
     default = PACKAGED_CONFIG_DIR / "scenarios" / "default.toml"
-    scenario.write_text(f'include = ["{default}"]\n[navigation]\ncruise_pct = 8.0\n')
+    scenario.write_text(
+        f'include = ["{default}"]\n[navigation]\ncruise_pct = 8.0\nmin_speed_pct = 5.0\n'
+    )
     robot = tmp_path / "robot.toml"
     robot.write_text("[failsafe]\nstuck_min_pct = 5.0\n")
     assert with_robot_config(load_world(scenario), robot).navigation.cruise_pct == 8.0

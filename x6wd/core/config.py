@@ -276,6 +276,7 @@ class FailsafeConfig:
 class ServerConfig:
     enabled: bool = True
     bind: str = "127.0.0.1"
+    # 0: any free port, logged at start-up (for tests: the daemon tests' TOML files use it)
     port: int = field(default=7601, metadata=_rng(0, 65535))
     token_file: str = ""  # empty: no authentication required (only on loopback binds)
     tls_cert: str = ""
@@ -321,6 +322,7 @@ class ConsoleConfig:
 
     enabled: bool = False  # opt-in: one more listening port that can drive the robot
     bind: str = "127.0.0.1"
+    # 0: any free port, logged at start-up (for tests)
     port: int = field(default=7602, metadata=_rng(0, 65535))
     watch_only: bool = False  # every command that acts (stop included) refused by the server
     # map tiles under the local frame: an http(s) XYZ URL with {z} {x} {y}; empty: no tiles
@@ -362,6 +364,7 @@ class ConsoleConfig:
 class GpsdConfig:
     enabled: bool = True
     bind: str = "127.0.0.1"
+    # 0: any free port, logged at start-up (for tests)
     port: int = field(default=2947, metadata=_rng(0, 65535))
     max_clients: int = field(default=32, metadata=_rng(1, 10000))
     queue_len: int = field(default=64, metadata=_rng(1, 1_000_000))
@@ -425,28 +428,91 @@ class Config:
 
     def __post_init__(self) -> None:
         check_drive_vs_stuck(self.navigation, self.failsafe)
+        check_stale_vs_rate("safety.fix_stale_s", self.safety.fix_stale_s, *_gps_rate(self))
+        rate_hz = self.compass.rate_hz
+        check_stale_vs_rate(
+            "safety.attitude_stale_s",
+            self.safety.attitude_stale_s,
+            rate_hz,
+            f"compass.rate_hz = {rate_hz:g} Hz",
+        )
 
 
 def check_drive_vs_stuck(nav: NavigationConfig, failsafe: FailsafeConfig) -> None:
     """The mission's drives must move the robot: cruise and turn above 0 %, and, with the
     stuck failsafe on (``stuck_s`` > 0), cruise, turn and the approach's ``min_speed_pct`` at
     ``failsafe.stuck_min_pct`` or more: below it a robot that does not move is never judged
-    stuck (a cruise of 0 % sat in RUNNING for good, unnoticed). Raises :class:`ConfigError`
-    naming the key."""
+    stuck (a cruise of 0 % sat in RUNNING for good, unnoticed). And ``min_speed_pct`` not over
+    ``cruise_pct``: the approach speed is clamped to at most cruise, so a floor above it never
+    slowed the robot for a waypoint (an outside audit). Raises :class:`ConfigError` naming the
+    key."""
     for key in ("cruise_pct", "turn_pct"):
         if getattr(nav, key) <= 0:
             raise ConfigError(f"navigation.{key}: must be > 0 (the robot would not move)")
-    if failsafe.stuck_s <= 0:
+    if failsafe.stuck_s > 0:
+        for key in ("cruise_pct", "turn_pct", "min_speed_pct"):
+            pct = getattr(nav, key)
+            if pct < failsafe.stuck_min_pct:
+                raise ConfigError(
+                    f"navigation.{key}: must be >= failsafe.stuck_min_pct "
+                    f"({failsafe.stuck_min_pct:g} %) while the stuck check is on "
+                    "(failsafe.stuck_s > 0), else a robot that does not move at that drive is "
+                    f"never found stuck; got {pct:g}"
+                )
+    # last, so that a cruise under stuck_min_pct is named as that (the key to change first);
+    # whatever the steering: a "paper" config switched to pivot_arc keeps its speeds
+    if nav.min_speed_pct > nav.cruise_pct:
+        raise ConfigError(
+            f"navigation.min_speed_pct: {nav.min_speed_pct:g} % is over navigation.cruise_pct "
+            f"({nav.cruise_pct:g} %): the robot would never slow down for a waypoint; make "
+            "min_speed_pct <= cruise_pct"
+        )
+
+
+STALE_MIN_PERIODS = 2.5
+"""A staleness limit ([safety] fix_stale_s, attitude_stale_s) must span at least this many
+of its sensor's sample periods. With one sample lost the newest is two periods old when the
+next arrives; the half period more covers that arrival's jitter and the control loop's tick.
+Shorter, a single late sample holds the robot, and under one period every sample does (an
+outside audit: attitude_stale_s 0.01 s against a 20 Hz compass flipped HOLD/STRAIGHT 179 times
+in 5 s, the motor board getting drive and stop in turn). The shipped 2.5 s against a 1 Hz GPS
+is the tightest this allows."""
+
+
+def check_stale_vs_rate(stale_key: str, stale_s: float, rate_hz: float, rate_what: str) -> None:
+    """A ConfigError naming ``stale_key`` when ``stale_s`` is under :data:`STALE_MIN_PERIODS`
+    periods of a sensor sampled at ``rate_hz`` (``rate_what``: where that rate comes from, for
+    the message)."""
+    if stale_s * rate_hz >= STALE_MIN_PERIODS - 1e-9:  # 1e-9: 0.125 s at 20 Hz is allowed
         return
-    for key in ("cruise_pct", "turn_pct", "min_speed_pct"):
-        pct = getattr(nav, key)
-        if pct < failsafe.stuck_min_pct:
-            raise ConfigError(
-                f"navigation.{key}: must be >= failsafe.stuck_min_pct "
-                f"({failsafe.stuck_min_pct:g} %) while the stuck check is on (failsafe.stuck_s"
-                f" > 0), else a robot that does not move at that drive is never found stuck;"
-                f" got {pct:g}"
-            )
+    period_s = 1.0 / rate_hz
+    least_s = math.ceil(STALE_MIN_PERIODS * period_s * 1000.0) / 1000.0  # enterable as shown
+    raise ConfigError(
+        f"{stale_key}: {stale_s:g} s is under {STALE_MIN_PERIODS:g} sample periods of "
+        f"{rate_what} (a sample every {period_s:g} s), so a single late sample would stop the "
+        f"robot; make it at least {least_s:g} s"
+    )
+
+
+SIM_GPS_SLOWEST_HZ = 1.0
+"""The slowest simulated receiver (a scenario's [gnss] rate_hz, 1..4 Hz; [sim] gps_rate_hz
+likewise): the rate a sim:// GPS is checked at when [sim] gps_rate_hz leaves it to the
+scenario, which is not read yet when the configuration is."""
+
+
+def _gps_rate(cfg: Config) -> tuple[float, str]:
+    """The rate (Hz) the fixes arrive at, and where it comes from (for the message): with a
+    sim:// GPS ``[sim] gps_rate_hz`` (unset: the scenario's, taken at
+    :data:`SIM_GPS_SLOWEST_HZ`), else ``[gps] rate_hz`` (what the gpsd port's DEVICE reports
+    too; a replay:// file plays at its own times, and is checked against it all the same)."""
+    if not cfg.gps.url.strip().lower().startswith("sim:"):
+        return cfg.gps.rate_hz, f"gps.rate_hz = {cfg.gps.rate_hz:g} Hz"
+    if cfg.sim.gps_rate_hz is None:
+        return SIM_GPS_SLOWEST_HZ, (
+            f"the simulated GPS at {SIM_GPS_SLOWEST_HZ:g} Hz (sim.gps_rate_hz unset: the "
+            "scenario's rate, taken at its slowest)"
+        )
+    return cfg.sim.gps_rate_hz, f"sim.gps_rate_hz = {cfg.sim.gps_rate_hz:g} Hz"
 
 
 def check_value(key: str, value: Any, tp: Any, meta: Any) -> Any:
@@ -554,6 +620,10 @@ def _uses_world(cfg: Config) -> bool:
 
 
 def _parse(text: str, source: str) -> dict[str, Any]:
+    # a UTF-8 byte-order mark (Windows editors write one) is no TOML statement: tomllib
+    # refused it as "Invalid statement (at line 1, column 1)"; a file's first line keeps its
+    # number and column without it
+    text = text.removeprefix("\ufeff")
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -690,7 +760,8 @@ def _check_recorder(cfg: Config) -> None:
 
 
 def load(path: str | Path) -> Config:
-    """Read and validate a TOML configuration file (UTF-8, as TOML requires).
+    """Read and validate a TOML configuration file (UTF-8, as TOML requires; a leading
+    byte-order mark is skipped).
 
     Every problem is a one-line :class:`ConfigError` starting with the file's path: it
     cannot be read, is not UTF-8 (with the line and byte offset), is not valid TOML (with
