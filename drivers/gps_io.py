@@ -44,12 +44,16 @@ from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
-from drivers.gps_nmea import GpsDecoder, GpsOutput, UbxAck, parse_ack
+from drivers.gps_nmea import UBX_SYNC, GpsDecoder, GpsOutput, UbxAck, parse_ack
 from x6wd.core.errors import ConfigError, ParseError, X6wdError, is_transient
 from x6wd.core.health import HealthTracker, root_oserror
 from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent
 
 _IDLE_POLL_S = 0.01  # wait step for ports that cannot be select()ed
+JOIN_MAX_B = 512
+"""Bytes after an open that may precede the first frame start as the tail of a sentence the
+port was opened in (NMEA lines are at most 82 bytes; UBX frames a few hundred): beyond
+this without a start they are line noise."""
 CORRUPT_LABELS = {
     "checksum_failures": "lines with bad checksums",
     "framing_errors": "malformed lines",
@@ -155,6 +159,9 @@ class GpsReader:
         self._transient_run = 0  # transient read errors in a row on the open port
         self._opened_before = False
         self._data_since_open = False  # bytes read on the port opened last
+        self._joining = True  # no frame start seen since the open: the line is joined mid-way
+        self._joined_b = 0  # bytes without a frame start since the open
+        self.joined_mid_sentence_bytes = 0  # bytes before the first frame start after opens
         self._quiet_reopens = 0  # reopens in a row that read nothing before failing
         self._acks: deque[UbxAck] = deque(maxlen=64)
         self._closed = False
@@ -261,6 +268,7 @@ class GpsReader:
         quiet = self._opened_before and not self._data_since_open
         self._opened_before = True
         self._data_since_open = False
+        self._joining, self._joined_b = True, 0
         self._quiet_reopens = self._quiet_reopens + 1 if quiet else 0
         if self._quiet_reopens >= 2:  # one data-less port may be bad luck; two in a row not
             last = self._tracker.health.last_error
@@ -331,6 +339,10 @@ class GpsReader:
             self._quiet_reopens = 0
             if not self._tracker.health.connected:
                 self._tracker.opened(t_s)  # connected now that it yields bytes
+        if self._joining:
+            data = self._join(data)
+            if not data:
+                return None
         decoded = self.decoder.counters  # the decoder's own counters (updated in place)
         # Good data: sentences whose content was valid (a GGA without a fix is: a receiver
         # still searching says so) and UBX frames; checksum-valid sentences with invalid
@@ -353,6 +365,24 @@ class GpsReader:
             if ack is not None:
                 self._acks.append(ack)
         return records
+
+    def _join(self, data: bytes) -> bytes:
+        """The bytes from the first frame start (an NMEA ``$`` or the UBX sync) on: a port
+        opened while the receiver talks starts inside a sentence, and that tail is not line
+        noise (every clean HIL start reported "7 skipped bytes"). Counted in
+        :attr:`joined_mid_sentence_bytes`; past :data:`JOIN_MAX_B` without a start the bytes
+        are decoded as they are (and counted as noise there)."""
+        starts = [i for i in (data.find(b"$"), data.find(UBX_SYNC)) if i >= 0]
+        at = min(starts) if starts else len(data)
+        if self._joined_b + at > JOIN_MAX_B:
+            self._joining = False  # too long for a sentence's tail: noise, for the decoder
+            return data
+        self.joined_mid_sentence_bytes += at
+        if not starts:
+            self._joined_b += len(data)
+            return b""
+        self._joining = False
+        return data[at:]
 
     def _wait_readable(self, port: PortLike, wait_s: float) -> bool:
         fileno = getattr(port, "fileno", None)

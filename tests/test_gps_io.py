@@ -377,3 +377,40 @@ def test_a_non_transient_read_error_drops_and_reopens_at_once(tmp_path: Path, co
     finally:
         reader.close()
         pty.close()
+
+
+def test_a_port_opened_inside_a_sentence_is_no_line_noise(tmp_path: Path) -> None:
+    """An outside HIL audit: every clean start reported "gps corrupt input since start: 7
+    skipped bytes", the tail of the sentence the receiver was sending as the port opened.
+    Bytes before the first sentence after an open are that tail, not noise; noise after it,
+    or far too much of it before any sentence, still counts."""
+    link = tmp_path / "ttyGPS"
+    pty = Pty(link)
+    reader = GpsReader(_open(link), stale_s=5.0)
+    try:
+        assert reader.poll(0.05) == []  # open
+        start = LOG.index(b"$", 40)  # inside the log's first sentence
+        tail = LOG[17:start]
+        os.write(pty.master, tail)
+        records = _drain(reader, 3)
+        os.write(pty.master, LOG[start : start + 1500])
+        records += _drain(reader)
+        assert [r for r in records if isinstance(r, GpsFix)]
+        assert reader.health.corrupt.get("skipped_bytes", 0) == 0, reader.health.corrupt
+        assert reader.joined_mid_sentence_bytes == len(tail)
+        os.write(pty.master, b"noise!!" + LOG[start : start + 300])  # after it: counted
+        _drain(reader)
+        assert sum(reader.health.corrupt.values()) >= 1  # (after a cut line: framing)
+    finally:
+        reader.close()
+        pty.close()
+    reader = GpsReader(_open(link := tmp_path / "ttyGPS2"), stale_s=5.0)
+    pty = Pty(link)
+    try:
+        reader.poll(0.05)
+        os.write(pty.master, b"\x00" * 600 + LOG[:400])  # no sentence in 512 bytes: noise
+        _drain(reader)
+        assert reader.health.corrupt.get("skipped_bytes", 0) >= 600 - 512
+    finally:
+        reader.close()
+        pty.close()
