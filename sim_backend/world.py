@@ -95,6 +95,7 @@ from x6wd.core.config import (
     SafetyConfig,
     build,
     check_drive_vs_stuck,
+    check_stale_vs_rate,
 )
 from x6wd.core.errors import ConfigError, ParseError
 from x6wd.core.mission_files import load_file
@@ -766,7 +767,7 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
     vehicle = build(VehicleSettings, _table(data, "vehicle"), "vehicle.")
     compass = dict(_table(data, "compass"))
     try:  # checked here, not at the run's start, so an error names the file like any other
-        CompassSetup.from_table(compass)
+        compass_rate_hz = CompassSetup.from_table(compass).rate_hz
     except ConfigError as exc:
         msg = str(exc)  # CompassErrors' own messages lead with the bare key
         raise ConfigError(msg if msg.startswith("compass.") else f"compass.{msg}") from exc
@@ -784,6 +785,19 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
                 raise ConfigError(f"{key}[{i}]: out of range, got {list(pt)}")
     navigation = build(NavigationConfig, _table(data, "navigation"), "navigation.")
     safety = build(SafetyConfig, _table(data, "safety"), "safety.")
+    # the scenario's own rates: the robot config's check knows only its own [gps] rate
+    check_stale_vs_rate(
+        "safety.fix_stale_s",
+        safety.fix_stale_s,
+        gnss.rate_hz,
+        f"gnss.rate_hz = {gnss.rate_hz:g} Hz",
+    )
+    check_stale_vs_rate(
+        "safety.attitude_stale_s",
+        safety.attitude_stale_s,
+        compass_rate_hz,
+        f"compass.rate_hz = {compass_rate_hz:g} Hz",
+    )
     failsafe = build(FailsafeConfig, _table(data, "failsafe"), "failsafe.")
     odometry = build(OdometryConfig, _table(data, "odometry"), "odometry.")
     gnss_noise = build(GnssNoiseConfig, _table(data, "gnss_noise"), "gnss_noise.")

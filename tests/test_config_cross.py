@@ -151,6 +151,32 @@ def test_a_scenario_with_the_floor_over_its_cruise_is_refused(tmp_path: Path) ->
         check_drive_vs_stuck(world.navigation, world.failsafe)
 
 
+@pytest.mark.parametrize(
+    ("extra", "key", "rate"),
+    [
+        ("[safety]\nfix_stale_s = 0.7\n", "safety.fix_stale_s", "gnss.rate_hz = 1 Hz"),
+        ("[safety]\nattitude_stale_s = 0.1\n", "safety.attitude_stale_s", "compass.rate_hz"),
+    ],
+)
+def test_a_scenarios_stale_limits_are_checked_at_its_own_rates(
+    tmp_path: Path, extra: str, key: str, rate: str
+) -> None:
+    # a scenario's [safety] runs against its own [gnss] and [compass] rates, not the robot's
+    from sim_backend.world import load_world
+
+    scenario = tmp_path / "s.toml"
+    default = PACKAGED_CONFIG_DIR / "scenarios" / "default.toml"
+    scenario.write_text(f'include = ["{default}"]\n{extra}')
+    with pytest.raises(ConfigError, match=rf"{re.escape(key)}: .* periods of {re.escape(rate)}"):
+        load_world(scenario)
+    fast = tmp_path / "fast.toml"  # the same limit at a rate it covers loads
+    fast.write_text(
+        f'include = ["{default}"]\n{extra}'
+        + ("[gnss]\nrate_hz = 4.0\n" if "fix" in key else "[compass]\nrate_hz = 50.0\n")
+    )
+    load_world(fast)
+
+
 # -- 3: a UTF-8 byte-order mark -----------------------------------------------------------------
 BOM = b"\xef\xbb\xbf"
 
