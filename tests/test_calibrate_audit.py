@@ -360,7 +360,7 @@ def test_a_config_without_gnss_noise_gives_defaults_labelled_as_such_and_the_pai
     correlation_s as '(from --config FILE)' and let --re-m through without --ase-m."""
     drive = ["calibrate", "gnss", *rectangle_drive(tmp_path)]
     bare = tmp_path / "bare.toml"
-    bare.write_text("[gps]\nstale_s = 2.0\n")
+    bare.write_text("[gps]\nstale_s = 3.0\n")  # a robot config without [gnss_noise]
     assert cli.main([*drive, "--config", str(bare), "--re-m", "0.3"]) == 2
     out, err = capsys.readouterr()
     assert not out and "--re-m without --ase-m" in err and f"{bare} does not set ase_m" in err

@@ -177,6 +177,19 @@ def test_a_scenarios_stale_limits_are_checked_at_its_own_rates(
     load_world(fast)
 
 
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        ("[gps]\nstale_s = 1.5\n", "gps.stale_s"),  # 1 Hz: 1.5 periods
+        ("[compass]\nstale_s = 0.1\n", "compass.stale_s"),  # 20 Hz: 2 periods
+    ],
+)
+def test_the_readers_own_stale_limits_are_checked_at_their_rates(text: str, key: str) -> None:
+    # the readers report a sensor stale after these: one late sample must not
+    with pytest.raises(ConfigError, match=rf"^{re.escape(key)}: .* sample periods of"):
+        loads(text)
+
+
 # -- 3: a UTF-8 byte-order mark -----------------------------------------------------------------
 BOM = b"\xef\xbb\xbf"
 

@@ -392,6 +392,10 @@ def test_a_gps_rate_the_robot_loop_cannot_step_runs_on_the_receiver_engine(
     p = _sim(str(scenario), "--duration", "5", "--out", str(tmp_path / "b"), "--engine", "robot")
     assert p.returncode == 2
     assert "the robot engine's loop steps at the compass rate" in p.stderr, p.stderr
-    robot = loads_world(scenario.read_text() + "[compass]\nrate_hz = 4.0\n", tmp_path)
+    # (attitude_stale_s over 2.5 periods of a 4 Hz compass, as a scenario's limits must be)
+    robot = loads_world(
+        scenario.read_text() + "[compass]\nrate_hz = 4.0\n[safety]\nattitude_stale_s = 1.0\n",
+        tmp_path,
+    )
     mission.run_mission(robot, tmp_path / "robot", seed=1, duration_s=5.0)
     _assert_same_receiver(tmp_path / "robot", tmp_path / "r")

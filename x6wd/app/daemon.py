@@ -1578,7 +1578,14 @@ class Daemon:
             out["compass"] = {**comp, "state": "degraded", "reason": f"untrusted: {untrusted}"}
         gps = out["gps"]
         stale_s = self.config.safety.fix_stale_s
-        if gps is not None and gps["state"] == "connected" and tel is not None:
+        health = getattr(self._gps_reader, "health", None)
+        if (
+            gps is not None
+            and gps["state"] == "connected"
+            and tel is not None
+            and isinstance(health, DeviceHealth)
+            and time.monotonic() - health.since_t_s > stale_s  # a new link gets its chance
+        ):
             # the line is healthy, but what it says is "no position": the robot cannot use it
             age_s = tel.fix_age_s
             if age_s is None or age_s > stale_s:

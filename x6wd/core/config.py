@@ -428,14 +428,13 @@ class Config:
 
     def __post_init__(self) -> None:
         check_drive_vs_stuck(self.navigation, self.failsafe)
-        check_stale_vs_rate("safety.fix_stale_s", self.safety.fix_stale_s, *_gps_rate(self))
+        gps_rate = _gps_rate(self)
+        check_stale_vs_rate("safety.fix_stale_s", self.safety.fix_stale_s, *gps_rate)
+        check_stale_vs_rate("gps.stale_s", self.gps.stale_s, *gps_rate)  # the reader's own
         rate_hz = self.compass.rate_hz
-        check_stale_vs_rate(
-            "safety.attitude_stale_s",
-            self.safety.attitude_stale_s,
-            rate_hz,
-            f"compass.rate_hz = {rate_hz:g} Hz",
-        )
+        compass_rate = (rate_hz, f"compass.rate_hz = {rate_hz:g} Hz")
+        check_stale_vs_rate("safety.attitude_stale_s", self.safety.attitude_stale_s, *compass_rate)
+        check_stale_vs_rate("compass.stale_s", self.compass.stale_s, *compass_rate)
 
 
 def check_drive_vs_stuck(nav: NavigationConfig, failsafe: FailsafeConfig) -> None:
