@@ -128,8 +128,8 @@ def loads_sweep(
     default_name: str = "sweep",
 ) -> SweepSpec:
     """A sweep from TOML text; relative paths resolve against ``base_dir``."""
-    try:
-        data = tomllib.loads(text)
+    try:  # a leading byte-order mark is no TOML error (as for the robot's config)
+        data = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
     try:

@@ -344,8 +344,8 @@ def merge_fragment(world: World, path: str | Path) -> World:
 
 
 def _parse(text: str, source: str) -> dict[str, Any]:
-    try:
-        return tomllib.loads(text)
+    try:  # a leading byte-order mark (a Windows editor's) is no TOML error, as for the robot's
+        return tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from exc
 
@@ -874,7 +874,7 @@ def with_robot_config(world: World, robot_config: str | Path) -> World:
 
     p = Path(robot_config)
     load(p)  # validates the whole file, with its error messages
-    robot = tomllib.loads(p.read_text(encoding="utf-8"))
+    robot = tomllib.loads(p.read_text(encoding="utf-8").removeprefix("\ufeff"))
     data = copy.deepcopy(world.raw)
     for sec in ROBOT_SECTIONS:
         merged = dict(robot.get(sec, {}))

@@ -111,6 +111,22 @@ def test_rtk_float_fixes_are_a_coarser_reference_and_said_so(
     assert f"{len(s_fix)} reference fixes are RTK float (quality 5): sigma 0.3 m per fix" in err
 
 
+def test_a_few_float_fixes_among_fixed_ones_are_left_out_not_the_sigma_of_all(
+    tmp_path: Path, runs: dict, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside review: one float fix among 1600 fixed set 0.3 m for every fix
+    s_odo, s_fix = runs["straight"]
+    mixed = [dataclasses.replace(f, quality=5) if i % 50 == 7 else f for i, f in enumerate(s_fix)]
+    straight = write(tmp_path / "s.jsonl", s_odo, mixed)
+    circle = write(tmp_path / "c.jsonl", *runs["circle"])
+    argv = ["calibrate", "odometry", "--straight", str(straight), "--circle", str(circle)]
+    assert cli.main(argv) == 0
+    out, err = capsys.readouterr()
+    n_float = sum(f.quality == 5 for f in mixed)
+    assert "# reference sigma 0.02 m per fix (" in out, out
+    assert f"{n_float} fixes of quality 5 (RTK float) left out of the reference" in err, err
+
+
 def test_fixes_that_are_not_rtk_in_an_rtk_run_are_left_out_and_counted(
     tmp_path: Path, runs: dict, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -107,6 +107,8 @@ def test_bad_input_and_refusals_give_clear_messages(
         assert r.returncode == 2 and said in r.stderr, r.stderr
     r = client(srv.port, "drive", "-100", "100", "0.2", token=token_file)  # the bounds themselves
     assert r.returncode == 0, r.stderr
+    r = client(srv.port, "--timeout", "5000", "status")  # a reply timeout is no drive: no cap
+    assert r.returncode == 0, r.stderr
     r = client(srv.port, "drive", "20", "-20", "1.5", token=token_file)
     assert r.returncode == 0, r.stderr
 

@@ -240,3 +240,25 @@ def test_port_0_loads_and_is_documented_as_any_free_port() -> None:
     assert len(port_lines) == 3
     for ln in port_lines:
         assert "0: any free port, logged at start-up (for tests)" in ln, ln
+
+
+def test_scenario_sweep_and_robot_files_with_a_byte_order_mark_load(tmp_path: Path) -> None:
+    # an outside review: the BOM fix covered the robot config only
+    from sim_backend.sweep import load_sweep
+    from sim_backend.world import load_world, with_robot_config
+
+    for name in ("default.toml", "zigzag.toml"):
+        src = PACKAGED_CONFIG_DIR / "scenarios" / name
+        dst = tmp_path / name
+        dst.write_bytes(BOM + src.read_bytes())
+        assert load_world(dst) == load_world(src)
+    robot = tmp_path / "robot.toml"
+    robot.write_bytes(BOM + (ROOT / "config" / "x6wd.toml").read_bytes())
+    world = load_world(PACKAGED_CONFIG_DIR / "scenarios" / "default.toml")
+    assert with_robot_config(world, robot) == with_robot_config(
+        world, ROOT / "config" / "x6wd.toml"
+    )
+    sweep = ROOT / "config" / "sweeps" / "position_source.toml"
+    bom_sweep = tmp_path / "position_source.toml"
+    bom_sweep.write_bytes(BOM + sweep.read_bytes())
+    assert load_sweep(bom_sweep).name == load_sweep(sweep).name

@@ -604,10 +604,11 @@ def test_the_compass_refusal_watch_is_off_at_zero() -> None:
 
 
 def drive_north_fixes_off(
-    c: Controller, t0_s: float, seconds: float, east_m: float
+    c: Controller, t0_s: float, seconds: float, east_m: float, paused: bool = False
 ) -> float | None:
     """:func:`drive_north` with every fix ``east_m`` to the east of the robot (a receiver
-    back somewhere else): the time the mission left RUNNING, else None."""
+    back somewhere else): the time the mission left RUNNING, else None. ``paused``: the
+    inputs go on in any mode (the wheels as if driving: only the fixes matter there)."""
     for k in range(1, round(10 * seconds) + 1):
         t = t0_s + 0.1 * k
         counts = round((t - 2.0) * COUNTS_PER_M)
@@ -615,7 +616,7 @@ def drive_north_fixes_off(
         c.on_attitude(att(t, 0.0))
         if k % 10 == 0:
             c.on_fix(fix(t, east_m, t - 2.0))
-        if c.mode != Mode.RUNNING:
+        if c.mode != Mode.RUNNING and not paused:
             return t
     return None
 
@@ -646,3 +647,59 @@ def test_a_jump_under_gps_jump_m_or_with_the_check_off_drives_on() -> None:
         assert drive_north_fixes_off(c, 12.0, 15.0, east_m) is None, (fs, east_m)
         assert c.telemetry.extra["ekf_gps_resets"] == 1
         assert "failsafe" not in c.telemetry.extra
+
+
+def test_a_jump_while_paused_pauses_again_at_the_resume() -> None:
+    """An outside review: the shipped sensor timeout pauses a mission 30 s into a GPS loss;
+    a GPS back 112 m away then reset the EKF while PAUSED, the jump was dropped, and the
+    operator's resume drove on the untrusted position. Now the resume pauses again naming
+    the jump; the next resume (the operator has seen it) drives."""
+    c = ekf_driving_north(FS)
+    assert drive_north(c, 2.0, 10.0, lambda t: 0.0) is None
+    c.pause(12.0)
+    drive_north_fixes_off(c, 12.0, 12.0, 112.0, paused=True)
+    assert c.mode == Mode.PAUSED and c.telemetry.extra["ekf_gps_resets"] == 1
+    c.resume(24.5)
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 112 m: ")
+    c.resume(25.0)
+    assert drive_north_fixes_off(c, 25.0, 5.0, 112.0) is None
+
+
+def test_a_jump_pending_from_a_stopped_mission_never_fires_in_the_next() -> None:
+    c = ekf_driving_north(FS)
+    assert drive_north(c, 2.0, 10.0, lambda t: 0.0) is None
+    c.pause(12.0)
+    drive_north_fixes_off(c, 12.0, 12.0, 112.0, paused=True)
+    c.stop(24.5)
+    c.load_mission([at(112.0, 1000.0)], 24.6)
+    c.start(24.6)
+    assert drive_north_fixes_off(c, 24.6, 5.0, 112.0) is None, c.telemetry.extra
+
+
+def test_a_robot_carried_before_its_start_takes_its_launch_point_along() -> None:
+    """Carried 100 m east while idle and started before the fixes agreed: the launch point
+    was the old position, and a return would drive there. The jump moves it, the robot's
+    wheels having stood still."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    for k in range(0, 21):
+        t = 0.1 * k
+        c.on_odometry(WheelOdometry(t, 0, 0, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix(t))
+    c.load_mission([at(0.0, 500.0)], 2.0)
+    for k in range(21, 201):  # carried: the fixes now 100 m east, the wheels still
+        t = 0.1 * k
+        c.on_odometry(WheelOdometry(t, 0, 0, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix(t, 100.0, 0.0))
+        if k == 25:
+            c.start(t)  # before 8 fixes agreed
+            assert c.launch_point == pytest.approx(at(0.0, 0.0), abs=1e-5)
+        if k > 25 and c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 100 m: ")
+    assert c.launch_point == pytest.approx(at(100.0, 0.0), abs=2e-5)

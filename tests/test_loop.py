@@ -798,3 +798,49 @@ def test_a_spell_without_a_valid_fix_is_a_warning_and_its_end_is_said(
     holds = [(lv, m) for lv, m in said if "-> HOLD" in m]
     assert holds and all(lv == logging.WARNING for lv, _ in holds), said
     assert any(lv == logging.INFO and "HOLD ->" in m for lv, m in said), said
+
+
+def test_a_receiver_searching_after_start_up_warns_only_after_the_cold_start_grace(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from x6wd.loop.runner import FIRST_FIX_GRACE_S
+
+    lp = Loop()
+    with caplog.at_level(logging.INFO, logger="x6wd.loop.runner"):
+        for k in range(1, round(FIRST_FIX_GRACE_S) + 5):
+            lp.now = float(k)
+            lp.compass(0.0)
+            lp.fix(valid=False)
+            said = [r for r in caplog.records if r.getMessage().startswith("gps: no valid fix")]
+            assert bool(said) == (k - 1 > FIRST_FIX_GRACE_S), (k, said)  # from t = 1 s
+    assert said[0].levelno == logging.WARNING and "since start-up" in said[0].getMessage()
+
+
+def test_each_ekf_reset_is_logged_with_how_far_it_moved(caplog: pytest.LogCaptureFixture) -> None:
+    """An outside review: a position jump while no mission ran (or paused) left only a
+    number in status. Each reset is logged, a warning from gps_jump_m on."""
+    safety = SafetyConfig(geofence_radius_m=1000.0)
+    runner = Runner(
+        Controller(NavigationConfig(), safety, 0.0, failsafe=FailsafeConfig()),
+        safety,
+        lambda: 0.0,
+        motors=lambda _c: None,
+        health_log=HealthLog(_quiet(), clock=lambda: 0.0),
+    )
+
+    def fix(t_s: float, east_m: float) -> GpsFix:
+        lon = HOME[1] + east_m / (M_PER_DEG_LAT * math.cos(math.radians(HOME[0])))
+        return GpsFix(t_s=t_s, lat_deg=HOME[0], lon_deg=lon, quality=1, valid=True,
+                      sats_used=8, hdop=1.0)  # fmt: skip
+
+    with caplog.at_level(logging.INFO, logger="x6wd.loop.runner"):
+        for k in range(0, 400):
+            t = 0.1 * k
+            runner.odometry(WheelOdometry(t, 0, 0, k))
+            runner.attitude(Attitude(t, 0.0, 0.0, 0.0))
+            if k % 10 == 0:
+                runner.gps_record(fix(t, 0.0 if t < 10.0 else (10.0 if t < 25.0 else 112.0)))
+    said = [(r.levelno, r.getMessage()) for r in caplog.records if "EKF reset" in r.getMessage()]
+    assert [lv for lv, _ in said] == [logging.INFO, logging.WARNING], said
+    assert said[0][1].startswith("gps: the estimate moved 10.") and "(EKF reset 1)" in said[0][1]
+    assert said[1][1].startswith("gps: the estimate moved 102.") and "(EKF reset 2)" in said[1][1]

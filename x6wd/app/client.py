@@ -453,6 +453,17 @@ def _drive_pct(text: str) -> float:
     return v
 
 
+def _timeout_s(text: str) -> float:
+    """An argparse type: a reply timeout, seconds > 0 (no upper bound: not a drive)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0, got {text}")
+    return v
+
+
 def _positive_s(text: str) -> float:
     try:
         v = float(text)
@@ -625,7 +636,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--insecure", action="store_true", help="TLS without certificate verification"
     )
-    parser.add_argument("--timeout", type=_positive_s, default=5.0, help="reply timeout in s (5)")
+    parser.add_argument("--timeout", type=_timeout_s, default=5.0, help="reply timeout in s (5)")
     parser.add_argument("--json", action="store_true", help="print replies as JSON (for programs)")
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     sub.add_parser("status", help="show the robot's state")

@@ -197,7 +197,8 @@ QUALITY_NAMES = {
 }  # fmt: skip
 """GGA fix quality (NMEA 0183) by number."""
 
-RTK_SIGMA_M = {4: 0.02, 5: 0.3}
+RTK_FIXED = 4  # GGA quality of an RTK fixed solution
+RTK_SIGMA_M = {RTK_FIXED: 0.02, 5: 0.3}
 """The reference's error per fix and axis (m) by GGA quality, for the qualities that are a
 reference. RTK fixed: centimetres (the simulator's truth is written as quality 4, with 2 cm
 of noise). RTK float: the carrier's ambiguities are not fixed, so decimetres (0.1-0.5 m once
@@ -286,6 +287,10 @@ def choose_reference(
         used = _counts(np.concatenate([t.ref_quality for t in tracks.values()]))
         return straight, circle, Reference(ref_sigma_m, True, used, {})
     rtk = tuple(RTK_SIGMA_M)
+    if all(np.any(t.ref_quality == RTK_FIXED) for t in tracks.values()):
+        # fixed fixes in both recordings: a float one among them (a brief loss of the
+        # ambiguities) is left out, not let set the sigma of all (15x the standard errors)
+        rtk = (RTK_FIXED,)
     kept = {name: t.fixes_of(rtk) for name, t in tracks.items()}
     none = [name for name, t in kept.items() if t.t_ref_s.size == 0]
     if none:

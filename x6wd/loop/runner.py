@@ -119,6 +119,7 @@ class Runner:
         self._odometry_warned = False  # the wheels-vs-fixes warning, logged once
         self._no_fix_since: float | None = None  # no valid fix from then (s; None: have one)
         self._no_fix_warned = False  # "no valid fix" logged for the current spell
+        self._resets_seen = 0  # EKF resets logged so far
         self.first_fix: tuple[float, float] | None = None
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
         self.geofence_breaches = 0
@@ -410,6 +411,7 @@ class Runner:
                     else:
                         log.info("compass trusted again: the EKF takes its readings")
                 self._watch_fix(out)
+                self._watch_resets(out)
                 if not self._odometry_warned and "odometry_warning" in out.extra:
                     self._odometry_warned = True  # once: the count in it keeps rising
                     log.warning("odometry: %s", out.extra["odometry_warning"])
@@ -447,6 +449,24 @@ class Runner:
         if self._observe is not None:
             self._observe(outputs, important)
 
+    def _watch_resets(self, tel: Telemetry) -> None:
+        """Log each EKF reset (the estimate moved to fixes it had refused until they agreed)
+        with how far it moved: a warning from ``gps_jump_m`` on (the jump failsafe's size,
+        also while no mission runs), else info."""
+        resets = tel.extra.get("ekf_gps_resets")
+        if not isinstance(resets, int) or resets <= self._resets_seen:
+            return
+        self._resets_seen = resets
+        jump_m = float(tel.extra.get("ekf_last_reset_m") or 0.0)
+        limit_m = self.controller.failsafe_config.gps_jump_m
+        log.log(
+            logging.WARNING if 0 < limit_m <= jump_m else logging.INFO,
+            "gps: the estimate moved %.1f m to fixes it had refused until they agreed (EKF reset"
+            " %d)",
+            jump_m,
+            resets,
+        )
+
     def _watch_fix(self, tel: Telemetry) -> None:
         """Log a spell without a valid fix once, as a warning, after ``fix_stale_s`` (the
         receiver may talk on, its link healthy, and report no position: searching, the sky
@@ -460,7 +480,9 @@ class Runner:
             return
         if self._no_fix_since is None:
             self._no_fix_since = tel.t_s if age_s is None else tel.t_s - age_s
-        if not self._no_fix_warned and tel.t_s - self._no_fix_since > self.safety.fix_stale_s:
+        # before the first fix a receiver is searching: a cold start takes up to a minute
+        limit_s = self.safety.fix_stale_s if age_s is not None else FIRST_FIX_GRACE_S
+        if not self._no_fix_warned and tel.t_s - self._no_fix_since > limit_s:
             self._no_fix_warned = True
             log.warning(
                 "gps: no valid fix for %.1f s%s (the receiver reports no position: searching,"
@@ -468,6 +490,11 @@ class Runner:
                 tel.t_s - self._no_fix_since,
                 " since start-up" if age_s is None else "",
             )
+
+
+FIRST_FIX_GRACE_S = 60.0
+"""No valid fix since start-up is a warning only after this (s): a receiver's cold start
+(the NEO-5's datasheet: 29 s; longer under trees) is no fault."""
 
 
 async def every(period_s: float, clock: Clock, step: Callable[[float], None]) -> None:

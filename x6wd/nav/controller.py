@@ -139,6 +139,10 @@ SLIP_MIN_TRAVEL = 4.0
 """With encoders, the body counts as still (slipping) only once the wheels drove this many
 ``stuck_min_m`` without it moving: at a slow cruise a drifting GPS can hide 6 m in 10 s."""
 
+LAUNCH_STILL_M = 2.0
+"""Wheel travel (m) under which a robot that jumped is still at its launch point: the
+launch point moves with the jump (:meth:`Controller._relaunch_after_jump`)."""
+
 SENSORS = ("gps", "compass")
 """The sensors :meth:`Controller.sensor_health` knows, in the order their holds are named."""
 
@@ -215,6 +219,7 @@ class Controller:
         self._operator_t: float | None = None  # latest operator request (s), when watched
         self._hold_since: float | None = None  # a sensor hold began (s)
         self._jump_m: float | None = None  # the source's position jump since the last check (m)
+        self._launch_wheel_m = 0.0  # the wheels' travel when the launch point was taken (m)
         # the stuck failsafe's last progress: (wheel m, t_s) and (lat, lon, bearing, t_s,
         # wheel m)
         self._stuck_wheels: tuple[float, float] | None = None
@@ -324,7 +329,9 @@ class Controller:
         if ok:
             self._source.on_fix(fix)
             jump_m = self._source.take_jump_m()
-            if jump_m is not None and self._mode == Mode.RUNNING:  # for its failsafe check
+            if jump_m is not None and self._mode in (Mode.RUNNING, Mode.PAUSED):
+                # for the failsafe check of the mission running, or resumed: a jump while
+                # paused (a GPS back after the sensor timeout paused it) must not be driven on
                 self._jump_m = jump_m if self._jump_m is None else max(self._jump_m, jump_m)
             self._wheel_at_fix = self._wheel_m
             self._commanded_at_fix = self._commanded_m
@@ -471,12 +478,13 @@ class Controller:
         self._source.reset()
         self._stuck_wheels = self._stuck_body = self._pivot_best = None
         self._course.reset()
-        self._hold_since = None
+        self._hold_since = self._jump_m = None
         now = t if self._now is None else max(self._now, t)
         pos = self._source.position(now)
         if pos is None and self._fix_ok and self._fix is not None:
             pos = (self._fix.lat_deg, self._fix.lon_deg)  # type: ignore[assignment]
         self._launch = pos
+        self._launch_wheel_m = self._wheel_m
         self._set_mode(Mode.RUNNING, "start", t, changes)
         return self._step(t, "start", changes)
 
@@ -546,6 +554,7 @@ class Controller:
         changes: list[ControllerOutput] = []
         self._manual = None
         self._returning = ""
+        self._jump_m = None  # a mission's: the next one starts from where the robot is
         self._set_mode(Mode.IDLE, why, t, changes)
         return self._step(t, why, changes)
 
@@ -626,6 +635,16 @@ class Controller:
     def _failsafe_check(self, now: float, hold: str) -> tuple[str, str] | None:
         """(condition, action) of a failsafe due now while RUNNING, else None."""
         fs = self._failsafe
+        jump_m, self._jump_m = self._jump_m, None  # consumed here whatever else fires
+        if fs.gps_jump_m > 0 and jump_m is not None and jump_m >= fs.gps_jump_m:
+            # farther than the robot can have driven unseen: the operator looks before it
+            # drives on either position (a return would trust the new one too)
+            self._relaunch_after_jump(now)
+            return (
+                f"position jumped {jump_m:.0f} m: the fixes disagreed with the estimate until"
+                " it moved to them (GPS back somewhere else, or the robot carried?)",
+                "hold",
+            )
         if hold and hold != "motor link lost":
             if self._hold_since is None:
                 self._hold_since = now
@@ -642,15 +661,6 @@ class Controller:
             blocked = self._blocked_at_commanded_bound(now)
             if blocked is not None:
                 return blocked
-        jump_m, self._jump_m = self._jump_m, None
-        if fs.gps_jump_m > 0 and jump_m is not None and jump_m >= fs.gps_jump_m:
-            # farther than the robot can have driven unseen: the operator looks before it
-            # drives on either position (a return would trust the new one too)
-            return (
-                f"position jumped {jump_m:.0f} m: the fixes disagreed with the estimate until"
-                " it moved to them (GPS back somewhere else, or the robot carried?)",
-                "hold",
-            )
         if hold:
             return None
         untrusted = self._trust.verdict(now)
@@ -663,6 +673,18 @@ class Controller:
             if fired is not None:
                 return fired
         return self._course_check(now)
+
+    def _relaunch_after_jump(self, now: float) -> None:
+        """A jump before the robot drove from its launch point: that point was the position
+        the jump corrected (a robot carried while the daemon idled, started before the
+        fixes agreed), so the launch point moves with it; a return would drive to the old
+        one. Without encoders nothing says it has not moved: the point stays."""
+        if self._launch is None or self._odo_prev is None:
+            return
+        if self._wheel_m - self._launch_wheel_m < LAUNCH_STILL_M:
+            pos = self._source.position(now)
+            if pos is not None:
+                self._launch = pos
 
     def _course_check(self, now: float) -> tuple[str, str] | None:
         """The off-course watch (:mod:`x6wd.nav.course_watch`), once per fresh usable fix:
