@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -142,6 +143,35 @@ def test_drive_holds_its_connection_and_ctrl_c_stops_the_robot(served, token_fil
     assert [n for n, _ in backend.calls] == ["drive", "drive", "stop"]
 
 
+@contextlib.contextmanager
+def drive_under_way(
+    backend: RecordingBackend, token_file: Path
+) -> Iterator[tuple[LoopThread, ControlServer, subprocess.Popen[str]]]:
+    """A real server on ``backend`` and `x6wd client drive 30 30 10` against it (Ctrl-C at
+    its default), yielded once the drive reached the backend; all closed after."""
+    import signal
+    import time
+
+    lt = LoopThread()
+    srv = start_server(lt, backend, token=TOKEN.encode())
+    cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(srv.port)]
+    proc = subprocess.Popen(
+        [*cmd, "--token-file", str(token_file), "drive", "30", "30", "10"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 20
+        while not backend.calls:
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.01)
+        yield lt, srv, proc
+    finally:
+        proc.kill()
+        lt.run(srv.close())
+        lt.close()
+
+
 class SlowDriveBackend(RecordingBackend):
     """A robot that takes its time to confirm a drive it has already started."""
 
@@ -160,28 +190,12 @@ def test_ctrl_c_before_the_drive_is_confirmed_stops_the_robot_too(token_file: Pa
     import signal
     import time
 
-    lt = LoopThread()
     backend = SlowDriveBackend()
-    srv = start_server(lt, backend, token=TOKEN.encode())
-    cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(srv.port)]
-    proc = subprocess.Popen(
-        [*cmd, "--token-file", str(token_file), "drive", "30", "30", "20"],
-        stderr=subprocess.PIPE, text=True,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )  # fmt: skip
-    try:
-        deadline = time.monotonic() + 20
-        while not backend.calls:
-            assert time.monotonic() < deadline and proc.poll() is None
-            time.sleep(0.01)
+    with drive_under_way(backend, token_file) as (_, srv, proc):
         proc.send_signal(signal.SIGINT)  # the drive's reply is a second away
         _, stderr = proc.communicate(timeout=10)
         time.sleep(0.2)  # the server sees the close
         stops = srv.server_stats()["stops"]
-    finally:
-        proc.kill()
-        lt.run(srv.close())
-        lt.close()
     assert proc.returncode == 130 and "stop sent" in stderr, stderr
     assert [n for n, _ in backend.calls] == ["drive", "stop"]
     assert stops["orphaned"] == 0, stops  # the client's stop, not the dead-man's
@@ -190,34 +204,17 @@ def test_ctrl_c_before_the_drive_is_confirmed_stops_the_robot_too(token_file: Pa
 def test_drive_reports_a_robot_stopped_early_or_a_server_gone(token_file: Path) -> None:
     """Another operator's stop mid-drive: exit 1, 'ended early'; the server going away:
     exit 3. Neither is 'drive: ok'."""
-    import time
 
     from x6wd.app.client import RemoteClient
 
     for how, code, said in (("stop", 1, "ended early: the robot is IDLE"), ("close", 3, "")):
-        lt = LoopThread()
-        backend = RecordingBackend()
-        srv = start_server(lt, backend, token=TOKEN.encode())
-        cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(srv.port)]
-        proc = subprocess.Popen(
-            [*cmd, "--token-file", str(token_file), "drive", "30", "30", "10"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        try:
-            deadline = time.monotonic() + 20
-            while not backend.calls:
-                assert time.monotonic() < deadline and proc.poll() is None
-                time.sleep(0.02)
+        with drive_under_way(RecordingBackend(), token_file) as (lt, srv, proc):
             if how == "stop":
                 with RemoteClient("127.0.0.1", srv.port) as other:
                     other.request("stop")
             else:
                 lt.run(srv.close())
             out, stderr = proc.communicate(timeout=10)
-        finally:
-            proc.kill()
-            lt.run(srv.close())
-            lt.close()
         assert proc.returncode == code and "drive: ok" not in out, (how, out, stderr)
         assert said in stderr, stderr
 
@@ -239,31 +236,17 @@ def test_a_daemon_shutting_down_mid_drive_is_said_as_such(token_file: Path) -> N
     before calling a drive cut short: "the robot's daemon shut down", exit 3."""
     import time
 
-    lt = LoopThread()
     backend = CountingBackend()
-    srv = start_server(lt, backend, token=TOKEN.encode())
-    cmd = [sys.executable, "-m", "x6wd", "client", "--port", str(srv.port)]
-    proc = subprocess.Popen(
-        [*cmd, "--token-file", str(token_file), "drive", "30", "30", "10"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        deadline = time.monotonic() + 20
-        while not backend.calls:
-            assert time.monotonic() < deadline and proc.poll() is None
-            time.sleep(0.01)
+    with drive_under_way(backend, token_file) as (lt, srv, proc):
         backend.manual_until = 0.0  # the daemon's shutdown: motors stopped, IDLE ...
         seen = backend.statuses
+        deadline = time.monotonic() + 20
         while backend.statuses == seen:  # ... which the client has seen ...
             assert time.monotonic() < deadline
             time.sleep(0.01)
         time.sleep(0.2)
         lt.run(srv.close())  # ... then its goodbye
         out, stderr = proc.communicate(timeout=10)
-    finally:
-        proc.kill()
-        lt.run(srv.close())
-        lt.close()
     assert proc.returncode == 3 and "shut down" in stderr, (proc.returncode, stderr)
     assert "ended early" not in stderr and "drive: ok" not in out
 

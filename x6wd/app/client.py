@@ -465,11 +465,9 @@ def _timeout_s(text: str) -> float:
 
 
 def _positive_s(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and 0 < v <= DRIVE_S_MAX):
+    """An argparse type: a drive's duration, seconds > 0 and at most the protocol's."""
+    v = _timeout_s(text)
+    if v > DRIVE_S_MAX:
         raise argparse.ArgumentTypeError(
             f"must be a finite number of seconds, > 0 and at most {DRIVE_S_MAX:g}, got {text}"
         )
