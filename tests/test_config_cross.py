@@ -209,23 +209,21 @@ def test_a_file_with_a_byte_order_mark_loads_as_without(tmp_path: Path) -> None:
 
 def test_a_file_with_a_byte_order_mark_is_still_validated(tmp_path: Path) -> None:
     bad = tmp_path / "bom.toml"
-    bad.write_bytes(BOM + b"[navigation]\ndelta_phi_deg = 0.0\n")
-    with pytest.raises(ConfigError, match=r"bom\.toml: navigation\.delta_phi_deg: must be >="):
-        load(bad)
-    bad.write_bytes(BOM + b"[safety]\nattitude_stale_s = 0.01\n")
-    with pytest.raises(ConfigError, match=r"bom\.toml: safety\.attitude_stale_s: "):
-        load(bad)
-    # TOML errors keep their line and column, as without the mark
-    bad.write_bytes(BOM + b"[gps]\nurl = 'sim://'\n[compass\n")
-    with pytest.raises(ConfigError, match=r"not valid TOML.*line 3"):
-        load(bad)
-    bad.write_bytes(BOM + b"[gps]\nurl = = 1\n")
-    with pytest.raises(ConfigError, match=r"not valid TOML.*line 2, column 7"):
-        load(bad)
-    # a mark anywhere but first is no mark: a character TOML refuses
-    bad.write_bytes(b"\n" + BOM + b"[gps]\n")
-    with pytest.raises(ConfigError, match=r"not valid TOML.*line 2, column 1"):
-        load(bad)
+    for text, said in (
+        (
+            BOM + b"[navigation]\ndelta_phi_deg = 0.0\n",
+            r"bom\.toml: navigation\.delta_phi_deg: must be >=",
+        ),
+        (BOM + b"[safety]\nattitude_stale_s = 0.01\n", r"bom\.toml: safety\.attitude_stale_s: "),
+        # TOML errors keep their line and column, as without the mark
+        (BOM + b"[gps]\nurl = 'sim://'\n[compass\n", r"not valid TOML.*line 3"),
+        (BOM + b"[gps]\nurl = = 1\n", r"not valid TOML.*line 2, column 7"),
+        # a mark anywhere but first is no mark: a character TOML refuses
+        (b"\n" + BOM + b"[gps]\n", r"not valid TOML.*line 2, column 1"),
+    ):
+        bad.write_bytes(text)
+        with pytest.raises(ConfigError, match=said):
+            load(bad)
 
 
 # -- 4: port 0 ------------------------------------------------------------------------------
