@@ -52,6 +52,7 @@ import traceback
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from multiprocessing import resource_tracker
 from pathlib import Path
 from types import TracebackType
 from typing import Any, TextIO
@@ -114,6 +115,10 @@ def _sigint_held() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    # multiprocessing's resource tracker starts with the first spawned process, and its
+    # start unblocks SIGINT in the spawning thread afterwards: the workers spawned next then
+    # died of a Ctrl-C in their site import. Started here, before the block, it cannot.
+    resource_tracker.ensure_running()
     held: list[int] = []
     old = signal.signal(signal.SIGINT, lambda signum, _frame: held.append(signum))
     # Blocked, not only handled: the threads and worker processes started meanwhile inherit
