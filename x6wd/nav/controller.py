@@ -146,6 +146,8 @@ launch point moves with the jump (:meth:`Controller._relaunch_after_jump`)."""
 SENSORS = ("gps", "compass")
 """The sensors :meth:`Controller.sensor_health` knows, in the order their holds are named."""
 
+_ARRIVALS = (NavState.ARRIVED, NavState.MISSION_DONE)
+
 
 def _check_t(t_s: float, what: str) -> float:
     try:
@@ -1135,6 +1137,13 @@ class Controller:
 
         if state != self._state:
             reason = f"state: {hold}" if hold else f"state: {why}"
+            last = self._navigator.last
+            if state in _ARRIVALS and last is not None and last.arrived_by == "behind":
+                # no visit: the log says which waypoint was taken as reached, and how far off
+                reason += (
+                    f"; waypoint {last.waypoint_index + 1} taken as reached"
+                    f" {last.distance_m:.1f} m behind, within the position's error"
+                )
             out.append(StateChange(now, str(self._state), str(state), reason))
             self._state = state
         self._hold_reason = hold
