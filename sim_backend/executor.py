@@ -29,6 +29,8 @@ connected for ``worker_timeout_s`` (default :data:`WORKER_TIMEOUT_S`, 60 s) in a
 task not finished is an outcome of kind ``"executor"`` saying so (a scheduler no worker
 joined, workers that closed on their first task because they cannot import x6wd, the last
 worker killed). A worker that comes back within that time resets the clock: the tasks go on.
+Meanwhile ``map_unordered(..., waiting=...)`` is told how long it has waited (a progress bar
+says so: :meth:`TextProgress.waiting`), instead of seeming hung.
 The same time bounds the wait for ``workers=N`` workers to join an existing scheduler.
 
 A LocalCluster opens no dashboard (Dask's default is one on port 8787, which a second sweep
@@ -45,6 +47,7 @@ import logging
 import math
 import os
 import signal
+import socket
 import sys
 import threading
 import time
@@ -67,6 +70,8 @@ WORKER_TIMEOUT_S = 60.0
 not finished (and how long it waits for ``workers=N`` to join an existing scheduler)."""
 WORKER_POLL_S = 1.0
 """How often (s) the worker count is asked for while no task result is ready."""
+WAITING_EVERY_S = 5.0
+"""How often (s) :meth:`TextProgress.waiting` writes a line when not on a terminal (a log)."""
 
 
 @dataclass
@@ -172,8 +177,17 @@ def probe_scheduler(address: str, timeout_s: float) -> None:
     except Exception as exc:  # whatever else distributed's parser meets: a clear refusal
         raise ConfigError(f"scheduler {address}: {exc} (expected tcp://HOST:PORT)") from None
 
+    handshake_s = timeout_s  # what is left of it after a TCP connect
+    if resolved.startswith("tcp://"):
+        # Dask's connect retries a refused connection until the timeout ends and then says
+        # only "TimeoutError": a plain TCP connect says "refused" at once (tls://, ws:// ...
+        # are left to Dask: their handshake is not a plain socket's)
+        t0 = time.monotonic()
+        _tcp_reachable(address, resolved, timeout_s)
+        handshake_s = max(1.0, timeout_s - (time.monotonic() - t0))
+
     async def identity() -> Any:
-        comm = await connect(resolved, timeout=timeout_s)
+        comm = await connect(resolved, timeout=handshake_s)
         try:
             await comm.write({"op": "identity"})
             return await comm.read()
@@ -181,14 +195,39 @@ def probe_scheduler(address: str, timeout_s: float) -> None:
             comm.abort()
 
     try:
-        reply = asyncio.run(asyncio.wait_for(identity(), timeout_s))
+        reply = asyncio.run(asyncio.wait_for(identity(), handshake_s))
     except Exception as exc:  # OSError, a timeout, garbage framing (MemoryError) ...
-        why = str(exc) or type(exc).__name__
+        why = str(exc) or f"{type(exc).__name__} (no Dask reply: is it a scheduler's port?)"
         raise ConfigError(
             f"cannot reach a Dask scheduler at {address} within {timeout_s:g} s: {why}"
         ) from None
     if not (isinstance(reply, dict) and reply.get("type") == "Scheduler"):
         raise ConfigError(f"{address} answered, but not as a Dask scheduler: {reply!r:.200}")
+
+
+def _tcp_reachable(address: str, resolved: str, timeout_s: float) -> None:
+    """Raise :class:`ConfigError` naming ``address`` and why, unless a plain TCP connect to
+    ``resolved`` (tcp://HOST:PORT) succeeds within ``timeout_s`` (s)."""
+    from distributed.comm.addressing import get_address_host_port
+
+    host, port = get_address_host_port(resolved)
+    where = f"{host}:{port}" if ":" not in host else f"[{host}]:{port}"
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except ConnectionRefusedError:
+        raise ConfigError(
+            f"cannot reach a Dask scheduler at {address}: connection refused by {where}"
+            " (nothing listens on that port: is the scheduler started, on that port?)"
+        ) from None
+    except TimeoutError:
+        raise ConfigError(
+            f"cannot reach a Dask scheduler at {address} within {timeout_s:g} s: {where} did"
+            " not answer a TCP connect (a host that is down, or a firewall that drops it)"
+        ) from None
+    except OSError as exc:  # no route to host, network unreachable ...
+        raise ConfigError(
+            f"cannot reach a Dask scheduler at {address}: {where}: {exc.strerror or exc}"
+        ) from None
 
 
 class Executor:
@@ -356,12 +395,15 @@ class Executor:
         args_list: Sequence[tuple[Any, ...]],
         names: Sequence[str] | None = None,
         reraise: bool = False,
+        waiting: Callable[[float, float], None] | None = None,
     ) -> Iterator[Outcome]:
         """``fn(*args)`` for each tuple of ``args_list``; yields an :class:`Outcome` per task
         as it finishes. ``names`` (one per task) label the tasks on the cluster's dashboard.
         ``reraise``: a task whose ``fn`` raised raises its exception here instead of
-        yielding an error outcome. Stopping the iteration early (or an exception, Ctrl-C)
-        cancels the tasks not yet finished."""
+        yielding an error outcome. ``waiting(waited_s, timeout_s)`` is called about every
+        :data:`WORKER_POLL_S` while no worker is connected (s without one, s until the tasks
+        left are given up): a progress bar otherwise sits still as if hung. Stopping the
+        iteration early (or an exception, Ctrl-C) cancels the tasks not yet finished."""
         if self.inline:
             yield from self._inline(fn, args_list, reraise)
             return
@@ -381,9 +423,14 @@ class Executor:
         try:
             done = as_completed(futures)
             watch = _WorkerWatch(self.worker_count, self.worker_timeout_s)
+            said = watch.asked  # the poll last told to ``waiting``
             while not done.is_empty():
                 if not done.has_ready():
-                    if watch.gone():  # no worker for the whole timeout: give the rest up
+                    gone = watch.gone()
+                    if waiting and watch.waited_s is not None and (gone or watch.asked != said):
+                        said = watch.asked  # one call per poll of the worker count
+                        waiting(self.worker_timeout_s if gone else watch.waited_s, watch.timeout_s)
+                    if gone:  # no worker for the whole timeout: give the rest up
                         left = sorted(pending, key=index.__getitem__)
                         self._client.cancel([futures[index[k]] for k in left])
                         pending.clear()
@@ -448,13 +495,18 @@ class _WorkerWatch:
     def __init__(self, count: Callable[[], int], timeout_s: float) -> None:
         self.count = count
         self.timeout_s = timeout_s
-        self._asked = -math.inf
+        self.asked = -math.inf  # when count() was last asked (time.monotonic, s)
         self._none_since: float | None = None
+
+    @property
+    def waited_s(self) -> float | None:
+        """Seconds without a worker, as of the last ask (None while one is connected)."""
+        return None if self._none_since is None else self.asked - self._none_since
 
     def gone(self) -> bool:
         now = time.monotonic()
-        if now - self._asked >= WORKER_POLL_S:
-            self._asked = now
+        if now - self.asked >= WORKER_POLL_S:
+            self.asked = now
             try:
                 n = self.count()
             except Exception:  # the scheduler went away: the futures say so in their time
@@ -491,27 +543,54 @@ class TextProgress:
         self.t0 = time.monotonic()
         self._last = -math.inf
         self._start: tuple[int, float] | None = None  # (done, time) of the first call
+        self._done = 0  # of the last call
+        self._waited_last = -math.inf  # when the last "waiting for workers" line was written
 
     def __call__(self, done: int, failed: int = 0, lost: int = 0) -> None:
         now = time.monotonic()
+        self._done = done
         if self._start is None:
             self._start = (done, now)
         final = done >= self.total
         if not self.tty and not final and now - self._last < self.every_s:
             return
         self._last = now
-        frac = done / self.total if self.total else 1.0
-        filled = round(frac * self.width)
         elapsed = now - self.t0
         ran, running_s = done - lost - self._start[0], now - self._start[1]
         rate = ran / running_s * 60.0 if running_s > 0 and ran > 0 else 0.0
         eta = (self.total - done) / (rate / 60.0) if rate > 0 else float("nan")
         eta_text = f", ETA {eta:.0f} s" if rate > 0 and not final else ""
         line = (
-            f"[{'#' * filled}{'.' * (self.width - filled)}] {done}/{self.total} {self.label}"
+            f"{self._bar(done)} {done}/{self.total} {self.label}"
             f", {failed} failed{f', {lost} lost' if lost else ''}, {elapsed:.0f} s, {rate:.1f}/min"
             f"{eta_text}"
         )
+        self._write(line, final)
+
+    def waiting(self, waited_s: float, timeout_s: float) -> None:
+        """Say that no worker is connected, for ``waited_s`` of the ``timeout_s`` (s) after
+        which the tasks left are given up (and that they are, from then on): redrawn in place
+        on a terminal, otherwise a line at most every :data:`WAITING_EVERY_S`."""
+        now = time.monotonic()
+        over = waited_s >= timeout_s
+        if not self.tty and not over and now - self._waited_last < WAITING_EVERY_S:
+            return
+        self._waited_last = now
+        done = self._done
+        if over:
+            said = f"no worker connected for {timeout_s:g} s: the {self.label} left are lost"
+        else:
+            said = (
+                f"waiting for workers (0 connected) for {waited_s:.0f} s; the {self.label} left"
+                f" are given up after {timeout_s:g} s without one"
+            )
+        self._write(f"{self._bar(done)} {done}/{self.total} {self.label}, {said}", over)
+
+    def _bar(self, done: int) -> str:
+        filled = round((done / self.total if self.total else 1.0) * self.width)
+        return f"[{'#' * filled}{'.' * (self.width - filled)}]"
+
+    def _write(self, line: str, final: bool) -> None:
         if self.tty:
             self.stream.write("\r" + line.ljust(100) + ("\n" if final else ""))
         else:

@@ -51,17 +51,21 @@ files that were checked whatever their current folder.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import fcntl
 import hashlib
 import itertools
 import json
+import logging
 import math
 import os
 import socket
 import tempfile
+import threading
 import time
 import tomllib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime
 from datetime import time as clock_time
@@ -503,6 +507,41 @@ def plan(spec: SweepSpec) -> list[Run]:
 # ---------------------------------------------------------------------------- one run
 
 
+class _RobotLogKeptQuiet:
+    """The robot's log (``x6wd.*``: "state IDLE -> HOLD state: position estimate not ready")
+    not printed while a sweep's mission runs (``with ROBOT_LOG_KEPT_QUIET():``). With no
+    handler configured (a Dask worker, the sweep's own process), Python's last-resort handler
+    wrote each warning to stderr, several per mission, --quiet or not; a run's states are the
+    mission's to show (replay it with ``x6wd sim``). Counted, so that the log comes back when
+    the last of concurrent missions (a worker of several threads) ends."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._missions = 0
+        self._quiet = logging.NullHandler()  # a handler: Python's last resort is not used
+        self._propagate = True
+
+    @contextlib.contextmanager
+    def __call__(self) -> Iterator[None]:
+        logger = logging.getLogger("x6wd")
+        with self._lock:
+            if not self._missions:
+                self._propagate, logger.propagate = logger.propagate, False
+                logger.addHandler(self._quiet)
+            self._missions += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._missions -= 1
+                if not self._missions:
+                    logger.removeHandler(self._quiet)
+                    logger.propagate = self._propagate
+
+
+ROBOT_LOG_KEPT_QUIET = _RobotLogKeptQuiet()
+
+
 def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
     """One mission (on a worker): the scenario TOML with ``seed``, its summary only (no
     files: a sweep keeps the figures). Never raises for a failed mission: the record's
@@ -516,7 +555,8 @@ def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
     }
     try:
         world = loads_world(world_toml, source=run_id)
-        s = run_mission(world, None, seed=int(seed))
+        with ROBOT_LOG_KEPT_QUIET():
+            s = run_mission(world, None, seed=int(seed))
         rec.update(
             completed=bool(s.completed),
             waypoints_reached=int(s.waypoints_reached),
@@ -614,10 +654,11 @@ def is_done(record: dict[str, Any] | None, run: Run, retry_failed: bool = False)
 
 @dataclass
 class SweepResult:
-    """The records of every planned run (plan order); what this call ran (missions that
-    finished, succeeded or raised) and skipped (found done); its wall time (s) and the
-    executor's description. A run the cluster lost (status "lost") is neither run nor
-    skipped: it is run again by the next call."""
+    """The records of every planned run (plan order); what this call ran (runs that
+    finished, succeeded or raised), of them ``raised`` (the mission raised: no mission ran),
+    and skipped (found done); its wall time (s) and the executor's description. A run the
+    cluster lost (status "lost") is neither run nor skipped: it is run again by the next
+    call."""
 
     spec: SweepSpec
     runs: list[Run]
@@ -626,6 +667,7 @@ class SweepResult:
     skipped: int
     wall_s: float
     executor: str
+    raised: int = 0
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -644,9 +686,11 @@ class SweepResult:
 
     @property
     def missions_per_min(self) -> float:
-        """Missions finished by this call per wall minute, lost runs not counted (NaN when
-        none finished)."""
-        return self.ran / self.wall_s * 60.0 if self.ran and self.wall_s > 0 else float("nan")
+        """Missions that ran to their end (completed or not) in this call per wall minute:
+        runs that raised (often at once: an unreadable file) and lost runs are no missions
+        (NaN when none ran)."""
+        missions = self.ran - self.raised
+        return missions / self.wall_s * 60.0 if missions and self.wall_s > 0 else float("nan")
 
 
 def _record(run: Run, result: dict[str, Any] | None, outcome: Outcome | None) -> dict[str, Any]:
@@ -738,6 +782,35 @@ def check_out_dir(spec: SweepSpec, out_dir: str | Path) -> None:
         )
 
 
+LOCK_FILE = ".sweep.lock"
+"""In the output directory: locked (``flock``) by the sweep writing it, holding its pid."""
+
+
+@contextlib.contextmanager
+def out_dir_lock(out_dir: str | Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``OUT/.sweep.lock`` (:data:`LOCK_FILE`) for the block, or
+    raise :class:`ConfigError` at once naming the pid of the sweep that holds it: two sweeps
+    into one folder both simulated every run and wrote the same files. The lock is the open
+    file's, so it goes with its process, however that ends (a SIGKILL leaves no stale lock);
+    the file stays."""
+    path = Path(out_dir) / LOCK_FILE
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            raise ConfigError(
+                f"output directory {str(out_dir)!r}: another sweep (pid {pid}) is writing it;"
+                " wait for it to end, or choose another --out"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # and with it the lock
+
+
 def split_done(
     runs: Sequence[Run], store: RunStore, retry_failed: bool = False
 ) -> tuple[dict[str, dict[str, Any]], list[Run]]:
@@ -762,12 +835,15 @@ def run_sweep(
     progress: Callable[[int, int, int], None] | None = None,
     retry_failed: bool = False,
     runs: Sequence[Run] | None = None,
+    waiting: Callable[[float, float], None] | None = None,
 ) -> SweepResult:
     """Plan (unless ``runs`` is given), skip the runs already in ``out_dir``, run the rest on
     ``executor`` (entered by the caller), store each as it finishes, and return every planned
     run's record. ``progress(done, failed, lost)`` counts over all planned runs: ``done``
     the runs with a record (found done, finished or lost), ``failed`` those whose mission
-    raised, ``lost`` those the cluster could not finish. The report
+    raised, ``lost`` those the cluster could not finish; ``waiting(waited_s, timeout_s)``
+    while no worker is connected (:meth:`~sim_backend.executor.Executor.map_unordered`). The
+    report
     (:func:`sim_backend.sweep_report.write_report`) is the caller's next step. A folder that
     holds another sweep is a :class:`ConfigError` (:func:`check_out_dir`)."""
     t0 = time.perf_counter()
@@ -788,13 +864,15 @@ def run_sweep(
 
     report()
     args = [(r.run_id, r.cell.world_toml, r.seed) for r in todo]
-    ran = 0
-    for outcome in executor.map_unordered(run_task, args, names=[r.run_id for r in todo]):
+    ran = raised = 0
+    names = [r.run_id for r in todo]
+    for outcome in executor.map_unordered(run_task, args, names=names, waiting=waiting):
         run = todo[outcome.index]
         rec = _record(run, outcome.value if outcome.ok else None, outcome)
         store.write(rec)
         records[run.run_id] = rec
         ran += rec.get("status") != "lost"
+        raised += rec.get("status") == "error"
         report()
     return SweepResult(
         spec=spec,
@@ -804,4 +882,5 @@ def run_sweep(
         skipped=skipped,
         wall_s=time.perf_counter() - t0,
         executor=executor.description,
+        raised=raised,
     )

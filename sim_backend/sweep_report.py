@@ -9,8 +9,9 @@ Written into the sweep's output directory from the run records (``runs/*.json``)
   ``results.parquet`` the same when pyarrow is installed (it is not a dependency);
 - ``arrivals.csv`` — one row per waypoint arrival: the true horizontal error from the antenna to
   the waypoint when the arrival was decided (m) and the GPS's slow error at that moment (m);
-- ``completion.png`` (completed runs per cell, % of the runs that finished: a run the cluster
-  lost is no mission the robot failed, and is shown apart), ``arrival_cdf.png`` (the empirical
+- ``completion.png`` (completed missions per cell, % of the missions that ran: a run whose
+  mission raised or that the cluster lost is no mission the robot failed, and is shown apart; a
+  cell where none ran is a hatched bar, not a 0 % one), ``arrival_cdf.png`` (the empirical
   CDF of the true arrival error per cell, the GPS slow error dashed), ``path_ratio.png`` (true
   path / straight polyline per completed run, per cell);
 - ``summary.md`` — the sweep, the executor and its throughput, a table per cell, the failed
@@ -188,9 +189,11 @@ def _write_parquet(path: Path, rows: Sequence[dict[str, Any]], columns: Sequence
 
 @dataclass
 class CellStats:
-    """The figures of one cell over its runs (m, s; ratios dimensionless). ``failed``: the
-    mission raised; ``lost``: the cluster could not finish the run (no result: neither a
-    success nor a failure of the robot, and not in the completion rate)."""
+    """The figures of one cell over its runs (m, s; ratios dimensionless). ``ok``: the
+    mission ran (to its end, completed or not); ``failed``: the mission raised (an unreadable
+    almanac: the robot never drove); ``lost``: the cluster could not finish the run (no
+    result). Neither failed nor lost runs are successes or failures of the robot: the
+    completion rate is of the ``ok`` ones."""
 
     cell_id: str
     scenario: str
@@ -217,14 +220,25 @@ class CellStats:
         return " ".join([self.scenario, *parts])
 
     @property
-    def finished(self) -> int:
-        """The runs with a result (succeeded or raised): all but the lost ones."""
-        return self.runs - self.lost
+    def completion_pct(self) -> float:
+        """Completed missions, % of the missions that ran (``ok``; NaN when none ran)."""
+        return 100.0 * self.completed / self.ok if self.ok else math.nan
 
     @property
-    def completion_pct(self) -> float:
-        """Completed missions, % of the finished runs (NaN when none finished)."""
-        return 100.0 * self.completed / self.finished if self.finished else math.nan
+    def apart(self) -> str:
+        """The runs left out of the completion rate, in words ("6 errored, 1 lost"; "" for
+        none)."""
+        parts = [f"{self.failed} errored" if self.failed else ""]
+        parts.append(f"{self.lost} lost" if self.lost else "")
+        return ", ".join(p for p in parts if p)
+
+    @property
+    def completion_text(self) -> str:
+        """ "3/4 (75 %)" of the missions that ran; "n/a (6 errored)" when none ran: six runs
+        that raised are not six missions that did not complete."""
+        if not self.ok:
+            return f"n/a ({self.apart or 'no run'})"
+        return f"{self.completed}/{self.ok} ({_f(self.completion_pct, '.0f')} %)"
 
 
 def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
@@ -278,18 +292,25 @@ def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
     y = np.arange(len(cells))
     pct = [c.completion_pct if math.isfinite(c.completion_pct) else 0.0 for c in cells]
     ax.barh(y, pct, color="tab:green")
+    none_ran = [float(yi) for yi, c in zip(y, cells, strict=True) if not c.ok]
+    if none_ran:  # no mission ran: a hatched "n/a" bar, not an empty 0 % one
+        ax.barh(none_ran, 100.0, color="none", edgecolor="tab:grey", hatch="//", lw=0.5)
     ax.set_yticks(y, labels, fontsize=8)
     ax.invert_yaxis()
     ax.set_xlim(0, 115)
-    lost = sum(c.lost for c in cells)
+    errored, lost = sum(c.failed for c in cells), sum(c.lost for c in cells)
+    apart = [f"{errored} errored" if errored else "", f"{lost} lost" if lost else ""]
+    apart_text = " and ".join(p for p in apart if p)
     ax.set_xlabel(
-        "missions completed (% of the finished runs"
-        + (f"; {lost} runs lost by the cluster not counted)" if lost else ")")
+        "missions completed (% of the missions that ran"
+        + (f"; {apart_text} runs not counted)" if apart_text else ")")
     )
     ax.set_title("Completion rate per cell")
     for yi, c, x in zip(y, cells, pct, strict=True):
-        note = f", {c.lost} lost" if c.lost else ""
-        ax.text(x + 1, float(yi), f"{c.completed}/{c.finished}{note}", va="center", fontsize=7)
+        text = f"{c.completed}/{c.ok}" + (f", {c.apart}" if c.apart else "")
+        if not c.ok:
+            text, x = f"n/a: no mission ran ({c.apart or 'no run'})", 0.0
+        ax.text(x + 1, float(yi), text, va="center", fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "completion.png", dpi=100)
     plt.close(fig)
@@ -390,6 +411,10 @@ def markdown(
         if lost
         else ""
     )
+    raised = int(i.get("raised") or 0)
+    raised_text = (
+        f" ({raised} run{'' if raised == 1 else 's'} that raised not counted)" if raised else ""
+    )
     lines = [f"# Sweep {i['name']!r}", ""]
     lines += [
         f"- sweep file: `{i.get('source') or '-'}`; sweep seed {i['seed']}, {i['seeds']} seeds"
@@ -400,7 +425,7 @@ def markdown(
         f"- {len(records)} runs in {len(cells)} cells: {i['ran']} run now, {i['skipped']}"
         f" found done; {sum(c.failed for c in cells)} failed" + lost_text,
         f"- executor: {i['executor']}; {_f(i['wall_s'], '.1f')} s wall,"
-        f" {_f(i['missions_per_min'], '.1f')} missions/min",
+        f" {_f(i['missions_per_min'], '.1f')} missions/min{raised_text}",
         *_outside_lines(i.get("outside") or {}),
         "",
         "Arrival errors are true horizontal distances (m) from the antenna to the waypoint when"
@@ -410,8 +435,9 @@ def markdown(
         " the figures of a survey's sweep); the path ratio is the true path over the straight"
         " polyline, over completed runs.",
         "",
-        "*Completed* is a share of the runs that finished (*lost* runs, which the cluster"
-        " could not finish, are no missions of the robot).",
+        "*Completed* is a share of the missions that ran (*failed* runs, whose mission raised,"
+        " and *lost* runs, which the cluster could not finish, are no missions of the robot:"
+        " counted apart, n/a where no mission ran).",
         "",
         "| cell | runs | completed | failed | lost | arrival error median / p95"
         " | GPS slow median | GPS CEP50 median | path ratio median (max) | sim time median"
@@ -421,8 +447,7 @@ def markdown(
     for c in cells:
         ratios = [x for x in c.path_ratios if math.isfinite(x)]
         lines.append(
-            f"| `{c.cell_id}` {c.label} | {c.runs} | {c.completed}/{c.finished}"
-            f" ({_f(c.completion_pct, '.0f')} %) | {c.failed} | {c.lost}"
+            f"| `{c.cell_id}` {c.label} | {c.runs} | {c.completion_text} | {c.failed} | {c.lost}"
             f" | {_f(_median(c.arrival_true_m))} /"
             f" {_f(_pct(c.arrival_true_m, 95))} m | {_f(_median(c.arrival_gps_m))} m"
             f" | {_f(_median(c.gps_cep50_m))} m"
@@ -471,7 +496,8 @@ def write_report(
 ) -> list[str]:
     """Write the table(s), figures and ``summary.md``; returns the file names written.
     ``result_info``: name, source, seed, seeds, scenarios, set, grid, ran, skipped, executor,
-    wall_s, missions_per_min, and (optional) outside: the folder's finished runs this sweep
+    wall_s, missions_per_min, (optional) raised: this call's runs that raised, not in
+    missions_per_min, and (optional) outside: the folder's finished runs this sweep
     does not plan (count, more_seeds, seeds), said in the summary."""
     out = Path(out_dir)
     rows = run_rows(records)

@@ -10,7 +10,8 @@ Usage and costs: docs/sweeps.md.
 
 Exit codes: 0 every run succeeded; 1 some run failed (recorded with its error) or was lost by
 the cluster (run again by the same command); 2 a bad sweep file, scenario key or value, no
-Dask, an --out folder holding another sweep (another name or seed), or a --scheduler that is
+Dask, an --out folder holding another sweep (another name or seed) or that another sweep is
+writing (its lock, ``OUT/.sweep.lock``, is held), or a --scheduler that is
 malformed, unknown or silent (checked even when nothing is left to run); 130 interrupted
 (finished runs are kept: run the same command again to finish).
 """
@@ -28,8 +29,10 @@ from sim_backend.sweep import (
     MAX_RUNS,
     Run,
     RunStore,
+    SweepSpec,
     check_out_dir,
     load_sweep,
+    out_dir_lock,
     plan,
     run_count,
     run_sweep,
@@ -173,7 +176,16 @@ def main(args: argparse.Namespace) -> int:
         )
     runs = plan(spec)  # a bad key or value stops here, before any cluster starts
     out = output_dir(args.out if args.out else Path("out") / "sweeps" / Path(args.sweep).stem)
-    check_out_dir(spec, out)  # another sweep's results are not replaced
+    with out_dir_lock(out):  # a second sweep into this folder (the same one, even): exit 2
+        check_out_dir(spec, out)  # another sweep's results are not replaced
+        return _run(args, spec, runs, out, file_seeds)
+
+
+def _run(
+    args: argparse.Namespace, spec: SweepSpec, runs: list[Run], out: Path, file_seeds: int
+) -> int:
+    """Run what is missing of ``runs`` into ``out`` (locked by :func:`main`), write the
+    report, say what was done; the exit code."""
     progress = None if args.quiet else TextProgress(len(runs), "runs")
     # checks --workers and an empty --scheduler before RunStore makes OUT/runs
     executor = Executor(
@@ -192,7 +204,13 @@ def main(args: argparse.Namespace) -> int:
     try:
         with executor:
             result = run_sweep(
-                spec, out, executor, progress=progress, retry_failed=args.retry_failed, runs=runs
+                spec,
+                out,
+                executor,
+                progress=progress,
+                retry_failed=args.retry_failed,
+                runs=runs,
+                waiting=progress.waiting if progress else None,
             )
     except KeyboardInterrupt:
         kept = len(split_done(runs, RunStore(out), args.retry_failed)[0])
@@ -216,12 +234,16 @@ def main(args: argparse.Namespace) -> int:
         "executor": result.executor,
         "wall_s": result.wall_s,
         "missions_per_min": result.missions_per_min,
+        "raised": result.raised,
         "outside": outside,
     }
     write_report(info, result.records, out, figures=not args.no_figures)
     errors, lost = result.errors, result.lost
-    if result.ran:
-        rate = f"{result.missions_per_min:.1f} missions/min on {result.executor}"
+    raised_text = f" ({_runs(result.raised)} that raised not counted)" if result.raised else ""
+    if result.ran > result.raised:
+        rate = f"{result.missions_per_min:.1f} missions/min on {result.executor}{raised_text}"
+    elif result.ran:
+        rate = f"no mission ran on {result.executor}: {_runs(result.raised)} raised"
     elif lost:
         rate = f"no run finished on {result.executor}"
     else:
