@@ -51,7 +51,10 @@ def _reference(data: bytes, with_sky: bool) -> tuple[list[str], dict[str, int]]:
     records = dec.feed(data, 0.0)
     records += dec.flush()
     lines = [
-        json.dumps(tpv_obj(r) if isinstance(r, GpsFix) else sky_obj(r), separators=(",", ":"))
+        json.dumps(
+            tpv_obj(r) if isinstance(r, GpsFix) else sky_obj(r, fill_dops=False),
+            separators=(",", ":"),
+        )
         for r in records
         if isinstance(r, GpsFix) or (with_sky and isinstance(r, GpsSky))
     ]

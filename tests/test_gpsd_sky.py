@@ -15,6 +15,7 @@ from __future__ import annotations
 import collections
 import io
 import json
+import math
 import re
 from pathlib import Path
 
@@ -23,8 +24,8 @@ import pytest
 from drivers.gps_nmea import GpsDecoder, fix_status
 from drivers.nmea import checksum
 from x6wd.app import decode
-from x6wd.app.gpsd import sky_obj, tpv_obj
-from x6wd.core.records import GpsFix, GpsSky
+from x6wd.app.gpsd import geometry_dops, sky_obj, tpv_obj
+from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
 NMEA_DIR = Path(__file__).resolve().parent / "data" / "nmea"
 _SAT_KEYS = ("PRN", "gnssid", "svid", "used")
@@ -183,3 +184,87 @@ def test_tpv_status_is_gpsds(name: str) -> None:
             checked += 1
     assert checked >= 4
     assert any("status" in o for o in port)
+
+
+_DOP_KEYS = ("xdop", "ydop", "tdop", "gdop")
+
+
+def _epoch_dops(name: str) -> tuple[dict[str, dict], dict[str, dict]]:
+    """The DOPs of each epoch's last SKY with satellites, gpsd's and the port's (as
+    :func:`_epoch_skies` pairs them)."""
+    raw = (NMEA_DIR / name).read_bytes().decode("ascii", "replace")
+    in_log = collections.Counter(re.findall(r"\$[^$\r\n]*", raw))
+    dec = GpsDecoder(emit_sentences=False)
+    epoch = None
+    gpsd: dict[str, dict] = {}
+    ours: dict[str, dict] = {}
+    for line in (NMEA_DIR / "chk" / f"{name}.chk").read_text(errors="replace").splitlines():
+        if line.startswith("$"):
+            if in_log[line] <= 0:
+                continue
+            in_log[line] -= 1
+            epoch = _tod(line) or epoch
+            for r in dec.feed_sentence(line, 0.0):
+                if isinstance(r, GpsSky) and r.satellites:
+                    ours[str(epoch)] = {k: sky_obj(r).get(k) for k in _DOP_KEYS}
+        elif line.startswith('{"class":"SKY"') and '"satellites"' in line:
+            gpsd[str(epoch)] = {k: json.loads(line).get(k) for k in _DOP_KEYS}
+    return gpsd, ours
+
+
+# The first sky of these logs: gpsd took its DOPs from the satellites of the cycle's first
+# GSV group(s) and kept them (it never overwrites a DOP within a cycle); the port's are the
+# whole used set's. On logs with one GSV group per system (the L76K, SkyTraq, Teseo) gpsd's
+# are that partial set's at every epoch, so they are not compared.
+_PARTIAL_FIRST_SKY = {
+    "bt451.log": {"143306.00"},
+    "bundg_zeus_9.log": {"094926"},
+    "ublox-8.log": {"000941.00"},
+    "ublox8-uniqid-monhw.log": {"204221.00"},
+}
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["ublox-lea-5h.log", "ublox-lea-4h.log", "isync.log", "nl402u.log", "nl551e.log",
+     "triton400.log", "gp-320fw-2019-04-07-coldboot.log", *_PARTIAL_FIRST_SKY],
+)  # fmt: skip
+def test_sky_geometry_dops_are_gpsds(name: str) -> None:
+    # xdop, ydop, tdop and gdop were missing: gpsd computes them from the used satellites'
+    # azimuths and elevations, and cgps or a libgps program shows them
+    gpsd, ours = _epoch_dops(name)
+    compared = [e for e in gpsd if e in ours]  # none where gpsd had none (under 4 used)
+    assert compared, name
+    differ = set()
+    for e in compared:
+        for k in _DOP_KEYS:
+            g, o = gpsd[e][k], ours[e][k]
+            if (g is None) != (o is None) or (g is not None and abs(o - g) > 0.011):
+                differ.add(e)
+    assert differ == _PARTIAL_FIRST_SKY.get(name, set())
+
+
+def _sat(prn: int, el_deg: float | None, az_deg: float | None, used: bool = True) -> SatInfo:
+    return SatInfo(prn=prn, el_deg=el_deg, az_deg=az_deg, snr_dbhz=40.0, used=used)
+
+
+def test_sky_keeps_the_receivers_dops_and_needs_four_usable_satellites() -> None:
+    # one at the zenith, three on the horizon 120 deg apart: hdop 2 sqrt(2)/3 ... by hand
+    sats = (_sat(1, 90.0, 0.0), _sat(2, 0.0, 0.0), _sat(3, 0.0, 120.0), _sat(4, 0.0, 240.0))
+    dops = geometry_dops(sats)
+    assert dops is not None
+    assert dops["xdop"] == pytest.approx(dops["ydop"]) == pytest.approx(math.sqrt(2 / 3))
+    assert dops["hdop"] ** 2 == pytest.approx(dops["xdop"] ** 2 + dops["ydop"] ** 2)
+    assert dops["gdop"] ** 2 == pytest.approx(dops["pdop"] ** 2 + dops["tdop"] ** 2)
+    given = sky_obj(GpsSky(t_s=0.0, satellites=sats, hdop=1.5, vdop=2.5, pdop=2.9))
+    assert (given["hdop"], given["vdop"], given["pdop"]) == (1.5, 2.5, 2.9)  # as reported
+    assert given["xdop"] == pytest.approx(0.82, abs=0.005)
+    filled = sky_obj(GpsSky(t_s=0.0, satellites=sats))  # a receiver without a GSA
+    assert filled["hdop"] == pytest.approx(dops["hdop"], abs=0.005)
+    # fewer than 4 usable: no geometry DOPs (an unused one, no azimuth, an elevation of 95)
+    for odd in (_sat(4, 0.0, 240.0, used=False), _sat(4, 0.0, None), _sat(4, 95.0, 240.0)):
+        sky = sky_obj(GpsSky(t_s=0.0, satellites=(*sats[:3], odd)))
+        assert not set(_DOP_KEYS) & set(sky), odd
+    # all on one circle of elevation: no height from them, a singular geometry
+    ring = tuple(_sat(k, 30.0, 90.0 * k) for k in range(1, 6))
+    assert geometry_dops(ring) is None

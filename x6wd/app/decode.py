@@ -13,11 +13,13 @@ also takes the flat ``{"type":"nmea","text":...}`` form); its other records are 
 Anything else is read as a raw byte stream (binary and line noise tolerated). The decoder's
 counters go to standard error, one line per input.
 
-The lines are the text of ``json.dumps(tpv_obj(fix))`` / ``json.dumps(sky_obj(sky))``
-(``x6wd.app.gpsd``, compact separators) for the records of the daemon's decoder
-(``drivers.gps_nmea.GpsDecoder``), written by :class:`ReportEncoder` without building the
-dicts. :class:`ReportDecoder` is that decoder with its fixes and sky reports written as
-lines instead of records (same epochs and counters: only the writing differs);
+The lines are the text of ``json.dumps(tpv_obj(fix))`` /
+``json.dumps(sky_obj(sky, fill_dops=False))`` (``x6wd.app.gpsd``, compact separators; the
+receiver's DOPs only, where gpsd and the daemon's port add the geometry's) for the records
+of the daemon's decoder (``drivers.gps_nmea.GpsDecoder``), written by :class:`ReportEncoder`
+without building the dicts. :class:`ReportDecoder` is that decoder with its fixes and sky
+reports written as lines instead of records (same epochs and counters: only the writing
+differs);
 tests/test_decode_bulk.py checks both, byte for byte, against the reference path in the same
 run. bench/bench_decode.py compares the rate with gpsd's ``gpsdecode``.
 """
@@ -121,7 +123,8 @@ _float_json = float.__repr__  # how json.dumps writes a finite float
 
 class ReportEncoder:
     """TPV and SKY lines, the same text as ``json.dumps(tpv_obj(r))`` and
-    ``json.dumps(sky_obj(r))`` with compact separators (``x6wd.app.gpsd``), built directly.
+    ``json.dumps(sky_obj(r, fill_dops=False))`` (the receiver's DOPs only) with compact
+    separators (``x6wd.app.gpsd``), built directly.
 
     Building those dicts and encoding them cost more than decoding the NMEA: every number
     goes through ``round`` and ``json`` although most repeat from epoch to epoch (DOPs,

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
+import numpy as np
+
 from drivers.gps_nmea import STATUS_DGPS, fix_status
 from x6wd import __version__
 from x6wd.app.lineserver import (
@@ -46,7 +48,7 @@ from x6wd.app.lineserver import (
 from x6wd.core.config import GpsdConfig, SafetyConfig
 from x6wd.core.errors import ProtocolError
 from x6wd.core.geodesy import wrap360
-from x6wd.core.records import Attitude, DeviceState, GpsFix, GpsSky
+from x6wd.core.records import Attitude, DeviceState, GpsFix, GpsSky, SatInfo
 
 log = logging.getLogger(__name__)
 
@@ -189,9 +191,51 @@ def tpv_obj(fix: GpsFix, device: str | None = None) -> dict[str, Any]:
     return {k: v for k, v in obj.items() if v is not None}
 
 
-def sky_obj(sky: GpsSky, device: str | None = None) -> dict[str, Any]:
+MIN_DET = 1e-4
+"""The least determinant of the line-of-sight product a geometry's DOPs are taken from
+(gpsd's limit: below it the matrix is treated as singular, no DOPs)."""
+
+
+def geometry_dops(satellites: Iterable[SatInfo]) -> dict[str, float] | None:
+    """The dilutions of precision of the used satellites' geometry, as gpsd fills in those a
+    receiver does not report: ``xdop`` (east), ``ydop`` (north), ``hdop``, ``vdop``,
+    ``pdop``, ``tdop`` (clock) and ``gdop``, dimensionless, from each satellite's unit
+    line of sight (azimuth, elevation in degrees) and a clock column, unweighted. A
+    satellite without a number >= 1 or with its azimuth outside 0-359 deg or elevation
+    outside +-90 deg is left out; None with fewer than 4 or a singular geometry."""
+    rows = []
+    for s in satellites:
+        az, el = s.az_deg, s.el_deg
+        if not s.used or s.prn < 1 or az is None or el is None:
+            continue
+        if not (0.0 <= az <= 359.0 and abs(el) <= 90.0):  # NaN fails both
+            continue
+        az_rad, el_rad = math.radians(az), math.radians(el)
+        rows.append((math.sin(az_rad) * math.cos(el_rad), math.cos(az_rad) * math.cos(el_rad),
+                     math.sin(el_rad), 1.0))  # fmt: skip
+    if len(rows) < 4:
+        return None
+    g = np.array(rows)
+    product = g.T @ g
+    if abs(float(np.linalg.det(product))) < MIN_DET:
+        return None
+    q = np.diag(np.linalg.inv(product))
+    if not (np.all(np.isfinite(q)) and np.all(q > 0.0)):
+        return None
+    e, n, u, t = (float(v) for v in q)
+    return {
+        "xdop": math.sqrt(e), "ydop": math.sqrt(n), "hdop": math.sqrt(e + n),
+        "vdop": math.sqrt(u), "pdop": math.sqrt(e + n + u), "tdop": math.sqrt(t),
+        "gdop": math.sqrt(e + n + u + t),
+    }  # fmt: skip
+
+
+def sky_obj(sky: GpsSky, device: str | None = None, fill_dops: bool = True) -> dict[str, Any]:
     """SKY report: DOPs, satellite counts and the satellite list (PRN, gnssid, svid, used,
-    el, az, ss; gnssid and svid omitted for a number in no known range)."""
+    el, az, ss; gnssid and svid omitted for a number in no known range). The receiver's
+    hdop, vdop and pdop as it reported them; with ``fill_dops`` the others (xdop, ydop, tdop,
+    gdop), and any it left out, from the used satellites' geometry (:func:`geometry_dops`),
+    as gpsd does (``x6wd decode`` writes the receiver's alone)."""
     sats: list[dict[str, Any]] = []
     for s in sky.satellites:
         d: dict[str, Any] = {"PRN": s.prn, "gnssid": s.gnssid, "svid": s.svid, "used": bool(s.used)}
@@ -209,6 +253,11 @@ def sky_obj(sky: GpsSky, device: str | None = None) -> dict[str, Any]:
         "hdop": _num(sky.hdop, 2),
         "vdop": _num(sky.vdop, 2),
         "pdop": _num(sky.pdop, 2),
+    }
+    for k, v in ((fill_dops and geometry_dops(sky.satellites)) or {}).items():
+        if obj.get(k) is None:
+            obj[k] = _num(v, 2)
+    obj |= {
         "nSat": len(sats),
         "uSat": sum(1 for s in sky.satellites if s.used),
         "satellites": sats,
