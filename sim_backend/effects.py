@@ -168,10 +168,21 @@ def quantization_step_m(decimals: int, lat_deg: float) -> tuple[float, float]:
 
 
 def _dt_s(t_s: np.ndarray) -> np.ndarray:
-    dt = np.diff(np.asarray(t_s, dtype=float))
+    t = np.asarray(t_s, dtype=float)
+    dt = np.diff(t)
     if dt.size and not np.all(dt > 0):
-        raise ValueError("t_s must be strictly increasing")
+        raise ValueError(_not_rising_text(t, dt))
     return dt
+
+
+def _not_rising_text(t_s: np.ndarray, dt_s: np.ndarray) -> str:
+    """The error of a time axis (s) that does not rise: where, so that a caller's log can be
+    looked at (the bare "t_s must be strictly increasing" named no epoch)."""
+    k = int(np.flatnonzero(~(dt_s > 0))[0])
+    return (
+        f"t_s must be strictly increasing: samples {k} and {k + 1} are at {t_s[k]:.6f} s and"
+        f" {t_s[k + 1]:.6f} s"
+    )
 
 
 def truth_velocity_mps(series: PositionSeries) -> tuple[np.ndarray, np.ndarray]:
@@ -1068,7 +1079,7 @@ class _LowPass:
             yv = np.empty_like(xv)
         dt = np.diff(np.concatenate(([t_prev], tv[first:]))) if tv.size > first else np.zeros(0)
         if dt.size and np.any(dt <= 0):
-            raise ValueError("t_s must be strictly increasing")
+            raise ValueError(_not_rising_text(np.concatenate(([t_prev], tv[first:])), dt))
         gain = -np.expm1(-dt / self.tau_s)
         if dt.size and np.all(dt == dt[0]):
             # one step everywhere: a first-order IIR filter, run in C by lfilter

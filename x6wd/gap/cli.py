@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -18,7 +19,7 @@ from x6wd.core.errors import ConfigError
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.outdir import output_dir
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
-from x6wd.gap.diagnose import Diagnosis, Options, check_real, diagnose, verdict_text
+from x6wd.gap.diagnose import Diagnosis, Options, check_real, diagnose
 from x6wd.gap.io import (
     MAX_ERROR_FROM_TRUTH_M,
     Track,
@@ -37,7 +38,7 @@ from x6wd.gap.io import (
     realign_note,
     time_offset_note,
 )
-from x6wd.gap.report import FIGURES, write_report
+from x6wd.gap.report import FIGURES, verdict_line, write_report
 from x6wd.gap.stats import has_up
 
 
@@ -101,8 +102,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="run the --scenario seeds on a running Dask scheduler (tcp://host:8786)",
     )
+    # "--truth -45.87,170.5": argparse takes an argument starting with "-" for an option
+    # unless it is one plain negative number, so a southern or western first value stopped
+    # with "expected one argument". Any "-" then a digit is a value here (the rule of newer
+    # Pythons' argparse); no option of this parser starts with a digit.
+    parser._negative_number_matcher = re.compile(r"-\.?\d")
     truth = parser.add_mutually_exclusive_group()
-    truth.add_argument("--truth", help="surveyed point LAT,LON[,ALT] (deg, deg, m)")
+    truth.add_argument(
+        "--truth",
+        help="surveyed point LAT,LON[,ALT] (deg, deg, m); negative values work as they are:"
+        " --truth -45.87,170.5",
+    )
     truth.add_argument("--truth-track", help="truth trajectory (any log format, e.g. RTKLIB .pos)")
     parser.add_argument("--out", default="gap-report", help="output directory (default gap-report)")
     parser.add_argument(
@@ -153,11 +163,10 @@ def to_errors(track: Track, args: argparse.Namespace, truth_track: Track | None)
     return errors_vs_mean(track)
 
 
-def place_note(real: Track, sims: list[Track], names: list[str]) -> str | None:
-    """Without a truth (errors against each log's own mean), a note naming the --sim logs
-    whose median fix lies more than :data:`~x6wd.gap.io.MAX_ERROR_FROM_TRUTH_M` from the
-    real log's: they simulate another place (its sky, its walls), which the errors cannot
-    show. None when every one is near."""
+def far_sims(real: Track, sims: list[Track], names: list[str]) -> list[tuple[str, float]]:
+    """(name, distance m) of the --sim logs whose median fix lies more than
+    :data:`~x6wd.gap.io.MAX_ERROR_FROM_TRUTH_M` from the real log's: they simulate another
+    place (its sky, its walls). Empty when every one is near (or a log has no fix)."""
 
     def centre(track: Track) -> tuple[float, float] | None:
         v = np.asarray(track.valid, dtype=bool)
@@ -167,14 +176,22 @@ def place_note(real: Track, sims: list[Track], names: list[str]) -> str | None:
 
     here = centre(real)
     if here is None:
-        return None
+        return []
     far = []
     for name, sim in zip(names, sims, strict=True):
         there = centre(sim)
         if there is not None:
             d_m = great_circle_m(here[0], here[1], there[0], there[1])
             if d_m > MAX_ERROR_FROM_TRUTH_M:
-                far.append(f"{name} {d_m / 1000:.1f} km")
+                far.append((name, d_m))
+    return far
+
+
+def place_note(real: Track, sims: list[Track], names: list[str]) -> str | None:
+    """Without a truth (errors against each log's own mean), a note naming the --sim logs
+    that simulate another place (:func:`far_sims`), which the errors cannot show. None when
+    every one is near."""
+    far = [f"{name} {d_m / 1000:.1f} km" for name, d_m in far_sims(real, sims, names)]
     if not far:
         return None
     return (
@@ -313,6 +330,8 @@ def main(args: argparse.Namespace) -> int:
         notes.append(
             "no truth given: errors are taken against each log's own mean, so a bias is invisible"
         )
+    # the farthest --sim log (km) when they simulate another place: the verdict says so
+    other_place_km: float | None = None
     if not args.sim and not args.scenario:
         args.scenario = str(DEFAULT_SCENARIO)
         notes.append(
@@ -360,10 +379,13 @@ def main(args: argparse.Namespace) -> int:
             notes += moved_sims
         notes += short_sims_notes(real, baseline, args.sim)
         if args.truth is None and truth_track is None:
+            # not refused (as a far log is against a --truth): without a truth the errors
+            # are computed right, about another sky; the verdict's first words say so
             far = place_note(real_track, sims, args.sim)
             if far is not None:
                 notes.append(far)
                 print(f"x6wd gap: warning: {far}", file=sys.stderr)
+                other_place_km = max(d_m for _, d_m in far_sims(real_track, sims, args.sim)) / 1e3
     rng = np.random.default_rng(args.seed)
     diagnosis = diagnose(real, baseline, rng, Options(replicates=args.replicates), progress=bar)
     diagnosis.notes.extend(notes)
@@ -387,9 +409,11 @@ def main(args: argparse.Namespace) -> int:
         figures=not args.no_figures,
         compass=compass,
         origin_deg=origin,
+        other_place_km=other_place_km,
     )
     extra = f"; {compass_verdict_text(compass)}" if compass is not None else ""
-    print(f"{verdict_text(diagnosis)}{extra}; report in {Path(args.out) / 'report.md'}")
+    verdict = verdict_line(diagnosis, other_place_km)
+    print(f"{verdict}{extra}; report in {Path(args.out) / 'report.md'}")
     calibration = diagnosis.calibration
     if calibration is not None:
         print(f"validation, selected effects only: {calibration.selected.summary()}")

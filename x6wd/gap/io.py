@@ -233,10 +233,12 @@ def _resolve_repeats(table: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """Rows sorted by time (stable: file order within a time stamp) -> the same without
     repeated time stamps, and notes saying what was done.
 
-    A row equal to the one before it in every field (NaN equal to NaN) is the same epoch
-    logged twice: dropped. Distinct fixes under one time stamp are different epochs whose
-    stamp is off: a host logger stamping each fix with its own clock in whole seconds stamps
-    two fixes with one second and none with the next when its clock jitters across a second
+    A row equal to the one before it in every field both know (NaN: unknown) is the same
+    epoch logged twice: dropped, the fields only it knows kept (an RMC+GGA pair logged
+    twice decodes as a fix with a speed, then one without: not another fix). Distinct fixes
+    under one time stamp are different epochs whose stamp is off: a host logger stamping
+    each fix with its own clock in whole seconds stamps two fixes with one second and none
+    with the next when its clock jitters across a second
     (gpsd's ``gpxlogger``/CSV loggers on a loaded host; ``static/mobile.csv``: 341 repeated
     stamps and 340 empty seconds in 1406 rows). Dropping them would leave those seconds empty
     and read them as the receiver's outages. On a regular time axis they are re-timed: each
@@ -251,9 +253,25 @@ def _resolve_repeats(table: np.ndarray) -> tuple[np.ndarray, list[str]]:
     notes: list[str] = []
     t_s = table[:, 0]
     same_stamp = np.concatenate(([False], np.diff(t_s) <= 0))
-    whole = np.zeros(len(table), dtype=bool)
+    exact = np.zeros(len(table), dtype=bool)  # equal in every field, NaN to NaN
+    whole = np.zeros(len(table), dtype=bool)  # equal where both rows know the field
+    merged = table.copy()
     for i in np.flatnonzero(same_stamp):
-        whole[i] = np.array_equal(table[i], table[i - 1], equal_nan=True)
+        exact[i] = np.array_equal(table[i], table[i - 1], equal_nan=True)
+        into = i - 1
+        while whole[into]:  # the row the earlier copies of this epoch were merged into
+            into -= 1
+        a, b = merged[into], merged[i]
+        known = ~np.isnan(a) & ~np.isnan(b)
+        if np.array_equal(a[known], b[known]):
+            whole[i] = True
+            merged[into] = np.where(np.isnan(a), b, a)
+    if np.count_nonzero(whole & ~exact) > 0.5 * np.unique(t_s).size:
+        # most stamps hold rows that complete each other: a row per sentence (RMC, then
+        # GGA), not copies logged twice; the several-rows rule below keeps the fullest
+        whole = exact
+    else:
+        table = merged
     if np.any(whole):
         notes.append(
             f"{int(np.count_nonzero(whole))} epochs repeating a time stamp with the same fix"
@@ -698,13 +716,21 @@ def _chained_decoder() -> Any:
     from drivers.gps_nmea import GpsDecoder
 
     class ChainedDecoder(GpsDecoder):
+        # the UTCs the decoder gave leap seconds (23:59:60 as 23:59:59.999999: datetime cannot
+        # hold it), to be left out: 1 us before the next epoch, no time axis can hold both
+        leap_utc: set[datetime]
+
         def _utc_compute(self, tod: int, day: Any, date_tod_us: int) -> datetime:
             utc: datetime = super()._utc_compute(tod, day, date_tod_us)
             if tod < 86_400_000_000:  # a leap second (23:59:60) moves no date
                 self._date, self._date_tod_us = utc.date(), tod
+            else:
+                self.leap_utc.add(utc)
             return utc
 
-    return ChainedDecoder(emit_sentences=False)
+    decoder = ChainedDecoder(emit_sentences=False)
+    decoder.leap_utc = set()
+    return decoder
 
 
 def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[str] = ()) -> Track:
@@ -762,7 +788,11 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
     timeless = 0
     skies: dict[float, float] = {}  # UTC s -> the set the epoch's GSA lists as used
     fix_utc: list[float | None] = []
+    leap = 0
     for fix in _decoded_fixes(decoder, feed(), skies):
+        if first is not None and fix.utc in decoder.leap_utc:
+            leap += 1
+            continue
         t_s = fix.t_s if first is None else _utc_s(fix.utc)
         if t_s is None:
             timeless += 1
@@ -777,6 +807,11 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
     if timeless:
         notes.append(
             f"{timeless} epochs without a time (e.g. no-fix GGA with empty fields) dropped"
+        )
+    if leap:
+        notes.append(
+            f"{leap} leap-second epoch{'s' if leap != 1 else ''} (23:59:60 UTC) left out (a UTC"
+            " time axis has no place for it)"
         )
     if first is None:
         notes.append("no dated NMEA sentence: the recording's receive clock is the time axis")
@@ -992,7 +1027,32 @@ def _read_recording(path: Path) -> Track:
                     yield rec.t_mono, str(text or "").encode("ascii", "replace") + b"\r\n"
 
         return _nmea_track(feed, str(path), receive_clock=True)
+    if _is_gpsd_json(path):
+        raise ParseError(
+            f"{path}: gpsd JSON (TPV/SKY reports, as gpspipe -w or x6wd decode write them),"
+            " which the gap tool does not read: give it the receiver's NMEA, recorded with"
+            " gpspipe -r > log.nmea (or the NMEA log the JSON was decoded from)"
+        )
     raise ParseError(f"{path}: recording has no fix or nmea records")
+
+
+_GPSD_CLASSES = frozenset({"VERSION", "DEVICES", "DEVICE", "WATCH", "TPV", "SKY", "GST", "ATT"})
+
+
+def _is_gpsd_json(path: Path, max_lines: int = 20) -> bool:
+    """Whether one of the first ``max_lines`` lines is a gpsd report (a JSON object with a
+    gpsd ``class``): asked only of a file read as no recording, to say what it is."""
+    import json
+
+    with open(path, "rb") as f:
+        for _, raw in zip(range(max_lines), f, strict=False):
+            try:
+                obj = json.loads(raw)
+            except ValueError:
+                continue
+            if isinstance(obj, dict) and obj.get("class") in _GPSD_CLASSES:
+                return True
+    return False
 
 
 _CSV_NAMES = {
@@ -1259,9 +1319,20 @@ TRUTH_ALT_RANGE_M = (-1000.0, 10_000.0)
 to above Everest; NaN, inf and 1e300 are refused."""
 
 
+_ORDINALS = ("1st", "2nd", "3rd")
+
+
 def parse_truth(text: str) -> tuple[float, float, float]:
     """``LAT,LON[,ALT]`` (degrees, metres) -> (lat, lon, alt or NaN); ConfigError if malformed."""
     parts = [p.strip() for p in text.split(",")]
+    empty = [i for i, p in enumerate(parts) if not p]
+    if empty and len(parts) > 1:  # "44.07,-121.31,": a stray comma, not a malformed number
+        which = ", ".join(_ORDINALS[i] if i < len(_ORDINALS) else f"{i + 1}th" for i in empty)
+        raise ConfigError(
+            f"--truth {text!r}: {len(parts)} value{'s' if len(parts) != 1 else ''} given, the"
+            f" {which} empty: an empty value is not allowed (a stray comma?); expected"
+            " LAT,LON[,ALT] (degrees, degrees, metres)"
+        )
     if len(parts) not in (2, 3):
         raise ConfigError(
             f"--truth {text!r}: {len(parts)} value{'s' if len(parts) != 1 else ''}, expected 2"
@@ -1354,8 +1425,10 @@ def _series(
     sat_set = track.sat_set
     if sat_set is not None and not np.any(sat_set[track.valid] >= 0):
         sat_set = None
+    t_s = relative_times_s(track.t_s)
+    _check_rising(t_s, track)
     return PositionSeries(
-        t_s=relative_times_s(track.t_s),
+        t_s=t_s,
         east_m=np.where(valid, east_m, 0.0),
         north_m=np.where(valid, north_m, 0.0),
         up_m=np.where(valid, up_m, 0.0),
@@ -1366,6 +1439,25 @@ def _series(
         course_deg=course_deg,
         nsats=nsats,
         sat_set=sat_set,
+    )
+
+
+def _check_rising(t_s: np.ndarray, track: Track) -> None:
+    """ParseError naming the log and the first pair of epochs where ``t_s`` (s from the
+    first, as rounded by :func:`relative_times_s`) does not rise: the simulator and the
+    effects refuse such an axis with a bare "t_s must be strictly increasing" that named
+    neither the log nor the epochs (a 23:59:60 read 1 us before 00:00:00 did)."""
+    steps_s = np.diff(t_s)
+    if not steps_s.size or np.all(steps_s > 0):
+        return
+    k = int(np.flatnonzero(steps_s <= 0)[0])
+    gap_us = (track.t_s[k + 1] - track.t_s[k]) * 1e6
+    raise ParseError(
+        f"{track.source}: epochs {k + 1} and {k + 2} ({_utc_text(float(track.t_s[k]))} and"
+        f" {_utc_text(float(track.t_s[k + 1]))}) are {gap_us:.1f} us apart: the time axis must"
+        f" rise by at least {10.0**-RELATIVE_TIME_DECIMALS * 1e6:g} us from epoch to epoch"
+        " (times finer than that fall on one time); remove one of the two or give times"
+        " that rise"
     )
 
 

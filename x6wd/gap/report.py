@@ -23,10 +23,43 @@ from x6wd.gap.compass import (
 from x6wd.gap.diagnose import Diagnosis, headline, report_dict, verdict_text
 from x6wd.gap.level import Calibration, closeness_text
 from x6wd.gap.null import NullModel
+from x6wd.gap.pipeline import EXPLAINED_CLOSURE
 from x6wd.gap.stats import acf, allan_var, octave_taus, regular
 from x6wd.gap.validate import Validation, direction_text, own_mean
 
 FIGURES = ("scatter.png", "cdf.png", "allan.png", "acf.png", "time.png", "map.png")
+
+
+def is_borderline(head: dict[str, Any]) -> bool:
+    """Whether the verdict rests on a closure (``head``: :func:`~x6wd.gap.diagnose.headline`)
+    whose 90 % interval holds :data:`EXPLAINED_CLOSURE` with room on both sides: another
+    --seed or --seeds may land the closure on the other side of it and turn "explained" into
+    "not explained" (an audit's borderline log: 0.51 with one seed, 0.48 with another)."""
+    ci = head["closure_ci"]
+    return ci is not None and ci[0] < EXPLAINED_CLOSURE < ci[1]
+
+
+def verdict_line(diagnosis: Diagnosis, other_place_km: float | None = None) -> str:
+    """The GPS verdict as the report and the CLI headline it: :func:`verdict_text`, after
+    what makes it weaker than it reads. ``other_place_km``: the farthest --sim log's distance
+    (km) from the real log when one simulates another place (None: same place or unknown).
+    Wording only: the statistics are those of :func:`verdict_text`."""
+    text = verdict_text(diagnosis)
+    head = headline(diagnosis)
+    if is_borderline(head):
+        low, high = head["closure_ci"]
+        text = (
+            f"borderline: the closure's 90 % interval {low:.2f}-{high:.2f} holds the"
+            f" {EXPLAINED_CLOSURE:g} that 'explained' needs, so another --seed or --seeds may"
+            f" turn this verdict: {text}"
+        )
+    if other_place_km is not None:
+        text = (
+            f"not meaningful: the --sim logs simulate another place (up to {other_place_km:.0f}"
+            " km from the real log: another sky, other walls), so this compares different"
+            f" places: {text}"
+        )
+    return text
 
 
 def _toml_value(v: Any) -> str:
@@ -66,18 +99,21 @@ def effects_toml(
     compass: CompassDiagnosis | None = None,
     origin_deg: tuple[float, float] | None = None,
     calibrated: bool = False,
+    verdict: str | None = None,
 ) -> str:
     """The selected effects (GPS, then compass layers) as ``[[effects]]`` tables (comment-only
     text when none); ``calibrated``: with the level calibration's layers after the GPS ones
     (calibrated.toml). A multipath zone's wall is fitted in metres from the log's first true
     position; with ``origin_deg`` (the scenario's origin, lat/lon deg) it is moved into that
-    scenario's local frame, where the simulator evaluates zones."""
+    scenario's local frame, where the simulator evaluates zones. ``verdict``: the header's
+    verdict (default :func:`verdict_text`)."""
+    verdict = verdict_text(diagnosis) if verdict is None else verdict
     gps = list(diagnosis.selected)
     if calibrated and diagnosis.calibration is not None:
         c = diagnosis.calibration
         gps += c.layers
         lines = [
-            f"{_OUR_HEADER} fitted effects ({verdict_text(diagnosis)}), then the level calibration",
+            f"{_OUR_HEADER} fitted effects ({verdict}), then the level calibration",
             "# (in sample: fitted to seed 000's validation figures on this very log, see",
             '# report.md); use it INSTEAD of effects.toml: include = ["calibrated.toml"]',
         ]
@@ -86,7 +122,7 @@ def effects_toml(
         lines += [f"# level layer left out: {name}: {why}" for name, why in c.left_out]
     else:
         lines = [
-            f"{_OUR_HEADER} fitted effects ({verdict_text(diagnosis)})",
+            f"{_OUR_HEADER} fitted effects ({verdict})",
             '# merge into a scenario: include = ["effects.toml"]',
         ]
     if compass is not None:
@@ -193,20 +229,30 @@ def write_report(
     figures: bool = True,
     compass: CompassDiagnosis | None = None,
     origin_deg: tuple[float, float] | None = None,
+    other_place_km: float | None = None,
 ) -> dict[str, Any]:
     """Write every output into ``out_dir`` (created); returns the report.json content (its
     keys are fixed: seed 000's validation goes to validation.json).
     ``compass``: the compass half (merged into report.json, a section of report.md, its
     layers in effects.toml and the figure compass.png); ``origin_deg``: the scenario's origin
-    (lat, lon deg), the frame of effects.toml's walls (see :func:`effects_toml`)."""
+    (lat, lon deg), the frame of effects.toml's walls (see :func:`effects_toml`);
+    ``other_place_km``: the farthest --sim log's distance (km) when they simulate another
+    place (:func:`verdict_line`). report.json's ``verdict.borderline`` (the GPS closure's
+    interval holds the 'explained' threshold) and ``verdict.other_place_km`` (None when the
+    same place) say what the verdict's wording says."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     report = merged_report(diagnosis, compass)
+    report["verdict"]["borderline"] = is_borderline(headline(diagnosis))
+    report["verdict"]["other_place_km"] = (
+        None if other_place_km is None else round(other_place_km, 1)
+    )
+    verdict = verdict_line(diagnosis, other_place_km)
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-    (out / "effects.toml").write_text(effects_toml(diagnosis, compass, origin_deg))
+    (out / "effects.toml").write_text(effects_toml(diagnosis, compass, origin_deg, verdict=verdict))
     if diagnosis.calibration is not None:
         (out / "calibrated.toml").write_text(
-            effects_toml(diagnosis, compass, origin_deg, calibrated=True)
+            effects_toml(diagnosis, compass, origin_deg, calibrated=True, verdict=verdict)
         )
         (out / "validation.json").write_text(
             json.dumps(validation_dict(diagnosis.calibration), indent=2) + "\n"
@@ -220,7 +266,7 @@ def write_report(
         write_figures(diagnosis, out)
         if compass is not None:
             compass_figure(compass, out)
-    text = markdown(diagnosis, report_dict(diagnosis), real_name, figures)
+    text = markdown(diagnosis, report_dict(diagnosis), real_name, figures, verdict=verdict)
     if compass is not None:
         text += compass_markdown(compass, figures)
     (out / "report.md").write_text(text)
@@ -329,15 +375,21 @@ def _ci_text(head: dict[str, Any], sep: str, before: str, after: str) -> str:
     return "" if ci is None else f"{before}{ci[0]:.2f}{sep}{ci[1]:.2f}{after}"
 
 
-def markdown(diagnosis: Diagnosis, report: dict[str, Any], real_name: str, figures: bool) -> str:
-    """report.md text."""
+def markdown(
+    diagnosis: Diagnosis,
+    report: dict[str, Any],
+    real_name: str,
+    figures: bool,
+    verdict: str | None = None,
+) -> str:
+    """report.md text; ``verdict``: its headline (default :func:`verdict_text`)."""
     layout = diagnosis.layout
     motion = "moving" if layout.moving else "static"
     head = report["verdict"] if "status" in report["verdict"] else headline(diagnosis)
     lines = [
         f"# Sim-to-real gap: {real_name}",
         "",
-        f"**Verdict: {verdict_text(diagnosis)}.**",
+        f"**Verdict: {verdict_text(diagnosis) if verdict is None else verdict}.**",
         "",
         f"- log: {layout.duration_s:.0f} s at {layout.dt_s:g} s steps, {motion}, "
         f"fix availability {np.mean(diagnosis.real.valid):.1%}",
