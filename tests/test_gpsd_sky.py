@@ -17,7 +17,9 @@ import io
 import json
 import math
 import re
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -52,16 +54,17 @@ def _sat_set(sky: dict) -> list[tuple]:
     )
 
 
-def _epoch_skies(name: str) -> tuple[dict[str, list], dict[str, list]]:
-    """The last SKY with satellites of each epoch (keyed by the last time field read), gpsd's
-    and the port's. The .chk interleaves the log's sentences with gpsd's JSON (and gpsd's own
-    NMEA output, which is not fed): both sides see the same sentences in the same order."""
+def _per_epoch(name: str, of: Callable[[dict], Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``of`` the last SKY with satellites of each epoch (keyed by the last time field read),
+    gpsd's and the port's. The .chk interleaves the log's sentences with gpsd's JSON (and
+    gpsd's own NMEA output, which is not fed): both sides see the same sentences in the same
+    order."""
     raw = (NMEA_DIR / name).read_bytes().decode("ascii", "replace")
     in_log = collections.Counter(re.findall(r"\$[^$\r\n]*", raw))
     dec = GpsDecoder(emit_sentences=False)
     epoch = None
-    gpsd: dict[str, list] = {}
-    ours: dict[str, list] = {}
+    gpsd: dict[str, Any] = {}
+    ours: dict[str, Any] = {}
     for line in (NMEA_DIR / "chk" / f"{name}.chk").read_text(errors="replace").splitlines():
         if line.startswith("$"):
             if in_log[line] <= 0:
@@ -70,10 +73,15 @@ def _epoch_skies(name: str) -> tuple[dict[str, list], dict[str, list]]:
             epoch = _tod(line) or epoch
             for r in dec.feed_sentence(line, 0.0):
                 if isinstance(r, GpsSky) and r.satellites:
-                    ours[str(epoch)] = _sat_set(sky_obj(r))
+                    ours[str(epoch)] = of(sky_obj(r))
         elif line.startswith('{"class":"SKY"') and '"satellites"' in line:
-            gpsd[str(epoch)] = _sat_set(json.loads(line))
+            gpsd[str(epoch)] = of(json.loads(line))
     return gpsd, ours
+
+
+def _epoch_skies(name: str) -> tuple[dict[str, list], dict[str, list]]:
+    """Each epoch's satellites (:func:`_sat_set`), gpsd's and the port's."""
+    return _per_epoch(name, _sat_set)
 
 
 # Epochs whose satellites gpsd took from elsewhere than the NMEA: the L76K's CASIC binary
@@ -190,26 +198,8 @@ _DOP_KEYS = ("xdop", "ydop", "tdop", "gdop")
 
 
 def _epoch_dops(name: str) -> tuple[dict[str, dict], dict[str, dict]]:
-    """The DOPs of each epoch's last SKY with satellites, gpsd's and the port's (as
-    :func:`_epoch_skies` pairs them)."""
-    raw = (NMEA_DIR / name).read_bytes().decode("ascii", "replace")
-    in_log = collections.Counter(re.findall(r"\$[^$\r\n]*", raw))
-    dec = GpsDecoder(emit_sentences=False)
-    epoch = None
-    gpsd: dict[str, dict] = {}
-    ours: dict[str, dict] = {}
-    for line in (NMEA_DIR / "chk" / f"{name}.chk").read_text(errors="replace").splitlines():
-        if line.startswith("$"):
-            if in_log[line] <= 0:
-                continue
-            in_log[line] -= 1
-            epoch = _tod(line) or epoch
-            for r in dec.feed_sentence(line, 0.0):
-                if isinstance(r, GpsSky) and r.satellites:
-                    ours[str(epoch)] = {k: sky_obj(r).get(k) for k in _DOP_KEYS}
-        elif line.startswith('{"class":"SKY"') and '"satellites"' in line:
-            gpsd[str(epoch)] = {k: json.loads(line).get(k) for k in _DOP_KEYS}
-    return gpsd, ours
+    """Each epoch's geometry DOPs, gpsd's and the port's."""
+    return _per_epoch(name, lambda sky: {k: sky.get(k) for k in _DOP_KEYS})
 
 
 # The first sky of these logs: gpsd took its DOPs from the satellites of the cycle's first
