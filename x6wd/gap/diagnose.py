@@ -57,6 +57,7 @@ from x6wd.gap.pipeline import (
     Round,
     fingerprint_score,
 )
+from x6wd.gap.rate import MAX_ANALYSIS_HZ, baseline_at
 from x6wd.gap.solution import EFFECTS as RECEIVER_EFFECTS
 from x6wd.gap.stats import (
     QUANT_DECIMALS,
@@ -328,8 +329,21 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         self.plan = RoundPlan()
 
     def run(self, real: PositionSeries, baseline: Sequence[PositionSeries]) -> Diagnosis:
-        """The shared pipeline, then the direction of the gap and the validation."""
+        """The shared pipeline, then the direction of the gap and the validation. A log
+        faster than the analysis rate is read at it, the baseline logs at its step
+        (:mod:`x6wd.gap.rate`; the report's notes say so)."""
+        given = real
+        real, baseline, rate_notes = baseline_at(real, baseline)
+        if rate_notes and len(real) < MIN_FIXES:
+            step_s = float(np.median(np.diff(given.t_s)))
+            raise ConfigError(
+                f"real log too short for a gap diagnosis: {len(given)} epochs {step_s:g} s apart"
+                f" (over {float(given.t_s[-1] - given.t_s[0]):g} s) are {len(real)} at the"
+                f" analysis rate of at most {MAX_ANALYSIS_HZ:g} Hz (need >= {MIN_FIXES})"
+                + ("; is a time column in hours or milliseconds?" if step_s < 0.01 else "")
+            )
         outcome = super().run(real, baseline)
+        outcome.notes[:0] = rate_notes
         outcome.direction = gap_direction(
             outcome.cells, outcome.z, outcome.null.limits(), outcome.significant
         )

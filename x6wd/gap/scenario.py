@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 from sim_backend.effects import PositionSeries
 from sim_backend.executor import Executor
 from x6wd.core.errors import ConfigError
+from x6wd.gap.rate import at_analysis_rate
 
 if TYPE_CHECKING:
     from sim_backend.world import World
@@ -101,8 +102,10 @@ def scenario_baseline(
     executor: Executor | None = None,
 ) -> list[PositionSeries]:
     """``seeds`` error series (m) shaped like ``template`` (its times, origin and true
-    motion), each from the scenario's simulated receiver with seed ``base_seed + i`` (split
-    as ``x6wd sim`` splits a seed, so seed N is the receiver ``x6wd sim --seed N`` runs);
+    motion; a template faster than the analysis rate at that rate, as the diagnosis reads it:
+    :func:`x6wd.gap.rate.at_analysis_rate`), each from the scenario's simulated receiver
+    with seed ``base_seed + i`` (split as ``x6wd sim`` splits a seed, so seed N is the
+    receiver ``x6wd sim --seed N`` runs);
     ``extra_effects`` (GPS layers) run after the scenario's own, before the NMEA printing
     (the injection benchmark's withheld effects). The seeds run on ``executor`` (entered by
     the caller: x6wd's one executor, e.g. a Dask cluster), or one after another in this
@@ -119,6 +122,10 @@ def scenario_baseline(
     # The scenario describes the real log's site: its frame is the log's origin.
     origin = replace(world.origin, lat_deg=template.origin_lat_deg, lon_deg=template.origin_lon_deg)
     world = replace(world, origin=origin)
+    # The runs are made at the real log's analysis rate (x6wd.gap.rate): the diagnosis reads
+    # a faster log at that rate, so epochs between are never read (20 Hz: 10x the time and
+    # memory of the runs for nothing)
+    template, _note = at_analysis_rate(template)
     ex = executor if executor is not None else Executor(inline=True)
     args = [(world, base_seed + i, template, tuple(extra_effects)) for i in range(seeds)]
     out: list[PositionSeries | None] = [None] * seeds
