@@ -201,6 +201,19 @@ def test_a_sample_point_behind_the_start_is_visited_first(radius_m: float) -> No
     assert nav.index == 0
 
 
+@pytest.mark.parametrize("radius_m", [5.0, 6.9, 10.0])
+@pytest.mark.parametrize("side_m", [-6.0, -7.0, 6.5])
+def test_a_first_point_to_the_side_is_visited_first(radius_m: float, side_m: float) -> None:
+    # The review of the fix above: a first point 6-7 m to the side, the path going on north,
+    # counts as straight on, and the 6.9 m radius still took it as reached at the first
+    # decision (7 m) or after half a metre of start-up jitter (6 m).
+    nav = _nav([(side_m, 0.0), (side_m, 30.0)])
+    for e, n in ((0.0, -0.3), (0.1, 0.2), (0.0, 0.0)):
+        lat, lon = (float(v) for v in _ltp().to_latlon(e, n))
+        nav.step(*nav.to_xy(lat, lon), 0.0, True, radius_m)
+        assert nav.index == 0 and nav.last is not None and not nav.last.arrived_by, (e, n)
+
+
 def test_a_straight_track_is_one_leg_for_the_off_course_watch() -> None:
     nav = _nav(_line())
     assert nav.course_index == 0  # before the first decision: the waypoint itself

@@ -478,16 +478,20 @@ class Navigator:
         """Waypoint ``i`` (with more after it) where the path goes straight on
         (``steering.STRAIGHT_ON_DEG``; also a first waypoint within ``BEHIND_M`` of where the
         mission started, whatever the first leg's direction) lies behind the robot within
-        ``behind_m`` and the robot is past it along the path: reached (see ``BEHIND_M``). A
-        corner or a reversal further on is not: the robot drives to it as the mission says."""
+        ``behind_m`` (``BEHIND_M`` for the first) and the robot is past it along the path:
+        reached (see ``BEHIND_M``). A corner or a reversal further on is not: the robot drives
+        to it as the mission says."""
         out = self._dir_out[i]
         if i + 1 >= len(self._en) or out is None:
             return False
-        # The first point is taken for the start point only within the open-sky error
-        # (BEHIND_M), never the widened radius: at start-up the EKF's sigma (3.3 m, a 6.9 m
-        # radius) took a sample point 7 m behind the start for it and skipped it unvisited.
+        if i == 0:
+            # The first point is taken for the start point only within the open-sky error,
+            # never the widened radius, whichever side it lies: at start-up the EKF's sigma
+            # (3.3 m, a 6.9 m radius) took a sample point 7 m behind the start (or 6 m to
+            # the side) for it and skipped it unvisited.
+            behind_m = BEHIND_M
         if self._turn[i] > math.radians(steering.STRAIGHT_ON_DEG) and not (
-            i == 0 and math.dist(self._en[0], self._first_start) <= BEHIND_M
+            i == 0 and math.dist(self._en[0], self._first_start) <= behind_m
         ):
             return False
         w = self._en[i]
