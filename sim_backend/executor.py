@@ -545,6 +545,7 @@ class TextProgress:
         self._start: tuple[int, float] | None = None  # (done, time) of the first call
         self._done = 0  # of the last call
         self._waited_last = -math.inf  # when the last "waiting for workers" line was written
+        self._widest = 0  # characters of the longest line drawn in place
 
     def __call__(self, done: int, failed: int = 0, lost: int = 0) -> None:
         now = time.monotonic()
@@ -592,7 +593,10 @@ class TextProgress:
 
     def _write(self, line: str, final: bool) -> None:
         if self.tty:
-            self.stream.write("\r" + line.ljust(100) + ("\n" if final else ""))
+            # padded over the longest line drawn: a progress line after a longer "waiting"
+            # one left that one's tail on the screen
+            self._widest = max(self._widest, len(line), 100)
+            self.stream.write("\r" + line.ljust(self._widest) + ("\n" if final else ""))
         else:
             self.stream.write(line + "\n")
         self.stream.flush()

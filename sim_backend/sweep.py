@@ -88,6 +88,8 @@ from sim_backend.world import (
 from x6wd.core.config import check_drive_vs_stuck
 from x6wd.core.errors import ConfigError, X6wdError
 
+log = logging.getLogger(__name__)
+
 SWEEP_KEYS = ("name", "seed", "seeds", "scenarios", "robot_config", "set", "grid")
 PATH_KEYS = ("almanac", "gnss.lce_csv", "mission.file")
 """Scenario keys whose value is a file: given in [set] or [grid], a relative one is relative to
@@ -794,7 +796,10 @@ def out_dir_lock(out_dir: str | Path) -> Iterator[None]:
     file's, so it goes with its process, however that ends (a SIGKILL leaves no stale lock);
     the file stays."""
     path = Path(out_dir) / LOCK_FILE
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:  # not through a symlink: its target would be emptied
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+    except OSError as exc:  # another user's lock file, a link: a clear exit 2, no traceback
+        raise ConfigError(f"output directory {str(out_dir)!r}: cannot open {path}: {exc}") from None
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -804,8 +809,11 @@ def out_dir_lock(out_dir: str | Path) -> Iterator[None]:
                 f"output directory {str(out_dir)!r}: another sweep (pid {pid}) is writing it;"
                 " wait for it to end, or choose another --out"
             ) from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as exc:  # a file system without locks (some NFS, SMB, FUSE mounts)
+            log.warning("%s: not locked (%s): two sweeps into it would both run", path, exc)
+        else:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         yield
     finally:
         os.close(fd)  # and with it the lock

@@ -156,7 +156,7 @@ def test_sim_logs_of_another_place_make_the_verdict_not_meaningful(
     argv = ["gap", "--real", str(real), "--sim", str(far), "--out", str(out)]
     assert x6wd_main([*argv, "--quiet", "--no-figures"]) == 0
     said = capsys.readouterr().out
-    assert said.startswith("not meaningful: the --sim logs simulate another place (up to 111 km")
+    assert said.startswith("not meaningful: the --sim logs simulate another place (up to 111.2 km")
     assert "**Verdict: not meaningful: the --sim logs" in (out / "report.md").read_text()
     assert json.loads((out / "report.json").read_text())["verdict"]["other_place_km"] == 111.2
     near = _static_log(tmp_path / "near.nmea")
@@ -207,5 +207,5 @@ def test_the_effects_say_where_a_time_axis_does_not_rise() -> None:
         speed_mps=np.ones(4),
         course_deg=zeros,
     )
-    with pytest.raises(ValueError, match="samples 1 and 2 are at 1.000000 s and 1.000000 s"):
+    with pytest.raises(ValueError, match=r"samples 1 and 2 are at 1\.000000 s and 1\.000000 s"):
         truth_track_m(series)

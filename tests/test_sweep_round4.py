@@ -244,6 +244,10 @@ def test_the_waiting_line_is_refreshed_in_place_on_a_terminal(
         "1/4 runs, waiting for workers (0 connected) for 2 s; the runs left are given up after"
         " 60 s without one"
     )
+    bar(2)  # a worker came: the shorter progress line covers all of the waiting one
+    drawn = stream.getvalue().split("\r")
+    assert len(drawn[-1]) >= max(map(len, drawn[:-1])), drawn
+    assert "without one" not in drawn[-1]
 
 
 # ---------------------------------------------------------------------------- L1
@@ -332,3 +336,17 @@ def test_a_second_sweep_into_a_folder_being_written_is_refused(tmp_path: Path) -
     assert len(run_files(out)) == 12
     assert (out / ".sweep.lock").read_text().strip().isdigit()  # the file stays, unlocked
     assert json.loads((out / "sweep.json").read_text())["name"] == "test"
+
+
+def test_a_lock_file_that_is_a_link_is_refused_and_its_target_kept(tmp_path: Path) -> None:
+    # the lock was opened through a symlink and truncated: the link's target was emptied
+    from sim_backend.sweep import LOCK_FILE, out_dir_lock
+
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / LOCK_FILE).symlink_to(target)
+    with pytest.raises(ConfigError, match="cannot open"), out_dir_lock(out):
+        pass
+    assert target.read_text() == "keep me\n"

@@ -55,7 +55,7 @@ def verdict_line(diagnosis: Diagnosis, other_place_km: float | None = None) -> s
         )
     if other_place_km is not None:
         text = (
-            f"not meaningful: the --sim logs simulate another place (up to {other_place_km:.0f}"
+            f"not meaningful: the --sim logs simulate another place (up to {other_place_km:.1f}"
             " km from the real log: another sky, other walls), so this compares different"
             f" places: {text}"
         )
