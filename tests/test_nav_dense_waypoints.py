@@ -298,6 +298,13 @@ def test_a_sample_point_behind_the_start_is_driven_to_and_a_start_point_is_logge
     s = run_mission(world, str(tmp_path / "sample"), seed=2, duration_s=300.0)
     first = s.extra["arrivals"][0]
     assert s.completed and float(first["true_error_m"]) < 5.0, first
+    # 6.5 m to the side, the path going on north: it counted as straight on, and the robot
+    # curved onto the path past it, "passed" 11 m up the track, never nearer than 6.5 m
+    for side_m in (6.5, -6.5):
+        world = _world([(side_m, 0.0), (side_m, 30.0)], shipped=True)
+        s = run_mission(world, None, seed=2, duration_s=300.0)
+        first = s.extra["arrivals"][0]
+        assert s.completed and float(first["true_error_m"]) < 5.0, (side_m, first)
     # a first point 1 m behind the start, the path going on north: taken as the start
     # point, and the log says so (it was a silent "arrived")
     world = _world([(0.0, -1.0), (0.0, 30.0)], shipped=True)

@@ -336,17 +336,19 @@ class Navigator:
         e, n = ltp.to_xy(float(lat), float(lon))
         return float(e), float(n)
 
-    def _path_shape(self, first_start: tuple[float, float], behind_m: float) -> None:
+    def _path_shape(self, first_start: tuple[float, float]) -> None:
         """The chord directions into and out of each waypoint (``steering.TURN_CHORD_M`` of
         path either side), the path's turn there and the path distance from the first
         waypoint. The first leg starts at ``first_start`` (the first decision's position).
-        Within ``behind_m`` (the position's error) of the first waypoint the first leg's
+        Within ``BEHIND_M`` (the open-sky error) of the first waypoint the first leg's
         direction is mostly the GPS's noise: it is left out of every chord, and the first
         waypoint's incoming direction is unknown (the path taken as going straight on
         through it) unless the start lies beyond it along the path that follows (the robot
-        starts on the next leg: a reversal, which keeps its turn)."""
+        starts on the next leg: a reversal, which keeps its turn). Never the caller's wider
+        radius: a first point 6.5 m to the side then counted as straight on, and the robot
+        curved onto the path past it without coming nearer than 6.5 m (a code review)."""
         en = self._en
-        near = math.dist(first_start, en[0]) <= behind_m
+        near = math.dist(first_start, en[0]) <= BEHIND_M
         pts = en if near else [first_start, *en]
         off = 0 if near else 1
         chord = steering.TURN_CHORD_M
@@ -514,7 +516,7 @@ class Navigator:
         if self._seg_start is None:
             self._seg_start = p  # the first leg starts where the mission's first decision was
             self._first_start = p
-            self._path_shape(p, behind_m)
+            self._path_shape(p)
         start, end = self._seg_start, self._en[i]
         de, dn = end[0] - p[0], end[1] - p[1]
         final = self._final_bearing_rad[i]
