@@ -101,6 +101,38 @@ def test_a_20_hz_log_keeps_its_own_epochs_at_2_hz_and_its_true_track() -> None:
     np.testing.assert_allclose(np.diff(at_step(_series(10.0, 120.0), 0.5).t_s), 0.5)
 
 
+def test_a_log_whose_rate_falls_keeps_its_fixes() -> None:
+    # A code review: 20 Hz from .05 s for 100 s, then 1 Hz on whole seconds, the gaps filled
+    # with fixless epochs at 20 Hz (as the reader does): every 10th slot from the first was
+    # a fixless one, and all 600 fixes of the 1 Hz part were lost.
+    fast_s = 0.05 + np.arange(2000) * 0.05
+    filled_s = 100.05 + np.arange(12000) * 0.05
+    t_s = np.concatenate((fast_s, filled_s))
+    valid = np.concatenate((np.ones(2000, bool), np.isclose(filled_s % 1.0, 0.0, atol=1e-6)
+                            | np.isclose(filled_s % 1.0, 1.0, atol=1e-6)))  # fmt: skip
+    assert valid[2000:].sum() == 600
+    n = len(t_s)
+    real = PositionSeries(t_s=t_s, east_m=np.zeros(n), north_m=np.zeros(n), up_m=np.zeros(n),
+                          valid=valid)  # fmt: skip
+    out, note = at_analysis_rate(real)
+    assert note is not None
+    assert int(np.asarray(out.valid)[out.t_s > 100.0].sum()) == 600
+    assert int(np.asarray(out.valid)[out.t_s < 100.0].sum()) == 200  # 2 Hz of the 20 Hz part
+    assert np.all(np.diff(out.t_s) > 0.0)
+
+
+def test_a_3_hz_log_stamped_to_a_hundredth_keeps_even_steps() -> None:
+    # .00, .33, .67 against a 0.33 s median: slots counted from the first epoch gained one
+    # every 100 epochs, and each left a 1-s hole (109 an hour)
+    t_s = np.round(np.arange(3 * 3600) / 3.0, 2)
+    n = len(t_s)
+    real = PositionSeries(t_s=t_s, east_m=np.zeros(n), north_m=np.zeros(n), up_m=np.zeros(n),
+                          valid=np.ones(n, bool))  # fmt: skip
+    out, _note = at_analysis_rate(real)
+    assert len(out) == n // 2
+    assert float(np.max(np.diff(out.t_s))) <= 0.68
+
+
 def test_a_20_hz_log_too_short_at_the_analysis_rate_says_so() -> None:
     # 20 s at 20 Hz: 400 epochs, 40 at 2 Hz
     with pytest.raises(ConfigError, match=r"400 epochs 0.05 s apart .* are 40 at the analysis"):
