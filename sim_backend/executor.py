@@ -46,6 +46,7 @@ import contextlib
 import logging
 import math
 import os
+import shutil
 import signal
 import socket
 import sys
@@ -72,6 +73,8 @@ WORKER_POLL_S = 1.0
 """How often (s) the worker count is asked for while no task result is ready."""
 WAITING_EVERY_S = 5.0
 """How often (s) :meth:`TextProgress.waiting` writes a line when not on a terminal (a log)."""
+CLEAR_TO_EOL = "\x1b[K"
+"""The ANSI (ECMA-48) erase-to-end-of-line a progress line on a terminal ends with."""
 
 
 @dataclass
@@ -545,7 +548,6 @@ class TextProgress:
         self._start: tuple[int, float] | None = None  # (done, time) of the first call
         self._done = 0  # of the last call
         self._waited_last = -math.inf  # when the last "waiting for workers" line was written
-        self._widest = 0  # characters of the longest line drawn in place
 
     def __call__(self, done: int, failed: int = 0, lost: int = 0) -> None:
         now = time.monotonic()
@@ -593,10 +595,11 @@ class TextProgress:
 
     def _write(self, line: str, final: bool) -> None:
         if self.tty:
-            # padded over the longest line drawn: a progress line after a longer "waiting"
-            # one left that one's tail on the screen
-            self._widest = max(self._widest, len(line), 100)
-            self.stream.write("\r" + line.ljust(self._widest) + ("\n" if final else ""))
+            # cut to the terminal's width (a wrapped line is not redrawn by "\r": each update
+            # added a row) and cleared to its end (a shorter line left a longer one's tail)
+            columns = shutil.get_terminal_size().columns
+            self.stream.write(f"\r{line[: max(columns - 1, 20)]}{CLEAR_TO_EOL}")
+            self.stream.write("\n" if final else "")
         else:
             self.stream.write(line + "\n")
         self.stream.flush()

@@ -232,6 +232,9 @@ def test_the_waiting_line_is_refreshed_in_place_on_a_terminal(
 
     clock = [10.0]
     monkeypatch.setattr(executor.time, "monotonic", lambda: clock[0])
+    columns = [200]
+    monkeypatch.setattr(executor.shutil, "get_terminal_size",
+                        lambda: os.terminal_size((columns[0], 24)))  # fmt: skip
     stream = Tty()
     bar = executor.TextProgress(4, stream=stream)
     bar(1)
@@ -240,14 +243,17 @@ def test_the_waiting_line_is_refreshed_in_place_on_a_terminal(
         bar.waiting(waited_s, 60.0)
     text = stream.getvalue()
     assert text.count("\r") == 4 and "\n" not in text
-    assert text.rstrip().endswith(
+    assert text.endswith(
         "1/4 runs, waiting for workers (0 connected) for 2 s; the runs left are given up after"
-        " 60 s without one"
+        " 60 s without one" + executor.CLEAR_TO_EOL
     )
-    bar(2)  # a worker came: the shorter progress line covers all of the waiting one
-    drawn = stream.getvalue().split("\r")
-    assert len(drawn[-1]) >= max(map(len, drawn[:-1])), drawn
-    assert "without one" not in drawn[-1]
+    bar(2)  # a worker came: the shorter line clears the rest of the waiting one
+    assert stream.getvalue().split("\r")[-1].endswith(executor.CLEAR_TO_EOL)
+    # never wider than the terminal: a wrapped line is not redrawn in place by "\r"
+    columns[0] = 80
+    bar.waiting(3.0, 60.0)
+    last = stream.getvalue().split("\r")[-1]
+    assert len(last.removesuffix(executor.CLEAR_TO_EOL)) == 79
 
 
 # ---------------------------------------------------------------------------- L1
