@@ -135,8 +135,14 @@ def test_a_3_hz_log_stamped_to_a_hundredth_keeps_even_steps() -> None:
 
 def test_a_20_hz_log_too_short_at_the_analysis_rate_says_so() -> None:
     # 20 s at 20 Hz: 400 epochs, 40 at 2 Hz
-    with pytest.raises(ConfigError, match=r"400 epochs 0.05 s apart .* are 40 at the analysis"):
+    with pytest.raises(ConfigError, match=r"400 epochs \(400 with a fix\) 0.05 s apart .* are 40"):
         diagnose(_series(20.0, 20.0), [_series(20.0, 20.0)], np.random.default_rng(0))
+    # enough epochs but too few fixes at 2 Hz: named with the rate too (a code review: a
+    # bare "too few fixes: 58 of 1200" left the 2 Hz reading out)
+    sparse = _series(20.0, 600.0)
+    sparse = sparse.with_(valid=np.arange(len(sparse)) % 400 == 0)  # 30 fixes
+    with pytest.raises(ConfigError, match=r"12000 epochs \(30 with a fix\).* are 1200 \(30 with"):
+        diagnose(sparse, [_series(20.0, 600.0)], np.random.default_rng(0))
 
 
 def test_the_runs_of_a_20_hz_template_are_simulated_at_2_hz() -> None:

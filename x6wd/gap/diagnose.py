@@ -334,12 +334,15 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         (:mod:`x6wd.gap.rate`; the report's notes say so)."""
         given = real
         real, baseline, rate_notes = baseline_at(real, baseline)
-        if rate_notes and len(real) < MIN_FIXES:
+        kept_fixes = int(np.count_nonzero(real.valid))
+        if rate_notes and kept_fixes < MIN_FIXES:  # named with the rate, not as a bare count
             step_s = float(np.median(np.diff(given.t_s)))
             raise ConfigError(
-                f"real log too short for a gap diagnosis: {len(given)} epochs {step_s:g} s apart"
-                f" (over {float(given.t_s[-1] - given.t_s[0]):g} s) are {len(real)} at the"
-                f" analysis rate of at most {MAX_ANALYSIS_HZ:g} Hz (need >= {MIN_FIXES})"
+                f"real log too short for a gap diagnosis: {len(given)} epochs"
+                f" ({int(np.count_nonzero(given.valid))} with a fix) {step_s:g} s apart"
+                f" (over {float(given.t_s[-1] - given.t_s[0]):g} s) are {len(real)}"
+                f" ({kept_fixes} with a fix) at the analysis rate of at most"
+                f" {MAX_ANALYSIS_HZ:g} Hz (need >= {MIN_FIXES} fixes)"
                 + ("; is a time column in hours or milliseconds?" if step_s < 0.01 else "")
             )
         outcome = super().run(real, baseline)
