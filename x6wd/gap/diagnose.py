@@ -57,7 +57,7 @@ from x6wd.gap.pipeline import (
     Round,
     fingerprint_score,
 )
-from x6wd.gap.rate import MAX_ANALYSIS_HZ, baseline_at
+from x6wd.gap.rate import MAX_ANALYSIS_HZ, baseline_at, median_step_s
 from x6wd.gap.solution import EFFECTS as RECEIVER_EFFECTS
 from x6wd.gap.stats import (
     QUANT_DECIMALS,
@@ -336,7 +336,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         real, baseline, rate_notes = baseline_at(real, baseline)
         kept_fixes = int(np.count_nonzero(real.valid))
         if rate_notes and kept_fixes < MIN_FIXES:  # named with the rate, not as a bare count
-            step_s = float(np.median(np.diff(given.t_s)))
+            step_s = median_step_s(given)
             raise ConfigError(
                 f"real log too short for a gap diagnosis: {len(given)} epochs"
                 f" ({int(np.count_nonzero(given.valid))} with a fix) {step_s:g} s apart"
@@ -392,11 +392,11 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
             raise ConfigError("no baseline: give --sim logs or --scenario")
         # Every log is read on a grid at the real log's step: a baseline log far coarser
         # (a time column in hours, in ms) would need a grid of millions of slots per epoch
-        step_s = float(np.median(np.diff(real.t_s)))
+        step_s = median_step_s(real)
         for i, series in enumerate(baseline, start=1):
             span_s = float(series.t_s[-1] - series.t_s[0]) if len(series) else 0.0
             if not span_s / step_s + 1.0 <= GRID_FACTOR * len(series):
-                own_s = float(np.median(np.diff(series.t_s))) if len(series) > 1 else math.nan
+                own_s = median_step_s(series)
                 raise ConfigError(
                     f"baseline log {i} of {len(baseline)} steps {own_s:g} s, the real log"
                     f" {step_s:g} s: more than {GRID_FACTOR} times apart (is a time column in"
