@@ -56,6 +56,7 @@ from sim_backend.nmea_out import NmeaFormatter, sentence, wire_time_s
 from sim_backend.sky import SatelliteSet
 from sim_backend.world import World
 from x6wd.core.errors import ConfigError
+from x6wd.core.geodesy import wrap_deg
 
 
 @dataclass(frozen=True)
@@ -457,13 +458,18 @@ class SimReceiver:
         vn: np.ndarray,
     ) -> PositionSeries:
         """The batch's reports as errors (m) against the truth, through the origin's linear
-        degrees-to-metres map (so the round trip back to degrees is exact)."""
+        degrees-to-metres map (so the round trip back to degrees is exact). The longitude
+        difference is taken the short way round: a report across the 180th meridian from the
+        origin (-179.99999 against 179.99999) is metres east, not the Earth's circumference
+        west; every other difference is left bit for bit as it was."""
         lat0, lon0, alt0 = self.origin
         e_per, n_per = metres_per_degree(lat0)
         speed = np.hypot(ve, vn)
+        dlon = np.asarray(b.lon_deg, dtype=float) - lon0
+        dlon = np.where(np.abs(dlon) > 180.0, wrap_deg(dlon), dlon)
         return PositionSeries(
             t_s=np.asarray(b.t_s, dtype=float),
-            east_m=(b.lon_deg - lon0) * e_per - te,
+            east_m=dlon * e_per - te,
             north_m=(b.lat_deg - lat0) * n_per - tn,
             up_m=b.alt_m - (alt0 + tu),
             valid=np.asarray(b.valid, dtype=bool).copy(),

@@ -1,0 +1,70 @@
+"""Places and dates nobody tuned for (outside audit, round 5): the scenarios shipped for
+Oxford, moved elsewhere on the Earth."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from sim_backend.effects import PositionSeries, metres_per_degree
+from sim_backend.mission import run_mission
+from sim_backend.receiver import build_receiver
+from sim_backend.world import load_world, loads_world
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "config" / "scenarios"
+
+
+def _moved(name: str, lat: float, lon: float, extra: str = "") -> str:
+    """A shipped scenario's text with its origin moved (everything else as shipped)."""
+    text = (SCENARIOS / name).read_text()
+    text = re.sub(r"(?m)^lat_deg = .*$", f"lat_deg = {lat!r}", text, count=1)
+    text = re.sub(r"(?m)^lon_deg = .*$", f"lon_deg = {lon!r}", text, count=1)
+    return text + extra
+
+
+def test_receiver_errors_at_an_origin_on_the_180th_meridian_are_metres() -> None:
+    # The gap tool's baseline (build_receiver(...).errors) of a static log at 179.99999 E:
+    # a fix printed at -179.99999 was an east error of -360 deg (-3.8e7 m at 16.5 S), so the
+    # validation read a simulated mean error of 1e5 m against the log's 1.8 m.
+    world = loads_world(_moved("open_field.toml", -16.5, 179.99999), source="anti.toml")
+    n = 200
+    z = np.zeros(n)
+    tpl = PositionSeries(
+        np.arange(n, dtype=float), z, z, z, np.ones(n, dtype=bool), -16.5, 179.99999
+    )
+    e = build_receiver(world, 5).errors(tpl)
+    horizontal = np.hypot(e.east_m[e.valid], e.north_m[e.valid])
+    assert e.valid.sum() > 150
+    assert float(np.max(horizontal)) < 30.0, float(np.max(horizontal))
+
+
+def test_an_error_layer_on_a_mission_across_the_180th_meridian_keeps_the_fix_in_place() -> None:
+    # zigzag.toml moved to Fiji, its route crossing 180 deg 53 m east of the start, with the
+    # gap tool's SBAS-style layer (correction factor 0.5): each fix beyond the meridian moved
+    # by half the Earth's circumference, the robot's geofence failsafe fired at 62 s and the
+    # mission ended 2/8 with a raw CEP50 of 3,641 km. At Oxford the same run completes.
+    layer = '\n[[effects]]\nname = "correction"\nfactor = 0.5\n'
+    world = loads_world(_moved("zigzag.toml", -16.5, 179.9995, layer), source="fiji.toml")
+    s = run_mission(world, None, seed=1, duration_s=120.0)
+    assert s.extra["failsafes"] == [], s.extra["failsafes"]
+    assert s.raw_error.max_m < 30.0, s.raw_error
+    # the route crosses the meridian within the 120 s: waypoint 3 (88 m east) lies beyond it
+    assert s.waypoints_reached >= 3
+    assert s.extra["geofence_breaches"] == 0
+
+
+def test_the_wrap_leaves_differences_under_180_degrees_bit_for_bit() -> None:
+    # The short-way-round difference applies only beyond +-180 deg: at Oxford the errors are
+    # exactly the plain difference's (the shipped runs' figures do not move).
+    world = load_world(SCENARIOS / "open_field.toml")
+    n = 50
+    z = np.zeros(n)
+    rx = build_receiver(world, 3)
+    b = rx.batch(np.arange(n, dtype=float), np.zeros((n, 3)), np.zeros((n, 3)))
+    s = rx._series(b, z, z, z, z, z)
+    ok = np.asarray(b.valid, dtype=bool)
+    e_per, _n_per = metres_per_degree(world.origin.lat_deg)
+    assert ok.sum() > 40
+    assert np.array_equal(s.east_m[ok], ((b.lon_deg - world.origin.lon_deg) * e_per)[ok])
