@@ -68,3 +68,20 @@ def test_the_wrap_leaves_differences_under_180_degrees_bit_for_bit() -> None:
     e_per, _n_per = metres_per_degree(world.origin.lat_deg)
     assert ok.sum() > 40
     assert np.array_equal(s.east_m[ok], ((b.lon_deg - world.origin.lon_deg) * e_per)[ok])
+
+
+def test_the_log_viewers_largest_error_is_the_short_way_round_the_180th_meridian() -> None:
+    # x6wd plot keeps, of a long log, the fix furthest from the true track (the error panel's
+    # axis spans the whole log). It took the longitude difference plainly and interpolated
+    # the truth across +-180: a fix 2 m from a truth on the other side of the meridian was
+    # 360 deg off, and the truth between 179.99999 and -179.99999 passed through 0 deg.
+    from x6wd.app.logview import _Raw
+
+    t = np.array([0.0, 1.0, 2.0])
+    lat = np.full(3, -16.5)
+    lon = np.array([179.99998, -179.99999, -179.99996])  # crosses between t 0 and 1
+    raw = _Raw(truth=(t, lat, lon))
+    near = raw.off_truth_deg(1.0, -16.5, 179.99999)  # 2 m west of the truth, across 180
+    mid = raw.off_truth_deg(0.5, -16.5, 179.999995)  # on the truth, half-way
+    assert near is not None and mid is not None
+    assert near < 1e-4 and mid < 1e-5, (near, mid)

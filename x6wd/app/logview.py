@@ -47,7 +47,7 @@ import numpy as np
 
 from x6wd import __version__
 from x6wd.core.errors import DeviceUnavailable, ParseError, X6wdError
-from x6wd.core.geodesy import wrap360
+from x6wd.core.geodesy import wrap360, wrap_deg
 from x6wd.core.recorder import (
     ReadStats,
     Record,
@@ -353,6 +353,16 @@ def _fix_error_key(raw: _Raw) -> Any:
     return key
 
 
+def _continuous_lon(lon_deg: np.ndarray) -> np.ndarray:
+    """A track's longitudes made continuous across the 180th meridian (values may leave
+    +-180 by the track's extent), so that they interpolate; a track that does not cross it
+    comes back as it is."""
+    step = np.diff(lon_deg)
+    if not np.any(np.abs(step) > 180.0):
+        return lon_deg
+    return lon_deg[0] + np.concatenate(([0.0], np.cumsum(wrap_deg(step))))
+
+
 @dataclass
 class _Raw:
     """What the panels draw of a log, gathered as it is read (times in the log's own s):
@@ -379,6 +389,7 @@ class _Raw:
     t_first: float | None = None
     t_last: float = 0.0
     utc0: datetime | None = None  # wall-clock time of the log's time 0
+    _truth_lon: tuple[np.ndarray, np.ndarray] | None = None  # truth's lon, and unwrapped
 
     def __post_init__(self) -> None:
         self.good = _Sample(_t, _lat, _lon, _fix_error_key(self))
@@ -390,8 +401,12 @@ class _Raw:
         if self.truth is None or not isinstance(t_s, (int, float)):
             return None
         tt, la, lo = self.truth
+        if self._truth_lon is None or self._truth_lon[0] is not lo:
+            self._truth_lon = (lo, _continuous_lon(lo))
         d_lat = lat_deg - float(np.interp(t_s, tt, la))
-        d_lon = lon_deg - float(np.interp(t_s, tt, lo))
+        d_lon = lon_deg - float(np.interp(t_s, tt, self._truth_lon[1]))
+        if abs(d_lon) > 180.0:  # the short way round (a fix across the 180th meridian)
+            d_lon = wrap_deg(d_lon)
         return math.hypot(d_lat, d_lon * math.cos(math.radians(lat_deg)))
 
     def add_fix(self, f: GpsFix) -> None:
