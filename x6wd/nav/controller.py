@@ -78,6 +78,7 @@ from x6wd.core.records import (
 from x6wd.nav import geo, steering
 from x6wd.nav.compass_trust import CompassTrust
 from x6wd.nav.course_watch import CourseWatch
+from x6wd.nav.encoder_watch import EncoderWatch
 from x6wd.nav.navigator import NavigationError, Navigator
 from x6wd.nav.odometry import wheel_travel_m
 from x6wd.nav.position import DEFAULT_HDOP, PositionSource, make_source
@@ -239,6 +240,10 @@ class Controller:
         )
         self._course_fix: GpsFix | None = None  # the last fix the course watch took
         self._trust = CompassTrust(self._failsafe.compass_refused_s)  # the EKF's refusals
+        # the two sides' encoders against the compass on straight drives, and its verdict
+        # for the failsafe check of the mission running ("" while none)
+        self._enc_watch = EncoderWatch(self._odo_cfg.track_m)
+        self._encoder_fault = ""
         self._wheel_m = 0.0  # |wheel travel| summed over both sides / 2 (m)
         self._wheel_at_fix = 0.0  # _wheel_m at the latest valid fix
         # commanded forward travel (m) summed since the first input, and its value at the
@@ -379,6 +384,12 @@ class Controller:
             self._wheel_m += 0.5 * (abs(dl) + abs(dr))
         att = self._att
         fresh = att is not None and self._att_ok and abs(t - att.t_s) <= ODOMETRY_FRESH_S
+        if prev is not None:
+            cmd = self._cmd
+            bearing = att.bearing_deg if fresh and att is not None else None
+            why = self._enc_watch.on_increment(t, dl, dr, cmd.left_pct, cmd.right_pct, bearing)
+            if why and self._mode == Mode.RUNNING and not self._encoder_fault:
+                self._encoder_fault = why
         pitch = att.pitch_deg if fresh and att is not None and _finite(att.pitch_deg) else 0.0
         self._source.on_odometry(rec, pitch)
         return self._step(t, "odometry")
@@ -481,6 +492,8 @@ class Controller:
         self._stuck_wheels = self._stuck_body = self._pivot_best = None
         self._course.reset()
         self._hold_since = self._jump_m = None
+        self._enc_watch.reset()
+        self._encoder_fault = ""
         now = t if self._now is None else max(self._now, t)
         pos = self._source.position(now)
         if pos is None and self._fix_ok and self._fix is not None:
@@ -665,6 +678,10 @@ class Controller:
                 return blocked
         if hold:
             return None
+        encoder_fault, self._encoder_fault = self._encoder_fault, ""
+        if encoder_fault:
+            # the EKF dead-reckons on these counts, and so would a return: pause
+            return encoder_fault, "hold"
         untrusted = self._trust.verdict(now)
         if untrusted:
             # a heading it cannot trust: pause, whatever the actions say (a return would
