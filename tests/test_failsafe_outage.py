@@ -186,11 +186,15 @@ def test_a_blocked_robot_whose_fixes_hop_about_is_still_blocked() -> None:
     assert c.telemetry.extra["failsafe"] == "stuck (the wheels: no motion in 10 s of driving)"
 
 
-def test_encoders_that_stop_counting_in_a_pivot_are_named_by_the_compass() -> None:
+@pytest.mark.parametrize("stuck_action", ["hold", "return"])
+def test_encoders_that_stop_counting_in_a_pivot_are_named_by_the_compass(
+    stuck_action: str,
+) -> None:
     """Encoders frozen from the start: the robot pivots 20 deg/s from north towards a target
     south, then drives south at 2.3 m/s. The compass turned 180° net while the wheels stood
-    still; the fixes moved too little (a few metres) to be told from their noise."""
-    c = Controller(NAV, SAFETY, failsafe=FS)
+    still; the fixes moved too little (a few metres) to be told from their noise. A pause
+    even where ``stuck_action`` says return: a return would dead-reckon on the dead counts."""
+    c = Controller(NAV, SAFETY, failsafe=replace(FS, stuck_action=stuck_action))
     c.on_fix(fix(0.0))
     c.on_attitude(att(0.0))
     c.load_mission([at(0.0, -200.0)], 0.0)

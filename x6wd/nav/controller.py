@@ -806,13 +806,14 @@ class Controller:
             seen = self._encoder_evidence(now)
             if seen:
                 # the body moved while the wheels counted (almost) nothing: the encoders
-                # failed, not the drive; stopping is still right (no odometry, no EKF)
+                # failed, not the drive. Always a pause, whatever stuck_action says: a
+                # return would dead-reckon home on the dead counts (as the disagree watch)
                 shows = " and ".join(seen)
                 return (
                     f"encoders: under {0.1 * fs.stuck_min_m:g} m counted in {fs.stuck_s:g} s"
                     f" of driving while {shows} {'shows' if shows == 'the compass' else 'show'}"
                     " motion",
-                    fs.stuck_action,
+                    "hold",
                 )
             what = "the wheels"
         else:
