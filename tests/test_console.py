@@ -707,6 +707,26 @@ def test_mission_editing_on_the_map_and_from_files(
     assert js(browser, "return x6wd.draft") == [list(p) for p in robot.daemon._mission]
 
 
+def test_the_maps_frame_is_metres_across_the_180th_meridian(
+    robot: Running, browser: webdriver.Chrome
+) -> None:
+    """A robot across the 180th meridian from the map's origin is metres away, and a point
+    drafted across it is a longitude within +-180 (outside audit, places round 5: the
+    plain difference drew it 40,000 km off and drafted 180.0001)."""
+    open_page(browser, robot)
+    page_ready(browser)
+    east_m, north_m, lat, lon = js(
+        browser,
+        "const o = x6wd.origin; x6wd.origin = [-16.5, 179.9999];"
+        "const a = x6wd.geo.toLocal(-16.5, -179.9999); const b = x6wd.geo.toLatLon(30, 0);"
+        "x6wd.origin = o; return [a[0], a[1], b[0], b[1]]",
+    )
+    assert abs(east_m - great_circle_m(-16.5, 179.9999, -16.5, -179.9999)) < 0.01
+    assert abs(north_m) < 1e-6
+    assert -180.0 < lon <= 180.0 and abs(lat + 16.5) < 1e-9
+    assert abs(great_circle_m(-16.5, 179.9999, lat, lon) - 30.0) < 0.01
+
+
 def test_mission_load_takes_qgc_wpl_and_kml_on_the_control_port(robot: Running) -> None:
     wps = parse_gpx(format_gpx([tuple(north(3)), tuple(north(6, 2))]))  # type: ignore[list-item]
     kml = (

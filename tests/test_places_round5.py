@@ -85,3 +85,50 @@ def test_the_log_viewers_largest_error_is_the_short_way_round_the_180th_meridian
     mid = raw.off_truth_deg(0.5, -16.5, 179.999995)  # on the truth, half-way
     assert near is not None and mid is not None
     assert near < 1e-4 and mid < 1e-5, (near, mid)
+
+
+def test_the_constellation_filter_averages_two_fixes_the_short_way_round() -> None:
+    # The filter keeps one fix at a mission start, so the second makes a two-sample mean:
+    # 179.999995 and -179.999995 averaged to 0.0 deg, 16,000 km away (code review, round 5).
+    from x6wd.core.geodesy import great_circle_m
+    from x6wd.core.records import GpsFix
+    from x6wd.nav.position import ConstellationSource
+
+    src = ConstellationSource(5, True)
+    lons = [179.999995, -179.999995, 179.999993, -179.999992, -179.999999, 179.999991]
+    for k, lon in enumerate(lons):
+        src.on_fix(GpsFix(t_s=k, lat_deg=-16.5, lon_deg=lon, valid=True, quality=1, mode=3))
+        pos = src.position(float(k))
+        assert pos is not None and -180.0 < pos[1] <= 180.0
+        assert great_circle_m(-16.5, lon, *pos) < 5.0, (k, pos)
+    # away from the meridian every fix goes in as it is
+    from x6wd.nav.constellation import Constellation
+
+    plain, alone = ConstellationSource(5, True), Constellation(5, True)
+    for k, lon in enumerate((10.1, 10.3, 10.2, 10.25)):
+        plain.on_fix(GpsFix(t_s=k, lat_deg=1.0, lon_deg=lon, valid=True, quality=1, mode=3))
+        alone.add(lon)
+        assert plain.position(float(k)) == (1.0, alone.filter())
+
+
+def test_a_receiver_standing_on_the_180th_meridian_is_not_read_as_moving() -> None:
+    # Half the fixes on each side: their plain median was about 0 deg, so the static check
+    # refused the recording as moving (code review, round 5).
+    from x6wd.calibrate.gnss import FixSeries, _check_standing
+
+    rng = np.random.default_rng(3)
+    n = 600
+    # exactly half on each side (an even count split evenly: the plain median is their mean)
+    off = np.abs(rng.normal(0.0, 1e-5, n))  # about a metre, random order
+    lon = np.where(rng.permutation(n) < n // 2, 180.0 - off, -180.0 + off)
+    lat = -16.5 + rng.normal(0.0, 1e-5, n)
+    fixes = FixSeries(
+        t_s=np.arange(n, dtype=float),
+        t_gpst_s=np.full(n, np.nan),
+        lat_deg=lat,
+        lon_deg=lon,
+        hdop=np.ones(n),
+        hdop_known=True,
+    )
+    assert np.any(lon > 0) and np.any(lon < 0)
+    _check_standing(fixes, -16.5, 180.0)  # raises ConfigError "the recording moves" before

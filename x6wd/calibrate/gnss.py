@@ -77,7 +77,7 @@ from drivers.gps_recording import recorded_gps
 from x6wd.calibrate.rtklib import looks_like_pos, read_pos
 from x6wd.core.config import GnssNoiseConfig, build
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
-from x6wd.core.geodesy import great_circle_m
+from x6wd.core.geodesy import great_circle_m, wrap_deg
 from x6wd.core.recorder import is_recording
 from x6wd.core.records import GpsFix
 from x6wd.nav.geo import LocalTangentPlane
@@ -454,7 +454,12 @@ def _check_standing(fixes: FixSeries, ref_lat_deg: float, ref_lon_deg: float) ->
     from its reference (:data:`MAX_STATIC_OFFSET_M`): either would be written as an ASE of
     tens of metres that passes the configuration's checks and misleads the estimator."""
     what = f"static {fixes.source}" if fixes.source else "static"
+    # the longitudes' median the short way round the 180th meridian (a receiver on it has
+    # fixes on both sides; their plain median is near 0 deg)
     lat_m, lon_m = float(np.median(fixes.lat_deg)), float(np.median(fixes.lon_deg))
+    if np.ptp(fixes.lon_deg) > 180.0:
+        lon0 = float(fixes.lon_deg[0])
+        lon_m = float(wrap_deg(lon0 + float(np.median(wrap_deg(fixes.lon_deg - lon0)))))
     x, y = LocalTangentPlane(lat_m, lon_m).to_xy(fixes.lat_deg, fixes.lon_deg)
     spread_m = float(np.median(np.hypot(x, y) / fixes.hdop))
     if spread_m > MAX_STATIC_SPREAD_M:

@@ -136,6 +136,7 @@ class ConstellationSource(RawSource):
         # before it was carried or driven to the start; it restarts from the latest fix.
         self._lat = Constellation(self._n, self._hysteresis)
         self._lon = Constellation(self._n, self._hysteresis)
+        self._lon_ref: float | None = None  # the window's first longitude (deg)
         latest, self._pos = self._latest, None
         if latest is not None:
             self._add(*latest)
@@ -143,9 +144,23 @@ class ConstellationSource(RawSource):
     def _add(self, lat_deg: float, lon_deg: float) -> None:
         self._latest = (lat_deg, lon_deg)
         self._lat.add(lat_deg)
+        # The filter averages and compares longitudes as plain numbers: across the 180th
+        # meridian they are made continuous with the window's first one (+-360 only there,
+        # so every other fix goes in bit for bit), and the output wrapped back.
+        if self._lon_ref is None:
+            self._lon_ref = lon_deg
+        if lon_deg - self._lon_ref > 180.0:
+            lon_deg -= 360.0
+        elif lon_deg - self._lon_ref < -180.0:
+            lon_deg += 360.0
         self._lon.add(lon_deg)
         # filter() once per sample: with hysteresis it is stateful.
-        self._pos = (self._lat.filter(), self._lon.filter())
+        lon_out = self._lon.filter()
+        if lon_out > 180.0:
+            lon_out -= 360.0
+        elif lon_out <= -180.0:
+            lon_out += 360.0
+        self._pos = (self._lat.filter(), lon_out)
 
     def on_fix(self, fix: GpsFix) -> None:
         assert fix.lat_deg is not None and fix.lon_deg is not None

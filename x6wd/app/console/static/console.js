@@ -23,16 +23,20 @@
   window.x6wd = S; // for a person at the browser's console, and for the tests
 
   // -- geometry: local east/north metres around S.origin ------------------------------------
+  // longitudes the short way round: a robot across the 180th meridian from the origin is
+  // metres east or west of it, not the Earth's circumference
+  function wrapDeg(d) { return d > 180 ? d - 360 : d <= -180 ? d + 360 : d; }
   function toLocal(lat, lon) {
     const [lat0, lon0] = S.origin;
     const k = Math.PI / 180 * R_EARTH_M;
-    return [(lon - lon0) * k * Math.cos(lat0 * Math.PI / 180), (lat - lat0) * k];
+    return [wrapDeg(lon - lon0) * k * Math.cos(lat0 * Math.PI / 180), (lat - lat0) * k];
   }
   function toLatLon(e, n) {
     const [lat0, lon0] = S.origin;
     const k = Math.PI / 180 * R_EARTH_M;
-    return [lat0 + n / k, lon0 + e / (k * Math.cos(lat0 * Math.PI / 180))];
+    return [lat0 + n / k, wrapDeg(lon0 + e / (k * Math.cos(lat0 * Math.PI / 180)))];
   }
+  S.geo = { toLocal, toLatLon }; // the map's frame, for the tests
   const canvas = $("map");
   const ctx = canvas.getContext("2d");
   S.canvas = canvas;
