@@ -66,6 +66,12 @@ _MAX_CUTS = 64  # a time axis needing more cuts than this is rejected, not searc
 # prefix lines with a time stamp or a second "$" (gpsd's ST Teseo log), and the framer skips
 # such bytes.
 _NMEA_HEAD = re.compile(rb"[$!][A-Z][A-Z0-9]{1,5},[^\r\n$!]*\*[0-9A-Fa-f]{2}")
+# A line that starts as an NMEA sentence does ("$GPGGA,"), with or without its checksum:
+# also NMEA after comment lines ("# Name: ..." as gpsd's logs begin) or gpsd's JSON
+# preamble (gpspipe -r writes VERSION, DEVICES and WATCH objects before the NMEA).
+_NMEA_LINE = re.compile(rb"(?m)^[ \t]*[$!][A-Z][A-Z0-9]{1,5},")
+_NMEA_LINE_CHECKED = re.compile(rb"(?m)^[ \t]*[$!][A-Z][A-Z0-9]{1,5},[^\r\n$!]*\*[0-9A-Fa-f]{2}")
+_NMEA_LINE_UNCHECKED = re.compile(rb"(?m)^[ \t]*[$!][A-Z][A-Z0-9]{1,5},[^\r\n*$!]{0,200}\r?$")
 _TEXT_BYTES = frozenset(b"\t\n\r\f") | frozenset(range(0x20, 0x7F)) | frozenset(range(0x80, 0x100))
 
 
@@ -581,10 +587,19 @@ def _read_any(path: str | Path) -> Track:
     if not start:
         raise ParseError(f"{source}: empty file" if not head else f"{source}: only blank lines")
     if start == b"{":
+        if _NMEA_LINE_CHECKED.search(head):
+            # gpspipe -r: gpsd's JSON preamble, then the NMEA (an x6wd recording's lines
+            # all start with "{"; its NMEA is inside them); the framer skips the JSON
+            return _read_nmea(log_path)
         return _read_recording(log_path)
     if log_path.suffix.lower() == ".pos" or start == b"%":
         return _read_pos(log_path)
-    if start == b"$" or _NMEA_HEAD.search(head) or not _looks_like_text(head):
+    if (
+        start == b"$"
+        or _NMEA_HEAD.search(head)
+        or _NMEA_LINE.search(head)
+        or not _looks_like_text(head)
+    ):
         # Binary (UBX, RTCM...) goes to the NMEA framer too: it skips what is not NMEA and
         # its counters say what was there when no position is found.
         return _read_nmea(log_path)
@@ -969,9 +984,28 @@ def _gll_gns_row(kind: str, msg: Any) -> tuple[float, ...]:
 
 
 def _read_nmea(path: Path) -> Track:
-    return _nmea_track(
-        lambda: ((0.0, chunk) for chunk in _chunks(path)), str(path), receive_clock=False
-    )
+    try:
+        return _nmea_track(
+            lambda: ((0.0, chunk) for chunk in _chunks(path)), str(path), receive_clock=False
+        )
+    except ParseError as exc:
+        unchecked = _unchecked_sentences(path)
+        if unchecked:
+            raise ParseError(
+                f"{exc}; {unchecked} of its sentences have no checksum (no '*hh' at the end),"
+                " and the decoder skips every sentence without one: log with checksums on"
+            ) from exc
+        raise
+
+
+def _unchecked_sentences(path: Path) -> int:
+    """How many lines of the first 64 KiB are NMEA sentences without a checksum, when none
+    there has one (0 otherwise): why such a log decodes to nothing."""
+    with open(path, "rb") as f:
+        head = f.read(_SNIFF_BYTES)
+    if _NMEA_LINE_CHECKED.search(head):
+        return 0
+    return len(_NMEA_LINE_UNCHECKED.findall(head))
 
 
 def _read_recording(path: Path) -> Track:
