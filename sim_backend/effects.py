@@ -160,10 +160,20 @@ def metres_per_degree(lat_deg: float) -> tuple[float, float]:
     return n_m * math.cos(math.radians(lat_deg)) * k, m_m * k
 
 
-def quantization_step_m(decimals: int, lat_deg: float) -> tuple[float, float]:
-    """(east, north) lattice step in metres of NMEA minutes printed with ``decimals`` places."""
+QUANT_UNITS = ("min", "deg")  # NMEA minutes (ddmm.mmmm), decimal degrees (dd.ddddd)
+
+
+def lattice_step_deg(decimals: int, unit: str = "min") -> float:
+    """The lattice step in degrees of a coordinate printed with ``decimals`` places of
+    ``unit`` ("min": NMEA minutes; "deg": decimal degrees)."""
+    return 10.0 ** (-decimals) / (60.0 if unit == "min" else 1.0)
+
+
+def quantization_step_m(decimals: int, lat_deg: float, unit: str = "min") -> tuple[float, float]:
+    """(east, north) lattice step in metres of NMEA minutes (``unit`` "min") or decimal
+    degrees ("deg") printed with ``decimals`` places."""
     east_per_deg, north_per_deg = metres_per_degree(lat_deg)
-    step_deg = 10.0 ** (-decimals) / 60.0
+    step_deg = lattice_step_deg(decimals, unit)
     return east_per_deg * step_deg, north_per_deg * step_deg
 
 
@@ -724,7 +734,10 @@ class Bias(GpsLayer):
 
 @dataclass(frozen=True)
 class Quantization(GpsLayer):
-    """NMEA rounding of latitude/longitude minutes to ``decimals`` places (4 or 5 on u-blox 5).
+    """Rounding of the printed latitude/longitude to ``decimals`` places of ``unit``: NMEA
+    minutes ("min", the default: ``ddmm.mmmmm``, 4 or 5 decimals on u-blox 5) or decimal
+    degrees ("deg": ``dd.ddddd``, as CSV loggers, phone apps and many data sets print them;
+    5 decimals are a 1.1 m x 0.7 m grid at 51.75 N).
 
     Acts on the absolute position (origin + implied truth + error); the error becomes the
     rounded position minus the truth, so the reported positions lie exactly on the lattice
@@ -734,10 +747,29 @@ class Quantization(GpsLayer):
     name: ClassVar[str] = "quantization"
     stage = 1  # the print stage (not annotated: a class constant, not a parameter)
     decimals: int = 5
+    unit: str = "min"
 
     def __post_init__(self) -> None:
         if not isinstance(self.decimals, int) or not 0 <= self.decimals <= 9:
             raise ConfigError(f"decimals={self.decimals!r}: must be an integer 0..9")
+        if self.unit not in QUANT_UNITS:
+            raise ConfigError(
+                f'unit={self.unit!r}: must be "min" (NMEA minutes, the default) or '
+                '"deg" (decimal degrees)'
+            )
+
+    def to_params(self) -> dict[str, Any]:
+        """As every layer's, without ``unit`` when it is the default minutes (the tables
+        written before the unit existed, and NMEA ones now, read the same)."""
+        out = super().to_params()
+        if self.unit == "min":
+            del out["unit"]
+        return out
+
+    @property
+    def step_text(self) -> str:
+        """The lattice in words, e.g. "1e-5 deg", "1e-4 min"."""
+        return f"1e-{self.decimals} {self.unit}" if self.decimals else f"1 {self.unit}"
 
     def start(self, rng: np.random.Generator) -> LayerRun:
         """The rounding (no state, no draws)."""
@@ -749,17 +781,20 @@ class Quantization(GpsLayer):
         te, tn = truth_track_m(series)
         lat = lat0 + (tn + np.asarray(series.north_m, dtype=float)) / n_per_deg
         lon = lon0 + (te + np.asarray(series.east_m, dtype=float)) / e_per_deg
-        qlat = quantize_degrees(lat, self.decimals)
-        qlon = quantize_degrees(lon, self.decimals)
+        qlat = quantize_degrees(lat, self.decimals, self.unit)
+        qlon = quantize_degrees(lon, self.decimals, self.unit)
         return series.with_(
             east_m=(qlon - lon0) * e_per_deg - te,
             north_m=(qlat - lat0) * n_per_deg - tn,
         )
 
 
-def quantize_degrees(deg: np.ndarray, decimals: int) -> np.ndarray:
-    """Degrees as NMEA prints them: |deg| in minutes rounded to ``decimals``, sign kept."""
+def quantize_degrees(deg: np.ndarray, decimals: int, unit: str = "min") -> np.ndarray:
+    """Degrees as printed: |deg| in minutes (NMEA, ``unit`` "min") or in degrees ("deg")
+    rounded to ``decimals``, sign kept."""
     d = np.asarray(deg, dtype=float)
+    if unit == "deg":
+        return np.sign(d) * np.round(np.abs(d), decimals)
     minutes = np.round(np.abs(d) * 60.0, decimals)
     return np.sign(d) * minutes / 60.0
 

@@ -8,8 +8,9 @@ What the GPS adds to the shared pipeline:
 - within the drift family (bias, Gauss-Markov, random walk) only the member(s) the exact
   whole-log likelihood names by BIC may be selected (:func:`x6wd.gap.drift.drift_fit`), with
   the bias or latency it names beside them from one joint fit;
-- an NMEA lattice coarser than the baseline's is a fact: it enters first, and the effects
-  after it are refined by simulation through the rounding (:func:`simulation_refit`); a
+- a lattice (NMEA minutes or decimal degrees) coarser than the baseline's is a fact: it
+  enters first, and the effects after it are refined by simulation through the rounding
+  (:func:`simulation_refit`); a
   Gauss-Markov drift is offered at both orders and refined by simulation too;
 - decisions and the selection's closure on fresh pooled draws of the effects, and
   leave-one-out (except what the likelihood named);
@@ -60,13 +61,12 @@ from x6wd.gap.pipeline import (
 from x6wd.gap.rate import MAX_ANALYSIS_HZ, baseline_at, median_step_s
 from x6wd.gap.solution import EFFECTS as RECEIVER_EFFECTS
 from x6wd.gap.stats import (
-    QUANT_DECIMALS,
     Cell,
     Layout,
     battery,
     carry_twin,
     cell_weights,
-    lattice_fraction,
+    find_lattice,
     layout_for,
     same_observables,
     window,
@@ -140,23 +140,27 @@ class Diagnosis(Outcome[PositionSeries, Layout]):
     calibration: Calibration | None = None
 
 
-def _lattice_decimals(series: Sequence[PositionSeries]) -> int | None:
-    """The NMEA minute lattice every series lies on (None if not quantised)."""
-    for decimals in QUANT_DECIMALS:
-        if all(lattice_fraction(s, decimals) >= 0.99 for s in series[:3]):
-            return decimals
-    return None
+def _lattice(series: Sequence[PositionSeries]) -> Quantization | None:
+    """The lattice (NMEA minutes or decimal degrees) the first three series lie on, as the
+    layer that prints on it (None if not quantised)."""
+    return find_lattice(series[:3])
 
 
 def apply_fits(
     fits: Sequence[Fit],
     runs: Sequence[PositionSeries],
     rng: np.random.Generator,
-    lattice: int | None,
+    lattice: Quantization | int | None,
 ) -> list[PositionSeries]:
-    """Each run with the effects added, then printed on the baseline's NMEA lattice again
-    (a receiver prints its final position; an added error does not leave the lattice)."""
-    lattice_now = next((fit.effect.decimals for fit in fits if fit.name == "quantization"), lattice)
+    """Each run with the effects added, then printed on the baseline's lattice again (a
+    receiver prints its final position; an added error does not leave the lattice), or on
+    a fitted quantization's. ``lattice``: the layer that prints on it (an int: that many
+    decimals of NMEA minutes; None: not printed)."""
+    if isinstance(lattice, int):
+        lattice = Quantization(decimals=lattice)
+    lattice_now = next(
+        (fit.effect for fit in fits if isinstance(fit.effect, Quantization)), lattice
+    )
 
     def one(run: PositionSeries) -> PositionSeries:
         out = run
@@ -164,7 +168,7 @@ def apply_fits(
             if fit.name != "quantization":
                 out = fit.effect.apply(out, rng)
         if lattice_now is not None:
-            out = Quantization(decimals=int(lattice_now)).apply(out, rng)
+            out = lattice_now.apply(out, rng)
         return carry_twin(run, out, one)
 
     return [one(run) for run in runs]
@@ -179,7 +183,7 @@ def simulation_refit(
     real_battery: dict[Cell, float],
     runs: Sequence[PositionSeries],
     layout: Layout,
-    lattice: int | None,
+    lattice: Quantization | None,
     ref_sd: np.ndarray | None = None,
     alt_start: Fit | None = None,
 ) -> Fit:
@@ -257,7 +261,7 @@ def _refit_whole(
     runs: Sequence[PositionSeries],
     layout: Layout,
     rng: np.random.Generator,
-    lattice: int | None,
+    lattice: Quantization | None,
 ) -> list[Fit]:
     """Each selected effect refitted on the whole log on top of the baseline runs plus the
     other selected effects (its fit-part version kept when the refit fails)."""
@@ -297,15 +301,17 @@ def _refit_whole(
 
 @dataclass
 class RoundPlan:
-    """What the GPS policy decided before a round's candidates are fitted: the NMEA lattice
-    in the model (decimals; coarser than the baseline's: fits go through it by simulation),
+    """What the GPS policy decided before a round's candidates are fitted: the lattice in the
+    model (the layer printing on it; coarser than the baseline's: fits go through it by
+    simulation),
     whether a mean cell is flagged on the fit part (a bias may hide under a drift), whether a
     coarser lattice is a fact this round (it enters first), and the drift-family members the
     whole-log likelihood names (the drift or bias first, then its companions; [] = none)."""
 
-    lattice: int | None = None
+    lattice: Quantization | None = None
     bias_flagged: bool = False
     lattice_fact: bool = False
+    fact: Quantization | None = None  # that coarser lattice's printing
     family_best: list[str] = field(default_factory=list)
     # drift-family members of models the likelihood does not reject decisively (BIC within
     # BIC_DECISIVE of the best): tried only when no first-rank option may enter
@@ -325,7 +331,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         self, options: Options, rng: np.random.Generator, progress: Progress | None = None
     ) -> None:
         super().__init__(EFFECTS, options, rng, progress)
-        self.lattice: int | None = None  # the baseline's NMEA lattice (decimals)
+        self.lattice: Quantization | None = None  # the baseline's lattice (its printing)
         self.plan = RoundPlan()
 
     def run(self, real: PositionSeries, baseline: Sequence[PositionSeries]) -> Diagnosis:
@@ -487,7 +493,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         )
 
     def prepare(self, runs: Sequence[PositionSeries]) -> None:
-        self.lattice = _lattice_decimals(runs)
+        self.lattice = _lattice(runs)
 
     def apply_fits(
         self, fits: Sequence[Fit], runs: Sequence[PositionSeries]
@@ -520,24 +526,24 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
     def plan_round(self, this_round: Round[PositionSeries], outcome: Diagnosis) -> None:
         split = self.split
         mean_cells = np.array([c.statistic == "mean" for c in this_round.fit_null.cells])
+        fact = (
+            FITTERS["quantization"](split.real_fit, this_round.current_fit, split.fit_layout)
+            if this_round.index == 0 and "quantization" in this_round.names
+            else None
+        )
         self.plan = RoundPlan(
             lattice=next(
-                (int(f.effect.decimals) for f in this_round.selected if f.name == "quantization"),
+                (f.effect for f in this_round.selected if isinstance(f.effect, Quantization)),
                 self.lattice,
             ),
             bias_flagged=bool(np.any(np.abs(this_round.z_fit[mean_cells]) > 3.0)),
-            # A lattice is a fact, not an estimate: every real fix lies on a coarser NMEA
-            # lattice than the baseline's. It enters the model first and the rest is fitted
-            # through it (a look-alike, such as white noise of the rounding error's size, must
-            # not take its place and then double-count the rounding).
-            lattice_fact=(
-                this_round.index == 0
-                and "quantization" in this_round.names
-                and FITTERS["quantization"](
-                    split.real_fit, this_round.current_fit, split.fit_layout
-                )
-                is not None
-            ),
+            # A lattice is a fact, not an estimate: every real fix lies on a coarser lattice
+            # (NMEA minutes or decimal degrees) than the baseline's. It enters the model first
+            # and the rest is fitted through it (a look-alike, such as white noise of the
+            # rounding error's size, or a static hold repeating fixes as a coarse grid does,
+            # must not take its place and then double-count the rounding).
+            lattice_fact=fact is not None,
+            fact=None if fact is None else fact.effect,
         )
         # The drift family (bias, Gauss-Markov, random walk) is told apart by exact likelihood
         # on the whole log (BIC: none / bias / GM / GM + bias / RW / RW + bias on top of the
@@ -642,6 +648,11 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
     def ineligible_reason(self, name: str) -> str:
         plan = self.plan
         if plan.lattice_fact and name != "quantization":
+            if plan.fact is not None and plan.fact.unit == "deg":
+                return (
+                    f"the real fixes lie on a coarser lattice of decimal degrees "
+                    f"({plan.fact.step_text}), a fact that enters first"
+                )
             return "the real fixes lie on a coarser NMEA lattice, a fact that enters first"
         named = "+".join(plan.family_best) or "none"
         return (
@@ -804,7 +815,14 @@ def _verdict(diagnosis: Diagnosis) -> str:
         return "no significant gap"
     if head["closure"] is None:
         return "gap not explained by any known effect"
-    names = " + ".join(head["effects"])
+    # a lattice of decimal degrees is named with its step ("quantization (1e-5 deg)"): the
+    # name alone reads as the NMEA minutes' rounding
+    degrees = {
+        fit.name: f"{fit.name} ({fit.effect.step_text})"
+        for fit in diagnosis.selected
+        if isinstance(fit.effect, Quantization) and fit.effect.unit == "deg"
+    }
+    names = " + ".join(degrees.get(name, name) for name in head["effects"])
     closure = f"held-out closure {head['closure']:.2f}"
     if head["closure_ci"] is not None:
         low, high = head["closure_ci"]

@@ -22,7 +22,7 @@ from x6wd.gap.fitted import Fit
 from x6wd.gap.jumps import fit_jumps
 from x6wd.gap.noise import NoiseModel
 from x6wd.gap.pipeline import EffectFitter
-from x6wd.gap.stats import QUANT_DECIMALS, Layout, lattice_fraction
+from x6wd.gap.stats import LATTICES, Layout, lattice_fraction
 from x6wd.gap.zone import fit_multipath_zone
 
 # Re-exported for callers that knew them here (tests/conftest.py builds a NoiseModel).
@@ -42,13 +42,15 @@ __all__ = [
 def fit_quantization(
     real: PositionSeries, baseline: Sequence[PositionSeries], layout: Layout
 ) -> Fit | None:
-    """The coarsest NMEA minute lattice all real fixes lie on (exact), when the baseline is
-    not already on it."""
-    for decimals in QUANT_DECIMALS:
-        if lattice_fraction(real, decimals) >= 0.99:
-            if np.mean([lattice_fraction(s, decimals) for s in baseline]) >= 0.99:
+    """The coarsest lattice all real fixes lie on (exact), of NMEA minutes or of decimal
+    degrees (:data:`x6wd.gap.stats.LATTICES`, coarsest step first: a log rounded to 1e-5
+    deg is also on 1e-4 min, a grid six times finer), when the baseline is not already on
+    it."""
+    for decimals, unit in LATTICES:
+        if lattice_fraction(real, decimals, unit) >= 0.99:
+            if np.mean([lattice_fraction(s, decimals, unit) for s in baseline]) >= 0.99:
                 return None
-            return Fit(Quantization(decimals=decimals), {"decimals": 0.0})
+            return Fit(Quantization(decimals=decimals, unit=unit), {"decimals": 0.0})
     return None
 
 

@@ -55,15 +55,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_backend.effects import Bias, Correction, NavFilter, NoiseScale, PositionSeries
+from sim_backend.effects import (
+    Bias,
+    Correction,
+    NavFilter,
+    NoiseScale,
+    PositionSeries,
+    Quantization,
+)
 from x6wd.gap.fitted import Fit
 from x6wd.gap.stats import window
 from x6wd.gap.validate import ADEV_TOL, Validation, against_own_mean, own_mean, validate
 
-# The pipeline's way of adding fits to runs, (fits, runs, rng, lattice decimals) -> runs
+# The pipeline's way of adding fits to runs, (fits, runs, rng, lattice) -> runs, the lattice
+# the layer printing on it (an int: decimals of NMEA minutes; None: not printed)
 # (:func:`x6wd.gap.diagnose.apply_fits`), passed in: this module sits below the pipeline.
+Lattice = Quantization | int | None
 Apply = Callable[
-    [Sequence[Fit], Sequence[PositionSeries], np.random.Generator, "int | None"],
+    [Sequence[Fit], Sequence[PositionSeries], np.random.Generator, Lattice],
     list[PositionSeries],
 ]
 
@@ -188,7 +197,7 @@ class _Objective:
         with_effects: list[PositionSeries],
         tail: list[Fit],
         apply: Apply,
-        lattice: int | None,
+        lattice: Lattice,
         layout: tuple[float, float],
         bias: bool,
     ) -> None:
@@ -294,14 +303,15 @@ def calibrate_level(
     runs: Sequence[PositionSeries],
     selected: Sequence[Fit],
     apply: Apply,
-    lattice: int | None,
+    lattice: Lattice,
     dt_s: float,
     duration_s: float,
     layers: Iterable[str] = LEVEL_LAYERS,
 ) -> Calibration:
     """Seed 000's validation of ``runs`` (baseline errors, m) with the ``selected`` effects,
     and with the level calibration fitted after them (see the module doc). ``apply`` adds
-    fits to runs and prints them on the ``lattice`` (decimals of the NMEA minutes, None: not
+    fits to runs and prints them on the ``lattice`` (the :class:`Quantization` printing on
+    it, of NMEA minutes or decimal degrees; an int: decimals of NMEA minutes; None: not
     printed); ``dt_s``, ``duration_s``: the log's step and length (s); ``layers``: the level
     layers the fit may use (of :data:`LEVEL_LAYERS`; the filter only where the receiver is
     quieter at the shortest octave, the bias only against a truth). In sample, unchecked:
@@ -514,7 +524,7 @@ def calibrate_checked(
     runs: Sequence[PositionSeries],
     selected: Sequence[Fit],
     apply: Apply,
-    lattice: int | None,
+    lattice: Lattice,
     layout: tuple[float, float],
     split_s: tuple[tuple[float, float], tuple[float, float]],
     allowed: Mapping[str, str],

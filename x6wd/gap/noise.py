@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_backend.effects import PositionSeries
+from sim_backend.effects import PositionSeries, Quantization
 from x6wd.gap.fitted import IdentityCache
 from x6wd.gap.null import Inflation, inflation_from, null_model
-from x6wd.gap.stats import Cell, Layout, regular, with_twin
+from x6wd.gap.stats import Cell, Layout, find_lattice, regular, with_twin
 
 BASE_COMPONENTS = 2  # Gauss-Markov components of the baseline noise model (plus white noise)
 WHITE_FLOOR_M = 1e-3  # keeps the innovation variance positive when a run is exactly constant
@@ -331,14 +331,10 @@ def _colour_one(
     return np.array(out)
 
 
-def lattice_decimals(logs: Sequence[PositionSeries]) -> int | None:
-    """The coarsest NMEA minute lattice every one of ``logs`` lies on (None: none)."""
-    from x6wd.gap.stats import QUANT_DECIMALS, lattice_fraction
-
-    for decimals in QUANT_DECIMALS:
-        if all(lattice_fraction(s, decimals) >= 0.99 for s in logs):
-            return decimals
-    return None
+def lattice_of(logs: Sequence[PositionSeries]) -> Quantization | None:
+    """The coarsest lattice (NMEA minutes or decimal degrees) every one of ``logs`` lies on,
+    as the layer that prints on it (None: none)."""
+    return find_lattice(logs)
 
 
 def _on(template_t_s: np.ndarray, log: PositionSeries) -> np.ndarray:
@@ -360,7 +356,7 @@ def innovation_replicates(
     block_s: float,
     jitter_s: float,
     rng: np.random.Generator,
-    decimals: int | None,
+    lattice: Quantization | None,
     replicate_laws: Sequence[Sequence[AxisLaw]] | None = None,
 ) -> list[PositionSeries]:
     """``n_out`` replicates on ``template``'s times: the laws' recursion driven by the
@@ -433,11 +429,9 @@ def innovation_replicates(
         twin = None
         if twins is not None:
             twin = series.with_(east_m=twins[0][j], north_m=twins[1][j])
-        if decimals is not None:
-            from sim_backend.effects import Quantization
-
-            series = Quantization(decimals=decimals).apply(series, rng)
-            twin = None if twin is None else Quantization(decimals=decimals).apply(twin, rng)
+        if lattice is not None:
+            series = lattice.apply(series, rng)
+            twin = None if twin is None else lattice.apply(twin, rng)
         out.append(with_twin(series, twin))
     return out
 
@@ -628,11 +622,11 @@ def few_logs_null(
 
     block_s = block_s or max(layout.duration_s / 30.0, 30 * layout.dt_s)
     jitter_s = layout.duration_s / 12.0 if jitter_s is None else jitter_s
-    decimals = lattice_decimals(logs)
+    lattice = lattice_of(logs)
     pooled = axis_laws(logs, layout)
     spread = law_spread(logs, pooled, template, layout, rng) if len(logs) > 1 else None
     runs = innovation_replicates(
-        logs, pooled, template, n_out, block_s, jitter_s, rng, decimals,
+        logs, pooled, template, n_out, block_s, jitter_s, rng, lattice,
         drawn_laws(spread, pooled, n_out, layout, rng) if spread is not None else None,
     )  # fmt: skip
     rows = []
@@ -644,7 +638,7 @@ def few_logs_null(
         # the same procedure on n - 1 logs: their own laws, the one-log fit scatter as above
         spread_i = LawSpread(np.delete(spread.per_log, i, axis=0), spread.fit_var)
         draws = innovation_replicates(
-            others, laws, log, n_out, block_s, jitter_s, rng, decimals,
+            others, laws, log, n_out, block_s, jitter_s, rng, lattice,
             drawn_laws(spread_i, laws, n_out, layout, rng),
         )  # fmt: skip
         draw_batteries = [battery(s, layout) for s in draws]

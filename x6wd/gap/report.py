@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from sim_backend.effects import metres_per_degree, truth_track_m
+from sim_backend.effects import Quantization, metres_per_degree, truth_track_m
 from x6wd.gap.compass import (
     CompassDiagnosis,
     compass_report_dict,
@@ -451,8 +451,11 @@ def markdown(
                 + (f" ± {se[key]:.2g}" if se.get(key) and math.isfinite(se[key]) else "")
                 for key, value in cand.fit.params.items()
             )
+            name = cand.fit.name
+            if isinstance(cand.fit.effect, Quantization) and cand.fit.effect.unit == "deg":
+                name += f" ({cand.fit.effect.step_text})"  # not the NMEA minutes' rounding
             lines.append(
-                f"| {rank} | {cand.fit.name} | {params} | {cand.closure:.2f} | "
+                f"| {rank} | {name} | {params} | {cand.closure:.2f} | "
                 f"[{cand.closure_ci[0]:.2f}, {cand.closure_ci[1]:.2f}] | "
                 f"{'yes' if cand.fit.name in selected else ''} |"
             )

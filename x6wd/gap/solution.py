@@ -36,11 +36,10 @@ from sim_backend.effects import (
 from x6wd.gap.fitted import Fit
 from x6wd.gap.pipeline import EffectFitter
 from x6wd.gap.stats import (
-    QUANT_DECIMALS,
     Layout,
     allan_var,
     carry_twin,
-    lattice_fraction,
+    find_lattice,
     median_increments,
     octave_taus,
     regular,
@@ -66,11 +65,9 @@ FINGERPRINTS: dict[str, tuple[str, ...]] = {
 }
 
 
-def _lattice(runs: Sequence[PositionSeries]) -> int | None:
-    for decimals in QUANT_DECIMALS:
-        if all(lattice_fraction(s, decimals) >= 0.99 for s in runs[:3]):
-            return decimals
-    return None
+def _lattice(runs: Sequence[PositionSeries]) -> Quantization | None:
+    """The printing of the lattice (NMEA minutes or decimal degrees) the runs lie on."""
+    return find_lattice(runs[:3])
 
 
 def _log(x: float) -> float:
@@ -177,7 +174,7 @@ class _Objective:
     ) -> PositionSeries:
         s = effect.apply(run, rng)  # type: ignore[attr-defined]
         if self.lattice is not None:
-            s = Quantization(decimals=self.lattice).apply(s, rng)
+            s = self.lattice.apply(s, rng)
         return carry_twin(run, s, lambda twin: self._with(effect, twin, rng))
 
     def __call__(self, effect: object) -> float:

@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from sim_backend.effects import PositionSeries, truth_track_m
+from sim_backend.effects import PositionSeries, Quantization, truth_track_m
 
 
 class Cell(NamedTuple):
@@ -166,7 +166,19 @@ def cell_weights(cells: Sequence[Cell], few_logs: bool = False) -> np.ndarray:
     return np.where(primary, PRIMARY_SHARE / n_primary, (1.0 - PRIMARY_SHARE) / n_other)
 
 
-QUANT_DECIMALS = (1, 2, 3, 4, 5)
+QUANT_DECIMALS = (1, 2, 3, 4, 5)  # the battery's lattice cells: NMEA minutes
+# The lattices a log's fixes are looked for on, coarsest step first: NMEA minutes with 1-5
+# decimals and decimal degrees with 2-7. Every degree lattice with 2-6 decimals lies on the
+# minute lattice of one decimal fewer (1e-5 deg = 6e-4 min), so the coarsest wins: a log
+# rounded to 1e-5 deg is on 1e-5 deg (1.1 m), not on 1e-4 min (0.19 m), and an NMEA log
+# keeps its minute lattice (1e-4 min is on no degree lattice coarser than itself).
+DEG_DECIMALS = (2, 3, 4, 5, 6, 7)
+LATTICES: tuple[tuple[int, str], ...] = tuple(
+    sorted(
+        [(d, "min") for d in QUANT_DECIMALS] + [(d, "deg") for d in DEG_DECIMALS],
+        key=lambda lattice: -(10.0 ** -lattice[0]) / (60.0 if lattice[1] == "min" else 1.0),
+    )
+)
 LATTICE_TOL_M = 0.0005
 N_PERIODS = 4
 
@@ -370,9 +382,10 @@ def _log(x: float) -> float:
     return float(np.log(max(x, 1e-6)))
 
 
-def lattice_fraction(series: PositionSeries, decimals: int) -> float:
-    """Fraction of valid epochs whose latitude AND longitude minutes lie on the
-    10^-decimals grid (NMEA printing with that many decimals puts every fix on it)."""
+def lattice_fraction(series: PositionSeries, decimals: int, unit: str = "min") -> float:
+    """Fraction of valid epochs whose latitude AND longitude minutes (``unit`` "min") or
+    degrees ("deg") lie on the 10^-decimals grid (printing with that many decimals puts
+    every fix on it)."""
     from sim_backend.effects import metres_per_degree
 
     valid = np.asarray(series.valid, dtype=bool)
@@ -388,16 +401,27 @@ def lattice_fraction(series: PositionSeries, decimals: int) -> float:
         series.origin_lon_deg
         + (true_east_m[valid] + np.asarray(series.east_m, dtype=float)[valid]) / m_per_deg_lon
     )
-    per_minute = 10.0**decimals
+    per_minute = 10.0**decimals  # lattice units per minute, or per degree ("deg")
+    per_unit = 60.0 if unit == "min" else 1.0
     # An absolute tolerance of 0.5 mm: float round trips through metres stay far inside it,
     # and so does a window's re-based origin over a few hundred metres. Off-lattice data
     # passes with probability 1 mm / step per axis (about 5 % at 5 decimals, nil coarser).
     ok = np.ones(lat_deg.size, dtype=bool)
     for angle_deg, m_per_deg in ((lat_deg, m_per_deg_lat), (lon_deg, m_per_deg_lon)):
-        units = np.abs(angle_deg) * 60.0 * per_minute
-        tol_units = LATTICE_TOL_M / (m_per_deg / 60.0 / per_minute)
+        units = np.abs(angle_deg) * per_unit * per_minute
+        tol_units = LATTICE_TOL_M / (m_per_deg / per_unit / per_minute)
         ok &= np.abs(units - np.round(units)) < tol_units
     return float(np.mean(ok))
+
+
+def find_lattice(series: Sequence[PositionSeries], fraction: float = 0.99) -> Quantization | None:
+    """The coarsest lattice of :data:`LATTICES` on which at least ``fraction`` of every one
+    of ``series``' valid fixes lie, as the :class:`Quantization` layer that prints on it
+    (None: none)."""
+    for decimals, unit in LATTICES:
+        if series and all(lattice_fraction(s, decimals, unit) >= fraction for s in series):
+            return Quantization(decimals=decimals, unit=unit)
+    return None
 
 
 def steady_steps(series: PositionSeries, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
