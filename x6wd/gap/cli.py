@@ -305,7 +305,10 @@ def main(args: argparse.Namespace) -> int:
     real_track = read_track(args.real)
     check_step(real_track)
     real = to_errors(real_track, args, truth_track)
-    check_real(real)  # refused before the runs are placed and their almanac's age warned of
+    try:
+        check_real(real)  # refused before the runs are placed and their almanac's age warned of
+    except ConfigError as exc:  # named with its file, as the readers' refusals are
+        raise ConfigError(f"{args.real}: {exc}") from exc
     notes = [f"reading the real log: {note}" for note in real_track.notes]
     if truth_track is not None:
         notes += [f"reading the truth track: {note}" for note in truth_track.notes]

@@ -729,7 +729,8 @@ def check_real(real: PositionSeries) -> None:
     before anything is simulated or warned about (the almanac's age was warned of first)."""
     if len(real) < MIN_FIXES:
         raise ConfigError(
-            f"real log too short for a gap diagnosis: {len(real)} epochs (need >= {MIN_FIXES})"
+            f"real log too short for a gap diagnosis: {len(real)}"
+            f" epoch{'' if len(real) == 1 else 's'} (need >= {MIN_FIXES})"
         )
     _enough_fixes(real, "real log")
 
