@@ -10,6 +10,21 @@ Layers:
   and decodes with replacement, so line noise and binary never raise. A sentence complete
   up to ``*HH`` whose line ending was lost (the next ``$`` follows at once) is accepted;
   one cut off by a new ``$`` or containing another ``*`` is a framing error.
+  With ``accept_unchecksummed`` (``x6wd decode`` and the gap tool's NMEA reader; gpsd's
+  packet lexer checks a checksum only where a ``*`` is present), a complete line without
+  ``*HH`` is a sentence too when it is well-formed: ``$``, an address of an uppercase
+  letter and 2-9 uppercase letters or digits, then nothing or a comma and printable ASCII
+  without ``*``, ended by CR or LF, at most 127 characters (130 with the checksum), and
+  the stream has carried no line with ``*HH`` before it. A receiver or logger writes the
+  checksum on every line or on none: in a stream that has carried checksums, a line
+  without one is one whose end was lost (gpsd's ublox-8 log ends in an RMC cut after its
+  speed's "0.", its gp-320fw cold-boot log has three cut lines; gpsd takes them, and its
+  output of the RMC has no fix of it). Such a line is given its computed checksum
+  (downstream it is a sentence like any other) and counted in ``unchecksummed`` as well
+  as ``sentences``. A line cut off by a new ``$``, over the cap, or with a ``*`` not
+  followed by two hex digits is an error as before. The robot's daemon keeps the default
+  (strict): the NEO-5 always sends checksums, and on a noisy UART a line without one is
+  more likely a corrupt one.
 - ``GpsDecoder`` splits each sentence into its fields and converts the ones it uses with
   the parsers of the sentence table (``drivers.nmea``, shared with the simulator's NMEA
   writer), not pynmea2's conversions, which have the pitfalls listed in REFERENCE.md §4
@@ -207,6 +222,8 @@ class FramerCounters:
     framing_errors: int = 0  # too long, truncated by a new '$', no '*HH' at the line end
     ubx_frames: int = 0
     skipped_bytes: int = 0  # bytes outside any frame (line noise, comments), CR/LF excluded
+    # Of ``sentences``, lines taken without '*HH' (NmeaFramer's accept_unchecksummed).
+    unchecksummed: int = 0
 
 
 # One scan finds the next sentence start or UBX sync. A sentence runs from '$' up to CR, LF,
@@ -217,6 +234,10 @@ _SCAN: Final = re.compile(
     rb"|\$[^$\r\n\xb5]*|\xb5\x62"
 )
 _HEX: Final = frozenset(b"0123456789abcdefABCDEF")
+# A complete line without '*HH' that NmeaFramer(accept_unchecksummed=True) takes: an
+# address ("GPGGA", "PFEC", "STI"), then nothing or a comma and printable ASCII without
+# '*' (the line end and trailing blanks already cut off).
+_UNCHECKSUMMED: Final = re.compile(rb"\$[A-Z][A-Z0-9]{2,9}(?:,[\x20-\x29\x2b-\x7e]*)?")
 # Where a sentence's unterminated segment ends: a line end, or the start of another frame.
 _FRAME_END: Final = re.compile(rb"[$\r\n\xb5]")
 
@@ -310,8 +331,11 @@ def _line_sums(lines: list[bytes] | list[str]) -> tuple[bytes, bytes, bool]:
 class NmeaFramer:
     """Sans-IO framer: ``feed(bytes) -> list[Frame]``; never raises on any input."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, accept_unchecksummed: bool = False) -> None:
+        """``accept_unchecksummed``: take a well-formed complete line without ``*HH`` as a
+        sentence (module docstring); off for the robot's receiver."""
         self._buf = bytearray()
+        self.accept_unchecksummed = accept_unchecksummed
         # The rest of an over-long sentence that was counted (one framing error) and dropped
         # before its end arrived is dropped too, uncounted, up to where that sentence would
         # end: the counters then do not depend on how the stream was cut into reads.
@@ -372,6 +396,7 @@ class NmeaFramer:
         total.framing_errors += c.framing_errors
         total.ubx_frames += c.ubx_frames
         total.skipped_bytes += c.skipped_bytes
+        total.unchecksummed += c.unchecksummed
         if dropping:
             self._dropping = True
         if pos < len(snapshot):
@@ -471,6 +496,21 @@ class NmeaFramer:
                     pos = end + 1
                     seg = seg.rstrip(b" \t")
                     ln = len(seg)
+                    if self.accept_unchecksummed and seg.find(b"*") == -1:
+                        # A whole line without '*HH' (no '*' at all): a sentence if it is
+                        # well-formed, fits the cap with its checksum added and the stream
+                        # has carried no checksummed line before it.
+                        if (
+                            ln > MAX_SENTENCE_CHARS - 3
+                            or _UNCHECKSUMMED.fullmatch(seg) is None
+                            or self._carried_checksums(out, c)
+                        ):
+                            c.framing_errors += 1
+                            continue
+                        c.sentences += 1
+                        c.unchecksummed += 1
+                        out.append(f"{seg.decode('ascii')}*{checksum(seg[1:]):02X}")
+                        continue
                 else:
                     pos = end
                     if ln < 4 or seg[-3] != 0x2A:
@@ -516,6 +556,18 @@ class NmeaFramer:
         if runs and not _check_runs(runs, out, c):
             return None
         return out, pos, dropping
+
+    def _carried_checksums(self, out: list[str | UbxFrame], c: FramerCounters) -> bool:
+        """Whether the stream carried a line with ``*HH`` (valid or not) before the point
+        ``_pass`` has reached with ``out`` and ``c``: earlier passes' counters, this pass's
+        checksum failures and the lines in ``out`` (every frame there is a UBX frame, an
+        unchecksummed line or a line with ``*HH``, the run lines not yet checked)."""
+        t = self.counters
+        return bool(
+            t.sentences - t.unchecksummed + t.checksum_failures
+            or c.checksum_failures
+            or len(out) - c.ubx_frames - c.unchecksummed
+        )
 
     @staticmethod
     def _run(run: bytes, out: list[str | UbxFrame], runs: list[_Run]) -> None:
@@ -670,17 +722,32 @@ _COUNTERS: Final = (
     "framing_errors",
     "ubx_frames",
     "skipped_bytes",
+    "unchecksummed",
 )
 assert tuple(f.name for f in fields(FramerCounters)) == _COUNTERS, "update _counts"
 
 
 def _counts(c: FramerCounters) -> tuple[int, ...]:
     """The counters' values (a frame at a time: written out, no loop)."""
-    return (c.sentences, c.checksum_failures, c.framing_errors, c.ubx_frames, c.skipped_bytes)
+    return (
+        c.sentences,
+        c.checksum_failures,
+        c.framing_errors,
+        c.ubx_frames,
+        c.skipped_bytes,
+        c.unchecksummed,
+    )
 
 
 def _set_counters(c: FramerCounters, counts: tuple[int, ...]) -> None:
-    c.sentences, c.checksum_failures, c.framing_errors, c.ubx_frames, c.skipped_bytes = counts
+    (
+        c.sentences,
+        c.checksum_failures,
+        c.framing_errors,
+        c.ubx_frames,
+        c.skipped_bytes,
+        c.unchecksummed,
+    ) = counts
 
 
 _FIRST: Final = operator.itemgetter(0)
@@ -1247,13 +1314,16 @@ class DecoderCounters:
 
     Every checksum-valid sentence (``sentences``) ends in exactly one of ``decoded``,
     ``unknown_types`` (pynmea2 has no class for it) or ``invalid_fields`` (format or range
-    failure, sentence rejected whole).
+    failure, sentence rejected whole). ``unchecksummed`` counts the sentences among them
+    that came without ``*HH`` (``NmeaFramer``'s ``accept_unchecksummed``; always 0 on the
+    robot's strict decoder).
     """
 
     sentences: int = 0
     decoded: int = 0
     checksum_failures: int = 0
     framing_errors: int = 0
+    unchecksummed: int = 0  # of sentences, lines without '*HH' (accept_unchecksummed)
     unknown_types: int = 0
     invalid_fields: int = 0
     ubx_frames: int = 0
@@ -1279,8 +1349,14 @@ class GpsDecoder:
     are counted and kept for ``take_ubx()``. Never raises on stream content.
     """
 
-    def __init__(self, *, emit_sentences: bool = True, ubx_queue: int = 64) -> None:
-        self.framer = NmeaFramer()
+    def __init__(
+        self,
+        *,
+        emit_sentences: bool = True,
+        ubx_queue: int = 64,
+        accept_unchecksummed: bool = False,
+    ) -> None:
+        self.framer = NmeaFramer(accept_unchecksummed=accept_unchecksummed)
         self.emit_sentences = emit_sentences
         self._counters = DecoderCounters()
         self._ubx: deque[UbxFrame] = deque(maxlen=ubx_queue)
@@ -1339,6 +1415,7 @@ class GpsDecoder:
         c.framing_errors = f.framing_errors
         c.ubx_frames = f.ubx_frames
         c.skipped_bytes = f.skipped_bytes
+        c.unchecksummed = f.unchecksummed
         return c
 
     def take_ubx(self) -> list[UbxFrame]:

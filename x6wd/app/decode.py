@@ -998,8 +998,10 @@ class ReportDecoder(GpsDecoder):
     _gga: _GgaTuple | None  # type: ignore[assignment]
     _rmc: _RmcTuple | None  # type: ignore[assignment]
 
-    def __init__(self, encoder: ReportEncoder, *, with_sky: bool = True) -> None:
-        super().__init__(emit_sentences=False)
+    def __init__(
+        self, encoder: ReportEncoder, *, with_sky: bool = True, accept_unchecksummed: bool = False
+    ) -> None:
+        super().__init__(emit_sentences=False, accept_unchecksummed=accept_unchecksummed)
         self._encoder = encoder
         self._with_sky = with_sky
         # A GSV group's text -> its _SatTexts, per system (talker_system: the same text is
@@ -1719,6 +1721,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-sky", action="store_true", help="print TPV reports only")
     parser.add_argument("--quiet", action="store_true", help="do not print counters on stderr")
+    parser.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse NMEA lines without a '*hh' checksum (by default they are decoded, as gpsd"
+        " does, and counted as unchecksummed), as the robot's daemon does",
+    )
 
 
 def report_lines(records: Iterable[GpsOutput], *, with_sky: bool = True) -> Iterator[str]:
@@ -1807,10 +1815,12 @@ def decode_stream(
     with_sky: bool = True,
     stats: ReadStats | None = None,
     size: InputSize | None = None,
+    strict: bool = False,
 ) -> DecoderCounters:
     """Decode one input (NMEA bytes or a recording) and write report lines to ``out``.
     A recording's lines that are not records are counted in ``stats``, a plain input's
-    bytes in ``size`` (if given)."""
+    bytes in ``size`` (if given). NMEA lines without a checksum are decoded (as gpsd does)
+    unless ``strict``."""
     from x6wd.core.recorder import InputSize, looks_like_recording
 
     head = stream.read(_CHUNK_BYTES)
@@ -1820,7 +1830,7 @@ def decode_stream(
         st = stats if stats is not None else ReadStats()
         lines = _stream_lines(head, stream)
         return _decode_sentences(_recording_sentences(lines, st), out, with_sky)
-    decoder = ReportDecoder(ReportEncoder(), with_sky=with_sky)
+    decoder = ReportDecoder(ReportEncoder(), with_sky=with_sky, accept_unchecksummed=not strict)
     size = size if size is not None else InputSize()
     chunk = head
     while chunk:
@@ -1858,11 +1868,12 @@ def decode_path(
     with_sky: bool = True,
     stats: ReadStats | None = None,
     size: InputSize | None = None,
+    strict: bool = False,
 ) -> DecoderCounters:
     """Decode a file; a recording is read whole, every remaining part of it, through
     ``x6wd.core.recorder.read_recording_parts`` (as replay and plot read it), which counts
     its bad and truncated lines in ``stats``; a plain file's bytes are counted in ``size``
-    (if given)."""
+    (if given). ``strict``: see :func:`decode_stream`."""
     from x6wd.core.recorder import is_recording, read_recording_parts
 
     if not is_recording(path):  # a first part that retention deleted is judged by the rest
@@ -1871,7 +1882,7 @@ def decode_path(
         except OSError as exc:
             raise DeviceUnavailable(f"cannot open {path}: {exc.strerror}") from exc
         with f:
-            return decode_stream(f, out, with_sky=with_sky, size=size)
+            return decode_stream(f, out, with_sky=with_sky, size=size, strict=strict)
 
     sentences = (
         (rec.t_mono, rec.data["text"])
@@ -1911,11 +1922,21 @@ def _main(args: argparse.Namespace) -> int:
         try:
             if name == "-":
                 counters = decode_stream(
-                    sys.stdin.buffer, sys.stdout, with_sky=not args.no_sky, stats=stats, size=size
+                    sys.stdin.buffer,
+                    sys.stdout,
+                    with_sky=not args.no_sky,
+                    stats=stats,
+                    size=size,
+                    strict=args.strict,
                 )
             else:
                 counters = decode_path(
-                    name, sys.stdout, with_sky=not args.no_sky, stats=stats, size=size
+                    name,
+                    sys.stdout,
+                    with_sky=not args.no_sky,
+                    stats=stats,
+                    size=size,
+                    strict=args.strict,
                 )
         except BrokenPipeError:
             # The reader went away (e.g. `| head`): stop quietly like other filters.

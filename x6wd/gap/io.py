@@ -71,7 +71,6 @@ _NMEA_HEAD = re.compile(rb"[$!][A-Z][A-Z0-9]{1,5},[^\r\n$!]*\*[0-9A-Fa-f]{2}")
 # preamble (gpspipe -r writes VERSION, DEVICES and WATCH objects before the NMEA).
 _NMEA_LINE = re.compile(rb"(?m)^[ \t]*[$!][A-Z][A-Z0-9]{1,5},")
 _NMEA_LINE_CHECKED = re.compile(rb"(?m)^[ \t]*[$!][A-Z][A-Z0-9]{1,5},[^\r\n$!]*\*[0-9A-Fa-f]{2}")
-_NMEA_LINE_UNCHECKED = re.compile(rb"(?m)^[ \t]*[$!][A-Z][A-Z0-9]{1,5},[^\r\n*$!]{0,200}\r?$")
 _TEXT_BYTES = frozenset(b"\t\n\r\f") | frozenset(range(0x20, 0x7F)) | frozenset(range(0x80, 0x100))
 
 
@@ -743,7 +742,8 @@ def _chained_decoder() -> Any:
                 self.leap_utc.add(utc)
             return utc
 
-    decoder = ChainedDecoder(emit_sentences=False)
+    # NMEA lines without '*hh' are read as gpsd reads them (a log written without checksums)
+    decoder = ChainedDecoder(emit_sentences=False, accept_unchecksummed=True)
     decoder.leap_utc = set()
     return decoder
 
@@ -819,6 +819,11 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
     corrupt = _corrupt_note(decoder.counters)
     if corrupt:
         notes.append(corrupt)
+    if unchecked := decoder.counters.unchecksummed:
+        notes.append(
+            f"{unchecked} NMEA sentences without a checksum ('*hh') read as they are, as gpsd"
+            " reads them (a log written without checksums)"
+        )
     if timeless:
         notes.append(
             f"{timeless} epochs without a time (e.g. no-fix GGA with empty fields) dropped"
@@ -984,28 +989,9 @@ def _gll_gns_row(kind: str, msg: Any) -> tuple[float, ...]:
 
 
 def _read_nmea(path: Path) -> Track:
-    try:
-        return _nmea_track(
-            lambda: ((0.0, chunk) for chunk in _chunks(path)), str(path), receive_clock=False
-        )
-    except ParseError as exc:
-        unchecked = _unchecked_sentences(path)
-        if unchecked:
-            raise ParseError(
-                f"{exc}; {unchecked} of its sentences have no checksum (no '*hh' at the end),"
-                " and the decoder skips every sentence without one: log with checksums on"
-            ) from exc
-        raise
-
-
-def _unchecked_sentences(path: Path) -> int:
-    """How many lines of the first 64 KiB are NMEA sentences without a checksum, when none
-    there has one (0 otherwise): why such a log decodes to nothing."""
-    with open(path, "rb") as f:
-        head = f.read(_SNIFF_BYTES)
-    if _NMEA_LINE_CHECKED.search(head):
-        return 0
-    return len(_NMEA_LINE_UNCHECKED.findall(head))
+    return _nmea_track(
+        lambda: ((0.0, chunk) for chunk in _chunks(path)), str(path), receive_clock=False
+    )
 
 
 def _read_recording(path: Path) -> Track:
