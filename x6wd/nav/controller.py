@@ -120,6 +120,9 @@ counted limit alone stretch the outage to 1/f of it (an outside audit: 25 % coun
 and counted agree within a few %, and a pivot counts but commands no travel)."""
 ODOMETRY_FRESH_S = 0.5
 """Encoder counts older than this (s) do not count as reporting."""
+ENCODER_WATCH_AGE_S = 2.5
+"""A compass sample older than this (s) gives the encoder watch no turn (a 1 Hz compass
+holds its bearing for a second between samples)."""
 STUCK_TURN_DEG = 30.0
 """Heading change (deg) that counts as motion for the stuck failsafe while pivoting."""
 PIVOT_HEADWAY_DEG = 10.0
@@ -386,8 +389,18 @@ class Controller:
         fresh = att is not None and self._att_ok and abs(t - att.t_s) <= ODOMETRY_FRESH_S
         if prev is not None:
             cmd = self._cmd
-            bearing = att.bearing_deg if fresh and att is not None else None
-            why = self._enc_watch.on_increment(t, dl, dr, cmd.left_pct, cmd.right_pct, bearing)
+            # the latest sample with its time, held between samples (a slow compass's turn
+            # is counted between its samples); none when it is older than a healthy period
+            recent = att is not None and self._att_ok and 0.0 <= t - att.t_s <= ENCODER_WATCH_AGE_S
+            why = self._enc_watch.on_increment(
+                t,
+                dl,
+                dr,
+                cmd.left_pct,
+                cmd.right_pct,
+                att.bearing_deg if recent and att is not None else None,
+                att.t_s if recent and att is not None else None,
+            )
             if why and self._mode == Mode.RUNNING and not self._encoder_fault:
                 self._encoder_fault = why
         pitch = att.pitch_deg if fresh and att is not None and _finite(att.pitch_deg) else 0.0
@@ -924,6 +937,10 @@ class Controller:
             now = t_s if self._now is None else max(self._now, t_s)
             out.append(StateChange(now, str(self._mode), str(mode), f"mode: {why}"))
             self._mode = mode
+            # an encoder verdict belongs to the drive it came in: one a hold or another
+            # failsafe beat must not pause a later start, resume or return (code review)
+            self._encoder_fault = ""
+            self._enc_watch.reset()
 
     def _hold_check(self, now: float) -> str:
         """Why the robot must hold now ("" when every input is fresh)."""

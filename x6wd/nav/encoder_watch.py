@@ -37,7 +37,10 @@ TRACK_SCALE_MAX = 3.0
 """The effective track the compass's turn is allowed to imply, as multiples of the
 configured ``[odometry] track_m`` (uncalibrated: the geometric track, 1.2-2x too small)."""
 MAX_COMPASS_STEP_DEG_PER_S = 360.0
-"""A compass step faster than this between two wheel readings is no body's turn."""
+"""A compass step faster than this between two samples is no body's turn."""
+MAX_COMPASS_STEP_DEG = 120.0
+"""A step larger than this between two samples is ambiguous (a slow compass on a fast
+turn: 180° one way is 180° the other): the window starts again."""
 
 
 class EncoderWatch:
@@ -67,42 +70,60 @@ class EncoderWatch:
         left_pct: float,
         right_pct: float,
         bearing_deg: float | None,
+        bearing_t_s: float | None = None,
     ) -> str:
         """One wheel increment (m per side, signed) ending at ``t_s`` (s), driven by the
-        command (left, right %) and with the compass's bearing (deg; None: no fresh sample).
-        Returns why the encoders disagree with the compass, once per window, else ""."""
+        command (left, right %), with the compass's latest bearing (deg; None: none recent)
+        and its sample time (s; None: taken as ``t_s``, a sample per increment). The turn
+        is counted between the compass's own samples, so a slow compass whose bearing is
+        held over several increments still counts (at 1 Hz it counted none: a healthy
+        tight circle read as an encoder fault). Returns why the encoders disagree with the
+        compass, once per window, else ""."""
         mean_pct = 0.5 * (left_pct + right_pct)
         straight = mean_pct != 0.0 and abs(left_pct - right_pct) <= abs(mean_pct)
         if not straight or bearing_deg is None:
-            self._prev = None  # a pivot or no compass between: the next increment restarts C
+            self._prev = None  # a pivot or no compass between: the next sample restarts C
             return ""
+        sample_t = t_s if bearing_t_s is None else bearing_t_s
         prev = self._prev
-        self._prev = (t_s, bearing_deg)
         if prev is None:
+            self._prev = (sample_t, bearing_deg)
             return ""  # the turn before this bearing is unknown: start counting after it
-        step = (bearing_deg - prev[1] + 180.0) % 360.0 - 180.0
-        dt = t_s - prev[0]
-        if dt <= 0 or abs(step) > MAX_COMPASS_STEP_DEG_PER_S * max(dt, 0.05):
-            self._reset()
-            return ""
-        self._turn_rad += math.radians(step)
+        new_sample = sample_t != prev[0]
+        if new_sample:
+            step = (bearing_deg - prev[1] + 180.0) % 360.0 - 180.0
+            dt = sample_t - prev[0]
+            if (
+                dt <= 0
+                or abs(step) > MAX_COMPASS_STEP_DEG_PER_S * max(dt, 0.05)
+                or abs(step) > MAX_COMPASS_STEP_DEG
+            ):
+                self._reset()
+                return ""
+            self._turn_rad += math.radians(step)
+            self._prev = (sample_t, bearing_deg)
         self._d_m += left_m - right_m
         self._left_m += left_m
         self._right_m += right_m
         self._travel_m += 0.5 * (abs(left_m) + abs(right_m))
-        if self._travel_m < WINDOW_M:
-            return ""
+        full = self._travel_m >= WINDOW_M
+        if not (new_sample or full):
+            return ""  # the wheels ran ahead of the compass's last sample: judge at the next
         d, c, travel = self._d_m, self._turn_rad, self._travel_m
         left, right = self._left_m, self._right_m
-        self._reset()
-        self._prev = (t_s, bearing_deg)
         expected = self.track_m * c
         if expected == 0.0:
             residual = abs(d)
         else:
             k = min(max(d / expected, TRACK_SCALE_MIN), TRACK_SCALE_MAX)
             residual = abs(d - k * expected)
-        if residual <= DISAGREE_FRACTION * travel + DISAGREE_MIN_M:
+        # judged at every sample against what a whole healthy window may leave, so a gross
+        # disagreement (a dead side: 200 %) is named within a metre or two, not after 5 m
+        faulty = residual > DISAGREE_FRACTION * max(travel, WINDOW_M) + DISAGREE_MIN_M
+        if full or faulty:
+            self._reset()
+            self._prev = (sample_t, bearing_deg)
+        if not faulty:
             return ""
         return (
             f"encoders disagree with the compass: left counted {left:.1f} m, right "
