@@ -23,6 +23,7 @@ from sim_backend.effects import (
     truth_track_m,
 )
 from sim_backend.world import loads_world
+from tests.test_gap_unseen_round5 import _rounded_to_degrees  # a CSV logger's printing
 from x6wd.core.errors import ConfigError
 from x6wd.gap.diagnose import Options, diagnose, report_dict, verdict_text
 from x6wd.gap.fit import fit_quantization
@@ -31,17 +32,6 @@ from x6wd.gap.stats import battery, layout_for
 from x6wd.gap.surrogate import BASELINE_EFFECTS, surrogate_run
 
 PRE = BASELINE_EFFECTS[:-1]  # the surrogate receiver before its NMEA printing (5 decimals)
-
-
-def _rounded_to_degrees(series: PositionSeries, decimals: int) -> PositionSeries:
-    """Latitude and longitude rounded to ``decimals`` of a degree, as a CSV logger prints
-    them (independent of the layer under test)."""
-    lat0, lon0 = series.origin_lat_deg, series.origin_lon_deg
-    e_per_deg, n_per_deg = metres_per_degree(lat0)
-    te, tn = truth_track_m(series)
-    lat = np.round(lat0 + (tn + np.asarray(series.north_m)) / n_per_deg, decimals)
-    lon = np.round(lon0 + (te + np.asarray(series.east_m)) / e_per_deg, decimals)
-    return series.with_(east_m=(lon - lon0) * e_per_deg - te, north_m=(lat - lat0) * n_per_deg - tn)
 
 
 def _lat_lon(series: PositionSeries) -> tuple[np.ndarray, np.ndarray]:
