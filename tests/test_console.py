@@ -527,6 +527,19 @@ def test_watch_only_refuses_every_command_in_the_daemon_and_tiles_come_when_conf
             assert zooms <= {18, 19}, zooms
             time.sleep(1.0)  # the tiles drawn
             shot(browser, tmp_path, "watch-only-tiles.png")
+            # a view across the 180th meridian draws the tiles of both sides (review of
+            # 92568a8: with the east edge wrapped to -179.99 the columns ran backwards, none)
+            browser.find_element(By.ID, "follow").click()  # the view stays where it is put
+            js(browser, "x6wd.origin = [-16.5, 179.9999]; x6wd.view.e = 0; x6wd.view.n = 0")
+            seen = len(tiles.requests)
+
+            def both_sides() -> bool:
+                new = tiles.requests[seen:]
+                return any(x <= 1 for _z, x, _y in new) and any(
+                    x >= 2**z - 2 for z, x, _y in new
+                )
+
+            wait_for(both_sides, 10, "tiles either side of the 180th meridian")
     finally:
         tiles.close()
 

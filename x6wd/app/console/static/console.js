@@ -497,7 +497,10 @@
     const [e0, n0] = fromScreen(0, h);
     const [e1, n1] = fromScreen(w, 0);
     const [la0, lo0] = toLatLon(e0, n0);
-    const [la1, lo1] = toLatLon(e1, n1);
+    const [la1, lo1w] = toLatLon(e1, n1);
+    // a view across the 180th meridian: its east edge comes back wrapped (-179.99...);
+    // unwrapped, the tile columns run on past n and the modulo below wraps them
+    const lo1 = lo1w < lo0 ? lo1w + 360 : lo1w;
     const [x0, y1] = tileOf(la0, lo0);
     const [x1, y0] = tileOf(la1, lo1);
     for (let x = Math.floor(x0); x <= Math.floor(x1); x++) {
