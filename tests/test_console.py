@@ -535,9 +535,7 @@ def test_watch_only_refuses_every_command_in_the_daemon_and_tiles_come_when_conf
 
             def both_sides() -> bool:
                 new = tiles.requests[seen:]
-                return any(x <= 1 for _z, x, _y in new) and any(
-                    x >= 2**z - 2 for z, x, _y in new
-                )
+                return any(x <= 1 for _z, x, _y in new) and any(x >= 2**z - 2 for z, x, _y in new)
 
             wait_for(both_sides, 10, "tiles either side of the 180th meridian")
     finally:
