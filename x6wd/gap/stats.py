@@ -168,11 +168,18 @@ def cell_weights(cells: Sequence[Cell], few_logs: bool = False) -> np.ndarray:
 
 QUANT_DECIMALS = (1, 2, 3, 4, 5)  # the battery's lattice cells: NMEA minutes
 # The lattices a log's fixes are looked for on, coarsest step first: NMEA minutes with 1-5
-# decimals and decimal degrees with 2-7. Every degree lattice with 2-6 decimals lies on the
+# decimals and decimal degrees with 2-6. Every degree lattice with 2-6 decimals lies on the
 # minute lattice of one decimal fewer (1e-5 deg = 6e-4 min), so the coarsest wins: a log
 # rounded to 1e-5 deg is on 1e-5 deg (1.1 m), not on 1e-4 min (0.19 m), and an NMEA log
-# keeps its minute lattice (1e-4 min is on no degree lattice coarser than itself).
-DEG_DECIMALS = (2, 3, 4, 5, 6, 7)
+# keeps its minute lattice (1e-4 min is on no degree lattice coarser than itself). Not 7
+# decimals: 1e-7 deg is finer than the simulator's finest printing (1e-5 min, 1.7e-7 deg),
+# so a scenario written with it would not print on it (code review of 5d93994).
+DEG_DECIMALS = (2, 3, 4, 5, 6)
+MIN_DEG_LATTICE_POSITIONS = 3
+"""Distinct positions a log needs before a degree lattice is looked for: a receiver that
+holds one fix of a 4-decimal NMEA log lies on the 1e-5-degree lattice by chance one time in
+36 (each axis 1 in 6); three distinct positions, one in 47,000. A coarse lattice (1e-4 deg,
+11 m) under a static receiver's few metres has only a few points, so no more are asked."""
 LATTICES: tuple[tuple[int, str], ...] = tuple(
     sorted(
         [(d, "min") for d in QUANT_DECIMALS] + [(d, "deg") for d in DEG_DECIMALS],
@@ -401,6 +408,8 @@ def lattice_fraction(series: PositionSeries, decimals: int, unit: str = "min") -
         series.origin_lon_deg
         + (true_east_m[valid] + np.asarray(series.east_m, dtype=float)[valid]) / m_per_deg_lon
     )
+    if unit == "deg" and _distinct_positions(lat_deg, lon_deg) < MIN_DEG_LATTICE_POSITIONS:
+        return 0.0
     per_minute = 10.0**decimals  # lattice units per minute, or per degree ("deg")
     per_unit = 60.0 if unit == "min" else 1.0
     # An absolute tolerance of 0.5 mm: float round trips through metres stay far inside it,
@@ -412,6 +421,11 @@ def lattice_fraction(series: PositionSeries, decimals: int, unit: str = "min") -
         tol_units = LATTICE_TOL_M / (m_per_deg / per_unit / per_minute)
         ok &= np.abs(units - np.round(units)) < tol_units
     return float(np.mean(ok))
+
+
+def _distinct_positions(lat_deg: np.ndarray, lon_deg: np.ndarray) -> int:
+    """How many distinct positions (to 1e-9 deg, 0.1 mm) the fixes take."""
+    return len(np.unique(np.round(np.column_stack([lat_deg, lon_deg]) * 1e9), axis=0))
 
 
 def find_lattice(series: Sequence[PositionSeries], fraction: float = 0.99) -> Quantization | None:
