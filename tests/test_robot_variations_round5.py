@@ -20,6 +20,7 @@ import pytest
 import sim_backend.mission as mission
 from sim_backend.odometry import EncoderSim
 from sim_backend.world import load_world
+from tests.test_controller import att
 from tests.test_failsafe_controller import feed, started
 from x6wd.core.records import Mode, NavState, WheelOdometry
 from x6wd.nav.encoder_watch import EncoderWatch
@@ -243,3 +244,47 @@ def test_an_encoder_verdict_a_hold_beat_does_not_pause_what_comes_after(
     # (the return ends at once: the robot is 0.5 m from its launch point)
     assert c.mode in (Mode.RUNNING, Mode.DONE), c.telemetry.extra.get("failsafe")
     assert "encoders" not in str(c.telemetry.extra.get("failsafe", ""))
+
+
+def test_a_lost_sample_drops_the_wheels_whose_turn_it_held() -> None:
+    # a healthy 90 deg/s circle, 1 Hz compass, 20 Hz wheels; every other new sample comes
+    # in unusable (None at the tick it arrives): the wheels since the last counted sample
+    # stayed in the window while their turn was lost, a false verdict (review of 3b0a0a9)
+    watch = EncoderWatch(track_m=0.245)
+    out, sample, counted = [], None, 0
+    for i in range(1, int(30.0 / DT) + 1):
+        t = i * DT
+        dpsi = math.radians(90.0) * DT
+        left, right = 1.0 * DT + 0.5 * dpsi * 0.6, 1.0 * DT - 0.5 * dpsi * 0.6
+        tc = math.floor(t + 1e-9)
+        bearing: float | None
+        if sample is None or tc > sample[0]:
+            sample = (tc, (10.0 + 90.0 * tc) % 360.0)
+            counted += 1
+            bearing = None if counted % 2 == 0 else sample[1]
+        else:
+            bearing = sample[1]
+        why = watch.on_increment(t, left, right, 60.0, 60.0, bearing, sample[0])
+        if why:
+            out.append((t, why))
+    assert not out, out[:1]
+
+
+def test_a_compass_stamped_just_after_the_wheels_still_feeds_the_watch(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the compass read a millisecond after the wheels' reply: the sample was taken for
+    # none, and the watch never saw a bearing (review of 3b0a0a9)
+    c = started()
+    seen: list[float | None] = []
+
+    def spy(*args: object) -> str:
+        seen.append(args[5])  # type: ignore[arg-type]
+        return ""
+
+    monkeypatch.setattr(c._enc_watch, "on_increment", spy)
+    for k in range(1, 6):
+        t = 0.1 * k
+        c.on_attitude(att(t + 0.001))
+        c.on_odometry(WheelOdometry(t, 10 * k, 10 * k, k))
+    assert seen and all(b is not None for b in seen[1:]), seen

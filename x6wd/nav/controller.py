@@ -391,7 +391,11 @@ class Controller:
             cmd = self._cmd
             # the latest sample with its time, held between samples (a slow compass's turn
             # is counted between its samples); none when it is older than a healthy period
-            recent = att is not None and self._att_ok and 0.0 <= t - att.t_s <= ENCODER_WATCH_AGE_S
+            recent = (
+                att is not None
+                and self._att_ok
+                and -ODOMETRY_FRESH_S <= t - att.t_s <= ENCODER_WATCH_AGE_S
+            )
             why = self._enc_watch.on_increment(
                 t,
                 dl,

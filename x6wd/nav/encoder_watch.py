@@ -57,6 +57,12 @@ class EncoderWatch:
         self._travel_m = 0.0  # Σ(|s_l| + |s_r|) / 2
         self._turn_rad = 0.0  # the compass's net clockwise turn
         self._prev: tuple[float, float] | None = None  # (t_s, bearing_deg)
+        self._drop_pending()
+
+    def _drop_pending(self) -> None:
+        # the wheels since the last counted compass sample: they join the window with the
+        # turn up to the next sample, and are dropped with it when that turn is lost
+        self._pending = (0.0, 0.0, 0.0, 0.0)  # (left m, right m, Σ(l - r), travel m)
 
     def reset(self) -> None:
         """Forget the window (a mission start)."""
@@ -82,33 +88,43 @@ class EncoderWatch:
         mean_pct = 0.5 * (left_pct + right_pct)
         straight = mean_pct != 0.0 and abs(left_pct - right_pct) <= abs(mean_pct)
         if not straight or bearing_deg is None:
-            self._prev = None  # a pivot or no compass between: the next sample restarts C
+            # a pivot or no compass between: the next sample restarts C, and the wheels
+            # since the last sample, whose turn is now lost, leave with it
+            self._prev = None
+            self._drop_pending()
             return ""
         sample_t = t_s if bearing_t_s is None else bearing_t_s
         prev = self._prev
         if prev is None:
             self._prev = (sample_t, bearing_deg)
             return ""  # the turn before this bearing is unknown: start counting after it
-        new_sample = sample_t != prev[0]
-        if new_sample:
-            step = (bearing_deg - prev[1] + 180.0) % 360.0 - 180.0
-            dt = sample_t - prev[0]
-            if (
-                dt <= 0
-                or abs(step) > MAX_COMPASS_STEP_DEG_PER_S * max(dt, 0.05)
-                or abs(step) > MAX_COMPASS_STEP_DEG
-            ):
-                self._reset()
-                return ""
-            self._turn_rad += math.radians(step)
-            self._prev = (sample_t, bearing_deg)
-        self._d_m += left_m - right_m
-        self._left_m += left_m
-        self._right_m += right_m
-        self._travel_m += 0.5 * (abs(left_m) + abs(right_m))
+        pl, pr, pd, pt = self._pending
+        self._pending = (
+            pl + left_m,
+            pr + right_m,
+            pd + (left_m - right_m),
+            pt + 0.5 * (abs(left_m) + abs(right_m)),
+        )
+        if sample_t == prev[0]:
+            return ""  # the compass's bearing held: judged with its turn at the next sample
+        step = (bearing_deg - prev[1] + 180.0) % 360.0 - 180.0
+        dt = sample_t - prev[0]
+        if (
+            dt <= 0
+            or abs(step) > MAX_COMPASS_STEP_DEG_PER_S * max(dt, 0.05)
+            or abs(step) > MAX_COMPASS_STEP_DEG
+        ):
+            self._reset()
+            return ""
+        self._turn_rad += math.radians(step)
+        self._prev = (sample_t, bearing_deg)
+        pl, pr, pd, pt = self._pending
+        self._drop_pending()
+        self._left_m += pl
+        self._right_m += pr
+        self._d_m += pd
+        self._travel_m += pt
         full = self._travel_m >= WINDOW_M
-        if not (new_sample or full):
-            return ""  # the wheels ran ahead of the compass's last sample: judge at the next
         d, c, travel = self._d_m, self._turn_rad, self._travel_m
         left, right = self._left_m, self._right_m
         expected = self.track_m * c
