@@ -70,7 +70,7 @@ _NMEA_HEAD = re.compile(rb"[$!][A-Z][A-Z0-9]{1,5},[^\r\n$!]*\*[0-9A-Fa-f]{2}")
 # also NMEA after comment lines ("# Name: ..." as gpsd's logs begin) or gpsd's JSON
 # preamble (gpspipe -r writes VERSION, DEVICES and WATCH objects before the NMEA).
 _NMEA_LINE = re.compile(rb"(?m)^[ \t]*[$!][A-Z][A-Z0-9]{1,5},")
-_NMEA_LINE_CHECKED = re.compile(rb"(?m)^[ \t]*[$!][A-Z][A-Z0-9]{1,5},[^\r\n$!]*\*[0-9A-Fa-f]{2}")
+_NMEA_LINE_CHECKED = re.compile(rb"(?m)^[ \t]*" + _NMEA_HEAD.pattern)  # at a line start
 _TEXT_BYTES = frozenset(b"\t\n\r\f") | frozenset(range(0x20, 0x7F)) | frozenset(range(0x80, 0x100))
 
 

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import math
 
+from x6wd.core.geodesy import wrap_deg
+
 WINDOW_M = 5.0
 """Travel (m, the mean of the sides' absolute travel) a verdict is taken over."""
 DISAGREE_FRACTION = 0.25
@@ -51,7 +53,6 @@ class EncoderWatch:
         self._reset()
 
     def _reset(self) -> None:
-        self._d_m = 0.0  # Σ(s_l - s_r)
         self._left_m = 0.0
         self._right_m = 0.0
         self._travel_m = 0.0  # Σ(|s_l| + |s_r|) / 2
@@ -62,7 +63,7 @@ class EncoderWatch:
     def _drop_pending(self) -> None:
         # the wheels since the last counted compass sample: they join the window with the
         # turn up to the next sample, and are dropped with it when that turn is lost
-        self._pending = (0.0, 0.0, 0.0, 0.0)  # (left m, right m, Σ(l - r), travel m)
+        self._pending = (0.0, 0.0, 0.0)  # (left m, right m, travel m)
 
     def reset(self) -> None:
         """Forget the window (a mission start)."""
@@ -98,16 +99,11 @@ class EncoderWatch:
         if prev is None:
             self._prev = (sample_t, bearing_deg)
             return ""  # the turn before this bearing is unknown: start counting after it
-        pl, pr, pd, pt = self._pending
-        self._pending = (
-            pl + left_m,
-            pr + right_m,
-            pd + (left_m - right_m),
-            pt + 0.5 * (abs(left_m) + abs(right_m)),
-        )
+        pl, pr, pt = self._pending
+        self._pending = (pl + left_m, pr + right_m, pt + 0.5 * (abs(left_m) + abs(right_m)))
         if sample_t == prev[0]:
             return ""  # the compass's bearing held: judged with its turn at the next sample
-        step = (bearing_deg - prev[1] + 180.0) % 360.0 - 180.0
+        step = wrap_deg(bearing_deg - prev[1])
         dt = sample_t - prev[0]
         if (
             dt <= 0
@@ -118,15 +114,14 @@ class EncoderWatch:
             return ""
         self._turn_rad += math.radians(step)
         self._prev = (sample_t, bearing_deg)
-        pl, pr, pd, pt = self._pending
+        pl, pr, pt = self._pending
         self._drop_pending()
         self._left_m += pl
         self._right_m += pr
-        self._d_m += pd
         self._travel_m += pt
         full = self._travel_m >= WINDOW_M
-        d, c, travel = self._d_m, self._turn_rad, self._travel_m
-        left, right = self._left_m, self._right_m
+        left, right, c, travel = self._left_m, self._right_m, self._turn_rad, self._travel_m
+        d = left - right  # Σ(s_l - s_r)
         expected = self.track_m * c
         if expected == 0.0:
             residual = abs(d)
