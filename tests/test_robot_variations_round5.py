@@ -288,3 +288,21 @@ def test_a_compass_stamped_just_after_the_wheels_still_feeds_the_watch(
         c.on_attitude(att(t + 0.001))
         c.on_odometry(WheelOdometry(t, 10 * k, 10 * k, k))
     assert seen and all(b is not None for b in seen[1:]), seen
+
+
+def test_an_encoder_verdict_pauses_even_where_stuck_action_says_return(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # a return would dead-reckon home on the counts the watch has just found wrong
+    from dataclasses import replace
+
+    from tests.test_failsafe_controller import FS
+
+    c = started(replace(FS, stuck_action="return"))
+    feed(c, 0.5, 0.5, counts=0)
+    verdict = "encoders disagree with the compass: a verdict"
+    monkeypatch.setattr(c._enc_watch, "on_increment", lambda *a, **k: verdict)
+    feed(c, 0.7, 1.0, counts=100)
+    assert c.mode == Mode.PAUSED, c.mode
+    assert c.telemetry.extra.get("failsafe") == verdict
+    assert c.command.is_stop
