@@ -306,3 +306,32 @@ def test_an_encoder_verdict_pauses_even_where_stuck_action_says_return(
     assert c.mode == Mode.PAUSED, c.mode
     assert c.telemetry.extra.get("failsafe") == verdict
     assert c.command.is_stop
+
+
+class _BothEncodersDie(EncoderSim):
+    """Both encoders stop counting at 30 s (a shared connector, the encoder supply)."""
+
+    def reading(self, t_s: float) -> WheelOdometry:
+        r = super().reading(t_s)
+        if t_s < 30.0:
+            self._at_fault = (r.left_counts, r.right_counts)
+            return r
+        return WheelOdometry(r.t_s, *self._at_fault, r.seq)
+
+
+@pytest.mark.parametrize(("scenario", "seed"), [("default", 1), ("zigzag", 3)])
+def test_both_encoders_dead_are_named_not_the_compass(
+    scenario: str, seed: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Both sides dead predict no turn while the robot pivots, so the EKF refuses the
+    # compass that turns; before, these runs paused as 'compass untrusted (the EKF refused
+    # 50 % of 200 readings in 10 s)' at 38.55 s and 42.55 s (the other seeds named the
+    # encoders, or a block, through the stuck test)
+    monkeypatch.setattr(mission, "EncoderSim", _BothEncodersDie)
+    world = load_world(ROOT / "config" / "scenarios" / f"{scenario}.toml")
+    summary = mission.run_mission(world, None, seed=seed)
+    assert summary.extra["final_mode"] == "PAUSED"
+    (t_fs, why), *_ = summary.extra["failsafes"]
+    assert why.startswith("encoders: under 0.2 m counted"), why
+    assert "the compass shows motion" in why and "refused the compass" in why
+    assert 30.0 < t_fs < 45.0

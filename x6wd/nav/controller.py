@@ -703,7 +703,7 @@ class Controller:
         if untrusted:
             # a heading it cannot trust: pause, whatever the actions say (a return would
             # steer by it too)
-            return f"compass untrusted ({untrusted})", "hold"
+            return self._untrusted_cause(now, untrusted), "hold"
         if fs.stuck_s > 0:
             fired = self._stuck_check(now) or self._pivot_check(now)
             if fired is not None:
@@ -839,6 +839,27 @@ class Controller:
             f"stuck ({what}: no motion in {fs.stuck_s:g} s of driving)",
             fs.stuck_action,
         )
+
+    def _untrusted_cause(self, now: float, untrusted: str) -> str:
+        """Why the compass lost the EKF's trust. Dead encoders on both sides predict no
+        turn while the robot pivots, so the EKF refuses a compass that is right; when the
+        wheels have counted (almost) nothing for a quarter of ``stuck_s`` of driving while the
+        compass turned or the fixes moved ahead, the encoders are named (an outside audit:
+        both sides dead read "compass untrusted" on 2 of 6 runs). A quarter of ``stuck_s``
+        suffices here: the verdict is a pause either way, only its name is chosen, and a
+        pivot the compass followed 128° in 4 s while the wheels counted nothing is plain."""
+        fs = self._failsafe
+        if fs.stuck_s > 0 and self._wheels_still_s(now) >= 0.25 * fs.stuck_s:
+            seen = self._encoder_evidence(now)
+            if seen:
+                shows = " and ".join(seen)
+                return (
+                    f"encoders: under {0.1 * fs.stuck_min_m:g} m counted in"
+                    f" {self._wheels_still_s(now):.0f} s of driving while {shows}"
+                    f" {'shows' if shows == 'the compass' else 'show'} motion; the EKF then"
+                    f" refused the compass ({untrusted})"
+                )
+        return f"compass untrusted ({untrusted})"
 
     def _encoder_evidence(self, now: float) -> list[str]:
         """What shows the body moving while the wheels stood still: "the compass" (a net
