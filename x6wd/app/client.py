@@ -24,6 +24,7 @@ import itertools
 import json
 import math
 import os
+import re
 import socket
 import ssl
 import sys
@@ -43,6 +44,8 @@ EXIT_CONNECTION = 3
 EXIT_INTERRUPTED = 130  # Ctrl-C during a drive: the robot was told to stop
 DEFAULT_PORT = 7601
 MAX_REPLY_BYTES = 16 * 1024 * 1024
+DEFAULT_MAX_LINE_BYTES = 65536
+"""The daemon's default ``[server] max_line_bytes``: the longest request line it reads."""
 CLEAR = "\x1b[H\x1b[2J"
 MISSION_EXTENSIONS = ", ".join(f".{k}" for k in PARSERS)
 
@@ -178,9 +181,9 @@ class RemoteClient:
         if self._sock is None:
             raise ConnectionFailed("connection closed")
         req_id = next(self._ids)
-        data = json.dumps({"id": req_id, "cmd": cmd, **args}, separators=(",", ":")) + "\n"
+        data = request_line(req_id, cmd, **args)
         try:
-            self._sock.sendall(data.encode())
+            self._sock.sendall(data)
         except OSError as exc:
             raise ConnectionFailed(f"sending to {self.host}:{self.port}: {_why(exc)}") from None
         deadline = time.monotonic() + self.timeout_s
@@ -232,6 +235,38 @@ class RemoteClient:
                 return msg
             if msg.get("ok") is False and msg.get("id") is None:
                 self._raise(msg)  # e.g. the server closing the connection, and why
+
+
+def request_line(req_id: int, cmd: str, **args: Any) -> bytes:
+    """One request as it goes on the wire: compact JSON, ASCII, LF-terminated."""
+    return (json.dumps({"id": req_id, "cmd": cmd, **args}, separators=(",", ":")) + "\n").encode()
+
+
+def mission_request(waypoints: list[Waypoint], max_line_bytes: int) -> list[list[float]]:
+    """The ``mission.load`` pairs of ``waypoints``; ParseError, before anything is sent, when
+    the request would be longer than the robot reads (``max_line_bytes``, its ``[server]
+    max_line_bytes``): it would refuse it as ``line_too_long``, naming no waypoint count."""
+    pairs = [[w.lat_deg, w.lon_deg] for w in waypoints]
+    # the id is the connection's first or second request: 99 is a digit to spare
+    size = len(request_line(99, "mission.load", waypoints=pairs)) - 1  # the LF is no part
+    if size <= max_line_bytes:
+        return pairs
+    raise ParseError(too_long_text(len(pairs), size, max_line_bytes))
+
+
+def too_long_text(count: int, size: int, max_line_bytes: int) -> str:
+    """Why a mission of ``count`` waypoints (a request of ``size`` bytes) cannot be loaded
+    in one request of at most ``max_line_bytes``, and what to do."""
+    fit = max(1, int(count * (max_line_bytes - 64) / size))  # about, for points like these
+    every = -(-count // fit)
+    return (
+        f"the mission has {count} waypoints: loading it is a request of {size} bytes, and"
+        f" the robot reads requests of at most {max_line_bytes} bytes ([server]"
+        f" max_line_bytes), about {fit} waypoints like these. Load fewer: thin the track"
+        f" (e.g. keep one point in {every}) or split it into missions of up to {fit}"
+        f" waypoints; or raise the robot's [server] max_line_bytes (up to 16 MiB) and give"
+        f" the same value here with --max-line-bytes"
+    )
 
 
 def _why(exc: OSError) -> str:
@@ -484,6 +519,13 @@ def _waypoints(args: argparse.Namespace) -> list[Waypoint]:
     raise ParseError(f"load needs a FILE ({MISSION_EXTENSIONS}) or --wp LAT,LON ...")
 
 
+def _limit_in(message: str) -> int | None:
+    """The byte limit in the robot's ``line_too_long`` message ("request line longer than
+    65536 bytes"), or None."""
+    m = re.search(r"longer than (\d+) bytes", message)
+    return int(m.group(1)) if m else None
+
+
 def _body(reply: dict[str, Any]) -> dict[str, Any]:
     """A reply without its ``id`` and ``ok``."""
     return {k: v for k, v in reply.items() if k not in ("id", "ok")}
@@ -622,6 +664,11 @@ def _watch(
         shown += 1
 
 
+NEGATIVE_VALUE = re.compile(r"^-\.?\d")
+"""An argument that starts like a negative number ("-33.8,151.2", "-1e1", "-.5"): a value,
+never an option (argparse's own rule takes only "-12" and "-1.5" so)."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``x6wd client``."""
     parser.add_argument("--host", default="127.0.0.1", help="robot address (default 127.0.0.1)")
@@ -642,7 +689,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "load", help=f"load a mission from a file ({MISSION_EXTENSIONS}) or --wp points"
     )
     p.add_argument("file", nargs="?", help=f"mission file ({MISSION_EXTENSIONS})")
-    p.add_argument("--wp", action="append", metavar="LAT,LON", help="a waypoint (repeat)")
+    p.add_argument(
+        "--wp", action="append", metavar="LAT,LON", help="a waypoint (repeat): --wp -33.86,151.21"
+    )
+    p.add_argument(
+        "--max-line-bytes",
+        type=_int_in(256, 16 * 1024 * 1024),
+        default=DEFAULT_MAX_LINE_BYTES,
+        metavar="N",
+        help=f"the robot's [server] max_line_bytes, the longest request it reads (default "
+        f"{DEFAULT_MAX_LINE_BYTES}, the daemon's): a longer mission is refused here, unsent",
+    )
     p.add_argument(
         "--format", choices=sorted(PARSERS), help="the file's format (default: its extension)"
     )
@@ -678,6 +735,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             default=argparse.SUPPRESS,
             help="print the reply as JSON (for programs)",
         )
+    for each in (parser, *sub.choices.values()):
+        # argparse takes "-33.8,151.2" (southern latitude) or "-1e1" for an option and says
+        # "--wp: expected one argument": every value that starts like a negative number is
+        # a value here (no option of the client's starts with a digit)
+        each._negative_number_matcher = NEGATIVE_VALUE
 
 
 def main(args: argparse.Namespace, out: TextIO | None = None) -> int:
@@ -780,6 +842,7 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
         waypoints = _waypoints(args) if action == "load" else None
         for note in getattr(waypoints, "notes", ()):  # what the file held but x6wd won't use
             print(f"x6wd client: note: {note}", file=err)
+        pairs = mission_request(waypoints, args.max_line_bytes) if waypoints is not None else []
         ssl_context = _client_ssl(args)
     except X6wdError as exc:
         print(f"x6wd client: {exc}", file=err)
@@ -792,9 +855,16 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
             elif action in ("status", "start", "pause", "resume", "return"):
                 reply = client.request(action)
             elif action == "load":
-                assert waypoints is not None
-                pairs = [[w.lat_deg, w.lon_deg] for w in waypoints]
-                reply = client.request("mission.load", waypoints=pairs)
+                try:
+                    reply = client.request("mission.load", waypoints=pairs)
+                except RequestFailed as exc:
+                    if exc.reason != "line_too_long":
+                        raise
+                    # the robot reads less than --max-line-bytes: said as a count to load
+                    size = len(request_line(99, "mission.load", waypoints=pairs)) - 1
+                    limit = _limit_in(exc.message) or args.max_line_bytes
+                    why = too_long_text(len(pairs), size, limit)
+                    raise RequestFailed(exc.code, f"{exc.message}: {why}", exc.reason) from None
             elif action == "drive":
                 try:  # a Ctrl-C while the robot takes the drive stops it too, said so
                     reply = client.request(

@@ -72,6 +72,16 @@ def _nothing(*_args: Any) -> None:
     return None
 
 
+def _metres_beyond(d_m: float, limit_m: float, least: int = 0) -> str:
+    """``d_m`` (m, beyond ``limit_m``) with the fewest decimals (``least`` to 6) that still
+    read beyond the limit: "102" past 100, "15.03" past 15, never "15" past 15."""
+    for decimals in range(least, 7):
+        text = f"{d_m:.{decimals}f}"
+        if float(text) > limit_m:
+            return text
+    return f"{d_m:.12g}"  # NaN, or a hair's breadth beyond
+
+
 class Runner:
     """Routes every input through the controller and every output to its sink.
 
@@ -258,7 +268,7 @@ class Runner:
         mission; returns mode and state."""
         if name not in ("start", "pause", "resume", "return", "stop"):
             raise CommandError("bad_request", f"unknown mission command {name!r}")
-        if name in ("start", "resume"):
+        if name in ("start", "resume") and self._fence_applies(name):
             self._check_inside(name)
         method = self.controller.return_home if name == "return" else getattr(self.controller, name)
         self._handle(method(self.clock()))
@@ -314,22 +324,57 @@ class Runner:
             if not d <= radius_m:  # fails closed: NaN is outside
                 raise CommandError(
                     "geofence",
-                    f"waypoint {i + 1} ({wp.lat_deg:.7f}, {wp.lon_deg:.7f}) is {d:.0f} m from "
-                    f"the geofence centre; limit {radius_m:.0f} m",
+                    f"waypoint {i + 1} ({wp.lat_deg:.7f}, {wp.lon_deg:.7f}) is "
+                    f"{_metres_beyond(d, radius_m)} m from the geofence centre; limit "
+                    f"{radius_m:.12g} m",
                 )
 
+    def _fence_applies(self, what: str) -> bool:
+        """Whether ``start`` or ``resume`` (``what``) is judged against the geofence: not
+        where the controller refuses it anyway (no mission, nothing paused, already
+        running: its own reason is the useful one), and not for a paused return to launch,
+        which leads back inside and which the fence does not stop while it runs (a second
+        ``return`` restarts it outside the fence too)."""
+        ctl = self.controller
+        if what == "resume":
+            return ctl.mode == Mode.PAUSED and not ctl.returning
+        return ctl.mode not in (Mode.RUNNING, Mode.PAUSED) and bool(ctl.waypoints)
+
     def _check_inside(self, what: str) -> None:
-        """Refuse ``what`` while the latest valid fix lies outside the geofence."""
+        """Refuse ``what`` while the latest valid fix lies outside the geofence; the refusal
+        names the ways back that the robot accepts from where it is."""
         centre, pos = self.geofence_centre(), self._last_pos
         if centre is None or pos is None:
             return
         d = great_circle_m(centre[0], centre[1], pos[0], pos[1])
-        if not d <= self.safety.geofence_radius_m:  # fails closed: NaN is outside
-            raise CommandError(
-                "geofence",
-                f"cannot {what}: the robot is {d:.0f} m from the geofence centre; limit "
-                f"{self.safety.geofence_radius_m:.0f} m (drive it back by hand)",
+        radius_m = self.safety.geofence_radius_m
+        if d <= radius_m:  # fails closed: NaN is outside
+            return
+        where = (
+            f"cannot {what}: the robot is {_metres_beyond(d, radius_m)} m from the geofence "
+            f"centre; limit {radius_m:.12g} m"
+        )
+        if what != "resume":  # idle, done or driving by hand: manual drive is allowed
+            raise CommandError("geofence", f"{where} (drive it back by hand: 'drive')")
+        # a paused mission: resumed, it would drive on from outside (and pause again at the
+        # next fix); 'drive' is refused while a mission is paused
+        ways = []
+        launch = self.controller.launch_point
+        if launch is not None and great_circle_m(*centre, *launch) <= radius_m:
+            away_m = great_circle_m(pos[0], pos[1], launch[0], launch[1])
+            ways.append(
+                f"'return' (to the launch point, {away_m:.1f} m away, inside the fence: the "
+                "fence does not stop a return; the mission ends there)"
             )
+        ways.append(
+            "'stop', then drive it back by hand ('drive') and 'start' the mission again "
+            "(from its first waypoint)"
+        )
+        raise CommandError(
+            "geofence",
+            f"{where}: resumed, the mission would drive on from outside the fence. Ways back: "
+            + ", or ".join(ways),
+        )
 
     def _check_position(self, fix: GpsFix) -> None:
         """A running mission outside the geofence gets ``failsafe.geofence_action``: the
@@ -379,9 +424,9 @@ class Runner:
             self._motors(MotorCommand(t_s, 0.0, 0.0, why))
         finally:  # a failing motor sink must not leave the mission running
             log.warning(
-                "%s: %.1f m from the centre, limit %.0f m%s: failsafe %s",
+                "%s: %s m from the centre, limit %.12g m%s: failsafe %s",
                 why,
-                d,
+                _metres_beyond(d, radius_m, 1),
                 radius_m,
                 ", no fresh fix" if estimated else "",
                 self.controller.failsafe_config.geofence_action,
