@@ -153,6 +153,11 @@ class LogTail(logging.Handler):
 class _MotorWorker:
     """Owns the motor link in its own thread: the newest command wins, resent as keep-alive.
 
+    An operator stop is the exception: it holds (:meth:`hold_stop`) until the controller has
+    applied it (:meth:`stop_applied`); meanwhile a drive (non-zero) command, submitted or
+    sent directly, is dropped, so none decided before the controller had the stop can
+    replace it or follow it out. A zero command always goes through.
+
     ``on_health(ok, t_s)`` is called (from this thread) when the link's health changes;
     ``on_events(events)`` with the link's health events (transitions, failures while lost).
     ``on_odometry(rec)``: the thread also polls the board's wheel encoders
@@ -194,6 +199,10 @@ class _MotorWorker:
         self._polling = False  # the send in progress is an encoder poll (this thread)
         self._acked = True  # the latest send went through (send_now may then send directly)
         self._stop = False
+        # The operator stop that holds (its number, 0: none) and the last number given out.
+        self._latched = 0
+        self._latch_seq = 0
+        self.dropped_while_stopping = 0  # drive commands dropped while an operator stop held
         # What the controller was told: it starts with the link up, so a link that is not
         # (a board silent from power-up) is a change that start() reports at once.
         self._healthy = True
@@ -241,8 +250,12 @@ class _MotorWorker:
         sent, is not sent again (it still counts as a submission for the keep-alive's
         silence rule, and the keep-alive repeats it). The controller answers every compass
         sample and tick with a command, mostly the same one: sending each would keep the
-        link busy when a fix's command comes (it then waits for the send in progress)."""
+        link busy when a fix's command comes (it then waits for the send in progress).
+
+        A drive while an operator stop holds (:meth:`hold_stop`) is dropped."""
         with self._cond:
+            if self._held(cmd):
+                return
             now = time.monotonic()
             self._t_submit = now
             last = self._last
@@ -269,9 +282,12 @@ class _MotorWorker:
         Saves the motor thread's wake-up (a GIL hand-over behind whatever thread holds it)
         on the path from a GPS fix to the wheels. Blocks for the link's acknowledgement; a
         link that failed its latest send is only used from the motor thread, so a dead
-        board never stalls the caller for more than one send."""
+        board never stalls the caller for more than one send. A drive while an operator
+        stop holds (:meth:`hold_stop`) is dropped (False)."""
         with self._cond:
             if self._stop:  # after shutdown() nothing may reach the motors
+                return False
+            if self._held(cmd):
                 return False
             self._t_submit = time.monotonic()
             if self._busy or self._pending is not None or not (self._acked and self._healthy):
@@ -286,6 +302,45 @@ class _MotorWorker:
             with self._cond:
                 self._busy = False
                 self._cond.notify_all()
+        return True
+
+    def hold_stop(self) -> int:
+        """An operator stop comes: from now until :meth:`stop_applied` is called with the
+        number returned (or a later stop's), :meth:`submit` and :meth:`send_now` drop every
+        drive command, so the stop the caller submits next replaces any unsent command, goes
+        out, and nothing the controller decided before it had the stop follows it. Zero
+        commands go through. Never blocks on I/O."""
+        with self._cond:
+            self._latch_seq += 1
+            self._latched = self._latch_seq
+            return self._latch_seq
+
+    def stop_applied(self, seq: int) -> None:
+        """The controller has applied the operator stop numbered ``seq`` (the daemon calls
+        this under the control lock, once the controller has stopped): drive commands go
+        through again, unless a later operator stop holds."""
+        with self._cond:
+            if self._latched and seq >= self._latched:
+                self._latched = 0
+
+    @property
+    def stop_holding(self) -> bool:
+        """An operator stop holds: drive commands are dropped until the controller has it."""
+        with self._cond:
+            return self._latched != 0
+
+    def _held(self, cmd: MotorCommand) -> bool:
+        """``cmd`` is a drive while an operator stop holds: count it (it is dropped). Called
+        with ``_cond`` held."""
+        if not self._latched or cmd.is_stop:
+            return False
+        self.dropped_while_stopping += 1
+        if self.dropped_while_stopping in (1, 10, 100) or self.dropped_while_stopping % 1000 == 0:
+            log.info(
+                "operator stop: a drive command dropped until the controller has the stop "
+                "(%d so far)",
+                self.dropped_while_stopping,
+            )
         return True
 
     def _run(self) -> None:
@@ -1493,7 +1548,11 @@ class Daemon:
     def _on_control(self, fn: Callable[..., Any], *args: Any) -> Any:
         """Run ``fn`` on the control loop: directly when already there, else as an awaitable
         for the server (the controller is only ever touched from the control loop)."""
-        harmless = fn == self._status or (fn == self._command and args[0] in ("stop", "pause"))
+        harmless = (
+            fn == self._status
+            or fn == self._operator_stop
+            or (fn == self._command and args[0] in ("stop", "pause"))
+        )
         if not self._accepting and not harmless:
             # the ports listen before the devices open: nothing may queue a move meanwhile
             raise CommandError("rejected", "x6wd is starting: devices are not open yet")
@@ -1543,10 +1602,25 @@ class Daemon:
         self._post(self._operator_seen)
 
     def stop(self) -> Any:
-        """Stop everything; always allowed. The stop also goes to the motors at once."""
-        if self.motors is not None:  # thread-safe, and does not wait for the control loop
-            self.motors.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "operator stop"))
-        return self._on_control(self._command, "stop")
+        """Stop everything; always allowed. The stop also goes to the motors at once, and
+        holds there until the controller has applied it: no drive decided before that (a
+        fix's, a tick's) replaces it before it is sent, or follows it out."""
+        if self.motors is None:
+            return self._on_control(self._command, "stop")
+        # thread-safe, and neither waits for the control loop: drives are dropped from here
+        # until the controller has the stop, and the stop replaces any unsent command
+        seq = self.motors.hold_stop()
+        self.motors.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "operator stop"))
+        return self._on_control(self._operator_stop, seq)
+
+    def _operator_stop(self, seq: int) -> dict[str, Any]:
+        """On the control loop, under the control lock: the controller stops, then the
+        motors take drive commands again (the stop ``seq`` held them until now)."""
+        reply = self._command("stop")
+        motors = self.motors
+        if motors is not None:
+            motors.stop_applied(seq)
+        return reply
 
     def drive(self, left_pct: float, right_pct: float, duration_s: float) -> Any:
         """Manual drive (percent) for ``duration_s`` seconds; the controller stops after it."""
