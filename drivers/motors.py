@@ -496,12 +496,21 @@ class SerialMotorLink:
             return None
 
     def _drop_port(self) -> None:
-        """Close the broken port; the next command after the backoff reopens it."""
+        """Close the broken port; the next command after the backoff reopens it. What it has
+        not sent yet is discarded first: those commands are stale (the board would act on
+        them whenever a stalled line flowed again), and a USB serial port closes only once
+        its output has drained, or after its closing_wait (30 s by default) under this lock."""
         self._port_dead = True
         self._next_reopen_t = self._clock() + self._reopen_backoff_s
         # doubled here too: a port that reopens fine but breaks again is not reopened at
         # the first step for ever (a command through on it resets the backoff)
         self._reopen_backoff_s = min(2.0 * self._reopen_backoff_s, self.reopen_max_s)
+        discard = getattr(self.port, "reset_output_buffer", None)
+        if callable(discard):
+            try:
+                discard()
+            except Exception:  # a port that went away: nothing left to send anyway
+                log.debug("discarding the broken motor port's output failed", exc_info=True)
         try:
             self.port.close()
         except Exception:

@@ -478,16 +478,26 @@ def _plugin(dev: DeviceUrl, devices: Devices | None) -> tuple[ModuleType, Any]:
     return handler, devices.backend(dev.scheme)
 
 
-def _serial_port(dev: DeviceUrl, timeout_s: float) -> Any:
+def _serial_port(dev: DeviceUrl, timeout_s: float, write_timeout_s: float | None = None) -> Any:
+    """Open ``dev``'s serial (or TCP) port with read timeout ``timeout_s`` (s).
+    ``write_timeout_s`` (s, None: a write may block for ever): a write that cannot finish in
+    time (a stuck USB adapter, a flow-controlled line, a TCP peer that stopped reading)
+    raises ``SerialTimeoutException`` instead of holding the writer."""
     import serial  # lazily: pyserial is only needed for real ports
 
     try:
         if dev.scheme == "tcp":
-            return serial.serial_for_url(f"socket://{dev.target}", timeout=timeout_s)
+            return serial.serial_for_url(
+                f"socket://{dev.target}", timeout=timeout_s, write_timeout=write_timeout_s
+            )
         # exclusive: pyserial takes a non-blocking flock; a port held by another process
         # (another x6wd, gpsd) fails to open instead of sharing, and splitting, its bytes
         return serial.Serial(
-            dev.target, baudrate=dev.options["baud"], timeout=timeout_s, exclusive=True
+            dev.target,
+            baudrate=dev.options["baud"],
+            timeout=timeout_s,
+            write_timeout=write_timeout_s,
+            exclusive=True,
         )
     except (serial.SerialException, OSError, ValueError) as exc:
         code = getattr(exc, "errno", None)
@@ -584,11 +594,17 @@ def open_motors(
     if dev.scheme == "log":
         return LogMotorLink()
     timeout_s = min(dev.options["ack_timeout"], 0.02)
-    port = _serial_port(dev, timeout_s)
+    # A command's write may take as long as its acknowledgement may (a line of a few bytes
+    # goes into the driver's buffer at once): a write that cannot is a port fault the link
+    # handles (lost, the port closed and reopened with backoff; the board's watchdog stops
+    # the motors), never a writer blocked for ever under the control lock.
+    write_timeout_s = dev.options["ack_timeout"]
+    port = _serial_port(dev, timeout_s, write_timeout_s)
     return SerialMotorLink(
         port,
         ack_timeout_s=dev.options["ack_timeout"],
         watchdog_ms=dev.options["watchdog_ms"],
         retries=dev.options["retries"],
-        reopen=lambda: _serial_port(dev, timeout_s),  # a board that dropped the link
+        # a board that dropped the link
+        reopen=lambda: _serial_port(dev, timeout_s, write_timeout_s),
     )
