@@ -89,6 +89,7 @@ class LineClient:
     reader: asyncio.StreamReader | None = None
     sender: asyncio.Task[None] | None = None
     napping: bool = False  # the handler sleeps out a back-off (eviction must wake it)
+    handshaking: bool = False  # in its TLS handshake: the raw socket is not ours to write
 
     def put(self, line: bytes, maxlen: int) -> bool:
         """Queue an event line, dropping the oldest when ``maxlen`` are waiting; True if one
@@ -375,10 +376,13 @@ class LineServer(Generic[C]):
         c.wake.set()
         c.drained.set()
         transport = c.writer.transport
+        # one still in its TLS handshake gets no notice (no plain text into TLS) and is reset:
+        # its handshake ends at once, and with it the handler
+        polite = reason != SLOW_READER and not c.handshaking
         with contextlib.suppress(Exception):
-            if reason != SLOW_READER and write_buffer_size(transport) == 0:
+            if polite and write_buffer_size(transport) == 0:
                 transport.write(self._notice(reason, message))
-            if reason != SLOW_READER and write_buffer_size(transport) == 0:
+            if polite and write_buffer_size(transport) == 0:
                 transport.close()
             else:  # it does not read: do not keep the socket open for its buffer
                 reset(transport)

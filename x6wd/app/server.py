@@ -489,17 +489,16 @@ class ControlServer(LineServer[_Client]):
 
     async def start(self) -> None:
         """Bind and listen."""
-        extra: dict[str, Any] = {}
-        if self._ssl is not None:
-            # a peer stalling the handshake is not in any pool yet: bound it like auth
-            extra["ssl_handshake_timeout"] = self.config.auth_timeout_s
+        # TLS is not the listener's: each connection is accepted as plain TCP, joins the
+        # pending pool at once, and is upgraded there (:meth:`_upgrade`). A listener's TLS
+        # handshake comes before any pool: peers that never send a ClientHello were not
+        # counted, and 250 of them took every file descriptor (accept() failed EMFILE, the
+        # operator's connection with it).
         server = await asyncio.start_server(
             self._handle,
             self.config.bind,
             self._configured_port,
-            ssl=self._ssl,
             backlog=LISTEN_BACKLOG,
-            **extra,
         )
         self._listening(server)
         log.info(
@@ -562,7 +561,11 @@ class ControlServer(LineServer[_Client]):
 
         reader.feed_data = counted  # type: ignore[method-assign,assignment]
         try:
+            # pending from accept on, before any TLS handshake: the pool's bound (oldest
+            # closed when full) holds whatever the peers do or do not send
             self._connected(c)
+            if self._ssl is not None and not await self._upgrade(c):
+                return
             c.sender = asyncio.create_task(self._sender(c))
             await self._read_loop(reader, c)
         except (ConnectionError, OSError, ssl.SSLError):
@@ -574,6 +577,37 @@ class ControlServer(LineServer[_Client]):
                 self._drive_orphaned(c)
             finally:  # whatever happened there, the connection leaves the pools
                 await self._hang_up(c, reader)
+
+    async def _upgrade(self, c: _Client) -> bool:
+        """The TLS handshake of a pending connection (nothing else may be awaited between
+        its accept and this: its input is not read before the handshake takes it). False
+        when it did not complete: the peer failed it or went away, it took longer than
+        ``auth_timeout_s``, or the connection was closed meanwhile (evicted from the full
+        pending pool, or past its deadline: the sweeper resets it)."""
+        raw = c.writer.transport
+        if c.evicted or raw.is_closing():  # (gone already: the peer reset it)
+            return False
+        protocol = raw.get_protocol()
+        c.handshaking = True
+        try:
+            tls = await asyncio.get_running_loop().start_tls(
+                raw,
+                protocol,
+                self._ssl,  # type: ignore[arg-type]
+                server_side=True,
+                # a backstop: the sweeper closes it at auth_timeout_s, as any pending one
+                ssl_handshake_timeout=2.0 * self.config.auth_timeout_s,
+            )
+        finally:
+            c.handshaking = False
+        if tls is None or c.evicted:  # closed during the handshake (None: by us)
+            return False
+        # what StreamWriter.start_tls does once the handshake is done; not that method
+        # itself: a transport closed mid-handshake leaves its writer with none (an
+        # AttributeError, and another in the writer's __del__)
+        c.writer._transport = tls  # type: ignore[attr-defined]
+        protocol._replace_writer(c.writer)  # type: ignore[attr-defined]
+        return True
 
     async def close(self, message: str = SHUTDOWN_MESSAGE) -> None:
         """Stop listening and disconnect every client (idempotent), each told so first: the
@@ -591,7 +625,7 @@ class ControlServer(LineServer[_Client]):
     def _goodbye(c: _Client, notice: bytes) -> None:
         """The last line to an open connection, after the replies still queued for it (the
         events are dropped): written now, as the transport closes next."""
-        if c.closed or c.evicted:
+        if c.closed or c.evicted or c.handshaking:
             return
         c.evicted = SHUTDOWN  # its sender writes nothing more
         c.events.clear()

@@ -28,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import collections
+import concurrent.futures
 import contextlib
 import hashlib
 import ipaddress
@@ -46,6 +47,7 @@ from urllib.parse import urlsplit
 from aiohttp import WSMsgType, web
 
 from x6wd import __version__
+from x6wd.app.lineserver import reset
 from x6wd.app.logview import LogView, html_page, render_html
 from x6wd.app.server import (
     SUPERSEDED_COMMANDS,
@@ -155,6 +157,17 @@ for a page's files). Past them the oldest that is not a page's WebSocket is clos
 connections cannot take the process's file descriptors, and with them the control port
 where the operator's stop arrives."""
 
+HANDSHAKE_TIMEOUT_S = 10.0
+"""With TLS: a connection whose handshake has not finished within this (s) is closed."""
+
+RECORDINGS_TIMEOUT_S = 5.0
+"""``recording.list`` (and the look-up of ``recording.view``'s name) waits at most this (s)
+for the recordings folder: a hung SD card or network mount is an error reply, never a
+frozen network loop."""
+
+RENDER_TIMEOUT_S = 60.0
+"""``recording.view`` waits at most this (s) for the viewer's page of a run."""
+
 
 _HOST_RE = re.compile(
     rf"(?:(?P<name>{HOSTNAME_PATTERN})"
@@ -217,6 +230,76 @@ def sky_event(sky: GpsSky) -> dict[str, Any]:
     }
 
 
+class _Handshake(asyncio.Protocol):
+    """A console connection over TLS, counted from its accept: the handshake runs here
+    (:meth:`ConsoleServer._handshake_gate`), then aiohttp's handler gets the TLS transport.
+    aiohttp's own TLS listener counts a connection only once its handshake is done (the
+    default handshake timeout: 60 s), so peers that never send a ClientHello were in no
+    count and could take the process's file descriptors."""
+
+    def __init__(self, console: ConsoleServer, factory: Callable[[], asyncio.Protocol]) -> None:
+        self.console = console
+        self.factory = factory
+        self.transport: asyncio.Transport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        transport.pause_reading()  # the ClientHello stays for the handshake
+        self.transport = transport
+        self.console._handshake_started(self)
+        if not transport.is_closing():
+            task = asyncio.create_task(self._upgrade(transport))
+            self.console._handshake_tasks.add(task)
+            task.add_done_callback(self.console._handshake_tasks.discard)
+
+    def connection_lost(self, exc: Exception | None) -> None:  # (before the handshake began)
+        self.console._handshaking.pop(self, None)
+
+    async def _upgrade(self, transport: asyncio.Transport) -> None:
+        ctx = self.console._ssl
+        assert ctx is not None
+        try:
+            if transport.is_closing():  # reset before its turn came (the cap, or closing)
+                return
+            handler = self.factory()
+            tls = await asyncio.get_running_loop().start_tls(
+                transport, handler, ctx, server_side=True,
+                ssl_handshake_timeout=HANDSHAKE_TIMEOUT_S,
+            )  # fmt: skip
+        except (OSError, ssl.SSLError, EOFError):  # failed, timed out, reset: closed
+            return
+        finally:
+            self.console._handshaking.pop(self, None)
+        if tls is not None:  # None: closed meanwhile (evicted, or the console closing)
+            handler.connection_made(tls)
+
+
+class _TlsSite(web.TCPSite):
+    """aiohttp's TCP site with TLS begun per connection once it is counted (_Handshake)."""
+
+    __slots__ = ("_gate",)
+
+    def __init__(
+        self, runner: web.AppRunner, host: str, port: int, *, ssl_context: ssl.SSLContext,
+        gate: Callable[[], asyncio.Protocol],
+    ) -> None:  # fmt: skip
+        super().__init__(runner, host, port, ssl_context=ssl_context)
+        self._gate = gate
+
+    async def start(self) -> None:
+        await web.BaseSite.start(self)  # registers the site with its runner
+        self._server = await asyncio.get_running_loop().create_server(
+            self._gate,
+            self._host,
+            self._port,
+            backlog=self._backlog,
+            reuse_address=self._reuse_address,
+            reuse_port=self._reuse_port,
+        )
+        sockets = self._server.sockets
+        self._bound_port = sockets[0].getsockname()[1] if sockets else self._port
+
+
 class ConsoleServer:
     """HTTP + WebSocket server on the daemon's network loop. :meth:`publish` and
     :meth:`publish_sky` are called on that loop and never wait."""
@@ -259,6 +342,16 @@ class ConsoleServer:
             {"localhost", me, f"{me}.local", *(n.lower() for n in config.hostnames)}
         )
         self.track: collections.deque[tuple[float, float]] = collections.deque(maxlen=TRACK_POINTS)
+        self._handshaking: dict[_Handshake, None] = {}  # TLS handshakes under way, oldest first
+        self._handshake_tasks: set[asyncio.Task[None]] = set()
+        # the recordings folder is read here, off the network loop: one thread per kind of
+        # work, so a hung mount holds two threads at most (no pile of threads, and no
+        # default-executor thread the daemon needs)
+        self._files = concurrent.futures.ThreadPoolExecutor(
+            max_workers=2, thread_name_prefix="x6wd-console-files"
+        )
+        self._listing: asyncio.Future[dict[str, RecordingFile]] | None = None
+        self._hung_logged: set[asyncio.Future[Any]] = set()
 
     @property
     def url(self) -> str:
@@ -280,12 +373,15 @@ class ConsoleServer:
         runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=1.0)
         await runner.setup()
         self._cap_connections(runner.server)
-        site = web.TCPSite(
-            runner,
-            self.config.bind,
-            self.config.port,
-            ssl_context=self._ssl,
-        )
+        site: web.TCPSite
+        if self._ssl is None:
+            site = web.TCPSite(runner, self.config.bind, self.config.port)
+        else:  # TLS once the connection is counted (_Handshake), not in aiohttp's listener
+            factory = runner.server
+            site = _TlsSite(
+                runner, self.config.bind, self.config.port, ssl_context=self._ssl,
+                gate=lambda: _Handshake(self, factory),  # type: ignore[arg-type]
+            )  # fmt: skip
         try:
             await site.start()
         except BaseException:
@@ -312,6 +408,20 @@ class ConsoleServer:
                 request.host, request.remote, self.refused_hosts,
             )  # fmt: skip
         return web.Response(status=421, text="unknown host name (console.hostnames)\n")
+
+    def _handshake_started(self, h: _Handshake) -> None:
+        """Count a TLS connection from its accept; past ``max_clients`` +
+        :data:`CONNECTION_SLACK` handshakes under way, the oldest is reset (a browser's
+        completes in milliseconds; one that sends nothing waits to be closed this way or at
+        :data:`HANDSHAKE_TIMEOUT_S`)."""
+        self._handshaking[h] = None
+        cap = self.config.max_clients + CONNECTION_SLACK
+        while len(self._handshaking) > cap:
+            old = next(iter(self._handshaking))
+            self._handshaking.pop(old, None)
+            self.connections_closed += 1
+            if old.transport is not None:
+                reset(old.transport)
 
     def _cap_connections(self, server: Any) -> None:
         """Close the oldest connection that is not a page's WebSocket whenever more than
@@ -346,6 +456,15 @@ class ConsoleServer:
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        for h in list(self._handshaking):
+            if h.transport is not None:
+                reset(h.transport)
+        self._handshaking.clear()
+        tasks = [t for t in self._handshake_tasks if not t.done()]
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        self._files.shutdown(wait=False, cancel_futures=True)  # a hung read is not waited for
 
     # -- events (from the daemon, on this loop) --------------------------------------------------
     def publish(self, event: dict[str, Any]) -> None:
@@ -774,14 +893,30 @@ class ConsoleServer:
         notes = getattr(wps, "notes", None)  # what the file held but x6wd won't use
         return {**reply, "notes": list(notes)} if notes else reply
 
-    def _runs(self) -> dict[str, RecordingFile]:
-        """The recorder's runs by the name of their first remaining part, oldest first."""
-        if self._recordings_dir is None:
-            return {}
+    @staticmethod
+    def _list_runs(directory: Path) -> dict[str, RecordingFile]:
+        """The recorder's runs in ``directory`` by the name of their first remaining part,
+        oldest first (reads the folder: called in a thread)."""
         runs: dict[str, RecordingFile] = {}
-        for f in list_recordings(self._recordings_dir):
+        for f in list_recordings(directory):
             runs.setdefault(str(f.run), f)  # parts sort after their run's first file
         return {f.path.name: f for f in runs.values()}
+
+    async def _runs(self) -> dict[str, RecordingFile]:
+        """:meth:`_list_runs` of the recordings folder, read in the console's file thread,
+        never on the network loop (which reads every client's stop); requests meanwhile
+        share the listing under way. TimeoutError after :data:`RECORDINGS_TIMEOUT_S` (the
+        listing goes on, and the next request waits for it: one hung folder holds one
+        thread); OSError from the folder."""
+        if self._recordings_dir is None:
+            return {}
+        f = self._listing
+        if f is None or f.done():
+            loop = asyncio.get_running_loop()
+            f = loop.run_in_executor(self._files, self._list_runs, self._recordings_dir)
+            f.add_done_callback(lambda f: f.cancelled() or f.exception())  # (none unheard)
+            self._listing = f
+        return await asyncio.wait_for(asyncio.shield(f), RECORDINGS_TIMEOUT_S)
 
     async def _recording(self, c: Any, req: dict[str, Any]) -> dict[str, Any]:
         """``recording.list`` -> ``recordings`` ([{name, bytes}], newest first);
@@ -793,7 +928,27 @@ class ConsoleServer:
         cmd = req["cmd"]
         if not c.authenticated:
             return error_reply(rid, "unauthorized", f"authenticate first to use '{cmd}'")
-        runs = self._runs()
+        try:
+            runs = await self._runs()
+        except TimeoutError:
+            if self._listing is not None and self._listing not in self._hung_logged:
+                self._hung_logged = {self._listing}  # once per hung listing
+                log.warning(
+                    "console: the recordings folder %s has not answered for %g s (%s refused)",
+                    self._recordings_dir, RECORDINGS_TIMEOUT_S, cmd,
+                )  # fmt: skip
+            return error_reply(
+                rid, "rejected",
+                f"the recordings folder ({self._recordings_dir}) did not answer within "
+                f"{RECORDINGS_TIMEOUT_S:g} s (a hung SD card or network mount?); the robot is "
+                "not affected", "recordings_unavailable",
+            )  # fmt: skip
+        except OSError as exc:
+            return error_reply(
+                rid, "rejected",
+                f"cannot read the recordings folder ({self._recordings_dir}): "
+                f"{exc.strerror or exc}", "recordings_unavailable",
+            )  # fmt: skip
         if cmd == "recording.list":
             items = [{"name": n, "bytes": f.size} for n, f in reversed(runs.items())]
             return {"id": rid, "ok": True, "recordings": items}
@@ -803,8 +958,16 @@ class ConsoleServer:
                 rid, "bad_request", f"no recording named {name!r} (see recording.list)",
                 "bad_argument",
             )  # fmt: skip
+        loop = asyncio.get_running_loop()
         try:  # reading a long run takes a while: off the network loop
-            page = await asyncio.to_thread(render_html, runs[name].path)
+            rendering = loop.run_in_executor(self._files, render_html, runs[name].path)
+            page = await asyncio.wait_for(rendering, RENDER_TIMEOUT_S)
+        except TimeoutError:
+            return error_reply(
+                rid, "rejected",
+                f"{name}: not read within {RENDER_TIMEOUT_S:g} s (a hung SD card or network "
+                "mount?); the robot is not affected", "recordings_unavailable",
+            )  # fmt: skip
         except (DeviceUnavailable, ParseError) as exc:
             return error_reply(rid, "bad_request", str(exc), "bad_recording")
         except Exception as exc:  # a file the viewer chokes on must not end the operator's link

@@ -1,0 +1,314 @@
+"""Connections that never finish their TLS handshake are bounded like any unauthenticated one.
+
+A code review found that with TLS on, the control server counted a connection in its pending
+pool (``[server] max_pending``) only once its TLS handshake was done: peers that opened TCP
+connections and never sent a ClientHello were in no pool. 250 of them, each held for the
+handshake timeout, took every file descriptor of a process with RLIMIT_NOFILE 256: accept()
+failed with EMFILE thousands of times, the operator's connection (and stop) could not be
+accepted, and the daemon's own file opens could fail. The web console (aiohttp over TLS)
+counted its connections the same way, after the handshake (asyncio's default handshake
+timeout: 60 s).
+
+Real sockets on 127.0.0.1 (ports 8200-8299), a self-signed certificate from openssl.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import ssl
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+
+from tests.conftest import ROOT, self_signed_cert
+from tests.test_server import TOKEN, LoopThread, RecordingBackend
+from x6wd.app import gpsd as gpsd_module
+from x6wd.app.client import RemoteClient
+from x6wd.app.console import server as console_server
+from x6wd.app.console.server import CONNECTION_SLACK, ConsoleServer
+from x6wd.app.lineserver import LISTEN_BACKLOG
+from x6wd.app.server import ControlServer, server_ssl_context
+from x6wd.core.config import ConsoleConfig, GpsdConfig, ServerConfig
+
+pytestmark = pytest.mark.integration
+
+PORTS = iter(range(8230, 8260))
+
+
+@pytest.fixture(scope="module")
+def tls_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    d = tmp_path_factory.mktemp("tls")
+    cert, key = self_signed_cert(d)
+    token = d / "token"
+    token.write_text(TOKEN + "\n")
+    token.chmod(0o600)
+    return cert, key, token
+
+
+@pytest.fixture
+def lt() -> Iterator[LoopThread]:
+    loop_thread = LoopThread()
+    yield loop_thread
+    loop_thread.close()
+
+
+def closed_by_server(sock: socket.socket, timeout_s: float) -> bool:
+    """True once the server has closed (FIN, after its notice if any, or reset) a socket
+    that sent nothing."""
+    deadline = time.monotonic() + timeout_s
+    try:
+        while True:
+            sock.settimeout(max(0.001, deadline - time.monotonic()))
+            if sock.recv(4096) == b"":
+                return True
+    except TimeoutError:
+        return False
+    except OSError:  # a reset
+        return True
+
+
+def silent_connections(port: int, n: int) -> list[socket.socket]:
+    socks = []
+    for _ in range(n):
+        s = socket.create_connection(("127.0.0.1", port), timeout=5)
+        socks.append(s)
+    return socks
+
+
+@pytest.mark.parametrize("tls", [True, False], ids=["tls", "plain"])
+def test_silent_connections_beyond_max_pending_are_closed(
+    lt: LoopThread, tls_files: tuple[Path, Path, Path], tls: bool
+) -> None:
+    """40 connections that never send a byte (no ClientHello): all but ``max_pending`` are
+    closed at once, long before the handshake or auth deadline, and the operator then
+    connects, authenticates and is answered. (Plain TCP already worked; TLS did not.)"""
+    cert, key, _ = tls_files
+    ctx = server_ssl_context(str(cert), str(key)) if tls else None
+    cfg = ServerConfig(port=next(PORTS), max_pending=4, auth_timeout_s=60.0)
+    srv = ControlServer(cfg, RecordingBackend(), token=TOKEN.encode(), ssl_context=ctx)
+    lt.run(srv.start())
+    socks: list[socket.socket] = []
+    try:
+        socks = silent_connections(srv.port, 40)
+        t0 = time.monotonic()
+        closed = [s for s in socks if closed_by_server(s, max(0.05, 3.0 - (time.monotonic() - t0)))]
+        assert len(closed) >= 40 - cfg.max_pending, (
+            f"only {len(closed)} of 40 silent connections closed (max_pending "
+            f"{cfg.max_pending}): the rest hold the server's file descriptors"
+        )
+        assert time.monotonic() - t0 < 5.0
+        assert lt.call(lambda: srv.pending_count) <= cfg.max_pending
+        assert lt.call(lambda: len(srv.connections)) <= cfg.max_pending
+        assert lt.call(lambda: srv.closed_counts["pending_full"]) >= 40 - cfg.max_pending
+        client_ctx = ssl.create_default_context(cafile=str(cert)) if tls else None
+        with RemoteClient(
+            "127.0.0.1", srv.port, token=TOKEN, ssl_context=client_ctx, timeout_s=5
+        ) as c:
+            st = c.request("status")
+        assert st["ok"] and st["server"]["pending"] <= cfg.max_pending
+    finally:
+        for s in socks:
+            s.close()
+        lt.run(srv.close())
+
+
+def test_a_stalled_handshake_ends_at_auth_timeout(
+    lt: LoopThread, tls_files: tuple[Path, Path, Path]
+) -> None:
+    """A lone connection that never sends its ClientHello is closed at ``auth_timeout_s``
+    (as a pending connection, counted ``auth_timeout``), and an evicted or timed-out
+    handshake gets no plain-text notice in the middle of TLS."""
+    cert, key, _ = tls_files
+    cfg = ServerConfig(port=next(PORTS), auth_timeout_s=0.4)
+    srv = ControlServer(
+        cfg, RecordingBackend(), token=TOKEN.encode(),
+        ssl_context=server_ssl_context(str(cert), str(key)),
+    )  # fmt: skip
+    lt.run(srv.start())
+    try:
+        s = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
+        try:
+            time.sleep(0.1)
+            assert lt.call(lambda: srv.pending_count) == 1  # counted before any handshake
+            s.settimeout(3.0)
+            t0 = time.monotonic()
+            try:
+                data = s.recv(4096)
+            except ConnectionError:
+                data = b""
+            assert data == b"" and time.monotonic() - t0 < 2.0
+        finally:
+            s.close()
+        assert lt.call(lambda: srv.closed_counts["auth_timeout"]) == 1
+        assert lt.call(lambda: srv.pending_count) == 0
+    finally:
+        lt.run(srv.close())
+
+
+SERVER = textwrap.dedent(
+    """
+    import asyncio, resource, sys
+    from tests.test_server import TOKEN, RecordingBackend
+    from x6wd.app.server import ControlServer, server_ssl_context
+    from x6wd.core.config import ServerConfig
+
+    resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
+    cert, key, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
+
+    async def main():
+        cfg = ServerConfig(port=port, auth_timeout_s=60.0)  # max_pending 32, as shipped
+        srv = ControlServer(cfg, RecordingBackend(), token=TOKEN.encode(),
+                            ssl_context=server_ssl_context(cert, key))
+        await srv.start()
+        print("ready", flush=True)
+        await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+        await srv.close()
+
+    asyncio.run(main())
+    """
+)
+
+
+def test_under_a_low_fd_limit_the_operator_still_gets_in(
+    tls_files: tuple[Path, Path, Path],
+) -> None:
+    """The review's reproduction, shrunk: the server in a process with RLIMIT_NOFILE 256, the
+    shipped ``max_pending`` (32), and 300 connections from here that never start TLS. The
+    server keeps at most ``max_pending`` of them, so they cannot take its descriptors, and
+    the operator's stop over TLS is answered. (Before: each held until the handshake
+    timeout, accept() failing with EMFILE, the operator's connection never accepted.)"""
+    cert, key, _ = tls_files
+    port = next(PORTS)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", SERVER, str(cert), str(key), str(port)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+    socks: list[socket.socket] = []
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        for _ in range(300):  # accepted by the kernel (backlog) whether or not the server can
+            socks.append(socket.create_connection(("127.0.0.1", port), timeout=5))
+        time.sleep(0.5)
+        alive = [s for s in socks if not closed_by_server(s, 0.01)]
+        ctx = ssl.create_default_context(cafile=str(cert))
+        with RemoteClient("127.0.0.1", port, token=TOKEN, ssl_context=ctx, timeout_s=5) as c:
+            stop = c.request("stop")
+            st = c.request("status")
+        assert stop["ok"]
+        assert len(alive) <= 32 and st["server"]["pending"] <= 32
+    finally:
+        for s in socks:
+            s.close()
+        _, err = proc.communicate("", timeout=20)
+    assert "Too many open files" not in err, err[-3000:]
+    assert proc.returncode == 0, err[-3000:]
+
+
+# -- the web console over TLS ---------------------------------------------------------------------
+def test_console_silent_tls_connections_are_bounded(
+    lt: LoopThread, tls_files: tuple[Path, Path, Path]
+) -> None:
+    """The console over TLS: 60 connections that never send a ClientHello. Past
+    ``max_clients`` + CONNECTION_SLACK handshakes under way, the oldest is reset at once
+    (before: none closed for asyncio's 60 s handshake timeout, all holding descriptors), and
+    a page then opens over WSS, authenticates and is answered."""
+    cert, key, _ = tls_files
+    ctx = server_ssl_context(str(cert), str(key))
+    srv = ControlServer(
+        ServerConfig(port=next(PORTS)), RecordingBackend(), token=TOKEN.encode(), ssl_context=ctx
+    )
+    lt.run(srv.start())
+    console = ConsoleServer(
+        ConsoleConfig(enabled=True, port=next(PORTS), max_clients=2), srv, lambda: {},
+        ssl_context=ctx,
+    )  # fmt: skip
+    lt.run(console.start())
+    cap = 2 + CONNECTION_SLACK
+    socks: list[socket.socket] = []
+    try:
+        socks = silent_connections(console.port, 60)
+        t0 = time.monotonic()
+        closed = [s for s in socks if closed_by_server(s, max(0.05, 3.0 - (time.monotonic() - t0)))]
+        assert len(closed) >= 60 - cap, f"only {len(closed)} of 60 closed (cap {cap})"
+        assert lt.call(lambda: len(console._handshaking)) <= cap
+        client_ctx = ssl.create_default_context(cafile=str(cert))
+
+        async def page() -> dict[str, Any]:
+            url = console.url.replace("https", "wss", 1) + "ws"
+            async with (
+                aiohttp.ClientSession() as session,
+                session.ws_connect(url, ssl=client_ctx) as ws,
+            ):
+                welcome = await asyncio.wait_for(ws.receive_json(), 5)
+                assert welcome["event"] == "console" and welcome["tls"] is True
+                await ws.send_json({"id": 1, "cmd": "auth", "token": TOKEN})
+                while (msg := await asyncio.wait_for(ws.receive_json(), 5)).get("id") != 1:
+                    pass
+                assert msg["ok"], msg
+                await ws.send_json({"id": 2, "cmd": "status"})
+                while (msg := await asyncio.wait_for(ws.receive_json(), 5)).get("id") != 2:
+                    pass
+                return msg
+
+        assert asyncio.run(page())["ok"]
+    finally:
+        for s in socks:
+            s.close()
+        lt.run(console.close())
+        lt.run(srv.close())
+    assert lt.call(lambda: len(console._handshaking)) == 0
+
+
+def test_console_stalled_handshake_times_out(
+    lt: LoopThread, tls_files: tuple[Path, Path, Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A lone connection that never starts TLS is closed at HANDSHAKE_TIMEOUT_S (shortened
+    here; aiohttp's listener kept it for asyncio's 60 s)."""
+    monkeypatch.setattr(console_server, "HANDSHAKE_TIMEOUT_S", 0.3, raising=False)
+    cert, key, _ = tls_files
+    ctx = server_ssl_context(str(cert), str(key))
+    srv = ControlServer(
+        ServerConfig(port=next(PORTS)), RecordingBackend(), token=TOKEN.encode(), ssl_context=ctx
+    )
+    lt.run(srv.start())
+    console = ConsoleServer(
+        ConsoleConfig(enabled=True, port=next(PORTS)), srv, lambda: {}, ssl_context=ctx
+    )
+    lt.run(console.start())
+    try:
+        with socket.create_connection(("127.0.0.1", console.port), timeout=5) as s:
+            t0 = time.monotonic()
+            assert closed_by_server(s, 3.0)
+            assert time.monotonic() - t0 < 2.0
+    finally:
+        lt.run(console.close())
+        lt.run(srv.close())
+
+
+# -- the open-files limit ----------------------------------------------------------------------
+def test_the_unit_pins_open_files_and_the_default_bounds_stay_well_below() -> None:
+    """systemd/x6wd.service sets LimitNOFILE (1024 soft and hard: the drivers' select()
+    cannot take a higher descriptor), and the network ports' default bounds (connections
+    kept, plus a listen backlog accepted at once per port) stay under half of it."""
+    unit = (ROOT / "systemd" / "x6wd.service").read_text()
+    limits = [
+        line.split("=", 1)[1] for line in unit.splitlines() if line.startswith("LimitNOFILE=")
+    ]
+    assert limits == ["1024"], limits
+    server, gpsd, console = ServerConfig(), GpsdConfig(), ConsoleConfig()
+    bound = (
+        server.max_clients + server.max_pending + LISTEN_BACKLOG
+        + gpsd.max_clients + gpsd_module.DEFAULT_MAX_PENDING + LISTEN_BACKLOG
+        + 2 * (console.max_clients + CONNECTION_SLACK) + 128  # aiohttp's backlog
+    )  # fmt: skip
+    assert bound < 1024 // 2, bound
