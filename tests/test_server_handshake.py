@@ -15,6 +15,7 @@ Real sockets on 127.0.0.1 (ports 8200-8299), a self-signed certificate from open
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import socket
 import ssl
@@ -151,6 +152,80 @@ def test_a_stalled_handshake_ends_at_auth_timeout(
         assert lt.call(lambda: srv.closed_counts["auth_timeout"]) == 1
         assert lt.call(lambda: srv.pending_count) == 0
     finally:
+        lt.run(srv.close())
+
+
+class StalledTls:
+    """A TLS client driven by hand (memory BIOs over a blocking socket): it sends its
+    ClientHello and then waits, as an operator's client does while the server's reply is on
+    its way, until told to go on."""
+
+    def __init__(self, port: int, cafile: Path) -> None:
+        ctx = ssl.create_default_context(cafile=str(cafile))
+        self.inc, self.out = ssl.MemoryBIO(), ssl.MemoryBIO()
+        self.obj = ctx.wrap_bio(self.inc, self.out, server_hostname="localhost")
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+        self._step()  # the ClientHello
+
+    def _step(self) -> bool:
+        try:
+            self.obj.do_handshake()
+            done = True
+        except ssl.SSLWantReadError:
+            done = False
+        if self.out.pending:
+            self.sock.sendall(self.out.read())
+        return done
+
+    def finish(self) -> None:
+        while not self._step():
+            data = self.sock.recv(65536)
+            assert data, "the server closed the connection during the handshake"
+            self.inc.write(data)
+
+    def ask(self, line: bytes) -> dict[str, Any]:
+        self.obj.write(line)
+        self.sock.sendall(self.out.read())
+        buf = b""
+        while b"\n" not in buf:
+            try:
+                buf += self.obj.read(65536)
+            except ssl.SSLWantReadError:
+                data = self.sock.recv(65536)
+                assert data, "closed"
+                self.inc.write(data)
+        return json.loads(buf.split(b"\n", 1)[0])
+
+
+def test_an_operator_mid_handshake_outlives_a_flood_of_silent_sockets(
+    lt: LoopThread, tls_files: tuple[Path, Path, Path]
+) -> None:
+    """The operator's client has sent its ClientHello and waits for the server's reply
+    (nothing of it to read: the rule "the oldest with no input waiting" alone closed it,
+    the oldest) while silent sockets from the same address fill the pending pool many
+    times over: they go first, and it then authenticates and is answered."""
+    cert, key, _ = tls_files
+    cfg = ServerConfig(port=next(PORTS), max_pending=4, auth_timeout_s=60.0)
+    srv = ControlServer(
+        cfg, RecordingBackend(), token=TOKEN.encode(),
+        ssl_context=server_ssl_context(str(cert), str(key)),
+    )  # fmt: skip
+    lt.run(srv.start())
+    socks: list[socket.socket] = []
+    op = StalledTls(srv.port, cert)
+    try:
+        time.sleep(0.2)  # the server has read the ClientHello and replied
+        socks = silent_connections(srv.port, 20)
+        closed = [s for s in socks if closed_by_server(s, 0.5)]
+        assert len(closed) >= 20 - cfg.max_pending + 1
+        op.finish()
+        reply = op.ask(json.dumps({"id": 1, "cmd": "auth", "token": TOKEN}).encode() + b"\n")
+        assert reply == {"id": 1, "ok": True, "authenticated": True}
+        assert op.ask(b'{"id":2,"cmd":"status"}\n')["ok"]
+    finally:
+        op.sock.close()
+        for s in socks:
+            s.close()
         lt.run(srv.close())
 
 

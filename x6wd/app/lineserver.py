@@ -11,7 +11,8 @@ gpsd port: one valid command). The two live in separate pools:
 
 - pending pool (``max_pending``): full means a new connection closes a pending one: of the
   address holding the most pending connections, one that has already sent something
-  malformed, else the oldest with no input waiting to be read, else the oldest. A connection
+  malformed, else the oldest that has sent nothing at all (not even a TLS ClientHello), else
+  the oldest with no input waiting to be read, else the oldest. A connection
   is never refused, and pending peers never hold a session slot, so silent sockets cannot
   lock an operator out; and an operator whose ``auth`` has arrived but not been read yet
   (a burst of connections accepted after a pause) is not the one closed.
@@ -152,6 +153,25 @@ def socket_queue_bytes(sock: Any, request: int) -> int | None:
         raw = fcntl.ioctl(sock.fileno(), request, b"\0\0\0\0")
         return int(struct.unpack("i", raw)[0])
     except Exception:  # OSError, ValueError (fd -1), or a socket object gone odd
+        return None
+
+
+_TCPI_BYTES_RECEIVED = 128
+"""Offset of ``tcpi_bytes_received`` (u64, Linux 4.1+) in the kernel's ``struct tcp_info``."""
+
+
+def bytes_received(transport: asyncio.BaseTransport) -> int | None:
+    """Bytes the peer of a TCP transport has sent since it connected, read or not (Linux
+    TCP_INFO; the TLS handshake's included); None where that cannot be read. Never raises."""
+    sock = transport_socket(transport)
+    if sock is None:
+        return None
+    try:
+        raw = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 256)
+        if len(raw) < _TCPI_BYTES_RECEIVED + 8:
+            return None
+        return int(struct.unpack_from("Q", raw, _TCPI_BYTES_RECEIVED)[0])
+    except Exception:  # OSError, AttributeError (no TCP_INFO here), a closed socket
         return None
 
 
@@ -312,6 +332,14 @@ class LineServer(Generic[C]):
         suspect = next((c for c in candidates if c.suspect), None)
         if suspect is not None:
             return suspect
+        # then the oldest that has sent nothing since it connected: an operator's client
+        # speaks at once (its auth; over TLS first its ClientHello, then it waits for the
+        # server's reply with nothing to read, where the rule below would close it when it
+        # is the oldest): a flood of silent sockets goes before it. Oldest first, stopping
+        # at the first silent one (one getsockopt per eviction while they are the flood)
+        silent = next((c for c in candidates if bytes_received(c.writer.transport) == 0), None)
+        if silent is not None:
+            return silent
         # oldest first, stopping at the first idle one: usually one ioctl per eviction
         return next((c for c in candidates if unread_bytes(c) == 0), candidates[0])
 
