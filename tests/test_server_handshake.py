@@ -184,6 +184,10 @@ class StalledTls:
             self.inc.write(data)
 
     def ask(self, line: bytes) -> dict[str, Any]:
+        return json.loads(self.first_line(line))
+
+    def first_line(self, line: bytes) -> bytes:
+        """Send ``line``; the first line of the answer."""
         self.obj.write(line)
         self.sock.sendall(self.out.read())
         buf = b""
@@ -194,7 +198,7 @@ class StalledTls:
                 data = self.sock.recv(65536)
                 assert data, "closed"
                 self.inc.write(data)
-        return json.loads(buf.split(b"\n", 1)[0])
+        return buf.split(b"\n", 1)[0]
 
 
 def test_an_operator_mid_handshake_outlives_a_flood_of_silent_sockets(
@@ -342,6 +346,44 @@ def test_console_silent_tls_connections_are_bounded(
         lt.run(console.close())
         lt.run(srv.close())
     assert lt.call(lambda: len(console._handshaking)) == 0
+
+
+def test_console_browser_mid_handshake_outlives_a_flood_of_silent_sockets(
+    lt: LoopThread, tls_files: tuple[Path, Path, Path]
+) -> None:
+    """A browser that has sent its ClientHello and waits for the reply is not the one reset
+    when silent sockets from its own address fill the console's handshakes past the cap
+    (the oldest would be it): it then gets the page."""
+    cert, key, _ = tls_files
+    ctx = server_ssl_context(str(cert), str(key))
+    srv = ControlServer(
+        ServerConfig(port=next(PORTS)), RecordingBackend(), token=TOKEN.encode(), ssl_context=ctx
+    )
+    lt.run(srv.start())
+    console = ConsoleServer(
+        ConsoleConfig(enabled=True, port=next(PORTS), max_clients=1), srv, lambda: {},
+        ssl_context=ctx,
+    )  # fmt: skip
+    lt.run(console.start())
+    cap = 1 + CONNECTION_SLACK
+    socks: list[socket.socket] = []
+    browser = StalledTls(console.port, cert)
+    try:
+        time.sleep(0.2)  # the console has read the ClientHello and replied
+        socks = silent_connections(console.port, 40)
+        closed = [s for s in socks if closed_by_server(s, 0.5)]
+        assert len(closed) >= 40 + 1 - cap, (len(closed), cap)
+        browser.finish()
+        status = browser.first_line(
+            b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+        )
+        assert status.startswith(b"HTTP/1.1 200"), status
+    finally:
+        browser.sock.close()
+        for s in socks:
+            s.close()
+        lt.run(console.close())
+        lt.run(srv.close())
 
 
 def test_console_stalled_handshake_times_out(

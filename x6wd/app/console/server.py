@@ -47,7 +47,7 @@ from urllib.parse import urlsplit
 from aiohttp import WSMsgType, web
 
 from x6wd import __version__
-from x6wd.app.lineserver import reset
+from x6wd.app.lineserver import bytes_received, reset
 from x6wd.app.logview import LogView, html_page, render_html
 from x6wd.app.server import (
     SUPERSEDED_COMMANDS,
@@ -274,6 +274,11 @@ class _Handshake(asyncio.Protocol):
             handler.connection_made(tls)
 
 
+def _silent(transport: asyncio.Transport | None) -> bool:
+    """The peer has sent nothing since it connected (False when that cannot be told)."""
+    return transport is not None and bytes_received(transport) == 0
+
+
 class _TlsSite(web.TCPSite):
     """aiohttp's TCP site with TLS begun per connection once it is counted (_Handshake)."""
 
@@ -417,7 +422,12 @@ class ConsoleServer:
         self._handshaking[h] = None
         cap = self.config.max_clients + CONNECTION_SLACK
         while len(self._handshaking) > cap:
-            old = next(iter(self._handshaking))
+            # the oldest that has sent nothing (not even its ClientHello), else the oldest: a
+            # browser mid-handshake outlives a flood of silent sockets from its own address
+            old = next(
+                (o for o in self._handshaking if o is not h and _silent(o.transport)),
+                next(iter(self._handshaking)),
+            )
             self._handshaking.pop(old, None)
             self.connections_closed += 1
             if old.transport is not None:
