@@ -29,6 +29,8 @@ import logging
 import math
 import os
 import select
+import socket
+import struct
 import threading
 import time
 from collections import deque
@@ -511,6 +513,14 @@ class SerialMotorLink:
                 discard()
             except Exception:  # a port that went away: nothing left to send anyway
                 log.debug("discarding the broken motor port's output failed", exc_info=True)
+        sock = getattr(self.port, "_socket", None)  # pyserial's socket:// port
+        if isinstance(sock, socket.socket):
+            # its reset_output_buffer does nothing and its close sends what is queued: a
+            # zero linger resets the connection instead, and the queued drives die with it
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            except OSError:
+                log.debug("setting the motor socket's zero linger failed", exc_info=True)
         try:
             self.port.close()
         except Exception:

@@ -478,6 +478,12 @@ def _plugin(dev: DeviceUrl, devices: Devices | None) -> tuple[ModuleType, Any]:
     return handler, devices.backend(dev.scheme)
 
 
+MOTOR_WRITE_TIMEOUT_S = 1.0
+"""The least time (s) a motor command's write may take before the port counts as stalled: a
+few bytes go into the driver's buffer at once, so only a line that stopped takes longer
+(after the board's own watchdog, 0.5 s by default, has stopped the wheels)."""
+
+
 def _serial_port(dev: DeviceUrl, timeout_s: float, write_timeout_s: float | None = None) -> Any:
     """Open ``dev``'s serial (or TCP) port with read timeout ``timeout_s`` (s).
     ``write_timeout_s`` (s, None: a write may block for ever): a write that cannot finish in
@@ -594,11 +600,13 @@ def open_motors(
     if dev.scheme == "log":
         return LogMotorLink()
     timeout_s = min(dev.options["ack_timeout"], 0.02)
-    # A command's write may take as long as its acknowledgement may (a line of a few bytes
-    # goes into the driver's buffer at once): a write that cannot is a port fault the link
-    # handles (lost, the port closed and reopened with backoff; the board's watchdog stops
-    # the motors), never a writer blocked for ever under the control lock.
-    write_timeout_s = dev.options["ack_timeout"]
+    # A write that cannot finish in MOTOR_WRITE_TIMEOUT_S (or the acknowledgement's time, if
+    # longer) is a port fault the link handles (lost, the port closed and reopened with
+    # backoff; the board's watchdog stops the motors), never a writer blocked for ever under
+    # the control lock. Not the 0.1 s acknowledgement time itself: pyserial times the whole
+    # os.write call, so a write the tty took at once but whose thread then waited for the
+    # GIL behind a long C call read as a timeout (2 of 10 in a review) and cut the link.
+    write_timeout_s = max(dev.options["ack_timeout"], MOTOR_WRITE_TIMEOUT_S)
     port = _serial_port(dev, timeout_s, write_timeout_s)
     return SerialMotorLink(
         port,

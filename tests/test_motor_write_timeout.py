@@ -13,14 +13,18 @@ comes back.
 
 from __future__ import annotations
 
+import contextlib
+import socket
 import termios
 import threading
 import time
 from typing import Any
 
+import pytest
 import serial
 
 from drivers import registry
+from drivers.registry import MOTOR_WRITE_TIMEOUT_S
 from drivers.motors import SerialMotorLink
 from tests.test_daemon import BoardOnPty, wait_for
 from tests.test_safety_daemon import Calls
@@ -59,7 +63,7 @@ def test_a_stalled_motor_port_fails_the_write_in_time_and_the_link_recovers() ->
                 t.join(3.0)
                 assert not t.is_alive(), "the write still blocks after 3 s"
                 assert "raised" not in out, out
-                assert out["ok"] is False and out["took_s"] < 1.0
+                assert out["ok"] is False and out["took_s"] < MOTOR_WRITE_TIMEOUT_S + 1.0
                 assert not link.healthy and link.counters.write_errors >= 1
                 health = link.health
                 assert health.state in ("disconnected", "reconnecting")
@@ -77,7 +81,8 @@ def test_a_stalled_motor_port_fails_the_write_in_time_and_the_link_recovers() ->
             wait_for(lambda: link.send(MotorCommand(time.monotonic(), 0.0, 0.0, "hold")), 10,
                      "the link back")  # fmt: skip
             assert link.healthy and link.counters.reopens >= 1
-            assert link.port.write_timeout == ACK_S  # a write may take as long as its ack
+            # a write may take as long as its ack, and never less than the floor
+            assert link.port.write_timeout == max(ACK_S, MOTOR_WRITE_TIMEOUT_S)
             assert board.board.left_pct == 0 and board.board.right_pct == 0
         finally:
             link.close()
@@ -209,3 +214,35 @@ def test_a_drive_a_stuck_adapter_still_holds_is_discarded_when_the_link_drops_th
         finally:
             adapter.flow()
             link.close()
+
+
+def test_a_dropped_tcp_motor_port_does_not_deliver_its_queued_drives() -> None:
+    """pyserial's socket:// port ignores reset_output_buffer and its close sends what is
+    queued: a board (or serial bridge) that stalled and then read again acted on every stale
+    drive (a review: 124,328 queued commands delivered after the drop, the last a 40/40
+    drive). The drop resets the connection instead."""
+    srv = socket.socket()
+    srv.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+    url = f"socket://127.0.0.1:{srv.getsockname()[1]}"
+    port = serial.serial_for_url(url, timeout=0.02, write_timeout=0.1)
+    conn, _ = srv.accept()
+    try:
+        link = SerialMotorLink(port, ack_timeout_s=ACK_S, watchdog_ms=500,
+                               reopen=lambda: serial.serial_for_url(url, timeout=0.02))  # fmt: skip
+        sent = 0
+        with pytest.raises(serial.SerialTimeoutException):
+            for sent in range(1, 10_000_000):  # the board stopped reading: the queue fills
+                port.write(b"D 40 40\n")
+        link._drop_port()
+        got = 0
+        conn.settimeout(2.0)
+        with contextlib.suppress(ConnectionResetError, TimeoutError):
+            while data := conn.recv(65536):
+                got += data.count(b"\n")
+        # what sat in the board's own receive buffer may arrive; the sender's queue may not
+        assert got < sent // 2, f"{got} of {sent} queued drives reached the board after the drop"
+    finally:
+        conn.close()
+        srv.close()

@@ -429,3 +429,27 @@ def test_the_unit_pins_open_files_and_the_default_bounds_stay_well_below() -> No
         + 2 * (console.max_clients + CONNECTION_SLACK) + 128  # aiohttp's backlog
     )  # fmt: skip
     assert bound < 1024 // 2, bound
+
+
+def test_the_tls_upgrade_finds_the_stream_protocol_hook_of_this_interpreter() -> None:
+    # the server upgrades a pending connection itself and then rebinds the stream protocol
+    # through a private hook that newer CPython renamed (_replace_writer ->
+    # _replace_transport); if neither exists, every TLS client fails after its handshake
+    import asyncio
+
+    from x6wd.app.server import _rebind_protocol
+
+    assert hasattr(asyncio.StreamReaderProtocol, "_replace_transport") or hasattr(
+        asyncio.StreamReaderProtocol, "_replace_writer"
+    )
+
+    class _NewStyle:  # the newer interpreters' protocol
+        def __init__(self) -> None:
+            self.got: object = None
+
+        def _replace_transport(self, transport: object) -> None:
+            self.got = transport
+
+    p, tls = _NewStyle(), object()
+    _rebind_protocol(p, None, tls)  # type: ignore[arg-type]
+    assert p.got is tls

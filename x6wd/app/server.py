@@ -271,6 +271,20 @@ TLS_RECORD_B = 16_384 + 256
 read from the socket but not yet decrypted, which no buffer size shows."""
 
 
+def _rebind_protocol(
+    protocol: asyncio.BaseProtocol, writer: asyncio.StreamWriter, tls: asyncio.BaseTransport
+) -> None:
+    """Point a stream's protocol at its new TLS transport, as ``StreamWriter.start_tls``
+    does: through ``_replace_transport(transport)`` where the interpreter has it (newer
+    CPython renamed the method), else ``_replace_writer(writer)`` (3.11). Without either,
+    every TLS connection would end in an AttributeError after its handshake."""
+    replace = getattr(protocol, "_replace_transport", None)
+    if replace is not None:
+        replace(tls)
+    else:
+        protocol._replace_writer(writer)  # type: ignore[attr-defined]
+
+
 def _arrived_b(c: _Client) -> int:
     """Bytes of a client's input that have reached this host (its position in the input):
     a detached client's messages received; a TCP client's bytes handed to its stream reader
@@ -606,7 +620,7 @@ class ControlServer(LineServer[_Client]):
         # itself: a transport closed mid-handshake leaves its writer with none (an
         # AttributeError, and another in the writer's __del__)
         c.writer._transport = tls  # type: ignore[attr-defined]
-        protocol._replace_writer(c.writer)  # type: ignore[attr-defined]
+        _rebind_protocol(protocol, c.writer, tls)
         return True
 
     async def close(self, message: str = SHUTDOWN_MESSAGE) -> None:
