@@ -17,14 +17,21 @@ commands. Data flow::
 
 Safety: the controller holds (motors stopped) on stale input, lost motor link and dead-man
 expiry; the daemon additionally stops the motors on any exit path. Every signal whose default
-action would kill the process stops the motors and shuts down cleanly (:func:`stop_signals`):
+action would kill the process (but the faults' own: SIGABRT, below, SIGSEGV ...) stops the
+motors and shuts down cleanly (:func:`stop_signals`; never lost, however long the loop was
+stalled: :class:`_SignalLoop`):
 SIGTERM, SIGINT and SIGHUP (a closed terminal) exit 0; the others (SIGQUIT, SIGUSR1 ...,
 which nothing should send x6wd) exit 1, so systemd restarts us. An unexpected exception in
 any thread, the motor thread's included, stops the motors and exits 1. The recording ends
 with the stop (a motor record 0/0, the change to IDLE) and a ``shutdown`` event naming the
 cause and the exit code, so a clean exit is told apart from a crash or a power cut. The
-recorder never holds up the exit: its thread gets :data:`RECORDER_CLOSE_S` to drain, then is
-left behind.
+recorder never holds up the motors' stop or the shutdown: its thread gets
+:data:`RECORDER_CLOSE_S` to drain, then is left behind; a thread stuck inside the kernel on a
+hung disk (a frozen file system, a dead SD card: uninterruptible sleep) keeps the process
+from ending until the disk returns (its other threads are gone, the motors long stopped).
+SIGABRT is not handled: it is systemd's watchdog signal, sent when the control loop has not
+fed the watchdog, i.e. when it is hung and could not run a shutdown; the default action
+(a core dump) stays, and the motor board's watchdog stops the wheels.
 """
 
 from __future__ import annotations
@@ -123,7 +130,9 @@ decision holds it for about a millisecond); a thread stuck holding it does not h
 motors' stop, whose record is then written without the controller."""
 RECORDER_CLOSE_S = 3.0
 """At exit, how long (s) the recorder thread may take to drain its queue and close the file;
-a thread stuck in the file system is left behind (the process exits all the same)."""
+a thread stuck in the file system is left behind: the shutdown goes on (the motors stopped
+before), but a thread asleep in the kernel on a hung disk keeps the process from ending until
+the disk returns (docs/install.md, "Signals")."""
 
 
 distance_m = great_circle_m  # the geofence's distance (m), kept under its old name
@@ -602,7 +611,11 @@ class _RecorderWorker:
         max_queued: int = RECORDER_QUEUE_MAX,
         stall_s: float = RECORDER_STALL_S,
         log_every_s: float = RECORDER_LOG_S,
+        start_error: str = "",
     ) -> None:
+        """``start_error``: the recorder could not open its first part (a read-only or full
+        disk at start-up, already logged): it starts failing, and its first failure is not
+        logged again."""
         self.recorder = recorder
         # (recorder method, its arguments), or None: drain and close
         self._q: queue.SimpleQueue[tuple[str, tuple[Any, ...]] | None] = queue.SimpleQueue()
@@ -611,8 +624,12 @@ class _RecorderWorker:
         self.log_every_s = log_every_s
         self.errors = 0  # recorder calls that raised
         self.queue_dropped = 0  # records dropped because the queue was full
-        self.last_error = ""
-        self._failed_last = False  # the latest call raised
+        self.last_error = one_line(start_error)
+        self._failed_last = bool(start_error)  # the latest call raised
+        self._first_logged = bool(start_error)  # the first failure's line is out
+        # records dropped at a full queue since the writer last caught up: (time.monotonic()
+        # of the first, queue_dropped before it), for the recording's gap event
+        self._drop_gap: tuple[float, int] | None = None
         self._call = ""  # the recorder method in progress
         self._t_call: float | None = None  # time.monotonic() it started (None: idle)
         now = time.monotonic()
@@ -633,8 +650,10 @@ class _RecorderWorker:
 
     def _put(self, method: str, args: tuple[Any, ...]) -> None:
         if self._q.qsize() >= self.max_queued:
-            self.queue_dropped += 1
             now = time.monotonic()
+            if self._drop_gap is None:
+                self._drop_gap = (now, self.queue_dropped)
+            self.queue_dropped += 1
             if now - self._t_drop_log >= self.log_every_s:  # at most once a minute
                 t = self._t_call
                 stuck = f" for {now - t:.0f} s in {self._call}" if t is not None else ""
@@ -671,6 +690,8 @@ class _RecorderWorker:
                 self._failed_last = False
             finally:
                 self._t_call = None
+            if self._drop_gap is not None and self._q.qsize() <= self.max_queued // 2:
+                self._note_drops()
             self._summary()
         # closed here, in this thread: a file system that hangs holds up only this thread
         self._call, self._t_call = "close", time.monotonic()
@@ -680,11 +701,38 @@ class _RecorderWorker:
             log.exception("closing the recording failed")
         self._t_call = None
 
+    def _note_drops(self) -> None:
+        """The writer caught up after records were dropped at the full queue: the recording
+        gets a gap event saying so (the recorder's own gaps are its own: a failing disk)."""
+        gap, self._drop_gap = self._drop_gap, None
+        if gap is None:
+            return
+        from x6wd.core.recorder import GAP_EVENT
+
+        now = time.monotonic()
+        try:
+            self.recorder.record(
+                "event",
+                {
+                    "event": GAP_EVENT,
+                    "from_t_mono": gap[0],
+                    "to_t_mono": now,
+                    "duration_s": round(now - gap[0], 3),
+                    "records_lost": self.queue_dropped - gap[1],
+                    "error": f"recorder queue full ({self.max_queued} records): the writer "
+                    "was stuck",
+                },
+                now,
+            )
+        except Exception as exc:
+            self._failed(exc)
+
     def _failed(self, exc: Exception) -> None:
         self.errors += 1
         self.last_error = one_line(str(exc))
         self._failed_last = True
-        if self.errors == 1:  # then summaries (_summary), never one line per record
+        if not self._first_logged:  # then summaries (_summary), never one line per record
+            self._first_logged = True
             if isinstance(exc, (OSError, DeviceUnavailable)):  # a full, read-only, gone disk
                 log.error("recorder write failed: %s", self.last_error)
             else:  # a bug: its traceback
@@ -745,7 +793,7 @@ class _RecorderWorker:
 
     def close(self, timeout_s: float = RECORDER_CLOSE_S) -> bool:
         """Drain, flush to disk and close, waiting ``timeout_s`` (s) at most; False (logged)
-        when the writer is stuck: its queue is then lost, the process may exit all the same
+        when the writer is stuck: its queue is then lost, the shutdown goes on
         (idempotent)."""
         if self.thread.is_alive():
             self._q.put(None)
@@ -873,6 +921,9 @@ class Daemon:
         self._t_operator = -math.inf  # latest operator request handed to the controller (s)
         self.t_start = time.monotonic()
         self._stop_signal: tuple[str, int] | None = None  # (name, exit code) of the first
+        # why the recorder dir cannot take a file now, though it is right (read-only, full):
+        # the start-up goes on with the recorder failing ("" when it can)
+        self._recorder_fault = ""
 
     @property
     def last_telemetry(self) -> Telemetry | None:
@@ -1075,7 +1126,9 @@ class Daemon:
             )
             self._gpsd_wmm = decl is None
         if cfg.recorder.enabled:
-            problem = _dir_problem(Path(cfg.recorder.dir))
+            # a disk that is right but read-only or full now is no configuration error: the
+            # daemon starts with the recorder failing (_open_recorder), as it runs on
+            problem, self._recorder_fault = _dir_check(Path(cfg.recorder.dir))
             if problem:
                 raise ConfigError(f"recorder.dir: {cfg.recorder.dir!r}: {problem}")
             if cfg.recorder.max_file_mb > cfg.recorder.max_total_mb:
@@ -1135,7 +1188,7 @@ class Daemon:
         rc = self.config.recorder
         if not rc.enabled:
             return
-        from x6wd.core.recorder import MB, Recorder, Retention
+        from x6wd.core.recorder import MB, REOPEN_BACKOFF_S, Recorder, Retention
 
         retention = Retention(
             max_total_bytes=int(rc.max_total_mb * MB), min_free_bytes=int(rc.min_free_mb * MB)
@@ -1146,7 +1199,22 @@ class Daemon:
             fsync_interval_s=RECORDER_FSYNC_S,
             max_bytes=max(1, int(rc.max_file_mb * MB)),
             retention=retention,
+            start_failing=True,  # a read-only or full disk: a runtime fault, not a stop
+            gap_events=True,  # the recording says where it lost records
         )
+        if rec.state == "failing":
+            why = self._recorder_fault or rec.last_error
+            # one line naming the dir and the errno; the recorder's summaries follow
+            log.error(
+                "recorder.dir: %r: %s: starting without recording, the recorder retries "
+                "(%g s, then at most every %g s) and the recording begins when the disk "
+                "takes it (status: recorder failing)",
+                rc.dir,
+                why,
+                *REOPEN_BACKOFF_S,
+            )
+            self.recorder = _RecorderWorker(rec, start_error=why)
+            return
         self.recorder = _RecorderWorker(rec)
         log.info("recording to %s", rec.path)
 
@@ -1239,7 +1307,7 @@ class Daemon:
             self.recorder.put_event(
                 "shutdown", time.monotonic(), cause=cause, exit_code=exit_code, reason=reason
             )
-            # bounded: a stuck file system never holds up the exit
+            # bounded: a stuck file system does not hold up the shutdown
             await asyncio.to_thread(self.recorder.close)
         if self.devices is not None:  # last: the simulated world outlives every device
             await asyncio.to_thread(self.devices.close)
@@ -1908,32 +1976,59 @@ def stop_signals() -> dict[signal.Signals, int]:
 
 
 def _dir_problem(directory: Path) -> str:
-    """Why recordings cannot be created in ``directory`` ("" when they can), checked without
-    leaving anything behind: it is (or its nearest existing ancestor is) a directory this user
-    may write and enter, and a file can be created there (an unnamed temporary one: the
-    permission bits say yes to root everywhere, also in /proc, and a network or FUSE file
-    system may refuse what they allow)."""
+    """Why recordings cannot be created in ``directory`` as configured ("" when they can, or
+    when only the disk's state keeps them out now): see :func:`_dir_check`."""
+    return _dir_check(directory)[0]
+
+
+def _errno_text(exc: OSError) -> str:
+    """``Read-only file system (EROFS)``: the error's text and its errno's name."""
+    name = errno.errorcode.get(exc.errno or 0, "")
+    text = exc.strerror or str(exc)
+    return f"{text} ({name})" if name else text
+
+
+def _dir_check(directory: Path) -> tuple[str, str]:
+    """(problem, fault) of a recorder directory, checked without leaving anything behind:
+    it is (or its nearest existing ancestor is) a directory where this user can create a
+    file (an unnamed temporary one: the permission bits say yes to root everywhere, also in
+    /proc, and a network or FUSE file system may refuse what they allow).
+
+    ``problem`` (a configuration error, exit 2): a dangling link, not a directory, no
+    permission (EACCES, EPERM), a file system that takes no files, anything unexpected.
+    ``fault`` (the daemon starts, the recorder failing until the disk takes files): the
+    directory exists and is right, but its file system is read-only (an SD card's error
+    remounted it) or full (no space, no inodes, over quota): :data:`RUNTIME_ERRNOS`. Both
+    name the errno. A directory still to be created on such a disk is a problem (it is not
+    there to be right)."""
+    from x6wd.core.recorder import RUNTIME_ERRNOS
+
     d = directory if directory.is_absolute() else Path.cwd() / directory
     probe = d
     try:
         while not probe.exists():
             if probe.is_symlink():
-                return f"{probe} is a dangling symbolic link"
+                return f"{probe} is a dangling symbolic link", ""
             probe = probe.parent
         if not probe.is_dir():
-            return f"{probe} is not a directory"
+            return f"{probe} is not a directory", ""
     except OSError as exc:
-        return f"{probe}: {exc.strerror or exc}"
-    if not os.access(probe, os.W_OK | os.X_OK):
-        verb = "write in" if probe == d else f"create {d} in"
-        return f"this user may not {verb} {probe}"
+        return f"{probe}: {_errno_text(exc)}", ""
     try:
         with tempfile.TemporaryFile(dir=probe, prefix=".x6wd-probe-"):
             pass
-    except OSError as exc:  # procfs says ENOENT, which would read as "no such directory"
-        why = "its file system takes no files" if exc.errno == errno.ENOENT else exc.strerror
-        return f"cannot create a file in {probe}: {why or exc}"
-    return ""
+    except OSError as exc:
+        why = _errno_text(exc)
+        if exc.errno in (errno.EACCES, errno.EPERM):
+            verb = "write in" if probe == d else f"create {d} in"
+            return f"this user may not {verb} {probe} ({why})", ""
+        if exc.errno == errno.ENOENT:  # procfs: it would read as "no such directory"
+            return f"cannot create a file in {probe}: its file system takes no files", ""
+        if probe == d and exc.errno in RUNTIME_ERRNOS:
+            return "", f"cannot create a file in {probe}: {why}"
+        what = "a file in" if probe == d else f"{d} in"
+        return f"cannot create {what} {probe}: {why}", ""
+    return "", ""
 
 
 def _gps_device(url: str, rate_hz: float, world: Any = None) -> tuple[str, int | None, float]:
@@ -2009,14 +2104,82 @@ def main(args: argparse.Namespace) -> int:
     daemon = Daemon(config, notifier=notifier, log_tail=tail)
 
     async def amain() -> int:
-        loop = asyncio.get_running_loop()
-        for sig, code in stop_signals().items():
-            if sig == signal.SIGHUP and signal.getsignal(sig) == signal.SIG_IGN:
-                # started under nohup: the user asked it to outlive the terminal, and it does
-                # (still in control); every other inherited SIG_IGN is overridden as before
-                log.info("SIGHUP ignored (nohup): x6wd keeps running when its terminal closes")
-                continue
-            loop.add_signal_handler(sig, daemon.stop_on_signal, sig, code)
-        return await daemon.run()
+        # asyncio's add_signal_handler, but one that no stalled loop can make lose a signal
+        with _SignalLoop(asyncio.get_running_loop()) as loop:
+            for sig, code in stop_signals().items():
+                if sig == signal.SIGHUP and signal.getsignal(sig) == signal.SIG_IGN:
+                    # started under nohup: the user asked it to outlive the terminal, and it
+                    # does (still in control); every other inherited SIG_IGN is overridden
+                    log.info("SIGHUP ignored (nohup): x6wd keeps running when its terminal closes")
+                    continue
+                loop.add_signal_handler(sig, daemon.stop_on_signal, sig, code)
+            return await daemon.run()
 
     return asyncio.run(amain())
+
+
+class _SignalLoop:
+    """``loop.add_signal_handler`` for the daemon's stop signals, as asyncio's (``callback(
+    *args)`` runs on ``loop``), but never losing a signal (a context manager: the previous
+    handlers are back on exit).
+
+    asyncio's handler only writes the signal's number to the loop's self-pipe, which the
+    device threads' ``call_soon_threadsafe`` calls fill while the loop is stalled (a full
+    stderr pipe, a stuck logging handler): the number was then dropped, and the SIGTERM
+    lost. This one is a Python-level handler (``signal.signal``): it runs in the main
+    thread (the loop's) as soon as that runs Python code again (a blocking write the signal
+    interrupts is retried after it), and appends the callback to the loop's ready queue,
+    which no full pipe can refuse: the loop runs it as soon as it turns again. A wake-up fd
+    of its own (written by nothing else, so never full of anything but signals) wakes a loop
+    waiting in select when the signal went to another thread."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self._callbacks: dict[int, tuple[Callable[..., Any], tuple[Any, ...]]] = {}
+        self._old: dict[int, Any] = {}
+        self._wake: tuple[socket.socket, socket.socket] | None = None
+        self._old_fd = -1
+
+    def __enter__(self) -> _SignalLoop:
+        rsock, wsock = socket.socketpair()
+        rsock.setblocking(False)
+        wsock.setblocking(False)
+        self._wake = (rsock, wsock)
+        self._old_fd = signal.set_wakeup_fd(wsock.fileno(), warn_on_full_buffer=False)
+        self.loop.add_reader(rsock.fileno(), self._drain)
+        return self
+
+    def add_signal_handler(self, sig: int, callback: Callable[..., Any], *args: Any) -> None:
+        """On signal ``sig``, ``callback(*args)`` runs on the loop."""
+        self._callbacks[int(sig)] = (callback, args)
+        old = signal.signal(sig, self._handle)
+        self._old.setdefault(int(sig), old)
+
+    def _handle(self, signum: int, _frame: Any) -> None:
+        # In the main thread, between any two bytecodes: nothing here may take a lock (the
+        # loop, a logging handler may hold it); the stop and its log line run on the loop.
+        entry = self._callbacks.get(signum)
+        if entry is None:  # being restored (__exit__)
+            return
+        with contextlib.suppress(RuntimeError):  # the loop closed: the daemon is stopping
+            self.loop.call_soon_threadsafe(entry[0], *entry[1])
+
+    def _drain(self) -> None:
+        assert self._wake is not None
+        with contextlib.suppress(OSError):
+            while self._wake[0].recv(4096):
+                pass
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, old in self._old.items():
+            if old is not None:  # None: a handler not set from Python, nothing to restore
+                signal.signal(sig, old)
+        self._old.clear()
+        self._callbacks.clear()
+        if self._wake is not None:
+            signal.set_wakeup_fd(self._old_fd)
+            with contextlib.suppress(Exception):
+                self.loop.remove_reader(self._wake[0].fileno())
+            for sock in self._wake:
+                sock.close()
+            self._wake = None

@@ -49,6 +49,8 @@ from x6wd import __version__
 from x6wd.core.errors import DeviceUnavailable, ParseError, X6wdError
 from x6wd.core.geodesy import wrap360, wrap_deg
 from x6wd.core.recorder import (
+    END_EVENTS,
+    GAP_EVENT,
     ReadStats,
     Record,
     decode_record,
@@ -125,6 +127,35 @@ class Interval:
 
 
 @dataclass
+class RecordingGap:
+    """A hole in a recording: the recorder lost ``records_lost`` records (a full or
+    read-only disk, a stuck writer) from ``t0_s`` to ``t1_s`` (s since the log's start) and
+    went on; its gap event says so (:data:`x6wd.core.recorder.GAP_EVENT`)."""
+
+    t0_s: float
+    t1_s: float
+    records_lost: int
+    error: str = ""
+
+    def describe(self) -> str:
+        """In words, as the page's facts and ``x6wd plot`` say it."""
+        text = (
+            f"t={self.t0_s:.1f} s to t={self.t1_s:.1f} s ({self.t1_s - self.t0_s:.1f} s, "
+            f"{self.records_lost} records lost"
+        )
+        return text + (f": {self.error})" if self.error else ")")
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain dict for the page's embedded data."""
+        return {
+            "t0_s": round(self.t0_s, 3),
+            "t1_s": round(self.t1_s, 3),
+            "records_lost": self.records_lost,
+            "error": self.error,
+        }
+
+
+@dataclass
 class TimeJump:
     """A place where a log's own time goes back (or far forward): the segments either side
     are drawn in file order, one epoch apart, and the place marked."""
@@ -191,6 +222,12 @@ class LogView:
     missing: dict[str, str] = field(default_factory=dict)  # panel id -> why it is empty
     counts: dict[str, int] = field(default_factory=dict)
     jumps: list[TimeJump] = field(default_factory=list)  # the log's time jumps
+    # the recording's gaps (the recorder lost records: a full or read-only disk, a stuck
+    # writer); drawn in ``faults``, lane "recorder"
+    gaps: list[RecordingGap] = field(default_factory=list)
+    # a recording whose last record is not the daemon's shutdown event (or the simulator's
+    # end): a crash, kill -9 or a power cut; None for an NMEA log
+    cut_short: bool | None = None
 
     def time_range(self) -> tuple[float, float]:
         """The time axis: 0 to the duration, widened to any time drawn outside it (so that
@@ -227,6 +264,8 @@ class LogView:
             "missing": self.missing,
             "counts": self.counts,
             "time_jumps": [j.to_json() for j in self.jumps],
+            "recording_gaps": [g.to_json() for g in self.gaps],
+            "cut_short": self.cut_short,
         }
 
 
@@ -385,6 +424,9 @@ class _Raw:
     nonfinite: int = 0  # positions that are NaN or infinite: skipped
     states: list[tuple[float, str, str, str]] = field(default_factory=list)  # t, old, new, why
     device_events: list[tuple[float, str, str, str]] = field(default_factory=list)
+    # the recorder's gap events: (from t, to t, records lost, why), on the time axis
+    gaps: list[tuple[float, float, int, str]] = field(default_factory=list)
+    last_event: str = ""  # the event name of the last record read ("" for any other record)
     hold_marks: _HoldMarks = field(default_factory=_HoldMarks)
     t_first: float | None = None
     t_last: float = 0.0
@@ -737,12 +779,16 @@ def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadS
                 stats.bad_lines += 1
                 continue
             stats.records += 1
+            raw.last_event = ""
             at(t_own, part, number, line)
             continue
         obj = _decode_line(line, stats)
+        raw.last_event = ""
         if obj is None:
             continue
         t_own, kind, d = float(obj["t_mono"]), obj["type"], obj["data"]
+        if kind == "event" and isinstance(d.get("event"), str):
+            raw.last_event = d["event"]
         if raw.t_first is None:
             utc = _parse_utc(obj.get("t_utc"))
             if utc is not None:
@@ -791,10 +837,21 @@ def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadS
             raw.device_events.append(
                 (t, str(d.get("device", "")), str(d.get("new", "")), str(d.get("message", "")))
             )
+        elif kind == "event" and d.get("event") == GAP_EVENT:
+            # written when the recording goes on: it ends here, and began its length before
+            t0, t1, lost = d.get("from_t_mono"), d.get("to_t_mono", t_own), d.get("records_lost")
+            length = t1 - t0 if _number(t0) and _number(t1) and t1 >= t0 else 0.0
+            n = lost if _number(lost) else 0
+            raw.gaps.append((t - length, t, int(n), str(d.get("error", ""))))
     if side is not None:
         side.close()
         raw.take_gps(side.raw)
     return stats, bad_records, unknown
+
+
+def _number(v: Any) -> bool:
+    """A finite JSON number (not a flag)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -875,6 +932,7 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
             "bad_records": bad_records,
             "records_with_unknown_fields": unknown,
         }
+        view.cut_short = raw.last_event not in END_EVENTS
     else:
         decoding = _Decoding(raw, _FileOrder(view.jumps))
         for t_s, data in nmea_file_chunks(path, rate_hz):
@@ -1118,6 +1176,12 @@ def _timelines(view: LogView, raw: _Raw, t0: float) -> None:
         named = _device_of(h.label)
         if named is not None and named not in reported:
             view.faults.append(Interval(named, h.t0_s, h.t1_s, h.label))
+    # the recording's own holes: what happened then is not in it
+    for t0_s, t1_s, lost, why in raw.gaps:
+        gap = RecordingGap(t0_s - t0, t1_s - t0, lost, why)
+        view.gaps.append(gap)
+        detail = f"{lost} records lost" + (f": {why}" if why else "")
+        view.faults.append(Interval("recorder", gap.t0_s, gap.t1_s, "gap", detail))
     if not view.faults:
         view.missing["faults"] = "no device faults"
 
@@ -1443,7 +1507,7 @@ TITLES = {
     "heading": "Heading (degrees, 0-360)",
     "states": "Mode and navigation state",
     "holds": "Holds (the controller's reason)",
-    "faults": "Device faults",
+    "faults": "Device faults (and the recording's gaps)",
 }
 
 _CSS = (
@@ -1498,6 +1562,23 @@ def panel_svgs(view: LogView) -> dict[str, str]:
     return out
 
 
+def gaps_note(view: LogView, most: int = 3) -> str:
+    """What the page and ``x6wd plot`` say of a recording's gaps ("" when it has none)."""
+    if not view.gaps:
+        return ""
+    n, lost = len(view.gaps), sum(g.records_lost for g in view.gaps)
+    said = "; ".join(g.describe() for g in view.gaps[:most])
+    more = f"; and {n - most} more" if n > most else ""
+    return f"{n} gap{'s' if n > 1 else ''}, {lost} records lost: {said}{more}"
+
+
+CUT_SHORT_NOTE = (
+    "cut short: its last record is not the daemon's shutdown event (a crash, kill -9 or a "
+    "power cut; or a recording older than that event)"
+)
+"""What the page, ``x6wd plot`` and ``x6wd replay`` say of a recording that was cut short."""
+
+
 def jumps_note(view: LogView, most: int = 3) -> str:
     """What the page and ``x6wd plot`` say of a log's time jumps ("" when it has none)."""
     if not view.jumps:
@@ -1521,6 +1602,10 @@ def html_page(view: LogView) -> str:
     ]
     if view.jumps:
         facts.append((f"time jumps ({len(view.jumps)})", jumps_note(view)))
+    if view.gaps:
+        facts.append((f"recording gaps ({len(view.gaps)})", gaps_note(view)))
+    if view.cut_short:
+        facts.append(("end", CUT_SHORT_NOTE))
     facts += [(k.replace("_", " "), str(v)) for k, v in view.counts.items()]
     rows = "".join(f"<tr><td>{_esc(k)}</td><td>{_esc(v)}</td></tr>" for k, v in facts)
     sections = []

@@ -15,6 +15,7 @@ import numpy as np
 
 from x6wd.app.logview import (
     COLORS,
+    CUT_SHORT_NOTE,
     JUMP_COLOR,
     LOST_COUNTS,
     STATE_COLORS,
@@ -22,6 +23,7 @@ from x6wd.app.logview import (
     LogView,
     broken_at,
     fault_lanes,
+    gaps_note,
     html_page,
     jumps_note,
     load,
@@ -229,6 +231,10 @@ def main(args: argparse.Namespace) -> int:
         print(f"x6wd plot: the {pid} panel is empty: {why}", file=sys.stderr)
     if view.jumps:
         print(f"x6wd plot: {src}: the log's time jumps: {jumps_note(view)}", file=sys.stderr)
+    if view.gaps:  # the recorder lost records there: nothing of that time is in the file
+        print(f"x6wd plot: {src}: recording gaps: {gaps_note(view)}", file=sys.stderr)
+    if view.cut_short:
+        print(f"x6wd plot: {src}: {CUT_SHORT_NOTE}", file=sys.stderr)
     if n := view.counts.get("records_with_unknown_fields"):
         print(
             f"x6wd plot: {src}: {n} records with fields this version does not know"

@@ -162,6 +162,16 @@ def replay_file(
         counts["truncated_lines"] = stats.truncated
         counts["bad_lines"] = stats.bad_lines
     err.write(" ".join(f"{k}={v}" for k, v in counts.items()) + "\n")
+    if recording and stats.gaps:
+        err.write(
+            f"x6wd replay: {path}: {stats.gaps} recording gap{'s' if stats.gaps > 1 else ''}:"
+            f" {stats.gap_records_lost} records lost (the recorder's disk failed or stalled)\n"
+        )
+    if recording and stats.cut_short:
+        err.write(
+            f"x6wd replay: {path}: cut short: its last record is not the daemon's shutdown"
+            " event (a crash, kill -9 or a power cut; or a recording older than that event)\n"
+        )
     # not a log at all (random bytes, a mission file, junk lines): an error, not an empty
     # replay; an empty file is no error (empty in, empty out)
     what = nothing_decoded(counts["sentences"], counts["ubx_frames"], stats, size)

@@ -33,6 +33,10 @@ reopening the same part (a record cut off by the failure then ends on its own li
 readers lose only that record), a failed rotation by opening the next part again. Every
 ``check_interval_s`` it also checks that the part it writes is still in its directory
 (removed with its directory, replaced by another file) and continues in a new part if not.
+With ``gap_events`` (the daemon's recorder) the records lost are not only counted: the
+first record written again is preceded by a :data:`GAP_EVENT` record naming the gap. With
+``start_failing`` a disk that is read-only or full at start (:data:`RUNTIME_ERRNOS`) is
+waited out the same way instead of raising.
 """
 
 from __future__ import annotations
@@ -90,6 +94,21 @@ RECORD_TYPES = frozenset(
     {"nmea", "attitude", "motor", "state", "telemetry", "sky", "fix", "event", "odometry"}
 )
 
+RUNTIME_ERRNOS = frozenset({errno.EROFS, errno.ENOSPC, errno.EDQUOT})
+"""Errors of a file system that is right but cannot take the recording now (remounted
+read-only after a card error, out of space or inodes, over quota): the recorder waits them
+out, also at start-up (``Recorder(start_failing=True)``), and the daemon is not stopped."""
+
+GAP_EVENT = "recording_gap"
+"""The ``event`` record written when records were lost and the recording continues:
+``from_t_mono``/``to_t_mono`` (the first record lost, the first written again),
+``from_utc``/``to_utc``, ``duration_s``, ``records_lost`` and the ``error``."""
+
+END_EVENTS = frozenset({"shutdown", "sim_end"})
+"""The ``event`` records a complete recording ends with: the daemon's ``shutdown`` (written
+on every exit under its own control), the simulator's ``sim_end``. A recording whose last
+record is anything else was cut short (a crash, ``kill -9``, a power cut)."""
+
 
 @dataclass(frozen=True, slots=True)
 class Record:
@@ -109,6 +128,17 @@ class ReadStats:
     truncated: int = 0  # an unterminated, undecodable last line (crash while writing)
     bad_lines: int = 0  # undecodable or malformed complete lines (skipped)
     blank_lines: int = 0
+    # the event name of the last record read ("" when it is not an event, or when a cut-off
+    # line came last): one of END_EVENTS when the recording was not cut short
+    last_event: str = ""
+    gaps: int = 0  # GAP_EVENT records: the recorder lost records and carried on
+    gap_records_lost: int = 0  # the records those say were lost
+
+    @property
+    def cut_short(self) -> bool:
+        """A recording read to its end (records in it) whose last record is not one of
+        :data:`END_EVENTS`: it ended in a crash, ``kill -9`` or a power cut."""
+        return self.records > 0 and self.last_event not in END_EVENTS
 
 
 class InputSize:
@@ -474,6 +504,16 @@ class Recorder:
     ``reopen_backoff_s``: (first, longest) wait in seconds between attempts to open a part
     after a failure (see the module docstring); ``check_interval_s``: how often (s) to check
     that the part is still in its directory (None: never).
+    ``start_failing``: a first part that cannot be opened for one of :data:`RUNTIME_ERRNOS`
+    (a read-only or full file system) does not raise: the recorder starts ``failing`` and
+    opens it later, as after a failed write (the daemon starts on such a disk); any other
+    error raises :class:`DeviceUnavailable` as without it.
+
+    ``gap_events``: records lost (a part that cannot be written or opened) make a gap: the
+    first record written after it is preceded by a :data:`GAP_EVENT` event naming the gap's
+    ends and the records lost, so the recording shows its holes (``x6wd plot`` and ``x6wd
+    replay`` report them; the daemon's recorder does this). Without it, as before: the gap
+    is only counted (``records_lost``) and logged.
     """
 
     def __init__(
@@ -488,6 +528,8 @@ class Recorder:
         buffer_bytes: int = 0,
         reopen_backoff_s: tuple[float, float] = REOPEN_BACKOFF_S,
         check_interval_s: float | None = CHECK_INTERVAL_S,
+        start_failing: bool = False,
+        gap_events: bool = False,
     ) -> None:
         if fsync_interval_s is not None and not fsync_interval_s >= 0:
             raise ValueError(f"fsync_interval_s must be >= 0 or None, got {fsync_interval_s}")
@@ -521,10 +563,22 @@ class Recorder:
         self.check_interval_s = check_interval_s
         self._closed = False
         self._recovering = False  # a part failed: say so when one opens again
-        self._file: Any = self._open(self.path)  # None while a part waits to be (re)opened
+        # the gap in progress: (t_mono, t_utc text of its first lost record, records_lost
+        # before it), None when nothing was lost since the last record written
+        self._gap: tuple[float, str, int] | None = None
+        self.gap_events = gap_events
         self._reopen_path: Path | None = None  # the part to open then
         self._backoff_s = reopen_backoff_s[0]
         self._t_retry = 0.0  # time.monotonic() of the next attempt to open it
+        self._file: Any = None  # None while a part waits to be (re)opened
+        try:
+            self._file = self._open(self.path)
+        except DeviceUnavailable as exc:
+            cause = exc.__cause__
+            if not (start_failing and isinstance(cause, OSError) and cause.errno in RUNTIME_ERRNOS):
+                raise
+            self._reopen_path = self.path
+            self._failed(str(exc), time.monotonic())
         now = time.monotonic()
         self._last_fsync = now
         self._t_check = now + (check_interval_s or 0.0)
@@ -721,7 +775,7 @@ class Recorder:
             now = time.monotonic()
             try:
                 if self._file is None and not self._reopen(now):
-                    self.records_lost += 1  # waiting out the back-off
+                    self._lose(t, utc_text)  # waiting out the back-off
                     return
                 if self.check_interval_s is not None and now >= self._t_check:
                     self._check_still_there(now)
@@ -733,12 +787,14 @@ class Recorder:
                     self._rotate(now)
                     rotated = True
             except DeviceUnavailable:
-                self.records_lost += 1
+                self._lose(t, utc_text)
                 raise
             try:
+                if self._gap is not None:  # records were lost: the recording says so first
+                    self._write_gap(t, utc_text)
                 self._write_all(blob)
             except OSError as exc:
-                self.records_lost += 1
+                self._lose(t, utc_text)
                 self._write_failed(exc, now)
                 raise DeviceUnavailable(f"recording {self.path}: write failed: {exc}") from exc
             self.records_written += 1
@@ -753,6 +809,38 @@ class Recorder:
                 self.enforce_retention()
             except OSError as exc:  # retention is housekeeping: recording goes on
                 log.warning("retention pass failed: %s", exc)
+
+    def _lose(self, t: float, utc_text: str) -> None:
+        """A record at ``t`` could not be written: counted, and the gap starts (if it has
+        not yet)."""
+        if self._gap is None and self.gap_events:
+            self._gap = (t, utc_text, self.records_lost)
+        self.records_lost += 1
+
+    def _write_gap(self, t: float, utc_text: str) -> None:
+        """Write the :data:`GAP_EVENT` record of the gap that ends with the record at ``t``
+        (raises OSError as a write does; the gap then goes on)."""
+        assert self._gap is not None
+        t0, utc0, lost0 = self._gap
+        body = _ENCODE(
+            {
+                "event": GAP_EVENT,
+                "from_t_mono": t0,
+                "to_t_mono": t,
+                "from_utc": utc0,
+                "to_utc": utc_text,
+                "duration_s": round(max(0.0, t - t0), 3),
+                "records_lost": self.records_lost - lost0,
+                "error": self.last_error,
+            }
+        )
+        line = f'{{"t_mono":{float.__repr__(t)},"t_utc":"{utc_text}","type":"event","data":'
+        line += body + "}\n"
+        blob = line.encode("utf-8")
+        self._write_all(blob)
+        self._gap = None
+        self.records_written += 1
+        self.bytes_written += len(blob)
 
     def _write_all(self, blob: bytes) -> None:
         """Write ``blob`` whole: an unbuffered file may take part of it (a file system that
@@ -905,12 +993,23 @@ def read_recording(
             except (ValueError, UnicodeDecodeError) as exc:
                 if not raw.endswith(b"\n"):
                     st.truncated += 1
+                    st.last_event = ""  # cut off while written: not the end of a clean exit
                     continue
                 if strict:
                     raise ParseError(f"{path}:{lineno}: not a recording line: {exc}") from exc
                 st.bad_lines += 1
                 continue
             st.records += 1
+            if rec.type == "event":
+                name = rec.data.get("event")
+                st.last_event = name if isinstance(name, str) else ""
+                if name == GAP_EVENT:
+                    st.gaps += 1
+                    lost = rec.data.get("records_lost")
+                    if isinstance(lost, int) and not isinstance(lost, bool):
+                        st.gap_records_lost += lost
+            else:
+                st.last_event = ""
             yield rec
 
 
