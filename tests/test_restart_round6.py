@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import logging
 import os
 import re
 import select
@@ -29,7 +30,7 @@ import pytest
 
 from tests.conftest import ROOT
 from x6wd.app.client import RemoteClient
-from x6wd.app.daemon import _RecorderWorker
+from x6wd.app.daemon import _NetThread, _RecorderWorker
 from x6wd.app.logview import load
 from x6wd.core.errors import DeviceUnavailable
 from x6wd.core.recorder import Recorder
@@ -446,3 +447,32 @@ def test_records_dropped_at_the_full_queue_of_a_stuck_writer_leave_a_gap_event(
     gaps = [e for e in events if e["event"] == GAP_EVENT]
     assert len(gaps) == 1 and gaps[0]["records_lost"] == worker.queue_dropped, gaps
     assert "queue full" in gaps[0]["error"]
+
+
+# -- 2b. a stalled network thread does not queue publications without bound ------------------
+
+
+def test_a_stalled_network_loop_drops_publications_beyond_its_bound_but_no_state_change(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # the network thread blocked (a log line to a stderr nobody reads) while the control
+    # loop publishes at 60 a second: the queue grew for as long as the stall lasted
+    net = _NetThread(max_queued=50)
+    release = threading.Event()
+    ran: list[str] = []
+    try:
+        net.call(release.wait, 10)  # the loop stalls
+        for k in range(500):
+            net.call(ran.append, f"event {k}", publication=True)
+            if k % 100 == 0:
+                net.call(ran.append, f"state {k}")  # a state change: always queued
+        assert net.queued <= 50 + 5 and net.dropped >= 440, (net.queued, net.dropped)
+        with caplog.at_level(logging.WARNING, logger="x6wd.app.daemon"):
+            release.set()
+            wait_for(lambda: net.queued == 0, 10, "the loop to catch up")
+    finally:
+        release.set()
+        net.stop()
+    assert [x for x in ran if x.startswith("state")] == [f"state {k}" for k in range(0, 500, 100)]
+    assert len([x for x in ran if x.startswith("event")]) == 500 - net.dropped
+    assert f"{net.dropped} publications dropped" in caplog.text

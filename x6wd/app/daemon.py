@@ -133,6 +133,13 @@ RECORDER_CLOSE_S = 3.0
 a thread stuck in the file system is left behind: the shutdown goes on (the motors stopped
 before), but a thread asleep in the kernel on a hung disk keeps the process from ending until
 the disk returns (docs/install.md, "Signals")."""
+NET_QUEUE_MAX = 2000
+"""Calls queued for the network thread's loop at most before publications are dropped
+(about half a minute of the daemon's ~60 a second): a stalled network thread (blocked on a
+full stderr pipe: a journald that stopped reading) must not grow the memory with telemetry
+nobody receives. State changes for the network side (the gpsd port's device, the GPS
+state, the declination) are always queued; the drops are counted and logged by the network
+thread once it runs again."""
 
 
 distance_m = great_circle_m  # the geofence's distance (m), kept under its old name
@@ -818,8 +825,13 @@ class _NetThread:
     run, and on a loaded machine the kernel then gives the GPS, control and motor threads
     the processor first when they wake."""
 
-    def __init__(self) -> None:
+    def __init__(self, max_queued: int = NET_QUEUE_MAX) -> None:
         self.loop = asyncio.new_event_loop()
+        self.max_queued = max_queued
+        self._lock = threading.Lock()
+        self.queued = 0  # calls handed to the loop and not yet run
+        self.dropped = 0  # publications dropped at the full queue
+        self._dropped_logged = 0
         self.thread = threading.Thread(target=self._run, name="x6wd-net", daemon=True)
         self.thread.start()
 
@@ -837,10 +849,35 @@ class _NetThread:
         """Run ``coro`` on the network loop and wait for it from the caller's loop."""
         return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coro, self.loop))
 
-    def call(self, fn: Callable[..., Any], *args: Any) -> None:
-        """Queue ``fn(*args)`` on the network loop (never waits)."""
-        with contextlib.suppress(RuntimeError):  # closed during shutdown
-            self.loop.call_soon_threadsafe(fn, *args)
+    def call(self, fn: Callable[..., Any], *args: Any, publication: bool = False) -> None:
+        """Queue ``fn(*args)`` on the network loop (never waits). A ``publication`` (an
+        event, a fix, a sentence for the watchers: the next one supersedes it) is dropped,
+        counted, while :data:`NET_QUEUE_MAX` calls wait for a stalled loop."""
+        with self._lock:
+            if publication and self.queued >= self.max_queued:
+                self.dropped += 1
+                return
+            self.queued += 1
+        try:
+            self.loop.call_soon_threadsafe(self._run_one, fn, args)
+        except RuntimeError:  # closed during shutdown
+            with self._lock:
+                self.queued -= 1
+
+    def _run_one(self, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
+        with self._lock:
+            self.queued -= 1
+            dropped = self.dropped
+        if dropped != self._dropped_logged:  # here the loop runs again: say what it missed
+            log.warning(
+                "network thread stalled: %d publications dropped (%d in all) while %d calls "
+                "waited for it",
+                dropped - self._dropped_logged,
+                dropped,
+                self.max_queued,
+            )
+            self._dropped_logged = dropped
+        fn(*args)
 
     def stop(self) -> None:
         """Cancel what is left, stop the loop and the thread (idempotent)."""
@@ -911,6 +948,7 @@ class Daemon:
         self._deciding: int | None = None
         self._held_records: list[tuple[str, Any]] = []
         self._held_net: list[tuple[Callable[..., Any], tuple[Any, ...]]] = []
+        self._held_state = False  # a held network call is a state change, not a publication
         self.gc_pacer: _GcPacer | None = _GcPacer()  # None: the automatic collector runs
         self._compass: Any = None
         self.compass_errors = 0  # read errors of a compass backend without its own health
@@ -1369,11 +1407,13 @@ class Daemon:
                 self._deciding = None
                 records, self._held_records = self._held_records, []
                 calls, self._held_net = self._held_net, []
+                state, self._held_state = self._held_state, False
                 if records and self.recorder is not None:
                     for method, arg in records:
                         self.recorder.put(method, arg)
                 if calls and self._net is not None:
-                    self._net.call(_run_calls, calls)  # one wake-up of the network loop
+                    # one wake-up of the network loop
+                    self._net.call(_run_calls, calls, publication=not state)
 
     def _gps_thread(self) -> None:
         reader = self._gps_reader
@@ -1480,15 +1520,15 @@ class Daemon:
         if self.console is not None:
             for rec in records:
                 if isinstance(rec, GpsSky):  # the satellites' C/N0 for the page's sky table
-                    self._net_call(self.console.publish_sky, rec)
+                    self._net_call(self.console.publish_sky, rec, publication=True)
         if self.gpsd is not None:
             for rec in records:
                 if isinstance(rec, GpsFix):
-                    self._net_call(self.gpsd.publish_fix, rec)
+                    self._net_call(self.gpsd.publish_fix, rec, publication=True)
                 elif isinstance(rec, GpsSky):
-                    self._net_call(self.gpsd.publish_sky, rec)
+                    self._net_call(self.gpsd.publish_sky, rec, publication=True)
                 elif isinstance(rec, NmeaSentence):
-                    self._net_call(self.gpsd.publish_nmea, rec.text)
+                    self._net_call(self.gpsd.publish_nmea, rec.text, publication=True)
 
     def _gpsd_declination(self) -> None:
         """Hand the World Magnetic Model's declination to the gpsd port once the runner has
@@ -1505,7 +1545,7 @@ class Daemon:
         assert self.runner is not None
         self.runner.attitude(att)
         if self.gpsd is not None:
-            self._net_call(self.gpsd.publish_attitude, att)
+            self._net_call(self.gpsd.publish_attitude, att, publication=True)
 
     def _on_odometry(self, rec: WheelOdometry) -> None:
         assert self.runner is not None
@@ -1527,12 +1567,15 @@ class Daemon:
                 if ev.device == "gps" and ev.kind == "transition":  # gpsd clients see it too
                     self._net_call(self.gpsd.set_gps_state, ev.new)
 
-    def _net_call(self, fn: Callable[..., Any], *args: Any) -> None:
+    def _net_call(self, fn: Callable[..., Any], *args: Any, publication: bool = False) -> None:
+        """``fn(*args)`` on the network loop; a ``publication`` may be dropped while that
+        loop is stalled (:meth:`_NetThread.call`), a state change never."""
         if self._net is not None:
             if self._deciding == threading.get_ident():
                 self._held_net.append((fn, args))  # sent after the motor command
+                self._held_state = self._held_state or not publication
             else:
-                self._net.call(fn, *args)
+                self._net.call(fn, *args, publication=publication)
 
     def _record(self, method: str, arg: Any) -> None:
         if self.recorder is not None:
@@ -1555,9 +1598,10 @@ class Daemon:
 
     def _publish(self, event: dict[str, Any]) -> None:
         if self.console is not None:
-            self._net_call(self._publish_net, event)  # one wake-up of the network loop
+            # one wake-up of the network loop
+            self._net_call(self._publish_net, event, publication=True)
         elif self.server is not None:
-            self._net_call(self.server.publish, event)
+            self._net_call(self.server.publish, event, publication=True)
 
     def _publish_net(self, event: dict[str, Any]) -> None:
         """On the network loop: an event for the control port's watchers and the console."""
