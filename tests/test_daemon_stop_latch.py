@@ -21,6 +21,7 @@ from tests.test_safety_daemon import SlowLink, worker
 from tests.test_shutdown import StampedLink, log_motors_config, stamped
 from x6wd.app.client import RemoteClient
 from x6wd.app.daemon import Daemon, _MotorWorker
+from x6wd.core.config import SafetyConfig
 from x6wd.core.records import MotorCommand
 
 __all__ = ["run_daemon", "stamped"]  # fixtures
@@ -164,7 +165,33 @@ def test_an_operator_stop_holds_while_the_loop_is_behind_and_fixes_keep_deciding
     asker.join(10)
     assert reply.get("mode") == "IDLE"
     assert not d.motors.stop_holding
+    with RemoteClient("127.0.0.1", r.port) as c:
+        hold = c.request("status")["motor_hold"]  # what the operator can see of it
+    assert hold["holding"] is False and hold["dropped_while_stopping"] >= 3
     # a manual drive after the stop moves the motors again
     with RemoteClient("127.0.0.1", r.port) as c:
         c.request("drive", left=25, right=25, duration_s=2)
     wait_for(lambda: stamped.driving(25.0, 25.0), 3, "a manual drive after the stop")
+
+
+def test_a_drive_the_motors_refused_is_not_recorded_as_sent() -> None:
+    """While an operator stop holds, the daemon's motor sink drops the controller's drives
+    and says so (False): the recording shows what reached the motors (a review: it showed
+    drives after the stop that never went out, the very pattern the stop race was read
+    from)."""
+    from tests.test_loop import Loop
+
+    lp = Loop(SafetyConfig(manual_max_s=5.0))
+    refused: list[MotorCommand] = []
+
+    def sink(cmd: MotorCommand) -> bool:
+        if cmd.is_stop:
+            lp.motors.append(cmd)
+            return True
+        refused.append(cmd)
+        return False
+
+    lp.runner._motors = sink
+    lp.runner.drive(20.0, 20.0, 5.0)
+    assert refused and refused[-1].left_pct == 20.0
+    assert not [a for m, a in lp.records if m == "record_motor" and not a.is_stop]

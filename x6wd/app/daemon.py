@@ -1584,17 +1584,21 @@ class Daemon:
             else:
                 self.recorder.put(method, arg)
 
-    def _submit(self, cmd: MotorCommand) -> None:
+    def _submit(self, cmd: MotorCommand) -> bool:
+        """Hand ``cmd`` to the motor worker; False when an operator stop holds the motors
+        and drops it (the runner then does not record it as sent)."""
         if self.motors is None:
-            return
+            return True
+        held = not cmd.is_stop and self.motors.stop_holding
         if self._deciding == threading.get_ident():
             # a device thread's decision: write it to the link from this thread when idle
             self.motors.send_now(cmd)
-            return
+            return not held
         self.motors.submit(cmd, repeat_after_s=MOTOR_REPEAT_S)
         # Hand the GIL to the motor thread now rather than after the telemetry work
         # that follows (up to a switch interval later).
         time.sleep(0)
+        return not held
 
     def _publish(self, event: dict[str, Any]) -> None:
         if self.console is not None:
@@ -1728,7 +1732,17 @@ class Daemon:
     def _operator_stop(self, seq: int) -> dict[str, Any]:
         """On the control loop, under the control lock: the controller stops, then the
         motors take drive commands again (the stop ``seq`` held them until now)."""
-        reply = self._command("stop")
+        try:
+            reply = self._command("stop")
+        except BaseException:
+            # the controller's state is unknown: the hold stays (drives stay dropped, the
+            # robot stands) until a later stop succeeds; said here, and in status
+            log.error(
+                "the controller failed to apply an operator stop: drive commands stay held"
+                " at the motors until a stop succeeds",
+                exc_info=True,
+            )
+            raise
         motors = self.motors
         if motors is not None:
             motors.stop_applied(seq)
@@ -1833,6 +1847,16 @@ class Daemon:
                 ),
             },
             "recorder": recorder,
+            # an operator stop the controller has not applied yet holds the motors' drive
+            # commands (dropped, counted): true for milliseconds, or until a stop succeeds
+            "motor_hold": (
+                {
+                    "holding": self.motors.stop_holding,
+                    "dropped_while_stopping": self.motors.dropped_while_stopping,
+                }
+                if self.motors is not None
+                else None
+            ),
             # where the compass declination comes from, and its value: config, or the WMM
             "declination": self._declination_status(),
             # bind keys listening beyond loopback in clear text (server.allow_plaintext)

@@ -102,7 +102,7 @@ class Runner:
         safety: SafetyConfig,
         clock: Clock,
         *,
-        motors: Callable[[MotorCommand], None],
+        motors: Callable[[MotorCommand], bool | None],
         record: Callable[[str, Any], None] | None = None,
         publish: Callable[[dict[str, Any]], None] | None = None,
         devices: Callable[[], dict[str, Any]] | None = None,
@@ -441,7 +441,10 @@ class Runner:
         changes: list[StateChange] = []
         for out in outputs:
             if type(out) is MotorCommand:
-                self._motors(out)
+                if self._motors(out) is False:
+                    # the motors refused it (a drive while an operator stop holds them): the
+                    # recording shows what reached them, not what the controller decided
+                    continue
                 key = (out.left_pct, out.right_pct)
                 if key != self._last_motor_rec:
                     self._last_motor_rec = key
