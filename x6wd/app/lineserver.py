@@ -16,9 +16,15 @@ gpsd port: one valid command). The two live in separate pools:
   is never refused, and pending peers never hold a session slot, so silent sockets cannot
   lock an operator out; and an operator whose ``auth`` has arrived but not been read yet
   (a burst of connections accepted after a pause) is not the one closed.
-- session pool (``max_clients``): full means the peer being admitted closes the least
-  valuable session: the one idle longest among those not watching, else the watcher that is
-  most behind (blocked in ``drain()`` longest, then most events queued).
+- session pool (``max_clients``): full means, first, that sessions whose peer has already
+  closed or reset its connection (the kernel's TCP state; their handlers have not read the
+  end of the stream yet) leave the pool, uncounted: in a connect/close storm the kernel
+  hands over up to ``LISTEN_BACKLOG`` connections at once, each admitted before its close
+  is seen, and those must not crowd out live sessions. If it is still full the peer being
+  admitted closes the least valuable session: the one idle longest among those not
+  watching, else the watcher that is most behind (not reading for a while: blocked in
+  ``drain()`` or its data unacknowledged longest, then most events queued), else the
+  newest watcher (an established reader outlives one just admitted).
 
 One sweeper task per server enforces the deadlines: pending longer than
 ``pending_timeout_s``, a session neither watching nor sending a line for ``idle_timeout_s``,
@@ -160,19 +166,50 @@ _TCPI_BYTES_RECEIVED = 128
 """Offset of ``tcpi_bytes_received`` (u64, Linux 4.1+) in the kernel's ``struct tcp_info``."""
 
 
-def bytes_received(transport: asyncio.BaseTransport) -> int | None:
-    """Bytes the peer of a TCP transport has sent since it connected, read or not (Linux
-    TCP_INFO; the TLS handshake's included); None where that cannot be read. Never raises."""
+_TCP_ESTABLISHED = 1
+"""``tcpi_state`` (the first byte of ``struct tcp_info``) of an open connection; any other
+state of an accepted socket means one side has closed or reset it (CLOSE_WAIT: the peer
+sent its FIN; CLOSE: reset)."""
+
+
+def _tcp_info(transport: asyncio.BaseTransport) -> bytes | None:
+    """The kernel's ``struct tcp_info`` of a TCP transport (Linux); None where it cannot be
+    read (no socket, a closed one, no TCP_INFO here). Never raises."""
     sock = transport_socket(transport)
     if sock is None:
         return None
     try:
         raw = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 256)
-        if len(raw) < _TCPI_BYTES_RECEIVED + 8:
-            return None
-        return int(struct.unpack_from("Q", raw, _TCPI_BYTES_RECEIVED)[0])
     except Exception:  # OSError, AttributeError (no TCP_INFO here), a closed socket
         return None
+    return raw if isinstance(raw, bytes) and raw else None
+
+
+def bytes_received(transport: asyncio.BaseTransport) -> int | None:
+    """Bytes the peer of a TCP transport has sent since it connected, read or not (Linux
+    TCP_INFO; the TLS handshake's included); None where that cannot be read. Never raises."""
+    raw = _tcp_info(transport)
+    if raw is None or len(raw) < _TCPI_BYTES_RECEIVED + 8:
+        return None
+    return int(struct.unpack_from("Q", raw, _TCPI_BYTES_RECEIVED)[0])
+
+
+def peer_gone(c: LineClient) -> bool:
+    """Whether a connection's peer has already ended it: it sent its FIN (it may still have
+    requests waiting to be read, but the servers end a connection at the end of its input)
+    or reset it, or the connection is closed or closing on this side. Read from the kernel
+    (Linux TCP_INFO state), so it is known before the handler has seen the end of the
+    stream; False where it cannot be told. Never raises."""
+    if c.closed:
+        return True
+    transport = c.writer.transport
+    try:
+        if transport.is_closing():
+            return True
+    except Exception:
+        return False
+    raw = _tcp_info(transport)
+    return raw is not None and raw[0] != _TCP_ESTABLISHED
 
 
 def unacknowledged_bytes(transport: asyncio.BaseTransport) -> int | None:
@@ -344,11 +381,16 @@ class LineServer(Generic[C]):
         return next((c for c in candidates if unread_bytes(c) == 0), candidates[0])
 
     def _promote(self, c: C) -> None:
-        """Admit a pending connection to the session pool, closing the least valuable
-        session when the pool is full: an admitted peer always gets in."""
+        """Admit a pending connection to the session pool, making room when the pool is full:
+        sessions whose peer has already hung up leave it first (they hold no slot: in a
+        connect/close storm the kernel hands over many connections at once, each admitted
+        before its end of stream is read), else the least valuable session is closed. An
+        admitted peer always gets in."""
         if c.session or c.evicted:
             return
         self._pending.pop(c, None)
+        if len(self._sessions) >= self.max_clients:
+            self._reap_gone()
         if len(self._sessions) >= self.max_clients:
             now = self._clock()
             victim = min(self._sessions, key=lambda s: self._victim_key(s, now))
@@ -360,17 +402,38 @@ class LineServer(Generic[C]):
         self._sessions.add(c)
         c.session = True
 
+    def _reap_gone(self) -> None:
+        """Take the sessions whose peer has already closed or reset its connection out of
+        the session pool (:func:`peer_gone`). They are not closed here, nor counted: each
+        one's handler still answers what it had read and ends at the end of its input, as
+        it would have anyway; it only stops holding a slot (and getting events)."""
+        for s in [s for s in self._sessions if peer_gone(s)]:
+            self._sessions.discard(s)
+
+    def _behind_s(self) -> float:
+        """A watcher not reading for this long (s) is behind; under it, it keeps up. The
+        sweeper's view of a peer's acknowledgements is up to one sweep period old, so a
+        healthy reader with data in flight at the last sweep looks stalled for up to that
+        long: twice the period is past that noise, and well short of ``slow_client_s``."""
+        return min(2.0 * self._sweep_period_s(), self.slow_client_s / 2.0)
+
     def _victim_key(self, c: C, now: float) -> tuple[int, float, float]:
         """Sort key of sessions, least valuable first: not watching before watching; among
-        those not watching the one idle longest; among watchers the one blocked in drain()
-        longest, then the one with most events queued or dropped."""
+        those not watching the one idle longest; then the watchers behind (not reading for
+        :meth:`_behind_s` or more), the one not reading longest first, then the one with
+        most events queued; then those that keep up, the newest first: one that has
+        streamed for a while has shown it reads, one just admitted has not (and in a
+        connect storm is likely one of the storm). Events dropped long ago do not count
+        against a watcher that reads now."""
         if not self._is_watching(c):
             return (0, c.t_active_s, 0.0)
         stalled_s = max(
             0.0 if c.drain_since_s is None else now - c.drain_since_s,
             0.0 if c.stalled_since_s is None else now - c.stalled_since_s,
         )
-        return (1, -stalled_s, -float(len(c.events) + c.dropped))
+        if stalled_s >= self._behind_s():
+            return (1, -stalled_s, -float(len(c.events)))
+        return (2, -c.t_connect_s, 0.0)
 
     def _forget(self, c: C) -> None:
         self._clients.discard(c)

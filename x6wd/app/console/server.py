@@ -60,6 +60,7 @@ from x6wd.app.server import (
 from x6wd.core.config import HOSTNAME_PATTERN, ConsoleConfig
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.mission_files import PARSERS, parse_content
+from x6wd.core.ratelog import RateLimitedLog
 from x6wd.core.recorder import RecordingFile, list_recordings
 from x6wd.core.records import GpsSky
 
@@ -68,7 +69,9 @@ log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 HEARTBEAT_S = 5.0
 """WebSocket ping period (s): a link that died without a FIN is found within ~2 periods (the
-motors have long stopped by then: a drive lasts ``deadman_s``)."""
+motors have long stopped by then: a drive lasts ``deadman_s``). A page whose pong has not
+come half a period after a ping is closed (aiohttp's heartbeat): a page that does not read
+(or whose link is gone) is closed this way, counted in ``slow_pages`` and logged."""
 SEND_TIMEOUT_S = 10.0
 """A page that takes no data for this long (s) is closed (its events are dropped before)."""
 MAP_CHECK_S = 0.5
@@ -131,6 +134,7 @@ class _Page:
     drive_sent_s: float = math.inf
     last_drove_s: float = -math.inf  # the send time of its latest drive carried out
     logged_press: Any = None  # the press whose refusal (another client's stop) was logged
+    slow: bool = False  # closed for not reading (counted once)
 
 
 OFFSET_PERIOD_S = 5.0
@@ -340,6 +344,8 @@ class ConsoleServer:
         self.deadman_stops = 0
         self.refused_hosts = 0  # requests whose Host named no name of this console
         self.connections_closed = 0  # idle HTTP connections closed to stay within the cap
+        self.slow_pages = 0  # pages closed for not reading (no pong, or data not taken)
+        self._rlog = RateLimitedLog(log, 1.0)  # closes are logged at most once per second
         self.late_drives = 0  # drives refused for arriving later than they would have lasted
         self.held_drives_stopped = 0  # drives refused: their press began before another's stop
         me = socket.gethostname().lower()
@@ -430,12 +436,23 @@ class ConsoleServer:
             )
             self._handshaking.pop(old, None)
             self.connections_closed += 1
+            self._rlog.log(
+                "console: connection cap closes",
+                logging.WARNING,
+                "console: resetting a connection in its TLS handshake: %d handshakes under way"
+                " (console.max_clients + %d; connections_closed %d)",
+                cap + 1, CONNECTION_SLACK, self.connections_closed,
+            )  # fmt: skip
             if old.transport is not None:
                 reset(old.transport)
 
     def _cap_connections(self, server: Any) -> None:
         """Close the oldest connection that is not a page's WebSocket whenever more than
-        ``max_clients`` + :data:`CONNECTION_SLACK` are open (checked as each one opens)."""
+        ``max_clients`` + :data:`CONNECTION_SLACK` are open (checked as each one opens).
+        The one opening now is closed only when no older one can be, and not at once: this
+        runs before aiohttp has started its handler, and a connection closed before that
+        fails the handler's task ("Task exception was never retrieved ... assert manager is
+        not None", a traceback per close in a connect storm)."""
         made = server.connection_made
         cap = self.config.max_clients + CONNECTION_SLACK
 
@@ -445,13 +462,53 @@ class ConsoleServer:
             if len(conns) <= cap:
                 return
             pages = {page.transport for page in self._pages}
-            for old in (h.transport for h in conns):  # a closing one stays listed a while
-                if old is not None and old not in pages and not old.is_closing():
-                    self.connections_closed += 1
-                    old.close()
+            for h in conns:  # a closing one stays listed a while
+                old = h.transport
+                if (
+                    h is not handler
+                    and old is not None
+                    and old not in pages
+                    and not old.is_closing()
+                ):
+                    self._cap_close(old, len(conns))
                     return
+            # every other one is a page or closing already: this one goes, once its handler
+            # has started (its start is scheduled after this returns; the close, scheduled
+            # now, then ends it as any connection the peer closes)
+            asyncio.get_running_loop().call_soon(self._cap_close, transport, len(conns))
 
         server.connection_made = connection_made
+
+    def _cap_close(self, transport: asyncio.Transport, open_now: int) -> None:
+        """Close a connection to stay within the cap: counted (``connections_closed``) and
+        logged at most once per second."""
+        if transport.is_closing():
+            return
+        self.connections_closed += 1
+        peer = transport.get_extra_info("peername")
+        self._rlog.log(
+            "console: connection cap closes",
+            logging.WARNING,
+            "console: closing %s: %d connections open (console.max_clients + %d); the oldest "
+            "that is not a page goes (connections_closed %d)",
+            f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "?",
+            open_now, CONNECTION_SLACK, self.connections_closed,
+        )  # fmt: skip
+        transport.close()
+
+    def _slow_page(self, page: _Page, why: str) -> None:
+        """A page closed for not reading: counted (``slow_pages``) and logged at most once
+        per second."""
+        if page.slow:
+            return
+        page.slow = True
+        self.slow_pages += 1
+        self._rlog.log(
+            "console: slow page closes",
+            logging.WARNING,
+            "console: closing %s: %s (slow_pages %d, dropped %d)",
+            page.peer, why, self.slow_pages, self.dropped_total,
+        )  # fmt: skip
 
     async def close(self) -> None:
         """Close every page and stop listening (idempotent)."""
@@ -531,6 +588,7 @@ class ConsoleServer:
         """Pages get the map (mission, launch, geofence) whenever it changes."""
         while True:
             await asyncio.sleep(MAP_CHECK_S)
+            self._rlog.flush()  # the "N more" of a storm of closes that has stopped
             pages = [p for p in self._pages if p.client.authenticated]
             if not pages:
                 continue
@@ -600,7 +658,13 @@ class ConsoleServer:
         try:
             await self._read_loop(page)
         finally:
+            listed = page in self._pages  # (not: closed to make room for another page)
             self._pages.pop(page, None)
+            if listed and isinstance(ws.exception(), TimeoutError):  # the heartbeat closed it
+                self._slow_page(
+                    page, f"no pong within {HEARTBEAT_S / 2:g} s of a ping (it does not read, "
+                    "or its link is gone)",
+                )  # fmt: skip
             await self._hang_up(page)
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -824,6 +888,7 @@ class ConsoleServer:
             "held_drives_stopped": self.held_drives_stopped,
             "refused_hosts": self.refused_hosts,
             "connections_closed": self.connections_closed,
+            "slow_pages": self.slow_pages,
             "dropped": self.dropped_total,
         }
 
@@ -1014,7 +1079,10 @@ class ConsoleServer:
                 while page.replies or page.events:
                     text = page.replies.popleft() if page.replies else page.events.popleft()
                     await asyncio.wait_for(ws.send_str(text), SEND_TIMEOUT_S)
-        except (TimeoutError, ConnectionError, RuntimeError):
-            log.info("console: closing %s: it does not take its data", page.peer)
+        except TimeoutError:
+            self._slow_page(page, f"it has taken no data for {SEND_TIMEOUT_S:g} s")
+            with contextlib.suppress(Exception):
+                await ws.close(code=1008, message=b"too slow")
+        except (ConnectionError, RuntimeError):  # gone (closed, reset) while sending to it
             with contextlib.suppress(Exception):
                 await ws.close(code=1008, message=b"too slow")
