@@ -77,12 +77,20 @@ def closed_by_server(sock: socket.socket, timeout_s: float) -> bool:
         return True
 
 
-def silent_connections(port: int, n: int) -> list[socket.socket]:
+def silent_connections(port: int, n: int, first: bytes = b"") -> list[socket.socket]:
+    """``n`` connections that send ``first`` (default nothing) and then stall."""
     socks = []
     for _ in range(n):
         s = socket.create_connection(("127.0.0.1", port), timeout=5)
+        if first:
+            s.sendall(first)
         socks.append(s)
     return socks
+
+
+# a flood that sends nothing, and one that sends a TLS record's first byte and stalls (a
+# review: "has sent nothing" alone let the latter crowd out an operator mid-handshake)
+FLOODS = pytest.mark.parametrize("first", [b"", b"\x16"], ids=["silent", "one_byte"])
 
 
 @pytest.mark.parametrize("tls", [True, False], ids=["tls", "plain"])
@@ -201,8 +209,9 @@ class StalledTls:
         return buf.split(b"\n", 1)[0]
 
 
+@FLOODS
 def test_an_operator_mid_handshake_outlives_a_flood_of_silent_sockets(
-    lt: LoopThread, tls_files: tuple[Path, Path, Path]
+    lt: LoopThread, tls_files: tuple[Path, Path, Path], first: bytes
 ) -> None:
     """The operator's client has sent its ClientHello and waits for the server's reply
     (nothing of it to read: the rule "the oldest with no input waiting" alone closed it,
@@ -219,7 +228,7 @@ def test_an_operator_mid_handshake_outlives_a_flood_of_silent_sockets(
     op = StalledTls(srv.port, cert)
     try:
         time.sleep(0.2)  # the server has read the ClientHello and replied
-        socks = silent_connections(srv.port, 20)
+        socks = silent_connections(srv.port, 20, first)
         closed = [s for s in socks if closed_by_server(s, 0.5)]
         assert len(closed) >= 20 - cfg.max_pending + 1
         op.finish()
@@ -348,8 +357,9 @@ def test_console_silent_tls_connections_are_bounded(
     assert lt.call(lambda: len(console._handshaking)) == 0
 
 
+@FLOODS
 def test_console_browser_mid_handshake_outlives_a_flood_of_silent_sockets(
-    lt: LoopThread, tls_files: tuple[Path, Path, Path]
+    lt: LoopThread, tls_files: tuple[Path, Path, Path], first: bytes
 ) -> None:
     """A browser that has sent its ClientHello and waits for the reply is not the one reset
     when silent sockets from its own address fill the console's handshakes past the cap
@@ -370,7 +380,7 @@ def test_console_browser_mid_handshake_outlives_a_flood_of_silent_sockets(
     browser = StalledTls(console.port, cert)
     try:
         time.sleep(0.2)  # the console has read the ClientHello and replied
-        socks = silent_connections(console.port, 40)
+        socks = silent_connections(console.port, 40, first)
         closed = [s for s in socks if closed_by_server(s, 0.5)]
         assert len(closed) >= 40 + 1 - cap, (len(closed), cap)
         browser.finish()

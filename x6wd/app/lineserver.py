@@ -162,6 +162,10 @@ def socket_queue_bytes(sock: Any, request: int) -> int | None:
         return None
 
 
+_TCPI_BYTES_ACKED = 120
+"""Offset of ``tcpi_bytes_acked`` (u64, Linux 4.1+) in the kernel's ``struct tcp_info``: 8
+one-byte fields, 24 u32, then pacing_rate and max_pacing_rate (u64), on every Linux ABI."""
+
 _TCPI_BYTES_RECEIVED = 128
 """Offset of ``tcpi_bytes_received`` (u64, Linux 4.1+) in the kernel's ``struct tcp_info``."""
 
@@ -192,6 +196,24 @@ def bytes_received(transport: asyncio.BaseTransport) -> int | None:
     if raw is None or len(raw) < _TCPI_BYTES_RECEIVED + 8:
         return None
     return int(struct.unpack_from("Q", raw, _TCPI_BYTES_RECEIVED)[0])
+
+
+def bytes_acked(transport: asyncio.BaseTransport) -> int | None:
+    """Bytes this side has sent on a TCP transport that the peer acknowledged (Linux
+    TCP_INFO; a TLS server's handshake reply included); None where that cannot be read.
+    Never raises."""
+    raw = _tcp_info(transport)
+    if raw is None or len(raw) < _TCPI_BYTES_ACKED + 8:
+        return None
+    return int(struct.unpack_from("Q", raw, _TCPI_BYTES_ACKED)[0])
+
+
+def unanswered(transport: asyncio.BaseTransport | None) -> bool:
+    """The server has sent this connection nothing it took (no reply, no TLS handshake
+    flight): a peer that sent nothing, or a byte or a partial request and stalled. An
+    operator's client has an answer within a round trip of speaking (its ClientHello's
+    reply, its auth's), so under a flood these go first. False when it cannot be told."""
+    return transport is not None and bytes_acked(transport) == 0
 
 
 def peer_gone(c: LineClient) -> bool:
@@ -377,6 +399,12 @@ class LineServer(Generic[C]):
         silent = next((c for c in candidates if bytes_received(c.writer.transport) == 0), None)
         if silent is not None:
             return silent
+        # then the oldest the server has sent nothing: a peer that sent a byte (or a partial
+        # line or ClientHello) and stalled has had no answer, an operator mid-handshake has
+        # (the server's reply to its ClientHello); one getsockopt each, oldest first
+        mute = next((c for c in candidates if unanswered(c.writer.transport)), None)
+        if mute is not None:
+            return mute
         # oldest first, stopping at the first idle one: usually one ioctl per eviction
         return next((c for c in candidates if unread_bytes(c) == 0), candidates[0])
 

@@ -47,7 +47,7 @@ from urllib.parse import urlsplit
 from aiohttp import WSMsgType, web
 
 from x6wd import __version__
-from x6wd.app.lineserver import bytes_received, reset
+from x6wd.app.lineserver import bytes_received, reset, unanswered
 from x6wd.app.logview import LogView, html_page, render_html
 from x6wd.app.server import (
     SUPERSEDED_COMMANDS,
@@ -428,11 +428,16 @@ class ConsoleServer:
         self._handshaking[h] = None
         cap = self.config.max_clients + CONNECTION_SLACK
         while len(self._handshaking) > cap:
-            # the oldest that has sent nothing (not even its ClientHello), else the oldest: a
-            # browser mid-handshake outlives a flood of silent sockets from its own address
+            # the oldest that has sent nothing (not even its ClientHello), then the oldest
+            # the console has answered nothing (a byte or a partial ClientHello and a stall),
+            # else the oldest: a browser mid-handshake (answered) outlives a flood of either
+            # from its own address
             old = next(
                 (o for o in self._handshaking if o is not h and _silent(o.transport)),
-                next(iter(self._handshaking)),
+                next(
+                    (o for o in self._handshaking if o is not h and unanswered(o.transport)),
+                    next(iter(self._handshaking)),
+                ),
             )
             self._handshaking.pop(old, None)
             self.connections_closed += 1
