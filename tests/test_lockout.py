@@ -225,6 +225,43 @@ def test_an_auth_not_read_yet_survives_a_burst_of_connections(lt: LoopThread) ->
         lt.run(srv.close())
 
 
+def test_an_auth_not_read_yet_survives_answered_idle_peers_and_a_partial_burst(
+    lt: LoopThread,
+) -> None:
+    """As above, but the older peers asked `hello` (answered, then idle) and the burst sends
+    a partial line each: the operator, whom the server has not answered yet either, is
+    still skipped for having a whole request waiting (a review: the "answered nothing" rule
+    alone closed it)."""
+    backend = RecordingBackend()
+    srv = serve(lt, backend, max_pending=4)
+    old = [Raw(srv.port) for _ in range(3)]
+    burst: list[socket.socket] = []
+    op = None
+    try:
+        for r in old:
+            assert r.ask({"id": 1, "cmd": "hello"})["ok"]
+        wait_until(lambda: lt.call(lambda: srv.pending_count) == 3)
+        stall = threading.Thread(target=lambda: lt.call(lambda: time.sleep(0.5)))
+        stall.start()
+        time.sleep(0.05)
+        op = Raw(srv.port)
+        op.send(json.dumps({"id": 1, "cmd": "auth", "token": TOKEN}).encode() + b"\n")
+        for _ in range(2):
+            b = socket.create_connection(("127.0.0.1", srv.port), timeout=5)
+            b.sendall(b"{")
+            burst.append(b)
+        stall.join()
+        assert op.line() == {"id": 1, "ok": True, "authenticated": True}
+    finally:
+        if op is not None:
+            op.close()
+        for r in old:
+            r.close()
+        for b in burst:
+            b.close()
+        lt.run(srv.close())
+
+
 def test_pending_peers_that_sent_garbage_are_evicted_first(lt: LoopThread) -> None:
     backend = RecordingBackend()
     srv = serve(lt, backend, max_pending=4)

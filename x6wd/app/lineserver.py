@@ -129,6 +129,34 @@ def unread_bytes(c: LineClient) -> int:
     return n
 
 
+def request_waiting(c: LineClient) -> bool:
+    """A whole request has arrived and waits to be read: a line end in the stream reader's
+    buffer, or in the kernel's receive queue a line end or a whole TLS record (a ClientHello
+    the loop has not read yet). A byte or a partial line that stalls is not one."""
+    reader = c.reader
+    if reader is not None and b"\n" in getattr(reader, "_buffer", b""):
+        return True
+    return whole_request_queued(c.writer.transport)
+
+
+def whole_request_queued(transport: asyncio.BaseTransport | None) -> bool:
+    """The kernel's receive queue of a TCP transport holds a line end or a whole TLS record
+    (peeked, not consumed; False where it cannot be read). Never raises."""
+    sock = None if transport is None else transport_socket(transport)
+    if sock is None:
+        return False
+    try:
+        # asyncio hands out a wrapper without recv(): peek through a duplicate descriptor
+        # of the same socket (nothing is consumed)
+        with socket.fromfd(sock.fileno(), sock.family, sock.type) as dup:
+            head = dup.recv(4096, socket.MSG_PEEK | socket.MSG_DONTWAIT)
+    except Exception:  # nothing queued (BlockingIOError), a closed socket, no socket
+        return False
+    if b"\n" in head:
+        return True
+    return len(head) >= 5 and head[0] == 0x16 and len(head) >= 5 + int.from_bytes(head[3:5])
+
+
 def transport_socket(transport: asyncio.BaseTransport) -> Any:
     """The socket under a transport, or None. Never raises: a closed or closing transport of
     any kind may have no socket any more, and asyncio's SSL transport, once closed twice
@@ -402,7 +430,12 @@ class LineServer(Generic[C]):
         # then the oldest the server has sent nothing: a peer that sent a byte (or a partial
         # line or ClientHello) and stalled has had no answer, an operator mid-handshake has
         # (the server's reply to its ClientHello); one getsockopt each, oldest first
-        mute = next((c for c in candidates if unanswered(c.writer.transport)), None)
+        # and no whole request waiting to be read (an operator whose auth has arrived but
+        # not been read yet has had no answer either: a review)
+        mute = next(
+            (c for c in candidates if unanswered(c.writer.transport) and not request_waiting(c)),
+            None,
+        )
         if mute is not None:
             return mute
         # oldest first, stopping at the first idle one: usually one ioctl per eviction

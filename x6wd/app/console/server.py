@@ -47,7 +47,7 @@ from urllib.parse import urlsplit
 from aiohttp import WSMsgType, web
 
 from x6wd import __version__
-from x6wd.app.lineserver import bytes_received, reset, unanswered
+from x6wd.app.lineserver import bytes_received, reset, unanswered, whole_request_queued
 from x6wd.app.logview import LogView, html_page, render_html
 from x6wd.app.server import (
     SUPERSEDED_COMMANDS,
@@ -435,7 +435,13 @@ class ConsoleServer:
             old = next(
                 (o for o in self._handshaking if o is not h and _silent(o.transport)),
                 next(
-                    (o for o in self._handshaking if o is not h and unanswered(o.transport)),
+                    (
+                        o
+                        for o in self._handshaking
+                        if o is not h
+                        and unanswered(o.transport)
+                        and not whole_request_queued(o.transport)
+                    ),
                     next(iter(self._handshaking)),
                 ),
             )
