@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import itertools
 import json
 import logging
 import os
@@ -425,16 +426,20 @@ def test_records_dropped_at_the_full_queue_of_a_stuck_writer_leave_a_gap_event(
     # a hung disk (fsfreeze, a dead NFS mount): the writer stuck, the callers drop records at
     # the full queue; once it writes again the recording says how many it lost
     release = threading.Event()
+    taken = threading.Event()
 
     class Stuck(Recorder):
         def record(self, *args: Any, **kw: Any) -> None:
+            taken.set()
             release.wait(10)
             super().record(*args, **kw)
 
     rec = Stuck(tmp_path / "x6wd-20261205T000000Z.jsonl")
     worker = _RecorderWorker(rec, max_queued=10)
     try:
-        for k in range(40):
+        worker.put_event("tick", 100.0, k=0)
+        assert taken.wait(5)  # the writer stuck in its first record (else a slot frees late)
+        for k in range(1, 40):
             worker.put_event("tick", 100.0 + k, k=k)
         assert worker.queue_dropped >= 29
         release.set()
@@ -476,3 +481,154 @@ def test_a_stalled_network_loop_drops_publications_beyond_its_bound_but_no_state
     assert [x for x in ran if x.startswith("state")] == [f"state {k}" for k in range(0, 500, 100)]
     assert len([x for x in ran if x.startswith("event")]) == 500 - net.dropped
     assert f"{net.dropped} publications dropped" in caplog.text
+
+
+# -- review of 3e82ba3: a read-only disk hid what stays so; the queue's gap event in order ----
+
+
+def run_once(cfg: Path, *pre: str, timeout_s: float = 25.0) -> tuple[int | None, str]:
+    """`x6wd run` (after ``pre``, e.g. setpriv): its exit code, None when it was still running
+    after ``timeout_s`` (it started: stopped here), and its stderr."""
+    p = subprocess.Popen(
+        [*pre, sys.executable, "-m", "x6wd", "run", "--config", str(cfg)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
+    )
+    try:
+        _, err = p.communicate(timeout=timeout_s)
+        return p.returncode, err
+    except subprocess.TimeoutExpired:
+        p.send_signal(signal.SIGTERM)
+        try:
+            _, err = p.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            _, err = p.communicate()
+        return None, err
+
+
+@ROOT_ONLY
+@pytest.mark.integration
+def test_a_user_without_permission_on_a_read_only_disk_stays_a_config_error() -> None:
+    # the kernel says EROFS before EACCES: the daemon started without recording, and once
+    # the disk was writable again the recorder failed with EACCES for good
+    if shutil.which("setpriv") is None:
+        pytest.skip("no setpriv to run as another user")
+    tmp = Path(tempfile.mkdtemp(prefix="x6wd-r6-"))
+    try:
+        tmp.chmod(0o755)
+        with tmpfs(tmp / "disk", "size=1m,mode=755") as disk:
+            rec = disk / "rec"
+            rec.mkdir(mode=0o755)  # root's: user nobody may not write there
+            remount(disk, "ro")
+            cfg = config(tmp, rec)
+            cfg.chmod(0o644)
+            pre = ("setpriv", "--reuid=65534", "--regid=65534", "--clear-groups")
+            code, err = run_once(cfg, *pre)
+        assert code == 2, err
+        (line,) = err.splitlines()
+        assert line.startswith("x6wd: recorder.dir:"), line
+        assert f"this user may not write in {rec}" in line, line
+        assert "Permission denied (EACCES)" in line and "(EROFS)" in line, line
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def bind_read_only(source: Path, where: Path) -> Iterator[Path]:
+    """``source`` bind-mounted on ``where``, the bind made read-only (its file system stays
+    writable): what systemd's ProtectSystem=strict makes of a path."""
+    where.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["mount", "--bind", str(source), str(where)], check=True)
+    try:
+        subprocess.run(["mount", "-o", "remount,bind,ro", str(where)], check=True)
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+@ROOT_ONLY
+@pytest.mark.integration
+def test_a_recorder_dir_on_a_read_only_bind_mount_is_a_config_error_naming_it(
+    tmp_path: Path,
+) -> None:
+    # a recorder.dir outside /var/lib/x6wd under ProtectSystem=strict: read-only for good,
+    # the daemon ran without recording; an SD card's file system remounted read-only stays
+    # a runtime fault, also seen through a bind mount (a space in its name: \040)
+    with tmpfs(tmp_path / "disk", "size=1m") as disk:
+        (disk / "rec").mkdir()
+        with bind_read_only(disk, tmp_path / "read only") as view:
+            rec = view / "rec"
+            code, err = run_once(config(tmp_path, rec))
+            assert code == 2, err
+            (line,) = err.splitlines()
+            assert line.startswith(f"x6wd: recorder.dir: {str(rec)!r}:"), line
+            assert "Read-only file system (EROFS)" in line, line
+            assert f"read-only mount ({view}" in line and "may not" not in line, line
+            assert "ProtectSystem=strict" in line and "/var/lib/x6wd" in line, line
+            # the check itself: the file system read-only, the bind too: a runtime fault
+            from x6wd.app.daemon import _dir_check
+
+            assert _dir_check(disk / "rec") == ("", "")
+            remount(disk, "ro")
+            for d in (disk / "rec", rec):
+                problem, fault = _dir_check(d)
+                assert problem == "" and "Read-only file system (EROFS)" in fault, (d, problem)
+
+
+def test_the_queue_gap_event_lands_in_order_and_names_the_lost_span(tmp_path: Path) -> None:
+    # the writer stalled, records dropped at the full queue: the gap event was stamped
+    # `now` and written once the queue was half drained, before the other half's older
+    # records: t_mono stepped back by the stall (a time jump for x6wd plot)
+    release = threading.Event()
+    taken = threading.Event()
+
+    class Stuck(Recorder):
+        def record(self, *args: Any, **kw: Any) -> None:
+            taken.set()
+            release.wait(10)
+            super().record(*args, **kw)
+
+    rec = Stuck(tmp_path / "x6wd-20261205T000000Z.jsonl", gap_events=True)
+    worker = _RecorderWorker(rec, max_queued=10)
+    put: list[tuple[float, bool]] = []  # (t_mono, dropped)
+
+    def put_one(k: int) -> None:
+        t = time.monotonic()
+        before = worker.queue_dropped
+        worker.put_event("tick", t, k=k)
+        put.append((t, worker.queue_dropped > before))
+
+    try:
+        put_one(0)
+        assert taken.wait(5)  # the writer holds record 0: stuck
+        for k in range(1, 41):
+            put_one(k)
+            time.sleep(0.002)
+        time.sleep(0.3)  # the stall
+        release.set()
+        for k in range(41, 81):
+            put_one(k)
+            time.sleep(0.005)
+    finally:
+        release.set()
+        assert worker.close(10)
+    lost = [t for t, dropped in put if dropped]
+    kept = [t for t, dropped in put if not dropped]
+    assert len(lost) == worker.queue_dropped >= 25
+    first_back = next(t for t, dropped in put if not dropped and t > lost[-1])
+    recs = [json.loads(x) for x in rec.path.read_text().splitlines()]
+    ts = [r["t_mono"] for r in recs]
+    steps_back = [(a, b) for a, b in itertools.pairwise(ts) if b < a]
+    assert not steps_back, steps_back
+    (gap,) = [r for r in recs if r["data"]["event"] == GAP_EVENT]
+    g = gap["data"]
+    assert g["from_t_mono"] == lost[0] and g["to_t_mono"] == first_back, (g, lost, first_back)
+    assert g["records_lost"] == len(lost) and "queue full" in g["error"], g
+    assert gap["t_mono"] == first_back  # just before the first record queued again
+    ticks = [r["t_mono"] for r in recs if r["data"]["event"] == "tick"]
+    assert ticks == kept  # every record kept, in order, none of the span lost
+    assert not [t for t in ticks if g["from_t_mono"] <= t < g["to_t_mono"]]

@@ -47,8 +47,10 @@ import logging
 import math
 import os
 import queue
+import re
 import signal
 import socket
+import stat
 import sys
 import tempfile
 import threading
@@ -634,9 +636,11 @@ class _RecorderWorker:
         self.last_error = one_line(start_error)
         self._failed_last = bool(start_error)  # the latest call raised
         self._first_logged = bool(start_error)  # the first failure's line is out
-        # records dropped at a full queue since the writer last caught up: (time.monotonic()
-        # of the first, queue_dropped before it), for the recording's gap event
+        # records dropped at a full queue and not yet told: (t_mono of the first dropped,
+        # queue_dropped before it); the gap event is queued in front of the next record
+        # queued, so it lands in order (_put)
         self._drop_gap: tuple[float, int] | None = None
+        self._put_lock = threading.Lock()  # the drop count, the gap event before its record
         self._call = ""  # the recorder method in progress
         self._t_call: float | None = None  # time.monotonic() it started (None: idle)
         now = time.monotonic()
@@ -655,12 +659,28 @@ class _RecorderWorker:
         """Queue ``Recorder.record_event(name, t_mono, **fields)``, as :meth:`put` does."""
         self._put("record", ("event", {"event": name, **fields}, t_mono))
 
+    @staticmethod
+    def _t_of(method: str, args: tuple[Any, ...]) -> float:
+        """The ``t_mono`` the recorder will give this call's record: the event's own, the
+        record's ``t_s``, else its clock's (the moment it is written, so now at the least)."""
+        t = args[2] if method == "record" and len(args) > 2 else getattr(args[0], "t_s", None)
+        if isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t):
+            return float(t)
+        return time.monotonic()
+
     def _put(self, method: str, args: tuple[Any, ...]) -> None:
-        if self._q.qsize() >= self.max_queued:
+        with self._put_lock:
+            full = self._q.qsize() >= self.max_queued
+            if full:
+                if self._drop_gap is None:
+                    self._drop_gap = (self._t_of(method, args), self.queue_dropped)
+                self.queue_dropped += 1
+            else:
+                if self._drop_gap is not None:  # in order: after all queued before the drops
+                    self._q.put(self._gap_item(self._t_of(method, args)))
+                self._q.put((method, args))
+        if full:  # logged outside the lock: a blocked log write holds up only this thread
             now = time.monotonic()
-            if self._drop_gap is None:
-                self._drop_gap = (now, self.queue_dropped)
-            self.queue_dropped += 1
             if now - self._t_drop_log >= self.log_every_s:  # at most once a minute
                 t = self._t_call
                 stuck = f" for {now - t:.0f} s in {self._call}" if t is not None else ""
@@ -672,8 +692,6 @@ class _RecorderWorker:
                     self.queue_dropped,
                 )
                 self._t_drop_log = now
-            return
-        self._q.put((method, args))
 
     def _run(self) -> None:
         # The start-of-run retention pass deletes files: here, never on the event loop.
@@ -697,8 +715,6 @@ class _RecorderWorker:
                 self._failed_last = False
             finally:
                 self._t_call = None
-            if self._drop_gap is not None and self._q.qsize() <= self.max_queued // 2:
-                self._note_drops()
             self._summary()
         # closed here, in this thread: a file system that hangs holds up only this thread
         self._call, self._t_call = "close", time.monotonic()
@@ -708,31 +724,25 @@ class _RecorderWorker:
             log.exception("closing the recording failed")
         self._t_call = None
 
-    def _note_drops(self) -> None:
-        """The writer caught up after records were dropped at the full queue: the recording
-        gets a gap event saying so (the recorder's own gaps are its own: a failing disk)."""
-        gap, self._drop_gap = self._drop_gap, None
-        if gap is None:
-            return
+    def _gap_item(self, t: float) -> tuple[str, tuple[Any, ...]]:
+        """The queue's gap event for the records dropped at the full queue (``_drop_gap``,
+        then cleared), ending with the record at ``t`` that follows it: stamped ``t``, so
+        t_mono never steps back (the records queued before the drops precede it). Call with
+        ``_put_lock`` held."""
         from x6wd.core.recorder import GAP_EVENT
 
-        now = time.monotonic()
-        try:
-            self.recorder.record(
-                "event",
-                {
-                    "event": GAP_EVENT,
-                    "from_t_mono": gap[0],
-                    "to_t_mono": now,
-                    "duration_s": round(now - gap[0], 3),
-                    "records_lost": self.queue_dropped - gap[1],
-                    "error": f"recorder queue full ({self.max_queued} records): the writer "
-                    "was stuck",
-                },
-                now,
-            )
-        except Exception as exc:
-            self._failed(exc)
+        gap, self._drop_gap = self._drop_gap, None
+        assert gap is not None
+        t0, lost0 = gap
+        fields = {
+            "event": GAP_EVENT,
+            "from_t_mono": t0,  # the first record dropped
+            "to_t_mono": t,  # the first queued again
+            "duration_s": round(max(0.0, t - t0), 3),
+            "records_lost": self.queue_dropped - lost0,
+            "error": f"recorder queue full ({self.max_queued} records): the writer was stuck",
+        }
+        return "record", ("event", fields, t)
 
     def _failed(self, exc: Exception) -> None:
         self.errors += 1
@@ -803,7 +813,10 @@ class _RecorderWorker:
         when the writer is stuck: its queue is then lost, the shutdown goes on
         (idempotent)."""
         if self.thread.is_alive():
-            self._q.put(None)
+            with self._put_lock:
+                if self._drop_gap is not None:  # dropped up to the end: the gap says so
+                    self._q.put(self._gap_item(max(time.monotonic(), self._drop_gap[0])))
+                self._q.put(None)
             self.thread.join(timeout_s)
         if self.thread.is_alive():
             t = self._t_call
@@ -2068,7 +2081,11 @@ def _dir_check(directory: Path) -> tuple[str, str]:
     directory exists and is right, but its file system is read-only (an SD card's error
     remounted it) or full (no space, no inodes, over quota): :data:`RUNTIME_ERRNOS`. Both
     name the errno. A directory still to be created on such a disk is a problem (it is not
-    there to be right)."""
+    there to be right). The kernel says EROFS before EACCES, so on a runtime errno the
+    permission bits are checked too (:func:`_no_write_permission`: no permission is a
+    problem), and a mount read-only by configuration, not by its file system (a read-only
+    bind mount, systemd's ProtectSystem: :func:`_read_only_mount`), is a problem: it stays
+    so."""
     from x6wd.core.recorder import RUNTIME_ERRNOS
 
     d = directory if directory.is_absolute() else Path.cwd() / directory
@@ -2093,10 +2110,96 @@ def _dir_check(directory: Path) -> tuple[str, str]:
         if exc.errno == errno.ENOENT:  # procfs: it would read as "no such directory"
             return f"cannot create a file in {probe}: its file system takes no files", ""
         if probe == d and exc.errno in RUNTIME_ERRNOS:
+            # The kernel says EROFS before EACCES: a read-only disk hides a missing
+            # permission, which the bits tell (it would fail for good once writable).
+            denied = _no_write_permission(probe)
+            if denied:
+                return f"this user may not write in {probe} ({denied}; {why} too)", ""
+            if exc.errno == errno.EROFS:
+                mount = _read_only_mount(probe)
+                if mount:  # made read-only by configuration: it stays so
+                    return (
+                        f"cannot create a file in {probe}: {why}: {probe} is on a read-only "
+                        f"mount ({mount}: read-only per mount, its file system is writable; "
+                        "a bind mount or remount made read-only by configuration)"
+                        + _protect_system_hint(probe),
+                        "",
+                    )
             return "", f"cannot create a file in {probe}: {why}"
         what = "a file in" if probe == d else f"{d} in"
         return f"cannot create {what} {probe}: {why}", ""
     return "", ""
+
+
+def _no_write_permission(directory: Path) -> str:
+    """Why the permission bits of ``directory`` keep this process (its effective uid, gid
+    and groups) from creating a file there ("" when they do not: root may, others need w
+    and x in the class that applies to them, as the kernel checks), for when the file
+    system said EROFS or ENOSPC before it checked them. ACLs are not read."""
+    try:
+        st = os.stat(directory)
+    except OSError:
+        return ""
+    euid = os.geteuid()
+    if euid == 0:
+        return ""
+    if st.st_uid == euid:
+        need = stat.S_IWUSR | stat.S_IXUSR
+    elif st.st_gid == os.getegid() or st.st_gid in os.getgroups():
+        need = stat.S_IWGRP | stat.S_IXGRP
+    else:
+        need = stat.S_IWOTH | stat.S_IXOTH
+    if st.st_mode & need == need:
+        return ""
+    return (
+        f"Permission denied (EACCES): {stat.filemode(st.st_mode)} uid {st.st_uid} gid "
+        f"{st.st_gid}, this user uid {euid} gid {os.getegid()}"
+    )
+
+
+def _mountinfo_unescape(field: str) -> str:
+    """A path of /proc/self/mountinfo as it is (``\\040`` a space, ``\\011`` a tab ...)."""
+    return re.sub(r"\\([0-7]{3})", lambda m: chr(int(m[1], 8)), field)
+
+
+def _read_only_mount(directory: Path, mountinfo: str = "/proc/self/mountinfo") -> str:
+    """The mount point of ``directory``'s mount when it is read-only per mount only (its
+    mount options say ro, its file system's super options rw: a bind mount or a remount
+    made read-only by configuration, e.g. systemd's ProtectSystem), else "" (a file system
+    read-only itself, e.g. an SD card remounted after errors; or mountinfo unreadable). The
+    mount is the one with the longest mount point prefix of the real path (the last listed
+    of those mounted on the same point: the one on top)."""
+    path = os.path.realpath(directory)
+    try:
+        with open(mountinfo, encoding="utf-8", errors="replace") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return ""
+    best: tuple[int, str, bool] | None = None  # (prefix length, mount point, per-mount ro)
+    for line in lines:
+        head, sep, tail = line.partition(" - ")
+        fields, sup = head.split(), tail.split()
+        if not sep or len(fields) < 6 or len(sup) < 3:
+            continue
+        point = _mountinfo_unescape(fields[4])
+        if not (point == "/" or path == point or path.startswith(point.rstrip("/") + "/")):
+            continue
+        per_mount_ro = "ro" in fields[5].split(",") and "rw" in sup[2].split(",")
+        if best is None or len(point) >= best[0]:
+            best = (len(point), point, per_mount_ro)
+    return best[1] if best is not None and best[2] else ""
+
+
+def _protect_system_hint(directory: Path) -> str:
+    """``; under systemd's ProtectSystem=strict ...`` for a directory outside
+    /var/lib/x6wd (the x6wd unit's only writable place), else ""."""
+    path = os.path.realpath(directory)
+    if path == "/var/lib/x6wd" or path.startswith("/var/lib/x6wd/"):
+        return ""
+    return (
+        "; under systemd's ProtectSystem=strict (the x6wd unit) only /var/lib/x6wd is "
+        "writable: keep recordings there or add the dir to ReadWritePaths="
+    )
 
 
 def _gps_device(url: str, rate_hz: float, world: Any = None) -> tuple[str, int | None, float]:
