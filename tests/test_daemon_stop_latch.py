@@ -195,3 +195,34 @@ def test_a_drive_the_motors_refused_is_not_recorded_as_sent() -> None:
     lp.runner.drive(20.0, 20.0, 5.0)
     assert refused and refused[-1].left_pct == 20.0
     assert not [a for m, a in lp.records if m == "record_motor" and not a.is_stop]
+
+
+def test_whether_a_command_was_held_is_decided_with_it_per_thread() -> None:
+    """The daemon asks the worker whether the command it just gave was dropped (so the
+    recording skips it); the answer is the one decided under the worker's lock for that
+    thread's command, not the hold's state read before or after (a hold beginning between
+    the two made a dropped drive read as sent: a review)."""
+    link = SlowLink()
+    link.release.set()  # sends go straight through
+    w = worker(link, 0.1)
+    try:
+        w.submit(MotorCommand(time.monotonic(), 20.0, 20.0, "drive"))
+        assert not w.last_held()
+        seq = w.hold_stop()
+        w.submit(MotorCommand(time.monotonic(), 30.0, 30.0, "drive"))
+        assert w.last_held()
+        seen: list[bool] = []
+
+        def other() -> None:  # another thread's verdict is its own
+            w.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "operator stop"))
+            seen.append(w.last_held())
+
+        t = threading.Thread(target=other)
+        t.start()
+        t.join()
+        assert seen == [False] and w.last_held()
+        w.stop_applied(seq)
+        w.send_now(MotorCommand(time.monotonic(), 25.0, 25.0, "drive"))
+        assert not w.last_held()
+    finally:
+        w.shutdown("test end")

@@ -221,6 +221,7 @@ class _MotorWorker:
         self._latched = 0
         self._latch_seq = 0
         self.dropped_while_stopping = 0  # drive commands dropped while an operator stop held
+        self._verdict = threading.local()  # per caller: whether its latest command was held
         # What the controller was told: it starts with the link up, so a link that is not
         # (a board silent from power-up) is a change that start() reports at once.
         self._healthy = True
@@ -303,6 +304,7 @@ class _MotorWorker:
         board never stalls the caller for more than one send. A drive while an operator
         stop holds (:meth:`hold_stop`) is dropped (False)."""
         with self._cond:
+            self._verdict.held = False
             if self._stop:  # after shutdown() nothing may reach the motors
                 return False
             if self._held(cmd):
@@ -341,6 +343,12 @@ class _MotorWorker:
             if self._latched and seq >= self._latched:
                 self._latched = 0
 
+    def last_held(self) -> bool:
+        """Whether the latest command this thread gave :meth:`submit` or :meth:`send_now`
+        was dropped by an operator stop's hold (decided under the worker's lock, so a hold
+        that begins meanwhile cannot make a dropped command read as sent)."""
+        return bool(getattr(self._verdict, "held", False))
+
     @property
     def stop_holding(self) -> bool:
         """An operator stop holds: drive commands are dropped until the controller has it."""
@@ -350,7 +358,9 @@ class _MotorWorker:
     def _held(self, cmd: MotorCommand) -> bool:
         """``cmd`` is a drive while an operator stop holds: count it (it is dropped). Called
         with ``_cond`` held."""
-        if not self._latched or cmd.is_stop:
+        held = bool(self._latched) and not cmd.is_stop
+        self._verdict.held = held
+        if not held:
             return False
         self.dropped_while_stopping += 1
         if self.dropped_while_stopping in (1, 10, 100) or self.dropped_while_stopping % 1000 == 0:
@@ -1602,12 +1612,12 @@ class Daemon:
         and drops it (the runner then does not record it as sent)."""
         if self.motors is None:
             return True
-        held = not cmd.is_stop and self.motors.stop_holding
         if self._deciding == threading.get_ident():
             # a device thread's decision: write it to the link from this thread when idle
             self.motors.send_now(cmd)
-            return not held
+            return not self.motors.last_held()
         self.motors.submit(cmd, repeat_after_s=MOTOR_REPEAT_S)
+        held = self.motors.last_held()
         # Hand the GIL to the motor thread now rather than after the telemetry work
         # that follows (up to a switch interval later).
         time.sleep(0)
