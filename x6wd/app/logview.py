@@ -87,6 +87,12 @@ happened) and several threads write, so neighbours can be out of order by a loop
 or a batch of device events (a reconnect's several seconds). Another session (the daemon
 started again, its monotonic clock with it) steps back by about the previous one's length."""
 
+CLOCK_AGREE_S = 2.0
+"""A recording's clock (its ``t_utc``) and its first dated valid fix's UTC less the time the
+fix arrived may differ by this much (the fix's latency, a clock slightly off); more, and the
+recording's time 0 is dated by the fix: the recorder's clock was wrong (a robot without a
+real-time clock boots at 1970), and fixes placed by it would miss the true track's time."""
+
 _MODES = frozenset(str(m) for m in Mode)
 _NAV_STATES = frozenset(str(s) for s in NavState)
 
@@ -209,6 +215,10 @@ class LogView:
     kind: str  # "recording" or "NMEA log"
     duration_s: float = 0.0
     start_utc: str = ""
+    # a recording whose recorder's clock disagreed with the GPS at the first dated fix:
+    # what it read there, and by how much it was off (s, + ahead); start_utc is the GPS's
+    recorder_clock: str = ""
+    recorder_clock_off_s: float | None = None
     origin_deg: tuple[float, float] | None = None  # (lat, lon) of the map's (0, 0)
     # track: label -> (east m, north m)
     track: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
@@ -249,6 +259,7 @@ class LogView:
             "kind": self.kind,
             "duration_s": round(self.duration_s, 3),
             "start_utc": self.start_utc,
+            "recorder_clock_off_s": self.recorder_clock_off_s,
             "origin_deg": list(self.origin_deg) if self.origin_deg else None,
             "track": {
                 k: {"east_m": _floats(e, 3), "north_m": _floats(n, 3)}
@@ -382,14 +393,17 @@ def _fix_error_key(raw: _Raw) -> Any:
 
     def key(f: GpsFix) -> float | None:
         assert f.lat_deg is not None and f.lon_deg is not None  # a good fix's
-        t = (
-            (f.utc - raw.utc0).total_seconds()
-            if f.utc is not None and raw.utc0 is not None
-            else f.t_s
-        )
-        return raw.off_truth_deg(t, f.lat_deg, f.lon_deg)
+        return raw.off_truth_deg(_fix_epoch(raw, f), f.lat_deg, f.lon_deg)
 
     return key
+
+
+def _fix_epoch(raw: _Raw, f: GpsFix) -> float:
+    """A fix's epoch (its UTC) on the log's time axis, the true track's clock: its UTC less
+    the UTC of the log's time 0 (``raw.utc0``), else the time it arrived."""
+    if f.utc is None or raw.utc0 is None:
+        return f.t_s
+    return (f.utc - raw.utc0).total_seconds()
 
 
 def _continuous_lon(lon_deg: np.ndarray) -> np.ndarray:
@@ -431,6 +445,10 @@ class _Raw:
     t_first: float | None = None
     t_last: float = 0.0
     utc0: datetime | None = None  # wall-clock time of the log's time 0
+    # a recording's: check utc0 (the recorder's t_utc) against the first dated valid fix
+    clock_check: bool = False
+    clock_checked: bool = False
+    wall_utc0: datetime | None = None  # the recorder's utc0 where the GPS's replaced it
     _truth_lon: tuple[np.ndarray, np.ndarray] | None = None  # truth's lon, and unwrapped
 
     def __post_init__(self) -> None:
@@ -454,6 +472,8 @@ class _Raw:
     def add_fix(self, f: GpsFix) -> None:
         """A fix, into the series that draw it."""
         self.n_fixes += 1
+        if self.clock_check and not self.clock_checked and f.valid and f.utc is not None:
+            self.check_clock(f)
         self.fixes.add(f)
         if f.valid and f.lat_deg is not None:
             self.n_valid += 1
@@ -464,6 +484,19 @@ class _Raw:
                     self.nonfinite += 1
         if f.valid and f.course_deg is not None:
             self.moving.add(f)
+
+    def check_clock(self, f: GpsFix) -> None:
+        """A recording's first dated valid fix ``f``: where the recorder's clock (its
+        ``t_utc``, ``utc0``) disagrees with ``f``'s UTC by more than
+        :data:`CLOCK_AGREE_S` (a robot without a real-time clock booted at 1970, a clock
+        set while recording), the log's time 0 is dated by the fix instead (its UTC less
+        the time it arrived), so that fixes are placed at their epochs on the log's own
+        clock, and the start is the GPS's."""
+        assert f.utc is not None
+        self.clock_checked = True
+        gps0 = f.utc - timedelta(seconds=f.t_s)
+        if self.utc0 is None or abs((self.utc0 - gps0).total_seconds()) > CLOCK_AGREE_S:
+            self.wall_utc0, self.utc0 = self.utc0, gps0
 
     def add_sky(self, s: GpsSky) -> None:
         """A sky report: its count of satellites in view and its HDOP."""
@@ -487,6 +520,8 @@ class _Raw:
     def take_gps(self, other: _Raw) -> None:
         """``other``'s fixes (and its skies, if this has none) in place of this one's."""
         self.fixes, self.good, self.moving = other.fixes, other.good, other.moving
+        if other.clock_checked:  # its fixes were placed by its utc0
+            self.clock_checked, self.utc0, self.wall_utc0 = True, other.utc0, other.wall_utc0
         self.n_fixes, self.n_valid = other.n_fixes, other.n_valid
         self.nonfinite += other.nonfinite
         if not self.n_skies:
@@ -831,7 +866,9 @@ def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadS
         elif kind == "nmea" and not raw.n_fixes:
             text = d.get("text")
             if isinstance(text, str):
-                side = side or _Decoding(_Raw(truth=raw.truth, utc0=raw.utc0))
+                side = side or _Decoding(
+                    _Raw(truth=raw.truth, utc0=raw.utc0, clock_check=raw.clock_check)
+                )
                 side.feed(t, text.encode("utf-8", "replace") + b"\r\n")
         elif kind == "event" and d.get("event") == "device":
             raw.device_events.append(
@@ -924,6 +961,7 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
         except X6wdError as exc:
             truth_error = exc
     if view.kind == "recording":
+        raw.clock_check = True
         stats, bad_records, unknown = _read_recording(path, raw, view.jumps)
         view.counts = {
             "records": stats.records,
@@ -953,6 +991,9 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
     view.duration_s = raw.t_last - t0
     if raw.utc0 is not None:
         view.start_utc = (raw.utc0 + timedelta(seconds=t0)).isoformat()
+    if raw.wall_utc0 is not None and raw.utc0 is not None:
+        view.recorder_clock = (raw.wall_utc0 + timedelta(seconds=t0)).isoformat()
+        view.recorder_clock_off_s = round((raw.wall_utc0 - raw.utc0).total_seconds(), 3)
     view.counts.update(
         fixes=raw.n_fixes,
         valid_fixes=raw.n_valid,
@@ -1027,12 +1068,7 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, torn: int | None) -> N
     tr_t, (tr_e, tr_n) = tt[0], xy(tt[1], tt[2])
     if good:
         # a fix is the receiver's position at its epoch (its UTC), not at its arrival
-        ep = _arr(
-            (f.utc - raw.utc0).total_seconds()
-            if f.utc is not None and raw.utc0 is not None
-            else f.t_s
-            for f in good
-        )
+        ep = _arr(_fix_epoch(raw, f) for f in good)
         err = np.hypot(fx_e - np.interp(ep, tr_t, tr_e), fx_n - np.interp(ep, tr_t, tr_n))
         view.error.append(Series("GPS fix", _arr(f.t_s for f in good) - t0, err))
     if est:
@@ -1591,6 +1627,21 @@ def jumps_note(view: LogView, most: int = 3) -> str:
     )
 
 
+def _clock_off(s: float) -> str:
+    return f"{s / 86400:.0f} days" if s >= 2 * 86400 else _duration(s)
+
+
+def recorder_clock_note(view: LogView) -> str:
+    """What the recorder's clock read at the start, where it disagreed with the GPS."""
+    off = view.recorder_clock_off_s or 0.0
+    return (
+        f"{view.recorder_clock} at the start, {_clock_off(abs(off))} "
+        f"{'ahead of' if off > 0 else 'behind'} the GPS (no real-time clock, or set while "
+        "recording): the start is the GPS's, the fixes placed by their UTC from the first "
+        "dated fix"
+    )
+
+
 def html_page(view: LogView) -> str:
     """The self-contained page of a loaded log (see :func:`render_html`)."""
     svgs = panel_svgs(view)
@@ -1600,6 +1651,8 @@ def html_page(view: LogView) -> str:
         ("duration", f"{view.duration_s:.1f} s"),
         ("start (UTC)", view.start_utc or "unknown"),
     ]
+    if view.recorder_clock:
+        facts.append(("recorder clock", recorder_clock_note(view)))
     if view.jumps:
         facts.append((f"time jumps ({len(view.jumps)})", jumps_note(view)))
     if view.gaps:

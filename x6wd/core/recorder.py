@@ -18,7 +18,10 @@ a power cut or a kernel crash loses what was not yet fsync'ed.)
 
 Retention (an SD card fills up): :meth:`Recorder.in_dir` names a run
 ``<prefix>-YYYYmmddTHHMMSSZ[-N].jsonl`` and, with ``max_bytes``, continues it in parts
-``<stem>.1.jsonl``, ``.2`` ... . With a :class:`Retention`, the recorder deletes the oldest
+``<stem>.1.jsonl``, ``.2`` ... . The name is the run's order (retention, ``x6wd plot DIR``,
+the console's list): a run is never named before one already in the directory, so a robot
+without a real-time clock, started at 1970, names its run one second after the newest
+instead (:func:`run_name_stamp`). With a :class:`Retention`, the recorder deletes the oldest
 files of that naming pattern in its directory (older runs first, then the oldest parts of its
 own run, never the part being written) while they add up to more than ``max_total_bytes`` or
 the file system has less than ``min_free_bytes`` free. It does so when asked
@@ -57,7 +60,7 @@ import types
 import typing
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from operator import attrgetter
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -381,6 +384,40 @@ def _parse_name(name: str, prefix: str) -> tuple[tuple[str, int], int] | None:
     if m is None:
         return None
     return (m[1], int(m[2] or 0)), int(m[3] or 0)
+
+
+_STAMP_FORMAT = "%Y%m%dT%H%M%SZ"
+
+
+def _previous_stamp(stamp: str) -> str:
+    t = datetime.strptime(stamp, _STAMP_FORMAT).replace(tzinfo=UTC)
+    return (t - timedelta(seconds=1)).strftime(_STAMP_FORMAT)
+
+
+def run_name_stamp(
+    directory: str | os.PathLike[str], prefix: str, now: datetime
+) -> tuple[str, int]:
+    """(stamp, N) naming a new run in ``directory`` at UTC ``now`` so that it sorts after
+    every run already there (:func:`list_recordings`' order): ``now``'s stamp with N 0 when
+    it is later than the newest run's; the newest stamp with its N + 1 in the same second;
+    one second after the newest stamp when ``now`` is earlier (a clock at 1970, set back).
+    A folder that cannot be read (missing, no permission) gives ``now``'s stamp."""
+    stamp = now.astimezone(UTC).strftime(_STAMP_FORMAT)
+    try:
+        files = list_recordings(directory, prefix)
+    except OSError:
+        files = []
+    if not files:
+        return stamp, 0
+    newest, newest_n = max(f.run for f in files)
+    if stamp > newest:
+        return stamp, 0
+    if stamp == newest:
+        return stamp, newest_n + 1
+    t = datetime.strptime(newest, _STAMP_FORMAT).replace(tzinfo=UTC)
+    if t.year == 9999 and t.strftime("%m%d%H%M%S") == "1231235959":
+        return newest, newest_n + 1  # no second after it to name
+    return (t + timedelta(seconds=1)).strftime(_STAMP_FORMAT), 0
 
 
 def list_recordings(directory: str | os.PathLike[str], prefix: str = "x6wd") -> list[RecordingFile]:
@@ -715,15 +752,36 @@ class Recorder:
     def in_dir(
         cls, directory: str | os.PathLike[str], prefix: str = "x6wd", **kwargs: Any
     ) -> Recorder:
-        """A new recording ``<prefix>-YYYYmmddTHHMMSSZ.jsonl`` in ``directory``."""
+        """A new recording ``<prefix>-YYYYmmddTHHMMSSZ[-N].jsonl`` in ``directory``.
+
+        The name is the UTC time of ``utc_clock`` but also the order of the runs (retention,
+        ``x6wd plot DIR``, the console's list all go by it), so a new run never sorts before
+        one already in the directory: when the clock reads earlier than the newest run's
+        name (a robot without a real-time clock boots at 1970, a clock set back), the run is
+        named one second after that newest name instead, and this is logged (its records
+        keep the clock's ``t_utc``). In the newest run's own second, ``-N`` follows its
+        highest ``N``. See :func:`run_name_stamp`.
+        """
         utc_clock = kwargs.get("utc_clock", _utc_now)
-        stamp = utc_clock().astimezone(UTC).strftime("%Y%m%dT%H%M%SZ")
+        now = utc_clock().astimezone(UTC)
+        stamp, n = run_name_stamp(directory, prefix, now)
+        if stamp != now.strftime(_STAMP_FORMAT):
+            log.warning(
+                "recorder: the clock reads %s UTC, earlier than the newest recording in %s "
+                "(%s-%s...): the new run is named %s-%s so that it sorts after it (its "
+                "records keep the clock's t_utc)",
+                now.strftime("%Y-%m-%d %H:%M:%S"),
+                directory,
+                prefix,
+                _previous_stamp(stamp),
+                prefix,
+                stamp,
+            )
         base = Path(directory) / f"{prefix}-{stamp}"
-        path = base.with_suffix(".jsonl")
-        n = 1
-        while path.exists():
-            path = Path(f"{base}-{n}.jsonl")
+        path = Path(f"{base}-{n}.jsonl") if n else base.with_suffix(".jsonl")
+        while path.exists():  # a file of another kind under the name: never overwritten
             n += 1
+            path = Path(f"{base}-{n}.jsonl")
         return cls(path, **kwargs)
 
     @property
