@@ -29,6 +29,15 @@ one ``read()`` per burst of bytes, instead of pyserial's ``in_waiting`` ioctl an
 ``select()`` + ``read()`` + ``select()`` — each system call lets another Python thread take
 the GIL, and the GPS thread then waits for it back before the fix can be decided.
 
+GPS week rollover: the legacy GPS message counts weeks in 10 bits, so a receiver whose
+firmware predates a rollover (a u-blox NEO-5 with old firmware, ...) reports dates 1024 weeks
+(19.6 years) in the past after it. The reader corrects them (:class:`WeekRolloverCorrection`):
+a fix or sky view dated before :data:`WEEK_ROLLOVER_FLOOR_UTC` (this software's release: no
+true date can be earlier, as gpsd does with its build date) gets 1024 weeks added, as often as
+needed, with one WARNING naming the receiver's date and the corrected one. Only the live path
+corrects (the daemon gives its reader one unless the GPS is a ``replay://`` log):
+``x6wd decode`` and ``x6wd replay`` decode recorded sentences as they are.
+
 Note that pyserial's ``socket://`` handler discards whatever arrived before ``open()``
 returned; a streaming receiver loses nothing but part of one sentence.
 """
@@ -36,18 +45,23 @@ returned; a streaming receiver loses nothing but part of one sentence.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
+import logging
 import os
 import select
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Protocol
+from datetime import UTC, datetime, timedelta
+from typing import Any, Protocol
 
 from drivers.gps_nmea import UBX_SYNC, GpsDecoder, GpsOutput, UbxAck, parse_ack
 from x6wd.core.errors import ConfigError, ParseError, X6wdError, is_transient
 from x6wd.core.health import HealthTracker, root_oserror
-from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent
+from x6wd.core.records import DeviceHealth, DeviceState, GpsFix, GpsSky, HealthEvent
+
+log = logging.getLogger("drivers.gps_io")
 
 _IDLE_POLL_S = 0.01  # wait step for ports that cannot be select()ed
 JOIN_MAX_B = 512
@@ -69,6 +83,90 @@ and the motor link's (an EIO that never ends is a device that went away)."""
 _NO_DATA_ERRNOS = frozenset({errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR, errno.EINPROGRESS,
                              errno.EALREADY})  # fmt: skip
 """Read errors that only mean "nothing to read yet" (pyserial's read ignores them too)."""
+
+GPS_WEEK_ROLLOVER = timedelta(weeks=1024)
+"""The span of the legacy GPS week number (10 bits): 1024 weeks, 19.6 years. A receiver with
+firmware older than a rollover (1999-08-22, 2019-04-07, next 2038-11-21) dates its fixes this
+much too early after it."""
+WEEK_ROLLOVER_FLOOR_UTC = datetime(2026, 1, 1, tzinfo=UTC)
+"""The earliest date a live receiver can truly report: this software's release (raise it with
+each release; gpsd uses its build date the same way). A fix dated before it is a receiver week
+rollover and gets :data:`GPS_WEEK_ROLLOVER` added (repeatedly) until it is not before it."""
+
+
+class WeekRolloverCorrection:
+    """Corrects the dates of a receiver whose firmware predates a GPS week rollover.
+
+    :meth:`apply` returns the records with every ``GpsFix``/``GpsSky`` dated before ``floor``
+    moved forward by whole multiples of :data:`GPS_WEEK_ROLLOVER` (the least that puts it at
+    or after ``floor``); other records and undated ones pass unchanged. The first corrected
+    record (and any whose correction differs from the last one) makes one WARNING. Counts:
+    :meth:`status` (``corrected``: records corrected since start, ``weeks_added``, the last
+    ``receiver_utc`` and ``corrected_utc``, ``floor_utc``).
+    """
+
+    def __init__(self, floor: datetime = WEEK_ROLLOVER_FLOOR_UTC) -> None:
+        self.floor = floor
+        self.corrected = 0
+        self.weeks_added = 0  # weeks added to the latest corrected record
+        self.receiver_utc: datetime | None = None  # the latest corrected record's date, as read
+        self.corrected_utc: datetime | None = None  # ... and as corrected
+
+    def apply(self, records: list[GpsOutput]) -> list[GpsOutput]:
+        floor = self.floor
+        out: list[GpsOutput] | None = None
+        for i, rec in enumerate(records):
+            if not isinstance(rec, (GpsFix, GpsSky)):
+                continue
+            utc = rec.utc
+            if utc is None or utc >= floor:
+                continue
+            n = 0
+            fixed = utc
+            while fixed < floor:
+                fixed += GPS_WEEK_ROLLOVER
+                n += 1
+            if out is None:
+                out = list(records)
+            out[i] = dataclasses.replace(rec, utc=fixed)
+            self.corrected += 1
+            self.receiver_utc, self.corrected_utc = utc, fixed
+            if n * 1024 != self.weeks_added:
+                self.weeks_added = n * 1024
+                log.warning(
+                    "GPS date %s is before %s (this software's release): a receiver week "
+                    "rollover: firmware older than the GPS week rollover of %s; dates "
+                    "corrected by %d weeks (%s)",
+                    utc.isoformat(timespec="seconds"),
+                    floor.date().isoformat(),
+                    _rollover_before(utc + GPS_WEEK_ROLLOVER),
+                    n * 1024,
+                    fixed.isoformat(timespec="seconds"),
+                )
+        return records if out is None else out
+
+    def status(self) -> dict[str, Any]:
+        """``status``'s ``gps_week_rollover`` (JSON-ready)."""
+
+        def iso(t: datetime | None) -> str | None:
+            return None if t is None else t.isoformat(timespec="seconds")
+
+        return {
+            "corrected": self.corrected,
+            "weeks_added": self.weeks_added,
+            "receiver_utc": iso(self.receiver_utc),
+            "corrected_utc": iso(self.corrected_utc),
+            "floor_utc": self.floor.date().isoformat(),
+        }
+
+
+_GPS_EPOCH = datetime(1980, 1, 6, tzinfo=UTC)
+
+
+def _rollover_before(t: datetime) -> str:
+    """The latest GPS week rollover at or before ``t`` (a date, ISO)."""
+    n = (t - _GPS_EPOCH) // GPS_WEEK_ROLLOVER
+    return (_GPS_EPOCH + n * GPS_WEEK_ROLLOVER).date().isoformat()
 
 
 def _direct_fd(port: object) -> int | None:
@@ -102,7 +200,8 @@ class GpsReader:
     ``X6wdError``). ``init_bytes`` (e.g. UBX ``cfg_rate(...)``) are written after every
     (re)connect; ACK/NAK answers are collected for ``take_acks()``. ``stale_s`` (s): no
     valid sentence for this long makes the health stale; ``transient_limit`` transient read
-    errors in a row (``retry_delay_s`` apart) drop the port.
+    errors in a row (``retry_delay_s`` apart) drop the port. ``week_rollover``: a
+    :class:`WeekRolloverCorrection` for a live receiver's dates (the daemon's), or None.
     """
 
     def __init__(
@@ -119,6 +218,7 @@ class GpsReader:
         read_max: int = 4096,
         transient_limit: int = TRANSIENT_LIMIT,
         retry_delay_s: float = 0.01,
+        week_rollover: WeekRolloverCorrection | None = None,
     ) -> None:
         if not stale_s > 0:
             raise ConfigError(f"GpsReader stale_s must be > 0 s, got {stale_s!r}")
@@ -167,6 +267,9 @@ class GpsReader:
         self._closed = False
         self._nonblocking = False
         self._fd: int | None = None  # read directly (see _direct_fd), else through the port
+        self.week_rollover = week_rollover
+        """Moves the dates of a receiver past a GPS week rollover forward (module docstring);
+        None: records pass as decoded (a replayed log keeps its own dates)."""
 
     # -- public
 
@@ -364,6 +467,8 @@ class GpsReader:
                 continue
             if ack is not None:
                 self._acks.append(ack)
+        if self.week_rollover is not None:
+            records = self.week_rollover.apply(records)
         return records
 
     def _join(self, data: bytes) -> bytes:

@@ -282,12 +282,22 @@ def _fmt(v: Any, spec: str, unit: str = "") -> str:
         return str(v)
 
 
-def fmt_heading(v: Any) -> str:
+def fmt_heading(v: Any, north: str = "true") -> str:
     """A heading or bearing as every view shows it: true (from geographic north), degrees
-    clockwise, 0 <= h < 360, one decimal ("-" when unknown)."""
+    clockwise, 0 <= h < 360, one decimal ("-" when unknown). ``north="magnetic"``: the
+    compass heading while no declination is known (see :func:`heading_north`)."""
     if not isinstance(v, (int, float)) or not math.isfinite(v):
         return "-"
-    return f"{round(float(v), 1) % 360.0:.1f} deg true"
+    return f"{round(float(v), 1) % 360.0:.1f} deg {north}"
+
+
+def heading_north(decl: Any) -> str:
+    """Which north the robot's heading is from, by ``status``'s ``declination``: "magnetic"
+    while the World Magnetic Model's value is pending (no dated fix yet) or failed (0 is
+    used), else "true" (also when the reply has no ``declination``)."""
+    if isinstance(decl, dict) and ("pending" in decl or "error" in decl):
+        return "magnetic"
+    return "true"
 
 
 def _returning_text(why: str) -> str:
@@ -296,10 +306,11 @@ def _returning_text(why: str) -> str:
     return "the operator's command" if why == "return" else why
 
 
-def _telemetry_lines(tel: dict[str, Any]) -> list[str]:
+def _telemetry_lines(tel: dict[str, Any], north: str = "true") -> list[str]:
     """The lines of a telemetry snapshot that the watch and status views share. A return to
     launch (``extra.returning``) is said, with its cause, and its target is the launch point,
-    not the mission's waypoint 1/1; the last failsafe that acted (``extra.failsafe``) too."""
+    not the mission's waypoint 1/1; the last failsafe that acted (``extra.failsafe``) too.
+    ``north``: the heading's (:func:`heading_north`); bearings are always true."""
     extra = tel.get("extra")
     if not isinstance(extra, dict):
         extra = {}
@@ -322,7 +333,7 @@ def _telemetry_lines(tel: dict[str, Any]) -> list[str]:
         *lines,
         f"position   {_fmt(tel.get('lat_deg'), '.7f')} {_fmt(tel.get('lon_deg'), '.7f')}",
         f"filtered   {_fmt(tel.get('filt_lat_deg'), '.7f')} {_fmt(tel.get('filt_lon_deg'), '.7f')}",
-        f"heading    {fmt_heading(tel.get('heading_deg'))}",
+        f"heading    {fmt_heading(tel.get('heading_deg'), north)}",
         f"pitch/roll {_fmt(tel.get('pitch_deg'), '.0f', ' deg')} / "
         f"{_fmt(tel.get('roll_deg'), '.0f', ' deg')}",
         f"waypoint   {wp}  distance {_fmt(tel.get('distance_m'), '.1f', ' m')}  "
@@ -348,7 +359,7 @@ def render_watch(tel: dict[str, Any], info: dict[str, Any] | None = None) -> str
     lines = [
         "x6wd watch  (Ctrl-C to quit)",
         "",
-        *_telemetry_lines(tel),
+        *_telemetry_lines(tel, heading_north(info.get("declination"))),
         _links_line(info.get("links", {})),
     ]
     if info.get("dropped"):
@@ -370,20 +381,32 @@ def render_status(st: dict[str, Any]) -> str:
     lines = [head]
     tel = st.get("telemetry")
     if isinstance(tel, dict):
-        lines += _telemetry_lines(tel)
+        lines += _telemetry_lines(tel, heading_north(st.get("declination")))
     else:
         lines.append(
             f"state      {st.get('mode', '?')} / {st.get('state', '?')}  (no telemetry yet)"
         )
     decl = st.get("declination")
     if isinstance(decl, dict) and decl:
-        if "deg" in decl:
+        if "pending" in decl:  # the WMM's value waits for a dated fix: 0 meanwhile
+            text = (
+                f"{_fmt(decl.get('deg', 0.0), '+.2f', ' deg')} ({decl.get('source', '?')}: "
+                f"{decl['pending']})"
+            )
+        elif "deg" in decl:
             text = f"{_fmt(decl['deg'], '+.2f', ' deg')} ({decl.get('source', '?')})"
         elif "error" in decl:
             text = f"unknown ({decl.get('source', '?')}: {decl['error']}), heading is magnetic"
         else:
             text = str(decl.get("source", "-"))
         lines.append(f"declination {text}")
+    roll = st.get("gps_week_rollover")
+    if isinstance(roll, dict) and roll.get("corrected"):
+        lines.append(
+            f"gps date   receiver week rollover: {roll.get('receiver_utc')} read as "
+            f"{roll.get('corrected_utc')} (+{roll.get('weeks_added')} weeks; "
+            f"{roll.get('corrected')} records; receiver firmware older than the rollover)"
+        )
     lines.append(_links_line(st.get("links", {})))
     devices = st.get("devices")
     if isinstance(devices, dict):

@@ -1281,7 +1281,7 @@ class Daemon:
 
     async def _open_devices(self) -> None:
         from drivers import registry
-        from drivers.gps_io import GpsReader
+        from drivers.gps_io import GpsReader, WeekRolloverCorrection
 
         cfg = self.config
         link = await asyncio.to_thread(
@@ -1301,7 +1301,13 @@ class Daemon:
         self.motors.start()
         compass = await asyncio.to_thread(registry.open_compass, cfg.compass.url, self.devices)
         self._compass = compass
-        self._gps_reader = GpsReader(self._open_gps_port, stale_s=cfg.gps.stale_s)
+        # a live receiver's dates before this release are a GPS week rollover (drivers.gps_io)
+        live = registry.parse_url(cfg.gps.url, "gps").scheme != "replay"
+        self._gps_reader = GpsReader(
+            self._open_gps_port,
+            stale_s=cfg.gps.stale_s,
+            week_rollover=WeekRolloverCorrection() if live else None,
+        )
 
     def _open_gps_port(self) -> Any:
         """Open the GPS (the reader's opener, also on reopen) and tell the gpsd port's DEVICE
@@ -1882,6 +1888,8 @@ class Daemon:
             ),
             # where the compass declination comes from, and its value: config, or the WMM
             "declination": self._declination_status(),
+            # dates of a receiver past a GPS week rollover, corrected (null: not corrected)
+            "gps_week_rollover": self._week_rollover_status(),
             # bind keys listening beyond loopback in clear text (server.allow_plaintext)
             "plaintext_beyond_loopback": list(self._plaintext),
             # the web console's counts (dead-man stops, drives refused late or after another
@@ -1898,7 +1906,16 @@ class Daemon:
         configured = self.config.compass.declination_deg
         if decl.get("source") == "config" and "deg" not in decl and configured is not None:
             decl["deg"] = round(float(configured), 3)
+        elif decl.get("source") == "wmm" and "deg" not in decl and "error" not in decl:
+            decl["deg"] = 0.0  # in use until the first dated fix
+            decl["pending"] = "no dated fix yet: heading is magnetic"
         return decl
+
+    def _week_rollover_status(self) -> dict[str, Any] | None:
+        """``status``'s ``gps_week_rollover``: the GPS reader's corrections (None when its
+        dates are not corrected: a ``replay://`` log, or no reader yet)."""
+        fix = getattr(self._gps_reader, "week_rollover", None)
+        return None if fix is None else fix.status()
 
     # the runner's operator requests, run on the control loop by _on_control
     def _load_mission(self, waypoints: list[Waypoint]) -> dict[str, Any]:

@@ -180,7 +180,10 @@ class Runner:
             self._record("record_nmea", rec.text)
 
     def _set_wmm_declination(self, fix: GpsFix) -> None:
-        """The World Magnetic Model's declination at the first dated fix (once)."""
+        """The World Magnetic Model's declination at the first dated fix (once). On the robot
+        the fix's date has already been corrected for a receiver past a GPS week rollover
+        (1024 weeks early) by the daemon's GPS reader: ``drivers.gps_io.WeekRolloverCorrection``.
+        """
         self._wmm_pending = False
         assert fix.lat_deg is not None and fix.lon_deg is not None and fix.utc is not None
         alt_m = (fix.alt_m or 0.0) + (fix.geoid_sep_m or 0.0)
