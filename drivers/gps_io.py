@@ -99,14 +99,26 @@ class WeekRolloverCorrection:
 
     :meth:`apply` returns the records with every ``GpsFix``/``GpsSky`` dated before ``floor``
     moved forward by whole multiples of :data:`GPS_WEEK_ROLLOVER` (the least that puts it at
-    or after ``floor``); other records and undated ones pass unchanged. The first corrected
-    record (and any whose correction differs from the last one) makes one WARNING. Counts:
+    or after ``floor``); other records and undated ones pass unchanged. Where the system
+    ``clock`` is past ``floor`` (it has been set), only a correction that brings the date
+    nearer to it is made: the simulator's receiver in hardware in the loop (a scenario in
+    2020) is not moved to 2039; a robot booted at 1970 corrects by the floor alone. The
+    first corrected record (and any whose correction differs from the last one) makes one
+    WARNING. Counts:
     :meth:`status` (``corrected``: records corrected since start, ``weeks_added``, the last
     ``receiver_utc`` and ``corrected_utc``, ``floor_utc``).
     """
 
-    def __init__(self, floor: datetime = WEEK_ROLLOVER_FLOOR_UTC) -> None:
+    def __init__(
+        self,
+        floor: datetime = WEEK_ROLLOVER_FLOOR_UTC,
+        clock: Callable[[], datetime] = lambda: datetime.now(UTC),
+    ) -> None:
         self.floor = floor
+        # the system clock: once it is past the floor (set), a date is corrected only where
+        # that brings it nearer the clock; a receiver of the simulator (hardware in the
+        # loop, its scenario in 2020) or a log fed through a pty is not a rollover
+        self.clock = clock
         self.corrected = 0
         self.weeks_added = 0  # weeks added to the latest corrected record
         self.receiver_utc: datetime | None = None  # the latest corrected record's date, as read
@@ -126,6 +138,9 @@ class WeekRolloverCorrection:
             while fixed < floor:
                 fixed += GPS_WEEK_ROLLOVER
                 n += 1
+            now = self.clock()
+            if now >= floor and abs(fixed - now) >= abs(utc - now):
+                continue  # the clock is set and the receiver's own date is the nearer
             if out is None:
                 out = list(records)
             out[i] = dataclasses.replace(rec, utc=fixed)

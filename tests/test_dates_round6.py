@@ -200,7 +200,7 @@ def test_the_correction_adds_whole_rollovers_until_the_floor() -> None:
 
     assert GPS_WEEK_ROLLOVER == ROLLOVER
     floor = datetime(2026, 1, 1, tzinfo=UTC)
-    fix = WeekRolloverCorrection(floor)
+    fix = WeekRolloverCorrection(floor, clock=lambda: datetime(1970, 1, 1, tzinfo=UTC))
     old = datetime(2026, 12, 5, 9, 13, 42, tzinfo=UTC) - 2 * GPS_WEEK_ROLLOVER  # 1987
     recs: list[Any] = [GpsFix(t_s=1.0, utc=old), GpsSky(t_s=1.0, utc=old), GpsFix(t_s=2.0)]
     out: list[Any] = fix.apply(recs)
@@ -208,3 +208,21 @@ def test_the_correction_adds_whole_rollovers_until_the_floor() -> None:
     assert out[2] is recs[2] and fix.corrected == 2 and fix.weeks_added == 2048
     ok: list[Any] = [GpsFix(t_s=3.0, utc=floor)]
     assert fix.apply(ok) is ok  # not before the floor: untouched
+
+
+def test_a_set_system_clock_keeps_a_date_it_is_nearer_to() -> None:
+    """Hardware in the loop runs the simulator's receiver at its scenario's date (2020 in
+    config/scenarios/default.toml) on a machine whose clock is set: that is no rollover,
+    and 2039 would put the WMM out of its model. A rollover date (2007) next to a 2026
+    clock is still corrected, and so is any date before the floor on a 1970 clock."""
+    from drivers.gps_io import GPS_WEEK_ROLLOVER, WeekRolloverCorrection
+
+    floor = datetime(2026, 1, 1, tzinfo=UTC)
+    now = datetime(2026, 12, 5, 9, 0, 0, tzinfo=UTC)
+    fix = WeekRolloverCorrection(floor, clock=lambda: now)
+    sim: list[Any] = [GpsFix(t_s=1.0, utc=datetime(2020, 1, 1, 12, tzinfo=UTC))]
+    assert fix.apply(sim) is sim and fix.corrected == 0
+    rolled: list[Any] = [GpsFix(t_s=2.0, utc=now - GPS_WEEK_ROLLOVER)]
+    assert fix.apply(rolled)[0].utc == now and fix.corrected == 1
+    booted = WeekRolloverCorrection(floor, clock=lambda: datetime(1970, 1, 1, tzinfo=UTC))
+    assert booted.apply(sim)[0].utc == sim[0].utc + GPS_WEEK_ROLLOVER
