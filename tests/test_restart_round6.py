@@ -632,3 +632,56 @@ def test_the_queue_gap_event_lands_in_order_and_names_the_lost_span(tmp_path: Pa
     ticks = [r["t_mono"] for r in recs if r["data"]["event"] == "tick"]
     assert ticks == kept  # every record kept, in order, none of the span lost
     assert not [t for t in ticks if g["from_t_mono"] <= t < g["to_t_mono"]]
+
+
+ACL_CHECK = """
+import os, sys
+from pathlib import Path
+from x6wd.app.daemon import _dir_check
+os.setegid(65534)
+os.seteuid(65534)
+print(repr(_dir_check(Path(sys.argv[1]))))
+"""
+
+
+@ROOT_ONLY
+def test_a_full_disk_with_an_acl_granting_this_user_stays_a_runtime_fault(tmp_path: Path) -> None:
+    """The mode bits say no (0700 root) but a POSIX ACL lets the user write: on a full disk
+    (ENOSPC comes after the kernel's permission check, which passed) that is a disk fault,
+    not "this user may not write" and exit 2 (a review)."""
+    import shutil
+    import struct
+    import tempfile
+
+    top = Path(tempfile.mkdtemp(prefix="x6wd-acl-", dir="/tmp"))  # nobody may pass /tmp
+    top.chmod(0o755)  # (pytest's tmp_path is root's alone)
+    try:
+        _acl_case(top)
+    finally:
+        shutil.rmtree(top, ignore_errors=True)
+
+
+def _acl_case(top: Path) -> None:
+    import struct
+
+    with tmpfs(top / "disk", "size=64k,nr_inodes=3,mode=0755") as disk:
+        d = disk / "rec"
+        d.mkdir(mode=0o700)
+        # user_obj rwx, user nobody rwx, group_obj ---, mask rwx, other ---
+        entries = [(1, 7, 0xFFFFFFFF), (2, 7, 65534), (4, 0, 0xFFFFFFFF),
+                   (0x10, 7, 0xFFFFFFFF), (0x20, 0, 0xFFFFFFFF)]  # fmt: skip
+        blob = struct.pack("<I", 2) + b"".join(struct.pack("<HHI", *e) for e in entries)
+        os.setxattr(d, "system.posix_acl_access", blob)
+        with contextlib.suppress(OSError):  # fill the disk
+            with open(disk / "ballast", "wb") as f:
+                while True:
+                    f.write(b"\0" * 4096)
+                    f.flush()
+        out = subprocess.run(
+            [sys.executable, "-c", ACL_CHECK, str(d)], capture_output=True, text=True,
+            cwd=ROOT, timeout=60,
+        )  # fmt: skip
+        assert out.returncode == 0, out.stderr
+        config_error, runtime = eval(out.stdout)  # noqa: S307 (our own repr of two strings)
+        assert config_error == "", config_error
+        assert "No space left" in runtime or "ENOSPC" in runtime, runtime

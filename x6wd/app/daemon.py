@@ -2138,8 +2138,15 @@ def _dir_check(directory: Path) -> tuple[str, str]:
             return f"cannot create a file in {probe}: its file system takes no files", ""
         if probe == d and exc.errno in RUNTIME_ERRNOS:
             # The kernel says EROFS before EACCES: a read-only disk hides a missing
-            # permission, which the bits tell (it would fail for good once writable).
-            denied = _no_write_permission(probe)
+            # permission, which the bits tell (it would fail for good once writable). Only
+            # then: ENOSPC and EDQUOT come after the permission check, which passed; and
+            # an ACL grants what the bits do not show (a review: a full card with an ACL'd
+            # directory read as "may not write", exit 2)
+            denied = (
+                _no_write_permission(probe)
+                if exc.errno == errno.EROFS and not _has_acl(probe)
+                else ""
+            )
             if denied:
                 return f"this user may not write in {probe} ({denied}; {why} too)", ""
             if exc.errno == errno.EROFS:
@@ -2156,6 +2163,15 @@ def _dir_check(directory: Path) -> tuple[str, str]:
         what = "a file in" if probe == d else f"{d} in"
         return f"cannot create {what} {probe}: {why}", ""
     return "", ""
+
+
+def _has_acl(directory: Path) -> bool:
+    """``directory`` carries a POSIX access ACL (its permission is not the mode bits')."""
+    try:
+        os.getxattr(directory, "system.posix_acl_access")
+    except OSError:  # ENODATA: none; ENOTSUP: the file system has no ACLs
+        return False
+    return True
 
 
 def _no_write_permission(directory: Path) -> str:

@@ -146,12 +146,18 @@ def whole_request_queued(transport: asyncio.BaseTransport | None) -> bool:
     if sock is None:
         return False
     try:
-        # asyncio hands out a wrapper without recv(): peek through a duplicate descriptor
-        # of the same socket (nothing is consumed)
-        with socket.fromfd(sock.fileno(), sock.family, sock.type) as dup:
-            head = dup.recv(4096, socket.MSG_PEEK | socket.MSG_DONTWAIT)
-    except Exception:  # nothing queued (BlockingIOError), a closed socket, no socket
+        # asyncio hands out a wrapper without recv(): peek through a socket object on the
+        # same descriptor, detached after (never closed; no duplicate descriptor, which a
+        # flood at the descriptor limit would deny just when this matters)
+        view = socket.socket(fileno=sock.fileno())
+    except Exception:  # a closed socket, no socket
         return False
+    try:
+        head = view.recv(4096, socket.MSG_PEEK | socket.MSG_DONTWAIT)
+    except Exception:  # nothing queued (BlockingIOError), a closed socket
+        return False
+    finally:
+        view.detach()
     if b"\n" in head:
         return True
     return len(head) >= 5 and head[0] == 0x16 and len(head) >= 5 + int.from_bytes(head[3:5])

@@ -87,9 +87,10 @@ happened) and several threads write, so neighbours can be out of order by a loop
 or a batch of device events (a reconnect's several seconds). Another session (the daemon
 started again, its monotonic clock with it) steps back by about the previous one's length."""
 
-CLOCK_AGREE_S = 2.0
+CLOCK_AGREE_S = 120.0
 """A recording's clock (its ``t_utc``) and its first dated valid fix's UTC less the time the
-fix arrived may differ by this much (the fix's latency, a clock slightly off); more, and the
+fix arrived may differ by this much (the fix's latency, a clock slightly off, and a receiver
+after a cold start that gives GPS time until it has the leap seconds: 18 s today); more, and the
 recording's time 0 is dated by the fix: the recorder's clock was wrong (a robot without a
 real-time clock boots at 1970), and fixes placed by it would miss the true track's time."""
 
