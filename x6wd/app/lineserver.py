@@ -223,23 +223,31 @@ def _tcp_info(transport: asyncio.BaseTransport) -> bytes | None:
     return raw if isinstance(raw, bytes) and raw else None
 
 
+def _tcp_info_u64(transport: asyncio.BaseTransport, offset: int) -> int | None:
+    """The u64 at ``offset`` of a TCP transport's ``struct tcp_info``; None where it cannot
+    be read. Never raises."""
+    raw = _tcp_info(transport)
+    if raw is None or len(raw) < offset + 8:
+        return None
+    return int(struct.unpack_from("Q", raw, offset)[0])
+
+
 def bytes_received(transport: asyncio.BaseTransport) -> int | None:
     """Bytes the peer of a TCP transport has sent since it connected, read or not (Linux
     TCP_INFO; the TLS handshake's included); None where that cannot be read. Never raises."""
-    raw = _tcp_info(transport)
-    if raw is None or len(raw) < _TCPI_BYTES_RECEIVED + 8:
-        return None
-    return int(struct.unpack_from("Q", raw, _TCPI_BYTES_RECEIVED)[0])
+    return _tcp_info_u64(transport, _TCPI_BYTES_RECEIVED)
 
 
 def bytes_acked(transport: asyncio.BaseTransport) -> int | None:
     """Bytes this side has sent on a TCP transport that the peer acknowledged (Linux
     TCP_INFO; a TLS server's handshake reply included); None where that cannot be read.
     Never raises."""
-    raw = _tcp_info(transport)
-    if raw is None or len(raw) < _TCPI_BYTES_ACKED + 8:
-        return None
-    return int(struct.unpack_from("Q", raw, _TCPI_BYTES_ACKED)[0])
+    return _tcp_info_u64(transport, _TCPI_BYTES_ACKED)
+
+
+def silent(transport: asyncio.BaseTransport | None) -> bool:
+    """The peer has sent nothing since it connected (False when that cannot be told)."""
+    return transport is not None and bytes_received(transport) == 0
 
 
 def unanswered(transport: asyncio.BaseTransport | None) -> bool:
@@ -430,9 +438,9 @@ class LineServer(Generic[C]):
         # server's reply with nothing to read, where the rule below would close it when it
         # is the oldest): a flood of silent sockets goes before it. Oldest first, stopping
         # at the first silent one (one getsockopt per eviction while they are the flood)
-        silent = next((c for c in candidates if bytes_received(c.writer.transport) == 0), None)
-        if silent is not None:
-            return silent
+        quiet = next((c for c in candidates if silent(c.writer.transport)), None)
+        if quiet is not None:
+            return quiet
         # then the oldest the server has sent nothing: a peer that sent a byte (or a partial
         # line or ClientHello) and stalled has had no answer, an operator mid-handshake has
         # (the server's reply to its ClientHello); one getsockopt each, oldest first

@@ -47,7 +47,7 @@ from urllib.parse import urlsplit
 from aiohttp import WSMsgType, web
 
 from x6wd import __version__
-from x6wd.app.lineserver import bytes_received, reset, unanswered, whole_request_queued
+from x6wd.app.lineserver import reset, silent, unanswered, whole_request_queued
 from x6wd.app.logview import LogView, html_page, render_html
 from x6wd.app.server import (
     SUPERSEDED_COMMANDS,
@@ -278,11 +278,6 @@ class _Handshake(asyncio.Protocol):
             handler.connection_made(tls)
 
 
-def _silent(transport: asyncio.Transport | None) -> bool:
-    """The peer has sent nothing since it connected (False when that cannot be told)."""
-    return transport is not None and bytes_received(transport) == 0
-
-
 class _TlsSite(web.TCPSite):
     """aiohttp's TCP site with TLS begun per connection once it is counted (_Handshake)."""
 
@@ -433,7 +428,7 @@ class ConsoleServer:
             # else the oldest: a browser mid-handshake (answered) outlives a flood of either
             # from its own address
             old = next(
-                (o for o in self._handshaking if o is not h and _silent(o.transport)),
+                (o for o in self._handshaking if o is not h and silent(o.transport)),
                 next(
                     (
                         o
