@@ -330,6 +330,36 @@ def test_in_dir_names_files_by_utc_time(tmp_path: Path) -> None:
     assert is_recording(a.path) and not is_recording(LEA5H)
 
 
+def test_two_runs_named_in_the_same_second_never_share_a_file(tmp_path: Path) -> None:
+    """Two daemons (or sims) starting in one second both list the folder before either has
+    opened its file: the name is claimed atomically, so the second takes ``-1`` instead of
+    appending its records into the first one's recording."""
+    import threading
+
+    t = datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)
+    both_named = threading.Barrier(2, timeout=10)
+
+    class Late(Recorder):
+        def __init__(self, path: Path, **kw: object) -> None:
+            both_named.wait()  # both have chosen a name; neither has opened it
+            super().__init__(path, **kw)  # type: ignore[arg-type]
+
+    got: list[Recorder] = []
+    threads = [
+        threading.Thread(target=lambda: got.append(Late.in_dir(tmp_path, utc_clock=lambda: t)))
+        for _ in range(2)
+    ]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(15)
+    assert len(got) == 2
+    for rec in got:
+        rec.close()
+    names = sorted(r.path.name for r in got)
+    assert names == ["x6wd-20260102T030405Z-1.jsonl", "x6wd-20260102T030405Z.jsonl"]
+
+
 def test_a_recording_is_told_from_gpsd_json_and_nmea(tmp_path: Path) -> None:
     """A file beginning with gpsd's own JSON (``gpspipe -r``) is NMEA, not a recording; a
     recording whose first line is torn still is one (its reader names the fault)."""

@@ -420,6 +420,20 @@ def run_name_stamp(
     return (t + timedelta(seconds=1)).strftime(_STAMP_FORMAT), 0
 
 
+def _claim(path: Path) -> bool:
+    """Create ``path`` empty if no file has the name (atomic, ``O_EXCL``): False when one
+    has. Two processes naming a run in the same second both see the same newest run; only
+    one of them can create the name, so they never append to one file. A folder that cannot
+    be written gives True: opening the recording then names that error."""
+    try:
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+    except FileExistsError:
+        return False
+    except OSError:
+        return not os.path.lexists(path)
+    return True
+
+
 def list_recordings(directory: str | os.PathLike[str], prefix: str = "x6wd") -> list[RecordingFile]:
     """The regular files in ``directory`` named as :meth:`Recorder.in_dir` names runs and
     their parts, oldest first. A missing directory has none."""
@@ -779,8 +793,8 @@ class Recorder:
             )
         base = Path(directory) / f"{prefix}-{stamp}"
         path = Path(f"{base}-{n}.jsonl") if n else base.with_suffix(".jsonl")
-        while path.exists():  # a file of another kind under the name: never overwritten
-            n += 1
+        while not _claim(path):  # taken (another daemon in the same second, a file of
+            n += 1  # another kind): never shared, never overwritten
             path = Path(f"{base}-{n}.jsonl")
         return cls(path, **kwargs)
 
