@@ -226,3 +226,30 @@ def test_a_set_system_clock_keeps_a_date_it_is_nearer_to() -> None:
     assert fix.apply(rolled)[0].utc == now and fix.corrected == 1
     booted = WeekRolloverCorrection(floor, clock=lambda: datetime(1970, 1, 1, tzinfo=UTC))
     assert booted.apply(sim)[0].utc == sim[0].utc + GPS_WEEK_ROLLOVER
+
+
+def test_the_console_labels_the_heading_magnetic_until_the_declination_is_known(
+    tmp_path: Path, run_daemon, pty_gps
+) -> None:
+    """The web console said "true" for a compass heading with no declination applied: it
+    follows ``status``'s ``declination`` as the client does (Debian's chromium)."""
+    from tests.test_console import chromium, open_page, text
+    from x6wd.core.config import ConsoleConfig
+
+    cfg = dataclasses.replace(
+        _config(tmp_path, pty_gps(dmy="")), console=ConsoleConfig(enabled=True, port=0)
+    )
+    r = run_daemon(Daemon(cfg))
+    d = chromium(tmp_path)
+    try:
+        open_page(d, r)
+        wait_for(lambda: r.daemon.first_fix, 10, "first fix")
+        shown = wait_for(
+            lambda: (t := text(d, "tel-heading")) not in ("", "—") and "magnetic" in t and t,
+            15,
+            "the heading labelled magnetic",
+        )
+        assert shown.endswith("° magnetic") and "true" not in shown, shown
+    finally:
+        d.quit()
+    assert r.stop() == 0

@@ -201,6 +201,9 @@
     if (r.ok) {
       S.links = r.links;
       if (r.devices) S.devices = r.devices;
+      // the compass heading is magnetic while the WMM declination is pending or failed
+      const d = r.declination;
+      S.north = d && typeof d === "object" && ("pending" in d || "error" in d) ? "magnetic" : "true";
       if ((!S.tel || S.stale) && r.telemetry) onTelemetry(r.telemetry, r.devices);
       renderDevices();
     }
@@ -234,7 +237,7 @@
     $("hold").textContent = t.hold_reason || "";
     $("tel-fix").textContent = (FIX[t.fix_quality] || "quality " + t.fix_quality) + "  HDOP " + fmt(t.hdop, 1) + "  age " + fmt(t.fix_age_s, 1) + " s";
     $("tel-sats").textContent = t.sats_used === null ? "—" : t.sats_used + " used";
-    $("tel-heading").textContent = t.heading_deg === null ? "—" : fmt(wrap360(t.heading_deg), 1) + "° true";
+    $("tel-heading").textContent = t.heading_deg === null ? "—" : fmt(wrap360(t.heading_deg), 1) + "° " + (S.north || "true");
     $("tel-attitude").textContent = fmt(t.pitch_deg, 1) + "° / " + fmt(t.roll_deg, 1) + "°";
     let wp = "—";
     if (t.waypoint_index !== null && t.waypoint_count) {
