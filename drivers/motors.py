@@ -46,6 +46,9 @@ from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent, MotorComma
 log = logging.getLogger(__name__)
 
 MAX_PCT = 100
+PCT_SLACK = 1e-9
+"""How far (percent) beyond ±MAX_PCT a drive value may be and still count as ±MAX_PCT: float
+rounding of a command scaled to exactly 100 % (a few ulps), never a real overshoot."""
 WATCHDOG_MIN_MS = 50
 WATCHDOG_MAX_MS = 60_000
 DEFAULT_WATCHDOG_MS = 500
@@ -110,12 +113,16 @@ class MotorLink(Protocol):
 
 
 def _check_pct(name: str, value: float) -> int:
-    """Validate a drive percentage and round it to the protocol's integer percent."""
+    """Validate a drive percentage and round it to the protocol's integer percent.
+
+    A value up to :data:`PCT_SLACK` beyond ±100 is float rounding of a saturated command
+    (``x * 100 / peak`` gives 100.00000000000001) and is clamped to ±100; anything further
+    out (100.5, a NaN, an infinity) is a ValueError."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"{name} must be a number in -100..100 percent, got {value!r}")
-    if not math.isfinite(value) or abs(value) > MAX_PCT:
+    if not math.isfinite(value) or abs(value) > MAX_PCT + PCT_SLACK:
         raise ValueError(f"{name} must be within -100..100 percent, got {value!r}")
-    return round(value)
+    return max(-MAX_PCT, min(MAX_PCT, round(value)))
 
 
 @dataclass

@@ -231,10 +231,21 @@ def skid_mix(curvature_per_m: float, speed_pct: float, track_m: float) -> tuple[
     """Left/right percentages for an arc of ``curvature_per_m`` (1/m, positive right) at
     ``speed_pct`` (%) on a skid steer of effective track ``track_m`` (m):
     ``left = s·(1 + κT/2)``, ``right = s·(1 − κT/2)``. When a side would exceed 100 % both are
-    scaled down together (the arc is kept, the speed drops)."""
+    scaled down together (the arc is kept, the speed drops), the faster side to exactly
+    ±100: ``x * 100 / peak`` alone gives 100.00000000000001 for ~3 % of saturated arcs, which
+    the motor link refuses as out of range."""
     k = curvature_per_m * track_m / 2.0
     left, right = speed_pct * (1.0 + k), speed_pct * (1.0 - k)
     peak = max(abs(left), abs(right))
     if peak > 100.0:
-        left, right = left * 100.0 / peak, right * 100.0 / peak
+        left = _saturate(left, peak)
+        right = _saturate(right, peak)
     return left, right
+
+
+def _saturate(value: float, peak: float) -> float:
+    """``value`` (%) scaled by ``100 / peak`` into -100..100: the side at the peak to exactly
+    ±100, the other never beyond it."""
+    if abs(value) >= peak:
+        return math.copysign(100.0, value)
+    return max(-100.0, min(100.0, value * 100.0 / peak))
