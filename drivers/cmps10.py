@@ -1,8 +1,16 @@
 """Devantech CMPS10 tilt-compensated compass over I2C (REFERENCE.md §4).
 
 Works over any object with the smbus2 method set (``smbus2.SMBus`` on the robot, the
-simulator's register map in tests). One sample is ONE block read of registers 2-5, so the
+simulator's register map in tests). One sample is ONE block read of registers 1-5, so the
 bearing bytes and pitch/roll come from the same device update (two reads can tear).
+
+The Raspberry Pi's I2C master mishandles clock stretching: a transaction can hand back a
+corrupted byte with no errno at all (one flipped bit in the bearing's high byte turned
+123.4 deg into 174.6 deg, in range). So the sample carries the bearing twice: register 1
+(0-255 for a full circle, 1.41 deg a step) and registers 2-3 (tenths of a degree); a sample
+whose two bearings are more than :data:`BEARING_AGREE_DEG` apart (round the circle) is
+corrupt: counted (``bearing_mismatches``; in the health's ``corrupt`` counts, which status
+shows) and treated as a failed attempt (retried; if every attempt fails, a failed sample).
 
 Linux reports I2C trouble as ``OSError``; the errnos of :data:`x6wd.core.errors.TRANSIENT_ERRNOS`
 (EIO, ENXIO, EAGAIN, EBUSY, EINTR, EPROTO, ETIMEDOUT, EREMOTEIO) are retried. After
@@ -23,7 +31,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 from x6wd.core.errors import DeviceIOError, DeviceUnavailable, is_transient
 from x6wd.core.health import HealthTracker
@@ -35,6 +43,7 @@ VALID_ADDRESSES = tuple(range(0x60, 0x68))
 REG_VERSION = 0
 REG_BEARING_BYTE = 1
 REG_BEARING_WORD = 2  # 2-3 bearing (tenths of a degree, high byte first), 4 pitch, 5 roll
+SAMPLE_LENGTH = 5  # one block read from register 1: bearing byte, bearing word, pitch, roll
 REG_MAG = 10  # 10-15 magnetometer X/Y/Z, signed 16-bit big-endian
 REG_ACC = 16  # 16-21 accelerometer X/Y/Z, signed 16-bit big-endian
 REG_COMMAND = 22
@@ -48,6 +57,19 @@ CALIBRATION_POINTS = ("N", "E", "S", "W")
 MAX_BEARING_DEG = 359.9
 MAX_TILT_DEG = 85.0
 COMMAND_GAP_S = 0.1  # datasheet: one command byte per write, about 100 ms apart
+BEARING_BYTE_STEP_DEG = 360.0 / 256.0  # register 1's resolution
+BEARING_AGREE_DEG = 2.0
+"""Most the bearing of registers 2-3 may differ from register 1's (deg, round the circle).
+Register 1 is 1.41 deg a step: rounded by the device it is within 0.7 deg of the true
+bearing, truncated within 1.41 deg (plus the word's 0.05 deg rounding). A bit flipped in the
+word's high byte is 25.6 deg or more, bits 7-5 of its low byte 12.8, 6.4 and 3.2 deg: caught;
+the smaller ones are within the coarse register's resolution and do little harm."""
+
+CORRUPT_LABELS = {
+    "bearing_mismatches": "samples whose two bearing registers disagree",
+    "range_errors": "samples outside the datasheet ranges",
+}
+"""The driver's counts of corrupt samples that health shows (``DeviceHealth.corrupt``)."""
 
 
 class SMBusLike(Protocol):
@@ -70,11 +92,26 @@ class Cmps10Counters:
     io_errors: int = 0  # transient OSErrors seen (each attempt)
     retries: int = 0  # attempts after the first one of a sample/command
     range_errors: int = 0  # block reads whose values were outside the datasheet ranges
+    bearing_mismatches: int = 0  # block reads whose register 1 and 2-3 bearings disagreed
     stale_events: int = 0  # transitions into the stale state
 
 
 def _s8(b: int) -> int:
     return b - 256 if b >= 128 else b
+
+
+class _Corrupt(NamedTuple):
+    """A block read whose bytes are no sample: its :data:`CORRUPT_LABELS` kind, and why."""
+
+    kind: str
+    why: str
+
+
+def bearing_disagreement_deg(bearing_byte: int, bearing_deg: float) -> float:
+    """How far (deg, 0-180, round the circle) register 1's coarse bearing ``bearing_byte``
+    (0-255) lies from the fine bearing ``bearing_deg`` of registers 2-3."""
+    d = abs(bearing_deg - bearing_byte * BEARING_BYTE_STEP_DEG) % 360.0
+    return min(d, 360.0 - d)
 
 
 def _s16(hi: int, lo: int) -> int:
@@ -124,7 +161,9 @@ class Cmps10:
         self._stale_by_time = False
         # The bus object exists, so the device counts as opened; staleness starts with the
         # first read (the constructor knows no sample time).
-        self.health_tracker = HealthTracker("compass", t_s=0.0, stale_s=stale_s)
+        self.health_tracker = HealthTracker(
+            "compass", t_s=0.0, stale_s=stale_s, corrupt_labels=CORRUPT_LABELS
+        )
         self._started = False
 
     # --- health -----------------------------------------------------------------------------
@@ -224,18 +263,26 @@ class Cmps10:
         """The last valid attitude read, or None before the first."""
         return self._last_good
 
-    def _read_once(self) -> tuple[float, int, int] | None:
-        data = self.bus.read_i2c_block_data(self.address, REG_BEARING_WORD, 4)
-        if len(data) != 4:
-            return None
-        bearing_deg = ((data[0] << 8) | data[1]) / 10.0
-        pitch_deg, roll_deg = _s8(data[2]), _s8(data[3])
+    def _read_once(self) -> tuple[float, int, int] | _Corrupt:
+        """One block read of registers 1-5: (bearing deg, pitch deg, roll deg), or why the
+        bytes are no sample."""
+        data = self.bus.read_i2c_block_data(self.address, REG_BEARING_BYTE, SAMPLE_LENGTH)
+        if len(data) != SAMPLE_LENGTH:
+            return _Corrupt("range_errors", f"{len(data)} bytes read, expected {SAMPLE_LENGTH}")
+        bearing_deg = ((data[1] << 8) | data[2]) / 10.0
+        pitch_deg, roll_deg = _s8(data[3]), _s8(data[4])
         if (
             bearing_deg > MAX_BEARING_DEG
             or abs(pitch_deg) > MAX_TILT_DEG
             or abs(roll_deg) > MAX_TILT_DEG
         ):
-            return None
+            return _Corrupt("range_errors", "attitude registers out of range")
+        if bearing_disagreement_deg(data[0], bearing_deg) > BEARING_AGREE_DEG:
+            return _Corrupt(
+                "bearing_mismatches",
+                f"bearing registers disagree: {bearing_deg:.1f} deg (2-3) vs "
+                f"{data[0] * BEARING_BYTE_STEP_DEG:.1f} deg (1)",
+            )
         return bearing_deg, pitch_deg, roll_deg
 
     def read(self, t_s: float) -> Attitude:
@@ -243,7 +290,8 @@ class Cmps10:
 
         A good sample returns ``Attitude(t_s, bearing_deg, pitch_deg, roll_deg, valid=True)``
         (bearing magnetic, 0-359.9 deg; pitch/roll whole degrees). A failed sample (bus errors
-        on every attempt, or values outside the datasheet ranges) returns the last good
+        on every attempt, values outside the datasheet ranges, or the two bearing registers
+        disagreeing: corrupt bytes) returns the last good
         attitude unchanged, so its ``t_s`` keeps ageing honestly; with no good sample yet, or
         once ``stale_after`` samples in a row failed or the last good one is more than
         ``stale_s`` old, it returns ``valid=False`` at ``t_s`` (holding the last good values,
@@ -259,13 +307,21 @@ class Cmps10:
                 if self.retry_delay_s:
                     self._sleep(self.retry_delay_s)
             try:
-                sample = self._attempt_block_read(t_s)
+                got = self._attempt_block_read(t_s)
             except OSError:
                 continue
-            if sample is not None:
+            if not isinstance(got, _Corrupt):
+                sample = got
                 break
-            self.counters.range_errors += 1
-            self.health_tracker.error("attitude registers out of range", t_s)
+            c = self.counters
+            if got.kind == "bearing_mismatches":
+                c.bearing_mismatches += 1
+            else:
+                c.range_errors += 1
+            self.health_tracker.error(got.why, t_s)
+            self.health_tracker.corrupt(
+                {"bearing_mismatches": c.bearing_mismatches, "range_errors": c.range_errors}, t_s
+            )
         if sample is not None:
             self._consecutive_failures = 0
             self._stale_by_time = False
@@ -295,7 +351,7 @@ class Cmps10:
             return Attitude(t_s, 0.0, 0.0, 0.0, valid=False)
         return Attitude(t_s, last.bearing_deg, last.pitch_deg, last.roll_deg, valid=False)
 
-    def _attempt_block_read(self, t_s: float) -> tuple[float, int, int] | None:
+    def _attempt_block_read(self, t_s: float) -> tuple[float, int, int] | _Corrupt:
         """One bus transaction at sample time ``t_s`` (s); transient OSErrors are counted
         (driver counters and health) and re-raised, others raise DeviceIOError."""
         try:
