@@ -7,7 +7,12 @@ Layers:
 - ``NmeaFramer`` splits a byte stream into checksum-verified NMEA sentences and UBX frames.
   It resynchronises on ``$`` (and on the UBX sync ``B5 62``), requires ``*HH`` (either hex
   case), caps a sentence at 130 characters including ``$`` and the checksum (as gpsd does)
-  and decodes with replacement, so line noise and binary never raise. A sentence complete
+  and decodes with replacement, so line noise and binary never raise. A UBX sync is a false
+  one (a byte of noise, the scan goes on after it) when its length is over 1024 bytes, its
+  checksum is wrong, or a whole checksum-valid NMEA sentence with its line end lies inside
+  the span it claims: so a false sync in line noise delays no sentence beyond its own line
+  end (it held every byte behind it until the claimed length had arrived, up to 1 s of
+  9600 baud line per 1000 bytes). A sentence complete
   up to ``*HH`` whose line ending was lost (the next ``$`` follows at once) is accepted;
   one cut off by a new ``$`` or containing another ``*`` is a framing error.
   With ``accept_unchecksummed`` (``x6wd decode`` and the gap tool's NMEA reader; gpsd's
@@ -107,6 +112,7 @@ from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
 MAX_SENTENCE_CHARS: Final = 130  # gpsd's cap, '$' to checksum inclusive
 MAX_UBX_PAYLOAD: Final = 1024  # larger "frames" are false syncs in line noise
+# (and so is a "frame" with a whole NMEA sentence inside it: _nmea_inside)
 
 UBX_SYNC: Final = b"\xb5\x62"
 UBX_CLASS_ACK: Final = 0x05
@@ -653,6 +659,27 @@ def _skip(buf: bytes, a: int, b: int, c: FramerCounters) -> None:
 
 _Guess = tuple[int, int, int, int, tuple[int, ...]]  # see NmeaFramer._pass
 
+# A complete NMEA sentence with its line ending, as it may show inside the span a UBX sync
+# claims (_nmea_inside).
+_SENTENCE_IN_SPAN: Final = re.compile(rb"\$([^$\r\n\xb5*]{1,126})\*([0-9A-Fa-f]{2})\r?\n")
+
+
+def _nmea_inside(buf: bytes, a: int, b: int) -> bool:
+    """Whether ``buf[a:b]`` holds a whole checksum-valid NMEA sentence, ``$`` to its line
+    feed: then the UBX sync before it was a false one in line noise (a receiver never puts
+    NMEA inside a UBX frame). Without this test a false sync claiming up to 1024 bytes held
+    every sentence behind it until that many bytes had arrived (3 s at 9600 baud: fixes
+    delivered seconds late, stamped with their late receive time); with it no sentence
+    waits for more than its own bytes. A frame is judged on the bytes in its span that have
+    arrived, so a whole frame and one arriving piecemeal are judged alike."""
+    search = _SENTENCE_IN_SPAN.search
+    m = search(buf, a, b)
+    while m is not None:
+        if checksum(m.group(1)) == int(m.group(2), 16):
+            return True
+        m = search(buf, m.end(), b)
+    return False
+
 
 def _ubx(
     buf: bytes,
@@ -672,6 +699,9 @@ def _ubx(
         c.skipped_bytes += 1
         return 1, None
     total = 8 + length
+    if _nmea_inside(buf, at + 2, min(n, at + total)):
+        c.skipped_bytes += 1  # a false sync: rescan from the next byte
+        return 1, None
     if n - at < total:
         return 0, None
     if ubx_checksum(buf[at + 2 : at + 6 + length]) != buf[at + 6 + length : at + total]:
@@ -699,6 +729,9 @@ def _guess_ubx(
         c.skipped_bytes += 1
         return 1, None
     total = 8 + length
+    if _nmea_inside(buf, at + 2, min(n, at + total)):
+        c.skipped_bytes += 1  # a false sync: rescan from the next byte
+        return 1, None
     if n - at < total:
         return 0, None
     guessed.append((at, total, len(out), len(runs), _counts(c)))
