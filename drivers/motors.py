@@ -60,6 +60,20 @@ SEQ_MODULO = 10_000
 ENC_MODULO = 1 << 32
 ENC_SEQ_MODULO = 1 << 16
 ENC_MAX_SEQ_STEP = 1000
+ENC_MAX_COUNTS_PER_S = 200_000.0
+"""The most counts per second a side's encoder can move while the wheels turn, by default: a
+reading that moved further than this over the time since the last one (plus
+:data:`ENC_JUMP_SLACK_S`) is a restart of the board, not motion. The X6WD's default wheels
+give 1632 counts per turn of a 120 mm wheel, 4,329 counts/m, and its top speed is 3.888 m/s
+(14 km/h, ``[navigation] full_speed_mps``): 16,800 counts/s; 200,000 leaves a factor of 12
+for finer encoders, bigger wheels or a faster robot. A board restart that went unannounced
+(its ``EVT BOOT`` lost) with a latch number that happens to step 1..ENC_MAX_SEQ_STEP showed
+as a jump back by the board's whole lifetime count (-4,299,957 counts, 1 km, in one 50 ms
+poll). :func:`encoder_rate_bound` gives the bound for a configured robot."""
+ENC_JUMP_SLACK_S = 0.05
+"""Time (s) added to the interval between two readings before the distance bound is applied:
+host receive times jitter by a few ms, and two replies read together are not 0 s apart on
+the board."""
 TRANSIENT_MIN_S = 0.5
 """How long (s) transient port errors must go on, with no command through in between, before
 the port counts as broken (besides ``transient_limit`` of them): the board's default watchdog
@@ -141,6 +155,22 @@ class LinkCounters:
     reopens: int = 0  # the port reopened after it broke
 
 
+def encoder_rate_bound(
+    counts_per_rev: float, diameter_m: float, full_speed_mps: float, margin: float = 4.0
+) -> float:
+    """The counts per second a side can move (counts/s): ``full_speed_mps`` (m/s, the speed
+    at +100 %) on a wheel of ``diameter_m`` (m, the smallest of the sides) with
+    ``counts_per_rev`` counts per turn, times ``margin`` (wheel spin on loose ground, a
+    downhill run). For :class:`SerialMotorLink`'s ``max_counts_per_s``."""
+    if not (counts_per_rev > 0 and diameter_m > 0 and full_speed_mps > 0 and margin >= 1):
+        raise ValueError(
+            "encoder_rate_bound needs counts_per_rev, diameter_m, full_speed_mps > 0 and "
+            f"margin >= 1, got {counts_per_rev!r}, {diameter_m!r}, {full_speed_mps!r}, "
+            f"{margin!r}"
+        )
+    return counts_per_rev / (math.pi * diameter_m) * full_speed_mps * margin
+
+
 def wrap_count_delta(delta: int) -> int:
     """The signed difference of two 32-bit counter readings (counts): the shortest way
     round the ring, valid while the true change is under 2**31 counts between readings."""
@@ -162,38 +192,62 @@ def parse_encoder_payload(payload: str) -> tuple[int, int, int] | None:
 class EncoderUnwrap:
     """Board counter readings (modulo 2**32) to continuous counts since the first reading.
 
-    A reading after :meth:`rebase` (the board announced a reboot) or whose latch number is
-    not 1..ENC_MAX_SEQ_STEP ahead of the last (it restarted unannounced) is a new baseline:
-    it adds no counts (the motion between the last reading and the restart is lost).
-    ``skipped`` counts latches whose replies never arrived (nothing is lost: counts are
-    cumulative); ``restarts`` the new baselines after the first.
+    A reading after :meth:`rebase` (the board announced a reboot, the port reopened) or
+    whose latch number is not 1..ENC_MAX_SEQ_STEP ahead of the last (it restarted
+    unannounced) is a new baseline: it adds no counts (the motion between the last reading
+    and the restart is lost). So is a reading, given its time ``t_s``, whose counts moved
+    further than ``max_counts_per_s`` allows since the last one (a restart whose latch
+    number happened to step 1..ENC_MAX_SEQ_STEP: the board's whole lifetime count backwards
+    otherwise); ``jumps`` counts those. ``skipped`` counts latches whose replies never
+    arrived (nothing is lost: counts are cumulative); ``restarts`` the new baselines after
+    the first.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, max_counts_per_s: float = ENC_MAX_COUNTS_PER_S) -> None:
+        if not (max_counts_per_s > 0 and math.isfinite(max_counts_per_s)):
+            raise ValueError(f"max_counts_per_s must be > 0, got {max_counts_per_s!r}")
+        self.max_counts_per_s = float(max_counts_per_s)
         self.left = 0
         self.right = 0
         self.skipped = 0
         self.restarts = 0
+        self.jumps = 0  # restarts seen only by a distance no wheel can cover in the time
         self._last: tuple[int, int, int] | None = None  # (seq, left, right) as read
+        self._last_t: float | None = None  # the time of that reading (s), if given
 
     def rebase(self) -> None:
         """The next reading starts a new baseline (the board's counters began again)."""
         if self._last is not None:
             self.restarts += 1
         self._last = None
+        self._last_t = None
 
-    def update(self, seq: int, left: int, right: int) -> tuple[int, int]:
-        """Take one reading; the continuous (left, right) counts."""
+    def update(self, seq: int, left: int, right: int, t_s: float | None = None) -> tuple[int, int]:
+        """Take one reading (taken at ``t_s``, s, if known: then a step no wheel can make in
+        the time since the last reading is a restart); the continuous (left, right) counts."""
         if self._last is not None:
             step = (seq - self._last[0]) % ENC_SEQ_MODULO
-            if 1 <= step <= ENC_MAX_SEQ_STEP:
-                self.skipped += step - 1
-                self.left += wrap_count_delta(left - self._last[1])
-                self.right += wrap_count_delta(right - self._last[2])
-            else:
+            d_left = wrap_count_delta(left - self._last[1])
+            d_right = wrap_count_delta(right - self._last[2])
+            if not 1 <= step <= ENC_MAX_SEQ_STEP:
                 self.restarts += 1
+            elif self._impossible(max(abs(d_left), abs(d_right)), t_s):
+                self.restarts += 1
+                self.jumps += 1
+            else:
+                self.skipped += step - 1
+                self.left += d_left
+                self.right += d_right
         self._last = (seq, left, right)
+        self._last_t = t_s
         return self.left, self.right
+
+    def _impossible(self, counts: int, t_s: float | None) -> bool:
+        """``counts`` moved since the last reading is more than the wheels can do."""
+        if t_s is None or self._last_t is None:
+            return False
+        dt = max(0.0, t_s - self._last_t) + ENC_JUMP_SLACK_S
+        return counts > self.max_counts_per_s * dt
 
 
 # --- host side ------------------------------------------------------------------------------
@@ -216,6 +270,12 @@ class SerialMotorLink:
     port and, on the commands that follow, calls it with capped exponential backoff
     (``reopen_initial_s`` doubling to ``reopen_max_s``); until then commands fail at once.
     Without it a broken port stays broken (the owner replaces the link).
+
+    ``max_counts_per_s`` (counts/s, default :data:`ENC_MAX_COUNTS_PER_S`;
+    :func:`encoder_rate_bound` for a configured robot): encoder readings that moved further
+    than this allows are a board restart (a new baseline), not motion. Every reopen of the
+    port starts a new baseline too: a board on native USB restarts with its port, and its
+    ``EVT BOOT`` went out before the port was open again.
     """
 
     def __init__(
@@ -231,6 +291,7 @@ class SerialMotorLink:
         reopen_initial_s: float = 0.2,
         reopen_max_s: float = 5.0,
         transient_limit: int = TRANSIENT_LIMIT,
+        max_counts_per_s: float = ENC_MAX_COUNTS_PER_S,
     ) -> None:
         if not (ack_timeout_s > 0 and math.isfinite(ack_timeout_s)):
             raise ValueError(f"ack_timeout_s must be > 0 s, got {ack_timeout_s!r}")
@@ -273,7 +334,7 @@ class SerialMotorLink:
         self._lock = threading.Lock()
         self._tracker = HealthTracker("motors", t_s=clock())
         self._set_port(port)
-        self.encoders = EncoderUnwrap()
+        self.encoders = EncoderUnwrap(max_counts_per_s)
         self.odometry_supported: bool | None = None
         self._refusal: str | None = None  # the payload of an ERR accepted by refusal_ok
         self.configured = False
@@ -385,8 +446,27 @@ class SerialMotorLink:
             return None
         self.odometry_supported = True
         seq = parsed[0]
-        left, right = self.encoders.update(*parsed)
+        enc = self.encoders
+        jumps = enc.jumps
+        left, right = enc.update(*parsed, t_s=t_s)
+        if enc.jumps != jumps:
+            self._encoder_jump(parsed, t_s)
         return WheelOdometry(t_s, left, right, seq)
+
+    def _encoder_jump(self, reading: tuple[int, int, int], t_s: float) -> None:
+        """A reading that moved further than the wheels can: a board restart nobody
+        announced (taken as a new baseline). Logged (the first, 10th, 100th, every 1000th)
+        and shown in :attr:`health` (degraded, this as the last error)."""
+        n = self.encoders.jumps
+        why = (
+            f"encoder counts jumped further than the wheels can move (more than "
+            f"{self.encoders.max_counts_per_s:.0f} counts/s; latch {reading[0]}, counts "
+            f"{reading[1]} {reading[2]}): taken as a board restart, odometry goes on from "
+            f"a new baseline ({n} so far)"
+        )
+        if n in (1, 10, 100) or n % 1000 == 0:
+            log.warning("motors: %s", why)
+        self._tracker.failed(why, t_s)
 
     def close(self) -> None:
         """Stop the motors, then close the port (idempotent, never raises)."""
@@ -553,6 +633,9 @@ class SerialMotorLink:
         # is broken again at its first error) and the backoff (it keeps growing until a
         # command succeeds on the new port).
         self.configured = False
+        # a board on native USB restarts with its port: its counters began again at 0 and
+        # its EVT BOOT went out before the port was open (the next reading is a new baseline)
+        self.encoders.rebase()
         self.counters.reopens += 1
         self._reopens_since_break += 1
         if t_s - self._reopen_log_t >= REOPEN_LOG_S:

@@ -573,12 +573,18 @@ def open_compass(url: str, devices: Devices | None = None) -> Cmps10:
 
 
 def open_motors(
-    url: str, devices: Devices | None = None, *, watchdog_ms: int | None = None
+    url: str,
+    devices: Devices | None = None,
+    *,
+    watchdog_ms: int | None = None,
+    max_counts_per_s: float | None = None,
 ) -> MotorLink:
     """Open the motor link named by ``url`` (serial, tcp, log, sim; a plug-in scheme through
     ``devices``). ``watchdog_ms`` ([motors] watchdog_ms): the board's watchdog period (ms)
     unless the URL names its own ``watchdog_ms``; the two differing, the default aside, is a
-    ConfigError naming both."""
+    ConfigError naming both. ``max_counts_per_s``: the encoders' distance bound of a serial
+    or TCP link (:func:`drivers.motors.encoder_rate_bound` of the robot's ``[odometry]`` and
+    ``[navigation] full_speed_mps``; None: :data:`drivers.motors.ENC_MAX_COUNTS_PER_S`)."""
     dev = parse_url(url, "motors")
     if watchdog_ms is not None and "watchdog_ms" in dev.options:
         in_url = "watchdog_ms" in dict(parse_qsl(urlsplit(url).query))
@@ -595,7 +601,7 @@ def open_motors(
             dev.options.setdefault("watchdog_ms", str(int(watchdog_ms)))
         link: MotorLink = handler.open_motors(dev, backend)
         return link
-    from drivers.motors import LogMotorLink, SerialMotorLink
+    from drivers.motors import ENC_MAX_COUNTS_PER_S, LogMotorLink, SerialMotorLink
 
     if dev.scheme == "log":
         return LogMotorLink()
@@ -615,4 +621,5 @@ def open_motors(
         retries=dev.options["retries"],
         # a board that dropped the link
         reopen=lambda: _serial_port(dev, timeout_s, write_timeout_s),
+        max_counts_per_s=ENC_MAX_COUNTS_PER_S if max_counts_per_s is None else max_counts_per_s,
     )

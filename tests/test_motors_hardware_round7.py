@@ -122,3 +122,83 @@ def test_a_saturated_arc_drives_the_board_through_the_daemons_worker(pty_board: 
         assert link.last_command is not None and link.last_command.reason == "STRAIGHT"
     finally:
         w.shutdown("end")
+
+
+# --- H1: odometry after an unannounced board restart ---------------------------------------
+
+
+@pytest.mark.integration
+def test_a_restart_whose_evt_boot_was_lost_does_not_jump_the_odometry(
+    pty_board: Pty, caplog: pytest.LogCaptureFixture
+) -> None:
+    # up ~54 min at 20 Hz: the latch number near its wrap, ~1 km driven (review5 enc_wrap.py)
+    with pty_board.lock:
+        pty_board.board.enc_seq = 65000
+        pty_board.board.add_counts(4_300_000, 4_300_000)
+    link = SerialMotorLink(open_port(pty_board.name), ack_timeout_s=0.5)
+    try:
+        first = link.read_odometry()
+        assert first is not None and (first.left_counts, first.right_counts) == (0, 0)
+        with pty_board.lock:
+            pty_board.board.add_counts(43, 43)
+        odo = link.read_odometry()
+        assert odo is not None and odo.left_counts == 43
+        with pty_board.lock:  # a brown-out whose EVT BOOT never reached the host
+            pty_board.board.boot()
+            pty_board.board.add_counts(43, 43)
+        with caplog.at_level("WARNING", logger="drivers.motors"):
+            after = link.read_odometry()
+            assert after is not None
+            # the latch number went 65001 -> 1, a step of 536: only the distance tells
+            assert (after.left_counts, after.right_counts) == (43, 43)  # was -4299957
+            assert link.encoders.restarts == 1
+            with pty_board.lock:
+                pty_board.board.add_counts(10, 10)
+            again = link.read_odometry()
+            assert again is not None and (again.left_counts, again.right_counts) == (53, 53)
+        jumps = [r.getMessage() for r in caplog.records if "encoder" in r.getMessage()]
+        assert len(jumps) == 1 and "restart" in jumps[0], jumps
+        assert "encoder" in link.health.last_error  # status shows it
+        assert link.healthy  # the board answers: a fault to show, not a lost link
+    finally:
+        link.close()
+
+
+@pytest.mark.integration
+def test_the_odometry_starts_a_new_baseline_when_the_port_reopens() -> None:
+    # a native-USB board: its EVT BOOT goes out before the host has the port open again
+    # (review5 enc_reopen.py); a lifetime short enough that no distance bound can see it
+    board = MotorBoard()
+    board.boot()
+    board.enc_seq = 65000
+    board.add_counts(2000, 2000)
+    pb = Pty(board)
+    pb2: list[Pty] = []
+    link = SerialMotorLink(
+        open_port(pb.name),
+        ack_timeout_s=0.2,
+        reopen=lambda: open_port(pb2[0].name),
+        reopen_initial_s=0.01,
+    )
+    try:
+        assert link.read_odometry() is not None
+        with pb.lock:
+            board.add_counts(430, 430)
+        odo = link.read_odometry()
+        assert odo is not None and odo.left_counts == 430
+        pb.close()  # USB gone: the port dies (EIO), the board restarts and re-enumerates
+        board.boot()
+        board.add_counts(43, 43)
+        pb2.append(Pty(board))
+        assert wait_for(
+            lambda: (link.ping() or True) and link.counters.reopens > 0 and link.healthy
+        )
+        after = link.read_odometry()
+        assert after is not None
+        assert (after.left_counts, after.right_counts) == (430, 430)  # not 430 + 43 - 2473
+        assert link.encoders.restarts == 1
+    finally:
+        link.close()
+        pb.close()
+        for p in pb2:
+            p.close()
