@@ -147,13 +147,14 @@ def test_read_decodes_high_byte_first_and_signed_tilt(
     assert (att.pitch_deg, att.roll_deg) == (pitch, roll)
 
 
-def test_one_block_read_of_registers_2_to_5_per_sample(
+def test_one_block_read_of_registers_1_to_5_per_sample(
     dev: Cmps10Double, clock: VirtualClock
 ) -> None:
     c = make(dev, clock)
     for i in range(5):
         c.read(float(i))
-    assert dev.transactions == [("read_i2c_block_data", 2, 4)] * 5
+    # register 1 (the coarse bearing) too: the driver checks the two bearings agree
+    assert dev.transactions == [("read_i2c_block_data", 1, 5)] * 5
 
 
 @pytest.mark.parametrize(
