@@ -153,6 +153,7 @@ class LinkCounters:
     watchdog_stops: int = 0  # EVT WATCHDOG: the board stopped the motors on its own
     board_restarts: int = 0  # EVT BOOT after the link was up: a brown-out or a reset
     reopens: int = 0  # the port reopened after it broke
+    held_drives: int = 0  # send() drives refused (a stop sent) while a board restart held
 
 
 def encoder_rate_bound(
@@ -337,6 +338,9 @@ class SerialMotorLink:
         self.encoders = EncoderUnwrap(max_counts_per_s)
         self.odometry_supported: bool | None = None
         self._refusal: str | None = None  # the payload of an ERR accepted by refusal_ok
+        # Why the board restarted under a running link (EVT BOOT once up), until a stop()
+        # the board confirmed: the link is lost meanwhile and send() refuses drives.
+        self._restart_hold: str | None = None
         self.configured = False
         self._configure()
 
@@ -361,8 +365,13 @@ class SerialMotorLink:
     @property
     def healthy(self) -> bool:
         """True while the board acknowledges commands (fewer than ``unhealthy_after``
-        consecutive failed commands) and the link is open."""
-        return not self._closed and self._failures < self.unhealthy_after
+        consecutive failed commands), the link is open and no board restart holds it
+        (:meth:`send`)."""
+        return (
+            not self._closed
+            and self._failures < self.unhealthy_after
+            and self._restart_hold is None
+        )
 
     @property
     def last_command(self) -> MotorCommand | None:
@@ -384,19 +393,33 @@ class SerialMotorLink:
         """Set left/right drive in percent (-100..100, rounded to whole percent).
 
         Returns True when the board acknowledged. Bad values raise ValueError; I/O never
-        raises.
+        raises. The caller's own new command: it goes out even while a board restart holds
+        the link (:meth:`send` is the controller's path, which does not).
         """
+        return self._drive(left_pct, right_pct, reason, held=False)
+
+    def _drive(self, left_pct: float, right_pct: float, reason: str, *, held: bool) -> bool:
         left, right = _check_pct("left_pct", left_pct), _check_pct("right_pct", right_pct)
         if self._closed:
             return False
+        if held and self._restart_hold is not None:
+            return self._restart_stop()
         self._last = MotorCommand(self._clock(), float(left), float(right), reason)
-        return self._configured_transact(f"M {left} {right}")
+        ok = self._configured_transact(f"M {left} {right}", held=held)
+        if held and self._restart_hold is not None:
+            # EVT BOOT came before this drive's reply: the board, restarted, took it
+            return self._restart_stop()
+        return ok
 
     def stop(self, reason: str = "") -> bool:
-        """Stop both sides. Never raises; tries ``retries + 1`` times; True if confirmed."""
+        """Stop both sides. Never raises; tries ``retries + 1`` times; True if confirmed.
+        A confirmed stop ends a board restart's hold (:meth:`send`)."""
+        return self._stop(reason or "stop", ends_hold=True)
+
+    def _stop(self, reason: str, *, ends_hold: bool) -> bool:
         try:
-            self._last = MotorCommand(self._clock(), 0.0, 0.0, reason or "stop")
-            ok = self._transact("S")
+            self._last = MotorCommand(self._clock(), 0.0, 0.0, reason)
+            ok = self._transact_reply("S", ends_hold=ends_hold) is not None
         except Exception:  # stop must not raise, whatever the port does
             log.exception("motor stop failed")
             ok = False
@@ -404,11 +427,29 @@ class SerialMotorLink:
             self.counters.stop_failures += 1
         return ok
 
+    def _restart_stop(self) -> bool:
+        """A drive refused because the board restarted under the link: stop instead (the
+        board restarts stopped, but it may have taken the drive just after) and say False.
+        The hold stays until the caller's own stop."""
+        self.counters.held_drives += 1
+        self._stop("board restarted: drive held until the controller stops", ends_hold=False)
+        return False
+
     def send(self, cmd: MotorCommand) -> bool:
-        """Send a controller :class:`MotorCommand` (a stop command uses ``S``)."""
+        """Send a controller :class:`MotorCommand` (a stop command uses ``S``).
+
+        After the board restarted under a running link (``EVT BOOT`` once a command was
+        acknowledged: a brown-out) the link is lost (:attr:`healthy` False, :attr:`health`
+        disconnected, the restart its error) and every drive given here is refused
+        (False; an ``S`` goes out instead, counted in ``counters.held_drives``) until a
+        :meth:`stop` the board confirms: a keep-alive repeating the drive from before the
+        restart, or one the controller decided before it was told, must not start the
+        motors again. Input waiting on the port is read before a drive is written, so an
+        ``EVT BOOT`` already received holds it back; one that arrives before the drive's
+        reply (the board took the drive after restarting) stops the board at once."""
         if cmd.is_stop:
             return self.stop(cmd.reason)
-        return self.drive(cmd.left_pct, cmd.right_pct, cmd.reason)
+        return self._drive(cmd.left_pct, cmd.right_pct, cmd.reason, held=True)
 
     def ping(self) -> bool:
         """Keep-alive: feeds the board's watchdog without changing the drive."""
@@ -488,12 +529,15 @@ class SerialMotorLink:
 
     # --- transport --------------------------------------------------------------------------
 
-    def _configured_transact(self, body: str) -> bool:
+    def _configured_transact(self, body: str, *, held: bool = False) -> bool:
         """``body`` after (re)sending the watchdog setting if the board lacks it: never
-        confirmed, or an ``EVT BOOT`` arrived (then also right after ``body``)."""
+        confirmed, or an ``EVT BOOT`` arrived (then also right after ``body``). ``held``:
+        not sent (False) once a board restart holds the link (:meth:`send`)."""
         if not self.configured:
             self._configure()
-        ok = self._transact(body)
+        if held and self._restart_hold is not None:
+            return False
+        ok = self._transact_reply(body, held=held) is not None
         if ok and not self.configured:
             self._configure()
         return ok
@@ -501,10 +545,13 @@ class SerialMotorLink:
     def _transact(self, body: str) -> bool:
         return self._transact_reply(body) is not None
 
-    def _transact_reply(self, body: str, refusal_ok: bool = False) -> str | None:
+    def _transact_reply(
+        self, body: str, refusal_ok: bool = False, *, held: bool = False, ends_hold: bool = False
+    ) -> str | None:
         """Send ``body`` with a fresh sequence number; the OK payload, or None on failure.
         ``refusal_ok``: an ``ERR`` reply is an answer (kept in ``_refusal``), not a failure
-        of the link."""
+        of the link. ``held``: read what waits on the port first, and send nothing (None)
+        if a board restart holds the link. ``ends_hold``: its confirmation ends the hold."""
         if self._closed:
             return None
         tracker = self._tracker
@@ -512,6 +559,10 @@ class SerialMotorLink:
             if self._port_dead and not self._reopen_port():
                 self._failures = max(self._failures + 1, self.unhealthy_after)
                 return None
+            if held:
+                self._read_waiting()
+                if self._restart_hold is not None:
+                    return None
             broken = False
             for attempt in range(self.retries + 1):
                 self._seq = self._seq % (SEQ_MODULO - 1) + 1
@@ -567,10 +618,14 @@ class SerialMotorLink:
                     self._reopen_backoff_s = self.reopen_initial_s
                     self._reopens_since_break = 0
                     t_s = self._clock()
-                    if not tracker.health.connected:
-                        tracker.opened(t_s)  # the board answers again: a reconnect
-                    self._note_retries(attempt > 0, t_s)
-                    tracker.good(t_s)
+                    if ends_hold and ok and self._restart_hold is not None:
+                        self._restart_hold = None
+                        log.warning("motors: stopped after the board restart; drives go again")
+                    if self._restart_hold is None:  # held: lost until the caller's stop
+                        if not tracker.health.connected:
+                            tracker.opened(t_s)  # the board answers again: a reconnect
+                        self._note_retries(attempt > 0, t_s)
+                        tracker.good(t_s)
                     return payload if ok else None
                 self.counters.rejected += 1
                 log.warning("motor board rejected %r: %s", body, payload)
@@ -689,7 +744,17 @@ class SerialMotorLink:
                 log.info("motor board powered up")
                 return
             self.counters.board_restarts += 1
-            why = "board restarted (EVT BOOT): its settings and counters were lost"
+            why = (
+                "board restarted (EVT BOOT; a brown-out?): its settings and counters were "
+                "lost; drives held until the controller stops"
+            )
+            log.warning("motors: %s", why)
+            # a lost link, as a dropped one: the controller holds and stops; the drive from
+            # before the restart is not sent again (send)
+            self._restart_hold = why
+            self._failures = max(self._failures, self.unhealthy_after)
+            self._tracker.lost(why, t_s)
+            return
         elif what == ["WATCHDOG"]:
             self.counters.watchdog_stops += 1
             why = "board watchdog stopped the motors (EVT WATCHDOG): commands came too late"
@@ -703,26 +768,47 @@ class SerialMotorLink:
         """Read lines until the reply for ``seq`` or the ack deadline."""
         deadline = self._clock() + self.ack_timeout_s
         while True:
-            while b"\n" in self._rx:
-                raw, _, rest = bytes(self._rx).partition(b"\n")
-                self._rx = bytearray(rest)
-                parsed = _parse_reply(raw.decode("ascii", "replace").strip())
-                if parsed is None:
-                    continue
-                kind, rseq, payload = parsed
-                if kind == "EVT":
-                    self._board_event(payload)
-                elif rseq == seq:
-                    return kind == "OK", payload
-                # replies to older, timed-out commands are dropped
+            found = self._take_lines(seq)
+            if found is not None:
+                return found
             if self._clock() >= deadline:
                 return None
             waiting = getattr(self.port, "in_waiting", 0) or 0
-            chunk = self.port.read(max(1, min(int(waiting), 256)))
-            if chunk:
-                self._rx += chunk
-                if len(self._rx) > 4096:  # a babbling line: keep only the tail
-                    del self._rx[:-MAX_LINE_BYTES]
+            self._take_chunk(self.port.read(max(1, min(int(waiting), 256))))
+
+    def _take_lines(self, seq: int | None) -> tuple[bool, str] | None:
+        """Handle the complete lines received: events acted on, the reply to ``seq``
+        returned; replies to older, timed-out commands are dropped."""
+        while b"\n" in self._rx:
+            raw, _, rest = bytes(self._rx).partition(b"\n")
+            self._rx = bytearray(rest)
+            parsed = _parse_reply(raw.decode("ascii", "replace").strip())
+            if parsed is None:
+                continue
+            kind, rseq, payload = parsed
+            if kind == "EVT":
+                self._board_event(payload)
+            elif seq is not None and rseq == seq:
+                return kind == "OK", payload
+        return None
+
+    def _take_chunk(self, chunk: bytes) -> None:
+        if chunk:
+            self._rx += chunk
+            if len(self._rx) > 4096:  # a babbling line: keep only the tail
+                del self._rx[:-MAX_LINE_BYTES]
+
+    def _read_waiting(self) -> None:
+        """Before a drive: read what the port holds already, without waiting, and act on its
+        events (an ``EVT BOOT`` that came while the link was idle holds the drive back).
+        A port that fails here fails the write that follows, where it is handled."""
+        try:
+            waiting = int(getattr(self.port, "in_waiting", 0) or 0)
+            if waiting > 0:
+                self._take_chunk(self.port.read(min(waiting, 4096)))
+        except Exception:
+            log.debug("reading the motor port's waiting input failed", exc_info=True)
+        self._take_lines(None)
 
 
 def _parse_reply(line: str) -> tuple[str, int | None, str] | None:

@@ -202,3 +202,103 @@ def test_the_odometry_starts_a_new_baseline_when_the_port_reopens() -> None:
         pb.close()
         for p in pb2:
             p.close()
+
+
+# --- M3: a brown-out is a lost link; the last drive is not sent again -------------------------
+
+
+class BrownoutBoard(MotorBoard):
+    """A board that browns out as the next ``M`` arrives (once armed): it restarts, says
+    ``EVT BOOT``, then takes the ``M`` (the host wrote it before it could know)."""
+
+    armed = False
+
+    def feed(self, data: bytes, t_s: float) -> bytes:
+        if self.armed and b"M " in data:
+            self.armed = False
+            return self.boot() + super().feed(data, t_s)
+        return super().feed(data, t_s)
+
+
+@pytest.mark.integration
+def test_after_a_brown_out_the_worker_reports_a_lost_link_and_does_not_resume(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # review5 boot_resume.py: the board drove 80/80 again 0.040 s after its EVT BOOT, with
+    # the link healthy and no health callback: the keep-alive had re-sent the last drive
+    from x6wd.app.daemon import _MotorWorker
+    from x6wd.core.records import HealthEvent, MotorCommand
+
+    pb = Pty(boot=True)
+    link = SerialMotorLink(open_port(pb.name), ack_timeout_s=0.5)
+    health: list[bool] = []
+    events: list[HealthEvent] = []
+    told_ok = [True]
+
+    def on_health(ok: bool, t_s: float) -> None:
+        health.append(ok)
+        told_ok[0] = ok
+
+    w = _MotorWorker(link, 0.5 / 3, on_health, events.extend)
+    done = threading.Event()
+
+    def controller() -> None:  # the daemon's: a command at 20 Hz; holds while told lost
+        while not done.is_set():
+            if told_ok[0]:
+                w.submit(MotorCommand(time.monotonic(), 80.0, 80.0, "mission"))
+            else:
+                w.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "hold: motor link lost"))
+            time.sleep(0.05)
+
+    ctl = threading.Thread(target=controller, daemon=True)
+    w.start()
+    ctl.start()
+    try:
+        assert wait_for(lambda: pb.state() == (80, 80))
+        with caplog.at_level("WARNING", logger="drivers.motors"):
+            with pb.lock:
+                hello = pb.board.boot()  # brown-out: the board restarts stopped
+            os.write(pb.master, hello)
+            end = time.monotonic() + 3.0
+            while time.monotonic() < end:
+                board = pb.state()  # before the health: the resumed drive follows a True
+                if False in health and health[health.index(False) :].count(True):
+                    break  # told lost, stopped, told up again: the controller resumed
+                assert board == (0, 0), f"driving again after the reboot, health {health}"
+                time.sleep(0.002)
+            else:
+                pytest.fail(f"the controller was never told: health callbacks {health}")
+        assert link.counters.board_restarts == 1 and link.counters.held_drives >= 1
+        assert any("EVT BOOT" in r.getMessage() for r in caplog.records)
+        lost = [e for e in events if e.new == "disconnected"]
+        assert lost and "EVT BOOT" in lost[0].message
+        assert link.health.reconnects == 1
+        assert wait_for(lambda: pb.state() == (80, 80))  # the controller's own new drive
+    finally:
+        done.set()
+        ctl.join(5)
+        w.shutdown("end")
+        pb.close()
+
+
+@pytest.mark.integration
+def test_a_drive_the_board_took_just_after_restarting_is_stopped_at_once() -> None:
+    from x6wd.core.records import MotorCommand
+
+    board = BrownoutBoard()
+    pb = Pty(board, boot=True)
+    link = SerialMotorLink(open_port(pb.name), ack_timeout_s=0.5)
+    try:
+        assert link.send(MotorCommand(time.monotonic(), 40.0, 40.0, "mission"))
+        board.armed = True  # the next M meets a board that has just restarted
+        assert not link.send(MotorCommand(time.monotonic(), 40.0, 40.0, "mission"))
+        assert pb.state() == (0, 0)  # the S followed at once
+        assert not link.healthy and link.counters.board_restarts == 1
+        assert not link.send(MotorCommand(time.monotonic(), 40.0, 40.0, "mission"))
+        assert pb.state() == (0, 0)
+        assert link.stop("hold") and link.healthy
+        assert link.send(MotorCommand(time.monotonic(), 30.0, 30.0, "mission"))
+        assert pb.state() == (30, 30)
+    finally:
+        link.close()
+        pb.close()
