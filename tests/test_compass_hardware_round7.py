@@ -17,10 +17,17 @@
 from __future__ import annotations
 
 import errno
+import logging
 
 import pytest
 
 from drivers.cmps10 import REG_BEARING_BYTE, Cmps10
+from x6wd.core.config import FailsafeConfig, NavigationConfig, SafetyConfig
+from x6wd.core.health import HealthLog
+from x6wd.core.mission_files import Waypoint
+from x6wd.core.records import GpsFix, Mode
+from x6wd.loop.runner import Runner
+from x6wd.nav.controller import Controller
 
 
 class FlakyBus:
@@ -145,3 +152,119 @@ def test_flips_of_a_few_degrees_or_more_are_caught(reg: int, mask: int, deg: flo
     att = c.read(0.05)
     assert c.counters.bearing_mismatches == 1, deg
     assert att.t_s == 0.0 and att.bearing_deg == pytest.approx(200.0)  # the last good one
+
+
+# -- 2. a failed sample's last good attitude, re-sent ------------------------------------------
+
+HOME = (51.7520, -1.2577)
+M_PER_DEG_LAT = 111_200.0
+PERIOD_S = 0.05  # the compass thread's period at the default 20 Hz
+
+
+class Robot:
+    """The daemon's compass path, in fast time: the real driver over ``FlakyBus``, its
+    samples and health events posted to the real runner and controller (EKF) every period
+    as the daemon's compass thread does, fixes at 1 Hz, a tick each period."""
+
+    def __init__(self, **driver_kw: object) -> None:
+        self.now = 0.0
+        self.safety = SafetyConfig()
+        self.ctrl = Controller(NavigationConfig(), self.safety, failsafe=FailsafeConfig(stuck_s=0))
+        self.runner = Runner(
+            self.ctrl,
+            self.safety,
+            lambda: self.now,
+            motors=lambda _cmd: None,
+            health_log=HealthLog(logging.getLogger("test.round7.quiet"), clock=lambda: self.now),
+        )
+        self.bus = FlakyBus(0.0)
+        self.compass = driver(self.bus, **driver_kw)
+        self.fused: list[float] = []  # t_s of every bearing the EKF was handed
+        src = self.ctrl._source
+        on_compass = src.on_compass
+
+        def spy(t_s: float, bearing_mag_deg: float) -> bool | None:
+            self.fused.append(t_s)
+            return on_compass(t_s, bearing_mag_deg)
+
+        src.on_compass = spy  # type: ignore[method-assign]
+        self.sample()
+        self.fix()
+        self.runner.load_mission([Waypoint(HOME[0] + 200 / M_PER_DEG_LAT, HOME[1])])
+        self.runner.command("start")
+
+    def fix(self) -> None:
+        fix = GpsFix(self.now, lat_deg=HOME[0], lon_deg=HOME[1], quality=1, valid=True)
+        self.runner.gps_record(fix)
+
+    def sample(self) -> None:
+        """One period of the daemon's compass thread: read, post the events, post the
+        attitude (daemon._compass_thread)."""
+        att = self.compass.read(self.now)
+        events = self.compass.take_health_events()
+        if events:
+            self.runner.device_events(events)
+        self.runner.attitude(att)
+
+    def run(self, duration_s: float) -> None:
+        for _ in range(round(duration_s / PERIOD_S)):
+            self.now = round(self.now + PERIOD_S, 6)
+            if self.now % 1.0 < 1e-6:
+                self.fix()
+            self.sample()
+            self.runner.tick(self.now)
+
+    def fail_samples(self, n: int) -> None:
+        """The next ``n`` samples fail on every attempt (bus errors)."""
+        self.bus.fail = n * (self.compass.retries + 1)
+
+
+def test_a_failed_samples_last_good_attitude_is_not_fused_again() -> None:
+    """Four failed samples (0.2 s, under the driver's stale_after=5): the driver hands back
+    its last good attitude four times, the daemon posts it each time; the EKF took it each
+    time (up to 0.3 s late is moved to now: a stale bearing fused 5 times while turning)."""
+    robot = Robot(stale_s=0.5)
+    robot.run(2.0)
+    assert robot.ctrl.mode == Mode.RUNNING
+    assert robot.fused and len(set(robot.fused)) == len(robot.fused)
+    before = len(robot.fused)
+    robot.fail_samples(4)
+    robot.run(0.2)
+    assert robot.compass.counters.failed_samples == 4 and not robot.compass.stale
+    assert len(robot.fused) == before, "the last good bearing was fused again"
+    robot.run(1.0)
+    assert len(set(robot.fused)) == len(robot.fused)
+    assert robot.runner.compass_repeats == 4
+    assert robot.runner.stats["attitudes"] == 1 + 64  # every sample seen is counted
+    assert robot.ctrl.mode == Mode.RUNNING and robot.ctrl.telemetry.hold_reason in ("", None)
+
+
+def test_a_failing_compass_still_holds_and_then_pauses() -> None:
+    """The driver turns stale after 5 failed samples: the hold is at once ("compass stale",
+    its health), and after safety's sensor_timeout_s the failsafe pauses the mission."""
+    robot = Robot(stale_s=0.5)
+    robot.run(2.0)
+    robot.fail_samples(10_000)
+    robot.run(0.3)
+    tel = robot.ctrl.telemetry
+    assert tel.state == "HOLD" and "compass" in str(tel.hold_reason), tel.hold_reason
+    timeout_s = robot.ctrl.failsafe_config.sensor_timeout_s
+    robot.run(timeout_s + 1.0)
+    assert robot.ctrl.mode == Mode.PAUSED
+    assert "compass" in robot.ctrl.telemetry.extra["failsafe"]
+
+
+def test_only_repeats_still_read_as_a_stale_attitude() -> None:
+    """A driver that never says stale (no stale_s, a huge stale_after): only repeats of the
+    last good sample come. The controller's own staleness (safety.attitude_stale_s, from the
+    last sample it took) still holds the robot, and the sensor timeout still pauses it."""
+    robot = Robot(stale_after=1_000_000)
+    robot.run(2.0)
+    robot.fail_samples(10_000)
+    robot.run(robot.safety.attitude_stale_s + 0.1)
+    assert not robot.compass.stale and robot.runner.compass_repeats > 5
+    tel = robot.ctrl.telemetry
+    assert tel.state == "HOLD" and tel.hold_reason == "attitude stale"
+    robot.run(robot.ctrl.failsafe_config.sensor_timeout_s + 1.0)
+    assert robot.ctrl.mode == Mode.PAUSED
+    assert robot.ctrl.telemetry.extra["failsafe"].startswith("attitude stale")

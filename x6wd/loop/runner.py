@@ -133,6 +133,10 @@ class Runner:
         self.first_fix: tuple[float, float] | None = None
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
         self.geofence_breaches = 0
+        self.compass_repeats = 0
+        """Compass samples not newer than the last one taken: seen, not used (see
+        :meth:`attitude`)."""
+        self._att_t: float | None = None  # t_s of the last compass sample taken (s)
         self._last_pos: tuple[float, float] | None = None  # latest valid fix (lat, lon deg)
         self._last_pos_t: float | None = None  # its time (s)
         self._fix_usable = False  # the latest fix record had a usable position
@@ -222,11 +226,27 @@ class Runner:
         self.controller.operator_seen(self.clock())
 
     def attitude(self, att: Attitude) -> None:
-        """A compass sample."""
+        """A compass sample (counted in ``stats["attitudes"]``).
+
+        One whose ``t_s`` is not newer than the last one taken is a repeat, counted in
+        :attr:`compass_repeats` and otherwise dropped (neither recorded nor given to the
+        controller): the driver answers a failed read with its last good attitude, old
+        ``t_s`` and all, and the daemon posts whatever it answers every period. Given to
+        the controller again, the same bearing reached the EKF each time, which takes an
+        input up to 0.3 s late as if it were now: a stale bearing fused several times over
+        while the robot turned. The compass's staleness does not need the repeats: the
+        controller judges it by the time of the last sample it took
+        (``safety.attitude_stale_s``), the driver by its own count and age (a ``stale``
+        health event and an invalid sample, stamped now)."""
         self.stats["attitudes"] += 1
+        last_t = self._att_t
+        if last_t is not None and att.t_s <= last_t:
+            self.compass_repeats += 1
+            return
         self._record("record_attitude", att)
         self._check_estimate(att.t_s)
         outputs = self.controller.on_attitude(att)
+        self._att_t = att.t_s
         self._t_stepped = att.t_s
         self._handle(outputs, False)
 
