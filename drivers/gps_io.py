@@ -38,6 +38,17 @@ needed, with one WARNING naming the receiver's date and the corrected one. Only 
 corrects (the daemon gives its reader one unless the GPS is a ``replay://`` log):
 ``x6wd decode`` and ``x6wd replay`` decode recorded sentences as they are.
 
+Receiver configuration (``[gps] configure_receiver = true``): a :class:`ReceiverSetup` given to
+the reader is written after every open of the port (start-up and each reopen: a receiver
+that lost power forgets it): UBX CFG-RATE for ``[gps] rate_hz`` and CFG-MSG for the NMEA
+the decoder uses (:func:`neo5_setup`). Every message must be answered by ACK-ACK within
+:data:`ACK_TIMEOUT_S`; a NAK or no answer is shown in the setup's :meth:`ReceiverSetup.status`
+(``status``'s ``gps_receiver``) and logged as one WARNING; the robot goes on with whatever the
+receiver sends. Whether configured or not, :class:`FixRate` measures the rate the fixes
+actually arrive at and, when it is well under the rate the staleness limits were checked
+against (``gps.rate_hz``), says so in status and in one WARNING: fixes then go stale between
+epochs and the robot holds.
+
 Note that pyserial's ``socket://`` handler discards whatever arrived before ``open()``
 returned; a streaming receiver loses nothing but part of one sentence.
 """
@@ -56,7 +67,17 @@ from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 from typing import Any, Protocol
 
-from drivers.gps_nmea import UBX_SYNC, GpsDecoder, GpsOutput, UbxAck, parse_ack
+from drivers.gps_nmea import (
+    UBX_CLASS_CFG,
+    UBX_ID_CFG_RATE,
+    UBX_SYNC,
+    GpsDecoder,
+    GpsOutput,
+    UbxAck,
+    cfg_msg,
+    cfg_rate,
+    parse_ack,
+)
 from x6wd.core.errors import ConfigError, ParseError, X6wdError, is_transient
 from x6wd.core.health import HealthTracker, root_oserror
 from x6wd.core.records import DeviceHealth, DeviceState, GpsFix, GpsSky, HealthEvent
@@ -184,6 +205,198 @@ def _rollover_before(t: datetime) -> str:
     return (_GPS_EPOCH + n * GPS_WEEK_ROLLOVER).date().isoformat()
 
 
+ACK_TIMEOUT_S = 3.0
+"""Seconds a configuration message may wait for its ACK after it was written. A NEO-5 answers
+within milliseconds, but its answer queues behind the NMEA already in its transmit buffer (a
+full second of output at 9600 baud)."""
+SLOW_RATE_RATIO = 0.8
+"""Fixes arriving at under this fraction of the expected rate are "too slow" (:class:`FixRate`):
+1 Hz against ``rate_hz = 4`` is, 3.5 Hz (a dropped epoch now and then) is not."""
+RATE_WINDOW = 9
+"""Fixes the measured rate is taken over (the last ones); at least 5 make a measurement."""
+
+_CFG_RATE = (UBX_CLASS_CFG, UBX_ID_CFG_RATE)
+
+
+def neo5_setup(rate_hz: float) -> list[tuple[str, bytes]]:
+    """The UBX messages ``configure_receiver`` sends, (name, frame) in order: CFG-RATE for
+    ``rate_hz`` (NEO-5: 0.015..4 Hz), then CFG-MSG on the port they arrive on: GGA and RMC
+    every epoch (a fix needs both), GSA and GSV about once a second (every
+    ``round(rate_hz)`` epochs: the fix mode, DOPs and the sky change slowly), VTG and GLL off
+    (RMC carries speed and course, GGA the time). At 4 Hz that is ~850 bytes/s, what 9600 baud
+    carries (960); the receiver's default set (~480 bytes per epoch) would not fit past 2 Hz.
+    Raises ConfigError for a rate CFG-RATE cannot carry."""
+    meas_ms = round(1000.0 / rate_hz)
+    every = max(1, round(rate_hz))
+    msgs = [(f"CFG-RATE {meas_ms} ms", cfg_rate(meas_ms))]
+    for name, rate in (("GGA", 1), ("RMC", 1), ("GSA", every), ("GSV", every), ("VTG", 0),
+                       ("GLL", 0)):  # fmt: skip
+        msgs.append((f"CFG-MSG {name} {rate}", cfg_msg(name, rate)))
+    return msgs
+
+
+class ReceiverSetup:
+    """The configuration ``[gps] configure_receiver`` writes after every open, and what the
+    receiver answered.
+
+    :attr:`init_bytes` are the frames of :func:`neo5_setup`; the reader calls :meth:`sent`
+    once it wrote them (or :meth:`not_sent`), hands every ACK/NAK to :meth:`on_ack` and calls
+    :meth:`check` on each poll. Each message is answered in order (an ACK names only the
+    class and id, so the CFG-MSG answers are matched oldest first). :attr:`state`: ``"not
+    sent"`` (no port yet), ``"waiting"``, ``"acked"`` (all ACK-ACK), ``"refused"`` (a NAK),
+    ``"no answer"`` (nothing within ``ack_timeout_s``: a receiver configured elsewhere
+    answers as well, so this is a receiver that does not speak UBX, a wrong port, or a
+    line that loses what is sent) or ``"not written"``. A refusal or a missing answer is
+    logged as one WARNING per process and kind; the robot goes on with what the receiver
+    sends (:class:`FixRate` shows the rate it actually gets)."""
+
+    def __init__(self, rate_hz: float, *, ack_timeout_s: float = ACK_TIMEOUT_S) -> None:
+        self.rate_hz = rate_hz
+        self.messages = neo5_setup(rate_hz)
+        self.init_bytes = b"".join(frame for _, frame in self.messages)
+        self.ack_timeout_s = ack_timeout_s
+        self.state = "not sent"
+        self.rounds = 0  # opens the configuration was written on
+        self.answers: dict[str, str] = {}  # the last round's: name -> ack | NAK | no answer
+        self.problem: str | None = None  # the last round's refusal or silence, in words
+        self.rate_acked = False  # the last round's CFG-RATE was taken (ACK-ACK)
+        self._waiting: list[tuple[str, tuple[int, int]]] = []
+        self._sent_t = 0.0
+        self._warned: set[str] = set()
+
+    def sent(self, t_s: float) -> None:
+        """The frames were written at ``t_s``: every message now waits for its answer."""
+        self.rounds += 1
+        self.state = "waiting"
+        self.problem = None
+        self.rate_acked = False
+        self._sent_t = t_s
+        self._waiting = [(name, (frame[2], frame[3])) for name, frame in self.messages]
+        self.answers = {name: "waiting" for name, _ in self.messages}
+
+    def not_sent(self, reason: str) -> None:
+        """The frames could not be written (``reason``)."""
+        self.state = "not written"
+        self._waiting = []
+        self._problem(f"UBX configuration not written: {reason}", "write")
+
+    def on_ack(self, ack: UbxAck) -> bool:
+        """An ACK-ACK or ACK-NAK: True when it answered one of this setup's messages."""
+        key = (ack.msg_class, ack.msg_id)
+        i = next((i for i, (_, want) in enumerate(self._waiting) if want == key), None)
+        if i is None:
+            return False
+        name = self._waiting.pop(i)[0]
+        self.answers[name] = "ack" if ack.acked else "NAK"
+        if ack.acked and key == _CFG_RATE:
+            self.rate_acked = True
+        if not self._waiting:
+            self._finish()
+        return True
+
+    def check(self, t_s: float) -> None:
+        """Messages still unanswered ``ack_timeout_s`` after they were written: no answer."""
+        if not self._waiting or t_s - self._sent_t < self.ack_timeout_s:
+            return
+        for name, _ in self._waiting:
+            self.answers[name] = "no answer"
+        self._waiting = []
+        self._finish()
+
+    def _finish(self) -> None:
+        """Every message answered or timed out: the round's state, and its problem told."""
+        refused = [name for name, a in self.answers.items() if a == "NAK"]
+        silent = [name for name, a in self.answers.items() if a == "no answer"]
+        if not refused and not silent:
+            self.state = "acked"
+            return
+        parts = []
+        if refused:
+            parts.append(f"the receiver refused (ACK-NAK) {', '.join(refused)}")
+        if silent:
+            parts.append(
+                f"no UBX ACK from the receiver within {self.ack_timeout_s:g} s for "
+                f"{', '.join(silent)} (not a u-blox receiver, or the line loses what is sent)"
+            )
+        self.state = "refused" if refused else "no answer"
+        self._problem(
+            f"{'; '.join(parts)}: gps.configure_receiver = true, gps.rate_hz = "
+            f"{self.rate_hz:g} Hz not set; the receiver goes on as it was configured",
+            self.state,
+        )
+
+    def _problem(self, text: str, kind: str) -> None:
+        self.problem = text
+        if kind not in self._warned:  # once per process and kind (each reopen sends again)
+            self._warned.add(kind)
+            log.warning("GPS: %s", text)
+
+    def status(self) -> dict[str, Any]:
+        """JSON-ready: state, the rate asked, the last round's answers, opens configured."""
+        out: dict[str, Any] = {
+            "state": self.state,
+            "rate_hz": self.rate_hz,
+            "rounds": self.rounds,
+            "answers": dict(self.answers),
+        }
+        if self.problem is not None:
+            out["problem"] = self.problem
+        return out
+
+
+class FixRate:
+    """The rate fixes actually arrive at (Hz, from their receive times: the last
+    :data:`RATE_WINDOW`, at least 5), against ``expected_hz`` (what the staleness limits were
+    checked against, named ``expected_key`` in messages). :attr:`slow` (and one WARNING per
+    process) when it is under :data:`SLOW_RATE_RATIO` of that: fixes then go stale between
+    epochs."""
+
+    def __init__(self, expected_hz: float | None, expected_key: str = "gps.rate_hz") -> None:
+        self.expected_hz = expected_hz
+        self.expected_key = expected_key
+        self._times: deque[float] = deque(maxlen=RATE_WINDOW)
+        self.measured_hz: float | None = None
+        self.slow: str | None = None
+        self._warned = False
+
+    def restart(self) -> None:
+        """Measure anew (the port reopened, or the receiver took a new rate)."""
+        self._times.clear()
+        self.measured_hz = None
+        self.slow = None
+
+    def add(self, t_s: float) -> None:
+        times = self._times
+        times.append(t_s)
+        if len(times) < 5 or times[-1] <= times[0]:
+            return
+        hz = (len(times) - 1) / (times[-1] - times[0])
+        self.measured_hz = hz
+        want = self.expected_hz
+        if want is None or hz >= SLOW_RATE_RATIO * want:
+            self.slow = None
+            return
+        self.slow = (
+            f"fixes arrive at {hz:.2g} Hz, under {self.expected_key} = {want:g} Hz that "
+            f"the staleness limits (safety.fix_stale_s, gps.stale_s) were checked against: "
+            f"fixes go stale between epochs and the robot holds; set the receiver's rate "
+            f"(gps.configure_receiver = true, or u-center) or lower {self.expected_key}"
+        )
+        if not self._warned:
+            self._warned = True
+            log.warning("GPS: %s", self.slow)
+
+    def status(self) -> dict[str, Any]:
+        """JSON-ready: measured and expected rate, and the complaint when too slow."""
+        out: dict[str, Any] = {
+            "measured_rate_hz": None if self.measured_hz is None else round(self.measured_hz, 2),
+            "expected_rate_hz": self.expected_hz,
+        }
+        if self.slow is not None:
+            out["slow"] = self.slow
+        return out
+
+
 def _direct_fd(port: object) -> int | None:
     """The descriptor to read directly: only for pyserial's own POSIX ``Serial`` class (not
     a subclass, a wrapper or another URL handler, whose ``read`` may do more), open."""
@@ -217,6 +430,9 @@ class GpsReader:
     valid sentence for this long makes the health stale; ``transient_limit`` transient read
     errors in a row (``retry_delay_s`` apart) drop the port. ``week_rollover``: a
     :class:`WeekRolloverCorrection` for a live receiver's dates (the daemon's), or None.
+    ``setup``: a :class:`ReceiverSetup` written after every open (its bytes after
+    ``init_bytes``) and told the answers. ``expected_rate_hz``: the fix rate the
+    configuration promises, for :attr:`fix_rate` (None: measured, never judged).
     """
 
     def __init__(
@@ -234,6 +450,8 @@ class GpsReader:
         transient_limit: int = TRANSIENT_LIMIT,
         retry_delay_s: float = 0.01,
         week_rollover: WeekRolloverCorrection | None = None,
+        setup: ReceiverSetup | None = None,
+        expected_rate_hz: float | None = None,
     ) -> None:
         if not stale_s > 0:
             raise ConfigError(f"GpsReader stale_s must be > 0 s, got {stale_s!r}")
@@ -257,6 +475,9 @@ class GpsReader:
         self._sleep = sleep
         self.decoder = decoder if decoder is not None else GpsDecoder()
         self.init_bytes = init_bytes
+        self.setup = setup
+        self.fix_rate = FixRate(expected_rate_hz)
+        """The rate fixes arrive at (measured anew after each open and each CFG-RATE taken)."""
         self._read_max = read_max
         self.transient_limit = transient_limit
         self.retry_delay_s = retry_delay_s
@@ -300,7 +521,10 @@ class GpsReader:
             return self._poll(max(0.0, timeout_s))
         finally:
             # Staleness by time, once per poll: the health never waits for a caller to ask.
-            self._tracker.check(self._clock())
+            now = self._clock()
+            self._tracker.check(now)
+            if self.setup is not None:
+                self.setup.check(now)
 
     def _poll(self, timeout_s: float) -> list[GpsOutput]:
         start = self._clock()
@@ -398,15 +622,25 @@ class GpsReader:
             )
         else:
             self._tracker.opened(now)
-        if self.init_bytes:
+        self.fix_rate.restart()
+        setup = self.setup
+        out = self.init_bytes + (setup.init_bytes if setup is not None else b"")
+        if out:
             write = getattr(port, "write", None)
             if write is None:
                 self._tracker.error("port cannot write: UBX configuration not sent", now)
+                if setup is not None:
+                    setup.not_sent("the port cannot write")
             else:
                 try:
-                    write(self.init_bytes)
+                    write(out)
                 except OSError as exc:
+                    if setup is not None:
+                        setup.not_sent(f"write failed: {exc}")
                     self._fail(f"write failed: {exc}")
+                else:
+                    if setup is not None:
+                        setup.sent(now)
 
     def _read_once(self, wait_s: float) -> list[GpsOutput] | None:
         """One wait+read; None when nothing arrived (or the port failed)."""
@@ -482,6 +716,14 @@ class GpsReader:
                 continue
             if ack is not None:
                 self._acks.append(ack)
+                setup = self.setup
+                answered = setup is not None and setup.on_ack(ack)
+                if answered and ack.acked and (ack.msg_class, ack.msg_id) == _CFG_RATE:
+                    self.fix_rate.restart()  # the receiver takes the new rate now
+        rate = self.fix_rate
+        for rec in records:
+            if type(rec) is GpsFix:
+                rate.add(t_s)
         if self.week_rollover is not None:
             records = self.week_rollover.apply(records)
         return records

@@ -19,7 +19,11 @@ same physics as fast-time simulation (``x6wd sim``), only in real time:
   (:class:`sim_backend.receiver.UartTx`: a bounded transmit buffer drained at the scenario's
   baud rate, dropping whole sentences when full, the same arithmetic ``x6wd sim`` runs) and
   each is written to the pty in 10 ms pieces at the times the model puts its bytes on the
-  line, so the bytes arrive as on the real line.
+  line, so the bytes arrive as on the real line. What the host writes to the pty reaches
+  the receiver's UBX input (:class:`sim_backend.ubx_config.UbxConfigPort`): CFG-RATE and
+  CFG-MSG (``[gps] configure_receiver``) are answered with ACK-ACK through the same UART and
+  change the rate (the epochs move to the new rate's whole periods of host UTC) and the
+  sentences printed; other CFG messages are NAKed.
 - the compass: the CMPS10 register map of :mod:`sim_backend.compass`
   (:meth:`HilWorld.compass_bus`) with the scenario's ``[compass]`` field and errors and its
   compass ``[[effects]]`` layers (:func:`sim_backend.mission.compass_setup`); its registers
@@ -78,6 +82,7 @@ from sim_backend.mission import compass_setup, vehicle_from_world, vehicle_veloc
 from sim_backend.odometry import EncoderSim, encoder_rng
 from sim_backend.ports import PACE_CHUNK_S, PtyUart
 from sim_backend.receiver import SimRandom, build_receiver
+from sim_backend.ubx_config import UbxConfigPort
 from sim_backend.world import World, load_world
 from x6wd.core.config import PACKAGED_CONFIG_DIR, SimConfig, path_is_file, scenario_candidates
 from x6wd.core.errors import ConfigError, DeviceIOError, DeviceUnavailable
@@ -95,6 +100,7 @@ CONFIG_DIR = PACKAGED_CONFIG_DIR  # where hil.toml and the scenarios ship
 DEFAULT_SCENARIO = CONFIG_DIR / "scenarios" / "default.toml"
 CLOSE_JOIN_S = 5.0  # how long close() waits for each thread before it gives up on it
 WIRE_LOG_LEN = 4096  # motor-board traffic kept for inspection (entries)
+HOST_POLL_S = 0.02  # the receiver thread reads what the host wrote at least this often
 
 # [sim] keys that override the scenario when present (None in SimConfig = absent)
 _OVERRIDES = (
@@ -309,6 +315,12 @@ class HilWorld:
         n0 = math.ceil(wall * sc.gnss.rate_hz)
         self.utc0 = datetime.fromtimestamp(n0 / sc.gnss.rate_hz, UTC)
         self.epoch_phase_s = n0 / sc.gnss.rate_hz - wall
+        # The epoch schedule from epoch _k_base (device time _phase_base, UTC _utc_base) at
+        # _rate_hz: moved by a CFG-RATE the host sends (_set_rate); the same line of device
+        # time against UTC as utc0 and epoch_phase_s, so scenario_t_s holds throughout.
+        self._k_base, self._phase_base, self._utc_base = 0, self.epoch_phase_s, self.utc0
+        self._rate_hz = float(sc.gnss.rate_hz)
+        self.ubx = UbxConfigPort(self._rate_hz)  # the receiver's UBX input (host writes)
         s0 = self.vehicle.state
         self.compass = SimCmps10(
             field_model=cset.field_model,
@@ -444,7 +456,7 @@ class HilWorld:
 
     def epoch_t_s(self, k: int) -> float:
         """Device and scenario time (s) of receiver epoch ``k``."""
-        return self.epoch_phase_s + k / self.scenario.gnss.rate_hz
+        return self._phase_base + (k - self._k_base) / self._rate_hz
 
     def scenario_t_s(self, utc: datetime) -> float:
         """The scenario time (s) of the epoch the receiver stamped ``utc``."""
@@ -462,7 +474,27 @@ class HilWorld:
 
     def epoch_utc(self, k: int) -> datetime:
         """The receiver's UTC of epoch ``k`` (the host's clock when it is due)."""
-        return self.utc0 + timedelta(seconds=k / self.scenario.gnss.rate_hz)
+        return self._utc_base + timedelta(seconds=(k - self._k_base) / self._rate_hz)
+
+    def _set_rate(self, rate_hz: float, k: int) -> None:
+        """The receiver navigates at ``rate_hz`` from epoch ``k`` (the next one to compute):
+        on the new rate's first whole period of host UTC from now, as a NEO-5's epochs fall
+        on whole periods of GPS time."""
+        now = self._device_time()
+        utc_now = self.utc0 + timedelta(seconds=now - self.epoch_phase_s)
+        n = math.ceil(utc_now.timestamp() * rate_hz)
+        utc_base = datetime.fromtimestamp(n / rate_hz, UTC)
+        self._phase_base = self.epoch_phase_s + (utc_base - self.utc0).total_seconds()
+        self._utc_base, self._k_base, self._rate_hz = utc_base, k, rate_hz
+        self.receiver.formatter.rate_hz = rate_hz
+        log.info("HIL: the receiver took CFG-RATE: %g Hz", rate_hz)
+
+    def _host_bytes(self) -> bytes:
+        """What the host wrote to the GPS pty since the last call (b"" when unplugged)."""
+        try:
+            return self.uart.read(4096)
+        except DeviceIOError:
+            return b""
 
     def _antenna_enu(self, s: Any) -> tuple[float, float, float]:
         return s.east_m, s.north_m, s.up_m + self.scenario.vehicle.antenna_height_m
@@ -484,15 +516,29 @@ class HilWorld:
                 pending.append((t_end - rx.wire_time_s(len(line)), line))
                 self.gps_wire.append((t_end, line))
 
+        ubx = self.ubx
         queue(rx.banner(), 0.0)
         warned = False
         k = 1
         while self.running:
+            data = self._host_bytes()
+            if data:
+                now = time.monotonic() - self.t0
+                for answer in ubx.feed(data):
+                    # through the receiver's UART, behind the NMEA already queued there
+                    for t_end, frame in rx.uart.send([answer.reply], now):
+                        pending.append((t_end - rx.wire_time_s(len(frame)), frame))
+                    if answer.rate_hz is not None and answer.rate_hz != self._rate_hz:
+                        self._set_rate(answer.rate_hz, k)
+                        period_s = 1.0 / answer.rate_hz
             t_epoch = self.epoch_t_s(k)
             now = time.monotonic() - self.t0
             if now >= t_epoch:
                 dropped = rx.uart.dropped
-                queue(b"".join(rx.sentences(self._epoch(k))), t_epoch)
+                lines = rx.sentences(self._epoch(k))
+                if ubx.msg_rates:  # CFG-MSG: sentences printed every n epochs, or never
+                    lines = [ln for ln in lines if ubx.keeps(ln[3:6].decode("ascii"), k)]
+                queue(b"".join(lines), t_epoch)
                 self.epochs += 1
                 if not warned and rx.uart.dropped > dropped:
                     warned = True
@@ -503,8 +549,8 @@ class HilWorld:
                         rx.rate_hz,
                     )
                 # A thread held up (a loaded host) skips epochs rather than running late.
-                late_s = time.monotonic() - self.t0 - self.epoch_phase_s
-                k = max(k + 1, math.floor(late_s / period_s) + 1)
+                late_s = time.monotonic() - self.t0 - self._phase_base
+                k = max(k + 1, self._k_base + math.floor(late_s / period_s) + 1)
                 continue
             due = t_epoch
             if pending:
@@ -520,7 +566,8 @@ class HilWorld:
                         pending.popleft()
                         offset = 0
                     continue
-            if self._stop.wait(max(0.0, due - now)):
+            # (at most 20 ms: the host's UBX is answered within that)
+            if self._stop.wait(min(HOST_POLL_S, max(0.0, due - now))):
                 return
 
     def close(self) -> None:

@@ -1281,7 +1281,7 @@ class Daemon:
 
     async def _open_devices(self) -> None:
         from drivers import registry
-        from drivers.gps_io import GpsReader, WeekRolloverCorrection
+        from drivers.gps_io import GpsReader, ReceiverSetup, WeekRolloverCorrection
 
         cfg = self.config
         link = await asyncio.to_thread(
@@ -1302,11 +1302,19 @@ class Daemon:
         compass = await asyncio.to_thread(registry.open_compass, cfg.compass.url, self.devices)
         self._compass = compass
         # a live receiver's dates before this release are a GPS week rollover (drivers.gps_io)
-        live = registry.parse_url(cfg.gps.url, "gps").scheme != "replay"
+        scheme = registry.parse_url(cfg.gps.url, "gps").scheme
+        live = scheme != "replay"
+        # [gps] configure_receiver: UBX CFG-RATE/CFG-MSG after every open, answers in status;
+        # the fix rate is measured against the one the staleness limits were checked at (not
+        # for a replay, which plays at its own times)
+        configure = cfg.gps.configure_receiver and live
+        expected_hz = cfg.gps.rate_hz if configure or scheme != "sim" else cfg.sim.gps_rate_hz
         self._gps_reader = GpsReader(
             self._open_gps_port,
             stale_s=cfg.gps.stale_s,
             week_rollover=WeekRolloverCorrection() if live else None,
+            setup=ReceiverSetup(cfg.gps.rate_hz) if configure else None,
+            expected_rate_hz=expected_hz if live else None,
         )
 
     def _open_gps_port(self) -> Any:
@@ -1890,6 +1898,8 @@ class Daemon:
             "declination": self._declination_status(),
             # dates of a receiver past a GPS week rollover, corrected (null: not corrected)
             "gps_week_rollover": self._week_rollover_status(),
+            # [gps] configure_receiver's UBX answers, and the fix rate measured against rate_hz
+            "gps_receiver": self._gps_receiver_status(),
             # bind keys listening beyond loopback in clear text (server.allow_plaintext)
             "plaintext_beyond_loopback": list(self._plaintext),
             # the web console's counts (dead-man stops, drives refused late or after another
@@ -1910,6 +1920,22 @@ class Daemon:
             decl["deg"] = 0.0  # in use until the first dated fix
             decl["pending"] = "no dated fix yet: heading is magnetic"
         return decl
+
+    def _gps_receiver_status(self) -> dict[str, Any] | None:
+        """``status``'s ``gps_receiver`` (None before the reader): ``configure_receiver``, its
+        setup's state and answers (``setup``, None when nothing is sent), and the fix rate
+        measured (``measured_rate_hz``) against the expected one; ``slow`` when fixes come
+        too slowly for the staleness limits (drivers.gps_io.FixRate)."""
+        reader = self._gps_reader
+        rate = getattr(reader, "fix_rate", None)
+        if rate is None:
+            return None
+        setup = getattr(reader, "setup", None)
+        return {
+            "configure_receiver": self.config.gps.configure_receiver,
+            "setup": None if setup is None else setup.status(),
+            **rate.status(),
+        }
 
     def _week_rollover_status(self) -> dict[str, Any] | None:
         """``status``'s ``gps_week_rollover``: the GPS reader's corrections (None when its

@@ -35,8 +35,24 @@ def _rng(lo: float | None = None, hi: float | None = None, **kw: Any) -> dict[st
 class GpsConfig:
     url: str = "serial:///dev/ttyS0?baud=9600"
     stale_s: float = field(default=2.5, metadata=_rng(0.1, 60))
-    configure_receiver: bool = False  # send UBX CFG-RATE/CFG-MSG at start
+    # true: UBX CFG-RATE (rate_hz) and CFG-MSG after every open of the port, answers checked
+    # (drivers.gps_io.ReceiverSetup); false: nothing is sent (a receiver set up in u-center)
+    configure_receiver: bool = False
+    # the receiver's navigation rate: asked of it (configure_receiver), else what it was set
+    # to; the staleness limits are checked against it, and status compares the measured rate
     rate_hz: float = field(default=1.0, metadata=_rng(0.1, 10))
+
+    def __post_init__(self) -> None:
+        if self.configure_receiver and self.rate_hz > NEO5_MAX_RATE_HZ:
+            raise ConfigError(
+                f"gps.rate_hz: {self.rate_hz:g} Hz cannot be asked of the NEO-5 "
+                f"(gps.configure_receiver = true): it navigates at most at "
+                f"{NEO5_MAX_RATE_HZ:g} Hz"
+            )
+
+
+NEO5_MAX_RATE_HZ = 4.0
+"""The u-blox NEO-5's fastest navigation rate (CFG-RATE 250 ms)."""
 
 
 @dataclass(frozen=True)
@@ -501,10 +517,12 @@ scenario, which is not read yet when the configuration is."""
 
 def _gps_rate(cfg: Config) -> tuple[float, str]:
     """The rate (Hz) the fixes arrive at, and where it comes from (for the message): with a
-    sim:// GPS ``[sim] gps_rate_hz`` (unset: the scenario's, taken at
-    :data:`SIM_GPS_SLOWEST_HZ`), else ``[gps] rate_hz`` (what the gpsd port's DEVICE reports
-    too; a replay:// file plays at its own times, and is checked against it all the same)."""
-    if not cfg.gps.url.strip().lower().startswith("sim:"):
+    sim:// GPS not configured by the daemon ``[sim] gps_rate_hz`` (unset: the scenario's,
+    taken at :data:`SIM_GPS_SLOWEST_HZ`), else ``[gps] rate_hz`` (what the gpsd port's
+    DEVICE reports too; a replay:// file plays at its own times, and is checked against it
+    all the same)."""
+    if cfg.gps.configure_receiver or not cfg.gps.url.strip().lower().startswith("sim:"):
+        # (a simulated receiver takes CFG-RATE as the real one: sim_backend.hil)
         return cfg.gps.rate_hz, f"gps.rate_hz = {cfg.gps.rate_hz:g} Hz"
     if cfg.sim.gps_rate_hz is None:
         return SIM_GPS_SLOWEST_HZ, (
