@@ -121,6 +121,24 @@ A NEO-5's slow error is a few metres (10 m at worst in the open); a reference in
 datum (ED50 vs WGS-84: 100-200 m in Europe), a slip in the third decimal (111 m) or swapped
 latitude and longitude are far beyond it, and would be written as an ASE of that size."""
 
+MIN_MATCHED_FRACTION = 0.5
+"""Smallest share of a drive's fixes that its reference must cover (a time within it, no
+gap over ``max_gap_s``). A drive's own reference covers it whole (a simulated run and its
+``truth.csv``: 233 of 234 fixes, the first fix coming before the reference's second epoch;
+the urban drive against RTK: 550 of 550); another run's reference covers only the span the
+two share (a zigzag drive against the default mission's truth.csv: 72 of 234, 31 %), and
+its positions there are of another path."""
+
+MAX_DRIVE_MEDIAN_ERROR_M = 20.0
+"""Largest median horizontal distance (m, at HDOP 1) of a drive's matched fixes from their
+reference. The same bound as a static recording's spread (:data:`MAX_STATIC_SPREAD_M`): a
+median of 20 m is a per-axis error of 17 m, which no receiver shows against its own
+reference, even in a street canyon (the urban drive, single-point fixes against RTK: median
+2.9 m, its worst 5 % beyond 27 m); the median, so a stretch of multipath does not count. A
+drive matched against another run's reference reads its distance from that other path:
+tens of metres (a zigzag drive against a standing robot's truth.csv: written as an LCE of
+78 m before the check), which would be written as the LCE."""
+
 
 @dataclass(frozen=True)
 class Estimate:
@@ -798,6 +816,7 @@ def drives_lce_map(
     parts, missed, tracks = [], 0, []
     for fixes, ref in drives:
         m, miss = match_reference(fixes, ref, plane, max_gap_s=max_gap_s)
+        _check_matched(m, miss, fixes, ref)
         parts.append(m)
         missed += miss
         x, y = plane.to_xy(ref.lat_deg, ref.lon_deg)
@@ -816,6 +835,36 @@ def drives_lce_map(
         visit_gap_s=visit_gap_s,
     )
     return replace(lm, tracks=tuple(tracks))
+
+
+def _check_matched(m: Matched, missed: int, fixes: FixSeries, ref: FixSeries) -> None:
+    """ConfigError when a drive does not fit its reference: too few of its fixes matched
+    (:data:`MIN_MATCHED_FRACTION`) or a median error no receiver shows against its own
+    reference (:data:`MAX_DRIVE_MEDIAN_ERROR_M`). Either is another run's reference (or a
+    clock that does not meet it), whose distances would be written as an LCE of tens of
+    metres that loads and makes the estimator distrust every fix."""
+    what = f"drive {fixes.source or '(fixes)'} vs reference {ref.source or '(reference)'}"
+    total = len(m) + missed
+    if len(m) == 0:
+        raise ConfigError(
+            f"{what}: no fix could be matched with the reference (times, clocks? the drive's "
+            f"fixes span t_s {fixes.t_s[0]:.1f}-{fixes.t_s[-1]:.1f}, the reference's "
+            f"{ref.t_s[0]:.1f}-{ref.t_s[-1]:.1f})"
+        )
+    if len(m) < MIN_MATCHED_FRACTION * total:
+        raise ConfigError(
+            f"{what}: only {len(m)} of {total} fixes ({100.0 * len(m) / total:.0f} %) fall "
+            f"within the reference's times (refused below {100 * MIN_MATCHED_FRACTION:.0f} %): "
+            "the reference of another run, or clocks that do not meet?"
+        )
+    med = float(np.median(np.hypot(m.err_east_m, m.err_north_m) / m.hdop))
+    if med > MAX_DRIVE_MEDIAN_ERROR_M:
+        raise ConfigError(
+            f"{what}: the matched fixes lie a median {med:.1f} m (at HDOP 1) from the "
+            f"reference; a receiver against its own reference shows a few metres (refused "
+            f"above {MAX_DRIVE_MEDIAN_ERROR_M:g} m): the reference of another run, or clocks "
+            "that do not meet?"
+        )
 
 
 # ------------------------------------------------------------------------------ outputs
