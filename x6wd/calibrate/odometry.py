@@ -327,6 +327,8 @@ class Pass:
     path_m: Array  # (n, 2) reference positions while moving, in time order
     path_t_s: Array  # (n,) their times, s
     back_counts: int = 0  # the larger side's counts against its net direction (a reversal)
+    back_left_counts: int = 0  # the left side's counts against its own net direction
+    back_right_counts: int = 0  # the right side's
 
 
 def find_passes(track: Track, *, stop_s: float = 1.0) -> tuple[list[Pass], int]:
@@ -350,6 +352,7 @@ def find_passes(track: Track, *, stop_s: float = 1.0) -> tuple[list[Pass], int]:
     xy = np.column_stack([track.east_m, track.north_m])
     passes, dropped = [], 0
     for k, (i0, i1) in enumerate(groups):
+        back_l, back_r = _back_counts(lc[i0 : i1 + 1]), _back_counts(rc[i0 : i1 + 1])
         t0, t1 = float(t[i0]), float(t[i1])
         before = t[groups[k - 1][1]] + guard_s if k else -math.inf
         after = t[groups[k + 1][0]] if k + 1 < len(groups) else math.inf
@@ -366,7 +369,7 @@ def find_passes(track: Track, *, stop_s: float = 1.0) -> tuple[list[Pass], int]:
                 _point(xy[start]), _point(xy[end]),
                 int(start.sum()), int(end.sum()),
                 xy[inside], tr[inside],
-                max(_back_counts(lc[i0 : i1 + 1]), _back_counts(rc[i0 : i1 + 1])),
+                max(back_l, back_r), back_l, back_r,
             )
         )  # fmt: skip
     return passes, dropped
@@ -451,20 +454,65 @@ class StraightResult:
     k_left_m: Estimate
     k_right_m: Estimate
     found: int = 0  # passes between stops, used or not
-    returned: int = 0  # of the unused: the wheels turned both ways (runs merged)
+    returned: int = 0  # of the unused: a side turned both ways (runs merged, or a pivot)
+    pivoted: int = 0  # of the returned: one side only counted backwards (a pivot merged in)
+    left_out: tuple[str, ...] = ()  # why each pass was left out, naming it by its times
+
+
+BACK_NOISE_COUNTS = 10
+BACK_FRACTION = 0.002
+"""A side of a straight pass may count against its own net direction by at most
+``BACK_NOISE_COUNTS + BACK_FRACTION * |its net counts|`` (a straight pass's counts creep back
+by a count or two of noise; the simulator's by none). More is a turn in place or a reversal
+merged into the pass: a 180-degree pivot flowing into a 19 m drive with no stop between
+rolls one side back ~3 % of the pass (an outside audit: diameters 10 SEs off, track 0.163 m
+for 0.370 m, exit 0, under the 10 % the merged-runs test allowed)."""
+
+
+def _pass_name(p: Pass) -> str:
+    return f"pass {p.t0_s:.1f}-{p.t1_s:.1f} s"
+
+
+MERGED_NOTE = (
+    "a side counting backwards within a pass is a reversal or a pivot with no stop of "
+    "--stop-s between it and the drive, so the pass's ends are not one straight run apart: "
+    "stand still 4 s or more between runs, and between a pivot and the drive"
+)
+
+
+def _not_straight(p: Pass) -> str | None:
+    """Why a straight pass's counts are not those of one straight run (naming the pass by
+    its times), or None."""
+    net = {"left": abs(p.d_left_counts), "right": abs(p.d_right_counts)}
+    back = {"left": p.back_left_counts, "right": p.back_right_counts}
+    if p.back_counts > 0.1 * max(net.values()) + 10:
+        # Runs out and back with no stop of stop_s between (the motors' lag eats a short
+        # commanded stop) merge into one "pass" whose wheels turned both ways: its net
+        # length is not what they rolled (and the k terms need the rolled travel).
+        what = "runs out and back merged"
+    else:
+        sides = [s for s in back if back[s] > BACK_NOISE_COUNTS + BACK_FRACTION * net[s]]
+        if not sides:
+            return None
+        what = "a pivot merged into the drive" if len(sides) == 1 else "a turn merged in"
+    counted = ", ".join(f"{s} {back[s]} of {net[s]} net" for s in back if back[s])
+    return f"{_pass_name(p)}: counts back ({counted}): {what}"
 
 
 def straight_fit(passes: list[Pass], *, min_pass_m: float = 2.0) -> StraightResult:
-    """Wheel scale factors from straight passes (see the module docstring, step 1 and 3)."""
+    """Wheel scale factors from straight passes (see the module docstring, step 1 and 3).
+    A pass a side of which counted backwards within it (:data:`BACK_NOISE_COUNTS`,
+    :data:`BACK_FRACTION`: merged runs, a merged pivot) is left out, the reason in
+    ``left_out``."""
     rows = []
-    returned = 0
+    returned = pivoted = 0
+    left_out: list[str] = []
     for p in passes:
-        # Runs out and back with no stop of stop_s between (the motors' lag eats a short
-        # commanded stop) merge into one "pass" whose wheels turned both ways: its net
-        # length is not what they rolled (and the k terms need the rolled travel). A
-        # straight pass's counts only creep back by noise, a count or two.
-        if p.back_counts > 0.1 * max(abs(p.d_left_counts), abs(p.d_right_counts)) + 10:
+        why = _not_straight(p)
+        if why is not None:
             returned += 1
+            pivoted += "pivot" in why
+            left_out.append(why)
             continue
         length = math.dist(p.start_m, p.end_m)
         if length < min_pass_m:
@@ -472,9 +520,13 @@ def straight_fit(passes: list[Pass], *, min_pass_m: float = 2.0) -> StraightResu
         sign = 1.0 if p.d_left_counts + p.d_right_counts >= 0 else -1.0
         rows.append((sign * length, p.d_left_counts, p.d_right_counts))
     if len(rows) < MIN_PASSES:
+        shown = "; ".join(left_out[:4]) + (
+            f"; {len(left_out) - 4} more" if len(left_out) > 4 else ""
+        )
         raise ConfigError(
             f"straight track: {len(rows)} usable passes (>= {min_pass_m} m between stops); "
             f"need at least {MIN_PASSES}"
+            + (f"; {len(left_out)} left out: {shown} ({MERGED_NOTE})" if left_out else "")
         )
     lengths, cl, cr = (np.array(c, float) for c in zip(*rows, strict=True))
     sg = np.sign(lengths)
@@ -499,6 +551,8 @@ def straight_fit(passes: list[Pass], *, min_pass_m: float = 2.0) -> StraightResu
         _k_terms(r_r * r_r - r_l * r_r, dof),
         found=len(passes),
         returned=returned,
+        pivoted=pivoted,
+        left_out=tuple(left_out),
     )
 
 
@@ -681,6 +735,8 @@ class OdometryCalibration:
             + (f" (of {st.found} between stops)" if st.found > st.passes else "")
             + f"; circle: {ci.passes} "
             f"passes, {ci.turn_deg:.0f} deg in all, radius {ci.radius_m:.2f} m",
+            *(f"# left out: {why}" for why in st.left_out),
+            *([f"# ({MERGED_NOTE})"] if st.left_out else []),
             f"# reference {self.reference.summary()}",
             *(f"# {note}" for note in self.reference.notes()),
             *([f"# rough: {self.few_passes}"] if self.few_passes else []),

@@ -1,0 +1,71 @@
+"""x6wd calibrate odometry, an outside audit's round-7 findings, on the simulated vehicle and
+encoders (sim_backend.calibration_runs: true wheels 121.2 / 118.8 mm, effective track
+0.370 m, 2 cm RTK reference fixes): a pivot merged into a straight pass, bowed "straight"
+passes, an encoder counting backwards or the sides swapped."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from sim_backend.calibration_runs import CIRCLE, ORIGIN, REF_SIGMA_M, STOP, TRUE, simulate, write
+from x6wd.app import cli
+from x6wd.calibrate.odometry import OdometryCalibration, Track, calibrate
+from x6wd.core.errors import ConfigError
+
+PIVOT_S = 4.25  # a 180-degree pivot at 50/-50 % on the simulated vehicle
+OUT_AND_BACK = [(50.0, 50.0, 10.0), STOP, (-50.0, -50.0, 10.0), STOP]
+
+
+def fit(straight_script: list[tuple[float, float, float]], seed: int = 1) -> OdometryCalibration:
+    return calibrate(
+        Track.from_records(*simulate(straight_script, seed), ORIGIN),
+        Track.from_records(*simulate(CIRCLE, 2), ORIGIN),
+        counts_per_rev=TRUE.counts_per_rev,
+        ref_sigma_m=REF_SIGMA_M,
+    )
+
+
+def assert_true_within(cal: OdometryCalibration, ses: float = 3.0) -> None:
+    for key, truth in (
+        ("left_diameter_m", TRUE.left_diameter_m),
+        ("right_diameter_m", TRUE.right_diameter_m),
+        ("track_m", TRUE.effective_track_m),
+    ):
+        e = getattr(cal, key)
+        assert abs(e.value - truth) < ses * e.se, (key, e.value, e.se, truth)
+
+
+# ----------------------------------------------------------------- 1: a pivot merged in
+
+
+def test_passes_with_a_pivot_flowing_into_the_drive_are_refused_naming_them() -> None:
+    # audit r6: a 180-degree pivot at 50/-50 % straight into the drive, no stop between:
+    # diameters 10 SEs off in opposite directions, track 0.163 +- 0.018 m, exit 0
+    script = [STOP] + [(50.0, -50.0, PIVOT_S), (50.0, 50.0, 10.0), STOP] * 6
+    with pytest.raises(ConfigError) as err:
+        fit(script)
+    msg = str(err.value)
+    assert "straight track: 0 usable passes" in msg
+    assert "6 left out: pass 4." in msg and "a pivot merged into the drive" in msg
+    assert "right " in msg and "between a pivot and the drive" in msg
+
+
+def test_pivot_passes_among_good_ones_are_left_out_and_named_in_the_fragment(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pivot_drive = [(50.0, -50.0, PIVOT_S), (50.0, 50.0, 10.0), STOP]
+    straight = write(
+        tmp_path / "s.jsonl", *simulate([STOP, *OUT_AND_BACK * 4, *pivot_drive * 3], 1)
+    )
+    circle = write(tmp_path / "c.jsonl", *simulate(CIRCLE, 2))
+    argv = ["calibrate", "odometry", "--straight", str(straight), "--circle", str(circle)]
+    assert cli.main(argv) == 0
+    out, err = capsys.readouterr()
+    assert "# straight: 8 passes of " in out and "(of 11 between stops)" in out
+    assert out.count("# left out: pass ") == 3 and "a pivot merged into the drive" in out
+    assert "straight track: 8 of 11 passes used" in err
+    cal = fit([STOP, *OUT_AND_BACK * 4, *pivot_drive * 3])
+    assert cal.straight.pivoted == 3
+    assert_true_within(cal)
