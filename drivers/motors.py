@@ -576,7 +576,11 @@ class SerialMotorLink:
                     log.debug("motor link I/O error: %s", exc)
                     text = f"{body.split()[0]}: port error: {exc}"
                     t_err = self._clock()
-                    if is_transient(root_oserror(exc)):
+                    gone = self._node_gone() if is_transient(root_oserror(exc)) else None
+                    if gone is not None:
+                        # unplugged: no retry, and the dead fd must not hold the tty minor
+                        text += f" ({gone})"
+                    elif is_transient(root_oserror(exc)):
                         self._transient_run += 1
                         if self._transient_t0 is None:
                             self._transient_t0 = t_err
@@ -638,6 +642,29 @@ class SerialMotorLink:
                     self._drop_port()
             self._track_failure()
             return None
+
+    def _node_gone(self) -> str | None:
+        """After a transient error (EIO): why the port's device node is no longer the one
+        open (gone: a USB adapter unplugged, a pty closed; replaced: the path names another
+        device now, a re-enumerated adapter under a ``/dev/serial/by-id`` name), or None
+        while it is, or when the port has no path and descriptor to compare."""
+        path = getattr(self.port, "port", None)
+        fileno = getattr(self.port, "fileno", None)
+        if not isinstance(path, str) or not path.startswith("/") or not callable(fileno):
+            return None  # socket://, a port object without a node: EIO stays transient
+        try:
+            rdev = os.fstat(fileno()).st_rdev
+        except Exception:
+            return None
+        try:
+            now = os.stat(path).st_rdev
+        except FileNotFoundError:
+            return f"its device node {path} is gone: unplugged"
+        except OSError:
+            return None
+        if now != rdev:
+            return f"its device node {path} now names another device: replaced"
+        return None
 
     def _drop_port(self) -> None:
         """Close the broken port; the next command after the backoff reopens it. What it has

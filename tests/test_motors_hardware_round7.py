@@ -14,6 +14,7 @@ import threading
 import time
 import tty
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 import serial
@@ -302,3 +303,76 @@ def test_a_drive_the_board_took_just_after_restarting_is_stopped_at_once() -> No
     finally:
         link.close()
         pb.close()
+
+
+# --- M4: a USB serial node that vanished or was replaced ------------------------------------
+
+
+class ClosingPort(serial.Serial):
+    """pyserial's port, noting when the link closes it."""
+
+    closed_at: float | None = None
+
+    def close(self) -> None:
+        if self.closed_at is None:
+            self.closed_at = time.monotonic()
+        super().close()
+
+
+@pytest.mark.integration
+def test_an_unplugged_adapter_is_a_broken_port_at_the_first_error() -> None:
+    # review5 unplug.py: the dead fd was held 0.548 s (EIO counted as transient), keeping
+    # the tty minor, so a re-plugged adapter came back under another name
+    pb = Pty()
+    port = ClosingPort(pb.name, 115200, timeout=0.02)
+    opens: list[float] = []
+
+    def reopen() -> serial.Serial:
+        opens.append(time.monotonic())
+        raise OSError(2, f"No such file or directory: {pb.name}")
+
+    link = SerialMotorLink(port, ack_timeout_s=0.2, reopen=reopen)
+    try:
+        assert link.drive(50, 50)
+        pb.close()  # the far end and the node are gone
+        assert not os.path.exists(pb.name)
+        assert not link.drive(50, 50)  # the first command after the unplug
+        assert port.closed_at is not None, "the dead port is still held open"
+        assert not link.healthy
+        assert "gone" in link.health.last_error, link.health.last_error
+    finally:
+        link.close()
+
+
+@pytest.mark.integration
+def test_a_by_id_path_that_now_names_another_node_is_reopened_at_once(tmp_path: Path) -> None:
+    by_id = tmp_path / "usb-x6wd-motor-board-if00"  # as /dev/serial/by-id/... is
+    first = Pty()
+    by_id.symlink_to(first.name)
+    port = ClosingPort(str(by_id), 115200, timeout=0.02)
+    second: list[Pty] = []
+    link = SerialMotorLink(
+        port,
+        ack_timeout_s=0.2,
+        reopen=lambda: serial.Serial(str(by_id), 115200, timeout=0.02),
+        reopen_initial_s=0.01,
+    )
+    try:
+        assert link.drive(20, 20)
+        # re-enumerated: the old node hangs up, the link names the new one (another minor)
+        second.append(Pty())
+        by_id.unlink()
+        by_id.symlink_to(second[0].name)
+        first.halt()
+        os.close(first.master)
+        assert not link.drive(20, 20)
+        assert port.closed_at is not None
+        assert "replaced" in link.health.last_error or "gone" in link.health.last_error
+        assert wait_for(lambda: link.drive(30, 30))
+        assert second[0].state() == (30, 30) and link.counters.reopens == 1
+    finally:
+        link.close()
+        with contextlib.suppress(OSError):
+            os.close(first.slave)
+        for p in second:
+            p.close()
