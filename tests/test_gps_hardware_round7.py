@@ -419,6 +419,7 @@ def test_the_simulated_receiver_takes_cfg_rate_in_hil(tmp_path: Path, run_daemon
             lambda: (s := _gps_receiver(c))["measured_rate_hz"] is not None and s, 10, "rate"
         )
         assert 3.5 < st["measured_rate_hz"] < 4.5 and "slow" not in st, st
+        assert r.daemon.gpsd is not None and r.daemon.gpsd.cycle_s == 0.25  # gpsd's DEVICE
     assert r.stop() == 0
     lines = [line for _, line in list(world.gps_wire)[-40:]]
     assert not [ln for ln in lines if ln[3:6] in (b"VTG", b"GLL")]

@@ -1328,7 +1328,10 @@ class Daemon:
             world = None
             if registry.parse_url(cfg.url, "gps").scheme == "sim":
                 world = self.devices.backend("sim")
-            self._net_call(self.gpsd.set_device, *_gps_device(cfg.url, cfg.rate_hz, world))
+            path, bps, cycle_s = _gps_device(cfg.url, cfg.rate_hz, world)
+            if cfg.configure_receiver and world is not None:
+                cycle_s = 1.0 / cfg.rate_hz  # what the simulated receiver is set to (CFG-RATE)
+            self._net_call(self.gpsd.set_device, path, bps, cycle_s)
         return port
 
     def _start_readers(self) -> None:
