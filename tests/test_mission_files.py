@@ -307,8 +307,8 @@ def test_the_format_comes_from_the_extension(tmp_path: Path) -> None:
     assert load_file(csv_named_txt, "csv") == [(51.0, -1.0)]  # an explicit format wins
     plan = tmp_path / "m.plan"
     plan.write_text("{}")
-    with pytest.raises(ParseError, match=r"\.plan \(JSON\) is not read: save the mission as"):
-        load_file(plan)
+    with pytest.raises(ParseError, match=r"m\.plan: not a QGroundControl plan"):
+        load_file(plan)  # read since round 7 (QGroundControl cannot save .waypoints)
     with pytest.raises(ParseError, match=r"has no extension; missions are read as \.waypoints, "):
         load_file(tmp_path / "mission")
     with pytest.raises(ParseError, match="is KML, which x6wd reads but does not write"):
@@ -317,7 +317,7 @@ def test_the_format_comes_from_the_extension(tmp_path: Path) -> None:
         load_file(tmp_path / "absent.gpx")
     with pytest.raises(ParseError, match=r"m.gpx line 1: expected at least 2 columns"):
         load_file(tmp_path / "m.gpx", "csv") if (tmp_path / "m.gpx").write_text("51\n") else None
-    assert set(PARSERS) == {"waypoints", "gpx", "csv", "kml"}
+    assert set(PARSERS) == {"waypoints", "gpx", "csv", "kml", "plan"}
 
 
 GPX_NS = 'xmlns="http://www.topografix.com/GPX/1/1"'
@@ -443,7 +443,7 @@ def test_xml_files_are_read_in_their_declared_encoding(tmp_path: Path) -> None:
 def test_the_examples_are_the_default_scenarios_mission_in_every_format() -> None:
     from sim_backend.world import load_world
 
-    assert {p.suffix for p in EXAMPLES} == {".waypoints", ".gpx", ".csv", ".kml"}
+    assert {p.suffix for p in EXAMPLES} == {".waypoints", ".gpx", ".csv", ".kml", ".plan"}
     world = load_world(ROOT / "config" / "scenarios" / "default.toml")
     truth = [tuple(map(float, p)) for p in world.waypoints_latlon()]
     for path in EXAMPLES:

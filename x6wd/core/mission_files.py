@@ -9,13 +9,15 @@ ignored: the robot drives on the ground). Parsers and writers are pure functions
   route);
 - ``.csv``: ``lat,lon`` rows, or a header naming the columns (read, write);
 - ``.kml``: KML 2.2 (Google Earth), the ``LineString`` or ``gx:Track``, else every ``Point``
-  (read).
+  (read); QGroundControl's "Save as KML" has its path start at the planned home, which is
+  skipped;
+- ``.plan``: QGroundControl's own mission file (JSON), its NAV_WAYPOINT items (read).
 
 A GPX file with two routes (or tracks) with points, or a KML file with two paths or an area,
 is refused naming them: x6wd drives one path, and never silently drops part of a file (what
 it reads but does not drive is named in the result's :attr:`Mission.notes`). GPX and
 KML files are read in the encoding their XML declaration or byte-order mark names (UTF-8 if
-none); ``.waypoints`` and ``.csv`` files are UTF-8.
+none); ``.waypoints``, ``.csv`` and ``.plan`` files are UTF-8.
 
 Also the command-line form ``LAT,LON`` (:func:`parse_args`) and the protocol's JSON pairs
 (:func:`from_pairs`).
@@ -26,6 +28,7 @@ from __future__ import annotations
 import codecs
 import csv
 import io
+import json
 import math
 import re
 import xml.etree.ElementTree as ET
@@ -562,6 +565,131 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
     return _check_count(out, source, home, notes)
 
 
+# -- QGroundControl .plan (JSON) ----------------------------------------------------------------
+# {"fileType": "Plan", "mission": {"plannedHomePosition": [lat, lon, alt], "items": [
+#   {"type": "SimpleItem", "command": 16, "frame": 3, "autoContinue": true,
+#    "params": [hold, accept radius, pass radius, yaw, lat, lon, alt], ...},
+#   {"type": "ComplexItem", "complexItemType": "survey", ...}, ...]}, "geoFence": ..., ...}
+# (QGroundControl's mission version 2; version 1 gave a SimpleItem "coordinate": [lat, lon,
+# alt] and four params). QGroundControl cannot save .waypoints (mavlink/qgroundcontrol#8097).
+
+
+def parse_plan(text: str, source: str = "QGC plan") -> Mission:
+    """Waypoints from a QGroundControl ``.plan`` file: the NAV_WAYPOINT (16) SimpleItems of
+    its mission, in order. ``plannedHomePosition`` is where the vehicle was when planned, not a
+    place to drive to (as a ``.waypoints`` file's home row): kept as the result's ``home``.
+
+    The rules are the ``.waypoints`` reader's (:func:`parse_wpl`): any other command (takeoff,
+    loiter, jump, change speed ...) is refused naming the item, so is a hold time (params[0]
+    > 0), ``autoContinue`` false or a frame that is not latitude/longitude; an acceptance
+    radius (params[1]) is read with a note. A ComplexItem (survey, corridor scan, structure
+    scan ...) is refused naming it: its path is computed by QGroundControl from a polygon and
+    is not in the file as waypoints. The geofence and rally points are not part of the path:
+    a note names them when the file has any."""
+    try:
+        doc = json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise ParseError(f"{source}: not valid JSON: {exc}") from None
+    if not isinstance(doc, dict) or doc.get("fileType") != "Plan":
+        got = doc.get("fileType") if isinstance(doc, dict) else type(doc).__name__
+        raise ParseError(
+            f'{source}: not a QGroundControl plan (expected "fileType": "Plan", got {got!r})'
+        )
+    mission = doc.get("mission")
+    if not isinstance(mission, dict) or not isinstance(mission.get("items"), list):
+        raise ParseError(f'{source}: no "mission" with a list of "items"')
+    notes: list[str] = []
+    home: Waypoint | None = None
+    planned = mission.get("plannedHomePosition")
+    if planned is not None:
+        try:  # kept only to be written back (.waypoints); never driven to
+            if not isinstance(planned, list) or len(planned) < 2:
+                raise ParseError(f"{source} plannedHomePosition: expected [lat, lon, alt]")
+            home = make_waypoint(planned[0], planned[1], f"{source} plannedHomePosition")
+        except ParseError as exc:
+            notes.append(f"{exc}: the planned home is not kept")
+    out: list[Waypoint] = []
+    for i, item in enumerate(mission["items"]):
+        where = f"{source} mission item {i + 1}"
+        if not isinstance(item, dict):
+            raise ParseError(f"{where}: expected an object, got {type(item).__name__}")
+        kind = item.get("type")
+        if kind == "ComplexItem":
+            what = item.get("complexItemType", "unknown")
+            raise ParseError(
+                f"{where}: a ComplexItem ({what!s:.40}) is not supported: QGroundControl computes "
+                "its path from a polygon, and x6wd drives waypoints only; draw the path as "
+                "waypoints, or delete the item"
+            )
+        if kind != "SimpleItem":
+            raise ParseError(f'{where}: type {kind!r}, expected "SimpleItem"')
+        command, frame = item.get("command"), item.get("frame")
+        if not isinstance(command, int) or isinstance(command, bool):
+            raise ParseError(f"{where}: command is not an integer: {command!r}")
+        if command != MAV_CMD_NAV_WAYPOINT:
+            name = _MAV_CMD_NAMES.get(command, "unknown")
+            raise ParseError(
+                f"{where}: command {command} ({name}) is not supported: x6wd missions are "
+                f"NAV_WAYPOINT ({MAV_CMD_NAV_WAYPOINT}) items only"
+            )
+        if frame not in _GLOBAL_FRAMES or isinstance(frame, bool):
+            raise ParseError(
+                f"{where}: frame {frame!r} is not a global latitude/longitude frame "
+                f"(valid: {', '.join(f'{k} {v}' for k, v in _GLOBAL_FRAMES.items())})"
+            )
+        params = item.get("params")
+        if not isinstance(params, list) or len(params) not in (4, 7):
+            raise ParseError(f"{where}: params: expected a list of 7 values, got {params!r:.60}")
+        hold_s, accept_m = params[0], params[1]
+        for name, v in (("params[0] (hold time)", hold_s), ("params[1] (acceptance radius)",
+                                                            accept_m)):  # fmt: skip
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
+                raise ParseError(f"{where}: {name} is not a number: {v!r}")
+        if hold_s is not None and hold_s > 0:
+            raise ParseError(
+                f"{where}: hold time (params[0]) {hold_s} s: x6wd does not hold at waypoints "
+                "(it drives on when it arrives); set Hold to 0 in QGroundControl"
+            )
+        if item.get("autoContinue", True) is not True:
+            raise ParseError(
+                f"{where}: autoContinue {item.get('autoContinue')!r}: false stops the mission "
+                "at this waypoint and x6wd does not hold at waypoints (it drives on); set it true"
+            )
+        if len(params) == 7:
+            lat, lon = params[4], params[5]
+        else:  # mission version 1
+            coord = item.get("coordinate")
+            if not isinstance(coord, list) or len(coord) < 2:
+                raise ParseError(f"{where}: no position (params[4], params[5] or coordinate)")
+            lat, lon = coord[0], coord[1]
+        wp = make_waypoint(lat, lon, where)
+        if wp.lat_deg == 0.0 and wp.lon_deg == 0.0:
+            raise ParseError(
+                f"{where}: latitude and longitude are 0, 0 (ArduPilot's 'current position'): "
+                "give the waypoint's real position"
+            )
+        if accept_m is not None and accept_m != 0 and math.isfinite(accept_m):
+            notes.append(
+                f"{where}: acceptance radius (params[1]) {accept_m} m not used: x6wd arrives by "
+                "its own window from the config ([navigation] delta_x_m, delta_y_m)"
+            )
+        out.append(wp)
+        if len(out) > MAX_WAYPOINTS:
+            break
+    other = []
+    fence = doc.get("geoFence")
+    if isinstance(fence, dict) and (fence.get("polygons") or fence.get("circles")):
+        other.append("a geofence")
+    rally = doc.get("rallyPoints")
+    if isinstance(rally, dict) and rally.get("points"):
+        other.append(f"{len(rally['points'])} rally points")
+    if other:
+        notes.append(f"{source}: {' and '.join(other)} not used: x6wd drives the mission only")
+    if not out:
+        raise ParseError(f"{source}: no waypoints (the mission has no items)")
+    return _check_count(out, source, home, notes)
+
+
 def _num(v: float) -> str:
     """A coordinate as the shortest decimal that reads back to the same float, in fixed
     notation (``0.00001``, not ``1e-05``: some readers of these formats take no exponent)."""
@@ -724,7 +852,16 @@ def parse_kml(text: str, source: str = "KML") -> Mission:
                 f"{source}: the path {lines[0][0]} {lines[0][1]} is driven; beside it, not driven: "
                 f"{len(points)} <Point> ({names[:200]}) (a path wins over points)"
             )
-        return _check_count(lines[0][2], source, notes=notes)
+        path = lines[0][2]
+        if _is_qgc_plan_kml(root) and len(path) >= 2:
+            # QGroundControl's "Save as KML" starts its flight path at the planned home (its
+            # mission item 0): where the vehicle was, not a waypoint (as a .waypoints home row)
+            notes.append(
+                f"{source}: QGroundControl's plan KML: its path's first point "
+                f"({path[0].lat_deg}, {path[0].lon_deg}) is the planned home, not driven"
+            )
+            return _check_count(path[1:], source, home=path[0], notes=notes)
+        return _check_count(path, source, notes=notes)
     out: list[Waypoint] = []
     for i, pm, point in points:
         pts = coords(label(i, pm), point)
@@ -741,6 +878,16 @@ def parse_kml(text: str, source: str = "KML") -> Mission:
     return _check_count(out, source)
 
 
+QGC_KML_NAME = "QGroundControl Plan KML"
+"""The ``<Document><name>`` of QGroundControl's "Save as KML" (KMLPlanDomDocument)."""
+
+
+def _is_qgc_plan_kml(root: ET.Element) -> bool:
+    doc = next((c for c in root if _local(c.tag) == "Document"), None)
+    name = next((c.text for c in doc if _local(c.tag) == "name"), None) if doc is not None else None
+    return (name or "").strip() == QGC_KML_NAME
+
+
 def _has_coordinates(geom: ET.Element) -> bool:
     return any(_local(c.tag) == "coordinates" and (c.text or "").strip() for c in geom.iter())
 
@@ -752,6 +899,7 @@ PARSERS: dict[str, Callable[[str, str], Mission]] = {
     "gpx": parse_gpx,
     "csv": parse_csv,
     "kml": parse_kml,
+    "plan": parse_plan,
 }
 """format name (= file extension) -> parser"""
 WRITERS: dict[str, Callable[[Sequence[Waypoint]], str]] = {
@@ -761,8 +909,6 @@ WRITERS: dict[str, Callable[[Sequence[Waypoint]], str]] = {
 }
 """format name (= file extension) -> writer"""
 _HINTS = {
-    "plan": "QGroundControl's .plan (JSON) is not read: save the mission as .waypoints "
-    "(File > Save As, QGC WPL 110)",
     "kmz": "unzip it (its doc.kml) and load the .kml",
     "txt": "if it is a Mission Planner file (first line 'QGC WPL 110'), rename it to .waypoints",
 }
@@ -787,12 +933,15 @@ def format_of(path: str | Path, fmt: str | None = None, *, writing: bool = False
 
 
 def parse_content(text: str, fmt: str | None = None, source: str = "mission") -> Mission:
-    """Parse mission text as ``fmt`` (``waypoints``, ``gpx``, ``csv``, ``kml``); None guesses
-    from the content (a ``QGC WPL`` header, ``<kml``, other XML as GPX, else CSV)."""
+    """Parse mission text as ``fmt`` (``waypoints``, ``gpx``, ``csv``, ``kml``, ``plan``); None
+    guesses from the content (a ``QGC WPL`` header, ``<kml``, other XML as GPX, ``{`` a
+    QGroundControl plan, else CSV)."""
     if fmt is None:
-        head = text.lstrip()[:4096]
+        head = text.lstrip("\ufeff \t\r\n")[:4096]
         if head.startswith("QGC WPL"):
             fmt = "waypoints"
+        elif head.startswith("{"):
+            fmt = "plan"
         elif head.startswith("<"):
             fmt = "kml" if re.search(r"<(\w+:)?kml[\s>]", head) else "gpx"
         else:
