@@ -69,3 +69,24 @@ def test_pivot_passes_among_good_ones_are_left_out_and_named_in_the_fragment(
     cal = fit([STOP, *OUT_AND_BACK * 4, *pivot_drive * 3])
     assert cal.straight.pivoted == 3
     assert_true_within(cal)
+
+
+# ----------------------------------------------------------------- 4: bowed "straight" passes
+
+
+def test_bowed_straight_passes_give_the_true_wheels_and_track() -> None:
+    # audit r2: 50/45 % bows 0.9 m over 17.7 m (23 deg between the ends): the chord taken as
+    # the rolled length, and both sides as rolling it, gave left 0.12006 +- 0.00008 (14 SEs
+    # low) and track 0.344 m (truth 0.370)
+    cal = fit([STOP] + [(50.0, 45.0, 10.0), STOP, (-50.0, -45.0, 10.0), STOP] * 6)
+    assert_true_within(cal)
+    assert cal.straight.passes == 12 and 20 < cal.straight.turn_deg < 26
+
+
+def test_straight_passes_turning_more_than_30_deg_are_refused_naming_them() -> None:
+    # 50/40 %: 45 deg between the ends is no straight drive
+    with pytest.raises(ConfigError) as err:
+        fit([STOP] + [(50.0, 40.0, 10.0), STOP, (-50.0, -40.0, 10.0), STOP] * 2)
+    msg = str(err.value)
+    assert "0 usable passes" in msg and "4 left out: pass 4.0-" in msg
+    assert "its reference path turned +4" in msg and "more than 30 deg" in msg

@@ -19,9 +19,11 @@ over the pass. The protocol the operator drives (docs in :func:`calibrate`):
 
 Estimation, with metres per count ``α = π·D / counts_per_rev``:
 
-1. Diameters (straight). Both sides roll the pass length L_i, so
-   ``α̂_l = Σ L_i / Σ c_l,i`` (the paper's ``D = L·CPR / (π·c)`` pooled over passes; the
-   ratio estimator is best when the variance grows with L). Likewise right.
+1. Diameters (straight). The sides roll the pass length L_i (along the reference path,
+   :func:`path_geometry`) ± ``B·Δψ_i/2`` for the path's heading change Δψ_i (a pass that
+   bows), so ``α̂_l = Σ (L_i + B·Δψ_i/2) / Σ c_l,i`` (the paper's ``D = L·CPR / (π·c)``
+   pooled over passes; the ratio estimator is best when the variance grows with L).
+   Likewise right, with − B·Δψ_i/2. B comes from step 2; the two are iterated.
 2. Effective track (circle). With the calibrated α̂: ``s_l − s_r = B·Δψ`` (clockwise), the
    true heading change Δψ from the reference: a circle fitted to the pass's fixes and the
    unwrapped angle swept about its centre. ``B̂ = Σ (s_l − s_r) / Σ Δψ`` — the paper's
@@ -457,6 +459,8 @@ class StraightResult:
     returned: int = 0  # of the unused: a side turned both ways (runs merged, or a pivot)
     pivoted: int = 0  # of the returned: one side only counted backwards (a pivot merged in)
     left_out: tuple[str, ...] = ()  # why each pass was left out, naming it by its times
+    turned: int = 0  # of the unused: the reference path turned too far (not straight)
+    turn_deg: float = 0.0  # the largest heading change of a pass used, deg
 
 
 BACK_NOISE_COUNTS = 10
@@ -499,14 +503,56 @@ def _not_straight(p: Pass) -> str | None:
     return f"{_pass_name(p)}: counts back ({counted}): {what}"
 
 
-def straight_fit(passes: list[Pass], *, min_pass_m: float = 2.0) -> StraightResult:
+MAX_STRAIGHT_TURN_DEG = 30.0
+"""A straight pass whose reference path turns more than this between its ends (deg) is left
+out: the bow is taken into account (:func:`path_geometry`, the effective track), but a
+larger turn is no straight drive, and its sides' travel rests on the track's error."""
+
+TURN_NOTE = (
+    f"a pass whose reference path turns more than {MAX_STRAIGHT_TURN_DEG:g} deg between its "
+    "ends is no straight drive"
+)
+
+
+def path_geometry(p: Pass) -> tuple[float, float]:
+    """The pass's length along its reference path (m) and the path's heading change between
+    its ends (rad, clockwise), from a polynomial (degree <= 4) fitted to the lateral offset
+    of the reference points from the chord between the pass's averaged ends (those weighted
+    by their fix counts): a bowed "straight" pass rolled the arc, not the chord (an outside
+    audit: 0.9 m of bow over 17.7 m made the left diameter 14 SEs low), and its sides rolled
+    ``± B·Δψ/2`` apart. Fitting smooths the reference's noise, which summed step by step
+    would lengthen every path (2 cm fixes 0.4 m apart: +0.3 %)."""
+    a, b = np.asarray(p.start_m, float), np.asarray(p.end_m, float)
+    chord = float(np.hypot(*(b - a)))
+    if chord == 0.0 or len(p.path_m) < 2:
+        return chord, 0.0
+    along = (b - a) / chord
+    left = np.array([-along[1], along[0]])
+    pts = np.vstack([a, np.asarray(p.path_m, float).reshape(-1, 2), b]) - a
+    u, v = pts @ along, pts @ left
+    w = np.ones(len(u))
+    w[0], w[-1] = math.sqrt(p.n_start), math.sqrt(p.n_end)
+    coef = np.polynomial.polynomial.polyfit(u, v, min(4, len(u) - 2), w=w)
+    slope = np.polynomial.polynomial.polyval(
+        np.linspace(0.0, chord, 401), np.polynomial.polynomial.polyder(coef)
+    )
+    length = float(np.trapezoid(np.sqrt(1.0 + slope * slope), dx=chord / 400))
+    return length, -float(math.atan(slope[-1]) - math.atan(slope[0]))
+
+
+def straight_fit(
+    passes: list[Pass], *, min_pass_m: float = 2.0, track_m: Estimate | None = None
+) -> StraightResult:
     """Wheel scale factors from straight passes (see the module docstring, step 1 and 3).
     A pass a side of which counted backwards within it (:data:`BACK_NOISE_COUNTS`,
-    :data:`BACK_FRACTION`: merged runs, a merged pivot) is left out, the reason in
-    ``left_out``."""
+    :data:`BACK_FRACTION`: merged runs, a merged pivot), or whose reference path turned more
+    than :data:`MAX_STRAIGHT_TURN_DEG`, is left out, the reason in ``left_out``. Each side
+    rolled the path's length ± ``track_m``·Δψ/2 (:func:`path_geometry`; 0 without a track:
+    :func:`calibrate` refits with the circle's)."""
     rows = []
-    returned = pivoted = 0
+    returned = pivoted = turned = 0
     left_out: list[str] = []
+    b_m, b_se = (track_m.value, track_m.se) if track_m is not None else (0.0, 0.0)
     for p in passes:
         why = _not_straight(p)
         if why is not None:
@@ -514,33 +560,45 @@ def straight_fit(passes: list[Pass], *, min_pass_m: float = 2.0) -> StraightResu
             pivoted += "pivot" in why
             left_out.append(why)
             continue
-        length = math.dist(p.start_m, p.end_m)
-        if length < min_pass_m:
+        if math.dist(p.start_m, p.end_m) < min_pass_m:
+            continue
+        length, turn = path_geometry(p)
+        if abs(turn) > math.radians(MAX_STRAIGHT_TURN_DEG):
+            turned += 1
+            left_out.append(
+                f"{_pass_name(p)}: its reference path turned {math.degrees(turn):+.0f} deg "
+                "(clockwise) between its ends"
+            )
             continue
         sign = 1.0 if p.d_left_counts + p.d_right_counts >= 0 else -1.0
-        rows.append((sign * length, p.d_left_counts, p.d_right_counts))
+        rows.append((sign * length, turn, p.d_left_counts, p.d_right_counts))
     if len(rows) < MIN_PASSES:
         shown = "; ".join(left_out[:4]) + (
             f"; {len(left_out) - 4} more" if len(left_out) > 4 else ""
         )
+        notes = [MERGED_NOTE] * bool(returned) + [TURN_NOTE] * bool(turned)
         raise ConfigError(
             f"straight track: {len(rows)} usable passes (>= {min_pass_m} m between stops); "
             f"need at least {MIN_PASSES}"
-            + (f"; {len(left_out)} left out: {shown} ({MERGED_NOTE})" if left_out else "")
+            + (f"; {len(left_out)} left out: {shown} ({'; '.join(notes)})" if left_out else "")
         )
-    lengths, cl, cr = (np.array(c, float) for c in zip(*rows, strict=True))
+    lengths, psi, cl, cr = (np.array(c, float) for c in zip(*rows, strict=True))
     sg = np.sign(lengths)
-    alpha_l = float((sg * lengths).sum() / (sg * cl).sum())
-    alpha_r = float((sg * lengths).sum() / (sg * cr).sum())
-    r_l, r_r = alpha_l * cl - lengths, alpha_r * cr - lengths
+    den_l, den_r = float((sg * cl).sum()), float((sg * cr).sum())
+    half_turn = 0.5 * float((sg * psi).sum())  # Σ sg·Δψ/2: the sides' travel apart per B
+    alpha_l = float((sg * lengths).sum() + b_m * half_turn) / den_l
+    alpha_r = float((sg * lengths).sum() - b_m * half_turn) / den_r
+    r_l = alpha_l * cl - lengths - 0.5 * b_m * psi
+    r_r = alpha_r * cr - lengths + 0.5 * b_m * psi
     total = float(np.abs(lengths).sum())
     dof = total - float((lengths * lengths).sum()) / total  # E Σr² = k·dof for the ratio fit
     # Σ Var_i from the residuals (reference error included), per side and shared
     s_ll, s_rr, s_lr = (float(v) * total / dof for v in (r_l @ r_l, r_r @ r_r, r_l @ r_r))
-    den_l, den_r = float((sg * cl).sum()), float((sg * cr).sum())
     cov = np.array(
         [[s_ll / den_l**2, s_lr / (den_l * den_r)], [s_lr / (den_l * den_r), s_rr / den_r**2]]
     )
+    g = np.array([half_turn / den_l, -half_turn / den_r])  # d alpha / d B
+    cov = cov + np.outer(g, g) * b_se**2  # the track's error, the same in every pass
     return StraightResult(
         alpha_l,
         alpha_r,
@@ -553,6 +611,8 @@ def straight_fit(passes: list[Pass], *, min_pass_m: float = 2.0) -> StraightResu
         returned=returned,
         pivoted=pivoted,
         left_out=tuple(left_out),
+        turned=turned,
+        turn_deg=math.degrees(float(np.abs(psi).max())),
     )
 
 
@@ -736,7 +796,8 @@ class OdometryCalibration:
             + f"; circle: {ci.passes} "
             f"passes, {ci.turn_deg:.0f} deg in all, radius {ci.radius_m:.2f} m",
             *(f"# left out: {why}" for why in st.left_out),
-            *([f"# ({MERGED_NOTE})"] if st.left_out else []),
+            *([f"# ({MERGED_NOTE})"] if st.returned else []),
+            *([f"# ({TURN_NOTE})"] if st.turned else []),
             f"# reference {self.reference.summary()}",
             *(f"# {note}" for note in self.reference.notes()),
             *([f"# rough: {self.few_passes}"] if self.few_passes else []),
@@ -793,6 +854,9 @@ def calibrate(
         ci = circle_fit(c_passes, st, ref_sigma_m=reference.sigma_m)
     except ConfigError as exc:
         raise ConfigError(f"{exc}{_left_out(c_dropped)}") from None
+    for _ in range(3):  # the straight's bows need the track, the track the wheels: iterate
+        st = straight_fit(s_passes, min_pass_m=min_pass_m, track_m=ci.track_m)
+        ci = circle_fit(c_passes, st, ref_sigma_m=reference.sigma_m)
     to_d = counts_per_rev / math.pi  # diameter per (metres per count)
     pick_l = _pick_k(st.k_left_m, ci.k_left_m)
     pick_r = _pick_k(st.k_right_m, ci.k_right_m)
