@@ -5,11 +5,21 @@ passes, an encoder counting backwards or the sides swapped."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
 
-from sim_backend.calibration_runs import CIRCLE, ORIGIN, REF_SIGMA_M, STOP, TRUE, simulate, write
+from sim_backend.calibration_runs import (
+    CIRCLE,
+    ORIGIN,
+    REF_SIGMA_M,
+    STOP,
+    STRAIGHT,
+    TRUE,
+    simulate,
+    write,
+)
 from x6wd.app import cli
 from x6wd.calibrate.odometry import OdometryCalibration, Track, calibrate
 from x6wd.core.errors import ConfigError
@@ -90,3 +100,51 @@ def test_straight_passes_turning_more_than_30_deg_are_refused_naming_them() -> N
     msg = str(err.value)
     assert "0 usable passes" in msg and "4 left out: pass 4.0-" in msg
     assert "its reference path turned +4" in msg and "more than 30 deg" in msg
+
+
+# ----------------------------------------------------------------- 6: encoder direction
+
+
+@pytest.fixture(scope="module")
+def documented_runs() -> tuple[Track, Track]:
+    return (
+        Track.from_records(*simulate(STRAIGHT, 1), ORIGIN),
+        Track.from_records(*simulate(CIRCLE, 2), ORIGIN),
+    )
+
+
+def _calibrate(straight: Track, circle: Track) -> OdometryCalibration:
+    return calibrate(straight, circle, counts_per_rev=TRUE.counts_per_rev)
+
+
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_an_encoder_counting_backwards_is_named(
+    documented_runs: tuple[Track, Track], side: str
+) -> None:
+    # audit r4: the right encoder reversed gave "odometry.left_diameter_m: must be >= 0.01,
+    # got -0.1213", exit 2, naming the wrong wheel
+    straight, circle = (
+        dataclasses.replace(t, **{f"{side}_counts": -getattr(t, f"{side}_counts")})
+        for t in documented_runs
+    )
+    with pytest.raises(ConfigError) as err:
+        _calibrate(straight, circle)
+    msg = str(err.value)
+    assert msg.startswith(f"the {side} encoder counts backwards: on 12 of 12 straight passes")
+    assert "opposite signs (pass 4.0-" in msg and "swap its A and B channel wires" in msg
+    assert "circle gives a track of 0.37" in msg
+
+
+def test_swapped_sides_are_named(documented_runs: tuple[Track, Track]) -> None:
+    # audit r4: swapped sides gave "odometry.track_m: must be >= 0.05, got -0.373"
+    straight, circle = (
+        dataclasses.replace(t, left_counts=t.right_counts, right_counts=t.left_counts)
+        for t in documented_runs
+    )
+    with pytest.raises(ConfigError) as err:
+        _calibrate(straight, circle)
+    msg = str(err.value)
+    assert msg.startswith("left and right swapped: the circle gives a negative effective track")
+    assert "(-0.37" in msg and "swap the two encoders' connections" in msg
+    cal = _calibrate(*documented_runs)  # the same runs wired right
+    assert_true_within(cal)

@@ -846,6 +846,7 @@ def calibrate(
     _check_overlap(circle, "circle")
     s_passes, s_dropped = find_passes(straight, stop_s=stop_s)
     c_passes, c_dropped = find_passes(circle, stop_s=stop_s)
+    _check_sides_count_alike(s_passes, straight, circle, stop_s, min_pass_m, reference.sigma_m)
     try:
         st = straight_fit(s_passes, min_pass_m=min_pass_m)
     except ConfigError as exc:
@@ -854,6 +855,15 @@ def calibrate(
         ci = circle_fit(c_passes, st, ref_sigma_m=reference.sigma_m)
     except ConfigError as exc:
         raise ConfigError(f"{exc}{_left_out(c_dropped)}") from None
+    if ci.track_m.value < 0:
+        raise ConfigError(
+            f"left and right swapped: the circle gives a negative effective track "
+            f"({ci.track_m.value:.3f} m): the side whose counts say it rolled further on the "
+            "circle is the inner one. The left encoder's counts are read as the right's and "
+            "the right's as the left's (or both encoders count backwards): swap the two "
+            "encoders' connections on the motor board (x6wd has no setting to swap or reverse "
+            "them) and record both tracks again"
+        )
     for _ in range(3):  # the straight's bows need the track, the track the wheels: iterate
         st = straight_fit(s_passes, min_pass_m=min_pass_m, track_m=ci.track_m)
         ci = circle_fit(c_passes, st, ref_sigma_m=reference.sigma_m)
@@ -872,6 +882,64 @@ def calibrate(
         reference=reference,
         dropped_passes=s_dropped + c_dropped,
     )
+
+
+def _negated(track: Track, side: str) -> Track:
+    """The track with one side's counts negated."""
+    counts = -getattr(track, f"{side}_counts")
+    return dataclasses.replace(track, **{f"{side}_counts": counts})
+
+
+def _check_sides_count_alike(
+    passes: list[Pass],
+    straight: Track,
+    circle: Track,
+    stop_s: float,
+    min_pass_m: float,
+    ref_sigma_m: float,
+) -> None:
+    """ConfigError naming the encoder that counts backwards when on most straight passes the
+    two sides counted in opposite directions (an outside audit: the right encoder reversed
+    gave "odometry.left_diameter_m: must be >= 0.01, got -0.1213", naming the wrong wheel).
+    Which side it is shows on the circle: with the reversed side's counts negated the track
+    comes out positive, with the other side's negated negative (the sides then read swapped)."""
+    used = [p for p in passes if math.dist(p.start_m, p.end_m) >= min_pass_m]
+    opposite = [
+        p
+        for p in used
+        if p.d_left_counts * p.d_right_counts < 0
+        and min(abs(p.d_left_counts), abs(p.d_right_counts))
+        > 0.5 * max(abs(p.d_left_counts), abs(p.d_right_counts))
+    ]
+    if not opposite or 2 * len(opposite) <= len(used):
+        return
+    tracks = {}
+    for side in ("right", "left"):
+        try:
+            s_p, _ = find_passes(_negated(straight, side), stop_s=stop_s)
+            c_p, _ = find_passes(_negated(circle, side), stop_s=stop_s)
+            st = straight_fit(s_p, min_pass_m=min_pass_m)
+            tracks[side] = circle_fit(c_p, st, ref_sigma_m=ref_sigma_m).track_m.value
+        except ConfigError:
+            continue
+    p = opposite[0]
+    seen = (
+        f"on {len(opposite)} of {len(used)} straight passes the left and right counts have "
+        f"opposite signs ({_pass_name(p)}: left {p.d_left_counts:+d}, right "
+        f"{p.d_right_counts:+d})"
+    )
+    fix = (
+        "swap its A and B channel wires (x6wd has no setting to reverse an encoder's count "
+        "direction) and record both tracks again"
+    )
+    reversed_side = next((s for s, b in tracks.items() if b > 0), None)
+    if reversed_side is None:
+        raise ConfigError(f"one encoder counts backwards: {seen}; {fix}")
+    other = "left" if reversed_side == "right" else "right"
+    why = f"with its counts negated the circle gives a track of {tracks[reversed_side]:.3f} m"
+    if other in tracks:
+        why += f", with the {other} side's negated {tracks[other]:.3f} m (no track)"
+    raise ConfigError(f"the {reversed_side} encoder counts backwards: {seen}; {why}; {fix}")
 
 
 def _left_out(dropped: int) -> str:
