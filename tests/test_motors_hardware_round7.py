@@ -376,3 +376,39 @@ def test_a_by_id_path_that_now_names_another_node_is_reopened_at_once(tmp_path: 
             os.close(first.slave)
         for p in second:
             p.close()
+
+
+def test_the_daemon_bounds_the_encoders_by_its_own_robot(tmp_path: Path) -> None:
+    """The distance bound that tells a board restart from motion comes from the robot's
+    configuration ([odometry], [navigation] full_speed_mps), not the generic default: a
+    small robot's restart whose counts look like a plausible step for the default (200,000
+    counts/s) is one for this robot."""
+    import dataclasses
+
+    from drivers.motors import encoder_rate_bound
+    from tests.test_daemon import Running, hil_config, wait_for
+    from tests.test_shutdown import TcpMotorBoard
+    from x6wd.app.daemon import Daemon
+
+    board = TcpMotorBoard()
+    cfg = hil_config(tmp_path)
+    cfg = dataclasses.replace(
+        cfg,
+        motors=dataclasses.replace(cfg.motors, url=f"tcp://127.0.0.1:{board.port}?watchdog_ms=500"),
+        odometry=dataclasses.replace(
+            cfg.odometry, counts_per_rev=1000, left_diameter_m=0.1, right_diameter_m=0.12
+        ),
+        navigation=dataclasses.replace(cfg.navigation, full_speed_mps=2.0),
+    )
+    r = Running(Daemon(cfg))
+    try:
+        wait_for(lambda: r.daemon.motors is not None, 10, "the motor link")
+        link = r.daemon.motors.link  # type: ignore[union-attr]
+        want = encoder_rate_bound(1000, 0.1, 2.0)
+        assert want == pytest.approx(1000 / (math.pi * 0.1) * 2.0 * 4.0)
+        assert link.encoders.max_counts_per_s == pytest.approx(want)
+    finally:
+        r.stop()
+        if r.daemon.devices is not None:
+            r.daemon.devices.close()
+        board.close()

@@ -41,6 +41,7 @@ import asyncio
 import collections
 import contextlib
 import errno
+import functools
 import gc
 import ipaddress
 import logging
@@ -1284,8 +1285,22 @@ class Daemon:
         from drivers.gps_io import GpsReader, ReceiverSetup, WeekRolloverCorrection
 
         cfg = self.config
+        from drivers.motors import encoder_rate_bound
+
+        odo = cfg.odometry
         link = await asyncio.to_thread(
-            registry.open_motors, cfg.motors.url, self.devices, watchdog_ms=cfg.motors.watchdog_ms
+            functools.partial(
+                registry.open_motors,
+                cfg.motors.url,
+                self.devices,
+                watchdog_ms=cfg.motors.watchdog_ms,
+                # a reading further than this robot's wheels can go is a board restart
+                max_counts_per_s=encoder_rate_bound(
+                    odo.counts_per_rev,
+                    min(odo.left_diameter_m, odo.right_diameter_m),
+                    cfg.navigation.full_speed_mps,
+                ),
+            )
         )
         # three keep-alives per watchdog period: the board's (the URL may set its own)
         keepalive_s = max(0.02, getattr(link, "watchdog_ms", cfg.motors.watchdog_ms) / 3000.0)
