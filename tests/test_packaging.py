@@ -181,7 +181,9 @@ import drivers.registry
 class Cmps10Bus:
     def __init__(self, bus): pass
     def read_byte_data(self, addr, reg): return 15 if reg == 0 else 64
-    def read_i2c_block_data(self, addr, reg, n): return ([3, 132, 0, 0] + [0] * 32)[:n]
+    # registers 0-5: version 15, bearing 90.0 deg (coarse 64/256 of a turn, fine 900), level
+    def read_i2c_block_data(self, addr, reg, n):
+        return ([15, 64, 3, 132, 0, 0] + [0] * 32)[reg:reg + n]
     def write_byte_data(self, addr, reg, value): pass
     def close(self): pass
 
@@ -288,6 +290,14 @@ def test_the_daemon_runs_without_scipy_matplotlib_or_dask(tmp_path: Path) -> Non
     # (setuptools' _distutils_hack is loaded by a .pth file into every process of the venv)
     core = _closure(PROJECT["dependencies"]) | {"setuptools"}
     assert distributions_of(modules) <= core, sorted(distributions_of(modules) - core)
+    # the compass on its (stand-in) bus was read: valid samples at its 90.0 deg
+    bearings = [
+        rec["data"].get("bearing_deg")
+        for path in sorted((tmp_path / "rec").glob("*.jsonl"))
+        for line in path.read_text().splitlines()
+        if (rec := json.loads(line))["type"] == "attitude" and rec["data"].get("valid")
+    ]
+    assert bearings and all(b == 90.0 for b in bearings), bearings[:5]
 
 
 def _without_extras(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
