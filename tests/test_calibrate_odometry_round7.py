@@ -81,6 +81,17 @@ def test_pivot_passes_among_good_ones_are_left_out_and_named_in_the_fragment(
     assert_true_within(cal)
 
 
+def test_passes_with_a_turn_merged_in_are_left_out_as_bending_sharply() -> None:
+    # a turn at 50/0 % for 2 s flowing into the drive: no side counts back, but the path
+    # kinks (25 deg), which a smooth fit of the path smooths over: left diameter 2.3 SEs low
+    turn_drive = [(50.0, 0.0, 2.0), (50.0, 50.0, 10.0), STOP, (-50.0, 0.0, 2.0)]
+    cal = fit([STOP, *OUT_AND_BACK * 3, *turn_drive, (-50.0, -50.0, 10.0), STOP])
+    assert cal.straight.passes == 6 and cal.straight.turned == 2
+    assert all("its reference path bends sharply (fixes 0.0" in w for w in cal.straight.left_out)
+    assert "x the reference's 0.02 m)" in cal.straight.left_out[0]
+    assert_true_within(cal)
+
+
 # ----------------------------------------------------------------- 4: bowed "straight" passes
 
 

@@ -508,45 +508,62 @@ MAX_STRAIGHT_TURN_DEG = 30.0
 out: the bow is taken into account (:func:`path_geometry`, the effective track), but a
 larger turn is no straight drive, and its sides' travel rests on the track's error."""
 
+BEND_SIGMAS = 3.0
+"""A straight pass whose reference fixes scatter about the smooth path fitted to them
+(:func:`path_geometry`) by more than this many times the reference's sigma (rms) is left
+out: its path bends sharply, a turn merged into the drive (the simulator's robot turning at
+50/0 % for 2 s into a 50/50 % drive: 4x; good passes 0.8-1.1x). Such a kink is smoothed over
+by the fit, its heading change underestimated and the diameters biased (2.3 SEs)."""
+
 TURN_NOTE = (
     f"a pass whose reference path turns more than {MAX_STRAIGHT_TURN_DEG:g} deg between its "
-    "ends is no straight drive"
+    "ends, or bends sharply (a turn merged into the drive with no stop of --stop-s between), "
+    "is no straight drive"
 )
 
 
-def path_geometry(p: Pass) -> tuple[float, float]:
-    """The pass's length along its reference path (m) and the path's heading change between
-    its ends (rad, clockwise), from a polynomial (degree <= 4) fitted to the lateral offset
-    of the reference points from the chord between the pass's averaged ends (those weighted
-    by their fix counts): a bowed "straight" pass rolled the arc, not the chord (an outside
-    audit: 0.9 m of bow over 17.7 m made the left diameter 14 SEs low), and its sides rolled
-    ``± B·Δψ/2`` apart. Fitting smooths the reference's noise, which summed step by step
-    would lengthen every path (2 cm fixes 0.4 m apart: +0.3 %)."""
+def path_geometry(p: Pass) -> tuple[float, float, float]:
+    """The pass's length along its reference path (m), the path's heading change between
+    its ends (rad, clockwise) and the rms of the moving fixes about the path (m), from a
+    polynomial (degree <= 4) fitted to the lateral offset of the reference points from the
+    chord between the pass's averaged ends (those weighted by their fix counts): a bowed
+    "straight" pass rolled the arc, not the chord (an outside audit: 0.9 m of bow over
+    17.7 m made the left diameter 14 SEs low), and its sides rolled ``± B·Δψ/2`` apart.
+    Fitting smooths the reference's noise, which summed step by step would lengthen every
+    path (2 cm fixes 0.4 m apart: +0.3 %)."""
     a, b = np.asarray(p.start_m, float), np.asarray(p.end_m, float)
     chord = float(np.hypot(*(b - a)))
     if chord == 0.0 or len(p.path_m) < 2:
-        return chord, 0.0
+        return chord, 0.0, 0.0
     along = (b - a) / chord
     left = np.array([-along[1], along[0]])
     pts = np.vstack([a, np.asarray(p.path_m, float).reshape(-1, 2), b]) - a
     u, v = pts @ along, pts @ left
     w = np.ones(len(u))
     w[0], w[-1] = math.sqrt(p.n_start), math.sqrt(p.n_end)
-    coef = np.polynomial.polynomial.polyfit(u, v, min(4, len(u) - 2), w=w)
+    deg = min(4, len(u) - 2)
+    coef = np.polynomial.polynomial.polyfit(u, v, deg, w=w)
+    off = (v - np.polynomial.polynomial.polyval(u, coef))[1:-1]
+    rms = float(np.sqrt(off @ off / max(off.size - deg, 1)))
     slope = np.polynomial.polynomial.polyval(
         np.linspace(0.0, chord, 401), np.polynomial.polynomial.polyder(coef)
     )
     length = float(np.trapezoid(np.sqrt(1.0 + slope * slope), dx=chord / 400))
-    return length, -float(math.atan(slope[-1]) - math.atan(slope[0]))
+    return length, -float(math.atan(slope[-1]) - math.atan(slope[0])), rms
 
 
 def straight_fit(
-    passes: list[Pass], *, min_pass_m: float = 2.0, track_m: Estimate | None = None
+    passes: list[Pass],
+    *,
+    min_pass_m: float = 2.0,
+    track_m: Estimate | None = None,
+    ref_sigma_m: float | None = None,
 ) -> StraightResult:
     """Wheel scale factors from straight passes (see the module docstring, step 1 and 3).
     A pass a side of which counted backwards within it (:data:`BACK_NOISE_COUNTS`,
     :data:`BACK_FRACTION`: merged runs, a merged pivot), or whose reference path turned more
-    than :data:`MAX_STRAIGHT_TURN_DEG`, is left out, the reason in ``left_out``. Each side
+    than :data:`MAX_STRAIGHT_TURN_DEG` or bent sharply (:data:`BEND_SIGMAS` times
+    ``ref_sigma_m``, when given), is left out, the reason in ``left_out``. Each side
     rolled the path's length ± ``track_m``·Δψ/2 (:func:`path_geometry`; 0 without a track:
     :func:`calibrate` refits with the circle's)."""
     rows = []
@@ -562,12 +579,19 @@ def straight_fit(
             continue
         if math.dist(p.start_m, p.end_m) < min_pass_m:
             continue
-        length, turn = path_geometry(p)
+        length, turn, rms = path_geometry(p)
         if abs(turn) > math.radians(MAX_STRAIGHT_TURN_DEG):
             turned += 1
             left_out.append(
                 f"{_pass_name(p)}: its reference path turned {math.degrees(turn):+.0f} deg "
                 "(clockwise) between its ends"
+            )
+            continue
+        if ref_sigma_m is not None and rms > BEND_SIGMAS * ref_sigma_m:
+            turned += 1
+            left_out.append(
+                f"{_pass_name(p)}: its reference path bends sharply (fixes {rms:.3f} m rms "
+                f"off a smooth bow, {rms / ref_sigma_m:.1f}x the reference's {ref_sigma_m:g} m)"
             )
             continue
         sign = 1.0 if p.d_left_counts + p.d_right_counts >= 0 else -1.0
@@ -848,7 +872,7 @@ def calibrate(
     c_passes, c_dropped = find_passes(circle, stop_s=stop_s)
     _check_sides_count_alike(s_passes, straight, circle, stop_s, min_pass_m, reference.sigma_m)
     try:
-        st = straight_fit(s_passes, min_pass_m=min_pass_m)
+        st = straight_fit(s_passes, min_pass_m=min_pass_m, ref_sigma_m=reference.sigma_m)
     except ConfigError as exc:
         raise ConfigError(f"{exc}{_left_out(s_dropped)}") from None
     try:
@@ -865,7 +889,9 @@ def calibrate(
             "them) and record both tracks again"
         )
     for _ in range(3):  # the straight's bows need the track, the track the wheels: iterate
-        st = straight_fit(s_passes, min_pass_m=min_pass_m, track_m=ci.track_m)
+        st = straight_fit(
+            s_passes, min_pass_m=min_pass_m, track_m=ci.track_m, ref_sigma_m=reference.sigma_m
+        )
         ci = circle_fit(c_passes, st, ref_sigma_m=reference.sigma_m)
     to_d = counts_per_rev / math.pi  # diameter per (metres per count)
     pick_l = _pick_k(st.k_left_m, ci.k_left_m)
@@ -918,7 +944,7 @@ def _check_sides_count_alike(
         try:
             s_p, _ = find_passes(_negated(straight, side), stop_s=stop_s)
             c_p, _ = find_passes(_negated(circle, side), stop_s=stop_s)
-            st = straight_fit(s_p, min_pass_m=min_pass_m)
+            st = straight_fit(s_p, min_pass_m=min_pass_m, ref_sigma_m=ref_sigma_m)
             tracks[side] = circle_fit(c_p, st, ref_sigma_m=ref_sigma_m).track_m.value
         except ConfigError:
             continue
