@@ -102,6 +102,7 @@ def test_bowed_straight_passes_give_the_true_wheels_and_track() -> None:
     cal = fit([STOP] + [(50.0, 45.0, 10.0), STOP, (-50.0, -45.0, 10.0), STOP] * 6)
     assert_true_within(cal)
     assert cal.straight.passes == 12 and 20 < cal.straight.turn_deg < 26
+    assert "# the straight passes bow: up to 2" in cal.toml()
 
 
 def test_straight_passes_turning_more_than_30_deg_are_refused_naming_them() -> None:

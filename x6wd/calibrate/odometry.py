@@ -508,6 +508,11 @@ MAX_STRAIGHT_TURN_DEG = 30.0
 out: the bow is taken into account (:func:`path_geometry`, the effective track), but a
 larger turn is no straight drive, and its sides' travel rests on the track's error."""
 
+BOW_NOTE_DEG = 5.0
+"""From this heading change between a straight pass's ends (deg) the fragment says the passes
+bow (and were taken as such); the documented runs' straight passes: at most 1.8 deg (noise,
+30 seeds)."""
+
 BEND_SIGMAS = 3.0
 """A straight pass whose reference fixes scatter about the smooth path fitted to them
 (:func:`path_geometry`) by more than this many times the reference's sigma (rms) is left
@@ -820,6 +825,14 @@ class OdometryCalibration:
             + (f" (of {st.found} between stops)" if st.found > st.passes else "")
             + f"; circle: {ci.passes} "
             f"passes, {ci.turn_deg:.0f} deg in all, radius {ci.radius_m:.2f} m",
+            *(
+                [
+                    f"# the straight passes bow: up to {st.turn_deg:.0f} deg between a pass's "
+                    "ends, taken into account with the circle's track (docs/odometry.md)"
+                ]
+                if st.turn_deg >= BOW_NOTE_DEG
+                else []
+            ),
             *(f"# left out: {why}" for why in st.left_out),
             *([f"# ({MERGED_NOTE})"] if st.returned else []),
             *([f"# ({TURN_NOTE})"] if st.turned else []),
