@@ -517,7 +517,7 @@ BEND_SIGMAS = 3.0
 """A straight pass whose reference fixes scatter about the smooth path fitted to them
 (:func:`path_geometry`) by more than this many times the reference's sigma (rms) is left
 out: its path bends sharply, a turn merged into the drive (the simulator's robot turning at
-50/0 % for 2 s into a 50/50 % drive: 4x; good passes 0.8-1.1x). Such a kink is smoothed over
+50/0 % for 2 s into a 50/50 % drive: 4x; 444 good passes: 0.67-1.29x). Such a kink is smoothed
 by the fit, its heading change underestimated and the diameters biased (2.3 SEs)."""
 
 TURN_NOTE = (
