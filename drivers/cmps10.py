@@ -58,12 +58,18 @@ MAX_BEARING_DEG = 359.9
 MAX_TILT_DEG = 85.0
 COMMAND_GAP_S = 0.1  # datasheet: one command byte per write, about 100 ms apart
 BEARING_BYTE_STEP_DEG = 360.0 / 256.0  # register 1's resolution
+BEARING_BYTE_STEPS = (256, 255)
+"""Steps of register 1 per turn: the datasheet says "0-255 for a full circle", which a
+firmware may scale by 256 (255 = 358.6 deg) or by 255 (255 = 360 deg); both are accepted, as
+which one the CMPS10 uses is not published: one scale only, a truncating device of the other
+would have 494 of the 3600 bearings (175-360 deg) refused on every try."""
 BEARING_AGREE_DEG = 2.0
 """Most the bearing of registers 2-3 may differ from register 1's (deg, round the circle).
 Register 1 is 1.41 deg a step: rounded by the device it is within 0.7 deg of the true
 bearing, truncated within 1.41 deg (plus the word's 0.05 deg rounding). A bit flipped in the
-word's high byte is 25.6 deg or more, bits 7-5 of its low byte 12.8, 6.4 and 3.2 deg: caught;
-the smaller ones are within the coarse register's resolution and do little harm."""
+word's high byte is 25.6 deg or more, bits 7-5 of its low byte 12.8, 6.4 and 3.2 deg: caught
+(3.2 deg near north only by one of the two scales); the smaller ones are within the coarse
+register's resolution and do little harm."""
 
 CORRUPT_LABELS = {
     "bearing_mismatches": "samples whose two bearing registers disagree",
@@ -109,9 +115,13 @@ class _Corrupt(NamedTuple):
 
 def bearing_disagreement_deg(bearing_byte: int, bearing_deg: float) -> float:
     """How far (deg, 0-180, round the circle) register 1's coarse bearing ``bearing_byte``
-    (0-255) lies from the fine bearing ``bearing_deg`` of registers 2-3."""
-    d = abs(bearing_deg - bearing_byte * BEARING_BYTE_STEP_DEG) % 360.0
-    return min(d, 360.0 - d)
+    (0-255, read on the nearer of :data:`BEARING_BYTE_STEPS`' scales) lies from the fine
+    bearing ``bearing_deg`` of registers 2-3."""
+    out = 180.0
+    for steps in BEARING_BYTE_STEPS:
+        d = abs(bearing_deg - bearing_byte * 360.0 / steps) % 360.0
+        out = min(out, d, 360.0 - d)
+    return out
 
 
 def _s16(hi: int, lo: int) -> int:

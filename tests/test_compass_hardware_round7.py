@@ -36,10 +36,12 @@ class FlakyBus:
     bug does (``flip_reads`` block reads in a row); ``fail`` makes the next block reads
     raise EREMOTEIO."""
 
-    def __init__(self, bearing_deg: float = 123.4, *, truncate: bool = False) -> None:
+    def __init__(
+        self, bearing_deg: float = 123.4, *, truncate: bool = False, steps: int = 256
+    ) -> None:
         self.regs = [0] * 23
         self.regs[0] = 15
-        self.truncate = truncate
+        self.truncate, self.steps = truncate, steps
         self.set(bearing_deg, 2, -1)
         self.flip: dict[int, int] = {}
         self.flip_reads = 1
@@ -48,7 +50,8 @@ class FlakyBus:
 
     def set(self, bearing_deg: float, pitch: int, roll: int) -> None:
         tenths = round(bearing_deg * 10) % 3600
-        coarse = tenths * 256 // 3600 if self.truncate else round(tenths * 256 / 3600)
+        n = self.steps  # a turn is 256 steps, or 255 ("0-255" may mean 255 is 360 deg)
+        coarse = tenths * n // 3600 if self.truncate else round(tenths * n / 3600)
         self.regs[1] = coarse % 256
         self.regs[2], self.regs[3] = tenths >> 8, tenths & 0xFF
         self.regs[4], self.regs[5] = pitch & 0xFF, roll & 0xFF
@@ -124,11 +127,14 @@ def test_one_block_read_from_register_1_per_sample() -> None:
     assert bus.block_reads == [(REG_BEARING_BYTE, 5)] * 3
 
 
+@pytest.mark.parametrize("steps", [256, 255], ids=["256-scale", "255-scale"])
 @pytest.mark.parametrize("truncate", [False, True], ids=["rounded", "truncated"])
-def test_every_honest_bearing_passes(truncate: bool) -> None:
-    """Register 1 is 1.41 deg coarse (rounded or truncated by the device): every tenth of a
-    degree round the circle, 359.9 next to 0.0 included, agrees with it."""
-    bus = FlakyBus(0.0, truncate=truncate)
+def test_every_honest_bearing_passes(truncate: bool, steps: int) -> None:
+    """Register 1 is 1.41 deg coarse (rounded or truncated by the device, a turn 256 or 255
+    steps: the datasheet says only "0-255"): every tenth of a degree round the circle, 359.9
+    next to 0.0 included, agrees with it. A truncating 255 scale read as 256 steps refused
+    494 of the 3600 bearings (175-360 deg) on every try: the compass stale there."""
+    bus = FlakyBus(0.0, truncate=truncate, steps=steps)
     c = driver(bus, retries=0, stale_after=1)
     for tenths in range(3600):
         bus.set(tenths / 10, 0, 0)
