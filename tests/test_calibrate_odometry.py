@@ -283,7 +283,7 @@ def test_runs_merged_by_a_short_stop_are_left_out_and_the_passes_used_are_said(
     argv = ["calibrate", "odometry", "--straight", str(straight), "--circle", str(circle)]
     assert cli.main(argv) == 0
     out, err = capsys.readouterr()
-    assert "straight track: 5 of 7 passes used; 2 drove forwards and back between two stops" in err
+    assert "straight track: 5 of 7 passes used; 2 counted backwards within the pass" in err
     assert "0 shorter than --min-pass-m 2 m" in err
     assert "# straight: 5 passes of " in out and " m (of 7 between stops); circle" in out
 

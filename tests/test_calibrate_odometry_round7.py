@@ -76,6 +76,8 @@ def test_pivot_passes_among_good_ones_are_left_out_and_named_in_the_fragment(
     assert "# straight: 8 passes of " in out and "(of 11 between stops)" in out
     assert out.count("# left out: pass ") == 3 and "a pivot merged into the drive" in out
     assert "straight track: 8 of 11 passes used" in err
+    # stderr names them too, not as runs "shorter than --min-pass-m"
+    assert err.count("x6wd calibrate: left out: pass ") == 3, err
     cal = fit([STOP, *OUT_AND_BACK * 4, *pivot_drive * 3])
     assert cal.straight.pivoted == 3
     assert_true_within(cal)

@@ -348,14 +348,17 @@ def main(args: argparse.Namespace) -> int:
         )
     st = result.straight
     if st.found > st.passes:
-        short = st.found - st.passes - st.returned
+        short = st.found - st.passes - st.returned - st.turned
         print(
             f"x6wd calibrate: straight track: {st.passes} of {st.found} passes used; "
-            f"{st.returned} drove forwards and back between two stops (runs merged: the stop "
+            f"{st.returned} counted backwards within the pass (runs or a pivot merged: the stop "
             f"between was shorter than --stop-s {args.stop_s:g} s once the motors' lag is "
-            f"counted), {short} shorter than --min-pass-m {args.min_pass_m:g} m (pivots, nudges)",
+            f"counted), {st.turned} turned or bent (no straight drive), {short} shorter than "
+            f"--min-pass-m {args.min_pass_m:g} m (pivots, nudges)",
             file=sys.stderr,
         )
+        for why in st.left_out:
+            print(f"x6wd calibrate: left out: {why}", file=sys.stderr)
     unresolved = [k for k in ("k_left_m", "k_right_m") if not getattr(result, k).resolved]
     if unresolved:
         print(
