@@ -360,6 +360,13 @@ def test_two_runs_named_in_the_same_second_never_share_a_file(tmp_path: Path) ->
     assert names == ["x6wd-20260102T030405Z-1.jsonl", "x6wd-20260102T030405Z.jsonl"]
 
 
+def test_a_run_that_fails_to_start_leaves_no_empty_file(tmp_path: Path) -> None:
+    t = datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)
+    with pytest.raises(ValueError, match="max_bytes"):
+        Recorder.in_dir(tmp_path, utc_clock=lambda: t, max_bytes=0)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_recording_is_told_from_gpsd_json_and_nmea(tmp_path: Path) -> None:
     """A file beginning with gpsd's own JSON (``gpspipe -r``) is NMEA, not a recording; a
     recording whose first line is torn still is one (its reader names the fault)."""

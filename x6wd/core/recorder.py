@@ -796,7 +796,13 @@ class Recorder:
         while not _claim(path):  # taken (another daemon in the same second, a file of
             n += 1  # another kind): never shared, never overwritten
             path = Path(f"{base}-{n}.jsonl")
-        return cls(path, **kwargs)
+        try:
+            return cls(path, **kwargs)
+        except BaseException:  # a run that never started leaves no empty file in the lists
+            with contextlib.suppress(OSError):
+                if path.stat().st_size == 0:
+                    path.unlink()
+            raise
 
     @property
     def closed(self) -> bool:
