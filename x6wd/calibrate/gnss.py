@@ -58,6 +58,12 @@ small when the errors are correlated: such cells are marked by ``min_visits`` (d
 LCE, ``sqrt(SE(LCE²))`` at 0). Cells with fewer than ``min_fixes`` fixes or ``min_visits``
 visits are marked (kept in the table, left out of the configuration). ``lce_default_m``, for
 marked and unvisited cells, is the same estimate pooled over every matched fix.
+
+**Drives: the white part of a moving receiver** (:func:`moving_white`). A static recording's
+RE is the white part of a receiver standing still; moving, the error also has a part that
+changes in tens of seconds, which the estimator's one slow state cannot follow and must take
+as white. With drives, ``re_m`` is written from their variogram when that is larger
+(:attr:`GnssCalibration.re_m_written`; docs/gnss_calibration.md).
 """
 
 from __future__ import annotations
@@ -673,6 +679,8 @@ class LceMap:
     hdop_known: bool = True
     sources: tuple[str, ...] = field(default=())
     tracks: tuple[Array, ...] = field(default=())  # (n, 2) reference east/north per drive, m
+    moving: MovingWhite | None = None  # the white part the drives need (:func:`moving_white`)
+    visit_gap_s: float = 30.0
 
     def mapped(self) -> list[Cell]:
         """The cells with enough data (the ones written to the configuration)."""
@@ -709,6 +717,140 @@ class LceMap:
             "max_lce_m": float(v.max()) if v.size else math.nan,
             "default_lce_m": self.default.value,
         }
+
+
+@dataclass(frozen=True)
+class MovingWhite:
+    """The drives' fast error (:func:`moving_white`): the fit ``γ(k) = W + S·(1 − e^(−k·Δt/τ))``
+    of their variogram (m² per axis at HDOP 1; τ in s) and the white part the estimator needs
+    (m, with a leave-one-drive-out SE; NaN with fewer than 3 drives)."""
+
+    nugget_m2: float
+    sill_m2: float
+    tau_s: float
+    fast: bool  # τ within the fitted lags: a part the estimator's slow state cannot follow
+    white: Estimate
+    pairs: int
+    max_lag_s: float
+
+
+MOVING_MAX_LAG_S = 60.0
+"""Longest lag (s) of the drives' variogram that :func:`moving_white` fits: a quarter of a
+short drive (the simulated zigzag: 230 s), and far below the slow part's correlation time
+(the static calibration's τ: minutes; the shipped 120 s), so the estimator's bias state is
+near constant over it and whatever varies within it must be its white part."""
+
+
+def _drive_variogram(m: Matched, lag_s: Array) -> tuple[Array, Array]:
+    """γ(k) (m² per axis at HDOP 1; ½·mean over pairs and axes) and pair counts at each lag
+    (s), over pairs of fixes of one drive exactly that far apart (on each drive's median
+    epoch)."""
+    z = np.column_stack([m.err_east_m, m.err_north_m]) / m.hdop[:, None]
+    sums, counts = np.zeros(len(lag_s)), np.zeros(len(lag_s))
+    for d in np.unique(m.drive):
+        sel = m.drive == d
+        t = m.t_s[sel]
+        if t.size < 3:
+            continue
+        order = np.argsort(t, kind="stable")
+        t, zd = t[order], z[sel][order]
+        steps = np.diff(t)
+        if not (steps > 0).any():
+            continue
+        dt = float(np.median(steps[steps > 0]))
+        idx = np.round((t - t[0]) / dt).astype(np.int64)
+        keep = np.concatenate(([True], np.diff(idx) > 0))
+        idx, zd = idx[keep], zd[keep]
+        for j, lag in enumerate(lag_s):
+            k = round(lag / dt)
+            if k < 1:
+                continue
+            dd, _ = _variogram_sums(zd, idx, k)
+            sums[j] += float(dd.sum())
+            counts[j] += dd.size
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, sums / (4.0 * np.maximum(counts, 1)), np.nan), counts
+
+
+def _nnls(a: Array, y: Array) -> tuple[Array, float]:
+    """Least squares with every coefficient >= 0, for a few columns (all active sets)."""
+    best: tuple[Array, float] = (np.zeros(a.shape[1]), float(y @ y))
+    for r in range(1, a.shape[1] + 1):
+        for cols in itertools.combinations(range(a.shape[1]), r):
+            c = np.linalg.lstsq(a[:, cols], y, rcond=None)[0]
+            if (c < 0).any():
+                continue
+            x = np.zeros(a.shape[1])
+            x[list(cols)] = c
+            sse = float(((a @ x - y) ** 2).sum())
+            if sse < best[1]:
+                best = (x, sse)
+    return best
+
+
+def _fit_nugget_exponential(lag_s: Array, gamma: Array) -> tuple[float, float, float, float]:
+    """``W, S, τ, b`` (W, S, b >= 0) of ``γ = W + S·(1 − e^(−lag/τ)) + b·lag`` by least
+    squares, τ on a grid from 0.5 s to 8 times the longest lag (linear in W, S and b for a
+    given τ). ``b·lag`` is the slow part, whose variogram ``ASE²·(1 − e^(−lag/τ_slow))`` is
+    ``ASE²/τ_slow·lag`` at lags far below its correlation time."""
+    best = (math.inf, 0.0, 0.0, 0.0, 0.0)
+    for tau in np.geomspace(0.5, 8.0 * float(lag_s.max()), 120):
+        a = np.column_stack([np.ones_like(lag_s), 1.0 - np.exp(-lag_s / tau), lag_s])
+        x, sse = _nnls(a, gamma)
+        if sse < best[0]:
+            best = (sse, float(x[0]), float(x[1]), float(tau), float(x[2]))
+    return best[1], best[2], best[3], best[4]
+
+
+def moving_white(m: Matched) -> MovingWhite | None:
+    """The white part the estimator needs for a MOVING receiver, from drives against their
+    reference (None with fewer than 50 pairs of fixes one epoch apart).
+
+    The estimator models the fix error as white noise (re_m) plus ONE slow Gauss-Markov state
+    (ase_m and the LCE, correlation_s: minutes). A static recording measures RE as the white
+    part of a receiver standing still, but a moving receiver's error has a part that changes
+    in tens of seconds (multipath and satellites' geometry change as it moves: the simulated
+    zigzag drives show 0.8 m² per axis decorrelating in ~17 s, against a standing RE of
+    0.05 m). The slow state cannot follow it; taken as nothing, the estimator reads it as the
+    robot's motion (an outside audit: standing RE 0.048 m written, filtered RMS 3.18 -> 3.33
+    m over 12 seeds, worse than raw GPS). So the drives' variogram over lags 1 epoch to
+    :data:`MOVING_MAX_LAG_S` is fitted with a nugget W, an exponential of sill S and time
+    τ, and a straight line (the slow part, which over lags far below its correlation time
+    grows linearly); when τ lies within the fitted lags (the part is fast), the white variance the
+    estimator needs is ``RE² = W + S``, else ``W`` (a slower part is the slow state's). The
+    estimator puts the LCE in its slow state's variance, so the LCE cannot stand for this
+    part: when it is written, the map is made again with it subtracted
+    (:class:`GnssCalibration`)."""
+    lags = np.arange(1.0, MOVING_MAX_LAG_S + 1.0)
+    gamma, counts = _drive_variogram(m, lags)
+    if not counts[0] >= 50:
+        return None
+    ok = counts >= 20
+    w, s_, tau, _slope = _fit_nugget_exponential(lags[ok], gamma[ok])
+    fast = tau <= MOVING_MAX_LAG_S / 2.0
+
+    def white2(w_: float, s2: float) -> float:
+        return w_ + (s2 if fast else 0.0)
+
+    est = white2(w, s_)
+    drives = np.unique(m.drive)
+    var = math.nan
+    if drives.size >= 3:  # leave one drive out
+        reps = []
+        for d in drives:
+            keep = m.drive != d
+            sub = Matched(*(getattr(m, f)[keep] for f in ("t_s", "ref_east_m", "ref_north_m",
+                          "err_east_m", "err_north_m", "hdop", "drive")))  # fmt: skip
+            g, c = _drive_variogram(sub, lags)
+            okd = c >= 20
+            if okd.sum() >= 3:
+                wd, sd, _, _ = _fit_nugget_exponential(lags[okd], g[okd])
+                reps.append(white2(wd, sd))
+        r = np.array(reps)
+        if r.size >= 3:
+            var = (r.size - 1) / r.size * float(((r - r.mean()) ** 2).sum())
+    white = _root(est, var) if math.isfinite(var) else Estimate(math.sqrt(max(est, 0.0)), math.nan)
+    return MovingWhite(w, s_, tau, fast, white, int(counts[0]), MOVING_MAX_LAG_S)
 
 
 def _mean_se(z2: Array, groups: npt.NDArray[np.int64]) -> tuple[float, float, int, str]:
@@ -788,6 +930,7 @@ def lce_map(
         unmatched=unmatched,
         hdop_known=hdop_known,
         sources=sources,
+        visit_gap_s=visit_gap_s,
     )
 
 
@@ -834,7 +977,7 @@ def drives_lce_map(
         min_visits=min_visits,
         visit_gap_s=visit_gap_s,
     )
-    return replace(lm, tracks=tuple(tracks))
+    return replace(lm, tracks=tuple(tracks), moving=moving_white(lm.matched))
 
 
 def _check_matched(m: Matched, missed: int, fixes: FixSeries, ref: FixSeries) -> None:
@@ -891,13 +1034,50 @@ class GnssCalibration:
         fixes, or one too quiet for the variogram to see)."""
         return round(self.re_m.value, 4) > 0.0
 
+    def __post_init__(self) -> None:
+        """With a static RE and drives whose white part is larger, the map is made again with
+        that part subtracted: the estimator gets it as white noise, and the LCE is the excess
+        beyond it and ASE (else the same variance would be counted twice)."""
+        mv = self.moving
+        lm = self.lce
+        if mv is None or lm is None:
+            return
+        again = lce_map(
+            lm.matched, re_m=mv.white.value, ase_m=lm.ase_m,
+            origin=(lm.origin_lat_deg, lm.origin_lon_deg), cell_m=lm.cell_m,
+            min_fixes=lm.min_fixes, min_visits=lm.min_visits, visit_gap_s=lm.visit_gap_s,
+            unmatched=lm.unmatched, hdop_known=lm.hdop_known, sources=lm.sources,
+        )  # fmt: skip
+        object.__setattr__(self, "lce", replace(again, tracks=lm.tracks, moving=lm.moving))
+
+    @property
+    def moving(self) -> MovingWhite | None:
+        """The drives' white part when it is larger than a MEASURED (static) RE: the one the
+        estimator needs for a moving robot (:func:`moving_white`), else None."""
+        mv = self.drives_white
+        return mv if self.static is not None else None
+
+    @property
+    def drives_white(self) -> MovingWhite | None:
+        """The drives' white part when it is larger than RE, whatever RE came from (a given
+        ``--re-m`` is written as given, the fragment's comment names the drives' figure)."""
+        mv = self.lce.moving if self.lce is not None else None
+        if mv is None or not round(mv.white.value, 4) > round(self.re_m.value, 4):
+            return None
+        return mv
+
     @property
     def re_m_written(self) -> float:
         """``re_m`` as written (m): the estimate, or when it is not resolved an upper bound
         (at least 0.1 mm, rounded up): the daemon needs white noise > 0. From a static
         recording the bound is sqrt(γ(1)) (:attr:`StaticResult.re_bound_m`), which holds
         whatever the split; a one-SE bound would lean on a nugget that came out negative,
-        i.e. on a model the data did not fit (a ZED-F9P: 0 ± 1.0 mm, bound 3.1 mm)."""
+        i.e. on a model the data did not fit (a ZED-F9P: 0 ± 1.0 mm, bound 3.1 mm).
+
+        With drives whose white part (:attr:`moving`) is larger, that one: the estimator
+        runs on a moving robot."""
+        if self.moving is not None:
+            return round(self.moving.white.value, 4)
         if self.re_resolved:
             return round(self.re_m.value, 4)
         bound = (
@@ -973,10 +1153,35 @@ class GnssCalibration:
         else:
             src, ase_src = self.re_from, self.ase_from
             tau_note = f"of the slow part ({self.tau_from})"
+        mv = self.moving
+        if mv is not None:
+            lines.append(
+                f"# re_m from the drives (moving): their variogram over 1-{mv.max_lag_s:g} s "
+                f"fits nugget {mv.nugget_m2:.3f} m² + {mv.sill_m2:.3f} m² decorrelating in "
+                f"{mv.tau_s:.0f} s ({mv.pairs} pairs one epoch apart): the part of a moving "
+                "receiver's error the estimator's slow state cannot follow (the LCE map below "
+                f"is the excess beyond it and ASE); the static white part (RE "
+                f"{self.re_m.value:.4f} ± {self.re_m.se:.4f} m, {src}) is smaller, and taken "
+                "alone makes the estimator read that error as motion"
+            )
+        dw = self.drives_white
+        if mv is None and dw is not None:
+            lines.append(
+                f"# the drives' white part (moving) is {dw.white.value:.4f} m, larger than this "
+                f"re_m ({src}): the estimator on a moving robot needs it (docs/gnss_calibration"
+                ".md); measured with --static, the drives' figure is written"
+            )
+        se_mv = (
+            "no SE: fewer than 3 drives"
+            if mv is not None and not math.isfinite(mv.white.se)
+            else (f"± {mv.white.se:.4f} over drives" if mv is not None else "")
+        )
         lines += [
             "# seed 003: sigma per axis = HDOP * sqrt(re_m^2 + ase_m^2 + LCE^2)",
             "[gnss_noise]",
-            f"re_m = {t['re_m']}  # ± {self.re_m.se:.4f} ({src}: the white part)"
+            f"re_m = {t['re_m']}  # {se_mv} (drives: the white part of a moving receiver)"
+            if mv is not None
+            else f"re_m = {t['re_m']}  # ± {self.re_m.se:.4f} ({src}: the white part)"
             if self.re_resolved
             else f"re_m = {t['re_m']}  # not resolved: RE = 0 ± {self.re_m.se:.4f} ({src}: the "
             "white part); written: its upper bound"
