@@ -62,8 +62,8 @@ ENC_SEQ_MODULO = 1 << 16
 ENC_MAX_SEQ_STEP = 1000
 ENC_MAX_COUNTS_PER_S = 200_000.0
 """The most counts per second a side's encoder can move while the wheels turn, by default: a
-reading that moved further than this over the time since the last one (plus
-:data:`ENC_JUMP_SLACK_S`) is a restart of the board, not motion. The X6WD's default wheels
+reading that moved further than this over the longest the board can have counted since the
+last one (:class:`EncoderUnwrap`) is no motion. The X6WD's default wheels
 give 1632 counts per turn of a 120 mm wheel, 4,329 counts/m, and its top speed is 3.888 m/s
 (14 km/h, ``[navigation] full_speed_mps``): 16,800 counts/s; 200,000 leaves a factor of 12
 for finer encoders, bigger wheels or a faster robot. A board restart that went unannounced
@@ -71,9 +71,9 @@ for finer encoders, bigger wheels or a faster robot. A board restart that went u
 as a jump back by the board's whole lifetime count (-4,299,957 counts, 1 km, in one 50 ms
 poll). :func:`encoder_rate_bound` gives the bound for a configured robot."""
 ENC_JUMP_SLACK_S = 0.05
-"""Time (s) added to the interval between two readings before the distance bound is applied:
-host receive times jitter by a few ms, and two replies read together are not 0 s apart on
-the board."""
+"""Time (s) added to the longest interval between two latches (this reply's arrival minus
+the last request's send) before the distance bound is applied: the host's clock readings
+around a write and a read are a few ms off the bytes' real times."""
 TRANSIENT_MIN_S = 0.5
 """How long (s) transient port errors must go on, with no command through in between, before
 the port counts as broken (besides ``transient_limit`` of them): the board's default watchdog
@@ -193,15 +193,36 @@ def parse_encoder_payload(payload: str) -> tuple[int, int, int] | None:
 class EncoderUnwrap:
     """Board counter readings (modulo 2**32) to continuous counts since the first reading.
 
-    A reading after :meth:`rebase` (the board announced a reboot, the port reopened) or
-    whose latch number is not 1..ENC_MAX_SEQ_STEP ahead of the last (it restarted
-    unannounced) is a new baseline: it adds no counts (the motion between the last reading
-    and the restart is lost). So is a reading, given its time ``t_s``, whose counts moved
-    further than ``max_counts_per_s`` allows since the last one (a restart whose latch
-    number happened to step 1..ENC_MAX_SEQ_STEP: the board's whole lifetime count backwards
-    otherwise); ``jumps`` counts those. ``skipped`` counts latches whose replies never
-    arrived (nothing is lost: counts are cumulative); ``restarts`` the new baselines after
-    the first.
+    A reading after :meth:`rebase` (the board announced a reboot) is a new baseline: it adds
+    no counts (the motion between the last reading and the restart is lost).
+
+    Without times, a reading whose latch number is 1..ENC_MAX_SEQ_STEP ahead of the last
+    continues and any other is a restart (a new baseline). With the reading's times (``t_s``
+    when its reply arrived, ``sent_s`` when its request went out) and ``requests`` (latch
+    requests written since the last reading, this one's included), it is judged by what each
+    case looks like. The board latched the last reading no earlier than that request was
+    sent and this one no later than this reply arrived, so its counters ran at most
+    ``reach`` = ``max_counts_per_s`` x (``t_s`` - the last ``sent_s`` +
+    :data:`ENC_JUMP_SLACK_S`) counts between the two (a host thread held up after a reply
+    widens this, where the time between replies did not).
+
+    - Continuing: the latch number 1..``requests`` ahead (only our requests latch) and each
+      side within ``reach`` of the last reading: the counts add.
+    - A restart nobody announced: the latch number 1..``requests`` itself and each side's
+      count within ``reach`` of zero (a restarted board counts from 0 and latch 1): a new
+      baseline. This catches the restart whose latch number happened to step 1..1000 (65001
+      -> 1), with a big lifetime count or a small one (a robot that stood ~54 min: the
+      counts near zero, which a distance bound alone took as motion backwards).
+    - Neither, but the latch number 1..ENC_MAX_SEQ_STEP ahead and the counts within reach
+      (another host polling ``E`` too): the counts add.
+    - Anything else fits no motion: a new baseline (``implausible`` counts it).
+
+    ``verdict`` is the last reading's: "first", "continued", "restart" (detected) or
+    "implausible". ``skipped``
+    counts latches whose replies never arrived (nothing is lost: counts are cumulative);
+    ``restarts`` the new baselines after the first; ``detected`` the restarts seen in the
+    readings (no ``EVT BOOT``); ``jumps`` the readings that moved further than the wheels
+    can (a restart or implausible).
     """
 
     def __init__(self, max_counts_per_s: float = ENC_MAX_COUNTS_PER_S) -> None:
@@ -212,9 +233,12 @@ class EncoderUnwrap:
         self.right = 0
         self.skipped = 0
         self.restarts = 0
-        self.jumps = 0  # restarts seen only by a distance no wheel can cover in the time
+        self.detected = 0  # restarts seen in the readings (latch and counts from zero)
+        self.implausible = 0  # readings that fit neither motion nor a restart
+        self.jumps = 0  # readings that moved further than the wheels can in the time
+        self.verdict = ""
         self._last: tuple[int, int, int] | None = None  # (seq, left, right) as read
-        self._last_t: float | None = None  # the time of that reading (s), if given
+        self._last_t: float | None = None  # when its request went out (else its reply), s
 
     def rebase(self) -> None:
         """The next reading starts a new baseline (the board's counters began again)."""
@@ -223,32 +247,67 @@ class EncoderUnwrap:
         self._last = None
         self._last_t = None
 
-    def update(self, seq: int, left: int, right: int, t_s: float | None = None) -> tuple[int, int]:
-        """Take one reading (taken at ``t_s``, s, if known: then a step no wheel can make in
-        the time since the last reading is a restart); the continuous (left, right) counts."""
-        if self._last is not None:
-            step = (seq - self._last[0]) % ENC_SEQ_MODULO
-            d_left = wrap_count_delta(left - self._last[1])
-            d_right = wrap_count_delta(right - self._last[2])
-            if not 1 <= step <= ENC_MAX_SEQ_STEP:
-                self.restarts += 1
-            elif self._impossible(max(abs(d_left), abs(d_right)), t_s):
-                self.restarts += 1
-                self.jumps += 1
+    def update(
+        self,
+        seq: int,
+        left: int,
+        right: int,
+        t_s: float | None = None,
+        *,
+        sent_s: float | None = None,
+        requests: int | None = None,
+    ) -> tuple[int, int]:
+        """Take one reading (its reply at ``t_s``, its request sent at ``sent_s``, s, and
+        ``requests`` latch requests sent since the last reading, if known); the continuous
+        (left, right) counts."""
+        last = self._last
+        if last is None:
+            self.verdict = "first"
+        else:
+            step = (seq - last[0]) % ENC_SEQ_MODULO
+            d_left = wrap_count_delta(left - last[1])
+            d_right = wrap_count_delta(right - last[2])
+            reach = self._reach(t_s)
+            own = ENC_MAX_SEQ_STEP if requests is None else max(1, requests)
+            ahead = 1 <= step <= ENC_MAX_SEQ_STEP
+            moved = max(abs(d_left), abs(d_right))
+            fits = reach is None or moved <= reach
+            if 1 <= step <= own and fits:
+                verdict = "continued"
+            elif reach is None:  # no times: the latch number alone
+                verdict = "continued" if ahead else "restart"
+            elif (
+                1 <= seq <= own
+                and max(abs(wrap_count_delta(left)), abs(wrap_count_delta(right))) <= reach
+            ):
+                verdict = "restart"
+            elif ahead and fits:
+                verdict = "continued"
             else:
+                verdict = "implausible"
+            if verdict == "continued":
                 self.skipped += step - 1
                 self.left += d_left
                 self.right += d_right
+            else:
+                self.restarts += 1
+                if verdict == "restart":
+                    self.detected += 1
+                else:
+                    self.implausible += 1
+                if not fits:
+                    self.jumps += 1
+            self.verdict = verdict
         self._last = (seq, left, right)
-        self._last_t = t_s
+        self._last_t = sent_s if sent_s is not None else t_s
         return self.left, self.right
 
-    def _impossible(self, counts: int, t_s: float | None) -> bool:
-        """``counts`` moved since the last reading is more than the wheels can do."""
+    def _reach(self, t_s: float | None) -> float | None:
+        """The most counts a side can have moved since the last reading's request went out
+        (None without the times)."""
         if t_s is None or self._last_t is None:
-            return False
-        dt = max(0.0, t_s - self._last_t) + ENC_JUMP_SLACK_S
-        return counts > self.max_counts_per_s * dt
+            return None
+        return self.max_counts_per_s * (max(0.0, t_s - self._last_t) + ENC_JUMP_SLACK_S)
 
 
 # --- host side ------------------------------------------------------------------------------
@@ -274,7 +333,7 @@ class SerialMotorLink:
 
     ``max_counts_per_s`` (counts/s, default :data:`ENC_MAX_COUNTS_PER_S`;
     :func:`encoder_rate_bound` for a configured robot): encoder readings that moved further
-    than this allows are a board restart (a new baseline), not motion. Every reopen of the
+    than this allows are no motion (:class:`EncoderUnwrap`). Every reopen of the
     port starts a new baseline too: a board on native USB restarts with its port, and its
     ``EVT BOOT`` went out before the port was open again.
     """
@@ -336,6 +395,7 @@ class SerialMotorLink:
         self._tracker = HealthTracker("motors", t_s=clock())
         self._set_port(port)
         self.encoders = EncoderUnwrap(max_counts_per_s)
+        self._latch_requests = 0  # E lines written since the last valid encoder reading
         self.odometry_supported: bool | None = None
         self._refusal: str | None = None  # the payload of an ERR accepted by refusal_ok
         # Why the board restarted under a running link (EVT BOOT once up), until a stop()
@@ -475,6 +535,9 @@ class SerialMotorLink:
         refusal does not count against the link's health; :attr:`odometry_supported` is
         then False (True after a valid reading, None before either)."""
         self._refusal = None
+        # the board latches after this, at the latest when the reply comes: a host thread
+        # held up between a reply and its time stamp cannot shrink the interval bounded
+        sent_s = self._clock()
         reply = self._transact_reply("E", refusal_ok=True)
         if reply is None:
             if self._refusal is not None:
@@ -488,23 +551,33 @@ class SerialMotorLink:
         self.odometry_supported = True
         seq = parsed[0]
         enc = self.encoders
-        jumps = enc.jumps
-        left, right = enc.update(*parsed, t_s=t_s)
-        if enc.jumps != jumps:
-            self._encoder_jump(parsed, t_s)
+        requests, self._latch_requests = self._latch_requests, 0
+        left, right = enc.update(*parsed, t_s=t_s, sent_s=sent_s, requests=requests)
+        if enc.verdict in ("restart", "implausible"):
+            self._encoder_new_baseline(parsed, t_s)
         return WheelOdometry(t_s, left, right, seq)
 
-    def _encoder_jump(self, reading: tuple[int, int, int], t_s: float) -> None:
-        """A reading that moved further than the wheels can: a board restart nobody
-        announced (taken as a new baseline). Logged (the first, 10th, 100th, every 1000th)
-        and shown in :attr:`health` (degraded, this as the last error)."""
-        n = self.encoders.jumps
-        why = (
-            f"encoder counts jumped further than the wheels can move (more than "
-            f"{self.encoders.max_counts_per_s:.0f} counts/s; latch {reading[0]}, counts "
-            f"{reading[1]} {reading[2]}): taken as a board restart, odometry goes on from "
-            f"a new baseline ({n} so far)"
-        )
+    def _encoder_new_baseline(self, reading: tuple[int, int, int], t_s: float) -> None:
+        """A reading that starts a new baseline by itself (:class:`EncoderUnwrap`): a board
+        restart nobody announced (its latch number and counts from zero), or one that fits
+        no motion. Logged (the first, 10th, 100th, every 1000th of each) and shown in
+        :attr:`health` (degraded, this as the last error)."""
+        enc = self.encoders
+        what = f"latch {reading[0]}, counts {reading[1]} {reading[2]}"
+        if enc.verdict == "restart":
+            n = enc.detected
+            why = (
+                f"encoder reading is a board restart nobody announced ({what}: the latch "
+                f"number and counts began again from zero): odometry goes on from a new "
+                f"baseline ({n} so far)"
+            )
+        else:
+            n = enc.implausible
+            why = (
+                f"encoder reading fits neither motion (at most "
+                f"{enc.max_counts_per_s:.0f} counts/s) nor a board restart ({what}): "
+                f"taken as a new baseline ({n} so far)"
+            )
         if n in (1, 10, 100) or n % 1000 == 0:
             log.warning("motors: %s", why)
         self._tracker.failed(why, t_s)
@@ -567,6 +640,8 @@ class SerialMotorLink:
             for attempt in range(self.retries + 1):
                 self._seq = self._seq % (SEQ_MODULO - 1) + 1
                 seq = self._seq
+                if body == "E":  # each one the board takes latches (its latch number + 1)
+                    self._latch_requests += 1
                 try:
                     self.port.write(f"{body} #{seq}\n".encode("ascii"))
                     self.counters.sent += 1

@@ -10,6 +10,7 @@ import contextlib
 import math
 import os
 import random
+import re
 import threading
 import time
 import tty
@@ -412,3 +413,163 @@ def test_the_daemon_bounds_the_encoders_by_its_own_robot(tmp_path: Path) -> None
         if r.daemon.devices is not None:
             r.daemon.devices.close()
         board.close()
+
+
+# --- review6 4: a host pause is not a board restart; a restart with a small lifetime is -------
+
+SHIPPED_BOUND = 67_325.0  # encoder_rate_bound(1632, 0.120, 3.888): the daemon's, shipped config
+FULL_SPEED_CPS = 1632 / (math.pi * 0.120) * 3.888  # 16,831 counts/s at 3.888 m/s
+
+
+class StallingPort(serial.Serial):
+    """pyserial's port whose reader is held up (the motor thread descheduled, a GC pause)
+    right after it took an encoder reply off the line, when ``stall_s`` is set: the board
+    latched before the pause, the host stamps the reply after it."""
+
+    stall_s = 0.0
+    _seen = b""
+
+    def read(self, size: int = 1) -> bytes:
+        data = super().read(size)
+        self._seen = (self._seen + data)[-64:]  # the link may read a byte at a time
+        if self.stall_s and re.search(rb"OK #\d+ \d+ \d+ \d+\n$", self._seen):
+            time.sleep(self.stall_s)
+            self.stall_s = 0.0
+        return data
+
+
+class Wheels:
+    """Turns the board's encoders at ``cps`` counts/s on both sides, in its own thread."""
+
+    def __init__(self, pb: Pty, cps: float) -> None:
+        self.pb, self.cps = pb, cps
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        t0, added = time.monotonic(), 0
+        while not self.done.is_set():
+            due = int(self.cps * (time.monotonic() - t0))
+            with self.pb.lock:
+                self.pb.board.add_counts(due - added, due - added)
+            added = due
+            time.sleep(0.002)
+
+    def stop(self) -> None:
+        self.done.set()
+        self.thread.join(5)
+
+
+def _board_counts(pb: Pty) -> int:
+    with pb.lock:
+        return pb.board.left_counts
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize(("speed", "stall_s"), [(1.0, 0.5), (2.0 / 3.888, 0.7)])
+def test_a_host_pause_after_a_reply_at_full_speed_keeps_every_count(
+    speed: float, stall_s: float
+) -> None:
+    # review6 enc_stall.py: the bound was applied to the time between replies on the host;
+    # a pause after one reply sent the next poll at once while the board had counted all
+    # through it: >= 0.25 s at 3.888 m/s (0.5 s at 2 m/s) read as a board restart and
+    # dropped 4,342-16,965 counts (1-4 m), health degraded, "board restart" logged
+    board = MotorBoard()
+    board.boot()
+    board.enc_seq = 30_000
+    board.add_counts(1_000_000, 1_000_000)
+    pb = Pty(board)
+    port = StallingPort(pb.name, 115200, timeout=0.02)
+    link = SerialMotorLink(port, ack_timeout_s=0.5, max_counts_per_s=SHIPPED_BOUND)
+    wheels: Wheels | None = None
+    try:
+        first = link.read_odometry()
+        assert first is not None
+        c0 = _board_counts(pb)
+        wheels = Wheels(pb, FULL_SPEED_CPS * speed)
+        for _ in range(3):  # the worker's 20 Hz
+            time.sleep(0.05)
+            assert link.read_odometry() is not None
+        port.stall_s = stall_s
+        assert link.read_odometry() is not None  # stamped stall_s after the board latched
+        assert link.read_odometry() is not None  # the next poll at once: no wait
+        time.sleep(0.05)
+        assert link.read_odometry() is not None
+        wheels.stop()
+        last = link.read_odometry()
+        assert last is not None
+        assert link.encoders.restarts == 0 and link.encoders.jumps == 0
+        assert last.left_counts == _board_counts(pb) - c0  # every count, none dropped
+        assert "encoder" not in link.health.last_error
+    finally:
+        if wheels is not None:
+            wheels.stop()
+        link.close()
+        pb.close()
+
+
+@pytest.mark.integration
+def test_full_speed_with_jittery_polls_is_never_a_restart() -> None:
+    # the daemon's 20 Hz polls late and early (a loaded host), replies read in pieces and
+    # stamped late by up to 0.3 s, the wheels at full speed: every count arrives
+    rng = random.Random(6)
+    pb = Pty(MotorBoard())
+    port = StallingPort(pb.name, 115200, timeout=0.02)
+    link = SerialMotorLink(port, ack_timeout_s=0.5, max_counts_per_s=SHIPPED_BOUND)
+    wheels: Wheels | None = None
+    try:
+        assert link.read_odometry() is not None
+        c0 = _board_counts(pb)
+        wheels = Wheels(pb, FULL_SPEED_CPS)
+        for _ in range(40):
+            if rng.random() < 0.3:
+                port.stall_s = rng.uniform(0.0, 0.3)
+            assert link.read_odometry() is not None
+            time.sleep(rng.choice([0.0, 0.0, rng.uniform(0.0, 0.09)]))
+        wheels.stop()
+        last = link.read_odometry()
+        assert last is not None
+        assert link.encoders.restarts == 0, link.encoders.verdict
+        assert last.left_counts == last.right_counts == _board_counts(pb) - c0
+    finally:
+        if wheels is not None:
+            wheels.stop()
+        link.close()
+        pb.close()
+
+
+@pytest.mark.integration
+def test_an_unannounced_restart_of_a_board_that_stood_still_is_a_restart(
+    pty_board: Pty, caplog: pytest.LogCaptureFixture
+) -> None:
+    # review6: up ~54 min at 20 Hz standing (the latch number near its wrap, counts near
+    # zero), then a brown-out whose EVT BOOT was lost: latch 65001 -> 1 is a step of 536
+    # and 2043 -> 43 counts is within the distance bound, so odometry went 2000 back
+    with pty_board.lock:
+        pty_board.board.enc_seq = 65000
+        pty_board.board.add_counts(2000, 2000)
+    link = SerialMotorLink(
+        open_port(pty_board.name), ack_timeout_s=0.5, max_counts_per_s=SHIPPED_BOUND
+    )
+    try:
+        assert link.read_odometry() is not None
+        with pty_board.lock:
+            pty_board.board.add_counts(43, 43)
+        odo = link.read_odometry()
+        assert odo is not None and odo.left_counts == 43
+        with pty_board.lock:
+            pty_board.board.boot()
+            pty_board.board.add_counts(43, -43)
+        with caplog.at_level("WARNING", logger="drivers.motors"):
+            after = link.read_odometry()
+        assert after is not None
+        assert (after.left_counts, after.right_counts) == (43, 43)  # was (-1957, -2043)
+        assert link.encoders.restarts == 1 and link.encoders.detected == 1
+        assert any("restart" in r.getMessage() for r in caplog.records)
+        with pty_board.lock:
+            pty_board.board.add_counts(10, 10)
+        again = link.read_odometry()
+        assert again is not None and (again.left_counts, again.right_counts) == (53, 53)
+    finally:
+        link.close()
