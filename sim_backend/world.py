@@ -45,8 +45,8 @@ Scenario layout (every key optional unless stated; errors name the dotted key)::
     [compass] a plain table handed to the compass emulation
     [[effects]] {name = "...", params...}: sim_backend.effects layers (validated by name)
     [mission] waypoints = [[lat, lon], ...] and/or waypoints_enu = [[east_m, north_m], ...],
-              or file = "route.gpx" (relative to the scenario file; .waypoints, .gpx, .csv,
-              .kml, read by x6wd.core.mission_files as ``x6wd mission show`` reads them);
+              or file = "route.gpx" (relative to the scenario file; .waypoints, .plan, .gpx,
+              .csv, .kml, read by x6wd.core.mission_files as ``x6wd mission show`` reads them);
               an empty list or table is refused (leave [mission] out for a static survey)
     [navigation], [safety], [failsafe], [odometry], [gnss_noise]: the robot's configuration
               (x6wd.core.config), each key defaulting to the robot's default, so a scenario
@@ -856,7 +856,7 @@ def _build_mission(data: dict[str, Any]) -> tuple[MissionSettings, tuple[str, ..
             "waypoints, not both"
         )
     if not mission.file:
-        raise ConfigError("mission.file: empty; name a .waypoints, .gpx, .csv or .kml file")
+        raise ConfigError("mission.file: empty; name a .waypoints, .plan, .gpx, .csv or .kml file")
     try:
         read = load_file(mission.file)
     except ParseError as exc:  # its message leads with the file's path

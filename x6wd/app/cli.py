@@ -26,7 +26,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("x6wd.calibrate.cli", "estimate configuration sections from calibration runs"),
     "decode": ("x6wd.app.decode", "decode NMEA logs or recordings to gpsd-style JSON lines"),
     "replay": ("x6wd.app.replay", "replay a recording or NMEA log through the decoders"),
-    "mission": ("x6wd.app.mission", "show or convert mission files (.waypoints, .gpx, .csv, .kml)"),
+    "mission": (
+        "x6wd.app.mission",
+        "show or convert mission files (.waypoints, .plan, .gpx, .csv, .kml)",
+    ),
     "plot": ("x6wd.app.plot", "draw a recording or NMEA log over time (PNG, HTML page)"),
 }
 

@@ -33,12 +33,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``x6wd mission``."""
     sub = parser.add_subparsers(dest="mission_action", metavar="ACTION", required=True)
     p = sub.add_parser("show", help="print the waypoints read from a mission file")
-    p.add_argument("file", help="mission file (.waypoints, .gpx, .csv, .kml)")
+    p.add_argument("file", help="mission file (.waypoints, .plan, .gpx, .csv, .kml)")
     p.add_argument("--from", dest="from_fmt", choices=sorted(PARSERS), help="format of FILE")
     p = sub.add_parser(
         "convert", help="convert a mission file (e.g. .kml or .gpx to .waypoints for QGC)"
     )
-    p.add_argument("input", help="mission file to read (.waypoints, .gpx, .csv, .kml)")
+    p.add_argument("input", help="mission file to read (.waypoints, .plan, .gpx, .csv, .kml)")
     p.add_argument("output", help="file to write (.waypoints, .gpx, .csv); '-' for stdout")
     p.add_argument("--from", dest="from_fmt", choices=sorted(PARSERS), help="format of INPUT")
     p.add_argument("--to", dest="to_fmt", choices=sorted(WRITERS), help="format of OUTPUT")
