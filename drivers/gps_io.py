@@ -44,10 +44,14 @@ that lost power forgets it): UBX CFG-RATE for ``[gps] rate_hz`` and CFG-MSG for 
 the decoder uses (:func:`neo5_setup`). Every message must be answered by ACK-ACK within
 :data:`ACK_TIMEOUT_S`; a NAK or no answer is shown in the setup's :meth:`ReceiverSetup.status`
 (``status``'s ``gps_receiver``) and logged as one WARNING; the robot goes on with whatever the
-receiver sends. Whether configured or not, :class:`FixRate` measures the rate the fixes
-actually arrive at and, when it is well under the rate the staleness limits were checked
-against (``gps.rate_hz``), says so in status and in one WARNING: fixes then go stale between
-epochs and the robot holds.
+receiver sends. A receiver that resets while the port stays open (a NEO-5 brown-out on the
+Pi's UART) loses the setup without a reopen: its start-up ``$GPTXT`` banner, a sentence the
+setup turned off (GLL, VTG) coming back, or the ACKed rate not kept for 5 s mark the setup
+lost (status, one WARNING at most a minute) and it is written again, at most once per 10 s
+(:meth:`ReceiverSetup.lost`). Whether configured or not, :class:`FixRate` measures the rate the
+fixes actually arrive at (falling to 0 while the GPS is silent) and, when it is well under the
+rate the staleness limits were checked against (``gps.rate_hz``), says so in status and in a
+WARNING each time it falls: fixes then go stale between epochs and the robot holds.
 
 Note that pyserial's ``socket://`` handler discards whatever arrived before ``open()``
 returned; a streaming receiver loses nothing but part of one sentence.
@@ -59,6 +63,7 @@ import contextlib
 import dataclasses
 import errno
 import logging
+import math
 import os
 import select
 import time
@@ -73,6 +78,7 @@ from drivers.gps_nmea import (
     UBX_SYNC,
     GpsDecoder,
     GpsOutput,
+    NmeaSentence,
     UbxAck,
     cfg_msg,
     cfg_rate,
@@ -214,6 +220,46 @@ SLOW_RATE_RATIO = 0.8
 1 Hz against ``rate_hz = 4`` is, 3.5 Hz (a dropped epoch now and then) is not."""
 RATE_WINDOW = 9
 """Fixes the measured rate is taken over (the last ones); at least 5 make a measurement."""
+RATE_HORIZON_S = 10.0
+"""Fixes older than this (s) no longer count: a GPS that went silent on an open port measures
+0 Hz, not the rate it last had (:class:`FixRate`)."""
+RESEND_MIN_S = 10.0
+"""The least time (s) between two writes of the setup on one port: a receiver that lost it
+(:meth:`ReceiverSetup.lost`) is configured again at most this often."""
+LOST_WARN_MIN_S = 60.0
+"""The least time (s) between two WARNINGs that the receiver lost its setup (the ones between
+are counted in the next)."""
+RATE_LOST_S = 5.0
+"""A measured rate under :data:`SLOW_RATE_RATIO` of the rate the receiver ACKed, for this long
+(s) while fixes still come, after it had been met: the receiver lost its CFG-RATE."""
+OFF_GRACE_S = 1.0
+"""A sentence the setup turned off that arrives more than this (s) after the setup's last ACK
+was sent back by a receiver that lost the setup (the ACK queues behind what the receiver had
+already printed, so anything later was printed after it took the setting)."""
+BOOT_BANNER = ("u-blox ag", "rom core", "rom base", "ext core")
+"""How the text of a u-blox start-up ``$GPTXT`` line begins (lower case; the ``HW  UBX-...``
+line is matched apart). A u-blox receiver prints these once at power-up or after a reset,
+never otherwise: ``u-blox ag - www.u-blox.com``, ``HW  UBX-G50xx 00040005`` (``G60xx``,
+``G70xx``: the hardware generation), ``EXT CORE 6.00 (...)`` / ``ROM BASE ...`` (u-blox 5 and
+6 with flash firmware) or ``ROM CORE 7.03 (...)`` (ROM firmware), then ``MOD ...``,
+``ANTSUPERV=...``, ``ANTSTATUS=...`` (which also come on their own: not matched). Other
+software counts the first line as the receiver's reboot the same way (Meshtastic's GPS
+driver)."""
+_OFF_TYPES = frozenset({"GLL", "VTG"})  # what neo5_setup turns off
+_WATCHED_TYPES = _OFF_TYPES | {"TXT"}
+
+
+def is_boot_banner(sentence: str) -> bool:
+    """Whether ``sentence`` (``$GPTXT,01,01,02,text*HH``) is a line of a u-blox receiver's
+    start-up banner (:data:`BOOT_BANNER`)."""
+    if sentence[3:6] != "TXT":
+        return False
+    parts = sentence.split(",", 4)
+    if len(parts) < 5:
+        return False
+    text = parts[4].rsplit("*", 1)[0].strip().lower()
+    return text.startswith(BOOT_BANNER) or (text.startswith("hw ") and "ubx-" in text)
+
 
 _CFG_RATE = (UBX_CLASS_CFG, UBX_ID_CFG_RATE)
 
@@ -240,29 +286,57 @@ class ReceiverSetup:
     receiver answered.
 
     :attr:`init_bytes` are the frames of :func:`neo5_setup`; the reader calls :meth:`sent`
-    once it wrote them (or :meth:`not_sent`), hands every ACK/NAK to :meth:`on_ack` and calls
-    :meth:`check` on each poll. Each message is answered in order (an ACK names only the
-    class and id, so the CFG-MSG answers are matched oldest first). :attr:`state`: ``"not
-    sent"`` (no port yet), ``"waiting"``, ``"acked"`` (all ACK-ACK), ``"refused"`` (a NAK),
-    ``"no answer"`` (nothing within ``ack_timeout_s``: a receiver configured elsewhere
-    answers as well, so this is a receiver that does not speak UBX, a wrong port, or a
-    line that loses what is sent) or ``"not written"``. A refusal or a missing answer is
-    logged as one WARNING per process and kind; the robot goes on with what the receiver
-    sends (:class:`FixRate` shows the rate it actually gets)."""
+    once it wrote them (or :meth:`not_sent`), hands every ACK/NAK to :meth:`on_ack`, the
+    sentences a lost setup shows in (start-up banner, GLL, VTG) to :meth:`on_sentence`, and
+    calls :meth:`check` and :meth:`on_rate` on each poll. Each message is answered in order
+    (an ACK names only the class and id, so the CFG-MSG answers are matched oldest first).
+    :attr:`state`: ``"not sent"`` (no port yet), ``"waiting"``, ``"acked"`` (all ACK-ACK),
+    ``"refused"`` (a NAK), ``"no answer"`` (nothing within ``ack_timeout_s``: a receiver
+    configured elsewhere answers as well, so this is a receiver that does not speak UBX, a
+    wrong port, or a line that loses what is sent), ``"not written"`` or ``"lost"``.
 
-    def __init__(self, rate_hz: float, *, ack_timeout_s: float = ACK_TIMEOUT_S) -> None:
+    Lost: a NEO-5 keeps the setup in RAM only, and one that resets while the port stays open
+    (a brown-out of its supply on the Pi's UART) comes back at 1 Hz with its default
+    sentences, the host none the wiser. So the setup counts as lost (:meth:`lost`) when the
+    receiver prints its start-up banner (:func:`is_boot_banner`) after it was configured, a
+    sentence the setup turned off (GLL, VTG) comes back after the ACKs, or the fix rate, once
+    met, stays under :data:`SLOW_RATE_RATIO` of the ACKed rate for :data:`RATE_LOST_S` while
+    fixes come. Each loss is one WARNING (at most one per :data:`LOST_WARN_MIN_S`), is
+    counted in the status (``losses``, the last one's reason in ``lost``), and makes
+    :meth:`resend_due` true: the reader writes the setup again, at most once per
+    :data:`RESEND_MIN_S`, and its answers are tracked as at an open.
+
+    A refusal or a missing answer is logged as one WARNING per process and kind; the robot
+    goes on with what the receiver sends (:class:`FixRate` shows the rate it actually gets)."""
+
+    def __init__(
+        self,
+        rate_hz: float,
+        *,
+        ack_timeout_s: float = ACK_TIMEOUT_S,
+        resend_min_s: float = RESEND_MIN_S,
+    ) -> None:
         self.rate_hz = rate_hz
         self.messages = neo5_setup(rate_hz)
         self.init_bytes = b"".join(frame for _, frame in self.messages)
         self.ack_timeout_s = ack_timeout_s
+        self.resend_min_s = resend_min_s
         self.state = "not sent"
-        self.rounds = 0  # opens the configuration was written on
+        self.rounds = 0  # times the configuration was written (opens and resends)
         self.answers: dict[str, str] = {}  # the last round's: name -> ack | NAK | no answer
         self.problem: str | None = None  # the last round's refusal or silence, in words
         self.rate_acked = False  # the last round's CFG-RATE was taken (ACK-ACK)
+        self.losses = 0  # times the receiver lost the setup (lost())
+        self.lost_reason: str | None = None  # the last loss, in words
         self._waiting: list[tuple[str, tuple[int, int]]] = []
-        self._sent_t = 0.0
+        self._sent_t = -math.inf
+        self._acked_t = 0.0  # when the last round's last ACK arrived
+        self._banner_in_round = False  # a start-up banner before any answer of this round
+        self._rate_met = False  # the ACKed rate was measured since the round
+        self._slow_since: float | None = None
         self._warned: set[str] = set()
+        self._lost_warn_t = -math.inf
+        self._lost_unwarned = 0  # losses not warned about (LOST_WARN_MIN_S)
 
     def sent(self, t_s: float) -> None:
         """The frames were written at ``t_s``: every message now waits for its answer."""
@@ -271,6 +345,9 @@ class ReceiverSetup:
         self.problem = None
         self.rate_acked = False
         self._sent_t = t_s
+        self._banner_in_round = False
+        self._rate_met = False
+        self._slow_since = None
         self._waiting = [(name, (frame[2], frame[3])) for name, frame in self.messages]
         self.answers = {name: "waiting" for name, _ in self.messages}
 
@@ -280,8 +357,9 @@ class ReceiverSetup:
         self._waiting = []
         self._problem(f"UBX configuration not written: {reason}", "write")
 
-    def on_ack(self, ack: UbxAck) -> bool:
-        """An ACK-ACK or ACK-NAK: True when it answered one of this setup's messages."""
+    def on_ack(self, ack: UbxAck, t_s: float = 0.0) -> bool:
+        """An ACK-ACK or ACK-NAK received at ``t_s``: True when it answered one of this
+        setup's messages."""
         key = (ack.msg_class, ack.msg_id)
         i = next((i for i, (_, want) in enumerate(self._waiting) if want == key), None)
         if i is None:
@@ -291,8 +369,83 @@ class ReceiverSetup:
         if ack.acked and key == _CFG_RATE:
             self.rate_acked = True
         if not self._waiting:
+            self._acked_t = t_s
             self._finish()
         return True
+
+    def on_sentence(self, sentence: str, t_s: float) -> None:
+        """A TXT, GLL or VTG sentence received at ``t_s``: a start-up banner, or a sentence
+        the setup turned off, after the receiver took the setup means it lost it."""
+        kind = sentence[3:6]
+        if kind == "TXT":
+            if not is_boot_banner(sentence):
+                return
+            if self.state == "waiting" and all(a == "waiting" for a in self.answers.values()):
+                # printed before the receiver read this round's frames, or it restarted on
+                # them: the answers (or their absence) tell which (_finish)
+                self._banner_in_round = True
+            elif self.state in ("acked", "refused", "no answer", "waiting"):
+                text = sentence.split(",", 4)[-1].rsplit("*", 1)[0].strip()
+                self.lost(t_s, f"the receiver restarted (its start-up banner {text!r})")
+        elif (
+            self.state == "acked"
+            and self.answers.get(f"CFG-MSG {kind} 0") == "ack"
+            and t_s - self._acked_t > OFF_GRACE_S
+        ):
+            self.lost(t_s, f"{kind} sentences came back, which the setup turned off")
+
+    def on_rate(self, t_s: float, rate: FixRate) -> None:
+        """Each poll: the fix rate the receiver keeps once it ACKed CFG-RATE. Under
+        :data:`SLOW_RATE_RATIO` of it for :data:`RATE_LOST_S`, after it was met, while fixes
+        still come (a silent receiver is not a reset one): lost."""
+        hz = rate.measured_hz
+        if self.state != "acked" or not self.rate_acked or hz is None:
+            return
+        if hz >= SLOW_RATE_RATIO * self.rate_hz:
+            self._rate_met, self._slow_since = True, None
+            return
+        if not self._rate_met or rate.silent_s(t_s) > 2.0 / max(hz, 0.5):
+            self._slow_since = None
+            return
+        if self._slow_since is None:
+            self._slow_since = t_s
+        elif t_s - self._slow_since >= RATE_LOST_S:
+            self.lost(
+                t_s,
+                f"fixes arrive at {hz:.2g} Hz for {t_s - self._slow_since:.0f} s after the "
+                f"receiver took CFG-RATE for {self.rate_hz:g} Hz",
+            )
+
+    def lost(self, t_s: float, reason: str) -> None:
+        """The receiver lost the setup (``reason``): counted, told, and due to be sent again
+        (:meth:`resend_due`). Nothing new while a loss waits for its resend."""
+        if self.state == "lost":
+            return
+        self.state = "lost"
+        self._waiting = []
+        self.losses += 1
+        self.lost_reason = reason
+        if t_s - self._lost_warn_t < LOST_WARN_MIN_S:
+            self._lost_unwarned += 1
+            return
+        more = (
+            f" ({self._lost_unwarned} more losses since the last warning)"
+            if self._lost_unwarned
+            else ""
+        )
+        self._lost_warn_t, self._lost_unwarned = t_s, 0
+        after = max(0.0, self._sent_t + self.resend_min_s - t_s)
+        log.warning(
+            "GPS: the receiver lost its configuration: %s%s; gps.configure_receiver: "
+            "sending it again%s",
+            reason,
+            more,
+            f" in {after:.0f} s" if after >= 0.5 else "",
+        )
+
+    def resend_due(self, t_s: float) -> bool:
+        """The setup was lost and the last write is :attr:`resend_min_s` old: write it again."""
+        return self.state == "lost" and t_s - self._sent_t >= self.resend_min_s
 
     def check(self, t_s: float) -> None:
         """Messages still unanswered ``ack_timeout_s`` after they were written: no answer."""
@@ -301,14 +454,22 @@ class ReceiverSetup:
         for name, _ in self._waiting:
             self.answers[name] = "no answer"
         self._waiting = []
-        self._finish()
+        self._finish(t_s)
 
-    def _finish(self) -> None:
+    def _finish(self, t_s: float | None = None) -> None:
         """Every message answered or timed out: the round's state, and its problem told."""
         refused = [name for name, a in self.answers.items() if a == "NAK"]
         silent = [name for name, a in self.answers.items() if a == "no answer"]
         if not refused and not silent:
             self.state = "acked"
+            return
+        if self._banner_in_round:  # it restarted on the frames: not a refusal
+            self.state = "waiting"  # (for lost(): a round in progress)
+            self.lost(
+                self._acked_t if t_s is None else t_s,
+                "the receiver restarted while it was being configured (its start-up banner "
+                f"came before the answers; {', '.join(refused + silent)} not taken)",
+            )
             return
         parts = []
         if refused:
@@ -332,58 +493,100 @@ class ReceiverSetup:
             log.warning("GPS: %s", text)
 
     def status(self) -> dict[str, Any]:
-        """JSON-ready: state, the rate asked, the last round's answers, opens configured."""
+        """JSON-ready: state, the rate asked, the last round's answers, times written, and
+        the losses (``losses``; the last one's reason in ``lost``)."""
         out: dict[str, Any] = {
             "state": self.state,
             "rate_hz": self.rate_hz,
             "rounds": self.rounds,
             "answers": dict(self.answers),
+            "losses": self.losses,
         }
         if self.problem is not None:
             out["problem"] = self.problem
+        if self.lost_reason is not None:
+            out["lost"] = self.lost_reason
         return out
 
 
 class FixRate:
-    """The rate fixes actually arrive at (Hz, from their receive times: the last
-    :data:`RATE_WINDOW`, at least 5), against ``expected_hz`` (what the staleness limits were
-    checked against, named ``expected_key`` in messages). :attr:`slow` (and one WARNING per
-    process) when it is under :data:`SLOW_RATE_RATIO` of that: fixes then go stale between
-    epochs."""
+    """The rate fixes actually arrive at (Hz), against ``expected_hz`` (what the staleness
+    limits were checked against, named ``expected_key`` in messages).
+
+    :meth:`add` each fix's receive time, :meth:`tick` on every poll. The rate is that of the
+    last :data:`RATE_WINDOW` fixes (at least 5 since :meth:`restart` make a measurement),
+    bounded by the time since the oldest of them (n fixes in the time from the first to now):
+    it falls while the GPS is silent, and fixes older than :data:`RATE_HORIZON_S` no longer
+    count (none left: 0 Hz). :attr:`slow` when it is under :data:`SLOW_RATE_RATIO` of the
+    expected rate: fixes then go stale between epochs. A WARNING each time the rate becomes
+    slow having been met (or at the first measurement), not again while it stays slow."""
 
     def __init__(self, expected_hz: float | None, expected_key: str = "gps.rate_hz") -> None:
         self.expected_hz = expected_hz
         self.expected_key = expected_key
         self._times: deque[float] = deque(maxlen=RATE_WINDOW)
+        self._measuring = False  # 5 fixes since the restart
+        self._last_fix_t: float | None = None
         self.measured_hz: float | None = None
         self.slow: str | None = None
-        self._warned = False
+        self._slow_warned = False  # warned, and the rate not met since
 
     def restart(self) -> None:
         """Measure anew (the port reopened, or the receiver took a new rate)."""
         self._times.clear()
+        self._measuring = False
         self.measured_hz = None
         self.slow = None
 
+    def silent_s(self, t_s: float) -> float:
+        """Seconds since the last fix (inf: none yet)."""
+        last = self._last_fix_t
+        return math.inf if last is None else t_s - last
+
     def add(self, t_s: float) -> None:
-        times = self._times
-        times.append(t_s)
-        if len(times) < 5 or times[-1] <= times[0]:
+        self._times.append(t_s)
+        self._last_fix_t = t_s
+        if len(self._times) >= 5:
+            self._measuring = True
+        self.tick(t_s)
+
+    def tick(self, t_s: float) -> None:
+        """The rate at ``t_s`` (and :attr:`slow`, and its WARNING)."""
+        if not self._measuring:
             return
-        hz = (len(times) - 1) / (times[-1] - times[0])
+        times = self._times
+        while times and times[0] < t_s - RATE_HORIZON_S:
+            times.popleft()
+        n = len(times)
+        if n < 2:
+            hz = n / RATE_HORIZON_S
+        else:
+            span = times[-1] - times[0]
+            hz = (n - 1) / span if span > 0 else math.inf
+            since = t_s - times[0]
+            if since > 0:
+                hz = min(hz, n / since)  # the next fix comes no sooner than now
+            if math.isinf(hz):
+                return
         self.measured_hz = hz
         want = self.expected_hz
         if want is None or hz >= SLOW_RATE_RATIO * want:
             self.slow = None
+            self._slow_warned = False
             return
+        got = (
+            f"fixes arrive at {hz:.2g} Hz"
+            if n
+            else f"no fix in the last {RATE_HORIZON_S:g} s (0 Hz)"
+        )
         self.slow = (
-            f"fixes arrive at {hz:.2g} Hz, under {self.expected_key} = {want:g} Hz that "
+            f"{got}, under {self.expected_key} = {want:g} Hz that "
             f"the staleness limits (safety.fix_stale_s, gps.stale_s) were checked against: "
             f"fixes go stale between epochs and the robot holds; set the receiver's rate "
             f"(gps.configure_receiver = true, or u-center) or lower {self.expected_key}"
         )
-        if not self._warned:
-            self._warned = True
+        if not self._slow_warned:
+            self._slow_warned = True
             log.warning("GPS: %s", self.slow)
 
     def status(self) -> dict[str, Any]:
@@ -523,8 +726,14 @@ class GpsReader:
             # Staleness by time, once per poll: the health never waits for a caller to ask.
             now = self._clock()
             self._tracker.check(now)
-            if self.setup is not None:
-                self.setup.check(now)
+            self.fix_rate.tick(now)
+            setup = self.setup
+            if setup is not None:
+                setup.check(now)
+                setup.on_rate(now, self.fix_rate)
+                port = self._port
+                if port is not None and setup.resend_due(now):
+                    self._write_setup(port, now)  # the receiver lost it: again
 
     def _poll(self, timeout_s: float) -> list[GpsOutput]:
         start = self._clock()
@@ -623,6 +832,11 @@ class GpsReader:
         else:
             self._tracker.opened(now)
         self.fix_rate.restart()
+        self._write_setup(port, now)
+
+    def _write_setup(self, port: PortLike, now: float) -> None:
+        """Write ``init_bytes`` and the setup's frames (after an open, or again when the
+        receiver lost the setup) and tell the setup."""
         setup = self.setup
         out = self.init_bytes + (setup.init_bytes if setup is not None else b"")
         if out:
@@ -709,6 +923,16 @@ class GpsReader:
             self._tracker.corrupt(dict(zip(CORRUPT_LABELS, bad, strict=True)), t_s)
         if decoded.decoded + after.ubx_frames > seen:
             self._tracker.good(t_s)
+        setup = self.setup
+        if setup is not None:
+            # before this read's ACKs: the decoder keeps the UBX frames apart from the
+            # sentences, so their order within one read is not known, and a banner read
+            # with the ACKs is taken as one that came first (a receiver that restarted,
+            # then took the setup), not as a loss (a reset within milliseconds of its
+            # answers)
+            for rec in records:
+                if isinstance(rec, NmeaSentence) and rec.text[3:6] in _WATCHED_TYPES:
+                    setup.on_sentence(rec.text, t_s)  # a banner, or what the setup turned off
         for frame in self.decoder.take_ubx():
             try:
                 ack = parse_ack(frame)
@@ -716,8 +940,7 @@ class GpsReader:
                 continue
             if ack is not None:
                 self._acks.append(ack)
-                setup = self.setup
-                answered = setup is not None and setup.on_ack(ack)
+                answered = setup is not None and setup.on_ack(ack, t_s)
                 if answered and ack.acked and (ack.msg_class, ack.msg_id) == _CFG_RATE:
                     self.fix_rate.restart()  # the receiver takes the new rate now
         rate = self.fix_rate

@@ -8,6 +8,9 @@ sentence waits for more than its own bytes. Tested on the decoder (bytes at line
 the real reader over a pty written at 9600 baud's pace.
 
 M1: ``[gps] configure_receiver`` and ``rate_hz`` did nothing (below).
+
+Review 6: a receiver that resets while the port stays open is configured again; the fix rate
+falls while the GPS is silent and "slow" is warned at each fall (at the end).
 """
 
 from __future__ import annotations
@@ -22,15 +25,16 @@ import threading
 import time
 import tty
 from collections.abc import Callable, Iterator
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import pytest
 import serial
 
-from drivers.gps_io import GpsReader
+from drivers.gps_io import GpsReader, ReceiverSetup
 from drivers.gps_nmea import (
+    NMEA_MSG_IDS,
     GpsDecoder,
     NmeaFrame,
     NmeaFramer,
@@ -40,6 +44,7 @@ from drivers.gps_nmea import (
     ubx_frame,
 )
 from drivers.nmea import checksum
+from sim_backend.nmea_out import NEO5_BANNER
 from tests.conftest import ROOT
 from tests.test_daemon import hil_config, run_daemon, wait_for
 from x6wd.app.client import RemoteClient
@@ -222,8 +227,13 @@ class Neo5Pty:
     CFG-RATE changes ``hz``; "nak": ACK-NAK; "silent": nothing). :meth:`replug` moves the
     link to a new pty, as a USB adapter unplugged and plugged in again."""
 
-    def __init__(self, link: Path, hz: float = 1.0, answer: str = "ack") -> None:
+    def __init__(
+        self, link: Path, hz: float = 1.0, answer: str = "ack", full: bool = False
+    ) -> None:
         self.link, self.hz, self.answer = link, hz, answer
+        # full: VTG and GLL too (a NEO-5's defaults, until CFG-MSG turns them off)
+        self.extra = ["VTG", "GLL"] if full else []
+        self.banner = False  # print the start-up banner before the next burst
         self.received: list[bytes] = []  # what the host wrote, per pty (one entry each)
         self.lock = threading.Lock()
         self.stop = threading.Event()
@@ -268,8 +278,12 @@ class Neo5Pty:
                             self._answer(master, f)
                 if time.monotonic() >= next_t:
                     now = datetime.now(UTC)
+                    out = _burst(now, self.extra)
+                    if self.banner:
+                        self.banner = False
+                        out = b"".join(_s(b) for b in NEO5_BANNER) + out
                     with contextlib.suppress(OSError):
-                        os.write(master, _burst(now))
+                        os.write(master, out)
                     next_t += 1.0 / self.hz
             self.stop.wait(0.005)
 
@@ -279,7 +293,17 @@ class Neo5Pty:
         ok = self.answer == "ack"
         if ok and f.msg_id == 0x08:  # CFG-RATE
             self.hz = 1000.0 / struct.unpack("<H", f.payload[:2])[0]
+        if ok and f.msg_id == 0x01 and f.payload[0] == 0xF0 and f.payload[2] == 0:  # CFG-MSG off
+            self.extra = [m for m in self.extra if NMEA_MSG_IDS[m] != f.payload[1]]
         os.write(master, ubx_frame(0x05, 1 if ok else 0, bytes((0x06, f.msg_id))))
+
+    def reset(self, banner: bool = True) -> None:
+        """The receiver restarts (a brown-out) while the host's port stays open: its
+        defaults again (1 Hz, VTG and GLL), its start-up banner first if ``banner``."""
+        with self.lock:
+            self.hz = 1.0
+            self.extra = ["VTG", "GLL"]
+            self.banner = banner
 
     def close(self) -> None:
         self.stop.set()
@@ -288,20 +312,24 @@ class Neo5Pty:
         os.close(self.slave)
 
 
-def _burst(now: datetime) -> bytes:
+def _burst(now: datetime, extra: list[str] | tuple[str, ...] = ()) -> bytes:
     hms = now.strftime("%H%M%S.") + f"{now.microsecond // 10000:02d}"
     dmy = now.strftime("%d%m%y")
-    return _s(f"GPRMC,{hms},A,5145.12000,N,00115.46200,W,0.0,,{dmy},,,A") + _s(
-        f"GPGGA,{hms},5145.12000,N,00115.46200,W,1,08,0.9,60.0,M,47.0,M,,"
-    )
+    out = _s(f"GPRMC,{hms},A,5145.12000,N,00115.46200,W,0.0,,{dmy},,,A")
+    if "VTG" in extra:
+        out += _s("GPVTG,,T,,M,0.0,N,0.0,K,A")
+    out += _s(f"GPGGA,{hms},5145.12000,N,00115.46200,W,1,08,0.9,60.0,M,47.0,M,,")
+    if "GLL" in extra:
+        out += _s(f"GPGLL,5145.12000,N,00115.46200,W,{hms},A,A")
+    return out
 
 
 @pytest.fixture
 def neo5(tmp_path: Path) -> Iterator[Callable[..., Neo5Pty]]:
     made: list[Neo5Pty] = []
 
-    def make(hz: float = 1.0, answer: str = "ack") -> Neo5Pty:
-        g = Neo5Pty(tmp_path / f"ttyGPS{len(made)}", hz, answer)
+    def make(hz: float = 1.0, answer: str = "ack", full: bool = False) -> Neo5Pty:
+        g = Neo5Pty(tmp_path / f"ttyGPS{len(made)}", hz, answer, full)
         made.append(g)
         return g
 
@@ -435,3 +463,244 @@ def test_configure_receiver_refuses_a_rate_the_neo5_cannot_run() -> None:
 def test_the_shipped_configs_still_load(name: str) -> None:
     cfg = load(ROOT / "config" / name)
     assert cfg.gps.configure_receiver is False
+
+
+# --------------------------------------------------------------------------------------------
+# Review 6, item 2: a NEO-5 that resets on its own (a brown-out of its supply) while the Pi's
+# UART stays open comes back at 1 Hz with its default sentences; the setup was written only
+# at an open, so it was never written again and status still said "acked". Now the start-up
+# banner, a sentence the setup turned off coming back, or the ACKed rate lost for 5 s mark
+# the setup lost (status, one WARNING) and it is written again (at most once per 10 s).
+# And the fix rate falls while the GPS is silent, and "slow" is warned at each fall.
+
+
+def _setup_frames(rate_hz: float = 4.0) -> bytes:
+    return ReceiverSetup(rate_hz).init_bytes
+
+
+def test_a_receiver_that_resets_on_an_open_port_is_configured_again(
+    tmp_path: Path, run_daemon: Any, neo5: Callable[..., Neo5Pty], caplog: Any
+) -> None:
+    caplog.set_level(logging.INFO)
+    gps = neo5(hz=1.0, full=True)
+    r = run_daemon(Daemon(_daemon_config(tmp_path, f"serial://{gps.link}?baud=9600", True)))
+    with RemoteClient("127.0.0.1", r.port) as c:
+        wait_for(lambda: _gps_receiver(c)["setup"]["state"] == "acked", 10, "ACKs")
+        wait_for(lambda: 3.5 < (_gps_receiver(c)["measured_rate_hz"] or 0) < 4.5, 10, "4 Hz first")
+        gps.reset(banner=True)  # 1 Hz, VTG and GLL again; the port stays open
+        st = wait_for(
+            lambda: (
+                (s := _gps_receiver(c))["setup"]["rounds"] == 2
+                and s["setup"]["state"] == "acked"
+                and s
+            ),
+            20,
+            "the setup written again and ACKed",
+        )
+        assert gps.received == [_setup_frames() * 2]  # the same port: written twice
+        assert st["setup"]["losses"] == 1, st
+        assert "start-up banner" in st["setup"]["lost"], st
+        st = wait_for(
+            lambda: (
+                (s := _gps_receiver(c))["measured_rate_hz"] is not None
+                and 3.5 < s["measured_rate_hz"] < 4.5
+                and s
+            ),
+            15,
+            "4 Hz again",
+        )
+        assert "slow" not in st and gps.hz == 4.0
+    assert r.stop() == 0
+    lost = [m.getMessage() for m in caplog.records if "lost its configuration" in m.getMessage()]
+    assert len(lost) == 1 and m_level(caplog, lost[0]) == logging.WARNING, lost
+
+
+def m_level(caplog: Any, message: str) -> int:
+    return next(m.levelno for m in caplog.records if m.getMessage() == message)
+
+
+class ClockedNeo5:
+    """A NEO-5 behind an in-memory port on a test clock: RMC and GGA (VTG and GLL too while
+    not turned off) every 1/``hz`` s of the clock when :meth:`step` is called; UBX CFG
+    answered with ACK-ACK (CFG-RATE and CFG-MSG taken); :meth:`reset` as
+    :meth:`Neo5Pty.reset`. ``writes``: (clock, bytes) the host wrote."""
+
+    def __init__(self, clock: list[float], hz: float = 1.0, full: bool = True) -> None:
+        self.clock, self.hz = clock, hz
+        self.extra = ["VTG", "GLL"] if full else []
+        self.out = bytearray()
+        self.writes: list[tuple[float, bytes]] = []
+        self.mute = False
+        self.timeout: float | None = None
+        self._framer = NmeaFramer()
+        self._next_t = clock[0]
+
+    def write(self, data: bytes) -> int:
+        self.writes.append((self.clock[0], bytes(data)))
+        for f in self._framer.feed(data):
+            if isinstance(f, UbxFrame) and f.msg_class == 0x06:
+                if f.msg_id == 0x08:
+                    self.hz = 1000.0 / struct.unpack("<H", f.payload[:2])[0]
+                if f.msg_id == 0x01 and f.payload[0] == 0xF0 and f.payload[2] == 0:
+                    self.extra = [m for m in self.extra if NMEA_MSG_IDS[m] != f.payload[1]]
+                self.out += ubx_frame(0x05, 0x01, bytes((0x06, f.msg_id)))
+        return len(data)
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self.out)
+
+    def read(self, n: int = 1) -> bytes:
+        d = bytes(self.out[:n])
+        del self.out[:n]
+        return d
+
+    def close(self) -> None:
+        pass
+
+    def reset(self, banner: bool = True, extra: tuple[str, ...] = ("VTG", "GLL")) -> None:
+        self.hz, self.extra = 1.0, list(extra)
+        if banner:
+            self.out += b"".join(_s(b) for b in NEO5_BANNER)
+
+    def step(self) -> None:
+        t = self.clock[0]
+        if t >= self._next_t:
+            self._next_t = t + 1.0 / self.hz
+            if not self.mute:
+                utc = datetime(2026, 12, 5, 12, tzinfo=UTC) + timedelta(seconds=t)
+                self.out += _burst(utc, self.extra)
+
+
+def _clocked(
+    setup: bool = True, hz: float = 1.0, full: bool = True
+) -> tuple[GpsReader, ClockedNeo5, Callable[[float], None]]:
+    clock = [1000.0]
+    rx = ClockedNeo5(clock, hz, full)
+    reader = GpsReader(
+        lambda: rx,
+        clock=lambda: clock[0],
+        sleep=lambda s: None,
+        stale_s=5.0,
+        setup=ReceiverSetup(4.0) if setup else None,
+        expected_rate_hz=4.0,
+    )
+
+    def run(seconds: float) -> None:
+        until = clock[0] + seconds
+        while clock[0] < until - 1e-9:
+            clock[0] = round(clock[0] + 0.05, 3)
+            rx.step()
+            reader.poll(0.0)
+
+    return reader, rx, run
+
+
+def test_a_reset_without_a_banner_shows_in_the_sentences_the_setup_turned_off(
+    caplog: Any,
+) -> None:
+    caplog.set_level(logging.INFO)
+    reader, rx, run = _clocked()
+    setup = reader.setup
+    assert setup is not None
+    run(10.0)
+    assert (setup.state, rx.hz, rx.extra) == ("acked", 4.0, [])
+    rx.reset(banner=False)  # the banner lost in the brown-out: VTG and GLL tell
+    run(1.0)
+    assert setup.rounds == 2  # written again; the last write was 10 s ago: at once
+    assert setup.losses == 1
+    assert setup.lost_reason == "VTG sentences came back, which the setup turned off"
+    run(10.0)
+    assert (setup.state, rx.hz, rx.extra) == ("acked", 4.0, [])
+    st = reader.fix_rate.status()
+    assert 3.5 < st["measured_rate_hz"] < 4.5 and "slow" not in st, st
+    assert setup.status()["losses"] == 1 and "VTG" in setup.status()["lost"]
+    assert len([m for m in caplog.records if "lost its configuration" in m.getMessage()]) == 1
+
+
+def test_a_reset_seen_only_in_the_rate_is_configured_again() -> None:
+    reader, rx, run = _clocked()
+    setup = reader.setup
+    assert setup is not None
+    run(10.0)
+    assert setup.state == "acked" and rx.hz == 4.0
+    rx.reset(banner=False, extra=())  # no banner, no default sentence: only the rate tells
+    run(4.0)
+    assert setup.rounds == 1  # slow for less than 5 s so far
+    run(8.0)
+    assert setup.rounds == 2, setup.status()
+    assert setup.losses == 1
+    assert setup.lost_reason is not None and "fixes arrive at" in setup.lost_reason
+    assert "CFG-RATE for 4 Hz" in setup.lost_reason
+    run(6.0)
+    assert setup.state == "acked" and rx.hz == 4.0
+    assert 3.5 < (reader.fix_rate.measured_hz or 0) < 4.5
+
+
+def test_the_setup_is_written_again_at_most_every_10_s_and_warned_once_a_minute(
+    caplog: Any,
+) -> None:
+    caplog.set_level(logging.INFO)
+    reader, rx, run = _clocked()
+    setup = reader.setup
+    assert setup is not None
+    run(10.0)
+    rx.reset()
+    run(2.0)
+    rx.reset()  # again, 2 s later: lost again, written 10 s after the last write
+    run(12.0)
+    sent = [t - 1000.0 for t, data in rx.writes if data == setup.init_bytes]
+    assert len(sent) == 3 and sent[0] == pytest.approx(0.05), sent
+    assert 10.0 <= sent[1] < 10.2 and sent[2] - sent[1] >= 10.0, sent
+    assert setup.losses == 2 and setup.state == "acked" and rx.hz == 4.0
+    lost = [m.getMessage() for m in caplog.records if "lost its configuration" in m.getMessage()]
+    assert len(lost) == 1, lost  # the second within a minute: counted, not logged
+
+
+def test_a_banner_before_the_first_answers_is_no_loss() -> None:
+    # the simulated receiver's banner waits in the pty when the daemon opens it (HIL): it
+    # comes before the ACKs, which tell that the receiver took the setup after it
+    reader, rx, run = _clocked()
+    rx.out += b"".join(_s(b) for b in NEO5_BANNER)
+    setup = reader.setup
+    assert setup is not None
+    run(5.0)
+    assert (setup.state, setup.losses, setup.rounds, rx.hz) == ("acked", 0, 1, 4.0)
+
+
+def test_the_measured_rate_falls_while_the_gps_is_silent() -> None:
+    reader, rx, run = _clocked(setup=False, hz=4.0, full=False)
+    run(5.0)
+    rate = reader.fix_rate
+    assert rate.measured_hz == pytest.approx(4.0, abs=0.2) and rate.slow is None
+    rx.mute = True  # the port stays open, nothing comes
+    run(3.0)
+    assert rate.measured_hz is not None and rate.measured_hz < 2.0
+    assert rate.slow is not None
+    run(10.0)
+    assert rate.measured_hz == 0.0
+    assert rate.status()["measured_rate_hz"] == 0.0 and "no fix in the last 10 s" in rate.slow
+    rx.mute = False
+    run(5.0)
+    assert rate.measured_hz == pytest.approx(4.0, abs=0.2) and rate.slow is None
+
+
+def test_the_slow_warning_comes_again_each_time_the_rate_falls(caplog: Any) -> None:
+    caplog.set_level(logging.INFO)
+    reader, rx, run = _clocked(setup=False, hz=1.0, full=False)
+
+    def slow_warnings() -> int:
+        return len([m for m in caplog.records if "under gps.rate_hz" in m.getMessage()])
+
+    run(12.0)
+    assert slow_warnings() == 1
+    rx.hz = 4.0  # set in u-center, say
+    run(5.0)
+    assert reader.fix_rate.slow is None
+    run(5.0)
+    assert slow_warnings() == 1  # fine: nothing new
+    rx.hz = 1.0  # fell back (a reset the host does not configure: configure_receiver false)
+    run(12.0)
+    assert reader.fix_rate.slow is not None and slow_warnings() == 2
+    run(12.0)
+    assert slow_warnings() == 2  # still slow: not again
