@@ -36,7 +36,8 @@ cells/CELL_ID.toml --seed SEED`` replays a run), ``sweep.json`` (the plan), and 
 table and summary of :mod:`sim_backend.sweep_report`. Running the same sweep into the same
 directory again (after a crash, Ctrl-C or a change of the grid) skips every run whose file is
 there with the same seed and cell fingerprint (:func:`cell_digest`: the resolved scenario and
-the contents of the files it names): only the missing runs are simulated. A directory
+the contents of the files it names): only the missing runs are simulated (a folder written
+before cell ids had 16 hex digits keeps its runs: :func:`migrate_legacy_runs`). A directory
 that holds another sweep (another name or seed in its ``sweep.json``) is refused
 (:func:`check_out_dir`). A run whose
 mission raised is recorded with its error (kept on resume unless ``retry_failed``); a run the
@@ -317,10 +318,33 @@ def run_seed(sweep_seed: int, scenario: str, overrides: dict[str, Any], replicat
     return int.from_bytes(digest[: SEED_BITS // 8], "big")
 
 
+CELL_ID_HEX = 16
+"""Hex digits of a cell id's hash (64 bits: two of a 100,000-cell grid share one with a
+chance of ~3e-10, and :func:`plan` refuses it). They were 8 (32 bits) until 2026-12-05:
+then ~1 % of 10,000-cell grids had two cells of one id, merged silently into one."""
+LEGACY_CELL_ID_HEX = 8
+"""A cell id's hex digits before 2026-12-05: a run file of a folder made then has that id
+(the first digits of today's), and is found under it (:func:`legacy_run_id`)."""
+
+
 def cell_id(scenario: str, overrides: dict[str, Any]) -> str:
-    """A short stable name of a cell: the scenario and a hash of its parameters."""
+    """A short stable name of a cell: the scenario and a hash of its parameters
+    (:data:`CELL_ID_HEX` hex digits)."""
     h = hashlib.sha256(_canonical([scenario, sorted(overrides.items())]).encode("utf-8"))
-    return f"{scenario}-{h.hexdigest()[:8]}"
+    return f"{scenario}-{h.hexdigest()[:CELL_ID_HEX]}"
+
+
+def legacy_cell_id(cid: str) -> str:
+    """The id :func:`cell_id` gave the same cell before 2026-12-05 (its hash cut to
+    :data:`LEGACY_CELL_ID_HEX` hex digits)."""
+    return cid[: len(cid) - (CELL_ID_HEX - LEGACY_CELL_ID_HEX)]
+
+
+def legacy_run_id(run: Run) -> str:
+    """The id of ``run``'s file in a folder made before 2026-12-05 (:func:`legacy_cell_id`);
+    since two cells could share that id, such a file is ``run``'s only when its seed and
+    cell fingerprint are (:func:`is_done`)."""
+    return f"{legacy_cell_id(run.cell.cell_id)}-{run.replicate:03d}"
 
 
 def base_table(path: Path, robot_config: Path | None) -> tuple[dict[str, Any], Path]:
@@ -469,6 +493,7 @@ def plan(spec: SweepSpec) -> list[Run]:
     runs: list[Run] = []
     sky: dict[tuple[Any, ...], list[str]] = {}
     hashes: dict[Path, str] = {}
+    ids: dict[str, str] = {}  # cell id -> the label of the cell that has it
     for path in spec.scenarios:
         table, base = base_table(path, spec.robot_config)
         for combo in combos:
@@ -476,6 +501,15 @@ def plan(spec: SweepSpec) -> list[Run]:
             overrides = {**spec.fixed, **params}
             where = ", ".join(f"{k}={show_value(v)}" for k, v in overrides.items())
             label = f"{path.stem} ({where or 'no overrides'})"
+            cid = cell_id(path.stem, overrides)
+            if cid in ids:  # one cells/ file, one set of run files: the two would be merged
+                raise ConfigError(
+                    f"scenario {path}: {label}: its cell id {cid} is also the id of"
+                    f" {ids[cid]} (their parameters' hashes agree in {CELL_ID_HEX} hex digits,"
+                    f" a chance of {16.0**-CELL_ID_HEX:.0e} per pair: please report it);"
+                    " change one of the two values slightly, or rename the scenario file"
+                )
+            ids[cid] = label
             try:
                 world, text = cell_world(table, base, overrides, label, spec.base_dir)
                 warnings = start_checks(world, sky)  # x6wd sim's exit 2 is the sweep's
@@ -488,7 +522,6 @@ def plan(spec: SweepSpec) -> list[Run]:
                 # (x6wd sim's exit 2 is any X6wdError: an almanac it cannot parse, ...)
                 msg = str(exc) if str(exc).startswith(label) else f"{label}: {exc}"
                 raise ConfigError(f"scenario {path}: {msg}") from exc
-            cid = cell_id(path.stem, overrides)
             cell = Cell(
                 cid,
                 path.stem,
@@ -641,11 +674,20 @@ def _json_safe(v: Any) -> Any:
     return json_value(v)
 
 
+def same_run(record: dict[str, Any] | None, run: Run) -> bool:
+    """Whether a stored record is of ``run``: the same seed and cell fingerprint."""
+    return (
+        record is not None
+        and record.get("seed") == run.seed
+        and record.get("digest") == run.cell.digest
+    )
+
+
 def is_done(record: dict[str, Any] | None, run: Run, retry_failed: bool = False) -> bool:
     """Whether a stored record stands for ``run`` (same seed and configuration) and needs no
     new attempt: a success, or a mission that raised (unless ``retry_failed``); a run the
     cluster lost is always tried again."""
-    if record is None or record.get("seed") != run.seed or record.get("digest") != run.cell.digest:
+    if record is None or not same_run(record, run):
         return False
     status = record.get("status")
     return status == "ok" or (status == "error" and not retry_failed)
@@ -819,21 +861,66 @@ def out_dir_lock(out_dir: str | Path) -> Iterator[None]:
         os.close(fd)  # and with it the lock
 
 
+def _legacy_record(run: Run, store: RunStore) -> dict[str, Any] | None:
+    """``run``'s record in a folder made before 2026-12-05, under its old id
+    (:func:`legacy_run_id`), if that file is ``run``'s (:func:`same_run`)."""
+    old = legacy_run_id(run)
+    if old == run.run_id:
+        return None
+    rec = store.load(old)
+    return rec if same_run(rec, run) else None
+
+
 def split_done(
     runs: Sequence[Run], store: RunStore, retry_failed: bool = False
 ) -> tuple[dict[str, dict[str, Any]], list[Run]]:
-    """The stored records of the runs that are done (by run id) and the runs still to do."""
+    """The stored records of the runs that are done (by run id) and the runs still to do.
+    A run's file is looked up under its id, then under its id of before 2026-12-05
+    (:func:`legacy_run_id`; :func:`migrate_legacy_runs` renames such files)."""
     records: dict[str, dict[str, Any]] = {}
     todo: list[Run] = []
     for run in runs:
         rec = store.load(run.run_id)
+        if rec is None:
+            rec = _legacy_record(run, store)
         if rec is not None and is_done(rec, run, retry_failed):
             # the same cell and seed, labelled as this plan has it (a key moved from [grid]
-            # to [set] keeps the run, not its old column)
-            records[run.run_id] = {**rec, "params": _json_safe(run.cell.params)}
+            # to [set] keeps the run, not its old column; a file of before 2026-12-05 its
+            # short id)
+            records[run.run_id] = {
+                **rec,
+                "run_id": run.run_id,
+                "cell_id": run.cell.cell_id,
+                "params": _json_safe(run.cell.params),
+            }
         else:
             todo.append(run)
     return records, todo
+
+
+def migrate_legacy_runs(runs: Sequence[Run], store: RunStore) -> int:
+    """Rename the run files of a folder made before 2026-12-05 (cell ids of 8 hex digits,
+    :data:`LEGACY_CELL_ID_HEX`) to the ids of ``runs``: a file under a run's old id whose
+    seed and fingerprint are the run's (:func:`same_run`; two cells could share an old id,
+    and the file is then the one written last) is written under its new id, relabelled, and
+    the old file and the cell's old ``cells/`` file removed. Returns the files renamed."""
+    moved = 0
+    cells: set[str] = set()
+    for run in runs:
+        old = legacy_run_id(run)
+        if old == run.run_id or not store.path(old).exists():
+            continue
+        rec = _legacy_record(run, store)
+        if rec is None:
+            continue
+        if not store.path(run.run_id).exists():  # else: renamed, then interrupted
+            store.write({**rec, "run_id": run.run_id, "cell_id": run.cell.cell_id})
+            moved += 1
+        store.path(old).unlink(missing_ok=True)
+        cells.add(legacy_cell_id(run.cell.cell_id))
+    for cid in cells:
+        (store.dir.parent / "cells" / f"{cid}.toml").unlink(missing_ok=True)
+    return moved
 
 
 def run_sweep(
@@ -861,6 +948,7 @@ def run_sweep(
     out.mkdir(parents=True, exist_ok=True)
     write_plan(spec, runs, out)
     store = RunStore(out)
+    migrate_legacy_runs(runs, store)
     records, todo = split_done(runs, store, retry_failed)
     skipped = len(records)
 

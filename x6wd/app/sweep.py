@@ -31,6 +31,7 @@ from sim_backend.sweep import (
     RunStore,
     SweepSpec,
     check_out_dir,
+    legacy_cell_id,
     load_sweep,
     out_dir_lock,
     plan,
@@ -121,6 +122,7 @@ def outside_runs(runs: Sequence[Run], store: RunStore) -> dict[str, int]:
     plans them again tables them, without running them."""
     planned = {r.run_id for r in runs}
     cells = {r.cell.cell_id for r in runs}
+    cells |= {legacy_cell_id(c) for c in cells}  # a folder of before 2026-12-05's runs
     count = more = seeds = 0
     for path in sorted(store.dir.glob("*.json")):
         if path.stem in planned:

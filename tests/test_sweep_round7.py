@@ -1,0 +1,172 @@
+"""x6wd sweep, outside audit round 7: two cells of one cell id were merged (2). Real CLI and
+Dask where a cluster takes part, as in tests/test_sweep.py.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import ROOT
+from tests.test_sweep import results, run_cli, run_files
+
+pytest.importorskip("distributed")
+
+DEFAULT = ROOT / "config" / "scenarios" / "default.toml"
+COLLIDING = (26.2533, 34.3037)
+"""Two values of ``duration_s`` whose cells of a scenario named "short" had one cell id of
+8 hex digits (short-b85496ec), found by the audit by brute force."""
+
+
+def _short_scenario(tmp: Path) -> Path:
+    """The default scenario as ``short.toml`` (the audit's: a 40 s mission)."""
+    text = DEFAULT.read_text().replace("duration_s = 400.0", "duration_s = 40.0")
+    p = tmp / "short.toml"
+    p.write_text(text)
+    return p
+
+
+def _colliding_sweep(tmp: Path, values: tuple[float, ...] = COLLIDING, seeds: int = 2) -> Path:
+    _short_scenario(tmp)
+    f = tmp / "sweep.toml"
+    f.write_text(
+        f'name = "collide"\nseed = 1\nseeds = {seeds}\nscenarios = ["short.toml"]\n'
+        f"[grid]\nduration_s = [{', '.join(map(str, values))}]\n"
+    )
+    return f
+
+
+# ---------------------------------------------------------------------------- 2: cell ids
+
+
+@pytest.mark.integration
+def test_two_cells_whose_short_ids_agreed_are_two_cells(tmp_path: Path) -> None:
+    # Before: one cells/ file and two run files for the two cells; results.csv listed one
+    # cell's runs twice under the other's value (sim_time 26.3 labelled 34.3037), exit 0,
+    # and every rerun said "2 run now, 2 found done".
+    f = _colliding_sweep(tmp_path)
+    out = tmp_path / "out"
+    r = run_cli(str(f), "--workers", "1", "--out", str(out), "--quiet", "--no-figures")
+    assert r.returncode == 0, (r.stdout, r.stderr)
+    assert "4 run now, 0 found done" in r.stdout
+    cells = sorted(p.stem for p in (out / "cells").glob("*.toml"))
+    assert len(cells) == 2 and all(re.fullmatch(r"short-[0-9a-f]{16}", c) for c in cells)
+    assert len(run_files(out)) == 4
+    rows = results(out)
+    assert len({r["run_id"] for r in rows}) == 4
+    by_cell: dict[str, set[tuple[str, int]]] = {}
+    for row in rows:  # each run's label is its own mission's duration
+        by_cell.setdefault(row["cell_id"], set()).add(
+            (row["duration_s"], round(float(row["sim_time_s"])))
+        )
+    assert sorted(by_cell.values(), key=sorted) == [{("26.2533", 26)}, {("34.3037", 34)}]
+    again = run_cli(str(f), "--workers", "1", "--out", str(out), "--quiet", "--no-figures")
+    assert again.returncode == 0, (again.stdout, again.stderr)
+    assert "0 run now, 4 found done" in again.stdout
+
+
+def test_plan_refuses_two_cells_of_one_id(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    # A 64-bit id collides with a chance of ~3e-10 in a 100,000-cell grid: with the ids cut
+    # back to 8 hex digits the audit's pair collides, and plan() says so instead of merging.
+    from sim_backend import sweep
+    from x6wd.core.errors import ConfigError
+
+    monkeypatch.setattr(sweep, "CELL_ID_HEX", 8, raising=False)
+    spec = sweep.load_sweep(_colliding_sweep(tmp_path))
+    with pytest.raises(ConfigError) as exc:
+        sweep.plan(spec)
+    msg = str(exc.value)
+    assert "short (duration_s=34.3037): its cell id short-b85496ec is also the id of" in msg
+    assert "short (duration_s=26.2533)" in msg
+
+
+def test_a_folder_made_with_short_ids_resumes(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # A folder of before the ids grew: its runs are found under their old ids (not run
+    # again), renamed to the new ones, and a run file of the other cell of the same old id
+    # is not taken for this one's.
+    from sim_backend import sweep
+    from sim_backend.executor import Executor
+
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:  # the old ids: 8 hex digits; one of the two cells
+        m.setattr(sweep, "CELL_ID_HEX", 8, raising=False)
+        with Executor(inline=True) as ex:
+            old = sweep.run_sweep(
+                sweep.load_sweep(_colliding_sweep(tmp_path, COLLIDING[1:])), out, ex
+            )
+    assert sorted(run_files(out)) == ["short-b85496ec-000", "short-b85496ec-001"]
+    assert [p.stem for p in (out / "cells").glob("*.toml")] == ["short-b85496ec"]
+    old_seeds = sorted(r["seed"] for r in old.records)
+
+    # both cells now: the 34.3037 one is found done under its old id, the other runs
+    f = _colliding_sweep(tmp_path)
+    with Executor(inline=True) as ex:
+        res = sweep.run_sweep(sweep.load_sweep(f), out, ex)
+    assert (res.ran, res.skipped) == (2, 2)
+    done = [r for r in res.records if r["params"]["duration_s"] == COLLIDING[1]]
+    assert sorted(r["seed"] for r in done) == old_seeds
+    for rec in res.records:
+        assert re.fullmatch(r"short-[0-9a-f]{16}-00[01]", rec["run_id"]), rec["run_id"]
+        assert round(rec["sim_time_s"]) == round(rec["params"]["duration_s"])
+    assert sorted(run_files(out)) == sorted(r["run_id"] for r in res.records)  # renamed
+    assert sorted(p.stem for p in (out / "cells").glob("*.toml")) == sorted(
+        {r["cell_id"] for r in res.records}
+    )
+
+    # the command: nothing to run, nothing outside the grid
+    r = run_cli(str(f), "--out", str(out), "--quiet", "--no-figures")
+    assert r.returncode == 0, (r.stdout, r.stderr)
+    assert "0 run now, 4 found done" in r.stdout
+    assert "outside" not in r.stderr, r.stderr
+    assert len(results(out)) == 4
+
+
+def test_a_file_of_an_old_id_is_found_before_it_is_renamed(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # The command decides from split_done whether to start a cluster at all: the runs of a
+    # folder of before the ids grew are done for it too, before run_sweep renames them.
+    from sim_backend import sweep
+    from sim_backend.executor import Executor
+
+    f = _colliding_sweep(tmp_path, COLLIDING[1:], seeds=1)
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        m.setattr(sweep, "CELL_ID_HEX", 8, raising=False)
+        with Executor(inline=True) as ex:
+            sweep.run_sweep(sweep.load_sweep(f), out, ex)
+    runs = sweep.plan(sweep.load_sweep(f))
+    done, todo = sweep.split_done(runs, sweep.RunStore(out))
+    assert not todo
+    (rec,) = done.values()
+    assert rec["run_id"] == runs[0].run_id and rec["cell_id"] == runs[0].cell.cell_id
+    assert json.loads((out / "runs" / "short-b85496ec-000.json").read_text())["seed"] == (
+        runs[0].seed
+    )
+
+
+def test_a_quick_look_at_a_folder_of_short_ids_counts_its_other_seeds(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # --seeds 1 over a folder of before the ids grew: replicate 0 is found (and renamed), the
+    # other is still under its old id, and is a further seed of this cell, not of a cell
+    # outside the grid.
+    from sim_backend import sweep
+    from sim_backend.executor import Executor
+
+    f = _colliding_sweep(tmp_path, COLLIDING[1:], seeds=2)
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        m.setattr(sweep, "CELL_ID_HEX", 8, raising=False)
+        with Executor(inline=True) as ex:
+            sweep.run_sweep(sweep.load_sweep(f), out, ex)
+    r = run_cli(str(f), "--out", str(out), "--seeds", "1", "--quiet", "--no-figures")
+    assert r.returncode == 0, (r.stdout, r.stderr)
+    assert "0 run now, 1 found done" in r.stdout
+    assert "1 of them further seeds of these cells" in r.stderr, r.stderr
+    assert "not in this grid" not in r.stderr, r.stderr
