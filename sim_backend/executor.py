@@ -33,6 +33,11 @@ Meanwhile ``map_unordered(..., waiting=...)`` is told how long it has waited (a 
 says so: :meth:`TextProgress.waiting`), instead of seeming hung.
 The same time bounds the wait for ``workers=N`` workers to join an existing scheduler.
 
+A LocalCluster's workers ignore SIGINT (a Ctrl-C at the terminal reaches the whole process
+group: only this process acts on it) and log nothing once they are closing
+(:data:`WORKER_PRELOAD`); a Ctrl-C during a call into the client is raised when the call
+returns (:func:`_sigint_deferred`).
+
 A LocalCluster opens no dashboard (Dask's default is one on port 8787, which a second sweep
 on the same machine then finds taken) unless ``dashboard="HOST:PORT"`` asks for one.
 
@@ -110,10 +115,29 @@ def dask_available() -> bool:
     return True
 
 
-WORKER_IGNORES_SIGINT = "import signal\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
-"""A LocalCluster worker's preload: a Ctrl-C at the terminal reaches the whole process group,
-and only this process should act on it (it stops the cluster); otherwise every worker prints a
-KeyboardInterrupt traceback on its way down."""
+WORKER_PRELOAD = """
+import logging
+import signal
+
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def dask_setup(worker):
+    closing = ("closing", "closing_gracefully", "closed", "failed")
+
+    def going(record):
+        return getattr(worker.status, "name", "") not in closing
+
+    for handler in logging.getLogger("distributed").handlers:
+        handler.addFilter(going)
+"""
+"""A LocalCluster worker's preload. A Ctrl-C at the terminal reaches the whole process group,
+and only this process should act on it (it stops the cluster): the worker ignores it
+(otherwise every worker printed a KeyboardInterrupt traceback on its way down). And what the
+worker logs once it is closing is left out: a heartbeat in flight when the cluster shuts it
+down fails ("distributed.worker - ERROR - Failed to communicate with scheduler during
+heartbeat", a CommClosedError traceback of 25 lines per worker), at the end of every sweep
+whose scheduler answers slowly (a loaded machine) and after most Ctrl-Cs there."""
 
 
 @contextlib.contextmanager
@@ -140,6 +164,38 @@ def _sigint_held() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # a held one lands now
         signal.signal(signal.SIGINT, old)
         if held:  # also when the start failed: the user asked to stop
+            raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """A Ctrl-C during a call into Dask's client raised when the call returns (a second one at
+    once: a call that hangs can still be stopped). A client call waits for its event loop's
+    thread (``distributed.utils.sync``), and a KeyboardInterrupt raised in that wait has the
+    loop cancel the call: when the call had not begun there yet, the cancellation failed on
+    the loop's thread with "NameError: cannot access free variable 'future'" and a traceback
+    on stderr (the client polls the worker count every second, so a Ctrl-C on a loaded
+    machine met one now and then). Only in the main thread, and only over Python's own
+    handler (a caller's handler is left alone)."""
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
+        yield
+        return
+    held: list[int] = []
+
+    def hold(signum: int, _frame: Any) -> None:
+        if held:
+            raise KeyboardInterrupt
+        held.append(signum)
+
+    signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        if held:
             raise KeyboardInterrupt
 
 
@@ -307,7 +363,7 @@ class Executor:
                             {} if self.dashboard else {"dashboard_address": "127.0.0.1:0"}
                         ),
                         silence_logs=logging.ERROR,
-                        preload=[WORKER_IGNORES_SIGINT],
+                        preload=[WORKER_PRELOAD],
                     )
                 self._client = Client(self._cluster)
         except ConfigError:
@@ -378,7 +434,8 @@ class Executor:
         """Workers connected now (1 in this process)."""
         if self.inline or self._client is None:
             return 1
-        info = self._client.scheduler_info(n_workers=0)  # the count, not every worker's facts
+        with _sigint_deferred():  # the count, not every worker's facts
+            info = self._client.scheduler_info(n_workers=0)
         n = info.get("n_workers")
         return int(n) if isinstance(n, int) else len(info.get("workers", {}))
 
@@ -435,7 +492,8 @@ class Executor:
                         waiting(self.worker_timeout_s if gone else watch.waited_s, watch.timeout_s)
                     if gone:  # no worker for the whole timeout: give the rest up
                         left = sorted(pending, key=index.__getitem__)
-                        self._client.cancel([futures[index[k]] for k in left])
+                        with _sigint_deferred():
+                            self._client.cancel([futures[index[k]] for k in left])
                         pending.clear()
                         message = self._no_worker_message()
                         for k in left:
@@ -452,15 +510,22 @@ class Executor:
                 pending.discard(fut.key)
                 self._peak_workers = max(self._peak_workers, self.worker_count())
                 if reraise and outcome.kind == "task":
-                    fut.result()  # raises the task's own exception
+                    with _sigint_deferred():
+                        fut.result()  # raises the task's own exception
                 yield outcome
                 fut.release()
         finally:
             if pending:
-                self._client.cancel([f for f in futures if f.key in pending])
+                with _sigint_deferred():
+                    self._client.cancel([f for f in futures if f.key in pending])
 
     @staticmethod
     def _outcome(i: int, fut: Any) -> Outcome:
+        with _sigint_deferred():  # it asks the scheduler (the result, the error)
+            return Executor._outcome_of(i, fut)
+
+    @staticmethod
+    def _outcome_of(i: int, fut: Any) -> Outcome:
         if fut.status == "finished":
             try:
                 return Outcome(i, value=fut.result())

@@ -1,17 +1,21 @@
-"""x6wd sweep, outside audit round 7: two cells of one cell id were merged (2). Real CLI and
-Dask where a cluster takes part, as in tests/test_sweep.py.
+"""x6wd sweep, outside audit round 7: two cells of one cell id were merged (2); a Ctrl-C
+during a LocalCluster sweep printed the workers' heartbeat errors and a NameError from Dask
+(4). Real CLI and Dask where a cluster takes part, as in tests/test_sweep.py.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from tests.conftest import ROOT
-from tests.test_sweep import results, run_cli, run_files
+from tests.test_sweep import ctrl_c_when, results, run_cli, run_files, sweep_file
 
 pytest.importorskip("distributed")
 
@@ -170,3 +174,122 @@ def test_a_quick_look_at_a_folder_of_short_ids_counts_its_other_seeds(
     assert "0 run now, 1 found done" in r.stdout
     assert "1 of them further seeds of these cells" in r.stderr, r.stderr
     assert "not in this grid" not in r.stderr, r.stderr
+
+
+# ---------------------------------------------------------------------------- 4: Ctrl-C
+
+SLOW_HEARTBEATS = """
+# A scheduler that answers each worker heartbeat after 0.4 s, as on a loaded machine (the
+# audit's: two cores shared by other work): a heartbeat is then in flight most of the time.
+import os
+
+if os.environ.get("X6WD_TEST_SLOW_HEARTBEAT_S"):
+    import asyncio
+
+    from distributed import scheduler
+
+    _init = scheduler.Scheduler.__init__
+    _delay = float(os.environ["X6WD_TEST_SLOW_HEARTBEAT_S"])
+
+    def __init__(self, *args, **kwargs):
+        _init(self, *args, **kwargs)
+        answer = self.handlers["heartbeat_worker"]
+
+        async def heartbeat_worker(**msg):
+            await asyncio.sleep(_delay)
+            return answer(**msg)
+
+        self.handlers["heartbeat_worker"] = heartbeat_worker
+
+    scheduler.Scheduler.__init__ = __init__
+"""
+
+
+def _slow_heartbeats(tmp: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every Python process started from here on loads :data:`SLOW_HEARTBEATS`."""
+    site = tmp / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(SLOW_HEARTBEATS)
+    path = os.environ.get("PYTHONPATH")
+    monkeypatch.setenv("PYTHONPATH", f"{site}{os.pathsep}{path}" if path else str(site))
+    monkeypatch.setenv("X6WD_TEST_SLOW_HEARTBEAT_S", "0.4")
+
+
+def _noise(stderr: str) -> list[str]:
+    return [
+        line
+        for line in stderr.splitlines()
+        if line.strip() and not line.startswith("sweep interrupted:")
+    ]
+
+
+@pytest.mark.integration
+def test_a_sweep_on_a_slow_scheduler_ends_without_worker_errors(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A worker's heartbeat in flight when the cluster shut it down failed: "distributed.worker
+    # - ERROR - Failed to communicate with scheduler during heartbeat." and a CommClosedError
+    # traceback of ~25 lines, per worker, at the end of a sweep that ran to its end too.
+    _slow_heartbeats(tmp_path, monkeypatch)
+    f = sweep_file(tmp_path, "seeds = 2\n[set]\nduration_s = 5.0\n")
+    out = tmp_path / "out"
+    r = run_cli(str(f), "--workers", "2", "--out", str(out), "--quiet", "--no-figures")
+    assert r.returncode == 0, (r.stdout, r.stderr)
+    assert "2 run now" in r.stdout
+    assert not _noise(r.stderr), r.stderr
+
+
+@pytest.mark.integration
+def test_a_ctrl_c_to_the_group_during_a_sweep_prints_only_what_it_kept(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The audit's Ctrl-C (SIGINT to the process group, as a terminal sends it) during a
+    # LocalCluster sweep: exit 130 and "sweep interrupted" were right, but ~25 lines of the
+    # workers' heartbeat errors came with them.
+    _slow_heartbeats(tmp_path, monkeypatch)
+    f = sweep_file(tmp_path, "seeds = 40\n[set]\nduration_s = 20.0\n")
+    out = tmp_path / "out"
+    args = ["sweep", str(f), "--workers", "2", "--out", str(out), "--quiet", "--no-figures"]
+
+    def running(_pid: int) -> bool:  # the cluster is up and its workers busy
+        return (out / "runs").is_dir() and len(run_files(out)) >= 1
+
+    returncode, err = ctrl_c_when(args, running, 180.0, group=True)
+    assert returncode == 130, err
+    assert "sweep interrupted:" in err
+    assert not _noise(err), err
+
+
+PROBE = """
+import os, signal, sys, threading, time
+
+from sim_backend.executor import Executor
+
+if __name__ == "__main__":
+    with Executor(workers=1) as ex:
+        ex._client.loop.add_callback(time.sleep, 1.0)  # the client's event loop busy for 1 s
+        threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()
+        try:
+            ex.worker_count()  # a client call, waiting for that loop
+        except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr)
+        time.sleep(1.5)  # the loop runs what it was given meanwhile
+    print("closed", file=sys.stderr)
+"""
+
+
+@pytest.mark.integration
+def test_a_ctrl_c_during_a_client_call_is_raised_when_it_returns(tmp_path: Path) -> None:
+    # A KeyboardInterrupt raised while the client waited for its event loop made Dask cancel
+    # the call on the loop; one that had not begun there failed: "NameError: cannot access
+    # free variable 'future' where it is not associated with a value in enclosing scope"
+    # with a traceback (the audit saw it once: the executor polls the worker count every
+    # second). Here the loop is kept busy so that the call has not begun when the Ctrl-C
+    # comes.
+    script = tmp_path / "probe.py"
+    script.write_text(PROBE)
+    r = subprocess.run(
+        [sys.executable, str(script)], cwd=ROOT, capture_output=True, text=True, timeout=180
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.split() == ["interrupted", "closed"], r.stderr
