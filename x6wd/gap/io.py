@@ -1137,14 +1137,82 @@ def _read_csv(path: Path) -> Track:
                 "nsats": None,
             }
             body = _chain_row(first, reader)
-        rows, numeric = [], False
+        # A row with fewer fields than the header (headerless: than the first row, and at
+        # least time,lat,lon) lost its end: a logger killed while writing leaves its last
+        # line so, and its last field read may be cut inside a number (-105.09 of
+        # -105.095171686): skipped and named, never filled with NaN as a fix.
+        n_fields = len(first) if has_header else max(_MIN_CSV_FIELDS, len(first))
+        open_last = _open_last_line(path)
+        read = {i for i in column.values() if i is not None}
+        if not has_header and len(first) < _MIN_CSV_FIELDS:
+            _csv_row(first, column, source, linenos)  # a row not of numbers is named so
+            raise _not_a_log(
+                f"{source}:{linenos[-1]}", first, f"{len(first)} fields, time,lat,lon are 3"
+            )
+        rows, numeric, short = [], False, []
+        cut_last = ""
         for row in body:
+            lineno = linenos[-1]
+            if len(row) < n_fields:
+                short.append((lineno, len(row)))
+                continue
+            if lineno == open_last and len(row) - 1 in read:
+                # every field there, but no line ending: the last one may be cut short
+                field = _field_name(first, has_header, len(row) - 1)
+                cut_last = (
+                    f"line {lineno}, the last, has no line ending: a logger stopped while"
+                    f" writing it may have cut its last field ({field}), which is read: skipped"
+                )
+                continue
             rows.append(_csv_row(row, column, source, linenos))
             numeric = numeric or _is_number(row[column["t"]])  # type: ignore[index]
     except csv.Error as exc:
         raise ParseError(f"{source}:{linenos[-1] if linenos else 1}: not CSV: {exc}") from exc
+    skipped = [n for n in [_short_note(short, n_fields, has_header, open_last), cut_last] if n]
+    if not rows and skipped:
+        raise ParseError(f"{source}: no position epochs found: {'; '.join(skipped)}")
+    notes += skipped
     name = first[column["t"]].strip().strip('"') if has_header else "1 (no header)"  # type: ignore[index]
     return replace(_track(rows, source, notes), time_column=name if numeric else "")
+
+
+_MIN_CSV_FIELDS = 3  # time, lat, lon
+
+
+def _open_last_line(path: Path) -> int | None:
+    """The number (from 1) of the file's last line when it has no line ending (a logger
+    killed while writing it), else None."""
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        size = f.tell()
+        if size == 0:
+            return None
+        f.seek(size - 1)
+        if f.read(1) == b"\n":
+            return None
+    return sum(chunk.count(b"\n") for chunk in _chunks(path)) + 1
+
+
+def _field_name(first: list[str], has_header: bool, i: int) -> str:
+    if has_header and i < len(first):
+        return repr(first[i].strip().strip('"'))
+    return f"field {i + 1}"
+
+
+def _short_note(
+    short: list[tuple[int, int]], n_fields: int, has_header: bool, open_last: int | None
+) -> str:
+    """The note naming the CSV rows skipped for having fewer fields than ``n_fields``."""
+    if not short:
+        return ""
+    if len(short) == 1:
+        lineno, n = short[0]
+        last = "; the last line, without a line ending" if lineno == open_last else ""
+        return f"line {lineno}: {n} of {n_fields} fields (cut off{last}): skipped"
+    than = f"the header's {n_fields}" if has_header else f"the first row's {n_fields}"
+    shown = ", ".join(f"line {lineno} ({n} of {n_fields})" for lineno, n in short[:5])
+    more = f" and {len(short) - 5} more" if len(short) > 5 else ""
+    return f"{len(short)} rows with fewer fields than {than} (cut off), skipped: {shown}{more}"
 
 
 def _height_note(header: list[str], column: dict[str, int | None]) -> str:
@@ -1205,15 +1273,22 @@ def _csv_row(
             math.nan,
         )
     except (ValueError, IndexError) as exc:
-        shown = repr(row)
-        shown = shown if len(shown) <= 80 else shown[:77] + "..."
         where = f"{source}:{linenos[-1]}"
         if column["t"] == 0 and column["valid"] is None:  # no header: maybe no CSV at all
-            raise ParseError(
-                f"{where}: not a log the gap tool reads (NMEA, x6wd recording, CSV with a"
-                f" time,lat,lon header or rows, RTKLIB .pos): row {shown}: {str(exc)[:80]}"
-            ) from exc
-        raise ParseError(f"{where}: bad CSV row {shown}: {str(exc)[:80]}") from exc
+            raise _not_a_log(where, row, str(exc)) from exc
+        raise ParseError(f"{where}: bad CSV row {_shown(row)}: {str(exc)[:80]}") from exc
+
+
+def _shown(row: list[str]) -> str:
+    shown = repr(row)
+    return shown if len(shown) <= 80 else shown[:77] + "..."
+
+
+def _not_a_log(where: str, row: list[str], why: str) -> ParseError:
+    return ParseError(
+        f"{where}: not a log the gap tool reads (NMEA, x6wd recording, CSV with a"
+        f" time,lat,lon header or rows, RTKLIB .pos): row {_shown(row)}: {why[:80]}"
+    )
 
 
 def _parse_time(s: str) -> float:
@@ -1241,6 +1316,9 @@ def _read_pos(path: Path) -> Track:
     rows: list[tuple[float, ...]] = []
     systems: list[str] = []
     system: str | None = None
+    open_last = _open_last_line(path)
+    n_fields = _POS_MIN_FIELDS  # the line before's (RTKLIB writes one layout per file)
+    cut_notes: list[str] = []
     for lineno, line in _text_lines(path):
         if line.startswith("%"):
             legend = _POS_LEGEND.match(line)
@@ -1250,6 +1328,19 @@ def _read_pos(path: Path) -> Track:
         if not line.strip():
             continue
         fields = line.split()
+        if lineno == open_last and (len(fields) < n_fields or _pos_reads_last(len(fields))):
+            # a logger (rtkrcv, rnx2rtkp) stopped while writing its last line: skipped, as a
+            # CSV's; a malformed line before it still stops the reading
+            cut_notes.append(
+                f"line {lineno}: {len(fields)} of {n_fields} fields (cut off; the last line,"
+                " without a line ending): skipped"
+                if len(fields) < n_fields
+                else f"line {lineno}, the last, has no line ending: a logger stopped while"
+                f" writing it may have cut its last field (field {len(fields)}), which is"
+                " read: skipped"
+            )
+            continue
+        n_fields = len(fields)
         try:
             if "/" in fields[0]:
                 t_s = (
@@ -1291,6 +1382,8 @@ def _read_pos(path: Path) -> Track:
         )
         systems.append(system or "GPST")
     if not rows:
+        if cut_notes:
+            raise ParseError(f"{source}: no position epochs found: {cut_notes[0]}")
         return _track(rows, source)
     t_sys_s = np.array([row[0] for row in rows])
     system_of = np.array(systems)
@@ -1313,7 +1406,17 @@ def _read_pos(path: Path) -> Track:
         if np.any(system_of == zone):
             notes.append(f"RTKLIB times in {zone}: taken to UTC")
     rows = [(float(t), *row[1:]) for t, row in zip(t_utc_s, rows, strict=True)]
-    return _track(rows, source, notes)
+    return _track(rows, source, notes + cut_notes)
+
+
+# An RTKLIB position line: date time (or week tow), lat lon height Q ns, six sd, age ratio
+_POS_MIN_FIELDS = 15
+
+
+def _pos_reads_last(n_fields: int) -> bool:
+    """Whether a .pos line of ``n_fields`` fields ends in a field the reader uses (fields
+    1-7, and the velocities vn ve, fields 16-17, of a line of 17 or more)."""
+    return n_fields <= 7 or n_fields == 17
 
 
 def gpst_to_utc_s(t_s: np.ndarray) -> np.ndarray:
