@@ -2,7 +2,7 @@
 logger was killed while writing leaves a last line cut off: it was read as a real fix
 (a CSV) or refused with exit 2 (a .pos). The logs here are the first rows of
 tests/data/static/mobile.csv and tests/data/urban/rover_1Hz_spp.pos, cut as the audit cut
-them."""
+them. Also: the far-from-truth message names the log it checks (--real or --sim)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from x6wd.core.errors import ParseError
-from x6wd.gap.io import read_track
+from x6wd.core.errors import ConfigError, ParseError
+from x6wd.gap.io import check_near_truth, errors_vs_point, read_track
 
 DATA = Path(__file__).parent / "data"
 MOBILE = DATA / "static" / "mobile.csv"
@@ -129,3 +129,34 @@ def test_pos_malformed_line_in_the_middle_still_refused(tmp_path: Path) -> None:
     path.write_text("".join(lines))
     with pytest.raises(ParseError, match=r":31: not an RTKLIB .pos line"):
         read_track(path)
+
+
+def _far_csv(path: Path) -> Path:
+    path.write_text("time,lat,lon\n" + "".join(f"{k},10.0,10.0\n" for k in range(30)))
+    return path
+
+
+def test_far_from_truth_message_names_the_log_checked(tmp_path: Path) -> None:
+    track = read_track(_far_csv(tmp_path / "far.csv"))
+    series = errors_vs_point(track, 39.82, -105.09, 0.0)
+    with pytest.raises(ConfigError) as real:
+        check_near_truth(series, track.source, log="real")
+    assert "--sim" not in str(real.value) and "the real log" in str(real.value), real.value
+    assert "--truth" in str(real.value)
+    with pytest.raises(ConfigError) as sim:
+        check_near_truth(series, track.source, log="sim")
+    assert "--sim log must simulate the real log's place" in str(sim.value), sim.value
+
+
+def test_far_real_log_is_not_told_about_sim_logs(tmp_path: Path, capsys) -> None:
+    # The audit: --real firefly-II.log with a --truth 1471.7 km away was told "(a --sim log
+    # must simulate the real log's place ...)". The CLI does not say (yet) which log it
+    # checks: the hint then says whose each part is.
+    from x6wd.app.cli import main as x6wd_main
+
+    far = _far_csv(tmp_path / "far.csv")
+    argv = ["gap", "--real", str(far), "--truth", "39.82,-105.09", "--out", str(tmp_path / "o")]
+    assert x6wd_main([*argv, "--quiet", "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert "far.csv" in err and "km from the truth" in err, err
+    assert "(a --sim log must simulate" not in err, err

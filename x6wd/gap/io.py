@@ -1844,20 +1844,32 @@ def errors_vs_mean(track: Track) -> PositionSeries:
     )
 
 
-def check_near_truth(series: PositionSeries, source: str) -> PositionSeries:
+def check_near_truth(series: PositionSeries, source: str, log: str | None = None) -> PositionSeries:
     """``series`` (errors against a truth, m) unless its median horizontal error exceeds
     :data:`MAX_ERROR_FROM_TRUTH_M`: then ConfigError naming ``source`` and the distance (a
     simulation of another place, or a wrong truth, would otherwise read as a bias of
-    thousands of kilometres)."""
+    thousands of kilometres). ``log`` says which log it is, ``"real"`` or ``"sim"``: the
+    hint is that log's (None: both hints, each saying whose it is)."""
     valid = np.asarray(series.valid, dtype=bool)
     if np.any(valid):
         error_m = np.hypot(np.asarray(series.east_m)[valid], np.asarray(series.north_m)[valid])
         median_m = float(np.median(error_m))
         if median_m > MAX_ERROR_FROM_TRUTH_M:
+            hint = {
+                "real": "is --truth or --truth-track the real log's place, and --real the log"
+                " meant?",
+                "sim": "a --sim log must simulate the real log's place and path; is --truth or"
+                " --truth-track right?",
+            }.get(
+                log or "",
+                "is --truth or --truth-track right? if this is a --sim log, it must simulate"
+                " the real log's place and path",
+            )
+            which = {"real": "the real log (--real)", "sim": "a --sim log"}.get(log or "")
+            head = f"{source} ({which})" if which else source
             raise ConfigError(
-                f"{source}: its fixes lie a median {median_m / 1000:.1f} km from the truth:"
-                " not a log of that place (a --sim log must simulate the real log's place and"
-                " path; is --truth or --truth-track right?)"
+                f"{head}: its fixes lie a median {median_m / 1000:.1f} km from the truth:"
+                f" not a log of that place ({hint})"
             )
     return series
 
