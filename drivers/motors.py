@@ -83,6 +83,20 @@ which have no delay between them) is ridden out on the same port."""
 RETRY_WINDOW = 20
 """Commands kept to judge how often they needed a retry: when over half of the last
 ``RETRY_WINDOW`` did, the link is degraded (a board answering every other command)."""
+RESTART_LATCH_COUNT = 3
+RESTART_WINDOW_S = 60.0
+"""Board restarts under a running link (``EVT BOOT`` once up, or one the encoder readings
+show) that latch a fault: this many within this many seconds (s). A brown-out under motor
+current restarts the board each time the robot drives off again; after one restart the link
+comes back at the controller's first stop and a mission drives on, but the third within a
+minute keeps the link lost until a stop with one of :data:`RESTART_CLEARING_REASONS`."""
+RESTART_CLEARING_REASONS = frozenset({"operator stop", "idle", "paused", "done"})
+"""The reasons of the stops that clear a latched restart fault (:data:`RESTART_LATCH_COUNT`):
+the operator's stop as the daemon sends it (``Daemon.stop``: ``x6wd client stop``, the
+console's Stop) and the controller's stop in a mode that drives nothing by itself (IDLE,
+PAUSED, DONE: ``str(mode).lower()``), which follows an operator's stop or pause and may
+replace the first in the motor worker's queue. A mission held by the lost link sends
+``hold: motor link lost``, which does not clear it: the mission waits for its operator."""
 REOPEN_LOG_S = 30.0
 """At most one "motor port reopened" log line per this many seconds (s); status counts
 every reopen."""
@@ -154,6 +168,7 @@ class LinkCounters:
     board_restarts: int = 0  # EVT BOOT after the link was up: a brown-out or a reset
     reopens: int = 0  # the port reopened after it broke
     held_drives: int = 0  # send() drives refused (a stop sent) while a board restart held
+    restart_faults: int = 0  # RESTART_LATCH_COUNT restarts within RESTART_WINDOW_S: latched
 
 
 def encoder_rate_bound(
@@ -401,6 +416,10 @@ class SerialMotorLink:
         # Why the board restarted under a running link (EVT BOOT once up), until a stop()
         # the board confirmed: the link is lost meanwhile and send() refuses drives.
         self._restart_hold: str | None = None
+        # Board restarts (times, s) within RESTART_WINDOW_S; the latched fault they make
+        # (its reason) until an operator's stop: the hold stays meanwhile
+        self._restarts: deque[float] = deque()
+        self._restart_fault: str | None = None
         self.configured = False
         self._configure()
 
@@ -479,6 +498,10 @@ class SerialMotorLink:
     def _stop(self, reason: str, *, ends_hold: bool) -> bool:
         try:
             self._last = MotorCommand(self._clock(), 0.0, 0.0, reason)
+            # a latched restart fault ends only with a stop that will not drive on by itself
+            ends_hold = ends_hold and (
+                self._restart_fault is None or reason in RESTART_CLEARING_REASONS
+            )
             ok = self._transact_reply("S", ends_hold=ends_hold) is not None
         except Exception:  # stop must not raise, whatever the port does
             log.exception("motor stop failed")
@@ -506,7 +529,9 @@ class SerialMotorLink:
         restart, or one the controller decided before it was told, must not start the
         motors again. Input waiting on the port is read before a drive is written, so an
         ``EVT BOOT`` already received holds it back; one that arrives before the drive's
-        reply (the board took the drive after restarting) stops the board at once."""
+        reply (the board took the drive after restarting) stops the board at once. The
+        :data:`RESTART_LATCH_COUNT`-th restart within :data:`RESTART_WINDOW_S` latches the
+        hold: only a stop with one of :data:`RESTART_CLEARING_REASONS` ends it."""
         if cmd.is_stop:
             return self.stop(cmd.reason)
         return self._drive(cmd.left_pct, cmd.right_pct, cmd.reason, held=True)
@@ -555,6 +580,8 @@ class SerialMotorLink:
         left, right = enc.update(*parsed, t_s=t_s, sent_s=sent_s, requests=requests)
         if enc.verdict in ("restart", "implausible"):
             self._encoder_new_baseline(parsed, t_s)
+            if enc.verdict == "restart":
+                self._board_restarted("seen in the encoder reading", t_s)
         return WheelOdometry(t_s, left, right, seq)
 
     def _encoder_new_baseline(self, reading: tuple[int, int, int], t_s: float) -> None:
@@ -699,12 +726,27 @@ class SerialMotorLink:
                     t_s = self._clock()
                     if ends_hold and ok and self._restart_hold is not None:
                         self._restart_hold = None
-                        log.warning("motors: stopped after the board restart; drives go again")
+                        if self._restart_fault is not None:
+                            self._restart_fault = None
+                            log.warning(
+                                "motors: the restart fault cleared by a stop (%s); drives go again",
+                                self._last.reason if self._last is not None else "stop",
+                            )
+                        else:
+                            log.warning("motors: stopped after the board restart; drives go again")
                     if self._restart_hold is None:  # held: lost until the caller's stop
                         if not tracker.health.connected:
                             tracker.opened(t_s)  # the board answers again: a reconnect
                         self._note_retries(attempt > 0, t_s)
                         tracker.good(t_s)
+                    elif (
+                        self._restart_fault is not None
+                        and tracker.health.reason != self._restart_fault
+                    ):
+                        # the board answers, but the latched fault keeps the link lost: it is
+                        # the reason status shows (not an older one's, a timeout's)
+                        tracker.opened(t_s)
+                        tracker.lost(self._restart_fault, t_s, count_error=False)
                     return payload if ok else None
                 self.counters.rejected += 1
                 log.warning("motor board rejected %r: %s", body, payload)
@@ -831,6 +873,34 @@ class SerialMotorLink:
             next_t = self._next_reopen_t if self._port_dead else None
             tracker.open_failed(state.last_error, t_s, next_t, count_error=False)
 
+    def _board_restarted(self, how: str, t_s: float) -> None:
+        """The board restarted under a running link at ``t_s`` (s), as ``how`` tells:
+        counted within :data:`RESTART_WINDOW_S`; the :data:`RESTART_LATCH_COUNT`-th there
+        latches a fault. The link is lost (``healthy`` False, send() refuses drives) until
+        a stop with one of :data:`RESTART_CLEARING_REASONS` the board confirms (the mission
+        stopped or paused); said as an ERROR."""
+        times = self._restarts
+        times.append(t_s)
+        while times and t_s - times[0] > RESTART_WINDOW_S:
+            times.popleft()
+        if len(times) < RESTART_LATCH_COUNT or self._restart_fault is not None:
+            return
+        why = (
+            f"board restarted {len(times)} times in {t_s - times[0]:.1f} s (the last "
+            f"{how}; a brown-out each time the motors draw current?): latched, the link "
+            f"stays lost and drives are refused until the operator stops or pauses (x6wd "
+            f"client stop / pause, the console)"
+        )
+        self.counters.restart_faults += 1
+        log.error("motors: %s", why)
+        self._restart_fault = why
+        self._restart_hold = why
+        self._failures = max(self._failures, self.unhealthy_after)
+        if self._tracker.health.connected:
+            self._tracker.lost(why, t_s)
+        else:  # lost already (a timeout): the reason follows once the board answers
+            self._tracker.error(why, t_s)
+
     def _board_event(self, payload: str) -> None:
         """An unsolicited ``EVT``. A watchdog stop, or a restart once the link was up, is
         a fault of the drive (the robot stopped, or lost its settings, without being told
@@ -850,6 +920,7 @@ class SerialMotorLink:
                 "board restarted (EVT BOOT; a brown-out?): its settings and counters were "
                 "lost; drives held until the controller stops"
             )
+            self._board_restarted("EVT BOOT", t_s)
             log.warning("motors: %s", why)
             # a lost link, as a dropped one: the controller holds and stops; the drive from
             # before the restart is not sent again (send)

@@ -573,3 +573,159 @@ def test_an_unannounced_restart_of_a_board_that_stood_still_is_a_restart(
         assert again is not None and (again.left_counts, again.right_counts) == (53, 53)
     finally:
         link.close()
+
+
+# --- review6 3: a board that browns out each time it drives off is a latched fault -----------
+
+
+def _brown_out(pb: Pty) -> None:
+    """The board restarts (its EVT BOOT reaches the host)."""
+    with pb.lock:
+        hello = pb.board.boot()
+    os.write(pb.master, hello)
+
+
+@pytest.mark.integration
+def test_the_third_restart_within_a_minute_latches_until_an_operators_stop(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from x6wd.core.records import MotorCommand
+
+    now = [100.0]
+    pb = Pty(boot=True)
+    link = SerialMotorLink(open_port(pb.name), ack_timeout_s=0.5, clock=lambda: now[0])
+
+    def drive() -> bool:
+        return link.send(MotorCommand(now[0], 60.0, 60.0, "mission"))
+
+    def restart() -> None:
+        _brown_out(pb)
+        assert wait_for(lambda: (link.ping() or True) and link.counters.board_restarts == n)
+
+    try:
+        n = 0
+        for gap_s in (0.0, 61.0, 5.0):  # the first two over a minute (the window) apart
+            now[0] += gap_s
+            assert drive() and pb.state() == (60, 60)
+            n += 1
+            restart()
+            assert not link.healthy
+            assert link.stop("hold: motor link lost") and link.healthy  # one stop: drives go
+        with caplog.at_level("ERROR", logger="drivers.motors"):
+            now[0] += 5.0  # the third within 60 s (the 2nd and 3rd and this one)
+            assert drive() and pb.state() == (60, 60)
+            n += 1
+            restart()
+        for _ in range(3):  # the controller's stops: the board stops, the link stays lost
+            now[0] += 1.0
+            assert link.stop("hold: motor link lost")
+            assert not link.healthy
+            assert not drive() and pb.state() == (0, 0)
+        errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+        assert len(errors) == 1 and "restarted 3 times" in errors[0], errors
+        assert link.counters.restart_faults == 1
+        health = link.health
+        assert health.state == "disconnected" and "restarted 3 times" in health.reason
+        assert "stops or pauses" in health.reason
+        assert link.stop("operator stop") and link.healthy
+        assert link.health.state == "connected"
+        assert drive() and pb.state() == (60, 60)
+        # the history stays: one more restart within the minute latches again at once
+        n += 1
+        restart()
+        assert link.counters.restart_faults == 2
+        assert link.stop("hold: motor link lost") and not link.healthy
+    finally:
+        link.close()
+        pb.close()
+
+
+class SaggingBoard(MotorBoard):
+    """A board whose supply sags under motor current: it restarts (EVT BOOT) ``sag_s``
+    after its motors start."""
+
+    sag_s = 0.15
+    sags = 0
+    _since: float | None = None
+
+    def tick(self, t_s: float) -> bytes:
+        out = super().tick(t_s)
+        if not self.running:
+            self._since = None
+        elif self._since is None:
+            self._since = t_s
+        elif t_s - self._since >= self.sag_s:
+            self._since = None
+            self.sags += 1
+            return out + self.boot()
+        return out
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("ends", ["stop", "pause"])
+def test_a_mission_on_a_board_browning_out_holds_until_the_operator_acts(ends: str) -> None:
+    """review6 3: the hold ended at the first stop the board confirmed, the controller saw
+    'motor link up' and the mission drove again within a cycle: a board that browns out
+    under motor current restarted again and again, each time only a health event. The
+    daemon's motor worker, a 20 Hz controller as the real one answers (the state's name
+    while running, 'hold: motor link lost' while told lost; after the operator's stop
+    'idle', after a pause 'paused'), its board on a pty browning out 0.15 s after it
+    drives off: after the third restart the link stays lost until the operator acts."""
+    from x6wd.app.daemon import _MotorWorker
+    from x6wd.core.records import MotorCommand
+    from x6wd.nav.controller import Mode
+
+    board = SaggingBoard()
+    pb = Pty(board, boot=True)
+    link = SerialMotorLink(open_port(pb.name), ack_timeout_s=0.5)
+    health: list[bool] = []
+    told_ok = [True]
+    mode = ["running"]
+
+    def on_health(ok: bool, t_s: float) -> None:
+        health.append(ok)
+        told_ok[0] = ok
+
+    w = _MotorWorker(link, 0.5 / 3, on_health)
+    done = threading.Event()
+
+    def controller() -> None:
+        while not done.is_set():
+            now = time.monotonic()
+            if mode[0] != "running":
+                w.submit(MotorCommand(now, 0.0, 0.0, mode[0]), repeat_after_s=0.1)
+            elif told_ok[0]:
+                w.submit(MotorCommand(now, 60.0, 60.0, "STRAIGHT"), repeat_after_s=0.1)
+            else:
+                w.submit(MotorCommand(now, 0.0, 0.0, "hold: motor link lost"), repeat_after_s=0.1)
+            time.sleep(0.05)
+
+    ctl = threading.Thread(target=controller, daemon=True)
+    w.start()
+    ctl.start()
+    try:
+        assert wait_for(lambda: link.counters.board_restarts >= 3, 10)
+        time.sleep(1.5)  # the controller holds; nothing brings the link back
+        assert board.sags == 3 and link.counters.board_restarts == 3
+        assert not link.healthy and told_ok[0] is False
+        assert link.health.state == "disconnected"
+        assert "restarted 3 times" in link.health.reason
+        assert pb.state() == (0, 0)
+        # the operator: the daemon's stop (the worker's hold, the stop at once, then the
+        # controller idle), or a pause (the controller paused)
+        if ends == "stop":
+            seq = w.hold_stop()
+            w.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "operator stop"))
+            mode[0] = str(Mode.IDLE).lower()
+            w.stop_applied(seq)
+        else:
+            mode[0] = str(Mode.PAUSED).lower()
+        assert wait_for(lambda: link.healthy and told_ok[0], 5)
+        assert link.health.state == "connected"
+        time.sleep(0.3)
+        assert pb.state() == (0, 0) and board.sags == 3  # the mission waits for its operator
+    finally:
+        done.set()
+        ctl.join(5)
+        w.shutdown("end")
+        pb.close()
