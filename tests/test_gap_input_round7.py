@@ -150,8 +150,7 @@ def test_far_from_truth_message_names_the_log_checked(tmp_path: Path) -> None:
 
 def test_far_real_log_is_not_told_about_sim_logs(tmp_path: Path, capsys) -> None:
     # The audit: --real firefly-II.log with a --truth 1471.7 km away was told "(a --sim log
-    # must simulate the real log's place ...)". The CLI does not say (yet) which log it
-    # checks: the hint then says whose each part is.
+    # must simulate the real log's place ...)". The CLI says which log it checks.
     from x6wd.app.cli import main as x6wd_main
 
     far = _far_csv(tmp_path / "far.csv")
@@ -159,4 +158,5 @@ def test_far_real_log_is_not_told_about_sim_logs(tmp_path: Path, capsys) -> None
     assert x6wd_main([*argv, "--quiet", "--no-figures"]) == 2
     err = capsys.readouterr().err
     assert "far.csv" in err and "km from the truth" in err, err
-    assert "(a --sim log must simulate" not in err, err
+    assert "(a --sim log must simulate" not in err and "--sim" not in err, err
+    assert "(the real log (--real))" in err and "the real log's place" in err, err

@@ -152,14 +152,17 @@ class ProgressBar:
         sys.stderr.flush()
 
 
-def to_errors(track: Track, args: argparse.Namespace, truth_track: Track | None) -> PositionSeries:
+def to_errors(
+    track: Track, args: argparse.Namespace, truth_track: Track | None, log: str | None = None
+) -> PositionSeries:
     """A log's errors against the chosen truth (ConfigError for a log far from it, or a
-    moving log without one)."""
+    moving log without one). ``log``: ``"real"`` or ``"sim"``, so that error's hint is
+    that log's."""
     if args.truth is not None:  # "" too: parse_truth names it
         lat, lon, alt = parse_truth(args.truth)
-        return check_near_truth(errors_vs_point(track, lat, lon, alt), track.source)
+        return check_near_truth(errors_vs_point(track, lat, lon, alt), track.source, log)
     if truth_track is not None:
-        return check_near_truth(errors_vs_track(track, truth_track), track.source)
+        return check_near_truth(errors_vs_track(track, truth_track), track.source, log)
     return errors_vs_mean(track)
 
 
@@ -304,7 +307,7 @@ def main(args: argparse.Namespace) -> int:
     truth_track = read_track(args.truth_track) if args.truth_track is not None else None
     real_track = read_track(args.real)
     check_step(real_track)
-    real = to_errors(real_track, args, truth_track)
+    real = to_errors(real_track, args, truth_track, "real")
     try:
         check_real(real)  # refused before the runs are placed and their almanac's age warned of
     except ConfigError as exc:  # named with its file, as the readers' refusals are
@@ -370,7 +373,7 @@ def main(args: argparse.Namespace) -> int:
         sims = [read_track(p) for p in args.sim]
         for sim in sims:
             check_step(sim)
-        baseline = [to_errors(sim, args, truth_track) for sim in sims]
+        baseline = [to_errors(sim, args, truth_track, "sim") for sim in sims]
         if truth_track is not None:
             moved_sims = [n for sim in sims if (n := realign_note(sim, truth_track)) is not None]
             if len(moved_sims) > 1:  # a simulator's clock is its own: one note for them all
