@@ -407,6 +407,10 @@ def render_status(st: dict[str, Any]) -> str:
             f"{roll.get('corrected_utc')} (+{roll.get('weeks_added')} weeks; "
             f"{roll.get('corrected')} records; receiver firmware older than the rollover)"
         )
+    drive = st.get("manual_drive")
+    if isinstance(drive, dict):  # who steers: another client's drive is refused meanwhile
+        whose = "this connection" if drive.get("yours") else drive.get("owner", "?")
+        lines.append(f"driving    by {whose}, {_fmt(drive.get('holds_s'), '.1f', ' s')} more")
     lines.append(_links_line(st.get("links", {})))
     devices = st.get("devices")
     if isinstance(devices, dict):
@@ -587,10 +591,19 @@ def _hold_drive(client: RemoteClient, reply: dict[str, Any], err: TextIO) -> int
         end = time.monotonic() + float(duration_s)
         while (left_s := end - time.monotonic()) > 0.0:
             time.sleep(min(HOLD_POLL_S, left_s))
-            mode = client.request("status").get("mode")
-            if mode != "MANUAL" and end - time.monotonic() > HOLD_END_GRACE_S:
+            st = client.request("status")
+            mode = st.get("mode")
+            # (a robot too old to say who drives says no manual_drive: MANUAL is then ours)
+            drive = st.get("manual_drive", {"yours": True})
+            ours = isinstance(drive, dict) and drive.get("yours") is True
+            if (mode != "MANUAL" or not ours) and end - time.monotonic() > HOLD_END_GRACE_S:
                 _closing_notice(client, SHUTDOWN_NOTICE_WAIT_S)  # raises if the daemon went
-                print(f"x6wd client: the drive ended early: the robot is {mode}", file=err)
+                if mode == "MANUAL" and isinstance(drive, dict) and drive.get("owner"):
+                    # stopped, then driven by another client: its drive, not this one
+                    now = f"driven by another client ({drive['owner']})"
+                else:
+                    now = str(mode)
+                print(f"x6wd client: the drive ended early: the robot is {now}", file=err)
                 return EXIT_REFUSED
     except KeyboardInterrupt:
         return _interrupted_stop(client, err)

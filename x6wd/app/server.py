@@ -190,10 +190,11 @@ def error_reply(req_id: Any, code: str, message: str, reason: str | None = None)
 
 
 class _Reject(Exception):
-    def __init__(self, code: str, message: str, reason: str | None = None) -> None:
+    def __init__(self, code: str, message: str, reason: str | None = None, **extra: Any) -> None:
         super().__init__(message)
         self.code = code
         self.reason = reason
+        self.extra = extra  # more fields of the error object (a ``busy`` drive's ``driver``)
 
 
 def _bad(reason: str, message: str) -> _Reject:
@@ -228,6 +229,7 @@ class _Client(LineClient):
     watch_only: bool = False  # refused every command in ACTING_COMMANDS
     open_commands: frozenset[str] = UNAUTHENTICATED_COMMANDS  # allowed before ``auth``
     drive_limit_s: float | None = None  # a drive's duration_s is cut to this (the dead-man)
+    kind: str = ""  # what it is beside its peer, in status and refusals ("web console page")
     # the input as a stream (TCP: bytes, counted as the transport feeds the stream reader; a
     # detached client: messages): how much was received, where the line being handled ends,
     # and the stop fence: lines ending at or before it were received before a stop
@@ -477,7 +479,9 @@ class ControlServer(LineServer[_Client]):
             }
         )  # fmt: skip
         self._fenced: weakref.WeakSet[_Client] = weakref.WeakSet()  # every client, any transport
-        self._drive_owner: _Client | None = None  # whose manual drive runs (the dead-man)
+        # whose manual drive runs: the dead-man (its client gone: stop) and the drive's owner
+        # (another client's drive is refused until it ends: _refuse_foreign_drive)
+        self._drive_owner: _Client | None = None
         self._closing = False  # close() has begun: connections end because the server does
         self._drive_until_s = 0.0  # time.monotonic() when it ends
         self._command_seq = 0  # incremented before each motion command reaches the backend
@@ -652,6 +656,49 @@ class ControlServer(LineServer[_Client]):
     def drive_active(self, c: _Client) -> bool:
         """True while ``c``'s manual drive runs and no later command replaced it."""
         return self._drive_owner is c and time.monotonic() < self._drive_until_s
+
+    @staticmethod
+    def _name(c: _Client) -> str:
+        """How status and refusals name a client: "host:port", a page "web console page
+        host:port"."""
+        return f"{c.kind} {c.peer}" if c.kind else c.peer
+
+    def _drive_status(self, c: _Client) -> dict[str, Any] | None:
+        """``status``'s ``manual_drive``: who drives (null: nobody's drive holds), for how
+        much longer its latest drive holds (s), and whether it is the asker."""
+        owner = self._drive_owner
+        if owner is None or not self.drive_active(owner):
+            return None
+        holds_s = self._drive_until_s - time.monotonic()
+        return {"owner": self._name(owner), "holds_s": round(holds_s, 2), "yours": owner is c}
+
+    def _refuse_foreign_drive(self, c: _Client) -> None:
+        """Manual drive belongs to the client whose drive started it: while that drive holds
+        (its dead-man has not expired, no stop came, the client is connected: its going away
+        stops it), a drive from any other client is refused (``rejected``, ``busy``) and the
+        robot keeps the owner's. Two pages holding two keys made the motors switch between
+        them several times a second, and neither page was told (outside audit, round 7).
+        ``stop`` is never refused, and ends the ownership: the next drive from anyone takes
+        it. (Here, not deeper: the sessions, TCP and console pages, are this server's, and
+        it already keeps the drive's owner and deadline for the dead-man; the controller
+        knows no clients.)"""
+        owner = self._drive_owner
+        if owner is None or owner is c or not self.drive_active(owner):
+            return
+        holds_s = self._drive_until_s - time.monotonic()
+        name = self._name(owner)
+        self._rlog.log(
+            "drives refused", logging.INFO, "drive from %s refused: %s drives", self._name(c), name
+        )
+        raise _Reject(
+            "rejected",
+            f"another client is driving ({name}): its drive holds for {holds_s:.1f} s more "
+            "(each of its drives renews it); not driven. 'stop' works from here and ends that "
+            "drive; once it has ended, the next drive from any client takes over",
+            "busy",
+            driver=name,
+            holds_s=round(holds_s, 2),
+        )
 
     def _drive_orphaned(self, c: _Client) -> None:
         """The dead-man on the control port: a client that goes away (closed, reset, evicted)
@@ -950,6 +997,7 @@ class ControlServer(LineServer[_Client]):
             reply = {"id": req_id, "ok": True, **result}
         except _Reject as exc:
             reply = error_reply(req_id, exc.code, str(exc), exc.reason)
+            reply["error"].update(exc.extra)
         except CommandError as exc:
             reply = error_reply(req_id, exc.code, str(exc), _command_reason(exc))
         except ParseError as exc:
@@ -973,14 +1021,27 @@ class ControlServer(LineServer[_Client]):
         if cmd in MOTION_COMMANDS:
             # validate first, then count: a rejected request changes nothing
             args = self._motion_args(c, cmd, req)
+            if cmd == "drive":
+                self._refuse_foreign_drive(c)  # before it counts: it changes nothing
             self._command_seq += 1
             if cmd == "mission.load":
                 reply = await _result(b.load_mission(*args))
                 notes = getattr(args[0], "notes", None)  # what the file held but x6wd won't use
                 return {**reply, "notes": list(notes)} if notes else reply
             if cmd == "drive":
-                reply = await _result(b.drive(*args))
+                # owned from now, before the robot has it: another client's drive arriving
+                # meanwhile is refused, not sent after it
+                before = self._drive_owner, self._drive_until_s
                 self._drive_owner, self._drive_until_s = c, time.monotonic() + args[2]
+                try:
+                    reply = await _result(b.drive(*args))
+                except BaseException:
+                    if self._drive_owner is c:  # refused: as it was (unless a stop came)
+                        self._drive_owner, self._drive_until_s = before
+                    raise
+                if self._drive_owner is c:  # (a stop that came meanwhile ended it)
+                    # the robot's dead-man started when it took the drive, a little later
+                    self._drive_until_s = max(self._drive_until_s, time.monotonic() + args[2])
                 return reply
             if cmd == "return":  # a Python keyword: the backend's method is return_home
                 reply = await _result(b.return_home())
@@ -1008,6 +1069,7 @@ class ControlServer(LineServer[_Client]):
                 self._promote(c)
             st = dict(await self._status())
             st["client"] = {"watching": c.watching, "dropped": c.dropped}
+            st["manual_drive"] = self._drive_status(c)
             st["server"] = self.server_stats()
             return st
         if cmd == "stop":
@@ -1060,12 +1122,14 @@ class ControlServer(LineServer[_Client]):
         *,
         watch_only: bool = False,
         drive_limit_s: float | None = None,
+        kind: str = "web console page",
     ) -> _Client:
         """A client of another transport: the same token, throttles and commands as a TCP
         connection, outside the TCP pools (its transport keeps its own), except that before
         ``auth`` only ``hello``, ``auth`` and ``stop`` are open (no ``status``: a page shows
         nothing of the robot without the token). ``watch_only``: every command that acts is
-        refused; ``drive_limit_s``: drives last at most this (s)."""
+        refused; ``drive_limit_s``: drives last at most this (s); ``kind``: how status and
+        refusals name it beside ``peer`` (who drives)."""
         now = self._clock()
         c = _Client(
             writer=None,  # type: ignore[arg-type]  # never written: the transport replies
@@ -1078,6 +1142,7 @@ class ControlServer(LineServer[_Client]):
             watch_only=watch_only,
             open_commands=DETACHED_OPEN_COMMANDS,
             drive_limit_s=drive_limit_s,
+            kind=kind,
         )
         self._fenced.add(c)
         return c
@@ -1100,6 +1165,7 @@ class ControlServer(LineServer[_Client]):
         it was sent (its effect covers this request too), else a new one sent now. So a
         storm of stops keeps at most one in flight, and a stop is never answered by one that
         a later ``drive`` or ``start`` overtook."""
+        self._drive_owner = None  # any stop ends the manual drive, and its ownership
         shared = self._stop_call
         f = shared.future
         if f is not None and not f.done() and shared.seq == self._command_seq:

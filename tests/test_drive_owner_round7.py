@@ -1,0 +1,168 @@
+"""Manual drive belongs to the client whose drive started it (outside audit, round 7, item 2).
+
+The audit's two pages, one holding forward and one holding left, had the motors switch
+between 40/40 and -28/28 18-37 times in 4-5 s, and neither page was told: every client's
+``drive`` replaced the last one. Now the drive of another client is refused (``rejected``,
+reason ``busy``, naming who drives and for how long its drive holds) while the owner's drive
+runs; the owner's dead-man expiry, any ``stop`` (from anyone) or the owner's disconnection
+ends the ownership, and the next drive from anyone takes it. ``status`` says who drives."""
+
+from __future__ import annotations
+
+import io
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.test_daemon import hil_config, run_daemon, wait_for
+from x6wd.app.client import EXIT_REFUSED, RemoteClient, RequestFailed, _hold_drive, render_status
+from x6wd.app.daemon import Daemon
+
+__all__ = ["run_daemon"]  # the fixture, imported for pytest
+
+A_DRIVE = (40.0, 40.0)
+B_DRIVE = (-28.0, 28.0)
+
+
+def _name(c: RemoteClient) -> str:
+    """How the robot names this client's connection ("host:port" of its end)."""
+    assert c._sock is not None
+    host, port = c._sock.getsockname()[:2]
+    return f"{host}:{port}"
+
+
+def _drive(c: RemoteClient, pct: tuple[float, float], duration_s: float = 2.0) -> dict:
+    return c.request("drive", left=pct[0], right=pct[1], duration_s=duration_s)
+
+
+def _refused_busy(c: RemoteClient, pct: tuple[float, float], owner: str) -> RequestFailed:
+    with pytest.raises(RequestFailed) as ei:
+        _drive(c, pct)
+    err = ei.value
+    assert (err.code, err.reason) == ("rejected", "busy"), err
+    assert owner in err.message and "another client" in err.message, err.message
+    assert " s" in err.message and "stop" in err.message, err.message  # how long; the way out
+    return err
+
+
+def test_a_drive_from_another_client_is_refused_while_the_owners_drive_holds(
+    tmp_path: Path, run_daemon
+) -> None:
+    r = run_daemon(Daemon(hil_config(tmp_path)))
+    world = r.daemon.devices.backend("sim")  # the world the daemon's sim:// devices share
+
+    def motors() -> tuple[float, float]:
+        return tuple(world.vehicle.command_pct)
+
+    with RemoteClient("127.0.0.1", r.port) as a, RemoteClient("127.0.0.1", r.port) as b:
+        a_name, b_name = _name(a), _name(b)
+        _drive(a, A_DRIVE)
+        wait_for(lambda: motors() == A_DRIVE, 3, "A's drive reaches the motors")
+        err = _refused_busy(b, B_DRIVE, a_name)
+        assert "holds for" in err.message
+        st = b.request("status")
+        assert st["mode"] == "MANUAL"
+        md = st["manual_drive"]
+        assert md["owner"] == a_name and md["yours"] is False and 0.0 < md["holds_s"] <= 2.0
+        assert a.request("status")["manual_drive"]["yours"] is True
+
+        # the audit's fight: both hold their key (each resends every 0.1 s) for 1.5 s: the
+        # motors never leave A's command, and each of B's drives is refused as busy
+        seen: set[tuple[float, float]] = set()
+        done = threading.Event()
+
+        def sample() -> None:
+            while not done.is_set():
+                seen.add(motors())
+                time.sleep(0.005)
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        refused = 0
+        try:
+            t_end = time.monotonic() + 1.5
+            while time.monotonic() < t_end:
+                _drive(a, A_DRIVE, 0.5)
+                try:
+                    _drive(b, B_DRIVE, 0.5)
+                except RequestFailed as exc:
+                    assert exc.reason == "busy", exc
+                    refused += 1
+                time.sleep(0.1)
+        finally:
+            done.set()
+            sampler.join(2)
+        assert seen == {A_DRIVE}, seen
+        assert refused >= 5
+
+        # any stop (B's here) is obeyed at once and ends A's ownership: B's drive then takes it
+        b.request("stop")
+        wait_for(lambda: motors() == (0.0, 0.0), 3, "B's stop reaches the motors")
+        assert b.request("status")["manual_drive"] is None
+        _drive(b, B_DRIVE)
+        wait_for(lambda: motors() == B_DRIVE, 3, "B's drive reaches the motors")
+        assert a.request("status")["manual_drive"]["owner"] == b_name
+        _refused_busy(a, A_DRIVE, b_name)
+        assert motors() == B_DRIVE
+
+        # the owner's own stop ends it too
+        b.request("stop")
+        wait_for(lambda: motors() == (0.0, 0.0), 3, "B's own stop")
+        _drive(a, A_DRIVE, 0.4)
+        wait_for(lambda: motors() == A_DRIVE, 3, "A drives again")
+
+        # the owner's dead-man expiry ends it: then B's drive is taken
+        wait_for(lambda: a.request("status")["mode"] == "IDLE", 5, "A's drive expires")
+        # (the control port's deadline for it is the robot's, give or take its reply's trip)
+        wait_for(lambda: a.request("status")["manual_drive"] is None, 1, "A's ownership ends")
+        _drive(b, B_DRIVE)
+        wait_for(lambda: motors() == B_DRIVE, 3, "B drives after A's expiry")
+
+    assert r.stop() == 0
+
+
+def test_the_owners_disconnection_ends_its_drive_and_the_next_drive_takes_it(
+    tmp_path: Path, run_daemon
+) -> None:
+    r = run_daemon(Daemon(hil_config(tmp_path)))
+    world = r.daemon.devices.backend("sim")
+    with RemoteClient("127.0.0.1", r.port) as b:
+        a = RemoteClient("127.0.0.1", r.port)
+        try:
+            a_name = _name(a)
+            _drive(a, A_DRIVE, 5.0)
+            wait_for(lambda: tuple(world.vehicle.command_pct) == A_DRIVE, 3, "A drives")
+            _refused_busy(b, B_DRIVE, a_name)
+        finally:
+            a.close()  # A goes away while its drive runs: the dead-man stops the motors
+        wait_for(lambda: b.request("status")["mode"] == "IDLE", 3, "A's dead-man stop")
+        _drive(b, B_DRIVE)
+        wait_for(lambda: tuple(world.vehicle.command_pct) == B_DRIVE, 3, "B drives")
+        assert b.request("status")["manual_drive"]["owner"] == _name(b)
+    assert r.stop() == 0
+
+
+def test_x6wd_client_drive_says_so_when_another_client_drives_after_a_stop(
+    tmp_path: Path, run_daemon
+) -> None:
+    """``x6wd client drive`` holds its connection while its drive runs and asks ``status``:
+    a stop then another client's drive left the robot in MANUAL, which it took for its own
+    drive running on. Now status says whose drive it is; and ``status`` prints who drives."""
+    r = run_daemon(Daemon(hil_config(tmp_path)))
+    err = io.StringIO()
+    with RemoteClient("127.0.0.1", r.port) as a, RemoteClient("127.0.0.1", r.port) as b:
+        reply = _drive(a, A_DRIVE, 3.0)
+        result: list[int | None] = []
+        holder = threading.Thread(target=lambda: result.append(_hold_drive(a, reply, err)))
+        holder.start()  # its first status comes after 0.5 s: B stops and drives before it
+        b.request("stop")
+        _drive(b, B_DRIVE, 3.0)
+        shown = render_status(a.request("status"))
+        holder.join(5)
+        assert result == [EXIT_REFUSED], err.getvalue()
+        assert f"the robot is driven by another client ({_name(b)})" in err.getvalue()
+        assert f"driving    by {_name(b)}, " in shown
+        assert "driving    by this connection, " in render_status(b.request("status"))
+    assert r.stop() == 0
