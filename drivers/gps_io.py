@@ -264,18 +264,45 @@ def is_boot_banner(sentence: str) -> bool:
 _CFG_RATE = (UBX_CLASS_CFG, UBX_ID_CFG_RATE)
 
 
-def neo5_setup(rate_hz: float) -> list[tuple[str, bytes]]:
+DEFAULT_BAUD = 9600
+"""The line rate assumed when the port does not say (a NEO-5's default, the Pi UART's)."""
+NMEA_BUDGET_B = {"RMC": 75, "GGA": 77, "GSA": 66, "GSV": 280}
+"""The most bytes each sentence (GSV: the whole group) takes on the line, for the line budget
+of :func:`neo5_setup`: RMC with course 75, GGA 77, GSA with 12 satellites used 66, GSV of 16
+satellites in view (the NEO-5's 16 channels) 4 sentences of up to 70. The simulated NEO-5
+prints RMC 73-74, GGA 74, GSA 50-58 and GSV 183-195 (3 sentences, 12 satellites)."""
+
+
+def line_bytes_per_epoch(rate_hz: float, baud: int = DEFAULT_BAUD) -> float:
+    """Bytes the line carries (8N1) between two epochs at ``rate_hz``."""
+    return baud / 10.0 / rate_hz
+
+
+def neo5_setup(rate_hz: float, baud: int = DEFAULT_BAUD) -> list[tuple[str, bytes]]:
     """The UBX messages ``configure_receiver`` sends, (name, frame) in order: CFG-RATE for
     ``rate_hz`` (NEO-5: 0.015..4 Hz), then CFG-MSG on the port they arrive on: GGA and RMC
-    every epoch (a fix needs both), GSA and GSV about once a second (every
-    ``round(rate_hz)`` epochs: the fix mode, DOPs and the sky change slowly), VTG and GLL off
-    (RMC carries speed and course, GGA the time). At 4 Hz that is ~850 bytes/s, what 9600 baud
-    carries (960); the receiver's default set (~480 bytes per epoch) would not fit past 2 Hz.
-    Raises ConfigError for a rate CFG-RATE cannot carry."""
+    every epoch (a fix needs both), VTG and GLL off (RMC carries speed and course, GGA the
+    time), and GSA and GSV about once a second (every ``round(rate_hz)`` epochs: the fix
+    mode, DOPs and the sky change slowly) where the epoch that carries them still leaves the
+    line (``baud``, 8N1) before the next epoch starts (:data:`NMEA_BUDGET_B`); else off.
+
+    A CFG-MSG rate counts epochs: a GSV group goes out whole in one epoch, whatever its rate,
+    so a slower GSV rate makes the overflow rarer, never smaller. An epoch's bytes beyond
+    what the line carries before the next epoch delay that epoch's fix (stamped at arrival).
+    At 9600 baud (960 bytes/s): 4 Hz leaves 240 bytes an epoch: RMC + GGA (152) + GSA (66)
+    fit, GSV (up to 280 more) does not: GSV off (the simulated receiver's GSV epoch was 400
+    bytes, the next fix 0.17 s late); 2 Hz 480 bytes: RMC + GGA + GSA + GSV up to 498: GSV
+    off; 1 Hz: all. The receiver's default set (RMC, VTG, GGA, GSA, GSV, GLL each epoch,
+    ~480 bytes) would not fit past 2 Hz. Raises ConfigError for a rate CFG-RATE cannot
+    carry."""
     meas_ms = round(1000.0 / rate_hz)
     every = max(1, round(rate_hz))
+    room = line_bytes_per_epoch(rate_hz, baud)
+    b = NMEA_BUDGET_B
+    gsa = every if b["RMC"] + b["GGA"] + b["GSA"] <= room else 0
+    gsv = every if gsa and b["RMC"] + b["GGA"] + b["GSA"] + b["GSV"] <= room else 0
     msgs = [(f"CFG-RATE {meas_ms} ms", cfg_rate(meas_ms))]
-    for name, rate in (("GGA", 1), ("RMC", 1), ("GSA", every), ("GSV", every), ("VTG", 0),
+    for name, rate in (("GGA", 1), ("RMC", 1), ("GSA", gsa), ("GSV", gsv), ("VTG", 0),
                        ("GLL", 0)):  # fmt: skip
         msgs.append((f"CFG-MSG {name} {rate}", cfg_msg(name, rate)))
     return msgs
@@ -317,7 +344,8 @@ class ReceiverSetup:
         resend_min_s: float = RESEND_MIN_S,
     ) -> None:
         self.rate_hz = rate_hz
-        self.messages = neo5_setup(rate_hz)
+        self.baud = DEFAULT_BAUD
+        self.messages = neo5_setup(rate_hz, self.baud)
         self.init_bytes = b"".join(frame for _, frame in self.messages)
         self.ack_timeout_s = ack_timeout_s
         self.resend_min_s = resend_min_s
@@ -337,6 +365,17 @@ class ReceiverSetup:
         self._warned: set[str] = set()
         self._lost_warn_t = -math.inf
         self._lost_unwarned = 0  # losses not warned about (LOST_WARN_MIN_S)
+
+    def use_baud(self, baud: object) -> None:
+        """The line rate of the port just opened (pyserial's ``baudrate``; anything but a
+        positive int, a socket's none: :data:`DEFAULT_BAUD`): the sentences are chosen for
+        it (:func:`neo5_setup`)."""
+        b = baud if isinstance(baud, int) and not isinstance(baud, bool) and baud > 0 else None
+        b = DEFAULT_BAUD if b is None else b
+        if b != self.baud:
+            self.baud = b
+            self.messages = neo5_setup(self.rate_hz, b)
+            self.init_bytes = b"".join(frame for _, frame in self.messages)
 
     def sent(self, t_s: float) -> None:
         """The frames were written at ``t_s``: every message now waits for its answer."""
@@ -498,6 +537,7 @@ class ReceiverSetup:
         out: dict[str, Any] = {
             "state": self.state,
             "rate_hz": self.rate_hz,
+            "baud": self.baud,
             "rounds": self.rounds,
             "answers": dict(self.answers),
             "losses": self.losses,
@@ -832,6 +872,8 @@ class GpsReader:
         else:
             self._tracker.opened(now)
         self.fix_rate.restart()
+        if self.setup is not None:  # the sentences that fit this line (neo5_setup)
+            self.setup.use_baud(getattr(port, "baudrate", None))
         self._write_setup(port, now)
 
     def _write_setup(self, port: PortLike, now: float) -> None:

@@ -32,7 +32,7 @@ from typing import Any
 import pytest
 import serial
 
-from drivers.gps_io import GpsReader, ReceiverSetup
+from drivers.gps_io import GpsReader, ReceiverSetup, neo5_setup
 from drivers.gps_nmea import (
     NMEA_MSG_IDS,
     GpsDecoder,
@@ -357,9 +357,10 @@ def test_configure_receiver_sets_the_rate_on_start_and_after_a_reopen(
 ) -> None:
     gps = neo5(hz=1.0)
     r = run_daemon(Daemon(_daemon_config(tmp_path, f"serial://{gps.link}?baud=9600", True)))
-    # CFG-RATE 250 ms; GGA, RMC each epoch, GSA, GSV each 4th (1 s), VTG, GLL off: ~850 B/s
+    # CFG-RATE 250 ms; GGA, RMC each epoch, GSA each 4th (1 s), VTG, GLL off, and at 9600
+    # baud GSV off (its epoch would not leave the line before the next one: review 6 item 5)
     want = cfg_rate(250) + b"".join(
-        cfg_msg(m, n) for m, n in (("GGA", 1), ("RMC", 1), ("GSA", 4), ("GSV", 4), ("VTG", 0),
+        cfg_msg(m, n) for m, n in (("GGA", 1), ("RMC", 1), ("GSA", 4), ("GSV", 0), ("VTG", 0),
                                    ("GLL", 0))
     )  # fmt: skip
     assert want.startswith(bytes.fromhex("b562 0608 0600 fa00 0100 0100"))  # 250 ms, GPS time
@@ -704,3 +705,94 @@ def test_the_slow_warning_comes_again_each_time_the_rate_falls(caplog: Any) -> N
     assert reader.fix_rate.slow is not None and slow_warnings() == 2
     run(12.0)
     assert slow_warnings() == 2  # still slow: not again
+
+
+# --------------------------------------------------------------------------------------------
+# Review 6, item 5: at 4 Hz on 9600 baud the line carries 240 bytes an epoch. With GSA and GSV
+# once a second, the simulated NEO-5's GSV epoch was 400 bytes (RMC 73, GGA 74, GSA 57, GSV
+# 190): 160 bytes still on the line when the next epoch began, whose fix then arrived 0.32 s
+# after its epoch instead of 0.15 s (stamped at arrival). A slower GSV rate would make that
+# rarer, not smaller (a GSV group goes out whole in one epoch): at 4 Hz on 9600 baud GSV is
+# off, and every epoch leaves the line before the next.
+
+
+def _gga_lateness(baud: int, rate_hz: float, epochs: int = 200) -> tuple[list[float], list[int]]:
+    """The simulated receiver (default scenario) configured by neo5_setup(rate_hz, baud)
+    through its own UBX input, its epochs through its UART model: each GGA's arrival after
+    its epoch (s), and each epoch's bytes."""
+    from sim_backend.hil import HilParams
+    from sim_backend.receiver import UartTx, build_receiver
+    from sim_backend.ubx_config import UbxConfigPort
+
+    w = HilParams(gps_rate_hz=1.0, gps_baud=baud).load_world()
+    rx = build_receiver(w, w.seed)
+    ubx = UbxConfigPort(1.0)
+    for answer in ubx.feed(b"".join(f for _, f in neo5_setup(rate_hz, baud))):
+        assert answer.reply[3] == 0x01  # ACK-ACK
+    assert ubx.rate_hz == rate_hz
+    uart = UartTx(baud)
+    late, sizes = [], []
+    for k in range(1, epochs):
+        t = k / rate_hz
+        ep = rx.epoch(t, (0.5 * t, 0.0, 0.0), (0.5, 0.0, 0.0))
+        lines = [ln for ln in rx.sentences(ep) if ubx.keeps(ln[3:6].decode(), k)]
+        sizes.append(sum(len(ln) for ln in lines))
+        late += [t_end - t for t_end, ln in uart.send(lines, t) if ln[3:6] == b"GGA"]
+    assert uart.dropped == 0 and len(late) == epochs - 1
+    return late, sizes
+
+
+@pytest.mark.parametrize(("baud", "rate_hz"), [(9600, 4.0), (9600, 2.0), (9600, 1.0), (38400, 4.0)])
+def test_every_epoch_leaves_the_line_before_the_next(baud: int, rate_hz: float) -> None:
+    late, sizes = _gga_lateness(baud, rate_hz)
+    room = baud / 10 / rate_hz
+    assert max(sizes) <= room, (max(sizes), room)
+    # each fix as soon as its own RMC and GGA are out (142-148 bytes here, 152 at most),
+    # never behind an earlier epoch's bytes
+    assert max(late) <= 152 * 10 / baud, (min(late), max(late))
+
+
+def test_the_9600_baud_setup_at_4_hz_and_its_budget() -> None:
+    names = [n for n, _ in neo5_setup(4.0, 9600)]
+    assert names[3:5] == ["CFG-MSG GSA 4", "CFG-MSG GSV 0"]
+    assert [n for n, _ in neo5_setup(4.0, 115200)][3:5] == ["CFG-MSG GSA 4", "CFG-MSG GSV 4"]
+    assert [n for n, _ in neo5_setup(1.0, 9600)][3:5] == ["CFG-MSG GSA 1", "CFG-MSG GSV 1"]
+    _, sizes = _gga_lateness(9600, 4.0, 41)
+    assert sum(sizes[:40]) / 10.0 < 0.85 * 960  # 10 s: RMC + GGA each epoch, GSA each 4th
+
+
+def test_hil_at_9600_baud_and_4_hz_each_fix_leaves_the_line_before_the_next_epoch(
+    tmp_path: Path, run_daemon: Any
+) -> None:
+    cfg = hil_config(tmp_path)
+    cfg = dataclasses.replace(
+        cfg,
+        gps=dataclasses.replace(cfg.gps, configure_receiver=True, rate_hz=4.0, stale_s=2.0),
+        sim=dataclasses.replace(cfg.sim, gps_rate_hz=1.0, gps_baud=9600),
+        safety=dataclasses.replace(cfg.safety, fix_stale_s=0.75),
+    )
+    r = run_daemon(Daemon(cfg))
+    world = r.daemon.devices.backend("sim")
+    with RemoteClient("127.0.0.1", r.port) as c:
+        wait_for(lambda: _gps_receiver(c)["setup"]["state"] == "acked", 10, "ACKs")
+        assert world.receiver.rate_hz == 4.0
+        st = _gps_receiver(c)["setup"]
+        t_cfg = time.monotonic() - world.t0
+        wait_for(lambda: time.monotonic() - world.t0 > t_cfg + 4.5, 10, "4 s at 4 Hz")
+    assert r.stop() == 0
+    day = world.utc0.date()
+    late = []
+    for t_end, line in list(world.gps_wire):
+        if line[3:6] != b"GGA" or t_end < t_cfg + 1.5:
+            continue
+        hms = line.split(b",")[1].decode()
+        utc = datetime.combine(day, datetime.strptime(hms, "%H%M%S.%f").time(), UTC)
+        if (utc - world.utc0).total_seconds() < -43200:
+            utc += timedelta(days=1)
+        late.append(t_end - world.scenario_t_s(utc))
+    assert len(late) >= 10, late
+    # RMC + GGA (~147 bytes) take 0.153 s at 9600 baud; with the GSV epoch the next one's
+    # GGA came 0.32 s after its epoch
+    assert max(late) < 0.2, sorted(late)[-5:]
+    assert world.ubx.msg_rates["GSV"] == 0
+    assert st["baud"] == 9600 and st["answers"]["CFG-MSG GSV 0"] == "ack", st
