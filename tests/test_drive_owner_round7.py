@@ -5,11 +5,14 @@ between 40/40 and -28/28 18-37 times in 4-5 s, and neither page was told: every 
 ``drive`` replaced the last one. Now the drive of another client is refused (``rejected``,
 reason ``busy``, naming who drives and for how long its drive holds) while the owner's drive
 runs; the owner's dead-man expiry, any ``stop`` (from anyone) or the owner's disconnection
-ends the ownership, and the next drive from anyone takes it. ``status`` says who drives."""
+ends the ownership, and the next drive from anyone takes it. ``status`` says who drives.
+
+Item 3: a held drive (resent ~3 times a second) no longer logs a line per resend."""
 
 from __future__ import annotations
 
 import io
+import logging
 import threading
 import time
 from pathlib import Path
@@ -17,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from tests.test_daemon import hil_config, run_daemon, wait_for
+from tests.test_loop import Loop
 from x6wd.app.client import EXIT_REFUSED, RemoteClient, RequestFailed, _hold_drive, render_status
 from x6wd.app.daemon import Daemon
 
@@ -166,3 +170,36 @@ def test_x6wd_client_drive_says_so_when_another_client_drives_after_a_stop(
         assert f"driving    by {_name(b)}, " in shown
         assert "driving    by this connection, " in render_status(b.request("status"))
     assert r.stop() == 0
+
+
+def test_a_held_drive_is_logged_once_per_press_not_per_resend(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A page resends a held drive ~3 times a second: that was a log line each (10,800 an
+    hour of holding). Now: the press's first drive, a change of speeds (at most one line a
+    second), and the press's end (the state change's line)."""
+    lp = Loop()
+    with caplog.at_level(logging.INFO, logger="x6wd.loop.runner"):
+        for i in range(30):  # 10 s held, resent every 0.33 s
+            lp.now = i / 3.0
+            lp.runner.drive(40.0, 40.0, 0.5)
+        lp.now = 10.5
+        lp.runner.tick()  # the last resend's dead-man expires: the press ended
+        for i in range(6):  # a second press, turning half-way through (two changes in 0.3 s)
+            lp.now = 20.0 + i / 3.0
+            pct = (40.0, 40.0) if i < 3 else (-28.0, 28.0) if i < 5 else (-30.0, 30.0)
+            lp.runner.drive(*pct, 0.5)
+        lp.now = 30.0
+        lp.runner.stop()
+    said = [r.getMessage() for r in caplog.records if r.name == "x6wd.loop.runner"]
+    drives = [m for m in said if m.startswith("operator: drive")]
+    assert drives == [
+        "operator: drive L+40 R+40 for 0.5 s",
+        "operator: drive L+40 R+40 for 0.5 s",
+        "operator: drive L-28 R+28 for 0.5 s (changed while driving)",
+    ], drives
+    ends = [m for m in said if m.startswith("state MANUAL -> IDLE")]
+    assert ends == [
+        "state MANUAL -> IDLE mode: manual drive expired",
+        "state MANUAL -> IDLE mode: stop",
+    ]
