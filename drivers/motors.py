@@ -232,8 +232,11 @@ class EncoderUnwrap:
       (another host polling ``E`` too): the counts add.
     - Anything else fits no motion: a new baseline (``implausible`` counts it).
 
-    ``verdict`` is the last reading's: "first", "continued", "restart" (detected) or
-    "implausible". ``skipped``
+    :meth:`reopened` (the port was opened again) makes the next reading continue only when
+    the latch number continues (1..``requests`` ahead) and the counts fit ``reach`` over the
+    outage; else it is a new baseline (a restart as above, or "reopened"). ``verdict`` is
+    the last reading's: "first", "continued", "restart" (detected), "implausible" or
+    "reopened". ``skipped``
     counts latches whose replies never arrived (nothing is lost: counts are cumulative);
     ``restarts`` the new baselines after the first; ``detected`` the restarts seen in the
     readings (no ``EVT BOOT``); ``jumps`` the readings that moved further than the wheels
@@ -254,6 +257,7 @@ class EncoderUnwrap:
         self.verdict = ""
         self._last: tuple[int, int, int] | None = None  # (seq, left, right) as read
         self._last_t: float | None = None  # when its request went out (else its reply), s
+        self._reopened = False  # the port reopened since the last reading
 
     def rebase(self) -> None:
         """The next reading starts a new baseline (the board's counters began again)."""
@@ -261,6 +265,12 @@ class EncoderUnwrap:
             self.restarts += 1
         self._last = None
         self._last_t = None
+        self._reopened = False
+
+    def reopened(self) -> None:
+        """The port was opened again: the next reading continues only if it plainly does
+        (its latch number continues and its counts fit the time since the last one)."""
+        self._reopened = self._last is not None
 
     def update(
         self,
@@ -276,6 +286,7 @@ class EncoderUnwrap:
         ``requests`` latch requests sent since the last reading, if known); the continuous
         (left, right) counts."""
         last = self._last
+        reopened, self._reopened = self._reopened, False
         if last is None:
             self.verdict = "first"
         else:
@@ -296,7 +307,7 @@ class EncoderUnwrap:
                 and max(abs(wrap_count_delta(left)), abs(wrap_count_delta(right))) <= reach
             ):
                 verdict = "restart"
-            elif ahead and fits:
+            elif ahead and fits and not reopened:
                 verdict = "continued"
             else:
                 verdict = "implausible"
@@ -306,7 +317,9 @@ class EncoderUnwrap:
                 self.right += d_right
             else:
                 self.restarts += 1
-                if verdict == "restart":
+                if reopened and verdict == "implausible":
+                    verdict = "reopened"  # a new baseline, as every reopen was before
+                elif verdict == "restart":
                     self.detected += 1
                 else:
                     self.implausible += 1
@@ -348,9 +361,11 @@ class SerialMotorLink:
 
     ``max_counts_per_s`` (counts/s, default :data:`ENC_MAX_COUNTS_PER_S`;
     :func:`encoder_rate_bound` for a configured robot): encoder readings that moved further
-    than this allows are no motion (:class:`EncoderUnwrap`). Every reopen of the
-    port starts a new baseline too: a board on native USB restarts with its port, and its
-    ``EVT BOOT`` went out before the port was open again.
+    than this allows are no motion (:class:`EncoderUnwrap`). After a reopen of the port
+    the odometry goes on only if the next reading plainly continues the last (its latch
+    number 1..n ahead, its counts within reach over the outage: a TCP link that dropped),
+    else a new baseline (a board on native USB restarts with its port, and its
+    ``EVT BOOT`` went out before the port was open again).
     """
 
     def __init__(
@@ -833,8 +848,9 @@ class SerialMotorLink:
         # command succeeds on the new port).
         self.configured = False
         # a board on native USB restarts with its port: its counters began again at 0 and
-        # its EVT BOOT went out before the port was open (the next reading is a new baseline)
-        self.encoders.rebase()
+        # its EVT BOOT went out before the port was open; a TCP link that dropped did not
+        # restart the board: the next reading tells which (EncoderUnwrap.reopened)
+        self.encoders.reopened()
         self.counters.reopens += 1
         self._reopens_since_break += 1
         if t_s - self._reopen_log_t >= REOPEN_LOG_S:

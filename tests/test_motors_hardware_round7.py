@@ -206,6 +206,51 @@ def test_the_odometry_starts_a_new_baseline_when_the_port_reopens() -> None:
             p.close()
 
 
+@pytest.mark.integration
+def test_a_reopen_keeps_the_odometry_when_the_board_did_not_restart() -> None:
+    # review6 6: every reopen started a new baseline, so a link that dropped (ser2net's TCP
+    # connection, a flaky adapter) while the board ran on lost the counts of the outage.
+    # Now the reading after the reopen continues when its latch number continues and its
+    # counts fit the bound over the outage; the board moved 2 m meanwhile
+    board = MotorBoard()
+    board.boot()
+    board.enc_seq = 65000
+    board.add_counts(2000, 2000)
+    pb = Pty(board)
+    pb2: list[Pty] = []
+    link = SerialMotorLink(
+        open_port(pb.name),
+        ack_timeout_s=0.2,
+        reopen=lambda: open_port(pb2[0].name),
+        reopen_initial_s=0.01,
+        max_counts_per_s=SHIPPED_BOUND,
+    )
+    try:
+        assert link.read_odometry() is not None
+        with pb.lock:
+            board.add_counts(430, 430)
+        odo = link.read_odometry()
+        assert odo is not None and odo.left_counts == 430
+        pb.close()  # the link drops; the board runs on (no restart) and the robot rolls
+        board.add_counts(8658, 8650)  # 0.51 s at 3.888 m/s: the outage lasts 0.6 s
+        assert not link.ping()
+        time.sleep(0.6)
+        pb2.append(Pty(board))
+        assert wait_for(
+            lambda: (link.ping() or True) and link.counters.reopens > 0 and link.healthy
+        )
+        after = link.read_odometry()
+        assert after is not None
+        assert (after.left_counts, after.right_counts) == (430 + 8658, 430 + 8650)  # was 430
+        assert link.encoders.restarts == 0
+        assert link.health.state == "connected"
+    finally:
+        link.close()
+        pb.close()
+        for p in pb2:
+            p.close()
+
+
 # --- M3: a brown-out is a lost link; the last drive is not sent again -------------------------
 
 
@@ -729,3 +774,29 @@ def test_a_mission_on_a_board_browning_out_holds_until_the_operator_acts(ends: s
         ctl.join(5)
         w.shutdown("end")
         pb.close()
+
+
+def test_after_a_reopen_only_a_plain_continuation_keeps_the_baseline() -> None:
+    from drivers.motors import EncoderUnwrap
+
+    def reopened_then(seq: int, left: int, requests: int = 1) -> tuple[EncoderUnwrap, int]:
+        u = EncoderUnwrap(1000.0)  # counts/s
+        u.update(10, 100, 100, t_s=1.0, sent_s=0.99, requests=1)
+        u.reopened()
+        got, _ = u.update(seq, left, left, t_s=2.0, sent_s=1.99, requests=requests)
+        return u, got
+
+    u, got = reopened_then(11, 600)  # 500 counts in 1.01 s: fits 1,060
+    assert (got, u.verdict, u.restarts) == (500, "continued", 0)
+    u, got = reopened_then(13, 600, requests=3)  # two E lost to the dead port
+    assert (got, u.verdict, u.skipped) == (500, "continued", 2)
+    u, got = reopened_then(11, 5100)  # 5,000 counts: more than the wheels can
+    assert (got, u.verdict, u.restarts) == (0, "reopened", 1)
+    u, got = reopened_then(15, 600)  # 5 latches for our 1: another poller, or not ours
+    assert (got, u.verdict) == (0, "reopened")
+    u, got = reopened_then(1, 30)  # the board restarted with its port
+    assert (got, u.verdict, u.detected) == (0, "restart", 1)
+    # without a reopen the other poller's latches still count as motion
+    u = EncoderUnwrap(1000.0)
+    u.update(10, 100, 100, t_s=1.0, sent_s=0.99, requests=1)
+    assert u.update(15, 600, 600, t_s=2.0, sent_s=1.99, requests=1) == (500, 500)
