@@ -17,7 +17,10 @@ A sweep file (``config/sweeps/position_source.toml`` is the example)::
 
 Keys of ``[set]`` and ``[grid]`` are dotted paths into the scenario's TOML table (any scenario
 key: ``duration_s``, ``gnss.rate_hz``, ``vehicle.max_speed_mps``, ``compass.noise_ut``, or a
-robot configuration key: ``navigation.position_source``, ``failsafe.stuck_s``, ...). They are
+robot configuration key: ``navigation.position_source``, ``failsafe.stuck_s``, ...). A table
+given as a value is merged into the scenario's, key by key, in [grid] as in [set]: ``[grid]
+gnss = [{rate_hz = 1.0, mask_deg = 5.0}, {rate_hz = 2.0, mask_deg = 10.0}]`` is two cells that
+vary both keys together, the scenario's other [gnss] keys kept (:func:`grid_value`). They are
 applied to each scenario's merged table (after its includes and the robot config) *before* the
 scenario is validated, so every cell is checked when the sweep starts and a bad key or value
 stops it with the scenario's own error message naming the key (``x6wd sweep`` exits 2). A file
@@ -195,7 +198,17 @@ def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: s
             raise ConfigError(f"grid.{key}: also in [set]; give it in one of them")
         seen: dict[str, Any] = {}
         for v in values:  # a repeat would run the same cell twice and count it twice
-            first = seen.setdefault(_value_key(v, key), v)
+            flat = grid_value(key, v)
+            for k in flat if isinstance(v, dict) else ():  # a table: merged key by key
+                if k in fixed:
+                    raise ConfigError(
+                        f"grid.{key}: sets {k}, also in [set]; give it in one of them"
+                    )
+                if k in grid_raw:
+                    raise ConfigError(
+                        f"grid.{key}: sets {k}, also a key of [grid]; give it in one of them"
+                    )
+            first = seen.setdefault(_value_key(flat if isinstance(v, dict) else v, key), v)
             if first is not v:
                 same = "" if _shown(first) == _shown(v) else f" (as {_shown(first)})"
                 raise ConfigError(f"grid.{key}: value {_shown(v)} given twice{same}")
@@ -229,6 +242,16 @@ def _dotted(table: Any, where: str, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def grid_value(key: str, value: Any) -> dict[str, Any]:
+    """The overrides one value of the [grid] key ``key`` makes: a table is merged into the
+    scenario's key by key, as the same table in [set] is ({"compass": {"noise_ut": 0.1}} ->
+    {"compass.noise_ut": 0.1}: the scenario's compass.declination_deg stays; a file in it is
+    relative to the sweep file), any other value is ``{key: value}``."""
+    if isinstance(value, dict):
+        return _dotted(value, f"grid.{key}", f"{key}.")
+    return {key: value}
+
+
 def set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
     """``data[a][b][c] = value`` for ``key`` "a.b.c", creating missing tables; a path through
     a value that is not a table is a :class:`ConfigError` naming the key."""
@@ -249,8 +272,9 @@ def set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
 
 @dataclass(frozen=True)
 class Cell:
-    """One scenario x one combination of the grid's values. ``params`` are the grid's values,
-    ``overrides`` those and [set]; ``world_toml`` the resolved scenario with them applied;
+    """One scenario x one combination of the grid's values. ``params`` are the grid's values
+    by dotted key (a table value's keys each on its own: :func:`grid_value`), ``overrides``
+    those and [set]; ``world_toml`` the resolved scenario with them applied;
     ``files`` the (path, SHA-256) of every file it names (an almanac other than the packaged
     one), and ``digest`` its fingerprint (:func:`cell_digest`): a run is done only for the
     same digest. ``warnings``: what ``x6wd sim`` would warn about (its sky)."""
@@ -497,7 +521,9 @@ def plan(spec: SweepSpec) -> list[Run]:
     for path in spec.scenarios:
         table, base = base_table(path, spec.robot_config)
         for combo in combos:
-            params = dict(zip(keys, combo, strict=True))
+            params: dict[str, Any] = {}  # a table's keys each on its own (as [set] has them)
+            for k, v in zip(keys, combo, strict=True):
+                params.update(grid_value(k, v))
             overrides = {**spec.fixed, **params}
             where = ", ".join(f"{k}={show_value(v)}" for k, v in overrides.items())
             label = f"{path.stem} ({where or 'no overrides'})"

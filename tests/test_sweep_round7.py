@@ -176,6 +176,134 @@ def test_a_quick_look_at_a_folder_of_short_ids_counts_its_other_seeds(
     assert "not in this grid" not in r.stderr, r.stderr
 
 
+# ---------------------------------------------------------------------------- 3: tables
+
+
+def _cell_tables(out: Path) -> dict[str, dict]:
+    """Each cell file of ``out`` by its id, as TOML."""
+    import tomllib
+
+    return {p.stem: tomllib.loads(p.read_text()) for p in (out / "cells").glob("*.toml")}
+
+
+@pytest.mark.integration
+def test_a_table_in_grid_is_merged_into_the_scenarios_as_in_set(tmp_path: Path) -> None:
+    # The audit's: [grid] compass = [{noise_ut = 0.1}, {noise_ut = 0.2}] replaced the
+    # scenario's whole [compass] (default.toml's declination_deg = -0.5 dropped, silently)
+    # where [set] compass = {noise_ut = 0.1} merged it; the label read compass={"noise_ut": 0.1}.
+    from sim_backend import sweep
+
+    f = sweep_file(
+        tmp_path,
+        "seeds = 1\n[set]\nduration_s = 5.0\n[grid]\n"
+        "compass = [{noise_ut = 0.1}, {noise_ut = 0.2}]\n",
+    )
+    out = tmp_path / "out"
+    r = run_cli(str(f), "--workers", "1", "--out", str(out), "--quiet", "--no-figures")
+    assert r.returncode == 0, (r.stdout, r.stderr)
+    cells = _cell_tables(out)
+    assert sorted(c["compass"]["noise_ut"] for c in cells.values()) == [0.1, 0.2]
+    for c in cells.values():
+        assert c["compass"]["declination_deg"] == -0.5, c["compass"]
+    # the same value in [set]: the same cell, the same run (its seed and cell id)
+    g = tmp_path / "set" / "sweep.toml"
+    g.parent.mkdir()
+    g.write_text(
+        f.read_text().replace(
+            "[grid]\ncompass = [{noise_ut = 0.1}, {noise_ut = 0.2}]",
+            "compass = {noise_ut = 0.1}",
+        )
+    )
+    (as_set,) = sweep.plan(sweep.load_sweep(g))
+    row = next(r for r in results(out) if r["compass.noise_ut"] == "0.1")
+    assert (row["cell_id"], int(row["seed"])) == (as_set.cell.cell_id, as_set.seed)
+    assert (out / "cells" / f"{row['cell_id']}.toml").read_text().endswith(as_set.cell.world_toml)
+    summary = (out / "summary.md").read_text()
+    assert "default noise_ut=0.1 " in summary and "default noise_ut=0.2 " in summary, summary
+
+
+def test_a_table_in_grid_keeps_the_tables_other_keys_and_varies_keys_together(
+    tmp_path: Path,
+) -> None:
+    # [grid] gnss = [{rate_hz = 2.0}] dropped fidelity, mask_deg, nmea_decimals and baud;
+    # a table of two keys is how a sweep varies them together (not every combination).
+    import tomllib
+
+    from sim_backend import sweep
+
+    f = sweep_file(
+        tmp_path,
+        "seeds = 1\n[grid]\n"
+        "gnss = [{rate_hz = 1.0, mask_deg = 5.0}, {rate_hz = 2.0, mask_deg = 10.0}]\n",
+    )
+    runs = sweep.plan(sweep.load_sweep(f))
+    assert [r.cell.params for r in runs] == [
+        {"gnss.rate_hz": 1.0, "gnss.mask_deg": 5.0},
+        {"gnss.rate_hz": 2.0, "gnss.mask_deg": 10.0},
+    ]
+    for run in runs:
+        gnss = tomllib.loads(run.cell.world_toml)["gnss"]
+        assert (gnss["fidelity"], gnss["nmea_decimals"], gnss["baud"]) == (
+            "pseudorange",
+            5,
+            9600,
+        ), gnss
+    assert [tomllib.loads(r.cell.world_toml)["gnss"]["mask_deg"] for r in runs] == [5.0, 10.0]
+
+
+def test_a_file_in_a_grid_table_is_relative_to_the_sweep_file(tmp_path: Path) -> None:
+    # The file key inside a [grid] table (gnss.lce_csv) was resolved against the scenario's
+    # folder, not the sweep file's as in [set] and as a dotted [grid] key.
+    import tomllib
+
+    from sim_backend import sweep
+
+    sw, scen = tmp_path / "sw", tmp_path / "scen"
+    sw.mkdir()
+    scen.mkdir()
+    (scen / "s.toml").write_text(f'include = ["{DEFAULT}"]\nduration_s = 5.0\n')
+    (sw / "a.csv").write_text("1.0,2.0\n3.0,4.0\n")
+    f = sw / "sweep.toml"
+    f.write_text(
+        'seeds = 1\nscenarios = ["../scen/s.toml"]\n[grid]\ngnss = [\n'
+        '  {lce_csv = "a.csv", fidelity = "seed", seed_uere = "re_ase_lce"},\n'
+        '  {fidelity = "seed", seed_uere = "modelled"},\n]\n'
+    )
+    runs = sweep.plan(sweep.load_sweep(f))
+    first = tomllib.loads(runs[0].cell.world_toml)["gnss"]
+    assert first["lce_sigma_m"] == [[1.0, 2.0], [3.0, 4.0]]
+    assert first["rate_hz"] == 1.0  # the scenario's, kept
+    assert runs[0].cell.params["gnss.lce_csv"] == "a.csv"  # as written
+
+
+@pytest.mark.parametrize(
+    ("body", "named"),
+    [
+        (
+            "[set]\ncompass.noise_ut = 0.1\n[grid]\ncompass = [{noise_ut = 0.2}]\n",
+            "grid.compass: sets compass.noise_ut, also in [set]",
+        ),
+        (
+            '[grid]\n"compass.noise_ut" = [0.1]\ncompass = [{noise_ut = 0.2}]\n',
+            "grid.compass: sets compass.noise_ut, also a key of [grid]",
+        ),
+        (  # one table written nested and dotted: one value, given twice
+            '[grid]\nvehicle = [{a = {b = 1}}, {"a.b" = 1}]\n',
+            "grid.vehicle: value {'a.b': 1} given twice",
+        ),
+    ],
+)
+def test_a_grid_table_that_sets_a_key_twice_is_refused(
+    tmp_path: Path, body: str, named: str
+) -> None:
+    from sim_backend import sweep
+    from x6wd.core.errors import ConfigError
+
+    with pytest.raises(ConfigError) as exc:
+        sweep.load_sweep(sweep_file(tmp_path, body))
+    assert named in str(exc.value), str(exc.value)
+
+
 # ---------------------------------------------------------------------------- 4: Ctrl-C
 
 SLOW_HEARTBEATS = """
