@@ -160,3 +160,45 @@ def test_far_real_log_is_not_told_about_sim_logs(tmp_path: Path, capsys) -> None
     assert "far.csv" in err and "km from the truth" in err, err
     assert "(a --sim log must simulate" not in err and "--sim" not in err, err
     assert "(the real log (--real))" in err and "the real log's place" in err, err
+
+
+@pytest.mark.parametrize("kind", ["fifo", "pipe"])
+def test_a_log_on_a_pipe_or_fifo_is_read_whole(tmp_path: Path, kind: str) -> None:
+    """`x6wd gap --real <(zcat log.gz)`: the reader sniffed the head, then opened the path
+    again, so a pipe lost its first 64 KB ("no position epochs found" on a short log) and a
+    FIFO's second open waited for ever. Now a path that is not a regular file is read once
+    into a temporary copy: the same epochs as the file, messages naming the path."""
+    import os
+    import threading
+
+    log = Path(__file__).parent / "data" / "nmea" / "quectel-l76k-dual.log"
+    data = log.read_bytes()
+    assert len(data) > 3 * 65536
+    if kind == "fifo":
+        path = tmp_path / "log.fifo"
+        os.mkfifo(path)
+
+        def write() -> None:
+            with open(path, "wb") as f:
+                f.write(data)
+
+    else:
+        r, w = os.pipe()
+        path = Path(f"/dev/fd/{r}")
+
+        def write() -> None:
+            with os.fdopen(w, "wb") as f:
+                f.write(data)
+
+    writer = threading.Thread(target=write, daemon=True)
+    writer.start()
+    try:
+        track = read_track(path)
+    finally:
+        writer.join(10)
+        if kind == "pipe":
+            os.close(r)
+    whole = read_track(log)
+    assert len(track.t_s) == len(whole.t_s) > 0
+    assert np.array_equal(np.asarray(track.valid), np.asarray(whole.valid))
+    assert track.source == str(path)

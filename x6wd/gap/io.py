@@ -32,7 +32,10 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import re
+import stat
+import tempfile
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -571,8 +574,48 @@ def settle_heights(track: Track) -> Track:
     return replace(track, alt_m=alt_m, notes=tuple(notes))
 
 
+MAX_PIPE_BYTES = 1 << 30
+"""Most a log that is not a regular file (a pipe, ``<(zcat log.gz)``, a FIFO) may hold: it
+is copied to a temporary file first, as it can be read only once (beyond, a clear error:
+save it to a file; ``/dev/zero`` would fill the disk)."""
+
+
 def _read_any(path: str | Path) -> Track:
     log_path = Path(path)
+    try:
+        mode = os.stat(log_path).st_mode
+    except OSError as exc:
+        raise DeviceUnavailable(f"cannot read {log_path}: {exc}") from exc
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        return _read_pipe(log_path)
+    return _read_file(log_path)
+
+
+def _read_pipe(log_path: Path) -> Track:
+    """A log that can be read only once (the sniffing below reads a file twice: on a pipe
+    that lost its first 64 KB), through a temporary copy; messages name ``log_path``."""
+    with tempfile.TemporaryDirectory(prefix="x6wd-gap-") as tmp:
+        copy = Path(tmp) / (log_path.name or "log")
+        try:
+            with open(log_path, "rb") as src, open(copy, "wb") as dst:
+                n = 0
+                while chunk := src.read(1 << 20):
+                    n += len(chunk)
+                    if n > MAX_PIPE_BYTES:
+                        raise ParseError(
+                            f"{log_path}: not a regular file and longer than "
+                            f"{MAX_PIPE_BYTES >> 20} MiB: save it to a file first"
+                        )
+                    dst.write(chunk)
+        except OSError as exc:
+            raise DeviceUnavailable(f"cannot read {log_path}: {exc}") from exc
+        try:
+            return replace(_read_file(copy), source=str(log_path))
+        except (ParseError, ConfigError, DeviceUnavailable) as exc:
+            raise type(exc)(str(exc).replace(str(copy), str(log_path))) from exc
+
+
+def _read_file(log_path: Path) -> Track:
     source = str(log_path)
     try:
         with open(log_path, "rb") as f:
