@@ -296,11 +296,15 @@ def test_kill_9_loses_at_most_one_record(
     # the recorder busy with every kind of input when the kill comes
     wait_for(lambda: recording_has("nmea", "fix", "attitude"), 10, "inputs recorded")
     speeds = [10, 20, 30, 40, 50]
-    drivers = [drive_and_wait(daemon_process, board, v, v) for v in speeds]
+    # one connection: manual drive belongs to the client whose drive started it (another
+    # connection's drive would be refused while this one's holds)
+    driver = drive_and_wait(daemon_process, board, speeds[0], speeds[0])
+    for v in speeds[1:]:
+        driver.request("drive", left=v, right=v, duration_s=5)
+        wait_for(lambda v=v: board.saw(rf"M {v} {v} #"), 5, f"board driven at {v} {v}")
     daemon_process.proc.send_signal(signal.SIGKILL)  # the moment the board acted on 50
     assert daemon_process.proc.wait(10) == -signal.SIGKILL
-    for c in drivers:
-        c.close()
+    driver.close()
     (first,) = sorted((tmp_path / "rec").glob("x6wd-*Z.jsonl"))
     stats = ReadStats()
     records = list(read_recording_parts(first, stats=stats))
