@@ -749,6 +749,17 @@ def test_mission_load_takes_qgc_wpl_and_kml_on_the_control_port(robot: Running) 
         assert c.request("mission.load", wpl=format_wpl(wps))["count"] == 2
         assert robot.daemon._mission == tuple((w.lat_deg, w.lon_deg) for w in wps)
         assert c.request("mission.load", kml=kml)["count"] == 2
+        items = [
+            {"type": "SimpleItem", "command": 16, "frame": 3, "autoContinue": True,
+             "doJumpId": i + 1, "params": [0, 0, 0, None, w.lat_deg, w.lon_deg, 0]}
+            for i, w in enumerate(wps)
+        ]  # fmt: skip
+        plan = json.dumps(
+            {"fileType": "Plan", "version": 1,
+             "mission": {"version": 2, "items": items, "plannedHomePosition": [*ORIGIN, 0]}}
+        )  # fmt: skip
+        assert c.request("mission.load", plan=plan)["count"] == 2  # QGroundControl's .plan
+        assert robot.daemon._mission == tuple((w.lat_deg, w.lon_deg) for w in wps)
         with pytest.raises(RequestFailed) as ei:
             c.request("mission.load", wpl="QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t95\t0\t0\t1\n")
         assert ei.value.code == "bad_request"

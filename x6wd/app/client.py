@@ -2,7 +2,7 @@
 
 ``x6wd client [--host H] [--port P] [--token-file F] [--tls [--cafile F]] COMMAND``
 with COMMAND one of ``status``, ``load FILE | load --wp LAT,LON ...`` (FILE: ``.waypoints``,
-``.gpx``, ``.csv`` or ``.kml``), ``start``, ``pause``, ``resume``, ``return``, ``stop``,
+``.plan``, ``.gpx``, ``.csv`` or ``.kml``), ``start``, ``pause``, ``resume``, ``return``, ``stop``,
 ``drive LEFT RIGHT SECONDS``, ``watch``, ``log [N]``.
 
 ``status`` prints a summary for a person, ``--json`` (before or after the action) the reply

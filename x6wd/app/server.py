@@ -54,7 +54,15 @@ from x6wd.app.lineserver import (
 )
 from x6wd.core.config import ServerConfig, is_loopback_bind
 from x6wd.core.errors import CommandError, ConfigError, ParseError, X6wdError
-from x6wd.core.mission_files import Waypoint, from_pairs, parse_csv, parse_gpx, parse_kml, parse_wpl
+from x6wd.core.mission_files import (
+    Waypoint,
+    from_pairs,
+    parse_csv,
+    parse_gpx,
+    parse_kml,
+    parse_plan,
+    parse_wpl,
+)
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +92,7 @@ request throttle, on any connection) is refused, never carried out after the sto
 """What a watch-only client (the web console with ``console.watch_only``) is refused."""
 DETACHED_OPEN_COMMANDS = frozenset({"hello", "auth", "stop"})
 """What a detached client (the web console) may send before ``auth``: the brake, no status."""
-MISSION_KEYS = ("waypoints", "gpx", "csv", "wpl", "kml")
+MISSION_KEYS = ("waypoints", "gpx", "csv", "wpl", "kml", "plan")
 """``mission.load``'s arguments: a list of pairs, or a file's content in one of four formats."""
 MAX_PENDING_REPLIES = 64
 LOG_TAIL_MAX = 1000
@@ -1275,7 +1283,8 @@ class ControlServer(LineServer[_Client]):
         given = [k for k in MISSION_KEYS if k in req]
         if len(given) != 1:
             raise _bad(
-                "bad_argument", "give exactly one of 'waypoints', 'gpx', 'csv', 'wpl' or 'kml'"
+                "bad_argument",
+                "give exactly one of 'waypoints', 'gpx', 'csv', 'wpl', 'kml' or 'plan'",
             )
         key = given[0]
         if key == "waypoints":
@@ -1299,5 +1308,11 @@ class ControlServer(LineServer[_Client]):
         text = req[key]
         if not isinstance(text, str):
             raise _bad("bad_argument", f"'{key}' must be the file content as a string")
-        parse = {"gpx": parse_gpx, "csv": parse_csv, "wpl": parse_wpl, "kml": parse_kml}[key]
+        parse = {
+            "gpx": parse_gpx,
+            "csv": parse_csv,
+            "wpl": parse_wpl,
+            "kml": parse_kml,
+            "plan": parse_plan,
+        }[key]
         return parse(text)
