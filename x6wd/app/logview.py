@@ -198,6 +198,62 @@ class TimeJump:
         }
 
 
+MAX_JUMPS = 100
+"""Time jumps kept of a log (listed in the page's data, marked on its panels and the PNG's):
+a log with more (epochs written out of order, thousands of logs concatenated) has them
+thinned as they are read, as its series are: the first, then one in every 2, 4, 8... by
+file order, so that what is kept stays spread over the whole log. Its count is kept."""
+
+LARGEST_JUMPS = 10
+"""The largest time jumps (by their step) kept as well, wherever they are: a session's step
+of an hour is not lost among thousands of one-second steps."""
+
+
+class JumpList(list[TimeJump]):
+    """A log's time jumps as read, in file order, bounded: :data:`MAX_JUMPS` thinned by a
+    stride and the :data:`LARGEST_JUMPS` largest; :attr:`total` counts every one."""
+
+    def __init__(self, jumps: Iterable[TimeJump] = ()) -> None:
+        super().__init__()
+        self.total = 0
+        self.version = 0  # changes whenever the jumps kept do
+        self._stride = 1
+        self._strided: list[TimeJump] = []
+        self._largest: list[TimeJump] = []  # by |step|, largest first
+        for j in jumps:
+            self.append(j)
+
+    def append(self, jump: TimeJump) -> None:
+        """One more jump, later in the file than any before it."""
+        index, self.total = self.total, self.total + 1
+        kept = False
+        if index % self._stride == 0:
+            self._strided.append(jump)
+            kept = True
+        size = abs(jump.step_s)
+        if len(self._largest) < LARGEST_JUMPS or size > abs(self._largest[-1].step_s):
+            self._largest.append(jump)
+            self._largest.sort(key=lambda j: -abs(j.step_s))
+            del self._largest[LARGEST_JUMPS:]
+            kept = True
+        if not kept:
+            return
+        self.version += 1
+        if len(self._strided) > MAX_JUMPS:
+            self._strided = self._strided[::2]  # those at a multiple of the doubled stride
+            self._stride *= 2
+        ids = {id(j) for j in (*self._strided, *self._largest)}
+        if len(ids) == len(self) + 1 and id(jump) in ids:
+            super().append(jump)  # nothing dropped: the newest is the last in file order
+        else:
+            self[:] = [j for j in (*self, jump) if id(j) in ids]
+
+
+def n_jumps(view: LogView) -> int:
+    """Every time jump of a log, those not kept (:class:`JumpList`) too."""
+    return getattr(view.jumps, "total", len(view.jumps))
+
+
 def _duration(s: float) -> str:
     """``s`` seconds as "12.5 s", or with its hours and minutes when long ("3122.5 s (52
     min)")."""
@@ -232,7 +288,8 @@ class LogView:
     faults: list[Interval] = field(default_factory=list)  # lanes: DEVICES
     missing: dict[str, str] = field(default_factory=dict)  # panel id -> why it is empty
     counts: dict[str, int] = field(default_factory=dict)
-    jumps: list[TimeJump] = field(default_factory=list)  # the log's time jumps
+    # the log's time jumps: those kept (a JumpList: at most MAX_JUMPS + LARGEST_JUMPS)
+    jumps: list[TimeJump] = field(default_factory=lambda: JumpList())
     # the recording's gaps (the recorder lost records: a full or read-only disk, a stuck
     # writer); drawn in ``faults``, lane "recorder"
     gaps: list[RecordingGap] = field(default_factory=list)
@@ -276,6 +333,7 @@ class LogView:
             "missing": self.missing,
             "counts": self.counts,
             "time_jumps": [j.to_json() for j in self.jumps],
+            "time_jumps_total": n_jumps(self),
             "recording_gaps": [g.to_json() for g in self.gaps],
             "cut_short": self.cut_short,
         }
@@ -594,7 +652,7 @@ class _Decoding:
 
         self.raw, self.order = raw, order
         self.decoder = GpsDecoder(emit_sentences=False)
-        self.dates = _JumpDates() if order is not None else None
+        self.dates = _JumpDates(order.jumps) if order is not None else None
         self.line = 0
         self.t_last_s = 0.0
 
@@ -611,10 +669,8 @@ class _Decoding:
         """The next chunk, received at ``t_s`` (the log's own s)."""
         self.line += 1
         if self.order is not None and self.dates is not None:
-            n = len(self.order.jumps)
             t_s = self.order.place(t_s, self.line)
-            if len(self.order.jumps) > n:
-                self.dates.expect(self.order.jumps[-1])
+            if self.order.jumped is not None:
                 # The epoch in progress is the last segment's: closed before the next one's
                 # first sentence, whose date the decoder would otherwise give it (a cold
                 # start's 23:59:50 on 2006-12-16 came out as 2010-09-30, the next RMC's day).
@@ -650,17 +706,18 @@ class _FileOrder:
         self._jitter_s = jitter_s
         self._prev = self._last = math.nan
         self._steps: deque[float] = deque(maxlen=64)
+        self.jumped: TimeJump | None = None  # the jump the last line placed made, if any
 
     def place(self, t: float, line: int, file: str = "") -> float:
         """The time axis's time of the log's own time ``t`` at ``line`` (of ``file``)."""
         step = t - self._prev
+        self.jumped = None
         if step < -self._jitter_s or step > TIME_JUMP_S:
             gap = statistics.median(self._steps) if self._steps else 1.0
             self.offset_s = self._last + gap - t
-            self.jumps.append(
-                TimeJump(self._last + gap / 2, line, step, file=file,
-                         t_before_s=self._last, t_after_s=t + self.offset_s)
-            )  # fmt: skip
+            self.jumped = TimeJump(self._last + gap / 2, line, step, file=file,
+                                   t_before_s=self._last, t_after_s=t + self.offset_s)  # fmt: skip
+            self.jumps.append(self.jumped)  # kept or not (a JumpList keeps a bounded few)
         elif step > 0:
             self._steps.append(step)
         self._prev, self._last = t, t + self.offset_s
@@ -672,17 +729,27 @@ class _JumpDates:
     side, of the last dated fix at the time before it (``t_before_s``) and of the first at
     the time after it (``t_after_s``). A side whose time came from a sentence that made no
     fix (a damaged one) is left unsaid, not taken from a later fix the step was not measured
-    to. Held: the fixes of the last few times and of the jumps' times."""
+    to. Held: the fixes of the last few times and of the kept jumps' times (``jumps``: those
+    of a :class:`JumpList`, a bounded few; a jump it drops is not dated)."""
 
     _RECENT = 64  # times: a jump's time before is the newest line's when it is found
 
-    def __init__(self) -> None:
+    def __init__(self, jumps: list[TimeJump]) -> None:
         self.at: dict[float, list[GpsFix]] = {}  # t -> [first, last] dated fix at t
+        self._jumps = jumps
+        self._version = -1
         self._wanted: set[float] = set()
 
-    def expect(self, jump: TimeJump) -> None:
-        """``jump`` is dated at the end: keep the fixes at its two times."""
-        self._wanted.update((jump.t_before_s, jump.t_after_s))
+    def _update_wanted(self) -> None:
+        """The kept jumps' times wanted; the fixes of times no longer wanted forgotten."""
+        version = getattr(self._jumps, "version", len(self._jumps))
+        if version == self._version:
+            return
+        self._version = version
+        self._wanted = {t for j in self._jumps for t in (j.t_before_s, j.t_after_s)}
+        recent = set(list(self.at)[-self._RECENT :])
+        for t in [t for t in self.at if t not in self._wanted and t not in recent]:
+            del self.at[t]
 
     def see(self, fix: GpsFix) -> None:
         """The next fix the decoder made."""
@@ -692,6 +759,7 @@ class _JumpDates:
         if ends is not None:
             ends[1] = fix
             return
+        self._update_wanted()
         self.at[fix.t_s] = [fix, fix]
         if len(self.at) > self._RECENT + len(self._wanted):
             old = next((t for t in self.at if t not in self._wanted), None)
@@ -795,10 +863,10 @@ def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadS
     def at(t: float, part: str, number: int, line: bytes) -> float:
         """``t`` placed on the time axis; a jump there dated by the recorder's t_utc."""
         nonlocal prev_line
-        n = len(jumps)
         t = order.place(t, number, part)
-        if len(jumps) > n:
-            jumps[-1].before_utc, jumps[-1].after_utc = _record_utc(prev_line), _record_utc(line)
+        if order.jumped is not None:
+            order.jumped.before_utc = _record_utc(prev_line)
+            order.jumped.after_utc = _record_utc(line)
         prev_line = line
         raw.t_first = t if raw.t_first is None else raw.t_first
         raw.t_last = max(raw.t_last, t)
@@ -1620,11 +1688,22 @@ def jumps_note(view: LogView, most: int = 3) -> str:
     """What the page and ``x6wd plot`` say of a log's time jumps ("" when it has none)."""
     if not view.jumps:
         return ""
-    said = "; ".join(j.describe() for j in view.jumps[:most])
-    more = f"; and {len(view.jumps) - most} more" if len(view.jumps) > most else ""
+    total, listed = n_jumps(view), list(view.jumps[:most])
+    said = "; ".join(j.describe() for j in listed)
+    more = f"; and {total - len(listed)} more" if total > len(listed) else ""
+    largest = max(view.jumps, key=lambda j: abs(j.step_s))
+    if total > len(listed) and largest not in listed:
+        more += f" (the largest: {largest.describe()})"
+    marked = ""
+    if total > len(view.jumps):
+        marked = (
+            f" ({len(view.jumps)} of the {total} marked: the first, the {LARGEST_JUMPS} "
+            "largest and the rest thinned evenly through the log)"
+        )
     return (
-        f"{said}{more}. Drawn in file order, each jump one epoch wide and marked with a "
-        "dashed line; the time axis is the log's time within each segment"
+        f"{f'{total} time jumps: ' if total > 1 else ''}{said}{more}. Drawn in file order, "
+        f"each jump one epoch wide and marked with a dashed line{marked}; the time axis is "
+        "the log's time within each segment"
     )
 
 
@@ -1655,7 +1734,7 @@ def html_page(view: LogView) -> str:
     if view.recorder_clock:
         facts.append(("recorder clock", recorder_clock_note(view)))
     if view.jumps:
-        facts.append((f"time jumps ({len(view.jumps)})", jumps_note(view)))
+        facts.append((f"time jumps ({n_jumps(view)})", jumps_note(view)))
     if view.gaps:
         facts.append((f"recording gaps ({len(view.gaps)})", gaps_note(view)))
     if view.cut_short:
