@@ -102,7 +102,7 @@ from drivers.gps_nmea import (
     talker_system,
 )
 from drivers.nmea import GSA, MPS_PER_KNOT
-from x6wd.core.errors import DeviceUnavailable
+from x6wd.core.errors import DeviceUnavailable, ParseError
 from x6wd.core.geodesy import wrap360
 from x6wd.core.records import GpsFix, GpsSky, SatInfo
 
@@ -1821,8 +1821,16 @@ def decode_stream(
     A recording's lines that are not records are counted in ``stats``, a plain input's
     bytes in ``size`` (if given). NMEA lines without a checksum are decoded (as gpsd does)
     unless ``strict``."""
-    from x6wd.core.recorder import InputSize, looks_like_recording
+    from x6wd.core.recorder import (
+        MAX_UNTIMED_HEAD_BYTES,
+        InputSize,
+        looks_like_recording,
+        regular_stream,
+    )
 
+    # a stream that may never end (/dev/zero, a FIFO of noise): given up after this much
+    # without a sentence or UBX frame; a regular file ends, and is read to its end
+    give_up = 0 if regular_stream(stream) else MAX_UNTIMED_HEAD_BYTES
     head = stream.read(_CHUNK_BYTES)
     if looks_like_recording(head):
         from x6wd.core.recorder import ReadStats
@@ -1836,6 +1844,13 @@ def decode_stream(
     while chunk:
         size.add(chunk)
         _write_lines(decoder.feed(chunk, 0.0), out)
+        if give_up and size.bytes > give_up:
+            if not (decoder.counters.sentences or decoder.counters.ubx_frames):
+                raise ParseError(
+                    f"no NMEA sentence or UBX frame in its first {give_up >> 20} MiB and it"
+                    " is not a regular file: given up (not a GPS log)"
+                )
+            give_up = 0
         chunk = stream.read(_CHUNK_BYTES)
     _write_lines(decoder.flush(), out)
     return decoder.counters
@@ -1873,10 +1888,13 @@ def decode_path(
     """Decode a file; a recording is read whole, every remaining part of it, through
     ``x6wd.core.recorder.read_recording_parts`` (as replay and plot read it), which counts
     its bad and truncated lines in ``stats``; a plain file's bytes are counted in ``size``
-    (if given). ``strict``: see :func:`decode_stream`."""
-    from x6wd.core.recorder import is_recording, read_recording_parts
+    (if given). ``strict``: see :func:`decode_stream`. An input that is not a regular file
+    (a pipe such as ``<(zcat log.gz)``, a FIFO, a serial device) is opened once and read as a
+    stream, as ``-`` is: a recording through it is read by the stream's line parser."""
+    from x6wd.core.recorder import is_recording, not_regular, read_recording_parts
 
-    if not is_recording(path):  # a first part that retention deleted is judged by the rest
+    # a first part that retention deleted is judged by the rest (is_recording)
+    if not_regular(path) is not None or not is_recording(path):
         try:
             f = open(path, "rb")  # noqa: SIM115
         except OSError as exc:
@@ -1946,6 +1964,12 @@ def _main(args: argparse.Namespace) -> int:
         except DeviceUnavailable as exc:
             # Exit 2 like every other subcommand's unreadable input; the other files still go.
             print(f"x6wd decode: {exc}", file=sys.stderr)
+            status = 2
+            continue
+        except ParseError as exc:  # what was decoded before is written
+            with contextlib.suppress(OSError):
+                sys.stdout.flush()
+            print(f"x6wd decode: {name}: {exc}", file=sys.stderr)
             status = 2
             continue
         sys.stdout.flush()

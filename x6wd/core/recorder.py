@@ -54,6 +54,7 @@ import logging
 import math
 import os
 import re
+import stat
 import threading
 import time
 import types
@@ -61,6 +62,7 @@ import typing
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
+from itertools import chain
 from operator import attrgetter
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -1264,18 +1266,77 @@ def looks_like_recording(head: bytes) -> bool:
 _HEAD_BYTES = 1 << 16  # enough for HEAD_LINES records; a first line longer is judged by its start
 
 
+COMPRESSED_MAGIC = (
+    (b"\x1f\x8b", "gzip"),
+    (b"BZh", "bzip2"),
+    (b"\xfd7zXZ\x00", "xz"),
+    (b"\x28\xb5\x2f\xfd", "zstd"),
+    (b"PK\x03\x04", "zip"),
+)
+"""The first bytes of compressed files (no log begins so)."""
+
+
+def compression_of(head: bytes) -> str | None:
+    """The compression (``"gzip"``, ``"bzip2"``, ...) a file's first bytes show, or None."""
+    for magic, kind in COMPRESSED_MAGIC:
+        if head.startswith(magic):
+            return kind
+    return None
+
+
+def not_regular(path: str | os.PathLike[str]) -> str | None:
+    """What ``path`` is when it is neither a regular file nor a directory (``"a pipe"`` for
+    ``<(cmd)``'s /dev/fd/N, ``"a FIFO"``, ``"a character device"`` ...), else None (also
+    when it does not exist). Such an input can be read only once and may never end; it is
+    not opened here (a FIFO without a writer would block)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return None
+    if stat.S_ISFIFO(mode):
+        try:
+            named = stat.S_ISFIFO(os.lstat(path).st_mode)
+        except OSError:
+            named = False
+        return "a FIFO" if named else "a pipe"
+    if stat.S_ISCHR(mode):
+        return "a character device"
+    if stat.S_ISBLK(mode):
+        return "a block device"
+    return "a socket" if stat.S_ISSOCK(mode) else "not a file"
+
+
 def is_recording(path: str | os.PathLike[str]) -> bool:
     """True when the file begins like a recording (:func:`looks_like_recording`), False for
     plain NMEA or other text. A first part that retention deleted is judged by its first
-    remaining part."""
+    remaining part.
+
+    Raises :class:`DeviceUnavailable` for an input that is not a regular file (a pipe such
+    as ``<(zcat log.gz)``, a FIFO, a device: its readers open the path again, which loses a
+    pipe's first bytes or waits forever on a FIFO; ``x6wd decode`` reads such inputs as a
+    stream) and :class:`ParseError` for a compressed file."""
     parts = [] if Path(path).exists() else recording_parts(path)
     if parts:
         path = parts[0]
+    kind = not_regular(path)
+    if kind is not None:
+        raise DeviceUnavailable(
+            f"cannot read {path}: not a regular file ({kind}), and it is read more than"
+            " once: save it to a file first (x6wd decode reads it, or '-', as a stream)"
+        )
     try:
         with open(path, "rb") as f:
             head = f.read(_HEAD_BYTES)
     except OSError as exc:
         raise DeviceUnavailable(f"cannot open {path}: {exc}") from exc
+    compressed = compression_of(head)
+    if compressed is not None:
+        raise ParseError(
+            f"{path}: compressed ({compressed}): decompress it first"
+            + (" (x6wd decode reads gzip)" if compressed == "gzip" else "")
+        )
     return looks_like_recording(head)
 
 
@@ -1433,13 +1494,55 @@ def _file_lines(f: BinaryIO) -> Iterator[bytes]:
         yield carry
 
 
-def _nmea_lines_timed(f: BinaryIO, rate_hz: float) -> Iterator[tuple[float, bytes]]:
-    with f:
+MAX_UNTIMED_HEAD_BYTES = 16 << 20
+"""A stream that cannot be read twice (a pipe) is held this far (bytes) while looking for
+its first sentence time; without a sentence by then, it is no NMEA log (``/dev/zero``)."""
+
+
+def regular_stream(f: BinaryIO) -> bool:
+    """True for a regular file (which ends, and can be read again); a file object without a
+    descriptor counts as one when it can seek (``io.BytesIO``)."""
+    try:
+        return stat.S_ISREG(os.fstat(f.fileno()).st_mode)
+    except (OSError, ValueError, AttributeError):  # io.UnsupportedOperation is an OSError
+        return f.seekable()
+
+
+def _first_time(f: BinaryIO) -> tuple[float | None, Iterator[bytes]]:
+    """The first sentence time of ``f`` and its lines from the start. A seekable file is
+    read twice; a stream once, its lines up to the first time held: at most
+    :data:`MAX_UNTIMED_HEAD_BYTES`, then it is taken as untimed (its epochs counted by
+    sentence type), or, without any sentence so far, refused (:class:`ParseError`)."""
+    if regular_stream(f):
         first = next((t for t in map(_sentence_utc_s, _file_lines(f)) if t is not None), None)
         f.seek(0)
+        return first, _file_lines(f)
+    held: list[bytes] = []
+    n, sentences = 0, False
+    lines = _file_lines(f)
+    for line in lines:
+        held.append(line)
+        t = _sentence_utc_s(line)
+        if t is not None:
+            return t, chain(held, lines)
+        n += len(line)
+        sentences = sentences or b"$" in line
+        if n > MAX_UNTIMED_HEAD_BYTES:
+            if not sentences:
+                raise ParseError(
+                    f"no NMEA sentence in its first {MAX_UNTIMED_HEAD_BYTES >> 20} MiB: not"
+                    " an NMEA log (given up)"
+                )
+            return None, chain(held, lines)  # sentences without times: epochs by type
+    return None, iter(held)
+
+
+def _nmea_lines_timed(f: BinaryIO, rate_hz: float) -> Iterator[tuple[float, bytes]]:
+    with f:
+        first, lines = _first_time(f)
         if first is not None:
             current = first
-            for line in _file_lines(f):
+            for line in lines:
                 t = _sentence_utc_s(line)
                 if t is not None:
                     day = current - current % 86_400
@@ -1453,7 +1556,7 @@ def _nmea_lines_timed(f: BinaryIO, rate_hz: float) -> Iterator[tuple[float, byte
             return
         seen: set[bytes] = set()
         epoch = 0
-        for line in _file_lines(f):
+        for line in lines:
             start = line.find(b"$")
             kind = line[start + 1 : start + 6] if start >= 0 else b""
             if kind:
