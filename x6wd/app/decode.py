@@ -1763,14 +1763,20 @@ def _write_reports(
         out.write("\n".join(lines))
 
 
-def _recording_sentences(lines: Iterable[bytes], stats: ReadStats) -> Iterator[tuple[float, str]]:
+def _recording_sentences(
+    lines: Iterable[bytes | None], stats: ReadStats
+) -> Iterator[tuple[float, str]]:
     """(t_s, text) of the raw NMEA records in recording lines; other records are skipped,
-    lines that are not a JSON object skipped and counted in ``stats.bad_lines``.
+    lines that are not a JSON object (None: too long) skipped and counted in
+    ``stats.bad_lines``.
 
     Accepts the recorder's ``{"t_mono":..,"type":"nmea","data":{"text":..}}`` and the flat
     ``{"type":"nmea","text":..}`` form.
     """
     for raw in lines:
+        if raw is None:  # longer than any record
+            stats.bad_lines += 1
+            continue
         if not raw.strip():
             stats.blank_lines += 1
             continue
@@ -1856,13 +1862,35 @@ def decode_stream(
     return decoder.counters
 
 
-def _stream_lines(head: bytes, stream: IO[bytes]) -> Iterator[bytes]:
-    """The lines of ``head`` and the rest of ``stream``, read a chunk at a time: a recording
-    piped in (``decode -``) is held one chunk deep, not whole (112 MB took 264 MB)."""
-    pending, chunk = b"", head
+def _stream_lines(head: bytes, stream: IO[bytes]) -> Iterator[bytes | None]:
+    """The lines of ``head`` and the rest of ``stream`` (without their newlines), read a
+    chunk at a time: a recording piped in (``decode -``) is held one chunk deep, not whole
+    (112 MB took 264 MB). A line longer than ``recorder.MAX_RECORD_LINE_BYTES`` (no record:
+    a card's garbage) is None, its bytes dropped as they come up to its newline, as the
+    recording reader does for a file (a 100 MB line took 228 MB and quadratic time)."""
+    from x6wd.core.recorder import MAX_RECORD_LINE_BYTES as limit
+
+    pending = b""  # the start of a line a chunk's end cut (at most ``limit`` bytes)
+    dropping = False  # inside an over-long line: its bytes up to the newline are dropped
+    chunk = head
     while chunk:
-        *lines, pending = (pending + chunk).split(b"\n")
-        yield from lines
+        if dropping:
+            end = chunk.find(b"\n")
+            if end < 0:
+                chunk = stream.read(_CHUNK_BYTES)
+                continue
+            dropping, chunk = False, chunk[end + 1 :]
+        *lines, rest = chunk.split(b"\n")
+        if lines:
+            lines[0] = pending + lines[0]
+            pending = rest
+        else:
+            pending += rest
+        for line in lines:
+            yield None if len(line) > limit else line
+        if len(pending) > limit:
+            yield None
+            pending, dropping = b"", True
         chunk = stream.read(_CHUNK_BYTES)
     if pending:
         yield pending
