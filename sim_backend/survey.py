@@ -61,6 +61,7 @@ from sim_backend.textblocks import (
 from sim_backend.trackpng import plot_survey
 from sim_backend.world import World
 from x6wd.core.outdir import output_dir
+from x6wd.nav.geo import R1_M, R2_M
 
 
 def run_survey(
@@ -97,11 +98,16 @@ def run_survey(
     start_us = np.datetime64(utc0_naive, "us")
     rec_lines = _RecordLines(start_us)
 
-    lat_parts: list[np.ndarray] = []
-    lon_parts: list[np.ndarray] = []
+    # Kept of the whole run (a 720 h run is 2.6 million fixes): the fixes' east/north (the
+    # plot) and errors (the percentiles), HDOP in hundredths and satellites used in compact
+    # types; the printed positions' spread as its extremes. The figures are those of the
+    # whole arrays: the same values, summed and sorted whole.
+    enu_parts: list[np.ndarray] = []
+    err_parts: list[np.ndarray] = []
     hdop_parts: list[np.ndarray] = []
     used_parts: list[np.ndarray] = []
-    n_fix = 0
+    spread = _Spread()
+    n_fix = n_valid = 0
     with open(out / "gps.nmea", "wb") as nmea, open(out / "recording.jsonl", "wb") as rec:
         rec.write(
             rec_lines.event(
@@ -132,26 +138,39 @@ def run_survey(
                 last_rx_s = float(arrive[sent][-1])
             valid = np.asarray(b.valid, dtype=bool)
             n_fix += n
-            lat_parts.append(_as_printed(np.asarray(b.lat_deg)[valid], decimals))
-            lon_parts.append(_as_printed(np.asarray(b.lon_deg)[valid], decimals))
-            # HDOP and satellites used as GGA prints them (2 decimals and capped; 2 digits)
-            hdop_parts.append(_printed_dops(np.asarray(b.hdop)[valid]))
-            used_parts.append(np.minimum(np.asarray(b.n_used)[valid], 99))
+            lat = _as_printed(np.asarray(b.lat_deg)[valid], decimals)
+            lon = _as_printed(np.asarray(b.lon_deg)[valid], decimals)
+            n_valid += lat.size
+            spread.add(lat - truth_lat, lon - truth_lon)
+            if lat.size:
+                enu = lla_to_enu(lat, lon, np.full(lat.shape, origin.alt_m),
+                                 origin.lat_deg, origin.lon_deg, origin.alt_m)  # fmt: skip
+                en = np.ascontiguousarray(np.asarray(enu)[:, :2])
+                enu_parts.append(en)
+                err_parts.append(np.hypot(en[:, 0] - antenna[0], en[:, 1] - antenna[1]))
+            # HDOP and satellites used as GGA prints them (2 decimals and capped; 2 digits):
+            # HDOP kept as its hundredths (k / 100 is the printed value again)
+            hundredths = np.rint(_printed_dops(np.asarray(b.hdop)[valid]) * 100.0)
+            hdop_parts.append(hundredths.astype(np.uint16))
+            used_parts.append(np.minimum(np.asarray(b.n_used)[valid], 99).astype(np.uint8))
             if progress is not None:
                 progress(float(t[-1]), plan.total_s)
         # the run ends when the last sentence on the wire has arrived (as the robot engine's)
         end = rec_lines.event(max(t_end, last_rx_s), {"event": "sim_end", "completed": False})
         rec.write(end.encode("utf-8"))
 
-    lat, lon = np.concatenate(lat_parts), np.concatenate(lon_parts)
     _write_truth(out / "truth.csv", t_ep, truth_lat, truth_lon, truth_alt)
-    fix_enu = np.asarray(
-        lla_to_enu(lat, lon, np.full(lat.shape, origin.alt_m),
-                   origin.lat_deg, origin.lon_deg, origin.alt_m)
-    )[:, :2] if lat.size else np.zeros((0, 2))  # fmt: skip
-    err = np.hypot(fix_enu[:, 0] - antenna[0], fix_enu[:, 1] - antenna[1])
-    hdop, used = np.concatenate(hdop_parts), np.concatenate(used_parts)
-    disp_lat, disp_lon = dispersion_m(lat - truth_lat, lon - truth_lon)
+    del t_ep
+    err = np.concatenate(err_parts) if err_parts else np.zeros(0)
+    err_parts.clear()
+    raw_error = ErrorStats.of(err)
+    del err
+    hdop = np.concatenate(hdop_parts) / 100.0
+    hdop_parts.clear()
+    mean_hdop = float(np.mean(hdop)) if hdop.size else math.nan
+    del hdop
+    used = np.concatenate(used_parts)
+    disp_lat, disp_lon = spread.half_m()
     gps_effects = [e.name for e in world.effect_objects() if e.kind == "gps"]
     summary = Summary(
         scenario=world.name,
@@ -163,15 +182,15 @@ def run_survey(
         wall_time_s=time.perf_counter() - wall0,
         path_length_m=0.0,
         straight_length_m=0.0,
-        raw_error=ErrorStats.of(err),
+        raw_error=raw_error,
         filtered_error=ErrorStats.of(np.zeros(0)),
         hold_periods=0,
         hold_time_s=0.0,
         fixes=n_fix,
-        fixes_valid=int(lat.size),
+        fixes_valid=n_valid,
         dispersion_lat_m=disp_lat,
         dispersion_lon_m=disp_lon,
-        mean_hdop=float(np.mean(hdop)) if hdop.size else math.nan,
+        mean_hdop=mean_hdop,
         mean_sats_used=float(np.mean(used)) if used.size else math.nan,
         extra={
             "engine": "receiver",
@@ -190,8 +209,34 @@ def run_survey(
         },
     )
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+    fix_enu = np.concatenate(enu_parts) if enu_parts else np.zeros((0, 2))
+    enu_parts.clear()
     plot_survey(out / "track.png", world, (float(antenna[0]), float(antenna[1])), fix_enu, summary)
     return summary
+
+
+class _Spread:
+    """:func:`~sim_backend.runs.dispersion_m` of readings minus truth (deg) given a chunk at a
+    time: the extremes kept, the same figures as of the whole arrays."""
+
+    def __init__(self) -> None:
+        self.lat = [math.inf, -math.inf]
+        self.lon = [math.inf, -math.inf]
+
+    def add(self, dlat_deg: np.ndarray, dlon_deg: np.ndarray) -> None:
+        if dlat_deg.size == 0:
+            return
+        dlon_deg = (np.asarray(dlon_deg, dtype=float) + 180.0) % 360.0 - 180.0  # as it does
+        for ends, d in ((self.lat, dlat_deg), (self.lon, dlon_deg)):
+            ends[0], ends[1] = min(ends[0], float(np.min(d))), max(ends[1], float(np.max(d)))
+
+    def half_m(self) -> tuple[float, float]:
+        if not math.isfinite(self.lat[0]):
+            return dispersion_m(np.zeros(0), np.zeros(0))
+        return (
+            math.radians(self.lat[1] - self.lat[0]) * R2_M / 2.0,
+            math.radians(self.lon[1] - self.lon[0]) * R1_M / 2.0,
+        )
 
 
 def _printed_dops(values: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ import importlib.util
 import math
 import struct
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,11 @@ _WALL, _ROOF, _FRAME = (77, 77, 77), (217, 217, 217), (204, 204, 204)
 _GRID, _GRID_ALPHA = 176.0, 0.3  # matplotlib's grid: #b0b0b0, 30 % opaque
 _ALPHA = 0.6
 _MINUS = "\u2212"
+DOT_CHUNK = 50_000
+"""Fixes turned into pixels at a time (each into nine offsets and weights, about 400 bytes a
+fix: 400,000 fixes at once took 166 MB, a 720 h survey's 2.6 million would take 1 GB). The
+dots' layers (whole numbers) are counted per chunk and blended once, so the picture is the
+same, byte for byte, whatever the chunk."""
 
 
 def plot_survey(
@@ -106,8 +112,12 @@ def plot_survey(
     on = np.asarray(grid) > 0
     pixels[on] = np.rint(pixels[on] * (1 - _GRID_ALPHA) + _GRID * _GRID_ALPHA).astype(np.uint8)
     if fixes.shape[0]:
-        u, v = px(fixes[:, 0], fixes[:, 1])
-        pixels = _dots(pixels, np.rint(u).astype(np.int64), np.rint(v).astype(np.int64))
+        counts = np.zeros(pixels.shape[0] * pixels.shape[1])
+        for k in range(0, fixes.shape[0], DOT_CHUNK):
+            u, v = px(fixes[k : k + DOT_CHUNK, 0], fixes[k : k + DOT_CHUNK, 1])
+            iu, iv = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+            counts += _dot_layers(pixels.shape, iu, iv)
+        pixels = _blend(pixels, counts)
     clip = Image.fromarray(pixels, "RGB")
     inner = ImageDraw.Draw(clip)
     tx, ty = px(truth_en[0], truth_en[1])
@@ -149,8 +159,16 @@ def plot_survey(
         ((_LEFT + _RIGHT) / 2, _TOP - 6 * _PX_PER_PT), title, font=font(9), fill=(0, 0, 0),
         anchor="md", align="center", spacing=2,
     )  # fmt: skip
-    points = np.column_stack(px(fixes[:, 0], fixes[:, 1])) if fixes.shape[0] else np.zeros((0, 2))
-    _legend(img, font(8), points, box)
+
+    def inside(x: float, y: float, w: int, h: int) -> int:
+        """The fixes whose points are in the box of (x, y) and size (w, h) px."""
+        n = 0
+        for k in range(0, fixes.shape[0], DOT_CHUNK):
+            a, b = px(fixes[k : k + DOT_CHUNK, 0], fixes[k : k + DOT_CHUNK, 1])
+            n += int(np.count_nonzero((a >= x) & (a <= x + w) & (b >= y) & (b <= y + h)))
+        return n
+
+    _legend(img, font(8), inside, box)
     Path(path).write_bytes(_png(np.asarray(img)))
 
 
@@ -228,10 +246,10 @@ def _labels(ticks: list[float]) -> list[str]:
     return out
 
 
-def _dots(pixels: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``pixels`` (H, W, 3 uint8) with a 3 x 3 px red dot at each (u, v) px, 60 % opaque:
-    n layers of dots on a pixel leave 0.4**n of what is under them."""
-    h, w = pixels.shape[:2]
+def _dot_layers(shape: tuple[int, ...], u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Per pixel of an image of ``shape`` (H, W, ...), flattened: the layers of the 3 x 3 px
+    dots at (u, v) px on it (whole numbers, so that chunks add up exactly)."""
+    h, w = shape[:2]
     du, dv = np.meshgrid([-1, 0, 1], [-1, 0, 1])
     # a dot's face and its edge, both 60 % opaque, cover its middle twice (matplotlib's '.')
     twice = np.where(du * dv == 0, 2.0, 1.0).ravel()
@@ -239,7 +257,12 @@ def _dots(pixels: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     vv = (v[:, None] + dv.ravel()[None, :]).ravel()
     weight = np.broadcast_to(twice, (u.shape[0], 9)).ravel()
     inside = (uu >= _LEFT) & (uu < _RIGHT) & (vv >= _TOP) & (vv < _BOTTOM)
-    counts = np.bincount(vv[inside] * w + uu[inside], weights=weight[inside], minlength=h * w)
+    return np.bincount(vv[inside] * w + uu[inside], weights=weight[inside], minlength=h * w)
+
+
+def _blend(pixels: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """``pixels`` (H, W, 3 uint8) under ``counts`` layers of red 60 % opaque per pixel."""
+    h, w = pixels.shape[:2]
     hit = np.flatnonzero(counts)
     keep = ((1.0 - _ALPHA) ** counts[hit])[:, None]
     flat = pixels.reshape(h * w, 3)
@@ -264,9 +287,14 @@ def _plus(draw: Any, x: float, y: float, size: float, color: tuple[int, int, int
     draw.polygon([(x + p, y + q) for p, q in shape], fill=color, outline=(255, 255, 255))
 
 
-def _legend(img: Any, font: Any, points: np.ndarray, box: tuple[int, int, int, int]) -> None:
-    """The legend (raw GPS, true position) where it covers the fewest points, in
-    matplotlib's order of places to try."""
+def _legend(
+    img: Any,
+    font: Any,
+    inside: Callable[[float, float, int, int], int],
+    box: tuple[int, int, int, int],
+) -> None:
+    """The legend (raw GPS, true position) where it covers the fewest points (``inside(x,
+    y, w, h)``: those in a box), in matplotlib's order of places to try."""
     from PIL import ImageDraw
 
     draw = ImageDraw.Draw(img)
@@ -283,12 +311,9 @@ def _legend(img: Any, font: Any, points: np.ndarray, box: tuple[int, int, int, i
     best = None
     for place in places:
         x, y = xs[place[1]], ys[place[0]]
-        inside = np.count_nonzero(
-            (points[:, 0] >= x) & (points[:, 0] <= x + w)
-            & (points[:, 1] >= y) & (points[:, 1] <= y + h)
-        )  # fmt: skip
-        if best is None or inside < best[0]:
-            best = (inside, x, y)
+        covered = inside(x, y, w, h)
+        if best is None or covered < best[0]:
+            best = (covered, x, y)
     assert best is not None
     _, x, y = best
     draw.rounded_rectangle((x, y, x + w, y + h), radius=3, fill=(255, 255, 255), outline=_FRAME)
