@@ -11,7 +11,11 @@ intact line after damaged ones is an x6wd record
 recording split by ``[recorder] max_file_mb``; standard input by a small line parser that
 also takes the flat ``{"type":"nmea","text":...}`` form); its other records are ignored.
 Anything else is read as a raw byte stream (binary and line noise tolerated). The decoder's
-counters go to standard error, one line per input.
+counters go to standard error, one line per input. A gzip file or stream is decompressed as
+it is read (other compressions are refused: exit 2). A path that is not a regular file (a
+pipe such as ``<(zcat log.gz)``, a FIFO, a device) is opened once and read as standard input
+is; such a stream without any NMEA sentence or UBX frame in its first 16 MiB is given up
+(``/dev/zero``). A recording line longer than 1 MiB is dropped and counted bad.
 
 The lines are the text of ``json.dumps(tpv_obj(fix))`` /
 ``json.dumps(sky_obj(sky, fill_dops=False))`` (``x6wd.app.gpsd``, compact separators; the
@@ -30,6 +34,7 @@ import argparse
 import contextlib
 import functools
 import gc
+import io
 import json
 import math
 import operator
@@ -1830,6 +1835,7 @@ def decode_stream(
     from x6wd.core.recorder import (
         MAX_UNTIMED_HEAD_BYTES,
         InputSize,
+        compression_of,
         looks_like_recording,
         regular_stream,
     )
@@ -1838,6 +1844,12 @@ def decode_stream(
     # without a sentence or UBX frame; a regular file ends, and is read to its end
     give_up = 0 if regular_stream(stream) else MAX_UNTIMED_HEAD_BYTES
     head = stream.read(_CHUNK_BYTES)
+    compressed = compression_of(head)
+    if compressed == "gzip":  # read through, a chunk at a time (size: the bytes decompressed)
+        stream = _Gunzip(head, stream)
+        head = stream.read(_CHUNK_BYTES)
+    elif compressed is not None:
+        raise ParseError(f"compressed ({compressed}): decompress it first")
     if looks_like_recording(head):
         from x6wd.core.recorder import ReadStats
 
@@ -1860,6 +1872,57 @@ def decode_stream(
         chunk = stream.read(_CHUNK_BYTES)
     _write_lines(decoder.flush(), out)
     return decoder.counters
+
+
+class _Prefixed(io.RawIOBase):
+    """``head`` (a stream's first bytes, read already), then the rest of ``stream``."""
+
+    def __init__(self, head: bytes, stream: IO[bytes]) -> None:
+        self._head = memoryview(head)
+        self._stream = stream
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, b: Any) -> int:
+        if self._head:
+            n = min(len(b), len(self._head))
+            b[:n] = self._head[:n]
+            self._head = self._head[n:]
+            return n
+        data = self._stream.read(len(b))
+        b[: len(data)] = data
+        return len(data)
+
+
+class _Gunzip:
+    """The decompressed bytes of a gzip stream whose ``head`` was read already; a damaged
+    or cut stream raises :class:`ParseError` (what came before it is decoded)."""
+
+    def __init__(self, head: bytes, stream: IO[bytes]) -> None:
+        import gzip
+
+        self._z = gzip.GzipFile(fileobj=_Prefixed(head, stream), mode="rb")
+        self._error: ParseError | None = None  # raised once the bytes before it are given
+
+    def read(self, n: int) -> bytes:
+        import zlib
+
+        pieces: list[bytes] = []
+        got = 0
+        while got < n and self._error is None:
+            try:
+                piece = self._z.read1(n - got)
+            except (OSError, EOFError, zlib.error) as exc:
+                self._error = ParseError(f"compressed (gzip), damaged or cut: {exc}")
+                break
+            if not piece:
+                break
+            pieces.append(piece)
+            got += len(piece)
+        if not pieces and self._error is not None:
+            raise self._error
+        return b"".join(pieces)
 
 
 def _stream_lines(head: bytes, stream: IO[bytes]) -> Iterator[bytes | None]:
@@ -1904,6 +1967,18 @@ def _write_lines(records: list[GpsOutput], out: IO[str]) -> None:
         out.write("\n".join(lines))
 
 
+def _compressed(path: str) -> bool:
+    """True for a file that begins as a compressed one does (gzip is read through by
+    :func:`decode_stream`, which refuses the others)."""
+    from x6wd.core.recorder import compression_of
+
+    try:
+        with open(path, "rb") as f:
+            return compression_of(f.read(8)) is not None
+    except OSError:
+        return False  # named by the readers
+
+
 def decode_path(
     path: str,
     out: IO[str],
@@ -1918,11 +1993,12 @@ def decode_path(
     its bad and truncated lines in ``stats``; a plain file's bytes are counted in ``size``
     (if given). ``strict``: see :func:`decode_stream`. An input that is not a regular file
     (a pipe such as ``<(zcat log.gz)``, a FIFO, a serial device) is opened once and read as a
-    stream, as ``-`` is: a recording through it is read by the stream's line parser."""
+    stream, as ``-`` is: a recording through it is read by the stream's line parser; so is
+    a gzip file, decompressed as it is read."""
     from x6wd.core.recorder import is_recording, not_regular, read_recording_parts
 
     # a first part that retention deleted is judged by the rest (is_recording)
-    if not_regular(path) is not None or not is_recording(path):
+    if not_regular(path) is not None or _compressed(path) or not is_recording(path):
         try:
             f = open(path, "rb")  # noqa: SIM115
         except OSError as exc:
