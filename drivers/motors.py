@@ -89,14 +89,11 @@ RESTART_WINDOW_S = 60.0
 show) that latch a fault: this many within this many seconds (s). A brown-out under motor
 current restarts the board each time the robot drives off again; after one restart the link
 comes back at the controller's first stop and a mission drives on, but the third within a
-minute keeps the link lost until a stop with one of :data:`RESTART_CLEARING_REASONS`."""
-RESTART_CLEARING_REASONS = frozenset({"operator stop", "idle", "paused", "done"})
-"""The reasons of the stops that clear a latched restart fault (:data:`RESTART_LATCH_COUNT`):
-the operator's stop as the daemon sends it (``Daemon.stop``: ``x6wd client stop``, the
-console's Stop) and the controller's stop in a mode that drives nothing by itself (IDLE,
-PAUSED, DONE: ``str(mode).lower()``), which follows an operator's stop or pause and may
-replace the first in the motor worker's queue. A mission held by the lost link sends
-``hold: motor link lost``, which does not clear it: the mission waits for its operator."""
+minute keeps the link lost until the operator stops or pauses
+(:meth:`SerialMotorLink.clear_restart_fault`, which the daemon calls for them) and a stop the
+board confirms follows. Never the controller's own stops: after a lost link cancelled a
+manual drive it stops with ``idle``, and a held mission with ``hold: motor link lost``; if
+those cleared it, the next drive would brown the board out again."""
 REOPEN_LOG_S = 30.0
 """At most one "motor port reopened" log line per this many seconds (s); status counts
 every reopen."""
@@ -435,6 +432,9 @@ class SerialMotorLink:
         # (its reason) until an operator's stop: the hold stays meanwhile
         self._restarts: deque[float] = deque()
         self._restart_fault: str | None = None
+        # the fault the operator cleared (clear_restart_fault), ended by the next confirmed
+        # stop; a fault latched after that is another object and stays
+        self._fault_cleared: str | None = None
         self.configured = False
         self._configure()
 
@@ -513,9 +513,9 @@ class SerialMotorLink:
     def _stop(self, reason: str, *, ends_hold: bool) -> bool:
         try:
             self._last = MotorCommand(self._clock(), 0.0, 0.0, reason)
-            # a latched restart fault ends only with a stop that will not drive on by itself
+            # a latched restart fault ends only once the operator has cleared it
             ends_hold = ends_hold and (
-                self._restart_fault is None or reason in RESTART_CLEARING_REASONS
+                self._restart_fault is None or self._restart_fault is self._fault_cleared
             )
             ok = self._transact_reply("S", ends_hold=ends_hold) is not None
         except Exception:  # stop must not raise, whatever the port does
@@ -524,6 +524,12 @@ class SerialMotorLink:
         if not ok:
             self.counters.stop_failures += 1
         return ok
+
+    def clear_restart_fault(self) -> None:
+        """The operator stops or pauses (the daemon calls this; thread-safe): a latched
+        restart fault (:data:`RESTART_LATCH_COUNT`) ends at the next stop the board confirms.
+        Nothing else ends it. No effect without one; a fault latched later stays."""
+        self._fault_cleared = self._restart_fault
 
     def _restart_stop(self) -> bool:
         """A drive refused because the board restarted under the link: stop instead (the
@@ -546,7 +552,7 @@ class SerialMotorLink:
         ``EVT BOOT`` already received holds it back; one that arrives before the drive's
         reply (the board took the drive after restarting) stops the board at once. The
         :data:`RESTART_LATCH_COUNT`-th restart within :data:`RESTART_WINDOW_S` latches the
-        hold: only a stop with one of :data:`RESTART_CLEARING_REASONS` ends it."""
+        hold: only a confirmed stop after :meth:`clear_restart_fault` ends it."""
         if cmd.is_stop:
             return self.stop(cmd.reason)
         return self._drive(cmd.left_pct, cmd.right_pct, cmd.reason, held=True)
@@ -742,7 +748,7 @@ class SerialMotorLink:
                     if ends_hold and ok and self._restart_hold is not None:
                         self._restart_hold = None
                         if self._restart_fault is not None:
-                            self._restart_fault = None
+                            self._restart_fault = self._fault_cleared = None
                             log.warning(
                                 "motors: the restart fault cleared by a stop (%s); drives go again",
                                 self._last.reason if self._last is not None else "stop",
@@ -893,8 +899,8 @@ class SerialMotorLink:
         """The board restarted under a running link at ``t_s`` (s), as ``how`` tells:
         counted within :data:`RESTART_WINDOW_S`; the :data:`RESTART_LATCH_COUNT`-th there
         latches a fault. The link is lost (``healthy`` False, send() refuses drives) until
-        a stop with one of :data:`RESTART_CLEARING_REASONS` the board confirms (the mission
-        stopped or paused); said as an ERROR."""
+        the operator clears it (:meth:`clear_restart_fault`: a stop or pause) and a stop the
+        board confirms follows; said as an ERROR."""
         times = self._restarts
         times.append(t_s)
         while times and t_s - times[0] > RESTART_WINDOW_S:

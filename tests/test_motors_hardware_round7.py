@@ -672,7 +672,13 @@ def test_the_third_restart_within_a_minute_latches_until_an_operators_stop(
         health = link.health
         assert health.state == "disconnected" and "restarted 3 times" in health.reason
         assert "stops or pauses" in health.reason
-        assert link.stop("operator stop") and link.healthy
+        # the controller's own stops never clear it: 'idle' after a lost link cancelled a
+        # manual drive (review7: the next press drove off and browned the board out again)
+        for own in ("idle", "paused", "done", "operator stop"):
+            assert link.stop(own) and not link.healthy, own
+            assert not drive() and pb.state() == (0, 0)
+        link.clear_restart_fault()  # the operator stopped or paused (the daemon calls it)
+        assert link.stop("idle") and link.healthy
         assert link.health.state == "connected"
         assert drive() and pb.state() == (60, 60)
         # the history stays: one more restart within the minute latches again at once
@@ -758,12 +764,19 @@ def test_a_mission_on_a_board_browning_out_holds_until_the_operator_acts(ends: s
         assert pb.state() == (0, 0)
         # the operator: the daemon's stop (the worker's hold, the stop at once, then the
         # controller idle), or a pause (the controller paused)
-        if ends == "stop":
+        # the controller going idle by itself (a manual drive cancelled by the lost link)
+        # clears nothing
+        mode[0] = str(Mode.IDLE).lower()
+        time.sleep(0.5)
+        assert not link.healthy and told_ok[0] is False and pb.state() == (0, 0)
+        if ends == "stop":  # as Daemon.stop does
             seq = w.hold_stop()
+            w.clear_restart_fault()
             w.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "operator stop"))
             mode[0] = str(Mode.IDLE).lower()
             w.stop_applied(seq)
-        else:
+        else:  # as Daemon.pause does
+            w.clear_restart_fault()
             mode[0] = str(Mode.PAUSED).lower()
         assert wait_for(lambda: link.healthy and told_ok[0], 5)
         assert link.health.state == "connected"
@@ -800,3 +813,51 @@ def test_after_a_reopen_only_a_plain_continuation_keeps_the_baseline() -> None:
     u = EncoderUnwrap(1000.0)
     u.update(10, 100, 100, t_s=1.0, sent_s=0.99, requests=1)
     assert u.update(15, 600, 600, t_s=2.0, sent_s=1.99, requests=1) == (500, 500)
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("act", ["stop", "pause"])
+def test_the_daemon_clears_a_latched_restart_fault_on_the_operators_stop_or_pause(
+    tmp_path: Path, act: str
+) -> None:
+    """Daemon.stop and Daemon.pause are what clear the motor link's latched restart fault
+    (nothing else does): the real daemon, its board on TCP."""
+    import dataclasses
+
+    from tests.test_daemon import Running, hil_config, wait_for
+    from tests.test_shutdown import TcpMotorBoard
+    from x6wd.app.client import RemoteClient
+    from x6wd.app.daemon import Daemon
+
+    board = TcpMotorBoard()
+    cfg = hil_config(tmp_path)
+    cfg = dataclasses.replace(
+        cfg,
+        motors=dataclasses.replace(cfg.motors, url=f"tcp://127.0.0.1:{board.port}?watchdog_ms=500"),
+    )
+    r = Running(Daemon(cfg))
+    try:
+        wait_for(lambda: r.daemon.motors is not None and r.daemon.motors.link.healthy, 10, "link")
+        link = r.daemon.motors.link  # type: ignore[union-attr]
+        if act == "pause":  # a mission running when the board browns out
+            from tests.test_daemon import ORIGIN
+
+            wait_for(lambda: r.daemon.first_fix, 20, "a fix")
+            with RemoteClient("127.0.0.1", r.port) as c:
+                c.request("mission.load", waypoints=[[ORIGIN[0] + 0.0003, ORIGIN[1]]])
+                c.request("start")
+        with link._lock:  # three restarts, as the transactions see them
+            link.configured = True
+            for _ in range(3):
+                link._board_restarted("EVT BOOT", time.monotonic())
+        wait_for(lambda: not link.healthy, 5, "the latched fault")
+        time.sleep(0.5)  # the controller's own stops meanwhile clear nothing
+        assert not link.healthy and "restarted 3 times" in link.health.reason
+        with RemoteClient("127.0.0.1", r.port) as c:
+            c.request(act)  # then the controller's own stop ('idle', 'paused') is confirmed
+        wait_for(lambda: link.healthy, 5, "the fault cleared")
+    finally:
+        r.stop()
+        if r.daemon.devices is not None:
+            r.daemon.devices.close()
+        board.close()

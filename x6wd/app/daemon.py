@@ -336,6 +336,13 @@ class _MotorWorker:
             self._latched = self._latch_seq
             return self._latch_seq
 
+    def clear_restart_fault(self) -> None:
+        """The operator stopped or paused: a motor board's latched restart fault (repeated
+        brown-outs) may end at the next confirmed stop. Links without one ignore it."""
+        clear = getattr(self.link, "clear_restart_fault", None)
+        if clear is not None:
+            clear()
+
     def stop_applied(self, seq: int) -> None:
         """The controller has applied the operator stop numbered ``seq`` (the daemon calls
         this under the control lock, once the controller has stopped): drive commands go
@@ -1753,6 +1760,8 @@ class Daemon:
 
     def pause(self) -> Any:
         """Pause (motors stop, mission kept)."""
+        if self.motors is not None:
+            self.motors.clear_restart_fault()  # the operator's act: see docs/motors.md
         return self._on_control(self._command, "pause")
 
     def resume(self) -> Any:
@@ -1781,6 +1790,7 @@ class Daemon:
         # thread-safe, and neither waits for the control loop: drives are dropped from here
         # until the controller has the stop, and the stop replaces any unsent command
         seq = self.motors.hold_stop()
+        self.motors.clear_restart_fault()  # repeated board restarts: the operator's act
         self.motors.submit(MotorCommand(time.monotonic(), 0.0, 0.0, "operator stop"))
         return self._on_control(self._operator_stop, seq)
 
