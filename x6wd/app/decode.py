@@ -1846,7 +1846,7 @@ def decode_stream(
     head = stream.read(_CHUNK_BYTES)
     compressed = compression_of(head)
     if compressed == "gzip":  # read through, a chunk at a time (size: the bytes decompressed)
-        stream = _Gunzip(head, stream)
+        stream = cast("IO[bytes]", _Gunzip(head, stream))
         head = stream.read(_CHUNK_BYTES)
     elif compressed is not None:
         raise ParseError(f"compressed ({compressed}): decompress it first")

@@ -5,6 +5,11 @@ report with ``--sky``); the decoder's counters and the reader's counts go to std
 bytes reach :class:`drivers.gps_nmea.GpsDecoder` at the recorded pace divided by ``--speed``
 (0: as fast as possible), stamped with the recorded time (s): ``t_mono`` for recordings,
 seconds since the first sentence time for plain NMEA logs.
+
+The input is read more than once (its head tells recording from log, a log's first sentence
+time is found first), so it must be a regular file: a pipe (``<(zcat log.gz)``), a FIFO or a
+device is refused before it is opened, as is a compressed file (exit 2, saying so; ``x6wd
+decode`` reads those as a stream). See ``x6wd.core.recorder.is_recording``.
 """
 
 from __future__ import annotations
@@ -55,7 +60,9 @@ def _rate(text: str) -> float:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``x6wd replay``."""
-    parser.add_argument("file", metavar="FILE", help="a flight recording (.jsonl) or NMEA log")
+    parser.add_argument(
+        "file", metavar="FILE", help="a flight recording (.jsonl) or NMEA log (a regular file)"
+    )
     parser.add_argument(
         "--speed",
         type=_speed,

@@ -65,7 +65,7 @@ from datetime import UTC, datetime, timedelta
 from itertools import chain
 from operator import attrgetter
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import IO, Any, BinaryIO
 
 from x6wd.core.errors import DeviceUnavailable, ParseError
 from x6wd.core.ratelog import RateLimitedLog
@@ -1499,7 +1499,7 @@ MAX_UNTIMED_HEAD_BYTES = 16 << 20
 its first sentence time; without a sentence by then, it is no NMEA log (``/dev/zero``)."""
 
 
-def regular_stream(f: BinaryIO) -> bool:
+def regular_stream(f: IO[bytes]) -> bool:
     """True for a regular file (which ends, and can be read again); a file object without a
     descriptor counts as one when it can seek (``io.BytesIO``)."""
     try:
