@@ -199,7 +199,7 @@ def test_a_held_drive_is_logged_once_per_press_not_per_resend(
         "operator: drive L-28 R+28 for 0.5 s (changed while driving)",
     ], drives
     ends = [m for m in said if m.startswith("state MANUAL -> IDLE")]
-    assert ends == [
-        "state MANUAL -> IDLE mode: manual drive expired",
-        "state MANUAL -> IDLE mode: stop",
+    assert ends == [  # the end names the press's last speeds (-30/30: only counted above)
+        "state MANUAL -> IDLE mode: manual drive expired (last drive L+40 R+40)",
+        "state MANUAL -> IDLE mode: stop (last drive L-30 R+30)",
     ]

@@ -331,7 +331,8 @@ class Runner:
         # One line per press, not per drive: a held key is resent ~3 times a second (a line
         # each made 10,800 an hour: outside audit, round 7). The press's first drive is
         # logged, a change of speeds while driving at most once a second, the resends of the
-        # same speeds not at all; its end is the state change's line (MANUAL -> IDLE).
+        # same speeds not at all; its end is the state change's line (MANUAL -> IDLE), which
+        # names the press's last speeds (a second change within a second is only counted).
         pct = (float(left_pct), float(right_pct))
         what = "operator: drive L%+.0f R%+.0f for %.1f s"
         if not renewal:
@@ -516,12 +517,19 @@ class Runner:
                 changes.append(out)
                 # into a hold or a failsafe's pause: a fault, logged as one (the way back: info)
                 fault = out.new == "HOLD" or out.reason.startswith("mode: failsafe")
+                # a press's end names its last speeds: a change within a second of the one
+                # before is only counted by the operator limiter (drive), never lost here
+                last = ""
+                if out.old == "MANUAL" and self._drive_pct is not None:
+                    left, right = self._drive_pct
+                    last = f" (last drive L{left:+.0f} R{right:+.0f})"
                 log.log(
                     logging.WARNING if fault else logging.INFO,
-                    "state %s -> %s %s",
+                    "state %s -> %s %s%s",
                     out.old,
                     out.new,
                     out.reason,
+                    last,
                 )
                 self._record("record_state", out)
                 if self._publish is not None:
