@@ -226,6 +226,10 @@ RATE_HORIZON_S = 10.0
 RESEND_MIN_S = 10.0
 """The least time (s) between two writes of the setup on one port: a receiver that lost it
 (:meth:`ReceiverSetup.lost`) is configured again at most this often."""
+RESEND_MAX_S = 300.0
+"""The longest wait (s) between two writes of the setup: a receiver that loses it again for the
+same reason (not a restart) soon after it took it does not keep it, and each such loss
+doubles the wait from :data:`RESEND_MIN_S` up to this (:meth:`ReceiverSetup.lost`)."""
 LOST_WARN_MIN_S = 60.0
 """The least time (s) between two WARNINGs that the receiver lost its setup (the ones between
 are counted in the next)."""
@@ -308,6 +312,16 @@ def neo5_setup(rate_hz: float, baud: int = DEFAULT_BAUD) -> list[tuple[str, byte
     return msgs
 
 
+def _loss_kind(reason: str) -> str:
+    """What a loss's reason (:meth:`ReceiverSetup.lost`) is, without its numbers: a
+    ``restart`` (a start-up banner), ``sentences`` (GLL or VTG back) or ``rate``."""
+    if "start-up banner" in reason:
+        return "restart"
+    if "sentences came back" in reason:
+        return "sentences"
+    return "rate"
+
+
 class ReceiverSetup:
     """The configuration ``[gps] configure_receiver`` writes after every open, and what the
     receiver answered.
@@ -332,6 +346,15 @@ class ReceiverSetup:
     counted in the status (``losses``, the last one's reason in ``lost``), and makes
     :meth:`resend_due` true: the reader writes the setup again, at most once per
     :data:`RESEND_MIN_S`, and its answers are tracked as at an open.
+
+    A receiver that does not keep its setup (GLL/VTG come back after each ACK: something else
+    re-enables them, or it ACKs CFG-MSG and ignores it; or its rate falls again) would be
+    configured every 10 s for ever: a loss with the same reason as the last one (not a
+    restart: a banner is a reset, each one needs the setup), less than :data:`RESEND_MAX_S`
+    after the receiver took the setup, doubles the wait before the next write, up to
+    :data:`RESEND_MAX_S`; it is one WARNING that the receiver does not keep its setup, and the
+    status's ``not_kept`` says so (with ``resend_s``, the wait). A setup kept for
+    :data:`RESEND_MAX_S`, or another reason, starts again at :data:`RESEND_MIN_S`.
 
     A refusal or a missing answer is logged as one WARNING per process and kind; the robot
     goes on with what the receiver sends (:class:`FixRate` shows the rate it actually gets)."""
@@ -365,6 +388,10 @@ class ReceiverSetup:
         self._warned: set[str] = set()
         self._lost_warn_t = -math.inf
         self._lost_unwarned = 0  # losses not warned about (LOST_WARN_MIN_S)
+        self.resend_s = resend_min_s  # the wait before the next write (RESEND_MAX_S)
+        self.not_kept: str | None = None  # the receiver does not keep its setup, in words
+        self._loss_kind: str | None = None  # the last loss's kind (lost(): backing off)
+        self._repeats = 0  # losses of that kind in a row, each soon after the setup was taken
 
     def use_baud(self, baud: object) -> None:
         """The line rate of the port just opened (pyserial's ``baudrate``; anything but a
@@ -457,13 +484,34 @@ class ReceiverSetup:
 
     def lost(self, t_s: float, reason: str) -> None:
         """The receiver lost the setup (``reason``): counted, told, and due to be sent again
-        (:meth:`resend_due`). Nothing new while a loss waits for its resend."""
+        (:meth:`resend_due`). Nothing new while a loss waits for its resend. The same
+        reason again soon after the receiver took the setup doubles the wait (the class's
+        doc)."""
         if self.state == "lost":
             return
+        kind = _loss_kind(reason)
+        soon = self.state == "acked" and t_s - self._acked_t < RESEND_MAX_S
         self.state = "lost"
         self._waiting = []
         self.losses += 1
         self.lost_reason = reason
+        if kind != "restart" and kind == self._loss_kind and soon:
+            self._repeats += 1
+            self.resend_s = min(RESEND_MAX_S, self.resend_s * 2.0)
+            text = (
+                f"the receiver does not keep its setup: lost {self._repeats + 1} times in a "
+                f"row for the same reason soon after it took it (last: {reason}; something "
+                "else re-enables them, or it ACKs CFG-MSG and ignores it); written again "
+                f"{self.resend_s:.0f} s after the last write (the wait doubles, at most "
+                f"{RESEND_MAX_S:.0f} s)"
+            )
+            if self.not_kept is None:
+                log.warning("GPS: %s", text)
+            self.not_kept = text
+            self._loss_kind = kind
+            return  # its own warning, not one a minute on top
+        self._loss_kind, self._repeats = kind, 0
+        self.resend_s, self.not_kept = self.resend_min_s, None
         if t_s - self._lost_warn_t < LOST_WARN_MIN_S:
             self._lost_unwarned += 1
             return
@@ -473,7 +521,7 @@ class ReceiverSetup:
             else ""
         )
         self._lost_warn_t, self._lost_unwarned = t_s, 0
-        after = max(0.0, self._sent_t + self.resend_min_s - t_s)
+        after = max(0.0, self._sent_t + self.resend_s - t_s)
         log.warning(
             "GPS: the receiver lost its configuration: %s%s; gps.configure_receiver: "
             "sending it again%s",
@@ -483,8 +531,8 @@ class ReceiverSetup:
         )
 
     def resend_due(self, t_s: float) -> bool:
-        """The setup was lost and the last write is :attr:`resend_min_s` old: write it again."""
-        return self.state == "lost" and t_s - self._sent_t >= self.resend_min_s
+        """The setup was lost and the last write is :attr:`resend_s` old: write it again."""
+        return self.state == "lost" and t_s - self._sent_t >= self.resend_s
 
     def check(self, t_s: float) -> None:
         """Messages still unanswered ``ack_timeout_s`` after they were written: no answer."""
@@ -546,6 +594,9 @@ class ReceiverSetup:
             out["problem"] = self.problem
         if self.lost_reason is not None:
             out["lost"] = self.lost_reason
+        if self.not_kept is not None:
+            out["not_kept"] = self.not_kept
+            out["resend_s"] = self.resend_s
         return out
 
 

@@ -532,6 +532,7 @@ class ClockedNeo5:
         self.out = bytearray()
         self.writes: list[tuple[float, bytes]] = []
         self.mute = False
+        self.keeps_msg = True  # False: CFG-MSG is ACKed and ignored
         self.timeout: float | None = None
         self._framer = NmeaFramer()
         self._next_t = clock[0]
@@ -542,7 +543,8 @@ class ClockedNeo5:
             if isinstance(f, UbxFrame) and f.msg_class == 0x06:
                 if f.msg_id == 0x08:
                     self.hz = 1000.0 / struct.unpack("<H", f.payload[:2])[0]
-                if f.msg_id == 0x01 and f.payload[0] == 0xF0 and f.payload[2] == 0:
+                off = f.msg_id == 0x01 and f.payload[0] == 0xF0 and f.payload[2] == 0
+                if off and self.keeps_msg:
                     self.extra = [m for m in self.extra if NMEA_MSG_IDS[m] != f.payload[1]]
                 self.out += ubx_frame(0x05, 0x01, bytes((0x06, f.msg_id)))
         return len(data)
@@ -656,6 +658,40 @@ def test_the_setup_is_written_again_at_most_every_10_s_and_warned_once_a_minute(
     assert setup.losses == 2 and setup.state == "acked" and rx.hz == 4.0
     lost = [m.getMessage() for m in caplog.records if "lost its configuration" in m.getMessage()]
     assert len(lost) == 1, lost  # the second within a minute: counted, not logged
+
+
+def test_a_receiver_that_does_not_keep_its_setup_is_written_again_less_and_less_often(
+    caplog: Any,
+) -> None:
+    # review of ff03700: GLL/VTG coming back after every ACK (a receiver that ACKs CFG-MSG
+    # and ignores it, or something else re-enabling them) had the setup written every 10 s
+    # for ever; now the wait doubles with each such loss, up to RESEND_MAX_S, and says why
+    caplog.set_level(logging.INFO)
+    reader, rx, run = _clocked()
+    rx.keeps_msg = False
+    setup = reader.setup
+    assert setup is not None
+    run(1000.0)
+    sent = [round(t - 1000.0, 2) for t, data in rx.writes if data == setup.init_bytes]
+    assert sent == [0.05, 10.05, 30.05, 70.05, 150.05, 310.05, 610.05, 910.05], sent
+    assert setup.resend_s == 300.0  # RESEND_MAX_S
+    st = setup.status()
+    assert "does not keep its setup" in st["not_kept"] and st["resend_s"] == 300.0, st
+    assert "GLL" in st["not_kept"] or "VTG" in st["not_kept"], st
+    said = [m.getMessage() for m in caplog.records if m.name == "drivers.gps_io"]
+    assert len([m for m in said if "does not keep its setup" in m]) == 1, said
+    assert len([m for m in said if "lost its configuration" in m]) == 1, said
+    # it keeps it from now on: taken at the next write (910 + 300), and held
+    rx.keeps_msg = True
+    run(400.0)
+    assert (setup.state, rx.extra, len(rx.writes) - len(sent)) == ("acked", [], 1)
+    assert "not_kept" in setup.status()  # (the last loss's verdict, until the next loss)
+    rx.reset()  # a restart: the setup again after 10 s, as ever, and no longer 'not kept'
+    run(12.0)
+    sent = [t - 1000.0 for t, data in rx.writes if data == setup.init_bytes]
+    assert len(sent) == 10 and 1400.0 < sent[-1] < 1412.0, sent
+    assert (setup.state, setup.resend_s, rx.hz) == ("acked", 10.0, 4.0)
+    assert "not_kept" not in setup.status()
 
 
 def test_a_banner_before_the_first_answers_is_no_loss() -> None:
