@@ -19,6 +19,8 @@
     track: [], trackEpoch: 0, view: { e: 0, n: 0, pxPerM: 4 }, followed: false,
     missionVersion: 0, draws: 0, layerDraws: 0, drawMs: 0, // the map's redraws (for the tests)
     drive: null, driveKey: null, driveTimer: null, press: null, driveSend: null, tiles: new Map(),
+    pressState: null, // the press held now: { ok: a drive of it was obeyed, inflight, stopOnOk }
+    driver: null, // who else drives (status' manual_drive.owner, or a "busy" refusal's driver)
     heardAt: 0, stale: true, closedWhy: "", // closedWhy: the console's reason for closing the link (full)
   };
   window.x6wd = S; // for a person at the browser's console, and for the tests
@@ -217,6 +219,8 @@
       const d = r.declination;
       S.north = d && typeof d === "object" && ("pending" in d || "error" in d) ? "magnetic" : "true";
       if ((!S.tel || S.stale) && r.telemetry) onTelemetry(r.telemetry, r.devices);
+      // who drives, when it is not this page (null: nobody's drive holds)
+      if ("manual_drive" in r) showDriver(r.manual_drive && !r.manual_drive.yours ? r.manual_drive.owner : null);
       renderDevices();
     }
     setTimeout(() => poll(ws), 1000);
@@ -388,7 +392,7 @@
     const r = await command("mission.load", { waypoints: S.draft });
     if (r.ok) { S.dirty = false; renderMission(); }
   }
-  const FORMATS = { gpx: "gpx", csv: "csv", kml: "kml", waypoints: "waypoints" };
+  const FORMATS = { gpx: "gpx", csv: "csv", kml: "kml", waypoints: "waypoints", plan: "plan" };
   function loadFile(file) {
     const limit = S.info ? S.info.max_message_bytes : Infinity;
     if (file.size > limit) return say(file.name + ": " + file.size + " bytes, too large to send: the console takes at most " + limit + " bytes (console.max_message_bytes)", true);
@@ -453,16 +457,30 @@
     S.drive = dir;
     const press = Math.round(performance.now());
     S.press = press;
+    const state = { ok: false, inflight: 0, stopOnOk: false };
+    S.pressState = state;
     $("drive-stopped").hidden = true;
     $("drive-" + dir).classList.add("active");
     const send = () => {
       if (S.press !== press) return;
       const speed = Number($("speed").value);
       const [l, r] = DIRECTIONS[dir];
+      state.inflight++;
       request("drive", { left: l * speed, right: r * speed, duration_s: S.info.deadman_s, press_ms: press }).then((r) => {
-        if (r.ok || S.press !== press) return; // a refusal of an ended press ends nothing
+        state.inflight--;
+        if (r.ok) {
+          state.ok = true;
+          // released before this answer: the drive runs now, so the release's stop goes now
+          // (unless a new press of this page began: its drives replace this one)
+          if (state.stopOnOk && S.press === null) { state.stopOnOk = false; request("stop"); }
+          if (S.press === press) showDriver(null); // this page drives
+          return;
+        }
+        // another client drives: said also for a press already let go (a tap)
+        if (r.error.reason === "busy" && (S.press === press || S.press === null)) busyElsewhere(r.error.driver);
+        if (S.press !== press) return; // a refusal of an ended press ends nothing
         if (r.error.reason === "stopped") stoppedElsewhere();
-        else say("drive: " + r.error.message, true);
+        else if (r.error.reason !== "busy") say("drive: " + r.error.message, true);
         endDrive(false);
       });
     };
@@ -479,16 +497,37 @@
     $("drive-stopped").textContent = text;
     $("drive-stopped").hidden = false;
   }
+  // another client's drive holds: the daemon refused this page's ("busy"); its press ends
+  // and nothing is sent on its release (a stop then ended the other client's drive)
+  function busyElsewhere(driver) {
+    showDriver(driver || "unknown");
+    say("drive refused: another client is driving (" + (driver || "unknown") + ") — Stop still works", true);
+  }
+  // who drives when it is not this page, under the drive buttons (null: nobody else)
+  function showDriver(driver) {
+    S.driver = driver;
+    const el = $("drive-busy");
+    el.hidden = !driver;
+    if (driver) el.textContent = "Another client is driving (" + driver + ") — Stop still works.";
+  }
+  // The release of a press: its stop is sent only if this page's drive runs, i.e. a drive of
+  // this press was obeyed ("ok"); one still unanswered sends the stop when it is obeyed. A
+  // press refused ("busy": another client drives) sends nothing: a tap on a second page
+  // stopped the other client's drive.
   function endDrive(sendStop) {
     if (S.driveTimer !== null) clearInterval(S.driveTimer);
     S.driveTimer = null;
     S.driveKey = null;
     S.press = null;
     S.driveSend = null;
+    const state = S.pressState;
+    S.pressState = null;
     if (S.drive === null) return;
     $("drive-" + S.drive).classList.remove("active");
     S.drive = null;
-    if (sendStop) request("stop");
+    if (!sendStop || !state) return;
+    if (state.ok) request("stop");
+    else if (state.inflight > 0) state.stopOnOk = true;
   }
   for (const dir of Object.keys(DIRECTIONS)) {
     const b = $("drive-" + dir);
