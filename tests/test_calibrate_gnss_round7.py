@@ -3,6 +3,7 @@ the wrong reference was written as an LCE map of tens of metres, exit 0."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import subprocess
@@ -156,6 +157,71 @@ def test_drives_give_the_white_part_a_moving_receiver_needs(
     # the static part alone (no drive) still writes the standing white part
     assert cli.main(argv[:8]) == 0
     assert config.loads(capsys.readouterr().out).gnss_noise.re_m < 0.1
+
+
+def _survey_and_drives(tmp_path: Path, tau_s: float, seed: int = 7) -> list[str]:
+    """The synthetic harness above (standing 5 cm white + 2.0 m over 400 s; 4 drives adding a
+    0.9 m part of correlation time ``tau_s``): the ``calibrate gnss`` arguments."""
+    rng = np.random.default_rng(seed)
+    n = 3600
+    t = np.arange(n, dtype=float)
+    static_err = 0.05 * rng.standard_normal((n, 2)) + _gm(rng, n, 2.0, 400.0)
+    static = write_recording(tmp_path / "static.jsonl", _fixes(t, np.zeros((n, 2)), static_err))
+    argv = ["calibrate", "gnss", "--static", str(static), "--ref-lat", str(ORIGIN[0]),
+            "--ref-lon", str(ORIGIN[1]), "--origin", f"{ORIGIN[0]},{ORIGIN[1]}"]  # fmt: skip
+    for k in range(4):
+        td, pos = loop_track(laps=2)
+        m = td.size
+        err = (0.05 * rng.standard_normal((m, 2)) + _gm(rng, m, 0.9, tau_s)
+               + _gm(rng, m, 2.0, 400.0))  # fmt: skip
+        drive = write_recording(tmp_path / f"d{k}.jsonl", _fixes(td, pos[:, :2], err))
+        ref = write_truth_csv(tmp_path / f"t{k}.csv", truth_series(world(0.0, 0.0), td, pos))
+        argv += ["--drive", str(drive), "--reference", str(ref)]
+    return argv
+
+
+def test_re_m_varies_smoothly_with_the_fast_parts_correlation_time(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # review of 376eede: re_m was W + S when the fitted tau <= 30 s, else W alone, i.e. the
+    # standing 0.0495 m; the fitted tau runs above the true one, so true tau 28 s already fell
+    # back (24 s -> 1.031, 28/35/45 s -> 0.0495). Now W + S·(1 − e^(−60 s/τ)): continuous.
+    got, outs = {}, {}
+    for tau in (25.0, 35.0, 45.0):
+        d = tmp_path / f"tau{tau:.0f}"
+        d.mkdir()
+        assert cli.main(_survey_and_drives(d, tau)) == 0
+        outs[tau] = capsys.readouterr().out
+        got[tau] = config.loads(outs[tau]).gnss_noise.re_m
+    values = list(got.values())
+    assert all(0.6 < v < 1.3 for v in values), got  # never the standing 0.0495
+    for a, b in itertools.pairwise(values):
+        assert abs(a - b) < 0.15 * max(a, b), got  # 10 s of tau moves re_m by a few %
+    assert values[0] >= values[-1], got  # a slower part counts a little less
+    for out in outs.values():
+        assert "re_m from the drives (moving)" in out, out
+        assert "# the drives (moving): their variogram" in out, out
+
+
+def test_the_drives_figure_is_always_in_the_comment_and_warned_when_far_above_re_m(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = _survey_and_drives(tmp_path, 15.0)
+    given = ["calibrate", "gnss", *argv[8:], "--ase-m", "2.0", "--correlation-s", "400"]
+    # a given re_m far below the drives' white part (~1 m): written as given, warned
+    assert cli.main([*given, "--re-m", "0.05"]) == 0
+    cap = capsys.readouterr()
+    assert config.loads(cap.out).gnss_noise.re_m == 0.05
+    assert "# the drives (moving): their variogram" in cap.out, cap.out
+    warn = [ln for ln in cap.err.splitlines() if "warning" in ln and "drives' white part" in ln]
+    assert len(warn) == 1 and "times the re_m written (0.05 m" in warn[0], cap.err
+    # a given re_m above it: no warning, the drives' figure still in the comment
+    assert cli.main([*given, "--re-m", "1.5"]) == 0
+    cap = capsys.readouterr()
+    assert config.loads(cap.out).gnss_noise.re_m == 1.5
+    assert "# the drives (moving): their variogram" in cap.out, cap.out
+    assert "not larger than this re_m" in cap.out, cap.out
+    assert "warning" not in cap.err, cap.err
 
 
 @pytest.mark.slow

@@ -71,6 +71,7 @@ from __future__ import annotations
 import csv
 import itertools
 import math
+import sys
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -722,13 +723,14 @@ class LceMap:
 @dataclass(frozen=True)
 class MovingWhite:
     """The drives' fast error (:func:`moving_white`): the fit ``γ(k) = W + S·(1 − e^(−k·Δt/τ))``
-    of their variogram (m² per axis at HDOP 1; τ in s) and the white part the estimator needs
-    (m, with a leave-one-drive-out SE; NaN with fewer than 3 drives)."""
+    of their variogram (m² per axis at HDOP 1; τ in s) and the white part the estimator needs,
+    ``sqrt(W + S·(1 − e^(−L/τ)))`` with ``L`` = :data:`MOVING_MAX_LAG_S` (m, with a
+    leave-one-drive-out SE; NaN with fewer than 3 drives)."""
 
     nugget_m2: float
     sill_m2: float
     tau_s: float
-    fast: bool  # τ within the fitted lags: a part the estimator's slow state cannot follow
+    fast_fraction: float  # 1 − e^(−L/τ): the share of S that comes and goes within L
     white: Estimate
     pairs: int
     max_lag_s: float
@@ -738,7 +740,13 @@ MOVING_MAX_LAG_S = 60.0
 """Longest lag (s) of the drives' variogram that :func:`moving_white` fits: a quarter of a
 short drive (the simulated zigzag: 230 s), and far below the slow part's correlation time
 (the static calibration's τ: minutes; the shipped 120 s), so the estimator's bias state is
-near constant over it and whatever varies within it must be its white part."""
+near constant over it and whatever varies within it must be its white part. It is also the lag
+``L`` at which :func:`moving_white` reads the white part: ``W + S·(1 − e^(−L/τ))``."""
+
+MOVING_WARN_RATIO = 2.0
+"""The drives' white part more than this many times the ``re_m`` written (a given ``--re-m`` or
+``--config``) is warned about on stderr: the estimator on a moving robot would read the rest
+as motion."""
 
 
 def _drive_variogram(m: Matched, lag_s: Array) -> tuple[Array, Array]:
@@ -816,8 +824,13 @@ def moving_white(m: Matched) -> MovingWhite | None:
     m over 12 seeds, worse than raw GPS). So the drives' variogram over lags 1 epoch to
     :data:`MOVING_MAX_LAG_S` is fitted with a nugget W, an exponential of sill S and time
     τ, and a straight line (the slow part, which over lags far below its correlation time
-    grows linearly); when τ lies within the fitted lags (the part is fast), the white variance the
-    estimator needs is ``RE² = W + S``, else ``W`` (a slower part is the slow state's). The
+    grows linearly). The white variance the estimator needs is what of W and S comes and goes
+    within ``L`` = :data:`MOVING_MAX_LAG_S`, over which its slow state is near constant: the
+    exponential part's variogram at ``L``, ``RE² = W + S·(1 − e^(−L/τ))``. It is continuous in
+    τ: all of S for τ of a few seconds, 92 % at τ = 24 s, 74 % at 45 s, 14 % at 400 s (a slow
+    part the fit put in S rather than in the line). Until a review it was ``W + S`` when τ <=
+    30 s and ``W`` above: the fitted τ runs a little above the true one, so a fast part of true
+    τ 28 s already fell back to the standing RE (0.0495 m written instead of ~1.0). The
     estimator puts the LCE in its slow state's variance, so the LCE cannot stand for this
     part: when it is written, the map is made again with it subtracted
     (:class:`GnssCalibration`)."""
@@ -827,12 +840,11 @@ def moving_white(m: Matched) -> MovingWhite | None:
         return None
     ok = counts >= 20
     w, s_, tau, _slope = _fit_nugget_exponential(lags[ok], gamma[ok])
-    fast = tau <= MOVING_MAX_LAG_S / 2.0
 
-    def white2(w_: float, s2: float) -> float:
-        return w_ + (s2 if fast else 0.0)
+    def white2(w_: float, s2: float, tau_: float) -> float:
+        return w_ + s2 * -math.expm1(-MOVING_MAX_LAG_S / tau_)
 
-    est = white2(w, s_)
+    est = white2(w, s_, tau)
     drives = np.unique(m.drive)
     var = math.nan
     if drives.size >= 3:  # leave one drive out
@@ -844,13 +856,14 @@ def moving_white(m: Matched) -> MovingWhite | None:
             g, c = _drive_variogram(sub, lags)
             okd = c >= 20
             if okd.sum() >= 3:
-                wd, sd, _, _ = _fit_nugget_exponential(lags[okd], g[okd])
-                reps.append(white2(wd, sd))
+                wd, sd, td, _ = _fit_nugget_exponential(lags[okd], g[okd])
+                reps.append(white2(wd, sd, td))
         r = np.array(reps)
         if r.size >= 3:
             var = (r.size - 1) / r.size * float(((r - r.mean()) ** 2).sum())
     white = _root(est, var) if math.isfinite(var) else Estimate(math.sqrt(max(est, 0.0)), math.nan)
-    return MovingWhite(w, s_, tau, fast, white, int(counts[0]), MOVING_MAX_LAG_S)
+    frac = -math.expm1(-MOVING_MAX_LAG_S / tau)
+    return MovingWhite(w, s_, tau, frac, white, int(counts[0]), MOVING_MAX_LAG_S)
 
 
 def _mean_se(z2: Array, groups: npt.NDArray[np.int64]) -> tuple[float, float, int, str]:
@@ -1038,6 +1051,9 @@ class GnssCalibration:
         """With a static RE and drives whose white part is larger, the map is made again with
         that part subtracted: the estimator gets it as white noise, and the LCE is the excess
         beyond it and ASE (else the same variance would be counted twice)."""
+        note = self.drives_warning
+        if note is not None:
+            print(f"x6wd calibrate: warning: {note}", file=sys.stderr)
         mv = self.moving
         lm = self.lce
         if mv is None or lm is None:
@@ -1065,6 +1081,24 @@ class GnssCalibration:
         if mv is None or not round(mv.white.value, 4) > round(self.re_m.value, 4):
             return None
         return mv
+
+    @property
+    def drives_warning(self) -> str | None:
+        """Why the ``re_m`` written is much smaller (:data:`MOVING_WARN_RATIO`) than the drives'
+        white part, when it is (a given ``--re-m`` or ``--config``), else None."""
+        mv = self.lce.moving if self.lce is not None else None
+        if mv is None or self.moving is not None:
+            return None
+        written = self.re_m_written
+        if not mv.white.value > MOVING_WARN_RATIO * written:
+            return None
+        return (
+            f"the drives' white part (moving) is {mv.white.value:.4f} m, "
+            f"{mv.white.value / written:.1f} times the re_m written ({written:g} m, "
+            f"{self.re_from}): on a moving robot the estimator would read the rest of that error "
+            "as motion; calibrate with --static and the drives to write the drives' figure "
+            "(docs/gnss_calibration.md)"
+        )
 
     @property
     def re_m_written(self) -> float:
@@ -1154,15 +1188,22 @@ class GnssCalibration:
             src, ase_src = self.re_from, self.ase_from
             tau_note = f"of the slow part ({self.tau_from})"
         mv = self.moving
+        dmv = self.lce.moving if self.lce is not None else None
+        if dmv is not None:
+            lines.append(
+                f"# the drives (moving): their variogram over 1-{dmv.max_lag_s:g} s fits nugget "
+                f"{dmv.nugget_m2:.3f} m² + {dmv.sill_m2:.3f} m² decorrelating in "
+                f"{dmv.tau_s:.0f} s ({dmv.pairs} pairs one epoch apart); what of it comes and "
+                f"goes within {dmv.max_lag_s:g} s (W + {100 * dmv.fast_fraction:.0f} % of S), "
+                "which the estimator's slow state cannot follow: white part "
+                f"{dmv.white.value:.4f} m"
+                + ("" if math.isnan(dmv.white.se) else f" ± {dmv.white.se:.4f}")
+            )
         if mv is not None:
             lines.append(
-                f"# re_m from the drives (moving): their variogram over 1-{mv.max_lag_s:g} s "
-                f"fits nugget {mv.nugget_m2:.3f} m² + {mv.sill_m2:.3f} m² decorrelating in "
-                f"{mv.tau_s:.0f} s ({mv.pairs} pairs one epoch apart): the part of a moving "
-                "receiver's error the estimator's slow state cannot follow (the LCE map below "
-                f"is the excess beyond it and ASE); the static white part (RE "
-                f"{self.re_m.value:.4f} ± {self.re_m.se:.4f} m, {src}) is smaller, and taken "
-                "alone makes the estimator read that error as motion"
+                "# re_m from the drives (moving): the LCE map below is the excess beyond it and "
+                f"ASE; the static white part (RE {self.re_m.value:.4f} ± {self.re_m.se:.4f} m, "
+                f"{src}) is smaller, and taken alone makes the estimator read that error as motion"
             )
         dw = self.drives_white
         if mv is None and dw is not None:
@@ -1170,6 +1211,10 @@ class GnssCalibration:
                 f"# the drives' white part (moving) is {dw.white.value:.4f} m, larger than this "
                 f"re_m ({src}): the estimator on a moving robot needs it (docs/gnss_calibration"
                 ".md); measured with --static, the drives' figure is written"
+            )
+        elif dmv is not None and mv is None:
+            lines.append(
+                f"# the drives' white part is not larger than this re_m ({src}): re_m as below"
             )
         se_mv = (
             "no SE: fewer than 3 drives"
