@@ -203,3 +203,43 @@ def test_a_held_drive_is_logged_once_per_press_not_per_resend(
         "state MANUAL -> IDLE mode: manual drive expired (last drive L+40 R+40)",
         "state MANUAL -> IDLE mode: stop (last drive L-30 R+30)",
     ]
+
+
+def test_a_drive_the_robot_ended_itself_no_longer_holds_off_another_clients_drive(
+    tmp_path: Path, run_daemon
+) -> None:
+    """Review of a1a7005: the owner's drive ended by the robot (its motor link lost: the
+    controller stops the manual drive) kept every other client refused ``busy`` until the
+    drive's deadline (up to manual_max_s, 60 s configurable), naming an owner that no longer
+    drove (or whose connection was dead, half-open). Now another client's drive is taken at
+    once, while the owner is still connected and its deadline far off."""
+    import dataclasses
+
+    from tests.test_daemon import BoardOnPty
+
+    cfg = hil_config(tmp_path)
+    with BoardOnPty() as pb:
+        cfg = dataclasses.replace(
+            cfg,
+            motors=dataclasses.replace(cfg.motors, url=pb.url),
+            safety=dataclasses.replace(cfg.safety, manual_max_s=60.0),
+        )
+        r = run_daemon(Daemon(cfg))
+        with RemoteClient("127.0.0.1", r.port) as a, RemoteClient("127.0.0.1", r.port) as b:
+            a_name, b_name = _name(a), _name(b)
+            _drive(a, A_DRIVE, 30.0)
+            wait_for(lambda: pb.board.running, 5, "A's drive reaches the board")
+            _refused_busy(b, B_DRIVE, a_name)  # the robot drives A's: refused, as before
+            pb.halt()  # the board dies: the controller ends A's drive
+            wait_for(lambda: b.request("status")["mode"] == "IDLE", 10, "the robot stops")
+            pb.serve()  # it comes back: the robot could drive again
+            wait_for(lambda: b.request("status")["links"]["motors"] != "lost", 10, "the link is up")
+            assert a.request("status")["mode"] == "IDLE"  # A connected, its 30 s not run out
+            t0 = time.monotonic()
+            _drive(b, B_DRIVE, 2.0)  # was: refused busy, naming A, for up to 30 s more
+            assert time.monotonic() - t0 < 2.0
+            st = a.request("status")
+            assert st["mode"] == "MANUAL" and st["manual_drive"]["owner"] == b_name, st
+            wait_for(lambda: pb.board.running, 5, "B's drive reaches the board")
+            _refused_busy(a, A_DRIVE, b_name)  # B owns it now, as any owner
+        assert r.stop() == 0

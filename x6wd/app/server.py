@@ -490,6 +490,8 @@ class ControlServer(LineServer[_Client]):
         # whose manual drive runs: the dead-man (its client gone: stop) and the drive's owner
         # (another client's drive is refused until it ends: _refuse_foreign_drive)
         self._drive_owner: _Client | None = None
+        self._drive_seq = 0  # drives sent to the robot (_release_ended_drive)
+        self._drives_in_flight = 0  # sent, not yet answered
         self._closing = False  # close() has begun: connections end because the server does
         self._drive_until_s = 0.0  # time.monotonic() when it ends
         self._command_seq = 0  # incremented before each motion command reaches the backend
@@ -707,6 +709,44 @@ class ControlServer(LineServer[_Client]):
             driver=name,
             holds_s=round(holds_s, 2),
         )
+
+    async def _release_ended_drive(self, c: _Client) -> None:
+        """Before another client's drive is refused: a drive the robot ended on its own (the
+        motor link lost, a failsafe; the controller no longer in MANUAL) no longer holds,
+        though its deadline has not come (up to ``manual_max_s``, 60 s configurable) and
+        its owner is still connected, or seems to be (a half-open connection). The robot's
+        mode is asked (``status``, on the control loop) only then, and only when no drive
+        is on its way to the robot: one sent before is taken before the question, so a
+        mode other than MANUAL is the robot's own end of the owner's drive (review of
+        a1a7005). A drive sent meanwhile, or a stop, leaves the ownership to them."""
+        owner = self._drive_owner
+        if owner is None or owner is c or not self.drive_active(owner):
+            return
+        if self._drives_in_flight:
+            return
+        seq = self._drive_seq
+        try:
+            st = await _result(self.backend.status())
+        except Exception:  # no answer: the deadline decides, as before
+            st = None
+        if c.taken <= c.fence:  # a stop came while the robot was asked
+            self.stops["superseded"] += 1
+            raise _Reject("rejected", "a stop came after this drive: not done", "stopped")
+        mode = st.get("mode") if isinstance(st, dict) else None
+        if (
+            self._drive_owner is owner
+            and self._drive_seq == seq
+            and not self._drives_in_flight
+            and isinstance(mode, str)
+            and mode != "MANUAL"
+        ):
+            self._drive_owner = None
+            log.info(
+                "the drive of %s ended on the robot (mode %s): %s may drive",
+                self._name(owner),
+                mode,
+                self._name(c),
+            )
 
     def _drive_orphaned(self, c: _Client) -> None:
         """The dead-man on the control port: a client that goes away (closed, reset, evicted)
@@ -1030,6 +1070,7 @@ class ControlServer(LineServer[_Client]):
             # validate first, then count: a rejected request changes nothing
             args = self._motion_args(c, cmd, req)
             if cmd == "drive":
+                await self._release_ended_drive(c)  # one the robot ended holds no longer
                 self._refuse_foreign_drive(c)  # before it counts: it changes nothing
             self._command_seq += 1
             if cmd == "mission.load":
@@ -1041,12 +1082,16 @@ class ControlServer(LineServer[_Client]):
                 # meanwhile is refused, not sent after it
                 before = self._drive_owner, self._drive_until_s
                 self._drive_owner, self._drive_until_s = c, time.monotonic() + args[2]
+                self._drive_seq += 1
+                self._drives_in_flight += 1
                 try:
                     reply = await _result(b.drive(*args))
                 except BaseException:
                     if self._drive_owner is c:  # refused: as it was (unless a stop came)
                         self._drive_owner, self._drive_until_s = before
                     raise
+                finally:
+                    self._drives_in_flight -= 1
                 if self._drive_owner is c:  # (a stop that came meanwhile ended it)
                     # the robot's dead-man started when it took the drive, a little later
                     self._drive_until_s = max(self._drive_until_s, time.monotonic() + args[2])
