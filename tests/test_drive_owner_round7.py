@@ -16,15 +16,17 @@ import logging
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from tests.test_daemon import hil_config, run_daemon, wait_for
 from tests.test_loop import Loop
+from tests.test_server import loop_thread
 from x6wd.app.client import EXIT_REFUSED, RemoteClient, RequestFailed, _hold_drive, render_status
 from x6wd.app.daemon import Daemon
 
-__all__ = ["run_daemon"]  # the fixture, imported for pytest
+__all__ = ["loop_thread", "run_daemon"]  # the fixtures, imported for pytest
 
 A_DRIVE = (40.0, 40.0)
 B_DRIVE = (-28.0, 28.0)
@@ -236,10 +238,70 @@ def test_a_drive_the_robot_ended_itself_no_longer_holds_off_another_clients_driv
             wait_for(lambda: b.request("status")["links"]["motors"] != "lost", 10, "the link is up")
             assert a.request("status")["mode"] == "IDLE"  # A connected, its 30 s not run out
             t0 = time.monotonic()
-            _drive(b, B_DRIVE, 2.0)  # was: refused busy, naming A, for up to 30 s more
+
+            def taken() -> bool:  # was: refused busy, naming A, for up to 30 s more
+                try:  # (a control loop slower than OWNER_CHECK_S: the next try takes it)
+                    _drive(b, B_DRIVE, 2.0)
+                except RequestFailed as exc:
+                    assert exc.reason == "busy", exc
+                    return False
+                return True
+
+            wait_for(taken, 2.0, "B's drive taken")
             assert time.monotonic() - t0 < 2.0
             st = a.request("status")
             assert st["mode"] == "MANUAL" and st["manual_drive"]["owner"] == b_name, st
             wait_for(lambda: pb.board.running, 5, "B's drive reaches the board")
             _refused_busy(a, A_DRIVE, b_name)  # B owns it now, as any owner
         assert r.stop() == 0
+
+
+def test_a_busy_control_loop_does_not_hold_a_non_owners_stop(loop_thread: Any) -> None:
+    """review of 97faaf1: before refusing another client's drive the server asks the
+    robot's mode; that question waited for a busy control loop without limit, and the
+    refused client's next line, its stop, waited behind it (2 s in the review). The
+    question is now bounded (OWNER_CHECK_S) and shared with the status requests."""
+    import asyncio
+    import socket
+
+    from tests.test_server import RecordingBackend, start_server
+    from x6wd.app.server import OWNER_CHECK_S
+
+    class SlowLoop(RecordingBackend):
+        t_stop: float | None = None
+        status_calls = 0
+
+        def status(self):  # type: ignore[no-untyped-def]
+            self.status_calls += 1
+            mode = super().status()
+
+            async def late() -> dict:  # type: ignore[type-arg]
+                await asyncio.sleep(2.0)  # the control loop busy, its lock held
+                return mode
+
+            return late()
+
+        def stop(self):  # type: ignore[no-untyped-def]
+            self.t_stop = time.monotonic()
+            return super().stop()
+
+    backend = SlowLoop()
+    srv = start_server(loop_thread, backend)
+    try:
+        a = socket.create_connection(("127.0.0.1", srv.port), 5)
+        b = socket.create_connection(("127.0.0.1", srv.port), 5)
+        a.sendall(b'{"id":1,"cmd":"drive","left":40,"right":40,"duration_s":30}\n')
+        assert b'"ok":true' in a.makefile("rb").readline()
+        t0 = time.monotonic()
+        b.sendall(
+            b'{"id":2,"cmd":"drive","left":-30,"right":30,"duration_s":1}\n{"id":3,"cmd":"stop"}\n'
+        )
+        rb = b.makefile("rb")
+        first, second = rb.readline(), rb.readline()
+        assert b'"busy"' in first, first  # the owner's drive still holds (no answer in time)
+        assert b'"ok":true' in second, second
+        assert backend.t_stop is not None and backend.t_stop - t0 < OWNER_CHECK_S + 0.4
+        a.close()
+        b.close()
+    finally:
+        loop_thread.run(srv.close())

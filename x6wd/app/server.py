@@ -108,6 +108,11 @@ MAX_AUTH_BACKOFF_S = 60.0
 STATUS_REUSE_S = 0.05
 """A status computed this recently (s), with no command since, answers other requesters: a
 crowd polling ``status`` costs the control loop at most ~20 calls per second."""
+OWNER_CHECK_S = 0.1
+"""Most a drive from another client waits for the robot's mode before it is refused ``busy``
+(s): the robot's own end of the owner's drive releases it (``_release_ended_drive``). The
+connection's next line (a stop, say) waits behind that question: without the bound a busy
+control loop held a non-owner's stop for as long as it stayed busy (2 s in a review)."""
 CLOSED = "closed"
 """Error code of the notice sent (id null) before the server closes a connection."""
 SHUTDOWN = "shutdown"
@@ -725,9 +730,10 @@ class ControlServer(LineServer[_Client]):
         if self._drives_in_flight:
             return
         seq = self._drive_seq
-        try:
-            st = await _result(self.backend.status())
-        except Exception:  # no answer: the deadline decides, as before
+        try:  # shared with the status requests (a crowd of drivers cannot load the loop),
+            # and bounded: the line after this one on the connection waits meanwhile
+            st = await asyncio.wait_for(self._status(), OWNER_CHECK_S)
+        except Exception:  # no answer in time: the deadline decides, as before
             st = None
         if c.taken <= c.fence:  # a stop came while the robot was asked
             self.stops["superseded"] += 1
