@@ -457,7 +457,7 @@
     S.drive = dir;
     const press = Math.round(performance.now());
     S.press = press;
-    const state = { ok: false, inflight: 0, stopOnOk: false };
+    const state = { ok: false, inflight: 0, stopOnOk: false, busy: false };
     S.pressState = state;
     $("drive-stopped").hidden = true;
     $("drive-" + dir).classList.add("active");
@@ -472,13 +472,19 @@
           state.ok = true;
           // released before this answer: the drive runs now, so the release's stop goes now
           // (unless a new press of this page began: its drives replace this one)
-          if (state.stopOnOk && S.press === null) { state.stopOnOk = false; request("stop"); }
+          // so does one of a press refused "busy" before it (two drives in flight): the page
+          // shows it ended, so the robot must not run this one
+          if ((state.stopOnOk || state.busy) && S.press === null) {
+            state.stopOnOk = state.busy = false;
+            request("stop");
+          }
           if (S.press === press) showDriver(null); // this page drives
           return;
         }
         // another client drives: said also for a press already let go (a tap)
         if (r.error.reason === "busy" && (S.press === press || S.press === null)) busyElsewhere(r.error.driver);
         if (S.press !== press) return; // a refusal of an ended press ends nothing
+        if (r.error.reason === "busy") state.busy = true;
         if (r.error.reason === "stopped") stoppedElsewhere();
         else if (r.error.reason !== "busy") say("drive: " + r.error.message, true);
         endDrive(false);
