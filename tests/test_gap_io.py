@@ -470,7 +470,7 @@ def test_a_sim_log_of_another_place_is_named_not_read_as_a_bias(tmp_path: Path) 
     # read as a bias of 18,000 km, and the verdict said "explained by bias"
     done = _gap_cli(LOGS / "telit-he910.log", tmp_path / "report", "--truth", "50.8402,4.3471")
     assert done.returncode == 2, done.stderr[-2000:]
-    assert "ublox-zed-f9p_hpg1.11.log: its fixes lie a median" in done.stderr
+    assert "ublox-zed-f9p_hpg1.11.log (a --sim log): its fixes lie a median" in done.stderr
     assert "km from the truth" in done.stderr and "Traceback" not in done.stderr
     done = _gap_cli(LOGS / "telit-he910.log", tmp_path / "report", "--truth", "")
     assert done.returncode == 2 and "--truth ''" in done.stderr  # not silently ignored
