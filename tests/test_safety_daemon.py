@@ -429,12 +429,20 @@ def test_an_operator_stop_reaches_the_motors_while_the_control_loop_is_busy(
         t.start()
         return t
 
-    with RemoteClient("127.0.0.1", r.port) as c:
-        c.request("drive", left=40, right=40, duration_s=5)
+    # one operator drives throughout, on one connection: a connection closed while its
+    # drive runs is the control port's dead-man (a stop), and another connection's drive
+    # is refused while this one's holds (busy)
+    owner = RemoteClient("127.0.0.1", r.port)
+    owner.request("drive", left=40, right=40, duration_s=5)
     wait_for(lambda: stamped.driving(40.0, 40.0), 3, "motors driven")
     d.blocking.set()
     assert d.blocked.wait(5)  # the control loop is stuck from here on
-    drive = ask("drive", "drive", left=10, right=10, duration_s=5)
+
+    def drive_again() -> None:
+        replies["drive"] = owner.request("drive", left=10, right=10, duration_s=5)
+
+    drive = threading.Thread(target=drive_again, daemon=True)
+    drive.start()
     time.sleep(0.3)
     assert "drive" not in replies and not stamped.driving(10.0, 10.0)  # waits for the loop
     t0 = time.monotonic()
@@ -448,6 +456,7 @@ def test_an_operator_stop_reaches_the_motors_while_the_control_loop_is_busy(
     stop.join(5)
     assert replies["stop"]["mode"] == "IDLE" and replies["drive"]["left"] == 10
     wait_for(lambda: stamped.stamped[-1][1].is_stop, 3, "stopped at the end")
+    owner.close()
 
 
 def notify_socket(tmp_path: Path) -> tuple[socket.socket, Notifier]:
