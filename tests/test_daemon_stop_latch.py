@@ -169,9 +169,9 @@ def test_an_operator_stop_holds_while_the_loop_is_behind_and_fixes_keep_deciding
         hold = c.request("status")["motor_hold"]  # what the operator can see of it
     assert hold["holding"] is False and hold["dropped_while_stopping"] >= 3
     # a manual drive after the stop moves the motors again
-    with RemoteClient("127.0.0.1", r.port) as c:
+    with RemoteClient("127.0.0.1", r.port) as c:  # open: closed, its drive would stop
         c.request("drive", left=25, right=25, duration_s=2)
-    wait_for(lambda: stamped.driving(25.0, 25.0), 3, "a manual drive after the stop")
+        wait_for(lambda: stamped.driving(25.0, 25.0), 3, "a manual drive after the stop")
 
 
 def test_a_drive_the_motors_refused_is_not_recorded_as_sent() -> None:
