@@ -32,9 +32,7 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 import re
-import stat
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
@@ -47,6 +45,7 @@ import numpy as np
 from sim_backend.effects import PositionSeries, metres_per_degree, satellite_set_id
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.geodesy import EARTH_MEAN_RADIUS_M
+from x6wd.core.recorder import compression_of, not_regular
 
 MAX_LINE_BYTES = 1 << 16
 """Longest line of a text log (CSV, .pos) read (bytes); longer is not such a log."""
@@ -582,11 +581,7 @@ save it to a file; ``/dev/zero`` would fill the disk)."""
 
 def _read_any(path: str | Path) -> Track:
     log_path = Path(path)
-    try:
-        mode = os.stat(log_path).st_mode
-    except OSError as exc:
-        raise DeviceUnavailable(f"cannot read {log_path}: {exc}") from exc
-    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+    if not_regular(log_path) is not None:  # a missing file: _read_file names it
         return _read_pipe(log_path)
     return _read_file(log_path)
 
@@ -622,9 +617,9 @@ def _read_file(log_path: Path) -> Track:
             head = f.read(_SNIFF_BYTES)
     except OSError as exc:
         raise DeviceUnavailable(f"cannot read {log_path}: {exc}") from exc
-    for magic, kind in _COMPRESSED:
-        if head.startswith(magic):
-            raise ParseError(f"{source}: compressed ({kind}): decompress it first")
+    kind = compression_of(head)
+    if kind is not None:
+        raise ParseError(f"{source}: compressed ({kind}): decompress it first")
     start = head.lstrip()[:1]
     if not start:
         raise ParseError(f"{source}: empty file" if not head else f"{source}: only blank lines")
@@ -646,15 +641,6 @@ def _read_file(log_path: Path) -> Track:
         # its counters say what was there when no position is found.
         return _read_nmea(log_path)
     return _read_csv(log_path)
-
-
-_COMPRESSED = (
-    (b"\x1f\x8b", "gzip"),
-    (b"BZh", "bzip2"),
-    (b"\xfd7zXZ\x00", "xz"),
-    (b"\x28\xb5\x2f\xfd", "zstd"),
-    (b"PK\x03\x04", "zip"),
-)
 
 
 def _looks_like_text(head: bytes) -> bool:
