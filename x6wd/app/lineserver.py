@@ -21,7 +21,9 @@ gpsd port: one valid command). The two live in separate pools:
   end of the stream yet) leave the pool, uncounted: in a connect/close storm the kernel
   hands over up to ``LISTEN_BACKLOG`` connections at once, each admitted before its close
   is seen, and those must not crowd out live sessions. If it is still full the peer being
-  admitted closes the least valuable session: the one idle longest among those not
+  admitted closes a session of the address holding the most sessions (the admitted one
+  counted; a storm from one address closes its own, not another address's watcher), of
+  those the least valuable: the one idle longest among those not
   watching, else the watcher that is most behind (not reading for a while: blocked in
   ``drain()`` or its data unacknowledged longest, then most events queued), else the
   newest watcher (an established reader outlives one just admitted).
@@ -467,8 +469,7 @@ class LineServer(Generic[C]):
         if len(self._sessions) >= self.max_clients:
             self._reap_gone()
         if len(self._sessions) >= self.max_clients:
-            now = self._clock()
-            victim = min(self._sessions, key=lambda s: self._victim_key(s, now))
+            victim = self._session_victim(c)
             self._evict(
                 victim,
                 SESSIONS_FULL,
@@ -476,6 +477,22 @@ class LineServer(Generic[C]):
             )
         self._sessions.add(c)
         c.session = True
+
+    def _session_victim(self, admitted: C) -> C:
+        """The session to close for ``admitted``: one of the address that holds the most
+        sessions (``admitted`` counted with its own), then by :meth:`_victim_key`. A storm
+        of watchers from one address that do not read (the kernel's buffers take a low-rate
+        stream for minutes, so they look as if they keep up) closed a watcher from another
+        address as soon as it joined, being the newest (outside audit, round 10): now that
+        address's own sessions pay."""
+        per_host = collections.Counter(s.host for s in self._sessions)
+        per_host[admitted.host] += 1
+        busiest = max(per_host[s.host] for s in self._sessions)
+        now = self._clock()
+        return min(
+            (s for s in self._sessions if per_host[s.host] == busiest),
+            key=lambda s: self._victim_key(s, now),
+        )
 
     def _reap_gone(self) -> None:
         """Take the sessions whose peer has already closed or reset its connection out of
