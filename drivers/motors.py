@@ -1067,8 +1067,15 @@ class LogMotorLink:
         return self.commands[-1] if self.commands else None
 
     def _keep(self, cmd: MotorCommand) -> bool:
+        prev = self.commands[-1] if self.commands else None
         self.commands.append(cmd)
-        self._log.info("motors L%+.0f R%+.0f %s", cmd.left_pct, cmd.right_pct, cmd.reason)
+        # The controller repeats its command at the sample rate (20 Hz): a change is INFO, a
+        # repeat DEBUG, or a robot left on log:// fills the journal with ~1.3 M lines a day.
+        same = prev is not None and (prev.left_pct, prev.right_pct, prev.reason) == (
+            cmd.left_pct, cmd.right_pct, cmd.reason
+        )  # fmt: skip
+        level = logging.DEBUG if same else logging.INFO
+        self._log.log(level, "motors L%+.0f R%+.0f %s", cmd.left_pct, cmd.right_pct, cmd.reason)
         if self.on_command is not None:
             self.on_command(cmd)
         return not self._closed

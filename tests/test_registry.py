@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import logging
 import os
 import socket
 import subprocess
@@ -210,6 +211,20 @@ def test_log_motors_url() -> None:
     assert isinstance(link, LogMotorLink)
     assert link.drive(10, 20)
     link.close()
+
+
+def test_log_motors_log_a_change_not_each_repeat(caplog: pytest.LogCaptureFixture) -> None:
+    # the controller repeats its command at 20 Hz: a log:// robot logged 15 INFO lines a second
+    link = LogMotorLink(logger=logging.getLogger("x6wd.test.logmotors"))
+    with caplog.at_level(logging.INFO, logger="x6wd.test.logmotors"):
+        for _ in range(20):
+            link.drive(0, 0, "idle")
+        link.drive(30, 30, "straight")
+        link.drive(30, 30, "straight")
+        link.stop("operator")
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.INFO]
+    assert lines == ["motors L+0 R+0 idle", "motors L+30 R+30 straight", "motors L+0 R+0 operator"]
+    assert len(link.commands) == 23  # every command is still kept
 
 
 @pytest.mark.integration
