@@ -601,9 +601,19 @@ def build(cls: type[T], data: Any, prefix: str = "") -> T:
     return cls(**kwargs)
 
 
-PACKAGED_CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
-"""The ``config/`` folder that ships with x6wd (hil.toml, scenarios/): the second place a
-relative ``[sim] scenario`` is looked for (``sim_backend.hil.CONFIG_DIR``, the same folder)."""
+def _packaged_config_dir() -> Path:
+    """The shipped ``config/`` folder: ``x6wd/_config`` in an installed wheel (pyproject.toml
+    force-includes the repository's config/ there), else the source tree's ``config/`` (a
+    checkout or an editable install, where the repository's folder is the one to edit)."""
+    package = Path(__file__).resolve().parents[1]  # .../x6wd
+    in_wheel = package / "_config"
+    return in_wheel if in_wheel.is_dir() else package.parent / "config"
+
+
+PACKAGED_CONFIG_DIR = _packaged_config_dir()
+"""The ``config/`` folder that ships with x6wd (x6wd.toml, hil.toml, scenarios/, sweeps/): the
+default scenarios of ``x6wd gap`` and of hardware in the loop, and the second place a relative
+``[sim] scenario`` is looked for (``sim_backend.hil.CONFIG_DIR``, the same folder)."""
 
 
 def scenario_candidates(scenario: str, config_dir: Path | None) -> list[Path]:
