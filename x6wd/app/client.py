@@ -9,6 +9,9 @@ with COMMAND one of ``status``, ``load FILE | load --wp LAT,LON ...`` (FILE: ``.
 as JSON, for programs; ``watch --json`` one JSON object per line. ``stop`` is sent before any
 ``auth`` and ``status`` falls back to asking without the token: for these two, which the robot
 obeys unauthenticated, a wrong or unusable token is a warning on stderr, not a failure.
+A ``stop`` whose TLS verification fails (the robot's certificate expired, say) is sent once
+more over TLS without verification, with a loud warning: never the token, nor any other
+command.
 Every heading shown is true, in degrees, 0 <= h < 360 (docs/protocol.md, "Headings").
 
 Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed
@@ -52,6 +55,15 @@ MISSION_EXTENSIONS = ", ".join(f".{k}" for k in PARSERS)
 
 class ConnectionFailed(X6wdError):
     """The server could not be reached, or the connection broke."""
+
+
+class CertificateNotVerified(ConnectionFailed):
+    """The TLS handshake failed because the robot's certificate could not be verified
+    (expired, not yet valid, another name, not trusted); ``why`` is OpenSSL's reason."""
+
+    def __init__(self, message: str, why: str) -> None:
+        super().__init__(message)
+        self.why = why
 
 
 class RequestFailed(X6wdError):
@@ -100,11 +112,18 @@ class RemoteClient:
         try:
             if ssl_context is not None:
                 sock = ssl_context.wrap_socket(sock, server_hostname=host)
+        except ssl.SSLCertVerificationError as exc:
+            sock.close()
+            why = exc.verify_message or str(exc)
+            raise CertificateNotVerified(
+                f"TLS handshake with {host}:{port} failed: {exc}", why
+            ) from None
         except (OSError, ssl.SSLError) as exc:
             sock.close()
             raise ConnectionFailed(f"TLS handshake with {host}:{port} failed: {exc}") from None
         self._sock: socket.socket | None = sock
         self._tls = ssl_context is not None
+        self.unverified_fallback = False  # a stop sent without verification (_connect)
         if token is not None:
             try:
                 self.authenticate(token)
@@ -438,6 +457,9 @@ def render_status(st: dict[str, Any]) -> str:
             f"server     {server.get('clients', 0)} clients, {server.get('pending', 0)} pending,"
             f" {server.get('dropped', 0)} events dropped"
         )
+        tls = server.get("tls")
+        if isinstance(tls, dict) and tls.get("warning"):  # renew before clients refuse it
+            lines.append(f"tls cert   WARNING {tls['warning']}")
     return "\n".join(lines) + "\n"
 
 
@@ -455,6 +477,14 @@ def _client_ssl(args: argparse.Namespace) -> ssl.SSLContext | None:
     if args.insecure:
         ctx.check_hostname = False
         ctx.verify_mode = ssl.CERT_NONE
+    return ctx
+
+
+def _unverified_ssl() -> ssl.SSLContext:
+    """TLS without certificate verification: only for a ``stop`` whose verification failed."""
+    ctx = ssl.create_default_context()
+    ctx.check_hostname = False
+    ctx.verify_mode = ssl.CERT_NONE
     return ctx
 
 
@@ -828,15 +858,30 @@ def _connect(
     keeps the operator-link failsafe quiet); if the robot refuses the token it asks on a new
     connection without one (a wrong token's back-off holds up the old one, and the robot
     may close it: ``[server] max_auth_failures``), with a warning. Any other action fails
-    as the robot refuses it."""
+    as the robot refuses it. A ``stop`` whose TLS verification fails (the robot's
+    certificate expired, say) is sent once more without verification, with a warning: it
+    carries no token and the robot obeys a stop from anyone, so nothing leaks; nothing else
+    is ever sent so (the connection is marked ``unverified_fallback``)."""
 
-    def connect(tok: str | None) -> RemoteClient:
+    def connect(tok: str | None, ctx: ssl.SSLContext | None = ssl_context) -> RemoteClient:
         return RemoteClient(
-            args.host, args.port, token=tok, ssl_context=ssl_context, timeout_s=args.timeout
+            args.host, args.port, token=tok, ssl_context=ctx, timeout_s=args.timeout
         )
 
     if args.action == "stop":
-        return connect(None)
+        try:
+            return connect(None)
+        except CertificateNotVerified as exc:
+            _warn(
+                f"THE ROBOT'S TLS CERTIFICATE COULD NOT BE VERIFIED ({exc.why}); retrying the "
+                "stop over TLS WITHOUT verification (a stop carries no token; nothing "
+                "else is sent so, and the reply cannot be proven to come from the robot). "
+                "Renew the robot's certificate: docs/install.md",
+                err,
+            )
+            client = connect(None, _unverified_ssl())
+            client.unverified_fallback = True
+            return client
     if args.action != "status" or token is None:
         return connect(token)
     try:
@@ -887,7 +932,8 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
         with _connect(args, token, ssl_context, err) as client:
             if action == "stop":
                 reply = client.request(action)
-                _check_token(client, token, err)
+                if not client.unverified_fallback:  # the token only to a verified robot
+                    _check_token(client, token, err)
             elif action in ("status", "start", "pause", "resume", "return"):
                 reply = client.request(action)
             elif action == "load":

@@ -171,14 +171,123 @@ def load_token(path: str | Path) -> bytes:
     return token
 
 
-def server_ssl_context(cert: str, key: str) -> ssl.SSLContext:
-    """TLS context for the server from PEM certificate and key paths (TLS 1.2+)."""
+CERT_WARN_DAYS = 30.0
+"""A certificate with fewer days left than this is a WARNING in the log and in ``status``:
+time to renew it before every verified client refuses the robot (docs/install.md)."""
+CERT_CHECK_S = 3600.0
+"""How often (s) a running server looks at its certificate's dates again, for the log (a
+certificate may expire while the daemon runs; ``status`` judges them at each request)."""
+DAY_S = 86400.0
+
+
+@dataclass(frozen=True)
+class CertDates:
+    """A certificate's validity, Unix time (s)."""
+
+    not_before_s: float
+    not_after_s: float
+
+
+def cert_dates(path: str) -> CertDates | None:
+    """The validity of the PEM certificate at ``path`` (its first), read with CPython's
+    private ``ssl._ssl._test_decode_cert``: no new dependency for two dates. None (and a
+    debug line) when that function is absent or cannot read the file: the check is skipped,
+    start-up never fails because of it."""
+    decode = getattr(getattr(ssl, "_ssl", None), "_test_decode_cert", None)
+    if decode is None:
+        log.debug("ssl._ssl._test_decode_cert absent: the dates of %s are not checked", path)
+        return None
+    try:
+        info = decode(path)
+        return CertDates(
+            float(ssl.cert_time_to_seconds(info["notBefore"])),
+            float(ssl.cert_time_to_seconds(info["notAfter"])),
+        )
+    except Exception as exc:  # a private API: any change of its shape skips the check
+        log.debug("the dates of %s are not checked: %s: %s", path, type(exc).__name__, exc)
+        return None
+
+
+def utc_text(t_s: float) -> str:
+    """Unix time ``t_s`` (s) as ISO 8601 UTC, seconds: ``2026-01-01T00:00:00Z``."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t_s))
+
+
+def _clock_floor_s() -> float:
+    """This release's date (Unix time, s): a system clock before it has not been set (a
+    Raspberry Pi boots at 1970 until it reaches a time server)."""
+    from drivers.gps_io import WEEK_ROLLOVER_FLOOR_UTC
+
+    return WEEK_ROLLOVER_FLOOR_UTC.timestamp()
+
+
+def cert_verdict(
+    dates: CertDates, now_s: float, path: str, key: str = "server.tls_cert"
+) -> tuple[str, str]:
+    """Judge ``dates`` at ``now_s`` (Unix time, s): ``(state, message)`` with state ``ok``
+    (message ""), ``expiring`` (fewer than :data:`CERT_WARN_DAYS` days left), ``expired``,
+    ``not_yet_valid`` (both: every verified client refuses the robot) or ``clock_unset``
+    (not yet valid, but the system clock is before this release: the clock is wrong, not
+    the certificate). The message names ``key`` and ``path`` and gives the dates."""
+    span = f"valid {utc_text(dates.not_before_s)} to {utc_text(dates.not_after_s)}"
+    if now_s > dates.not_after_s:
+        return "expired", (
+            f"{key}: {path} expired on {utc_text(dates.not_after_s)} ({span}, now "
+            f"{utc_text(now_s)}): every verified client refuses it; renew it (docs/install.md)"
+        )
+    if now_s < dates.not_before_s:
+        if now_s < _clock_floor_s():
+            return "clock_unset", (
+                f"{key}: {path} is not valid before {utc_text(dates.not_before_s)} ({span}) "
+                f"and the system clock says {utc_text(now_s)}, before this release: set the "
+                "clock (clients with a right clock accept the certificate)"
+            )
+        return "not_yet_valid", (
+            f"{key}: {path} is not valid before {utc_text(dates.not_before_s)} ({span}, now "
+            f"{utc_text(now_s)}): every verified client refuses it; make it with the clock "
+            "right (docs/install.md)"
+        )
+    left_d = (dates.not_after_s - now_s) / DAY_S
+    if left_d < CERT_WARN_DAYS:
+        return "expiring", (
+            f"{key}: {path} expires on {utc_text(dates.not_after_s)}, in {left_d:.1f} days; "
+            "renew it before then (docs/install.md)"
+        )
+    return "ok", ""
+
+
+def check_key_file(path: str) -> None:
+    """Refuse a TLS private key that the group or others can read or write, as the token
+    file (:func:`load_token`). A missing or unreadable file is left to the loader, which
+    names it. Raises ConfigError naming ``server.tls_key``."""
+    try:
+        st = Path(path).stat()
+    except OSError:
+        return
+    if stat.S_ISREG(st.st_mode) and st.st_mode & 0o077:
+        raise ConfigError(
+            f"server.tls_key: {path} has mode {stat.S_IMODE(st.st_mode):04o}; it must not be "
+            f"accessible to group or others (chmod 600 {path})"
+        )
+
+
+def server_ssl_context(cert: str, key: str, *, now_s: float | None = None) -> ssl.SSLContext:
+    """TLS context for the server from PEM certificate and key paths (TLS 1.2+). Raises
+    ConfigError naming the key for a key file others may read, files that cannot be loaded,
+    and a certificate expired or not yet valid at ``now_s`` (Unix time, s; default now):
+    started so, the daemon would be refused by every verified client, ``stop`` too."""
+    check_key_file(key)
     ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     ctx.minimum_version = ssl.TLSVersion.TLSv1_2
     try:
         ctx.load_cert_chain(cert, key)
     except (OSError, ssl.SSLError) as exc:
         raise ConfigError(f"server.tls_cert/tls_key: cannot load {cert}, {key}: {exc}") from None
+    dates = cert_dates(cert)
+    if dates is not None:
+        state, message = cert_verdict(dates, time.time() if now_s is None else now_s, cert)
+        if state in ("expired", "not_yet_valid"):
+            raise ConfigError(message)
     return ctx
 
 
@@ -482,6 +591,13 @@ class ControlServer(LineServer[_Client]):
         # compared as digests: constant time, and the time does not depend on the length
         self._token_digest = hashlib.sha256(token).digest() if token is not None else b""
         self._ssl = ssl_context
+        # the loaded certificate's dates (None: no TLS, or unreadable): ``status`` judges them
+        # at each request; the sweeper logs a change at most every ``cert_check_s`` (s)
+        self._cert_path = config.tls_cert if ssl_context is not None else ""
+        self._cert_dates = cert_dates(self._cert_path) if self._cert_path else None
+        self.cert_check_s = CERT_CHECK_S
+        self._cert_checked_s = -math.inf  # time.monotonic() of the latest check
+        self._cert_logged = ("ok", -math.inf)  # the state logged last, and when (monotonic s)
         self.requests_total = 0
         self.errors_total = 0
         self.auth_failed_total = 0
@@ -540,6 +656,66 @@ class ControlServer(LineServer[_Client]):
             self.port,
             " (TLS)" if self._ssl else "",
         )
+        self.check_cert()
+
+    def cert_status(self, now_s: float | None = None) -> dict[str, Any] | None:
+        """The ``tls`` object of ``status`` at ``now_s`` (Unix time, s; default now): the
+        certificate's path, dates, ``days_left``, ``state`` (:func:`cert_verdict`, or
+        ``unknown`` when the dates cannot be read) and ``warning`` (null when ``ok``). None
+        without TLS."""
+        if not self._cert_path:
+            return None
+        dates = self._cert_dates
+        if dates is None:
+            return {"cert": self._cert_path, "state": "unknown", "warning": None}
+        now_s = time.time() if now_s is None else now_s
+        state, message = cert_verdict(dates, now_s, self._cert_path)
+        return {
+            "cert": self._cert_path,
+            "not_before": utc_text(dates.not_before_s),
+            "not_after": utc_text(dates.not_after_s),
+            "days_left": round((dates.not_after_s - now_s) / DAY_S, 1),
+            "state": state,
+            "warning": message or None,
+        }
+
+    def check_cert(self, now_s: float | None = None) -> str:
+        """Judge the certificate's dates at ``now_s`` (Unix time, s; default now) and log a
+        state that is not ``ok`` when it changes, and once a day while it lasts (WARNING
+        when it expires soon or the clock is unset, ERROR once expired); return the state
+        (``none`` without TLS or dates). The sweeper calls it every ``cert_check_s``."""
+        self._cert_checked_s = time.monotonic()
+        st = self.cert_status(now_s)
+        if st is None or st["state"] == "unknown":
+            return "none"
+        state, message = st["state"], st["warning"]
+        before, t_logged = self._cert_logged
+        if state == "ok":
+            if before != "ok":
+                log.info("server.tls_cert: %s is valid until %s", st["cert"], st["not_after"])
+                self._cert_logged = ("ok", self._cert_checked_s)
+            return state
+        if state == before and self._cert_checked_s - t_logged < DAY_S:
+            return state
+        if state in ("expired", "not_yet_valid"):
+            log.error(
+                "%s (the daemon runs on: `x6wd client stop` falls back to an unverified stop)",
+                message,
+            )
+        else:
+            log.warning("%s", message)
+        self._cert_logged = (state, self._cert_checked_s)
+        return state
+
+    def sweep(self) -> int:
+        """The deadlines (:meth:`LineServer.sweep`), and every ``cert_check_s`` the
+        certificate's dates (:meth:`check_cert`, cheap: no file is read)."""
+        closed = super().sweep()
+        if self._cert_dates is not None and (
+            time.monotonic() - self._cert_checked_s >= self.cert_check_s
+        ):
+            self.check_cert()
+        return closed
 
     def publish(self, event: dict[str, Any]) -> None:
         """Queue an ``{"event": ..}`` line for every watching client (drop-oldest when full)."""
@@ -554,12 +730,17 @@ class ControlServer(LineServer[_Client]):
 
     def server_stats(self) -> dict[str, Any]:
         """The ``server`` object of the ``status`` reply: pools, closes by reason, failed
-        authentications, and stops (requested, sent to the backend, coalesced)."""
-        return {
+        authentications, stops (requested, sent to the backend, coalesced) and, with TLS,
+        the certificate's dates (``tls``, :meth:`cert_status`)."""
+        stats = {
             **self.pool_stats(),
             "auth_failed": self.auth_failed_total,
             "stops": dict(self.stops),
         }
+        tls = self.cert_status()
+        if tls is not None:
+            stats["tls"] = tls
+        return stats
 
     # -- pools ----------------------------------------------------------------------------
     def _is_watching(self, c: _Client) -> bool:
