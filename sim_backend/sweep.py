@@ -40,7 +40,10 @@ table and summary of :mod:`sim_backend.sweep_report`. Running the same sweep int
 directory again (after a crash, Ctrl-C or a change of the grid) skips every run whose file is
 there with the same seed and cell fingerprint (:func:`cell_digest`: the resolved scenario and
 the contents of the files it names): only the missing runs are simulated (a folder written
-before cell ids had 16 hex digits keeps its runs: :func:`migrate_legacy_runs`). A directory
+before cell ids had 16 hex digits keeps its runs: :func:`migrate_legacy_runs`). A run file of
+another results schema (:data:`RESULTS_SCHEMA`: an older x6wd's, without the figures this one
+writes) is not done: it is run again, said on stderr, its old file moved to ``older-runs/``
+(:func:`stale_reason`), so a summary never pools figures of two schemas. A directory
 that holds another sweep (another name or seed in its ``sweep.json``) is refused
 (:func:`check_out_dir`). A run whose
 mission raised is recorded with its error (kept on resume unless ``retry_failed``); a run the
@@ -65,21 +68,30 @@ import logging
 import math
 import os
 import socket
+import subprocess
 import tempfile
 import threading
 import time
 import tomllib
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, date, datetime
 from datetime import time as clock_time
+from functools import cache
 from pathlib import Path
 from typing import Any
 
 from sim_backend.executor import Executor, Outcome, describe_exception
 from sim_backend.mission import compass_setup, run_mission
 from sim_backend.runs import RunPlan, check_mission_geofence, sky_warnings
-from sim_backend.sweep_report import FIXED_COLUMNS, json_value
+from sim_backend.sweep_report import (
+    FIXED_COLUMNS,
+    OLDER_RUNS_DIR,
+    RESULT_FIELDS,
+    json_value,
+    record_schema,
+)
 from sim_backend.world import (
     DEFAULT_ALMANAC,
     World,
@@ -89,6 +101,7 @@ from sim_backend.world import (
     parse_start_utc,
     with_robot_config,
 )
+from x6wd import __version__
 from x6wd.core.config import check_drive_vs_stuck
 from x6wd.core.errors import ConfigError, X6wdError
 
@@ -99,6 +112,15 @@ PATH_KEYS = ("almanac", "gnss.lce_csv", "mission.file")
 """Scenario keys whose value is a file: given in [set] or [grid], a relative one is relative to
 the sweep file's folder (a path is relative to the file that names it, as in a scenario)."""
 SEED_BITS = 48  # run seeds are 0 .. 2**48 - 1 (a collision in 10,000 runs: ~2e-7)
+
+RESULTS_SCHEMA = 2
+"""The run records' schema (``"schema"`` in each ``runs/RUN_ID.json`` and in ``sweep.json``):
+bump it whenever :func:`run_task` writes other figures, so that a folder's records of an older
+x6wd are run again rather than tabled beside new ones (:func:`stale_reason`). 1: before
+2026-12-04 (97e4486), no receiver figures; 2: with ``gps_*``, ``filtered_rms_m``,
+``fix_fraction``, ``hold_time_s`` (written with the number since 2026-12-06)."""
+SCHEMA_LACKS = {1: "without gps_* figures"}
+"""What a record of an older schema lacks, in words (the message that runs it again)."""
 
 
 # ---------------------------------------------------------------------------- the file
@@ -603,6 +625,28 @@ class _RobotLogKeptQuiet:
 ROBOT_LOG_KEPT_QUIET = _RobotLogKeptQuiet()
 
 
+@cache
+def x6wd_version() -> str:
+    """The x6wd that simulates here, for the records: its version, and in a git checkout its
+    commit ("0.1.0+g1c73122a9f0e"; uncommitted changes not shown). Worked out once per
+    process (a worker's own: on a cluster, the workers' x6wd is the simulator)."""
+    root = Path(__file__).resolve().parent.parent
+    if not (root / ".git").exists():  # an installed x6wd: its version says it
+        return __version__
+    try:
+        done = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return __version__
+    commit = done.stdout.strip()
+    return f"{__version__}+g{commit}" if done.returncode == 0 and commit else __version__
+
+
 def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
     """One mission (on a worker): the scenario TOML with ``seed``, its summary only (no
     files: a sweep keeps the figures). Never raises for a failed mission: the record's
@@ -613,6 +657,7 @@ def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
         "status": "ok",
         "error": None,
         "worker": f"{socket.gethostname()}:{os.getpid()}",
+        "x6wd_version": x6wd_version(),  # the worker's, which ran the mission
     }
     try:
         world = loads_world(world_toml, source=run_id)
@@ -700,6 +745,24 @@ def _json_safe(v: Any) -> Any:
     return json_value(v)
 
 
+def stale_reason(record: dict[str, Any]) -> str | None:
+    """Why a stored record is not a result of this x6wd and is run again (None: it is): it is
+    of another results schema (:data:`RESULTS_SCHEMA`), or a success lacking one of the
+    figures this x6wd writes (:data:`RESULT_FIELDS`). Said in words for the message: "from
+    an older x6wd (schema 1, without gps_* figures)". Another x6wd version of the same
+    schema is no reason: its figures are the same ones (the summary counts the versions)."""
+    schema = record_schema(record)
+    if schema < RESULTS_SCHEMA:
+        lacks = SCHEMA_LACKS.get(schema)
+        return f"from an older x6wd (schema {schema}{', ' + lacks if lacks else ''})"
+    if schema > RESULTS_SCHEMA:
+        return f"from a newer x6wd (schema {schema}; this one writes {RESULTS_SCHEMA})"
+    missing = [k for k in RESULT_FIELDS if k not in record]
+    if record.get("status") == "ok" and missing:
+        return f"lacking figures this x6wd writes ({', '.join(missing)})"
+    return None
+
+
 def same_run(record: dict[str, Any] | None, run: Run) -> bool:
     """Whether a stored record is of ``run``: the same seed and cell fingerprint."""
     return (
@@ -710,10 +773,11 @@ def same_run(record: dict[str, Any] | None, run: Run) -> bool:
 
 
 def is_done(record: dict[str, Any] | None, run: Run, retry_failed: bool = False) -> bool:
-    """Whether a stored record stands for ``run`` (same seed and configuration) and needs no
-    new attempt: a success, or a mission that raised (unless ``retry_failed``); a run the
-    cluster lost is always tried again."""
-    if record is None or not same_run(record, run):
+    """Whether a stored record stands for ``run`` (same seed and configuration), is a result
+    of this x6wd's schema (:func:`stale_reason`) and needs no new attempt: a success, or a
+    mission that raised (unless ``retry_failed``); a run the cluster lost is always tried
+    again."""
+    if record is None or not same_run(record, run) or stale_reason(record) is not None:
         return False
     status = record.get("status")
     return status == "ok" or (status == "error" and not retry_failed)
@@ -738,6 +802,9 @@ class SweepResult:
     wall_s: float
     executor: str
     raised: int = 0
+    older: dict[str, int] = field(default_factory=dict)
+    """Runs whose record was of another schema and that this call ran again, by the reason
+    (:func:`stale_reason`)."""
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -773,6 +840,7 @@ def _record(run: Run, result: dict[str, Any] | None, outcome: Outcome | None) ->
         "replicate": run.replicate,
         "seed": run.seed,
         "digest": run.cell.digest,
+        "schema": RESULTS_SCHEMA,  # the figures below (:func:`stale_reason`)
     }
     if result is not None:
         rec.update({k: v for k, v in result.items() if k != "run_id"})
@@ -805,6 +873,8 @@ def write_plan(spec: SweepSpec, runs: Sequence[Run], out_dir: Path) -> None:
             write_atomic(path, text)
     plan_data = {
         "name": spec.name,
+        "schema": RESULTS_SCHEMA,
+        "x6wd_version": x6wd_version(),
         "source": str(spec.source) if spec.source else None,
         "seed": spec.seed,
         "seeds": spec.seeds,
@@ -897,6 +967,41 @@ def _legacy_record(run: Run, store: RunStore) -> dict[str, Any] | None:
     return rec if same_run(rec, run) else None
 
 
+def older_records(
+    runs: Sequence[Run], store: RunStore, retry_failed: bool = False
+) -> dict[str, str]:
+    """The runs (by run id) whose stored record is theirs (:func:`same_run`) and would be done
+    but for its schema (:func:`stale_reason`), with the reason: they are run again, and their
+    files are moved to :data:`OLDER_RUNS_DIR` when the new one is written. A lost run is run
+    again anyway and not listed."""
+    found: dict[str, str] = {}
+    for run in runs:
+        rec = store.load(run.run_id)
+        if rec is None:
+            rec = _legacy_record(run, store)
+        if rec is None or not same_run(rec, run) or rec.get("status") == "lost":
+            continue
+        if rec.get("status") == "error" and retry_failed:
+            continue  # run again whatever its schema
+        why = stale_reason(rec)
+        if why is not None:
+            found[run.run_id] = why
+    return found
+
+
+def older_text(older: dict[str, int], folder: Path) -> str:
+    """The stderr line about the runs :func:`older_records` found, by reason ("" without)."""
+    if not older:
+        return ""
+    parts = [f"{n} run{'' if n == 1 else 's'} {why}" for why, n in older.items()]
+    n = sum(older.values())
+    return (
+        f"sweep: {'; '.join(parts)} {'is' if n == 1 else 'are'} run again (a summary tables"
+        f" one schema's figures only); the old record{'' if n == 1 else 's'}"
+        f" {'goes' if n == 1 else 'go'} to {folder}"
+    )
+
+
 def split_done(
     runs: Sequence[Run], store: RunStore, retry_failed: bool = False
 ) -> tuple[dict[str, dict[str, Any]], list[Run]]:
@@ -975,6 +1080,11 @@ def run_sweep(
     write_plan(spec, runs, out)
     store = RunStore(out)
     migrate_legacy_runs(runs, store)
+    stale = older_records(runs, store, retry_failed)
+    older = dict(Counter(stale.values()))
+    older_dir = out / OLDER_RUNS_DIR
+    if older:  # the command says it (no logging configured: Python's stderr fallback)
+        log.warning("%s", older_text(older, older_dir))
     records, todo = split_done(runs, store, retry_failed)
     skipped = len(records)
 
@@ -991,6 +1101,10 @@ def run_sweep(
     for outcome in executor.map_unordered(run_task, args, names=names, waiting=waiting):
         run = todo[outcome.index]
         rec = _record(run, outcome.value if outcome.ok else None, outcome)
+        if run.run_id in stale:  # kept for a comparison, out of runs/ and every table
+            older_dir.mkdir(exist_ok=True)
+            with contextlib.suppress(FileNotFoundError):
+                os.replace(store.path(run.run_id), older_dir / f"{run.run_id}.json")
         store.write(rec)
         records[run.run_id] = rec
         ran += rec.get("status") != "lost"
@@ -1005,4 +1119,5 @@ def run_sweep(
         wall_s=time.perf_counter() - t0,
         executor=executor.description,
         raised=raised,
+        older=older,
     )

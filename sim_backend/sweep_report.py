@@ -17,7 +17,8 @@ Written into the sweep's output directory from the run records (``runs/*.json``)
 - ``summary.md`` — the sweep, the executor and its throughput, a table per cell, the failed
   runs with their errors and the runs the cluster lost; the folder's finished runs that this
   sweep does not plan (a quick look with ``--seeds 1`` at a finished sweep) are counted there,
-  not tabled.
+  not tabled. It names the x6wd version(s) the runs come from, and each median over only some
+  of a cell's runs says so ("1.61 m (1 of 2 runs)").
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import csv
 import io
 import json
 import math
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import date, time
@@ -61,8 +63,32 @@ RUN_COLUMNS = (
     "hold_time_s",
     "position_source",
     "worker",
+    "x6wd_version",
+    "schema",
 )
 ARRIVAL_COLUMNS = ("index", "t_s", "true_error_m", "gps_error_m", "gps_slow_error_m")
+RESULT_FIELDS = (
+    "completed",
+    "waypoints_reached",
+    "waypoint_count",
+    "path_length_m",
+    "straight_length_m",
+    "sim_time_s",
+    "wall_time_s",
+    "arrivals",
+    "position_source",
+    "gps_cep50_m",
+    "gps_r95_m",
+    "gps_rms_m",
+    "filtered_rms_m",
+    "fix_fraction",
+    "hold_time_s",
+)
+"""The figures a successful run's record of :data:`sim_backend.sweep.RESULTS_SCHEMA` has (a
+value may be null: no fix, no figure; the key is there)."""
+OLDER_RUNS_DIR = "older-runs"
+"""In a sweep's folder: the run records of another results schema that a rerun replaced
+(:func:`sim_backend.sweep.stale_reason`), kept for a comparison and in no table."""
 FIXED_COLUMNS = frozenset(RUN_COLUMNS) | frozenset(ARRIVAL_COLUMNS)
 """The tables' own columns: no parameter ([set] or [grid] key) may have one of these names
 (:func:`sim_backend.sweep.load_sweep` refuses it; :func:`param_keys` raises)."""
@@ -72,6 +98,17 @@ def _num(v: Any) -> float:
     if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
         return float(v)
     return math.nan
+
+
+def record_schema(record: dict[str, Any]) -> int:
+    """A record's results schema: its ``"schema"``; a record without one (written before
+    2026-12-06) is of schema 2 when it has every :data:`RESULT_FIELDS` (the figures came on
+    2026-12-04) and a success, else of schema 1."""
+    schema = record.get("schema")
+    if isinstance(schema, int) and not isinstance(schema, bool):
+        return schema
+    has_all = all(k in record for k in RESULT_FIELDS)
+    return 2 if record.get("status") == "ok" and has_all else 1
 
 
 def path_ratio(rec: dict[str, Any]) -> float:
@@ -204,6 +241,7 @@ class CellStats:
     failed: int = 0
     lost: int = 0
     completed: int = 0
+    arrival_runs: int = 0  # runs with an arrival error
     arrival_true_m: list[float] = field(default_factory=list)
     arrival_gps_m: list[float] = field(default_factory=list)
     path_ratios: list[float] = field(default_factory=list)
@@ -259,12 +297,14 @@ def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
         c.ok += 1
         c.wall_times_s.append(_num(r.get("wall_time_s")))
         c.gps_cep50_m.append(_num(r.get("gps_cep50_m")))
+        before = len(c.arrival_true_m)
         for a in r.get("arrivals") or []:
             t, g = _num(a.get("true_error_m")), _num(a.get("gps_slow_error_m"))
             if math.isfinite(t):
                 c.arrival_true_m.append(t)
             if math.isfinite(g):
                 c.arrival_gps_m.append(g)
+        c.arrival_runs += len(c.arrival_true_m) > before
         if r.get("completed"):
             c.completed += 1
             c.path_ratios.append(path_ratio(r))
@@ -366,6 +406,46 @@ def _f(v: float, fmt: str = ".2f") -> str:
     return format(v, fmt) if math.isfinite(v) else "-"
 
 
+def _of(n: int, c: CellStats) -> str:
+    """ " (n of m runs)" after a median over ``n`` of a cell's ``m`` runs, when that is some but
+    not all of them ("" otherwise: over all, or "-" for none)."""
+    return f" ({n} of {c.runs} runs)" if 0 < n < c.runs else ""
+
+
+def _finite(values: Sequence[float]) -> int:
+    return sum(math.isfinite(v) for v in values)
+
+
+def _version_lines(records: Sequence[dict[str, Any]]) -> list[str]:
+    """The summary's line about the x6wd (version, results schema) the runs come from: a
+    resumed folder may hold runs of several versions of one schema (a schema's figures are
+    the same ones; another schema's records are run again, never tabled here)."""
+    done = [r for r in records if r.get("status") in ("ok", "error")]
+    if not done:
+        return []
+    unknown = "an x6wd that did not record its version (before 2026-12-06)"
+    versions = Counter(str(r.get("x6wd_version") or unknown) for r in done)
+    schemas = sorted({str(record_schema(r)) for r in done})
+    schema = f"results schema {', '.join(schemas)}"
+    if len(versions) == 1:
+        return [f"- x6wd: every run by {next(iter(versions))} ({schema})"]
+    listed = ", ".join(f"{v} ({n} run{'' if n == 1 else 's'})" for v, n in versions.items())
+    return [
+        f"- **runs from {len(versions)} x6wd versions** ({schema}): {listed}; a cell's figures"
+        " may mix them (a new --out runs every run with one)"
+    ]
+
+
+def _older_lines(n: int) -> list[str]:
+    """The summary's line about the records in ``older-runs/`` (none without any)."""
+    if not n:
+        return []
+    return [
+        f"- `{OLDER_RUNS_DIR}/`: {n} record{'' if n == 1 else 's'} of another results schema"
+        f" that {'its rerun' if n == 1 else 'their reruns'} replaced, in no table"
+    ]
+
+
 FIGURES = {  # file -> its caption in the summary
     "completion.png": "completion",
     "arrival_cdf.png": "arrival error CDF",
@@ -426,14 +506,17 @@ def markdown(
         f" found done; {sum(c.failed for c in cells)} failed" + lost_text,
         f"- executor: {i['executor']}; {_f(i['wall_s'], '.1f')} s wall,"
         f" {_f(i['missions_per_min'], '.1f')} missions/min{raised_text}",
+        *_version_lines(records),
         *_outside_lines(i.get("outside") or {}),
+        *_older_lines(int(i.get("older_files") or 0)),
         "",
         "Arrival errors are true horizontal distances (m) from the antenna to the waypoint when"
         " the arrival was decided; *GPS slow* is the GPS's own slow error at those moments"
         " (what no navigation can see); *GPS CEP50* is the median over a cell's runs of each"
         " run's raw-fix horizontal CEP50 against the truth (also results.csv's gps_* columns,"
         " the figures of a survey's sweep); the path ratio is the true path over the straight"
-        " polyline, over completed runs.",
+        " polyline, over completed runs. A median over only some of a cell's runs says over how"
+        " many: *(1 of 2 runs)*.",
         "",
         "*Completed* is a share of the missions that ran (*failed* runs, whose mission raised,"
         " and *lost* runs, which the cluster could not finish, are no missions of the robot:"
@@ -449,10 +532,13 @@ def markdown(
         lines.append(
             f"| `{c.cell_id}` {c.label} | {c.runs} | {c.completion_text} | {c.failed} | {c.lost}"
             f" | {_f(_median(c.arrival_true_m))} /"
-            f" {_f(_pct(c.arrival_true_m, 95))} m | {_f(_median(c.arrival_gps_m))} m"
-            f" | {_f(_median(c.gps_cep50_m))} m"
+            f" {_f(_pct(c.arrival_true_m, 95))} m{_of(c.arrival_runs, c)}"
+            f" | {_f(_median(c.arrival_gps_m))} m{_of(c.arrival_runs, c)}"
+            f" | {_f(_median(c.gps_cep50_m))} m{_of(_finite(c.gps_cep50_m), c)}"
             f" | {_f(_median(ratios), '.3f')} ({_f(max(ratios) if ratios else math.nan, '.3f')})"
-            f" | {_f(_median(c.sim_times_s), '.1f')} s | {_f(_median(c.wall_times_s))} s |"
+            f"{_of(len(ratios), c)}"
+            f" | {_f(_median(c.sim_times_s), '.1f')} s{_of(_finite(c.sim_times_s), c)}"
+            f" | {_f(_median(c.wall_times_s))} s{_of(_finite(c.wall_times_s), c)} |"
         )
     lines.append("")
     for name in figures:
@@ -497,7 +583,8 @@ def write_report(
     """Write the table(s), figures and ``summary.md``; returns the file names written.
     ``result_info``: name, source, seed, seeds, scenarios, set, grid, ran, skipped, executor,
     wall_s, missions_per_min, (optional) raised: this call's runs that raised, not in
-    missions_per_min, and (optional) outside: the folder's finished runs this sweep
+    missions_per_min, (optional) older_files: the records in ``older-runs/`` (counted here
+    when not given), and (optional) outside: the folder's finished runs this sweep
     does not plan (count, more_seeds, seeds), said in the summary."""
     out = Path(out_dir)
     rows = run_rows(records)
@@ -530,6 +617,10 @@ def write_report(
     for stale in set(FIGURES) - set(drawn):  # an earlier call's, of other runs
         (out / stale).unlink(missing_ok=True)
     written += drawn
+    if "older_files" not in result_info:
+        older = out / OLDER_RUNS_DIR
+        n_older = len(list(older.glob("*.json"))) if older.is_dir() else 0
+        result_info = {**result_info, "older_files": n_older}
     text = markdown(result_info, cells, records, drawn)
     (out / "summary.md").write_text(text, encoding="utf-8")
     written.append("summary.md")
