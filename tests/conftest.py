@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import subprocess
 from collections.abc import Iterator
@@ -101,6 +102,14 @@ def dense_baseline_cov(model: Any, t_s: Any, axis: int) -> Any:
     k = model.sigma_m.shape[1]
     cov = sum(model.sigma_m[axis, i] ** 2 * np.exp(-lag / model.tau_s[axis, i]) for i in range(k))
     return cov + model.white_m[axis] ** 2 * np.eye(t_s.size)
+
+
+# Under nohup (SIGHUP ignored, as some CI agents start jobs) every x6wd the tests spawn would
+# inherit SIG_IGN and log "SIGHUP ignored (nohup)" to stderr, breaking the one-line error
+# checks. A do-nothing handler keeps this process alive on a hangup and, unlike SIG_IGN, is
+# reset to the default in every child at exec.
+if signal.getsignal(signal.SIGHUP) == signal.SIG_IGN:
+    signal.signal(signal.SIGHUP, lambda _signum, _frame: None)
 
 
 @pytest.fixture

@@ -192,6 +192,9 @@ class PluggedBoard:
             for fd in self.fds:
                 os.close(fd)
             self.fds = None
+        # as udev does: the adapter's name goes with it (else the freed /dev/pts/N, reused
+        # by any other process's pty, would be "the board" again)
+        self.link.unlink(missing_ok=True)
 
 
 @pytest.fixture

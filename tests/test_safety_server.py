@@ -388,7 +388,9 @@ class SlowStopBackend(RecordingBackend):
         return done()
 
 
-def test_each_stop_after_a_motion_command_is_sent_even_with_one_in_flight(servers) -> None:
+def test_each_stop_after_a_motion_command_is_sent_even_with_one_in_flight(
+    servers, lt: LoopThread
+) -> None:
     backend = SlowStopBackend(0.3)
     srv = servers(backend, token=None)
     a, b = Raw(srv.port), Raw(srv.port)
@@ -396,7 +398,9 @@ def test_each_stop_after_a_motion_command_is_sent_even_with_one_in_flight(server
     try:
         assert b.ask({"id": 1, **drive})["ok"]
         a.send(line({"id": 1, "cmd": "stop"}))
-        wait_until(lambda: len(backend.calls) == 2)
+        # read on the loop: the stop's call and its fence (set in the same turn, after the
+        # call) are both done; drive #2 then comes after the stop
+        wait_until(lambda: lt.call(lambda: len(backend.calls)) == 2)
         assert b.ask({"id": 2, **drive})["ok"]  # overtakes the stop in flight
         assert b.ask({"id": 3, "cmd": "stop"})["ok"]
         assert [n for n, _ in backend.calls] == ["drive", "stop", "drive", "stop"]
