@@ -44,10 +44,17 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from aiohttp import WSMsgType, web
+from aiohttp import WSCloseCode, WSMsgType, web
 
 from x6wd import __version__
-from x6wd.app.lineserver import reset, silent, unanswered, whole_request_queued
+from x6wd.app.lineserver import (
+    close_promptly,
+    reset,
+    silent,
+    unanswered,
+    whole_request_queued,
+    write_buffer_size,
+)
 from x6wd.app.logview import LogView, html_page, render_html
 from x6wd.app.server import (
     SUPERSEDED_COMMANDS,
@@ -151,18 +158,75 @@ its objects take a few hundred bytes however short it is, so empty messages sent
 back-off could otherwise queue without end (an outside check: 2 MB/s of daemon memory)."""
 
 
+PRE_AUTH_MESSAGE_BYTES = 4096
+"""The largest message (bytes) a page may send before its ``auth`` succeeds: then only
+``hello``, ``auth`` and ``stop`` are taken, each well under this, and a larger one closes
+the page (1009) before it is parsed. An outside audit: 8 unauthenticated pages sending
+200 KB messages raised the control port's stop round trip from 2 ms to 83-461 ms, each
+message parsed before the throttle refused it. After ``auth``: ``max_message_bytes``."""
+REFUSE_CLOSE_S = 1.0
+"""How long (s) a page closed for a large message before ``auth`` gets to answer the close."""
+
+
 def _message_cost(line: bytes) -> int:
     return len(line) + MESSAGE_COST_B
 
 
 CONNECTION_SLACK = 16
 """HTTP connections allowed beyond ``max_clients`` pages (a browser opens up to 6 per host
-for a page's files). Past them the oldest that is not a page's WebSocket is closed: idle
-connections cannot take the process's file descriptors, and with them the control port
-where the operator's stop arrives."""
+for a page's files). Past them one that is not a page's WebSocket is closed
+(:func:`_eviction_choice`: half-sent requests first): idle connections cannot take the
+process's file descriptors, and with them the control port where the operator's stop
+arrives."""
 
 HANDSHAKE_TIMEOUT_S = 10.0
 """With TLS: a connection whose handshake has not finished within this (s) is closed."""
+
+
+def _http_stage(handler: Any) -> int:
+    """How far an aiohttp connection has got, for the cap (:func:`_eviction_choice`): 0 no
+    whole request head received yet (silent, or headers half sent), 1 between requests
+    (kept alive), 2 a request being handled or answered (its response being written, or
+    a whole request waiting). aiohttp keeps these in its handler's private fields: when
+    one is missing (another aiohttp), every connection is 1, which is oldest first."""
+    if getattr(handler, "_request_in_progress", False) or getattr(handler, "_messages", None):
+        return 2
+    transport = getattr(handler, "transport", None)
+    if transport is not None and write_buffer_size(transport) > 0:
+        return 2  # a response written, not handed to the kernel yet
+    return 0 if getattr(handler, "_request_count", None) == 0 else 1
+
+
+def _peer_host(transport: asyncio.BaseTransport) -> str:
+    peer = transport.get_extra_info("peername")
+    return str(peer[0]) if isinstance(peer, tuple) and peer else "?"
+
+
+def _eviction_choice(
+    handlers: list[Any], opening: Any, pages: set[Any]
+) -> asyncio.Transport | None:
+    """The connection the cap closes (None: none but ``opening``, the one being opened now,
+    is open and not a page's WebSocket): the first by stage (:func:`_http_stage`: half-sent
+    requests before idle kept-alive connections before those answering a request, so a
+    churn of half-open connections never cuts a page's files mid-transfer, the audit's
+    ContentLengthError), then from the peer address that holds the most connections, then
+    the oldest. ``handlers``: aiohttp's, oldest first."""
+    open_ = [
+        (i, h, h.transport)
+        for i, h in enumerate(handlers)
+        if h.transport is not None and not h.transport.is_closing()
+    ]
+    held = collections.Counter(_peer_host(t) for _, _, t in open_)
+    best: tuple[int, int, int] | None = None
+    choice = None
+    for i, h, t in open_:
+        if h is opening or t in pages:
+            continue
+        key = (_http_stage(h), -held[_peer_host(t)], i)
+        if best is None or key < best:
+            best, choice = key, t
+    return choice
+
 
 RECORDINGS_TIMEOUT_S = 5.0
 """``recording.list`` (and the look-up of ``recording.view``'s name) waits at most this (s)
@@ -453,12 +517,13 @@ class ConsoleServer:
                 reset(old.transport)
 
     def _cap_connections(self, server: Any) -> None:
-        """Close the oldest connection that is not a page's WebSocket whenever more than
-        ``max_clients`` + :data:`CONNECTION_SLACK` are open (checked as each one opens).
-        The one opening now is closed only when no older one can be, and not at once: this
-        runs before aiohttp has started its handler, and a connection closed before that
-        fails the handler's task ("Task exception was never retrieved ... assert manager is
-        not None", a traceback per close in a connect storm)."""
+        """Close one connection that is not a page's WebSocket whenever more than
+        ``max_clients`` + :data:`CONNECTION_SLACK` are open (checked as each one opens),
+        chosen by :func:`_eviction_choice`. The one opening now is closed only when no older
+        one can be, and not at once: this runs before aiohttp has started its handler, and a
+        connection closed before that fails the handler's task ("Task exception was never
+        retrieved ... assert manager is not None", a traceback per close in a connect
+        storm)."""
         made = server.connection_made
         cap = self.config.max_clients + CONNECTION_SLACK
 
@@ -468,26 +533,26 @@ class ConsoleServer:
             if len(conns) <= cap:
                 return
             pages = {page.transport for page in self._pages}
-            for h in conns:  # a closing one stays listed a while
-                old = h.transport
-                if (
-                    h is not handler
-                    and old is not None
-                    and old not in pages
-                    and not old.is_closing()
-                ):
-                    self._cap_close(old, len(conns))
-                    return
+            old = _eviction_choice(conns, handler, pages)
+            if old is not None:
+                self._cap_close(old, len(conns), False)
+                return
             # every other one is a page or closing already: this one goes, once its handler
             # has started (its start is scheduled after this returns; the close, scheduled
             # now, then ends it as any connection the peer closes)
-            asyncio.get_running_loop().call_soon(self._cap_close, transport, len(conns))
+            asyncio.get_running_loop().call_soon(self._cap_close, transport, len(conns), True)
 
         server.connection_made = connection_made
 
-    def _cap_close(self, transport: asyncio.Transport, open_now: int) -> None:
+    def _cap_close(self, transport: asyncio.Transport, open_now: int, opening: bool) -> None:
         """Close a connection to stay within the cap: counted (``connections_closed``) and
-        logged at most once per second."""
+        logged at most once per second. An older one is reset: closed at once, whatever it
+        had not been sent dropped (a page's, only when every connection is answering a
+        request). The one being opened is closed promptly (:func:`close_promptly`; it has
+        been sent nothing). A plain TLS close waited up to 30 s for the peer's close_notify,
+        which a churn of half-open connections never sends: the console's closing
+        connections, still counted, grew to ~400 (the audit's churn) and every new one,
+        the page's too, was closed on its arrival."""
         if transport.is_closing():
             return
         self.connections_closed += 1
@@ -495,12 +560,15 @@ class ConsoleServer:
         self._rlog.log(
             "console: connection cap closes",
             logging.WARNING,
-            "console: closing %s: %d connections open (console.max_clients + %d); the oldest "
-            "that is not a page goes (connections_closed %d)",
+            "console: closing %s: %d connections open (console.max_clients + %d); one that has "
+            "not sent a whole request goes first (connections_closed %d)",
             f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "?",
             open_now, CONNECTION_SLACK, self.connections_closed,
         )  # fmt: skip
-        transport.close()
+        if opening:
+            close_promptly(transport)
+        else:
+            reset(transport)
 
     def _slow_page(self, page: _Page, why: str) -> None:
         """A page closed for not reading: counted (``slow_pages``) and logged at most once
@@ -708,6 +776,7 @@ class ConsoleServer:
             "deadman_s": self.config.deadman_s,
             "tls": self._ssl is not None,
             "max_message_bytes": self.config.max_message_bytes,  # larger ones close the link
+            "max_message_bytes_before_auth": PRE_AUTH_MESSAGE_BYTES,  # likewise, until auth
         }
 
     async def _read_loop(self, page: _Page) -> None:
@@ -735,9 +804,10 @@ class ConsoleServer:
 
     async def _receive(self, page: _Page, inbox: asyncio.Queue[bytes | None]) -> None:
         """Every message of the page into ``inbox`` (None: the page closed), at most
-        ``max_message_bytes`` held. One that arrives while an earlier request is handled or
-        sleeps out its back-off (seconds after a wrong token) is a ``stop`` sent to the
-        motors now; its reply still comes in turn."""
+        ``max_message_bytes`` held; before ``auth`` succeeded one over
+        :data:`PRE_AUTH_MESSAGE_BYTES` closes the page (:meth:`_refuse_large`). One that
+        arrives while an earlier request is handled or sleeps out its back-off (seconds after
+        a wrong token) is a ``stop`` sent to the motors now; its reply still comes in turn."""
         try:
             async for msg in page.ws:
                 if msg.type == WSMsgType.BINARY:
@@ -746,6 +816,9 @@ class ConsoleServer:
                     line = str(msg.data).encode("utf-8", "surrogatepass")
                 else:
                     break  # an error or a close
+                if len(line) > PRE_AUTH_MESSAGE_BYTES and not page.client.authenticated:
+                    await self._refuse_large(page, len(line))
+                    break
                 self.control.receive(page.client, line, early=page.busy or not inbox.empty())
                 page.held += _message_cost(line)
                 page.queued += 1
@@ -755,6 +828,25 @@ class ConsoleServer:
                     await page.room.wait()
         finally:
             inbox.put_nowait(None)
+
+    async def _refuse_large(self, page: _Page, size_b: int) -> None:
+        """Close a page that sent a message over :data:`PRE_AUTH_MESSAGE_BYTES` before its
+        ``auth`` succeeded: 1009 (message too big) and why, logged at most once per second.
+        The close waits at most :data:`REFUSE_CLOSE_S` for the peer's close frame (a page
+        that floods does not read), then drops the connection."""
+        self._rlog.log(
+            "console: large before auth",
+            logging.WARNING,
+            "console: closing %s: a message of %d bytes before auth (at most %d until the "
+            "token is accepted)",
+            page.peer, size_b, PRE_AUTH_MESSAGE_BYTES,
+        )  # fmt: skip
+        why = f"message too big before auth: at most {PRE_AUTH_MESSAGE_BYTES} bytes until then"
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(
+                page.ws.close(code=WSCloseCode.MESSAGE_TOO_BIG, message=why.encode()),
+                REFUSE_CLOSE_S,
+            )
 
     async def _handle(self, page: _Page, line: bytes) -> bool:
         """One request: its reply, then its back-off; False: the page is to be closed."""
