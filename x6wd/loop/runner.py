@@ -10,9 +10,11 @@ Every edge drives this same object (docs/architecture.md, "The loop and its edge
 - fast time (``x6wd sim``): the simulator calls the same methods with its own clock.
 
 So every safety rule lives either in the sans-IO controller or here, and a fast-time run
-exercises all of them: the geofence (waypoints checked when a mission is loaded, the position
-checked at every valid fix while a mission runs, and the controller's estimate a few times a
-second while it runs without a fresh one; a breach gets ``failsafe.geofence_action``),
+exercises all of them: the geofence (waypoints checked when a mission is loaded; while a
+mission runs, every usable fix the EKF takes unless its HDOP says it is meaningless, three
+meaningful fixes in a row whether the EKF takes them or not, and the controller's estimate
+after every usable fix and a few times a second without a fresh one; a breach gets
+``failsafe.geofence_action``),
 the manual-drive limit, the hold on a sensor its reader reports down, the stop that reaches
 the motors first.
 
@@ -64,12 +66,28 @@ ESTIMATE_FENCE_PERIOD_S = 0.25
 at most this often (s): the robot drives on its wheels through an outage (up to
 ``safety.gps_outage_max_m``) and must not leave the fence unseen until the next fix."""
 
+FENCE_FIXES_IN_ROW = 3
+"""Usable fixes in a row outside the geofence that are a breach whatever the EKF and the
+estimate say (each within ``safety.fix_stale_s`` of the one before: at 1 Hz the third comes
+2 s after the first). Catches a robot really outside whose estimate refuses to follow."""
+FENCE_MEANINGLESS_HDOP = 20.0
+"""A fix with an HDOP from this on says nothing about where the robot is: a receiver reports
+99.99 for a solution without usable geometry (an outside audit: three such fixes in a row,
+1-3.5 km off in a street canyon, paused a robot 68 m from its start). It is no breach by
+itself and does not count in ``FENCE_FIXES_IN_ROW``; the estimate after it is checked."""
+
 Clock = Callable[[], float]
 """Seconds on one monotonic clock: ``time.monotonic`` on the robot, simulated time in fast time."""
 
 
 def _nothing(*_args: Any) -> None:
     return None
+
+
+def _meaningless(fix: GpsFix) -> bool:
+    """The fix's own HDOP says its position means nothing (see ``FENCE_MEANINGLESS_HDOP``);
+    no HDOP given is not taken for a bad one."""
+    return fix.hdop is not None and fix.hdop >= FENCE_MEANINGLESS_HDOP
 
 
 def _metres_beyond(d_m: float, limit_m: float, least: int = 0) -> str:
@@ -142,6 +160,8 @@ class Runner:
         self._last_pos_t: float | None = None  # its time (s)
         self._fix_usable = False  # the latest fix record had a usable position
         self._t_fence_est = -math.inf  # the latest geofence check of the estimate (s)
+        self._fence_run = 0  # usable fixes in a row outside the geofence
+        self._fence_run_t: float | None = None  # the latest of them (s)
         self._last_motor_rec: tuple[float, float] | None = None
         self._t_pub = -math.inf
         self._t_rec = -math.inf
@@ -164,6 +184,7 @@ class Runner:
             self.stats["fixes"] += 1
             self._record("record_fix", rec)
             self._fix_usable = has_usable_position(rec)
+            refused_before = self._ekf_refused()  # None: the source takes every fix
             if self._fix_usable:
                 assert rec.lat_deg is not None and rec.lon_deg is not None
                 self._last_pos = (rec.lat_deg, rec.lon_deg)
@@ -172,12 +193,26 @@ class Runner:
                     self.first_fix = self._last_pos
                 if self._wmm_pending and rec.utc is not None:
                     self._set_wmm_declination(rec)
-                self._check_position(rec)  # before the fix can steer: a breach stops first
+                fence = self._fence_before_fix(rec)
+                if fence is not None:  # before the fix can steer: a breach stops first
+                    self._breach(*fence, rec.t_s)
             else:
                 self._check_estimate(rec.t_s)
             outputs = self.controller.on_fix(rec)
             self._t_stepped = rec.t_s
-            self._handle(outputs, True)
+            fence = None
+            if self._fix_usable:
+                refused_after = self._ekf_refused()
+                taken = None  # the source takes every fix: judged before the step
+                if refused_before is not None and refused_after is not None:
+                    taken = refused_after == refused_before
+                fence = self._fence_after_fix(rec, taken)
+            if fence is None:
+                self._handle(outputs, True)
+                return
+            # the breach's stop replaces this step's drive: the motors never get it
+            self._handle([o for o in outputs if type(o) is not MotorCommand], True)
+            self._breach(*fence, rec.t_s)
         elif isinstance(rec, GpsSky):
             self._record("record_sky", rec)
             self._handle(self.controller.on_sky(rec), False)
@@ -414,12 +449,71 @@ class Runner:
             + ", or ".join(ways),
         )
 
-    def _check_position(self, fix: GpsFix) -> None:
-        """A running mission outside the geofence gets ``failsafe.geofence_action``: the
-        motors stop first, then the mission pauses or returns to launch (the operator may
-        also drive back by hand: manual drive is bounded by its own dead-man)."""
+    def _outside_m(self, lat_deg: float, lon_deg: float) -> float | None:
+        """How far (m) from the geofence centre a position outside the fence lies; None
+        inside it or without a centre. Fails closed: NaN is outside."""
+        centre = self.geofence_centre()
+        if centre is None:
+            return None
+        d = great_circle_m(centre[0], centre[1], lat_deg, lon_deg)
+        return None if d <= self.safety.geofence_radius_m else d
+
+    def _fence_armed(self) -> bool:
+        """A breach is acted on: a mission runs, and it is not a return to launch (which
+        leads back inside: let it)."""
+        ctl = self.controller
+        return ctl.mode == Mode.RUNNING and not ctl.returning
+
+    def _ekf_refused(self) -> int | None:
+        """The EKF's count of fixes it refused so far; None when the position source takes
+        every fix (raw, Constellation, the EKF before its first fix)."""
+        n = self.controller.telemetry.extra.get("ekf_gps_rejected")
+        return n if isinstance(n, int) else None
+
+    def _fence_before_fix(self, fix: GpsFix) -> tuple[str, float, str] | None:
+        """Count the run of fixes outside the fence (``fix`` among them); the
+        ``FENCE_FIXES_IN_ROW``-th is a breach before the fix can steer, whatever the EKF and
+        the estimate say. A meaningless fix (``FENCE_MEANINGLESS_HDOP``) says nothing about
+        where the robot is: it neither counts nor ends a run. Returns the breach (reason,
+        metres out, log detail)."""
         assert fix.lat_deg is not None and fix.lon_deg is not None
-        self._check_fence(fix.lat_deg, fix.lon_deg, fix.t_s, estimated=False)
+        if _meaningless(fix):
+            return None
+        d = self._outside_m(fix.lat_deg, fix.lon_deg)
+        if d is None:
+            self._fence_run = 0
+            return None
+        last_t = self._fence_run_t
+        # in a row: no usable fix inside between them, none older than fix_stale_s before
+        fresh = last_t is not None and fix.t_s - last_t <= self.safety.fix_stale_s
+        self._fence_run = self._fence_run + 1 if fresh else 1
+        self._fence_run_t = fix.t_s
+        if d is None or not self._fence_armed():
+            return None
+        if self._fence_run >= FENCE_FIXES_IN_ROW:
+            return "geofence breach", d, f", {self._fence_run} fixes in a row outside"
+        if self._ekf_refused() is None:  # the source takes it: it will steer by it
+            return "geofence breach", d, ""
+        return None  # the EKF may refuse it: judged after the step
+
+    def _fence_after_fix(self, fix: GpsFix, taken: bool | None) -> tuple[str, float, str] | None:
+        """After ``fix`` stepped the controller (its motor commands not yet sent): a breach
+        when the fix lies outside, is meaningful (see ``FENCE_MEANINGLESS_HDOP``) and the
+        EKF took it (``taken``; None: a source that takes every fix, judged before the
+        step), or when the estimate the controller now steers by lies outside."""
+        if not self._fence_armed():
+            return None
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        d = self._outside_m(fix.lat_deg, fix.lon_deg)
+        if d is not None and taken and not _meaningless(fix):
+            return "geofence breach", d, ""
+        tel = self.controller.telemetry
+        if tel.filt_lat_deg is None or tel.filt_lon_deg is None:
+            return None
+        d_est = self._outside_m(tel.filt_lat_deg, tel.filt_lon_deg)
+        if d_est is None:
+            return None
+        return "geofence breach (estimated position)", d_est, ", the estimate after a fix"
 
     def _check_estimate(self, t_s: float) -> None:
         """Without a fresh usable fix (the latest fix record unusable, or the last usable one
@@ -440,33 +534,26 @@ class Runner:
         if tel.filt_lat_deg is None or tel.filt_lon_deg is None:
             return
         self._t_fence_est = t_s
-        self._check_fence(tel.filt_lat_deg, tel.filt_lon_deg, t_s, estimated=True)
+        d = self._outside_m(tel.filt_lat_deg, tel.filt_lon_deg)
+        if d is not None and self._fence_armed():
+            self._breach("geofence breach (estimated position)", d, ", no fresh fix", t_s)
 
-    def _check_fence(self, lat_deg: float, lon_deg: float, t_s: float, *, estimated: bool) -> None:
-        """The geofence rule of :meth:`_check_position`, for a fix or (``estimated``) the
-        controller's estimate without one."""
-        if self.controller.mode != Mode.RUNNING:
-            return
-        centre = self.geofence_centre()
-        if centre is None:
-            return
-        d = great_circle_m(centre[0], centre[1], lat_deg, lon_deg)
-        radius_m = self.safety.geofence_radius_m
-        if d <= radius_m:
-            return
-        if self.controller.returning and self.controller.mode == Mode.RUNNING:
-            return  # a return to launch leads back inside: let it
+    def _breach(self, why: str, d_m: float, detail: str, t_s: float) -> None:
+        """The robot is ``d_m`` (m) from the geofence centre, outside: the motors stop
+        first, then the mission gets ``failsafe.geofence_action`` (pause, or return to
+        launch; the operator may also drive back by hand: manual drive is bounded by its
+        own dead-man). ``why``: the reason; ``detail``: what the log adds."""
         self.geofence_breaches += 1
-        why = "geofence breach (estimated position)" if estimated else "geofence breach"
+        radius_m = self.safety.geofence_radius_m
         try:
             self._motors(MotorCommand(t_s, 0.0, 0.0, why))
         finally:  # a failing motor sink must not leave the mission running
             log.warning(
                 "%s: %s m from the centre, limit %.12g m%s: failsafe %s",
                 why,
-                _metres_beyond(d, radius_m, 1),
+                _metres_beyond(d_m, radius_m, 1),
                 radius_m,
-                ", no fresh fix" if estimated else "",
+                detail,
                 self.controller.failsafe_config.geofence_action,
             )
             self._handle(self.controller.geofence_breach(t_s, why))
