@@ -324,6 +324,9 @@ def run_mission(
 
     returned: list[float] = []  # when a return to launch began (the mission is then over)
     failsafes: list[list[Any]] = []  # [t_s, why] of each failsafe that acted
+    # [start, end, why] of each time the mission stood paused (a failsafe's pause, an
+    # operator's): the robot stands still there, in IDLE, which HOLD periods do not count
+    pauses: list[list[Any]] = []
 
     def observe(outputs: list[Any], _important: bool) -> None:
         nonlocal done_at
@@ -350,6 +353,11 @@ def run_mission(
                 if o.reason.startswith("mode: failsafe: "):
                     why = o.reason[len("mode: failsafe: ") :].removesuffix(": return to launch")
                     failsafes.append([round(t, 3), why])
+                if o.new == Mode.PAUSED and (not pauses or pauses[-1][1] >= 0):
+                    why = o.reason.removeprefix("mode: ").removeprefix("failsafe: ")
+                    pauses.append([t, -1.0, why])
+                elif o.old == Mode.PAUSED and o.new != Mode.PAUSED and pauses and pauses[-1][1] < 0:
+                    pauses[-1][1] = t
                 state_change = o.reason.startswith("state: ")
                 drives = state_change and o.new not in (NavState.HOLD, NavState.IDLE)
                 if o.new == NavState.HOLD and (not holds or holds[-1][1] >= 0):
@@ -499,6 +507,8 @@ def run_mission(
         runner.tick(t_end)
         if holds and holds[-1][1] < 0:
             holds[-1][1] = t_end
+        if pauses and pauses[-1][1] < 0:
+            pauses[-1][1] = t_end
         # the start-up wait is no hold (it was one in every run's summary); one the robot
         # never drove out of (the run ended in it) is
         startup_wait: list[float] | None = None
@@ -557,6 +567,8 @@ def run_mission(
             "arrivals": _with_slow_error(arrivals, world, trace, dt),
             "returned_at_s": returned[0] if returned else None,
             "failsafes": failsafes,
+            "paused_s": [[round(a, 3), round(b, 3), why] for a, b, why in pauses],
+            "paused_time_s": round(float(sum(b - a for a, b, _why in pauses)), 3),
             "position_source": world.navigation.position_source,
             "geofence_breaches": runner.geofence_breaches,
             "i2c_errors_injected": injector.injected,

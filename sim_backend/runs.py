@@ -331,6 +331,20 @@ class Summary:
             return f"the run's {self.sim_time_s:.0f} s ended before the last waypoint"
         return f"the run ended at {self.sim_time_s:.0f} s with the robot {mode or 'stopped'}"
 
+    def _paused_lines(self) -> list[str]:
+        """The time the mission stood paused (the robot still, in IDLE: no HOLD period),
+        one line per pause, none without: "paused 342.2 s (since 57.8 s: <why>)" to the
+        run's end, else "paused 12.0 s (57.8-69.8 s: <why>)"."""
+        out = []
+        for start_s, end_s, why in self.extra.get("paused_s") or ():
+            when = (
+                f"since {start_s:.1f} s"
+                if end_s >= self.sim_time_s
+                else f"{start_s:.1f}-{end_s:.1f} s"
+            )
+            out.append(f"  paused              {end_s - start_s:.1f} s ({when}: {why})")
+        return out
+
     def _startup_wait_text(self) -> str:
         wait = self.extra.get("startup_wait_s")
         if not wait:
@@ -385,6 +399,7 @@ class Summary:
         ]
         for t_s, why in self.extra.get("failsafes") or ():  # what stopped the mission, and when
             lines.append(f"  failsafe            at {t_s:.1f} s: {why}")
+        lines.extend(self._paused_lines())
         return "\n".join(lines)
 
 
