@@ -501,7 +501,8 @@ class SerialMotorLink:
         self._last = MotorCommand(self._clock(), float(left), float(right), reason)
         ok = self._configured_transact(f"M {left} {right}", held=held)
         if held and self._restart_hold is not None:
-            # EVT BOOT came before this drive's reply: the board, restarted, took it
+            # EVT BOOT came before this drive's reply: the board, restarted, took it; the S
+            # goes out next (before the lost watchdog setting) and the drive is unconfirmed
             return self._restart_stop()
         return ok
 
@@ -653,12 +654,18 @@ class SerialMotorLink:
     def _configured_transact(self, body: str, *, held: bool = False) -> bool:
         """``body`` after (re)sending the watchdog setting if the board lacks it: never
         confirmed, or an ``EVT BOOT`` arrived (then also right after ``body``). ``held``:
-        not sent (False) once a board restart holds the link (:meth:`send`)."""
+        not sent (False) once a board restart holds the link (:meth:`send`), and False with
+        no ``W`` after it when the hold began during it (the caller's stop goes first)."""
         if not self.configured:
             self._configure()
         if held and self._restart_hold is not None:
             return False
         ok = self._transact_reply(body, held=held) is not None
+        if held and self._restart_hold is not None:
+            # EVT BOOT before this drive's reply: the restarted board may drive it. The
+            # caller's S must be the next line, not a W round trip first (a browning-out
+            # board ran on and sagged again); W goes before the next drive
+            return False
         if ok and not self.configured:
             self._configure()
         return ok
