@@ -1216,7 +1216,11 @@ def test_dead_man_a_page_hidden_or_a_browser_gone_stops_the_motors(tmp_path: Pat
             os.kill(pid, signal.SIGKILL)
             wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), 3.0, "stop on a browser gone")
             assert time.monotonic() - t0 < 2.5
-            assert r.daemon.console is not None and r.daemon.console.deadman_stops == 1
+            console = r.daemon.console
+            assert console is not None
+            # counted once the stop's reply is back, after the motors stopped: waited for
+            wait_for(lambda: console.deadman_stops > 0, 5.0, "the dead-man stop counted")
+            assert console.deadman_stops == 1
         finally:
             with contextlib.suppress(Exception):
                 d.quit()

@@ -77,6 +77,11 @@ def test_stop_is_clickable_and_the_space_bar_stops_while_the_token_is_asked_for(
         # a real click: Selenium refuses one that another element would take
         browser.find_element(By.ID, "btn-stop").click()
         stopped_within(guarded, 1.5, "stopped by STOP under the token box")
+        # the server fences the input then on hand (every client's) in the loop turn that
+        # stopped the motors: a round trip on its loop first, else the drive below may reach
+        # the socket before that turn ends and is refused as sent before the stop (seen on a
+        # loaded host, the loop thread descheduled between the two)
+        c.request("status")
         # in the token field a space is text; out of it (Tab: the Connect button) it stops
         c.request("drive", left=30, right=30, duration_s=4.0)
         wait_for(lambda: vehicle_pct(guarded)[0] > 0.0, 5, "driving again")

@@ -75,7 +75,10 @@ def test_a_drive_from_another_client_is_refused_while_the_owners_drive_holds(
         assert a.request("status")["manual_drive"]["yours"] is True
 
         # the audit's fight: both hold their key (each resends every 0.1 s) for 1.5 s: the
-        # motors never leave A's command, and each of B's drives is refused as busy
+        # motors never take B's command, and each of B's drives is refused as busy. A's
+        # drives hold 2 s, so a host stall of a loop pass does not end A's ownership; a
+        # starved keep-alive may let the board's own watchdog stop the motors (0, 0; seen
+        # under load), which is not B driving
         seen: set[tuple[float, float]] = set()
         done = threading.Event()
 
@@ -90,7 +93,7 @@ def test_a_drive_from_another_client_is_refused_while_the_owners_drive_holds(
         try:
             t_end = time.monotonic() + 1.5
             while time.monotonic() < t_end:
-                _drive(a, A_DRIVE, 0.5)
+                _drive(a, A_DRIVE)
                 try:
                     _drive(b, B_DRIVE, 0.5)
                 except RequestFailed as exc:
@@ -100,7 +103,7 @@ def test_a_drive_from_another_client_is_refused_while_the_owners_drive_holds(
         finally:
             done.set()
             sampler.join(2)
-        assert seen == {A_DRIVE}, seen
+        assert A_DRIVE in seen and seen <= {A_DRIVE, (0.0, 0.0)}, seen
         assert refused >= 5
 
         # any stop (B's here) is obeyed at once and ends A's ownership: B's drive then takes it

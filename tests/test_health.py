@@ -492,9 +492,19 @@ def test_compass_errno_storm_shows_in_status_and_log_then_recovers(
             "compass reconnecting: reopen failed: ",
             "compass reconnected (reconnect 1, ",
         )
-        # the other devices are reported too
-        assert st["devices"]["gps"]["state"] == "connected"
-        assert st["devices"]["motors"]["state"] == "connected"
+        # the other devices are reported too, and the compass's storm is not theirs. A sim
+        # motor board's acknowledgement missed on a loaded host ("S: no acknowledgement
+        # within 100 ms") shows as degraded for a second (docs/motors.md): waited for
+        assert st["devices"]["gps"]["state"] in ("connected", "degraded")
+        assert st["devices"]["motors"]["state"] in ("connected", "degraded")
+        wait_for(
+            lambda: all(
+                c.request("status")["devices"][name]["state"] == "connected"
+                for name in ("gps", "motors")
+            ),
+            5,
+            "gps and motors connected",
+        )
     assert r.stop() == 0
 
 
