@@ -91,6 +91,10 @@ fixes (encoders counting a fraction of the travel, a wrong wheel size) gives inn
 grow by the same amount every second, which never agree with their mean, so the estimate
 drove on the wheels' count while the fixes arrived (167 m off, the mission lost, with
 encoders counting 12 %); ``odometry_runaway_resets`` counts those.
+For ``correlation_s`` after a reset, the bias beyond its stationary 99 % circle
+(:data:`BIAS_BOUND_CHI2`) is moved into the position after every accepted fix
+(:meth:`Estimator._bound_bias`): after a reset onto multipath fixes, the fixes' return to the
+truth otherwise became a bias of 6 σ_b.
 A short NLOS jump (fewer fixes than ``recover_after``) or scattered outliers are thus never
 accepted, while a real, persistent step (the robot was moved, the odometry slipped during a
 long GPS outage) is accepted after ``recover_after`` fixes. Long outages also open the gate by
@@ -129,6 +133,10 @@ CHI2_2DOF_999 = -2.0 * math.log(1e-3)
 """Chi-square quantile for 2 degrees of freedom at 99.9 % (13.82): ``−2·ln(1 − p)`` exactly."""
 CHI2_1DOF_999 = 10.827566170662733
 """Chi-square quantile for 1 degree of freedom at 99.9 % (10.83)."""
+BIAS_BOUND_CHI2 = -2.0 * math.log(1e-2)
+"""The GPS bias states' bound, ``|b|² / σ_b²`` (9.21: the stationary 2-D distribution's 99 %
+circle, |b| ≤ 3.03 σ_b); the part beyond it is taken as position error
+(:meth:`Estimator._bound_bias`)."""
 
 
 class EstimatorError(X6wdError, ValueError):
@@ -389,6 +397,7 @@ class EstimatorStats:
     odometry_runaway_resets: int = 0  # of gps_resets: refused fixes that agreed with a steady drift
     gps_consecutive_rejected: int = 0
     last_reset_m: float = 0.0  # how far the latest reset moved the position (m)
+    gps_bias_bounded: int = 0  # accepted fixes after which the bias bound moved the position
     compass_accepted: int = 0
     compass_rejected: int = 0
     compass_resets: int = 0
@@ -411,6 +420,7 @@ class Estimator:
         self._cmd: tuple[float, float] | None = None  # commanded (speed m/s, yaw rate rad/s)
         self._odo_fresh = False  # odometry increments arrived within odometry_timeout_s
         self._bias_var_m2 = 0.0  # stationary variance of the GPS bias states, m²
+        self._t_gps_reset: float | None = None  # time of the latest GPS reset (s)
         self._declination_rad = math.radians(config.compass.declination_deg)
         self._gps_refused: deque[tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64]]] = (
             deque(maxlen=config.gating.recover_after)
@@ -833,6 +843,7 @@ class Estimator:
                 self.stats.gps_consecutive_rejected = 0
                 self.stats.last_reset_m = math.hypot(ze - x[E], zn - x[N])
                 self._reset_position(ze, zn, white_var)
+                self._t_gps_reset = t
                 return Update(True, nis, "reset")
             self.stats.gps_rejected += 1
             self.stats.gps_consecutive_rejected += 1
@@ -843,6 +854,8 @@ class Estimator:
         x += kg @ y
         x[PSI] = _wrap(x[PSI])
         self._joseph(kg, hm, rm)
+        if correlated:
+            self._bound_bias(t)
         self.stats.gps_accepted += 1
         return Update(True, nis, "ok")
 
@@ -894,6 +907,40 @@ class Estimator:
             p[i, :] *= phi
             p[:, i] *= phi
             p[i, i] += self._bias_var_m2 * (1.0 - phi * phi)
+
+    def _bound_bias(self, t: float) -> None:
+        """Within ``correlation_s`` after a GPS reset (time ``t``, s), move the part of the
+        GPS bias beyond :data:`BIAS_BOUND_CHI2` of its stationary variance into the position.
+        After a reset onto multipath fixes (position on the fix, bias 0) the fixes coming
+        back to the truth were explained as a bias of 10 m (6 σ_b) while odometry held the
+        position 9-16 m off for over a minute, σ reading 3 m: the fixes see only the sum, and
+        the reset's "bias 0" is the assumption that failed, which the Gauss-Markov bias
+        forgets over its correlation time. The fix's prediction (position + bias) is kept;
+        the moved part ``m`` becomes the split's uncertainty (``m mᵀ`` on the position and on
+        the bias, ``−m mᵀ`` between them), so σ covers the position it may still lack."""
+        tau_b = self.cfg.gps.correlation_s
+        if self._t_gps_reset is None or tau_b is None or t - self._t_gps_reset > tau_b:
+            return
+        bv = self._bias_var_m2
+        x = self._x
+        be, bn = float(x[BE]), float(x[BN])
+        b2 = be * be + bn * bn
+        if bv <= 0.0 or b2 <= BIAS_BOUND_CHI2 * bv:
+            return
+        f = 1.0 - math.sqrt(BIAS_BOUND_CHI2 * bv / b2)
+        m = np.array([be * f, bn * f])  # m, moved from the bias to the position
+        x[E] += m[0]
+        x[N] += m[1]
+        x[BE] -= m[0]
+        x[BN] -= m[1]
+        mm = np.outer(m, m)
+        p = self._p
+        pos, bias = slice(E, N + 1), slice(BE, BN + 1)
+        p[pos, pos] += mm
+        p[bias, bias] += mm
+        p[pos, bias] -= mm
+        p[bias, pos] -= mm
+        self.stats.gps_bias_bounded += 1
 
     def _joseph(
         self, k: npt.NDArray[np.float64], h: npt.NDArray[np.float64], r: npt.NDArray[np.float64]
