@@ -66,6 +66,9 @@ from x6wd.core.errors import ConfigError
 
 Fidelity = Literal["seed", "pseudorange"]
 FIDELITIES: tuple[str, ...] = ("seed", "pseudorange")
+NAV5_PDOP_MASK = 25.0
+"""A NEO-5's default NAV5 PDOP mask: a solution with a larger PDOP is reported as no fix
+(docs/simulator.md)."""
 CA_CHIP_M = 293.0522  # C/A code chip length (c / 1.023 MHz)
 FADE_UP_DB = 5.0  # fading above the mean C/N0 allowed for when bounding a reflection search
 
@@ -780,6 +783,7 @@ class GnssModel:
         hdop = np.sqrt(qd[:, 0] + qd[:, 1])
         vdop = np.sqrt(qd[:, 2])
         pdop = np.sqrt(qd[:, :3].sum(axis=1))
+        ok = ok & (pdop <= NAV5_PDOP_MASK)  # NaN (singular) fails too
 
         pen = geo["penetrated"]
         if self._penetrable:
