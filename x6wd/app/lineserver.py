@@ -21,12 +21,15 @@ gpsd port: one valid command). The two live in separate pools:
   end of the stream yet) leave the pool, uncounted: in a connect/close storm the kernel
   hands over up to ``LISTEN_BACKLOG`` connections at once, each admitted before its close
   is seen, and those must not crowd out live sessions. If it is still full the peer being
-  admitted closes a session of the address holding the most sessions (the admitted one
-  counted; a storm from one address closes its own, not another address's watcher), of
-  those the least valuable: the one idle longest among those not
-  watching, else the watcher that is most behind (not reading for a while: blocked in
-  ``drain()`` or its data unacknowledged longest, then most events queued), else the
-  newest watcher (an established reader outlives one just admitted).
+  admitted closes a session, never a protected one (:meth:`LineServer._protected`: on the
+  control port the one whose manual drive runs, whose close would stop the robot), unless
+  every session is. The least valuable goes: a session not watching before a watcher that
+  is behind (not reading for a while) before one that keeps up; within the same kind, one
+  of the address holding the most sessions (the admitted one counted: a storm from one
+  address closes its own, not another address's watcher); then the one idle longest among
+  those not watching, the watcher most behind (blocked in ``drain()`` or its data
+  unacknowledged longest, then most events queued), the newest watcher that keeps up (an
+  established reader outlives one just admitted).
 
 One sweeper task per server enforces the deadlines: pending longer than
 ``pending_timeout_s``, a session neither watching nor sending a line for ``idle_timeout_s``,
@@ -520,20 +523,28 @@ class LineServer(Generic[C]):
         c.session = True
 
     def _session_victim(self, admitted: C) -> C:
-        """The session to close for ``admitted``: one of the address that holds the most
-        sessions (``admitted`` counted with its own), then by :meth:`_victim_key`. A storm
-        of watchers from one address that do not read (the kernel's buffers take a low-rate
-        stream for minutes, so they look as if they keep up) closed a watcher from another
-        address as soon as it joined, being the newest (outside audit, round 10): now that
-        address's own sessions pay."""
+        """The session to close for ``admitted``: never a :meth:`_protected` one (unless all
+        are: ``max_clients`` 1), the least valuable kind first (:meth:`_victim_key`), then
+        one of the address holding the most sessions (``admitted`` counted with its own),
+        then the rest of the key. The address came first in fdb4cad (a storm of never-reading
+        watchers from one address closed a watcher from another, the newest); it then closed
+        an operator's driving session, on the address of its own watcher, before an idle
+        session elsewhere, and the dead-man stopped the drive (review of fdb4cad)."""
         per_host = collections.Counter(s.host for s in self._sessions)
         per_host[admitted.host] += 1
-        busiest = max(per_host[s.host] for s in self._sessions)
+        candidates = [s for s in self._sessions if not self._protected(s)]
         now = self._clock()
-        return min(
-            (s for s in self._sessions if per_host[s.host] == busiest),
-            key=lambda s: self._victim_key(s, now),
-        )
+
+        def key(s: C) -> tuple[int, int, float, float]:
+            kind, first, second = self._victim_key(s, now)
+            return (kind, -per_host[s.host], first, second)
+
+        return min(candidates or self._sessions, key=key)
+
+    def _protected(self, c: C) -> bool:
+        """A session a full pool must not close to make room (the control port: the one
+        whose manual drive runs). None here."""
+        return False
 
     def _reap_gone(self) -> None:
         """Take the sessions whose peer has already closed or reset its connection out of

@@ -746,6 +746,10 @@ class ControlServer(LineServer[_Client]):
     def _is_watching(self, c: _Client) -> bool:
         return c.watching
 
+    def _protected(self, c: _Client) -> bool:
+        # the driving operator: closing it for a stranger's connection fires the dead-man
+        return self.drive_active(c)
+
     def _notice(self, reason: str, message: str) -> bytes:
         return encode(error_reply(None, CLOSED, message, reason))
 
