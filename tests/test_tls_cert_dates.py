@@ -16,13 +16,18 @@ as a subprocess over real TLS sockets on 127.0.0.1.
 from __future__ import annotations
 
 import calendar
+import contextlib
 import dataclasses
+import json
 import logging
+import socket
 import ssl
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -183,7 +188,9 @@ def test_a_certificate_expiring_while_the_daemon_runs_is_warned_logged_and_a_sto
             sent = srv.stops["sent"]
             # `x6wd client stop` retries once without verification, loudly, without the token
             stop = client("--token-file", str(wrong), "stop")
-            assert stop.returncode == 0 and stop.stdout == "stop: ok\n", stop.stderr
+            # acknowledged, but not by a verified robot: never "stop: ok" nor exit 0
+            assert stop.returncode == 4, stop.stderr
+            assert stop.stdout == "stop: sent, reply NOT verified (certificate has expired)\n"
             assert "COULD NOT BE VERIFIED (certificate has expired)" in stop.stderr
             assert "WITHOUT verification" in stop.stderr
             wait_for(lambda: vehicle_pct(r) == (0.0, 0.0), 5.0, "the motors stopped")
@@ -246,3 +253,66 @@ def test_without_cpythons_private_decoder_the_dates_are_skipped_not_fatal(
     srv = ControlServer(cfg, RecordingBackend(), ssl_context=ctx)
     assert srv.server_stats()["tls"] == {"cert": str(cert), "state": "unknown", "warning": None}
     assert srv.check_cert() == "none"
+
+
+# -- an impostor acknowledges the unverified stop: never reported as a confirmed one -----------
+@contextlib.contextmanager
+def impostor(directory: Path) -> Any:
+    """A TLS server on 127.0.0.1 with a certificate of its own that answers every line with
+    ``ok`` (a forged acknowledgement); yields its port and the lines it received."""
+    directory.mkdir()
+    cert, key = self_signed_cert(directory)
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.load_cert_chain(cert, key)
+    listener = socket.create_server(("127.0.0.1", 0))
+    received: list[dict[str, Any]] = []
+
+    def serve() -> None:
+        while True:
+            try:
+                raw, _ = listener.accept()
+            except OSError:  # closed: the test is over
+                return
+            with contextlib.suppress(OSError), ctx.wrap_socket(raw, server_side=True) as s:
+                for line in s.makefile("rb"):
+                    req = json.loads(line)
+                    received.append(req)
+                    s.sendall(json.dumps({"id": req.get("id"), "ok": True}).encode() + b"\n")
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield listener.getsockname()[1], received
+    finally:
+        listener.close()
+        thread.join(5)
+
+
+@pytest.mark.integration
+def test_a_stop_acknowledged_without_verification_is_not_reported_as_a_confirmed_stop(
+    tmp_path: Path,
+) -> None:
+    """The review of b7485e0: with the robot's certificate in --cafile, an impostor on its
+    address got `x6wd client stop` to print "stop: ok" and exit 0 (``--json``: ``{}``),
+    what a script or an e-stop wrapper takes for a confirmed stop. Now: exit 4, "stop:
+    sent, reply NOT verified (REASON)", ``"verified": false``; the stop went out once, no
+    token."""
+    (tmp_path / "robot").mkdir()
+    trusted, _ = self_signed_cert(tmp_path / "robot")
+    token = token_file(tmp_path)
+    with impostor(tmp_path / "impostor") as (port, received):
+        for extra, expect_json in (((), False), (("--json",), True)):
+            proc = subprocess.run(
+                [sys.executable, "-m", "x6wd", "client", "--port", str(port), "--cafile",
+                 str(trusted), "--token-file", str(token), *extra, "stop"],
+                capture_output=True, text=True, timeout=30,
+            )  # fmt: skip
+            assert proc.returncode == 4, (proc.stdout, proc.stderr)
+            assert "WITHOUT verification" in proc.stderr
+            if expect_json:
+                assert json.loads(proc.stdout) == {"verified": False}, proc.stdout
+            else:
+                assert proc.stdout.startswith("stop: sent, reply NOT verified ("), proc.stdout
+                assert "stop: ok" not in proc.stdout
+        assert [r["cmd"] for r in received] == ["stop", "stop"]
+        assert all("token" not in r for r in received)

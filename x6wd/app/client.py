@@ -16,7 +16,8 @@ Every heading shown is true, in degrees, 0 <= h < 360 (docs/protocol.md, "Headin
 
 Exit codes: 0 success, 1 the robot refused (error reply), 2 bad input, 3 connection failed
 (also when the robot closed the connection: pool full, auth deadline, too many failed tokens,
-its daemon shutting down).
+its daemon shutting down), 4 a ``stop`` sent without verification and acknowledged: the
+acknowledgement may not be the robot's.
 A reader of the output that goes away (``x6wd client watch | head``) ends it quietly, 0.
 """
 
@@ -44,6 +45,7 @@ EXIT_OK = 0
 EXIT_REFUSED = 1
 EXIT_USAGE = 2
 EXIT_CONNECTION = 3
+EXIT_UNVERIFIED = 4  # a stop sent unverified was acknowledged, by whoever answered
 EXIT_INTERRUPTED = 130  # Ctrl-C during a drive: the robot was told to stop
 DEFAULT_PORT = 7601
 MAX_REPLY_BYTES = 16 * 1024 * 1024
@@ -124,6 +126,7 @@ class RemoteClient:
         self._sock: socket.socket | None = sock
         self._tls = ssl_context is not None
         self.unverified_fallback = False  # a stop sent without verification (_connect)
+        self.unverified_why = ""  # why the certificate was not verified (OpenSSL's reason)
         if token is not None:
             try:
                 self.authenticate(token)
@@ -881,6 +884,7 @@ def _connect(
             )
             client = connect(None, _unverified_ssl())
             client.unverified_fallback = True
+            client.unverified_why = exc.why
             return client
     if args.action != "status" or token is None:
         return connect(token)
@@ -975,6 +979,14 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
                 return EXIT_OK
             else:  # pragma: no cover - argparse restricts the choices
                 raise ParseError(f"unknown action {action}")
+            if client.unverified_fallback:
+                # an acknowledgement nobody can prove is the robot's (an impostor on the path
+                # answers too): never the exit code, nor the words, of a confirmed stop
+                if args.json:
+                    _print_reply({**reply, "verified": False}, out)
+                else:
+                    print(f"stop: sent, reply NOT verified ({client.unverified_why})", file=out)
+                return EXIT_UNVERIFIED
             if args.json:
                 _print_reply(reply, out)
             elif action == "status":
