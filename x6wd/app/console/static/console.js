@@ -22,6 +22,7 @@
     pressState: null, // the press held now: { ok: a drive of it was obeyed, inflight, stopOnOk }
     driver: null, // who else drives (status' manual_drive.owner, or a "busy" refusal's driver)
     heardAt: 0, stale: true, closedWhy: "", // closedWhy: the console's reason for closing the link (full)
+    held: [], // requests too large to send before auth: { id, text, resolve }, sent once it succeeds
   };
   window.x6wd = S; // for a person at the browser's console, and for the tests
 
@@ -61,6 +62,13 @@
     m.textContent = text;
     m.className = isError ? "err" : "";
   }
+  // the text's UTF-8 size (bytes) is over limit (the length is a bound: 3 bytes a char at most)
+  const over = (text, limit) => text.length > limit / 3 && new TextEncoder().encode(text).length > limit;
+  // Until its auth succeeds the console closes a page that sends a message over
+  // max_message_bytes_before_auth (1009). A larger request made meanwhile (Send mission
+  // clicked while a reconnected page's automatic auth is in flight) is held and sent once
+  // the auth succeeds; so is every request after it, to keep their order. A stop is never held.
+  const preAuthLimit = () => (S.info && S.info.max_message_bytes_before_auth) || 4096;
   function request(cmd, args) {
     return new Promise((resolve) => {
       if (!S.ws || S.ws.readyState !== WebSocket.OPEN) {
@@ -69,18 +77,40 @@
       }
       const id = S.nextId++;
       // sent_ms: the console refuses a drive that arrives later than it would have lasted
-      // (one held in a stalled link's buffers must not move the robot when the link thaws)
+      // (one held in a stalled link's buffers must not move the robot when the link thaws);
+      // a held request keeps it (when it was asked for: another client's stop since refuses it)
       const sent = Math.round(performance.now());
       const text = JSON.stringify(Object.assign({ id: id, cmd: cmd, sent_ms: sent }, args || {}));
       // the console closes the link on a message over its limit: refused here instead
       const limit = S.info ? S.info.max_message_bytes : Infinity;
-      if (text.length > limit / 3 && new TextEncoder().encode(text).length > limit) {
+      if (over(text, limit)) {
         resolve({ ok: false, error: { code: "too_large", message: "too large to send: the console takes at most " + limit + " bytes (console.max_message_bytes)" } });
         return;
+      }
+      if (!S.authed && cmd !== "stop") {
+        const early = preAuthLimit();
+        if (cmd === "auth" && over(text, early)) { // it would never succeed: nothing to wait for
+          resolve({ ok: false, error: { code: "too_large", message: "the token is too long: at most " + early + " bytes before auth" } });
+          return;
+        }
+        if (cmd !== "auth" && (S.held.length || over(text, early))) {
+          S.held.push({ id: id, text: text, resolve: resolve });
+          say(cmd + ": waiting for the token to be accepted before sending");
+          return;
+        }
       }
       S.pending.set(id, resolve);
       S.ws.send(text);
     });
+  }
+  // the held requests: sent (the auth succeeded on this link) or refused with why
+  function releaseHeld(why) {
+    const held = S.held;
+    S.held = [];
+    for (const h of held) {
+      if (why) h.resolve({ ok: false, error: { code: "not_sent", message: "not sent: " + why } });
+      else { S.pending.set(h.id, h.resolve); S.ws.send(h.text); }
+    }
   }
   function report(cmd, r) {
     if (r.ok) say(cmd + ": ok" + (r.state ? " (" + r.mode + " " + r.state + ")" : ""));
@@ -94,6 +124,8 @@
   // own drive ends and the answer is shown when it comes.
   function stopNow() {
     const answer = request("stop");
+    // nothing asked for before the stop runs after it (a held start, say)
+    if (S.held.length) releaseHeld("a stop came before the token was accepted");
     endDrive(false);
     answer.then((r) => report("stop", r));
   }
@@ -112,9 +144,11 @@
     ws.onclose = (ev) => {
       if (S.ws !== ws) return;
       // 1013 "try again later": the console is full (its reason says so), or closed this
-      // page to make room for another
-      S.closedWhy = ev.code === 1013 ? ev.reason || "console full" : "";
-      linkLost(S.closedWhy || "disconnected");
+      // page to make room for another; any other close with a reason (1009: a message too
+      // big) says it too, in the status and the message line (the status changes on reconnecting)
+      S.closedWhy = ev.code === 1013 ? ev.reason || "console full" : ev.reason || (ev.code === 1009 ? "message too big" : "");
+      linkLost(ev.code === 1013 ? S.closedWhy : S.closedWhy ? "disconnected: " + S.closedWhy : "disconnected");
+      if (S.closedWhy) say("the console closed the connection: " + S.closedWhy + " (code " + ev.code + ")", true);
       setTimeout(connect, 1000);
     };
   }
@@ -122,7 +156,9 @@
   function linkLost(why) {
     endDrive(false);
     S.authed = false;
-    for (const resolve of S.pending.values()) resolve({ ok: false, error: { code: "closed", message: "connection lost" } });
+    const lost = "connection lost" + (S.closedWhy ? " (" + S.closedWhy + ")" : "");
+    releaseHeld(lost + " before the token was accepted");
+    for (const resolve of S.pending.values()) resolve({ ok: false, error: { code: "closed", message: lost } });
     S.pending.clear();
     setConn(why, "bad");
     setStale(true);
@@ -191,6 +227,7 @@
       authenticated();
     } else {
       sessionStorage.removeItem("x6wd-token");
+      releaseHeld("the token was refused (" + r.error.message + ")");
       showLogin(r.error.message);
     }
   }
@@ -203,6 +240,7 @@
   function authenticated() {
     S.authed = true;
     setConn("connected" + (S.info.tls ? " (TLS)" : ""), "ok");
+    releaseHeld("");
     poll(S.ws);
   }
   // status once a second: links and devices, and (for a page that may command) the
