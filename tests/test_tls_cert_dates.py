@@ -316,3 +316,66 @@ def test_a_stop_acknowledged_without_verification_is_not_reported_as_a_confirmed
                 assert "stop: ok" not in proc.stdout
         assert [r["cmd"] for r in received] == ["stop", "stop"]
         assert all("token" not in r for r in received)
+
+
+# -- a clock not set yet: what the verdict may claim, and the re-check once it is set ----------
+def day(text: str) -> float:
+    """Unix time (s) of ``YYYY-MM-DD`` 00:00 UTC."""
+    return float(calendar.timegm(time.strptime(text, "%Y-%m-%d")))
+
+
+def test_a_clock_before_this_release_promises_nothing_of_a_certificate_starting_after_it() -> None:
+    """The review of b7485e0: at a 1970 clock a certificate valid only from 2027-06-01 was
+    ``clock_unset`` with "clients with a right clock accept the certificate", which is false
+    (not valid yet by a right clock either). Only one valid on this release's date may be
+    promised; one that starts after it cannot be judged until the clock is set; one that
+    expired before it is expired whatever the clock says."""
+    from x6wd.app.server import CertDates, _clock_floor_s, cert_verdict
+
+    floor_s, at_1970_s = _clock_floor_s(), 3600.0
+    state, message = cert_verdict(CertDates(day("2027-06-01"), day("2029-09-01")), at_1970_s, "c")
+    assert state == "clock_unset" and "set the clock" in message, message
+    assert "cannot be judged until then" in message and "accept" not in message, message
+    valid_then = CertDates(floor_s - 30 * 86400.0, floor_s + 700 * 86400.0)
+    state, message = cert_verdict(valid_then, at_1970_s, "c")
+    assert state == "clock_unset" and "set the clock" in message, message
+    assert f"accept it until {utc_text(valid_then.not_after_s)}" in message, message
+    state, message = cert_verdict(CertDates(day("2024-01-01"), day("2025-01-01")), at_1970_s, "c")
+    assert state == "expired" and "expired on 2025-01-01T00:00:00Z" in message, message
+
+
+def test_the_certificate_is_judged_again_as_soon_as_the_wall_clock_is_set(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A Pi boots at 1970 (``clock_unset``, a WARNING) and NTP sets its clock a minute
+    later: the certificate, not valid for another 10 days, must be an ERROR at the next
+    sweep, not up to an hour later (the re-check was keyed on the monotonic clock alone).
+    The server's wall clock is injected; nothing else is."""
+    from tests.test_server import RecordingBackend
+    from x6wd.app.server import ControlServer, server_ssl_context
+
+    now_s = float(int(time.time()))
+    cert, key = dated_cert(tmp_path, now_s + 10 * 86400.0, now_s + 400 * 86400.0)
+    wall_s = [3600.0]  # 1970-01-01T01:00:00Z
+    cfg = ServerConfig(port=0, tls_cert=str(cert), tls_key=str(key))
+    srv = ControlServer(
+        cfg,
+        RecordingBackend(),
+        ssl_context=server_ssl_context(str(cert), str(key), now_s=wall_s[0]),
+        wall_clock=lambda: wall_s[0],
+    )
+
+    def logged(level: int) -> list[str]:
+        return [r.getMessage() for r in caplog.records if r.levelno == level]
+
+    with caplog.at_level(logging.INFO, logger="x6wd.app.server"):
+        assert srv.check_cert() == "clock_unset"
+        assert len(logged(logging.WARNING)) == 1
+        wall_s[0] += 30.0  # the clock runs on, unset: nothing new
+        srv.sweep()
+        assert logged(logging.ERROR) == [] and len(logged(logging.WARNING)) == 1
+        wall_s[0] = now_s  # NTP sets it
+        srv.sweep()
+        errors = logged(logging.ERROR)
+        assert len(errors) == 1 and f"{cert} is not valid before" in errors[0], errors
+        assert srv.server_stats()["tls"]["state"] == "not_yet_valid"

@@ -177,6 +177,10 @@ time to renew it before every verified client refuses the robot (docs/install.md
 CERT_CHECK_S = 3600.0
 """How often (s) a running server looks at its certificate's dates again, for the log (a
 certificate may expire while the daemon runs; ``status`` judges them at each request)."""
+CLOCK_STEP_S = 60.0
+"""A wall clock that moves this much (s) against the monotonic clock between two sweeps has
+been set (NTP stepping a Pi's 1970 clock after boot): the certificate is judged again at once,
+not up to :data:`CERT_CHECK_S` later."""
 DAY_S = 86400.0
 
 
@@ -227,20 +231,39 @@ def cert_verdict(
     """Judge ``dates`` at ``now_s`` (Unix time, s): ``(state, message)`` with state ``ok``
     (message ""), ``expiring`` (fewer than :data:`CERT_WARN_DAYS` days left), ``expired``,
     ``not_yet_valid`` (both: every verified client refuses the robot) or ``clock_unset``
-    (not yet valid, but the system clock is before this release: the clock is wrong, not
-    the certificate). The message names ``key`` and ``path`` and gives the dates."""
+    (not yet valid, but the system clock is before this release: the clock is wrong; the
+    message says whether the certificate was valid on this release's date, else that its
+    dates cannot be judged until the clock is set). A certificate that expired before this
+    release is ``expired`` whatever the clock says. The message names ``key`` and ``path``
+    and gives the dates."""
     span = f"valid {utc_text(dates.not_before_s)} to {utc_text(dates.not_after_s)}"
+    floor_s = _clock_floor_s()
     if now_s > dates.not_after_s:
         return "expired", (
             f"{key}: {path} expired on {utc_text(dates.not_after_s)} ({span}, now "
             f"{utc_text(now_s)}): every verified client refuses it; renew it (docs/install.md)"
         )
+    if now_s < floor_s and dates.not_after_s < floor_s:  # expired whatever the true date
+        return "expired", (
+            f"{key}: {path} expired on {utc_text(dates.not_after_s)} ({span}), before this "
+            f"release ({utc_text(floor_s)}; the system clock says {utc_text(now_s)}, not set "
+            "yet): every verified client refuses it; renew it (docs/install.md)"
+        )
     if now_s < dates.not_before_s:
-        if now_s < _clock_floor_s():
-            return "clock_unset", (
+        if now_s < floor_s:
+            unset = (
                 f"{key}: {path} is not valid before {utc_text(dates.not_before_s)} ({span}) "
-                f"and the system clock says {utc_text(now_s)}, before this release: set the "
-                "clock (clients with a right clock accept the certificate)"
+                f"and the system clock says {utc_text(now_s)}, before this release "
+                f"({utc_text(floor_s)}): set the clock"
+            )
+            if dates.not_before_s <= floor_s:  # valid then: the clock alone is wrong
+                return "clock_unset", (
+                    f"{unset} (the certificate was valid on this release's date: clients "
+                    f"whose clock is right accept it until {utc_text(dates.not_after_s)})"
+                )
+            return "clock_unset", (
+                f"{unset}; its dates cannot be judged until then (it starts after this "
+                "release's date: clients whose clock is right may refuse it too)"
             )
         return "not_yet_valid", (
             f"{key}: {path} is not valid before {utc_text(dates.not_before_s)} ({span}, now "
@@ -568,9 +591,11 @@ class ControlServer(LineServer[_Client]):
         token: bytes | None = None,
         ssl_context: ssl.SSLContext | None = None,
         clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         """``token`` None: no authentication (refused unless bound to loopback). ``clock``:
-        monotonic seconds for rates and deadlines (tests inject one)."""
+        monotonic seconds for rates and deadlines; ``wall_clock``: Unix time (s) that the
+        certificate's dates are judged at (tests inject both)."""
         if token is None and not is_loopback(config.bind):
             raise ConfigError(
                 f"server.token_file: required when server.bind ({config.bind}) is not loopback"
@@ -596,7 +621,10 @@ class ControlServer(LineServer[_Client]):
         self._cert_path = config.tls_cert if ssl_context is not None else ""
         self._cert_dates = cert_dates(self._cert_path) if self._cert_path else None
         self.cert_check_s = CERT_CHECK_S
+        self._wall_clock = wall_clock
         self._cert_checked_s = -math.inf  # time.monotonic() of the latest check
+        # wall_clock() - time.monotonic() then (s): a change of it is the clock being set
+        self._cert_clock_offset_s = wall_clock() - time.monotonic()
         self._cert_logged = ("ok", -math.inf)  # the state logged last, and when (monotonic s)
         self.requests_total = 0
         self.errors_total = 0
@@ -668,7 +696,7 @@ class ControlServer(LineServer[_Client]):
         dates = self._cert_dates
         if dates is None:
             return {"cert": self._cert_path, "state": "unknown", "warning": None}
-        now_s = time.time() if now_s is None else now_s
+        now_s = self._wall_clock() if now_s is None else now_s
         state, message = cert_verdict(dates, now_s, self._cert_path)
         return {
             "cert": self._cert_path,
@@ -683,8 +711,10 @@ class ControlServer(LineServer[_Client]):
         """Judge the certificate's dates at ``now_s`` (Unix time, s; default now) and log a
         state that is not ``ok`` when it changes, and once a day while it lasts (WARNING
         when it expires soon or the clock is unset, ERROR once expired); return the state
-        (``none`` without TLS or dates). The sweeper calls it every ``cert_check_s``."""
+        (``none`` without TLS or dates). The sweeper calls it every ``cert_check_s``, and
+        at once when the wall clock has been set (:data:`CLOCK_STEP_S`)."""
         self._cert_checked_s = time.monotonic()
+        self._cert_clock_offset_s = self._wall_clock() - self._cert_checked_s
         st = self.cert_status(now_s)
         if st is None or st["state"] == "unknown":
             return "none"
@@ -708,13 +738,16 @@ class ControlServer(LineServer[_Client]):
         return state
 
     def sweep(self) -> int:
-        """The deadlines (:meth:`LineServer.sweep`), and every ``cert_check_s`` the
-        certificate's dates (:meth:`check_cert`, cheap: no file is read)."""
+        """The deadlines (:meth:`LineServer.sweep`), and the certificate's dates
+        (:meth:`check_cert`, cheap: no file is read) every ``cert_check_s`` and as soon as
+        the wall clock has been set: NTP stepping a Pi's clock from 1970 a minute after boot
+        would otherwise leave the verdict of 1970 (``clock_unset``) for up to an hour."""
         closed = super().sweep()
-        if self._cert_dates is not None and (
-            time.monotonic() - self._cert_checked_s >= self.cert_check_s
-        ):
-            self.check_cert()
+        if self._cert_dates is not None:
+            mono_s = time.monotonic()
+            stepped_s = abs(self._wall_clock() - mono_s - self._cert_clock_offset_s)
+            if stepped_s > CLOCK_STEP_S or mono_s - self._cert_checked_s >= self.cert_check_s:
+                self.check_cert()
         return closed
 
     def publish(self, event: dict[str, Any]) -> None:
