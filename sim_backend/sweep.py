@@ -43,7 +43,8 @@ the contents of the files it names): only the missing runs are simulated (a fold
 before cell ids had 16 hex digits keeps its runs: :func:`migrate_legacy_runs`). A run file of
 another results schema (:data:`RESULTS_SCHEMA`: an older x6wd's, without the figures this one
 writes) is not done: it is run again, said on stderr, its old file moved to ``older-runs/``
-(:func:`stale_reason`), so a summary never pools figures of two schemas. A directory
+(:func:`stale_reason`), so a summary never pools figures of two schemas; a result a worker of
+another x6wd returns is stored as failed (:func:`worker_mismatch`). A directory
 that holds another sweep (another name or seed in its ``sweep.json``) is refused
 (:func:`check_out_dir`). A run whose
 mission raised is recorded with its error (kept on resume unless ``retry_failed``); a run the
@@ -89,6 +90,7 @@ from sim_backend.sweep_report import (
     FIXED_COLUMNS,
     OLDER_RUNS_DIR,
     RESULT_FIELDS,
+    WORKER_MISMATCH,
     json_value,
     record_schema,
 )
@@ -657,7 +659,9 @@ def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
         "status": "ok",
         "error": None,
         "worker": f"{socket.gethostname()}:{os.getpid()}",
-        "x6wd_version": x6wd_version(),  # the worker's, which ran the mission
+        # the worker's x6wd ran the mission and wrote the figures: the client keeps both
+        "schema": RESULTS_SCHEMA,
+        "x6wd_version": x6wd_version(),
     }
     try:
         world = loads_world(world_toml, source=run_id)
@@ -747,20 +751,55 @@ def _json_safe(v: Any) -> Any:
 
 def stale_reason(record: dict[str, Any]) -> str | None:
     """Why a stored record is not a result of this x6wd and is run again (None: it is): it is
-    of another results schema (:data:`RESULTS_SCHEMA`), or a success lacking one of the
-    figures this x6wd writes (:data:`RESULT_FIELDS`). Said in words for the message: "from
-    an older x6wd (schema 1, without gps_* figures)". Another x6wd version of the same
-    schema is no reason: its figures are the same ones (the summary counts the versions)."""
+    of another results schema (:data:`RESULTS_SCHEMA`), a success lacking one of the figures
+    this x6wd writes (:data:`RESULT_FIELDS`), or a run whose worker's x6wd returned such
+    figures (:func:`worker_mismatch`). Said in words for the message: "from an older x6wd
+    (schema 1, without gps_* figures)". Another x6wd version of the same schema is no reason:
+    its figures are the same ones (the summary counts the versions). A run that raised and
+    has no schema (2026-12-04..06) is of no known schema and no reason either: it has no
+    figures, and is kept unless ``retry_failed`` as any run that raised."""
+    mismatch = record.get(WORKER_MISMATCH)
+    if mismatch:
+        return f"that a worker of another x6wd ran ({mismatch})"
     schema = record_schema(record)
-    if schema < RESULTS_SCHEMA:
+    if schema is not None and schema < RESULTS_SCHEMA:
         lacks = SCHEMA_LACKS.get(schema)
         return f"from an older x6wd (schema {schema}{', ' + lacks if lacks else ''})"
-    if schema > RESULTS_SCHEMA:
+    if schema is not None and schema > RESULTS_SCHEMA:
         return f"from a newer x6wd (schema {schema}; this one writes {RESULTS_SCHEMA})"
     missing = [k for k in RESULT_FIELDS if k not in record]
     if record.get("status") == "ok" and missing:
         return f"lacking figures this x6wd writes ({', '.join(missing)})"
     return None
+
+
+def worker_mismatch(result: dict[str, Any]) -> tuple[str, str] | None:
+    """Whether a worker's fresh :func:`run_task` result is of another x6wd than this one
+    tables: (what it is, in words: "schema 1, without gps_* figures"; the run's error:
+    "the worker's x6wd is too old (...): update it"), or None. A worker of an x6wd before
+    2026-12-06 returns no schema: its figures tell it (:func:`record_schema`). Such figures
+    were stamped with this x6wd's schema and tabled with blanks; the run is now a failure
+    and runs again on the next call. Every x6wd's run_task (since 2026-11-25) names its
+    ``worker``: a result without one is no worker's and is not judged here."""
+    if "worker" not in result or stale_reason(result) is None:
+        return None
+    schema = record_schema(result)
+    if schema is None:  # a run that raised: judged by the retry_failed rules, not here
+        return None
+    if schema > RESULTS_SCHEMA:
+        what = f"schema {schema}"
+        return what, (
+            f"the worker's x6wd is newer ({what}; this one tables schema {RESULTS_SCHEMA}):"
+            " update this one"
+        )
+    if schema < RESULTS_SCHEMA:
+        what = f"schema {schema}{', ' + SCHEMA_LACKS[schema] if schema in SCHEMA_LACKS else ''}"
+        return what, (
+            f"the worker's x6wd is too old ({what}; this one tables schema {RESULTS_SCHEMA}):"
+            " update it"
+        )
+    what = f"schema {schema} without {', '.join(k for k in RESULT_FIELDS if k not in result)}"
+    return what, f"the worker's x6wd returned {what}, figures this one writes: update it"
 
 
 def same_run(record: dict[str, Any] | None, run: Run) -> bool:
@@ -830,7 +869,15 @@ class SweepResult:
         return missions / self.wall_s * 60.0 if missions and self.wall_s > 0 else float("nan")
 
 
+WORKER_KEYS = ("worker", "x6wd_version", "task_s")
+"""What a run record keeps of a result whose figures are another x6wd's (:func:`_record`)."""
+
+
 def _record(run: Run, result: dict[str, Any] | None, outcome: Outcome | None) -> dict[str, Any]:
+    """The run file of ``run``: its identity, and the worker's result as the worker's x6wd
+    wrote it (its schema and version included: never this x6wd's, which did not simulate it).
+    A result of another x6wd's figures (:func:`worker_mismatch`) is stored as a failure
+    naming it, without its figures, which no table takes."""
     rec: dict[str, Any] = {
         "run_id": run.run_id,
         "cell_id": run.cell.cell_id,
@@ -840,9 +887,13 @@ def _record(run: Run, result: dict[str, Any] | None, outcome: Outcome | None) ->
         "replicate": run.replicate,
         "seed": run.seed,
         "digest": run.cell.digest,
-        "schema": RESULTS_SCHEMA,  # the figures below (:func:`stale_reason`)
     }
-    if result is not None:
+    mismatch = worker_mismatch(result) if result is not None else None
+    if result is not None and mismatch is not None:
+        rec.update({k: result[k] for k in WORKER_KEYS if k in result})
+        rec.update(schema=record_schema(result), status="error", error=mismatch[1])
+        rec.update({WORKER_MISMATCH: mismatch[0], "completed": False})
+    elif result is not None:
         rec.update({k: v for k, v in result.items() if k != "run_id"})
     if outcome is not None and not outcome.ok:
         kind = outcome.kind
@@ -972,14 +1023,17 @@ def older_records(
 ) -> dict[str, str]:
     """The runs (by run id) whose stored record is theirs (:func:`same_run`) and would be done
     but for its schema (:func:`stale_reason`), with the reason: they are run again, and their
-    files are moved to :data:`OLDER_RUNS_DIR` when the new one is written. A lost run is run
-    again anyway and not listed."""
+    files are moved to :data:`OLDER_RUNS_DIR` when the new one is written. A lost run, and a
+    run stored as failed because its worker's x6wd was another (:func:`worker_mismatch`),
+    are run again anyway and not listed."""
     found: dict[str, str] = {}
     for run in runs:
         rec = store.load(run.run_id)
         if rec is None:
             rec = _legacy_record(run, store)
         if rec is None or not same_run(rec, run) or rec.get("status") == "lost":
+            continue
+        if WORKER_MISMATCH in rec:  # a failure with no figures to keep: simply run again
             continue
         if rec.get("status") == "error" and retry_failed:
             continue  # run again whatever its schema
@@ -1098,9 +1152,18 @@ def run_sweep(
     args = [(r.run_id, r.cell.world_toml, r.seed) for r in todo]
     ran = raised = 0
     names = [r.run_id for r in todo]
+    mismatched = False
     for outcome in executor.map_unordered(run_task, args, names=names, waiting=waiting):
         run = todo[outcome.index]
         rec = _record(run, outcome.value if outcome.ok else None, outcome)
+        if WORKER_MISMATCH in rec and not mismatched:  # once: each such run says it too
+            mismatched = True
+            log.warning(
+                "sweep: %s (worker %s); its runs are stored as failed, in no table, and the"
+                " next call runs them again",
+                rec["error"],
+                rec.get("worker", "?"),
+            )
         if run.run_id in stale:  # kept for a comparison, out of runs/ and every table
             older_dir.mkdir(exist_ok=True)
             with contextlib.suppress(FileNotFoundError):

@@ -89,6 +89,11 @@ value may be null: no fix, no figure; the key is there)."""
 OLDER_RUNS_DIR = "older-runs"
 """In a sweep's folder: the run records of another results schema that a rerun replaced
 (:func:`sim_backend.sweep.stale_reason`), kept for a comparison and in no table."""
+WORKER_MISMATCH = "worker_mismatch"
+"""In a run record: the figures its worker's x6wd returned were not this x6wd's (another
+results schema, or some missing: "schema 1, without gps_* figures"). Such a run is stored as
+failed without them and run again by the next call (:func:`sim_backend.sweep.stale_reason`);
+the summary's version line leaves it out."""
 FIXED_COLUMNS = frozenset(RUN_COLUMNS) | frozenset(ARRIVAL_COLUMNS)
 """The tables' own columns: no parameter ([set] or [grid] key) may have one of these names
 (:func:`sim_backend.sweep.load_sweep` refuses it; :func:`param_keys` raises)."""
@@ -100,15 +105,18 @@ def _num(v: Any) -> float:
     return math.nan
 
 
-def record_schema(record: dict[str, Any]) -> int:
-    """A record's results schema: its ``"schema"``; a record without one (written before
-    2026-12-06) is of schema 2 when it has every :data:`RESULT_FIELDS` (the figures came on
-    2026-12-04) and a success, else of schema 1."""
+def record_schema(record: dict[str, Any]) -> int | None:
+    """A record's results schema: its ``"schema"``. A record without one (written before
+    2026-12-06) is of schema 2 when it is a success with every :data:`RESULT_FIELDS` (the
+    figures came on 2026-12-04), of schema 1 when it is a success without them; a run that
+    raised or was lost has no figures to tell its schema by: None (unknown, and no reason to
+    run it again: the ``retry_failed`` rules apply to it as to any error)."""
     schema = record.get("schema")
     if isinstance(schema, int) and not isinstance(schema, bool):
         return schema
-    has_all = all(k in record for k in RESULT_FIELDS)
-    return 2 if record.get("status") == "ok" and has_all else 1
+    if record.get("status") != "ok":
+        return None
+    return 2 if all(k in record for k in RESULT_FIELDS) else 1
 
 
 def path_ratio(rec: dict[str, Any]) -> float:
@@ -420,13 +428,18 @@ def _version_lines(records: Sequence[dict[str, Any]]) -> list[str]:
     """The summary's line about the x6wd (version, results schema) the runs come from: a
     resumed folder may hold runs of several versions of one schema (a schema's figures are
     the same ones; another schema's records are run again, never tabled here)."""
-    done = [r for r in records if r.get("status") in ("ok", "error")]
+    done = [  # a run whose task raised has no worker's word (no "worker"); nor is one of
+        # another x6wd's figures (WORKER_MISMATCH) in any table
+        r
+        for r in records
+        if r.get("status") in ("ok", "error") and "worker" in r and WORKER_MISMATCH not in r
+    ]
     if not done:
         return []
     unknown = "an x6wd that did not record its version (before 2026-12-06)"
     versions = Counter(str(r.get("x6wd_version") or unknown) for r in done)
-    schemas = sorted({str(record_schema(r)) for r in done})
-    schema = f"results schema {', '.join(schemas)}"
+    known = sorted({s for s in map(record_schema, done) if s is not None})
+    schema = f"results schema {', '.join(map(str, known)) or 'not recorded'}"
     if len(versions) == 1:
         return [f"- x6wd: every run by {next(iter(versions))} ({schema})"]
     listed = ", ".join(f"{v} ({n} run{'' if n == 1 else 's'})" for v, n in versions.items())
