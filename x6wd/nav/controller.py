@@ -167,12 +167,24 @@ def _finite(v: float | None) -> bool:
     return v is not None and math.isfinite(v)
 
 
+MEANINGLESS_HDOP = 20.0
+"""A fix whose HDOP is this or more is no fix: at a NEO-5's ~5 m range error that is ~100 m,
+the position-accuracy mask (NAV5 pAcc) above which a u-blox receiver reports none. Such fixes
+come from RMC alone in street canyons (HDOP 99.99, 1.7-3.5 km off). Counted as a fix they
+were weighted to nothing by the EKF yet kept the GPS "fresh", so a robot whose wheels
+under-count drove on past the geofence on HDOP-20 fixes (review 10b); as no fix, the robot
+holds after ``fix_stale_s`` as it does when the receiver reports none."""
+
+
 def has_usable_position(fix: GpsFix) -> bool:
     """The fix may steer the robot, centre or test the geofence: valid, with coordinates
-    present, finite and in range (the one rule the controller and the loop share)."""
+    present, finite and in range, and an HDOP (when given) under :data:`MEANINGLESS_HDOP`
+    (the one rule the controller and the loop share)."""
     lat, lon = fix.lat_deg, fix.lon_deg
+    hdop = fix.hdop
     return (
         fix.valid
+        and (hdop is None or not hdop >= MEANINGLESS_HDOP)
         and lat is not None
         and lon is not None
         and _finite(lat)
