@@ -506,9 +506,11 @@ def run_mission(
         now[0] = t_end
         runner.tick(t_end)
         if holds and holds[-1][1] < 0:
-            holds[-1][1] = t_end
+            holds[-1][1] = t_end  # (a hold begun by the last burst's fix counts: see below)
         if pauses and pauses[-1][1] < 0:
-            pauses[-1][1] = t_end
+            # where the run's time ends (sim_time_s, truth.csv's last row), not at the last
+            # burst's arrival half a tick later: the robot stood still that long, no longer
+            pauses[-1][1] = max(pauses[-1][0], float(trace.t[-1]))
         # the start-up wait is no hold (it was one in every run's summary); one the robot
         # never drove out of (the run ended in it) is
         startup_wait: list[float] | None = None
