@@ -423,6 +423,7 @@ class SerialMotorLink:
         self._set_port(port)
         self.encoders = EncoderUnwrap(max_counts_per_s)
         self._latch_requests = 0  # E lines written since the last valid encoder reading
+        self._write_s = clock()  # when the last command line was written (s, ``clock``)
         self.odometry_supported: bool | None = None
         self._refusal: str | None = None  # the payload of an ERR accepted by refusal_ok
         # Why the board restarted under a running link (EVT BOOT once up), until a stop()
@@ -575,21 +576,26 @@ class SerialMotorLink:
 
     def read_odometry(self) -> WheelOdometry | None:
         """Latch and read the wheel-encoder counts (``E``), unwrapped (:class:`EncoderUnwrap`)
-        and stamped with the host time of the reply; None without a valid answer. Like
-        every command it feeds the board's watchdog, so polling it is also a keep-alive.
+        and stamped (``t_s``) with the host time its answered request was written: the board
+        latches on receipt, a fraction of a millisecond later, while the reply may be read
+        tens of ms late (a host thread held up); stamped at the read, a late reply and the
+        next one read at once gave the EKF 20-180 ms of counts over a 0.5 ms span (43-540
+        m/s). None without a valid answer. Like every command it feeds the board's
+        watchdog, so polling it is also a keep-alive.
 
         A board that refuses ``E`` (``ERR``: a firmware without encoders) answered, so the
         refusal does not count against the link's health; :attr:`odometry_supported` is
         then False (True after a valid reading, None before either)."""
         self._refusal = None
-        # the board latches after this, at the latest when the reply comes: a host thread
-        # held up between a reply and its time stamp cannot shrink the interval bounded
-        sent_s = self._clock()
         reply = self._transact_reply("E", refusal_ok=True)
         if reply is None:
             if self._refusal is not None:
                 self.odometry_supported = False
             return None
+        # the board latched after the answered E was written (sent_s, the reading's stamp)
+        # and at the latest when its reply was read (t_s): a host thread held up between
+        # the reply and this line widens the interval EncoderUnwrap bounds, never shrinks it
+        sent_s = self._write_s
         t_s = self._clock()
         parsed = parse_encoder_payload(reply)
         if parsed is None:
@@ -604,7 +610,7 @@ class SerialMotorLink:
             self._encoder_new_baseline(parsed, t_s)
             if enc.verdict == "restart":
                 self._board_restarted("seen in the encoder reading", t_s)
-        return WheelOdometry(t_s, left, right, seq)
+        return WheelOdometry(sent_s, left, right, seq)
 
     def _encoder_new_baseline(self, reading: tuple[int, int, int], t_s: float) -> None:
         """A reading that starts a new baseline by itself (:class:`EncoderUnwrap`): a board
@@ -698,6 +704,7 @@ class SerialMotorLink:
                 if body == "E":  # each one the board takes latches (its latch number + 1)
                     self._latch_requests += 1
                 try:
+                    self._write_s = self._clock()  # an E's latch time (read_odometry)
                     self.port.write(f"{body} #{seq}\n".encode("ascii"))
                     self.counters.sent += 1
                     reply = self._await(seq)
@@ -974,9 +981,20 @@ class SerialMotorLink:
             if found is not None:
                 return found
             if self._clock() >= deadline:
-                return None
+                # the host may have been held up past the deadline with the reply already
+                # in the kernel buffer: take what waits, without blocking, before giving up
+                self._take_waiting()
+                return self._take_lines(seq)
             waiting = getattr(self.port, "in_waiting", 0) or 0
             self._take_chunk(self.port.read(max(1, min(int(waiting), 256))))
+            # a read that blocked for its first byte: the rest of the line came meanwhile
+            self._take_waiting()
+
+    def _take_waiting(self) -> None:
+        """Read (without blocking) everything the port holds now (``in_waiting`` bytes)."""
+        waiting = int(getattr(self.port, "in_waiting", 0) or 0)
+        if waiting > 0:
+            self._take_chunk(self.port.read(min(waiting, 4096)))
 
     def _take_lines(self, seq: int | None) -> tuple[bool, str] | None:
         """Handle the complete lines received: events acted on, the reply to ``seq``

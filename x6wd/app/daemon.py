@@ -456,16 +456,18 @@ class _MotorWorker:
 
     def _poll_odometry(self) -> None:
         """Read the encoders once (this thread owns the link: ``_busy`` is set)."""
-        now = time.monotonic()
-        # a fixed schedule, but no burst to catch up after a stall
         period_s = self.odometry_s if self.odometry_state == "polling" else ODOMETRY_RETRY_S
-        self._t_odo = max(self._t_odo + period_s, now)
         rec: WheelOdometry | None = None
         try:
             rec = self.link.read_odometry()
         except Exception as exc:  # a broken backend: no odometry, the motors carry on
             log.debug("reading the wheel encoders failed: %s", exc)
             rec = None
+        # A fixed schedule, but counted from AFTER the read, and at least half a period on:
+        # after a slow reply (a host held up) the next poll went out at once, and its
+        # reading, latched a fraction of a ms after the late one, made a near-zero span
+        now = time.monotonic()
+        self._t_odo = max(self._t_odo + period_s, now + 0.5 * period_s)
         if rec is not None:
             self._odo_fail_run = 0
             if self.odometry_state == "unavailable":

@@ -121,6 +121,12 @@ _DEV = (D1S, D1C, D2S, D2C)  # the compass deviation card: sin ψ, cos ψ, sin 2
 DRIFT_ALONG_DEG = 30.0
 DRIFT_ALONG_COS = math.cos(math.radians(DRIFT_ALONG_DEG))
 NX = 15
+# An odometry increment spanning less than this fraction of the median of the recent spans
+# (the poll period) is held back and merged into the next: a reply read late and the next
+# poll answered at once gave 20-180 ms of travel over a 0.2-1 ms span, and travel / span as
+# the speed (43-540 m/s for a 2.3 m/s robot) broke the fixes' gate
+ODO_SHORT_SPAN_FRACTION = 0.5
+ODO_SPAN_HISTORY = 9  # increments in that median
 _TWO_PI = 2.0 * math.pi
 _EYE = np.eye(NX)
 _EYE.flags.writeable = False  # copied, never written: np.eye per call cost more than the math
@@ -417,6 +423,9 @@ class Estimator:
         self._pending_fix: tuple[float, float, float, float] | None = None  # t, e, n, var
         self._pending_heading: tuple[float, float] | None = None  # t, psi
         self._t_odo: float | None = None  # end time of the last odometry increment
+        self._odo_spans: deque[float] = deque(maxlen=ODO_SPAN_HISTORY)  # recent spans (s)
+        self._odo_held: tuple[float, float, float] | None = None  # short increment: dl, dr, slip
+        self.odometry_merged = 0  # short increments merged into the next (ODO_SHORT_SPAN_*)
         self._cmd: tuple[float, float] | None = None  # commanded (speed m/s, yaw rate rad/s)
         self._odo_fresh = False  # odometry increments arrived within odometry_timeout_s
         self._bias_var_m2 = 0.0  # stationary variance of the GPS bias states, m²
@@ -630,10 +639,23 @@ class Estimator:
             raise EstimatorError(f"odometry: t_s must be finite, got {t_s!r}")
         self._est = None
         t0 = self._t_odo
+        if self._odo_held is not None:  # a short one held back: its travel goes with this one
+            dl, dr, slip_m = dl + self._odo_held[0], dr + self._odo_held[1], max(
+                slip_m, self._odo_held[2]
+            )
+            self._odo_held = None
+        if self._ready and t0 is not None and len(self._odo_spans) >= 3:
+            short_s = ODO_SHORT_SPAN_FRACTION * sorted(self._odo_spans)[len(self._odo_spans) // 2]
+            if 0.0 <= t1 - t0 < short_s:
+                self._odo_held = (dl, dr, slip_m)
+                self.odometry_merged += 1
+                return
         self._t_odo = t1 if t0 is None else max(t0, t1)
         if t0 is None or t1 <= t0:
             t0 = self._t if self._t is not None and self._t < t1 else t1
         span = t1 - t0
+        if 0.0 < span <= self.cfg.motion.odometry_timeout_s:
+            self._odo_spans.append(span)
         if self._t is None:
             self._t = t1
         if not self._ready:
