@@ -30,7 +30,10 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+from collections import deque
 from collections.abc import Callable, Coroutine, Iterable, Sequence
+from contextvars import ContextVar
+from dataclasses import replace
 from typing import Any
 
 from drivers.gps_nmea import NmeaSentence
@@ -78,6 +81,80 @@ itself and does not count in ``FENCE_FIXES_IN_ROW``; the estimate after it is ch
 
 Clock = Callable[[], float]
 """Seconds on one monotonic clock: ``time.monotonic`` on the robot, simulated time in fast time."""
+
+LOOP_LATE_WINDOW_S = 60.0
+"""``loop_status()["late_max_s"]``: the most a tick started late within this many seconds (s)."""
+LOOP_LATE_LOG_S = 10.0
+"""At most one "control loop late" warning per this many seconds (s); the rest are counted."""
+_STALE_HOLDS = {"attitude stale": "attitude", "fix stale": "fix"}
+"""The controller's holds on a sample too old, and which sample (its age in telemetry)."""
+
+_TICK_DUE: ContextVar[tuple[float, float] | None] = ContextVar("x6wd_tick_due", default=None)
+"""(due_s, period_s) of the step :func:`every` is calling now: :meth:`Runner.tick` learns
+how late it started through any wrapper (the daemon's locked ticks) without a parameter."""
+
+
+class LoopLateness:
+    """How late the control loop's ticks start against their schedule (s): the loop's own
+    lateness. A CPU-starved core shows here first: an outside audit (3 CPU hogs at nice -10
+    on the daemon's core) saw ticks 0.6 s late hold the robot on "attitude stale" while the
+    compass's samples sat in the loop's queue."""
+
+    def __init__(self, window_s: float = LOOP_LATE_WINDOW_S) -> None:
+        self.window_s = window_s
+        self.ticks = 0
+        self.overruns = 0
+        """Ticks that started more than one period late."""
+        self.late_holds = 0
+        """Stale-sensor holds that began while the loop was late (``Runner._late_note``)."""
+        self.period_s: float | None = None  # the ticks' period (s); None before the first
+        self.last_late_s = 0.0
+        self._peaks: deque[tuple[float, float]] = deque()  # (t_s, late_s), late decreasing
+        self._next_due_s: float | None = None  # the next tick's due time, at the latest (s)
+
+    def tick(self, t_s: float, due_s: float, period_s: float) -> float:
+        """A tick due at ``due_s`` started at ``t_s`` (s; ticks every ``period_s``): its
+        lateness (s, at least 0) is kept; returns it."""
+        late_s = max(0.0, t_s - due_s)
+        self.ticks += 1
+        self.period_s = period_s
+        self.last_late_s = late_s
+        if late_s > period_s:
+            self.overruns += 1
+        while self._peaks and self._peaks[-1][1] <= late_s:
+            self._peaks.pop()
+        self._peaks.append((t_s, late_s))
+        self._expire(t_s)
+        # every() starts its schedule afresh after a long stall: the next tick is due then
+        # at the latest, so between ticks the lateness read from it is never overstated
+        self._next_due_s = max(due_s + period_s, t_s)
+        return late_s
+
+    def overdue_s(self, now_s: float) -> float:
+        """How late the next tick is already at ``now_s`` (s; 0 on time or before any)."""
+        due_s = self._next_due_s
+        return 0.0 if due_s is None else max(0.0, now_s - due_s)
+
+    def max_s(self, now_s: float) -> float:
+        """The most a tick started late (s) within ``window_s`` before ``now_s``."""
+        self._expire(now_s)
+        return self._peaks[0][1] if self._peaks else 0.0
+
+    def status(self, now_s: float) -> dict[str, Any]:
+        """JSON-ready figures for ``status``'s ``loop``."""
+        return {
+            "tick_period_s": self.period_s,
+            "ticks": self.ticks,
+            "late_last_s": round(self.last_late_s, 4),
+            "late_max_s": round(self.max_s(now_s), 4),
+            "late_window_s": self.window_s,
+            "overruns": self.overruns,
+            "stale_holds_while_late": self.late_holds,
+        }
+
+    def _expire(self, now_s: float) -> None:
+        while self._peaks and self._peaks[0][0] < now_s - self.window_s:
+            self._peaks.popleft()
 
 
 def _nothing(*_args: Any) -> None:
@@ -142,6 +219,12 @@ class Runner:
             logging.getLogger("x6wd.core.health"), clock=clock
         )
         self._operator_log = RateLimitedLog(log, 1.0, clock)
+        self.loop = LoopLateness()
+        """The control loop's own lateness: ticks started late (see :meth:`loop_status`)."""
+        self._loop_log = RateLimitedLog(log, LOOP_LATE_LOG_S, clock)
+        self._tick_late_s: float | None = None  # the running tick's lateness (s)
+        self._raw_hold = ""  # the controller's hold reason in its latest telemetry
+        self._hold_note = ""  # what the runner adds to that hold's reason ("": nothing)
         self._drive_pct: tuple[float, float] | None = None  # the latest manual drive (%)
         self.last_telemetry: Telemetry | None = None
         self._compass_untrusted = False  # the controller's verdict, logged as it changes
@@ -304,14 +387,40 @@ class Runner:
 
     def tick(self, t_s: float | None = None) -> None:
         """Time passes (default: the clock): staleness and the dead-man are checked. A tick at
-        the very time of the controller's latest step is skipped: it would decide the same."""
+        the very time of the controller's latest step is skipped: it would decide the same.
+        Called by :func:`every`, how late it started is kept in :attr:`loop` first."""
         t = self.clock() if t_s is None else t_s
+        due = _TICK_DUE.get()  # called by every(): on a schedule whose lateness is measured
+        late_s = None if due is None else self.loop.tick(t, *due)
+        if due is not None and late_s is not None and late_s > due[1]:  # an overrun
+            self._loop_log.log(
+                "late",
+                logging.WARNING,
+                "control loop late by %.2f s (CPU starved?): a tick due every %.3g s; %d "
+                "ticks late by more than that so far",
+                late_s,
+                due[1],
+                self.loop.overruns,
+            )
         if t == self._t_stepped:
             return
-        self._check_estimate(t)
-        outputs = self.controller.tick(t)
-        self._t_stepped = t
-        self._handle(outputs, False)
+        self._tick_late_s = late_s
+        try:
+            self._check_estimate(t)
+            outputs = self.controller.tick(t)
+            self._t_stepped = t
+            self._handle(outputs, False)
+        finally:
+            self._tick_late_s = None
+
+    def loop_status(self) -> dict[str, Any]:
+        """The control loop's lateness for ``status``: the period of its ticks
+        (``tick_period_s``), how late the latest started (``late_last_s``) and the most one
+        started late within ``late_window_s`` (``late_max_s``), ticks late by more than a period
+        (``overruns``) and stale-sensor holds that began while it was late
+        (``stale_holds_while_late``); all s or counts. Without :func:`every` driving the
+        ticks (fast time) everything stays 0."""
+        return self.loop.status(self.clock())
 
     # -- operator requests --------------------------------------------------------------------
     def load_mission(self, waypoints: Sequence[Waypoint]) -> dict[str, Any]:
@@ -563,6 +672,7 @@ class Runner:
         """Route controller outputs. ``important`` (a fix or an operator request) forces the
         telemetry out; otherwise (compass samples, ticks) it is rate-limited for clients and
         the recorder, since the controller emits a snapshot on every input."""
+        outputs = self._note_late_hold(outputs)
         changes: list[StateChange] = []
         for out in outputs:
             if type(out) is MotorCommand:
@@ -629,6 +739,53 @@ class Runner:
         if self._observe is not None:
             self._observe(outputs, important)
 
+    def _note_late_hold(self, outputs: list[Any]) -> list[Any]:
+        """A hold on a stale sample that began while the control loop itself was late gets
+        "(the control loop itself was X s late: CPU starved?)" in its state change's reason
+        and, while it lasts, in telemetry's ``hold_reason``: the sample may be in the loop's
+        queue, its sensor fine (outside audit: 21 such holds, each read as a compass fault).
+        Judged when the hold begins."""
+        tels = [o for o in outputs if type(o) is Telemetry]
+        if not tels:
+            return outputs
+        hold = tels[-1].hold_reason
+        if hold != self._raw_hold:
+            self._raw_hold = hold
+            self._hold_note = self._late_note(tels[-1])
+        note = self._hold_note
+        if not note:
+            return outputs
+        marked: list[Any] = []
+        for out in outputs:
+            if type(out) is Telemetry and out.hold_reason == hold:
+                out = replace(out, hold_reason=hold + note)
+            elif type(out) is StateChange and out.new == "HOLD" and out.reason == f"state: {hold}":
+                out = replace(out, reason=out.reason + note)
+            marked.append(out)
+        return marked
+
+    def _late_note(self, tel: Telemetry) -> str:
+        """The note for a hold beginning in ``tel`` ("": none). Only for a stale sample, and
+        only when the loop was late by more than a tick period and by at least the sample's
+        excess over its limit (``safety.attitude_stale_s`` or ``fix_stale_s``): when the
+        tick was due the sample was still fresh, so the hold became due while the loop
+        stood still. A sensor already stale then is left to its own reason."""
+        kind = _STALE_HOLDS.get(tel.hold_reason)
+        period_s = self.loop.period_s
+        if kind is None or period_s is None:
+            return ""
+        if kind == "attitude":
+            age_s, limit_s = tel.attitude_age_s, self.safety.attitude_stale_s
+        else:
+            age_s, limit_s = tel.fix_age_s, self.safety.fix_stale_s
+        late_s = self._tick_late_s
+        if late_s is None:  # decided on an input between ticks: how overdue the next one is
+            late_s = self.loop.overdue_s(self.clock())
+        if age_s is None or late_s <= period_s or late_s < age_s - limit_s:
+            return ""
+        self.loop.late_holds += 1
+        return f" (the control loop itself was {late_s:.2f} s late: CPU starved?)"
+
     def _watch_resets(self, tel: Telemetry) -> None:
         """Log each EKF reset (the estimate moved to fixes it had refused until they agreed)
         with how far it moved: a warning from ``gps_jump_m`` on (the jump failsafe's size,
@@ -680,10 +837,15 @@ FIRST_FIX_GRACE_S = 60.0
 async def every(period_s: float, clock: Clock, step: Callable[[float], None]) -> None:
     """Call ``step(now_s)`` every ``period_s`` (s) on the running event loop, on a fixed
     schedule; after a stall longer than a period (suspend, a slow callback) it starts afresh
-    instead of bursting to catch up."""
+    instead of bursting to catch up. During ``step`` the time it was due and the period are
+    in ``_TICK_DUE`` (the runner's tick measures its lateness with them)."""
     t_next = clock()
     while True:
-        step(clock())
+        due = _TICK_DUE.set((t_next, period_s))  # how late this step starts: see Runner.tick
+        try:
+            step(clock())
+        finally:
+            _TICK_DUE.reset(due)
         t_next += period_s
         delay_s = t_next - clock()
         if delay_s < -period_s:
