@@ -685,6 +685,10 @@ def test_status_shows_the_odometry_and_the_declination(tmp_path: Path, run_daemo
             "reason": "the motor backend has no wheel encoders",
         }  # fmt: skip
         assert st["declination"]["source"] == "wmm"  # [compass] declination_deg absent
+        # the control loop's own lateness (a CPU-starved host; outside audit 10e)
+        loop = wait_for(lambda: (s := status(c)["loop"])["ticks"] and s, 10, "ticks counted")
+        assert loop["tick_period_s"] > 0 and loop["late_window_s"] == 60.0
+        assert {"late_last_s", "late_max_s", "overruns", "stale_holds_while_late"} <= set(loop)
     assert r.stop() == 0
 
 

@@ -1930,6 +1930,9 @@ class Daemon:
             "gps_week_rollover": self._week_rollover_status(),
             # [gps] configure_receiver's UBX answers, and the fix rate measured against rate_hz
             "gps_receiver": self._gps_receiver_status(),
+            # the control loop's own lateness (a CPU-starved core) and the stale-sensor holds
+            # that began while it stood still (docs/navigation.md)
+            "loop": self.runner.loop_status() if self.runner is not None else None,
             # bind keys listening beyond loopback in clear text (server.allow_plaintext)
             "plaintext_beyond_loopback": list(self._plaintext),
             # the web console's counts (dead-man stops, drives refused late or after another

@@ -141,12 +141,16 @@ class LoopLateness:
         return self._peaks[0][1] if self._peaks else 0.0
 
     def status(self, now_s: float) -> dict[str, Any]:
-        """JSON-ready figures for ``status``'s ``loop``."""
+        """JSON-ready figures for ``status``'s ``loop``. Read-only: the daemon calls it from
+        its network thread while the control thread ticks (a snapshot of the peaks, taken
+        in one C call, is read; nothing is expired here)."""
+        peaks = tuple(self._peaks)
+        late_max_s = max((late for t, late in peaks if t >= now_s - self.window_s), default=0.0)
         return {
             "tick_period_s": self.period_s,
             "ticks": self.ticks,
             "late_last_s": round(self.last_late_s, 4),
-            "late_max_s": round(self.max_s(now_s), 4),
+            "late_max_s": round(late_max_s, 4),
             "late_window_s": self.window_s,
             "overruns": self.overruns,
             "stale_holds_while_late": self.late_holds,
