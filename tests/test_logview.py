@@ -253,6 +253,15 @@ def test_a_hold_on_data_the_controller_refused_is_a_device_fault(
     assert [(f["lane"], f["t0_s"], f["t1_s"]) for f in data["faults"]] == [(lane, 2.0, 4.0)]
 
 
+def test_a_hold_of_a_late_control_loop_is_no_device_fault(tmp_path: Path) -> None:
+    # the runner marks a stale-sensor hold that began while the loop itself stood still (a
+    # CPU-starved core, outside audit 10e): the compass was on time, so no compass fault
+    path = tmp_path / "r.jsonl"
+    _recorded(path, "attitude stale (the control loop itself was 0.60 s late: CPU starved?)")
+    data = page_data(logview.render_html(path))
+    assert data["faults"] == []
+
+
 def test_device_faults_recorded_by_the_loop(tmp_path: Path) -> None:
     # The loop records every health event it is handed (x6wd.loop.runner -> Recorder); the
     # page draws a device's time away from "connected", whatever the robot was doing.

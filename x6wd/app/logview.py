@@ -1219,7 +1219,11 @@ controller saw of the data itself (no valid fix, a stale fix, an out-of-range at
 
 
 def _device_of(reason: str) -> str | None:
-    """The device a hold reason names (:data:`_HOLD_DEVICES`), or None."""
+    """The device a hold reason names (:data:`_HOLD_DEVICES`), or None; None too for a
+    stale-sensor hold the runner marks as the control loop's own lateness ("the control loop
+    itself was X s late: CPU starved?"): the device's samples were on time."""
+    if "the control loop itself was" in reason:
+        return None
     for prefix, dev in _HOLD_DEVICES:
         if reason.startswith(prefix):
             return dev
