@@ -396,8 +396,8 @@ def run_mission(
     def load_at_first_fix(fix: GpsFix) -> None:
         # As an operator does: load the mission once the robot has a fix (the geofence is
         # centred on it unless configured) and start it.
-        if mission_state["loaded"] or not fix.valid:
-            return
+        if mission_state["loaded"] or not has_usable_position(fix):
+            return  # the runner centres the fence on a usable fix only (HDOP < 20)
         mission_state["loaded"] = True
         try:
             runner.load_mission(waypoints)

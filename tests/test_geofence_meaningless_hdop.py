@@ -14,6 +14,7 @@ travel; a fix every whole second at the true position.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -78,3 +79,23 @@ def test_the_rule() -> None:
     assert not has_usable_position(replace(fix, hdop=20.0))
     assert not has_usable_position(replace(fix, hdop=99.99))
     assert has_usable_position(replace(fix, hdop=None))
+
+
+def test_the_log_says_the_fixes_were_refused_for_their_hdop(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # review 10c: "the receiver reports no position" while it reported positions every second
+    bot = Robot()
+    bot.fix(0.0)
+    with caplog.at_level(logging.WARNING, logger="x6wd.loop.runner"):
+        for k in range(1, 6):
+            bot.now = float(k)
+            bot.fix(0.0, hdop=25.0)
+            bot.runner.attitude(Attitude(bot.now, 0.0, 0.0, 0.0))
+    assert bot.runner.fix_refused_hdop == 25.0
+    text = " ".join(r.getMessage() for r in caplog.records)
+    assert "no valid fix" in text and "HDOP 25.0" in text, text
+    assert "reports no position" not in text
+    bot.now = 6.0
+    bot.fix(0.0)
+    assert bot.runner.fix_refused_hdop is None

@@ -1857,11 +1857,13 @@ class Daemon:
             age_s = tel.fix_age_s
             if age_s is None or age_s > stale_s:
                 since = "since start-up" if age_s is None else f"for {age_s:.0f} s"
-                out["gps"] = {
-                    **gps,
-                    "state": "degraded",
-                    "reason": f"no valid fix {since}: the receiver reports no position",
-                }
+                hdop = self.runner.fix_refused_hdop if self.runner is not None else None
+                what = (
+                    "the receiver reports no position"
+                    if hdop is None
+                    else f"the receiver's fixes have HDOP {hdop:.1f} (20 or more: no position)"
+                )
+                out["gps"] = {**gps, "state": "degraded", "reason": f"no valid fix {since}: {what}"}
         out["odometry"] = self._odometry_status()
         return out
 

@@ -55,7 +55,7 @@ from x6wd.core.records import (
     Telemetry,
     WheelOdometry,
 )
-from x6wd.nav.controller import Controller, has_usable_position
+from x6wd.nav.controller import MEANINGLESS_HDOP, Controller, has_usable_position
 from x6wd.nav.declination import DeclinationError, declination_deg
 
 log = logging.getLogger("x6wd.loop.runner")
@@ -73,12 +73,6 @@ FENCE_FIXES_IN_ROW = 3
 """Usable fixes in a row outside the geofence that are a breach whatever the EKF and the
 estimate say (each within ``safety.fix_stale_s`` of the one before: at 1 Hz the third comes
 2 s after the first). Catches a robot really outside whose estimate refuses to follow."""
-FENCE_MEANINGLESS_HDOP = 20.0
-"""A fix with an HDOP from this on says nothing about where the robot is: a receiver reports
-99.99 for a solution without usable geometry (an outside audit: three such fixes in a row,
-1-3.5 km off in a street canyon, paused a robot 68 m from its start). It is no breach by
-itself and does not count in ``FENCE_FIXES_IN_ROW``; the estimate after it is checked."""
-
 Clock = Callable[[], float]
 """Seconds on one monotonic clock: ``time.monotonic`` on the robot, simulated time in fast time."""
 
@@ -165,12 +159,6 @@ def _nothing(*_args: Any) -> None:
     return None
 
 
-def _meaningless(fix: GpsFix) -> bool:
-    """The fix's own HDOP says its position means nothing (see ``FENCE_MEANINGLESS_HDOP``);
-    no HDOP given is not taken for a bad one."""
-    return fix.hdop is not None and fix.hdop >= FENCE_MEANINGLESS_HDOP
-
-
 def _metres_beyond(d_m: float, limit_m: float, least: int = 0) -> str:
     """``d_m`` (m, beyond ``limit_m``) with the fewest decimals (``least`` to 6) that still
     read beyond the limit: "102" past 100, "15.03" past 15, never "15" past 15."""
@@ -246,6 +234,7 @@ class Runner:
         self._last_pos: tuple[float, float] | None = None  # latest valid fix (lat, lon deg)
         self._last_pos_t: float | None = None  # its time (s)
         self._fix_usable = False  # the latest fix record had a usable position
+        self._fix_hdop_refused: float | None = None  # its HDOP when only that refused it
         self._t_fence_est = -math.inf  # the latest geofence check of the estimate (s)
         self._fence_run = 0  # usable fixes in a row outside the geofence
         self._fence_run_t: float | None = None  # the latest of them (s)
@@ -271,6 +260,11 @@ class Runner:
             self.stats["fixes"] += 1
             self._record("record_fix", rec)
             self._fix_usable = has_usable_position(rec)
+            hdop = rec.hdop
+            refused_for_hdop = (
+                not self._fix_usable and hdop is not None and hdop >= MEANINGLESS_HDOP
+            )
+            self._fix_hdop_refused = hdop if refused_for_hdop and rec.valid else None
             refused_before = self._ekf_refused()  # None: the source takes every fix
             if self._fix_usable:
                 assert rec.lat_deg is not None and rec.lon_deg is not None
@@ -416,6 +410,12 @@ class Runner:
             self._handle(outputs, False)
         finally:
             self._tick_late_s = None
+
+    @property
+    def fix_refused_hdop(self) -> float | None:
+        """The latest fix record's HDOP when the receiver called it valid and only its HDOP
+        (20 or more, ``MEANINGLESS_HDOP``) made it no fix; else None."""
+        return self._fix_hdop_refused
 
     def loop_status(self) -> dict[str, Any]:
         """The control loop's lateness for ``status``: the period of its ticks
@@ -586,12 +586,10 @@ class Runner:
     def _fence_before_fix(self, fix: GpsFix) -> tuple[str, float, str] | None:
         """Count the run of fixes outside the fence (``fix`` among them); the
         ``FENCE_FIXES_IN_ROW``-th is a breach before the fix can steer, whatever the EKF and
-        the estimate say. A meaningless fix (``FENCE_MEANINGLESS_HDOP``) says nothing about
-        where the robot is: it neither counts nor ends a run. Returns the breach (reason,
-        metres out, log detail)."""
+        the estimate say. Only usable fixes come here: one with HDOP 20 or more
+        (``x6wd.nav.controller.MEANINGLESS_HDOP``) is no fix, neither counts nor ends a run.
+        Returns the breach (reason, metres out, log detail)."""
         assert fix.lat_deg is not None and fix.lon_deg is not None
-        if _meaningless(fix):
-            return None
         d = self._outside_m(fix.lat_deg, fix.lon_deg)
         if d is None:
             self._fence_run = 0
@@ -611,14 +609,14 @@ class Runner:
 
     def _fence_after_fix(self, fix: GpsFix, taken: bool | None) -> tuple[str, float, str] | None:
         """After ``fix`` stepped the controller (its motor commands not yet sent): a breach
-        when the fix lies outside, is meaningful (see ``FENCE_MEANINGLESS_HDOP``) and the
-        EKF took it (``taken``; None: a source that takes every fix, judged before the
-        step), or when the estimate the controller now steers by lies outside."""
+        when the fix lies outside (a usable one: HDOP under 20) and the EKF took it
+        (``taken``; None: a source that takes every fix, judged before the step), or when the
+        estimate the controller now steers by lies outside."""
         if not self._fence_armed():
             return None
         assert fix.lat_deg is not None and fix.lon_deg is not None
         d = self._outside_m(fix.lat_deg, fix.lon_deg)
-        if d is not None and taken and not _meaningless(fix):
+        if d is not None and taken:
             return "geofence breach", d, ""
         tel = self.controller.telemetry
         if tel.filt_lat_deg is None or tel.filt_lon_deg is None:
@@ -825,11 +823,18 @@ class Runner:
         limit_s = self.safety.fix_stale_s if age_s is not None else FIRST_FIX_GRACE_S
         if not self._no_fix_warned and tel.t_s - self._no_fix_since > limit_s:
             self._no_fix_warned = True
+            hdop = self._fix_hdop_refused
+            why = (
+                "the receiver reports no position: searching, or the sky blocked"
+                if hdop is None
+                else f"the receiver's fixes have HDOP {hdop:.1f}: from {MEANINGLESS_HDOP:g} on"
+                " a position means nothing (street canyon, few satellites)"
+            )
             log.warning(
-                "gps: no valid fix for %.1f s%s (the receiver reports no position: searching,"
-                " or the sky blocked)",
+                "gps: no valid fix for %.1f s%s (%s)",
                 tel.t_s - self._no_fix_since,
                 " since start-up" if age_s is None else "",
+                why,
             )
 
 
