@@ -141,6 +141,16 @@ def test_no_fix_epochs_are_not_counted_as_unreadable(tmp_path: Path) -> None:
     assert track.skipped == 0 and track.t_ref_s.size == len(fixes)
 
 
+def test_a_fix_with_hdop_20_or_more_is_no_reference() -> None:
+    # the robot takes such a fix for none (x6wd.nav.controller.MEANINGLESS_HDOP): a
+    # receiver's 99.99 is a solution without geometry, km off in a street canyon
+    odo, fixes = simulate(STRAIGHT, 1)
+    wild = [dataclasses.replace(f, t_s=f.t_s + 0.5, lat_deg=f.lat_deg + 0.02, hdop=99.99)
+            for f in fixes[::10]]  # fmt: skip
+    track = Track.from_records(odo, [*fixes, *wild], ORIGIN)
+    assert track.t_ref_s.size == len(fixes)
+
+
 def test_passes_are_the_motion_between_stops() -> None:
     odo, fixes = simulate(STRAIGHT[:5], 3)
     passes, dropped = find_passes(Track.from_records(odo, fixes, ORIGIN))

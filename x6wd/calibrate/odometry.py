@@ -56,6 +56,7 @@ from x6wd.core.config import OdometryConfig, build
 from x6wd.core.errors import ConfigError, ParseError
 from x6wd.core.recorder import ReadStats, decode_record, read_recording_parts
 from x6wd.core.records import GpsFix, WheelOdometry
+from x6wd.nav.controller import has_usable_position
 from x6wd.nav.geo import LocalTangentPlane
 
 Array = npt.NDArray[np.float64]
@@ -82,9 +83,10 @@ class Track:
     def from_records(
         cls, odometry: list[WheelOdometry], fixes: list[GpsFix], origin: tuple[float, float] | None
     ) -> Track:
-        """From decoded records; fixes that are not valid or lack a position are dropped;
-        the plane's origin is ``origin`` or the first usable fix."""
-        good = [f for f in fixes if f.valid and f.lat_deg is not None and f.lon_deg is not None]
+        """From decoded records; fixes the robot could not use are dropped (not valid, no
+        position, HDOP 20 or more: :func:`x6wd.nav.controller.has_usable_position`); the
+        plane's origin is ``origin`` or the first usable fix."""
+        good = [f for f in fixes if has_usable_position(f)]
         if len(odometry) < 2:
             raise ParseError("no odometry: the recording holds fewer than 2 odometry records")
         if len(good) < 2:
