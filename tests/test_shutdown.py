@@ -63,7 +63,16 @@ class StampedLink(LogMotorLink):
 
 
 @pytest.fixture
-def stamped(monkeypatch: pytest.MonkeyPatch) -> Callable[[], StampedLink]:
+def stamped(monkeypatch: pytest.MonkeyPatch) -> StampedLink:
+    """The :class:`StampedLink` every daemon of the test gets as its motor link (other test
+    files import this fixture)."""
+    link = StampedLink()
+    monkeypatch.setattr(registry, "open_motors", lambda url, devices=None, **_kw: link)
+    return link
+
+
+@pytest.fixture
+def fresh_stamped(monkeypatch: pytest.MonkeyPatch) -> Callable[[], StampedLink]:
     """A fresh :class:`StampedLink` for the next daemon each call (its motor link)."""
 
     def fresh() -> StampedLink:
@@ -97,10 +106,10 @@ def best_of_three(tmp_path: Path, stop_latency_s: Callable[[Path], float]) -> No
 
 
 def test_stop_request_while_driving_stops_the_motors_within_50_ms(
-    tmp_path: Path, run_daemon, stamped: Callable[[], StampedLink]
+    tmp_path: Path, run_daemon, fresh_stamped: Callable[[], StampedLink]
 ) -> None:
     def stop_latency_s(run_dir: Path) -> float:
-        link = stamped()
+        link = fresh_stamped()
         r = run_daemon(Daemon(log_motors_config(run_dir)))
         with RemoteClient("127.0.0.1", r.port) as c:  # open: the robot stops a drive left alone
             c.request("drive", left=40, right=40, duration_s=5)
@@ -133,10 +142,10 @@ class ExplodingDaemon(Daemon):
 
 
 def test_unexpected_exception_while_driving_stops_the_motors_within_50_ms(
-    tmp_path: Path, run_daemon, stamped: Callable[[], StampedLink]
+    tmp_path: Path, run_daemon, fresh_stamped: Callable[[], StampedLink]
 ) -> None:
     def stop_latency_s(run_dir: Path) -> float:
-        link = stamped()
+        link = fresh_stamped()
         d = ExplodingDaemon(log_motors_config(run_dir))
         r = run_daemon(d)
         with RemoteClient("127.0.0.1", r.port) as c:  # open: the robot stops a drive left alone
