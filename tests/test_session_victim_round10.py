@@ -144,3 +144,94 @@ def test_a_full_gpsd_port_closes_an_idle_session_before_a_live_watcher(lt: LoopT
         for s in socks:
             s.close()
         lt.run(srv.close())
+
+
+# -- review 10c of cd61371: kind first everywhere let a storm close other addresses' sessions --
+def test_a_gpsd_storm_of_watchers_from_one_address_closes_its_own_not_an_idle_client(
+    lt: LoopThread,
+) -> None:
+    """The review's case, max_clients 3: a client on one address asked ``?VERSION`` once; three
+    never-reading watchers from another address join. The third closes one of its own
+    address's, the idle client is served on (before: it was closed, being the cheapest
+    kind, and so was every non-watcher by each further storm connection)."""
+    srv = GpsdServer("127.0.0.1", 0, "/dev/ttyS0", max_clients=3)
+    lt.run(srv.start())
+    watch = b'?WATCH={"enable":true,"json":true};\n'
+    socks: list[socket.socket] = []
+    try:
+        poller = connect(srv.port, OPERATOR_HOST, b"?VERSION;\n")
+        socks.append(poller)
+        admitted(lt, srv, 1)
+        for n in (2, 3, 4):
+            socks.append(connect(srv.port, OTHER_HOST, watch))
+            admitted(lt, srv, n)
+        hosts = lt.call(lambda: sorted(c.host for c in srv._sessions))
+        assert hosts == [OPERATOR_HOST, OTHER_HOST, OTHER_HOST], hosts
+        poller.sendall(b"?DEVICES;\n")
+        got = read_lines_until(poller, lambda ln: b"DEVICES" in ln or b"closing" in ln, 5.0)
+        assert b'"class":"DEVICES"' in got, got
+    finally:
+        for s in socks:
+            s.close()
+        lt.run(srv.close())
+
+
+def test_an_operator_from_a_fresh_address_keeps_its_session_through_a_watcher_storm(
+    lt: LoopThread,
+) -> None:
+    """max_clients 3 full of never-reading watchers from one address; an operator from a
+    fresh address authenticates (not watching) and gets in, closing one of them; three more
+    storm connections close their own address's, the operator's session answers on
+    (before: the next storm connection closed it, the cheapest kind)."""
+    srv = ControlServer(ServerConfig(port=0, max_clients=3), RecordingBackend(),
+                        token=TOKEN.encode())  # fmt: skip
+    lt.run(srv.start())
+    storm = AUTH + line(id=2, cmd="watch", on=True)
+    socks: list[socket.socket] = []
+    try:
+        for n in (1, 2, 3):
+            socks.append(connect(srv.port, OTHER_HOST, storm))
+            admitted(lt, srv, n)
+        op = connect(srv.port, NEW_HOST, AUTH)
+        socks.append(op)
+        admitted(lt, srv, 4)
+        assert lt.call(lambda: sorted(c.host for c in srv._sessions)) == [
+            OTHER_HOST, OTHER_HOST, NEW_HOST]  # fmt: skip
+        for n in (5, 6, 7):
+            socks.append(connect(srv.port, OTHER_HOST, storm))
+            admitted(lt, srv, n)
+        hosts = lt.call(lambda: sorted(c.host for c in srv._sessions))
+        assert hosts == [OTHER_HOST, OTHER_HOST, NEW_HOST], hosts
+        op.sendall(line(id=3, cmd="status"))
+        assert reply_to(op, 3)["ok"] is True
+    finally:
+        for s in socks:
+            s.close()
+        lt.run(srv.close())
+
+
+def test_an_operator_from_a_fresh_address_gets_in_when_every_address_holds_one_session(
+    lt: LoopThread,
+) -> None:
+    """max_clients 2, one idle session on each of two addresses: the operator's address
+    ties as the busiest (one, counted) but has no session of its own to close, so the
+    one idle longest goes and the operator gets in."""
+    srv = ControlServer(ServerConfig(port=0, max_clients=2), RecordingBackend(),
+                        token=TOKEN.encode())  # fmt: skip
+    lt.run(srv.start())
+    socks: list[socket.socket] = []
+    try:
+        for n, host in enumerate((OPERATOR_HOST, OTHER_HOST), start=1):
+            socks.append(connect(srv.port, host, AUTH))
+            admitted(lt, srv, n)
+        op = connect(srv.port, NEW_HOST, AUTH)
+        socks.append(op)
+        admitted(lt, srv, 3)
+        hosts = lt.call(lambda: sorted(c.host for c in srv._sessions))
+        assert hosts == [OTHER_HOST, NEW_HOST], hosts
+        op.sendall(line(id=3, cmd="status"))
+        assert reply_to(op, 3)["ok"] is True
+    finally:
+        for s in socks:
+            s.close()
+        lt.run(srv.close())

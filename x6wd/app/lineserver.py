@@ -23,13 +23,15 @@ gpsd port: one valid command). The two live in separate pools:
   is seen, and those must not crowd out live sessions. If it is still full the peer being
   admitted closes a session, never a protected one (:meth:`LineServer._protected`: on the
   control port the one whose manual drive runs, whose close would stop the robot), unless
-  every session is. The least valuable goes: a session not watching before a watcher that
-  is behind (not reading for a while) before one that keeps up; within the same kind, one
-  of the address holding the most sessions (the admitted one counted: a storm from one
-  address closes its own, not another address's watcher); then the one idle longest among
-  those not watching, the watcher most behind (blocked in ``drain()`` or its data
-  unacknowledged longest, then most events queued), the newest watcher that keeps up (an
-  established reader outlives one just admitted).
+  every session is. If no address holds more sessions than the admitted peer's (it
+  counted), one of that address's own goes (a storm from one address closes its own);
+  otherwise, or if it has none to close, a session of any address: a session not watching
+  before a watcher that is behind (not reading for a while) before one that keeps up,
+  within the same kind one of the address holding the most sessions. Within that, the
+  least valuable goes: the one idle longest among those not watching, the watcher most
+  behind (blocked in ``drain()`` or its data unacknowledged longest, then most events
+  queued), the newest watcher that keeps up (an established reader outlives one just
+  admitted).
 
 One sweeper task per server enforces the deadlines: pending longer than
 ``pending_timeout_s``, a session neither watching nor sending a line for ``idle_timeout_s``,
@@ -524,22 +526,30 @@ class LineServer(Generic[C]):
 
     def _session_victim(self, admitted: C) -> C:
         """The session to close for ``admitted``: never a :meth:`_protected` one (unless all
-        are: ``max_clients`` 1), the least valuable kind first (:meth:`_victim_key`), then
-        one of the address holding the most sessions (``admitted`` counted with its own),
-        then the rest of the key. The address came first in fdb4cad (a storm of never-reading
-        watchers from one address closed a watcher from another, the newest); it then closed
-        an operator's driving session, on the address of its own watcher, before an idle
-        session elsewhere, and the dead-man stopped the drive (review of fdb4cad)."""
+        are: ``max_clients`` 1). If no address holds more sessions than ``admitted``'s (it
+        counted with its own), one of that address's own by :meth:`_victim_key`: a storm
+        from one address closes its own (fdb4cad), also where the cheapest session is
+        another address's idle one (cd61371 put kind first everywhere, so each connection of
+        a watcher storm closed a non-watching client elsewhere: review 10c). Otherwise, or
+        if it has none to close, the least valuable kind first, then the address holding
+        the most sessions, then the rest of the key: an idle session anywhere goes before a
+        live watcher, and a peer from a fresh address (none of its own) closes another's
+        (cd61371: the address first closed a driving operator's session, its own watcher
+        making the address the busiest, before an idle one elsewhere)."""
         per_host = collections.Counter(s.host for s in self._sessions)
         per_host[admitted.host] += 1
-        candidates = [s for s in self._sessions if not self._protected(s)]
+        candidates = [s for s in self._sessions if not self._protected(s)] or list(self._sessions)
         now = self._clock()
+        if per_host[admitted.host] == max(per_host.values()):
+            own = [s for s in candidates if s.host == admitted.host]
+            if own:
+                return min(own, key=lambda s: self._victim_key(s, now))
 
         def key(s: C) -> tuple[int, int, float, float]:
             kind, first, second = self._victim_key(s, now)
             return (kind, -per_host[s.host], first, second)
 
-        return min(candidates or self._sessions, key=key)
+        return min(candidates, key=key)
 
     def _protected(self, c: C) -> bool:
         """A session a full pool must not close to make room (the control port: the one
