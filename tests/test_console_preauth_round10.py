@@ -7,7 +7,9 @@ and sent once the auth succeeds (refused, saying why, if it fails or a stop come
 a close's reason is shown. The real daemon (``sim://`` devices) with a token, its console on
 127.0.0.1, Debian's headless chromium (helpers from tests/test_console.py). The seam that
 slows the page's auth is the daemon's own: an address that failed too often has every
-``auth`` evaluated only after ``auth_fail_delay_s``."""
+``auth`` evaluated only after ``auth_fail_delay_s``. A review of c998465: the held Send's reply
+then comes seconds after the click, and it marked the draft "sent", dropping an edit made
+meanwhile; now only a draft still as sent is taken as on the robot."""
 
 from __future__ import annotations
 
@@ -202,3 +204,106 @@ def test_a_close_for_a_message_too_big_before_auth_says_why(
     assert "disconnected: " + why in js(browser, "return window.seen.conn")
     # and it connects again, asking for the token
     wait_for(lambda: text(browser, "conn") == "token needed", 10, "reconnected")
+
+
+def reconnect_with_slow_auth(d: webdriver.Chrome, r: Running) -> None:
+    """The link drops; the page reconnects and its own ``auth`` is in flight, slowed to
+    ``AUTH_DELAY_S``; every text the message line shows is kept from here on."""
+    slow_auth_from_here(r)
+    js(d, "window.oldWs = x6wd.ws; window.oldInfo = x6wd.info; x6wd.ws.close()")
+    wait_for(
+        lambda: js(
+            d,
+            "return x6wd.ws !== window.oldWs && x6wd.info !== window.oldInfo"
+            " && x6wd.pending.size > 0 && !x6wd.authed",
+        ),
+        15, "the reconnected page's auth in flight",
+    )  # fmt: skip
+    js(d, WATCH)
+
+
+def test_an_edit_made_while_send_is_held_is_kept_and_the_page_says_it_is_not_sent(
+    robot: Running, browser: webdriver.Chrome
+) -> None:
+    # review of c998465: the held Send's reply came 3 s after the click and set the page to
+    # "not edited", so an edit made meanwhile was dropped and the old mission shown as sent
+    n = 170
+    draft = [north(0.2 * i, float(i % 10)) for i in range(n)]
+    open_page(browser, robot, f"#token={TOKEN}")
+    page_ready(browser)
+    js(browser, "x6wd.draft = arguments[0]; x6wd.dirty = true;", draft)
+    # the list drawn for it (as after an edit), so its rows' delete buttons are there
+    js(browser, "document.getElementById('wp-list').dispatchEvent(new Event('scroll'))")
+    reconnect_with_slow_auth(browser, robot)
+    js(
+        browser,
+        "document.getElementById('wp-list').addEventListener('click',"
+        " () => { window.authedAtEdit = x6wd.authed; }, { capture: true })",
+    )
+    browser.find_element(By.ID, "btn-send").click()  # a real click: held
+    # the operator deletes waypoint 1 while it waits (the row's x button, a real click)
+    browser.find_element(By.CSS_SELECTOR, "#wp-rows button[data-i='0']").click()
+    assert js(browser, "return window.authedAtEdit") is False, "edited after the auth"
+    seen = js(browser, "return window.seen.msg")
+    assert any(m.startswith("mission.load: waiting for the token") for m in seen), seen
+    # the robot gets the mission as clicked (held requests are sent as they were asked for)
+    wait_for(lambda: len(robot.daemon._mission) == n, 20, "the mission on the robot")
+    for got, want in zip(robot.daemon._mission, draft, strict=True):
+        assert got == pytest.approx(tuple(want), abs=1e-9)
+    # once the reply and the robot's map event are in, the edit is still there, not sent
+    wait_for(
+        lambda: js(
+            browser,
+            "return x6wd.map.waypoints.length === arguments[0]"
+            " && window.seen.msg.some((m) => m.startsWith('mission.load: ok'))",
+            n,
+        ),
+        15, "the reply and the map event",
+    )  # fmt: skip
+    assert js(browser, "return x6wd.dirty") is True
+    kept = js(browser, "return x6wd.draft")
+    assert len(kept) == n - 1
+    for got, want in zip(kept, draft[1:], strict=True):
+        assert got == pytest.approx(want, abs=1e-12)
+    assert text(browser, "mission-state") == f"{n - 1} waypoints, edited: not sent"
+    said = [m for m in js(browser, "return window.seen.msg") if m.startswith("mission.load: ok")]
+    assert len(said) == 2, said  # "ok", then at once what the robot has
+    assert said[-1].startswith("mission.load: ok, but the robot has the mission as sent at "), said
+    assert f"({n} waypoints): your edits since are not sent" in said[-1], said
+    # and Send sends the edit
+    browser.find_element(By.ID, "btn-send").click()
+    wait_for(lambda: len(robot.daemon._mission) == n - 1, 10, "the edit on the robot")
+    wait_for(
+        lambda: text(browser, "mission-state") == f"{n - 1} waypoints on the robot", 10, "shown"
+    )
+    assert js(browser, "return x6wd.dirty") is False
+
+
+def test_a_file_read_while_held_says_it_replaced_the_edits_made_meanwhile(
+    robot: Running, browser: webdriver.Chrome, tmp_path: Path
+) -> None:
+    # the same wait for a mission file (mission.parse over 4 KB): it still replaces the draft
+    # (the operator asked for it), but an edit made while it waited is named, not lost unseen
+    n = 200
+    f = tmp_path / "long.csv"
+    points = [north(0.2 * i, float(i % 10)) for i in range(n)]
+    f.write_text("lat,lon\n" + "".join(f"{p[0]:.9f},{p[1]:.9f}\n" for p in points))
+    assert f.stat().st_size > 4096
+    open_page(browser, robot, f"#token={TOKEN}")
+    page_ready(browser)
+    js(browser, "x6wd.draft = arguments[0]; x6wd.dirty = true;", [north(1), north(2), north(3)])
+    js(browser, "document.getElementById('wp-list').dispatchEvent(new Event('scroll'))")
+    reconnect_with_slow_auth(browser, robot)
+    browser.find_element(By.ID, "mission-file").send_keys(str(f))
+    wait_for(
+        lambda: any(
+            m.startswith("mission.parse: waiting for the token")
+            for m in js(browser, "return window.seen.msg")
+        ),
+        10, "the file's request held",
+    )  # fmt: skip
+    browser.find_element(By.CSS_SELECTOR, "#wp-rows button[data-i='0']").click()  # an edit
+    assert js(browser, "return x6wd.draft.length === 2 && !x6wd.authed"), "edited after the auth"
+    wait_for(lambda: js(browser, "return x6wd.draft.length") == n, 20, "the file read")
+    said = f"long.csv: {n} waypoints (not sent yet); it replaced the edits made while it was read"
+    assert said in js(browser, "return window.seen.msg")

@@ -425,23 +425,36 @@
     const i = Number(del.dataset.i);
     setDraft(S.draft.filter((_, j) => j !== i));
   });
+  // Its reply may come seconds after the click (a Send held until a reconnected page's auth
+  // succeeds, under the auth's back-off): the draft edited meanwhile is not what the robot
+  // got. Only a draft still as sent is taken as on the robot; a later edit stays, not sent,
+  // and the page says so (before, it was dropped and the page showed the old mission as sent).
+  // By content, not by an edit counter: a drag edits in place, the browser's console assigns.
   async function sendMission() {
     if (!S.draft.length) return say("the mission has no waypoints", true);
+    const sent = JSON.stringify(S.draft), n = S.draft.length, at = clock();
     const r = await command("mission.load", { waypoints: S.draft });
-    if (r.ok) { S.dirty = false; renderMission(); }
+    if (!r.ok) return;
+    if (S.draft.length === n && JSON.stringify(S.draft) === sent) { S.dirty = false; renderMission(); }
+    else if (S.dirty) say("mission.load: ok, but the robot has the mission as sent at " + at + " (" + n + " waypoints): your edits since are not sent", true);
   }
+  const clock = () => new Date().toTimeString().slice(0, 8); // local HH:MM:SS
   const FORMATS = { gpx: "gpx", csv: "csv", kml: "kml", waypoints: "waypoints", plan: "plan" };
   function loadFile(file) {
     const limit = S.info ? S.info.max_message_bytes : Infinity;
     if (file.size > limit) return say(file.name + ": " + file.size + " bytes, too large to send: the console takes at most " + limit + " bytes (console.max_message_bytes)", true);
     const reader = new FileReader();
+    // the file replaces the draft when the daemon has read it (later, if held until the auth):
+    // an edit made meanwhile is replaced too, and the page says so
+    const before = JSON.stringify(S.draft), wasDirty = S.dirty;
     reader.onload = async () => {
       const ext = file.name.split(".").pop().toLowerCase();
       const r = await request("mission.parse", { content: reader.result, format: FORMATS[ext] || null, name: file.name });
       if (r.ok) {
+        const lost = S.dirty && (!wasDirty || JSON.stringify(S.draft) !== before) ? "; it replaced the edits made while it was read" : "";
         setDraft(r.waypoints);
         const notes = Array.isArray(r.notes) && r.notes.length ? "; note: " + r.notes.join("; ") : "";
-        say(file.name + ": " + r.waypoints.length + " waypoints (not sent yet)" + notes);
+        say(file.name + ": " + r.waypoints.length + " waypoints (not sent yet)" + lost + notes, Boolean(lost));
         fit();
       } else say(file.name + ": " + r.error.message, true);
     };
