@@ -19,8 +19,9 @@ any        ``sim://``                               the simulator's world, throu
 :class:`ConfigError`) listing the valid ones; a device that cannot be opened raises
 :class:`DeviceUnavailable`. :func:`check_available` is the daemon's start-up check: the URL is
 valid and the local device it names (serial path, I2C bus, replay file) exists, without
-opening anything. This module is the only one that takes device URLs apart
-(:func:`device_path` tells the gpsd port what device a GPS URL is).
+opening anything (a missing device node: :class:`NodeMissing`). This module is the only one
+that takes device URLs apart (:func:`device_path` tells the gpsd port what device a GPS URL
+is).
 
 Plug-in schemes (``sim://``), like pyserial's ``protocol_<scheme>`` modules: the module
 ``<package>.protocol_<scheme>`` of the first of :data:`PROTOCOL_PACKAGES` that has one is
@@ -85,6 +86,17 @@ class UrlError(ConfigError):
         self.kind = kind
         self.url = url
         self.reason = reason
+
+
+class NodeMissing(UrlError):
+    """The device node a URL names (a serial path, ``/dev/i2c-N``) does not exist. Unlike the
+    other problems this one can end by itself, with no change to the configuration: a USB
+    adapter udev has not enumerated yet at boot, a native-USB board re-enumerating after a
+    reset (1-3 s). ``path`` is the node."""
+
+    def __init__(self, kind: str, url: str, path: str) -> None:
+        super().__init__(kind, url, f"{path} does not exist")
+        self.path = path
 
 
 def _float_opt(lo: float, hi: float) -> Any:
@@ -297,7 +309,8 @@ def check_available(url: str, kind: str) -> DeviceUrl:
     ``tcp://`` and ``log://`` have nothing local to check (a remote peer may come later).
 
     Raises :class:`UrlError`: the daemon stops with a configuration error rather than run
-    "disconnected" with a device that cannot appear by retrying.
+    "disconnected" with a device that cannot appear by retrying. A device node that does not
+    exist is :class:`NodeMissing` (a UrlError), which the daemon waits for a while first.
     """
     dev = parse_url(url, kind)
     if dev.scheme in PLUGIN_SCHEMES:
@@ -324,7 +337,9 @@ def _check_node(dev: DeviceUrl, path: str, *, char: bool, hint: str) -> None:
     (read-write for a device, read for a file); else :class:`UrlError` saying which."""
     try:
         st = os.stat(path)
-    except FileNotFoundError:
+    except FileNotFoundError:  # (also a dangling link: /dev/serial/by-id/ of a gone device)
+        if char:  # a device node may yet appear; a replay file will not
+            raise NodeMissing(dev.kind, dev.url, path) from None
         raise UrlError(dev.kind, dev.url, f"{path} does not exist") from None
     except (OSError, ValueError) as exc:  # ValueError: a path the OS cannot take
         raise UrlError(

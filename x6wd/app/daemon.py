@@ -113,6 +113,12 @@ EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_CONFIG = 2
 """A configuration error: restarting cannot help (the unit has RestartPreventExitStatus=2)."""
+DEVICE_POLL_S = 0.1
+"""While start-up waits for a missing device node ([startup] device_wait_s), it looks again
+this often (s): a stat each, cheap; a stop signal ends the wait at once."""
+START_MARGIN_S = 60.0
+"""Start-up time (s) asked of systemd beyond the device wait (EXTEND_TIMEOUT_USEC): opening
+the devices after it, so that a long device_wait_s never meets the unit's start timeout."""
 GC_FULL_S = 10.0
 """Most seconds between two full collections of the paced garbage collector (:class:`_GcPacer`)."""
 GC_OVERDUE_S = 2.5
@@ -995,6 +1001,9 @@ class Daemon:
         # why the recorder dir cannot take a file now, though it is right (read-only, full):
         # the start-up goes on with the recorder failing ("" when it can)
         self._recorder_fault = ""
+        # device nodes missing at the preflight, waited for after every other check:
+        # config key -> (url, kind, the registry's NodeMissing)
+        self._missing: dict[str, tuple[str, str, Any]] = {}
 
     @property
     def last_telemetry(self) -> Telemetry | None:
@@ -1060,11 +1069,19 @@ class Daemon:
             # nothing opened, nothing created yet: a bad setting is one line and exit 2
             self._preflight()
             await self._bind_servers()
+            # last: every problem that waiting cannot end is reported at once, not after it
+            appeared = await self._wait_for_devices()
         except ConfigError as exc:
             await self._unbind()
             config_error(exc)
             self.notifier.stopping(f"configuration error: {one_line(str(exc))}")
             return EXIT_CONFIG
+        if not appeared:  # a stop signal during the wait: nothing was opened
+            await self._unbind()
+            self.notifier.stopping("stopping")
+            code = self._stop_signal[1] if self._stop_signal is not None else EXIT_OK
+            log.info("x6wd stopped while waiting for %s (exit %d)", ", ".join(self._missing), code)
+            return code
         if self._plaintext:
             binds = {
                 "server.bind": self.config.server.bind,
@@ -1140,9 +1157,14 @@ class Daemon:
         )
         if self.devices is None:
             self.devices = registry.Devices(cfg)
+        self._missing = {}
         for key, url, kind in devices:
             try:
                 self.devices.check(url, kind)  # a sim:// URL: also the [sim] world's settings
+            except registry.NodeMissing as exc:
+                if self._device_wait_s() <= 0.0:
+                    raise ConfigError(f"{key}: {url!r}: {exc.reason}") from None
+                self._missing[key] = (url, kind, exc)  # waited for: _wait_for_devices
             except registry.UrlError as exc:
                 raise ConfigError(f"{key}: {url!r}: {exc.reason}") from None
         from x6wd.nav.controller import Controller  # imported late: heavy, and optional in tests
@@ -1207,6 +1229,65 @@ class Daemon:
                     f"recorder.max_file_mb: {cfg.recorder.max_file_mb:g} is more than "
                     f"recorder.max_total_mb ({cfg.recorder.max_total_mb:g}): one part must fit"
                 )
+
+    def _device_wait_s(self) -> float:
+        """How long (s) start-up waits for a missing device node: ``[startup] device_wait_s``
+        when started by systemd (a notification socket), where exit 2 leaves the unit failed
+        (RestartPreventExitStatus=2) and so the robot down, though the node (a USB device
+        enumerating at boot or after a board's reset) comes by itself; 0 when started by
+        hand, where the operator wants the error at once and can start again."""
+        return self.config.startup.device_wait_s if self.notifier.enabled else 0.0
+
+    async def _wait_for_devices(self) -> bool:
+        """Wait up to :meth:`_device_wait_s` for the device nodes the preflight found missing
+        (all in one wait), looking again every :data:`DEVICE_POLL_S`; nothing is opened.
+        True once every one passes the preflight's check, False on a stop request (a
+        signal). Still failing at the end: :class:`ConfigError`, the preflight's line plus
+        ``(waited N s)``. A node that appeared keeps its wait while its check fails (udev
+        gives it its group a moment after creating it)."""
+        if not self._missing:
+            return True
+        assert self._stop_event is not None
+        wait_s = self._device_wait_s()
+        t0_s = time.monotonic()
+        paths = []
+        for key, (_url, _kind, exc) in self._missing.items():
+            paths.append(exc.path)
+            log.warning(
+                "%s: %s does not exist yet: waiting up to %g s for it to appear (a USB device "
+                "enumerating?; startup.device_wait_s)",
+                key,
+                exc.path,
+                wait_s,
+            )
+        self.notifier.notify(
+            {
+                "STATUS": f"waiting up to {wait_s:g} s for {', '.join(paths)} to appear "
+                "(startup.device_wait_s)",
+                "EXTEND_TIMEOUT_USEC": int((wait_s + START_MARGIN_S) * 1e6),
+            }
+        )
+        pending = dict(self._missing)  # key -> (url, kind, its latest problem)
+        while True:
+            for key, (url, kind, _exc) in list(pending.items()):
+                try:
+                    self.devices.check(url, kind)
+                except ConfigError as problem:
+                    pending[key] = (url, kind, problem)
+                else:
+                    del pending[key]
+                    log.info("%s: %s is there after %.1f s", key, url, time.monotonic() - t0_s)
+            if not pending:
+                return True
+            left_s = t0_s + wait_s - time.monotonic()
+            if left_s <= 0.0:
+                key, (url, _kind, last) = next(iter(pending.items()))
+                reason = getattr(last, "reason", str(last))
+                raise ConfigError(f"{key}: {url!r}: {reason} (waited {wait_s:g} s)")
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop_event.wait(), min(DEVICE_POLL_S, left_s))
+            if self._stop_event.is_set():
+                return False
 
     async def _bind_servers(self) -> None:
         """Listen on both ports before any device opens: a busy port is a ConfigError

@@ -403,6 +403,17 @@ class RecorderConfig:
 
 
 @dataclass(frozen=True)
+class StartupConfig:
+    """How ``x6wd run`` starts (the daemon's start-up check, docs/install.md)."""
+
+    # Started by systemd (NOTIFY_SOCKET set), a device node that does not exist (a serial
+    # path, /dev/i2c-N) is waited for this long (s) before it is a configuration error (exit
+    # 2, which the unit does not restart): a USB adapter udev has not enumerated yet at boot,
+    # a native-USB board re-enumerating after a reset. 0, or started by hand: exit 2 at once.
+    device_wait_s: float = field(default=10.0, metadata=_rng(0, 300))
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """Hardware-in-the-loop: the simulated world behind the sim:// device URLs."""
 
@@ -440,6 +451,7 @@ class Config:
     console: ConsoleConfig = field(default_factory=ConsoleConfig)
     gpsd: GpsdConfig = field(default_factory=GpsdConfig)
     recorder: RecorderConfig = field(default_factory=RecorderConfig)
+    startup: StartupConfig = field(default_factory=StartupConfig)
     sim: SimConfig = field(default_factory=SimConfig)
 
     def __post_init__(self) -> None:
