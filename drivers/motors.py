@@ -162,7 +162,7 @@ class LinkCounters:
     stop_failures: int = 0  # stop() calls that got no OK
     events: int = 0  # unsolicited EVT lines from the board (e.g. watchdog trips)
     watchdog_stops: int = 0  # EVT WATCHDOG: the board stopped the motors on its own
-    board_restarts: int = 0  # EVT BOOT after the link was up: a brown-out or a reset
+    board_restarts: int = 0  # restarts under a running link: EVT BOOT, or seen in E readings
     reopens: int = 0  # the port reopened after it broke
     held_drives: int = 0  # send() drives refused (a stop sent) while a board restart held
     restart_faults: int = 0  # RESTART_LATCH_COUNT restarts within RESTART_WINDOW_S: latched
@@ -426,8 +426,9 @@ class SerialMotorLink:
         self._write_s = clock()  # when the last command line was written (s, ``clock``)
         self.odometry_supported: bool | None = None
         self._refusal: str | None = None  # the payload of an ERR accepted by refusal_ok
-        # Why the board restarted under a running link (EVT BOOT once up), until a stop()
-        # the board confirmed: the link is lost meanwhile and send() refuses drives.
+        # Why the board restarted under a running link (EVT BOOT once up, or seen in an
+        # encoder reading), until a stop() the board confirmed: the link is lost meanwhile
+        # and send() refuses drives.
         self._restart_hold: str | None = None
         # Board restarts (times, s) within RESTART_WINDOW_S; the latched fault they make
         # (its reason) until an operator's stop: the hold stays meanwhile
@@ -545,7 +546,8 @@ class SerialMotorLink:
         """Send a controller :class:`MotorCommand` (a stop command uses ``S``).
 
         After the board restarted under a running link (``EVT BOOT`` once a command was
-        acknowledged: a brown-out) the link is lost (:attr:`healthy` False, :attr:`health`
+        acknowledged: a brown-out; or a restart seen in an encoder reading, its
+        ``EVT BOOT`` lost) the link is lost (:attr:`healthy` False, :attr:`health`
         disconnected, the restart its error) and every drive given here is refused
         (False; an ``S`` goes out instead, counted in ``counters.held_drives``) until a
         :meth:`stop` the board confirms: a keep-alive repeating the drive from before the
@@ -606,33 +608,34 @@ class SerialMotorLink:
         enc = self.encoders
         requests, self._latch_requests = self._latch_requests, 0
         left, right = enc.update(*parsed, t_s=t_s, sent_s=sent_s, requests=requests)
-        if enc.verdict in ("restart", "implausible"):
-            self._encoder_new_baseline(parsed, t_s)
-            if enc.verdict == "restart":
-                self._board_restarted("seen in the encoder reading", t_s)
+        what = f"latch {parsed[0]}, counts {parsed[1]} {parsed[2]}"
+        if enc.verdict == "restart":
+            # its EVT BOOT was lost, but the board forgot our settings all the same: handled
+            # as an announced restart, except that this reading is already the new baseline
+            self._board_lost_settings(
+                "seen in the encoder reading",
+                f"board restarted without EVT BOOT, seen in the encoder reading ({what}: the "
+                f"latch number and counts began again from zero; {enc.detected} so far): its "
+                f"settings were lost, odometry goes on from a new baseline; drives held until "
+                f"the controller stops",
+                t_s,
+            )
+        elif enc.verdict == "implausible":
+            self._encoder_implausible(what, t_s)
         return WheelOdometry(sent_s, left, right, seq)
 
-    def _encoder_new_baseline(self, reading: tuple[int, int, int], t_s: float) -> None:
-        """A reading that starts a new baseline by itself (:class:`EncoderUnwrap`): a board
-        restart nobody announced (its latch number and counts from zero), or one that fits
-        no motion. Logged (the first, 10th, 100th, every 1000th of each) and shown in
-        :attr:`health` (degraded, this as the last error)."""
+    def _encoder_implausible(self, what: str, t_s: float) -> None:
+        """A reading that fits neither motion nor a restart (:class:`EncoderUnwrap`), ``what``
+        its latch number and counts, at ``t_s`` (s): a new baseline, logged (the first,
+        10th, 100th, every 1000th) and shown in :attr:`health` (degraded, this as the last
+        error)."""
         enc = self.encoders
-        what = f"latch {reading[0]}, counts {reading[1]} {reading[2]}"
-        if enc.verdict == "restart":
-            n = enc.detected
-            why = (
-                f"encoder reading is a board restart nobody announced ({what}: the latch "
-                f"number and counts began again from zero): odometry goes on from a new "
-                f"baseline ({n} so far)"
-            )
-        else:
-            n = enc.implausible
-            why = (
-                f"encoder reading fits neither motion (at most "
-                f"{enc.max_counts_per_s:.0f} counts/s) nor a board restart ({what}): "
-                f"taken as a new baseline ({n} so far)"
-            )
+        n = enc.implausible
+        why = (
+            f"encoder reading fits neither motion (at most "
+            f"{enc.max_counts_per_s:.0f} counts/s) nor a board restart ({what}): "
+            f"taken as a new baseline ({n} so far)"
+        )
         if n in (1, 10, 100) or n % 1000 == 0:
             log.warning("motors: %s", why)
         self._tracker.failed(why, t_s)
@@ -659,7 +662,7 @@ class SerialMotorLink:
 
     def _configured_transact(self, body: str, *, held: bool = False) -> bool:
         """``body`` after (re)sending the watchdog setting if the board lacks it: never
-        confirmed, or an ``EVT BOOT`` arrived (then also right after ``body``). ``held``:
+        confirmed, or the board restarted (then also right after ``body``). ``held``:
         not sent (False) once a board restart holds the link (:meth:`send`), and False with
         no ``W`` after it when the hold began during it (the caller's stop goes first)."""
         if not self.configured:
@@ -937,6 +940,23 @@ class SerialMotorLink:
         else:  # lost already (a timeout): the reason follows once the board answers
             self._tracker.error(why, t_s)
 
+    def _board_lost_settings(self, how: str, why: str, t_s: float) -> None:
+        """The board restarted under a running link at ``t_s`` (s), learnt as ``how`` (its
+        ``EVT BOOT``, or the encoder reading when that was lost; ``why`` says so): it forgot
+        our watchdog setting (``W`` goes out again before the next drive or ping), counted
+        (``counters.board_restarts``, and once in the latch: :meth:`_board_restarted`),
+        logged as a warning, and a lost link: :attr:`healthy` False and :meth:`send` refusing
+        drives until a stop the board confirms. The encoder baseline is the caller's."""
+        self.configured = False
+        self.counters.board_restarts += 1
+        self._board_restarted(how, t_s)
+        log.warning("motors: %s", why)
+        # a lost link, as a dropped one: the controller holds and stops; the drive from
+        # before the restart is not sent again (send)
+        self._restart_hold = why
+        self._failures = max(self._failures, self.unhealthy_after)
+        self._tracker.lost(why, t_s)
+
     def _board_event(self, payload: str) -> None:
         """An unsolicited ``EVT``. A watchdog stop, or a restart once the link was up, is
         a fault of the drive (the robot stopped, or lost its settings, without being told
@@ -951,18 +971,12 @@ class SerialMotorLink:
             if self.counters.acked == 0:
                 log.info("motor board powered up")
                 return
-            self.counters.board_restarts += 1
-            why = (
+            self._board_lost_settings(
+                "EVT BOOT",
                 "board restarted (EVT BOOT; a brown-out?): its settings and counters were "
-                "lost; drives held until the controller stops"
+                "lost; drives held until the controller stops",
+                t_s,
             )
-            self._board_restarted("EVT BOOT", t_s)
-            log.warning("motors: %s", why)
-            # a lost link, as a dropped one: the controller holds and stops; the drive from
-            # before the restart is not sent again (send)
-            self._restart_hold = why
-            self._failures = max(self._failures, self.unhealthy_after)
-            self._tracker.lost(why, t_s)
             return
         elif what == ["WATCHDOG"]:
             self.counters.watchdog_stops += 1
