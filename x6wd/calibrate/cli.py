@@ -296,6 +296,8 @@ def main_gnss(args: argparse.Namespace) -> int:
     result = gnss.GnssCalibration(re_m, ase_m, tau, static, lce, **given)
     if result.tau_bound_note:
         print(f"x6wd calibrate: correlation_s: {result.tau_bound_note}", file=sys.stderr)
+    if result.standing_warning:
+        print(f"x6wd calibrate: WARNING: {result.standing_warning}", file=sys.stderr)
     text = result.toml("\n".join(header))
     sys.stdout.write(text)
     if args.out:

@@ -1120,6 +1120,23 @@ class GnssCalibration:
         return max(math.ceil(round(bound * 1e4, 6)) / 1e4, 0.0001)
 
     @property
+    def standing_warning(self) -> str | None:
+        """Why ``re_m`` must not go into the robot's configuration as written, when it comes
+        from a static recording alone (no drives), else None. A standing receiver's white part
+        is centimetres (u-blox filters its fixes); moving, the error has a part that changes in
+        seconds which the estimator's one slow state cannot follow, so it needs that part as
+        white noise: with the standing figure it reads it as motion and gets worse than the
+        shipped configuration (docs/gnss_calibration.md, Experiment 3)."""
+        if self.static is None or self.lce is not None:
+            return None
+        return (
+            "re_m is a standing receiver's white part: a moving robot needs it from --drive "
+            "(docs/gnss_calibration.md, Experiment 3, \"The white part of a moving receiver\"); "
+            "do not paste it alone into the robot's configuration: keep the robot's re_m "
+            f"({GnssNoiseConfig().re_m} as shipped) until drives measure it"
+        )
+
+    @property
     def tau_bound_note(self) -> str | None:
         """Why ``correlation_s`` is written as the configuration's limit, when a static
         record's estimate is beyond it (or the slow part did not decay at all), else None."""
@@ -1224,6 +1241,10 @@ class GnssCalibration:
         lines += [
             "# seed 003: sigma per axis = HDOP * sqrt(re_m^2 + ase_m^2 + LCE^2)",
             "[gnss_noise]",
+        ]
+        if self.standing_warning is not None:
+            lines.append(f"# WARNING: {self.standing_warning}")
+        lines += [
             f"re_m = {t['re_m']}  # {se_mv} (drives: the white part of a moving receiver)"
             if mv is not None
             else f"re_m = {t['re_m']}  # ± {self.re_m.se:.4f} ({src}: the white part)"
