@@ -207,9 +207,14 @@ def test_the_reader_on_a_9600_baud_pty_gets_each_fix_as_its_gga_arrives(
     paced_pty.thread.join(5)
     assert [s for s, _, _ in got] == [0, 1, 2, 3]
     assert len(paced_pty.sent) == 4
+    # The fix's receive time against when its GGA's line end was written: never before it
+    # (causal), and within 0.6 s. Each fix leaves at its GGA (about 0.01 s here); a loaded
+    # host only delays the reader thread (0.25 s was the bound). With the false sync holding
+    # bytes until its claimed 1008-byte frame is complete, fix 1 comes 0.87 s or more after
+    # its GGA (about 1.04 s measured), or never with this data: both fail.
     for k, (sec, t_s, _) in enumerate(got):
         lag = t_s - paced_pty.sent[k]
-        assert -0.05 < lag < 0.25, f"fix {sec}: {lag:.3f} s after its GGA was written"
+        assert -0.05 < lag < 0.6, f"fix {sec}: {lag:.3f} s after its GGA was written"
 
 
 # --------------------------------------------------------------------------------------------
@@ -352,6 +357,23 @@ def _gps_receiver(c: RemoteClient) -> dict[str, Any]:
     return c.request("status")["gps_receiver"]
 
 
+def wait_4_hz(c: RemoteClient) -> dict[str, Any]:
+    """Until status measures the fixes at 4 Hz (3.5..4.5) and not slow. The rate is taken
+    from the fixes' receive times over a second or two, so one status could be 0.1 Hz off
+    on a loaded host (4.39, 4.01 measured beside 3 busy loops): it is asked again. A
+    receiver left at 1 Hz is never in the band (1.0 measured in the NAK case)."""
+    return wait_for(
+        lambda: (
+            (s := _gps_receiver(c))["measured_rate_hz"] is not None
+            and 3.5 < s["measured_rate_hz"] < 4.5
+            and "slow" not in s
+            and s
+        ),
+        15,
+        "a measured rate of 4 Hz, not slow",
+    )
+
+
 def test_configure_receiver_sets_the_rate_on_start_and_after_a_reopen(
     tmp_path: Path, run_daemon: Any, neo5: Callable[..., Neo5Pty]
 ) -> None:
@@ -372,10 +394,8 @@ def test_configure_receiver_sets_the_rate_on_start_and_after_a_reopen(
         assert set(st["setup"]["answers"].values()) == {"ack"}, st
         assert st["setup"]["rounds"] == 1 and "problem" not in st["setup"]
         assert gps.received == [want]  # CFG-RATE 250 ms and the CFG-MSGs, once
-        st = wait_for(
-            lambda: (s := _gps_receiver(c))["measured_rate_hz"] is not None and s, 10, "rate"
-        )
-        assert 3.5 < st["measured_rate_hz"] < 4.5 and "slow" not in st, st
+        assert gps.hz == 4.0  # the receiver took it
+        wait_4_hz(c)
         # unplugged and plugged in again: the receiver may have lost power, so again
         gps.replug()
         wait_for(lambda: _gps_receiver(c)["setup"]["rounds"] == 2, 15, "a second round")
@@ -444,10 +464,7 @@ def test_the_simulated_receiver_takes_cfg_rate_in_hil(tmp_path: Path, run_daemon
         assert set(st["setup"]["answers"].values()) == {"ack"}, st
         assert world.receiver.rate_hz == 4.0
         assert world.ubx.msg_rates == {"GGA": 1, "RMC": 1, "GSA": 4, "GSV": 4, "VTG": 0, "GLL": 0}
-        st = wait_for(
-            lambda: (s := _gps_receiver(c))["measured_rate_hz"] is not None and s, 10, "rate"
-        )
-        assert 3.5 < st["measured_rate_hz"] < 4.5 and "slow" not in st, st
+        wait_4_hz(c)
         assert r.daemon.gpsd is not None and r.daemon.gpsd.cycle_s == 0.25  # gpsd's DEVICE
     assert r.stop() == 0
     lines = [line for _, line in list(world.gps_wire)[-40:]]
@@ -814,7 +831,14 @@ def test_hil_at_9600_baud_and_4_hz_each_fix_leaves_the_line_before_the_next_epoc
         assert world.receiver.rate_hz == 4.0
         st = _gps_receiver(c)["setup"]
         t_cfg = time.monotonic() - world.t0
-        wait_for(lambda: time.monotonic() - world.t0 > t_cfg + 4.5, 10, "4 s at 4 Hz")
+
+        def ggas() -> int:  # the GGAs the receiver model put on the line from t_cfg + 1.5 s
+            ends = [t for t, line in list(world.gps_wire) if line[3:6] == b"GGA"]
+            return len([t for t in ends if t >= t_cfg + 1.5])
+
+        # 12 epochs (3 s at 4 Hz), counted rather than timed: a receiver thread held up on
+        # a loaded host skips epochs
+        wait_for(lambda: ggas() >= 12, 20, "12 epochs at 4 Hz")
     assert r.stop() == 0
     day = world.utc0.date()
     late = []

@@ -99,6 +99,22 @@ def with_failsafe(cfg: Config, **keys: Any) -> Config:
     return dataclasses.replace(cfg, failsafe=FailsafeConfig(**keys))
 
 
+def recorded_states(tmp_path: Path) -> list[dict[str, Any]]:
+    """The controller's state changes (t_s on the daemon's monotonic clock, old, new,
+    reason) from the daemon's recording (hil_config: ``tmp_path/rec``); read after
+    ``r.stop()``, which flushes it."""
+    (path,) = (tmp_path / "rec").glob("*.jsonl")
+    lines = [json.loads(line) for line in path.read_text().splitlines()]
+    return [rec["data"] for rec in lines if rec["type"] == "state"]
+
+
+def recorded_t(states: list[dict[str, Any]], reason: str) -> float:
+    """The daemon's time (s) of the first recorded state change whose reason starts so."""
+    t = [s["t_s"] for s in states if s["reason"].startswith(reason)]
+    assert t, (reason, states)
+    return float(t[0])
+
+
 @pytest.mark.slow
 def test_return_over_the_control_port_drives_back_to_launch(
     tmp_path: Path, run_daemon, log_tail: LogTail
@@ -141,19 +157,19 @@ def test_operator_link_lost_returns_to_launch(
         # an operator who keeps asking for status (and nothing else) keeps the link alive
         t_end = time.monotonic() + 4.5
         while time.monotonic() < t_end:
+            # taken before the request: the daemon sees the request after this (on the
+            # same monotonic clock as its controller's time)
+            t_last = time.monotonic()
             tel = telemetry(c)
             assert tel["mode"] == "RUNNING" and "failsafe" not in tel["extra"], tel
             time.sleep(0.5)
     # the client stops talking: watched from inside, which is no operator request
-    t_quiet = time.monotonic()
 
     def fired() -> Any:
         tel = d.last_telemetry
         return tel is not None and "failsafe" in tel.extra and tel
 
-    tel = wait_for(fired, 12, "the operator-link failsafe")
-    quiet_s = time.monotonic() - t_quiet
-    assert 2.5 < quiet_s < 8.0, quiet_s  # 3 s after the last request, not at once
+    tel = wait_for(fired, 15, "the operator-link failsafe")
     assert tel.extra["failsafe"] == "operator link lost"
     assert tel.extra["returning"] == "failsafe: operator link lost"
     assert str(tel.mode) == "RUNNING"
@@ -169,6 +185,12 @@ def test_operator_link_lost_returns_to_launch(
         assert st["telemetry"]["extra"]["failsafe"] == "operator link lost"
         c.request("stop")
     assert r.stop() == 0
+    # when it fired, on the daemon's own clock: never before operator_timeout_s (3 s) after
+    # the last request (the safety meaning: not while the link is alive), and not seconds
+    # late (the time from the request to the controller's tick is the host's latency)
+    t_fired = recorded_t(recorded_states(tmp_path), "mode: failsafe: operator link lost")
+    quiet_s = t_fired - t_last
+    assert 3.0 <= quiet_s < 8.0, quiet_s
 
 
 @pytest.mark.slow
@@ -282,19 +304,28 @@ def test_wheel_odometry_flows_into_the_ekf_and_the_wmm_declination_reaches_gpsd(
     world = d.devices.backend("sim")
     with RemoteClient("127.0.0.1", r.port) as c:
         ready_for_a_mission(c, d)
+        t_a = time.monotonic()
         st = c.request("status")
+        t_b = time.monotonic()
         n0 = st["links"]["odometry"]
         assert isinstance(n0, int) and n0 > 0, st["links"]
         odo = st["devices"]["odometry"]
         assert odo["state"] == "polling" and odo["failures"] == 0
-        t0 = time.monotonic()
         c.request("drive", left=40, right=40, duration_s=4.0)
         wait_for(lambda: world.truth()[3] > 0.3, 3, "moving")
         time.sleep(0.5)  # still driving (4 s) when status is asked, even on a loaded machine
+        t_c = time.monotonic()
         st = c.request("status")
-        n1, dt = st["links"]["odometry"], time.monotonic() - t0
-        # polled at 20 Hz; a loaded 2-core machine runs the motor thread late, never 4x late
-        assert 5.0 * dt < n1 - n0 < 30.0 * dt, (n1 - n0, dt)
+        t_d = time.monotonic()
+        n1 = st["links"]["odometry"]
+        # Polled at 20 Hz, each poll at least a period after the one before (the worker's
+        # schedule): never more than 20/s plus one over the outer window (from before the
+        # first request to after the second reply), whatever the load; 30/s for a margin.
+        # At least 2/s over the inner window (after the first reply, before the second
+        # request): a tenth of the schedule, as a loaded 2-core host delays the motor thread
+        # and its pty replies (5/s was the bound; the motor line's round trips under load
+        # made it fragile); a poller on the 10 s retry schedule, or at 1 Hz, fails it.
+        assert 2.0 * (t_c - t_b) < n1 - n0 < 30.0 * (t_d - t_a) + 1, (n1 - n0, t_c - t_b)
         assert d.stats["odometry"] >= n1 - 5  # each reading reached the runner
         extra = st["telemetry"]["extra"]
         assert extra["ekf_sigma_m"] > 0 and extra["ekf_speed_mps"] > 0.3, extra
@@ -352,11 +383,9 @@ def test_a_stuck_robot_pauses(tmp_path: Path, run_daemon, log_tail: LogTail) -> 
     with RemoteClient("127.0.0.1", r.port) as c:
         start_north(c, d, world, 30.0)
         wait_for(lambda: world.vehicle.command_pct[0] > 10.0, 5, "driving forward")
-        t0 = time.monotonic()
         st = wait_for(
-            lambda: (s := c.request("status"))["mode"] != "RUNNING" and s, 15, "stuck failsafe"
+            lambda: (s := c.request("status"))["mode"] != "RUNNING" and s, 20, "stuck failsafe"
         )
-        assert 2.5 < time.monotonic() - t0 < 12.0
         assert st["mode"] == "PAUSED", st
         why = st["telemetry"]["extra"]["failsafe"]
         assert why == "stuck (the wheels: no motion in 3 s of driving)", why
@@ -364,6 +393,11 @@ def test_a_stuck_robot_pauses(tmp_path: Path, run_daemon, log_tail: LogTail) -> 
         assert any("failsafe: stuck" in x for x in log_tail.tail(300))
         c.request("stop")
     assert r.stop() == 0
+    # on the daemon's own clock: no earlier than 3 s (stuck_s) of driving after the start
+    # (driving begins no sooner), and not seconds later than that
+    states = recorded_states(tmp_path)
+    stuck_s = recorded_t(states, "mode: failsafe: stuck") - recorded_t(states, "mode: start")
+    assert 3.0 <= stuck_s < 8.0, stuck_s
 
 
 @pytest.mark.slow
@@ -388,11 +422,9 @@ def test_a_gps_without_fix_holds_then_pauses(tmp_path: Path, run_daemon, log_tai
             lambda: (t := telemetry(c)).get("hold_reason") == "no valid fix" and t, 30, "hold"
         )
         assert held["mode"] == "RUNNING" and held["left_pct"] == held["right_pct"] == 0.0
-        t_hold = time.monotonic()
         st = wait_for(
-            lambda: (s := c.request("status"))["mode"] == "PAUSED" and s, 10, "the failsafe"
+            lambda: (s := c.request("status"))["mode"] == "PAUSED" and s, 15, "the failsafe"
         )
-        assert 2.0 < time.monotonic() - t_hold < 8.0
         assert st["telemetry"]["extra"]["failsafe"] == "no valid fix for 3 s"
         wait_for(lambda: world.vehicle.command_pct == (0.0, 0.0), 3, "motors stopped")
         assert any("failsafe: no valid fix" in x for x in log_tail.tail(300))
@@ -406,6 +438,12 @@ def test_a_gps_without_fix_holds_then_pauses(tmp_path: Path, run_daemon, log_tai
         assert any("WARNING" in x and "-> HOLD" in x for x in lines), lines
         c.request("stop")
     assert r.stop() == 0
+    # on the daemon's own clock: the pause sensor_timeout_s (3 s) after the hold began, not
+    # at once, and not seconds later
+    states = recorded_states(tmp_path)
+    t_paused = recorded_t(states, "mode: failsafe: no valid fix")
+    t_hold = max(s["t_s"] for s in states if s["new"] == "HOLD" and s["t_s"] <= t_paused)
+    assert 3.0 <= t_paused - t_hold < 8.0, (t_paused - t_hold, states)
 
 
 def test_a_compass_reading_random_bearings_is_untrusted_and_pauses_the_mission(
