@@ -7,16 +7,20 @@ and sent once the auth succeeds (refused, saying why, if it fails or a stop come
 a close's reason is shown. The real daemon (``sim://`` devices) with a token, its console on
 127.0.0.1, Debian's headless chromium (helpers from tests/test_console.py). The seam that
 slows the page's auth is the daemon's own: an address that failed too often has every
-``auth`` evaluated only after ``auth_fail_delay_s``. A review of c998465: the held Send's reply
-then comes seconds after the click, and it marked the draft "sent", dropping an edit made
-meanwhile; now only a draft still as sent is taken as on the robot."""
+``auth`` evaluated only after ``auth_fail_delay_s`` (here held instead until the test lets it
+go: :class:`HeldAuth`). A review of c998465: the held Send's reply then comes seconds after the
+click, and it marked the draft "sent", dropping an edit made meanwhile; now only a draft still
+as sent is taken as on the robot."""
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from selenium import webdriver
@@ -67,6 +71,51 @@ def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
         yield r
 
 
+class HeldAuth:
+    """The page's ``auth`` held until the test releases it: the seam is the daemon's own, the
+    control server's nap before it evaluates an ``auth`` from an address whose budget is out
+    (``auth_fail_delay_s``). Once armed, a console page's nap there waits for release()
+    instead of the 3 s (other clients' naps are as before). A fixed 3 s raced the clicks and
+    edits made meanwhile, each several WebDriver round trips (a loaded host: seconds)."""
+
+    def __init__(self, r: Running, monkeypatch: pytest.MonkeyPatch) -> None:
+        server = r.daemon.server
+        assert server is not None
+        self.armed = False
+        self.released = threading.Event()
+        nap = server._nap
+
+        async def held_nap(c: Any, seconds: float) -> None:
+            if not (self.armed and c.kind):  # not armed, or not a console page
+                return await nap(c, seconds)
+            c.napping = True  # as the server's own nap: an eviction still ends it
+            try:
+                end = time.monotonic() + 60.0  # a test that never releases: as a late auth
+                while not self.released.is_set() and time.monotonic() < end:
+                    await asyncio.sleep(0.01)
+            finally:
+                c.napping = False
+
+        monkeypatch.setattr(server, "_nap", held_nap)
+
+    def arm(self) -> None:
+        self.released.clear()
+        self.armed = True
+
+    def release(self) -> None:
+        self.armed = False
+        self.released.set()
+
+
+@pytest.fixture
+def held_auth(robot: Running, monkeypatch: pytest.MonkeyPatch) -> Iterator[HeldAuth]:
+    gate = HeldAuth(robot, monkeypatch)
+    try:
+        yield gate
+    finally:
+        gate.release()
+
+
 def big_draft() -> list[list[float]]:
     """``BIG`` waypoints near the start, inside the geofence."""
     return [north(0.2 * i, float(i % 10)) for i in range(BIG)]
@@ -103,7 +152,7 @@ def login_shown(d: webdriver.Chrome, r: Running) -> None:
 
 
 def test_a_mission_sent_while_a_reconnected_pages_auth_is_in_flight_waits_for_it(
-    robot: Running, browser: webdriver.Chrome
+    robot: Running, browser: webdriver.Chrome, held_auth: HeldAuth
 ) -> None:
     assert robot.daemon.controller is not None
     open_page(browser, robot, f"#token={TOKEN}")
@@ -111,6 +160,7 @@ def test_a_mission_sent_while_a_reconnected_pages_auth_is_in_flight_waits_for_it
     draft = big_draft()
     put_draft(browser, draft)
     slow_auth_from_here(robot)
+    held_auth.arm()  # the page's next auth waits until released below
     # the link drops (as a wifi hiccup would): the page reconnects and sends its auth itself
     js(browser, "window.oldWs = x6wd.ws; window.oldInfo = x6wd.info; x6wd.ws.close()")
     wait_for(
@@ -131,6 +181,7 @@ def test_a_mission_sent_while_a_reconnected_pages_auth_is_in_flight_waits_for_it
     js(browser, WATCH)
     assert not browser.find_element(By.ID, "login").is_displayed()  # nothing says wait
     browser.find_element(By.ID, "btn-send").click()  # a real click
+    held_auth.release()  # the auth goes on now
     wait_for(
         lambda: len(robot.daemon._mission) == BIG or js(browser, "return window.closes.length"),
         20, "the mission on the robot, or the page closed",
@@ -206,10 +257,11 @@ def test_a_close_for_a_message_too_big_before_auth_says_why(
     wait_for(lambda: text(browser, "conn") == "token needed", 10, "reconnected")
 
 
-def reconnect_with_slow_auth(d: webdriver.Chrome, r: Running) -> None:
-    """The link drops; the page reconnects and its own ``auth`` is in flight, slowed to
-    ``AUTH_DELAY_S``; every text the message line shows is kept from here on."""
+def reconnect_with_slow_auth(d: webdriver.Chrome, r: Running, held_auth: HeldAuth) -> None:
+    """The link drops; the page reconnects and its own ``auth`` is in flight, held until
+    ``held_auth`` is released; every text the message line shows is kept from here on."""
     slow_auth_from_here(r)
+    held_auth.arm()
     js(d, "window.oldWs = x6wd.ws; window.oldInfo = x6wd.info; x6wd.ws.close()")
     wait_for(
         lambda: js(
@@ -223,7 +275,7 @@ def reconnect_with_slow_auth(d: webdriver.Chrome, r: Running) -> None:
 
 
 def test_an_edit_made_while_send_is_held_is_kept_and_the_page_says_it_is_not_sent(
-    robot: Running, browser: webdriver.Chrome
+    robot: Running, browser: webdriver.Chrome, held_auth: HeldAuth
 ) -> None:
     # review of c998465: the held Send's reply came 3 s after the click and set the page to
     # "not edited", so an edit made meanwhile was dropped and the old mission shown as sent
@@ -234,7 +286,7 @@ def test_an_edit_made_while_send_is_held_is_kept_and_the_page_says_it_is_not_sen
     js(browser, "x6wd.draft = arguments[0]; x6wd.dirty = true;", draft)
     # the list drawn for it (as after an edit), so its rows' delete buttons are there
     js(browser, "document.getElementById('wp-list').dispatchEvent(new Event('scroll'))")
-    reconnect_with_slow_auth(browser, robot)
+    reconnect_with_slow_auth(browser, robot, held_auth)
     js(
         browser,
         "document.getElementById('wp-list').addEventListener('click',"
@@ -246,6 +298,7 @@ def test_an_edit_made_while_send_is_held_is_kept_and_the_page_says_it_is_not_sen
     assert js(browser, "return window.authedAtEdit") is False, "edited after the auth"
     seen = js(browser, "return window.seen.msg")
     assert any(m.startswith("mission.load: waiting for the token") for m in seen), seen
+    held_auth.release()  # the auth goes on now
     # the robot gets the mission as clicked (held requests are sent as they were asked for)
     wait_for(lambda: len(robot.daemon._mission) == n, 20, "the mission on the robot")
     for got, want in zip(robot.daemon._mission, draft, strict=True):
@@ -280,7 +333,7 @@ def test_an_edit_made_while_send_is_held_is_kept_and_the_page_says_it_is_not_sen
 
 
 def test_a_file_read_while_held_says_it_replaced_the_edits_made_meanwhile(
-    robot: Running, browser: webdriver.Chrome, tmp_path: Path
+    robot: Running, browser: webdriver.Chrome, tmp_path: Path, held_auth: HeldAuth
 ) -> None:
     # the same wait for a mission file (mission.parse over 4 KB): it still replaces the draft
     # (the operator asked for it), but an edit made while it waited is named, not lost unseen
@@ -293,7 +346,7 @@ def test_a_file_read_while_held_says_it_replaced_the_edits_made_meanwhile(
     page_ready(browser)
     js(browser, "x6wd.draft = arguments[0]; x6wd.dirty = true;", [north(1), north(2), north(3)])
     js(browser, "document.getElementById('wp-list').dispatchEvent(new Event('scroll'))")
-    reconnect_with_slow_auth(browser, robot)
+    reconnect_with_slow_auth(browser, robot, held_auth)
     browser.find_element(By.ID, "mission-file").send_keys(str(f))
     wait_for(
         lambda: any(
@@ -304,6 +357,7 @@ def test_a_file_read_while_held_says_it_replaced_the_edits_made_meanwhile(
     )  # fmt: skip
     browser.find_element(By.CSS_SELECTOR, "#wp-rows button[data-i='0']").click()  # an edit
     assert js(browser, "return x6wd.draft.length === 2 && !x6wd.authed"), "edited after the auth"
+    held_auth.release()  # the auth goes on now
     wait_for(lambda: js(browser, "return x6wd.draft.length") == n, 20, "the file read")
     said = f"long.csv: {n} waypoints (not sent yet); it replaced the edits made while it was read"
     assert said in js(browser, "return window.seen.msg")

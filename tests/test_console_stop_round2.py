@@ -3,7 +3,8 @@ tests/test_console_stop_override.py): a page without press_ms whose send is late
 stop, a press on a link with delay, a page clock that runs slow, the clocks' offset after a
 stall or an absurd ``sent_ms``, ``[console] hostnames`` with ``_``, and the log line and counts
 of drives refused because of another client's stop. The real daemon (``sim://`` devices)
-with its console on 127.0.0.1, deadman_s 0.5 s (the default), and programs on its WebSocket."""
+with its console on 127.0.0.1, deadman_s 2 s (the clock test: 0.5 s, the default), and
+programs on its WebSocket."""
 
 from __future__ import annotations
 
@@ -29,10 +30,28 @@ from x6wd.core.errors import ConfigError
 LOGGED = "another client stopped the robot after its press began"
 
 
+# deadman_s of `robot`, 4 times the default, and the tests' waits scaled by 4 with it (what
+# each proves is a ratio to deadman_s): with 0.5 s, waits of 0.15-0.6 s around a TCP stop
+# from another client left a loaded host 0.1-0.35 s of margin (a drive "0.25 s after the
+# stop" still being the stopped press, resends "less than deadman_s apart").
+DEADMAN_S = 2.0
+K = DEADMAN_S / 0.5  # the waits' scale
+
+
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
-    cfg = console_config(tmp_path_factory.mktemp("round2"), hostnames=("my_robot",))
+    cfg = console_config(
+        tmp_path_factory.mktemp("round2"), hostnames=("my_robot",), deadman_s=DEADMAN_S
+    )
     with daemon_with(cfg) as r:
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        yield r
+
+
+@pytest.fixture(scope="module")
+def default_robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
+    """deadman_s 0.5 s (the default): the slow clock's drift is measured against it."""
+    with daemon_with(console_config(tmp_path_factory.mktemp("round2-default"))) as r:
         wait_for(lambda: has_fix(r), 30, "a fix")
         yield r
 
@@ -46,29 +65,33 @@ def stopped(reply: dict[str, Any]) -> bool:
 def test_an_old_page_whose_drive_is_late_across_a_stop_stays_stopped(robot: Running) -> None:
     # The audit: an older console.js holding a key (no press_ms), its timer stalled 0.6 s
     # and the stop came in that stall; the next drive, more than deadman_s after the last,
-    # started a "new press" and drove at 40/40 % again.
+    # started a "new press" and drove at 40/40 % again. (Here every time is scaled by K:
+    # deadman_s 2 s.)
     async def program() -> None:
         async with ws_to(robot) as w:
             for _ in range(4):
                 assert (await w.request("drive", sent_ms=page_ms(), **DRIVE))["ok"]
-                await asyncio.sleep(0.15)
-            await asyncio.sleep(0.3)  # the stall: 0.45 s so far since its last drive
+                await asyncio.sleep(0.15 * K)
+            # the stall; the stop comes early in it (0.2 * K s after the last drive: a press
+            # that drove less than deadman_s before another's stop is guarded; at 0.45 * K
+            # the stop's own round trip on a loaded host could put it past that)
+            await asyncio.sleep(0.05 * K)
             stop_from_elsewhere(robot)
-            await asyncio.sleep(0.15)  # over deadman_s since its last drive
+            await asyncio.sleep(0.4 * K)  # the stall goes on: over deadman_s since the last drive
             reply = await w.request("drive", sent_ms=page_ms(), **DRIVE)
             assert stopped(reply), reply
             # a program that goes on resending: the same (stopped) press
             for _ in range(4):
-                await asyncio.sleep(0.15)
+                await asyncio.sleep(0.15 * K)
                 assert stopped(await w.request("drive", sent_ms=page_ms(), **DRIVE))
                 assert vehicle_pct(robot) == (0.0, 0.0)
-            await asyncio.sleep(0.6)  # let go longer than deadman_s: a new press drives
+            await asyncio.sleep(0.6 * K)  # let go longer than deadman_s: a new press drives
             assert (await w.request("drive", sent_ms=page_ms(), **DRIVE))["ok"]
-            # drives 0.55 s apart (each one a press of its own): one sent 0.25 s after the
-            # stop is still the stopped press
-            await asyncio.sleep(0.3)
+            # drives 0.55 * K s apart (each one a press of its own): one sent 0.25 * K s after
+            # the stop is still the stopped press
+            await asyncio.sleep(0.3 * K)
             stop_from_elsewhere(robot)
-            await asyncio.sleep(0.25)
+            await asyncio.sleep(0.25 * K)
             assert stopped(await w.request("drive", sent_ms=page_ms(), **DRIVE))
             assert vehicle_pct(robot) == (0.0, 0.0)
             assert (await w.request("stop", sent_ms=page_ms()))["ok"]
@@ -82,9 +105,10 @@ def test_a_press_within_deadman_s_after_another_clients_stop_is_refused(robot: R
     # The audit: a link with 0.3 s of one-way delay; the press began 0.2 s before another
     # client's stop and its first drive arrived after it. The offset (least arrival -
     # sent_ms) holds the 0.3 s, so the press was placed 0.1 s after the stop: 12/12 drove.
-    # Every message of this page arrives 0.3 s after its sent_ms says it was sent.
+    # Here every time is scaled by K (deadman_s 2 s): every message of this page arrives
+    # 0.3 * K s after its sent_ms says it was sent.
     def delayed_ms() -> float:
-        return page_ms() - 300.0
+        return page_ms() - 300.0 * K
 
     async def program() -> None:
         async with ws_to(robot) as w:
@@ -92,24 +116,25 @@ def test_a_press_within_deadman_s_after_another_clients_stop_is_refused(robot: R
                 assert (await w.request("status", sent_ms=delayed_ms()))["ok"]
                 await asyncio.sleep(0.05)
             stop_from_elsewhere(robot)
-            await asyncio.sleep(0.1)  # pressed 0.2 s before the stop, arriving 0.1 s after
+            # pressed 0.2 * K s before the stop, arriving 0.1 * K s after
+            await asyncio.sleep(0.1 * K)
             press = delayed_ms()
             for _ in range(4):
                 reply = await w.request("drive", sent_ms=delayed_ms(), press_ms=press, **DRIVE)
                 assert stopped(reply), reply
                 assert vehicle_pct(robot) == (0.0, 0.0)
-                await asyncio.sleep(0.15)
-            await asyncio.sleep(0.2)  # a press made again later than deadman_s drives
+                await asyncio.sleep(0.15 * K)
+            await asyncio.sleep(0.2 * K)  # a press made again later than deadman_s drives
             press = delayed_ms()
             assert (await w.request("drive", sent_ms=press, press_ms=press, **DRIVE))["ok"]
             assert (await w.request("stop", sent_ms=delayed_ms()))["ok"]
-            # the guard: a page without delay pressing 0.1 s after another's stop is refused
-            # too (press again), and drives when it presses again
+            # the guard: a page without delay pressing 0.1 * K s after another's stop is
+            # refused too (press again), and drives when it presses again
             stop_from_elsewhere(robot)
-            await asyncio.sleep(0.1)
+            await asyncio.sleep(0.1 * K)
             press = page_ms()
             assert stopped(await w.request("drive", sent_ms=press, press_ms=press, **DRIVE))
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.5 * K)
             press = page_ms()
             assert (await w.request("drive", sent_ms=press, press_ms=press, **DRIVE))["ok"]
             assert (await w.request("stop", sent_ms=page_ms()))["ok"]
@@ -119,7 +144,7 @@ def test_a_press_within_deadman_s_after_another_clients_stop_is_refused(robot: R
 
 # -- 3: the clocks' offset over a recent window ---------------------------------------------------
 @pytest.mark.integration
-def test_a_page_clock_running_slow_is_followed(robot: Running) -> None:
+def test_a_page_clock_running_slow_is_followed(default_robot: Running) -> None:
     # The audit: a page clock 1 % slow; the least offset ever seen was kept, so after 25 s a
     # press was placed 0.25 s early and refused as begun before another's stop. Here 3 %
     # slow for 20 s (0.6 s behind: beyond deadman_s, every drive was refused as late).
@@ -129,11 +154,11 @@ def test_a_page_clock_running_slow_is_followed(robot: Running) -> None:
         return (time.monotonic() - epoch) * 1000.0 * 0.97 + 5_000_000.0
 
     async def program() -> None:
-        async with ws_to(robot) as w:
+        async with ws_to(default_robot) as w:
             while time.monotonic() - epoch < 20.0:  # an open page asks status every so often
                 assert (await w.request("status", sent_ms=slow_ms()))["ok"]
                 await asyncio.sleep(0.5)
-            stop_from_elsewhere(robot)
+            stop_from_elsewhere(default_robot)
             await asyncio.sleep(1.0)
             press = slow_ms()
             reply = await w.request("drive", sent_ms=press, press_ms=press, **DRIVE)
@@ -242,15 +267,15 @@ def test_a_held_drive_refused_by_another_clients_stop_is_logged_once_per_press(
             assert (await w.request("drive", sent_ms=page_ms(), press_ms=press, **DRIVE))["ok"]
             stop_from_elsewhere(robot)
             for _ in range(3):  # one press held: three refusals, one line
-                await asyncio.sleep(0.15)
+                await asyncio.sleep(0.15 * K)
                 reply = await w.request("drive", sent_ms=page_ms(), press_ms=press, **DRIVE)
                 assert stopped(reply), reply
             wait_for(lambda: logged() == before + 1, 2.0, "the refusal logged")
-            await asyncio.sleep(0.6)
+            await asyncio.sleep(0.6 * K)
             press = page_ms()  # a second press, stopped too: a second line
             assert (await w.request("drive", sent_ms=page_ms(), press_ms=press, **DRIVE))["ok"]
             stop_from_elsewhere(robot)
-            await asyncio.sleep(0.15)
+            await asyncio.sleep(0.15 * K)
             assert stopped(await w.request("drive", sent_ms=page_ms(), press_ms=press, **DRIVE))
             wait_for(lambda: logged() == before + 2, 2.0, "the second press's refusal logged")
             stats = console.stats()
