@@ -1131,7 +1131,7 @@ class GnssCalibration:
             return None
         return (
             "re_m is a standing receiver's white part: a moving robot needs it from --drive "
-            "(docs/gnss_calibration.md, Experiment 3, \"The white part of a moving receiver\"); "
+            '(docs/gnss_calibration.md, Experiment 3, "The white part of a moving receiver"); '
             "do not paste it alone into the robot's configuration: keep the robot's re_m "
             f"({GnssNoiseConfig().re_m} as shipped) until drives measure it"
         )
