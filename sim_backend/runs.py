@@ -325,8 +325,14 @@ class Summary:
         returned_s, mode = self.extra.get("returned_at_s"), self.extra.get("final_mode")
         if returned_s is not None:
             return f"a failsafe returned the robot to its launch point at {returned_s:.0f} s"
-        if mode == "PAUSED":
-            return f"the mission was on hold when the run ended at {self.sim_time_s:.0f} s"
+        if mode == "PAUSED":  # a pause, not a HOLD: the robot stands in IDLE (docs/simulator.md)
+            last = (self.extra.get("paused_s") or [None])[-1]
+            since = (
+                f" (since {last[0]:.1f} s: {last[2]})"
+                if last is not None and last[1] >= self.sim_time_s
+                else ""
+            )
+            return f"the mission was paused{since} when the run ended at {self.sim_time_s:.0f} s"
         if mode == "RUNNING":
             return f"the run's {self.sim_time_s:.0f} s ended before the last waypoint"
         return f"the run ended at {self.sim_time_s:.0f} s with the robot {mode or 'stopped'}"

@@ -84,3 +84,31 @@ def test_static_with_drives_writes_no_standing_warning(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     assert "standing receiver" not in r.stderr and "standing receiver" not in r.stdout
     assert "[gnss_noise]" in r.stdout
+
+
+# ------------------------------------------------------------------ 3. sim summary: paused
+
+
+def test_a_run_ending_paused_says_paused_with_its_start_and_reason(tmp_path: Path) -> None:
+    # the default scenario with a 45 s GPS outage from 20 s and a robot that holds at once
+    # without a fix: the failsafe pauses the mission at ~50 s and it stays paused to 400 s
+    scenario = tmp_path / "outage.toml"
+    scenario.write_text(
+        (ROOT / "config" / "scenarios" / "default.toml").read_text()
+        + '\n[[effects]]\nname = "outage"\nstart_s = 20.0\nduration_s = 45.0\n'
+    )
+    robot = (ROOT / "config" / "x6wd.toml").read_text()
+    assert "\ngps_outage_max_m = 20.0" in robot
+    cfg = tmp_path / "robot.toml"
+    cfg.write_text(robot.replace("\ngps_outage_max_m = 20.0", "\ngps_outage_max_m = 0.0"))
+    r = _run(["sim", str(scenario), "--config", str(cfg), "--quiet", "--out",
+              str(tmp_path / "out")], tmp_path)  # fmt: skip
+    assert r.returncode == 1, r.stderr  # 1: the mission not completed
+    head = next(ln for ln in r.stdout.splitlines() if ln.startswith("scenario "))
+    paused = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("paused "))
+    # the detail line: "paused 349.9 s (since 50.1 s: no valid fix for 30 s)"
+    since = paused[paused.index("(since ") : paused.rindex(")") + 1]
+    assert "no valid fix for 30 s" in since, paused
+    assert head.endswith(f"mission NOT completed: the mission was paused {since} when the run "
+                         "ended at 400 s"), head  # fmt: skip
+    assert "on hold" not in head
