@@ -205,22 +205,26 @@ def test_a_stop_sent_during_a_tls_back_off_goes_out_at_once_while_a_closed_clien
 ) -> None:
     """The early stop (read ahead while the connection sleeps out a wrong token's back-off)
     takes the same path: the motors first."""
-    t = tls_server(auth_fail_delay_s=2.0)
+    # a 4 s back-off: the stop goes out within 2 s (~0.01 s here), where one held behind the
+    # back-off goes out when it ends (~4 s) and a crashed one never
+    t = tls_server(auth_fail_delay_s=4.0)
     closed_tls_client_known(lt, t)
     driver = TlsRaw(t.srv.port, t.ctx)
     raw = TlsRaw(t.srv.port, t.ctx)
     try:
         assert driver.ask({"id": 0, "cmd": "auth", "token": TOKEN})["ok"]
         assert driver.ask({"id": 1, **DRIVE})["ok"]
+        t_auth = time.monotonic()  # the back-off begins after this
         assert raw.ask({"id": 1, "cmd": "auth", "token": "wrong-token"})["error"]["code"] == (
             "auth_failed"
         )
         t0 = time.monotonic()
-        raw.send(b'{"id": 2, "cmd": "stop"}\n')  # read during the 2 s back-off
-        stopped_soon(t.backend, 1.0)
-        assert time.monotonic() - t0 < 1.0
+        raw.send(b'{"id": 2, "cmd": "stop"}\n')  # read during the 4 s back-off
+        stopped_soon(t.backend, 10.0)
+        assert time.monotonic() - t0 < 2.0
         assert lt.call(lambda: t.srv.server_stats()["stops"]["early"]) == 1
         assert raw.line() == {"id": 2, "ok": True, "mode": "IDLE", "state": "IDLE"}
+        assert time.monotonic() - t_auth >= 3.96  # answered in its turn, after the back-off
     finally:
         raw.close()
         driver.close()
@@ -293,18 +297,20 @@ def test_the_sweep_closes_a_silent_tls_connection_in_time_while_a_closed_tls_cli
     lt: LoopThread, tls_server: Callable[..., Tls], caplog: pytest.LogCaptureFixture
 ) -> None:
     # the audit's state: a closed TLS client known, and a driving client gone since
-    t = tls_server(auth_timeout_s=0.5)
+    # a 1 s deadline: closed within 3 s after it (the sweep runs every 0.25 s); a sweep
+    # that has died never closes it (given up after 15 s)
+    t = tls_server(auth_timeout_s=1.0)
     closed_tls_client_known(lt, t)
     driver = TlsRaw(t.srv.port, t.ctx)
     assert driver.ask({"id": 0, "cmd": "auth", "token": TOKEN})["ok"]
     assert driver.ask({"id": 1, **DRIVE})["ok"]
     driver.close()
-    time.sleep(0.3)  # its hang-up is handled (the dead-man itself: the test above)
+    stopped_soon(t.backend, 10.0)  # its hang-up is handled (the dead-man: the test above)
     with caplog.at_level(logging.ERROR, logger="x6wd.app"):
         for _ in range(2):
-            notice, after_s = _closed_within(t, 3.0)
+            notice, after_s = _closed_within(t, 15.0)
             assert notice["error"]["reason"] == "auth_timeout", notice
-            assert after_s < 0.5 + 1.0, after_s
+            assert after_s < 1.0 + 3.0, after_s
     assert "sweep" not in caplog.text, caplog.text
 
 
@@ -325,7 +331,9 @@ def test_the_sweep_goes_on_past_a_connection_it_cannot_check(
     """One bad connection (here: the closed TLS client put back in the pools as if its
     handler had died, and its transport made to fail every call) is logged and skipped;
     every other connection's deadlines still hold, and a stop still works."""
-    t = tls_server(auth_timeout_s=0.5)
+    # a 1 s deadline: closed within 3 s after it; a sweep that stops at the bad connection
+    # never closes it (given up after 15 s)
+    t = tls_server(auth_timeout_s=1.0)
     zombie = closed_tls_client_known(lt, t)
 
     def haunt() -> None:
@@ -340,9 +348,9 @@ def test_the_sweep_goes_on_past_a_connection_it_cannot_check(
     lt.call(haunt)
     with caplog.at_level(logging.ERROR, logger="x6wd.app"):
         for _ in range(2):
-            notice, after_s = _closed_within(t, 3.0)
+            notice, after_s = _closed_within(t, 15.0)
             assert notice["error"]["reason"] == "auth_timeout", notice
-            assert after_s < 0.5 + 1.0, after_s
+            assert after_s < 1.0 + 3.0, after_s
         stopper = TlsRaw(t.srv.port, t.ctx)
         assert stopper.ask({"id": 1, "cmd": "stop"})["ok"]
         stopper.close()
@@ -436,11 +444,18 @@ def test_the_daemon_with_tls_stops_its_motors_from_the_client_ctrl_c_and_the_con
     def driving(r: Any) -> RemoteClient:
         c = RemoteClient("127.0.0.1", r.port, ssl_context=ctx, token=TOKEN_OF_CONSOLE)
         assert c.request("drive", left=40, right=40, duration_s=5)["ok"]
-        wait_until(lambda: vehicle_pct(r) == (40.0, 40.0), 3, "driving")
+        wait_until(lambda: vehicle_pct(r) == (40.0, 40.0), 10, "driving")
+        drove[0] = time.monotonic()
         return c
 
+    drove = [0.0]  # when the latest 5 s drive was seen at the motors (0: a short one)
+
     def stopped(r: Any) -> None:
-        wait_until(lambda: vehicle_pct(r) == (0.0, 0.0), 1.5, "the vehicle's motors at 0")
+        wait_until(lambda: vehicle_pct(r) == (0.0, 0.0), 10.0, "the vehicle's motors at 0")
+        if drove[0]:
+            # by the stop, not by the drive's own end (5 s after it was sent, before drove)
+            assert time.monotonic() - drove[0] < 4.5, "the motors ran until the drive ended"
+            drove[0] = 0.0
 
     with daemon_with(cfg) as r:
         for _ in range(2):
@@ -456,6 +471,7 @@ def test_the_daemon_with_tls_stops_its_motors_from_the_client_ctrl_c_and_the_con
         )  # fmt: skip
         try:
             wait_until(lambda: vehicle_pct(r) == (40.0, 40.0), 20, "the client's drive")
+            drove[0] = time.monotonic()
             proc.send_signal(signal.SIGINT)
             _, stderr = proc.communicate(timeout=10)
         finally:
@@ -466,6 +482,7 @@ def test_the_daemon_with_tls_stops_its_motors_from_the_client_ctrl_c_and_the_con
         proc = subprocess.Popen(cli(r, "drive", "40", "40", "5"), stderr=subprocess.PIPE)
         try:
             wait_until(lambda: vehicle_pct(r) == (40.0, 40.0), 20, "the client's drive")
+            drove[0] = time.monotonic()
             proc.kill()  # the dead-man
             proc.wait(10)
         finally:
