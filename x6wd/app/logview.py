@@ -53,11 +53,13 @@ from x6wd.core.recorder import (
     GAP_EVENT,
     ReadStats,
     Record,
+    Writer,
     decode_record,
     is_recording,
     list_recordings,
     nmea_file_chunks,
     recording_parts,
+    recording_writer,
     unknown_fields,
 )
 from x6wd.core.records import GpsFix, GpsSky, Mode, NavState
@@ -294,8 +296,12 @@ class LogView:
     # writer); drawn in ``faults``, lane "recorder"
     gaps: list[RecordingGap] = field(default_factory=list)
     # a recording whose last record is not the daemon's shutdown event (or the simulator's
-    # end): a crash, kill -9 or a power cut; None for an NMEA log
+    # end), and that no recorder writes any more: a crash, kill -9 or a power cut; None for
+    # an NMEA log
     cut_short: bool | None = None
+    # a recording a recorder still writes (its lock held, read after the records): drawn
+    # as far as it was written, neither finished nor cut short; None when it is not
+    writer: Writer | None = None
 
     def time_range(self) -> tuple[float, float]:
         """The time axis: 0 to the duration, widened to any time drawn outside it (so that
@@ -336,6 +342,8 @@ class LogView:
             "time_jumps_total": n_jumps(self),
             "recording_gaps": [g.to_json() for g in self.gaps],
             "cut_short": self.cut_short,
+            "in_progress": self.writer is not None,
+            "writer_pid": self.writer.pid if self.writer is not None else None,
         }
 
 
@@ -1039,7 +1047,10 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
             "bad_records": bad_records,
             "records_with_unknown_fields": unknown,
         }
-        view.cut_short = raw.last_event not in END_EVENTS
+        if raw.last_event not in END_EVENTS:
+            # no end record: still being written (a recorder holds it now), else cut short
+            view.writer = recording_writer(path)
+        view.cut_short = raw.last_event not in END_EVENTS and view.writer is None
     else:
         decoding = _Decoding(raw, _FileOrder(view.jumps))
         for t_s, data in nmea_file_chunks(path, rate_hz):
@@ -1688,6 +1699,14 @@ CUT_SHORT_NOTE = (
 """What the page, ``x6wd plot`` and ``x6wd replay`` say of a recording that was cut short."""
 
 
+def in_progress_note(view: LogView) -> str:
+    """What the page and ``x6wd plot`` say of a recording still being written ("" when it is
+    not): not a crash, the recording so far."""
+    if view.writer is None:
+        return ""
+    return f"{view.writer.describe()}: what is shown is the recording so far"
+
+
 def jumps_note(view: LogView, most: int = 3) -> str:
     """What the page and ``x6wd plot`` say of a log's time jumps ("" when it has none)."""
     if not view.jumps:
@@ -1743,6 +1762,8 @@ def html_page(view: LogView) -> str:
         facts.append((f"recording gaps ({len(view.gaps)})", gaps_note(view)))
     if view.cut_short:
         facts.append(("end", CUT_SHORT_NOTE))
+    elif view.writer is not None:
+        facts.append(("end", in_progress_note(view)))
     facts += [(k.replace("_", " "), str(v)) for k, v in view.counts.items()]
     rows = "".join(f"<tr><td>{_esc(k)}</td><td>{_esc(v)}</td></tr>" for k, v in facts)
     sections = []

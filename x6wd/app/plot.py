@@ -25,6 +25,7 @@ from x6wd.app.logview import (
     fault_lanes,
     gaps_note,
     html_page,
+    in_progress_note,
     jumps_note,
     load,
     newest_recording,
@@ -235,6 +236,8 @@ def main(args: argparse.Namespace) -> int:
         print(f"x6wd plot: {src}: recording gaps: {gaps_note(view)}", file=sys.stderr)
     if view.cut_short:
         print(f"x6wd plot: {src}: {CUT_SHORT_NOTE}", file=sys.stderr)
+    elif view.writer is not None:
+        print(f"x6wd plot: {src}: {in_progress_note(view)}", file=sys.stderr)
     if n := view.counts.get("records_with_unknown_fields"):
         print(
             f"x6wd plot: {src}: {n} records with fields this version does not know"

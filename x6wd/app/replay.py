@@ -29,6 +29,7 @@ from x6wd.core.recorder import (
     nmea_chunks,
     nothing_decoded,
     paced,
+    recording_writer,
     to_jsonable,
 )
 from x6wd.core.records import GpsFix, GpsSky
@@ -174,7 +175,11 @@ def replay_file(
             f"x6wd replay: {path}: {stats.gaps} recording gap{'s' if stats.gaps > 1 else ''}:"
             f" {stats.gap_records_lost} records lost (the recorder's disk failed or stalled)\n"
         )
-    if recording and stats.cut_short:
+    # no end record: a recorder still writing it (its lock held now) says it is not finished
+    writer = recording_writer(path) if recording and stats.cut_short else None
+    if writer is not None:
+        err.write(f"x6wd replay: {path}: {writer.describe()}: replayed as far as it is written\n")
+    elif recording and stats.cut_short:
         err.write(
             f"x6wd replay: {path}: cut short: its last record is not the daemon's shutdown"
             " event (a crash, kill -9 or a power cut; or a recording older than that event)\n"

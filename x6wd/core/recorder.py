@@ -40,6 +40,15 @@ With ``gap_events`` (the daemon's recorder) the records lost are not only counte
 first record written again is preceded by a :data:`GAP_EVENT` record naming the gap. With
 ``start_failing`` a disk that is read-only or full at start (:data:`RUNTIME_ERRNOS`) is
 waited out the same way instead of raising.
+
+A recording still being written: the recorder holds an advisory lock (``flock``, exclusive)
+on the part it writes, from when it opens it until :meth:`Recorder.close` (a new part is
+locked before the last one is let go; while a part waits to be opened again the last one
+stays locked), and notes that part in this process (:func:`recording_writer` sees it even
+where the file system has no ``flock``). Readers test the lock (:func:`recording_writer`):
+held, the recording is in progress, not cut short. A crash, ``kill -9`` or a power cut
+ends the process and the kernel lets the lock go, so such a recording still reads as cut
+short. A file system without ``flock`` (an error) records as before, unmarked.
 """
 
 from __future__ import annotations
@@ -48,6 +57,7 @@ import contextlib
 import dataclasses
 import enum
 import errno
+import fcntl
 import functools
 import json
 import logging
@@ -59,6 +69,7 @@ import threading
 import time
 import types
 import typing
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
@@ -374,6 +385,160 @@ class RecordingFile:
     size: int = field(compare=False)  # bytes
 
 
+# --- a recording still being written ---------------------------------------------------------
+
+_LOCK_TRIES = 20
+"""Attempts (5 ms apart) at a part's exclusive lock: a reader's test holds a shared one for
+a moment; a part still refused after them is written unmarked (logged)."""
+
+# (st_dev, st_ino) of the parts this process's recorders write now -> how many hold each
+_WRITING: dict[tuple[int, int], int] = {}
+_WRITING_LOCK = threading.Lock()
+
+
+def _file_key(st: os.stat_result) -> tuple[int, int]:
+    return st.st_dev, st.st_ino
+
+
+class _WritingMark:
+    """What says a part is being written: an exclusive ``flock`` on a descriptor of its own
+    (so closing or reopening the file written does not let it go) and the part's entry in
+    this process's :data:`_WRITING`. :meth:`move_to` marks a newly opened part, then lets
+    the previous one go; :meth:`release` lets go at the close. Lock errors (a file system
+    without ``flock``) are ignored: the part is written, only not marked for other
+    processes."""
+
+    def __init__(self) -> None:
+        self._fd: int | None = None
+        self._key: tuple[int, int] | None = None
+        self.locked = False  # the part's flock is held (False: none, or not supported)
+
+    def move_to(self, f: Any, path: Path) -> None:
+        try:
+            key = _file_key(os.fstat(f.fileno()))
+        except (OSError, AttributeError, ValueError):
+            return  # cannot tell which file: the previous mark stays
+        if key == self._key:
+            return  # the same part opened again: already marked
+        fd: int | None = None
+        locked = False
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC)
+            if _file_key(os.fstat(fd)) != key:  # replaced meanwhile: not the part written
+                raise FileNotFoundError(errno.ENOENT, "replaced", str(path))
+            for attempt in range(_LOCK_TRIES):
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:  # a reader testing it: a moment
+                    if attempt + 1 < _LOCK_TRIES:
+                        time.sleep(0.005)
+                    continue
+                locked = True
+                break
+            else:
+                log.info("recorder: %s stays locked by another process: not marked", path)
+        except OSError as exc:  # no flock here (or the part is gone): written unmarked
+            log.debug("recorder: cannot lock %s: %s", path, exc)
+        if not locked and fd is not None:
+            os.close(fd)
+            fd = None
+        with _WRITING_LOCK:
+            _WRITING[key] = _WRITING.get(key, 0) + 1
+        self._let_go()
+        self._fd, self._key, self.locked = fd, key, locked
+
+    def _let_go(self) -> None:
+        fd, key, self._fd, self._key, self.locked = self._fd, self._key, None, None, False
+        if key is not None:
+            with _WRITING_LOCK:
+                n = _WRITING.get(key, 0) - 1
+                if n > 0:
+                    _WRITING[key] = n
+                else:
+                    _WRITING.pop(key, None)
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)  # the lock goes with the last descriptor of its open file
+
+    def release(self) -> None:
+        self._let_go()
+
+
+@dataclass(frozen=True)
+class Writer:
+    """Who writes a recording still being written (:func:`recording_writer`)."""
+
+    pid: int | None  # the writing process, None when it cannot be told
+    this_process: bool  # this process's own recorder (the daemon's console, its own run)
+
+    def describe(self) -> str:
+        """What readers say of it (``x6wd plot``, ``x6wd replay``, the page's "end")."""
+        if self.this_process:
+            return "still being recorded (this run)"
+        pid = f" (pid {self.pid})" if self.pid else ""
+        return f"not finished: still being written by a running x6wd{pid}"
+
+
+def _lock_holder(st: os.stat_result) -> int | None:
+    """The pid holding an exclusive ``flock`` on the file of ``st``, from ``/proc/locks``
+    (Linux); None when it cannot be told."""
+    maj, mnr, ino = os.major(st.st_dev), os.minor(st.st_dev), st.st_ino
+    try:
+        with open("/proc/locks", encoding="ascii", errors="replace") as f:
+            text = f.read()
+    except OSError:
+        return None
+    for line in text.splitlines():
+        fields = line.split()
+        if len(fields) < 6 or fields[1] != "FLOCK" or fields[3] != "WRITE":
+            continue  # ("->" lines are waiters)
+        try:
+            d_maj, d_min, d_ino = fields[5].split(":")
+            if (int(d_maj, 16), int(d_min, 16), int(d_ino)) == (maj, mnr, ino):
+                return int(fields[4]) or None
+        except ValueError:
+            continue
+    return None
+
+
+def part_writer(path: str | os.PathLike[str]) -> Writer | None:
+    """The :class:`Writer` of one file being written by a recorder now (its lock held, or
+    written by this process), or None (finished, cut short, not a recording, no ``flock``
+    there, cannot be opened)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
+    except OSError:
+        return None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            return None
+        with _WRITING_LOCK:
+            here = _file_key(st) in _WRITING
+        if here:
+            return Writer(os.getpid(), True)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return Writer(_lock_holder(st), False)
+        except OSError:  # no flock on this file system: cannot tell
+            return None
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def recording_writer(path: str | os.PathLike[str]) -> Writer | None:
+    """The :class:`Writer` of the recording whose part is ``path`` (any part: its run's
+    parts are looked at as they are now) while a recorder still writes it, else None. The
+    lock is on the run's last part, or, for the moment a rotation takes, the one before."""
+    for part in reversed(recording_parts(path)[-2:]):
+        if (w := part_writer(part)) is not None:
+            return w
+    return None
+
+
 @functools.cache
 def _name_pattern(prefix: str) -> re.Pattern[str]:
     return re.compile(
@@ -624,8 +789,12 @@ class Recorder:
         self._backoff_s = reopen_backoff_s[0]
         self._t_retry = 0.0  # time.monotonic() of the next attempt to open it
         self._file: Any = None  # None while a part waits to be (re)opened
+        # the part being written, marked (locked) for readers until close()
+        self._mark = _WritingMark()
+        weakref.finalize(self, self._mark.release)  # a recorder never closed, collected
         try:
             self._file = self._open(self.path)
+            self._mark.move_to(self._file, self.path)
         except DeviceUnavailable as exc:
             cause = exc.__cause__
             if not (start_failing and isinstance(cause, OSError) and cause.errno in RUNTIME_ERRNOS):
@@ -694,6 +863,7 @@ class Recorder:
             self._failed(str(exc), now)
             raise
         self._file = f
+        self._mark.move_to(f, path)  # the new part marked, then the previous one let go
         self._reopen_path = None
         self._backoff_s = self.reopen_backoff_s[0]
         if path != self.path or path not in self.paths:
@@ -997,6 +1167,7 @@ class Recorder:
                 return
             self._closed = True
             self._drop_file()
+            self._mark.release()  # finished: no longer being written
 
     def __enter__(self) -> Recorder:
         return self

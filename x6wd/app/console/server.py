@@ -68,7 +68,7 @@ from x6wd.core.config import HOSTNAME_PATTERN, ConsoleConfig
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.mission_files import PARSERS, parse_content
 from x6wd.core.ratelog import RateLimitedLog
-from x6wd.core.recorder import RecordingFile, list_recordings
+from x6wd.core.recorder import RecordingFile, list_recordings, part_writer
 from x6wd.core.records import GpsSky
 
 log = logging.getLogger(__name__)
@@ -368,6 +368,17 @@ class _TlsSite(web.TCPSite):
         self._bound_port = sockets[0].getsockname()[1] if sockets else self._port
 
 
+@dataclass(frozen=True)
+class _Run:
+    """One run in the recordings folder, as ``recording.list`` gives it."""
+
+    path: Path  # its first remaining part (the name the list gives)
+    size: int  # that part's bytes
+    # a recorder still writes it (this daemon's current run, or another process's: its
+    # last part's lock held, or the one before it while a rotation moves the lock)
+    in_progress: bool
+
+
 class ConsoleServer:
     """HTTP + WebSocket server on the daemon's network loop. :meth:`publish` and
     :meth:`publish_sky` are called on that loop and never wait."""
@@ -420,7 +431,7 @@ class ConsoleServer:
         self._files = concurrent.futures.ThreadPoolExecutor(
             max_workers=2, thread_name_prefix="x6wd-console-files"
         )
-        self._listing: asyncio.Future[dict[str, RecordingFile]] | None = None
+        self._listing: asyncio.Future[dict[str, _Run]] | None = None
         self._hung_logged: set[asyncio.Future[Any]] = set()
 
     @property
@@ -1067,15 +1078,20 @@ class ConsoleServer:
         return {**reply, "notes": list(notes)} if notes else reply
 
     @staticmethod
-    def _list_runs(directory: Path) -> dict[str, RecordingFile]:
+    def _list_runs(directory: Path) -> dict[str, _Run]:
         """The recorder's runs in ``directory`` by the name of their first remaining part,
         oldest first (reads the folder: called in a thread)."""
-        runs: dict[str, RecordingFile] = {}
+        runs: dict[str, list[RecordingFile]] = {}
         for f in list_recordings(directory):
-            runs.setdefault(str(f.run), f)  # parts sort after their run's first file
-        return {f.path.name: f for f in runs.values()}
+            runs.setdefault(str(f.run), []).append(f)  # parts sort after their first file
+        return {
+            parts[0].path.name: _Run(
+                parts[0].path, parts[0].size, any(part_writer(p.path) for p in parts[-2:])
+            )
+            for parts in runs.values()
+        }
 
-    async def _runs(self) -> dict[str, RecordingFile]:
+    async def _runs(self) -> dict[str, _Run]:
         """:meth:`_list_runs` of the recordings folder, read in the console's file thread,
         never on the network loop (which reads every client's stop); requests meanwhile
         share the listing under way. TimeoutError after :data:`RECORDINGS_TIMEOUT_S` (the
@@ -1092,8 +1108,10 @@ class ConsoleServer:
         return await asyncio.wait_for(asyncio.shield(f), RECORDINGS_TIMEOUT_S)
 
     async def _recording(self, c: Any, req: dict[str, Any]) -> dict[str, Any]:
-        """``recording.list`` -> ``recordings`` ([{name, bytes}], newest first);
-        ``recording.view`` with ``name`` (one of the list) -> ``html``, the log viewer's page.
+        """``recording.list`` -> ``recordings`` ([{name, bytes, in_progress}], newest first;
+        ``in_progress``: still being written, this daemon's current run);
+        ``recording.view`` with ``name`` (one of the list) -> ``html``, the log viewer's page
+        (a run still being written says so under "end", not "cut short").
         Only names the recorder wrote are read: a name is never a path."""
         rid = req.get("id")
         if isinstance(rid, (dict, list)):
@@ -1123,7 +1141,10 @@ class ConsoleServer:
                 f"{exc.strerror or exc}", "recordings_unavailable",
             )  # fmt: skip
         if cmd == "recording.list":
-            items = [{"name": n, "bytes": f.size} for n, f in reversed(runs.items())]
+            items = [
+                {"name": n, "bytes": f.size, "in_progress": f.in_progress}
+                for n, f in reversed(runs.items())
+            ]
             return {"id": rid, "ok": True, "recordings": items}
         name = req.get("name")
         if not isinstance(name, str) or name not in runs:
