@@ -3,17 +3,29 @@
 1. ``x6wd calibrate gnss --static`` alone wrote a standing receiver's ``re_m`` without a word,
    although pasted into the robot's configuration it makes the EKF worse
    (docs/gnss_calibration.md, "--static alone").
+2. ``x6wd client``: a certificate that does not name ``--host`` gave OpenSSL's raw reason
+   and nothing more, ``stop`` said "Renew the robot's certificate" whatever the cause, and
+   ``start`` without a token did not name ``--token-file``.
+3. ``x6wd sim``: a run that ended with the mission PAUSED said "on hold" in its first line.
 """
 
 from __future__ import annotations
 
+import calendar
+import contextlib
 import os
+import random
+import socket
 import subprocess
 import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from tests.conftest import require_program, self_signed_cert
 from tests.test_calibrate_gnss import (
     loop_track,
     sim_fixes,
@@ -22,7 +34,11 @@ from tests.test_calibrate_gnss import (
     write_recording,
     write_truth_csv,
 )
+from tests.test_server import TOKEN, LoopThread, RecordingBackend
+from tests.test_tls_cert_dates import dated_cert
+from x6wd.app.server import ControlServer, server_ssl_context
 from x6wd.core import config
+from x6wd.core.config import ServerConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 X6WD = [sys.executable, "-m", "x6wd"]
@@ -112,3 +128,122 @@ def test_a_run_ending_paused_says_paused_with_its_start_and_reason(tmp_path: Pat
     assert head.endswith(f"mission NOT completed: the mission was paused {since} when the run "
                          "ended at 400 s"), head  # fmt: skip
     assert "on hold" not in head
+
+
+# ------------------------------------------------------------------ 2. client: TLS and auth hints
+
+
+def _free_port() -> int:
+    """A port of 7850-7899 nothing listens on now (127.0.0.1)."""
+    ports = list(range(7850, 7900))
+    random.shuffle(ports)
+    for port in ports:
+        with socket.socket() as s, contextlib.suppress(OSError):
+            s.bind(("127.0.0.1", port))
+            return port
+    pytest.skip("no free port in 7850-7899")
+
+
+@contextlib.contextmanager
+def _robot(cert: Path | None = None, key: Path | None = None, now_s: float | None = None,
+           ) -> Iterator[int]:  # fmt: skip
+    """The real control server on 127.0.0.1 (a token; TLS with ``cert``: its dates judged at
+    ``now_s``), its port."""
+    lt = LoopThread()
+    ctx = server_ssl_context(str(cert), str(key), now_s=now_s) if cert and key else None
+    srv = ControlServer(ServerConfig(port=_free_port()), RecordingBackend(),
+                        token=TOKEN.encode(), ssl_context=ctx)  # fmt: skip
+    try:
+        lt.run(srv.start())
+        yield srv.port
+    finally:
+        lt.run(srv.close())
+        lt.close()
+
+
+def _client(port: int, *argv: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*X6WD, "client", "--port", str(port), "--timeout", "20", *argv],
+        capture_output=True, text=True, timeout=60, cwd=ROOT,
+    )  # fmt: skip
+
+
+def _cert_without_the_ip(directory: Path) -> tuple[Path, Path]:
+    """A self-signed certificate naming robot.invalid only (not 127.0.0.1), and its key."""
+    cert, key = directory / "cert.pem", directory / "key.pem"
+    subprocess.run(
+        [require_program("openssl"), "req", "-x509", "-newkey", "rsa:2048", "-nodes",
+         "-days", "2", "-subj", "/CN=x6wd", "-addext", "subjectAltName=DNS:robot.invalid",
+         "-keyout", str(key), "-out", str(cert)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    key.chmod(0o600)
+    return cert, key
+
+
+NAME_HINT = (
+    "the certificate must name this --host (127.0.0.1) in its subjectAltName: connect with a "
+    "name or address it lists, or make the robot's certificate with it (docs/install.md, "
+    "section 2)"
+)
+
+
+@pytest.mark.integration
+def test_a_certificate_without_the_hosts_name_says_what_to_fix(tmp_path: Path) -> None:
+    cert, key = _cert_without_the_ip(tmp_path)
+    with _robot(cert, key) as port:
+        st = _client(port, "--cafile", str(cert), "status")
+        stop = _client(port, "--cafile", str(cert), "stop")
+    assert st.returncode == 3, st.stderr
+    assert "IP address mismatch" in st.stderr, st.stderr
+    assert st.stderr.rstrip().endswith(": " + NAME_HINT), st.stderr
+    # the stop goes out unverified (exit 4) and names the same fix, not a renewal
+    assert stop.returncode == 4, (stop.stdout, stop.stderr)
+    assert "To fix it: " + NAME_HINT in stop.stderr, stop.stderr
+    assert "renew" not in stop.stderr.lower()
+
+
+@pytest.mark.integration
+def test_an_expired_or_untrusted_certificate_gets_its_own_fix(tmp_path: Path) -> None:
+    # valid for February 2026 (after this release's date: the server takes it at a date
+    # within it), expired for the client's clock
+    start_s = calendar.timegm(time.strptime("2026-02-01", "%Y-%m-%d"))
+    assert time.time() > start_s + 40 * 86400
+    (tmp_path / "old").mkdir()
+    old, old_key = dated_cert(tmp_path / "old", start_s, start_s + 28 * 86400)
+    with _robot(old, old_key, now_s=start_s + 14 * 86400) as port:
+        stop = _client(port, "--cafile", str(old), "stop")
+        st = _client(port, "--cafile", str(old), "status")
+    assert stop.returncode == 4, (stop.stdout, stop.stderr)
+    assert "certificate has expired" in stop.stderr
+    assert "To fix it: renew the robot's certificate (docs/install.md, section 2)" in stop.stderr
+    assert st.returncode == 3 and st.stderr.rstrip().endswith(
+        ": renew the robot's certificate (docs/install.md, section 2)"
+    ), st.stderr
+    # another certificate than the robot's in --cafile: not a name or date matter
+    (tmp_path / "robot").mkdir()
+    (tmp_path / "other").mkdir()
+    cert, key = self_signed_cert(tmp_path / "robot")
+    other, _ = self_signed_cert(tmp_path / "other")
+    with _robot(cert, key) as port:
+        stop = _client(port, "--cafile", str(other), "stop")
+        st = _client(port, "--cafile", str(other), "status")
+    hint = "give the robot's own certificate with --cafile (copy its cert.pem"
+    assert stop.returncode == 4 and "To fix it: " + hint in stop.stderr, stop.stderr
+    assert st.returncode == 3 and hint in st.stderr and "subjectAltName" not in st.stderr
+
+
+@pytest.mark.integration
+def test_a_command_refused_for_want_of_a_token_names_token_file(tmp_path: Path) -> None:
+    token = tmp_path / "token"
+    token.write_text(TOKEN + "\n")
+    token.chmod(0o600)
+    with _robot() as port:
+        bare = _client(port, "start")
+        given = _client(port, "--token-file", str(token), "pause")
+    assert bare.returncode == 1, bare.stderr
+    assert bare.stderr.strip() == (
+        "x6wd client: start refused: unauthorized: authenticate first to use 'start'; give "
+        "the robot's token with --token-file FILE (docs/install.md, section 4)"
+    ), bare.stderr
+    assert "--token-file" not in given.stderr  # authenticated: no hint about it

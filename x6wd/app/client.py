@@ -63,9 +63,38 @@ class CertificateNotVerified(ConnectionFailed):
     """The TLS handshake failed because the robot's certificate could not be verified
     (expired, not yet valid, another name, not trusted); ``why`` is OpenSSL's reason."""
 
-    def __init__(self, message: str, why: str) -> None:
+    def __init__(self, message: str, why: str, code: int = 0) -> None:
         super().__init__(message)
         self.why = why
+        self.code = code  # OpenSSL's verify code (0: not known)
+
+
+# OpenSSL's X509_V_ERR_* codes (x509_vfy.h) of the causes an operator fixes differently
+_CERT_NOT_YET_VALID, _CERT_HAS_EXPIRED = 9, 10
+_HOSTNAME_MISMATCH, _IP_ADDRESS_MISMATCH = 62, 64
+
+
+def certificate_hint(exc: CertificateNotVerified, host: str) -> str:
+    """What fixes a failed verification, by its cause: the name the client connected to
+    missing from the certificate, its dates, or a certificate ``--cafile`` does not trust
+    (docs/install.md, section 2)."""
+    if exc.code in (_HOSTNAME_MISMATCH, _IP_ADDRESS_MISMATCH) or "mismatch" in exc.why:
+        return (
+            f"the certificate must name this --host ({host}) in its subjectAltName: connect "
+            "with a name or address it lists, or make the robot's certificate with it "
+            "(docs/install.md, section 2)"
+        )
+    if exc.code == _CERT_HAS_EXPIRED or "expired" in exc.why:
+        return "renew the robot's certificate (docs/install.md, section 2)"
+    if exc.code == _CERT_NOT_YET_VALID or "not yet valid" in exc.why:
+        return (
+            "check the clock of this computer and the one the certificate was made with "
+            "(docs/install.md, section 2)"
+        )
+    return (
+        "give the robot's own certificate with --cafile (copy its cert.pem: docs/install.md, "
+        "section 4); one made again on the robot must be copied again"
+    )
 
 
 class RequestFailed(X6wdError):
@@ -118,7 +147,7 @@ class RemoteClient:
             sock.close()
             why = exc.verify_message or str(exc)
             raise CertificateNotVerified(
-                f"TLS handshake with {host}:{port} failed: {exc}", why
+                f"TLS handshake with {host}:{port} failed: {exc}", why, exc.verify_code or 0
             ) from None
         except (OSError, ssl.SSLError) as exc:
             sock.close()
@@ -879,7 +908,7 @@ def _connect(
                 f"THE ROBOT'S TLS CERTIFICATE COULD NOT BE VERIFIED ({exc.why}); retrying the "
                 "stop over TLS WITHOUT verification (a stop carries no token; nothing "
                 "else is sent so, and the reply cannot be proven to come from the robot). "
-                "Renew the robot's certificate: docs/install.md",
+                f"To fix it: {certificate_hint(exc, args.host)}",
                 err,
             )
             client = connect(None, _unverified_ssl())
@@ -996,8 +1025,16 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
             return EXIT_OK
     except RequestFailed as exc:
         code = f"{exc.code} ({exc.reason})" if exc.reason else exc.code
-        print(f"x6wd client: {args.action} refused: {code}: {exc.message}", file=err)
+        hint = (
+            "; give the robot's token with --token-file FILE (docs/install.md, section 4)"
+            if exc.code == "unauthorized" and token is None
+            else ""
+        )
+        print(f"x6wd client: {args.action} refused: {code}: {exc.message}{hint}", file=err)
         return EXIT_REFUSED  # whatever the reason: the robot said no (2: found here)
+    except CertificateNotVerified as exc:
+        print(f"x6wd client: {exc}: {certificate_hint(exc, args.host)}", file=err)
+        return EXIT_CONNECTION
     except (ConnectionFailed, ProtocolError) as exc:
         print(f"x6wd client: {exc}", file=err)
         return EXIT_CONNECTION
