@@ -306,7 +306,6 @@ def test_wheel_odometry_flows_into_the_ekf_and_the_wmm_declination_reaches_gpsd(
         ready_for_a_mission(c, d)
         t_a = time.monotonic()
         st = c.request("status")
-        t_b = time.monotonic()
         n0 = st["links"]["odometry"]
         assert isinstance(n0, int) and n0 > 0, st["links"]
         odo = st["devices"]["odometry"]
@@ -314,22 +313,25 @@ def test_wheel_odometry_flows_into_the_ekf_and_the_wmm_declination_reaches_gpsd(
         c.request("drive", left=40, right=40, duration_s=4.0)
         wait_for(lambda: world.truth()[3] > 0.3, 3, "moving")
         time.sleep(0.5)  # still driving (4 s) when status is asked, even on a loaded machine
-        t_c = time.monotonic()
         st = c.request("status")
         t_d = time.monotonic()
         n1 = st["links"]["odometry"]
-        # Polled at 20 Hz, each poll at least a period after the one before (the worker's
-        # schedule): never more than 20/s plus one over the outer window (from before the
+        # Polled at 20 Hz, each poll scheduled a period after the one before (the worker's
+        # schedule): never more than 20/s plus 1.5 over the outer window (from before the
         # first request to after the second reply), whatever the load; 30/s for a margin.
-        # At least 2/s over the inner window (after the first reply, before the second
-        # request): a tenth of the schedule, as a loaded 2-core host delays the motor thread
-        # and its pty replies (5/s was the bound; the motor line's round trips under load
-        # made it fragile); a poller on the 10 s retry schedule, or at 1 Hz, fails it.
-        assert 2.0 * (t_c - t_b) < n1 - n0 < 30.0 * (t_d - t_a) + 1, (n1 - n0, t_c - t_b)
+        # (It was also "at least 5/s" over a window of about a second, which a loaded host
+        # delaying the motor thread and its pty round trips can miss: counted below.)
+        assert 0 < n1 - n0 < 30.0 * (t_d - t_a) + 2, (n1 - n0, t_d - t_a)
         assert d.stats["odometry"] >= n1 - 5  # each reading reached the runner
         extra = st["telemetry"]["extra"]
         assert extra["ekf_sigma_m"] > 0 and extra["ekf_speed_mps"] > 0.3, extra
         assert "odometry_dropped" not in extra
+        # The polling goes on (moving or not): 40 more readings (2 s at 20 Hz) within 20 s,
+        # a fixed count instead of a rate over a short window; a poller at 1 Hz or on the
+        # 10 s retry schedule does not get there
+        wait_for(
+            lambda: c.request("status")["links"]["odometry"] >= n0 + 40, 20, "40 encoder readings"
+        )
         # no [compass] declination_deg: the model's value at the first dated fix, everywhere
         assert st["declination"] == {"source": "wmm", "deg": 2.5}
         assert len(asked) == 1 and abs(asked[0][0] - ORIGIN[0]) < 1e-3
