@@ -158,16 +158,18 @@ def test_a_control_lock_held_at_exit_does_not_keep_the_stop_out_of_the_recording
     d.recorder = d.runner = cast(Any, Sink())
     held, release = threading.Event(), threading.Event()
 
-    def hold() -> None:  # a thread stuck in a decision
+    def hold() -> None:  # a thread stuck in a decision (30 s: a stop waiting for it, too)
         with d._control_lock:
             held.set()
-            release.wait(5)
+            release.wait(30)
 
     threading.Thread(target=hold, daemon=True).start()
     assert held.wait(5)
     t0 = time.monotonic()
     d._stop_controller("shutdown (SIGTERM)")
-    assert time.monotonic() - t0 < 1.0
+    # SHUTDOWN_LOCK_S (0.2 s), not the 30 s the stuck thread holds the lock; 3 s is a
+    # loaded host's slack
+    assert time.monotonic() - t0 < 3.0
     release.set()
     ((method, cmd),) = calls
     assert method == "record_motor"
@@ -217,7 +219,9 @@ def test_a_bug_in_the_motor_thread_stops_the_motors_and_exits_1(
     assert r.code == 1, "the daemon went on without its motor thread"
     assert buggy.t_boom is not None
     t_stop = buggy.first_stop_after(buggy.t_boom)
-    assert t_stop is not None and t_stop - buggy.t_boom < 0.5
+    # the dying thread's own stop, at once (the daemon's exit brings one too, later); 2 s
+    # is a loaded host's slack: no stop at all is the failure this guards
+    assert t_stop is not None and t_stop - buggy.t_boom < 2.0
     assert "thread x6wd-motors died" in caplog.text
     # the recorder outlives the motor thread: the recording says how it ended
     assert_recording_ends_with_the_stop(
@@ -256,7 +260,9 @@ def test_a_stuck_recorder_drops_records_and_lets_go_at_close(fifo_dir: Path) -> 
     assert st["records_dropped"] >= 150 and st["state"] == "stalled"
     t0 = time.monotonic()
     assert w.close(timeout_s=0.5) is False
-    assert time.monotonic() - t0 < 1.5
+    # its 0.5 s, not until the open returns (never: the FIFO has no reader until the
+    # teardown); 3 s is a loaded host's slack
+    assert time.monotonic() - t0 < 3.0
 
 
 @pytest.mark.slow  # ~10 s: the first part must fill, then the writer stall for 5 s
@@ -291,8 +297,10 @@ def test_sigterm_with_the_recorder_stuck_exits_in_bounded_time(
             assert st["recorder"]["file"] == str(first)
         t_sig = time.monotonic()
         p.proc.send_signal(signal.SIGTERM)
-        assert p.proc.wait(8) == 0  # RECORDER_CLOSE_S after the motors, not when open returns
-        assert time.monotonic() - t_sig < 6.0
+        # RECORDER_CLOSE_S (3 s) after the motors, not when the open returns (never): within
+        # 9 s, before systemd's TimeoutStopSec (10 s) would kill it, however loaded the host
+        assert p.proc.wait(10) == 0
+        assert time.monotonic() - t_sig < 9.0
         assert board.first_after(t_sig, r"S #\d+$") is not None
         p.reader.join(5)
         assert any("recorder stuck" in line for line in p.lines), p.lines[-5:]
@@ -308,25 +316,31 @@ def test_a_failing_recorder_is_logged_at_a_bounded_rate_and_shown_in_status(
 ) -> None:
     rec = Recorder(tmp_path / "r.jsonl", max_bytes=500, reopen_backoff_s=(0.02, 0.05))
     (tmp_path / "r.1.jsonl").mkdir()  # the next part cannot be opened (EISDIR), ever
+    # a fixed count of records, in 5 batches 0.25 s apart (more than log_every_s): each
+    # batch after the first brings at least one summary, however late the writer runs
+    t_start = time.monotonic()
     w = _RecorderWorker(rec, log_every_s=0.2)
-    t_end = time.monotonic() + 1.1
     with caplog.at_level(logging.WARNING, logger="x6wd.app.daemon"):
-        i = 0
-        while time.monotonic() < t_end:
-            w.put("record_nmea", f"$GPTXT,{i:05d}*00")
-            i += 1
-            time.sleep(0.002)
-        wait_for(lambda: w.status()["queued"] == 0, 3, "queue drained")
+        for batch in range(5):
+            for j in range(80):
+                w.put("record_nmea", f"$GPTXT,{batch * 80 + j:05d}*00")
+                time.sleep(0.002)
+            wait_for(lambda: w.status()["queued"] == 0, 10, "queue drained")
+            time.sleep(0.25)
         st = w.status()
         assert st["state"] == "failing"
         assert st["records_dropped"] > 100 and "r.1.jsonl" in st["last_error"]
         assert st["file"] == str(tmp_path / "r.jsonl")
         assert w.close() is True
+    elapsed_s = time.monotonic() - t_start
     # only this recorder's lines: the stuck-recorder test's worker, let go at its close, may
     # still log its own FIFO's failure while this test runs
     mine = [r for r in caplog.records if str(tmp_path) in r.getMessage()]
     summaries = [r for r in mine if "records lost in the last" in r.getMessage()]
-    assert 3 <= len(summaries) <= 7, [r.getMessage() for r in summaries]  # ~every 0.2 s
+    # at most one every 0.2 s of the worker's life (a line per failure: ~400), at least
+    # one per later batch
+    most = int(elapsed_s / 0.2) + 1
+    assert 3 <= len(summaries) <= most, (most, [r.getMessage() for r in summaries])
     # the file system's fault, expected: one line saying what, no traceback
     (first,) = [r for r in mine if r.getMessage().startswith("recorder write failed")]
     assert first.exc_info is None and "Is a directory" in first.getMessage(), first.getMessage()

@@ -572,12 +572,18 @@ def test_gps_unplug_holds_within_a_tick_and_reconnects(
         assert c.request("status")["devices"]["gps"]["reconnects"] == 0
         dev_path.unlink()  # unplug: the device node goes, the reader sees a hang-up
         uart.close()
+        # the reader's state and the telemetry (the next tick's) may come a moment apart on
+        # a loaded host: both, polled (a reader's word ignored holds only after 20 s)
         st = wait_for(
-            lambda: (s := c.request("status"))["devices"]["gps"]["state"] == "reconnecting" and s,
+            lambda: (
+                (s := c.request("status"))["devices"]["gps"]["state"] == "reconnecting"
+                and s["telemetry"]["hold_reason"] == "gps reconnecting"
+                and s
+            ),
             5,
-            "gps reconnecting",
+            "gps reconnecting, holding",
         )
-        assert st["state"] == "HOLD" and st["telemetry"]["hold_reason"] == "gps reconnecting"
+        assert st["state"] == "HOLD"
         assert st["telemetry"]["left_pct"] == st["telemetry"]["right_pct"] == 0.0
         assert st["links"]["gps"] == "reconnecting"
         c.request("watch", on=True)
@@ -601,7 +607,9 @@ def test_gps_unplug_holds_within_a_tick_and_reconnects(
     hold_wall, hold = next((w, ch) for w, ch in d.changes if ch.new == "HOLD" and w >= lost.t_s)
     assert hold.reason == "state: gps disconnected"
     assert hold.t_s - lost.t_s <= 1.0 / TICK_HZ + 0.05  # on the controller's clock
-    assert hold_wall - lost.t_s < 0.5, "the hold must not wait for a fix timeout"
+    # fix_stale_s and the GPS's stale_s are 20 s: a hold that waited for them comes 20 s
+    # after the loss; 5 s leaves a loaded host's event loop its slack
+    assert hold_wall - lost.t_s < 5.0, "the hold must not wait for a fix timeout"
     assert t_wall_lost <= hold_wall
     # ... and resumed only on a fix received after the reconnect
     (back,) = [

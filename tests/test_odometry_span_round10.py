@@ -95,26 +95,34 @@ def served(board: MotorBoard) -> Iterator[str]:
 
 @pytest.mark.integration
 def test_a_reading_read_late_is_stamped_when_the_board_latched_it() -> None:
-    stall_s = 0.15
+    # A stall of 1 s (the audit saw 20-180 ms): the old stamp (the reply's read) is then a
+    # whole second after the latch, and the board thread has half of it to latch an E
+    # after its write (the bound below) however loaded the host is. The ack timeout is
+    # longer than the stall: this test is about the stamp, not about the deadline (2.).
+    stall_s = 1.0
     board = LatchBoard()
     with served(board) as name:
         port = StallingSerial(name, 115200, timeout=0.02)
-        link = SerialMotorLink(port, ack_timeout_s=0.5)
+        link = SerialMotorLink(port, ack_timeout_s=2.0)
         try:
             recs: list[WheelOdometry] = []
+            called_s: list[float] = []
             for k in range(6):
                 if k == 3:  # this reply is read, then the host is held up
                     port.stall_s, port.stalls_left = stall_s, 1
+                called_s.append(time.monotonic())
                 rec = link.read_odometry()
                 assert rec is not None
                 recs.append(rec)  # the next poll at once: the old catch-up
         finally:
             link.close()
-    for rec in recs:
+    for rec, t_call in zip(recs, called_s, strict=True):
         latched = board.latched_s[rec.seq]
         # the stamp is the E's write, just before the board latched; the old stamp was the
-        # reply's read, 150 ms after the latch for the held-up reading
+        # reply's read, a whole stall (1 s) after the latch for the held-up reading
         assert rec.t_s <= latched + 1e-3, (rec.seq, rec.t_s, latched)
+        # and no earlier than this reading's own request (not a stale, earlier time)
+        assert t_call <= rec.t_s, (rec.seq, rec.t_s, t_call)
         assert latched - rec.t_s < stall_s / 2, (rec.seq, rec.t_s, latched)
     spans = [b.t_s - a.t_s for a, b in zip(recs, recs[1:], strict=False)]
     assert all(s > 0 for s in spans), spans
@@ -220,8 +228,39 @@ def test_an_increment_of_half_a_millisecond_does_not_set_the_speed() -> None:
 # --- 2. the reply already waiting when the deadline passed -------------------------------
 
 
-def _serve_paced(fd: int, board: MotorBoard, stop: threading.Event) -> None:
-    """A board on a UART: the reply's first byte at once, the rest 20 ms later."""
+class Pacing:
+    """The order of one reply's bytes between the board thread and the host's reads, set
+    by events, not by sleeps: once ``armed``, the board writes a reply's first byte
+    (``first`` set just before), waits until the host has read it (``took``), then writes
+    the rest (``tail`` set after); the host's read that returned the first byte waits for
+    the rest to be in the port, then is held up ``stall_s``, past the link's deadline."""
+
+    def __init__(self, stall_s: float) -> None:
+        self.stall_s = stall_s
+        self.armed = False
+        self.first, self.took, self.tail = (threading.Event() for _ in range(3))
+
+
+class PacedSerial(serial.Serial):
+    """The host's real serial port, held up as :class:`Pacing` says."""
+
+    pacing: Pacing
+
+    def read(self, size: int = 1) -> bytes:
+        data = super().read(size)
+        p = self.pacing
+        if data and p.armed and p.first.is_set():  # the reply's first byte: the rest next
+            p.first.clear()
+            p.took.set()
+            assert p.tail.wait(10), "the board never wrote the rest of its reply"
+            p.tail.clear()
+            time.sleep(p.stall_s)  # the host held up with the whole reply in the port
+        return data
+
+
+def _serve_paced(fd: int, board: MotorBoard, stop: threading.Event, pacing: Pacing) -> None:
+    """A board on a UART: once ``pacing.armed``, the reply's first byte, then the rest once
+    the host has read that byte; before, the whole reply at once."""
     while not stop.is_set():
         ready, _, _ = select.select([fd], [], [], 0.005)
         if not ready:
@@ -233,33 +272,45 @@ def _serve_paced(fd: int, board: MotorBoard, stop: threading.Event) -> None:
         if not data:
             return
         reply = board.feed(data, time.monotonic())
-        if reply:
-            try:
-                os.write(fd, reply[:1])
-                time.sleep(0.02)
-                os.write(fd, reply[1:])
-            except OSError:
-                return
+        if not reply:
+            continue
+        try:
+            if not pacing.armed:
+                os.write(fd, reply)
+                continue
+            pacing.first.set()
+            os.write(fd, reply[:1])
+            while not pacing.took.wait(0.1):
+                if stop.is_set():
+                    return
+            pacing.took.clear()
+            os.write(fd, reply[1:])
+            pacing.tail.set()
+        except OSError:
+            return
 
 
 @pytest.mark.integration
 def test_a_reply_waiting_in_the_port_at_the_deadline_is_taken() -> None:
-    board = MotorBoard(watchdog_ms=500)
+    board = MotorBoard(watchdog_ms=5000)  # the host's stalls are no lost link
     master, slave = os.openpty()
     tty.setraw(master)
     tty.setraw(slave)
     stop = threading.Event()
-    th = threading.Thread(target=_serve_paced, args=(master, board, stop), daemon=True)
+    # the host is held up 1.2 s after reading a reply's first byte, with the rest of the
+    # reply already in the port (as the audit's repro, by events): past the 1 s deadline
+    pacing = Pacing(stall_s=1.2)
+    th = threading.Thread(target=_serve_paced, args=(master, board, stop, pacing), daemon=True)
     th.start()
     try:
-        port = StallingSerial(os.ttyname(slave), 115200, timeout=0.02)
-        link = SerialMotorLink(port, ack_timeout_s=0.1)
+        port = PacedSerial(os.ttyname(slave), 115200, timeout=0.02)
+        port.pacing = pacing
+        link = SerialMotorLink(port, ack_timeout_s=1.0, watchdog_ms=5000)
         assert link.configured
-        # the host is held up 150 ms after each read that returns data (as the audit's repro)
-        port.stall_s, port.stalls_left = 0.15, 1000
+        pacing.armed = True
         for _ in range(2):
-            assert link.drive(50, 50, "test")  # the old link: no acknowledgement within 100 ms
-        port.stalls_left = 0
+            assert link.drive(50, 50, "test")  # the old link: no acknowledgement within 1 s
+        pacing.armed = False
         assert link.counters.timeouts == 0
         assert link.healthy and link.health.state == "connected", link.health.reason
         assert (board.left_pct, board.right_pct) == (50, 50)
