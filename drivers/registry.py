@@ -99,6 +99,18 @@ class NodeMissing(UrlError):
         self.path = path
 
 
+class NodeNotReady(UrlError):
+    """The device node a URL names is a character device this user may not read and write.
+    This too can end by itself: udev creates a node (root's, mode 600 or so) and gives it its
+    group (dialout, i2c) a moment later, so a node that was just enumerated, at boot or when a
+    native-USB board re-enumerates after a reset, may be seen between the two. ``path`` is the
+    node. (A replay file that may not be read stays a plain :class:`UrlError`.)"""
+
+    def __init__(self, kind: str, url: str, path: str, reason: str) -> None:
+        super().__init__(kind, url, reason)
+        self.path = path
+
+
 def _float_opt(lo: float, hi: float) -> Any:
     def conv(name: str, text: str) -> float:
         try:
@@ -310,7 +322,9 @@ def check_available(url: str, kind: str) -> DeviceUrl:
 
     Raises :class:`UrlError`: the daemon stops with a configuration error rather than run
     "disconnected" with a device that cannot appear by retrying. A device node that does not
-    exist is :class:`NodeMissing` (a UrlError), which the daemon waits for a while first.
+    exist is :class:`NodeMissing`, a character device this user may not read and write
+    :class:`NodeNotReady` (both UrlErrors), which the daemon started by systemd waits for a
+    while first.
     """
     dev = parse_url(url, kind)
     if dev.scheme in PLUGIN_SCHEMES:
@@ -334,7 +348,8 @@ def check_available(url: str, kind: str) -> DeviceUrl:
 
 def _check_node(dev: DeviceUrl, path: str, *, char: bool, hint: str) -> None:
     """``path`` exists as a character device (``char``) or a regular file, and is accessible
-    (read-write for a device, read for a file); else :class:`UrlError` saying which."""
+    (read-write for a device, read for a file); else :class:`UrlError` saying which
+    (:class:`NodeMissing`, :class:`NodeNotReady`: a device node missing, not accessible)."""
     try:
         st = os.stat(path)
     except FileNotFoundError:  # (also a dangling link: /dev/serial/by-id/ of a gone device)
@@ -353,7 +368,10 @@ def _check_node(dev: DeviceUrl, path: str, *, char: bool, hint: str) -> None:
     if not os.access(path, need):
         rights = "read and write" if char else "read"
         extra = f" ({hint})" if hint else ""
-        raise UrlError(dev.kind, dev.url, f"{path}: this user may not {rights} it{extra}")
+        reason = f"{path}: this user may not {rights} it{extra}"
+        if char:  # udev may not have given the node its group yet
+            raise NodeNotReady(dev.kind, dev.url, path, reason)
+        raise UrlError(dev.kind, dev.url, reason)
 
 
 SYSFS_CHAR = "/sys/dev/char/{major}:{minor}/subsystem"

@@ -1001,8 +1001,8 @@ class Daemon:
         # why the recorder dir cannot take a file now, though it is right (read-only, full):
         # the start-up goes on with the recorder failing ("" when it can)
         self._recorder_fault = ""
-        # device nodes missing at the preflight, waited for after every other check:
-        # config key -> (url, kind, the registry's NodeMissing)
+        # device nodes missing or not yet accessible at the preflight, waited for after every
+        # other check: config key -> (url, kind, the registry's NodeMissing or NodeNotReady)
         self._missing: dict[str, tuple[str, str, Any]] = {}
 
     @property
@@ -1161,7 +1161,7 @@ class Daemon:
         for key, url, kind in devices:
             try:
                 self.devices.check(url, kind)  # a sim:// URL: also the [sim] world's settings
-            except registry.NodeMissing as exc:
+            except (registry.NodeMissing, registry.NodeNotReady) as exc:
                 if self._device_wait_s() <= 0.0:
                     raise ConfigError(f"{key}: {url!r}: {exc.reason}") from None
                 self._missing[key] = (url, kind, exc)  # waited for: _wait_for_devices
@@ -1231,38 +1231,53 @@ class Daemon:
                 )
 
     def _device_wait_s(self) -> float:
-        """How long (s) start-up waits for a missing device node: ``[startup] device_wait_s``
-        when started by systemd (a notification socket), where exit 2 leaves the unit failed
-        (RestartPreventExitStatus=2) and so the robot down, though the node (a USB device
-        enumerating at boot or after a board's reset) comes by itself; 0 when started by
+        """How long (s) start-up waits for a missing device node, or one this user may not
+        read and write yet: ``[startup] device_wait_s`` when started by systemd (a
+        notification socket), where exit 2 leaves the unit failed (RestartPreventExitStatus=2)
+        and so the robot down, though the node (a USB device enumerating at boot or after a
+        board's reset, then given its group by udev) comes by itself; 0 when started by
         hand, where the operator wants the error at once and can start again."""
         return self.config.startup.device_wait_s if self.notifier.enabled else 0.0
 
     async def _wait_for_devices(self) -> bool:
         """Wait up to :meth:`_device_wait_s` for the device nodes the preflight found missing
-        (all in one wait), looking again every :data:`DEVICE_POLL_S`; nothing is opened.
-        True once every one passes the preflight's check, False on a stop request (a
-        signal). Still failing at the end: :class:`ConfigError`, the preflight's line plus
-        ``(waited N s)``. A node that appeared keeps its wait while its check fails (udev
-        gives it its group a moment after creating it)."""
+        or not yet accessible (all in one wait), looking again every :data:`DEVICE_POLL_S`;
+        nothing is opened. True once every one passes the preflight's check, False on a stop
+        request (a signal). Still missing or not accessible at the end: :class:`ConfigError`,
+        the preflight's line plus ``(waited N s)``. A node keeps its wait while it is missing
+        or not accessible, either way round (udev gives a node its group a moment after
+        creating it); any other problem (it appeared as a regular file, a link to
+        ``/dev/null``) ends the wait at once, its line plus how long it waited."""
         if not self._missing:
             return True
         assert self._stop_event is not None
+        from drivers import registry
+
         wait_s = self._device_wait_s()
         t0_s = time.monotonic()
-        paths = []
+        what = []
         for key, (_url, _kind, exc) in self._missing.items():
-            paths.append(exc.path)
-            log.warning(
-                "%s: %s does not exist yet: waiting up to %g s for it to appear (a USB device "
-                "enumerating?; startup.device_wait_s)",
-                key,
-                exc.path,
-                wait_s,
-            )
+            if isinstance(exc, registry.NodeMissing):
+                what.append(f"{exc.path} to appear")
+                log.warning(
+                    "%s: %s does not exist yet: waiting up to %g s for it to appear (a USB "
+                    "device enumerating?; startup.device_wait_s)",
+                    key,
+                    exc.path,
+                    wait_s,
+                )
+            else:
+                what.append(f"{exc.path} to be accessible")
+                log.warning(
+                    "%s: %s is not accessible yet (this user may not read and write it): "
+                    "waiting up to %g s (udev setting its group?; startup.device_wait_s)",
+                    key,
+                    exc.path,
+                    wait_s,
+                )
         self.notifier.notify(
             {
-                "STATUS": f"waiting up to {wait_s:g} s for {', '.join(paths)} to appear "
+                "STATUS": f"waiting up to {wait_s:g} s for {', '.join(what)} "
                 "(startup.device_wait_s)",
                 "EXTEND_TIMEOUT_USEC": int((wait_s + START_MARGIN_S) * 1e6),
             }
@@ -1272,8 +1287,14 @@ class Daemon:
             for key, (url, kind, _exc) in list(pending.items()):
                 try:
                     self.devices.check(url, kind)
-                except ConfigError as problem:
+                except (registry.NodeMissing, registry.NodeNotReady) as problem:
                     pending[key] = (url, kind, problem)
+                except ConfigError as problem:  # not one that waiting can end: at once
+                    reason = getattr(problem, "reason", str(problem))
+                    waited_s = time.monotonic() - t0_s
+                    raise ConfigError(
+                        f"{key}: {url!r}: {reason} (waited {waited_s:.1f} s)"
+                    ) from None
                 else:
                     del pending[key]
                     log.info("%s: %s is there after %.1f s", key, url, time.monotonic() - t0_s)
