@@ -48,12 +48,16 @@ pytestmark = pytest.mark.integration
 # WebDriver round trips of a loaded host ate into the drive's time on both sides.)
 DRIVE_S = 30.0
 STOP_BOUND_S = 10.0
+# console.deadman_s: a page's drive arriving later than this is refused as "late". The test of
+# a drive held in the page's link across a stop expects "stopped": its drive arrives after a
+# TCP stop (connect, auth, stop), which took over the default 0.5 s on a loaded host.
+DEADMAN_S = 5.0
 
 
 @pytest.fixture(scope="module")
 def guarded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
     """One HIL daemon whose console needs the token; drives may last DRIVE_S."""
-    cfg = console_config(tmp_path_factory.mktemp("guarded"), token=True)
+    cfg = console_config(tmp_path_factory.mktemp("guarded"), token=True, deadman_s=DEADMAN_S)
     cfg = dataclasses.replace(cfg, safety=dataclasses.replace(cfg.safety, manual_max_s=DRIVE_S))
     with daemon_with(cfg) as r:
         yield r
