@@ -311,10 +311,12 @@ def drive(left: float = 30.0, reason: str = "drive") -> MotorCommand:
 
 def test_after_a_send_now_the_keepalive_resends_it_then_stops() -> None:
     link = OverlapLink()
-    w = worker(link, 0.05)
+    # a 1 s keep-alive (was 0.05 s): its first resend needs the worker awake within 3
+    # periods of the send, which a loaded host did not always give 0.15 s
+    w = worker(link, 1.0)
     try:
         assert w.send_now(drive())
-        wait_for(lambda: any(c.is_stop for c in link.sent), 3, "the keep-alive's stop")
+        wait_for(lambda: any(c.is_stop for c in link.sent), 10, "the keep-alive's stop")
         resent = [c for c in link.sent if not c.is_stop]
         assert len(resent) >= 2 and link.sent[-1].reason == "keepalive"
         assert w.thread.is_alive()
