@@ -122,3 +122,16 @@ def listening() -> Iterator[int]:
         yield sock.getsockname()[1]
     finally:
         sock.close()
+
+
+SLOW_TIMEOUT_S = 900
+"""pytest-timeout's limit for a ``slow`` case without its own: the global 300 s is for hangs,
+and a CPU-bound statistical case of ~100 s alone passed 300 s on a loaded 2-core host (the
+few-logs gap test, 318-326 s beside a CI run, 2026-12-06)."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Give each ``slow`` case :data:`SLOW_TIMEOUT_S` unless it sets a timeout itself."""
+    for item in items:
+        if item.get_closest_marker("slow") and not item.get_closest_marker("timeout"):
+            item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT_S))
