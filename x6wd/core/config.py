@@ -407,9 +407,10 @@ class StartupConfig:
     """How ``x6wd run`` starts (the daemon's start-up check, docs/install.md)."""
 
     # Started by systemd (NOTIFY_SOCKET set), a device node that does not exist (a serial
-    # path, /dev/i2c-N) is waited for this long (s) before it is a configuration error (exit
-    # 2, which the unit does not restart): a USB adapter udev has not enumerated yet at boot,
-    # a native-USB board re-enumerating after a reset. 0, or started by hand: exit 2 at once.
+    # path, /dev/i2c-N), or one this user may not open yet, is waited for this long (s)
+    # before it is a configuration error (exit 2, which the unit does not restart): a USB
+    # adapter udev has not enumerated (or given its group) yet at boot, a native-USB board
+    # re-enumerating after a reset. 0, or started by hand: exit 2 at once.
     device_wait_s: float = field(default=10.0, metadata=_rng(0, 300))
 
 
