@@ -443,18 +443,22 @@ def test_the_daemon_with_tls_stops_its_motors_from_the_client_ctrl_c_and_the_con
 
     def driving(r: Any) -> RemoteClient:
         c = RemoteClient("127.0.0.1", r.port, ssl_context=ctx, token=TOKEN_OF_CONSOLE)
+        drove[0] = time.monotonic()
         assert c.request("drive", left=40, right=40, duration_s=5)["ok"]
         wait_until(lambda: vehicle_pct(r) == (40.0, 40.0), 10, "driving")
-        drove[0] = time.monotonic()
         return c
 
-    drove = [0.0]  # when the latest 5 s drive was seen at the motors (0: a short one)
+    drove = [0.0]  # shortly before the latest 5 s drive was sent (0: a short one)
 
-    def stopped(r: Any) -> None:
+    def stopped(r: Any, since: float = 0.0) -> None:
+        """The motors at 0 by the stop (sent, confirmed or the client gone at ``since``)."""
         wait_until(lambda: vehicle_pct(r) == (0.0, 0.0), 10.0, "the vehicle's motors at 0")
         if drove[0]:
-            # by the stop, not by the drive's own end (5 s after it was sent, before drove)
-            assert time.monotonic() - drove[0] < 4.5, "the motors ran until the drive ended"
+            # not by the drive's own end (5 s after it was sent, so after drove[0] + 5 s):
+            # within 4.5 s of the drive, or 3 s of the stop where a loaded host took longer
+            # than that to start the client (~1 s here; the bug: only when the drive ends)
+            limit = max(drove[0] + 4.5, since + 3.0)
+            assert time.monotonic() < limit, "the motors ran until the drive ended"
             drove[0] = 0.0
 
     with daemon_with(cfg) as r:
@@ -463,31 +467,31 @@ def test_the_daemon_with_tls_stops_its_motors_from_the_client_ctrl_c_and_the_con
             with driving(r):
                 done = subprocess.run(cli(r, "stop"), capture_output=True, text=True, timeout=30)
                 assert done.returncode == 0 and "stop: ok" in done.stdout, done.stderr
-                stopped(r)
+                stopped(r, time.monotonic())
         come_and_go(r)
+        drove[0] = time.monotonic()
         proc = subprocess.Popen(
             cli(r, "drive", "40", "40", "5"), stderr=subprocess.PIPE, text=True,
             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )  # fmt: skip
         try:
             wait_until(lambda: vehicle_pct(r) == (40.0, 40.0), 20, "the client's drive")
-            drove[0] = time.monotonic()
             proc.send_signal(signal.SIGINT)
             _, stderr = proc.communicate(timeout=10)
         finally:
             proc.kill()
-        stopped(r)
+        stopped(r, time.monotonic())
         assert proc.returncode == 130, stderr
         come_and_go(r)
+        drove[0] = time.monotonic()
         proc = subprocess.Popen(cli(r, "drive", "40", "40", "5"), stderr=subprocess.PIPE)
         try:
             wait_until(lambda: vehicle_pct(r) == (40.0, 40.0), 20, "the client's drive")
-            drove[0] = time.monotonic()
             proc.kill()  # the dead-man
             proc.wait(10)
         finally:
             proc.kill()
-        stopped(r)
+        stopped(r, time.monotonic())
 
         async def page() -> None:
             async with ws_to(r, ctx) as w:
