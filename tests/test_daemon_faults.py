@@ -65,18 +65,26 @@ def test_a_signal_while_driving_stops_the_motors_and_exits_cleanly(
     assert any(f"{sig.name} received" in line for line in p.lines), p.lines[-5:]
     assert any("x6wd stopped" in line for line in p.lines)
     # write_config's [recorder] dir
-    assert_recording_ends_with_the_stop(tmp_path / "rec", f"shutdown ({sig.name})", code)
+    assert_recording_ends_with_the_stop(
+        tmp_path / "rec", f"shutdown ({sig.name})", code, said="\n".join(p.lines)
+    )
 
 
 # -- the recording ends with the stop: a clean exit is not a crash or a power cut ----------
 
 
 def assert_recording_ends_with_the_stop(
-    rec_dir: Path, reason: str, code: int, cause: str = ""
+    rec_dir: Path, reason: str, code: int, cause: str = "", said: str | None = None
 ) -> list[Record]:
     """The recording in ``rec_dir`` says how the daemon ended: after its last drive, a motor
     record 0/0 and the controller's change to IDLE, both with ``reason``; last of all a
-    ``shutdown`` event with the exit ``code`` and a cause containing ``cause``."""
+    ``shutdown`` event with the exit ``code`` and a cause containing ``cause``.
+
+    ``said``: what the daemon logged. A control lock held past SHUTDOWN_LOCK_S (0.2 s) at
+    exit, which a loaded host gave a deciding thread once beside busy loops, records the
+    stop alone, without the controller's IDLE (by design: test_a_control_lock_held_at_exit
+    _does_not_keep_the_stop_out_of_the_recording); the daemon then says so, and only then
+    is the IDLE record not required."""
     (first,) = sorted(rec_dir.glob("x6wd-*Z.jsonl"))
     stats = ReadStats()
     records = list(read_recording_parts(first, stats=stats))
@@ -97,12 +105,13 @@ def assert_recording_ends_with_the_stop(
         for r in records[drives[-1] :]
         if r.type == "state" and r.data["new"] == "IDLE" and reason in r.data["reason"]
     ]
-    assert idle, tail
+    alone = said is not None and "at exit: stopping without the controller" in said
+    assert idle or alone, tail
     return records
 
 
 def test_a_stop_signal_ends_the_recording_with_the_stop_and_the_exit(
-    tmp_path: Path, run_daemon, stamped: StampedLink
+    tmp_path: Path, run_daemon, stamped: StampedLink, caplog: pytest.LogCaptureFixture
 ) -> None:
     r = run_daemon(Daemon(log_motors_config(tmp_path)))
     with RemoteClient("127.0.0.1", r.port) as c:
@@ -113,7 +122,9 @@ def test_a_stop_signal_ends_the_recording_with_the_stop_and_the_exit(
         r.thread.join(10)
     assert r.code == 0
     assert stamped.stamped[-1][1].is_stop
-    assert_recording_ends_with_the_stop(tmp_path / "rec", "shutdown (SIGINT)", 0, "SIGINT")
+    assert_recording_ends_with_the_stop(
+        tmp_path / "rec", "shutdown (SIGINT)", 0, "SIGINT", said=caplog.text
+    )
 
 
 class DyingCompassDaemon(Daemon):
@@ -127,7 +138,7 @@ class DyingCompassDaemon(Daemon):
 
 
 def test_a_dying_device_thread_ends_the_recording_with_the_stop_and_the_exit(
-    tmp_path: Path, run_daemon, stamped: StampedLink
+    tmp_path: Path, run_daemon, stamped: StampedLink, caplog: pytest.LogCaptureFixture
 ) -> None:
     d = DyingCompassDaemon(log_motors_config(tmp_path))
     r = run_daemon(d)
@@ -138,7 +149,11 @@ def test_a_dying_device_thread_ends_the_recording_with_the_stop_and_the_exit(
         r.thread.join(10)
     assert r.code == 1
     assert_recording_ends_with_the_stop(
-        tmp_path / "rec", "shutdown (error)", 1, "thread x6wd-compass: RuntimeError: injected bug"
+        tmp_path / "rec",
+        "shutdown (error)",
+        1,
+        "thread x6wd-compass: RuntimeError: injected bug",
+        said=caplog.text,
     )
 
 
@@ -225,7 +240,11 @@ def test_a_bug_in_the_motor_thread_stops_the_motors_and_exits_1(
     assert "thread x6wd-motors died" in caplog.text
     # the recorder outlives the motor thread: the recording says how it ended
     assert_recording_ends_with_the_stop(
-        tmp_path / "rec", "shutdown (error)", 1, "thread x6wd-motors: RuntimeError: injected bug"
+        tmp_path / "rec",
+        "shutdown (error)",
+        1,
+        "thread x6wd-motors: RuntimeError: injected bug",
+        said=caplog.text,
     )
 
 
