@@ -329,7 +329,7 @@ class Summary:
             last = (self.extra.get("paused_s") or [None])[-1]
             since = (
                 f" (since {last[0]:.1f} s: {last[2]})"
-                if last is not None and last[1] >= self.sim_time_s
+                if last is not None and last[1] >= round(self.sim_time_s, 3)
                 else ""
             )
             return f"the mission was paused{since} when the run ended at {self.sim_time_s:.0f} s"
@@ -340,12 +340,14 @@ class Summary:
     def _paused_lines(self) -> list[str]:
         """The time the mission stood paused (the robot still, in IDLE: no HOLD period),
         one line per pause, none without: "paused 342.2 s (since 57.8 s: <why>)" to the
-        run's end, else "paused 12.0 s (57.8-69.8 s: <why>)"."""
+        run's end, else "paused 12.0 s (57.8-69.8 s: <why>)". A pause open at the end was
+        closed at the run's last step and stored rounded to 3 decimals, as the run's end is
+        compared here (a fractional --duration's k*dt is not: 100.30000000000001)."""
         out = []
         for start_s, end_s, why in self.extra.get("paused_s") or ():
             when = (
                 f"since {start_s:.1f} s"
-                if end_s >= self.sim_time_s
+                if end_s >= round(self.sim_time_s, 3)
                 else f"{start_s:.1f}-{end_s:.1f} s"
             )
             out.append(f"  paused              {end_s - start_s:.1f} s ({when}: {why})")

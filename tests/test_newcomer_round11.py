@@ -105,12 +105,50 @@ def test_static_with_drives_writes_no_standing_warning(tmp_path: Path) -> None:
     assert "[gnss_noise]" in r.stdout
 
 
+def test_static_with_drives_too_short_for_the_moving_white_part_still_warns(
+    tmp_path: Path,
+) -> None:
+    # a drive of 45 fixes (< 50 pairs one epoch apart): the drives cannot measure the moving
+    # white part, so the re_m written is the static one and the warning must stand
+    w_static = world(re=0.07, ase=0.3, grid=[[0.0]])
+    n = 600
+    static = write_recording(
+        tmp_path / "static.jsonl", sim_fixes(w_static, 3, np.arange(n, dtype=float),
+                                             np.zeros((n, 3)))
+    )  # fmt: skip
+    w = world(re=0.8, ase=0.3)
+    t, pos = loop_track(laps=1)
+    t, pos = t[:45], pos[:45]
+    drive = write_recording(tmp_path / "drive.jsonl", sim_fixes(w, 4, t, pos))
+    ref = write_truth_csv(tmp_path / "truth.csv", truth_series(w, t, pos))
+    o = w_static.origin
+    r = _run([
+        "calibrate", "gnss", "--static", str(static), "--ref-lat", str(o.lat_deg),
+        "--ref-lon", str(o.lon_deg), "--drive", str(drive), "--reference", str(ref),
+    ], tmp_path)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    re_line = next(ln for ln in r.stdout.splitlines() if ln.startswith("re_m = "))
+    assert "static recording" in re_line, re_line  # the standing figure is what is written
+    warn = [ln for ln in r.stderr.splitlines() if "WARNING" in ln]
+    assert len(warn) == 1, r.stderr
+    assert warn[0].startswith("x6wd calibrate: WARNING: re_m is a standing receiver's white part")
+    assert "too short to measure it" in warn[0], warn[0]
+    lines = r.stdout.splitlines()
+    at = lines.index(re_line)
+    assert lines[at - 1] == "# WARNING: " + warn[0].removeprefix("x6wd calibrate: WARNING: ")
+
+
 # ------------------------------------------------------------------ 3. sim summary: paused
 
 
-def test_a_run_ending_paused_says_paused_with_its_start_and_reason(tmp_path: Path) -> None:
+@pytest.mark.parametrize("duration", [None, "100.3"])
+def test_a_run_ending_paused_says_paused_with_its_start_and_reason(
+    tmp_path: Path, duration: str | None
+) -> None:
     # the default scenario with a 45 s GPS outage from 20 s and a robot that holds at once
     # without a fix: the failsafe pauses the mission at ~50 s and it stays paused to 400 s
+    # (or to a fractional --duration: the pause's end is stored rounded to 3 decimals, the
+    # run's end k*dt is not, and the open pause read as one that had ended)
     scenario = tmp_path / "outage.toml"
     scenario.write_text(
         (ROOT / "config" / "scenarios" / "default.toml").read_text()
@@ -120,16 +158,18 @@ def test_a_run_ending_paused_says_paused_with_its_start_and_reason(tmp_path: Pat
     assert "\ngps_outage_max_m = 20.0" in robot
     cfg = tmp_path / "robot.toml"
     cfg.write_text(robot.replace("\ngps_outage_max_m = 20.0", "\ngps_outage_max_m = 0.0"))
+    extra = ["--duration", duration] if duration is not None else []
     r = _run(["sim", str(scenario), "--config", str(cfg), "--quiet", "--out",
-              str(tmp_path / "out")], tmp_path)  # fmt: skip
+              str(tmp_path / "out"), *extra], tmp_path)  # fmt: skip
     assert r.returncode == 1, r.stderr  # 1: the mission not completed
     head = next(ln for ln in r.stdout.splitlines() if ln.startswith("scenario "))
     paused = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("paused "))
     # the detail line: "paused 349.9 s (since 50.1 s: no valid fix for 30 s)"
     since = paused[paused.index("(since ") : paused.rindex(")") + 1]
     assert "no valid fix for 30 s" in since, paused
+    end_s = 400 if duration is None else round(float(duration))
     assert head.endswith(f"mission NOT completed: the mission was paused {since} when the run "
-                         "ended at 400 s"), head  # fmt: skip
+                         f"ended at {end_s} s"), head  # fmt: skip
     assert "on hold" not in head
 
 

@@ -1122,15 +1122,23 @@ class GnssCalibration:
     @property
     def standing_warning(self) -> str | None:
         """Why ``re_m`` must not go into the robot's configuration as written, when it comes
-        from a static recording alone (no drives), else None. A standing receiver's white part
-        is centimetres (u-blox filters its fixes); moving, the error has a part that changes in
-        seconds which the estimator's one slow state cannot follow, so it needs that part as
-        white noise: with the standing figure it reads it as motion and gets worse than the
-        shipped configuration (docs/gnss_calibration.md, Experiment 3)."""
-        if self.static is None or self.lce is not None:
+        from a static recording and no drive measured the moving white part (no drives, or
+        drives too short for it: :func:`moving_white` None), else None. A standing receiver's
+        white part is centimetres (u-blox filters its fixes); moving, the error has a part that
+        changes in seconds which the estimator's one slow state cannot follow, so it needs that
+        part as white noise: with the standing figure it reads it as motion and gets worse than
+        the shipped configuration (docs/gnss_calibration.md, Experiment 3)."""
+        if self.static is None or (self.lce is not None and self.lce.moving is not None):
             return None
+        short = (
+            " (the drives given are too short to measure it: fewer than 50 pairs of fixes one "
+            "epoch apart)"
+            if self.lce is not None
+            else ""
+        )
         return (
-            "re_m is a standing receiver's white part: a moving robot needs it from --drive "
+            "re_m is a standing receiver's white part: a moving robot needs it from --drive"
+            f"{short} "
             '(docs/gnss_calibration.md, Experiment 3, "The white part of a moving receiver"); '
             "do not paste it alone into the robot's configuration: keep the robot's re_m "
             f"({GnssNoiseConfig().re_m} as shipped) until drives measure it"
