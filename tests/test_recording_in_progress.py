@@ -250,3 +250,218 @@ def test_the_consoles_view_of_the_current_run_says_it_is_still_being_recorded(
         assert item["name"] == newest_run(rec).name and item["in_progress"] is True, item
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(60) == 0
+
+
+# --- a failing card can be unmounted; a run finishing while it is read ------------------------
+
+_FAILING_CARD = r"""
+import contextlib, fcntl, json, os, subprocess, sys, time
+from pathlib import Path
+from x6wd.core import recorder as R
+from x6wd.core.errors import DeviceUnavailable
+
+mnt = sys.argv[1]
+def run(*args):
+    r = subprocess.run(args, capture_output=True, text=True)
+    return [r.returncode, r.stderr.strip()]
+mounted = run("mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", mnt)
+assert mounted[0] == 0, mounted
+filler = Path(mnt) / "filler"
+filler.write_bytes(b"f" * 16384)
+rec = R.Recorder.in_dir(mnt, reopen_backoff_s=(0.05, 0.05), gap_events=True)
+part = rec.path
+
+def fill():
+    for i in range(100000):
+        try:
+            rec.record_event("x", float(i), pad="p" * 200)
+        except DeviceUnavailable:
+            return
+    raise SystemExit("the disk never filled")
+
+def on_mount():
+    fds = []
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):
+            fds.append(os.readlink(f"/proc/self/fd/{fd}"))
+    return [f for f in fds if f.startswith(mnt + "/")]
+
+def locked():
+    fd = os.open(part, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+out = {"locked_at_start": locked()}
+fill()
+out["state"] = rec.state
+out["fds_while_failing"] = on_mount()
+out["locked_while_failing"] = locked()
+w = R.part_writer(part)
+out["this_run_while_failing"] = w.describe() if w else None
+filler.unlink()  # the disk takes records again
+time.sleep(0.2)
+with contextlib.suppress(DeviceUnavailable):
+    rec.record_event("y", 1e6)
+out["state_again"] = rec.state
+out["locked_again"] = locked()
+fill()  # fails again, then the operator unmounts the card
+out["umount"] = run("umount", mnt)
+print(json.dumps(out))
+"""
+
+
+def test_a_recorder_whose_disk_filled_lets_its_lock_go_and_the_card_can_be_unmounted(
+    tmp_path: Path,
+) -> None:
+    """6574e71 kept the last part's lock descriptor open while the recorder waited out a
+    full or read-only disk: 'umount: target is busy', where docs/install.md has the card
+    repaired or swapped. A 64 KiB tmpfs in a private mount namespace (``unshare -rm``) is
+    filled to ENOSPC: no descriptor on it stays open, the daemon's own process still calls
+    the part "this run", the part is locked again once it is written again, and after a
+    second failure the card unmounts."""
+    try:
+        ok = subprocess.run(["unshare", "-rm", "true"], capture_output=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        pytest.skip(f"no unshare here: {exc}")
+    if ok.returncode != 0:
+        pytest.skip(f"unshare -rm cannot make a mount namespace: {ok.stderr!r}")
+    mnt = tmp_path / "card"
+    mnt.mkdir()
+    r = subprocess.run(
+        ["unshare", "-rm", sys.executable, "-c", _FAILING_CARD, str(mnt)],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.splitlines()[-1])
+    assert out["locked_at_start"] is True, out
+    assert out["state"] == "failing", out
+    assert out["fds_while_failing"] == [] and out["locked_while_failing"] is False, out
+    assert out["this_run_while_failing"] == "still being recorded (this run)", out
+    assert out["state_again"] == "ok" and out["locked_again"] is True, out
+    assert out["umount"] == [0, ""], out
+
+
+@contextlib.contextmanager
+def _finishing_writer(tmp_path: Path) -> Iterator[tuple[Path, Callable[[], None], int]]:
+    """A recorder in another process with 50 fixes written and no end record yet: its part,
+    a call that has it write its ``shutdown`` record and close (returns once it has), and
+    its pid."""
+    d = tmp_path / "rec"
+    script = f"""
+import sys
+from x6wd.core.recorder import Recorder
+from x6wd.core.records import GpsFix
+r = Recorder.in_dir({str(d)!r})
+for i in range(50):
+    r.record_fix(GpsFix(float(i), lat_deg=51.7 + i * 1e-6, lon_deg=5.0, hdop=1.0, quality=1,
+                        valid=True, mode=3))
+print(r.path, flush=True)
+sys.stdin.readline()
+r.record_event("shutdown", 99.0)
+r.close()
+print("closed", flush=True)
+sys.stdin.readline()
+"""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script], cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    assert proc.stdin is not None and proc.stdout is not None
+    stdin, stdout = proc.stdin, proc.stdout
+    finished = []
+
+    def finish() -> None:
+        if not finished:
+            finished.append(True)
+            stdin.write("finish\n")
+            stdin.flush()
+            assert stdout.readline().strip() == "closed"
+
+    try:
+        path = Path(stdout.readline().strip())
+        assert path.is_file(), path
+        yield path, finish, proc.pid
+    finally:
+        with contextlib.suppress(OSError):
+            stdin.write("\n")
+            stdin.flush()
+        try:
+            proc.wait(30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(30)
+
+
+def test_a_run_that_finishes_after_the_reader_read_it_is_in_progress_not_cut_short(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The writer writes its shutdown record and closes just after the page's reader read
+    the records (no end record then): 6574e71 tested the lock only then, found it free and
+    called a clean run "cut short (a crash...)". The lock is tested before reading: it was
+    being written when read."""
+    import x6wd.app.logview as lv
+
+    with _finishing_writer(tmp_path) as (path, finish, pid):
+        read = lv._read_recording
+
+        def read_then_finish(*args: Any, **kwargs: Any) -> Any:
+            got = read(*args, **kwargs)
+            finish()  # the daemon stops right after this reader read the run
+            return got
+
+        monkeypatch.setattr(lv, "_read_recording", read_then_finish)
+        view = lv.load(path)
+        assert b'"shutdown"' in path.read_bytes().splitlines()[-1]
+        assert view.cut_short is False, view.cut_short
+        assert view.writer is not None and view.writer.pid == pid, view.writer
+        assert "not finished" in lv.in_progress_note(view)
+
+
+def test_a_run_that_finishes_after_the_lock_test_is_read_finished(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The other order: the writer finishes after the reader found its lock held but before
+    it read the records: the shutdown record is read, the run is finished (neither in
+    progress nor cut short)."""
+    import x6wd.app.logview as lv
+
+    with _finishing_writer(tmp_path) as (path, finish, _pid):
+        test = lv.recording_writer
+
+        def test_then_finish(p: Any) -> Any:
+            got = test(p)
+            finish()
+            return got
+
+        monkeypatch.setattr(lv, "recording_writer", test_then_finish)
+        view = lv.load(path)
+        assert view.cut_short is False and view.writer is None, (view.cut_short, view.writer)
+
+
+def test_replay_of_a_run_that_finishes_after_it_was_read_says_not_finished(
+    tmp_path: Path,
+) -> None:
+    """``x6wd replay``: the writer finishes when the replay has read every record (its first
+    line on stderr, the counts, is written then), before 6574e71's lock test."""
+    import io
+
+    from x6wd.app.replay import replay_file
+
+    with _finishing_writer(tmp_path) as (path, finish, pid):
+
+        class Err(io.StringIO):
+            def write(self, s: str) -> int:
+                finish()  # every record read: the daemon stops now
+                return super().write(s)
+
+        err = Err()
+        replay_file(str(path), speed=0, out=io.StringIO(), err=err)
+        text = err.getvalue()
+        assert "cut short" not in text, text
+        assert f"not finished: still being written by a running x6wd (pid {pid})" in text, text

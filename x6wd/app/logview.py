@@ -299,7 +299,7 @@ class LogView:
     # end), and that no recorder writes any more: a crash, kill -9 or a power cut; None for
     # an NMEA log
     cut_short: bool | None = None
-    # a recording a recorder still writes (its lock held, read after the records): drawn
+    # a recording a recorder still writes (its lock held, tested before the records): drawn
     # as far as it was written, neither finished nor cut short; None when it is not
     writer: Writer | None = None
 
@@ -1039,6 +1039,11 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
             truth_error = exc
     if view.kind == "recording":
         raw.clock_check = True
+        # the lock is tested before reading: held then and no end record read -> still being
+        # written (a writer that finishes meanwhile wrote its end record, read here); free
+        # then -> the file was final when read (tested after reading, a run finishing in
+        # between read as cut short)
+        writer = recording_writer(path)
         stats, bad_records, unknown = _read_recording(path, raw, view.jumps)
         view.counts = {
             "records": stats.records,
@@ -1048,8 +1053,8 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
             "records_with_unknown_fields": unknown,
         }
         if raw.last_event not in END_EVENTS:
-            # no end record: still being written (a recorder holds it now), else cut short
-            view.writer = recording_writer(path)
+            # no end record: still being written (a recorder held it), else cut short
+            view.writer = writer
         view.cut_short = raw.last_event not in END_EVENTS and view.writer is None
     else:
         decoding = _Decoding(raw, _FileOrder(view.jumps))

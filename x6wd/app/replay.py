@@ -135,6 +135,9 @@ def replay_file(
 
     stats = ReadStats()
     recording = is_recording(path)
+    # a recorder's lock, tested before reading (after it, a run finishing in between would
+    # read as cut short)
+    writer_before = recording_writer(path) if recording else None
     decoder = GpsDecoder(emit_sentences=False)
     fixes = skies = 0
     t_last = 0.0
@@ -175,8 +178,9 @@ def replay_file(
             f"x6wd replay: {path}: {stats.gaps} recording gap{'s' if stats.gaps > 1 else ''}:"
             f" {stats.gap_records_lost} records lost (the recorder's disk failed or stalled)\n"
         )
-    # no end record: a recorder still writing it (its lock held now) says it is not finished
-    writer = recording_writer(path) if recording and stats.cut_short else None
+    # no end record: a recorder still writing it (its lock held before reading) says it is
+    # not finished
+    writer = writer_before if recording and stats.cut_short else None
     if writer is not None:
         err.write(f"x6wd replay: {path}: {writer.describe()}: replayed as far as it is written\n")
     elif recording and stats.cut_short:

@@ -43,12 +43,13 @@ waited out the same way instead of raising.
 
 A recording still being written: the recorder holds an advisory lock (``flock``, exclusive)
 on the part it writes, from when it opens it until :meth:`Recorder.close` (a new part is
-locked before the last one is let go; while a part waits to be opened again the last one
-stays locked), and notes that part in this process (:func:`recording_writer` sees it even
-where the file system has no ``flock``). Readers test the lock (:func:`recording_writer`):
-held, the recording is in progress, not cut short. A crash, ``kill -9`` or a power cut
-ends the process and the kernel lets the lock go, so such a recording still reads as cut
-short. A file system without ``flock`` (an error) records as before, unmarked.
+locked before the last one is let go; while a part waits to be opened again after a disk
+failure its lock is let go, so that the card can be unmounted), and notes that part in this
+process (:func:`recording_writer` sees it even where the file system has no ``flock``).
+Readers test the lock (:func:`recording_writer`) before reading: held, and no end record
+read, the recording is in progress, not cut short. A crash, ``kill -9`` or a power cut ends
+the process and the kernel lets the lock go, so such a recording still reads as cut short.
+A file system without ``flock`` (an error) records as before, unmarked.
 """
 
 from __future__ import annotations
@@ -412,13 +413,14 @@ class _WritingMark:
         self._fd: int | None = None
         self._key: tuple[int, int] | None = None
         self.locked = False  # the part's flock is held (False: none, or not supported)
+        self._unlocked = False  # the lock was let go on a disk failure (unlock()), noted still
 
     def move_to(self, f: Any, path: Path) -> None:
         try:
             key = _file_key(os.fstat(f.fileno()))
         except (OSError, AttributeError, ValueError):
             return  # cannot tell which file: the previous mark stays
-        if key == self._key:
+        if key == self._key and not self._unlocked:
             return  # the same part opened again: already marked
         fd: int | None = None
         locked = False
@@ -447,8 +449,20 @@ class _WritingMark:
         self._let_go()
         self._fd, self._key, self.locked = fd, key, locked
 
+    def unlock(self) -> None:
+        """The part was dropped on a disk failure: close the lock's descriptor (an open
+        descriptor keeps a failed card from being unmounted), keep the in-process note (this
+        process's console still says "this run"). Other processes read the part as cut short
+        until :meth:`move_to` marks the part reopened."""
+        fd, self._fd, self.locked = self._fd, None, False
+        self._unlocked = True
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
     def _let_go(self) -> None:
         fd, key, self._fd, self._key, self.locked = self._fd, self._key, None, None, False
+        self._unlocked = False
         if key is not None:
             with _WRITING_LOCK:
                 n = _WRITING.get(key, 0) - 1
@@ -885,7 +899,10 @@ class Recorder:
         self._reopen_path = self.path
 
     def _failed(self, error: str, now: float) -> None:
-        """Count a failed open or write and try again after the back-off (doubling, capped)."""
+        """Count a failed open or write and try again after the back-off (doubling, capped).
+        The last part's lock goes too (no descriptor left on a failing card: it can be
+        unmounted); the in-process note stays."""
+        self._mark.unlock()
         self.write_errors += 1
         self.last_error = error
         self._recovering = True
