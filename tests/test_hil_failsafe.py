@@ -310,6 +310,16 @@ def test_wheel_odometry_flows_into_the_ekf_and_the_wmm_declination_reaches_gpsd(
         assert isinstance(n0, int) and n0 > 0, st["links"]
         odo = st["devices"]["odometry"]
         assert odo["state"] == "polling" and odo["failures"] == 0
+        # every reading's own stamp (t_s: when the daemon received the board's reply to E)
+        stamps: list[float] = []
+        assert d.runner is not None
+        odometry = d.runner.odometry
+
+        def stamped(rec: Any) -> None:
+            stamps.append(rec.t_s)
+            odometry(rec)
+
+        monkeypatch.setattr(d.runner, "odometry", stamped)
         c.request("drive", left=40, right=40, duration_s=4.0)
         wait_for(lambda: world.truth()[3] > 0.3, 3, "moving")
         time.sleep(0.5)  # still driving (4 s) when status is asked, even on a loaded machine
@@ -326,12 +336,13 @@ def test_wheel_odometry_flows_into_the_ekf_and_the_wmm_declination_reaches_gpsd(
         extra = st["telemetry"]["extra"]
         assert extra["ekf_sigma_m"] > 0 and extra["ekf_speed_mps"] > 0.3, extra
         assert "odometry_dropped" not in extra
-        # The polling goes on (moving or not): 40 more readings (2 s at 20 Hz) within 20 s,
-        # a fixed count instead of a rate over a short window; a poller at 1 Hz or on the
-        # 10 s retry schedule does not get there
-        wait_for(
-            lambda: c.request("status")["links"]["odometry"] >= n0 + 40, 20, "40 encoder readings"
-        )
+        # The polling goes on at 20 Hz (moving or not): the median spacing of 40 readings'
+        # own stamps under 0.1 s (twice the period), however long a loaded host took to
+        # deliver them; a poller at 10 Hz or slower (or on the 10 s retry schedule) fails it.
+        # (The worker catches a late poll up at half a period, so a delay does not add up.)
+        wait_for(lambda: len(stamps) >= 41, 30, "40 more encoder readings")
+        gaps = np.diff(stamps[:41])
+        assert float(np.median(gaps)) < 0.1, [round(float(g), 3) for g in gaps]
         # no [compass] declination_deg: the model's value at the first dated fix, everywhere
         assert st["declination"] == {"source": "wmm", "deg": 2.5}
         assert len(asked) == 1 and abs(asked[0][0] - ORIGIN[0]) < 1e-3
