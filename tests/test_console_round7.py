@@ -48,12 +48,13 @@ BIG = 3000  # waypoints in the editor (the audit's file: 3000, 90 KB)
 # test: 3.5-4.1 s of 5 s, longest 135-149 ms). After: STOP 0.06-0.16 s, idle long tasks
 # none, or one or two of 50-120 ms (the load's preemption).
 # Made load-independent (all three were wall times a starved host inflates directly):
-# - STOP is timed from the page's own handling of the press (a capture listener's
-#   performance.now(), mapped to this process's clock) to the daemon IDLE with motors 0/0,
-#   not from before the WebDriver click: chromedriver's own steps (scrolling, the element's
-#   place, each event's ack) took most of a loaded host's time. The old page's seconds were
-#   those steps waiting behind its busy main thread (its press itself was handled at once):
-#   the busy main thread, their cause, is the idle check's to catch, and it does.
+# - STOP is timed from the press's own event (the pointerdown's e.timeStamp: when the input
+#   event was created, in performance.now()'s timebase, mapped to this process's clock) to
+#   the daemon IDLE with motors 0/0, not from before the WebDriver click: chromedriver's own
+#   steps (scrolling, the element's place) took most of a loaded host's time. The time the
+#   press then waits in the page's input queue behind busy main-thread tasks (the audit's
+#   symptom) is counted, as it would not be from performance.now() read in the listener;
+#   the busy main thread itself is the idle check's to catch too.
 # - the idle page's work is its main thread's CPU time (CDP Performance.getMetrics
 #   ThreadTime), not the wall time of its long tasks, which CPU starvation stretches: the
 #   old page (a57442a^'s) used 3.47 s of CPU in 5.1 s here (0.68), the fixed page 0.12.
@@ -70,11 +71,12 @@ new PerformanceObserver((l) => {
   for (const e of l.getEntries()) window.longTasks.push(e.duration);
 }).observe({ type: "longtask" });
 """
-# when the page handled the press on STOP (a capture listener: before the page's own)
+# when the press on STOP was made: its event's timeStamp (not when a listener ran: that leaves
+# out the time it waited in the page's input queue)
 STOP_PRESSES = """
 window.stopPresses = [];
 window.addEventListener("pointerdown", (e) => {
-  if (e.target.closest && e.target.closest("#btn-stop")) window.stopPresses.push(performance.now());
+  if (e.target.closest && e.target.closest("#btn-stop")) window.stopPresses.push(e.timeStamp);
 }, { capture: true });
 """
 
