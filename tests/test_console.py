@@ -883,6 +883,10 @@ def test_the_robots_recordings_open_in_the_log_viewer_from_the_page(
     # generous waits: the robot's recording grows through the module, and a loaded 2-core
     # machine takes a while to list and draw it (a 10 s wait timed out in a CI run)
     wait_for(lambda: browser.find_elements(By.CSS_SELECTOR, "#recordings button"), 30, "the list")
+    # the daemon's own run, newest, says it is still being written; older ones do not
+    items = [li.text for li in browser.find_elements(By.CSS_SELECTOR, "#recordings li")]
+    assert "still being recorded (this run)" in items[0], items
+    assert not any("being recorded" in t for t in items[1:]), items
     browser.find_element(By.CSS_SELECTOR, "#recordings button").click()
     wait_for(lambda: browser.find_element(By.ID, "rec-view").is_displayed(), 60, "the viewer")
     browser.switch_to.frame(browser.find_element(By.ID, "rec-frame"))

@@ -473,7 +473,9 @@
       const open = document.createElement("button");
       open.textContent = "Open";
       open.onclick = () => viewRecording(rec.name);
-      li.append(open, rec.name + " (" + (rec.bytes / 1e6).toFixed(1) + " MB)");
+      // the run being written now: the viewer shows what is on disk so far
+      const live = rec.in_progress ? ", still being recorded (this run)" : "";
+      li.append(open, rec.name + " (" + (rec.bytes / 1e6).toFixed(1) + " MB" + live + ")");
       ul.append(li);
     }
   }
