@@ -59,13 +59,13 @@ def hil_config(tmp_path: Path, **sections: Any) -> Config:
 class Running:
     """A Daemon on its own event-loop thread."""
 
-    def __init__(self, daemon: Daemon) -> None:
+    def __init__(self, daemon: Daemon, ready_s: float = 15.0) -> None:
         self.daemon = daemon
         self.ready = threading.Event()
         self.code: int | None = None
         self.thread = threading.Thread(target=self._main, daemon=True)
         self.thread.start()
-        assert self.ready.wait(15), "daemon did not become ready"
+        assert self.ready.wait(ready_s), "daemon did not become ready"
 
     def _main(self) -> None:
         async def go() -> int:
@@ -88,11 +88,14 @@ class Running:
 
 
 @pytest.fixture
-def run_daemon() -> Iterator[Callable[[Daemon], Running]]:
+def run_daemon(request: pytest.FixtureRequest) -> Iterator[Callable[[Daemon], Running]]:
+    """Starts daemons (each a :class:`Running`) and stops them after the test. A module that
+    imports it may allow its daemons longer to become ready with ``DAEMON_READY_S``."""
     started: list[Running] = []
+    ready_s = float(getattr(request.module, "DAEMON_READY_S", 15.0))
 
     def start(d: Daemon) -> Running:
-        r = Running(d)
+        r = Running(d, ready_s)
         started.append(r)
         return r
 
@@ -103,13 +106,15 @@ def run_daemon() -> Iterator[Callable[[Daemon], Running]]:
             r.daemon.devices.close()  # also when the daemon did not get to close it
 
 
-def wait_for(pred: Callable[[], Any], timeout_s: float = 10.0, what: str = "") -> Any:
+def wait_for(
+    pred: Callable[[], Any], timeout_s: float = 10.0, what: str = "", poll_s: float = 0.05
+) -> Any:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         v = pred()
         if v:
             return v
-        time.sleep(0.05)
+        time.sleep(poll_s)
     raise AssertionError(f"timed out waiting for {what or pred}")
 
 

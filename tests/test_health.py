@@ -4,16 +4,15 @@ a compass errno storm, a non-transient compass error, a GPS unplug."""
 
 from __future__ import annotations
 
-import asyncio
 import dataclasses
 import errno
+import functools
 import logging
 import math
 import os
 import re
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -21,22 +20,21 @@ import pytest
 
 from drivers import registry
 from sim_backend.compass import ErrorInjector
+from tests.test_daemon import ORIGIN, Running, hil_config, run_daemon
+from tests.test_daemon import wait_for as daemon_wait_for
 from x6wd.app.client import RemoteClient, render_status
 from x6wd.app.daemon import TICK_HZ, Daemon
 from x6wd.core.config import (
-    CompassConfig,
     Config,
     GpsConfig,
-    GpsdConfig,
-    RecorderConfig,
     SafetyConfig,
-    ServerConfig,
-    SimConfig,
 )
 from x6wd.core.errors import DeviceIOError
 from x6wd.core.health import HealthLog, HealthTracker
 from x6wd.core.recorder import read_recording_parts
 from x6wd.core.records import DeviceHealth, DeviceState, HealthEvent, StateChange
+
+__all__ = ["run_daemon"]  # the fixture, shared with test_daemon
 
 # --- HealthTracker (sans-IO, injected times) --------------------------------------------------
 
@@ -295,21 +293,8 @@ def test_repeated_failed_reopens_are_logged_once_per_interval(
 
 # --- the daemon in-process, on the HIL world --------------------------------------------------
 
-ORIGIN = (51.7520, -1.2577)
-
-
-def hil_config(tmp_path: Path, **sections: Any) -> Config:
-    base = Config(
-        server=ServerConfig(port=0),
-        gpsd=GpsdConfig(port=0),
-        recorder=RecorderConfig(dir=str(tmp_path / "rec")),
-        sim=SimConfig(gps_rate_hz=4.0, gps_baud=115200),
-        safety=SafetyConfig(geofence_radius_m=100.0),
-        gps=GpsConfig(url="sim://"),
-        compass=CompassConfig(url="sim://"),
-    )
-    cfg = dataclasses.replace(base, motors=dataclasses.replace(base.motors, url="sim://"))
-    return dataclasses.replace(cfg, **sections)
+DAEMON_READY_S = 20.0  # how long run_daemon (tests.test_daemon) waits for these daemons
+wait_for = functools.partial(daemon_wait_for, poll_s=0.02)
 
 
 class ProbeDaemon(Daemon):
@@ -334,63 +319,6 @@ class ProbeDaemon(Daemon):
     def _observe(self, outputs: list[Any], important: bool) -> None:
         now = time.monotonic()
         self.changes += [(now, o) for o in outputs if isinstance(o, StateChange)]
-
-
-class Running:
-    """A Daemon on its own event-loop thread."""
-
-    def __init__(self, daemon: Daemon) -> None:
-        self.daemon = daemon
-        self.ready = threading.Event()
-        self.code: int | None = None
-        self.thread = threading.Thread(target=self._main, daemon=True)
-        self.thread.start()
-        assert self.ready.wait(20), "daemon did not become ready"
-
-    def _main(self) -> None:
-        async def go() -> int:
-            self.loop = asyncio.get_running_loop()
-            return await self.daemon.run(ready=lambda _d: self.ready.set())
-
-        self.code = asyncio.run(go())
-        self.ready.set()
-
-    @property
-    def port(self) -> int:
-        assert self.daemon.server is not None
-        return self.daemon.server.port
-
-    def stop(self) -> int | None:
-        if self.thread.is_alive():
-            self.loop.call_soon_threadsafe(self.daemon.request_stop)
-            self.thread.join(15)
-        return self.code
-
-
-@pytest.fixture
-def run_daemon() -> Iterator[Callable[[Daemon], Running]]:
-    started: list[Running] = []
-
-    def start(d: Daemon) -> Running:
-        r = Running(d)
-        started.append(r)
-        return r
-
-    yield start
-    for r in started:
-        r.stop()
-        if r.daemon.devices is not None:
-            r.daemon.devices.close()  # also when the daemon did not get to close it
-
-
-def wait_for(pred: Callable[[], Any], timeout_s: float = 10.0, what: str = "") -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what or pred}")
 
 
 @dataclasses.dataclass
