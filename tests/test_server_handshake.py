@@ -24,15 +24,15 @@ import subprocess
 import sys
 import textwrap
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import aiohttp
 import pytest
 
-from tests.conftest import ROOT, self_signed_cert
+from tests.conftest import ROOT
 from tests.test_server import TOKEN, LoopThread, RecordingBackend
+from tests.test_tls_stop import lt, tls_files
 from x6wd.app import gpsd as gpsd_module
 from x6wd.app.client import RemoteClient
 from x6wd.app.console import server as console_server
@@ -45,22 +45,7 @@ pytestmark = pytest.mark.integration
 
 PORTS = iter(range(8230, 8260))
 
-
-@pytest.fixture(scope="module")
-def tls_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
-    d = tmp_path_factory.mktemp("tls")
-    cert, key = self_signed_cert(d)
-    token = d / "token"
-    token.write_text(TOKEN + "\n")
-    token.chmod(0o600)
-    return cert, key, token
-
-
-@pytest.fixture
-def lt() -> Iterator[LoopThread]:
-    loop_thread = LoopThread()
-    yield loop_thread
-    loop_thread.close()
+__all__ = ["lt", "tls_files"]  # the fixtures, shared with test_tls_stop
 
 
 def closed_by_server(sock: socket.socket, timeout_s: float) -> bool:
