@@ -11,19 +11,19 @@ its ``boot()`` without writing the ``EVT BOOT`` it returns is the silent restart
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import logging
-import os
 import threading
 import time
-import tty
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import pytest
 import serial
 
-from drivers.motors import DEFAULT_WATCHDOG_MS, MotorBoard, SerialMotorLink, serve_board_fd
+from drivers.motors import DEFAULT_WATCHDOG_MS, MotorBoard, SerialMotorLink
+from tests.test_motors import wait_for as motors_wait_for
+from tests.test_motors_hardware_round7 import Pty
 from x6wd.core.records import HealthEvent, MotorCommand
 
 WATCHDOG_MS = 200
@@ -70,32 +70,12 @@ class Served:
 @pytest.fixture
 def served() -> Iterator[Served]:
     board = RecordingBoard()
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    lock, stop = threading.Lock(), threading.Event()
-    thread = threading.Thread(
-        target=serve_board_fd,
-        args=(master, board, stop),
-        kwargs={"lock": lock, "boot": True},
-        daemon=True,
-    )
-    thread.start()
-    yield Served(board, lock, os.ttyname(slave))
-    stop.set()
-    thread.join(5)
-    for fd in (master, slave):
-        with contextlib.suppress(OSError):
-            os.close(fd)
+    pb = Pty(board, boot=True)
+    yield Served(board, pb.lock, pb.name)
+    pb.close()
 
 
-def wait_for(cond: Callable[[], bool], limit_s: float = 10.0) -> bool:
-    end = time.monotonic() + limit_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.005)
-    return cond()
+wait_for = functools.partial(motors_wait_for, limit_s=10.0)
 
 
 def mission(left: float = 40.0, right: float = 40.0) -> MotorCommand:

@@ -8,17 +8,15 @@ A real pty served by :func:`drivers.motors.serve_board_fd` with the repo's Motor
 
 from __future__ import annotations
 
-import contextlib
-import os
 import threading
 import time
-import tty
 from collections.abc import Iterator
 
 import pytest
 import serial
 
-from drivers.motors import MotorBoard, SerialMotorLink, serve_board_fd
+from drivers.motors import MotorBoard, SerialMotorLink
+from tests.test_motors_hardware_round7 import Pty
 from x6wd.core.records import MotorCommand
 
 
@@ -45,23 +43,9 @@ class RestartOnDriveBoard(MotorBoard):
 @pytest.fixture
 def served() -> Iterator[tuple[RestartOnDriveBoard, threading.Lock, str]]:
     board = RestartOnDriveBoard()
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    lock, stop = threading.Lock(), threading.Event()
-    thread = threading.Thread(
-        target=serve_board_fd,
-        args=(master, board, stop),
-        kwargs={"lock": lock, "boot": True},
-        daemon=True,
-    )
-    thread.start()
-    yield board, lock, os.ttyname(slave)
-    stop.set()
-    thread.join(5)
-    for fd in (master, slave):
-        with contextlib.suppress(OSError):
-            os.close(fd)
+    pb = Pty(board, boot=True)
+    yield board, pb.lock, pb.name
+    pb.close()
 
 
 @pytest.mark.integration

@@ -14,23 +14,15 @@ import re
 import threading
 import time
 import tty
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import serial
 
 from drivers.motors import MotorBoard, SerialMotorLink, _check_pct, serve_board_fd
+from tests.test_motors import wait_for
 from x6wd.nav.steering import skid_mix
-
-
-def wait_for(cond: Callable[[], bool], limit_s: float = 5.0) -> bool:
-    end = time.monotonic() + limit_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.005)
-    return cond()
 
 
 class Pty:

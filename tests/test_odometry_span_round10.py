@@ -19,28 +19,21 @@ import select
 import threading
 import time
 import tty
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import serial
 
-from drivers.motors import MotorBoard, SerialMotorLink, serve_board_fd
+from drivers.motors import MotorBoard, SerialMotorLink
+from tests.test_motors import wait_for
+from tests.test_motors_hardware_round7 import Pty
 from x6wd.core.config import load
 from x6wd.core.records import GpsFix, WheelOdometry
 from x6wd.nav import estimator as ekfmod
 from x6wd.nav.position import EkfSource
 
 HIL_TOML = Path(__file__).resolve().parent.parent / "config" / "hil.toml"
-
-
-def wait_for(cond: Callable[[], bool], limit_s: float = 5.0) -> bool:
-    end = time.monotonic() + limit_s
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.005)
-    return cond()
 
 
 class StallingSerial(serial.Serial):
@@ -74,20 +67,11 @@ class LatchBoard(MotorBoard):
 
 @contextlib.contextmanager
 def served(board: MotorBoard) -> Iterator[str]:
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    stop = threading.Event()
-    th = threading.Thread(target=serve_board_fd, args=(master, board, stop), daemon=True)
-    th.start()
+    pb = Pty(board)
     try:
-        yield os.ttyname(slave)
+        yield pb.name
     finally:
-        stop.set()
-        th.join(5)
-        for fd in (master, slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        pb.close()
 
 
 # --- (a) the driver stamps a reading when its request went out ---------------------------
