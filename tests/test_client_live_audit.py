@@ -20,18 +20,14 @@ import pytest
 
 from tests.conftest import self_signed_cert
 from tests.test_daemon import Running, hil_config, wait_for
+from tests.test_lockout import lt
 from tests.test_server import LoopThread, Raw, RecordingBackend, start_server
 from x6wd.app.daemon import Daemon
 from x6wd.app.server import ControlServer, server_ssl_context
 
+__all__ = ["lt"]  # the fixture, shared with test_lockout
+
 pytestmark = pytest.mark.integration
-
-
-@pytest.fixture
-def lt() -> Iterator[LoopThread]:
-    loop_thread = LoopThread()
-    yield loop_thread
-    loop_thread.close()
 
 
 def x6wd_client(port: int, *args: str) -> list[str]:

@@ -30,21 +30,17 @@ from typing import Any
 import pytest
 
 from tests.conftest import self_signed_cert
+from tests.test_lockout import lt
 from tests.test_server import TOKEN, LoopThread, RecordingBackend
 from x6wd.app.console import server as console_server
 from x6wd.app.console.server import CONNECTION_SLACK, STATIC_DIR, ConsoleServer
 from x6wd.app.server import ControlServer, server_ssl_context
 from x6wd.core.config import ConsoleConfig, ServerConfig
 
+__all__ = ["lt"]  # the fixture, shared with test_lockout
+
 PORTS = iter(range(44100, 44200))
 HALF_SENT = b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nX-a: "  # the audit's f_http.py, 'partial'
-
-
-@pytest.fixture
-def lt() -> Iterator[LoopThread]:
-    loop_thread = LoopThread()
-    yield loop_thread
-    loop_thread.close()
 
 
 @pytest.fixture

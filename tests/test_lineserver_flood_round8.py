@@ -16,7 +16,7 @@ import ssl
 import threading
 import time
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,23 +24,19 @@ import pytest
 
 from tests.conftest import self_signed_cert
 from tests.test_gpsd_port import FIX
+from tests.test_lockout import lt
 from tests.test_server import TOKEN, LoopThread, RecordingBackend
 from x6wd.app.gpsd import GpsdServer
 from x6wd.app.server import ControlServer, server_ssl_context
 from x6wd.core.config import ServerConfig
+
+__all__ = ["lt"]  # the fixture, shared with test_lockout
 
 pytestmark = pytest.mark.integration
 
 WATCH = b'?WATCH={"enable":true,"json":true};\n'
 STORM_HOST = "127.0.0.1"
 OPERATOR_HOST = "127.0.0.2"
-
-
-@pytest.fixture
-def lt() -> Iterator[LoopThread]:
-    loop_thread = LoopThread()
-    yield loop_thread
-    loop_thread.close()
 
 
 def wait_until(pred: Callable[[], Any], timeout_s: float = 10.0, what: str = "") -> Any:

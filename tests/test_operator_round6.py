@@ -22,13 +22,13 @@ import re
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from tests.test_daemon import hil_config, run_daemon, wait_for
+from tests.test_lockout import lt
 from tests.test_loop import HOME, M_PER_DEG_LAT, Loop, north
 from tests.test_server import LoopThread, RecordingBackend, start_server
 from x6wd.app.client import RemoteClient, RequestFailed
@@ -40,7 +40,7 @@ from x6wd.core.mission_files import Waypoint
 from x6wd.core.records import Mode
 from x6wd.nav.controller import CommandRejected
 
-__all__ = ["run_daemon"]  # a fixture, shared with test_daemon
+__all__ = ["lt", "run_daemon"]  # fixtures, shared with test_lockout and test_daemon
 
 FENCE_M = 15.0
 
@@ -225,13 +225,6 @@ def test_the_daemon_resumes_a_paused_return_outside_the_fence(tmp_path: Path, ru
 
 
 # -- 2 and 3: the client --------------------------------------------------------------------
-@pytest.fixture
-def lt() -> Iterator[LoopThread]:
-    loop_thread = LoopThread()
-    yield loop_thread
-    loop_thread.close()
-
-
 def x6wd_client(port: int, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "x6wd", "client", "--port", str(port), *args],

@@ -27,12 +27,15 @@ import pytest
 
 import x6wd.app.server as server_module
 from tests.conftest import ROOT, require_program
+from tests.test_lockout import lt
 from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
 from x6wd import __version__
 from x6wd.app.client import RemoteClient
 from x6wd.app.server import COMMANDS, ControlServer, load_token
 from x6wd.core.config import ServerConfig
 from x6wd.core.errors import ConfigError, X6wdError
+
+__all__ = ["lt"]  # the fixture, shared with test_lockout
 
 
 class Clock:
@@ -43,13 +46,6 @@ class Clock:
 
     def __call__(self) -> float:
         return self.now
-
-
-@pytest.fixture
-def lt() -> Iterator[LoopThread]:
-    loop_thread = LoopThread()
-    yield loop_thread
-    loop_thread.close()
 
 
 @pytest.fixture

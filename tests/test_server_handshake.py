@@ -31,8 +31,9 @@ import aiohttp
 import pytest
 
 from tests.conftest import ROOT
+from tests.test_lockout import lt
 from tests.test_server import TOKEN, LoopThread, RecordingBackend
-from tests.test_tls_stop import lt, tls_files
+from tests.test_tls_stop import tls_files
 from x6wd.app import gpsd as gpsd_module
 from x6wd.app.client import RemoteClient
 from x6wd.app.console import server as console_server
@@ -45,7 +46,7 @@ pytestmark = pytest.mark.integration
 
 PORTS = iter(range(8230, 8260))
 
-__all__ = ["lt", "tls_files"]  # the fixtures, shared with test_tls_stop
+__all__ = ["lt", "tls_files"]  # the fixtures, shared with test_lockout and test_tls_stop
 
 
 def closed_by_server(sock: socket.socket, timeout_s: float) -> bool:

@@ -11,29 +11,24 @@ from __future__ import annotations
 
 import json
 import socket
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
 
 from tests.test_lineserver_flood_round8 import connect, read_lines_until, wait_until
+from tests.test_lockout import lt
 from tests.test_server import TOKEN, LoopThread, RecordingBackend
 from x6wd.app.gpsd import GpsdServer
 from x6wd.app.server import ControlServer
 from x6wd.core.config import ServerConfig
+
+__all__ = ["lt"]  # the fixture, shared with test_lockout
 
 pytestmark = pytest.mark.integration
 
 OPERATOR_HOST = "127.0.0.1"
 OTHER_HOST = "127.0.0.2"
 NEW_HOST = "127.0.0.3"
-
-
-@pytest.fixture
-def lt() -> Iterator[LoopThread]:
-    loop_thread = LoopThread()
-    yield loop_thread
-    loop_thread.close()
 
 
 def line(**req: Any) -> bytes:

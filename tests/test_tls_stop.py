@@ -35,10 +35,13 @@ import aiohttp
 import pytest
 
 from tests.conftest import self_signed_cert
+from tests.test_lockout import lt
 from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
 from x6wd.app.console.server import ConsoleServer
 from x6wd.app.server import ControlServer, server_ssl_context
 from x6wd.core.config import ConsoleConfig, ServerConfig
+
+__all__ = ["lt"]  # the fixture, shared with test_lockout
 
 pytestmark = pytest.mark.integration
 
@@ -55,13 +58,6 @@ def tls_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Pat
     token.write_text(TOKEN + "\n")
     token.chmod(0o600)
     return cert, key, token
-
-
-@pytest.fixture
-def lt() -> Iterator[LoopThread]:
-    loop_thread = LoopThread()
-    yield loop_thread
-    loop_thread.close()
 
 
 class MotorBackend(RecordingBackend):
