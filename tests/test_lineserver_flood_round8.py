@@ -9,6 +9,7 @@ Real sockets against the real servers, each on its own loop thread
 from __future__ import annotations
 
 import contextlib
+import functools
 import gc
 import json
 import socket
@@ -25,6 +26,7 @@ import pytest
 from tests.conftest import self_signed_cert
 from tests.test_gpsd_port import FIX
 from tests.test_lockout import lt
+from tests.test_lockout import wait_until as lockout_wait_until
 from tests.test_server import TOKEN, LoopThread, RecordingBackend
 from x6wd.app.gpsd import GpsdServer
 from x6wd.app.server import ControlServer, server_ssl_context
@@ -38,15 +40,7 @@ WATCH = b'?WATCH={"enable":true,"json":true};\n'
 STORM_HOST = "127.0.0.1"
 OPERATOR_HOST = "127.0.0.2"
 
-
-def wait_until(pred: Callable[[], Any], timeout_s: float = 10.0, what: str = "") -> Any:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        v = pred()
-        if v:
-            return v
-        assert time.monotonic() < deadline, f"condition not reached: {what}"
-        time.sleep(0.01)
+wait_until = functools.partial(lockout_wait_until, timeout_s=10.0)  # 10 s here
 
 
 def connect(port: int, source: str, first: bytes) -> socket.socket:

@@ -52,13 +52,13 @@ class Clock:
         return self.now
 
 
-def wait_until(pred: Callable[[], Any], timeout_s: float = 5.0) -> Any:
+def wait_until(pred: Callable[[], Any], timeout_s: float = 5.0, what: str = "") -> Any:
     deadline = time.monotonic() + timeout_s
     while True:
         v = pred()
         if v:
             return v
-        assert time.monotonic() < deadline, "condition not reached"
+        assert time.monotonic() < deadline, f"condition not reached in {timeout_s:g} s: {what}"
         time.sleep(0.01)
 
 

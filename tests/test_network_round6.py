@@ -17,12 +17,13 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
 
 from tests.test_gpsd_port import FIX
+from tests.test_lockout import wait_until
 from tests.test_server import TOKEN, LoopThread, RecordingBackend
 from x6wd.app.console import server as console_server
 from x6wd.app.console.server import CONNECTION_SLACK, ConsoleServer
@@ -48,16 +49,6 @@ def lt() -> Iterator[LoopThread]:
     )
     yield loop_thread
     loop_thread.close()
-
-
-def wait_until(pred: Callable[[], Any], timeout_s: float = 5.0, what: str = "") -> Any:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        v = pred()
-        if v:
-            return v
-        assert time.monotonic() < deadline, f"condition not reached: {what}"
-        time.sleep(0.01)
 
 
 def hold_loop(lt: LoopThread) -> tuple[threading.Event, threading.Event]:

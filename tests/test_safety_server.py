@@ -27,7 +27,7 @@ import pytest
 
 import x6wd.app.server as server_module
 from tests.conftest import ROOT, require_program
-from tests.test_lockout import lt
+from tests.test_lockout import lt, wait_until
 from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
 from x6wd import __version__
 from x6wd.app.client import RemoteClient
@@ -70,16 +70,6 @@ def servers(lt: LoopThread) -> Iterator[Callable[..., ControlServer]]:
     yield serve
     for srv in started:
         lt.run(srv.close())
-
-
-def wait_until(pred: Callable[[], Any], timeout_s: float = 5.0) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        v = pred()
-        if v:
-            return v
-        assert time.monotonic() < deadline, "condition not reached"
-        time.sleep(0.01)
 
 
 def line(obj: dict[str, Any]) -> bytes:

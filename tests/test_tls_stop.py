@@ -35,7 +35,7 @@ import aiohttp
 import pytest
 
 from tests.conftest import self_signed_cert
-from tests.test_lockout import lt
+from tests.test_lockout import lt, wait_until
 from tests.test_server import TOKEN, LoopThread, Raw, RecordingBackend
 from x6wd.app.console.server import ConsoleServer
 from x6wd.app.server import ControlServer, server_ssl_context
@@ -116,16 +116,6 @@ class TlsRaw(Raw):
         sock = socket.create_connection(("127.0.0.1", port), timeout=5)
         self.sock = ctx.wrap_socket(sock, server_hostname="localhost")
         self.f = self.sock.makefile("rb")
-
-
-def wait_until(pred: Callable[[], Any], timeout_s: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        v = pred()
-        if v:
-            return v
-        assert time.monotonic() < deadline, f"not within {timeout_s:g} s: {what}"
-        time.sleep(0.01)
 
 
 def closed_tls_client_known(lt: LoopThread, t: Tls) -> Any:
