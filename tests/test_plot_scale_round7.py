@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 import sim_backend.trackpng as trackpng
-from sim_backend.runs import ErrorStats, Summary
 from sim_backend.world import load_world
+from tests.test_trackpng import _summary
 from x6wd.app import logview
 
 REPO = Path(__file__).resolve().parents[1]
@@ -119,17 +119,6 @@ def test_jump_list_keeps_the_first_the_largest_and_a_stride() -> None:
     t = np.array([j.t_s for j in jumps])
     assert np.all(np.diff(t) > 0)  # in file order
     assert t[-1] > 90_000  # spread through the file, not only its start
-
-
-def _summary(name: str) -> Summary:
-    nan = ErrorStats.of(np.zeros(0))
-    return Summary(
-        scenario=name, seed=3, completed=False, waypoints_reached=0, waypoint_count=0,
-        sim_time_s=10.0, wall_time_s=0.1, path_length_m=0.0, straight_length_m=0.0,
-        raw_error=ErrorStats.of(np.array([1.0, 2.0])), filtered_error=nan, hold_periods=0,
-        hold_time_s=0.0, fixes=2, fixes_valid=2, dispersion_lat_m=1.0, dispersion_lon_m=1.0,
-        mean_hdop=1.0, mean_sats_used=8.0,
-    )  # fmt: skip
 
 
 def test_the_survey_plot_works_on_its_fixes_a_chunk_at_a_time(tmp_path: Path) -> None:
