@@ -38,10 +38,12 @@ from drivers import registry
 from drivers.motors import SerialMotorLink
 from tests.conftest import ROOT
 from tests.test_daemon import wait_for
-from tests.test_driver_faults_audit import PluggedBoard, PtyPeer
+from tests.test_driver_faults_audit import PluggedBoard, PtyPeer, plugged
 from tests.test_shutdown import DaemonProcess
 from tests.test_startup import run_x6wd, write_config
 from x6wd.app.client import RemoteClient
+
+__all__ = ["plugged"]  # the fixture, shared with test_driver_faults_audit
 
 pytestmark = pytest.mark.integration
 
@@ -234,14 +236,6 @@ class EioWrites:
             return result
 
         monkeypatch.setattr(sp.Serial, "write", write)
-
-
-@pytest.fixture
-def plugged(tmp_path: Path) -> Iterator[PluggedBoard]:
-    b = PluggedBoard(tmp_path / "ttyUSB-board")
-    b.plug()
-    yield b
-    b.unplug()
 
 
 def transitions(link: SerialMotorLink) -> list[str]:
