@@ -21,7 +21,6 @@ import re
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +31,9 @@ from drivers.motors import SerialMotorLink
 from sim_backend import cli, hil, runs
 from sim_backend.world import load_world, loads_world
 from tests.conftest import ROOT
+from tests.test_hil import world
+
+__all__ = ["world"]  # the fixture, shared with test_hil
 
 SCENARIOS = ROOT / "config" / "scenarios"
 OPEN_FIELD = SCENARIOS / "open_field.toml"
@@ -190,15 +192,6 @@ def test_a_robot_config_without_robot_sections_keeps_the_receiver_engine(
 
 
 # ------------------------------------------------------------------ the sim:// motor link
-
-PARAMS = hil.HilParams(gps_rate_hz=4.0, gps_baud=115200, motor_tau_s=0.0, motor_watchdog_ms=300)
-
-
-@pytest.fixture
-def world() -> Iterator[hil.HilWorld]:
-    w = hil.HilWorld(PARAMS)
-    yield w
-    w.close()
 
 
 def hang_up(path: str) -> None:
