@@ -8,7 +8,6 @@ import socket
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ import serial
 
 from drivers.gps_io import GpsReader
 from drivers.gps_nmea import GpsDecoder, cfg_rate, ubx_frame
+from tests.test_motors import PortProxy
 from x6wd.core.errors import ConfigError
 from x6wd.core.records import GpsFix
 
@@ -260,25 +260,13 @@ TRANSIENT = [errno.EIO, errno.ENXIO, errno.EAGAIN, errno.EBUSY, errno.EINTR, err
 NOT_TRANSIENT = [errno.ENOENT, errno.EACCES, errno.EBADF]
 
 
-class FlakyPort:
+class FlakyPort(PortProxy):
     """A real pyserial port on a pty whose next ``fail`` reads raise ``OSError(code)``."""
 
     def __init__(self, port: serial.Serial, code: int, fail: int) -> None:
-        self.port = port
+        super().__init__(port)
         self.code = code
         self.fail = fail
-
-    @property
-    def timeout(self) -> Any:
-        return self.port.timeout
-
-    @timeout.setter
-    def timeout(self, value: Any) -> None:
-        self.port.timeout = value
-
-    @property
-    def in_waiting(self) -> int:
-        return int(self.port.in_waiting)
 
     def fileno(self) -> int:
         return int(self.port.fileno())
@@ -287,10 +275,7 @@ class FlakyPort:
         if self.fail > 0:
             self.fail -= 1
             raise OSError(self.code, os.strerror(self.code))
-        return bytes(self.port.read(size))
-
-    def close(self) -> None:
-        self.port.close()
+        return super().read(size)
 
 
 def flaky_reader(link: Path, code: int, fails: list[int]) -> tuple[GpsReader, list[FlakyPort]]:

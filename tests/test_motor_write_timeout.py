@@ -24,9 +24,10 @@ import pytest
 import serial
 
 from drivers import registry
-from drivers.registry import MOTOR_WRITE_TIMEOUT_S
 from drivers.motors import SerialMotorLink
+from drivers.registry import MOTOR_WRITE_TIMEOUT_S
 from tests.test_daemon import BoardOnPty, wait_for
+from tests.test_motors import PortProxy
 from tests.test_safety_daemon import Calls
 from x6wd.app.daemon import _MotorWorker
 from x6wd.core.records import MotorCommand
@@ -118,7 +119,7 @@ def test_the_motor_worker_reports_a_stalled_port_lost_and_keeps_running() -> Non
             w.shutdown("test end")
 
 
-class StuckAdapter:
+class StuckAdapter(PortProxy):
     """The real pyserial port to the pty board behind a USB adapter that can stall, modelled
     at the boundary a pty cannot be made to behave like (its buffering varies run to run):
     while ``stuck`` the adapter's buffer takes up to ``room`` bytes, which go out when it
@@ -128,28 +129,13 @@ class StuckAdapter:
     here up to ``closing_wait_s``; 30 s by default on Linux)."""
 
     def __init__(self, port: serial.Serial, room: int = 16, closing_wait_s: float = 5.0) -> None:
-        self.port = port
+        super().__init__(port)
         self.room = room
         self.closing_wait_s = closing_wait_s
         self.pending = bytearray()
         self.unstuck = threading.Event()
         self.unstuck.set()
         self.discarded = 0
-
-    @property
-    def timeout(self) -> Any:
-        return self.port.timeout
-
-    @timeout.setter
-    def timeout(self, value: Any) -> None:
-        self.port.timeout = value
-
-    @property
-    def in_waiting(self) -> int:
-        return int(self.port.in_waiting)
-
-    def read(self, size: int = 1) -> bytes:
-        return bytes(self.port.read(size))
 
     def write(self, data: bytes) -> int | None:
         if self.unstuck.is_set():

@@ -442,15 +442,12 @@ TRANSIENT = [errno.EIO, errno.ENXIO, errno.EAGAIN, errno.EBUSY, errno.EINTR, err
 NOT_TRANSIENT = [errno.ENOENT, errno.EACCES, errno.EBADF]
 
 
-class FlakyPort:
-    """The real pyserial port to the pty board whose next ``fail`` writes raise
-    ``OSError(code)``; ``writes`` counts the attempts."""
+class PortProxy:
+    """A real pyserial port, passed through as a driver uses it (``timeout``, ``in_waiting``,
+    ``read``, ``close``): the base of a test's port that breaks some of it."""
 
     def __init__(self, port: serial.Serial) -> None:
         self.port = port
-        self.code = errno.EIO
-        self.fail = 0
-        self.writes = 0
 
     @property
     def timeout(self) -> Any:
@@ -467,15 +464,26 @@ class FlakyPort:
     def read(self, size: int = 1) -> bytes:
         return bytes(self.port.read(size))
 
+    def close(self) -> None:
+        self.port.close()
+
+
+class FlakyPort(PortProxy):
+    """The real pyserial port to the pty board whose next ``fail`` writes raise
+    ``OSError(code)``; ``writes`` counts the attempts."""
+
+    def __init__(self, port: serial.Serial) -> None:
+        super().__init__(port)
+        self.code = errno.EIO
+        self.fail = 0
+        self.writes = 0
+
     def write(self, data: bytes) -> int | None:
         self.writes += 1
         if self.fail > 0:
             self.fail -= 1
             raise OSError(self.code, os.strerror(self.code))
         return self.port.write(data)
-
-    def close(self) -> None:
-        self.port.close()
 
 
 def flaky_link(pb: PtyBoard) -> tuple[SerialMotorLink, FlakyPort]:
