@@ -15,9 +15,7 @@ and control servers on a loop thread (tests.test_server.LoopThread), ports 44100
 
 from __future__ import annotations
 
-import base64
 import json
-import os
 import select
 import socket
 import ssl
@@ -31,6 +29,7 @@ import pytest
 
 from tests.conftest import self_signed_cert
 from tests.test_lockout import lt
+from tests.test_network_round6 import ws_upgrade
 from tests.test_server import TOKEN, LoopThread, RecordingBackend
 from x6wd.app.console import server as console_server
 from x6wd.app.console.server import CONNECTION_SLACK, STATIC_DIR, ConsoleServer
@@ -213,20 +212,7 @@ def test_over_tls_the_connections_the_cap_closes_are_gone_at_once(
 
 # -- 5. the size of a message before auth -------------------------------------------------------
 def ws_connect(port: int) -> socket.socket:
-    s = connect(port)
-    key = base64.b64encode(os.urandom(16)).decode()
-    s.sendall(
-        f"GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
-        f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
-        .encode()
-    )  # fmt: skip
-    head = b""
-    while b"\r\n\r\n" not in head:
-        chunk = s.recv(1)
-        assert chunk, "closed during the handshake"
-        head += chunk
-    assert head.startswith(b"HTTP/1.1 101"), head
-    return s
+    return ws_upgrade(connect(port), port)
 
 
 def ws_send(s: socket.socket, obj: dict[str, Any]) -> None:

@@ -324,6 +324,12 @@ def ws_connect(port: int) -> socket.socket:
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     s.settimeout(5)
     s.connect(("127.0.0.1", port))
+    return ws_upgrade(s, port)
+
+
+def ws_upgrade(s: socket.socket, port: int) -> socket.socket:
+    """``s``, connected to the console on ``port``, upgraded to a WebSocket on /ws (the
+    handshake's reply read, nothing more)."""
     key = base64.b64encode(os.urandom(16)).decode()
     s.sendall(
         f"GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
