@@ -30,6 +30,7 @@ from typing import Any
 import pytest
 
 from tests.conftest import ROOT
+from tests.test_daemon import wait_for
 from x6wd.app.client import RemoteClient
 from x6wd.app.daemon import _NetThread, _RecorderWorker
 from x6wd.app.logview import load
@@ -74,16 +75,6 @@ def tmpfs(where: Path, options: str) -> Iterator[Path]:
 
 def remount(where: Path, mode: str) -> None:
     subprocess.run(["mount", "-o", f"remount,{mode}", str(where)], check=True)
-
-
-def wait_for(pred: Any, timeout_s: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 class Proc:
