@@ -410,6 +410,7 @@ class _Client(LineClient):
     watch_flags: dict[str, bool] = field(default_factory=dict)  # scaled, timing, ... echoed
     watch_device: str = ""  # the one device asked for ("" all); another path gets nothing
     watch_path: str = ""  # the GPS's path when it asked (the port's one device)
+    att_due_s: float = -math.inf  # when its next ATT may go (clock, s; attitude_rate_hz)
 
     @property
     def streams_json(self) -> bool:
@@ -445,6 +446,7 @@ class GpsdServer(LineServer[_Client]):
         queue_len: int = 64,
         idle_timeout_s: float = 60.0,
         slow_client_s: float = 10.0,
+        attitude_rate_hz: float = 2.0,
         max_pending: int = DEFAULT_MAX_PENDING,
         pending_timeout_s: float = DEFAULT_PENDING_TIMEOUT_S,
         fix_stale_s: float = SafetyConfig.fix_stale_s,
@@ -456,7 +458,8 @@ class GpsdServer(LineServer[_Client]):
         ``max_clients``: sessions (clients that sent a valid command); ``max_pending``:
         connections that have not yet; deadlines in seconds of ``clock`` (monotonic; tests
         inject one). ``fix_stale_s``: a TPV/SKY older than this (s) is not handed to POLL or
-        a new watcher (the daemon passes ``[safety] fix_stale_s``)."""
+        a new watcher (the daemon passes ``[safety] fix_stale_s``). ``attitude_rate_hz``: ATT
+        to each JSON watcher at most this often, the newest reading (0: none)."""
         super().__init__(
             port,
             max_clients=max_clients,
@@ -474,12 +477,12 @@ class GpsdServer(LineServer[_Client]):
         self.activated: datetime | None = None
         self.declination_deg = declination_deg
         self.queue_len = queue_len
+        self.attitude_rate_hz = float(attitude_rate_hz)
         self.fix_stale_s = fix_stale_s
         self.gps_up = True  # the GPS link is open (set_gps_state)
         self._last_tpv: dict[str, Any] | None = None
         self._last_sky: dict[str, Any] | None = None
         self._tpv_t_s = self._sky_t_s = -math.inf  # when they were published (clock, s)
-        self._last_att: dict[str, Any] | None = None
 
     @classmethod
     def from_config(
@@ -506,6 +509,7 @@ class GpsdServer(LineServer[_Client]):
             queue_len=cfg.queue_len,
             idle_timeout_s=cfg.idle_timeout_s,
             slow_client_s=cfg.slow_client_s,
+            attitude_rate_hz=cfg.attitude_rate_hz,
             fix_stale_s=fix_stale_s,
         )
 
@@ -584,10 +588,26 @@ class GpsdServer(LineServer[_Client]):
         self.declination_deg = float(declination_deg)
 
     def publish_attitude(self, att: Attitude) -> None:
-        """Send an ATT (compass) to JSON watchers."""
-        obj = att_obj(att, self.device_path, self.declination_deg)
-        self._last_att = obj
-        self._fanout(dumps(obj), nmea=False)
+        """Send an ATT (compass) to each JSON watcher whose next ATT is due: at most
+        ``attitude_rate_hz`` a second (0: never), always this reading, the newest. Every
+        reading of a 20 Hz compass would be ~90 % of the stream, and gpsd clients cannot
+        turn ATT off: one handling ~10 reports a second would fall ever further behind."""
+        if self.attitude_rate_hz <= 0.0:
+            return
+        period_s = 1.0 / self.attitude_rate_hz
+        now = self._clock()
+        line: bytes | None = None
+        for c in self._sessions:
+            if c.closed or not c.streams_json or now < c.att_due_s:
+                continue
+            # on the period's grid while readings come often enough; after a gap (a new
+            # watcher, a silent compass) one period from now: never a burst to catch up
+            late = now - c.att_due_s >= period_s
+            c.att_due_s = now + period_s if late else c.att_due_s + period_s
+            if line is None:
+                line = dumps(att_obj(att, self.device_path, self.declination_deg))
+            if c.put(line, self.queue_len):
+                self.dropped_total += 1
 
     def publish_nmea(self, sentence: str) -> None:
         """Pass one raw NMEA sentence (without line end) to NMEA watchers."""

@@ -388,6 +388,11 @@ class GpsdConfig:
     idle_timeout_s: float = field(default=60.0, metadata=_rng(1, 86400))
     # a watcher whose socket has not drained for this long (it never reads) is closed
     slow_client_s: float = field(default=10.0, metadata=_rng(0.1, 3600))
+    # ATT (the compass) to each JSON watcher at most this often (Hz), the newest reading each
+    # time; 0: no ATT. The compass's every reading (compass.rate_hz, 20) would be ~90 % of the
+    # stream and leave a client handling ~10 reports/s ever further behind (gpsd clients
+    # cannot turn ATT off); the default is about the GPS's rate. >= compass.rate_hz: all.
+    attitude_rate_hz: float = field(default=2.0, metadata=_rng(0, 75))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,145 @@
+"""Round 12 audit of the gpsd port against gpsd 3.22 and Debian's clients: the compass's ATT
+flood that left a python3-gps client further behind every second, satellites without a signal
+shown as -999, and requests without a newline followed by junk or a C client's NUL."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+from datetime import datetime
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import require_program
+from tests.test_gpsd_port import FIX, Peer, Served
+from x6wd.app.gpsd import GpsdServer
+from x6wd.core.config import ConfigError, GpsdConfig, load, loads
+from x6wd.core.records import Attitude
+
+ROOT = Path(__file__).resolve().parents[1]
+CTL_PORT, GPSD_PORT = 47401, 47402  # this round's range: 47400-47499
+WATCH_JSON = b'?WATCH={"enable":true,"json":true};\n'
+
+SLOW_CLIENT = r"""
+import json, sys, time
+import gps
+port, per_report_s, run_s = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+s = gps.gps(host="127.0.0.1", port=port, mode=gps.WATCH_ENABLE | gps.WATCH_JSON)
+t0 = time.monotonic(); classes = {}; tpv = []
+for r in s:
+    classes[r["class"]] = classes.get(r["class"], 0) + 1
+    if r["class"] == "TPV" and "time" in r:
+        tpv.append(r["time"])
+    time.sleep(per_report_s)  # the audit's client: a database insert per report
+    if time.monotonic() - t0 > run_s:
+        break
+print(json.dumps({"classes": classes, "tpv": tpv}))
+"""
+
+
+def _epoch(t: str) -> float:
+    return datetime.fromisoformat(t.replace("Z", "+00:00")).timestamp()
+
+
+# -- 1. ATT flood -------------------------------------------------------------------------
+
+
+def test_a_python3_gps_client_handling_10_reports_a_second_keeps_up_with_hil_toml(
+    tmp_path: Path,
+) -> None:
+    # audit (repro_att_flood.sh): the 20 Hz compass's every reading went to every watcher
+    # (~91 % of the stream); this client, 0.1 s per report, handled 0.8 TPV/s of the 2 Hz
+    # receiver's 2 and fell 35 s behind in 60 s. Now ATT comes at [gpsd] attitude_rate_hz.
+    python3 = require_program("/usr/bin/python3")
+    from tests.test_daemon import Running
+    from x6wd.app.daemon import Daemon
+
+    cfg = load(ROOT / "config" / "hil.toml")  # the shipped hardware-in-the-loop config
+    cfg = dataclasses.replace(
+        cfg,
+        server=dataclasses.replace(cfg.server, port=CTL_PORT),
+        gpsd=dataclasses.replace(cfg.gpsd, port=GPSD_PORT),
+        console=dataclasses.replace(cfg.console, enabled=False),
+        recorder=dataclasses.replace(cfg.recorder, dir=str(tmp_path)),
+    )
+    assert cfg.compass.rate_hz == 20.0
+    running = Running(Daemon(cfg), ready_s=30.0)
+    try:
+        fast = Peer(GPSD_PORT, WATCH_JSON)
+        got = fast.through("TPV", 0.0, timeout_s=30.0)  # the receiver is up
+        run_s = 12.0
+        slow = subprocess.Popen(
+            [python3, "-c", SLOW_CLIENT, str(GPSD_PORT), "0.1", str(run_s)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        got = fast.within(run_s + 1.0)
+        out, err = slow.communicate(timeout=60)
+        assert slow.returncode == 0, err
+        fast.close()
+    finally:
+        running.stop()
+        if running.daemon.devices is not None:
+            running.daemon.devices.close()
+    handled = json.loads(out)
+    fast_tpv = [o["time"] for o in got if o["class"] == "TPV" and "time" in o]
+    n_att = sum(o["class"] == "ATT" for o in got)
+    assert len(fast_tpv) >= 10, got[-5:]  # 2 Hz for 13 s
+    # every fix published while the slow client ran reached it (the bug: about 40 %)
+    first = _epoch(handled["tpv"][0])
+    published = [t for t in fast_tpv if _epoch(t) >= first]
+    assert len(handled["tpv"]) >= 0.75 * len(published), (handled, len(published))
+    # the stream's ATT: about attitude_rate_hz (2 Hz), not the compass's 20 Hz
+    assert 1 <= n_att <= 3.0 * (run_s + 1.0), n_att
+    assert handled["classes"].get("ATT", 0) >= 1
+
+
+def test_att_goes_out_at_the_configured_rate_always_the_newest_reading() -> None:
+    now = [100.0]
+    served = Served(clock=lambda: now[0], attitude_rate_hz=2.0)
+    try:
+        peer = Peer(served.srv.port, WATCH_JSON)
+        peer.through("WATCH", 0.2)
+        for i in range(40):  # 2.5 s of a 16 Hz compass (exact steps), heading i degrees
+            reading = Attitude(t_s=i, bearing_deg=float(i), pitch_deg=0.0, roll_deg=0.0)
+            served.call(served.srv.publish_attitude, reading)
+            now[0] += 0.0625
+        att = [o for o in peer.within(0.5) if o["class"] == "ATT"]
+        # the first reading at once, then one per 0.5 s, each the reading of that moment
+        assert [a["mheading"] for a in att] == [0.0, 8.0, 16.0, 24.0, 32.0]
+        peer.close()
+    finally:
+        served.close()
+
+
+def test_attitude_rate_zero_sends_no_att() -> None:
+    served = Served(attitude_rate_hz=0.0)
+    try:
+        peer = Peer(served.srv.port, WATCH_JSON)
+        peer.through("WATCH", 0.2)
+        for i in range(5):
+            reading = Attitude(t_s=i, bearing_deg=1.0, pitch_deg=0.0, roll_deg=0.0)
+            served.call(served.srv.publish_attitude, reading)
+            served.call(served.srv.publish_fix, FIX)
+        got = peer.within(0.5)
+        assert [o["class"] for o in got].count("TPV") == 5
+        assert not [o for o in got if o["class"] == "ATT"]
+        peer.close()
+    finally:
+        served.close()
+
+
+def test_attitude_rate_hz_key_shipped_configs_and_range() -> None:
+    for name in ("x6wd.toml", "hil.toml"):
+        cfg = load(ROOT / "config" / name)
+        # about the GPS's rate, far below the 20 Hz compass: a client handling ~10
+        # reports a second keeps up (TPV + SKY + ATT per epoch)
+        assert 0 < cfg.gpsd.attitude_rate_hz <= 2.0, name
+    assert "attitude_rate_hz" in (ROOT / "config" / "x6wd.toml").read_text()
+    srv = GpsdServer.from_config(GpsdConfig(port=0, attitude_rate_hz=0.5), "/dev/ttyS0")
+    assert srv.attitude_rate_hz == 0.5
+    assert loads("[gpsd]\nattitude_rate_hz = 0\n").gpsd.attitude_rate_hz == 0.0
+    for bad in ("-1", "100"):
+        with pytest.raises(ConfigError, match=r"gpsd\.attitude_rate_hz"):
+            loads(f"[gpsd]\nattitude_rate_hz = {bad}\n")
