@@ -146,6 +146,13 @@ SLIP_MIN_TRAVEL = 4.0
 LAUNCH_STILL_M = 2.0
 """Wheel travel (m) under which a robot that jumped is still at its launch point: the
 launch point moves with the jump (:meth:`Controller._relaunch_after_jump`)."""
+PIVOT_WHEELS_TURN_DEG = 90.0
+"""A pivot the stuck check catches (the compass under ``STUCK_TURN_DEG`` round in
+``stuck_s``) is named a compass that does not follow the wheels when the wheels' counts
+turned the body this far (deg, their differential travel over ``[odometry] track_m``) in
+that time: with the effective track the counts and a healthy compass agree, with the
+geometric one (1.2-2x narrower) the counts read up to twice the turn, so 90 deg counted is
+45 deg or more of the body's, past the 30 deg a compass that followed would have shown."""
 
 SENSORS = ("gps", "compass")
 """The sensors :meth:`Controller.sensor_health` knows, in the order their holds are named."""
@@ -238,10 +245,13 @@ class Controller:
         self._hold_since: float | None = None  # a sensor hold began (s)
         self._jump_m: float | None = None  # the source's position jump since the last check (m)
         self._launch_wheel_m = 0.0  # the wheels' travel when the launch point was taken (m)
+        # a fix the source took after the start agreed with the launch point's estimate:
+        # until then a jump of the estimate moves the launch point with it (_watch_launch)
+        self._launch_confirmed = False
         # the stuck failsafe's last progress: (wheel m, t_s) and (lat, lon, bearing, t_s,
-        # wheel m)
+        # wheel m, wheel turn rad, receiver m)
         self._stuck_wheels: tuple[float, float] | None = None
-        self._stuck_body: tuple[float, float, float, float, float] | None = None
+        self._stuck_body: tuple[float, float, float, float, float, float, float] | None = None
         self._stuck_forward = False
         # since the wheels' clock last restarted: the compass's net turn (deg), its last
         # bearing, and the first fresh fix (lat, lon): the encoders' evidence
@@ -260,6 +270,11 @@ class Controller:
         self._enc_watch = EncoderWatch(self._odo_cfg.track_m)
         self._encoder_fault = ""
         self._wheel_m = 0.0  # |wheel travel| summed over both sides / 2 (m)
+        self._wheel_turn_rad = 0.0  # the two sides' differential travel / track (rad, cw +)
+        # the receiver's own speed (a fix's speed_mps) integrated over the time between
+        # usable fixes (m), and the latest usable fix's time (s): a second witness of motion
+        self._rx_m = 0.0
+        self._rx_t: float | None = None
         self._wheel_at_fix = 0.0  # _wheel_m at the latest valid fix
         # commanded forward travel (m) summed since the first input, and its value at the
         # latest valid fix: see DEAD_RECKONING_COMMANDED
@@ -349,8 +364,25 @@ class Controller:
         self._fix = fix
         self._fix_ok = ok
         if ok:
+            # a launch point no fix the source took has confirmed yet: a reset may show that
+            # the estimate it came from was wrong (_watch_launch)
+            watch = self._launch is not None and not self._launch_confirmed
+            before = self._source.position(t) if watch else None
+            refused = self._source.extra().get("ekf_gps_rejected") if before is not None else None
             self._source.on_fix(fix)
             jump_m = self._source.take_jump_m()
+            if before is not None:
+                self._watch_launch(t, before, refused, jump_m)
+            speed = fix.speed_mps
+            if (
+                self._rx_t is not None
+                and speed is not None
+                and math.isfinite(speed)
+                and speed >= 0.0
+                and 0.0 < t - self._rx_t <= self._safety.fix_stale_s
+            ):
+                self._rx_m += speed * (t - self._rx_t)
+            self._rx_t = t if self._rx_t is None else max(self._rx_t, t)
             if jump_m is not None and self._mode in (Mode.RUNNING, Mode.PAUSED):
                 # for the failsafe check of the mission running, or resumed: a jump while
                 # paused (a GPS back after the sensor timeout paused it) must not be driven on
@@ -397,6 +429,7 @@ class Controller:
                 rec.right_counts - prev.right_counts,
             )
             self._wheel_m += 0.5 * (abs(dl) + abs(dr))
+            self._wheel_turn_rad += (dl - dr) / self._odo_cfg.track_m
         att = self._att
         fresh = att is not None and self._att_ok and abs(t - att.t_s) <= ODOMETRY_FRESH_S
         if prev is not None:
@@ -529,6 +562,7 @@ class Controller:
             pos = (self._fix.lat_deg, self._fix.lon_deg)  # type: ignore[assignment]
         self._launch = pos
         self._launch_wheel_m = self._wheel_m
+        self._launch_confirmed = False
         self._set_mode(Mode.RUNNING, "start", t, changes)
         return self._step(t, "start", changes)
 
@@ -722,11 +756,40 @@ class Controller:
                 return fired
         return self._course_check(now)
 
+    def _watch_launch(
+        self,
+        t_s: float,
+        before: tuple[float, float],
+        refused: object,
+        jump_m: float | None,
+    ) -> None:
+        """A usable fix at ``t_s`` (s) went to the source while the launch point was not yet
+        confirmed; ``before``: the source's position just before it, ``refused``: its count of
+        refused fixes then. Taken (not refused, no reset): the estimate agrees with the fixes
+        after the start, so the launch point stands, and a later jump keeps it (the robot
+        started where it started). A reset instead: every fix since the start was refused,
+        so the launch point came from the estimate the reset corrected (a robot carried
+        while idle and started before the fixes agreed, a first fix 80 m off that the EKF
+        started on), and it moves by the reset's offset, however far the robot drove since
+        (at 1 Hz the EKF takes the new place 6-8 s later: a started robot has driven off)."""
+        if jump_m is None:
+            if self._source.extra().get("ekf_gps_rejected") == refused:
+                self._launch_confirmed = True  # taken (raw and Constellation: every fix)
+            return
+        after, launch = self._source.position(t_s), self._launch
+        if after is None or launch is None:
+            return
+        self._launch = (launch[0] + after[0] - before[0], launch[1] + after[1] - before[1])
+        if self._returning and self._mission_nav is not None:
+            self._navigator.set_waypoints([self._launch])  # a return under way heads there
+
     def _relaunch_after_jump(self, now: float) -> None:
         """A jump before the robot drove from its launch point: that point was the position
         the jump corrected (a robot carried while the daemon idled, started before the
         fixes agreed), so the launch point moves with it; a return would drive to the old
-        one. Without encoders nothing says it has not moved: the point stays."""
+        one. Without encoders nothing says it has not moved: the point stays. (A launch point
+        no fix confirmed moved with the reset already, however far the robot drove:
+        :meth:`_watch_launch`; this also moves a confirmed one while the wheels stood.)"""
         if self._launch is None or self._odo_prev is None:
             return
         if self._wheel_m - self._launch_wheel_m < LAUNCH_STILL_M:
@@ -813,7 +876,15 @@ class Controller:
             elif abs(geo.wrap_deg(att.bearing_deg - body[2])) >= STUCK_TURN_DEG:
                 moved = "the compass"
             if body is None or stale or moved:
-                body = (fix.lat_deg, fix.lon_deg, att.bearing_deg, now, self._wheel_m)
+                body = (
+                    fix.lat_deg,
+                    fix.lon_deg,
+                    att.bearing_deg,
+                    now,
+                    self._wheel_m,
+                    self._wheel_turn_rad,
+                    self._rx_m,
+                )
                 self._stuck_body = body
                 self._stuck_forward = False
         # did it try to drive forward since the body last moved (else it only pivoted)?
@@ -846,9 +917,56 @@ class Controller:
                 )
             what = "the wheels"
         else:
+            assert body is not None  # the body's clock ran stuck_s (the wheels' did not)
+            named = self._sensor_not_following(body, still_body_s)
+            if named is not None:
+                return named
             what = "the GPS" if self._stuck_forward else "the compass"
         return (
             f"stuck ({what}: no motion in {fs.stuck_s:g} s of driving)",
+            fs.stuck_action,
+        )
+
+    def _sensor_not_following(
+        self, body: tuple[float, ...], still_s: float
+    ) -> tuple[str, str] | None:
+        """The body's test fired after ``still_s`` (s) since ``body`` while the wheels
+        counted: the reason when a witness says the body did move and the sensor that judged
+        it did not follow, else None (slipping: "stuck (the GPS ...)" / "(the compass ...)").
+
+        Driving forward: the receiver's own speed (RMC, Doppler; independent of its
+        position) integrated over the time adds up to ``SLIP_MIN_TRAVEL`` x ``stuck_min_m``:
+        the position froze (an outside audit: fixes valid, time and a 2.4 m/s speed
+        advancing, the position frozen, read "no motion" while the wheels counted 20 m). A
+        slipping robot's receiver reports about 0 m/s. Always a pause: a return would steer
+        home by the same position. Pivoting: the wheels' differential counts turned
+        ``PIVOT_WHEELS_TURN_DEG`` or more while the compass stayed within
+        ``STUCK_TURN_DEG`` (a compass frozen in a pivot: 2.5 turns read "no motion"), named
+        as :meth:`_pivot_check` names a compass that does not follow the wheels."""
+        fs, fix, att = self._failsafe, self._fix, self._att
+        if self._stuck_forward:
+            rx_m = self._rx_m - body[6]
+            if fix is None or still_s <= 0 or rx_m < SLIP_MIN_TRAVEL * fs.stuck_min_m:
+                return None
+            wheels = (
+                f"the wheels counted {self._wheel_m - body[4]:.0f} m and "
+                if self._odo_prev is not None
+                else ""
+            )
+            return (
+                f"GPS position frozen: the fixes moved {self._body_moved_m(body, fix):.1f} m"
+                f" in {still_s:.0f} s of driving while {wheels}the receiver reported"
+                f" {rx_m / still_s:.1f} m/s",
+                "hold",
+            )
+        turn_deg = abs(math.degrees(self._wheel_turn_rad - body[5]))
+        if self._odo_prev is None or att is None or turn_deg < PIVOT_WHEELS_TURN_DEG:
+            return None
+        compass_deg = abs(geo.wrap_deg(att.bearing_deg - body[2]))
+        return (
+            f"stuck (the compass: turned {compass_deg:.0f}° in {still_s:.0f} s of pivoting"
+            f" while the wheels' counts turned {turn_deg:.0f}°; the compass does not follow"
+            " the wheels)",
             fs.stuck_action,
         )
 

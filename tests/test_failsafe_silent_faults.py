@@ -1,0 +1,196 @@
+"""Silent sensor faults (well-formed, wrong data) against the controller's failsafes, sans-IO:
+an outside audit's findings (a launch point taken from a position a jump then corrected; a
+compass frozen in a pivot and a GPS position frozen while driving, both reported "no
+motion"). docs/navigation.md, "Failsafes"."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from tests.test_controller import LTP, SAFETY, at, att, fix
+from tests.test_failsafe_controller import COUNTS_PER_M, FS, pivoting, started
+from x6wd.core.config import NavigationConfig
+from x6wd.core.records import Mode, WheelOdometry
+from x6wd.nav.controller import Controller
+
+# ------------------------------------------------------------------ launch point and jumps
+
+
+def drive(
+    c: Controller,
+    t0_s: float,
+    t1_s: float,
+    fix_at: tuple[float, float] | None,
+    v_mps: float = 1.0,
+    t_start_s: float | None = None,
+) -> float | None:
+    """10 Hz encoders (``v_mps`` north from ``t_start_s``, still before it or when None) and
+    compass (north); 1 Hz fixes at ``fix_at`` (east, north m) plus the distance driven.
+    The time the mission left RUNNING, else None."""
+    k0, k1 = round(10 * t0_s), round(10 * t1_s)
+    for k in range(k0 + 1, k1 + 1):
+        t = 0.1 * k
+        driven = 0.0 if t_start_s is None else max(0.0, v_mps * (t - t_start_s))
+        counts = round(driven * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0 and fix_at is not None:
+            c.on_fix(fix(t, fix_at[0], fix_at[1] + driven))
+        if c.mode == Mode.PAUSED:
+            return t
+    return None
+
+
+def east_north_m(latlon: tuple[float, float] | None) -> tuple[float, float]:
+    assert latlon is not None
+    e, n = LTP.to_xy(*latlon)
+    return float(e), float(n)
+
+
+def test_a_robot_carried_while_idle_that_drives_off_before_the_jump_moves_its_launch() -> None:
+    """The audit: carried 100 m east while idle, started before the fixes agreed, and the
+    mission drove on (1 m/s: 2 m in 2 s, the EKF takes the jump 6-8 s later). The launch
+    point came from the estimate the jump corrected; it moves with the jump, although the
+    wheels drove over 2 m before it."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    drive(c, -0.1, 2.0, (0.0, 0.0))
+    c.load_mission([at(100.0, 500.0)], 2.0)
+    drive(c, 2.0, 2.5, (100.0, 0.0))  # carried: the fixes now 100 m east, the wheels still
+    c.start(2.5)
+    assert east_north_m(c.launch_point) == pytest.approx((0.0, 0.0), abs=0.5)
+    t_paused = drive(c, 2.5, 20.0, (100.0, 0.0), t_start_s=2.5)
+    assert t_paused is not None and c.mode == Mode.PAUSED
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 100 m: ")
+    e, n = east_north_m(c.launch_point)
+    assert (e, n) == pytest.approx((100.0, 0.0), abs=1.5), (e, n, t_paused)
+    # the return heads for where the robot started, not for the old position 100 m west
+    c.return_home(t_paused + 0.5)
+    assert c.navigator.waypoints == (c.launch_point,)
+
+
+def test_a_return_under_way_heads_for_the_moved_launch_point() -> None:
+    """As above, but the operator sent it home before the reset: the return under way (and
+    its resume after the jump's pause) heads for the moved launch point."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    drive(c, -0.1, 2.0, (0.0, 0.0))
+    c.load_mission([at(100.0, 500.0)], 2.0)
+    drive(c, 2.0, 2.5, (100.0, 0.0))
+    c.start(2.5)
+    drive(c, 2.5, 4.0, (100.0, 0.0), t_start_s=2.5)
+    c.return_home(4.0)
+    assert c.navigator.waypoints == (c.launch_point,)
+    t_paused = drive(c, 4.0, 20.0, (100.0, 0.0), t_start_s=2.5)
+    assert t_paused is not None and c.returning
+    assert east_north_m(c.launch_point) == pytest.approx((100.0, 0.0), abs=1.5)
+    c.resume(t_paused + 0.5)
+    assert c.navigator.waypoints == (c.launch_point,)
+
+
+def test_a_first_fix_80_m_off_moves_the_launch_point_with_the_jump() -> None:
+    """The audit's first fix was an 80 m outlier: the EKF started on it, the launch point
+    was taken there, the robot drove off, and after 8 refused fixes the EKF moved to the
+    truth. A `return` drove 83 m north to a place the robot never was; the launch point now
+    moves with the jump."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    c.on_odometry(WheelOdometry(0.0, 0, 0, 0))
+    c.on_fix(fix(0.0, 0.0, 80.0))
+    drive(c, 0.0, 0.5, None)  # the encoders (still) and the compass; no fix yet
+    c.load_mission([at(0.0, 500.0)], 0.5)
+    c.start(0.5)
+    assert east_north_m(c.launch_point) == pytest.approx((0.0, 80.0), abs=0.5)
+    t_paused = drive(c, 0.5, 20.0, (0.0, 0.0), t_start_s=0.5)
+    assert t_paused is not None
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 80 m: ")
+    e, n = east_north_m(c.launch_point)
+    assert (e, n) == pytest.approx((0.0, 0.0), abs=1.5), (e, n, t_paused)
+
+
+@pytest.mark.parametrize("drive_s", [3.0, 10.0])
+def test_a_jump_after_a_correct_launch_keeps_the_launch_point(drive_s: float) -> None:
+    """The opposite case: the launch point agreed with the fixes after the start (the EKF
+    took them) and the robot drove off; then the fixes jump 60 m east (a receiver back
+    somewhere else). The robot started where it started: the launch point stays."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    drive(c, -0.1, 2.0, (0.0, 0.0))
+    c.load_mission([at(0.0, 500.0)], 2.0)
+    c.start(2.0)
+    assert drive(c, 2.0, 2.0 + drive_s, (0.0, 0.0), t_start_s=2.0) is None
+    t_paused = drive(c, 2.0 + drive_s, 30.0, (60.0, 0.0), t_start_s=2.0)
+    assert t_paused is not None
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 60 m: ")
+    assert east_north_m(c.launch_point) == pytest.approx((0.0, 0.0), abs=0.5)
+
+
+# ------------------------------------------------------------------ a compass frozen in a pivot
+
+
+def test_a_frozen_compass_in_a_pivot_is_named_as_not_following_the_wheels() -> None:
+    """The audit: the compass froze as the robot pivoted at a waypoint; it spun ~2.5 turns
+    in 10 s (the encoders counted it) and paused "stuck (the compass: no motion ...)". The
+    reason now says the compass did not follow the wheels' turn; the pause stays."""
+    c = pivoting()  # target east, facing north: a right pivot (left forward, right back)
+    t = 0.0
+    for k in range(1, 200):
+        t = 0.1 * k
+        counts = round(0.1 * t * COUNTS_PER_M)  # 0.1 m/s each side: 46.8 deg/s counted
+        c.on_odometry(WheelOdometry(t, counts, -counts, k))
+        c.on_attitude(att(t, 0.0))  # frozen
+        if k % 10 == 0:
+            c.on_fix(fix(t))
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    why = c.telemetry.extra["failsafe"]
+    assert "no motion" not in why, why
+    assert why.startswith("stuck (the compass: turned 0° in 10 s of pivoting while the"), why
+    assert "the compass does not follow the wheels" in why, why
+    turned = float(why.split("wheels' counts turned ")[1].split("°")[0])
+    assert 440.0 <= turned <= 490.0, why  # 0.2 m/s apart over the 0.245 m track, 10 s
+
+
+# ------------------------------------------------------------------ a GPS position frozen
+
+
+def feed_speed(c: Controller, t_s: float, counts: int, speed_mps: float | None) -> None:
+    """A compass sample north, a fix at the origin carrying the receiver's ``speed_mps``,
+    the encoder counts."""
+    c.on_attitude(att(t_s))
+    c.on_fix(replace(fix(t_s), speed_mps=speed_mps))
+    c.on_odometry(WheelOdometry(t_s, counts, counts, 0))
+
+
+@pytest.mark.parametrize("action", ["hold", "return"])
+def test_a_frozen_gps_position_with_the_receiver_reporting_speed_is_a_gps_fault(
+    action: str,
+) -> None:
+    """The audit: the fix stayed valid, its time and RMC speed advancing, its position
+    frozen; the wheels counted 20 m in 10 s and the receiver said 2.4 m/s, yet the pause
+    read "stuck (the GPS: no motion ...)". Two witnesses of motion against one: the reason
+    names the GPS. Always a pause: a return would steer home by the frozen position."""
+    c = started(replace(FS, stuck_action=action))
+    k = 0
+    for k in range(1, 20):
+        feed_speed(c, float(k), round(2.3 * k * COUNTS_PER_M), 2.4)
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED and c.command.is_stop and not c.returning
+    why = c.telemetry.extra["failsafe"]
+    assert why.startswith("GPS position frozen: the fixes moved 0.0 m in 10 s of driving"), why
+    wheels_m = float(why.split("the wheels counted ")[1].split(" m")[0])
+    assert 20.0 <= wheels_m <= 24.0, why  # 2.3 m/s for 10 s (the last count comes after)
+    assert why.endswith("and the receiver reported 2.4 m/s"), why
+    assert "stuck" not in why and "no motion" not in why, why
+
+
+def test_slipping_wheels_with_the_receiver_at_rest_are_still_stuck() -> None:
+    """The receiver's own speed near zero agrees with the fixes: the wheels slip, the robot
+    is stuck, named as before."""
+    c = started()
+    for k in range(1, 20):
+        feed_speed(c, float(k), round(2.3 * k * COUNTS_PER_M), 0.05)
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED
+    assert c.telemetry.extra["failsafe"] == "stuck (the GPS: no motion in 10 s of driving)"
