@@ -7,16 +7,16 @@ from __future__ import annotations
 import dataclasses
 import json
 import subprocess
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
 
 from tests.conftest import require_program
-from tests.test_gpsd_port import FIX, Peer, Served
+from tests.test_gpsd_port import FIX, SKY, Peer, Published, Served
 from x6wd.app.gpsd import GpsdServer
 from x6wd.core.config import ConfigError, GpsdConfig, load, loads
-from x6wd.core.records import Attitude
+from x6wd.core.records import Attitude, GpsSky, SatInfo
 
 ROOT = Path(__file__).resolve().parents[1]
 CTL_PORT, GPSD_PORT = 47401, 47402  # this round's range: 47400-47499
@@ -143,3 +143,47 @@ def test_attitude_rate_hz_key_shipped_configs_and_range() -> None:
     for bad in ("-1", "100"):
         with pytest.raises(ConfigError, match=r"gpsd\.attitude_rate_hz"):
             loads(f"[gpsd]\nattitude_rate_hz = {bad}\n")
+
+
+# -- 2. ss of a satellite without a signal --------------------------------------------------
+
+NO_SIGNAL_SKY = GpsSky(
+    t_s=1.0,
+    satellites=(SatInfo(5, 41.0, 120.0, 38.0, True), SatInfo(12, 7.0, 300.0, None, False)),
+    pdop=2.1, hdop=1.1, vdop=1.8, utc=datetime(2026, 12, 6, 7, 0, 0, tzinfo=UTC),
+)  # fmt: skip
+
+
+def test_a_satellite_without_a_signal_has_ss_zero_for_python3_gps_and_gpscsv() -> None:
+    # audit (repro_ss.sh): no "ss" field, so python3-gps and gpscsv -c SAT showed -999;
+    # gpsd sends "ss":0.0
+    python3 = require_program("/usr/bin/python3")
+    gpscsv = require_program("gpscsv")
+    p = Published()
+    try:
+        script = r"""
+import json, sys
+import gps
+s = gps.gps(host="127.0.0.1", port=sys.argv[1], mode=gps.WATCH_ENABLE | gps.WATCH_JSON)
+for _ in range(200):
+    if s.next()["class"] == "SKY":
+        print(json.dumps([[sat.PRN, sat.ss] for sat in s.satellites]))
+        break
+"""
+        out = subprocess.run(
+            [python3, "-c", script, str(p.srv.port)],
+            capture_output=True, text=True, timeout=20, check=True,
+        )  # fmt: skip
+        assert json.loads(out.stdout) == [[5, 38.0], [12, 0.0]]
+        csv = subprocess.run(
+            [gpscsv, "-c", "SAT", "-n", "4", f"127.0.0.1:{p.srv.port}"],
+            capture_output=True, text=True, timeout=20, check=True,
+        ).stdout  # fmt: skip
+        rows = [r.split(",") for r in csv.splitlines()]
+        header, data = rows[0], rows[1:]
+        assert "ss" in header and data, csv
+        ss = {int(r[header.index("PRN")]): float(r[header.index("ss")]) for r in data}
+        assert ss == {5: 38.0, 12: 0.0}, csv
+    finally:
+        p.close()
+    assert SKY.satellites[1].snr_dbhz is None  # the shared fixture's satellite without signal

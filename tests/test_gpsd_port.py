@@ -194,7 +194,7 @@ def test_gpspipe_watch_json(gpsd: GpsdServer) -> None:
     sky = next(o for o in objs if o["class"] == "SKY")
     assert (sky["nSat"], sky["uSat"]) == (2, 1)
     assert sky["satellites"][0] == {"PRN": 5, "used": True, "el": 41.0, "az": 120.0, "ss": 38.0}
-    assert "ss" not in sky["satellites"][1]
+    assert sky["satellites"][1]["ss"] == 0.0  # no signal: 0.0, as gpsd (round 12)
     att = next(o for o in objs if o["class"] == "ATT")
     assert att["heading"] == pytest.approx(1.0)  # 359.5 magnetic + 1.5 declination
     assert att["mheading"] == pytest.approx(359.5)

@@ -230,12 +230,16 @@ def geometry_dops(satellites: Iterable[SatInfo]) -> dict[str, float] | None:
     }  # fmt: skip
 
 
-def sky_obj(sky: GpsSky, device: str | None = None, fill_dops: bool = True) -> dict[str, Any]:
+def sky_obj(
+    sky: GpsSky, device: str | None = None, fill_dops: bool = True, zero_ss: bool = False
+) -> dict[str, Any]:
     """SKY report: DOPs, satellite counts and the satellite list (PRN, gnssid, svid, used,
-    el, az, ss; gnssid and svid omitted for a number in no known range). The receiver's
-    hdop, vdop and pdop as it reported them; with ``fill_dops`` the others (xdop, ydop, tdop,
-    gdop), and any it left out, from the used satellites' geometry (:func:`geometry_dops`),
-    as gpsd does (``x6wd decode`` writes the receiver's alone)."""
+    el, az, ss; gnssid and svid omitted for a number in no known range; a satellite without
+    a signal has no ss, or with ``zero_ss`` ss 0.0 as gpsd sends it: the port's, since
+    python3-gps and gpscsv show -999 for a missing one; ``x6wd decode`` omits it). The
+    receiver's hdop, vdop and pdop as it reported them; with ``fill_dops`` the others (xdop,
+    ydop, tdop, gdop), and any it left out, from the used satellites' geometry
+    (:func:`geometry_dops`), as gpsd does (``x6wd decode`` writes the receiver's alone)."""
     sats: list[dict[str, Any]] = []
     for s in sky.satellites:
         d: dict[str, Any] = {"PRN": s.prn, "gnssid": s.gnssid, "svid": s.svid, "used": bool(s.used)}
@@ -245,6 +249,8 @@ def sky_obj(sky: GpsSky, device: str | None = None, fill_dops: bool = True) -> d
             d["az"] = _num(s.az_deg, 1)
         if s.snr_dbhz is not None:
             d["ss"] = _num(s.snr_dbhz, 1)
+        elif zero_ss:  # no signal, as gpsd sends it (with no "ss" libgps clients show -999)
+            d["ss"] = 0.0
         sats.append({k: v for k, v in d.items() if v is not None})
     obj: dict[str, Any] = {
         "class": "SKY",
@@ -540,12 +546,13 @@ class GpsdServer(LineServer[_Client]):
             # no fix: the kept SKY's DOPs and used satellites are no longer true; an epoch
             # with a GSV/GSA sends its own SKY after this TPV, which replaces this one
             nofix = GpsSky(t_s=fix.t_s, hdop=fix.hdop, vdop=fix.vdop, pdop=fix.pdop, utc=fix.utc)
-            self._last_sky, self._sky_t_s = sky_obj(nofix, self.device_path), self._tpv_t_s
+            nofix_obj = sky_obj(nofix, self.device_path, zero_ss=True)
+            self._last_sky, self._sky_t_s = nofix_obj, self._tpv_t_s
         self._fanout(dumps(obj), nmea=False)
 
     def publish_sky(self, sky: GpsSky) -> None:
         """Send a SKY to JSON watchers and keep it for ?POLL."""
-        obj = sky_obj(sky, self.device_path)
+        obj = sky_obj(sky, self.device_path, zero_ss=True)
         self._last_sky, self._sky_t_s = obj, self._clock()
         self._fanout(dumps(obj), nmea=False)
 
