@@ -23,7 +23,7 @@ from x6wd.gap.compass import (
 from x6wd.gap.diagnose import Diagnosis, headline, report_dict, verdict_text
 from x6wd.gap.level import Calibration, closeness_text
 from x6wd.gap.null import NullModel
-from x6wd.gap.pipeline import EXPLAINED_CLOSURE
+from x6wd.gap.pipeline import EXPLAINED_CLOSURE, Outcome
 from x6wd.gap.stats import acf, allan_var, octave_taus, regular
 from x6wd.gap.validate import Validation, direction_text, own_mean
 
@@ -174,17 +174,24 @@ def merged_report(diagnosis: Diagnosis, compass: CompassDiagnosis | None) -> dic
         key=lambda e: (e["name"] not in chosen, -e["closure"]),
     )
     report["gap"]["heading"] = compass_report["gap"]
+    # the explained half with the larger closure names the verdict's effect (its first
+    # selected); a half that selected nothing is never read for a name (before round 12 an
+    # explained GPS half beside a compass half without a selection raised IndexError)
+    both: list[Outcome[Any, Any]] = [diagnosis, compass]
     found = [
-        (half.closure, half.selected[0].name) for half in (diagnosis, compass) if half.explained
+        (float(half.closure), half.selected[0].name, index)
+        for index, half in enumerate(both)
+        if half.explained and half.selected
     ]
+    best = max(found) if found else None
     report["verdict"] = {
-        "effect": max(found)[1] if found else None,
+        "effect": best[1] if best is not None else None,
         "explained": all(half.explained or not half.significant for half in (diagnosis, compass)),
     }
     halves = {"gps": headline(diagnosis), "heading": headline(compass)}
     # the headline's figures are those of the half verdict.effect names (the GPS half's when
     # neither is explained); the status sums both halves
-    named = compass if found and max(found)[1] == compass.selected[0].name else diagnosis
+    named = compass if best is not None and best[2] == 1 else diagnosis
     statuses = {h["status"] for h in halves.values()} - {"no_gap"}
     status = (
         "no_gap" if not statuses else statuses.pop() if len(statuses) == 1 else "partly_explained"
