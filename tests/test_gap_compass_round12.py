@@ -13,12 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim_backend.effects import Bias, HeadingSeries, Quantization
+from sim_backend.effects import Bias, HeadingSeries, Quantization, gauss_markov_noise
 from x6wd.gap.compass import (
     CompassOptions,
     diagnose_compass,
     drive_track,
     simulate_compass,
+    turn_rate_dps,
 )
 from x6wd.gap.diagnose import Options, diagnose
 from x6wd.gap.report import merged_report, write_report
@@ -63,3 +64,152 @@ def test_report_with_an_explained_gps_half_and_no_compass_selection(
     assert json.loads((tmp_path / "report.json").read_text())["verdict"]["effect"] == "bias"
     assert "**compass: no significant gap.**" in (tmp_path / "report.md").read_text()
 
+
+# --- recordings as x6wd sim writes them -------------------------------------------------------
+
+
+def course_over_ground(drive: HeadingSeries, seed: int) -> np.ndarray:
+    """A skid-steer robot's GPS course over ground along ``drive``: its heading plus a
+    sideslip that grows with the turn rate and a couple of degrees of course noise (what
+    a recording without a heading truth is read against)."""
+    rng = np.random.default_rng(seed)
+    t_s = np.asarray(drive.t_s, dtype=float)
+    slip = 0.1 * turn_rate_dps(drive) + gauss_markov_noise(t_s, 2.0, 3.0, rng, 1)[0]
+    return (np.asarray(drive.true_heading_deg) + slip + rng.normal(0.0, 1.0, t_s.size)) % 360.0
+
+
+def write_recording(
+    path: Path,
+    s: HeadingSeries,
+    *,
+    truth: bool = True,
+    cog: np.ndarray | None = None,
+    bearing: list[object] | None = None,
+) -> Path:
+    """An x6wd recording of ``s`` (attitude records, bearings ``bearing`` when given: any
+    JSON value, or None for a missing key), with 2 Hz fixes moving at 1.5 m/s along course
+    ``cog`` when given, and ``truth.csv`` (the exact heading) beside it when ``truth``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = []
+    for i in range(len(s)):
+        t = float(s.t_s[i])
+        data: dict[str, object] = {
+            "t_s": t,
+            "bearing_deg": float(s.heading_deg[i]),
+            "pitch_deg": float(s.pitch_deg[i]),
+            "roll_deg": float(s.roll_deg[i]),
+            "valid": True,
+        }
+        if bearing is not None:
+            if bearing[i] is None:
+                del data["bearing_deg"]
+            else:
+                data["bearing_deg"] = bearing[i]
+        lines.append(json.dumps({"t_mono": t, "type": "attitude", "data": data}))
+        if cog is not None and i % 5 == 0:
+            fix = {
+                "t_s": t,
+                "valid": True,
+                "speed_mps": 1.5,
+                "course_deg": round(float(cog[i]), 2),
+                **{"lat_deg": 51.75, "lon_deg": -1.25, "alt_m": 60.0, "sats_used": 8},
+            }
+            lines.append(json.dumps({"t_mono": t, "type": "fix", "data": fix}))
+    path.write_text("\n".join(lines) + "\n")
+    csv = path.parent / "truth.csv"
+    if truth:
+        rows = ["t_s,lat,lon,alt,heading_deg"] + [
+            f"{t:.3f},51.75,-1.25,60.0,{h:.3f}"
+            for t, h in zip(s.t_s, s.true_heading_deg, strict=True)  # type: ignore[arg-type]
+        ]
+        csv.write_text("\n".join(rows) + "\n")
+    elif csv.exists():
+        csv.unlink()
+    return path
+
+
+class Notes:
+    """What compass_diagnosis needs of the GPS diagnosis: its notes."""
+
+    def __init__(self) -> None:
+        self.notes: list[str] = []
+
+
+def cli_compass(
+    real: Path, sims: tuple[Path, ...] | list[Path] = (), scenario: str | None = None
+):
+    """The CLI's compass half (``x6wd gap``'s compass_diagnosis) on these files: (the
+    diagnosis or None, the GPS half's notes)."""
+    import argparse
+
+    from x6wd.gap.cli import compass_diagnosis
+
+    args = argparse.Namespace(real=str(real), truth_track=None, sim=[str(p) for p in sims],
+                              scenario=scenario, seeds=4, replicates=10)  # fmt: skip
+    gps = Notes()
+    out = compass_diagnosis(args, gps, np.random.default_rng(3), lambda *a: None)  # type: ignore[arg-type]
+    return out, gps.notes
+
+
+# --- 2. every baseline log is read against the heading reference the real log has ------------
+
+
+def test_baselines_are_read_against_the_real_logs_heading_reference(
+    drive: HeadingSeries, tmp_path: Path
+) -> None:
+    # The real robot: no truth.csv, so its heading truth is the course over ground. The
+    # --sim recordings have the exact heading beside them; read by it, their null lacks the
+    # course-vs-heading noise and sideslip, and the real log's differs from it (a false
+    # gap). Read by their own course over ground, as the real log is: no gap.
+    real = write_recording(
+        tmp_path / "real" / "recording.jsonl",
+        simulate_compass(drive, np.random.default_rng(1)),
+        truth=False,
+        cog=course_over_ground(drive, 50),
+    )
+    sims = [
+        write_recording(
+            tmp_path / f"sim{i}" / "recording.jsonl",
+            simulate_compass(drive, np.random.default_rng(10 + i)),
+            truth=True,
+            cog=course_over_ground(drive, 60 + i),
+        )
+        for i in range(3)
+    ]
+    compass, notes = cli_compass(real, sims)
+    assert compass is not None, notes
+    assert not compass.significant, compass.where
+    said = " ".join(compass.notes)
+    assert "course over ground" in said and "heading reference" in said
+
+    # the other way round: a real log with a heading truth, a --sim log without one is left
+    # out (read by its course it would carry noise the real log's errors do not), and said so
+    write_recording(real, simulate_compass(drive, np.random.default_rng(1)), truth=True,
+                    cog=course_over_ground(drive, 50))  # fmt: skip
+    write_recording(sims[2], simulate_compass(drive, np.random.default_rng(12)), truth=False,
+                    cog=course_over_ground(drive, 62))  # fmt: skip
+    compass, notes = cli_compass(real, sims)
+    assert compass is not None, notes
+    assert len(compass.baseline_text) and "2 sim log" in compass.baseline_text
+    said = " ".join(compass.notes)
+    assert "1 of 3 --sim logs" in said and str(sims[2]) in said
+
+
+def test_a_scenario_baseline_is_not_compared_with_a_course_over_ground_reference(
+    drive: HeadingSeries, tmp_path: Path
+) -> None:
+    # The scenario's CMPS10 can only be driven along the real log's course over ground: its
+    # errors are against that very course, the real log's against a course that is not its
+    # heading. Not diagnosed, said why (was a -31 deg "declination" at z +2517).
+    from tests.conftest import ROOT
+
+    real = write_recording(
+        tmp_path / "real" / "recording.jsonl",
+        simulate_compass(drive, np.random.default_rng(1)),
+        truth=False,
+        cog=course_over_ground(drive, 50),
+    )
+    compass, notes = cli_compass(real, scenario=str(ROOT / "config" / "scenarios" / "default.toml"))
+    assert compass is None
+    (note,) = [n for n in notes if n.startswith("compass:")]
+    assert "course over ground" in note and "not diagnosed" in note

@@ -446,16 +446,36 @@ def compass_diagnosis(
     records and a heading truth of their own. Problems become notes in ``diagnosis``, never errors:
     the GPS report stands on its own."""
     from x6wd.gap.compass import (
+        HEADING_REFERENCES,
         CompassOptions,
         diagnose_compass,
-        read_heading_series,
+        read_heading_log,
         scenario_compass_baseline,
     )
 
-    real = read_heading_series(args.real, args.truth_track)
-    if real is None:
+    real_log = read_heading_log(args.real, args.truth_track)
+    if real_log is None:
         return None
+    real, reference = real_log.series, real_log.reference
     opts = CompassOptions(replicates=args.replicates)
+    # Every baseline log is read against the kind of heading truth the real log has: an
+    # exact heading against a course over ground compares different noise (sideslip, the
+    # course's own noise) and finds a gap that is the reference's, not the compass's.
+    compass_notes = [
+        f"compass: heading reference: {HEADING_REFERENCES[reference]}, for the real log and"
+        " every baseline log alike"
+    ]
+    if args.scenario and reference == "cog":
+        diagnosis.notes.append(
+            "compass: not diagnosed (the real log has no heading truth: its heading errors"
+            " are against the GPS course over ground, which differs from the heading by the"
+            " sideslip and the course's noise; the scenario's CMPS10 can only be driven along"
+            " that course, so its errors would lack that noise and any difference would read"
+            " as a compass gap. Give a heading truth (--truth-track with a heading column, or"
+            " truth.csv beside the recording), or --sim recordings, read by their own course"
+            " over ground as the real log is)"
+        )
+        return None
     if args.scenario:
         bar("compass: simulating the CMPS10", 0.9)
         baseline, field_model = scenario_compass_baseline(args.scenario, real, args.seeds)
@@ -465,14 +485,24 @@ def compass_diagnosis(
             horizontal_field_ut=field_model.horizontal_ut,
         )
     else:
-        baseline = [run for p in args.sim if (run := read_heading_series(p)) is not None]
+        logs = [read_heading_log(p, reference=reference) for p in args.sim]
+        baseline = [log.series for log in logs if log is not None]
+        left_out = [p for p, log in zip(args.sim, logs, strict=True) if log is None]
+        if left_out and baseline:
+            compass_notes.append(
+                f"compass: {len(left_out)} of {len(args.sim)} --sim logs have no compass samples"
+                f" with {HEADING_REFERENCES[reference]} and were left out: {', '.join(left_out)}"
+            )
     if not baseline:
         diagnosis.notes.append(
-            "compass: the real log has heading data but no baseline log does: not diagnosed"
+            "compass: the real log has heading data but no baseline log has compass samples with"
+            f" {HEADING_REFERENCES[reference]} (the real log's heading reference): not diagnosed"
         )
         return None
     try:
-        return diagnose_compass(real, baseline, rng, opts, progress=bar)
+        outcome = diagnose_compass(real, baseline, rng, opts, progress=bar)
     except ConfigError as exc:
         diagnosis.notes.append(f"compass: not diagnosed ({exc})")
         return None
+    outcome.notes[:0] = compass_notes
+    return outcome

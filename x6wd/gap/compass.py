@@ -711,23 +711,59 @@ def _interp_heading(
     return wrap360(np.interp(t_s, truth_t_s, np.degrees(np.unwrap(np.radians(truth_heading_deg)))))
 
 
+HEADING_REFERENCES = {
+    "truth": "a heading truth (truth.csv beside the recording, or the truth track's heading"
+    " column)",
+    "cog": f"the GPS course over ground while moving at >= {COG_MIN_SPEED_MPS:g} m/s",
+}
+"""The kinds of heading truth a recording is read against (:func:`read_heading_log`)."""
+
+
+@dataclass(frozen=True)
+class HeadingLog:
+    """A recording's compass samples with their true heading (``series``), the kind of that
+    heading truth (``reference``: a key of :data:`HEADING_REFERENCES`) and notes on what was
+    set aside while reading."""
+
+    series: HeadingSeries
+    reference: str
+    notes: tuple[str, ...] = ()
+
+
 def read_heading_series(
     recording: str | Path,
     truth: str | Path | None = None,
     min_speed_mps: float = COG_MIN_SPEED_MPS,
+    reference: str | None = None,
 ) -> HeadingSeries | None:
-    """The compass samples of an x6wd recording with their true heading, or None when the
-    recording has no attitude records or no heading truth.
+    """The series of :func:`read_heading_log` (None when it reads none)."""
+    log = read_heading_log(recording, truth, min_speed_mps, reference)
+    return None if log is None else log.series
 
-    Truth: ``truth`` (a CSV with a heading column), else ``truth.csv`` beside the recording
-    (what ``x6wd sim`` writes), else the GPS course over ground of the recording's fixes while
-    moving at >= ``min_speed_mps``: only attitude samples within COG_MAX_GAP_S of such a fix
-    are kept. COG equals heading only without sideslip, so this truth is noisier (a skid-steer
-    robot slips in turns); the baseline logs are read the same way, so their null carries the
-    same noise.
+
+def read_heading_log(
+    recording: str | Path,
+    truth: str | Path | None = None,
+    min_speed_mps: float = COG_MIN_SPEED_MPS,
+    reference: str | None = None,
+) -> HeadingLog | None:
+    """The compass samples of an x6wd recording with their true heading, or None when the
+    recording has no attitude records or no heading truth of the kind asked for.
+
+    Truth (``reference`` None): ``truth`` (a CSV with a heading column), else ``truth.csv``
+    beside the recording (what ``x6wd sim`` writes), else the GPS course over ground of the
+    recording's fixes while moving at >= ``min_speed_mps``: only attitude samples within
+    COG_MAX_GAP_S of such a fix are kept. ``reference="truth"``: only the first two;
+    ``reference="cog"``: only the course over ground (a heading truth beside it is not read).
+    COG equals heading only without sideslip, so this truth is noisier (a skid-steer robot
+    slips in turns): the baseline logs must be read against the kind of truth the real log
+    has (the CLI passes the real log's ``reference``), or their null lacks that noise and the
+    real log's shows as a gap (an outside audit, round 12: a -31 deg "declination").
     """
     from x6wd.core.recorder import is_recording, read_recording
 
+    if reference is not None and reference not in HEADING_REFERENCES:
+        raise ConfigError(f"heading reference {reference!r}: known {list(HEADING_REFERENCES)}")
     path = Path(recording)
     if not path.is_file() or not is_recording(path):
         return None
@@ -766,17 +802,21 @@ def read_heading_series(
     table = np.array(sorted(attitude))
     table = table[np.concatenate(([True], np.diff(table[:, 0]) > 0))]
     t_s = table[:, 0]
-    truth_table = read_heading_truth(truth) if truth is not None else None
-    if truth_table is None and (path.parent / "truth.csv").is_file():
-        truth_table = read_heading_truth(path.parent / "truth.csv")
+    truth_table = None
+    if reference != "cog":
+        truth_table = read_heading_truth(truth) if truth is not None else None
+        if truth_table is None and (path.parent / "truth.csv").is_file():
+            truth_table = read_heading_truth(path.parent / "truth.csv")
     if truth_table is not None:
+        used = "truth"
         truth_t_s, truth_heading_deg = truth_table
         # different clocks (no overlap): both are taken from their own start
         overlap = not (t_s[-1] < truth_t_s[0] or t_s[0] > truth_t_s[-1])
         t_aligned_s = t_s if overlap else t_s - t_s[0] + truth_t_s[0]
         keep = (t_aligned_s >= truth_t_s[0]) & (t_aligned_s <= truth_t_s[-1])
         true_heading_deg = _interp_heading(t_aligned_s[keep], truth_t_s, truth_heading_deg)
-    elif len(course) >= 10:
+    elif len(course) >= 10 and reference != "truth":
+        used = "cog"
         course_table = np.array(sorted(course))
         index = np.clip(np.searchsorted(course_table[:, 0], t_s), 1, len(course_table) - 1)
         near = (
@@ -793,7 +833,7 @@ def read_heading_series(
         return None
     table = table[keep]
     field_ut = table[:, 4]
-    return HeadingSeries(
+    series = HeadingSeries(
         t_s=table[:, 0] - table[0, 0],
         heading_deg=table[:, 1],
         pitch_deg=table[:, 2],
@@ -801,6 +841,7 @@ def read_heading_series(
         true_heading_deg=true_heading_deg,
         field_ut=field_ut if np.all(np.isfinite(field_ut)) else None,
     )
+    return HeadingLog(series, used)
 
 
 def baseline_along(
