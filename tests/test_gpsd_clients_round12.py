@@ -7,8 +7,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import subprocess
+import time
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -187,3 +189,65 @@ for _ in range(200):
     finally:
         p.close()
     assert SKY.satellites[1].snr_dbhz is None  # the shared fixture's satellite without signal
+
+
+# -- 3. requests without a newline ----------------------------------------------------------
+
+
+def _answers(peer: Peer, n: int) -> list[dict[str, Any]]:
+    """The next ``n`` objects (fewer if the port closes the connection first)."""
+    out: list[dict[str, Any]] = []
+    while len(out) < n:
+        line = peer.line()
+        if not line:
+            break
+        if line.startswith(b"{"):
+            out.append(json.loads(line))
+    return out
+
+
+def test_complete_commands_before_junk_without_a_newline_are_answered_as_gpsd() -> None:
+    # audit (repro_nonewline.sh): no answer, closed after 5 s; gpsd 3.22 answers both so
+    p = Published()
+    try:
+        peer = Peer(p.srv.port, b"?VERSION;junk")
+        got = _answers(peer, 2)
+        assert [o["class"] for o in got] == ["VERSION", "ERROR"], got
+        assert got[1]["message"] == "Unrecognized request 'junk'"
+        peer.s.sendall(b"?POLL;")  # and the session carries on
+        assert _answers(peer, 1)[0]["class"] == "POLL"
+        peer.close()
+        peer = Peer(p.srv.port, b'?WATCH={"enable":true};x')
+        got = _answers(peer, 3)
+        assert [o["class"] for o in got] == ["DEVICES", "WATCH", "ERROR"], got
+        peer.close()
+        # a request cut by a read still waits for its end (no error for half an object)
+        peer = Peer(p.srv.port, b'?VERSION;?WATCH={"enable":tr')
+        time.sleep(0.3)
+        peer.s.sendall(b'ue,"json":true}')
+        got = peer.through("TPV", 0.0)
+        assert [o["class"] for o in got[:3]] == ["VERSION", "DEVICES", "WATCH"], got
+        assert not [o for o in got if o["class"] == "ERROR"], got
+        peer.close()
+    finally:
+        p.close()
+
+
+def test_a_c_clients_trailing_nul_is_ignored_as_gpsd_ignores_it() -> None:
+    # audit: ?WATCH={...}; and the NUL a C client writes with it got nothing and a close
+    # after 5 s; gpsd reads requests as C strings and streams
+    p = Published()
+    try:
+        peer = Peer(p.srv.port, b'?WATCH={"enable":true,"json":true};\x00')
+        got = peer.through("TPV", 0.2)
+        classes = [o["class"] for o in got]
+        assert classes[:2] == ["DEVICES", "WATCH"] and "TPV" in classes, got
+        assert "ERROR" not in classes, got
+        peer.close()
+        peer = Peer(p.srv.port, b"?VERSION;\x00junk")  # gpsd ignores the rest of the string
+        assert _answers(peer, 1)[0]["class"] == "VERSION"
+        peer.s.sendall(b"?POLL;\n")
+        assert _answers(peer, 1)[0]["class"] == "POLL"  # no ERROR between
+        peer.close()
+    finally:
+        p.close()

@@ -302,17 +302,19 @@ def _complete_without_newline(data: bytes | bytearray) -> bool:
     read brought, and many clients send ``?WATCH={...}`` or ``?POLL;`` with no newline: a
     text ending in ``;``, bare commands (of at most :data:`MAX_NAME_CHARS` letters), or a
     JSON argument that parses is taken as it is; a ``}`` whose JSON does not parse yet waits
-    for the rest of the object."""
+    for the rest of the object. Commands followed by junk no continuation can make valid
+    (``?VERSION;junk``: a request does not start with ``?``) are whole too: the commands are
+    answered, then the junk refused, as gpsd does. A NUL (a C client's string terminator)
+    ends the request (:func:`parse_request` ignores what follows it, as gpsd)."""
+    if b"\0" in data:
+        return True
     text = data.decode("utf-8", "replace").rstrip()
     if not text or text.endswith(";") or _BARE_COMMANDS.fullmatch(text):
         return bool(text)
-    if not text.endswith("}"):
-        return False
-    try:
-        parse_commands(text)
-    except ProtocolError:
-        return False
-    return True
+    _, error = parse_request(text)
+    if isinstance(error, _Junk):
+        return True
+    return error is None and text.endswith("}")
 
 
 async def next_request(reader: asyncio.StreamReader, pending: bytearray) -> bytes | None:
@@ -360,13 +362,20 @@ def parse_request(
 ) -> tuple[list[tuple[str, dict[str, Any] | None]], ProtocolError | None]:
     """The commands of one request up to the first bad one, and that one's error (None if
     all are good): a client gets answers to the good commands before the error, as gpsd
-    answers ``?VERSION;junk``."""
+    answers ``?VERSION;junk``. The request ends at a NUL: gpsd reads it as a C string, so
+    a C client's terminator (and whatever it sent after it) is no command and no error."""
+    text = text.partition("\0")[0]
     out: list[tuple[str, dict[str, Any] | None]] = []
     try:
         _parse_into(text, out)
     except ProtocolError as exc:
         return out, exc
     return out, None
+
+
+class _Junk(ProtocolError):
+    """A request that no bytes sent after it can make valid (it does not start with ``?``,
+    or a ``?`` is followed by neither a name nor the end of the text)."""
 
 
 def _parse_into(text: str, out: list[tuple[str, dict[str, Any] | None]]) -> None:
@@ -378,12 +387,14 @@ def _parse_into(text: str, out: list[tuple[str, dict[str, Any] | None]]) -> None
             i += 1
             continue
         if c != "?":
-            raise ProtocolError(f"Unrecognized request '{shown(text[i : i + 200].strip())}'")
+            raise _Junk(f"Unrecognized request '{shown(text[i : i + 200].strip())}'")
         j = i + 1
         while j < n and text[j].isalpha():
             j += 1
         name = text[i + 1 : j].upper()
         if not name:
+            if j < n:  # "?" then neither a name nor the end: no continuation makes it one
+                raise _Junk("Unrecognized request '?'")
             raise ProtocolError("Unrecognized request '?'")
         arg: dict[str, Any] | None = None
         if j < n and text[j] == "=":
