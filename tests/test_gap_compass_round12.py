@@ -8,16 +8,18 @@ tests/test_gap_compass.py builds it; the GPS half from :func:`surrogate_run`."""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from sim_backend.effects import Bias, HeadingSeries, Quantization, gauss_markov_noise
+from sim_backend.effects import Bias, HardIron, HeadingSeries, Quantization, gauss_markov_noise
 from x6wd.gap.compass import (
     CompassOptions,
     diagnose_compass,
     drive_track,
+    read_heading_log,
     simulate_compass,
     turn_rate_dps,
 )
@@ -135,9 +137,7 @@ class Notes:
         self.notes: list[str] = []
 
 
-def cli_compass(
-    real: Path, sims: tuple[Path, ...] | list[Path] = (), scenario: str | None = None
-):
+def cli_compass(real: Path, sims: tuple[Path, ...] | list[Path] = (), scenario: str | None = None):
     """The CLI's compass half (``x6wd gap``'s compass_diagnosis) on these files: (the
     diagnosis or None, the GPS half's notes)."""
     import argparse
@@ -213,3 +213,94 @@ def test_a_scenario_baseline_is_not_compared_with_a_course_over_ground_reference
     assert compass is None
     (note,) = [n for n in notes if n.startswith("compass:")]
     assert "course over ground" in note and "not diagnosed" in note
+
+
+# --- 3. readings that are not numbers, or not bearings ------------------------------------
+
+
+@pytest.fixture(scope="module")
+def iron_real(drive: HeadingSeries) -> HeadingSeries:
+    """About 3 degrees of once-per-turn error (1 uT of hard iron in a 19 uT field)."""
+    return HardIron(bx_ut=0.0, by_ut=1.0).apply(
+        simulate_compass(drive, np.random.default_rng(1)), np.random.default_rng(0)
+    )
+
+
+def truth_sims(drive: HeadingSeries, tmp_path: Path) -> list[Path]:
+    return [
+        write_recording(
+            tmp_path / f"sim{i}" / "recording.jsonl",
+            simulate_compass(drive, np.random.default_rng(10 + i)),
+        )
+        for i in range(3)
+    ]
+
+
+def test_non_finite_and_out_of_range_bearings_are_left_out_and_counted(
+    drive: HeadingSeries, iron_real: HeadingSeries, tmp_path: Path
+) -> None:
+    # One NaN among thousands made every regression NaN: "no significant gap" over a 3-degree
+    # hard iron (the audit's z 58), and "G baseline nan" with more of them.
+    bearing: list[object] = [float(b) for b in iron_real.heading_deg]
+    bad = {100: math.nan, 700: math.inf, 1300: -math.inf, 1900: 360.5, 2500: -3.0}
+    for i, value in bad.items():
+        bearing[i] = value
+    real = write_recording(tmp_path / "real" / "recording.jsonl", iron_real, bearing=bearing)
+    log = read_heading_log(real)
+    assert log is not None and len(log.series) == len(iron_real) - len(bad)
+    assert np.all(np.isfinite(log.series.heading_deg))
+    said = " ".join(log.notes)
+    assert f"{len(bad)} of {len(iron_real)} attitude records" in said
+    assert "not finite" in said and "outside" in said
+    compass, notes = cli_compass(real, truth_sims(drive, tmp_path))
+    assert compass is not None, notes
+    assert compass.explained and compass.selected[0].name == "hard_iron"
+    assert math.isfinite(compass.g_baseline) and math.isfinite(compass.closure)
+    assert any(f"{len(bad)} of {len(iron_real)} attitude records" in n for n in compass.notes)
+
+
+def test_non_finite_samples_given_to_the_diagnosis_are_left_out_and_noted(
+    drive: HeadingSeries, iron_real: HeadingSeries
+) -> None:
+    # The class, not the reader: any series handed to diagnose_compass (an API user's, a
+    # baseline run's) with NaN or infinite values in any of its columns.
+    heading = np.array(iron_real.heading_deg, dtype=float)
+    heading[[50, 60]] = math.nan
+    pitch = np.array(iron_real.pitch_deg, dtype=float)
+    pitch[70] = math.inf
+    real = iron_real.with_(heading_deg=heading, pitch_deg=pitch)
+    base = [simulate_compass(drive, np.random.default_rng(10 + i)) for i in range(3)]
+    true = np.array(base[1].true_heading_deg, dtype=float)
+    true[5] = math.nan
+    base[1] = base[1].with_(true_heading_deg=true)
+    d = diagnose_compass(real, base, np.random.default_rng(0), OPT)
+    assert math.isfinite(d.g_baseline) and d.explained and d.selected[0].name == "hard_iron"
+    assert len(d.real) == len(iron_real) - 3
+    said = " ".join(d.notes)
+    assert f"3 of {len(iron_real)} samples of the real log" in said
+    assert "1 sample of the baseline" in said
+
+
+# --- 4. attitude records whose bearing is null or missing ---------------------------------
+
+
+def test_null_missing_or_non_numeric_bearings_are_skipped_and_counted(
+    drive: HeadingSeries, tmp_path: Path
+) -> None:
+    s = simulate_compass(drive, np.random.default_rng(1))
+    bearing: list[object] = [float(b) for b in s.heading_deg]
+    # record 10: a JSON null; 20: no bearing_deg key; 30: a string; 40: a boolean
+    bearing[10], bearing[20], bearing[30], bearing[40] = None, None, "north", True
+    path = write_recording(tmp_path / "real" / "recording.jsonl", s, bearing=bearing)
+    lines = path.read_text().splitlines()  # one attitude record a line (no fixes)
+    lines[10] = lines[10].replace('"data": {', '"data": {"bearing_deg": null, ', 1)
+    path.write_text("\n".join(lines) + "\n")
+    log = read_heading_log(tmp_path / "real" / "recording.jsonl")  # TypeError/KeyError before
+    assert log is not None and len(log.series) == len(s) - 4
+    said = " ".join(log.notes)
+    assert f"4 of {len(s)} attitude records" in said and "bearing_deg" in said
+    compass, notes = cli_compass(tmp_path / "real" / "recording.jsonl", truth_sims(drive, tmp_path))
+    assert compass is not None, notes
+    assert not compass.significant
+    assert any(f"4 of {len(s)} attitude records" in n for n in compass.notes)
+

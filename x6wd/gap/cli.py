@@ -15,7 +15,7 @@ import numpy as np
 
 from sim_backend.effects import PositionSeries
 from x6wd.core.config import PACKAGED_CONFIG_DIR
-from x6wd.core.errors import ConfigError
+from x6wd.core.errors import ConfigError, X6wdError
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.outdir import output_dir
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
@@ -453,7 +453,11 @@ def compass_diagnosis(
         scenario_compass_baseline,
     )
 
-    real_log = read_heading_log(args.real, args.truth_track)
+    try:  # a recording the GPS side read; what the compass side cannot read is a note
+        real_log = read_heading_log(args.real, args.truth_track)
+    except X6wdError as exc:
+        diagnosis.notes.append(f"compass: not diagnosed ({exc})")
+        return None
     if real_log is None:
         return None
     real, reference = real_log.series, real_log.reference
@@ -463,7 +467,8 @@ def compass_diagnosis(
     # course's own noise) and finds a gap that is the reference's, not the compass's.
     compass_notes = [
         f"compass: heading reference: {HEADING_REFERENCES[reference]}, for the real log and"
-        " every baseline log alike"
+        " every baseline log alike",
+        *(f"compass: the real log: {note}" for note in real_log.notes),
     ]
     if args.scenario and reference == "cog":
         diagnosis.notes.append(
@@ -485,7 +490,19 @@ def compass_diagnosis(
             horizontal_field_ut=field_model.horizontal_ut,
         )
     else:
-        logs = [read_heading_log(p, reference=reference) for p in args.sim]
+        logs = []
+        for p in args.sim:
+            try:
+                logs.append(read_heading_log(p, reference=reference))
+            except X6wdError as exc:
+                compass_notes.append(f"compass: --sim log {p} not read ({exc})")
+                logs.append(None)
+        compass_notes += [
+            f"compass: --sim log {p}: {note}"
+            for p, log in zip(args.sim, logs, strict=True)
+            if log is not None
+            for note in log.notes
+        ]
         baseline = [log.series for log in logs if log is not None]
         left_out = [p for p, log in zip(args.sim, logs, strict=True) if log is None]
         if left_out and baseline:

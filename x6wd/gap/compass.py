@@ -130,6 +130,38 @@ def hwindow(series: HeadingSeries, t0_s: float, t1_s: float) -> HeadingSeries:
     )
 
 
+def finite_samples(series: HeadingSeries) -> tuple[HeadingSeries, int]:
+    """``series`` without the samples that have a non-finite time, heading, true heading,
+    pitch, roll or ``extra`` value, and how many those were (a field magnitude with one is
+    dropped whole, as the reader drops it)."""
+    columns = [series.t_s, series.heading_deg, series.pitch_deg, series.roll_deg]
+    columns += [series.true_heading_deg] if series.true_heading_deg is not None else []
+    columns += [np.asarray(v, dtype=float) for v in series.extra.values()]
+    keep = np.logical_and.reduce([np.isfinite(np.asarray(c, dtype=float)) for c in columns])
+    field_ut = series.field_ut
+    if field_ut is not None and not np.all(np.isfinite(np.asarray(field_ut)[keep])):
+        field_ut = None
+    n_dropped = int(keep.size - np.count_nonzero(keep))
+    if n_dropped == 0:
+        return series.with_(field_ut=field_ut), 0
+
+    def cut(a: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None else np.asarray(a)[keep]
+
+    return (
+        HeadingSeries(
+            t_s=np.asarray(series.t_s)[keep],
+            heading_deg=np.asarray(series.heading_deg)[keep],
+            pitch_deg=np.asarray(series.pitch_deg)[keep],
+            roll_deg=np.asarray(series.roll_deg)[keep],
+            true_heading_deg=cut(series.true_heading_deg),
+            field_ut=cut(field_ut),
+            extra={k: np.asarray(v)[keep] for k, v in series.extra.items()},
+        ),
+        n_dropped,
+    )
+
+
 def layout_for(
     real: HeadingSeries, inclination_deg: float = 66.0, horizontal_field_ut: float = 19.0
 ) -> CompassLayout:
@@ -527,6 +559,34 @@ class CompassPipeline(Pipeline[HeadingSeries, CompassLayout, CompassDiagnosis]):
         if not baseline:
             raise ConfigError("compass diagnosis needs baseline heading series")
 
+    def same_observables(
+        self, real: HeadingSeries, baseline: Sequence[HeadingSeries]
+    ) -> tuple[HeadingSeries, list[HeadingSeries], list[str]]:
+        """The samples with a non-finite value in any column left out (of the real log and of
+        each baseline run), and said: one NaN made every regression of the log NaN before
+        round 12 (a 3-degree hard iron read as no gap)."""
+        real_kept, n_real = finite_samples(real)
+        runs_kept = [finite_samples(s) for s in baseline]
+        if len(real_kept) < 100:
+            raise ConfigError(
+                f"compass diagnosis needs >= 100 samples with a true heading; {n_real} of"
+                f" {len(real)} have a value that is not finite (NaN or infinite)"
+            )
+        notes = []
+        if n_real:
+            notes.append(
+                f"compass: {n_real} of {len(real)} samples of the real log had a value that is"
+                " not finite (NaN or infinite) and were left out"
+            )
+        n_runs = sum(n for _, n in runs_kept)
+        if n_runs:
+            notes.append(
+                f"compass: {n_runs} sample{'s' if n_runs > 1 else ''} of the baseline runs had"
+                " a value that is not finite (NaN or infinite) and"
+                f" {'were' if n_runs > 1 else 'was'} left out"
+            )
+        return real_kept, [s for s, _ in runs_kept], notes
+
     def layout_for(self, real: HeadingSeries, baseline: Sequence[HeadingSeries]) -> CompassLayout:
         opt = self.compass_options
         layout = layout_for(real, opt.inclination_deg, opt.horizontal_field_ut)
@@ -696,9 +756,15 @@ def read_heading_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None
     heading_col = next((header.index(k) for k in ("heading_deg", "heading") if k in header), None)
     if t_col is None or heading_col is None:
         return None
-    table = np.array(
-        [[float(r[t_col]), float(r[heading_col])] for r in rows[1:] if len(r) > heading_col]
-    )
+    pairs = []
+    for r in rows[1:]:
+        try:  # a row whose time or heading is not a finite number is not a truth
+            pair = [float(r[t_col]), float(r[heading_col])]
+        except (IndexError, ValueError):
+            continue
+        if math.isfinite(pair[0]) and math.isfinite(pair[1]):
+            pairs.append(pair)
+    table = np.array(pairs).reshape(-1, 2)
     if table.shape[0] < 2:
         return None
     return table[:, 0], table[:, 1]
@@ -728,6 +794,53 @@ class HeadingLog:
     series: HeadingSeries
     reference: str
     notes: tuple[str, ...] = ()
+
+
+def _number(value: object) -> float | None:
+    """A JSON value as a finite float, or None (null, a string, a boolean, NaN, infinite)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    number = float(value)
+    return number if math.isfinite(number) else None
+
+
+def _attitude_sample(
+    data: dict[str, Any], t_mono: float
+) -> tuple[float, float, float, float, float] | str:
+    """(t_s, bearing, pitch, roll, |B| or NaN) of an attitude record's data, or why it is
+    left out: a missing, null, non-numeric, non-finite or out-of-range value (a bearing is
+    0..360 deg, pitch and roll -90..90 deg). Such a value poisoned every regression of the
+    log before round 12 (one NaN in 11,266 hid a 3-degree hard iron)."""
+    if "bearing_deg" not in data:
+        return "without bearing_deg"
+    t_s = _number(data.get("t_s", t_mono))
+    if t_s is None:
+        return "with a t_s that is not a finite number"
+    values = {k: data.get(k, 0.0) for k in ("bearing_deg", "pitch_deg", "roll_deg")}
+    for key, value in values.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"with a {key} that is not finite (NaN or infinite)"
+        if _number(value) is None:
+            return f"with a {key} that is not a number ({_json_text(value)})"
+    bearing_deg, pitch_deg, roll_deg = (float(v) for v in values.values())
+    if not 0.0 <= bearing_deg <= 360.0:
+        return "with a bearing_deg outside 0..360 deg"
+    if not (abs(pitch_deg) <= 90.0 and abs(roll_deg) <= 90.0):
+        return "with a pitch_deg or roll_deg outside -90..90 deg"
+    mag_ut = data.get("mag_ut")
+    field_ut = math.nan
+    if isinstance(mag_ut, list) and len(mag_ut) == 3:
+        parts = [_number(v) for v in mag_ut]
+        if all(p is not None for p in parts):
+            field_ut = float(np.linalg.norm([float(p) for p in parts if p is not None]))
+    return t_s, bearing_deg, pitch_deg, roll_deg, field_ut
+
+
+def _json_text(value: object) -> str:
+    """A JSON value as the recording spells it (null, true, "a string")."""
+    import json
+
+    return json.dumps(value)[:20]
 
 
 def read_heading_series(
@@ -769,34 +882,35 @@ def read_heading_log(
         return None
     attitude: list[tuple[float, float, float, float, float]] = []
     course: list[tuple[float, float]] = []
+    n_attitude = 0
+    left_out: dict[str, int] = {}  # why -> how many attitude records
     for rec in read_recording(path):
-        if rec.type == "attitude" and rec.data.get("valid", True):
-            data = rec.data
-            mag_ut = data.get("mag_ut")
-            sample_field_ut = (
-                float(np.linalg.norm(mag_ut))
-                if isinstance(mag_ut, list) and len(mag_ut) == 3
-                else math.nan
-            )
-            attitude.append(
-                (
-                    float(data.get("t_s", rec.t_mono)),
-                    float(data["bearing_deg"]),
-                    float(data.get("pitch_deg", 0.0)),
-                    float(data.get("roll_deg", 0.0)),
-                    sample_field_ut,
-                )
-            )
+        data = rec.data if isinstance(rec.data, dict) else {}
+        if rec.type == "attitude" and data.get("valid", True):
+            n_attitude += 1
+            sample = _attitude_sample(data, rec.t_mono)
+            if isinstance(sample, str):
+                left_out[sample] = left_out.get(sample, 0) + 1
+            else:
+                attitude.append(sample)
         elif rec.type == "fix":
-            data = rec.data
-            speed_mps, course_deg = data.get("speed_mps"), data.get("course_deg")
+            t_fix_s = _number(data.get("t_s", rec.t_mono))
+            speed_mps = _number(data.get("speed_mps"))
+            course_deg = _number(data.get("course_deg"))
             if (
                 data.get("valid")
+                and t_fix_s is not None
                 and speed_mps is not None
                 and course_deg is not None
                 and speed_mps >= min_speed_mps
             ):
-                course.append((float(data.get("t_s", rec.t_mono)), float(course_deg)))
+                course.append((t_fix_s, course_deg % 360.0))
+    notes = []
+    if left_out:
+        why = ", ".join(f"{n} {reason}" for reason, n in sorted(left_out.items()))
+        notes.append(
+            f"{sum(left_out.values())} of {n_attitude} attitude records were left out ({why})"
+        )
     if len(attitude) < 100:
         return None
     table = np.array(sorted(attitude))
@@ -841,7 +955,7 @@ def read_heading_log(
         true_heading_deg=true_heading_deg,
         field_ut=field_ut if np.all(np.isfinite(field_ut)) else None,
     )
-    return HeadingLog(series, used)
+    return HeadingLog(series, used, tuple(notes))
 
 
 def baseline_along(
