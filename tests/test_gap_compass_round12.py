@@ -15,10 +15,13 @@ import numpy as np
 import pytest
 
 from sim_backend.effects import Bias, HardIron, HeadingSeries, Quantization, gauss_markov_noise
+from x6wd.core.errors import ConfigError
 from x6wd.gap.compass import (
     CompassOptions,
     diagnose_compass,
     drive_track,
+    fit_hard_iron,
+    layout_for,
     read_heading_log,
     simulate_compass,
     turn_rate_dps,
@@ -304,3 +307,53 @@ def test_null_missing_or_non_numeric_bearings_are_skipped_and_counted(
     assert not compass.significant
     assert any(f"4 of {len(s)} attitude records" in n for n in compass.notes)
 
+
+# --- 5. a compass that does not turn, and fits beyond physical bounds -----------------------
+
+
+@pytest.mark.parametrize(
+    ("reading", "said"),
+    [
+        (lambda n, rng: np.full(n, 123.4), "never change"),  # every bearing the same
+        (lambda n, rng: 123.4 + rng.normal(0.0, 0.3, n).round(1), "does not turn"),  # jitter
+        (lambda n, rng: (355.0 + rng.normal(0.0, 2.0, n).round(1)) % 360.0, "does not turn"),
+    ],
+)
+def test_a_compass_that_does_not_turn_is_named_not_fitted(
+    drive: HeadingSeries, tmp_path: Path, reading: object, said: str
+) -> None:
+    # Was "explained by hard_iron (held-out closure 0.97)" with bx -347, by -622 uT.
+    s = simulate_compass(drive, np.random.default_rng(1))
+    stuck = s.with_(heading_deg=reading(len(s), np.random.default_rng(4)))  # type: ignore[operator]
+    base = [simulate_compass(drive, np.random.default_rng(10 + i)) for i in range(3)]
+    with pytest.raises(ConfigError, match=said) as exc:
+        diagnose_compass(stuck, base, np.random.default_rng(0), OPT)
+    assert "stuck" in str(exc.value)
+    real = write_recording(tmp_path / "real" / "recording.jsonl", stuck)
+    compass, notes = cli_compass(real, truth_sims(drive, tmp_path))
+    assert compass is None
+    (note,) = [n for n in notes if n.startswith("compass:")]
+    assert "not diagnosed" in note and said in note
+
+
+def test_compass_fits_beyond_physical_bounds_are_rejected(drive: HeadingSeries) -> None:
+    # A hard iron as strong as the horizontal field stops the heading from turning through
+    # the circle; a fit there is no hard iron the emulation can hold (the stuck compass's
+    # 712 uT was one). Rejected as the GPS side rejects a fit beyond a layer's bounds.
+    base = [simulate_compass(drive, np.random.default_rng(10 + i)) for i in range(3)]
+    layout = layout_for(base[0])
+    real = HardIron(bx_ut=25.0, by_ut=-15.0).apply(
+        simulate_compass(drive, np.random.default_rng(1)), np.random.default_rng(0)
+    )
+    with pytest.raises(ConfigError, match="horizontal field"):
+        fit_hard_iron(real, base, layout)
+    d = diagnose_compass(real, base, np.random.default_rng(0), OPT)
+    for fit in d.selected:
+        if fit.name == "hard_iron":
+            assert math.hypot(fit.params["bx_ut"], fit.params["by_ut"]) < 19.0
+    # a hard iron within the bound is still fitted
+    fine = HardIron(bx_ut=3.0, by_ut=-2.0).apply(
+        simulate_compass(drive, np.random.default_rng(1)), np.random.default_rng(0)
+    )
+    fit = fit_hard_iron(fine, base, layout)
+    assert fit is not None and fit.params["bx_ut"] == pytest.approx(3.0, abs=0.3)

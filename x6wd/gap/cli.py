@@ -520,6 +520,7 @@ def compass_diagnosis(
         outcome = diagnose_compass(real, baseline, rng, opts, progress=bar)
     except ConfigError as exc:
         diagnosis.notes.append(f"compass: not diagnosed ({exc})")
+        print(f"x6wd gap: warning: compass: not diagnosed ({exc})", file=sys.stderr)
         return None
     outcome.notes[:0] = compass_notes
     return outcome

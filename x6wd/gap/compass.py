@@ -162,6 +162,49 @@ def finite_samples(series: HeadingSeries) -> tuple[HeadingSeries, int]:
     )
 
 
+STUCK_RESULTANT = 0.95
+"""A compass whose readings' mean resultant length is above this (all within a circular
+standard deviation of about 18 deg) while the true heading's is below TURNING_RESULTANT
+does not turn with the robot (:func:`not_turning_text`)."""
+TURNING_RESULTANT = 0.7
+
+
+def _resultant(heading_deg: np.ndarray) -> tuple[float, float]:
+    """(mean resultant length, circular mean deg) of headings."""
+    mean = np.mean(np.exp(1j * np.radians(np.asarray(heading_deg, dtype=float))))
+    return float(abs(mean)), float(np.degrees(np.angle(mean)) % 360.0)
+
+
+def not_turning_text(series: HeadingSeries) -> str | None:
+    """Why ``series``' compass readings cannot be diagnosed for compass effects, when they do
+    not turn while its true heading turns through the circle (a dead or stuck sensor, or
+    iron that swamps the Earth's field); None when they turn, or the truth does not. No
+    compass layer fits such readings: before round 12 a compass stuck at 123.4 deg was
+    "explained by hard_iron" of bx -347, by -622 uT."""
+    if series.true_heading_deg is None or len(series) == 0:
+        return None
+    r_true, _ = _resultant(np.asarray(series.true_heading_deg))
+    if r_true > TURNING_RESULTANT:
+        return None
+    measured = np.asarray(series.heading_deg, dtype=float)
+    values = np.unique(measured)
+    tail = (
+        "while the true heading turns through the circle: a dead or stuck sensor (or iron"
+        " that swamps the Earth's field), not a compass effect; no effect is fitted"
+    )
+    if values.size == 1:
+        return f"the compass readings never change (every bearing {values[0]:g} deg) {tail}"
+    r_measured, mean_deg = _resultant(measured)
+    if r_measured > STUCK_RESULTANT:
+        spread_deg = math.degrees(math.sqrt(-2.0 * math.log(r_measured)))
+        return (
+            f"the compass does not turn with the robot: its {values.size} distinct readings"
+            f" stay around {mean_deg:.1f} deg (circular standard deviation {spread_deg:.1f}"
+            f" deg) {tail}"
+        )
+    return None
+
+
 def layout_for(
     real: HeadingSeries, inclination_deg: float = 66.0, horizontal_field_ut: float = 19.0
 ) -> CompassLayout:
@@ -393,11 +436,22 @@ def fit_hard_iron(
     )
 
     def make(b_ut: np.ndarray) -> HardIron:
+        if math.hypot(*b_ut) >= horizontal_ut:  # beyond the bound: the refinement stays in
+            raise ConfigError("hard iron beyond the horizontal field")
         return HardIron(
             bx_ut=float(b_ut[0]), by_ut=float(b_ut[1]), horizontal_field_ut=horizontal_ut
         )
 
     b_ut = _refine(make, b0_ut, "hard_iron", real, baseline, layout)
+    if math.hypot(*b_ut) >= horizontal_ut:
+        # A hard iron as strong as the horizontal field keeps the heading from turning
+        # through the circle (the field the compass sees never points behind it): no such
+        # layer explains a compass that turns, and a compass that does not is named in
+        # CompassPipeline.same_observables (a stuck one was "hard iron" of 712 uT).
+        raise ConfigError(
+            f"hard iron |b| {math.hypot(*b_ut):.1f} uT is not below the horizontal field"
+            f" {horizontal_ut:g} uT: with it the heading would not turn through the circle"
+        )
     return Fit(
         HardIron(
             bx_ut=round(float(b_ut[0]), 4),
@@ -423,6 +477,8 @@ def fit_soft_iron(
     axis_deg = 0.5 * math.degrees(math.atan2(-diff[cos2], -diff[sin2]))
     if k < 1e-5:
         return None
+    if k >= 0.9:  # the layer's own bound (SoftIron: |k| < 0.9)
+        raise ConfigError(f"soft iron k {k:.2f} is not below 0.9, the layer's bound")
 
     def make(params: np.ndarray) -> SoftIron:
         return SoftIron(k=float(np.clip(params[0], -0.85, 0.85)), axis_deg=float(params[1]))
@@ -445,6 +501,11 @@ def fit_tilt(
     """The tilt gain difference is the uncompensated fraction (at the layout's inclination)."""
     diff, se = _coef_diff(real, baseline, layout)
     cell = Cell("tilt_gain", AXIS, "pitch/roll")
+    if diff[cell] > 1.0 + 3.0 * se[cell]:  # more than a compass without tilt compensation
+        raise ConfigError(
+            f"tilt gain difference {diff[cell]:.2f} is beyond 1 (a compass with no tilt"
+            " compensation at all)"
+        )
     fraction0 = float(np.clip(diff[cell], 0.0, 1.0))
     if fraction0 <= 0.0:
         return None
@@ -572,6 +633,9 @@ class CompassPipeline(Pipeline[HeadingSeries, CompassLayout, CompassDiagnosis]):
                 f"compass diagnosis needs >= 100 samples with a true heading; {n_real} of"
                 f" {len(real)} have a value that is not finite (NaN or infinite)"
             )
+        not_turning = not_turning_text(real_kept)
+        if not_turning is not None:
+            raise ConfigError(not_turning)
         notes = []
         if n_real:
             notes.append(
