@@ -308,6 +308,19 @@ def test_null_missing_or_non_numeric_bearings_are_skipped_and_counted(
     assert any(f"4 of {len(s)} attitude records" in n for n in compass.notes)
 
 
+def test_a_log_whose_every_bearing_is_malformed_is_not_diagnosed_and_says_why(
+    drive: HeadingSeries, tmp_path: Path
+) -> None:
+    # The audit's mal/null: every bearing null. Read as "no compass samples": the compass
+    # half vanished from the report without a word.
+    s = simulate_compass(drive, np.random.default_rng(1))
+    real = write_recording(tmp_path / "real" / "recording.jsonl", s, bearing=[None] * len(s))
+    compass, notes = cli_compass(real, truth_sims(drive, tmp_path))
+    assert compass is None
+    (note,) = [n for n in notes if n.startswith("compass:")]
+    assert "not diagnosed" in note and f"{len(s)} of {len(s)} attitude records" in note
+
+
 # --- 5. a compass that does not turn, and fits beyond physical bounds -----------------------
 
 
@@ -355,5 +368,6 @@ def test_compass_fits_beyond_physical_bounds_are_rejected(drive: HeadingSeries) 
     fine = HardIron(bx_ut=3.0, by_ut=-2.0).apply(
         simulate_compass(drive, np.random.default_rng(1)), np.random.default_rng(0)
     )
-    fit = fit_hard_iron(fine, base, layout)
-    assert fit is not None and fit.params["bx_ut"] == pytest.approx(3.0, abs=0.3)
+    within = fit_hard_iron(fine, base, layout)
+    assert within is not None and within.params["bx_ut"] == pytest.approx(3.0, abs=0.3)
+

@@ -936,6 +936,9 @@ def read_heading_log(
     slips in turns): the baseline logs must be read against the kind of truth the real log
     has (the CLI passes the real log's ``reference``), or their null lacks that noise and the
     real log's shows as a gap (an outside audit, round 12: a -31 deg "declination").
+    Attitude records with a value that is not a bearing are left out and counted in
+    ``notes`` (:func:`_attitude_sample`); ConfigError when that leaves fewer than 100 of
+    100 or more (the log had compass samples, none usable: said, not passed over).
     """
     from x6wd.core.recorder import is_recording, read_recording
 
@@ -976,6 +979,8 @@ def read_heading_log(
             f"{sum(left_out.values())} of {n_attitude} attitude records were left out ({why})"
         )
     if len(attitude) < 100:
+        if len(attitude) + sum(left_out.values()) >= 100:  # there were samples: say why
+            raise ConfigError(f"{path}: {notes[0]}; fewer than 100 samples remain")
         return None
     table = np.array(sorted(attitude))
     table = table[np.concatenate(([True], np.diff(table[:, 0]) > 0))]
