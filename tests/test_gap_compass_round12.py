@@ -371,3 +371,21 @@ def test_compass_fits_beyond_physical_bounds_are_rejected(drive: HeadingSeries) 
     within = fit_hard_iron(fine, base, layout)
     assert within is not None and within.params["bx_ut"] == pytest.approx(3.0, abs=0.3)
 
+
+# --- 6. a compass bias that drifts over the log -------------------------------------------
+
+
+def test_a_drifting_bias_is_found_and_not_named_as_a_declination(drive: HeadingSeries) -> None:
+    # 0 -> 4 deg over the log: was "explained by declination" (closure 0.53-0.54) with most of
+    # the held-out part's offset left. No compass layer drifts: found (residual_trend), and
+    # "not explained"; the null pairs stay quiet with the new cell.
+    base = [simulate_compass(drive, np.random.default_rng(10 + i)) for i in range(3)]
+    s = simulate_compass(drive, np.random.default_rng(1))
+    t_s = np.asarray(s.t_s, dtype=float)
+    drifting = s.with_(heading_deg=(s.heading_deg + 4.0 * t_s / t_s[-1]) % 360.0)
+    d = diagnose_compass(drifting, base, np.random.default_rng(0), OPT)
+    assert d.significant and not d.explained, [f.name for f in d.selected]
+    assert "residual_trend" in {w["statistic"] for w in d.where}
+    for seed in (1, 2, 3):
+        null = simulate_compass(drive, np.random.default_rng(seed))
+        assert not diagnose_compass(null, base, np.random.default_rng(seed), OPT).significant

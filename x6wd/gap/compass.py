@@ -272,6 +272,21 @@ def regression(
     return coef, error_deg - heading_design @ coef
 
 
+def residual_trend(series: HeadingSeries, resid_deg: np.ndarray) -> float:
+    """The least-squares slope of the regression's residual against time, in degrees per
+    100 s: a compass bias that drifts over the log (no compass layer makes one; before
+    round 12 a bias drifting 0 -> 4 deg was "explained by declination", closure 0.53, with
+    most of the held-out part's offset left)."""
+    t_s = np.asarray(series.t_s, dtype=float)
+    if t_s.size < 3:
+        return 0.0
+    centred_s = t_s - t_s.mean()
+    denominator = float(centred_s @ centred_s)
+    if denominator <= 0.0:
+        return 0.0
+    return float(centred_s @ (resid_deg - resid_deg.mean())) / denominator * 100.0
+
+
 def battery(
     series: HeadingSeries, layout: CompassLayout, designs: Design | None = None
 ) -> dict[Cell, float]:
@@ -287,6 +302,7 @@ def battery(
         Cell("tilt_gain", AXIS, "pitch/roll"): float(coef[5]),
         Cell("lag_s", AXIS, "turn rate"): float(-coef[6]),
         Cell("residual_log_std", AXIS, "all"): float(np.log(max(np.std(resid_deg), 1e-6))),
+        Cell("residual_trend", AXIS, "deg/100 s"): residual_trend(series, resid_deg),
     }
     if layout.has_field:
         if series.field_ut is None:
