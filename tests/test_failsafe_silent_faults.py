@@ -12,7 +12,8 @@ import pytest
 from tests.test_controller import LTP, SAFETY, at, att, fix
 from tests.test_failsafe_controller import COUNTS_PER_M, FS, pivoting, started
 from x6wd.core.config import NavigationConfig
-from x6wd.core.records import Mode, WheelOdometry
+from x6wd.core.records import GpsFix, Mode, WheelOdometry
+from x6wd.nav import geo
 from x6wd.nav.controller import Controller
 
 # ------------------------------------------------------------------ launch point and jumps
@@ -57,10 +58,11 @@ def test_a_robot_carried_while_idle_that_drives_off_before_the_jump_moves_its_la
     c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
     drive(c, -0.1, 2.0, (0.0, 0.0))
     c.load_mission([at(100.0, 500.0)], 2.0)
-    drive(c, 2.0, 2.5, (100.0, 0.0))  # carried: the fixes now 100 m east, the wheels still
-    c.start(2.5)
+    # carried: the fixes now 100 m east (the one of 3 s refused), the wheels still
+    drive(c, 2.0, 3.5, (100.0, 0.0))
+    c.start(3.5)
     assert east_north_m(c.launch_point) == pytest.approx((0.0, 0.0), abs=0.5)
-    t_paused = drive(c, 2.5, 20.0, (100.0, 0.0), t_start_s=2.5)
+    t_paused = drive(c, 3.5, 20.0, (100.0, 0.0), t_start_s=3.5)
     assert t_paused is not None and c.mode == Mode.PAUSED
     assert c.telemetry.extra["failsafe"].startswith("position jumped 100 m: ")
     e, n = east_north_m(c.launch_point)
@@ -76,12 +78,12 @@ def test_a_return_under_way_heads_for_the_moved_launch_point() -> None:
     c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
     drive(c, -0.1, 2.0, (0.0, 0.0))
     c.load_mission([at(100.0, 500.0)], 2.0)
-    drive(c, 2.0, 2.5, (100.0, 0.0))
-    c.start(2.5)
-    drive(c, 2.5, 4.0, (100.0, 0.0), t_start_s=2.5)
-    c.return_home(4.0)
+    drive(c, 2.0, 3.5, (100.0, 0.0))
+    c.start(3.5)
+    drive(c, 3.5, 5.0, (100.0, 0.0), t_start_s=3.5)
+    c.return_home(5.0)
     assert c.navigator.waypoints == (c.launch_point,)
-    t_paused = drive(c, 4.0, 20.0, (100.0, 0.0), t_start_s=2.5)
+    t_paused = drive(c, 5.0, 20.0, (100.0, 0.0), t_start_s=3.5)
     assert t_paused is not None and c.returning
     assert east_north_m(c.launch_point) == pytest.approx((100.0, 0.0), abs=1.5)
     c.resume(t_paused + 0.5)
@@ -121,6 +123,153 @@ def test_a_jump_after_a_correct_launch_keeps_the_launch_point(drive_s: float) ->
     assert t_paused is not None
     assert c.telemetry.extra["failsafe"].startswith("position jumped 60 m: ")
     assert east_north_m(c.launch_point) == pytest.approx((0.0, 0.0), abs=0.5)
+
+
+def test_a_jump_just_after_a_start_the_fixes_agreed_with_keeps_the_launch_point() -> None:
+    """Review: the EKF took every fix at the launch point for 20 s up to the start, and the
+    fixes stepped 60 m east before the first fix after it (multipath, a receiver back
+    somewhere else). The estimate the launch point came from was confirmed by the fix just
+    before the start: the robot started where it started, the launch point stays (it moved
+    to (60, 0) when only a fix after the start could confirm it)."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    drive(c, -0.1, 20.0, (0.0, 0.0))
+    c.load_mission([at(0.0, 500.0)], 20.0)
+    c.start(20.0)
+    t_paused = drive(c, 20.0, 40.0, (60.0, 0.0), t_start_s=20.0)
+    assert t_paused is not None
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 60 m: ")
+    assert east_north_m(c.launch_point) == pytest.approx((0.0, 0.0), abs=0.5)
+
+
+def test_a_robot_carried_through_a_gps_outage_moves_its_launch_point() -> None:
+    """The fix the EKF took last before the start is old (the GPS lost while the robot was
+    carried 100 m east): nothing confirmed the estimate at the start, and the launch point
+    moves with the reset when the fixes come back elsewhere."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    drive(c, -0.1, 2.0, (0.0, 0.0))
+    c.load_mission([at(100.0, 500.0)], 2.0)
+    drive(c, 2.0, 29.5, None)  # no fix for 27.5 s (the sensor hold is idle's business)
+    c.start(29.5)
+    t_paused = drive(c, 29.5, 50.0, (100.0, 0.0), t_start_s=29.5)
+    assert t_paused is not None
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 100 m: ")
+    assert east_north_m(c.launch_point) == pytest.approx((100.0, 0.0), abs=1.5)
+
+
+def test_a_second_mission_started_after_a_carry_moves_its_own_launch_point() -> None:
+    """Mission 1's launch point was confirmed; the robot, stopped, was carried 100 m east
+    and mission 2 started before the fixes agreed: its launch point is judged afresh (the
+    fix before its start was refused) and moves with the reset."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    drive(c, -0.1, 2.0, (0.0, 0.0))
+    c.load_mission([at(100.0, 500.0)], 2.0)
+    c.start(2.0)
+    assert drive(c, 2.0, 4.0, (0.0, 0.0), v_mps=0.0) is None  # fixes taken: confirmed
+    c.stop(4.0)
+    drive(c, 4.0, 6.0, (0.0, 0.0))
+    drive(c, 6.0, 7.5, (100.0, 0.0))  # carried while idle: the fix of 7 s refused
+    c.start(7.5)
+    assert east_north_m(c.launch_point) == pytest.approx((0.0, 0.0), abs=0.5)
+    t_paused = drive(c, 7.5, 30.0, (100.0, 0.0), t_start_s=7.5)
+    assert t_paused is not None
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 100 m: ")
+    assert east_north_m(c.launch_point) == pytest.approx((100.0, 0.0), abs=1.5)
+
+
+def test_a_fix_the_ekf_drops_as_late_does_not_confirm_the_launch_point() -> None:
+    """Review: the first fix after the start reached the controller 0.5 s late (the EKF
+    dropped it, beyond its max_late_s: its refused count unchanged) and was read as taken,
+    confirming a launch point the reset 7 s later then no longer moved."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    drive(c, -0.1, 2.0, (0.0, 0.0))
+    c.load_mission([at(100.0, 500.0)], 2.0)
+    drive(c, 2.0, 3.5, (100.0, 0.0))  # carried: the fix of 3 s refused
+    c.start(3.5)
+    drive(c, 3.5, 4.4, None, t_start_s=3.5)  # encoders and compass to 4.4 s, no fix
+    c.on_fix(fix(3.9, 100.0, 0.4))  # the fix of 3.9 s arrives late
+    t_paused = drive(c, 4.4, 20.0, (100.0, 0.0), t_start_s=3.5)
+    assert t_paused is not None
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 100 m: ")
+    assert east_north_m(c.launch_point) == pytest.approx((100.0, 0.0), abs=1.5)
+
+
+def test_a_launch_point_taken_from_an_outlier_before_the_ekf_had_a_heading_is_retaken() -> None:
+    """Review: the first fix was 80 m off and the mission started before the compass's
+    first sample, so the EKF had no estimate and the launch point was that raw fix. The
+    next fix (the truth) came before the heading, the EKF started on it, no reset ever
+    came: the launch point stayed 80 m off. It is now taken again from the EKF's first
+    estimate (the wheels had not moved)."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    c.on_odometry(WheelOdometry(0.0, 0, 0, 0))
+    c.on_fix(fix(0.0, 0.0, 80.0))  # the outlier, no compass yet
+    c.load_mission([at(0.0, 500.0)], 0.1)
+    c.start(0.2)
+    assert east_north_m(c.launch_point) == pytest.approx((0.0, 80.0), abs=0.5)
+    c.on_fix(fix(0.9, 0.0, 0.0))  # the truth, still no heading
+    assert drive(c, 1.0, 30.0, (0.0, 0.0), t_start_s=1.0) is None
+    assert east_north_m(c.launch_point) == pytest.approx((0.0, 0.0), abs=1.5)
+
+
+# the 180th meridian: a plane 3 m east of it (Fiji), fixes wrapped to [-180, 180]
+MERIDIAN = geo.LocalTangentPlane(-16.0, -179.99997)
+
+
+def meridian_fix(t_s: float, e_m: float) -> GpsFix:
+    lat, lon = MERIDIAN.to_latlon(e_m, 0.0)
+    return GpsFix(
+        t_s=t_s, lat_deg=float(lat), lon_deg=float(lon), valid=True, quality=1, mode=3, hdop=1.2
+    )
+
+
+def drive_west(
+    c: Controller, t0_s: float, t1_s: float, e_m: float | None, t_start_s: float | None = None
+) -> float | None:
+    """As :func:`drive`, heading west (270 deg) along the plane's east axis: fixes at
+    ``e_m`` less the distance driven."""
+    for k in range(round(10 * t0_s) + 1, round(10 * t1_s) + 1):
+        t = 0.1 * k
+        driven = 0.0 if t_start_s is None else max(0.0, t - t_start_s)
+        counts = round(driven * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t, 270.0))
+        if k % 10 == 0 and e_m is not None:
+            c.on_fix(meridian_fix(t, e_m - driven))
+        if c.mode == Mode.PAUSED:
+            return t
+    return None
+
+
+@pytest.mark.parametrize("return_first", [False, True])
+def test_a_launch_point_moved_across_the_180th_meridian_stays_a_longitude(
+    return_first: bool,
+) -> None:
+    """Review: carried 60 m east while idle 3 m east of the 180th meridian, started before
+    the fixes agreed, and driven west across it before the reset. The launch point moved by
+    the positions' difference in degrees (about -360 deg of longitude): -539.9994 deg;
+    `return` raised a NavigationError, and with a return under way `on_fix` itself raised.
+    The offset is wrapped: the launch point is 60 m east of the old one, and the return
+    heads there."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    drive_west(c, -0.1, 2.0, 0.0)
+    lat, lon = MERIDIAN.to_latlon(-400.0, 0.0)
+    c.load_mission([(float(lat), float(lon))], 2.0)
+    drive_west(c, 2.0, 3.5, 60.0)  # carried: the fix of 3 s refused
+    c.start(3.5)
+    if return_first:
+        drive_west(c, 3.5, 5.0, 60.0, t_start_s=3.5)
+        c.return_home(5.0)
+    t_paused = drive_west(c, 5.0 if return_first else 3.5, 20.0, 60.0, t_start_s=3.5)
+    assert t_paused is not None
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 60 m: ")
+    assert c.launch_point is not None
+    assert -180.0 <= c.launch_point[1] <= 180.0, c.launch_point
+    e, n = MERIDIAN.to_xy(*c.launch_point)
+    assert (float(e), float(n)) == pytest.approx((60.0, 0.0), abs=1.5)
+    if not return_first:
+        c.return_home(t_paused + 0.5)
+    else:
+        c.resume(t_paused + 0.5)
+    assert c.navigator.waypoints == (c.launch_point,)
 
 
 # ------------------------------------------------------------------ a compass frozen in a pivot

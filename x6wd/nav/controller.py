@@ -50,6 +50,7 @@ nothing. The geofence is the loop's (``x6wd.loop.runner``), not the controller's
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
 from collections.abc import Sequence
@@ -245,9 +246,13 @@ class Controller:
         self._hold_since: float | None = None  # a sensor hold began (s)
         self._jump_m: float | None = None  # the source's position jump since the last check (m)
         self._launch_wheel_m = 0.0  # the wheels' travel when the launch point was taken (m)
-        # a fix the source took after the start agreed with the launch point's estimate:
-        # until then a jump of the estimate moves the launch point with it (_watch_launch)
+        # a fix the source took agreed with the launch point's estimate (the latest fix
+        # before the start, or one after it): until then a jump of the estimate moves the
+        # launch point with it (_watch_launch)
         self._launch_confirmed = False
+        # the launch point is a raw fix (the source had no estimate yet at the start): it is
+        # taken again from the source's first estimate (_retake_raw_launch)
+        self._launch_raw = False
         # the stuck failsafe's last progress: (wheel m, t_s) and (lat, lon, bearing, t_s,
         # wheel m, wheel turn rad, receiver m)
         self._stuck_wheels: tuple[float, float] | None = None
@@ -368,11 +373,11 @@ class Controller:
             # the estimate it came from was wrong (_watch_launch)
             watch = self._launch is not None and not self._launch_confirmed
             before = self._source.position(t) if watch else None
-            refused = self._source.extra().get("ekf_gps_rejected") if before is not None else None
+            taken = self._source.fixes_taken()[0]
             self._source.on_fix(fix)
             jump_m = self._source.take_jump_m()
             if before is not None:
-                self._watch_launch(t, before, refused, jump_m)
+                self._watch_launch(t, before, taken, jump_m)
             speed = fix.speed_mps
             if (
                 self._rx_t is not None
@@ -558,11 +563,13 @@ class Controller:
         self._encoder_fault = ""
         now = t if self._now is None else max(self._now, t)
         pos = self._source.position(now)
-        if pos is None and self._fix_ok and self._fix is not None:
-            pos = (self._fix.lat_deg, self._fix.lon_deg)  # type: ignore[assignment]
+        fix = self._fix
+        self._launch_raw = pos is None and self._fix_ok and fix is not None
+        if self._launch_raw and fix is not None:
+            pos = (fix.lat_deg, fix.lon_deg)  # type: ignore[assignment]
         self._launch = pos
         self._launch_wheel_m = self._wheel_m
-        self._launch_confirmed = False
+        self._launch_confirmed = not self._launch_raw and self._fix_confirms(now)
         self._set_mode(Mode.RUNNING, "start", t, changes)
         return self._step(t, "start", changes)
 
@@ -756,32 +763,68 @@ class Controller:
                 return fired
         return self._course_check(now)
 
+    def _fix_confirms(self, now: float) -> bool:
+        """At a start (``now``, s): the source took the latest fix it judged, and that fix is
+        fresh (within ``fix_stale_s``): the estimate the launch point comes from agreed with
+        the fixes when the mission started. Not when that fix was refused (a robot carried
+        while idle, started before the fixes agreed), the EKF started on it (a first fix
+        80 m off) or the fixes stopped (carried through a GPS outage)."""
+        taken_t = self._source.fixes_taken()[1]
+        return taken_t is not None and 0.0 <= now - taken_t <= self._safety.fix_stale_s
+
     def _watch_launch(
         self,
         t_s: float,
         before: tuple[float, float],
-        refused: object,
+        taken: int,
         jump_m: float | None,
     ) -> None:
         """A usable fix at ``t_s`` (s) went to the source while the launch point was not yet
-        confirmed; ``before``: the source's position just before it, ``refused``: its count of
-        refused fixes then. Taken (not refused, no reset): the estimate agrees with the fixes
-        after the start, so the launch point stands, and a later jump keeps it (the robot
-        started where it started). A reset instead: every fix since the start was refused,
-        so the launch point came from the estimate the reset corrected (a robot carried
-        while idle and started before the fixes agreed, a first fix 80 m off that the EKF
-        started on), and it moves by the reset's offset, however far the robot drove since
-        (at 1 Hz the EKF takes the new place 6-8 s later: a started robot has driven off)."""
+        confirmed; ``before``: the source's position just before it, ``taken``: its count of
+        fixes taken then. Taken (the count went up: inside the EKF's gate, not a reset, not
+        dropped as late, not the fix it started on): the estimate agrees with the fixes after
+        the start, so the launch point stands, and a later jump keeps it (the robot started
+        where it started). A reset instead: no fix since the start (nor the latest before
+        it) was taken, so the launch point came from the estimate the reset corrected (a
+        robot carried while idle and started before the fixes agreed, a first fix 80 m off
+        that the EKF started on), and it moves by the reset's offset, however far the robot
+        drove since (at 1 Hz the EKF takes the new place 6-8 s later: a started robot has
+        driven off)."""
         if jump_m is None:
-            if self._source.extra().get("ekf_gps_rejected") == refused:
+            if self._source.fixes_taken()[0] > taken:
                 self._launch_confirmed = True  # taken (raw and Constellation: every fix)
             return
         after, launch = self._source.position(t_s), self._launch
         if after is None or launch is None:
             return
-        self._launch = (launch[0] + after[0] - before[0], launch[1] + after[1] - before[1])
+        # the offset in degrees: across the 180th meridian the two positions are about
+        # 360 deg apart in longitude, which _move_launch's wrap takes out
+        self._move_launch(launch[0] + after[0] - before[0], launch[1] + after[1] - before[1])
+
+    def _move_launch(self, lat_deg: float, lon_deg: float) -> None:
+        """The launch point is now (``lat_deg``, ``lon_deg``), the longitude wrapped to
+        (-180, 180]; a return under way heads there. A point that is no position (a
+        latitude past a pole) leaves it where it was: called from the sensor inputs, this
+        must not raise."""
+        if not (math.isfinite(lat_deg) and -90.0 <= lat_deg <= 90.0 and math.isfinite(lon_deg)):
+            return
+        self._launch = (lat_deg, geo.wrap_deg(lon_deg))
         if self._returning and self._mission_nav is not None:
-            self._navigator.set_waypoints([self._launch])  # a return under way heads there
+            with contextlib.suppress(NavigationError):  # no plane within 0.1 deg of a pole
+                self._navigator.set_waypoints([self._launch])  # a return under way heads there
+
+    def _retake_raw_launch(self, now: float) -> None:
+        """The launch point was the latest raw fix because the source had no estimate at the
+        start (the EKF waits for the compass's first sample), and now it has one: while the
+        wheels have not driven ``LAUNCH_STILL_M`` since the start the launch point is that
+        first estimate (the EKF starts on the latest fix: a first fix 80 m off followed by
+        the truth before the heading left the launch point 80 m off, and no reset ever came);
+        it stays unconfirmed until a fix the source takes. Further, or without a position,
+        the raw fix stays."""
+        self._launch_raw = False
+        pos = self._source.position(now)
+        if pos is not None and self._wheel_m - self._launch_wheel_m < LAUNCH_STILL_M:
+            self._move_launch(*pos)
 
     def _relaunch_after_jump(self, now: float) -> None:
         """A jump before the robot drove from its launch point: that point was the position
@@ -1287,6 +1330,8 @@ class Controller:
 
         src = self._source
         self._filt = src.position(now)
+        if self._launch_raw and self._filt is not None:
+            self._retake_raw_launch(now)
         self._src_heading_deg = src.heading_deg(now)
         hold = ""
         left = right = 0.0

@@ -83,16 +83,32 @@ class PositionSource(Protocol):
         """How far (m) the source moved its position at once since last asked, to fixes it
         had refused until they agreed (the EKF's reset), or None: not since then."""
 
+    def fixes_taken(self) -> tuple[int, float | None]:
+        """(count, t_s): how many fixes the source took into its estimate as agreeing with
+        it, and the time (s) of the latest fix it judged when it took that one, else None.
+        The EKF takes a fix inside its gate; one it refused, reset on, started on (the
+        estimate is then that fix: nothing agreed with it) or dropped as too late is not
+        taken (a late one leaves the time as it was: it judged nothing). The raw and
+        Constellation sources take every fix."""
+
 
 class RawSource:
     """The latest valid fix, as it came."""
 
     def __init__(self) -> None:
         self._pos: tuple[float, float] | None = None
+        self._taken: tuple[int, float | None] = (0, None)
 
     def on_fix(self, fix: GpsFix) -> None:
         assert fix.lat_deg is not None and fix.lon_deg is not None
         self._pos = (fix.lat_deg, fix.lon_deg)
+        self._took(fix.t_s)
+
+    def _took(self, t_s: float) -> None:
+        self._taken = (self._taken[0] + 1, t_s)
+
+    def fixes_taken(self) -> tuple[int, float | None]:
+        return self._taken
 
     def on_compass(self, t_s: float, bearing_mag_deg: float) -> bool | None:
         return None
@@ -165,6 +181,7 @@ class ConstellationSource(RawSource):
     def on_fix(self, fix: GpsFix) -> None:
         assert fix.lat_deg is not None and fix.lon_deg is not None
         self._add(fix.lat_deg, fix.lon_deg)
+        self._took(fix.t_s)
 
     def extra(self) -> dict[str, Any]:
         return {"filter_samples": len(self._lat)}
@@ -238,6 +255,8 @@ class EkfSource:
         self._plane: LocalTangentPlane | None = None
         self._ekf: ekf.Estimator | None = None
         self._jump_m: float | None = None  # the largest reset since take_jump_m last asked
+        # fixes the EKF took inside its gate, and the latest judged fix's time if taken
+        self._taken: tuple[int, float | None] = (0, None)
         self._counts: tuple[int, int] | None = None
         self._odo_t: float | None = None
         self.odometry_dropped = 0
@@ -271,13 +290,21 @@ class EkfSource:
         assert self._plane is not None
         e, n = self._plane.to_xy(fix.lat_deg, fix.lon_deg)
         hdop = fix.hdop if fix.hdop is not None and fix.hdop > 0 else DEFAULT_HDOP
-        if self._ekf.on_gps(fix.t_s, float(e), float(n), hdop).reason == "reset":
+        reason = self._ekf.on_gps(fix.t_s, float(e), float(n), hdop).reason
+        if reason == "ok":
+            self._taken = (self._taken[0] + 1, fix.t_s)
+        elif reason != "stale":  # refused, a reset, or the fix the EKF starts on
+            self._taken = (self._taken[0], None)
+        if reason == "reset":
             jump_m = self._ekf.stats.last_reset_m
             self._jump_m = jump_m if self._jump_m is None else max(self._jump_m, jump_m)
 
     def take_jump_m(self) -> float | None:
         jump_m, self._jump_m = self._jump_m, None
         return jump_m
+
+    def fixes_taken(self) -> tuple[int, float | None]:
+        return self._taken
 
     def on_compass(self, t_s: float, bearing_mag_deg: float) -> bool | None:
         if self._ekf is None:
