@@ -389,3 +389,49 @@ def test_a_drifting_bias_is_found_and_not_named_as_a_declination(drive: HeadingS
     for seed in (1, 2, 3):
         null = simulate_compass(drive, np.random.default_rng(seed))
         assert not diagnose_compass(null, base, np.random.default_rng(seed), OPT).significant
+
+
+# --- 7. heading lag on a drive with waypoint turns ------------------------------------------
+
+
+def waypoint_drive(duration_s: float, seed: int) -> HeadingSeries:
+    """A robot's drive between waypoints: straight legs of 4-10 s, then turns in place at up
+    to 45 deg/s through 60-150 deg, either way (the turn rate steps, as the robot's does;
+    the benchmark's weaving drive changes it smoothly)."""
+    rng = np.random.default_rng(seed)
+    dt_s = 0.1
+    t_s = np.arange(0.0, duration_s + 0.5 * dt_s, dt_s)
+    rate_dps = np.zeros(t_s.size)
+    k = 0
+    while k < t_s.size:
+        k += int(rng.uniform(4.0, 10.0) / dt_s)
+        turn_deg = rng.uniform(60.0, 150.0) * rng.choice([-1.0, 1.0])
+        n_turn = int(abs(turn_deg) / 45.0 / dt_s) + 1
+        rate_dps[k : k + n_turn] = turn_deg / (n_turn * dt_s)
+        k += n_turn
+    heading_deg = np.concatenate(([0.0], np.cumsum(rate_dps[1:] * dt_s))) % 360.0
+    bumps = gauss_markov_noise(t_s, 3.0, 4.0, rng, 2)
+    return HeadingSeries(
+        t_s=t_s,
+        heading_deg=heading_deg.copy(),
+        pitch_deg=2.0 + bumps[0],
+        roll_deg=-1.5 + bumps[1],
+        true_heading_deg=heading_deg,
+    )
+
+
+@pytest.mark.parametrize("tau_s", [0.5, 1.0])
+def test_heading_lag_is_sized_on_a_drive_with_waypoint_turns(tau_s: float) -> None:
+    # The linear estimate (lag = -d error / d rate) holds for turn rates that change slowly
+    # against tau; at the robot's stepped turns it sized 0.5 s as 0.30 and 1.0 s as 0.36.
+    from sim_backend.effects import HeadingLag
+    from x6wd.gap.compass import fit_heading_lag
+
+    truth = waypoint_drive(300.0, 8)
+    base = [simulate_compass(truth, np.random.default_rng(10 + i)) for i in range(4)]
+    real = HeadingLag(tau_s=tau_s).apply(
+        simulate_compass(truth, np.random.default_rng(1)), np.random.default_rng(0)
+    )
+    fit = fit_heading_lag(real, base, layout_for(real))
+    assert fit is not None
+    assert fit.params["tau_s"] == pytest.approx(tau_s, rel=0.1)
