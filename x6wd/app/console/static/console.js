@@ -1028,6 +1028,11 @@
     const token = takeToken();
     if (token && S.info && S.info.auth_required && !S.authed) auth(token); // the token box is up
   });
+  // the top bar's height (it grows as the pills wrap): the overlays on a narrow screen start below it
+  const bar = document.querySelector("header");
+  const barHeight = () => document.documentElement.style.setProperty("--header-h", bar.offsetHeight + "px");
+  if (window.ResizeObserver) new ResizeObserver(barHeight).observe(bar);
+  barHeight();
   $("follow").addEventListener("change", redraw);
   window.addEventListener("resize", redraw);
   if (window.ResizeObserver) new ResizeObserver(redraw).observe(canvas);
