@@ -935,36 +935,77 @@
     }
     return -1;
   }
-  let drag = null;
+  // One pointer (a mouse, a finger): drag a waypoint, pan, or a click/tap that adds one. Two
+  // fingers: pinch to zoom about their middle, which also pans with them. The map takes its
+  // touches itself (touch-action: none): before (an outside audit), the browser took a
+  // one-finger drag (pointercancel after its first move, "follow robot" already switched off)
+  // and a pinch zoomed the whole page 4.2x, STOP out of view.
+  let drag = null, pinch = null;
+  const fingers = new Map(); // pointerId -> [x, y] on the canvas
   const editable = () => S.origin && S.info && !S.info.watch_only;
+  const at = (ev) => { const r = canvas.getBoundingClientRect(); return [ev.clientX - r.left, ev.clientY - r.top]; };
+  function startPinch() {
+    const [a, b] = [...fingers.values()];
+    const mid = [(a[0] + b[0]) / 2, (a[1] + b[1]) / 2];
+    pinch = { d: Math.max(1, Math.hypot(a[0] - b[0], a[1] - b[1])), k: S.view.pxPerM, at: fromScreen(...mid) };
+  }
   canvas.addEventListener("pointerdown", (ev) => {
     if (ev.button !== 0) return;
     canvas.setPointerCapture(ev.pointerId);
-    const i = editable() ? hit(ev.offsetX, ev.offsetY) : -1;
-    drag = { i: i, x: ev.offsetX, y: ev.offsetY, moved: false, e: S.view.e, n: S.view.n };
+    const [x, y] = at(ev);
+    fingers.set(ev.pointerId, [x, y]);
+    if (fingers.size === 2) { drag = null; startPinch(); return; } // a waypoint dragged stays where it is
+    if (fingers.size > 2) return;
+    const i = editable() ? hit(x, y) : -1;
+    drag = { id: ev.pointerId, i: i, x: x, y: y, moved: false, e: S.view.e, n: S.view.n };
   });
   canvas.addEventListener("pointermove", (ev) => {
-    if (!drag) return;
-    if (Math.hypot(ev.offsetX - drag.x, ev.offsetY - drag.y) > 3) drag.moved = true;
+    if (!fingers.has(ev.pointerId)) return;
+    const [x, y] = at(ev);
+    fingers.set(ev.pointerId, [x, y]);
+    if (pinch) {
+      if (fingers.size !== 2) return;
+      const [a, b] = [...fingers.values()];
+      const d = Math.max(1, Math.hypot(a[0] - b[0], a[1] - b[1]));
+      S.view.pxPerM = Math.max(0.01, Math.min(200, pinch.k * d / pinch.d));
+      // the place first under the fingers' middle stays under it
+      const now = fromScreen((a[0] + b[0]) / 2, (a[1] + b[1]) / 2);
+      S.view.e += pinch.at[0] - now[0];
+      S.view.n += pinch.at[1] - now[1];
+      redraw();
+      return;
+    }
+    if (!drag || drag.id !== ev.pointerId) return;
+    if (Math.hypot(x - drag.x, y - drag.y) > 3) drag.moved = true;
     if (!drag.moved) return;
     if (drag.i >= 0) {
       if (!S.dirty) { S.draft = S.map.waypoints.map((p) => p.slice()); S.dirty = true; }
-      S.draft[drag.i] = toLatLon(...fromScreen(ev.offsetX, ev.offsetY));
+      S.draft[drag.i] = toLatLon(...fromScreen(x, y));
       renderMission();
     } else {
       $("follow").checked = false;
-      S.view.e = drag.e - (ev.offsetX - drag.x) / S.view.pxPerM;
-      S.view.n = drag.n + (ev.offsetY - drag.y) / S.view.pxPerM;
+      S.view.e = drag.e - (x - drag.x) / S.view.pxPerM;
+      S.view.n = drag.n + (y - drag.y) / S.view.pxPerM;
       redraw();
     }
   });
-  canvas.addEventListener("pointerup", (ev) => {
-    if (drag && !drag.moved && drag.i < 0 && S.adding && editable()) {
+  // a pointer's end: lifted (pointerup: a tap may add a waypoint) or taken (pointercancel)
+  function pointerEnd(ev, lifted) {
+    if (!fingers.delete(ev.pointerId)) return;
+    if (lifted && drag && drag.id === ev.pointerId && !drag.moved && drag.i < 0 && S.adding && editable()) {
       const base = S.dirty ? S.draft : S.map.waypoints.map((p) => p.slice());
-      setDraft(base.concat([toLatLon(...fromScreen(ev.offsetX, ev.offsetY))]));
+      setDraft(base.concat([toLatLon(...fromScreen(...at(ev)))]));
     }
-    drag = null;
-  });
+    if (drag && drag.id === ev.pointerId) drag = null;
+    if (pinch && fingers.size < 2) {
+      pinch = null;
+      // the finger left on the map pans on from where it is (never a tap: it adds nothing)
+      for (const [id, [x, y]] of fingers) drag = { id: id, i: -1, x: x, y: y, moved: true, e: S.view.e, n: S.view.n };
+    } else if (fingers.size === 2) startPinch();
+  }
+  canvas.addEventListener("pointerup", (ev) => pointerEnd(ev, true));
+  canvas.addEventListener("pointercancel", (ev) => pointerEnd(ev, false));
+  canvas.addEventListener("lostpointercapture", (ev) => pointerEnd(ev, false));
   canvas.addEventListener("contextmenu", (ev) => {
     ev.preventDefault();
     const i = editable() ? hit(ev.offsetX, ev.offsetY) : -1;
