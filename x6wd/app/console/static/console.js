@@ -514,8 +514,25 @@
     S.pressState = state;
     $("drive-stopped").hidden = true;
     $("drive-" + dir).classList.add("active");
+    // A drive sent after a stall of the page (its main thread busy, timers and events held
+    // back) longer than deadman_s: the daemon's dead-man has stopped the robot meanwhile, and
+    // the finger may have been lifted during the stall (its release is queued behind this
+    // tick). Such a tick ends the press instead of driving; the operator presses again.
+    // Before (an outside audit): the overdue tick ran first and the robot got 40 % again for
+    // 2-25 ms after the stall, until the queued release's stop.
+    let lastSendAt = null;
     const send = () => {
       if (S.press !== press) return;
+      const now = performance.now();
+      if (lastSendAt !== null && now - lastSendAt > S.info.deadman_s * 1000) {
+        const text = "The page stalled " + ((now - lastSendAt) / 1000).toFixed(1) + " s: the dead-man stopped the robot and the drive ended. Release and press again to drive.";
+        endDrive(false);
+        say(text, true);
+        $("drive-stopped").textContent = text;
+        $("drive-stopped").hidden = false;
+        return;
+      }
+      lastSendAt = now;
       const speed = Number($("speed").value);
       const [l, r] = DIRECTIONS[dir];
       state.inflight++;
