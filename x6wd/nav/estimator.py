@@ -143,6 +143,18 @@ BIAS_BOUND_CHI2 = -2.0 * math.log(1e-2)
 """The GPS bias states' bound, ``|b|² / σ_b²`` (9.21: the stationary 2-D distribution's 99 %
 circle, |b| ≤ 3.03 σ_b); the part beyond it is taken as position error
 (:meth:`Estimator._bound_bias`)."""
+BIAS_RUNAWAY_CHI2 = -2.0 * math.log(1e-6)
+"""The GPS bias the fixes built while the robot stood still (its speed under
+:data:`STILL_MPS`: the wheels' count, or the commanded drive) beyond this, ``|Δb|² / σ_b²``
+(27.6: 5.26 σ_b, a chance of 1e-6 for the whole stationary bias, and a bias changes less in
+a shorter time), is no GPS error but a move the wheels did not see (carried, pushed, on a
+trailer): the filter resets onto the fix (:meth:`Estimator._bias_runaway`). σ_b² is the
+largest stationary variance of the recent fixes, forgotten as the bias forgets
+(``correlation_s``), so a bias built under a high HDOP does not trip it when the HDOP
+falls. Only while still: a bias built while driving is a heading (or travel) the model has
+wrong, which the drift rule and the off-course check must see, not a reset hide."""
+STILL_MPS = 0.05
+"""The estimated speed (m/s) under which the robot counts as standing still."""
 
 
 class EstimatorError(X6wdError, ValueError):
@@ -403,6 +415,8 @@ class EstimatorStats:
     odometry_runaway_resets: int = 0  # of gps_resets: refused fixes that agreed with a steady drift
     gps_consecutive_rejected: int = 0
     last_reset_m: float = 0.0  # how far the latest reset moved the position (m)
+    last_reset_reason: str = ""  # "step", "drift" (the refused fixes agreed so) or "bias"
+    bias_runaway_resets: int = 0  # of gps_resets: fixes taken, the bias beyond BIAS_RUNAWAY_CHI2
     gps_bias_bounded: int = 0  # accepted fixes after which the bias bound moved the position
     compass_accepted: int = 0
     compass_rejected: int = 0
@@ -429,6 +443,8 @@ class Estimator:
         self._cmd: tuple[float, float] | None = None  # commanded (speed m/s, yaw rate rad/s)
         self._odo_fresh = False  # odometry increments arrived within odometry_timeout_s
         self._bias_var_m2 = 0.0  # stationary variance of the GPS bias states, m²
+        self._bias_env_m2 = 0.0  # the largest recent one, forgotten as the bias forgets (m²)
+        self._bias_moving = np.zeros(2)  # the bias after the latest fix taken while moving (m)
         self._t_gps_reset: float | None = None  # time of the latest GPS reset (s)
         self._declination_rad = math.radians(config.compass.declination_deg)
         self._gps_refused: deque[tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64]]] = (
@@ -839,6 +855,7 @@ class Estimator:
         white_var = dp * dp * g.re_m**2 if correlated else dp * dp * g.re_m**2 + slow_var
         if correlated:
             self._bias_var_m2 = slow_var
+            self._bias_env_m2 = max(self._bias_env_m2, slow_var)
         if not self._ready:
             self._pending_fix = (t, ze, zn, white_var)
             self._try_init()
@@ -860,13 +877,7 @@ class Estimator:
             agree = self._gps_agreement()
             if agree is not None:
                 self.stats.odometry_runaway_resets += agree == "drift"
-                self._gps_refused.clear()
-                self.stats.gps_resets += 1
-                self.stats.gps_consecutive_rejected = 0
-                self.stats.last_reset_m = math.hypot(ze - x[E], zn - x[N])
-                self._reset_position(ze, zn, white_var)
-                self._t_gps_reset = t
-                return Update(True, nis, "reset")
+                return self._gps_reset(t, ze, zn, white_var, nis, agree)
             self.stats.gps_rejected += 1
             self.stats.gps_consecutive_rejected += 1
             return Update(False, nis, "gated")
@@ -878,8 +889,41 @@ class Estimator:
         self._joseph(kg, hm, rm)
         if correlated:
             self._bound_bias(t)
+            if self._bias_runaway():
+                self.stats.bias_runaway_resets += 1
+                return self._gps_reset(t, ze, zn, white_var, nis, "bias")
         self.stats.gps_accepted += 1
         return Update(True, nis, "ok")
+
+    def _gps_reset(
+        self, t: float, ze: float, zn: float, white_var: float, nis: float, why: str
+    ) -> Update:
+        """Put the position on the fix (``why``: "step", "drift" or "bias"), counted."""
+        x = self._x
+        self._gps_refused.clear()
+        self.stats.gps_resets += 1
+        self.stats.gps_consecutive_rejected = 0
+        self.stats.last_reset_m = math.hypot(ze - x[E], zn - x[N])
+        self.stats.last_reset_reason = why
+        self._reset_position(ze, zn, white_var)
+        self._bias_moving = np.zeros(2)
+        self._t_gps_reset = t
+        return Update(True, nis, "reset")
+
+    def _bias_runaway(self) -> bool:
+        """While the robot stands still, the GPS bias states moved more than
+        :data:`BIAS_RUNAWAY_CHI2` of the largest recent stationary variance since the latest
+        fix taken while it moved: the robot moved while its wheels stood still (carried
+        slowly, pushed, on a trailer). Each fix came inside the gate then, at any GPS rate,
+        and the filter explained the move as slow GPS error: carried 70 m at 1 m/s while
+        idle, the estimate ended 33 m short (the bias 20 σ_b) with σ reading 2.2 m."""
+        x = self._x
+        if abs(float(x[V])) >= STILL_MPS:
+            self._bias_moving = np.array([x[BE], x[BN]])
+            return False
+        bv = self._bias_env_m2
+        d = np.array([x[BE], x[BN]]) - self._bias_moving
+        return bv > 0.0 and float(d @ d) > BIAS_RUNAWAY_CHI2 * bv
 
     def _gps_agreement(self) -> str | None:
         """How the last ``recover_after`` refused fixes agree, if they do: "step" (with their
@@ -929,6 +973,8 @@ class Estimator:
             p[i, :] *= phi
             p[:, i] *= phi
             p[i, i] += self._bias_var_m2 * (1.0 - phi * phi)
+        self._bias_env_m2 = self._bias_env_m2 * phi * phi + self._bias_var_m2 * (1.0 - phi * phi)
+        self._bias_moving *= phi  # what is left of it, as the bias forgets
 
     def _bound_bias(self, t: float) -> None:
         """Within ``correlation_s`` after a GPS reset (time ``t``, s), move the part of the

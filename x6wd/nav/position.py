@@ -373,6 +373,8 @@ class EkfSource:
             "ekf_gps_resets": st.gps_resets,
             "ekf_last_reset_m": st.last_reset_m,
             "ekf_odometry_runaway_resets": st.odometry_runaway_resets,
+            "ekf_bias_runaway_resets": st.bias_runaway_resets,
+            "ekf_last_reset_reason": st.last_reset_reason,
             "ekf_compass_rejected": st.compass_rejected,
         }
         if st.odometry_runaway_resets >= RUNAWAY_WARN_RESETS:
