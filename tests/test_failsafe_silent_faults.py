@@ -11,10 +11,11 @@ import pytest
 
 from tests.test_controller import LTP, SAFETY, at, att, fix
 from tests.test_failsafe_controller import COUNTS_PER_M, FS, pivoting, started
-from x6wd.core.config import NavigationConfig
+from x6wd.core.config import GnssNoiseConfig, NavigationConfig, OdometryConfig
 from x6wd.core.records import GpsFix, Mode, WheelOdometry
 from x6wd.nav import geo
 from x6wd.nav.controller import Controller
+from x6wd.nav.position import EkfSource
 
 # ------------------------------------------------------------------ launch point and jumps
 
@@ -343,3 +344,136 @@ def test_slipping_wheels_with_the_receiver_at_rest_are_still_stuck() -> None:
             break
     assert c.mode == Mode.PAUSED
     assert c.telemetry.extra["failsafe"] == "stuck (the GPS: no motion in 10 s of driving)"
+
+
+# ------------------------------------------------------------------ review s12/r2
+
+
+def test_a_slow_carry_while_idle_moves_the_estimate_and_the_launch_point() -> None:
+    """Review s12/r2 (1): carried 70 m east at 1 m/s while idle, the wheels still, the fixes
+    at 4 Hz, each inside the EKF's gate: the GPS bias states took the move (33 m, ~20 σ_b),
+    the estimate stayed 33.6 m short with σ 2.2 m, start() confirmed the launch point at
+    (33.5, 0) and `return` ended 38 m from the true start. The EKF now resets onto the
+    fixes when the bias the fixes built while the robot stood still runs past its model's
+    size ("bias"): the launch point is within the bias's 99 % circle (5.5 m at HDOP 1.2)."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    for k in range(0, 1250):  # 20 s idle, 70 s carried, 35 s set down
+        t = 0.1 * k
+        e = min(70.0, max(0.0, t - 20.0))
+        c.on_odometry(WheelOdometry(t, 0, 0, k))
+        c.on_attitude(att(t))
+        if k % 10 in (0, 3, 5, 8):  # 4 Hz on the 0.1 s grid (0.25 s -> 0.3, 0.75 -> 0.8)
+            c.on_fix(fix(t, e, 0.0))
+    c.load_mission([at(70.0, 60.0)], 125.0)
+    c.start(125.0)
+    e, n = east_north_m(c.launch_point)
+    assert abs(e - 70.0) < 6.0 and abs(n) < 1.0, (e, n)
+    extra = c.telemetry.extra
+    assert extra["ekf_bias_runaway_resets"] >= 1, extra
+    assert extra["ekf_last_reset_reason"] == "bias"
+
+
+def test_a_long_fix_stale_s_does_not_confirm_a_launch_point_across_a_carry() -> None:
+    """Review s12/r2 (2): with fix_stale_s = 30 (the configuration allows up to 60) the
+    latest fix taken 25 s before the start, across a GPS outage in which the robot was
+    carried 35 m, confirmed the launch point, which then stayed at the old place. The
+    freshness that confirms is now a fixed LAUNCH_FIX_FRESH_S (2.5 s), not fix_stale_s."""
+    c = Controller(NavigationConfig(), replace(SAFETY, fix_stale_s=30.0), 0.0, failsafe=FS)
+    drive(c, -0.1, 20.0, (0.0, 0.0))
+    c.load_mission([at(35.0, 500.0)], 20.0)
+    drive(c, 20.0, 45.0, None)  # no fix for 25 s: carried 35 m east meanwhile
+    c.start(45.0)
+    t_paused = drive(c, 45.0, 70.0, (35.0, 0.0), t_start_s=45.0)
+    assert t_paused is not None
+    assert c.telemetry.extra["failsafe"].startswith("position jumped 35 m: ")
+    assert east_north_m(c.launch_point) == pytest.approx((35.0, 0.0), abs=1.5)
+
+
+def test_a_pivot_the_compass_does_not_follow_names_both_causes() -> None:
+    """Review s12/r2 (3): wheels spinning in place in mud count a pivot exactly as a frozen
+    compass's do; the reason said "the compass does not follow the wheels" as if the
+    compass were the fault. It now names both."""
+    c = pivoting()
+    for k in range(1, 200):
+        t = 0.1 * k
+        counts = round(0.1 * t * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, -counts, k))
+        c.on_attitude(att(t, 0.0))
+        if k % 10 == 0:
+            c.on_fix(fix(t))
+        if c.mode != Mode.RUNNING:
+            break
+    why = c.telemetry.extra["failsafe"]
+    assert why.endswith(
+        "the compass does not follow the wheels: a compass fault, or the wheels spin in place)"
+    ), why
+
+
+# ------------------------------------------------------------------ untested guards (review s12/r2)
+
+
+def test_a_late_fix_leaves_the_time_of_the_last_fix_taken() -> None:
+    """A fix the EKF drops as too late judged nothing: the time of the latest fix taken
+    stays (PositionSource.fixes_taken), else a late fix just before a start would leave the
+    launch point unconfirmed."""
+    src = EkfSource(NavigationConfig(), OdometryConfig(), GnssNoiseConfig(), 0.0)
+    for k in range(0, 51):
+        t = 0.1 * k
+        src.on_odometry(WheelOdometry(t, 0, 0, k))
+        if k % 10 == 0:
+            src.on_fix(fix(t))
+        src.on_compass(t, 0.0)
+    count, taken_t = src.fixes_taken()
+    assert taken_t == pytest.approx(5.0) and count >= 4
+    src.on_fix(fix(4.0))  # 1 s late (max_late_s 0.3 s): dropped
+    assert src.fixes_taken() == (count, taken_t)
+
+
+def test_a_raw_launch_point_is_not_retaken_after_the_wheels_drove_2_m() -> None:
+    """The raw-fix launch point (the EKF had no heading at the start) is taken again from
+    the EKF's first estimate only while the wheels drove under LAUNCH_STILL_M since the
+    start; after 3 m the raw fix stays (docs/navigation.md: not handled)."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    c.on_odometry(WheelOdometry(0.0, 0, 0, 0))
+    c.on_fix(fix(0.0, 0.0, 80.0))  # the outlier, no compass yet
+    c.load_mission([at(0.0, 500.0)], 0.1)
+    c.start(0.2)
+    for k in range(1, 31):  # 1 m/s north for 3 s, no compass: no estimate yet
+        t = 0.1 * k
+        c.on_odometry(WheelOdometry(t, round(t * COUNTS_PER_M), round(t * COUNTS_PER_M), k))
+        if k % 10 == 0:
+            c.on_fix(fix(t, 0.0, t))
+    drive(c, 3.0, 10.0, (0.0, 0.0), t_start_s=0.0)  # the compass now: the EKF starts
+    assert c.telemetry.extra.get("ekf") != "waiting for a fix"
+    assert east_north_m(c.launch_point) == pytest.approx((0.0, 80.0), abs=0.5)
+
+
+def test_out_of_order_fixes_do_not_add_receiver_speed_twice() -> None:
+    """Slipping wheels, the receiver at 0.7 m/s (7 m in the 10 s window, under the 8 m that
+    names a frozen GPS), and each fix followed by a copy 0.5 s late: the speed is summed
+    from the latest fix's time, so the late copies add nothing and the robot is "stuck (the
+    GPS ...)" as without them (summed from the late copy: 10.5 m, "GPS position frozen")."""
+    c = started()
+    for k in range(1, 20):
+        t = float(k)
+        c.on_attitude(att(t))
+        c.on_fix(replace(fix(t), speed_mps=0.7))
+        c.on_fix(replace(fix(t - 0.5), speed_mps=0.7))  # out of order
+        c.on_odometry(
+            WheelOdometry(t, round(2.3 * k * COUNTS_PER_M), round(2.3 * k * COUNTS_PER_M), 0)
+        )
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED
+    assert c.telemetry.extra["failsafe"] == "stuck (the GPS: no motion in 10 s of driving)"
+
+
+def test_a_launch_point_past_a_pole_is_not_taken() -> None:
+    """_move_launch leaves the launch point where it was when the moved one is no position
+    (a latitude past 90 deg: a reset's offset near a pole); it must not raise either."""
+    c = started()
+    before = c.launch_point
+    c._move_launch(90.5, 10.0)
+    assert c.launch_point == before
+    c._move_launch(-90.5, 10.0)
+    assert c.launch_point == before

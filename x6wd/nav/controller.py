@@ -147,6 +147,12 @@ SLIP_MIN_TRAVEL = 4.0
 LAUNCH_STILL_M = 2.0
 """Wheel travel (m) under which a robot that jumped is still at its launch point: the
 launch point moves with the jump (:meth:`Controller._relaunch_after_jump`)."""
+LAUNCH_FIX_FRESH_S = 2.5
+"""At a start, the latest fix the source took confirms the launch point only when it is at
+most this old (s): over a longer gap the robot may have been carried (a GPS outage while
+carried 35 m at 1.4 m/s in 25 s). Fixed, not ``fix_stale_s`` (which the configuration allows
+up to 60 s): 2.5 GPS periods at the 1 Hz the receiver is set to, where a carry at walking
+pace moves the robot ~3.5 m, inside the fixes' own scatter."""
 PIVOT_WHEELS_TURN_DEG = 90.0
 """A pivot the stuck check catches (the compass under ``STUCK_TURN_DEG`` round in
 ``stuck_s``) is named a compass that does not follow the wheels when the wheels' counts
@@ -154,6 +160,10 @@ turned the body this far (deg, their differential travel over ``[odometry] track
 that time: with the effective track the counts and a healthy compass agree, with the
 geometric one (1.2-2x narrower) the counts read up to twice the turn, so 90 deg counted is
 45 deg or more of the body's, past the 30 deg a compass that followed would have shown."""
+
+PIVOT_CAUSES = "a compass fault, or the wheels spin in place"
+"""What a pivot the compass does not follow can be (the stuck reasons say both): the wheels'
+counts turn in mud as they do on grass, and only the compass tells the two apart."""
 
 SENSORS = ("gps", "compass")
 """The sensors :meth:`Controller.sensor_health` knows, in the order their holds are named."""
@@ -765,12 +775,13 @@ class Controller:
 
     def _fix_confirms(self, now: float) -> bool:
         """At a start (``now``, s): the source took the latest fix it judged, and that fix is
-        fresh (within ``fix_stale_s``): the estimate the launch point comes from agreed with
-        the fixes when the mission started. Not when that fix was refused (a robot carried
-        while idle, started before the fixes agreed), the EKF started on it (a first fix
-        80 m off) or the fixes stopped (carried through a GPS outage)."""
+        fresh (within :data:`LAUNCH_FIX_FRESH_S`, whatever ``fix_stale_s`` says): the
+        estimate the launch point comes from agreed with the fixes when the mission started.
+        Not when that fix was refused (a robot carried while idle, started before the fixes
+        agreed), the EKF started on it (a first fix 80 m off) or the fixes stopped (carried
+        through a GPS outage)."""
         taken_t = self._source.fixes_taken()[1]
-        return taken_t is not None and 0.0 <= now - taken_t <= self._safety.fix_stale_s
+        return taken_t is not None and 0.0 <= now - taken_t <= LAUNCH_FIX_FRESH_S
 
     def _watch_launch(
         self,
@@ -1009,7 +1020,7 @@ class Controller:
         return (
             f"stuck (the compass: turned {compass_deg:.0f}° in {still_s:.0f} s of pivoting"
             f" while the wheels' counts turned {turn_deg:.0f}°; the compass does not follow"
-            " the wheels)",
+            f" the wheels: {PIVOT_CAUSES})",
             fs.stuck_action,
         )
 
@@ -1125,7 +1136,7 @@ class Controller:
             )
         return (
             f"stuck (the pivot: {best[0]:.0f}° from its heading and no nearer in {stuck_s:g} s"
-            " of turning; the compass does not follow the wheels)",
+            f" of turning; the compass does not follow the wheels: {PIVOT_CAUSES})",
             self._failsafe.stuck_action,
         )
 
