@@ -854,33 +854,71 @@ def simulate_compass(
 
 def read_heading_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
     """(t_s, true heading deg) from a CSV with ``t_s``/``time`` and ``heading_deg`` columns
-    (``x6wd sim``'s truth.csv); None when the file has no heading column."""
+    (``x6wd sim``'s truth.csv); None when the file has no heading column
+    (:func:`read_heading_truth_notes` also says what was set aside)."""
+    return read_heading_truth_notes(path)[0]
+
+
+def read_heading_truth_notes(
+    path: str | Path,
+) -> tuple[tuple[np.ndarray, np.ndarray] | None, list[str]]:
+    """:func:`read_heading_truth` and notes on its rows: those whose time or heading is not a
+    finite number are left out and counted; rows out of time order are sorted (before round
+    12 np.interp was fed them unsorted: headings up to 12 deg wrong, a reversed file none)
+    and a time given twice keeps its first row; both counted."""
     import csv
 
     csv_path = Path(path)
     try:
         rows = list(csv.reader(csv_path.read_text().splitlines()))
     except (OSError, UnicodeDecodeError):
-        return None
+        return None, []
     if not rows:
-        return None
+        return None, []
     header = [c.strip().lower() for c in rows[0]]
     t_col = next((header.index(k) for k in ("t_s", "time", "t") if k in header), None)
     heading_col = next((header.index(k) for k in ("heading_deg", "heading") if k in header), None)
     if t_col is None or heading_col is None:
-        return None
+        return None, []
     pairs = []
+    n_rows = n_bad = 0
     for r in rows[1:]:
+        if not any(c.strip() for c in r):
+            continue  # a blank line is no row
+        n_rows += 1
         try:  # a row whose time or heading is not a finite number is not a truth
             pair = [float(r[t_col]), float(r[heading_col])]
         except (IndexError, ValueError):
+            n_bad += 1
             continue
         if math.isfinite(pair[0]) and math.isfinite(pair[1]):
             pairs.append(pair)
+        else:
+            n_bad += 1
+    notes = []
+    name = csv_path.name
+    if n_bad:
+        notes.append(
+            f"{n_bad} of {n_rows} {name} rows were left out (a time or heading that is not a"
+            " finite number)"
+        )
     table = np.array(pairs).reshape(-1, 2)
+    if table.shape[0]:
+        times = table[:, 0]
+        out_of_order = int(np.count_nonzero(times[1:] <= np.maximum.accumulate(times)[:-1]))
+        order = np.argsort(times, kind="stable")
+        table = table[order]
+        first = np.concatenate(([True], np.diff(table[:, 0]) > 0))
+        repeated = int(np.count_nonzero(~first))
+        table = table[first]
+        if out_of_order:
+            notes.append(
+                f"{out_of_order} {name} rows out of time order were sorted by time"
+                + (f" ({repeated} with a time already given, left out)" if repeated else "")
+            )
     if table.shape[0] < 2:
-        return None
-    return table[:, 0], table[:, 1]
+        return None, notes
+    return (table[:, 0], table[:, 1]), notes
 
 
 def _interp_heading(
@@ -898,6 +936,11 @@ HEADING_REFERENCES = {
 """The kinds of heading truth a recording is read against (:func:`read_heading_log`)."""
 
 
+class NoHeadingReference(ConfigError):
+    """A recording with compass samples but no heading truth to read them against (the
+    message says why): the compass half is not diagnosed, and says so."""
+
+
 @dataclass(frozen=True)
 class HeadingLog:
     """A recording's compass samples with their true heading (``series``), the kind of that
@@ -913,7 +956,10 @@ def _number(value: object) -> float | None:
     """A JSON value as a finite float, or None (null, a string, a boolean, NaN, infinite)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
-    number = float(value)
+    try:  # an integer beyond a float (a JSON 1 followed by 400 zeros): OverflowError
+        number = float(value)
+    except OverflowError:
+        return None
     return number if math.isfinite(number) else None
 
 
@@ -933,6 +979,8 @@ def _attitude_sample(
     for key, value in values.items():
         if isinstance(value, float) and not math.isfinite(value):
             return f"with a {key} that is not finite (NaN or infinite)"
+        if isinstance(value, int) and not isinstance(value, bool) and _number(value) is None:
+            return f"with a {key} that is not finite (an integer beyond a float)"
         if _number(value) is None:
             return f"with a {key} that is not a number ({_json_text(value)})"
     bearing_deg, pitch_deg, roll_deg = (float(v) for v in values.values())
@@ -963,7 +1011,10 @@ def read_heading_series(
     reference: str | None = None,
 ) -> HeadingSeries | None:
     """The series of :func:`read_heading_log` (None when it reads none)."""
-    log = read_heading_log(recording, truth, min_speed_mps, reference)
+    try:
+        log = read_heading_log(recording, truth, min_speed_mps, reference)
+    except NoHeadingReference:
+        return None
     return None if log is None else log.series
 
 
@@ -987,7 +1038,13 @@ def read_heading_log(
     real log's shows as a gap (an outside audit, round 12: a -31 deg "declination").
     Attitude records with a value that is not a bearing are left out and counted in
     ``notes`` (:func:`_attitude_sample`); ConfigError when that leaves fewer than 100 of
-    100 or more (the log had compass samples, none usable: said, not passed over).
+    100 or more (the log had compass samples, none usable: said, not passed over). So are
+    valid fixes whose t_s, speed_mps or course_deg is there but not a finite number (when
+    the course is the reference), and truth.csv rows (:func:`read_heading_truth_notes`).
+    A heading truth that covers fewer than 100 compass samples gives way to the course over
+    ground (``reference`` None, noted); NoHeadingReference (a ConfigError: the CLI's note)
+    when ``reference`` is None and neither serves, saying why; None for a ``reference``
+    asked for and not there (a baseline log: the caller notes it).
     """
     from x6wd.core.recorder import is_recording, read_recording
 
@@ -998,7 +1055,8 @@ def read_heading_log(
         return None
     attitude: list[tuple[float, float, float, float, float]] = []
     course: list[tuple[float, float]] = []
-    n_attitude = 0
+    n_attitude = n_fixes = fixes_bad = 0
+    top_speed_mps = -math.inf  # of the fixes with a course
     left_out: dict[str, int] = {}  # why -> how many attitude records
     for rec in read_recording(path):
         data = rec.data if isinstance(rec.data, dict) else {}
@@ -1009,17 +1067,21 @@ def read_heading_log(
                 left_out[sample] = left_out.get(sample, 0) + 1
             else:
                 attitude.append(sample)
-        elif rec.type == "fix":
-            t_fix_s = _number(data.get("t_s", rec.t_mono))
-            speed_mps = _number(data.get("speed_mps"))
-            course_deg = _number(data.get("course_deg"))
-            if (
-                data.get("valid")
-                and t_fix_s is not None
-                and speed_mps is not None
-                and course_deg is not None
-                and speed_mps >= min_speed_mps
-            ):
+        elif rec.type == "fix" and data.get("valid"):
+            n_fixes += 1
+            raw = {k: data.get(k) for k in ("speed_mps", "course_deg")}
+            raw["t_s"] = data.get("t_s", rec.t_mono)
+            numbers = {k: _number(v) for k, v in raw.items()}
+            if any(n is None and raw[k] is not None for k, n in numbers.items()):
+                fixes_bad += 1  # null is no course (at rest); NaN, 1e400, "x" are malformed
+                continue
+            t_fix_s, speed_mps, course_deg = (
+                numbers[k] for k in ("t_s", "speed_mps", "course_deg")
+            )
+            if t_fix_s is None or speed_mps is None or course_deg is None:
+                continue
+            top_speed_mps = max(top_speed_mps, speed_mps)
+            if speed_mps >= min_speed_mps:
                 course.append((t_fix_s, course_deg % 360.0))
     notes = []
     if left_out:
@@ -1034,11 +1096,25 @@ def read_heading_log(
     table = np.array(sorted(attitude))
     table = table[np.concatenate(([True], np.diff(table[:, 0]) > 0))]
     t_s = table[:, 0]
+    fixes_note = (
+        f"{fixes_bad} of {n_fixes} fixes were left out of the course over ground (a t_s,"
+        " speed_mps or course_deg that is not a finite number)"
+    )
     truth_table = None
+    truth_name = "truth.csv"
+    why_no_truth = f"no {truth_name}"
     if reference != "cog":
-        truth_table = read_heading_truth(truth) if truth is not None else None
-        if truth_table is None and (path.parent / "truth.csv").is_file():
-            truth_table = read_heading_truth(path.parent / "truth.csv")
+        for candidate in (truth, path.parent / "truth.csv"):
+            if candidate is None or not Path(candidate).is_file():
+                continue
+            truth_table, truth_notes = read_heading_truth_notes(candidate)
+            truth_name = Path(candidate).name
+            if truth_table is not None:
+                notes += truth_notes
+                break
+            why_no_truth = f"{truth_name} has no usable heading column"
+    keep = np.zeros(len(t_s), dtype=bool)
+    used = None
     if truth_table is not None:
         used = "truth"
         truth_t_s, truth_heading_deg = truth_table
@@ -1047,8 +1123,16 @@ def read_heading_log(
         t_aligned_s = t_s if overlap else t_s - t_s[0] + truth_t_s[0]
         keep = (t_aligned_s >= truth_t_s[0]) & (t_aligned_s <= truth_t_s[-1])
         true_heading_deg = _interp_heading(t_aligned_s[keep], truth_t_s, truth_heading_deg)
-    elif len(course) >= 10 and reference != "truth":
-        used = "cog"
+        if np.count_nonzero(keep) < 100:
+            span_s = max(0.0, min(t_s[-1], truth_t_s[-1]) - max(t_s[0], truth_t_s[0]))
+            if not overlap:
+                span_s = min(t_s[-1] - t_s[0], truth_t_s[-1] - truth_t_s[0])
+            why_no_truth = (
+                f"{truth_name} covers {span_s:.0f} s of the log's {t_s[-1] - t_s[0]:.0f} s"
+                f" ({np.count_nonzero(keep)} compass samples, 100 needed)"
+            )
+            used = None
+    if used is None and len(course) >= 10 and reference not in ("truth",):
         course_table = np.array(sorted(course))
         index = np.clip(np.searchsorted(course_table[:, 0], t_s), 1, len(course_table) - 1)
         near = (
@@ -1059,10 +1143,35 @@ def read_heading_log(
         )
         keep = near & (t_s >= course_table[0, 0]) & (t_s <= course_table[-1, 0])
         true_heading_deg = _interp_heading(t_s[keep], course_table[:, 0], course_table[:, 1])
-    else:
-        return None
-    if np.count_nonzero(keep) < 100:
-        return None
+        if np.count_nonzero(keep) >= 100:
+            used = "cog"
+            if truth_table is not None or why_no_truth != f"no {truth_name}":
+                notes.append(f"{why_no_truth}: read against the GPS course over ground instead")
+            if fixes_bad:
+                notes.append(fixes_note)
+    if used is None:
+        if reference is not None:  # a baseline log read by the real log's kind: the caller says
+            return None
+        if not course:
+            cog_why = (
+                "no fix with a course over ground"
+                if top_speed_mps == -math.inf
+                else f"the fixes' speed never reaches {min_speed_mps:g} m/s"
+                f" (at most {top_speed_mps:.2g} m/s)"
+            )
+        elif len(course) < 10:
+            cog_why = f"only {len(course)} fixes at >= {min_speed_mps:g} m/s (10 needed)"
+        else:
+            cog_why = (
+                f"only {np.count_nonzero(keep)} compass samples within {COG_MAX_GAP_S:g} s of a"
+                f" fix at >= {min_speed_mps:g} m/s (100 needed)"
+            )
+        if fixes_bad:
+            cog_why += f"; {fixes_note}"
+        raise NoHeadingReference(
+            f"{path}: no heading reference: {why_no_truth} (a heading truth: --truth-track with"
+            f" a heading column or truth.csv beside the recording) and {cog_why}"
+        )
     table = table[keep]
     field_ut = table[:, 4]
     series = HeadingSeries(
