@@ -789,20 +789,25 @@ class Runner:
         return f" (the control loop itself was {late_s:.2f} s late: CPU starved?)"
 
     def _watch_resets(self, tel: Telemetry) -> None:
-        """Log each EKF reset (the estimate moved to fixes it had refused until they agreed)
-        with how far it moved: a warning from ``gps_jump_m`` on (the jump failsafe's size,
-        also while no mission runs), else info."""
+        """Log each EKF reset with how far it moved and why (the EKF's reason: fixes it had
+        refused until they agreed, or fixes that moved while the wheels stood still): a
+        warning from ``gps_jump_m`` on (the jump failsafe's size, also while no mission
+        runs), else info."""
         resets = tel.extra.get("ekf_gps_resets")
         if not isinstance(resets, int) or resets <= self._resets_seen:
             return
         self._resets_seen = resets
         jump_m = float(tel.extra.get("ekf_last_reset_m") or 0.0)
         limit_m = self.controller.failsafe_config.gps_jump_m
+        if tel.extra.get("ekf_last_reset_reason") == "bias":
+            to = "to fixes that moved while the wheels stood still (carried or pushed?)"
+        else:
+            to = "to fixes it had refused until they agreed"
         log.log(
             logging.WARNING if 0 < limit_m <= jump_m else logging.INFO,
-            "gps: the estimate moved %.1f m to fixes it had refused until they agreed (EKF reset"
-            " %d)",
+            "gps: the estimate moved %.1f m %s (EKF reset %d)",
             jump_m,
+            to,
             resets,
         )
 
