@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_backend.effects import PositionSeries
+from sim_backend.effects import PositionSeries, metres_per_degree
 from x6wd.core.config import PACKAGED_CONFIG_DIR
 from x6wd.core.errors import ConfigError, X6wdError
 from x6wd.core.geodesy import great_circle_m
@@ -37,6 +37,7 @@ from x6wd.gap.io import (
     read_track,
     realign_note,
     time_offset_note,
+    wrap_lon_deg,
 )
 from x6wd.gap.report import FIGURES, verdict_line, write_report
 from x6wd.gap.stats import has_up
@@ -164,6 +165,117 @@ def to_errors(
     if truth_track is not None:
         return check_near_truth(errors_vs_track(track, truth_track), track.source, log)
     return errors_vs_mean(track)
+
+
+SIM_TRUTH_NAME = "truth.csv"
+"""A --sim log's own truth, beside it (``x6wd sim`` writes it beside gps.nmea and
+recording.jsonl): the true path of that run."""
+ROUTE_RATIO = 3.0
+ROUTE_MIN_M = 5.0
+"""A --sim log without its own truth whose fixes lie a median of more than ROUTE_RATIO times
+the real log's median error, and more than ROUTE_MIN_M, from the real log's moving truth
+track did not drive the real route (:func:`check_sim_routes`)."""
+
+
+def sim_truth(path: str, truth_track_path: str) -> tuple[Track | None, str | None]:
+    """The truth a --sim log carries: :data:`SIM_TRUTH_NAME` beside it, read as a track, and
+    a note when one is there but cannot be used. (None, None) when there is none, or it is
+    the --truth-track itself."""
+    own = Path(path).parent / SIM_TRUTH_NAME
+    if not own.is_file() or own.resolve() == Path(truth_track_path).resolve():
+        return None, None
+    try:
+        return read_track(own), None
+    except X6wdError as exc:  # a heading-only truth.csv (the compass half's) has no positions
+        return None, (
+            f"--sim log {path}: the {SIM_TRUTH_NAME} beside it has no positions to score it"
+            f" against ({exc}): scored against the real log's truth track"
+        )
+
+
+def _median_error_m(series: PositionSeries) -> float:
+    """Median horizontal error (m) over the valid epochs; NaN without one."""
+    valid = np.asarray(series.valid, dtype=bool)
+    if not np.any(valid):
+        return math.nan
+    east_m, north_m = np.asarray(series.east_m)[valid], np.asarray(series.north_m)[valid]
+    return float(np.median(np.hypot(east_m, north_m)))
+
+
+def _truth_extent_m(truth: Track) -> float:
+    """How far (m) a truth track's valid positions reach from their median centre (the
+    largest distance): near 0 for a static survey's."""
+    v = np.asarray(truth.valid, dtype=bool)
+    if not np.any(v):
+        return 0.0
+    lat_deg, lon_deg = truth.lat_deg[v], truth.lon_deg[v]
+    e_per_deg, n_per_deg = metres_per_degree(float(np.median(lat_deg)))
+    east_m = wrap_lon_deg(lon_deg - lon_centre_deg(lon_deg, np.median)) * e_per_deg
+    north_m = (lat_deg - np.median(lat_deg)) * n_per_deg
+    return float(np.max(np.hypot(east_m, north_m)))
+
+
+def check_sim_routes(
+    real: PositionSeries,
+    baseline: list[PositionSeries],
+    truths: list[Track | None],
+    truth_track: Track,
+    names: list[str],
+) -> None:
+    """ConfigError naming the --sim logs scored against the real log's moving truth track
+    (no truth of their own) that did not drive the real route: their fixes lie a median of
+    more than :data:`ROUTE_RATIO` times the real log's median error, and more than
+    :data:`ROUTE_MIN_M`, from it. A closed-loop run steers on its own GPS error and laps at
+    its own times: its route difference would count as GNSS error (22 of 24 unaltered
+    moving logs were false alarms). A static truth (reaching no farther than ROUTE_MIN_M)
+    leaves no route to miss: a noisier sim receiver there is a gap to find."""
+    if _truth_extent_m(truth_track) <= ROUTE_MIN_M:
+        return
+    real_m = _median_error_m(real)
+    if not math.isfinite(real_m):
+        return
+    limit_m = max(ROUTE_MIN_M, ROUTE_RATIO * real_m)
+    off = [
+        (name, d_m)
+        for name, series, truth in zip(names, baseline, truths, strict=True)
+        if truth is truth_track and (d_m := _median_error_m(series)) > limit_m
+    ]
+    if not off:
+        return
+    listed = ", ".join(f"{name} (a median {d_m:.1f} m)" for name, d_m in off)
+    raise ConfigError(
+        f"{listed}: {'this --sim log' if len(off) == 1 else 'these --sim logs'} did not drive"
+        f" the real route: {'its' if len(off) == 1 else 'their'} fixes lie that far from the"
+        f" real log's truth track {truth_track.source}, over {ROUTE_RATIO:g} times the real"
+        f" log's own median error ({real_m:.1f} m) and over {ROUTE_MIN_M:g} m. A closed-loop"
+        " run steers on its own GPS error and drives its own route: against the real route"
+        " that difference would count as GNSS error. Give each such log its own truth"
+        f" ({SIM_TRUTH_NAME} beside it, t_s,lat,lon[,alt], as x6wd sim writes it), or use"
+        " --scenario FILE (runs driven along the real truth)"
+    )
+
+
+def sim_truths_note(
+    truths: list[Track | None], truth_track: Track, args: argparse.Namespace
+) -> str:
+    """The note saying which truth each --sim log was scored against."""
+    own = [(name, t) for name, t in zip(args.sim, truths, strict=True) if t is not truth_track]
+    shared = [name for name, t in zip(args.sim, truths, strict=True) if t is truth_track]
+    n = len(args.sim)
+    parts = []
+    if own:
+        parts.append(
+            f"{len(own)} of {n} --sim logs are scored against the {SIM_TRUTH_NAME} beside them"
+            " (each its own route: a closed-loop run drives its own, not the real log's):"
+            f" {', '.join(t.source for _, t in own if t is not None)}"
+        )
+    if shared:
+        parts.append(
+            f"{len(shared)} of {n} --sim logs are scored against the real log's truth track"
+            f" {args.truth_track} (no {SIM_TRUTH_NAME} of their own; they keep to the real"
+            f" route): {', '.join(shared)}"
+        )
+    return "; ".join(parts)
 
 
 def far_sims(real: Track, sims: list[Track], names: list[str]) -> list[tuple[str, float]]:
@@ -373,13 +485,28 @@ def main(args: argparse.Namespace) -> int:
         sims = [read_track(p) for p in args.sim]
         for sim in sims:
             check_step(sim)
-        baseline = [to_errors(sim, args, truth_track, "sim") for sim in sims]
+        # each --sim log against its own truth when it carries one (truth.csv beside it):
+        # a closed-loop mission's run drove its own route, not the real log's
+        sim_truths: list[Track | None] = [truth_track] * len(sims)
         if truth_track is not None:
-            moved_sims = [n for sim in sims if (n := realign_note(sim, truth_track)) is not None]
+            found = [sim_truth(p, args.truth_track) for p in args.sim]
+            sim_truths = [truth_track if own is None else own for own, _ in found]
+            notes += [note for _, note in found if note is not None]
+        baseline = [
+            to_errors(sim, args, truth, "sim") for sim, truth in zip(sims, sim_truths, strict=True)
+        ]
+        if truth_track is not None:
+            check_sim_routes(real, baseline, sim_truths, truth_track, args.sim)
+            notes.append(sim_truths_note(sim_truths, truth_track, args))
+            moved_sims = [
+                n
+                for sim, truth in zip(sims, sim_truths, strict=True)
+                if truth is not None and (n := realign_note(sim, truth)) is not None
+            ]
             if len(moved_sims) > 1:  # a simulator's clock is its own: one note for them all
                 moved_sims = [
-                    f"{len(moved_sims)} of {len(sims)} --sim logs do not overlap the truth"
-                    f" track's time span and were realigned start to start: {moved_sims[0]}"
+                    f"{len(moved_sims)} of {len(sims)} --sim logs do not overlap their truth's"
+                    f" time span and were realigned start to start: {moved_sims[0]}"
                     " (the others alike)"
                 ]
             notes += moved_sims
