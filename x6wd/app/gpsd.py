@@ -285,7 +285,11 @@ def att_obj(att: Attitude, device: str, declination_deg: float = 0.0) -> dict[st
 
 _NOT_UTF8 = re.compile("[\udc80-\udcff]")
 """Bytes that were not UTF-8, as ``surrogateescape`` decoding keeps them."""
-_BARE_COMMANDS = re.compile(rf"\s*(\?[A-Za-z]{{1,{MAX_NAME_CHARS}}}\s*;?\s*)+")
+# one way only to match each text: "\s*;?\s*" between commands split a run of blanks in
+# as many ways as it is long, and a text that then failed ("?A  ?A  ...?") backtracked
+# through all of them (20 commands: minutes on the event loop)
+_BARE_COMMANDS = re.compile(rf"\s*(?:\?[A-Za-z]{{1,{MAX_NAME_CHARS}}}\s*(?:;\s*)?)+")
+_BARE_PREFIX = re.compile(rf"\s*(?:\?[A-Za-z]{{1,{MAX_NAME_CHARS}}}\s*(?:;\s*)?)*")
 
 
 def shown(text: str) -> str:
@@ -306,15 +310,46 @@ def _complete_without_newline(data: bytes | bytearray) -> bool:
     (``?VERSION;junk``: a request does not start with ``?``) are whole too: the commands are
     answered, then the junk refused, as gpsd does. A NUL (a C client's string terminator)
     ends the request (:func:`parse_request` ignores what follows it, as gpsd)."""
-    if b"\0" in data:
-        return True
-    text = data.decode("utf-8", "replace").rstrip()
-    if not text or text.endswith(";") or _BARE_COMMANDS.fullmatch(text):
-        return bool(text)
-    _, error = parse_request(text)
+    return _judge(data)[0]
+
+
+def _judge(data: bytes | bytearray, start: int = 0, bare: bool = True) -> tuple[bool, int, bool]:
+    """:func:`_complete_without_newline` for ``data``, whose commands before byte ``start``
+    are known good and finished (``start`` is the ``?`` of a command, or 0; ``bare``: they
+    are bare commands), and where to start the next time more bytes are appended to
+    ``data`` (with ``bare`` for that start). Only the last command can change as bytes are
+    appended (a name ends at a byte that is no letter, an object at its ``}``), so the
+    commands before it are not looked at again: a client sending an unfinished request a
+    byte at a time costs the bytes it sends, not the whole buffer on each read."""
+    if data.find(b"\0", start) >= 0:  # one before start would have ended it already
+        return True, start, bare
+    # data[start] is "?", so this is the end of data.decode() and text the end of its
+    # rstrip() (a blank text when start is 0 only)
+    tail = data[start:].decode("utf-8", "replace")
+    text = tail.rstrip()
+    if not text or text.endswith(";") or (bare and _BARE_COMMANDS.fullmatch(text)):
+        return bool(text), start, bare
+    starts: list[int] = []
+    try:
+        _parse_into(text, [], starts)
+        error: ProtocolError | None = None
+    except ProtocolError as exc:
+        error = exc
     if isinstance(error, _Junk):
-        return True
-    return error is None and text.endswith("}")
+        return True, start, bare
+    complete = error is None and text.endswith("}")
+    if starts and starts[-1] > 0:  # the last command's "?" is the next start
+        bare = bare and _BARE_PREFIX.fullmatch(text, 0, starts[-1]) is not None
+        # "?" is one byte, and a byte that is not UTF-8 never takes one into its U+FFFD:
+        # the "?"s of text and data[start:] pair up
+        if "\ufffd" not in text[: starts[-1]]:
+            start += len(text[: starts[-1]].encode("utf-8"))
+        else:
+            at = start - 1
+            for _ in range(text.count("?", 0, starts[-1]) + 1):
+                at = data.index(b"?", at + 1)
+            start = at
+    return complete, start, bare
 
 
 async def next_request(reader: asyncio.StreamReader, pending: bytearray) -> bytes | None:
@@ -325,6 +360,7 @@ async def next_request(reader: asyncio.StreamReader, pending: bytearray) -> byte
     ``pending`` keeps the bytes read past it. A request longer than
     :data:`MAX_REQUEST_BYTES` comes back as it is, longer than the limit, for the caller
     to refuse."""
+    start, bare = 0, True  # pending's commands before start are whole and good (_judge)
     while True:
         end = pending.find(b"\n")
         if end >= 0 or len(pending) > MAX_REQUEST_BYTES:
@@ -334,10 +370,12 @@ async def next_request(reader: asyncio.StreamReader, pending: bytearray) -> byte
             return raw
         # bytes already buffered behind them mean a read cut them: not a request on its own
         more = bool(getattr(reader, "_buffer", b""))  # CPython's StreamReader keeps it here
-        if pending and not more and _complete_without_newline(pending):
-            raw = bytes(pending)
-            pending.clear()
-            return raw
+        if pending and not more:
+            complete, start, bare = _judge(pending, start, bare)
+            if complete:
+                raw = bytes(pending)
+                pending.clear()
+                return raw
         chunk = await reader.read(MAX_COMMAND_BYTES)
         if not chunk:  # the end of the stream: what is left is the last request
             raw = bytes(pending)
@@ -378,7 +416,10 @@ class _Junk(ProtocolError):
     or a ``?`` is followed by neither a name nor the end of the text)."""
 
 
-def _parse_into(text: str, out: list[tuple[str, dict[str, Any] | None]]) -> None:
+def _parse_into(
+    text: str, out: list[tuple[str, dict[str, Any] | None]], starts: list[int] | None = None
+) -> None:
+    """Parse ``text`` into ``out``; ``starts`` (if given) gets each command's index."""
     decoder = json.JSONDecoder()
     i, n = 0, len(text)
     while i < n:
@@ -388,6 +429,8 @@ def _parse_into(text: str, out: list[tuple[str, dict[str, Any] | None]]) -> None
             continue
         if c != "?":
             raise _Junk(f"Unrecognized request '{shown(text[i : i + 200].strip())}'")
+        if starts is not None:
+            starts.append(i)
         j = i + 1
         while j < n and text[j].isalpha():
             j += 1
