@@ -519,12 +519,16 @@
     // the finger may have been lifted during the stall (its release is queued behind this
     // tick). Such a tick ends the press instead of driving; the operator presses again.
     // Before (an outside audit): the overdue tick ran first and the robot got 40 % again for
-    // 2-25 ms after the stall, until the queued release's stop.
+    // 2-25 ms after the stall, until the queued release's stop. A stall is a gap longer than
+    // deadman_s, at least 0.5 s, plus one tick: with a short deadman_s (0.1 s: ticks every
+    // 50 ms) one tick a little late on a slow phone is no stall (a review: every press ended).
+    const tickMs = Math.max(50, S.info.deadman_s * 1000 / 3);
+    const stallMs = Math.max(S.info.deadman_s * 1000, 500) + tickMs;
     let lastSendAt = null;
     const send = () => {
       if (S.press !== press) return;
       const now = performance.now();
-      if (lastSendAt !== null && now - lastSendAt > S.info.deadman_s * 1000) {
+      if (lastSendAt !== null && now - lastSendAt > stallMs) {
         const text = "The page stalled " + ((now - lastSendAt) / 1000).toFixed(1) + " s: the dead-man stopped the robot and the drive ended. Release and press again to drive.";
         endDrive(false);
         say(text, true);
@@ -563,7 +567,7 @@
     S.driveSend = send;
     send();
     // three sends per dead-man period: one lost or late message does not stop the robot
-    S.driveTimer = setInterval(send, Math.max(50, S.info.deadman_s * 1000 / 3));
+    S.driveTimer = setInterval(send, tickMs);
   }
   // this page's stops end its press before they are sent: a drive of the press held now
   // refused as "stopped" means a stop it did not send (another client's, or a page's)
