@@ -10,6 +10,7 @@ import asyncio
 import logging
 import math
 import selectors
+from collections.abc import Callable
 from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -816,9 +817,11 @@ def test_a_receiver_searching_after_start_up_warns_only_after_the_cold_start_gra
     assert said[0].levelno == logging.WARNING and "since start-up" in said[0].getMessage()
 
 
-def test_each_ekf_reset_is_logged_with_how_far_it_moved(caplog: pytest.LogCaptureFixture) -> None:
-    """An outside review: a position jump while no mission ran (or paused) left only a
-    number in status. Each reset is logged, a warning from gps_jump_m on."""
+def _standing_robot_reset_log(
+    caplog: pytest.LogCaptureFixture, ticks: int, east_m: Callable[[float], float]
+) -> list[logging.LogRecord]:
+    """A runner whose wheels and compass stand still for ``ticks`` x 0.1 s, fed a 1 Hz fix
+    ``east_m(t)`` m east of HOME: the runner's "EKF reset" log records."""
     safety = SafetyConfig(geofence_radius_m=1000.0)
     runner = Runner(
         Controller(NavigationConfig(), safety, 0.0, failsafe=FailsafeConfig()),
@@ -828,19 +831,28 @@ def test_each_ekf_reset_is_logged_with_how_far_it_moved(caplog: pytest.LogCaptur
         health_log=HealthLog(_quiet(), clock=lambda: 0.0),
     )
 
-    def fix(t_s: float, east_m: float) -> GpsFix:
-        lon = HOME[1] + east_m / (M_PER_DEG_LAT * math.cos(math.radians(HOME[0])))
+    def fix(t_s: float, east: float) -> GpsFix:
+        lon = HOME[1] + east / (M_PER_DEG_LAT * math.cos(math.radians(HOME[0])))
         return GpsFix(t_s=t_s, lat_deg=HOME[0], lon_deg=lon, quality=1, valid=True,
                       sats_used=8, hdop=1.0)  # fmt: skip
 
     with caplog.at_level(logging.INFO, logger="x6wd.loop.runner"):
-        for k in range(0, 400):
+        for k in range(0, ticks):
             t = 0.1 * k
             runner.odometry(WheelOdometry(t, 0, 0, k))
             runner.attitude(Attitude(t, 0.0, 0.0, 0.0))
             if k % 10 == 0:
-                runner.gps_record(fix(t, 0.0 if t < 10.0 else (10.0 if t < 25.0 else 112.0)))
-    said = [(r.levelno, r.getMessage()) for r in caplog.records if "EKF reset" in r.getMessage()]
+                runner.gps_record(fix(t, east_m(t)))
+    return [r for r in caplog.records if "EKF reset" in r.getMessage()]
+
+
+def test_each_ekf_reset_is_logged_with_how_far_it_moved(caplog: pytest.LogCaptureFixture) -> None:
+    """An outside review: a position jump while no mission ran (or paused) left only a
+    number in status. Each reset is logged, a warning from gps_jump_m on."""
+    records = _standing_robot_reset_log(
+        caplog, 400, lambda t: 0.0 if t < 10.0 else (10.0 if t < 25.0 else 112.0)
+    )
+    said = [(r.levelno, r.getMessage()) for r in records]
     assert [lv for lv, _ in said] == [logging.INFO, logging.WARNING], said
     assert said[0][1].startswith("gps: the estimate moved 10.") and "(EKF reset 1)" in said[0][1]
     assert said[1][1].startswith("gps: the estimate moved 102.") and "(EKF reset 2)" in said[1][1]
@@ -851,28 +863,10 @@ def test_an_ekf_reset_for_fixes_moving_while_the_wheels_stand_still_says_so(
 ) -> None:
     """A slow carry (the fixes walk off at 0.5 m/s, the wheels still) is reset by the EKF's
     bias rule, not by refused fixes: the log says what the EKF saw (review of 85eca39)."""
-    safety = SafetyConfig(geofence_radius_m=1000.0)
-    runner = Runner(
-        Controller(NavigationConfig(), safety, 0.0, failsafe=FailsafeConfig()),
-        safety,
-        lambda: 0.0,
-        motors=lambda _c: None,
-        health_log=HealthLog(_quiet(), clock=lambda: 0.0),
+    records = _standing_robot_reset_log(
+        caplog, 1800, lambda t: 0.0 if t < 20.0 else min(0.5 * (t - 20.0), 70.0)
     )
-
-    def fix(t_s: float, east_m: float) -> GpsFix:
-        lon = HOME[1] + east_m / (M_PER_DEG_LAT * math.cos(math.radians(HOME[0])))
-        return GpsFix(t_s=t_s, lat_deg=HOME[0], lon_deg=lon, quality=1, valid=True,
-                      sats_used=8, hdop=1.0)  # fmt: skip
-
-    with caplog.at_level(logging.INFO, logger="x6wd.loop.runner"):
-        for k in range(0, 1800):
-            t = 0.1 * k
-            runner.odometry(WheelOdometry(t, 0, 0, k))
-            runner.attitude(Attitude(t, 0.0, 0.0, 0.0))
-            if k % 10 == 0:
-                runner.gps_record(fix(t, 0.0 if t < 20.0 else min(0.5 * (t - 20.0), 70.0)))
-    said = [r.getMessage() for r in caplog.records if "EKF reset" in r.getMessage()]
+    said = [r.getMessage() for r in records]
     assert said, "no reset logged"
     assert "while the wheels stood still" in said[0], said
     assert not any("refused until they agreed" in m for m in said), said
