@@ -77,6 +77,13 @@ def make_case(tmp_path: Path, *, sim_truth: bool) -> list[str]:
             "--sim", *map(str, sims), "--replicates", "5", "--quiet", "--no-figures"]  # fmt: skip
 
 
+def real_truth_argv(tmp_path: Path, real: Path, sims: list[Path]) -> list[str]:
+    """``x6wd gap`` on ``real`` scored against tmp_path/real/truth.csv, ``sims`` as --sim."""
+    truth = tmp_path / "real" / "truth.csv"
+    return ["gap", "--real", str(real), "--truth-track", str(truth), "--sim", *map(str, sims),
+            "--quiet", "--no-figures", "--out", str(tmp_path / "r")]  # fmt: skip
+
+
 class Scored(Exception):
     """Raised in place of the diagnosis: the errors the logs were scored with are kept."""
 
@@ -146,21 +153,8 @@ def test_a_sim_log_without_its_truth_on_the_real_route_is_scored_against_the_rea
     # a --sim log driven along the real truth (a replay of its route) needs no truth of its own
     real = make_run(tmp_path / "real", 101, 1.5, 3.0, truth=True)
     sims = [make_run(tmp_path / f"sim{i}", 1 + i, 1.5, 3.0, truth=False) for i in range(3)]
-    argv = [
-        "gap",
-        "--real",
-        str(real),
-        "--truth-track",
-        str(tmp_path / "real" / "truth.csv"),
-        "--sim",
-        *map(str, sims),
-        "--quiet",
-        "--no-figures",
-        "--out",
-        str(tmp_path / "r"),
-    ]
     with pytest.raises(Scored):
-        x6wd_main(argv)
+        x6wd_main(real_truth_argv(tmp_path, real, sims))
     assert all(median_error_m(s) < 3.0 for s in scored["baseline"])
 
 
@@ -172,20 +166,7 @@ def test_a_static_survey_with_a_worse_sim_receiver_is_not_refused(
     real = make_run(tmp_path / "real", 101, 0.0, 0.0, truth=True, scale=0.3)
     sims = [make_run(tmp_path / f"sim{i}", 1 + i, 0.0, 0.0, truth=False, scale=8.0)
             for i in range(3)]  # fmt: skip
-    argv = [
-        "gap",
-        "--real",
-        str(real),
-        "--truth-track",
-        str(tmp_path / "real" / "truth.csv"),
-        "--sim",
-        *map(str, sims),
-        "--quiet",
-        "--no-figures",
-        "--out",
-        str(tmp_path / "r"),
-    ]
     with pytest.raises(Scored):
-        x6wd_main(argv)
+        x6wd_main(real_truth_argv(tmp_path, real, sims))
     real_m = median_error_m(scored["real"])
     assert all(median_error_m(s) > max(5.0, 3.0 * real_m) for s in scored["baseline"])
