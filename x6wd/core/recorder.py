@@ -1651,8 +1651,9 @@ def nmea_file_chunks(
     first such time (earlier lines get 0). Successive times are taken to be within 12 h of
     each other, so the day wraps at midnight both ways: a receiver whose clock restarts from
     a default just before midnight steps back minutes, not on a day. In a file without any
-    UTC time, an epoch ends whenever a sentence type repeats and epochs are ``1/rate_hz`` s
-    apart. Raises :class:`DeviceUnavailable` if the file cannot be opened.
+    UTC time, an epoch ends whenever a sentence type repeats (the parts of a multi-part GSV
+    are one; see :func:`_epoch_key`) and epochs are ``1/rate_hz`` s apart. Raises
+    :class:`DeviceUnavailable` if the file cannot be opened.
     """
     if not (rate_hz > 0 and math.isfinite(rate_hz)):
         raise ValueError(f"rate_hz must be > 0, got {rate_hz!r}")
@@ -1743,16 +1744,44 @@ def _nmea_lines_timed(f: BinaryIO, rate_hz: float) -> Iterator[tuple[float, byte
                 yield current - first, line
             return
         seen: set[bytes] = set()
-        epoch = 0
+        epoch, last = 0, b""
         for line in lines:
-            start = line.find(b"$")
-            kind = line[start + 1 : start + 6] if start >= 0 else b""
-            if kind:
-                if kind in seen:
-                    epoch += 1
-                    seen.clear()
-                seen.add(kind)
+            key = _epoch_key(line)
+            # a GN (all-systems) GSA comes once per system, back to back (NMEA 4.0: no system id)
+            if key and key in seen and not (key == last and key == b"GNGSA"):
+                epoch += 1
+                seen.clear()
+            if key:
+                seen.add(key)
+                last = key
             yield epoch / rate_hz, line
+
+
+_MULTIPART = (b"GSV", b"RTE")  # fields 1 and 2: the group's parts, this part's number
+
+
+def _epoch_key(line: bytes) -> bytes | None:
+    """What a sentence repeats as from one epoch to the next in a log without times: its type
+    (b"" for no sentence); a GSA's with its system id and a GSV's with its signal id (NMEA
+    4.10 sends one of each per system or signal and epoch). None for what does not: part 2
+    on of a multi-part group (GSV, RTE: in the epoch of its part 1) and TXT (a notice sent
+    any time, a start-up banner several at once, a long one in parts)."""
+    start = line.find(b"$")
+    kind = line[start + 1 : start + 6] if start >= 0 else b""
+    tail = kind[2:]
+    if tail == b"TXT":
+        return None
+    if tail not in _MULTIPART and tail != b"GSA":
+        return kind
+    fields = line[start + 1 :].split(b"*", 1)[0].split(b",")
+    if tail == b"GSA":
+        return kind + b"," + fields[18].strip() if len(fields) > 18 else kind
+    part = fields[2].strip() if len(fields) > 2 else b""
+    if part.isdigit() and int(part) > 1:
+        return None
+    if tail == b"GSV" and len(fields) % 4 == 1:  # 4 + 4 per satellite + the signal id
+        return kind + b"," + fields[-1].strip()
+    return kind
 
 
 def recording_nmea_chunks(
