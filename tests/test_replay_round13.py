@@ -1,17 +1,21 @@
-"""Round 13: epochs of an NMEA log without times (a multi-part GSV is one epoch), on gpsd's
-real logs."""
+"""Round 13: epochs of an NMEA log without times (a multi-part GSV is one epoch), and
+`x6wd replay` saying where the recorded time goes back; on gpsd's real logs."""
 
 from __future__ import annotations
 
+import io
 import os
 import subprocess
 import sys
+from functools import reduce
+from operator import xor
 from pathlib import Path
 
 import pytest
 
 from tests.test_recorder import ROOT, VirtualClock
-from x6wd.core.recorder import ReplayPort, _file_lines, _sentence_utc_s, nmea_file_chunks
+from x6wd.app.replay import MAX_BACKS_SAID, replay_file
+from x6wd.core.recorder import ReplayPort, _file_lines, _sentence_utc_s, nmea_file_chunks, paced
 
 NMEA = ROOT / "tests" / "data" / "nmea"
 
@@ -78,3 +82,44 @@ def test_untimed_epochs_of_real_logs_are_their_rmc_epochs(name: str, tmp_path: P
     log = NMEA / name
     rmc = sum(1 for x in log.read_bytes().splitlines() if x[3:6] == b"RMC")
     assert _epochs(_untimed(log, tmp_path / name)) == rmc
+
+
+def test_paced_tells_each_step_back_before_its_chunk() -> None:
+    clock = VirtualClock()
+    chunks = [(0.0, b"a"), (1.0, b"b"), (-5.0, b"c"), (-4.0, b"d")]
+    backs: list[tuple[float, float]] = []
+    out = list(
+        paced(
+            iter(chunks),
+            1.0,
+            clock=clock,
+            sleep=clock.sleep,
+            on_back=lambda t, step: backs.append((t, step)),
+        )
+    )
+    assert out == chunks and backs == [(-5.0, -6.0)]
+    assert clock() - 1000.0 == pytest.approx(2.0)  # played on without a pause
+
+
+def test_replay_says_where_the_time_goes_back() -> None:
+    """bt451.log holds two sessions, 15:25 then 14:33 (x6wd plot: "line 112: time went
+    back 3122.5 s"): replay printed t=-3118.500 and said nothing."""
+    proc = _x6wd("replay", str(NMEA / "bt451.log"), "--speed", "0")
+    assert proc.returncode == 0, proc.stderr
+    said = [x for x in proc.stderr.splitlines() if "goes back" in x]
+    assert len(said) == 1 and "back 3122.5 s at line 112, t=-3118.500" in said[0], proc.stderr
+    assert "t=-3118.500 utc=2009-12-09T14:33:06" in proc.stdout
+
+
+def test_replay_of_many_steps_back_says_the_first_and_counts_all(tmp_path: Path) -> None:
+    """Epochs written in swapped pairs step back every other epoch: the first few are said,
+    the rest counted, not one stderr line each."""
+    log = tmp_path / "swapped.nmea"
+    seconds = [s for pair in range(0, 60, 2) for s in (pair + 1, pair)]
+    bodies = [b"GPGGA,1200%02d.00,,,,,0,00,99.99,,,,,," % s for s in seconds]
+    log.write_bytes(b"".join(b"$%s*%02X\r\n" % (x, reduce(xor, x)) for x in bodies))
+    err = io.StringIO()
+    replay_file(str(log), speed=0, out=io.StringIO(), err=err)
+    said = [x for x in err.getvalue().splitlines() if "goes back" in x]
+    assert len(said) == MAX_BACKS_SAID + 1 and "at line 2, t=-1.000" in said[0]
+    assert said[-1].endswith("goes back 30 times in all (20 more than said)")

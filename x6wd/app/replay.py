@@ -4,7 +4,12 @@ Prints one summary line per fix (``--json``: one compact JSON object per fix, an
 report with ``--sky``); the decoder's counters and the reader's counts go to stderr. The
 bytes reach :class:`drivers.gps_nmea.GpsDecoder` at the recorded pace divided by ``--speed``
 (0: as fast as possible), stamped with the recorded time (s): ``t_mono`` for recordings,
-seconds since the first sentence time for plain NMEA logs.
+seconds since the first sentence time for plain NMEA logs (in a log without any, epochs
+``1/--rate`` s apart, see ``x6wd.core.recorder.nmea_file_chunks``). Where that time goes
+back (a second session in the file, a restarted clock) the replay plays on without a pause
+and t goes back with it; stderr says so with the line (of a plain log) and t, the first
+:data:`MAX_BACKS_SAID` one by one and then how many in all. A forward jump of more than 60 s
+is replayed as 1 s and said likewise.
 
 The input is read more than once (its head tells recording from log, a log's first sentence
 time is found first), so it must be a regular file: a pipe (``<(zcat log.gz)``), a FIFO or a
@@ -80,6 +85,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sky", action="store_true", help="also report sky (satellite) views")
 
 
+MAX_BACKS_SAID = 10
+"""Steps back of the recorded time said one by one on stderr; more are counted (a log of
+epochs out of order steps back every other epoch)."""
+
+
 def fix_line(fix: GpsFix) -> str:
     """Human summary of one fix: time, position (deg), altitude (m), quality, speed (m/s)."""
 
@@ -143,14 +153,30 @@ def replay_file(
     t_last = 0.0
     size = InputSize()
 
+    played = backs = 0  # chunks played (a plain log's are its lines); steps back in time
+
+    def where(t_s: float) -> str:  # told before chunk ``played + 1`` is played
+        return f"at {'' if recording else f'line {played + 1}, '}t={t_s:.3f}"
+
     def on_gap(t_s: float, jump_s: float) -> None:
         err.write(
-            f"x6wd replay: the recorded time jumps {jump_s:.0f} s forward at t={t_s:.3f}:"
+            f"x6wd replay: the recorded time jumps {jump_s:.0f} s forward {where(t_s)}:"
             f" not waited out (replayed as {GAP_REPLAY_S:g} s)\n"
         )
 
+    def on_back(t_s: float, step_s: float) -> None:
+        nonlocal backs
+        backs += 1
+        if backs <= MAX_BACKS_SAID:
+            err.write(
+                f"x6wd replay: the recorded time goes back {-step_s:.1f} s {where(t_s)} (another"
+                " session or a restarted clock): played on without a pause; t goes back with"
+                " it\n"
+            )
+
     chunks = nmea_chunks(path, rate_hz=rate_hz, stats=stats)
-    for t_s, data in paced(chunks, speed, on_gap=on_gap if speed else None):
+    for t_s, data in paced(chunks, speed, on_gap=on_gap if speed else None, on_back=on_back):
+        played += 1
         t_last = t_s
         size.add(data)
         for rec in decoder.feed(data, t_s):
@@ -165,6 +191,11 @@ def replay_file(
         if isinstance(rec, GpsFix):
             fixes += 1
             _emit(rec, as_json, out)
+    if backs > MAX_BACKS_SAID:
+        err.write(
+            f"x6wd replay: the recorded time goes back {backs} times in all"
+            f" ({backs - MAX_BACKS_SAID} more than said)\n"
+        )
     counts = dict(decoder.counters.as_dict())
     counts["fixes_printed"] = fixes
     counts["skies_printed"] = skies

@@ -1544,11 +1544,11 @@ GAP_REPLAY_S = 1.0  # ... but replayed as this much recorded time (s)
 class _Pacer:
     """Releases items at ``start + (t - t0) / speed`` on the wall clock (speed 0: at once).
 
-    A backward jump of the recorded time (a restarted clock) goes on without a pause; a
-    forward jump of more than :data:`MAX_GAP_S` (a receiver switched off, logs joined, a
-    clock reset to a default) is replayed as :data:`GAP_REPLAY_S`, counted in
-    :attr:`gaps` and passed to ``on_gap(t, jump_s)``: a real-time replay must not go silent
-    for hours."""
+    A backward jump of the recorded time (a restarted clock, a second session) goes on
+    without a pause and is passed to ``on_back(t, step_s)`` (``step_s`` < 0); a forward jump
+    of more than :data:`MAX_GAP_S` (a receiver switched off, logs joined, a clock reset to a
+    default) is replayed as :data:`GAP_REPLAY_S`, counted in :attr:`gaps` and passed to
+    ``on_gap(t, jump_s)``: a real-time replay must not go silent for hours."""
 
     def __init__(
         self,
@@ -1556,11 +1556,13 @@ class _Pacer:
         clock: Callable[[], float],
         sleep: Callable[[float], Any],
         on_gap: Callable[[float, float], Any] | None = None,
+        on_back: Callable[[float, float], Any] | None = None,
     ) -> None:
         self.speed = speed
         self.clock = clock
         self.sleep = sleep
         self.on_gap = on_gap
+        self.on_back = on_back
         self.gaps = 0
         self._t0: float | None = None  # recorded time of the pace origin
         self._wall0 = 0.0
@@ -1573,6 +1575,8 @@ class _Pacer:
             step = t + self._offset - self._last_t
             if step < 0:
                 self._offset -= step  # clock restarted in the recording: continue
+                if self.on_back is not None:
+                    self.on_back(t, step)
             elif step > MAX_GAP_S:
                 self._offset -= step - GAP_REPLAY_S
                 self.gaps += 1
@@ -1812,11 +1816,13 @@ def paced(
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], Any] = time.sleep,
     on_gap: Callable[[float, float], Any] | None = None,
+    on_back: Callable[[float, float], Any] | None = None,
 ) -> Iterator[tuple[float, bytes]]:
     """Yield ``chunks`` no earlier than their recorded time divided by ``speed`` (0: at once),
     counted from the first chunk; forward jumps of more than :data:`MAX_GAP_S` are shortened
-    (``on_gap(t, jump_s)`` is told)."""
-    pacer = _Pacer(_check_speed(speed), clock, sleep, on_gap)
+    (``on_gap(t, jump_s)`` is told), backward ones played on at once (``on_back(t, step_s)``
+    is told, before the chunk at ``t`` is yielded)."""
+    pacer = _Pacer(_check_speed(speed), clock, sleep, on_gap, on_back)
     for t, data in chunks:
         pacer.wait(t)
         yield t, data
