@@ -39,7 +39,7 @@ from array import array
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timedelta
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -302,6 +302,12 @@ class LogView:
     # a recording a recorder still writes (its lock held, tested before the records): drawn
     # as far as it was written, neither finished nor cut short; None when it is not
     writer: Writer | None = None
+    # a run recorded in parts whose first (or other) parts are gone (retention deletes the
+    # oldest first): their names, and the time from the run's name to the first record read
+    # (s, by the recorder's clock; None when unknown)
+    missing_parts: list[str] = field(default_factory=list)
+    run_start_utc: str = ""  # the run's start by its name, when its first part is gone
+    missing_start_s: float | None = None
 
     def time_range(self) -> tuple[float, float]:
         """The time axis: 0 to the duration, widened to any time drawn outside it (so that
@@ -344,6 +350,11 @@ class LogView:
             "cut_short": self.cut_short,
             "in_progress": self.writer is not None,
             "writer_pid": self.writer.pid if self.writer is not None else None,
+            "missing_parts": self.missing_parts,
+            "run_start_utc": self.run_start_utc,
+            "missing_start_s": (
+                None if self.missing_start_s is None else round(self.missing_start_s, 3)
+            ),
         }
 
 
@@ -355,6 +366,32 @@ def broken_at(t: np.ndarray, v: np.ndarray, cuts: Sequence[float]) -> tuple[np.n
     at = np.searchsorted(t, np.asarray(cuts, dtype=float))
     at = at[(at > 0) & (at < t.size)]
     return np.insert(t, at, np.nan), np.insert(v, at, np.nan)
+
+
+GAP_STEPS = 3.0
+GAP_MIN_S = 2.0
+"""A series' line breaks where its time steps by more than :data:`GAP_STEPS` times its median
+step and more than :data:`GAP_MIN_S` s (an outage, the recorder's gap, a pause): a line across
+the hole would show a steady change that was never measured."""
+
+
+def gap_cuts(t_s: np.ndarray) -> list[float]:
+    """The middle of each hole in a series with times ``t_s`` (in order): a step longer than
+    :data:`GAP_STEPS` times the median of its steps forward and than :data:`GAP_MIN_S`."""
+    t = t_s[np.isfinite(t_s)]
+    step = np.diff(t)
+    forward = step[step > 0]
+    if not forward.size:
+        return []
+    limit = max(GAP_STEPS * float(np.median(forward)), GAP_MIN_S)
+    at = np.flatnonzero(step > limit)
+    return ((t[at] + t[at + 1]) / 2).tolist()
+
+
+def line_cuts(t_s: np.ndarray, jumps: Sequence[TimeJump]) -> list[float]:
+    """Where a line through a series with times ``t_s`` breaks: at the log's time jumps and
+    at the series' own holes (:func:`gap_cuts`)."""
+    return [j.t_s for j in jumps] + gap_cuts(t_s)
 
 
 def _floats(a: np.ndarray, ndigits: int) -> list[float | None]:
@@ -500,6 +537,7 @@ class _Raw:
     att: _Sample = field(default_factory=lambda: _Sample(_c(0)))  # (t, magnetic bearing deg)
     n_fixes: int = 0
     n_valid: int = 0  # valid fixes with a latitude
+    first_dated: GpsFix | None = None  # the first fix with a UTC date (valid or not)
     n_skies: int = 0
     n_tel: int = 0
     nonfinite: int = 0  # positions that are NaN or infinite: skipped
@@ -512,6 +550,7 @@ class _Raw:
     t_first: float | None = None
     t_last: float = 0.0
     utc0: datetime | None = None  # wall-clock time of the log's time 0
+    recorder_utc0: datetime | None = None  # a recording's time 0 by its recorder's clock
     # a recording's: check utc0 (the recorder's t_utc) against the first dated valid fix
     clock_check: bool = False
     clock_checked: bool = False
@@ -539,6 +578,8 @@ class _Raw:
     def add_fix(self, f: GpsFix) -> None:
         """A fix, into the series that draw it."""
         self.n_fixes += 1
+        if self.first_dated is None and f.utc is not None:
+            self.first_dated = f
         if self.clock_check and not self.clock_checked and f.valid and f.utc is not None:
             self.check_clock(f)
         self.fixes.add(f)
@@ -904,7 +945,7 @@ def _read_recording(path: Path, raw: _Raw, jumps: list[TimeJump]) -> tuple[ReadS
         if raw.t_first is None:
             utc = _parse_utc(obj.get("t_utc"))
             if utc is not None:
-                raw.utc0 = utc - timedelta(seconds=t_own)
+                raw.utc0 = raw.recorder_utc0 = utc - timedelta(seconds=t_own)
         # A record's data are drawn at the record's time: the recorder stamps it with the
         # data's own time (t_s), so the two differ only where the axis moved a segment.
         t = at(t_own, part, number, line)
@@ -995,7 +1036,13 @@ def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
                 try:
                     if None in r.values() and cut:
                         raise ValueError("columns missing")  # cut: its numbers may be cut too
-                    rows.extend((float(r["t_s"]), float(r["lat"]), float(r["lon"])))
+                    row = (float(r["t_s"]), float(r["lat"]), float(r["lon"]))
+                    if out_of_range := _truth_row_problem(row):
+                        if cut:
+                            torn += 1  # the last line, cut while written
+                            continue
+                        raise ParseError(f"{path} line {reader.line_num}: {out_of_range}")
+                    rows.extend(row)
                 except (TypeError, ValueError) as exc:  # TypeError: a short row's missing value
                     if cut:
                         torn += 1  # the last line, cut while written
@@ -1011,6 +1058,56 @@ def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         raise ParseError(f"{path}: a true track needs at least two rows in time order")
     t, lat, lon = (np.ascontiguousarray(a[:, k]) for k in range(3))
     return t, lat, lon, torn
+
+
+_TRUTH_LIMITS = (("t_s", math.inf), ("lat", 90.0), ("lon", 180.0))
+"""A true track's columns and the largest magnitude each may have (degrees for lat, lon)."""
+
+
+def _truth_row_problem(row: tuple[float, float, float]) -> str:
+    """What is wrong with a true track row's numbers ("" when nothing): each must be finite,
+    lat within [-90, 90] and lon within [-180, 180] degrees."""
+    for (name, limit), v in zip(_TRUTH_LIMITS, row, strict=True):
+        if not math.isfinite(v):
+            return f"a true track needs finite numbers, got {name} {v}"
+        if abs(v) > limit:
+            return f"a true track's {name} must be within [-{limit:g}, {limit:g}] deg, got {v:g}"
+    return ""
+
+
+def _missing_parts(path: Path) -> tuple[list[str], datetime | None]:
+    """The names of a recorder's run's parts that are gone (``path``: any remaining part of a
+    run named ``x6wd-<UTC>...jsonl``; retention deletes the oldest part first), and, when its
+    first part is gone, the run's start as its name gives it (UTC, to the second)."""
+    parts = set(recording_parts(path))
+    files = [f for f in list_recordings(path.parent) if f.path in parts]
+    have = {f.part for f in files}
+    gone = [n for n in range(files[-1].part) if n not in have] if files else []
+    if not gone:
+        return [], None
+    stem = files[0].path.name.removesuffix(".jsonl").removesuffix(f".{files[0].part}")
+    names = [f"{stem}.{n}.jsonl" if n else f"{stem}.jsonl" for n in gone]
+    start = None
+    if gone[0] == 0:
+        start = datetime.strptime(files[0].run[0], "%Y%m%dT%H%M%SZ").replace(tzinfo=UTC)
+    return names, start
+
+
+def missing_parts_note(view: LogView) -> str:
+    """What the page and ``x6wd plot`` say of a run whose parts are gone ("" when none is)."""
+    if not view.missing_parts:
+        return ""
+    n = len(view.missing_parts)
+    text = f"part{'s' if n > 1 else ''} {', '.join(view.missing_parts)} gone (retention?)"
+    if view.run_start_utc:  # the first part: the run's start is not drawn
+        lost = view.missing_start_s
+        how_long = f"about {_duration(lost)}" if lost is not None else "a time unknown"
+        text += (
+            f": the run began at {view.run_start_utc} (its name), {how_long} before the first "
+            "record read, and that start is not drawn; duration and start (UTC) are those of "
+            "the parts read"
+        )
+    return text
 
 
 def default_truth(recording: Path) -> Path | None:
@@ -1030,7 +1127,7 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
         truth = default_truth(path)
     # read first (the reader keeps each series' furthest from it), said after the log's own
     # errors as before
-    torn, truth_error = 0, None
+    torn, truth_error, run_start = 0, None, None
     if truth is not None:
         try:
             *tt, torn = _read_truth(truth)
@@ -1056,24 +1153,35 @@ def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogV
             # no end record: still being written (a recorder held it), else cut short
             view.writer = writer
         view.cut_short = raw.last_event not in END_EVENTS and view.writer is None
+        view.missing_parts, run_start = _missing_parts(path)
     else:
         decoding = _Decoding(raw, _FileOrder(view.jumps))
         for t_s, data in nmea_file_chunks(path, rate_hz):
             decoding.feed(t_s, data)
         view.counts = decoding.close()
+        # time 0 dated by the first dated fix of the first segment, back along the log's
+        # time: a GGA before the first RMC (no date yet), or untimed epochs, start undated
         first_jump = view.jumps[0].t_s if view.jumps else math.inf
-        first = raw.fixes.rows()[0] if raw.n_fixes else None
-        if first is not None and first.utc is not None and first.t_s < first_jump:
-            raw.utc0 = first.utc - timedelta(seconds=first.t_s)
-    if not raw.n_fixes and not raw.n_tel:
+        dated = raw.first_dated
+        if dated is not None and dated.utc is not None and dated.t_s < first_jump:
+            raw.utc0 = dated.utc - timedelta(seconds=dated.t_s)
+    if not raw.n_fixes and not raw.n_tel and not raw.n_skies:
         raise ParseError(
-            f"{path}: no GPS fixes and no telemetry: nothing to plot (x6wd plot reads x6wd "
-            "recordings and NMEA logs)"
+            f"{path}: no GPS fixes, sky reports or telemetry: nothing to plot (x6wd plot reads"
+            " x6wd recordings and NMEA logs)"
         )
     if truth_error is not None:
         raise truth_error
     t0 = raw.t_first or 0.0
     view.duration_s = raw.t_last - t0
+    if run_start is not None:
+        view.run_start_utc = run_start.isoformat()
+    if run_start is not None and raw.recorder_utc0 is not None:
+        # the run's name is its start by the recorder's clock, to the second (rounded down)
+        missing = (raw.recorder_utc0 + timedelta(seconds=t0) - run_start).total_seconds()
+        view.missing_start_s = missing if missing >= 0 else None
+    for j in view.jumps:  # read on the log's own clock (a recording's t_mono): onto the axis
+        j.t_s, j.t_before_s, j.t_after_s = j.t_s - t0, j.t_before_s - t0, j.t_after_s - t0
     if raw.utc0 is not None:
         view.start_utc = (raw.utc0 + timedelta(seconds=t0)).isoformat()
     if raw.wall_utc0 is not None and raw.utc0 is not None:
@@ -1138,8 +1246,9 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, torn: int | None) -> N
         view.track["GPS fixes"] = (fx_e, fx_n)
     if est:
         es_e, es_n = xy(_arr(r[2] for r in est), _arr(r[3] for r in est))
-        # no line across a time jump on the map either (it would join two sessions)
-        cuts, t_est = [j.t_s for j in view.jumps], _arr(r[0] for r in est)
+        # no line across a time jump or a hole on the map either (it would join two sessions)
+        t_est = _arr(r[0] for r in est) - t0
+        cuts = line_cuts(t_est, view.jumps)
         view.track["position estimate"] = (
             broken_at(t_est, es_e, cuts)[1],
             broken_at(t_est, es_n, cuts)[1],
@@ -1159,7 +1268,7 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, torn: int | None) -> N
     if est:
         te = _arr(r[1] for r in est)
         err = np.hypot(es_e - np.interp(te, tr_t, tr_e), es_n - np.interp(te, tr_t, tr_n))
-        view.error.append(Series("position estimate", t_est - t0, err))
+        view.error.append(Series("position estimate", t_est, err))
 
 
 def _gps_quality(view: LogView, raw: _Raw, t0: float) -> None:
@@ -1507,7 +1616,7 @@ def _svg_series(
     legend = []
     for i, s in enumerate(series):
         color = COLORS[i % len(COLORS)]
-        t, v = broken_at(*_thin(s.t_s, s.v), [j.t_s for j in jumps])
+        t, v = broken_at(*_thin(s.t_s, s.v), line_cuts(s.t_s, jumps))
         if wrap:  # 359 -> 1 degree is a small turn, not a line across the panel
             cut = np.flatnonzero(np.abs(np.diff(v)) > 180.0) + 1
             t, v = np.insert(t, cut, np.nan), np.insert(v, cut, np.nan)
@@ -1765,6 +1874,8 @@ def html_page(view: LogView) -> str:
         facts.append((f"time jumps ({n_jumps(view)})", jumps_note(view)))
     if view.gaps:
         facts.append((f"recording gaps ({len(view.gaps)})", gaps_note(view)))
+    if view.missing_parts:
+        facts.append(("missing parts", missing_parts_note(view)))
     if view.cut_short:
         facts.append(("end", CUT_SHORT_NOTE))
     elif view.writer is not None:

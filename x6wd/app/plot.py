@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,13 +22,17 @@ from x6wd.app.logview import (
     STATE_COLORS,
     TITLES,
     LogView,
+    Series,
+    TimeJump,
     broken_at,
     fault_lanes,
     gaps_note,
     html_page,
     in_progress_note,
     jumps_note,
+    line_cuts,
     load,
+    missing_parts_note,
     newest_recording,
 )
 from x6wd.core.errors import ConfigError
@@ -84,14 +89,7 @@ def render_png(view: LogView, out_png: Path) -> None:
         ax.set_title(TITLES[pid], fontsize=10, loc="left")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-        drew = False
-        for i, s in enumerate(series):
-            if np.any(np.isfinite(s.v)):
-                style = "." if pid == "heading" else "-"
-                t, v = broken_at(s.t_s, s.v, cuts)  # no line across a time jump
-                ax.plot(t, v, style, ms=2, lw=1.1, color=COLORS[i % len(COLORS)], label=s.label)
-                drew = True
-        if drew:
+        if plot_series(ax, series, view.jumps, dots=pid == "heading"):
             ax.legend(fontsize=8, loc="upper right")
             if pid == "heading":
                 ax.set_ylim(0, 360)
@@ -144,6 +142,20 @@ def render_png(view: LogView, out_png: Path) -> None:
     fig.tight_layout()
     fig.savefig(out_png)
     plt.close(fig)
+
+
+def plot_series(ax: Any, series: Sequence[Series], jumps: Sequence[TimeJump], dots: bool) -> bool:
+    """``series`` drawn on matplotlib axes ``ax`` (``dots``: as points), each line broken at
+    the log's time ``jumps`` and at its own holes (:func:`x6wd.app.logview.line_cuts`); False
+    when none has a value to draw."""
+    drew = False
+    for i, s in enumerate(series):
+        if np.any(np.isfinite(s.v)):
+            t, v = broken_at(s.t_s, s.v, line_cuts(s.t_s, jumps))
+            color = COLORS[i % len(COLORS)]
+            ax.plot(t, v, "." if dots else "-", ms=2, lw=1.1, color=color, label=s.label)
+            drew = True
+    return drew
 
 
 def _jump_lines(ax: Any, view: LogView, *, label: bool) -> None:
@@ -234,6 +246,8 @@ def main(args: argparse.Namespace) -> int:
         print(f"x6wd plot: {src}: the log's time jumps: {jumps_note(view)}", file=sys.stderr)
     if view.gaps:  # the recorder lost records there: nothing of that time is in the file
         print(f"x6wd plot: {src}: recording gaps: {gaps_note(view)}", file=sys.stderr)
+    if view.missing_parts:  # retention deleted them: the run's start may not be drawn
+        print(f"x6wd plot: {src}: {missing_parts_note(view)}", file=sys.stderr)
     if view.cut_short:
         print(f"x6wd plot: {src}: {CUT_SHORT_NOTE}", file=sys.stderr)
     elif view.writer is not None:
