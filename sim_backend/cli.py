@@ -14,6 +14,7 @@ from typing import Any
 
 from sim_backend.runs import (
     ENGINES,
+    Summary,
     check_mission_geofence,
     engine_for,
     engine_note,
@@ -102,6 +103,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def uart_drop_text(summary: Summary, baud: int) -> str:
+    """The summary's line on the sentences the receiver's UART dropped (either engine's
+    summary; ``baud`` the line's, bit/s), "" when it dropped none: how many, of how many and
+    of which types, and where the robot engine counted them the fixes' delay after their
+    epoch and the valid fixes that lost their GGA."""
+    extra = summary.extra
+    dropped = extra.get("uart_dropped_sentences") or 0
+    if not dropped:
+        return ""
+    total = extra.get("uart_sentences")
+    text = f"  UART line           {baud} baud dropped {dropped:,}"
+    text += (f" of {total:,}" if total else "") + " sentences"
+    by_type = extra.get("uart_dropped_by_type") or {}
+    if by_type:
+        text += " (" + ", ".join(f"{name} {n:,}" for name, n in by_type.items()) + ")"
+    delay_s = (extra.get("fix_delay_s") or {}).get("mean")
+    if delay_s is not None:
+        text += f"; fixes {delay_s:.2f} s after their epoch on average"
+    no_gga = extra.get("fixes_without_gga") or 0
+    if no_gga:
+        text += (
+            f"; {no_gga:,} of {summary.fixes_valid:,} fixes came without their GGA (no"
+            f" satellite count: mean satellites used is of the other"
+            f" {summary.fixes_valid - no_gga:,}; their HDOP is the last GSA's received)"
+        )
+    return text + ": raise [gnss] baud or lower rate_hz"
+
+
 EXIT_REFUSED = 2
 """A scenario or mission that cannot run, refused before the run (one line on stderr, as
 every X6wdError), or a mission the robot rejected in the run (which then stops there)."""
@@ -133,6 +162,9 @@ def main(args: argparse.Namespace) -> int:
 
         summary = run_mission(world, args.out, args.seed, args.duration, progress)
     print(summary.text())
+    uart_line = uart_drop_text(summary, world.gnss.baud)
+    if uart_line:
+        print(uart_line)
     print(f"  outputs in {Path(args.out).resolve()}")
     if summary.waypoint_count == 0:
         return 0

@@ -58,7 +58,7 @@ import json
 import math
 import time
 from array import array
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime, timedelta
@@ -297,6 +297,10 @@ def run_mission(
 
     arrivals: list[dict[str, Any]] = []
     last_fix: list[tuple[GpsFix, int] | None] = [None]  # latest usable fix, its epoch tick
+    # Sentences the receiver's UART dropped, per type ("GSV": n), and the decoded fixes' delay
+    # after their epoch (s): sum, max, count.
+    uart_dropped: Counter[str] = Counter()
+    fix_delay_s = [0.0, 0.0, 0]
 
     def note_arrival(t_s: float) -> None:
         # the true position against the waypoint just reached, and the GPS's own error at that
@@ -412,7 +416,8 @@ def run_mission(
         banner = receiver.banner()
         nmea_file.write(banner)
         uart.write(banner)
-        receiver.arrivals(banner, 0.0)  # it holds the receiver's UART first, as in HIL
+        # it holds the receiver's UART first, as in HIL
+        _count_dropped(uart_dropped, banner, receiver.arrivals(banner, 0.0))
         decoder.feed(uart.read_all(), 0.0)
         s0 = vehicle.state
         h0 = cset.device_heading_deg(s0.heading_deg, s0.pitch_deg, s0.roll_deg)
@@ -440,6 +445,10 @@ def run_mission(
                 rec.record_nmea(line.rstrip(b"\r\n"), t_rx)
                 for r in decoder.feed(uart.read_all(), t_rx):
                     if type(r) is GpsFix:
+                        delay_s = t_rx - tick * dt
+                        fix_delay_s[0] += delay_s
+                        fix_delay_s[1] = max(fix_delay_s[1], delay_s)
+                        fix_delay_s[2] += 1
                         if has_usable_position(r):
                             last_fix[0] = (r, tick)
                         runner.gps_record(r)
@@ -493,8 +502,12 @@ def run_mission(
                         truth_lla.clear()
                     ll = truth_lla[antenna] = (float(lat), float(lon))
                 trace.add_epoch(k, s.east_m, s.north_m, ll[0], ll[1])
-                for t_rx, line in receiver.arrivals(burst, t):
+                dropped_before = receiver.uart.dropped
+                sent = receiver.arrivals(burst, t)
+                for t_rx, line in sent:
                     in_flight.append((t_rx, k, line))
+                if receiver.uart.dropped != dropped_before:
+                    _count_dropped(uart_dropped, burst, sent)
             if progress is not None and k % report_every == 0:
                 progress(t, total_s)
             if done_at is not None and t >= done_at + DONE_TAIL_S:
@@ -576,6 +589,18 @@ def run_mission(
             "i2c_errors_injected": injector.injected,
             "compass_stale_events": compass.counters.stale_events,
             "nmea_bytes": uart.written,
+            # what the receiver's UART could not carry (as a survey's), per sentence type, of
+            # how many it was given; the decoded fixes' delay after their epoch (s); and the
+            # valid fixes that came without their GGA (sentence dropped): those have no
+            # satellite count and the HDOP of the last GSA received, which the mean figures hold
+            "uart_dropped_sentences": receiver.uart.dropped,
+            "uart_dropped_by_type": dict(uart_dropped.most_common()),
+            "uart_sentences": receiver.uart.sent + receiver.uart.dropped,
+            "fix_delay_s": {
+                "mean": fix_delay_s[0] / fix_delay_s[2] if fix_delay_s[2] else None,
+                "max": fix_delay_s[1] if fix_delay_s[2] else None,
+            },
+            "fixes_without_gga": trace.fixes_valid - len(trace.sats),
             "decoder": decoder.counters.as_dict(),
             "fidelity": world.gnss.fidelity,
             "effects_applied": [
@@ -703,6 +728,21 @@ def _reached(ctrl: Controller, count: int) -> int:
         return count
     idx = ctrl.telemetry.waypoint_index
     return 0 if idx is None else min(idx, count)
+
+
+def _count_dropped(by_type: Counter[str], burst: bytes, sent: list[tuple[float, bytes]]) -> None:
+    """Add to ``by_type`` the sentences of ``burst`` the UART did not carry (``sent``: the
+    accepted ones, in order, as :meth:`~sim_backend.receiver.SimReceiver.arrivals` gives
+    them), counted by type: ``GSV`` for ``$GPGSV``, a proprietary address whole."""
+    by_type.update(_sentence_type(line) for line in burst.splitlines())
+    by_type.subtract(_sentence_type(line) for _t, line in sent)
+    for name in [n for n, c in by_type.items() if c <= 0]:
+        del by_type[name]
+
+
+def _sentence_type(line: bytes) -> str:
+    address = line[1:].split(b",", 1)[0].decode("ascii", "replace")
+    return address if address.startswith("P") else address[2:]
 
 
 def _note_fix(trace: _Trace, tick: int, r: GpsFix, tel: Telemetry) -> None:
