@@ -1,12 +1,16 @@
 """Round 13: epochs of an NMEA log without times (a multi-part GSV is one epoch), and
-`x6wd replay` saying where the recorded time goes back; on gpsd's real logs."""
+`x6wd replay` saying where the recorded time goes back; on gpsd's real logs. `x6wd replay`
+of a run whose first parts retention deleted says so."""
 
 from __future__ import annotations
 
 import io
+import json
 import os
+import re
 import subprocess
 import sys
+from datetime import UTC, datetime, timedelta
 from functools import reduce
 from operator import xor
 from pathlib import Path
@@ -14,8 +18,16 @@ from pathlib import Path
 import pytest
 
 from tests.test_recorder import ROOT, VirtualClock
+from x6wd.app import logview
 from x6wd.app.replay import MAX_BACKS_SAID, replay_file
-from x6wd.core.recorder import ReplayPort, _file_lines, _sentence_utc_s, nmea_file_chunks, paced
+from x6wd.core.recorder import (
+    Recorder,
+    ReplayPort,
+    _file_lines,
+    _sentence_utc_s,
+    nmea_file_chunks,
+    paced,
+)
 
 NMEA = ROOT / "tests" / "data" / "nmea"
 
@@ -123,3 +135,54 @@ def test_replay_of_many_steps_back_says_the_first_and_counts_all(tmp_path: Path)
     said = [x for x in err.getvalue().splitlines() if "goes back" in x]
     assert len(said) == MAX_BACKS_SAID + 1 and "at line 2, t=-1.000" in said[0]
     assert said[-1].endswith("goes back 30 times in all (20 more than said)")
+
+
+def _nmea_run(directory: Path, start: datetime, n: int) -> list[Path]:
+    """A daemon's run in parts (a GGA every 0.25 s, by a recorder's clock from ``start``)."""
+    now = [0.0]
+    rec = Recorder.in_dir(
+        directory, max_bytes=4_000, utc_clock=lambda: start + timedelta(seconds=now[0])
+    )
+    with rec:
+        for k in range(n):
+            now[0] = 0.25 * k
+            utc = start + timedelta(seconds=now[0])
+            body = b"GPGGA,%s,5145.1200,N,00115.4600,W,1,08,0.9,65.0,M,47.0,M,," % (
+                utc.strftime("%H%M%S.%f")[:9].encode()
+            )
+            rec.record_nmea(b"$%s*%02X" % (body, reduce(xor, body)), 5000.0 + now[0])
+        rec.record_event("shutdown", 5000.0 + now[0])
+    return list(rec.paths)
+
+
+def test_replay_of_a_run_whose_parts_retention_deleted_says_so(tmp_path: Path) -> None:
+    """Retention deletes a run's oldest part first: x6wd plot says so, x6wd replay replayed
+    from the first part left (45 s into a HIL run) as if that were the run's start, silent."""
+    start = datetime(2026, 12, 6, 10, 11, 4, 250_000, tzinfo=UTC)
+    parts = _nmea_run(tmp_path, start, 200)
+    assert len(parts) > 3 and parts[0].name == "x6wd-20261206T101104Z.jsonl"
+
+    def replay(path: Path) -> list[str]:
+        err = io.StringIO()
+        replay_file(str(path), speed=0, out=io.StringIO(), err=err)
+        return [x for x in err.getvalue().splitlines() if "gone" in x]
+
+    assert replay(tmp_path) == []  # the whole run: nothing said
+    parts[2].unlink()  # a middle part
+    assert replay(tmp_path) == [f"x6wd replay: {parts[0]}: part {parts[2].name} gone (retention?)"]
+    parts[0].unlink()  # and the first: the directory, the first part's name, the part left
+    first_utc = json.loads(parts[1].read_text().splitlines()[0])["t_utc"]
+    lost_s = (datetime.fromisoformat(first_utc) - start.replace(microsecond=0)).total_seconds()
+    assert lost_s > 5
+    for path in (tmp_path, parts[0], parts[1]):
+        (said,) = replay(path)
+        assert said.startswith(
+            f"x6wd replay: {parts[1] if path == tmp_path else path}: parts"
+            f" {parts[0].name}, {parts[2].name} gone (retention?): the run began at"
+            " 2026-12-06T10:11:04+00:00 (its name), about "
+        ), said
+        m = re.search(r"about ([0-9.]+) s before the first record read", said)
+        assert m is not None and float(m[1]) == pytest.approx(lost_s, abs=0.051), said
+    # worded as x6wd plot's line, up to what the plot draws
+    note = logview.missing_parts_note(logview.load(parts[1]))
+    assert said.split(": ", 2)[2].split(", and that start")[0] == note.split(", and that")[0]

@@ -11,6 +11,11 @@ and t goes back with it; stderr says so with the line (of a plain log) and t, th
 :data:`MAX_BACKS_SAID` one by one and then how many in all. A forward jump of more than 60 s
 is replayed as 1 s and said likewise.
 
+A run recorded in parts whose first (or other) parts retention deleted is said before it is
+played, as ``x6wd plot`` says it: the parts gone and, the first being gone, the run's start by
+its name and how long before the first record read it was (that start is not replayed). A
+directory is replayed as ``x6wd plot`` draws it: the first remaining part of its newest run.
+
 The input is read more than once (its head tells recording from log, a log's first sentence
 time is found first), so it must be a regular file: a pipe (``<(zcat log.gz)``), a FIFO or a
 device is refused before it is opened, as is a compressed file (exit 2, saying so; ``x6wd
@@ -20,11 +25,21 @@ decode`` reads those as a stream). See ``x6wd.core.recorder.is_recording``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
+from datetime import datetime
+from pathlib import Path
 from typing import Any, TextIO
 
+from x6wd.app.logview import (
+    LogView,
+    _duration,
+    _missing_parts,
+    missing_parts_note,
+    newest_recording,
+)
 from x6wd.core.errors import ParseError
 from x6wd.core.recorder import (
     GAP_REPLAY_S,
@@ -34,6 +49,8 @@ from x6wd.core.recorder import (
     nmea_chunks,
     nothing_decoded,
     paced,
+    read_recording,
+    recording_parts,
     recording_writer,
     to_jsonable,
 )
@@ -67,7 +84,10 @@ def _rate(text: str) -> float:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``x6wd replay``."""
     parser.add_argument(
-        "file", metavar="FILE", help="a flight recording (.jsonl) or NMEA log (a regular file)"
+        "file",
+        metavar="FILE",
+        help="a flight recording (.jsonl) or NMEA log (a regular file); a directory: its"
+        " newest recording",
     )
     parser.add_argument(
         "--speed",
@@ -116,6 +136,29 @@ def sky_line(sky: GpsSky) -> str:
     return f"t={sky.t_s:.3f} sky nSat={len(sky.satellites)} uSat={used} {dops}"
 
 
+def missing_parts_line(path: str) -> str:
+    """What ``x6wd replay`` says of a recording ``path`` whose run's parts retention deleted,
+    worded as ``x6wd plot`` says it (:func:`x6wd.app.logview.missing_parts_note`); "" when
+    none is gone. With the first part gone: the run's start by its name and the time from it
+    to the first record read (by the recorder's clock, as the plot measures it)."""
+    gone, run_start = _missing_parts(Path(path))
+    if not gone:
+        return ""
+    text = missing_parts_note(LogView(Path(path), "recording", missing_parts=gone))
+    if run_start is not None:
+        first = next(read_recording(recording_parts(path)[0]), None)  # dropped: file closed
+        utc = None
+        with contextlib.suppress(ValueError, TypeError):  # no t_utc: a time unknown
+            utc = datetime.fromisoformat(first.t_utc) if first is not None else None
+        lost_s = (utc - run_start).total_seconds() if utc and utc.tzinfo else -1.0
+        how_long = f"about {_duration(lost_s)}" if lost_s >= 0 else "a time unknown"
+        text += (
+            f": the run began at {run_start.isoformat()} (its name), {how_long} before the first"
+            " record read, and that start is not replayed"
+        )
+    return text
+
+
 def _emit(obj: GpsFix | GpsSky, as_json: bool, out: TextIO) -> None:
     if as_json:
         d: dict[str, Any] = {"class": "fix" if isinstance(obj, GpsFix) else "sky"}
@@ -135,16 +178,21 @@ def replay_file(
     out: TextIO | None = None,
     err: TextIO | None = None,
 ) -> dict[str, int]:
-    """Decode ``path`` through :class:`GpsDecoder`, write the reports to ``out`` (default
-    stdout) and the counts to ``err`` (default stderr); return the counts. Raises
-    :class:`ParseError` for a file that is not empty but holds nothing to decode."""
+    """Decode ``path`` (a directory: its newest run) through :class:`GpsDecoder`, write the
+    reports to ``out`` (default stdout) and the counts to ``err`` (default stderr); return
+    the counts. Raises :class:`ParseError` for a file that is not empty but holds nothing to
+    decode."""
     from drivers.gps_nmea import GpsDecoder
 
     out = sys.stdout if out is None else out
     err = sys.stderr if err is None else err
+    if Path(path).is_dir():  # as x6wd plot: the newest run in it
+        path = str(newest_recording(Path(path)))
 
     stats = ReadStats()
     recording = is_recording(path)
+    if recording and (gone := missing_parts_line(path)):
+        err.write(f"x6wd replay: {path}: {gone}\n")
     # a recorder's lock, tested before reading (after it, a run finishing in between would
     # read as cut short)
     writer_before = recording_writer(path) if recording else None
