@@ -21,6 +21,11 @@ none); ``.waypoints``, ``.csv`` and ``.plan`` files are UTF-8.
 
 Also the command-line form ``LAT,LON`` (:func:`parse_args`) and the protocol's JSON pairs
 (:func:`from_pairs`).
+
+Every number read from a file goes through :func:`to_float`: one that is not a number or is
+too large for a float (a 400-digit JSON integer) is a :class:`ParseError` naming the line or
+item, as a non-finite coordinate (``1e400``) is; messages show at most 40 characters of a
+field.
 """
 
 from __future__ import annotations
@@ -51,19 +56,39 @@ class Waypoint(NamedTuple):
     lon_deg: float
 
 
+def _shown(raw: object, limit: int = 40) -> str:
+    """``repr(raw)`` for an error message, cut to ``limit`` characters (a file's field may be
+    megabytes long, a JSON integer hundreds of digits)."""
+    try:
+        text = repr(raw)
+    except ValueError:  # an int past Python's 4300-digit str() limit
+        text = f"an integer of {raw.bit_length()} bits"  # type: ignore[attr-defined]
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
+def to_float(raw: object, what: str) -> float:
+    """``float(raw)`` of a number read from a file (a string, a JSON number): a
+    :class:`ParseError` naming ``what`` for one that is not a number, a bool, or an integer
+    too large for a float (a 400-digit JSON integer), never OverflowError. Not checked for
+    finiteness: ``float("1e400")`` is inf, the caller's to refuse or note."""
+    if isinstance(raw, bool):
+        raise ParseError(f"{what} must be a number, got {raw!r}")
+    try:
+        return float(raw)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ParseError(f"{what} is not a number: {_shown(raw)}") from None
+    except OverflowError:
+        raise ParseError(f"{what} is too large for a number: {_shown(raw)}") from None
+
+
 def make_waypoint(lat: object, lon: object, where: str = "") -> Waypoint:
     """Validate one latitude/longitude pair (degrees); ``where`` prefixes error messages."""
     prefix = f"{where}: " if where else ""
     vals: list[float] = []
     for name, raw in (("latitude", lat), ("longitude", lon)):
-        if isinstance(raw, bool):
-            raise ParseError(f"{prefix}{name} must be a number, got {raw!r}")
-        try:
-            v = float(raw)  # type: ignore[arg-type]
-        except (TypeError, ValueError):
-            raise ParseError(f"{prefix}{name} is not a number: {raw!r}") from None
+        v = to_float(raw, prefix + name)
         if not math.isfinite(v):
-            raise ParseError(f"{prefix}{name} must be finite, got {raw!r}")
+            raise ParseError(f"{prefix}{name} must be finite, got {_shown(raw)}")
         vals.append(v)
     lat_deg, lon_deg = vals
     if not -90.0 <= lat_deg <= 90.0:
@@ -489,23 +514,20 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
         for name, raw in zip(("index", "current", "frame", "command"), cols[:4], strict=True):
             try:
                 ints.append(int(raw))
-            except ValueError:
-                raise ParseError(f"{where}: {name} is not an integer: {raw!r}") from None
+            except ValueError:  # also past Python's 4300-digit limit
+                raise ParseError(f"{where}: {name} is not an integer: {_shown(raw)}") from None
         index, _current, frame, command = ints
         params: list[float] = []
         for i, raw in enumerate(cols[4:8] + cols[10:12], start=1):
-            try:
-                params.append(float(raw))
-            except ValueError:
-                name = f"param{i}" if i <= 4 else ("altitude", "autocontinue")[i - 5]
-                raise ParseError(f"{where}: {name} is not a number: {raw!r}") from None
+            name = f"param{i}" if i <= 4 else ("altitude", "autocontinue")[i - 5]
+            params.append(to_float(raw, f"{where}: {name}"))
         hold_s, accept_radius_m, _pass_radius_m, _yaw_deg, _alt_m, autocontinue = params
         if expected is None:
             # QGC writes the home as index 0 and the items from 1; a file without a home row
             # starts at 1 (in version 120, which has none, the first item is index 0)
             if index not in (0, 1):
                 raise ParseError(
-                    f"{where}: index {index}, expected 0 (the home row) or 1 (the first "
+                    f"{where}: index {_shown(index)}, expected 0 (the home row) or 1 (the first "
                     "waypoint): the items are numbered 0, 1, 2 ... in file order"
                 )
             expected = index + 1
@@ -517,7 +539,7 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
                 continue  # the home position: where the vehicle was, not a waypoint
         elif index != expected:
             raise ParseError(
-                f"{where}: index {index}, expected {expected}: the items must be numbered "
+                f"{where}: index {_shown(index)}, expected {expected}: the items must be numbered "
                 "0 (home), 1, 2 ... in the order they are driven, without gaps or repeats; "
                 "renumber them, or save the mission again from QGroundControl"
             )
@@ -537,13 +559,13 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
         # a hold or a stop would change where and when the robot waits; it never waits
         if hold_s > 0:
             raise ParseError(
-                f"{where}: hold time (param1) {cols[4]} s: x6wd does not hold at waypoints "
+                f"{where}: hold time (param1) {cols[4]:.40} s: x6wd does not hold at waypoints "
                 "(it drives on when it arrives); set param1 to 0 (Hold in QGroundControl, "
                 "Delay in Mission Planner)"
             )
         if autocontinue != 1:
             raise ParseError(
-                f"{where}: autocontinue (the last column) {cols[11]}: 0 stops the mission at "
+                f"{where}: autocontinue (the last column) {cols[11]:.40}: 0 stops the mission at "
                 "this waypoint and x6wd does not hold at waypoints (it drives on); set it to 1"
             )
         wp = make_waypoint(cols[8], cols[9], where)
@@ -556,7 +578,7 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
             )
         if accept_radius_m != 0 and not math.isnan(accept_radius_m):  # NaN: MAVLink's unset
             notes.append(
-                f"{where}: acceptance radius (param2) {cols[5]} m not used: x6wd arrives by "
+                f"{where}: acceptance radius (param2) {cols[5]:.40} m not used: x6wd arrives by "
                 "its own window from the config ([navigation] delta_x_m, delta_y_m)"
             )
         out.append(wp)
@@ -588,8 +610,8 @@ def parse_plan(text: str, source: str = "QGC plan") -> Mission:
     a note names them when the file has any."""
     try:
         doc = json.loads(text)
-    except (json.JSONDecodeError, RecursionError) as exc:
-        raise ParseError(f"{source}: not valid JSON: {exc}") from None
+    except (ValueError, RecursionError) as exc:  # ValueError: also a 4301-digit integer
+        raise ParseError(f"{source}: not valid JSON: {str(exc)[:200]}") from None
     if not isinstance(doc, dict) or doc.get("fileType") != "Plan":
         got = doc.get("fileType") if isinstance(doc, dict) else type(doc).__name__
         raise ParseError(
@@ -625,29 +647,31 @@ def parse_plan(text: str, source: str = "QGC plan") -> Mission:
             raise ParseError(f'{where}: type {kind!r}, expected "SimpleItem"')
         command, frame = item.get("command"), item.get("frame")
         if not isinstance(command, int) or isinstance(command, bool):
-            raise ParseError(f"{where}: command is not an integer: {command!r}")
+            raise ParseError(f"{where}: command is not an integer: {_shown(command)}")
         if command != MAV_CMD_NAV_WAYPOINT:
             name = _MAV_CMD_NAMES.get(command, "unknown")
             raise ParseError(
-                f"{where}: command {command} ({name}) is not supported: x6wd missions are "
-                f"NAV_WAYPOINT ({MAV_CMD_NAV_WAYPOINT}) items only"
+                f"{where}: command {_shown(command)} ({name}) is not supported: x6wd missions "
+                f"are NAV_WAYPOINT ({MAV_CMD_NAV_WAYPOINT}) items only"
             )
         if frame not in _GLOBAL_FRAMES or isinstance(frame, bool):
             raise ParseError(
-                f"{where}: frame {frame!r} is not a global latitude/longitude frame "
+                f"{where}: frame {_shown(frame)} is not a global latitude/longitude frame "
                 f"(valid: {', '.join(f'{k} {v}' for k, v in _GLOBAL_FRAMES.items())})"
             )
         params = item.get("params")
         if not isinstance(params, list) or len(params) not in (4, 7):
             raise ParseError(f"{where}: params: expected a list of 7 values, got {params!r:.60}")
-        hold_s, accept_m = params[0], params[1]
-        for name, v in (("params[0] (hold time)", hold_s), ("params[1] (acceptance radius)",
-                                                            accept_m)):  # fmt: skip
-            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))):
-                raise ParseError(f"{where}: {name} is not a number: {v!r}")
+        nums: list[float | None] = []  # hold time, acceptance radius; None: null, unset
+        for k, what in ((0, "hold time"), (1, "acceptance radius")):
+            name = f"{where}: params[{k}] ({what})"
+            if params[k] is not None and not isinstance(params[k], (int, float)):  # "5", [5]
+                raise ParseError(f"{name} is not a number: {_shown(params[k])}")
+            nums.append(None if params[k] is None else to_float(params[k], name))
+        hold_s, accept_m = nums
         if hold_s is not None and hold_s > 0:
             raise ParseError(
-                f"{where}: hold time (params[0]) {hold_s} s: x6wd does not hold at waypoints "
+                f"{where}: hold time (params[0]) {hold_s:g} s: x6wd does not hold at waypoints "
                 "(it drives on when it arrives); set Hold to 0 in QGroundControl"
             )
         if item.get("autoContinue", True) is not True:
@@ -670,7 +694,7 @@ def parse_plan(text: str, source: str = "QGC plan") -> Mission:
             )
         if accept_m is not None and accept_m != 0 and math.isfinite(accept_m):
             notes.append(
-                f"{where}: acceptance radius (params[1]) {accept_m} m not used: x6wd arrives by "
+                f"{where}: acceptance radius (params[1]) {accept_m:g} m not used: x6wd arrives by "
                 "its own window from the config ([navigation] delta_x_m, delta_y_m)"
             )
         out.append(wp)

@@ -1069,10 +1069,16 @@ class ConsoleServer:
                 f"{', '.join(PARSERS)} or null (guessed from the content)",
                 "bad_argument",
             )
+        name = str(req.get("name") or "mission")
         try:
-            wps = parse_content(text, fmt or None, str(req.get("name") or "mission"))
+            wps = parse_content(text, fmt or None, name)
         except ParseError as exc:
             return error_reply(rid, "bad_request", str(exc), "bad_mission")
+        except Exception as exc:  # a file the reader chokes on must not end the operator's link
+            log.exception("console: mission.parse of %.80s failed", name)
+            return error_reply(
+                rid, "bad_request", f"{name:.80}: cannot be read: {exc!s:.200}", "bad_mission"
+            )
         reply = {"id": rid, "ok": True, "waypoints": [[w.lat_deg, w.lon_deg] for w in wps]}
         notes = getattr(wps, "notes", None)  # what the file held but x6wd won't use
         return {**reply, "notes": list(notes)} if notes else reply

@@ -1,0 +1,152 @@
+"""Mission files, round 13's audit: numbers too large for a float, and inputs that are not
+regular files.
+
+A .plan (JSON) integer of 400 digits made ``float()`` raise OverflowError: a traceback and
+exit 1 from ``x6wd mission``, ``x6wd client load`` and ``x6wd sim``, and a closed WebSocket
+in the console's "Load file..." (``mission.parse``). Now every number read from a file goes
+through ``to_float`` (a ParseError naming the item) and messages show at most 40 characters
+of a field.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import pytest
+
+from tests.test_console import console_config, daemon_with, ws_to
+from x6wd.app import cli
+from x6wd.core import mission_files
+from x6wd.core.errors import ParseError
+from x6wd.core.mission_files import (
+    from_pairs,
+    parse_csv,
+    parse_gpx,
+    parse_kml,
+    parse_plan,
+    parse_wpl,
+)
+
+BIG = int("1" * 400)  # a JSON integer no float holds
+
+
+def _plan(params: list[object] | None = None, home: list[object] | None = None) -> str:
+    item = {
+        "type": "SimpleItem", "command": 16, "frame": 3, "autoContinue": True,
+        "params": params or [0, 0, 0, None, 51.7521, -1.2578, 0],
+    }  # fmt: skip
+    mission = {"items": [item], "plannedHomePosition": home or [51.752, -1.258, 60]}
+    return json.dumps({"fileType": "Plan", "mission": mission})
+
+
+@pytest.mark.parametrize(
+    ("params", "named"),
+    [
+        ([0, 0, 0, None, BIG, -1.2578, 0], "mission item 1: latitude is too large"),
+        ([0, 0, 0, None, 51.7521, -BIG, 0], "mission item 1: longitude is too large"),
+        ([0, BIG, 0, None, 51.7521, -1.2578, 0], "item 1: params[1] (acceptance radius) is too"),
+        ([BIG, 0, 0, None, 51.7521, -1.2578, 0], "item 1: params[0] (hold time) is too large"),
+    ],
+)
+def test_a_plan_integer_too_large_for_a_float_is_refused_naming_the_item(
+    params: list[object], named: str
+) -> None:
+    with pytest.raises(
+        ParseError, match=r"too large for a number: -?1111.*\(40[01] characters\)"
+    ) as e:
+        parse_plan(_plan(params), "m.plan")
+    assert named in str(e.value) and len(str(e.value)) < 200, e.value
+
+
+def test_a_plan_home_too_large_for_a_float_is_a_note_as_any_bad_home() -> None:
+    m = parse_plan(_plan(home=[BIG, 0, 0]), "m.plan")
+    assert len(m) == 1 and m.home is None
+    assert any("plannedHomePosition: latitude is too large" in n for n in m.notes), m.notes
+
+
+def test_a_json_integer_past_pythons_digit_limit_is_not_valid_json() -> None:
+    text = _plan().replace("51.7521", "1" * 5000)  # json.loads: ValueError, not JSONDecodeError
+    with pytest.raises(ParseError, match=r"m\.plan: not valid JSON: Exceeds the limit"):
+        parse_plan(text, "m.plan")
+
+
+def test_the_protocols_pairs_with_a_huge_integer_are_refused() -> None:
+    with pytest.raises(ParseError, match=r"wps\[0\]: latitude is too large for a number"):
+        from_pairs([[BIG, 0.0]], "wps")
+
+
+def test_text_formats_with_1e400_or_huge_digit_strings_are_refused_in_short() -> None:
+    huge = "1" * 100_000  # float() reads it as inf: refused as not finite, shown cut
+    cases = [
+        (parse_csv, f"51.5,-1.2\n{huge},-1.2\n", "line 2: latitude must be finite"),
+        (parse_csv, "lat,lon\n51.5,1e400\n", "line 2: longitude must be finite, got '1e400'"),
+        (parse_gpx, f'<gpx><wpt lat="{huge}" lon="0"/></gpx>', "<wpt> #1: latitude must be"),
+        (
+            parse_kml,
+            f"<kml><Placemark><Point><coordinates>1e400,{huge}</coordinates></Point></Placemark></kml>",
+            "coordinate 1: latitude must be finite",
+        ),
+        (
+            parse_wpl,
+            f"QGC WPL 110\n{huge}\t0\t3\t16\t0\t0\t0\t0\t51\t-1\t0\t1\n",
+            "index is not an",
+        ),
+        (parse_wpl, f"QGC WPL 110\n1\t0\t3\t16\t{huge}\t0\t0\t0\t51\t-1\t0\t1\n", "hold time"),
+        (parse_wpl, "QGC WPL 110\n1\t0\t3\t16\t0\t0\t0\t0\t51\t1e400\t0\t1\n", "must be finite"),
+    ]
+    for parse, text, named in cases:
+        with pytest.raises(ParseError) as e:
+            parse(text, "m")
+        assert named in str(e.value) and len(str(e.value)) < 300, (parse.__name__, e.value)
+
+
+def test_x6wd_mission_show_of_a_huge_integer_plan_is_one_line_and_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "big.plan"
+    path.write_text(_plan([0, 0, 0, None, 51.7521, BIG, 0]))
+    assert cli.main(["mission", "show", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "big.plan mission item 1: longitude is too large" in err
+
+
+@pytest.mark.integration
+def test_the_consoles_mission_parse_of_a_huge_integer_replies_and_keeps_the_link(
+    tmp_path: Path,
+) -> None:
+    async def program(r) -> None:  # type: ignore[no-untyped-def]
+        async with ws_to(r) as w:
+            text = _plan([0, 0, 0, None, 51.7521, BIG, 0])
+            reply = await w.request("mission.parse", content=text, format="plan", name="b.plan")
+            assert not reply["ok"] and reply["error"]["reason"] == "bad_mission", reply
+            assert "b.plan mission item 1: longitude is too large" in reply["error"]["message"]
+            assert (await w.request("status"))["ok"]  # the same link still answers
+
+    with daemon_with(console_config(tmp_path)) as r:
+        asyncio.run(program(r))
+
+
+@pytest.mark.integration
+def test_the_consoles_mission_parse_survives_a_reader_that_raises(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Defence in depth: any exception from a reader is an error reply, not a closed link
+    (the reader here is made to raise what the .plan reader raised before round 13)."""
+
+    def broken(text: str, source: str) -> mission_files.Mission:
+        raise OverflowError("int too large to convert to float")
+
+    monkeypatch.setitem(mission_files.PARSERS, "csv", broken)
+
+    async def program(r) -> None:  # type: ignore[no-untyped-def]
+        async with ws_to(r) as w:
+            reply = await w.request("mission.parse", content="51,-1\n", format="csv", name="m")
+            assert (
+                reply["error"]["message"] == "m: cannot be read: int too large to convert to float"
+            )
+            assert (await w.request("status"))["ok"]
+
+    with daemon_with(console_config(tmp_path)) as r:
+        asyncio.run(program(r))
