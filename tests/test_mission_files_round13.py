@@ -5,23 +5,32 @@ A .plan (JSON) integer of 400 digits made ``float()`` raise OverflowError: a tra
 exit 1 from ``x6wd mission``, ``x6wd client load`` and ``x6wd sim``, and a closed WebSocket
 in the console's "Load file..." (``mission.parse``). Now every number read from a file goes
 through ``to_float`` (a ParseError naming the item) and messages show at most 40 characters
-of a field.
+of a field. ``load_file`` reads any input at most 8 MiB + 1 byte (a pipe such as
+``<(zcat m.csv.gz)`` is read, ``/dev/zero`` or a 100 MB pipe refused at the limit) and never
+waits for a FIFO's writer.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import ROOT
 from tests.test_console import console_config, daemon_with, ws_to
 from x6wd.app import cli
 from x6wd.core import mission_files
 from x6wd.core.errors import ParseError
 from x6wd.core.mission_files import (
     from_pairs,
+    load_file,
+    parse_content,
     parse_csv,
     parse_gpx,
     parse_kml,
@@ -150,3 +159,63 @@ def test_the_consoles_mission_parse_survives_a_reader_that_raises(
 
     with daemon_with(console_config(tmp_path)) as r:
         asyncio.run(program(r))
+
+
+# -- inputs that are not regular files ---------------------------------------------------------
+
+
+def test_a_fifo_without_a_writer_is_refused_at_once(tmp_path: Path) -> None:
+    fifo = tmp_path / "m.csv"
+    os.mkfifo(fifo)
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [sys.executable, "-m", "x6wd", "mission", "show", str(fifo)],
+        capture_output=True, text=True, timeout=30, cwd=ROOT,
+    )  # fmt: skip
+    assert r.returncode == 2 and "no writer has it open" in r.stderr, r.stderr
+    assert r.stderr.count("\n") == 1 and time.monotonic() - t0 < 20
+
+
+def test_a_fifo_whose_writer_waits_is_read(tmp_path: Path) -> None:
+    fifo = tmp_path / "m.csv"
+    os.mkfifo(fifo)
+    writer = subprocess.Popen(["sh", "-c", f"printf '51.5,-1.2\\n51.6,-1.2\\n' > '{fifo}'"])
+    try:
+        time.sleep(0.3)  # the writer is in open(), waiting for a reader
+        assert load_file(fifo) == [(51.5, -1.2), (51.6, -1.2)]
+    finally:
+        writer.wait(10)
+
+
+def _pipe_of(data_bytes: int) -> subprocess.Popen[bytes]:
+    """A writer of ``data_bytes`` of CSV rows into a pipe (its read end: ``.stdout``)."""
+    rows = f"(b'51.5,-1.2\\n' * {data_bytes // 10 + 1})[:{data_bytes}]"
+    code = f"import sys; sys.stdout.buffer.write({rows})"
+    return subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL
+    )
+
+
+def test_a_pipe_is_read_and_capped_at_the_limit() -> None:
+    small = _pipe_of(40)
+    try:  # as <(printf ...) or /dev/stdin: read once
+        assert len(load_file(f"/dev/fd/{small.stdout.fileno()}", "csv")) == 4  # type: ignore[union-attr]
+    finally:
+        small.stdout.close()  # type: ignore[union-attr]
+        small.wait(10)
+    big = _pipe_of(20 * 1024 * 1024)  # before: read whole (a 100 MB one took 3.8 GB)
+    try:
+        with pytest.raises(ParseError, match=r"/dev/fd/\d+: larger than 8388608 bytes"):
+            load_file(f"/dev/fd/{big.stdout.fileno()}", "csv")  # type: ignore[union-attr]
+    finally:
+        big.stdout.close()  # type: ignore[union-attr]
+        big.wait(10)
+
+
+def test_a_regular_file_over_the_limit_is_refused_and_under_it_read(tmp_path: Path) -> None:
+    path = tmp_path / "m.csv"
+    path.write_text("51.5,-1.2\n" * 10)
+    assert len(load_file(path, max_bytes=100)) == 10
+    with pytest.raises(ParseError, match=r"m\.csv: larger than 99 bytes"):
+        load_file(path, max_bytes=99)
+    assert parse_content("51.5,-1.2\n") == [(51.5, -1.2)]

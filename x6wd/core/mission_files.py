@@ -25,7 +25,10 @@ Also the command-line form ``LAT,LON`` (:func:`parse_args`) and the protocol's J
 Every number read from a file goes through :func:`to_float`: one that is not a number or is
 too large for a float (a 400-digit JSON integer) is a :class:`ParseError` naming the line or
 item, as a non-finite coordinate (``1e400``) is; messages show at most 40 characters of a
-field.
+field. :func:`load_file` reads at most :data:`MAX_FILE_BYTES` (8 MiB) of any input, once: a
+regular file, a pipe (``--from csv <(zcat m.csv.gz)``, ``/dev/stdin``) or a device
+(``/dev/zero`` is refused at the limit); a FIFO that no writer has open is refused at once,
+never waited for.
 """
 
 from __future__ import annotations
@@ -35,7 +38,9 @@ import csv
 import io
 import json
 import math
+import os
 import re
+import stat
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Iterable, Sequence
 from decimal import Decimal
@@ -984,16 +989,54 @@ def format_content(waypoints: Sequence[Waypoint], fmt: str) -> str:
     return writer(waypoints)
 
 
-def load_file(
-    path: str | Path, fmt: str | None = None, max_bytes: int = 8 * 1024 * 1024
-) -> Mission:
-    """Read a mission file; its format from ``fmt`` or else its extension (:data:`PARSERS`)."""
+MAX_FILE_BYTES = 8 * 1024 * 1024
+"""Most a mission file (or pipe) may hold: 10 000 waypoints are well under 1 MiB."""
+
+
+def read_capped(path: str | Path, max_bytes: int = MAX_FILE_BYTES) -> bytes:
+    """A mission file's bytes, at most ``max_bytes`` (a :class:`ParseError` beyond, read no
+    further than one byte past it). Anything that can be opened is read once, as a stream:
+    a regular file, a pipe (``<(zcat mission.csv.gz)``, ``/dev/stdin``), a device
+    (``/dev/zero`` is refused after ``max_bytes``). A FIFO is read only if a writer has it
+    open already: one without a writer is refused at once, never waited for. OSError from
+    opening or reading."""
+    p = Path(path)
+    fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK)  # (a FIFO without a writer: no wait here)
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISREG(st.st_mode) and st.st_size > max_bytes:
+            raise ParseError(f"{p}: larger than {max_bytes} bytes")
+        chunks: list[bytes] = []
+        if stat.S_ISFIFO(st.st_mode):
+            try:
+                chunks.append(os.read(fd, 1 << 16))
+            except BlockingIOError:  # a writer has it open, and has not written yet
+                pass
+            else:
+                if not chunks[0]:  # end of file at once: no writer has it open
+                    raise ParseError(
+                        f"{p}: a pipe or FIFO with nothing to read: no writer has it open "
+                        "(x6wd does not wait for one: start the writer first)"
+                    )
+        os.set_blocking(fd, True)
+        size = sum(map(len, chunks))
+        while size <= max_bytes and (chunk := os.read(fd, min(1 << 20, max_bytes + 1 - size))):
+            chunks.append(chunk)
+            size += len(chunk)
+        if size > max_bytes:
+            raise ParseError(f"{p}: larger than {max_bytes} bytes")
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
+
+
+def load_file(path: str | Path, fmt: str | None = None, max_bytes: int = MAX_FILE_BYTES) -> Mission:
+    """Read a mission file (:func:`read_capped`: at most ``max_bytes``, a pipe too); its
+    format from ``fmt`` or else its extension (:data:`PARSERS`)."""
     p = Path(path)
     kind = format_of(p, fmt)
     try:
-        if p.stat().st_size > max_bytes:
-            raise ParseError(f"{p}: larger than {max_bytes} bytes")
-        data = p.read_bytes()
+        data = read_capped(p, max_bytes)
     except OSError as exc:
         raise ParseError(f"{p}: cannot read: {exc.strerror or exc}") from None
     if kind in ("gpx", "kml"):  # XML names its encoding
