@@ -51,7 +51,10 @@ lost (status, one WARNING at most a minute) and it is written again, at most onc
 (:meth:`ReceiverSetup.lost`). Whether configured or not, :class:`FixRate` measures the rate the
 fixes actually arrive at (falling to 0 while the GPS is silent) and, when it is well under the
 rate the staleness limits were checked against (``gps.rate_hz``), says so in status and in a
-WARNING each time it falls: fixes then go stale between epochs and the robot holds.
+WARNING each time it falls: fixes then go stale between epochs and the robot holds; and
+:class:`LineLoad` measures how full a UART's line is (bytes read against baud / 10 per
+second): a receiver that prints more than the line carries makes every fix late, which status
+and a WARNING then say (the slow-rate text names the line when it is the cause).
 
 Note that pyserial's ``socket://`` handler discards whatever arrived before ``open()``
 returned; a streaming receiver loses nothing but part of one sentence.
@@ -84,6 +87,7 @@ from drivers.gps_nmea import (
     cfg_rate,
     parse_ack,
 )
+from x6wd.core.config import NMEA_FIX_BUDGET_B
 from x6wd.core.errors import ConfigError, ParseError, X6wdError, is_transient
 from x6wd.core.health import HealthTracker, root_oserror
 from x6wd.core.records import DeviceHealth, DeviceState, GpsFix, GpsSky, HealthEvent
@@ -270,16 +274,31 @@ _CFG_RATE = (UBX_CLASS_CFG, UBX_ID_CFG_RATE)
 
 DEFAULT_BAUD = 9600
 """The line rate assumed when the port does not say (a NEO-5's default, the Pi UART's)."""
-NMEA_BUDGET_B = {"RMC": 75, "GGA": 77, "GSA": 66, "GSV": 280}
+NMEA_BUDGET_B = {**NMEA_FIX_BUDGET_B, "GSA": 66, "GSV": 280}
 """The most bytes each sentence (GSV: the whole group) takes on the line, for the line budget
-of :func:`neo5_setup`: RMC with course 75, GGA 77, GSA with 12 satellites used 66, GSV of 16
-satellites in view (the NEO-5's 16 channels) 4 sentences of up to 70. The simulated NEO-5
+of :func:`neo5_setup` (and :func:`fix_line_short`): RMC with course 75, GGA 77, GSA with 12
+satellites used 66, GSV of 16 satellites in view (the NEO-5's 16 channels) 4 sentences of up
+to 70. The simulated NEO-5
 prints RMC 73-74, GGA 74, GSA 50-58 and GSV 183-195 (3 sentences, 12 satellites)."""
 
 
 def line_bytes_per_epoch(rate_hz: float, baud: int = DEFAULT_BAUD) -> float:
     """Bytes the line carries (8N1) between two epochs at ``rate_hz``."""
     return baud / 10.0 / rate_hz
+
+
+def fix_line_short(rate_hz: float, baud: int) -> str | None:
+    """Why an epoch of ``baud`` (8N1) at ``rate_hz`` cannot carry RMC + GGA, the sentences
+    every fix needs (:data:`NMEA_FIX_BUDGET_B`), in words; None when it can. Each fix then
+    queues behind the last one's and arrives ever later (4 Hz at 4800 baud: ~2 s)."""
+    need_b = sum(NMEA_FIX_BUDGET_B.values())
+    room_b = line_bytes_per_epoch(rate_hz, baud)
+    if room_b >= need_b:
+        return None
+    return (
+        f"{baud} baud at {rate_hz:g} Hz carries {room_b:.0f} bytes an epoch, under the "
+        f"{need_b} of RMC + GGA that every fix needs"
+    )
 
 
 def neo5_setup(rate_hz: float, baud: int = DEFAULT_BAUD) -> list[tuple[str, bytes]]:
@@ -392,13 +411,27 @@ class ReceiverSetup:
         self.not_kept: str | None = None  # the receiver does not keep its setup, in words
         self._loss_kind: str | None = None  # the last loss's kind (lost(): backing off)
         self._repeats = 0  # losses of that kind in a row, each soon after the setup was taken
+        self.line_short: str | None = None  # the line cannot carry RMC + GGA at rate_hz
 
     def use_baud(self, baud: object) -> None:
         """The line rate of the port just opened (pyserial's ``baudrate``; anything but a
         positive int, a socket's none: :data:`DEFAULT_BAUD`): the sentences are chosen for
-        it (:func:`neo5_setup`)."""
+        it (:func:`neo5_setup`). A line too slow for RMC + GGA at the rate asked
+        (:func:`fix_line_short`; the configuration refuses what it knows of: a ``sim://``
+        GPS at its scenario's baud is known only now) is one WARNING per baud and shows in
+        :attr:`line_short`."""
         b = baud if isinstance(baud, int) and not isinstance(baud, bool) and baud > 0 else None
         b = DEFAULT_BAUD if b is None else b
+        short = fix_line_short(self.rate_hz, b)
+        if short is not None:
+            short = (
+                f"{short}: gps.rate_hz = {self.rate_hz:g} Hz (gps.configure_receiver = true) "
+                "makes each fix wait behind the last one's sentences and arrive late, "
+                "sentences lost; lower gps.rate_hz or raise the line's baud rate"
+            )
+            if short != self.line_short:
+                log.warning("GPS: %s", short)
+        self.line_short = short
         if b != self.baud:
             self.baud = b
             self.messages = neo5_setup(self.rate_hz, b)
@@ -597,6 +630,125 @@ class ReceiverSetup:
         if self.not_kept is not None:
             out["not_kept"] = self.not_kept
             out["resend_s"] = self.resend_s
+        if self.line_short is not None:
+            out["line_short"] = self.line_short
+        return out
+
+
+LINE_WINDOW_S = 5.0
+"""The span (s) the line's load is measured over (:class:`LineLoad`)."""
+LINE_MIN_S = 2.0
+"""The least time (s) after an open before the line's load is measured."""
+LINE_FULL_RATIO = 0.9
+"""A line carrying at least this fraction of what its baud rate can (8N1: baud / 10 bytes/s)
+is full (:class:`LineLoad`): the receiver prints more than it carries. A NEO-5 with
+:func:`neo5_setup`'s sentences at 4 Hz on 9600 baud loads it 0.7; its defaults at 1 Hz 0.5."""
+LINE_CLEAR_RATIO = 0.8
+"""A full line is no longer full under this fraction (no WARNING again for a load that
+wavers about :data:`LINE_FULL_RATIO`)."""
+
+
+class LineLoad:
+    """How full the receiver's serial line is: the bytes read over the last
+    :data:`LINE_WINDOW_S` against the ``baud / 10`` bytes/s the line carries (8N1).
+
+    The reader calls :meth:`restart` after each open (``baud`` None: a port whose line rate
+    is not known, a socket or a replay: nothing is measured), :meth:`add` with each read (the
+    first after an open is what waited in the port: not counted) and :meth:`tick` each poll.
+    :attr:`load` is the fraction; :attr:`full` says, while it is at least
+    :data:`LINE_FULL_RATIO` (until under :data:`LINE_CLEAR_RATIO`), that the receiver prints
+    more than the line carries: each fix then waits behind the sentences before it and
+    arrives late, or sentences are lost (4 Hz at 9600 baud with a NEO-5's default sentences:
+    every fix ~0.9 s late). A WARNING each time it becomes full, naming ``rate_key`` and
+    ``baud_key`` (the settings to change).
+
+    The load, not the fix's latency: a fix's arrival against its UTC time of day needs a
+    system clock set to GPS time, which the robot's Pi (no RTC, often no network) and
+    hardware in the loop (the scenario's own date and time) do not have; a full line is what
+    makes the fixes late, and its load needs only the baud rate."""
+
+    def __init__(
+        self,
+        rate_key: str = "gps.rate_hz",
+        baud_key: str = "the receiver's, in u-center, and gps.url's baud",
+    ) -> None:
+        self.rate_key, self.baud_key = rate_key, baud_key
+        self.baud: int | None = None
+        self._reads: deque[tuple[float, int]] = deque()
+        self._bytes = 0  # the sum of _reads' sizes
+        self._t_open = 0.0
+        self._first = True  # the next read is the first since the open
+        self.bytes_per_s: float | None = None
+        self.load: float | None = None
+        self.full: str | None = None
+        self._warned = False  # warned, and the load not cleared since
+
+    def restart(self, baud: int | None, t_s: float) -> None:
+        """A port opened at ``t_s`` on a line of ``baud`` (None: not measured)."""
+        self.baud = baud
+        self._reads.clear()
+        self._bytes = 0
+        self._t_open, self._first = t_s, True
+        self.bytes_per_s = self.load = self.full = None
+
+    def add(self, n_bytes: int, t_s: float) -> None:
+        """``n_bytes`` read at ``t_s``."""
+        if self.baud is None:
+            return
+        if self._first:  # the backlog the port held at the open
+            self._first = False
+            return
+        self._reads.append((t_s, n_bytes))
+        self._bytes += n_bytes
+
+    def tick(self, t_s: float) -> None:
+        """The load at ``t_s`` (and :attr:`full`, and its WARNING)."""
+        if self.baud is None:
+            return
+        span_s = min(LINE_WINDOW_S, t_s - self._t_open)
+        if span_s < LINE_MIN_S:
+            return
+        reads = self._reads
+        while reads and reads[0][0] <= t_s - LINE_WINDOW_S:
+            self._bytes -= reads.popleft()[1]
+        capacity = self.baud / 10.0
+        self.bytes_per_s = self._bytes / span_s
+        self.load = self.bytes_per_s / capacity
+        if self.load < LINE_CLEAR_RATIO:
+            self.full, self._warned = None, False
+        if self.load < LINE_FULL_RATIO:
+            return
+        self.full = (
+            f"the line is full ({self.used()}, the last {span_s:.0f} s): the receiver prints "
+            "more than the line carries, so each fix waits behind the sentences before it and "
+            "arrives late (stamped at arrival: its position that much old), or sentences are "
+            f"lost; raise the baud rate ({self.baud_key}), send fewer sentences "
+            f"(gps.configure_receiver = true sends those that fit), or lower {self.rate_key}"
+        )
+        if not self._warned:
+            self._warned = True
+            log.warning("GPS: %s", self.full)
+
+    def used(self) -> str:
+        """The load in words: ``"949 of the 960 bytes/s that 9600 baud carries"``."""
+        return (
+            f"{self.bytes_per_s or 0:.0f} of the {(self.baud or 0) / 10:.0f} bytes/s that "
+            f"{self.baud} baud carries"
+        )
+
+    def status(self) -> dict[str, Any]:
+        """JSON-ready: ``line`` (baud, bytes/s, load) once measured, ``line_full`` when full."""
+        if self.baud is None or self.load is None or self.bytes_per_s is None:
+            return {}
+        out: dict[str, Any] = {
+            "line": {
+                "baud": self.baud,
+                "bytes_per_s": round(self.bytes_per_s),
+                "load": round(self.load, 2),
+            }
+        }
+        if self.full is not None:
+            out["line_full"] = self.full
         return out
 
 
@@ -610,11 +762,15 @@ class FixRate:
     it falls while the GPS is silent, and fixes older than :data:`RATE_HORIZON_S` no longer
     count (none left: 0 Hz). :attr:`slow` when it is under :data:`SLOW_RATE_RATIO` of the
     expected rate: fixes then go stale between epochs. A WARNING each time the rate becomes
-    slow having been met (or at the first measurement), not again while it stays slow."""
+    slow having been met (or at the first measurement), not again while it stays slow. With
+    a :attr:`line` (the reader's :class:`LineLoad`) the text says when the line is the cause
+    (too slow for RMC + GGA at the expected rate, or full), and the WARNING waits for the
+    line's first measurement."""
 
     def __init__(self, expected_hz: float | None, expected_key: str = "gps.rate_hz") -> None:
         self.expected_hz = expected_hz
         self.expected_key = expected_key
+        self.line: LineLoad | None = None
         self._times: deque[float] = deque(maxlen=RATE_WINDOW)
         self._measuring = False  # 5 fixes since the restart
         self._last_fix_t: float | None = None
@@ -676,6 +832,18 @@ class FixRate:
             f"fixes go stale between epochs and the robot holds; set the receiver's rate "
             f"(gps.configure_receiver = true, or u-center) or lower {self.expected_key}"
         )
+        line = self.line
+        if line is not None and line.baud is not None:
+            short = fix_line_short(want, line.baud)
+            if short is not None:
+                self.slow += f"; the line is the cause: {short} (raise {line.baud_key})"
+            elif line.full is not None:
+                self.slow += (
+                    f"; the line may be the cause: it is full ({line.used()}): raise the baud "
+                    f"rate ({line.baud_key}) or send fewer sentences"
+                )
+            elif line.load is None:
+                return  # its first measurement, for the WARNING, comes within seconds
         if not self._slow_warned:
             self._slow_warned = True
             log.warning("GPS: %s", self.slow)
@@ -688,20 +856,35 @@ class FixRate:
         }
         if self.slow is not None:
             out["slow"] = self.slow
+        if self.line is not None:
+            out.update(self.line.status())
         return out
 
 
 def _direct_fd(port: object) -> int | None:
     """The descriptor to read directly: only for pyserial's own POSIX ``Serial`` class (not
     a subclass, a wrapper or another URL handler, whose ``read`` may do more), open."""
+    port = _posix_serial(port)
+    fd = getattr(port, "fd", None)
+    return fd if isinstance(fd, int) and fd >= 0 else None
+
+
+def _line_baud(port: object) -> int | None:
+    """The baud rate of a UART (or pty) opened by pyserial's own POSIX ``Serial``; None for
+    anything else (a ``socket://`` port says 9600 of a network stream)."""
+    baud = getattr(_posix_serial(port), "baudrate", None)
+    return baud if isinstance(baud, int) and baud > 0 else None
+
+
+def _posix_serial(port: object) -> object:
+    """``port`` when it is pyserial's own POSIX ``Serial`` and open, else None."""
     try:
         from serial import serialposix
     except ImportError:  # not POSIX, or no pyserial
         return None
     if type(port) is not serialposix.Serial or not getattr(port, "is_open", False):
         return None
-    fd = getattr(port, "fd", None)
-    return fd if isinstance(fd, int) and fd >= 0 else None
+    return port
 
 
 class PortLike(Protocol):
@@ -726,7 +909,9 @@ class GpsReader:
     :class:`WeekRolloverCorrection` for a live receiver's dates (the daemon's), or None.
     ``setup``: a :class:`ReceiverSetup` written after every open (its bytes after
     ``init_bytes``) and told the answers. ``expected_rate_hz``: the fix rate the
-    configuration promises, for :attr:`fix_rate` (None: measured, never judged).
+    configuration promises, for :attr:`fix_rate` (None: measured, never judged), set by
+    ``expected_rate_key``; ``baud_key``: the setting of the line's baud rate, both named
+    when the fixes come too slowly or the line is full (:attr:`line_load`).
     """
 
     def __init__(
@@ -746,6 +931,8 @@ class GpsReader:
         week_rollover: WeekRolloverCorrection | None = None,
         setup: ReceiverSetup | None = None,
         expected_rate_hz: float | None = None,
+        expected_rate_key: str = "gps.rate_hz",
+        baud_key: str = "the receiver's, in u-center, and gps.url's baud",
     ) -> None:
         if not stale_s > 0:
             raise ConfigError(f"GpsReader stale_s must be > 0 s, got {stale_s!r}")
@@ -770,8 +957,11 @@ class GpsReader:
         self.decoder = decoder if decoder is not None else GpsDecoder()
         self.init_bytes = init_bytes
         self.setup = setup
-        self.fix_rate = FixRate(expected_rate_hz)
+        self.fix_rate = FixRate(expected_rate_hz, expected_rate_key)
         """The rate fixes arrive at (measured anew after each open and each CFG-RATE taken)."""
+        self.line_load = LineLoad(expected_rate_key, baud_key)
+        """How full the receiver's line is (a UART or pty only), measured anew after each open."""
+        self.fix_rate.line = self.line_load
         self._read_max = read_max
         self.transient_limit = transient_limit
         self.retry_delay_s = retry_delay_s
@@ -817,6 +1007,7 @@ class GpsReader:
             # Staleness by time, once per poll: the health never waits for a caller to ask.
             now = self._clock()
             self._tracker.check(now)
+            self.line_load.tick(now)
             self.fix_rate.tick(now)
             setup = self.setup
             if setup is not None:
@@ -923,6 +1114,7 @@ class GpsReader:
         else:
             self._tracker.opened(now)
         self.fix_rate.restart()
+        self.line_load.restart(_line_baud(port), now)
         if self.setup is not None:  # the sentences that fit this line (neo5_setup)
             self.setup.use_baud(getattr(port, "baudrate", None))
         self._write_setup(port, now)
@@ -992,6 +1184,7 @@ class GpsReader:
             return None
         t_s = self._clock()
         self._transient_run = 0
+        self.line_load.add(len(data), t_s)
         if not self._data_since_open:
             self._data_since_open = True
             self._backoff_s = self.backoff_initial_s  # the port works: a break starts anew

@@ -66,7 +66,7 @@ from x6wd.app.console import ConsoleServer
 from x6wd.app.gpsd import GpsdServer
 from x6wd.app.notify import Notifier
 from x6wd.app.server import ControlServer, server_ssl_context
-from x6wd.core.config import Config, check_plaintext, plaintext_binds
+from x6wd.core.config import Config, check_gps_line, check_plaintext, plaintext_binds
 from x6wd.core.config import load as load_config
 from x6wd.core.errors import CommandError, ConfigError, DeviceUnavailable, X6wdError
 from x6wd.core.geodesy import great_circle_m
@@ -1158,6 +1158,9 @@ class Daemon:
         if self.devices is None:
             self.devices = registry.Devices(cfg)
         self._missing = {}
+        with contextlib.suppress(registry.UrlError):  # (a bad URL: named below)
+            if registry.parse_url(cfg.gps.url, "gps").scheme == "serial":  # the rate fits it
+                check_gps_line(cfg, registry.device_path(cfg.gps.url)[1])
         for key, url, kind in devices:
             try:
                 self.devices.check(url, kind)  # a sim:// URL: also the [sim] world's settings
@@ -1434,13 +1437,22 @@ class Daemon:
         # the fix rate is measured against the one the staleness limits were checked at (not
         # for a replay, which plays at its own times)
         configure = cfg.gps.configure_receiver and live
-        expected_hz = cfg.gps.rate_hz if configure or scheme != "sim" else cfg.sim.gps_rate_hz
+        sim_rate = not configure and scheme == "sim"  # the simulated receiver's own rate
+        expected_hz = cfg.sim.gps_rate_hz if sim_rate else cfg.gps.rate_hz
         self._gps_reader = GpsReader(
             self._open_gps_port,
             stale_s=cfg.gps.stale_s,
             week_rollover=WeekRolloverCorrection() if live else None,
             setup=ReceiverSetup(cfg.gps.rate_hz) if configure else None,
             expected_rate_hz=expected_hz if live else None,
+            expected_rate_key="sim.gps_rate_hz" if sim_rate else "gps.rate_hz",
+            baud_key=(
+                "the receiver's, in u-center, and gps.url's baud"
+                if scheme != "sim"
+                else "sim.gps_baud"
+                if cfg.sim.gps_baud
+                else "the scenario's [gnss] baud, or sim.gps_baud"
+            ),
         )
 
     def _open_gps_port(self) -> Any:
@@ -2413,7 +2425,9 @@ def _gps_device(url: str, rate_hz: float, world: Any = None) -> tuple[str, int |
     not a serial line) and its cycle (s between fixes). A ``serial://`` URL: its device and
     ``baud``, and ``[gps] rate_hz``; ``sim://`` with its ``world``: the simulated receiver's
     pty, baud rate and rate (``[sim] gps_baud``, ``gps_rate_hz``); ``replay://``: the file
-    at the URL's ``rate``; anything else (``tcp://``): the URL, no baud rate."""
+    at ``[gps] rate_hz`` (a log plays at its own times, those of the receiver it was recorded
+    from; the URL's ``rate``, where it is not the default 1, paces a log without times);
+    anything else (``tcp://``): the URL, no baud rate."""
     from drivers import registry
 
     try:
@@ -2426,8 +2440,10 @@ def _gps_device(url: str, rate_hz: float, world: Any = None) -> tuple[str, int |
     if dev.scheme == "sim" and world is not None:
         rx = world.receiver
         return str(world.uart.port_name), int(rx.baud), 1.0 / float(rx.rate_hz)
-    if dev.scheme == "replay":
-        return dev.target, None, 1.0 / float(dev.options["rate"])
+    if dev.scheme == "replay":  # the URL's rate, where it is not the default, paces it
+        url_hz = float(dev.options["rate"])
+        given = url_hz != registry.DEFAULTS["gps"]["replay"]["rate"]
+        return dev.target, None, 1.0 / (url_hz if given else rate_hz)
     return url, None, 1.0 / rate_hz
 
 

@@ -53,6 +53,59 @@ class GpsConfig:
 
 NEO5_MAX_RATE_HZ = 4.0
 """The u-blox NEO-5's fastest navigation rate (CFG-RATE 250 ms)."""
+NEO5_BAUDS = (4800, 9600, 19200, 38400, 57600, 115200)
+"""The baud rates a u-blox NEO-5's UART runs at (the simulated receiver's, a scenario's [gnss]
+baud, alike): ``[sim] gps_baud``, and ``gps.url``'s baud where the daemon configures the
+receiver (another receiver, not configured, may run at any standard rate)."""
+NMEA_FIX_BUDGET_B = {"RMC": 75, "GGA": 77}
+"""The most bytes each sentence a fix needs takes on the line (RMC with course, GGA): an
+epoch's line (baud / 10 / rate bytes, 8N1) must carry at least these, or every fix arrives
+later than the one before (``drivers.gps_io.NMEA_BUDGET_B`` adds GSA and GSV)."""
+
+
+def check_gps_line(cfg: Config, url_baud: int | None = None) -> None:
+    """With ``gps.configure_receiver = true`` the daemon asks the receiver for ``gps.rate_hz``
+    on a line whose baud it knows: ``url_baud``, a ``serial://`` GPS's (the device registry
+    takes the URL apart: the daemon passes it at start-up), or a ``sim://`` GPS's ``[sim]
+    gps_baud`` when set (checked with the configuration). A ConfigError when the url's baud
+    is not a NEO-5's (:data:`NEO5_BAUDS`), or when an epoch's line cannot carry RMC + GGA
+    (:data:`NMEA_FIX_BUDGET_B`): each fix would queue behind the last and arrive ever later
+    (4 Hz at 4800 baud: 120 bytes an epoch for 152, fixes ~2 s late, a GGA in 4 lost)."""
+    gps = cfg.gps
+    if not gps.configure_receiver:
+        return  # the receiver's rate and sentences are not the daemon's: checked at run time
+    if url_baud is not None:
+        baud = url_baud
+        key, fix = (
+            f"gps.url's baud={baud}",
+            "raise the baud rate (the receiver's, in u-center, and the url's)",
+        )
+        if baud not in NEO5_BAUDS:
+            raise ConfigError(
+                f"gps.url: baud={baud} with gps.configure_receiver = true: the NEO-5 the daemon "
+                f"configures runs at {', '.join(map(str, NEO5_BAUDS))} baud; set the "
+                "receiver's baud rate (u-center) and the url's baud to one of them, or "
+                "configure_receiver = false for another receiver"
+            )
+    elif gps.url.strip().lower().startswith("sim:") and cfg.sim.gps_baud is not None:
+        baud, key, fix = (
+            cfg.sim.gps_baud,
+            f"sim.gps_baud = {cfg.sim.gps_baud}",
+            "raise sim.gps_baud",
+        )
+    else:
+        return  # tcp://, replay://, or the scenario's baud: told at run time if it is short
+    need_b = sum(NMEA_FIX_BUDGET_B.values())
+    room_b = baud / 10.0 / gps.rate_hz
+    if room_b < need_b:
+        most_hz = math.floor(baud / 10.0 / need_b * 10.0) / 10.0
+        raise ConfigError(
+            f"gps.rate_hz: {gps.rate_hz:g} Hz on a {baud}-baud line ({key}) leaves "
+            f"{room_b:.0f} bytes an epoch, under the {need_b} of RMC + GGA that every fix "
+            "needs (gps.configure_receiver = true would ask for it): each fix would wait "
+            "behind the last and arrive late, sentences lost; lower gps.rate_hz to "
+            f"{most_hz:g} Hz or less, or {fix}"
+        )
 
 
 @dataclass(frozen=True)
@@ -433,7 +486,8 @@ class SimConfig:
     origin_alt_m: float | None = field(default=None, metadata=_rng(-500, 9000))
     start_heading_deg: float | None = field(default=None, metadata=_rng(0, 360))
     gps_rate_hz: float | None = field(default=None, metadata=_rng(1, 4))
-    gps_baud: int | None = field(default=None, metadata=_rng(4800, 921600))
+    # one of a NEO-5's (NEO5_BAUDS), as the scenario's [gnss] baud
+    gps_baud: int | None = field(default=None, metadata={"choices": NEO5_BAUDS})
     physics_hz: float = field(default=50.0, metadata=_rng(5, 1000))
     v_max_mps: float | None = field(default=None, metadata=_rng(0.1, 3.888))
     motor_tau_s: float | None = field(default=None, metadata=_rng(0, 10))
@@ -465,6 +519,7 @@ class Config:
         gps_rate = _gps_rate(self)
         check_stale_vs_rate("safety.fix_stale_s", self.safety.fix_stale_s, *gps_rate)
         check_stale_vs_rate("gps.stale_s", self.gps.stale_s, *gps_rate)  # the reader's own
+        check_gps_line(self)
         rate_hz = self.compass.rate_hz
         compass_rate = (rate_hz, f"compass.rate_hz = {rate_hz:g} Hz")
         check_stale_vs_rate("safety.attitude_stale_s", self.safety.attitude_stale_s, *compass_rate)
