@@ -186,3 +186,108 @@ def test_replay_of_a_run_whose_parts_retention_deleted_says_so(tmp_path: Path) -
     # worded as x6wd plot's line, up to what the plot draws
     note = logview.missing_parts_note(logview.load(parts[1]))
     assert said.split(": ", 2)[2].split(", and that start")[0] == note.split(", and that")[0]
+
+
+def _count(log: Path, sentence: bytes) -> int:
+    return sum(1 for x in log.read_bytes().splitlines() if x.lstrip(b"$")[2:5] == sentence)
+
+
+@pytest.mark.parametrize(
+    ("name", "per_epoch", "before_first"),
+    [
+        # $$-doubled sentences, GNGSA twice per system (1,3,4,1,3,4), $PSTM... banners; it
+        # starts with the sky of an epoch before the first RMC's (a restart between): +1
+        ("st-teseo-liv4f.log", b"RMC", 1),
+        ("ublox-zed-f9p_hpg1.11.log", b"GGA", 0),  # RMC on late; UBX binary holding "$"
+        ("ublox-lea-4h.log", b"RMC", 0),
+        ("ublox-lea-5q.log", b"RMC", 0),
+        ("triton400.log", b"RMC", 0),
+    ],
+)
+def test_untimed_epochs_of_more_real_logs(
+    name: str, per_epoch: bytes, before_first: int, tmp_path: Path
+) -> None:
+    """Times removed, the ST Teseo's 12 epochs were 175 ($$GNGSA read as "$GNGS": no system
+    id, each part of a GSV an epoch; the second GNGSA,1 and each $PSTMVER a new epoch)."""
+    log = NMEA / name
+    assert _epochs(_untimed(log, tmp_path / name)) == _count(log, per_epoch) + before_first
+
+
+def test_teseo_sky_only_replays_over_its_epochs(tmp_path: Path) -> None:
+    """docs/logview.md's example (GSA and GSV only) of the ST Teseo log: replay --sky
+    stamped t up to 159 s for its 12 s."""
+    log = tmp_path / "teseo_sky.log"
+    lines = (NMEA / "st-teseo-liv4f.log").read_bytes().splitlines(keepends=True)
+    log.write_bytes(b"".join(x for x in lines if x[:1] == b"$" and (b"GSA" in x or b"GSV" in x)))
+    out = io.StringIO()
+    replay_file(str(log), speed=0, sky=True, out=out, err=io.StringIO())
+    times = [float(x.split()[0][2:]) for x in out.getvalue().splitlines()]
+    assert times[-1] == 12.0 and len(set(times)) == 13
+
+
+def test_untimed_epochs_by_kind_of_receiver(tmp_path: Path) -> None:
+    """An epoch ends where a sentence comes again after another type: not in a run of one
+    type (GSA per system twice), not at a proprietary sentence; a log of one type alone
+    (GSV only) still ends an epoch at each repeat, and a GPGSA right after itself does."""
+
+    def epochs(*bodies: str) -> list[float]:
+        log = tmp_path / "u.nmea"
+        lines = (x.encode() for x in bodies)
+        log.write_bytes(b"".join(b"$%s*%02X\r\n" % (x, reduce(xor, x)) for x in lines))
+        return [t for t, _ in nmea_file_chunks(log)]
+
+    gsa = [f"GNGSA,A,3,01,,,,,,,,,,,,2.5,1.7,1.8,{s}" for s in (1, 3, 4, 1, 3, 4)]
+    epoch = [*gsa, "GPGSV,1,1,01,16,71,196,27,1", "PSTMVER,1", "PUBX,00", "GNVTG,1,T,,M,0,N,0,K,A"]
+    assert epochs(*epoch, *epoch, *epoch) == [0.0] * 10 + [1.0] * 10 + [2.0] * 10
+    assert epochs(*("$" + x for x in epoch), *("$" + x for x in epoch)) == [0.0] * 10 + [1.0] * 10
+    gsv = ["GPGSV,1,1,01,16,71,196,27", "GLGSV,1,1,01,70,71,196,27"]
+    assert epochs(*gsv, *gsv, *gsv) == [0, 0, 1, 1, 2, 2]
+    assert epochs("GPGSA,A,1", "GPGSV,1,1,00", "GPGSA,A,1", "GPGSA,A,1") == [0, 0, 1, 2]
+
+
+def test_replay_of_a_cr_cr_lf_log_names_the_files_line(tmp_path: Path) -> None:
+    """Each CR was a line end: bt451's step back on line 112 was said at line 223."""
+    log = tmp_path / "bt451_crcrlf.log"
+    log.write_bytes(
+        (NMEA / "bt451.log").read_bytes().replace(b"\r\n", b"\n").replace(b"\n", b"\r\r\n")
+    )
+    assert log.read_bytes().count(b"\n") == 156
+    err = io.StringIO()
+    replay_file(str(log), speed=0, out=io.StringIO(), err=err)
+    assert "goes back 3122.5 s at line 112, t=-3118.500" in err.getvalue(), err.getvalue()
+    with open(log, "rb") as f:
+        assert [x[-3:] for x in _file_lines(f)] == [b"\r\r\n"] * 156  # one line each
+
+
+def test_file_lines_across_blocks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """CR CR LF cut anywhere by the blocks read is one line end; a CR alone still ends one."""
+    import x6wd.core.recorder as recorder
+
+    lines = [b"a\r\r\n", b"b\r", b"c\r\n", b"d\n", b"\r\r\n", b"e\r"]
+    for block in range(1, 6):
+        monkeypatch.setattr(recorder, "_BLOCK_BYTES", block)
+        assert list(_file_lines(io.BytesIO(b"".join(lines)))) == lines
+
+
+def test_replay_at_speed_0_says_forward_jumps_too() -> None:
+    """gp-320fw's cold boot log jumps 4 h 25 min forward at line 48 (x6wd plot says so): at
+    --speed 0 replay said its steps back only."""
+    err = io.StringIO()
+    replay_file(str(NMEA / "gp-320fw-2019-04-07-coldboot.log"), speed=0, out=io.StringIO(), err=err)
+    said = [x for x in err.getvalue().splitlines() if "forward" in x]
+    assert said == [
+        "x6wd replay: the recorded time jumps 15877 s forward at line 48, t=-231.030",
+        "x6wd replay: the recorded time jumps 254 s forward at line 73, t=29.970",
+    ]
+
+
+def test_replay_of_many_forward_jumps_says_the_first_and_counts_all(tmp_path: Path) -> None:
+    """A fix every 2 min: each a jump of over 60 s, said at most MAX_BACKS_SAID times."""
+    log = tmp_path / "slow.nmea"
+    bodies = [b"GPGGA,12%02d00.00,,,,,0,00,99.99,,,,,," % m for m in range(0, 60, 2)]
+    log.write_bytes(b"".join(b"$%s*%02X\r\n" % (x, reduce(xor, x)) for x in bodies))
+    err = io.StringIO()
+    replay_file(str(log), speed=0, out=io.StringIO(), err=err)
+    said = [x for x in err.getvalue().splitlines() if "forward" in x]
+    assert len(said) == MAX_BACKS_SAID + 1 and "jumps 120 s forward at line 2, t=120.000" in said[0]
+    assert said[-1].endswith("jumps forward 29 times in all (19 more than said)")

@@ -9,7 +9,8 @@ seconds since the first sentence time for plain NMEA logs (in a log without any,
 back (a second session in the file, a restarted clock) the replay plays on without a pause
 and t goes back with it; stderr says so with the line (of a plain log) and t, the first
 :data:`MAX_BACKS_SAID` one by one and then how many in all. A forward jump of more than 60 s
-is replayed as 1 s and said likewise.
+is replayed as 1 s and said likewise, at any speed (``--speed 0`` included). A plain log's
+line is as ``grep -n`` counts it (a CR CR LF ends one line), or a CR alone's.
 
 A run recorded in parts whose first (or other) parts retention deleted is said before it is
 played, as ``x6wd plot`` says it: the parts gone and, the first being gone, the run's start by
@@ -106,8 +107,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 MAX_BACKS_SAID = 10
-"""Steps back of the recorded time said one by one on stderr; more are counted (a log of
-epochs out of order steps back every other epoch)."""
+"""Steps back of the recorded time said one by one on stderr, and as many forward jumps;
+more are counted (a log of epochs out of order steps back every other epoch)."""
 
 
 def fix_line(fix: GpsFix) -> str:
@@ -201,29 +202,30 @@ def replay_file(
     t_last = 0.0
     size = InputSize()
 
-    played = backs = 0  # chunks played (a plain log's are its lines); steps back in time
+    played = 0  # chunks played (a plain log's are its lines)
+    jumps = {"goes back": 0, "jumps forward": 0}  # the recorded time's steps back, jumps
+
+    def say(how: str, text: str) -> None:
+        jumps[how] += 1
+        if jumps[how] <= MAX_BACKS_SAID:
+            err.write(f"x6wd replay: the recorded time {text}\n")
 
     def where(t_s: float) -> str:  # told before chunk ``played + 1`` is played
         return f"at {'' if recording else f'line {played + 1}, '}t={t_s:.3f}"
 
-    def on_gap(t_s: float, jump_s: float) -> None:
-        err.write(
-            f"x6wd replay: the recorded time jumps {jump_s:.0f} s forward {where(t_s)}:"
-            f" not waited out (replayed as {GAP_REPLAY_S:g} s)\n"
-        )
+    def on_gap(t_s: float, jump_s: float) -> None:  # said at any speed, as a step back is
+        paced_how = f": not waited out (replayed as {GAP_REPLAY_S:g} s)" if speed else ""
+        say("jumps forward", f"jumps {jump_s:.0f} s forward {where(t_s)}{paced_how}")
 
     def on_back(t_s: float, step_s: float) -> None:
-        nonlocal backs
-        backs += 1
-        if backs <= MAX_BACKS_SAID:
-            err.write(
-                f"x6wd replay: the recorded time goes back {-step_s:.1f} s {where(t_s)} (another"
-                " session or a restarted clock): played on without a pause; t goes back with"
-                " it\n"
-            )
+        say(
+            "goes back",
+            f"goes back {-step_s:.1f} s {where(t_s)} (another session or a restarted clock):"
+            " played on without a pause; t goes back with it",
+        )
 
     chunks = nmea_chunks(path, rate_hz=rate_hz, stats=stats)
-    for t_s, data in paced(chunks, speed, on_gap=on_gap if speed else None, on_back=on_back):
+    for t_s, data in paced(chunks, speed, on_gap=on_gap, on_back=on_back):
         played += 1
         t_last = t_s
         size.add(data)
@@ -239,11 +241,12 @@ def replay_file(
         if isinstance(rec, GpsFix):
             fixes += 1
             _emit(rec, as_json, out)
-    if backs > MAX_BACKS_SAID:
-        err.write(
-            f"x6wd replay: the recorded time goes back {backs} times in all"
-            f" ({backs - MAX_BACKS_SAID} more than said)\n"
-        )
+    for how, n in jumps.items():
+        if n > MAX_BACKS_SAID:
+            err.write(
+                f"x6wd replay: the recorded time {how} {n} times in all"
+                f" ({n - MAX_BACKS_SAID} more than said)\n"
+            )
     counts = dict(decoder.counters.as_dict())
     counts["fixes_printed"] = fixes
     counts["skies_printed"] = skies

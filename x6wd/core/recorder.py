@@ -74,7 +74,7 @@ import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
-from itertools import chain
+from itertools import chain, islice
 from operator import attrgetter
 from pathlib import Path
 from typing import IO, Any, BinaryIO
@@ -1655,8 +1655,8 @@ def nmea_file_chunks(
     first such time (earlier lines get 0). Successive times are taken to be within 12 h of
     each other, so the day wraps at midnight both ways: a receiver whose clock restarts from
     a default just before midnight steps back minutes, not on a day. In a file without any
-    UTC time, an epoch ends whenever a sentence type repeats (the parts of a multi-part GSV
-    are one; see :func:`_epoch_key`) and epochs are ``1/rate_hz`` s apart. Raises
+    UTC time, an epoch ends where a sentence type comes again (the parts of a multi-part GSV
+    are one; see :func:`_untimed_epochs`) and epochs are ``1/rate_hz`` s apart. Raises
     :class:`DeviceUnavailable` if the file cannot be opened.
     """
     if not (rate_hz > 0 and math.isfinite(rate_hz)):
@@ -1672,15 +1672,21 @@ _BLOCK_BYTES = 1 << 16
 _MAX_LINE_BYTES = 1 << 20  # a longer run without a line end (binary) is passed on in pieces
 
 
+_LINE = re.compile(rb"[^\r\n]*(?:\r*\n|\r)")  # CR+ LF is one line end (a Windows logger's CR CR LF)
+
+
 def _file_lines(f: BinaryIO) -> Iterator[bytes]:
-    """The lines of ``f`` from where it is, ends kept, split at LF, CR or CRLF (as
-    ``bytes.splitlines``; some receivers end sentences with CR alone), read by blocks."""
+    """The lines of ``f`` from where it is, ends kept, read by blocks: split at LF, at CRs
+    then LF (CRLF; CR CR LF, a Windows text-mode logger's: one line, as ``wc -l`` counts)
+    and at a CR alone (some receivers end sentences with CR alone)."""
     carry = b""
     while block := f.read(_BLOCK_BYTES):
-        lines = (carry + block).splitlines(keepends=True)
-        carry = lines.pop()
-        if carry.endswith(b"\n") or len(carry) > _MAX_LINE_BYTES:
-            lines.append(carry)  # a complete line (a lone CR may yet be a CRLF's first half)
+        buf = carry + block
+        # the block's last CRs may yet be followed by an LF: kept with their line
+        lines = _LINE.findall(buf, 0, len(buf.rstrip(b"\r")))
+        carry = buf[sum(map(len, lines)) :]
+        if len(carry) > _MAX_LINE_BYTES:
+            lines.append(carry)
             carry = b""
         yield from lines
     if carry:
@@ -1747,37 +1753,64 @@ def _nmea_lines_timed(f: BinaryIO, rate_hz: float) -> Iterator[tuple[float, byte
                     current = t
                 yield current - first, line
             return
-        seen: set[bytes] = set()
-        epoch, last = 0, b""
-        for line in lines:
-            key = _epoch_key(line)
-            # a GN (all-systems) GSA comes once per system, back to back (NMEA 4.0: no system id)
-            if key and key in seen and not (key == last and key == b"GNGSA"):
+        yield from _untimed_epochs(lines, rate_hz)
+
+
+_TYPES_HEAD_LINES = 1000  # an untimed log's head that tells one sentence type from several
+
+
+def _untimed_epochs(lines: Iterator[bytes], rate_hz: float) -> Iterator[tuple[float, bytes]]:
+    """Times of a log without any: an epoch ends where a sentence's :func:`_epoch_key` comes
+    again after a sentence of another type, or right after itself; not in a run of one type
+    in between (a ST Teseo's GSAs: twice per system, 1,3,4,1,3,4) nor a GNGSA after a GNGSA
+    (a u-blox 8's: one per system without its id). A log of one type alone (its first
+    lines tell) has no other type between: there any repeat ends the epoch (a GNGSA's
+    right after itself still not)."""
+    head = list(islice(lines, _TYPES_HEAD_LINES))
+    by_run = len({k[2:5] for k in map(_epoch_key, head) if k}) > 1
+    seen: dict[bytes, int] = {}  # key -> the run (of one type) it came first in this epoch
+    epoch = run = 0
+    last = b""
+    for line in chain(head, lines):
+        key = _epoch_key(line)
+        if key:
+            if key[2:5] != last[2:5]:
+                run += 1
+            # back to back: a new epoch but for a GNGSA (one per system, NMEA 4.0: no id)
+            if key in seen and (key != b"GNGSA" if key == last else not by_run or seen[key] != run):
                 epoch += 1
                 seen.clear()
-            if key:
-                seen.add(key)
-                last = key
-            yield epoch / rate_hz, line
+            seen.setdefault(key, run)
+            last = key
+        yield epoch / rate_hz, line
 
 
 _MULTIPART = (b"GSV", b"RTE")  # fields 1 and 2: the group's parts, this part's number
+_ADDRESS = re.compile(rb"[A-Z0-9]{5}[,*]")  # a sentence's talker and type, then its fields
 
 
 def _epoch_key(line: bytes) -> bytes | None:
     """What a sentence repeats as from one epoch to the next in a log without times: its type
     (b"" for no sentence); a GSA's with its system id and a GSV's with its signal id (NMEA
     4.10 sends one of each per system or signal and epoch). None for what does not: part 2
-    on of a multi-part group (GSV, RTE: in the epoch of its part 1) and TXT (a notice sent
-    any time, a start-up banner several at once, a long one in parts)."""
+    on of a multi-part group (GSV, RTE: in the epoch of its part 1), TXT (a notice sent
+    any time, a start-up banner several at once, a long one in parts) and a proprietary
+    ``$P...`` (a ST Teseo's ``$PSTMVER`` banner, anything at any time); b"" also for a
+    ``$`` not followed by a talker and type (binary, a comment). A doubled ``$`` (a ST
+    Teseo's ``$$GNGSA``) is one, as the decoder reads it."""
     start = line.find(b"$")
-    kind = line[start + 1 : start + 6] if start >= 0 else b""
+    body = line[start:].lstrip(b"$") if start >= 0 else b""
+    if body[:1] == b"P":
+        return None
+    if not _ADDRESS.match(body):
+        return b""  # a "$" in binary (UBX) or a comment
+    kind = body[:5]
     tail = kind[2:]
     if tail == b"TXT":
         return None
     if tail not in _MULTIPART and tail != b"GSA":
         return kind
-    fields = line[start + 1 :].split(b"*", 1)[0].split(b",")
+    fields = body.split(b"*", 1)[0].split(b",")
     if tail == b"GSA":
         return kind + b"," + fields[18].strip() if len(fields) > 18 else kind
     part = fields[2].strip() if len(fields) > 2 else b""
