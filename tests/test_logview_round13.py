@@ -238,3 +238,35 @@ def test_a_recordings_time_jump_is_on_its_own_axis(tmp_path: Path) -> None:
     marks = re.findall(r'class="time-jump" x1="([\d.]+)"', _svg(page, "heading"))
     assert len(marks) == 1 and 56 < float(marks[0]) < 900 - 16
     assert len(re.findall(r"<polyline", _svg(page, "heading"))) == 2
+
+
+@pytest.mark.parametrize(
+    ("row", "said"),
+    [
+        ("2,51.75,180.00001", "lon must be within [-180, 180] deg, got 180.00001"),
+        ("2,-90.0000003,-1.2", "lat must be within [-90, 90] deg, got -90.0000003"),
+    ],
+)
+def test_a_true_track_value_just_out_of_range_is_said_as_written(
+    row: str, said: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Printed with {:g}, 180.00001 read "got 180": a value in range, refused."""
+    rec_path = tmp_path / "r.jsonl"
+    with Recorder(rec_path) as rec:
+        _short_run(rec, 0.0, 10)
+    truth = tmp_path / "mine.csv"
+    truth.write_text(f"t_s,lat,lon\n0,51.0,-1.0\n1,51.0,-1.0\n{row}\n3,51.0,-1.0\n")
+    argv = ["plot", str(rec_path), "--truth", str(truth), "--out", str(tmp_path)]
+    assert cli_main([*argv, "--format", "html"]) == 2
+    err = capsys.readouterr().err
+    assert f"mine.csv line 4: a true track's {said}\n" in err, err
+
+
+def test_a_plot_of_a_cr_cr_lf_log_names_the_files_line(tmp_path: Path) -> None:
+    """A Windows text-mode logger writes CR CR LF: each CR was a line end, so bt451's step
+    back on line 112 was said at line 223 (of a 156-line file)."""
+    log = tmp_path / "bt451_crcrlf.log"
+    data = (NMEA / "bt451.log").read_bytes().replace(b"\r\n", b"\n")
+    log.write_bytes(data.replace(b"\n", b"\r\r\n"))
+    (jump,) = logview.load(log).jumps
+    assert jump.line == 112 == logview.load(NMEA / "bt451.log").jumps[0].line

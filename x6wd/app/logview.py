@@ -1036,8 +1036,9 @@ def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
                 try:
                     if None in r.values() and cut:
                         raise ValueError("columns missing")  # cut: its numbers may be cut too
-                    row = (float(r["t_s"]), float(r["lat"]), float(r["lon"]))
-                    if out_of_range := _truth_row_problem(row):
+                    text = (r["t_s"], r["lat"], r["lon"])
+                    row = (float(text[0]), float(text[1]), float(text[2]))
+                    if out_of_range := _truth_row_problem(row, text):
                         if cut:
                             torn += 1  # the last line, cut while written
                             continue
@@ -1064,14 +1065,18 @@ _TRUTH_LIMITS = (("t_s", math.inf), ("lat", 90.0), ("lon", 180.0))
 """A true track's columns and the largest magnitude each may have (degrees for lat, lon)."""
 
 
-def _truth_row_problem(row: tuple[float, float, float]) -> str:
+def _truth_row_problem(row: tuple[float, float, float], text: tuple[str, str, str]) -> str:
     """What is wrong with a true track row's numbers ("" when nothing): each must be finite,
-    lat within [-90, 90] and lon within [-180, 180] degrees."""
-    for (name, limit), v in zip(_TRUTH_LIMITS, row, strict=True):
+    lat within [-90, 90] and lon within [-180, 180] degrees. ``text``: the row's numbers as
+    written, as said (180.00001 is not "180")."""
+    for (name, limit), v, written in zip(_TRUTH_LIMITS, row, text, strict=True):
         if not math.isfinite(v):
-            return f"a true track needs finite numbers, got {name} {v}"
+            return f"a true track needs finite numbers, got {name} {written.strip()}"
         if abs(v) > limit:
-            return f"a true track's {name} must be within [-{limit:g}, {limit:g}] deg, got {v:g}"
+            return (
+                f"a true track's {name} must be within [-{limit:g}, {limit:g}] deg,"
+                f" got {written.strip()}"
+            )
     return ""
 
 
