@@ -46,7 +46,8 @@ on the part it writes, from when it opens it until :meth:`Recorder.close` (a new
 locked before the last one is let go; while a part waits to be opened again after a disk
 failure its lock is let go, so that the card can be unmounted), and notes that part in this
 process (:func:`recording_writer` sees it even where the file system has no ``flock``).
-Readers test the lock (:func:`recording_writer`) before reading: held, and no end record
+Readers test the lock (:func:`recording_writer`: the run's two newest parts, the older
+first, so that a rotation under the test is seen) before reading: held, and no end record
 read, the recording is in progress, not cut short. A crash, ``kill -9`` or a power cut ends
 the process and the kernel lets the lock go, so such a recording still reads as cut short.
 A file system without ``flock`` (an error) records as before, unmarked.
@@ -392,6 +393,13 @@ _LOCK_TRIES = 20
 """Attempts (5 ms apart) at a part's exclusive lock: a reader's test holds a shared one for
 a moment; a part still refused after them is written unmarked (logged)."""
 
+_HOLDER_TRIES = 3
+"""Tests (1 ms apart) of a part's lock found held whose holder ``/proc/locks`` does not
+show: the lock was let go just then (a rotation), or the holder cannot be told (not Linux)."""
+
+_ROTATION_TRIES = 5
+"""Rounds of :func:`recording_writer`'s tests while newer parts keep appearing."""
+
 # (st_dev, st_ino) of the parts this process's recorders write now -> how many hold each
 _WRITING: dict[tuple[int, int], int] = {}
 _WRITING_LOCK = threading.Lock()
@@ -531,13 +539,19 @@ def part_writer(path: str | os.PathLike[str]) -> Writer | None:
             here = _file_key(st) in _WRITING
         if here:
             return Writer(os.getpid(), True)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return Writer(_lock_holder(st), False)
-        except OSError:  # no flock on this file system: cannot tell
+        for attempt in range(_HOLDER_TRIES):
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                pid = _lock_holder(st)
+                if pid is not None or attempt + 1 == _HOLDER_TRIES:
+                    return Writer(pid, False)
+                time.sleep(0.001)  # let go after the test (a rotation)? tested again
+                continue
+            except OSError:  # no flock on this file system: cannot tell
+                return None
+            fcntl.flock(fd, fcntl.LOCK_UN)
             return None
-        fcntl.flock(fd, fcntl.LOCK_UN)
         return None
     finally:
         os.close(fd)
@@ -545,11 +559,22 @@ def part_writer(path: str | os.PathLike[str]) -> Writer | None:
 
 def recording_writer(path: str | os.PathLike[str]) -> Writer | None:
     """The :class:`Writer` of the recording whose part is ``path`` (any part: its run's
-    parts are looked at as they are now) while a recorder still writes it, else None. The
-    lock is on the run's last part, or, for the moment a rotation takes, the one before."""
-    for part in reversed(recording_parts(path)[-2:]):
-        if (w := part_writer(part)) is not None:
-            return w
+    parts are looked at as they are now) while a recorder still writes it, else None.
+
+    The lock is on the run's last part, or, for the moment a rotation takes, the one before:
+    a rotation creates the new part, locks it, then lets the previous one go. So the two
+    newest parts are tested oldest first (the older found free, the newer was locked by
+    then), and tested again while a newer part appeared meanwhile (a rotation between the
+    listing and the tests)."""
+    parts = recording_parts(path)[-2:]
+    for _ in range(_ROTATION_TRIES):
+        for part in parts:
+            if (w := part_writer(part)) is not None:
+                return w
+        newest = recording_parts(path)[-2:]
+        if not newest or newest[-1] == parts[-1]:
+            return None  # no part newer than those found free: not being written
+        parts = newest
     return None
 
 
