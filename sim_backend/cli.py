@@ -7,6 +7,7 @@ engine never loads the robot's code (see :mod:`sim_backend.survey`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -20,7 +21,12 @@ from sim_backend.runs import (
     engine_note,
     sky_warnings,
 )
-from sim_backend.world import MAX_DURATION_S, load_world, with_robot_config
+from sim_backend.world import MAX_DURATION_S, GnssSettings, load_world, with_robot_config
+
+MIN_GNSS_RATE_HZ: float = next(
+    f.metadata["min"] for f in dataclasses.fields(GnssSettings) if f.name == "rate_hz"
+)
+"""The lowest ``[gnss] rate_hz`` a scenario takes (1 Hz): below it "lower rate_hz" is no advice."""
 
 
 def _duration_s(text: str) -> float:
@@ -103,11 +109,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def uart_drop_text(summary: Summary, baud: int) -> str:
+def uart_drop_text(summary: Summary, baud: int, rate_hz: float) -> str:
     """The summary's line on the sentences the receiver's UART dropped (either engine's
-    summary; ``baud`` the line's, bit/s), "" when it dropped none: how many, of how many and
-    of which types, and where the robot engine counted them the fixes' delay after their
-    epoch and the valid fixes that lost their GGA."""
+    summary; ``baud`` the line's, bit/s; ``rate_hz`` the receiver's), "" when it dropped none:
+    how many, of how many and of which types, and where the robot engine counted them the
+    fixes' delay after their epoch and the valid fixes that lost their GGA. The advice names
+    rate_hz only where it can be lowered (above :data:`MIN_GNSS_RATE_HZ`)."""
     extra = summary.extra
     dropped = extra.get("uart_dropped_sentences") or 0
     if not dropped:
@@ -128,7 +135,8 @@ def uart_drop_text(summary: Summary, baud: int) -> str:
             f" satellite count: mean satellites used is of the other"
             f" {summary.fixes_valid - no_gga:,}; their HDOP is the last GSA's received)"
         )
-    return text + ": raise [gnss] baud or lower rate_hz"
+    lower = " or lower rate_hz" if rate_hz > MIN_GNSS_RATE_HZ else ""
+    return text + ": raise [gnss] baud" + lower
 
 
 EXIT_REFUSED = 2
@@ -162,7 +170,7 @@ def main(args: argparse.Namespace) -> int:
 
         summary = run_mission(world, args.out, args.seed, args.duration, progress)
     print(summary.text())
-    uart_line = uart_drop_text(summary, world.gnss.baud)
+    uart_line = uart_drop_text(summary, world.gnss.baud, world.gnss.rate_hz)
     if uart_line:
         print(uart_line)
     print(f"  outputs in {Path(args.out).resolve()}")

@@ -130,3 +130,12 @@ def test_no_row_when_nothing_was_dropped_and_a_survey_says_it_too(
     assert n > 0
     row = f"  UART line           9600 baud dropped {n:,} sentences: raise [gnss] baud"
     assert f"{row} or lower rate_hz" in out, out
+
+
+def test_at_the_lowest_rate_the_advice_is_only_to_raise_the_baud(tmp_path: Path) -> None:
+    """1 Hz at 4800 baud drops a few GLL; 1 Hz is the least rate_hz a scenario takes (0.5 is
+    refused), so the row advises the baud alone, not "or lower rate_hz" (review round 13)."""
+    out = _sim(tmp_path, _scenario(1.0, 4800, 60.0))
+    row = next(ln for ln in out if ln.startswith("  UART line"))
+    assert row.endswith(": raise [gnss] baud"), row
+    assert "rate_hz" not in row
