@@ -219,3 +219,33 @@ def test_a_regular_file_over_the_limit_is_refused_and_under_it_read(tmp_path: Pa
     with pytest.raises(ParseError, match=r"m\.csv: larger than 99 bytes"):
         load_file(path, max_bytes=99)
     assert parse_content("51.5,-1.2\n") == [(51.5, -1.2)]
+
+
+@pytest.mark.parametrize(
+    "shell",
+    [
+        "$X mission show --from csv <(zcat /nonexistent/m.csv.gz)",  # the writer failed
+        ": | $X mission show --from csv /dev/stdin",  # wrote nothing and closed, at once
+        "(sleep 0.5) | $X mission show --from csv /dev/stdin",  # ... after a while
+    ],
+)
+def test_an_empty_anonymous_pipe_is_empty_not_a_fifo_without_a_writer(shell: str) -> None:
+    """An anonymous pipe whose writer ran and wrote nothing was "a pipe or FIFO with nothing
+    to read: no writer has it open (... start the writer first)" when its end of file came
+    at once, "no waypoints" when it came late (review of c30d4e7, finding 4). Now both say
+    the input is empty; "no writer" is left to named FIFOs (the test above)."""
+    x6wd = f"{sys.executable} -m x6wd"
+    r = subprocess.run(
+        ["bash", "-c", shell.replace("$X", x6wd)],
+        capture_output=True, text=True, timeout=60, cwd=ROOT,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert "empty: no waypoints" in r.stderr and "writer" not in r.stderr, r.stderr
+
+
+def test_an_empty_file_is_said_empty_in_every_format(tmp_path: Path) -> None:
+    for ext in mission_files.PARSERS:
+        path = tmp_path / f"m.{ext}"
+        path.write_bytes(b"")
+        with pytest.raises(ParseError, match=rf"^{path}: empty: no waypoints$"):
+            load_file(path)

@@ -997,9 +997,9 @@ def read_capped(path: str | Path, max_bytes: int = MAX_FILE_BYTES) -> bytes:
     """A mission file's bytes, at most ``max_bytes`` (a :class:`ParseError` beyond, read no
     further than one byte past it). Anything that can be opened is read once, as a stream:
     a regular file, a pipe (``<(zcat mission.csv.gz)``, ``/dev/stdin``), a device
-    (``/dev/zero`` is refused after ``max_bytes``). A FIFO is read only if a writer has it
-    open already: one without a writer is refused at once, never waited for. OSError from
-    opening or reading."""
+    (``/dev/zero`` is refused after ``max_bytes``). A named FIFO is read only if a writer has
+    it open already: one without a writer is refused at once, never waited for; an anonymous
+    pipe at end of file is empty (b""). OSError from opening or reading."""
     p = Path(path)
     fd = os.open(p, os.O_RDONLY | os.O_NONBLOCK)  # (a FIFO without a writer: no wait here)
     try:
@@ -1013,9 +1013,11 @@ def read_capped(path: str | Path, max_bytes: int = MAX_FILE_BYTES) -> bytes:
             except BlockingIOError:  # a writer has it open, and has not written yet
                 pass
             else:
-                if not chunks[0]:  # end of file at once: no writer has it open
+                # end of file at once: a named FIFO has no writer; an anonymous pipe's writer
+                # (<(zcat ...), ': |') ran and wrote nothing, which is an empty input
+                if not chunks[0] and _is_named_fifo(p, st):
                     raise ParseError(
-                        f"{p}: a pipe or FIFO with nothing to read: no writer has it open "
+                        f"{p}: a FIFO with nothing to read: no writer has it open "
                         "(x6wd does not wait for one: start the writer first)"
                     )
         os.set_blocking(fd, True)
@@ -1030,6 +1032,16 @@ def read_capped(path: str | Path, max_bytes: int = MAX_FILE_BYTES) -> bytes:
         os.close(fd)
 
 
+def _is_named_fifo(path: Path, st: os.stat_result) -> bool:
+    """Whether ``st`` (a FIFO opened at ``path``) is a FIFO in the file system (``mkfifo``), not
+    an anonymous pipe reached through ``/dev/stdin``, ``/dev/fd/N`` or ``/proc/self/fd/N``
+    (whose link resolves to ``pipe:[inode]``, no path)."""
+    try:
+        return os.path.samestat(st, os.stat(os.path.realpath(path)))
+    except OSError:
+        return False
+
+
 def load_file(path: str | Path, fmt: str | None = None, max_bytes: int = MAX_FILE_BYTES) -> Mission:
     """Read a mission file (:func:`read_capped`: at most ``max_bytes``, a pipe too); its
     format from ``fmt`` or else its extension (:data:`PARSERS`)."""
@@ -1039,6 +1051,8 @@ def load_file(path: str | Path, fmt: str | None = None, max_bytes: int = MAX_FIL
         data = read_capped(p, max_bytes)
     except OSError as exc:
         raise ParseError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    if not data:  # an empty file, or a pipe whose writer wrote nothing: every format alike
+        raise ParseError(f"{p}: empty: no waypoints")
     if kind in ("gpx", "kml"):  # XML names its encoding
         return parse_content(decode_xml(data, str(p)), kind, str(p))
     try:
