@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import argparse
+import filecmp
+import hashlib
 import math
 import re
 import sys
@@ -33,9 +35,11 @@ from x6wd.gap.io import (
     log_start_s,
     lon_centre_deg,
     mean_alt_m,
+    moving_text,
     parse_truth,
     read_track,
     realign_note,
+    speed_mismatch_mps,
     time_offset_note,
     wrap_lon_deg,
 )
@@ -154,16 +158,21 @@ class ProgressBar:
 
 
 def to_errors(
-    track: Track, args: argparse.Namespace, truth_track: Track | None, log: str | None = None
+    track: Track,
+    args: argparse.Namespace,
+    truth_track: Track | None,
+    log: str | None = None,
+    own_truth: bool = False,
 ) -> PositionSeries:
     """A log's errors against the chosen truth (ConfigError for a log far from it, or a
     moving log without one). ``log``: ``"real"`` or ``"sim"``, so that error's hint is
-    that log's."""
+    that log's; ``own_truth``: ``truth_track`` is a --sim log's own truth.csv (named then)."""
     if args.truth is not None:  # "" too: parse_truth names it
         lat, lon, alt = parse_truth(args.truth)
         return check_near_truth(errors_vs_point(track, lat, lon, alt), track.source, log)
     if truth_track is not None:
-        return check_near_truth(errors_vs_track(track, truth_track), track.source, log)
+        own = truth_track.source if own_truth else None
+        return check_near_truth(errors_vs_track(track, truth_track), track.source, log, own)
     return errors_vs_mean(track)
 
 
@@ -174,22 +183,140 @@ ROUTE_RATIO = 3.0
 ROUTE_MIN_M = 5.0
 """A --sim log without its own truth whose fixes lie a median of more than ROUTE_RATIO times
 the real log's median error, and more than ROUTE_MIN_M, from the real log's moving truth
-track did not drive the real route (:func:`check_sim_routes`)."""
+track did not drive the real route (:func:`check_sim_routes`). The same rule holds a --sim
+log to its own moving truth: one farther from it ran elsewhere or at other times (another
+run's or scenario's truth.csv, a log cut or shifted against its truth)."""
+SPEED_MIN_MPS = 0.3
+"""A --sim log whose reported speeds differ from its own moving truth's by a median of more
+than ROUTE_RATIO times the real log's difference from its truth, and more than this (m/s),
+is not that truth's run (:func:`check_own_truths`). Against their own truth x6wd sim's logs
+differ by 0.054-0.063 m/s (25 moving runs of 2 scenarios, 9 effects), against another
+seed's of the same laps by 0.56-0.91 m/s, where their positions (4.1 m from their own, 4.3 m
+from another seed's) cannot tell."""
+ZERO_ERROR_M = 1e-3
+"""A real log whose fixes lie a median of less than this (m) from its truth track is scored
+against itself (the log, a copy or a conversion of it given as --truth-track)."""
 
 
-def sim_truth(path: str, truth_track_path: str) -> tuple[Track | None, str | None]:
-    """The truth a --sim log carries: :data:`SIM_TRUTH_NAME` beside it, read as a track, and
-    a note when one is there but cannot be used. (None, None) when there is none, or it is
-    the --truth-track itself."""
+def _same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether two paths are one file, or regular files of identical bytes."""
+    a, b = Path(a), Path(b)
+    if a.resolve() == b.resolve():
+        return True
+    return a.is_file() and b.is_file() and filecmp.cmp(a, b, shallow=False)
+
+
+def sim_truth(path: str, truth_track_path: str) -> tuple[Track | None, str | None, str | None]:
+    """The truth a --sim log carries: :data:`SIM_TRUTH_NAME` beside it, read as a track; a
+    note when one is there but is not used (a copy of the --truth-track, or unreadable); and
+    why it could not be read (the file and the reader's error), else None. (None, None,
+    None) when there is none, or it is the --truth-track itself."""
     own = Path(path).parent / SIM_TRUTH_NAME
     if not own.is_file() or own.resolve() == Path(truth_track_path).resolve():
-        return None, None
+        return None, None, None
+    if _same_file(own, truth_track_path):  # a copy: the real route's truth, checked as such
+        note = (
+            f"--sim log {path}: the {SIM_TRUTH_NAME} beside it is a copy of the real log's"
+            f" truth track {truth_track_path}: scored against it, as a log that drove the"
+            " real route"
+        )
+        return None, note, None
     try:
-        return read_track(own), None
+        return read_track(own), None, None
     except X6wdError as exc:  # a heading-only truth.csv (the compass half's) has no positions
-        return None, (
-            f"--sim log {path}: the {SIM_TRUTH_NAME} beside it has no positions to score it"
-            f" against ({exc}): scored against the real log's truth track"
+        why = str(exc) if str(own) in str(exc) else f"{own}: {exc}"
+        note = (
+            f"--sim log {path}: the {SIM_TRUTH_NAME} beside it was not read ({why}): scored"
+            " against the real log's truth track"
+        )
+        return None, note, why
+
+
+def check_shared_truths(names: list[str], truths: list[Track | None], truth_track: Track) -> None:
+    """ConfigError naming the --sim logs whose own moving truths are one file or copies of
+    one (same bytes): the runs of a mission each drive their own route, so one path is the
+    truth of one of them at most. Static truths (a survey's, alike in every seed) may be
+    shared."""
+    groups: dict[str, list[tuple[str, str]]] = {}
+    for name, truth in zip(names, truths, strict=True):
+        if truth is None or truth is truth_track or _truth_extent_m(truth) <= ROUTE_MIN_M:
+            continue
+        digest = hashlib.sha256(Path(truth.source).read_bytes()).hexdigest()
+        groups.setdefault(digest, []).append((name, truth.source))
+    shared = [group for group in groups.values() if len(group) > 1]
+    if not shared:
+        return
+    listed = "; ".join(
+        f"{', '.join(name for name, _ in group)} share"
+        f" {' and '.join(dict.fromkeys(src for _, src in group))}"
+        f"{'' if len({src for _, src in group}) == 1 else ' (identical copies)'}"
+        for group in shared
+    )
+    raise ConfigError(
+        f"--sim logs with one truth: {listed}. Each run of a mission drives its own route (a"
+        " closed-loop run steers on its own GPS error), so one moving truth is the true path"
+        f" of one run at most: give each --sim log the {SIM_TRUTH_NAME} its own run wrote"
+    )
+
+
+def check_real_truth(args: argparse.Namespace, real: PositionSeries | None = None) -> None:
+    """ConfigError when the real log is scored against itself: --truth-track is the --real
+    file or a copy of it, or (``real`` given) its fixes lie a median of under
+    :data:`ZERO_ERROR_M` from the truth track (a conversion of the log). Every error would be
+    zero and any simulator "a gap"."""
+    if args.truth_track is None:
+        return
+    if real is None:
+        if _same_file(args.real, args.truth_track):
+            raise ConfigError(
+                f"--truth-track {args.truth_track} is the real log {args.real} itself (the"
+                " same file or the same bytes): its errors against itself are all zero. Give"
+                " the true path from another source (a surveyed route, an RTK or"
+                " post-processed solution, the truth.csv of a simulated run)"
+            )
+        return
+    median_m = _median_error_m(real)
+    if median_m < ZERO_ERROR_M:
+        raise ConfigError(
+            f"{args.real}: its fixes lie a median {median_m * 1000:.3f} mm from the truth track"
+            f" {args.truth_track}: is --truth-track the real log itself, or made from it? Its"
+            " errors against itself are all zero. Give the true path from another source (a"
+            " surveyed route, an RTK or post-processed solution, the truth.csv of a simulated"
+            " run)"
+        )
+
+
+def _static_truth_text(args: argparse.Namespace, truth: Track | None) -> str | None:
+    """What a log is scored against when that truth stands still (the point --truth, a truth
+    track reaching no farther than :data:`ROUTE_MIN_M` from its centre); None otherwise (and
+    for a track of under 2 valid epochs: io.errors_vs_track names that)."""
+    if args.truth is not None:
+        return f"the point --truth {args.truth}"
+    if truth is None or np.count_nonzero(truth.valid) < 2:
+        return None
+    if (extent_m := _truth_extent_m(truth)) <= ROUTE_MIN_M:
+        return f"the static truth track {truth.source} (reaching {extent_m:.1f} m)"
+    return None
+
+
+def check_still(
+    args: argparse.Namespace, names: list[str], tracks: list[Track], truths: list[Track | None]
+) -> None:
+    """ConfigError naming the logs that move (:func:`~x6wd.gap.io.moving_text`) but are
+    scored against a truth that stands still (:func:`_static_truth_text`): their route would
+    count as error, as it would without a truth (io.errors_vs_mean's refusal)."""
+    moving = [
+        f"{name}: {moves}, scored against {against}"
+        for name, track, truth in zip(names, tracks, truths, strict=True)
+        if (against := _static_truth_text(args, truth)) is not None
+        and (moves := moving_text(track)) is not None
+    ]
+    if moving:
+        raise ConfigError(
+            f"{'; '.join(moving)}: against a truth that stands still a log's route would count"
+            " as error. Give --truth-track with the real log's true path; a --sim log must"
+            f" move as the real log does (a moving --sim run with the {SIM_TRUTH_NAME} x6wd"
+            " sim writes beside it; a static survey's baseline is a static run)"
         )
 
 
@@ -221,6 +348,7 @@ def check_sim_routes(
     truths: list[Track | None],
     truth_track: Track,
     names: list[str],
+    unread: dict[str, str] | None = None,
 ) -> None:
     """ConfigError naming the --sim logs scored against the real log's moving truth track
     (no truth of their own) that did not drive the real route: their fixes lie a median of
@@ -228,7 +356,9 @@ def check_sim_routes(
     :data:`ROUTE_MIN_M`, from it. A closed-loop run steers on its own GPS error and laps at
     its own times: its route difference would count as GNSS error (22 of 24 unaltered
     moving logs were false alarms). A static truth (reaching no farther than ROUTE_MIN_M)
-    leaves no route to miss: a noisier sim receiver there is a gap to find."""
+    leaves no route to miss: a noisier sim receiver there is a gap to find (:func:`check_still`
+    refuses a moving log there). ``unread``: --sim log -> why the truth.csv beside it was
+    not read, said with that log."""
     if _truth_extent_m(truth_track) <= ROUTE_MIN_M:
         return
     real_m = _median_error_m(real)
@@ -242,16 +372,79 @@ def check_sim_routes(
     ]
     if not off:
         return
-    listed = ", ".join(f"{name} (a median {d_m:.1f} m)" for name, d_m in off)
+    unread = unread or {}
+    listed = ", ".join(
+        f"{name} (a median {d_m:.1f} m"
+        + (f"; its {SIM_TRUTH_NAME} was not read: {unread[name]})" if name in unread else ")")
+        for name, d_m in off
+    )
+    give = (
+        "a readable truth (the reader's error is named above: the "
+        if any(name in unread for name, _ in off)
+        else "its own truth ("
+    )
     raise ConfigError(
         f"{listed}: {'this --sim log' if len(off) == 1 else 'these --sim logs'} did not drive"
         f" the real route: {'its' if len(off) == 1 else 'their'} fixes lie that far from the"
         f" real log's truth track {truth_track.source}, over {ROUTE_RATIO:g} times the real"
         f" log's own median error ({real_m:.1f} m) and over {ROUTE_MIN_M:g} m. A closed-loop"
         " run steers on its own GPS error and drives its own route: against the real route"
-        " that difference would count as GNSS error. Give each such log its own truth"
-        f" ({SIM_TRUTH_NAME} beside it, t_s,lat,lon[,alt], as x6wd sim writes it), or use"
-        " --scenario FILE (runs driven along the real truth)"
+        f" that difference would count as GNSS error. Give each such log {give}"
+        f"{SIM_TRUTH_NAME} beside it, t_s in seconds, lat, lon[, alt], as x6wd sim writes"
+        " it), or use --scenario FILE (runs driven along the real truth)"
+    )
+
+
+def check_own_truths(
+    real: tuple[Track, PositionSeries],
+    sims: list[Track],
+    baseline: list[PositionSeries],
+    truths: list[Track | None],
+    truth_track: Track,
+    names: list[str],
+) -> None:
+    """ConfigError naming the --sim logs whose own moving truth (truth.csv beside them) is
+    not their run's path: their fixes lie a median of more than :data:`ROUTE_RATIO` times
+    the real log's median error, and more than :data:`ROUTE_MIN_M`, from it; or their
+    reported speeds differ from its speed by more than ROUTE_RATIO times the real log's
+    difference and more than :data:`SPEED_MIN_MPS` (another seed's truth of the same laps,
+    within metres). Another run's or scenario's truth, or a log cut or shifted against it
+    (realigned start to start), would read its difference as GNSS error. ``real``: the real
+    log and its errors against ``truth_track``."""
+    real_track, real_series = real
+    real_m = _median_error_m(real_series)
+    if not math.isfinite(real_m):
+        return
+    limit_m = max(ROUTE_MIN_M, ROUTE_RATIO * real_m)
+    real_mps = speed_mismatch_mps(real_track, truth_track)
+    # a real log without reported speeds: SPEED_MIN_MPS alone; a --sim log without: NaN, no test
+    limit_mps = (
+        max(SPEED_MIN_MPS, ROUTE_RATIO * real_mps) if math.isfinite(real_mps) else SPEED_MIN_MPS
+    )
+    off = []
+    for name, sim, series, truth in zip(names, sims, baseline, truths, strict=True):
+        if truth is None or truth is truth_track or _truth_extent_m(truth) <= ROUTE_MIN_M:
+            continue
+        if (d_m := _median_error_m(series)) > limit_m:
+            off.append(f"{name}: its fixes lie a median {d_m:.1f} m from {truth.source}")
+        elif (d_mps := speed_mismatch_mps(sim, truth)) > limit_mps:
+            off.append(
+                f"{name}: its reported speeds differ from {truth.source}'s by a median"
+                f" {d_mps:.2f} m/s"
+            )
+    if not off:
+        return
+    real_text = f"a median {real_m:.1f} m"
+    if math.isfinite(real_mps):
+        real_text += f" and {real_mps:.2f} m/s"
+    raise ConfigError(
+        f"{'; '.join(off)}. The real log lies {real_text} from {truth_track.source}: over"
+        f" {ROUTE_RATIO:g} times that (and over {ROUTE_MIN_M:g} m, {SPEED_MIN_MPS:g} m/s) the"
+        f" {SIM_TRUTH_NAME} beside a --sim log is not its run's true path (another run's or"
+        " scenario's, or the log cut or shifted against it: a log and truth that do not"
+        " overlap in time are aligned start to start), and the difference would count as"
+        f" GNSS error. Give each --sim log the {SIM_TRUTH_NAME} its own run wrote, whole (a"
+        " receiver model that far off the real one is no baseline for it either)"
     )
 
 
@@ -338,32 +531,71 @@ def remove_earlier_figures(out: Path) -> list[str]:
     return removed
 
 
-def short_sims_notes(
-    real: PositionSeries, baseline: list[PositionSeries], names: list[str]
+def realigned_sims_notes(
+    names: list[str], sims: list[Track], truths: list[Track | None], baseline: list[PositionSeries]
 ) -> list[str]:
-    """A note naming the --sim logs shorter than the real log (by more than two of its steps):
-    the real log's later part, and its time scales beyond a sim log's length, have no or
-    fewer simulated values to be compared with (the held-out part, the validation's longest
-    Allan octaves). Also said on stderr. Empty when every sim log is as long."""
+    """The notes on --sim logs realigned onto their truth start to start
+    (:func:`~x6wd.gap.io.realign_note`): one for them all when several (a simulator's clock
+    is its own), with each other log's epochs matching its truth (a truth covering only part
+    of a log shows there)."""
+    moved = [
+        (name, note, f"{name} {len(series.t_s)} of {len(sim)}")
+        for name, sim, truth, series in zip(names, sims, truths, baseline, strict=True)
+        if truth is not None and (note := realign_note(sim, truth)) is not None
+    ]
+    if len(moved) <= 1:
+        return [note for _, note, _ in moved]
+    return [
+        f"{len(moved)} of {len(sims)} --sim logs do not overlap their truth's time span and were"
+        f" realigned start to start: {moved[0][1]} (the others alike; epochs then matching"
+        f" their truth: {', '.join(matched for _, _, matched in moved[1:])})"
+    ]
 
-    def span_s(series: PositionSeries) -> float:
-        t_s = np.asarray(series.t_s, dtype=float)
+
+def short_sims_notes(
+    real: PositionSeries,
+    baseline: list[PositionSeries],
+    names: list[str],
+    logs: list[Track] | None = None,
+    truths: list[Track | None] | None = None,
+) -> list[str]:
+    """A note naming the --sim logs whose error series is shorter than the real log's (by
+    more than two of its steps): the real log's later part, and its time scales beyond a sim
+    log's length, have no or fewer simulated values to be compared with (the held-out part,
+    the validation's longest Allan octaves). With the sim ``logs`` and their ``truths``, a
+    log whose truth covers only part of it says so (the truth is short, not only the log).
+    Also said on stderr. Empty when every sim log is as long."""
+
+    def span_s(t_s: np.ndarray) -> float:
+        t_s = np.asarray(t_s, dtype=float)
         return float(t_s[-1] - t_s[0]) if t_s.size else 0.0
 
-    real_s = span_s(real)
+    real_s = span_s(real.t_s)
     steps = np.diff(np.asarray(real.t_s, dtype=float))
     slack_s = 2.0 * float(np.median(steps)) if steps.size else 0.0
-    short = [(name, span_s(s)) for name, s in zip(names, baseline, strict=True)
-             if span_s(s) < real_s - slack_s]  # fmt: skip
+    logs_s = [math.inf] * len(names) if logs is None else [span_s(log.t_s) for log in logs]
+    truths = truths or [None] * len(names)
+    short = [(name, span_s(s.t_s), log_s, truth) for name, s, log_s, truth
+             in zip(names, baseline, logs_s, truths, strict=True)
+             if span_s(s.t_s) < real_s - slack_s]  # fmt: skip
     if not short:
         return []
-    listed = ", ".join(f"{name} {length:.0f} s" for name, length in short)
+    # a log scored over less than its own length: its truth is (also) short
+    cut = {name: f" (of its {log_s:.0f} s: its truth {truth.source} covers no more)"
+           for name, length, log_s, truth in short
+           if truth is not None and log_s - length > slack_s}  # fmt: skip
+    listed = ", ".join(f"{name} {length:.0f} s{cut.get(name, '')}" for name, length, _, _ in short)
+    give = (
+        " Give --sim logs at least as long as the real log, each with a truth covering all of it"
+        if cut
+        else " Give --sim logs at least as long as the real log"
+    )
     note = (
-        f"{len(short)} of {len(baseline)} --sim logs are shorter than the real log ({real_s:.0f}"
-        f" s): {listed}. Past a sim log's end the real log has no simulated counterpart: the"
-        " held-out part and the longest time scales are compared with fewer runs or none"
-        " (a figure with no run is not a finding). Give --sim logs at least as long as the"
-        " real log"
+        f"{len(short)} of {len(baseline)} --sim logs are"
+        f" {'scored over less time than' if cut else 'shorter than'} the real log"
+        f" ({real_s:.0f} s): {listed}. Past a sim log's end the real log has no simulated"
+        " counterpart: the held-out part and the longest time scales are compared with fewer"
+        f" runs or none (a figure with no run is not a finding).{give}"
     )
     print(f"x6wd gap: warning: {note}", file=sys.stderr)
     return [note]
@@ -416,10 +648,13 @@ def main(args: argparse.Namespace) -> int:
         args.seeds = DEFAULT_SEEDS
     output_dir(args.out)  # a mistaken --out is named now, not after the diagnosis
     bar("reading logs", 0.0)
+    check_real_truth(args)
     truth_track = read_track(args.truth_track) if args.truth_track is not None else None
     real_track = read_track(args.real)
     check_step(real_track)
     real = to_errors(real_track, args, truth_track, "real")
+    check_still(args, [args.real], [real_track], [truth_track])
+    check_real_truth(args, real)
     try:
         check_real(real)  # refused before the runs are placed and their almanac's age warned of
     except ConfigError as exc:  # named with its file, as the readers' refusals are
@@ -488,29 +723,26 @@ def main(args: argparse.Namespace) -> int:
         # each --sim log against its own truth when it carries one (truth.csv beside it):
         # a closed-loop mission's run drove its own route, not the real log's
         sim_truths: list[Track | None] = [truth_track] * len(sims)
+        unread: dict[str, str] = {}  # --sim log -> why the truth.csv beside it was not read
         if truth_track is not None:
             found = [sim_truth(p, args.truth_track) for p in args.sim]
-            sim_truths = [truth_track if own is None else own for own, _ in found]
-            notes += [note for _, note in found if note is not None]
+            sim_truths = [truth_track if own is None else own for own, _, _ in found]
+            notes += [note for _, note, _ in found if note is not None]
+            unread = {p: why for p, (_, _, why) in zip(args.sim, found, strict=True) if why}
+            for why in unread.values():
+                print(f"x6wd gap: warning: {SIM_TRUTH_NAME} not read: {why}", file=sys.stderr)
+            check_shared_truths(args.sim, sim_truths, truth_track)
+        check_still(args, args.sim, sims, sim_truths)
         baseline = [
-            to_errors(sim, args, truth, "sim") for sim, truth in zip(sims, sim_truths, strict=True)
+            to_errors(sim, args, truth, "sim", own_truth=truth is not truth_track)
+            for sim, truth in zip(sims, sim_truths, strict=True)
         ]
         if truth_track is not None:
-            check_sim_routes(real, baseline, sim_truths, truth_track, args.sim)
+            check_own_truths((real_track, real), sims, baseline, sim_truths, truth_track, args.sim)
+            check_sim_routes(real, baseline, sim_truths, truth_track, args.sim, unread)
             notes.append(sim_truths_note(sim_truths, truth_track, args))
-            moved_sims = [
-                n
-                for sim, truth in zip(sims, sim_truths, strict=True)
-                if truth is not None and (n := realign_note(sim, truth)) is not None
-            ]
-            if len(moved_sims) > 1:  # a simulator's clock is its own: one note for them all
-                moved_sims = [
-                    f"{len(moved_sims)} of {len(sims)} --sim logs do not overlap their truth's"
-                    f" time span and were realigned start to start: {moved_sims[0]}"
-                    " (the others alike)"
-                ]
-            notes += moved_sims
-        notes += short_sims_notes(real, baseline, args.sim)
+            notes += realigned_sims_notes(args.sim, sims, sim_truths, baseline)
+        notes += short_sims_notes(real, baseline, args.sim, sims, sim_truths)
         if args.truth is None and truth_track is None:
             # not refused (as a far log is against a --truth): without a truth the errors
             # are computed right, about another sky; the verdict's first words say so

@@ -1763,6 +1763,27 @@ def errors_vs_track(track: Track, truth: Track, max_gap_s: float = 1.5) -> Posit
     ).with_(true_east_m=true_east_m, true_north_m=true_north_m)
 
 
+def speed_mismatch_mps(track: Track, truth: Track, max_gap_s: float = 1.5) -> float:
+    """Median absolute difference (m/s) between ``track``'s reported speeds (a receiver's
+    Doppler speed: NMEA RMC, a recording) and its truth's speed (from the truth's positions)
+    over the epochs matched in time as :func:`errors_vs_track` matches them; NaN with fewer
+    than 10 such epochs (a log without speeds). Near the receiver's speed noise (0.05-0.1
+    m/s) against the log's own truth; a truth of another run or time, whose robot is
+    elsewhere on its route, differs by tenths of m/s."""
+    truth_t_s, truth_lat_deg, truth_lon_deg, _ = _truth_samples(truth)
+    kept, apart = _matched(track, truth_t_s, max_gap_s)
+    kept = kept[track.valid[kept] & np.isfinite(track.speed_mps[kept])]
+    if kept.size < 10:
+        return math.nan
+    t_s = track.t_s - track.t_s[0] + truth_t_s[0] if apart else track.t_s
+    e_per_deg, n_per_deg = metres_per_degree(float(truth_lat_deg[0]))
+    east_m = (unwrap_lon_deg(truth_lon_deg) - truth_lon_deg[0]) * e_per_deg
+    north_m = (truth_lat_deg - truth_lat_deg[0]) * n_per_deg
+    truth_speed_mps = np.hypot(np.gradient(east_m, truth_t_s), np.gradient(north_m, truth_t_s))
+    at_speed_mps = np.interp(t_s[kept], truth_t_s, truth_speed_mps)
+    return float(np.median(np.abs(track.speed_mps[kept] - at_speed_mps)))
+
+
 TIME_OFFSET_SEARCH_S = 120
 """Constant clock offsets (s) between a log and its truth track that are looked for."""
 
@@ -1844,13 +1865,14 @@ def log_start_s(track: Track, truth: Track | None = None, max_gap_s: float = 1.5
     return float(track.t_s[kept[0]]) if kept.size else float(track.t_s[0])
 
 
-def errors_vs_mean(track: Track) -> PositionSeries:
-    """Errors of a static log against its own mean position (no truth: a bias is invisible).
-    Raises ConfigError for a log that moves (:data:`STATIC_MAX_SPEED_MPS`,
-    :data:`STATIC_MAX_SPREAD_M`): its route is no error, it needs a truth track."""
+def moving_text(track: Track) -> str | None:
+    """The text "the log moves (median speed ..., fixes a median ... from their centre)" when its
+    median reported speed exceeds :data:`STATIC_MAX_SPEED_MPS` or its fixes lie a median of
+    more than :data:`STATIC_MAX_SPREAD_M` from their centre; None for a static log (or one
+    without a valid fix)."""
     valid = track.valid
     if not np.any(valid):
-        raise ParseError(f"{track.source}: no valid fix")
+        return None
     speed_mps = track.speed_mps[valid]
     speed_mps = speed_mps[np.isfinite(speed_mps)]
     median_speed_mps = float(np.median(speed_mps)) if speed_mps.size else 0.0
@@ -1860,12 +1882,28 @@ def errors_vs_mean(track: Track) -> PositionSeries:
         wrap_lon_deg(lon_deg - lon_centre_deg(lon_deg, np.median)) * e_per_deg,
         (track.lat_deg[valid] - np.median(track.lat_deg[valid])) * n_per_deg,
     )))  # fmt: skip
-    if median_speed_mps > STATIC_MAX_SPEED_MPS or spread_m > STATIC_MAX_SPREAD_M:
+    if median_speed_mps <= STATIC_MAX_SPEED_MPS and spread_m <= STATIC_MAX_SPREAD_M:
+        return None
+    return (
+        f"the log moves (median speed {median_speed_mps:.1f} m/s, fixes a median"
+        f" {spread_m:.0f} m from their centre)"
+    )
+
+
+def errors_vs_mean(track: Track) -> PositionSeries:
+    """Errors of a static log against its own mean position (no truth: a bias is invisible).
+    Raises ConfigError for a log that moves (:func:`moving_text`): its route is no error, it
+    needs a truth track."""
+    valid = track.valid
+    if not np.any(valid):
+        raise ParseError(f"{track.source}: no valid fix")
+    moves = moving_text(track)
+    if moves is not None:
         raise ConfigError(
-            f"{track.source}: the log moves (median speed {median_speed_mps:.1f} m/s, fixes a"
-            f" median {spread_m:.0f} m from their centre): without a truth its route would"
-            " count as error; give --truth-track (the true path)"
+            f"{track.source}: {moves}: without a truth its route would count as error; give"
+            " --truth-track (the true path)"
         )
+    lon_deg = track.lon_deg[valid]
     alt_m = track.alt_m[valid]
     alt0_m = float(np.nanmean(alt_m)) if np.any(np.isfinite(alt_m)) else math.nan
     return errors_vs_point(
@@ -1873,12 +1911,16 @@ def errors_vs_mean(track: Track) -> PositionSeries:
     )
 
 
-def check_near_truth(series: PositionSeries, source: str, log: str | None = None) -> PositionSeries:
+def check_near_truth(
+    series: PositionSeries, source: str, log: str | None = None, own_truth: str | None = None
+) -> PositionSeries:
     """``series`` (errors against a truth, m) unless its median horizontal error exceeds
     :data:`MAX_ERROR_FROM_TRUTH_M`: then ConfigError naming ``source`` and the distance (a
     simulation of another place, or a wrong truth, would otherwise read as a bias of
     thousands of kilometres). ``log`` says which log it is, ``"real"`` or ``"sim"``: the
-    hint is that log's (None: both hints, each saying whose it is)."""
+    hint is that log's (None: both hints, each saying whose it is). ``own_truth``: the file
+    of a --sim log's own truth (truth.csv beside it) it was scored against: named as the
+    truth, and the hint asks about it, not --truth/--truth-track."""
     valid = np.asarray(series.valid, dtype=bool)
     if np.any(valid):
         error_m = np.hypot(np.asarray(series.east_m)[valid], np.asarray(series.north_m)[valid])
@@ -1896,8 +1938,15 @@ def check_near_truth(series: PositionSeries, source: str, log: str | None = None
             )
             which = {"real": "the real log (--real)", "sim": "a --sim log"}.get(log or "")
             head = f"{source} ({which})" if which else source
+            truth = "the truth"
+            if own_truth is not None:
+                truth = f"its own truth {own_truth}"
+                hint = (
+                    f"is {own_truth} the true path of this run (the truth.csv x6wd sim wrote"
+                    " beside it), and does the run simulate the real log's place?"
+                )
             raise ConfigError(
-                f"{head}: its fixes lie a median {median_m / 1000:.1f} km from the truth:"
+                f"{head}: its fixes lie a median {median_m / 1000:.1f} km from {truth}:"
                 f" not a log of that place ({hint})"
             )
     return series
