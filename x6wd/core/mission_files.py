@@ -24,11 +24,12 @@ Also the command-line form ``LAT,LON`` (:func:`parse_args`) and the protocol's J
 
 Every number read from a file goes through :func:`to_float`: one that is not a number or is
 too large for a float (a 400-digit JSON integer) is a :class:`ParseError` naming the line or
-item, as a non-finite coordinate (``1e400``) is; messages show at most 40 characters of a
-field. :func:`load_file` reads at most :data:`MAX_FILE_BYTES` (8 MiB) of any input, once: a
-regular file, a pipe (``--from csv <(zcat m.csv.gz)``, ``/dev/stdin``) or a device
-(``/dev/zero`` is refused at the limit); a FIFO that no writer has open is refused at once,
-never waited for.
+item, as a non-finite coordinate (``1e400``) is, also a JSON integer of more digits than
+Python converts (4300); messages quote at most 40 characters of a field, with "..." and the
+field's size (:func:`_shown`). :func:`load_file` reads at most :data:`MAX_FILE_BYTES` (8 MiB)
+of any input, once: a regular file, a pipe (``--from csv <(zcat m.csv.gz)``, ``/dev/stdin``)
+or a device (``/dev/zero`` is refused at the limit); a FIFO that no writer has open is
+refused at once, never waited for; an empty input is "empty: no waypoints".
 """
 
 from __future__ import annotations
@@ -61,14 +62,41 @@ class Waypoint(NamedTuple):
     lon_deg: float
 
 
-def _shown(raw: object, limit: int = 40) -> str:
-    """``repr(raw)`` for an error message, cut to ``limit`` characters (a file's field may be
-    megabytes long, a JSON integer hundreds of digits)."""
+class _LongInt:
+    """A JSON integer of more digits than Python converts (4300, ``sys.int_info``): kept as its
+    size, so that the reader names the item that holds it (:func:`_json_int`)."""
+
+    def __init__(self, digits: int) -> None:
+        self.digits = digits
+
+    def __repr__(self) -> str:
+        return f"an integer of {self.digits} digits"
+
+
+def _json_int(text: str) -> int | _LongInt:
+    """``int(text)`` for :func:`json.loads`, or a :class:`_LongInt` where Python refuses the
+    conversion (past 4300 digits: 'use sys.set_int_max_str_digits()' is no advice for a file)."""
     try:
-        text = repr(raw)
-    except ValueError:  # an int past Python's 4300-digit str() limit
-        text = f"an integer of {raw.bit_length()} bits"  # type: ignore[attr-defined]
-    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+        return int(text)
+    except ValueError:
+        return _LongInt(len(text.lstrip("-")))
+
+
+def _shown(raw: object, limit: int = 40, *, quote: bool = True) -> str:
+    """A field of a file (or any input) as an error message quotes it: ``repr(raw)`` (``str``
+    without ``quote``), cut to ``limit`` characters with "..." and the field's own size (a
+    field may be megabytes long, a JSON integer hundreds of digits). Every message that
+    quotes an input goes through here."""
+    if isinstance(raw, _LongInt):
+        return repr(raw)
+    if isinstance(raw, int) and not isinstance(raw, bool):
+        digits = str(raw)  # an int read from a file: within the 4300 digits int() reads
+        size = f"{len(digits.lstrip('-'))} digits"
+        text = digits
+    else:
+        text = repr(raw) if quote else str(raw)
+        size = f"{len(raw) if isinstance(raw, str) else len(text)} characters"
+    return text if len(text) <= limit else f"{text[:limit]}... ({size})"
 
 
 def to_float(raw: object, what: str) -> float:
@@ -77,10 +105,12 @@ def to_float(raw: object, what: str) -> float:
     too large for a float (a 400-digit JSON integer), never OverflowError. Not checked for
     finiteness: ``float("1e400")`` is inf, the caller's to refuse or note."""
     if isinstance(raw, bool):
-        raise ParseError(f"{what} must be a number, got {raw!r}")
+        raise ParseError(f"{what} must be a number, got {_shown(raw)}")
     try:
         return float(raw)  # type: ignore[arg-type]
     except (TypeError, ValueError):
+        if isinstance(raw, _LongInt):  # a JSON integer of over 4300 digits
+            raise ParseError(f"{what} is too large for a number: {_shown(raw)}") from None
         raise ParseError(f"{what} is not a number: {_shown(raw)}") from None
     except OverflowError:
         raise ParseError(f"{what} is too large for a number: {_shown(raw)}") from None
@@ -152,7 +182,7 @@ def from_pairs(pairs: Iterable[object], source: str = "waypoints") -> list[Waypo
         elif isinstance(item, (list, tuple)) and len(item) == 2:
             out.append(make_waypoint(item[0], item[1], where))
         else:
-            raise ParseError(f"{where}: expected [lat, lon], got {item!r}")
+            raise ParseError(f"{where}: expected [lat, lon], got {_shown(item)}")
         if len(out) > MAX_WAYPOINTS:
             break
     return _check_count(out, source)
@@ -164,7 +194,7 @@ def parse_args(args: Sequence[str]) -> list[Waypoint]:
     for i, arg in enumerate(args):
         parts = arg.split(",")
         if len(parts) != 2:
-            raise ParseError(f"--wp #{i + 1}: expected LAT,LON, got {arg!r}")
+            raise ParseError(f"--wp #{i + 1}: expected LAT,LON, got {_shown(arg)}")
         out.append(make_waypoint(parts[0].strip(), parts[1].strip(), f"--wp #{i + 1}"))
     return _check_count(out, "--wp")
 
@@ -230,8 +260,8 @@ def _csv_separator(where: str, row: list[str], cols: tuple[int, int]) -> None:
             raise ParseError(f"{where}: the separator must be a comma, and a tab was found")
         if bad := next((f for f in used if _DECIMAL_COMMA.match(f)), None):
             raise ParseError(
-                f"{where}: {bad.strip()!r} has a decimal comma: write a decimal point "
-                f"({bad.strip().replace(',', '.')})"
+                f"{where}: {_shown(bad.strip())} has a decimal comma: write a decimal point "
+                f"({_shown(bad.strip().replace(',', '.'), quote=False)})"
             )
 
 
@@ -277,11 +307,12 @@ def parse_gpx(text: str, source: str = "GPX") -> Mission:
     except ET.ParseError as exc:
         raise ParseError(f"{source}: not valid XML: {exc}") from None
     if _local(root.tag) != "gpx":
-        raise ParseError(f"{source}: root element is <{_local(root.tag)}>, expected <gpx>")
+        tag = _shown(_local(root.tag), quote=False)
+        raise ParseError(f"{source}: root element is <{tag}>, expected <gpx>")
     ns = root.tag[1:].split("}", 1)[0] if root.tag.startswith("{") else ""
     if ns not in _GPX_NAMESPACES and not _GPX_NAMESPACE_RE.fullmatch(ns):
         raise ParseError(
-            f"{source}: <gpx> is in the namespace {ns!r}, not GPX 1.1's "
+            f"{source}: <gpx> is in the namespace {_shown(ns)}, not GPX 1.1's "
             f"{_GPX_NAMESPACES[0]!r} (nor 1.0's, nor none)"
         )
 
@@ -361,7 +392,7 @@ def _points(n: int) -> str:
 def _name(e: ET.Element) -> str:
     """``'NAME' `` from an element's ``<name>`` child, quoted, with a trailing space; or ''."""
     name = next((c.text for c in e if _local(c.tag) == "name" and c.text), None)
-    return f"{name.strip()[:40]!r} " if name and name.strip() else ""
+    return f"{_shown(name.strip())} " if name and name.strip() else ""
 
 
 _BOMS = (  # UTF-32 before UTF-16: UTF-32-LE's mark begins with UTF-16-LE's
@@ -397,7 +428,7 @@ def decode_xml(data: bytes, source: str = "XML") -> str:
         return data.decode(encoding)
     except LookupError:
         raise ParseError(
-            f"{source}: unknown encoding {declared!r} in its XML declaration"
+            f"{source}: unknown encoding {_shown(declared)} in its XML declaration"
         ) from None
     except UnicodeDecodeError as exc:
         raise ParseError(f"{source}: not {encoding} text ({how}): {exc}") from None
@@ -496,7 +527,7 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
     header = " ".join(lines[first - 1].split())
     if header not in ("QGC WPL 110", "QGC WPL 120"):
         raise ParseError(
-            f"{source} line {first}: expected the header {WPL_HEADER!r}, got {header[:40]!r}"
+            f"{source} line {first}: expected the header {WPL_HEADER!r}, got {_shown(header)}"
         )
     may_have_home = header == "QGC WPL 110"
     out: list[Waypoint] = []
@@ -519,7 +550,10 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
         for name, raw in zip(("index", "current", "frame", "command"), cols[:4], strict=True):
             try:
                 ints.append(int(raw))
-            except ValueError:  # also past Python's 4300-digit limit
+            except ValueError:
+                if re.fullmatch(r"[+-]?\d+", raw):  # past the 4300 digits Python converts
+                    big = _shown(_LongInt(len(raw.lstrip("+-"))))
+                    raise ParseError(f"{where}: {name} is too large for a number: {big}") from None
                 raise ParseError(f"{where}: {name} is not an integer: {_shown(raw)}") from None
         index, _current, frame, command = ints
         params: list[float] = []
@@ -564,14 +598,15 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
         # a hold or a stop would change where and when the robot waits; it never waits
         if hold_s > 0:
             raise ParseError(
-                f"{where}: hold time (param1) {cols[4]:.40} s: x6wd does not hold at waypoints "
-                "(it drives on when it arrives); set param1 to 0 (Hold in QGroundControl, "
-                "Delay in Mission Planner)"
+                f"{where}: hold time (param1) {_shown(cols[4], quote=False)} s: x6wd does not "
+                "hold at waypoints (it drives on when it arrives); set param1 to 0 (Hold in "
+                "QGroundControl, Delay in Mission Planner)"
             )
         if autocontinue != 1:
             raise ParseError(
-                f"{where}: autocontinue (the last column) {cols[11]:.40}: 0 stops the mission at "
-                "this waypoint and x6wd does not hold at waypoints (it drives on); set it to 1"
+                f"{where}: autocontinue (the last column) {_shown(cols[11], quote=False)}: 0 "
+                "stops the mission at this waypoint and x6wd does not hold at waypoints (it "
+                "drives on); set it to 1"
             )
         wp = make_waypoint(cols[8], cols[9], where)
         if wp.lat_deg == 0.0 and wp.lon_deg == 0.0:
@@ -583,8 +618,9 @@ def parse_wpl(text: str, source: str = "QGC WPL") -> Mission:
             )
         if accept_radius_m != 0 and not math.isnan(accept_radius_m):  # NaN: MAVLink's unset
             notes.append(
-                f"{where}: acceptance radius (param2) {cols[5]:.40} m not used: x6wd arrives by "
-                "its own window from the config ([navigation] delta_x_m, delta_y_m)"
+                f"{where}: acceptance radius (param2) {_shown(cols[5], quote=False)} m not "
+                "used: x6wd arrives by its own window from the config ([navigation] "
+                "delta_x_m, delta_y_m)"
             )
         out.append(wp)
         if len(out) > MAX_WAYPOINTS:
@@ -614,13 +650,14 @@ def parse_plan(text: str, source: str = "QGC plan") -> Mission:
     is not in the file as waypoints. The geofence and rally points are not part of the path:
     a note names them when the file has any."""
     try:
-        doc = json.loads(text)
-    except (ValueError, RecursionError) as exc:  # ValueError: also a 4301-digit integer
-        raise ParseError(f"{source}: not valid JSON: {str(exc)[:200]}") from None
+        doc = json.loads(text, parse_int=_json_int)
+    except (ValueError, RecursionError) as exc:
+        why = _shown(str(exc), 200, quote=False)
+        raise ParseError(f"{source}: not valid JSON: {why}") from None
     if not isinstance(doc, dict) or doc.get("fileType") != "Plan":
         got = doc.get("fileType") if isinstance(doc, dict) else type(doc).__name__
         raise ParseError(
-            f'{source}: not a QGroundControl plan (expected "fileType": "Plan", got {got!r})'
+            f'{source}: not a QGroundControl plan (expected "fileType": "Plan", got {_shown(got)})'
         )
     mission = doc.get("mission")
     if not isinstance(mission, dict) or not isinstance(mission.get("items"), list):
@@ -644,13 +681,15 @@ def parse_plan(text: str, source: str = "QGC plan") -> Mission:
         if kind == "ComplexItem":
             what = item.get("complexItemType", "unknown")
             raise ParseError(
-                f"{where}: a ComplexItem ({what!s:.40}) is not supported: QGroundControl computes "
-                "its path from a polygon, and x6wd drives waypoints only; draw the path as "
-                "waypoints, or delete the item"
+                f"{where}: a ComplexItem ({_shown(what, quote=False)}) is not supported: "
+                "QGroundControl computes its path from a polygon, and x6wd drives waypoints "
+                "only; draw the path as waypoints, or delete the item"
             )
         if kind != "SimpleItem":
-            raise ParseError(f'{where}: type {kind!r}, expected "SimpleItem"')
+            raise ParseError(f'{where}: type {_shown(kind)}, expected "SimpleItem"')
         command, frame = item.get("command"), item.get("frame")
+        if isinstance(command, _LongInt):
+            raise ParseError(f"{where}: command is too large for a number: {_shown(command)}")
         if not isinstance(command, int) or isinstance(command, bool):
             raise ParseError(f"{where}: command is not an integer: {_shown(command)}")
         if command != MAV_CMD_NAV_WAYPOINT:
@@ -666,11 +705,12 @@ def parse_plan(text: str, source: str = "QGC plan") -> Mission:
             )
         params = item.get("params")
         if not isinstance(params, list) or len(params) not in (4, 7):
-            raise ParseError(f"{where}: params: expected a list of 7 values, got {params!r:.60}")
+            got = _shown(params, 60)
+            raise ParseError(f"{where}: params: expected a list of 7 values, got {got}")
         nums: list[float | None] = []  # hold time, acceptance radius; None: null, unset
         for k, what in ((0, "hold time"), (1, "acceptance radius")):
             name = f"{where}: params[{k}] ({what})"
-            if params[k] is not None and not isinstance(params[k], (int, float)):  # "5", [5]
+            if params[k] is not None and not isinstance(params[k], (int, float, _LongInt)):
                 raise ParseError(f"{name} is not a number: {_shown(params[k])}")
             nums.append(None if params[k] is None else to_float(params[k], name))
         hold_s, accept_m = nums
@@ -681,8 +721,9 @@ def parse_plan(text: str, source: str = "QGC plan") -> Mission:
             )
         if item.get("autoContinue", True) is not True:
             raise ParseError(
-                f"{where}: autoContinue {item.get('autoContinue')!r}: false stops the mission "
-                "at this waypoint and x6wd does not hold at waypoints (it drives on); set it true"
+                f"{where}: autoContinue {_shown(item.get('autoContinue'))}: false stops the "
+                "mission at this waypoint and x6wd does not hold at waypoints (it drives on); "
+                "set it true"
             )
         if len(params) == 7:
             lat, lon = params[4], params[5]
@@ -793,12 +834,13 @@ def parse_kml(text: str, source: str = "KML") -> Mission:
     except ET.ParseError as exc:
         raise ParseError(f"{source}: not valid XML: {exc}") from None
     if _local(root.tag) != "kml":
-        raise ParseError(f"{source}: root element is <{_local(root.tag)}>, expected <kml>")
+        tag = _shown(_local(root.tag), quote=False)
+        raise ParseError(f"{source}: root element is <{tag}>, expected <kml>")
     placemarks = [e for e in root.iter() if _local(e.tag) == "Placemark"]
 
     def place(i: int, pm: ET.Element) -> str:
         name = next((c.text for c in pm if _local(c.tag) == "name" and c.text), None)
-        return f"<Placemark> #{i + 1}" + (f" {name.strip()!r}" if name else "")
+        return f"<Placemark> #{i + 1}" + (f" {_shown(name.strip())}" if name else "")
 
     def label(i: int, pm: ET.Element) -> str:
         return f"{source} {place(i, pm)}"
@@ -819,8 +861,8 @@ def parse_kml(text: str, source: str = "KML") -> Mission:
         for k, parts in enumerate(tuples, start=1):
             where = f"{pm_label} <{kind}> coordinate {k}"
             if len(parts) not in (2, 3):
-                shown = (" " if kind == "gx:Track" else ",").join(parts)[:60]
-                raise ParseError(f"{where}: expected lon,lat[,alt], got {shown!r}")
+                shown = _shown((" " if kind == "gx:Track" else ",").join(parts), 60)
+                raise ParseError(f"{where}: expected lon,lat[,alt], got {shown}")
             out.append(make_waypoint(parts[1], parts[0], where))
             if len(out) > MAX_WAYPOINTS:
                 break
@@ -879,7 +921,8 @@ def parse_kml(text: str, source: str = "KML") -> Mission:
             names = ", ".join(dict.fromkeys(place(i, pm) for i, pm, _ in points))
             notes.append(
                 f"{source}: the path {lines[0][0]} {lines[0][1]} is driven; beside it, not driven: "
-                f"{len(points)} <Point> ({names[:200]}) (a path wins over points)"
+                f"{len(points)} <Point> ({_shown(names, 200, quote=False)}) (a path wins over "
+                "points)"
             )
         path = lines[0][2]
         if _is_qgc_plan_kml(root) and len(path) >= 2:
@@ -956,7 +999,7 @@ def format_of(path: str | Path, fmt: str | None = None, *, writing: bool = False
     elif writing and name in PARSERS:
         problem = f"is {name.upper()}, which x6wd reads but does not write"
     else:
-        problem = f"has an unknown mission format {name!r}"
+        problem = f"has an unknown mission format {_shown(name)}"
     hint = f" ({_HINTS[name]})" if name in _HINTS and not writing else ""
     raise ParseError(f"{path}: {problem}{hint}; missions are {what} as {valid}")
 
@@ -977,7 +1020,8 @@ def parse_content(text: str, fmt: str | None = None, source: str = "mission") ->
             fmt = "csv"
     parser = PARSERS.get(fmt.lower().lstrip("."))
     if parser is None:
-        raise ParseError(f"{source}: unknown mission format {fmt!r} (valid: {', '.join(PARSERS)})")
+        valid = ", ".join(PARSERS)
+        raise ParseError(f"{source}: unknown mission format {_shown(fmt)} (valid: {valid})")
     return parser(text, source)
 
 
@@ -985,7 +1029,7 @@ def format_content(waypoints: Sequence[Waypoint], fmt: str) -> str:
     """Mission text in ``fmt`` (``waypoints``, ``gpx`` or ``csv``)."""
     writer = WRITERS.get(fmt.lower().lstrip("."))
     if writer is None:
-        raise ParseError(f"cannot write mission format {fmt!r} (valid: {', '.join(WRITERS)})")
+        raise ParseError(f"cannot write mission format {_shown(fmt)} (valid: {', '.join(WRITERS)})")
     return writer(waypoints)
 
 
