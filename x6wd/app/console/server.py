@@ -68,7 +68,7 @@ from x6wd.core.config import HOSTNAME_PATTERN, ConsoleConfig
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.mission_files import PARSERS, parse_content
 from x6wd.core.ratelog import RateLimitedLog
-from x6wd.core.recorder import RecordingFile, list_recordings, part_writer
+from x6wd.core.recorder import RecordingFile, list_recordings, recording_writer
 from x6wd.core.records import GpsSky
 
 log = logging.getLogger(__name__)
@@ -1091,8 +1091,10 @@ class ConsoleServer:
         for f in list_recordings(directory):
             runs.setdefault(str(f.run), []).append(f)  # parts sort after their first file
         return {
+            # recording_writer re-lists a run that rotates meanwhile (a listing's own two
+            # newest parts can both read free for the moment a rotation takes)
             parts[0].path.name: _Run(
-                parts[0].path, parts[0].size, any(part_writer(p.path) for p in parts[-2:])
+                parts[0].path, parts[0].size, recording_writer(parts[-1].path) is not None
             )
             for parts in runs.values()
         }
