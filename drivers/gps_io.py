@@ -53,8 +53,9 @@ fixes actually arrive at (falling to 0 while the GPS is silent) and, when it is 
 rate the staleness limits were checked against (``gps.rate_hz``), says so in status and in a
 WARNING each time it falls: fixes then go stale between epochs and the robot holds; and
 :class:`LineLoad` measures how full a UART's line is (bytes read against baud / 10 per
-second): a receiver that prints more than the line carries makes every fix late, which status
-and a WARNING then say (the slow-rate text names the line when it is the cause).
+second; not a line its baud does not pace, a native-USB receiver: ``paced`` false): a
+receiver that prints more than the line carries makes every fix late, which status and a
+WARNING then say (the slow-rate text blames the line only while it is measured full).
 
 Note that pyserial's ``socket://`` handler discards whatever arrived before ``open()``
 returned; a streaming receiver loses nothing but part of one sentence.
@@ -412,22 +413,25 @@ class ReceiverSetup:
         self._loss_kind: str | None = None  # the last loss's kind (lost(): backing off)
         self._repeats = 0  # losses of that kind in a row, each soon after the setup was taken
         self.line_short: str | None = None  # the line cannot carry RMC + GGA at rate_hz
+        self.baud_key = "gps.url's baud"  # the setting of the line's baud (GpsReader's)
 
-    def use_baud(self, baud: object) -> None:
+    def use_baud(self, baud: object, paced: bool = True) -> None:
         """The line rate of the port just opened (pyserial's ``baudrate``; anything but a
         positive int, a socket's none: :data:`DEFAULT_BAUD`): the sentences are chosen for
         it (:func:`neo5_setup`). A line too slow for RMC + GGA at the rate asked
         (:func:`fix_line_short`; the configuration refuses what it knows of: a ``sim://``
-        GPS at its scenario's baud is known only now) is one WARNING per baud and shows in
-        :attr:`line_short`."""
+        GPS at its scenario's baud is known only now) is one WARNING per baud, naming
+        :attr:`baud_key`, and shows in :attr:`line_short`; not on a line its baud does not
+        pace (``paced`` false: a native-USB receiver, :func:`_native_usb`)."""
         b = baud if isinstance(baud, int) and not isinstance(baud, bool) and baud > 0 else None
         b = DEFAULT_BAUD if b is None else b
-        short = fix_line_short(self.rate_hz, b)
+        short = fix_line_short(self.rate_hz, b) if paced else None
         if short is not None:
             short = (
                 f"{short}: gps.rate_hz = {self.rate_hz:g} Hz (gps.configure_receiver = true) "
                 "makes each fix wait behind the last one's sentences and arrive late, "
-                "sentences lost; lower gps.rate_hz or raise the line's baud rate"
+                f"sentences lost; lower gps.rate_hz or raise the line's baud rate "
+                f"({self.baud_key})"
             )
             if short != self.line_short:
                 log.warning("GPS: %s", short)
@@ -646,6 +650,11 @@ is full (:class:`LineLoad`): the receiver prints more than it carries. A NEO-5 w
 LINE_CLEAR_RATIO = 0.8
 """A full line is no longer full under this fraction (no WARNING again for a load that
 wavers about :data:`LINE_FULL_RATIO`)."""
+UNPACED_RATIO = 1.1
+"""A load above this for a whole :data:`LINE_WINDOW_S` proves the line is not paced by its
+baud rate (a UART cannot carry more than baud / 10 bytes/s; the bytes a late read catches up
+on inflate a window only while it spans them): a native-USB receiver (CDC-ACM) opened at any
+baud, whose load is then not judged (:class:`LineLoad`)."""
 
 
 class LineLoad:
@@ -660,7 +669,16 @@ class LineLoad:
     more than the line carries: each fix then waits behind the sentences before it and
     arrives late, or sentences are lost (4 Hz at 9600 baud with a NEO-5's default sentences:
     every fix ~0.9 s late). A WARNING each time it becomes full, naming ``rate_key`` and
-    ``baud_key`` (the settings to change).
+    ``baud_key`` (the settings to change); with :attr:`configured` (the daemon writes the
+    setup, which sends only the sentences that fit) it does not advise fewer sentences, and
+    with :attr:`known_short` (the setup's ``line_short`` already warned of that cause) the
+    full line is logged at INFO, not as a second WARNING.
+
+    A line its baud does not pace (:attr:`paced` false): a native-USB receiver (CDC-ACM,
+    ``/dev/ttyACM*``: :func:`_native_usb`, known at the open) or a load above
+    :data:`UNPACED_RATIO` for a whole window (a UART cannot carry that; until then a load
+    above it is not called full): its bytes/s are still measured, its load is not judged
+    (never full), status says ``paced: false`` and one INFO line says so.
 
     The load, not the fix's latency: a fix's arrival against its UTC time of day needs a
     system clock set to GPS time, which the robot's Pi (no RTC, often no network) and
@@ -682,14 +700,24 @@ class LineLoad:
         self.load: float | None = None
         self.full: str | None = None
         self._warned = False  # warned, and the load not cleared since
+        self.paced = True  # the baud paces the line (a UART, the simulator's pty)
+        self.configured = False  # gps.configure_receiver: the daemon chose the sentences
+        self.known_short = False  # the setup's line_short already warned of this line
+        self._over_since: float | None = None  # the load above UNPACED_RATIO since
+        self._unpaced_told = False
 
-    def restart(self, baud: int | None, t_s: float) -> None:
-        """A port opened at ``t_s`` on a line of ``baud`` (None: not measured)."""
+    def restart(self, baud: int | None, t_s: float, paced: bool = True) -> None:
+        """A port opened at ``t_s`` on a line of ``baud`` (None: not measured); ``paced``
+        false: a port its baud does not pace (:func:`_native_usb`)."""
         self.baud = baud
         self._reads.clear()
         self._bytes = 0
         self._t_open, self._first = t_s, True
         self.bytes_per_s = self.load = self.full = None
+        self._over_since = None
+        self.paced = paced
+        if not paced and baud is not None:
+            self._not_paced("the port is a native-USB one (CDC-ACM, /dev/ttyACM*)")
 
     def add(self, n_bytes: int, t_s: float) -> None:
         """``n_bytes`` read at ``t_s``."""
@@ -713,21 +741,50 @@ class LineLoad:
             self._bytes -= reads.popleft()[1]
         capacity = self.baud / 10.0
         self.bytes_per_s = self._bytes / span_s
+        if not self.paced:
+            return  # its load means nothing: never full
         self.load = self.bytes_per_s / capacity
         if self.load < LINE_CLEAR_RATIO:
             self.full, self._warned = None, False
+        if self.load > UNPACED_RATIO:  # no UART carries that: not full, and not paced if it lasts
+            self.full, self._warned = None, False
+            if self._over_since is None:
+                self._over_since = t_s
+            elif t_s - self._over_since >= LINE_WINDOW_S:
+                self.paced, self.load = False, None
+                self._not_paced(
+                    f"it carried {self.bytes_per_s:.0f} bytes/s for {LINE_WINDOW_S:g} s, more "
+                    f"than {self.baud} baud can ({capacity:.0f}): not a UART paced by its baud "
+                    "(a native-USB receiver?)"
+                )
+            return
+        self._over_since = None
         if self.load < LINE_FULL_RATIO:
             return
+        fewer = (
+            "" if self.configured
+            else ", send fewer sentences (gps.configure_receiver = true sends those that fit)"
+        )  # fmt: skip
         self.full = (
             f"the line is full ({self.used()}, the last {span_s:.0f} s): the receiver prints "
             "more than the line carries, so each fix waits behind the sentences before it and "
             "arrives late (stamped at arrival: its position that much old), or sentences are "
-            f"lost; raise the baud rate ({self.baud_key}), send fewer sentences "
-            f"(gps.configure_receiver = true sends those that fit), or lower {self.rate_key}"
+            f"lost; raise the baud rate ({self.baud_key}){fewer}, or lower {self.rate_key}"
         )
         if not self._warned:
             self._warned = True
-            log.warning("GPS: %s", self.full)
+            # a line the setup already said is short (one WARNING for one cause)
+            log.log(logging.INFO if self.known_short else logging.WARNING, "GPS: %s", self.full)
+
+    def _not_paced(self, why: str) -> None:
+        """The line is not paced by its baud (``why``): one INFO line per reader."""
+        if not self._unpaced_told:
+            self._unpaced_told = True
+            log.info(
+                "GPS: the line is not paced by its baud rate: %s; its load is not judged "
+                "(status gps_receiver.line.paced = false)",
+                why,
+            )
 
     def used(self) -> str:
         """The load in words: ``"949 of the 960 bytes/s that 9600 baud carries"``."""
@@ -737,16 +794,15 @@ class LineLoad:
         )
 
     def status(self) -> dict[str, Any]:
-        """JSON-ready: ``line`` (baud, bytes/s, load) once measured, ``line_full`` when full."""
-        if self.baud is None or self.load is None or self.bytes_per_s is None:
+        """JSON-ready: ``line`` (baud, bytes/s, load, ``paced``; no load when not paced)
+        once measured, ``line_full`` when full."""
+        if self.baud is None or self.bytes_per_s is None:
             return {}
-        out: dict[str, Any] = {
-            "line": {
-                "baud": self.baud,
-                "bytes_per_s": round(self.bytes_per_s),
-                "load": round(self.load, 2),
-            }
-        }
+        line: dict[str, Any] = {"baud": self.baud, "bytes_per_s": round(self.bytes_per_s)}
+        if self.load is not None:
+            line["load"] = round(self.load, 2)
+        line["paced"] = self.paced
+        out: dict[str, Any] = {"line": line}
         if self.full is not None:
             out["line_full"] = self.full
         return out
@@ -763,9 +819,12 @@ class FixRate:
     count (none left: 0 Hz). :attr:`slow` when it is under :data:`SLOW_RATE_RATIO` of the
     expected rate: fixes then go stale between epochs. A WARNING each time the rate becomes
     slow having been met (or at the first measurement), not again while it stays slow. With
-    a :attr:`line` (the reader's :class:`LineLoad`) the text says when the line is the cause
-    (too slow for RMC + GGA at the expected rate, or full), and the WARNING waits for the
-    line's first measurement."""
+    a :attr:`line` (the reader's :class:`LineLoad`) the text blames the line only while it is
+    measured full (the more so when it is too slow for RMC + GGA at the expected rate);
+    otherwise the receiver runs slower than the expected rate (:attr:`configured`: though
+    the daemon asked it for that rate), and a paced line too slow for it is added (both
+    its baud and the receiver's rate need changing); the WARNING waits for the line's first
+    measurement."""
 
     def __init__(self, expected_hz: float | None, expected_key: str = "gps.rate_hz") -> None:
         self.expected_hz = expected_hz
@@ -777,6 +836,7 @@ class FixRate:
         self.measured_hz: float | None = None
         self.slow: str | None = None
         self._slow_warned = False  # warned, and the rate not met since
+        self.configured = False  # gps.configure_receiver: the daemon asks for expected_hz
 
     def restart(self) -> None:
         """Measure anew (the port reopened, or the receiver took a new rate)."""
@@ -826,24 +886,51 @@ class FixRate:
             if n
             else f"no fix in the last {RATE_HORIZON_S:g} s (0 Hz)"
         )
-        self.slow = (
-            f"{got}, under {self.expected_key} = {want:g} Hz that "
-            f"the staleness limits (safety.fix_stale_s, gps.stale_s) were checked against: "
-            f"fixes go stale between epochs and the robot holds; set the receiver's rate "
-            f"(gps.configure_receiver = true, or u-center) or lower {self.expected_key}"
+        key = self.expected_key
+        head = (
+            f"{got}, under {key} = {want:g} Hz that the staleness limits (safety.fix_stale_s, "
+            "gps.stale_s) were checked against: fixes go stale between epochs and the robot "
+            "holds"
         )
         line = self.line
-        if line is not None and line.baud is not None:
-            short = fix_line_short(want, line.baud)
+        baud = line.baud if line is not None and line.paced else None
+        load = None if line is None else line.load
+        if baud is not None and load is None:
+            return  # its first measurement, for the WARNING, comes within seconds
+        if load is not None and load > UNPACED_RATIO:
+            load = None  # not a UART's (LineLoad): its baud says nothing
+        short = None if baud is None or load is None else fix_line_short(want, baud)
+        baud_key = "" if line is None else line.baud_key
+        if line is not None and line.full is not None:  # measured full: the line's fault
+            fewer = "" if self.configured else ", send fewer sentences"
             if short is not None:
-                self.slow += f"; the line is the cause: {short} (raise {line.baud_key})"
-            elif line.full is not None:
-                self.slow += (
-                    f"; the line may be the cause: it is full ({line.used()}): raise the baud "
-                    f"rate ({line.baud_key}) or send fewer sentences"
+                cause = f"the line is the cause: {short}: raise the baud rate ({baud_key})"
+            else:
+                cause = (
+                    f"the line may be the cause: it is full ({line.used()}): raise the baud "
+                    f"rate ({baud_key}){fewer}"
                 )
-            elif line.load is None:
-                return  # its first measurement, for the WARNING, comes within seconds
+            cause += f" or lower {key}"
+        else:
+            if self.configured:
+                cause = (
+                    f"the receiver runs slower than {key} though gps.configure_receiver = "
+                    f"true asked it for {want:g} Hz (gps_receiver.setup: its answers); lower "
+                    f"{key}"
+                )
+            else:
+                cause = (
+                    f"the receiver runs slower than {key}: set its rate "
+                    f"(gps.configure_receiver = true, or u-center) or lower {key}"
+                )
+            if line is not None and load is not None:
+                cause += f" (the line is not full: {line.used()})"
+            if short is not None:
+                cause += (
+                    f"; the line could not carry {key} either: {short}: raise the baud rate "
+                    f"({baud_key}) as well"
+                )
+        self.slow = f"{head}; {cause}"
         if not self._slow_warned:
             self._slow_warned = True
             log.warning("GPS: %s", self.slow)
@@ -874,6 +961,19 @@ def _line_baud(port: object) -> int | None:
     anything else (a ``socket://`` port says 9600 of a network stream)."""
     baud = getattr(_posix_serial(port), "baudrate", None)
     return baud if isinstance(baud, int) and baud > 0 else None
+
+
+def native_usb_path(path: str) -> bool:
+    """Whether the serial device ``path`` is a native-USB (CDC-ACM) one, ``/dev/ttyACM*``
+    (also through a link: ``/dev/serial/by-id/usb-u-blox_...``), whose baud rate does not
+    pace it."""
+    return os.path.basename(os.path.realpath(path)).startswith("ttyACM")
+
+
+def _native_usb(port: object) -> bool:
+    """Whether pyserial's own POSIX ``Serial`` ``port`` is at a :func:`native_usb_path`."""
+    name = getattr(_posix_serial(port), "port", None)
+    return isinstance(name, str) and native_usb_path(name)
 
 
 def _posix_serial(port: object) -> object:
@@ -962,6 +1062,10 @@ class GpsReader:
         self.line_load = LineLoad(expected_rate_key, baud_key)
         """How full the receiver's line is (a UART or pty only), measured anew after each open."""
         self.fix_rate.line = self.line_load
+        configured = setup is not None
+        self.fix_rate.configured = self.line_load.configured = configured
+        if setup is not None:
+            setup.baud_key = baud_key
         self._read_max = read_max
         self.transient_limit = transient_limit
         self.retry_delay_s = retry_delay_s
@@ -1011,6 +1115,8 @@ class GpsReader:
             self.fix_rate.tick(now)
             setup = self.setup
             if setup is not None:
+                if not self.line_load.paced:
+                    setup.line_short = None  # measured: its baud does not limit the line
                 setup.check(now)
                 setup.on_rate(now, self.fix_rate)
                 port = self._port
@@ -1114,9 +1220,11 @@ class GpsReader:
         else:
             self._tracker.opened(now)
         self.fix_rate.restart()
-        self.line_load.restart(_line_baud(port), now)
+        paced = not _native_usb(port)
+        self.line_load.restart(_line_baud(port), now, paced)
         if self.setup is not None:  # the sentences that fit this line (neo5_setup)
-            self.setup.use_baud(getattr(port, "baudrate", None))
+            self.setup.use_baud(getattr(port, "baudrate", None), paced)
+            self.line_load.known_short = self.setup.line_short is not None
         self._write_setup(port, now)
 
     def _write_setup(self, port: PortLike, now: float) -> None:

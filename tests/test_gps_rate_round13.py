@@ -31,7 +31,7 @@ from typing import Any
 import pytest
 import serial
 
-from drivers.gps_io import GpsReader, LineLoad, ReceiverSetup
+from drivers.gps_io import GpsReader, LineLoad, ReceiverSetup, native_usb_path
 from drivers.nmea import checksum
 from tests.conftest import ROOT
 from tests.test_daemon import hil_config, run_daemon, wait_for
@@ -330,3 +330,149 @@ def test_a_replayed_4_hz_log_says_cycle_0_25_on_the_gpsd_port(
     wait_for(lambda: r.daemon.first_fix, 10, "a replayed fix")
     assert gpsd.device_path == str(log) and gpsd.cycle_s == 0.25  # was 1.0 (the URL's rate)
     assert r.stop() == 0
+
+
+# -- review of 60e902d: a line its baud does not pace; the slow text's cause; the setup's keys
+
+
+class BurstPty:
+    """A native-USB receiver's stand-in (CDC-ACM, /dev/ttyACM*: no baud paces it): a pty whose
+    far end writes a whole epoch (RMC + GGA and the rest, ``epoch_b`` bytes) at once,
+    ``rate_hz`` times a second."""
+
+    def __init__(self, rate_hz: float, epoch_b: int) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.master)
+        tty.setraw(self.slave)
+        self.path = os.ttyname(self.slave)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, args=(rate_hz, epoch_b), daemon=True)
+        self.thread.start()
+
+    def _run(self, rate_hz: float, epoch_b: int) -> None:
+        t = datetime(2026, 6, 1, 12, 0, tzinfo=UTC)
+        gsv = _s("GPGSV,4,1,16,01,45,123,42,02,45,123,42,03,45,123,42,04,45,123,42")
+        t0 = time.monotonic()
+        for k in range(10_000):
+            out = _epoch(t + timedelta(seconds=k / rate_hz))
+            out += gsv * max(0, (epoch_b - len(out)) // len(gsv))
+            if self.stop.wait(max(0.0, t0 + k / rate_hz - time.monotonic())):
+                return
+            os.write(self.master, out)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5)
+        os.close(self.master)
+        os.close(self.slave)
+
+
+def test_a_line_faster_than_its_baud_is_not_paced_and_never_full(caplog: Any) -> None:
+    # the review's repro_acm: a u-blox on native USB at 5 Hz x ~560 B, url baud=9600 (2.9 x
+    # what 9600 baud carries): it said "the line is full (2905 of the 960 bytes/s ...)"
+    caplog.set_level(logging.INFO)
+    pty = BurstPty(5.0, 560)
+    try:
+        reader = GpsReader(
+            lambda: serial.Serial(pty.path, 9600, timeout=0), stale_s=5.0, expected_rate_hz=5.0
+        )
+        full_seen: list[str] = []
+        end = time.monotonic() + 9.0
+        while time.monotonic() < end:
+            reader.poll(0.05)
+            if reader.line_load.full is not None:
+                full_seen.append(reader.line_load.full)
+        st = reader.fix_rate.status()
+        reader.close()
+    finally:
+        pty.close()
+    assert not full_seen, full_seen[0]
+    assert st["line"]["paced"] is False and "load" not in st["line"], st
+    assert 2000 <= st["line"]["bytes_per_s"] <= 3500, st
+    assert "line_full" not in st and "slow" not in st, st
+    assert st["measured_rate_hz"] == pytest.approx(5.0, abs=0.6)
+    msgs = [r.getMessage() for r in caplog.records if r.name == "drivers.gps_io"]
+    assert not [m for m in msgs if "line is full" in m], msgs
+    told = [m for m in msgs if "not paced by its baud rate" in m]
+    assert len(told) == 1 and "more than 9600 baud can (960)" in told[0], msgs
+
+
+def test_a_ttyacm_port_is_known_not_paced_at_the_open(tmp_path: Path, caplog: Any) -> None:
+    link = tmp_path / "usb-u-blox_AG_-_www.u-blox.com_u-blox_5_-_GPS_Receiver-if00"
+    link.symlink_to(tmp_path / "ttyACM0")  # a /dev/serial/by-id link to it
+    assert native_usb_path(str(link)) and native_usb_path("/dev/ttyACM3")
+    assert not native_usb_path("/dev/ttyAMA0") and not native_usb_path("/dev/ttyUSB0")
+    caplog.set_level(logging.INFO)
+    load = LineLoad()
+    load.restart(9600, 0.0, paced=False)  # what the reader does for such a port
+    for k in range(1, 100):
+        load.add(300, k * 0.1)
+        load.tick(k * 0.1)
+    assert load.full is None and load.status()["line"] == {
+        "baud": 9600,
+        "bytes_per_s": 3000,
+        "paced": False,
+    }
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len([m for m in msgs if "a native-USB one (CDC-ACM" in m]) == 1, msgs
+
+
+def test_slow_fixes_on_a_line_not_full_blame_the_receiver_and_add_the_short_line(
+    line_pty: Any, caplog: Any
+) -> None:
+    # the review's repro_cause: the receiver at 1 Hz (~280 B an epoch: 58 % of 4800 baud),
+    # gps.rate_hz = 4, not configured: "the line is the cause" was said of a line not full
+    caplog.set_level(logging.WARNING)
+    pty = line_pty(278.0, True)
+    reader = GpsReader(
+        lambda: serial.Serial(pty.path, 4800, timeout=0), stale_s=5.0, expected_rate_hz=4.0
+    )
+    try:
+        end = time.monotonic() + 12.0
+        while time.monotonic() < end and reader.fix_rate.slow is None:
+            reader.poll(0.05)
+        st = reader.fix_rate.status()
+    finally:
+        reader.close()
+    assert "line_full" not in st and 0.4 <= st["line"]["load"] <= 0.75, st
+    slow = st["slow"]
+    assert "the line is the cause" not in slow and "the line may be" not in slow, slow
+    assert "the receiver runs slower than gps.rate_hz: set its rate" in slow, slow
+    assert "(the line is not full: " in slow, slow
+    assert (
+        "the line could not carry gps.rate_hz either: 4800 baud at 4 Hz carries 120 bytes an "
+        "epoch" in slow
+    ), slow
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len([w for w in warnings if "under gps.rate_hz = 4 Hz" in w]) == 1, warnings
+
+
+def test_a_configured_receiver_on_a_short_line_names_the_baud_key_and_warns_once(
+    line_pty: Any, caplog: Any
+) -> None:
+    # the review's repro_sim_short: configure_receiver = true, 4 Hz, the scenario's [gnss]
+    # baud = 4800: the line_short text named no key, the full line advised fewer sentences
+    # (configure_receiver = true sends those that fit) and was a second WARNING for it
+    caplog.set_level(logging.INFO)
+    pty = line_pty(480.0, True)
+    key = "the scenario's [gnss] baud, or sim.gps_baud"
+    reader = GpsReader(
+        lambda: serial.Serial(pty.path, 4800, timeout=0),
+        stale_s=5.0,
+        setup=ReceiverSetup(4.0, ack_timeout_s=30.0),  # no answer from this pty: not its test
+        expected_rate_hz=4.0,
+        baud_key=key,
+    )
+    reader.poll(0.05)
+    _read_for(reader, 4.5)
+    setup = reader.setup
+    assert setup is not None and setup.line_short is not None
+    assert setup.line_short.endswith(f"raise the line's baud rate ({key})"), setup.line_short
+    st = reader.fix_rate.status()
+    full = st["line_full"]
+    assert f"raise the baud rate ({key})" in full and "send fewer sentences" not in full, full
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len([w for w in warnings if w.startswith("GPS: 4800 baud at 4 Hz")]) == 1, warnings
+    assert not [w for w in warnings if w.startswith("GPS: the line is full")], warnings
+    infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
+    assert [m for m in infos if m.startswith("GPS: the line is full")], infos
