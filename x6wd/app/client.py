@@ -426,6 +426,47 @@ def _duration(s: Any) -> str:
     return f"{h}h{m:02d}m{sec:02d}s" if h else f"{m}m{sec:02d}s" if m else f"{s:.1f} s"
 
 
+SETUP_OK_STATES = ("acked", "waiting", "not sent")
+"""``gps_receiver.setup.state`` values that are no problem of the receiver's (status prints
+the others with their reason; "not sent": no port yet, which the gps device's line says)."""
+
+
+def gps_receiver_lines(g: Any) -> list[str]:
+    """``status``'s ``gps_receiver`` for a person (docs/gps.md, "Status"): one brief line
+    (the fix rate against the expected one, the line's baud and load, the setup's state),
+    then each problem on its own line: ``slow``, ``line_full``, ``setup.line_short``, and a
+    setup that is not acked (its ``problem``, ``lost``, ``not_kept``). No lines for a
+    ``gps_receiver`` that is not a dict (null before the GPS reader exists)."""
+    if not isinstance(g, dict):
+        return []
+    brief = (
+        f"gps rx     fixes {_fmt(g.get('measured_rate_hz'), 'g', ' Hz')} "
+        f"(expected {_fmt(g.get('expected_rate_hz'), 'g', ' Hz')})"
+    )
+    line = g.get("line")
+    if isinstance(line, dict):
+        brief += f"  line {line.get('baud', '?')} baud {_fmt(line.get('bytes_per_s'), 'd', ' B/s')}"
+        if line.get("paced") is False:
+            brief += " (not paced by its baud)"
+        elif isinstance(line.get("load"), (int, float)):
+            brief += f" {line['load']:.0%} full"
+    setup = g.get("setup")
+    if isinstance(setup, dict):
+        brief += f"  setup {setup.get('state', '?')}"
+    lines = [brief]
+    for label, text in (("SLOW", g.get("slow")), ("LINE FULL", g.get("line_full"))):
+        if text:
+            lines.append(f"  gps rx   {label}: {text}")
+    if isinstance(setup, dict):
+        if setup.get("line_short"):
+            lines.append(f"  gps rx   LINE SHORT: {setup['line_short']}")
+        state = setup.get("state")
+        if state not in SETUP_OK_STATES:
+            why = setup.get("not_kept") or setup.get("problem") or setup.get("lost") or ""
+            lines.append(f"  gps rx   setup {state}" + (f": {why}" if why else ""))
+    return lines
+
+
 def render_status(st: dict[str, Any]) -> str:
     """The ``status`` reply for a person (``--json`` prints the reply itself)."""
     head = f"x6wd {st.get('version', '?')}  up {_duration(st.get('uptime_s'))}"
@@ -458,6 +499,7 @@ def render_status(st: dict[str, Any]) -> str:
             f"{roll.get('corrected_utc')} (+{roll.get('weeks_added')} weeks; "
             f"{roll.get('corrected')} records; receiver firmware older than the rollover)"
         )
+    lines += gps_receiver_lines(st.get("gps_receiver"))
     drive = st.get("manual_drive")
     if isinstance(drive, dict):  # who steers: another client's drive is refused meanwhile
         whose = "this connection" if drive.get("yours") else drive.get("owner", "?")
