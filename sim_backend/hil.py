@@ -70,7 +70,7 @@ import time
 import tty
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -153,6 +153,7 @@ class HilParams:
     motor_tau_s: float | None = None
     physics_hz: float = 50.0
     motor_watchdog_ms: int = 500
+    _world: World | None = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def from_config(cls, cfg: SimConfig) -> HilParams:
@@ -175,7 +176,16 @@ class HilParams:
         return params
 
     def load_world(self) -> World:
-        """The scenario with the overrides applied (ConfigError naming the key if invalid)."""
+        """The scenario with the overrides applied (ConfigError naming the key if invalid),
+        loaded once: :meth:`from_config` checks it and :class:`HilWorld` runs the same world,
+        so a ``[mission] file`` is read once (a FIFO has nothing left for a second read)."""
+        world = self._world
+        if world is None:
+            world = self._load_world()
+            object.__setattr__(self, "_world", world)  # frozen: set once, here
+        return world
+
+    def _load_world(self) -> World:
         path = resolve_scenario(self.scenario)
         try:
             w = load_world(path)

@@ -338,7 +338,7 @@ def merge_fragment(world: World, path: str | Path) -> World:
     merged = _merge(world.raw, fragment)
     base = world.source.parent if world.source is not None else p.parent
     try:
-        return _build_world(merged, base, world.source)
+        return _build_world(merged, base, world.source, known=world)
     except ConfigError as exc:  # keys numbered in the merged scenario (effects appended)
         raise ConfigError(f"{p}: {exc}") from exc
 
@@ -723,7 +723,11 @@ ROBOT_SECTIONS = ("navigation", "safety", "failsafe", "odometry", "gnss_noise")
 """The robot configuration's sections a scenario may carry (and a robot config provides)."""
 
 
-def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World:
+def _build_world(
+    data: dict[str, Any], base: Path, source: Path | None, known: World | None = None
+) -> World:
+    """The world of the scenario table ``data``; ``known``: a world built before whose mission
+    file is not read again if ``data``'s ``[mission]`` is the same (:func:`_build_mission`)."""
     unknown = sorted(set(data) - _TOP_KEYS)
     if unknown:
         raise ConfigError(f"{unknown[0]}: unknown key (valid keys: {', '.join(sorted(_TOP_KEYS))})")
@@ -773,7 +777,7 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
         raise ConfigError(msg if msg.startswith("compass.") else f"compass.{msg}") from exc
     effects = tuple(dict(e) for e in _table_list(data, "effects"))
     _check_effects(effects)
-    mission, mission_notes = _build_mission(data)
+    mission, mission_notes = _build_mission(data, known)
     for key, points, lo, hi in (
         ("mission.waypoints", mission.waypoints, (-90.0, -180.0), (90.0, 180.0)),
         ("mission.waypoints_enu", mission.waypoints_enu, (-1e6, -1e6), (1e6, 1e6)),
@@ -832,11 +836,17 @@ def _build_world(data: dict[str, Any], base: Path, source: Path | None) -> World
 MISSION_POINT_KEYS = ("waypoints", "waypoints_enu")
 
 
-def _build_mission(data: dict[str, Any]) -> tuple[MissionSettings, tuple[str, ...]]:
+def _build_mission(
+    data: dict[str, Any], known: World | None = None
+) -> tuple[MissionSettings, tuple[str, ...]]:
     """The ``[mission]`` table: inline waypoints, or a mission file read with the project's
     own readers (the ones ``x6wd mission show`` and ``x6wd client load`` use). An explicitly
     empty list or table is refused: a static survey is a scenario without ``[mission]``.
-    Returns the settings and the file reader's notes (what it read but does not drive)."""
+    Returns the settings and the file reader's notes (what it read but does not drive).
+
+    The file is read once: a world rebuilt from ``known`` (``--config``, a fragment) with the
+    same ``[mission]`` keeps ``known``'s waypoints and notes (a FIFO or pipe has nothing
+    left to read a second time, and a file read twice could differ)."""
     table = _table(data, "mission")
     if "mission" in data and not table:
         raise ConfigError(
@@ -857,6 +867,8 @@ def _build_mission(data: dict[str, Any]) -> tuple[MissionSettings, tuple[str, ..
         )
     if not mission.file:
         raise ConfigError("mission.file: empty; name a .waypoints, .plan, .gpx, .csv or .kml file")
+    if known is not None and known.raw.get("mission") == data.get("mission"):
+        return known.mission, known.mission_notes
     try:
         read = load_file(mission.file)
     except ParseError as exc:  # its message leads with the file's path
@@ -882,7 +894,7 @@ def with_robot_config(world: World, robot_config: str | Path) -> World:
         if merged:
             data[sec] = merged
     base = world.source.parent if world.source is not None else Path(".")
-    merged_world = _build_world(data, base, world.source)
+    merged_world = _build_world(data, base, world.source, known=world)
     check_drive_vs_stuck(merged_world.navigation, merged_world.failsafe)
     return merged_world
 
