@@ -237,7 +237,7 @@ def nmea_run(folder: Path, seed: int, truth_wobble_m: float = 0.0) -> Path:
     east_m, north_m = circle_enu(t_s, 1.5, 0.0)
     angle = t_s * 1.5 / 12.0
     speed_mps = 1.5 + rng.normal(0.0, 0.05, t_s.size)
-    course_deg = np.degrees(angle) % 360.0
+    course_deg = (90.0 - np.degrees(angle)) % 360.0  # east = 12 sin(angle): heading 90 - angle
     log = write_nmea(folder / "gps.nmea", t_s, east_m + np.asarray(errors.east_m),
                      north_m + np.asarray(errors.north_m), speed_mps, course_deg)  # fmt: skip
     along_m = 1.5 * t_s + truth_wobble_m * np.sin(2.0 * np.pi * t_s / 10.0)
@@ -258,7 +258,115 @@ def test_a_sim_truth_whose_speeds_are_another_runs_stops(
     argv = real_truth_argv(tmp_path, real, sims)
     assert run_gap(argv) == 2
     err = capsys.readouterr().err
-    assert f"{sims[0]}: its reported speeds differ" in err and str(sims[1]) not in err
+    assert (
+        f"{sims[0]}: its reported velocity (speed and course) differs" in err
+        and str(sims[1]) not in err
+    )
     # the right truths: scored
     nmea_run(tmp_path / "sim0", 1)
     assert run_gap(argv) == "scored"
+
+
+# round 13 review of cfd44fc: three false refusals of legitimate logs
+
+
+def circling_run(
+    folder: Path,
+    seed: int,
+    radius_m: float,
+    *,
+    noise: float = 1.0,
+    truth_hz: float = 1.0,
+    truth_decimals: int = 9,
+    cut_s: int = 0,
+) -> Path:
+    """A robot circling ``radius_m`` round a point at 1.5 m/s for 600 s, from ``seed`` m along
+    the circle (each run its own path): gps.nmea (its truth plus a receiver's errors times
+    ``noise``, speeds 0.05 m/s off, true courses; its first
+    ``cut_s`` seconds left out) and truth.csv beside it, sampled at ``truth_hz`` and written
+    with ``truth_decimals``."""
+    rng = np.random.default_rng(seed)
+    errors = surrogate_run(DURATION_S, 1.0, rng, effects=PRE)
+    t_s = np.asarray(errors.t_s, dtype=float)
+
+    def circle(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        angle = (t * 1.5 + seed) / radius_m
+        return radius_m * np.sin(angle), radius_m * (1.0 - np.cos(angle)), angle
+
+    east_m, north_m, angle = circle(t_s)
+    keep = t_s >= cut_s
+    log = write_nmea(folder / "gps.nmea", t_s[keep],
+                     (east_m + noise * np.asarray(errors.east_m))[keep],
+                     (north_m + noise * np.asarray(errors.north_m))[keep],
+                     (1.5 + rng.normal(0.0, 0.05, t_s.size))[keep],
+                     ((90.0 - np.degrees(angle)) % 360.0)[keep])  # fmt: skip
+    truth_t_s = np.arange(0.0, DURATION_S, 1.0 / truth_hz)
+    e_per_deg, n_per_deg = metres_per_degree(ORIGIN[0])
+    te_m, tn_m, _ = circle(truth_t_s)
+    rows = ["t_s,lat,lon,alt"] + [
+        f"{t:.3f},{ORIGIN[0] + n / n_per_deg:.{truth_decimals}f},"
+        f"{ORIGIN[1] + e / e_per_deg:.{truth_decimals}f},60.0"
+        for t, e, n in zip(truth_t_s, te_m, tn_m, strict=True)
+    ]
+    (folder / "truth.csv").write_text("\n".join(rows) + "\n")
+    return log
+
+
+@pytest.mark.usefixtures("stop_at_diagnosis")
+def test_a_sim_noisier_than_the_real_receiver_is_scored_against_its_own_truth(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # before: sims 6x noisier (a median ~15 m against the real log's ~3 m, as building_route's
+    # urban runs are against their own truth) stopped as "not its run's true path"
+    real = circling_run(tmp_path / "real", 101, 12.0)
+    sims = [circling_run(tmp_path / f"sim{i}", 1 + i, 12.0, noise=6.0) for i in range(3)]
+    argv = real_truth_argv(tmp_path, real, sims)
+    assert run_gap(argv) == "scored", capsys.readouterr().err
+    # a wrong own truth still stops: a log cut 20 s into its truth (the speed alone stays
+    # 1.5 m/s round a circle: its course tells) ...
+    circling_run(tmp_path / "sim0", 1, 12.0, cut_s=20)
+    assert run_gap(argv) == 2
+    assert f"{sims[0]}: its reported velocity (speed and course) differs" in (
+        capsys.readouterr().err
+    )
+    # ... and a truth of another route, 100 m off, its velocities alike
+    circling_run(tmp_path / "sim0", 1, 12.0)
+    truth = tmp_path / "sim1" / "truth.csv"
+    rows = truth.read_text().splitlines()
+    shifted = [rows[0]] + [f"{t},{float(lat) + 0.0009:.9f},{rest}"
+                           for t, lat, rest in (r.split(",", 2) for r in rows[1:])]  # fmt: skip
+    truth.write_text("\n".join(shifted) + "\n")
+    assert run_gap(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{sims[1]}: its fixes lie a median" in err and "over 10 times" in err
+
+
+@pytest.mark.usefixtures("stop_at_diagnosis")
+def test_a_log_circling_round_a_point_is_scored_against_its_true_circle(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # before: a 4 m circle (a compass check) was "the static truth track (reaching 4.0 m)"
+    real = circling_run(tmp_path / "real", 101, 4.0)
+    sims = [circling_run(tmp_path / f"sim{i}", 1 + i, 4.0) for i in range(3)]
+    assert run_gap(real_truth_argv(tmp_path, real, sims)) == "scored", capsys.readouterr().err
+    # a truth that stands still is static as before: a moving log against it stops
+    still = tmp_path / "still.csv"
+    still.write_text("t_s,lat,lon,alt\n" + "".join(
+        f"{t:.1f},{ORIGIN[0]:.9f},{ORIGIN[1]:.9f},60.0\n" for t in range(600)))  # fmt: skip
+    argv = real_truth_argv(tmp_path, real, sims)
+    argv[argv.index("--truth-track") + 1] = str(still)
+    assert run_gap(argv) == 2
+    assert "the static truth track" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("truth_hz", "decimals"), [(50.0, 6), (100.0, 6), (20.0, 5)])
+@pytest.mark.usefixtures("stop_at_diagnosis")
+def test_an_own_truth_sampled_fast_and_rounded_is_not_a_speed_mismatch(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], truth_hz: float, decimals: int
+) -> None:
+    # before: truth speeds differenced sample to sample read the rounding (0.11 m at 6
+    # decimals) as 0.6-1.9 m/s of speed mismatch: "not its run's true path"
+    real = circling_run(tmp_path / "real", 101, 12.0)
+    sims = [circling_run(tmp_path / f"sim{i}", 1 + i, 12.0, truth_hz=truth_hz,
+                         truth_decimals=decimals) for i in range(2)]  # fmt: skip
+    assert run_gap(real_truth_argv(tmp_path, real, sims)) == "scored", capsys.readouterr().err
