@@ -126,3 +126,28 @@ def test_two_compass_layers_are_reported_fitted_on_top_of_each_other(tmp_path: P
     assert abs(soft["k"] - 0.08) < 0.0055 and abs(soft["axis_deg"] - 30.0) < 2.3, effects
     assert abs(effects["heading_lag"]["tau_s"] - 0.4) < 0.03, effects
     assert "refitted on the fit part each on top of the others" in (out / "report.md").read_text()
+
+
+def test_a_whole_log_refit_on_its_search_bound_is_not_reported() -> None:
+    # The F9P's noise_scale: 13.8 on the fit part, the whole-log refit on the grid's edge (50)
+    # and reported so. Here a log 400 times noisier at short scales than its baseline.
+    from x6wd.gap.diagnose import _refit_whole
+    from x6wd.gap.stats import layout_for
+    from x6wd.gap.surrogate import BASELINE_EFFECTS, surrogate_run
+
+    runs = [surrogate_run(600.0, 1.0, np.random.default_rng(10 + i)) for i in range(6)]
+    noisy = [*BASELINE_EFFECTS[:-1], NoiseScale(factor=400.0), BASELINE_EFFECTS[-1]]
+    real = surrogate_run(600.0, 1.0, np.random.default_rng(5), effects=noisy)
+    pipe = GpsPipeline(Options(), np.random.default_rng(0))
+    pipe.real, pipe.runs, pipe.layout = real, runs, layout_for(real)
+    pipe.split = SimpleNamespace(fit_layout=SimpleNamespace(dt_s=1.0, duration_s=360.0))  # type: ignore[assignment]
+    part = Fit(NoiseScale(factor=13.8, split_tau_s=7.9), {"factor": 1.0, "split_tau_s": 0.5})
+    (whole,) = _refit_whole([part], real, runs, pipe.layout, pipe.rng, None)
+    assert whole.params["factor"] == pytest.approx(50.0)  # the case itself: the grid's edge
+    outcome = SimpleNamespace(notes=[])
+    (reported,) = pipe.report_fits([part], {}, outcome)  # type: ignore[arg-type]
+    assert reported.params["factor"] == pytest.approx(13.8), reported.params
+    (note,) = [n for n in outcome.notes if "search bound" in n]
+    assert note.startswith("noise_scale: the whole-log refit stopped on its search bound")
+    assert "(factor 50)" in note and "fit-part fit is reported instead" in note
+    assert "'factor': 13.8" in note and "itself on" not in note

@@ -44,7 +44,7 @@ from x6wd.gap.fit import EFFECTS as ERROR_EFFECTS
 from x6wd.gap.fit import SIM_REFIT
 from x6wd.gap.fitted import Fit
 from x6wd.gap.io import GRID_FACTOR
-from x6wd.gap.level import Calibration, calibrate_checked, level_layers_allowed
+from x6wd.gap.level import FACTOR_RANGE, Calibration, calibrate_checked, level_layers_allowed
 from x6wd.gap.noise import few_logs_null, fit_noise_model, noise_model
 from x6wd.gap.null import Inflation, block_bootstrap, null_model
 from x6wd.gap.pipeline import (
@@ -175,6 +175,37 @@ def apply_fits(
 
 
 SIM_REFIT_EVALS = 30
+BOUND_TOL_LOG = 0.01  # a parameter within 1 % of its search bound (or past it) is on it
+
+
+def search_bounds(name: str, layout: Layout) -> dict[str, tuple[float, float]]:
+    """The box :mod:`x6wd.gap.solution`'s fitters search ``name``'s parameters in on a log of
+    ``layout`` (their grids clip there); {} for an effect fitted otherwise."""
+    dt_s, span_s = layout.dt_s, layout.duration_s
+    if name == "nav_filter":
+        return {"tau_s": (dt_s, max(span_s / 4, 2 * dt_s))}
+    if name == "noise_scale":
+        return {"factor": FACTOR_RANGE, "split_tau_s": (2 * dt_s, span_s / 16)}
+    if name == "correction":  # its split is set, not searched
+        return {"factor": FACTOR_RANGE}
+    return {}
+
+
+def on_bound(fit: Fit, layout: Layout) -> list[tuple[str, float]]:
+    """(parameter, bound) for each of ``fit``'s parameters on (within :data:`BOUND_TOL_LOG` in
+    log of, or past) the bound of its search on ``layout``: where the search stopped, not a
+    measurement."""
+    params = fit.effect.to_params()
+    out = []
+    for key, (lo, hi) in search_bounds(fit.name, layout).items():
+        x = float(params[key])
+        if hi <= lo * math.exp(2 * BOUND_TOL_LOG) or not x > 0:
+            continue  # not searched (a one-point grid)
+        if x <= lo * math.exp(BOUND_TOL_LOG):
+            out.append((key, lo))
+        elif x >= hi * math.exp(-BOUND_TOL_LOG):
+            out.append((key, hi))
+    return out
 
 
 def simulation_refit(
@@ -701,11 +732,12 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         # so they remain honest out-of-sample figures.
         self.say("refitting parameters on the whole log", 0.97)
         whole = _refit_whole(selected, self.real, self.runs, self.layout, self.rng, self.lattice)
+        whole = [self._off_bound(p, w, outcome) for p, w in zip(selected, whole, strict=True)]
         for name, c in scored.items():
             if name not in {f.name for f in whole}:
                 refit = _refit_same(c.fit, self.real, self.runs, self.layout)
                 if refit is not None:
-                    c.fit = refit
+                    c.fit = self._off_bound(c.fit, refit, outcome)
         if scored:
             options = self.options
             outcome.notes.append(
@@ -722,6 +754,23 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
                 + "; ".join(f"{f.name} {f.params}" for f in selected)
             )
         return whole
+
+    def _off_bound(self, part: Fit, whole: Fit, outcome: Diagnosis) -> Fit:
+        """``whole`` (the whole-log refit), or ``part`` (the fit-part fit) with a note when a
+        parameter of ``whole`` is on its search bound (the F9P's noise_scale: 13.8 on the fit
+        part, the grid's edge of 50 on the whole log, reported as if measured)."""
+        hit = on_bound(whole, self.layout)
+        if not hit:
+            return whole
+        text = ", ".join(f"{key} {bound:g}" for key, bound in on_bound(part, self.split.fit_layout))
+        outcome.notes.append(
+            f"{whole.name}: the whole-log refit stopped on its search bound ("
+            + ", ".join(f"{key} {bound:g}" for key, bound in hit)
+            + f"), not a measurement; the fit-part fit is reported instead: {part.params}"
+            + (f", itself on the fit part's bound ({text}): a limit, not a measurement either"
+               if text else "")
+        )  # fmt: skip
+        return part
 
 
 def check_real(real: PositionSeries) -> None:
