@@ -7,7 +7,10 @@ scored as z = (real - null mean) / null spread, and the "where" limits control t
 family-wise error over all cells: each cell's Bonferroni-corrected Student-t prediction bound,
 with a tail of its own where the replicates show that cell's tail to be heavier than the rest
 (:func:`tail_dof`), raised if need be to the leave-one-out family-wise quantile of the
-replicates themselves measured in units of those per-cell bounds.
+replicates themselves measured in units of those per-cell bounds. A replicate that is an
+outlier of one cell (:func:`single_run_outliers`: far beyond the cell's other replicates by
+median and MAD) raises that cell's limit alone, and the pooled tail is fitted robustly to one
+odd replicate; the null lists such outliers (``NullModel.outliers``) for the report.
 """
 
 from __future__ import annotations
@@ -92,6 +95,9 @@ class NullModel:
     tail_apart: np.ndarray | None = None
     # Each cell's share of the family-wise level (None: equal shares).
     share: np.ndarray | None = None
+    # (replicate index, cell, its leave-one-out z) of each replicate that is an outlier of
+    # one cell (:func:`single_run_outliers`): that cell's limit covers it, no other's does.
+    outliers: tuple[tuple[int, Cell, float], ...] = ()
 
     def limits(self) -> np.ndarray:
         """The |z| limit of every cell (the "where" test)."""
@@ -275,7 +281,7 @@ TAIL_CLIP_Z = 10.0
 TAIL_APART_ALPHA = 0.05  # family-wise level of the test that sets a cell's tail apart
 
 
-def tail_dof(z_loo: np.ndarray) -> np.ndarray:
+def tail_dof(z_loo: np.ndarray, outlier: np.ndarray | None = None) -> np.ndarray:
     """Per-cell Student-t degrees of freedom of the replicates' leave-one-out z (rows:
     replicates, columns: cells), the scale fixed at a Gaussian cell's sqrt(1 + 1/(M - 1)).
 
@@ -286,19 +292,57 @@ def tail_dof(z_loo: np.ndarray) -> np.ndarray:
     by a likelihood-ratio test at ``TAIL_APART_ALPHA`` over all cells: then that cell keeps
     the heavier tail of its own. So one heavy cell raises its own limit, not every cell's
     (through the family-wise maximum it did: one run's random-walk ratio set the limit of
-    every cell, and gpsd's ZED-F9P log came out "no significant gap")."""
+    every cell, and gpsd's ZED-F9P log came out "no significant gap").
+
+    ``outlier`` (same shape; :func:`single_run_outliers`) marks z the pooled tail leaves
+    out; and with M >= 5 the pooled tail is the lightest of those fitted without each
+    replicate in turn: one odd run that sits 7-8 spreads off in twenty correlated cells
+    (the fast-noise octaves, lags and bands all read its noisier hour) is one event, not
+    twenty, and had set every cell's tail to 3 degrees of freedom at M = 8 (limits 13 where
+    8 runs without it give 8); :func:`null_model`'s family-wise step still covers that run."""
     n_runs, n_cells = z_loo.shape
     gaussian = float(n_runs - 2)
     grid = np.array([g for g in TAIL_DOF_GRID if g < gaussian] + [gaussian])
     u = z_loo / math.sqrt(1.0 + 1.0 / (n_runs - 1))
     own = np.array([sps.t.logpdf(u, nu).sum(axis=0) for nu in grid])  # (grid, cells)
-    clipped = np.clip(u, -TAIL_CLIP_Z, TAIL_CLIP_Z)
-    pooled = int(np.argmax([sps.t.logpdf(clipped, nu).sum() for nu in grid]))
+    kept = np.ones(u.shape, bool) if outlier is None else ~outlier
+    clipped = np.where(kept, np.clip(u, -TAIL_CLIP_Z, TAIL_CLIP_Z), np.nan)
+    rows = [np.delete(clipped, i, axis=0) for i in range(n_runs)] if n_runs >= 5 else [clipped]
+    pooled = max(int(np.argmax([np.nansum(sps.t.logpdf(r, nu)) for nu in grid])) for r in rows)
     best = np.argmax(own, axis=0)
     gain = own[best, np.arange(n_cells)] - own[pooled]
     critical = float(sps.chi2.ppf(1.0 - TAIL_APART_ALPHA / max(n_cells, 1), 1)) / 2.0
     apart = (gain > critical) & (best < pooled)
     return np.where(apart, grid[best], grid[pooled])
+
+
+# A replicate's leave-one-out z this many robust spreads (1.4826 MAD of the cell's z over the
+# replicates, at least a Gaussian cell's sqrt(1 + 1/(M - 1))) from the cell's median, and
+# beyond the cell's Gaussian limit, is an outlier of that cell alone (:func:`single_run_outliers`).
+OUTLIER_SPREADS = 8.0
+
+
+def single_run_outliers(
+    z_loo: np.ndarray, gaussian_limit: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which leave-one-out z (rows: replicates, columns: cells) are outliers of their cell,
+    and each cell's bound of |z|: the larger of the cell's median's size plus
+    ``OUTLIER_SPREADS`` robust spreads of its z over the replicates and ``gaussian_limit``
+    (a Gaussian cell's family-wise bound, so that its t tail at a small M is no outlier: at
+    M = 4 that is ~90 and one run cannot be told from it).
+
+    A statistic with a point mass and a long tail (the random walk's likelihood ratio: 0 on
+    most runs, 84 on one 15-minute run whose fast noise was five times the others') gives one
+    replicate a z of 35 against the others' 0.4; the family-wise step took it as the tail of
+    every cell and set every limit to 32.5 (a 4 m jump layer at z 14 read "no significant
+    gap"). Median and MAD are robust to that one run, so it stands out of its cell even at
+    M = 4-12, where the tail test (:func:`tail_dof`) has too few runs to set the cell apart."""
+    n_runs = z_loo.shape[0]
+    center = np.median(z_loo, axis=0)
+    mad = 1.4826 * np.median(np.abs(z_loo - center), axis=0)
+    spread = np.maximum(mad, math.sqrt(1.0 + 1.0 / (n_runs - 1)))
+    bound = np.maximum(np.abs(center) + OUTLIER_SPREADS * spread, gaussian_limit)
+    return np.abs(z_loo) > bound, bound
 
 
 # Statistics an hour holds only a few independent draws of, so that n logs pin their spread
@@ -356,7 +400,10 @@ def null_model(
     if need be, to the 1 - alpha quantile of the replicates' own leave-one-out family-wise
     maximum of |z| / limit: the cells are not exactly Student-t (an hour of the simulator
     can sit 8 spreads off in several cells at once), though with M replicates that
-    quantile is coarse, hence the parametric bounds beneath it. ``dof_by_axis``: a few-logs
+    quantile is coarse, hence the parametric bounds beneath it; a replicate's outlier of one
+    cell (:func:`single_run_outliers`) counts in that step at no more than its cell's
+    outlier bound and raises its own cell's limit to itself (with M <= 20 the quantile is
+    about the maximum, so one run's one cell had set every limit). ``dof_by_axis``: a few-logs
     null's degrees of freedom of its per-log statistics per axis; those cells
     (:func:`between_log_dof`) get a t limit with them (the two dof combined as
     1 / (1 / tail + 1 / logs))."""
@@ -378,15 +425,24 @@ def null_model(
     few = between_log_dof(cells, dof_by_axis)
     limits = sps.t.ppf(level, _with_logs(np.full(n_cells, n_runs - 1.0), few)) * widen
     apart = None
+    outliers: tuple[tuple[int, Cell, float], ...] = ()
     if n_runs >= 4:
         z_loo = np.array([_loo_z(values, cells, i) for i in range(n_runs)])
+        # a Gaussian cell's leave-one-out z: Student-t, M - 2 dof, family-wise over M runs
+        gaussian = sps.t.ppf(1.0 - alpha * share / (2 * n_runs), _with_logs(n_runs - 2.0, few))
+        loo_scale = math.sqrt(1.0 + 1.0 / (n_runs - 1))
+        outlier, bound = single_run_outliers(z_loo, gaussian * loo_scale)
+        own_dof = tail_dof(z_loo, outlier)
+        apart = (own_dof < float(np.max(own_dof))) | np.any(outlier, axis=0)
         # from the M - 1 replicates of a leave-one-out z to the M the real log is scored on
-        own_dof = tail_dof(z_loo)
-        apart = own_dof < float(np.max(own_dof))
         dof = _with_logs(own_dof * (n_runs - 1) / (n_runs - 2), few)
         limits = sps.t.ppf(level, dof) * widen
-        excess = np.max(np.abs(z_loo) / limits, axis=1)
+        # an outlier raises every limit no more than its cell's bound, its own to itself
+        size = np.abs(z_loo)
+        excess = np.max(np.where(outlier, np.minimum(size, bound), size) / limits, axis=1)
         limits = limits * max(1.0, float(np.quantile(excess, 1.0 - alpha)))
+        limits = np.maximum(limits, np.max(np.where(outlier, size, 0.0), axis=0))
+        outliers = tuple((int(i), cells[j], float(z_loo[i, j])) for i, j in np.argwhere(outlier))
     return NullModel(
         cells,
         values,
@@ -397,6 +453,7 @@ def null_model(
         limits,
         apart,
         None if weights is None else share,
+        outliers,
     )
 
 

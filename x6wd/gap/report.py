@@ -422,6 +422,7 @@ def markdown(
         "half, verdict.halves.gps.status)",
     ]
     lines += [f"- note: {note}" for note in diagnosis.notes]
+    lines += [f"- note: {text}" for text in outlier_notes(diagnosis.null)]
     lines += ["", "## Where", ""]
     if diagnosis.where:
         lines += ["| statistic | axis | scale | period | place | z |", "|---|---|---|---|---|---|"]
@@ -529,6 +530,21 @@ def split_text(
         fit, test = f"t >= {fit0_s:.0f} s", f"t < {test1_s:.0f} s"
         why = " (the log's start is held out: its end showed no gap to close)"
     return test if test_only else f"fit on {fit}, guard gap, held-out test on {test}{why}"
+
+
+def outlier_notes(null: NullModel) -> list[str]:
+    """The report's note on each baseline replicate that is an outlier of one statistic
+    (:func:`x6wd.gap.null.single_run_outliers`): which replicate, which statistic, its z."""
+    out = []
+    for run, c, z_loo in null.outliers:
+        where = ", ".join(x for x in (c.scale, c.period, c.place) if x != "all")
+        out.append(
+            f"baseline run {run + 1} of {null.n_runs} is an outlier in {c.statistic} {c.axis}"
+            f"{f' ({where})' if where else ''}: z {z_loo:+.1f} against the other runs "
+            "(leave-one-out); that statistic's limit alone covers it, every other limit is set "
+            "without it (more seeds tell a heavy tail from a one-off)"
+        )
+    return out
 
 
 def _limits_text(null: NullModel) -> str:
