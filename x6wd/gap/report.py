@@ -723,12 +723,12 @@ def _validation_json(v: Validation) -> dict[str, Any]:
                 "pass": within,
             }
         )
-    label, rel = v.worst()
+    worst_label, worst_rel = v.worst()  # None: the simulated logs reach no figure
     return {
         "passed": v.passed,
         "runs": v.n_runs,
         "figures": figures,
-        "furthest_off": {"figure": label, "difference": _num(rel)},
+        "furthest_off": {"figure": worst_label, "difference": _num(worst_rel)},
         "runs_spread": {
             "mean": _num(v.mean_spread),
             "sigma": _num(v.sd_spread),

@@ -296,10 +296,13 @@ class Validation:
                 out.append(math.log(ratio) / math.log1p(tol) if math.isfinite(ratio) else 100.0)
         return np.array(out)
 
-    def worst(self) -> tuple[str, float]:
+    def worst(self) -> tuple[str | None, float]:
         """The figure furthest outside its tolerance (relative to it; the largest if all are
-        within) and its difference (simulated - real) / real."""
+        within) and its difference (simulated - real) / real; ``(None, nan)`` when the
+        simulated logs reach no figure (all shorter than the part validated)."""
         reached = [f for f in self.figures() if self.within(f[2], f[1], f[3]) is not None]
+        if not reached:
+            return None, math.nan
         label, real, sim, _tol = max(reached, key=lambda f: abs(self.rel(f[2], f[1])) / f[3])
         return label, self.rel(sim, real)
 
@@ -307,6 +310,8 @@ class Validation:
         """The figure furthest off and which way it misses, e.g. "Allan deviation at 1 s:
         simulated 43.4 % above the real, the simulator noisier there"."""
         label, rel = self.worst()
+        if label is None:
+            return "none: the simulated logs reach no figure (they are shorter than the real log)"
         if not math.isfinite(rel):
             return f"{label}: n/a, the real is 0"
         text = f"{label}: simulated {abs(rel):.1%} {'above' if rel > 0 else 'below'} the real"
