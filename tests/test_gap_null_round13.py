@@ -61,17 +61,25 @@ def test_a_noisier_run_in_many_cells_sets_the_limits_it_needs_not_a_pooled_heavy
     # The audit's run 4 also sat 7-8 spreads off in twenty cells that all read its noisier
     # hour (Allan octaves, lag-1 autocorrelation, step spreads, spectrum bands): one event,
     # which had set the pooled tail of every cell to 3 degrees of freedom (limits 13 and 27).
+    # Its random-walk ratio marks it as odd, so the pooled tail is fitted without it.
     rng = np.random.default_rng(7)
     n_runs = 8
     names = [Cell("mean", f"axis{i}") for i in range(60)]
     values = rng.standard_normal((n_runs, len(names)))
     _noisy_run(values, 3)
-    model = null_model([dict(zip(names, row, strict=True)) for row in values], 0.01)
+    ratios = np.zeros(n_runs)
+    ratios[3] = 84.0
+    model = null_model(_rows(values, names, ratios), 0.01)
     z_loo = np.array([_loo_z(values, names, i) for i in range(n_runs)])
     needed = float(np.max(np.abs(z_loo)))  # the odd run must still pass its own test
     assert needed == pytest.approx(7.5)
-    assert needed <= float(np.min(model.limits())) < 1.15 * needed
-    assert model.outliers == ()
+    assert needed <= float(np.min(model.limits()[:-1])) < 1.15 * needed
+    assert [(run, cell) for run, cell, _ in model.outliers] == [(3, RW)]
+    # without a cell that marks the run as odd the pooled tail keeps every run (the
+    # conservative null of before: a lightest fit over runs left out in turn lowered the
+    # limits of plain nulls too), and its limits still cover that run
+    plain = null_model([dict(zip(names, row, strict=True)) for row in values], 0.01)
+    assert plain.outliers == () and float(np.min(plain.limits())) >= needed
 
 
 def test_the_report_names_the_outlying_run_and_statistic() -> None:
