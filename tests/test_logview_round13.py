@@ -150,6 +150,17 @@ def _short_run(rec: Recorder, t0: float, n: int) -> None:
         )  # fmt: skip
 
 
+def _plot_with_truth_row(tmp_path: Path, row: str) -> tuple[Path, list[str]]:
+    """A short recording and a true track whose fourth line is ``row``: the truth file and
+    the plot's argv (without its format)."""
+    rec_path = tmp_path / "r.jsonl"
+    with Recorder(rec_path) as rec:
+        _short_run(rec, 0.0, 10)
+    truth = tmp_path / "mine.csv"
+    truth.write_text(f"t_s,lat,lon\n0,51.0,-1.0\n1,51.0,-1.0\n{row}\n3,51.0,-1.0\n")
+    return truth, ["plot", str(rec_path), "--truth", str(truth), "--out", str(tmp_path)]
+
+
 @pytest.mark.parametrize(
     ("row", "said"),
     [
@@ -162,18 +173,13 @@ def _short_run(rec: Recorder, t0: float, n: int) -> None:
 def test_a_true_track_row_out_of_range_is_refused_naming_its_line(
     row: str, said: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    rec_path = tmp_path / "r.jsonl"
-    with Recorder(rec_path) as rec:
-        _short_run(rec, 0.0, 10)
-    truth = tmp_path / "mine.csv"
-    truth.write_text(f"t_s,lat,lon\n0,51.0,-1.0\n1,51.0,-1.0\n{row}\n3,51.0,-1.0\n")
-    argv = ["plot", str(rec_path), "--truth", str(truth), "--out", str(tmp_path)]
+    truth, argv = _plot_with_truth_row(tmp_path, row)
     assert cli_main([*argv, "--format", "html"]) == 2
     err = capsys.readouterr().err
     assert f"mine.csv {said}" in err and "Traceback" not in err
     # cut while written (no newline), the last line is skipped and counted, as before
     truth.write_text(f"t_s,lat,lon\n0,51.0,-1.0\n1,51.0,-1.0\n{row}")
-    view = logview.load(rec_path, truth=truth)
+    view = logview.load(tmp_path / "r.jsonl", truth=truth)
     assert view.counts["truncated_truth_lines"] == 1
 
 
@@ -251,12 +257,7 @@ def test_a_true_track_value_just_out_of_range_is_said_as_written(
     row: str, said: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Printed with {:g}, 180.00001 read "got 180": a value in range, refused."""
-    rec_path = tmp_path / "r.jsonl"
-    with Recorder(rec_path) as rec:
-        _short_run(rec, 0.0, 10)
-    truth = tmp_path / "mine.csv"
-    truth.write_text(f"t_s,lat,lon\n0,51.0,-1.0\n1,51.0,-1.0\n{row}\n3,51.0,-1.0\n")
-    argv = ["plot", str(rec_path), "--truth", str(truth), "--out", str(tmp_path)]
+    _truth, argv = _plot_with_truth_row(tmp_path, row)
     assert cli_main([*argv, "--format", "html"]) == 2
     err = capsys.readouterr().err
     assert f"mine.csv line 4: a true track's {said}\n" in err, err
