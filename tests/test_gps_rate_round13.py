@@ -115,6 +115,15 @@ def test_a_configured_rate_the_urls_line_cannot_carry_is_refused_at_start_up(
     _preflight(tmp_path, f"serial://{pty_path}?baud=9600")
 
 
+def test_a_native_usb_receiver_is_not_refused_for_its_urls_baud(tmp_path: Path) -> None:
+    """A CDC-ACM receiver (/dev/ttyACM*) is not paced by the url's baud: 4 Hz with
+    baud=4800 is no short line there (start-up goes on to the device node itself)."""
+    url = f"serial://{tmp_path / 'ttyACM0'}?baud=4800"
+    with pytest.raises(ConfigError) as exc:
+        _preflight(tmp_path, url)  # no such node here: refused for that, not for the line
+    assert "gps.url" in str(exc.value) and "rate_hz" not in str(exc.value), exc.value
+
+
 def test_the_cli_stops_with_exit_2_naming_the_rate_and_the_baud(
     tmp_path: Path, pty_path: str
 ) -> None:

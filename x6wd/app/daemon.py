@@ -1160,7 +1160,11 @@ class Daemon:
         self._missing = {}
         with contextlib.suppress(registry.UrlError):  # (a bad URL: named below)
             if registry.parse_url(cfg.gps.url, "gps").scheme == "serial":  # the rate fits it
-                check_gps_line(cfg, registry.device_path(cfg.gps.url)[1])
+                from drivers.gps_io import native_usb_path
+
+                path, baud = registry.device_path(cfg.gps.url)
+                if not native_usb_path(path):  # USB (CDC-ACM) is not paced by its baud
+                    check_gps_line(cfg, baud)
         for key, url, kind in devices:
             try:
                 self.devices.check(url, kind)  # a sim:// URL: also the [sim] world's settings
