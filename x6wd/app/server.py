@@ -1573,6 +1573,8 @@ class ControlServer(LineServer[_Client]):
                         f'waypoints[{i}]: expected [lat, lon] or {{"lat": .., "lon": ..}} '
                         "with numbers (degrees)",
                     )
+                for v in values:  # a JSON integer past a float: OverflowError, bad_value
+                    float(v)
             return from_pairs(pairs, "waypoints")
         text = req[key]
         if not isinstance(text, str):
