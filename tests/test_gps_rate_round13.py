@@ -185,13 +185,14 @@ class LinePty:
     """A pty whose far end writes NMEA epochs (4 Hz, dated) at ``bytes_per_s`` at most:
     a line at its capacity when the epochs need more."""
 
-    def __init__(self, bytes_per_s: float, full: bool) -> None:
+    def __init__(self, *args: Any) -> None:
+        """A raw pty pair and the writer thread: ``_run(*args)`` writes its far end."""
         self.master, self.slave = os.openpty()
         tty.setraw(self.master)
         tty.setraw(self.slave)
         self.path = os.ttyname(self.slave)
         self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, args=(bytes_per_s, full), daemon=True)
+        self.thread = threading.Thread(target=self._run, args=args, daemon=True)
         self.thread.start()
 
     def _run(self, bytes_per_s: float, full: bool) -> None:
@@ -344,19 +345,10 @@ def test_a_replayed_4_hz_log_says_cycle_0_25_on_the_gpsd_port(
 # -- review of 60e902d: a line its baud does not pace; the slow text's cause; the setup's keys
 
 
-class BurstPty:
+class BurstPty(LinePty):
     """A native-USB receiver's stand-in (CDC-ACM, /dev/ttyACM*: no baud paces it): a pty whose
     far end writes a whole epoch (RMC + GGA and the rest, ``epoch_b`` bytes) at once,
-    ``rate_hz`` times a second."""
-
-    def __init__(self, rate_hz: float, epoch_b: int) -> None:
-        self.master, self.slave = os.openpty()
-        tty.setraw(self.master)
-        tty.setraw(self.slave)
-        self.path = os.ttyname(self.slave)
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, args=(rate_hz, epoch_b), daemon=True)
-        self.thread.start()
+    ``rate_hz`` times a second: ``BurstPty(rate_hz, epoch_b)``."""
 
     def _run(self, rate_hz: float, epoch_b: int) -> None:
         t = datetime(2026, 6, 1, 12, 0, tzinfo=UTC)
@@ -368,12 +360,6 @@ class BurstPty:
             if self.stop.wait(max(0.0, t0 + k / rate_hz - time.monotonic())):
                 return
             os.write(self.master, out)
-
-    def close(self) -> None:
-        self.stop.set()
-        self.thread.join(5)
-        os.close(self.master)
-        os.close(self.slave)
 
 
 def test_a_line_faster_than_its_baud_is_not_paced_and_never_full(caplog: Any) -> None:
