@@ -26,7 +26,9 @@ is).
 Plug-in schemes (``sim://``), like pyserial's ``protocol_<scheme>`` modules: the module
 ``<package>.protocol_<scheme>`` of the first of :data:`PROTOCOL_PACKAGES` that has one is
 imported by name when such a URL is used (the simulator is a higher layer than the drivers:
-a plug-in, not a dependency). It provides ``url_problem(dev)``, ``check_config(config)``,
+a plug-in, not a dependency). It provides ``url_problem(dev)``, ``check_config(config)``
+(what it returns, if not None, is given to ``open_backend`` instead of the configuration:
+the world then runs the settings that were checked, each input read once),
 ``open_backend(config)`` (the object its devices share, e.g. the simulated world, built from
 the configuration) and ``open_gps/open_compass/open_motors(dev, backend)``. The devices of a
 plug-in scheme are opened through a :class:`Devices` (one configuration's devices), which
@@ -454,7 +456,7 @@ class Devices:
         self.config = config
         self._given = dict(backends or {})
         self._built: dict[str, Any] = {}
-        self._checked: set[str] = set()
+        self._checked: dict[str, Any] = {}  # scheme -> what its check_config returned
         self._closed = False
         self._lock = threading.Lock()
 
@@ -464,8 +466,7 @@ class Devices:
         dev = check_available(url, kind)
         scheme = dev.scheme
         if scheme in PLUGIN_SCHEMES and scheme not in self._given and scheme not in self._checked:
-            protocol_handler(scheme).check_config(self.config)
-            self._checked.add(scheme)
+            self._checked[scheme] = protocol_handler(scheme).check_config(self.config)
         return dev
 
     def backend(self, scheme: str) -> Any:
@@ -481,7 +482,12 @@ class Devices:
                     backend.close()
                 backend = None
             if backend is None:
-                backend = protocol_handler(scheme).open_backend(self.config)
+                # The checked settings when the check returned them: a world built from them
+                # reads its inputs once (a scenario's mission.file may be a FIFO).
+                checked = self._checked.get(scheme)
+                backend = protocol_handler(scheme).open_backend(
+                    self.config if checked is None else checked
+                )
                 self._built[scheme] = backend
             return backend
 

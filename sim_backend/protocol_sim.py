@@ -46,9 +46,12 @@ def _params(config: Any) -> HilParams:
     return HilParams.from_config(sim if isinstance(sim, SimConfig) else SimConfig())
 
 
-def check_config(config: Any) -> None:
-    """Check the ``[sim]`` settings without building a world (ConfigError naming the key)."""
-    _params(config)
+def check_config(config: Any) -> HilParams:
+    """Check the ``[sim]`` settings without building a world (ConfigError naming the key).
+
+    Returns the checked parameters, their scenario loaded: :func:`open_backend` takes them, so
+    the world runs what was checked and reads a ``[mission] file`` once."""
+    return _params(config)
 
 
 def open_backend(config: Any) -> HilWorld:

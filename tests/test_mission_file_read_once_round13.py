@@ -88,3 +88,20 @@ def test_hardware_in_the_loop_reads_a_fifo_mission_once(tmp_path: Path) -> None:
         assert world.scenario is params.load_world()
     finally:
         world.close()
+
+
+def test_the_daemons_device_check_and_world_read_a_fifo_mission_once(tmp_path: Path) -> None:
+    """The daemon's path: :meth:`Devices.check` at start-up, then the world on first open.
+    Before, each built its own parameters from ``[sim]`` and the second read found no
+    writer (DeviceUnavailable / ConfigError "no writer has it open")."""
+    from drivers.registry import Devices
+    from x6wd.core.config import Config
+
+    with fifo_scenario(tmp_path) as scenario:
+        devices = Devices(Config(sim=SimConfig(scenario=str(scenario))))
+        devices.check("sim://", "gps")
+        try:
+            world = devices.backend("sim")
+            assert world.scenario.mission.waypoints == WAYPOINTS
+        finally:
+            devices.close()
