@@ -335,6 +335,37 @@ def check_still(
         )
 
 
+def check_same_motion(
+    args: argparse.Namespace, truth_track: Track, names: list[str], truths: list[Track | None]
+) -> None:
+    """ConfigError naming the --sim logs whose own truth moves while the real log's stands
+    still, or stands still while the real log's moves: a receiver's error depends on its
+    motion (its navigation filter's lag, static hold), so the difference would be reported
+    as the receiver's gap."""
+    if np.count_nonzero(truth_track.valid) < 2:
+        return  # io.errors_vs_track names that
+    real_still = _static_truth_text(args, truth_track) is not None
+    odd = [
+        name
+        for name, truth in zip(names, truths, strict=True)
+        if truth is not None
+        and truth is not truth_track
+        and np.count_nonzero(truth.valid) >= 2
+        and _truth_still(truth) != real_still
+    ]
+    if not odd:
+        return
+    real_way, sim_way = ("stands still", "moves") if real_still else ("moves", "stands still")
+    raise ConfigError(
+        f"{', '.join(odd)}: the real log's truth {truth_track.source} {real_way} but the"
+        f" {SIM_TRUTH_NAME} beside {'this --sim log' if len(odd) == 1 else 'each of these'}"
+        f" {sim_way}: a receiver's error depends on its motion (its navigation filter, static"
+        " hold), so the difference would be reported as a gap. Give --sim runs that move as"
+        " the real log does (a static scenario for a static survey, a mission for a driven"
+        " log), or --scenario FILE"
+    )
+
+
 def _median_error_m(series: PositionSeries) -> float:
     """Median horizontal error (m) over the valid epochs; NaN without one."""
     valid = np.asarray(series.valid, dtype=bool)
@@ -770,6 +801,7 @@ def main(args: argparse.Namespace) -> int:
             for why in unread.values():
                 print(f"x6wd gap: warning: {SIM_TRUTH_NAME} not read: {why}", file=sys.stderr)
             check_shared_truths(args.sim, sim_truths, truth_track)
+            check_same_motion(args, truth_track, args.sim, sim_truths)
         check_still(args, args.sim, sims, sim_truths)
         baseline = [
             to_errors(sim, args, truth, "sim", own_truth=truth is not truth_track)
