@@ -27,10 +27,10 @@ def _rows(values: np.ndarray, names: list[Cell], ratios: np.ndarray) -> list[dic
     ]
 
 
-def _noisy_run(values: np.ndarray, run: int, n_cells: int = 20) -> None:
+def _noisy_run(values: np.ndarray, run: int, n_cells: int = 20, spreads: float = 7.5) -> None:
     # the audit's odd run: 7.5 spreads off in n_cells correlated cells (its noisier hour)
     others = np.delete(values[:, :n_cells], run, axis=0)
-    values[run, :n_cells] = others.mean(axis=0) + 7.5 * others.std(axis=0, ddof=1)
+    values[run, :n_cells] = others.mean(axis=0) + spreads * others.std(axis=0, ddof=1)
 
 
 @pytest.mark.parametrize("n_runs", [5, 6, 8, 10, 12])
@@ -66,14 +66,17 @@ def test_a_noisier_run_in_many_cells_sets_the_limits_it_needs_not_a_pooled_heavy
     n_runs = 8
     names = [Cell("mean", f"axis{i}") for i in range(60)]
     values = rng.standard_normal((n_runs, len(names)))
-    _noisy_run(values, 3)
     ratios = np.zeros(n_runs)
     ratios[3] = 84.0
+    calm = null_model(_rows(values, names, ratios), 0.01)  # the same run, an ordinary hour
+    _noisy_run(values, 3, spreads=9.0)  # beyond the calm limits (7.7), not flagged
     model = null_model(_rows(values, names, ratios), 0.01)
     z_loo = np.array([_loo_z(values, names, i) for i in range(n_runs)])
-    needed = float(np.max(np.abs(z_loo)))  # the odd run must still pass its own test
-    assert needed == pytest.approx(7.5)
-    assert needed <= float(np.min(model.limits()[:-1])) < 1.15 * needed
+    needed = float(np.max(np.abs(z_loo)))
+    assert needed == pytest.approx(9.0) and needed > float(np.max(calm.limits()[:-1]))
+    # round 14: the odd run leaves the family-wise step, so its other cells set no limit
+    # (report.md says "every other limit is set without it"; they had raised every limit)
+    np.testing.assert_allclose(model.limits()[:-1], calm.limits()[:-1], rtol=0.05)
     assert [(run, cell) for run, cell, _ in model.outliers] == [(3, RW)]
     # without a cell that marks the run as odd the pooled tail keeps every run (the
     # conservative null of before: a lightest fit over runs left out in turn lowered the
@@ -92,3 +95,4 @@ def test_the_report_names_the_outlying_run_and_statistic() -> None:
     assert note.startswith("baseline run 4 of 8 is an outlier in random_walk_lr horizontal: z +")
     assert "that statistic's limit alone covers it" in note
     assert math.isfinite(model.threshold) and model.threshold < 10.0
+

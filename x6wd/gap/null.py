@@ -406,9 +406,10 @@ def null_model(
     maximum of |z| / limit: the cells are not exactly Student-t (an hour of the simulator
     can sit 8 spreads off in several cells at once), though with M replicates that
     quantile is coarse, hence the parametric bounds beneath it; a replicate's outlier of one
-    cell (:func:`single_run_outliers`) counts in that step at no more than its cell's
-    outlier bound and raises its own cell's limit to itself (with M <= 20 the quantile is
-    about the maximum, so one run's one cell had set every limit). ``dof_by_axis``: a few-logs
+    cell (:func:`single_run_outliers`) raises its own cell's limit to itself and that run
+    leaves the step (with M <= 20 the quantile is about the maximum, so one run's one cell
+    had set every limit; with fewer than 3 other runs its outlier counts at its cell's
+    outlier bound). ``dof_by_axis``: a few-logs
     null's degrees of freedom of its per-log statistics per axis; those cells
     (:func:`between_log_dof`) get a t limit with them (the two dof combined as
     1 / (1 / tail + 1 / logs))."""
@@ -442,9 +443,16 @@ def null_model(
         # from the M - 1 replicates of a leave-one-out z to the M the real log is scored on
         dof = _with_logs(own_dof * (n_runs - 1) / (n_runs - 2), few)
         limits = sps.t.ppf(level, dof) * widen
-        # an outlier raises every limit no more than its cell's bound, its own to itself
+        # a run with an outlier raises its own cell's limit to itself and sets no other: its
+        # other cells leave the family-wise step too (its z there is the same odd run's: one
+        # run z +33 in one cell and -12 in another set every limit 1.25x, hiding a jumps
+        # layer); with too few ordinary runs left, its outlier counts at its cell's bound
         size = np.abs(z_loo)
-        excess = np.max(np.where(outlier, np.minimum(size, bound), size) / limits, axis=1)
+        odd_run = np.any(outlier, axis=1)
+        if n_runs - int(np.count_nonzero(odd_run)) >= 3:
+            excess = np.max(size[~odd_run] / limits, axis=1)
+        else:
+            excess = np.max(np.where(outlier, np.minimum(size, bound), size) / limits, axis=1)
         limits = limits * max(1.0, float(np.quantile(excess, 1.0 - alpha)))
         limits = np.maximum(limits, np.max(np.where(outlier, size, 0.0), axis=0))
         outliers = tuple((int(i), cells[j], float(z_loo[i, j])) for i, j in np.argwhere(outlier))
