@@ -356,3 +356,32 @@ def test_the_control_port_refuses_tls_1_0_and_1_1_whatever_the_ciphers_allow(
             assert reply["ok"] and reply["id"] == 1
     finally:
         lt.run(srv.close())
+
+
+# -- the controller: a dead encoder pauses the mission -----------------------------------------
+def test_a_dead_left_encoder_pauses_the_mission_naming_the_encoders() -> None:
+    """The robot's controller (EKF) on a scripted robot rolling straight north, wheels,
+    compass and fixes agreeing; 10 s into the mission the left encoder stops counting. The
+    compass turns 0 deg while the wheels say a turn: paused within seconds, named, motors
+    stopped (only a whole fast-time mission in tests/test_robot_variations_round5.py
+    noticed the pause taken out)."""
+    bot = Robot()
+    bot.fix(0.0)
+    bot.roll(3.0, 0.0)
+    bot.runner.load_mission([Waypoint(HOME[0] + 95.0 / M_PER_DEG_LAT, HOME[1])])
+    bot.runner.command("start")
+    bot.roll(10.0, 1.0)
+    t_dead, left_dead = bot.now, round(bot.north_m / bot.m_per_count)
+    while bot.runner.controller.mode == Mode.RUNNING and bot.now - t_dead < 10.0:
+        bot.now = round(bot.now + STEP_S, 6)
+        bot.north_m += STEP_S
+        right = round(bot.north_m / bot.m_per_count)
+        bot.runner.odometry(WheelOdometry(bot.now, left_dead, right, 0))
+        bot.runner.attitude(Attitude(bot.now, 0.0, 0.0, 0.0))
+        if abs(bot.now - round(bot.now)) < 1e-9:
+            bot.fix(bot.north_m)
+    assert bot.runner.controller.mode == Mode.PAUSED, bot.states[-3:]
+    assert bot.now - t_dead < 5.0  # 2.6 s, 1.5 m of the right wheel alone
+    why = next(s.reason for s in bot.states if s.reason.startswith("mode: failsafe:"))
+    assert why.startswith("mode: failsafe: encoders disagree with the compass: left counted 0"), why
+    assert bot.motors[-1].is_stop
