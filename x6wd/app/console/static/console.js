@@ -200,6 +200,9 @@
   }
   function onState(m) {
     say("state " + m.old + " → " + m.new + " (" + m.reason + ")");
+    // a mode change: why the robot paused (the operator, a failsafe), for showWhy
+    const why = String(m.reason || "");
+    if (why.startsWith("mode: ")) S.pauseWhy = m.new === "PAUSED" ? why.slice(6) : "";
     // the held drive's MANUAL ended (a stop, maybe another client's): its resend goes now,
     // and the daemon says whether this press may still drive (a stop from elsewhere after
     // the press began: refused, reason "stopped", which ends the press below)
@@ -210,6 +213,7 @@
     // a new connection may be to a new daemon, whose revisions count from 0 again: its map
     // is taken whatever its revision (else the old mission stayed, and "Send" put it back)
     S.map.revision = -1;
+    S.pauseWhy = ""; // what happened while the page was away is not known
     document.body.classList.toggle("watch-only", m.watch_only);
     redraw(); // the tiles (tile_url)
     $("watch-only").hidden = !m.watch_only;
@@ -289,6 +293,7 @@
     $("mode").className = "pill live " + (t.mode === "RUNNING" || t.mode === "MANUAL" ? "ok" : t.mode === "DONE" ? "info" : "");
     $("hold").hidden = !t.hold_reason;
     $("hold").textContent = t.hold_reason || "";
+    showWhy(t);
     $("tel-fix").textContent = (FIX[t.fix_quality] || "quality " + t.fix_quality) + "  HDOP " + fmt(t.hdop, 1) + "  age " + fmt(t.fix_age_s, 1) + " s";
     $("tel-sats").textContent = t.sats_used === null ? "—" : t.sats_used + " used";
     $("tel-heading").textContent = t.heading_deg === null ? "—" : fmt(wrap360(t.heading_deg), 1) + "° " + (S.north || "true");
@@ -302,6 +307,26 @@
     $("tel-motors").textContent = "L " + fmt(t.left_pct, 0) + " %  R " + fmt(t.right_pct, 0) + " %";
     renderDevices();
     redraw();
+  }
+  // Why the robot is off its mission, from the telemetry's `extra` as `x6wd client status`
+  // prints it: a return to launch and its cause (`returning`), and the last failsafe that acted
+  // (`failsafe`, kept until the next start). Every telemetry carries them (the status poll's
+  // too), so they stay while they hold and a page opened later shows them; the one-off state
+  // change in the message line is overwritten by the next answer (an outside audit: after a
+  // failsafe pause the page said PAUSED / IDLE and nowhere why).
+  function showWhy(t) {
+    const x = t.extra && typeof t.extra === "object" ? t.extra : {};
+    const ret = String(x.returning || ""), fs = String(x.failsafe || "");
+    const r = $("returning");
+    r.hidden = !ret;
+    r.textContent = ret ? "return to launch (" + (ret === "return" ? "the operator's command" : ret) + ")" : "";
+    r.className = "pill live " + (ret.startsWith("failsafe") ? "bad" : "info");
+    // paused by it, unless this page saw the operator pause since (telemetry cannot tell)
+    const holds = t.mode === "PAUSED" && !(S.pauseWhy && !S.pauseWhy.startsWith("failsafe"));
+    const f = $("failsafe");
+    f.hidden = !fs || "failsafe: " + fs === ret;
+    f.textContent = fs ? (holds ? "failsafe: " : "last failsafe: ") + fs : "";
+    f.className = "pill live " + (holds ? "bad" : "");
   }
   function renderSky() {
     const sats = (S.sky.satellites || []).slice().sort((a, b) => (b.cn0_dbhz || 0) - (a.cn0_dbhz || 0));

@@ -1,0 +1,128 @@
+"""What the web console shows of a robot in trouble (an outside audit, round 14): why a
+failsafe paused it (telemetry ``extra.failsafe``), each device's current ``reason`` rather than
+an older ``last_error``, and the recorder's state. The real daemon with ``sim://`` devices
+and its console, Debian's chromium through chromedriver (tests/test_console.py's fixtures);
+faults made in the simulated world (its compass's I2C error injector), the file system (the
+recording folder replaced by a file) and the operator-link failsafe (nobody asks)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from selenium import webdriver
+from selenium.webdriver.common.by import By
+
+from tests.test_console import (
+    browser,
+    chromium,
+    console_config,
+    daemon_with,
+    has_fix,
+    js,
+    north,
+    open_page,
+    page_ready,
+    shot,
+)
+from tests.test_daemon import Running, wait_for
+from x6wd.app.client import RemoteClient
+from x6wd.core.config import Config, FailsafeConfig
+from x6wd.core.records import Mode
+
+pytestmark = pytest.mark.integration
+__all__ = ["browser", "chromium"]  # the fixture
+
+# the ports of this file's daemons (the brief's range: 43600-43699)
+PORTS = iter(range(43610, 43690, 3))
+
+
+def ported(cfg: Config) -> Config:
+    """``cfg`` with its control, gpsd and console ports from this file's range."""
+    base = next(PORTS)
+    return dataclasses.replace(
+        cfg,
+        server=dataclasses.replace(cfg.server, port=base),
+        gpsd=dataclasses.replace(cfg.gpsd, port=base + 1),
+        console=dataclasses.replace(cfg.console, port=base + 2),
+    )
+
+
+@pytest.fixture
+def robot(tmp_path: Path) -> Iterator[Running]:
+    """A HIL daemon with its console; the operator-link failsafe holds after 2 s."""
+    cfg = dataclasses.replace(
+        console_config(tmp_path),
+        failsafe=FailsafeConfig(operator_timeout_s=2.0, operator_action="hold"),
+    )
+    with daemon_with(ported(cfg)) as r:
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        wait_for(lambda: "ekf_sigma_m" in r.daemon.last_telemetry.extra, 30, "an EKF position")  # type: ignore[union-attr]
+        yield r
+
+
+def pill(d: webdriver.Chrome, element_id: str) -> tuple[bool, str, str]:
+    """(shown, text, class) of a top-bar pill."""
+    script = (
+        "const e = document.getElementById(arguments[0]); if (!e) return [false, '', ''];"
+        "return [!e.hidden && e.offsetParent !== null, e.textContent, e.className]"
+    )
+    shown, words, cls = js(d, script, element_id)
+    return shown, words, cls
+
+
+def device_rows(d: webdriver.Chrome) -> dict[str, dict[str, str]]:
+    """The devices table: name -> state, the detail (why it is in that state now) and the
+    older fault marked "last error" (its .last-error part, apart from the detail)."""
+    rows = js(d, """
+return [...document.querySelectorAll('#devices tbody tr')].map((tr) => {
+  const td = tr.cells[3], old = td ? td.querySelector('.last-error') : null;
+  const all = td ? td.textContent : '';
+  return [tr.cells[0].textContent, tr.cells[1].textContent,
+          old ? all.replace(old.textContent, '') : all, old ? old.textContent : ''];
+});""")  # fmt: skip
+    return {r[0]: {"state": r[1], "detail": r[2], "last": r[3]} for r in rows}
+
+
+def test_a_failsafe_pause_is_shown_with_its_reason_while_it_holds_also_on_a_page_opened_later(
+    robot: Running, browser: webdriver.Chrome, tmp_path: Path
+) -> None:
+    # Audit: after a failsafe pause the page said "PAUSED / IDLE" and the word "failsafe"
+    # appeared nowhere (console.js never read telemetry extra; the one-off state message was
+    # overwritten, and a page opened later never got it), while `x6wd client status` printed
+    # "failsafe  operator link lost (the last one that acted)".
+    r = robot
+    with RemoteClient("127.0.0.1", r.port) as c:  # the operator starts it and goes away
+        c.request("mission.load", waypoints=[north(40)])
+        assert c.request("start")["mode"] == "RUNNING"
+    wait_for(lambda: r.daemon.controller.mode == Mode.PAUSED, 10, "the failsafe's pause")
+    assert r.daemon.last_telemetry.extra.get("failsafe") == "operator link lost"  # type: ignore[union-attr]
+    open_page(browser, r)  # opened after the pause: no state event ever reaches it
+    page_ready(browser)
+    # shown persistently: every telemetry (4 a second) and status answer rewrites the page
+    wait_for(lambda: pill(browser, "failsafe")[0], 5, "the failsafe shown")
+    for _ in range(12):
+        shown, words, cls = pill(browser, "failsafe")
+        assert shown and words == "failsafe: operator link lost", (shown, words)
+        assert "bad" in cls.split(), cls
+        assert "failsafe: operator link lost" in browser.find_element(By.TAG_NAME, "body").text
+        time.sleep(0.25)
+    shot(browser, tmp_path, "failsafe-pause.png")
+    # resumed (this page is the operator now): the pause no longer holds, the failsafe is
+    # the last one that acted, as the client says, not an alarm
+    browser.find_element(By.ID, "btn-resume").click()
+    wait_for(lambda: r.daemon.controller.mode == Mode.RUNNING, 5, "resumed")
+    wait_for(lambda: pill(browser, "failsafe")[1] == "last failsafe: operator link lost", 5,
+             "the failsafe shown as the last one")  # fmt: skip
+    assert "bad" not in pill(browser, "failsafe")[2].split()
+    # a new start clears it (telemetry extra.failsafe gone): nothing shown
+    browser.find_element(By.ID, "btn-stop").click()
+    wait_for(lambda: r.daemon.controller.mode == Mode.IDLE, 5, "stopped")
+    browser.find_element(By.ID, "btn-start").click()
+    wait_for(lambda: r.daemon.controller.mode == Mode.RUNNING, 5, "started again")
+    wait_for(lambda: not pill(browser, "failsafe")[0], 5, "the failsafe cleared")
+    assert "failsafe" not in browser.find_element(By.TAG_NAME, "header").text
+    browser.find_element(By.ID, "btn-stop").click()
