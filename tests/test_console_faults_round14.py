@@ -8,6 +8,8 @@ recording folder replaced by a file) and the operator-link failsafe (nobody asks
 from __future__ import annotations
 
 import dataclasses
+import errno
+import random
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,6 +31,7 @@ from tests.test_console import (
     shot,
 )
 from tests.test_daemon import Running, wait_for
+from tests.test_health import Storm
 from x6wd.app.client import RemoteClient
 from x6wd.core.config import Config, FailsafeConfig
 from x6wd.core.records import Mode
@@ -126,3 +129,70 @@ def test_a_failsafe_pause_is_shown_with_its_reason_while_it_holds_also_on_a_page
     wait_for(lambda: not pill(browser, "failsafe")[0], 5, "the failsafe cleared")
     assert "failsafe" not in browser.find_element(By.TAG_NAME, "header").text
     browser.find_element(By.ID, "btn-stop").click()
+
+
+def test_the_devices_detail_is_the_state_s_reason_and_an_old_error_is_marked_as_such(
+    robot: Running, browser: webdriver.Chrome
+) -> None:
+    # Audit: the detail was `last_error || reason`: a compass healthy again kept showing an
+    # I2C error it had recovered from, as if it were its state now (docs/protocol.md:
+    # `reason` is why the device is in its state now, `last_error` may be older).
+    r = robot
+    storm = Storm()
+    r.daemon.devices.backend("sim").compass.injector = storm  # the simulated CMPS10's I2C
+    open_page(browser, r)
+    page_ready(browser)
+    storm.code, storm.until_s = errno.EIO, time.monotonic() + 0.2
+    wait_for(lambda: device_rows(browser)["compass"]["state"] != "connected", 5, "compass degraded")
+    with RemoteClient("127.0.0.1", r.port) as c:
+        comp = wait_for(
+            lambda: (s := c.request("status")["devices"]["compass"])["state"] == "connected" and s,
+            10,
+            "compass recovered",
+        )
+    assert "Input/output error" in comp["last_error"] and comp["reason"] == "", comp
+    wait_for(lambda: device_rows(browser)["compass"]["state"] == "connected", 5, "shown recovered")
+    for _ in range(4):  # redrawn at each telemetry: stays so
+        row = device_rows(browser)["compass"]
+        assert "Input/output" not in row["detail"], row
+        assert row["last"].startswith("last error: ") and "Input/output error" in row["last"], row
+        time.sleep(0.25)
+    # a device whose reason is its state's now shows that reason, its old error apart
+    status = js(browser, "return x6wd.devices")
+    for name, h in status.items():
+        if h and h.get("reason"):
+            assert device_rows(browser)[name]["detail"].startswith(h["reason"][:20]), (name, h)
+
+
+def test_a_compass_the_ekf_refuses_shows_why_not_its_older_i2c_error(
+    robot: Running, browser: webdriver.Chrome, tmp_path: Path
+) -> None:
+    # Audit: a compass degraded with reason "untrusted: the EKF refused 57 % of 200 readings"
+    # was shown as the I2C error it had recovered from before
+    r = robot
+    world = r.daemon.devices.backend("sim")
+    storm = Storm()
+    world.compass.injector = storm
+    storm.code, storm.until_s = errno.EIO, time.monotonic() + 0.2  # a brief glitch, recovered
+    with RemoteClient("127.0.0.1", r.port) as c:
+        wait_for(lambda: "Input/output" in c.request("status")["devices"]["compass"]["last_error"],
+                 5, "the glitch")  # fmt: skip
+        # the simulated CMPS10 reads a random bearing each time (a valid register set)
+        rng = random.Random(14)
+        set_state = world.compass.set_state
+        world.compass.set_state = lambda t, h, *a: set_state(t, rng.uniform(0.0, 360.0), *a)
+        comp = wait_for(
+            lambda: (
+                (s := c.request("status")["devices"]["compass"])["reason"][:9] == "untrusted" and s
+            ),
+            40,
+            "the compass untrusted",
+        )
+    assert comp["state"] == "degraded" and "Input/output" in comp["last_error"], comp
+    open_page(browser, r)
+    page_ready(browser)
+    wait_for(lambda: device_rows(browser)["compass"]["state"] == "degraded", 5, "shown degraded")
+    row = device_rows(browser)["compass"]
+    shot(browser, tmp_path, "compass-untrusted.png")
+    assert row["detail"].startswith("untrusted: the EKF refused "), row
+    assert row["last"].startswith("last error: ") and "Input/output" in row["last"], row

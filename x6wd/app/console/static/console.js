@@ -347,6 +347,27 @@
     }
     $("sky-summary").textContent = sats.length + " in view, " + sats.filter((s) => s.used).length + " used";
   }
+  // One row of the devices table: the state, its count, why it is in that state now (`reason`,
+  // docs/protocol.md) and, apart and marked so, an older fault (`last_error`). Before (an
+  // outside audit) the detail was `last_error || reason`: a compass the EKF refused showed an
+  // I2C error cleared long before, and a latched motor fault an older text with the wrong
+  // action for the operator.
+  function deviceRow(body, name, state, count, why, last) {
+    const tr = body.insertRow();
+    tr.insertCell().textContent = name;
+    const st = tr.insertCell();
+    st.textContent = state;
+    st.className = "st-" + state.replace(/ /g, "-");
+    tr.insertCell().textContent = count === undefined || count === null ? "" : count;
+    const td = tr.insertCell();
+    td.textContent = why || "";
+    if (last && last !== why) {
+      const old = document.createElement("small");
+      old.className = "last-error";
+      old.textContent = "last error: " + last;
+      td.append(old);
+    }
+  }
   function renderDevices() {
     const d = S.devices;
     if (!d) return;
@@ -354,23 +375,12 @@
     body.textContent = "";
     for (const name of Object.keys(d)) {
       const h = d[name];
-      const tr = body.insertRow();
-      tr.insertCell().textContent = name;
-      const st = tr.insertCell();
-      if (!h) { st.textContent = "—"; continue; }
-      const state = h.state || "?";
-      st.textContent = state;
-      st.className = "st-" + state;
-      tr.insertCell().textContent = h.errors !== undefined ? h.errors : h.failures !== undefined ? h.failures : "";
-      tr.insertCell().textContent = h.last_error || h.reason || (h.readings !== undefined ? h.readings + " readings" : "");
+      if (!h) { deviceRow(body, name, "—"); continue; }
+      const count = h.errors !== undefined ? h.errors : h.failures;
+      const why = h.reason || (h.readings !== undefined ? h.readings + " readings" : "");
+      deviceRow(body, name, String(h.state || "?"), count, why, h.last_error);
     }
-    if (S.links) {
-      const tr = body.insertRow();
-      tr.insertCell().textContent = "motor link";
-      const st = tr.insertCell();
-      st.textContent = S.links.motors;
-      st.className = "st-" + S.links.motors;
-    }
+    if (S.links) deviceRow(body, "motor link", String(S.links.motors));
   }
 
   // -- the mission and its editor --------------------------------------------------------------
