@@ -40,6 +40,9 @@ decision in which it is reported and the next input turns towards the next waypo
 that in pivot_arc an arrival whose next leg does not start with a pivot drives on at once
 (the navigator's decision carries the next leg's arc: a recorded track's points 1-3 m apart
 stopped the robot at each of them).
+A return to launch (a failsafe's or the operator's) begins with a stop: state HOLD, 0/0, at
+its first step and for :data:`RETURN_STOP_S`, so a side never flips from forward to reverse
+into the return's pivot without a stop between.
 
 Mode rules: a mission loads in IDLE, MANUAL or DONE (not while RUNNING or PAUSED: stop first);
 start needs a mission and restarts it from its first waypoint (not while RUNNING or PAUSED);
@@ -170,6 +173,13 @@ SENSORS = ("gps", "compass")
 
 _ARRIVALS = (NavState.ARRIVED, NavState.MISSION_DONE)
 
+RETURN_STOP_S = 0.5
+"""A return to launch (a failsafe's or the operator's) begins with the motors stopped (state
+HOLD, 0/0) for at least its first step and this long (s): two motor time constants (the
+simulator's ``motor_tau_s``, 0.25 s), and the motor worker's newest-command-wins queue sees
+several stops, so a mission's forward drive never flips straight into the return's pivot
+(an outside audit: ``M 17 13`` then, 25 ms later, ``M 40 -40``)."""
+
 
 def _check_t(t_s: float, what: str) -> float:
     try:
@@ -250,6 +260,7 @@ class Controller:
         self._src_heading_rad: tuple[float | None, float] = (None, 0.0)  # (deg, its rad)
         self._mission_nav: Navigator | None = None  # the operator's mission while returning
         self._returning = ""  # why the robot returns to launch ("" when it does not)
+        self._return_stop_until = -math.inf  # the return's first stop lasts until (s)
         self._launch: tuple[float, float] | None = None  # (lat_deg, lon_deg) at mission start
         self._failsafe_why = ""  # the last failsafe that acted (telemetry)
         self._operator_t: float | None = None  # latest operator request (s), when watched
@@ -608,12 +619,13 @@ class Controller:
             self._mission_nav = self._navigator
         self._navigator = home
         self._returning = why
+        now = t_s if self._now is None else max(self._now, t_s)
+        self._return_stop_until = now + RETURN_STOP_S  # stop first (RETURN_STOP_S)
         self._stuck_wheels = self._stuck_body = self._pivot_best = None
         self._course.reset()
         self._hold_since = None
         if self._mode == Mode.RUNNING:
             # still RUNNING, towards another target: a mode change with old == new says so
-            now = t_s if self._now is None else max(self._now, t_s)
             out.append(
                 StateChange(now, str(self._mode), str(self._mode), f"mode: {why}: return to launch")
             )
@@ -1354,8 +1366,9 @@ class Controller:
                 why, action = fired
                 keeps = why == "operator link lost"
                 self._apply_failsafe(why, action, now, out, keeps_driving=keeps)
+        stopping = self._mode == Mode.RUNNING and not hold and now < self._return_stop_until
         if self._mode == Mode.RUNNING:
-            if hold:
+            if hold or stopping:
                 state = NavState.HOLD
             else:
                 assert self._filt is not None and self._att is not None
@@ -1383,6 +1396,8 @@ class Controller:
 
         if state != self._state:
             reason = f"state: {hold}" if hold else f"state: {why}"
+            if stopping:
+                reason = f"state: {self._returning}: stop before the return to launch"
             last = self._navigator.last
             if state in _ARRIVALS and last is not None and last.arrived_by == "behind":
                 # no visit: the log says which waypoint was taken as reached, and how far off
@@ -1396,6 +1411,8 @@ class Controller:
 
         if hold:
             reason = f"hold: {hold}"
+        elif stopping:
+            reason = "stop before the return to launch"
         elif self._mode == Mode.MANUAL:
             reason = "manual"
         elif self._mode == Mode.RUNNING:
