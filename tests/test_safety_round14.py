@@ -14,8 +14,8 @@ fails with its behaviour removed.
 - the control port refuses TLS 1.0 and 1.1, whatever the ciphers allow (``tls-min-version``).
 
 Real parts: the daemon on its loop thread, the control and console servers on 127.0.0.1
-(ports 43400-43499 where the test picks them), real TLS sockets, the runner with the robot's
-controller (EKF), the ``x6wd run`` process.
+(the console pair on ports 43400-43499, the others on free ports), real TLS sockets, the
+runner with the robot's controller (EKF), the ``x6wd run`` process.
 """
 
 from __future__ import annotations
@@ -236,7 +236,7 @@ def test_a_backlog_of_motion_commands_is_not_carried_out_after_the_stop_behind_i
     stop is refused (``stopped``) when its turn comes. A burst of one of them held back by the
     throttle, then ``stop``: none of the burst reaches the robot after the stop."""
     backend = RecordingBackend()
-    srv = start_server(lt, backend, port=next(PORTS), rate_per_s=50.0)
+    srv = start_server(lt, backend, rate_per_s=50.0)  # port 0: any free one
     raw = Raw(srv.port)
     try:
         burst = b"".join(line({"id": i, "cmd": cmd}) for i in range(150))
@@ -334,7 +334,7 @@ def test_the_control_port_refuses_tls_1_0_and_1_1_whatever_the_ciphers_allow(
     ctx = server_ssl_context(cert, key)
     assert ctx.minimum_version == ssl.TLSVersion.TLSv1_2
     ctx.set_ciphers("DEFAULT:@SECLEVEL=0")
-    srv = start_server(lt, RecordingBackend(), port=next(PORTS), ssl_context=ctx)
+    srv = start_server(lt, RecordingBackend(), ssl_context=ctx)  # port 0: any free one
     try:
         for old in ("TLSv1", "TLSv1_1"):
             with warnings.catch_warnings():
