@@ -149,5 +149,13 @@ def test_a_whole_log_refit_on_its_search_bound_is_not_reported() -> None:
     assert reported.params["factor"] == pytest.approx(13.8), reported.params
     (note,) = [n for n in outcome.notes if "search bound" in n]
     assert note.startswith("noise_scale: the whole-log refit stopped on its search bound")
-    assert "(factor 50)" in note and "fit-part fit is reported instead" in note
-    assert "'factor': 13.8" in note and "itself on" not in note
+    assert "(factor at least 50)" in note and "inside its search, is reported instead" in note
+    assert "'factor': 13.8" in note
+    # round 14 review: a fit part on its own (narrower) bound too is no better: the whole-log
+    # value stays, said to be a limit (a 60 s filter read 33.75 s from the part, 56.25 whole)
+    edge = Fit(NoiseScale(factor=13.8, split_tau_s=360.0 / 16), {"factor": 1.0, "split_tau_s": 0.5})
+    outcome = SimpleNamespace(notes=[])
+    (reported,) = pipe.report_fits([edge], {}, outcome)  # type: ignore[arg-type]
+    assert reported.params["factor"] == pytest.approx(50.0), reported.params
+    (note,) = [n for n in outcome.notes if "search bound" in n]
+    assert "as did the fit-part fit on its own narrower one" in note and "limits" in note

@@ -625,7 +625,7 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
     being in sample means. ``own``: the errors are against each log's own mean."""
     a, b = c.selected, c.calibrated
     with_what = (
-        f"the selected effects only ({' + '.join(effects)}, parameters fitted on the whole log)"
+        f"the selected effects only ({' + '.join(effects)}, with the parameters reported above)"
         if effects
         else "the baseline runs alone (no effect selected)"
     )
