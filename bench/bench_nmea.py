@@ -19,6 +19,11 @@ pynmea2 time <= 1.30. The decoder is measured at two read sizes because a read c
 than its sentences: 4096 bytes is ``GpsReader``'s ``read_max`` (what a read returns when
 input has backed up, and smaller than ``x6wd decode``'s 1 MiB reads); 256 bytes is a
 short UART poll (about 4 sentences per call, where the per-read cost shows).
+
+Measured 2026-12-06 (round 14 audit, machine loaded 2-5): at 4096-byte reads the target is
+met (gpsd's corpus 1.20-1.26, the NEO-5 hour 0.76-0.81); at 256-byte reads it is **not**
+(corpus 2.05-2.11, NEO-5 hour 1.32-1.38; 1.91-1.94 and 1.34-1.37 on the code of 0fc0e4f):
+the per-read cost of framing bytes, which pynmea2, handed whole sentences, does not pay.
 """
 
 from __future__ import annotations
