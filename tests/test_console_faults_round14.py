@@ -10,6 +10,8 @@ from __future__ import annotations
 import dataclasses
 import errno
 import random
+import shutil
+import ssl
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -164,6 +166,40 @@ def test_the_devices_detail_is_the_state_s_reason_and_an_old_error_is_marked_as_
             assert device_rows(browser)[name]["detail"].startswith(h["reason"][:20]), (name, h)
 
 
+def test_the_recorder_s_state_and_reason_are_shown(
+    tmp_path: Path, browser: webdriver.Chrome
+) -> None:
+    # Audit: with the recording failing `x6wd client status` said "recorder failing: ..."
+    # while the page showed nothing of the recorder (only the motor link of status' links).
+    cfg = ported(console_config(tmp_path))
+    with daemon_with(cfg) as r:
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        open_page(browser, r)
+        page_ready(browser)
+        wait_for(lambda: "recorder" in device_rows(browser), 5, "the recorder's row")
+        assert device_rows(browser)["recorder"]["state"] == "ok"
+        rec_dir = Path(cfg.recorder.dir)
+        (first,) = rec_dir.glob("x6wd-*.jsonl")  # the run's part being written
+        # the folder replaced by one where the part is not a file, nor its next one (EISDIR):
+        # the recorder notices within 5 s, and every open of the next part fails
+        shutil.rmtree(rec_dir)
+        for part in (first, first.with_name(f"{first.stem}.1{first.suffix}")):
+            part.mkdir(parents=True)
+        with RemoteClient("127.0.0.1", r.port) as c:
+            st = wait_for(
+                lambda: (s := c.request("status"))["recorder"]["state"] == "failing" and s,
+                15,
+                "the recorder failing",
+            )
+        assert st["links"]["recorder"] == "failing"
+        wait_for(lambda: device_rows(browser)["recorder"]["state"] == "failing", 5, "shown failing")
+        row = device_rows(browser)["recorder"]
+        shot(browser, tmp_path, "recorder-failing.png")
+        assert "records not recorded" in row["detail"] and "Is a directory" in row["detail"], row
+        assert js(browser, "return getComputedStyle(document.querySelector("
+                           "'#devices td.st-failing')).fontWeight") == "700"  # fmt: skip
+
+
 def test_a_compass_the_ekf_refuses_shows_why_not_its_older_i2c_error(
     robot: Running, browser: webdriver.Chrome, tmp_path: Path
 ) -> None:
@@ -196,3 +232,22 @@ def test_a_compass_the_ekf_refuses_shows_why_not_its_older_i2c_error(
     shot(browser, tmp_path, "compass-untrusted.png")
     assert row["detail"].startswith("untrusted: the EKF refused "), row
     assert row["last"].startswith("last error: ") and "Input/output" in row["last"], row
+
+
+def test_the_status_problems_the_client_prints_are_shown_too(
+    tmp_path: Path, browser: webdriver.Chrome
+) -> None:
+    # the same check for the rest of `status` that `x6wd client status` prints as a problem:
+    # here the TLS certificate's warning (2 days left: "expiring")
+    cfg = ported(console_config(tmp_path, tls=True))
+    with daemon_with(cfg) as r:
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        trust = ssl.create_default_context(cafile=cfg.server.tls_cert)
+        with RemoteClient("127.0.0.1", r.port, ssl_context=trust) as c:
+            tls = c.request("status")["server"]["tls"]
+        assert tls["state"] == "expiring" and tls["warning"], tls
+        open_page(browser, r)
+        page_ready(browser)
+        wait_for(lambda: "tls certificate" in device_rows(browser), 5, "the certificate's row")
+        row = device_rows(browser)["tls certificate"]
+        assert row["state"] == "expiring" and row["detail"] == tls["warning"], row

@@ -256,6 +256,7 @@
     if (S.ws !== ws) return;
     if (r.ok) {
       S.links = r.links;
+      S.status = r;
       if (r.devices) S.devices = r.devices;
       // the compass heading is magnetic while the WMM declination is pending or failed
       const d = r.declination;
@@ -368,6 +369,47 @@
       td.append(old);
     }
   }
+  const SETUP_OK = ["acked", "waiting", "not sent"]; // client.py's SETUP_OK_STATES
+  // The rest of `status` that `x6wd client status` prints as a problem, a row each: the motor
+  // link, the recorder (always: recording is how a run is looked at afterwards), and while they
+  // hold the GPS receiver's problems, corrupt GPS input, a receiver's week rollover corrected,
+  // the TLS certificate's warning.
+  function statusRows(body, r) {
+    const links = r.links || {};
+    deviceRow(body, "motor link", String(links.motors || "unknown"));
+    const rec = r.recorder;
+    if (rec && typeof rec === "object") {
+      const bad = rec.state !== "ok";
+      deviceRow(body, "recorder", String(rec.state), rec.errors,
+        bad ? (rec.last_error || "?") + " (" + (rec.records_dropped || 0) + " records not recorded)" : "",
+        bad ? "" : rec.last_error);
+    } else if (links.recorder) deviceRow(body, "recorder", String(links.recorder));
+    const g = r.gps_receiver;
+    if (g && typeof g === "object") {
+      const setup = g.setup && typeof g.setup === "object" ? g.setup : {};
+      const p = [];
+      if (g.slow) p.push(["slow", g.slow]);
+      if (g.line_full) p.push(["line full", g.line_full]);
+      if (setup.line_short) p.push(["line short", setup.line_short]);
+      if (g.setup && !SETUP_OK.includes(setup.state)) {
+        p.push(["setup " + setup.state, setup.not_kept || setup.problem || setup.lost || ""]);
+      }
+      if (p.length) deviceRow(body, "gps receiver", p[0][0], undefined, p.map((x) => x[0] + ": " + x[1]).join("; "));
+    }
+    const gps = S.devices && S.devices.gps;
+    const corrupt = gps && gps.corrupt;
+    if (corrupt && typeof corrupt === "object" && Object.values(corrupt).some((n) => n)) {
+      const counts = Object.entries(corrupt).filter(([, n]) => n).map(([k, n]) => n + " " + k.replace(/_/g, " "));
+      deviceRow(body, "gps input", "corrupt", undefined, "since start: " + counts.join(", "));
+    }
+    const roll = r.gps_week_rollover;
+    if (roll && roll.corrected) {
+      deviceRow(body, "gps date", "corrected", roll.corrected, "receiver week rollover: " + roll.receiver_utc +
+        " read as " + roll.corrected_utc + " (+" + roll.weeks_added + " weeks; receiver firmware older than the rollover)");
+    }
+    const tls = r.server && r.server.tls;
+    if (tls && tls.warning) deviceRow(body, "tls certificate", String(tls.state), undefined, tls.warning);
+  }
   function renderDevices() {
     const d = S.devices;
     if (!d) return;
@@ -380,7 +422,8 @@
       const why = h.reason || (h.readings !== undefined ? h.readings + " readings" : "");
       deviceRow(body, name, String(h.state || "?"), count, why, h.last_error);
     }
-    if (S.links) deviceRow(body, "motor link", String(S.links.motors));
+    if (S.status) statusRows(body, S.status);
+    else if (S.links) deviceRow(body, "motor link", String(S.links.motors));
   }
 
   // -- the mission and its editor --------------------------------------------------------------
