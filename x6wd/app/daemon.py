@@ -1975,8 +1975,11 @@ class Daemon:
             age_s = tel.fix_age_s
             if age_s is None or age_s > stale_s:
                 since = "since start-up" if age_s is None else f"for {age_s:.0f} s"
-                hdop = self.runner.fix_refused_hdop if self.runner is not None else None
-                what = (
+                runner = self.runner
+                hdop = runner.fix_refused_hdop if runner is not None else None
+                # a line delivering nothing is named before the reader's gps.stale_s runs out
+                quiet = runner.gps_line_quiet(runner.clock()) if runner is not None else ""
+                what = quiet or (
                     "the receiver reports no position"
                     if hdop is None
                     else f"the receiver's fixes have HDOP {hdop:.1f} (20 or more: no position)"

@@ -223,6 +223,7 @@ class Runner:
         self._odometry_warned = False  # the wheels-vs-fixes warning, logged once
         self._no_fix_since: float | None = None  # no valid fix from then (s; None: have one)
         self._no_fix_warned = False  # "no valid fix" logged for the current spell
+        self._gps_data_t: float | None = None  # the latest GPS record's receive time (s)
         self._resets_seen = 0  # EKF resets logged so far
         self.first_fix: tuple[float, float] | None = None
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
@@ -257,6 +258,7 @@ class Runner:
     def gps_record(self, rec: Any) -> None:
         """One record from the GPS decoder (see :meth:`gps`)."""
         if isinstance(rec, GpsFix):
+            self._gps_data(rec.t_s)
             self.stats["fixes"] += 1
             self._record("record_fix", rec)
             self._fix_usable = has_usable_position(rec)
@@ -295,10 +297,35 @@ class Runner:
             self._handle([o for o in outputs if type(o) is not MotorCommand], True)
             self._breach(*fence, rec.t_s)
         elif isinstance(rec, GpsSky):
+            self._gps_data(rec.t_s)
             self._record("record_sky", rec)
             self._handle(self.controller.on_sky(rec), False)
         elif isinstance(rec, NmeaSentence):
+            self._gps_data(rec.t_s)
             self._record("record_nmea", rec.text)
+
+    def _gps_data(self, t_s: float) -> None:
+        """A GPS record (a checksum-valid sentence, a fix, a sky report) came at ``t_s``."""
+        last = self._gps_data_t
+        if last is None or t_s > last:
+            self._gps_data_t = t_s
+
+    def gps_line_quiet(self, t_s: float) -> str:
+        """Why there is no fix when the GPS line delivers nothing decodable: no record (a
+        checksum-valid sentence, a fix, a sky report) for more than
+        :data:`GPS_QUIET_OF_FIX_STALE` of ``safety.fix_stale_s`` by ``t_s`` (s): a line
+        silent, at the wrong baud or every sentence corrupt. "" while the receiver talks
+        (searching, the sky blocked: its sentences say there is no position)."""
+        last = self._gps_data_t
+        if last is None:
+            return "no data from the receiver: check the line's wiring, baud and power"
+        quiet_s = t_s - last
+        if quiet_s <= GPS_QUIET_OF_FIX_STALE * self.safety.fix_stale_s:
+            return ""
+        return (
+            f"no good data from the receiver for {quiet_s:.1f} s: check the line's wiring,"
+            " baud and power"
+        )
 
     def _set_wmm_declination(self, fix: GpsFix) -> None:
         """The World Magnetic Model's declination at the first dated fix (once). On the robot
@@ -814,8 +841,10 @@ class Runner:
     def _watch_fix(self, tel: Telemetry) -> None:
         """Log a spell without a valid fix once, as a warning, after ``fix_stale_s`` (the
         receiver may talk on, its link healthy, and report no position: searching, the sky
-        blocked), and its end: the robot holds or dead-reckons meanwhile, which the state
-        changes say, but not outside a mission."""
+        blocked; or the line delivers nothing decodable, which :meth:`gps_line_quiet` names
+        before the reader's own ``gps.stale_s`` may have run out), and its end: the robot
+        holds or dead-reckons meanwhile, which the state changes say, but not outside a
+        mission."""
         age_s = tel.fix_age_s
         if age_s is not None and age_s <= self.safety.fix_stale_s:
             if self._no_fix_warned and self._no_fix_since is not None:
@@ -829,7 +858,7 @@ class Runner:
         if not self._no_fix_warned and tel.t_s - self._no_fix_since > limit_s:
             self._no_fix_warned = True
             hdop = self._fix_hdop_refused
-            why = (
+            why = self.gps_line_quiet(tel.t_s) or (
                 "the receiver reports no position: searching, or the sky blocked"
                 if hdop is None
                 else f"the receiver's fixes have HDOP {hdop:.1f}: from {MEANINGLESS_HDOP:g} on"
@@ -842,6 +871,15 @@ class Runner:
                 why,
             )
 
+
+GPS_QUIET_OF_FIX_STALE = 0.6
+"""No GPS record (a checksum-valid sentence, a fix, a sky report) for longer than this
+fraction of ``safety.fix_stale_s`` (1.5 s of the default 2.5 s): the line delivers nothing
+decodable (silent, the wrong baud, every checksum wrong). A receiver talks at every epoch,
+with a fix or without, and ``fix_stale_s`` spans at least 2.5 epochs (the configuration
+checks it against ``gps.rate_hz``), so one talking waits at most 0.4 of it. An outside audit:
+a silent line was first reported as "searching, or the sky blocked", for up to 0.5 s before
+the reader's own ``gps.stale_s`` ran out."""
 
 FIRST_FIX_GRACE_S = 60.0
 """No valid fix since start-up is a warning only after this (s): a receiver's cold start
