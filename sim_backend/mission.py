@@ -517,6 +517,16 @@ def run_mission(
         deliver(math.inf)  # the last burst still on the wire
         t_end = max(trace.t[-1], now[0])
         now[0] = t_end
+        if t_end > trace.t[-1]:
+            # The last burst arrives up to ~0.5 s after the last physics step; the robot
+            # reads its compass meanwhile (the world stands at its last state), or the
+            # closing tick finds the attitude stale: every run ended in a HOLD "attitude
+            # stale", printed and recorded as a compass fault
+            device.set_state(
+                t_end, cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg),
+                s.pitch_deg, s.roll_deg,
+            )  # fmt: skip
+            runner.attitude(compass.read(t_end))
         runner.tick(t_end)
         if holds and holds[-1][1] < 0:
             holds[-1][1] = t_end  # (a hold begun by the last burst's fix counts: see below)

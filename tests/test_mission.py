@@ -564,7 +564,13 @@ def _bearing_vs_truth(out: Path) -> tuple[np.ndarray, np.ndarray]:
     (the heading moved < 0.5 deg over the last second, so the device's lag has settled)."""
     with open(out / "truth.csv") as f:
         truth = {round(float(r["t_s"]), 3): float(r["heading_deg"]) for r in csv.DictReader(f)}
-    recs = [r for r in read_recording(out / "recording.jsonl") if r.type == "attitude"]
+    # the closing sample, read while the last burst is on the wire after the world's last
+    # step (the world stands still then), has no truth row
+    recs = [
+        r
+        for r in read_recording(out / "recording.jsonl")
+        if r.type == "attitude" and round(r.data["t_s"], 3) <= max(truth)
+    ]
     t = np.array([r.data["t_s"] for r in recs])
     bearing = np.array([r.data["bearing_deg"] for r in recs])
     heading = np.array([truth[round(x, 3)] for x in t])

@@ -289,10 +289,16 @@ def test_a_real_hold_is_still_counted_beside_the_start_up_wait(tmp_path: Path) -
 
 
 def test_a_run_that_ends_in_the_start_up_wait_counts_it_as_a_hold() -> None:
-    # the run ends with the first fix (0.53 s), before the first estimate: the robot never
-    # drove out of that wait, so it is a hold (a robot that never gets an estimate holds)
-    s = run_mission(load_world(SCENARIOS / "default.toml"), None, 1, 0.5)
+    # a robot that never gets an estimate holds: every compass read fails, and the run ends
+    # in the hold that began at its first decision
+    text = (SCENARIOS / "default.toml").read_text().replace("[compass]", "[compass]\np_error = 1.0", 1)
+    s = run_mission(loads_world(text, SCENARIOS), None, 1, 5.0)
     assert s.hold_periods == 1 and s.extra["startup_wait_s"] is None
+    # a run of 0.5 s ends with the first fix's burst (0.84 s): the compass is read while it
+    # is on the wire, so the first estimate comes and the wait ends (round 14: the closing
+    # tick found the compass stale, and that false hold was counted here)
+    s = run_mission(load_world(SCENARIOS / "default.toml"), None, 1, 0.5)
+    assert s.hold_periods == 0 and s.extra["startup_wait_s"] is not None
 
 
 # -- a seed's realisation and the run's duration (docs/simulator.md) ----------------------
