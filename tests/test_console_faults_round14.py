@@ -251,3 +251,91 @@ def test_the_status_problems_the_client_prints_are_shown_too(
         wait_for(lambda: "tls certificate" in device_rows(browser), 5, "the certificate's row")
         row = device_rows(browser)["tls certificate"]
         assert row["state"] == "expiring" and row["detail"] == tls["warning"], row
+
+
+def test_a_long_failsafe_reason_is_read_whole_at_a_laptops_width(
+    tmp_path: Path, browser: webdriver.Chrome
+) -> None:
+    # Review: at 701-1240 px the pill cut the gps jump's reason short ("... (GPS back ...")
+    # with no way to read the rest; the advice is its end
+    with daemon_with(ported(console_config(tmp_path))) as r:
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        world = r.daemon.devices.backend("sim")
+        browser.set_window_size(1024, 800)
+        try:
+            open_page(browser, r)
+            page_ready(browser)
+            with RemoteClient("127.0.0.1", r.port) as c:
+                c.request("mission.load", waypoints=[north(60)])
+                c.request("start")
+                time.sleep(3)
+                v = world.vehicle  # carried 80 m east while driving
+                v._state = dataclasses.replace(v._state, east_m=v._state.east_m + 80.0)
+                wait_for(lambda: c.request("status")["mode"] == "PAUSED", 60, "the jump's pause")
+                why = r.daemon.last_telemetry.extra["failsafe"]  # type: ignore[union-attr]
+                assert len(why) > 100, why
+                wait_for(lambda: pill(browser, "failsafe")[1] == "failsafe: " + why, 5, "shown")
+                shot(browser, tmp_path, "failsafe-long-1024.png")
+                cut = js(browser, "const e = document.getElementById('failsafe');"
+                                  "return [e.scrollWidth > e.clientWidth, e.title]")  # fmt: skip
+                assert cut == [False, "failsafe: " + why], cut
+                c.request("stop")
+        finally:
+            browser.set_window_size(1400, 1150)
+
+
+def test_corrupt_compass_input_and_a_stalled_recorder_are_shown_as_the_client_says(
+    tmp_path: Path, browser: webdriver.Chrome
+) -> None:
+    # Review: the client printed "compass  corrupt input since start: 30 bearing mismatches"
+    # and the page had no row; a stalled recorder read "? (0 records not recorded)" with
+    # hundreds of records waiting
+    import threading
+
+    from x6wd.app.client import render_status
+
+    with daemon_with(ported(console_config(tmp_path))) as r:
+        wait_for(lambda: has_fix(r), 30, "a fix")
+        open_page(browser, r)
+        page_ready(browser)
+        world = r.daemon.devices.backend("sim")
+        read, bad = world.compass._read, [0]
+
+        def disagreeing(register: int, length: int) -> list[int]:  # the bearing byte off
+            v = list(read(register, length))
+            if register <= 1 < register + length and bad[0] < 30:
+                bad[0] += 1
+                v[1 - register] = (v[1 - register] + 100) % 256
+            return v
+
+        world.compass._read = disagreeing
+        wait_for(lambda: bad[0] >= 30, 20, "30 disagreeing reads")
+        wait_for(lambda: "compass input" in device_rows(browser), 5, "the compass's corrupt row")
+        row = device_rows(browser)["compass input"]
+        assert row["state"] == "corrupt" and "bearing mismatches" in row["detail"], row
+        # a write that does not return: records wait in memory, no error yet
+        writer, gate = r.daemon.recorder, threading.Event()
+        inner = writer.recorder
+
+        class Stuck:
+            def __getattr__(self, name: str) -> object:
+                f = getattr(inner, name)
+                if callable(f) and name.startswith("record"):
+                    return lambda *a, **kw: (gate.wait(30), f(*a, **kw))[1]
+                return f
+
+        writer.recorder = Stuck()
+        try:
+            with RemoteClient("127.0.0.1", r.port) as c:
+                st = wait_for(
+                    lambda: (s := c.request("status"))["recorder"]["state"] == "stalled" and s,
+                    20,
+                    "the recorder stalled",
+                )
+            assert "records waiting" in render_status(st), render_status(st)
+            wait_for(lambda: device_rows(browser)["recorder"]["state"] == "stalled", 5, "shown")
+            detail = device_rows(browser)["recorder"]["detail"]
+            assert detail.startswith("a write has taken ") and "records waiting" in detail, detail
+        finally:
+            gate.set()
+            writer.recorder = inner

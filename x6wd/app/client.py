@@ -521,10 +521,14 @@ def render_status(st: dict[str, Any]) -> str:
     rec = st.get("recorder")
     if isinstance(rec, dict) and rec.get("state") not in (None, "ok"):
         # recording is how a run is looked at afterwards: say what is lost and why
-        lines.append(
-            f"  recorder {rec.get('state')}: {rec.get('last_error') or '?'}"
-            f" ({rec.get('records_dropped', 0)} records not recorded)"
-        )
+        why = rec.get("last_error") or "?"
+        if rec.get("state") == "stalled":  # a write that has not returned: no error yet
+            why = (
+                f"a write has taken {rec.get('busy_s', 0):.0f} s;"
+                f" {rec.get('queued', 0)} records waiting"
+            )
+        dropped = rec.get("records_dropped", 0)
+        lines.append(f"  recorder {rec.get('state')}: {why} ({dropped} records not recorded)")
     server = st.get("server")
     if isinstance(server, dict):
         lines.append(

@@ -327,6 +327,8 @@
     const f = $("failsafe");
     f.hidden = !fs || "failsafe: " + fs === ret;
     f.textContent = fs ? (holds ? "failsafe: " : "last failsafe: ") + fs : "";
+    f.title = f.textContent;
+    r.title = r.textContent;
     f.className = "pill live " + (holds ? "bad" : "");
   }
   function renderSky() {
@@ -380,8 +382,12 @@
     const rec = r.recorder;
     if (rec && typeof rec === "object") {
       const bad = rec.state !== "ok";
+      // stalled: a write that has not returned (no error yet), its records waiting in memory
+      const why = rec.state === "stalled"
+        ? "a write has taken " + Math.round(Number(rec.busy_s) || 0) + " s; " + (rec.queued || 0) + " records waiting"
+        : rec.last_error || "?";
       deviceRow(body, "recorder", String(rec.state), rec.errors,
-        bad ? (rec.last_error || "?") + " (" + (rec.records_dropped || 0) + " records not recorded)" : "",
+        bad ? why + " (" + (rec.records_dropped || 0) + " records not recorded)" : "",
         bad ? "" : rec.last_error);
     } else if (links.recorder) deviceRow(body, "recorder", String(links.recorder));
     const g = r.gps_receiver;
@@ -396,11 +402,14 @@
       }
       if (p.length) deviceRow(body, "gps receiver", p[0][0], undefined, p.map((x) => x[0] + ": " + x[1]).join("; "));
     }
-    const gps = S.devices && S.devices.gps;
-    const corrupt = gps && gps.corrupt;
-    if (corrupt && typeof corrupt === "object" && Object.values(corrupt).some((n) => n)) {
-      const counts = Object.entries(corrupt).filter(([, n]) => n).map(([k, n]) => n + " " + k.replace(/_/g, " "));
-      deviceRow(body, "gps input", "corrupt", undefined, "since start: " + counts.join(", "));
+    // every device's input counted and skipped (the gps's sentences, the compass's registers
+    // that disagree or are out of range), as the client prints it
+    for (const [name, dev] of Object.entries(S.devices || {})) {
+      const corrupt = dev && typeof dev === "object" ? dev.corrupt : null;
+      if (corrupt && typeof corrupt === "object" && Object.values(corrupt).some((n) => n)) {
+        const counts = Object.entries(corrupt).filter(([, n]) => n).map(([k, n]) => n + " " + k.replace(/_/g, " "));
+        deviceRow(body, name + " input", "corrupt", undefined, "since start: " + counts.join(", "));
+      }
     }
     const roll = r.gps_week_rollover;
     if (roll && roll.corrected) {
