@@ -103,7 +103,12 @@ from x6wd.core.outdir import output_dir
 from x6wd.core.recorder import Recorder
 from x6wd.core.records import GpsFix, Mode, NavState, StateChange, Telemetry
 from x6wd.loop.runner import Runner
-from x6wd.nav.controller import CommandRejected, Controller, has_usable_position
+from x6wd.nav.controller import (
+    RETURN_STOP_REASON,
+    CommandRejected,
+    Controller,
+    has_usable_position,
+)
 
 DONE_TAIL_S = 2.0  # keep simulating this long after MISSION_DONE (the robot settles)
 STARTUP_HOLD = "position estimate not ready"
@@ -364,7 +369,9 @@ def run_mission(
                     pauses[-1][1] = t
                 state_change = o.reason.startswith("state: ")
                 drives = state_change and o.new not in (NavState.HOLD, NavState.IDLE)
-                if o.new == NavState.HOLD and (not holds or holds[-1][1] >= 0):
+                # a return's designed stop (RETURN_STOP_S) is not a hold for a sensor
+                return_stop = o.reason.endswith(RETURN_STOP_REASON)
+                if o.new == NavState.HOLD and not return_stop and (not holds or holds[-1][1] >= 0):
                     if not holds and not startup["drove"] and o.reason == f"state: {STARTUP_HOLD}":
                         startup["index"] = 0
                     holds.append([t, -1.0])
@@ -514,19 +521,22 @@ def run_mission(
                 break
             if mission_state["rejected"] is not None:
                 break  # the robot refused the mission: it would stand idle to the end
-        deliver(math.inf)  # the last burst still on the wire
+        # The last burst is still on the wire: up to ~0.5 s after the last physics step at
+        # 9600 baud, ~2 s at 4800. The robot reads its compass meanwhile, the world standing
+        # at its last state, at the compass rate up to each line's arrival; without it the
+        # decision on that fix found the attitude stale, and every run cut by its duration
+        # ended in a HOLD "attitude stale", printed and recorded as a compass fault.
+        heading_deg = cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg)
+        t_read = float(trace.t[-1])
+        while in_flight:
+            t_rx = in_flight[0][0]
+            while t_read + dt <= t_rx:
+                t_read += dt
+                device.set_state(t_read, heading_deg, s.pitch_deg, s.roll_deg)
+                runner.attitude(compass.read(t_read))
+            deliver(t_rx)
         t_end = max(trace.t[-1], now[0])
         now[0] = t_end
-        if t_end > trace.t[-1]:
-            # The last burst arrives up to ~0.5 s after the last physics step; the robot
-            # reads its compass meanwhile (the world stands at its last state), or the
-            # closing tick finds the attitude stale: every run ended in a HOLD "attitude
-            # stale", printed and recorded as a compass fault
-            device.set_state(
-                t_end, cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg),
-                s.pitch_deg, s.roll_deg,
-            )  # fmt: skip
-            runner.attitude(compass.read(t_end))
         runner.tick(t_end)
         if holds and holds[-1][1] < 0:
             holds[-1][1] = t_end  # (a hold begun by the last burst's fix counts: see below)

@@ -217,3 +217,25 @@ def test_the_daemons_operator_link_return_reaches_the_board_after_a_stop(
     assert any(lf > 0 and rt > 0 for _t, lf, rt in cmds), f"the mission never drove: {cmds}"
     assert any(lf * rt < 0 for _t, lf, rt in cmds), "the return never pivoted"
     assert flips(cmds) == [], cmds
+
+
+def test_a_stop_ends_the_returns_stop_a_new_mission_drives_at_once() -> None:
+    # Review: return, stop, start within RETURN_STOP_S: the new mission (no return) began in
+    # HOLD "stop before the return to launch" (the window was cleared nowhere)
+    c = Controller(NAV, SAFETY)
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(0.0, 100.0)], 0.0)
+    c.start(0.0)
+    for k in range(1, 50):
+        t = k * 0.1
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix(t, 0.0, 2.0 * t))
+    c.return_home(5.0)
+    c.stop(5.1)
+    c.load_mission([at(0.0, 100.0)], 5.15)
+    outs = [*c.start(5.2), *c.on_attitude(att(5.3))]
+    reasons = [o.reason for o in outs if isinstance(o, (StateChange, MotorCommand))]
+    assert not any("before the return" in r for r in reasons), reasons
+    assert c.returning == ""

@@ -179,6 +179,7 @@ HOLD, 0/0) for at least its first step and this long (s): two motor time constan
 simulator's ``motor_tau_s``, 0.25 s), and the motor worker's newest-command-wins queue sees
 several stops, so a mission's forward drive never flips straight into the return's pivot
 (an outside audit: ``M 17 13`` then, 25 ms later, ``M 40 -40``)."""
+RETURN_STOP_REASON = "stop before the return to launch"  # the reason that stop carries
 
 
 def _check_t(t_s: float, what: str) -> float:
@@ -575,6 +576,7 @@ class Controller:
         if self._mission_nav is not None:  # after a return to launch: the operator's mission
             self._navigator, self._mission_nav = self._mission_nav, None
         self._returning = self._failsafe_why = ""
+        self._return_stop_until = -math.inf  # a return's stop ends with its mission
         self._navigator.restart()
         self._source.reset()
         self._stuck_wheels = self._stuck_body = self._pivot_best = None
@@ -661,6 +663,7 @@ class Controller:
         changes: list[ControllerOutput] = []
         self._manual = None
         self._returning = ""
+        self._return_stop_until = -math.inf
         self._jump_m = None  # a mission's: the next one starts from where the robot is
         self._set_mode(Mode.IDLE, why, t, changes)
         return self._step(t, why, changes)
@@ -1397,7 +1400,7 @@ class Controller:
         if state != self._state:
             reason = f"state: {hold}" if hold else f"state: {why}"
             if stopping:
-                reason = f"state: {self._returning}: stop before the return to launch"
+                reason = f"state: {self._returning}: {RETURN_STOP_REASON}"
             last = self._navigator.last
             if state in _ARRIVALS and last is not None and last.arrived_by == "behind":
                 # no visit: the log says which waypoint was taken as reached, and how far off
@@ -1412,7 +1415,7 @@ class Controller:
         if hold:
             reason = f"hold: {hold}"
         elif stopping:
-            reason = "stop before the return to launch"
+            reason = RETURN_STOP_REASON
         elif self._mode == Mode.MANUAL:
             reason = "manual"
         elif self._mode == Mode.RUNNING:
