@@ -30,16 +30,20 @@ def settings() -> dict[str, list[str]]:
     return out
 
 
-def verify(tmp_path: Path, text: str) -> str:
+def analyze_unit(tmp_path: Path, text: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """``systemd-analyze ARGS UNIT`` on the unit ``text`` written to tmp_path, its ExecStart
+    an existing binary (verify needs one; the unit's own path is an install path)."""
     analyze = require_program("systemd-analyze")
-    # ExecStart must name an existing binary for verify; the unit's own path is an install path
     true_bin = shutil.which("true") or "/bin/true"
-    text = re.sub(r"(?m)^ExecStart=\S+", f"ExecStart={true_bin}", text)
     unit = tmp_path / "x6wd.service"
-    unit.write_text(text)
-    proc = subprocess.run(
-        [analyze, "verify", str(unit)], capture_output=True, text=True, timeout=60, cwd=tmp_path
+    unit.write_text(re.sub(r"(?m)^ExecStart=\S+", f"ExecStart={true_bin}", text))
+    return subprocess.run(
+        [analyze, *args, str(unit)], capture_output=True, text=True, timeout=60, cwd=tmp_path
     )
+
+
+def verify(tmp_path: Path, text: str) -> str:
+    proc = analyze_unit(tmp_path, text, "verify")
     return (proc.stdout + proc.stderr).strip() + (
         "" if proc.returncode == 0 else f" rc={proc.returncode}"
     )
@@ -149,15 +153,7 @@ SECURITY_PASSED = (
 def security(tmp_path: Path, text: str) -> dict[str, dict[str, object]]:
     """``systemd-analyze security --offline=yes --json=short`` of the unit ``text``: each
     check by name ({"set": passed, "exposure": ..., "description": ...})."""
-    analyze = require_program("systemd-analyze")
-    true_bin = shutil.which("true") or "/bin/true"
-    text = re.sub(r"(?m)^ExecStart=\S+", f"ExecStart={true_bin}", text)
-    unit = tmp_path / "x6wd.service"
-    unit.write_text(text)
-    proc = subprocess.run(
-        [analyze, "security", "--offline=yes", "--json=short", str(unit)],
-        capture_output=True, text=True, timeout=60, cwd=tmp_path,
-    )  # fmt: skip
+    proc = analyze_unit(tmp_path, text, "security", "--offline=yes", "--json=short")
     assert proc.returncode == 0, proc.stderr
     return {c["name"]: c for c in json.loads(proc.stdout)}
 
