@@ -10,6 +10,7 @@ errors off), so one loop did not close the gap.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -157,5 +158,6 @@ def test_a_whole_log_refit_on_its_search_bound_is_not_reported() -> None:
     outcome = SimpleNamespace(notes=[])
     (reported,) = pipe.report_fits([edge], {}, outcome)  # type: ignore[arg-type]
     assert reported.params["factor"] == pytest.approx(50.0), reported.params
+    assert math.isnan(reported.se.get("factor", math.nan)), reported.se  # no "± se" on a limit
     (note,) = [n for n in outcome.notes if "search bound" in n]
     assert "as did the fit-part fit on its own narrower one" in note and "limits" in note

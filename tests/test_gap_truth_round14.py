@@ -49,3 +49,29 @@ def test_a_static_sim_against_a_driven_real_log_stops(
 @pytest.mark.parametrize("mps", [0.0, 1.5])
 def test_runs_that_move_as_the_real_log_does_are_scored(tmp_path: Path, mps: float) -> None:
     assert run_gap(case(tmp_path, mps, (mps, mps, mps))) == "scored"
+
+
+@pytest.mark.usefixtures("stop_at_diagnosis")
+@pytest.mark.parametrize("shape", ["walk-in", "one-float-epoch"])
+def test_a_still_survey_with_a_reference_that_moved_outside_the_log_is_scored(
+    tmp_path: Path, shape: str
+) -> None:
+    # Review of 5cc3bad: a reference logged from power-on (the antenna carried 40 m to the
+    # mark before the log began) or with one RTK float epoch 6 m off was judged "moves" by
+    # its largest distance over the whole track, and static --sim runs were refused
+    import numpy as np
+
+    from tests.test_gap_sim_truth_round12 import DURATION_S, write_csv
+
+    argv = case(tmp_path, 0.0, (0.0, 0.0, 0.0))
+    t_s = np.arange(0.0, DURATION_S)
+    east_m, north_m = np.zeros_like(t_s), np.zeros_like(t_s)
+    if shape == "walk-in":
+        before_s = np.arange(-300.0, 0.0)
+        walk_m = np.minimum(before_s + 300.0, 40.0) - 40.0  # 40 m at 1 m/s, then standing
+        t_s, east_m = np.concatenate((before_s, t_s)), np.concatenate((walk_m, east_m))
+        north_m = np.zeros_like(t_s)
+    else:
+        east_m[len(t_s) // 2] = 6.0
+    write_csv(tmp_path / "real" / "truth.csv", t_s, east_m, north_m)
+    assert run_gap(argv) == "scored"

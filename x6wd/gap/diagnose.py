@@ -742,14 +742,14 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
         if scored:
             options = self.options
             but = (
-                f" (but {', '.join(self.part_reported)}: the fit part's, said above)"
+                f", but {', '.join(self.part_reported)} on the fit part (said above)"
                 if self.part_reported
                 else ""
             )
             outcome.notes.append(
-                f"parameters (+- standard errors) are fitted on the whole log{but} (exact Kalman "
+                "parameters (+- standard errors) are fitted on the whole log (exact Kalman "
                 "likelihood for gauss_markov / random_walk on top of a noise model of the "
-                "baseline runs); each closure is that of the fit on the "
+                f"baseline runs){but}; each closure is that of the fit on the "
                 f"{'last' if self.split.reversed else 'first'} {options.fit_fraction:.0%} of "
                 f"the log, scored on the held-out {'first' if self.split.reversed else 'last'} "
                 f"{1 - options.fit_fraction - options.guard_fraction:.0%} beyond a guard gap"
@@ -782,7 +782,10 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
                 " did the fit-part fit on its own narrower one: the parameters are limits, not"
                 f" measurements: {whole.params}"
             )
-            return whole
+            # no "± se" on a limit (a review: "tau_s 351 ± 25" beside "at least 351")
+            limit_keys = {key for key, _ in hit}
+            se = {k: math.nan if k in limit_keys else v for k, v in whole.se.items()}
+            return dataclasses.replace(whole, se=se)
         self.part_reported.append(whole.name)
         outcome.notes.append(
             f"{whole.name}: the whole-log refit stopped on its search bound ({limits}), not a"
