@@ -152,6 +152,11 @@ def load_sweep(path: str | Path) -> SweepSpec:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read sweep file: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:  # an editor's Latin-1, or no text at all
+        raise ConfigError(
+            f"{p}: not a UTF-8 text file (byte 0x{exc.object[exc.start]:02x} at offset"
+            f" {exc.start}); save the sweep file as UTF-8"
+        ) from exc
     return loads_sweep(text, p.resolve().parent, source=p, default_name=p.stem)
 
 

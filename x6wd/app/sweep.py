@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import socket
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -162,8 +163,26 @@ def _outside_text(outside: dict[str, int], runs_dir: Path, file_seeds: int, seed
     )
 
 
+def _check_dashboard(address: str) -> None:
+    """Refuse a ``--dashboard`` that is no HOST:PORT with a port 0..65535 and a host that
+    resolves (a LocalCluster given one fails minutes later with a long traceback)."""
+    host, colon, port = address.rpartition(":")
+    why = ""
+    if not colon or not port.isdigit() or int(port) > 65535:
+        why = "expected HOST:PORT with a port 0..65535 (e.g. 127.0.0.1:8787)"
+    elif host:
+        try:
+            socket.getaddrinfo(host.strip("[]"), int(port))
+        except (OSError, UnicodeError) as exc:
+            why = f"host {host!r} does not resolve ({getattr(exc, 'strerror', None) or exc})"
+    if why:
+        raise ConfigError(f"--dashboard {address}: {why}")
+
+
 def main(args: argparse.Namespace) -> int:
     """Plan (validating every cell), run what is missing, write the report."""
+    if args.dashboard is not None:
+        _check_dashboard(args.dashboard)
     spec = load_sweep(args.sweep)
     file_seeds = spec.seeds
     if args.seeds is not None:

@@ -45,7 +45,7 @@ from x6wd.gap.io import (
     velocity_mismatch_mps,
     wrap_lon_deg,
 )
-from x6wd.gap.report import FIGURES, verdict_line, write_report
+from x6wd.gap.report import FIGURES, spread_text, verdict_line, write_report
 from x6wd.gap.stats import has_up
 
 
@@ -887,9 +887,8 @@ def main(args: argparse.Namespace) -> int:
         print(f"validation, selected effects only: {calibration.selected.summary()}")
         print(
             f"validation, calibrated (in sample; {Path(args.out) / 'calibrated.toml'}): "
-            f"{calibration.calibrated.summary()}; the runs' own spread: mean "
-            f"{calibration.selected.mean_spread:.1%}, sigma {calibration.selected.sd_spread:.1%}, "
-            f"sigma / mean {calibration.selected.ratio_spread:.1%}"
+            f"{calibration.calibrated.summary()}; the runs' own spread: "
+            f"{spread_text(calibration.selected)}"
         )
         if not calibration.calibrated.passed:
             print(f"calibrated validation {calibration.miss_text()}")

@@ -127,8 +127,12 @@ class Calibration:
                 f"sigma / mean is {v.sd_real_m / v.mean_real_m:.3g}, the calibrated runs' "
                 f"{v.sd_sim_m / v.mean_sim_m:.3g}, a shape of the error's distribution that "
                 "these layers, which scale it per time scale, did not reach; the runs' own "
-                f"spread of it is {v.ratio_spread:.1%} (one log of this length is that far "
-                "from its own model)"
+                + (
+                    f"spread of it is {v.ratio_spread:.1%} (one log of this length is that far "
+                    "from its own model)"
+                    if v.n_runs >= 2
+                    else "spread of it is not defined for one log"
+                )
             )
         return text
 

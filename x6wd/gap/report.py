@@ -578,7 +578,11 @@ def _validation_intro(n_runs: int, own: bool, both_ways: bool) -> str:
     )
 
 
-def _spread_text(v: Validation) -> str:
+def spread_text(v: Validation) -> str:
+    """The runs' own spread of mean, sigma and sigma / mean, or that it is not defined for
+    one log (one --sim log, or one run: no spread over runs, not "nan%")."""
+    if v.n_runs < 2:
+        return "not defined for one log"
     return f"mean {v.mean_spread:.1%}, sigma {v.sd_spread:.1%}, sigma / mean {v.ratio_spread:.1%}"
 
 
@@ -597,7 +601,7 @@ def uncalibrated_markdown(v: Validation, own: bool = False) -> list[str]:
         f"- the baseline runs alone: {within} of {len(figures)} figures within seed 000's "
         f"tolerance (furthest off: {v.worst_text()}); how far one log of this length lands "
         f"from its own model is the runs' own spread (sd over runs / average): "
-        f"{_spread_text(v)}",
+        f"{spread_text(v)}",
         f"- {NO_CALIBRATION}.",
         "",
         "| figure | real | simulated | difference | within tolerance | target |",
@@ -686,9 +690,8 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
         "as seed 000 configured its model for the conditions of its one real hour. It shows "
         "that the simulator can be set to this receiver, not that it predicts it. How far "
         "one log of this length lands from its own model is the simulated runs' own spread "
-        f"(sd over runs / average): mean {a.mean_spread:.1%}, sigma {a.sd_spread:.1%}, "
-        f"sigma / mean {a.ratio_spread:.1%}; a new log of this receiver is expected that far "
-        "from (b)'s figures; where the first two are above 3 % even a perfect model meets "
+        f"(sd over runs / average): {spread_text(a)}; a new log of this receiver is expected "
+        "that far from (b)'s figures; where the first two are above 3 % even a perfect model meets "
         "(a)'s 3 % on one log only by luck, and where the third is, (b) meets mean and sigma "
         "together only when this log's sigma / mean happens to be the model's (scaling the "
         "error does not change it). "

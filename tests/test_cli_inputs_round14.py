@@ -1,0 +1,63 @@
+"""Round 14 audit (F3, F4, F6, F7): bad inputs to sweep, calibrate and client end in one line
+naming the file or option and exit 2; gap says the runs' spread is not defined for one log."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from x6wd.app import cli
+
+ROOT = Path(__file__).resolve().parent.parent
+SWEEP = ROOT / "config" / "sweeps" / "position_source.toml"
+
+
+def _one_error_line(capsys: pytest.CaptureFixture[str], *names: str) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    for name in names:
+        assert name in line, line
+    return line
+
+
+@pytest.mark.parametrize("head", [b"# r\xe9sum\xe9 of the sweep\n", bytes(range(128, 256))])
+def test_a_sweep_file_not_in_utf8_is_named_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], head: bytes
+) -> None:
+    bad = tmp_path / "latin1.toml"
+    bad.write_bytes(head + SWEEP.read_bytes())
+    rc = cli.main(["sweep", str(bad), "--out", str(tmp_path / "o"), "--quiet", "--workers", "1"])
+    assert rc == 2
+    _one_error_line(capsys, str(bad), "UTF-8")
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("address", ["notanaddr", "nosuchhost.invalid:8787", "127.0.0.1:99999"])
+def test_a_bad_dashboard_address_is_refused_before_any_work(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], address: str
+) -> None:
+    out = tmp_path / "o"
+    argv = ["sweep", str(SWEEP), "--out", str(out), "--quiet", "--workers", "1", "--seeds", "1"]
+    assert cli.main([*argv, "--dashboard", address]) == 2
+    _one_error_line(capsys, "--dashboard", address)
+    assert not out.exists()
+
+
+def test_gap_with_one_sim_log_says_the_spread_is_not_defined(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sim = tmp_path / "sim"
+    scenario = ROOT / "config" / "scenarios" / "open_field.toml"
+    assert cli.main(["sim", str(scenario), "--out", str(sim), "--quiet"]) == 0
+    out = tmp_path / "gap"
+    real = ROOT / "tests" / "data" / "nmea" / "ublox-8.log"
+    argv = ["gap", "--real", str(real), "--sim", str(sim / "gps.nmea"), "--out", str(out)]
+    cli.main([*argv, "--quiet", "--no-figures"])
+    printed = capsys.readouterr().out
+    report = (out / "report.md").read_text(encoding="utf-8")
+    for text in (printed, report):
+        assert "nan%" not in text
+    assert "own spread (sd over runs / average): not defined for one log" in report
+    assert "own spread: not defined for one log" in printed
