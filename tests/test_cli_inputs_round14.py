@@ -3,6 +3,7 @@ naming the file or option and exit 2; gap says the runs' spread is not defined f
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -61,3 +62,44 @@ def test_gap_with_one_sim_log_says_the_spread_is_not_defined(
         assert "nan%" not in text
     assert "own spread (sd over runs / average): not defined for one log" in report
     assert "own spread: not defined for one log" in printed
+
+
+URBAN = ROOT / "tests" / "data" / "urban"
+DRIVE = [
+    "calibrate", "gnss", "--drive", str(URBAN / "rover_1Hz_spp.pos"),
+    "--reference", str(URBAN / "reference_1Hz.pos"), "--re-m", "0.1", "--ase-m", "0.1",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("option", "name", "said"),
+    [
+        ("--plot", "lce.toml", "cannot write a .toml image"),
+        ("--plot", "missing/lce.png", "cannot write there"),
+        ("--map-csv", "missing/map.csv", "cannot write there"),
+        ("--map-csv", ".", "cannot write there"),
+    ],
+)
+def test_calibrate_gnss_checks_its_outputs_before_writing_any(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str, name: str, said: str
+) -> None:
+    out, bad = tmp_path / "g.toml", str(tmp_path / name)
+    assert cli.main([*DRIVE, "--out", str(out), option, bad]) == 2
+    _one_error_line(capsys, option, bad, said)
+    assert not out.exists()  # --out is not written when another output cannot be
+
+
+def test_calibrate_odometry_names_a_fifo_and_an_unreadable_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    circle = tmp_path / "circle.jsonl"
+    circle.write_text("", encoding="utf-8")
+    fifo = tmp_path / "straight.nmea"
+    os.mkfifo(fifo)
+    argv = ["calibrate", "odometry", "--circle", str(circle), "--straight"]
+    assert cli.main([*argv, str(fifo)]) == 2
+    _one_error_line(capsys, "--straight", str(fifo), "FIFO")
+    if Path("/proc/self/mem").is_file():  # a regular file whose read fails (EIO)
+        assert cli.main([*argv, "/proc/self/mem"]) == 2
+        _one_error_line(capsys, "--straight", "/proc/self/mem", "Input/output error")
+

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import stat
 import sys
 import tomllib
 from collections.abc import Callable
@@ -13,9 +15,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from x6wd.calibrate import gnss
-from x6wd.calibrate.odometry import NOISY_PASS, RTK_SIGMA_M, calibrate, load_track
+from x6wd.calibrate.odometry import NOISY_PASS, RTK_SIGMA_M, Track, calibrate, load_track
 from x6wd.core import config as config_mod
-from x6wd.core.errors import ConfigError
+from x6wd.core.errors import ConfigError, DeviceUnavailable
 from x6wd.core.outdir import write_output_file
 
 
@@ -164,6 +166,52 @@ _DRIVE_ONLY = {
 (None in the parser, so an option given without --drive is seen and refused)."""
 
 
+def _check_output_file(option: str, path: str | None, *, plot: bool = False) -> None:
+    """Refuse now, naming ``option``, an output file that cannot be written (a missing or
+    read-only folder, a directory there) or, for a plot, a suffix matplotlib cannot write:
+    before any work, and before another output is written."""
+    if not path:
+        return
+    p = Path(path)
+    if plot and p.suffix:
+        from matplotlib.figure import Figure
+
+        kinds = Figure().canvas.get_supported_filetypes()
+        if p.suffix[1:].lower() not in kinds:
+            raise ConfigError(
+                f"{option} {path}: cannot write a {p.suffix} image (one of: {', '.join(kinds)})"
+            )
+    if p.exists() and not p.is_file() and not p.is_dir():
+        return  # a device or pipe (/dev/null): opening it now could block
+    try:
+        if p.is_dir():
+            raise IsADirectoryError(21, "is a directory")
+        existed = p.exists()
+        with open(p, "a"):
+            pass
+        if not existed:
+            p.unlink()
+    except OSError as exc:
+        raise ConfigError(f"{option} {path}: cannot write there: {exc.strerror or exc}") from exc
+
+
+def _load_track_of(option: str, path: str) -> Track:
+    """:func:`load_track` of the recording given with ``option``; a path that is no regular
+    file (a FIFO, a device: reading it could block) or cannot be read is a ConfigError
+    naming the option and the file."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        mode = None  # missing: its rotated parts may remain (read_recording_parts says)
+    if mode is not None and not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+        what = "a FIFO" if stat.S_ISFIFO(mode) else "a device or socket"
+        raise ConfigError(f"{option} {path}: {what}, not a recording file")
+    try:
+        return load_track(path)
+    except DeviceUnavailable as exc:
+        raise ConfigError(f"{option}: {exc}") from exc
+
+
 def main_gnss(args: argparse.Namespace) -> int:
     """``x6wd calibrate gnss``: 0 on success."""
     if not args.drive:
@@ -178,6 +226,9 @@ def main_gnss(args: argparse.Namespace) -> int:
             setattr(args, key, value)
     if args.plot:  # now, not after the map is made and the fragment written
         import matplotlib  # noqa: F401  (missing: the CLI names the extra to install)
+    _check_output_file("--out", args.out)
+    _check_output_file("--map-csv", args.map_csv)
+    _check_output_file("--plot", args.plot, plot=True)
     _check_flags(args, {
         "re_m": "finite>=0", "ase_m": "finite>=0", "correlation_s": "finite>=0",
         "cell_m": "finite>0", "max_gap_s": "finite>0", "visit_gap_s": "finite>=0",
@@ -320,7 +371,9 @@ def main(args: argparse.Namespace) -> int:
     if cpr < 1:
         raise ConfigError(f"--counts-per-rev must be >= 1, got {cpr}")
     _check_flags(args, {"stop_s": "finite>0", "min_pass_m": "finite>=0", "ref_sigma_m": "finite>0"})
-    straight, circle = load_track(args.straight), load_track(args.circle)
+    _check_output_file("--out", args.out)
+    straight = _load_track_of("--straight", args.straight)
+    circle = _load_track_of("--circle", args.circle)
     for name, track in (("straight", straight), ("circle", circle)):
         if track.skipped:
             print(

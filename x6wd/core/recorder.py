@@ -1243,15 +1243,20 @@ satellites, is about 3 kB): a card's garbage tail, skipped a piece at a time."""
 
 def _bounded_lines(f: BinaryIO) -> Iterator[bytes | None]:
     """The lines of ``f``; None for each line longer than :data:`MAX_RECORD_LINE_BYTES`,
-    whose bytes are read and dropped a piece at a time."""
+    whose bytes are read and dropped a piece at a time. A read error raises
+    :class:`DeviceUnavailable` naming the file."""
     limit = MAX_RECORD_LINE_BYTES
-    while raw := f.readline(limit + 1):
-        if len(raw) <= limit or raw.endswith(b"\n"):
-            yield raw
-            continue
-        while raw and not raw.endswith(b"\n"):
-            raw = f.readline(limit)
-        yield None
+    try:
+        while raw := f.readline(limit + 1):
+            if len(raw) <= limit or raw.endswith(b"\n"):
+                yield raw
+                continue
+            while raw and not raw.endswith(b"\n"):
+                raw = f.readline(limit)
+            yield None
+    except OSError as exc:  # an I/O error (a failing card, /proc/self/mem): named, no traceback
+        name = getattr(f, "name", "recording")
+        raise DeviceUnavailable(f"cannot read recording {name}: {exc.strerror or exc}") from exc
 
 
 def read_recording(
