@@ -103,3 +103,39 @@ def test_calibrate_odometry_names_a_fifo_and_an_unreadable_recording(
         assert cli.main([*argv, "/proc/self/mem"]) == 2
         _one_error_line(capsys, "--straight", "/proc/self/mem", "Input/output error")
 
+
+def _free_port() -> int:
+    """A 127.0.0.1 port nothing listens on (bound, then closed)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.parametrize("n", ["-1", "1001"])
+def test_client_log_checks_n_before_connecting(capsys: pytest.CaptureFixture[str], n: str) -> None:
+    from x6wd.app import server
+
+    # a port nothing listens on: the check must come first (it was exit 1 from the daemon)
+    with pytest.raises(SystemExit) as e:
+        cli.main(["client", "--port", str(_free_port()), "log", n])
+    assert e.value.code == 2
+    _one_error_line(capsys, "argument n", f"0..{server.LOG_TAIL_MAX}", n)
+
+
+@pytest.mark.parametrize(
+    ("action", "said"),
+    [
+        ("log", "0..1000 (default 50)"),
+        ("drive", "[safety] manual_max_s: 5 s as shipped"),
+        ("watch", "default: until Ctrl-C"),
+    ],
+)
+def test_client_help_states_defaults_and_the_robots_limit(
+    capsys: pytest.CaptureFixture[str], action: str, said: str
+) -> None:
+    with pytest.raises(SystemExit) as e:
+        cli.main(["client", action, "--help"])
+    assert e.value.code == 0
+    assert said in " ".join(capsys.readouterr().out.split())

@@ -612,6 +612,7 @@ def _finite(text: str) -> float:
 
 DRIVE_PCT_MAX = 100.0  # the protocol's bound on a side's command (%), either way
 DRIVE_S_MAX = 3600.0  # the protocol's longest drive (s)
+LOG_TAIL_MAX = 1000  # the most log lines the daemon sends (server.LOG_TAIL_MAX)
 
 
 def _drive_pct(text: str) -> float:
@@ -862,16 +863,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     p.add_argument("left", type=_drive_pct, help="left side, -100..100 %%")
     p.add_argument("right", type=_drive_pct, help="right side, -100..100 %%")
-    p.add_argument("seconds", type=_positive_s, help="duration in s (> 0, at most 3600)")
+    p.add_argument(
+        "seconds",
+        type=_positive_s,
+        help="duration in s (> 0; the robot refuses more than its own limit, [safety] "
+        "manual_max_s: 5 s as shipped; at most 3600 here, the protocol's)",
+    )
     p = sub.add_parser(
         "watch", help="live one-screen view (--json: one JSON object per line, for programs)"
     )
     p.add_argument(
-        "--count", type=_int_in(1), help="exit after N screens (--json: N telemetry events)"
+        "--count",
+        type=_int_in(1),
+        help="exit after N screens (--json: N telemetry events); default: until Ctrl-C",
     )
     p.add_argument("--no-ansi", action="store_true", help="do not clear the screen")
     p = sub.add_parser("log", help="recent daemon log lines")
-    p.add_argument("n", type=int, nargs="?", default=50)
+    p.add_argument(
+        "n",
+        type=_int_in(0, LOG_TAIL_MAX),
+        nargs="?",
+        default=50,
+        help=f"how many of the newest lines, 0..{LOG_TAIL_MAX} (default %(default)s)",
+    )
     for p in sub.choices.values():  # also after the action: `x6wd client status --json`
         p.add_argument(
             "--json",
