@@ -136,7 +136,7 @@ def test_report_shows_both_validations_and_calibrated_toml_is_a_scenario_fragmen
     write_report(diagnosis, tmp_path, figures=False)
     md = (tmp_path / "report.md").read_text()
     assert "## Validation (seed 000's test)" in md
-    assert "- (a) the selected effects only (noise_scale, parameters fitted on the whole" in md
+    assert "- (a) the selected effects only (noise_scale, with the parameters reported above)" in md
     assert "- (b) **calibrated**, the closing figure" in md
     assert "| figure | real | (a) selected | (a) difference | (a) pass | (b) calibrated |" in md
     assert "is **in sample**" in md and "the simulated runs' own spread" in md
