@@ -53,6 +53,7 @@ docs/simulator.md, "The paper's four situations".
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -95,11 +96,12 @@ from sim_backend.runs import (  # re-exported: the robot engine's callers import
     straight_length_m,
     vehicle_from_world,
 )
+from sim_backend.survey import SIM_OUTPUTS
 from sim_backend.world import World
 from x6wd.core.config import check_drive_vs_stuck
 from x6wd.core.errors import CommandError
 from x6wd.core.mission_files import Waypoint
-from x6wd.core.outdir import output_dir
+from x6wd.core.outdir import open_output, output_dir, output_file
 from x6wd.core.recorder import Recorder
 from x6wd.core.records import GpsFix, Mode, NavState, StateChange, Telemetry
 from x6wd.loop.runner import Runner
@@ -234,7 +236,7 @@ def run_mission(
         plan.gps_every,
         plan.n_ticks,
     )
-    out = output_dir(out_dir) if out_dir is not None else None
+    out = output_dir(out_dir, clear=SIM_OUTPUTS) if out_dir is not None else None
     rand = SimRandom.from_seed(seed)
     receiver = build_receiver(world, rand)
     uart = MemoryUart(receiver.baud)
@@ -276,8 +278,7 @@ def run_mission(
     nmea_file: BinaryIO | _NoFiles = _NoFiles()
     rec: Recorder | _NoFiles = _NoFiles()
     if out is not None:
-        nmea_file = open(out / "gps.nmea", "wb")  # noqa: SIM115 - closed in finally
-        (out / "recording.jsonl").unlink(missing_ok=True)
+        nmea_file = open_output(out / "gps.nmea")  # closed after the run, or on its error
     # The recorder writes aware times as naive UTC; handing it naive UTC already skips a
     # conversion per record (thousands per mission) and gives the same text.
     utc0_naive = utc0.astimezone(UTC).replace(tzinfo=None) if utc0.tzinfo else utc0
@@ -556,12 +557,18 @@ def run_mission(
         rec.record_event("sim_end", t_end, completed=ctrl.mode == Mode.DONE and not returned)
         if progress is not None:
             progress(t_end, t_end)  # finished (early when the mission is done)
-    finally:
-        nmea_file.close()
-        rec.close()
+    except BaseException:  # the run's own error is reported, not a close's after it
+        for close in (nmea_file.close, rec.close):
+            with contextlib.suppress(Exception):
+                close()
+        raise
+    with contextlib.ExitStack() as closing:  # both closed; a close's error (a full disk) raised
+        closing.callback(rec.close)
+        closing.callback(nmea_file.close)
 
     if out is not None:
-        _write_truth(out / "truth.csv", world, trace, antenna_m)
+        with output_file(out / "truth.csv"):
+            _write_truth(out / "truth.csv", world, trace, antenna_m)
     raw_err, filt_err, fix_enu, filt_enu = _errors(world, trace)
     path_len = _path_length_m(trace)
     straight = straight_length_m(world)  # leg by leg on the great circle
@@ -633,9 +640,13 @@ def run_mission(
         },
     )
     if out is not None:
-        (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+        with output_file(out / "summary.json"):
+            (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
         truth_e, truth_n = _col(trace.east), _col(trace.north)
-        plot_track(out / "track.png", world, truth_e, truth_n, fix_enu, filt_enu, wp_enu, summary)
+        with output_file(out / "track.png"):
+            plot_track(
+                out / "track.png", world, truth_e, truth_n, fix_enu, filt_enu, wp_enu, summary
+            )
     return summary
 
 

@@ -60,8 +60,12 @@ from sim_backend.textblocks import (
 )
 from sim_backend.trackpng import plot_survey
 from sim_backend.world import World
-from x6wd.core.outdir import output_dir
+from x6wd.core.outdir import open_output, output_dir, output_file
 from x6wd.nav.geo import R1_M, R2_M
+
+SIM_OUTPUTS = ("gps.nmea", "recording.jsonl", "truth.csv", "summary.json", "track.png")
+"""The files ``x6wd sim`` writes into its ``--out`` (either engine): removed at a run's start,
+so that a run cut short (Ctrl-C) never leaves an earlier run's beside its own."""
 
 
 def run_survey(
@@ -83,7 +87,7 @@ def run_survey(
     if not steps_evenly(clock_hz, world.gnss.rate_hz):
         clock_hz = world.gnss.rate_hz
     plan = RunPlan.of(world, seed, duration_s, clock_hz)
-    out = output_dir(out_dir)
+    out = output_dir(out_dir, clear=SIM_OUTPUTS)
     receiver = build_receiver(world, SimRandom.from_seed(plan.seed))
     s0 = vehicle_from_world(world).state
     antenna = np.array([s0.east_m, s0.north_m, s0.up_m + world.vehicle.antenna_height_m])
@@ -108,7 +112,7 @@ def run_survey(
     used_parts: list[np.ndarray] = []
     spread = _Spread()
     n_fix = n_valid = 0
-    with open(out / "gps.nmea", "wb") as nmea, open(out / "recording.jsonl", "wb") as rec:
+    with open_output(out / "gps.nmea") as nmea, open_output(out / "recording.jsonl") as rec:
         rec.write(
             rec_lines.event(
                 0.0,
@@ -159,7 +163,8 @@ def run_survey(
         end = rec_lines.event(max(t_end, last_rx_s), {"event": "sim_end", "completed": False})
         rec.write(end.encode("utf-8"))
 
-    _write_truth(out / "truth.csv", t_ep, truth_lat, truth_lon, truth_alt)
+    with output_file(out / "truth.csv"):
+        _write_truth(out / "truth.csv", t_ep, truth_lat, truth_lon, truth_alt)
     del t_ep
     err = np.concatenate(err_parts) if err_parts else np.zeros(0)
     err_parts.clear()
@@ -208,10 +213,13 @@ def run_survey(
             ],
         },
     )
-    (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+    with output_file(out / "summary.json"):
+        (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     fix_enu = np.concatenate(enu_parts) if enu_parts else np.zeros((0, 2))
     enu_parts.clear()
-    plot_survey(out / "track.png", world, (float(antenna[0]), float(antenna[1])), fix_enu, summary)
+    with output_file(out / "track.png"):
+        at_m = (float(antenna[0]), float(antenna[1]))
+        plot_survey(out / "track.png", world, at_m, fix_enu, summary)
     return summary
 
 

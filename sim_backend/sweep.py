@@ -106,6 +106,7 @@ from sim_backend.world import (
 from x6wd import __version__
 from x6wd.core.config import check_drive_vs_stuck
 from x6wd.core.errors import ConfigError, X6wdError
+from x6wd.core.outdir import output_file
 
 log = logging.getLogger(__name__)
 
@@ -726,7 +727,13 @@ class RunStore:
 def write_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` so that a reader never sees half of it, with the mode a
     plain ``open`` gives (0666 less the umask): mkstemp's 0600 kept others on a shared folder
-    from replaying a cell."""
+    from replaying a cell. An ``OSError`` (a full disk) is a :class:`ConfigError` naming
+    ``path``."""
+    with output_file(path):
+        _write_atomic(path, text)
+
+
+def _write_atomic(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         umask = os.umask(0o022)  # read it (the only way) and put it back
@@ -1006,8 +1013,9 @@ def out_dir_lock(out_dir: str | Path) -> Iterator[None]:
         except OSError as exc:  # a file system without locks (some NFS, SMB, FUSE mounts)
             log.warning("%s: not locked (%s): two sweeps into it would both run", path, exc)
         else:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            with output_file(path):  # a full disk: exit 2 naming the file
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         yield
     finally:
         os.close(fd)  # and with it the lock

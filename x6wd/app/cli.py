@@ -147,6 +147,17 @@ def chosen_parser(
     return parser
 
 
+def empty_option(parser: argparse.ArgumentParser, args: argparse.Namespace) -> str | None:
+    """The first option or argument of ``args`` given as an empty string (``--out ''``, which
+    would be the current folder; ``--config ''``, no file: every one is a path or a name), as
+    its error message; None when there is none."""
+    for action in chosen_parser(parser, args)._actions:
+        if getattr(args, action.dest, None) == "":
+            name = action.option_strings[-1] if action.option_strings else action.dest
+            return f"{name}: empty value (a path or name is needed)"
+    return None
+
+
 def _fail(message: str) -> Callable[[argparse.Namespace], int]:
     def run(_args: argparse.Namespace) -> int:
         print(message, file=sys.stderr)
@@ -179,6 +190,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if unknown and not getattr(args, "_any_arguments", False):
         # the chosen subcommand's usage and name (`x6wd sim: error: ...`), not the top level's
         chosen_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
+    empty = empty_option(parser, args)
+    if empty is not None:
+        print(f"x6wd {args.command}: error: {empty}", file=sys.stderr)
+        return 2
     try:
         return int(args._main(args) or 0)
     except X6wdError as exc:
@@ -198,3 +213,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141  # 128 + SIGPIPE, what a shell reports for a command killed by it
+    except OSError as exc:  # a file the command named (an output on a full disk, ...)
+        if exc.filename is None:  # the sites that write outputs name theirs (output_file)
+            raise
+        print(
+            f"x6wd {args.command}: error: {exc.filename!r}: {exc.strerror or exc}", file=sys.stderr
+        )
+        return 2

@@ -36,7 +36,7 @@ from x6wd.app.logview import (
     newest_recording,
 )
 from x6wd.core.errors import ConfigError
-from x6wd.core.outdir import output_dir
+from x6wd.core.outdir import output_dir, output_file
 
 # ---------------------------------------------------------------------------- PNG
 
@@ -232,11 +232,13 @@ def main(args: argparse.Namespace) -> int:
     written = []
     if args.format in ("both", "html"):
         p = out / f"{stem}.html"
-        p.write_text(html_page(view), encoding="utf-8")
+        with output_file(p):
+            p.write_text(html_page(view), encoding="utf-8")
         written.append(p)
     if args.format in ("both", "png"):
         p = out / f"{stem}.png"
-        render_png(view, p)
+        with output_file(p):
+            render_png(view, p)
         written.append(p)
     for p in written:
         print(p)

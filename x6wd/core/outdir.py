@@ -7,16 +7,26 @@ path named) before any work is done, not as a traceback minutes into a run.
 
 from __future__ import annotations
 
+import io
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from x6wd.core.errors import ConfigError
 
 
-def output_dir(path: str | Path, probe: str = ".x6wd-write-test") -> Path:
+def output_dir(
+    path: str | Path, probe: str = ".x6wd-write-test", clear: Sequence[str] = ()
+) -> Path:
     """``path`` as a directory that exists and takes files (made with its parents if need
     be); :class:`ConfigError` naming it otherwise. A probe file ``probe`` is written and
-    removed to find a read-only place now."""
+    removed to find a read-only place now. The files named in ``clear`` (the outputs this
+    run writes, nothing else) are removed, so that a run cut short never leaves an earlier
+    run's outputs beside its own."""
     out = Path(path)
+    if not str(path).strip():
+        raise ConfigError("output directory: empty path")
     try:
         out.mkdir(parents=True, exist_ok=True)
         test = out / probe
@@ -29,15 +39,44 @@ def output_dir(path: str | Path, probe: str = ".x6wd-write-test") -> Path:
         else:
             why = e.strerror or str(e)
         raise ConfigError(f"output directory {str(out)!r}: {why}") from e
+    for name in clear:
+        with output_file(out / name):
+            (out / name).unlink(missing_ok=True)
     return out
+
+
+@contextmanager
+def output_file(path: str | Path) -> Iterator[Path]:
+    """Around the writing of the output file ``path``: an ``OSError`` there (a full disk, a
+    read-only place) becomes a :class:`ConfigError` naming the file (exit 2, one line)."""
+    try:
+        yield Path(path)
+    except OSError as e:
+        raise ConfigError(f"output file {str(path)!r}: {e.strerror or e}") from e
 
 
 def write_output_file(path: str | Path, text: str) -> Path:
     """Write ``text`` (UTF-8) to the file ``path`` a user named; :class:`ConfigError` naming
     it when that cannot be done (a directory there, a missing parent, a read-only place)."""
     out = Path(path)
-    try:
+    with output_file(out):
         out.write_text(text, encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(f"output file {str(out)!r}: {e.strerror or e}") from e
     return out
+
+
+class _NamedFileIO(io.FileIO):
+    """A file whose write errors (a full disk) carry its name, as its open's errors do."""
+
+    def write(self, data: Any, /) -> Any:  # int | None, as FileIO.write
+        try:
+            return super().write(data)
+        except OSError as e:
+            if e.filename is not None:
+                raise
+            raise OSError(e.errno, e.strerror, self.name) from e
+
+
+def open_output(path: str | Path) -> io.BufferedWriter:
+    """``path`` opened to write bytes (buffered) whose every ``OSError``, a write's or the
+    closing flush's too, names the file (``x6wd``'s entry reports it in one line, exit 2)."""
+    return io.BufferedWriter(_NamedFileIO(str(path), "wb"))

@@ -786,6 +786,12 @@ def write_figures(diagnosis: Diagnosis, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from x6wd.core.outdir import output_file
+
+    def save(fig: Any, name: str) -> None:  # a full disk: exit 2 naming the file
+        with output_file(out / name):
+            fig.savefig(out / name, dpi=90)
+
     real = diagnosis.real
     sims = diagnosis.baseline[: min(5, len(diagnosis.baseline))]
     valid = np.asarray(real.valid, dtype=bool)
@@ -799,7 +805,7 @@ def write_figures(diagnosis: Diagnosis, out: Path) -> None:
         xlabel="east error (m)", ylabel="north error (m)", title="horizontal error", aspect="equal"
     )
     ax.legend()
-    fig.savefig(out / "scatter.png", dpi=90)
+    save(fig, "scatter.png")
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -817,7 +823,7 @@ def write_figures(diagnosis: Diagnosis, out: Path) -> None:
     ax.plot(radial_m, np.linspace(0, 1, radial_m.size), color="C3", lw=2, label="real")
     ax.set(xlabel="horizontal error (m)", ylabel="CDF", title="error CDF, real vs sim runs")
     ax.legend()
-    fig.savefig(out / "cdf.png", dpi=90)
+    save(fig, "cdf.png")
     plt.close(fig)
 
     factors = octave_taus(diagnosis.layout)
@@ -843,7 +849,7 @@ def write_figures(diagnosis: Diagnosis, out: Path) -> None:
         )
         ax.legend()
     fig.tight_layout()
-    fig.savefig(out / "allan.png", dpi=90)
+    save(fig, "allan.png")
     plt.close(fig)
 
     lag_steps = list(
@@ -859,7 +865,7 @@ def write_figures(diagnosis: Diagnosis, out: Path) -> None:
     ax.plot(lag_s, acf(regular(real, diagnosis.layout.dt_s)[0], lag_steps), "C3", label="real")
     ax.set(xlabel="lag (s)", ylabel="autocorrelation (east)", title="autocorrelation")
     ax.legend()
-    fig.savefig(out / "acf.png", dpi=90)
+    save(fig, "acf.png")
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(10, 4))
@@ -884,7 +890,7 @@ def write_figures(diagnosis: Diagnosis, out: Path) -> None:
         title="error over time (shaded: flagged periods; dashed: fit | guard | test)",
     )
     ax.legend()
-    fig.savefig(out / "time.png", dpi=90)
+    save(fig, "time.png")
     plt.close(fig)
 
     if diagnosis.layout.moving:
@@ -917,5 +923,5 @@ def write_figures(diagnosis: Diagnosis, out: Path) -> None:
             aspect="equal",
             title=f"error over the map ({len(flagged)} of 4 quadrants flagged)",
         )
-        fig.savefig(out / "map.png", dpi=90)
+        save(fig, "map.png")
         plt.close(fig)
