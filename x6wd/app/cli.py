@@ -154,7 +154,7 @@ def empty_option(parser: argparse.ArgumentParser, args: argparse.Namespace) -> s
     for action in chosen_parser(parser, args)._actions:
         if getattr(args, action.dest, None) == "":
             name = action.option_strings[-1] if action.option_strings else action.dest
-            return f"{name}: empty value (a path or name is needed)"
+            return f"{name}: empty value ({name} '' gives no path, name or number)"
     return None
 
 
