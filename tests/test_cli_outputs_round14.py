@@ -97,25 +97,18 @@ def test_a_close_error_does_not_hide_the_missions_own(full_disk: Path) -> None:
     assert "recording.jsonl" in str(caught.value)
 
 
+def _survey(out: Path, capsys: pytest.CaptureFixture[str]) -> Path:
+    """A 900 s open-field survey written to ``out`` (its output cleared from capsys)."""
+    argv = ["sim", str(SCENARIOS / "open_field.toml"), "--out", str(out), "--quiet"]
+    assert main([*argv, "--duration", "900"]) == 0
+    capsys.readouterr()
+    return out
+
+
 def test_gap_plot_and_sweep_on_a_full_disk_are_one_line(
     full_disk: Path, tmp_path: Path, capsys
 ) -> None:
-    sim = tmp_path / "sim"
-    assert (
-        main(
-            [
-                "sim",
-                str(SCENARIOS / "open_field.toml"),
-                "--out",
-                str(sim),
-                "--quiet",
-                "--duration",
-                "900",
-            ]
-        )
-        == 0
-    )
-    capsys.readouterr()
+    sim = _survey(tmp_path / "sim", capsys)
     _one_line_exit_2(
         capsys,
         [
@@ -158,22 +151,7 @@ def test_sweeps_atomic_write_on_a_full_disk_names_the_file(full_disk: Path) -> N
 
 def test_plot_and_gap_into_dev_full_name_the_file(tmp_path: Path, capsys) -> None:
     """Without root: an output that is a link to /dev/full (ENOSPC on every write)."""
-    sim = tmp_path / "sim"
-    assert (
-        main(
-            [
-                "sim",
-                str(SCENARIOS / "open_field.toml"),
-                "--out",
-                str(sim),
-                "--quiet",
-                "--duration",
-                "900",
-            ]
-        )
-        == 0
-    )
-    capsys.readouterr()
+    sim = _survey(tmp_path / "sim", capsys)
     (tmp_path / "p").mkdir()
     (tmp_path / "p" / "recording.html").symlink_to("/dev/full")
     _one_line_exit_2(
