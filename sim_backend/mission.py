@@ -56,6 +56,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import json
+import logging
 import math
 import time
 from array import array
@@ -120,6 +121,39 @@ wait, reported apart from the holds (``extra["startup_wait_s"]``), not as one of
 RECORDER_BUFFER_BYTES = 1 << 20
 """The recording is written through a buffer this big: fast time needs no crash durability,
 and one ``write()`` per record was a visible share of a run."""
+
+
+class _StartupHoldHeld(logging.Filter):
+    """The robot's "state IDLE -> HOLD state: position estimate not ready" held back while it
+    is the start-up wait (every ``x6wd sim`` mission printed it on stderr, README's first
+    command included, for a wait its summary says is not a hold). :meth:`release` logs it
+    after all when the run counts that wait as a hold (no estimate came, or a fault began
+    in it), so a real fault is never hidden."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.held: logging.LogRecord | None = None
+        self.done = False  # only the first navigation state change can be the start-up wait
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """False (not logged, kept) for the first state change if it is the start-up hold."""
+        args = record.args if isinstance(record.args, tuple) else ()
+        # a navigation state's change ("state: ..."), not the mode's ("mode: start")
+        if self.done or record.msg != "state %s -> %s %s%s" or not str(args[2]).startswith(
+            "state: "
+        ):
+            return True
+        self.done = True
+        if args[1:3] == (NavState.HOLD, f"state: {STARTUP_HOLD}"):
+            self.held = record
+            return False
+        return True
+
+    def release(self, logger: logging.Logger) -> None:
+        """Log the held record through ``logger``'s handlers (the run counted it a hold)."""
+        if self.held is not None:
+            record, self.held = self.held, None
+            logger.handle(record)
 
 
 def _doubles() -> array[float]:
@@ -419,6 +453,9 @@ def run_mission(
             mission_state["at"] = fix.t_s
             rec.record_event("mission_rejected", fix.t_s, reason=str(exc))
 
+    runner_log = logging.getLogger(Runner.__module__)  # the robot's state changes
+    startup_log = _StartupHoldHeld()
+    runner_log.addFilter(startup_log)
     try:
         rec.record_event("sim_start", 0.0, scenario=world.name, seed=seed, duration_s=total_s)
         banner = receiver.banner()
@@ -551,6 +588,9 @@ def run_mission(
         i = startup["index"]
         if i is not None and startup["clean"] and startup["ended"]:
             startup_wait = holds.pop(i)
+        runner_log.removeFilter(startup_log)
+        if startup_wait is None:
+            startup_log.release(runner_log)
         # a hold of no duration stopped nothing: the first decision's wait for the EKF's
         # first estimate, the closing tick's look at a compass sample not yet read
         holds[:] = [h for h in holds if h[1] > h[0]]
@@ -562,6 +602,8 @@ def run_mission(
             with contextlib.suppress(Exception):
                 close()
         raise
+    finally:
+        runner_log.removeFilter(startup_log)
     with contextlib.ExitStack() as closing:  # both closed; a close's error (a full disk) raised
         closing.callback(rec.close)
         closing.callback(nmea_file.close)

@@ -14,14 +14,15 @@ watched to fail on the code before, but the last two, which hold the docs' corre
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from sim_backend import runs
+from sim_backend import mission, runs
 from sim_backend.geodesy import enu_to_lla
-from sim_backend.mission import run_mission
+from sim_backend.mission import STARTUP_HOLD, run_mission
 from sim_backend.survey import run_survey
 from sim_backend.sweep import cell_world
 from sim_backend.world import load_world, loads_world, with_robot_config
@@ -278,11 +279,16 @@ def test_the_start_up_wait_is_not_a_hold(tmp_path: Path) -> None:
     assert "HOLD periods        0 (0.0 s); start-up wait 0.02 s" in s.text()
 
 
-def test_a_real_hold_is_still_counted_beside_the_start_up_wait(tmp_path: Path) -> None:
+def test_a_real_hold_is_still_counted_beside_the_start_up_wait(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     # a 60 s GPS outage from 5 s: the robot dead-reckons, then holds until the fix returns
     text = (SCENARIOS / "default.toml").read_text()
     text += '\n[[effects]]\nname = "outage"\nstart_s = 5.0\nduration_s = 60.0\n'
-    s = run_mission(loads_world(text, SCENARIOS), None, 1, 75.0)
+    with caplog.at_level(logging.WARNING, logger="x6wd"):
+        s = run_mission(loads_world(text, SCENARIOS), None, 1, 75.0)
+    warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert "state STRAIGHT -> HOLD state: no valid fix" in warned, warned  # logged, as ever
     assert s.hold_periods >= 1 and s.hold_time_s > 20.0
     assert all(a > 5.0 for a, _b in s.extra["holds_s"])
     assert s.extra["startup_wait_s"] is not None
@@ -299,6 +305,45 @@ def test_a_run_that_ends_in_the_start_up_wait_counts_it_as_a_hold() -> None:
     # tick found the compass stale, and that false hold was counted here)
     s = run_mission(load_world(SCENARIOS / "default.toml"), None, 1, 0.5)
     assert s.hold_periods == 0 and s.extra["startup_wait_s"] is not None
+
+
+def test_the_start_up_wait_is_not_logged_as_a_fault(caplog: pytest.LogCaptureFixture) -> None:
+    # every `x6wd sim` mission (README's first command) printed "state IDLE -> HOLD state:
+    # position estimate not ready" on stderr for the wait its summary does not count
+    with caplog.at_level(logging.INFO, logger="x6wd"):
+        s = run_mission(load_world(SCENARIOS / "default.toml"), None, 1, 15.0)
+    assert s.extra["startup_wait_s"] is not None
+    said = [r.getMessage() for r in caplog.records if r.name == "x6wd.loop.runner"]
+    assert said and not any(STARTUP_HOLD in m for m in said), said
+    assert any(m.startswith("state HOLD -> ") for m in said)  # the way out is still logged
+    assert not any(isinstance(f, mission._StartupHoldHeld) for f in logging.getLogger(
+        "x6wd.loop.runner").filters)  # the robot's log is left as it was
+
+
+def test_a_start_up_wait_counted_as_a_hold_is_logged_after_all() -> None:
+    # the held line is released when the run counts the wait as a hold (a fault began in it,
+    # or the run ended in it): the filter's own contract, as run_mission uses it
+    held = mission._StartupHoldHeld()
+    logger = logging.getLogger("x6wd.test.startup")
+    seen: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda r: seen.append(r.getMessage())  # type: ignore[method-assign]
+    logger.addHandler(handler)
+    logger.addFilter(held)
+    try:
+        logger.warning("state %s -> %s %s%s", "IDLE", "HOLD", f"state: {STARTUP_HOLD}", "")
+        logger.warning("state %s -> %s %s%s", "HOLD", "HOLD", "state: compass stale", "")
+        assert seen == ["state HOLD -> HOLD state: compass stale"]
+        logger.removeFilter(held)
+        held.release(logger)
+        assert seen[-1] == f"state IDLE -> HOLD state: {STARTUP_HOLD}"
+    finally:
+        logger.removeHandler(handler)
+    # a first state change that is not the start-up wait is never held
+    other = mission._StartupHoldHeld()
+    rec = logging.LogRecord("x", logging.WARNING, "", 0, "state %s -> %s %s%s",
+                            ("IDLE", "HOLD", "state: compass stale", ""), None)  # fmt: skip
+    assert other.filter(rec) and other.held is None
 
 
 # -- a seed's realisation and the run's duration (docs/simulator.md) ----------------------
