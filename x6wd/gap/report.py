@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from sim_backend.effects import Quantization, metres_per_degree, truth_track_m
+from x6wd.core.outdir import output_file, write_output_file
 from x6wd.gap.compass import (
     CompassDiagnosis,
     compass_report_dict,
@@ -255,19 +256,25 @@ def write_report(
         None if other_place_km is None else round(other_place_km, 1)
     )
     verdict = verdict_line(diagnosis, other_place_km)
-    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-    (out / "effects.toml").write_text(effects_toml(diagnosis, compass, origin_deg, verdict=verdict))
+    # a full disk or a read-only file: one line naming the file, exit 2 (never a traceback)
+    write_output_file(out / "report.json", json.dumps(report, indent=2) + "\n")
+    write_output_file(
+        out / "effects.toml", effects_toml(diagnosis, compass, origin_deg, verdict=verdict)
+    )
     if diagnosis.calibration is not None:
-        (out / "calibrated.toml").write_text(
-            effects_toml(diagnosis, compass, origin_deg, calibrated=True, verdict=verdict)
+        write_output_file(
+            out / "calibrated.toml",
+            effects_toml(diagnosis, compass, origin_deg, calibrated=True, verdict=verdict),
         )
-        (out / "validation.json").write_text(
-            json.dumps(validation_dict(diagnosis.calibration), indent=2) + "\n"
+        write_output_file(
+            out / "validation.json",
+            json.dumps(validation_dict(diagnosis.calibration), indent=2) + "\n",
         )
     elif diagnosis.validation is not None:
         remove_earlier_calibration(out)
-        (out / "validation.json").write_text(
-            json.dumps(uncalibrated_dict(diagnosis.validation), indent=2) + "\n"
+        write_output_file(
+            out / "validation.json",
+            json.dumps(uncalibrated_dict(diagnosis.validation), indent=2) + "\n",
         )
     if figures:
         write_figures(diagnosis, out)
@@ -276,7 +283,7 @@ def write_report(
     text = markdown(diagnosis, report_dict(diagnosis), real_name, figures, verdict=verdict)
     if compass is not None:
         text += compass_markdown(compass, figures)
-    (out / "report.md").write_text(text)
+    write_output_file(out / "report.md", text)
     return report
 
 
@@ -372,7 +379,8 @@ def compass_figure(compass: CompassDiagnosis, out: Path) -> None:
         xlim=(0, 360),
     )
     ax.legend()
-    fig.savefig(out / "compass.png", dpi=90)
+    with output_file(out / "compass.png"):
+        fig.savefig(out / "compass.png", dpi=90)
     plt.close(fig)
 
 
@@ -785,8 +793,6 @@ def write_figures(diagnosis: Diagnosis, out: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from x6wd.core.outdir import output_file
 
     def save(fig: Any, name: str) -> None:  # a full disk: exit 2 naming the file
         with output_file(out / name):
