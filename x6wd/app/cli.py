@@ -6,12 +6,15 @@ A subcommand module provides ``add_arguments(parser)`` and ``main(args) -> int``
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import importlib
 import importlib.util
 import os
 import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from types import ModuleType
+from typing import Any, TextIO
 
 from x6wd import __version__
 from x6wd.core.errors import X6wdError
@@ -135,26 +138,46 @@ def parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser
                 yield from parsers(sub)
 
 
-def chosen_parser(
+def chosen_parsers(
     parser: argparse.ArgumentParser, args: argparse.Namespace
-) -> argparse.ArgumentParser:
-    """The parser of the (nested) subcommand chosen in ``args``, e.g. ``x6wd client status``'s."""
+) -> Iterator[argparse.ArgumentParser]:
+    """The parsers on the path of the (nested) subcommand chosen in ``args``, outermost first:
+    ``x6wd``'s, ``x6wd client``'s, ``x6wd client status``'s."""
+    yield parser
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             sub = action.choices.get(getattr(args, action.dest, ""))
             if sub is not None:
-                return chosen_parser(sub, args)
-    return parser
+                yield from chosen_parsers(sub, args)
+                return
+
+
+def chosen_parser(
+    parser: argparse.ArgumentParser, args: argparse.Namespace
+) -> argparse.ArgumentParser:
+    """The parser of the (nested) subcommand chosen in ``args``, e.g. ``x6wd client status``'s."""
+    *_, last = chosen_parsers(parser, args)
+    return last
 
 
 def empty_option(parser: argparse.ArgumentParser, args: argparse.Namespace) -> str | None:
     """The first option or argument of ``args`` given as an empty string (``--out ''``, which
     would be the current folder; ``--config ''``, no file: every one is a path or a name), as
-    its error message; None when there is none."""
-    for action in chosen_parser(parser, args)._actions:
-        if getattr(args, action.dest, None) == "":
-            name = action.option_strings[-1] if action.option_strings else action.dest
-            return f"{name}: empty value ({name} '' gives no path, name or number)"
+    its error message; None when there is none. Every parser on the chosen path is looked at,
+    not only the innermost: ``x6wd client --cafile '' status`` holds ``--cafile`` in ``x6wd
+    client``'s (an empty one meant no TLS, the token in clear text); and so is every item of a
+    list value (``--sim a ''``, ``decode ''``: '' was read as the current folder)."""
+    for each in chosen_parsers(parser, args):
+        for action in each._actions:
+            value = getattr(args, action.dest, None)
+            items = value if isinstance(value, list | tuple) else [value]
+            if not any(isinstance(item, str) and item == "" for item in items):
+                continue
+            if action.option_strings:
+                name = action.option_strings[-1]
+                return f"{name}: empty value ({name} '' gives no path, name or number)"
+            name = action.metavar if isinstance(action.metavar, str) else action.dest
+            return f"{name}: empty value ('' gives no path, name or number)"
     return None
 
 
@@ -164,6 +187,80 @@ def _fail(message: str) -> Callable[[argparse.Namespace], int]:
         return 2
 
     return run
+
+
+# errno values of a write to stdout/stderr that cannot succeed (a full disk or quota under a
+# redirection, a terminal or disk gone): one line and exit 2, not a traceback
+OUTPUT_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EIO})
+
+
+class MarkedStream:
+    """``sys.stdout`` or ``sys.stderr`` while a command runs: every call goes to ``stream``;
+    an OSError from ``write``, ``writelines`` or ``flush`` gets ``x6wd_output = name``. That
+    is how :func:`main` tells a failed write of the command's output (``x6wd decode LOG >
+    /dev/full``) from any other OSError without a file name, e.g. EIO reading a serial
+    device that was unplugged, which is a crash to report in full."""
+
+    def __init__(self, stream: TextIO, name: str) -> None:
+        self._stream = stream
+        self._name = name
+
+    def _mark(self, exc: OSError) -> None:
+        exc.x6wd_output = self._name  # type: ignore[attr-defined]
+
+    def write(self, text: str) -> int:
+        """Write ``text`` to the stream; its OSError marked."""
+        try:
+            return self._stream.write(text)
+        except OSError as exc:
+            self._mark(exc)
+            raise
+
+    def writelines(self, lines: Iterable[str]) -> None:
+        """Write ``lines`` to the stream; its OSError marked."""
+        try:
+            self._stream.writelines(lines)
+        except OSError as exc:
+            self._mark(exc)
+            raise
+
+    def flush(self) -> None:
+        """Flush the stream; its OSError marked."""
+        try:
+            self._stream.flush()
+        except OSError as exc:
+            self._mark(exc)
+            raise
+
+    def __getattr__(self, attr: str) -> Any:
+        return getattr(self._stream, attr)
+
+
+@contextlib.contextmanager
+def marked_output() -> Iterator[None]:
+    """``sys.stdout`` and ``sys.stderr`` as :class:`MarkedStream` for the block; put back after
+    (unless the command replaced one meanwhile, e.g. with /dev/null after a broken pipe)."""
+    saved = sys.stdout, sys.stderr
+    marked = MarkedStream(sys.stdout, "stdout"), MarkedStream(sys.stderr, "stderr")
+    sys.stdout, sys.stderr = marked
+    try:
+        yield
+    finally:
+        if sys.stdout is marked[0]:
+            sys.stdout = saved[0]
+        if sys.stderr is marked[1]:
+            sys.stderr = saved[1]
+
+
+def _silence(stream: TextIO) -> None:
+    """Point ``stream``'s file descriptor at /dev/null: what is still buffered in it (flushed
+    again at the interpreter's exit) goes nowhere instead of failing once more."""
+    with contextlib.suppress(OSError, ValueError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(devnull, stream.fileno())
+        finally:
+            os.close(devnull)
 
 
 BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -194,8 +291,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     if empty is not None:
         print(f"x6wd {args.command}: error: {empty}", file=sys.stderr)
         return 2
+    # not for the daemon: under systemd a failed write there is a crash that systemd should
+    # restart from (exit 1), while exit 2 is RestartPreventExitStatus (systemd/x6wd.service)
+    marking = marked_output() if args.command != "run" else contextlib.nullcontext()
     try:
-        return int(args._main(args) or 0)
+        with marking:
+            code = int(args._main(args) or 0)
+            if args.command != "run":
+                # a short output still buffered on a full disk fails here, not in the
+                # interpreter's exit flush (a Python message and exit 120). A broken pipe is
+                # left to that exit flush, as before (its data stays in the buffer).
+                with contextlib.suppress(BrokenPipeError, ValueError):
+                    sys.stdout.flush()
+            return code
     except X6wdError as exc:
         print(f"x6wd {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -214,6 +322,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return 141  # 128 + SIGPIPE, what a shell reports for a command killed by it
     except OSError as exc:  # a file the command named (an output on a full disk, ...)
+        stream = getattr(exc, "x6wd_output", None)
+        if exc.filename is None and stream is not None and exc.errno in OUTPUT_WRITE_ERRNOS:
+            # stdout or stderr: full disk (``> file``), /dev/full, a terminal gone (EIO)
+            _silence(sys.stdout if stream == "stdout" else sys.stderr)
+            with contextlib.suppress(OSError):
+                print(f"x6wd: writing output: {exc.strerror or exc}", file=sys.stderr)
+            return 2
         if exc.filename is None:  # the sites that write outputs name theirs (output_file)
             raise
         print(

@@ -544,6 +544,8 @@ def render_status(st: dict[str, Any]) -> str:
 def _client_ssl(args: argparse.Namespace) -> ssl.SSLContext | None:
     """The TLS context (``--cafile`` and ``--insecure`` imply ``--tls``: an --insecure alone
     sent the token in plain text). Raises ConfigError for a CA file that cannot be used."""
+    if args.cafile == "":  # not "no --cafile": that would send the token in clear text
+        raise ConfigError("--cafile: empty path (give the robot's certificate file)")
     if not args.tls and not args.cafile and not args.insecure:
         return None
     try:
@@ -1006,8 +1008,10 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
     err = sys.stderr
     action: str = args.action
     try:
+        if args.token_file == "":  # an error even for stop/status: a path was meant, not none
+            raise ConfigError("--token-file: empty path (give the file holding the token)")
         try:
-            token = _token(args.token_file) if args.token_file else None
+            token = _token(args.token_file) if args.token_file is not None else None
         except ConfigError as exc:
             if action not in TOKEN_OPTIONAL:
                 raise
