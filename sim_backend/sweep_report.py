@@ -24,17 +24,22 @@ Written into the sweep's output directory from the run records (``runs/*.json``)
 from __future__ import annotations
 
 import csv
+import errno
 import io
 import json
 import math
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import date, time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from x6wd.core.errors import ConfigError
+from x6wd.core.outdir import output_file
 
 RUN_COLUMNS = (
     "run_id",
@@ -205,13 +210,40 @@ def run_rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
+_OUT_OF_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+"""The write errors that come after a file was opened and truncated: only then is a file
+there partly written (and ours to remove)."""
+
+
+@contextmanager
+def _report_file(path: Path) -> Iterator[Path]:
+    """Around the writing of one report file: an ``OSError`` (a full disk) is a
+    :class:`ConfigError` naming it (exit 2, one line), and a partly written regular file is
+    removed so that no truncated table or figure is left to be read as the sweep's."""
+    try:
+        with output_file(path):
+            yield path
+    except ConfigError as exc:
+        cause = exc.__cause__
+        if not (isinstance(cause, OSError) and cause.errno in _OUT_OF_SPACE):
+            raise
+        if path.is_symlink() or not path.is_file():  # a link's target is not ours to remove
+            raise
+        try:
+            path.unlink()
+        except OSError:
+            raise exc from cause
+        raise ConfigError(f"{exc} (the partly written file was removed)") from cause
+
+
 def _write_csv(path: Path, rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> None:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(columns)
     for row in rows:
         w.writerow([_cell_text(row.get(c)) for c in columns])
-    path.write_text(buf.getvalue(), encoding="utf-8")
+    with _report_file(path):
+        path.write_text(buf.getvalue(), encoding="utf-8")
 
 
 def _write_parquet(path: Path, rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> bool:
@@ -225,7 +257,8 @@ def _write_parquet(path: Path, rows: Sequence[dict[str, Any]], columns: Sequence
         return json.dumps(v, default=_json_default) if isinstance(v, (list, dict)) else v
 
     table = pa.table({c: [value(r.get(c)) for r in rows] for c in columns})
-    pq.write_table(table, path)
+    with _report_file(path):
+        pq.write_table(table, path)
     return True
 
 
@@ -360,7 +393,8 @@ def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
             text, x = f"n/a: no mission ran ({c.apart or 'no run'})", 0.0
         ax.text(x + 1, float(yi), text, va="center", fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "completion.png", dpi=100)
+    with _report_file(out / "completion.png"):
+        fig.savefig(out / "completion.png", dpi=100)
     plt.close(fig)
     names.append("completion.png")
 
@@ -383,7 +417,8 @@ def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
     if any(c.arrival_true_m for c in cells):
         ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    fig.savefig(out / "arrival_cdf.png", dpi=100)
+    with _report_file(out / "arrival_cdf.png"):
+        fig.savefig(out / "arrival_cdf.png", dpi=100)
     plt.close(fig)
     names.append("arrival_cdf.png")
 
@@ -401,7 +436,8 @@ def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
     ax.set_xlabel("true path length / straight polyline (completed runs)")
     ax.set_title("Path ratio per cell")
     fig.tight_layout()
-    fig.savefig(out / "path_ratio.png", dpi=100)
+    with _report_file(out / "path_ratio.png"):
+        fig.savefig(out / "path_ratio.png", dpi=100)
     plt.close(fig)
     names.append("path_ratio.png")
     return names
@@ -628,13 +664,15 @@ def write_report(
     cells = cell_stats(records)
     drawn = _plots(cells, out) if figures else []
     for stale in set(FIGURES) - set(drawn):  # an earlier call's, of other runs
-        (out / stale).unlink(missing_ok=True)
+        with _report_file(out / stale):
+            (out / stale).unlink(missing_ok=True)
     written += drawn
     if "older_files" not in result_info:
         older = out / OLDER_RUNS_DIR
         n_older = len(list(older.glob("*.json"))) if older.is_dir() else 0
         result_info = {**result_info, "older_files": n_older}
     text = markdown(result_info, cells, records, drawn)
-    (out / "summary.md").write_text(text, encoding="utf-8")
+    with _report_file(out / "summary.md"):
+        (out / "summary.md").write_text(text, encoding="utf-8")
     written.append("summary.md")
     return written

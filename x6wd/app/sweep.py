@@ -103,8 +103,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--dashboard",
         default=None,
         metavar="ADDRESS",
-        help="open the LocalCluster's Dask dashboard at ADDRESS (e.g. 127.0.0.1:8787);"
-        " default none",
+        help="open the LocalCluster's Dask dashboard at ADDRESS: HOST:PORT (e.g."
+        " 127.0.0.1:8787) or a bare PORT, which listens on all interfaces; IPv6 addresses"
+        " are not supported; default none",
     )
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -164,15 +165,23 @@ def _outside_text(outside: dict[str, int], runs_dir: Path, file_seeds: int, seed
 
 
 def _check_dashboard(address: str) -> None:
-    """Refuse a ``--dashboard`` that is no HOST:PORT with a port 0..65535 and a host that
-    resolves (a LocalCluster given one fails minutes later with a long traceback)."""
-    host, colon, port = address.rpartition(":")
+    """Refuse a ``--dashboard`` that is neither HOST:PORT nor a bare PORT (all interfaces, as
+    Dask takes it) with a port 0..65535 and a host that resolves, or whose host is an IPv6
+    address (Dask's dashboard address cannot hold one): a LocalCluster given one fails
+    minutes later with a long traceback."""
+    host, _, port = address.rpartition(":")
     why = ""
-    if not colon or not port.isdigit() or int(port) > 65535:
-        why = "expected HOST:PORT with a port 0..65535 (e.g. 127.0.0.1:8787)"
+    if not port.isdigit() or int(port) > 65535:
+        why = "expected HOST:PORT or PORT with a port 0..65535 (e.g. 127.0.0.1:8787)"
+    elif ":" in host or "[" in host:
+        why = (
+            "an IPv6 address (a host with ':' or in [brackets]) is not supported for the"
+            " dashboard (Dask cannot parse it): give an IPv4 address or a host name, e.g."
+            " 127.0.0.1:8787 or localhost:8787"
+        )
     elif host:
         try:
-            socket.getaddrinfo(host.strip("[]"), int(port))
+            socket.getaddrinfo(host, int(port))
         except (OSError, UnicodeError) as exc:
             why = f"host {host!r} does not resolve ({getattr(exc, 'strerror', None) or exc})"
     if why:

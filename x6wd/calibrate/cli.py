@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import math
 import os
 import stat
@@ -18,7 +19,7 @@ from x6wd.calibrate import gnss
 from x6wd.calibrate.odometry import NOISY_PASS, RTK_SIGMA_M, Track, calibrate, load_track
 from x6wd.core import config as config_mod
 from x6wd.core.errors import ConfigError, DeviceUnavailable
-from x6wd.core.outdir import write_output_file
+from x6wd.core.outdir import output_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -183,16 +184,49 @@ def _check_output_file(option: str, path: str | None, *, plot: bool = False) -> 
             )
     if p.exists() and not p.is_file() and not p.is_dir():
         return  # a device or pipe (/dev/null): opening it now could block
+    # Probe without creating anything: a create-then-delete probe through a dangling link
+    # made its target and then removed the link itself (the later write left a plain file).
     try:
         if p.is_dir():
-            raise IsADirectoryError(21, "is a directory")
-        existed = p.exists()
-        with open(p, "a"):
-            pass
-        if not existed:
-            p.unlink()
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR))
+        if p.exists():  # written over later; opening it to append changes nothing
+            with open(p, "a"):
+                pass
+            return
+        folder = Path(os.path.realpath(p)).parent  # a dangling link's target's folder
+        if not folder.is_dir():
+            code = errno.ENOTDIR if folder.exists() else errno.ENOENT
+            raise OSError(code, os.strerror(code))
+        if not os.access(folder, os.W_OK | os.X_OK):
+            read_only = os.statvfs(folder).f_flag & os.ST_RDONLY
+            code = errno.EROFS if read_only else errno.EACCES
+            raise OSError(code, os.strerror(code))
     except OSError as exc:
         raise ConfigError(f"{option} {path}: cannot write there: {exc.strerror or exc}") from exc
+
+
+_OUT_OF_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+"""The write errors that come after a file was opened and truncated: only then is a file
+there partly written (and ours to remove)."""
+
+
+def _write_output(path: str, write: Callable[[str], object]) -> None:
+    """``write(path)``: an ``OSError`` there (a full disk) is a :class:`ConfigError` naming the
+    file, and a partly written regular file is removed (not a link, whose target is the
+    user's) so that no truncated map or fragment looks like a result."""
+    try:
+        with output_file(path):
+            write(path)
+    except ConfigError as exc:
+        cause = exc.__cause__
+        out_of_space = isinstance(cause, OSError) and cause.errno in _OUT_OF_SPACE
+        if not out_of_space or os.path.islink(path) or not os.path.isfile(path):
+            raise
+        try:
+            os.unlink(path)
+        except OSError:
+            raise exc from cause
+        raise ConfigError(f"{exc} (the partly written file was removed)") from cause
 
 
 def _load_track_of(option: str, path: str) -> Track:
@@ -352,11 +386,12 @@ def main_gnss(args: argparse.Namespace) -> int:
     text = result.toml("\n".join(header))
     sys.stdout.write(text)
     if args.out:
-        write_output_file(args.out, text)
+        _write_output(args.out, lambda p: Path(p).write_text(text, encoding="utf-8"))
     if lce is not None and args.map_csv:
-        gnss.write_map_csv(lce, args.map_csv)
+        _write_output(args.map_csv, lambda p: gnss.write_map_csv(lce, p))
     if lce is not None and args.plot:
-        gnss.plot_lce_map(lce, args.plot, title=", ".join(Path(d).name for d in args.drive))
+        title = ", ".join(Path(d).name for d in args.drive)
+        _write_output(args.plot, lambda p: gnss.plot_lce_map(lce, p, title=title))
     return 0
 
 
@@ -438,5 +473,5 @@ def main(args: argparse.Namespace) -> int:
         )
     sys.stdout.write(text)
     if args.out:
-        write_output_file(args.out, text)
+        _write_output(args.out, lambda p: Path(p).write_text(text, encoding="utf-8"))
     return 0
