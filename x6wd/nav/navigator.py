@@ -25,7 +25,9 @@ projection):
 - otherwise pure pursuit of the point ``lookahead_m`` ahead on the segment, carried on along
   the path past waypoints it goes straight on through (``steering.STRAIGHT_ON_DEG``): with α
   the angle from the heading to that point, it pivots in place (TURN_LEFT / TURN_RIGHT) once
-  ``|α| > pivot_angle_deg`` and until ``|α| < pivot_resume_deg``; else STRAIGHT with the arc's
+  ``|α| > pivot_angle_deg`` and until ``|α| < pivot_resume_deg``, in the direction α's sign
+  gave when it started while α stays beyond ``PIVOT_KEEP_DEG`` on the other side; else
+  STRAIGHT with the arc's
   curvature ``κ = 2·sin α / d`` and the approach speed in :attr:`NavDecision.curvature_per_m`
   and :attr:`NavDecision.speed_pct`, which the controller mixes into left/right percentages.
   The approach speed slows for each waypoint within ``approach_m`` along the path only to
@@ -64,6 +66,18 @@ BEHIND_MAX_M = 10.0
 """The largest radius (m) ``BEHIND_M``'s rule takes from its caller: a position worse than
 that (a start on a fix of HDOP 10) says little of where the robot is, and a point further
 behind is driven to, as the mission says."""
+
+
+PIVOT_KEEP_DEG = 135.0
+"""pivot_arc: a pivot under way keeps its direction while α lies on the other side but still
+beyond this (deg). At a reversal α swings about ±180° with the position's and the compass's
+noise, and a direction taken from its sign at each decision flipped the motors between
++turn/-turn and -turn/+turn six times in 0.2 s, twice inside one 50 ms tick (an outside
+audit: a 5 m hairpin, α +179°, -180°, +180°, -179°), the forward-to-reverse jump of each
+side that ``RETURN_STOP_S`` avoids elsewhere. Either way round is then about as far: going
+on costs at most 2 × (180 - 135) = 90° more turn, and the 45° leave room for a fix's jump
+against a lookahead point a few metres off. Nearer than this on the other side the target
+has moved (a position reset) and the pivot turns the short way, as before."""
 
 
 class NavigationError(X6wdError, ValueError):
@@ -140,6 +154,8 @@ class Navigator:
         self._final_bearing_rad: list[float | None] = []
         self._seg_start: tuple[float, float] | None = None
         self._pivoting = False
+        self._pivot_sign = 0.0  # the pivot's direction: +1 right, -1 left, 0 not pivoting
+        self._keep_rad = math.radians(PIVOT_KEEP_DEG)
         # the path's shape, set at the first decision (the first leg starts there): per
         # waypoint the chord directions in and out (rad, None: unknown), the turn (rad) and
         # the path distance from the first waypoint (m)
@@ -220,6 +236,7 @@ class Navigator:
         self.last = None
         self._seg_start = None
         self._pivoting = False
+        self._pivot_sign = 0.0
         self._dir_in, self._dir_out, self._turn, self._cum_m = [], [], [], []
 
     @property
@@ -535,6 +552,7 @@ class Navigator:
             self._index += 1
             self._seg_start = end
             self._pivoting = False
+            self._pivot_sign = 0.0
             state = NavState.MISSION_DONE if self.done else NavState.ARRIVED
             alpha = curvature = speed = None
             if not self.done:
@@ -553,9 +571,16 @@ class Navigator:
         if dist > 0.0:
             phi_i = float(geo.destination_bearing(x_m, y_m, xi, yi))
             theta = float(geo.course_deviation(phi_i, heading_rad))
-        alpha, curvature, speed, self._pivoting = self._steer(i, p, heading_rad)
-        if self._pivoting:
-            state = NavState.TURN_RIGHT if alpha > 0 else NavState.TURN_LEFT
+        alpha, curvature, speed, pivot = self._steer(i, p, heading_rad)
+        # a pivot under way keeps its direction while α swings about ±180° (PIVOT_KEEP_DEG)
+        if not pivot:
+            self._pivot_sign = 0.0
+        elif not (self._pivoting and self._pivot_sign != 0.0 and abs(alpha) >= self._keep_rad):
+            self._pivot_sign = 1.0 if alpha > 0 else -1.0
+        self._pivoting = pivot
+        sign = self._pivot_sign
+        if pivot:
+            state = NavState.TURN_RIGHT if sign > 0 else NavState.TURN_LEFT
         else:
             state = NavState.STRAIGHT
         self.last = NavDecision(
