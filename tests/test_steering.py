@@ -59,6 +59,9 @@ def test_config_keys_defaults_and_checks() -> None:
         loads("[navigation]\nsteering = 'l1'\n")
     with pytest.raises(ConfigError, match=r"^navigation\.pivot_resume_deg: must be < pivot"):
         loads("[navigation]\npivot_angle_deg = 30\npivot_resume_deg = 30\n")
+    # at 0 a pivot never ended (|α| >= 0 always): outside review, 2026-12-06
+    with pytest.raises(ConfigError, match=r"^navigation\.pivot_resume_deg: must be > 0 "):
+        loads("[navigation]\npivot_resume_deg = 0\n")
     with pytest.raises(ConfigError, match=r"^navigation\.lookahead_m: must be >= 0\.5"):
         loads("[navigation]\nlookahead_m = 0.1\n")
     with pytest.raises(ConfigError, match=r"^navigation\.min_speed_pct: must be <= 100"):

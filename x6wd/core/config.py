@@ -261,6 +261,11 @@ class NavigationConfig:
         return cls(**keys)
 
     def __post_init__(self) -> None:
+        if self.pivot_resume_deg <= 0:  # a pivot ends once |α| is strictly under it: never
+            raise ConfigError(
+                f"navigation.pivot_resume_deg: must be > 0 (a pivot stops once the heading "
+                f"error is under it; at 0 it never would), got {self.pivot_resume_deg}"
+            )
         if self.pivot_resume_deg >= self.pivot_angle_deg:
             raise ConfigError(
                 f"navigation.pivot_resume_deg: must be < pivot_angle_deg "
