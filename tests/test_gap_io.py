@@ -258,13 +258,25 @@ def test_one_epoch_with_a_wild_date_does_not_stretch_the_axis(tmp_path: Path) ->
 
 
 def test_hours_long_outage_inside_a_log_stays_an_outage(tmp_path: Path) -> None:
-    # 1 h, 2 h without any sentence, 1 h: within the grid bound, so one log with no-fix
-    # epochs in the hole, as the gap tool must see an outage.
+    # 1 h, 2 h of no-fix RMC (the receiver sending, without a fix), 1 h: one log with
+    # no-fix epochs in the hole, as the gap tool must see an outage.
     parts = [_rmc(_hhmmss(k), "010120", k) for k in range(0, 3600)]
+    parts += [sentence(f"GPRMC,{_hhmmss(k)},V,,,,,,,010120,,,N") for k in range(3600, 3 * 3600)]
     parts += [_rmc(_hhmmss(k), "010120", k) for k in range(3 * 3600, 4 * 3600)]
     track = read_track(_write(tmp_path / "outage.nmea", parts))
     assert len(track) == 4 * 3600 and int(np.count_nonzero(track.valid)) == 7200
     assert track.notes == ()
+
+
+def test_hours_without_any_sentence_inside_a_log_are_cut_not_an_outage(tmp_path: Path) -> None:
+    # 1 h, 2 h without any sentence, 1 h (round 15, M2: this hole was filled with no-fix
+    # epochs, read as the receiver's outages; a receiver without a fix still sends): the
+    # logger was off, so the log is cut there, the first hour kept, and the note says so.
+    parts = [_rmc(_hhmmss(k), "010120", k) for k in range(0, 3600)]
+    parts += [_rmc(_hhmmss(k), "010120", k) for k in range(3 * 3600, 4 * 3600)]
+    track = read_track(_write(tmp_path / "outage.nmea", parts))
+    assert len(track) == 3600 and bool(np.all(track.valid))
+    assert len(track.notes) == 1 and "no NMEA sentence at all" in track.notes[0], track.notes
 
 
 def test_irregular_axis_is_bounded_or_rejected(tmp_path: Path) -> None:

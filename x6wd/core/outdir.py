@@ -7,6 +7,7 @@ path named) before any work is done, not as a traceback minutes into a run.
 
 from __future__ import annotations
 
+import errno
 import io
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -55,12 +56,34 @@ def output_file(path: str | Path) -> Iterator[Path]:
         raise ConfigError(f"output file {str(path)!r}: {e.strerror or e}") from e
 
 
+_OUT_OF_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+"""The write errors of a file already opened (truncated): a full disk, a quota, a size limit."""
+
+
 def write_output_file(path: str | Path, text: str) -> Path:
     """Write ``text`` (UTF-8) to the file ``path`` a user named; :class:`ConfigError` naming
-    it when that cannot be done (a directory there, a missing parent, a read-only place)."""
+    it when that cannot be done (a directory there, a missing parent, a read-only place, a
+    full disk). A regular file this call created or truncated is removed when the write fails
+    part-way (a full disk), so that no truncated output reads as a result; a link (its target
+    is the user's: /dev/full, another folder) or a device there is never removed."""
     out = Path(path)
-    with output_file(out):
-        out.write_text(text, encoding="utf-8")
+    # decided before writing: the write itself makes a missing path a regular file
+    ours = not out.is_symlink() and (out.is_file() or not out.exists())
+    try:
+        with output_file(out):
+            out.write_text(text, encoding="utf-8")
+    except ConfigError as exc:
+        cause = exc.__cause__
+        # only these come after the file was opened (and so truncated): a refused open
+        # (a read-only file) leaves the user's file as it was, and it stays
+        filled = isinstance(cause, OSError) and cause.errno in _OUT_OF_SPACE
+        if not (ours and filled) or out.is_symlink() or not out.is_file():
+            raise
+        try:
+            out.unlink()
+        except OSError:
+            raise exc from cause
+        raise ConfigError(f"{exc} (the partly written file was removed)") from cause
     return out
 
 

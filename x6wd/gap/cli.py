@@ -20,11 +20,12 @@ from sim_backend.effects import PositionSeries, metres_per_degree
 from x6wd.core.config import PACKAGED_CONFIG_DIR
 from x6wd.core.errors import ConfigError, X6wdError
 from x6wd.core.geodesy import great_circle_m
-from x6wd.core.outdir import output_dir
+from x6wd.core.outdir import output_dir, output_file
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
 from x6wd.gap.diagnose import Diagnosis, Options, check_real, diagnose
 from x6wd.gap.io import (
     MAX_ERROR_FROM_TRUTH_M,
+    STATIC_MAX_SPREAD_M,
     Track,
     against_own_mean,
     check_near_truth,
@@ -45,7 +46,13 @@ from x6wd.gap.io import (
     velocity_mismatch_mps,
     wrap_lon_deg,
 )
-from x6wd.gap.report import FIGURES, spread_text, verdict_line, write_report
+from x6wd.gap.report import (
+    FIGURES,
+    remove_earlier_calibration,
+    spread_text,
+    verdict_line,
+    write_report,
+)
 from x6wd.gap.stats import has_up
 
 
@@ -171,11 +178,79 @@ def to_errors(
     that log's; ``own_truth``: ``truth_track`` is a --sim log's own truth.csv (named then)."""
     if args.truth is not None:  # "" too: parse_truth names it
         lat, lon, alt = parse_truth(args.truth)
-        return check_near_truth(errors_vs_point(track, lat, lon, alt), track.source, log)
+        series = check_near_truth(errors_vs_point(track, lat, lon, alt), track.source, log)
+        return check_static_error(series, track, f"the point --truth {args.truth}", log)
     if truth_track is not None:
         own = truth_track.source if own_truth else None
-        return check_near_truth(errors_vs_track(track, truth_track), track.source, log, own)
+        series = check_near_truth(errors_vs_track(track, truth_track), track.source, log, own)
+        if np.count_nonzero(truth_track.valid) >= 1 and _truth_still(truth_track):
+            which = "its own truth" if own_truth else "the static truth track"
+            return check_static_error(series, track, f"{which} {truth_track.source}", log)
+        return series
     return errors_vs_mean(track)
+
+
+def check_static_error(
+    series: PositionSeries, track: Track, truth_text: str, log: str | None = None
+) -> PositionSeries:
+    """``series`` (a static log's errors against a truth that stands still, m) unless their
+    median horizontal error exceeds :data:`~x6wd.gap.io.STATIC_MAX_SPREAD_M`: then ConfigError
+    naming the log, ``truth_text`` (what it is scored against) and the median distance. A
+    static receiver lies metres, at worst tens of metres, from its place: 500 m is a wrong
+    truth, and scored it would be reported as a 500 m bias ("explained by bias", written into
+    calibrated.toml). A moving log is left to :func:`check_still`."""
+    median_m = _median_error_m(series)
+    if not median_m > STATIC_MAX_SPREAD_M or moving_text(track) is not None:
+        return series
+    which = {"real": " (the real log, --real)", "sim": " (a --sim log)"}.get(log or "", "")
+    raise ConfigError(
+        f"{track.source}{which}: its fixes lie a median {median_m:.0f} m from {truth_text}:"
+        f" a static receiver's fixes lie metres, at most tens of metres, from its place (over"
+        f" {STATIC_MAX_SPREAD_M:g} m is no GNSS error, and would be reported as a bias). Is the"
+        " truth this log's place (a digit wrong, latitude and longitude swapped, another"
+        " site's survey)?"
+    )
+
+
+def check_sim_truths_at_point(args: argparse.Namespace, sims: list[Track]) -> None:
+    """ConfigError naming the --sim logs whose own static truth (:data:`SIM_TRUTH_NAME` beside
+    them, its median position) lies more than :data:`~x6wd.gap.io.STATIC_MAX_SPREAD_M` from
+    the point --truth: their runs simulate another place than the one the real log is scored
+    at, and their errors against --truth would be that distance. Compared only where it is the
+    run's truth (the log's fixes lie within STATIC_MAX_SPREAD_M of it); a truth.csv that
+    cannot be read as positions (a compass-only one), that moves (a mission's:
+    :func:`check_still` refuses a moving log against a point) or lies away from its log's
+    fixes (not that run's truth) is not compared."""
+
+    def centre(track: Track) -> tuple[float, float] | None:
+        v = np.asarray(track.valid, dtype=bool)
+        if not np.any(v):
+            return None
+        return float(np.median(track.lat_deg[v])), lon_centre_deg(track.lon_deg[v], np.median)
+
+    lat_deg, lon_deg, _ = parse_truth(args.truth)
+    for path, sim in zip(args.sim, sims, strict=True):
+        own = Path(path).parent / SIM_TRUTH_NAME
+        if not own.is_file():
+            continue
+        try:
+            truth = read_track(own)
+        except X6wdError:
+            continue
+        there, fixes = centre(truth), centre(sim)
+        if there is None or fixes is None or not _truth_still(truth):
+            continue
+        if great_circle_m(*there, *fixes) > STATIC_MAX_SPREAD_M:
+            continue  # not this run's truth (placeholder positions of a heading truth)
+        d_m = great_circle_m(lat_deg, lon_deg, *there)
+        if d_m > STATIC_MAX_SPREAD_M:
+            raise ConfigError(
+                f"{own} (the truth of the --sim log {path}) lies {d_m:.0f} m from the"
+                f" point --truth {args.truth}, over {STATIC_MAX_SPREAD_M:g} m: the runs simulate"
+                " another place than the one the real log is scored at, and their errors"
+                " against --truth would be that distance. Give the --truth of the place the"
+                " runs simulate (or runs simulated at the real log's place)"
+            )
 
 
 SIM_TRUTH_NAME = "truth.csv"
@@ -623,7 +698,7 @@ def remove_earlier_figures(out: Path) -> list[str]:
     removed = []
     for name in FIGURE_NAMES:
         path = out / name
-        if not path.is_file():
+        if not path.is_file() or path.is_symlink():
             continue
         with open(path, "rb") as f:
             head = f.read(512)
@@ -631,6 +706,27 @@ def remove_earlier_figures(out: Path) -> list[str]:
             path.unlink()
             removed.append(name)
     return removed
+
+
+TEXT_OUTPUTS = ("report.json", "effects.toml", "validation.json", "report.md")
+"""The text outputs every run writes (x6wd.gap.report; calibrated.toml only with a level
+calibration: :func:`~x6wd.gap.report.remove_earlier_calibration`)."""
+
+
+def remove_earlier_outputs(out: Path) -> None:
+    """Remove an earlier run's outputs from ``out`` at this run's start, as ``x6wd sim`` does:
+    a run cut short (a full disk) left the earlier run's report.md and figures beside its own
+    report.json. Only :data:`TEXT_OUTPUTS` that are regular files (a link is the user's: its
+    target is not this run's), a calibrated.toml this tool wrote and the figures matplotlib
+    wrote (:func:`remove_earlier_figures`); nothing else in the folder."""
+    for name in TEXT_OUTPUTS:
+        path = out / name
+        if path.is_file() and not path.is_symlink():
+            with output_file(path):
+                path.unlink()
+    if not (out / "calibrated.toml").is_symlink():
+        remove_earlier_calibration(out)
+    remove_earlier_figures(out)
 
 
 def realigned_sims_notes(
@@ -748,7 +844,9 @@ def main(args: argparse.Namespace) -> int:
             )
     if args.seeds is None:
         args.seeds = DEFAULT_SEEDS
-    output_dir(args.out)  # a mistaken --out is named now, not after the diagnosis
+    # a mistaken --out is named now, not after the diagnosis; an earlier run's outputs go now,
+    # so that a run cut short (a full disk) never leaves them beside its own
+    remove_earlier_outputs(output_dir(args.out))
     bar("reading logs", 0.0)
     check_real_truth(args)
     truth_track = read_track(args.truth_track) if args.truth_track is not None else None
@@ -760,7 +858,9 @@ def main(args: argparse.Namespace) -> int:
     try:
         check_real(real)  # refused before the runs are placed and their almanac's age warned of
     except ConfigError as exc:  # named with its file, as the readers' refusals are
-        raise ConfigError(f"{args.real}: {exc}") from exc
+        # with what reading dropped: 300 epochs of one time stamp read as "1 epoch"
+        read = f" (reading the log: {'; '.join(real_track.notes)})" if real_track.notes else ""
+        raise ConfigError(f"{args.real}: {exc}{read}") from exc
     notes = [f"reading the real log: {note}" for note in real_track.notes]
     if truth_track is not None:
         notes += [f"reading the truth track: {note}" for note in truth_track.notes]
@@ -822,6 +922,8 @@ def main(args: argparse.Namespace) -> int:
         sims = [read_track(p) for p in args.sim]
         for sim in sims:
             check_step(sim)
+        if args.truth is not None:
+            check_sim_truths_at_point(args, sims)
         # each --sim log against its own truth when it carries one (truth.csv beside it):
         # a closed-loop mission's run drove its own route, not the real log's
         sim_truths: list[Track | None] = [truth_track] * len(sims)
@@ -868,8 +970,6 @@ def main(args: argparse.Namespace) -> int:
 
         world = load_world(args.scenario)
         origin = (world.origin.lat_deg, world.origin.lon_deg)
-    if args.no_figures:
-        remove_earlier_figures(Path(args.out))
     write_report(
         diagnosis,
         Path(args.out),

@@ -812,7 +812,7 @@ def _enough_fixes(series: PositionSeries, which: str) -> None:
     if fixes < MIN_FIXES:
         raise ConfigError(
             f"{which} has too few fixes for a gap diagnosis: {fixes} of {len(series)} epochs"
-            f" (need >= {MIN_FIXES})"
+            f" have a fix (need >= {MIN_FIXES})"
         )
 
 

@@ -36,7 +36,9 @@ import re
 import tempfile
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
-from datetime import UTC, datetime
+from dataclasses import fields as dataclass_fields
+from datetime import UTC, datetime, timedelta
+from datetime import time as dt_time
 from pathlib import Path
 from typing import Any
 
@@ -453,6 +455,15 @@ def fill_missing_epochs(track: Track) -> Track:
 
     valid = np.zeros(n_slots, dtype=bool)
     valid[slot] = track.valid[rows]
+    notes = track.notes
+    if n_slots > rows.size:  # always said: a filled hole reads as the receiver's outage
+        longest = int(np.max(np.diff(slot))) - 1
+        notes = (
+            *notes,
+            f"{n_slots - rows.size} epochs missing from the log's regular {dt_s:.6g} s steps"
+            f" inserted as no-fix epochs, read as outages (the longest hole {longest}"
+            f" epoch{'s' if longest != 1 else ''}, {longest * dt_s:.6g} s)",
+        )
     # the log's own times where it has epochs, the grid only in its holes: t0 + k dt from the
     # smallest step drifted 3.4 ms over a 1 h 10 Hz log, and its steps were then uneven
     times_s = t_s[0] + np.arange(n_slots) * dt_s
@@ -467,7 +478,7 @@ def fill_missing_epochs(track: Track) -> Track:
         speed_mps=spread(track.speed_mps, math.nan),
         course_deg=spread(track.course_deg, math.nan),
         source=track.source,
-        notes=track.notes,
+        notes=notes,
         sat_set=None if track.sat_set is None else spread(track.sat_set, -1.0),
         time_column=track.time_column,
     )
@@ -589,25 +600,58 @@ def _read_any(path: str | Path) -> Track:
 def _read_pipe(log_path: Path) -> Track:
     """A log that can be read only once (the sniffing below reads a file twice: on a pipe
     that lost its first 64 KB), through a temporary copy; messages name ``log_path``."""
-    with tempfile.TemporaryDirectory(prefix="x6wd-gap-") as tmp:
+    try:
+        tmp_dir = tempfile.TemporaryDirectory(prefix="x6wd-gap-")
+    except OSError as exc:
+        raise _copy_failed(log_path, tempfile.gettempdir(), exc) from exc
+    with tmp_dir as tmp:
         copy = Path(tmp) / (log_path.name or "log")
         try:
-            with open(log_path, "rb") as src, open(copy, "wb") as dst:
-                n = 0
-                while chunk := src.read(1 << 20):
-                    n += len(chunk)
-                    if n > MAX_PIPE_BYTES:
-                        raise ParseError(
-                            f"{log_path}: not a regular file and longer than "
-                            f"{MAX_PIPE_BYTES >> 20} MiB: save it to a file first"
-                        )
-                    dst.write(chunk)
+            src = open(log_path, "rb")  # noqa: SIM115 (closed below; its open's errors only)
         except OSError as exc:
             raise DeviceUnavailable(f"cannot read {log_path}: {exc}") from exc
+        with src:
+            _copy_pipe(src, copy, log_path)
         try:
             return replace(_read_file(copy), source=str(log_path))
         except (ParseError, ConfigError, DeviceUnavailable) as exc:
             raise type(exc)(str(exc).replace(str(copy), str(log_path))) from exc
+
+
+def _copy_pipe(src: Any, copy: Path, log_path: Path) -> None:
+    """Copy ``src`` (the open pipe ``log_path``) into the file ``copy``, at most
+    :data:`MAX_PIPE_BYTES`; the copy's errors (a full $TMPDIR) are DeviceUnavailable naming
+    the temporary directory, not the pipe (reading it did not fail)."""
+    try:
+        with open(copy, "wb", buffering=0) as dst:  # unbuffered: no flush to fail at close
+            n = 0
+            while True:
+                try:
+                    chunk = src.read(1 << 20)
+                except OSError as exc:  # the pipe's own: not an OSError past here
+                    raise DeviceUnavailable(f"cannot read {log_path}: {exc}") from exc
+                if not chunk:
+                    return
+                n += len(chunk)
+                if n > MAX_PIPE_BYTES:
+                    raise ParseError(
+                        f"{log_path}: not a regular file and longer than "
+                        f"{MAX_PIPE_BYTES >> 20} MiB: save it to a file first"
+                    )
+                view = memoryview(chunk)
+                while view:  # a raw write may take part of it
+                    view = view[dst.write(view) or 0 :]
+    except OSError as exc:
+        raise _copy_failed(log_path, copy.parent.parent, exc) from exc
+
+
+def _copy_failed(log_path: Path, tmp_dir: str | Path, exc: OSError) -> DeviceUnavailable:
+    """The error of a pipe's temporary copy that could not be made in ``tmp_dir``."""
+    return DeviceUnavailable(
+        f"{log_path}: not a regular file, so it is copied to a temporary file first, and that"
+        f" copy could not be written in {tmp_dir}: {exc.strerror or exc} (free room there, or"
+        " set TMPDIR to a directory with room)"
+    )
 
 
 def _read_file(log_path: Path) -> Track:
@@ -762,6 +806,27 @@ def _chained_decoder() -> Any:
         # the UTCs the decoder gave leap seconds (23:59:60 as 23:59:59.999999: datetime cannot
         # hold it), to be left out: 1 us before the next epoch, no time axis can hold both
         leap_utc: set[datetime]
+        # before any date: the first undated epoch's time of day (us) and how far (us) the
+        # time of day has advanced since, a fall of over 12 h counting as midnight passed
+        undated_first_tod: int | None
+        undated_elapsed_us: int
+        _undated_last_tod: int | None
+
+        def _fix_head(self, gga: Any, rmc: Any) -> Any:
+            head = super()._fix_head(gga, rmc)
+            tod = head[1]
+            if self._date is None and tod is not None and tod < 86_400_000_000:
+                self._advance_undated(tod)
+            return head
+
+        def _advance_undated(self, tod: int) -> None:
+            last = self._undated_last_tod
+            if last is None:
+                self.undated_first_tod = tod
+            else:
+                step = tod - last  # into [-12 h, 12 h): a day's wrap is midnight passing
+                self.undated_elapsed_us += (step + 43_200_000_000) % 86_400_000_000 - 43_200_000_000
+            self._undated_last_tod = tod
 
         def _utc_compute(self, tod: int, day: Any, date_tod_us: int) -> datetime:
             utc: datetime = super()._utc_compute(tod, day, date_tod_us)
@@ -774,7 +839,22 @@ def _chained_decoder() -> Any:
     # NMEA lines without '*hh' are read as gpsd reads them (a log written without checksums)
     decoder = ChainedDecoder(emit_sentences=False, accept_unchecksummed=True)
     decoder.leap_utc = set()
+    decoder.undated_first_tod = decoder._undated_last_tod = None
+    decoder.undated_elapsed_us = 0
     return decoder
+
+
+def _first_undated_utc(probe: Any, first: datetime) -> datetime:
+    """The UTC of a log's first epoch from its first dated epoch's UTC ``first``: the time of
+    day of the undated epochs before it (``probe``: the chained decoder that read up to it)
+    accumulated back from ``first``, a fall of over 12 h counting as midnight passed. Dated
+    from ``first`` alone (within 12 h either side), a GGA-only log from 10:00 to 23:00 put
+    every epoch before 11:00 on the next day."""
+    if probe.undated_first_tod is None:
+        return first
+    tod_us = (first.hour * 3600 + first.minute * 60 + first.second) * 1_000_000 + first.microsecond
+    probe._advance_undated(tod_us)  # the step from the last undated epoch to the first dated
+    return first - timedelta(microseconds=probe.undated_elapsed_us)
 
 
 def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[str] = ()) -> Track:
@@ -827,12 +907,14 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
         )
     decoder = _chained_decoder()
     if first is not None:
-        decoder.assume_utc(first)
+        # the first epoch's UTC: each later undated one is dated from the one before it
+        decoder.assume_utc(_first_undated_utc(probe, first))
     rows: list[tuple[float, ...]] = []
     timeless = 0
     skies: dict[float, float] = {}  # UTC s -> the set the epoch's GSA lists as used
     fix_utc: list[float | None] = []
     leap = 0
+    timeless_after: list[float] = []  # per epoch without a time: the time of the one before
     for fix in _decoded_fixes(decoder, feed(), skies):
         if first is not None and fix.utc in decoder.leap_utc:
             leap += 1
@@ -840,11 +922,16 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
         t_s = fix.t_s if first is None else _utc_s(fix.utc)
         if t_s is None:
             timeless += 1
+            if rows:  # the receiver was sending: a hole around it is its own (an outage)
+                timeless_after.append(rows[-1][0])
         else:
             rows.append(_fix_row(fix, t_s))
             fix_utc.append(_utc_s(fix.utc))
+    rows, fix_utc, merged = _merge_split_stamps(rows, fix_utc)
     rows = _with_sets(rows, fix_utc, skies)
     notes = list(notes)
+    if merged:
+        notes.append(merged)
     corrupt = _corrupt_note(decoder.counters)
     if corrupt:
         notes.append(corrupt)
@@ -864,7 +951,123 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
         )
     if first is None:
         notes.append("no dated NMEA sentence: the recording's receive clock is the time axis")
-    return _track(rows, source, notes)
+    return cut_silent_holes(_track(rows, source, notes), timeless_after)
+
+
+SPLIT_STAMP_MAX_S = 0.25
+"""Most (s) by which an RMC's and a GGA's time stamps of one fix may differ (a receiver or
+logger stamping each sentence as it goes out): such rows are one epoch
+(:func:`_merge_split_stamps`)."""
+SPLIT_STAMP_SAME_DEG = 1e-6
+"""Positions (deg, ~0.1 m) within which an RMC's and a GGA's fixes are the same fix."""
+
+
+def _merge_split_stamps(
+    rows: list[tuple[float, ...]], fix_utc: list[float | None]
+) -> tuple[list[tuple[float, ...]], list[float | None], str]:
+    """Rows (log order) with each fix whose RMC and GGA carry time stamps a little apart
+    (at most :data:`SPLIT_STAMP_MAX_S`, the same position and fix state; one row with speed
+    and no satellite count or height, the other without speed) made one epoch, at the earlier
+    stamp; and a note ("" when none). Decoded as two epochs, a 1 Hz log whose GGA is stamped
+    50 ms after its RMC read as a 20 Hz log with 19 of every 20 epochs missing (filled as
+    outages). The other ``fix_utc`` of a merged pair is dropped with it."""
+
+    def rmc_only(r: tuple[float, ...]) -> bool:
+        return math.isfinite(r[6]) and r[5] < 0 and math.isnan(r[3])
+
+    def gga_only(r: tuple[float, ...]) -> bool:
+        return math.isnan(r[6]) and math.isnan(r[7])
+
+    def same_fix(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
+        if a[4] != b[4]:
+            return False
+        return all(
+            (math.isnan(x) and math.isnan(y)) or abs(x - y) <= SPLIT_STAMP_SAME_DEG
+            for x, y in ((a[1], b[1]), (a[2], b[2]))
+        )
+
+    out: list[tuple[float, ...]] = []
+    out_utc: list[float | None] = []
+    merged = 0
+    largest_s = 0.0
+    i = 0
+    while i < len(rows):
+        a = rows[i]
+        if i + 1 < len(rows):
+            b = rows[i + 1]
+            dt_s = b[0] - a[0]
+            pair = (rmc_only(a) and gga_only(b)) or (gga_only(a) and rmc_only(b))
+            if 0.0 < dt_s <= SPLIT_STAMP_MAX_S and pair and same_fix(a, b):
+                gga, rmc = (b, a) if rmc_only(a) else (a, b)
+                out.append((a[0], *gga[1:6], *rmc[6:8]))
+                out_utc.append(fix_utc[i])
+                merged += 1
+                largest_s = max(largest_s, dt_s)
+                i += 2
+                continue
+        out.append(a)
+        out_utc.append(fix_utc[i])
+        i += 1
+    if not merged:
+        return rows, fix_utc, ""
+    note = (
+        f"{merged} fixes whose RMC and GGA are stamped up to {largest_s:.3g} s apart (the same"
+        " position) each read as one epoch, at the earlier stamp"
+    )
+    return out, out_utc, note
+
+
+MAX_SILENT_HOLE_STEPS = 5
+MAX_SILENT_HOLE_S = 5.0
+"""A hole in an NMEA log's time axis with no sentence at all (no epoch, timed or not) of more
+than MAX_SILENT_HOLE_STEPS missing epochs and more than MAX_SILENT_HOLE_S seconds is not a
+receiver's outage (a receiver without a fix still sends its no-fix sentences): the logger
+was off, lost the port, or two sessions were joined (:func:`cut_silent_holes`). Shorter ones
+(a few lines lost) are filled as no-fix epochs, as in any log."""
+
+
+def cut_silent_holes(track: Track, timeless_after_s: Sequence[float] = ()) -> Track:
+    """An NMEA ``track`` cut at its long holes with no sentence (:data:`MAX_SILENT_HOLE_STEPS`),
+    the part with the most epochs kept and a note saying so; unchanged without one.
+    ``timeless_after_s``: per epoch without a time (a no-fix GGA with empty fields), the time
+    (s) of the timed epoch before it: a hole holding such epochs for at least half of its
+    missing steps is the receiver's outage (it was sending), not cut."""
+    t_s = track.t_s
+    if t_s.size < 3:
+        return track
+    steps_s = np.diff(t_s)
+    dt_s = float(np.median(steps_s))
+    if dt_s <= 0:
+        return track
+    missing = np.round(steps_s / dt_s) - 1.0
+    long = (missing > MAX_SILENT_HOLE_STEPS) & (steps_s > MAX_SILENT_HOLE_S)
+    if not np.any(long):
+        return track
+    at = np.flatnonzero(long)
+    # epochs without a time that the receiver sent in each long hole (after its first epoch)
+    sent = np.searchsorted(np.sort(np.asarray(timeless_after_s, dtype=float)), t_s, "left")
+    in_hole = sent[at + 1] - sent[at]
+    silent = at[in_hole < missing[at] / 2.0]
+    if not silent.size:
+        return track
+    bounds = np.concatenate(([0], silent + 1, [t_s.size]))
+    sizes = np.diff(bounds)
+    k = int(np.argmax(sizes))
+    lo, hi = int(bounds[k]), int(bounds[k + 1])
+    longest_s = float(np.max(steps_s[silent]))
+    note = (
+        f"time axis cut at {silent.size} hole(s) with no NMEA sentence at all (the longest"
+        f" {_duration_text(longest_s)}, over {MAX_SILENT_HOLE_STEPS} epochs of {dt_s:g} s): a"
+        " receiver without a fix still sends its no-fix sentences, so such a hole is the"
+        " logger's (switched off, the port lost, sessions joined), not an outage:"
+        f" {hi - lo} of {t_s.size} epochs kept, {_utc_text(t_s[lo])} to {_utc_text(t_s[hi - 1])}"
+    )
+    cut = {
+        f.name: getattr(track, f.name)[lo:hi]
+        for f in dataclass_fields(track)
+        if isinstance(getattr(track, f.name), np.ndarray)
+    }
+    return replace(track, **cut, notes=(*track.notes, note))
 
 
 def _bad_text(counts: Any) -> str:
@@ -887,6 +1090,7 @@ def _corrupt_note(counts: Any) -> str:
     return f"corrupt NMEA sentences skipped: {bad} (their fixes, if any, are missing)"
 
 
+_LEAP_TIME = re.compile(r"^\s*235960(?:\.\d*)?\s*$")  # hhmmss[.ss] of a leap second
 _GLL_GNS = re.compile(r"\$(?:[A-Z]{2})(GLL|GNS|ZDA|RMC),[^*$]*\*[0-9A-Fa-f]{2}")
 
 
@@ -948,9 +1152,10 @@ def _gll_gns_track(
             " a date and no ZDA, so no UTC time axis (the gap tool does not guess a date)"
         )
     rows: list[tuple[float, ...]] = []
-    timeless = 0
+    timeless = leap = 0
+    timeless_after: list[float] = []  # per epoch without a time: the time of the one before
     next_date = 0
-    day: datetime | None = dates[0][1] if dates else None
+    day: datetime | None = _gll_gns_start(positions, dates) if dates else None
     for i, (t_s, kind, msg) in enumerate(positions):
         while next_date < len(dates) and dates[next_date][0] <= i:
             day = dates[next_date][1]
@@ -960,8 +1165,15 @@ def _gll_gns_track(
             rows.append((t_s, *row))
             continue
         stamp = getattr(msg, "timestamp", None)
-        if stamp is None:
-            timeless += 1
+        if not isinstance(stamp, dt_time):
+            # pynmea2 gives the raw text of a time it cannot parse: 23:59:60 is a leap
+            # second (left out, as the GGA path leaves it), anything else no time
+            if isinstance(stamp, str) and _LEAP_TIME.match(stamp):
+                leap += 1
+            else:
+                timeless += 1
+                if rows:  # the receiver was sending (cut_silent_holes)
+                    timeless_after.append(rows[-1][0])
             continue
         at = datetime.combine(day.date(), stamp).replace(tzinfo=UTC)
         when = at.timestamp()
@@ -979,10 +1191,36 @@ def _gll_gns_track(
         " position)" + ("; GLL gives no satellite count or height" if "GLL" in kinds else ""),
     ]
     if timeless:
-        read_notes.append(f"{timeless} epochs without a time dropped")
+        read_notes.append(f"{timeless} epochs without a (valid) time dropped")
+    if leap:
+        read_notes.append(
+            f"{leap} leap-second epoch{'s' if leap != 1 else ''} (23:59:60 UTC) left out (a UTC"
+            " time axis has no place for it)"
+        )
     if not dates:
         read_notes.append("no dated NMEA sentence: the recording's receive clock is the time axis")
-    return _track(rows, source, read_notes)
+    return cut_silent_holes(_track(rows, source, read_notes), timeless_after)
+
+
+def _gll_gns_start(
+    positions: list[tuple[float, str, Any]], dates: list[tuple[int, datetime]]
+) -> datetime:
+    """The reference UTC the GLL/GNS positions before the first date are dated from: that
+    date less how far the time of day advanced over them (a fall of over 12 h is midnight
+    passed), so that positions more than 12 h before it are not put on the next day."""
+    first_at, first = dates[0]
+    seconds = [
+        t.hour * 3600.0 + t.minute * 60.0 + t.second + t.microsecond / 1e6
+        for _, _, msg in positions[:first_at]
+        if isinstance(t := getattr(msg, "timestamp", None), dt_time)
+    ]
+    if not seconds:
+        return first
+    seconds.append(
+        first.hour * 3600.0 + first.minute * 60.0 + first.second + first.microsecond / 1e6
+    )
+    steps = (np.diff(seconds) + 43_200.0) % 86_400.0 - 43_200.0
+    return first - timedelta(seconds=float(np.sum(steps)))
 
 
 def _gll_gns_row(kind: str, msg: Any) -> tuple[float, ...]:
@@ -1933,7 +2171,7 @@ def errors_vs_mean(track: Track) -> PositionSeries:
     needs a truth track."""
     valid = track.valid
     if not np.any(valid):
-        raise ParseError(f"{track.source}: no valid fix")
+        raise ParseError(f"{track.source}: no valid fix: 0 of {len(track)} epochs have a fix")
     moves = moving_text(track)
     if moves is not None:
         raise ConfigError(
