@@ -99,12 +99,6 @@ A short NLOS jump (fewer fixes than ``recover_after``) or scattered outliers are
 accepted, while a real, persistent step (the robot was moved, the odometry slipped during a
 long GPS outage) is accepted after ``recover_after`` fixes. Long outages also open the gate by
 themselves, as the predicted covariance grows.
-A fix refused when the satellite geometry has just improved (its slow variance below the
-previous fix's) is tested once more with the bias states carried over to the new geometry
-(:meth:`Estimator._regeometry`: only a share of the bias learnt under the poorer one holds)
-and taken when inside the gate there (``gps_regeometry``): started on 4-satellite fixes at
-HDOP 11.7, 35 m off, the filter refused the first good ones (HDOP 1.45) that its own
-position σ (25.7 m) allowed, then reset 35 m, which the jump failsafe paused on.
 """
 
 from __future__ import annotations
@@ -424,7 +418,6 @@ class EstimatorStats:
     last_reset_reason: str = ""  # "step", "drift" (the refused fixes agreed so) or "bias"
     bias_runaway_resets: int = 0  # of gps_resets: fixes taken, the bias beyond BIAS_RUNAWAY_CHI2
     gps_bias_bounded: int = 0  # accepted fixes after which the bias bound moved the position
-    gps_regeometry: int = 0  # fixes taken with the bias carried over to a better geometry
     compass_accepted: int = 0
     compass_rejected: int = 0
     compass_resets: int = 0
@@ -860,7 +853,6 @@ class Estimator:
         correlated = g.correlation_s is not None
         slow_var = dp * dp * (g.ase_m**2 + lce * lce)  # m², the ASE + LCE part
         white_var = dp * dp * g.re_m**2 if correlated else dp * dp * g.re_m**2 + slow_var
-        old_bias_var = self._bias_var_m2
         if correlated:
             self._bias_var_m2 = slow_var
             self._bias_env_m2 = max(self._bias_env_m2, slow_var)
@@ -880,22 +872,6 @@ class Estimator:
         s = hm @ pht + rm
         s_inv = np.linalg.inv(s)
         nis = float(y @ s_inv @ y)
-        if nis > self.cfg.gating.gps_chi2 and correlated and 0.0 < slow_var < old_bias_var:
-            # the geometry improved: is the fix inside the gate of the bias carried over
-            # to it (_regeometry)? Then that is the model the fix supports
-            a = slow_var / old_bias_var
-            x_new, p_new = self._regeometry(a, slow_var)
-            y_new = z - hm @ x_new
-            pht_new = p_new @ hm.T
-            s_new = hm @ pht_new + rm
-            s_inv_new = np.linalg.inv(s_new)
-            nis_new = float(y_new @ s_inv_new @ y_new)
-            if nis_new <= self.cfg.gating.gps_chi2:
-                self._x = x = x_new
-                self._p = p_new
-                self._bias_moving *= a  # the runaway rule measures the bias's moves from here
-                y, pht, s, s_inv, nis = y_new, pht_new, s_new, s_inv_new, nis_new
-                self.stats.gps_regeometry += 1
         if nis > self.cfg.gating.gps_chi2:
             self._gps_refused.append((t, y, s))
             agree = self._gps_agreement()
@@ -999,32 +975,6 @@ class Estimator:
             p[i, i] += self._bias_var_m2 * (1.0 - phi * phi)
         self._bias_env_m2 = self._bias_env_m2 * phi * phi + self._bias_var_m2 * (1.0 - phi * phi)
         self._bias_moving *= phi  # what is left of it, as the bias forgets
-
-    def _regeometry(
-        self, a: float, slow_var_m2: float
-    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """The state and covariance (copies) with the GPS bias states carried over to a fix
-        whose stationary slow variance ``slow_var_m2`` (m²) is ``a`` (< 1) times the one
-        they were learnt under: the satellite geometry (HDOP) improved.
-
-        A least-squares fix from more satellites is uncorrelated with its difference from
-        the fix from fewer (the efficient estimate), so with σ0² the old and σ1² = a·σ0² the
-        new stationary variance ``b1 = a·b0 + w``, ``var w = σ1²(1 − a)``: the bias keeps its
-        stationary variance, and only a share ``a`` of the old bias, and of its correlation
-        with the position, carries over. Used only for a fix refused against the bias as
-        kept (:meth:`on_gps`): kept through every change of HDOP, the value, variance and
-        correlation learnt at HDOP 11.7 pinned position + bias to the poor fixes, and the
-        fixes at HDOP 1.45 were refused while the position's own σ read 25.7 m (eight in a
-        row, then a 35 m reset the jump failsafe took for a carried robot). Always applied,
-        it also moved into the position a slow error that persists across the change
-        (multipath beside a wall), with a σ that no longer covered it."""
-        x, p = self._x.copy(), self._p.copy()
-        for i in (BE, BN):
-            x[i] *= a
-            p[i, :] *= a
-            p[:, i] *= a
-            p[i, i] += slow_var_m2 * (1.0 - a)
-        return x, p
 
     def _bound_bias(self, t: float) -> None:
         """Within ``correlation_s`` after a GPS reset (time ``t``, s), move the part of the
