@@ -24,13 +24,11 @@ Written into the sweep's output directory from the run records (``runs/*.json``)
 from __future__ import annotations
 
 import csv
-import errno
 import io
 import json
 import math
 from collections import Counter
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import date, time
 from pathlib import Path
@@ -38,8 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from x6wd.core.errors import ConfigError
-from x6wd.core.outdir import output_file
+from x6wd.core.outdir import whole_output_file
 
 RUN_COLUMNS = (
     "run_id",
@@ -210,30 +207,9 @@ def run_rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-_OUT_OF_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-"""The write errors that come after a file was opened and truncated: only then is a file
-there partly written (and ours to remove)."""
-
-
-@contextmanager
-def _report_file(path: Path) -> Iterator[Path]:
-    """Around the writing of one report file: an ``OSError`` (a full disk) is a
-    :class:`ConfigError` naming it (exit 2, one line), and a partly written regular file is
-    removed so that no truncated table or figure is left to be read as the sweep's."""
-    try:
-        with output_file(path):
-            yield path
-    except ConfigError as exc:
-        cause = exc.__cause__
-        if not (isinstance(cause, OSError) and cause.errno in _OUT_OF_SPACE):
-            raise
-        if path.is_symlink() or not path.is_file():  # a link's target is not ours to remove
-            raise
-        try:
-            path.unlink()
-        except OSError:
-            raise exc from cause
-        raise ConfigError(f"{exc} (the partly written file was removed)") from cause
+_report_file = whole_output_file
+"""Around the writing of one report file: a full disk is one line naming it, and no
+truncated table or figure is left to be read as the sweep's."""
 
 
 def _write_csv(path: Path, rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> None:

@@ -19,7 +19,7 @@ from x6wd.calibrate import gnss
 from x6wd.calibrate.odometry import NOISY_PASS, RTK_SIGMA_M, Track, calibrate, load_track
 from x6wd.core import config as config_mod
 from x6wd.core.errors import ConfigError, DeviceUnavailable
-from x6wd.core.outdir import output_file
+from x6wd.core.outdir import whole_output_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -205,28 +205,11 @@ def _check_output_file(option: str, path: str | None, *, plot: bool = False) -> 
         raise ConfigError(f"{option} {path}: cannot write there: {exc.strerror or exc}") from exc
 
 
-_OUT_OF_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-"""The write errors that come after a file was opened and truncated: only then is a file
-there partly written (and ours to remove)."""
-
-
 def _write_output(path: str, write: Callable[[str], object]) -> None:
     """``write(path)``: an ``OSError`` there (a full disk) is a :class:`ConfigError` naming the
-    file, and a partly written regular file is removed (not a link, whose target is the
-    user's) so that no truncated map or fragment looks like a result."""
-    try:
-        with output_file(path):
-            write(path)
-    except ConfigError as exc:
-        cause = exc.__cause__
-        out_of_space = isinstance(cause, OSError) and cause.errno in _OUT_OF_SPACE
-        if not out_of_space or os.path.islink(path) or not os.path.isfile(path):
-            raise
-        try:
-            os.unlink(path)
-        except OSError:
-            raise exc from cause
-        raise ConfigError(f"{exc} (the partly written file was removed)") from cause
+    file, and a partly written regular file is removed (:func:`whole_output_file`)."""
+    with whole_output_file(path):
+        write(path)
 
 
 def _load_track_of(option: str, path: str) -> Track:

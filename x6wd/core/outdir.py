@@ -60,22 +60,22 @@ _OUT_OF_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 """The write errors of a file already opened (truncated): a full disk, a quota, a size limit."""
 
 
-def write_output_file(path: str | Path, text: str) -> Path:
-    """Write ``text`` (UTF-8) to the file ``path`` a user named; :class:`ConfigError` naming
-    it when that cannot be done (a directory there, a missing parent, a read-only place, a
-    full disk). A regular file this call created or truncated is removed when the write fails
-    part-way (a full disk), so that no truncated output reads as a result; a link (its target
-    is the user's: /dev/full, another folder) or a device there is never removed."""
+@contextmanager
+def whole_output_file(path: str | Path) -> Iterator[Path]:
+    """:func:`output_file` around the writing of ``path``, and a regular file that the block
+    left cut short for room (a full disk, a quota, a size limit) is removed and said so, so
+    that no truncated table, map or report reads as a result. A link (its target is the
+    user's: /dev/full, another folder) or a device there is never removed, nor a file whose
+    open was refused (a read-only file: it was not truncated)."""
     out = Path(path)
     # decided before writing: the write itself makes a missing path a regular file
     ours = not out.is_symlink() and (out.is_file() or not out.exists())
     try:
         with output_file(out):
-            out.write_text(text, encoding="utf-8")
+            yield out
     except ConfigError as exc:
         cause = exc.__cause__
-        # only these come after the file was opened (and so truncated): a refused open
-        # (a read-only file) leaves the user's file as it was, and it stays
+        # only these come after the file was opened (and so truncated)
         filled = isinstance(cause, OSError) and cause.errno in _OUT_OF_SPACE
         if not (ours and filled) or out.is_symlink() or not out.is_file():
             raise
@@ -84,6 +84,14 @@ def write_output_file(path: str | Path, text: str) -> Path:
         except OSError:
             raise exc from cause
         raise ConfigError(f"{exc} (the partly written file was removed)") from cause
+
+
+def write_output_file(path: str | Path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to the file ``path`` a user named; :class:`ConfigError` naming
+    it when that cannot be done (a directory there, a missing parent, a read-only place, a
+    full disk: then the part written is removed, :func:`whole_output_file`)."""
+    with whole_output_file(path) as out:
+        out.write_text(text, encoding="utf-8")
     return out
 
 
