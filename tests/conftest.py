@@ -135,3 +135,27 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.get_closest_marker("slow") and not item.get_closest_marker("timeout"):
             item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT_S))
+
+
+@pytest.fixture
+def tiny_disk(tmp_path: Path) -> Iterator[Path]:
+    """A 512 KiB tmpfs, unmounted after the test (root only, as CI runs); fill it with
+    :func:`fill_disk` to make writes fail for room."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    disk = tmp_path / "tiny"
+    disk.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=512k", "tmpfs", str(disk)], check=True)
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "--lazy", str(disk)], check=True)  # even with a file open
+
+
+def fill_disk(disk: Path, free_kib: int) -> None:
+    """Fill ``disk`` but for ``free_kib`` KiB."""
+    fill = disk / "fill"
+    with open(fill, "wb") as f, pytest.raises(OSError):
+        f.write(b"\0" * (1 << 20))
+        f.flush()
+    os.truncate(fill, os.path.getsize(fill) - free_kib * 1024)

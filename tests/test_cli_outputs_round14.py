@@ -5,10 +5,7 @@ path option is exit 2 naming it, not the current folder or "no file" (F5)."""
 
 from __future__ import annotations
 
-import os
 import re
-import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -17,6 +14,7 @@ from sim_backend.mission import run_mission
 from sim_backend.survey import SIM_OUTPUTS, run_survey
 from sim_backend.sweep import write_atomic
 from sim_backend.world import load_world
+from tests.conftest import fill_disk
 from x6wd.app.cli import main
 from x6wd.core.errors import ConfigError
 
@@ -51,22 +49,10 @@ def test_an_interrupted_sim_leaves_no_earlier_runs_outputs(
 
 
 @pytest.fixture
-def full_disk(tmp_path: Path) -> Iterator[Path]:
-    """A 512 KiB tmpfs filled but for a few KiB (root only, as CI runs)."""
-    if os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root")
-    disk = tmp_path / "tiny"
-    disk.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=512k", "tmpfs", str(disk)], check=True)
-    try:
-        fill = disk / "fill"
-        with open(fill, "wb") as f, pytest.raises(OSError):
-            f.write(b"\0" * (1 << 20))
-            f.flush()
-        os.truncate(fill, os.path.getsize(fill) - 24 * 1024)
-        yield disk
-    finally:
-        subprocess.run(["umount", "--lazy", str(disk)], check=True)  # even with a file open
+def full_disk(tiny_disk: Path) -> Path:
+    """A 512 KiB tmpfs filled but for 24 KiB (root only, as CI runs)."""
+    fill_disk(tiny_disk, 24)
+    return tiny_disk
 
 
 def _one_line_exit_2(capsys, argv: list[str], file_name: str) -> None:

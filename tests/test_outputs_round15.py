@@ -10,12 +10,12 @@ import errno
 import os
 import re
 import shutil
-import subprocess
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import fill_disk
 from x6wd.app import cli
 from x6wd.app.sweep import _check_dashboard
 from x6wd.core.errors import ConfigError
@@ -48,30 +48,6 @@ def _runs_of(done: Path, out: Path) -> Path:
     return out
 
 
-@pytest.fixture
-def tiny_disk(tmp_path: Path) -> Iterator[Path]:
-    """A 512 KiB tmpfs (root only, as CI runs; tests/test_cli_outputs_round14's approach);
-    the test fills it with :func:`_fill`."""
-    if os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root")
-    disk = tmp_path / "tiny"
-    disk.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=512k", "tmpfs", str(disk)], check=True)
-    try:
-        yield disk
-    finally:
-        subprocess.run(["umount", "--lazy", str(disk)], check=True)  # even with a file open
-
-
-def _fill(disk: Path, free_kib: int) -> None:
-    """Fill ``disk`` but for ``free_kib`` KiB."""
-    fill = disk / "fill"
-    with open(fill, "wb") as f, pytest.raises(OSError):
-        f.write(b"\0" * (1 << 20))
-        f.flush()
-    os.truncate(fill, os.path.getsize(fill) - free_kib * 1024)
-
-
 def _one_line_exit_2(
     capsys: pytest.CaptureFixture[str], argv: list[str], file_name: str
 ) -> tuple[str, str]:
@@ -89,7 +65,7 @@ def test_the_sweep_report_on_a_full_disk_is_one_line_and_leaves_no_part(
     done_sweep: Path, tiny_disk: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = _runs_of(done_sweep, tiny_disk / "w")
-    _fill(tiny_disk, 24)  # the tables fit, a figure does not: the report fails half-way
+    fill_disk(tiny_disk, 24)  # the tables fit, a figure does not: the report fails half-way
     line, _ = _one_line_exit_2(
         capsys, ["sweep", str(SWEEP), "--out", str(out), *SWEEP_ARGS], f"{out}/"
     )
@@ -112,7 +88,7 @@ def test_each_sweep_report_file_into_dev_full_is_named(
 def test_the_lce_map_on_a_full_disk_is_one_line_and_removed(
     tiny_disk: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    _fill(tiny_disk, 8)  # the fragment (one 4 KiB page) fits, the map (~11 kB) does not
+    fill_disk(tiny_disk, 8)  # the fragment (one 4 KiB page) fits, the map (~11 kB) does not
     out, csv = tiny_disk / "g.toml", tiny_disk / "map.csv"
     argv = [*DRIVE, "--out", str(out), "--map-csv", str(csv)]
     line, printed = _one_line_exit_2(capsys, argv, "map.csv")
