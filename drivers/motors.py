@@ -516,10 +516,6 @@ class SerialMotorLink:
     def _stop(self, reason: str, *, ends_hold: bool) -> bool:
         try:
             self._last = MotorCommand(self._clock(), 0.0, 0.0, reason)
-            # a latched restart fault ends only once the operator has cleared it
-            ends_hold = ends_hold and (
-                self._restart_fault is None or self._restart_fault is self._fault_cleared
-            )
             ok = self._transact_reply("S", ends_hold=ends_hold) is not None
         except Exception:  # stop must not raise, whatever the port does
             log.exception("motor stop failed")
@@ -533,6 +529,10 @@ class SerialMotorLink:
         restart fault (:data:`RESTART_LATCH_COUNT`) ends at the next stop the board confirms.
         Nothing else ends it. No effect without one; a fault latched later stays."""
         self._fault_cleared = self._restart_fault
+
+    def _operator_cleared(self) -> bool:
+        """No latched restart fault, or the operator cleared it (under ``_lock``)."""
+        return self._restart_fault is None or self._restart_fault is self._fault_cleared
 
     def _restart_stop(self) -> bool:
         """A drive refused because the board restarted under the link: stop instead (the
@@ -762,7 +762,15 @@ class SerialMotorLink:
                     self._reopen_backoff_s = self.reopen_initial_s
                     self._reopens_since_break = 0
                     t_s = self._clock()
-                    if ends_hold and ok and self._restart_hold is not None:
+                    # a latched restart fault ends only once the operator has cleared it;
+                    # judged here, under the lock: a fault latched while this stop waited
+                    # for the port (another thread's transaction) is not this stop's to end
+                    if (
+                        ends_hold
+                        and ok
+                        and self._restart_hold is not None
+                        and self._operator_cleared()
+                    ):
                         self._restart_hold = None
                         if self._restart_fault is not None:
                             self._restart_fault = self._fault_cleared = None

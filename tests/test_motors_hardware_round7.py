@@ -855,3 +855,30 @@ def test_the_daemon_clears_a_latched_restart_fault_on_the_operators_stop_or_paus
         if r.daemon.devices is not None:
             r.daemon.devices.close()
         board.close()
+
+
+@pytest.mark.integration
+def test_a_stop_waiting_for_the_port_while_the_fault_latches_does_not_end_it() -> None:
+    """CI stop 49: the controller's 'idle' stop judged "no latched fault" before it had the
+    port, waited while the third restart latched, and its confirmation then ended the fault
+    the operator had not cleared. The rule is judged under the port's lock."""
+    pb = Pty(boot=True)
+    link = SerialMotorLink(open_port(pb.name), ack_timeout_s=0.5)
+    try:
+        assert link.stop("idle") and link.healthy
+        result: list[bool] = []
+        with link._lock:  # another thread's transaction holds the port
+            waiting = threading.Thread(target=lambda: result.append(link.stop("idle")))
+            waiting.start()
+            time.sleep(0.3)  # the stop is past its start, blocked on the port
+            link.configured = True
+            for _ in range(3):
+                link._board_restarted("EVT BOOT", time.monotonic())
+        waiting.join(5)
+        assert result == [True]  # the board stopped ...
+        assert not link.healthy and "restarted 3 times" in link.health.reason  # ... latched
+        link.clear_restart_fault()
+        assert link.stop("operator stop") and link.healthy
+    finally:
+        link.close()
+        pb.close()
