@@ -394,11 +394,19 @@ class Controller:
             # a launch point no fix the source took has confirmed yet: a reset may show that
             # the estimate it came from was wrong (_watch_launch)
             watch = self._launch is not None and not self._launch_confirmed
-            before = self._source.position(t) if watch else None
+            before = self._source.position(t)
             taken = self._source.fixes_taken()[0]
             self._source.on_fix(fix)
-            jump_m = self._source.take_jump_m()
-            if before is not None:
+            jump = self._source.take_jump()
+            jump_m = None if jump is None else jump.moved_m
+            if jump is not None and before is not None and (watch or not jump.surprise):
+                # the estimate the first leg started from was wrong by the move (a launch
+                # point no fix confirmed, or an estimate that said it was that uncertain):
+                # the leg moves with it; a surprise (a GPS back somewhere else) leaves it
+                after = self._source.position(t)
+                if after is not None:
+                    self._navigator.move_first_leg_start(before, after)
+            if watch and before is not None:
                 self._watch_launch(t, before, taken, jump_m)
             speed = fix.speed_mps
             if (
@@ -410,10 +418,14 @@ class Controller:
             ):
                 self._rx_m += speed * (t - self._rx_t)
             self._rx_t = t if self._rx_t is None else max(self._rx_t, t)
-            if jump_m is not None and self._mode in (Mode.RUNNING, Mode.PAUSED):
+            if jump is not None and jump.surprise and self._mode in (Mode.RUNNING, Mode.PAUSED):
                 # for the failsafe check of the mission running, or resumed: a jump while
-                # paused (a GPS back after the sensor timeout paused it) must not be driven on
-                self._jump_m = jump_m if self._jump_m is None else max(self._jump_m, jump_m)
+                # paused (a GPS back after the sensor timeout paused it) must not be driven on.
+                # A move inside the estimate's own 99 % ellipse is no surprise: the estimate
+                # said it might be that far off (a start on 4-satellite fixes, HDOP 12, 35 m
+                # off, corrected when the sky opens) and the robot drove on it knowing so
+                moved_m = jump.moved_m
+                self._jump_m = moved_m if self._jump_m is None else max(self._jump_m, moved_m)
             self._wheel_at_fix = self._wheel_m
             self._commanded_at_fix = self._commanded_m
             self._valid_fix_t = t if self._valid_fix_t is None else max(self._valid_fix_t, t)

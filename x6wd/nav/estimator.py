@@ -137,6 +137,8 @@ constants, seconds (the simulator's compass uses the same figure)."""
 
 CHI2_2DOF_999 = -2.0 * math.log(1e-3)
 """Chi-square quantile for 2 degrees of freedom at 99.9 % (13.82): ``−2·ln(1 − p)`` exactly."""
+CHI2_2DOF_99 = -2.0 * math.log(1e-2)
+"""Chi-square quantile for 2 degrees of freedom at 99 % (9.21)."""
 CHI2_1DOF_999 = 10.827566170662733
 """Chi-square quantile for 1 degree of freedom at 99.9 % (10.83)."""
 BIAS_BOUND_CHI2 = -2.0 * math.log(1e-2)
@@ -416,6 +418,9 @@ class EstimatorStats:
     gps_consecutive_rejected: int = 0
     last_reset_m: float = 0.0  # how far the latest reset moved the position (m)
     last_reset_reason: str = ""  # "step", "drift" (the refused fixes agreed so) or "bias"
+    # the radius (m) of the position's own 99 % ellipse (its long axis) just before that reset:
+    # a reset inside it is the estimate settling where it said it might be, not a surprise
+    last_reset_circle_m: float = 0.0
     bias_runaway_resets: int = 0  # of gps_resets: fixes taken, the bias beyond BIAS_RUNAWAY_CHI2
     gps_bias_bounded: int = 0  # accepted fixes after which the bias bound moved the position
     compass_accepted: int = 0
@@ -656,8 +661,10 @@ class Estimator:
         self._est = None
         t0 = self._t_odo
         if self._odo_held is not None:  # a short one held back: its travel goes with this one
-            dl, dr, slip_m = dl + self._odo_held[0], dr + self._odo_held[1], max(
-                slip_m, self._odo_held[2]
+            dl, dr, slip_m = (
+                dl + self._odo_held[0],
+                dr + self._odo_held[1],
+                max(slip_m, self._odo_held[2]),
             )
             self._odo_held = None
         if self._ready and t0 is not None and len(self._odo_spans) >= 3:
@@ -905,10 +912,17 @@ class Estimator:
         self.stats.gps_consecutive_rejected = 0
         self.stats.last_reset_m = math.hypot(ze - x[E], zn - x[N])
         self.stats.last_reset_reason = why
+        self.stats.last_reset_circle_m = self._position_circle_m()
         self._reset_position(ze, zn, white_var)
         self._bias_moving = np.zeros(2)
         self._t_gps_reset = t
         return Update(True, nis, "reset")
+
+    def _position_circle_m(self) -> float:
+        """Radius (m) of the position's 99 % ellipse along its long axis (2 d.o.f.)."""
+        pe = self._p[np.ix_((E, N), (E, N))]
+        long_var = float(np.linalg.eigvalsh(0.5 * (pe + pe.T))[-1])
+        return math.sqrt(CHI2_2DOF_99 * max(long_var, 0.0))
 
     def _bias_runaway(self) -> bool:
         """While the robot stands still, the GPS bias states moved more than

@@ -353,6 +353,25 @@ class Navigator:
         e, n = ltp.to_xy(float(lat), float(lon))
         return float(e), float(n)
 
+    def move_first_leg_start(self, before: tuple[float, float], after: tuple[float, float]) -> None:
+        """The position source moved its estimate at once from ``before`` to ``after``
+        (lat_deg, lon_deg; an EKF reset). On the first leg, which starts where the estimate
+        was at the mission's first decision, that start moves the same way: it was the
+        robot's place, wrong by as much, not a point of the map (a start on fixes 35 m off
+        then drove back 35 m to a line that never was). A later leg starts at a waypoint
+        and stays; so does paper steering, which has no legs."""
+        ltp = self._ltp
+        if ltp is None or self._index != 0 or self._seg_start is None:
+            return
+        e0, n0 = ltp.to_xy(*before)
+        e1, n1 = ltp.to_xy(*after)
+        de, dn = float(e1) - float(e0), float(n1) - float(n0)
+        if not (math.isfinite(de) and math.isfinite(dn)):
+            return
+        s = self._seg_start
+        self._seg_start = self._first_start = (s[0] + de, s[1] + dn)
+        self._path_shape(self._first_start)
+
     def _path_shape(self, first_start: tuple[float, float]) -> None:
         """The chord directions into and out of each waypoint (``steering.TURN_CHORD_M`` of
         path either side), the path's turn there and the path distance from the first

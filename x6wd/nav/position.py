@@ -19,7 +19,7 @@ None). Every source answers ``position(t_s)`` with (lat_deg, lon_deg) or None be
 from __future__ import annotations
 
 import math
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 from x6wd.core.config import GnssNoiseConfig, NavigationConfig, OdometryConfig
 from x6wd.core.records import GpsFix, WheelOdometry
@@ -45,6 +45,21 @@ with 3.0, 2.88 with 10; 30 %/20 % 3.30 / 3.01 / 2.86; 50 %/30 % 3.28 / 2.96 / 2.
 MAX_INCREMENT_M = 5.0
 """A wheel travelling further than this between two encoder readings (m; 50 ms apart at
 20 Hz) is a board reset or a corrupt reading: the increment is dropped and counted."""
+
+
+class Jump(NamedTuple):
+    """A source's position moved at once (its EKF reset onto fixes it had refused)."""
+
+    moved_m: float  # how far (m)
+    # the radius (m) the source's own uncertainty allowed just before (its 99 % ellipse's long
+    # axis): a move within it is the estimate settling, not a surprise; 0 for a move the
+    # source holds for a carry (fixes that moved while the wheels stood still)
+    expected_m: float
+
+    @property
+    def surprise(self) -> bool:
+        """Farther than the source said it might be off."""
+        return self.moved_m > self.expected_m
 
 
 class PositionSource(Protocol):
@@ -79,9 +94,9 @@ class PositionSource(Protocol):
     def extra(self) -> dict[str, Any]:
         """Figures for the telemetry's ``extra``."""
 
-    def take_jump_m(self) -> float | None:
-        """How far (m) the source moved its position at once since last asked, to fixes it
-        had refused until they agreed (the EKF's reset), or None: not since then."""
+    def take_jump(self) -> Jump | None:
+        """The largest move of the source's position at once since last asked, to fixes it
+        had refused until they agreed (the EKF's reset), or None: none since then."""
 
     def fixes_taken(self) -> tuple[int, float | None]:
         """(count, t_s): how many fixes the source took into its estimate as agreeing with
@@ -134,7 +149,7 @@ class RawSource:
     def extra(self) -> dict[str, Any]:
         return {}
 
-    def take_jump_m(self) -> float | None:
+    def take_jump(self) -> Jump | None:
         return None  # every fix is taken as it comes: no estimate of its own to jump
 
 
@@ -254,7 +269,7 @@ class EkfSource:
         self._decl = declination_deg
         self._plane: LocalTangentPlane | None = None
         self._ekf: ekf.Estimator | None = None
-        self._jump_m: float | None = None  # the largest reset since take_jump_m last asked
+        self._jump: Jump | None = None  # the largest reset since take_jump last asked
         # fixes the EKF took inside its gate, and the latest judged fix's time if taken
         self._taken: tuple[int, float | None] = (0, None)
         self._counts: tuple[int, int] | None = None
@@ -296,12 +311,15 @@ class EkfSource:
         elif reason != "stale":  # refused, a reset, or the fix the EKF starts on
             self._taken = (self._taken[0], None)
         if reason == "reset":
-            jump_m = self._ekf.stats.last_reset_m
-            self._jump_m = jump_m if self._jump_m is None else max(self._jump_m, jump_m)
+            st = self._ekf.stats
+            carry = st.last_reset_reason == "bias"  # fixes moved while the wheels stood
+            jump = Jump(st.last_reset_m, 0.0 if carry else st.last_reset_circle_m)
+            if self._jump is None or jump.moved_m > self._jump.moved_m:
+                self._jump = jump
 
-    def take_jump_m(self) -> float | None:
-        jump_m, self._jump_m = self._jump_m, None
-        return jump_m
+    def take_jump(self) -> Jump | None:
+        jump, self._jump = self._jump, None
+        return jump
 
     def fixes_taken(self) -> tuple[int, float | None]:
         return self._taken
@@ -372,6 +390,7 @@ class EkfSource:
             "ekf_gps_rejected": st.gps_rejected,
             "ekf_gps_resets": st.gps_resets,
             "ekf_last_reset_m": st.last_reset_m,
+            "ekf_last_reset_circle_m": st.last_reset_circle_m,
             "ekf_odometry_runaway_resets": st.odometry_runaway_resets,
             "ekf_bias_runaway_resets": st.bias_runaway_resets,
             "ekf_last_reset_reason": st.last_reset_reason,
