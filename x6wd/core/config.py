@@ -243,6 +243,9 @@ class NavigationConfig:
     # ... and of each coefficient of a heading-dependent deviation (iron near the compass:
     # once and twice per turn); 0: none is learnt
     compass_deviation_sigma_deg: float = field(default=2.0, metadata=_rng(0, 45))
+    # the EKF's position error radius (m, 3 sigma per axis) beyond which no waypoint inside it
+    # is taken as reached: the robot holds until the fixes improve (0: off; docs/navigation.md)
+    arrival_max_error_m: float = field(default=20.0, metadata=_rng(0, 100_000))
 
     @classmethod
     def paper(cls, **overrides: Any) -> NavigationConfig:
@@ -325,7 +328,9 @@ class FailsafeConfig:
     ``gps_jump_m`` or more at once: the EKF moved to fixes it had refused until they agreed
     (a receiver that came back somewhere else, another device on the port, a robot carried;
     0: off; always a pause: the operator looks before the robot drives on either
-    position)."""
+    position); the robot held ``position_timeout_s`` with its next waypoint inside the
+    EKF's error radius (``navigation.arrival_max_error_m``: the fixes too poor to tell
+    whether it is there; 0: wait for them; always a pause: a return needs that position)."""
 
     geofence_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
     operator_timeout_s: float = field(default=0.0, metadata=_rng(0, 3600))
@@ -344,6 +349,8 @@ class FailsafeConfig:
     compass_refused_s: float = field(default=10.0, metadata=_rng(0, 600))
     # the EKF's position reset by this much or more at once (m); 0: off
     gps_jump_m: float = field(default=25.0, metadata=_rng(0, 100_000))
+    # held this long (s) for a position too uncertain to tell a waypoint is reached; 0: off
+    position_timeout_s: float = field(default=120.0, metadata=_rng(0, 3600))
 
 
 @dataclass(frozen=True)

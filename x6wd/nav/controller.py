@@ -104,6 +104,9 @@ ARRIVAL_GPS_SIGMAS = 3.0
 """An EKF arrival needs the latest fix within this many of its standard deviations..."""
 ARRIVAL_GPS_MIN_M = 5.0
 """... and never less than this (m) of the waypoint."""
+UNCERTAIN_HOLD = "position too uncertain"
+"""The start of the hold reason while the next waypoint lies inside the EKF's error radius
+and that radius exceeds ``navigation.arrival_max_error_m`` (:meth:`Controller._uncertain_hold`)."""
 DEAD_RECKONING_MAX_SIGMA_M = 5.0
 """Largest EKF position uncertainty (m, both axes together) to drive on without a fix."""
 DEAD_RECKONING_MIN_SPEED = 0.5
@@ -768,11 +771,15 @@ class Controller:
                 "hold",
             )
         if hold and hold != "motor link lost":
+            # waiting for the sky (poor geometry) has its own patience, and only a pause
+            # follows it: a return would steer by the same position
+            uncertain = hold.startswith(UNCERTAIN_HOLD)
+            limit_s = fs.position_timeout_s if uncertain else fs.sensor_timeout_s
             if self._hold_since is None:
                 self._hold_since = now
-            elif fs.sensor_timeout_s > 0 and now - self._hold_since >= fs.sensor_timeout_s:
+            elif limit_s > 0 and now - self._hold_since >= limit_s:
                 self._hold_since = None
-                return f"{hold} for {fs.sensor_timeout_s:g} s", fs.sensor_action
+                return f"{hold} for {limit_s:g} s", "hold" if uncertain else fs.sensor_action
         else:
             self._hold_since = None
         op_t = self._operator_t
@@ -1209,7 +1216,25 @@ class Controller:
             return "attitude stale"
         if self._filt is None or self._current_heading_rad() is None:
             return "position estimate not ready"
-        return ""
+        return self._uncertain_hold()
+
+    def _uncertain_hold(self) -> str:
+        """Hold while the EKF's error radius exceeds ``arrival_max_error_m`` with the next
+        waypoint inside it: it cannot tell whether the robot is there. A town start on
+        4-satellite fixes (HDOP 12, 35 m off, sigma 26 m) otherwise took two waypoints as
+        reached 38-42 m from them; holding, the robot drives on once the fixes improve, to
+        where the waypoints are. The sensor timeout's failsafe acts if they never do."""
+        limit_m = self._nav_cfg.arrival_max_error_m
+        nav, filt = self._navigator, self._filt
+        if limit_m <= 0 or self._nav_cfg.position_source != "ekf" or filt is None or nav.done:
+            return ""
+        error_m = self._position_error_m()
+        if error_m <= limit_m:
+            return ""
+        lat, lon = nav.waypoints[nav.index]
+        if great_circle_m(filt[0], filt[1], lat, lon) > error_m:
+            return ""
+        return f"{UNCERTAIN_HOLD} to tell whether waypoint {nav.index + 1} is reached"
 
     def _mix(self, state: NavState) -> tuple[float, float]:
         """Left/right percentages for the navigator's decision just made."""
