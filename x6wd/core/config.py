@@ -245,7 +245,7 @@ class NavigationConfig:
     compass_deviation_sigma_deg: float = field(default=2.0, metadata=_rng(0, 45))
     # the EKF's position error radius (m, 3 sigma per axis) beyond which no waypoint inside it
     # is taken as reached: the robot holds until the fixes improve (0: off; docs/navigation.md)
-    arrival_max_error_m: float = field(default=20.0, metadata=_rng(0, 100_000))
+    arrival_max_error_m: float = field(default=30.0, metadata=_rng(0, 100_000))
 
     @classmethod
     def paper(cls, **overrides: Any) -> NavigationConfig:
