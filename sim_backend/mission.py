@@ -410,7 +410,7 @@ def run_mission(
                     if not holds and not startup["drove"] and o.reason == f"state: {STARTUP_HOLD}":
                         startup["index"] = 0
                     holds.append([t, -1.0])
-                elif o.old == NavState.HOLD and holds and holds[-1][1] < 0:
+                elif o.old == NavState.HOLD != o.new and holds and holds[-1][1] < 0:
                     holds[-1][1] = t
                     if startup["index"] == len(holds) - 1:
                         startup["ended"] = drives

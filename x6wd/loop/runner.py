@@ -830,9 +830,12 @@ class Runner:
             to = "to fixes that moved while the wheels stood still (carried or pushed?)"
         else:
             to = "to fixes it had refused until they agreed"
-            circle_m = float(tel.extra.get("ekf_last_reset_circle_m") or 0.0)
-            if jump_m <= circle_m:  # the jump failsafe leaves it (Jump.surprise)
-                to += f", inside its own 99 % ellipse ({circle_m:.0f} m: it was that uncertain)"
+            expected_m = float(tel.extra.get("ekf_last_reset_expected_m") or 0.0)
+            if 0 < jump_m <= expected_m:  # the jump failsafe leaves it (Jump.surprise)
+                to += (
+                    f", inside its own 99 % ellipse ({expected_m:.0f} m: poor geometry made"
+                    " it that uncertain)"
+                )
         log.log(
             logging.WARNING if 0 < limit_m <= jump_m else logging.INFO,
             "gps: the estimate moved %.1f m %s (EKF reset %d)",

@@ -85,7 +85,7 @@ from x6wd.nav.course_watch import CourseWatch
 from x6wd.nav.encoder_watch import EncoderWatch
 from x6wd.nav.navigator import NavigationError, Navigator
 from x6wd.nav.odometry import wheel_travel_m
-from x6wd.nav.position import DEFAULT_HDOP, PositionSource, make_source
+from x6wd.nav.position import DEFAULT_HDOP, PositionSource, degraded_radius_m, make_source
 
 
 class CommandRejected(X6wdError):
@@ -104,6 +104,9 @@ ARRIVAL_GPS_SIGMAS = 3.0
 """An EKF arrival needs the latest fix within this many of its standard deviations..."""
 ARRIVAL_GPS_MIN_M = 5.0
 """... and never less than this (m) of the waypoint."""
+UNCERTAIN_RELEASE = 0.8
+"""A wait for a position too uncertain ends once the error radius is under this fraction of
+its limit (hysteresis: a radius about the limit made 219 stops and starts in a review)."""
 UNCERTAIN_HOLD = "position too uncertain"
 """The start of the hold reason while the next waypoint lies inside the EKF's error radius
 and that radius exceeds ``navigation.arrival_max_error_m`` (:meth:`Controller._uncertain_hold`)."""
@@ -269,6 +272,11 @@ class Controller:
         self._failsafe_why = ""  # the last failsafe that acted (telemetry)
         self._operator_t: float | None = None  # latest operator request (s), when watched
         self._hold_since: float | None = None  # a sensor hold began (s)
+        # waiting for a position good enough to judge a waypoint (_uncertain_hold): for which
+        # (navigator, waypoint index), how long in all (s), since the latest tick (s)
+        self._uncertain_at: tuple[Navigator, int] | None = None
+        self._uncertain_s = 0.0
+        self._uncertain_t: float | None = None
         self._jump_m: float | None = None  # the source's position jump since the last check (m)
         self._launch_wheel_m = 0.0  # the wheels' travel when the launch point was taken (m)
         # a fix the source took agreed with the launch point's estimate (the latest fix
@@ -597,6 +605,7 @@ class Controller:
         self._stuck_wheels = self._stuck_body = self._pivot_best = None
         self._course.reset()
         self._hold_since = self._jump_m = None
+        self._uncertain_at = self._uncertain_t = None
         self._enc_watch.reset()
         self._encoder_fault = ""
         now = t if self._now is None else max(self._now, t)
@@ -770,17 +779,36 @@ class Controller:
                 " it moved to them (GPS back somewhere else, or the robot carried?)",
                 "hold",
             )
-        if hold and hold != "motor link lost":
-            # waiting for the sky (poor geometry) has its own patience, and only a pause
-            # follows it: a return would steer by the same position
-            uncertain = hold.startswith(UNCERTAIN_HOLD)
-            limit_s = fs.position_timeout_s if uncertain else fs.sensor_timeout_s
+        uncertain = hold.startswith(UNCERTAIN_HOLD)
+        if uncertain:
+            # waiting for the sky (poor geometry): its own patience, the time held for this
+            # waypoint in all (the radius about its limit stops and starts the robot), and
+            # only a pause follows: a return would steer by the same position
+            self._hold_since = None
+            at = (self._navigator, self._navigator.index)
+            if (
+                self._uncertain_at is None
+                or self._uncertain_at[0] is not at[0]
+                or (self._uncertain_at[1] != at[1])
+            ):
+                self._uncertain_at, self._uncertain_s = at, 0.0
+            elif self._uncertain_t is not None:
+                self._uncertain_s += now - self._uncertain_t
+            self._uncertain_t = now
+            limit_s = fs.position_timeout_s
+            if limit_s > 0 and self._uncertain_s >= limit_s:
+                self._uncertain_at, self._uncertain_t = None, None
+                return f"{hold} for {limit_s:g} s", "hold"
+        else:
+            self._uncertain_t = None
+        if hold and hold != "motor link lost" and not uncertain:
+            # a sensor's hold: timed from its own start (not an uncertain wait's before it)
             if self._hold_since is None:
                 self._hold_since = now
-            elif limit_s > 0 and now - self._hold_since >= limit_s:
+            elif fs.sensor_timeout_s > 0 and now - self._hold_since >= fs.sensor_timeout_s:
                 self._hold_since = None
-                return f"{hold} for {limit_s:g} s", "hold" if uncertain else fs.sensor_action
-        else:
+                return f"{hold} for {fs.sensor_timeout_s:g} s", fs.sensor_action
+        elif not uncertain:
             self._hold_since = None
         op_t = self._operator_t
         if fs.operator_timeout_s > 0 and op_t is not None and now - op_t > fs.operator_timeout_s:
@@ -1224,17 +1252,25 @@ class Controller:
         4-satellite fixes (HDOP 12, 35 m off, sigma 26 m) otherwise took two waypoints as
         reached 38-42 m from them; holding, the robot drives on once the fixes improve, to
         where the waypoints are. The sensor timeout's failsafe acts if they never do."""
-        limit_m = self._nav_cfg.arrival_max_error_m
-        nav, filt = self._navigator, self._filt
-        if limit_m <= 0 or self._nav_cfg.position_source != "ekf" or filt is None or nav.done:
+        cfg, nav, filt = self._nav_cfg, self._navigator, self._filt
+        held = self._hold_reason.startswith(UNCERTAIN_HOLD)
+        if cfg.arrival_max_error_m <= 0 or cfg.position_source != "ekf" or filt is None:
             return ""
+        if nav.done:
+            return ""
+        noise_m = self._source.extra().get("ekf_noise_hdop1_m")
+        limit_m = degraded_radius_m(
+            cfg.arrival_max_error_m, noise_m if isinstance(noise_m, float) else 0.0
+        )
         error_m = self._position_error_m()
-        if error_m <= limit_m:
+        # held, it waits until the radius is well under the limit (no stop-and-go about it)
+        if error_m <= (UNCERTAIN_RELEASE * limit_m if held else limit_m):
             return ""
         lat, lon = nav.waypoints[nav.index]
         if great_circle_m(filt[0], filt[1], lat, lon) > error_m:
             return ""
-        return f"{UNCERTAIN_HOLD} to tell whether waypoint {nav.index + 1} is reached"
+        what = "the launch point" if self._returning else f"waypoint {nav.index + 1}"
+        return f"{UNCERTAIN_HOLD} to tell whether {what} is reached"
 
     def _mix(self, state: NavState) -> tuple[float, float]:
         """Left/right percentages for the navigator's decision just made."""
@@ -1447,7 +1483,13 @@ class Controller:
                 )
             out.append(StateChange(now, str(self._state), str(state), reason))
             self._state = state
+        elif hold.startswith(UNCERTAIN_HOLD) and not self._hold_reason.startswith(UNCERTAIN_HOLD):
+            # a hold that turns into this wait (after "position estimate not ready" at a
+            # start on 4 satellites): said, as a hold's start is, so the log names it
+            out.append(StateChange(now, str(state), str(state), f"state: {hold}"))
         self._hold_reason = hold
+        if self._mode != Mode.RUNNING:
+            self._uncertain_t = None  # the wait's clock runs only while running
 
         if hold:
             reason = f"hold: {hold}"

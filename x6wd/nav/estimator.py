@@ -421,6 +421,9 @@ class EstimatorStats:
     # the radius (m) of the position's own 99 % ellipse (its long axis) just before that reset:
     # a reset inside it is the estimate settling where it said it might be, not a surprise
     last_reset_circle_m: float = 0.0
+    # the GPS model's per-axis sigma (m) at HDOP 1 where the latest fix was judged: RE, ASE
+    # and the LCE there (what the configured noise calls normal under an open sky)
+    noise_hdop1_m: float = 0.0
     bias_runaway_resets: int = 0  # of gps_resets: fixes taken, the bias beyond BIAS_RUNAWAY_CHI2
     gps_bias_bounded: int = 0  # accepted fixes after which the bias bound moved the position
     compass_accepted: int = 0
@@ -858,6 +861,7 @@ class Estimator:
         if not (math.isfinite(lce) and lce >= 0):
             raise EstimatorError(f"LCE lookup must give a finite number >= 0 m, got {lce!r}")
         correlated = g.correlation_s is not None
+        self.stats.noise_hdop1_m = math.sqrt(g.re_m**2 + g.ase_m**2 + lce * lce)
         slow_var = dp * dp * (g.ase_m**2 + lce * lce)  # m², the ASE + LCE part
         white_var = dp * dp * g.re_m**2 if correlated else dp * dp * g.re_m**2 + slow_var
         if correlated:

@@ -47,13 +47,30 @@ MAX_INCREMENT_M = 5.0
 20 Hz) is a board reset or a corrupt reading: the increment is dropped and counted."""
 
 
+UNCERTAIN_HDOP = 3.0
+"""A sky partly blocked: the EKF's position counts as degraded only beyond the error radius
+the configured GPS noise gives at this HDOP (:func:`degraded_radius_m`). A site calibrated
+with LCE cells of 5-10 m is 16-31 m uncertain at HDOP 1, under an open sky."""
+
+
+def degraded_radius_m(arrival_max_error_m: float, noise_hdop1_m: float) -> float:
+    """The EKF's error radius (m, 3 sigma per axis) beyond which its position counts as
+    degraded (poor geometry, not the site's usual noise): ``arrival_max_error_m`` (m) or,
+    where larger, 3 sigma of the configured noise at :data:`UNCERTAIN_HDOP`
+    (``noise_hdop1_m``: its per-axis sigma at HDOP 1, m)."""
+    return max(arrival_max_error_m, 3.0 * UNCERTAIN_HDOP * noise_hdop1_m)
+
+
 class Jump(NamedTuple):
     """A source's position moved at once (its EKF reset onto fixes it had refused)."""
 
     moved_m: float  # how far (m)
     # the radius (m) the source's own uncertainty allowed just before (its 99 % ellipse's long
-    # axis): a move within it is the estimate settling, not a surprise; 0 for a move the
-    # source holds for a carry (fixes that moved while the wheels stood still)
+    # axis) when that was degraded (beyond degraded_radius_m: poor geometry, a start on 4
+    # satellites): a move within it is the estimate settling, not a surprise. 0 otherwise,
+    # and for a move the source holds for a carry (fixes that moved while the wheels stood)
+    # or where the noise model alone makes the ellipse wide (a site's LCE of 10 m: a GPS back
+    # 40 m away must still pause)
     expected_m: float
 
     @property
@@ -270,6 +287,7 @@ class EkfSource:
         self._plane: LocalTangentPlane | None = None
         self._ekf: ekf.Estimator | None = None
         self._jump: Jump | None = None  # the largest reset since take_jump last asked
+        self._last_jump: Jump | None = None  # the latest reset (status)
         # fixes the EKF took inside its gate, and the latest judged fix's time if taken
         self._taken: tuple[int, float | None] = (0, None)
         self._counts: tuple[int, int] | None = None
@@ -313,7 +331,10 @@ class EkfSource:
         if reason == "reset":
             st = self._ekf.stats
             carry = st.last_reset_reason == "bias"  # fixes moved while the wheels stood
-            jump = Jump(st.last_reset_m, 0.0 if carry else st.last_reset_circle_m)
+            circle_m = st.last_reset_circle_m
+            degraded_m = degraded_radius_m(self._nav.arrival_max_error_m, st.noise_hdop1_m)
+            expected = circle_m > degraded_m and not carry
+            jump = self._last_jump = Jump(st.last_reset_m, circle_m if expected else 0.0)
             if self._jump is None or jump.moved_m > self._jump.moved_m:
                 self._jump = jump
 
@@ -391,6 +412,10 @@ class EkfSource:
             "ekf_gps_resets": st.gps_resets,
             "ekf_last_reset_m": st.last_reset_m,
             "ekf_last_reset_circle_m": st.last_reset_circle_m,
+            "ekf_noise_hdop1_m": st.noise_hdop1_m,
+            "ekf_last_reset_expected_m": 0.0
+            if self._last_jump is None
+            else self._last_jump.expected_m,
             "ekf_odometry_runaway_resets": st.odometry_runaway_resets,
             "ekf_bias_runaway_resets": st.bias_runaway_resets,
             "ekf_last_reset_reason": st.last_reset_reason,
