@@ -139,8 +139,10 @@ class _StartupHoldHeld(logging.Filter):
         """False (not logged, kept) for the first state change if it is the start-up hold."""
         args = record.args if isinstance(record.args, tuple) else ()
         # a navigation state's change ("state: ..."), not the mode's ("mode: start")
-        if self.done or record.msg != "state %s -> %s %s%s" or not str(args[2]).startswith(
-            "state: "
+        if (
+            self.done
+            or record.msg != "state %s -> %s %s%s"
+            or not str(args[2]).startswith("state: ")
         ):
             return True
         self.done = True
