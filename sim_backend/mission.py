@@ -138,6 +138,18 @@ class _StartupHoldHeld(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         """False (not logged, kept) for the first state change if it is the start-up hold."""
         args = record.args if isinstance(record.args, tuple) else ()
+        if (
+            self.held is not None
+            and record.msg == "state %s -> %s %s%s"
+            and args[:2]
+            == (
+                NavState.HOLD,
+                NavState.HOLD,
+            )
+        ):
+            # the wait turned into another hold (a wait for the sky): it counts as a hold,
+            # said now, before the change that follows it
+            self.release(logging.getLogger(record.name))
         # a navigation state's change ("state: ..."), not the mode's ("mode: start")
         if (
             self.done

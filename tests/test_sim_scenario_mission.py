@@ -297,7 +297,9 @@ def test_a_real_hold_is_still_counted_beside_the_start_up_wait(
 def test_a_run_that_ends_in_the_start_up_wait_counts_it_as_a_hold() -> None:
     # a robot that never gets an estimate holds: every compass read fails, and the run ends
     # in the hold that began at its first decision
-    text = (SCENARIOS / "default.toml").read_text().replace("[compass]", "[compass]\np_error = 1.0", 1)
+    text = (
+        (SCENARIOS / "default.toml").read_text().replace("[compass]", "[compass]\np_error = 1.0", 1)
+    )
     s = run_mission(loads_world(text, SCENARIOS), None, 1, 5.0)
     assert s.hold_periods == 1 and s.extra["startup_wait_s"] is None
     # a run of 0.5 s ends with the first fix's burst (0.84 s): the compass is read while it
@@ -316,8 +318,10 @@ def test_the_start_up_wait_is_not_logged_as_a_fault(caplog: pytest.LogCaptureFix
     said = [r.getMessage() for r in caplog.records if r.name == "x6wd.loop.runner"]
     assert said and not any(STARTUP_HOLD in m for m in said), said
     assert any(m.startswith("state HOLD -> ") for m in said)  # the way out is still logged
-    assert not any(isinstance(f, mission._StartupHoldHeld) for f in logging.getLogger(
-        "x6wd.loop.runner").filters)  # the robot's log is left as it was
+    assert not any(
+        isinstance(f, mission._StartupHoldHeld)
+        for f in logging.getLogger("x6wd.loop.runner").filters
+    )  # the robot's log is left as it was
 
 
 def test_a_start_up_wait_counted_as_a_hold_is_logged_after_all() -> None:
@@ -331,13 +335,25 @@ def test_a_start_up_wait_counted_as_a_hold_is_logged_after_all() -> None:
     logger.addHandler(handler)
     logger.addFilter(held)
     try:
+        start = f"state IDLE -> HOLD state: {STARTUP_HOLD}"
         logger.warning("state %s -> %s %s%s", "IDLE", "HOLD", f"state: {STARTUP_HOLD}", "")
+        assert seen == []  # held: the start-up wait, so far
+        # it turns into another hold (a fault, a wait for the sky): said at once, in order
         logger.warning("state %s -> %s %s%s", "HOLD", "HOLD", "state: compass stale", "")
-        assert seen == ["state HOLD -> HOLD state: compass stale"]
-        logger.removeFilter(held)
+        assert seen == [start, "state HOLD -> HOLD state: compass stale"]
         held.release(logger)
-        assert seen[-1] == f"state IDLE -> HOLD state: {STARTUP_HOLD}"
+        assert len(seen) == 2  # once
+        # a run that ends in the wait: released at its end
+        logger.removeFilter(held)
+        ended = mission._StartupHoldHeld()
+        logger.addFilter(ended)
+        logger.warning("state %s -> %s %s%s", "IDLE", "HOLD", f"state: {STARTUP_HOLD}", "")
+        assert len(seen) == 2
+        logger.removeFilter(ended)
+        ended.release(logger)
+        assert seen[-1] == start and len(seen) == 3
     finally:
+        logger.removeFilter(held)
         logger.removeHandler(handler)
     # a first state change that is not the start-up wait is never held
     other = mission._StartupHoldHeld()

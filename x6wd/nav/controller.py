@@ -104,7 +104,7 @@ ARRIVAL_GPS_SIGMAS = 3.0
 """An EKF arrival needs the latest fix within this many of its standard deviations..."""
 ARRIVAL_GPS_MIN_M = 5.0
 """... and never less than this (m) of the waypoint."""
-UNCERTAIN_RELEASE = 0.8
+UNCERTAIN_RELEASE = 0.9
 """A wait for a position too uncertain ends once the error radius is under this fraction of
 its limit (hysteresis: a radius about the limit made 219 stops and starts in a review)."""
 UNCERTAIN_HOLD = "position too uncertain"
@@ -271,7 +271,9 @@ class Controller:
         self._launch: tuple[float, float] | None = None  # (lat_deg, lon_deg) at mission start
         self._failsafe_why = ""  # the last failsafe that acted (telemetry)
         self._operator_t: float | None = None  # latest operator request (s), when watched
-        self._hold_since: float | None = None  # a sensor hold began (s)
+        # a sensor's holds since the robot last drove: how long in all (s), the latest tick (s)
+        self._sensor_s = 0.0
+        self._sensor_t: float | None = None
         # waiting for a position good enough to judge a waypoint (_uncertain_hold): for which
         # (navigator, waypoint index), how long in all (s), since the latest tick (s)
         self._uncertain_at: tuple[Navigator, int] | None = None
@@ -604,7 +606,8 @@ class Controller:
         self._source.reset()
         self._stuck_wheels = self._stuck_body = self._pivot_best = None
         self._course.reset()
-        self._hold_since = self._jump_m = None
+        self._jump_m = self._sensor_t = None
+        self._sensor_s = 0.0
         self._uncertain_at = self._uncertain_t = None
         self._enc_watch.reset()
         self._encoder_fault = ""
@@ -649,7 +652,7 @@ class Controller:
         self._return_stop_until = now + RETURN_STOP_S  # stop first (RETURN_STOP_S)
         self._stuck_wheels = self._stuck_body = self._pivot_best = None
         self._course.reset()
-        self._hold_since = None
+        self._sensor_s, self._sensor_t = 0.0, None
         if self._mode == Mode.RUNNING:
             # still RUNNING, towards another target: a mode change with old == new says so
             out.append(
@@ -784,7 +787,6 @@ class Controller:
             # waiting for the sky (poor geometry): its own patience, the time held for this
             # waypoint in all (the radius about its limit stops and starts the robot), and
             # only a pause follows: a return would steer by the same position
-            self._hold_since = None
             at = (self._navigator, self._navigator.index)
             if (
                 self._uncertain_at is None
@@ -801,15 +803,21 @@ class Controller:
                 return f"{hold} for {limit_s:g} s", "hold"
         else:
             self._uncertain_t = None
-        if hold and hold != "motor link lost" and not uncertain:
-            # a sensor's hold: timed from its own start (not an uncertain wait's before it)
-            if self._hold_since is None:
-                self._hold_since = now
-            elif fs.sensor_timeout_s > 0 and now - self._hold_since >= fs.sensor_timeout_s:
-                self._hold_since = None
-                return f"{hold} for {fs.sensor_timeout_s:g} s", fs.sensor_action
+        if not hold or hold == "motor link lost":
+            self._sensor_s, self._sensor_t = 0.0, None  # it drives (or the link's own rule)
         elif not uncertain:
-            self._hold_since = None
+            # a sensor's hold: its time in all since the robot last drove, so neither a wait
+            # for the sky before it (one lost fix after 35 s of waiting fired at once) nor
+            # one between its spells (a fix every 29 s, each a wait: 700 s standing, no
+            # failsafe) counts or restarts it
+            if self._sensor_t is not None:
+                self._sensor_s += now - self._sensor_t
+            self._sensor_t = now
+            if fs.sensor_timeout_s > 0 and self._sensor_s >= fs.sensor_timeout_s:
+                self._sensor_s, self._sensor_t = 0.0, None
+                return f"{hold} for {fs.sensor_timeout_s:g} s", fs.sensor_action
+        else:
+            self._sensor_t = None
         op_t = self._operator_t
         if fs.operator_timeout_s > 0 and op_t is not None and now - op_t > fs.operator_timeout_s:
             self._operator_t = None  # re-armed by the operator's next request
@@ -1483,13 +1491,18 @@ class Controller:
                 )
             out.append(StateChange(now, str(self._state), str(state), reason))
             self._state = state
-        elif hold.startswith(UNCERTAIN_HOLD) and not self._hold_reason.startswith(UNCERTAIN_HOLD):
-            # a hold that turns into this wait (after "position estimate not ready" at a
-            # start on 4 satellites): said, as a hold's start is, so the log names it
+        elif (
+            hold
+            and self._hold_reason
+            and hold.startswith(UNCERTAIN_HOLD) != self._hold_reason.startswith(UNCERTAIN_HOLD)
+        ):
+            # a hold that turns into a wait for the sky, or back into a sensor's hold (after
+            # "position estimate not ready" at a start on 4 satellites): said, as a hold's
+            # start is, so the log names what the robot holds for
             out.append(StateChange(now, str(state), str(state), f"state: {hold}"))
         self._hold_reason = hold
         if self._mode != Mode.RUNNING:
-            self._uncertain_t = None  # the wait's clock runs only while running
+            self._uncertain_t = self._sensor_t = None  # the holds' clocks run only while running
 
         if hold:
             reason = f"hold: {hold}"
