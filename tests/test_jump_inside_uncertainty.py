@@ -22,18 +22,25 @@ from x6wd.nav.controller import Controller
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _town_start(first_hdop: float) -> Controller:
-    """Started on 5 s of fixes 35 m east of the robot with HDOP ``first_hdop``, then driven
-    north 40 s at 1 m/s with fixes on the robot (HDOP 1.4)."""
-    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
-    for k in range(0, 51):  # standing: compass at 10 Hz, fixes at 1 Hz 35 m off
+def _stand_then_start(c: Controller, east_m: float, hdop: float, north_m: float) -> None:
+    """5 s standing (compass 10 Hz, fixes 1 Hz ``east_m`` east of the robot at ``hdop``),
+    then a mission to one waypoint ``north_m`` north of the robot started."""
+    for k in range(0, 51):
         t = 0.1 * k
         c.on_odometry(WheelOdometry(t, 0, 0, k))
         c.on_attitude(att(t))
         if k % 10 == 0:
-            c.on_fix(replace(fix(t, 35.0, 0.0), hdop=first_hdop, sats_used=4))
-    c.load_mission([at(0.0, 1000.0)], 5.0)
+            sats = 4 if hdop > 5.0 else 8
+            c.on_fix(replace(fix(t, east_m, 0.0), hdop=hdop, sats_used=sats))
+    c.load_mission([at(0.0, north_m)], 5.0)
     c.start(5.0)
+
+
+def _town_start(first_hdop: float) -> Controller:
+    """Started on 5 s of fixes 35 m east of the robot with HDOP ``first_hdop``, then driven
+    north 40 s at 1 m/s with fixes on the robot (HDOP 1.4)."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    _stand_then_start(c, 35.0, first_hdop, 1000.0)
     for k in range(51, 451):
         t = 0.1 * k
         counts = round((t - 5.0) * COUNTS_PER_M)
@@ -171,14 +178,7 @@ def _north_then_elsewhere(lce_m: float, hdop: float, jump_m: float) -> Controlle
         gnss_noise=GnssNoiseConfig(lce_default_m=lce_m),
     )
     counts = 0
-    for k in range(0, 51):
-        t = 0.1 * k
-        c.on_odometry(WheelOdometry(t, 0, 0, k))
-        c.on_attitude(att(t))
-        if k % 10 == 0:
-            c.on_fix(replace(fix(t), hdop=hdop))
-    c.load_mission([at(0.0, 1000.0)], 5.0)
-    c.start(5.0)
+    _stand_then_start(c, 0.0, hdop, 1000.0)
     for k in range(51, 900):
         t = 0.1 * k
         if not c.command.is_stop:
@@ -233,14 +233,7 @@ def test_a_lost_fix_after_a_long_wait_is_timed_from_its_own_start() -> None:
     nor restart the wait."""
     fs = replace(FS, sensor_action="return")
     c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=fs)
-    for k in range(0, 51):
-        t = 0.1 * k
-        c.on_odometry(WheelOdometry(t, 0, 0, k))
-        c.on_attitude(att(t))
-        if k % 10 == 0:
-            c.on_fix(replace(fix(t, 35.0, 0.0), hdop=12.0, sats_used=4))
-    c.load_mission([at(0.0, 25.0)], 5.0)
-    c.start(5.0)
+    _stand_then_start(c, 35.0, 12.0, 25.0)
     fired: list[tuple[float, str]] = []
     for k in range(51, 1600):
         t = 0.1 * k
@@ -267,14 +260,7 @@ def test_a_lost_fix_and_the_wait_taking_turns_still_end_in_the_sensor_timeout() 
     only a second each time. A sensor's hold now counts its time in all since the robot
     last drove; and the log names each turn."""
     c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
-    for k in range(0, 51):
-        t = 0.1 * k
-        c.on_odometry(WheelOdometry(t, 0, 0, k))
-        c.on_attitude(att(t))
-        if k % 10 == 0:
-            c.on_fix(replace(fix(t, 35.0, 0.0), hdop=18.0, sats_used=4))
-    c.load_mission([at(0.0, 25.0)], 5.0)
-    c.start(5.0)
+    _stand_then_start(c, 35.0, 18.0, 25.0)
     turns: list[str] = []
     for k in range(51, 3000):
         t = 0.1 * k
