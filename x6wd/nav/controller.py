@@ -1255,11 +1255,14 @@ class Controller:
         return self._uncertain_hold()
 
     def _uncertain_hold(self) -> str:
-        """Hold while the EKF's error radius exceeds ``arrival_max_error_m`` with the next
-        waypoint inside it: it cannot tell whether the robot is there. A town start on
-        4-satellite fixes (HDOP 12, 35 m off, sigma 26 m) otherwise took two waypoints as
-        reached 38-42 m from them; holding, the robot drives on once the fixes improve, to
-        where the waypoints are. The sensor timeout's failsafe acts if they never do."""
+        """Hold while the EKF's error radius exceeds the degraded radius
+        (:func:`~x6wd.nav.position.degraded_radius_m`: ``arrival_max_error_m``, or the site's
+        configured noise at HDOP 3 where larger) with the next waypoint inside it: it cannot
+        tell whether the robot is there. A town start on 4-satellite fixes (HDOP 12, 35 m
+        off, sigma 26 m) otherwise took two waypoints as reached 38-42 m from them; holding,
+        the robot drives on once the fixes improve, to where the waypoints are; held, only
+        under :data:`UNCERTAIN_RELEASE` of that radius. ``position_timeout_s`` pauses it if
+        they never do (:meth:`_failsafe_check`)."""
         cfg, nav, filt = self._nav_cfg, self._navigator, self._filt
         held = self._hold_reason.startswith(UNCERTAIN_HOLD)
         if cfg.arrival_max_error_m <= 0 or cfg.position_source != "ekf" or filt is None:
