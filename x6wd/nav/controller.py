@@ -788,18 +788,15 @@ class Controller:
             # waypoint in all (the radius about its limit stops and starts the robot), and
             # only a pause follows: a return would steer by the same position
             at = (self._navigator, self._navigator.index)
-            if (
-                self._uncertain_at is None
-                or self._uncertain_at[0] is not at[0]
-                or (self._uncertain_at[1] != at[1])
-            ):
+            last = self._uncertain_at
+            if last is None or last[0] is not at[0] or last[1] != at[1]:
                 self._uncertain_at, self._uncertain_s = at, 0.0
             elif self._uncertain_t is not None:
                 self._uncertain_s += now - self._uncertain_t
             self._uncertain_t = now
             limit_s = fs.position_timeout_s
             if limit_s > 0 and self._uncertain_s >= limit_s:
-                self._uncertain_at, self._uncertain_t = None, None
+                self._uncertain_at = self._uncertain_t = None
                 return f"{hold} for {limit_s:g} s", "hold"
         else:
             self._uncertain_t = None
@@ -1264,11 +1261,9 @@ class Controller:
         under :data:`UNCERTAIN_RELEASE` of that radius. ``position_timeout_s`` pauses it if
         they never do (:meth:`_failsafe_check`)."""
         cfg, nav, filt = self._nav_cfg, self._navigator, self._filt
+        if cfg.arrival_max_error_m <= 0 or cfg.position_source != "ekf" or filt is None or nav.done:
+            return ""
         held = self._hold_reason.startswith(UNCERTAIN_HOLD)
-        if cfg.arrival_max_error_m <= 0 or cfg.position_source != "ekf" or filt is None:
-            return ""
-        if nav.done:
-            return ""
         noise_m = self._source.extra().get("ekf_noise_hdop1_m")
         limit_m = degraded_radius_m(
             cfg.arrival_max_error_m, noise_m if isinstance(noise_m, float) else 0.0
