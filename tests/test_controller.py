@@ -101,8 +101,15 @@ def test_straight_and_turn_mixing() -> None:
     _, cmd, tel = split(c.on_attitude(att(1.0, 0.0)))
     assert tel.state == NavState.STRAIGHT and (cmd.left_pct, cmd.right_pct) == (60.0, 60.0)
     _, cmd, tel = split(c.on_attitude(att(1.1, 300.0)))  # heading -60: target is clockwise
+    # the right side, forward until now, stops before it reverses (REVERSE_STOP_S)
+    assert tel.state == NavState.TURN_RIGHT and (cmd.left_pct, cmd.right_pct) == (40.0, 0.0)
+    assert cmd.reason == "TURN_RIGHT; stop before reversing"
+    _, cmd, tel = split(c.on_attitude(att(1.6, 300.0)))
     assert tel.state == NavState.TURN_RIGHT and (cmd.left_pct, cmd.right_pct) == (40.0, -40.0)
-    _, cmd, tel = split(c.on_attitude(att(1.2, 60.0)))
+    assert cmd.reason == "TURN_RIGHT"
+    _, cmd, tel = split(c.on_attitude(att(1.7, 60.0)))  # the other way: both sides reverse
+    assert tel.state == NavState.TURN_LEFT and (cmd.left_pct, cmd.right_pct) == (0.0, 0.0)
+    _, cmd, tel = split(c.on_attitude(att(2.2, 60.0)))
     assert tel.state == NavState.TURN_LEFT and (cmd.left_pct, cmd.right_pct) == (-40.0, 40.0)
     assert tel.target_bearing_deg == pytest.approx(0.0, abs=1e-6)
     assert tel.theta_deg == pytest.approx(-60.0, abs=1e-6)

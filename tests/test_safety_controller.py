@@ -129,7 +129,7 @@ def test_a_session_reports_every_mode_and_state_change_with_its_time_and_reason(
                        (3.4, "STRAIGHT", "IDLE", "state: stop")],
          MotorCommand(3.4, 0.0, 0.0, "idle"))  # fmt: skip
     step(c.manual_drive(20, -20, 1.0, 3.5), [(3.5, "IDLE", "MANUAL", "mode: manual drive")],
-         MotorCommand(3.5, 20.0, -20.0, "manual"))  # fmt: skip
+         MotorCommand(3.5, 20.0, 0.0, "manual; stop before reversing"))  # fmt: skip
     step(c.tick(4.5), [(4.5, "MANUAL", "IDLE", "mode: manual drive expired")],
          MotorCommand(4.5, 0.0, 0.0, "idle"))  # fmt: skip
     c.manual_drive(10, 10, 2.0, 5.0)
@@ -332,7 +332,11 @@ def test_manual_drive_takes_full_power_both_ways() -> None:
     _, cmd, _ = split(c.manual_drive(-100, 100, 1.0, 0.0))
     assert (cmd.left_pct, cmd.right_pct) == (-100.0, 100.0)
     _, cmd, _ = split(c.manual_drive(100.0, -100.0, 1.0, 0.1))
-    assert (cmd.left_pct, cmd.right_pct) == (100.0, -100.0)
+    # both sides flip: each stops for REVERSE_STOP_S first, the operator's drive too
+    assert (cmd.left_pct, cmd.right_pct) == (0.0, 0.0)
+    assert cmd.reason == "manual; stop before reversing"
+    _, cmd, _ = split(c.tick(0.6))
+    assert (cmd.left_pct, cmd.right_pct) == (100.0, -100.0) and cmd.reason == "manual"
 
 
 @pytest.mark.parametrize(
@@ -552,8 +556,11 @@ def test_arc_pivot_hysteresis_reaches_the_wheels() -> None:
     assert (cmd.left_pct, cmd.right_pct) == (40.0, -40.0) and tel.extra["pivoting"] is True
     _, cmd, tel = split(c.on_attitude(att(1.2, 355.0)))  # 5° off: drive the arc again
     k = 2.0 * math.sin(math.radians(5.0)) / 8.0
-    assert (cmd.left_pct, cmd.right_pct) == pytest.approx((60.0 * (1 + k), 60.0 * (1 - k)))
+    # ... the right side once it has stopped before reversing (REVERSE_STOP_S)
+    assert (cmd.left_pct, cmd.right_pct) == pytest.approx((60.0 * (1 + k), 0.0))
     assert tel.extra["pivoting"] is False
+    _, cmd, tel = split(c.on_attitude(att(1.7, 355.0)))
+    assert (cmd.left_pct, cmd.right_pct) == pytest.approx((60.0 * (1 + k), 60.0 * (1 - k)))
 
 
 def test_arc_stops_in_hold_pause_arrival_and_done() -> None:
@@ -617,6 +624,9 @@ def test_arc_telemetry_names_how_a_waypoint_was_reached() -> None:
     assert tel.state == NavState.ARRIVED and (cmd.left_pct, cmd.right_pct) == (0.0, 0.0)
     assert tel.extra["arrived_by"] == "passed" and tel.extra["steer_alpha_deg"] is None
     _, cmd, tel = split(c.on_attitude(att(2.1, 0.0)))
+    # the right side drove forward 1.1 s ago and stopped only at 2.0: held until 2.5
+    assert tel.state == NavState.TURN_RIGHT and (cmd.left_pct, cmd.right_pct) == (40.0, 0.0)
+    _, cmd, tel = split(c.on_attitude(att(2.5, 0.0)))
     assert tel.state == NavState.TURN_RIGHT and (cmd.left_pct, cmd.right_pct) == (40.0, -40.0)
 
 

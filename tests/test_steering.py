@@ -298,8 +298,13 @@ def test_controller_mixes_the_arc_and_shows_it_in_telemetry() -> None:
     cmd, tel = _cmd_tel(
         c.on_attitude(Attitude(t_s=0.4, bearing_deg=270.0, pitch_deg=0.0, roll_deg=0.0))
     )  # 90° left
-    assert tel.state == NavState.TURN_RIGHT and (cmd.left_pct, cmd.right_pct) == (40.0, -40.0)
+    # the right side, forward in the arc, stops before it reverses (REVERSE_STOP_S)
+    assert tel.state == NavState.TURN_RIGHT and (cmd.left_pct, cmd.right_pct) == (40.0, 0.0)
     assert tel.extra["pivoting"] is True and tel.extra["curvature_per_m"] is None
+    cmd, tel = _cmd_tel(
+        c.on_attitude(Attitude(t_s=0.9, bearing_deg=270.0, pitch_deg=0.0, roll_deg=0.0))
+    )
+    assert tel.state == NavState.TURN_RIGHT and (cmd.left_pct, cmd.right_pct) == (40.0, -40.0)
     # paper mode: unchanged mixing, no steering keys
     p = Controller(replace(nav, steering="paper"), SafetyConfig())
     p.load_mission([tuple(float(v) for v in ltp.to_latlon(0.0, 100.0))], 0.0)  # type: ignore[list-item]

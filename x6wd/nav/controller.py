@@ -187,6 +187,14 @@ several stops, so a mission's forward drive never flips straight into the return
 (an outside audit: ``M 17 13`` then, 25 ms later, ``M 40 -40``)."""
 RETURN_STOP_REASON = "stop before the return to launch"  # the reason that stop carries
 
+REVERSE_STOP_S = 0.5
+"""A side whose command changes sign (a pivot's start from the straight or an arc, a pivot
+that swings the other way, a manual drive flipped) is held at 0 until it has been commanded 0
+this long (s): two motor time constants (the simulator's ``motor_tau_s``, 0.25 s), so a
+motor never slams from forward to reverse (``+60`` then ``-40`` 50 ms later wears the
+gearbox and draws a stall current through the driver). The other side drives on."""
+REVERSE_STOP_NOTE = "stop before reversing"  # added to the command's reason while held
+
 
 def _check_t(t_s: float, what: str) -> float:
     try:
@@ -342,6 +350,14 @@ class Controller:
         self._manual: tuple[float, float, float] | None = None  # left %, right %, until t_s
         self._has_mission = False
         self._cmd = MotorCommand(0.0, 0.0, 0.0, "idle")
+        # the command as decided, before the reversal stop (left %, right %): the stuck and
+        # pivot checks judge the drive the robot asked for, so a pivot that swings to and
+        # fro, each swing held at 0 a moment, still counts as driving
+        self._intent: tuple[float, float] = (0.0, 0.0)
+        # per side (left, right): the sign of the last non-zero command, and since when (s)
+        # the side has been commanded 0 (None while it drives)
+        self._side_sign = [0, 0]
+        self._side_zero_t: list[float | None] = [0.0, 0.0]
         self._telemetry = Telemetry(t_s=0.0, mode=self._mode, state=self._state)
         # Memos for the per-call geometry. A compass sample (20 Hz) changes only the heading
         # and a fix (1 Hz) only the position, yet every call needs both, for the decision and
@@ -777,9 +793,16 @@ class Controller:
             # farther than the robot can have driven unseen: the operator looks before it
             # drives on either position (a return would trust the new one too)
             self._relaunch_after_jump(now)
+            doubt_deg = self._course.heading_doubt_deg
+            cause = (
+                "GPS back somewhere else, or the robot carried?"
+                if doubt_deg is None
+                else f"the GPS course lies {doubt_deg:.0f} deg from the compass's heading:"
+                " a compass fault?"
+            )
             return (
                 f"position jumped {jump_m:.0f} m: the fixes disagreed with the estimate until"
-                " it moved to them (GPS back somewhere else, or the robot carried?)",
+                f" it moved to them ({cause})",
                 "hold",
             )
         uncertain = hold.startswith(UNCERTAIN_HOLD)
@@ -959,9 +982,10 @@ class Controller:
         in that time (``ENCODER_FAULT_TURN_DEG``, ``ENCODER_FAULT_SIGMAS``). The wheels'
         test also runs without a usable fix or heading (dead-reckoning through an outage);
         the body's clock then restarts with the next fix."""
-        fs, cmd, fix, att = self._failsafe, self._cmd, self._fix, self._att
-        forward = 0.5 * (cmd.left_pct + cmd.right_pct)
-        turning = 0.5 * abs(cmd.left_pct - cmd.right_pct)
+        fs, fix, att = self._failsafe, self._fix, self._att
+        left, right = self._intent  # as decided: a reversal stop is no standstill
+        forward = 0.5 * (left + right)
+        turning = 0.5 * abs(left - right)
         driving = max(abs(forward), turning) >= fs.stuck_min_pct
         if not driving:
             self._stuck_wheels = self._stuck_body = None
@@ -1175,11 +1199,11 @@ class Controller:
         or more) whose heading error to its target has not come ``PIVOT_HEADWAY_DEG``
         nearer zero for ``stuck_s``: the compass moves but never towards the target, so the
         robot would spin on. A slow pivot still gains 10° in 10 s at 1°/s."""
-        last, cmd = self._navigator.last, self._cmd
+        last, (left, right) = self._navigator.last, self._intent
         err_rad = None
         if self._state in (NavState.TURN_LEFT, NavState.TURN_RIGHT) and last is not None:
             err_rad = last.theta_rad if last.steer_alpha_rad is None else last.steer_alpha_rad
-        turning = 0.5 * abs(cmd.left_pct - cmd.right_pct) >= self._failsafe.stuck_min_pct
+        turning = 0.5 * abs(left - right) >= self._failsafe.stuck_min_pct
         if err_rad is None or last is None or not turning:
             self._pivot_best = None
             return None
@@ -1512,6 +1536,12 @@ class Controller:
             reason = str(state)
         else:
             reason = str(self._mode).lower()
+        self._intent = (left, right)
+        held = self._reversal_stop(now, 0, left) | 2 * self._reversal_stop(now, 1, right)
+        if held:
+            left = 0.0 if held & 1 else left
+            right = 0.0 if held & 2 else right
+            reason = f"{reason}; {REVERSE_STOP_NOTE}"
         prev = self._cmd
         self._cmd = MotorCommand(now, left, right, reason)
         if prev.left_pct != left or prev.right_pct != right:
@@ -1520,6 +1550,27 @@ class Controller:
         out.append(self._cmd)
         out.append(self._telemetry)
         return out
+
+    def _reversal_stop(self, now: float, side: int, pct: float) -> bool:
+        """Must ``side`` (0 left, 1 right) be held at 0 instead of ``pct`` (%) at ``now`` (s)?
+        Yes while ``pct`` reverses the side's last non-zero command and the side has not yet
+        been commanded 0 for ``REVERSE_STOP_S``; bookkeeping for the side otherwise."""
+        sign = (pct > 0) - (pct < 0)
+        zero_t = self._side_zero_t[side]
+        if sign == 0:
+            if zero_t is None:
+                self._side_zero_t[side] = now
+            return False
+        last = self._side_sign[side]
+        if last and sign != last:
+            if zero_t is None:
+                self._side_zero_t[side] = now
+                return True
+            if now - zero_t < REVERSE_STOP_S:
+                return True
+        self._side_sign[side] = sign
+        self._side_zero_t[side] = None
+        return False
 
     def _snapshot(self, now: float) -> Telemetry:
         # Runs on every call (20 Hz from the compass alone): plain locals, no recomputation.

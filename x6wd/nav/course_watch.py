@@ -80,7 +80,16 @@ class CourseWatch:
         self._best_travel_m: float | None = None  # the wheels' travel at that fix
         self._window.clear()
         self._bad = 0  # heading windows in a row over the limit
+        self._bad_deg = 0.0  # the latest such window's heading error (deg)
         self._away = 0  # fixes in a row past off_course_m
+
+    @property
+    def heading_doubt_deg(self) -> float | None:
+        """While the latest heading window (and any in a row before it) lay over
+        ``heading_check_deg`` but the check has not fired yet: that window's heading error
+        (deg) from the GPS course, else None. Evidence a failsafe that fires first can name
+        (the EKF dead-reckons with a compass mounted 90 deg off and jumps to the fixes)."""
+        return self._bad_deg if self._bad else None
 
     def on_fix(
         self,
@@ -158,6 +167,7 @@ class CourseWatch:
             self._bad = 0
             return None
         self._bad += 1
+        self._bad_deg = off_deg
         # the next window starts here: the checks in a row cover fresh stretches (a GPS
         # drift bends one stretch of fixes, not three in turn)
         w.clear()
