@@ -21,6 +21,7 @@ from x6wd.core.config import PACKAGED_CONFIG_DIR
 from x6wd.core.errors import ConfigError, X6wdError
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.outdir import output_dir, output_file
+from x6wd.core.recorder import not_regular
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
 from x6wd.gap.diagnose import Diagnosis, Options, check_real, diagnose
 from x6wd.gap.io import (
@@ -347,6 +348,15 @@ def check_shared_truths(names: list[str], truths: list[Track | None], truth_trac
         " closed-loop run steers on its own GPS error), so one moving truth is the true path"
         f" of one run at most: give each --sim log the {SIM_TRUTH_NAME} its own run wrote"
     )
+
+
+def read_input(path: str | Path) -> Track:
+    """:func:`read_track` of a log the user named; on a named FIFO it first says on stderr
+    that it waits for the FIFO's writer (opening one without a writer blocks, and the run
+    looked hung with no word)."""
+    if not_regular(path) == "a FIFO":
+        print(f"x6wd gap: {path} is a FIFO: waiting for its writer", file=sys.stderr, flush=True)
+    return read_track(path)
 
 
 def check_real_truth(args: argparse.Namespace, real: PositionSeries | None = None) -> None:
@@ -849,8 +859,8 @@ def main(args: argparse.Namespace) -> int:
     remove_earlier_outputs(output_dir(args.out))
     bar("reading logs", 0.0)
     check_real_truth(args)
-    truth_track = read_track(args.truth_track) if args.truth_track is not None else None
-    real_track = read_track(args.real)
+    truth_track = read_input(args.truth_track) if args.truth_track is not None else None
+    real_track = read_input(args.real)
     check_step(real_track)
     real = to_errors(real_track, args, truth_track, "real")
     check_still(args, [args.real], [real_track], [truth_track])
@@ -919,7 +929,7 @@ def main(args: argparse.Namespace) -> int:
             # every level cell (CEP50, R95, the means) reads the runs' hour offsets as a gap
             baseline = [against_own_mean(s) for s in baseline]
     else:
-        sims = [read_track(p) for p in args.sim]
+        sims = [read_input(p) for p in args.sim]
         for sim in sims:
             check_step(sim)
         if args.truth is not None:

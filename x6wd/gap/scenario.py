@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import replace
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -87,9 +87,35 @@ def place_at_log(
         f"the scenario's runs simulate {when}; at {origin.lat_deg:.6f}, {origin.lon_deg:.6f}"
         f" (the truth, or the log's mean), altitude {alt_text}"
     )
+    rolled = week_rollover_hint(start_utc_s)  # said with the sky's warnings (stderr too)
+    if rolled:
+        notes.append(rolled)
     duration_s = float(template.t_s[-1] - template.t_s[0]) if len(template) else 0.0
     notes += [f"simulated sky: {w}" for w in sky_warnings(world, duration_s)]
     return world, notes
+
+
+GPS_WEEK_ROLLOVER = timedelta(weeks=1024)
+"""The legacy 10-bit GPS week's span (19.6 years); rollovers 1999-08-22, 2019-04-07."""
+LAST_ROLLOVER_UTC = datetime(2019, 4, 7, tzinfo=UTC)
+
+
+def week_rollover_hint(start_utc_s: float | None, now: datetime | None = None) -> str:
+    """A note for a log dated before the last GPS week rollover whose date plus 1024 weeks
+    is not in the future (``now``, default the clock): a receiver whose firmware predates a
+    rollover prints such dates, and the simulated sky is then 19.6 years off. Else ""."""
+    if start_utc_s is None:
+        return ""
+    start = datetime.fromtimestamp(start_utc_s, UTC)
+    later = start + GPS_WEEK_ROLLOVER
+    if start >= LAST_ROLLOVER_UTC or later > (now or datetime.now(UTC)):
+        return ""
+    return (
+        f"the real log is dated {start:%Y-%m-%d}: if its receiver's firmware predates a GPS"
+        f" week rollover (1999-08-22, 2019-04-07) it was recorded 1024 weeks later, on"
+        f" {later:%Y-%m-%d}, and the runs simulate a sky 19.6 years off (add the 1024 weeks"
+        " to the log's dates to simulate its own)"
+    )
 
 
 def scenario_baseline(

@@ -1,0 +1,81 @@
+"""The gap tool's input, round 17: a FIFO without a writer is named while the tool waits,
+and a log dated a GPS week rollover early gets a note saying so."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim_backend.effects import PositionSeries
+from sim_backend.world import load_world
+from x6wd.gap.cli import read_input
+from x6wd.gap.io import read_track
+from x6wd.gap.scenario import place_at_log
+
+LOG = Path(__file__).parent / "data" / "nmea" / "quectel-l76k-dual.log"
+SCENARIO = Path(__file__).resolve().parents[1] / "config" / "scenarios" / "open_field.toml"
+
+
+def test_a_fifo_without_a_writer_is_named_while_the_tool_waits(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Opening a FIFO blocks until its writer comes: `x6wd gap --real FIFO` sat silent."""
+    path = tmp_path / "log.fifo"
+    os.mkfifo(path)
+    said = threading.Event()
+
+    def write() -> None:
+        deadline = time.monotonic() + 10.0
+        while "waiting for its writer" not in capsys.readouterr().err:
+            assert time.monotonic() < deadline, "nothing said while waiting"
+            time.sleep(0.05)
+        said.set()
+        with open(path, "wb") as f:
+            f.write(LOG.read_bytes())
+
+    writer = threading.Thread(target=write, daemon=True)
+    writer.start()
+    track = read_input(path)
+    writer.join(10)
+    assert said.is_set()  # said before the writer came (the writer waited for the words)
+    assert len(track.t_s) == len(read_track(LOG).t_s) > 0
+    assert read_input(LOG).source == str(LOG)
+    assert capsys.readouterr().err == ""  # a regular file: nothing to say
+
+
+def _series(start: datetime) -> PositionSeries:
+    t = np.arange(600.0)
+    z = np.zeros_like(t)
+    return PositionSeries(
+        t_s=t, east_m=z, north_m=z, up_m=z, valid=np.ones(t.shape, bool),
+        origin_lat_deg=51.7, origin_lon_deg=19.5,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("printed", "rolled"),
+    [
+        (datetime(2001, 9, 16, 10, 0, tzinfo=UTC), "2021-05-02"),  # a NEO-6 past 2019-04-07
+        (datetime(2000, 2, 20, 8, 0, tzinfo=UTC), "2019-10-06"),
+        (datetime(2020, 6, 1, 12, 0, tzinfo=UTC), None),  # plain 2020: 2039 is the future
+        (datetime(1987, 3, 1, 12, 0, tzinfo=UTC), "2006-10-15"),
+        (datetime(2010, 1, 1, 12, 0, tzinfo=UTC), None),  # 2029: the future
+    ],
+)
+def test_a_log_dated_a_week_rollover_early_gets_a_note(
+    printed: datetime, rolled: str | None
+) -> None:
+    world = load_world(SCENARIO)
+    _, notes = place_at_log(world, _series(printed), start_utc_s=printed.timestamp())
+    hint = [n for n in notes if "week rollover" in n]
+    if rolled is None:
+        assert hint == [], notes
+    else:
+        (note,) = hint
+        assert f"{printed:%Y-%m-%d}" in note and rolled in note, note
