@@ -1110,7 +1110,7 @@ class GpsReader:
         finally:
             # Staleness by time, once per poll: the health never waits for a caller to ask.
             now = self._clock()
-            self._tracker.check(now)
+            self._tracker.check(now, self.at_end)
             self.line_load.tick(now)
             self.fix_rate.tick(now)
             setup = self.setup
@@ -1156,6 +1156,13 @@ class GpsReader:
     def state(self) -> DeviceState:
         """Shortcut for ``health.state``."""
         return self._tracker.health.state
+
+    @property
+    def at_end(self) -> bool:
+        """True when the open port has no more data to give: a ``replay://`` log played to
+        its end (a port with an ``eof`` attribute that is true); a live line never is. Any
+        thread may read it."""
+        return bool(getattr(self._port, "eof", False))
 
     def take_health_events(self) -> list[HealthEvent]:
         """Health transitions (and repeated failed reopens) since the last call, oldest

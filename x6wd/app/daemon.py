@@ -1198,6 +1198,8 @@ class Daemon:
             health_log=self._health_log,
             wmm_declination=decl is None,
         )
+        # a replay:// log played to its end is named so, not as a line's wiring fault
+        self.runner.gps_at_end = lambda: self._gps_reader is not None and self._gps_reader.at_end
         for key, enabled, host in (
             ("server.bind", cfg.server.enabled, cfg.server.bind),
             ("console.bind", cfg.console.enabled, cfg.console.bind),

@@ -313,9 +313,11 @@ class HealthTracker:
         self._health = self._snapshot()
         self._corrupt_event(t_s)
 
-    def check(self, t_s: float) -> None:
+    def check(self, t_s: float, ended: bool = False) -> None:
         """Time passes: an open device without good data for more than ``stale_s`` is stale;
-        corrupt input held back by the event interval is reported once it has passed."""
+        corrupt input held back by the event interval is reported once it has passed.
+        ``ended``: the source has no more data to give (a replayed log at its end), said in
+        the stale reason instead of the corrupt input's cause."""
         if self._corrupt is not self._corrupt_logged:
             self._corrupt_event(t_s)
         stale_s = self._stale_s
@@ -334,6 +336,12 @@ class HealthTracker:
             why = f"{what} for {t_s - ref:.2f} s (limit {stale_s:g} s)"
             # the stream may be arriving, every line of it corrupt: say so
             cause = self._describe(self._corrupt, self._corrupt_at_good)
+            if ended:
+                cause = (
+                    "the replayed log has ended"
+                    if self._last_data_t
+                    else "the replayed log has none"
+                )
             self.set_stale(t_s, f"{why}: {cause}" if cause else why)
 
     def closed(self, t_s: float) -> None:

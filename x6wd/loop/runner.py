@@ -159,6 +159,10 @@ def _nothing(*_args: Any) -> None:
     return None
 
 
+def _never() -> bool:
+    return False
+
+
 def _metres_beyond(d_m: float, limit_m: float, least: int = 0) -> str:
     """``d_m`` (m, beyond ``limit_m``) with the fewest decimals (``least`` to 6) that still
     read beyond the limit: "102" past 100, "15.03" past 15, never "15" past 15."""
@@ -224,6 +228,10 @@ class Runner:
         self._no_fix_since: float | None = None  # no valid fix from then (s; None: have one)
         self._no_fix_warned = False  # "no valid fix" logged for the current spell
         self._gps_data_t: float | None = None  # the latest GPS record's receive time (s)
+        self.gps_at_end: Callable[[], bool] = _never
+        """True once the GPS source has no more data to give (a ``replay://`` log played to
+        its end): the quiet line is then named for that, not for its wiring. Set by the
+        daemon."""
         self._resets_seen = 0  # EKF resets logged so far
         self.first_fix: tuple[float, float] | None = None
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
@@ -318,10 +326,14 @@ class Runner:
         (searching, the sky blocked: its sentences say there is no position)."""
         last = self._gps_data_t
         if last is None:
+            if self.gps_at_end():
+                return "no data from the receiver: the replayed log has none"
             return "no data from the receiver: check the line's wiring, baud and power"
         quiet_s = t_s - last
         if quiet_s <= GPS_QUIET_OF_FIX_STALE * self.safety.fix_stale_s:
             return ""
+        if self.gps_at_end():
+            return f"no data from the receiver for {quiet_s:.1f} s: the replayed log has ended"
         return (
             f"no good data from the receiver for {quiet_s:.1f} s: check the line's wiring,"
             " baud and power"

@@ -1,0 +1,65 @@
+"""A ``replay://`` log played to its end: the GPS device's stale reason in ``status`` names the
+replay's end, and so does the runner's "no valid fix" (its log line, the degraded reason),
+not the line's wiring (a closing note's item left since round 13)."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from pathlib import Path
+
+import pytest
+
+from tests.test_daemon import hil_config, run_daemon, wait_for  # noqa: F401 (fixture)
+from x6wd.app.client import RemoteClient
+from x6wd.app.daemon import Daemon
+from x6wd.core.config import GpsConfig, SafetyConfig
+
+ORIGIN = (51.7123, 19.4876)
+
+
+def _nmea(body: str) -> str:
+    checksum = functools.reduce(lambda acc, ch: acc ^ ord(ch), body, 0)
+    return f"${body}*{checksum:02X}\r\n"
+
+
+def _fixes(n_s: int) -> str:
+    """``n_s`` seconds of valid GGA + RMC at the origin, 1 Hz."""
+    out = []
+    for i in range(n_s):
+        t = f"1200{i:02d}.00"
+        out.append(_nmea(f"GPGGA,{t},5142.738,N,01929.256,E,1,08,0.9,100.0,M,34.0,M,,"))
+        out.append(_nmea(f"GPRMC,{t},A,5142.738,N,01929.256,E,0.0,0.0,010124,,,A"))
+    return "".join(out)
+
+
+@pytest.mark.parametrize("content", ["fixes", "empty"])
+def test_a_replay_at_its_end_is_named_not_the_wiring(
+    tmp_path: Path,
+    run_daemon,
+    content: str,  # noqa: F811
+) -> None:
+    log = tmp_path / "short.nmea"
+    log.write_text(_fixes(3) if content == "fixes" else "")
+    cfg = dataclasses.replace(
+        hil_config(tmp_path),
+        gps=GpsConfig(url=f"replay://{log}?speed=1"),
+        safety=SafetyConfig(geofence_radius_m=100.0, fix_stale_s=2.5),
+    )
+    r = run_daemon(Daemon(cfg))
+    end = "the replayed log has ended" if content == "fixes" else "the replayed log has none"
+    with RemoteClient("127.0.0.1", r.port) as c:
+        st = wait_for(
+            lambda: (
+                (s := c.request("status"))["devices"]["gps"]["state"] == "stale"
+                and end in s["devices"]["gps"]["reason"]
+                and s
+            ),
+            20,
+            f"the gps stale, naming {end!r}",
+        )
+    reason = st["devices"]["gps"]["reason"]
+    assert "wiring" not in reason and "corrupt" not in reason, reason
+    runner = r.daemon.runner
+    quiet = runner.gps_line_quiet(runner.clock() + 10.0)  # the runner's words (log, status)
+    assert end in quiet and "wiring" not in quiet, quiet
