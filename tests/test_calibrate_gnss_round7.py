@@ -95,7 +95,10 @@ def test_the_audits_zigzag_drive_against_the_default_missions_truth_is_refused(
     )  # fmt: skip
     assert r.returncode == 2 and "lce_default_m" not in r.stdout, r.stdout
     line = _one_error_line(r.stderr)
-    assert str(drive) in line and str(wrong) in line and "72 of 234" in line, line
+    assert str(drive) in line and str(wrong) in line, line
+    # the share depends on the two missions' lengths (each run's own), not a fixed count
+    m = re.search(r"only (\d+) of (\d+) fixes \((\d+) %\) fall within the reference's times", line)
+    assert m is not None and int(m[2]) > 100 and int(m[1]) < 0.5 * int(m[2]), line
     # its own truth.csv is taken
     r = subprocess.run(
         [*x6wd, "calibrate", "gnss", "--drive", str(drive), "--reference",
