@@ -16,7 +16,7 @@ from sim_backend.effects import PositionSeries
 from sim_backend.world import load_world
 from x6wd.gap.cli import read_input
 from x6wd.gap.io import read_track
-from x6wd.gap.scenario import place_at_log
+from x6wd.gap.scenario import place_at_log, week_rollover_hint
 
 LOG = Path(__file__).parent / "data" / "nmea" / "quectel-l76k-dual.log"
 SCENARIO = Path(__file__).resolve().parents[1] / "config" / "scenarios" / "open_field.toml"
@@ -58,24 +58,36 @@ def _series(start: datetime) -> PositionSeries:
     )  # fmt: skip
 
 
+NOW = datetime(2026, 12, 1, tzinfo=UTC)  # the hint's clock, fixed: no test expires
+
+
 @pytest.mark.parametrize(
     ("printed", "rolled"),
     [
-        (datetime(2001, 9, 16, 10, 0, tzinfo=UTC), "2021-05-02"),  # a NEO-6 past 2019-04-07
-        (datetime(2000, 2, 20, 8, 0, tzinfo=UTC), "2019-10-06"),
-        (datetime(2020, 6, 1, 12, 0, tzinfo=UTC), None),  # plain 2020: 2039 is the future
-        (datetime(1987, 3, 1, 12, 0, tzinfo=UTC), "2006-10-15"),
+        (datetime(2001, 9, 16, 10, 0, tzinfo=UTC), "1024 weeks later, on 2021-05-02, and"),
+        (datetime(2000, 2, 20, 8, 0, tzinfo=UTC), "1024 weeks later, on 2019-10-06, and"),
+        (datetime(2020, 6, 1, 12, 0, tzinfo=UTC), None),  # after the last rollover
         (datetime(2010, 1, 1, 12, 0, tzinfo=UTC), None),  # 2029: the future
+        # firmware from before 1999 today: 2048 weeks early
+        (
+            datetime(1987, 3, 1, 12, 0, tzinfo=UTC),
+            "on 2006-10-15 or 2048 weeks later, on 2026-05-31",
+        ),
     ],
 )
 def test_a_log_dated_a_week_rollover_early_gets_a_note(
     printed: datetime, rolled: str | None
 ) -> None:
+    hint = week_rollover_hint(printed.timestamp(), NOW)
+    if rolled is None:
+        assert hint == ""
+    else:
+        assert f"dated {printed:%Y-%m-%d}" in hint and rolled in hint, hint
+
+
+def test_the_rollover_note_reaches_the_reports_notes() -> None:
+    printed = datetime(2001, 9, 16, 10, 0, tzinfo=UTC)
     world = load_world(SCENARIO)
     _, notes = place_at_log(world, _series(printed), start_utc_s=printed.timestamp())
-    hint = [n for n in notes if "week rollover" in n]
-    if rolled is None:
-        assert hint == [], notes
-    else:
-        (note,) = hint
-        assert f"{printed:%Y-%m-%d}" in note and rolled in note, note
+    (note,) = [n for n in notes if "week rollover" in n]
+    assert "on 2021-05-02" in note and notes.index(note) > 0, notes  # said on stderr too

@@ -53,11 +53,13 @@ def test_a_side_that_stood_still_long_enough_reverses_at_once_and_a_stop_is_neve
     assert cmd.is_stop
     _, cmd, _ = split(c.manual_drive(-50.0, -50.0, 2.0, 0.1 + REVERSE_STOP_S))
     assert (cmd.left_pct, cmd.right_pct) == (-50.0, -50.0) and cmd.reason == "manual"
-    # flipped while driving: held, and the held side's stop counts from the flip
+    # a pivot key while reversing: the left side must reverse; in manual drive both sides
+    # wait (one side alone would swing the robot where the operator did not ask), and the
+    # stop counts from the flip
     _, cmd, _ = split(c.manual_drive(50.0, -50.0, 2.0, 1.0))
-    assert (cmd.left_pct, cmd.right_pct) == (0.0, -50.0)
+    assert (cmd.left_pct, cmd.right_pct) == (0.0, 0.0)
     _, cmd, _ = split(c.manual_drive(50.0, -50.0, 2.0, 1.0 + 0.6 * REVERSE_STOP_S))
-    assert (cmd.left_pct, cmd.right_pct) == (0.0, -50.0)
+    assert (cmd.left_pct, cmd.right_pct) == (0.0, 0.0)
     _, cmd, _ = split(c.tick(1.0 + REVERSE_STOP_S))
     assert (cmd.left_pct, cmd.right_pct) == (50.0, -50.0)
     # a flip back before the stop ended: the side never reversed, so it drives at once
@@ -129,3 +131,29 @@ def test_missions_on_the_shipped_config_never_reverse_a_side_without_a_stop(
     assert any(REVERSE_STOP_NOTE in str(r["data"].get("reason")) for r in records)
     assert _flips_without_stop(records) == []
     assert summary.completed
+
+
+def test_a_gps_drift_over_one_stretch_then_a_jump_does_not_blame_the_compass() -> None:
+    """The jump's reason names the compass only when the heading check has doubted it over
+    two stretches: one bent by a GPS drift beside a building (2 m/s east for 8 s while the
+    robot drives north, compass right) is the GPS's, and so is the 40 m jump after it (an
+    outside review: "a compass fault?" after one window)."""
+    from tests.test_failsafe_controller import COUNTS_PER_M, drive_north, ekf_driving_north
+
+    c = ekf_driving_north(FS)
+    assert drive_north(c, 2.0, 10.0, lambda t: 0.0) is None
+
+    def east_m(t: float) -> float:
+        return 0.0 if t < 12.0 else 2.0 * (t - 12.0) if t < 20.0 else 16.0 + 40.0
+
+    for k in range(1, 400):
+        t = 12.0 + 0.1 * k
+        counts = round((t - 2.0) * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t, 0.0))
+        if k % 10 == 0:
+            c.on_fix(fix(t, east_m(t), t - 2.0))
+        if c.mode != Mode.RUNNING:
+            break
+    why = str(c.telemetry.extra["failsafe"])
+    assert why.startswith("position jumped") and "GPS back somewhere else" in why, why

@@ -129,7 +129,7 @@ def test_a_session_reports_every_mode_and_state_change_with_its_time_and_reason(
                        (3.4, "STRAIGHT", "IDLE", "state: stop")],
          MotorCommand(3.4, 0.0, 0.0, "idle"))  # fmt: skip
     step(c.manual_drive(20, -20, 1.0, 3.5), [(3.5, "IDLE", "MANUAL", "mode: manual drive")],
-         MotorCommand(3.5, 20.0, 0.0, "manual; stop before reversing"))  # fmt: skip
+         MotorCommand(3.5, 0.0, 0.0, "manual; stop before reversing"))  # fmt: skip
     step(c.tick(4.5), [(4.5, "MANUAL", "IDLE", "mode: manual drive expired")],
          MotorCommand(4.5, 0.0, 0.0, "idle"))  # fmt: skip
     c.manual_drive(10, 10, 2.0, 5.0)

@@ -103,18 +103,24 @@ LAST_ROLLOVER_UTC = datetime(2019, 4, 7, tzinfo=UTC)
 def week_rollover_hint(start_utc_s: float | None, now: datetime | None = None) -> str:
     """A note for a log dated before the last GPS week rollover whose date plus 1024 weeks
     is not in the future (``now``, default the clock): a receiver whose firmware predates a
-    rollover prints such dates, and the simulated sky is then 19.6 years off. Else ""."""
+    rollover prints such dates (one that predates two, 2048 weeks early), and the simulated
+    sky is then 19.6 years off or more. It names every such date up to ``now``. Else ""."""
     if start_utc_s is None:
         return ""
     start = datetime.fromtimestamp(start_utc_s, UTC)
-    later = start + GPS_WEEK_ROLLOVER
-    if start >= LAST_ROLLOVER_UTC or later > (now or datetime.now(UTC)):
+    end = now or datetime.now(UTC)
+    later = []
+    k = 1
+    while start < LAST_ROLLOVER_UTC and start + k * GPS_WEEK_ROLLOVER <= end:
+        later.append(f"{1024 * k} weeks later, on {start + k * GPS_WEEK_ROLLOVER:%Y-%m-%d}")
+        k += 1
+    if not later:
         return ""
     return (
         f"the real log is dated {start:%Y-%m-%d}: if its receiver's firmware predates a GPS"
-        f" week rollover (1999-08-22, 2019-04-07) it was recorded 1024 weeks later, on"
-        f" {later:%Y-%m-%d}, and the runs simulate a sky 19.6 years off (add the 1024 weeks"
-        " to the log's dates to simulate its own)"
+        f" week rollover (1999-08-22, 2019-04-07) it was recorded {' or '.join(later)}, and"
+        " the runs simulate the wrong sky (add those weeks to the log's dates to simulate its"
+        " own)"
     )
 
 

@@ -192,7 +192,9 @@ REVERSE_STOP_S = 0.5
 that swings the other way, a manual drive flipped) is held at 0 until it has been commanded 0
 this long (s): two motor time constants (the simulator's ``motor_tau_s``, 0.25 s), so a
 motor never slams from forward to reverse (``+60`` then ``-40`` 50 ms later wears the
-gearbox and draws a stall current through the driver). The other side drives on."""
+gearbox and draws a stall current through the driver). In a mission the other side drives
+on (a pivot's start turns the right way meanwhile); in manual drive both sides wait, so the
+robot never moves in a way the operator did not ask for."""
 REVERSE_STOP_NOTE = "stop before reversing"  # added to the command's reason while held
 
 
@@ -1539,8 +1541,13 @@ class Controller:
         self._intent = (left, right)
         held = self._reversal_stop(now, 0, left) | 2 * self._reversal_stop(now, 1, right)
         if held:
-            left = 0.0 if held & 1 else left
-            right = 0.0 if held & 2 else right
+            if self._mode == Mode.MANUAL:
+                # the operator asked for this motion, not one side of it: a pivot key after
+                # driving ahead must not arc, a straight reverse after a pivot not swing
+                left = right = 0.0
+            else:
+                left = 0.0 if held & 1 else left
+                right = 0.0 if held & 2 else right
             reason = f"{reason}; {REVERSE_STOP_NOTE}"
         prev = self._cmd
         self._cmd = MotorCommand(now, left, right, reason)

@@ -85,11 +85,12 @@ class CourseWatch:
 
     @property
     def heading_doubt_deg(self) -> float | None:
-        """While the latest heading window (and any in a row before it) lay over
-        ``heading_check_deg`` but the check has not fired yet: that window's heading error
+        """While two or more heading windows in a row lay over ``heading_check_deg`` but the
+        check has not fired yet (it needs ``HEADING_CHECKS``): the latest one's heading error
         (deg) from the GPS course, else None. Evidence a failsafe that fires first can name
-        (the EKF dead-reckons with a compass mounted 90 deg off and jumps to the fixes)."""
-        return self._bad_deg if self._bad else None
+        (the EKF dead-reckons with a compass mounted 90 deg off and jumps to the fixes); one
+        window is not: a GPS drift beside a building bends one stretch of fixes."""
+        return self._bad_deg if self._bad >= 2 else None
 
     def on_fix(
         self,
