@@ -123,6 +123,21 @@ def test_a_failsafe_pause_is_shown_with_its_reason_while_it_holds_also_on_a_page
     wait_for(lambda: pill(browser, "failsafe")[1] == "last failsafe: operator link lost", 5,
              "the failsafe shown as the last one")  # fmt: skip
     assert "bad" not in pill(browser, "failsafe")[2].split()
+    # the operator pauses from elsewhere, and a page opened now (it saw no pause) says the
+    # failsafe is the last one that acted, not what holds the robot: the telemetry's
+    # paused_by says who paused (it could not tell before)
+    with RemoteClient("127.0.0.1", r.port) as c:
+        c.request("pause")
+    wait_for(lambda: r.daemon.controller.mode == Mode.PAUSED, 5, "the operator's pause")
+    open_page(browser, r)
+    page_ready(browser)
+    wait_for(lambda: pill(browser, "failsafe")[0], 5, "the failsafe shown")
+    for _ in range(4):
+        shown, words, cls = pill(browser, "failsafe")
+        assert words == "last failsafe: operator link lost" and "bad" not in cls.split()
+        time.sleep(0.25)
+    browser.find_element(By.ID, "btn-resume").click()
+    wait_for(lambda: r.daemon.controller.mode == Mode.RUNNING, 5, "resumed again")
     # a new start clears it (telemetry extra.failsafe gone): nothing shown
     browser.find_element(By.ID, "btn-stop").click()
     wait_for(lambda: r.daemon.controller.mode == Mode.IDLE, 5, "stopped")

@@ -137,10 +137,18 @@ def test_operator_link_lost_fires_only_once_armed() -> None:
     feed(c, 16.5, 8.25)
     assert c.mode == Mode.PAUSED
     assert c.telemetry.extra["failsafe"] == "operator link lost"
+    assert c.telemetry.extra["paused_by"] == "failsafe: operator link lost"
     c.operator_seen(17.0)
     c.resume(17.0)
     feed(c, 18.0, 9.0)
     assert c.mode == Mode.RUNNING  # re-armed by the operator's request, fresh
+    assert "paused_by" not in c.telemetry.extra
+    # the operator's own pause: extra.failsafe still names the last failsafe that acted,
+    # paused_by says who holds it now (the console could not tell them apart)
+    c.operator_seen(18.5)
+    c.pause(18.5)
+    assert c.telemetry.extra["failsafe"] == "operator link lost"
+    assert c.telemetry.extra["paused_by"] == "operator"
 
 
 def test_operator_link_lost_returns_when_configured() -> None:
@@ -703,3 +711,17 @@ def test_a_robot_carried_before_its_start_takes_its_launch_point_along() -> None
     assert c.mode == Mode.PAUSED
     assert c.telemetry.extra["failsafe"].startswith("position jumped 100 m: ")
     assert c.launch_point == pytest.approx(at(100.0, 0.0), abs=2e-5)
+
+
+def test_the_clients_status_says_who_paused() -> None:
+    """`x6wd client status` ends the state line with who paused: the telemetry's paused_by."""
+    from x6wd.app.client import render_status
+
+    def state_line(extra: dict[str, Any]) -> str:
+        tel = {"mode": "PAUSED", "state": "IDLE", "extra": extra}
+        return next(ln for ln in render_status({"telemetry": tel}).splitlines() if "PAUSED" in ln)
+
+    line = state_line({"paused_by": "operator", "failsafe": "operator link lost"})
+    assert line.endswith("(paused by the operator)"), line
+    line = state_line({"paused_by": "failsafe: stuck", "failsafe": "stuck"})
+    assert line.endswith("(paused by failsafe: stuck)"), line

@@ -377,6 +377,9 @@ def _telemetry_lines(tel: dict[str, Any], north: str = "true") -> list[str]:
         head += f"  RETURN TO LAUNCH ({_returning_text(returning)})"
     if hold:
         head += f"  HOLD: {hold}"
+    paused_by = str(extra.get("paused_by") or "")
+    if paused_by:
+        head += f"  (paused by {'the operator' if paused_by == 'operator' else paused_by})"
     lines = [head]
     if failsafe and f"failsafe: {failsafe}" != returning:
         lines.append(f"failsafe   {failsafe} (the last one that acted)")

@@ -280,6 +280,7 @@ class Controller:
         self._return_stop_until = -math.inf  # the return's first stop lasts until (s)
         self._launch: tuple[float, float] | None = None  # (lat_deg, lon_deg) at mission start
         self._failsafe_why = ""  # the last failsafe that acted (telemetry)
+        self._paused_by = ""  # who paused the mission, while PAUSED (telemetry)
         self._operator_t: float | None = None  # latest operator request (s), when watched
         # a sensor's holds since the robot last drove: how long in all (s), the latest tick (s)
         self._sensor_s = 0.0
@@ -684,6 +685,7 @@ class Controller:
         if self._mode != Mode.RUNNING:
             raise CommandRejected(f"nothing to pause: mode is {self._mode}")
         changes: list[ControllerOutput] = []
+        self._paused_by = "operator"
         self._set_mode(Mode.PAUSED, "pause", t, changes)
         return self._step(t, "pause", changes)
 
@@ -785,6 +787,7 @@ class Controller:
         if action == "return" and self._launch is not None and not self._returning:
             self._start_return(f"failsafe: {why}", t_s, out)
         else:
+            self._paused_by = f"failsafe: {why}"
             self._set_mode(Mode.PAUSED, f"failsafe: {why}", t_s, out)
 
     def _failsafe_check(self, now: float, hold: str) -> tuple[str, str] | None:
@@ -1622,6 +1625,10 @@ class Controller:
             extra["returning"] = self._returning
         if self._failsafe_why:
             extra["failsafe"] = self._failsafe_why
+        if self._mode == Mode.PAUSED:
+            # who paused it: "operator" or "failsafe: <why>" (after a resume and the
+            # operator's own pause, extra.failsafe still names the last failsafe that acted)
+            extra["paused_by"] = self._paused_by
         untrusted = self._trust.verdict(now)
         if untrusted:
             extra["compass_untrusted"] = untrusted

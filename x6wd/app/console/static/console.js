@@ -322,8 +322,11 @@
     r.hidden = !ret;
     r.textContent = ret ? "return to launch (" + (ret === "return" ? "the operator's command" : ret) + ")" : "";
     r.className = "pill live " + (ret.startsWith("failsafe") ? "bad" : "info");
-    // paused by it, unless this page saw the operator pause since (telemetry cannot tell)
-    const holds = t.mode === "PAUSED" && !(S.pauseWhy && !S.pauseWhy.startsWith("failsafe"));
+    // paused by it: the telemetry says who paused (extra.paused_by), so a page opened after
+    // the operator's own pause that followed a resumed failsafe does not cry failsafe; a
+    // daemon without the key: the pause this page saw
+    const by = x.paused_by !== undefined ? String(x.paused_by) : S.pauseWhy;
+    const holds = t.mode === "PAUSED" && !(by && !by.startsWith("failsafe"));
     const f = $("failsafe");
     f.hidden = !fs || "failsafe: " + fs === ret;
     f.textContent = fs ? (holds ? "failsafe: " : "last failsafe: ") + fs : "";
