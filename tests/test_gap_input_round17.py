@@ -22,12 +22,17 @@ LOG = Path(__file__).parent / "data" / "nmea" / "quectel-l76k-dual.log"
 SCENARIO = Path(__file__).resolve().parents[1] / "config" / "scenarios" / "open_field.toml"
 
 
+@pytest.mark.parametrize("linked", [False, True])
 def test_a_fifo_without_a_writer_is_named_while_the_tool_waits(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], linked: bool
 ) -> None:
-    """Opening a FIFO blocks until its writer comes: `x6wd gap --real FIFO` sat silent."""
+    """Opening a FIFO blocks until its writer comes: `x6wd gap --real FIFO` sat silent; so
+    did a symlink to one (an outside review), which not_regular calls "a pipe"."""
     path = tmp_path / "log.fifo"
     os.mkfifo(path)
+    if linked:
+        (tmp_path / "link").symlink_to(path)
+        path = tmp_path / "link"
     said = threading.Event()
 
     def write() -> None:

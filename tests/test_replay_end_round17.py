@@ -33,21 +33,23 @@ def _fixes(n_s: int) -> str:
     return "".join(out)
 
 
-@pytest.mark.parametrize("content", ["fixes", "empty"])
+@pytest.mark.parametrize("content", ["fixes", "empty", "garbage"])
 def test_a_replay_at_its_end_is_named_not_the_wiring(
     tmp_path: Path,
     run_daemon,
     content: str,  # noqa: F811
 ) -> None:
     log = tmp_path / "short.nmea"
-    log.write_text(_fixes(3) if content == "fixes" else "")
+    garbage = "".join(f"$GPGGA,{'x' * 40}{i}*00\r\n" for i in range(4))  # every line bad
+    log.write_text({"fixes": _fixes(3), "empty": "", "garbage": garbage}[content])
     cfg = dataclasses.replace(
         hil_config(tmp_path),
         gps=GpsConfig(url=f"replay://{log}?speed=1"),
         safety=SafetyConfig(geofence_radius_m=100.0, fix_stale_s=2.5),
     )
     r = run_daemon(Daemon(cfg))
-    end = "the replayed log has ended" if content == "fixes" else "the replayed log has none"
+    # a log of bad lines is said as such (the wrong log, or the wrong format), then its end
+    end = "the replayed log has none" if content == "empty" else "the replayed log has ended"
     with RemoteClient("127.0.0.1", r.port) as c:
         st = wait_for(
             lambda: (
@@ -59,7 +61,9 @@ def test_a_replay_at_its_end_is_named_not_the_wiring(
             f"the gps stale, naming {end!r}",
         )
     reason = st["devices"]["gps"]["reason"]
-    assert "wiring" not in reason and "corrupt" not in reason, reason
+    assert "wiring" not in reason, reason
+    assert ("4 lines with bad checksums" in reason) == (content == "garbage"), reason
     runner = r.daemon.runner
     quiet = runner.gps_line_quiet(runner.clock() + 10.0)  # the runner's words (log, status)
-    assert end in quiet and "wiring" not in quiet, quiet
+    said = "the replayed log has ended" if content == "fixes" else "the replayed log has none"
+    assert said in quiet and "wiring" not in quiet, quiet  # none that decodes: empty or bad

@@ -8,6 +8,7 @@ import dataclasses
 import filecmp
 import hashlib
 import math
+import os
 import re
 import sys
 import time
@@ -354,7 +355,10 @@ def read_input(path: str | Path) -> Track:
     """:func:`read_track` of a log the user named; on a named FIFO it first says on stderr
     that it waits for the FIFO's writer (opening one without a writer blocks, and the run
     looked hung with no word)."""
-    if not_regular(path) == "a FIFO":
+    kind = not_regular(path)
+    # a symlink to a named FIFO reads as "a pipe" (as /dev/fd/N does, whose writer exists)
+    target = os.path.realpath(path)
+    if kind == "a FIFO" or (kind == "a pipe" and not target.startswith(("/proc/", "/dev/fd/"))):
         print(f"x6wd gap: {path} is a FIFO: waiting for its writer", file=sys.stderr, flush=True)
     return read_track(path)
 

@@ -327,7 +327,7 @@ class Runner:
         last = self._gps_data_t
         if last is None:
             if self.gps_at_end():
-                return "no data from the receiver: the replayed log has none"
+                return "no data from the receiver: the replayed log has none that decodes"
             return "no data from the receiver: check the line's wiring, baud and power"
         quiet_s = t_s - last
         if quiet_s <= GPS_QUIET_OF_FIX_STALE * self.safety.fix_stale_s:
