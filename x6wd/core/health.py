@@ -337,14 +337,9 @@ class HealthTracker:
             # the stream may be arriving, every line of it corrupt: say so
             cause = self._describe(self._corrupt, self._corrupt_at_good)
             if ended:  # the corrupt input, if any, is still named: a log of the wrong kind
-                if cause or self._last_data_t is not None:
-                    cause = (
-                        f"{cause}; the replayed log has ended"
-                        if cause
-                        else "the replayed log has ended"
-                    )
-                else:
-                    cause = "the replayed log has none"
+                some = cause or self._last_data_t is not None
+                end = "the replayed log has ended" if some else "the replayed log has none"
+                cause = f"{cause}; {end}" if cause else end
             self.set_stale(t_s, f"{why}: {cause}" if cause else why)
 
     def closed(self, t_s: float) -> None:

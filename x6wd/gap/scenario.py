@@ -20,10 +20,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import replace
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from drivers.gps_io import GPS_WEEK_ROLLOVER
 from sim_backend.effects import PositionSeries
 from sim_backend.executor import Executor
 from x6wd.core.errors import ConfigError
@@ -95,8 +96,6 @@ def place_at_log(
     return world, notes
 
 
-GPS_WEEK_ROLLOVER = timedelta(weeks=1024)
-"""The legacy 10-bit GPS week's span (19.6 years); rollovers 1999-08-22, 2019-04-07."""
 LAST_ROLLOVER_UTC = datetime(2019, 4, 7, tzinfo=UTC)
 
 
