@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import math
 import random
 import shutil
 import ssl
@@ -159,9 +160,18 @@ def test_the_devices_detail_is_the_state_s_reason_and_an_old_error_is_marked_as_
     r.daemon.devices.backend("sim").compass.injector = storm  # the simulated CMPS10's I2C
     open_page(browser, r)
     page_ready(browser)
-    storm.code, storm.until_s = errno.EIO, time.monotonic() + 0.2
-    wait_for(lambda: device_rows(browser)["compass"]["state"] != "connected", 5, "compass degraded")
+    wait_for(lambda: device_rows(browser)["compass"]["state"] == "connected", 10, "compass up")
+    # the storm lasts until the daemon has said so and the page has shown it: a storm of a
+    # fixed 0.2 s could pass unseen by a compass poll late under load
+    storm.code, storm.until_s = errno.EIO, math.inf
     with RemoteClient("127.0.0.1", r.port) as c:
+        wait_for(
+            lambda: "Input/output error" in c.request("status")["devices"]["compass"]["reason"],
+            10,
+            "the I2C error as the compass's reason",
+        )
+        wait_for(lambda: device_rows(browser)["compass"]["state"] != "connected", 5, "shown degraded")
+        storm.until_s = -math.inf
         comp = wait_for(
             lambda: (s := c.request("status")["devices"]["compass"])["state"] == "connected" and s,
             10,
