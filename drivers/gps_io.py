@@ -1110,7 +1110,7 @@ class GpsReader:
         finally:
             # Staleness by time, once per poll: the health never waits for a caller to ask.
             now = self._clock()
-            self._tracker.check(now, self.at_end)
+            self._tracker.check(now, self.at_end, self.log_silent)
             self.line_load.tick(now)
             self.fix_rate.tick(now)
             setup = self.setup
@@ -1163,6 +1163,13 @@ class GpsReader:
         its end (a port with an ``eof`` attribute that is true); a live line never is. Any
         thread may read it."""
         return bool(getattr(self._port, "eof", False))
+
+    @property
+    def log_silent(self) -> bool:
+        """True while a ``replay://`` log is itself silent (its receiver sent nothing then,
+        more data follows: the port's ``log_silent``); a live line never is. Any thread may
+        read it."""
+        return bool(getattr(self._port, "log_silent", False))
 
     def take_health_events(self) -> list[HealthEvent]:
         """Health transitions (and repeated failed reopens) since the last call, oldest

@@ -1200,6 +1200,9 @@ class Daemon:
         )
         # a replay:// log played to its end is named so, not as a line's wiring fault
         self.runner.gps_at_end = lambda: self._gps_reader is not None and self._gps_reader.at_end
+        self.runner.gps_log_silent = lambda: (
+            self._gps_reader is not None and self._gps_reader.log_silent
+        )
         for key, enabled, host in (
             ("server.bind", cfg.server.enabled, cfg.server.bind),
             ("console.bind", cfg.console.enabled, cfg.console.bind),

@@ -313,11 +313,13 @@ class HealthTracker:
         self._health = self._snapshot()
         self._corrupt_event(t_s)
 
-    def check(self, t_s: float, ended: bool = False) -> None:
+    def check(self, t_s: float, ended: bool = False, silent: bool = False) -> None:
         """Time passes: an open device without good data for more than ``stale_s`` is stale;
         corrupt input held back by the event interval is reported once it has passed.
-        ``ended``: the source has no more data to give (a replayed log at its end), said in
-        the stale reason instead of the corrupt input's cause."""
+        ``ended``: the source has no more data to give (a replayed log at its end);
+        ``silent``: the source itself has nothing now but more later (a replayed log's
+        silent stretch). Either is said in the stale reason after any corrupt input's
+        cause."""
         if self._corrupt is not self._corrupt_logged:
             self._corrupt_event(t_s)
         stale_s = self._stale_s
@@ -336,10 +338,15 @@ class HealthTracker:
             why = f"{what} for {t_s - ref:.2f} s (limit {stale_s:g} s)"
             # the stream may be arriving, every line of it corrupt: say so
             cause = self._describe(self._corrupt, self._corrupt_at_good)
-            if ended:  # the corrupt input, if any, is still named: a log of the wrong kind
+            # the corrupt input, if any, is still named: a log of the wrong kind
+            note = ""
+            if ended:
                 some = cause or self._last_data_t is not None
-                end = "the replayed log has ended" if some else "the replayed log has none"
-                cause = f"{cause}; {end}" if cause else end
+                note = "the replayed log has ended" if some else "the replayed log has none"
+            elif silent:
+                note = "the replayed log is silent here"
+            if note:
+                cause = f"{cause}; {note}" if cause else note
             self.set_stale(t_s, f"{why}: {cause}" if cause else why)
 
     def closed(self, t_s: float) -> None:

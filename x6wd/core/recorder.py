@@ -1948,6 +1948,15 @@ class ReplayPort:
         """True when every byte was read."""
         return self._st.eof and not self._st.buffer
 
+    @property
+    def log_silent(self) -> bool:
+        """True while the log itself has nothing due now but more to come later: a stretch
+        in which its receiver sent nothing (or a slow replay between epochs). Any thread may
+        read it."""
+        st = self._st
+        pending = st.pending
+        return pending is not None and not st.buffer and pending[0] > self._clock()
+
     def _pull(self, now: float) -> float | None:
         """Move due chunks into the buffer; the wall time of the next one, or None at end."""
         st = self._st

@@ -232,6 +232,9 @@ class Runner:
         """True once the GPS source has no more data to give (a ``replay://`` log played to
         its end): the quiet line is then named for that, not for its wiring. Set by the
         daemon."""
+        self.gps_log_silent: Callable[[], bool] = _never
+        """True while a ``replay://`` log is itself silent (more data follows): named so
+        too. Set by the daemon."""
         self._resets_seen = 0  # EKF resets logged so far
         self.first_fix: tuple[float, float] | None = None
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
@@ -334,6 +337,8 @@ class Runner:
             return ""
         if self.gps_at_end():
             return f"no data from the receiver for {quiet_s:.1f} s: the replayed log has ended"
+        if self.gps_log_silent():
+            return f"no data from the receiver for {quiet_s:.1f} s: the replayed log is silent here"
         return (
             f"no good data from the receiver for {quiet_s:.1f} s: check the line's wiring,"
             " baud and power"
