@@ -98,6 +98,7 @@ from x6wd.core.config import (
     check_stale_vs_rate,
 )
 from x6wd.core.errors import ConfigError, ParseError
+from x6wd.core.files import read_text_bounded, require_regular
 from x6wd.core.mission_files import load_file
 
 DEFAULT_ALMANAC = Path(__file__).resolve().parent / "data" / "almyuma_01jan2020.txt"
@@ -396,7 +397,7 @@ class _Sources:
             return {}, {}
         self.by[str(path)] = by
         try:
-            text = path.read_text(encoding="utf-8")
+            text = read_text_bounded(path)
             data = _parse(text, str(path))
         except OSError as exc:
             raise ConfigError(
@@ -639,6 +640,7 @@ def parse_start_utc(value: Any) -> datetime:
 
 def _read_lce_csv(path: str) -> tuple[tuple[float, ...], ...]:
     try:
+        require_regular(path)
         with open(path, encoding="utf-8", newline="") as fh:
             rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
     except OSError as exc:

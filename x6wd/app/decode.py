@@ -1995,7 +1995,8 @@ def decode_path(
     (a pipe such as ``<(zcat log.gz)``, a FIFO, a serial device) is opened once and read as a
     stream, as ``-`` is: a recording through it is read by the stream's line parser; so is
     a gzip file, decompressed as it is read."""
-    from x6wd.core.recorder import is_recording, not_regular, read_recording_parts
+    from x6wd.core.files import not_regular
+    from x6wd.core.recorder import is_recording, read_recording_parts
 
     # a first part that retention deleted is judged by the rest (is_recording)
     if not_regular(path) is not None or _compressed(path) or not is_recording(path):

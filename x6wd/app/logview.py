@@ -47,6 +47,7 @@ import numpy as np
 
 from x6wd import __version__
 from x6wd.core.errors import DeviceUnavailable, ParseError, X6wdError
+from x6wd.core.files import require_regular
 from x6wd.core.geodesy import wrap360, wrap_deg
 from x6wd.core.recorder import (
     END_EVENTS,
@@ -1025,6 +1026,7 @@ def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     rows = array("d")  # t_s, lat, lon of each row
     torn = 0
     try:
+        require_regular(path)  # /dev/zero has no line end: one endless line
         with open(path, newline="", encoding="utf-8") as f:
             reader = csv.DictReader(lines(f))
             if not {"t_s", "lat", "lon"} <= set(reader.fieldnames or ()):
@@ -1916,11 +1918,22 @@ def render_html(recording_path: Path, truth: Path | None = None) -> str:
     return html_page(load(Path(recording_path), truth=truth))
 
 
+SIM_RECORDING = "recording.jsonl"
+"""The recording's name in a folder ``x6wd sim`` wrote (its ``--out``)."""
+
+
 def newest_recording(directory: Path) -> Path:
     """The first remaining part of the newest run the daemon recorded in ``directory``
-    (named ``x6wd-<UTC>.jsonl`` by the recorder); :class:`DeviceUnavailable` if none."""
+    (named ``x6wd-<UTC>.jsonl`` by the recorder), else the :data:`SIM_RECORDING` of a
+    folder ``x6wd sim`` wrote; :class:`DeviceUnavailable` if neither."""
     files = list_recordings(directory)
     if not files:
-        raise DeviceUnavailable(f"{directory}: no recordings (x6wd-<UTC time>.jsonl) in it")
+        sim = directory / SIM_RECORDING
+        if sim.is_file():
+            return sim
+        raise DeviceUnavailable(
+            f"{directory}: no recordings in it (the daemon's x6wd-<UTC time>.jsonl, or"
+            f" x6wd sim's {SIM_RECORDING})"
+        )
     newest = files[-1].run
     return next(f.path for f in files if f.run == newest)

@@ -84,6 +84,7 @@ from drivers.gps_recording import recorded_gps
 from x6wd.calibrate.rtklib import looks_like_pos, read_pos
 from x6wd.core.config import GnssNoiseConfig, build
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
+from x6wd.core.files import require_regular
 from x6wd.core.geodesy import great_circle_m, wrap_deg
 from x6wd.core.recorder import is_recording
 from x6wd.core.records import GpsFix
@@ -211,6 +212,10 @@ def load_fixes(path: str | Path) -> FixSeries:
     or the ``nmea`` ones decoded) or a plain NMEA log (a file whose first non-blank character
     is not ``{``: decoded as ``x6wd decode`` does, its fixes timed by their UTC)."""
     p = Path(path)
+    try:
+        require_regular(p)  # /dev/zero has no line end: one endless line
+    except OSError as exc:
+        raise DeviceUnavailable(f"cannot read {p}: {exc.strerror}") from exc
     if looks_like_pos(p):
         sol = read_pos(p)
         order = np.argsort(sol.t_gpst_s, kind="stable")

@@ -28,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from x6wd.core.errors import DeviceUnavailable, ParseError
+from x6wd.core.files import not_text, require_regular
 
 Array = npt.NDArray[np.float64]
 
@@ -78,6 +79,11 @@ def parse_pos(text: str, source: str = "<string>") -> PosSolution:
             sdn = float(f[7]) if len(f) > 8 else math.nan
             sde = float(f[8]) if len(f) > 8 else math.nan
         except (ValueError, IndexError) as exc:
+            if not_text(line):
+                raise ParseError(
+                    f"{source}:{lineno}: not an RTKLIB .pos file: this line is not text (a"
+                    " binary file?)"
+                ) from None
             raise ParseError(
                 f"{source}:{lineno}: not an RTKLIB .pos line (GPST date time lat lon height Q "
                 f"ns ...): {exc}"
@@ -104,6 +110,7 @@ def read_pos(path: str | Path) -> PosSolution:
     """Read a ``.pos`` file (:func:`parse_pos`); a missing file is :class:`DeviceUnavailable`."""
     p = Path(path)
     try:
+        require_regular(p)
         text = p.read_text(encoding="utf-8", errors="replace")
     except OSError as exc:
         raise DeviceUnavailable(f"cannot read {p}: {exc.strerror or exc}") from exc

@@ -23,6 +23,7 @@ from typing import Any, TypeVar
 from urllib.parse import urlsplit
 
 from x6wd.core.errors import ConfigError
+from x6wd.core.files import read_bytes_bounded
 
 T = TypeVar("T")
 
@@ -883,7 +884,7 @@ def load(path: str | Path) -> Config:
     """
     p = Path(path)
     try:
-        blob = p.read_bytes()
+        blob = read_bytes_bounded(p)
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read configuration: {exc.strerror or exc}") from exc
     try:

@@ -81,6 +81,7 @@ from pathlib import Path
 from typing import IO, Any, BinaryIO
 
 from x6wd.core.errors import DeviceUnavailable, ParseError
+from x6wd.core.files import not_regular
 from x6wd.core.ratelog import RateLimitedLog
 from x6wd.core.records import (
     Attitude,
@@ -1512,30 +1513,6 @@ def compression_of(head: bytes) -> str | None:
         if head.startswith(magic):
             return kind
     return None
-
-
-def not_regular(path: str | os.PathLike[str]) -> str | None:
-    """What ``path`` is when it is neither a regular file nor a directory (``"a pipe"`` for
-    ``<(cmd)``'s /dev/fd/N, ``"a FIFO"``, ``"a character device"`` ...), else None (also
-    when it does not exist). Such an input can be read only once and may never end; it is
-    not opened here (a FIFO without a writer would block)."""
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        return None
-    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
-        return None
-    if stat.S_ISFIFO(mode):
-        try:
-            named = stat.S_ISFIFO(os.lstat(path).st_mode)
-        except OSError:
-            named = False
-        return "a FIFO" if named else "a pipe"
-    if stat.S_ISCHR(mode):
-        return "a character device"
-    if stat.S_ISBLK(mode):
-        return "a block device"
-    return "a socket" if stat.S_ISSOCK(mode) else "not a file"
 
 
 def is_recording(path: str | os.PathLike[str]) -> bool:

@@ -20,9 +20,9 @@ import numpy as np
 from sim_backend.effects import PositionSeries, metres_per_degree
 from x6wd.core.config import PACKAGED_CONFIG_DIR
 from x6wd.core.errors import ConfigError, X6wdError
+from x6wd.core.files import not_regular
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.outdir import output_dir, output_file
-from x6wd.core.recorder import not_regular
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
 from x6wd.gap.diagnose import Diagnosis, Options, check_real, diagnose
 from x6wd.gap.io import (

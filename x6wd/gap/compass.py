@@ -51,6 +51,7 @@ from sim_backend.effects import (
     wrap360,
 )
 from x6wd.core.errors import ConfigError
+from x6wd.core.files import read_text_bounded
 from x6wd.gap import pipeline
 from x6wd.gap.fitted import Fit
 from x6wd.gap.pipeline import (
@@ -962,7 +963,7 @@ def read_heading_truth_notes(
 
     csv_path = Path(path)
     try:
-        rows = list(csv.reader(csv_path.read_text().splitlines()))
+        rows = list(csv.reader(read_text_bounded(csv_path).splitlines()))
     except (OSError, UnicodeDecodeError):
         return None, []
     if not rows:

@@ -46,8 +46,9 @@ import numpy as np
 
 from sim_backend.effects import PositionSeries, metres_per_degree, satellite_set_id
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
+from x6wd.core.files import not_regular, not_text
 from x6wd.core.geodesy import EARTH_MEAN_RADIUS_M
-from x6wd.core.recorder import compression_of, not_regular
+from x6wd.core.recorder import compression_of
 
 MAX_LINE_BYTES = 1 << 16
 """Longest line of a text log (CSV, .pos) read (bytes); longer is not such a log."""
@@ -1625,6 +1626,11 @@ def _read_pos(path: Path) -> Track:
                 int(fields[6]),
             )
         except (ValueError, IndexError) as exc:
+            if not_text(line):
+                raise ParseError(
+                    f"{source}:{lineno}: not an RTKLIB .pos file: this line is not text (a"
+                    " binary file?)"
+                ) from None
             raise ParseError(
                 f"{source}:{lineno}: not an RTKLIB .pos line: {str(exc)[:80]}"
             ) from exc
