@@ -222,13 +222,17 @@ def probe_scheduler(address: str, timeout_s: float) -> None:
     try:
         port = urlsplit(f"//{rest if sep else address}").port
     except ValueError as exc:  # a port out of 0..65535, or not a number
-        raise ConfigError(f"scheduler {address}: {exc} (expected tcp://HOST:PORT)") from None
+        raise ConfigError(
+            f"scheduler {address}: not an address of the form tcp://HOST:PORT ({exc})"
+        ) from None
     if port == 0:
         raise ConfigError(f"scheduler {address}: port 0 (expected tcp://HOST:PORT)")
     try:
         resolved = resolve_address(address)
-    except ValueError as exc:
-        raise ConfigError(f"scheduler {address}: {exc} (expected tcp://HOST:PORT)") from None
+    except ValueError as exc:  # Dask's own words follow ours
+        raise ConfigError(
+            f"scheduler {address}: not an address of the form tcp://HOST:PORT ({exc})"
+        ) from None
     except OSError as exc:  # socket.gaierror: an unknown host name, or 256.1.1.1
         raise ConfigError(
             f"scheduler {address}: cannot resolve its host: {exc.strerror or exc}"

@@ -106,6 +106,7 @@ from sim_backend.world import (
 from x6wd import __version__
 from x6wd.core.config import check_drive_vs_stuck
 from x6wd.core.errors import ConfigError, X6wdError
+from x6wd.core.files import read_text_bounded
 from x6wd.core.outdir import output_file
 
 log = logging.getLogger(__name__)
@@ -150,7 +151,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
     """Read and check a sweep file (paths in it are relative to it)."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = read_text_bounded(p)
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read sweep file: {exc.strerror or exc}") from exc
     except UnicodeDecodeError as exc:  # an editor's Latin-1, or no text at all
@@ -197,7 +198,8 @@ def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: s
     if isinstance(scen, str):
         scen = [scen]
     if not isinstance(scen, list) or not scen or not all(isinstance(s, str) for s in scen):
-        raise ConfigError(f"scenarios: expected a non-empty list of scenario files, got {scen!r}")
+        got = "nothing (the key is missing)" if scen is None else repr(scen)
+        raise ConfigError(f"scenarios: expected a non-empty list of scenario files, got {got}")
     paths = tuple((base / s).resolve() for s in scen)
     stems: dict[str, Path] = {}
     for p in paths:
@@ -408,8 +410,14 @@ def base_table(path: Path, robot_config: Path | None) -> tuple[dict[str, Any], P
     if robot_config is not None:
         try:
             world = with_robot_config(world, robot_config)
-        except ConfigError as exc:
-            raise ConfigError(f"robot_config {robot_config}: {exc}") from exc
+        except ConfigError as exc:  # its message may begin with the path already
+            said = str(exc)
+            where = (
+                "robot_config"
+                if said.startswith(str(robot_config))
+                else f"robot_config {robot_config}"
+            )
+            raise ConfigError(f"{where}: {said}") from exc
     return copy.deepcopy(world.raw), path.parent
 
 

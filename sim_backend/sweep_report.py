@@ -522,15 +522,19 @@ def markdown(
     )
     lines = [f"# Sweep {i['name']!r}", ""]
     lines += [
-        f"- sweep file: `{i.get('source') or '-'}`; sweep seed {i['seed']}, {i['seeds']} seeds"
-        " per cell",
+        f"- sweep file: `{i.get('source') or '-'}`; sweep seed {i['seed']}, {i['seeds']}"
+        f" seed{'' if i['seeds'] == 1 else 's'} per cell",
         f"- scenarios: {', '.join(f'`{s}`' for s in i['scenarios'])}",
         f"- [set]: `{json.dumps(i['set'], default=_json_default)}`;"
         f" [grid]: `{json.dumps(i['grid'], default=_json_default)}`",
         f"- {len(records)} runs in {len(cells)} cells: {i['ran']} run now, {i['skipped']}"
         f" found done; {sum(c.failed for c in cells)} failed" + lost_text,
-        f"- executor: {i['executor']}; {_f(i['wall_s'], '.1f')} s wall,"
-        f" {_f(i['missions_per_min'], '.1f')} missions/min{raised_text}",
+        (
+            f"- executor: {i['executor']}; {_f(i['wall_s'], '.1f')} s wall,"
+            f" {_f(i['missions_per_min'], '.1f')} missions/min{raised_text}"
+            if i["ran"]
+            else "- executor: none this time (every run was found done: no throughput)"
+        ),
         *_version_lines(records),
         *_outside_lines(i.get("outside") or {}),
         *_older_lines(int(i.get("older_files") or 0)),

@@ -24,6 +24,7 @@ A reader of the output that goes away (``x6wd client watch | head``) ends it qui
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import math
@@ -57,6 +58,16 @@ MISSION_EXTENSIONS = ", ".join(f".{k}" for k in PARSERS)
 
 class ConnectionFailed(X6wdError):
     """The server could not be reached, or the connection broke."""
+
+
+class HandshakeFailed(ConnectionFailed):
+    """The TLS handshake failed for another reason than the certificate (the port does not
+    speak TLS: OpenSSL's WRONG_VERSION_NUMBER, a reset)."""
+
+
+class ClosedWithoutReply(ConnectionFailed):
+    """The robot closed the connection without a word: what its TLS port does to plain
+    text."""
 
 
 class CertificateNotVerified(ConnectionFailed):
@@ -151,7 +162,7 @@ class RemoteClient:
             ) from None
         except (OSError, ssl.SSLError) as exc:
             sock.close()
-            raise ConnectionFailed(f"TLS handshake with {host}:{port} failed: {exc}") from None
+            raise HandshakeFailed(f"TLS handshake with {host}:{port} failed: {exc}") from None
         self._sock: socket.socket | None = sock
         self._tls = ssl_context is not None
         self.unverified_fallback = False  # a stop sent without verification (_connect)
@@ -202,7 +213,7 @@ class RemoteClient:
             if not chunk:
                 # the daemon's TLS server closes a plain-text connection without a word
                 hint = "" if self._tls else " (if the daemon uses TLS, add --tls)"
-                raise ConnectionFailed(f"{self.host}:{self.port} closed the connection{hint}")
+                raise ClosedWithoutReply(f"{self.host}:{self.port} closed the connection{hint}")
             self._buf += chunk
             if len(self._buf) > MAX_REPLY_BYTES:
                 raise ProtocolError("server line longer than 16 MiB")
@@ -958,7 +969,9 @@ def _connect(
     as the robot refuses it. A ``stop`` whose TLS verification fails (the robot's
     certificate expired, say) is sent once more without verification, with a warning: it
     carries no token and the robot obeys a stop from anyone, so nothing leaks; nothing else
-    is ever sent so (the connection is marked ``unverified_fallback``)."""
+    is ever sent so (the connection is marked ``unverified_fallback``). So is a ``stop``
+    with ``--tls`` to a port that does not speak TLS: sent once more in plain text
+    (:func:`_stop_over_tls` is the other way round)."""
 
     def connect(tok: str | None, ctx: ssl.SSLContext | None = ssl_context) -> RemoteClient:
         return RemoteClient(
@@ -980,6 +993,20 @@ def _connect(
             client.unverified_fallback = True
             client.unverified_why = exc.why
             return client
+        except HandshakeFailed as exc:
+            _warn(
+                f"{exc}: the robot's port may not speak TLS; retrying the stop in PLAIN TEXT "
+                "(a stop carries no token; nothing else is sent so, and the reply cannot be "
+                "proven to come from the robot). Check --tls against the daemon's [server] tls",
+                err,
+            )
+            try:
+                client = connect(None, None)
+            except ConnectionFailed:
+                raise exc from None  # the first failure is the one to tell
+            client.unverified_fallback = True
+            client.unverified_why = "sent in plain text: the TLS handshake failed"
+            return client
     if args.action != "status" or token is None:
         return connect(token)
     try:
@@ -988,6 +1015,30 @@ def _connect(
         why = f"{exc.code}: {exc.message}"
     _warn(f"the robot refused the token of --token-file ({why}); asking without it", err)
     return connect(None)
+
+
+def _stop_over_tls(
+    args: argparse.Namespace, first: ClosedWithoutReply, err: TextIO
+) -> RemoteClient:
+    """A ``stop`` without ``--tls`` that the robot met by closing the connection without a
+    word (its port speaks TLS): a connection over TLS without verification for it alone,
+    marked ``unverified_fallback`` (a stop carries no token, so nothing leaks; the reply
+    cannot be proven to be the robot's). ``first`` is raised if that fails too."""
+    _warn(
+        f"{first}; retrying the stop over TLS WITHOUT verification (a stop carries no token;"
+        " nothing else is sent so, and the reply cannot be proven to come from the robot)."
+        " Give --tls and --cafile to verify the robot",
+        err,
+    )
+    try:
+        client = RemoteClient(
+            args.host, args.port, ssl_context=_unverified_ssl(), timeout_s=args.timeout
+        )
+    except ConnectionFailed:
+        raise first from None
+    client.unverified_fallback = True
+    client.unverified_why = "sent over TLS without verification: no --tls given"
+    return client
 
 
 def _check_token(client: RemoteClient, token: str | None, err: TextIO) -> None:
@@ -1029,9 +1080,16 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
         print(f"x6wd client: {exc}", file=err)
         return EXIT_USAGE
     try:
-        with _connect(args, token, ssl_context, err) as client:
+        with contextlib.ExitStack() as stack:
+            client = stack.enter_context(_connect(args, token, ssl_context, err))
             if action == "stop":
-                reply = client.request(action)
+                try:
+                    reply = client.request(action)
+                except ClosedWithoutReply as exc:
+                    if ssl_context is not None:
+                        raise
+                    client = stack.enter_context(_stop_over_tls(args, exc, err))
+                    reply = client.request(action)
                 if not client.unverified_fallback:  # the token only to a verified robot
                     _check_token(client, token, err)
             elif action in ("status", "start", "pause", "resume", "return"):

@@ -1016,10 +1016,16 @@ class ControlServer(LineServer[_Client]):
         rate = float(self.config.input_bytes_per_s)
         burst = max(rate, 2.0 * limit)
         budget = _Bucket(rate, burst, burst, self._clock())
-        while not c.closed:
+        eof = False
+        while not c.closed and not eof:
             chunk = await reader.read(65536)
             if not chunk:
-                return
+                # the input's end: a last request without its newline (`printf '{"cmd":
+                # "stop"}' | nc`, a client that shuts its sending side) is still carried out
+                # and answered, as gpsd does, never dropped in silence
+                if discarding or not buf.strip():
+                    return
+                eof, chunk = True, b"\n"
             buf += chunk
             budget.refill(self._clock())
             budget.level -= len(chunk)

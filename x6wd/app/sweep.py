@@ -19,14 +19,18 @@ malformed, unknown or silent (checked even when nothing is left to run); 130 int
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import signal
 import socket
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
 from sim_backend.executor import Executor, TextProgress, probe_scheduler
 from sim_backend.sweep import (
+    LOCK_FILE,
     MAX_RUNS,
     Run,
     RunStore,
@@ -41,7 +45,7 @@ from sim_backend.sweep import (
     split_done,
 )
 from sim_backend.sweep_report import write_report
-from x6wd.core.errors import ConfigError
+from x6wd.core.errors import ConfigError, X6wdError
 from x6wd.core.outdir import output_dir
 
 
@@ -205,10 +209,37 @@ def main(args: argparse.Namespace) -> int:
             f" {args.max_runs:,}; raise --max-runs to run it"
         )
     runs = plan(spec)  # a bad key or value stops here, before any cluster starts
-    out = output_dir(args.out if args.out else Path("out") / "sweeps" / Path(args.sweep).stem)
-    with out_dir_lock(out):  # a second sweep into this folder (the same one, even): exit 2
-        check_out_dir(spec, out)  # another sweep's results are not replaced
-        return _run(args, spec, runs, out, file_seeds)
+    wanted = Path(args.out) if args.out else Path("out") / "sweeps" / Path(args.sweep).stem
+    created = not wanted.exists()
+    out = output_dir(wanted)
+    try:
+        with out_dir_lock(out):  # a second sweep into this folder (the same one, even): exit 2
+            check_out_dir(spec, out)  # another sweep's results are not replaced
+            return _run(args, spec, runs, out, file_seeds)
+    except X6wdError:
+        if created:  # a wrong --scheduler, --workers ...: no folder of nothing left behind
+            _remove_if_empty(out)
+        raise
+
+
+def _remove_if_empty(out: Path) -> None:
+    """Remove ``out`` when it holds nothing but its lock file and an empty ``runs/``."""
+    for step in (
+        lambda: (out / "runs").rmdir(),
+        lambda: (out / LOCK_FILE).unlink(),
+        lambda: out.rmdir(),
+    ):
+        with contextlib.suppress(OSError):  # not empty: a run was written, kept
+            step()
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a batch scheduler's, ``timeout``'s): the sweep ends as on Ctrl-C (the cluster
+    shut down, the finished runs kept and said), with exit code 143."""
+
+
+def _terminated(_signum: int, _frame: object) -> None:
+    raise Terminated
 
 
 def _run(
@@ -231,6 +262,9 @@ def _run(
         if args.scheduler:
             probe_scheduler(args.scheduler, executor.connect_timeout_s)
         executor = Executor(inline=True)
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminated)
     try:
         with executor:
             result = run_sweep(
@@ -242,14 +276,19 @@ def _run(
                 runs=runs,
                 waiting=progress.waiting if progress else None,
             )
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         kept = len(split_done(runs, RunStore(out), args.retry_failed)[0])
         print(
             f"\nsweep interrupted: {kept}/{len(runs)} runs are done in {out / 'runs'};"
             " the same command finishes the rest",
             file=sys.stderr,
         )
+        if isinstance(exc, Terminated):
+            return 128 + signal.SIGTERM
         raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     outside = outside_runs(runs, RunStore(out))
     info = {
         "name": spec.name,

@@ -261,6 +261,7 @@ def main_gnss(args: argparse.Namespace) -> int:
     header = [f"x6wd calibrate gnss, {datetime.now(UTC).strftime('%Y-%m-%dT%H:%M:%SZ')}"]
     static = None
     given: dict[str, str] = {}  # where RE, ASE and correlation_s came from, when not measured
+    default_note = ""  # said once the inputs have read: a file that does not read comes first
     if args.static:
         if args.ref_lat is None or args.ref_lon is None:
             raise ConfigError("calibrate gnss: --static needs --ref-lat and --ref-lon")
@@ -334,18 +335,20 @@ def main_gnss(args: argparse.Namespace) -> int:
                 if args.config
                 else f"no --static, --config or {flags}"
             )
-            print(
+            default_note = (
                 f"x6wd calibrate: {what}: the built-in default{plural}, not measured "
-                f"({absent}); the fragment says so",
-                file=sys.stderr,
+                f"({absent}); the fragment says so"
             )
+    pairs = [
+        (gnss.load_fixes(d), gnss.load_fixes(r))
+        for d, r in zip(args.drive, args.reference, strict=True)
+    ]
+    if default_note:
+        print(default_note, file=sys.stderr)
     lce = None
     if args.drive:
         lce = gnss.drives_lce_map(
-            [
-                (gnss.load_fixes(d), gnss.load_fixes(r))
-                for d, r in zip(args.drive, args.reference, strict=True)
-            ],
+            pairs,
             re_m=re_m.value,
             ase_m=ase_m.value,
             origin=_latlon(args.origin) if args.origin else None,

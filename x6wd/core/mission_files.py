@@ -1115,6 +1115,8 @@ def save_file(
     p = Path(path)
     kind = format_of(p, fmt, writing=True)
     text = format_content(waypoints, kind)
+    if p.is_dir():  # --force could not help: say so rather than suggest it
+        raise ParseError(f"{p}: is a directory; give a file name to write the mission to")
     try:
         with open(p, "w" if force else "x", encoding="utf-8", newline="") as f:
             f.write(text)

@@ -1,0 +1,61 @@
+"""`x6wd client stop` reaches the robot whichever way `--tls` is set (an outside audit,
+round 18): plain text to the daemon's TLS port was closed without a word, and `--tls` to a
+plain port failed its handshake; both ended in exit 3 with the robot driving on. The stop
+now goes once more over the other transport, said as unverified (exit 4, no token sent)."""
+
+from __future__ import annotations
+
+import os
+import ssl
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import require_program
+from tests.test_client import client
+from tests.test_server import TOKEN, LoopThread, RecordingBackend, start_server
+from x6wd.app.client import EXIT_UNVERIFIED
+
+
+def _tls_context(tmp_path: Path) -> ssl.SSLContext:
+    openssl = require_program("openssl")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(
+        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2",
+         "-subj", "/CN=localhost", "-addext", "subjectAltName=IP:127.0.0.1",
+         "-keyout", str(key), "-out", str(cert)],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    os.chmod(key, 0o600)
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.load_cert_chain(cert, key)
+    return ctx
+
+
+@pytest.mark.parametrize("daemon_tls", [True, False], ids=["tls-daemon", "plain-daemon"])
+def test_a_stop_with_the_wrong_tls_setting_still_reaches_the_robot(
+    tmp_path: Path, daemon_tls: bool
+) -> None:
+    token = tmp_path / "token"
+    token.write_text(TOKEN + "\n")
+    token.chmod(0o600)
+    lt = LoopThread()
+    backend = RecordingBackend()
+    ctx = _tls_context(tmp_path) if daemon_tls else None
+    srv = start_server(lt, backend, token=TOKEN.encode(), ssl_context=ctx)
+    try:
+        flags = [] if daemon_tls else ["--tls"]  # the wrong one of each
+        r = client(srv.port, *flags, "stop", token=token)
+        assert r.returncode == EXIT_UNVERIFIED, (r.returncode, r.stderr)
+        assert "reply NOT verified" in r.stdout, r.stdout
+        assert ("WITHOUT verification" if daemon_tls else "PLAIN TEXT") in r.stderr, r.stderr
+        assert [name for name, _ in backend.calls] == ["stop"]
+        assert srv.auth_failed_total == 0  # the token never went over the fallback
+        # nothing but a stop is sent so: any other action fails as before
+        r = client(srv.port, *flags, "status", token=token)
+        assert r.returncode == 3, (r.returncode, r.stderr)
+        assert [name for name, _ in backend.calls] == ["stop"]
+    finally:
+        lt.run(srv.close())
+        lt.close()
