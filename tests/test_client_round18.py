@@ -59,3 +59,21 @@ def test_a_stop_with_the_wrong_tls_setting_still_reaches_the_robot(
     finally:
         lt.run(srv.close())
         lt.close()
+
+
+def test_the_client_aimed_at_the_gpsd_port_says_so_at_once() -> None:
+    # an audit (round 18): it waited its whole --timeout, then "no reply to 'stop'", though
+    # the gpsd port had answered at once (its VERSION line has no id)
+    import time
+
+    from tests.test_gpsd_port import Published
+
+    p = Published()
+    try:
+        t0 = time.monotonic()
+        r = client(p.srv.port, "--timeout", "20", "stop")
+        took_s = time.monotonic() - t0
+    finally:
+        p.close()
+    assert r.returncode != 0 and "gpsd-compatible port" in r.stderr, r.stderr
+    assert "7601" in r.stderr and took_s < 10.0, (took_s, r.stderr)

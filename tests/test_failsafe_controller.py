@@ -94,6 +94,27 @@ def test_a_paused_mission_may_return_and_stop_cancels_the_return() -> None:
     assert c.mode == Mode.IDLE and c.returning == ""
 
 
+def test_a_stopped_return_shows_the_operators_mission_again() -> None:
+    # an audit (round 18): after a return was stopped, status and the console showed the
+    # launch point as "waypoint 1/1" of an idle robot beside "4 waypoints on the robot"
+    c = Controller(NAV, SAFETY, failsafe=FS)
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(0.0, 50.0), at(10.0, 100.0), at(0.0, 150.0), at(-10.0, 200.0)], 0.0)
+    c.start(0.0)
+    feed(c, 1.0, 10.0)
+    c.return_home(2.0)
+    feed(c, 3.0, 9.0)
+    assert c.telemetry.waypoint_count == 1  # the launch point, while returning
+    c.stop(4.0)
+    feed(c, 5.0, 9.0)
+    tel = c.telemetry
+    assert c.mode == Mode.IDLE and tel.waypoint_count == 4, tel
+    c.start(6.0)  # the mission from its start again, not the way home
+    feed(c, 7.0, 9.0)
+    assert c.telemetry.waypoint_count == 4 and c.telemetry.waypoint_index == 0
+
+
 # ------------------------------------------------------------------ geofence (from the loop)
 
 

@@ -260,6 +260,13 @@ class RemoteClient:
             if "event" in msg:
                 self.events.append(msg)
                 continue
+            if "class" in msg and "ok" not in msg:
+                # gpsd's JSON ({"class":"VERSION",...}): the telemetry port, not this one
+                raise ProtocolError(
+                    f"{self.host}:{self.port} answered as gpsd does (class"
+                    f" {str(msg['class'])[:20]!r}): that is the gpsd-compatible port; the"
+                    f" control port is [server] port (default {DEFAULT_PORT})"
+                )
             if msg.get("id") != req_id:
                 if msg.get("ok") is False and msg.get("id") is None:
                     self._raise(msg)  # an unparsable line of ours, or the server closing

@@ -2110,7 +2110,8 @@ class Daemon:
         result = self.runner.load_mission(waypoints)
         self._mission = tuple((w.lat_deg, w.lon_deg) for w in waypoints)
         self._mission_rev += 1
-        return result
+        # the console's map revision this load made: a page tells its own load from another's
+        return {**result, "revision": self._mission_rev}
 
     # -- the web console ----------------------------------------------------------------------
     def _make_console(self) -> ConsoleServer | None:

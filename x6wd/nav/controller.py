@@ -709,6 +709,10 @@ class Controller:
             t = self._now if self._now is not None else 0.0
         changes: list[ControllerOutput] = []
         self._manual = None
+        if self._mission_nav is not None:
+            # a return stopped: the operator's mission is the robot's again (status and the
+            # console showed the launch point as "waypoint 1/1" of an idle robot)
+            self._navigator, self._mission_nav = self._mission_nav, None
         self._returning = ""
         self._return_stop_until = -math.inf
         self._jump_m = None  # a mission's: the next one starts from where the robot is

@@ -16,6 +16,9 @@
     origin: null, // [lat, lon] of the map's local frame: the geofence centre, else the first fix
     map: { revision: -1, waypoints: [], launch: null, geofence: null },
     draft: [], dirty: false, adding: false,
+    // the robot's mission changed under an unsent draft (another page or client loaded one):
+    // the next Send says so and only the one after it replaces that mission
+    sending: 0, draftStale: false, replaceAsked: false, ownRevisions: new Set(),
     track: [], trackEpoch: 0, view: { e: 0, n: 0, pxPerM: 4 }, followed: false,
     missionVersion: 0, draws: 0, layerDraws: 0, drawMs: 0, // the map's redraws (for the tests)
     drive: null, driveKey: null, driveTimer: null, press: null, driveSend: null, tiles: new Map(),
@@ -286,7 +289,10 @@
         if (S.track.length > 20000) { S.track.splice(0, 5000); S.trackEpoch++; }
       }
       if ($("follow").checked) { S.view.e = p[0]; S.view.n = p[1]; }
-      $("tel-pos").textContent = fmt(lat, 7) + ", " + fmt(lon, 7);
+      // the EKF's estimate stands in for a fix that is gone: said (the client's status shows
+      // "position - -" and the filtered line apart)
+      const estimated = t.lat_deg === null || t.lon_deg === null;
+      $("tel-pos").textContent = fmt(lat, 7) + ", " + fmt(lon, 7) + (estimated ? "  (estimate: no fix)" : "");
       $("tel-local").textContent = "E " + fmt(p[0], 1) + " m  N " + fmt(p[1], 1) + " m";
     }
     $("mode").textContent = t.mode;
@@ -295,7 +301,9 @@
     $("hold").hidden = !t.hold_reason;
     $("hold").textContent = t.hold_reason || "";
     showWhy(t);
-    $("tel-fix").textContent = (FIX[t.fix_quality] || "quality " + t.fix_quality) + "  HDOP " + fmt(t.hdop, 1) + "  age " + fmt(t.fix_age_s, 1) + " s";
+    // 99.99: a receiver's "no HDOP" (no fix), not a dilution of 100
+    const hdop = t.hdop !== null && t.hdop >= 99.99 ? null : t.hdop;
+    $("tel-fix").textContent = (FIX[t.fix_quality] || "quality " + t.fix_quality) + "  HDOP " + fmt(hdop, 1) + "  age " + fmt(t.fix_age_s, 1) + " s";
     $("tel-sats").textContent = t.sats_used === null ? "—" : t.sats_used + " used";
     $("tel-heading").textContent = t.heading_deg === null ? "—" : fmt(wrap360(t.heading_deg), 1) + "° " + (S.north || "true");
     $("tel-attitude").textContent = fmt(t.pitch_deg, 1) + "° / " + fmt(t.roll_deg, 1) + "°";
@@ -441,7 +449,18 @@
   // -- the mission and its editor --------------------------------------------------------------
   function onMap(m) {
     const changed = m.revision !== S.map.revision;
+    // not this page's own Send (one in flight is taken as the cause) nor the first map: said,
+    // so neither page's "mission.load: ok" stands over a mission that is no longer theirs
+    const foreign = changed && S.map.revision !== -1 && !S.sending && !S.ownRevisions.has(m.revision);
     S.map = m;
+    if (foreign) {
+      const n = m.waypoints.length, what = n ? n + " waypoints" : "no mission";
+      if (S.dirty) {
+        S.draftStale = true;
+        S.replaceAsked = false;
+        say("the robot's mission was replaced, not from this page: it has " + what + " now; your edits (not sent) were made on the one before", true);
+      } else say("the robot's mission was replaced, not from this page: it has " + what + " now");
+    }
     if (m.geofence && m.geofence.center && !S.originFromFence) {
       S.origin = m.geofence.center; // the frame stays put from here on
       S.originFromFence = true;
@@ -522,9 +541,22 @@
   // By content, not by an edit counter: a drag edits in place, the browser's console assigns.
   async function sendMission() {
     if (!S.draft.length) return say("the mission has no waypoints", true);
+    if (S.dirty && S.draftStale && !S.replaceAsked) {
+      S.replaceAsked = true;
+      const n = S.map.waypoints.length;
+      return say("the robot's mission changed since your edits began (another page or client loaded " + n + " waypoints): Send again to replace it with your " + S.draft.length, true);
+    }
     const sent = JSON.stringify(S.draft), n = S.draft.length, at = clock();
-    const r = await command("mission.load", { waypoints: S.draft });
+    S.sending++;
+    let r;
+    try {
+      r = await command("mission.load", { waypoints: S.draft });
+    } finally {
+      S.sending--;
+    }
     if (!r.ok) return;
+    if (Number.isInteger(r.revision)) S.ownRevisions.add(r.revision);
+    S.draftStale = S.replaceAsked = false;
     if (S.draft.length === n && JSON.stringify(S.draft) === sent) { S.dirty = false; renderMission(); }
     else if (S.dirty) say("mission.load: ok, but the robot has the mission as sent at " + at + " (" + n + " waypoints): your edits since are not sent", true);
   }
@@ -543,6 +575,7 @@
       if (r.ok) {
         const lost = S.dirty && (!wasDirty || JSON.stringify(S.draft) !== before) ? "; it replaced the edits made while it was read" : "";
         setDraft(r.waypoints);
+        S.draftStale = S.replaceAsked = false;
         const notes = Array.isArray(r.notes) && r.notes.length ? "; note: " + r.notes.join("; ") : "";
         say(file.name + ": " + r.waypoints.length + " waypoints (not sent yet)" + lost + notes, Boolean(lost));
         fit();
@@ -1158,7 +1191,7 @@
   });
   $("btn-fit").addEventListener("click", fit);
   $("btn-send").addEventListener("click", sendMission);
-  $("btn-revert").addEventListener("click", () => { S.dirty = false; S.draft = S.map.waypoints.map((p) => p.slice()); renderMission(); });
+  $("btn-revert").addEventListener("click", () => { S.dirty = S.draftStale = S.replaceAsked = false; S.draft = S.map.waypoints.map((p) => p.slice()); renderMission(); });
   $("btn-clear").addEventListener("click", () => setDraft([]));
   $("mission-file").addEventListener("change", (ev) => { if (ev.target.files[0]) loadFile(ev.target.files[0]); ev.target.value = ""; });
   $("speed").addEventListener("input", () => { $("speed-out").textContent = $("speed").value; });
