@@ -76,7 +76,11 @@ that may throw the error away unread."""
 REFUSED_DISCARD_BYTES = 1 << 20
 """The most bytes read and dropped after refusing a request too long (1 MiB; see
 :data:`REFUSED_LINGER_S`)."""
-COMMANDS = frozenset({"WATCH", "POLL", "VERSION", "DEVICES"})
+COMMANDS = frozenset({"WATCH", "POLL", "VERSION", "DEVICES", "DEVICE"})
+
+DEVICE_SETTINGS = ("bps", "parity", "stopbits", "native", "cycle", "mincycle", "hexdata")
+"""?DEVICE={...} keys that would change the receiver: gpsd applies them; here the daemon's own
+[gps] configuration rules the line, so they are refused (`gpsctl` then says why)."""
 WATCH_FLAGS = ("scaled", "timing", "split24", "pps")
 """?WATCH options that change nothing this port sends (no scaling, PPS or timing objects):
 echoed as asked, as gpsd echoes them."""
@@ -631,6 +635,28 @@ class GpsdServer(LineServer[_Client]):
             self._last_tpv = self._last_sky = None
         self._fanout(line, nmea=False)
 
+    def _device_answer(self, arg: dict[str, Any] | None) -> list[bytes]:
+        """?DEVICE; is the DEVICE object of the receiver (nothing while no device is open, as
+        gpsd); ?DEVICE={...} names it by ``path`` (another path: gpsd's "Can't open") and may
+        not change it: the daemon's [gps] configuration rules the line."""
+        if arg is not None:
+            path = arg.get("path")
+            if isinstance(path, str) and path not in ("", self.device_path):
+                return [dumps({"class": "ERROR", "message": f"Can't open {shown(path)}."})]
+            if not self.gps_up:
+                message = "Can't perform DEVICE configuration, no devices attached."
+                return [dumps({"class": "ERROR", "message": message})]
+            asked = [k for k in DEVICE_SETTINGS if k in arg]
+            if asked:
+                message = (
+                    f"{', '.join(asked)}: not changed over this port; the robot's receiver"
+                    " is configured by its daemon ([gps] in its configuration)"
+                )
+                return [dumps({"class": "ERROR", "message": message})]
+        if not self.gps_up:
+            return []
+        return [dumps(device_obj(self.device_path, self.bps, self.cycle_s, self.activated))]
+
     def _devices(self) -> bytes:
         if not self.gps_up:
             return dumps({"class": "DEVICES", "devices": []})  # as gpsd, with no device open
@@ -726,6 +752,8 @@ class GpsdServer(LineServer[_Client]):
             return [dumps(version_obj())]
         if name == "DEVICES":
             return [self._devices()]
+        if name == "DEVICE":
+            return self._device_answer(arg)
         if name == "POLL":
             return [dumps(self._poll_obj())]
         if name == "WATCH":
