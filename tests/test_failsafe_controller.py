@@ -746,3 +746,42 @@ def test_the_clients_status_says_who_paused() -> None:
     assert line.endswith("(paused by the operator)"), line
     line = state_line({"paused_by": "failsafe: stuck", "failsafe": "stuck"})
     assert line.endswith("(paused by failsafe: stuck)"), line
+
+
+# ------------------------------------------------------------------ progress (round 18)
+
+
+def _circling(c: Controller, until_s: float, radius_m: float = 30.0) -> None:
+    """Fixes and headings of a robot circling waypoint (0, 60) at 1 m/s, ``radius_m`` out:
+    each heading the fixes' own course, so no other check has a cause."""
+    w = 1.0 / radius_m
+    t = 0.1
+    while t <= until_s and c.mode == Mode.RUNNING:
+        a = w * t
+        c.on_attitude(att(t, math.degrees(a + math.pi / 2) % 360.0))
+        if abs(t - round(t)) < 1e-6:
+            c.on_fix(fix(t, radius_m * math.sin(a), 60.0 - radius_m * math.cos(a)))
+        t = round(t + 0.1, 1)
+
+
+def test_a_robot_circling_its_waypoint_pauses_for_no_progress() -> None:
+    # an outside audit: a compass lagging 3 s swung the robot about waypoint 2 for 700 m,
+    # each pivot gaining its own 10 degrees, and nothing fired
+    fs = replace(FS, stuck_s=0.0, progress_timeout_s=20.0)
+    c = Controller(NAV, SAFETY, failsafe=fs)
+    c.on_fix(fix(0.0, 0.0, 30.0))
+    c.on_attitude(att(0.0, 90.0))
+    c.load_mission([at(0.0, 60.0)], 0.0)
+    c.start(0.0)
+    _circling(c, 60.0)
+    assert c.mode == Mode.PAUSED, c.telemetry
+    why = c.telemetry.extra["failsafe"]
+    assert str(why).startswith("no progress to waypoint 1: 20 s of driving"), why
+    # off (0): it circles on
+    c = Controller(NAV, SAFETY, failsafe=replace(fs, progress_timeout_s=0.0))
+    c.on_fix(fix(0.0, 0.0, 30.0))
+    c.on_attitude(att(0.0, 90.0))
+    c.load_mission([at(0.0, 60.0)], 0.0)
+    c.start(0.0)
+    _circling(c, 60.0)
+    assert c.mode == Mode.RUNNING and "failsafe" not in c.telemetry.extra

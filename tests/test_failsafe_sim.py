@@ -647,3 +647,23 @@ def test_a_compass_overwhelmed_by_hard_iron_pauses_a_pivot_that_cannot_finish(
     motors = [m for m in run.of("motor") if m["t_s"] >= paused["t_s"]]
     assert motors and all(m["left_pct"] == m["right_pct"] == 0.0 for m in motors)
     assert run.moved_after(paused["t_s"] + 1.0) < 0.5
+
+
+def test_a_compass_that_lags_pauses_for_no_progress_instead_of_swinging_on(
+    tmp_path: Path,
+) -> None:
+    # an outside audit (round 18): a compass whose heading lags 3 s (a heavy filter; the
+    # CMPS10's own is 0.21 s) swung the robot left and right about waypoint 2 for 700 m with
+    # no failsafe, each pivot gaining its own 10 degrees
+    text = DEFAULT.replace("duration_s = 400.0", "duration_s = 200.0")
+    assert "[compass]\n" in text
+    world = loads_world(text.replace("[compass]\n", "[compass]\nlag_tau_s = 3.0\n"),
+                        base_dir=SCENARIOS)  # fmt: skip
+    run = _mission(tmp_path, world)
+    paused = run.first("PAUSED", "failsafe: no progress to waypoint")
+    t = paused["t_s"]
+    assert "swinging or circling" in paused["reason"] and t < 150.0, paused
+    motors = [m for m in run.of("motor") if m["t_s"] >= t]
+    assert motors and all(m["left_pct"] == m["right_pct"] == 0.0 for m in motors)
+    assert run.moved_after(t + 1.5) < 0.05
+    assert run.summary.completed is False

@@ -331,7 +331,9 @@ class FailsafeConfig:
     0: off; always a pause: the operator looks before the robot drives on either
     position); the robot held ``position_timeout_s`` with its next waypoint inside the
     EKF's error radius (``navigation.arrival_max_error_m``: the fixes too poor to tell
-    whether it is there; 0: wait for them; always a pause: a return needs that position)."""
+    whether it is there; 0: wait for them; always a pause: a return needs that position);
+    the robot drove ``progress_timeout_s`` in all without coming 2 m nearer its waypoint
+    (swinging or circling about it; 0: off; always a pause: a return steers the same way)."""
 
     geofence_action: str = field(default="hold", metadata={"choices": FAILSAFE_ACTIONS})
     operator_timeout_s: float = field(default=0.0, metadata=_rng(0, 3600))
@@ -352,6 +354,8 @@ class FailsafeConfig:
     gps_jump_m: float = field(default=25.0, metadata=_rng(0, 100_000))
     # held this long (s) for a position too uncertain to tell a waypoint is reached; 0: off
     position_timeout_s: float = field(default=120.0, metadata=_rng(0, 3600))
+    # driving this long (s) in all without coming 2 m nearer the waypoint; 0: off
+    progress_timeout_s: float = field(default=60.0, metadata=_rng(0, 3600))
 
 
 @dataclass(frozen=True)

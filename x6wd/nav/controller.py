@@ -152,6 +152,12 @@ cruise covers 20 m in 10 s along its heading."""
 SLIP_MIN_TRAVEL = 4.0
 """With encoders, the body counts as still (slipping) only once the wheels drove this many
 ``stuck_min_m`` without it moving: at a slow cruise a drifting GPS can hide 6 m in 10 s."""
+PROGRESS_GAIN_M = 2.0
+"""The progress watch (``failsafe.progress_timeout_s``): driving counts as progress towards
+the waypoint only when the estimate comes this much nearer it than it has ever been (m); a
+robot that swings or circles about its target, each pivot gaining its own 10°, never does."""
+PROGRESS_TICK_MAX_S = 0.5
+"""Time counted per check at most (s): a hold or a pause between two checks is no driving."""
 
 LAUNCH_STILL_M = 2.0
 """Wheel travel (m) under which a robot that jumped is still at its launch point: the
@@ -311,6 +317,9 @@ class Controller:
         self._enc_fix: tuple[float, float] | None = None
         # the pivot's headway: (best |heading error| deg, t_s it was reached, waypoint index)
         self._pivot_best: tuple[float, float, int] | None = None
+        # the progress watch: (navigator, waypoint index) watched, the nearest the estimate
+        # has been to it (m), driving time since it was last beaten (s), the latest check (s)
+        self._progress: tuple[Navigator, int, float, float, float] | None = None
         self._course = CourseWatch(
             self._failsafe.off_course_m, self._failsafe.heading_check_deg, nav.full_speed_mps
         )
@@ -624,6 +633,7 @@ class Controller:
         self._navigator.restart()
         self._source.reset()
         self._stuck_wheels = self._stuck_body = self._pivot_best = None
+        self._progress = None
         self._course.reset()
         self._jump_m = self._sensor_t = None
         self._sensor_s = 0.0
@@ -670,6 +680,7 @@ class Controller:
         now = t_s if self._now is None else max(self._now, t_s)
         self._return_stop_until = now + RETURN_STOP_S  # stop first (RETURN_STOP_S)
         self._stuck_wheels = self._stuck_body = self._pivot_best = None
+        self._progress = None
         self._course.reset()
         self._sensor_s, self._sensor_t = 0.0, None
         if self._mode == Mode.RUNNING:
@@ -870,7 +881,7 @@ class Controller:
             fired = self._stuck_check(now) or self._pivot_check(now)
             if fired is not None:
                 return fired
-        return self._course_check(now)
+        return self._progress_check(now) or self._course_check(now)
 
     def _fix_confirms(self, now: float) -> bool:
         """At a start (``now``, s): the source took the latest fix it judged, and that fix is
@@ -1238,6 +1249,34 @@ class Controller:
             f"stuck (the pivot: {best[0]:.0f}° from its heading and no nearer in {stuck_s:g} s"
             f" of turning; the compass does not follow the wheels: {PIVOT_CAUSES})",
             self._failsafe.stuck_action,
+        )
+
+    def _progress_check(self, now: float) -> tuple[str, str] | None:
+        """Driving (no hold) for ``failsafe.progress_timeout_s`` in all without the estimate
+        coming :data:`PROGRESS_GAIN_M` nearer the waypoint than it has been: the robot swings
+        or circles about it (an outside audit: a compass lagging 3 s pivoted left and right
+        for 700 m about waypoint 2, each pivot gaining its own 10° so the pivot check never
+        fired). Always a pause: a return would steer by the same heading."""
+        limit_s = self._failsafe.progress_timeout_s
+        nav, last = self._navigator, self._navigator.last
+        if limit_s <= 0 or last is None or last.phi_i_rad is None or nav.done:
+            self._progress = None
+            return None
+        d_m, index = last.distance_m, last.waypoint_index
+        p = self._progress  # its distance is the one at the latest progress (m)
+        if p is None or p[0] is not nav or p[1] != index or d_m <= p[2] - PROGRESS_GAIN_M:
+            self._progress = (nav, index, d_m, 0.0, now)
+            return None
+        driven_s = p[3] + min(max(now - p[4], 0.0), PROGRESS_TICK_MAX_S)
+        if driven_s < limit_s:
+            self._progress = (nav, index, p[2], driven_s, now)
+            return None
+        self._progress = None
+        return (
+            f"no progress to waypoint {index + 1}: {limit_s:g} s of driving without coming"
+            f" {PROGRESS_GAIN_M:g} m nearer than {p[2]:.1f} m (now {d_m:.1f} m): swinging or"
+            " circling about it (a compass that lags or reads wrong?)",
+            "hold",
         )
 
     # ------------------------------------------------------------------ internals
