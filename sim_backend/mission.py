@@ -669,6 +669,7 @@ def run_mission(
             "paused_time_s": round(float(sum(b - a for a, b, _why in pauses)), 3),
             "position_source": world.navigation.position_source,
             "geofence_breaches": runner.geofence_breaches,
+            "ekf_surprise_resets_m": [round(m, 1) for m in runner.surprise_resets_m],
             "i2c_errors_injected": injector.injected,
             "compass_stale_events": compass.counters.stale_events,
             "nmea_bytes": uart.written,

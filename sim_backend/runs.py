@@ -407,6 +407,13 @@ class Summary:
         ]
         for t_s, why in self.extra.get("failsafes") or ():  # what stopped the mission, and when
             lines.append(f"  failsafe            at {t_s:.1f} s: {why}")
+        surprises = self.extra.get("ekf_surprise_resets_m") or ()
+        if surprises:  # the estimate far wrong and sure of itself: a compass off its calibration?
+            lines.append(
+                f"  EKF resets          {len(surprises)} beyond its own ellipse (largest"
+                f" {max(surprises):.1f} m): the heading or the wheels led it astray, or the"
+                " fixes jumped (the log's WARNING lines say when)"
+            )
         lines.extend(self._paused_lines())
         return "\n".join(lines)
 

@@ -850,13 +850,15 @@ def _standing_robot_reset_log(
 
 def test_each_ekf_reset_is_logged_with_how_far_it_moved(caplog: pytest.LogCaptureFixture) -> None:
     """An outside review: a position jump while no mission ran (or paused) left only a
-    number in status. Each reset is logged, a warning from gps_jump_m on."""
+    number in status. Each reset is logged, a warning from gps_jump_m on, and (round 18)
+    from 0.4 of it when beyond the estimate's own ellipse: it was far wrong and sure of it."""
     records = _standing_robot_reset_log(
         caplog, 400, lambda t: 0.0 if t < 10.0 else (10.0 if t < 25.0 else 112.0)
     )
     said = [(r.levelno, r.getMessage()) for r in records]
-    assert [lv for lv, _ in said] == [logging.INFO, logging.WARNING], said
+    assert [lv for lv, _ in said] == [logging.WARNING, logging.WARNING], said
     assert said[0][1].startswith("gps: the estimate moved 10.") and "(EKF reset 1)" in said[0][1]
+    assert "beyond its own 99 % ellipse" in said[0][1], said[0][1]
     assert said[1][1].startswith("gps: the estimate moved 102.") and "(EKF reset 2)" in said[1][1]
 
 

@@ -155,6 +155,11 @@ class LoopLateness:
             self._peaks.popleft()
 
 
+SURPRISE_WARN_OF_JUMP = 0.4
+"""A reset of the EKF beyond its own 99 % ellipse is a WARNING from this fraction of
+``failsafe.gps_jump_m`` (10 m of the default 25 m; the failsafe itself pauses from 1)."""
+
+
 def _nothing(*_args: Any) -> None:
     return None
 
@@ -239,6 +244,9 @@ class Runner:
         self.first_fix: tuple[float, float] | None = None
         """(lat_deg, lon_deg) of the first valid fix: the geofence centre unless configured."""
         self.geofence_breaches = 0
+        self.surprise_resets_m: list[float] = []
+        """The EKF's resets (m) under ``failsafe.gps_jump_m`` but beyond its own ellipse and
+        :data:`SURPRISE_WARN_OF_JUMP` of that limit or more: each a WARNING."""
         self.compass_repeats = 0
         """Compass samples not newer than the last one taken: seen, not used (see
         :meth:`attitude`)."""
@@ -843,6 +851,7 @@ class Runner:
         self._resets_seen = resets
         jump_m = float(tel.extra.get("ekf_last_reset_m") or 0.0)
         limit_m = self.controller.failsafe_config.gps_jump_m
+        warn = 0 < limit_m <= jump_m
         if tel.extra.get("ekf_last_reset_reason") == "bias":
             to = "to fixes that moved while the wheels stood still (carried or pushed?)"
         else:
@@ -853,8 +862,18 @@ class Runner:
                     f", inside its own 99 % ellipse ({expected_m:.0f} m: poor geometry made"
                     " it that uncertain)"
                 )
+            elif not warn and jump_m >= SURPRISE_WARN_OF_JUMP * limit_m > 0:
+                # under the jump failsafe, but the estimate was far wrong while sure of
+                # itself: said (an audit: a compass 12 uT off its calibration took the robot
+                # 20 m off its route on good fixes, and only an INFO line told)
+                warn = True
+                self.surprise_resets_m.append(jump_m)
+                to += (
+                    ", beyond its own 99 % ellipse: the heading or the wheels led it astray"
+                    " (a compass off its calibration? wheels slipping?) or the fixes jumped"
+                )
         log.log(
-            logging.WARNING if 0 < limit_m <= jump_m else logging.INFO,
+            logging.WARNING if warn else logging.INFO,
             "gps: the estimate moved %.1f m %s (EKF reset %d)",
             jump_m,
             to,
