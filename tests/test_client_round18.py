@@ -9,6 +9,7 @@ import os
 import ssl
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -77,3 +78,23 @@ def test_the_client_aimed_at_the_gpsd_port_says_so_at_once() -> None:
         p.close()
     assert r.returncode != 0 and "gpsd-compatible port" in r.stderr, r.stderr
     assert "7601" in r.stderr and took_s < 10.0, (took_s, r.stderr)
+
+
+def test_the_robot_s_notes_on_a_load_are_printed(tmp_path: Path) -> None:
+    # a waypoint by the geofence's edge is loaded with the robot's note (round 18); the
+    # client printed only its own file's notes
+    class Noting(RecordingBackend):
+        def load_mission(self, waypoints: list[Any]) -> dict[str, Any]:
+            return {**super().load_mission(waypoints), "notes": ["waypoint 1 (0.5 m) within"]}
+
+    csv = tmp_path / "m.csv"
+    csv.write_text("lat,lon\n51.7520,-1.2577\n")
+    lt = LoopThread()
+    srv = start_server(lt, Noting())
+    try:
+        r = client(srv.port, "load", str(csv))
+    finally:
+        lt.run(srv.close())
+        lt.close()
+    assert r.returncode == 0, r.stderr
+    assert "x6wd client: note: waypoint 1 (0.5 m) within" in r.stderr, r.stderr

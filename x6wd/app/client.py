@@ -1112,6 +1112,9 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
                     limit = _limit_in(exc.message) or args.max_line_bytes
                     why = too_long_text(len(pairs), size, limit)
                     raise RequestFailed(exc.code, f"{exc.message}: {why}", exc.reason) from None
+                robot_notes = reply.get("notes")  # the robot's own (a waypoint by the fence)
+                for note in robot_notes if isinstance(robot_notes, list) else ():
+                    print(f"x6wd client: note: {str(note)[:500]}", file=err)
             elif action == "drive":
                 try:  # a Ctrl-C while the robot takes the drive stops it too, said so
                     reply = client.request(

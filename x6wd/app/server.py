@@ -1305,8 +1305,9 @@ class ControlServer(LineServer[_Client]):
             self._command_seq += 1
             if cmd == "mission.load":
                 reply = await _result(b.load_mission(*args))
-                notes = getattr(args[0], "notes", None)  # what the file held but x6wd won't use
-                return {**reply, "notes": list(notes)} if notes else reply
+                # what the file held but x6wd won't use, then the robot's own (the fence)
+                notes = [*getattr(args[0], "notes", ()), *reply.get("notes", ())]
+                return {**reply, "notes": notes} if notes else reply
             if cmd == "drive":
                 # owned from now, before the robot has it: another client's drive arriving
                 # meanwhile is refused, not sent after it

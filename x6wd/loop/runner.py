@@ -155,6 +155,10 @@ class LoopLateness:
             self._peaks.popleft()
 
 
+FENCE_EDGE_MARGIN_M = 5.0
+"""A waypoint this near the geofence's edge (m) is loaded with a note: the GPS's error (2-7 m
+on a NEO-5) and the arrival's overshoot may take the robot across the edge."""
+
 SURPRISE_WARN_OF_JUMP = 0.4
 """A reset of the EKF beyond its own 99 % ellipse is a WARNING from this fraction of
 ``failsafe.gps_jump_m`` (10 m of the default 25 m; the failsafe itself pauses from 1)."""
@@ -481,11 +485,23 @@ class Runner:
     # -- operator requests --------------------------------------------------------------------
     def load_mission(self, waypoints: Sequence[Waypoint]) -> dict[str, Any]:
         """Check every waypoint against the geofence, then hand them to the controller."""
-        self._check_geofence(waypoints)
+        near = self._check_geofence(waypoints)
         pairs = [(w.lat_deg, w.lon_deg) for w in waypoints]
         self._handle(self.controller.load_mission(pairs, self.clock()))
         log.info("mission loaded: %d waypoints", len(pairs))
-        return {"count": len(pairs)}
+        if not near:
+            return {"count": len(pairs)}
+        radius_m = self.safety.geofence_radius_m
+        shown = ", ".join(f"{i + 1} ({inside_m:.1f} m)" for i, inside_m in near[:5])
+        more = f" and {len(near) - 5} more" if len(near) > 5 else ""
+        note = (
+            f"waypoint{'s' if len(near) > 1 else ''} {shown}{more} within"
+            f" {FENCE_EDGE_MARGIN_M:g} m of the geofence's edge ({radius_m:.12g} m): the GPS's"
+            " error or the arrival may take the robot across it, and a breach pauses the"
+            " mission"
+        )
+        log.warning("mission: %s", note)
+        return {"count": len(pairs), "notes": [note]}
 
     def command(self, name: str) -> dict[str, Any]:
         """``start``, ``pause``, ``resume``, ``return`` (to the launch point) or ``stop`` the
@@ -552,11 +568,15 @@ class Runner:
             return (c[0], c[1])
         return self.first_fix
 
-    def _check_geofence(self, waypoints: Sequence[Waypoint]) -> None:
+    def _check_geofence(self, waypoints: Sequence[Waypoint]) -> list[tuple[int, float]]:
+        """Refuse a waypoint outside the geofence; (index, metres inside the edge) of those
+        within :data:`FENCE_EDGE_MARGIN_M` of it (an audit: one 0.5 m inside was accepted,
+        then the robot paused 1 m short of it, outside)."""
         centre = self.geofence_centre()
         if centre is None:
             raise CommandError("geofence", "no fix yet: cannot check waypoints against geofence")
         radius_m = self.safety.geofence_radius_m
+        near: list[tuple[int, float]] = []
         for i, wp in enumerate(waypoints):
             d = great_circle_m(centre[0], centre[1], wp.lat_deg, wp.lon_deg)
             if not d <= radius_m:  # fails closed: NaN is outside
@@ -566,6 +586,9 @@ class Runner:
                     f"{_metres_beyond(d, radius_m)} m from the geofence centre; limit "
                     f"{radius_m:.12g} m",
                 )
+            if radius_m - d < FENCE_EDGE_MARGIN_M:
+                near.append((i, radius_m - d))
+        return near
 
     def _fence_applies(self, what: str) -> bool:
         """Whether ``start`` or ``resume`` (``what``) is judged against the geofence: not

@@ -555,6 +555,7 @@
       S.sending--;
     }
     if (!r.ok) return;
+    if (Array.isArray(r.notes) && r.notes.length) say("mission.load: ok; note: " + r.notes.join("; "), true);
     if (Number.isInteger(r.revision)) S.ownRevisions.add(r.revision);
     S.draftStale = S.replaceAsked = false;
     if (S.draft.length === n && JSON.stringify(S.draft) === sent) { S.dirty = false; renderMission(); }
