@@ -123,3 +123,34 @@ def test_clear_words_for_inputs_of_the_wrong_kind(
     err = capsys.readouterr().err
     assert "cannot read" in err and "built-in default" not in err, err
     assert os.listdir(tmp_path)  # (nothing else asserted of the folder)
+
+
+def test_a_sweep_refused_by_another_s_lock_leaves_that_sweep_s_folder_alone(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a review (round 18): two sweeps started at once into a new folder both took it as
+    # made by them; the one refused by the other's lock then removed that sweep's lock
+    # file, its runs/ and the folder. Only the call that made the folder removes it, and
+    # only under its own lock.
+    import contextlib
+
+    import x6wd.app.sweep as sweep_cli
+    from sim_backend.sweep import LOCK_FILE, out_dir_lock
+
+    f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n")
+    out = tmp_path / "o"
+    real = sweep_cli.output_dir
+    other = contextlib.ExitStack()
+
+    def and_another_sweep_takes_it(path: Path) -> Path:
+        made = real(path)
+        other.enter_context(out_dir_lock(made))  # sweep A, started at the same moment
+        (made / "runs").mkdir()
+        return made
+
+    monkeypatch.setattr(sweep_cli, "output_dir", and_another_sweep_takes_it)
+    with other:
+        code = main(["sweep", str(f), "--scheduler", f"tcp://127.0.0.1:{_closed_port()}",
+                     "--out", str(out), "--quiet"])  # fmt: skip
+        assert code == 2 and "another sweep" in capsys.readouterr().err
+        assert (out / LOCK_FILE).is_file() and (out / "runs").is_dir()

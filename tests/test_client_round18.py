@@ -98,3 +98,44 @@ def test_the_robot_s_notes_on_a_load_are_printed(tmp_path: Path) -> None:
         lt.close()
     assert r.returncode == 0, r.stderr
     assert "x6wd client: note: waypoint 1 (0.5 m) within" in r.stderr, r.stderr
+
+
+def test_a_stalled_tls_handshake_is_no_reason_to_fall_back_to_plain_text() -> None:
+    # a review (round 18): a port that stalls the handshake (overloaded, or someone in the
+    # middle) counted as "does not speak TLS"; the stop went again in plain text, and the
+    # port's close then said "add --tls" although --tls was given
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+    seen: list[bytes] = []
+    stop = threading.Event()
+
+    def stall() -> None:
+        server.settimeout(0.2)
+        conns = []
+        while not stop.is_set():
+            try:
+                conn, _ = server.accept()
+            except TimeoutError:
+                continue
+            conns.append(conn)  # never answers the ClientHello
+            conn.settimeout(0.5)
+            try:
+                seen.append(conn.recv(4096))
+            except TimeoutError:
+                pass
+        for conn in conns:
+            conn.close()
+
+    t = threading.Thread(target=stall, daemon=True)
+    t.start()
+    try:
+        r = client(server.getsockname()[1], "--tls", "--timeout", "1", "stop")
+    finally:
+        stop.set()
+        t.join(5)
+        server.close()
+    assert r.returncode == 3, (r.returncode, r.stderr)
+    assert "timed out" in r.stderr and "add --tls" not in r.stderr, r.stderr
+    assert not any(b'"cmd"' in s for s in seen), seen  # nothing sent in plain text

@@ -160,6 +160,11 @@ class RemoteClient:
             raise CertificateNotVerified(
                 f"TLS handshake with {host}:{port} failed: {exc}", why, exc.verify_code or 0
             ) from None
+        except TimeoutError:
+            sock.close()  # a port that stalls the handshake: no sign it does not speak TLS
+            raise ConnectionFailed(
+                f"TLS handshake with {host}:{port} timed out after {timeout_s:g} s"
+            ) from None
         except (OSError, ssl.SSLError) as exc:
             sock.close()
             raise HandshakeFailed(f"TLS handshake with {host}:{port} failed: {exc}") from None
@@ -167,6 +172,7 @@ class RemoteClient:
         self._tls = ssl_context is not None
         self.unverified_fallback = False  # a stop sent without verification (_connect)
         self.unverified_why = ""  # why the certificate was not verified (OpenSSL's reason)
+        self.fallback_from: ConnectionFailed | None = None  # what a fallback stop follows
         if token is not None:
             try:
                 self.authenticate(token)
@@ -1013,6 +1019,7 @@ def _connect(
                 raise exc from None  # the first failure is the one to tell
             client.unverified_fallback = True
             client.unverified_why = "sent in plain text: the TLS handshake failed"
+            client.fallback_from = exc  # told if the plain port closes too
             return client
     if args.action != "status" or token is None:
         return connect(token)
@@ -1094,7 +1101,9 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
                     reply = client.request(action)
                 except ClosedWithoutReply as exc:
                     if ssl_context is not None:
-                        raise
+                        # the plain retry of a failed handshake closed too: the handshake's
+                        # failure is the one to tell (this one would say "add --tls")
+                        raise (client.fallback_from or exc) from None
                     client = stack.enter_context(_stop_over_tls(args, exc, err))
                     reply = client.request(action)
                 if not client.unverified_fallback:  # the token only to a verified robot

@@ -577,6 +577,16 @@ def _number(args: dict[str, Any], key: str, lo: float, hi: float) -> float:
     return v
 
 
+def _ended(buf: bytearray, discarding: bool) -> bytearray:
+    """``buf`` at the input's end: its last line, unterminated, given its newline (unless it
+    is the rest of an oversized line being discarded, or blank), in place."""
+    tail_at = buf.rfind(b"\n") + 1
+    tail = buf[tail_at:]
+    if tail.strip() and not (discarding and tail_at == 0):
+        buf += b"\n"
+    return buf
+
+
 class ControlServer(LineServer[_Client]):
     """The remote-control endpoint. :meth:`publish` is called from the loop and never waits."""
 
@@ -1026,6 +1036,8 @@ class ControlServer(LineServer[_Client]):
                 if discarding or not buf.strip():
                     return
                 eof, chunk = True, b"\n"
+                if buf.endswith(b"\n"):  # _ended gave it its newline during a back-off
+                    chunk = b""
             buf += chunk
             budget.refill(self._clock())
             budget.level -= len(chunk)
@@ -1106,6 +1118,8 @@ class ControlServer(LineServer[_Client]):
         try:
             while (left := deadline - loop.time()) > 0.0:
                 if reader.at_eof() or len(buf) >= 2 * self.config.max_line_bytes:
+                    if reader.at_eof():  # a last stop without its newline goes now too
+                        scanned = self._early_stops(c, _ended(buf, discarding), scanned, discarding)
                     await asyncio.sleep(left)  # held back: the rest waits in the kernel
                     break
                 try:  # a read cancelled by the timeout loses nothing: its data stays queued

@@ -210,20 +210,32 @@ def main(args: argparse.Namespace) -> int:
         )
     runs = plan(spec)  # a bad key or value stops here, before any cluster starts
     wanted = Path(args.out) if args.out else Path("out") / "sweeps" / Path(args.sweep).stem
-    created = not wanted.exists()
+    created = _made_here(wanted)
     out = output_dir(wanted)
-    try:
-        with out_dir_lock(out):  # a second sweep into this folder (the same one, even): exit 2
+    with out_dir_lock(out):  # a second sweep into this folder (the same one, even): exit 2
+        try:
             check_out_dir(spec, out)  # another sweep's results are not replaced
             return _run(args, spec, runs, out, file_seeds)
-    except X6wdError:
-        if created:  # a wrong --scheduler, --workers ...: no folder of nothing left behind
-            _remove_if_empty(out)
-        raise
+        except X6wdError:
+            if created:  # a wrong --scheduler, --workers ...: no folder of nothing left behind
+                _remove_if_empty(out)  # under this call's own lock, never another's
+            raise
+
+
+def _made_here(path: Path) -> bool:
+    """Make ``path`` (and its parents); True only when this call made ``path`` itself, so
+    that two sweeps started at once into a new folder never both take it as theirs."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.mkdir()
+    except OSError:  # there already, or not makeable: output_dir says why
+        return False
+    return True
 
 
 def _remove_if_empty(out: Path) -> None:
-    """Remove ``out`` when it holds nothing but its lock file and an empty ``runs/``."""
+    """Remove ``out`` when it holds nothing but its lock file (held by the caller) and an
+    empty ``runs/``."""
     for step in (
         lambda: (out / "runs").rmdir(),
         lambda: (out / LOCK_FILE).unlink(),

@@ -154,8 +154,12 @@ SLIP_MIN_TRAVEL = 4.0
 ``stuck_min_m`` without it moving: at a slow cruise a drifting GPS can hide 6 m in 10 s."""
 PROGRESS_GAIN_M = 2.0
 """The progress watch (``failsafe.progress_timeout_s``): driving counts as progress towards
-the waypoint only when the estimate comes this much nearer it than it has ever been (m); a
-robot that swings or circles about its target, each pivot gaining its own 10°, never does."""
+the waypoint only when the estimate comes this much nearer it than at its latest progress
+(m); a robot that swings or circles about its target, each pivot gaining its own 10°, never
+does..."""
+PROGRESS_GAIN_OF_DISTANCE = 0.5
+"""... and never more than this fraction of that distance: a slow robot's approach (15 %
+of 0.3 m/s: 2.7 m a minute) counts from 3.4 m on (a review saw it paused 1.4 m short)."""
 PROGRESS_TICK_MAX_S = 0.5
 """Time counted per check at most (s): a hold or a pause between two checks is no driving."""
 
@@ -707,6 +711,7 @@ class Controller:
             raise CommandRejected(f"nothing to resume: mode is {self._mode}")
         changes: list[ControllerOutput] = []
         self._course.reset()  # the operator looked and sent it on: a fresh leg
+        self._progress = None  # ... and the progress watch's full time again
         self._set_mode(Mode.RUNNING, "resume", t, changes)
         return self._step(t, "resume", changes)
 
@@ -1264,7 +1269,10 @@ class Controller:
             return None
         d_m, index = last.distance_m, last.waypoint_index
         p = self._progress  # its distance is the one at the latest progress (m)
-        if p is None or p[0] is not nav or p[1] != index or d_m <= p[2] - PROGRESS_GAIN_M:
+        gain_m = (
+            PROGRESS_GAIN_M if p is None else min(PROGRESS_GAIN_M, PROGRESS_GAIN_OF_DISTANCE * p[2])
+        )
+        if p is None or p[0] is not nav or p[1] != index or d_m <= p[2] - gain_m:
             self._progress = (nav, index, d_m, 0.0, now)
             return None
         driven_s = p[3] + min(max(now - p[4], 0.0), PROGRESS_TICK_MAX_S)
@@ -1274,7 +1282,7 @@ class Controller:
         self._progress = None
         return (
             f"no progress to waypoint {index + 1}: {limit_s:g} s of driving without coming"
-            f" {PROGRESS_GAIN_M:g} m nearer than {p[2]:.1f} m (now {d_m:.1f} m): swinging or"
+            f" {gain_m:.3g} m nearer than {p[2]:.1f} m (now {d_m:.1f} m): swinging or"
             " circling about it (a compass that lags or reads wrong?)",
             "hold",
         )
