@@ -307,10 +307,20 @@ class World:
 # ------------------------------------------------------------------ loading
 
 
+def _regular_or_said(path: str | Path, what: str) -> None:
+    """:class:`ConfigError` naming ``path`` when it is not a regular file (a pipe, a FIFO, a
+    device): a scenario is read more than once (its includes, its folder)."""
+    try:
+        require_regular(path)
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read {what}: {exc.strerror}") from None
+
+
 def load_world(path: str | Path) -> World:
     """Read, merge (``include``) and validate a scenario file. An error names the file where
     the key is (an included file's with its include chain) and the key as written there."""
-    p = Path(path).resolve()
+    _regular_or_said(path, "scenario")  # before resolve(): a pipe's /dev/fd/N resolves to
+    p = Path(path).resolve()  # a /proc/PID/fd/pipe:[N] that does not exist
     src = _Sources()
     data, src.tree = src.read(p, (), None)
     try:
@@ -333,6 +343,7 @@ def loads_world(text: str, base_dir: str | Path = ".", source: str = "<string>")
 def merge_fragment(world: World, path: str | Path) -> World:
     """A new world: ``world`` with the TOML fragment at ``path`` merged on top (its arrays of
     tables such as ``[[effects]]`` are appended, other keys replace)."""
+    _regular_or_said(path, "scenario fragment")
     p = Path(path).resolve()
     fragment, _ = _Sources().read(p, (), None)
     _resolve_paths(fragment, p.parent)

@@ -40,25 +40,34 @@ CASES = [
 ]  # fmt: skip
 
 
-@pytest.mark.parametrize("kind", ["/dev/zero", "fifo"])
+@pytest.mark.parametrize("kind", ["/dev/zero", "fifo", "pipe"])
 @pytest.mark.parametrize(("what", "args"), CASES, ids=[c[0] for c in CASES])
 def test_a_device_or_fifo_is_exit_2_naming_it(
     tmp_path: Path, what: str, args: list[str], kind: str
 ) -> None:
-    bad = "/dev/zero"
+    bad, fds = "/dev/zero", ()
     if kind == "fifo":
         bad = str(tmp_path / "input.fifo")
         os.mkfifo(bad)  # no writer: an open would block for ever
+    elif kind == "pipe":  # as `<(cmd)` gives it: a scenario's resolved to /proc/PID/fd/pipe:[N]
+        r, w = os.pipe()
+        os.close(w)
+        bad, fds = f"/dev/fd/{r}", (r,)
     argv = [a.format(bad=bad, out=tmp_path / "out") for a in args]
-    proc = subprocess.run(
-        [sys.executable, "-m", "x6wd", *argv],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        preexec_fn=_capped,
-        cwd=tmp_path,
-    )
-    said = "a character device" if kind == "/dev/zero" else "a FIFO"
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "x6wd", *argv],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            preexec_fn=_capped,
+            cwd=tmp_path,
+            pass_fds=fds,
+        )
+    finally:
+        for fd in fds:
+            os.close(fd)
+    said = {"/dev/zero": "a character device", "fifo": "a FIFO", "pipe": "a pipe"}[kind]
     assert proc.returncode == 2, (what, proc.returncode, proc.stderr[-2000:])
     assert f"not a regular file ({said})" in proc.stderr and bad in proc.stderr, proc.stderr
     assert "Traceback" not in proc.stderr, proc.stderr
