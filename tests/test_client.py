@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
+import ssl
 import subprocess
 import sys
 import threading
@@ -435,10 +437,9 @@ def test_real_csv_with_many_columns() -> None:
     assert all(-105.1 < w.lon_deg < -105.09 for w in wps)
 
 
-def test_tls_from_the_command_line(tmp_path: Path, token_file: Path) -> None:
-    import os
-    import ssl
-
+def tls_server_context(tmp_path: Path) -> tuple[ssl.SSLContext, Path]:
+    """A server TLS context of a fresh self-signed certificate for 127.0.0.1 (openssl), and
+    the certificate's file (a client's --cafile)."""
     openssl = require_program("openssl")
     cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
     subprocess.run(
@@ -450,6 +451,11 @@ def test_tls_from_the_command_line(tmp_path: Path, token_file: Path) -> None:
     os.chmod(key, 0o600)
     ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     ctx.load_cert_chain(cert, key)
+    return ctx, cert
+
+
+def test_tls_from_the_command_line(tmp_path: Path, token_file: Path) -> None:
+    ctx, cert = tls_server_context(tmp_path)
     lt = LoopThread()
     backend = RecordingBackend()
     srv = start_server(lt, backend, token=TOKEN.encode(), ssl_context=ctx)

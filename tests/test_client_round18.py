@@ -5,33 +5,14 @@ now goes once more over the other transport, said as unverified (exit 4, no toke
 
 from __future__ import annotations
 
-import os
-import ssl
-import subprocess
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from tests.conftest import require_program
-from tests.test_client import client
+from tests.test_client import client, tls_server_context
 from tests.test_server import TOKEN, LoopThread, RecordingBackend, start_server
 from x6wd.app.client import EXIT_UNVERIFIED
-
-
-def _tls_context(tmp_path: Path) -> ssl.SSLContext:
-    openssl = require_program("openssl")
-    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
-    subprocess.run(
-        [openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2",
-         "-subj", "/CN=localhost", "-addext", "subjectAltName=IP:127.0.0.1",
-         "-keyout", str(key), "-out", str(cert)],
-        check=True, capture_output=True,
-    )  # fmt: skip
-    os.chmod(key, 0o600)
-    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-    ctx.load_cert_chain(cert, key)
-    return ctx
 
 
 @pytest.mark.parametrize("daemon_tls", [True, False], ids=["tls-daemon", "plain-daemon"])
@@ -43,7 +24,7 @@ def test_a_stop_with_the_wrong_tls_setting_still_reaches_the_robot(
     token.chmod(0o600)
     lt = LoopThread()
     backend = RecordingBackend()
-    ctx = _tls_context(tmp_path) if daemon_tls else None
+    ctx = tls_server_context(tmp_path)[0] if daemon_tls else None
     srv = start_server(lt, backend, token=TOKEN.encode(), ssl_context=ctx)
     try:
         flags = [] if daemon_tls else ["--tls"]  # the wrong one of each
@@ -104,6 +85,7 @@ def test_a_stalled_tls_handshake_is_no_reason_to_fall_back_to_plain_text() -> No
     # a review (round 18): a port that stalls the handshake (overloaded, or someone in the
     # middle) counted as "does not speak TLS"; the stop went again in plain text, and the
     # port's close then said "add --tls" although --tls was given
+    import contextlib
     import socket
     import threading
 
@@ -121,10 +103,8 @@ def test_a_stalled_tls_handshake_is_no_reason_to_fall_back_to_plain_text() -> No
                 continue
             conns.append(conn)  # never answers the ClientHello
             conn.settimeout(0.5)
-            try:
+            with contextlib.suppress(TimeoutError):
                 seen.append(conn.recv(4096))
-            except TimeoutError:
-                pass
         for conn in conns:
             conn.close()
 
