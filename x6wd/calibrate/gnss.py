@@ -86,6 +86,7 @@ from x6wd.core.config import GnssNoiseConfig, build
 from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.files import require_regular
 from x6wd.core.geodesy import great_circle_m, wrap_deg
+from x6wd.core.motion import MAX_STATIC_SPEED_MPS, MOVE_SIGNIFICANCE, steady_speed_mps
 from x6wd.core.recorder import is_recording
 from x6wd.core.records import GpsFix
 from x6wd.nav.geo import LocalTangentPlane
@@ -104,20 +105,6 @@ position. A receiver standing still scatters about 1.18 times its per-axis error
 of a 2-D normal's radius): 1-4 m for a NEO-5 in the open, 20 m is a per-axis error of 17 m,
 which no open-sky receiver shows, but a robot that drove a few tens of metres does. The
 median, not the mean square, so a few multipath jumps of a still receiver do not count."""
-
-MAX_STATIC_SPEED_MPS = 0.5
-"""Largest steady speed (m/s) a static recording may show (:func:`_steady_speed_mps`). A
-robot circling inside the spread limit (3.5 m circles at 1 m/s, 5 s stops: read as 0.79 m/s,
-12.7 SEs; ASE written as 3.2 m before the check) shows its speed; a receiver standing still
-does not: real static logs read 0.005 m/s (ZED-F9P on KK1446) and 0.064 m/s (ZED-F9P, gpsd),
-a Gauss-Markov error cannot read above 0 on average (its steps revert), whatever its ASE and
-τ: 10 seeds of ASE 1.5 m τ 60 s and of ASE 5 m τ 600 s read at most 0.18 m/s by chance
-(2.3 SEs), ASE 3 m τ 15 s and ASE 5 m τ 5 s read 0."""
-
-MOVE_SIGNIFICANCE = 3.0
-"""The steady-speed evidence must also stand this many jackknife SEs above 0: a short record
-of a noisy receiver (white 2-3 m, 100 fixes) scatters its speed estimate to 0.9-1.3 m/s by
-chance, but never to 2 SEs; a drive, even with a 0.5 m reference, stands at 6 SEs or more."""
 
 MAX_CORRELATION_S = 86400.0
 """The largest ``correlation_s`` the configuration takes (s); an estimate beyond it (a record
@@ -520,53 +507,9 @@ def _check_standing(fixes: FixSeries, ref_lat_deg: float, ref_lon_deg: float) ->
 def _steady_speed_mps(
     fixes: FixSeries, x: npt.ArrayLike, y: npt.ArrayLike
 ) -> tuple[float, float] | None:
-    """The steady speed (m/s) in a recording's positions ``x``, ``y`` (m) and how many
-    jackknife SEs it stands above 0; None when there are too few pairs to tell.
-
-    The mean dot product of two 1 s displacements that share no fix, 2 s apart
-    (p(t+1)−p(t))·(p(t+3)−p(t+2)): a robot moving at v along a smooth path gives v²·cos(its
-    turn in 2 s), while a receiver standing still cannot make it positive: white noise gives
-    0 (the two steps are independent) and a slow, mean-reverting (Gauss-Markov) error
-    −σ²·φ(1−φ)² per axis (φ = e^(−1/τ): its steps revert), however large its spread σ and
-    however long its correlation time τ. The comparison of d(3 s) with d(1 s) used before
-    read a slow error as motion (ASE 3 m, τ 15 s: 0.61 m/s) because its displacement still
-    grows between those lags. A smooth error (a receiver's filter) does give a positive
-    product, but only its own speed squared, hundredths of a m/s. The mean, not the median:
-    a jump or a spike sits in one of the two steps and averages out, and the median of these
-    products is biased low for a noisy drive. Lags in epochs for records slower than 1 Hz."""
-    t = fixes.t_s - fixes.t_s[0]
-    steps = np.diff(t)
-    if not (steps > 0).any():
-        return None
-    dt = float(np.median(steps[steps > 0]))
-    idx = np.round(t / dt).astype(np.int64)
-    keep = np.concatenate(([True], np.diff(idx) > 0))
-    xy = np.column_stack([np.asarray(x, float), np.asarray(y, float)])[keep]
-    idx = idx[keep]
-    k = max(1, round(1.0 / dt))
-
-    def at(lag: int) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_]]:
-        pos = np.searchsorted(idx, idx + lag)
-        ok = pos < idx.size
-        ok[ok] = idx[pos[ok]] == idx[ok] + lag
-        return np.where(ok, pos, 0), ok
-
-    (p1, o1), (p2, o2), (p3, o3) = at(k), at(2 * k), at(3 * k)
-    first = np.flatnonzero(o1 & o2 & o3)
-    if first.size < 50:
-        return None
-    dots = ((xy[p1[first]] - xy[first]) * (xy[p3[first]] - xy[p2[first]])).sum(axis=1)
-    mean = float(dots.mean())
-    edges = np.linspace(0, idx.size, JACKKNIFE_BLOCKS + 1).astype(int)
-    reps = []
-    for lo, hi in itertools.pairwise(edges):
-        out = (first < lo) | (first >= hi)
-        if out.any():
-            reps.append(float(dots[out].mean()))
-    r = np.array(reps)
-    se = math.sqrt((r.size - 1) / r.size * float(((r - r.mean()) ** 2).sum()))
-    speed = math.sqrt(max(mean, 0.0)) / (k * dt)
-    return speed, (mean / se if se > 0 else (math.inf if mean > 0 else 0.0))
+    """:func:`x6wd.core.motion.steady_speed_mps` of a recording's positions ``x``, ``y``
+    (m)."""
+    return steady_speed_mps(fixes.t_s, x, y, JACKKNIFE_BLOCKS)
 
 
 def _root(v2: float, var_v2: float) -> Estimate:

@@ -425,6 +425,36 @@ def check_still(
         )
 
 
+def check_sims_still(args: argparse.Namespace, names: list[str], sims: list[Track]) -> None:
+    """With a point ``--truth``, or none, the real log stands still: ConfigError naming the
+    --sim logs whose own :data:`SIM_TRUTH_NAME` moves (a mission's runs): a receiver's
+    error depends on its motion, and their runs' would be read as the real receiver's gap
+    (an audit: a static log against two mission runs, their errors +389 %, read "no
+    significant gap" once the null's spread had widened 70-fold)."""
+    odd = []
+    for name, sim in zip(names, sims, strict=True):
+        own = Path(name).parent / SIM_TRUTH_NAME
+        if not own.is_file():
+            continue
+        try:
+            truth = read_track(own)
+        except X6wdError:  # a heading-only truth.csv (the compass half's): no positions
+            continue
+        if np.count_nonzero(truth.valid) >= 2 and not _still_over(truth, sim):
+            odd.append(name)
+    if not odd:
+        return
+    against = f"the point --truth {args.truth}" if args.truth is not None else "its own mean"
+    raise ConfigError(
+        f"{', '.join(odd)}: the {SIM_TRUTH_NAME} beside"
+        f" {'this --sim log' if len(odd) == 1 else 'each of these'} moves, but the real log"
+        f" stands still (scored against {against}): a receiver's error depends on its motion"
+        " (its navigation filter's lag, static hold), so the runs' would be read as the real"
+        " receiver's gap. Give --sim runs of a receiver standing still (x6wd sim"
+        " config/scenarios/open_field.toml), or --scenario"
+    )
+
+
 def check_same_motion(
     args: argparse.Namespace,
     real: tuple[Track, Track],
@@ -951,6 +981,8 @@ def main(args: argparse.Namespace) -> int:
                 print(f"x6wd gap: warning: {SIM_TRUTH_NAME} not read: {why}", file=sys.stderr)
             check_shared_truths(args.sim, sim_truths, truth_track)
             check_same_motion(args, (real_track, truth_track), args.sim, sims, sim_truths)
+        else:
+            check_sims_still(args, args.sim, sims)
         check_still(args, args.sim, sims, sim_truths)
         baseline = [
             to_errors(sim, args, truth, "sim", own_truth=truth is not truth_track)
