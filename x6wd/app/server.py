@@ -1116,7 +1116,10 @@ class ControlServer(LineServer[_Client]):
         deadline = loop.time() + seconds
         c.napping = True  # an eviction cancels the handler, as in _nap
         try:
-            while (left := deadline - loop.time()) > 0.0:
+            # and it is looked at here too: Python 3.11's wait_for drops a cancel that comes
+            # as its read completes, and the handler would sleep out the rest of its back-off
+            # holding the connection it has lost (an eviction sets ``closed`` first)
+            while not c.closed and (left := deadline - loop.time()) > 0.0:
                 if reader.at_eof() or len(buf) >= 2 * self.config.max_line_bytes:
                     if reader.at_eof():  # a last stop without its newline goes now too
                         scanned = self._early_stops(c, _ended(buf, discarding), scanned, discarding)
