@@ -929,9 +929,13 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
         else:
             rows.append(_fix_row(fix, t_s))
             fix_utc.append(_utc_s(fix.utc))
+    rows, fix_utc, unset_after, unset = drop_clock_excursions(rows, fix_utc)
+    timeless_after += unset_after
     rows, fix_utc, merged = _merge_split_stamps(rows, fix_utc)
     rows = _with_sets(rows, fix_utc, skies)
     notes = list(notes)
+    if unset:
+        notes.append(unset)
     if merged:
         notes.append(merged)
     corrupt = _corrupt_note(decoder.counters)
@@ -954,6 +958,79 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
     if first is None:
         notes.append("no dated NMEA sentence: the recording's receive clock is the time axis")
     return cut_silent_holes(_track(rows, source, notes), timeless_after)
+
+
+CLOCK_EXCURSION_S = 600.0
+"""A step of an NMEA log's time of over this between successive epochs, out and back again,
+is the receiver's clock, not the log: a receiver restarted without its time (cold, no backup
+battery) dates its sentences 1980-01-06, its firmware's build date or a rolled-over week, or
+counts the time of day from 00:00, until it has decoded the time. Such a stretch is dropped
+(:func:`drop_clock_excursions`)."""
+
+CLOCK_RETURN_SLACK_S = 60.0
+"""How much longer (s, or 10 % of the stretch) than a clock excursion's own epochs the log's
+time may have moved on across it: the receiver's restart, sending nothing."""
+
+
+def drop_clock_excursions(
+    rows: list[tuple[float, ...]], fix_utc: list[float | None]
+) -> tuple[list[tuple[float, ...]], list[float | None], list[float], str]:
+    """``rows`` (time s first, in log order) without their clock excursions: stretches
+    without a fix, entered by a step of over :data:`CLOCK_EXCURSION_S` and left by one back
+    to the log's own time, later than the epoch before the stretch by no more than the
+    stretch's epochs take (at the log's median step) and :data:`CLOCK_RETURN_SLACK_S`.
+    Returns the kept
+    rows and their ``fix_utc``, per dropped row the time (s) of the kept epoch before it
+    (the receiver was sending: :func:`cut_silent_holes` reads the hole as its outage) and a
+    note ("" when none). Sorted, such epochs went to the log's far end, and the hole they
+    left was read as the logger's: half a log was dropped."""
+    t_s = np.fromiter((r[0] for r in rows), dtype=float, count=len(rows))
+    if t_s.size < 3:
+        return rows, fix_utc, [], ""
+    steps_s = np.diff(t_s)
+    jumps = np.flatnonzero(np.abs(steps_s) > CLOCK_EXCURSION_S) + 1
+    if jumps.size < 2:
+        return rows, fix_utc, [], ""
+    forward = steps_s[steps_s > 0]
+    dt_s = float(np.median(forward)) if forward.size else 1.0
+    drop = np.zeros(t_s.size, dtype=bool)
+    after: list[float] = []
+    far: list[float] = []
+    k = 0
+    while k < jumps.size:
+        start = int(jumps[k])
+        before_s = t_s[start - 1]
+
+        def returns(m: int, start: int = start, before_s: float = before_s) -> bool:
+            took_s = (int(jumps[m]) - start) * dt_s
+            moved_s = t_s[jumps[m]] - before_s
+            return 0.0 <= moved_s <= took_s + max(CLOCK_RETURN_SLACK_S, 0.1 * took_s)
+
+        # ... and never a fix: a receiver with a fix knows the time (a session of fixes
+        # out of order is the log's, sorted as before)
+        first_fix = next((i for i in range(start, t_s.size) if rows[i][4] > 0), t_s.size)
+
+        back = next(
+            (m for m in range(k + 1, jumps.size) if jumps[m] <= first_fix and returns(m)), None
+        )
+        if back is None:
+            k += 1
+            continue
+        end = int(jumps[back])
+        drop[start:end] = True
+        after += [float(before_s)] * (end - start)
+        far += [float(t_s[start:end].min()), float(t_s[start:end].max())]
+        k = back + 1  # the step back may also start the next stretch
+    if not drop.any():
+        return rows, fix_utc, [], ""
+    keep = np.flatnonzero(~drop)
+    note = (
+        f"{int(drop.sum())} epochs dated away from the log's own time ({_utc_text(min(far))} to"
+        f" {_utc_text(max(far))}) between epochs of it dropped: a receiver restarted without"
+        " its clock (cold, no backup battery) dates its sentences so until it has decoded"
+        " the time; the hole they leave is read as its outage"
+    )
+    return [rows[i] for i in keep], [fix_utc[i] for i in keep], after, note
 
 
 SPLIT_STAMP_MAX_S = 0.25
@@ -1186,9 +1263,12 @@ def _gll_gns_track(
             when -= 86_400.0
         rows.append((when, *row))
         day = datetime.fromtimestamp(when, UTC)  # the next is dated from this epoch
+    rows, _, unset_after, unset = drop_clock_excursions(rows, [None] * len(rows))
+    timeless_after += unset_after
     kinds = sorted({kind for _, kind, _ in positions})
     read_notes = [
         *notes,
+        *([unset] if unset else []),
         f"positions read from {' and '.join(kinds)} sentences (the log has no GGA or RMC"
         " position)" + ("; GLL gives no satellite count or height" if "GLL" in kinds else ""),
     ]

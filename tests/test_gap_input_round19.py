@@ -1,0 +1,95 @@
+"""A receiver restarted without its clock in the middle of a log (round 19).
+
+A cold restart without a backup battery dates the receiver's no-fix sentences 1980-01-06
+(or its firmware's date, or counts the time of day from 00:00) until it has decoded the
+time. Sorted by time those epochs went to the log's far end and the hole they left was
+read as the logger's: half of a 1 h log was dropped, with a note that no sentence came at
+all. They are now dropped as a clock excursion and the hole read as the receiver's outage.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime, timedelta
+from pathlib import Path
+
+from x6wd.gap.io import read_track
+
+T0 = datetime(2026, 12, 7, 10, 0, 0)
+
+
+def sentence(body: str) -> str:
+    check = 0
+    for ch in body:
+        check ^= ord(ch)
+    return f"${body}*{check:02X}\r\n"
+
+
+def fix(t: datetime) -> list[str]:
+    tod, date = t.strftime("%H%M%S.00"), t.strftime("%d%m%y")
+    return [
+        sentence(f"GPGGA,{tod},5230.0000,N,01320.0000,E,1,08,1.0,50.0,M,40.0,M,,"),
+        sentence(f"GPRMC,{tod},A,5230.0000,N,01320.0000,E,0.0,0.0,{date},,,A"),
+    ]
+
+
+def no_fix(t: datetime, dated: bool = True) -> list[str]:
+    tod, date = t.strftime("%H%M%S.00"), t.strftime("%d%m%y") if dated else ""
+    return [
+        sentence(f"GPGGA,{tod},,,,,0,00,99.99,,,,,,"),
+        sentence(f"GPRMC,{tod},V,,,,,,,{date},,,N"),
+    ]
+
+
+def write(tmp_path: Path, lines: list[str]) -> Path:
+    path = tmp_path / "log.nmea"
+    path.write_text("".join(lines))
+    return path
+
+
+def test_a_mid_log_restart_dated_1980_keeps_the_whole_log(tmp_path: Path) -> None:
+    lines: list[str] = []
+    for k in range(3600):
+        if 1800 <= k < 1920:  # two minutes of a clock counting from the GPS epoch
+            lines += no_fix(datetime(1980, 1, 6) + timedelta(seconds=k - 1800))
+        else:
+            lines += fix(T0 + timedelta(seconds=k))
+    track = read_track(write(tmp_path, lines))
+    assert track.t_s[-1] - track.t_s[0] == 3599.0
+    assert int(track.valid.sum()) == 3480  # the restart is an outage of 120 s
+    notes = " ".join(track.notes)
+    assert "120 epochs dated away from the log's own time" in notes, track.notes
+    assert "no NMEA sentence at all" not in notes
+
+
+def test_a_time_of_day_from_midnight_after_a_silent_reboot(tmp_path: Path) -> None:
+    lines: list[str] = []
+    for k in range(3600):
+        if 1800 <= k < 1810:
+            continue  # the reboot: nothing sent
+        if 1810 <= k < 1900:  # no date yet, the time of day from 00:00
+            lines += no_fix(datetime(2000, 1, 1) + timedelta(seconds=k - 1810), dated=False)
+        else:
+            lines += fix(T0 + timedelta(seconds=k))
+    track = read_track(write(tmp_path, lines))
+    assert track.t_s[-1] - track.t_s[0] == 3599.0
+    assert int(track.valid.sum()) == 3500
+
+
+def test_sessions_of_fixes_out_of_order_are_still_the_log_s(tmp_path: Path) -> None:
+    # fixes are never a clock not yet set (a receiver with a fix knows the time), even when
+    # the hole they leave is just as long as they are
+    lines: list[str] = []
+    for start_s in (0, 4 * 3600, 3600):
+        lines += [s for k in range(1800) for s in fix(T0 + timedelta(seconds=start_s + k))]
+    track = read_track(write(tmp_path, lines))
+    notes = " ".join(track.notes)
+    assert "dated away from the log's own time" not in notes
+    assert "went back in time" in notes
+
+
+def test_sessions_joined_hours_apart_are_not_an_excursion(tmp_path: Path) -> None:
+    lines = [s for k in range(1800) for s in fix(T0 + timedelta(seconds=k))]
+    lines += [s for k in range(2400) for s in fix(T0 + timedelta(seconds=7200 + k))]
+    track = read_track(write(tmp_path, lines))
+    assert track.t_s.size == 2400  # the longer session, as before
+    assert "no NMEA sentence at all" in " ".join(track.notes)
