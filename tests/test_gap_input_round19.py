@@ -93,3 +93,13 @@ def test_sessions_joined_hours_apart_are_not_an_excursion(tmp_path: Path) -> Non
     track = read_track(write(tmp_path, lines))
     assert track.t_s.size == 2400  # the longer session, as before
     assert "no NMEA sentence at all" in " ".join(track.notes)
+
+
+def test_csv_times_without_a_zone_are_said_to_be_read_as_utc(tmp_path: Path) -> None:
+    rows = [f"2026-12-07T10:00:0{k}{{}},52.5,13.3\n" for k in range(4)]
+    naive, zoned = tmp_path / "naive.csv", tmp_path / "zoned.csv"
+    naive.write_text("time,lat,lon\n" + "".join(r.format("") for r in rows))
+    zoned.write_text("time,lat,lon\n" + "".join(r.format("Z") for r in rows))
+    said = [n for n in read_track(naive).notes if "without a time zone" in n]
+    assert said and "4 times" in said[0] and "read as UTC" in said[0], said
+    assert not [n for n in read_track(zoned).notes if "time zone" in n]

@@ -1499,7 +1499,8 @@ def _read_csv(path: Path) -> Track:
                 f"{source}:{linenos[-1]}", first, f"{len(first)} fields, time,lat,lon are 3"
             )
         rows, numeric, short = [], False, []
-        cut_last = ""
+        cut_last = zoneless_first = ""
+        zoneless = 0
         for row in body:
             lineno = linenos[-1]
             if len(row) < n_fields:
@@ -1514,13 +1515,23 @@ def _read_csv(path: Path) -> Track:
                 )
                 continue
             rows.append(_csv_row(row, column, source, linenos))
-            numeric = numeric or _is_number(row[column["t"]])  # type: ignore[index]
+            stamp = row[column["t"]].strip().strip('"')  # type: ignore[index]
+            if _is_number(stamp):
+                numeric = True
+            elif _without_zone(stamp):
+                zoneless += 1
+                zoneless_first = zoneless_first or stamp
     except csv.Error as exc:
         raise ParseError(f"{source}:{linenos[-1] if linenos else 1}: not CSV: {exc}") from exc
     skipped = [n for n in [_short_note(short, n_fields, has_header, open_last), cut_last] if n]
     if not rows and skipped:
         raise ParseError(f"{source}: no position epochs found: {'; '.join(skipped)}")
     notes += skipped
+    if zoneless:
+        notes.append(
+            f"{zoneless} times without a time zone (the first {zoneless_first!r}) read as UTC:"
+            " a log written in local time would be off by its zone's offset"
+        )
     name = first[column["t"]].strip().strip('"') if has_header else "1 (no header)"  # type: ignore[index]
     return replace(_track(rows, source, notes), time_column=name if numeric else "")
 
@@ -1594,6 +1605,14 @@ def _is_number(text: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def _without_zone(text: str) -> bool:
+    """True for ISO 8601 text of a time without a zone (no Z, no offset)."""
+    try:
+        return datetime.fromisoformat(text.replace("Z", "+00:00")).tzinfo is None
+    except ValueError:
+        return False
 
 
 def _chain_row(first: list[str], rest: Iterable[list[str]]) -> Iterator[list[str]]:
