@@ -17,6 +17,7 @@ import pytest
 
 from sim_backend.calibration_runs import (
     CIRCLE,
+    CIRCLE_TOUR,
     ORIGIN,
     REF_SIGMA_M,
     STOP,
@@ -326,9 +327,20 @@ def test_the_calibration_runs_tool_needs_no_test_tools_and_writes_the_tested_run
     def records(path: Path) -> list[str]:  # the wall-clock stamp t_utc is the writer's time
         return [re.sub(r'"t_utc":"[^"]*"', "", line) for line in path.read_text().splitlines()]
 
-    for name, script, seed in (("straight", STRAIGHT, 1), ("circle", CIRCLE, 2)):
+    for name, script, seed in (("straight", STRAIGHT, 1), ("circle", CIRCLE_TOUR, 2)):
         here = write(tmp_path / f"{name}.jsonl", *simulate(script, seed))
         assert records(out / f"{name}.jsonl") == records(here), name
+    # the tour's next line calibrates them: enough passes for the command, not "rough"
+    # (4 circle passes were, against its own advice of 6)
+    res = subprocess.run(
+        [sys.executable, "-m", "x6wd", "calibrate", "odometry", "--straight",
+         str(out / "straight.jsonl"), "--circle", str(out / "circle.jsonl")],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "rough" not in res.stderr + res.stdout, res.stderr
+    track_m = float(re.search(r"track_m = ([0-9.]+)", res.stdout).group(1))  # type: ignore[union-attr]
+    assert abs(track_m - 0.37) < 0.015, res.stdout
 
 
 def test_help_gives_the_defaults_of_stop_and_pass_length(
