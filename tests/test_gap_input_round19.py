@@ -103,3 +103,20 @@ def test_csv_times_without_a_zone_are_said_to_be_read_as_utc(tmp_path: Path) -> 
     said = [n for n in read_track(naive).notes if "without a time zone" in n]
     assert said and "4 times" in said[0] and "read as UTC" in said[0], said
     assert not [n for n in read_track(zoned).notes if "time zone" in n]
+
+
+def test_a_restart_in_a_gll_log_dated_by_zda(tmp_path: Path) -> None:
+    lines: list[str] = []
+    for k in range(1200):
+        restart = 600 <= k < 660
+        t = datetime(1980, 1, 6) + timedelta(seconds=k - 600) if restart else T0 + timedelta(0, k)
+        tod = t.strftime("%H%M%S.00")
+        if k % 60 == 0 or k == 600 or k == 660:
+            lines.append(sentence(f"GPZDA,{tod},{t.day:02d},{t.month:02d},{t.year},00,00"))
+        fixed = "5230.0000,N,01320.0000,E" if not restart else ",,,"
+        lines.append(
+            sentence(f"GPGLL,{fixed},{tod},{'V' if restart else 'A'},{'N' if restart else 'A'}")
+        )
+    track = read_track(write(tmp_path, lines))
+    assert track.t_s[-1] - track.t_s[0] == 1199.0, track.notes
+    assert "60 epochs dated away from the log's own time" in " ".join(track.notes), track.notes
