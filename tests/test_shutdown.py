@@ -174,6 +174,7 @@ class TcpMotorBoard:
         self.sock = socket.create_server(("127.0.0.1", 0))
         self.port = self.sock.getsockname()[1]
         self.board = MotorBoard(watchdog_ms=500)
+        self.deaf = False  # True: lines are still read (and kept), none is answered or obeyed
         self.lines: list[tuple[float, str]] = []
         self.closed = threading.Event()
         self.thread = threading.Thread(target=self._serve, daemon=True)
@@ -194,6 +195,8 @@ class TcpMotorBoard:
                 buf += data
                 *complete, buf = buf.split(b"\n")
                 self.lines.extend((t, line.decode("ascii", "replace")) for line in complete)
+                if self.deaf:
+                    continue
                 reply = self.board.feed(data, t)
                 if reply:
                     conn.sendall(reply)

@@ -113,6 +113,11 @@ EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_CONFIG = 2
 """A configuration error: restarting cannot help (the unit has RestartPreventExitStatus=2)."""
+MOTORS_UNCONFIRMED = (
+    "the motors' stop was NOT acknowledged by the board: only its own watchdog stops them"
+)
+"""Said at exit (log, the control port's clients) when the link could not confirm the stop;
+the exit is then 1, not 0."""
 DEVICE_POLL_S = 0.1
 """While start-up waits for a missing device node ([startup] device_wait_s), it looks again
 this often (s): a stat each, cheap; a stop signal ends the wait at once."""
@@ -551,8 +556,9 @@ class _MotorWorker:
         if self._on_death is not None:
             self._on_death(exc)
 
-    def shutdown(self, reason: str) -> None:
-        """Stop the thread, then stop the motors and close the link (idempotent)."""
+    def shutdown(self, reason: str) -> bool:
+        """Stop the thread, then stop the motors and close the link (idempotent). True if the
+        link confirmed the stop (a board's acknowledgement)."""
         with self._cond:
             self._stop = True
             self._cond.notify_all()
@@ -565,10 +571,12 @@ class _MotorWorker:
                 self._cond.wait(left_s)
         if self.thread.is_alive() and self.thread is not threading.current_thread():
             self.thread.join(5.0)
+        stopped = False
         with contextlib.suppress(Exception):
-            self.link.stop(reason)
+            stopped = bool(self.link.stop(reason))
         with contextlib.suppress(Exception):
             self.link.close()
+        return stopped
 
 
 class _GcPacer:
@@ -965,6 +973,7 @@ class Daemon:
         self.controller: Any = None
         self.runner: Runner | None = None
         self.motors: _MotorWorker | None = None
+        self.motors_unconfirmed = False  # the stop at exit was not confirmed (MOTORS_UNCONFIRMED)
         self.recorder: _RecorderWorker | None = None
         self.server: ControlServer | None = None
         self.gpsd: GpsdServer | None = None
@@ -1141,6 +1150,8 @@ class Daemon:
             finally:
                 if self.gc_pacer is not None:
                     self.gc_pacer.stop()
+        if self.motors_unconfirmed and code == EXIT_OK:
+            code = EXIT_FAILURE  # (systemd: a failed stop is no clean exit)
         return code
 
     def _preflight(self) -> None:
@@ -1503,11 +1514,20 @@ class Daemon:
         a crash or a power cut."""
         self._accepting = False  # nothing may set the robot moving again
         # Motors first: whatever else fails below, the robot must be stopped.
+        motors_said = "the motors are stopped"
         try:
             self._stop_controller(reason)
         finally:
-            if self.motors is not None:
-                await asyncio.to_thread(self.motors.shutdown, "daemon exit")
+            motors = self.motors
+            if motors is not None and not await asyncio.to_thread(motors.shutdown, "daemon exit"):
+                # said, never assumed: a board that stopped answering may still drive (an
+                # outside audit: "the motors are stopped" and exit 0 while it did)
+                self.motors_unconfirmed = True
+                motors_said = MOTORS_UNCONFIRMED
+                last = ""
+                with contextlib.suppress(Exception):  # a link in any state
+                    last = f" (last error: {motors.link.health.last_error})"
+                log.error("%s%s", MOTORS_UNCONFIRMED, last)
         self._threads_stop.set()
         for t in self._threads:
             await asyncio.to_thread(t.join, 3.0)
@@ -1516,7 +1536,7 @@ class Daemon:
                 if server is not None:
                     # the control port's clients are told why (the motors stopped above)
                     closing = (
-                        server.close("x6wd is shutting down: the motors are stopped")
+                        server.close(f"x6wd is shutting down: {motors_said}")
                         if isinstance(server, ControlServer)
                         else server.close()
                     )
@@ -1529,8 +1549,15 @@ class Daemon:
                     await asyncio.to_thread(dev.close)
         if self.recorder is not None:
             await asyncio.sleep(0)  # what the threads queued before they stopped, first
+            if self.motors_unconfirmed and exit_code == EXIT_OK:
+                exit_code = EXIT_FAILURE
             self.recorder.put_event(
-                "shutdown", time.monotonic(), cause=cause, exit_code=exit_code, reason=reason
+                "shutdown",
+                time.monotonic(),
+                cause=cause,
+                exit_code=exit_code,
+                reason=reason,
+                motors_stopped=not self.motors_unconfirmed,
             )
             # bounded: a stuck file system does not hold up the shutdown
             await asyncio.to_thread(self.recorder.close)
