@@ -279,14 +279,16 @@ def test_a_launch_point_moved_across_the_180th_meridian_stays_a_longitude(
 def test_a_frozen_compass_in_a_pivot_is_named_as_not_following_the_wheels() -> None:
     """The audit: the compass froze as the robot pivoted at a waypoint; it spun ~2.5 turns
     in 10 s (the encoders counted it) and paused "stuck (the compass: no motion ...)". The
-    reason now says the compass did not follow the wheels' turn; the pause stays."""
+    reason now says the compass did not follow the wheels' turn; the pause stays. (A
+    compass whose readings stay bit for bit the same is caught sooner, as frozen: this one
+    still reads its noise, test_compass_frozen_round19.py.)"""
     c = pivoting()  # target east, facing north: a right pivot (left forward, right back)
     t = 0.0
     for k in range(1, 200):
         t = 0.1 * k
         counts = round(0.1 * t * COUNTS_PER_M)  # 0.1 m/s each side: 46.8 deg/s counted
         c.on_odometry(WheelOdometry(t, counts, -counts, k))
-        c.on_attitude(att(t, 0.0))  # frozen
+        c.on_attitude(att(t, 0.1 * (k % 2)))  # it does not follow the turn, only its noise
         if k % 10 == 0:
             c.on_fix(fix(t))
         if c.mode != Mode.RUNNING:
@@ -398,7 +400,7 @@ def test_a_pivot_the_compass_does_not_follow_names_both_causes() -> None:
         t = 0.1 * k
         counts = round(0.1 * t * COUNTS_PER_M)
         c.on_odometry(WheelOdometry(t, counts, -counts, k))
-        c.on_attitude(att(t, 0.0))
+        c.on_attitude(att(t, 0.1 * (k % 2)))  # a live compass's noise (frozen: round 19)
         if k % 10 == 0:
             c.on_fix(fix(t))
         if c.mode != Mode.RUNNING:

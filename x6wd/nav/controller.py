@@ -180,6 +180,15 @@ that time: with the effective track the counts and a healthy compass agree, with
 geometric one (1.2-2x narrower) the counts read up to twice the turn, so 90 deg counted is
 45 deg or more of the body's, past the 30 deg a compass that followed would have shown."""
 
+FROZEN_WHEEL_TURN_DEG = 90.0
+"""A compass whose every reading (bearing, pitch and roll alike) stays the same while the
+wheels' counts turn the robot this far (deg) and :data:`FROZEN_MIN_S` has passed is frozen:
+a hung chip or bus returning its last registers. A live one's readings change with a turn,
+and its noise (0.1° steps) changes them at rest. The robot pauses at once; the stuck
+check's 10 s of turning (an outside audit: 10 s spinning in place, status "connected") was
+the only catch before. Without encoders the stuck check still is."""
+FROZEN_MIN_S = 1.0
+"""Least time (s) the same reading must last before it can be called frozen."""
 PIVOT_CAUSES = "a compass fault, or the wheels spin in place"
 """What a pivot the compass does not follow can be (the stuck reasons say both): the wheels'
 counts turn in mud as they do on grass, and only the compass tells the two apart."""
@@ -329,6 +338,9 @@ class Controller:
         )
         self._course_fix: GpsFix | None = None  # the last fix the course watch took
         self._trust = CompassTrust(self._failsafe.compass_refused_s)  # the EKF's refusals
+        # the compass's latest reading (bearing, pitch, roll) and since when (t_s, the wheels'
+        # turn then, readings): FROZEN_WHEEL_TURN_DEG
+        self._same: tuple[tuple[float, float, float], float, float, int] | None = None
         # the two sides' encoders against the compass on straight drives, and its verdict
         # for the failsafe check of the mission running ("" while none)
         self._enc_watch = EncoderWatch(self._odo_cfg.track_m)
@@ -493,6 +505,12 @@ class Controller:
         if self._att_ok:
             good_t = self._good_att_t
             self._good_att_t = t if good_t is None else max(good_t, t)
+            reading = (att.bearing_deg, att.pitch_deg, att.roll_deg)
+            same = self._same
+            if same is None or same[0] != reading:
+                self._same = (reading, t, self._wheel_turn_rad, 1)
+            else:
+                self._same = (reading, same[1], same[2], same[3] + 1)
             took = self._source.on_compass(t, att.bearing_deg)
             if took is not None:
                 self._trust.on_reading(t, not took)
@@ -877,6 +895,9 @@ class Controller:
         if encoder_fault:
             # the EKF dead-reckons on these counts, and so would a return: pause
             return encoder_fault, "hold"
+        frozen = self._frozen_check(now)
+        if frozen:
+            return frozen, "hold"  # as an untrusted compass: a return would steer by it too
         untrusted = self._trust.verdict(now)
         if untrusted:
             # a heading it cannot trust: pause, whatever the actions say (a return would
@@ -1254,6 +1275,25 @@ class Controller:
             f"stuck (the pivot: {best[0]:.0f}° from its heading and no nearer in {stuck_s:g} s"
             f" of turning; the compass does not follow the wheels: {PIVOT_CAUSES})",
             self._failsafe.stuck_action,
+        )
+
+    def _frozen_check(self, now: float) -> str:
+        """Why the compass is frozen at ``now`` (s): its reading unchanged for
+        :data:`FROZEN_MIN_S` or more while the wheels' counts turned
+        :data:`FROZEN_WHEEL_TURN_DEG` ("" if not). Said once per such turn."""
+        same = self._same
+        if same is None or self._odo_prev is None or now - same[1] < FROZEN_MIN_S:
+            return ""
+        turned_deg = abs(math.degrees(self._wheel_turn_rad - same[2]))
+        if turned_deg < FROZEN_WHEEL_TURN_DEG:
+            return ""
+        (bearing, pitch, roll), t0, _turn, n = same
+        self._same = (same[0], t0, self._wheel_turn_rad, n)  # the next verdict: another turn
+        return (
+            f"compass frozen: the same reading (bearing {bearing:.1f}°, pitch {pitch:g}°,"
+            f" roll {roll:g}°) {n} times in {now - t0:.1f} s while the wheels' counts turned"
+            f" {turned_deg:.0f}°: a hung compass or I2C bus returning its last registers (or"
+            " the wheels spin with the body held)"
         )
 
     def _progress_check(self, now: float) -> tuple[str, str] | None:
