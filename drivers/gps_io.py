@@ -228,6 +228,11 @@ RATE_WINDOW = 9
 RATE_HORIZON_S = 10.0
 """Fixes older than this (s) no longer count: a GPS that went silent on an open port measures
 0 Hz, not the rate it last had (:class:`FixRate`)."""
+SILENT_INTERVALS = 3.0
+"""No fix for this many of the recent fixes' own intervals (or none in RATE_HORIZON_S) is the
+GPS gone silent, not slow: the rate is still measured (it falls to 0) but no receiver rate is
+blamed; the GPS's health (stale, disconnected, noise) says what happened (an outside audit:
+a cut line read "the receiver runs slower than gps.rate_hz: set its rate")."""
 RESEND_MIN_S = 10.0
 """The least time (s) between two writes of the setup on one port: a receiver that lost it
 (:meth:`ReceiverSetup.lost`) is configured again at most this often."""
@@ -877,15 +882,14 @@ class FixRate:
                 return
         self.measured_hz = hz
         want = self.expected_hz
-        if want is None or hz >= SLOW_RATE_RATIO * want:
-            self.slow = None
-            self._slow_warned = False
-            return
-        got = (
-            f"fixes arrive at {hz:.2g} Hz"
-            if n
-            else f"no fix in the last {RATE_HORIZON_S:g} s (0 Hz)"
+        silent = n == 0 or (
+            n >= 2 and t_s - times[-1] > SILENT_INTERVALS * (times[-1] - times[0]) / (n - 1)
         )
+        if want is None or hz >= SLOW_RATE_RATIO * want or silent:
+            self.slow = None
+            self._slow_warned = silent and self._slow_warned  # a slow rate again after: no repeat
+            return
+        got = f"fixes arrive at {hz:.2g} Hz"
         key = self.expected_key
         head = (
             f"{got}, under {key} = {want:g} Hz that the staleness limits (safety.fix_stale_s, "

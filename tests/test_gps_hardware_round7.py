@@ -731,10 +731,13 @@ def test_the_measured_rate_falls_while_the_gps_is_silent() -> None:
     rx.mute = True  # the port stays open, nothing comes
     run(3.0)
     assert rate.measured_hz is not None and rate.measured_hz < 2.0
-    assert rate.slow is not None
+    # silence is no slow receiver (an outside audit, round 19: "set its rate" for a cut
+    # line): the GPS's health says it is stale, the rate blames nothing
+    assert rate.slow is None
     run(10.0)
     assert rate.measured_hz == 0.0
-    assert rate.status()["measured_rate_hz"] == 0.0 and "no fix in the last 10 s" in rate.slow
+    assert rate.status()["measured_rate_hz"] == 0.0 and rate.slow is None
+    assert reader.health.state.value == "stale", reader.health
     rx.mute = False
     run(5.0)
     assert rate.measured_hz == pytest.approx(4.0, abs=0.2) and rate.slow is None
