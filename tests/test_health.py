@@ -603,3 +603,20 @@ def test_corrupt_gps_lines_are_counted_in_status_logged_and_named_as_the_stale_c
         if rec.type == "event" and rec.data.get("kind") == "corrupt"
     ]
     assert recorded == [told_text]
+
+
+def test_the_recovery_says_the_whole_episode_through_stale_and_back() -> None:
+    # an outside audit (round 19): 4.4 s of compass errors, stale in the middle, said
+    # "recovered after 352 errors (1.0 s degraded)": the time since it was degraded again
+    t = tracker(recover_s=1.0, stale_s=0.5)
+    t.opened(0.0)
+    t.good(0.1)
+    for k in range(10):  # 1.0-2.0 s: every sample fails: stale after 0.5 s without data
+        t.failed(f"EIO #{k}", 1.0 + 0.1 * k)
+    assert t.health.state == "stale", t.health
+    t.failed("EIO #10", 3.4)
+    t.good(3.45)  # fresh again, degraded (a recent error)
+    t.good(4.5)  # a second without errors
+    events = t.take_events()
+    assert [e.new for e in events][-1] == "connected", events
+    assert events[-1].message == "gps recovered after 11 errors (3.5 s degraded)", events[-1]

@@ -124,6 +124,7 @@ class HealthTracker:
         self._open_failures = 0  # failed reopens since the link was lost
         self._down_t: float | None = None  # when the link was lost (for the outage length)
         self._errors_in_episode = 0  # errors since the device last left ``connected``
+        self._left_connected_t: float | None = None  # when it did (s): the episode's length
         self._reason = "not opened yet"  # why it is in its state now ("" when connected)
         self._corrupt_labels = dict(corrupt_labels or {})
         self._corrupt_minor = corrupt_minor
@@ -289,7 +290,7 @@ class HealthTracker:
                 CONNECTED,
                 t_s,
                 f"{self.device} recovered after {self._errors_in_episode} errors "
-                f"({t_s - self._since_t:.1f} s degraded)",
+                f"({t_s - (self._left_connected_t or self._since_t):.1f} s degraded)",
             )
         else:
             self._health = self._snapshot()
@@ -404,6 +405,10 @@ class HealthTracker:
             return
         if new == CONNECTED:
             self._errors_in_episode = 0
+        elif old == CONNECTED:
+            # the whole episode, through stale and back (an outside audit: 4.4 s of errors
+            # said "1.0 s degraded", the time since the last step back to degraded)
+            self._left_connected_t = t_s
         # the transition's own words, without the device's name: the current fault, not
         # the last error (an old open failure while the open port is silent)
         why = message.removeprefix(f"{self.device} ").removeprefix(f"{new}: ")
