@@ -1993,6 +1993,25 @@ class Daemon:
         if untrusted and comp is not None and comp["state"] == "connected":
             # its reader sees good registers; the EKF refuses what they say
             out["compass"] = {**comp, "state": "degraded", "reason": f"untrusted: {untrusted}"}
+        c_health = getattr(compass, "health", None)
+        comp = out["compass"]
+        if (
+            comp is not None
+            and comp["state"] in ("connected", "degraded")
+            and isinstance(c_health, DeviceHealth)
+            and c_health.last_data_t_s is not None
+        ):
+            # its own stale check runs in its read, and a read that blocks (a hung I2C bus)
+            # never returns to run it: "connected" at 34 s old (an outside audit)
+            data_age_s = time.monotonic() - c_health.last_data_t_s
+            limit_s = self.config.compass.stale_s
+            if data_age_s > limit_s:
+                why = f"no reading for {data_age_s:.1f} s (limit {limit_s:g} s)"
+                out["compass"] = {
+                    **comp,
+                    "state": "stale",
+                    "reason": f"{why}: its read has not returned (a hung I2C bus?)",
+                }
         gps = out["gps"]
         stale_s = self.config.safety.fix_stale_s
         health = getattr(self._gps_reader, "health", None)
