@@ -182,7 +182,8 @@ geometric one (1.2-2x narrower) the counts read up to twice the turn, so 90 deg 
 
 FROZEN_WHEEL_TURN_DEG = 90.0
 """A compass whose every reading (bearing, pitch and roll alike) stays the same while the
-wheels' counts turn the robot this far (deg) and :data:`FROZEN_MIN_S` has passed is frozen:
+wheels' counts turn the robot this far (deg) the way it was told to turn (a pivot or a turn
+of ``stuck_min_pct`` or more) and :data:`FROZEN_MIN_S` has passed is frozen:
 a hung chip or bus returning its last registers. A live one's readings change with a turn,
 and its noise (0.1° steps) changes them at rest. The robot pauses at once; the stuck
 check's 10 s of turning (an outside audit: 10 s spinning in place, status "connected") was
@@ -338,8 +339,9 @@ class Controller:
         )
         self._course_fix: GpsFix | None = None  # the last fix the course watch took
         self._trust = CompassTrust(self._failsafe.compass_refused_s)  # the EKF's refusals
-        # the compass's latest reading (bearing, pitch, roll) and since when (t_s, the wheels'
-        # turn then, readings): FROZEN_WHEEL_TURN_DEG
+        # the compass's latest reading (bearing, pitch, roll), since when (t_s), the wheels'
+        # turn counted since in the direction the robot was told to turn (rad), readings:
+        # FROZEN_WHEEL_TURN_DEG
         self._same: tuple[tuple[float, float, float], float, float, int] | None = None
         # the two sides' encoders against the compass on straight drives, and its verdict
         # for the failsafe check of the mission running ("" while none)
@@ -508,7 +510,7 @@ class Controller:
             reading = (att.bearing_deg, att.pitch_deg, att.roll_deg)
             same = self._same
             if same is None or same[0] != reading:
-                self._same = (reading, t, self._wheel_turn_rad, 1)
+                self._same = (reading, t, 0.0, 1)
             else:
                 self._same = (reading, same[1], same[2], same[3] + 1)
             took = self._source.on_compass(t, att.bearing_deg)
@@ -531,7 +533,17 @@ class Controller:
                 rec.right_counts - prev.right_counts,
             )
             self._wheel_m += 0.5 * (abs(dl) + abs(dr))
-            self._wheel_turn_rad += (dl - dr) / self._odo_cfg.track_m
+            turn_rad = (dl - dr) / self._odo_cfg.track_m
+            self._wheel_turn_rad += turn_rad
+            same, (left, right) = self._same, self._intent
+            if (
+                same is not None
+                and 0.5 * abs(left - right) >= self._failsafe.stuck_min_pct
+                and turn_rad * (left - right) > 0.0
+            ):
+                # only a turn it was told to make: one encoder dead on a straight drive
+                # counts a turn the compass rightly does not show (the encoder watch's case)
+                self._same = (same[0], same[1], same[2] + abs(turn_rad), same[3])
         att = self._att
         fresh = att is not None and self._att_ok and abs(t - att.t_s) <= ODOMETRY_FRESH_S
         if prev is not None:
@@ -1282,13 +1294,13 @@ class Controller:
         :data:`FROZEN_MIN_S` or more while the wheels' counts turned
         :data:`FROZEN_WHEEL_TURN_DEG` ("" if not). Said once per such turn."""
         same = self._same
-        if same is None or self._odo_prev is None or now - same[1] < FROZEN_MIN_S:
+        if same is None or now - same[1] < FROZEN_MIN_S:
             return ""
-        turned_deg = abs(math.degrees(self._wheel_turn_rad - same[2]))
+        turned_deg = math.degrees(same[2])
         if turned_deg < FROZEN_WHEEL_TURN_DEG:
             return ""
         (bearing, pitch, roll), t0, _turn, n = same
-        self._same = (same[0], t0, self._wheel_turn_rad, n)  # the next verdict: another turn
+        self._same = (same[0], t0, 0.0, n)  # the next verdict: another turn
         return (
             f"compass frozen: the same reading (bearing {bearing:.1f}°, pitch {pitch:g}°,"
             f" roll {roll:g}°) {n} times in {now - t0:.1f} s while the wheels' counts turned"
