@@ -85,3 +85,22 @@ def test_missing_listener_is_counted_not_raised(tmp_path: Path) -> None:
     n = Notifier(str(tmp_path / "nobody-listens.sock"))
     assert n.watchdog() is False
     assert n.send_errors == 1
+
+
+def test_stopping_is_the_last_status_and_a_repeat_is_not_sent(path_socket) -> None:
+    # an outside audit (round 19): the shutdown's own state change sent "STATUS=IDLE IDLE"
+    # after "STATUS=stopping", and each mode and navigation change sent the same line again
+    path, sock = path_socket
+    with Notifier.from_env({"NOTIFY_SOCKET": path}) as n:
+        assert n.ready("IDLE IDLE")
+        _recv(sock)
+        assert n.status("RUNNING STRAIGHT wp 1/4")
+        assert _recv(sock) == {"STATUS": "RUNNING STRAIGHT wp 1/4"}
+        assert not n.status("RUNNING STRAIGHT wp 1/4")  # said already
+        assert n.stopping("stopping")
+        assert _recv(sock) == {"STOPPING": "1", "STATUS": "stopping"}
+        assert not n.status("IDLE IDLE wp 1/4")
+        assert n.sent == 3
+        sock.settimeout(0.2)
+        with pytest.raises(TimeoutError):
+            sock.recv(4096)

@@ -41,6 +41,8 @@ class Notifier:
         self.watchdog_usec = watchdog_usec
         self.send_errors = 0
         self.sent = 0
+        self._status: str | None = None  # the STATUS last sent
+        self._stopping = False  # STOPPING=1 sent: its STATUS is the last
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None) -> Notifier:
@@ -94,13 +96,19 @@ class Notifier:
         """READY=1 (devices open, service up), optionally with a STATUS line."""
         fields: dict[str, str | int] = {"READY": 1}
         if status is not None:
-            fields["STATUS"] = status
+            fields["STATUS"] = self._status = status.replace("\n", " ")
         fields["MAINPID"] = os.getpid()
         return self.notify(fields)
 
     def status(self, text: str) -> bool:
-        """STATUS=<text>: one line shown by ``systemctl status``."""
-        return self.notify({"STATUS": text.replace("\n", " ")})
+        """STATUS=<text>: one line shown by ``systemctl status``. Not sent when it says what
+        the last did, nor after :meth:`stopping` (the shutdown's own state changes would
+        replace "stopping" with "IDLE": an outside audit). True if sent."""
+        line = text.replace("\n", " ")
+        if self._stopping or line == self._status:
+            return False
+        self._status = line
+        return self.notify({"STATUS": line})
 
     def watchdog(self) -> bool:
         """WATCHDOG=1 keep-alive ping."""
@@ -110,7 +118,8 @@ class Notifier:
         """STOPPING=1: the service is shutting down."""
         fields: dict[str, str | int] = {"STOPPING": 1}
         if status is not None:
-            fields["STATUS"] = status
+            fields["STATUS"] = self._status = status.replace("\n", " ")
+        self._stopping = True
         return self.notify(fields)
 
     def close(self) -> None:
