@@ -611,6 +611,26 @@ def open_compass(url: str, devices: Devices | None = None) -> Cmps10:
     return compass
 
 
+def check_motor_watchdog(url: str, watchdog_ms: int) -> None:
+    """ConfigError naming both when ``[motors] watchdog_ms`` (ms; its default aside) and the
+    motor ``url``'s own ``watchdog_ms`` differ (the daemon checks it before binding a port,
+    with the other settings). No error for a URL without that option or a bad URL (that is
+    :func:`parse_url`'s to name)."""
+    try:
+        dev = parse_url(url, "motors")
+    except UrlError:
+        return
+    if "watchdog_ms" not in dev.options or "watchdog_ms" not in dict(
+        parse_qsl(urlsplit(url).query)
+    ):
+        return
+    if watchdog_ms not in (DEFAULT_MOTOR_WATCHDOG_MS, dev.options["watchdog_ms"]):
+        raise ConfigError(
+            f"motors.watchdog_ms: {watchdog_ms} ms, but motors.url says"
+            f" watchdog_ms={dev.options['watchdog_ms']}: set one of them"
+        )
+
+
 def open_motors(
     url: str,
     devices: Devices | None = None,
@@ -626,14 +646,9 @@ def open_motors(
     ``[navigation] full_speed_mps``; None: :data:`drivers.motors.ENC_MAX_COUNTS_PER_S`)."""
     dev = parse_url(url, "motors")
     if watchdog_ms is not None and "watchdog_ms" in dev.options:
-        in_url = "watchdog_ms" in dict(parse_qsl(urlsplit(url).query))
-        if not in_url:
+        check_motor_watchdog(url, watchdog_ms)
+        if "watchdog_ms" not in dict(parse_qsl(urlsplit(url).query)):
             dev.options["watchdog_ms"] = int(watchdog_ms)
-        elif watchdog_ms not in (DEFAULT_MOTOR_WATCHDOG_MS, dev.options["watchdog_ms"]):
-            raise ConfigError(
-                f"motors.watchdog_ms: {watchdog_ms} ms, but motors.url says"
-                f" watchdog_ms={dev.options['watchdog_ms']}: set one of them"
-            )
     if dev.scheme in PLUGIN_SCHEMES:
         handler, backend = _plugin(dev, devices)  # (judges the URL's own options)
         if watchdog_ms is not None:  # the daemon's setting, as for a real board

@@ -104,6 +104,12 @@ def files_under(path: Path) -> list[Path]:
             ["unknown option 'baud' for tcp://", "watchdog_ms"],
         ),
         ({"motors": {"url": "serial:///dev/ttyUSB97"}}, "motors.url", ["/dev/ttyUSB97"]),
+        # an outside audit (round 19): found only at the motors' open, after the ports bound
+        (
+            {"motors": {"url": "tcp://127.0.0.1:9?watchdog_ms=800", "watchdog_ms": 600}},
+            "motors.watchdog_ms",
+            ["600 ms, but motors.url says watchdog_ms=800: set one of them"],
+        ),
         ({"compass": {"url": "i2c://97/0x60"}}, "compass.url", ["/dev/i2c-97 does not exist"]),
         ({"compass": {"url": "sim://?noise=2"}}, "compass.url", ["sim:// takes no path"]),
         ({"gps": {"url": "replay:///nonexistent/a.nmea"}}, "gps.url", ["does not exist"]),

@@ -1185,6 +1185,8 @@ class Daemon:
                 self._missing[key] = (url, kind, exc)  # waited for: _wait_for_devices
             except registry.UrlError as exc:
                 raise ConfigError(f"{key}: {url!r}: {exc.reason}") from None
+        # before any port is bound, as every other setting (it was found at the motors' open)
+        registry.check_motor_watchdog(cfg.motors.url, cfg.motors.watchdog_ms)
         from x6wd.nav.controller import Controller  # imported late: heavy, and optional in tests
 
         decl = cfg.compass.declination_deg
