@@ -368,8 +368,8 @@ class HilWorld:
         decl = cset.field_model.declination_deg
         log.info(
             "HIL world: scenario %r (%s, seed %d), GPS %g Hz at %d baud on %s; "
-            "magnetic declination %.2f deg (what the robot's [compass] declination_deg or"
-            " its WMM should give)",
+            "magnetic declination %.2f deg (the robot's [compass] declination_deg must say"
+            " so: its WMM gives the real field's at this place and date, not the world's)",
             sc.name, sc.gnss.fidelity, sc.seed, sc.gnss.rate_hz, sc.gnss.baud,
             self.uart.port_name, decl,
         )  # fmt: skip
