@@ -6,6 +6,7 @@ or the baseline it is compared with) and the ratio value / anchor.
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 from dataclasses import dataclass
 
@@ -97,3 +98,15 @@ atexit.register(_hwm)
 from x6wd.app.cli import main
 sys.exit(main(sys.argv[2:]))
 """
+
+
+def cli(doc: str | None, *, quick: bool = True) -> argparse.ArgumentParser:
+    """A benchmark's command line: ``--help`` prints its docstring (what it measures, its
+    targets, how long it takes) instead of starting a full run, ``--quick`` where it has a
+    short run; anything else is an error (exit 2). Add options, then ``parse_args()``."""
+    parser = argparse.ArgumentParser(
+        description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    if quick:
+        parser.add_argument("--quick", action="store_true", help="the short run")
+    return parser

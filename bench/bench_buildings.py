@@ -11,14 +11,13 @@ Run: ``python -m bench.bench_buildings [--quick]``.
 from __future__ import annotations
 
 import math
-import sys
 import time
 from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
 
-from bench._common import Row, print_table
+from bench._common import Row, cli, print_table
 from sim_backend.buildings import TraceResult, Walls, building
 from sim_backend.geodesy import enu_to_lla
 from sim_backend.gnss import GnssModel
@@ -127,4 +126,4 @@ def run(quick: bool = False) -> list[Row]:
 
 
 if __name__ == "__main__":
-    print_table(run(quick="--quick" in sys.argv))
+    print_table(run(quick=cli(__doc__).parse_args().quick))

@@ -90,7 +90,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench._common import Row, print_table
+from bench._common import Row, cli, print_table
 from bench.bench_nmea import CORPUS, synthetic_neo5
 from drivers.gps_nmea import NmeaFramer
 
@@ -275,4 +275,5 @@ def run(quick: bool = False) -> list[Row]:
 
 
 if __name__ == "__main__":
+    cli(__doc__, quick=False).parse_args()
     print_table(run())

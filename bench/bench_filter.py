@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bench._common import Row, print_table
+from bench._common import Row, cli, print_table
 from x6wd.nav.constellation import Constellation, filter_series
 
 N = 20
@@ -122,4 +122,5 @@ def run(quick: bool = False) -> list[Row]:
 
 
 if __name__ == "__main__":
+    cli(__doc__, quick=False).parse_args()
     print_table(run())

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from bench._common import Row, print_table, upper95
+from bench._common import Row, cli, print_table, upper95
 from sim_backend.effects import Declination, HardIron, HeadingLag, HeadingSeries, SoftIron, Tilt
 from x6wd.gap.compass import (
     CompassOptions,
@@ -286,4 +286,4 @@ def summary(res: list[dict[str, Any]], quick: bool) -> list[Row]:
 
 
 if __name__ == "__main__":
-    print_table(run(quick="--quick" in sys.argv))
+    print_table(run(quick=cli(__doc__).parse_args().quick))

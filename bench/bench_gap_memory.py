@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench._common import PEAK_CHILD, Row, print_table
+from bench._common import PEAK_CHILD, Row, cli, print_table
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "config" / "scenarios"
@@ -131,11 +131,13 @@ def run(quick: bool = False, rates_hz: tuple[float, ...] = RATES_HZ) -> list[Row
     return rows
 
 
-def _rates(argv: list[str]) -> tuple[float, ...]:
-    if "--rates" not in argv:
-        return RATES_HZ
-    return tuple(float(r) for r in argv[argv.index("--rates") + 1].split(","))
-
-
 if __name__ == "__main__":
-    print_table(run(quick="--quick" in sys.argv, rates_hz=_rates(sys.argv)))
+    parser = cli(__doc__)
+    parser.add_argument(
+        "--rates",
+        type=lambda text: tuple(float(r) for r in text.split(",")),
+        default=RATES_HZ,
+        help="log rates to measure, Hz, comma-separated (default: %(default)s)",
+    )
+    args = parser.parse_args()
+    print_table(run(quick=args.quick, rates_hz=args.rates))

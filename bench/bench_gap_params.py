@@ -19,14 +19,13 @@ Run: ``python -m bench.bench_gap_params [--quick]``.
 from __future__ import annotations
 
 import math
-import sys
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
 from scipy.stats import norm
 
-from bench._common import Row, print_table
+from bench._common import Row, cli, print_table
 from sim_backend.effects import GaussMarkov
 from x6wd.gap.drift import fit_gauss_markov
 from x6wd.gap.stats import layout_for
@@ -137,4 +136,4 @@ def run(quick: bool = False) -> list[Row]:
 
 
 if __name__ == "__main__":
-    print_table(run(quick="--quick" in sys.argv))
+    print_table(run(quick=cli(__doc__).parse_args().quick))

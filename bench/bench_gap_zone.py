@@ -15,13 +15,12 @@ Run: ``python -m bench.bench_gap_zone [--quick]`` (one process: about 3 s per fi
 
 from __future__ import annotations
 
-import sys
 import time
 from typing import Any
 
 import numpy as np
 
-from bench._common import Row, print_table
+from bench._common import Row, cli, print_table
 from sim_backend.effects import MultipathZone, Quantization, truth_track_m
 from x6wd.gap.stats import layout_for
 from x6wd.gap.surrogate import BASELINE_EFFECTS, surrogate_run
@@ -119,4 +118,4 @@ def run(quick: bool = False) -> list[Row]:
 
 
 if __name__ == "__main__":
-    print_table(run(quick="--quick" in sys.argv))
+    print_table(run(quick=cli(__doc__).parse_args().quick))

@@ -26,7 +26,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bench._common import PEAK_CHILD, Row, print_table
+from bench._common import PEAK_CHILD, Row, cli, print_table
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIO = ROOT / "config" / "scenarios" / "open_field.toml"
@@ -82,4 +82,4 @@ def run(quick: bool = False) -> list[Row]:
 
 
 if __name__ == "__main__":
-    print_table(run(quick="--quick" in sys.argv))
+    print_table(run(quick=cli(__doc__).parse_args().quick))

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import pynmea2
 
-from bench._common import Row, print_table
+from bench._common import Row, cli, print_table
 from drivers.gps_nmea import GpsDecoder, NmeaFrame, NmeaFramer
 
 CORPUS = Path(__file__).resolve().parent.parent / "tests" / "data" / "nmea"
@@ -163,4 +163,5 @@ def run(quick: bool = False) -> list[Row]:
 
 
 if __name__ == "__main__":
+    cli(__doc__, quick=False).parse_args()
     print_table(run())

@@ -20,7 +20,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from bench._common import Row, print_table
+from bench._common import Row, cli, print_table
 from sim_backend.buildings import Walls, building
 from sim_backend.geodesy import enu_to_lla
 from sim_backend.gnss import GnssModel
@@ -181,4 +181,5 @@ def run(quick: bool = False) -> list[Row]:
 
 
 if __name__ == "__main__":
+    cli(__doc__, quick=False).parse_args()
     print_table(run())

@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from bench._common import PEAK_CHILD, Row, print_table
+from bench._common import PEAK_CHILD, Row, cli, print_table
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "config" / "scenarios"
@@ -223,4 +223,4 @@ def run(quick: bool = False) -> list[Row]:
 
 
 if __name__ == "__main__":
-    print_table(run(quick="--quick" in sys.argv))
+    print_table(run(quick=cli(__doc__).parse_args().quick))
