@@ -65,7 +65,9 @@ def open_gps(dev: DeviceUrl, world: HilWorld) -> Any:
 
     name, baud = world.uart.port_name, world.receiver.baud
     try:
-        return serial.Serial(name, baudrate=baud, timeout=0.1)
+        # exclusive, as a serial:// port is: another program (a second daemon aimed at this
+        # pty) is refused "in use" instead of sharing the line (an outside audit)
+        return serial.Serial(name, baudrate=baud, timeout=0.1, exclusive=True)
     except (serial.SerialException, OSError) as exc:
         raise DeviceUnavailable(f"cannot open simulated GPS {name}: {exc}") from exc
 
@@ -98,7 +100,7 @@ def open_motors(dev: DeviceUrl, world: HilWorld) -> Any:
         if not world.running:
             raise DeviceUnavailable("the HIL world is closed")
         try:
-            return serial.Serial(path, baudrate=MOTOR_BAUD, timeout=0.02)
+            return serial.Serial(path, baudrate=MOTOR_BAUD, timeout=0.02, exclusive=True)
         except (serial.SerialException, OSError) as exc:
             raise DeviceUnavailable(f"cannot open simulated motor board {path}: {exc}") from exc
 
