@@ -7,25 +7,34 @@ encoders are left to the checks before."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
-from tests.test_controller import att, fix
-from tests.test_failsafe_controller import COUNTS_PER_M, pivoting
+from tests.test_controller import NAV, SAFETY, at, att, fix
+from tests.test_failsafe_controller import COUNTS_PER_M, FS
 from x6wd.core.records import Attitude, Mode, WheelOdometry
-from x6wd.nav.controller import FROZEN_WHEEL_TURN_DEG
+from x6wd.nav.controller import FROZEN_WHEEL_TURN_DEG, Controller, _SameReading
 
 
-def pivot(reading, steps: int = 200, encoders: bool = True):  # type: ignore[no-untyped-def]
-    """A right pivot at 0.1 m/s each side (46.8°/s counted); ``reading(k, t)``: the
-    compass's Attitude at step k. The controller and the time (s) it stopped driving."""
-    c = pivoting()
+def pivot(reading, steps: int = 200, encoders: bool = True, mps: float = 0.1):
+    """A right pivot at ``mps`` each side (0.1: 46.8°/s counted); ``reading(k, t)``: the
+    compass's Attitude at step k (None: no reading then; compass samples count as fresh
+    for 2.5 s, as for a 1 Hz compass). The controller and the time (s) it stopped driving."""
+    c = Controller(NAV, replace(SAFETY, attitude_stale_s=2.5), failsafe=FS)
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(100.0, 0.0)], 0.0)  # east, facing north: a right pivot
+    c.start(0.0)
     t = 0.0
     for k in range(1, steps):
         t = 0.1 * k
         if encoders:
-            counts = round(0.1 * t * COUNTS_PER_M)
+            counts = round(mps * t * COUNTS_PER_M)
             c.on_odometry(WheelOdometry(t, counts, -counts, k))
-        c.on_attitude(reading(k, t))
+        att_k = reading(k, t)
+        if att_k is not None:
+            c.on_attitude(att_k)
         if k % 10 == 0:
             c.on_fix(fix(t))
         if c.mode != Mode.RUNNING:
@@ -51,7 +60,7 @@ def test_a_frozen_compass_in_a_pivot_pauses_within_a_quarter_turn_of_the_wheels(
     ],
     ids=["bearing-noise", "roll-noise"],
 )
-def test_a_compass_whose_readings_change_is_not_frozen(reading) -> None:  # type: ignore[no-untyped-def]
+def test_a_compass_whose_readings_change_is_not_frozen(reading) -> None:
     c, t = pivot(reading)
     assert t > 9.0 and "frozen" not in c.telemetry.extra.get("failsafe", "")
 
@@ -59,3 +68,23 @@ def test_a_compass_whose_readings_change_is_not_frozen(reading) -> None:  # type
 def test_without_encoders_the_stuck_check_still_judges() -> None:
     c, _t = pivot(lambda k, t: Attitude(t, 0.0, 1.0, -2.0), encoders=False)
     assert "frozen" not in c.telemetry.extra.get("failsafe", ""), c.telemetry.extra
+
+
+def test_a_slow_live_compass_in_a_fast_pivot_is_not_frozen() -> None:
+    # a review (round 19): a 1 Hz compass, 117°/s counted between its readings: the first
+    # check called its one reading frozen 1 s after it came, before the next could differ
+    c, _t = pivot(lambda k, t: att(t, (117.0 * t) % 360.0) if k % 10 == 0 else None, 60, mps=0.25)
+    assert "frozen" not in c.telemetry.extra.get("failsafe", ""), c.telemetry.extra
+
+
+def test_only_one_unbroken_turn_between_two_same_readings_counts() -> None:
+    # a review (round 19): a stuck robot's separate turning attempts added up to 91° over
+    # 8 s, and a noise-free compass was blamed for a slip
+    same = _SameReading((10.0, 0.0, 0.0), 0.0)
+    same.wheels(1.0)
+    same.wheels(None)  # the robot is no longer told to turn: the count starts again
+    same.wheels(0.5)
+    same.again(1.0)
+    assert same.confirmed_rad == 0.5 and same.n == 2
+    same.wheels(1.0)  # not yet confirmed by a reading after it
+    assert same.confirmed_rad == 0.5

@@ -259,6 +259,34 @@ def has_usable_position(fix: GpsFix) -> bool:
     )
 
 
+class _SameReading:
+    """One compass reading (bearing, pitch, roll) repeated: since ``t0`` (s), last at
+    ``t_last`` (s), ``n`` times; the wheels' turn (rad) counted since it began in one
+    unbroken turn the robot was told to make (``turn_rad``), and as of its latest repeat
+    (``confirmed_rad``: only a turn between two identical readings says the compass did
+    not follow it; a 1 Hz compass's reading is not frozen for having no successor yet)."""
+
+    def __init__(self, reading: tuple[float, float, float], t_s: float) -> None:
+        self.reading = reading
+        self.t0 = self.t_last = t_s
+        self.n = 1
+        self.turn_rad = self.confirmed_rad = 0.0
+
+    def again(self, t_s: float) -> None:
+        """The same reading at ``t_s`` (s)."""
+        self.n += 1
+        self.t_last = t_s
+        self.confirmed_rad = self.turn_rad
+
+    def wheels(self, turn_rad: float | None) -> None:
+        """The wheels turned ``turn_rad`` (rad) the way the robot is told to; None: it is
+        not told to turn (or they turned the other way): the count starts again."""
+        if turn_rad is None:
+            self.turn_rad = self.confirmed_rad = 0.0
+        else:
+            self.turn_rad += turn_rad
+
+
 class Controller:
     """Deterministic robot brain; see the module docstring for the contract."""
 
@@ -339,10 +367,8 @@ class Controller:
         )
         self._course_fix: GpsFix | None = None  # the last fix the course watch took
         self._trust = CompassTrust(self._failsafe.compass_refused_s)  # the EKF's refusals
-        # the compass's latest reading (bearing, pitch, roll), since when (t_s), the wheels'
-        # turn counted since in the direction the robot was told to turn (rad), readings:
-        # FROZEN_WHEEL_TURN_DEG
-        self._same: tuple[tuple[float, float, float], float, float, int] | None = None
+        # the compass's latest reading and how long it has stayed so: FROZEN_WHEEL_TURN_DEG
+        self._same: _SameReading | None = None
         # the two sides' encoders against the compass on straight drives, and its verdict
         # for the failsafe check of the mission running ("" while none)
         self._enc_watch = EncoderWatch(self._odo_cfg.track_m)
@@ -509,10 +535,10 @@ class Controller:
             self._good_att_t = t if good_t is None else max(good_t, t)
             reading = (att.bearing_deg, att.pitch_deg, att.roll_deg)
             same = self._same
-            if same is None or same[0] != reading:
-                self._same = (reading, t, 0.0, 1)
+            if same is None or same.reading != reading:
+                self._same = _SameReading(reading, t)
             else:
-                self._same = (reading, same[1], same[2], same[3] + 1)
+                same.again(t)
             took = self._source.on_compass(t, att.bearing_deg)
             if took is not None:
                 self._trust.on_reading(t, not took)
@@ -536,14 +562,13 @@ class Controller:
             turn_rad = (dl - dr) / self._odo_cfg.track_m
             self._wheel_turn_rad += turn_rad
             same, (left, right) = self._same, self._intent
-            if (
-                same is not None
-                and 0.5 * abs(left - right) >= self._failsafe.stuck_min_pct
-                and turn_rad * (left - right) > 0.0
-            ):
-                # only a turn it was told to make: one encoder dead on a straight drive
-                # counts a turn the compass rightly does not show (the encoder watch's case)
-                self._same = (same[0], same[1], same[2] + abs(turn_rad), same[3])
+            if same is not None:
+                # only a turn it is being told to make, without a break: one encoder dead on
+                # a straight drive counts a turn the compass rightly does not show (the
+                # encoder watch's case), and a stuck robot's separate attempts must not add
+                # up (a review: 91° over 8 s of them, the compass blamed for a slip)
+                told = 0.5 * abs(left - right) >= self._failsafe.stuck_min_pct
+                same.wheels(abs(turn_rad) if told and turn_rad * (left - right) > 0.0 else None)
         att = self._att
         fresh = att is not None and self._att_ok and abs(t - att.t_s) <= ODOMETRY_FRESH_S
         if prev is not None:
@@ -1294,18 +1319,18 @@ class Controller:
         :data:`FROZEN_MIN_S` or more while the wheels' counts turned
         :data:`FROZEN_WHEEL_TURN_DEG` ("" if not). Said once per such turn."""
         same = self._same
-        if same is None or now - same[1] < FROZEN_MIN_S:
+        if same is None or same.n < 2 or same.t_last - same.t0 < FROZEN_MIN_S:
             return ""
-        turned_deg = math.degrees(same[2])
+        turned_deg = math.degrees(same.confirmed_rad)
         if turned_deg < FROZEN_WHEEL_TURN_DEG:
             return ""
-        (bearing, pitch, roll), t0, _turn, n = same
-        self._same = (same[0], t0, 0.0, n)  # the next verdict: another turn
+        same.turn_rad = same.confirmed_rad = 0.0  # the next verdict: another turn
+        bearing, pitch, roll = same.reading
         return (
             f"compass frozen: the same reading (bearing {bearing:.1f}°, pitch {pitch:g}°,"
-            f" roll {roll:g}°) {n} times in {now - t0:.1f} s while the wheels' counts turned"
-            f" {turned_deg:.0f}°: a hung compass or I2C bus returning its last registers (or"
-            " the wheels spin with the body held)"
+            f" roll {roll:g}°) {same.n} times in {same.t_last - same.t0:.1f} s while the"
+            f" wheels' counts turned {turned_deg:.0f}°: a hung compass or I2C bus returning"
+            " its last registers (or the wheels spin with the body held)"
         )
 
     def _progress_check(self, now: float) -> tuple[str, str] | None:
