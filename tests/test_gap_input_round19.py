@@ -12,6 +12,8 @@ from __future__ import annotations
 from datetime import datetime, timedelta
 from pathlib import Path
 
+import pytest
+
 from x6wd.gap.io import read_track
 
 T0 = datetime(2026, 12, 7, 10, 0, 0)
@@ -73,6 +75,22 @@ def test_a_time_of_day_from_midnight_after_a_silent_reboot(tmp_path: Path) -> No
     track = read_track(write(tmp_path, lines))
     assert track.t_s[-1] - track.t_s[0] == 3599.0
     assert int(track.valid.sum()) == 3500
+
+
+@pytest.mark.parametrize("off_s", [5, 90, 600])
+def test_a_restart_after_the_receiver_was_off_keeps_the_whole_log(
+    tmp_path: Path, off_s: int
+) -> None:
+    # a review (round 19): a receiver loses its clock by being off (no backup battery); off
+    # over 60 s, the first version read the hole as the logger's and dropped 10 minutes
+    lines = [s for k in range(600) for s in fix(T0 + timedelta(seconds=k))]
+    lines += [s for k in range(45) for s in no_fix(datetime(1980, 1, 6) + timedelta(0, k))]
+    back = 600 + off_s + 45
+    lines += [s for k in range(1800) for s in fix(T0 + timedelta(seconds=back + k))]
+    track = read_track(write(tmp_path, lines))
+    assert int(track.valid.sum()) == 2400, track.notes
+    assert track.t_s[-1] - track.t_s[0] == back + 1799, track.notes
+    assert "no NMEA sentence at all" not in " ".join(track.notes)
 
 
 def test_sessions_of_fixes_out_of_order_are_still_the_log_s(tmp_path: Path) -> None:

@@ -967,9 +967,10 @@ battery) dates its sentences 1980-01-06, its firmware's build date or a rolled-o
 counts the time of day from 00:00, until it has decoded the time. Such a stretch is dropped
 (:func:`drop_clock_excursions`)."""
 
-CLOCK_RETURN_SLACK_S = 60.0
-"""How much longer (s, or 10 % of the stretch) than a clock excursion's own epochs the log's
-time may have moved on across it: the receiver's restart, sending nothing."""
+CLOCK_RETURN_MAX_S = 3600.0
+"""Most (s) the log's time may have moved on across a clock excursion: the receiver off
+(a receiver without a backup battery loses its clock so) and restarting. The whole hole is
+then read as its outage, the silence before the restart too."""
 
 
 def drop_clock_excursions(
@@ -977,9 +978,8 @@ def drop_clock_excursions(
 ) -> tuple[list[tuple[float, ...]], list[float | None], list[float], str]:
     """``rows`` (time s first, in log order) without their clock excursions: stretches
     without a fix, entered by a step of over :data:`CLOCK_EXCURSION_S` and left by one back
-    to the log's own time, later than the epoch before the stretch by no more than the
-    stretch's epochs take (at the log's median step) and :data:`CLOCK_RETURN_SLACK_S`.
-    Returns the kept
+    to the log's own time, later than the epoch before the stretch by no more than
+    :data:`CLOCK_RETURN_MAX_S`. Returns the kept
     rows and their ``fix_utc``, per dropped row the time (s) of the kept epoch before it
     (the receiver was sending: :func:`cut_silent_holes` reads the hole as its outage) and a
     note ("" when none). Sorted, such epochs went to the log's far end, and the hole they
@@ -1001,10 +1001,8 @@ def drop_clock_excursions(
         start = int(jumps[k])
         before_s = t_s[start - 1]
 
-        def returns(m: int, start: int = start, before_s: float = before_s) -> bool:
-            took_s = (int(jumps[m]) - start) * dt_s
-            moved_s = t_s[jumps[m]] - before_s
-            return 0.0 <= moved_s <= took_s + max(CLOCK_RETURN_SLACK_S, 0.1 * took_s)
+        def returns(m: int, before_s: float = before_s) -> bool:
+            return 0.0 <= t_s[jumps[m]] - before_s <= CLOCK_RETURN_MAX_S
 
         # ... and never a fix: a receiver with a fix knows the time (a session of fixes
         # out of order is the log's, sorted as before)
@@ -1018,7 +1016,10 @@ def drop_clock_excursions(
             continue
         end = int(jumps[back])
         drop[start:end] = True
-        after += [float(before_s)] * (end - start)
+        # the receiver was on across the whole hole, as far as the log can tell: as many
+        # "sent" epochs as the hole misses (cut_silent_holes), at least the stretch's own
+        missing = round(float(t_s[end] - before_s) / dt_s) if dt_s > 0 else 0
+        after += [float(before_s)] * max(end - start, missing)
         far += [float(t_s[start:end].min()), float(t_s[start:end].max())]
         k = back + 1  # the step back may also start the next stretch
     if not drop.any():
