@@ -229,8 +229,8 @@ RATE_HORIZON_S = 10.0
 """Fixes older than this (s) no longer count: a GPS that went silent on an open port measures
 0 Hz, not the rate it last had (:class:`FixRate`)."""
 SILENT_INTERVALS = 3.0
-"""No fix for this many of the recent fixes' own intervals (or none in RATE_HORIZON_S) is the
-GPS gone silent, not slow: the rate is still measured (it falls to 0) but no receiver rate is
+"""No fix for this many of the last interval between two fixes is the GPS gone silent, not
+slow: the rate is still measured (it falls to 0) but no receiver rate is
 blamed; the GPS's health (stale, disconnected, noise) says what happened (an outside audit:
 a cut line read "the receiver runs slower than gps.rate_hz: set its rate")."""
 RESEND_MIN_S = 10.0
@@ -838,6 +838,7 @@ class FixRate:
         self._times: deque[float] = deque(maxlen=RATE_WINDOW)
         self._measuring = False  # 5 fixes since the restart
         self._last_fix_t: float | None = None
+        self._interval_s: float | None = None  # between the last two fixes (s)
         self.measured_hz: float | None = None
         self.slow: str | None = None
         self._slow_warned = False  # warned, and the rate not met since
@@ -846,6 +847,7 @@ class FixRate:
     def restart(self) -> None:
         """Measure anew (the port reopened, or the receiver took a new rate)."""
         self._times.clear()
+        self._interval_s = None
         self._measuring = False
         self.measured_hz = None
         self.slow = None
@@ -857,6 +859,8 @@ class FixRate:
 
     def add(self, t_s: float) -> None:
         self._times.append(t_s)
+        if self._last_fix_t is not None and t_s > self._last_fix_t:
+            self._interval_s = t_s - self._last_fix_t
         self._last_fix_t = t_s
         if len(self._times) >= 5:
             self._measuring = True
@@ -882,8 +886,13 @@ class FixRate:
                 return
         self.measured_hz = hz
         want = self.expected_hz
-        silent = n == 0 or (
-            n >= 2 and t_s - times[-1] > SILENT_INTERVALS * (times[-1] - times[0]) / (n - 1)
+        # silent: no fix for SILENT_INTERVALS of the last interval between two (a receiver
+        # at 0.09 Hz is slow, steadily, not silent between each of its fixes: a review)
+        last_t, interval_s = self._last_fix_t, self._interval_s
+        silent = (
+            n == 0
+            if last_t is None or interval_s is None
+            else t_s - last_t > SILENT_INTERVALS * interval_s
         )
         if want is None or hz >= SLOW_RATE_RATIO * want or silent:
             self.slow = None

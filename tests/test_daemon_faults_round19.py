@@ -54,6 +54,7 @@ def test_the_stop_at_exit_is_said_as_confirmed_only_when_the_board_confirmed_it(
     p.reader.join(5)
     log = "\n".join(p.lines)
     assert code == (1 if deaf else 0), log[-2000:]
+    assert f"x6wd stopped (exit {code})" in log, log[-2000:]  # (the signal's line says 0)
     notices = [m["error"]["message"] for m in said if m.get("error", {}).get("code") == "closed"]
     assert notices, said
     if deaf:

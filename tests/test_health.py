@@ -620,3 +620,16 @@ def test_the_recovery_says_the_whole_episode_through_stale_and_back() -> None:
     events = t.take_events()
     assert [e.new for e in events][-1] == "connected", events
     assert events[-1].message == "gps recovered after 11 errors (3.5 s degraded)", events[-1]
+
+
+def test_an_episode_from_time_zero_is_measured_from_zero() -> None:
+    # a review (round 19): "left connected at 0.0" was read as never (sim and replay
+    # clocks start at 0): the same errors from 0.0 said 1.0 s, from 0.001 s 4.5 s
+    t = tracker(recover_s=1.0, stale_s=0.5)
+    t.opened(0.0)
+    for k in range(10):
+        t.failed(f"EIO #{k}", 0.1 * k)
+    t.failed("EIO #10", 3.4)
+    t.good(3.45)
+    t.good(4.5)
+    assert t.take_events()[-1].message == "gps recovered after 11 errors (4.5 s degraded)"

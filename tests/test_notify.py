@@ -104,3 +104,17 @@ def test_stopping_is_the_last_status_and_a_repeat_is_not_sent(path_socket) -> No
         sock.settimeout(0.2)
         with pytest.raises(TimeoutError):
             sock.recv(4096)
+
+
+def test_a_status_whose_send_failed_is_sent_again(tmp_path: Path) -> None:
+    # a review (round 19): a failed send was remembered as sent, and never repeated
+    path = tmp_path / "late.sock"
+    with Notifier.from_env({"NOTIFY_SOCKET": str(path)}) as n:
+        assert not n.status("RUNNING STRAIGHT wp 1/4")  # nobody listens yet
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        sock.bind(str(path))
+        try:
+            assert n.status("RUNNING STRAIGHT wp 1/4")
+            assert _recv(sock) == {"STATUS": "RUNNING STRAIGHT wp 1/4"}
+        finally:
+            sock.close()

@@ -1537,11 +1537,12 @@ class Daemon:
             for server in (self.console, self.server, self.gpsd):
                 if server is not None:
                     # the control port's clients are told why (the motors stopped above)
-                    closing = (
-                        server.close(f"x6wd is shutting down: {motors_said}")
-                        if isinstance(server, ControlServer)
-                        else server.close()
-                    )
+                    if isinstance(server, ControlServer):
+                        closing = server.close(f"x6wd is shutting down: {motors_said}")
+                    elif server is self.console and self.motors_unconfirmed:
+                        closing = server.close("x6wd stopping: the motors' stop NOT acknowledged")
+                    else:
+                        closing = server.close()
                     with contextlib.suppress(Exception):
                         await self._net.run(closing)
             await asyncio.to_thread(self._net.stop)
@@ -1565,7 +1566,10 @@ class Daemon:
             await asyncio.to_thread(self.recorder.close)
         if self.devices is not None:  # last: the simulated world outlives every device
             await asyncio.to_thread(self.devices.close)
-        log.info("x6wd stopped")
+        if self.motors_unconfirmed and exit_code == EXIT_OK:
+            exit_code = EXIT_FAILURE  # (with no recorder too)
+        # the exit code as it is now: a signal's line said the one it asked for
+        log.info("x6wd stopped" + ("" if exit_code is None else f" (exit {exit_code})"))
 
     def _stop_controller(self, reason: str) -> None:
         """At exit, before the motor thread stops: the controller stops (IDLE), its stop goes

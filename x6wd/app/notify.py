@@ -95,10 +95,11 @@ class Notifier:
     def ready(self, status: str | None = None) -> bool:
         """READY=1 (devices open, service up), optionally with a STATUS line."""
         fields: dict[str, str | int] = {"READY": 1}
-        if status is not None:
-            fields["STATUS"] = self._status = status.replace("\n", " ")
+        line = None if status is None else status.replace("\n", " ")
+        if line is not None:
+            fields["STATUS"] = line
         fields["MAINPID"] = os.getpid()
-        return self.notify(fields)
+        return self._sent_status(self.notify(fields), line)
 
     def status(self, text: str) -> bool:
         """STATUS=<text>: one line shown by ``systemctl status``. Not sent when it says what
@@ -107,8 +108,14 @@ class Notifier:
         line = text.replace("\n", " ")
         if self._stopping or line == self._status:
             return False
-        self._status = line
-        return self.notify({"STATUS": line})
+        return self._sent_status(self.notify({"STATUS": line}), line)
+
+    def _sent_status(self, sent: bool, line: str | None) -> bool:
+        """Remember ``line`` as the STATUS systemd has only if it was ``sent`` (a failed
+        send is tried again with the next change); returns ``sent``."""
+        if sent and line is not None:
+            self._status = line
+        return sent
 
     def watchdog(self) -> bool:
         """WATCHDOG=1 keep-alive ping."""
@@ -117,10 +124,11 @@ class Notifier:
     def stopping(self, status: str | None = None) -> bool:
         """STOPPING=1: the service is shutting down."""
         fields: dict[str, str | int] = {"STOPPING": 1}
-        if status is not None:
-            fields["STATUS"] = self._status = status.replace("\n", " ")
+        line = None if status is None else status.replace("\n", " ")
+        if line is not None:
+            fields["STATUS"] = line
         self._stopping = True
-        return self.notify(fields)
+        return self._sent_status(self.notify(fields), line)
 
     def close(self) -> None:
         """Close the socket (idempotent)."""

@@ -290,7 +290,7 @@ class HealthTracker:
                 CONNECTED,
                 t_s,
                 f"{self.device} recovered after {self._errors_in_episode} errors "
-                f"({t_s - (self._left_connected_t or self._since_t):.1f} s degraded)",
+                f"({t_s - self._episode_start_t():.1f} s degraded)",
             )
         else:
             self._health = self._snapshot()
@@ -389,6 +389,12 @@ class HealthTracker:
             )
         self._corrupt_logged, self._t_corrupt_log = now, t_s
         self._emit(CORRUPT, self._state, t_s, what)
+
+    def _episode_start_t(self) -> float:
+        """When the device last left ``connected`` (s; a time of 0.0 is one: sim and replay
+        clocks start there)."""
+        left_t = self._left_connected_t
+        return self._since_t if left_t is None else left_t
 
     def _error(self, error: str, t_s: float) -> None:
         self._errors += 1

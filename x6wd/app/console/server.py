@@ -595,8 +595,10 @@ class ConsoleServer:
             page.peer, why, self.slow_pages, self.dropped_total,
         )  # fmt: skip
 
-    async def close(self) -> None:
-        """Close every page and stop listening (idempotent)."""
+    async def close(self, message: str = "x6wd stopping") -> None:
+        """Close every page, each told ``message`` (the WebSocket's close reason, at most
+        123 bytes), and stop listening (idempotent)."""
+        reason = message.encode("utf-8")[:123]
         if self._ticker is not None:
             self._ticker.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -604,7 +606,7 @@ class ConsoleServer:
             self._ticker = None
         for page in list(self._pages):
             with contextlib.suppress(Exception):
-                await page.ws.close(code=1001, message=b"x6wd stopping")
+                await page.ws.close(code=1001, message=reason)
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
