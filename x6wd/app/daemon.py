@@ -1530,6 +1530,8 @@ class Daemon:
                 with contextlib.suppress(Exception):  # a link in any state
                     last = f" (last error: {motors.link.health.last_error})"
                 log.error("%s%s", MOTORS_UNCONFIRMED, last)
+                if exit_code == EXIT_OK:
+                    exit_code = EXIT_FAILURE
         self._threads_stop.set()
         for t in self._threads:
             await asyncio.to_thread(t.join, 3.0)
@@ -1552,8 +1554,6 @@ class Daemon:
                     await asyncio.to_thread(dev.close)
         if self.recorder is not None:
             await asyncio.sleep(0)  # what the threads queued before they stopped, first
-            if self.motors_unconfirmed and exit_code == EXIT_OK:
-                exit_code = EXIT_FAILURE
             self.recorder.put_event(
                 "shutdown",
                 time.monotonic(),
@@ -1566,8 +1566,6 @@ class Daemon:
             await asyncio.to_thread(self.recorder.close)
         if self.devices is not None:  # last: the simulated world outlives every device
             await asyncio.to_thread(self.devices.close)
-        if self.motors_unconfirmed and exit_code == EXIT_OK:
-            exit_code = EXIT_FAILURE  # (with no recorder too)
         # the exit code as it is now: a signal's line said the one it asked for
         log.info("x6wd stopped" + ("" if exit_code is None else f" (exit {exit_code})"))
 

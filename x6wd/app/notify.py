@@ -95,9 +95,7 @@ class Notifier:
     def ready(self, status: str | None = None) -> bool:
         """READY=1 (devices open, service up), optionally with a STATUS line."""
         fields: dict[str, str | int] = {"READY": 1}
-        line = None if status is None else status.replace("\n", " ")
-        if line is not None:
-            fields["STATUS"] = line
+        line = _with_status(fields, status)
         fields["MAINPID"] = os.getpid()
         return self._sent_status(self.notify(fields), line)
 
@@ -124,9 +122,7 @@ class Notifier:
     def stopping(self, status: str | None = None) -> bool:
         """STOPPING=1: the service is shutting down."""
         fields: dict[str, str | int] = {"STOPPING": 1}
-        line = None if status is None else status.replace("\n", " ")
-        if line is not None:
-            fields["STATUS"] = line
+        line = _with_status(fields, status)
         self._stopping = True
         return self._sent_status(self.notify(fields), line)
 
@@ -141,3 +137,11 @@ class Notifier:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _with_status(fields: dict[str, str | int], status: str | None) -> str | None:
+    """Add ``status`` as one line to ``fields`` (nothing for None); the line."""
+    if status is None:
+        return None
+    fields["STATUS"] = line = status.replace("\n", " ")
+    return line

@@ -979,9 +979,9 @@ def drop_clock_excursions(
     """``rows`` (time s first, in log order) without their clock excursions: stretches
     without a fix, entered by a step of over :data:`CLOCK_EXCURSION_S` and left by one back
     to the log's own time, later than the epoch before the stretch by no more than
-    :data:`CLOCK_RETURN_MAX_S`. Returns the kept
-    rows and their ``fix_utc``, per dropped row the time (s) of the kept epoch before it
-    (the receiver was sending: :func:`cut_silent_holes` reads the hole as its outage) and a
+    :data:`CLOCK_RETURN_MAX_S`. Returns the kept rows and their ``fix_utc``; for each epoch
+    the hole misses (at least each dropped row) the time (s) of the kept epoch before it
+    (the receiver was on: :func:`cut_silent_holes` reads the hole as its outage); and a
     note ("" when none). Sorted, such epochs went to the log's far end, and the hole they
     left was read as the logger's: half a log was dropped."""
     t_s = np.fromiter((r[0] for r in rows), dtype=float, count=len(rows))
@@ -1000,16 +1000,16 @@ def drop_clock_excursions(
     while k < jumps.size:
         start = int(jumps[k])
         before_s = t_s[start - 1]
-
-        def returns(m: int, before_s: float = before_s) -> bool:
-            return 0.0 <= t_s[jumps[m]] - before_s <= CLOCK_RETURN_MAX_S
-
         # ... and never a fix: a receiver with a fix knows the time (a session of fixes
         # out of order is the log's, sorted as before)
         first_fix = next((i for i in range(start, t_s.size) if rows[i][4] > 0), t_s.size)
-
         back = next(
-            (m for m in range(k + 1, jumps.size) if jumps[m] <= first_fix and returns(m)), None
+            (
+                m
+                for m in range(k + 1, jumps.size)
+                if jumps[m] <= first_fix and 0.0 <= t_s[jumps[m]] - before_s <= CLOCK_RETURN_MAX_S
+            ),
+            None,
         )
         if back is None:
             k += 1
