@@ -796,6 +796,26 @@ def _with_sets(
     ]
 
 
+_SENTENCE_ADDRESS = re.compile(rb"[$!]([A-Z][A-Z0-9]{1,5})[,*]")
+_TYPES_SHOWN = 6
+
+
+def _sentence_types(feed: Any) -> str:
+    """" (GSA 600, GSV 600)": the most frequent sentence types in ``feed()`` (the talker
+    dropped: GPGSV and GNGSV are both GSV; proprietary addresses whole), for the error that
+    names what a log without positions holds (a receiver set to satellites only)."""
+    tally: dict[str, int] = {}
+    for _t_s, data in feed():
+        for m in _SENTENCE_ADDRESS.finditer(data):
+            a = m.group(1).decode("ascii")
+            kind = a[2:] if len(a) == 5 and a[0] != "P" else a
+            tally[kind] = tally.get(kind, 0) + 1
+    top = sorted(tally.items(), key=lambda kv: (-kv[1], kv[0]))
+    more = f", {len(top) - _TYPES_SHOWN} more types" if len(top) > _TYPES_SHOWN else ""
+    shown = ", ".join(f"{k} {n}" for k, n in top[:_TYPES_SHOWN])
+    return f" ({shown}{more})" if top else ""
+
+
 def _chained_decoder() -> Any:
     """A GpsDecoder whose epochs without a date of their own (GGA, between RMC dates) are
     dated from the epoch before them, not from the last dated sentence: the time of day
@@ -897,9 +917,10 @@ def _nmea_track(feed: Any, source: str, *, receive_clock: bool, notes: Iterable[
     if first is None and not receive_clock:
         counts = probe.counters
         if n_fixes == 0:
+            found = _sentence_types(feed) if counts.sentences else ""
             raise ParseError(
                 f"{source}: no NMEA position sentence (GGA, RMC, GLL or GNS) decoded"
-                f" ({counts.sentences} NMEA sentences, {_bad_text(counts)}"
+                f" ({counts.sentences} NMEA sentences{found}, {_bad_text(counts)}"
                 f"{counts.ubx_frames} UBX frames, {counts.skipped_bytes} other bytes): the gap"
                 " tool reads NMEA, x6wd recordings, CSV and RTKLIB .pos"
             )
