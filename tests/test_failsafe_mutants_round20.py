@@ -1,0 +1,274 @@
+"""The controller's failsafes at their edges (round 20: mutmut's area ``failsafes``).
+
+The failsafes that came with the EKF had been checked by hand mutations only; mutmut's first
+run over them (docs/testing.md, "Mutation testing") left survivors whose behaviour no test
+pinned: the direction and the noise a dead encoder is judged by, ... Each test here fails on
+such a mutant; sans-IO, fast.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+
+from tests.test_compass_frozen_round19 import pivot
+from tests.test_controller import NAV, SAFETY, at, att, fix
+from tests.test_failsafe_controller import COUNTS_PER_M, FS
+from x6wd.core.config import FailsafeConfig, GnssNoiseConfig, NavigationConfig, SafetyConfig
+from x6wd.core.records import GpsFix, Mode, NavState, WheelOdometry
+from x6wd.nav.controller import ENCODER_FAULT_SIGMAS, Controller
+from x6wd.nav.position import DEFAULT_HDOP
+
+# re, ase and lce where each of their squares differs from twice them and from their cube
+NOISE = GnssNoiseConfig(re_m=1.5, ase_m=2.5, lce_default_m=3.0)
+NOISE_M = math.sqrt(1.5**2 + 2.5**2 + 3.0**2)
+
+
+def fix_at(t_s: float, x_m: float, y_m: float, hdop: float | None) -> GpsFix:
+    lat, lon = at(x_m, y_m)
+    return GpsFix(t_s=t_s, lat_deg=lat, lon_deg=lon, valid=True, quality=1, mode=3, hdop=hdop)
+
+
+def dead_encoder_reason(
+    bearing_deg: float, jump_m: float, hdop: float | None, noise: GnssNoiseConfig = NOISE
+) -> str:
+    """A mission 300 m away along ``bearing_deg``, the robot facing it, its encoders counting
+    nothing: the fixes stand at the start for 5 s, then ``jump_m`` ahead along the bearing
+    (an exact net move, whatever second the wheels' test fires at); the off-course watch off
+    (a jump back would trip it). The pause's reason."""
+    b = math.radians(bearing_deg)
+    c = Controller(NAV, SAFETY, failsafe=replace(FS, off_course_m=0.0), gnss_noise=noise)
+    c.on_fix(fix_at(0.0, 0.0, 0.0, hdop))
+    c.on_attitude(att(0.0, bearing_deg))
+    c.load_mission([at(300.0 * math.sin(b), 300.0 * math.cos(b))], 0.0)
+    c.start(0.0)
+    for k in range(1, 30):
+        s_m = 0.0 if k <= 5 else jump_m
+        t = float(k)
+        c.on_attitude(att(t, bearing_deg))
+        c.on_fix(fix_at(t, s_m * math.sin(b), s_m * math.cos(b), hdop))
+        c.on_odometry(WheelOdometry(t, 0, 0, k))
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED
+    return str(c.telemetry.extra["failsafe"])
+
+
+ENCODERS = "encoders: under 0.2 m counted in 10 s of driving while the fixes show motion"
+BLOCKED = "stuck (the wheels: no motion in 10 s of driving)"
+
+
+def threshold_m(hdop: float | None) -> float:
+    h = hdop if hdop is not None and hdop > 0 else DEFAULT_HDOP
+    return ENCODER_FAULT_SIGMAS * max(h * NOISE_M, FS.stuck_min_m)
+
+
+@pytest.mark.parametrize("bearing_deg", [0.0, 45.0, 90.0, 180.0, 225.0, 270.0])
+@pytest.mark.parametrize("hdop", [1.2, 0.9, 0.0, None])
+def test_fixes_ahead_of_dead_encoders_name_them_only_beyond_3_sigma_in_any_direction(
+    bearing_deg: float, hdop: float | None
+) -> None:
+    """Just beyond 3 sigma of the GPS's noise (HDOP x sqrt(RE^2 + ASE^2 + LCE^2); HDOP 2
+    where the fix has none or 0) ahead along the heading, the encoders are named; just short
+    of it, or as far behind, the wheels are blocked."""
+    edge_m = threshold_m(hdop)
+    assert edge_m > 3.0 * FS.stuck_min_m  # the noise decides, not stuck_min_m
+    assert dead_encoder_reason(bearing_deg, 1.01 * edge_m, hdop) == ENCODERS
+    assert dead_encoder_reason(bearing_deg, 0.99 * edge_m, hdop) == BLOCKED
+    assert dead_encoder_reason(bearing_deg, -1.01 * edge_m, hdop) == BLOCKED
+
+
+def test_a_small_noise_is_floored_at_stuck_min_m() -> None:
+    quiet = replace(NOISE, re_m=0.1, ase_m=0.1, lce_default_m=0.0)
+    edge_m = ENCODER_FAULT_SIGMAS * FS.stuck_min_m
+    assert dead_encoder_reason(0.0, 1.01 * edge_m, 1.0, quiet) == ENCODERS
+    assert dead_encoder_reason(0.0, 0.99 * edge_m, 1.0, quiet) == BLOCKED
+
+
+# ------------------------------------------------------------ driving on without a fix
+
+
+def outage(
+    nav: NavigationConfig,
+    safety: SafetyConfig,
+    fs: FailsafeConfig = FS,
+    blocked_from_s: float | None = None,
+) -> tuple[float, str, str]:
+    """A mission 1 km north, driven at 2 m/s (encoders and compass at 10 Hz) with fixes at
+    1 Hz until 20 s and none after; the wheels count nothing from ``blocked_from_s``. The
+    first time after the last fix the robot held or paused, its state's reason and the
+    failsafe's (empty if none)."""
+    c = Controller(nav, safety, 0.0, failsafe=fs)
+    c.on_fix(fix(0.0))
+    for k in range(1, 21):
+        c.on_attitude(att(0.1 * k))
+    c.load_mission([at(0.0, 1000.0)], 2.0)
+    c.start(2.0)
+    y_m = 0.0
+    for k in range(1, 1201):
+        t = 2.0 + 0.1 * k
+        if blocked_from_s is None or t < blocked_from_s:
+            y_m += 0.2
+        counts = round(y_m * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0 and t <= 20.0 + 1e-9:
+            c.on_fix(fix(t, 0.0, y_m))
+        tel = c.telemetry
+        if t > 20.0 and (tel.state == NavState.HOLD or c.mode != Mode.RUNNING):
+            return t, tel.hold_reason, str(tel.extra.get("failsafe", ""))
+    raise AssertionError("never held")
+
+
+STALE_AT_S = 20.0 + SAFETY.fix_stale_s
+
+
+@pytest.mark.parametrize(
+    ("source", "outage_m"), [("ekf", 0.0), ("constellation", 20.0), ("raw", 20.0)]
+)
+def test_without_the_ekf_or_with_no_outage_allowed_the_robot_holds_once_the_fix_is_stale(
+    source: str, outage_m: float
+) -> None:
+    """Dead reckoning needs the EKF (another source has no estimate of its own to drive on:
+    it steers by the last fix) and ``gps_outage_max_m`` over 0 (0: the paper's hold at once),
+    the encoders reporting in both."""
+    nav = replace(NavigationConfig(), position_source=source)
+    t, why, _ = outage(nav, replace(SAFETY, gps_outage_max_m=outage_m))
+    assert why == "fix stale" and t == pytest.approx(STALE_AT_S, abs=0.15), (t, why)
+
+
+def test_the_ekf_drives_on_without_a_fix_until_its_allowance() -> None:
+    t, why, _ = outage(NavigationConfig(), replace(SAFETY, gps_outage_max_m=20.0))
+    assert why == "fix stale" and t == pytest.approx(20.0 + 10.0, abs=0.15), (t, why)
+
+
+def test_a_robot_blocked_in_an_outage_pauses_on_its_wheels_before_the_commanded_bound() -> None:
+    """Blocked 1 s into the outage, 22 m driven with fixes before it: the wheels' own test
+    pauses it 10 s after the block, with its own reason. The commanded bound (1.5 x 20 m of
+    commanded travel since the last fix, at 60 % of 3.888 m/s: 12.9 s) is not reached, and
+    the travel commanded before the last fix does not count towards it."""
+    t, _why, failsafe = outage(
+        NavigationConfig(), replace(SAFETY, gps_outage_max_m=20.0), blocked_from_s=21.0
+    )
+    assert failsafe == "stuck (the wheels: no motion in 10 s of driving)", (t, failsafe)
+    assert t == pytest.approx(31.0, abs=0.25)
+
+
+# ------------------------------------------------------------------ the stuck check
+
+
+def stuck_reason(
+    fs: FailsafeConfig,
+    bearing_deg: float = 0.0,
+    wheels_mps: float = 0.0,
+    fixes_mps: float = 0.0,
+    seconds: float = 25.0,
+) -> str:
+    """A mission 300 m along ``bearing_deg``, the robot facing it at cruise (60 %): the wheels
+    count ``wheels_mps`` and the fixes move ``fixes_mps`` along it (encoders and compass at
+    10 Hz, fixes at 1 Hz). The failsafe's reason ("" if none in ``seconds``)."""
+    b = math.radians(bearing_deg)
+    c = Controller(NAV, SAFETY, failsafe=replace(fs, off_course_m=0.0))
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0, bearing_deg))
+    c.on_odometry(WheelOdometry(0.0, 0, 0, 0))
+    c.load_mission([at(300.0 * math.sin(b), 300.0 * math.cos(b))], 0.0)
+    c.start(0.0)
+    for k in range(1, round(10 * seconds) + 1):
+        t = 0.1 * k
+        counts = round(wheels_mps * t * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t, bearing_deg))
+        if k % 10 == 0:
+            s_m = fixes_mps * t
+            c.on_fix(fix(t, s_m * math.sin(b), s_m * math.cos(b)))
+        if c.mode != Mode.RUNNING:
+            return str(c.telemetry.extra["failsafe"])
+    return ""
+
+
+WHEELS = "stuck (the wheels: no motion in 10 s of driving)"
+SLIPPING = "stuck (the GPS: no motion in 10 s of driving)"
+
+
+@pytest.mark.parametrize("bearing_deg", [0.0, 90.0, 270.0])
+def test_a_blocked_or_slipping_robot_is_stuck_facing_any_way(bearing_deg: float) -> None:
+    """Blocked (nothing moves) or slipping (the wheels count 2 m/s, the fixes stand): facing
+    north, east or west, the compass standing still is no motion."""
+    assert stuck_reason(FS, bearing_deg) == WHEELS
+    assert stuck_reason(FS, bearing_deg, wheels_mps=2.0) == SLIPPING
+
+
+def test_a_drive_under_stuck_min_pct_is_never_stuck_and_one_at_it_is() -> None:
+    """Cruise is 60 %: with ``stuck_min_pct`` 61 (or 85, under 1.5 x 60) the blocked robot
+    is not judged; at 60 exactly it is."""
+    assert stuck_reason(replace(FS, stuck_min_pct=61.0)) == ""
+    assert stuck_reason(replace(FS, stuck_min_pct=85.0)) == ""
+    assert stuck_reason(replace(FS, stuck_min_pct=60.0)) == WHEELS
+
+
+def test_wheels_creeping_under_a_tenth_of_stuck_min_m_are_still() -> None:
+    """0.1 m counted in 10 s (under 0.2 m, a tenth of ``stuck_min_m``; over a twentieth):
+    the wheels stood still."""
+    assert stuck_reason(FS, wheels_mps=0.01) == WHEELS
+
+
+def test_a_pivot_under_stuck_min_pct_is_never_stuck_and_one_at_it_is() -> None:
+    """The target behind the robot: it pivots at ``turn_pct`` (40 %), blocked (the wheels
+    and the compass stand still). With ``stuck_min_pct`` 50 (under 1.5 x 40) the pivot is not
+    judged; at 40 it is, by the compass."""
+
+    def reason(fs: FailsafeConfig) -> str:
+        c = Controller(NAV, SAFETY, failsafe=replace(fs, off_course_m=0.0))
+        c.on_fix(fix(0.0))
+        c.on_attitude(att(0.0, 180.0))
+        c.on_odometry(WheelOdometry(0.0, 0, 0, 0))
+        c.load_mission([at(0.0, 300.0)], 0.0)
+        c.start(0.0)
+        for k in range(1, 251):
+            t = 0.1 * k
+            c.on_odometry(WheelOdometry(t, 0, 0, k))
+            c.on_attitude(att(t, 180.0))
+            if k % 10 == 0:
+                c.on_fix(fix(t))
+            if c.mode != Mode.RUNNING:
+                return str(c.telemetry.extra["failsafe"])
+        return ""
+
+    assert reason(replace(FS, stuck_min_pct=50.0)) == ""
+    assert reason(replace(FS, stuck_min_pct=40.0)).startswith("stuck (")
+
+
+# ------------------------------------------------------------------ return to launch
+
+
+def test_a_return_steers_by_the_compass_corrected_for_declination() -> None:
+    """Declination 20°: the robot 20 m north of its launch point reads magnetic 160°, true
+    180°, straight at it: the return drives straight on (read as magnetic, 20° off, it would
+    pivot first)."""
+    c = Controller(NAV, SAFETY, 20.0, failsafe=FS)
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0, 340.0))  # true north
+    c.load_mission([at(0.0, 100.0)], 0.0)
+    c.start(0.0)
+    for k in range(1, 11):
+        c.on_attitude(att(float(k), 340.0))
+        c.on_fix(fix(float(k), 0.0, 2.0 * k))
+    assert c.state == NavState.STRAIGHT
+    c.return_home(10.5)
+    c.on_attitude(att(11.0, 160.0))
+    c.on_fix(fix(11.0, 0.0, 20.0))
+    assert c.returning == "return" and c.state == NavState.STRAIGHT, c.state
+
+
+# ------------------------------------------------------------------ a frozen compass
+
+
+def test_the_same_reading_for_under_a_second_in_a_fast_pivot_is_not_frozen() -> None:
+    """A compass whose reading holds 0.9 s at a time (a slow or filtered one) while the
+    wheels' counts turn the robot 234°/s: over 90° between two equal readings, but for
+    under ``FROZEN_MIN_S``; it then moves on 20°. Not frozen."""
+    c, _t = pivot(lambda k, t: att(t, (20.0 * (k // 9)) % 360.0), 100, mps=0.5)
+    assert "frozen" not in c.telemetry.extra.get("failsafe", ""), c.telemetry.extra
