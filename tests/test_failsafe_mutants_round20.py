@@ -282,7 +282,8 @@ def test_the_ekf_does_not_arrive_where_the_latest_fix_disagrees(off_m: float) ->
     """The EKF, a waypoint 20 m north, driven at 2 m/s; from 9.5 s the fixes run ``off_m``
     east of the track (the EKF refuses them as outliers and runs on on its wheels). At 12 s
     the estimate is on the waypoint but the fix is 12-15 m from it, over max(5 m, 3 sigma at
-    HDOP 1.2) plus the 3.9 m drivable in the second since the fix: not reached. (Wheels spinning on the spot are the case: the EKF learns their slip, so its
+    HDOP 1.2) plus the 3.9 m drivable in the second since the fix: not reached. (Wheels
+    spinning on the spot are not the case to test it with: the EKF learns their slip, so its
     estimate stays within metres of the standing fixes.)"""
     c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
     c.on_fix(fix(0.0))
@@ -301,3 +302,55 @@ def test_the_ekf_does_not_arrive_where_the_latest_fix_disagrees(off_m: float) ->
         nearest_m = min(nearest_m, c.telemetry.distance_m or math.inf)
         assert c.mode == Mode.RUNNING and c.telemetry.waypoint_index == 0, (t, c.mode)
     assert nearest_m < 1.0  # the estimate did reach it
+
+
+# ------------------------------------------------------------------ the progress watch
+
+
+def test_a_robot_spiralling_in_too_slowly_pauses_for_no_progress() -> None:
+    """Circling its waypoint at 1 m/s, 30 m out, the circle shrinking 1 m every 20 s: the
+    progress watch (20 s here) wants 2 m nearer (or half the distance, were that less) in
+    that time, not any gain at all."""
+    fs = replace(FS, stuck_s=0.0, progress_timeout_s=20.0, off_course_m=0.0)
+    c = Controller(NAV, SAFETY, failsafe=fs)
+    c.on_fix(fix(0.0, 0.0, 30.0))
+    c.on_attitude(att(0.0, 90.0))
+    c.load_mission([at(0.0, 60.0)], 0.0)
+    c.start(0.0)
+    t, a = 0.1, 0.0
+    while t <= 60.0 and c.mode == Mode.RUNNING:
+        r_m = 30.0 - t / 20.0
+        a += 0.1 / r_m
+        c.on_attitude(att(t, math.degrees(a + math.pi / 2) % 360.0))
+        if abs(t - round(t)) < 1e-6:
+            c.on_fix(fix(t, r_m * math.sin(a), 60.0 - r_m * math.cos(a)))
+        t = round(t + 0.1, 1)
+    assert c.mode == Mode.PAUSED, c.telemetry
+    why = str(c.telemetry.extra["failsafe"])
+    assert why.startswith("no progress to waypoint 1: 20 s of driving without coming 2 m"), why
+    assert t < 25.0, t
+
+
+def test_the_progress_watch_starts_again_at_each_waypoint() -> None:
+    """Two legs of 40 s each (40 m at 1 m/s, straight at each waypoint): 80 s of driving in
+    all, over the watch's 60 s, yet each leg made steady progress. Completed, no pause."""
+    c = Controller(NAV, SAFETY, failsafe=replace(FS, progress_timeout_s=60.0))
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    targets = [(0.0, 40.0), (40.0, 40.0)]
+    c.load_mission([at(*p) for p in targets], 0.0)
+    c.start(0.0)
+    x, y, t = 0.0, 0.0, 0.0
+    while t < 120.0 and c.mode == Mode.RUNNING:
+        t = round(t + 0.1, 1)
+        i = c.telemetry.waypoint_index or 0
+        tx, ty = targets[min(i, 1)]
+        d = math.hypot(tx - x, ty - y)
+        if d > 1e-9:
+            step = min(0.1, d)
+            x, y = x + step * (tx - x) / d, y + step * (ty - y) / d
+        c.on_attitude(att(t, math.degrees(math.atan2(tx - x, ty - y)) % 360.0 if d > 0.2 else 0.0))
+        if abs(t - round(t)) < 1e-6:
+            c.on_fix(fix(t, x, y))
+    assert c.mode == Mode.DONE, (t, c.mode, c.telemetry.extra.get("failsafe"))
+    assert t > 70.0
