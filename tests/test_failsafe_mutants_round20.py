@@ -18,7 +18,7 @@ from tests.test_controller import NAV, SAFETY, at, att, fix
 from tests.test_failsafe_controller import COUNTS_PER_M, FS
 from x6wd.core.config import FailsafeConfig, GnssNoiseConfig, NavigationConfig, SafetyConfig
 from x6wd.core.records import GpsFix, Mode, NavState, WheelOdometry
-from x6wd.nav.controller import ENCODER_FAULT_SIGMAS, Controller
+from x6wd.nav.controller import ARRIVAL_GPS_SIGMAS, ENCODER_FAULT_SIGMAS, Controller
 from x6wd.nav.position import DEFAULT_HDOP
 
 # re, ase and lce where each of their squares differs from twice them and from their cube
@@ -354,3 +354,61 @@ def test_the_progress_watch_starts_again_at_each_waypoint() -> None:
             c.on_fix(fix(t, x, y))
     assert c.mode == Mode.DONE, (t, c.mode, c.telemetry.extra.get("failsafe"))
     assert t > 70.0
+
+
+@pytest.mark.parametrize("off_m", [4.0, 8.0])
+def test_the_ekf_arrives_where_the_latest_fix_agrees_within_its_noise_and_drive(
+    off_m: float,
+) -> None:
+    """As above with the fixes 4 m (under the 5 m floor) or 8 m off: 8 m is over 3 sigma at
+    HDOP 1.2 (6.5 m) but within it plus the distance drivable since the fix (3.9 m/s) from
+    0.4 s after it. The waypoint is reached within 1.5 s of the estimate getting there."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
+    c.on_fix(fix(0.0))
+    for k in range(1, 21):
+        c.on_attitude(att(0.1 * k))
+    c.load_mission([at(0.0, 20.0)], 2.0)
+    c.start(2.0)
+    t = 2.0
+    for k in range(1, 141):
+        t, y_m = 2.0 + 0.1 * k, 0.2 * k
+        counts = round(y_m * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix(t, off_m if t > 9.5 else 0.0, y_m))
+        if c.mode == Mode.DONE:
+            break
+    assert c.mode == Mode.DONE and t <= 13.5, (t, c.mode)
+
+
+@pytest.mark.parametrize(
+    ("hdop", "factor"),
+    [(1.2, 0.99), (1.2, 1.01), (0.9, 1.01), (None, 0.99), (0.0, 0.99)],
+)
+def test_the_ekf_arrival_s_agreement_is_3_sigma_of_the_gps_noise(
+    hdop: float | None, factor: float
+) -> None:
+    """The same with a site's noise (RE 1.5, ASE 2.5, LCE 3 m) and a slow robot
+    (``full_speed_mps`` 0.01: nothing drivable between fixes): the fix ``factor`` x 3 sigma
+    (HDOP x sqrt(RE^2 + ASE^2 + LCE^2); HDOP 2 for a fix without one or with 0: an RMC-only
+    receiver) off agrees at 0.99, not at 1.01."""
+    nav = replace(NavigationConfig(), full_speed_mps=0.01)
+    c = Controller(nav, SAFETY, 0.0, failsafe=FS, gnss_noise=NOISE)
+    c.on_fix(fix(0.0))
+    for k in range(1, 21):
+        c.on_attitude(att(0.1 * k))
+    c.load_mission([at(0.0, 20.0)], 2.0)
+    c.start(2.0)
+    h = hdop if hdop is not None and hdop > 0 else DEFAULT_HDOP
+    off_m = factor * ARRIVAL_GPS_SIGMAS * h * NOISE_M
+    for k in range(1, 141):
+        t, y_m = 2.0 + 0.1 * k, 0.2 * k
+        counts = round(y_m * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix_at(t, off_m if t > 9.5 else 0.0, y_m, hdop))
+        if c.mode != Mode.RUNNING:
+            break
+    assert (c.mode == Mode.DONE) == (factor < 1.0), (c.mode, c.telemetry.extra.get("failsafe"))
