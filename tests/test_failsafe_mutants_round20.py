@@ -412,3 +412,51 @@ def test_the_ekf_arrival_s_agreement_is_3_sigma_of_the_gps_noise(
         if c.mode != Mode.RUNNING:
             break
     assert (c.mode == Mode.DONE) == (factor < 1.0), (c.mode, c.telemetry.extra.get("failsafe"))
+
+
+# ------------------------------------------------------------------ too uncertain to arrive
+
+
+def uncertain_states(
+    hdops: list[float], noise: GnssNoiseConfig, waypoint_m: float
+) -> list[tuple[NavState, str]]:
+    """The EKF started at rest on fixes at ``hdops[0]``, a waypoint ``waypoint_m`` north;
+    each later HDOP held for 8 s (the fixes at the start, the wheels still, the stuck check
+    off). The (state, hold reason) at the end of each HDOP's spell."""
+    c = Controller(
+        NavigationConfig(), SAFETY, 0.0, failsafe=replace(FS, stuck_s=0.0), gnss_noise=noise
+    )
+    c.on_fix(fix_at(0.0, 0.0, 0.0, hdops[0]))
+    for k in range(1, 21):
+        c.on_attitude(att(0.1 * k))
+    c.load_mission([at(0.0, waypoint_m)], 2.0)
+    c.start(2.0)
+    out, k = [], 0
+    for hdop in hdops:
+        for _ in range(80):
+            k += 1
+            t = 2.0 + 0.1 * k
+            c.on_odometry(WheelOdometry(t, 0, 0, k))
+            c.on_attitude(att(t))
+            if k % 10 == 0:
+                c.on_fix(fix_at(t, 0.0, 0.0, hdop))
+        out.append((c.telemetry.state, c.telemetry.hold_reason))
+    return out
+
+
+TOO_UNCERTAIN = "position too uncertain to tell whether waypoint 1 is reached"
+
+
+def test_a_site_s_own_noise_widens_the_radius_a_waypoint_may_be_judged_in() -> None:
+    """A site with RE 1.5, ASE 2.5, LCE 3 m: 3 sigma of its noise at HDOP 3 is 37.6 m, over
+    ``arrival_max_error_m`` (30 m). Started at HDOP 3 the EKF's radius is 35 m, the waypoint
+    25 m off inside it: within the site's usual noise, the robot drives. Started at HDOP 4
+    (47 m) it holds."""
+    assert uncertain_states([3.0], NOISE, 25.0) == [(NavState.STRAIGHT, "")]
+    assert uncertain_states([4.0], NOISE, 25.0) == [(NavState.HOLD, TOO_UNCERTAIN)]
+
+
+def test_a_waypoint_outside_the_error_radius_is_driven_to_however_poor_the_fixes() -> None:
+    """HDOP 12 (a radius of 55 m with the default noise), the waypoint 200 m off: the robot
+    can tell it has not arrived, so it drives."""
+    assert uncertain_states([12.0], GnssNoiseConfig(), 200.0) == [(NavState.STRAIGHT, "")]
