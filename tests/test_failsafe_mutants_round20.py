@@ -460,3 +460,79 @@ def test_a_waypoint_outside_the_error_radius_is_driven_to_however_poor_the_fixes
     """HDOP 12 (a radius of 55 m with the default noise), the waypoint 200 m off: the robot
     can tell it has not arrived, so it drives."""
     assert uncertain_states([12.0], GnssNoiseConfig(), 200.0) == [(NavState.STRAIGHT, "")]
+
+
+# ------------------------------------------------------------------ timeouts at 0: off
+
+
+def test_position_timeout_s_0_waits_for_the_sky_without_end() -> None:
+    fs = replace(FS, stuck_s=0.0, position_timeout_s=0.0)
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=fs, gnss_noise=NOISE)
+    c.on_fix(fix_at(0.0, 0.0, 0.0, 4.0))
+    for k in range(1, 21):
+        c.on_attitude(att(0.1 * k))
+    c.load_mission([at(0.0, 25.0)], 2.0)
+    c.start(2.0)
+    for k in range(1, 1501):  # 150 s, over the default 120 s
+        t = 2.0 + 0.1 * k
+        c.on_odometry(WheelOdometry(t, 0, 0, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix_at(t, 0.0, 0.0, 4.0))
+    assert c.mode == Mode.RUNNING and c.telemetry.hold_reason == TOO_UNCERTAIN
+
+
+@pytest.mark.parametrize("timeout_s", [0.0, 30.0])
+def test_sensor_timeout_s_0_holds_until_the_fix_comes_back(timeout_s: float) -> None:
+    """The fixes stop for 60 s (the raw GPS: no dead reckoning): a hold, then a pause after
+    ``sensor_timeout_s``; at 0 the hold lasts, and the robot drives on with the fix."""
+    c = Controller(NAV, SAFETY, failsafe=replace(FS, stuck_s=0.0, sensor_timeout_s=timeout_s))
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(0.0, 300.0)], 0.0)
+    c.start(0.0)
+    for k in range(1, 801):
+        t = 0.1 * k
+        c.on_attitude(att(t))
+        if k % 10 == 0 and not 5.0 < t < 65.0:
+            c.on_fix(fix(t))
+    if timeout_s == 0.0:
+        assert c.mode == Mode.RUNNING and c.state == NavState.STRAIGHT, c.telemetry
+    else:
+        assert c.mode == Mode.PAUSED
+        assert c.telemetry.extra["failsafe"] == "fix stale for 30 s"
+
+
+def test_a_lost_motor_link_holds_without_a_failsafe_and_drives_on_when_it_returns() -> None:
+    """The motor board's link lost for 60 s: the robot holds (its board's own watchdog
+    stops the wheels), but no sensor's timeout pauses the mission: it drives on after."""
+    c = Controller(NAV, SAFETY, failsafe=replace(FS, stuck_s=0.0))
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(0.0, 300.0)], 0.0)
+    c.start(0.0)
+    for k in range(1, 801):
+        t = 0.1 * k
+        if k == 50:
+            c.motor_link(False, t)
+        if k == 650:
+            c.motor_link(True, t)
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix(t))
+        if 6.0 < t < 64.0:
+            assert c.state == NavState.HOLD and c.telemetry.hold_reason == "motor link lost"
+    assert c.mode == Mode.RUNNING and c.state == NavState.STRAIGHT, c.telemetry
+
+
+def test_a_robot_blocked_in_an_outage_is_paused_at_the_commanded_bound_on_a_stale_fix() -> None:
+    """Blocked 5 s into the outage (the fixes stop: stale, not invalid): at the commanded
+    bound (30 m since the last fix, 12.9 s) the wheels have stood 7.9 s, under ``stuck_s``:
+    paused at once, named, rather than held until the sensor's timeout."""
+    t, _why, failsafe = outage(
+        NavigationConfig(), replace(SAFETY, gps_outage_max_m=20.0), blocked_from_s=25.0
+    )
+    assert failsafe.startswith("stuck (the wheels: no motion in 8 s of driving, 30 m commanded"), (
+        t,
+        failsafe,
+    )
