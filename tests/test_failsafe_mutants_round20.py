@@ -536,3 +536,15 @@ def test_a_robot_blocked_in_an_outage_is_paused_at_the_commanded_bound_on_a_stal
         t,
         failsafe,
     )
+
+
+def test_with_the_stuck_check_off_a_robot_blocked_in_an_outage_waits_for_the_sensor() -> None:
+    """``stuck_s`` 0 turns the stuck checks off, the commanded bound's pause too: the robot
+    holds at the bound and the sensor's timeout pauses it 30 s later."""
+    t, why, failsafe = outage(
+        NavigationConfig(),
+        replace(SAFETY, gps_outage_max_m=20.0),
+        fs=replace(FS, stuck_s=0.0),
+        blocked_from_s=25.0,
+    )
+    assert why == "fix stale" and failsafe == "", (t, why, failsafe)
