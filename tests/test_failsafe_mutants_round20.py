@@ -9,6 +9,7 @@ such a mutant; sans-IO, fast.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import replace
 
 import pytest
@@ -56,6 +57,45 @@ def dead_encoder_reason(
     return str(c.telemetry.extra["failsafe"])
 
 
+def ekf_started(
+    north_m: float,
+    nav: NavigationConfig | None = None,
+    safety: SafetyConfig = SAFETY,
+    fs: FailsafeConfig = FS,
+    noise: GnssNoiseConfig | None = None,
+    hdop: float | None = 1.2,
+) -> Controller:
+    """The robot's EKF with a mission ``north_m`` north, started at 2 s after a fix at the
+    origin (``hdop``) and 2 s of compass samples facing north."""
+    c = Controller(
+        nav or NavigationConfig(), safety, 0.0, failsafe=fs, gnss_noise=noise or GnssNoiseConfig()
+    )
+    c.on_fix(fix_at(0.0, 0.0, 0.0, hdop))
+    for k in range(1, 21):
+        c.on_attitude(att(0.1 * k))
+    c.load_mission([at(0.0, north_m)], 2.0)
+    c.start(2.0)
+    return c
+
+
+def drive_north_fixes_off(
+    c: Controller, off_m: float, hdop: float | None = 1.2, until: Mode | None = None
+) -> Iterator[float]:
+    """Drive ``c`` (started at 2 s) north at 2 m/s for 14 s, encoders and compass at 10 Hz,
+    fixes at 1 Hz ``off_m`` east of the track from 9.5 s on; yields each step's time, and
+    stops early once the mode is ``until``."""
+    for k in range(1, 141):
+        t, y_m = 2.0 + 0.1 * k, 0.2 * k
+        counts = round(y_m * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix_at(t, off_m if t > 9.5 else 0.0, y_m, hdop))
+        yield t
+        if until is not None and c.mode == until:
+            return
+
+
 ENCODERS = "encoders: under 0.2 m counted in 10 s of driving while the fixes show motion"
 BLOCKED = "stuck (the wheels: no motion in 10 s of driving)"
 
@@ -100,12 +140,7 @@ def outage(
     1 Hz until 20 s and none after; the wheels count nothing from ``blocked_from_s``. The
     first time after the last fix the robot held or paused, its state's reason and the
     failsafe's (empty if none)."""
-    c = Controller(nav, safety, 0.0, failsafe=fs)
-    c.on_fix(fix(0.0))
-    for k in range(1, 21):
-        c.on_attitude(att(0.1 * k))
-    c.load_mission([at(0.0, 1000.0)], 2.0)
-    c.start(2.0)
+    c = ekf_started(1000.0, nav, safety, fs)
     y_m = 0.0
     for k in range(1, 1201):
         t = 2.0 + 0.1 * k
@@ -285,20 +320,9 @@ def test_the_ekf_does_not_arrive_where_the_latest_fix_disagrees(off_m: float) ->
     HDOP 1.2) plus the 3.9 m drivable in the second since the fix: not reached. (Wheels
     spinning on the spot are not the case to test it with: the EKF learns their slip, so its
     estimate stays within metres of the standing fixes.)"""
-    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
-    c.on_fix(fix(0.0))
-    for k in range(1, 21):
-        c.on_attitude(att(0.1 * k))
-    c.load_mission([at(0.0, 20.0)], 2.0)
-    c.start(2.0)
+    c = ekf_started(20.0)
     nearest_m = math.inf
-    for k in range(1, 141):
-        t, y_m = 2.0 + 0.1 * k, 0.2 * k
-        counts = round(y_m * COUNTS_PER_M)
-        c.on_odometry(WheelOdometry(t, counts, counts, k))
-        c.on_attitude(att(t))
-        if k % 10 == 0:
-            c.on_fix(fix(t, off_m if t > 9.5 else 0.0, y_m))
+    for t in drive_north_fixes_off(c, off_m):
         nearest_m = min(nearest_m, c.telemetry.distance_m or math.inf)
         assert c.mode == Mode.RUNNING and c.telemetry.waypoint_index == 0, (t, c.mode)
     assert nearest_m < 1.0  # the estimate did reach it
@@ -363,22 +387,8 @@ def test_the_ekf_arrives_where_the_latest_fix_agrees_within_its_noise_and_drive(
     """As above with the fixes 4 m (under the 5 m floor) or 8 m off: 8 m is over 3 sigma at
     HDOP 1.2 (6.5 m) but within it plus the distance drivable since the fix (3.9 m/s) from
     0.4 s after it. The waypoint is reached within 1.5 s of the estimate getting there."""
-    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS)
-    c.on_fix(fix(0.0))
-    for k in range(1, 21):
-        c.on_attitude(att(0.1 * k))
-    c.load_mission([at(0.0, 20.0)], 2.0)
-    c.start(2.0)
-    t = 2.0
-    for k in range(1, 141):
-        t, y_m = 2.0 + 0.1 * k, 0.2 * k
-        counts = round(y_m * COUNTS_PER_M)
-        c.on_odometry(WheelOdometry(t, counts, counts, k))
-        c.on_attitude(att(t))
-        if k % 10 == 0:
-            c.on_fix(fix(t, off_m if t > 9.5 else 0.0, y_m))
-        if c.mode == Mode.DONE:
-            break
+    c = ekf_started(20.0)
+    t = max(drive_north_fixes_off(c, off_m, until=Mode.DONE))
     assert c.mode == Mode.DONE and t <= 13.5, (t, c.mode)
 
 
@@ -393,24 +403,11 @@ def test_the_ekf_arrival_s_agreement_is_3_sigma_of_the_gps_noise(
     (``full_speed_mps`` 0.01: nothing drivable between fixes): the fix ``factor`` x 3 sigma
     (HDOP x sqrt(RE^2 + ASE^2 + LCE^2); HDOP 2 for a fix without one or with 0: an RMC-only
     receiver) off agrees at 0.99, not at 1.01."""
-    nav = replace(NavigationConfig(), full_speed_mps=0.01)
-    c = Controller(nav, SAFETY, 0.0, failsafe=FS, gnss_noise=NOISE)
-    c.on_fix(fix(0.0))
-    for k in range(1, 21):
-        c.on_attitude(att(0.1 * k))
-    c.load_mission([at(0.0, 20.0)], 2.0)
-    c.start(2.0)
+    c = ekf_started(20.0, replace(NavigationConfig(), full_speed_mps=0.01), noise=NOISE)
     h = hdop if hdop is not None and hdop > 0 else DEFAULT_HDOP
     off_m = factor * ARRIVAL_GPS_SIGMAS * h * NOISE_M
-    for k in range(1, 141):
-        t, y_m = 2.0 + 0.1 * k, 0.2 * k
-        counts = round(y_m * COUNTS_PER_M)
-        c.on_odometry(WheelOdometry(t, counts, counts, k))
-        c.on_attitude(att(t))
-        if k % 10 == 0:
-            c.on_fix(fix_at(t, off_m if t > 9.5 else 0.0, y_m, hdop))
-        if c.mode != Mode.RUNNING:
-            break
+    for _t in drive_north_fixes_off(c, off_m, hdop, until=Mode.DONE):
+        pass
     assert (c.mode == Mode.DONE) == (factor < 1.0), (c.mode, c.telemetry.extra.get("failsafe"))
 
 
@@ -423,14 +420,7 @@ def uncertain_states(
     """The EKF started at rest on fixes at ``hdops[0]``, a waypoint ``waypoint_m`` north;
     each later HDOP held for 8 s (the fixes at the start, the wheels still, the stuck check
     off). The (state, hold reason) at the end of each HDOP's spell."""
-    c = Controller(
-        NavigationConfig(), SAFETY, 0.0, failsafe=replace(FS, stuck_s=0.0), gnss_noise=noise
-    )
-    c.on_fix(fix_at(0.0, 0.0, 0.0, hdops[0]))
-    for k in range(1, 21):
-        c.on_attitude(att(0.1 * k))
-    c.load_mission([at(0.0, waypoint_m)], 2.0)
-    c.start(2.0)
+    c = ekf_started(waypoint_m, fs=replace(FS, stuck_s=0.0), noise=noise, hdop=hdops[0])
     out, k = [], 0
     for hdop in hdops:
         for _ in range(80):
@@ -467,12 +457,7 @@ def test_a_waypoint_outside_the_error_radius_is_driven_to_however_poor_the_fixes
 
 def test_position_timeout_s_0_waits_for_the_sky_without_end() -> None:
     fs = replace(FS, stuck_s=0.0, position_timeout_s=0.0)
-    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=fs, gnss_noise=NOISE)
-    c.on_fix(fix_at(0.0, 0.0, 0.0, 4.0))
-    for k in range(1, 21):
-        c.on_attitude(att(0.1 * k))
-    c.load_mission([at(0.0, 25.0)], 2.0)
-    c.start(2.0)
+    c = ekf_started(25.0, fs=fs, noise=NOISE, hdop=4.0)
     for k in range(1, 1501):  # 150 s, over the default 120 s
         t = 2.0 + 0.1 * k
         c.on_odometry(WheelOdometry(t, 0, 0, k))
@@ -482,15 +467,21 @@ def test_position_timeout_s_0_waits_for_the_sky_without_end() -> None:
     assert c.mode == Mode.RUNNING and c.telemetry.hold_reason == TOO_UNCERTAIN
 
 
-@pytest.mark.parametrize("timeout_s", [0.0, 30.0])
-def test_sensor_timeout_s_0_holds_until_the_fix_comes_back(timeout_s: float) -> None:
-    """The fixes stop for 60 s (the raw GPS: no dead reckoning): a hold, then a pause after
-    ``sensor_timeout_s``; at 0 the hold lasts, and the robot drives on with the fix."""
-    c = Controller(NAV, SAFETY, failsafe=replace(FS, stuck_s=0.0, sensor_timeout_s=timeout_s))
+def raw_started(fs: FailsafeConfig) -> Controller:
+    """The raw GPS source (no dead reckoning), a mission 300 m north started facing it."""
+    c = Controller(NAV, SAFETY, failsafe=fs)
     c.on_fix(fix(0.0))
     c.on_attitude(att(0.0))
     c.load_mission([at(0.0, 300.0)], 0.0)
     c.start(0.0)
+    return c
+
+
+@pytest.mark.parametrize("timeout_s", [0.0, 30.0])
+def test_sensor_timeout_s_0_holds_until_the_fix_comes_back(timeout_s: float) -> None:
+    """The fixes stop for 60 s (the raw GPS: no dead reckoning): a hold, then a pause after
+    ``sensor_timeout_s``; at 0 the hold lasts, and the robot drives on with the fix."""
+    c = raw_started(replace(FS, stuck_s=0.0, sensor_timeout_s=timeout_s))
     for k in range(1, 801):
         t = 0.1 * k
         c.on_attitude(att(t))
@@ -506,11 +497,7 @@ def test_sensor_timeout_s_0_holds_until_the_fix_comes_back(timeout_s: float) -> 
 def test_a_lost_motor_link_holds_without_a_failsafe_and_drives_on_when_it_returns() -> None:
     """The motor board's link lost for 60 s: the robot holds (its board's own watchdog
     stops the wheels), but no sensor's timeout pauses the mission: it drives on after."""
-    c = Controller(NAV, SAFETY, failsafe=replace(FS, stuck_s=0.0))
-    c.on_fix(fix(0.0))
-    c.on_attitude(att(0.0))
-    c.load_mission([at(0.0, 300.0)], 0.0)
-    c.start(0.0)
+    c = raw_started(replace(FS, stuck_s=0.0))
     for k in range(1, 801):
         t = 0.1 * k
         if k == 50:
