@@ -535,3 +535,24 @@ def test_with_the_stuck_check_off_a_robot_blocked_in_an_outage_waits_for_the_sen
         blocked_from_s=25.0,
     )
     assert why == "fix stale" and failsafe == "", (t, why, failsafe)
+
+
+def test_an_arc_on_a_straight_is_not_judged_as_a_pivot() -> None:
+    """pivot_arc steering drives a straight as an arc when the heading is off (here a steady
+    8°, the sides 3-10 % apart): not a pivot, even with ``stuck_min_pct`` 2 so the arc counts
+    as turning. The pivot check judges only the TURN states (a steady 8° never comes 10°
+    nearer, so it would pause)."""
+    c = ekf_started(300.0, fs=replace(FS, stuck_min_pct=2.0))
+    x_m = y_m = 0.0
+    b = math.radians(8.0)
+    for k in range(1, 251):
+        t = 2.0 + 0.1 * k
+        x_m, y_m = x_m + 0.2 * math.sin(b), y_m + 0.2 * math.cos(b)
+        counts = round(0.2 * k * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, counts, counts, k))
+        c.on_attitude(att(t, 8.0))
+        if k % 10 == 0:
+            c.on_fix(fix(t, x_m, y_m))
+        assert c.state == NavState.STRAIGHT, (t, c.state)
+    cmd = c.command
+    assert c.mode == Mode.RUNNING and 0.5 * abs(cmd.left_pct - cmd.right_pct) > 2.0
