@@ -21,8 +21,13 @@ from tests.test_controller import NAV, SAFETY, at, att, fix
 from tests.test_failsafe_controller import COUNTS_PER_M, FS
 from x6wd.core.config import FailsafeConfig, GnssNoiseConfig, NavigationConfig, SafetyConfig
 from x6wd.core.records import GpsFix, Mode, NavState, WheelOdometry
-from x6wd.nav.controller import ARRIVAL_GPS_SIGMAS, ENCODER_FAULT_SIGMAS, Controller
-from x6wd.nav.position import DEFAULT_HDOP
+from x6wd.nav.controller import (
+    ARRIVAL_GPS_SIGMAS,
+    ENCODER_FAULT_SIGMAS,
+    UNCERTAIN_RELEASE,
+    Controller,
+)
+from x6wd.nav.position import DEFAULT_HDOP, degraded_radius_m
 
 # re, ase and lce where each of their squares differs from twice them and from their cube
 NOISE = GnssNoiseConfig(re_m=1.5, ase_m=2.5, lce_default_m=3.0)
@@ -452,6 +457,58 @@ def test_a_waypoint_outside_the_error_radius_is_driven_to_however_poor_the_fixes
     """HDOP 12 (a radius of 55 m with the default noise), the waypoint 200 m off: the robot
     can tell it has not arrived, so it drives."""
     assert uncertain_states([12.0], GnssNoiseConfig(), 200.0) == [(NavState.STRAIGHT, "")]
+
+
+def test_a_held_robot_drives_on_only_once_the_radius_is_under_release_of_its_limit() -> None:
+    """Started on HDOP 4 fixes at a site whose noise sets the limit (37.6 m), the robot holds
+    for waypoint 1, 25 m off; HDOP 1 fixes from 10 s shrink the EKF's radius slowly (the slow
+    errors do not average out). At every input the hold follows its rule: once held, until
+    the radius is at most ``UNCERTAIN_RELEASE`` of the limit (no stop-and-go about the
+    limit), else while it exceeds the limit. The radius passes through the band between the
+    two while held, and the robot drives on within a minute."""
+    c = ekf_started(25.0, fs=replace(FS, stuck_s=0.0), noise=NOISE, hdop=4.0)
+    held = banded = False
+    for k in range(10, 601):  # from the first fix after the start's (2.5 s stale)
+        t = 2.0 + 0.1 * k
+        c.on_odometry(WheelOdometry(t, 0, 0, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix_at(t, 0.0, 0.0, 4.0 if t < 10.0 else 1.0))
+        tel = c.telemetry
+        radius_m = ARRIVAL_GPS_SIGMAS * tel.extra["ekf_sigma_m"] / math.sqrt(2.0)
+        limit_m = degraded_radius_m(
+            NavigationConfig().arrival_max_error_m, tel.extra["ekf_noise_hdop1_m"]
+        )
+        in_band = UNCERTAIN_RELEASE * limit_m < radius_m <= limit_m
+        banded |= held and in_band
+        held = (held and radius_m > UNCERTAIN_RELEASE * limit_m) or radius_m > limit_m
+        assert tel.hold_reason == (TOO_UNCERTAIN if held else ""), (t, radius_m, limit_m)
+    assert banded, "the radius never lay between the release and the limit while held"
+    assert c.telemetry.state == NavState.STRAIGHT
+
+
+def test_the_uncertain_hold_s_patience_starts_again_for_a_return_to_launch() -> None:
+    """``position_timeout_s`` is the time held for one target in all: held 20 s for
+    waypoint 1, then sent home (the robot stands at the launch point, inside the same
+    radius), the return waits its own 30 s before the pause, not the 10 s left."""
+    c = ekf_started(
+        25.0, fs=replace(FS, stuck_s=0.0, position_timeout_s=30.0), noise=NOISE, hdop=4.0
+    )
+    for k in range(1, 1001):
+        t = 2.0 + 0.1 * k
+        if k == 200:
+            c.return_home(t)
+        c.on_odometry(WheelOdometry(t, 0, 0, k))
+        c.on_attitude(att(t))
+        if k % 10 == 0:
+            c.on_fix(fix_at(t, 0.0, 0.0, 4.0))
+        if c.mode != Mode.RUNNING:
+            break
+    assert c.mode == Mode.PAUSED
+    assert c.telemetry.extra["failsafe"] == (
+        "position too uncertain to tell whether the launch point is reached for 30 s"
+    )
+    assert t == pytest.approx(22.0 + 30.0, abs=0.15)
 
 
 # ------------------------------------------------------------------ timeouts at 0: off
