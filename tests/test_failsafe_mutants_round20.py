@@ -335,6 +335,30 @@ def test_the_ekf_does_not_arrive_where_the_latest_fix_disagrees(off_m: float) ->
     assert nearest_m < 1.0  # the estimate did reach it
 
 
+@pytest.mark.parametrize(
+    ("second", "reached"), [((0.0, 60.0), True), ((40.0, 20.0), False), ((-40.0, 20.0), False)]
+)
+@pytest.mark.parametrize("off_m", [15.0, -15.0])
+def test_the_ekf_arrives_at_a_track_point_the_fix_has_passed_but_not_at_a_corner(
+    second: tuple[float, float], reached: bool, off_m: float
+) -> None:
+    """pivot_arc, waypoint 1 20 m north and the fixes 15 m to either side from 9.5 s (over
+    the 3 sigma agreement): where the path goes straight on (waypoint 2 60 m north), the fix
+    on the waypoint's line at 12 s is past it along the track and the robot drives on; at a
+    corner (waypoint 2 40 m east or west of it) the distance rule holds it to waypoint 1."""
+    c = Controller(NavigationConfig(), SAFETY, 0.0, failsafe=FS, gnss_noise=GnssNoiseConfig())
+    c.on_fix(fix_at(0.0, 0.0, 0.0, 1.2))
+    for k in range(1, 21):
+        c.on_attitude(att(0.1 * k))
+    c.load_mission([at(0.0, 20.0), at(*second)], 2.0)
+    c.start(2.0)
+    passed_s = None
+    for t in drive_north_fixes_off(c, off_m):
+        if passed_s is None and c.telemetry.waypoint_index == 1:
+            passed_s = t
+    assert passed_s == (pytest.approx(12.0) if reached else None)
+
+
 # ------------------------------------------------------------------ the progress watch
 
 
