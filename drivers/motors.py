@@ -33,7 +33,7 @@ import socket
 import struct
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -94,6 +94,17 @@ minute keeps the link lost until the operator stops or pauses
 board confirms follows. Never the controller's own stops: after a lost link cancelled a
 manual drive it stops with ``idle``, and a held mission with ``hold: motor link lost``; if
 those cleared it, the next drive would brown the board out again."""
+W_RETRY_S = 1.0
+W_RETRY_MAX_S = 30.0
+"""A board that refuses ``W <watchdog_ms>`` (``ERR``: a firmware with a narrower range, or
+none) is asked again after this many seconds (s), the wait doubling up to the maximum (s):
+until it accepts, the link is lost and no ``M`` or ``P`` goes out (a drive on a watchdog
+the host never set). Asked only after a stop the board confirmed, or before a drive or
+ping."""
+REFUSAL_LOGGED = (1, 10, 100)
+"""Which of a command kind's refusals (``ERR``) are logged: these, then every 1000th (each
+one is counted in ``counters.rejected`` and is the link's last error): a board that refuses
+the keep-alive's stop did so 40 times a second, each a warning."""
 REOPEN_LOG_S = 30.0
 """At most one "motor port reopened" log line per this many seconds (s); status counts
 every reopen."""
@@ -425,7 +436,7 @@ class SerialMotorLink:
         self._latch_requests = 0  # E lines written since the last valid encoder reading
         self._write_s = clock()  # when the last command line was written (s, ``clock``)
         self.odometry_supported: bool | None = None
-        self._refusal: str | None = None  # the payload of an ERR accepted by refusal_ok
+        self._refusal: str | None = None  # the payload of the latest ERR
         # Why the board restarted under a running link (EVT BOOT once up, or seen in an
         # encoder reading), until a stop() the board confirmed: the link is lost meanwhile
         # and send() refuses drives.
@@ -437,6 +448,12 @@ class SerialMotorLink:
         # the fault the operator cleared (clear_restart_fault), ended by the next confirmed
         # stop; a fault latched after that is another object and stays
         self._fault_cleared: str | None = None
+        # The board's refusal of our W (why, for status) while it lasts, when to ask again
+        # and the wait after that (s): W_RETRY_S
+        self._w_refusal: str | None = None
+        self._w_retry_t = -math.inf
+        self._w_wait_s = W_RETRY_S
+        self._refusals: Counter[str] = Counter()  # ERR replies per command kind
         self.configured = False
         self._configure()
 
@@ -451,10 +468,41 @@ class SerialMotorLink:
                 log.debug("motor port does not accept a timeout", exc_info=True)
 
     def _configure(self) -> None:
-        """Set the board's watchdog; until that succeeds the link counts as unhealthy."""
+        """Set the board's watchdog; until that succeeds the link counts as unhealthy. A
+        refusal (``ERR``) keeps it lost, with no drive or ping sent, until the board accepts
+        a later ``W`` (:data:`W_RETRY_S`)."""
+        self._refusal = None
         self.configured = self._transact(f"W {self.watchdog_ms}")
-        if not self.configured:
-            self._failures = max(self._failures, self.unhealthy_after)
+        t_s = self._clock()
+        if self.configured:
+            self._w_wait_s = W_RETRY_S
+            if self._w_refusal is not None:
+                self._w_refusal = None
+                log.warning("motors: the board accepts W %d now; drives go again", self.watchdog_ms)
+            return
+        self._failures = max(self._failures, self.unhealthy_after)
+        if self._refusal is None:
+            return  # unanswered: a link failure, counted as any other
+        if self._w_refusal is None:
+            log.error(
+                "motors: the board refuses W %d (%s): no drive goes out until it accepts"
+                " ([motors] watchdog_ms, or the URL's watchdog_ms, within the firmware's range)",
+                self.watchdog_ms, self._refusal,
+            )  # fmt: skip
+        self._w_refusal = f"W {self.watchdog_ms}: board refused: {self._refusal}"
+        self._w_retry_t = t_s + self._w_wait_s
+        self._w_wait_s = min(2.0 * self._w_wait_s, W_RETRY_MAX_S)
+        tracker = self._tracker
+        if tracker.health.connected:
+            tracker.lost(self._w_refusal, t_s, self._w_retry_t, count_error=False)
+        else:
+            tracker.open_failed(self._w_refusal, t_s, self._w_retry_t, count_error=False)
+
+    def _configure_if_due(self) -> None:
+        """Send ``W`` when the board lacks it: at once, or after a refusal once its wait has
+        passed."""
+        if not self.configured and (self._w_refusal is None or self._clock() >= self._w_retry_t):
+            self._configure()
 
     # --- state ------------------------------------------------------------------------------
 
@@ -467,6 +515,7 @@ class SerialMotorLink:
             not self._closed
             and self._failures < self.unhealthy_after
             and self._restart_hold is None
+            and self._w_refusal is None
         )
 
     @property
@@ -517,6 +566,8 @@ class SerialMotorLink:
         try:
             self._last = MotorCommand(self._clock(), 0.0, 0.0, reason)
             ok = self._transact_reply("S", ends_hold=ends_hold) is not None
+            if ok and self._w_refusal is not None:
+                self._configure_if_due()  # asked again with the motors stopped
         except Exception:  # stop must not raise, whatever the port does
             log.exception("motor stop failed")
             ok = False
@@ -665,8 +716,9 @@ class SerialMotorLink:
         confirmed, or the board restarted (then also right after ``body``). ``held``:
         not sent (False) once a board restart holds the link (:meth:`send`), and False with
         no ``W`` after it when the hold began during it (the caller's stop goes first)."""
-        if not self.configured:
-            self._configure()
+        self._configure_if_due()
+        if self._w_refusal is not None:
+            return False  # never a drive on a watchdog the board refused to take
         if held and self._restart_hold is not None:
             return False
         ok = self._transact_reply(body, held=held) is not None
@@ -780,7 +832,9 @@ class SerialMotorLink:
                             )
                         else:
                             log.warning("motors: stopped after the board restart; drives go again")
-                    if self._restart_hold is None:  # held: lost until the caller's stop
+                    if self._w_refusal is not None and not body.startswith("W "):
+                        pass  # lost, with the refusal as the reason, until W is taken
+                    elif self._restart_hold is None:  # held: lost until the caller's stop
                         if not tracker.health.connected:
                             tracker.opened(t_s)  # the board answers again: a reconnect
                         self._note_retries(attempt > 0, t_s)
@@ -795,7 +849,14 @@ class SerialMotorLink:
                         tracker.lost(self._restart_fault, t_s, count_error=False)
                     return payload if ok else None
                 self.counters.rejected += 1
-                log.warning("motor board rejected %r: %s", body, payload)
+                self._refusal = payload
+                kind = body.split()[0]
+                self._refusals[kind] += 1
+                n = self._refusals[kind]
+                if n in REFUSAL_LOGGED or n % 1000 == 0:
+                    log.warning(
+                        "motor board rejected %r: %s (%d of its kind so far)", body, payload, n
+                    )
                 tracker.error(f"{body.split()[0]}: board refused: {payload}", self._clock())
                 break  # the board understood and refused: repeating will not help
             self._failures += 1
