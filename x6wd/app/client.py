@@ -1164,8 +1164,17 @@ def _run(args: argparse.Namespace, out: TextIO) -> int:
                 _print_reply(reply, out)
             elif action == "status":
                 out.write(render_status(reply))
+            elif action == "stop" and reply.get("motors") == "lost":
+                print(
+                    "stop: the robot's controller stopped, but its motor link is lost"
+                    f" ({str(reply.get('motors_reason') or 'no reason given')[:300]}): the stop"
+                    " may not reach the wheels; the board's own watchdog stops them if it runs",
+                    file=out,
+                )
             else:
                 print(f"{action}: ok", file=out)
+            if action == "stop" and reply.get("motors") == "lost":
+                return EXIT_REFUSED
             return EXIT_OK
     except RequestFailed as exc:
         code = f"{exc.code} ({exc.reason})" if exc.reason else exc.code

@@ -1967,6 +1967,10 @@ class Daemon:
         motors = self.motors
         if motors is not None:
             motors.stop_applied(seq)
+            if not motors.link.healthy:
+                # the controller stopped, but the stop may never reach the wheels: said in
+                # the reply (an outside audit: "stop: ok", exit 0, with the board gone)
+                reply = {**reply, "motors": "lost", "motors_reason": motors.health.reason}
         return reply
 
     def drive(self, left_pct: float, right_pct: float, duration_s: float) -> Any:
