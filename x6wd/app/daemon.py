@@ -1042,9 +1042,8 @@ class Daemon:
         if self._stop_signal is None:
             self._stop_signal = (name, code)
             level = logging.INFO if code == EXIT_OK else logging.WARNING
-            log.log(
-                level, "%s received: stopping the motors and shutting down (exit %d)", name, code
-            )
+            # no exit code here: an unacknowledged stop makes it 1 (said by "x6wd stopped")
+            log.log(level, "%s received: stopping the motors and shutting down", name)
         self.request_stop()
 
     def _fail(self, exc: BaseException, cause: str = "") -> None:
