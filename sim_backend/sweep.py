@@ -114,7 +114,8 @@ log = logging.getLogger(__name__)
 SWEEP_KEYS = ("name", "seed", "seeds", "scenarios", "robot_config", "set", "grid")
 PATH_KEYS = ("almanac", "gnss.lce_csv", "mission.file")
 """Scenario keys whose value is a file: given in [set] or [grid], a relative one is relative to
-the sweep file's folder (a path is relative to the file that names it, as in a scenario)."""
+the sweep file's folder (a path is relative to the file that names it, as in a scenario);
+so are the files of an ``include`` list."""
 SEED_BITS = 48  # run seeds are 0 .. 2**48 - 1 (a collision in 10,000 runs: ~2e-7)
 
 RESULTS_SCHEMA = 2
@@ -442,6 +443,11 @@ def cell_world(
             raise ConfigError(f"{key}: expected a finite number, got {value!r}")
         if key in PATH_KEYS and isinstance(value, str) and value:
             value = str(((values_dir or base_dir) / value).resolve())
+        elif key == "include" and isinstance(value, list):  # files too (audit round 21)
+            value = [
+                str(((values_dir or base_dir) / v).resolve()) if isinstance(v, str) and v else v
+                for v in value
+            ]
         if key == "gnss.lce_csv" and "gnss.lce_sigma_m" not in overrides:
             gnss = data.get("gnss")  # it replaces the scenario's own map (inlined when read)
             if isinstance(gnss, dict):

@@ -247,7 +247,8 @@ class CellStats:
     mission ran (to its end, completed or not); ``failed``: the mission raised (an unreadable
     almanac: the robot never drove); ``lost``: the cluster could not finish the run (no
     result). Neither failed nor lost runs are successes or failures of the robot: the
-    completion rate is of the ``ok`` ones."""
+    completion rate is of the ``ok`` ones that drove a mission (``surveys``: ok runs of a
+    scenario without waypoints, which have no completion to count)."""
 
     cell_id: str
     scenario: str
@@ -258,6 +259,7 @@ class CellStats:
     failed: int = 0
     lost: int = 0
     completed: int = 0
+    surveys: int = 0  # ok runs without waypoints (a static survey): no completion
     arrival_runs: int = 0  # runs with an arrival error
     arrival_true_m: list[float] = field(default_factory=list)
     arrival_gps_m: list[float] = field(default_factory=list)
@@ -276,14 +278,17 @@ class CellStats:
 
     @property
     def completion_pct(self) -> float:
-        """Completed missions, % of the missions that ran (``ok``; NaN when none ran)."""
-        return 100.0 * self.completed / self.ok if self.ok else math.nan
+        """Completed missions, % of the missions that ran (``ok`` less ``surveys``; NaN when
+        none ran)."""
+        missions = self.ok - self.surveys
+        return 100.0 * self.completed / missions if missions else math.nan
 
     @property
     def apart(self) -> str:
         """The runs left out of the completion rate, in words ("6 errored, 1 lost"; "" for
         none)."""
-        parts = [f"{self.failed} errored" if self.failed else ""]
+        parts = [f"{self.surveys} survey{'' if self.surveys == 1 else 's'}" if self.surveys else ""]
+        parts.append(f"{self.failed} errored" if self.failed else "")
         parts.append(f"{self.lost} lost" if self.lost else "")
         return ", ".join(p for p in parts if p)
 
@@ -291,9 +296,10 @@ class CellStats:
     def completion_text(self) -> str:
         """ "3/4 (75 %)" of the missions that ran; "n/a (6 errored)" when none ran: six runs
         that raised are not six missions that did not complete."""
-        if not self.ok:
+        missions = self.ok - self.surveys
+        if not missions:
             return f"n/a ({self.apart or 'no run'})"
-        return f"{self.completed}/{self.ok} ({_f(self.completion_pct, '.0f')} %)"
+        return f"{self.completed}/{missions} ({_f(self.completion_pct, '.0f')} %)"
 
 
 def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
@@ -312,6 +318,7 @@ def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
             c.failed += 1
             continue
         c.ok += 1
+        c.surveys += r.get("waypoint_count") == 0
         c.wall_times_s.append(_num(r.get("wall_time_s")))
         c.gps_cep50_m.append(_num(r.get("gps_cep50_m")))
         before = len(c.arrival_true_m)
@@ -349,7 +356,7 @@ def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
     y = np.arange(len(cells))
     pct = [c.completion_pct if math.isfinite(c.completion_pct) else 0.0 for c in cells]
     ax.barh(y, pct, color="tab:green")
-    none_ran = [float(yi) for yi, c in zip(y, cells, strict=True) if not c.ok]
+    none_ran = [float(yi) for yi, c in zip(y, cells, strict=True) if c.ok == c.surveys]
     if none_ran:  # no mission ran: a hatched "n/a" bar, not an empty 0 % one
         ax.barh(none_ran, 100.0, color="none", edgecolor="tab:grey", hatch="//", lw=0.5)
     ax.set_yticks(y, labels, fontsize=8)
@@ -364,8 +371,8 @@ def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
     )
     ax.set_title("Completion rate per cell")
     for yi, c, x in zip(y, cells, pct, strict=True):
-        text = f"{c.completed}/{c.ok}" + (f", {c.apart}" if c.apart else "")
-        if not c.ok:
+        text = f"{c.completed}/{c.ok - c.surveys}" + (f", {c.apart}" if c.apart else "")
+        if c.ok == c.surveys:
             text, x = f"n/a: no mission ran ({c.apart or 'no run'})", 0.0
         ax.text(x + 1, float(yi), text, va="center", fontsize=7)
     fig.tight_layout()

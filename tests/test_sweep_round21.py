@@ -1,0 +1,41 @@
+"""x6wd sweep, outside audit round 21: a survey's runs are no missions that failed (the
+summary showed every survey cell "0/1 (0 %)" and an empty 0 % bar), and the files of an
+``include`` list given in [set] or [grid] are relative to the sweep file, as every other file
+a sweep names (they were looked up beside the scenario). Real runs on the inline executor."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+from sim_backend import sweep
+from sim_backend.executor import Executor
+from sim_backend.sweep_report import cell_stats
+from tests.conftest import ROOT
+from tests.test_sweep import DEFAULT, sweep_file
+
+OPEN_FIELD = ROOT / "config" / "scenarios" / "open_field.toml"
+
+
+def test_a_survey_s_runs_are_not_counted_as_missions_that_did_not_complete(
+    tmp_path: Path,
+) -> None:
+    f = sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n", (OPEN_FIELD, DEFAULT))
+    spec = sweep.load_sweep(f)
+    with Executor(inline=True) as ex:
+        res = sweep.run_sweep(spec, tmp_path / "out", ex, runs=sweep.plan(spec))
+    survey, mission = cell_stats(res.records)
+    assert (survey.ok, survey.surveys, survey.completion_text) == (1, 1, "n/a (1 survey)")
+    assert math.isnan(survey.completion_pct)
+    assert (mission.ok, mission.surveys, mission.completion_text) == (1, 0, "0/1 (0 %)")
+    assert mission.completion_pct == 0.0
+
+
+def test_an_include_in_set_is_relative_to_the_sweep_file(tmp_path: Path) -> None:
+    # beside the sweep file, not the scenario: the include sets the compass's rate
+    (tmp_path / "inc.toml").write_text("[compass]\nrate_hz = 10.0\n")
+    f = sweep_file(tmp_path, 'seeds = 1\n[set]\ninclude = ["inc.toml"]\nduration_s = 5.0\n')
+    spec = sweep.load_sweep(f)
+    (run,) = sweep.plan(spec)
+    assert tomllib.loads(run.cell.world_toml)["compass"]["rate_hz"] == 10.0
