@@ -112,6 +112,8 @@ def test_gap_plot_and_sweep_on_a_full_disk_are_one_line(
     _one_line_exit_2(
         capsys, ["plot", str(sim / "recording.jsonl"), "--out", str(full_disk / "p")], "/p/"
     )
+    # the page cut short is removed, not left as the result (audit round 21)
+    assert not (full_disk / "p" / "recording.html").exists()
     _one_line_exit_2(
         capsys,
         [

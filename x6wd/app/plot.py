@@ -36,7 +36,7 @@ from x6wd.app.logview import (
     newest_recording,
 )
 from x6wd.core.errors import ConfigError
-from x6wd.core.outdir import output_dir, output_file
+from x6wd.core.outdir import output_dir, output_file, write_output_file
 
 # ---------------------------------------------------------------------------- PNG
 
@@ -231,10 +231,8 @@ def main(args: argparse.Namespace) -> int:
     stem = src.stem
     written = []
     if args.format in ("both", "html"):
-        p = out / f"{stem}.html"
-        with output_file(p):
-            p.write_text(html_page(view), encoding="utf-8")
-        written.append(p)
+        # a page cut short by a full disk is removed, not left as the result
+        written.append(write_output_file(out / f"{stem}.html", html_page(view)))
     if args.format in ("both", "png"):
         p = out / f"{stem}.png"
         with output_file(p):
