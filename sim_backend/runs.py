@@ -87,6 +87,12 @@ def engine_for(world: World, engine: str = "auto") -> str:
     return "robot" if robot_only_settings(world) else "receiver"
 
 
+def _seconds(t_s: float) -> str:
+    """A run's length (s) in words: whole seconds from 10 s, three digits under (a 0.5 s
+    run is not "0 s")."""
+    return f"{t_s:.0f}" if t_s >= 10.0 else f"{t_s:.3g}"
+
+
 def _named(settings: list[str], scenario: World | None, robot_config: str | Path | None) -> str:
     """``settings`` (:func:`robot_only_settings` of a run's world) in words: the scenario's
     own by name (at most :data:`MAX_NAMED`), then what ``--config`` added, counted by
@@ -332,10 +338,12 @@ class Summary:
                 if last is not None and last[1] >= round(self.sim_time_s, 3)
                 else ""
             )
-            return f"the mission was paused{since} when the run ended at {self.sim_time_s:.0f} s"
+            return (
+                f"the mission was paused{since} when the run ended at {_seconds(self.sim_time_s)} s"
+            )
         if mode == "RUNNING":
-            return f"the run's {self.sim_time_s:.0f} s ended before the last waypoint"
-        return f"the run ended at {self.sim_time_s:.0f} s with the robot {mode or 'stopped'}"
+            return f"the run's {_seconds(self.sim_time_s)} s ended before the last waypoint"
+        return f"the run ended at {_seconds(self.sim_time_s)} s with the robot {mode or 'stopped'}"
 
     def _paused_lines(self) -> list[str]:
         """The time the mission stood paused (the robot still, in IDLE: no HOLD period),
@@ -395,8 +403,12 @@ class Summary:
             "  horizontal error    mean    RMS     CEP50   R95     max   (m)",
             f"    raw GPS          {r.mean_m:6.2f}  {r.rms_m:6.2f}  {r.cep50_m:6.2f}"
             f"  {r.r95_m:6.2f}  {r.max_m:6.2f}",
-            f"    filtered         {f.mean_m:6.2f}  {f.rms_m:6.2f}  {f.cep50_m:6.2f}"
-            f"  {f.r95_m:6.2f}  {f.max_m:6.2f}"
+            (
+                f"    filtered         {f.mean_m:6.2f}  {f.rms_m:6.2f}  {f.cep50_m:6.2f}"
+                f"  {f.r95_m:6.2f}  {f.max_m:6.2f}"
+                if math.isfinite(f.mean_m)
+                else "    filtered         no estimate: the run ended before the first"
+            )
             if self.extra.get("engine") != "receiver"
             else "    filtered         not run: no robot on the receiver engine"
             f" (--engine robot runs {self._source_text()})",

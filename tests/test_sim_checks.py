@@ -155,6 +155,18 @@ def test_a_mission_cut_by_the_runs_duration_says_so(
     assert "mission NOT completed: the run's 20 s ended before the last waypoint" in out
 
 
+def test_a_run_shorter_than_a_second_says_its_length_and_has_no_estimate(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # an outside audit (round 21): "the run's 0 s ended" and a filtered row of nan
+    argv = ["sim", str(SCENARIOS / "default.toml"), "--duration", "0.5", "--quiet"]
+    assert cli.main([*argv, "--out", str(tmp_path / "o")]) == 1
+    out = capsys.readouterr().out
+    assert "the run's 0.5 s ended before the last waypoint" in out
+    assert "filtered         no estimate: the run ended before the first" in out
+    assert "nan" not in out
+
+
 @pytest.mark.parametrize("seed", ["-1", str(2**63), "99999999999999999999999", "1.5"])
 def test_a_seed_outside_a_scenarios_seed_range_is_refused(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], seed: str
