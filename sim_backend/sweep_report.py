@@ -490,6 +490,7 @@ def _outside_lines(outside: dict[str, int]) -> list[str]:
     (``outside``: count, more_seeds, seeds, as :func:`x6wd.app.sweep.outside_runs` counts
     them): none without any."""
     n, more = int(outside.get("count", 0)), int(outside.get("more_seeds", 0))
+    stale = int(outside.get("stale_seeds", 0))
     if not n:
         return []
     why = []
@@ -498,12 +499,17 @@ def _outside_lines(outside: dict[str, int]) -> list[str]:
             f"{more} further seeds of these cells (a sweep of {outside.get('seeds')} seeds"
             " tables them)"
         )
-    if n - more:
-        why.append(f"{n - more} of cells not in this grid")
+    if stale:
+        why.append(
+            f"{stale} further seeds of these cells made with another scenario, file or x6wd"
+            " (the sweep that plans them runs them again)"
+        )
+    if n - more - stale:
+        why.append(f"{n - more - stale} of cells not in this grid")
     return [
         f"- **not in this summary**: {n} finished run{'' if n == 1 else 's'} in `runs/`"
         f" outside this sweep's grid ({'; '.join(why)}); their files are kept, and the sweep"
-        " that plans them tables them without running them again"
+        " that plans them tables the current ones without running them again"
     ]
 
 

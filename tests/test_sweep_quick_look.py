@@ -42,13 +42,14 @@ def test_a_quick_look_at_a_finished_sweep_says_which_runs_it_leaves_out(
     assert said.err.splitlines() == [
         f"sweep: 4 runs finished in {out / 'runs'} are outside this sweep's grid and not in"
         " results.csv or summary.md (4 of them further seeds of these cells: the same command"
-        " without --seeds tables them; none is run again)"
+        " without --seeds tables them; none is run now)"
     ]
     assert len(_table(out)) == 2
     summary = (out / "summary.md").read_text()
     assert (
         "- **not in this summary**: 4 finished runs in `runs/` outside this sweep's grid (4"
         " further seeds of these cells (a sweep of 3 seeds tables them)); their files are kept"
+        ", and the sweep that plans them tables the current ones without running them again"
     ) in summary
     assert sorted(p.name for p in (out / "runs").glob("*.json")) == runs
 

@@ -9,6 +9,8 @@ import math
 import tomllib
 from pathlib import Path
 
+import pytest
+
 from sim_backend import sweep
 from sim_backend.executor import Executor
 from sim_backend.sweep_report import cell_stats
@@ -39,3 +41,31 @@ def test_an_include_in_set_is_relative_to_the_sweep_file(tmp_path: Path) -> None
     spec = sweep.load_sweep(f)
     (run,) = sweep.plan(spec)
     assert tomllib.loads(run.cell.world_toml)["compass"]["rate_hz"] == 10.0
+
+
+def test_further_seeds_of_a_changed_cell_are_not_said_to_be_tabled_unrun(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # the note said "the same command without --seeds tables them; none is run again", and
+    # that command then ran all of them: their [set] had changed since
+    from x6wd.app.cli import main
+
+    scenario = tmp_path / "field.toml"
+    scenario.write_text(DEFAULT.read_text())
+    grid = '[grid]\nnavigation.position_source = ["ekf", "raw"]\n'
+    f = sweep_file(tmp_path, "seeds = 3\n[set]\nduration_s = 5.0\n" + grid, (scenario,))
+    out = tmp_path / "out"
+    with Executor(inline=True) as ex:
+        assert not sweep.run_sweep(sweep.load_sweep(f), out, ex).failed  # 2 cells x 3 seeds
+    # the scenario changed since (the audit's step: its noise)
+    scenario.write_text(scenario.read_text().replace("env_noise_db = 1.0", "env_noise_db = 2.0"))
+    quick = ["sweep", str(f), "--out", str(out), "--quiet", "--no-figures", "--workers", "1"]
+    assert main([*quick, "--seeds", "1"]) == 0
+    err = capsys.readouterr().err
+    assert (
+        "(4 of them further seeds of these cells made with another scenario, file or x6wd:"
+        " the sweep that plans them runs them again; none is run now)"
+    ) in err, err
+    assert "tables them" not in err
+    assert main(quick) == 0
+    assert "(4 run now, 2 found done)" in capsys.readouterr().out

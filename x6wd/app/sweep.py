@@ -43,6 +43,7 @@ from sim_backend.sweep import (
     run_count,
     run_sweep,
     split_done,
+    stale_reason,
 )
 from sim_backend.sweep_report import write_report
 from x6wd.core.errors import ConfigError, X6wdError
@@ -127,9 +128,10 @@ def outside_runs(runs: Sequence[Run], store: RunStore) -> dict[str, int]:
     this grid (a value or a scenario since left out). Their files are kept: the sweep that
     plans them again tables them, without running them."""
     planned = {r.run_id for r in runs}
-    cells = {r.cell.cell_id for r in runs}
-    cells |= {legacy_cell_id(c) for c in cells}  # a folder of before 2026-12-05's runs
-    count = more = seeds = 0
+    digests = {r.cell.cell_id: r.cell.digest for r in runs}
+    for c in list(digests):  # a folder of before 2026-12-05's runs
+        digests[legacy_cell_id(c)] = digests[c]
+    count = more = stale = seeds = 0
     for path in sorted(store.dir.glob("*.json")):
         if path.stem in planned:
             continue
@@ -137,16 +139,19 @@ def outside_runs(runs: Sequence[Run], store: RunStore) -> dict[str, int]:
         if rec is None or rec.get("status") not in ("ok", "error"):
             continue
         count += 1
-        replicate = rec.get("replicate")
-        if rec.get("cell_id") in cells and isinstance(replicate, int):
+        replicate, cell = rec.get("replicate"), rec.get("cell_id")
+        if cell in digests and isinstance(replicate, int):
+            if rec.get("digest") != digests[cell] or stale_reason(rec) is not None:
+                stale += 1  # a changed scenario or file, or an older x6wd: run again
+                continue
             more += 1
             seeds = max(seeds, replicate + 1)
-    return {"count": count, "more_seeds": more, "seeds": seeds}
+    return {"count": count, "more_seeds": more, "stale_seeds": stale, "seeds": seeds}
 
 
 def _outside_text(outside: dict[str, int], runs_dir: Path, file_seeds: int, seeds: int) -> str:
     """The stderr line about :func:`outside_runs` ("" when there are none)."""
-    n, more = outside["count"], outside["more_seeds"]
+    n, more, stale = outside["count"], outside["more_seeds"], outside.get("stale_seeds", 0)
     if not n:
         return ""
     why = []
@@ -157,14 +162,20 @@ def _outside_text(outside: dict[str, int], runs_dir: Path, file_seeds: int, seed
             else f"--seeds {outside['seeds']} tables them"
         )
         why.append(f"{more} of them further seeds of these cells: {again}")
-    if n - more:
+    if stale:
         why.append(
-            f"{n - more} of cells not in this grid: the sweep file that planned them tables them"
+            f"{stale} of them further seeds of these cells made with another scenario, file"
+            " or x6wd: the sweep that plans them runs them again"
+        )
+    if n - more - stale:
+        why.append(
+            f"{n - more - stale} of cells not in this grid: the sweep file that planned them"
+            " tables them"
         )
     return (
         f"sweep: {_runs(n)} finished in {runs_dir} {'is' if n == 1 else 'are'} outside this"
         f" sweep's grid and not in results.csv or summary.md ({'; '.join(why)}; none is run"
-        " again)"
+        " now)"
     )
 
 
