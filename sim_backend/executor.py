@@ -140,6 +140,19 @@ heartbeat", a CommClosedError traceback of 25 lines per worker), at the end of e
 whose scheduler answers slowly (a loaded machine) and after most Ctrl-Cs there."""
 
 
+def _drop_reconnect_failure(record: logging.LogRecord) -> bool:
+    return not str(record.msg).startswith("Failed to reconnect to scheduler")
+
+
+def _quiet_reconnect_failure() -> None:
+    """The client's "Failed to reconnect to scheduler after 30.00 seconds, closing client"
+    ERROR is left out: the runs it cancels are reported as lost, naming the scheduler that
+    went away (:meth:`Executor._gone`)."""
+    logger = logging.getLogger("distributed.client")
+    if _drop_reconnect_failure not in logger.filters:
+        logger.addFilter(_drop_reconnect_failure)
+
+
 @contextlib.contextmanager
 def _sigint_held() -> Iterator[None]:
     """A Ctrl-C while a LocalCluster starts is held and raised once it is up, when the caller
@@ -348,6 +361,7 @@ class Executor:
             raise ConfigError(f"a Dask cluster needs {INSTALL_HINT}: {exc}") from exc
         if self.scheduler:
             probe_scheduler(self.scheduler, self.connect_timeout_s)
+        _quiet_reconnect_failure()
         try:
             if self.scheduler:
                 self._client = Client(self.scheduler, timeout=self.connect_timeout_s)
@@ -507,7 +521,7 @@ class Executor:
                     continue
                 fut = next(done)
                 i = index[fut.key]
-                outcome = self._outcome(i, fut)
+                outcome = self._outcome(i, fut, self._gone())
                 if outcome.kind == "executor" and fut.status == "lost":
                     done.add(fut)  # finished, then its worker died: the scheduler runs it again
                     continue
@@ -523,13 +537,24 @@ class Executor:
                 with _sigint_deferred():
                     self._client.cancel([f for f in futures if f.key in pending])
 
-    @staticmethod
-    def _outcome(i: int, fut: Any) -> Outcome:
-        with _sigint_deferred():  # it asks the scheduler (the result, the error)
-            return Executor._outcome_of(i, fut)
+    def _gone(self) -> str | None:
+        """Why the tasks left were cancelled when the client lost its scheduler (it cancels
+        every future at once, tries to reconnect for ``connect_timeout_s``, then closes), else
+        None."""
+        client = self._client
+        status = getattr(client, "status", "running")
+        if client is None or status not in ("connecting", "closing", "closed"):
+            return None
+        where = self.scheduler or "of the LocalCluster"
+        return f"the connection to the scheduler {where} was lost (is it still running?)"
 
     @staticmethod
-    def _outcome_of(i: int, fut: Any) -> Outcome:
+    def _outcome(i: int, fut: Any, gone: str | None = None) -> Outcome:
+        with _sigint_deferred():  # it asks the scheduler (the result, the error)
+            return Executor._outcome_of(i, fut, gone)
+
+    @staticmethod
+    def _outcome_of(i: int, fut: Any, gone: str | None = None) -> Outcome:
         if fut.status == "finished":
             try:
                 return Outcome(i, value=fut.result())
@@ -543,7 +568,7 @@ class Executor:
                 return Outcome(i, error=f"KilledWorker: {err}", kind="executor")
             return Outcome(i, error=describe_exception(err, fut.traceback()), kind="task")
         # "cancelled": the scheduler went away (the client gave up reconnecting)
-        return Outcome(i, error=f"task {fut.status} by the cluster", kind="executor")
+        return Outcome(i, error=gone or f"task {fut.status} by the cluster", kind="executor")
 
     @staticmethod
     def _inline(

@@ -6,6 +6,8 @@ a sweep names (they were looked up beside the scenario). Real runs on the inline
 from __future__ import annotations
 
 import math
+import subprocess
+import time
 import tomllib
 from pathlib import Path
 
@@ -15,7 +17,7 @@ from sim_backend import sweep
 from sim_backend.executor import Executor
 from sim_backend.sweep_report import cell_stats
 from tests.conftest import ROOT
-from tests.test_sweep import DEFAULT, sweep_file
+from tests.test_sweep import DEFAULT, X6WD, Cluster, sweep_file
 
 OPEN_FIELD = ROOT / "config" / "scenarios" / "open_field.toml"
 
@@ -69,3 +71,35 @@ def test_further_seeds_of_a_changed_cell_are_not_said_to_be_tabled_unrun(
     assert "tables them" not in err
     assert main(quick) == 0
     assert "(4 run now, 2 found done)" in capsys.readouterr().out
+
+
+@pytest.mark.integration
+def test_a_scheduler_that_dies_mid_sweep_is_named_and_its_runs_are_lost(
+    tmp_path: Path,
+) -> None:
+    # before: Dask's own "distributed.client - ERROR - Failed to reconnect to scheduler
+    # after 30.00 seconds, closing client" and "(the first: task cancelled by the cluster)"
+    c = Cluster(tmp_path / "cluster")
+    (tmp_path / "cluster").mkdir()
+    try:
+        c.start(1)
+        f = sweep_file(tmp_path, "seeds = 12\n[set]\nduration_s = 120.0\n")
+        out = tmp_path / "out"
+        proc = subprocess.Popen(
+            [*X6WD, "sweep", str(f), "--scheduler", c.address, "--out", str(out), "--quiet"],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        deadline = time.monotonic() + 120
+        while not list((out / "runs").glob("*.json")):
+            assert time.monotonic() < deadline and proc.poll() is None, c.logs()
+            time.sleep(0.1)
+        c.kill(c.procs[0])  # the scheduler
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        c.stop()
+    assert proc.returncode == 1, (stdout, stderr)
+    assert f"the connection to the scheduler {c.address} was lost" in stderr, stderr
+    assert "Failed to reconnect" not in stderr and "Traceback" not in stderr, stderr
