@@ -657,16 +657,20 @@ def test_a_jumps_utc_is_the_receivers_at_the_step_s_two_ends() -> None:
     # 42): the decoder still held that epoch when line 45's RMC brought 2010-09-30, and gave
     # it that date. And line 48's step was measured to 23:59:52 (its damaged GGA, no fix)
     # while its "after" was 23:59:57, a fix five lines on. Now the epoch is closed at the
-    # jump, and a side whose time made no dated fix is said to be unknown.
+    # jump, and a side whose time made no dated fix is said to be unknown. Since round 21 a
+    # sentence failing its checksum (line 48's damaged GGA) sets no time: the step is at
+    # line 53's RMC, whose date is known.
     view = logview.load(COLDBOOT)
     said = {j.line: j.describe() for j in view.jumps}
     assert said[45] == (
         "line 45: time went back 15873.0 s (4 h 25 min), "
         "2006-12-16 23:59:50 -> 2010-09-30 19:35:15 UTC"
     )
-    assert said[48] == (
-        "line 48: time went forward 15877.0 s (4 h 25 min), 2010-09-30 19:35:15 -> unknown UTC"
+    assert said[53] == (
+        "line 53: time went forward 15882.0 s (4 h 25 min), "
+        "2010-09-30 19:35:15 -> 2010-09-25 23:59:57 UTC"
     )
+    assert said[38].endswith("unknown -> 2006-12-16 23:59:48 UTC")  # before any dated fix
 
 
 def test_a_true_track_cut_mid_line_is_read_and_a_bad_row_named(

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import json
+import operator
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -463,11 +466,23 @@ def test_replay_port_plays_the_nmea_of_a_recording(tmp_path: Path) -> None:
     assert [x.rstrip(b"\r\n") for x in lines] == expected
 
 
+def summed(log: bytes) -> bytes:
+    """``log`` with each ``*00`` replaced by its sentence's checksum (a sentence failing it
+    sets no time)."""
+    return re.sub(
+        rb"\$([^*$\r\n]*)\*00",
+        lambda m: b"$%s*%02X" % (m[1], functools.reduce(operator.xor, m[1], 0)),
+        log,
+    )
+
+
 def test_plain_log_time_wraps_at_midnight_and_falls_back_to_rate(tmp_path: Path) -> None:
     wrap = tmp_path / "wrap.nmea"
     wrap.write_bytes(
-        b"$GPGGA,235959.00,,,,,0,00,99.99,,,,,,*00\r\n$GPGSA,A,1*00\r\n"
-        b"$GPGGA,000001.00,,,,,0,00,99.99,,,,,,*00\r\n"
+        summed(
+            b"$GPGGA,235959.00,,,,,0,00,99.99,,,,,,*00\r\n$GPGSA,A,1*00\r\n"
+            b"$GPGGA,000001.00,,,,,0,00,99.99,,,,,,*00\r\n"
+        )
     )
     assert [t for t, _ in nmea_file_chunks(wrap)] == [0.0, 0.0, 2.0]
     untimed = tmp_path / "untimed.nmea"
@@ -482,10 +497,12 @@ def test_plain_log_time_steps_back_across_midnight_and_lines_end_with_cr(tmp_pat
     (not forward a day); CR-only line ends split lines like LF."""
     log = tmp_path / "coldboot.nmea"
     log.write_bytes(
-        b"$GPGGA,000346.00,,,,,0,00,99.99,,,,,,*00\r"
-        b"$GPGGA,235948.00,,,,,0,00,99.99,,,,,,*00\r"
-        b"$GPGGA,235949.00,,,,,0,00,99.99,,,,,,*00\r"
-        b"$GPGGA,000001.00,,,,,0,00,99.99,,,,,,*00"
+        summed(
+            b"$GPGGA,000346.00,,,,,0,00,99.99,,,,,,*00\r"
+            b"$GPGGA,235948.00,,,,,0,00,99.99,,,,,,*00\r"
+            b"$GPGGA,235949.00,,,,,0,00,99.99,,,,,,*00\r"
+            b"$GPGGA,000001.00,,,,,0,00,99.99,,,,,,*00"
+        )
     )
     assert [t for t, _ in nmea_file_chunks(log)] == [0.0, -238.0, -237.0, -225.0]
 

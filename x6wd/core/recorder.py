@@ -64,6 +64,7 @@ import functools
 import json
 import logging
 import math
+import operator
 import os
 import re
 import stat
@@ -1645,11 +1646,20 @@ _HHMMSS = re.compile(rb"^(\d{2})(\d{2})(\d{2}(?:\.\d+)?)$")
 
 
 def _sentence_utc_s(line: bytes) -> float | None:
-    """Seconds of day from a sentence's UTC time field, or None."""
+    """Seconds of day from a sentence's UTC time field, or None (also for a sentence whose
+    checksum fails: line noise in its time field made a replay wait 20 s, an outside audit;
+    one without a checksum is taken as it is)."""
     start = line.find(b"$")
     if start < 0 or len(line) < start + 7:
         return None
-    body = line[start + 1 :].split(b"*", 1)[0]
+    body, star, tail = line[start + 1 :].partition(b"*")
+    if star:
+        try:
+            given = int(tail[:2], 16)
+        except ValueError:
+            return None
+        if len(tail.rstrip()) < 2 or functools.reduce(operator.xor, body, 0) != given:
+            return None
     fields = body.split(b",")
     kind = fields[0][-3:].decode("ascii", "replace")
     idx = _TIME_FIELD.get(kind)
@@ -1670,8 +1680,8 @@ def nmea_file_chunks(
     """(time s, line bytes) of a plain NMEA log, the bytes exactly as in the file, streamed
     (memory does not grow with the file).
 
-    A line's time is the UTC time of the latest sentence carrying one, in seconds after the
-    first such time (earlier lines get 0). Successive times are taken to be within 12 h of
+    A line's time is the UTC time of the latest sentence carrying one (and passing its
+    checksum, when it has one), in seconds after the first such time (earlier lines get 0). Successive times are taken to be within 12 h of
     each other, so the day wraps at midnight both ways: a receiver whose clock restarts from
     a default just before midnight steps back minutes, not on a day. In a file without any
     UTC time, an epoch ends where a sentence type comes again (the parts of a multi-part GSV
