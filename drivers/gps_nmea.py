@@ -954,6 +954,11 @@ _GSV_EL_MAX = float(GSV.field("elevation").hi or 0)
 _GSV_AZ_MAX = float(GSV.field("azimuth").hi or 0)
 _GSV_SNR_MAX = float(GSV.field("snr").hi or 0)
 _GLL_TIME, _gll_time = _at(GLL, "time")
+_GLL_LAT, _gll_lat = _at(GLL, "lat")
+_GLL_LON, _gll_lon = _at(GLL, "lon")
+_GLL_STATUS = GLL.pos("status")
+_GLL_MODE = GLL.pos("mode")
+assert _GLL_STATUS == _GLL_TIME + 1 and _GLL_MODE == _GLL_TIME + 2
 _ZDA_TIME, _zda_time = _at(ZDA, "time")
 assert _gga_time is _rmc_time is _gll_time is _zda_time is parse_time  # see _time_of_day
 _ZDA_DAY, _zda_day = _at(ZDA, "day")
@@ -1397,6 +1402,9 @@ class GpsDecoder:
         self._date_tod_us: int | None = None  # time of day the date belongs to
         self._gga: _Gga | None = None  # held, waiting for its RMC
         self._rmc: _Rmc | None = None  # not yet emitted
+        # a valid GLL of the epoch in progress (t_s, time of day, lat, lon): its fix when the
+        # epoch closes without a GGA or RMC (gpsd reports GLL-only epochs too)
+        self._gll: tuple[float, int, float | None, float | None] | None = None
         self._last_fix_tod: int | None = None
         self._last_fix_had_gga = False
         self._ggas_seen = 0
@@ -1431,7 +1439,8 @@ class GpsDecoder:
             "RMC": (self._rmc_fields, _RMC_DATE + 1, _RMC_DATE + 1),
             # GSA: its fields to VDOP, then the rest (NMEA 4.10's system id, if any).
             "GSA": (self._gsa_fields, _GSA_PDOP + 3, _GSA_PDOP + 3),
-            "GLL": (self._gll_fields, _GLL_TIME + 1, _GLL_TIME + 1),
+            # GLL: to its time at least (a fix from its status and mode, when they are there)
+            "GLL": (self._gll_fields, _GLL_TIME + 1, _GLL_MODE + 1),
             "ZDA": (self._zda_fields, _ZDA_DAY + 3, _ZDA_DAY + 3),
         }
         # Sentence head (text[1:7], "GPGGA,") -> (talker, handler or None, fields it reads,
@@ -1475,6 +1484,7 @@ class GpsDecoder:
         self.framer.reset()
         self._gga = None
         self._rmc = None
+        self._gll = None
         self._gsv_next = 0
         self._gsv_sats = []
 
@@ -1646,6 +1656,14 @@ class GpsDecoder:
         tod = _gll_time(d[_GLL_TIME])
         if tod != self._tod_us:  # (_on_time's test, inlined: GLL repeats its epoch's time)
             self._on_time(tod, out)
+        if (
+            tod is not None
+            and len(d) > _GLL_STATUS
+            and d[_GLL_STATUS] == "A"
+            and (len(d) <= _GLL_MODE or d[_GLL_MODE][:1] != "N")
+        ):
+            lat = _gll_lat(d[_GLL_LAT], d[_GLL_LAT + 1])
+            self._gll = (t_s, tod, lat, _gll_lon(d[_GLL_LON], d[_GLL_LON + 1]))
 
     def _zda_fields(self, talker: str, d: list[str], t_s: float, out: list[GpsOutput]) -> None:
         self._on_zda(d, out)
@@ -1663,12 +1681,18 @@ class GpsDecoder:
     def _close_epoch(self, out: list[GpsOutput]) -> None:
         gga = self._gga
         rmc = self._rmc
+        gll = self._gll
         self._gga = None
         self._rmc = None
+        self._gll = None
         if gga is not None:
             self._emit(gga, rmc if rmc is not None and rmc.tod_us == gga.tod_us else None, out)
         elif rmc is not None and rmc.tod_us != self._last_fix_tod:
             self._emit(None, rmc, out)
+        elif gll is not None and gll[1] != self._last_fix_tod:
+            # an epoch whose only position is a valid GLL: a fix without speed or course
+            t_s, tod, lat, lon = gll
+            self._emit(None, _Rmc(t_s, tod, True, lat, lon, None, None, None), out)
 
     def _on_gga(self, gga: _Gga, out: list[GpsOutput]) -> None:
         self._epochs_without_gga = 0

@@ -406,3 +406,30 @@ def test_a_recording_from_a_pipe_is_read_a_chunk_at_a_time(tmp_path: Path) -> No
     decode.decode_stream(io.BytesIO(data), want)
     decode.decode_stream(_NoSlurp(data), got)
     assert got.getvalue() == want.getvalue() and got.getvalue().count('"TPV"') >= 60
+
+
+@pytest.mark.parametrize("repeat", [1, 40])  # 40: enough sentences for the bulk path
+def test_a_gll_only_log_decodes_to_the_fixes_gpsdecode_reports(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], repeat: int
+) -> None:
+    """Round 21's audit: the LEA-5H's GLL sentences alone decoded to no fix at all (`decode`,
+    `plot` and `calibrate gnss` lost the epochs), while gpsd reports each one (mode 2)."""
+    from tests.conftest import require_program
+
+    gpsdecode = require_program("gpsdecode")
+    glls = [x for x in LEA5H.read_bytes().splitlines(keepends=True) if x.startswith(b"$GPGLL")]
+    log = tmp_path / "gll.log"
+    log.write_bytes(b"".join(glls) * repeat)
+    code, lines, _err = _run(capsys, str(log))
+    assert code == 0
+    ours = [(d["mode"], d["lat"], d["lon"]) for d in map(json.loads, lines) if "lat" in d]
+    done = subprocess.run([gpsdecode], input=log.read_bytes(), capture_output=True, check=True)
+    gpsd = [
+        (d["mode"], d["lat"], d["lon"])
+        for d in map(json.loads, done.stdout.decode().splitlines())
+        if d.get("class") == "TPV" and "lat" in d
+    ]
+    assert len(ours) == len(glls) * repeat  # one fix per GLL (the times repeat: epochs)
+    assert {m for m, _, _ in ours} == {2}
+    # gpsdecode reports every one but the stream's first (before it knows the device)
+    assert ours[1:] == gpsd, (ours[:3], gpsd[:3])

@@ -540,7 +540,11 @@ _GGA_CUT: Final = re.compile(
 _RMC_CUT: Final = re.compile(
     rf"\$..RMC,({_F}),({_F}),({_F},{_F},{_F},{_L}),({_F},{_F},{_L}){_REST}"
 )
-_GLL_CUT: Final = re.compile(rf"\$..GLL,{_F},{_F},{_F},{_F},({_L}){_REST}")
+# GLL: its time, then its status and mode when it has them (a valid GLL alone in its epoch
+# is the epoch's fix: GpsDecoder._gll_fields)
+_GLL_CUT: Final = re.compile(
+    rf"\$..GLL,({_F},{_F},{_F},{_F}),({_L})(?:,({_L}))?(?:,({_L}))?{_REST}"
+)
 _ZDA_CUT: Final = re.compile(rf"\$..ZDA,({_F}),({_F},{_F},{_L}){_REST}")
 _GSV_CUT: Final = re.compile(rf"\$(..)GSV,({_F},{_F},{_L})(?:,([^\n]*))?\*..")
 assert (_GGA_TIME, _GGA_LAT, _GGA_QUAL, _GGA_SEP) == (0, 1, 5, 10)
@@ -913,7 +917,10 @@ def _same_time(phases: list[int], values: list[list[Any]], k: int, full: int) ->
     epoch has then: that of the nearest RMC, GGA or GLL before it in the cycle, which set
     it, with only GSA, GSV or counted-only sentences between."""
     gll = values[k][:full]
-    if str in map(type, gll) or None in gll:
+    if str in map(type, gll):
+        return False
+    gll_tods = list(map(_FIRST, gll))  # (its events: time of day, valid text)
+    if None in gll_tods:
         return False
     for j in range(k - 1, -1, -1):
         code = phases[j]
@@ -924,8 +931,8 @@ def _same_time(phases: list[int], values: list[list[Any]], k: int, full: int) ->
         column = values[j][:full]
         if str in map(type, column):
             return False
-        tods = column if code == _DO_GLL else list(map(_FIRST, column))
-        return None not in tods and tods == gll
+        tods = list(map(_FIRST, column))
+        return None not in tods and tods == gll_tods
     return False
 
 
@@ -1195,7 +1202,7 @@ class ReportDecoder(GpsDecoder):
                             emit(event, None, out)
                             continue
                         if tod != self._tod_us:  # _on_time
-                            if self._gga is not None or self._rmc is not None:
+                            if self._gga is not None or self._rmc is not None or self._gll:
                                 self._close_epoch(out)
                             self._tod_us = tod
                             self._gsa_fresh = False
@@ -1219,7 +1226,7 @@ class ReportDecoder(GpsDecoder):
                             continue
                         if tod != self._tod_us:
                             self._epochs_without_gga += 1
-                            if self._gga is not None or self._rmc is not None:
+                            if self._gga is not None or self._rmc is not None or self._gll:
                                 self._close_epoch(out)  # with its own date
                             self._tod_us = tod
                             self._gsa_fresh = False
@@ -1278,8 +1285,12 @@ class ReportDecoder(GpsDecoder):
                             self._date = day
                             self._date_tod_us = tod
                         self._on_time(tod, out)
-                    elif event is not None and event != self._tod_us:  # _DO_GLL
-                        self._on_time(event, out)
+                    else:  # _DO_GLL
+                        tod, position = event
+                        if tod is not None and tod != self._tod_us:
+                            self._on_time(tod, out)
+                        if position is not None:
+                            self._gll = (t_s, tod, position[0], position[1])
                 except (IndexError, ValueError):  # as the reference's loop
                     c.invalid_fields += 1
                     n_failed += 1
@@ -1415,11 +1426,20 @@ class ReportDecoder(GpsDecoder):
         return list(zip(keys, counts, zip(*sats, strict=True), strict=True))
 
     def _glls(self, texts: list[str], joined: str | None = None) -> list[Any]:
+        """A GLL's event: (its time of day, its position when it is a valid one, else
+        None), as ``GpsDecoder._gll_fields`` reads them."""
         groups = _matches(_GLL_CUT, texts, joined)
         if None in groups:
             return _per_text(self._glls, texts, groups)
-        events = self._tods(groups)
-        return _unparsed(events, texts) if _BAD in events else events
+        positions_text, times, status, modes = zip(*groups, strict=True)
+        tods = self._tods(times)
+        valid = [
+            tod is not None and st == "A" and mode[:1] != "N"
+            for tod, st, mode in zip(tods, status, modes, strict=True)
+        ]
+        found = iter(_read(self._positions, list(compress(positions_text, valid)), _fill_positions))
+        events = [(tod, next(found) if v else None) for tod, v in zip(tods, valid, strict=True)]
+        return _unparsed(events, texts)
 
     def _zdas(self, texts: list[str], joined: str | None = None) -> list[Any]:
         groups = _matches(_ZDA_CUT, texts, joined)
@@ -1555,12 +1575,17 @@ class ReportDecoder(GpsDecoder):
         # GpsDecoder._close_epoch
         gga = self._gga
         rmc = self._rmc
+        gll = self._gll
         self._gga = None
         self._rmc = None
+        self._gll = None
         if gga is not None:
             self._emit(gga, rmc if rmc is not None and rmc[0] == gga[0] else None, out)
         elif rmc is not None and rmc[0] != self._last_fix_tod:
             self._emit(None, rmc, out)
+        elif gll is not None and gll[1] != self._last_fix_tod:
+            _t_s, tod, lat, lon = gll  # a valid GLL alone in its epoch: a fix without motion
+            self._emit(None, (tod, True, _position(lat, lon), ("", None)), out)
 
     def _sats_of(self, talker: str, text: str) -> list[_SatTexts]:  # type: ignore[override]
         """The satellites of a GSV sentence's satellite fields ``text`` from ``talker`` (as
