@@ -19,7 +19,7 @@ import typing
 import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Final, TypeVar
 from urllib.parse import urlsplit
 
 from x6wd.core.errors import ConfigError
@@ -107,6 +107,11 @@ def check_gps_line(cfg: Config, url_baud: int | None = None) -> None:
             "behind the last and arrive late, sentences lost; lower gps.rate_hz to "
             f"{most_hz:g} Hz or less, or {fix}"
         )
+
+
+CMPS10_LAG_S: Final = 0.640 / 3.0
+"""The CMPS10's heading filter as a first-order lag (s): ~640 ms to refresh fully, about 3
+time constants (the simulator's compass uses the same figure)."""
 
 
 @dataclass(frozen=True)
@@ -244,6 +249,10 @@ class NavigationConfig:
     # ... and of each coefficient of a heading-dependent deviation (iron near the compass:
     # once and twice per turn); 0: none is learnt
     compass_deviation_sigma_deg: float = field(default=2.0, metadata=_rng(0, 45))
+    # the compass's heading filter as a first-order lag (s): the EKF reads its heading as
+    # that far behind in a turn. The CMPS10 refreshes fully in ~640 ms (3 time constants);
+    # a compass that smooths more must say so (2 s taken as 0.21 s: the robot circled)
+    compass_lag_s: float = field(default=CMPS10_LAG_S, metadata=_rng(0, 10))
     # the EKF's position error radius (m, 3 sigma per axis) beyond which no waypoint inside it
     # is taken as reached: the robot holds until the fixes improve (0: off; docs/navigation.md)
     arrival_max_error_m: float = field(default=30.0, metadata=_rng(0, 100_000))

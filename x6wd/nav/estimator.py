@@ -112,6 +112,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from x6wd.core.config import CMPS10_LAG_S
 from x6wd.core.errors import X6wdError
 
 E, N, PSI, V, W, BE, BN, KT, BA, CO, TS, D1S, D1C, D2S, D2C = range(15)
@@ -131,9 +132,6 @@ _TWO_PI = 2.0 * math.pi
 _EYE = np.eye(NX)
 _EYE.flags.writeable = False  # copied, never written: np.eye per call cost more than the math
 
-CMPS10_LAG_S = 0.640 / 3.0
-"""The CMPS10 heading filter as a first-order lag: ~640 ms to refresh fully ≈ 3 time
-constants, seconds (the simulator's compass uses the same figure)."""
 
 CHI2_2DOF_999 = -2.0 * math.log(1e-3)
 """Chi-square quantile for 2 degrees of freedom at 99.9 % (13.82): ``−2·ln(1 − p)`` exactly."""

@@ -243,6 +243,7 @@ def estimator_config(
             yaw_rate_dps_per_pct=math.degrees(2.0 * full_mps / nav.steer_track_m) / 100.0,
         ),
         compass=ekf.CompassParams(
+            lag_s=nav.compass_lag_s,
             declination_deg=declination_deg,
             offset_sigma_deg=nav.compass_offset_sigma_deg,
             deviation_sigma_deg=nav.compass_deviation_sigma_deg,
