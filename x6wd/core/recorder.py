@@ -1681,9 +1681,10 @@ def nmea_file_chunks(
     (memory does not grow with the file).
 
     A line's time is the UTC time of the latest sentence carrying one (and passing its
-    checksum, when it has one), in seconds after the first such time (earlier lines get 0). Successive times are taken to be within 12 h of
-    each other, so the day wraps at midnight both ways: a receiver whose clock restarts from
-    a default just before midnight steps back minutes, not on a day. In a file without any
+    checksum, when it has one), in seconds after the first such time (earlier lines get 0).
+    Successive times are taken to be within 12 h of each other, so the day wraps at midnight
+    both ways: a receiver whose clock restarts from a default just before midnight steps back
+    minutes, not on a day. In a file without any
     UTC time, an epoch ends where a sentence type comes again (the parts of a multi-part GSV
     are one; see :func:`_untimed_epochs`) and epochs are ``1/rate_hz`` s apart. Raises
     :class:`DeviceUnavailable` if the file cannot be opened.
