@@ -6,6 +6,7 @@ shipped configuration with the one key changed, a seed that paused before."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -47,3 +48,27 @@ def test_compass_lag_s_out_of_range_stops_start_up_naming_the_key(tmp_path: Path
     done = run_x6wd(write_config(tmp_path, navigation={"compass_lag_s": -1.0}))
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert done.stderr.strip().endswith("navigation.compass_lag_s: must be >= 0, got -1.0")
+
+
+@pytest.mark.integration
+def test_a_pause_for_no_progress_at_a_waypoint_the_fixes_do_not_confirm_says_so(
+    tmp_path: Path,
+) -> None:
+    # The audit's zig-zag with the 2 s lag untold: the estimate sat 0.1-0.4 m from the
+    # waypoint, the fixes 12-25 m off, and the robot pivoted 60 s; the pause read only "no
+    # progress ... (now 0.3 m)", hiding that the GPS vetoed the arrival.
+    zigzag = ROOT / "config" / "scenarios" / "zigzag.toml"
+    scenario = tmp_path / "zz_lag2.toml"
+    scenario.write_text(zigzag.read_text() + '\n[[effects]]\nname = "heading_lag"\ntau_s = 2.0\n')
+    vetoed = 0
+    for seed in ("4", "5"):
+        out = tmp_path / seed
+        argv = ["sim", str(scenario), "--config", str(CONFIG), "--seed", seed, "--quiet"]
+        cli.main([*argv, "--out", str(out)])
+        for _t, why in json.loads((out / "summary.json").read_text())["extra"]["failsafes"]:
+            near = re.search(r"\(now (\d+\.\d) m\)", why)
+            if why.startswith("no progress") and near and float(near[1]) < 5.0:
+                assert "m from it but the latest fix" in why, why
+                assert "the GPS does not confirm the arrival" in why, why
+                vetoed += 1
+    assert vetoed >= 1

@@ -1360,8 +1360,26 @@ class Controller:
         return (
             f"no progress to waypoint {index + 1}: {limit_s:g} s of driving without coming"
             f" {gain_m:.3g} m nearer than {p[2]:.1f} m (now {d_m:.1f} m): swinging or"
-            " circling about it (a compass that lags or reads wrong?)",
+            f" circling about it (a compass that lags or reads wrong?){self._veto_text(now, d_m)}",
             "hold",
+        )
+
+    def _veto_text(self, now: float, estimate_m: float) -> str:
+        """Why the robot circles a waypoint its estimate has reached, when that is why: the
+        latest fix does not confirm the arrival (:meth:`_gps_agrees`), said with both
+        distances ("" otherwise). An outside audit: a pause read "no progress ... (now
+        0.3 m)" while the fix lay 15 m off, the estimate drifted from the fixes."""
+        fix = self._fix
+        if estimate_m > ARRIVAL_GPS_MIN_M or fix is None or not self._fix_ok:
+            return ""
+        if self._gps_agrees(now):
+            return ""
+        assert fix.lat_deg is not None and fix.lon_deg is not None
+        lat, lon = self._navigator.waypoints[self._navigator.index]
+        fix_m = great_circle_m(fix.lat_deg, fix.lon_deg, lat, lon)
+        return (
+            f"; the estimate is {estimate_m:.1f} m from it but the latest fix {fix_m:.1f} m:"
+            " the GPS does not confirm the arrival (the estimate drifted from the fixes)"
         )
 
     # ------------------------------------------------------------------ internals
