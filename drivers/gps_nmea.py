@@ -1387,6 +1387,10 @@ class GpsDecoder:
     are counted and kept for ``take_ubx()``. Never raises on stream content.
     """
 
+    gll_fixes: bool = True
+    """An epoch whose only position is a valid GLL makes a fix, as in gpsd (a subclass that
+    reads GLL-only logs its own way turns it off)."""
+
     def __init__(
         self,
         *,
@@ -1689,7 +1693,7 @@ class GpsDecoder:
             self._emit(gga, rmc if rmc is not None and rmc.tod_us == gga.tod_us else None, out)
         elif rmc is not None and rmc.tod_us != self._last_fix_tod:
             self._emit(None, rmc, out)
-        elif gll is not None and gll[1] != self._last_fix_tod:
+        elif gll is not None and gll[1] != self._last_fix_tod and self.gll_fixes:
             # an epoch whose only position is a valid GLL: a fix without speed or course
             t_s, tod, lat, lon = gll
             self._emit(None, _Rmc(t_s, tod, True, lat, lon, None, None, None), out)

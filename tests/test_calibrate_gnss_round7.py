@@ -259,3 +259,19 @@ def test_the_audits_survey_and_zigzag_drives_write_the_moving_white_part(tmp_pat
     standing = re.search(r"the static white part \(RE ([0-9.]+)", r.stdout)
     assert standing and float(standing[1]) < 0.2, r.stdout
     assert 0.4 < got.re_m < 1.5, r.stdout  # the audit's 5 drives: 0.73; shipped 1.0
+
+
+def test_gpsd_json_is_named_as_such(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # round 21's audit: "no NMEA fix with a date and time (an x6wd recording starts with
+    # '{'; ...)" of a file that did start with '{': x6wd decode's own output
+    from x6wd.app import cli
+
+    lea5h = Path(__file__).parent / "data" / "nmea" / "ublox-lea-5h.log"
+    assert cli.main(["decode", str(lea5h)]) == 0
+    reports = tmp_path / "lea5h.json"
+    reports.write_text(capsys.readouterr().out)
+    argv = ["calibrate", "gnss", "--static", str(reports), "--ref-lat", "51.9", "--ref-lon", "4.6"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "lea5h.json: gpsd JSON (TPV/SKY reports" in err
+    assert "which x6wd calibrate gnss does not read" in err, err

@@ -162,3 +162,19 @@ def test_swapped_sides_are_named(documented_runs: tuple[Track, Track]) -> None:
     assert "(-0.37" in msg and "swap the two encoders' connections" in msg
     cal = _calibrate(*documented_runs)  # the same runs wired right
     assert_true_within(cal)
+
+
+def test_a_compressed_run_is_named_as_compressed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # round 21's audit: a .jsonl.gz was "no odometry: fewer than 2 odometry records"
+    import gzip
+
+    straight = write(tmp_path / "s.jsonl", *simulate(STRAIGHT, 1))
+    packed = tmp_path / "s.jsonl.gz"
+    packed.write_bytes(gzip.compress(straight.read_bytes()))
+    circle = write(tmp_path / "c.jsonl", *simulate(CIRCLE, 2))
+    argv = ["calibrate", "odometry", "--straight", str(packed), "--circle", str(circle)]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "s.jsonl.gz: compressed (gzip): decompress it first" in err, err

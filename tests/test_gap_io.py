@@ -722,3 +722,18 @@ def test_csv_heights_say_their_column_and_height_system(tmp_path: Path) -> None:
     none = tmp_path / "none.csv"
     none.write_text("time,lat,lon\n" + "".join(f"{r}\n" for r in rows))
     assert "no height column (one of alt, alt_m, msl," in read_track(none).notes[0]
+
+
+def test_a_sim_log_with_too_few_fixes_is_named_by_its_path(tmp_path: Path) -> None:
+    # round 21's audit: "baseline log 2 of 2 has too few fixes", no file named
+    argv = [sys.executable, "-m", "x6wd", "gap", "--real", str(NMEA / "ublox-zed-f9p_hpg1.11.log")]
+    argv += ["--sim", str(NMEA / "nmea-fuzzy-cases.log"), "--out", str(tmp_path / "r")]
+    done = subprocess.run(
+        [*argv, "--no-figures", "--quiet"], capture_output=True, text=True, cwd=ROOT, timeout=600
+    )
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert (
+        f"--sim log {NMEA / 'nmea-fuzzy-cases.log'} has too few fixes for a gap diagnosis:"
+        " 10 of 94 epochs"
+    ) in done.stderr
+    assert "Traceback" not in done.stderr

@@ -8,6 +8,7 @@ M = 8, and the family-wise step raised every limit to 32.5 (steady_jumps sat at 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -95,4 +96,10 @@ def test_the_report_names_the_outlying_run_and_statistic() -> None:
     assert note.startswith("baseline run 4 of 8 is an outlier in random_walk_lr horizontal: z +")
     assert "that statistic's limit alone covers it" in note
     assert math.isfinite(model.threshold) and model.threshold < 10.0
-
+    # round 21: from fewer logs than the null needs the runs are replicates drawn from a
+    # model ("run 4 of 8" read as one of 8 logs, when the user gave 3)
+    drawn = dataclasses.replace(model, inflation=np.ones(len(model.cells)))
+    (note,) = outlier_notes(drawn)
+    assert note.startswith(
+        "baseline replicate 4 of 8 (drawn from the noise model of the --sim logs) is an outlier"
+    )

@@ -87,7 +87,7 @@ from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.files import require_regular
 from x6wd.core.geodesy import great_circle_m, wrap_deg
 from x6wd.core.motion import MAX_STATIC_SPEED_MPS, MOVE_SIGNIFICANCE, steady_speed_mps
-from x6wd.core.recorder import is_recording
+from x6wd.core.recorder import gpsd_json_error, is_gpsd_json, is_recording
 from x6wd.core.records import GpsFix
 from x6wd.nav.geo import LocalTangentPlane
 
@@ -255,6 +255,8 @@ def _load_nmea(p: Path) -> FixSeries:
     except OSError as exc:
         raise ParseError(f"cannot read {p}: {exc.strerror or exc}") from exc
     if not timed:
+        if is_gpsd_json(p):  # it starts with '{' too: not a recording all the same
+            raise ParseError(gpsd_json_error(p, "x6wd calibrate gnss"))
         raise ParseError(
             f"{p}: no NMEA fix with a date and time (an x6wd recording starts with '{{'; "
             "a plain log needs RMC or ZDA sentences for its dates)"

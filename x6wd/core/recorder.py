@@ -1445,7 +1445,28 @@ def read_recording_parts(
         )
         raise DeviceUnavailable(f"cannot open recording {path}: {what}")
     for part in parts:
+        _refuse_compressed(part)
         yield from read_recording(part, stats=stats, strict=strict)
+
+
+def _refuse_compressed(path: str | os.PathLike[str]) -> None:
+    """:class:`ParseError` for a compressed regular file (read as a recording it held no
+    record: ``calibrate odometry`` said "fewer than 2 odometry records" of a .jsonl.gz)."""
+    if not_regular(path) is not None:
+        return
+    try:
+        with open(path, "rb") as f:
+            kind = compression_of(f.read(8))
+    except OSError:
+        return  # the reader says what is wrong with it
+    if kind is not None:
+        raise compressed_error(path, kind)
+
+
+def compressed_error(path: str | os.PathLike[str], kind: str) -> ParseError:
+    """The error for a recording or log compressed with ``kind`` (gzip, bzip2 ...)."""
+    hint = " (x6wd decode reads gzip)" if kind == "gzip" else ""
+    return ParseError(f"{path}: compressed ({kind}): decompress it first{hint}")
 
 
 HEAD_LINES = 8
@@ -1541,11 +1562,34 @@ def is_recording(path: str | os.PathLike[str]) -> bool:
         raise DeviceUnavailable(f"cannot open {path}: {exc}") from exc
     compressed = compression_of(head)
     if compressed is not None:
-        raise ParseError(
-            f"{path}: compressed ({compressed}): decompress it first"
-            + (" (x6wd decode reads gzip)" if compressed == "gzip" else "")
-        )
+        raise compressed_error(path, compressed)
     return looks_like_recording(head)
+
+
+_GPSD_CLASSES = frozenset({"VERSION", "DEVICES", "DEVICE", "WATCH", "TPV", "SKY", "GST", "ATT"})
+
+
+def is_gpsd_json(path: str | os.PathLike[str], max_lines: int = 20) -> bool:
+    """Whether one of the first ``max_lines`` lines is a gpsd report (a JSON object with a
+    gpsd ``class``): asked of a file read as no recording and no log, to say what it is."""
+    with open(path, "rb") as f:
+        for _, raw in zip(range(max_lines), f, strict=False):
+            try:
+                obj = json.loads(raw)
+            except ValueError:
+                continue
+            if isinstance(obj, dict) and obj.get("class") in _GPSD_CLASSES:
+                return True
+    return False
+
+
+def gpsd_json_error(path: str | os.PathLike[str], tool: str) -> str:
+    """What to say of gpsd JSON given to ``tool`` ("the gap tool"), which reads NMEA."""
+    return (
+        f"{path}: gpsd JSON (TPV/SKY reports, as gpspipe -w or x6wd decode write them),"
+        f" which {tool} does not read: give it the receiver's NMEA, recorded with"
+        " gpspipe -r > log.nmea (or the NMEA log the JSON was decoded from)"
+    )
 
 
 def _check_speed(speed: float) -> float:

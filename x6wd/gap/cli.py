@@ -24,7 +24,7 @@ from x6wd.core.files import not_regular
 from x6wd.core.geodesy import great_circle_m
 from x6wd.core.outdir import output_dir, output_file
 from x6wd.gap.compass import CompassDiagnosis, compass_verdict_text
-from x6wd.gap.diagnose import Diagnosis, Options, check_real, diagnose
+from x6wd.gap.diagnose import Diagnosis, Options, check_real, diagnose, enough_fixes
 from x6wd.gap.io import (
     MAX_ERROR_FROM_TRUTH_M,
     STATIC_MAX_SPREAD_M,
@@ -988,6 +988,8 @@ def main(args: argparse.Namespace) -> int:
             to_errors(sim, args, truth, "sim", own_truth=truth is not truth_track)
             for sim, truth in zip(sims, sim_truths, strict=True)
         ]
+        for path, series in zip(args.sim, baseline, strict=True):
+            enough_fixes(series, f"--sim log {path}")  # named (the check's "log 2 of 2" is not)
         if truth_track is not None:
             check_own_truths((real_track, real), sims, baseline, sim_truths, truth_track, args.sim)
             check_sim_routes(real, baseline, sim_truths, truth_track, args.sim, unread)

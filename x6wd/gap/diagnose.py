@@ -441,7 +441,7 @@ class GpsPipeline(Pipeline[PositionSeries, Layout, Diagnosis]):
                     " hours or milliseconds?); simulate at the real log's rate"
                 )
         for i, series in enumerate(baseline, start=1):
-            _enough_fixes(series, f"baseline log {i} of {len(baseline)}")
+            enough_fixes(series, f"baseline log {i} of {len(baseline)}")
 
     def same_observables(
         self, real: PositionSeries, baseline: Sequence[PositionSeries]
@@ -802,10 +802,12 @@ def check_real(real: PositionSeries) -> None:
             f"real log too short for a gap diagnosis: {len(real)}"
             f" epoch{'' if len(real) == 1 else 's'} (need >= {MIN_FIXES})"
         )
-    _enough_fixes(real, "real log")
+    enough_fixes(real, "real log")
 
 
-def _enough_fixes(series: PositionSeries, which: str) -> None:
+def enough_fixes(series: PositionSeries, which: str) -> None:
+    """ConfigError naming ``which`` (the real log, a --sim log by its path) when ``series``
+    has too few fixes for a diagnosis."""
     # fixes, not epochs: a log of no-fix epochs (or of a few fixes among filled-in gaps)
     # has nothing to read its time structure from
     fixes = int(np.count_nonzero(series.valid))

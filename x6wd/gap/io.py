@@ -49,7 +49,7 @@ from x6wd.core.errors import ConfigError, DeviceUnavailable, ParseError
 from x6wd.core.files import not_regular, not_text
 from x6wd.core.geodesy import EARTH_MEAN_RADIUS_M
 from x6wd.core.motion import MAX_STATIC_SPEED_MPS, MOVE_SIGNIFICANCE, steady_speed_mps
-from x6wd.core.recorder import compression_of
+from x6wd.core.recorder import compression_of, gpsd_json_error, is_gpsd_json
 
 MAX_LINE_BYTES = 1 << 16
 """Longest line of a text log (CSV, .pos) read (bytes); longer is not such a log."""
@@ -801,7 +801,7 @@ _TYPES_SHOWN = 6
 
 
 def _sentence_types(feed: Any) -> str:
-    """" (GSA 600, GSV 600)": the most frequent sentence types in ``feed()`` (the talker
+    """ " (GSA 600, GSV 600)": the most frequent sentence types in ``feed()`` (the talker
     dropped: GPGSV and GNGSV are both GSV; proprietary addresses whole), for the error that
     names what a log without positions holds (a receiver set to satellites only)."""
     tally: dict[str, int] = {}
@@ -825,6 +825,9 @@ def _chained_decoder() -> Any:
     from drivers.gps_nmea import GpsDecoder
 
     class ChainedDecoder(GpsDecoder):
+        # a GLL- or GNS-only log is read by _gll_gns_track, which dates each position from
+        # the epoch before it (its notes say how): the decoder's GLL fixes would bypass it
+        gll_fixes = False
         # the UTCs the decoder gave leap seconds (23:59:60 as 23:59:59.999999: datetime cannot
         # hold it), to be left out: 1 us before the next epoch, no time axis can hold both
         leap_utc: set[datetime]
@@ -1418,32 +1421,9 @@ def _read_recording(path: Path) -> Track:
                     yield rec.t_mono, str(text or "").encode("ascii", "replace") + b"\r\n"
 
         return _nmea_track(feed, str(path), receive_clock=True)
-    if _is_gpsd_json(path):
-        raise ParseError(
-            f"{path}: gpsd JSON (TPV/SKY reports, as gpspipe -w or x6wd decode write them),"
-            " which the gap tool does not read: give it the receiver's NMEA, recorded with"
-            " gpspipe -r > log.nmea (or the NMEA log the JSON was decoded from)"
-        )
+    if is_gpsd_json(path):
+        raise ParseError(gpsd_json_error(path, "the gap tool"))
     raise ParseError(f"{path}: recording has no fix or nmea records")
-
-
-_GPSD_CLASSES = frozenset({"VERSION", "DEVICES", "DEVICE", "WATCH", "TPV", "SKY", "GST", "ATT"})
-
-
-def _is_gpsd_json(path: Path, max_lines: int = 20) -> bool:
-    """Whether one of the first ``max_lines`` lines is a gpsd report (a JSON object with a
-    gpsd ``class``): asked only of a file read as no recording, to say what it is."""
-    import json
-
-    with open(path, "rb") as f:
-        for _, raw in zip(range(max_lines), f, strict=False):
-            try:
-                obj = json.loads(raw)
-            except ValueError:
-                continue
-            if isinstance(obj, dict) and obj.get("class") in _GPSD_CLASSES:
-                return True
-    return False
 
 
 _CSV_NAMES = {

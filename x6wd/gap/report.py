@@ -417,7 +417,9 @@ def markdown(
             else ")"
         ),
         f"- {split_text(diagnosis.split_s)}",
-        f"- gap G (mean clipped z^2 on the held-out part): baseline "
+        f"- gap G (mean of clipped z^2 plus the spread term 2 log(s/s0), docs/gap.md step 5, on"
+        " the held-out part; below 0 where the effects' spread is narrower than the"
+        " baseline's): baseline "
         f"{diagnosis.g_baseline:.2f}, floor {diagnosis.g_floor:.2f} (sim vs sim), with the "
         f"selected effects {diagnosis.g_with:.2f}; closure "
         + (
@@ -544,10 +546,14 @@ def outlier_notes(null: NullModel) -> list[str]:
     """The report's note on each baseline replicate that is an outlier of one statistic
     (:func:`x6wd.gap.null.single_run_outliers`): which replicate, which statistic, its z."""
     out = []
+    # with fewer logs than the null needs, its runs are replicates drawn from a model fitted
+    # to them (null.inflation): "run 1 of 20" read as one of 20 logs the user never gave
+    what = "baseline run" if null.inflation is None else "baseline replicate"
+    made = "" if null.inflation is None else " (drawn from the noise model of the --sim logs)"
     for run, c, z_loo in null.outliers:
         where = ", ".join(x for x in (c.scale, c.period, c.place) if x != "all")
         out.append(
-            f"baseline run {run + 1} of {null.n_runs} is an outlier in {c.statistic} {c.axis}"
+            f"{what} {run + 1} of {null.n_runs}{made} is an outlier in {c.statistic} {c.axis}"
             f"{f' ({where})' if where else ''}: z {z_loo:+.1f} against the other runs "
             "(leave-one-out); that statistic's limit alone covers it, every other limit is set "
             "without it (more seeds tell a heavy tail from a one-off)"
