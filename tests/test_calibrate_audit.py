@@ -427,6 +427,6 @@ def test_map_options_without_a_drive_are_refused_naming_them(
     assert not out and "--cell-m, --origin, --map-csv shape or write the LCE map" in err
     assert not (tmp_path / "m.csv").exists()
     assert cli.main([*static, "--plot", str(tmp_path / "p.png")]) == 2
-    assert "--plot shape or write the LCE map" in capsys.readouterr().err
+    assert "--plot shapes or writes the LCE map" in capsys.readouterr().err
     assert cli.main(static) == 0  # the defaults alone are not options given
     capsys.readouterr()

@@ -292,3 +292,14 @@ def test_replay_of_many_forward_jumps_says_the_first_and_counts_all(tmp_path: Pa
     said = [x for x in err.getvalue().splitlines() if "forward" in x]
     assert len(said) == MAX_BACKS_SAID + 1 and "jumps 120 s forward at line 2, t=120.000" in said[0]
     assert said[-1].endswith("jumps forward 29 times in all (19 more than said)")
+
+
+def test_replay_of_standard_input_says_it_reads_files(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # round 21's audit: "cannot open -: [Errno 2] No such file or directory: '-'"
+    from x6wd.app.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["replay", "-"]) == 2
+    assert "x6wd replay reads a file, not standard input ('-')" in capsys.readouterr().err

@@ -41,7 +41,7 @@ from x6wd.app.logview import (
     missing_parts_note,
     newest_recording,
 )
-from x6wd.core.errors import ParseError
+from x6wd.core.errors import ConfigError, ParseError
 from x6wd.core.recorder import (
     GAP_REPLAY_S,
     InputSize,
@@ -280,6 +280,11 @@ def replay_file(
 
 def main(args: argparse.Namespace) -> int:
     """Entry point of ``x6wd replay``; 0 on success (errors raise X6wdError -> exit 2)."""
+    if args.file == "-" and not Path("-").exists():
+        raise ConfigError(
+            "x6wd replay reads a file, not standard input ('-'): it paces the log by its own"
+            " times, so save it to a file first (x6wd decode reads '-')"
+        )
     try:
         replay_file(args.file, speed=args.speed, rate_hz=args.rate, as_json=args.json, sky=args.sky)
     except BrokenPipeError:  # `x6wd replay f | head`

@@ -234,8 +234,9 @@ def main_gnss(args: argparse.Namespace) -> int:
     if not args.drive:
         unused = [f"--{k.replace('_', '-')}" for k in _DRIVE_ONLY if getattr(args, k) is not None]
         if unused:
+            verb = "shapes or writes" if len(unused) == 1 else "shape or write"
             raise ConfigError(
-                f"calibrate gnss: {', '.join(unused)} shape or write the LCE map, which only "
+                f"calibrate gnss: {', '.join(unused)} {verb} the LCE map, which only "
                 "--drive makes: give --drive with --reference, or leave them out"
             )
     for key, value in _DRIVE_ONLY.items():
