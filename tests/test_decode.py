@@ -433,3 +433,23 @@ def test_a_gll_only_log_decodes_to_the_fixes_gpsdecode_reports(
     assert {m for m, _, _ in ours} == {2}
     # gpsdecode reports every one but the stream's first (before it knows the device)
     assert ours[1:] == gpsd, (ours[:3], gpsd[:3])
+
+
+def test_a_last_sentence_without_its_line_end_is_counted_as_skipped(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Round 21's audit: the LEA-5H log without its last LF decoded 163 of 164 sentences and
+    said nothing (gpsd drops that sentence too); now its bytes are counted as skipped."""
+    whole = LEA5H.read_bytes()
+    assert whole.endswith(b"\n") and not whole.endswith(b"\r\n")
+    cut = tmp_path / "cut.log"
+    cut.write_bytes(whole[:-1])
+    last = whole[:-1].rsplit(b"\n", 1)[1]
+    _code, _lines, said_whole = _run(capsys, str(LEA5H))
+    _code, _lines, said_cut = _run(capsys, str(cut))
+
+    def skipped(err: str) -> int:
+        return int(err.rsplit("skipped_bytes=", 1)[1].split()[0])
+
+    assert "sentences=163 " in said_cut and "sentences=164 " in said_whole
+    assert skipped(said_cut) == skipped(said_whole) + len(last)
