@@ -857,7 +857,7 @@ class SerialMotorLink:
                     log.warning(
                         "motor board rejected %r: %s (%d of its kind so far)", body, payload, n
                     )
-                tracker.error(f"{body.split()[0]}: board refused: {payload}", self._clock())
+                tracker.error(f"{kind}: board refused: {payload}", self._clock())
                 break  # the board understood and refused: repeating will not help
             self._failures += 1
             if broken:

@@ -919,7 +919,7 @@ def _same_time(phases: list[int], values: list[list[Any]], k: int, full: int) ->
     gll = values[k][:full]
     if str in map(type, gll):
         return False
-    gll_tods = list(map(_FIRST, gll))  # (its events: time of day, valid text)
+    gll_tods = list(map(_FIRST, gll))  # (its events: time of day, position or None)
     if None in gll_tods:
         return False
     for j in range(k - 1, -1, -1):
@@ -1583,7 +1583,7 @@ class ReportDecoder(GpsDecoder):
             self._emit(gga, rmc if rmc is not None and rmc[0] == gga[0] else None, out)
         elif rmc is not None and rmc[0] != self._last_fix_tod:
             self._emit(None, rmc, out)
-        elif gll is not None and gll[1] != self._last_fix_tod:
+        elif gll is not None and gll[1] != self._last_fix_tod and self.gll_fixes:
             _t_s, tod, lat, lon = gll  # a valid GLL alone in its epoch: a fix without motion
             self._emit(None, (tod, True, _position(lat, lon), ("", None)), out)
 
