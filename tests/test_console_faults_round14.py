@@ -170,7 +170,9 @@ def test_the_devices_detail_is_the_state_s_reason_and_an_old_error_is_marked_as_
             10,
             "the I2C error as the compass's reason",
         )
-        wait_for(lambda: device_rows(browser)["compass"]["state"] != "connected", 5, "shown degraded")
+        wait_for(
+            lambda: device_rows(browser)["compass"]["state"] != "connected", 5, "shown degraded"
+        )
         storm.until_s = -math.inf
         comp = wait_for(
             lambda: (s := c.request("status")["devices"]["compass"])["state"] == "connected" and s,

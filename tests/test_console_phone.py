@@ -131,7 +131,7 @@ def test_stop_stays_in_view_and_tappable_whatever_the_pills_say(
         js(phone, "window.scrollTo(0, arguments[0])", scroll)
         s = js(phone, STOP_WITH_LONG_PILLS, LONG_PILLS)
         assert s["scale"] == 1 and s["doc_w"] <= width, s  # nothing wider than the screen
-        assert 0 <= s["left"] and s["right"] <= width and 0 <= s["top"] and s["bottom"] <= height, s
+        assert s["left"] >= 0 and s["right"] <= width and s["top"] >= 0 and s["bottom"] <= height, s
         assert s["width"] >= 44 and s["hit"] == "btn-stop", s  # its own size, nothing over it
     if size == PHONE:
         shot(phone, tmp_path, "phone-long-pills.png")
@@ -196,7 +196,7 @@ def test_each_control_is_what_a_tap_on_it_hits_and_the_map_has_room(
     for element_id in ("map-tools", "map-help"):
         r = rect(phone, element_id)
         assert pane["top"] <= r["top"] and r["bottom"] <= pane["bottom"] <= aside["top"], (element_id, r)
-        assert 0 <= r["left"] and r["right"] <= PHONE[0], (element_id, r)
+        assert r["left"] >= 0 and r["right"] <= PHONE[0], (element_id, r)
     # a real tap on Start: Start's click, not "Add waypoints" under the finger
     js(phone, "document.getElementById('btn-start').scrollIntoView({block: 'center'})")
     x, y = centre(phone, "btn-start")
@@ -224,8 +224,8 @@ def test_a_reply_is_shown_whole_on_a_phone(
                 hit: (document.elementFromPoint(r.left + 2, r.top + r.height / 2) || {}).id};""")  # fmt: skip
     # in view (under the sticky bar, wherever the page is scrolled), as wide as the screen
     # allows, and nothing of it cut off or scrolled away
-    assert m["width"] >= 200 and 0 <= m["left"] and m["right"] <= PHONE[0], m
-    assert 0 <= m["top"] and m["bottom"] <= PHONE[1], m
+    assert m["width"] >= 200 and m["left"] >= 0 and m["right"] <= PHONE[0], m
+    assert m["top"] >= 0 and m["bottom"] <= PHONE[1], m
     assert m["sw"] <= m["cw"] and m["sh"] <= m["ch"] + 1 and m["hit"] == "msg", m
     shot(phone, tmp_path, "phone-reply.png")
 
@@ -418,4 +418,4 @@ def test_a_long_message_keeps_the_top_bar_small_and_stop_in_view(
         got = js(phone, LONG_MESSAGE + STOP_WITH_LONG_PILLS, LONG_PILLS)
         header_h = js(phone, "return document.querySelector('header').offsetHeight")
         assert header_h <= 0.4 * size[1], header_h  # the map keeps most of the screen
-        assert 0 <= got["top"] and got["bottom"] <= size[1] and got["hit"] == "btn-stop", got
+        assert got["top"] >= 0 and got["bottom"] <= size[1] and got["hit"] == "btn-stop", got

@@ -5,7 +5,8 @@ with HDOP 99.99 while the robot was 66-68 m from its start; the loop checked eve
 against the 1000 m fence and paused the mission ("geofence breach"). Now a fix is a breach
 by itself only when its HDOP is under 20 (``MEANINGLESS_HDOP``: from it on no fix) and the
 EKF took it; the estimate after it, and ``FENCE_FIXES_IN_ROW`` usable fixes in a row
-outside, are breaches whatever the EKF says. A robot that really drives out is still stopped at once.
+outside, are breaches whatever the EKF says. A robot that really drives out is still stopped
+at once.
 
 The first tests drive a runner with the robot's own controller (EKF) on a simulated clock: a
 scripted robot rolls north at 1 m/s (wheels, compass and fixes agree), whatever the motors

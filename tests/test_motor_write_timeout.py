@@ -219,7 +219,7 @@ def test_a_dropped_tcp_motor_port_does_not_deliver_its_queued_drives() -> None:
                                reopen=lambda: serial.serial_for_url(url, timeout=0.02))  # fmt: skip
         sent = 0
         with pytest.raises(serial.SerialTimeoutException):
-            for sent in range(1, 10_000_000):  # the board stopped reading: the queue fills
+            for sent in range(1, 10_000_000):  # noqa: B007 (read below) the queue fills
                 port.write(b"D 40 40\n")
         link._drop_port()
         got = 0

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import os
 import select
@@ -108,7 +109,7 @@ def test_a_reading_read_late_is_stamped_when_the_board_latched_it() -> None:
         # and no earlier than this reading's own request (not a stale, earlier time)
         assert t_call <= rec.t_s, (rec.seq, rec.t_s, t_call)
         assert latched - rec.t_s < stall_s / 2, (rec.seq, rec.t_s, latched)
-    spans = [b.t_s - a.t_s for a, b in zip(recs, recs[1:], strict=False)]
+    spans = [b.t_s - a.t_s for a, b in itertools.pairwise(recs)]
     assert all(s > 0 for s in spans), spans
 
 
@@ -151,7 +152,7 @@ def test_the_worker_does_not_poll_back_to_back_after_a_slow_reply() -> None:
         finally:
             w.shutdown("end")
     reads = list(link.reads)
-    gaps = [b[0] - a[1] for a, b in zip(reads, reads[1:], strict=False)]
+    gaps = [b[0] - a[1] for a, b in itertools.pairwise(reads)]
     # the old schedule sent the poll after the held-up one at once (a gap of ~0 ms)
     assert min(gaps) >= 0.5 * period_s - 1e-3, [round(g * 1000, 1) for g in gaps]
     assert len(got) >= TimedLink.stall_at + 6

@@ -19,7 +19,7 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_ruff_is_clean() -> None:
-    res = _run("ruff", "check", *PACKAGES, "bench")
+    res = _run("ruff", "check", *PACKAGES, "bench", "tests", "tools")
     assert res.returncode == 0, res.stdout + res.stderr
 
 

@@ -37,8 +37,8 @@ def _fixes(n_s: int, start_s: int = 0) -> str:
 @pytest.mark.parametrize("content", ["fixes", "empty", "garbage"])
 def test_a_replay_at_its_end_is_named_not_the_wiring(
     tmp_path: Path,
-    run_daemon,
-    content: str,  # noqa: F811
+    run_daemon,  # noqa: F811 (the fixture)
+    content: str,
 ) -> None:
     log = tmp_path / "short.nmea"
     garbage = "".join(f"$GPGGA,{'x' * 40}{i}*00\r\n" for i in range(4))  # every line bad

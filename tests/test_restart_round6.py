@@ -641,7 +641,6 @@ def test_a_full_disk_with_an_acl_granting_this_user_stays_a_runtime_fault(tmp_pa
     (ENOSPC comes after the kernel's permission check, which passed) that is a disk fault,
     not "this user may not write" and exit 2 (a review)."""
     import shutil
-    import struct
     import tempfile
 
     top = Path(tempfile.mkdtemp(prefix="x6wd-acl-", dir="/tmp"))  # nobody may pass /tmp
@@ -663,16 +662,15 @@ def _acl_case(top: Path) -> None:
                    (0x10, 7, 0xFFFFFFFF), (0x20, 0, 0xFFFFFFFF)]  # fmt: skip
         blob = struct.pack("<I", 2) + b"".join(struct.pack("<HHI", *e) for e in entries)
         os.setxattr(d, "system.posix_acl_access", blob)
-        with contextlib.suppress(OSError):  # fill the disk
-            with open(disk / "ballast", "wb") as f:
-                while True:
-                    f.write(b"\0" * 4096)
-                    f.flush()
+        with contextlib.suppress(OSError), open(disk / "ballast", "wb") as f:  # fill the disk
+            while True:
+                f.write(b"\0" * 4096)
+                f.flush()
         out = subprocess.run(
             [sys.executable, "-c", ACL_CHECK, str(d)], capture_output=True, text=True,
             cwd=ROOT, timeout=60,
         )  # fmt: skip
         assert out.returncode == 0, out.stderr
-        config_error, runtime = eval(out.stdout)  # noqa: S307 (our own repr of two strings)
+        config_error, runtime = eval(out.stdout)
         assert config_error == "", config_error
         assert "No space left" in runtime or "ENOSPC" in runtime, runtime
