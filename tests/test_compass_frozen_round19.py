@@ -7,6 +7,7 @@ encoders are left to the checks before."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import pytest
@@ -88,3 +89,59 @@ def test_only_one_unbroken_turn_between_two_same_readings_counts() -> None:
     assert same.confirmed_rad == 0.5 and same.n == 2
     same.wheels(1.0)  # not yet confirmed by a reading after it
     assert same.confirmed_rad == 0.5
+
+
+# -- round 22: frozen on a straight leg ------------------------------------------------------
+# An outside audit (round 22): the compass froze on a straight 400 m leg; steering by the
+# frozen heading the robot followed its own drift in a slow arc (commands within 2 % of
+# straight, either way), so no told turn added up, and the off-course watch paused it 50-70 s
+# later, 14-48 m off the route. A reading the same while the robot drives and its wheels'
+# counts turn 90° either way, told or not, is frozen too.
+def straight(reading, moving: bool = True, steps: int = 400, turn_dps: float = 15.0):
+    """A leg due north, the robot rolling at 1.5 m/s (fixes at 1 Hz with the receiver's speed;
+    ``moving`` False: at rest, the wheels slipping) while its counts read a slow left turn of
+    ``turn_dps`` (°/s counted) the commands never asked for. ``reading(k, t)``: the compass's
+    Attitude at step k (20 Hz). The controller and the time (s) it stopped driving."""
+    c = Controller(NAV, SAFETY, failsafe=FS)
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(0.0, 500.0)], 0.0)
+    c.start(0.0)
+    track_m = 0.245  # [odometry] track_m's default
+    t = 0.0
+    for k in range(1, steps):
+        t = 0.05 * k
+        fwd_m = 1.5 * t
+        diff_m = math.radians(turn_dps) * t * track_m  # right minus left travel
+        left = round((fwd_m - diff_m / 2) * COUNTS_PER_M)
+        right = round((fwd_m + diff_m / 2) * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, left, right, k))
+        c.on_attitude(reading(k, t))
+        if k % 20 == 0:
+            north_m = fwd_m if moving else 0.0
+            c.on_fix(replace(fix(t, 0.0, north_m), speed_mps=1.5 if moving else 0.0))
+        if c.mode != Mode.RUNNING:
+            break
+    return c, t
+
+
+def test_a_compass_frozen_on_a_straight_leg_pauses_once_the_counts_turn_a_quarter() -> None:
+    c, t = straight(lambda k, t: Attitude(t, 0.0, 1.0, -2.0))
+    assert c.mode == Mode.PAUSED and c.command.is_stop
+    why = c.telemetry.extra["failsafe"]
+    assert why.startswith("compass frozen: the same reading (bearing 0.0°"), why
+    assert "the robot drove" in why, why
+    assert t <= 8.0, t  # 90° at 15°/s counted: 6 s (the off-course watch: 50-70 s)
+
+
+@pytest.mark.parametrize(
+    ("reading", "moving"),
+    [
+        (lambda k, t: att(t, 0.1 * (k % 2)), True),  # a live compass's noise
+        (lambda k, t: Attitude(t, 0.0, 1.0, -2.0), False),  # at rest, the wheels slipping
+    ],
+    ids=["live-compass", "at-rest"],
+)
+def test_a_live_compass_or_a_robot_at_rest_is_not_frozen(reading, moving: bool) -> None:
+    c, _t = straight(reading, moving=moving, steps=240)
+    assert "frozen" not in c.telemetry.extra.get("failsafe", ""), c.telemetry.extra

@@ -190,6 +190,14 @@ check's 10 s of turning (an outside audit: 10 s spinning in place, status "conne
 the only catch before. Without encoders the stuck check still is."""
 FROZEN_MIN_S = 1.0
 """Least time (s) the same reading must last before it can be called frozen."""
+FROZEN_DRIVE_MIN_S = 3.0
+FROZEN_DRIVE_MIN_M = 5.0
+"""A reading the same for this long (s) while the robot drove this far (m, the receiver's
+speed) and the wheels' counts turned :data:`FROZEN_WHEEL_TURN_DEG` either way, told or not,
+is frozen too. On a straight leg the robot, steering by the frozen heading, follows its own
+drift in a slow arc that no command asks for (an outside audit, round 22: 50-70 s and
+14-48 m off the route before the off-course watch). Driving rules out a stuck robot's slip
+and a robot at rest, whose compass may repeat itself."""
 PIVOT_CAUSES = "a compass fault, or the wheels spin in place"
 """What a pivot the compass does not follow can be (the stuck reasons say both): the wheels'
 counts turn in mud as they do on grass, and only the compass tells the two apart."""
@@ -266,17 +274,22 @@ class _SameReading:
     (``confirmed_rad``: only a turn between two identical readings says the compass did
     not follow it; a 1 Hz compass's reading is not frozen for having no successor yet)."""
 
-    def __init__(self, reading: tuple[float, float, float], t_s: float) -> None:
+    def __init__(self, reading: tuple[float, float, float], t_s: float, rx_m: float = 0.0) -> None:
         self.reading = reading
         self.t0 = self.t_last = t_s
         self.n = 1
         self.turn_rad = self.confirmed_rad = 0.0
+        # every turn the counts saw since it began, signed, told or not, and the receiver's
+        # travel (m) then (:data:`FROZEN_DRIVE_MIN_S`)
+        self.net_rad = self.confirmed_net_rad = 0.0
+        self.rx0_m = rx_m
 
     def again(self, t_s: float) -> None:
         """The same reading at ``t_s`` (s)."""
         self.n += 1
         self.t_last = t_s
         self.confirmed_rad = self.turn_rad
+        self.confirmed_net_rad = self.net_rad
 
     def wheels(self, turn_rad: float | None) -> None:
         """The wheels turned ``turn_rad`` (rad) the way the robot is told to; None: it is
@@ -536,7 +549,7 @@ class Controller:
             reading = (att.bearing_deg, att.pitch_deg, att.roll_deg)
             same = self._same
             if same is None or same.reading != reading:
-                self._same = _SameReading(reading, t)
+                self._same = _SameReading(reading, t, self._rx_m)
             else:
                 same.again(t)
             took = self._source.on_compass(t, att.bearing_deg)
@@ -566,9 +579,11 @@ class Controller:
                 # only a turn it is being told to make, without a break: one encoder dead on
                 # a straight drive counts a turn the compass rightly does not show (the
                 # encoder watch's case), and a stuck robot's separate attempts must not add
-                # up (a review: 91° over 8 s of them, the compass blamed for a slip)
+                # up (a review: 91° over 8 s of them, the compass blamed for a slip); any
+                # turn while driving: FROZEN_DRIVE_MIN_S
                 told = 0.5 * abs(left - right) >= self._failsafe.stuck_min_pct
                 same.wheels(abs(turn_rad) if told and turn_rad * (left - right) > 0.0 else None)
+                same.net_rad += turn_rad
         att = self._att
         fresh = att is not None and self._att_ok and abs(t - att.t_s) <= ODOMETRY_FRESH_S
         if prev is not None:
@@ -1322,13 +1337,24 @@ class Controller:
         if same is None or same.n < 2 or same.t_last - same.t0 < FROZEN_MIN_S:
             return ""
         turned_deg = math.degrees(same.confirmed_rad)
+        drove = ""
         if turned_deg < FROZEN_WHEEL_TURN_DEG:
-            return ""
+            turned_deg = abs(math.degrees(same.confirmed_net_rad))
+            moved_m = self._rx_m - same.rx0_m
+            if (
+                turned_deg < FROZEN_WHEEL_TURN_DEG
+                or same.t_last - same.t0 < FROZEN_DRIVE_MIN_S
+                or moved_m < FROZEN_DRIVE_MIN_M
+            ):
+                return ""
+            drove = f" the robot drove {moved_m:.0f} m (the receiver's speed) and"
         same.turn_rad = same.confirmed_rad = 0.0  # the next verdict: another turn
+        same.net_rad = same.confirmed_net_rad = 0.0
+        same.rx0_m = self._rx_m
         bearing, pitch, roll = same.reading
         return (
             f"compass frozen: the same reading (bearing {bearing:.1f}°, pitch {pitch:g}°,"
-            f" roll {roll:g}°) {same.n} times in {same.t_last - same.t0:.1f} s while the"
+            f" roll {roll:g}°) {same.n} times in {same.t_last - same.t0:.1f} s while{drove} the"
             f" wheels' counts turned {turned_deg:.0f}°: a hung compass or I2C bus returning"
             " its last registers (or the wheels spin with the body held)"
         )
