@@ -448,7 +448,17 @@ def test_a_flood_is_read_at_the_input_rate_and_a_stop_in_it_goes_out_at_once(ser
         raw.close()
 
 
-def test_a_stop_sent_during_the_auth_back_off_goes_out_at_once(servers) -> None:
+@pytest.mark.parametrize(
+    "stop_line",
+    [
+        line({"id": 2, "cmd": "stop"}),
+        # the same request with JSON escapes (valid, and run as a stop): the early scan looked
+        # for the bytes "stop" only, so this one waited the back-off out (an outside audit)
+        b'{"id": 2, "cmd": "\\u0073\\u0074op"}\n',
+    ],
+    ids=["plain", "escaped"],
+)
+def test_a_stop_sent_during_the_auth_back_off_goes_out_at_once(servers, stop_line) -> None:
     # Found by an outside check: the stops in a client's input were looked for only before
     # its back-off began, so one arriving during it waited the back-off out (2 s here).
     backend = StampedBackend()
@@ -458,7 +468,7 @@ def test_a_stop_sent_during_the_auth_back_off_goes_out_at_once(servers) -> None:
         t_auth = time.monotonic()
         assert raw.ask({"id": 1, "cmd": "auth", "token": "wrong"})["error"]["code"] == "auth_failed"
         t0 = time.monotonic()
-        raw.send(line({"id": 2, "cmd": "stop"}))  # during the 2 s back-off
+        raw.send(stop_line)  # during the 2 s back-off
         wait_until(lambda: backend.stamps, 10.0)
         # at once: < 1 s, where the bug's stop goes out when the back-off ends, ~2 s after t0
         assert backend.stamps[0][0] - t0 < 1.0 and backend.stamps[0][1] == "stop"

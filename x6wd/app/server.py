@@ -577,6 +577,12 @@ def _number(args: dict[str, Any], key: str, lo: float, hi: float) -> float:
     return v
 
 
+
+def _may_hold_stop(data: bytes) -> bool:
+    """Whether ``data`` may hold a ``stop`` request: the bytes "stop", or a JSON escape
+    (``"\\u0073top"`` is the same request; parsing every line would cost the flood path)."""
+    return b"stop" in data or b"\\u" in data
+
 def _ended(buf: bytearray, discarding: bool) -> bytearray:
     """``buf`` at the input's end: its last line, unterminated, given its newline (unless it
     is the rest of an oversized line being discarded, or blank), in place."""
@@ -1145,7 +1151,7 @@ class ControlServer(LineServer[_Client]):
         if end <= scanned:
             return scanned
         region = bytes(buf[scanned:end])
-        if b"stop" in region:
+        if _may_hold_stop(region):
             lines = region.split(b"\n")[:-1]
             at = c.taken + scanned  # where the region begins in the client's input
             for i, line in enumerate(lines):
@@ -1159,7 +1165,7 @@ class ControlServer(LineServer[_Client]):
     def _early_stop(self, c: _Client, line: bytes, end: int) -> None:
         """Send a ``stop`` request line that ends at ``end`` in ``c``'s input to the backend
         at once (anything else: nothing)."""
-        if b"stop" not in line:
+        if not _may_hold_stop(line):
             return
         try:
             req = parse_request(line)
