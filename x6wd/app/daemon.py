@@ -1084,11 +1084,17 @@ class Daemon:
             config_error(exc)
             self.notifier.stopping(f"configuration error: {one_line(str(exc))}")
             return EXIT_CONFIG
-        if not appeared:  # a stop signal during the wait: nothing was opened
+        if not appeared or self._stop_signal is not None:
+            # a stop signal during the preflight, the binding or the wait: open nothing more
+            # (opening a motor port can reset its board on the way out)
             await self._unbind()
             self.notifier.stopping("stopping")
             code = self._stop_signal[1] if self._stop_signal is not None else EXIT_OK
-            log.info("x6wd stopped while waiting for %s (exit %d)", ", ".join(self._missing), code)
+            if appeared:
+                log.info("x6wd stopped during start-up, before opening the devices (exit %d)", code)
+            else:
+                waited = ", ".join(self._missing)
+                log.info("x6wd stopped while waiting for %s (exit %d)", waited, code)
             return code
         if self._plaintext:
             binds = {
