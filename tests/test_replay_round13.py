@@ -303,3 +303,21 @@ def test_replay_of_standard_input_says_it_reads_files(
     monkeypatch.chdir(tmp_path)
     assert main(["replay", "-"]) == 2
     assert "x6wd replay reads a file, not standard input ('-')" in capsys.readouterr().err
+
+
+def test_a_long_stretch_without_a_line_end_is_read_in_linear_time(tmp_path: Path) -> None:
+    """An outside audit (round 22): 256 KiB of zero bytes after a log (an SD card's tail after
+    a power cut) hung ``plot`` and ``replay`` for ~20 min: the line regex was tried at every
+    offset of the carried text, each try scanning to its end (16 kB took 0.35 s, 64 kB 43 s).
+    Through the real CLI on 1 MiB of it; the bound is the subprocess's timeout (60 s), which
+    the quadratic reading exceeded by hours."""
+    log = tmp_path / "zerotail.nmea"
+    good = (NMEA / "ublox-8.log").read_bytes()
+    log.write_bytes(good + b"\0" * (1 << 20) + good[:2000])
+    done = _x6wd("replay", str(log), "--speed", "0")
+    assert done.returncode in (0, 1), done.stderr
+    assert "Traceback" not in done.stderr
+    with open(log, "rb") as f:  # the zeros are one overlong line, cut at _MAX_LINE_BYTES
+        lines = list(_file_lines(f))
+    assert b"".join(lines) == log.read_bytes()
+    assert max(map(len, lines)) <= (1 << 20) + (64 << 10) + 2000

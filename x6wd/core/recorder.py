@@ -1758,7 +1758,12 @@ def _file_lines(f: BinaryIO) -> Iterator[bytes]:
     while block := f.read(_BLOCK_BYTES):
         buf = carry + block
         # the block's last CRs may yet be followed by an LF: kept with their line
-        lines = _LINE.findall(buf, 0, len(buf.rstrip(b"\r")))
+        limit = len(buf.rstrip(b"\r"))
+        # matched only up to the last line end: past it the pattern was tried at every
+        # offset, each try scanning to the end (quadratic: 256 KiB of an SD card's zeros
+        # after a power cut took ~20 min)
+        last = max(buf.rfind(b"\n", 0, limit), buf.rfind(b"\r", 0, limit))
+        lines = _LINE.findall(buf, 0, last + 1) if last >= 0 else []
         carry = buf[sum(map(len, lines)) :]
         if len(carry) > _MAX_LINE_BYTES:
             lines.append(carry)
