@@ -68,6 +68,14 @@ SIM_OUTPUTS = ("gps.nmea", "recording.jsonl", "truth.csv", "summary.json", "trac
 so that a run cut short (Ctrl-C) never leaves an earlier run's beside its own."""
 
 
+def survey_clock_hz(world: World) -> float:
+    """The receiver engine's clock (Hz): the robot engine's (it steps at the compass rate),
+    so the same epochs; a rate pair that clock cannot step (compass 5 Hz, GPS 4 Hz) has no
+    such run to match, and the receiver alone has no control loop: then the GPS rate."""
+    clock_hz = CompassSetup.from_table(world.compass).rate_hz
+    return clock_hz if steps_evenly(clock_hz, world.gnss.rate_hz) else world.gnss.rate_hz
+
+
 def run_survey(
     world: World,
     out_dir: str | Path,
@@ -80,13 +88,7 @@ def run_survey(
     override the scenario's; ``progress(t_s, total_s)`` is called once per chunk. The antenna
     stands at the vehicle's start pose for the whole run, waypoints or not."""
     wall0 = time.perf_counter()
-    # the robot engine's clock (it steps at the compass rate), so the same epochs; a rate
-    # pair that clock cannot step (compass 5 Hz, GPS 4 Hz) has no such run to match, and the
-    # receiver alone has no control loop: then the GPS rate is the clock
-    clock_hz = CompassSetup.from_table(world.compass).rate_hz
-    if not steps_evenly(clock_hz, world.gnss.rate_hz):
-        clock_hz = world.gnss.rate_hz
-    plan = RunPlan.of(world, seed, duration_s, clock_hz)
+    plan = RunPlan.of(world, seed, duration_s, survey_clock_hz(world))
     out = output_dir(out_dir, clear=SIM_OUTPUTS)
     receiver = build_receiver(world, SimRandom.from_seed(plan.seed))
     s0 = vehicle_from_world(world).state

@@ -7,6 +7,7 @@ A sweep file (``config/sweeps/position_source.toml`` is the example)::
     seeds = 5                      # missions per cell (replicates), each with its own seed
     scenarios = ["../scenarios/default.toml", "../scenarios/zigzag.toml"]  # relative to this file
     robot_config = "../x6wd.toml"  # optional: laid under every scenario (with_robot_config)
+    engine = "auto"                # optional: as x6wd sim --engine (auto, robot, receiver)
 
     [set]                          # optional: the same value in every run
     duration_s = 300.0
@@ -85,7 +86,8 @@ from typing import Any
 
 from sim_backend.executor import Executor, Outcome, describe_exception
 from sim_backend.mission import compass_setup, run_mission
-from sim_backend.runs import RunPlan, check_mission_geofence, sky_warnings
+from sim_backend.runs import ENGINES, RunPlan, check_mission_geofence, engine_for, sky_warnings
+from sim_backend.survey import run_survey, survey_clock_hz
 from sim_backend.sweep_report import (
     FIXED_COLUMNS,
     OLDER_RUNS_DIR,
@@ -111,7 +113,7 @@ from x6wd.core.outdir import output_file
 
 log = logging.getLogger(__name__)
 
-SWEEP_KEYS = ("name", "seed", "seeds", "scenarios", "robot_config", "set", "grid")
+SWEEP_KEYS = ("name", "seed", "seeds", "scenarios", "robot_config", "engine", "set", "grid")
 PATH_KEYS = ("almanac", "gnss.lce_csv", "mission.file")
 """Scenario keys whose value is a file: given in [set] or [grid], a relative one is relative to
 the sweep file's folder (a path is relative to the file that names it, as in a scenario);
@@ -142,6 +144,9 @@ class SweepSpec:
     seeds: int
     scenarios: tuple[Path, ...]
     robot_config: Path | None = None
+    # as ``x6wd sim --engine``: each cell runs on the engine that command picks, so that
+    # ``x6wd sim cells/CELL.toml`` (with ``--engine`` when not auto) replays it
+    engine: str = "auto"
     fixed: dict[str, Any] = field(default_factory=dict)
     grid: dict[str, list[Any]] = field(default_factory=dict)
     source: Path | None = None
@@ -210,6 +215,9 @@ def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: s
     robot = data.get("robot_config")
     if robot is not None and (not isinstance(robot, str) or not robot):
         raise ConfigError(f"robot_config: expected a file name, got {robot!r}")
+    engine = data.get("engine", "auto")
+    if engine not in ENGINES:
+        raise ConfigError(f"engine: expected one of {', '.join(ENGINES)}, got {engine!r}")
     fixed = _dotted(data.get("set", {}), "set")
     grid_raw = _dotted(data.get("grid", {}), "grid")
     for where, table in (("set", fixed), ("grid", grid_raw)):
@@ -252,6 +260,7 @@ def _spec(data: dict[str, Any], base: Path, source: Path | None, default_name: s
         seeds=seeds,
         scenarios=paths,
         robot_config=(base / robot).resolve() if robot else None,
+        engine=engine,
         fixed=fixed,
         grid=grid,
         source=source.resolve() if source is not None else None,
@@ -321,6 +330,7 @@ class Cell:
     digest: str
     files: tuple[tuple[str, str], ...] = ()
     warnings: tuple[str, ...] = ()
+    engine: str = "robot"  # the engine its runs run on ("robot" or "receiver")
 
 
 @dataclass(frozen=True)
@@ -462,15 +472,18 @@ def cell_world(
     return world, dumps_toml(portable)
 
 
-def start_checks(world: World, sky: dict[tuple[Any, ...], list[str]] | None = None) -> list[str]:
+def start_checks(
+    world: World, sky: dict[tuple[Any, ...], list[str]] | None = None, engine: str = "robot"
+) -> list[str]:
     """The checks ``x6wd sim`` makes before a mission moves (a :class:`ConfigError` there is
     its exit 2), called, not copied: :func:`sim_backend.runs.sky_warnings` (it reads the
     almanac), the waypoints against the geofence
     (:func:`sim_backend.runs.check_mission_geofence`), and
     :func:`sim_backend.mission.run_mission`'s start: the drive against the stuck
     failsafe, the [compass] table with the compass effects, and the run's clock
-    (:class:`sim_backend.runs.RunPlan`: the compass rate a whole multiple of the GPS rate).
-    Returns the sky's warnings; ``sky`` caches them by almanac, start and duration."""
+    (:class:`sim_backend.runs.RunPlan`: on the robot ``engine`` the compass rate a whole
+    multiple of the GPS rate; the receiver engine takes any pair). Returns the sky's warnings;
+    ``sky`` caches them by almanac, start and duration."""
     key = (str(world.almanac_path), world.start_utc.isoformat(), world.duration_s)
     if sky is None or key not in sky:
         found = sky_warnings(world)
@@ -481,7 +494,8 @@ def start_checks(world: World, sky: dict[tuple[Any, ...], list[str]] | None = No
     check_mission_geofence(world)
     check_drive_vs_stuck(world.navigation, world.failsafe)
     cset, _skipped = compass_setup(world)
-    RunPlan.of(world, None, None, cset.rate_hz)
+    clock_hz = survey_clock_hz(world) if engine == "receiver" else cset.rate_hz
+    RunPlan.of(world, None, None, clock_hz)
     return list(found)
 
 
@@ -582,7 +596,8 @@ def plan(spec: SweepSpec) -> list[Run]:
             ids[cid] = label
             try:
                 world, text = cell_world(table, base, overrides, label, spec.base_dir)
-                warnings = start_checks(world, sky)  # x6wd sim's exit 2 is the sweep's
+                engine = engine_for(world, spec.engine)
+                warnings = start_checks(world, sky, engine)  # x6wd sim's exit 2 is the sweep's
                 files = []
                 for f in named_files(world.raw):
                     if f not in hashes:
@@ -599,9 +614,12 @@ def plan(spec: SweepSpec) -> list[Run]:
                 params,
                 overrides,
                 text,
-                cell_digest(text, files),
+                # a survey run on the receiver engine is another run than on the robot's (no
+                # filtered figures): a folder of the other engine's runs runs it again
+                cell_digest(text + ("\0engine=receiver" if engine == "receiver" else ""), files),
                 tuple(files),
                 tuple(warnings),
+                engine,
             )
             for r in range(spec.seeds):
                 seed = run_seed(spec.seed, path.stem, overrides, r)
@@ -669,10 +687,11 @@ def x6wd_version() -> str:
     return f"{__version__}+g{commit}" if done.returncode == 0 and commit else __version__
 
 
-def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
-    """One mission (on a worker): the scenario TOML with ``seed``, its summary only (no
-    files: a sweep keeps the figures). Never raises for a failed mission: the record's
-    ``status`` is "error" with ``error``."""
+def run_task(run_id: str, world_toml: str, seed: int, engine: str = "robot") -> dict[str, Any]:
+    """One run (on a worker): the scenario TOML with ``seed`` on ``engine`` ("robot": a
+    mission, or a survey on the robot's loop; "receiver": a static survey on the receiver
+    alone, its files in a temporary folder), its summary only (a sweep keeps the figures).
+    Never raises for a failed run: the record's ``status`` is "error" with ``error``."""
     t0 = time.perf_counter()
     rec: dict[str, Any] = {
         "run_id": run_id,
@@ -685,8 +704,12 @@ def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
     }
     try:
         world = loads_world(world_toml, source=run_id)
-        with ROBOT_LOG_KEPT_QUIET():
-            s = run_mission(world, None, seed=int(seed))
+        if engine == "receiver":
+            with tempfile.TemporaryDirectory(prefix="x6wd-sweep-") as tmp:
+                s = run_survey(world, tmp, seed=int(seed))
+        else:
+            with ROBOT_LOG_KEPT_QUIET():
+                s = run_mission(world, None, seed=int(seed))
         rec.update(
             completed=bool(s.completed),
             waypoints_reached=int(s.waypoints_reached),
@@ -703,6 +726,7 @@ def run_task(run_id: str, world_toml: str, seed: int) -> dict[str, Any]:
             gps_r95_m=s.raw_error.r95_m,
             gps_rms_m=s.raw_error.rms_m,
             filtered_rms_m=s.filtered_error.rms_m,
+            engine=engine,
             fix_fraction=s.fixes_valid / s.fixes if s.fixes else math.nan,
             hold_time_s=s.hold_time_s,
         )
@@ -957,6 +981,7 @@ def write_plan(spec: SweepSpec, runs: Sequence[Run], out_dir: Path) -> None:
         "seeds": spec.seeds,
         "scenarios": [str(p) for p in spec.scenarios],
         "robot_config": str(spec.robot_config) if spec.robot_config else None,
+        "engine": spec.engine,
         "set": spec.fixed,
         "grid": spec.grid,
         "runs": [
@@ -1176,7 +1201,7 @@ def run_sweep(
             progress(len(records), len(status) - status.count("ok") - lost, lost)
 
     report()
-    args = [(r.run_id, r.cell.world_toml, r.seed) for r in todo]
+    args = [(r.run_id, r.cell.world_toml, r.seed, r.cell.engine) for r in todo]
     ran = raised = 0
     names = [r.run_id for r in todo]
     mismatched = False

@@ -64,6 +64,7 @@ RUN_COLUMNS = (
     "fix_fraction",
     "hold_time_s",
     "position_source",
+    "engine",
     "worker",
     "x6wd_version",
     "schema",
@@ -608,9 +609,11 @@ def markdown(
         if len(lost) > 10:
             lines.append(f"- ... and {len(lost) - 10} more (results.csv)")
         lines.append("")
+    engine = i.get("engine") or "auto"
+    flag = "" if engine == "auto" else f" --engine {engine}"
     lines += [
-        "Replay a run: `x6wd sim cells/CELL_ID.toml --seed SEED` (the cell's resolved scenario;"
-        " seeds in results.csv).",
+        f"Replay a run: `x6wd sim cells/CELL_ID.toml --seed SEED{flag}` (the cell's resolved"
+        " scenario; seeds in results.csv).",
         "",
     ]
     return "\n".join(lines)

@@ -509,7 +509,11 @@ def test_a_survey_sweep_tabulates_the_receivers_error(tmp_path: Path) -> None:
     from sim_backend.sweep_report import write_report
 
     survey = ROOT / "config" / "scenarios" / "open_field.toml"
-    body = 'seeds = 2\n[set]\nduration_s = 60.0\n[grid]\n"gnss.mask_deg" = [5.0, 25.0]\n'
+    # on the robot's loop (engine "robot"), which runs its filter at rest too
+    body = (
+        'seeds = 2\nengine = "robot"\n[set]\nduration_s = 60.0\n'
+        '[grid]\n"gnss.mask_deg" = [5.0, 25.0]\n'
+    )
     f = sweep_file(tmp_path, body, (survey,))
     out = tmp_path / "out"
     with Executor(inline=True) as ex:

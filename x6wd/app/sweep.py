@@ -318,6 +318,7 @@ def _run(
         "source": str(spec.source) if spec.source else None,
         "seed": spec.seed,
         "seeds": spec.seeds,
+        "engine": spec.engine,
         "scenarios": [str(p) for p in spec.scenarios],
         "set": spec.fixed,
         "grid": spec.grid,
