@@ -161,14 +161,22 @@ def main(args: argparse.Namespace) -> int:
     for warning in sky_warnings(world, args.duration):
         print(f"x6wd sim: warning: {warning}", file=sys.stderr)
     progress = None if args.quiet else _progress_bar(sys.stderr)
-    if engine == "receiver":
-        from sim_backend.survey import run_survey
+    try:
+        if engine == "receiver":
+            from sim_backend.survey import run_survey
 
-        summary = run_survey(world, args.out, args.seed, args.duration, progress)
-    else:
-        from sim_backend.mission import run_mission
+            summary = run_survey(world, args.out, args.seed, args.duration, progress)
+        else:
+            from sim_backend.mission import run_mission
 
-        summary = run_mission(world, args.out, args.seed, args.duration, progress)
+            summary = run_mission(world, args.out, args.seed, args.duration, progress)
+    except KeyboardInterrupt:  # said, then exit 130 (x6wd.app.cli)
+        print(
+            f"\nx6wd sim: interrupted: {Path(args.out).resolve()} holds the run so far"
+            " (its NMEA and recording; no summary, truth or plot)",
+            file=sys.stderr,
+        )
+        raise
     print(summary.text())
     uart_line = uart_drop_text(summary, world.gnss.baud, world.gnss.rate_hz)
     if uart_line:

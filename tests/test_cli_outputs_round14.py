@@ -190,3 +190,19 @@ def test_output_dir_refuses_an_empty_path() -> None:
 
     with pytest.raises(ConfigError, match="empty path"):
         output_dir("")
+
+
+def test_a_ctrl_c_in_x6wd_sim_says_what_it_left(tmp_path: Path) -> None:
+    # an outside audit (round 22): exit 130 and nothing said, the progress bar's "0%" last
+    from tests.test_sweep import ctrl_c_when
+
+    out = tmp_path / "o"
+    args = ["sim", str(ROOT / "config" / "scenarios" / "zigzag.toml"), "--out", str(out)]
+    nmea = out / "gps.nmea"
+    returncode, err = ctrl_c_when(
+        args, lambda _pid: nmea.exists() and nmea.stat().st_size > 0, 120.0, group=True
+    )
+    assert returncode == 130, err
+    assert f"x6wd sim: interrupted: {out.resolve()} holds the run so far" in err, err
+    assert "Traceback" not in err
+    assert not (out / "summary.json").exists()

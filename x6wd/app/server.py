@@ -577,11 +577,11 @@ def _number(args: dict[str, Any], key: str, lo: float, hi: float) -> float:
     return v
 
 
-
 def _may_hold_stop(data: bytes) -> bool:
     """Whether ``data`` may hold a ``stop`` request: the bytes "stop", or a JSON escape
     (``"\\u0073top"`` is the same request; parsing every line would cost the flood path)."""
     return b"stop" in data or b"\\u" in data
+
 
 def _ended(buf: bytearray, discarding: bool) -> bytearray:
     """``buf`` at the input's end: its last line, unterminated, given its newline (unless it
