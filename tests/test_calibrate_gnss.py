@@ -636,3 +636,21 @@ def test_help_gives_the_default_of_every_lce_map_option(
         ("--min-visits", "separate passes a mapped cell needs (2)"),
     ):
         assert option_help(argv, option, capsys).endswith(shown), option
+
+
+def test_a_large_white_part_does_not_swamp_the_correlation_time() -> None:
+    # An outside audit (round 22): with 1.5 m of white noise added to a standing log, tau
+    # came out as 86400 s ("the record is too short"); from lags 1 and 2 alone the slow
+    # part's rise is the small difference gamma(1) - RE², which the white part swamps (8 of
+    # these 12 seeds gave no decay, the rest 19-48 s). Fitted over lags up to a quarter of the
+    # record (when RE² is most of gamma(1)), it is read as without the white part (true 100 s).
+    for re_m in (0.0, 1.5):
+        taus = [
+            gnss.static_noise(
+                synthetic_static(s, re_m=re_m, ase_m=1.5, tau_s=100.0, n=1800), *ORIGIN
+            ).correlation_s
+            for s in range(12)
+        ]
+        assert all(math.isfinite(t) for t in taus), (re_m, taus)
+        assert 60.0 < float(np.median(taus)) < 160.0, (re_m, taus)
+        assert sum(40.0 < t < 250.0 for t in taus) >= 10, (re_m, taus)
