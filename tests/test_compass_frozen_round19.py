@@ -145,3 +145,38 @@ def test_a_compass_frozen_on_a_straight_leg_pauses_once_the_counts_turn_a_quarte
 def test_a_live_compass_or_a_robot_at_rest_is_not_frozen(reading, moving: bool) -> None:
     c, _t = straight(reading, moving=moving, steps=240)
     assert "frozen" not in c.telemetry.extra.get("failsafe", ""), c.telemetry.extra
+
+
+@pytest.mark.parametrize("rest_mps", [0.0, 0.1, 0.25])
+def test_a_receiver_s_noise_at_rest_is_no_drive(rest_mps: float) -> None:
+    # a review (round 22): the receiver's speed at rest (its noise, ~0.1 m/s) added up over a
+    # 60 s pause to "5 m driven"; resumed into mud (one side spinning) with a healthy compass
+    # repeating its reading, the robot was called frozen 6 s later instead of stuck at 10 s
+    c = Controller(NAV, SAFETY, failsafe=FS)
+    c.on_fix(fix(0.0))
+    c.on_attitude(att(0.0))
+    c.load_mission([at(0.0, 500.0)], 0.0)
+    c.start(0.0)
+    c.pause(0.05)
+    t, k = 0.0, 0
+    while t < 60.0:  # paused at rest: the same reading, the receiver's noise as speed
+        k += 1
+        t = 0.05 * k
+        c.on_odometry(WheelOdometry(t, 0, 0, k))
+        c.on_attitude(Attitude(t, 0.0, 1.0, -2.0))
+        if k % 20 == 0:
+            c.on_fix(replace(fix(t), speed_mps=rest_mps))
+    c.resume(t)
+    t0 = t
+    while c.mode == Mode.RUNNING and t < t0 + 30.0:  # stuck: the counts run, the body does not
+        k += 1
+        t = 0.05 * k
+        fwd_m, diff_m = 1.5 * (t - t0), math.radians(15.0) * (t - t0) * 0.245
+        left = round((fwd_m - diff_m / 2) * COUNTS_PER_M)
+        right = round((fwd_m + diff_m / 2) * COUNTS_PER_M)
+        c.on_odometry(WheelOdometry(t, left, right, k))
+        c.on_attitude(Attitude(t, 0.0, 1.0, -2.0))
+        if k % 20 == 0:
+            c.on_fix(replace(fix(t), speed_mps=rest_mps))
+    why = c.telemetry.extra.get("failsafe", "")
+    assert c.mode == Mode.PAUSED and why.startswith("stuck"), why

@@ -192,12 +192,16 @@ FROZEN_MIN_S = 1.0
 """Least time (s) the same reading must last before it can be called frozen."""
 FROZEN_DRIVE_MIN_S = 3.0
 FROZEN_DRIVE_MIN_M = 5.0
-"""A reading the same for this long (s) while the robot drove this far (m, the receiver's
-speed) and the wheels' counts turned :data:`FROZEN_WHEEL_TURN_DEG` either way, told or not,
-is frozen too. On a straight leg the robot, steering by the frozen heading, follows its own
-drift in a slow arc that no command asks for (an outside audit, round 22: 50-70 s and
-14-48 m off the route before the off-course watch). Driving rules out a stuck robot's slip
-and a robot at rest, whose compass may repeat itself."""
+FROZEN_DRIVE_MPS = 0.3
+"""A reading the same for this long (s) while the robot drove this far (m: the receiver's
+speed, counted while the mission runs and only at this speed (m/s) or more) and the wheels'
+counts turned :data:`FROZEN_WHEEL_TURN_DEG` either way, told or not, is frozen too. On a
+straight leg the robot, steering by the frozen heading, follows its own drift in a slow arc
+that no command asks for (an outside audit, round 22: 50-70 s and 14-48 m off the route
+before the off-course watch). Driving rules out a stuck robot's slip and a robot at rest,
+whose compass may repeat itself; a receiver at rest reports its noise as speed (about
+0.1 m/s, over 0.3 m/s about once in a thousand fixes), which a review saw add up to "5 m"
+over a pause."""
 PIVOT_CAUSES = "a compass fault, or the wheels spin in place"
 """What a pivot the compass does not follow can be (the stuck reasons say both): the wheels'
 counts turn in mud as they do on grass, and only the compass tells the two apart."""
@@ -274,15 +278,15 @@ class _SameReading:
     (``confirmed_rad``: only a turn between two identical readings says the compass did
     not follow it; a 1 Hz compass's reading is not frozen for having no successor yet)."""
 
-    def __init__(self, reading: tuple[float, float, float], t_s: float, rx_m: float = 0.0) -> None:
+    def __init__(self, reading: tuple[float, float, float], t_s: float) -> None:
         self.reading = reading
         self.t0 = self.t_last = t_s
         self.n = 1
         self.turn_rad = self.confirmed_rad = 0.0
         # every turn the counts saw since it began, signed, told or not, and the receiver's
-        # travel (m) then (:data:`FROZEN_DRIVE_MIN_S`)
+        # travel (m) since, driving (:data:`FROZEN_DRIVE_MIN_S`)
         self.net_rad = self.confirmed_net_rad = 0.0
-        self.rx0_m = rx_m
+        self.drove_m = 0.0
 
     def again(self, t_s: float) -> None:
         """The same reading at ``t_s`` (s)."""
@@ -515,6 +519,9 @@ class Controller:
                 and 0.0 < t - self._rx_t <= self._safety.fix_stale_s
             ):
                 self._rx_m += speed * (t - self._rx_t)
+                same = self._same
+                if same is not None and self._mode == Mode.RUNNING and speed >= FROZEN_DRIVE_MPS:
+                    same.drove_m += speed * (t - self._rx_t)
             self._rx_t = t if self._rx_t is None else max(self._rx_t, t)
             if jump is not None and jump.surprise and self._mode in (Mode.RUNNING, Mode.PAUSED):
                 # for the failsafe check of the mission running, or resumed: a jump while
@@ -549,7 +556,7 @@ class Controller:
             reading = (att.bearing_deg, att.pitch_deg, att.roll_deg)
             same = self._same
             if same is None or same.reading != reading:
-                self._same = _SameReading(reading, t, self._rx_m)
+                self._same = _SameReading(reading, t)
             else:
                 same.again(t)
             took = self._source.on_compass(t, att.bearing_deg)
@@ -1340,7 +1347,7 @@ class Controller:
         drove = ""
         if turned_deg < FROZEN_WHEEL_TURN_DEG:
             turned_deg = abs(math.degrees(same.confirmed_net_rad))
-            moved_m = self._rx_m - same.rx0_m
+            moved_m = same.drove_m
             if (
                 turned_deg < FROZEN_WHEEL_TURN_DEG
                 or same.t_last - same.t0 < FROZEN_DRIVE_MIN_S
@@ -1349,8 +1356,7 @@ class Controller:
                 return ""
             drove = f" the robot drove {moved_m:.0f} m (the receiver's speed) and"
         same.turn_rad = same.confirmed_rad = 0.0  # the next verdict: another turn
-        same.net_rad = same.confirmed_net_rad = 0.0
-        same.rx0_m = self._rx_m
+        same.net_rad = same.confirmed_net_rad = same.drove_m = 0.0
         bearing, pitch, roll = same.reading
         return (
             f"compass frozen: the same reading (bearing {bearing:.1f}°, pitch {pitch:g}°,"
