@@ -40,3 +40,27 @@ def test_a_stop_signal_during_start_up_opens_no_device(
     text = caplog.text
     assert "received: stopping the motors" in text
     assert "stopped during start-up" in text and " ready" not in text, text
+
+
+def test_a_stop_signal_while_the_devices_open_starts_no_recording(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # a review (round 22): a signal that lands while the devices open (a motor board that
+    # resets on open takes a while) went on to start a recording and log "ready"
+    cfg = hil_config(tmp_path)
+    daemon = Daemon(cfg)
+    open_devices = daemon._open_devices
+
+    async def open_then_signal() -> None:
+        await open_devices()
+        daemon.stop_on_signal(signal.SIGTERM, 0)
+
+    daemon._open_devices = open_then_signal  # type: ignore[method-assign]
+    ready: list[Daemon] = []
+    with caplog.at_level(logging.INFO):
+        code = asyncio.run(daemon.run(ready=ready.append))
+    assert code == 0 and not ready
+    assert daemon.motors is not None  # opened, then closed with the motors stopped
+    rec = Path(cfg.recorder.dir)
+    assert not rec.exists() or not any(rec.iterdir()), list(rec.iterdir())
+    assert " ready" not in caplog.text, caplog.text

@@ -1115,21 +1115,22 @@ class Daemon:
         exit_code: int | None = None
         try:
             await self._open_devices()
-            await self._open_recorder()  # last: a failed start leaves no empty recording
-            self._start_readers()
-            self._accepting = True
-            self.notifier.ready(self._status_text())
-            log.info("x6wd %s ready", __version__)
-            # Everything built at start-up is long-lived: move it out of the collector's
-            # generations, so a full collection (set off by client churn) walks only what
-            # came later instead of stalling the control loop for tens of milliseconds.
-            gc.collect()
-            gc.freeze()
-            if self.gc_pacer is not None:
-                self.gc_pacer.start()
-            if ready is not None:
-                ready(self)
-            await self._control_loop()
+            if self._stop_signal is None:  # else a signal came while they opened: no more
+                await self._open_recorder()  # last: a failed start leaves no empty recording
+                self._start_readers()
+                self._accepting = True
+                self.notifier.ready(self._status_text())
+                log.info("x6wd %s ready", __version__)
+                # Everything built at start-up is long-lived: move it out of the collector's
+                # generations, so a full collection (set off by client churn) walks only what
+                # came later instead of stalling the control loop for tens of milliseconds.
+                gc.collect()
+                gc.freeze()
+                if self.gc_pacer is not None:
+                    self.gc_pacer.start()
+                if ready is not None:
+                    ready(self)
+                await self._control_loop()
             if self._fatal is not None:
                 raise self._fatal
             code, why, cause = EXIT_OK, "stop requested", "stop requested"
