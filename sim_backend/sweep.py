@@ -492,7 +492,8 @@ def start_checks(
     else:
         found = sky[key]
     check_mission_geofence(world)
-    check_drive_vs_stuck(world.navigation, world.failsafe)
+    if engine != "receiver":  # which reads no robot setting (x6wd sim --engine receiver)
+        check_drive_vs_stuck(world.navigation, world.failsafe)
     cset, _skipped = compass_setup(world)
     clock_hz = survey_clock_hz(world) if engine == "receiver" else cset.rate_hz
     RunPlan.of(world, None, None, clock_hz)
@@ -1201,7 +1202,12 @@ def run_sweep(
             progress(len(records), len(status) - status.count("ok") - lost, lost)
 
     report()
-    args = [(r.run_id, r.cell.world_toml, r.seed, r.cell.engine) for r in todo]
+    # the engine only where it is not the robot's: a worker of an x6wd before it (same
+    # results schema) still runs the missions (a survey cell's run fails there, named)
+    args = [
+        (r.run_id, r.cell.world_toml, r.seed, *(() if r.cell.engine == "robot" else ("receiver",)))
+        for r in todo
+    ]
     ran = raised = 0
     names = [r.run_id for r in todo]
     mismatched = False

@@ -198,6 +198,8 @@ def run_rows(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     for r in records:
         arr = r.get("arrivals") or []
         row: dict[str, Any] = {c: r.get(c) for c in RUN_COLUMNS}
+        if row["engine"] is None and r.get("status") == "ok":
+            row["engine"] = "robot"  # a run kept from before the column: every run was
         for k in keys:
             row[k] = (r.get("overrides") or {}).get(k)
         row["path_ratio"] = path_ratio(r)

@@ -67,3 +67,32 @@ def test_engine_robot_runs_surveys_on_the_robot_s_loop_and_receiver_refuses_miss
     f = sweep_file(tmp_path, 'engine = "fast"\n', (DEFAULT,))
     with pytest.raises(ConfigError, match="engine: expected one of auto, robot, receiver"):
         sweep.load_sweep(f)
+
+
+def test_runs_kept_from_before_the_engine_column_are_the_robot_s(tmp_path: Path) -> None:
+    # a review (round 22): a mission run kept on resume (its cell unchanged) has no "engine":
+    # before the column every run went through the robot engine, and the table says so
+    from sim_backend.sweep_report import run_rows
+
+    spec = sweep.load_sweep(sweep_file(tmp_path, "seeds = 1\n[set]\nduration_s = 5.0\n"))
+    with Executor(inline=True) as ex:
+        (rec,) = sweep.run_sweep(spec, tmp_path / "out", ex).records
+    old = {k: v for k, v in rec.items() if k != "engine"}
+    failed = {**old, "status": "error", "error": "boom"}
+    assert [row["engine"] for row in run_rows([rec, old, failed])] == ["robot", "robot", None]
+
+
+def test_a_receiver_sweep_makes_no_robot_check(tmp_path: Path) -> None:
+    # a review (round 22): engine = "receiver" still refused a robot-only value (the drive
+    # against the stuck failsafe) that x6wd sim --engine receiver ignores
+    body = (
+        'engine = "receiver"\nseeds = 1\n[set]\nduration_s = 5.0\n'
+        "navigation.cruise_pct = 5.0\nfailsafe.stuck_min_pct = 50.0\n"
+    )
+    spec = sweep.load_sweep(sweep_file(tmp_path, body, (OPEN_FIELD,)))
+    with pytest.raises(ConfigError, match="stuck"):
+        sweep.plan(sweep.loads_sweep(
+            (tmp_path / "sweep.toml").read_text().replace('engine = "receiver"\n', ""),
+            tmp_path,
+        ))  # fmt: skip
+    assert len(sweep.plan(spec)) == 1
