@@ -1202,12 +1202,12 @@ def run_sweep(
             progress(len(records), len(status) - status.count("ok") - lost, lost)
 
     report()
-    # the engine only where it is not the robot's: a worker of an x6wd before it (same
-    # results schema) still runs the missions (a survey cell's run fails there, named)
-    args = [
-        (r.run_id, r.cell.world_toml, r.seed, *(() if r.cell.engine == "robot" else ("receiver",)))
-        for r in todo
-    ]
+    # the engine only where it is not run_task's default: a worker of an x6wd before it
+    # (same results schema) still runs the missions (a survey cell's run fails there, named)
+    args = []
+    for r in todo:
+        engine = () if r.cell.engine == "robot" else (r.cell.engine,)
+        args.append((r.run_id, r.cell.world_toml, r.seed, *engine))
     ran = raised = 0
     names = [r.run_id for r in todo]
     mismatched = False

@@ -1347,14 +1347,13 @@ class Controller:
         drove = ""
         if turned_deg < FROZEN_WHEEL_TURN_DEG:
             turned_deg = abs(math.degrees(same.confirmed_net_rad))
-            moved_m = same.drove_m
             if (
                 turned_deg < FROZEN_WHEEL_TURN_DEG
                 or same.t_last - same.t0 < FROZEN_DRIVE_MIN_S
-                or moved_m < FROZEN_DRIVE_MIN_M
+                or same.drove_m < FROZEN_DRIVE_MIN_M
             ):
                 return ""
-            drove = f" the robot drove {moved_m:.0f} m (the receiver's speed) and"
+            drove = f" the robot drove {same.drove_m:.0f} m (the receiver's speed) and"
         same.turn_rad = same.confirmed_rad = 0.0  # the next verdict: another turn
         same.net_rad = same.confirmed_net_rad = same.drove_m = 0.0
         bearing, pitch, roll = same.reading
