@@ -480,7 +480,8 @@ def start_checks(
     almanac), the waypoints against the geofence
     (:func:`sim_backend.runs.check_mission_geofence`), and
     :func:`sim_backend.mission.run_mission`'s start: the drive against the stuck
-    failsafe, the [compass] table with the compass effects, and the run's clock
+    failsafe and the [compass] table with the compass effects (both robot engine only), and the
+    run's clock
     (:class:`sim_backend.runs.RunPlan`: on the robot ``engine`` the compass rate a whole
     multiple of the GPS rate; the receiver engine takes any pair). Returns the sky's warnings;
     ``sky`` caches them by almanac, start and duration."""
@@ -492,10 +493,11 @@ def start_checks(
     else:
         found = sky[key]
     check_mission_geofence(world)
-    if engine != "receiver":  # which reads no robot setting (x6wd sim --engine receiver)
+    if engine == "receiver":  # it reads no robot setting and applies no compass effect
+        clock_hz = survey_clock_hz(world)  # (as x6wd sim --engine receiver)
+    else:
         check_drive_vs_stuck(world.navigation, world.failsafe)
-    cset, _skipped = compass_setup(world)
-    clock_hz = survey_clock_hz(world) if engine == "receiver" else cset.rate_hz
+        clock_hz = compass_setup(world)[0].rate_hz
     RunPlan.of(world, None, None, clock_hz)
     return list(found)
 
