@@ -13,7 +13,10 @@ Written into the sweep's output directory from the run records (``runs/*.json``)
   mission raised or that the cluster lost is no mission the robot failed, and is shown apart; a
   cell where none ran is a hatched bar, not a 0 % one), ``arrival_cdf.png`` (the empirical
   CDF of the true arrival error per cell, the GPS slow error dashed), ``path_ratio.png`` (true
-  path / straight polyline per completed run, per cell);
+  path / straight polyline per completed run, per cell), ``gps_cep50.png`` (each run's raw-fix
+  CEP50, per cell: a survey sweep's figure); each only when a cell has something to show in
+  it, the per-cell ones for up to :data:`MAX_ROW_CELLS` cells (the summary says which were
+  left out and why);
 - ``summary.md`` — the sweep, the executor and its throughput, a table per cell, the failed
   runs with their errors and the runs the cluster lost; the folder's finished runs that this
   sweep does not plan (a quick look with ``--seeds 1`` at a finished sweep) are counted there,
@@ -345,87 +348,163 @@ def cell_stats(records: Sequence[dict[str, Any]]) -> list[CellStats]:
 # ---------------------------------------------------------------------------- figures
 
 
+MAX_ROW_CELLS = 100
+"""A per-cell row figure (completion, path ratio, GPS CEP50) is drawn for up to this many
+cells: at a row each, 1000 cells made 35,000-pixel images that took most of the report's
+time (an outside audit); the summary's table has every cell."""
+CDF_PANEL_CELLS = 10
+"""Cells per panel of ``arrival_cdf.png``: one colour each of tab10, so no two curves of a
+panel share one (past 10 cells one panel repeated its colours: an outside audit)."""
+MAX_CDF_PANELS = 6
+
+
+def cdf_panels(cells: Sequence[CellStats]) -> list[list[CellStats]]:
+    """The cells with arrivals, in order, in panels of :data:`CDF_PANEL_CELLS` (none when
+    more than :data:`MAX_CDF_PANELS` panels would be needed: see :func:`figure_plan`)."""
+    with_arrivals = [c for c in cells if c.arrival_true_m]
+    if len(with_arrivals) > CDF_PANEL_CELLS * MAX_CDF_PANELS:
+        return []
+    k = CDF_PANEL_CELLS
+    return [with_arrivals[i : i + k] for i in range(0, len(with_arrivals), k)]
+
+
+def figure_plan(cells: Sequence[CellStats]) -> tuple[list[str], list[str]]:
+    """The figures the cells have something to show in (file names, :data:`FIGURES`' order)
+    and, for the summary, a line for each kind left out and why."""
+    # a run that raised or was lost may have been a mission: its completion bar says "n/a"
+    missions = any(c.ok > c.surveys or c.failed or c.lost for c in cells)
+    has_ratio = any(math.isfinite(x) for c in cells for x in c.path_ratios)
+    has_cep = any(math.isfinite(x) for c in cells for x in c.gps_cep50_m)
+    n_arrival = sum(bool(c.arrival_true_m) for c in cells)
+    few = len(cells) <= MAX_ROW_CELLS
+    plan, notes = [], []
+    if missions and few:
+        plan.append("completion.png")
+    if n_arrival and cdf_panels(cells):
+        plan.append("arrival_cdf.png")
+    if has_ratio and few:
+        plan.append("path_ratio.png")
+    if has_cep and few:
+        plan.append("gps_cep50.png")
+    if not missions:
+        notes.append(
+            "no mission ran (every run a survey): no completion, arrival error or path ratio figure"
+        )
+    if not few and (missions or has_cep):
+        notes.append(
+            f"{len(cells)} cells: the per-cell figures (completion, path ratio, GPS"
+            f" CEP50) are drawn for up to {MAX_ROW_CELLS}; the table has every cell"
+        )
+    if n_arrival > CDF_PANEL_CELLS * MAX_CDF_PANELS:
+        notes.append(
+            f"{n_arrival} cells with arrivals: the arrival error CDF is drawn for up to"
+            f" {CDF_PANEL_CELLS * MAX_CDF_PANELS}; the table has each cell's median"
+            " and p95"
+        )
+    return plan, notes
+
+
+def _ecdf(values: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """The empirical CDF as step points, from 0 at the smallest value (so that one value
+    draws its step, not a lone point)."""
+    v = np.sort(np.asarray(values, dtype=float))
+    return np.r_[v[:1], v], np.r_[0.0, np.arange(1, v.size + 1) / v.size]
+
+
 def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    plan, _notes = figure_plan(cells)
     names = []
     labels = [c.label for c in cells]
     height = max(2.5, 0.35 * len(cells) + 1.2)
-
-    fig, ax = plt.subplots(figsize=(8, height))
     y = np.arange(len(cells))
-    pct = [c.completion_pct if math.isfinite(c.completion_pct) else 0.0 for c in cells]
-    ax.barh(y, pct, color="tab:green")
-    none_ran = [float(yi) for yi, c in zip(y, cells, strict=True) if c.ok == c.surveys]
-    if none_ran:  # no mission ran: a hatched "n/a" bar, not an empty 0 % one
-        ax.barh(none_ran, 100.0, color="none", edgecolor="tab:grey", hatch="//", lw=0.5)
-    ax.set_yticks(y, labels, fontsize=8)
-    ax.invert_yaxis()
-    ax.set_xlim(0, 115)
-    errored, lost = sum(c.failed for c in cells), sum(c.lost for c in cells)
-    apart = [f"{errored} errored" if errored else "", f"{lost} lost" if lost else ""]
-    apart_text = " and ".join(p for p in apart if p)
-    ax.set_xlabel(
-        "missions completed (% of the missions that ran"
-        + (f"; {apart_text} runs not counted)" if apart_text else ")")
-    )
-    ax.set_title("Completion rate per cell")
-    for yi, c, x in zip(y, cells, pct, strict=True):
-        text = f"{c.completed}/{c.ok - c.surveys}" + (f", {c.apart}" if c.apart else "")
-        if c.ok == c.surveys:
-            text, x = f"n/a: no mission ran ({c.apart or 'no run'})", 0.0
-        ax.text(x + 1, float(yi), text, va="center", fontsize=7)
-    fig.tight_layout()
-    with _report_file(out / "completion.png"):
-        fig.savefig(out / "completion.png", dpi=100)
-    plt.close(fig)
-    names.append("completion.png")
 
-    fig, ax = plt.subplots(figsize=(8, 5))
-    colours = plt.get_cmap("tab10")
-    for i, c in enumerate(cells):
-        if not c.arrival_true_m:
-            continue
-        col = colours(i % 10)
-        v = np.sort(c.arrival_true_m)
-        ax.step(v, np.arange(1, v.size + 1) / v.size, where="post", color=col, label=c.label)
-        if c.arrival_gps_m:
-            g = np.sort(c.arrival_gps_m)
-            ax.step(g, np.arange(1, g.size + 1) / g.size, where="post", color=col, ls="--", lw=0.8)
-    ax.set_xlabel("true arrival error (m); dashed: GPS slow error at the same moments")
-    ax.set_ylabel("fraction of arrivals")
-    ax.set_title("Arrival error CDF per cell")
-    ax.set_ylim(0, 1.01)
-    ax.grid(alpha=0.3)
-    if any(c.arrival_true_m for c in cells):
-        ax.legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
-    with _report_file(out / "arrival_cdf.png"):
-        fig.savefig(out / "arrival_cdf.png", dpi=100)
-    plt.close(fig)
-    names.append("arrival_cdf.png")
+    def save(fig: Any, name: str) -> None:
+        fig.tight_layout()
+        with _report_file(out / name):
+            fig.savefig(out / name, dpi=100, bbox_inches="tight")
+        plt.close(fig)
+        names.append(name)
 
-    fig, ax = plt.subplots(figsize=(8, height))
-    data = [[x for x in c.path_ratios if math.isfinite(x)] for c in cells]
-    for yi, d in zip(y, data, strict=True):
-        if d:  # the runs, their interquartile range and median
-            q1, q2, q3 = np.percentile(d, [25, 50, 75])
-            ax.hlines(yi, q1, q3, color="tab:blue", lw=6, alpha=0.3)
-            ax.plot([q2], [yi], "|", ms=14, mew=2, color="tab:blue")
-            ax.plot(d, np.full(len(d), yi), "o", ms=3, alpha=0.6, color="tab:blue")
-    ax.set_yticks(y, labels, fontsize=8)
-    ax.invert_yaxis()
-    ax.axvline(1.0, color="grey", lw=0.8)
-    ax.set_xlabel("true path length / straight polyline (completed runs)")
-    ax.set_title("Path ratio per cell")
-    fig.tight_layout()
-    with _report_file(out / "path_ratio.png"):
-        fig.savefig(out / "path_ratio.png", dpi=100)
-    plt.close(fig)
-    names.append("path_ratio.png")
+    if "completion.png" in plan:
+        fig, ax = plt.subplots(figsize=(8, height))
+        pct = [c.completion_pct if math.isfinite(c.completion_pct) else 0.0 for c in cells]
+        ax.barh(y, pct, color="tab:green")
+        none_ran = [float(yi) for yi, c in zip(y, cells, strict=True) if c.ok == c.surveys]
+        if none_ran:  # no mission ran: a hatched "n/a" bar, not an empty 0 % one
+            ax.barh(none_ran, 100.0, color="none", edgecolor="tab:grey", hatch="//", lw=0.5)
+        ax.set_yticks(y, labels, fontsize=8)
+        ax.invert_yaxis()
+        ax.set_xlim(0, 115)
+        errored, lost = sum(c.failed for c in cells), sum(c.lost for c in cells)
+        apart = [f"{errored} errored" if errored else "", f"{lost} lost" if lost else ""]
+        apart_text = " and ".join(p for p in apart if p)
+        ax.set_xlabel(
+            "missions completed (% of the missions that ran"
+            + (f"; {apart_text} runs not counted)" if apart_text else ")")
+        )
+        ax.set_title("Completion rate per cell")
+        for yi, c, x in zip(y, cells, pct, strict=True):
+            text = f"{c.completed}/{c.ok - c.surveys}" + (f", {c.apart}" if c.apart else "")
+            if c.ok == c.surveys:
+                text, x = f"n/a: no mission ran ({c.apart or 'no run'})", 0.0
+            ax.text(x + 1, float(yi), text, va="center", fontsize=7)
+        save(fig, "completion.png")
+
+    if "arrival_cdf.png" in plan:
+        panels = cdf_panels(cells)
+        fig, axes = plt.subplots(len(panels), 1, figsize=(10, 1.0 + 3.6 * len(panels)),
+                                 squeeze=False, sharex=True)  # fmt: skip
+        colours = plt.get_cmap("tab10")
+        for ax, panel in zip(axes[:, 0], panels, strict=True):
+            for i, c in enumerate(panel):  # a colour per cell of the panel; GPS dashed
+                col = colours(i)
+                ax.step(*_ecdf(c.arrival_true_m), where="post", color=col, label=c.label)
+                if c.arrival_gps_m:
+                    ax.step(*_ecdf(c.arrival_gps_m), where="post", color=col, ls="--", lw=0.8)
+            ax.set_ylabel("fraction of arrivals")
+            ax.set_ylim(0, 1.01)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        axes[-1, 0].set_xlabel("true arrival error (m); dashed: GPS slow error at the same moments")
+        split = f" ({len(panels)} panels of up to {CDF_PANEL_CELLS} cells)"
+        axes[0, 0].set_title("Arrival error CDF per cell" + (split if len(panels) > 1 else ""))
+        save(fig, "arrival_cdf.png")
+
+    def dots(name: str, per_cell: list[list[float]], xlabel: str, title: str) -> None:
+        fig, ax = plt.subplots(figsize=(8, height))
+        for yi, d in zip(y, per_cell, strict=True):
+            if d:  # the runs, their interquartile range and median
+                q1, q2, q3 = np.percentile(d, [25, 50, 75])
+                ax.hlines(yi, q1, q3, color="tab:blue", lw=6, alpha=0.3)
+                ax.plot([q2], [yi], "|", ms=14, mew=2, color="tab:blue")
+                ax.plot(d, np.full(len(d), yi), "o", ms=3, alpha=0.6, color="tab:blue")
+        ax.set_yticks(y, labels, fontsize=8)
+        ax.invert_yaxis()
+        ax.set_xlabel(xlabel)
+        ax.set_title(title)
+        if name == "path_ratio.png":
+            ax.axvline(1.0, color="grey", lw=0.8)
+        save(fig, name)
+
+    if "path_ratio.png" in plan:
+        dots(
+            "path_ratio.png",
+            [[x for x in c.path_ratios if math.isfinite(x)] for c in cells],
+            "true path length / straight polyline (completed runs)",
+            "Path ratio per cell",
+        )
+    if "gps_cep50.png" in plan:
+        dots(
+            "gps_cep50.png",
+            [[x for x in c.gps_cep50_m if math.isfinite(x)] for c in cells],
+            "GPS CEP50 of each run's raw fixes against the truth (m)",
+            "GPS CEP50 per cell",
+        )
     return names
 
 
@@ -485,6 +564,7 @@ FIGURES = {  # file -> its caption in the summary
     "completion.png": "completion",
     "arrival_cdf.png": "arrival error CDF",
     "path_ratio.png": "path ratio",
+    "gps_cep50.png": "GPS CEP50",
 }
 
 
@@ -521,9 +601,10 @@ def markdown(
     cells: Sequence[CellStats],
     records: Sequence[dict[str, Any]],
     figures: Sequence[str] = tuple(FIGURES),
+    figure_notes: Sequence[str] = (),
 ) -> str:
-    """The summary: the sweep, a row per cell, the figures (the ``figures`` files), the
-    failed runs."""
+    """The summary: the sweep, a row per cell, the figures (the ``figures`` files; a line
+    each of ``figure_notes``: those left out and why), the failed runs."""
     i = result_info
     lost = [r for r in records if r.get("status") == "lost"]
     lost_text = (
@@ -588,6 +669,8 @@ def markdown(
     lines.append("")
     for name in figures:
         lines += [f"![{FIGURES.get(name, name)}]({name})", ""]
+    if figure_notes:
+        lines += [*(f"- figures: {n}" for n in figure_notes), ""]
     failed = [r for r in records if r.get("status") not in ("ok", "lost")]
     if failed:
         lines += [f"## Failed runs ({len(failed)})", ""]
@@ -669,7 +752,8 @@ def write_report(
         older = out / OLDER_RUNS_DIR
         n_older = len(list(older.glob("*.json"))) if older.is_dir() else 0
         result_info = {**result_info, "older_files": n_older}
-    text = markdown(result_info, cells, records, drawn)
+    notes = figure_plan(cells)[1] if figures else []
+    text = markdown(result_info, cells, records, drawn, notes)
     with _report_file(out / "summary.md"):
         (out / "summary.md").write_text(text, encoding="utf-8")
     written.append("summary.md")
