@@ -21,7 +21,13 @@ from sim_backend.runs import (
     engine_note,
     sky_warnings,
 )
-from sim_backend.world import MAX_DURATION_S, GnssSettings, load_world, with_robot_config
+from sim_backend.world import (
+    MAX_DURATION_S,
+    GnssSettings,
+    load_world,
+    robot_config_notes,
+    with_robot_config,
+)
 
 MIN_GNSS_RATE_HZ: float = next(
     f.metadata["min"] for f in dataclasses.fields(GnssSettings) if f.name == "rate_hz"
@@ -148,9 +154,11 @@ def main(args: argparse.Namespace) -> int:
     """Run the subcommand; 0 when the mission completed (or a static survey ran), 1 if it
     did not, 2 when the mission was refused: before the run (a waypoint beyond the geofence,
     as every bad input) or by the robot in it."""
-    scenario = world = load_world(args.scenario)
+    scenario = world = load_world(args.scenario, check_rates=not args.config)
     if args.config:
         world = with_robot_config(world, args.config)
+        for note in robot_config_notes(world, args.config):
+            print(f"x6wd sim: note: {note}", file=sys.stderr)
     engine = engine_for(world, args.engine)
     said = engine_note(world, args.engine, scenario=scenario, robot_config=args.config)
     if said is not None:  # a survey's robot-only settings: run (auto) or ignored (receiver)

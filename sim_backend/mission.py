@@ -284,6 +284,7 @@ def run_mission(
         plan.gps_every,
         plan.n_ticks,
     )
+    compass_every = plan.compass_every  # ticks per compass reading (1 at 20 Hz and up)
     out = output_dir(out_dir, clear=SIM_OUTPUTS) if out_dir is not None else None
     rand = SimRandom.from_seed(seed)
     receiver = build_receiver(world, rand)
@@ -306,7 +307,8 @@ def run_mission(
         failsafe=world.failsafe,
     )
     vehicle = vehicle_from_world(world)
-    # The motor board's encoders, read at the compass rate as the daemon polls them.
+    # The motor board's encoders, read every tick (at 20 Hz or more on a mission, as the
+    # daemon polls them).
     encoders = EncoderSim(world.encoders, rng=encoder_rng(seed), start=vehicle.state)
     origin = world.origin
     antenna_m = world.vehicle.antenna_height_m
@@ -533,14 +535,15 @@ def run_mission(
             if receiver.tracks:
                 # every physics step, so a delayed position interpolates the real path
                 receiver.observe(t, (s.east_m, s.north_m, s.up_m + antenna_m), vehicle_velocity(s))
-            device.set_state(
-                t, cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg),
-                s.pitch_deg, s.roll_deg,
-            )  # fmt: skip
-            runner.attitude(compass.read(t))
-            events = take_compass_events()
-            if events:  # the daemon's compass thread hands these over the same way
-                runner.device_events(events)
+            if k % compass_every == 0:  # at the compass's rate (the loop's may be higher)
+                device.set_state(
+                    t, cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg),
+                    s.pitch_deg, s.roll_deg,
+                )  # fmt: skip
+                runner.attitude(compass.read(t))
+                events = take_compass_events()
+                if events:  # the daemon's compass thread hands these over the same way
+                    runner.device_events(events)
             if k:
                 encoders.step(dt, s)
                 runner.odometry(encoders.reading(t))
@@ -580,10 +583,11 @@ def run_mission(
         # ended in a HOLD "attitude stale", printed and recorded as a compass fault.
         heading_deg = cset.device_heading_deg(s.heading_deg, s.pitch_deg, s.roll_deg)
         t_read = float(trace.t[-1])
+        dt_compass = dt * compass_every
         while in_flight:
             t_rx = in_flight[0][0]
-            while t_read + dt <= t_rx:
-                t_read += dt
+            while t_read + dt_compass <= t_rx:
+                t_read += dt_compass
                 device.set_state(t_read, heading_deg, s.pitch_deg, s.roll_deg)
                 runner.attitude(compass.read(t_read))
             deliver(t_rx)

@@ -417,7 +417,7 @@ def legacy_run_id(run: Run) -> str:
 def base_table(path: Path, robot_config: Path | None) -> tuple[dict[str, Any], Path]:
     """A scenario's merged TOML table (includes expanded, paths absolute, the robot config
     laid underneath) and its folder."""
-    world = load_world(path)
+    world = load_world(path, check_rates=robot_config is None)
     if robot_config is not None:
         try:
             world = with_robot_config(world, robot_config)

@@ -316,15 +316,18 @@ def _regular_or_said(path: str | Path, what: str) -> None:
         raise ConfigError(f"{path}: cannot read {what}: {exc.strerror}") from None
 
 
-def load_world(path: str | Path) -> World:
+def load_world(path: str | Path, check_rates: bool = True) -> World:
     """Read, merge (``include``) and validate a scenario file. An error names the file where
-    the key is (an included file's with its include chain) and the key as written there."""
+    the key is (an included file's with its include chain) and the key as written there.
+    ``check_rates=False`` leaves out the [safety] staleness limits against the scenario's
+    rates, for a robot config laid under it next (:func:`with_robot_config` checks them on
+    the merged table: its [safety] may be what the rates need)."""
     _regular_or_said(path, "scenario")  # before resolve(): a pipe's /dev/fd/N resolves to
     p = Path(path).resolve()  # a /proc/PID/fd/pipe:[N] that does not exist
     src = _Sources()
     data, src.tree = src.read(p, (), None)
     try:
-        return _build_world(data, p.parent, p)
+        return _build_world(data, p.parent, p, check_rates=check_rates)
     except ConfigError as exc:
         raise src.blame(exc, str(p)) from exc
 
@@ -737,10 +740,15 @@ ROBOT_SECTIONS = ("navigation", "safety", "failsafe", "odometry", "gnss_noise")
 
 
 def _build_world(
-    data: dict[str, Any], base: Path, source: Path | None, known: World | None = None
+    data: dict[str, Any],
+    base: Path,
+    source: Path | None,
+    known: World | None = None,
+    check_rates: bool = True,
 ) -> World:
     """The world of the scenario table ``data``; ``known``: a world built before whose mission
-    file is not read again if ``data``'s ``[mission]`` is the same (:func:`_build_mission`)."""
+    file is not read again if ``data``'s ``[mission]`` is the same (:func:`_build_mission`);
+    ``check_rates``: the [safety] staleness limits against the scenario's rates."""
     unknown = sorted(set(data) - _TOP_KEYS)
     if unknown:
         raise ConfigError(f"{unknown[0]}: unknown key (valid keys: {', '.join(sorted(_TOP_KEYS))})")
@@ -802,19 +810,19 @@ def _build_world(
                 raise ConfigError(f"{key}[{i}]: out of range, got {list(pt)}")
     navigation = build(NavigationConfig, _table(data, "navigation"), "navigation.")
     safety = build(SafetyConfig, _table(data, "safety"), "safety.")
-    # the scenario's own rates: the robot config's check knows only its own [gps] rate
-    check_stale_vs_rate(
-        "safety.fix_stale_s",
-        safety.fix_stale_s,
-        gnss.rate_hz,
-        f"gnss.rate_hz = {gnss.rate_hz:g} Hz",
-    )
-    check_stale_vs_rate(
-        "safety.attitude_stale_s",
-        safety.attitude_stale_s,
-        compass_rate_hz,
-        f"compass.rate_hz = {compass_rate_hz:g} Hz",
-    )
+    if check_rates:  # the scenario's own rates: the robot config knows only its own
+        check_stale_vs_rate(
+            "safety.fix_stale_s",
+            safety.fix_stale_s,
+            gnss.rate_hz,
+            f"gnss.rate_hz = {gnss.rate_hz:g} Hz",
+        )
+        check_stale_vs_rate(
+            "safety.attitude_stale_s",
+            safety.attitude_stale_s,
+            compass_rate_hz,
+            f"compass.rate_hz = {compass_rate_hz:g} Hz",
+        )
     failsafe = build(FailsafeConfig, _table(data, "failsafe"), "failsafe.")
     odometry = build(OdometryConfig, _table(data, "odometry"), "odometry.")
     gnss_noise = build(GnssNoiseConfig, _table(data, "gnss_noise"), "gnss_noise.")
@@ -907,9 +915,38 @@ def with_robot_config(world: World, robot_config: str | Path) -> World:
         if merged:
             data[sec] = merged
     base = world.source.parent if world.source is not None else Path(".")
-    merged_world = _build_world(data, base, world.source, known=world)
+    try:  # the rates' checks on the merged [safety] (load_world's check_rates=False)
+        merged_world = _build_world(data, base, world.source, known=world)
+    except ConfigError as exc:  # a key of either file: both named
+        raise ConfigError(f"{world.source or 'the scenario'} with {p}: {exc}") from exc
     check_drive_vs_stuck(merged_world.navigation, merged_world.failsafe)
     return merged_world
+
+
+def robot_config_notes(world: World, robot_config: str | Path) -> list[str]:
+    """What ``robot_config`` sets that :func:`with_robot_config` does not lay under the
+    scenario, said rather than dropped: its GPS and compass rates, where they are not the
+    scenario's (the simulated receiver and compass are the scenario's; an outside audit's
+    4 Hz GPS and 5 Hz compass ran at 1 and 20 Hz without a word)."""
+    from sim_backend.compass import CompassSetup
+    from x6wd.core.config import load
+
+    p = Path(robot_config)
+    cfg = load(p)
+    notes = []
+    pairs = (
+        ("gps.rate_hz", cfg.gps.rate_hz, "[gnss] rate_hz", world.gnss.rate_hz),
+        ("compass.rate_hz", cfg.compass.rate_hz, "[compass] rate_hz",
+         CompassSetup.from_table(world.compass).rate_hz),
+    )  # fmt: skip
+    for key, robot_hz, scenario_key, scenario_hz in pairs:
+        if abs(robot_hz - scenario_hz) > 1e-9:
+            notes.append(
+                f"{p}: {key} = {robot_hz:g} Hz is not the scenario's {scenario_key} ="
+                f" {scenario_hz:g} Hz: the run's is the scenario's (the simulated device is"
+                f" the scenario's): set {scenario_key} in the scenario to run at {robot_hz:g} Hz"
+            )
+    return notes
 
 
 def _check_effects(effects: tuple[dict[str, Any], ...]) -> None:

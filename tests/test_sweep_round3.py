@@ -328,11 +328,13 @@ def test_one_instant_written_twice_in_a_grid_is_one_value() -> None:
 @pytest.mark.parametrize(
     ("body", "named"),
     [
-        # the compass loop steps at 5 Hz: a 4 Hz GPS is no whole number of ticks
+        # a mission's loop steps at 20 Hz for a 5 Hz compass: a 3 Hz GPS is no whole number
+        # of ticks (4 Hz is, since 2026-12-07: the loop no longer steps at 5 Hz)
         (
-            "[grid]\ncompass.rate_hz = [5.0]\ngnss.rate_hz = [4.0, 5.0]\n",
-            "default (compass.rate_hz=5.0, gnss.rate_hz=4.0): compass.rate_hz (5) must be a"
-            " whole multiple of gnss.rate_hz (4)",
+            "[grid]\ncompass.rate_hz = [5.0]\ngnss.rate_hz = [3.0, 4.0]\n",
+            "default (compass.rate_hz=5.0, gnss.rate_hz=3.0): 20 Hz on a mission"
+            " (compass.rate_hz (5) times 4: the daemon's 20 Hz tick or more), which must be a"
+            " whole multiple of gnss.rate_hz (3)",
         ),
         # an almanac x6wd sim cannot read (its sky warnings read it first)
         ('[set]\nalmanac = "bad.txt"\n', "bad.txt: too short for a SEM almanac"),
@@ -363,7 +365,7 @@ def test_x6wd_sim_refuses_the_same_cell(tmp_path: Path) -> None:
     scen = tmp_path / "s.toml"
     scen.write_text(
         f'include = ["{DEFAULT}"]\nduration_s = 5.0\n[compass]\nrate_hz = 5.0\n'
-        "[gnss]\nrate_hz = 4.0\n"
+        "[gnss]\nrate_hz = 3.0\n"
     )
     r = subprocess.run(
         [sys.executable, "-m", "x6wd", "sim", str(scen), "--out", str(tmp_path / "o")],
