@@ -206,9 +206,25 @@ def test_a_recording_without_a_true_track_says_which_runs_have_one(
     assert cli_main(["plot", str(rec), "--out", str(tmp_path / "plot")]) == 0
     assert (
         "the error panel is empty: no true track: only `x6wd sim` writes one (truth.csv next "
-        "to its recording); a HIL or real run has none (--truth FILE for a true track of your "
-        "own)"
+        "to its recording and its gps.nmea); a HIL or real run has none (--truth FILE for a "
+        "true track of your own)"
     ) in capsys.readouterr().err
+
+
+def test_the_sims_gps_nmea_is_plotted_against_the_truth_beside_it(
+    sim_run: Path, tmp_path: Path
+) -> None:
+    """An outside audit (round 23): `x6wd plot gps.nmea` of a simulated run left the error
+    panel empty, "only x6wd sim writes one", with its truth.csv beside it (x6wd gap reads it).
+    Another NMEA log's name takes no truth.csv it happens to sit beside."""
+    view = logview.load(sim_run / "gps.nmea")
+    assert "error" not in view.missing
+    (fix,) = [s for s in view.error if s.label == "GPS fix"]
+    assert fix.v.size > 30 and 0.0 < float(np.median(fix.v)) < 20.0
+    other = tmp_path / "log.nmea"
+    shutil.copy(sim_run / "gps.nmea", other)
+    shutil.copy(sim_run / "truth.csv", tmp_path / "truth.csv")
+    assert "no true track" in logview.load(other).missing["error"]
 
 
 def test_holds_and_device_faults(tmp_path: Path) -> None:

@@ -1117,8 +1117,13 @@ def missing_parts_note(view: LogView) -> str:
     return text
 
 
+SIM_NMEA_NAME = "gps.nmea"
+"""The NMEA log ``x6wd sim`` writes beside its recording and ``truth.csv``."""
+
+
 def default_truth(recording: Path) -> Path | None:
-    """The simulator's true track next to a recording (``truth.csv``), or None."""
+    """The simulator's true track next to a recording or its ``gps.nmea`` (``truth.csv``),
+    or None."""
     p = recording.with_name("truth.csv")
     return p if p.is_file() else None
 
@@ -1126,12 +1131,13 @@ def default_truth(recording: Path) -> Path | None:
 def load(path: Path, *, truth: Path | None = None, rate_hz: float = 1.0) -> LogView:
     """Read a recording (.jsonl, all its rotated parts) or a plain NMEA log into the panels'
     data. ``truth``: a true track CSV (t_s, lat, lon; default: ``truth.csv`` next to a
-    recording). ``rate_hz``: epochs per second for NMEA logs without sentence times."""
+    recording or to ``x6wd sim``'s ``gps.nmea``). ``rate_hz``: epochs per second for NMEA
+    logs without sentence times."""
     path = Path(path)
     raw = _Raw()
     view = LogView(path=path, kind="recording" if is_recording(path) else "NMEA log")
-    if truth is None and view.kind == "recording":
-        truth = default_truth(path)
+    if truth is None and (view.kind == "recording" or path.name == SIM_NMEA_NAME):
+        truth = default_truth(path)  # (a gps.nmea's too: x6wd gap reads it, an outside audit)
     # read first (the reader keeps each series' furthest from it), said after the log's own
     # errors as before
     torn, truth_error, run_start = 0, None, None
@@ -1262,8 +1268,9 @@ def _track_and_error(view: LogView, raw: _Raw, t0: float, torn: int | None) -> N
         )
     if tt is None:
         view.missing["error"] = (
-            "no true track: only `x6wd sim` writes one (truth.csv next to its recording); a "
-            "HIL or real run has none (--truth FILE for a true track of your own)"
+            "no true track: only `x6wd sim` writes one (truth.csv next to its recording and "
+            "its gps.nmea); a HIL or real run has none (--truth FILE for a true track of your "
+            "own)"
         )
         return
     tr_t, (tr_e, tr_n) = tt[0], xy(tt[1], tt[2])
