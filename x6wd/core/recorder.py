@@ -169,8 +169,12 @@ class InputSize:
         self.blank = True
 
     def add(self, chunk: bytes) -> None:
+        """Count ``chunk``, the input's next bytes; a leading byte-order mark (a Windows
+        editor's) is blank too (a BOM and blank lines were refused where an empty file was
+        not: an outside audit)."""
+        first = self.bytes == 0
         self.bytes += len(chunk)
-        if self.blank and chunk.strip():
+        if self.blank and (chunk.removeprefix(b"\xef\xbb\xbf") if first else chunk).strip():
             self.blank = False
 
 
