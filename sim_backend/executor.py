@@ -86,7 +86,8 @@ CLEAR_TO_EOL = "\x1b[K"
 class Outcome:
     """What became of one task: ``index`` into the submitted list, its ``value``, or its
     ``error`` (one line: type, message and where) with ``kind`` "task" (the function
-    raised) or "executor" (the cluster could not run it)."""
+    raised, or its workers died running it: KilledWorker) or "executor" (the cluster could
+    not run it)."""
 
     index: int
     value: Any = None
@@ -565,7 +566,16 @@ class Executor:
 
             err = fut.exception()
             if isinstance(err, KilledWorker):
-                return Outcome(i, error=f"KilledWorker: {err}", kind="executor")
+                # the scheduler gives a task up after its workers died running it more than
+                # distributed.scheduler.allowed-failures times: the task's doing (out of memory,
+                # a crash in native code), so a failure with its error, not a loss that the
+                # same command runs again to kill as many workers (an outside audit)
+                return Outcome(
+                    i,
+                    error=f"KilledWorker: {err} (the worker died each time it ran this task:"
+                    " out of memory, or a crash in native code?)",
+                    kind="task",
+                )
             return Outcome(i, error=describe_exception(err, fut.traceback()), kind="task")
         # "cancelled": the scheduler went away (the client gave up reconnecting)
         return Outcome(i, error=gone or f"task {fut.status} by the cluster", kind="executor")
