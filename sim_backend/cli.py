@@ -106,9 +106,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--engine",
         choices=ENGINES,
         default="auto",
-        help="robot: the robot's whole loop at the compass rate; receiver: the receiver "
-        "alone at a standing antenna (a static survey, ~20x faster; it ignores the robot's "
-        "settings, with a warning); auto (default): receiver for a scenario without "
+        help="robot: the robot's whole loop (at 20 Hz or more on a mission); receiver: the "
+        "receiver alone at a standing antenna (a static survey, ~20x faster; it ignores the "
+        "robot's settings, with a warning); auto (default): receiver for a scenario without "
         "waypoints, unless it (or --config) sets what only the robot reads ([navigation], "
         "[safety], [failsafe], [odometry], [gnss_noise], [encoders], compass [[effects]]: "
         "said in one note); robot otherwise",

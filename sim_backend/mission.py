@@ -4,7 +4,9 @@ receiver engine, :mod:`sim_backend.survey`, unless ``--engine robot``).
 
 This is the fast-time edge of the one loop (:class:`x6wd.loop.runner.Runner`, the object the
 daemon drives in real time): the simulator steps its world at the compass rate (20 Hz by
-default) in simulated seconds and hands the runner what the devices would::
+default; on a mission a whole multiple of it of at least 20 Hz, the daemon's tick, the
+compass read at its own rate: :func:`sim_backend.runs.robot_clock`) in simulated seconds
+and hands the runner what the devices would::
 
     vehicle (skid steer) ──> compass register map ──> drivers.cmps10 ──> Runner.attitude
          │                                                                  │
@@ -189,7 +191,7 @@ class _Trace:
     """What the loop keeps for the figures and files, all in packed columns (8 bytes a
     value, not a 32-byte float object, its pointer and a tuple or a dict entry around it).
 
-    Per tick (the compass rate): t, east, north, up, heading; a 10 h mission at 60 Hz keeps
+    Per tick (the loop's clock): t, east, north, up, heading; a 10 h mission at 60 Hz keeps
     2.2 million of each. Per GPS epoch ``i`` (tick ``i * gps_every``): the true antenna's
     east/north (m) and lat/lon (deg). Per valid fix: its epoch tick, the raw lat/lon and the
     filtered lat/lon (deg; NaN for both when the robot had no filtered position), then
@@ -263,7 +265,7 @@ def run_mission(
     ``summary.json``'s wall-time figure).
 
     ``operator(t_s, runner)`` scripts an operator: it is called once per simulation tick
-    (the compass rate), right after the runner's tick at simulated time ``t_s`` (s), with the
+    (the loop's clock), right after the runner's tick at simulated time ``t_s`` (s), with the
     run's :class:`~x6wd.loop.runner.Runner`, whose clock then reads ``t_s``. It may make any
     operator request there (``runner.command("return")``, ``"pause"``, ``"resume"``,
     ``runner.operator_seen()``, ``runner.stop()``, ...) exactly as the daemon's control

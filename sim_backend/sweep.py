@@ -423,6 +423,8 @@ def base_table(path: Path, robot_config: Path | None) -> tuple[dict[str, Any], P
             world = with_robot_config(world, robot_config)
         except ConfigError as exc:  # its message may begin with the path already
             said = str(exc)
+            if world.source is not None and said.startswith(str(world.source)):
+                raise  # the scenario's own key (or both files named): not the robot config's
             where = (
                 "robot_config"
                 if said.startswith(str(robot_config))

@@ -917,22 +917,42 @@ def with_robot_config(world: World, robot_config: str | Path) -> World:
     base = world.source.parent if world.source is not None else Path(".")
     try:  # the rates' checks on the merged [safety] (load_world's check_rates=False)
         merged_world = _build_world(data, base, world.source, known=world)
-    except ConfigError as exc:  # a key of either file: both named
-        raise ConfigError(f"{world.source or 'the scenario'} with {p}: {exc}") from exc
+    except ConfigError as exc:
+        raise _merged_blame(exc, world, p) from exc
     check_drive_vs_stuck(merged_world.navigation, merged_world.failsafe)
     return merged_world
 
 
+def _merged_blame(exc: ConfigError, world: World, robot_config: Path) -> ConfigError:
+    """``exc`` of the scenario ``world`` merged with ``robot_config``, naming the file that
+    holds its key: the scenario's own key by the scenario's own check (its file, through
+    its includes), a robot section's key the scenario does not set by the robot config,
+    anything else by both."""
+    said = str(exc)
+    sec, _, name = said.split(":", 1)[0].partition(".")
+    if sec in ROBOT_SECTIONS and name:
+        if name in (world.raw.get(sec) or {}) and world.source is not None:
+            try:
+                load_world(world.source)  # the scenario alone, with its rates' checks
+            except ConfigError as own:
+                return own
+        else:
+            where = world.source or "the scenario"
+            return ConfigError(f"{robot_config}: {said} (the rates of {where})")
+    return ConfigError(f"{world.source or 'the scenario'} with {robot_config}: {said}")
+
+
 def robot_config_notes(world: World, robot_config: str | Path) -> list[str]:
     """What ``robot_config`` sets that :func:`with_robot_config` does not lay under the
-    scenario, said rather than dropped: its GPS and compass rates, where they are not the
-    scenario's (the simulated receiver and compass are the scenario's; an outside audit's
-    4 Hz GPS and 5 Hz compass ran at 1 and 20 Hz without a word)."""
+    scenario, said rather than dropped: its GPS and compass rates, where it sets them to other
+    than the scenario's (the simulated receiver and compass are the scenario's; an outside
+    audit's 4 Hz GPS and 5 Hz compass ran at 1 and 20 Hz without a word)."""
     from sim_backend.compass import CompassSetup
     from x6wd.core.config import load
 
     p = Path(robot_config)
     cfg = load(p)
+    written = tomllib.loads(p.read_text(encoding="utf-8").removeprefix("\ufeff"))
     notes = []
     pairs = (
         ("gps.rate_hz", cfg.gps.rate_hz, "[gnss] rate_hz", world.gnss.rate_hz),
@@ -940,6 +960,9 @@ def robot_config_notes(world: World, robot_config: str | Path) -> list[str]:
          CompassSetup.from_table(world.compass).rate_hz),
     )  # fmt: skip
     for key, robot_hz, scenario_key, scenario_hz in pairs:
+        sec, name = key.split(".")
+        if name not in (written.get(sec) or {}):
+            continue  # the file does not set it: nothing of its to say
         if abs(robot_hz - scenario_hz) > 1e-9:
             notes.append(
                 f"{p}: {key} = {robot_hz:g} Hz is not the scenario's {scenario_key} ="

@@ -14,7 +14,16 @@ from tests.conftest import ROOT
 
 
 @pytest.mark.parametrize(
-    "body", [b"", b"\n\n", b"\xef\xbb\xbf", b"\xef\xbb\xbf\r\n\r\n", b"\xef\xbb\xbf  \n"]
+    "body",
+    [
+        b"",
+        b"\n\n",
+        b"\xef\xbb\xbf",
+        b"\xef\xbb\xbf\r\n\r\n",
+        b"\xef\xbb\xbf  \n",
+        b"\n\xef\xbb\xbf\n",  # the review: a BOM after a blank line, two BOMs (files joined)
+        b"\xef\xbb\xbf\xef\xbb\xbf\n",
+    ],
 )
 def test_an_empty_or_blank_input_is_no_error(tmp_path: Path, body: bytes) -> None:
     f = tmp_path / "empty.nmea"

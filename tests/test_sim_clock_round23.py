@@ -80,10 +80,21 @@ def test_sim_config_s_safety_is_checked_against_the_scenario_s_rates(tmp_path: P
     assert "attitude_stale_s = 2.5 " in robot.read_text()
     ran = _sim(scenario, "--config", str(robot), "--out", str(tmp_path / "o"))
     assert ran.returncode in (0, 1), ran.stderr  # ran (5 s do not finish the mission)
-    # the shipped config's 0.5 s is too short for a 1 Hz compass: both files and the key named
+    # the shipped config's 0.5 s is too short for a 1 Hz compass: the config named, its key
     bad = _sim(scenario, "--config", str(ROBOT), "--out", str(tmp_path / "o2"))
     assert bad.returncode == 2
-    assert f"{scenario} with {ROBOT}: safety.attitude_stale_s: 0.5 s" in bad.stderr
+    assert f"{ROBOT}: safety.attitude_stale_s: 0.5 s" in bad.stderr
+    assert f"(the rates of {scenario})" in bad.stderr
+    # the scenario's own 0.5 s through an include, under a config of 2.5 s (the review): the
+    # file that holds the key, through its include, not the robot config
+    own = tmp_path / "own.toml"
+    own.write_text(ONE_HZ + "[safety]\nattitude_stale_s = 0.5\n")
+    top = tmp_path / "top.toml"
+    top.write_text(f'include = ["{own}"]\n')
+    mine = _sim(top, "--config", str(robot), "--out", str(tmp_path / "o4"))
+    assert mine.returncode == 2
+    assert f"{own}: safety.attitude_stale_s: 0.5 s" in mine.stderr, mine.stderr
+    assert f"included from {top}" in mine.stderr and str(robot) not in mine.stderr
     # no robot config: the scenario's own check, as before
     alone = _sim(scenario, "--out", str(tmp_path / "o3"))
     assert alone.returncode == 2 and f"{scenario}: safety.attitude_stale_s" in alone.stderr
@@ -115,3 +126,22 @@ def test_sim_config_s_rates_that_are_not_the_scenario_s_are_said(tmp_path: Path)
     assert "gps.rate_hz" not in ran.stderr  # 1 Hz in both: nothing to say
     same = _sim(DEFAULT, "--config", str(ROBOT), "--out", str(tmp_path / "o2"))
     assert same.returncode in (0, 1) and "rate_hz" not in same.stderr, same.stderr
+
+
+def test_a_sweep_names_the_scenario_for_its_own_key_not_the_robot_config(tmp_path: Path) -> None:
+    from sim_backend.sweep import load_sweep, plan
+    from tests.test_sweep import sweep_file
+    from x6wd.core.errors import ConfigError
+
+    own = tmp_path / "own.toml"
+    own.write_text(ONE_HZ + "[safety]\nattitude_stale_s = 0.5\n")
+    robot = tmp_path / "x6wd.toml"
+    robot.write_text(
+        ROBOT.read_text().replace("attitude_stale_s = 0.5 ", "attitude_stale_s = 2.5 ", 1)
+    )
+    f = sweep_file(tmp_path, f'robot_config = "{robot}"\nseeds = 1\n', (own,))
+    with pytest.raises(ConfigError) as err:
+        plan(load_sweep(f))
+    said = str(err.value)
+    assert "safety.attitude_stale_s: 0.5 s" in said and str(own) in said
+    assert "robot_config" not in said and str(robot) not in said

@@ -169,12 +169,12 @@ class InputSize:
         self.blank = True
 
     def add(self, chunk: bytes) -> None:
-        """Count ``chunk``, the input's next bytes; a leading byte-order mark (a Windows
-        editor's) is blank too (a BOM and blank lines were refused where an empty file was
-        not: an outside audit)."""
-        first = self.bytes == 0
+        """Count ``chunk``, the input's next bytes; a byte-order mark (a Windows editor's,
+        or several where such files were joined) is blank too (a BOM and blank lines were
+        refused where an empty file was not: an outside audit). A BOM split across two
+        chunks is not seen as one (the chunks are large: a first-line matter)."""
         self.bytes += len(chunk)
-        if self.blank and (chunk.removeprefix(b"\xef\xbb\xbf") if first else chunk).strip():
+        if self.blank and chunk.replace(b"\xef\xbb\xbf", b"").strip():
             self.blank = False
 
 
