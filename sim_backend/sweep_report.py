@@ -491,20 +491,15 @@ def _plots(cells: Sequence[CellStats], out: Path) -> list[str]:
             ax.axvline(1.0, color="grey", lw=0.8)
         save(fig, name)
 
-    if "path_ratio.png" in plan:
-        dots(
-            "path_ratio.png",
-            [[x for x in c.path_ratios if math.isfinite(x)] for c in cells],
-            "true path length / straight polyline (completed runs)",
-            "Path ratio per cell",
-        )
-    if "gps_cep50.png" in plan:
-        dots(
-            "gps_cep50.png",
-            [[x for x in c.gps_cep50_m if math.isfinite(x)] for c in cells],
-            "GPS CEP50 of each run's raw fixes against the truth (m)",
-            "GPS CEP50 per cell",
-        )
+    per_run = (  # file, each cell's per-run figures, x label, title
+        ("path_ratio.png", [c.path_ratios for c in cells],
+         "true path length / straight polyline (completed runs)", "Path ratio per cell"),
+        ("gps_cep50.png", [c.gps_cep50_m for c in cells],
+         "GPS CEP50 of each run's raw fixes against the truth (m)", "GPS CEP50 per cell"),
+    )  # fmt: skip
+    for name, values, xlabel, title in per_run:
+        if name in plan:
+            dots(name, [[x for x in v if math.isfinite(x)] for v in values], xlabel, title)
     return names
 
 
