@@ -907,7 +907,7 @@ def with_robot_config(world: World, robot_config: str | Path) -> World:
 
     p = Path(robot_config)
     load(p)  # validates the whole file, with its error messages
-    robot = tomllib.loads(p.read_text(encoding="utf-8").removeprefix("\ufeff"))
+    robot = _robot_table(p)
     data = copy.deepcopy(world.raw)
     for sec in ROBOT_SECTIONS:
         merged = dict(robot.get(sec, {}))
@@ -921,6 +921,12 @@ def with_robot_config(world: World, robot_config: str | Path) -> World:
         raise _merged_blame(exc, world, p) from exc
     check_drive_vs_stuck(merged_world.navigation, merged_world.failsafe)
     return merged_world
+
+
+def _robot_table(path: Path) -> dict[str, Any]:
+    """The robot config file's TOML as written (a byte-order mark allowed, as the robot's
+    loader allows it); validate it with :func:`x6wd.core.config.load` first."""
+    return tomllib.loads(path.read_text(encoding="utf-8").removeprefix("\ufeff"))
 
 
 def _merged_blame(exc: ConfigError, world: World, robot_config: Path) -> ConfigError:
@@ -952,7 +958,7 @@ def robot_config_notes(world: World, robot_config: str | Path) -> list[str]:
 
     p = Path(robot_config)
     cfg = load(p)
-    written = tomllib.loads(p.read_text(encoding="utf-8").removeprefix("\ufeff"))
+    written = _robot_table(p)
     notes = []
     pairs = (
         ("gps.rate_hz", cfg.gps.rate_hz, "[gnss] rate_hz", world.gnss.rate_hz),
