@@ -50,6 +50,7 @@ from x6wd.gap.io import (
 )
 from x6wd.gap.report import (
     FIGURES,
+    candidate_text,
     remove_earlier_calibration,
     spread_text,
     verdict_line,
@@ -1032,7 +1033,12 @@ def main(args: argparse.Namespace) -> int:
     print(f"{verdict}{extra}; report in {Path(args.out) / 'report.md'}")
     calibration = diagnosis.calibration
     if calibration is not None:
-        print(f"validation, selected effects only: {calibration.selected.summary()}")
+        if diagnosis.written:
+            print(f"validation, selected effects only: {calibration.selected.summary()}")
+        else:
+            print(f"validation, the baseline runs alone: {calibration.selected.summary()}")
+        if diagnosis.candidate_validation is not None:
+            print(candidate_text(diagnosis))
         print(
             f"validation, calibrated (in sample; {Path(args.out) / 'calibrated.toml'}): "
             f"{calibration.calibrated.summary()}; the runs' own spread: "

@@ -20,7 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_backend.effects import PositionSeries, gm2_transition, truth_velocity_mps
+from sim_backend.effects import (
+    PositionSeries,
+    delay_errors,
+    gm2_transition,
+    truth_velocity_mps,
+)
 from x6wd.gap.noise import NoiseModel
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -79,14 +84,26 @@ class KalmanTerms:
         return (cov @ c[..., None])[..., 0], np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
 
 
-def latency_regressor(series: PositionSeries) -> np.ndarray | None:
-    """(2, n) the east/north error (m) per second of delay at the valid epochs: -velocity,
-    since a receiver that is d s late reports truth(t - d) ~ truth(t) - d v(t). None at rest."""
+def latency_regressor(series: PositionSeries, near_s: float = 0.0) -> np.ndarray | None:
+    """(2, n) the east/north error (m) per second of delay at the valid epochs. Near 0 s
+    (``near_s`` 0) it is -velocity, since a receiver that is d s late reports truth(t - d) ~
+    truth(t) - d v(t); near a delay ``near_s`` > 0 it is the exact error of that delay over
+    it, (truth(t - near_s) - truth(t)) / near_s (:func:`~sim_backend.effects.delay_errors`,
+    what the Latency layer adds): on a route that stops and turns, -d v(t) misses the start
+    and end of every leg, and the delay fitted with it was 1.5-1.6 s for 2 s. None at rest."""
     if series.speed_mps is None:
         return None
     valid = np.asarray(series.valid, dtype=bool)
     if not np.any(np.nan_to_num(np.asarray(series.speed_mps, dtype=float))[valid] > 0):
         return None
+    if near_s > 0.0:
+        delayed = delay_errors(series, near_s)
+        return np.stack(
+            [
+                (np.asarray(delayed.east_m) - np.asarray(series.east_m))[valid] / near_s,
+                (np.asarray(delayed.north_m) - np.asarray(series.north_m))[valid] / near_s,
+            ]
+        )
     v_east_mps, v_north_mps = truth_velocity_mps(series)
     return -np.stack([v_east_mps[valid], v_north_mps[valid]])
 
@@ -138,6 +155,7 @@ def kalman_terms(
     effect_var: np.ndarray,
     effect_tau_s: np.ndarray,
     order: int = 1,
+    latency_near_s: float = 0.0,
 ) -> KalmanTerms:
     """Run the Kalman filter of baseline model + one effect component for a batch of effect
     parameters: ``effect_var`` (B,) the stationary variance sigma^2 (m^2) of a Gauss-Markov
@@ -151,7 +169,7 @@ def kalman_terms(
     east_m = np.asarray(real.east_m, dtype=float)[valid]
     north_m = np.asarray(real.north_m, dtype=float)[valid]
     error_m = np.stack([east_m, north_m]) - model.mean_m[:, None]  # (2, n)
-    latency = latency_regressor(real)
+    latency = latency_regressor(real, latency_near_s)
     n_epochs = t_s.size
     batch = effect_var.size
     n_cols = 2 if latency is None else 3

@@ -523,6 +523,22 @@ def _part(series: PositionSeries, span_s: tuple[float, float], own: bool) -> Pos
     return against_own_mean(part) if own else part
 
 
+def validate_with(
+    real: PositionSeries,
+    runs: Sequence[PositionSeries],
+    fits: Sequence[Fit],
+    apply: Apply,
+    lattice: Lattice,
+    layout: tuple[float, float],
+) -> Validation:
+    """Seed 000's validation of ``runs`` with ``fits`` added (a lattice last, on it) against
+    ``real``; ``layout``: the log's step and length (s)."""
+    tail = [fit for fit in fits if fit.name == "quantization"]
+    effects = [fit for fit in fits if fit.name != "quantization"]
+    with_fits = apply(effects, runs, np.random.default_rng(SEED), None)
+    return validate(real, apply(tail, with_fits, np.random.default_rng(0), lattice), *layout)
+
+
 def calibrate_checked(
     real: PositionSeries,
     runs: Sequence[PositionSeries],
@@ -600,13 +616,7 @@ def calibrate_checked(
     order = {name: i for i, name in enumerate(LEVEL_LAYERS)}
     reasons = tuple(sorted(left_out.items(), key=lambda item: order[item[0]]))
     if whole is None:
-        v_selected = validate(
-            real,
-            apply(tail, apply(effects, runs, np.random.default_rng(SEED), None),
-                  np.random.default_rng(0), lattice),
-            dt_s,
-            duration_s,
-        )  # fmt: skip
+        v_selected = validate_with(real, runs, selected, apply, lattice, layout)
         return Calibration(
             v_selected, v_selected, (), evaluations, left_out=reasons, held_out_s=(test0_s, test1_s)
         )

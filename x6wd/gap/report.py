@@ -102,14 +102,16 @@ def effects_toml(
     calibrated: bool = False,
     verdict: str | None = None,
 ) -> str:
-    """The selected effects (GPS, then compass layers) as ``[[effects]]`` tables (comment-only
-    text when none); ``calibrated``: with the level calibration's layers after the GPS ones
-    (calibrated.toml). A multipath zone's wall is fitted in metres from the log's first true
-    position; with ``origin_deg`` (the scenario's origin, lat/lon deg) it is moved into that
-    scenario's local frame, where the simulator evaluates zones. ``verdict``: the header's
+    """The written effects (:attr:`~x6wd.gap.pipeline.Outcome.written`; GPS, then compass
+    layers) as ``[[effects]]`` tables (comment-only text when none; a selection that does not
+    explain its half's gap follows commented out); ``calibrated``: with the level
+    calibration's layers after the GPS ones (calibrated.toml). A multipath zone's wall is
+    fitted in metres from the log's first true position; with ``origin_deg`` (the scenario's
+    origin, lat/lon deg) it is moved into that scenario's local frame, where the simulator
+    evaluates zones. ``verdict``: the header's
     verdict (default :func:`verdict_text`)."""
     verdict = verdict_text(diagnosis) if verdict is None else verdict
-    gps = list(diagnosis.selected)
+    gps = diagnosis.written
     if calibrated and diagnosis.calibration is not None:
         c = diagnosis.calibration
         gps += c.layers
@@ -119,7 +121,11 @@ def effects_toml(
             '# report.md); use it INSTEAD of effects.toml: include = ["calibrated.toml"]',
         ]
         if not c.layers:
-            lines.append("# no level layer is kept: this file holds the selected effects only")
+            lines.append(
+                "# no level layer is kept: this file holds the selected effects only"
+                if gps
+                else "# no level layer is kept and no effect explains the gap: nothing to add"
+            )
         lines += [f"# level layer left out: {name}: {why}" for name, why in c.left_out]
     else:
         lines = [
@@ -136,7 +142,17 @@ def effects_toml(
             ((origin_lon_deg - origin_deg[1] + 180.0) % 360.0 - 180.0) * m_per_deg_lon,  # ±180
             (origin_lat_deg - origin_deg[0]) * m_per_deg_lat,
         )
-    for fit in [*gps, *(compass.selected if compass is not None else [])]:
+    halves: list[Outcome[Any, Any]] = [diagnosis, *([compass] if compass is not None else [])]
+    candidates = [fit for half in halves if not half.written for fit in half.selected]
+    if candidates:
+        lines += [
+            f"# not written: {' + '.join(f.name for f in candidates)}, the best candidate of a "
+            f"gap it does not explain (held-out closure below {EXPLAINED_CLOSURE:g});",
+            "# report.md validates it; to try it anyway, remove the '# ' of its lines below",
+        ]
+    written = [*gps, *(compass.written if compass is not None else [])]
+    for fit, live in [*((f, True) for f in written), *((f, False) for f in candidates)]:
+        start = len(lines)
         params = fit.effect.to_params()
         lines.append("")
         if fit.name == "multipath_zone":
@@ -150,6 +166,9 @@ def effects_toml(
         lines.append("[[effects]]")
         for key, value in params.items():
             lines.append(f"{key} = {_toml_value(value)}")
+        if not live:
+            lines[start + 1 :] = [line if line.startswith("#") else f"# {line}"
+                                  for line in lines[start + 1 :]]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
@@ -266,10 +285,12 @@ def write_report(
             out / "calibrated.toml",
             effects_toml(diagnosis, compass, origin_deg, calibrated=True, verdict=verdict),
         )
-        write_output_file(
-            out / "validation.json",
-            json.dumps(validation_dict(diagnosis.calibration), indent=2) + "\n",
-        )
+        validation = validation_dict(diagnosis.calibration)
+        # a selection that does not explain the gap: its own validation ("selected" is then
+        # the baseline runs', which is what the files hold)
+        candidate = diagnosis.candidate_validation
+        validation["candidate"] = None if candidate is None else _validation_json(candidate)
+        write_output_file(out / "validation.json", json.dumps(validation, indent=2) + "\n")
     elif diagnosis.validation is not None:
         remove_earlier_calibration(out)
         write_output_file(
@@ -477,7 +498,13 @@ def markdown(
                 f"[{cand.closure_ci[0]:.2f}, {cand.closure_ci[1]:.2f}] | "
                 f"{'yes' if cand.fit.name in selected else ''} |"
             )
-        lines += ["", "The selected effects are in `effects.toml` (a scenario fragment)."]
+        lines += [
+            "",
+            "The selected effects are in `effects.toml` (a scenario fragment)."
+            if diagnosis.written
+            else "The selection does not explain the gap: `effects.toml` and `calibrated.toml`"
+            " hold it commented out (the validation below says what it would do).",
+        ]
         if head["closure"] is not None:
             lines += [
                 "",
@@ -499,10 +526,12 @@ def markdown(
             "",
             *validation_markdown(
                 diagnosis.calibration,
-                [f.name for f in diagnosis.selected],
+                [f.name for f in diagnosis.written],
                 own_mean(diagnosis.real),
             ),
         ]
+        if diagnosis.candidate_validation is not None:
+            lines += ["", candidate_text(diagnosis)]
     elif diagnosis.validation is not None:
         lines += ["", *uncalibrated_markdown(diagnosis.validation, own_mean(diagnosis.real))]
     if figures:
@@ -723,6 +752,21 @@ def _num(x: float) -> float | None:  # JSON has no NaN
     return round(float(x), 6) if math.isfinite(x) else None
 
 
+def candidate_text(diagnosis: Diagnosis) -> str:
+    """What the best candidate of a gap it does not explain would do to seed 000's figures
+    (its validation against the baseline's), in one line."""
+    v = diagnosis.candidate_validation
+    assert v is not None and diagnosis.calibration is not None
+    names = " + ".join(f.name for f in diagnosis.selected)
+    return (
+        f"The best candidate, {names}, is not written (held-out closure "
+        f"{diagnosis.closure:.2f}, {EXPLAINED_CLOSURE:g} needed). With it: "
+        f"{'PASS' if v.passed else 'FAIL'} (furthest off: {v.worst_text()}); "
+        f"{closeness_text(v)}, against the baseline runs' "
+        f"{closeness_text(diagnosis.calibration.selected)}."
+    )
+
+
 def _validation_json(v: Validation) -> dict[str, Any]:
     """One validation's part of validation.json."""
     figures = []
@@ -766,6 +810,7 @@ def uncalibrated_dict(v: Validation) -> dict[str, Any]:
         "evaluations": 0,
         "at_edge": [],
         "not_calibrated": NO_CALIBRATION,
+        "candidate": None,
     }
 
 
