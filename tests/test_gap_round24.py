@@ -33,9 +33,10 @@ from tests.test_gap_verdict_round3 import _log as _static_log
 from x6wd.gap.diagnose import Diagnosis, GpsPipeline, Options, diagnose
 from x6wd.gap.drift import fit_latency
 from x6wd.gap.fitted import Fit
+from x6wd.gap.null import loo_gaps
 from x6wd.gap.pipeline import Option
 from x6wd.gap.report import effects_toml, write_report
-from x6wd.gap.stats import layout_for
+from x6wd.gap.stats import Cell, layout_for
 from x6wd.gap.surrogate import BASELINE_EFFECTS
 
 PRE = BASELINE_EFFECTS[:-1]  # the baseline before NMEA printing
@@ -77,6 +78,22 @@ def test_a_latency_on_a_route_that_stops_and_turns_is_fitted_near_its_delay(
     assert abs(got_s - delay_s) < max(3.0 * se_s, 0.1 * delay_s), (got_s, se_s)
 
 
+def test_a_pooled_null_leaves_each_run_out_with_all_its_draws() -> None:
+    # 4 draws of an effect that changes nothing are 4 copies of each run: scored against its
+    # own copies a run's G fell, and the floor with it (the review of 2026-12-08)
+    rng = np.random.default_rng(5)
+    cells = [Cell("adev", "east", f"tau={i}s") for i in range(60)]
+    one = rng.normal(size=(8, 60))
+    pooled = np.tile(one, (4, 1))
+    floor_one = float(np.mean(loo_gaps(one, cells)))
+    floor_grouped = float(np.mean(loo_gaps(pooled, cells, groups=8)))
+    floor_rows = float(np.mean(loo_gaps(pooled, cells)))
+    assert abs(floor_grouped - floor_one) < 0.15 * floor_one, (floor_grouped, floor_one)
+    assert floor_rows < 0.7 * floor_one  # what leaving out one row at a time gave
+    # one draw: the grouping is each row alone, as before
+    assert np.array_equal(loo_gaps(one, cells, groups=8), loo_gaps(one, cells))
+
+
 def _option(effect: object, g_fits: float, null: object) -> Option:
     fit = Fit(effect)
     return Option(fit, g_fits, g_fits, null, [fit], g_fits)  # type: ignore[arg-type]
@@ -90,13 +107,14 @@ def test_an_effect_is_judged_past_the_floor_of_its_own_runs() -> None:
     pipe.split = SimpleNamespace(  # type: ignore[assignment]
         g_baseline=1.97, g_floor=0.97, ref_sd_test=None
     )
-    own = SimpleNamespace(floor=lambda ref_sd: 0.36)
+    own = SimpleNamespace(n_runs=3, floor=lambda ref_sd, groups: 0.36)
     latency = _option(Latency(1.6), g_fits=-0.13, null=own)
     best, g_new = pipe._first_to_enter([latency], [], 1.97, 0)
     assert best is latency and g_new == -0.13, pipe.passed_over
     # runs as spread as the baseline's (their floor 0.97): the same G is an overshoot
     pipe.passed_over = {}
-    spread = _option(Latency(1.6), g_fits=-0.13, null=SimpleNamespace(floor=lambda ref_sd: 0.97))
+    alike = SimpleNamespace(n_runs=3, floor=lambda ref_sd, groups: 0.97)
+    spread = _option(Latency(1.6), g_fits=-0.13, null=alike)
     assert pipe._first_to_enter([spread], [], 1.97, 0)[0] is None
     (reason,) = pipe.passed_over["latency"]
     assert "it overshot: closure 2.10" in reason and "the runs with it, 0.97" in reason
@@ -122,20 +140,24 @@ def test_a_selection_that_does_not_explain_the_gap_is_not_written(
     assert partly.written == []
     text = effects_toml(partly)
     assert "effects" not in tomllib.loads(text), text  # nothing a scenario would take in
-    assert "# not written: noise_scale, the best candidate" in text
-    assert '# [[effects]]\n# name = "noise_scale"' in text  # there to uncomment
+    assert "# not written: GPS noise_scale, the best candidate" in text
+    assert '#~ [[effects]]\n#~ name = "noise_scale"' in text  # there to uncomment
     # calibrated.toml holds the level layers alone, fitted against the baseline runs alone
     c = partly.calibration
     assert c is not None and partly.validation is c.selected
-    calibrated = tomllib.loads(effects_toml(partly, calibrated=True))
+    calibrated_text = effects_toml(partly, calibrated=True)
+    calibrated = tomllib.loads(calibrated_text)
     assert [e["name"] for e in calibrated.get("effects", [])] == [f.name for f in c.layers]
+    # named there, not offered: its level was fitted without it (no untested mix to uncomment)
+    assert "# not written: GPS noise_scale" in calibrated_text
+    assert "#~ " not in calibrated_text
     v = partly.candidate_validation
     assert v is not None and v.mean_sim_m != c.selected.mean_sim_m
     write_report(partly, tmp_path, figures=False)
     md = (tmp_path / "report.md").read_text()
     assert "The selection does not explain the gap" in md
     assert "The best candidate, noise_scale, is not written (held-out closure" in md
-    assert "(a) the baseline runs alone (no effect selected)" in md
+    assert "(a) the baseline runs alone (no effect written)" in md
     figures = json.loads((tmp_path / "validation.json").read_text())
     assert figures["candidate"]["figures"][0]["simulated"] == pytest.approx(v.mean_sim_m, 1e-5)
     # the same selection explaining the gap is written, live

@@ -422,7 +422,7 @@ def fit_bias(
 
 # The latency's regressor is the exact error of a delay over it, taken at the delay fitted
 # last (x6wd.gap.kalman.latency_regressor): a fixed point reached in 4-6 rounds on a 234 s
-# zigzag (2 s: 1.49, 1.95, 2.01, 2.02; 4 s: 1.88, 2.70, 3.43, 3.89, 4.04, 4.07)
+# zigzag's fit part (2 s: 1.49, 1.95, 2.01, 2.02; 4 s: 1.88, 2.70, 3.43, 3.89, 4.04, 4.07)
 LATENCY_ROUNDS = 8
 LATENCY_TOLERANCE_S = 0.01
 
@@ -430,19 +430,31 @@ LATENCY_TOLERANCE_S = 0.01
 def latency_gls(real: PositionSeries, model: NoiseModel) -> tuple[float, float] | None:
     """The delay (s) and its standard error by exact GLS with a bias per axis on top of the
     noise ``model``, iterated to a fixed point of the regressor's delay; None when the log
-    does not move or no positive delay fits."""
+    does not move or no positive delay fits. Should the iteration leave the log's span
+    (a delay beyond a quarter of it), turn non-positive or take growing steps, the first
+    round's estimate (-velocity's, as before 2026-12-08) is kept."""
     if latency_regressor(real) is None:
         return None
-    near_s = 0.0
+    t_s = np.asarray(real.t_s, dtype=float)
+    limit_s = 0.25 * float(t_s[-1] - t_s[0])
+    near_s, step_s = 0.0, math.inf
+    first: tuple[float, float] | None = None
     for _ in range(LATENCY_ROUNDS):
         terms = kalman_terms(real, model, np.zeros(1), np.ones(1), latency_near_s=near_s)
         coef, se = terms.coef(True, True)
         delay_s, se_delay_s = float(coef[0, -1]), float(se[0, -1])
-        if not math.isfinite(delay_s) or delay_s <= 0:
-            return None
-        if abs(delay_s - near_s) < LATENCY_TOLERANCE_S:
+        if not (math.isfinite(delay_s) and 0.0 < delay_s <= limit_s):
+            return first
+        if first is None:  # -velocity's estimate: the iteration starts from it
+            first = (delay_s, se_delay_s)
+            near_s = delay_s
+            continue
+        step = abs(delay_s - near_s)
+        if step > step_s:  # steps that grow: moving away from a fixed point
+            return first
+        if step < LATENCY_TOLERANCE_S:
             break
-        near_s = delay_s
+        near_s, step_s = delay_s, step
     return delay_s, se_delay_s
 
 

@@ -787,10 +787,11 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
         makes the runs alike in some statistic (a latency: the same delay on the same route)
         lowers their own G below the baseline's floor through G's spread term; a real log
         that sits as close to them as they sit to each other has not overshot them (a 2 s
-        latency on a 234 s zigzag: G -0.13, its runs' floor 0.36, the baseline's 0.97)."""
+        latency on a 234 s zigzag: G -0.21, its runs' floor 0.49, the baseline's 0.97)."""
         if null is None:
             return self.split.g_floor
-        return null.floor(self.split.ref_sd_test)
+        # a pooled null holds fresh_draws draws of each run: a run is left out with its draws
+        return null.floor(self.split.ref_sd_test, groups=null.n_runs // max(self.fresh_draws, 1))
 
     def _pass_over(self, name: str, reason: str) -> None:
         """Keep why ``name`` did not enter (for the report's notes)."""

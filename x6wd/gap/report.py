@@ -22,6 +22,7 @@ from x6wd.gap.compass import (
     regression,
 )
 from x6wd.gap.diagnose import Diagnosis, headline, report_dict, verdict_text
+from x6wd.gap.fitted import Fit
 from x6wd.gap.level import Calibration, closeness_text
 from x6wd.gap.null import NullModel
 from x6wd.gap.pipeline import EXPLAINED_CLOSURE, Outcome
@@ -79,6 +80,8 @@ ZONE_POINTS = ("x1_m", "y1_m", "x2_m", "y2_m")
 
 
 _OUR_HEADER = "# x6wd gap:"  # the first words of every TOML file this tool writes
+# the prefix of a candidate's lines in effects.toml (not "# ": a zone's own comment stays one)
+TRY_PREFIX = "#~ "
 
 
 def remove_earlier_calibration(out: Path) -> bool:
@@ -114,7 +117,7 @@ def effects_toml(
     gps = diagnosis.written
     if calibrated and diagnosis.calibration is not None:
         c = diagnosis.calibration
-        gps += c.layers
+        gps = [*gps, *c.layers]
         lines = [
             f"{_OUR_HEADER} fitted effects ({verdict}), then the level calibration",
             "# (in sample: fitted to seed 000's validation figures on this very log, see",
@@ -142,14 +145,24 @@ def effects_toml(
             ((origin_lon_deg - origin_deg[1] + 180.0) % 360.0 - 180.0) * m_per_deg_lon,  # ±180
             (origin_lat_deg - origin_deg[0]) * m_per_deg_lat,
         )
-    halves: list[Outcome[Any, Any]] = [diagnosis, *([compass] if compass is not None else [])]
-    candidates = [fit for half in halves if not half.written for fit in half.selected]
+    halves: list[tuple[str, Outcome[Any, Any] | None]] = [("GPS", diagnosis), ("compass", compass)]
+    candidates: list[Fit] = []
+    for sensor, half in halves:
+        if half is None or half.written or not half.selected:
+            continue
+        names = " + ".join(f.name for f in half.selected)
+        lines.append(
+            f"# not written: {sensor} {names}, the best candidate of a gap it does not explain"
+            f" (held-out closure {half.closure:.2f}, {EXPLAINED_CLOSURE:g} needed)"
+        )
+        if calibrated:  # this file's level was fitted without it: no mix to try here
+            lines.append("# (effects.toml holds it commented out; this file's level was fitted"
+                         " without it)")  # fmt: skip
+        else:
+            candidates += half.selected
     if candidates:
-        lines += [
-            f"# not written: {' + '.join(f.name for f in candidates)}, the best candidate of a "
-            f"gap it does not explain (held-out closure below {EXPLAINED_CLOSURE:g});",
-            "# report.md validates it; to try it anyway, remove the '# ' of its lines below",
-        ]
+        lines.append(f"# report.md validates it; to try it anyway, remove the '{TRY_PREFIX}' of"
+                     " its lines below")  # fmt: skip
     written = [*gps, *(compass.written if compass is not None else [])]
     for fit, live in [*((f, True) for f in written), *((f, False) for f in candidates)]:
         start = len(lines)
@@ -167,7 +180,7 @@ def effects_toml(
         for key, value in params.items():
             lines.append(f"{key} = {_toml_value(value)}")
         if not live:
-            lines[start + 1 :] = [line if line.startswith("#") else f"# {line}"
+            lines[start + 1 :] = [line if line.startswith("#") else f"{TRY_PREFIX}{line}"
                                   for line in lines[start + 1 :]]  # fmt: skip
     return "\n".join(lines) + "\n"
 
@@ -349,6 +362,10 @@ def compass_markdown(compass: CompassDiagnosis, figures: bool) -> str:
                 f"| {cand.fit.name} | {params} | {cand.closure:.2f} | "
                 f"[{cand.closure_ci[0]:.2f}, {cand.closure_ci[1]:.2f}] |"
             )
+    if compass.selected and not compass.written:
+        names = " + ".join(f.name for f in compass.selected)
+        lines += ["", f"The selection ({names}) does not explain the gap: `effects.toml` holds"
+                  " it commented out."]  # fmt: skip
     if figures:
         lines += ["", "![compass.png](compass.png)"]
     lines += [
@@ -498,13 +515,15 @@ def markdown(
                 f"[{cand.closure_ci[0]:.2f}, {cand.closure_ci[1]:.2f}] | "
                 f"{'yes' if cand.fit.name in selected else ''} |"
             )
-        lines += [
-            "",
-            "The selected effects are in `effects.toml` (a scenario fragment)."
-            if diagnosis.written
-            else "The selection does not explain the gap: `effects.toml` and `calibrated.toml`"
-            " hold it commented out (the validation below says what it would do).",
-        ]
+        if diagnosis.written:
+            lines += ["", "The selected effects are in `effects.toml` (a scenario fragment)."]
+        elif diagnosis.selected:
+            lines += [
+                "",
+                "The selection does not explain the gap: `effects.toml` holds it commented out"
+                " and `calibrated.toml`'s level is fitted without it (the validation below"
+                " says what it would do).",
+            ]
         if head["closure"] is not None:
             lines += [
                 "",
@@ -674,7 +693,7 @@ def validation_markdown(c: Calibration, effects: list[str], own: bool = False) -
     with_what = (
         f"the selected effects only ({' + '.join(effects)}, with the parameters reported above)"
         if effects
-        else "the baseline runs alone (no effect selected)"
+        else "the baseline runs alone (no effect written)"
     )
 
     def verdict(v: Validation) -> str:
