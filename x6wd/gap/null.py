@@ -485,10 +485,19 @@ def cell_shares(weights: np.ndarray) -> np.ndarray:
     return w / float(w.sum())
 
 
-def _loo_z(values: np.ndarray, cells: Sequence[Cell], i: int) -> np.ndarray:
-    rest = np.delete(values, i, axis=0)
+def _loo(
+    values: np.ndarray, cells: Sequence[Cell], i: int, groups: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Replicate ``i``'s z against the others and their spread; ``groups``: without every
+    draw of its run (:func:`loo_gaps`)."""
+    rows = np.arange(values.shape[0])
+    rest = values[rows % groups != i % groups] if groups else np.delete(values, i, axis=0)
     spread = spread_of(rest, cells)
-    return (values[i] - rest.mean(axis=0)) / spread
+    return (values[i] - rest.mean(axis=0)) / spread, spread
+
+
+def _loo_z(values: np.ndarray, cells: Sequence[Cell], i: int) -> np.ndarray:
+    return _loo(values, cells, i)[0]
 
 
 def loo_gaps(
@@ -505,11 +514,9 @@ def loo_gaps(
     and scoring against them lowered the floor of an effect that does nothing (60 cells,
     8 runs x 4 draws: 0.98 against one draw's 1.73)."""
     out = []
-    rows = np.arange(values.shape[0])
-    for i in rows:
-        rest = values[rows % groups != i % groups] if groups else np.delete(values, i, axis=0)
-        spread = spread_of(rest, cells)
-        z = np.clip((values[i] - rest.mean(axis=0)) / spread, -Z_CLIP, Z_CLIP)
+    for i in range(values.shape[0]):
+        z, spread = _loo(values, cells, i, groups)
+        z = np.clip(z, -Z_CLIP, Z_CLIP)
         penalty = 0.0 if ref_sd is None else 2.0 * np.log(spread / ref_sd)
         out.append(float(np.average(z * z + penalty, weights=share)))
     return np.array(out)

@@ -747,8 +747,9 @@ class Pipeline(ABC, Generic[SeriesT, LayoutT, OutcomeT]):
                     )
                     continue
                 closure = closure_of(g_baseline, g_new, g_floor)
-                own_floor = self._own_floor(with_null) if closure > OVERSHOOT_CLOSURE else g_floor
-                if closure > OVERSHOOT_CLOSURE and g_new < own_floor - (g_baseline - g_floor):
+                if closure > OVERSHOOT_CLOSURE and g_new < (
+                    own_floor := self._own_floor(with_null)
+                ) - (g_baseline - g_floor):
                     self._pass_over(
                         best.fit.name,
                         f"round {round_no}: it overshot: closure {closure:.2f} (held-out G "
